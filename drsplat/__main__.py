@@ -1,0 +1,3 @@
+from drsplat.cli import main
+
+raise SystemExit(main())

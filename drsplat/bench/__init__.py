@@ -1,0 +1,1 @@
+"""Benchmarks behind `drsplat bench ...`. Each module defines `add_bench(subparsers)`."""

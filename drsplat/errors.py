@@ -1,0 +1,30 @@
+"""User-facing errors: one clear sentence that names the file, the field and the problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DrsplatError(Exception):
+    """An error caused by the user's input or environment; the CLI prints it and exits 1."""
+
+
+class InputError(DrsplatError):
+    """Bad input file. The message names the file, the field and the problem."""
+
+    def __init__(self, path: str | Path | None, problem: str, field: str | None = None):
+        self.path = None if path is None else Path(path)
+        self.field = field
+        self.problem = problem
+        where = f"{self.path}" if self.path is not None else "input"
+        if field:
+            where += f": field '{field}'"
+        super().__init__(f"{where}: {problem}")
+
+
+class WeightsUnavailableError(DrsplatError):
+    """Model weights could not be found or downloaded."""
+
+
+class Cancelled(DrsplatError):
+    """A long job was cancelled by the user (Ctrl-C or a cancel button)."""

@@ -1,0 +1,544 @@
+"""Gaussian scenes: the `GaussianScene` record and PLY input/output.
+
+Reads the INRIA 3DGS layout by property name (any order, with or without normals, SH degree
+0-3) and the SuperSplat/PlayCanvas compressed PLY. Writes exactly the INRIA layout.
+
+Non-finite policy (reported through `LoadReport`, never silent):
+- rows with NaN in any attribute are dropped;
+- +-inf opacity logits are clamped to +-MAX_OPACITY_LOGIT (sigmoid is already 0 or 1 there);
+- rows with +-inf anywhere else are dropped;
+- zero quaternions become the identity rotation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+SH_C0 = 0.28209479177387814
+MAX_OPACITY_LOGIT = 30.0
+SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
+
+
+@dataclass
+class GaussianScene:
+    """A trained 3DGS scene, in the parameterisation the optimiser uses.
+
+    means: [N, 3] float32 world positions.
+    quats: [N, 4] float32 rotations (w, x, y, z), as stored (not necessarily unit).
+    log_scales: [N, 3] float32, scale = exp(log_scales).
+    opacity_logits: [N] float32, opacity = sigmoid(opacity_logits).
+    sh: [N, K, 3] float32 SH coefficients, K = (degree + 1)^2, sh[:, 0] is the DC term.
+    extra: per-Gaussian attributes carried through load/save, name -> [N] array, in file order.
+    comments: PLY header comments carried through (drsplat keeps its metadata there).
+    """
+
+    means: np.ndarray
+    quats: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    comments: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        shapes = {
+            "means": (self.means, (n, 3)),
+            "quats": (self.quats, (n, 4)),
+            "log_scales": (self.log_scales, (n, 3)),
+            "opacity_logits": (self.opacity_logits, (n,)),
+        }
+        for name, (arr, shape) in shapes.items():
+            if arr.shape != shape:
+                raise ValueError(f"GaussianScene.{name} has shape {arr.shape}, expected {shape}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or self.sh.shape[1] not in (1, 4, 9, 16):
+            raise ValueError(f"GaussianScene.sh has shape {self.sh.shape}, expected [{n}, K, 3] with K in 1, 4, 9, 16")
+        for name, arr in self.extra.items():
+            if arr.shape[0] != n:
+                raise ValueError(f"GaussianScene.extra['{name}'] has {arr.shape[0]} rows, expected {n}")
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    def __len__(self) -> int:
+        return self.num_gaussians
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    def scales(self) -> np.ndarray:
+        """[N, 3] activated scales exp(log_scales)."""
+        return np.exp(self.log_scales)
+
+    def opacities(self) -> np.ndarray:
+        """[N] activated opacities sigmoid(logit)."""
+        return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64))).astype(np.float32)
+
+    def unit_quats(self) -> np.ndarray:
+        """[N, 4] normalised quaternions (w, x, y, z); zero quaternions map to identity."""
+        norm = np.linalg.norm(self.quats, axis=1, keepdims=True)
+        q = np.where(norm > 0, self.quats / np.where(norm > 0, norm, 1.0), np.array([1, 0, 0, 0], np.float32))
+        return q.astype(np.float32)
+
+    def rotations(self) -> np.ndarray:
+        """[N, 3, 3] rotation matrices of the unit quaternions."""
+        return quat_to_rotmat(self.unit_quats())
+
+    def covariances(self) -> np.ndarray:
+        """[N, 3, 3] world covariances Σ = R S Sᵀ Rᵀ with S = diag(scale)."""
+        m = self.rotations() * self.scales()[:, None, :]
+        return m @ m.transpose(0, 2, 1)
+
+    def base_colors(self) -> np.ndarray:
+        """[N, 3] view-independent RGB in [0, 1]: clip(0.5 + C0 · sh_dc)."""
+        return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)
+
+    def subset(self, index: np.ndarray) -> "GaussianScene":
+        """The Gaussians selected by a boolean mask [N] or an index array, extras included."""
+        return dataclasses.replace(
+            self,
+            means=self.means[index],
+            quats=self.quats[index],
+            log_scales=self.log_scales[index],
+            opacity_logits=self.opacity_logits[index],
+            sh=self.sh[index],
+            extra={k: v[index] for k, v in self.extra.items()},
+            comments=list(self.comments),
+        )
+
+    def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """([3], [3]) min and max of the means (zeros for an empty scene)."""
+        if self.num_gaussians == 0:
+            return np.zeros(3, np.float32), np.zeros(3, np.float32)
+        return self.means.min(axis=0), self.means.max(axis=0)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of unit quaternions.
+
+    q: [N, 4] (w, x, y, z). Returns [N, 3, 3].
+    """
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    r = np.empty((q.shape[0], 3, 3), dtype=q.dtype)
+    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    r[:, 0, 1] = 2 * (x * y - w * z)
+    r[:, 0, 2] = 2 * (x * z + w * y)
+    r[:, 1, 0] = 2 * (x * y + w * z)
+    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    r[:, 1, 2] = 2 * (y * z - w * x)
+    r[:, 2, 0] = 2 * (x * z - w * y)
+    r[:, 2, 1] = 2 * (y * z + w * x)
+    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+# ----------------------------------------------------------------------------- PLY reading
+
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+MAX_HEADER_BYTES = 1 << 20
+CORE_PROPERTIES = {"x", "y", "z", "nx", "ny", "nz", "opacity"} | {f"scale_{i}" for i in range(3)} | {f"rot_{i}" for i in range(4)} | {f"f_dc_{i}" for i in range(3)}
+
+
+@dataclass
+class PlyElement:
+    """One element of a PLY header: name, row count and (name, numpy dtype string) properties."""
+
+    name: str
+    count: int
+    properties: list[tuple[str, str]]
+    has_lists: bool = False
+
+
+@dataclass
+class PlyHeader:
+    format: str
+    elements: list[PlyElement]
+    comments: list[str]
+    data_offset: int
+
+
+@dataclass
+class LoadReport:
+    """What `load_ply` found and did, for `drsplat info` and the logs."""
+
+    path: Path
+    layout: str  # "inria" or "compressed"
+    rows_in_file: int
+    sh_degree: int
+    has_normals: bool
+    property_order: list[str]
+    dropped_nan_rows: int = 0
+    dropped_inf_rows: int = 0
+    clamped_opacity: int = 0
+    zero_quaternions: int = 0
+    nonfinite_extra: int = 0
+
+    @property
+    def nonfinite_rows(self) -> int:
+        return self.dropped_nan_rows + self.dropped_inf_rows + self.clamped_opacity
+
+    def findings(self) -> list[str]:
+        """Human-readable validation findings (empty when the file was clean)."""
+        notes = []
+        if self.dropped_nan_rows:
+            notes.append(f"{self.dropped_nan_rows} rows with NaN values dropped")
+        if self.dropped_inf_rows:
+            notes.append(f"{self.dropped_inf_rows} rows with infinite position, scale, rotation or colour dropped")
+        if self.clamped_opacity:
+            notes.append(f"{self.clamped_opacity} infinite opacity logits clamped to +-{MAX_OPACITY_LOGIT:g}")
+        if self.zero_quaternions:
+            notes.append(f"{self.zero_quaternions} zero quaternions replaced by the identity rotation")
+        if self.nonfinite_extra:
+            notes.append(f"{self.nonfinite_extra} non-finite values in extra properties (kept as they are)")
+        return notes
+
+
+def _fail(path: Path, problem: str, field: str | None = None) -> "InputError":
+    from drsplat.errors import InputError
+
+    return InputError(path, problem, field=field)
+
+
+def read_ply_header(path: Path) -> PlyHeader:
+    """Parse a PLY header. Raises InputError naming the file and the problem."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise _fail(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not head.startswith(b"ply"):
+        raise _fail(path, "is not a PLY file (it does not start with 'ply')")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise _fail(path, "has no 'end_header' line: the header is truncated or this is not a PLY file")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise _fail(path, "is truncated right after 'end_header'")
+    try:
+        text = head[:end].decode("ascii")
+    except UnicodeDecodeError:
+        raise _fail(path, "has a header that is not ASCII text") from None
+    fmt, elements, comments = None, [], []
+    for lineno, raw in enumerate(text.replace("\r", "").split("\n")[1:], start=2):
+        words = raw.split()
+        if not words:
+            continue
+        key = words[0]
+        if key == "format":
+            if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                raise _fail(path, f"has an unknown format line {raw!r} (header line {lineno})")
+            fmt = words[1]
+        elif key == "comment":
+            comments.append(raw[len("comment"):].strip())
+        elif key == "obj_info":
+            continue
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise _fail(path, f"has a malformed element line {raw!r} (header line {lineno})")
+            elements.append(PlyElement(words[1], int(words[2]), []))
+        elif key == "property":
+            if not elements:
+                raise _fail(path, f"declares a property before any element (header line {lineno})")
+            if len(words) == 5 and words[1] == "list":
+                elements[-1].has_lists = True
+                elements[-1].properties.append((words[4], "list"))
+            elif len(words) == 3 and words[1] in PLY_TYPES:
+                elements[-1].properties.append((words[2], PLY_TYPES[words[1]]))
+            else:
+                raise _fail(path, f"has a malformed property line {raw!r} (header line {lineno})")
+        else:
+            raise _fail(path, f"has an unknown header keyword {key!r} (header line {lineno})")
+    if fmt is None:
+        raise _fail(path, "has no 'format' line in its header")
+    return PlyHeader(fmt, elements, comments, nl + 1)
+
+
+def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
+    """Read every element of a PLY into structured numpy arrays (binary fast path, plyfile for ASCII)."""
+    path = Path(path)
+    header = read_ply_header(path)
+    if header.format == "ascii" or any(e.has_lists for e in header.elements):
+        return header, _read_with_plyfile(path)
+    endian = "<" if header.format == "binary_little_endian" else ">"
+    data: dict[str, np.ndarray] = {}
+    offset = header.data_offset
+    size = path.stat().st_size
+    for element in header.elements:
+        dtype = np.dtype([(name, endian + t) for name, t in element.properties])
+        need = dtype.itemsize * element.count
+        if offset + need > size:
+            raise _fail(path, f"is truncated: element '{element.name}' needs {need} bytes of data but only {max(0, size - offset)} remain", field=element.name)
+        array = np.fromfile(path, dtype=dtype, count=element.count, offset=offset)
+        data[element.name] = array.astype(array.dtype.newbyteorder("=")) if endian == ">" else array
+        offset += need
+    return header, data
+
+
+def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
+    from plyfile import PlyData
+
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as exc:  # plyfile raises many types for malformed ASCII
+        raise _fail(path, f"could not be parsed as PLY data ({exc.__class__.__name__}: {str(exc).splitlines()[0][:200] if str(exc) else 'no detail'})") from None
+    out = {}
+    for element in ply.elements:
+        if any(p.__class__.__name__ == "PlyListProperty" for p in element.properties):
+            if element.name in ("vertex", "chunk"):
+                raise _fail(path, f"element '{element.name}' has list properties, which 3DGS files never have", field=element.name)
+            continue
+        out[element.name] = np.asarray(element.data)
+    return out
+
+
+def load_ply(path: str | Path) -> GaussianScene:
+    """Load a 3DGS PLY (INRIA layout by property name, or SuperSplat compressed). See `load_ply_report`."""
+    return load_ply_report(path)[0]
+
+
+def load_ply_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
+    """Load a 3DGS PLY and report what was found and fixed (non-finite values, zero quaternions)."""
+    path = Path(path)
+    if not path.is_file():
+        raise _fail(path, "does not exist" if not path.exists() else "is not a file")
+    header, data = read_ply_elements(path)
+    if "vertex" not in data:
+        raise _fail(path, "has no 'vertex' element", field="vertex")
+    if "chunk" in data and "packed_position" in (data["vertex"].dtype.names or ()):
+        raw, order = _decode_compressed(path, data), list(data["vertex"].dtype.names)
+        layout = "compressed"
+    else:
+        raw, order, layout = _columns_from_inria(path, data["vertex"]), list(data["vertex"].dtype.names), "inria"
+    comments = [c for c in header.comments if not c.startswith("Generated by")]
+    return _assemble_scene(path, raw, order, layout, comments)
+
+
+def _require(path: Path, vertex: np.ndarray, name: str) -> np.ndarray:
+    if name not in vertex.dtype.names:
+        raise _fail(path, "is missing a required vertex property of the 3DGS layout", field=name)
+    return vertex[name].astype(np.float32)
+
+
+def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]:
+    names = vertex.dtype.names or ()
+    n_rest = sum(1 for n in names if n.startswith("f_rest_"))
+    degree = next((d for d, c in SH_REST_COUNTS.items() if c == n_rest), None)
+    if degree is None:
+        raise _fail(path, f"has {n_rest} f_rest_* properties; 3DGS files have 0, 9, 24 or 45 (SH degree 0-3)", field="f_rest_*")
+    n = len(vertex)
+    cols = {
+        "means": np.stack([_require(path, vertex, k) for k in ("x", "y", "z")], axis=1),
+        "quats": np.stack([_require(path, vertex, f"rot_{i}") for i in range(4)], axis=1),
+        "log_scales": np.stack([_require(path, vertex, f"scale_{i}") for i in range(3)], axis=1),
+        "opacity_logits": _require(path, vertex, "opacity"),
+    }
+    k = (degree + 1) ** 2
+    sh = np.empty((n, k, 3), np.float32)
+    sh[:, 0, :] = np.stack([_require(path, vertex, f"f_dc_{i}") for i in range(3)], axis=1)
+    if degree > 0:
+        rest = np.stack([_require(path, vertex, f"f_rest_{i}") for i in range(n_rest)], axis=1)
+        sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
+    cols["sh"] = sh
+    cols["extra"] = {name: np.ascontiguousarray(vertex[name]) for name in names if name not in CORE_PROPERTIES and not name.startswith("f_rest_")}
+    return cols
+
+
+def _unorm(values: np.ndarray, shift: int, bits: int) -> np.ndarray:
+    mask = (1 << bits) - 1
+    return ((values >> shift) & mask).astype(np.float32) / mask
+
+
+def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Decode the PlayCanvas/SuperSplat compressed PLY.
+
+    Chunks of 256 splats carry min/max ranges. Per splat: position 11-10-11 bits and log-scale
+    11-10-11 bits lerped in the chunk range; rotation 2-10-10-10 ("smallest three": 2 bits name
+    the largest component, the others are stored in [-1/√2, 1/√2]); colour 8-8-8-8 with RGB lerped
+    in the chunk colour range (0.5 + C0·f_dc) and A the activated opacity. Optional `sh` element:
+    uchar f_rest, value = (v + 0.5)/256 · 8 − 4 (0 maps to 0... as the encoder writes).
+    """
+    vertex, chunk = data["vertex"], data["chunk"]
+    n = len(vertex)
+    for name in ("packed_position", "packed_rotation", "packed_scale", "packed_color"):
+        if name not in vertex.dtype.names:
+            raise _fail(path, "is a compressed PLY missing a packed vertex property", field=name)
+    need_chunks = (n + 255) // 256
+    if len(chunk) < need_chunks:
+        raise _fail(path, f"is a compressed PLY with {len(chunk)} chunks for {n} splats (needs {need_chunks})", field="chunk")
+    ci = np.arange(n) // 256
+
+    def chunk_range(prefix_min: str, prefix_max: str, axes: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            lo = np.stack([chunk[f"{prefix_min}{a}"][ci] for a in axes], axis=1).astype(np.float32)
+            hi = np.stack([chunk[f"{prefix_max}{a}"][ci] for a in axes], axis=1).astype(np.float32)
+        except ValueError as exc:
+            raise _fail(path, f"is a compressed PLY whose chunk element lacks a range ({exc})", field="chunk") from None
+        return lo, hi
+
+    def unpack_111011(packed: np.ndarray) -> np.ndarray:
+        p = packed.astype(np.uint32)
+        return np.stack([_unorm(p, 21, 11), _unorm(p, 11, 10), _unorm(p, 0, 11)], axis=1)
+
+    lo, hi = chunk_range("min_", "max_", ("x", "y", "z"))
+    means = lo + unpack_111011(vertex["packed_position"]) * (hi - lo)
+    lo, hi = chunk_range("min_scale_", "max_scale_", ("x", "y", "z"))
+    log_scales = lo + unpack_111011(vertex["packed_scale"]) * (hi - lo)
+    quats = _unpack_smallest_three(vertex["packed_rotation"].astype(np.uint32))
+    c = vertex["packed_color"].astype(np.uint32)
+    rgba = np.stack([_unorm(c, 24, 8), _unorm(c, 16, 8), _unorm(c, 8, 8), _unorm(c, 0, 8)], axis=1)
+    if "min_r" in chunk.dtype.names:
+        lo, hi = chunk_range("min_", "max_", ("r", "g", "b"))
+        rgb = lo + rgba[:, :3] * (hi - lo)
+    else:
+        rgb = rgba[:, :3]
+    alpha = np.clip(rgba[:, 3].astype(np.float64), 0.0, 1.0)
+    with np.errstate(divide="ignore"):
+        logits = (np.log(alpha) - np.log1p(-alpha)).astype(np.float32)
+    dc = (rgb - 0.5) / SH_C0
+    rest = None
+    if "sh" in data:
+        shv = data["sh"]
+        n_rest = len(shv.dtype.names)
+        degree = next((d for d, cnt in SH_REST_COUNTS.items() if cnt == n_rest), None)
+        if degree is None or len(shv) != n:
+            raise _fail(path, f"is a compressed PLY whose 'sh' element has {n_rest} properties x {len(shv)} rows", field="sh")
+        raw = np.stack([shv[f"f_rest_{i}"] for i in range(n_rest)], axis=1).astype(np.float32)
+        rest = (raw + 0.5) / 256.0 * 8.0 - 4.0
+    k = 1 if rest is None else (rest.shape[1] // 3 + 1)
+    sh = np.zeros((n, k, 3), np.float32)
+    sh[:, 0] = dc
+    if rest is not None:
+        sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
+    return {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": logits, "sh": sh, "extra": {}}
+
+
+def _unpack_smallest_three(packed: np.ndarray) -> np.ndarray:
+    """[N] uint32 2-10-10-10 -> [N, 4] quaternions in file order (rot_0..rot_3)."""
+    norm = np.float32(np.sqrt(2.0))
+    abc = np.stack([_unorm(packed, 20, 10), _unorm(packed, 10, 10), _unorm(packed, 0, 10)], axis=1)
+    abc = (abc - 0.5) * norm
+    largest = (packed >> 30).astype(np.int64)
+    m = np.sqrt(np.clip(1.0 - (abc * abc).sum(axis=1), 0.0, 1.0))
+    q = np.empty((packed.shape[0], 4), np.float32)
+    for idx in range(4):
+        rows = largest == idx
+        others = [j for j in range(4) if j != idx]
+        q[rows, idx] = m[rows]
+        q[np.ix_(rows, others)] = abc[rows]
+    return q
+
+
+def _assemble_scene(path: Path, cols: dict, order: list[str], layout: str, comments: list[str]) -> tuple[GaussianScene, LoadReport]:
+    means, quats, log_scales, logits, sh = cols["means"], cols["quats"], cols["log_scales"], cols["opacity_logits"], cols["sh"]
+    extra = cols["extra"]
+    n = means.shape[0]
+    core = [means, quats, log_scales, logits[:, None], sh.reshape(n, -1)]
+    has_nan = np.zeros(n, bool)
+    for a in core:
+        has_nan |= np.isnan(a).any(axis=1)
+    inf_non_opacity = np.zeros(n, bool)
+    for a in (means, quats, log_scales, sh.reshape(n, -1)):
+        inf_non_opacity |= np.isinf(a).any(axis=1)
+    drop_inf = inf_non_opacity & ~has_nan
+    keep = ~(has_nan | drop_inf)
+    report = LoadReport(path=path, layout=layout, rows_in_file=n, sh_degree=int(round(np.sqrt(sh.shape[1]))) - 1,
+                        has_normals="nx" in order, property_order=order,
+                        dropped_nan_rows=int(has_nan.sum()), dropped_inf_rows=int(drop_inf.sum()))
+    if not keep.all():
+        means, quats, log_scales, logits, sh = means[keep], quats[keep], log_scales[keep], logits[keep], sh[keep]
+        extra = {k: v[keep] for k, v in extra.items()}
+    inf_opacity = np.isinf(logits)
+    report.clamped_opacity = int(inf_opacity.sum())
+    if report.clamped_opacity:
+        logits = np.clip(logits, -MAX_OPACITY_LOGIT, MAX_OPACITY_LOGIT)
+    zero_q = ~(np.abs(quats) > 0).any(axis=1)
+    report.zero_quaternions = int(zero_q.sum())
+    if report.zero_quaternions:
+        quats = quats.copy()
+        quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
+    report.nonfinite_extra = sum(int((~np.isfinite(v)).sum()) for v in extra.values() if np.issubdtype(v.dtype, np.floating))
+    for note in report.findings():
+        log.warning("%s: %s", path, note)
+    scene = GaussianScene(
+        means=np.ascontiguousarray(means, np.float32),
+        quats=np.ascontiguousarray(quats, np.float32),
+        log_scales=np.ascontiguousarray(log_scales, np.float32),
+        opacity_logits=np.ascontiguousarray(logits, np.float32),
+        sh=np.ascontiguousarray(sh, np.float32),
+        extra=extra,
+        comments=comments,
+    )
+    return scene, report
+
+
+# ----------------------------------------------------------------------------- PLY writing
+
+
+def inria_vertex_dtype(sh_degree: int, extra: dict[str, np.ndarray] | None = None) -> np.dtype:
+    """The INRIA 3DGS vertex layout (float32 little-endian), followed by extra properties."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(SH_REST_COUNTS[sh_degree])]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    fields = [(name, "<f4") for name in names]
+    for name, values in (extra or {}).items():
+        code = values.dtype.str.lstrip("<>=|")
+        if code not in NUMPY_TO_PLY:
+            raise ValueError(f"extra property '{name}' has dtype {values.dtype}, which PLY cannot store")
+        fields.append((name, "<" + code if values.dtype.itemsize > 1 else code))
+    return np.dtype(fields)
+
+
+def scene_to_vertices(scene: GaussianScene) -> np.ndarray:
+    """[N] structured array in the INRIA layout (normals written as zeros, as 3DGS does)."""
+    n, degree = scene.num_gaussians, scene.sh_degree
+    out = np.zeros(n, dtype=inria_vertex_dtype(degree, scene.extra))
+    for i, axis in enumerate("xyz"):
+        out[axis] = scene.means[:, i]
+    for i in range(3):
+        out[f"f_dc_{i}"] = scene.sh[:, 0, i]
+        out[f"scale_{i}"] = scene.log_scales[:, i]
+    rest = scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+    for i in range(rest.shape[1]):
+        out[f"f_rest_{i}"] = rest[:, i]
+    out["opacity"] = scene.opacity_logits
+    for i in range(4):
+        out[f"rot_{i}"] = scene.quats[:, i]
+    for name, values in scene.extra.items():
+        out[name] = values
+    return out
+
+
+def save_ply(scene: GaussianScene, path: str | Path) -> None:
+    """Write `scene` in exactly the INRIA layout (binary little-endian float32), atomically.
+
+    Extra per-Gaussian properties follow rot_3 with their own types; comments go in the header.
+    """
+    from drsplat.utils import atomic_path
+
+    vertices = scene_to_vertices(scene)
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in scene.comments]
+    lines.append(f"element vertex {scene.num_gaussians}")
+    for name in vertices.dtype.names:
+        lines.append(f"property {NUMPY_TO_PLY[vertices.dtype[name].str.lstrip('<>=|')]} {name}")
+    lines.append("end_header")
+    header = ("\n".join(lines) + "\n").encode("ascii")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(vertices.tobytes())

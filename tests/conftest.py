@@ -1,0 +1,22 @@
+"""Shared fixtures. Real fixtures live in ../shared/data; tests using them skip when it is absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_path(*parts: str) -> Path:
+    """Path inside ../shared/data, skipping the test with a reason when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real fixture {path} is absent (../shared/data is not beside the project)")
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    return shared_path()
