@@ -341,21 +341,35 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     if degree is None:
         raise _fail(path, f"has {n_rest} f_rest_* properties; 3DGS files have 0, 9, 24 or 45 (SH degree 0-3)", field="f_rest_*")
     n = len(vertex)
-    cols = {
-        "means": np.stack([_require(path, vertex, k) for k in ("x", "y", "z")], axis=1),
-        "quats": np.stack([_require(path, vertex, f"rot_{i}") for i in range(4)], axis=1),
-        "log_scales": np.stack([_require(path, vertex, f"scale_{i}") for i in range(3)], axis=1),
-        "opacity_logits": _require(path, vertex, "opacity"),
-    }
+    for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(3)), *(f"f_dc_{i}" for i in range(3))):
+        _require(path, vertex, name)
+    columns = _column_reader(vertex)
     k = (degree + 1) ** 2
+    cols = {
+        "means": columns(["x", "y", "z"]),
+        "quats": columns([f"rot_{i}" for i in range(4)]),
+        "log_scales": columns([f"scale_{i}" for i in range(3)]),
+        "opacity_logits": columns(["opacity"])[:, 0].copy(),
+    }
+    sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
+    coeffs = columns(sh_names)
     sh = np.empty((n, k, 3), np.float32)
-    sh[:, 0, :] = np.stack([_require(path, vertex, f"f_dc_{i}") for i in range(3)], axis=1)
+    sh[:, 0, :] = coeffs[:, :3]
     if degree > 0:
-        rest = np.stack([_require(path, vertex, f"f_rest_{i}") for i in range(n_rest)], axis=1)
-        sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
+        sh[:, 1:, :] = coeffs[:, 3:].reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
     cols["sh"] = sh
     cols["extra"] = {name: np.ascontiguousarray(vertex[name]) for name in names if name not in CORE_PROPERTIES and not name.startswith("f_rest_")}
     return cols
+
+
+def _column_reader(vertex: np.ndarray):
+    """Gather named columns as one [N, C] float32 array; a float32-only record is viewed as a matrix."""
+    names = vertex.dtype.names
+    if all(vertex.dtype[n] == np.dtype("<f4") for n in names) and vertex.dtype.itemsize == 4 * len(names):
+        matrix = np.ascontiguousarray(vertex).view("<f4").reshape(len(vertex), len(names))
+        index = {n: i for i, n in enumerate(names)}
+        return lambda wanted: matrix[:, [index[w] for w in wanted]].astype(np.float32)
+    return lambda wanted: np.stack([vertex[w].astype(np.float32) for w in wanted], axis=1)
 
 
 def _unorm(values: np.ndarray, shift: int, bits: int) -> np.ndarray:
@@ -447,13 +461,16 @@ def _assemble_scene(path: Path, cols: dict, order: list[str], layout: str, comme
     means, quats, log_scales, logits, sh = cols["means"], cols["quats"], cols["log_scales"], cols["opacity_logits"], cols["sh"]
     extra = cols["extra"]
     n = means.shape[0]
-    core = [means, quats, log_scales, logits[:, None], sh.reshape(n, -1)]
+    finite = [np.isfinite(a).all(axis=1) for a in (means, quats, log_scales, sh.reshape(n, -1))]
+    all_finite = np.logical_and.reduce(finite + [np.isfinite(logits)]) if n else np.ones(0, bool)
     has_nan = np.zeros(n, bool)
-    for a in core:
-        has_nan |= np.isnan(a).any(axis=1)
     inf_non_opacity = np.zeros(n, bool)
-    for a in (means, quats, log_scales, sh.reshape(n, -1)):
-        inf_non_opacity |= np.isinf(a).any(axis=1)
+    if not all_finite.all():
+        suspect = ~all_finite
+        for a in (means, quats, log_scales, logits[:, None], sh.reshape(n, -1)):
+            has_nan[suspect] |= np.isnan(a[suspect]).any(axis=1)
+        for a in (means, quats, log_scales, sh.reshape(n, -1)):
+            inf_non_opacity[suspect] |= np.isinf(a[suspect]).any(axis=1)
     drop_inf = inf_non_opacity & ~has_nan
     keep = ~(has_nan | drop_inf)
     report = LoadReport(path=path, layout=layout, rows_in_file=n, sh_degree=int(round(np.sqrt(sh.shape[1]))) - 1,
@@ -505,19 +522,15 @@ def inria_vertex_dtype(sh_degree: int, extra: dict[str, np.ndarray] | None = Non
 
 def scene_to_vertices(scene: GaussianScene) -> np.ndarray:
     """[N] structured array in the INRIA layout (normals written as zeros, as 3DGS does)."""
-    n, degree = scene.num_gaussians, scene.sh_degree
-    out = np.zeros(n, dtype=inria_vertex_dtype(degree, scene.extra))
-    for i, axis in enumerate("xyz"):
-        out[axis] = scene.means[:, i]
-    for i in range(3):
-        out[f"f_dc_{i}"] = scene.sh[:, 0, i]
-        out[f"scale_{i}"] = scene.log_scales[:, i]
+    n = scene.num_gaussians
+    out = np.empty(n, dtype=inria_vertex_dtype(scene.sh_degree, scene.extra))
     rest = scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
-    for i in range(rest.shape[1]):
-        out[f"f_rest_{i}"] = rest[:, i]
-    out["opacity"] = scene.opacity_logits
-    for i in range(4):
-        out[f"rot_{i}"] = scene.quats[:, i]
+    core = np.concatenate(
+        [scene.means, np.zeros((n, 3), np.float32), scene.sh[:, 0, :], rest,
+         scene.opacity_logits[:, None], scene.log_scales, scene.quats], axis=1,
+    ).astype("<f4")
+    core_bytes = core.shape[1] * 4
+    out.view(np.uint8).reshape(n, out.dtype.itemsize)[:, :core_bytes] = core.view(np.uint8).reshape(n, core_bytes)
     for name, values in scene.extra.items():
         out[name] = values
     return out

@@ -1,0 +1,72 @@
+"""`drsplat info SCENE.ply [--json]`: what a scene holds and what validation found."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.scene import GaussianScene, LoadReport, load_ply_report
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("info", help="summarise a 3DGS PLY: count, SH degree, bounds, statistics, findings",
+                              description="Summarise a 3DGS PLY (INRIA layout or SuperSplat compressed).")
+    p.add_argument("scene", type=Path, help="scene PLY")
+    p.add_argument("--json", action="store_true", help="print machine-readable JSON instead of text")
+    p.set_defaults(func=run)
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    if values.size == 0:
+        return {"min": 0.0, "median": 0.0, "max": 0.0}
+    return {"min": float(values.min()), "median": float(np.median(values)), "max": float(values.max())}
+
+
+def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
+    """JSON-serialisable summary of a loaded scene and its load report."""
+    lo, hi = scene.bounding_box()
+    summary = {
+        "path": str(report.path),
+        "layout": report.layout,
+        "num_gaussians": scene.num_gaussians,
+        "rows_in_file": report.rows_in_file,
+        "sh_degree": scene.sh_degree,
+        "has_normals": report.has_normals,
+        "bbox_min": [float(v) for v in lo],
+        "bbox_max": [float(v) for v in hi],
+        "opacity": _stats(scene.opacities()),
+        "scale": _stats(scene.scales().max(axis=1) if scene.num_gaussians else np.zeros(0)),
+        "nonfinite_rows": report.nonfinite_rows,
+        "dropped_rows": report.dropped_nan_rows + report.dropped_inf_rows,
+        "clamped_opacity": report.clamped_opacity,
+        "zero_quaternions": report.zero_quaternions,
+        "extra_properties": list(scene.extra),
+        "comments": scene.comments,
+        "findings": report.findings(),
+    }
+    return summary
+
+
+def format_summary(s: dict) -> str:
+    lines = [
+        f"{s['path']} ({s['layout']} layout)",
+        f"  gaussians      {s['num_gaussians']:,} (rows in file {s['rows_in_file']:,})",
+        f"  SH degree      {s['sh_degree']}",
+        f"  bbox min       {' '.join(f'{v:.4g}' for v in s['bbox_min'])}",
+        f"  bbox max       {' '.join(f'{v:.4g}' for v in s['bbox_max'])}",
+        f"  opacity        min {s['opacity']['min']:.3g}  median {s['opacity']['median']:.3g}  max {s['opacity']['max']:.3g}",
+        f"  largest scale  min {s['scale']['min']:.3g}  median {s['scale']['median']:.3g}  max {s['scale']['max']:.3g}",
+        f"  extra props    {', '.join(s['extra_properties'][:8]) + (' …' if len(s['extra_properties']) > 8 else '') or '-'}",
+        f"  findings       {'; '.join(s['findings']) or 'none'}",
+    ]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    scene, report = load_ply_report(args.scene)
+    summary = scene_summary(scene, report)
+    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    return 0

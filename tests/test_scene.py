@@ -1,0 +1,202 @@
+"""Scene I/O: real fixtures, round trips, non-finite policy, and clear errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drsplat.errors import InputError
+from drsplat.scene import GaussianScene, load_ply, load_ply_report, save_ply
+from tests.conftest import shared_path
+
+
+def random_scene(n: int = 50, degree: int = 1, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    return GaussianScene(
+        means=rng.normal(size=(n, 3)).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        log_scales=rng.normal(-3, 1, size=(n, 3)).astype(np.float32),
+        opacity_logits=rng.normal(size=n).astype(np.float32),
+        sh=rng.normal(size=(n, (degree + 1) ** 2, 3)).astype(np.float32),
+    )
+
+
+@pytest.mark.parametrize(
+    "name, count, degree",
+    [("train-1000.ply", 1000, 3), ("flowers.ply", 542104, 2), ("guitar.ply", 90854, 0), ("biker.ply", 152746, 0), ("guitar.compressed.ply", 90854, 0)],
+)
+def test_real_plys_load_with_counts_and_degrees(name, count, degree):
+    scene = load_ply(shared_path("ply", name))
+    assert scene.num_gaussians == count
+    assert scene.sh_degree == degree
+    assert np.isfinite(scene.means).all() and np.isfinite(scene.opacity_logits).all()
+
+
+def test_train_round_trip_is_byte_identical(tmp_path):
+    src = shared_path("ply", "train-1000.ply")
+    out = tmp_path / "train.ply"
+    save_ply(load_ply(src), out)
+    assert out.read_bytes() == src.read_bytes()
+
+
+def test_sh_rest_is_channel_major():
+    from plyfile import PlyData
+
+    src = shared_path("ply", "train-1000.ply")
+    scene = load_ply(src)
+    v = PlyData.read(str(src))["vertex"].data
+    # f_rest_0..14 are the 15 red coefficients, f_rest_15..29 green, 30..44 blue
+    np.testing.assert_array_equal(scene.sh[:, 1, 0], v["f_rest_0"])
+    np.testing.assert_array_equal(scene.sh[:, 15, 0], v["f_rest_14"])
+    np.testing.assert_array_equal(scene.sh[:, 1, 1], v["f_rest_15"])
+    np.testing.assert_array_equal(scene.sh[:, 15, 2], v["f_rest_44"])
+
+
+def test_compressed_decodes_to_uncompressed_within_quantisation():
+    """Position/scale 11-10-11 bits, colour 8 bits of each chunk's range; rotation 10 bits of [-1/√2, 1/√2]."""
+    from drsplat.scene import read_ply_elements
+
+    path = shared_path("ply", "guitar.compressed.ply")
+    ref, comp = load_ply(shared_path("ply", "guitar.ply")), load_ply(path)
+    _, data = read_ply_elements(path)
+    chunk = data["chunk"]
+    ci = np.arange(ref.num_gaussians) // 256
+    for prefix, attr in (("", "means"), ("scale_", "log_scales")):
+        rng = np.stack([chunk[f"max_{prefix}{a}"] - chunk[f"min_{prefix}{a}"] for a in "xyz"], axis=1)[ci]
+        step = rng / np.array([2047, 1023, 2047])
+        assert (np.abs(getattr(ref, attr) - getattr(comp, attr)) <= step * 0.5 + 1e-5).all(), attr
+    qr, qc = ref.unit_quats(), comp.unit_quats()
+    err = np.minimum(np.abs(qr - qc).max(axis=1), np.abs(qr + qc).max(axis=1))
+    assert err.max() <= np.sqrt(2) / 1023  # one 10-bit step
+    colour_rng = np.stack([chunk[f"max_{c}"] - chunk[f"min_{c}"] for c in "rgb"], axis=1)[ci]
+    colour_err = np.abs((0.5 + 0.28209479 * ref.sh[:, 0]) - (0.5 + 0.28209479 * comp.sh[:, 0]))
+    assert (colour_err <= colour_rng / 255 * 0.5 + 1e-5).all()
+    assert np.abs(ref.opacities() - comp.opacities()).max() <= 0.5 / 255 + 1e-6
+
+
+def test_infinite_opacity_is_clamped_and_reported():
+    scene, report = load_ply_report(shared_path("ply", "guitar.ply"))
+    assert report.clamped_opacity == 667
+    assert np.abs(scene.opacity_logits).max() == 30.0
+    assert any("667 infinite opacity" in f for f in report.findings())
+
+
+def test_nan_rows_dropped_zero_quats_fixed_and_extras_carried(tmp_path):
+    scene = random_scene(20)
+    scene.means[3, 1] = np.nan
+    scene.log_scales[5, 0] = np.inf
+    scene.opacity_logits[7] = -np.inf
+    scene.quats[9] = 0
+    scene.extra["lang_weight"] = np.arange(20, dtype=np.float32)
+    scene.extra["lang_code_0"] = np.arange(20, dtype=np.uint8)
+    scene.comments.append("drsplat.lang kind=exact dim=4")
+    path = tmp_path / "s.ply"
+    save_ply(scene, path)
+    loaded, report = load_ply_report(path)
+    assert (report.dropped_nan_rows, report.dropped_inf_rows, report.clamped_opacity, report.zero_quaternions) == (1, 1, 1, 1)
+    assert loaded.num_gaussians == 18
+    keep = np.setdiff1d(np.arange(20), [3, 5])
+    np.testing.assert_array_equal(loaded.extra["lang_weight"], keep.astype(np.float32))
+    assert loaded.extra["lang_code_0"].dtype == np.uint8
+    assert loaded.comments == ["drsplat.lang kind=exact dim=4"]
+    np.testing.assert_array_equal(loaded.quats[np.searchsorted(keep, 9)], [1, 0, 0, 0])
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_any_property_order_and_degree_round_trips(tmp_path, degree):
+    from plyfile import PlyData, PlyElement
+
+    scene = random_scene(30, degree, seed=degree)
+    save_ply(scene, tmp_path / "a.ply")
+    v = PlyData.read(str(tmp_path / "a.ply"))["vertex"].data
+    names = [n for n in v.dtype.names if not n.startswith("n")][::-1]  # reversed order, no normals
+    shuffled = np.empty(len(v), dtype=[(n, "<f4") for n in names])
+    for n in names:
+        shuffled[n] = v[n]
+    PlyData([PlyElement.describe(shuffled, "vertex")]).write(str(tmp_path / "b.ply"))
+    loaded = load_ply(tmp_path / "b.ply")
+    for attr in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(loaded, attr), getattr(scene, attr))
+
+
+def test_ascii_ply_loads(tmp_path):
+    from plyfile import PlyData
+
+    scene = random_scene(5, 0)
+    save_ply(scene, tmp_path / "bin.ply")
+    ply = PlyData.read(str(tmp_path / "bin.ply"))
+    ply.text = True
+    ply.write(str(tmp_path / "ascii.ply"))
+    np.testing.assert_allclose(load_ply(tmp_path / "ascii.ply").means, scene.means, rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        (b"hello world", "is not a PLY file"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n", "no 'end_header'"),
+        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1.0\ngarbage\n", "could not be parsed"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n" + b"\0" * 40, "is truncated"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n" + b"\0" * 4, "field 'y'"),
+        (b"ply\nformat weird 1.0\nend_header\n", "unknown format"),
+    ],
+)
+def test_bad_input_gives_one_clear_error(tmp_path, content, expected):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(content)
+    with pytest.raises(InputError) as info:
+        load_ply(path)
+    assert expected in str(info.value)
+    assert str(path) in str(info.value)
+
+
+def test_missing_file_error(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        load_ply(tmp_path / "nope.ply")
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_fuzzed_ply_gives_clear_error_or_loads(tmp_path_factory, data):
+    """Random truncations and byte flips of a valid file: a scene or an InputError, never a crash."""
+    base = tmp_path_factory.mktemp("fuzz")
+    src = base / "ok.ply"
+    save_ply(random_scene(8, 1), src)
+    raw = bytearray(src.read_bytes())
+    cut = data.draw(st.integers(0, len(raw)))
+    raw = raw[:cut]
+    for _ in range(data.draw(st.integers(0, 4))):
+        if raw:
+            i = data.draw(st.integers(0, len(raw) - 1))
+            raw[i] = data.draw(st.integers(0, 255))
+    path = base / "fuzz.ply"
+    path.write_bytes(bytes(raw))
+    try:
+        scene = load_ply(path)
+    except InputError as exc:
+        assert str(path) in str(exc)
+    else:
+        assert np.isfinite(scene.means).all()
+
+
+def test_info_cli_json_keys():
+    out = subprocess.run([sys.executable, "-m", "drsplat", "info", str(shared_path("ply", "guitar.ply")), "--json"],
+                         capture_output=True, text=True, check=True)
+    info = json.loads(out.stdout)
+    assert info["num_gaussians"] == 90854 and info["sh_degree"] == 0 and info["nonfinite_rows"] == 667
+    assert len(info["bbox_min"]) == 3 and info["bbox_max"][1] == pytest.approx(0.0861, abs=1e-3)
+
+
+def test_info_cli_bad_file_exit_code(tmp_path):
+    bad = tmp_path / "x.ply"
+    bad.write_text("nope")
+    out = subprocess.run([sys.executable, "-m", "drsplat", "info", str(bad)], capture_output=True, text=True)
+    assert out.returncode == 1
+    assert "Traceback" not in out.stderr and "is not a PLY file" in out.stderr
