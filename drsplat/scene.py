@@ -461,15 +461,15 @@ def _assemble_scene(path: Path, cols: dict, order: list[str], layout: str, comme
     means, quats, log_scales, logits, sh = cols["means"], cols["quats"], cols["log_scales"], cols["opacity_logits"], cols["sh"]
     extra = cols["extra"]
     n = means.shape[0]
-    finite = [np.isfinite(a).all(axis=1) for a in (means, quats, log_scales, sh.reshape(n, -1))]
+    finite = [np.isfinite(a).all(axis=1) for a in (means, quats, log_scales, sh.reshape(n, sh.shape[1] * 3))]
     all_finite = np.logical_and.reduce(finite + [np.isfinite(logits)]) if n else np.ones(0, bool)
     has_nan = np.zeros(n, bool)
     inf_non_opacity = np.zeros(n, bool)
     if not all_finite.all():
         suspect = ~all_finite
-        for a in (means, quats, log_scales, logits[:, None], sh.reshape(n, -1)):
+        for a in (means, quats, log_scales, logits[:, None], sh.reshape(n, sh.shape[1] * 3)):
             has_nan[suspect] |= np.isnan(a[suspect]).any(axis=1)
-        for a in (means, quats, log_scales, sh.reshape(n, -1)):
+        for a in (means, quats, log_scales, sh.reshape(n, sh.shape[1] * 3)):
             inf_non_opacity[suspect] |= np.isinf(a[suspect]).any(axis=1)
     drop_inf = inf_non_opacity & ~has_nan
     keep = ~(has_nan | drop_inf)
@@ -524,7 +524,7 @@ def scene_to_vertices(scene: GaussianScene) -> np.ndarray:
     """[N] structured array in the INRIA layout (normals written as zeros, as 3DGS does)."""
     n = scene.num_gaussians
     out = np.empty(n, dtype=inria_vertex_dtype(scene.sh_degree, scene.extra))
-    rest = scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+    rest = scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (scene.sh.shape[1] - 1))
     core = np.concatenate(
         [scene.means, np.zeros((n, 3), np.float32), scene.sh[:, 0, :], rest,
          scene.opacity_logits[:, None], scene.log_scales, scene.quats], axis=1,

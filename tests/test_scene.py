@@ -200,3 +200,11 @@ def test_info_cli_bad_file_exit_code(tmp_path):
     out = subprocess.run([sys.executable, "-m", "drsplat", "info", str(bad)], capture_output=True, text=True)
     assert out.returncode == 1
     assert "Traceback" not in out.stderr and "is not a PLY file" in out.stderr
+
+
+def test_empty_scene_round_trips(tmp_path):
+    """An empty selection (no Gaussian above a threshold) is still a valid PLY."""
+    empty = random_scene(4, 2).subset(np.zeros(4, bool))
+    save_ply(empty, tmp_path / "empty.ply")
+    loaded = load_ply(tmp_path / "empty.ply")
+    assert loaded.num_gaussians == 0 and loaded.sh_degree == 2
