@@ -208,3 +208,13 @@ def test_empty_scene_round_trips(tmp_path):
     save_ply(empty, tmp_path / "empty.ply")
     loaded = load_ply(tmp_path / "empty.ply")
     assert loaded.num_gaussians == 0 and loaded.sh_degree == 2
+
+
+def test_written_files_get_normal_permissions(tmp_path):
+    import os
+
+    path = tmp_path / "p.ply"
+    save_ply(random_scene(3, 0), path)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert (path.stat().st_mode & 0o777) == 0o666 & ~mask

@@ -1,0 +1,239 @@
+"""LangSplat per-image feature files: `<stem>_s.npy` mask ids and `<stem>_f.npy` embeddings.
+
+Format (as written by LangSplat's preprocess.py and by `drsplat features`):
+- `<stem>_s.npy`: (L, H, W) mask ids, -1 = no mask, any int or float dtype. LangSplat writes
+  L = 4 levels (default, s, m, l) whose ids are *cumulative*: the ids of level j are offsets
+  into the one concatenated embedding array, after the masks of levels 0..j-1.
+  A (H, W) array is read as a single level.
+- `<stem>_f.npy`: (M, D) embeddings, one row per mask of all levels together.
+- `manifest.json` (optional, drsplat's own): how the features were made (mask generator,
+  CLIP model and pretrained tag, versions, parameters).
+
+Files whose per-level ids restart at 0 (not cumulative) are recognised because their levels'
+id ranges overlap; they are read with offsets = Σ (max id + 1) of the previous levels.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drsplat.errors import InputError
+from drsplat.utils import atomic_path, save_npy_atomic
+
+log = logging.getLogger(__name__)
+
+SEG_SUFFIX = "_s.npy"
+FEAT_SUFFIX = "_f.npy"
+MANIFEST_NAME = "manifest.json"
+
+
+def seg_path(features_dir: str | Path, stem: str) -> Path:
+    return Path(features_dir) / f"{stem}{SEG_SUFFIX}"
+
+
+def feat_path(features_dir: str | Path, stem: str) -> Path:
+    return Path(features_dir) / f"{stem}{FEAT_SUFFIX}"
+
+
+def list_stems(features_dir: str | Path) -> list[str]:
+    """Sorted image stems that have a `<stem>_s.npy` file in `features_dir`."""
+    features_dir = Path(features_dir)
+    if not features_dir.is_dir():
+        raise InputError(features_dir, "features folder does not exist")
+    return sorted(p.name[: -len(SEG_SUFFIX)] for p in features_dir.glob(f"*{SEG_SUFFIX}") if p.is_file())
+
+
+def write_features(features_dir: str | Path, stem: str, seg: np.ndarray, feats: np.ndarray) -> None:
+    """Write one image's feature pair atomically (embeddings first, then mask ids).
+
+    seg: [L, H, W] (or [H, W]) integer mask ids, -1 = none, cumulative across levels.
+    feats: [M, D] float embeddings; every id in `seg` must be < M.
+    """
+    seg = np.asarray(seg)
+    feats = np.asarray(feats)
+    if seg.ndim == 2:
+        seg = seg[None]
+    if seg.ndim != 3:
+        raise ValueError(f"seg must be [L, H, W], got shape {seg.shape}")
+    if feats.ndim != 2:
+        raise ValueError(f"feats must be [M, D], got shape {feats.shape}")
+    if not np.issubdtype(seg.dtype, np.integer):
+        raise ValueError(f"seg must be an integer array, got {seg.dtype}")
+    if seg.size and (seg.min() < -1 or seg.max() >= feats.shape[0]):
+        raise ValueError(f"seg ids must be in [-1, {feats.shape[0] - 1}], got [{seg.min()}, {seg.max()}]")
+    dtype = np.int16 if feats.shape[0] < 2**15 else np.int32
+    save_npy_atomic(feat_path(features_dir, stem), np.ascontiguousarray(feats, dtype=np.float32 if feats.dtype == np.float64 else feats.dtype))
+    save_npy_atomic(seg_path(features_dir, stem), np.ascontiguousarray(seg, dtype=dtype))
+
+
+def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, expected file size) from an .npy header, without reading the data."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        offset = f.tell()
+    if dtype.hasobject:
+        raise ValueError("object arrays are not feature files")
+    return shape, dtype, offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+
+
+def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
+    """True if both files of `stem` exist, have readable headers, full data and matching shapes.
+
+    Cheap: reads only the headers and compares file sizes, so truncated or half-written files
+    are detected without loading the arrays.
+    """
+    paths = seg_path(features_dir, stem), feat_path(features_dir, stem)
+    try:
+        (s_shape, s_dtype, s_size), (f_shape, f_dtype, f_size) = (_npy_header(p) for p in paths)
+        if paths[0].stat().st_size != s_size or paths[1].stat().st_size != f_size:
+            return False
+    except (OSError, ValueError, SyntaxError, EOFError):
+        return False
+    kinds_ok = s_dtype.kind in "iuf" and f_dtype.kind in "fiu"
+    return kinds_ok and len(s_shape) in (2, 3) and len(f_shape) == 2 and f_shape[1] > 0
+
+
+def _load_npy(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(path, f"{what} file is missing")
+    try:
+        shape, _, size = _npy_header(path)
+        if path.stat().st_size < size:
+            raise InputError(path, f"file is truncated: header says {shape} but only {path.stat().st_size} of {size} bytes are present")
+        return np.load(path, allow_pickle=False)
+    except InputError:
+        raise
+    except (OSError, ValueError, SyntaxError, EOFError) as exc:
+        raise InputError(path, f"not a readable .npy file ({exc})") from exc
+
+
+def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
+    """Mask ids of any int/float dtype as int64; non-integer or non-finite floats are errors."""
+    if np.issubdtype(seg.dtype, np.integer) or seg.dtype == np.bool_:
+        return seg.astype(np.int64, copy=False)
+    if not np.issubdtype(seg.dtype, np.floating):
+        raise InputError(path, f"mask ids have dtype {seg.dtype}, expected integers or floats")
+    bad = int(np.count_nonzero(~np.isfinite(seg)))
+    if bad:
+        raise InputError(path, f"{bad} mask ids are not finite (NaN/inf)")
+    ids = np.rint(seg)
+    off = int(np.count_nonzero(np.abs(ids - seg) > 1e-3))
+    if off:
+        raise InputError(path, f"{off} mask ids are not whole numbers")
+    return ids.astype(np.int64)
+
+
+def level_offsets(seg: np.ndarray) -> np.ndarray:
+    """[L] offsets to add to each level's non-negative ids to make them global.
+
+    seg: [L, H, W] int64. Zeros when the levels are already cumulative (LangSplat's form: the id
+    ranges of the levels do not overlap); otherwise Σ (max id + 1) of the previous levels.
+    """
+    lo = np.array([lvl[lvl >= 0].min() if (lvl >= 0).any() else -1 for lvl in seg])
+    hi = np.array([lvl.max() for lvl in seg])
+    present = lo >= 0
+    overlapping = False
+    for j in range(1, len(seg)):
+        if present[j] and any(present[i] and lo[j] <= hi[i] for i in range(j)):
+            overlapping = True
+    if not overlapping:
+        return np.zeros(len(seg), np.int64)
+    counts = np.where(present, hi + 1, 0)
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
+def read_features(features_dir: str | Path, stem: str, level: int = 1, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Mask ids of one level and all embeddings of one image.
+
+    Returns mask_ids: [H, W] int32, -1 = none, indices into feats; feats: [M, D] float32.
+    A single-level file (2-D, or L = 1) serves every requested level.
+
+    Non-finite embeddings are an error naming their count; with drop_nonfinite=True their rows
+    are zeroed and their pixels set to -1 instead (a warning gives the count).
+    """
+    ids, feats, _ = read_features_report(features_dir, stem, level, drop_nonfinite=drop_nonfinite)
+    return ids, feats
+
+
+def read_features_report(features_dir: str | Path, stem: str, level: int = 1, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+    """`read_features` plus the number of embeddings dropped for non-finite values."""
+    spath, fpath = seg_path(features_dir, stem), feat_path(features_dir, stem)
+    seg = _load_npy(spath, "mask-id")
+    feats = _load_npy(fpath, "embedding")
+    if seg.ndim == 2:
+        seg = seg[None]
+    if seg.ndim != 3:
+        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W)")
+    if feats.ndim != 2 or feats.shape[1] == 0:
+        raise InputError(fpath, f"embeddings have shape {feats.shape}, expected (M, D) with D > 0")
+    if not (np.issubdtype(feats.dtype, np.floating) or np.issubdtype(feats.dtype, np.integer)):
+        raise InputError(fpath, f"embeddings have dtype {feats.dtype}, expected floats")
+    if seg.shape[0] == 1:
+        level = 0
+    if not 0 <= level < seg.shape[0]:
+        raise InputError(spath, f"level {level} requested but the file has {seg.shape[0]} levels (0..{seg.shape[0] - 1})")
+    seg = _ids_as_int(seg, spath)
+    if seg.size and seg.min() < -1:
+        raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")
+    ids = seg[level]
+    offset = level_offsets(seg)[level]
+    if offset:
+        ids = np.where(ids >= 0, ids + offset, -1)
+    m = feats.shape[0]
+    if ids.size and ids.max() >= m:
+        raise InputError(spath, f"mask id {int(ids.max())} at level {level} is out of range: {fpath.name} has only {m} embeddings")
+    feats = feats.astype(np.float32)
+    row_ok = np.isfinite(feats).all(axis=1)
+    bad = int(m - np.count_nonzero(row_ok))
+    if bad:
+        if not drop_nonfinite:
+            raise InputError(fpath, f"{bad} of {m} embeddings contain non-finite values (NaN/inf)")
+        log.warning("%s: %d of %d embeddings contain non-finite values; their masks are ignored", fpath, bad, m)
+        feats[~row_ok] = 0.0
+        ids = np.where((ids >= 0) & ~row_ok[np.maximum(ids, 0)], -1, ids)
+    return ids.astype(np.int32), feats, bad
+
+
+def resample_nearest(mask_ids: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of a mask-id map to (height, width).
+
+    mask_ids: [H, W]. Returns [height, width]. Pixel centres map onto each other as intrinsics
+    scale (Camera.scaled): destination pixel x samples source column
+    floor((x + 0.5) · W / width), and the same for rows.
+    """
+    h, w = mask_ids.shape
+    if (h, w) == (height, width):
+        return mask_ids
+    cols = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(np.int64), w - 1)
+    rows = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(np.int64), h - 1)
+    return mask_ids[rows[:, None], cols[None, :]]
+
+
+def write_manifest(features_dir: str | Path, manifest: dict[str, Any]) -> None:
+    """Write `manifest.json` atomically (mask generator, CLIP model/pretrained, versions, params)."""
+    path = Path(features_dir) / MANIFEST_NAME
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
+
+
+def read_manifest(features_dir: str | Path) -> dict[str, Any]:
+    """The features folder's manifest, or {} when there is none (e.g. features made by LangSplat)."""
+    path = Path(features_dir) / MANIFEST_NAME
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object")
+    return data

@@ -1,0 +1,652 @@
+"""Synthetic scenes with exact ground truth, and oracle LangSplat features (`drsplat synth`).
+
+A scene is a room of labelled objects (boxes, spheres, cylinders, thin plates, and panels
+textured with photos shipped in scikit-image) whose surfaces are covered by flat Gaussians, as a
+trained 3DGS scene would be. It also contains the cases that make registration hard:
+low-opacity floaters, a few huge background Gaussians, a small object hidden behind a larger one
+and thin objects. Cameras orbit the scene and some stand inside it.
+
+Ground truth per view comes from the same rasterizer the registration uses. A pixel belongs to
+the object instance with the largest summed contribution w = T·α among the pixel's top-k
+Gaussians (the unlabelled floaters and background Gaussians vote for "none"); this is more
+stable at silhouettes than the single top-1 Gaussian.
+
+Oracle features stand in for SAM + CLIP: one mask per visible object instance, and for the
+mask of label l the embedding normalize(a·c + b·v_l + noise), where v_l is the label's fixed
+unit vector and c is a component common to every image embedding (CLIP image embeddings are
+all alike to some degree). The label's "text" vector is normalize(a_t·c_t + b_t·v_l) with a
+different common component c_t ⟂ c: text and image vectors differ (the modality gap), yet the
+text vector of l is closest to the image embeddings of l.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.scene import SH_C0, GaussianScene
+
+log = logging.getLogger(__name__)
+
+LEVELS = 4  # LangSplat's default, s, m, l
+LIGHT = np.array([0.4, -0.3, 0.866]) / np.linalg.norm([0.4, -0.3, 0.866])
+FEATURE_LEVEL_NAMES = ("default", "s", "m", "l")
+ORACLE_MODEL_ID = "oracle"  # the embedding space of oracle features: only oracle text vectors match it
+
+
+@dataclass
+class ObjectSpec:
+    """One labelled object: `kind` in box, sphere, cylinder, plate, panel; geometry in `params`."""
+
+    name: str
+    kind: str
+    params: dict
+    color: tuple[float, float, float] = (0.6, 0.6, 0.6)
+    texture: str | None = None
+
+
+@dataclass
+class Preset:
+    """Size of a synthetic dataset."""
+
+    name: str
+    objects: tuple[str, ...]
+    num_gaussians: int
+    num_orbit_views: int
+    num_inside_views: int
+    width: int
+    height: int
+    dim: int = 512
+    num_floaters: int = 30
+    num_background: int = 6
+    sh_degree: int = 3
+
+
+@dataclass
+class OracleParams:
+    """Oracle embedding model: image embedding normalize(a·c + b·v_l + noise·n/√D)."""
+
+    a: float = 1.0
+    b: float = 0.8
+    noise: float = 0.15
+    text_a: float = 0.8
+    text_b: float = 0.6
+    mislabel_fraction: float = 0.0
+    jitter: int = 0
+    min_mask_pixels: int = 4
+
+
+@dataclass
+class SyntheticScene:
+    """A synthetic scene with exact ground truth.
+
+    scene: the Gaussians ([N] of them). cameras: the views.
+    labels: [N] int32 label per Gaussian, -1 for floaters and background Gaussians.
+    instances: [N] int32 object instance per Gaussian, -1 none; instance_labels: [I] its label.
+    label_names: [L] names, index = label id.
+    label_vectors: [L, D] unit vectors v_l. common_vector: [D] image component c.
+    text_vectors: [L, D] oracle text embeddings (with a modality gap).
+    """
+
+    preset: str
+    seed: int
+    scene: GaussianScene
+    cameras: list[Camera]
+    labels: np.ndarray
+    instances: np.ndarray
+    instance_labels: np.ndarray
+    label_names: list[str]
+    label_vectors: np.ndarray
+    common_vector: np.ndarray
+    text_common_vector: np.ndarray
+    text_vectors: np.ndarray
+    oracle: OracleParams = field(default_factory=OracleParams)
+
+    def image_prototypes(self) -> np.ndarray:
+        """[L, D] noise-free image embeddings normalize(a·c + b·v_l)."""
+        return _normalize(self.oracle.a * self.common_vector + self.oracle.b * self.label_vectors)
+
+    def localisation_threshold(self) -> float:
+        """One global cosine threshold for text queries, from the oracle model alone.
+
+        Midway between the score of a noise-free image embedding of the queried label and of
+        any other label (every label is alike to the others, so one number serves all).
+        """
+        scores = self.text_vectors @ self.image_prototypes().T
+        own = float(np.mean(np.diag(scores)))
+        other = float(np.mean(scores[~np.eye(len(scores), dtype=bool)])) if len(scores) > 1 else 0.0
+        return 0.5 * (own + other)
+
+
+# ----------------------------------------------------------------------------- scene content
+
+OBJECTS: dict[str, ObjectSpec] = {
+    spec.name: spec
+    for spec in (
+        ObjectSpec("floor", "plate", {"center": (0, 0, -0.01), "size": (7.0, 7.0, 0.02), "top_only": True}, (0.55, 0.5, 0.45)),
+        ObjectSpec("table", "box", {"center": (0, 0, 0.275), "size": (1.2, 0.8, 0.55)}, (0.55, 0.33, 0.18)),
+        ObjectSpec("ball", "sphere", {"center": (-0.3, 0.1, 0.73), "radius": 0.18}, (0.85, 0.15, 0.12)),
+        ObjectSpec("mug", "cylinder", {"center": (0.3, -0.15, 0.66), "radius": 0.09, "height": 0.22, "axis": 2}, (0.2, 0.45, 0.85)),
+        ObjectSpec("book", "plate", {"center": (0.25, 0.22, 0.565), "size": (0.32, 0.24, 0.03)}, (0.15, 0.6, 0.25)),
+        ObjectSpec("pencil", "cylinder", {"center": (-0.2, -0.28, 0.562), "radius": 0.015, "height": 0.36, "axis": 0}, (0.95, 0.8, 0.1)),
+        ObjectSpec("crate", "box", {"center": (1.0, 0.9, 0.225), "size": (0.45, 0.45, 0.45)}, (0.75, 0.6, 0.35)),
+        ObjectSpec("marble", "sphere", {"center": (0.74, 0.5, 0.07), "radius": 0.07}, (0.6, 0.2, 0.8)),
+        ObjectSpec("pole", "cylinder", {"center": (-1.3, -1.2, 0.8), "radius": 0.03, "height": 1.6, "axis": 2}, (0.8, 0.8, 0.85)),
+        ObjectSpec("astronaut", "panel", {"center": (-3.0, 0.0, 1.0), "size": (1.4, 1.4), "facing": (1, 0, 0)}, texture="astronaut"),
+        ObjectSpec("cat", "panel", {"center": (0.0, 3.0, 0.95), "size": (1.6, 1.07), "facing": (0, -1, 0)}, texture="chelsea"),
+        ObjectSpec("coffee", "panel", {"center": (3.0, -0.4, 0.9), "size": (1.5, 1.0), "facing": (-1, 0, 0)}, texture="coffee"),
+        ObjectSpec("rocket", "panel", {"center": (0.3, -3.0, 1.0), "size": (1.5, 1.0), "facing": (0, 1, 0)}, texture="rocket"),
+    )
+}
+
+_TINY = ("floor", "table", "ball", "mug", "pencil", "crate", "marble", "astronaut")
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset("tiny", _TINY, 3000, 14, 2, 128, 96, num_floaters=20, num_background=4),
+    "small": Preset("small", tuple(OBJECTS), 20000, 12, 4, 160, 120, num_floaters=60),
+    "demo": Preset("demo", tuple(OBJECTS), 80000, 24, 6, 320, 240, num_floaters=150, num_background=8),
+}
+
+
+def _normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    norm = np.linalg.norm(x, axis=axis, keepdims=True)
+    return x / np.where(norm > 0, norm, 1.0)
+
+
+def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices. r: [N, 3, 3] -> [N, 4]."""
+    m = r.astype(np.float64)
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    q = np.empty((len(m), 4))
+    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    case = np.argmax(cand, axis=1)
+    for c in range(4):
+        s = case == c
+        if not s.any():
+            continue
+        a = m[s]
+        if c == 0:
+            t = np.sqrt(1 + tr[s]) * 2
+            q[s] = np.stack([0.25 * t, (a[:, 2, 1] - a[:, 1, 2]) / t, (a[:, 0, 2] - a[:, 2, 0]) / t, (a[:, 1, 0] - a[:, 0, 1]) / t], 1)
+        elif c == 1:
+            t = np.sqrt(1 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2]) * 2
+            q[s] = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / t, 0.25 * t, (a[:, 0, 1] + a[:, 1, 0]) / t, (a[:, 0, 2] + a[:, 2, 0]) / t], 1)
+        elif c == 2:
+            t = np.sqrt(1 + a[:, 1, 1] - a[:, 0, 0] - a[:, 2, 2]) * 2
+            q[s] = np.stack([(a[:, 0, 2] - a[:, 2, 0]) / t, (a[:, 0, 1] + a[:, 1, 0]) / t, 0.25 * t, (a[:, 1, 2] + a[:, 2, 1]) / t], 1)
+        else:
+            t = np.sqrt(1 + a[:, 2, 2] - a[:, 0, 0] - a[:, 1, 1]) * 2
+            q[s] = np.stack([(a[:, 1, 0] - a[:, 0, 1]) / t, (a[:, 0, 2] + a[:, 2, 0]) / t, (a[:, 1, 2] + a[:, 2, 1]) / t, 0.25 * t], 1)
+    return _normalize(q).astype(np.float32)
+
+
+def _frame_from_normals(normals: np.ndarray) -> np.ndarray:
+    """[P, 3, 3] rotations whose third column is the unit normal (first two span the tangent plane)."""
+    n = _normalize(normals)
+    helper = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
+    t1 = _normalize(np.cross(helper, n))
+    t2 = np.cross(n, t1)
+    return np.stack([t1, t2, n], axis=2)
+
+
+def _grid_on_rect(count: int, w: float, h: float, rng: np.random.Generator) -> np.ndarray:
+    """~count jittered-grid points in [0, w] x [0, h] (even coverage without holes). -> [P, 2]."""
+    count = max(count, 1)
+    nx = max(1, int(round(np.sqrt(count * w / max(h, 1e-9)))))
+    ny = max(1, int(round(count / nx)))
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny, indexing="xy")
+    uv = np.stack([gx.ravel(), gy.ravel()], 1)
+    uv += rng.uniform(-0.35, 0.35, uv.shape) / np.array([nx, ny])
+    return np.clip(uv, 0, 1) * np.array([w, h])
+
+
+def _box_faces(center, size, top_only: bool = False):
+    """(origin, u_axis, v_axis, normal) per face; u, v are edge vectors of the face."""
+    c, s = np.asarray(center, float), np.asarray(size, float) / 2
+    faces = []
+    for axis in ((2,) if top_only else (0, 1, 2)):
+        a1, a2 = [i for i in range(3) if i != axis]
+        for sign in (1.0, -1.0):
+            if top_only and sign < 0:
+                continue
+            normal = np.zeros(3)
+            normal[axis] = sign
+            u, v = np.zeros(3), np.zeros(3)
+            u[a1], v[a2] = 2 * s[a1], 2 * s[a2]
+            origin = c + normal * s[axis] - u / 2 - v / 2
+            faces.append((origin, u, v, normal))
+    return faces
+
+
+def object_area(spec: ObjectSpec) -> float:
+    p = spec.params
+    if spec.kind in ("box", "plate"):
+        return float(sum(np.linalg.norm(u) * np.linalg.norm(v) for _, u, v, _ in _box_faces(p["center"], p["size"], p.get("top_only", False))))
+    if spec.kind == "sphere":
+        return float(4 * np.pi * p["radius"] ** 2)
+    if spec.kind == "cylinder":
+        return float(2 * np.pi * p["radius"] * p["height"] + 2 * np.pi * p["radius"] ** 2)
+    if spec.kind == "panel":
+        return float(p["size"][0] * p["size"][1])
+    raise ValueError(f"unknown object kind {spec.kind}")
+
+
+def sample_surface(spec: ObjectSpec, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Evenly spread surface points of an object.
+
+    Returns points: [P, 3], normals: [P, 3] and, for panels, uv: [P, 2] in [0, 1] (else None).
+    """
+    p = spec.params
+    if spec.kind in ("box", "plate"):
+        faces = _box_faces(p["center"], p["size"], p.get("top_only", False))
+        areas = np.array([np.linalg.norm(u) * np.linalg.norm(v) for _, u, v, _ in faces])
+        pts, nrm = [], []
+        for (origin, u, v, normal), area in zip(faces, areas):
+            lu, lv = np.linalg.norm(u), np.linalg.norm(v)
+            st = _grid_on_rect(int(round(count * area / areas.sum())), lu, lv, rng)
+            pts.append(origin + st[:, :1] * (u / lu) + st[:, 1:] * (v / lv))
+            nrm.append(np.broadcast_to(normal, (len(st), 3)))
+        return np.concatenate(pts), np.concatenate(nrm), None
+    if spec.kind == "sphere":
+        i = np.arange(count) + 0.5
+        phi = np.arccos(1 - 2 * i / count)
+        theta = np.pi * (1 + 5**0.5) * i + rng.uniform(0, 2 * np.pi)
+        n = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+        return np.asarray(p["center"]) + p["radius"] * n, n, None
+    if spec.kind == "cylinder":
+        r, h, axis = p["radius"], p["height"], p["axis"]
+        side, cap = 2 * np.pi * r * h, np.pi * r * r
+        n_side = int(round(count * side / (side + 2 * cap)))
+        st = _grid_on_rect(n_side, 2 * np.pi * r, h, rng)
+        ang = st[:, 0] / r
+        local_pts = [np.stack([r * np.cos(ang), r * np.sin(ang), st[:, 1] - h / 2], 1)]
+        local_nrm = [np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)]
+        n_cap = max(1, (count - n_side) // 2)
+        for sign in (1.0, -1.0):
+            rad = r * np.sqrt((np.arange(n_cap) + 0.5) / n_cap)
+            a = np.pi * (1 + 5**0.5) * np.arange(n_cap)
+            local_pts.append(np.stack([rad * np.cos(a), rad * np.sin(a), np.full(n_cap, sign * h / 2)], 1))
+            local_nrm.append(np.broadcast_to([0.0, 0.0, sign], (n_cap, 3)))
+        lp, ln = np.concatenate(local_pts), np.concatenate(local_nrm)
+        perm = {2: [0, 1, 2], 0: [2, 0, 1], 1: [1, 2, 0]}[axis]
+        return np.asarray(p["center"]) + lp[:, perm], ln[:, perm], None
+    if spec.kind == "panel":
+        w, h = p["size"]
+        facing = _normalize(np.asarray(p["facing"], float))
+        right = _normalize(np.cross(np.array([0.0, 0.0, 1.0]), facing))  # image x axis seen from the front
+        up = np.cross(facing, right)
+        st = _grid_on_rect(count, w, h, rng)
+        pts = np.asarray(p["center"]) + (st[:, :1] - w / 2) * right + (st[:, 1:] - h / 2) * up
+        uv = np.stack([st[:, 0] / w, 1 - st[:, 1] / h], 1)
+        return pts, np.broadcast_to(facing, (len(st), 3)).copy(), uv
+    raise ValueError(f"unknown object kind {spec.kind}")
+
+
+def inside_object(spec: ObjectSpec, points: np.ndarray, margin: float) -> np.ndarray:
+    """[P] bool: points inside the solid of `spec` grown by `margin` (panels have no inside)."""
+    p = spec.params
+    c = np.asarray(p.get("center", (0, 0, 0)), float)
+    if spec.kind in ("box", "plate"):
+        return np.all(np.abs(points - c) <= np.asarray(p["size"]) / 2 + margin, axis=1)
+    if spec.kind == "sphere":
+        return np.linalg.norm(points - c, axis=1) <= p["radius"] + margin
+    if spec.kind == "cylinder":
+        d = points - c
+        axis = p["axis"]
+        radial = np.linalg.norm(np.delete(d, axis, axis=1), axis=1)
+        return (radial <= p["radius"] + margin) & (np.abs(d[:, axis]) <= p["height"] / 2 + margin)
+    return np.zeros(len(points), bool)
+
+
+def _texture(name: str) -> np.ndarray:
+    import skimage.data
+
+    img = getattr(skimage.data, name)()
+    if img.ndim == 2:
+        img = np.stack([img] * 3, -1)
+    return img[..., :3].astype(np.float32) / 255.0
+
+
+def _sample_texture(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    x = np.clip((uv[:, 0] * w).astype(int), 0, w - 1)
+    y = np.clip((uv[:, 1] * h).astype(int), 0, h - 1)
+    return img[y, x]
+
+
+def _rgb_to_sh(rgb: np.ndarray, degree: int, rng: np.random.Generator, view_dependence: float) -> np.ndarray:
+    """[P, K, 3] SH coefficients whose DC term gives `rgb`, with a little view dependence."""
+    k = (degree + 1) ** 2
+    sh = np.zeros((len(rgb), k, 3), np.float32)
+    sh[:, 0] = (rgb - 0.5) / SH_C0
+    if k > 1:
+        sh[:, 1:] = rng.normal(0, view_dependence, (len(rgb), k - 1, 3))
+    return sh
+
+
+def _build_gaussians(preset: Preset, rng: np.random.Generator):
+    """All Gaussians of the preset: (scene, labels [N], instances [N], instance labels, names)."""
+    specs = [OBJECTS[name] for name in preset.objects]
+    areas = np.array([object_area(s) for s in specs])
+    budget = preset.num_gaussians - preset.num_floaters - preset.num_background
+    # ∝ √area: small and thin objects get finer Gaussians (3DGS densifies detail the same way)
+    share = np.sqrt(areas) / np.sqrt(areas).sum()
+    counts = np.maximum(60, np.round(budget * share)).astype(int)
+    means, quats, scales, colors, labels = [], [], [], [], []
+    for label, (spec, count) in enumerate(zip(specs, counts)):
+        pts, nrm, uv = sample_surface(spec, int(count), rng)
+        spacing = np.sqrt(object_area(spec) / len(pts))
+        # surfaces inside or facing another object closely (a box's bottom on the floor, the
+        # table top under the mug) are never seen; a trained 3DGS scene has no Gaussians there
+        hidden = np.zeros(len(pts), bool)
+        for other in specs:
+            if other is not spec:
+                hidden |= inside_object(other, pts, margin=0.01) | inside_object(other, pts + 0.04 * nrm, margin=0.01)
+        pts, nrm = pts[~hidden], nrm[~hidden]
+        uv = None if uv is None else uv[~hidden]
+        tangent = spacing * rng.uniform(0.55, 0.75, (len(pts), 2))
+        normal = np.full((len(pts), 1), spacing * 0.05)
+        if spec.texture is not None:
+            rgb = _sample_texture(_texture(spec.texture), uv)
+        else:
+            rgb = np.asarray(spec.color) + rng.normal(0, 0.03, (len(pts), 3))
+            if spec.name == "floor":  # tiles, so that motion and depth read well in the viewer
+                tiles = (np.floor(pts[:, 0] / 0.5) + np.floor(pts[:, 1] / 0.5)) % 2
+                rgb = rgb * (0.85 + 0.2 * tiles[:, None])
+            rgb = np.clip(rgb * (0.7 + 0.3 * np.clip(nrm @ LIGHT, 0, 1))[:, None], 0, 1)  # baked diffuse light
+        means.append(pts)
+        quats.append(rotmat_to_quat(_frame_from_normals(nrm)))
+        scales.append(np.concatenate([tangent, normal], 1))
+        colors.append(rgb)
+        labels.append(np.full(len(pts), label, np.int32))
+    n_obj = sum(len(m) for m in means)
+    opacity = rng.uniform(0.85, 0.98, n_obj)
+
+    # floaters: small, faint, unlabelled, inside the room
+    nf = preset.num_floaters
+    f_means = np.c_[rng.uniform(-2, 2, (nf, 2)), rng.uniform(0.2, 2.0, nf)]
+    f_scales = np.exp(rng.uniform(np.log(0.02), np.log(0.08), (nf, 3)))
+    f_opacity = rng.uniform(0.02, 0.15, nf)
+    # huge background Gaussians: a far sky / wall of a few enormous splats
+    nb = preset.num_background
+    ang = 2 * np.pi * (np.arange(nb) + rng.uniform(0, 1)) / max(nb, 1)
+    b_means = np.c_[12 * np.cos(ang), 12 * np.sin(ang), rng.uniform(2, 5, nb)]
+    b_scales = np.exp(rng.uniform(np.log(3.0), np.log(5.0), (nb, 3)))
+    b_opacity = rng.uniform(0.5, 0.8, nb)
+    extra_rgb = np.concatenate([rng.uniform(0.3, 0.9, (nf, 3)), np.clip([0.55, 0.7, 0.9] + rng.normal(0, 0.03, (nb, 3)), 0, 1)])
+    extra_quats = _normalize(rng.normal(size=(nf + nb, 4))).astype(np.float32)
+
+    all_rgb = np.concatenate(colors + [extra_rgb])
+    opac = np.clip(np.concatenate([opacity, f_opacity, b_opacity]), 1e-4, 1 - 1e-4)
+    scene = GaussianScene(
+        means=np.concatenate(means + [f_means, b_means]).astype(np.float32),
+        quats=np.concatenate(quats + [extra_quats]).astype(np.float32),
+        log_scales=np.log(np.concatenate(scales + [f_scales, b_scales])).astype(np.float32),
+        opacity_logits=np.log(opac / (1 - opac)).astype(np.float32),
+        sh=_rgb_to_sh(all_rgb, preset.sh_degree, rng, 0.01),
+        comments=[f"drsplat.synthetic preset={preset.name}"],
+    )
+    obj_labels = np.concatenate(labels)
+    labels_all = np.concatenate([obj_labels, np.full(nf + nb, -1, np.int32)])
+    return scene, labels_all, labels_all.copy(), np.arange(len(specs), dtype=np.int32), [s.name for s in specs]
+
+
+def look_at(eye, target, width: int, height: int, fov_x_deg: float = 62.0, name: str = "") -> Camera:
+    """An OpenCV camera at `eye` looking at `target` with world z up."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    forward = _normalize(target - eye)
+    up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    right = _normalize(np.cross(forward, up))
+    down = np.cross(forward, right)
+    r = np.stack([right, down, forward])
+    f = 0.5 * width / np.tan(np.radians(fov_x_deg) / 2)
+    return Camera(R=r, t=-r @ eye, fx=f, fy=f, cx=width / 2, cy=height / 2, width=width, height=height, name=name)
+
+
+def make_cameras(preset: Preset, rng: np.random.Generator) -> list[Camera]:
+    """Orbiting views of the table plus views from inside the scene looking outwards."""
+    cams = []
+    w, h = preset.width, preset.height
+    for i in range(preset.num_orbit_views):
+        ang = 2 * np.pi * (i + 0.5) / preset.num_orbit_views + rng.uniform(-0.1, 0.1)
+        radius = rng.uniform(2.1, 2.5)
+        eye = (radius * np.cos(ang), radius * np.sin(ang), rng.uniform(1.2, 1.9))
+        cams.append(look_at(eye, (0, 0, 0.45), w, h, name=f"orbit_{i:03d}"))
+    for i in range(preset.num_inside_views):
+        ang = 2 * np.pi * i / max(preset.num_inside_views, 1) + rng.uniform(0, 0.5)
+        eye = (0.25 * np.cos(ang), 0.25 * np.sin(ang), rng.uniform(0.9, 1.3))
+        target = (3.0 * np.cos(ang), 3.0 * np.sin(ang), rng.uniform(0.3, 0.8))
+        cams.append(look_at(eye, target, w, h, fov_x_deg=75.0, name=f"inside_{i:03d}"))
+    return cams
+
+
+def make_embedding_basis(num_labels: int, dim: int, rng: np.random.Generator):
+    """(c [D], c_t [D], v [L, D]): mutually orthogonal unit vectors."""
+    if num_labels + 2 > dim:
+        raise ValueError(f"dim={dim} is too small for {num_labels} labels")
+    q, _ = np.linalg.qr(rng.normal(size=(dim, num_labels + 2)))
+    q = q.T.astype(np.float32)
+    return q[0], q[1], q[2:]
+
+
+def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams | None = None) -> SyntheticScene:
+    """Build the scene, cameras and oracle vectors of a preset (nothing is rendered or written)."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
+    p = PRESETS[preset]
+    oracle = oracle or OracleParams()
+    rng = np.random.default_rng(seed)
+    scene, labels, instances, instance_labels, names = _build_gaussians(p, rng)
+    cameras = make_cameras(p, rng)
+    c, c_t, v = make_embedding_basis(len(names), p.dim, np.random.default_rng([seed, 1]))
+    text = _normalize(oracle.text_a * c_t + oracle.text_b * v).astype(np.float32)
+    return SyntheticScene(preset, seed, scene, cameras, labels, instances, instance_labels, names, v, c, c_t, text, oracle)
+
+
+# ----------------------------------------------------------------------------- rendering & oracle features
+
+
+def instance_map(ids: np.ndarray, weights: np.ndarray, instances: np.ndarray, num_instances: int) -> np.ndarray:
+    """Per-pixel object instance by weighted vote.
+
+    ids, weights: [H, W, k] top-k Gaussians of each pixel (-1 padded) and their w = T·α.
+    instances: [N] instance per Gaussian (-1 none). Returns [H, W] int32: argmax over
+    {none, 0..I-1} of Σ_s w_s·[instance(id_s) = i]; -1 when "none" wins or nothing was hit.
+    """
+    inst = np.where(ids >= 0, instances[np.maximum(ids, 0)], -1)
+    w = np.where(ids >= 0, weights, 0.0)
+    votes = np.stack([np.sum(w * (inst == i), axis=-1) for i in range(-1, num_instances)], axis=-1)
+    best = np.argmax(votes, axis=-1) - 1
+    return np.where(votes.max(axis=-1) > 0, best, -1).astype(np.int32)
+
+
+def jitter_boundaries(ids: np.ndarray, jitter: int, rng: np.random.Generator) -> np.ndarray:
+    """Mask map whose boundaries wander by up to `jitter` pixels (every pixel copies a random
+    neighbour within the window); interiors are unchanged. ids: [H, W] -> [H, W]."""
+    if jitter <= 0:
+        return ids
+    h, w = ids.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    dy = rng.integers(-jitter, jitter + 1, (h, w))
+    dx = rng.integers(-jitter, jitter + 1, (h, w))
+    return ids[np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)]
+
+
+def oracle_masks_and_embeddings(
+    inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LangSplat-style feature pair for one view from its instance map.
+
+    inst: [H, W] instance per pixel. Returns seg: [4, H, W] int32 with ids cumulative across the
+    four levels (each level: one mask per visible instance, independently jittered), feats:
+    [M, D] float32 unit embeddings, and mask_labels: [M] the label each embedding encodes
+    (differs from the true label for mislabelled masks).
+    """
+    o = syn.oracle
+    dim = syn.label_vectors.shape[1]
+    num_labels = len(syn.label_names)
+    seg = np.full((LEVELS,) + inst.shape, -1, np.int32)
+    feats, mask_labels = [], []
+    for level in range(LEVELS):
+        ids = jitter_boundaries(inst, o.jitter, rng)
+        present, counts = np.unique(ids[ids >= 0], return_counts=True)
+        present = present[counts >= o.min_mask_pixels]
+        for instance in present:
+            label = int(syn.instance_labels[instance])
+            if num_labels > 1 and rng.random() < o.mislabel_fraction:
+                label = int(rng.choice([l for l in range(num_labels) if l != label]))
+            seg[level][ids == instance] = len(feats)
+            noise = rng.normal(0, o.noise / np.sqrt(dim), dim)
+            feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
+            mask_labels.append(label)
+    feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
+    return seg, feats_arr, np.array(mask_labels, np.int32)
+
+
+@dataclass
+class RenderedView:
+    rgb: np.ndarray  # [H, W, 3] float32
+    label_mask: np.ndarray  # [H, W] int32
+    instance_mask: np.ndarray  # [H, W] int32
+
+
+def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
+    """RGB and ground-truth masks of one view, from one rasterizer pass."""
+    from drsplat.raster import rasterize
+
+    out = rasterize(syn.scene, camera, topk=topk, with_rgb=True, background=np.array([1.0, 1.0, 1.0], np.float32))
+    inst = instance_map(out.ids, out.weights, syn.instances, len(syn.instance_labels))
+    labels = np.where(inst >= 0, syn.instance_labels[np.maximum(inst, 0)], -1).astype(np.int32)
+    return RenderedView(np.asarray(out.rgb, np.float32), labels, inst)
+
+
+def camera_to_frame(camera: Camera, file_path: str) -> dict:
+    """nerfstudio transforms.json frame with an OpenGL camera-to-world matrix."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = camera.R.T
+    c2w[:3, 3] = camera.center
+    c2w[:3, 1:3] *= -1  # OpenCV (y down, z forward) -> OpenGL (y up, z backward)
+    return {
+        "file_path": file_path,
+        "transform_matrix": c2w.tolist(),
+        "fl_x": camera.fx,
+        "fl_y": camera.fy,
+        "cx": camera.cx,
+        "cy": camera.cy,
+        "w": camera.width,
+        "h": camera.height,
+    }
+
+
+def write_transforms(path: Path, cameras: list[Camera]) -> None:
+    from drsplat.utils import atomic_path
+
+    first = cameras[0]
+    data = {
+        "camera_model": "OPENCV",
+        "fl_x": first.fx,
+        "fl_y": first.fy,
+        "cx": first.cx,
+        "cy": first.cy,
+        "w": first.width,
+        "h": first.height,
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "frames": [camera_to_frame(c, f"images/{c.name}.png") for c in cameras],
+    }
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def write_dataset(
+    out_dir: str | Path,
+    preset: str = "tiny",
+    seed: int = 0,
+    *,
+    mislabel_fraction: float = 0.0,
+    noise: float = 0.15,
+    jitter: int = 0,
+    show_progress: bool = True,
+    cancel=None,
+) -> Path:
+    """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
+
+    Every file is written atomically; the manifest and scene.ply come last, so an interrupted
+    run leaves no scene.ply claiming a complete dataset.
+    """
+    from PIL import Image
+
+    from drsplat.featurefiles import write_features, write_manifest
+    from drsplat.scene import save_ply
+    from drsplat.utils import atomic_path, progress, save_npy_atomic
+
+    if not 0.0 <= mislabel_fraction <= 1.0:
+        raise ValueError("mislabel_fraction must be in [0, 1]")
+    out = Path(out_dir)
+    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter)
+    syn = make_synthetic(preset, seed, oracle=oracle)
+    for sub in ("images", "gt/masks", "features"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng([seed, 2])
+    mislabelled = total_masks = 0
+    for cam in progress(syn.cameras, desc=f"synth {preset}", enabled=show_progress, unit="view"):
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        view = render_view(syn, cam)
+        rgb8 = (np.clip(view.rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        with atomic_path(out / "images" / f"{cam.name}.png") as tmp:
+            Image.fromarray(rgb8).save(tmp, format="PNG")
+        save_npy_atomic(out / "gt" / "masks" / f"{cam.name}.npy", view.label_mask)
+        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng)
+        true_labels = _true_mask_labels(seg, view.instance_mask, syn.instance_labels, len(feats))
+        mislabelled += int(np.count_nonzero(mask_labels != true_labels))
+        total_masks += len(feats)
+        write_features(out / "features", cam.name, seg, feats)
+    save_npy_atomic(out / "gt" / "labels.npy", syn.labels.astype(np.int32))
+    save_npy_atomic(out / "text_embeddings.npy", syn.text_vectors.astype(np.float32))
+    with atomic_path(out / "gt" / "label_names.json") as tmp:
+        tmp.write_text(json.dumps(syn.label_names) + "\n")
+    write_transforms(out / "transforms.json", syn.cameras)
+    write_manifest(
+        out / "features",
+        {
+            "format": "langsplat",
+            "mask_generator": "oracle (drsplat.synthetic: one mask per visible object instance)",
+            "clip": {"model": ORACLE_MODEL_ID, "pretrained": f"synthetic-{preset}-seed{seed}"},
+            "clip_model_id": ORACLE_MODEL_ID,
+            "levels": list(FEATURE_LEVEL_NAMES),
+            "default_level": 1,
+            "dim": int(syn.label_vectors.shape[1]),
+            "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter},
+            "counts": {"views": len(syn.cameras), "masks": total_masks, "mislabelled_masks": mislabelled},
+        },
+    )
+    with atomic_path(out / "gt" / "synthetic.json") as tmp:
+        tmp.write_text(
+            json.dumps(
+                {"preset": preset, "seed": seed, "localisation_threshold": syn.localisation_threshold(), "num_gaussians": syn.scene.num_gaussians},
+                indent=2,
+            )
+            + "\n"
+        )
+    save_ply(syn.scene, out / "scene.ply")
+    log.info("wrote %s: %d Gaussians, %d views, %d masks (%d mislabelled)", out, syn.scene.num_gaussians, len(syn.cameras), total_masks, mislabelled)
+    return out
+
+
+def _true_mask_labels(seg: np.ndarray, inst: np.ndarray, instance_labels: np.ndarray, num_masks: int) -> np.ndarray:
+    """[M] true label of each mask: the majority instance label under the mask."""
+    out = np.full(num_masks, -1, np.int32)
+    for level in seg:
+        for m in np.unique(level[level >= 0]):
+            under = inst[level == m]
+            under = under[under >= 0]
+            if len(under):
+                out[m] = instance_labels[np.bincount(under).argmax()]
+    return out

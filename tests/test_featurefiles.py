@@ -1,0 +1,161 @@
+"""LangSplat feature files: levels, dtypes, validation, truncation, resampling, manifest."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import Camera
+from drsplat.errors import InputError
+from drsplat.featurefiles import (
+    feat_path,
+    is_valid_pair,
+    list_stems,
+    read_features,
+    read_manifest,
+    resample_nearest,
+    seg_path,
+    write_features,
+    write_manifest,
+)
+
+
+def langsplat_like(rng: np.random.Generator, h: int = 6, w: int = 8, counts=(3, 2, 4, 1), d: int = 5):
+    """Four levels with cumulative ids, as LangSplat's preprocess.py writes them."""
+    seg = np.full((len(counts), h, w), -1, np.int64)
+    offset = 0
+    for level, count in enumerate(counts):
+        local = rng.integers(-1, count, size=(h, w))
+        local.flat[:count] = np.arange(count)  # every mask appears
+        seg[level] = np.where(local >= 0, local + offset, -1)
+        offset += count
+    feats = rng.normal(size=(offset, d)).astype(np.float32)
+    return seg, feats
+
+
+def test_round_trip_and_levels_index_the_concatenated_array(tmp_path):
+    rng = np.random.default_rng(0)
+    seg, feats = langsplat_like(rng)
+    write_features(tmp_path, "img_001", seg, feats)
+    assert list_stems(tmp_path) == ["img_001"]
+    assert is_valid_pair(tmp_path, "img_001")
+    for level in range(4):
+        ids, f = read_features(tmp_path, "img_001", level=level)
+        assert ids.dtype == np.int32 and f.dtype == np.float32
+        np.testing.assert_array_equal(ids, seg[level])
+        np.testing.assert_array_equal(f, feats)
+    ids1, _ = read_features(tmp_path, "img_001")
+    assert ids1[ids1 >= 0].min() >= 3 and ids1.max() < 5  # level 1 (s) is rows 3..4
+
+
+@pytest.mark.parametrize("dtype", [np.int8, np.int16, np.int32, np.int64, np.float16, np.float32, np.float64])
+def test_any_int_or_float_dtype(tmp_path, dtype):
+    rng = np.random.default_rng(1)
+    seg, feats = langsplat_like(rng)
+    np.save(seg_path(tmp_path, "a"), seg.astype(dtype))
+    np.save(feat_path(tmp_path, "a"), feats.astype(np.float16))
+    ids, f = read_features(tmp_path, "a", level=2)
+    np.testing.assert_array_equal(ids, seg[2])
+    np.testing.assert_allclose(f, feats.astype(np.float16).astype(np.float32))
+
+
+def test_non_cumulative_levels_get_offsets(tmp_path):
+    rng = np.random.default_rng(2)
+    seg, feats = langsplat_like(rng, counts=(3, 2, 4, 1))
+    local = seg.copy()
+    for level, offset in enumerate((0, 3, 5, 9)):
+        local[level] = np.where(seg[level] >= 0, seg[level] - offset, -1)
+    write_features(tmp_path, "b", local, feats)
+    for level in range(4):
+        np.testing.assert_array_equal(read_features(tmp_path, "b", level=level)[0], seg[level])
+
+
+def test_single_level_file_serves_any_level(tmp_path):
+    seg = np.array([[0, 1], [-1, 1]])
+    write_features(tmp_path, "c", seg, np.eye(2, 3, dtype=np.float32))
+    np.testing.assert_array_equal(read_features(tmp_path, "c", level=1)[0], seg)
+
+
+def test_errors_name_file_and_problem(tmp_path):
+    rng = np.random.default_rng(3)
+    seg, feats = langsplat_like(rng)
+    np.save(seg_path(tmp_path, "d"), seg)
+    np.save(feat_path(tmp_path, "d"), feats[:4])
+    with pytest.raises(InputError, match=r"d_s\.npy.*out of range.*only 4 embeddings"):
+        read_features(tmp_path, "d", level=1)
+    with pytest.raises(InputError, match=r"level 7 requested.*4 levels"):
+        read_features(tmp_path, "d", level=7)
+    np.save(feat_path(tmp_path, "d"), feats[:, :, None])
+    with pytest.raises(InputError, match=r"d_f\.npy.*shape"):
+        read_features(tmp_path, "d")
+    with pytest.raises(InputError, match=r"e_s\.npy.*missing"):
+        read_features(tmp_path, "e")
+    np.save(seg_path(tmp_path, "f"), seg.astype(np.float32) + 0.25)
+    np.save(feat_path(tmp_path, "f"), feats)
+    with pytest.raises(InputError, match="not whole numbers"):
+        read_features(tmp_path, "f")
+
+
+def test_nonfinite_embeddings_are_counted(tmp_path):
+    rng = np.random.default_rng(4)
+    seg, feats = langsplat_like(rng)
+    feats[3, 0] = np.nan
+    feats[4, 2] = np.inf
+    write_features(tmp_path, "g", seg, feats)
+    with pytest.raises(InputError, match=r"g_f\.npy.*2 of 10 embeddings contain non-finite"):
+        read_features(tmp_path, "g")
+    ids, f = read_features(tmp_path, "g", level=1, drop_nonfinite=True)
+    assert np.isfinite(f).all()
+    assert (ids == -1).all()  # level 1 used exactly rows 3 and 4
+
+
+def test_truncated_and_corrupt_files_are_detected(tmp_path):
+    rng = np.random.default_rng(5)
+    seg, feats = langsplat_like(rng, h=40, w=50)
+    write_features(tmp_path, "h", seg, feats)
+    assert is_valid_pair(tmp_path, "h")
+    data = feat_path(tmp_path, "h").read_bytes()
+    feat_path(tmp_path, "h").write_bytes(data[: len(data) - 7])
+    assert not is_valid_pair(tmp_path, "h")
+    with pytest.raises(InputError, match="truncated"):
+        read_features(tmp_path, "h")
+    feat_path(tmp_path, "h").write_bytes(b"not numpy at all")
+    assert not is_valid_pair(tmp_path, "h")
+    with pytest.raises(InputError, match="not a readable .npy"):
+        read_features(tmp_path, "h")
+    feat_path(tmp_path, "h").unlink()
+    assert not is_valid_pair(tmp_path, "h")
+
+
+def test_resample_nearest_matches_scaled_intrinsics():
+    """A point projected by a camera and by camera.scaled() lands on the same mask."""
+    rng = np.random.default_rng(6)
+    src = rng.integers(-1, 50, size=(48, 64)).astype(np.int32)
+    cam_src = Camera(R=np.eye(3), t=np.zeros(3), fx=60.0, fy=60.0, cx=31.0, cy=25.0, width=64, height=48)
+    for factor in (2.0, 0.5, 1.5, 0.75):
+        cam_dst = cam_src.scaled(factor)
+        dst = resample_nearest(src, cam_dst.width, cam_dst.height)
+        assert dst.shape == (cam_dst.height, cam_dst.width)
+        # destination pixel centres, expressed in source pixel coordinates, fall in the sampled pixel
+        ys, xs = np.mgrid[0 : cam_dst.height, 0 : cam_dst.width]
+        sx, sy = (xs + 0.5) * 64 / cam_dst.width, (ys + 0.5) * 48 / cam_dst.height
+        np.testing.assert_array_equal(dst, src[np.floor(sy).astype(int), np.floor(sx).astype(int)])
+        # a world point projects to corresponding pixels in both cameras
+        pts = np.c_[rng.uniform(-0.4, 0.4, (200, 2)), np.ones(200)]
+        uv_s, _ = cam_src.project(pts)
+        uv_d, _ = cam_dst.project(pts)
+        np.testing.assert_allclose(uv_d / factor, uv_s, atol=1e-3 * max(1, 1 / factor) + 0.05)
+    assert resample_nearest(src, 64, 48) is src
+    up = resample_nearest(src, 128, 96)
+    np.testing.assert_array_equal(up[::2, ::2], src)
+    np.testing.assert_array_equal(resample_nearest(up, 64, 48), src)
+
+
+def test_manifest_round_trip_and_errors(tmp_path):
+    assert read_manifest(tmp_path) == {}
+    manifest = {"mask_generator": "oracle", "clip": {"model": "ViT-B-16", "pretrained": "laion2b_s34b_b88k"}, "params": {"levels": 4}}
+    write_manifest(tmp_path, manifest)
+    assert read_manifest(tmp_path) == manifest
+    (tmp_path / "manifest.json").write_text("{broken")
+    with pytest.raises(InputError, match="manifest.json.*not valid JSON"):
+        read_manifest(tmp_path)

@@ -1,0 +1,339 @@
+"""Sparse registration: kernel vs reference, fidelity on exact ground truth, resume, cancel, CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.errors import Cancelled, InputError
+from drsplat.evaluation import localisation_report, segmentation_report, significance_weights
+from drsplat.featurefiles import read_features, write_features
+from drsplat.registration import Accumulator, accumulate_view_reference, normalize_rows, pair_views, register_scene
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
+from drsplat.utils import CancelToken
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "clean", "tiny", 0, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def tiny_mislabelled(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "mislabelled", "tiny", 0, mislabel_fraction=0.1, show_progress=False)
+
+
+def _random_view(rng, h, w, k, n, m, empty_fraction=0.3):
+    """Top-k lists as the rasterizer returns them: distinct ids per pixel, -1 padded at the end."""
+    ids = np.full((h, w, k), -1, np.int32)
+    weights = np.zeros((h, w, k), np.float32)
+    for y in range(h):
+        for x in range(w):
+            count = rng.integers(0, k + 1) if rng.random() > empty_fraction else 0
+            count = min(count, n)
+            ids[y, x, :count] = rng.choice(n, size=count, replace=False)
+            weights[y, x, :count] = np.sort(rng.uniform(1e-4, 0.5, count))[::-1]
+    masks = rng.integers(-1, m, size=(h, w)).astype(np.int32)
+    feats = rng.normal(size=(m, 7)).astype(np.float32)
+    return ids, weights, masks, feats
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["random", "single_gaussian", "no_masks", "one_mask", "k1", "all_empty", "duplicate_ids", "many_masks"],
+)
+def test_kernel_agrees_with_reference(case):
+    rng = np.random.default_rng(hash(case) % 2**32)
+    n, m, k = 50, 6, 8
+    if case == "single_gaussian":
+        n = 1
+    if case == "k1":
+        k = 1
+    if case == "many_masks":
+        m = 400
+    acc = Accumulator(n, 7)
+    F_ref, W_ref = np.zeros((n, 7), np.float64), np.zeros(n, np.float64)
+    total_pairs = 0
+    for view in range(3):  # several views: the kernel's scratch must be clean between views and masks
+        ids, weights, masks, feats = _random_view(rng, 9, 11, k, n, m)
+        if case == "no_masks":
+            masks[:] = -1
+        if case == "one_mask":
+            masks[:] = 0
+        if case == "all_empty":
+            ids[:] = -1
+            weights[:] = 0
+        if case == "duplicate_ids":
+            ids[..., 1] = np.where(ids[..., 1] >= 0, ids[..., 0], -1)  # a Gaussian listed twice: both count
+        pairs, distinct = acc.add_view(ids, weights, masks, feats)
+        total_pairs += pairs
+        assert pairs == accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
+        flat_m = np.repeat(masks.reshape(-1), k)
+        keep = (ids.reshape(-1) >= 0) & (flat_m >= 0)
+        assert distinct == len(np.unique(ids.reshape(-1)[keep].astype(np.int64) * m + flat_m[keep]))
+    F, W = acc.sums()
+    np.testing.assert_allclose(W, W_ref, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(F, F_ref, rtol=1e-4, atol=1e-5)
+    if case in ("no_masks", "all_empty"):
+        assert total_pairs == 0 and not W.any()
+
+
+def test_accumulator_memory_is_n_times_d_not_n_times_m():
+    """200k Gaussians x 20k masks as a dense float32 matrix would be 16 GB; we stay near N·D."""
+    n, d, m = 200_000, 4, 20_000
+    rng = np.random.default_rng(0)
+    h, w, k = 200, 200, 10
+    ids = rng.integers(-1, n, size=(h, w, k)).astype(np.int32)
+    weights = rng.uniform(0, 0.1, (h, w, k)).astype(np.float32)
+    masks = rng.integers(-1, m, size=(h, w)).astype(np.int32)
+    feats = rng.normal(size=(m, d)).astype(np.float32)
+    acc = Accumulator(n, d)
+    acc.add_view(ids[:2], weights[:2], masks[:2], feats)  # compile outside the measurement
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    pairs, distinct = acc.add_view(ids, weights, masks, feats)
+    acc.sums()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert distinct > 100_000
+    inputs = ids.nbytes + weights.nbytes + masks.nbytes
+    # pixel order, per-mask and per-Gaussian offsets, a pair order: nothing of size N x M
+    assert peak < inputs + 16 * h * w + 8 * m + 8 * n + 8 * distinct + 1_000_000
+
+
+def test_normalize_rows_zeroes_unassigned_and_nonfinite():
+    F = np.array([[3, 4], [0, 0], [np.nan, 1], [1, 0]], np.float32)
+    W = np.array([2, 0, 1, 0], np.float32)
+    F, bad = normalize_rows(F, W)
+    np.testing.assert_allclose(F, [[0.6, 0.8], [0, 0], [0, 0], [0, 0]])
+    np.testing.assert_array_equal(W, [2, 0, 0, 0])
+    assert bad == 1
+
+
+def _scores(tiny: Path, result):
+    text = np.load(tiny / "text_embeddings.npy")
+    return result.features @ text.T
+
+
+def _fidelity(tiny: Path, topk: int = 40):
+    scene = load_ply(tiny / "scene.ply")
+    result = register_scene(scene, load_cameras(tiny), tiny / "features", topk=topk, show_progress=False)
+    gt = np.load(tiny / "gt" / "labels.npy")
+    names = json.loads((tiny / "gt" / "label_names.json").read_text())
+    d, _ = significance_weights(scene.log_scales, scene.opacity_logits)
+    scores = _scores(tiny, result)
+    return result, segmentation_report(scores, gt, d, names), localisation_report(scores, gt, d, names)
+
+
+def test_fidelity_clean_oracle_features(tiny):
+    result, seg, loc = _fidelity(tiny)
+    assert result.num_views == 16 and not result.missing_features
+    labelled = np.load(tiny / "gt" / "labels.npy") >= 0
+    assert result.assigned[labelled].mean() > 0.98
+    assert np.nanmean(seg.iou) >= 0.9, seg.iou
+    assert np.nanmean(loc.iou) >= 0.75, loc.iou
+    rows = np.linalg.norm(result.features, axis=1)
+    np.testing.assert_allclose(rows[result.assigned], 1.0, atol=1e-5)
+    assert not rows[~result.assigned].any()
+
+
+def test_fidelity_with_ten_percent_mislabelled_masks(tiny_mislabelled):
+    manifest = json.loads((tiny_mislabelled / "features" / "manifest.json").read_text())
+    assert manifest["counts"]["mislabelled_masks"] > 0.05 * manifest["counts"]["masks"]
+    _, seg, _ = _fidelity(tiny_mislabelled)
+    assert np.nanmean(seg.iou) >= 0.8, seg.iou
+
+
+def test_top1_is_worse_than_top40_on_segmentation(tiny):
+    """The paper's ablation: keeping only the top Gaussian per pixel loses accuracy."""
+    _, seg1, _ = _fidelity(tiny, topk=1)
+    _, seg40, _ = _fidelity(tiny, topk=40)
+    assert np.nanmean(seg1.iou) < np.nanmean(seg40.iou)
+
+
+def test_resume_from_checkpoint_equals_uninterrupted_run(tiny, tmp_path):
+    scene = load_ply(tiny / "scene.ply")
+    cams = load_cameras(tiny)
+    full = register_scene(scene, cams, tiny / "features", show_progress=False)
+    ckpt = tmp_path / "run.npz"
+    token = CancelToken()
+
+    def stop_after_five(done: int, total: int) -> None:
+        if done == 5:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_scene(scene, cams, tiny / "features", checkpoint=ckpt, checkpoint_every=3, cancel=token,
+                       on_progress=stop_after_five, show_progress=False)
+    assert ckpt.is_file()
+    seen = []
+    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, checkpoint_every=3,
+                             on_progress=lambda d, t: seen.append(d), show_progress=False)
+    assert resumed.resumed_views == 5 and seen[0] == 5 and seen[-1] == 16
+    np.testing.assert_array_equal(resumed.features, full.features)
+    np.testing.assert_array_equal(resumed.weights, full.weights)
+    assert resumed.num_pairs == full.num_pairs
+    assert not ckpt.exists()  # removed after success
+
+
+def test_checkpoint_with_other_parameters_is_not_resumed(tiny, tmp_path, caplog):
+    scene = load_ply(tiny / "scene.ply")
+    cams = load_cameras(tiny)
+    ckpt = tmp_path / "run.npz"
+    token = CancelToken()
+    token.cancel()
+    with pytest.raises(Cancelled):
+        register_scene(scene, cams, tiny / "features", topk=10, checkpoint=ckpt, cancel=token, show_progress=False)
+    assert ckpt.is_file()
+    with caplog.at_level(logging.WARNING):
+        result = register_scene(scene, cams, tiny / "features", topk=20, checkpoint=ckpt, show_progress=False)
+    assert result.resumed_views == 0 and "other parameters" in caplog.text
+
+
+def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
+    feats = tmp_path / "features"
+    feats.mkdir()
+    cams = load_cameras(tiny)
+    for cam in cams[:4]:
+        ids, f = read_features(tiny / "features", cam.name, level=1)
+        write_features(feats, cam.name, ids, f)
+    write_features(feats, "stray_image", np.zeros((2, 2), np.int32), np.ones((1, 512), np.float32))
+    matched, missing, unmatched = pair_views(cams, [c.name for c in cams[:4]] + ["stray_image"])
+    assert [c.name for c in matched] == [c.name for c in cams[:4]] and unmatched == ["stray_image"] and len(missing) == 12
+    with caplog.at_level(logging.WARNING):
+        result = register_scene(load_ply(tiny / "scene.ply"), cams, feats, show_progress=False)
+    assert result.num_views == 4 and len(result.missing_features) == 12 and result.unmatched_features == ["stray_image"]
+    assert "12 of 16 cameras have no feature file" in caplog.text and "stray_image" in caplog.text
+    renamed = [dataclasses.replace(c, name=f"other_{c.name}") for c in cams]
+    with pytest.raises(InputError, match="no feature file matches a camera image stem"):
+        register_scene(load_ply(tiny / "scene.ply"), renamed, feats, show_progress=False)
+
+
+def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
+    """Features stored at twice the camera resolution register exactly like the originals."""
+    cams = load_cameras(tiny)
+    up = tmp_path / "features_2x"
+    for cam in cams:
+        ids, f = read_features(tiny / "features", cam.name, level=1)
+        write_features(up, cam.name, np.repeat(np.repeat(ids, 2, axis=0), 2, axis=1), f)
+    scene = load_ply(tiny / "scene.ply")
+    a = register_scene(scene, cams, tiny / "features", show_progress=False)
+    b = register_scene(scene, cams, up, level=0, show_progress=False)
+    np.testing.assert_array_equal(a.features, b.features)
+
+
+def test_nonfinite_embeddings_are_dropped_and_counted(tiny, tmp_path):
+    cams = load_cameras(tiny)
+    feats = tmp_path / "features"
+    ids, f = read_features(tiny / "features", cams[0].name, level=1)
+    f[ids[ids >= 0][0]] = np.nan
+    write_features(feats, cams[0].name, ids, f)
+    result = register_scene(load_ply(tiny / "scene.ply"), cams, feats, show_progress=False)
+    assert result.num_nonfinite_masks == 1 and np.isfinite(result.features).all()
+
+
+def test_cli_synth_register_query(tmp_path):
+    from drsplat.cli import main
+    from drsplat.index import read_field
+
+    data = tmp_path / "data"
+    assert main(["synth", str(data), "--preset", "tiny", "--seed", "3", "--no-progress"]) == 0
+    out = tmp_path / "registered.ply"
+    args = ["register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"), "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    registered = load_ply(out)
+    field = read_field(registered, out)
+    assert field.kind == "exact" and field.dim == 512 and (field.weights > 0).all()
+    assert field.clip_model == "oracle"  # from the manifest: queries know these are not CLIP features
+    original = load_ply(data / "scene.ply")
+    assert registered.num_gaussians < original.num_gaussians  # unassigned ones pruned
+    assert main(args[:-3] + ["--keep-unassigned", "--out", str(tmp_path / "all.ply"), "--no-progress"]) == 0
+    kept = read_field(load_ply(tmp_path / "all.ply"), tmp_path / "all.ply")
+    assert kept.num_gaussians == original.num_gaussians and (kept.weights == 0).sum() == original.num_gaussians - registered.num_gaussians
+    assert not list(tmp_path.glob(".*register*"))  # no checkpoint left behind
+    assert main(["register", str(data / "scene.ply"), "--source", str(data), "--features", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.ply")]) == 1
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_cli_interrupt_leaves_no_output(tiny, tmp_path, monkeypatch):
+    """A KeyboardInterrupt in the middle of registration writes no PLY (exit code 1)."""
+    import drsplat.registration as registration
+    from drsplat.cli import main
+
+    calls = {"n": 0}
+    original = registration.Accumulator.add_view
+
+    def interrupted(self, *a):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return original(self, *a)
+
+    monkeypatch.setattr(registration.Accumulator, "add_view", interrupted)
+    out = tmp_path / "out.ply"
+    code = main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"])
+    assert code == 1 and not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if not p.name.startswith(".")] == []
+
+
+def test_small_pair_buffer_flushes_mid_view_and_agrees():
+    """A buffer smaller than one view's pairs forces flushes in the middle of a view."""
+    rng = np.random.default_rng(7)
+    n = 40
+    small, big = Accumulator(n, 7, pair_capacity=1), Accumulator(n, 7)
+    F_ref, W_ref = np.zeros((n, 7)), np.zeros(n)
+    for _ in range(4):
+        ids, weights, masks, feats = _random_view(rng, 12, 10, 6, n, 30)
+        assert small.add_view(ids, weights, masks, feats) == big.add_view(ids, weights, masks, feats)
+        accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
+    (F, W), (F_big, W_big) = small.sums(), big.sums()
+    np.testing.assert_allclose(F, F_ref, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(W, W_ref, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(F, F_big)  # flush boundaries do not change a single bit
+    np.testing.assert_array_equal(W, W_big)
+
+
+def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, monkeypatch, capsys):
+    import os
+    import signal
+
+    import drsplat.registration as registration
+    from drsplat.cli import main
+
+    calls = {"n": 0}
+    original = registration.Accumulator.add_view
+
+    def add_view_then_ctrl_c(self, *a):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(self, *a)
+
+    monkeypatch.setattr(registration.Accumulator, "add_view", add_view_then_ctrl_c)
+    out = tmp_path / "out.ply"
+    args = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"]
+    assert main(args) == 1 and not out.exists()
+    assert len(list(tmp_path.glob(".out.ply.register.npz"))) == 1  # the checkpoint, a hidden file
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    monkeypatch.setattr(registration.Accumulator, "add_view", original)
+    assert "stopping after the current view" in capsys.readouterr().err
+    assert main(args) == 0
+    assert "4 of 16 views already registered" in capsys.readouterr().err
+    assert out.is_file() and not list(tmp_path.glob(".*"))
+
+
+def test_clip_model_id_comes_from_the_manifest():
+    from drsplat.commands.register import clip_model_name
+
+    assert clip_model_name({}) == "unknown"
+    assert clip_model_name({"clip_model_id": "ViT-B-16/laion2b_s34b_b88k", "clip": {"model": "x"}}) == "ViT-B-16/laion2b_s34b_b88k"
+    assert clip_model_name({"clip": {"model": "ViT-L-14", "pretrained": "openai"}}) == "ViT-L-14/openai"
+    assert clip_model_name({"clip": "ViT-B-32/openai"}) == "ViT-B-32/openai"

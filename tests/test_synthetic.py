@@ -1,0 +1,203 @@
+"""Synthetic scenes: layout, determinism, exact ground truth, oracle features, hard cases."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from drsplat.cameras import load_cameras
+from drsplat.featurefiles import is_valid_pair, read_features, read_manifest
+from drsplat.scene import load_ply, quat_to_rotmat
+from drsplat.synthetic import (
+    OBJECTS,
+    PRESETS,
+    instance_map,
+    jitter_boundaries,
+    make_synthetic,
+    rotmat_to_quat,
+    write_dataset,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("synth") / "tiny", "tiny", 0, show_progress=False)
+
+
+def test_layout_matches_architecture(tiny):
+    syn = make_synthetic("tiny", 0)
+    names = [c.name for c in syn.cameras]
+    for rel in ("scene.ply", "transforms.json", "gt/labels.npy", "gt/label_names.json", "text_embeddings.npy", "features/manifest.json"):
+        assert (tiny / rel).is_file(), rel
+    for name in names:
+        assert (tiny / "images" / f"{name}.png").is_file()
+        assert (tiny / "gt" / "masks" / f"{name}.npy").is_file()
+        assert is_valid_pair(tiny / "features", name)
+    assert not list(tiny.rglob("*.tmp"))
+    labels = np.load(tiny / "gt" / "labels.npy")
+    label_names = json.loads((tiny / "gt" / "label_names.json").read_text())
+    scene = load_ply(tiny / "scene.ply")
+    assert labels.dtype == np.int32 and labels.shape == (scene.num_gaussians,)
+    assert labels.min() == -1 and labels.max() == len(label_names) - 1
+    assert 2000 <= scene.num_gaussians <= 5000
+    text = np.load(tiny / "text_embeddings.npy")
+    assert text.shape == (len(label_names), 512) and text.dtype == np.float32
+    np.testing.assert_array_equal(scene.means, syn.scene.means)
+
+
+def test_transforms_json_round_trips_the_cameras(tiny):
+    syn = make_synthetic("tiny", 0)
+    loaded = {c.name: c for c in load_cameras(tiny)}
+    assert len(loaded) == len(syn.cameras)
+    for cam in syn.cameras:
+        got = loaded[cam.name]
+        np.testing.assert_allclose(got.R, cam.R, atol=1e-9)
+        np.testing.assert_allclose(got.t, cam.t, atol=1e-9)
+        assert (got.width, got.height) == (cam.width, cam.height) == (128, 96)
+        assert got.fx == pytest.approx(cam.fx) and got.cx == pytest.approx(cam.cx)
+        # the table's centre is in front of every orbiting camera and projects into its image
+        if cam.name.startswith("orbit"):
+            uv, z = got.project(np.array([[0.0, 0.0, 0.45]]))
+            assert z[0] > 0 and 0 <= uv[0, 0] < got.width and 0 <= uv[0, 1] < got.height
+
+
+def test_images_and_masks_have_camera_size_and_content(tiny):
+    label_names = json.loads((tiny / "gt" / "label_names.json").read_text())
+    seen = set()
+    for cam in load_cameras(tiny):
+        img = np.asarray(Image.open(tiny / "images" / f"{cam.name}.png"))
+        mask = np.load(tiny / "gt" / "masks" / f"{cam.name}.npy")
+        assert img.shape == (cam.height, cam.width, 3) and mask.shape == (cam.height, cam.width)
+        assert mask.dtype == np.int32 and img.std() > 10
+        seen |= set(np.unique(mask[mask >= 0]).tolist())
+    assert seen == set(range(len(label_names)))  # every object is visible somewhere
+
+
+def test_oracle_features_encode_the_ground_truth_masks(tiny):
+    """Level-1 masks cover exactly the labelled pixels, and each embedding is closest to the
+    text vector of the label underneath it."""
+    text = np.load(tiny / "text_embeddings.npy")
+    for cam in load_cameras(tiny):
+        ids, feats = read_features(tiny / "features", cam.name, level=1)
+        gt = np.load(tiny / "gt" / "masks" / f"{cam.name}.npy")
+        np.testing.assert_allclose(np.linalg.norm(feats, axis=1), 1.0, atol=1e-5)
+        assert ((ids >= 0) <= (gt >= 0)).all()  # no mask on background
+        for m in np.unique(ids[ids >= 0]):
+            under = gt[ids == m]
+            assert len(np.unique(under)) == 1  # one mask per object instance, nothing else
+            assert np.argmax(feats[m] @ text.T) == under[0]
+        level0, _ = read_features(tiny / "features", cam.name, level=0)
+        np.testing.assert_array_equal(level0 >= 0, ids >= 0)
+        assert not np.intersect1d(level0[level0 >= 0], ids[ids >= 0]).size  # cumulative ids
+    manifest = read_manifest(tiny / "features")
+    assert manifest["clip"]["model"] == "oracle" and manifest["counts"]["mislabelled_masks"] == 0
+
+
+def test_text_vectors_have_a_modality_gap_but_point_to_their_label():
+    syn = make_synthetic("tiny", 0)
+    protos = syn.image_prototypes()
+    scores = syn.text_vectors @ protos.T
+    assert (scores.max(axis=1) < 0.6).all()  # text is not the image embedding
+    np.testing.assert_array_equal(np.argmax(scores, axis=1), np.arange(len(syn.label_names)))
+    assert (protos @ protos.T)[~np.eye(len(protos), dtype=bool)].min() > 0.5  # image embeddings are all alike
+    own, other = np.diag(scores).mean(), scores[~np.eye(len(scores), dtype=bool)].mean()
+    assert other < syn.localisation_threshold() < own
+
+
+def test_deterministic_per_seed():
+    a, b, c = make_synthetic("tiny", 5), make_synthetic("tiny", 5), make_synthetic("tiny", 6)
+    np.testing.assert_array_equal(a.scene.means, b.scene.means)
+    np.testing.assert_array_equal(a.text_vectors, b.text_vectors)
+    np.testing.assert_array_equal(a.cameras[3].R, b.cameras[3].R)
+    assert a.scene.num_gaussians != c.scene.num_gaussians or not np.array_equal(a.scene.means, c.scene.means)
+
+
+def test_hard_cases_are_present():
+    syn = make_synthetic("tiny", 0)
+    scene, labels = syn.scene, syn.labels
+    scales, opac = scene.scales(), scene.opacities()
+    floaters = (labels == -1) & (scales.max(axis=1) < 0.2)
+    assert floaters.sum() >= 10 and opac[floaters].max() < 0.2
+    huge = scales.min(axis=1) > 1.0
+    assert 1 <= huge.sum() <= 10 and (labels[huge] == -1).all()
+    pencil = labels == syn.label_names.index("pencil")
+    radius = OBJECTS["pencil"].params["radius"]
+    assert scales[pencil].max() < 2 * radius  # a thin object is made of Gaussians thinner than itself
+    # surface Gaussians are flat and lie in the surface: normal axis = third rotation column
+    ball = labels == syn.label_names.index("ball")
+    rot = scene.rotations()[ball]
+    radial = scene.means[ball] - np.asarray(OBJECTS["ball"].params["center"])
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    assert np.abs(np.einsum("ni,ni->n", rot[:, :, 2], radial)).min() > 0.99
+    assert (scales[ball][:, 2] < 0.1 * scales[ball][:, :2].min(axis=1)).all()
+    # some cameras stand inside the scene, among the objects
+    inside = [c for c in syn.cameras if c.name.startswith("inside")]
+    assert inside and all(np.linalg.norm(c.center[:2]) < 1.0 for c in inside)
+
+
+def test_small_object_is_occluded_in_some_views_and_seen_in_others(tiny):
+    syn = make_synthetic("tiny", 0)
+    marble = syn.label_names.index("marble")
+    centre = np.asarray(OBJECTS["marble"].params["center"])[None]
+    visible, hidden = 0, 0
+    for cam in syn.cameras:
+        uv, z = cam.project(centre)
+        if z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height:
+            mask = np.load(tiny / "gt" / "masks" / f"{cam.name}.npy")
+            if (mask == marble).any():
+                visible += 1
+            else:
+                hidden += 1
+    assert visible >= 2 and hidden >= 1
+
+
+def test_mislabelling_and_jitter_options(tmp_path):
+    out = write_dataset(tmp_path / "noisy", "tiny", 1, mislabel_fraction=0.3, jitter=2, show_progress=False)
+    counts = read_manifest(out / "features")["counts"]
+    assert 0.15 < counts["mislabelled_masks"] / counts["masks"] < 0.45
+    text = np.load(out / "text_embeddings.npy")
+    wrong = 0
+    for cam in load_cameras(out):
+        ids, feats = read_features(out / "features", cam.name, level=1)
+        gt = np.load(out / "gt" / "masks" / f"{cam.name}.npy")
+        for m in np.unique(ids[ids >= 0]):
+            wrong += np.argmax(feats[m] @ text.T) != np.bincount(gt[ids == m][gt[ids == m] >= 0]).argmax()
+    assert wrong > 0
+
+
+def test_jitter_moves_boundaries_only():
+    ids = np.full((40, 40), -1, np.int32)
+    ids[10:30, 10:30] = 3
+    out = jitter_boundaries(ids, 2, np.random.default_rng(0))
+    np.testing.assert_array_equal(out[12:28, 12:28], 3)
+    np.testing.assert_array_equal(out[:8], -1)
+    assert (out != ids).any() and (np.abs(np.argwhere(out != ids) - 20).max(axis=1) >= 8).all()
+
+
+def test_instance_map_is_a_weighted_vote():
+    ids = np.array([[[0, 1, 2]], [[2, -1, -1]], [[-1, -1, -1]], [[3, 0, -1]]], np.int32)
+    weights = np.array([[[0.4, 0.35, 0.3]], [[0.5, 0, 0]], [[0, 0, 0]], [[0.6, 0.3, 0]]], np.float32)
+    instances = np.array([0, 1, 1, -1])
+    # pixel 0: instance 1 collects 0.65 > 0.4; pixel 1: instance 1; pixel 2: nothing; pixel 3: "none" wins
+    np.testing.assert_array_equal(instance_map(ids, weights, instances, 2)[:, 0], [1, 1, -1, -1])
+
+
+def test_rotmat_to_quat_inverts_quat_to_rotmat():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(500, 4))
+    q[:4] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]  # every branch
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    back = rotmat_to_quat(quat_to_rotmat(q))
+    np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", back, q)), 1.0, atol=1e-5)
+
+
+def test_presets_scale_up():
+    sizes = {name: make_synthetic(name, 0).scene.num_gaussians for name in PRESETS}
+    assert sizes["tiny"] < sizes["small"] < sizes["demo"]
+    assert 50_000 <= sizes["demo"] <= 100_000
+    with pytest.raises(ValueError, match="unknown preset"):
+        make_synthetic("huge", 0)
