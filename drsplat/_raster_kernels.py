@@ -1,0 +1,308 @@
+"""Numba kernels of the tile rasterizer (see drsplat.raster for the math and the reference)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+BLUR = 0.3
+EXTENT_SCALE = 1.001  # safety margins of the α ≥ 1/255 ellipse (it only limits the pixels visited)
+EXTENT_PAD = 1e-3
+VALID, BEHIND, NONFINITE, CULLED = 0, 1, 2, 3
+
+
+@njit(cache=True, error_model="numpy")
+def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_tiles: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-tile lists of Gaussian ids in the order given (front to back).
+
+    order: [M] int64 Gaussian ids sorted by depth. tile_rects: [N, 4] int32 (tx0, ty0, tx1, ty1),
+    end-exclusive. Returns offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32; tile t owns
+    ids[offsets[t]:offsets[t + 1]].
+    """
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    for i in range(order.shape[0]):
+        g = order[i]
+        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
+            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+                offsets[ty * n_tiles_x + tx + 1] += 1
+    for t in range(n_tiles):
+        offsets[t + 1] += offsets[t]
+    ids = np.empty(offsets[n_tiles], np.int32)
+    fill = offsets[:n_tiles].copy()
+    for i in range(order.shape[0]):
+        g = order[i]
+        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
+            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+                t = ty * n_tiles_x + tx
+                ids[fill[t]] = g
+                fill[t] += 1
+    return offsets, ids
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def push_topk(wbuf, ibuf, count, p, w, g) -> None:
+    """Insert contribution (w, g) into pixel p's buffer of its k best (k = wbuf.shape[1]).
+
+    The buffer stays sorted by descending weight; a newcomer goes after entries of equal weight
+    (they arrived earlier) and a full buffer drops its last entry. This keeps exactly the first
+    k entries of a stable sort of all contributions by descending weight.
+    """
+    k = wbuf.shape[1]
+    n = count[p]
+    if n < k:
+        pos = n
+        count[p] = n + 1
+    elif w > wbuf[p, k - 1]:
+        pos = k - 1
+    else:
+        return
+    while pos > 0 and wbuf[p, pos - 1] < w:
+        wbuf[p, pos] = wbuf[p, pos - 1]
+        ibuf[p, pos] = ibuf[p, pos - 1]
+        pos -= 1
+    wbuf[p, pos] = w
+    ibuf[p, pos] = g
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def composite_tiles(
+    tile_order: np.ndarray,
+    offsets: np.ndarray,
+    tile_ids: np.ndarray,
+    means2d: np.ndarray,
+    conics: np.ndarray,
+    opacities: np.ndarray,
+    extents: np.ndarray,
+    qlimits: np.ndarray,
+    depths: np.ndarray,
+    colors: np.ndarray,
+    width: int,
+    height: int,
+    tile_size: int,
+    n_tiles_x: int,
+    with_rgb: bool,
+    with_depth: bool,
+    background: np.ndarray,
+    out_ids: np.ndarray,
+    out_weights: np.ndarray,
+    out_rgb: np.ndarray,
+    out_depth: np.ndarray,
+    out_alpha: np.ndarray,
+) -> None:
+    """Front-to-back compositing of every tile, Gaussian-outer like 3DGS's shared-memory loop.
+
+    Tiles are processed in `tile_order` (most work first, for load balance). For each Gaussian of
+    a tile (depth order) only the pixels inside its ellipse dᵀ Σ'⁻¹ d ≤ qlimits (where α ≥ 1/255
+    is possible; `extents` is its bounding box) are visited, with a one-pixel margin; the
+    per-pixel test is the exact 3DGS rule, so the ellipse changes speed, not results. Rows and
+    tiles whose pixels all reached the transmittance floor are skipped. Writes every element of out_ids [H, W, k], out_weights [H, W, k],
+    out_rgb [H, W, 3] = Σ w·c + T·background, out_depth [H, W] = Σ w·z / Σ w (0 where Σ w = 0)
+    and out_alpha [H, W] = 1 - T.
+    """
+    k = out_ids.shape[2]
+    n_tiles = offsets.shape[0] - 1
+    for slot in prange(n_tiles):
+        t = tile_order[slot]
+        x0 = (t % n_tiles_x) * tile_size
+        y0 = (t // n_tiles_x) * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        tw = x1 - x0
+        th = y1 - y0
+        trans = np.ones((th, tw), np.float64)
+        done = np.zeros((th, tw), np.bool_)
+        count = np.zeros(th * tw, np.int64)
+        wbuf = np.zeros((th * tw, max(k, 1)), np.float64)
+        ibuf = np.full((th * tw, max(k, 1)), -1, np.int32)
+        rgb = np.zeros((th, tw, 3), np.float64)
+        dep = np.zeros((th, tw), np.float64)
+        n_active = tw * th
+        row_active = np.full(th, tw, np.int64)
+        for j in range(offsets[t], offsets[t + 1]):
+            g = tile_ids[j]
+            u = means2d[g, 0]
+            v = means2d[g, 1]
+            ex = extents[g, 0]
+            ey = extents[g, 1]
+            fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
+            fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
+            fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
+            fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
+            if fx0 > fx1 or fy0 > fy1:
+                continue
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            qmax = qlimits[g]
+            o = np.float64(opacities[g])
+            z = np.float64(depths[g])
+            for py in range(int(fy0), int(fy1) + 1):
+                ly = py - y0
+                if row_active[ly] == 0:
+                    continue
+                dy = v - (py + 0.5)
+                # pixels of this row inside the ellipse a·dx² + 2b·dx·dy + c·dy² ≤ qmax, ±1 px
+                disc = cb * cb * dy * dy - ca * (cc * dy * dy - qmax)
+                if disc < 0.0:
+                    continue
+                root = math.sqrt(disc)
+                rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                for px in range(int(rx0), int(rx1) + 1):
+                    lx = px - x0
+                    if done[ly, lx]:
+                        continue
+                    dx = u - (px + 0.5)
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if power > 0.0:
+                        continue
+                    alpha = min(ALPHA_MAX, o * math.exp(power))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    t_now = trans[ly, lx]
+                    test_t = t_now * (1.0 - alpha)
+                    if test_t < T_MIN:
+                        done[ly, lx] = True
+                        n_active -= 1
+                        row_active[ly] -= 1
+                        continue
+                    w = alpha * t_now
+                    if k > 0:
+                        push_topk(wbuf, ibuf, count, ly * tw + lx, w, g)
+                    if with_rgb:
+                        rgb[ly, lx, 0] += w * colors[g, 0]
+                        rgb[ly, lx, 1] += w * colors[g, 1]
+                        rgb[ly, lx, 2] += w * colors[g, 2]
+                    if with_depth:
+                        dep[ly, lx] += w * z
+                    trans[ly, lx] = test_t
+            if n_active == 0:
+                break
+        for ly in range(th):
+            for lx in range(tw):
+                py = y0 + ly
+                px = x0 + lx
+                p = ly * tw + lx
+                for m in range(k):
+                    out_ids[py, px, m] = ibuf[p, m]
+                    out_weights[py, px, m] = wbuf[p, m]
+                acc = 1.0 - trans[ly, lx]
+                out_alpha[py, px] = acc
+                if with_rgb:
+                    for ch in range(3):
+                        out_rgb[py, px, ch] = rgb[ly, lx, ch] + trans[ly, lx] * background[ch]
+                if with_depth:
+                    out_depth[py, px] = dep[ly, lx] / acc if acc > 0.0 else 0.0
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def project_points(
+    means: np.ndarray,
+    covariances: np.ndarray,
+    opacities: np.ndarray,
+    usable: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    intrinsics: np.ndarray,
+    width: int,
+    height: int,
+    near: float,
+    tile_size: int,
+    out_means2d: np.ndarray,
+    out_conics: np.ndarray,
+    out_depths: np.ndarray,
+    out_radii: np.ndarray,
+    out_rects: np.ndarray,
+    out_extents: np.ndarray,
+    out_qlimits: np.ndarray,
+    out_status: np.ndarray,
+) -> None:
+    """Per-Gaussian EWA projection; the same math as drsplat.raster.project_gaussians_reference.
+
+    intrinsics: [4] (fx, fy, cx, cy). out_status: [N] int8, VALID, BEHIND (z < near), NONFINITE
+    (projection not finite), or CULLED (unusable, transparent, degenerate or off-screen).
+    Outputs of non-valid Gaussians are left untouched except out_depths and out_status.
+    """
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    tan_x = 0.5 * width / fx
+    tan_y = 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_x
+    lim_x_neg = cx / fx + 0.3 * tan_x
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_y
+    lim_y_neg = cy / fy + 0.3 * tan_y
+    for g in prange(means.shape[0]):
+        out_status[g] = CULLED
+        if not usable[g]:
+            out_depths[g] = 0.0
+            continue
+        px = rot[0, 0] * means[g, 0] + rot[0, 1] * means[g, 1] + rot[0, 2] * means[g, 2] + trans[0]
+        py = rot[1, 0] * means[g, 0] + rot[1, 1] * means[g, 1] + rot[1, 2] * means[g, 2] + trans[1]
+        pz = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + trans[2]
+        out_depths[g] = pz
+        if not pz >= near:
+            out_status[g] = BEHIND
+            continue
+        o = np.float64(opacities[g])
+        if o < ALPHA_MIN:
+            continue
+        tx = pz * min(max(px / pz, -lim_x_neg), lim_x_pos)
+        ty = pz * min(max(py / pz, -lim_y_neg), lim_y_pos)
+        # rows of J·W: the screen-space Jacobian of the world position
+        jx = fx / pz
+        jxz = -fx * tx / (pz * pz)
+        jy = fy / pz
+        jyz = -fy * ty / (pz * pz)
+        a00 = jx * rot[0, 0] + jxz * rot[2, 0]
+        a01 = jx * rot[0, 1] + jxz * rot[2, 1]
+        a02 = jx * rot[0, 2] + jxz * rot[2, 2]
+        a10 = jy * rot[1, 0] + jyz * rot[2, 0]
+        a11 = jy * rot[1, 1] + jyz * rot[2, 1]
+        a12 = jy * rot[1, 2] + jyz * rot[2, 2]
+        cv = covariances[g]
+        s00 = cv[0, 0] * a00 + cv[0, 1] * a01 + cv[0, 2] * a02
+        s01 = cv[1, 0] * a00 + cv[1, 1] * a01 + cv[1, 2] * a02
+        s02 = cv[2, 0] * a00 + cv[2, 1] * a01 + cv[2, 2] * a02
+        s10 = cv[0, 0] * a10 + cv[0, 1] * a11 + cv[0, 2] * a12
+        s11 = cv[1, 0] * a10 + cv[1, 1] * a11 + cv[1, 2] * a12
+        s12 = cv[2, 0] * a10 + cv[2, 1] * a11 + cv[2, 2] * a12
+        a = a00 * s00 + a01 * s01 + a02 * s02
+        b = a10 * s00 + a11 * s01 + a12 * s02
+        c = a10 * s10 + a11 * s11 + a12 * s12
+        a += BLUR
+        c += BLUR
+        u = fx * px / pz + cx
+        v = fy * py / pz + cy
+        det = a * c - b * b
+        mid = 0.5 * (a + c)
+        radius = math.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))
+        if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(u) and math.isfinite(v) and math.isfinite(radius)):
+            out_status[g] = NONFINITE
+            continue
+        if not det > 0.0:
+            continue
+        lo_x = min(max(math.ceil(u - 0.5 - radius), 0.0), float(width))
+        hi_x = min(max(math.floor(u - 0.5 + radius), -1.0), float(width - 1))
+        lo_y = min(max(math.ceil(v - 0.5 - radius), 0.0), float(height))
+        hi_y = min(max(math.floor(v - 0.5 + radius), -1.0), float(height - 1))
+        if lo_x > hi_x or lo_y > hi_y:
+            continue
+        q = 2.0 * math.log(o * 255.0)
+        out_status[g] = VALID
+        out_means2d[g, 0] = u
+        out_means2d[g, 1] = v
+        out_conics[g, 0] = c / det
+        out_conics[g, 1] = -b / det
+        out_conics[g, 2] = a / det
+        out_radii[g] = np.int32(min(radius, 2.0**30))
+        out_rects[g, 0] = np.int32(lo_x // tile_size)
+        out_rects[g, 1] = np.int32(lo_y // tile_size)
+        out_rects[g, 2] = np.int32(hi_x // tile_size + 1)
+        out_rects[g, 3] = np.int32(hi_y // tile_size + 1)
+        out_extents[g, 0] = math.sqrt(max(q, 0.0) * a) * EXTENT_SCALE + EXTENT_PAD
+        out_extents[g, 1] = math.sqrt(max(q, 0.0) * c) * EXTENT_SCALE + EXTENT_PAD
+        out_qlimits[g] = max(q, 0.0) * EXTENT_SCALE + EXTENT_PAD

@@ -1,0 +1,385 @@
+"""The top-k rasterizer: numba kernel against the numpy reference, and 3DGS's physics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import Camera
+from drsplat.raster import (
+    SH_C0,
+    SH_C1,
+    T_MIN,
+    eval_sh,
+    look_at_camera,
+    prepare_scene,
+    project_gaussians,
+    project_gaussians_reference,
+    rasterize,
+    rasterize_reference,
+)
+from drsplat.scene import GaussianScene, load_ply
+from tests.conftest import shared_path
+
+
+def random_scene(rng: np.random.Generator, n: int, sh_degree: int = 0, spread: float = 1.0, log_scale=(-3.5, -1.0)) -> GaussianScene:
+    return GaussianScene(
+        means=(rng.normal(size=(n, 3)) * spread).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        log_scales=rng.uniform(*log_scale, size=(n, 3)).astype(np.float32),
+        opacity_logits=rng.normal(0.0, 2.0, size=n).astype(np.float32),
+        sh=(rng.normal(size=(n, (sh_degree + 1) ** 2, 3)) * 0.6).astype(np.float32),
+    )
+
+
+def gaussians(means, log_scale=-2.0, opacity_logit=30.0, color=None) -> GaussianScene:
+    """Axis-aligned isotropic Gaussians at `means` [N, 3] with one scale, opacity and DC colour."""
+    means = np.asarray(means, np.float32).reshape(-1, 3)
+    n = means.shape[0]
+    sh = np.zeros((n, 1, 3), np.float32)
+    if color is not None:
+        sh[:, 0] = (np.asarray(color, np.float32) - 0.5) / SH_C0
+    return GaussianScene(
+        means=means,
+        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
+        log_scales=np.broadcast_to(np.asarray(log_scale, np.float32), (n, 3)).copy() if np.ndim(log_scale) < 2 else np.asarray(log_scale, np.float32),
+        opacity_logits=np.broadcast_to(np.asarray(opacity_logit, np.float32), (n,)).copy(),
+        sh=sh,
+    )
+
+
+def front_camera(width: int = 40, height: int = 30, cx: float | None = None, cy: float | None = None, z: float = -4.0) -> Camera:
+    """Camera at (0, 0, z) looking along +z, OpenCV axes aligned with the world's."""
+    return look_at_camera([0.0, 0.0, z], [0.0, 0.0, 0.0], width, height, fov_x_deg=50.0, cx=cx, cy=cy)
+
+
+def assert_agree(a, b, tol: float = 1e-5) -> None:
+    """Kernel output `a` equals reference output `b`: weights/rgb/depth/alpha within tol, ids
+    identical except between entries whose weights tie (then their order is arbitrary)."""
+    assert a.ids.shape == b.ids.shape and a.ids.dtype == np.int32 and a.weights.dtype == np.float32
+    np.testing.assert_allclose(a.weights, b.weights, atol=tol, rtol=0)
+    np.testing.assert_allclose(a.alpha, b.alpha, atol=tol, rtol=0)
+    for name in ("rgb", "depth"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None)
+        if x is not None:
+            np.testing.assert_allclose(x, y, atol=tol, rtol=0)
+    differ = a.ids != b.ids
+    if differ.any():
+        w = b.weights.astype(np.float64)
+        gap_prev = np.abs(np.diff(w, axis=2, prepend=np.inf))
+        gap_next = np.abs(np.diff(w, axis=2, append=-np.inf))
+        tie = np.minimum(gap_prev, gap_next) < 1e-7
+        assert not (differ & ~tie).any(), f"{int((differ & ~tie).sum())} ids differ where weights do not tie"
+    assert a.num_nonfinite == b.num_nonfinite
+
+
+def assert_physical(out, topk: int) -> None:
+    """Invariants of any 3DGS top-k output."""
+    for arr in (out.weights, out.alpha, out.rgb, out.depth):
+        if arr is not None:
+            assert np.isfinite(arr).all()
+    w = out.weights.astype(np.float64)
+    assert (w >= 0).all()
+    assert (np.diff(w, axis=2) <= 0).all(), "weights must be sorted in descending order"
+    assert ((out.ids >= 0) == (w > 0)).all(), "ids are -1 exactly where weights are 0"
+    assert (w.sum(axis=2) <= 1.0 - T_MIN + 1e-6).all()
+    assert (w.sum(axis=2) <= out.alpha + 1e-5).all()
+    assert ((0 <= out.alpha) & (out.alpha <= 1.0 - T_MIN + 1e-6)).all()
+    ids = np.sort(out.ids, axis=2)
+    assert not ((ids[..., 1:] == ids[..., :-1]) & (ids[..., 1:] >= 0)).any(), "a Gaussian appears twice in one pixel"
+
+
+@pytest.mark.parametrize("seed, sh_degree, topk", [(0, 0, 8), (1, 1, 1), (2, 2, 64), (3, 3, 20)])
+def test_kernel_matches_reference_random(seed, sh_degree, topk):
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng, 400, sh_degree)
+    cam = look_at_camera(rng.normal(size=3) * 0.5 + [0, 0, -4], [0, 0, 0], 48, 34, fov_x_deg=55, cx=20.3, cy=19.1)
+    kwargs = dict(with_rgb=True, with_depth=True, background=(0.2, 0.5, 0.9))
+    a = rasterize(scene, cam, topk, **kwargs)
+    b = rasterize_reference(scene, cam, topk, **kwargs)
+    assert_agree(a, b)
+    assert_physical(a, topk)
+    assert (a.ids >= 0).sum() > 0.3 * a.ids[..., 0].size, "the scene should cover the image"
+
+
+def test_topk_holding_all_contributors_sums_to_alpha():
+    rng = np.random.default_rng(5)
+    scene = random_scene(rng, 300)
+    cam = front_camera(32, 24)
+    out = rasterize(scene, cam, 300)
+    assert (out.ids[..., -1] == -1).all(), "topk must exceed the contributors for this test"
+    np.testing.assert_allclose(out.weights.astype(np.float64).sum(axis=2), out.alpha, atol=1e-5)
+    few = rasterize(scene, cam, 3)
+    np.testing.assert_array_equal(few.ids, out.ids[..., :3])
+    np.testing.assert_array_equal(few.weights, out.weights[..., :3])
+
+
+def test_empty_scene():
+    scene = gaussians(np.zeros((0, 3)))
+    cam = front_camera(24, 18)
+    for render in (rasterize, rasterize_reference):
+        out = render(scene, cam, 5, with_rgb=True, with_depth=True, background=(1.0, 0.0, 0.5))
+        assert out.ids.shape == (18, 24, 5)
+        assert (out.ids == -1).all() and (out.weights == 0).all() and (out.alpha == 0).all()
+        np.testing.assert_array_equal(out.rgb, np.broadcast_to(np.float32([1.0, 0.0, 0.5]), (18, 24, 3)))
+        assert (out.depth == 0).all()
+
+
+def test_all_gaussians_behind_camera():
+    rng = np.random.default_rng(7)
+    scene = random_scene(rng, 200)
+    scene.means[:, 2] = -5.0 - np.abs(scene.means[:, 2])  # camera at z=-4 looks along +z
+    cam = front_camera(24, 18)
+    proj = project_gaussians(scene, cam)
+    assert proj.num_behind == 200 and not proj.valid.any()
+    for render in (rasterize, rasterize_reference):
+        out = render(scene, cam, 4, with_depth=True)
+        assert (out.ids == -1).all() and (out.alpha == 0).all() and (out.depth == 0).all()
+
+
+def test_near_plane_culls_by_mean_depth():
+    cam = front_camera(24, 18)
+    scene = gaussians([[0, 0, -4 + 0.005], [0, 0, -4 + 0.02]], log_scale=-6.0)
+    proj = project_gaussians(scene, cam)
+    assert proj.valid.tolist() == [False, True] and proj.num_behind == 1
+
+
+def test_camera_inside_a_gaussian():
+    scene = gaussians([[0.0, 0.0, -3.5], [0.0, 0.0, -4.2], [0.3, -0.1, 1.0]], log_scale=[[1.5, 1.0, 2.0], [1.0, 1.0, 1.0], [-2, -2, -2]], opacity_logit=[-1.0, 2.0, 30.0], color=[0.3, 0.6, 0.9])
+    cam = front_camera(40, 30, cx=14.0, cy=17.5)
+    a = rasterize(scene, cam, 3, with_rgb=True, with_depth=True)
+    b = rasterize_reference(scene, cam, 3, with_rgb=True, with_depth=True)
+    assert_agree(a, b)
+    assert_physical(a, 3)
+    assert (a.ids == 0).any(axis=2).all(), "the Gaussian around the camera covers every pixel"
+    assert project_gaussians(scene, cam).num_behind == 1
+
+
+def test_extreme_scales():
+    rng = np.random.default_rng(11)
+    scene = random_scene(rng, 120)
+    scene.log_scales[:40] = np.log(1e-8)
+    scene.log_scales[40:45] = np.log(1e4)
+    scene.log_scales[45:50, 0] = np.log(1e4)  # needles: huge along one axis only
+    scene.opacity_logits[40:50] = -3.0  # keep the giants translucent so others stay visible
+    cam = front_camera(40, 30, cx=23.0, cy=11.0)
+    a = rasterize(scene, cam, 16, with_rgb=True, with_depth=True)
+    b = rasterize_reference(scene, cam, 16, with_rgb=True, with_depth=True)
+    assert_agree(a, b)
+    assert_physical(a, 16)
+    tiny_seen = np.isin(a.ids, np.arange(40)).any()
+    assert tiny_seen, "Gaussians of scale 1e-8 still render as 0.3 px² dots"
+
+
+def test_opacity_zero_and_saturated_logits():
+    rng = np.random.default_rng(13)
+    scene = random_scene(rng, 200)
+    scene.opacity_logits[:50] = -30.0  # opacity ~1e-13: never contributes
+    scene.opacity_logits[50:100] = 30.0  # opacity 1: alpha clamps at 0.99
+    cam = front_camera(36, 28)
+    a = rasterize(scene, cam, 12, with_rgb=True)
+    b = rasterize_reference(scene, cam, 12, with_rgb=True)
+    assert_agree(a, b)
+    assert_physical(a, 12)
+    assert not np.isin(a.ids, np.arange(50)).any()
+    assert np.isin(a.ids, np.arange(50, 100)).any()
+    assert a.weights.max() <= 0.99 + 1e-7, "alpha clamps at 0.99"
+
+
+def test_ten_thousand_stacked_gaussians_stop_at_transmittance_floor():
+    cam = front_camera(24, 18)
+    centre = np.linalg.solve(cam.R, np.array([(10.5 - cam.cx) / cam.fx * 4, (7.5 - cam.cy) / cam.fy * 4, 4.0]) - cam.t)
+    scene = gaussians(np.tile(centre, (10_000, 1)), log_scale=-9.0, opacity_logit=0.0)  # opacity exactly 0.5
+    a = rasterize(scene, cam, 64, with_rgb=True, with_depth=True)
+    b = rasterize_reference(scene, cam, 64, with_rgb=True, with_depth=True)
+    assert_agree(a, b)
+    assert_physical(a, 64)
+    # α = 0.5 at the centre: weights 1/2, 1/4, ... until T·(1 - α) would drop below 1e-4.
+    n = int(np.floor(np.log2(1 / T_MIN)))
+    expected = 0.5 ** np.arange(1, n + 1)
+    np.testing.assert_allclose(a.weights[7, 10, :n], expected, rtol=1e-6)
+    assert (a.weights[7, 10, n:] == 0).all()
+    np.testing.assert_array_equal(a.ids[7, 10, :n], np.arange(n))  # equal depth: id order
+    assert a.alpha[7, 10] == pytest.approx(1 - 0.5**n, abs=1e-6)
+
+
+def test_single_opaque_gaussian_peaks_at_its_projected_pixel():
+    cam = front_camera(48, 30, cx=31.0, cy=8.5)  # non-square, principal point off centre
+    world = np.linalg.solve(cam.R, np.array([(12.5 - cam.cx) / cam.fx * 5, (20.5 - cam.cy) / cam.fy * 5, 5.0]) - cam.t)
+    uv, _ = cam.project(world[None])
+    np.testing.assert_allclose(uv[0], [12.5, 20.5], atol=1e-6)
+    scene = gaussians([world], log_scale=-1.5, opacity_logit=30.0)
+    for render in (rasterize, rasterize_reference):
+        out = render(scene, cam, 1)
+        assert out.weights[20, 12, 0] == pytest.approx(0.99, abs=1e-6)
+        assert np.unravel_index(np.argmax(out.weights[..., 0]), out.alpha.shape) == (20, 12)
+        # pixel centres at +0.5: the splat is symmetric about pixel (12, 20)
+        assert out.weights[20, 11, 0] == pytest.approx(out.weights[20, 13, 0], abs=1e-5)
+        assert out.weights[19, 12, 0] == pytest.approx(out.weights[21, 12, 0], abs=1e-5)
+        assert out.weights[20, 11, 0] < 0.99
+
+
+def test_constant_colour_scene_renders_that_colour():
+    rng = np.random.default_rng(17)
+    scene = random_scene(rng, 300, sh_degree=0)
+    colour = np.float32([0.8, 0.25, 0.6])
+    scene.sh[:, 0] = (colour - 0.5) / SH_C0
+    bg = np.float32([0.1, 0.9, 0.3])
+    cam = front_camera(32, 24)
+    out = rasterize(scene, cam, 4, with_rgb=True, background=bg)
+    expected = out.alpha[..., None] * colour + (1 - out.alpha[..., None]) * bg
+    np.testing.assert_allclose(out.rgb, expected, atol=1e-5)
+    assert out.alpha.max() > 0.99
+
+
+def test_depth_is_the_weighted_mean_of_camera_z():
+    cam = front_camera(24, 18)
+    scene = gaussians([[0, 0, 0.0], [0, 0, 2.0]], log_scale=-0.5, opacity_logit=0.0)
+    out = rasterize(scene, cam, 2, with_depth=True)
+    w = out.weights[9, 12].astype(np.float64)
+    assert w[0] == pytest.approx(0.5, abs=0.02) and w[1] == pytest.approx(0.25, abs=0.02)
+    expected = (w[0] * 4.0 + w[1] * 6.0) / w.sum()
+    assert out.depth[9, 12] == pytest.approx(expected, rel=1e-5)
+
+
+def test_mask_renders_the_subset_with_scene_ids():
+    rng = np.random.default_rng(19)
+    scene = random_scene(rng, 250)
+    mask = rng.random(250) < 0.4
+    cam = front_camera(32, 24)
+    masked = rasterize(scene, cam, 10, mask=mask, with_depth=True)
+    sub = rasterize(scene.subset(mask), cam, 10, with_depth=True)
+    ids = np.flatnonzero(mask)
+    np.testing.assert_array_equal(masked.ids, np.where(sub.ids >= 0, ids[np.maximum(sub.ids, 0)], -1))
+    np.testing.assert_array_equal(masked.weights, sub.weights)
+    assert_agree(masked, rasterize_reference(scene, cam, 10, mask=mask, with_depth=True))
+    with pytest.raises(ValueError, match="mask"):
+        rasterize(scene, cam, 10, mask=mask[:-1])
+
+
+def test_nonfinite_gaussians_are_dropped_and_counted():
+    rng = np.random.default_rng(23)
+    scene = random_scene(rng, 150, sh_degree=1)
+    bad = GaussianScene(
+        means=scene.means.copy(), quats=scene.quats.copy(), log_scales=scene.log_scales.copy(),
+        opacity_logits=scene.opacity_logits.copy(), sh=scene.sh.copy(),
+    )  # fmt: skip
+    bad.means[0, 1] = np.nan
+    bad.quats[1, 2] = np.inf
+    bad.log_scales[2, 0] = 200.0  # exp overflows: infinite covariance
+    bad.opacity_logits[3] = np.nan
+    bad.sh[4, 2, 1] = -np.inf
+    cam = front_camera(32, 24)
+    with np.errstate(all="ignore"):
+        out = rasterize(bad, cam, 8, with_rgb=True, with_depth=True)
+        ref = rasterize_reference(bad, cam, 8, with_rgb=True, with_depth=True)
+    assert out.num_nonfinite == 5
+    assert_agree(out, ref)
+    clean = rasterize(scene.subset(np.arange(5, 150)), cam, 8, with_rgb=True, with_depth=True)
+    np.testing.assert_array_equal(out.weights, clean.weights)
+    np.testing.assert_array_equal(out.ids, np.where(clean.ids >= 0, clean.ids + 5, -1))
+    np.testing.assert_allclose(out.rgb, clean.rgb, atol=1e-6)
+
+
+def test_projection_kernel_matches_reference():
+    rng = np.random.default_rng(29)
+    scene = random_scene(rng, 500, spread=3.0, log_scale=(-9.0, 4.0))
+    scene.means[:20] = [0.0, 0.0, -4.0]  # at the camera centre
+    cam = look_at_camera([0.2, -0.1, -4.0], [0.1, 0.2, 0.0], 50, 20, fov_x_deg=70, cx=12.0, cy=15.0)
+    prep = prepare_scene(scene)
+    a, b = project_gaussians(prep, cam), project_gaussians_reference(prep, cam)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert 0 < a.valid.sum() < 500 and a.num_behind == b.num_behind > 0
+    for name in ("radii", "tile_rects"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    for name in ("means2d", "conics", "extents", "qlimits", "depths"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-12)
+    assert a.num_nonfinite == b.num_nonfinite == 0
+
+
+def test_screen_covariance_matches_ewa_formula():
+    rng = np.random.default_rng(31)
+    scene = random_scene(rng, 50, spread=0.5)
+    cam = look_at_camera([0.5, 0.3, -3.0], [0.0, 0.0, 0.0], 64, 48, cx=30.0, cy=20.0)
+    proj = project_gaussians(scene, cam)
+    cov3d = scene.covariances().astype(np.float64)
+    for g in np.flatnonzero(proj.valid)[:10]:
+        x, y, z = cam.world_to_camera(scene.means[g : g + 1].astype(np.float64))[0]
+        jac = np.array([[cam.fx / z, 0, -cam.fx * x / z**2], [0, cam.fy / z, -cam.fy * y / z**2]])
+        cov2d = jac @ cam.R @ cov3d[g] @ cam.R.T @ jac.T + 0.3 * np.eye(2)
+        a, b, c = proj.conics[g]
+        np.testing.assert_allclose(np.array([[a, b], [b, c]]), np.linalg.inv(cov2d), rtol=1e-6)
+        np.testing.assert_allclose(proj.means2d[g], cam.project(scene.means[g : g + 1])[0][0], rtol=1e-9)
+        assert proj.radii[g] == np.ceil(3 * np.sqrt(np.linalg.eigvalsh(cov2d).max()))
+
+
+def test_sh_basis_is_orthonormal_with_3dgs_signs():
+    nodes, weights = np.polynomial.legendre.leggauss(12)
+    phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    z, ph = np.meshgrid(nodes, phi, indexing="ij")
+    r = np.sqrt(1 - z**2)
+    dirs = np.stack([r * np.cos(ph), r * np.sin(ph), z], axis=-1).reshape(-1, 3)
+    quad = (weights[:, None] * np.full_like(ph, 2 * np.pi / phi.size)).reshape(-1)
+    basis = []
+    for i in range(16):
+        sh = np.zeros((dirs.shape[0], 16, 3), np.float32)
+        sh[:, 0] = 10.0  # keep the result positive so that the clamp at 0 is inactive
+        sh[:, i] += 1.0
+        basis.append(eval_sh(sh, dirs)[:, 0] - (SH_C0 * 10.0 + 0.5))
+    basis = np.array(basis)
+    gram = (basis * quad) @ basis.T
+    np.testing.assert_allclose(gram, np.eye(16), atol=1e-5)
+    x_dir = np.array([[1.0, 0.0, 0.0]])
+    sh = np.zeros((1, 4, 3), np.float32)
+    sh[0, 3] = 0.5
+    np.testing.assert_allclose(eval_sh(sh, x_dir), 0.5 - SH_C1 * 0.5, rtol=1e-6)  # 3DGS: -C1·x·sh[3]
+    sh[0, 3] = 5.0
+    assert (eval_sh(sh, x_dir) == 0).all(), "colours clamp at 0"
+
+
+def test_view_dependent_colour_uses_camera_to_mean_direction():
+    scene = gaussians([[0.0, 0.0, 0.0]], log_scale=-1.0)
+    scene.sh = np.zeros((1, 4, 3), np.float32)
+    scene.sh[0, 3] = 0.4  # colour 0.5 - C1·x·0.4 with x the view direction's x
+    for eye, sign in (([-4.0, 0.0, 0.0], 1.0), ([4.0, 0.0, 0.0], -1.0)):
+        cam = look_at_camera(eye, [0, 0, 0], 24, 18)
+        out = rasterize(scene, cam, 1, with_rgb=True)
+        expected = (0.5 - SH_C1 * sign * 0.4) * out.alpha[9, 12]
+        np.testing.assert_allclose(out.rgb[9, 12], expected, atol=1e-6)
+
+
+def test_bad_arguments():
+    scene = gaussians([[0, 0, 0]])
+    cam = front_camera(24, 18)
+    with pytest.raises(ValueError, match="topk"):
+        rasterize(scene, cam, -1)
+    with pytest.raises(ValueError, match="background"):
+        rasterize(scene, cam, 2, background=(0, 0))
+    out = rasterize(scene, cam, 0, with_rgb=True)
+    assert out.ids.shape == (18, 24, 0) and out.alpha.max() > 0.5
+    np.testing.assert_array_equal(out.alpha, rasterize(scene, cam, 1).alpha)
+
+
+def test_reused_buffers_give_the_same_result():
+    rng = np.random.default_rng(37)
+    scene = prepare_scene(random_scene(rng, 200, sh_degree=1))
+    cams = [front_camera(32, 24), look_at_camera([1.0, 0.5, -3.5], [0, 0, 0], 32, 24)]
+    first = rasterize(scene, cams[0], 6, with_rgb=True, with_depth=True)
+    reused = rasterize(scene, cams[1], 6, with_rgb=True, with_depth=True, out=first)
+    assert reused.ids is first.ids and reused.weights is first.weights
+    fresh = rasterize(scene, cams[1], 6, with_rgb=True, with_depth=True)
+    assert_agree(reused, fresh, tol=0)
+
+
+def test_kernel_matches_reference_on_a_real_capture():
+    scene = load_ply(shared_path("ply", "guitar.ply"))  # real 3DGS output, with +inf opacities
+    scene = prepare_scene(scene.subset(np.arange(0, scene.num_gaussians, 8)))
+    lo, hi = np.percentile(scene.means, [2, 98], axis=0)
+    centre, radius = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+    cam = look_at_camera(centre + [1.2 * radius, 0.0, 0.0], centre, 32, 24, fov_x_deg=50, cx=14.0, cy=13.5, up=(0, 0, 1))
+    a = rasterize(scene, cam, 24, with_rgb=True, with_depth=True)
+    b = rasterize_reference(scene, cam, 24, with_rgb=True, with_depth=True)
+    assert_agree(a, b)
+    assert_physical(a, 24)
+    assert a.alpha.mean() > 0.3
