@@ -1,0 +1,351 @@
+"""Viewer, headless: EGL rendering against drsplat.raster, query highlights, export, screenshots.
+
+The demo scene is the tiny synthetic preset, generated and registered by viewer.launch.prepare_demo
+(the same path `python main.py` takes on first run) into a temporary cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.gl
+
+moderngl = pytest.importorskip("moderngl")
+
+
+@pytest.fixture(scope="module")
+def gl_context():
+    from viewer.renderer import create_offscreen_context
+
+    try:
+        ctx = create_offscreen_context()
+    except Exception as exc:  # noqa: BLE001
+        pytest.skip(f"no EGL OpenGL 4.3 context: {exc}")
+    yield ctx
+    ctx.release()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    from viewer.launch import prepare_demo
+
+    root = tmp_path_factory.mktemp("cache")
+    registered, dataset = prepare_demo("tiny", root)
+    return registered, dataset
+
+
+@pytest.fixture
+def state(demo):
+    from viewer.state import ViewerState
+
+    registered, dataset = demo
+    st = ViewerState()
+    assert st.load_scene(registered)
+    assert st.load_source(dataset)
+    return st
+
+
+def _camera(state, index=0, width=256):
+    from viewer.camera import camera_for_size
+
+    return camera_for_size(state.cameras[index], width, None)
+
+
+def _label_index(state, name):
+    return state.oracle.names.index(name)
+
+
+def _selected_weight(state, camera, selected):
+    """[H, W] summed blending weight of the selected Gaussians per pixel (drsplat.raster, top 64)."""
+    from drsplat.raster import rasterize
+
+    out = rasterize(state.scene, camera, topk=64)
+    ids = out.ids
+    hit = (ids >= 0) & selected[np.maximum(ids, 0)]
+    return np.where(hit, out.weights, 0.0).sum(axis=-1)
+
+
+@pytest.mark.parametrize("index", [0, 4, 9])
+def test_render_matches_the_cpu_rasterizer(state, gl_context, index):
+    """Same camera, same scene: the GL splats and drsplat.raster's RGB agree pixel by pixel."""
+    from drsplat.raster import rasterize
+    from viewer.app import render_screenshot
+
+    camera = _camera(state, index)
+    image = render_screenshot(state, camera, ctx=gl_context).astype(np.float32) / 255
+    reference = rasterize(state.scene, camera, topk=1, with_rgb=True).rgb
+    assert image.shape == reference.shape
+    diff = np.abs(image - reference)
+    assert diff.mean() < 0.01, f"mean abs difference {diff.mean():.4f}"
+    assert np.percentile(diff, 99) < 0.05
+    assert image.std() > 0.05, "the image is flat: nothing was drawn"
+
+
+def test_one_gaussian_lands_where_the_camera_projects_it(gl_context):
+    """Pixel convention: a small Gaussian's blob is centred on Camera.project (pixel centres at +0.5)."""
+    from drsplat.scene import GaussianScene
+    from viewer.camera import look_at
+    from viewer.renderer import SplatRenderer, render_offscreen
+    from drsplat.cameras import Camera
+
+    R, t = look_at(np.array([0.3, -4.0, 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    camera = Camera(R=R, t=t, fx=120, fy=110, cx=70, cy=45, width=160, height=96)
+    point = np.array([[0.4, 0.2, -0.3]], np.float32)
+    scene = GaussianScene(means=point, quats=np.array([[1, 0, 0, 0]], np.float32), log_scales=np.full((1, 3), np.log(0.03), np.float32),
+                          opacity_logits=np.array([5.0], np.float32), sh=np.full((1, 1, 3), 1.5, np.float32))
+    renderer = SplatRenderer(gl_context, scene)
+    try:
+        image = render_offscreen(gl_context, renderer, camera).astype(np.float64).sum(-1)
+        empty = SplatRenderer(gl_context, scene.subset(np.zeros(1, bool)))
+        blank = render_offscreen(gl_context, empty, camera)
+        empty.release()
+    finally:
+        renderer.release()
+    assert blank.max() == 0
+    ys, xs = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+    centroid = np.array([(image * xs).sum(), (image * ys).sum()]) / image.sum()
+    uv, _ = camera.project(point.astype(np.float64))
+    np.testing.assert_allclose(centroid + 0.5, uv[0], atol=0.15)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_view_dependent_colour_matches_the_rasterizer_for_every_sh_degree(gl_context, degree):
+    """Strong random SH of each degree: the GL colours are drsplat.raster's (eval_sh per view)."""
+    from drsplat.cameras import Camera
+    from drsplat.raster import rasterize
+    from drsplat.scene import GaussianScene
+    from viewer.camera import look_at
+    from viewer.renderer import SplatRenderer, render_offscreen
+
+    rng = np.random.default_rng(degree)
+    n = 400
+    scene = GaussianScene(
+        means=rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        log_scales=np.log(rng.uniform(0.02, 0.12, (n, 3))).astype(np.float32),
+        opacity_logits=rng.normal(0.5, 1.5, n).astype(np.float32),
+        sh=(rng.normal(size=(n, (degree + 1) ** 2, 3)) * 0.6).astype(np.float32),
+    )
+    for eye in ([0.5, -3.5, 1.0], [-2.5, 2.0, -1.5]):
+        R, t = look_at(np.array(eye), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        camera = Camera(R=R, t=t, fx=150, fy=150, cx=96, cy=64, width=192, height=128)
+        renderer = SplatRenderer(gl_context, scene)
+        try:
+            image = render_offscreen(gl_context, renderer, camera).astype(np.float32) / 255
+        finally:
+            renderer.release()
+        reference = np.clip(rasterize(scene, camera, topk=1, with_rgb=True).rgb, 0, 1)
+        diff = np.abs(image - reference)
+        assert diff.mean() < 0.01 and np.percentile(diff, 99) < 0.1, (degree, eye, diff.mean())
+
+
+def test_highlight_appears_where_the_selection_projects_and_nowhere_else(state, gl_context):
+    from viewer.app import render_screenshot
+    from viewer.state import HIGHLIGHT_MIX, HIGHLIGHT_RGB
+
+    assert state.run_oracle_query(_label_index(state, "ball"))
+    labels = np.load(state.source_dir / "gt" / "labels.npy")
+    selected = state.selection
+    assert selected.sum() > 20
+    assert (labels[selected] == _label_index(state, "ball")).mean() > 0.9, "the oracle query must select the ball"
+
+    coverage = [(_selected_weight(state, _camera(state, i, 64), selected) > 0.97).sum() for i in range(len(state.cameras))]
+    for index in np.argsort(coverage)[::-1][:2]:
+        camera = _camera(state, int(index))
+        state.set_mode("color")
+        plain = render_screenshot(state, camera, ctx=gl_context).astype(np.float32) / 255
+        state.set_mode("highlight")
+        lit = render_screenshot(state, camera, ctx=gl_context).astype(np.float32) / 255
+        weight = _selected_weight(state, camera, selected)
+        inside, outside = weight > 0.97, weight < 1e-3
+        assert inside.sum() > 30, f"the ball must be visible from camera {index}: {weight.max()} {len(state.cameras)} {state.num_gaussians}"
+        # inside: at least HIGHLIGHT_MIX of the colour is the highlight colour
+        max_dist = (1 - 0.97 * HIGHLIGHT_MIX) + 0.03
+        dist = np.abs(lit[inside] - np.array(HIGHLIGHT_RGB)).max(axis=-1)
+        assert np.mean(dist < max_dist) > 0.95
+        # outside: unchanged
+        assert np.abs(lit[outside] - plain[outside]).max() < 2.5 / 255
+        # and the highlight colour is nowhere outside
+        far = np.abs(lit[outside] - np.array(HIGHLIGHT_RGB)).max(axis=-1)
+        assert np.mean(far < max_dist) < 0.001
+
+
+def test_selection_only_and_hide_selection_match_the_rasterizer_on_the_subsets(state, gl_context):
+    """Selection only = the scene restricted to the selection; hide selection = its complement."""
+    from drsplat.raster import rasterize
+    from viewer.app import render_screenshot
+
+    assert state.run_oracle_query(_label_index(state, "table"))
+    selected = state.selection
+    camera = _camera(state, 0)
+    for mode, mask in (("selection", selected), ("hide_selection", ~selected)):
+        state.set_mode(mode)
+        image = render_screenshot(state, camera, ctx=gl_context).astype(np.float32) / 255
+        reference = rasterize(state.scene, camera, topk=1, with_rgb=True, mask=mask).rgb
+        assert np.abs(image - reference).mean() < 0.01, mode
+    full = rasterize(state.scene, camera, topk=1, with_rgb=True).rgb
+    assert np.abs(reference - full).mean() > 0.005, "hiding the table must change the picture"
+
+
+def test_heatmap_and_segmentation_colour_every_labelled_gaussian(state, gl_context):
+    from viewer.app import render_screenshot
+
+    assert state.run_oracle_query(_label_index(state, "mug"))
+    assert state.set_mode("heatmap")
+    style = state.style()
+    assert np.all(style[:, 3] > 0)
+    assert state.run_segmentation(None)
+    style = state.style()
+    labels = state.segmentation.labels
+    np.testing.assert_allclose(style[labels >= 0, :3], state.segment_colors[labels[labels >= 0]])
+    image = render_screenshot(state, _camera(state, 0), ctx=gl_context)
+    assert image.std() > 10
+
+
+def test_click_query_picks_the_object_under_the_cursor(state):
+    ball = _label_index(state, "ball")
+    labels = np.load(state.source_dir / "gt" / "labels.npy")
+    camera = _camera(state, 0)
+    uv, _ = camera.project(state.scene.means[labels == ball])
+    u, v = np.median(uv, axis=0)
+    picked = state.pick(camera, u, v)
+    assert picked.size > 0 and (labels[picked] == ball).mean() >= 0.5
+    assert state.click_query(camera, u, v)
+    assert state.query.source == "click"
+    selected = state.selection
+    assert (labels[selected] == ball).mean() > 0.8
+    assert not state.click_query(camera, -500, -500)
+    assert "outside" in state.messages[-1].text
+    away = dataclasses.replace(camera, t=camera.t + np.array([0.0, 0.0, -1e4]))  # everything behind the camera
+    assert not state.click_query(away, u, v)
+    assert "nothing under the cursor" in state.messages[-1].text
+
+
+def test_text_query_with_an_encoder_uses_relevancy_and_negatives(state):
+    """A stand-in text encoder that returns the oracle vectors (the oracle embedding space)."""
+
+    class OracleTextEncoder:
+        model_id = state.field.clip_model
+
+        def encode_text(self, phrases):
+            table = dict(zip(state.oracle.names, state.oracle.embeddings))
+            rng = np.random.default_rng(0)
+            return np.stack([table.get(p, rng.normal(size=state.field.dim)) for p in phrases]).astype(np.float32)
+
+    state.encoder = OracleTextEncoder()
+    state.negatives = "table"
+    assert state.run_text_query("ball")
+    assert state.query.metric == "relevancy"
+    assert np.all((state.query.scores >= 0) & (state.query.scores <= 1))
+    labels = np.load(state.source_dir / "gt" / "labels.npy")
+    assert (labels[state.selection] == _label_index(state, "ball")).mean() > 0.8
+    assert not state.run_text_query("   ")
+
+
+def test_export_writes_a_ply_that_loads_back_with_the_selection(state, tmp_path):
+    from drsplat.scene import load_ply
+
+    assert state.export_selection(tmp_path / "none.ply") is None
+    assert "selection is empty" in state.messages[-1].text
+    assert state.run_oracle_query(_label_index(state, "crate"))
+    selected = state.selection
+    count = state.export_selection(tmp_path / "crate.ply")
+    assert count == int(selected.sum()) > 0
+    back = load_ply(tmp_path / "crate.ply")
+    assert back.num_gaussians == count
+    np.testing.assert_allclose(back.means, state.scene.means[selected], rtol=0, atol=0)
+    np.testing.assert_allclose(back.sh, state.scene.sh[selected], rtol=1e-6)
+
+
+def test_bad_input_is_reported_not_raised(state, tmp_path):
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nend_header\n")
+    assert not state.load_scene(bad)
+    assert "bad.ply" in state.messages[-1].text
+    assert state.scene is not None, "the old scene stays loaded"
+    q = tmp_path / "q.npy"
+    np.save(q, np.ones(7, np.float32))
+    assert not state.run_embedding_query(q)
+    assert "q.npy" in state.messages[-1].text
+    assert not state.run_embedding_query(tmp_path / "missing.npy")
+    assert not state.set_mode("nonsense")
+    assert not state.run_oracle_query(99)
+
+
+def test_embedding_query_from_file(state, tmp_path):
+    q = tmp_path / "mug.npy"
+    np.save(q, state.oracle.embeddings[_label_index(state, "mug")])
+    assert state.run_embedding_query(q)
+    labels = np.load(state.source_dir / "gt" / "labels.npy")
+    assert (labels[state.selection] == _label_index(state, "mug")).mean() > 0.8
+
+
+def test_weights_message_for_a_clip_field_without_weights(state, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HUB_CACHE", "/nonexistent-drsplat-test-cache")
+    state.field = dataclasses.replace(state.field, clip_model="ViT-B-16/laion2b_s34b_b88k")
+    state.start_text_encoder(background=False)
+    assert state.encoder is None
+    assert "--clip-checkpoint" in state.encoder_status
+    assert not state.run_text_query("chair")
+    assert "--clip-checkpoint" in state.messages[-1].text
+
+
+def test_screenshot_command_writes_a_png_of_the_scene(demo, tmp_path, monkeypatch):
+    from PIL import Image
+
+    from viewer.launch import main
+
+    registered, dataset = demo
+    out = tmp_path / "shot.png"
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--camera", "1", "--width", "160", "--oracle", "ball"]) == 0
+    image = np.asarray(Image.open(out))
+    assert image.shape == (120, 160, 3)
+    assert image.std() > 10
+    highlight = (image[..., 0] > 180) & (image[..., 2] > 150) & (image[..., 1] < 90)
+    assert highlight.sum() > 5, "the queried ball must be highlighted"
+    # the demo path: no SCENE, generated into the cache on first run (already there: reused)
+    monkeypatch.setenv("DRSPLAT_CACHE", str(registered.parent.parent))
+    out2 = tmp_path / "demo.png"
+    assert main(["--demo-preset", "tiny", "--screenshot", str(out2), "--width", "96", "--height", "64"]) == 0
+    assert np.asarray(Image.open(out2)).shape == (64, 96, 3)
+
+
+def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
+    from viewer.launch import main
+
+    registered, dataset = demo
+    out = tmp_path / "x.png"
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--camera", "99"]) == 1
+    assert "out of range" in capsys.readouterr().err
+    assert main([str(tmp_path / "missing.ply"), "--screenshot", str(out)]) == 1
+    assert "missing.ply" in capsys.readouterr().err
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--oracle", "unicorn"]) == 1
+    assert "unicorn" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_moving_subsample_draws_the_budget_and_resembles_the_full_frame(state, gl_context):
+    from viewer.renderer import OffscreenTarget, SplatRenderer
+
+    camera = _camera(state, 0)
+    renderer = SplatRenderer(gl_context, state.scene)
+    target = OffscreenTarget(gl_context, camera.width, camera.height)
+    try:
+        target.use()
+        renderer.update_order(camera, wait=True)
+        renderer.draw(camera)
+        full = target.read_rgb().astype(np.float32)
+        assert renderer.times.drawn == state.num_gaussians
+        renderer.moving_budget = state.num_gaussians // 2
+        renderer.draw(camera, moving=True)
+        half = target.read_rgb().astype(np.float32)
+        assert renderer.times.drawn == state.num_gaussians // 2
+    finally:
+        target.release()
+        renderer.release()
+    diff = np.abs(full - half).mean()
+    assert 0.5 < diff < 40, diff

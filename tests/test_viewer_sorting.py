@@ -1,0 +1,146 @@
+"""Viewer depth sort (numba kernel vs numpy reference), background sorter and camera controller."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import Camera
+from viewer.camera import ViewController, camera_for_size, look_at
+from viewer.sorting import BackgroundSorter, back_to_front_order, back_to_front_reference, depth_keys_reference
+
+
+def _reference_order(means, forward):
+    return back_to_front_reference(depth_keys_reference(means, forward))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_counting_sort_matches_reference_on_random_scenes(seed):
+    rng = np.random.default_rng(seed)
+    means = (rng.normal(size=(5000, 3)) * rng.uniform(0.1, 100)).astype(np.float32)
+    forward = rng.normal(size=3).astype(np.float32)
+    forward /= np.linalg.norm(forward)
+    order = back_to_front_order(means, forward)
+    np.testing.assert_array_equal(order, _reference_order(means, forward))
+    depth = means.astype(np.float64) @ forward
+    assert np.all(np.diff(depth[order]) <= (depth.max() - depth.min()) / 65535 * 1.01), "not back to front"
+
+
+@pytest.mark.parametrize(
+    "means",
+    [
+        np.zeros((0, 3), np.float32),
+        np.ones((1, 3), np.float32),
+        np.ones((50, 3), np.float32),  # all at the same depth: stable, id order
+        np.array([[0, 0, np.nan], [0, 0, 1], [0, 0, np.inf], [0, 0, -1], [0, 0, 2]], np.float32),
+        np.array([[0, 0, 1e30], [0, 0, -1e30], [0, 0, 0]], np.float32),
+    ],
+    ids=["empty", "one", "ties", "nonfinite", "huge"],
+)
+def test_counting_sort_matches_reference_on_hard_inputs(means):
+    forward = np.array([0, 0, 1], np.float32)
+    order = back_to_front_order(means, forward)
+    np.testing.assert_array_equal(order, _reference_order(means, forward))
+    assert sorted(order.tolist()) == list(range(len(means)))
+
+
+def test_finite_depths_go_far_to_near_and_nonfinite_share_the_nearest_bucket():
+    means = np.array([[0, 0, np.nan], [0, 0, 1], [0, 0, 3], [0, 0, 2]], np.float32)
+    order = back_to_front_order(means, np.array([0, 0, 1], np.float32))
+    assert order.tolist() == [2, 3, 0, 1]
+
+
+def test_background_sorter_resorts_only_when_the_view_turns():
+    rng = np.random.default_rng(0)
+    sorter = BackgroundSorter(rng.normal(size=(2000, 3)).astype(np.float32), min_dot=0.998)
+    try:
+        f0 = np.array([0, 0, 1], np.float32)
+        assert sorter.request(f0)
+        result = _wait(sorter)
+        np.testing.assert_array_equal(result.order, back_to_front_order(sorter.means, f0))
+        slight = np.array([0.01, 0, 1], np.float32) / np.linalg.norm([0.01, 0, 1])
+        assert not sorter.request(slight), "a 0.6 degree turn must not trigger a sort"
+        turned = np.array([0.2, 0, 1], np.float32) / np.linalg.norm([0.2, 0, 1])
+        assert sorter.request(turned)
+        result = _wait(sorter)
+        np.testing.assert_array_equal(result.order, back_to_front_order(sorter.means, turned))
+    finally:
+        sorter.close()
+
+
+def test_background_sorter_subsample_keeps_the_order():
+    rng = np.random.default_rng(1)
+    means = rng.normal(size=(1000, 3)).astype(np.float32)
+    rank = rng.permutation(1000).astype(np.uint32)
+    sorter = BackgroundSorter(means, rank=rank)
+    try:
+        result = sorter.sort_now(np.array([0, 1, 0], np.float32))
+        positions = np.argsort(result.order)
+        for budget in (1, 300, 999):
+            sub = result.subsample(budget)
+            assert set(sub.tolist()) == set(np.flatnonzero(rank < budget).tolist())
+            assert np.all(np.diff(positions[sub]) > 0), "the subsample keeps the back-to-front order"
+        assert result.subsample(1000) is result.order
+    finally:
+        sorter.close()
+
+
+def _wait(sorter, timeout=10.0):
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        result = sorter.poll()
+        if result is not None:
+            return result
+        time.sleep(0.005)
+    raise AssertionError("the background sort did not finish")
+
+
+def test_look_at_gives_an_opencv_camera_looking_at_the_target():
+    eye, target, up = np.array([3.0, -2.0, 1.5]), np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 1.0])
+    R, t = look_at(eye, target, up)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    cam = Camera(R=R, t=t, fx=100, fy=100, cx=50, cy=40, width=100, height=80)
+    uv, z = cam.project(np.array([target, target + up]))
+    np.testing.assert_allclose(uv[0], [50, 40], atol=1e-9)
+    assert z[0] == pytest.approx(np.linalg.norm(target - eye))
+    assert uv[1, 1] < 40, "world up must appear above the centre (image y points down)"
+
+
+def test_orbit_keeps_the_distance_and_fly_keeps_the_eye():
+    view = ViewController(eye=np.array([0.0, -4.0, 1.0]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    d = view.distance
+    view.rotate(120, 40)
+    assert view.distance == pytest.approx(d)
+    np.testing.assert_allclose(view.target, 0)
+    view.mode = "fly"
+    eye = view.eye.copy()
+    view.rotate(-50, 10)
+    np.testing.assert_allclose(view.eye, eye)
+    view.zoom(1)
+    assert not np.allclose(view.eye, eye)
+    view.reset()
+    np.testing.assert_allclose(view.eye, [0.0, -4.0, 1.0])
+
+
+def test_pitch_stops_short_of_the_pole():
+    view = ViewController(eye=np.array([0.0, -4.0, 0.0]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    for _ in range(100):
+        view.rotate(0, 50)
+    cos_up = abs(view.forward @ view.up)
+    assert cos_up < 1.0 and np.isfinite(view.camera().R).all()
+
+
+def test_snap_to_a_training_camera_reproduces_its_pose_and_fov():
+    R, t = look_at(np.array([2.0, 1.0, 1.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    train = Camera(R=R, t=t, fx=80, fy=80, cx=64, cy=48, width=128, height=96)
+    view = ViewController(eye=np.ones(3), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]), width=128, height=96)
+    view.snap_to(train, scene_center=np.zeros(3))
+    cam = view.camera()
+    np.testing.assert_allclose(cam.R, R, atol=1e-9)
+    np.testing.assert_allclose(cam.t, t, atol=1e-9)
+    assert cam.fy == pytest.approx(80)
+    resized = camera_for_size(train, 256, None)
+    assert (resized.width, resized.height, resized.fx, resized.cx) == (256, 192, 160, 128)

@@ -1,0 +1,203 @@
+"""Interactive view cameras: orbit and fly controllers that produce `drsplat.cameras.Camera`s.
+
+Both modes share one pose (eye, target, up): orbit turns the eye around the target, fly turns the
+target around the eye. The renderer only ever sees OpenCV cameras (x right, y down, z forward,
+x_cam = R x_world + t), the same records the training cameras and drsplat.raster use.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drsplat.cameras import Camera
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (R [3, 3], t [3]) of a camera at `eye` looking at `target`, OpenCV axes.
+
+    z = (target - eye)/|.|, x = z × up /|.| (right), y = z × x (down); R has rows x, y, z; t = -R eye.
+    """
+    eye = np.asarray(eye, np.float64)
+    z = np.asarray(target, np.float64) - eye
+    z /= max(np.linalg.norm(z), 1e-12)
+    x = np.cross(z, np.asarray(up, np.float64))
+    if np.linalg.norm(x) < 1e-9:  # up parallel to the view direction: pick any perpendicular
+        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """[3, 3] rotation by `angle` radians about `axis` (Rodrigues)."""
+    a = np.asarray(axis, np.float64)
+    a = a / max(np.linalg.norm(a), 1e-12)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def intrinsics_for(width: int, height: int, fov_y_deg: float) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a centred pinhole camera with vertical field of view fov_y_deg."""
+    fy = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
+    return fy, fy, width / 2, height / 2
+
+
+@dataclass
+class ViewController:
+    """The interactive camera: pose (eye, target, up), mode 'orbit' or 'fly', and a viewport.
+
+    Mouse deltas are in pixels; `rotate` turns by `rotate_speed` radians per pixel.
+    """
+
+    eye: np.ndarray
+    target: np.ndarray
+    up: np.ndarray
+    width: int = 1280
+    height: int = 720
+    fov_y_deg: float = 60.0
+    mode: str = "orbit"
+    rotate_speed: float = 0.005
+    home: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self.eye = np.asarray(self.eye, np.float64)
+        self.target = np.asarray(self.target, np.float64)
+        self.up = np.asarray(self.up, np.float64) / max(np.linalg.norm(self.up), 1e-12)
+        if self.home is None:
+            self.home = (self.eye.copy(), self.target.copy(), self.up.copy())
+
+    @classmethod
+    def for_scene(cls, means: np.ndarray, cameras: list[Camera] | None = None, width: int = 1280, height: int = 720) -> "ViewController":
+        """A home view: the first training camera's pose when there are cameras, else the scene from outside.
+
+        means: [N, 3]. Without cameras, up is taken as +z if the scene is flatter along z, else -y
+        (the COLMAP habit), and the eye sits at 2.2 robust radii from the centre.
+        """
+        if cameras:
+            view = cls(eye=np.zeros(3), target=np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]), width=width, height=height)
+            view.snap_to(cameras[0], scene_center=_robust_center(means))
+            view.up = _mean_up(cameras)
+            view.home = (view.eye.copy(), view.target.copy(), view.up.copy())
+            return view
+        center = _robust_center(means)
+        radius = _robust_radius(means, center)
+        up = np.array([0.0, 0.0, 1.0])
+        if means.shape[0] > 0:
+            spread = np.percentile(means, 95, axis=0) - np.percentile(means, 5, axis=0)
+            up = np.array([0.0, 0.0, 1.0]) if spread[2] < 0.8 * max(spread[0], spread[1]) else np.array([0.0, -1.0, 0.0])
+        side = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        offset = (np.cross(up, side) * 0.8 + side * 0.6 + up * 0.7)
+        eye = center + 2.2 * radius * offset / np.linalg.norm(offset)
+        return cls(eye=eye, target=center, up=up, width=width, height=height)
+
+    @property
+    def distance(self) -> float:
+        return float(np.linalg.norm(self.target - self.eye))
+
+    @property
+    def forward(self) -> np.ndarray:
+        return (self.target - self.eye) / max(self.distance, 1e-12)
+
+    def camera(self) -> Camera:
+        """The current view as an OpenCV `Camera` of the viewport size."""
+        R, t = look_at(self.eye, self.target, self.up)
+        fx, fy, cx, cy = intrinsics_for(self.width, self.height, self.fov_y_deg)
+        return Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=self.width, height=self.height, name="view")
+
+    def resize(self, width: int, height: int) -> None:
+        self.width, self.height = max(1, int(width)), max(1, int(height))
+
+    def rotate(self, dx: float, dy: float) -> None:
+        """Mouse drag: yaw about the world up axis by dx, pitch about the camera right axis by dy.
+
+        Orbit mode moves the eye around the target; fly mode turns the target around the eye.
+        Pitch stops 3 degrees short of the poles.
+        """
+        yaw = rotation_about(self.up, -dx * self.rotate_speed)
+        right = np.cross(self.forward, self.up)
+        offset = self.eye - self.target if self.mode == "orbit" else self.target - self.eye
+        offset = yaw @ offset
+        pitch_angle = (dy if self.mode == "orbit" else -dy) * self.rotate_speed
+        pitched = rotation_about(yaw @ right, pitch_angle) @ offset
+        cos_up = pitched @ self.up / max(np.linalg.norm(pitched), 1e-12)
+        if abs(cos_up) < math.cos(math.radians(3)):
+            offset = pitched
+        if self.mode == "orbit":
+            self.eye = self.target + offset
+        else:
+            self.target = self.eye + offset
+
+    def pan(self, dx: float, dy: float) -> None:
+        """Move eye and target together in the image plane, dx, dy in pixels at the target depth."""
+        R, _ = look_at(self.eye, self.target, self.up)
+        per_pixel = self.distance * 2 * math.tan(math.radians(self.fov_y_deg) / 2) / self.height
+        shift = (-dx * R[0] - dy * R[1]) * per_pixel
+        self.eye = self.eye + shift
+        self.target = self.target + shift
+
+    def zoom(self, steps: float) -> None:
+        """Scroll: orbit mode scales the distance to the target by 0.9 per step; fly mode moves forward."""
+        if self.mode == "orbit":
+            new_distance = max(self.distance * 0.9**steps, 1e-4)
+            self.eye = self.target - self.forward * new_distance
+        else:
+            self.move(np.array([0.0, 0.0, steps * 0.1 * self.distance]))
+
+    def move(self, delta_cam: np.ndarray) -> None:
+        """Fly: translate eye and target by delta_cam [3] in camera axes (x right, y down, z forward)."""
+        R, _ = look_at(self.eye, self.target, self.up)
+        shift = R.T @ np.asarray(delta_cam, np.float64)
+        self.eye = self.eye + shift
+        self.target = self.target + shift
+
+    def snap_to(self, camera: Camera, scene_center: np.ndarray | None = None) -> None:
+        """Take a training camera's pose (its roll included) and vertical field of view."""
+        R = np.asarray(camera.R, np.float64)
+        center = camera.center
+        distance = 1.0
+        if scene_center is not None:
+            distance = max(float((np.asarray(scene_center) - center) @ R[2]), 1e-3)
+        self.eye = center
+        self.target = center + R[2] * distance
+        self.up = -R[1]
+        self.fov_y_deg = math.degrees(2 * math.atan(0.5 * camera.height / camera.fy))
+
+    def reset(self) -> None:
+        assert self.home is not None
+        self.eye, self.target, self.up = (a.copy() for a in self.home)
+
+
+def camera_for_size(camera: Camera, width: int | None, height: int | None) -> Camera:
+    """A training camera resized to width x height (keeping its aspect if only one is given)."""
+    if width is None and height is None:
+        return camera
+    if width is None:
+        width = int(round(camera.width * height / camera.height))
+    if height is None:
+        height = int(round(camera.height * width / camera.width))
+    sx, sy = width / camera.width, height / camera.height
+    return dataclasses.replace(camera, fx=camera.fx * sx, fy=camera.fy * sy, cx=camera.cx * sx, cy=camera.cy * sy, width=width, height=height)
+
+
+def _robust_center(means: np.ndarray) -> np.ndarray:
+    if means.shape[0] == 0:
+        return np.zeros(3)
+    return np.median(means.astype(np.float64), axis=0)
+
+
+def _robust_radius(means: np.ndarray, center: np.ndarray) -> float:
+    if means.shape[0] == 0:
+        return 1.0
+    d = np.linalg.norm(means - center, axis=1)
+    return max(float(np.percentile(d, 90)), 1e-3)
+
+
+def _mean_up(cameras: list[Camera]) -> np.ndarray:
+    up = -np.mean([np.asarray(c.R)[1] for c in cameras], axis=0)
+    norm = np.linalg.norm(up)
+    return up / norm if norm > 1e-6 else -np.asarray(cameras[0].R)[1]

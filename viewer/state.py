@@ -1,0 +1,582 @@
+"""The viewer's state and actions, free of any GUI or GL code (testable headless).
+
+`ViewerState` owns the scene, its language field, the current query's scores, the selection and
+the display mode, and turns them into a per-splat style for the renderer. Every number comes
+from the drsplat library: scores from `drsplat.query`, picks from `drsplat.raster`, the
+registration from `drsplat.registration` and `drsplat.index`. Actions never raise for bad
+input: they record a message (shown in the GUI) and return False.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import threading
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError, WeightsUnavailableError
+from drsplat.scene import GaussianScene
+
+log = logging.getLogger(__name__)
+
+DISPLAY_MODES = ("color", "highlight", "heatmap", "selection", "hide_selection", "segmentation")
+DISPLAY_MODE_NAMES = {
+    "color": "scene colours",
+    "highlight": "highlight above threshold",
+    "heatmap": "relevancy heat map",
+    "selection": "selection only",
+    "hide_selection": "hide selection",
+    "segmentation": "segmentation",
+}
+HIGHLIGHT_RGB = (1.0, 0.1, 0.85)
+HIGHLIGHT_MIX = 0.85
+SEGMENT_MIX = 0.8
+HEATMAP_MIX = 0.9
+ORACLE_MODEL = "oracle"
+
+
+@dataclass
+class Message:
+    level: str  # "info" | "warning" | "error"
+    text: str
+
+
+@dataclass
+class QueryResult:
+    """The scores [N] of the current query, what produced them and how they are scored."""
+
+    name: str
+    source: str  # "text" | "oracle" | "embedding" | "click"
+    scores: np.ndarray
+    metric: str  # "relevancy" | "cosine"
+    picked: np.ndarray | None = None  # Gaussian ids a click query started from
+
+
+@dataclass
+class RegistrationJob:
+    """A registration running on a worker thread: progress (done, total), cancel, outcome."""
+
+    output: Path
+    thread: threading.Thread | None = None
+    cancel: object | None = None
+    done: int = 0
+    total: int = 0
+    finished: bool = False
+    reported: bool = False
+    error: str | None = None
+
+    @property
+    def fraction(self) -> float:
+        return self.done / self.total if self.total else 0.0
+
+
+@dataclass
+class OracleQueries:
+    """Synthetic datasets' "text": label names and their oracle vectors [L, D] (not CLIP)."""
+
+    names: list[str]
+    embeddings: np.ndarray
+
+
+class ViewerState:
+    """Everything the panels show and every action they trigger."""
+
+    def __init__(self) -> None:
+        self.scene: GaussianScene | None = None
+        self.scene_path: Path | None = None
+        self.field = None  # drsplat.index.LanguageField | None
+        self.cameras: list[Camera] = []
+        self.source_dir: Path | None = None
+        self.features_dir: Path | None = None
+        self.clip_checkpoint: Path | None = None
+        self.oracle: OracleQueries | None = None
+        self.encoder = None
+        self.encoder_status = "no language field loaded"
+        self.query: QueryResult | None = None
+        self.threshold = 0.5
+        self.mode = "color"
+        self.negatives = ""
+        self.segmentation = None  # drsplat.query.Segmentation | None
+        self.segment_names: list[str] = []
+        self.segment_colors = np.zeros((0, 3), np.float32)
+        self.messages: list[Message] = []
+        self.registration: RegistrationJob | None = None
+        self.style_version = 0
+        self.scene_version = 0
+        self._prepared = None
+        self._encoder_lock = threading.Lock()
+
+    # ---------------------------------------------------------------- messages
+
+    def info(self, text: str) -> None:
+        log.info("%s", text)
+        self.messages.append(Message("info", text))
+
+    def error(self, text: str) -> None:
+        log.error("%s", text)
+        self.messages.append(Message("error", text))
+
+    def _fail(self, exc: BaseException, what: str) -> bool:
+        if isinstance(exc, (DrsplatError, ValueError, OSError)):
+            self.error(f"{what}: {exc}")
+        else:
+            log.debug("%s", traceback.format_exc())
+            self.error(f"{what}: unexpected {type(exc).__name__}: {exc}")
+        return False
+
+    # ---------------------------------------------------------------- loading
+
+    @property
+    def num_gaussians(self) -> int:
+        return 0 if self.scene is None else self.scene.num_gaussians
+
+    def load_scene(self, path: str | Path) -> bool:
+        """Load a PLY and its language field (if registered); clears the query."""
+        from drsplat.index import read_field
+        from drsplat.scene import load_ply
+
+        try:
+            path = Path(path)
+            scene = load_ply(path)
+            lang = read_field(scene, path)
+        except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
+            return self._fail(exc, f"cannot open {path}")
+        self.set_scene(scene, lang, path)
+        return True
+
+    def set_scene(self, scene: GaussianScene, lang=None, path: Path | None = None) -> None:
+        self.scene, self.field, self.scene_path = scene, lang, path
+        self.query = None
+        self.segmentation = None
+        self._prepared = None
+        self.scene_version += 1
+        self.style_version += 1
+        if lang is None:
+            self.encoder_status = "this scene has no language field: register it (Registration panel) to query it"
+        self.info(f"loaded {path.name if path else 'scene'}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
+
+    def load_source(self, source: str | Path) -> bool:
+        """Training cameras of a dataset directory, and its oracle label queries if it has them."""
+        from drsplat.cameras import load_cameras
+
+        try:
+            source = Path(source)
+            self.cameras = load_cameras(source, require_images=False)
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, f"cannot read cameras from {source}")
+        self.source_dir = source
+        if self.features_dir is None and (source / "features").is_dir():
+            self.features_dir = source / "features"
+        self.oracle = read_oracle_queries(source)
+        self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
+        return True
+
+    def start_text_encoder(self, background: bool = True) -> None:
+        """Load the CLIP text encoder matching the field's model (on a thread when `background`).
+
+        Synthetic (oracle) fields need none; without weights the status says how to provide them.
+        """
+        if self.field is None:
+            return
+        model = self.field.clip_model or "unknown"
+        if model.split("/")[0] == ORACLE_MODEL:
+            self.encoder_status = "Text queries are off because this scene's features are synthetic oracle vectors (use the oracle labels below); for a real scene pass --clip-checkpoint PATH to a local open_clip checkpoint."
+            return
+        self.encoder_status = "loading the CLIP text encoder..."
+        if background:
+            threading.Thread(target=self._load_encoder, name="clip-loader", daemon=True).start()
+        else:
+            self._load_encoder()
+
+    def _load_encoder(self) -> None:
+        from drsplat.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED, ClipEncoder
+
+        model_id = self.field.clip_model if self.field is not None else ""
+        name, _, pretrained = model_id.partition("/")
+        if name in ("", "unknown"):
+            name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
+        try:
+            encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device="cpu")
+        except WeightsUnavailableError as exc:
+            self.encoder_status = f"Text queries are off: {exc}"
+            return
+        except Exception as exc:  # noqa: BLE001
+            self.encoder_status = f"Text queries are off: the CLIP encoder could not be loaded ({exc}); pass --clip-checkpoint PATH to a local open_clip checkpoint."
+            return
+        with self._encoder_lock:
+            self.encoder = encoder
+        self.encoder_status = f"CLIP text encoder ready ({encoder.model_id})"
+
+    # ---------------------------------------------------------------- queries
+
+    def _require_field(self) -> bool:
+        if self.scene is None:
+            self.error("no scene is loaded")
+            return False
+        if self.field is None:
+            self.error("this scene has no language field; register it first (Registration panel)")
+            return False
+        return True
+
+    def _score(self, embeddings: np.ndarray) -> tuple[np.ndarray, str]:
+        """Scores [N] of one query [D]: relevancy when a CLIP encoder provides the canonical
+        negatives (plus the user's negative phrases), else cosine."""
+        from drsplat import query as dq
+
+        q = dq.unit_rows(embeddings)[:1]
+        negatives = [p.strip() for p in self.negatives.split(",") if p.strip()]
+        if self.encoder is not None:
+            neg = dq.negative_embeddings(self.encoder, self.field, negatives)
+            return dq.relevancy(self.field, q, neg)[:, 0], "relevancy"
+        if negatives:
+            self.messages.append(Message("warning", "negative phrases need a CLIP text encoder; scoring by cosine without them"))
+        return dq.cosine(self.field, q)[:, 0], "cosine"
+
+    def _set_query(self, result: QueryResult) -> None:
+        from drsplat.query import otsu_threshold
+
+        self.query = result
+        self.threshold = float(otsu_threshold(result.scores))
+        if self.mode in ("color", "segmentation"):
+            self.mode = "highlight"
+        self.style_version += 1
+        self.info(f"{result.source} query '{result.name}' ({result.metric}): {int(self.selection.sum()):,} Gaussians at threshold {self.threshold:.3f}")
+
+    def run_text_query(self, text: str) -> bool:
+        from drsplat import query as dq
+
+        text = text.strip()
+        if not text:
+            self.error("type a phrase to search for")
+            return False
+        if not self._require_field():
+            return False
+        if self.encoder is None:
+            self.error(self.encoder_status)
+            return False
+        try:
+            emb = dq.text_embeddings(self.encoder, [text], self.field)
+            scores, metric = self._score(emb)
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, f"query '{text}' failed")
+        self._set_query(QueryResult(text, "text", scores, metric))
+        return True
+
+    def run_oracle_query(self, index: int) -> bool:
+        """Query with synthetic label `index`'s oracle vector (not CLIP: exact ground-truth text)."""
+        if not self._require_field():
+            return False
+        if self.oracle is None or not 0 <= index < len(self.oracle.names):
+            self.error(f"no oracle label {index}")
+            return False
+        try:
+            scores, metric = self._score(self.oracle.embeddings[index])
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, "oracle query failed")
+        self._set_query(QueryResult(f"oracle:{self.oracle.names[index]}", "oracle", scores, metric))
+        return True
+
+    def run_embedding_query(self, path: str | Path) -> bool:
+        """Query with the first row of an embedding file Q.npy ([D] or [K, D])."""
+        from drsplat.query import load_query_embeddings
+
+        if not self._require_field():
+            return False
+        try:
+            emb = load_query_embeddings(path, self.field.dim)
+            scores, metric = self._score(emb[0])
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, f"embedding query {path} failed")
+        self._set_query(QueryResult(Path(path).name, "embedding", scores, metric))
+        return True
+
+    def pick(self, camera: Camera, u: float, v: float, radius: int = 2, topk: int = 8) -> np.ndarray:
+        """Gaussians under pixel (u, v) of `camera`: ids [k] by descending blending weight w = T·α.
+
+        Rasterizes a (2·radius + 1)² window around the pixel with drsplat.raster (the weights the
+        registration uses) and keeps each Gaussian's largest weight in the window.
+        """
+        from drsplat.raster import prepare_scene, rasterize
+
+        if self.scene is None:
+            return np.zeros(0, np.int64)
+        if self._prepared is None:
+            self._prepared = prepare_scene(self.scene)
+        size = 2 * radius + 1
+        u0, v0 = int(np.floor(u)) - radius, int(np.floor(v)) - radius
+        window = dataclasses.replace(camera, cx=camera.cx - u0, cy=camera.cy - v0, width=size, height=size)
+        out = rasterize(self._prepared, window, topk=topk)
+        ids, weights = out.ids.reshape(-1), out.weights.reshape(-1)
+        keep = ids >= 0
+        if not keep.any():
+            return np.zeros(0, np.int64)
+        ids, weights = ids[keep], weights[keep]
+        order = np.argsort(-weights, kind="stable")
+        unique, first = np.unique(ids[order], return_index=True)
+        return unique[np.argsort(first)][:topk].astype(np.int64)
+
+    def click_query(self, camera: Camera, u: float, v: float) -> bool:
+        """Pick the Gaussians under the cursor, then score every Gaussian by similarity to them."""
+        from drsplat import query as dq
+
+        if not self._require_field():
+            return False
+        if not (0 <= u < camera.width and 0 <= v < camera.height):
+            self.error(f"the click ({u:.0f}, {v:.0f}) is outside the {camera.width}x{camera.height} view")
+            return False
+        try:
+            ids = self.pick(camera, u, v)
+            if ids.size == 0:
+                self.error("nothing under the cursor to query")
+                return False
+            emb = dq.click_query(self.field, ids)
+            scores, metric = self._score(emb)
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, "click query failed")
+        self._set_query(QueryResult(f"click at ({u:.0f}, {v:.0f})", "click", scores, metric, picked=ids))
+        return True
+
+    def clear_query(self) -> None:
+        self.query = None
+        self.mode = "color"
+        self.style_version += 1
+
+    def set_threshold(self, value: float) -> None:
+        self.threshold = float(value)
+        self.style_version += 1
+
+    def set_mode(self, mode: str) -> bool:
+        if mode not in DISPLAY_MODES:
+            self.error(f"unknown display mode {mode!r}")
+            return False
+        if mode == "segmentation" and self.segmentation is None:
+            self.error("run a segmentation first (label list in the Query panel)")
+            return False
+        self.mode = mode
+        self.style_version += 1
+        return True
+
+    @property
+    def selection(self) -> np.ndarray:
+        """[N] bool Gaussians at or above the threshold (drsplat.query.select); empty without a query."""
+        from drsplat.query import select
+
+        if self.query is None:
+            return np.zeros(self.num_gaussians, bool)
+        return select(self.query.scores, self.threshold)
+
+    def score_range(self) -> tuple[float, float]:
+        if self.query is None:
+            return 0.0, 1.0
+        s = self.query.scores[np.isfinite(self.query.scores)]
+        if s.size == 0:
+            return 0.0, 1.0
+        lo, hi = float(s.min()), float(s.max())
+        return (lo, hi) if hi > lo else (lo - 0.5, lo + 0.5)
+
+    # ---------------------------------------------------------------- segmentation
+
+    def run_segmentation(self, names: list[str] | None = None) -> bool:
+        """Argmax segmentation (drsplat.query.segment) over typed labels (CLIP) or the oracle labels."""
+        from drsplat import query as dq
+
+        if not self._require_field():
+            return False
+        try:
+            if names:
+                if self.encoder is None:
+                    self.error(self.encoder_status)
+                    return False
+                emb = dq.text_embeddings(self.encoder, names, self.field)
+            elif self.oracle is not None:
+                names, emb = list(self.oracle.names), self.oracle.embeddings
+            else:
+                self.error("type comma-separated labels to segment by")
+                return False
+            seg = dq.segment(self.field, emb)
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, "segmentation failed")
+        self.segmentation, self.segment_names = seg, list(names)
+        self.segment_colors = dq.label_colors(len(names))
+        self.mode = "segmentation"
+        self.style_version += 1
+        counts = np.bincount(seg.labels[seg.labels >= 0], minlength=len(names))
+        self.info("segmentation: " + ", ".join(f"{n} {c:,}" for n, c in zip(names, counts)))
+        return True
+
+    # ---------------------------------------------------------------- style
+
+    def style(self) -> np.ndarray:
+        """Per-splat style for the renderer, [N, 4] float32 (r, g, b, mix); mix < 0 hides a splat."""
+        n = self.num_gaussians
+        style = np.zeros((n, 4), np.float32)
+        if n == 0:
+            return style
+        if self.mode == "segmentation" and self.segmentation is not None:
+            labels = self.segmentation.labels
+            labelled = labels >= 0
+            style[labelled, :3] = self.segment_colors[labels[labelled]]
+            style[labelled, 3] = SEGMENT_MIX
+            return style
+        if self.query is None or self.mode == "color":
+            return style
+        selected = self.selection
+        if self.mode == "highlight":
+            style[selected, :3] = HIGHLIGHT_RGB
+            style[selected, 3] = HIGHLIGHT_MIX
+        elif self.mode == "heatmap":
+            lo, hi = self.score_range()
+            t = np.clip((np.nan_to_num(self.query.scores, nan=lo) - lo) / (hi - lo), 0, 1)
+            style[:, :3] = heat_colors(t)
+            style[:, 3] = HEATMAP_MIX
+        elif self.mode == "selection":
+            style[~selected, 3] = -1.0
+        elif self.mode == "hide_selection":
+            style[selected, 3] = -1.0
+        return style
+
+    # ---------------------------------------------------------------- export
+
+    def export_selection(self, path: str | Path) -> int | None:
+        """Write the selected Gaussians as an INRIA PLY (drsplat.scene.save_ply of scene.subset).
+
+        Returns the number written, or None (with a message) when there is nothing to export.
+        """
+        from drsplat.scene import save_ply
+
+        if self.scene is None:
+            self.error("no scene is loaded")
+            return None
+        selected = self.selection
+        if self.mode == "hide_selection":
+            selected = ~selected
+        count = int(selected.sum())
+        if count == 0:
+            self.error("the selection is empty: run a query and lower the threshold")
+            return None
+        try:
+            subset = self.scene.subset(selected)
+            save_ply(subset, path)
+        except Exception as exc:  # noqa: BLE001
+            self._fail(exc, f"export to {path} failed")
+            return None
+        self.info(f"exported {count:,} Gaussians to {path}")
+        return count
+
+    # ---------------------------------------------------------------- registration
+
+    def start_registration(self, output: str | Path, topk: int = 40, level: int = 1, codebook: str = "none", background: bool = True) -> bool:
+        """Register the scene with the features of `features_dir` (drsplat.registration) on a
+        worker thread, store the field (drsplat.index) in `output`, then load it."""
+        from drsplat.utils import CancelToken
+
+        if self.scene is None or self.scene_path is None:
+            self.error("no scene file is loaded")
+            return False
+        if not self.cameras:
+            self.error("registration needs the training cameras: set the dataset directory (--source)")
+            return False
+        if self.features_dir is None or not Path(self.features_dir).is_dir():
+            self.error(f"features directory {self.features_dir} does not exist (--features)")
+            return False
+        if self.registration is not None and not self.registration.finished:
+            self.error("a registration is already running")
+            return False
+        if codebook not in ("none", "scene") and not Path(codebook).is_file():
+            self.error(f"codebook file {codebook or '(empty)'} does not exist")
+            return False
+        job = RegistrationJob(output=Path(output), cancel=CancelToken())
+        self.registration = job
+        args = (job, self.scene, list(self.cameras), Path(self.features_dir), topk, level, codebook)
+        if background:
+            job.thread = threading.Thread(target=self._register, args=args, name="registration", daemon=True)
+            job.thread.start()
+        else:
+            self._register(*args)
+            self.poll_registration()
+        return True
+
+    def cancel_registration(self) -> None:
+        if self.registration is not None and not self.registration.finished:
+            self.registration.cancel.cancel()
+
+    def _register(self, job: RegistrationJob, scene: GaussianScene, cameras: list[Camera], features_dir: Path, topk: int, level: int, codebook: str) -> None:
+        try:
+            register_to_file(scene, cameras, features_dir, job.output, topk=topk, level=level, codebook=codebook, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
+        except BaseException as exc:  # noqa: BLE001 - reported in the GUI
+            job.error = str(exc) or type(exc).__name__
+            log.debug("registration failed", exc_info=True)
+        finally:
+            job.finished = True
+
+    def poll_registration(self) -> bool:
+        """When a finished registration is pending: report it, load its output; True when done now."""
+        job = self.registration
+        if job is None or not job.finished or job.reported:
+            return False
+        job.reported = True
+        if job.error is not None:
+            self.error(f"registration did not finish: {job.error}")
+            return True
+        self.info(f"registration saved to {job.output}")
+        cameras, oracle = self.cameras, self.oracle
+        if self.load_scene(job.output):
+            self.cameras, self.oracle = cameras, oracle
+            self.start_text_encoder()
+        return True
+
+
+def _progress(job: RegistrationJob, done: int, total: int) -> None:
+    job.done, job.total = done, total
+
+
+def register_to_file(scene: GaussianScene, cameras: list[Camera], features_dir: Path, output: Path, *, topk: int = 40, level: int = 1, codebook: str = "none", on_progress=None, cancel=None, show_progress: bool = False) -> Path:
+    """Registration -> language field -> registered PLY at `output` (drsplat does every step)."""
+    from drsplat.featurefiles import read_manifest
+    from drsplat.index import attach_field, build_field
+    from drsplat.registration import register_scene
+    from drsplat.scene import save_ply
+
+    result = register_scene(scene, cameras, features_dir, topk=topk, level=level, show_progress=show_progress, on_progress=on_progress, cancel=cancel, collect_embeddings=codebook == "scene")
+    clip_model = "unknown"
+    try:
+        clip = read_manifest(features_dir).get("clip", {})
+        if clip.get("model"):
+            clip_model = f"{clip['model']}/{clip.get('pretrained', '')}".rstrip("/")
+    except DrsplatError:
+        pass
+    lang = build_field(result.features, result.weights, codebook=codebook, clip_model=clip_model, train_embeddings=getattr(result, "mask_embeddings", None))
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    save_ply(attach_field(scene, lang, output), output)
+    return output
+
+
+def read_oracle_queries(source: Path) -> OracleQueries | None:
+    """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
+    names_path, emb_path = source / "gt" / "label_names.json", source / "text_embeddings.npy"
+    if not (names_path.is_file() and emb_path.is_file()):
+        return None
+    try:
+        names = json.loads(names_path.read_text())
+        emb = np.load(emb_path)
+    except (OSError, ValueError) as exc:
+        log.warning("ignoring oracle queries of %s: %s", source, exc)
+        return None
+    if emb.ndim != 2 or emb.shape[0] != len(names):
+        log.warning("ignoring oracle queries of %s: %d names but embeddings of shape %s", source, len(names), emb.shape)
+        return None
+    return OracleQueries([str(n) for n in names], emb.astype(np.float32))
+
+
+def heat_colors(t: np.ndarray) -> np.ndarray:
+    """[N] values in [0, 1] -> [N, 3] RGB of matplotlib's 'turbo' colour map."""
+    from matplotlib import colormaps
+
+    return colormaps["turbo"](np.asarray(t, np.float64))[:, :3].astype(np.float32)
