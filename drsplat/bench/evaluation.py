@@ -1,0 +1,109 @@
+"""`drsplat bench eval`: speed of the evaluation kernels, each against its obviously-correct reference.
+
+- pseudo-labels: the numba grid engine and the KD-tree engine vs every point against every
+  Gaussian (on a subset small enough for the reference), then the two engines at full size;
+- voxel splatting: numba kernel vs the dense numpy reference;
+- localisation grid search: one sort + binary searches vs one weighted IoU per threshold.
+Every row reports the accuracy cost next to the speed-up (all three are exact, so it is 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.bench.common import format_table, machine_line, median_seconds
+
+
+def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("eval", help="evaluation kernels (pseudo-labels, voxel IoU, threshold search) vs their references")
+    p.add_argument("--scene", type=Path, default=None, help="a 3DGS PLY to label (default: random Gaussians)")
+    p.add_argument("--gaussians", type=int, default=200_000, help="random Gaussians when no --scene")
+    p.add_argument("--points", type=int, default=1_000_000, help="labelled points (sampled around the Gaussians)")
+    p.add_argument("--repeats", type=int, default=3, help="timed repeats (median reported)")
+    p.set_defaults(func=run)
+
+
+def random_gaussians(n: int, rng: np.random.Generator):
+    from drsplat.scene import quat_to_rotmat
+
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    means = rng.uniform(-5, 5, (n, 3))
+    scales = np.exp(rng.normal(np.log(0.03), 0.7, (n, 3)))
+    return means, quat_to_rotmat(q), scales
+
+
+def labelled_points(means: np.ndarray, p: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Points scattered around random Gaussians by 0.5% of the scene extent, with 20 classes."""
+    src = rng.integers(0, len(means), p)
+    extent = float(np.ptp(means, axis=0).max())
+    pts = means[src] + rng.normal(0, 0.005 * extent, (p, 3))
+    return pts, (src * 7919 % 20).astype(np.int64) - 1  # 20 classes incl. "unannotated"
+
+
+def run(args: argparse.Namespace) -> int:
+    from drsplat.evaluation import VoxelGrid, splat_mass, splat_mass_reference, threshold_iou_curve, weighted_iou
+    from drsplat.pseudolabels import pseudo_labels, pseudo_labels_reference
+
+    rng = np.random.default_rng(0)
+    if args.scene is not None:
+        from drsplat.scene import load_ply
+
+        scene = load_ply(args.scene)
+        g = (scene.means.astype(np.float64), scene.rotations().astype(np.float64), scene.scales().astype(np.float64))
+    else:
+        g = random_gaussians(args.gaussians, rng)
+    n = len(g[0])
+    pts, labels = labelled_points(g[0], args.points, rng)
+    print(machine_line())
+    rows = []
+
+    # pseudo-labels: reference on a small subset, both engines on the same subset and at full size
+    sub = rng.choice(n, size=min(n, 200), replace=False)
+    gs = tuple(a[sub] for a in g)
+    few = rng.choice(len(pts), size=min(len(pts), 20_000), replace=False)
+    ref_labels = pseudo_labels_reference(gs, pts[few], labels[few])
+    t_ref = median_seconds(lambda: pseudo_labels_reference(gs, pts[few], labels[few]), 1, 0)
+    for engine in ("grid", "kdtree"):
+        t_sub = median_seconds(lambda: pseudo_labels(gs, pts[few], labels[few], engine=engine, show_progress=False), args.repeats)
+        agree = float(np.mean(pseudo_labels(gs, pts[few], labels[few], engine=engine, show_progress=False).labels == ref_labels))
+        rows.append([f"pseudo-labels ({engine}) {len(sub)} G x {len(few)} pts", t_ref, t_sub, t_ref / t_sub, f"{agree:.4f} agree"])
+    full = {}
+    for engine in ("grid", "kdtree"):
+        t0 = time.perf_counter()
+        full[engine] = pseudo_labels(g, pts, labels, engine=engine, show_progress=False)
+        full[engine + "_s"] = time.perf_counter() - t0
+    same = float(np.mean(full["grid"].labels == full["kdtree"].labels))
+    rows.append([f"pseudo-labels {n} G x {len(pts)} pts: kdtree vs grid", full["kdtree_s"], full["grid_s"], full["kdtree_s"] / full["grid_s"],
+                 f"{same:.4f} agree, {np.mean(full['grid'].labels >= 0):.3f} labelled, {int(full['grid'].num_points.sum())} points within r"])
+
+    # voxel splatting
+    m = 1000
+    means = rng.uniform(-1, 1, (m, 3))
+    a = rng.normal(size=(m, 3, 3)) * 0.05
+    covs = a @ a.transpose(0, 2, 1) + 1e-4 * np.eye(3)
+    alpha = rng.uniform(0.1, 1, m)
+    ch = rng.integers(0, 4, m)
+    grid = VoxelGrid(np.full(3, -1.1), 2.2 / 32, (32, 32, 32))
+    t_ref = median_seconds(lambda: splat_mass_reference(means, covs, alpha, ch, 4, grid), 1, 0)
+    t_fast = median_seconds(lambda: splat_mass(means, covs, alpha, ch, 4, grid), args.repeats)
+    diff = float(np.abs(splat_mass(means, covs, alpha, ch, 4, grid) - splat_mass_reference(means, covs, alpha, ch, 4, grid)).max())
+    rows.append([f"voxel splat {m} G, 32^3 voxels", t_ref, t_fast, t_ref / t_fast, f"max |diff| {diff:.1e}"])
+
+    # localisation threshold grid
+    k = 1_000_000
+    scores = rng.random(k)
+    gt = rng.random(k) < 0.1
+    w = rng.random(k)
+    taus = np.linspace(0, 1, 101)
+    t_ref = median_seconds(lambda: [weighted_iou(scores > t, gt, w) for t in taus], 1, 0)
+    t_fast = median_seconds(lambda: threshold_iou_curve(scores, gt, w, taus), args.repeats)
+    diff = float(np.nanmax(np.abs(threshold_iou_curve(scores, gt, w, taus) - np.array([weighted_iou(scores > t, gt, w) for t in taus]))))
+    rows.append([f"loc grid search {k} G x 101 tau", t_ref, t_fast, t_ref / t_fast, f"max |diff| {diff:.1e}"])
+
+    print(format_table(["kernel", "reference s", "drsplat s", "speed-up", "accuracy"], rows))
+    return 0

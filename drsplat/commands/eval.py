@@ -1,0 +1,364 @@
+"""`drsplat eval`: the paper's evaluation protocols on a registered scene, and its ablations.
+
+    drsplat eval iou REGISTERED.ply --gt-labels labels.npy --label-names names.json --text-embeddings T.npy
+    drsplat eval iou REGISTERED.ply --gt-points cloud.labels.ply ...        (pseudo ground truth on the fly)
+    drsplat eval scannet REGISTERED.ply --scene-dir scans/scene0000_00 [--classes wall,floor,...]
+    drsplat eval pseudolabels SCENE.ply --points cloud.labels.ply --out labels.npy
+    drsplat eval lerf REGISTERED.ply --source lerf_ovs/figurines --annotations lerf_ovs/label/figurines
+    drsplat eval ablate topk|pq|robustness|metrics --preset tiny --out-dir DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.errors import DrsplatError, InputError
+
+log = logging.getLogger(__name__)
+
+WEIGHTINGS = ("volume", "count", "voxel")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "eval",
+        help="evaluate a registered scene: volume-aware / count / voxel 3D IoU, pseudo-labels, LERF-OVS 2D, ablations",
+        description="Evaluation protocols of Dr. Splat (volume-aware 3D IoU) and OpenGaussian (count IoU, LERF-OVS 2D "
+                    "object selection), a voxel IoU, ScanNet pseudo ground truth, and the paper's ablations on synthetic scenes.",
+    )
+    sub = parser.add_subparsers(dest="eval_command", metavar="PROTOCOL", required=True)
+    _add_iou(sub)
+    _add_scannet(sub)
+    _add_pseudolabels(sub)
+    _add_lerf(sub)
+    from drsplat.eval_ablations import add_ablate_parser
+
+    add_ablate_parser(sub)
+
+
+# ---------------------------------------------------------------------------------------------- arguments
+
+
+def _add_query_arguments(parser: argparse.ArgumentParser, names_help: str) -> None:
+    from drsplat.commands.query import add_clip_arguments
+
+    q = parser.add_argument_group("label queries")
+    q.add_argument("--label-names", type=Path, metavar="NAMES.json", help=names_help)
+    q.add_argument("--text-embeddings", type=Path, metavar="T.npy", help="(L, D) query embedding per label, in label order (else the labels' names go through CLIP)")
+    q.add_argument("--relevancy", action="store_true", help="score by LERF relevancy instead of cosine")
+    q.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="(C, D) negatives for --relevancy without a text encoder")
+    add_clip_arguments(parser)
+
+
+def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
+    t = parser.add_argument_group("metrics")
+    t.add_argument("--task", choices=("loc", "seg", "both"), default="both", help="localisation (global threshold), segmentation (argmax), or both")
+    t.add_argument("--weighting", default="volume,count", metavar="LIST",
+                   help="comma-separated subset of volume (Dr. Splat), count (OpenGaussian), voxel; default volume,count")
+    t.add_argument("--taus", default="0:1:0.01", metavar="START:STOP:STEP", help="localisation threshold grid (inclusive)")
+    t.add_argument("--voxel-resolution", type=int, default=96, help="voxels along the longest side of the labelled region")
+    t.add_argument("--voxel-empty", type=float, default=0.01, help="α-mass below which a voxel is empty")
+    t.add_argument("--curve", action="store_true", help="print the whole localisation grid search")
+    t.add_argument("--json", type=Path, metavar="OUT.json", help="also write the full report (per label, curves) as JSON")
+    t.add_argument("--original", type=Path, metavar="SCENE.ply",
+                   help="the unregistered scene: evaluate on all its Gaussians (those pruned by registration score 0) "
+                        "instead of only the registered ones; ground-truth labels then index the original scene")
+
+
+def _add_iou(sub) -> None:
+    p = sub.add_parser("iou", help="3D IoU (volume-aware, count, voxel) for localisation and segmentation",
+                       description="3D IoU of the language field's answers against per-Gaussian ground truth labels, or "
+                                   "against a labelled point cloud turned into pseudo-labels.")
+    p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
+    gt = p.add_mutually_exclusive_group()
+    gt.add_argument("--synthetic", type=Path, metavar="DATASET",
+                    help="a `drsplat synth` dataset: shorthand for its gt/labels.npy, gt/label_names.json, text_embeddings.npy and scene.ply (--original)")
+    gt.add_argument("--gt-labels", type=Path, metavar="LABELS.npy", help="(N,) int label per Gaussian, -1 none")
+    gt.add_argument("--gt-points", type=Path, metavar="CLOUD.ply", help="labelled point cloud (ScanNet *_vh_clean_2.labels.ply layout)")
+    _add_pseudo_arguments(p)
+    _add_query_arguments(p, "JSON list of label names (label id = index); with --gt-points, the names of the cloud's raw labels 1..K (default NYU40)")
+    _add_task_arguments(p)
+    p.set_defaults(func=run_iou)
+
+
+def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("pseudo-labels from a labelled point cloud")
+    g.add_argument("--classes", default=None, metavar="A,B,...", help="keep only these label names (others become unlabelled)")
+    g.add_argument("--radius", type=float, default=3.0, help="Mahalanobis radius r (points with D <= r^2 vote)")
+    g.add_argument("--vote", choices=("gaussian", "count"), default="gaussian", help="vote weight exp(-D/2) (default) or 1")
+    g.add_argument("--engine", choices=("grid", "kdtree"), default="grid", help="neighbour search: numba point grid (default) or scipy KD-trees")
+
+
+def _add_scannet(sub) -> None:
+    p = sub.add_parser("scannet", help="3D IoU on a ScanNet scene: pseudo ground truth from *_vh_clean_2.labels.ply (NYU40)")
+    p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
+    p.add_argument("--scene-dir", type=Path, required=True, metavar="DIR", help="ScanNet scene folder (or the labels.ply itself)")
+    p.add_argument("--save-labels", type=Path, metavar="OUT.npy", help="also save the pseudo-labels")
+    _add_pseudo_arguments(p)
+    _add_query_arguments(p, "JSON list of the raw label names 1..K (default: the 40 NYU40 classes)")
+    _add_task_arguments(p)
+    p.set_defaults(func=run_scannet)
+
+
+def _add_pseudolabels(sub) -> None:
+    p = sub.add_parser("pseudolabels", help="label every Gaussian from a labelled point cloud (Mahalanobis vote)")
+    p.add_argument("scene", type=Path, metavar="SCENE.ply")
+    p.add_argument("--points", type=Path, required=True, metavar="CLOUD.ply", help="labelled cloud (x, y, z, label; ScanNet layout)")
+    p.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
+    p.add_argument("--names-out", type=Path, metavar="NAMES.json", help="write the label names (index = label id)")
+    p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
+    _add_pseudo_arguments(p)
+    p.set_defaults(func=run_pseudolabels)
+
+
+def _add_lerf(sub) -> None:
+    p = sub.add_parser("lerf", help="LERF-OVS 2D object selection (OpenGaussian's protocol): mIoU and mAcc@0.25")
+    p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
+    p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
+    p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
+    p.add_argument("--threshold", default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
+    p.add_argument("--alpha-threshold", type=float, default=0.5, help="rendered occupancy above which a pixel is selected")
+    p.add_argument("--json", type=Path, metavar="OUT.json", help="also write per-view results as JSON")
+    _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
+    p.set_defaults(func=run_lerf)
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def load_label_names(path: Path | None, default: list[str] | None = None) -> list[str]:
+    if path is None:
+        if default is None:
+            raise DrsplatError("label names are needed: pass --label-names NAMES.json")
+        return list(default)
+    try:
+        names = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not a readable JSON list of names ({exc})") from None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or not names:
+        raise InputError(path, "expected a non-empty JSON list of strings")
+    return names
+
+
+def load_gt_labels(path: Path, n: int, num_labels: int) -> np.ndarray:
+    from drsplat.query import _load_npy
+
+    arr = _load_npy(path)
+    if arr.ndim != 1 or arr.shape[0] != n:
+        hint = " (labels of the unregistered scene? pass it with --original SCENE.ply)" if arr.ndim == 1 and arr.shape[0] > n else ""
+        raise InputError(path, f"expected ({n},) labels, one per Gaussian, got shape {arr.shape}{hint}")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise InputError(path, f"expected integer labels, got dtype {arr.dtype}")
+    bad = (arr < -1) | (arr >= num_labels)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum())} labels fall outside -1..{num_labels - 1} (the label names list has {num_labels})")
+    return arr.astype(np.int64)
+
+
+def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarray:
+    """[N, L] scores of every Gaussian for every label: cosine, or relevancy with --relevancy."""
+    from drsplat.commands.query import load_encoder
+    from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy, text_embeddings
+
+    encoder = None
+    if args.text_embeddings is not None:
+        queries = load_query_embeddings(args.text_embeddings, field.dim)
+        if queries.shape[0] != len(names):
+            raise InputError(args.text_embeddings, f"{queries.shape[0]} embeddings for {len(names)} label names")
+    else:
+        encoder = load_encoder(args, field)
+        queries = text_embeddings(encoder, names, field)
+    if not args.relevancy:
+        return cosine(field, queries)
+    extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
+    if encoder is None and extra is None:
+        encoder = load_encoder(args, field)
+    return relevancy(field, queries, negative_embeddings(encoder, field, [], extra))
+
+
+def parse_taus(text: str) -> np.ndarray:
+    try:
+        start, stop, step = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise DrsplatError(f"--taus must be START:STOP:STEP, got {text!r}") from None
+    if step <= 0 or stop < start:
+        raise DrsplatError(f"--taus {text!r}: need STEP > 0 and STOP >= START")
+    return np.round(np.arange(start, stop + 0.5 * step, step), 6)
+
+
+def parse_weightings(text: str) -> tuple[str, ...]:
+    items = tuple(w.strip() for w in text.split(",") if w.strip())
+    unknown = [w for w in items if w not in WEIGHTINGS]
+    if unknown or not items:
+        raise DrsplatError(f"--weighting: unknown {unknown or text!r}; choose from {', '.join(WEIGHTINGS)}")
+    return items
+
+
+def write_json(path: Path | None, doc: dict) -> None:
+    if path is None:
+        return
+    from drsplat.utils import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    log.info("wrote %s", path)
+
+
+def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: list[str]):
+    """(labels [N], names) of a scene from a labelled cloud, with the --classes/--radius/--vote options."""
+    from drsplat.datasets_eval import load_labelled_points
+    from drsplat.pseudolabels import pseudo_labels
+
+    classes = [c.strip() for c in args.classes.split(",")] if args.classes else None
+    pts = load_labelled_points(cloud, raw_names, classes)
+    res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
+                        show_progress=not getattr(args, "quiet", False))
+    labelled = int(np.count_nonzero(res.labels >= 0))
+    log.info("pseudo-labels: %d of %d Gaussians labelled from %d points (%d non-finite Gaussians)", labelled, len(res.labels), len(pts.points), res.nonfinite)
+    return res.labels.astype(np.int64), pts.names
+
+
+def load_eval_scene(args: argparse.Namespace):
+    """(scene to evaluate on, registered field, index of registered Gaussians in that scene or None)."""
+    from drsplat.commands.query import load_registered
+    from drsplat.evaluation import match_gaussians
+    from drsplat.scene import load_ply
+
+    scene, field = load_registered(args.registered)
+    if args.original is None:
+        return scene, field, None
+    original = load_ply(args.original)
+    try:
+        index = match_gaussians(original.means, scene.means)
+    except ValueError as exc:
+        raise InputError(args.original, f"is not the scene {args.registered.name} was registered from: {exc}") from None
+    log.info("evaluating on the %d Gaussians of %s (%d registered)", original.num_gaussians, args.original, scene.num_gaussians)
+    return original, field, index
+
+
+def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], index: np.ndarray | None = None) -> int:
+    from drsplat.evaluation import evaluate_scene, expand_scores, format_curve, format_reports
+
+    present = sorted(set(int(x) for x in np.unique(gt) if x >= 0))
+    if not present:
+        raise DrsplatError("no Gaussian has a ground-truth label; nothing to evaluate")
+    # only labels present in the ground truth are queried (NYU40 has 40 names, a scene a few)
+    keep = np.array(present)
+    sub_names = [names[i] for i in keep]
+    remap = np.full(len(names) + 1, -1, np.int64)
+    remap[keep] = np.arange(len(keep))
+    gt_sub = np.where(gt >= 0, remap[np.maximum(gt, 0)], -1)
+    scores = label_scores(args, field, sub_names) if args.text_embeddings is None else label_scores(args, field, names)[:, keep]
+    assigned = np.asarray(field.weights) > 0
+    if index is not None:
+        scores = expand_scores(scores, index, scene.num_gaussians)
+        assigned = np.zeros(scene.num_gaussians, bool)
+        assigned[index] = np.asarray(field.weights) > 0
+    tasks = ("loc", "seg") if args.task == "both" else (args.task,)
+    reports = evaluate_scene(scene, scores, gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
+                             args.voxel_resolution, args.voxel_empty, assigned=assigned)
+    print(f"{args.registered.name}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
+          f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}")
+    print(format_reports(reports))
+    for r in reports:
+        if r.curve and (args.curve or r is next(x for x in reports if x.curve)):
+            print(format_curve(r, every=1 if args.curve else 10))
+    write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "reports": [r.to_dict() for r in reports]})
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- commands
+
+
+def run_iou(args: argparse.Namespace) -> int:
+    from drsplat.datasets_eval import NYU40_NAMES
+
+    if args.synthetic is not None:
+        ds = args.synthetic
+        args.gt_labels = ds / "gt" / "labels.npy"
+        args.label_names = args.label_names or ds / "gt" / "label_names.json"
+        args.text_embeddings = args.text_embeddings or ds / "text_embeddings.npy"
+        args.original = args.original or ds / "scene.ply"
+    elif args.gt_labels is None and args.gt_points is None:
+        raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
+    scene, field, index = load_eval_scene(args)
+    if args.gt_labels is not None:
+        names = load_label_names(args.label_names)
+        gt = load_gt_labels(args.gt_labels, scene.num_gaussians, len(names))
+    else:
+        raw = load_label_names(args.label_names, list(NYU40_NAMES))
+        gt, names = pseudo_from_cloud(args, scene, args.gt_points, raw)
+    return _evaluate_and_print(args, scene, field, gt, names, index)
+
+
+def run_scannet(args: argparse.Namespace) -> int:
+    from drsplat.datasets_eval import NYU40_NAMES, find_scannet_labels
+    from drsplat.utils import save_npy_atomic
+
+    scene, field, index = load_eval_scene(args)
+    raw = load_label_names(args.label_names, list(NYU40_NAMES))
+    gt, names = pseudo_from_cloud(args, scene, find_scannet_labels(args.scene_dir), raw)
+    if args.save_labels is not None:
+        save_npy_atomic(args.save_labels, gt.astype(np.int32))
+    return _evaluate_and_print(args, scene, field, gt, names, index)
+
+
+def run_pseudolabels(args: argparse.Namespace) -> int:
+    from drsplat.datasets_eval import NYU40_NAMES
+    from drsplat.scene import load_ply
+    from drsplat.utils import atomic_path, save_npy_atomic
+
+    scene = load_ply(args.scene)
+    raw = load_label_names(args.label_names, list(NYU40_NAMES))
+    labels, names = pseudo_from_cloud(args, scene, args.points, raw)
+    save_npy_atomic(args.out, labels.astype(np.int32))
+    if args.names_out is not None:
+        with atomic_path(args.names_out) as tmp:
+            tmp.write_text(json.dumps(names) + "\n")
+    counts = np.bincount(labels[labels >= 0], minlength=len(names))
+    print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {args.out}")
+    for k in np.flatnonzero(counts):
+        print(f"  {names[k]:<20} {int(counts[k]):>9}")
+    return 0
+
+
+def run_lerf(args: argparse.Namespace) -> int:
+    from drsplat.cameras import load_cameras
+    from drsplat.commands.query import load_registered
+    from drsplat.datasets_eval import load_lerf_annotations
+    from drsplat.eval_lerf import lerf_2d_report, select_queries
+
+    scene, field = load_registered(args.registered)
+    views = load_lerf_annotations(args.annotations)
+    categories = sorted({c for v in views for c in v.masks})
+    names = load_label_names(args.label_names, categories)
+    missing = [c for c in categories if c not in names]
+    if missing:
+        raise InputError(args.label_names, f"annotated categories {missing} have no entry (and so no query embedding)")
+    cameras = load_cameras(args.source)
+    scores = label_scores(args, field, names)
+    threshold = None
+    if args.threshold is None and args.relevancy:
+        threshold = 0.5
+    elif args.threshold not in (None, "auto"):
+        try:
+            threshold = float(args.threshold)
+        except ValueError:
+            raise DrsplatError(f"--threshold must be a number or 'auto', got {args.threshold!r}") from None
+    selected, taus = select_queries(scores, threshold)
+    selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
+    report = lerf_2d_report(scene, cameras, views, selections, args.alpha_threshold, show_progress=True)
+    if not report.rows:
+        raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
+    print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
+          f"thresholds {'per-query Otsu' if threshold is None else threshold}")
+    print(report.format())
+    doc = report.to_dict()
+    doc["thresholds"] = {n: float(t) for n, t in zip(names, taus)}
+    write_json(args.json, doc)
+    return 0

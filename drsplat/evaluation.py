@@ -1,0 +1,552 @@
+"""3D evaluation of language fields on Gaussian scenes: the Dr. Splat protocol and its relatives.
+
+Three ways to weigh a Gaussian when measuring the overlap of a predicted and a ground-truth set:
+
+- volume-aware IoU (Dr. Splat, supplement): weight d_i = s_x·s_y·s_z·α_i, so that a large opaque
+  Gaussian counts more than a tiny transparent one;
+- count IoU (OpenGaussian): every Gaussian weighs 1;
+- voxel IoU: the sets are splatted into a voxel grid (`voxel_iou_*`), and voxels are compared.
+
+Two tasks:
+
+- localisation: each label is selected by one global threshold τ on its similarity; τ is found by
+  a grid search and the whole curve mIoU(τ) is reported;
+- segmentation: each Gaussian takes the argmax label; mIoU and mAcc.
+
+Ground-truth labels are integers per Gaussian, -1 meaning "no label". In segmentation the
+unlabelled Gaussians are ignored (argmax always assigns some label, so they could only add
+noise); in localisation they count as false positives when selected.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+IOU_THRESHOLDS = (0.15, 0.3, 0.45)
+DEFAULT_TAU_GRID = tuple(np.round(np.linspace(0.0, 1.0, 101), 4))
+
+
+@dataclass
+class IoUReport:
+    """Per-label results of one task under one weighting.
+
+    iou: [L] IoU per label (NaN where the label has no ground truth: excluded from the means).
+    acc: [L] accuracy per label (segmentation; weighted recall inter / gt), or None.
+    threshold: the global similarity threshold (localisation), or None.
+    curve: [(τ, mIoU)] the grid search behind `threshold` (localisation), else empty.
+    nonfinite: number of non-finite scores/weights met (treated as "not selected"/weight 0).
+    """
+
+    task: str
+    weighting: str
+    label_names: list[str]
+    iou: np.ndarray
+    acc: np.ndarray | None = None
+    threshold: float | None = None
+    curve: list[tuple[float, float]] = field(default_factory=list)
+    nonfinite: int = 0
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.isfinite(self.iou)
+
+    @property
+    def miou(self) -> float:
+        return float(np.mean(self.iou[self.valid])) if self.valid.any() else float("nan")
+
+    @property
+    def macc(self) -> float:
+        if self.acc is None:
+            return float("nan")
+        ok = np.isfinite(self.acc)
+        return float(np.mean(self.acc[ok])) if ok.any() else float("nan")
+
+    def share_above(self, threshold: float) -> float:
+        """Share of (ground-truth-present) labels whose IoU exceeds `threshold`."""
+        if not self.valid.any():
+            return float("nan")
+        return float(np.mean(self.iou[self.valid] > threshold))
+
+    def summary(self) -> dict:
+        out = {"task": self.task, "weighting": self.weighting, "mIoU": self.miou}
+        for t in IOU_THRESHOLDS:
+            out[f"IoU>{t}"] = self.share_above(t)
+        if self.acc is not None:
+            out["mAcc"] = self.macc
+        if self.threshold is not None:
+            out["threshold"] = self.threshold
+        out["nonfinite"] = self.nonfinite
+        return out
+
+    def to_dict(self) -> dict:
+        out = self.summary()
+        out["per_label"] = {
+            name: {"iou": _none_if_nan(self.iou[i]), **({"acc": _none_if_nan(self.acc[i])} if self.acc is not None else {})}
+            for i, name in enumerate(self.label_names)
+        }
+        if self.curve:
+            out["curve"] = [[t, _none_if_nan(m)] for t, m in self.curve]
+        return out
+
+
+def _none_if_nan(x: float) -> float | None:
+    x = float(x)
+    return None if not math.isfinite(x) else x
+
+
+def significance_weights(log_scales: np.ndarray, opacity_logits: np.ndarray) -> tuple[np.ndarray, int]:
+    """Dr. Splat's significance d_i = s_x·s_y·s_z·α_i, normalised so that max d = 1.
+
+    log_scales: [N, 3], opacity_logits: [N]. Returns (weights [N] float64, nonfinite count).
+
+    Computed in log space, log d_i = Σ_k log s_k + log σ(logit_i) with log σ(x) = −log(1 + e^−x),
+    then shifted by max_i log d_i before exponentiating: IoU is a ratio of weighted sums, so a
+    common factor cancels, and neither huge (e^300) nor tiny (e^−300) volumes overflow. Gaussians
+    with a non-finite log d get weight 0 and are counted.
+    """
+    ls = np.asarray(log_scales, dtype=np.float64)
+    lo = np.asarray(opacity_logits, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        log_d = ls.sum(axis=1) - np.logaddexp(0.0, -lo)
+    finite = np.isfinite(log_d)
+    nonfinite = int(np.count_nonzero(~finite))
+    weights = np.zeros(log_d.shape[0], dtype=np.float64)
+    if finite.any():
+        weights[finite] = np.exp(log_d[finite] - log_d[finite].max())
+    if nonfinite:
+        log.warning("%d Gaussians have a non-finite significance (scale or opacity); they weigh 0", nonfinite)
+    return weights, nonfinite
+
+
+def scene_weights(scene, weighting: str) -> tuple[np.ndarray, int]:
+    """Per-Gaussian weights [N] for `weighting` in {"volume", "count"} and the non-finite count."""
+    if weighting == "volume":
+        return significance_weights(scene.log_scales, scene.opacity_logits)
+    if weighting == "count":
+        return np.ones(scene.num_gaussians, dtype=np.float64), 0
+    raise ValueError(f"unknown weighting {weighting!r} (volume, count)")
+
+
+def weighted_iou(pred: np.ndarray, gt: np.ndarray, weights: np.ndarray) -> float:
+    """IoU = d·(p ⊙ g) / d·(p + g − p ⊙ g) for boolean sets p, g: [N] and weights d: [N].
+
+    NaN when the union has zero weight.
+    """
+    p = np.asarray(pred, bool)
+    g = np.asarray(gt, bool)
+    w = np.asarray(weights, np.float64)
+    inter = float(w[p & g].sum())
+    union = float(w[p | g].sum())
+    return inter / union if union > 0 else float("nan")
+
+
+def segmentation_iou(pred_labels: np.ndarray, gt_labels: np.ndarray, weights: np.ndarray, num_labels: int,
+                     ignore_unlabelled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Per-label weighted IoU and accuracy of a hard labelling.
+
+    pred_labels, gt_labels: [N] int (−1 = none). weights: [N]. Returns (iou [L], acc [L]) with
+        I_l = Σ_i d_i [pred_i = l ∧ gt_i = l],  P_l = Σ_i d_i [pred_i = l],  G_l = Σ_i d_i [gt_i = l],
+        IoU_l = I_l / (P_l + G_l − I_l),  Acc_l = I_l / G_l,
+    NaN for labels without ground truth. With `ignore_unlabelled`, Gaussians with gt −1 are dropped.
+    """
+    pred = np.asarray(pred_labels, np.int64)
+    gt = np.asarray(gt_labels, np.int64)
+    w = np.asarray(weights, np.float64)
+    if ignore_unlabelled:
+        keep = gt >= 0
+        pred, gt, w = pred[keep], gt[keep], w[keep]
+    hit = (pred == gt) & (gt >= 0)
+    inter = np.bincount(gt[hit], weights=w[hit], minlength=num_labels)[:num_labels]
+    pm = (pred >= 0) & (pred < num_labels)
+    p_area = np.bincount(pred[pm], weights=w[pm], minlength=num_labels)[:num_labels]
+    gm = (gt >= 0) & (gt < num_labels)
+    g_area = np.bincount(gt[gm], weights=w[gm], minlength=num_labels)[:num_labels]
+    union = p_area + g_area - inter
+    present = g_area > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(present, inter / np.where(union > 0, union, 1.0), np.nan)
+        acc = np.where(present, inter / np.where(g_area > 0, g_area, 1.0), np.nan)
+    return iou, acc
+
+
+def _clean_scores(scores: np.ndarray) -> tuple[np.ndarray, int]:
+    """Scores as float64 with NaN and +inf replaced by −inf (never selected), and their count.
+
+    −inf itself is the deliberate "never selected" value (unassigned Gaussians), not counted.
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    bad = np.isnan(s) | (s == np.inf)
+    nonfinite = int(np.count_nonzero(bad))
+    if nonfinite:
+        log.warning("%d non-finite similarity scores; they never select a Gaussian", nonfinite)
+        s = np.where(bad, -np.inf, s)
+    return s, nonfinite
+
+
+def threshold_iou_curve(scores: np.ndarray, gt: np.ndarray, weights: np.ndarray, taus: np.ndarray) -> np.ndarray:
+    """IoU of the set {i : score_i > τ} against the set gt, for every τ at once.
+
+    scores: [N], gt: [N] bool, weights: [N], taus: [T]. Returns [T] (NaN where the union is empty).
+    Sort once by descending score; cumulative sums give P(τ) and I(τ) for any τ by a binary search,
+    so the grid costs O(N log N + T log N) instead of O(N T).
+    """
+    order = np.argsort(-scores, kind="stable")
+    s_sorted = scores[order]
+    w_sorted = np.asarray(weights, np.float64)[order]
+    g_sorted = np.asarray(gt, bool)[order]
+    cum_p = np.concatenate([[0.0], np.cumsum(w_sorted)])
+    cum_i = np.concatenate([[0.0], np.cumsum(np.where(g_sorted, w_sorted, 0.0))])
+    g_total = cum_i[-1]
+    # number of scores strictly greater than τ: the descending array negated is ascending
+    count = np.searchsorted(-s_sorted, -np.asarray(taus, np.float64), side="left")
+    inter = cum_i[count]
+    union = cum_p[count] + g_total - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(union > 0, inter / np.where(union > 0, union, 1.0), np.nan)
+
+
+def localisation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.ndarray, label_names: list[str],
+                        taus: np.ndarray | None = None, weighting: str = "volume", nonfinite_weights: int = 0) -> IoUReport:
+    """Localisation: label l selects {i : score_il > τ}; one global τ maximises the mIoU.
+
+    scores: [N, L] similarity of every Gaussian to every label query; gt_labels: [N] int (−1 none);
+    weights: [N]; taus: [T] grid (default 0, 0.01, …, 1). The report keeps the curve mIoU(τ) and the
+    per-label IoU at the best τ. Labels without ground truth are excluded from the means.
+    """
+    s, nonfinite = _clean_scores(scores)
+    num_labels = s.shape[1]
+    taus = np.asarray(DEFAULT_TAU_GRID if taus is None else taus, dtype=np.float64)
+    gt = np.asarray(gt_labels, np.int64)
+    curves = np.stack([threshold_iou_curve(s[:, l], gt == l, weights, taus) for l in range(num_labels)], axis=1)
+    present = np.array([(gt == l).any() and float(np.asarray(weights)[gt == l].sum()) > 0 for l in range(num_labels)])
+    curves[:, ~present] = np.nan
+    with np.errstate(invalid="ignore"):
+        miou = np.array([np.mean(np.nan_to_num(row[present], nan=0.0)) if present.any() else np.nan for row in curves])
+    best = int(np.nanargmax(miou)) if np.isfinite(miou).any() else 0
+    iou = np.where(present, np.nan_to_num(curves[best], nan=0.0), np.nan)
+    return IoUReport(task="loc", weighting=weighting, label_names=list(label_names), iou=iou, threshold=float(taus[best]),
+                     curve=[(float(t), float(m)) for t, m in zip(taus, miou)], nonfinite=nonfinite + nonfinite_weights)
+
+
+def segmentation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.ndarray, label_names: list[str],
+                        weighting: str = "volume", nonfinite_weights: int = 0) -> IoUReport:
+    """Segmentation: every Gaussian takes argmax_l score_il; mIoU and mAcc (`segmentation_iou`).
+
+    scores: [N, L]; gt_labels: [N] int (−1 none, ignored); weights: [N]. A row with no finite
+    score predicts −1 (counts against the label of that Gaussian).
+    """
+    s, nonfinite = _clean_scores(scores)
+    pred = argmax_labels(s)
+    iou, acc = segmentation_iou(pred, gt_labels, weights, s.shape[1])
+    return IoUReport(task="seg", weighting=weighting, label_names=list(label_names), iou=iou, acc=acc,
+                     nonfinite=nonfinite + nonfinite_weights)
+
+
+def argmax_labels(scores: np.ndarray) -> np.ndarray:
+    """[N, L] scores -> [N] argmax label, −1 where no score is finite (or L = 0)."""
+    if scores.shape[1] == 0:
+        return np.full(scores.shape[0], -1, np.int64)
+    pred = np.argmax(scores, axis=1).astype(np.int64)
+    pred[~np.isfinite(scores).any(axis=1)] = -1
+    return pred
+
+
+# ----------------------------------------------------------------------------------------------
+# Voxel IoU
+
+
+@dataclass
+class VoxelGrid:
+    """An axis-aligned grid of cubic voxels. origin: [3] corner; voxel_size h; shape (nx, ny, nz)."""
+
+    origin: np.ndarray
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @property
+    def num_voxels(self) -> int:
+        return int(np.prod(self.shape))
+
+    def centers(self) -> np.ndarray:
+        """[V, 3] voxel centres, x fastest-varying last (C order over (nx, ny, nz))."""
+        axes = [self.origin[k] + (np.arange(self.shape[k]) + 0.5) * self.voxel_size for k in range(3)]
+        g = np.meshgrid(*axes, indexing="ij")
+        return np.stack([a.ravel() for a in g], axis=1)
+
+
+def grid_for(means: np.ndarray, resolution: int = 96, padding: float = 0.02) -> VoxelGrid:
+    """A grid around `means` ([N, 3], finite rows only) with `resolution` voxels on the longest side."""
+    m = np.asarray(means, np.float64)
+    m = m[np.isfinite(m).all(axis=1)]
+    if m.shape[0] == 0:
+        return VoxelGrid(np.zeros(3), 1.0, (1, 1, 1))
+    lo, hi = m.min(axis=0), m.max(axis=0)
+    extent = float(max((hi - lo).max(), 1e-9))
+    lo = lo - padding * extent
+    hi = hi + padding * extent
+    h = float((hi - lo).max()) / resolution
+    shape = tuple(int(max(1, math.ceil((hi[k] - lo[k]) / h))) for k in range(3))
+    return VoxelGrid(lo, h, shape)
+
+
+def _voxel_precompute(means, covs, opacities, grid: VoxelGrid):
+    """Per Gaussian: Σ' = Σ + (h/2)²·I, Σ'⁻¹ [N,3,3], α·h³/√((2π)³|Σ'|), valid."""
+    h = grid.voxel_size
+    c = np.asarray(covs, np.float64) + np.eye(3) * (0.25 * h * h)
+    det = np.linalg.det(c)
+    valid = np.isfinite(det) & (det > 0) & np.isfinite(np.asarray(means, np.float64)).all(axis=1) & np.isfinite(opacities)
+    c_safe = np.where(valid[:, None, None], c, np.eye(3))
+    inv = np.linalg.inv(c_safe)
+    amp = np.where(valid, np.asarray(opacities, np.float64) * h**3 / np.sqrt((2 * np.pi) ** 3 * np.where(valid, det, 1.0)), 0.0)
+    return c_safe, inv, amp, valid
+
+
+def splat_mass_reference(means, covs, opacities, channels, num_channels: int, grid: VoxelGrid, cutoff: float = 3.0) -> np.ndarray:
+    """Obviously-correct dense version of `splat_mass` (every voxel against every Gaussian)."""
+    c, inv, amp, valid = _voxel_precompute(means, covs, opacities, grid)
+    centers = grid.centers()
+    out = np.zeros((num_channels, grid.num_voxels), np.float64)
+    for i in range(len(amp)):
+        ch = int(channels[i])
+        if not valid[i] or ch < 0:
+            continue
+        d = centers - np.asarray(means[i], np.float64)
+        m2 = np.einsum("vi,ij,vj->v", d, inv[i], d)
+        out[ch] += np.where(m2 <= cutoff * cutoff, amp[i] * np.exp(-0.5 * m2), 0.0)
+    return out
+
+
+@numba.njit(cache=True)
+def _splat_kernel(means, inv, sig, amp, channels, out, origin, h, nx, ny, nz, cutoff2):
+    n = means.shape[0]
+    cut = math.sqrt(cutoff2)
+    for i in range(n):
+        ch = channels[i]
+        if ch < 0 or amp[i] == 0.0:
+            continue
+        r0 = cut * sig[i, 0]
+        r1 = cut * sig[i, 1]
+        r2 = cut * sig[i, 2]
+        x0 = int(min(nx * 1.0, max(0.0, math.floor((means[i, 0] - r0 - origin[0]) / h - 0.5))))
+        x1 = int(max(-1.0, min(nx - 1.0, math.ceil((means[i, 0] + r0 - origin[0]) / h - 0.5))))
+        y0 = int(min(ny * 1.0, max(0.0, math.floor((means[i, 1] - r1 - origin[1]) / h - 0.5))))
+        y1 = int(max(-1.0, min(ny - 1.0, math.ceil((means[i, 1] + r1 - origin[1]) / h - 0.5))))
+        z0 = int(min(nz * 1.0, max(0.0, math.floor((means[i, 2] - r2 - origin[2]) / h - 0.5))))
+        z1 = int(max(-1.0, min(nz - 1.0, math.ceil((means[i, 2] + r2 - origin[2]) / h - 0.5))))
+        a00 = inv[i, 0, 0]
+        a11 = inv[i, 1, 1]
+        a22 = inv[i, 2, 2]
+        a01 = inv[i, 0, 1]
+        a02 = inv[i, 0, 2]
+        a12 = inv[i, 1, 2]
+        for x in range(x0, x1 + 1):
+            dx = origin[0] + (x + 0.5) * h - means[i, 0]
+            for y in range(y0, y1 + 1):
+                dy = origin[1] + (y + 0.5) * h - means[i, 1]
+                for z in range(z0, z1 + 1):
+                    dz = origin[2] + (z + 0.5) * h - means[i, 2]
+                    m2 = a00 * dx * dx + a11 * dy * dy + a22 * dz * dz + 2.0 * (a01 * dx * dy + a02 * dx * dz + a12 * dy * dz)
+                    if m2 <= cutoff2:
+                        out[ch, (x * ny + y) * nz + z] += amp[i] * math.exp(-0.5 * m2)
+
+
+def splat_mass(means: np.ndarray, covs: np.ndarray, opacities: np.ndarray, channels: np.ndarray, num_channels: int,
+               grid: VoxelGrid, cutoff: float = 3.0) -> np.ndarray:
+    """α-weighted Gaussian mass per voxel and channel.
+
+    means: [N, 3], covs: [N, 3, 3], opacities: [N], channels: [N] int (−1 = skip). Returns [C, V]:
+        M_c(v) = h³ Σ_{i: ch_i = c} α_i N(v | μ_i, Σ_i + (h/2)²·I)   for (v−μ)ᵀΣ'⁻¹(v−μ) ≤ cutoff²,
+    i.e. Σ α_i N(v | μ_i, Σ_i) sampled at voxel centres, with every Gaussian widened to a standard
+    deviation of at least half a voxel: sampling a Gaussian narrower than that is not a faithful
+    quadrature (sub-voxel Gaussians would fall between sample points and lose or gain mass); with
+    the widening Σ_v M(v) ≈ α·0.971 (the χ²₃ mass within 3σ) for every size.
+    Gaussians with non-finite or singular parameters are skipped.
+    """
+    c, inv, amp, valid = _voxel_precompute(means, covs, opacities, grid)
+    sig = np.sqrt(np.einsum("nii->ni", c))
+    ch = np.where(valid, np.asarray(channels, np.int64), -1)
+    out = np.zeros((num_channels, grid.num_voxels), np.float64)
+    if len(amp):
+        _splat_kernel(np.ascontiguousarray(means, np.float64), np.ascontiguousarray(inv), np.ascontiguousarray(sig), amp, ch, out,
+                      np.asarray(grid.origin, np.float64), float(grid.voxel_size), *grid.shape, float(cutoff) ** 2)
+    return out
+
+
+def voxel_labels(mass: np.ndarray, empty_threshold: float) -> np.ndarray:
+    """[C, V] mass -> [V] label: argmax channel where the total mass exceeds `empty_threshold`, else −1."""
+    total = mass.sum(axis=0)
+    lab = np.argmax(mass, axis=0).astype(np.int64) if mass.shape[0] else np.full(mass.shape[1], -1, np.int64)
+    lab[total <= empty_threshold] = -1
+    return lab
+
+
+@dataclass
+class VoxelSetup:
+    """Everything the voxel IoU needs about the scene: means [N,3], covs [N,3,3], opacities [N], grid."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    opacities: np.ndarray
+    grid: VoxelGrid
+    empty_threshold: float = 0.01
+
+    @classmethod
+    def from_scene(cls, scene, resolution: int = 96, empty_threshold: float = 0.01, focus: np.ndarray | None = None) -> "VoxelSetup":
+        """Grid over the Gaussians in `focus` ([N] bool, e.g. labelled or selected ones; all by default)."""
+        means = scene.means.astype(np.float64)
+        grid = grid_for(means if focus is None else means[focus], resolution)
+        return cls(means, scene.covariances().astype(np.float64), scene.opacities().astype(np.float64), grid, empty_threshold)
+
+    def occupancy(self, selected: np.ndarray) -> np.ndarray:
+        """[V] bool: voxels whose mass from the selected Gaussians ([N] bool) exceeds the threshold."""
+        ch = np.where(np.asarray(selected, bool), 0, -1)
+        return splat_mass(self.means, self.covs, self.opacities, ch, 1, self.grid)[0] > self.empty_threshold
+
+    def label_field(self, labels: np.ndarray, num_labels: int) -> np.ndarray:
+        """[V] voxel labels (−1 empty) from per-Gaussian labels [N] (−1 skipped)."""
+        return voxel_labels(splat_mass(self.means, self.covs, self.opacities, labels, num_labels, self.grid), self.empty_threshold)
+
+
+def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, threshold: float,
+                              label_names: list[str]) -> IoUReport:
+    """Localisation IoU on voxels at a given τ: occupancy of {score_l > τ} vs occupancy of {gt = l}."""
+    s, nonfinite = _clean_scores(scores)
+    gt = np.asarray(gt_labels, np.int64)
+    iou = np.full(s.shape[1], np.nan)
+    for l in range(s.shape[1]):
+        g = gt == l
+        if not g.any():
+            continue
+        gv = setup.occupancy(g)
+        pv = setup.occupancy(s[:, l] > threshold)
+        union = np.count_nonzero(gv | pv)
+        iou[l] = np.count_nonzero(gv & pv) / union if union else np.nan
+    return IoUReport(task="loc", weighting="voxel", label_names=list(label_names), iou=iou, threshold=float(threshold), nonfinite=nonfinite)
+
+
+def voxel_segmentation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str]) -> IoUReport:
+    """Segmentation IoU/Acc on voxels: the voxel label fields of argmax predictions and of the ground truth.
+
+    Only Gaussians with a ground-truth label take part (as in `segmentation_report`), so both
+    fields cover the same occupied voxels and differ only in their labels.
+    """
+    s, nonfinite = _clean_scores(scores)
+    gt = np.asarray(gt_labels, np.int64)
+    num_labels = s.shape[1]
+    pred = np.where(gt >= 0, argmax_labels(s), -1)
+    gv = setup.label_field(np.where(gt < num_labels, gt, -1), num_labels)
+    pv = setup.label_field(pred, num_labels)
+    iou, acc = segmentation_iou(pv, gv, np.ones(gv.shape[0]), num_labels)
+    return IoUReport(task="seg", weighting="voxel", label_names=list(label_names), iou=iou, acc=acc, nonfinite=nonfinite)
+
+
+def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolerance: float = 1e-5) -> np.ndarray:
+    """Index into the original scene of every Gaussian of a pruned copy, matched by position.
+
+    original_means: [N, 3]; subset_means: [M, 3] (M ≤ N, e.g. a registered PLY written without
+    --keep-unassigned). Returns [M] int64. Raises ValueError when a Gaussian has no original
+    within `tolerance` × the scene extent, or two map to the same original.
+    """
+    from scipy.spatial import cKDTree
+
+    orig = np.asarray(original_means, np.float64)
+    sub = np.asarray(subset_means, np.float64)
+    if sub.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    finite = np.isfinite(orig).all(axis=1)
+    extent = float(np.ptp(orig[finite], axis=0).max()) if finite.any() else 1.0
+    tree = cKDTree(np.where(finite[:, None], orig, 1e30))
+    dist, idx = tree.query(sub)
+    bad = ~(dist <= tolerance * max(extent, 1e-12))
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} Gaussians have no counterpart in the original scene (e.g. #{int(np.flatnonzero(bad)[0])})")
+    if len(np.unique(idx)) != len(idx):
+        raise ValueError("several Gaussians match the same original Gaussian (duplicated positions)")
+    return idx.astype(np.int64)
+
+
+def expand_scores(scores: np.ndarray, index: np.ndarray, num_original: int, fill: float = 0.0) -> np.ndarray:
+    """[M, L] scores of a pruned copy -> [N, L] on the original scene; pruned Gaussians score `fill`
+    (0 = the score of an unassigned Gaussian in `LanguageField.scores`)."""
+    out = np.full((num_original, scores.shape[1]), fill, dtype=np.float32)
+    out[index] = scores
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Whole-scene entry point
+
+
+def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str], tasks: tuple[str, ...] = ("loc", "seg"),
+                   weightings: tuple[str, ...] = ("volume", "count"), taus: np.ndarray | None = None,
+                   voxel_resolution: int = 96, voxel_empty_threshold: float = 0.01, assigned: np.ndarray | None = None) -> list[IoUReport]:
+    """Every requested (task, weighting) report for one scene.
+
+    scene: GaussianScene with N Gaussians; scores: [N, L]; gt_labels: [N] int (−1 none).
+    weightings ⊂ {volume, count, voxel}. The voxel localisation uses the τ found by the
+    volume-aware (else count) grid search, so the three weightings judge the same selection.
+    assigned: [N] bool, Gaussians that hold a language feature; the others (unassigned or pruned
+    by registration) are never selected and predict no label (not label 0 by a tie of zeros).
+    """
+    scores = np.asarray(scores)
+    gt = np.asarray(gt_labels, np.int64)
+    if scores.shape[0] != scene.num_gaussians or gt.shape[0] != scene.num_gaussians:
+        raise ValueError(f"scores {scores.shape} / labels {gt.shape} do not match the scene's {scene.num_gaussians} Gaussians")
+    if assigned is not None:
+        scores = np.where(np.asarray(assigned, bool)[:, None], scores.astype(np.float64), -np.inf)
+    reports: list[IoUReport] = []
+    loc_tau: float | None = None
+    for weighting in [w for w in weightings if w != "voxel"]:
+        w, bad = scene_weights(scene, weighting)
+        if "loc" in tasks:
+            rep = localisation_report(scores, gt, w, label_names, taus, weighting, bad)
+            loc_tau = rep.threshold if loc_tau is None else loc_tau
+            reports.append(rep)
+        if "seg" in tasks:
+            reports.append(segmentation_report(scores, gt, w, label_names, weighting, bad))
+    if "voxel" in weightings:
+        setup = VoxelSetup.from_scene(scene, voxel_resolution, voxel_empty_threshold, focus=gt >= 0)
+        if "loc" in tasks:
+            if loc_tau is None:
+                loc_tau = localisation_report(scores, gt, significance_weights(scene.log_scales, scene.opacity_logits)[0], label_names, taus).threshold
+            reports.append(voxel_localisation_report(setup, scores, gt, loc_tau, label_names))
+        if "seg" in tasks:
+            reports.append(voxel_segmentation_report(setup, scores, gt, label_names))
+    return reports
+
+
+def format_reports(reports: list[IoUReport]) -> str:
+    """A plain-text table (one row per report) like the paper's: mIoU, IoU>0.15/0.3/0.45, mAcc, τ."""
+    head = f"{'task':<5} {'weighting':<8} {'mIoU':>7} " + " ".join(f"{'>' + str(t):>7}" for t in IOU_THRESHOLDS) + f" {'mAcc':>7} {'tau':>6} {'nonfin':>6}"
+    lines = [head, "-" * len(head)]
+    for r in reports:
+        shares = " ".join(f"{r.share_above(t):7.3f}" for t in IOU_THRESHOLDS)
+        macc = f"{r.macc:7.3f}" if r.acc is not None else f"{'-':>7}"
+        tau = f"{r.threshold:6.2f}" if r.threshold is not None else f"{'-':>6}"
+        lines.append(f"{r.task:<5} {r.weighting:<8} {r.miou:7.3f} {shares} {macc} {tau} {r.nonfinite:6d}")
+    return "\n".join(lines)
+
+
+def format_curve(report: IoUReport, every: int = 5) -> str:
+    """The localisation grid search as a table: τ and mIoU (every `every`-th grid point, best marked)."""
+    lines = [f"grid search ({report.weighting}): tau  mIoU"]
+    for k, (t, m) in enumerate(report.curve):
+        mark = "  <- best" if report.threshold is not None and t == report.threshold else ""
+        if k % every == 0 or mark:
+            lines.append(f"  {t:5.2f}  {m:6.3f}{mark}")
+    return "\n".join(lines)
+
+
+__all__ = [
+    "IOU_THRESHOLDS", "IoUReport", "expand_scores", "match_gaussians", "VoxelGrid", "VoxelSetup", "argmax_labels", "evaluate_scene", "format_curve",
+    "format_reports", "grid_for", "localisation_report", "scene_weights", "segmentation_iou", "segmentation_report",
+    "significance_weights", "splat_mass", "splat_mass_reference", "threshold_iou_curve", "voxel_labels",
+    "voxel_localisation_report", "voxel_segmentation_report", "weighted_iou",
+]

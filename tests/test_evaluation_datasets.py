@@ -1,0 +1,144 @@
+"""LERF-OVS and ScanNet ground-truth readers, on stand-ins written in the same layouts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from drsplat.datasets_eval import (
+    NYU40_NAMES,
+    find_scannet_labels,
+    load_labelled_points,
+    load_lerf_annotations,
+    load_lerf_view,
+    load_scannet_cameras,
+    mask_to_polygons,
+    polygon_mask,
+    write_labelled_points,
+    write_lerf_view,
+)
+from drsplat.errors import InputError
+from drsplat.eval_lerf import mask_iou
+
+
+def test_polygon_mask_fills_boundary_pixels_like_fillpoly():
+    m = polygon_mask(np.array([[2, 2], [6, 2], [6, 6], [2, 6]]), 10, 10)
+    assert m.sum() == 25 and m[2:7, 2:7].all()
+
+
+def disk(h, w, cy, cx, r):
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+
+
+def test_lerf_layout_round_trip(tmp_path):
+    h, w = 60, 80
+    masks = {"old camera": disk(h, w, 20, 25, 12), "tea cup": np.zeros((h, w), bool)}
+    masks["tea cup"][35:55, 50:75] = True
+    masks["tea cup"][5:12, 60:70] = True  # a second instance: two polygons, one category
+    image = np.full((h, w, 3), 200, np.uint8)
+    path = write_lerf_view(tmp_path / "label" / "scene", "frame_00041", masks, image)
+    doc = json.loads(path.read_text())
+    assert doc["info"] == {"name": "frame_00041.jpg", "width": w, "height": h}
+    assert sorted(o["category"] for o in doc["objects"]) == ["old camera", "tea cup", "tea cup"]
+    assert (path.parent / "frame_00041.jpg").exists()
+    views = load_lerf_annotations(tmp_path / "label" / "scene")
+    assert len(views) == 1 and views[0].name == "frame_00041" and (views[0].width, views[0].height) == (w, h)
+    for name, m in masks.items():
+        assert mask_iou(views[0].masks[name], m) > 0.93
+
+
+def test_mask_to_polygons_one_per_component():
+    m = np.zeros((30, 30), bool)
+    m[2:8, 2:8] = True
+    m[15:25, 10:28] = True
+    polys = mask_to_polygons(m)
+    assert len(polys) == 2
+    assert all(p.shape[1] == 2 for p in polys)
+
+
+def test_lerf_bad_annotation_names_file_and_field(tmp_path):
+    bad = tmp_path / "frame_00001.json"
+    bad.write_text(json.dumps({"objects": []}))
+    with pytest.raises(InputError, match=r"frame_00001.json: field 'info'"):
+        load_lerf_view(bad)
+    bad.write_text(json.dumps({"info": {"width": 4, "height": 4}, "objects": [{"category": "x", "segmentation": [[1, 2, 3]]}]}))
+    with pytest.raises(InputError, match=r"objects\[0\]"):
+        load_lerf_view(bad)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no \\*.json"):
+        load_lerf_annotations(tmp_path / "empty")
+
+
+def test_labelled_points_nyu40_and_class_subset(tmp_path):
+    pts = np.arange(15, dtype=np.float64).reshape(5, 3)
+    raw = np.array([0, 1, 2, 5, 40])  # unannotated, wall, floor, chair, otherprop
+    path = tmp_path / "scene0000_00_vh_clean_2.labels.ply"
+    write_labelled_points(path, pts, raw)
+    cloud = load_labelled_points(path)
+    np.testing.assert_allclose(cloud.points, pts)
+    assert cloud.labels.tolist() == [-1, 0, 1, 4, 39]
+    assert [cloud.names[i] for i in cloud.labels[1:]] == ["wall", "floor", "chair", "otherprop"]
+    sub = load_labelled_points(path, classes=["chair", "wall"])
+    assert sub.names == ["chair", "wall"] and sub.labels.tolist() == [-1, 1, -1, 0, -1]
+    assert find_scannet_labels(tmp_path) == path
+    with pytest.raises(InputError, match="not among"):
+        load_labelled_points(path, classes=["spaceship"])
+
+
+def test_labelled_points_errors(tmp_path):
+    path = tmp_path / "c.ply"
+    write_labelled_points(path, np.zeros((2, 3)), np.array([1, 41]))
+    with pytest.raises(InputError, match="field 'label'"):
+        load_labelled_points(path)
+    (tmp_path / "junk.ply").write_text("not a ply")
+    with pytest.raises(InputError, match="junk.ply"):
+        load_labelled_points(tmp_path / "junk.ply")
+    (tmp_path / "scene_without_labels").mkdir()
+    with pytest.raises(InputError, match="labels.ply"):
+        find_scannet_labels(tmp_path / "scene_without_labels")
+
+
+def test_scannet_cameras_from_poses(tmp_path):
+    from PIL import Image
+
+    scene = tmp_path / "scene0000_00"
+    (scene / "pose").mkdir(parents=True)
+    (scene / "intrinsic").mkdir()
+    (scene / "color").mkdir()
+    K = np.eye(4)
+    K[0, 0], K[1, 1], K[0, 2], K[1, 2] = 500.0, 510.0, 320.0, 240.0
+    np.savetxt(scene / "intrinsic" / "intrinsic_color.txt", K)
+    c2w = np.eye(4)
+    c2w[:3, 3] = [1.0, 2.0, 3.0]
+    np.savetxt(scene / "pose" / "0.txt", c2w)
+    np.savetxt(scene / "pose" / "10.txt", np.full((4, 4), -np.inf))
+    np.savetxt(scene / "pose" / "2.txt", c2w)
+    for i in (0, 2, 10):
+        Image.new("RGB", (640, 480)).save(scene / "color" / f"{i}.jpg")
+    cams = load_scannet_cameras(scene)
+    assert [c.name for c in cams] == ["0", "2"]
+    np.testing.assert_allclose(cams[0].center, [1.0, 2.0, 3.0])
+    assert (cams[0].width, cams[0].height, cams[0].fx, cams[0].cy) == (640, 480, 500.0, 240.0)
+    uv, z = cams[0].project(np.array([[1.0, 2.0, 8.0]]))  # 5 m straight ahead: the principal point
+    np.testing.assert_allclose(uv[0], [320.0, 240.0])
+    assert z[0] == pytest.approx(5.0)
+    with pytest.raises(InputError, match="pose"):
+        load_scannet_cameras(tmp_path)
+
+
+def test_nyu40_has_forty_names():
+    assert len(NYU40_NAMES) == 40 and NYU40_NAMES[0] == "wall" and NYU40_NAMES[39] == "otherprop"
+
+
+def test_select_queries_absolute_and_otsu():
+    from drsplat.eval_lerf import select_queries
+
+    s = np.array([[0.9, 0.1], [0.8, 0.2], [0.1, 0.85], [0.15, 0.9], [np.nan, 0.1]])
+    sel, taus = select_queries(s, 0.5)
+    assert sel[:, 0].tolist() == [True, True, False, False, False] and taus.tolist() == [0.5, 0.5]
+    sel, taus = select_queries(s, None)  # Otsu splits each column's two clusters
+    assert sel[:, 0].tolist() == [True, True, False, False, False]
+    assert sel[:, 1].tolist() == [False, False, True, True, False]

@@ -1,0 +1,238 @@
+"""Volume-aware, count and voxel IoU on cases whose answer is known by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.evaluation import (
+    VoxelGrid,
+    VoxelSetup,
+    evaluate_scene,
+    format_reports,
+    grid_for,
+    localisation_report,
+    segmentation_iou,
+    segmentation_report,
+    significance_weights,
+    splat_mass,
+    splat_mass_reference,
+    threshold_iou_curve,
+    voxel_segmentation_report,
+    weighted_iou,
+)
+from drsplat.scene import GaussianScene
+
+
+def make_scene(means, log_scales, logits, quats=None) -> GaussianScene:
+    n = len(means)
+    q = np.tile([1.0, 0, 0, 0], (n, 1)) if quats is None else quats
+    return GaussianScene(means=np.asarray(means, np.float32), quats=np.asarray(q, np.float32),
+                         log_scales=np.asarray(log_scales, np.float32), opacity_logits=np.asarray(logits, np.float32),
+                         sh=np.zeros((n, 1, 3), np.float32))
+
+
+def test_significance_is_scale_product_times_opacity():
+    w, bad = significance_weights(np.log([[1.0, 2.0, 3.0], [1.0, 1.0, 1.0]]), np.array([0.0, 30.0]))
+    # d = 6 * 0.5 = 3 and ~1 * 1 = 1, normalised by the max
+    assert bad == 0
+    np.testing.assert_allclose(w, [1.0, 1.0 / 3.0], rtol=1e-6)
+
+
+def test_significance_survives_huge_and_tiny_scales_and_counts_nonfinite():
+    log_scales = np.array([[300.0] * 3, [300.0] * 3, [-300.0] * 3, [np.nan, 0, 0], [np.inf, 0, 0]])
+    w, bad = significance_weights(log_scales, np.zeros(5))
+    assert bad == 2
+    assert np.isfinite(w).all()
+    np.testing.assert_allclose(w[:2], [1.0, 1.0])
+    assert w[2] == 0.0 and w[3] == 0.0 and w[4] == 0.0
+    # an IoU made of two astronomically large Gaussians is still exact
+    assert weighted_iou([True, True, False, False, False], [True, False, False, False, False], w) == pytest.approx(0.5)
+
+
+def test_weighted_iou_by_hand():
+    assert weighted_iou([1, 1, 0, 0], [0, 1, 1, 0], [1.0, 2.0, 3.0, 4.0]) == pytest.approx(2.0 / 6.0)
+    assert np.isnan(weighted_iou([0, 0], [0, 0], [1.0, 1.0]))
+
+
+def test_volume_and_count_iou_disagree_as_designed():
+    # one big correct Gaussian (volume 8) and three tiny wrong ones (volume 0.001 each)
+    scene = make_scene(np.zeros((4, 3)), np.log([[2.0] * 3] + [[0.1] * 3] * 3), np.full(4, 30.0))
+    gt = np.array([0, -1, -1, -1])
+    scores = np.array([[0.9], [0.8], [0.8], [0.8]])
+    rep_v = localisation_report(scores, gt, significance_weights(scene.log_scales, scene.opacity_logits)[0], ["a"], taus=[0.5])
+    rep_c = localisation_report(scores, gt, np.ones(4), ["a"], taus=[0.5])
+    assert rep_v.iou[0] == pytest.approx(8.0 / (8.0 + 0.003), rel=1e-5)
+    assert rep_c.iou[0] == pytest.approx(0.25)
+
+
+def test_threshold_curve_matches_brute_force():
+    rng = np.random.default_rng(0)
+    scores = rng.random(500)
+    scores[:50] = 0.5  # ties exactly on a grid value
+    gt = rng.random(500) < 0.3
+    w = rng.random(500)
+    taus = np.linspace(0, 1, 21)
+    curve = threshold_iou_curve(scores, gt, w, taus)
+    brute = [weighted_iou(scores > t, gt, w) for t in taus]
+    np.testing.assert_allclose(curve, brute, rtol=1e-9)
+
+
+def test_localisation_grid_search_finds_the_separating_threshold():
+    # label 0 scores 0.7 on its Gaussians and 0.3 elsewhere; label 1 scores 0.65 / 0.2
+    gt = np.array([0, 0, 1, 1, -1])
+    scores = np.array([[0.7, 0.2], [0.7, 0.2], [0.3, 0.65], [0.3, 0.65], [0.3, 0.2]])
+    rep = localisation_report(scores, gt, np.ones(5), ["a", "b"])
+    assert rep.miou == pytest.approx(1.0)
+    assert 0.3 <= rep.threshold < 0.65
+    assert rep.share_above(0.45) == 1.0
+    taus = [t for t, _ in rep.curve]
+    assert len(taus) == 101 and max(m for _, m in rep.curve) == pytest.approx(1.0)
+    # at τ = 0.1 everything is selected: IoU_a = 2/5, IoU_b = 2/5
+    assert dict(rep.curve)[0.1] == pytest.approx(0.4)
+
+
+def test_nonfinite_scores_are_counted_and_never_selected():
+    gt = np.array([0, 0, -1])
+    scores = np.array([[0.9], [np.nan], [np.inf]])
+    rep = localisation_report(scores, gt, np.ones(3), ["a"], taus=[0.5])
+    assert rep.nonfinite == 2
+    assert rep.iou[0] == pytest.approx(0.5)
+
+
+def test_segmentation_iou_and_acc_by_hand():
+    pred = np.array([0, 0, 1, 1, 1, 2])
+    gt = np.array([0, 1, 1, 1, -1, 0])
+    w = np.array([1.0, 1.0, 2.0, 1.0, 5.0, 1.0])
+    iou, acc = segmentation_iou(pred, gt, w, 3)
+    # ignoring the unlabelled one: label 0: inter 1, pred {0,1}=2, gt {0,5}=2 -> 1/3; acc 1/2
+    # label 1: inter 3, pred {2,3}=3, gt {1,2,3}=4 -> 3/4; acc 3/4; label 2: no gt -> NaN
+    np.testing.assert_allclose(iou[:2], [1 / 3, 3 / 4])
+    np.testing.assert_allclose(acc[:2], [1 / 2, 3 / 4])
+    assert np.isnan(iou[2]) and np.isnan(acc[2])
+    rep = segmentation_report(np.eye(3)[pred], gt, w, ["a", "b", "c"])
+    assert rep.miou == pytest.approx((1 / 3 + 3 / 4) / 2)
+    assert rep.macc == pytest.approx((1 / 2 + 3 / 4) / 2)
+    assert rep.share_above(0.45) == 0.5
+
+
+# ---------------------------------------------------------------------------------------------- voxel
+
+
+def random_gaussians(rng, n):
+    means = rng.uniform(-1, 1, (n, 3))
+    a = rng.normal(size=(n, 3, 3)) * 0.15
+    covs = a @ a.transpose(0, 2, 1) + np.eye(3) * 1e-3
+    return means, covs, rng.uniform(0.1, 1, n)
+
+
+def test_splat_kernel_matches_reference_random_and_hard():
+    rng = np.random.default_rng(1)
+    means, covs, alpha = random_gaussians(rng, 40)
+    # hard cases: outside the grid, huge, tiny, singular, non-finite
+    means[0] = [50.0, 0, 0]
+    covs[1] = np.eye(3) * 100.0
+    covs[2] = np.eye(3) * 1e-12
+    covs[3] = np.zeros((3, 3))
+    means[4] = [np.nan, 0, 0]
+    alpha[5] = np.inf
+    channels = rng.integers(-1, 3, 40)
+    grid = VoxelGrid(np.array([-1.2, -1.0, -1.1]), 0.1, (24, 21, 23))
+    fast = splat_mass(means, covs, alpha, channels, 3, grid)
+    ref = splat_mass_reference(means, covs, alpha, channels, 3, grid)
+    assert np.isfinite(fast).all()
+    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12)
+
+
+def test_splat_mass_is_conserved_for_large_and_subvoxel_gaussians():
+    grid = VoxelGrid(np.array([-2.0, -2.0, -2.0]), 0.05, (80, 80, 80))
+    # chi-square(3) mass inside 3 sigma is 0.9707; a sub-voxel Gaussian is widened to half a voxel
+    for var, rel in ((0.1**2, 0.01), (0.02**2, 0.01), (1e-8, 0.08)):
+        for offset in (0.0, 0.01, 0.025):
+            m = splat_mass(np.zeros((1, 3)) + offset, np.eye(3)[None] * var, np.array([0.8]), np.array([0]), 1, grid)
+            assert m.sum() == pytest.approx(0.8 * 0.9707, rel=rel)
+
+
+def test_voxel_iou_identical_disjoint_and_half():
+    rng = np.random.default_rng(2)
+    n = 400
+    means = rng.uniform(-1, 1, (n, 3))
+    means[:, 0] *= 2.0  # a 4 x 2 x 2 slab, split at x = 0 into labels 0 and 1
+    scene = make_scene(means, np.full((n, 3), np.log(0.15)), np.full(n, 3.0))
+    gt = (means[:, 0] > 0).astype(int)
+    setup = VoxelSetup.from_scene(scene, resolution=48, empty_threshold=1e-3)
+    perfect = np.eye(2)[gt]
+    rep = voxel_segmentation_report(setup, perfect, gt, ["left", "right"])
+    np.testing.assert_allclose(rep.iou, [1.0, 1.0])
+    swapped = np.eye(2)[1 - gt]
+    assert voxel_segmentation_report(setup, swapped, gt, ["l", "r"]).miou == 0.0
+    # predicting everything as "left": IoU_left ≈ 1/2 of the slab, IoU_right = 0
+    rep = voxel_segmentation_report(setup, np.tile([1.0, 0.0], (n, 1)), gt, ["l", "r"])
+    assert rep.iou[0] == pytest.approx(0.5, abs=0.06)
+    assert rep.iou[1] == 0.0
+
+
+def test_grid_for_has_requested_resolution():
+    g = grid_for(np.array([[0, 0, 0], [4.0, 2.0, 1.0]]), resolution=40, padding=0.0)
+    assert max(g.shape) == 40 and g.voxel_size == pytest.approx(0.1)
+
+
+def test_evaluate_scene_reports_every_task_and_weighting():
+    rng = np.random.default_rng(3)
+    n = 300
+    means = rng.uniform(-1, 1, (n, 3))
+    gt = (means[:, 1] > 0).astype(int)
+    gt[:10] = -1
+    scene = make_scene(means, np.log(rng.uniform(0.05, 0.2, (n, 3))), rng.normal(size=n))
+    scores = np.eye(2)[np.maximum(gt, 0)] * 0.5 + 0.25
+    reports = evaluate_scene(scene, scores, gt, ["down", "up"], weightings=("volume", "count", "voxel"), voxel_resolution=24)
+    kinds = {(r.task, r.weighting) for r in reports}
+    assert kinds == {(t, w) for t in ("loc", "seg") for w in ("volume", "count", "voxel")}
+    for r in reports:
+        if r.weighting != "voxel":
+            # unlabelled Gaussians score 0.75 for "down": they are false positives in localisation
+            assert r.miou == pytest.approx(1.0) if r.task == "seg" else r.miou < 1.0
+    table = format_reports(reports)
+    assert "volume" in table and "voxel" in table and "mAcc" in table
+
+
+def test_match_gaussians_and_expand_scores():
+    from drsplat.evaluation import expand_scores, match_gaussians
+
+    orig = np.arange(30, dtype=np.float64).reshape(10, 3)
+    keep = np.array([7, 2, 5])
+    idx = match_gaussians(orig, orig[keep].astype(np.float32))
+    assert idx.tolist() == [7, 2, 5]
+    full = expand_scores(np.array([[0.9], [0.8], [0.7]], np.float32), idx, 10)
+    assert full[[7, 2, 5], 0].tolist() == pytest.approx([0.9, 0.8, 0.7])
+    assert np.count_nonzero(full) == 3
+    with pytest.raises(ValueError, match="no counterpart"):
+        match_gaussians(orig, np.array([[100.0, 0, 0]]))
+
+
+def test_argmax_rows_without_finite_scores_predict_nothing():
+    from drsplat.evaluation import argmax_labels
+
+    s = np.array([[0.1, 0.3], [np.nan, np.nan], [0.5, np.nan]])
+    assert argmax_labels(np.where(np.isfinite(s), s, -np.inf)).tolist() == [1, -1, 0]
+
+
+def test_report_summary_and_json_keep_nan_out():
+    rep = segmentation_report(np.eye(2)[[0, 0, 1]], np.array([0, 0, 0]), np.ones(3), ["a", "b"])
+    d = rep.to_dict()
+    assert d["per_label"]["b"]["iou"] is None  # no ground truth for "b": excluded, not NaN in JSON
+    assert d["mIoU"] == pytest.approx(2 / 3) and d["IoU>0.45"] == 1.0
+
+
+def test_unassigned_gaussians_are_misses_not_label_zero():
+    scene = make_scene(np.zeros((4, 3)), np.zeros((4, 3)), np.full(4, 30.0))
+    gt = np.array([0, 0, 1, 1])
+    scores = np.array([[0.9, 0.1], [0.0, 0.0], [0.1, 0.9], [0.0, 0.0]])  # rows 1 and 3 hold no feature
+    assigned = np.array([True, False, True, False])
+    reps = {(r.task, r.weighting): r for r in evaluate_scene(scene, scores, gt, ["a", "b"], weightings=("count",), assigned=assigned)}
+    # without the mask, row 3 (a zero tie) would be predicted "a": IoU_a = 2/3; with it both labels are 1/2
+    np.testing.assert_allclose(reps["seg", "count"].iou, [0.5, 0.5])
+    np.testing.assert_allclose(reps["loc", "count"].iou, [0.5, 0.5])
+    assert reps["seg", "count"].nonfinite == 0
+    plain = {(r.task, r.weighting): r for r in evaluate_scene(scene, scores, gt, ["a", "b"], weightings=("count",))}
+    assert plain["seg", "count"].iou[0] == pytest.approx(2 / 3)

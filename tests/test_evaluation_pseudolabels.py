@@ -1,0 +1,117 @@
+"""Pseudo-labels from labelled point clouds: known answers and KD-tree vs brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.pseudolabels import mahalanobis_sq, pseudo_labels, pseudo_labels_reference
+from drsplat.scene import quat_to_rotmat
+
+
+def one_gaussian(scales, quat=(1.0, 0, 0, 0), mean=(0, 0, 0)):
+    q = np.asarray([quat], np.float64)
+    q = q / np.linalg.norm(q)
+    return np.asarray([mean], np.float64), quat_to_rotmat(q), np.asarray([scales], np.float64)
+
+
+def test_mahalanobis_matches_explicit_inverse():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(5, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    R = quat_to_rotmat(q)
+    s = rng.uniform(0.1, 2, (5, 3))
+    mu = rng.normal(size=(5, 3))
+    p = rng.normal(size=(5, 3))
+    cov = R @ (s[:, :, None] ** 2 * np.eye(3)) @ R.transpose(0, 2, 1)
+    expect = np.einsum("pi,pij,pj->p", p - mu, np.linalg.inv(cov), p - mu)
+    np.testing.assert_allclose(mahalanobis_sq(p, mu, R, s), expect, rtol=1e-9)
+
+
+@pytest.fixture(params=["grid", "kdtree"])
+def engine(request):
+    return request.param
+
+
+def test_anisotropy_decides_between_equally_distant_points(engine):
+    # a needle along x: points at the same Euclidean distance, one along x (label 0), one along y (label 1)
+    g = one_gaussian([1.0, 0.1, 0.1])
+    pts = np.array([[0.5, 0, 0], [0, 0.5, 0]])
+    assert pseudo_labels(g, pts, np.array([0, 1]), engine=engine, show_progress=False).labels.tolist() == [0]
+    # rotated by 90 degrees about z, the needle points along y
+    g = one_gaussian([1.0, 0.1, 0.1], quat=(np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)))
+    assert pseudo_labels(g, pts, np.array([0, 1]), engine=engine, show_progress=False).labels.tolist() == [1]
+
+
+def test_closeness_not_sum_of_distances(engine):
+    # two points of label 0 at the centre, five points of label 1 near the rim (D = 2.8^2 = 7.84)
+    g = one_gaussian([1.0, 1.0, 1.0])
+    pts = np.array([[0.0, 0, 0], [0.05, 0, 0]] + [[2.8 * np.cos(a), 2.8 * np.sin(a), 0] for a in np.linspace(0, 6, 5)])
+    labels = np.array([0, 0, 1, 1, 1, 1, 1])
+    res = pseudo_labels(g, pts, labels, engine=engine, show_progress=False)
+    assert res.labels.tolist() == [0]  # 2·~1 > 5·exp(-3.92)=0.10
+    assert res.num_points.tolist() == [7]
+    assert res.support[0] == pytest.approx(1.0 + np.exp(-0.5 * 0.05**2))
+    # the literal "argmax of summed distances" and a plain count would both pick label 1
+    d2 = mahalanobis_sq(pts, np.zeros((7, 3)), np.tile(np.eye(3), (7, 1, 1)), np.ones((7, 3)))
+    assert np.argmax([d2[labels == 0].sum(), d2[labels == 1].sum()]) == 1
+    assert pseudo_labels(g, pts, labels, weighting="count", engine=engine, show_progress=False).labels.tolist() == [1]
+
+
+def test_points_outside_radius_and_unannotated_points(engine):
+    g = one_gaussian([0.1, 0.1, 0.1])
+    far = pseudo_labels(g, np.array([[1.0, 0, 0]]), np.array([3]), engine=engine, show_progress=False)
+    assert far.labels.tolist() == [-1] and far.num_points.tolist() == [0]
+    # unannotated points (−1) win the vote: the Gaussian stays unlabelled
+    res = pseudo_labels(g, np.array([[0.0, 0, 0], [0.01, 0, 0], [0.2, 0, 0]]), np.array([-1, -1, 5]), engine=engine, show_progress=False)
+    assert res.labels.tolist() == [-1]
+
+
+def test_both_engines_match_brute_force_with_small_chunks():
+    rng = np.random.default_rng(4)
+    n, p = 150, 2000
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    g = (rng.uniform(-1, 1, (n, 3)), quat_to_rotmat(q), rng.uniform(0.02, 0.3, (n, 3)))
+    g[2][0] = [np.nan, 0.1, 0.1]  # non-finite: skipped
+    g[2][1] = [5.0, 5.0, 5.0]  # huge: sees every point
+    pts = rng.uniform(-1.2, 1.2, (p, 3))
+    labels = rng.integers(-1, 6, p)
+    for weighting in ("gaussian", "count"):
+        ref = pseudo_labels_reference(g, pts, labels, weighting=weighting)
+        grid = pseudo_labels(g, pts, labels, weighting=weighting, chunk=40, max_cells=64, show_progress=False)
+        tree = pseudo_labels(g, pts, labels, weighting=weighting, engine="kdtree", chunk=40, max_pairs=500, show_progress=False)
+        np.testing.assert_array_equal(grid.labels, ref)
+        np.testing.assert_array_equal(pseudo_labels(g, pts, labels, weighting=weighting, show_progress=False).labels, ref)  # fine cells
+        np.testing.assert_array_equal(tree.labels, ref)
+        np.testing.assert_array_equal(grid.num_points, tree.num_points)
+        np.testing.assert_allclose(grid.support, tree.support, rtol=1e-9)
+        assert grid.nonfinite == tree.nonfinite == 1
+
+
+def test_bad_weighting_or_engine_is_rejected():
+    with pytest.raises(ValueError, match="weighting"):
+        pseudo_labels(one_gaussian([1, 1, 1]), np.zeros((1, 3)), np.zeros(1, int), weighting="sum")
+    with pytest.raises(ValueError, match="engine"):
+        pseudo_labels(one_gaussian([1, 1, 1]), np.zeros((1, 3)), np.zeros(1, int), engine="octree")
+
+
+def test_cancel_stops_between_batches(engine):
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    token = CancelToken()
+    token.cancel()
+    with pytest.raises(Cancelled):
+        pseudo_labels(one_gaussian([1, 1, 1]), np.zeros((3, 3)), np.zeros(3, int), engine=engine, cancel=token, show_progress=False)
+
+
+def test_radius_batches_bound_the_overfetch():
+    from drsplat.pseudolabels import radius_batches
+
+    radii = np.array([0.1, 0.12, 0.2, 1.0, 1.3, 0.11, 5.0])
+    batches = radius_batches(radii, np.arange(7), chunk=2)
+    assert sorted(np.concatenate(batches).tolist()) == list(range(7))
+    assert all(len(b) <= 2 for b in batches)
+    for b in batches:
+        assert radii[b].max() / radii[b].min() < 2**0.5
