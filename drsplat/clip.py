@@ -1,0 +1,273 @@
+"""OpenCLIP image/text encoder shared by feature extraction and the query side.
+
+One `ClipEncoder` embeds images (mask crops) and text; both come out unit-normalised float32
+numpy. Weights come from `--clip-checkpoint PATH` or from open_clip's pretrained tags through the
+Hugging Face hub cache. Without either (offline, empty cache) a `WeightsUnavailableError` says in
+one sentence which flag to use; network and hub exceptions never reach the user.
+
+`model_id` ("ViT-B-16/laion2b_s34b_b88k") is written into feature manifests and registered PLYs;
+`check_compatible` refuses to compare embeddings of different models.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL = "ViT-B-16"
+DEFAULT_PRETRAINED = "laion2b_s34b_b88k"
+CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
+OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)
+OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
+_HF_FILENAMES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
+
+
+def make_model_id(model: str, pretrained: str) -> str:
+    """The string that names an embedding space, e.g. "ViT-B-16/laion2b_s34b_b88k"."""
+    return f"{model}/{pretrained}"
+
+
+def check_compatible(a: str | None, b: str | None, what_a: str = "the features", what_b: str = "the text encoder") -> None:
+    """Raise DrsplatError unless two CLIP model ids name the same embedding space.
+
+    Embeddings of different CLIP models live in unrelated spaces: their cosine is meaningless.
+    A missing id (None, "" or "unknown", e.g. LangSplat features without a manifest) is accepted;
+    ids compare case-insensitively.
+    """
+    known = [m for m in (a, b) if m and m != "unknown"]
+    if len(known) == 2 and known[0].strip().lower() != known[1].strip().lower():
+        raise DrsplatError(
+            f"CLIP model mismatch: {what_a} were made with {a} but {what_b} is {b}; "
+            f"embeddings of different CLIP models cannot be compared (use --clip-model/--pretrained to match {a})"
+        )
+
+
+def resolve_device(device: str = "auto") -> str:
+    """"auto" -> "cuda" when available else "cpu"; "cuda" without a GPU is an error."""
+    import torch
+
+    if device not in ("auto", "cpu", "cuda"):
+        raise DrsplatError(f"unknown device '{device}': use auto, cpu or cuda")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise DrsplatError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
+    return device
+
+
+def _env_flag(name: str) -> bool:
+    return os.environ.get(name, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def hf_offline() -> bool:
+    """True when downloads are disabled (HF_HUB_OFFLINE or DRSPLAT_OFFLINE), read at call time."""
+    return _env_flag("HF_HUB_OFFLINE") or _env_flag("DRSPLAT_OFFLINE")
+
+
+def hf_cache_dir() -> Path:
+    """The Hugging Face hub cache, from the environment at call time (HF_HUB_CACHE, HF_HOME)."""
+    if os.environ.get("HF_HUB_CACHE"):
+        return Path(os.environ["HF_HUB_CACHE"])
+    if os.environ.get("HF_HOME"):
+        return Path(os.environ["HF_HOME"]) / "hub"
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "huggingface" / "hub"
+
+
+def _unavailable(model: str, pretrained: str) -> WeightsUnavailableError:
+    return WeightsUnavailableError(
+        f"OpenCLIP weights for {model} ({pretrained}) are not in the local cache and cannot be downloaded; "
+        "pass --clip-checkpoint PATH to a local open_clip checkpoint, or run once with internet access."
+    )
+
+
+def _cached_hf_file(repo_id: str, filenames: Sequence[str], cache_dir: Path) -> str | None:
+    from huggingface_hub import try_to_load_from_cache
+
+    for name in filenames:
+        found = try_to_load_from_cache(repo_id, name, cache_dir=str(cache_dir))
+        if isinstance(found, str) and os.path.isfile(found):
+            return found
+    return None
+
+
+def resolve_pretrained_weights(model: str, pretrained: str) -> str:
+    """Local file holding open_clip weights for (model, pretrained tag); downloads once if allowed.
+
+    Looks in the HF hub cache first (no network), then downloads unless offline. Any failure
+    becomes one WeightsUnavailableError naming --clip-checkpoint.
+    """
+    import open_clip
+
+    if pretrained.startswith("file:"):
+        raise WeightsUnavailableError(
+            f"the embeddings were made with a local checkpoint ({pretrained[5:]}) of {model}; pass --clip-checkpoint PATH to that file"
+        )
+    cfg = open_clip.get_pretrained_cfg(model, pretrained)
+    if not cfg:
+        tags = ", ".join(open_clip.list_pretrained_tags_by_model(model)) or "none"
+        raise DrsplatError(f"unknown OpenCLIP pretrained tag '{pretrained}' for model {model} (known tags: {tags}); or pass --clip-checkpoint PATH")
+    cache_dir = hf_cache_dir()
+    hub = cfg.get("hf_hub", "")
+    if hub:
+        repo_id, filename = os.path.split(hub)
+        names = tuple(dict.fromkeys(((filename,) if filename else ()) + _HF_FILENAMES))
+        cached = _cached_hf_file(repo_id, names, cache_dir)
+        if cached:
+            return cached
+    elif cfg.get("url"):
+        cached_url = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "clip" / os.path.basename(cfg["url"])
+        if cached_url.is_file():
+            return str(cached_url)
+    if hf_offline():
+        raise _unavailable(model, pretrained)
+    try:
+        from open_clip.pretrained import download_pretrained
+
+        path = download_pretrained(cfg, cache_dir=str(cache_dir) if hub else None)
+    except Exception:  # requests / huggingface_hub / urllib errors: the user needs the flag, not the trace
+        log.debug("download of %s/%s failed", model, pretrained, exc_info=True)
+        raise _unavailable(model, pretrained) from None
+    if not path or not os.path.isfile(path):
+        raise _unavailable(model, pretrained)
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_open_clip() -> Iterator[None]:
+    """open_clip logs its progress on the root logger at INFO/WARNING; keep the user's log clean."""
+    previous = logging.root.manager.disable
+    logging.disable(logging.WARNING)
+    try:
+        yield
+    finally:
+        logging.disable(previous)
+
+
+class ClipEncoder:
+    """OpenCLIP model embedding images and text into one unit-normalised space.
+
+    model: open_clip architecture name (e.g. "ViT-B-16"); pretrained: tag naming the weights
+    (default "laion2b_s34b_b88k"); checkpoint: local weights file (replaces the tag's download;
+    `pretrained` then only labels the embedding space, default "file:<checkpoint name>").
+    device: auto|cpu|cuda. fp16 on CUDA, fp32 on CPU. Text embeddings are cached per phrase.
+    """
+
+    def __init__(
+        self,
+        model: str = DEFAULT_MODEL,
+        pretrained: str | None = None,
+        checkpoint: str | Path | None = None,
+        device: str = "auto",
+        batch_size: int = 64,
+        *,
+        random_weights: bool = False,
+    ):
+        import open_clip
+        import torch
+
+        if model not in open_clip.list_models():
+            raise DrsplatError(f"unknown OpenCLIP model '{model}' (see open_clip.list_models())")
+        self.device = resolve_device(device)
+        self.dtype = torch.float16 if self.device == "cuda" else torch.float32
+        self.batch_size = int(batch_size)
+        self.model_name = model
+        if checkpoint is not None:
+            checkpoint = Path(checkpoint)
+            if not checkpoint.is_file():
+                raise InputError(checkpoint, "CLIP checkpoint file does not exist (--clip-checkpoint)")
+            self.pretrained = pretrained or f"file:{checkpoint.name}"
+            weights = str(checkpoint)
+        elif random_weights:
+            self.pretrained = "random"
+            weights = None
+        else:
+            self.pretrained = pretrained or DEFAULT_PRETRAINED
+            weights = resolve_pretrained_weights(model, self.pretrained)
+        self.checkpoint = weights
+        try:
+            with _quiet_open_clip():
+                net = open_clip.create_model(model, pretrained=weights, device="cpu")
+        except Exception as exc:  # unpickling / zip / shape errors of many kinds: one clear line
+            if weights is None:
+                raise
+            first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+            raise InputError(weights, f"not an open_clip checkpoint for {model} ({first_line})") from None
+        self.net = net.to(self.device, dtype=self.dtype).eval()
+        with _quiet_open_clip():
+            self.tokenizer = open_clip.get_tokenizer(model)
+        tag_cfg = open_clip.get_pretrained_cfg(model, self.pretrained) if not self.pretrained.startswith(("file:", "random")) else {}
+        self.mean = tuple(tag_cfg.get("mean", OPENAI_MEAN))
+        self.std = tuple(tag_cfg.get("std", OPENAI_STD))
+        size = getattr(self.net.visual, "image_size", 224)
+        self.image_size = int(size[0] if isinstance(size, (tuple, list)) else size)
+        self._text_cache: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def random(cls, model: str = DEFAULT_MODEL, device: str = "cpu", batch_size: int = 64) -> "ClipEncoder":
+        """The architecture with random weights: for speed benchmarks only (timing is the same)."""
+        return cls(model, None, None, device, batch_size, random_weights=True)
+
+    @property
+    def model_id(self) -> str:
+        return make_model_id(self.model_name, self.pretrained)
+
+    @property
+    def dim(self) -> int:
+        return int(self.net.text_projection.shape[1] if getattr(self.net, "text_projection", None) is not None else self.encode_text(["object"]).shape[1])
+
+    def _normalised(self, x) -> np.ndarray:
+        import torch
+
+        x = x.float()
+        x = x / torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(1e-12)
+        return x.cpu().numpy().astype(np.float32)
+
+    def encode_images(self, images) -> np.ndarray:
+        """Embed images already cropped to the model's input size.
+
+        images: [B, 3, S, S] float RGB in [0, 1] (numpy or torch), S = self.image_size.
+        CLIP normalisation (x - mean) / std is applied here. Returns [B, D] unit float32.
+        """
+        import torch
+
+        x = torch.as_tensor(images)
+        if x.ndim != 4 or x.shape[1] != 3:
+            raise ValueError(f"images must be [B, 3, S, S], got {tuple(x.shape)}")
+        mean = torch.tensor(self.mean, dtype=torch.float32).view(1, 3, 1, 1)
+        std = torch.tensor(self.std, dtype=torch.float32).view(1, 3, 1, 1)
+        out = []
+        with torch.inference_mode():
+            for start in range(0, x.shape[0], self.batch_size):
+                chunk = (x[start : start + self.batch_size].float() - mean) / std
+                out.append(self._normalised(self.net.encode_image(chunk.to(self.device, dtype=self.dtype))))
+        if not out:
+            return np.zeros((0, self.dim), np.float32)
+        return np.concatenate(out)
+
+    def encode_text(self, phrases: Sequence[str]) -> np.ndarray:
+        """Embed phrases, [K] -> [K, D] unit float32; each phrase is computed once per encoder."""
+        import torch
+
+        phrases = list(phrases)
+        missing = list(dict.fromkeys(p for p in phrases if p not in self._text_cache))
+        if missing:
+            with torch.inference_mode():
+                tokens = self.tokenizer(missing).to(self.device)
+                emb = self._normalised(self.net.encode_text(tokens))
+            self._text_cache.update(zip(missing, emb))
+        if not phrases:
+            return np.zeros((0, self.dim), np.float32)
+        return np.stack([self._text_cache[p] for p in phrases])
+
+    def canonical_embeddings(self) -> np.ndarray:
+        """[4, D] embeddings of the relevancy score's canonical phrases (CANONICAL_PHRASES)."""
+        return self.encode_text(CANONICAL_PHRASES)

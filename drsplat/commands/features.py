@@ -1,0 +1,72 @@
+"""`drsplat features --source DATASET --out FEATURES`: per-image masks and CLIP embeddings."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from drsplat.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "features",
+        help="make LangSplat-format features (masks + OpenCLIP embeddings) for every training image",
+        description=(
+            "Segment every training image (SAM, or the weight-free felzenszwalb/slic superpixels), "
+            "embed each mask crop with OpenCLIP and write <stem>_s.npy / <stem>_f.npy into --out. "
+            "Resumable: complete pairs already in --out are skipped."
+        ),
+    )
+    p.add_argument("--source", type=Path, required=True, metavar="DATASET_DIR", help="dataset folder (COLMAP sparse/0, transforms.json or cameras.json, with images)")
+    p.add_argument("--out", type=Path, required=True, metavar="FEATURES_DIR", help="features folder to write (created if needed)")
+    p.add_argument("--masks", choices=("sam", "felzenszwalb", "slic"), default="sam",
+                   help="mask generator: SAM (default, needs weights) or weight-free superpixels (fast on CPU, lower quality)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and SAM run (fp16 on CUDA, fp32 on CPU)")
+    p.add_argument("--clip-model", default=DEFAULT_MODEL, metavar="NAME", help=f"open_clip architecture (default {DEFAULT_MODEL})")
+    p.add_argument("--pretrained", default=None, metavar="TAG",
+                   help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it only names the weights")
+    p.add_argument("--clip-checkpoint", type=Path, default=None, metavar="PATH", help="local open_clip weights file (no download)")
+    p.add_argument("--sam-checkpoint", type=Path, default=None, metavar="PATH", help="local SAM checkpoint (vit_b/l/h, read from the file); no download")
+    p.add_argument("--sam-model", choices=("vit_h", "vit_l", "vit_b"), default="vit_h",
+                   help="official SAM weights to download into ~/.cache/drsplat when no --sam-checkpoint is given (default vit_h, as LangSplat)")
+    p.add_argument("--sam-points-per-side", type=int, default=32, metavar="N",
+                   help="SAM prompt grid per side (LangSplat 32; fewer is faster on a CPU, with fewer small masks)")
+    p.add_argument("--sam-crop-layers", type=int, default=1, metavar="N",
+                   help="SAM crop layers (LangSplat 1: the image plus 4 overlapping crops; 0 is ~5x faster)")
+    p.add_argument("--resolution", type=float, default=-1, metavar="R",
+                   help="image scale as 3DGS -r: -1 full size capped at 1600 px wide, 1/2/4/8 divide, other values a target width")
+    p.add_argument("--max-height", type=int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
+    p.add_argument("--batch-size", type=int, default=64, metavar="N", help="CLIP crops per batch")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drsplat.clip import ClipEncoder
+    from drsplat.features import extract_features, feature_cameras, make_manifest
+    from drsplat.masks import NmsParams, SamParams, make_generator
+
+    cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
+    encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)
+    sam_params = SamParams(points_per_side=args.sam_points_per_side, crop_n_layers=args.sam_crop_layers)
+    generator = make_generator(args.masks, args.sam_checkpoint, args.sam_model, encoder.device, sam_params)
+    nms = NmsParams()
+    extra = {"source": str(args.source), "sam_checkpoint": str(args.sam_checkpoint or "") if args.masks == "sam" else None}
+    manifest = make_manifest(generator, encoder, nms, args.resolution, args.max_height or None, extra)
+    log.info("%d images from %s; masks %s; CLIP %s on %s", len(cameras), args.source, args.masks, encoder.model_id, encoder.device)
+    report = extract_features(cameras, args.out, generator, encoder, nms, manifest)
+    n = len(report.written)
+    per = report.times
+    log.info(
+        "wrote %d image(s), skipped %d already complete, redid %d incomplete; masks per level (%s) %s",
+        n, len(report.skipped), len(report.redone), "default/s/m/l", report.masks_per_level,
+    )
+    if n:
+        log.info("seconds per image: masks %.2f, post-processing %.2f, cropping %.2f, CLIP %.2f (total %.2f)",
+                 per.masks / n, per.postprocess / n, per.crop / n, per.clip / n, per.total / n)
+    if report.nonfinite_embeddings:
+        log.warning("%d non-finite embeddings were dropped", report.nonfinite_embeddings)
+    return 0

@@ -1,0 +1,279 @@
+"""Feature extraction: per-image masks at four levels and one CLIP embedding per mask (LangSplat).
+
+For each training image: masks (SAM or a weight-free generator, drsplat.masks) -> LangSplat's
+post-processing (masks_update) -> one crop per mask (the masked bounding box, padded to a square,
+resized to the encoder's input size, CLIP-normalised) -> CLIP image embeddings, batched ->
+`<stem>_s.npy` (4, H, W) cumulative mask ids and `<stem>_f.npy` (M, D) float32 embeddings,
+written atomically by drsplat.featurefiles. Valid existing pairs are skipped (resumable).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drsplat import featurefiles
+from drsplat.errors import DrsplatError
+from drsplat.masks import LEVELS, MaskSet, NmsParams, masks_update
+from drsplat.utils import CancelToken, progress
+
+log = logging.getLogger(__name__)
+
+MAX_HEIGHT = 1080  # LangSplat rescales taller images to 1080 rows
+
+
+@dataclass
+class StageTimes:
+    """Seconds spent per stage for one or more images."""
+
+    masks: float = 0.0
+    postprocess: float = 0.0
+    crop: float = 0.0
+    clip: float = 0.0
+
+    def add(self, other: "StageTimes") -> None:
+        for k, v in asdict(other).items():
+            setattr(self, k, getattr(self, k) + v)
+
+    @property
+    def total(self) -> float:
+        return self.masks + self.postprocess + self.crop + self.clip
+
+
+@dataclass
+class FeatureReport:
+    """What `extract_features` did: stems written and skipped, masks per level, timings."""
+
+    written: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    redone: list[str] = field(default_factory=list)
+    masks_per_level: list[int] = field(default_factory=lambda: [0] * len(LEVELS))
+    nonfinite_embeddings: int = 0
+    times: StageTimes = field(default_factory=StageTimes)
+
+
+def square_pad_box(y0: int, y1: int, x0: int, x1: int) -> tuple[int, int]:
+    """Offsets (dy, dx) placing an (y1-y0) x (x1-x0) crop centred in its l x l square, l = max side."""
+    h, w = y1 - y0, x1 - x0
+    side = max(h, w)
+    return (side - h) // 2, (side - w) // 2
+
+
+def crop_masks(image: np.ndarray, masks: np.ndarray, size: int = 224) -> np.ndarray:
+    """LangSplat's crop recipe: one square image per mask.
+
+    image: [H, W, 3] uint8 RGB; masks: [K, H, W] bool. For mask k: pixels outside it are set to
+    black, the image is cut to the mask's bounding box (inclusive of its last row/column), the
+    cut is centred on a black l x l square (l = its longer side) and resized bilinearly to
+    size x size. Returns [K, 3, size, size] float32 RGB in [0, 1] (CLIP normalisation is the
+    encoder's job).
+    """
+    import torch
+    import torch.nn.functional as F
+
+    k_count = masks.shape[0]
+    out = np.zeros((k_count, 3, size, size), np.float32)
+    if k_count == 0:
+        return out
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # thousands of tiny resizes: thread start-up costs more than it saves
+    try:
+        _crop_into(out, image, masks, size)
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+def _crop_into(out: np.ndarray, image: np.ndarray, masks: np.ndarray, size: int) -> None:
+    import torch
+    import torch.nn.functional as F
+
+    k_count = masks.shape[0]
+    rows_any = masks.any(axis=2)
+    cols_any = masks.any(axis=1)
+    for k in range(k_count):
+        ys, xs = np.flatnonzero(rows_any[k]), np.flatnonzero(cols_any[k])
+        if ys.size == 0:
+            continue
+        y0, y1, x0, x1 = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
+        cut = image[y0:y1, x0:x1] * masks[k, y0:y1, x0:x1, None]
+        dy, dx = square_pad_box(y0, y1, x0, x1)
+        side = max(y1 - y0, x1 - x0)
+        square = np.zeros((side, side, 3), np.float32)
+        square[dy : dy + (y1 - y0), dx : dx + (x1 - x0)] = cut
+        t = torch.from_numpy(square).permute(2, 0, 1)[None]
+        out[k] = F.interpolate(t, size=(size, size), mode="bilinear", align_corners=False)[0].numpy() / 255.0
+
+
+def segmap_from_levels(levels: list[MaskSet]) -> np.ndarray:
+    """[L, H, W] int32 mask ids, cumulative across levels, -1 where no mask.
+
+    Within a level masks are painted in order (a later mask overwrites an earlier one, as
+    LangSplat's mask2segmap); level j's ids start after all masks of levels 0..j-1.
+    """
+    h, w = levels[0].masks.shape[1:]
+    seg = np.full((len(levels), h, w), -1, np.int32)
+    offset = 0
+    for j, level in enumerate(levels):
+        for k in range(len(level)):
+            seg[j][level.masks[k]] = offset + k
+        offset += len(level)
+    return seg
+
+
+def extract_image(image: np.ndarray, generator, encoder, nms: NmsParams = NmsParams()) -> tuple[np.ndarray, np.ndarray, StageTimes, list[int]]:
+    """Masks and embeddings of one image.
+
+    image: [H, W, 3] uint8 RGB. Returns seg: [4, H, W] int32 cumulative ids, feats: [M, D]
+    float32 unit rows (M = masks of all levels), stage times and masks per level.
+    """
+    times = StageTimes()
+    t0 = time.perf_counter()
+    levels = generator.generate(image)
+    t1 = time.perf_counter()
+    levels = masks_update(levels, nms)
+    t2 = time.perf_counter()
+    all_masks = np.concatenate([lvl.masks for lvl in levels]) if levels else np.zeros((0,) + image.shape[:2], bool)
+    crops = crop_masks(image, all_masks, encoder.image_size)
+    t3 = time.perf_counter()
+    feats = encoder.encode_images(crops) if len(crops) else np.zeros((0, encoder.dim), np.float32)
+    t4 = time.perf_counter()
+    times.masks, times.postprocess, times.crop, times.clip = t1 - t0, t2 - t1, t3 - t2, t4 - t3
+    return segmap_from_levels(levels), feats.astype(np.float32), times, [len(lvl) for lvl in levels]
+
+
+def feature_cameras(source: str | Path, resolution: float = -1, max_height: int | None = MAX_HEIGHT) -> list:
+    """Training cameras at the resolution features are made at: `load_cameras(resolution)`, then
+    LangSplat's cap of `max_height` rows (registration resamples id maps to its render size)."""
+    from drsplat.cameras import load_cameras
+
+    cameras = load_cameras(source, resolution=resolution)
+    if max_height:
+        cameras = [c.scaled(max_height / c.height) if c.height > max_height else c for c in cameras]
+    return cameras
+
+
+def versions() -> dict[str, str]:
+    """Versions of the libraries that shape the features."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    import drsplat
+
+    out = {"drsplat": drsplat.__version__, "numpy": np.__version__}
+    for pkg in ("torch", "open_clip_torch", "segment-anything", "scikit-image"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "absent"
+    return out
+
+
+def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_height: int | None, extra: dict | None = None) -> dict:
+    """The manifest.json describing how features were made (read by registration and query)."""
+    manifest = {
+        "format": "langsplat",
+        "levels": list(LEVELS),
+        "default_level": 1,
+        "mask_generator": generator.name,
+        "mask_parameters": generator.parameters(),
+        "postprocess": asdict(nms),
+        "clip": {"model": encoder.model_name, "pretrained": encoder.pretrained, "checkpoint": encoder.checkpoint},
+        "clip_model_id": encoder.model_id,
+        "dim": int(encoder.dim),
+        "crop_size": int(encoder.image_size),
+        "resolution": resolution,
+        "max_height": max_height,
+        "versions": versions(),
+    }
+    manifest.update(extra or {})
+    return manifest
+
+
+def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
+    """Refuse to add features of another CLIP model or mask generator to an existing folder."""
+    from drsplat.clip import check_compatible
+
+    old = featurefiles.read_manifest(features_dir)
+    if not old:
+        if features_dir.is_dir() and featurefiles.list_stems(features_dir):
+            raise DrsplatError(f"{features_dir} already holds feature files without a manifest.json; use a new --out folder so features of different origins are not mixed")
+        return
+    old_clip = old.get("clip_model_id") or _clip_id(old)
+    check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
+    if old.get("mask_generator") != manifest["mask_generator"]:
+        raise DrsplatError(
+            f"{features_dir} holds features made with mask generator {old.get('mask_generator')!r}, this run uses "
+            f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks"
+        )
+
+
+def _clip_id(manifest: dict) -> str | None:
+    clip = manifest.get("clip")
+    if isinstance(clip, dict) and clip.get("model"):
+        return f"{clip['model']}/{clip.get('pretrained')}" if clip.get("pretrained") else str(clip["model"])
+    return clip if isinstance(clip, str) else None
+
+
+def extract_features(
+    cameras: list,
+    out_dir: str | Path,
+    generator,
+    encoder,
+    nms: NmsParams = NmsParams(),
+    manifest: dict | None = None,
+    *,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> FeatureReport:
+    """Write `<stem>_s.npy` / `<stem>_f.npy` for every camera's image into `out_dir`.
+
+    Images whose pair already exists and is complete (featurefiles.is_valid_pair) are skipped;
+    truncated or half-written pairs are redone. Every file is written atomically, so an
+    interrupted run (Ctrl-C, cancel) leaves only complete pairs. `manifest` (make_manifest) is
+    checked against an existing one (same CLIP model and mask generator) and written first.
+    """
+    from drsplat.cameras import load_image
+
+    out = Path(out_dir)
+    report = FeatureReport()
+    if manifest is not None:
+        check_manifest_compatible(out, manifest)
+        out.mkdir(parents=True, exist_ok=True)
+        featurefiles.write_manifest(out, manifest)
+    out.mkdir(parents=True, exist_ok=True)
+    bar = progress(cameras, desc="features", total=len(cameras), enabled=show_progress, unit="img")
+    for i, cam in enumerate(bar):
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        stem = cam.name
+        if featurefiles.is_valid_pair(out, stem):
+            report.skipped.append(stem)
+        else:
+            if featurefiles.seg_path(out, stem).exists() or featurefiles.feat_path(out, stem).exists():
+                log.warning("%s: incomplete or invalid feature files for %s; recomputing them", out, stem)
+                report.redone.append(stem)
+            seg, feats, times, counts = extract_image(load_image(cam), generator, encoder, nms)
+            bad_rows = ~np.isfinite(feats).all(axis=1)
+            if bad_rows.any():
+                report.nonfinite_embeddings += int(bad_rows.sum())
+                log.warning("%s: %d embeddings are not finite; their masks are dropped", stem, int(bad_rows.sum()))
+                feats[bad_rows] = 0.0
+                seg[np.isin(seg, np.flatnonzero(bad_rows))] = -1
+            featurefiles.write_features(out, stem, seg, feats)
+            report.written.append(stem)
+            report.times.add(times)
+            report.masks_per_level = [a + b for a, b in zip(report.masks_per_level, counts)]
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(masks=sum(counts), sec=f"{times.total:.2f}")
+            log.debug("%s: %s masks, %.2f s (masks %.2f, post %.2f, crop %.2f, clip %.2f)", stem, counts, times.total, times.masks, times.postprocess, times.crop, times.clip)
+        if on_progress is not None:
+            on_progress(i + 1, len(cameras))
+    if manifest is not None:
+        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped)})
+    return report

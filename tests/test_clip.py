@@ -1,0 +1,172 @@
+"""drsplat.clip: loading through the real open_clip path (random-weight checkpoints), text cache,
+normalisation, model ids, and clear errors when weights are missing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from drsplat.clip import (
+    CANONICAL_PHRASES,
+    ClipEncoder,
+    check_compatible,
+    resolve_pretrained_weights,
+)
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+
+TINY_CLIP = "TinyCLIP-drsplat-test"
+TINY_CFG = {
+    "embed_dim": 32,
+    "vision_cfg": {"image_size": 224, "layers": 1, "width": 32, "patch_size": 32, "head_width": 16},
+    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 32, "heads": 2, "layers": 1},
+}
+OFFLINE_CLIP_MESSAGE = (
+    "OpenCLIP weights for ViT-B-16 (laion2b_s34b_b88k) are not in the local cache and cannot be downloaded; "
+    "pass --clip-checkpoint PATH to a local open_clip checkpoint, or run once with internet access."
+)
+
+
+def make_tiny_clip(folder: Path, seed: int = 0) -> Path:
+    """Register a tiny open_clip architecture and save random weights for it; returns the file."""
+    import open_clip
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg = folder / f"{TINY_CLIP}.json"
+    cfg.write_text(json.dumps(TINY_CFG))
+    open_clip.add_model_config(cfg)
+    torch.manual_seed(seed)
+    ckpt = folder / "tiny_clip.pt"
+    torch.save(open_clip.create_model(TINY_CLIP).state_dict(), ckpt)
+    return ckpt
+
+
+@pytest.fixture(scope="module")
+def tiny_clip(tmp_path_factory) -> Path:
+    return make_tiny_clip(tmp_path_factory.mktemp("clip"))
+
+
+@pytest.fixture(scope="module")
+def encoder(tiny_clip) -> ClipEncoder:
+    return ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu", batch_size=3)
+
+
+def test_checkpoint_loads_the_saved_weights(tiny_clip, encoder):
+    state = torch.load(tiny_clip, weights_only=True)
+    for name, value in encoder.net.state_dict().items():
+        assert torch.equal(value, state[name]), name
+    assert encoder.model_id == f"{TINY_CLIP}/file:tiny_clip.pt"
+    assert encoder.dim == 32 and encoder.image_size == 224
+
+
+def test_pretrained_label_names_a_checkpoint(tiny_clip):
+    enc = ClipEncoder(TINY_CLIP, pretrained="my-finetune", checkpoint=tiny_clip, device="cpu")
+    assert enc.model_id == f"{TINY_CLIP}/my-finetune"
+
+
+def test_encode_images_applies_clip_normalisation_in_batches(encoder):
+    rng = np.random.default_rng(0)
+    images = rng.random((7, 3, 224, 224)).astype(np.float32)  # 7 = 3 batches of 3
+    got = encoder.encode_images(images)
+    mean = torch.tensor(encoder.mean).view(1, 3, 1, 1)
+    std = torch.tensor(encoder.std).view(1, 3, 1, 1)
+    with torch.no_grad():
+        ref = encoder.net.encode_image((torch.from_numpy(images) - mean) / std)
+    ref = torch.nn.functional.normalize(ref, dim=-1).numpy()
+    assert got.dtype == np.float32 and got.shape == (7, 32)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def test_text_embeddings_are_cached_per_phrase(tiny_clip):
+    enc = ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")
+    seen: list[int] = []
+    original = enc.net.encode_text
+
+    def counting(tokens, *a, **k):
+        seen.append(tokens.shape[0])
+        return original(tokens, *a, **k)
+
+    enc.net.encode_text = counting
+    first = enc.encode_text(["a fern", "a leaf", "a fern"])
+    second = enc.encode_text(["a leaf", "a pot"])
+    assert seen == [2, 1]  # "a fern", "a leaf" once; then only "a pot"
+    np.testing.assert_array_equal(first[0], first[2])
+    np.testing.assert_array_equal(first[1], second[0])
+    np.testing.assert_allclose(np.linalg.norm(second, axis=1), 1.0, atol=1e-5)
+    canon = enc.canonical_embeddings()
+    assert CANONICAL_PHRASES == ("object", "things", "stuff", "texture")
+    np.testing.assert_array_equal(canon, enc.encode_text(list(CANONICAL_PHRASES)))
+
+
+def test_check_compatible():
+    check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
+    check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")
+    check_compatible(None, "ViT-L-14/openai")
+    with pytest.raises(DrsplatError, match="CLIP model mismatch: the features were made with ViT-B-16/laion2b_s34b_b88k but the text encoder is ViT-L-14/openai"):
+        check_compatible("ViT-B-16/laion2b_s34b_b88k", "ViT-L-14/openai")
+
+
+def test_bad_checkpoints_are_clear_errors(tmp_path, tiny_clip):
+    with pytest.raises(InputError, match="CLIP checkpoint file does not exist"):
+        ClipEncoder(TINY_CLIP, checkpoint=tmp_path / "missing.pt", device="cpu")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="not an open_clip checkpoint"):
+        ClipEncoder(TINY_CLIP, checkpoint=junk, device="cpu")
+    with pytest.raises(InputError, match="not an open_clip checkpoint for ViT-B-32"):
+        ClipEncoder("ViT-B-32", checkpoint=tiny_clip, device="cpu")
+
+
+def _offline_env(monkeypatch, tmp_path):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.delenv("HF_HUB_CACHE", raising=False)
+
+
+def test_offline_without_cache_is_one_sentence(monkeypatch, tmp_path):
+    _offline_env(monkeypatch, tmp_path)
+    with pytest.raises(WeightsUnavailableError) as err:
+        ClipEncoder(device="cpu")
+    assert str(err.value) == OFFLINE_CLIP_MESSAGE
+
+
+def test_failed_download_is_the_same_sentence(monkeypatch, tmp_path):
+    import open_clip.pretrained
+
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+
+    def no_network(*args, **kwargs):
+        raise ConnectionError("Failed to resolve 'huggingface.co'")  # what httpx/requests raise, in spirit
+
+    monkeypatch.setattr(open_clip.pretrained, "download_pretrained", no_network)
+    with pytest.raises(WeightsUnavailableError) as err:
+        resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
+    assert str(err.value) == OFFLINE_CLIP_MESSAGE
+    assert err.value.__suppress_context__
+
+
+def test_weights_in_the_hub_cache_are_used_offline(monkeypatch, tmp_path):
+    _offline_env(monkeypatch, tmp_path)
+    snapshot = tmp_path / "hf" / "hub" / "models--laion--CLIP-ViT-B-16-laion2B-s34B-b88K" / "snapshots" / "abc123"
+    snapshot.mkdir(parents=True)
+    (snapshot / "open_clip_model.safetensors").write_bytes(b"weights")
+    refs = snapshot.parent.parent / "refs"
+    refs.mkdir()
+    (refs / "main").write_text("abc123")
+    path = resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
+    assert Path(path) == snapshot / "open_clip_model.safetensors"
+
+
+def test_unknown_tag_names_the_known_ones():
+    with pytest.raises(DrsplatError, match="unknown OpenCLIP pretrained tag 'nope' for model ViT-B-16 .*laion2b_s34b_b88k"):
+        resolve_pretrained_weights("ViT-B-16", "nope")
+
+
+def test_file_label_asks_for_the_checkpoint():
+    with pytest.raises(WeightsUnavailableError, match=r"made with a local checkpoint \(tiny_clip.pt\) of ViT-B-16; pass --clip-checkpoint PATH"):
+        ClipEncoder("ViT-B-16", pretrained="file:tiny_clip.pt", device="cpu")

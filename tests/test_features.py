@@ -1,0 +1,244 @@
+"""Feature extraction end to end on real fern photos, through the real loading code with
+random-weight checkpoints: files, the registration reader, resuming, truncation, manifests,
+offline errors; plus the crop recipe and the id layout."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat import featurefiles
+from drsplat.cameras import load_cameras, write_transforms_json
+from drsplat.cli import main
+from drsplat.clip import ClipEncoder
+from drsplat.errors import DrsplatError
+from drsplat.features import crop_masks, extract_features, feature_cameras, make_manifest, segmap_from_levels
+from drsplat.masks import MaskSet, NmsParams, SamGenerator, SamParams, load_sam, make_generator
+from tests.conftest import shared_path
+from tests.test_clip import OFFLINE_CLIP_MESSAGE, TINY_CLIP, make_tiny_clip
+from tests.test_masks import make_tiny_sam
+
+WIDTH = 96  # fern is 504 x 378; features at 96 x 72 keep the tests fast
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("weights")
+    return {"clip": make_tiny_clip(folder), "sam": make_tiny_sam(folder / "tiny_sam.pth")}
+
+
+@pytest.fixture(scope="module")
+def fern3(tmp_path_factory) -> Path:
+    """A dataset of three real fern photos (a transforms.json pointing at ../shared/data)."""
+    cameras = load_cameras(shared_path("fern"))[:3]
+    folder = tmp_path_factory.mktemp("fern3")
+    write_transforms_json(cameras, folder / "transforms.json")
+    return folder
+
+
+def cli(source: Path, out: Path, weights: dict, *extra: str) -> int:
+    return main(["-q", "features", "--source", str(source), "--out", str(out), "--clip-model", TINY_CLIP,
+                 "--clip-checkpoint", str(weights["clip"]), "--resolution", str(WIDTH), "--device", "cpu", *extra])
+
+
+def mtimes(folder: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in folder.glob("*.npy")}
+
+
+def check_pair(out: Path, stem: str, dim: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    seg = np.load(featurefiles.seg_path(out, stem))
+    feats = np.load(featurefiles.feat_path(out, stem))
+    assert seg.shape == (4, 72, WIDTH)
+    assert feats.dtype == np.float32 and feats.shape[1] == dim
+    np.testing.assert_allclose(np.linalg.norm(feats, axis=1), 1.0, atol=1e-4)
+    ranges = [(lvl[lvl >= 0].min(), lvl.max()) for lvl in seg if (lvl >= 0).any()]
+    assert all(hi < lo_next for (_, hi), (lo_next, _) in zip(ranges, ranges[1:]))  # cumulative ids
+    assert seg.max() == len(feats) - 1
+    for level in range(4):
+        ids, read = featurefiles.read_features(out, stem, level=level)  # the registration reader
+        assert ids.shape == (72, WIDTH) and read.shape == feats.shape
+    return seg, feats
+
+
+def test_cli_slic_end_to_end_resume_and_truncation(fern3, weights, tmp_path):
+    out = tmp_path / "features"
+    assert cli(fern3, out, weights, "--masks", "slic") == 0
+    stems = ["image000", "image001", "image002"]
+    assert featurefiles.list_stems(out) == stems
+    for stem in stems:
+        check_pair(out, stem)
+    manifest = featurefiles.read_manifest(out)
+    assert manifest["mask_generator"] == "slic" and manifest["levels"] == ["default", "s", "m", "l"]
+    assert manifest["clip"]["model"] == TINY_CLIP and manifest["clip"]["pretrained"] == "file:tiny_clip.pt"
+    assert manifest["clip_model_id"] == f"{TINY_CLIP}/file:tiny_clip.pt" and manifest["dim"] == 32
+    assert manifest["images"] == 3 and manifest["default_level"] == 1
+    assert {"torch", "open_clip_torch", "scikit-image", "drsplat"} <= set(manifest["versions"])
+    assert manifest["mask_parameters"]["n_segments"] == [32, 64, 16, 6]
+
+    before = mtimes(out)
+    assert cli(fern3, out, weights, "--masks", "slic") == 0  # second run: every image skipped
+    assert mtimes(out) == before
+
+    f1 = featurefiles.feat_path(out, "image001")
+    f1.write_bytes(f1.read_bytes()[:-7])  # an interrupted copy: truncated data
+    assert not featurefiles.is_valid_pair(out, "image001")
+    assert cli(fern3, out, weights, "--masks", "slic") == 0
+    after = mtimes(out)
+    assert featurefiles.is_valid_pair(out, "image001")
+    assert after["image001_f.npy"] != before["image001_f.npy"]
+    assert {k: v for k, v in after.items() if "image001" not in k} == {k: v for k, v in before.items() if "image001" not in k}
+    check_pair(out, "image001")
+    assert not list(out.glob(".*.tmp"))  # atomic writes leave no temp files
+
+
+def test_library_report_counts_skips_and_redos(fern3, weights, tmp_path):
+    cameras = feature_cameras(fern3, resolution=WIDTH)
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    generator = make_generator("felzenszwalb")
+    manifest = make_manifest(generator, encoder, NmsParams(), WIDTH, 1080)
+    progress_calls = []
+    first = extract_features(cameras, tmp_path, generator, encoder, manifest=manifest, show_progress=False,
+                             on_progress=lambda done, total: progress_calls.append((done, total)))
+    assert first.written == ["image000", "image001", "image002"] and not first.skipped
+    assert progress_calls == [(1, 3), (2, 3), (3, 3)]
+    assert sum(first.masks_per_level) == sum(len(featurefiles.read_features(tmp_path, s)[1]) for s in first.written)
+    assert first.times.masks > 0 and first.times.clip > 0
+    featurefiles.seg_path(tmp_path, "image002").unlink()
+    second = extract_features(cameras, tmp_path, generator, encoder, manifest=manifest, show_progress=False)
+    assert second.skipped == ["image000", "image001"] and second.written == ["image002"] and second.redone == ["image002"]
+    for stem in first.written:
+        check_pair(tmp_path, stem)
+
+
+def test_sam_pipeline_through_checkpoint_loading(fern3, weights, tmp_path):
+    out = tmp_path / "sam"
+    # the CLI with LangSplat's quality thresholds (a small prompt grid to stay fast): random
+    # weights rarely pass them, but the run must complete and write readable pairs
+    assert cli(fern3, out, weights, "--masks", "sam", "--sam-checkpoint", str(weights["sam"]), "--sam-points-per-side", "4", "--sam-crop-layers", "0") == 0
+    assert featurefiles.list_stems(out) == ["image000", "image001", "image002"]
+    assert featurefiles.read_manifest(out)["mask_generator"] == "sam"
+    # permissive thresholds so random weights produce masks that flow through every stage
+    cameras = feature_cameras(fern3, resolution=WIDTH)[:1]
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    generator = SamGenerator(load_sam(weights["sam"]), SamParams(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0))
+    report = extract_features(cameras, tmp_path / "sam2", generator, encoder, show_progress=False)
+    assert sum(report.masks_per_level) > 0
+    check_pair(tmp_path / "sam2", "image000")
+
+
+def test_refuses_to_mix_models_or_generators(fern3, weights, tmp_path):
+    out = tmp_path / "features"
+    cameras = feature_cameras(fern3, resolution=WIDTH)[:1]
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    nms = NmsParams()
+    slic = make_generator("slic")
+    extract_features(cameras, out, slic, encoder, manifest=make_manifest(slic, encoder, nms, WIDTH, 1080), show_progress=False)
+    other = ClipEncoder(TINY_CLIP, pretrained="another-finetune", checkpoint=weights["clip"], device="cpu")
+    with pytest.raises(DrsplatError, match=f"CLIP model mismatch: the features already in {out} were made with {TINY_CLIP}/file:tiny_clip.pt but this run's CLIP model is {TINY_CLIP}/another-finetune"):
+        extract_features(cameras, out, slic, other, manifest=make_manifest(slic, other, nms, WIDTH, 1080), show_progress=False)
+    felz = make_generator("felzenszwalb")
+    with pytest.raises(DrsplatError, match="mask generator 'slic', this run uses 'felzenszwalb'"):
+        extract_features(cameras, out, felz, encoder, manifest=make_manifest(felz, encoder, nms, WIDTH, 1080), show_progress=False)
+
+
+def test_offline_cli_prints_one_sentence(fern3, tmp_path):
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "DRSPLAT_CACHE": str(tmp_path / "cache")}
+    env.pop("HF_HUB_CACHE", None)
+    proc = subprocess.run([sys.executable, "-m", "drsplat", "features", "--source", str(fern3), "--out", str(tmp_path / "f")],
+                          capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert proc.returncode == 1
+    assert proc.stderr == f"ERROR: {OFFLINE_CLIP_MESSAGE}\n"
+    assert not (tmp_path / "f").exists()
+
+
+def test_offline_sam_cli_names_the_flag(fern3, weights, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("DRSPLAT_CACHE", str(tmp_path / "cache"))
+    assert cli(fern3, tmp_path / "f", weights, "--masks", "sam") == 1
+    assert capsys.readouterr().err == (
+        f"ERROR: SAM weights (vit_h) are not in the cache {tmp_path / 'cache'} and cannot be downloaded; "
+        "pass --sam-checkpoint PATH to a local SAM checkpoint, or run once with internet access.\n"
+    )
+
+
+def test_crop_recipe():
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[...] = (10, 20, 30)
+    image[10:20, 5:45] = (200, 100, 50)
+    masks = np.zeros((2, 40, 60), bool)
+    masks[0, 10:20, 5:45] = True  # a 10 x 40 box: padded to 40 x 40, content in rows 15..24
+    masks[1, 0, 0] = True  # a single pixel
+    crops = crop_masks(image, masks, size=80)
+    assert crops.shape == (2, 3, 80, 80) and crops.dtype == np.float32
+    np.testing.assert_allclose(crops[0, :, 40, 40], np.array([200, 100, 50]) / 255, atol=1e-6)
+    np.testing.assert_allclose(crops[0, :, 5, 40], 0.0)  # black padding above
+    np.testing.assert_allclose(crops[0, :, 75, 40], 0.0)  # and below
+    rows_with_content = np.flatnonzero(crops[0, 0].max(axis=1) > 0)
+    assert rows_with_content[0] in (29, 30) and rows_with_content[-1] in (49, 50)  # 20 rows of 80, centred
+    np.testing.assert_allclose(crops[1], np.broadcast_to((np.array([10, 20, 30]) / 255)[:, None, None], (3, 80, 80)), atol=1e-6)
+    outside = np.zeros((1, 40, 60), bool)
+    outside[0, 5:15, 0:10] = True
+    outside[0, 5, 9] = False  # a pixel outside the mask inside its box becomes black
+    crop = crop_masks(image, outside, size=10)
+    assert crop[0, :, 0, 9].sum() == 0 and crop[0, 0, 5, 5] > 0
+
+
+def test_segmap_ids_are_cumulative_and_painted_in_order():
+    a = np.zeros((3, 2, 3), bool)
+    a[0, 0, :] = True
+    a[1, :, 0] = True  # overlaps a[0] at (0, 0): painted later, wins
+    b = np.zeros((1, 2, 3), bool)
+    b[0, 1, 2] = True
+    levels = [MaskSet(a[:2], np.ones(2)), MaskSet(a[:0], np.ones(0)), MaskSet(b, np.ones(1)), MaskSet(a[2:], np.ones(1))]
+    seg = segmap_from_levels(levels)
+    np.testing.assert_array_equal(seg[0], [[1, 0, 0], [1, -1, -1]])
+    np.testing.assert_array_equal(seg[1], np.full((2, 3), -1))
+    np.testing.assert_array_equal(seg[2], [[-1, -1, -1], [-1, -1, 2]])
+    np.testing.assert_array_equal(seg[3], np.full((2, 3), -1))  # an empty mask paints nothing
+
+
+class InterruptingGenerator:
+    """Slic that raises (Ctrl-C or a cancel) while working on the second image."""
+
+    name = "slic"
+
+    def __init__(self, exc: BaseException | None = None, token=None):
+        from drsplat.masks import SlicGenerator
+
+        self.inner, self.calls, self.exc, self.token = SlicGenerator(), 0, exc, token
+
+    def parameters(self) -> dict:
+        return self.inner.parameters()
+
+    def generate(self, image):
+        self.calls += 1
+        if self.calls == 2:
+            if self.token is not None:
+                self.token.cancel()
+            else:
+                raise self.exc
+        return self.inner.generate(image)
+
+
+def test_interrupt_and_cancel_leave_only_complete_pairs(fern3, weights, tmp_path):
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    cameras = feature_cameras(fern3, resolution=WIDTH)
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    out = tmp_path / "ctrl-c"
+    with pytest.raises(KeyboardInterrupt):
+        extract_features(cameras, out, InterruptingGenerator(KeyboardInterrupt()), encoder, show_progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["image000_f.npy", "image000_s.npy"]
+    check_pair(out, "image000")
+    token = CancelToken()
+    out2 = tmp_path / "cancel"
+    with pytest.raises(Cancelled):
+        extract_features(cameras, out2, InterruptingGenerator(token=token), encoder, show_progress=False, cancel=token)
+    assert featurefiles.list_stems(out2) == ["image000", "image001"]  # the image in progress completes, then it stops
+    assert not list(out2.glob(".*.tmp"))
