@@ -201,3 +201,17 @@ def test_moving_budget_adapts_to_the_frame_time(app, monkeypatch):
     for _ in range(30):
         app.adapt_moving_budget(1e-3)
     assert r.moving_budget == n, "fast frames grow back to the whole scene"
+
+
+def test_first_still_frame_calibrates_the_moving_budget(app, monkeypatch):
+    import viewer.app
+
+    monkeypatch.setattr(viewer.app, "MIN_MOVING_SPLATS", 100)
+    num = 10_000
+    assert viewer.app.calibrated_moving_budget(num, 4 * viewer.app.MOVING_FRAME_SECONDS) == num // 4
+    assert viewer.app.calibrated_moving_budget(num, 0.5 * viewer.app.MOVING_FRAME_SECONDS) == num, "a fast scene is drawn whole"
+    assert viewer.app.calibrated_moving_budget(num, 1e3) == 100, "never below the minimum"
+    app.run(max_frames=1)
+    r = app.renderer
+    assert r.times.drawn == r.num, "the first frame is a full still frame"
+    assert r.moving_budget == viewer.app.calibrated_moving_budget(r.num, r.times.draw)

@@ -349,3 +349,43 @@ def test_moving_subsample_draws_the_budget_and_resembles_the_full_frame(state, g
         renderer.release()
     diff = np.abs(full - half).mean()
     assert 0.5 < diff < 40, diff
+
+
+def test_moving_subsample_equals_a_full_render_of_the_same_splats(state, gl_context):
+    """The compute pass projects only the subsample's splats (by id), strengthened by the thinning
+    compensation, and the draw keeps their depth order."""
+    from viewer.renderer import OffscreenTarget, SplatRenderer, thinning_compensation
+
+    camera = _camera(state, 0)
+    renderer = SplatRenderer(gl_context, state.scene)
+    target = OffscreenTarget(gl_context, camera.width, camera.height)
+    try:
+        target.use()
+        renderer.update_order(camera, wait=True)
+        renderer.moving_budget = state.num_gaussians // 3
+        renderer.draw(camera, moving=True)
+        sub = target.read_rgb().astype(np.float32)
+        ids = np.flatnonzero(renderer.rank < renderer.moving_budget)
+    finally:
+        target.release()
+        renderer.release()
+    assert ids.size == state.num_gaussians // 3
+    # the thinning compensation, applied to the subset: opacity 1 - (1 - o)^c, covariance c·Σ
+    c = thinning_compensation(state.num_gaussians, ids.size)
+    assert c == pytest.approx(np.sqrt(3), rel=1e-3)
+    subset = state.scene.subset(ids)
+    opacity = 1 - (1 - np.minimum(subset.opacities(), 0.99)) ** c
+    subset.opacity_logits = np.log(opacity / (1 - opacity)).astype(np.float32)
+    subset.log_scales = (subset.log_scales + 0.5 * np.log(c)).astype(np.float32)
+    alone = SplatRenderer(gl_context, subset)
+    target = OffscreenTarget(gl_context, camera.width, camera.height)
+    try:
+        target.use()
+        alone.update_order(camera, wait=True)
+        alone.draw(camera)
+        reference = target.read_rgb().astype(np.float32)
+    finally:
+        target.release()
+        alone.release()
+    assert reference.mean() > 5, "the subset is visible"
+    assert np.abs(sub - reference).mean() < 0.3

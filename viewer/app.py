@@ -35,6 +35,25 @@ MIN_MOVING_SPLATS = 20_000
 FLY_SPEED = 0.4  # scene-distance units per second (times the orbit distance)
 
 
+def next_moving_budget(budget: int, num: int, seconds: float) -> int:
+    """The moving subsample for the next moving frame, given that `budget` splats took `seconds`.
+
+    The draw time is linear in the splats drawn (per-triangle setup dominates on llvmpipe), so
+    the step is proportional, budget · MOVING_FRAME_SECONDS / seconds, limited to ×0.5–×1.5 per
+    frame against timing noise, and kept within [MIN_MOVING_SPLATS, num].
+    """
+    factor = float(np.clip(MOVING_FRAME_SECONDS / max(seconds, 1e-4), 0.5, 1.5))
+    return int(np.clip(budget * factor, min(num, MIN_MOVING_SPLATS), num))
+
+
+def calibrated_moving_budget(num: int, full_seconds: float) -> int:
+    """A first moving subsample from the time of a full frame: the share of the scene a full-
+    resolution frame draws in MOVING_FRAME_SECONDS. Moving frames (MOVING_SCALE resolution) are
+    cheaper per splat, so this starts a little low and next_moving_budget grows it."""
+    share = MOVING_FRAME_SECONDS / max(full_seconds, 1e-4)
+    return int(np.clip(num * share, min(num, MIN_MOVING_SPLATS), num))
+
+
 def save_png(image: np.ndarray, path: str | Path) -> Path:
     """Write [H, W, 3] uint8 as PNG, atomically."""
     from PIL import Image
@@ -92,6 +111,7 @@ class ViewerApp:
         self.moving_scale = MOVING_SCALE
         self.render_scale = 1.0
         self._scene_version = -1
+        self._budget_calibrated = False
         self._style_version = -1
         self.input = InputState(last_time=time.perf_counter())
         self.click_to_query = False
@@ -142,6 +162,7 @@ class ViewerApp:
                 fb_w, fb_h = glfw.get_framebuffer_size(self.window)
                 self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h)
             self._scene_version = state.scene_version
+            self._budget_calibrated = False
             self._style_version = -1
             self._drawn_key = None
         if self.renderer is not None and state.style_version != self._style_version:
@@ -219,6 +240,9 @@ class ViewerApp:
                 self._drawn_key = key
                 if moving:
                     self.adapt_moving_budget(self.renderer.times.draw)
+                elif not self._budget_calibrated:
+                    self.renderer.moving_budget = calibrated_moving_budget(self.renderer.num, self.renderer.times.draw)
+                    self._budget_calibrated = True
         self.ctx.screen.use()
         self.ctx.viewport = (0, 0, fb_w, fb_h)
         self.ctx.clear(0.0, 0.0, 0.0, 1.0)
@@ -231,8 +255,7 @@ class ViewerApp:
     def adapt_moving_budget(self, seconds: float) -> None:
         """Scale the moving subsample so that moving frames take about MOVING_FRAME_SECONDS."""
         r = self.renderer
-        factor = float(np.clip(MOVING_FRAME_SECONDS / max(seconds, 1e-4), 0.5, 1.5))
-        r.moving_budget = int(np.clip(r.moving_budget * factor, min(r.num, MIN_MOVING_SPLATS), r.num))
+        r.moving_budget = next_moving_budget(r.moving_budget, r.num, seconds)
 
     def frame(self) -> None:
         """One iteration of the main loop."""

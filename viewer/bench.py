@@ -6,8 +6,8 @@ or, without it, random Gaussians; 542k is flowers.ply itself (skipped when absen
 repeat turns the view by 3 degrees so that every frame needs a new sort.
 
 Approximations are reported with their cost: the 16-bit counting sort against an exact float
-argsort (speed and the image difference it makes), and the moving-camera frame (subsample at
-MOVING_SCALE resolution) against the full frame.
+argsort (speed and the image difference it makes), and the moving-camera frame (the GUI's
+adaptive subsample at MOVING_SCALE resolution) against the full frame.
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from drsplat.scene import GaussianScene
 
 FLOWERS = Path(__file__).resolve().parents[2] / "shared" / "data" / "ply" / "flowers.ply"
 SIZES = {"100k": 100_000, "542k": 542_104, "1M": 1_000_000}
+MOVING_FRAMES = 8  # moving frames the budget adapts over
+SETTLED_FRAMES = 3  # of which the last ones are reported
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
@@ -74,18 +76,22 @@ def bench_scene(name: str, base: GaussianScene | None, seed: int = 0) -> tuple[G
 
 
 def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
-    """Median seconds of sort / exact sort / upload / draw / moving draw, and the approximation costs."""
-    from viewer.app import MOVING_SCALE
+    """Median seconds of sort / exact sort / upload / projection / draw / moving draw, and the
+    approximation costs. The moving frame is the GUI's: the subsample starts from
+    `calibrated_moving_budget` and adapts with `next_moving_budget` for MOVING_FRAMES frames;
+    the budget it settles on, the median time of the last frames and their error are reported."""
+    from viewer.app import MOVING_SCALE, calibrated_moving_budget, next_moving_budget
     from viewer.camera import ViewController, camera_for_size
     from viewer.renderer import OffscreenTarget, SplatRenderer
     from viewer.sorting import SortResult
 
     renderer = SplatRenderer(ctx, scene)
+    renderer.profile = True
     view = ViewController.for_scene(scene.means, None, width, height)
     target = OffscreenTarget(ctx, width, height)
     small = OffscreenTarget(ctx, max(1, int(width * MOVING_SCALE)), max(1, int(height * MOVING_SCALE)))
     screen = OffscreenTarget(ctx, width, height)
-    rows = {k: [] for k in ("sort", "exact_sort", "upload", "draw", "moving", "still")}
+    rows = {k: [] for k in ("sort", "exact_sort", "upload", "project", "draw", "moving", "still")}
     try:
         target.use()
         renderer.update_order(view.camera(), wait=True)
@@ -105,15 +111,24 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
             target.use()
             renderer.draw(camera)
             rows["draw"].append(renderer.times.draw)
-            small.use()
-            renderer.draw(camera_for_size(camera, small.width, small.height), moving=True)
-            rows["moving"].append(renderer.times.draw)
+            rows["project"].append(renderer.times.project)
             screen.use()
             start = time.perf_counter()
             ctx.copy_framebuffer(screen.fbo, target.fbo)
             ctx.finish()
             rows["still"].append(time.perf_counter() - start)
         camera = view.camera()
+        small_camera = camera_for_size(camera, small.width, small.height)
+        renderer.moving_budget = calibrated_moving_budget(renderer.num, float(np.median(rows["draw"])))
+        small.use()
+        budgets = []
+        for _ in range(MOVING_FRAMES):
+            budgets.append(renderer.moving_budget)
+            renderer.draw(small_camera, moving=True)
+            rows["moving"].append(renderer.times.draw)
+            renderer.moving_budget = next_moving_budget(renderer.moving_budget, renderer.num, renderer.times.draw)
+        rows["moving"] = rows["moving"][-SETTLED_FRAMES:]
+        budget = int(np.median(budgets[-SETTLED_FRAMES:]))
         target.use()
         renderer.draw(camera)
         full = target.read_rgb().astype(np.float32)
@@ -123,12 +138,13 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
         renderer.draw(camera)
         exact_image = target.read_rgb().astype(np.float32)
         small.use()
-        renderer.draw(camera_for_size(camera, small.width, small.height), moving=True)
+        renderer.moving_budget = budget
+        renderer.draw(small_camera, moving=True)
         from PIL import Image
 
         moving_image = np.asarray(Image.fromarray(small.read_rgb()).resize((width, height), Image.BILINEAR), np.float32)
         costs = {"sort_diff": float(np.abs(full - exact_image).mean()), "moving_diff": float(np.abs(moving_image - exact_image).mean())}
-        return {k: float(np.median(v)) for k, v in rows.items()}, costs, full.astype(np.uint8), renderer.moving_budget
+        return {k: float(np.median(v)) for k, v in rows.items()}, costs, full.astype(np.uint8), budget
     finally:
         screen.release()
         target.release()
@@ -139,7 +155,7 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
 def run(args: argparse.Namespace) -> int:
     from drsplat.errors import DrsplatError
     from drsplat.scene import load_ply
-    from viewer.app import MOVING_SCALE, save_png
+    from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_png
     from viewer.renderer import create_offscreen_context
 
     names = [s.strip() for s in args.sizes.split(",") if s.strip()]
@@ -149,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
     base = load_ply(args.ply) if args.ply is not None and Path(args.ply).is_file() else None
     ctx = create_offscreen_context()
     print(f"viewer frame time, {args.width}x{args.height}, {ctx.info['GL_RENDERER']}, median of {args.repeats} frames, load average {os.getloadavg()[0]:.1f}")
-    print(f"{'splats':>9} {'scene':<22} {'sort':>7} {'exact':>7} {'upload':>7} {'draw':>7} {'fps idle-sort':>13} {'fps sort/frame':>14} {'moving':>7} {'fps moving':>10} {'sort err':>8} {'moving err':>10} {'still':>6}")
+    print(f"{'splats':>9} {'scene':<22} {'sort':>6} {'exact':>6} {'upload':>6} {'project':>7} {'draw':>6} {'fps idle-sort':>13} {'fps sort/frame':>14} "
+          f"{'moving splats':>13} {'moving':>6} {'fps moving':>10} {'sort err':>8} {'moving err':>10} {'still':>6}")
     shot = None
     for name in names:
         scene, origin = bench_scene(name, base)
@@ -159,17 +176,18 @@ def run(args: argparse.Namespace) -> int:
         t, costs, image, budget = measure(ctx, scene, args.width, args.height, args.repeats)
         ms = {k: v * 1000 for k, v in t.items()}
         print(
-            f"{scene.num_gaussians:>9,} {origin:<22} {ms['sort']:>6.0f}m {ms['exact_sort']:>6.0f}m {ms['upload']:>6.1f}m {ms['draw']:>6.0f}m "
+            f"{scene.num_gaussians:>9,} {origin:<22} {ms['sort']:>5.0f}m {ms['exact_sort']:>5.0f}m {ms['upload']:>5.1f}m {ms['project']:>6.0f}m {ms['draw']:>5.0f}m "
             f"{1000 / (ms['upload'] + ms['draw']):>13.1f} {1000 / (ms['sort'] + ms['upload'] + ms['draw']):>14.1f} "
-            f"{ms['moving']:>6.0f}m {1000 / ms['moving']:>10.1f} {costs['sort_diff']:>8.2f} {costs['moving_diff']:>10.2f} {ms['still']:>5.1f}m"
+            f"{budget:>13,} {ms['moving']:>5.0f}m {1000 / ms['moving']:>10.1f} {costs['sort_diff']:>8.2f} {costs['moving_diff']:>10.2f} {ms['still']:>5.1f}m"
         )
         if shot is None or name == "542k":
             shot = image
     print("columns (ms): sort = 16-bit counting sort (background thread), exact = float argsort, upload = order buffer, "
-          "draw = compute projection + blend at full resolution (ctx.finish); fps idle-sort = 1/(upload + draw), "
-          "the background sort off the frame; moving = random subsample of min(N, 250k) splats at "
-          f"{MOVING_SCALE:g}x resolution (the GUI adapts the subsample towards 100 ms); errors = mean |difference| in 8-bit levels against the exact-order full frame; "
-          "still = a GUI frame while the camera is still (the last image is reused, not re-rendered)")
+          "project = the compute pass alone, draw = compute projection + blend at full resolution (ctx.finish); "
+          "fps idle-sort = 1/(upload + draw), the background sort off the frame; moving = the GUI's moving frame: "
+          f"{MOVING_SCALE:g}x resolution, a random subsample adapted over {MOVING_FRAMES} frames towards {MOVING_FRAME_SECONDS * 1000:.0f} ms "
+          f"(moving splats = the budget it settled on; median of the last {SETTLED_FRAMES}); errors = mean |difference| in 8-bit levels "
+          "against the exact-order full frame; still = a GUI frame while the camera is still (the last image is reused, not re-rendered)")
     if args.screenshot is not None and shot is not None:
         save_png(shot, args.screenshot)
         print(f"screenshot: {args.screenshot}")
