@@ -1,0 +1,107 @@
+"""`drsplat pq`: train a general product-quantisation codebook, or describe a codebook file."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("pq", help="train or inspect product-quantisation codebooks")
+    actions = parser.add_subparsers(dest="pq_action", metavar="ACTION", required=True)
+
+    train = actions.add_parser(
+        "train",
+        help="train a general PQ codebook (faiss IndexPQ) from embeddings",
+        description=(
+            "Train a faiss IndexPQ (inner product, M sub-vectors x 8 bits) on CLIP embeddings: .npy arrays (n, D) "
+            "and/or every <stem>_f.npy of LangSplat feature folders. For the paper's general codebook, embed many "
+            "object crops (LVIS or COCO) with the same CLIP model as your scenes (see docs/index.md)."
+        ),
+    )
+    source = train.add_argument_group("embeddings (at least one)")
+    source.add_argument("--embeddings", type=Path, nargs="+", default=[], metavar="A.npy", help="embedding arrays (n, D)")
+    source.add_argument("--features", type=Path, nargs="+", default=[], metavar="DIR", help="LangSplat feature folders (<stem>_f.npy)")
+    train.add_argument("--out", type=Path, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
+    train.add_argument("--m", type=int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
+    train.add_argument("--max-train", type=int, default=200_000, help="use at most this many embeddings (random subset)")
+    train.add_argument("--seed", type=int, default=0)
+    train.set_defaults(func=run_train)
+
+    info = actions.add_parser("info", help="print what a codebook file contains")
+    info.add_argument("codebook", type=Path, metavar="CODEBOOK")
+    info.set_defaults(func=run_info)
+
+
+def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
+    """All embedding rows [n, D] float32 from .npy files and feature folders (finite nonzero rows)."""
+    from drsplat.featurefiles import FEAT_SUFFIX
+    from drsplat.query import _load_npy
+
+    files = list(arrays)
+    for folder in folders:
+        if not folder.is_dir():
+            raise InputError(folder, "features folder does not exist")
+        found = sorted(folder.glob(f"*{FEAT_SUFFIX}"))
+        if not found:
+            raise InputError(folder, f"no *{FEAT_SUFFIX} embedding files in this folder")
+        files.extend(found)
+    if not files:
+        raise InputError(None, "no embeddings given: use --embeddings A.npy or --features DIR")
+    parts, dim = [], None
+    for path in files:
+        arr = _load_npy(path)
+        if arr.ndim != 2 or arr.shape[1] == 0 or arr.dtype.kind not in "fiu":
+            raise InputError(path, f"expected a float array (n, D), got shape {arr.shape} dtype {arr.dtype}")
+        if dim is not None and arr.shape[1] != dim:
+            raise InputError(path, f"embeddings are {arr.shape[1]}-D but earlier files are {dim}-D")
+        dim = arr.shape[1]
+        parts.append(arr.astype(np.float32))
+    x = np.concatenate(parts)
+    ok = np.isfinite(x).all(axis=1) & (np.abs(x).sum(axis=1) > 0)
+    if not ok.all():
+        log.warning("skipping %d of %d embeddings that are zero or non-finite", int((~ok).sum()), len(x))
+    return x[ok]
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from drsplat.index import PQ_KSUB, train_codebook
+
+    x = collect_embeddings(args.embeddings, args.features)
+    if x.shape[1] % args.m:
+        raise InputError(None, f"--m {args.m} does not divide the embedding dimension {x.shape[1]}")
+    if x.shape[0] < PQ_KSUB:
+        raise InputError(None, f"only {x.shape[0]} embeddings: a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
+    if x.shape[0] > args.max_train:
+        x = x[np.sort(np.random.default_rng(args.seed).choice(x.shape[0], args.max_train, replace=False))]
+    log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
+    book = train_codebook(x, m=args.m, seed=args.seed)
+    book.save(args.out)
+    print(f"wrote {args.out}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
+    return 0
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from drsplat.index import load_codebook
+
+    book = load_codebook(args.codebook)
+    index = book.index
+    print(f"file:        {args.codebook}")
+    print(f"type:        {type(index).__name__} ({book.kind})")
+    print(f"dimension:   {book.dim}")
+    print(f"metric:      {'inner product' if index.metric_type == 0 else 'L2'}")
+    print(f"PQ:          M={book.m} sub-vectors of {book.dsub} dims x 8 bits")
+    if book.kind == "ivfpq":
+        empty = int((np.linalg.norm(book.coarse, axis=1) == 0).sum()) if book.coarse is not None else 0
+        print(f"coarse:      nlist={index.nlist} ({empty} zero centroids), by_residual={bool(index.by_residual)}")
+        print(f"code bytes:  {index.sa_code_size()} (faiss sa_encode: list id + PQ), drsplat stores {book.m} + 4 (lang_list)")
+    else:
+        print(f"code bytes:  {book.m}")
+    return 0

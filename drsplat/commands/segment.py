@@ -1,0 +1,94 @@
+"""`drsplat segment`: label every Gaussian of a registered PLY by argmax cosine over a label list."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.commands.query import add_clip_arguments, load_registered, split_phrases
+from drsplat.errors import DrsplatError
+from drsplat.index import strip_field
+from drsplat.scene import SH_C0, GaussianScene
+
+log = logging.getLogger(__name__)
+
+BACKGROUND_GREY = 0.35
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "segment",
+        help="argmax segmentation of a registered PLY over a label list",
+        description=(
+            "Label every Gaussian with the label of highest cosine similarity. LABELS.npy is int32 (N,) in file "
+            "order: the label index, -1 for background, unassigned Gaussians and scores below --min-score."
+        ),
+    )
+    parser.add_argument("registered", type=Path, metavar="REGISTERED.ply", help="PLY written by drsplat register")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--labels", metavar="A,B,...", help="comma-separated label phrases (needs CLIP weights)")
+    source.add_argument("--embeddings", type=Path, metavar="L.npy", help="label embeddings (L, D)")
+    parser.add_argument(
+        "--background",
+        action="store_true",
+        help="add a background label: the phrase 'background' with --labels, the last row of L.npy with --embeddings",
+    )
+    parser.add_argument("--min-score", type=float, default=None, help="Gaussians whose best cosine is below this get -1")
+    parser.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
+    parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (standard 3DGS PLY)")
+    add_clip_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """(label embeddings [L, D], background embeddings [1, D] or None, label names)."""
+    from drsplat.commands import query as query_cmd
+    from drsplat.query import BACKGROUND_PHRASE, load_query_embeddings, text_embeddings
+
+    if args.labels is not None:
+        names = split_phrases(args.labels)
+        if not names:
+            raise DrsplatError("--labels gave no label phrases")
+        encoder = (encoder_factory or query_cmd.load_encoder)(args, field)
+        emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
+    else:
+        emb = load_query_embeddings(args.embeddings, field.dim)
+        names = [f"label_{i}" for i in range(emb.shape[0] - int(args.background))]
+    if args.background:
+        if emb.shape[0] < 2:
+            raise DrsplatError("--background needs at least one label besides the background row")
+        return emb[:-1], emb[-1:], names
+    return emb, None, names
+
+
+def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray) -> GaussianScene:
+    """Scene whose view-independent colour is its label's colour (grey for -1), SH rest zeroed."""
+    rgb = np.where(labels[:, None] >= 0, colors[np.maximum(labels, 0)] if len(colors) else BACKGROUND_GREY, BACKGROUND_GREY)
+    sh = np.zeros((scene.num_gaussians, 1, 3), np.float32)
+    sh[:, 0] = (rgb - 0.5) / SH_C0
+    base = strip_field(scene)
+    return GaussianScene(base.means, base.quats, base.log_scales, base.opacity_logits, sh, dict(base.extra), list(base.comments))
+
+
+def run(args: argparse.Namespace, encoder_factory=None) -> int:
+    from drsplat.query import label_colors, segment
+    from drsplat.scene import save_ply
+    from drsplat.utils import save_npy_atomic
+
+    scene, field = load_registered(args.registered)
+    labels_emb, background, names = label_embeddings(args, field, encoder_factory)
+    seg = segment(field, labels_emb, background=background, min_score=args.min_score)
+    save_npy_atomic(args.out, seg.labels)
+    log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
+    if args.ply is not None:
+        save_ply(coloured_scene(scene, seg.labels, label_colors(len(names))), args.ply)
+        log.info("wrote the label-coloured scene to %s", args.ply)
+    counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
+    print(f"{'label':<24} {'gaussians':>10}")
+    for i, name in enumerate(names):
+        print(f"{name:<24} {int(counts[i + 1]):>10}")
+    print(f"{'(none / background)':<24} {int(counts[0]):>10}")
+    return 0

@@ -1,0 +1,263 @@
+"""Language queries on a registered field: cosine, LERF relevancy, thresholds, segmentation, clicks.
+
+Every function takes a `drsplat.index.LanguageField` and unit-normalised query embeddings [K, D]
+(text through an encoder with `encode_text(list[str]) -> [K, D]` and `model_id`, an embedding
+file, or the mean feature of clicked Gaussians) and returns per-Gaussian arrays in file order.
+
+CLIP model ids: a field records the model that made its features (`clip_model`); text queries
+must come from the same model. "unknown" (features without a manifest) is compared with anything,
+with a warning; "oracle" (synthetic scenes) is a space of its own and only matches "oracle".
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from drsplat.errors import DrsplatError, InputError
+from drsplat.index import LanguageField
+
+log = logging.getLogger(__name__)
+
+RELEVANCY_TEMPERATURE = 10.0
+CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
+UNKNOWN_MODEL = "unknown"
+BACKGROUND_PHRASE = "background"
+
+
+class TextEncoder(Protocol):
+    model_id: str
+
+    def encode_text(self, phrases: list[str]) -> np.ndarray: ...
+
+
+def unit_rows(x: np.ndarray) -> np.ndarray:
+    """Rows divided by their L2 norm (zero rows stay zero): [K, D] float32."""
+    x = np.atleast_2d(np.asarray(x, np.float32))
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.where(norm > 0, x / np.where(norm > 0, norm, 1), 0).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Model ids
+
+
+def check_clip_models(field_model: str | None, query_model: str | None, what: str = "the text encoder") -> None:
+    """Refuse to compare embeddings of two different CLIP models (DrsplatError).
+
+    "unknown", "" or None on either side is accepted with a warning: nothing says the spaces differ.
+    """
+    known = [m for m in (field_model, query_model) if m and m != UNKNOWN_MODEL]
+    if len(known) < 2:
+        if field_model != query_model:
+            log.warning("CLIP model of %s is %s, features' is %s: cannot check they match", what, query_model or UNKNOWN_MODEL, field_model or UNKNOWN_MODEL)
+        return
+    if _canonical_model(field_model) != _canonical_model(query_model):
+        raise DrsplatError(
+            f"CLIP model mismatch: the registered features were made with {field_model} but {what} is {query_model}; "
+            "embeddings of different CLIP models cannot be compared"
+        )
+
+
+def _canonical_model(model_id: str) -> str:
+    return model_id.strip().replace(":", "/").lower()
+
+
+# ---------------------------------------------------------------------------------------------
+# Queries
+
+
+def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageField | None = None) -> np.ndarray:
+    """Unit text embeddings [K, D] of phrases, after checking the encoder matches the field's model."""
+    if field is not None:
+        check_clip_models(field.clip_model, getattr(encoder, "model_id", None))
+    emb = unit_rows(encoder.encode_text(list(phrases)))
+    if field is not None and emb.shape[1] != field.dim:
+        raise DrsplatError(f"the text encoder gives {emb.shape[1]}-D embeddings but the field holds {field.dim}-D features")
+    return emb
+
+
+def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
+    """The paper's self-referencing query: normalize(mean of the unit features of Gaussians `ids`): [D].
+
+    ids: [n] Gaussian indices. PQ fields use the reconstructions of those Gaussians.
+    Unassigned Gaussians (zero norm) are ignored.
+    """
+    ids = np.asarray(ids).reshape(-1)
+    feats = unit_rows(field.reconstruct(ids)) if ids.size else np.zeros((0, field.dim), np.float32)
+    feats = feats[np.linalg.norm(feats, axis=1) > 0]
+    if feats.shape[0] == 0:
+        raise DrsplatError("none of the selected Gaussians has a language feature (all unassigned)")
+    return unit_rows(feats.mean(axis=0))[0]
+
+
+def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
+    """Read Q.npy, (D,) or (K, D), as unit rows [K, D] (InputError for bad shape or values)."""
+    arr = _load_npy(path)
+    if arr.ndim == 1:
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] != dim or arr.shape[0] == 0:
+        raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
+        raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
+    arr = arr.astype(np.float32)
+    bad = ~np.isfinite(arr).all(axis=1) | (np.linalg.norm(np.nan_to_num(arr), axis=1) == 0)
+    if bad.any():
+        raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
+    return unit_rows(arr)
+
+
+def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
+    """Read IDS.npy: integer indices [k] into 0..n-1, or a boolean mask [n]."""
+    arr = _load_npy(path)
+    if arr.ndim > 1:
+        raise InputError(path, f"expected a 1-D array of Gaussian indices or a boolean mask, got shape {arr.shape}")
+    arr = arr.reshape(-1)
+    if arr.dtype == bool:
+        if arr.shape[0] != n:
+            raise InputError(path, f"boolean mask has {arr.shape[0]} entries, the scene has {n} Gaussians")
+        return np.flatnonzero(arr)
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise InputError(path, f"expected integer Gaussian indices, got dtype {arr.dtype}")
+    if arr.size == 0:
+        raise InputError(path, "no Gaussian indices given")
+    out = (arr < 0) | (arr >= n)
+    if out.any():
+        raise InputError(path, f"{int(out.sum())} indices fall outside 0..{n - 1} (e.g. {int(arr[out][0])})")
+    return arr.astype(np.int64)
+
+
+def _load_npy(path: str | Path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(path, f"not a readable .npy array ({exc})") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Scores
+
+
+def cosine(field: LanguageField, queries: np.ndarray) -> np.ndarray:
+    """cos(q_k, f_i) of every Gaussian and query: queries [K, D] -> [N, K] float32 (0 if unassigned)."""
+    return field.scores(unit_rows(queries))
+
+
+def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:
+    """LERF relevancy from cosines: positive [N, K], negative [N, C] -> [N, K].
+
+    rel = min_c softmax(t·[p, n_c])[0] = min_c σ(t(p − n_c)) = σ(t(p − max_c n_c)),
+    the probability of the query against its hardest canonical phrase (t = 10 as LERF/LangSplat).
+    """
+    hardest = negative.max(axis=1, keepdims=True) if negative.shape[1] else np.full((positive.shape[0], 1), -np.inf, np.float32)
+    z = temperature * (positive.astype(np.float64) - hardest)
+    return (0.5 * (1.0 + np.tanh(0.5 * z))).astype(np.float32)
+
+
+def relevancy_reference(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:
+    """The official LangSplat formulation, literally: pairwise softmax per negative, min over negatives."""
+    n, k = positive.shape
+    out = np.empty((n, k), np.float64)
+    for j in range(k):
+        sims = np.stack([np.repeat(positive[:, j : j + 1], negative.shape[1], 1), negative], axis=-1) * temperature
+        sims = sims - sims.max(axis=-1, keepdims=True)
+        soft = np.exp(sims) / np.exp(sims).sum(axis=-1, keepdims=True)
+        out[:, j] = soft[..., 0].min(axis=1)
+    return out.astype(np.float32)
+
+
+def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:
+    """LERF relevancy of every Gaussian: queries [K, D], negatives [C, D] -> [N, K] in [0, 1].
+
+    negatives are the canonical phrases' embeddings ("object", "things", "stuff", "texture"),
+    optionally followed by user negatives. One LUT pass scores queries and negatives together.
+    """
+    q = unit_rows(queries)
+    neg = unit_rows(negatives)
+    if neg.shape[0] == 0:
+        raise DrsplatError("relevancy needs at least one negative embedding")
+    scores = field.scores(np.concatenate([q, neg]))
+    return relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
+
+
+def negative_embeddings(encoder: TextEncoder | None, field: LanguageField, user_phrases: list[str] = (), extra: np.ndarray | None = None) -> np.ndarray:
+    """Canonical + user negative embeddings [C, D]: text through `encoder`, plus rows of `extra`."""
+    parts = []
+    if encoder is not None:
+        parts.append(text_embeddings(encoder, list(CANONICAL_PHRASES) + list(user_phrases), field))
+    elif user_phrases:
+        raise DrsplatError("negative phrases need a CLIP text encoder")
+    if extra is not None:
+        parts.append(unit_rows(extra))
+    if not parts:
+        raise DrsplatError("relevancy needs negatives: a CLIP text encoder for the canonical phrases, or negative embeddings")
+    return np.concatenate(parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Thresholds and segmentation
+
+
+def select(scores: np.ndarray, threshold: float) -> np.ndarray:
+    """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected)."""
+    return np.asarray(scores) >= threshold
+
+
+def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
+    """Threshold maximising the between-class variance of the finite, nonzero scores (Otsu)."""
+    s = np.asarray(scores, np.float64)
+    s = s[np.isfinite(s) & (s != 0)]
+    if s.size == 0 or s.min() == s.max():
+        return float(s.max()) if s.size else 0.0
+    hist, edges = np.histogram(s, bins=bins)
+    p = hist / hist.sum()
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    w0 = np.cumsum(p)
+    mu = np.cumsum(p * centers)
+    w1 = 1 - w0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        between = (mu[-1] * w0 - mu) ** 2 / (w0 * w1)
+    between = np.nan_to_num(between, nan=-1.0, posinf=-1.0)
+    return float(edges[int(np.argmax(between)) + 1])
+
+
+@dataclass
+class Segmentation:
+    """Argmax segmentation. labels: [N] int32 label index, -1 for background / unassigned / low score.
+    scores: [N] float32 cosine of the winning label (of background where it won)."""
+
+    labels: np.ndarray
+    scores: np.ndarray
+
+
+def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.ndarray | None = None, min_score: float | None = None) -> Segmentation:
+    """Label every Gaussian with argmax_l cos(e_l, f_i) over labels [L, D].
+
+    background: [D] or [B, D] embeddings of background phrases; Gaussians they win get -1.
+    min_score: Gaussians whose best cosine is below it get -1. Unassigned Gaussians get -1.
+    """
+    labels_emb = unit_rows(label_embeddings)
+    n_labels = labels_emb.shape[0]
+    queries = labels_emb if background is None else np.concatenate([labels_emb, unit_rows(background)])
+    scores = field.scores(queries)
+    best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
+    best_score = scores[np.arange(scores.shape[0]), best]
+    labels = np.where(best < n_labels, best, -1).astype(np.int32)
+    labels[field.norms == 0] = -1
+    if min_score is not None:
+        labels[best_score < min_score] = -1
+    return Segmentation(labels=labels, scores=best_score.astype(np.float32))
+
+
+def label_colors(count: int) -> np.ndarray:
+    """[count, 3] distinct RGB colours in [0, 1] (golden-ratio hues)."""
+    import colorsys
+
+    return np.array([colorsys.hsv_to_rgb((0.13 + i * 0.618033988749895) % 1.0, 0.75, 0.95) for i in range(count)], np.float32).reshape(count, 3)

@@ -1,0 +1,289 @@
+"""Language field backends: LUT scoring against decode-then-cosine, official codebook, PLY encoding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.errors import InputError
+from drsplat.index import (
+    Codebook,
+    LanguageField,
+    attach_field,
+    build_field,
+    codebook_path_for,
+    load_codebook,
+    lut_scores,
+    lut_scores_reference,
+    read_field,
+    strip_field,
+    train_codebook,
+)
+from drsplat.scene import GaussianScene
+from tests.conftest import shared_path
+
+TOL = 1e-5
+
+
+def clip_like(n: int, dim: int, labels: int = 8, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit rows a·c + b·label + noise (all alike, as CLIP embeddings are): ([n, D], [n] labels, [L, D] label vectors)."""
+    rng = np.random.default_rng(seed)
+    common = rng.normal(size=dim)
+    common /= np.linalg.norm(common)
+    dirs = rng.normal(size=(labels, dim))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lab = rng.integers(0, labels, n)
+    x = 1.0 * common + 0.8 * dirs[lab] + 0.5 * rng.normal(size=(n, dim)) / np.sqrt(dim)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    return x.astype(np.float32), lab, dirs.astype(np.float32)
+
+
+def tiny_scene(n: int, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    return GaussianScene(
+        means=rng.normal(size=(n, 3)).astype(np.float32),
+        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
+        log_scales=np.full((n, 3), -3, np.float32),
+        opacity_logits=np.zeros(n, np.float32),
+        sh=rng.normal(size=(n, 1, 3)).astype(np.float32),
+        comments=["trained by someone"],
+    )
+
+
+@pytest.fixture(scope="module")
+def data():
+    x, lab, dirs = clip_like(1500, 64, seed=1)
+    weights = np.ones(len(x), np.float32)
+    weights[:5] = 0
+    x[:5] = 0
+    return x, weights, lab, dirs
+
+
+@pytest.fixture(scope="module")
+def books(data):
+    x = data[0][5:]
+    return {m: train_codebook(x, m=m, seed=m) for m in (8, 16, 32)}
+
+
+def hard_queries(dim: int, rng: np.random.Generator) -> np.ndarray:
+    """Random, a basis vector, a huge-norm and a tiny-norm vector (normalised inside scores)."""
+    q = rng.normal(size=(5, dim)).astype(np.float32)
+    q[1] = 0
+    q[1, 3] = 1
+    q[2] *= 1e4
+    q[3] *= 1e-4
+    q[4] = -q[0]
+    return q
+
+
+@pytest.mark.parametrize("m", [8, 16, 32])
+def test_pq_lut_equals_decode_then_cosine(data, books, m):
+    x, w, _, _ = data
+    field = build_field(x, w, books[m], clip_model="oracle")
+    q = hard_queries(x.shape[1], np.random.default_rng(m))
+    lut = field.scores(q)
+    ref = field.scores_reference(q)
+    assert lut.shape == (len(x), 5) and lut.dtype == np.float32
+    np.testing.assert_allclose(lut, ref, atol=TOL, rtol=0)
+    assert np.all(lut[:5] == 0), "unassigned Gaussians must score 0"
+    np.testing.assert_allclose(lut[:, 4], -lut[:, 0], atol=TOL)
+
+
+def test_lut_kernel_edge_shapes(books):
+    book = books[16]
+    rng = np.random.default_rng(3)
+    for n, k in [(0, 1), (1, 1), (513, 3), (1025, 17)]:
+        codes = rng.integers(0, 256, size=(n, book.m), dtype=np.uint8)
+        norms = np.linalg.norm(book.decode(codes), axis=1).astype(np.float32)
+        q = rng.normal(size=(k, book.dim)).astype(np.float32)
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        got = lut_scores(book, codes, None, norms, q)
+        assert got.shape == (n, k)
+        np.testing.assert_allclose(got, lut_scores_reference(book, codes, None, norms, q), atol=TOL, rtol=0)
+
+
+def test_lut_kernel_for_m_not_multiple_of_4():
+    x, _, dirs = clip_like(600, 30, labels=4, seed=7)
+    book = train_codebook(x, m=6)
+    field = build_field(x, np.ones(len(x), np.float32), book)
+    q = np.concatenate([dirs, hard_queries(30, np.random.default_rng(2))])
+    np.testing.assert_allclose(field.scores(q), field.scores_reference(q), atol=TOL, rtol=0)
+
+
+def test_codebook_decode_matches_faiss(books, data):
+    book = books[32]
+    codes, _ = book.encode(data[0][5:50])
+    np.testing.assert_array_equal(codes, book.index.sa_encode(data[0][5:50]))
+    np.testing.assert_allclose(book.decode(codes), book.index.sa_decode(codes), atol=1e-6)
+
+
+def test_exact_field_is_float16_cosine(data):
+    x, w, _, _ = data
+    field = build_field(x, w, "none", clip_model="oracle")
+    assert field.kind == "exact" and field.features.dtype == np.float16
+    q = hard_queries(x.shape[1], np.random.default_rng(0))
+    s = field.scores(q)
+    np.testing.assert_allclose(s, field.scores_reference(q), atol=TOL, rtol=0)
+    qn = q / np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_allclose(s, x @ qn.T, atol=2e-3)
+    assert np.all(s[:5] == 0)
+
+
+def test_half_kernel_on_hard_values():
+    """float16 bit tricks: zeros, -0, subnormals, the largest half, and non-finite rows (score 0)."""
+    from drsplat.index import half_scores
+
+    rng = np.random.default_rng(4)
+    f = rng.normal(size=(300, 40)).astype(np.float16)
+    f[0] = 0
+    f[1, :] = np.float16(-0.0)
+    f[1, 0] = np.float16(1e-7)  # subnormal
+    f[2] = np.float16(6e-8) * rng.integers(1, 20, 40)  # all subnormal
+    f[3, :3] = np.float16(65504)
+    f[4, 5] = np.inf
+    f[5, 7] = np.nan
+    norms = np.linalg.norm(f.astype(np.float64), axis=1).astype(np.float32)
+    q = hard_queries(40, rng)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    got = half_scores(f, norms, q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ref = (f.astype(np.float64) @ q.T.astype(np.float64)) / norms[:, None].astype(np.float64)
+    finite = np.isfinite(norms) & (norms > 0)
+    np.testing.assert_allclose(got[finite], ref[finite], atol=TOL, rtol=0)
+    assert np.all(got[~finite] == 0) and (~finite).sum() == 3
+    assert abs(got[2, 0] - ref[2, 0]) < TOL and abs(got[1, 1] - ref[1, 1]) < TOL
+
+
+def test_backends_agree_on_selection(data, books):
+    """Every backend selects (nearly) the same Gaussians for a label query as the exact field."""
+    x, w, lab, dirs = data
+    exact = build_field(x, w, "none").scores(dirs)
+    for m, book in books.items():
+        pq = build_field(x, w, book).scores(dirs)
+        assert np.mean(np.abs(pq - exact)) < 0.03, m
+        assert np.mean(np.argmax(pq[5:], 1) == np.argmax(exact[5:], 1)) > 0.97, m
+    assert np.mean(np.argmax(exact[5:], 1) == lab[5:]) > 0.99
+
+
+def test_scene_codebook_trains_on_mask_embeddings(data):
+    x, w, _, dirs = data
+    field = build_field(x, w, "scene", train_embeddings=x[5:400], m=16)
+    assert field.kind == "pq" and field.codes.shape == (len(x), 16)
+    np.testing.assert_allclose(field.scores(dirs), field.scores_reference(dirs), atol=TOL, rtol=0)
+    with pytest.raises(InputError, match="at least 256"):
+        build_field(x[:100], w[:100], "scene", train_embeddings=x[5:50], m=16)
+
+
+def test_subset_keeps_scores(data, books):
+    x, w, _, dirs = data
+    field = build_field(x, w, books[8])
+    ids = np.array([7, 3, 1000, 3])
+    np.testing.assert_array_equal(field.subset(ids).scores(dirs), field.scores(dirs)[ids])
+    np.testing.assert_array_equal(field.subset(ids).reconstruct(), field.reconstruct(ids))
+
+
+@pytest.mark.parametrize("backend", ["none", "pq", "scene"])
+def test_ply_encoding_round_trip(tmp_path, data, books, backend):
+    x, w, _, dirs = data
+    codebook = books[16] if backend == "pq" else backend
+    field = build_field(x, w, codebook, clip_model="ViT-B-16/laion2b_s34b_b88k", train_embeddings=x[5:], m=8)
+    ply = tmp_path / "reg.ply"
+    scene = attach_field(tiny_scene(len(x)), field, ply)
+    assert scene.comments[0] == "trained by someone"
+    comment = scene.comments[-1]
+    assert comment.startswith("drsplat.lang kind=") and "clip=ViT-B-16/laion2b_s34b_b88k" in comment
+    assert scene.extra["lang_weight"].dtype == np.float32
+    if field.kind == "exact":
+        assert scene.extra["lang_0"].dtype == np.uint16 and f"lang_{x.shape[1] - 1}" in scene.extra
+        assert not codebook_path_for(ply).exists()
+    else:
+        assert scene.extra["lang_code_0"].dtype == np.uint8 and scene.extra["lang_norm"].dtype == np.float32
+        assert "codebook=reg.codebook.faiss" in comment and codebook_path_for(ply).is_file()
+    back = read_field(scene, ply)
+    assert back.kind == field.kind and back.dim == field.dim and back.clip_model == field.clip_model
+    np.testing.assert_array_equal(back.scores(dirs), field.scores(dirs))
+    np.testing.assert_array_equal(back.weights, w)
+    # attaching again replaces the field instead of adding a second one
+    again = attach_field(scene, field, ply)
+    assert sum(c.startswith("drsplat.lang") for c in again.comments) == 1
+    assert strip_field(again).extra == {} and strip_field(again).comments == ["trained by someone"]
+
+
+def test_ply_round_trip_through_save_and_load(tmp_path, data, books):
+    from drsplat.scene import load_ply, save_ply
+
+    x, w, _, dirs = data
+    for codebook in ("none", books[8]):
+        field = build_field(x, w, codebook, clip_model="oracle")
+        ply = tmp_path / f"reg_{field.kind}.ply"
+        save_ply(attach_field(tiny_scene(len(x)), field, ply), ply)
+        back = read_field(load_ply(ply), ply)
+        assert back.kind == field.kind
+        np.testing.assert_array_equal(back.scores(dirs), field.scores(dirs))
+
+
+def test_read_field_errors_name_the_problem(tmp_path, data, books):
+    x, w, _, _ = data
+    ply = tmp_path / "reg.ply"
+    assert read_field(tiny_scene(3), ply) is None
+    scene = attach_field(tiny_scene(len(x)), build_field(x, w, books[8]), ply)
+    broken = GaussianScene(**{**scene.__dict__, "extra": {k: v for k, v in scene.extra.items() if k != "lang_code_3"}})
+    with pytest.raises(InputError, match="lang_code_3"):
+        read_field(broken, ply)
+    codebook_path_for(ply).unlink()
+    with pytest.raises(InputError, match="codebook file not found"):
+        read_field(scene, ply)
+    bad_kind = GaussianScene(**{**scene.__dict__, "comments": ["drsplat.lang kind=zip dim=64 clip=x"]})
+    with pytest.raises(InputError, match="unknown language field kind"):
+        read_field(bad_kind, ply)
+    (tmp_path / "junk.faiss").write_bytes(b"not faiss")
+    with pytest.raises(InputError, match="not a faiss index"):
+        load_codebook(tmp_path / "junk.faiss")
+
+
+def test_codebook_dimension_mismatch_is_an_input_error(data, tmp_path):
+    book = train_codebook(data[0][5:], m=8)
+    book.save(tmp_path / "cb.faiss")
+    x = np.random.default_rng(0).normal(size=(10, 32)).astype(np.float32)
+    with pytest.raises(InputError, match="dimension 64 differs"):
+        build_field(x, np.ones(10, np.float32), tmp_path / "cb.faiss")
+
+
+# ---------------------------------------------------------------------------------------------
+# The official Dr. Splat codebook (../shared/data/drsplat/pq_index.faiss)
+
+
+@pytest.fixture(scope="module")
+def official() -> Codebook:
+    return load_codebook(shared_path("drsplat", "pq_index.faiss"))
+
+
+def test_official_codebook_is_ivfpq_128x8(official):
+    assert official.kind == "ivfpq" and official.dim == 512 and official.m == 128
+    assert official.nlist == 1024 and official.index.by_residual
+    assert official.index.sa_code_size() == 130
+
+
+def test_official_codebook_lut_equals_decode_then_cosine(official):
+    x, _, dirs = clip_like(3000, 512, labels=6, seed=5)
+    w = np.ones(len(x), np.float32)
+    w[-3:] = 0
+    field = build_field(x, w, official, clip_model="ViT-B-16/laion2b_s34b_b88k")
+    # our (list id, codes) are faiss's own 130-byte codes: 2-byte little-endian list id + 128 PQ bytes
+    raw = official.index.sa_encode(x[:200])
+    np.testing.assert_array_equal(raw[:, 0].astype(np.int32) + 256 * raw[:, 1].astype(np.int32), field.list_ids[:200])
+    np.testing.assert_array_equal(raw[:, 2:], field.codes[:200])
+    np.testing.assert_allclose(field.reconstruct(np.arange(200)), official.index.sa_decode(raw), atol=1e-6)
+    q = np.concatenate([dirs, hard_queries(512, np.random.default_rng(1))])
+    np.testing.assert_allclose(field.scores(q), field.scores_reference(q), atol=TOL, rtol=0)
+    assert np.all(field.scores(q)[-3:] == 0)
+
+
+def test_official_codebook_round_trips_through_ply_encoding(official, tmp_path):
+    x, _, dirs = clip_like(300, 512, seed=2)
+    field = build_field(x, np.ones(len(x), np.float32), official.path)
+    ply = tmp_path / "scene.ply"
+    scene = attach_field(tiny_scene(len(x)), field, ply)
+    assert scene.extra["lang_list"].dtype == np.int32
+    assert codebook_path_for(ply).read_bytes() == official.path.read_bytes()
+    np.testing.assert_array_equal(read_field(scene, ply).scores(dirs), field.scores(dirs))

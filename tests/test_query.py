@@ -1,0 +1,282 @@
+"""Query semantics (cosine, relevancy, segmentation, clicks, model ids) and the query/segment/pq CLIs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat.cli import main
+from drsplat.errors import DrsplatError, InputError
+from drsplat.index import attach_field, build_field, load_codebook, train_codebook
+from drsplat.query import (
+    check_clip_models,
+    click_query,
+    cosine,
+    load_gaussian_ids,
+    load_query_embeddings,
+    otsu_threshold,
+    relevancy,
+    relevancy_from_scores,
+    relevancy_reference,
+    segment,
+    text_embeddings,
+)
+from drsplat.scene import SH_C0, load_ply, save_ply
+from tests.test_index import clip_like, tiny_scene
+
+DIM = 64
+NAMES = [f"lbl{i}" for i in range(6)]
+
+
+class FakeEncoder:
+    """Text encoder whose phrase 'lbl<i>' embeds to label direction i (and anything else to a fixed vector)."""
+
+    def __init__(self, dirs: np.ndarray, model_id: str = "oracle-test"):
+        self.dirs = dirs
+        self.model_id = model_id
+        self.other = np.random.default_rng(9).normal(size=dirs.shape[1]).astype(np.float32)
+
+    def encode_text(self, phrases):
+        rows = [self.dirs[int(p[3:])] if p.startswith("lbl") else self.other for p in phrases]
+        return np.stack(rows).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def world():
+    x, lab, dirs = clip_like(1200, DIM, labels=6, seed=4)
+    w = np.ones(len(x), np.float32)
+    w[:4] = 0
+    x[:4] = 0
+    return x, w, lab, dirs
+
+
+@pytest.fixture(scope="module")
+def fields(world):
+    x, w, _, _ = world
+    return {"exact": build_field(x, w, "none", clip_model="oracle-test"), "pq": build_field(x, w, train_codebook(x[4:], m=16), clip_model="oracle-test")}
+
+
+def test_relevancy_matches_the_official_pairwise_softmax():
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-1, 1, size=(500, 3)).astype(np.float32)
+    neg = rng.uniform(-1, 1, size=(500, 4)).astype(np.float32)
+    neg[:50] = pos[:50, :1]  # ties: probability exactly 1/2
+    pos[50:60] = 40.0  # saturated
+    got = relevancy_from_scores(pos, neg)
+    np.testing.assert_allclose(got, relevancy_reference(pos, neg), atol=1e-6)
+    np.testing.assert_allclose(got[:50, 0], 0.5, atol=1e-6)
+    assert np.all((got >= 0) & (got <= 1))
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_relevancy_and_cosine_rank_the_queried_label_first(world, fields, kind):
+    x, _, lab, dirs = world
+    field = fields[kind]
+    rel = relevancy(field, dirs[:2], dirs[2:])
+    cos = cosine(field, dirs[:2])
+    for k in range(2):
+        hit = lab[4:] == k
+        assert rel[4:][hit, k].min() > rel[4:][~hit, k].max() - 0.05
+        negative = lab[4:] >= 2  # Gaussians of a negative's label
+        assert np.mean(rel[4:][hit, k] > 0.5) > 0.95 and np.mean(rel[4:][negative, k] < 0.5) > 0.95
+        assert cos[4:][hit, k].mean() > cos[4:][~hit, k].mean() + 0.2
+    assert np.all(cos[:4] == 0)
+
+
+def test_segmentation_argmax_background_and_unassigned(world, fields):
+    _, _, lab, dirs = world
+    seg = segment(fields["exact"], dirs)
+    assert seg.labels.dtype == np.int32
+    assert np.all(seg.labels[:4] == -1)
+    assert np.mean(seg.labels[4:] == lab[4:]) > 0.99
+    seg_bg = segment(fields["pq"], dirs[:5], background=dirs[5])
+    assert np.mean(seg_bg.labels[4:][lab[4:] == 5] == -1) > 0.97
+    assert np.mean(seg_bg.labels[4:][lab[4:] < 5] == lab[4:][lab[4:] < 5]) > 0.97
+    high = segment(fields["exact"], dirs, min_score=2.0)
+    assert np.all(high.labels == -1)
+
+
+def test_click_query_is_the_mean_feature(world, fields):
+    x, _, lab, _ = world
+    ids = np.flatnonzero(lab == 3)[:5]
+    q = click_query(fields["exact"], np.concatenate([ids, [0, 1]]))  # unassigned ids are ignored
+    mean = x[ids].mean(0)
+    np.testing.assert_allclose(q, mean / np.linalg.norm(mean), atol=2e-3)
+    top = np.argsort(-cosine(fields["pq"], click_query(fields["pq"], ids))[:, 0])[:50]
+    assert np.all(lab[top] == 3)
+    with pytest.raises(DrsplatError, match="unassigned"):
+        click_query(fields["exact"], np.array([0, 1]))
+
+
+def test_clip_model_mismatch_is_refused(world, fields):
+    check_clip_models("ViT-B-16/laion2b_s34b_b88k", "ViT-B-16/laion2b_s34b_b88k")
+    check_clip_models("unknown", "ViT-B-16/laion2b_s34b_b88k")
+    with pytest.raises(DrsplatError, match="CLIP model mismatch.*ViT-L-14"):
+        check_clip_models("ViT-B-16/laion2b_s34b_b88k", "ViT-L-14/openai")
+    with pytest.raises(DrsplatError, match="mismatch"):
+        check_clip_models("oracle", "ViT-B-16/laion2b_s34b_b88k")
+    with pytest.raises(DrsplatError, match="mismatch"):
+        text_embeddings(FakeEncoder(world[3], "ViT-B-32/openai"), ["lbl1"], fields["exact"])
+    emb = text_embeddings(FakeEncoder(world[3]), ["lbl1", "lbl2"], fields["exact"])
+    np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1, atol=1e-6)
+
+
+def test_otsu_threshold_splits_two_modes():
+    rng = np.random.default_rng(0)
+    s = np.concatenate([rng.normal(0.2, 0.03, 5000), rng.normal(0.7, 0.03, 300)])
+    t = otsu_threshold(s)
+    assert 0.28 < t < 0.6
+    assert np.sum(s >= t) == 300
+
+
+def test_embedding_and_id_files_are_validated(tmp_path):
+    np.save(tmp_path / "q.npy", np.ones(DIM + 1, np.float32))
+    with pytest.raises(InputError, match=r"q.npy.*expected shape \(64,\)"):
+        load_query_embeddings(tmp_path / "q.npy", DIM)
+    bad = np.ones((2, DIM), np.float32)
+    bad[1, 0] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    with pytest.raises(InputError, match=r"rows \[1\]"):
+        load_query_embeddings(tmp_path / "nan.npy", DIM)
+    np.save(tmp_path / "ids.npy", np.array([1, 99]))
+    with pytest.raises(InputError, match="outside 0..9"):
+        load_gaussian_ids(tmp_path / "ids.npy", 10)
+    np.save(tmp_path / "mask.npy", np.arange(10) > 6)
+    assert load_gaussian_ids(tmp_path / "mask.npy", 10).tolist() == [7, 8, 9]
+    with pytest.raises(InputError, match="file not found"):
+        load_query_embeddings(tmp_path / "missing.npy", DIM)
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+
+
+@pytest.fixture(autouse=True)
+def only_my_commands(monkeypatch):
+    """The CLI with just the commands under test (other subcommands may be mid-development)."""
+    import drsplat.cli
+
+    monkeypatch.setattr(drsplat.cli, "COMMANDS", ("pq", "query", "segment"))
+
+
+@pytest.fixture(scope="module")
+def registered(tmp_path_factory, world, fields):
+    out = {}
+    root = tmp_path_factory.mktemp("reg")
+    for kind, field in fields.items():
+        ply = root / f"{kind}.ply"
+        save_ply(attach_field(tiny_scene(len(field)), field, ply), ply)
+        out[kind] = ply
+    return out
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_query_cli_embedding_scores_and_selection(tmp_path, registered, fields, world, kind):
+    _, _, lab, dirs = world
+    np.save(tmp_path / "q1.npy", dirs[2])
+    np.save(tmp_path / "qk.npy", dirs[:3])
+    assert main(["query", str(registered[kind]), "--embedding", str(tmp_path / "q1.npy"), "--scores", str(tmp_path / "s1.npy"), "--threshold", "0.45", "--out", str(tmp_path / "sel.ply")]) == 0
+    s1 = np.load(tmp_path / "s1.npy")
+    assert s1.shape == (len(lab),) and s1.dtype == np.float32
+    np.testing.assert_allclose(s1, fields[kind].scores(dirs[2:3])[:, 0], atol=1e-6)
+    sel = load_ply(tmp_path / "sel.ply")
+    assert sel.num_gaussians == int(np.sum(s1 >= 0.45)) > 0
+    assert not any(k.startswith("lang") for k in sel.extra) and not any("drsplat.lang" in c for c in sel.comments)
+    assert main(["query", str(registered[kind]), "--embedding", str(tmp_path / "qk.npy"), "--scores", str(tmp_path / "sk.npy")]) == 0
+    assert np.load(tmp_path / "sk.npy").shape == (len(lab), 3)
+
+
+def test_query_cli_click_text_and_relevancy(tmp_path, registered, world, monkeypatch, capsys):
+    from drsplat.commands import query as query_cmd
+
+    _, _, lab, dirs = world
+    monkeypatch.setattr(query_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    ids = np.flatnonzero(lab == 4)[:3]
+    np.save(tmp_path / "ids.npy", ids)
+    assert main(["query", str(registered["pq"]), "--gaussians", str(tmp_path / "ids.npy"), "--scores", str(tmp_path / "c.npy")]) == 0
+    c = np.load(tmp_path / "c.npy")
+    assert c.shape == (len(lab),) and np.all(lab[np.argsort(-c)[:50]] == 4)
+    assert main(["query", str(registered["exact"]), "--text", "lbl1", "--relevancy", "--negatives", "lbl2", "--scores", str(tmp_path / "r.npy")]) == 0
+    r = np.load(tmp_path / "r.npy")
+    assert r.shape == (len(lab),) and np.mean(r[lab == 1] > 0.5) > 0.95 and np.mean(r[lab == 2] < 0.5) > 0.95
+    assert main(["query", str(registered["exact"]), "--text", "lbl0", "--top", "3"]) == 0
+    printed = capsys.readouterr().out.split("\n")
+    top_ids = [int(line.split()[0]) for line in printed[1:4]]
+    assert all(lab[i] == 0 for i in top_ids)
+
+
+def test_query_cli_errors(tmp_path, registered, capsys):
+    plain = tmp_path / "plain.ply"
+    save_ply(tiny_scene(5), plain)
+    np.save(tmp_path / "q.npy", np.ones(DIM, np.float32))
+    assert main(["query", str(plain), "--embedding", str(tmp_path / "q.npy")]) == 1
+    assert "no language field" in capsys.readouterr().err
+    np.save(tmp_path / "bad.npy", np.ones(7, np.float32))
+    assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "bad.npy")]) == 1
+    assert "bad.npy" in capsys.readouterr().err
+    # oracle features cannot be queried by text; clear message instead of a CLIP error
+    field = build_field(np.eye(4, DIM, dtype=np.float32), np.ones(4, np.float32), "none", clip_model="oracle")
+    oracle = tmp_path / "oracle.ply"
+    save_ply(attach_field(tiny_scene(4), field, oracle), oracle)
+    assert main(["query", str(oracle), "--text", "chair"]) == 1
+    assert "--embedding" in capsys.readouterr().err
+    assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--relevancy"]) == 1
+
+
+def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkeypatch, capsys):
+    from drsplat.commands import query as query_cmd
+
+    _, _, lab, dirs = world
+    np.save(tmp_path / "L.npy", dirs)
+    assert main(["segment", str(registered["exact"]), "--embeddings", str(tmp_path / "L.npy"), "--out", str(tmp_path / "lab.npy"), "--ply", str(tmp_path / "col.ply")]) == 0
+    got = np.load(tmp_path / "lab.npy")
+    assert got.dtype == np.int32 and got.shape == (len(lab),)
+    assert np.all(got[:4] == -1) and np.mean(got[4:] == lab[4:]) > 0.99
+    col = load_ply(tmp_path / "col.ply")
+    rgb = 0.5 + SH_C0 * col.sh[:, 0]
+    same = got == got[10]
+    np.testing.assert_allclose(rgb[same], np.broadcast_to(rgb[10], rgb[same].shape), atol=1e-5)
+    assert not np.allclose(rgb[got == 0][0], rgb[got == 1][0])
+    monkeypatch.setattr(query_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    assert main(["segment", str(registered["pq"]), "--labels", "lbl0,lbl1,lbl2,lbl3", "--out", str(tmp_path / "t.npy")]) == 0
+    t = np.load(tmp_path / "t.npy")
+    assert np.mean(t[4:][lab[4:] < 4] == lab[4:][lab[4:] < 4]) > 0.97
+    assert "lbl3" in capsys.readouterr().out
+
+
+def test_pq_train_cli(tmp_path, world, capsys):
+    x = world[0][4:]
+    np.save(tmp_path / "a.npy", x[:700])
+    feats = tmp_path / "feats"
+    feats.mkdir()
+    np.save(feats / "img0_f.npy", x[700:])
+    np.save(feats / "img0_s.npy", np.zeros((1, 4, 4), np.int32))
+    out = tmp_path / "general.codebook.faiss"
+    assert main(["pq", "train", "--embeddings", str(tmp_path / "a.npy"), "--features", str(feats), "--out", str(out), "--m", "16"]) == 0
+    book = load_codebook(out)
+    assert book.kind == "pq" and book.m == 16 and book.dim == DIM
+    assert main(["pq", "train", "--embeddings", str(tmp_path / "a.npy"), "--out", str(out), "--m", "7"]) == 1
+    assert "does not divide" in capsys.readouterr().err
+    assert main(["pq", "info", str(out)]) == 0
+    assert "M=16" in capsys.readouterr().out
+
+
+def test_relevancy_with_the_real_canonical_negatives_and_official_codebook(tmp_path):
+    """text_negative.npy (4, 512) float16 as --negative-embeddings on an official-IVFPQ registered PLY."""
+    from tests.conftest import shared_path
+
+    negatives_path = shared_path("drsplat", "text_negative.npy")
+    official = load_codebook(shared_path("drsplat", "pq_index.faiss"))
+    negatives = np.load(negatives_path)
+    assert negatives.shape == (4, 512) and negatives.dtype == np.float16
+    x, lab, dirs = clip_like(800, 512, labels=5, seed=11)
+    field = build_field(x, np.ones(len(x), np.float32), official, clip_model="ViT-B-16/laion2b_s34b_b88k")
+    ply = tmp_path / "official.ply"
+    save_ply(attach_field(tiny_scene(len(x)), field, ply), ply)
+    np.save(tmp_path / "q.npy", dirs[1])
+    assert main(["query", str(ply), "--embedding", str(tmp_path / "q.npy"), "--relevancy", "--negative-embeddings", str(negatives_path), "--scores", str(tmp_path / "r.npy")]) == 0
+    got = np.load(tmp_path / "r.npy")
+    neg = negatives.astype(np.float32)
+    neg /= np.linalg.norm(neg, axis=1, keepdims=True)
+    decoded = field.scores_reference(np.concatenate([dirs[1:2], neg]))
+    np.testing.assert_allclose(got, relevancy_reference(decoded[:, :1], decoded[:, 1:])[:, 0], atol=1e-5)
