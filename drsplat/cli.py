@@ -26,13 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"drsplat.commands.{name}")
-        except ModuleNotFoundError as exc:  # TEMP-DEV: command not written yet
-            if exc.name != f"drsplat.commands.{name}":
-                raise
-            continue
-        module.add_parser(subparsers)
+        importlib.import_module(f"drsplat.commands.{name}").add_parser(subparsers)
     return parser
 
 

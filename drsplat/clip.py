@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.utils import host_reachable
 
 log = logging.getLogger(__name__)
 
@@ -127,12 +128,14 @@ def resolve_pretrained_weights(model: str, pretrained: str) -> str:
         cached_url = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "clip" / os.path.basename(cfg["url"])
         if cached_url.is_file():
             return str(cached_url)
-    if hf_offline():
+    source = f"{os.environ.get('HF_ENDPOINT', 'https://huggingface.co')}/{hub}" if hub else cfg["url"]
+    if hf_offline() or not host_reachable(source):
         raise _unavailable(model, pretrained)
     try:
         from open_clip.pretrained import download_pretrained
 
-        path = download_pretrained(cfg, cache_dir=str(cache_dir) if hub else None)
+        with _quiet_open_clip():
+            path = download_pretrained(cfg, cache_dir=str(cache_dir) if hub else None)
     except Exception:  # requests / huggingface_hub / urllib errors: the user needs the flag, not the trace
         log.debug("download of %s/%s failed", model, pretrained, exc_info=True)
         raise _unavailable(model, pretrained) from None

@@ -90,3 +90,21 @@ def count_nonfinite(array: np.ndarray) -> int:
     if not np.issubdtype(array.dtype, np.floating):
         return 0
     return int(array.size - np.count_nonzero(np.isfinite(array)))
+
+
+def host_reachable(url: str, timeout: float = 3.0) -> bool:
+    """Whether the host of `url` resolves and accepts a TCP connection within `timeout` seconds.
+
+    Download clients retry with back-off for tens of seconds on a closed network; one cheap
+    probe lets an offline user get the "how to provide weights" message at once.
+    """
+    import socket
+    from urllib.parse import urlparse
+
+    parsed = urlparse(url)
+    port = parsed.port or (443 if parsed.scheme == "https" else 80)
+    try:
+        with socket.create_connection((parsed.hostname or "", port), timeout=timeout):
+            return True
+    except OSError:
+        return False

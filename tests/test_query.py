@@ -151,14 +151,6 @@ def test_embedding_and_id_files_are_validated(tmp_path):
 # CLI
 
 
-@pytest.fixture(autouse=True)
-def only_my_commands(monkeypatch):
-    """The CLI with just the commands under test (other subcommands may be mid-development)."""
-    import drsplat.cli
-
-    monkeypatch.setattr(drsplat.cli, "COMMANDS", ("pq", "query", "segment"))
-
-
 @pytest.fixture(scope="module")
 def registered(tmp_path_factory, world, fields):
     out = {}

@@ -18,13 +18,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("bench", help="speed/accuracy benchmarks that print tables")
     benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True)
     for name in BENCHES:
-        try:
-            module = importlib.import_module(f"drsplat.bench.{name}")
-        except ModuleNotFoundError as exc:  # TEMP-DEV: bench not written yet
-            if exc.name != f"drsplat.bench.{name}":
-                raise
-            continue
-        module.add_bench(benches)
+        importlib.import_module(f"drsplat.bench.{name}").add_bench(benches)
     for ep in entry_points(group="drsplat.bench"):
         try:
             add_bench = ep.load()
