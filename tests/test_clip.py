@@ -127,6 +127,18 @@ def _offline_env(monkeypatch, tmp_path):
     monkeypatch.delenv("HF_HUB_CACHE", raising=False)
 
 
+def test_unreachable_hub_fails_fast_with_the_same_sentence(monkeypatch, tmp_path):
+    import open_clip.pretrained
+
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.setattr("drsplat.clip.host_reachable", lambda url: False)
+    monkeypatch.setattr(open_clip.pretrained, "download_pretrained", lambda *a, **k: pytest.fail("no download without network"))
+    with pytest.raises(WeightsUnavailableError) as err:
+        resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
+    assert str(err.value) == OFFLINE_CLIP_MESSAGE
+
+
 def test_offline_without_cache_is_one_sentence(monkeypatch, tmp_path):
     _offline_env(monkeypatch, tmp_path)
     with pytest.raises(WeightsUnavailableError) as err:
@@ -144,6 +156,7 @@ def test_failed_download_is_the_same_sentence(monkeypatch, tmp_path):
         raise ConnectionError("Failed to resolve 'huggingface.co'")  # what httpx/requests raise, in spirit
 
     monkeypatch.setattr(open_clip.pretrained, "download_pretrained", no_network)
+    monkeypatch.setattr("drsplat.clip.host_reachable", lambda url: True)  # the probe passes, the download fails
     with pytest.raises(WeightsUnavailableError) as err:
         resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
     assert str(err.value) == OFFLINE_CLIP_MESSAGE
