@@ -16,57 +16,109 @@ EXTENT_PAD = 1e-3
 VALID, BEHIND, NONFINITE, CULLED = 0, 1, 2, 3
 
 
-@njit(cache=True, error_model="numpy")
-def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_tiles: int) -> tuple[np.ndarray, np.ndarray]:
+@njit(parallel=True, cache=True, error_model="numpy")
+def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_tiles: int, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile lists of Gaussian ids in the order given (front to back).
 
     order: [M] int64 Gaussian ids sorted by depth. tile_rects: [N, 4] int32 (tx0, ty0, tx1, ty1),
     end-exclusive. Returns offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32; tile t owns
     ids[offsets[t]:offsets[t + 1]].
+
+    Parallel over n_chunks contiguous chunks of `order`: each chunk counts its entries per tile, an
+    exclusive prefix sum over (tile, chunk) gives every chunk its own start in every tile, and
+    the chunks fill their slots; so each tile's list keeps the order of `order`.
     """
+    m = order.shape[0]
+    n_chunks = max(1, min(m, n_chunks))
+    step = -(-m // n_chunks) if m > 0 else 1
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for i in range(c * step, min(m, (c + 1) * step)):
+            g = order[i]
+            for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
+                for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+                    counts[c, ty * n_tiles_x + tx] += 1
     offsets = np.zeros(n_tiles + 1, np.int64)
-    for i in range(order.shape[0]):
-        g = order[i]
-        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
-                offsets[ty * n_tiles_x + tx + 1] += 1
+    total = 0
     for t in range(n_tiles):
-        offsets[t + 1] += offsets[t]
-    ids = np.empty(offsets[n_tiles], np.int32)
-    fill = offsets[:n_tiles].copy()
-    for i in range(order.shape[0]):
-        g = order[i]
-        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
-                t = ty * n_tiles_x + tx
-                ids[fill[t]] = g
-                fill[t] += 1
+        offsets[t] = total
+        for c in range(n_chunks):
+            here = counts[c, t]
+            counts[c, t] = total
+            total += here
+    offsets[n_tiles] = total
+    ids = np.empty(total, np.int32)
+    for c in prange(n_chunks):
+        fill = counts[c]
+        for i in range(c * step, min(m, (c + 1) * step)):
+            g = order[i]
+            for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
+                for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+                    t = ty * n_tiles_x + tx
+                    ids[fill[t]] = g
+                    fill[t] += 1
     return offsets, ids
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def push_topk(wbuf, ibuf, count, p, w, g) -> None:
-    """Insert contribution (w, g) into pixel p's buffer of its k best (k = wbuf.shape[1]).
+def rescan_min(wbuf, minw, minpos, p) -> None:
+    """minw[p], minpos[p] = the smallest weight of pixel p's full buffer and its last slot.
 
-    The buffer stays sorted by descending weight; a newcomer goes after entries of equal weight
-    (they arrived earlier) and a full buffer drops its last entry. This keeps exactly the first
-    k entries of a stable sort of all contributions by descending weight.
+    Slots are in arrival order, so among equal smallest weights the last slot is the one a
+    stable sort by descending weight puts last: the one to evict first.
+    """
+    k = wbuf.shape[1]
+    mn = wbuf[p, 0]
+    mp = 0
+    for m in range(1, k):
+        if wbuf[p, m] <= mn:
+            mn = wbuf[p, m]
+            mp = m
+    minw[p] = mn
+    minpos[p] = mp
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def push_topk(wbuf, ibuf, count, minw, minpos, p, w, g) -> None:
+    """Offer contribution (w, g) to pixel p's buffer of its k best (k = wbuf.shape[1]).
+
+    The buffer is unsorted and in arrival order. Until it holds k entries a newcomer is appended;
+    then it replaces the evictable minimum (`rescan_min`) only if w is strictly larger (a newcomer
+    of equal weight sorts after the entries that arrived earlier), shifting the later slots down
+    to keep arrival order. `sort_topk` at the end then yields exactly the first k entries of a
+    stable sort of all contributions by descending weight. Most contributions of a full buffer
+    lose the single comparison with minw[p].
     """
     k = wbuf.shape[1]
     n = count[p]
     if n < k:
-        pos = n
+        wbuf[p, n] = w
+        ibuf[p, n] = g
         count[p] = n + 1
-    elif w > wbuf[p, k - 1]:
-        pos = k - 1
-    else:
-        return
-    while pos > 0 and wbuf[p, pos - 1] < w:
-        wbuf[p, pos] = wbuf[p, pos - 1]
-        ibuf[p, pos] = ibuf[p, pos - 1]
-        pos -= 1
-    wbuf[p, pos] = w
-    ibuf[p, pos] = g
+        if n + 1 == k:
+            rescan_min(wbuf, minw, minpos, p)
+    elif w > minw[p]:
+        for m in range(minpos[p], k - 1):
+            wbuf[p, m] = wbuf[p, m + 1]
+            ibuf[p, m] = ibuf[p, m + 1]
+        wbuf[p, k - 1] = w
+        ibuf[p, k - 1] = g
+        rescan_min(wbuf, minw, minpos, p)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def sort_topk(wbuf, ibuf, n, p) -> None:
+    """Stable insertion sort of pixel p's first n entries by descending weight."""
+    for i in range(1, n):
+        w = wbuf[p, i]
+        g = ibuf[p, i]
+        pos = i
+        while pos > 0 and wbuf[p, pos - 1] < w:
+            wbuf[p, pos] = wbuf[p, pos - 1]
+            ibuf[p, pos] = ibuf[p, pos - 1]
+            pos -= 1
+        wbuf[p, pos] = w
+        ibuf[p, pos] = g
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -114,13 +166,15 @@ def composite_tiles(
         y1 = min(y0 + tile_size, height)
         tw = x1 - x0
         th = y1 - y0
-        trans = np.ones((th, tw), np.float64)
-        done = np.zeros((th, tw), np.bool_)
+        trans = np.ones(th * tw, np.float64)
+        done = np.zeros(th * tw, np.bool_)
         count = np.zeros(th * tw, np.int64)
-        wbuf = np.zeros((th * tw, max(k, 1)), np.float64)
-        ibuf = np.full((th * tw, max(k, 1)), -1, np.int32)
-        rgb = np.zeros((th, tw, 3), np.float64)
-        dep = np.zeros((th, tw), np.float64)
+        minw = np.zeros(th * tw, np.float64)
+        minpos = np.zeros(th * tw, np.int64)
+        wbuf = np.empty((th * tw, max(k, 1)), np.float64)  # only the first count[p] slots are read
+        ibuf = np.empty((th * tw, max(k, 1)), np.int32)
+        rgb = np.zeros((th * tw, 3), np.float64)
+        dep = np.zeros(th * tw, np.float64)
         n_active = tw * th
         row_active = np.full(th, tw, np.int64)
         for j in range(offsets[t], offsets[t + 1]):
@@ -139,6 +193,8 @@ def composite_tiles(
             cb = conics[g, 1]
             cc = conics[g, 2]
             qmax = qlimits[g]
+            # below this power α < 1/255 for sure (qmax ≥ 2·ln(255·o) with a margin), so exp is skipped
+            power_min = -0.5 * qmax
             o = np.float64(opacities[g])
             z = np.float64(depths[g])
             for py in range(int(fy0), int(fy1) + 1):
@@ -153,34 +209,35 @@ def composite_tiles(
                 root = math.sqrt(disc)
                 rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
                 rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                row = ly * tw - x0
                 for px in range(int(rx0), int(rx1) + 1):
-                    lx = px - x0
-                    if done[ly, lx]:
+                    pix = row + px
+                    if done[pix]:
                         continue
                     dx = u - (px + 0.5)
                     power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power > 0.0:
+                    if power > 0.0 or power < power_min:
                         continue
                     alpha = min(ALPHA_MAX, o * math.exp(power))
                     if alpha < ALPHA_MIN:
                         continue
-                    t_now = trans[ly, lx]
+                    t_now = trans[pix]
                     test_t = t_now * (1.0 - alpha)
                     if test_t < T_MIN:
-                        done[ly, lx] = True
+                        done[pix] = True
                         n_active -= 1
                         row_active[ly] -= 1
                         continue
                     w = alpha * t_now
                     if k > 0:
-                        push_topk(wbuf, ibuf, count, ly * tw + lx, w, g)
+                        push_topk(wbuf, ibuf, count, minw, minpos, pix, w, g)
                     if with_rgb:
-                        rgb[ly, lx, 0] += w * colors[g, 0]
-                        rgb[ly, lx, 1] += w * colors[g, 1]
-                        rgb[ly, lx, 2] += w * colors[g, 2]
+                        rgb[pix, 0] += w * colors[g, 0]
+                        rgb[pix, 1] += w * colors[g, 1]
+                        rgb[pix, 2] += w * colors[g, 2]
                     if with_depth:
-                        dep[ly, lx] += w * z
-                    trans[ly, lx] = test_t
+                        dep[pix] += w * z
+                    trans[pix] = test_t
             if n_active == 0:
                 break
         for ly in range(th):
@@ -188,16 +245,22 @@ def composite_tiles(
                 py = y0 + ly
                 px = x0 + lx
                 p = ly * tw + lx
-                for m in range(k):
+                if k > 0:
+                    sort_topk(wbuf, ibuf, count[p], p)
+                n = count[p]
+                for m in range(n):
                     out_ids[py, px, m] = ibuf[p, m]
                     out_weights[py, px, m] = wbuf[p, m]
-                acc = 1.0 - trans[ly, lx]
+                for m in range(n, k):
+                    out_ids[py, px, m] = -1
+                    out_weights[py, px, m] = 0.0
+                acc = 1.0 - trans[p]
                 out_alpha[py, px] = acc
                 if with_rgb:
                     for ch in range(3):
-                        out_rgb[py, px, ch] = rgb[ly, lx, ch] + trans[ly, lx] * background[ch]
+                        out_rgb[py, px, ch] = rgb[p, ch] + trans[p] * background[ch]
                 if with_depth:
-                    out_depth[py, px] = dep[ly, lx] / acc if acc > 0.0 else 0.0
+                    out_depth[py, px] = dep[p] / acc if acc > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

@@ -9,7 +9,8 @@ Backends (`LanguageField.kind`):
 Every backend scores a unit query q against Gaussian i by the cosine q·r_i / |r_i|, where r_i is
 the stored (or reconstructed) feature and |r_i| is computed once. PQ backends never decode the
 features to answer a query: a [M, 256] table of sub-vector inner products is gathered and summed
-over the codes (`lut_scores`), see docs/index.md.
+over the codes (`lut_scores` on the [N, M] codes; `lut_scores_blocked` on a blocked copy with
+AVX-512 table look-ups, float32 tables or, optionally, 8-bit tables), see docs/index.md.
 
 The registered PLY carries the field in extra vertex properties and a header comment
 (docs/ARCHITECTURE.md, "The registered PLY"); the codebook file sits next to the PLY.
@@ -18,6 +19,7 @@ The registered PLY carries the field in extra vertex properties and a header com
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import re
 import shutil
@@ -203,6 +205,15 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
 
 
 LUT_BLOCK = 1024
+FAST = {"reassoc", "nsz", "arcp", "contract"}  # fastmath without nnan/ninf: non-finite norms are tested
+
+
+@numba.njit(cache=True)
+def _inverse_norm(norm):  # pragma: no cover - jitted
+    """1/norm, 0 for zero, negative or non-finite norms (`inverse_norms` for one value)."""
+    if norm > 0 and norm < np.inf:
+        return np.float32(1.0) / norm
+    return np.float32(0.0)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
@@ -227,12 +238,14 @@ def _lut_scores_kernel(codes, list_ids, luts, coarse, inv_norms, out):  # pragma
                 out[i, k] = acc * inv_norms[i]
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
-def _lut_scores_kernel_m4(words, list_ids, flat_luts, coarse, inv_norms, out):  # pragma: no cover - jitted
+@numba.njit(parallel=True, fastmath=FAST, cache=True, boundscheck=False)
+def _lut_scores_kernel_m4(words, list_ids, flat_luts, coarse, norms, out):  # pragma: no cover - jitted
     """`_lut_scores_kernel` for M % 4 == 0, reading four codes per 32-bit load.
 
     words: [N, M/4] uint32 view of the codes (little-endian: code 4w+b is byte b of word w);
-    flat_luts: [K, M·256] float32. Per block of rows, one query's table at a time: the table
+    flat_luts: [K, M·256] float32; norms: [N] float32 (1/|r_i| is taken here, 0 for zero or
+    non-finite norms: one pass over N fewer than a separate `inverse_norms`).
+    Per block of rows, one query's table at a time: the table
     (M KB) stays in L1/L2 and the block's codes (M KB) in L2 while all K queries pass over them;
     four independent accumulators keep the gathers from waiting on one another.
     """
@@ -258,7 +271,7 @@ def _lut_scores_kernel_m4(words, list_ids, flat_luts, coarse, inv_norms, out):  
                 acc = (a0 + a1) + (a2 + a3)
                 if has_coarse:
                     acc += coarse[k, list_ids[i]]
-                out[i, k] = acc * inv_norms[i]
+                out[i, k] = acc * _inverse_norm(norms[i])
 
 
 HALF_TO_FLOAT_SCALE = np.float32(2.0**112)
@@ -323,7 +336,7 @@ def lut_scores(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | Non
     m = codes.shape[1]
     if m % 4 == 0 and np.little_endian and codes.shape[0] > 0:
         words = codes.view(np.uint32)
-        _lut_scores_kernel_m4(words, ids, luts.reshape(luts.shape[0], m * PQ_KSUB), coarse, inverse_norms(norms), out)
+        _lut_scores_kernel_m4(words, ids, luts.reshape(luts.shape[0], m * PQ_KSUB), coarse, np.ascontiguousarray(norms, np.float32), out)
     else:
         _lut_scores_kernel(codes, ids, luts, coarse, inverse_norms(norms), out)
     return out
@@ -344,6 +357,367 @@ def inverse_norms(norms: np.ndarray) -> np.ndarray:
     norms = np.asarray(norms, np.float32)
     ok = np.isfinite(norms) & (norms > 0)
     return np.where(ok, 1.0 / np.where(ok, norms, 1.0), 0.0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Blocked kernels: float32 tables (exact) and 8-bit tables (approximate, `lut_bits=8`)
+
+
+Q8_BLOCK = 64
+BLOCKED_MIN_M = 128  # below, the [N, M] kernel is as fast as the float32 blocked one (docs/index.md)
+Q8_MAX_M = 257  # M·255 must fit the uint16 sums
+
+
+def blocked_codes(codes: np.ndarray) -> np.ndarray:
+    """Codes [N, M] uint8 -> [ceil(N/64), M, 64] uint8: 64 Gaussians' codes of one sub-vector are contiguous.
+
+    Rows past N are zero (their sums are discarded). Built once per field, M bytes per Gaussian.
+    """
+    codes = np.asarray(codes, np.uint8)
+    n, m = codes.shape
+    nb = -(-n // Q8_BLOCK)
+    out = np.zeros((nb, m, Q8_BLOCK), np.uint8)
+    full = n // Q8_BLOCK
+    out[:full] = codes[: full * Q8_BLOCK].reshape(full, Q8_BLOCK, m).transpose(0, 2, 1)
+    if full < nb:
+        out[full, :, : n - full * Q8_BLOCK] = codes[full * Q8_BLOCK :].T
+    return out
+
+
+def quantize_luts(luts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-bit tables as faiss fast-scan makes them: luts [K, M, 256] -> (q [K, M, 256] uint8, scale [K], offset [K]).
+
+    LUT[k, m, c] ≈ lo[k, m] + scale[k] · q[k, m, c] with lo[k, m] = min_c LUT[k, m, c] and one
+    scale per query, scale[k] = max_m (max_c − min_c LUT[k, m, c]) / 255, so that
+    Σ_m LUT[k, m, code_m] ≈ offset[k] + scale[k] · Σ_m q[k, m, code_m], offset[k] = Σ_m lo[k, m].
+    Each entry is off by at most scale/2, a sum of M entries by at most M·scale/2.
+    """
+    luts = np.asarray(luts, np.float64)
+    lo = luts.min(axis=2)
+    span = (luts.max(axis=2) - lo).max(axis=1)
+    scale = np.where(span > 0, span / 255.0, 1.0)
+    q = np.clip(np.rint((luts - lo[:, :, None]) / scale[:, None, None]), 0, 255).astype(np.uint8)
+    return q, scale.astype(np.float32), lo.sum(axis=1).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _q8_sums_kernel(blocked, qlut, out):  # pragma: no cover - jitted
+    """out[64·b + t] = Σ_m qlut[m, blocked[b, m, t]] (exact integer sums).
+
+    blocked: [NB, M, 64] uint8; qlut: [M, 256] uint8; out: [NB·64] uint16.
+    """
+    nb, m, width = blocked.shape
+    for b in numba.prange(nb):
+        acc = np.zeros(width, np.uint16)
+        for j in range(m):
+            row = blocked[b, j]
+            table = qlut[j]
+            for t in range(width):
+                acc[t] += table[row[t]]
+        out[b * width : (b + 1) * width] = acc
+
+
+_VBMI_IR = r"""
+declare <64 x i8> @llvm.x86.avx512.vpermi2var.qi.512(<64 x i8>, <64 x i8>, <64 x i8>)
+
+define void @q8_sums(i8* %codes, i8* %lut, i16* %out, i64 %b0, i64 %b1, i64 %m) {
+entry:
+  br label %bloop
+bloop:
+  %b = phi i64 [%b0, %entry], [%bn, %mend]
+  %bdone = icmp sge i64 %b, %b1
+  br i1 %bdone, label %exit, label %bbody
+bbody:
+  %boff = mul i64 %b, %m
+  %boff64 = mul i64 %boff, 64
+  br label %mloop
+mloop:
+  %j = phi i64 [0, %bbody], [%jn, %mloop]
+  %acc0 = phi <32 x i16> [zeroinitializer, %bbody], [%acc0n, %mloop]
+  %acc1 = phi <32 x i16> [zeroinitializer, %bbody], [%acc1n, %mloop]
+  %coff = mul i64 %j, 64
+  %cidx = add i64 %boff64, %coff
+  %cp = getelementptr i8, i8* %codes, i64 %cidx
+  %cpv = bitcast i8* %cp to <64 x i8>*
+  %idx = load <64 x i8>, <64 x i8>* %cpv, align 1
+  %loff = mul i64 %j, 256
+  %lp = getelementptr i8, i8* %lut, i64 %loff
+  %lp0 = bitcast i8* %lp to <64 x i8>*
+  %lp1 = getelementptr <64 x i8>, <64 x i8>* %lp0, i64 1
+  %lp2 = getelementptr <64 x i8>, <64 x i8>* %lp0, i64 2
+  %lp3 = getelementptr <64 x i8>, <64 x i8>* %lp0, i64 3
+  %t0 = load <64 x i8>, <64 x i8>* %lp0, align 1
+  %t1 = load <64 x i8>, <64 x i8>* %lp1, align 1
+  %t2 = load <64 x i8>, <64 x i8>* %lp2, align 1
+  %t3 = load <64 x i8>, <64 x i8>* %lp3, align 1
+  %lo = call <64 x i8> @llvm.x86.avx512.vpermi2var.qi.512(<64 x i8> %t0, <64 x i8> %idx, <64 x i8> %t1)
+  %hi = call <64 x i8> @llvm.x86.avx512.vpermi2var.qi.512(<64 x i8> %t2, <64 x i8> %idx, <64 x i8> %t3)
+  %neg = icmp slt <64 x i8> %idx, zeroinitializer
+  %v = select <64 x i1> %neg, <64 x i8> %hi, <64 x i8> %lo
+  %vl = shufflevector <64 x i8> %v, <64 x i8> undef, <32 x i32> <LOW>
+  %vh = shufflevector <64 x i8> %v, <64 x i8> undef, <32 x i32> <HIGH>
+  %wl = zext <32 x i8> %vl to <32 x i16>
+  %wh = zext <32 x i8> %vh to <32 x i16>
+  %acc0n = add <32 x i16> %acc0, %wl
+  %acc1n = add <32 x i16> %acc1, %wh
+  %jn = add i64 %j, 1
+  %jdone = icmp eq i64 %jn, %m
+  br i1 %jdone, label %mend, label %mloop
+mend:
+  %ooff = mul i64 %b, 64
+  %op = getelementptr i16, i16* %out, i64 %ooff
+  %op0 = bitcast i16* %op to <32 x i16>*
+  %op1 = getelementptr <32 x i16>, <32 x i16>* %op0, i64 1
+  store <32 x i16> %acc0n, <32 x i16>* %op0, align 2
+  store <32 x i16> %acc1n, <32 x i16>* %op1, align 2
+  %bn = add i64 %b, 1
+  br label %bloop
+exit:
+  ret void
+}
+""".replace("<LOW>", "<" + ", ".join(f"i32 {i}" for i in range(32)) + ">").replace(
+    "<HIGH>", "<" + ", ".join(f"i32 {i}" for i in range(32, 64)) + ">"
+)
+
+
+def _f32_sums_ir() -> str:
+    """LLVM IR of `f32_sums(codes, lut, out, b0, b1, m)`: out[64·b + t] = Σ_j lut[j, codes[b, j, t]] for
+    blocks b0 ≤ b < b1, float32 tables [M, 256], AVX-512F.
+
+    A sub-vector's 256-float table sits in sixteen 16-float registers; `vpermi2ps` looks up 16 codes
+    in a pair of them (code bits 0–4), and bits 5, 6, 7 pick among the eight pairs by three rounds
+    of selects. Four groups of 16 Gaussians (a block of 64) share the loaded table.
+    """
+    lines = [
+        "declare <16 x float> @llvm.x86.avx512.vpermi2var.ps.512(<16 x float>, <16 x i32>, <16 x float>)",
+        "define void @f32_sums(i8* %codes, float* %lut, float* %out, i64 %b0, i64 %b1, i64 %m) {",
+        "entry:\n  br label %bloop",
+        "bloop:\n  %b = phi i64 [%b0, %entry], [%bn, %mend]\n  %bdone = icmp sge i64 %b, %b1\n  br i1 %bdone, label %exit, label %bbody",
+        "bbody:\n  %boff = mul i64 %b, %m\n  %boff64 = mul i64 %boff, 64\n  br label %mloop",
+        "mloop:\n  %j = phi i64 [0, %bbody], [%jn, %mloop]",
+    ]
+    add = lines.append
+    for g in range(4):
+        add(f"  %acc{g} = phi <16 x float> [zeroinitializer, %bbody], [%accn{g}, %mloop]")
+    add("  %coff = mul i64 %j, 64\n  %cidx = add i64 %boff64, %coff\n  %cp = getelementptr i8, i8* %codes, i64 %cidx")
+    add("  %loff = mul i64 %j, 256\n  %lp = getelementptr float, float* %lut, i64 %loff\n  %lpv = bitcast float* %lp to <16 x float>*")
+    for t in range(16):
+        add(f"  %tp{t} = getelementptr <16 x float>, <16 x float>* %lpv, i64 {t}\n  %t{t} = load <16 x float>, <16 x float>* %tp{t}, align 4")
+    for g in range(4):
+        add(f"  %ip{g} = getelementptr i8, i8* %cp, i64 {16 * g}\n  %ipv{g} = bitcast i8* %ip{g} to <16 x i8>*")
+        add(f"  %i8_{g} = load <16 x i8>, <16 x i8>* %ipv{g}, align 1\n  %ix{g} = zext <16 x i8> %i8_{g} to <16 x i32>")
+        for p in range(8):
+            add(f"  %r{g}_{p} = call <16 x float> @llvm.x86.avx512.vpermi2var.ps.512(<16 x float> %t{2 * p}, <16 x i32> %ix{g}, <16 x float> %t{2 * p + 1})")
+        for bit, name in ((32, "b5"), (64, "b6"), (128, "b7")):
+            mask = ", ".join([f"i32 {bit}"] * 16)
+            add(f"  %{name}a{g} = and <16 x i32> %ix{g}, <{mask}>\n  %{name}{g} = icmp ne <16 x i32> %{name}a{g}, zeroinitializer")
+        for q in range(4):
+            add(f"  %s{g}_{q} = select <16 x i1> %b5{g}, <16 x float> %r{g}_{2 * q + 1}, <16 x float> %r{g}_{2 * q}")
+        for q in range(2):
+            add(f"  %u{g}_{q} = select <16 x i1> %b6{g}, <16 x float> %s{g}_{2 * q + 1}, <16 x float> %s{g}_{2 * q}")
+        add(f"  %v{g} = select <16 x i1> %b7{g}, <16 x float> %u{g}_1, <16 x float> %u{g}_0")
+        add(f"  %accn{g} = fadd <16 x float> %acc{g}, %v{g}")
+    add("  %jn = add i64 %j, 1\n  %jdone = icmp eq i64 %jn, %m\n  br i1 %jdone, label %mend, label %mloop")
+    add("mend:\n  %ooff = mul i64 %b, 64\n  %op = getelementptr float, float* %out, i64 %ooff\n  %opv = bitcast float* %op to <16 x float>*")
+    for g in range(4):
+        add(f"  %o{g} = getelementptr <16 x float>, <16 x float>* %opv, i64 {g}\n  store <16 x float> %accn{g}, <16 x float>* %o{g}, align 4")
+    add("  %bn = add i64 %b, 1\n  br label %bloop\nexit:\n  ret void\n}")
+    return "\n".join(lines)
+
+
+SIMD_KERNELS = {"q8_sums": (("avx512bw", "avx512vbmi"), lambda: _VBMI_IR), "f32_sums": (("avx512f",), _f32_sums_ir)}
+
+
+@functools.lru_cache(maxsize=None)
+def _simd_kernel(name: str):
+    """The AVX-512 kernel `name` of `SIMD_KERNELS` as a parallel numba function (blocked, table, out),
+    or None when the CPU lacks the instructions.
+
+    q8_sums: `_q8_sums_kernel` with VBMI byte shuffles: each sub-vector's 256-entry uint8 table
+    sits in four 64-byte registers, two `vpermi2b` look up its low and high halves for 64
+    Gaussians at once and bit 7 of the code picks between them (faiss fast-scan does the same
+    with 16-entry tables and 4-bit codes). f32_sums: see `_f32_sums_ir`.
+    Compiled once from LLVM IR by llvmlite (which numba ships); numba's `prange` calls it over
+    chunks of blocks.
+    """
+    import ctypes
+
+    import llvmlite.binding as llvm
+
+    needs, make_ir = SIMD_KERNELS[name]
+    features = llvm.get_host_cpu_features()
+    if not all(features.get(f) for f in needs):
+        return None
+    llvm.initialize_native_target()
+    llvm.initialize_native_asmprinter()
+    module = llvm.parse_assembly(make_ir())
+    module.verify()
+    machine = llvm.Target.from_default_triple().create_target_machine(cpu=llvm.get_host_cpu_name(), features=features.flatten(), opt=3)
+    engine = llvm.create_mcjit_compiler(module, machine)
+    engine.finalize_object()
+    c_int64, c_void_p = ctypes.c_int64, ctypes.c_void_p
+    scan = ctypes.CFUNCTYPE(None, c_void_p, c_void_p, c_void_p, c_int64, c_int64, c_int64)(engine.get_function_address(name))
+
+    @numba.njit(parallel=True)
+    def run_blocks(blocked, table, sums, scale, offset, coarse_k, list_ids, norms, out, k):  # pragma: no cover - jitted
+        """sums [NB·64] of every block, then out[:, k] rescaled chunk by chunk (one parallel region)."""
+        nb, m = blocked.shape[0], blocked.shape[1]
+        n = out.shape[0]
+        chunks = min(nb, 8 * numba.get_num_threads())
+        for c in numba.prange(chunks):
+            b0, b1 = c * nb // chunks, (c + 1) * nb // chunks
+            scan(blocked.ctypes.data, table.ctypes.data, sums.ctypes.data, b0, b1, m)
+            _rescale_range(sums, scale, offset, coarse_k, list_ids, norms, out, k, b0 * 64, min(n, b1 * 64))
+
+    run_blocks.engine = engine  # the machine code lives as long as the engine
+    return run_blocks
+
+
+def simd_available() -> bool:
+    """Whether the AVX-512 float32 blocked kernel runs on this CPU."""
+    return _simd_kernel("f32_sums") is not None
+
+
+def q8_sums(blocked: np.ndarray, qlut: np.ndarray, use_simd: bool = True) -> np.ndarray:
+    """Σ_m qlut[m, code_im] for every Gaussian of blocked codes [NB, M, 64]: [NB·64] uint16.
+
+    Uses the VBMI kernel when the CPU has it (and `use_simd`), else the portable numba kernel;
+    both give the same integers.
+    """
+    m = blocked.shape[1]
+    if not 1 <= m <= Q8_MAX_M:
+        raise ValueError(f"8-bit look-up tables need 1 ≤ M ≤ {Q8_MAX_M}, got M = {m}")
+    blocked = np.ascontiguousarray(blocked, np.uint8)
+    qlut = np.ascontiguousarray(qlut, np.uint8)
+    out = np.empty(blocked.shape[0] * Q8_BLOCK, np.uint16)
+    if blocked.shape[0] == 0:
+        return out
+    simd = _simd_kernel("q8_sums") if use_simd else None
+    if simd is None:
+        _q8_sums_kernel(blocked, qlut, out)
+    else:
+        _run_sums_only(simd, blocked, qlut, out)
+    return out
+
+
+def _run_sums_only(simd, blocked: np.ndarray, table: np.ndarray, sums: np.ndarray) -> None:
+    none = np.zeros(0, np.int32)
+    simd(blocked, table, sums, np.float32(1), np.float32(0), np.zeros(0, np.float32), none, np.zeros(0, np.float32), np.zeros((0, 1), np.float32), 0)
+
+
+@numba.njit(parallel=True, fastmath=FAST, cache=True, boundscheck=False)
+def _f32_sums_kernel(blocked, lut, out):  # pragma: no cover - jitted
+    """out[64·b + t] = Σ_m lut[m, blocked[b, m, t]], float32 tables, summed in m order.
+
+    blocked: [NB, M, 64] uint8; lut: [M, 256] float32; out: [NB·64] float32.
+    """
+    nb, m, width = blocked.shape
+    for b in numba.prange(nb):
+        acc = np.zeros(width, np.float32)
+        for j in range(m):
+            row = blocked[b, j]
+            table = lut[j]
+            for t in range(width):
+                acc[t] += table[row[t]]
+        out[b * width : (b + 1) * width] = acc
+
+
+def f32_sums(blocked: np.ndarray, lut: np.ndarray, use_simd: bool = True) -> np.ndarray:
+    """Σ_m lut[m, code_im] for every Gaussian of blocked codes [NB, M, 64], float32 tables [M, 256]: [NB·64] float32.
+
+    Uses the AVX-512 kernel when the CPU has it (and `use_simd`), else the portable numba kernel.
+    """
+    if blocked.shape[1] < 1:
+        raise ValueError("look-up tables need M ≥ 1 sub-vectors")
+    blocked = np.ascontiguousarray(blocked, np.uint8)
+    lut = np.ascontiguousarray(lut, np.float32)
+    out = np.empty(blocked.shape[0] * Q8_BLOCK, np.float32)
+    if blocked.shape[0] == 0:
+        return out
+    simd = _simd_kernel("f32_sums") if use_simd else None
+    if simd is None:
+        _f32_sums_kernel(blocked, lut, out)
+    else:
+        _run_sums_only(simd, blocked, lut, out)
+    return out
+
+
+@numba.njit(cache=True, boundscheck=False)
+def _rescale_range(sums, scale, offset, coarse_k, list_ids, norms, out, k, i0, i1):  # pragma: no cover - jitted
+    """out[i, k] = (offset + scale · sums[i] [+ coarse_k[list_ids[i]]]) / norms[i] for i0 ≤ i < i1 (0 for zero or non-finite norms)."""
+    has_coarse = coarse_k.shape[0] > 0
+    for i in range(i0, i1):
+        acc = offset + scale * np.float32(sums[i])
+        if has_coarse:
+            acc += coarse_k[list_ids[i]]
+        out[i, k] = acc * _inverse_norm(norms[i])
+
+
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _q8_rescale_kernel(sums, scale, offset, coarse_k, list_ids, norms, out, k):  # pragma: no cover - jitted
+    """`_rescale_range` over all N, parallel over chunks of 4,096."""
+    n = out.shape[0]
+    for c in numba.prange((n + 4095) // 4096):
+        _rescale_range(sums, scale, offset, coarse_k, list_ids, norms, out, k, c * 4096, min(n, (c + 1) * 4096))
+
+
+def lut_scores_blocked(
+    codebook: Codebook,
+    blocked: np.ndarray,
+    n: int,
+    list_ids: np.ndarray | None,
+    norms: np.ndarray,
+    queries: np.ndarray,
+    lut_bits: int = 32,
+    use_simd: bool = True,
+) -> np.ndarray:
+    """`lut_scores` on blocked codes, with float32 tables (lut_bits=32, exact up to float32 rounding)
+    or 8-bit tables (lut_bits=8, `quantize_luts`: an approximation, off by at most M·scale/2 / |r_i|).
+
+    blocked: [ceil(N/64), M, 64] from `blocked_codes`; n: N; list_ids: [N] int32 or None;
+    norms: [N]; queries: [K, D] unit rows. Returns [N, K] float32.
+    """
+    if lut_bits not in (8, 32):
+        raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
+    queries = np.atleast_2d(np.asarray(queries, np.float32))
+    luts = codebook.luts(queries)
+    if lut_bits == 8:
+        tables, scale, offset = quantize_luts(luts)
+    else:
+        tables, scale, offset = luts, np.ones(len(queries), np.float32), np.zeros(len(queries), np.float32)
+    coarse = codebook.coarse_table(queries)
+    ids = np.zeros(0, np.int32) if list_ids is None or codebook.coarse is None else np.ascontiguousarray(list_ids, np.int32)
+    norms = np.ascontiguousarray(norms, np.float32)
+    if blocked.shape[0] != -(-n // Q8_BLOCK) or norms.shape[0] != n:
+        raise ValueError(f"blocked codes {blocked.shape} and norms {norms.shape} do not hold N = {n} Gaussians")
+    out = np.empty((n, queries.shape[0]), np.float32)
+    simd = _simd_kernel("q8_sums" if lut_bits == 8 else "f32_sums") if use_simd and blocked.shape[0] else None
+    if lut_bits == 8 and not 1 <= blocked.shape[1] <= Q8_MAX_M:
+        raise ValueError(f"8-bit look-up tables need 1 ≤ M ≤ {Q8_MAX_M}, got M = {blocked.shape[1]}")
+    blocked = np.ascontiguousarray(blocked, np.uint8)
+    sums = np.empty(blocked.shape[0] * Q8_BLOCK, np.uint16 if lut_bits == 8 else np.float32)
+    for k in range(queries.shape[0]):
+        table = np.ascontiguousarray(tables[k], np.uint8 if lut_bits == 8 else np.float32)
+        coarse_k = np.ascontiguousarray(coarse[k]) if ids.shape[0] else np.zeros(0, np.float32)
+        if simd is not None:
+            simd(blocked, table, sums, scale[k], offset[k], coarse_k, ids, norms, out, k)
+            continue
+        sums = q8_sums(blocked, table, False) if lut_bits == 8 else f32_sums(blocked, table, False)
+        _q8_rescale_kernel(sums, scale[k], offset[k], coarse_k, ids, norms, out, k)
+    return out
+
+
+def lut_scores_q8_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None, norms: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Numpy reference of `lut_scores_blocked(..., lut_bits=8)` from codes [N, M]: gather the 8-bit tables, rescale (float64)."""
+    queries = np.atleast_2d(np.asarray(queries, np.float32))
+    qluts, scale, offset = quantize_luts(codebook.luts(queries))
+    codes = np.asarray(codes, np.intp)
+    m = codes.shape[1]
+    sums = qluts[:, np.arange(m)[None, :], codes].astype(np.int64).sum(axis=2).T  # [N, K]
+    dots = offset.astype(np.float64) + scale.astype(np.float64) * sums
+    if list_ids is not None and codebook.coarse is not None:
+        dots = dots + codebook.coarse_table(queries).T[np.asarray(list_ids, np.intp)]
+    return (dots * inverse_norms(norms)[:, None]).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,6 +746,7 @@ class LanguageField:
     list_ids: np.ndarray | None = None
     norms: np.ndarray | None = None
     codebook: Codebook | None = None
+    _blocked: np.ndarray | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
 
     @property
     def num_gaussians(self) -> int:
@@ -386,17 +761,32 @@ class LanguageField:
             return 2 * self.dim + 4
         return self.codebook.m + 8 + (4 if self.kind == "ivfpq" else 0)
 
-    def scores(self, queries: np.ndarray) -> np.ndarray:
+    def scores(self, queries: np.ndarray, lut_bits: int = 32) -> np.ndarray:
         """Cosine similarity of every Gaussian to each query: queries [K, D] or [D] -> [N, K] float32.
 
         Queries are L2-normalised; features are compared through their stored norm, so the
         result is cos(q, f_i) for exact fields and cos(q, r_i) for PQ reconstructions r_i.
         Unassigned Gaussians (zero norm) score 0.
+        lut_bits: 32 (default) scores PQ fields with float32 tables (exact up to rounding);
+        8 uses 8-bit tables (`lut_scores_blocked`, an approximation). Exact fields have no tables
+        and ignore it. On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) PQ fields are
+        scored on a blocked copy of the codes, built by the first call and kept (M more bytes
+        per Gaussian).
         """
+        if lut_bits not in (8, 32):
+            raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
         q = _unit_rows(self._check_queries(queries))
         if self.kind == "exact":
             return half_scores(self.features, self.norms, q)
+        if lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available()):
+            return lut_scores_blocked(self.codebook, self.blocked_codes(), self.num_gaussians, self.list_ids, self.norms, q, lut_bits)
         return lut_scores(self.codebook, self.codes, self.list_ids, self.norms, q)
+
+    def blocked_codes(self) -> np.ndarray:
+        """The codes in the layout of the 8-bit kernel, built on first use: [ceil(N/64), M, 64] uint8."""
+        if self._blocked is None:
+            self._blocked = blocked_codes(self.codes)
+        return self._blocked
 
     def scores_reference(self, queries: np.ndarray) -> np.ndarray:
         """Decode-then-cosine reference of `scores` (float64 math): [N, K]."""

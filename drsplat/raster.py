@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 TILE_SIZE = 16
 NEAR = 0.01
+BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
 BLUR = kernels.BLUR
 ALPHA_MIN = kernels.ALPHA_MIN
 ALPHA_MAX = kernels.ALPHA_MAX
@@ -368,9 +369,19 @@ def project_gaussians_reference(
 
 
 def depth_order(projected: Projected) -> np.ndarray:
-    """[M] int64 ids of the valid Gaussians, front to back (stable: ties keep id order)."""
+    """[M] int64 ids of the valid Gaussians, front to back (stable: ties keep id order).
+
+    Sorts the unique uint64 keys (depth bits << 32 | id), where the float32 depth is mapped to
+    bits that order as the floats do (sign bit set for positives, all bits flipped for negatives;
+    -0 counts as +0): the result equals a stable argsort of the depths, ~7x faster.
+    """
     idx = np.flatnonzero(projected.valid)
-    return idx[np.argsort(projected.depths[idx], kind="stable")]
+    depths = np.asarray(projected.depths[idx], np.float32) + np.float32(0.0)
+    bits = depths.view(np.uint32)
+    ordered = np.where(bits >> np.uint32(31), ~bits, bits | np.uint32(0x80000000))
+    keys = (ordered.astype(np.uint64) << np.uint64(32)) | idx.astype(np.uint64)
+    keys.sort()
+    return (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
 def _check_args(topk: int, background) -> np.ndarray:
@@ -410,7 +421,9 @@ def render_projected(
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
     h, w = projected.height, projected.width
     n_tiles_x, n_tiles_y = projected.tile_grid
-    offsets, tile_ids = kernels.bin_gaussians(depth_order(projected), projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y)
+    offsets, tile_ids = kernels.bin_gaussians(
+        depth_order(projected), projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
+    )
     ids = _buffer(None if out is None else out.ids, (h, w, topk), np.int32)
     weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)
     rgb = _buffer(None if out is None else out.rgb, (h, w, 3) if with_rgb else (0, 0, 3), np.float32)

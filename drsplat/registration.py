@@ -448,6 +448,7 @@ def register_scene(
     if resumed:
         log.info("resuming from %s: %d of %d views already registered", ckpt, resumed, len(views))
     prepared = prepare_scene(scene)
+    out = None  # the rasterizer's [H, W, k] buffers, reused from view to view
     raster_s = accumulate_s = accumulate_cpu = allocate_s = 0.0
     since_checkpoint = 0
     total = len(views)
@@ -468,7 +469,7 @@ def register_scene(
             raise InputError(features_dir / f"{cam.name}_f.npy", f"embeddings are {feats.shape[1]}-D but earlier views' are {state.acc.dim}-D")
         mask_ids = resample_nearest(mask_ids, cam.width, cam.height)
         t0 = time.perf_counter()
-        out = rasterize(prepared, cam, topk=topk)
+        out = rasterize(prepared, cam, topk=topk, out=out)
         t1, c1 = time.perf_counter(), time.process_time()
         pairs, distinct = state.acc.add_view(out.ids, out.weights, mask_ids, feats)
         accumulate_s += time.perf_counter() - t1

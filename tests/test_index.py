@@ -9,13 +9,21 @@ from drsplat.errors import InputError
 from drsplat.index import (
     Codebook,
     LanguageField,
+    Q8_BLOCK,
     attach_field,
+    blocked_codes,
     build_field,
     codebook_path_for,
     load_codebook,
+    f32_sums,
     lut_scores,
+    lut_scores_blocked,
+    lut_scores_q8_reference,
     lut_scores_reference,
+    q8_sums,
+    quantize_luts,
     read_field,
+    simd_available,
     strip_field,
     train_codebook,
 )
@@ -108,6 +116,145 @@ def test_lut_kernel_for_m_not_multiple_of_4():
     field = build_field(x, np.ones(len(x), np.float32), book)
     q = np.concatenate([dirs, hard_queries(30, np.random.default_rng(2))])
     np.testing.assert_allclose(field.scores(q), field.scores_reference(q), atol=TOL, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Blocked kernels: float32 tables (exact) and 8-bit tables (approximate), AVX-512 and portable
+
+EDGE_NS = [0, 1, 63, 64, 65, 200]
+
+
+@pytest.mark.parametrize("n", EDGE_NS)
+def test_blocked_codes_layout(n):
+    codes = np.random.default_rng(n).integers(0, 256, size=(n, 12), dtype=np.uint8)
+    blocked = blocked_codes(codes)
+    assert blocked.shape == (-(-n // Q8_BLOCK), 12, Q8_BLOCK) and blocked.dtype == np.uint8
+    i = np.arange(n)
+    np.testing.assert_array_equal(blocked[i // Q8_BLOCK, :, i % Q8_BLOCK], codes)
+    assert blocked.size == 0 or blocked.reshape(-1, 12, Q8_BLOCK).transpose(0, 2, 1).reshape(-1, 12)[n:].sum() == 0
+
+
+def extreme_tables(m: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Random, huge, tiny, signed-zero and constant float32 tables [M, 256]."""
+    base = rng.normal(size=(m, 256)).astype(np.float32)
+    huge = (base * 1e30).astype(np.float32)
+    tiny = (base * 1e-30).astype(np.float32)
+    zeros = np.zeros((m, 256), np.float32)
+    zeros[:, ::2] = -0.0
+    return [base, huge, tiny, zeros, np.full((m, 256), 3.5, np.float32)]
+
+
+@pytest.mark.parametrize("use_simd", [True, False])
+@pytest.mark.parametrize("n", EDGE_NS)
+def test_f32_sums_equal_numpy_gather(n, use_simd):
+    rng = np.random.default_rng(n + 7)
+    for m in (1, 5, 128):
+        codes = rng.integers(0, 256, size=(n, m), dtype=np.uint8)
+        codes[:1] = 255  # the highest entry of every table
+        for lut in extreme_tables(m, rng):
+            got = f32_sums(blocked_codes(codes), lut, use_simd)
+            assert got.shape == (-(-n // Q8_BLOCK) * Q8_BLOCK,) and got.dtype == np.float32
+            ref = lut.astype(np.float64)[np.arange(m)[None, :], codes].sum(axis=1)
+            scale = np.abs(lut.astype(np.float64)[np.arange(m)[None, :], codes]).sum(axis=1)
+            assert np.all(np.abs(got[:n] - ref) <= 1e-6 * scale + 1e-45), (m, float(np.abs(lut).max()))
+
+
+@pytest.mark.parametrize("use_simd", [True, False])
+@pytest.mark.parametrize("n", EDGE_NS)
+def test_q8_sums_are_exact_integers(n, use_simd):
+    rng = np.random.default_rng(n + 11)
+    for m in (1, 3, 128, 257):
+        codes = rng.integers(0, 256, size=(n, m), dtype=np.uint8)
+        codes[:1] = 255
+        for qlut in (rng.integers(0, 256, size=(m, 256)).astype(np.uint8), np.full((m, 256), 255, np.uint8)):
+            got = q8_sums(blocked_codes(codes), qlut, use_simd)
+            ref = qlut.astype(np.int64)[np.arange(m)[None, :], codes].sum(axis=1)
+            np.testing.assert_array_equal(got[:n].astype(np.int64), ref)
+    if n:
+        assert q8_sums(blocked_codes(np.full((n, 257), 255, np.uint8)), np.full((257, 256), 255, np.uint8), use_simd)[0] == 65535
+
+
+def test_q8_sums_refuse_m_that_overflows_uint16():
+    with pytest.raises(ValueError, match="M ≤ 257"):
+        q8_sums(blocked_codes(np.zeros((3, 258), np.uint8)), np.zeros((258, 256), np.uint8))
+
+
+def test_quantize_luts_error_bound():
+    rng = np.random.default_rng(4)
+    luts = np.stack([rng.normal(size=(16, 256)), rng.normal(size=(16, 256)) * 1e6, np.full((16, 256), -2.0)]).astype(np.float32)
+    luts[0, 3] += 5.0  # one sub-table with a much larger range sets the scale
+    q, scale, offset = quantize_luts(luts)
+    assert q.dtype == np.uint8 and scale.shape == offset.shape == (3,)
+    lo = luts.astype(np.float64).min(axis=2)
+    approx = lo[:, :, None] + scale[:, None, None].astype(np.float64) * q
+    assert np.all(np.abs(approx - luts) <= scale[:, None, None] * 0.5 * (1 + 1e-5) + 1e-6 * np.abs(luts))
+    np.testing.assert_allclose(offset, lo.sum(axis=1), rtol=1e-6)
+    assert np.all(q[2] == 0) and offset[2] == -32.0, "a constant table is represented exactly"
+
+
+BLOCKED_PATHS = [(32, True), (32, False), (8, True), (8, False)]
+
+
+@pytest.mark.parametrize("bits,use_simd", BLOCKED_PATHS)
+@pytest.mark.parametrize("m", [8, 16, 32])
+def test_blocked_lut_scores_agree_with_references(data, books, m, bits, use_simd):
+    x, w, _, _ = data
+    field = build_field(x, w, books[m], clip_model="oracle")
+    q = hard_queries(x.shape[1], np.random.default_rng(m))
+    qn = q / np.linalg.norm(q, axis=1, keepdims=True)
+    got = lut_scores_blocked(field.codebook, blocked_codes(field.codes), len(x), None, field.norms, qn, bits, use_simd)
+    exact = field.scores_reference(q)
+    assert got.shape == (len(x), 5) and np.all(got[:5] == 0)
+    if bits == 32:
+        np.testing.assert_allclose(got, exact, atol=TOL, rtol=0)
+        np.testing.assert_allclose(got, lut_scores(field.codebook, field.codes, None, field.norms, qn), atol=TOL, rtol=0)
+    else:
+        np.testing.assert_allclose(got, lut_scores_q8_reference(field.codebook, field.codes, None, field.norms, qn), atol=TOL, rtol=0)
+        _, scale, _ = quantize_luts(field.codebook.luts(qn))
+        bound = m * scale[None, :] / 2 / np.where(field.norms > 0, field.norms, 1)[:, None]
+        assert np.all(np.abs(got - exact) <= bound + TOL)
+        assert np.abs(got - exact).mean() < 0.5 * bound.mean(), "rounding errors should partly cancel"
+
+
+@pytest.mark.parametrize("bits,use_simd", BLOCKED_PATHS)
+def test_blocked_lut_scores_edge_shapes_and_bad_norms(books, bits, use_simd):
+    book = books[16]
+    rng = np.random.default_rng(5)
+    for n, k in [(0, 1), (1, 1), (65, 3), (130, 17)]:
+        codes = rng.integers(0, 256, size=(n, book.m), dtype=np.uint8)
+        norms = np.linalg.norm(book.decode(codes), axis=1).astype(np.float32)
+        norms[1:4] = [np.inf, np.nan, 0.0][: max(0, min(3, n - 1))]
+        q = rng.normal(size=(k, book.dim)).astype(np.float32)
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        got = lut_scores_blocked(book, blocked_codes(codes), n, None, norms, q, bits, use_simd)
+        assert got.shape == (n, k) and np.all(np.isfinite(got))
+        ref = lut_scores_reference(book, codes, None, norms, q) if bits == 32 else lut_scores_q8_reference(book, codes, None, norms, q)
+        ref = np.where(np.isfinite(norms) & (norms > 0), 1.0, 0.0)[:, None] * np.nan_to_num(ref)
+        np.testing.assert_allclose(got, ref, atol=TOL, rtol=0)
+        if bits == 32:
+            np.testing.assert_allclose(lut_scores(book, codes, None, norms, q), ref, atol=TOL, rtol=0)
+    with pytest.raises(ValueError, match="N = 5"):
+        lut_scores_blocked(book, blocked_codes(np.zeros((70, book.m), np.uint8)), 5, None, np.ones(5, np.float32), q)
+
+
+def test_field_lut_bits_option(data, books):
+    x, w, _, dirs = data
+    field = build_field(x, w, books[32], clip_model="oracle")
+    exact = field.scores_reference(dirs)
+    np.testing.assert_allclose(field.scores(dirs), exact, atol=TOL, rtol=0)
+    approx = field.scores(dirs, lut_bits=8)
+    assert approx.shape == exact.shape and np.all(approx[:5] == 0)
+    assert 0 < np.abs(approx - exact).max() < 0.02
+    sub = field.subset(np.arange(10, 300))
+    np.testing.assert_allclose(sub.scores(dirs, lut_bits=8), approx[10:300], atol=TOL, rtol=0)
+    with pytest.raises(ValueError, match="lut_bits"):
+        field.scores(dirs, lut_bits=4)
+
+
+def test_simd_kernels_are_used_when_the_cpu_has_them():
+    import llvmlite.binding as llvm
+
+    assert simd_available() == bool(llvm.get_host_cpu_features().get("avx512f"))
 
 
 def test_codebook_decode_matches_faiss(books, data):
@@ -275,8 +422,17 @@ def test_official_codebook_lut_equals_decode_then_cosine(official):
     np.testing.assert_array_equal(raw[:, 2:], field.codes[:200])
     np.testing.assert_allclose(field.reconstruct(np.arange(200)), official.index.sa_decode(raw), atol=1e-6)
     q = np.concatenate([dirs, hard_queries(512, np.random.default_rng(1))])
-    np.testing.assert_allclose(field.scores(q), field.scores_reference(q), atol=TOL, rtol=0)
+    ref = field.scores_reference(q)
+    np.testing.assert_allclose(field.scores(q), ref, atol=TOL, rtol=0)
     assert np.all(field.scores(q)[-3:] == 0)
+    qn = q / np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_allclose(lut_scores(official, field.codes, field.list_ids, field.norms, qn), ref, atol=TOL, rtol=0)
+    blocked = blocked_codes(field.codes)
+    for use_simd in (True, False):
+        got = lut_scores_blocked(official, blocked, len(x), field.list_ids, field.norms, qn, 32, use_simd)
+        np.testing.assert_allclose(got, ref, atol=TOL, rtol=0)
+        got8 = lut_scores_blocked(official, blocked, len(x), field.list_ids, field.norms, qn, 8, use_simd)
+        np.testing.assert_allclose(got8, lut_scores_q8_reference(official, field.codes, field.list_ids, field.norms, qn), atol=TOL, rtol=0)
 
 
 def test_official_codebook_round_trips_through_ply_encoding(official, tmp_path):

@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from drsplat import _raster_kernels as kernels
 from drsplat.cameras import Camera
 from drsplat.raster import (
     SH_C0,
     SH_C1,
     T_MIN,
+    Projected,
+    depth_order,
     eval_sh,
     look_at_camera,
     prepare_scene,
@@ -383,3 +386,50 @@ def test_kernel_matches_reference_on_a_real_capture():
     assert_agree(a, b)
     assert_physical(a, 24)
     assert a.alpha.mean() > 0.3
+
+
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_topk_buffer_keeps_the_first_k_of_a_stable_sort(k):
+    rng = np.random.default_rng(k)
+    for trial in range(300):
+        n = int(rng.integers(0, 3 * k + 2))
+        levels = rng.uniform(0.01, 1.0, size=int(rng.integers(1, 4)))
+        w = rng.choice(levels, n) if trial % 2 else rng.uniform(0.0, 1.0, n)  # many exact ties / none
+        wbuf, ibuf = np.empty((2, k)), np.empty((2, k), np.int32)
+        count, minw, minpos = np.zeros(2, np.int64), np.zeros(2), np.zeros(2, np.int64)
+        for g, wg in enumerate(w):
+            kernels.push_topk(wbuf, ibuf, count, minw, minpos, 1, wg, g)
+        kernels.sort_topk(wbuf, ibuf, count[1], 1)
+        best = np.argsort(-w, kind="stable")[:k]
+        assert count[1] == best.size
+        np.testing.assert_array_equal(ibuf[1, : best.size], best)
+        np.testing.assert_array_equal(wbuf[1, : best.size], w[best])
+
+
+def test_depth_order_is_a_stable_argsort_of_depths():
+    rng = np.random.default_rng(41)
+    special = np.array([-2.5, -0.0, 0.0, 1e-30, -1e-30, 1.0, 1.0, 3.5, 3e38], np.float32)
+    for trial in range(50):
+        n = int(rng.integers(0, 400))
+        depths = rng.choice(special, n) if trial % 2 else rng.normal(size=n).astype(np.float32)
+        projected = Projected(*(None,) * 4, opacities=None, valid=rng.random(n) < 0.8, tile_rects=None, extents=None,
+                              qlimits=None, colors=None, width=1, height=1)  # fmt: skip
+        projected.depths = depths
+        idx = np.flatnonzero(projected.valid)
+        np.testing.assert_array_equal(depth_order(projected), idx[np.argsort(depths[idx], kind="stable")])
+
+
+@pytest.mark.parametrize("n_chunks", [1, 3, 64])
+def test_parallel_binning_keeps_depth_order_in_every_tile(n_chunks):
+    rng = np.random.default_rng(n_chunks)
+    n, tiles_x, tiles_y = 500, 7, 5
+    lo = np.stack([rng.integers(0, tiles_x, n), rng.integers(0, tiles_y, n)], axis=1)
+    hi = lo + np.stack([rng.integers(0, 4, n), rng.integers(0, 3, n)], axis=1)  # some empty rects
+    rects = np.concatenate([lo, np.minimum(hi, [tiles_x, tiles_y])], axis=1).astype(np.int32)
+    order = rng.permutation(n)[: n - 40].astype(np.int64)
+    offsets, ids = kernels.bin_gaussians(order, rects, tiles_x, tiles_x * tiles_y, n_chunks)
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            t = ty * tiles_x + tx
+            inside = (rects[order, 0] <= tx) & (tx < rects[order, 2]) & (rects[order, 1] <= ty) & (ty < rects[order, 3])
+            np.testing.assert_array_equal(ids[offsets[t] : offsets[t + 1]], order[inside])

@@ -2,7 +2,7 @@
 
 For N synthetic Gaussians with CLIP-like clustered embeddings it times one cosine query (and a
 batch of 16) with float32 matmul, the float16 exact field, faiss PQ of each M (LUT kernel), the
-official IVFPQ codebook (LUT kernel) and faiss's own search, and measures each approximation
+official IVFPQ codebook (LUT kernel, float32 and 8-bit tables) and faiss's own search, and measures each approximation
 against exact float32 cosines: mean |Δcos|, Spearman correlation, selection IoU at the threshold.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, median_seconds, peak_rss_mb
 from drsplat.errors import InputError
-from drsplat.index import Codebook, LanguageField, encode_features, load_codebook, lut_scores, train_codebook
+from drsplat.index import Codebook, LanguageField, blocked_codes, encode_features, load_codebook, lut_scores, lut_scores_blocked, train_codebook
 from drsplat.query import unit_rows
 
 log = logging.getLogger(__name__)
@@ -236,6 +236,18 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
         label = f"PQ M={book.m}" if book.kind == "pq" else f"official IVFPQ M={book.m}"
         bpg = book.m + 4 + (4 if ids is not None else 0)
         measure(label + " (LUT)", bpg, lambda: lut_scores(book, codes, ids, norms, q1), lambda: lut_scores(book, codes, ids, norms, qb), lambda: lut_scores(book, codes, ids, norms, queries))
+        t0 = time.perf_counter()
+        blocked = blocked_codes(codes)
+        log.info("N=%d %s: blocked codes for 8-bit tables in %.2f s", n, label, time.perf_counter() - t0)
+        for bits, suffix in ((32, "blocked"), (8, "u8")):
+            measure(
+                f"{label} (LUT {suffix})",
+                bpg,
+                lambda: lut_scores_blocked(book, blocked, n, ids, norms, q1, bits),
+                lambda: lut_scores_blocked(book, blocked, n, ids, norms, qb, bits),
+                lambda: lut_scores_blocked(book, blocked, n, ids, norms, queries, bits),
+            )
+        del blocked
         if "faiss" in backends and (book.m == 128 or book.kind == "ivfpq"):
             index = faiss_search_index(book, codes, ids)
             top = 1000
