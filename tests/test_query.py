@@ -272,3 +272,18 @@ def test_relevancy_with_the_real_canonical_negatives_and_official_codebook(tmp_p
     neg /= np.linalg.norm(neg, axis=1, keepdims=True)
     decoded = field.scores_reference(np.concatenate([dirs[1:2], neg]))
     np.testing.assert_allclose(got, relevancy_reference(decoded[:, :1], decoded[:, 1:])[:, 0], atol=1e-5)
+
+
+def test_cli_eight_bit_tables_match_exact_tables_closely(tmp_path, registered, world):
+    """--lut-bits 8 is the opt-in fast path: same selection as exact tables up to the documented bound."""
+    _, _, lab, dirs = world
+    np.save(tmp_path / "q.npy", dirs[:2])
+    outs = {}
+    for bits in ("32", "8"):
+        assert main(["query", str(registered["pq"]), "--embedding", str(tmp_path / "q.npy"), "--lut-bits", bits, "--scores", str(tmp_path / f"s{bits}.npy")]) == 0
+        outs[bits] = np.load(tmp_path / f"s{bits}.npy")
+    assert outs["8"].shape == outs["32"].shape == (len(lab), 2)
+    assert 0 < np.abs(outs["8"] - outs["32"]).max() < 0.02
+    assert main(["segment", str(registered["pq"]), "--embeddings", str(tmp_path / "q.npy"), "--lut-bits", "8", "--out", str(tmp_path / "l8.npy")]) == 0
+    assert main(["segment", str(registered["pq"]), "--embeddings", str(tmp_path / "q.npy"), "--out", str(tmp_path / "l32.npy")]) == 0
+    assert np.mean(np.load(tmp_path / "l8.npy") == np.load(tmp_path / "l32.npy")) > 0.99

@@ -34,6 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--embedding", type=Path, metavar="Q.npy", help="query embedding(s), (D,) or (K, D)")
     source.add_argument("--gaussians", type=Path, metavar="IDS.npy", help="Gaussian indices (or a boolean mask): query = mean of their features")
     parser.add_argument("--relevancy", action="store_true", help="LERF relevancy against canonical negatives instead of cosine")
+    add_lut_bits_argument(parser)
     parser.add_argument("--negatives", default="", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
@@ -105,17 +106,23 @@ def build_queries(args: argparse.Namespace, field: LanguageField, encoder_factor
     return click_query(field, ids)[None], True, None
 
 
+def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--lut-bits", type=int, choices=(32, 8), default=32,
+                        help="PQ look-up tables: 32 exact float32 (default), 8 faster 8-bit tables (see `drsplat bench query` for the error)")
+
+
 def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.ndarray, encoder, encoder_factory=None) -> np.ndarray:
     """[N, K] cosine, or relevancy with --relevancy."""
     from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy
 
+    lut_bits = getattr(args, "lut_bits", 32)
     if not args.relevancy:
-        return cosine(field, queries)
+        return cosine(field, queries, lut_bits=lut_bits)
     user = split_phrases(args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and (extra is None or user):
         encoder = (encoder_factory or load_encoder)(args, field)
-    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra))
+    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits)
 
 
 def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:
