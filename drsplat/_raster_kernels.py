@@ -124,6 +124,7 @@ def sort_topk(wbuf, ibuf, n, p) -> None:
 @njit(parallel=True, cache=True, error_model="numpy")
 def composite_tiles(
     tile_order: np.ndarray,
+    worker_starts: np.ndarray,
     offsets: np.ndarray,
     tile_ids: np.ndarray,
     means2d: np.ndarray,
@@ -148,7 +149,9 @@ def composite_tiles(
 ) -> None:
     """Front-to-back compositing of every tile, Gaussian-outer like 3DGS's shared-memory loop.
 
-    Tiles are processed in `tile_order` (most work first, for load balance). For each Gaussian of
+    Worker w (one prange iteration, one thread each) processes the tiles
+    tile_order[worker_starts[w]:worker_starts[w + 1]] in that order, reusing its scratch arrays
+    from tile to tile; the caller balances the work (`balance_tiles`). For each Gaussian of
     a tile (depth order) only the pixels inside its ellipse dᵀ Σ'⁻¹ d ≤ qlimits (where α ≥ 1/255
     is possible; `extents` is its bounding box) are visited, with a one-pixel margin; the
     per-pixel test is the exact 3DGS rule, so the ellipse changes speed, not results. Rows and
@@ -157,110 +160,121 @@ def composite_tiles(
     and out_alpha [H, W] = 1 - T.
     """
     k = out_ids.shape[2]
-    n_tiles = offsets.shape[0] - 1
-    for slot in prange(n_tiles):
-        t = tile_order[slot]
-        x0 = (t % n_tiles_x) * tile_size
-        y0 = (t // n_tiles_x) * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
-        tw = x1 - x0
-        th = y1 - y0
-        trans = np.ones(th * tw, np.float64)
-        done = np.zeros(th * tw, np.bool_)
-        count = np.zeros(th * tw, np.int64)
-        minw = np.zeros(th * tw, np.float64)
-        minpos = np.zeros(th * tw, np.int64)
-        wbuf = np.empty((th * tw, max(k, 1)), np.float64)  # only the first count[p] slots are read
-        ibuf = np.empty((th * tw, max(k, 1)), np.int32)
-        rgb = np.zeros((th * tw, 3), np.float64)
-        dep = np.zeros(th * tw, np.float64)
-        n_active = tw * th
-        row_active = np.full(th, tw, np.int64)
-        for j in range(offsets[t], offsets[t + 1]):
-            g = tile_ids[j]
-            u = means2d[g, 0]
-            v = means2d[g, 1]
-            ex = extents[g, 0]
-            ey = extents[g, 1]
-            fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
-            fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
-            fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
-            fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
-            if fx0 > fx1 or fy0 > fy1:
-                continue
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            qmax = qlimits[g]
-            # below this power α < 1/255 for sure (qmax ≥ 2·ln(255·o) with a margin), so exp is skipped
-            power_min = -0.5 * qmax
-            o = np.float64(opacities[g])
-            z = np.float64(depths[g])
-            for py in range(int(fy0), int(fy1) + 1):
-                ly = py - y0
-                if row_active[ly] == 0:
+    n_px = tile_size * tile_size
+    for worker in prange(worker_starts.shape[0] - 1):
+        trans = np.empty(n_px, np.float64)
+        done = np.empty(n_px, np.bool_)
+        count = np.empty(n_px, np.int64)
+        minw = np.zeros(n_px, np.float64)  # minw, minpos, wbuf, ibuf: read only once count[p] says they are set
+        minpos = np.zeros(n_px, np.int64)
+        wbuf = np.empty((n_px, max(k, 1)), np.float64)
+        ibuf = np.empty((n_px, max(k, 1)), np.int32)
+        rgb = np.empty((n_px, 3), np.float64)
+        dep = np.empty(n_px, np.float64)
+        row_active = np.empty(tile_size, np.int64)
+        for slot in range(worker_starts[worker], worker_starts[worker + 1]):
+            t = tile_order[slot]
+            x0 = (t % n_tiles_x) * tile_size
+            y0 = (t // n_tiles_x) * tile_size
+            x1 = min(x0 + tile_size, width)
+            y1 = min(y0 + tile_size, height)
+            tw = x1 - x0
+            th = y1 - y0
+            for p in range(th * tw):
+                trans[p] = 1.0
+                done[p] = False
+                count[p] = 0
+                dep[p] = 0.0
+                rgb[p, 0] = 0.0
+                rgb[p, 1] = 0.0
+                rgb[p, 2] = 0.0
+            n_active = tw * th
+            for ly in range(th):
+                row_active[ly] = tw
+            for j in range(offsets[t], offsets[t + 1]):
+                g = tile_ids[j]
+                u = means2d[g, 0]
+                v = means2d[g, 1]
+                ex = extents[g, 0]
+                ey = extents[g, 1]
+                fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
+                fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
+                fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
+                fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
+                if fx0 > fx1 or fy0 > fy1:
                     continue
-                dy = v - (py + 0.5)
-                # pixels of this row inside the ellipse a·dx² + 2b·dx·dy + c·dy² ≤ qmax, ±1 px
-                disc = cb * cb * dy * dy - ca * (cc * dy * dy - qmax)
-                if disc < 0.0:
-                    continue
-                root = math.sqrt(disc)
-                rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
-                rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
-                row = ly * tw - x0
-                for px in range(int(rx0), int(rx1) + 1):
-                    pix = row + px
-                    if done[pix]:
+                ca = conics[g, 0]
+                cb = conics[g, 1]
+                cc = conics[g, 2]
+                qmax = qlimits[g]
+                # below this power α < 1/255 for sure (qmax ≥ 2·ln(255·o) with a margin), so exp is skipped
+                power_min = -0.5 * qmax
+                o = np.float64(opacities[g])
+                z = np.float64(depths[g])
+                for py in range(int(fy0), int(fy1) + 1):
+                    ly = py - y0
+                    if row_active[ly] == 0:
                         continue
-                    dx = u - (px + 0.5)
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power > 0.0 or power < power_min:
+                    dy = v - (py + 0.5)
+                    # pixels of this row inside the ellipse a·dx² + 2b·dx·dy + c·dy² ≤ qmax, ±1 px
+                    disc = cb * cb * dy * dy - ca * (cc * dy * dy - qmax)
+                    if disc < 0.0:
                         continue
-                    alpha = min(ALPHA_MAX, o * math.exp(power))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    t_now = trans[pix]
-                    test_t = t_now * (1.0 - alpha)
-                    if test_t < T_MIN:
-                        done[pix] = True
-                        n_active -= 1
-                        row_active[ly] -= 1
-                        continue
-                    w = alpha * t_now
+                    root = math.sqrt(disc)
+                    rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                    rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                    row = ly * tw - x0
+                    for px in range(int(rx0), int(rx1) + 1):
+                        pix = row + px
+                        if done[pix]:
+                            continue
+                        dx = u - (px + 0.5)
+                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                        if power > 0.0 or power < power_min:
+                            continue
+                        alpha = min(ALPHA_MAX, o * math.exp(power))
+                        if alpha < ALPHA_MIN:
+                            continue
+                        t_now = trans[pix]
+                        test_t = t_now * (1.0 - alpha)
+                        if test_t < T_MIN:
+                            done[pix] = True
+                            n_active -= 1
+                            row_active[ly] -= 1
+                            continue
+                        w = alpha * t_now
+                        if k > 0:
+                            push_topk(wbuf, ibuf, count, minw, minpos, pix, w, g)
+                        if with_rgb:
+                            rgb[pix, 0] += w * colors[g, 0]
+                            rgb[pix, 1] += w * colors[g, 1]
+                            rgb[pix, 2] += w * colors[g, 2]
+                        if with_depth:
+                            dep[pix] += w * z
+                        trans[pix] = test_t
+                if n_active == 0:
+                    break
+            for ly in range(th):
+                for lx in range(tw):
+                    py = y0 + ly
+                    px = x0 + lx
+                    p = ly * tw + lx
                     if k > 0:
-                        push_topk(wbuf, ibuf, count, minw, minpos, pix, w, g)
+                        sort_topk(wbuf, ibuf, count[p], p)
+                    n = count[p]
+                    for m in range(n):
+                        out_ids[py, px, m] = ibuf[p, m]
+                        out_weights[py, px, m] = wbuf[p, m]
+                    for m in range(n, k):
+                        out_ids[py, px, m] = -1
+                        out_weights[py, px, m] = 0.0
+                    acc = 1.0 - trans[p]
+                    out_alpha[py, px] = acc
                     if with_rgb:
-                        rgb[pix, 0] += w * colors[g, 0]
-                        rgb[pix, 1] += w * colors[g, 1]
-                        rgb[pix, 2] += w * colors[g, 2]
+                        for ch in range(3):
+                            out_rgb[py, px, ch] = rgb[p, ch] + trans[p] * background[ch]
                     if with_depth:
-                        dep[pix] += w * z
-                    trans[pix] = test_t
-            if n_active == 0:
-                break
-        for ly in range(th):
-            for lx in range(tw):
-                py = y0 + ly
-                px = x0 + lx
-                p = ly * tw + lx
-                if k > 0:
-                    sort_topk(wbuf, ibuf, count[p], p)
-                n = count[p]
-                for m in range(n):
-                    out_ids[py, px, m] = ibuf[p, m]
-                    out_weights[py, px, m] = wbuf[p, m]
-                for m in range(n, k):
-                    out_ids[py, px, m] = -1
-                    out_weights[py, px, m] = 0.0
-                acc = 1.0 - trans[p]
-                out_alpha[py, px] = acc
-                if with_rgb:
-                    for ch in range(3):
-                        out_rgb[py, px, ch] = rgb[p, ch] + trans[p] * background[ch]
-                if with_depth:
-                    out_depth[py, px] = dep[p] / acc if acc > 0.0 else 0.0
+                        out_depth[py, px] = dep[p] / acc if acc > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 TILE_SIZE = 16
 NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
+TILE_CHUNKS_PER_WORKER = 8  # runs of neighbouring tiles per compositing thread (`balance_tiles`)
 BLUR = kernels.BLUR
 ALPHA_MIN = kernels.ALPHA_MIN
 ALPHA_MAX = kernels.ALPHA_MAX
@@ -400,6 +401,29 @@ def _buffer(previous: np.ndarray | None, shape: tuple[int, ...], dtype) -> np.nd
     return np.empty(shape, dtype)
 
 
+def balance_tiles(entries: np.ndarray, n_workers: int, chunks_per_worker: int = TILE_CHUNKS_PER_WORKER) -> tuple[np.ndarray, np.ndarray]:
+    """Split the tiles among `n_workers` threads so that each gets about the same work.
+
+    entries: [n_tiles] tile list lengths. Returns tile_order [n_tiles] int64 and worker_starts
+    [n_workers + 1] int64: worker w composites tile_order[worker_starts[w]:worker_starts[w + 1]].
+    The tiles, in raster order, are cut into n_workers·chunks_per_worker runs of equal estimated
+    cost (list length + 1, so that empty tiles are shared out too) and run c goes to worker
+    c mod n_workers: runs keep neighbouring tiles (which share Gaussians, so cache lines) on one
+    thread, and several runs per worker even out the error of the estimate across the image.
+    numba's prange splits its range into equal contiguous blocks, so this split is the schedule.
+    """
+    n_workers = max(1, int(n_workers))
+    n_chunks = n_workers * max(1, int(chunks_per_worker))
+    cost = entries.astype(np.float64) + 1.0
+    before = np.cumsum(cost) - cost
+    chunk = np.minimum((before * (n_chunks / max(cost.sum(), 1.0))).astype(np.int64), n_chunks - 1)
+    worker = chunk % n_workers
+    tile_order = np.argsort(worker, kind="stable")
+    worker_starts = np.zeros(n_workers + 1, np.int64)
+    np.cumsum(np.bincount(worker, minlength=n_workers), out=worker_starts[1:])
+    return tile_order, worker_starts
+
+
 def render_projected(
     projected: Projected,
     topk: int = 40,
@@ -430,14 +454,12 @@ def render_projected(
     depth = _buffer(None if out is None else out.depth, (h, w) if with_depth else (0, 0), np.float32)
     alpha = _buffer(None if out is None else out.alpha, (h, w), np.float32)
     colors = projected.colors if with_rgb else np.zeros((0, 3), np.float32)
-    work = np.diff(offsets)
-    tile_order = np.argsort(-work, kind="stable")
-    with numba.parallel_chunksize(1):
-        kernels.composite_tiles(
-            tile_order, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
-            projected.qlimits, projected.depths, colors, w, h, projected.tile_size, n_tiles_x, with_rgb, with_depth, bg,
-            ids, weights, rgb, depth, alpha,
-        )  # fmt: skip
+    tile_order, worker_starts = balance_tiles(np.diff(offsets), numba.get_num_threads())
+    kernels.composite_tiles(
+        tile_order, worker_starts, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
+        projected.qlimits, projected.depths, colors, w, h, projected.tile_size, n_tiles_x, with_rgb, with_depth, bg,
+        ids, weights, rgb, depth, alpha,
+    )  # fmt: skip
     return RasterOutput(
         ids=ids,
         weights=weights,

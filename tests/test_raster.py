@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 
 from drsplat import _raster_kernels as kernels
+from drsplat import raster
 from drsplat.cameras import Camera
 from drsplat.raster import (
     SH_C0,
     SH_C1,
     T_MIN,
     Projected,
+    balance_tiles,
     depth_order,
     eval_sh,
     look_at_camera,
@@ -433,3 +435,31 @@ def test_parallel_binning_keeps_depth_order_in_every_tile(n_chunks):
             t = ty * tiles_x + tx
             inside = (rects[order, 0] <= tx) & (tx < rects[order, 2]) & (rects[order, 1] <= ty) & (ty < rects[order, 3])
             np.testing.assert_array_equal(ids[offsets[t] : offsets[t + 1]], order[inside])
+
+
+@pytest.mark.parametrize("n_workers, chunks", [(1, 1), (2, 8), (3, 4), (5, 1)])
+def test_balance_tiles_gives_every_tile_to_one_worker_and_evens_the_work(n_workers, chunks):
+    rng = np.random.default_rng(n_workers * 10 + chunks)
+    for entries in (rng.integers(0, 50, 300) * (rng.random(300) < 0.7), np.zeros(7, np.int64), rng.integers(0, 5000, 40)):
+        order, starts = balance_tiles(entries, n_workers, chunks)
+        assert starts[0] == 0 and starts[-1] == entries.size and (np.diff(starts) >= 0).all()
+        np.testing.assert_array_equal(np.sort(order), np.arange(entries.size))
+        for w in range(n_workers):
+            mine = order[starts[w] : starts[w + 1]]
+            assert (np.diff(mine) > 0).all(), "each worker takes its tiles in raster order"
+            cost = entries + 1
+            assert cost[mine].sum() <= cost.sum() / n_workers + chunks * cost.max()
+
+
+@pytest.mark.parametrize("n_workers, chunks", [(1, 1), (2, 3), (7, 2), (64, 1)])
+def test_any_split_of_the_tiles_gives_bit_identical_images(monkeypatch, n_workers, chunks):
+    rng = np.random.default_rng(53)
+    scene = prepare_scene(random_scene(rng, 600, sh_degree=1))
+    cam = look_at_camera([0.3, -0.2, -3.5], [0, 0, 0], 70, 45, fov_x_deg=55)
+    baseline = rasterize(scene, cam, 12, with_rgb=True, with_depth=True)
+    split = raster.balance_tiles
+    monkeypatch.setattr(raster, "balance_tiles", lambda entries, _threads: split(entries, n_workers, chunks))
+    out = rasterize(scene, cam, 12, with_rgb=True, with_depth=True)
+    assert_agree(out, rasterize_reference(scene, cam, 12, with_rgb=True, with_depth=True))
+    for name in ("ids", "weights", "rgb", "depth", "alpha"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(baseline, name))
