@@ -400,20 +400,21 @@ def quantize_luts(luts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return q, scale.astype(np.float32), lo.sum(axis=1).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, boundscheck=False)
-def _q8_sums_kernel(blocked, qlut, out):  # pragma: no cover - jitted
-    """out[64·b + t] = Σ_m qlut[m, blocked[b, m, t]] (exact integer sums).
+@numba.njit(parallel=True, fastmath=FAST, cache=True, boundscheck=False)
+def _table_sums_kernel(blocked, table, out):  # pragma: no cover - jitted
+    """out[64·b + t] = Σ_m table[m, blocked[b, m, t]], accumulated in out's dtype, in m order.
 
-    blocked: [NB, M, 64] uint8; qlut: [M, 256] uint8; out: [NB·64] uint16.
+    blocked: [NB, M, 64] uint8; table: [M, 256] uint8 (8-bit tables, exact integer sums in
+    out: uint16) or float32 (out: float32). Portable twin of the AVX-512 kernels.
     """
     nb, m, width = blocked.shape
     for b in numba.prange(nb):
-        acc = np.zeros(width, np.uint16)
+        acc = np.zeros(width, out.dtype)
         for j in range(m):
             row = blocked[b, j]
-            table = qlut[j]
+            lut = table[j]
             for t in range(width):
-                acc[t] += table[row[t]]
+                acc[t] += lut[row[t]]
         out[b * width : (b + 1) * width] = acc
 
 
@@ -533,7 +534,7 @@ def _simd_kernel(name: str):
     """The AVX-512 kernel `name` of `SIMD_KERNELS` as a parallel numba function (blocked, table, out),
     or None when the CPU lacks the instructions.
 
-    q8_sums: `_q8_sums_kernel` with VBMI byte shuffles: each sub-vector's 256-entry uint8 table
+    q8_sums: `_table_sums_kernel` with VBMI byte shuffles: each sub-vector's 256-entry uint8 table
     sits in four 64-byte registers, two `vpermi2b` look up its low and high halves for 64
     Gaussians at once and bit 7 of the code picks between them (faiss fast-scan does the same
     with 16-entry tables and 4-bit codes). f32_sums: see `_f32_sums_ir`.
@@ -594,7 +595,7 @@ def q8_sums(blocked: np.ndarray, qlut: np.ndarray, use_simd: bool = True) -> np.
         return out
     simd = _simd_kernel("q8_sums") if use_simd else None
     if simd is None:
-        _q8_sums_kernel(blocked, qlut, out)
+        _table_sums_kernel(blocked, qlut, out)
     else:
         _run_sums_only(simd, blocked, qlut, out)
     return out
@@ -603,23 +604,6 @@ def q8_sums(blocked: np.ndarray, qlut: np.ndarray, use_simd: bool = True) -> np.
 def _run_sums_only(simd, blocked: np.ndarray, table: np.ndarray, sums: np.ndarray) -> None:
     none = np.zeros(0, np.int32)
     simd(blocked, table, sums, np.float32(1), np.float32(0), np.zeros(0, np.float32), none, np.zeros(0, np.float32), np.zeros((0, 1), np.float32), 0)
-
-
-@numba.njit(parallel=True, fastmath=FAST, cache=True, boundscheck=False)
-def _f32_sums_kernel(blocked, lut, out):  # pragma: no cover - jitted
-    """out[64·b + t] = Σ_m lut[m, blocked[b, m, t]], float32 tables, summed in m order.
-
-    blocked: [NB, M, 64] uint8; lut: [M, 256] float32; out: [NB·64] float32.
-    """
-    nb, m, width = blocked.shape
-    for b in numba.prange(nb):
-        acc = np.zeros(width, np.float32)
-        for j in range(m):
-            row = blocked[b, j]
-            table = lut[j]
-            for t in range(width):
-                acc[t] += table[row[t]]
-        out[b * width : (b + 1) * width] = acc
 
 
 def f32_sums(blocked: np.ndarray, lut: np.ndarray, use_simd: bool = True) -> np.ndarray:
@@ -636,7 +620,7 @@ def f32_sums(blocked: np.ndarray, lut: np.ndarray, use_simd: bool = True) -> np.
         return out
     simd = _simd_kernel("f32_sums") if use_simd else None
     if simd is None:
-        _f32_sums_kernel(blocked, lut, out)
+        _table_sums_kernel(blocked, lut, out)
     else:
         _run_sums_only(simd, blocked, lut, out)
     return out
