@@ -588,22 +588,7 @@ def q8_sums(blocked: np.ndarray, qlut: np.ndarray, use_simd: bool = True) -> np.
     m = blocked.shape[1]
     if not 1 <= m <= Q8_MAX_M:
         raise ValueError(f"8-bit look-up tables need 1 ≤ M ≤ {Q8_MAX_M}, got M = {m}")
-    blocked = np.ascontiguousarray(blocked, np.uint8)
-    qlut = np.ascontiguousarray(qlut, np.uint8)
-    out = np.empty(blocked.shape[0] * Q8_BLOCK, np.uint16)
-    if blocked.shape[0] == 0:
-        return out
-    simd = _simd_kernel("q8_sums") if use_simd else None
-    if simd is None:
-        _table_sums_kernel(blocked, qlut, out)
-    else:
-        _run_sums_only(simd, blocked, qlut, out)
-    return out
-
-
-def _run_sums_only(simd, blocked: np.ndarray, table: np.ndarray, sums: np.ndarray) -> None:
-    none = np.zeros(0, np.int32)
-    simd(blocked, table, sums, np.float32(1), np.float32(0), np.zeros(0, np.float32), none, np.zeros(0, np.float32), np.zeros((0, 1), np.float32), 0)
+    return _table_sums("q8_sums", blocked, np.ascontiguousarray(qlut, np.uint8), np.uint16, use_simd)
 
 
 def f32_sums(blocked: np.ndarray, lut: np.ndarray, use_simd: bool = True) -> np.ndarray:
@@ -613,16 +598,21 @@ def f32_sums(blocked: np.ndarray, lut: np.ndarray, use_simd: bool = True) -> np.
     """
     if blocked.shape[1] < 1:
         raise ValueError("look-up tables need M ≥ 1 sub-vectors")
+    return _table_sums("f32_sums", blocked, np.ascontiguousarray(lut, np.float32), np.float32, use_simd)
+
+
+def _table_sums(kernel: str, blocked: np.ndarray, table: np.ndarray, dtype, use_simd: bool) -> np.ndarray:
+    """Run the SIMD kernel `kernel` of `SIMD_KERNELS` when available, else `_table_sums_kernel`."""
     blocked = np.ascontiguousarray(blocked, np.uint8)
-    lut = np.ascontiguousarray(lut, np.float32)
-    out = np.empty(blocked.shape[0] * Q8_BLOCK, np.float32)
+    out = np.empty(blocked.shape[0] * Q8_BLOCK, dtype)
     if blocked.shape[0] == 0:
         return out
-    simd = _simd_kernel("f32_sums") if use_simd else None
+    simd = _simd_kernel(kernel) if use_simd else None
     if simd is None:
-        _table_sums_kernel(blocked, lut, out)
+        _table_sums_kernel(blocked, table, out)
     else:
-        _run_sums_only(simd, blocked, lut, out)
+        none = np.zeros(0, np.int32)
+        simd(blocked, table, out, np.float32(1), np.float32(0), np.zeros(0, np.float32), none, np.zeros(0, np.float32), np.zeros((0, 1), np.float32), 0)
     return out
 
 
