@@ -74,7 +74,6 @@ def crop_masks(image: np.ndarray, masks: np.ndarray, size: int = 224) -> np.ndar
     encoder's job).
     """
     import torch
-    import torch.nn.functional as F
 
     k_count = masks.shape[0]
     out = np.zeros((k_count, 3, size, size), np.float32)

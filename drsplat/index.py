@@ -174,7 +174,7 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     """
     faiss = _faiss()
 
-    x = _unit_rows(np.asarray(embeddings, np.float32))
+    x = unit_rows(np.asarray(embeddings, np.float32))
     n, d = x.shape
     if m <= 0 or d % m:
         raise InputError(None, f"M={m} sub-vectors do not divide the embedding dimension {d}")
@@ -195,7 +195,9 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     return codebook_from_index(index)
 
 
-def _unit_rows(x: np.ndarray) -> np.ndarray:
+def unit_rows(x: np.ndarray) -> np.ndarray:
+    """Rows divided by their L2 norm (zero rows stay zero): [K, D] float32."""
+    x = np.atleast_2d(np.asarray(x, np.float32))
     norm = np.linalg.norm(x, axis=1, keepdims=True)
     return np.where(norm > 0, x / np.where(norm > 0, norm, 1), 0).astype(np.float32)
 
@@ -749,7 +751,7 @@ class LanguageField:
         """
         if lut_bits not in (8, 32):
             raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
-        q = _unit_rows(self._check_queries(queries))
+        q = unit_rows(self._check_queries(queries))
         if self.kind == "exact":
             return half_scores(self.features, self.norms, q)
         if lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available()):
@@ -764,7 +766,7 @@ class LanguageField:
 
     def scores_reference(self, queries: np.ndarray) -> np.ndarray:
         """Decode-then-cosine reference of `scores` (float64 math): [N, K]."""
-        q = _unit_rows(self._check_queries(queries))
+        q = unit_rows(self._check_queries(queries))
         if self.kind == "exact":
             f = self.features.astype(np.float64)
             norm = np.linalg.norm(f, axis=1)
@@ -857,7 +859,7 @@ def encode_features(book: Codebook, features: np.ndarray, assigned: np.ndarray) 
     norms = np.zeros(n, np.float32)
     for start in range(0, n, ENCODE_CHUNK):
         stop = min(n, start + ENCODE_CHUNK)
-        x = _unit_rows(np.asarray(features[start:stop], np.float32))
+        x = unit_rows(np.asarray(features[start:stop], np.float32))
         c, ids = book.encode(x)
         codes[start:stop] = c
         if list_ids is not None:

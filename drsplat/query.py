@@ -19,7 +19,7 @@ from typing import Protocol
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
-from drsplat.index import LanguageField
+from drsplat.index import LanguageField, unit_rows
 
 log = logging.getLogger(__name__)
 
@@ -33,13 +33,6 @@ class TextEncoder(Protocol):
     model_id: str
 
     def encode_text(self, phrases: list[str]) -> np.ndarray: ...
-
-
-def unit_rows(x: np.ndarray) -> np.ndarray:
-    """Rows divided by their L2 norm (zero rows stay zero): [K, D] float32."""
-    x = np.atleast_2d(np.asarray(x, np.float32))
-    norm = np.linalg.norm(x, axis=1, keepdims=True)
-    return np.where(norm > 0, x / np.where(norm > 0, norm, 1), 0).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,7 +143,7 @@ def cosine(field: LanguageField, queries: np.ndarray, lut_bits: int = 32) -> np.
 
     lut_bits: 32 exact look-up tables, 8 the faster 8-bit tables (PQ fields; see LanguageField.scores).
     """
-    return field.scores(unit_rows(queries), lut_bits=lut_bits)
+    return field.scores(queries, lut_bits=lut_bits)
 
 
 def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 
 from drsplat import _raster_kernels as kernels
 from drsplat.cameras import Camera
-from drsplat.scene import GaussianScene
+from drsplat.scene import SH_C0, GaussianScene
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +41,6 @@ ALPHA_MIN = kernels.ALPHA_MIN
 ALPHA_MAX = kernels.ALPHA_MAX
 T_MIN = kernels.T_MIN
 
-SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.errors import InputError
+
 log = logging.getLogger(__name__)
 
 SH_C0 = 0.28209479177387814
@@ -208,9 +210,7 @@ class LoadReport:
         return notes
 
 
-def _fail(path: Path, problem: str, field: str | None = None) -> "InputError":
-    from drsplat.errors import InputError
-
+def _fail(path: Path, problem: str, field: str | None = None) -> InputError:
     return InputError(path, problem, field=field)
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera
+from drsplat.cameras import Camera, write_transforms_json
 from drsplat.scene import SH_C0, GaussianScene
 
 log = logging.getLogger(__name__)
@@ -524,46 +524,6 @@ def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> Rendered
     return RenderedView(np.asarray(out.rgb, np.float32), labels, inst)
 
 
-def camera_to_frame(camera: Camera, file_path: str) -> dict:
-    """nerfstudio transforms.json frame with an OpenGL camera-to-world matrix."""
-    c2w = np.eye(4)
-    c2w[:3, :3] = camera.R.T
-    c2w[:3, 3] = camera.center
-    c2w[:3, 1:3] *= -1  # OpenCV (y down, z forward) -> OpenGL (y up, z backward)
-    return {
-        "file_path": file_path,
-        "transform_matrix": c2w.tolist(),
-        "fl_x": camera.fx,
-        "fl_y": camera.fy,
-        "cx": camera.cx,
-        "cy": camera.cy,
-        "w": camera.width,
-        "h": camera.height,
-    }
-
-
-def write_transforms(path: Path, cameras: list[Camera]) -> None:
-    from drsplat.utils import atomic_path
-
-    first = cameras[0]
-    data = {
-        "camera_model": "OPENCV",
-        "fl_x": first.fx,
-        "fl_y": first.fy,
-        "cx": first.cx,
-        "cy": first.cy,
-        "w": first.width,
-        "h": first.height,
-        "k1": 0.0,
-        "k2": 0.0,
-        "p1": 0.0,
-        "p2": 0.0,
-        "frames": [camera_to_frame(c, f"images/{c.name}.png") for c in cameras],
-    }
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-
-
 def write_dataset(
     out_dir: str | Path,
     preset: str = "tiny",
@@ -612,7 +572,7 @@ def write_dataset(
     save_npy_atomic(out / "text_embeddings.npy", syn.text_vectors.astype(np.float32))
     with atomic_path(out / "gt" / "label_names.json") as tmp:
         tmp.write_text(json.dumps(syn.label_names) + "\n")
-    write_transforms(out / "transforms.json", syn.cameras)
+    write_transforms_json(syn.cameras, out / "transforms.json")
     write_manifest(
         out / "features",
         {

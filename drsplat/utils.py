@@ -85,13 +85,6 @@ def progress(iterable: Iterable[T], desc: str, total: int | None = None, enabled
     return tqdm(iterable, desc=desc, total=total, disable=not enabled, unit=unit, dynamic_ncols=True, leave=False)
 
 
-def count_nonfinite(array: np.ndarray) -> int:
-    """Number of non-finite entries of a float array (0 for integer arrays)."""
-    if not np.issubdtype(array.dtype, np.floating):
-        return 0
-    return int(array.size - np.count_nonzero(np.isfinite(array)))
-
-
 def host_reachable(url: str, timeout: float = 3.0) -> bool:
     """Whether the host of `url` resolves and accepts a TCP connection within `timeout` seconds.
 

@@ -8,7 +8,6 @@ import pytest
 from drsplat.errors import InputError
 from drsplat.index import (
     Codebook,
-    LanguageField,
     Q8_BLOCK,
     attach_field,
     blocked_codes,
