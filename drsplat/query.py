@@ -1,6 +1,6 @@
 """Language queries on a registered field: cosine, LERF relevancy, thresholds, segmentation, clicks.
 
-Every function takes a `drsplat.index.LanguageField` and unit-normalised query embeddings [K, D]
+Every function takes a `drsplat.lang.LanguageField` and unit-normalised query embeddings [K, D]
 (text through an encoder with `encode_text(list[str]) -> [K, D]` and `model_id`, an embedding
 file, or the mean feature of clicked Gaussians) and returns per-Gaussian arrays in file order.
 
@@ -19,13 +19,12 @@ from typing import Protocol
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
-from drsplat.index import LanguageField, unit_rows
+from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
+from drsplat.lang import LanguageField, unit_rows
 
 log = logging.getLogger(__name__)
 
 RELEVANCY_TEMPERATURE = 10.0
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
-UNKNOWN_MODEL = "unknown"
 BACKGROUND_PHRASE = "background"
 
 
@@ -40,24 +39,8 @@ class TextEncoder(Protocol):
 
 
 def check_clip_models(field_model: str | None, query_model: str | None, what: str = "the text encoder") -> None:
-    """Refuse to compare embeddings of two different CLIP models (DrsplatError).
-
-    "unknown", "" or None on either side is accepted with a warning: nothing says the spaces differ.
-    """
-    known = [m for m in (field_model, query_model) if m and m != UNKNOWN_MODEL]
-    if len(known) < 2:
-        if field_model != query_model:
-            log.warning("CLIP model of %s is %s, features' is %s: cannot check they match", what, query_model or UNKNOWN_MODEL, field_model or UNKNOWN_MODEL)
-        return
-    if _canonical_model(field_model) != _canonical_model(query_model):
-        raise DrsplatError(
-            f"CLIP model mismatch: the registered features were made with {field_model} but {what} is {query_model}; "
-            "embeddings of different CLIP models cannot be compared"
-        )
-
-
-def _canonical_model(model_id: str) -> str:
-    return model_id.strip().replace(":", "/").lower()
+    """Refuse to compare embeddings of two different CLIP models (see drsplat.features.modelid)."""
+    check_compatible(field_model, query_model, "the registered features", what)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,13 +30,15 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.featurefiles import list_stems, read_features_report, resample_nearest
+from drsplat.features.format import list_stems, read_features_report, resample_nearest
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, atomic_path, progress
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 1
+DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
+DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 
 
 @dataclass
@@ -67,8 +69,8 @@ class RegistrationResult:
     accumulate_cpu_seconds: float = 0.0
     allocate_seconds: float = 0.0
     resumed_views: int = 0
-    topk: int = 40
-    level: int = 1
+    topk: int = DEFAULT_TOPK
+    level: int = DEFAULT_LEVEL
     missing_features: list[str] = field(default_factory=list)
     unmatched_features: list[str] = field(default_factory=list)
     num_nonfinite_masks: int = 0
@@ -394,8 +396,8 @@ def register_scene(
     cameras: Sequence[Camera],
     features_dir: str | Path,
     *,
-    topk: int = 40,
-    level: int = 1,
+    topk: int = DEFAULT_TOPK,
+    level: int = DEFAULT_LEVEL,
     show_progress: bool = True,
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,

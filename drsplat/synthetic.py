@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera, write_transforms_json
+from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
 from drsplat.scene import SH_C0, GaussianScene
 
 log = logging.getLogger(__name__)
@@ -36,7 +37,6 @@ log = logging.getLogger(__name__)
 LEVELS = 4  # LangSplat's default, s, m, l
 LIGHT = np.array([0.4, -0.3, 0.866]) / np.linalg.norm([0.4, -0.3, 0.866])
 FEATURE_LEVEL_NAMES = ("default", "s", "m", "l")
-ORACLE_MODEL_ID = "oracle"  # the embedding space of oracle features: only oracle text vectors match it
 
 
 @dataclass
@@ -542,7 +542,7 @@ def write_dataset(
     """
     from PIL import Image
 
-    from drsplat.featurefiles import write_features, write_manifest
+    from drsplat.features.format import write_features, write_manifest
     from drsplat.scene import save_ply
     from drsplat.utils import atomic_path, progress, save_npy_atomic
 
@@ -578,8 +578,8 @@ def write_dataset(
         {
             "format": "langsplat",
             "mask_generator": "oracle (drsplat.synthetic: one mask per visible object instance)",
-            "clip": {"model": ORACLE_MODEL_ID, "pretrained": f"synthetic-{preset}-seed{seed}"},
-            "clip_model_id": ORACLE_MODEL_ID,
+            **manifest_clip_entry(ORACLE_MODEL_ID, None),
+            "synthetic": {"preset": preset, "seed": seed},
             "levels": list(FEATURE_LEVEL_NAMES),
             "default_level": 1,
             "dim": int(syn.label_vectors.shape[1]),

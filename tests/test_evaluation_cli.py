@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drsplat.cli import main
-from drsplat.datasets_eval import write_labelled_points, write_lerf_view
+from drsplat.eval.datasets import write_labelled_points, write_lerf_view
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +39,8 @@ def query_args(r: dict) -> list[str]:
 
 def test_eval_iou_matches_the_library(registered, capsys):
     from drsplat.cameras import load_cameras
-    from drsplat.evaluation import evaluate_scene
-    from drsplat.index import build_field
+    from drsplat.eval.metrics import evaluate_scene
+    from drsplat.lang import build_field
     from drsplat.registration import register_scene
     from drsplat.scene import load_ply
 
@@ -96,8 +96,8 @@ def test_eval_lerf_on_stand_in(registered, capsys):
 
 def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
     from drsplat.cameras import load_cameras
-    from drsplat.datasets_eval import load_lerf_annotations
-    from drsplat.eval_lerf import lerf_2d_report
+    from drsplat.eval.datasets import load_lerf_annotations
+    from drsplat.eval.lerf import lerf_2d_report
     from drsplat.scene import load_ply
 
     r = registered
@@ -114,8 +114,8 @@ def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
 
 
 def test_lerf_protocol_single_gaussian_known_disc():
-    from drsplat.datasets_eval import AnnotatedView
-    from drsplat.eval_lerf import lerf_2d_report
+    from drsplat.eval.datasets import AnnotatedView
+    from drsplat.eval.lerf import lerf_2d_report
     from drsplat.raster import look_at_camera
     from drsplat.scene import GaussianScene
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from drsplat.datasets_eval import (
+from drsplat.eval.datasets import (
     NYU40_NAMES,
     find_scannet_labels,
     load_labelled_points,
@@ -20,7 +20,7 @@ from drsplat.datasets_eval import (
     write_lerf_view,
 )
 from drsplat.errors import InputError
-from drsplat.eval_lerf import mask_iou
+from drsplat.eval.lerf import mask_iou
 
 
 def test_polygon_mask_fills_boundary_pixels_like_fillpoly():
@@ -134,7 +134,7 @@ def test_nyu40_has_forty_names():
 
 
 def test_select_queries_absolute_and_otsu():
-    from drsplat.eval_lerf import select_queries
+    from drsplat.eval.lerf import select_queries
 
     s = np.array([[0.9, 0.1], [0.8, 0.2], [0.1, 0.85], [0.15, 0.9], [np.nan, 0.1]])
     sel, taus = select_queries(s, 0.5)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drsplat.evaluation import (
+from drsplat.eval.metrics import (
     VoxelGrid,
     VoxelSetup,
     evaluate_scene,
@@ -197,7 +197,7 @@ def test_evaluate_scene_reports_every_task_and_weighting():
 
 
 def test_match_gaussians_and_expand_scores():
-    from drsplat.evaluation import expand_scores, match_gaussians
+    from drsplat.eval.metrics import expand_scores, match_gaussians
 
     orig = np.arange(30, dtype=np.float64).reshape(10, 3)
     keep = np.array([7, 2, 5])
@@ -211,7 +211,7 @@ def test_match_gaussians_and_expand_scores():
 
 
 def test_argmax_rows_without_finite_scores_predict_nothing():
-    from drsplat.evaluation import argmax_labels
+    from drsplat.eval.metrics import argmax_labels
 
     s = np.array([[0.1, 0.3], [np.nan, np.nan], [0.5, np.nan]])
     assert argmax_labels(np.where(np.isfinite(s), s, -np.inf)).tolist() == [1, -1, 0]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drsplat.pseudolabels import mahalanobis_sq, pseudo_labels, pseudo_labels_reference
+from drsplat.eval.pseudolabels import mahalanobis_sq, pseudo_labels, pseudo_labels_reference
 from drsplat.scene import quat_to_rotmat
 
 
@@ -107,7 +107,7 @@ def test_cancel_stops_between_batches(engine):
 
 
 def test_radius_batches_bound_the_overfetch():
-    from drsplat.pseudolabels import radius_batches
+    from drsplat.eval.pseudolabels import radius_batches
 
     radii = np.array([0.1, 0.12, 0.2, 1.0, 1.3, 0.11, 5.0])
     batches = radius_batches(radii, np.arange(7), chunk=2)

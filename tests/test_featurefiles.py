@@ -7,7 +7,7 @@ import pytest
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.featurefiles import (
+from drsplat.features.format import (
     feat_path,
     is_valid_pair,
     list_stems,

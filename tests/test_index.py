@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from drsplat.errors import InputError
-from drsplat.index import (
+from drsplat.lang import (
     Codebook,
     Q8_BLOCK,
     attach_field,
@@ -277,7 +277,7 @@ def test_exact_field_is_float16_cosine(data):
 
 def test_half_kernel_on_hard_values():
     """float16 bit tricks: zeros, -0, subnormals, the largest half, and non-finite rows (score 0)."""
-    from drsplat.index import half_scores
+    from drsplat.lang import half_scores
 
     rng = np.random.default_rng(4)
     f = rng.normal(size=(300, 40)).astype(np.float16)

@@ -1,4 +1,4 @@
-"""drsplat.masks: vectorised post-processing against LangSplat's double loop, the intersection
+"""drsplat.features.masks: vectorised post-processing against LangSplat's double loop, the intersection
 kernel against a matrix product, SAM loading from checkpoints, and the weight-free generators."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from drsplat.errors import InputError, WeightsUnavailableError
-from drsplat.masks import (
+from drsplat.features.masks import (
     LEVELS,
     SAM_ARCHITECTURES,
     FelzenszwalbGenerator,

@@ -7,7 +7,7 @@ import pytest
 
 from drsplat.cli import main
 from drsplat.errors import DrsplatError, InputError
-from drsplat.index import attach_field, build_field, load_codebook, train_codebook
+from drsplat.lang import attach_field, build_field, load_codebook, train_codebook
 from drsplat.query import (
     check_clip_models,
     click_query,

@@ -13,8 +13,8 @@ import pytest
 
 from drsplat.cameras import load_cameras
 from drsplat.errors import Cancelled, InputError
-from drsplat.evaluation import localisation_report, segmentation_report, significance_weights
-from drsplat.featurefiles import read_features, write_features
+from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
+from drsplat.features.format import read_features, write_features
 from drsplat.registration import Accumulator, accumulate_view_reference, normalize_rows, pair_views, register_scene
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
@@ -242,7 +242,7 @@ def test_nonfinite_embeddings_are_dropped_and_counted(tiny, tmp_path):
 
 def test_cli_synth_register_query(tmp_path):
     from drsplat.cli import main
-    from drsplat.index import read_field
+    from drsplat.lang import read_field
 
     data = tmp_path / "data"
     assert main(["synth", str(data), "--preset", "tiny", "--seed", "3", "--no-progress"]) == 0
@@ -331,7 +331,7 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
 
 
 def test_clip_model_id_comes_from_the_manifest():
-    from drsplat.commands.register import clip_model_name
+    from drsplat.features.modelid import manifest_model_id as clip_model_name
 
     assert clip_model_name({}) == "unknown"
     assert clip_model_name({"clip_model_id": "ViT-B-16/laion2b_s34b_b88k", "clip": {"model": "x"}}) == "ViT-B-16/laion2b_s34b_b88k"

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from drsplat.cameras import load_cameras
-from drsplat.featurefiles import is_valid_pair, read_features, read_manifest
+from drsplat.features.format import is_valid_pair, read_features, read_manifest
 from drsplat.scene import load_ply, quat_to_rotmat
 from drsplat.synthetic import (
     OBJECTS,

@@ -58,7 +58,7 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     from drsplat.cameras import load_cameras
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
-    from viewer.state import register_to_file
+    from drsplat.pipeline import register_to_ply
 
     root = (root or cache_root()) / ("demo" if preset == DEMO_PRESET else f"demo-{preset}")
     dataset, registered = root / "dataset", root / "registered.ply"
@@ -68,7 +68,7 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
         log.info("generating the %s demo scene in %s (first run only)", preset, dataset)
         write_dataset(dataset, preset, seed=0, show_progress=True)
     log.info("registering the demo scene (first run only)")
-    register_to_file(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", registered, show_progress=True)
+    register_to_ply(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", registered, show_progress=True)
     return registered, dataset
 
 

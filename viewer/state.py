@@ -3,7 +3,7 @@
 `ViewerState` owns the scene, its language field, the current query's scores, the selection and
 the display mode, and turns them into a per-splat style for the renderer. Every number comes
 from the drsplat library: scores from `drsplat.query`, picks from `drsplat.raster`, the
-registration from `drsplat.registration` and `drsplat.index`. Actions never raise for bad
+registration from `drsplat.registration` and `drsplat.lang`. Actions never raise for bad
 input: they record a message (shown in the GUI) and return False.
 """
 
@@ -21,6 +21,8 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
+from drsplat.features.modelid import is_oracle
+from drsplat.pipeline import RegisterOptions, register_to_ply
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
@@ -38,7 +40,6 @@ HIGHLIGHT_RGB = (1.0, 0.1, 0.85)
 HIGHLIGHT_MIX = 0.85
 SEGMENT_MIX = 0.8
 HEATMAP_MIX = 0.9
-ORACLE_MODEL = "oracle"
 
 
 @dataclass
@@ -90,7 +91,7 @@ class ViewerState:
     def __init__(self) -> None:
         self.scene: GaussianScene | None = None
         self.scene_path: Path | None = None
-        self.field = None  # drsplat.index.LanguageField | None
+        self.field = None  # drsplat.lang.LanguageField | None
         self.cameras: list[Camera] = []
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
@@ -138,7 +139,7 @@ class ViewerState:
 
     def load_scene(self, path: str | Path) -> bool:
         """Load a PLY and its language field (if registered); clears the query."""
-        from drsplat.index import read_field
+        from drsplat.lang import read_field
         from drsplat.scene import load_ply
 
         try:
@@ -185,7 +186,7 @@ class ViewerState:
         if self.field is None:
             return
         model = self.field.clip_model or "unknown"
-        if model.split("/")[0] == ORACLE_MODEL:
+        if is_oracle(model):
             self.encoder_status = "Text queries are off because this scene's features are synthetic oracle vectors (use the oracle labels below); for a real scene pass --clip-checkpoint PATH to a local open_clip checkpoint."
             return
         self.encoder_status = "loading the CLIP text encoder..."
@@ -195,7 +196,7 @@ class ViewerState:
             self._load_encoder()
 
     def _load_encoder(self) -> None:
-        from drsplat.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED, ClipEncoder
+        from drsplat.features.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED, ClipEncoder
 
         model_id = self.field.clip_model if self.field is not None else ""
         name, _, pretrained = model_id.partition("/")
@@ -473,7 +474,7 @@ class ViewerState:
 
     def start_registration(self, output: str | Path, topk: int = 40, level: int = 1, codebook: str = "none", background: bool = True) -> bool:
         """Register the scene with the features of `features_dir` (drsplat.registration) on a
-        worker thread, store the field (drsplat.index) in `output`, then load it."""
+        worker thread, store the field (drsplat.lang) in `output`, then load it."""
         from drsplat.utils import CancelToken
 
         if self.scene is None or self.scene_path is None:
@@ -508,7 +509,7 @@ class ViewerState:
 
     def _register(self, job: RegistrationJob, scene: GaussianScene, cameras: list[Camera], features_dir: Path, topk: int, level: int, codebook: str) -> None:
         try:
-            register_to_file(scene, cameras, features_dir, job.output, topk=topk, level=level, codebook=codebook, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
+            register_to_ply(scene, cameras, features_dir, job.output, RegisterOptions(topk=topk, level=level, codebook=codebook), show_progress=False, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
         except BaseException as exc:  # noqa: BLE001 - reported in the GUI
             job.error = str(exc) or type(exc).__name__
             log.debug("registration failed", exc_info=True)
@@ -535,27 +536,6 @@ class ViewerState:
 def _progress(job: RegistrationJob, done: int, total: int) -> None:
     job.done, job.total = done, total
 
-
-def register_to_file(scene: GaussianScene, cameras: list[Camera], features_dir: Path, output: Path, *, topk: int = 40, level: int = 1, codebook: str = "none", on_progress=None, cancel=None, show_progress: bool = False) -> Path:
-    """Registration -> language field -> registered PLY at `output` (drsplat does every step)."""
-    from drsplat.featurefiles import read_manifest
-    from drsplat.index import attach_field, build_field
-    from drsplat.registration import register_scene
-    from drsplat.scene import save_ply
-
-    result = register_scene(scene, cameras, features_dir, topk=topk, level=level, show_progress=show_progress, on_progress=on_progress, cancel=cancel, collect_embeddings=codebook == "scene")
-    clip_model = "unknown"
-    try:
-        clip = read_manifest(features_dir).get("clip", {})
-        if clip.get("model"):
-            clip_model = f"{clip['model']}/{clip.get('pretrained', '')}".rstrip("/")
-    except DrsplatError:
-        pass
-    lang = build_field(result.features, result.weights, codebook=codebook, clip_model=clip_model, train_embeddings=getattr(result, "mask_embeddings", None))
-    if cancel is not None:
-        cancel.raise_if_cancelled()
-    save_ply(attach_field(scene, lang, output), output)
-    return output
 
 
 def read_oracle_queries(source: Path) -> OracleQueries | None:

@@ -46,8 +46,8 @@ def labelled_points(means: np.ndarray, p: int, rng: np.random.Generator) -> tupl
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.evaluation import VoxelGrid, splat_mass, splat_mass_reference, threshold_iou_curve, weighted_iou
-    from drsplat.pseudolabels import pseudo_labels, pseudo_labels_reference
+    from drsplat.eval.metrics import VoxelGrid, splat_mass, splat_mass_reference, threshold_iou_curve, weighted_iou
+    from drsplat.eval.pseudolabels import pseudo_labels, pseudo_labels_reference
 
     rng = np.random.default_rng(0)
     if args.scene is not None:

@@ -45,8 +45,8 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
     import torch
 
     from drsplat.cameras import load_image
-    from drsplat.features import extract_image
-    from drsplat.masks import SAM_ARCHITECTURES, FelzenszwalbGenerator, SamGenerator, SamParams, SlicGenerator, build_sam
+    from drsplat.features.extract import extract_image
+    from drsplat.features.masks import SAM_ARCHITECTURES, FelzenszwalbGenerator, SamGenerator, SamParams, SlicGenerator, build_sam
 
     rows, crop_per_mask, clip_per_mask = [], [], []
     for name in [g.strip() for g in args.generators.split(",") if g.strip()]:
@@ -82,7 +82,7 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
 
 def _warm_up(generator, name: str) -> None:
     """Imports, numba kernel loading and first-call allocations happen outside the timing."""
-    from drsplat.masks import masks_update
+    from drsplat.features.masks import masks_update
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
     levels = generator.generate(image) if name != "sam" else None
@@ -93,7 +93,7 @@ def _warm_up(generator, name: str) -> None:
 
 
 def _as_maskset(masks: np.ndarray):
-    from drsplat.masks import MaskSet
+    from drsplat.features.masks import MaskSet
 
     return MaskSet(masks, np.ones(len(masks), np.float32))
 
@@ -107,7 +107,7 @@ def _overlapping_masks(k: int, height: int, width: int, rng: np.random.Generator
 
 
 def _nms_rows(args) -> list[list[object]]:
-    from drsplat.masks import mask_nms, mask_nms_reference
+    from drsplat.features.masks import mask_nms, mask_nms_reference
 
     rng = np.random.default_rng(0)
     rows = []
@@ -134,8 +134,8 @@ def _nms_rows(args) -> list[list[object]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.clip import ClipEncoder
-    from drsplat.features import feature_cameras
+    from drsplat.features.clip import ClipEncoder
+    from drsplat.features.extract import feature_cameras
 
     if not args.source.exists():
         raise InputError(args.source, "does not exist (the default needs ../shared/data beside the project; pass --source)")

@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, median_seconds, peak_rss_mb
 from drsplat.errors import InputError
-from drsplat.index import Codebook, LanguageField, blocked_codes, encode_features, load_codebook, lut_scores, lut_scores_blocked, train_codebook
+from drsplat.lang import Codebook, LanguageField, blocked_codes, encode_features, load_codebook, lut_scores, lut_scores_blocked, train_codebook
 from drsplat.query import unit_rows
 
 log = logging.getLogger(__name__)

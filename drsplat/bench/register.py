@@ -64,7 +64,7 @@ def _timed_register(scene, cameras, features_dir, topk: int, repeats: int):
 
 def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int) -> str:
     from drsplat.cameras import load_cameras
-    from drsplat.evaluation import localisation_report, segmentation_report, significance_weights
+    from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
 
@@ -128,7 +128,7 @@ def _with_up(cam, eye, target, up):
 
 def random_mask_features(features_dir: Path, cameras, rng: np.random.Generator, dim: int = 512) -> None:
     """Voronoi-like random masks (30-80 per view, some pixels unmasked) and random unit embeddings."""
-    from drsplat.featurefiles import write_features
+    from drsplat.features.format import write_features
 
     for cam in cameras:
         count = int(rng.integers(30, 81))

@@ -36,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_scannet(sub)
     _add_pseudolabels(sub)
     _add_lerf(sub)
-    from drsplat.eval_ablations import add_ablate_parser
+    from drsplat.eval.ablations import add_ablate_parser
 
     add_ablate_parser(sub)
 
@@ -211,8 +211,8 @@ def write_json(path: Path | None, doc: dict) -> None:
 
 def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: list[str]):
     """(labels [N], names) of a scene from a labelled cloud, with the --classes/--radius/--vote options."""
-    from drsplat.datasets_eval import load_labelled_points
-    from drsplat.pseudolabels import pseudo_labels
+    from drsplat.eval.datasets import load_labelled_points
+    from drsplat.eval.pseudolabels import pseudo_labels
 
     classes = [c.strip() for c in args.classes.split(",")] if args.classes else None
     pts = load_labelled_points(cloud, raw_names, classes)
@@ -226,7 +226,7 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
 def load_eval_scene(args: argparse.Namespace):
     """(scene to evaluate on, registered field, index of registered Gaussians in that scene or None)."""
     from drsplat.commands.query import load_registered
-    from drsplat.evaluation import match_gaussians
+    from drsplat.eval.metrics import match_gaussians
     from drsplat.scene import load_ply
 
     scene, field = load_registered(args.registered)
@@ -242,7 +242,7 @@ def load_eval_scene(args: argparse.Namespace):
 
 
 def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], index: np.ndarray | None = None) -> int:
-    from drsplat.evaluation import evaluate_scene, expand_scores, format_curve, format_reports
+    from drsplat.eval.metrics import evaluate_scene, expand_scores, format_curve, format_reports
 
     present = sorted(set(int(x) for x in np.unique(gt) if x >= 0))
     if not present:
@@ -276,7 +276,7 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
 
 
 def run_iou(args: argparse.Namespace) -> int:
-    from drsplat.datasets_eval import NYU40_NAMES
+    from drsplat.eval.datasets import NYU40_NAMES
 
     if args.synthetic is not None:
         ds = args.synthetic
@@ -297,7 +297,7 @@ def run_iou(args: argparse.Namespace) -> int:
 
 
 def run_scannet(args: argparse.Namespace) -> int:
-    from drsplat.datasets_eval import NYU40_NAMES, find_scannet_labels
+    from drsplat.eval.datasets import NYU40_NAMES, find_scannet_labels
     from drsplat.utils import save_npy_atomic
 
     scene, field, index = load_eval_scene(args)
@@ -309,7 +309,7 @@ def run_scannet(args: argparse.Namespace) -> int:
 
 
 def run_pseudolabels(args: argparse.Namespace) -> int:
-    from drsplat.datasets_eval import NYU40_NAMES
+    from drsplat.eval.datasets import NYU40_NAMES
     from drsplat.scene import load_ply
     from drsplat.utils import atomic_path, save_npy_atomic
 
@@ -330,8 +330,8 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import load_cameras
     from drsplat.commands.query import load_registered
-    from drsplat.datasets_eval import load_lerf_annotations
-    from drsplat.eval_lerf import lerf_2d_report, select_queries
+    from drsplat.eval.datasets import load_lerf_annotations
+    from drsplat.eval.lerf import lerf_2d_report, select_queries
 
     scene, field = load_registered(args.registered)
     views = load_lerf_annotations(args.annotations)

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED
+from drsplat.features.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +45,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.clip import ClipEncoder
-    from drsplat.features import extract_features, feature_cameras, make_manifest
-    from drsplat.masks import NmsParams, SamParams, make_generator
+    from drsplat.features.clip import ClipEncoder
+    from drsplat.features.extract import extract_features, feature_cameras, make_manifest
+    from drsplat.features.masks import NmsParams, SamParams, make_generator
 
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
     encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)

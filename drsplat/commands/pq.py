@@ -42,7 +42,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
     """All embedding rows [n, D] float32 from .npy files and feature folders (finite nonzero rows)."""
-    from drsplat.featurefiles import FEAT_SUFFIX
+    from drsplat.features.format import FEAT_SUFFIX
     from drsplat.query import _load_npy
 
     files = list(arrays)
@@ -72,7 +72,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from drsplat.index import PQ_KSUB, train_codebook
+    from drsplat.lang import PQ_KSUB, train_codebook
 
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
@@ -89,7 +89,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from drsplat.index import load_codebook
+    from drsplat.lang import load_codebook
 
     book = load_codebook(args.codebook)
     index = book.index

@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
-from drsplat.index import LanguageField, read_field, strip_field
+from drsplat.lang import LanguageField, read_field, strip_field
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
 
-ORACLE_MODEL = "oracle"
 DEFAULT_RELEVANCY_THRESHOLD = 0.5
 
 
@@ -69,9 +68,10 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
 
 def load_encoder(args: argparse.Namespace, field: LanguageField):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id."""
-    from drsplat.clip import DEFAULT_MODEL, ClipEncoder
+    from drsplat.features.clip import DEFAULT_MODEL, ClipEncoder
+    from drsplat.features.modelid import is_oracle
 
-    if field.clip_model == ORACLE_MODEL:
+    if is_oracle(field.clip_model):
         raise DrsplatError(
             "this scene's features are synthetic oracle embeddings, not CLIP: query it with --embedding "
             "(rows of the synthetic dataset's text_embeddings.npy) instead of text"

@@ -10,7 +10,7 @@ import numpy as np
 
 from drsplat.commands.query import add_clip_arguments, add_lut_bits_argument, load_registered, split_phrases
 from drsplat.errors import DrsplatError
-from drsplat.index import strip_field
+from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 
 log = logging.getLogger(__name__)

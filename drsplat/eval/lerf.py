@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.datasets_eval import AnnotatedView
+from drsplat.eval.datasets import AnnotatedView
 from drsplat.errors import InputError
 from drsplat.utils import CancelToken, progress
 

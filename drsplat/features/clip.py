@@ -20,36 +20,14 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, check_compatible, make_model_id  # noqa: F401 - check_compatible re-exported for callers of the encoder
 from drsplat.utils import host_reachable
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MODEL = "ViT-B-16"
-DEFAULT_PRETRAINED = "laion2b_s34b_b88k"
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)
 OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
 _HF_FILENAMES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
-
-
-def make_model_id(model: str, pretrained: str) -> str:
-    """The string that names an embedding space, e.g. "ViT-B-16/laion2b_s34b_b88k"."""
-    return f"{model}/{pretrained}"
-
-
-def check_compatible(a: str | None, b: str | None, what_a: str = "the features", what_b: str = "the text encoder") -> None:
-    """Raise DrsplatError unless two CLIP model ids name the same embedding space.
-
-    Embeddings of different CLIP models live in unrelated spaces: their cosine is meaningless.
-    A missing id (None, "" or "unknown", e.g. LangSplat features without a manifest) is accepted;
-    ids compare case-insensitively.
-    """
-    known = [m for m in (a, b) if m and m != "unknown"]
-    if len(known) == 2 and known[0].strip().lower() != known[1].strip().lower():
-        raise DrsplatError(
-            f"CLIP model mismatch: {what_a} were made with {a} but {what_b} is {b}; "
-            f"embeddings of different CLIP models cannot be compared (use --clip-model/--pretrained to match {a})"
-        )
 
 
 def resolve_device(device: str = "auto") -> str:

@@ -89,14 +89,14 @@ def register(ds: Dataset, topk: int = 40, collect: bool = False):
 
 def evaluate(ds: Dataset, scores: np.ndarray, assigned: np.ndarray, weightings=("volume",), voxel_resolution: int = 64) -> dict:
     """{(task, weighting): IoUReport} for one scored scene (unassigned Gaussians never selected)."""
-    from drsplat.evaluation import evaluate_scene
+    from drsplat.eval.metrics import evaluate_scene
 
     reps = evaluate_scene(ds.scene, scores, ds.gt, ds.names, ("loc", "seg"), weightings, voxel_resolution=voxel_resolution, assigned=assigned)
     return {(r.task, r.weighting): r for r in reps}
 
 
 def exact_scores(ds: Dataset, result) -> tuple[np.ndarray, object]:
-    from drsplat.index import build_field
+    from drsplat.lang import build_field
 
     field = build_field(result.features, result.weights)
     return field.scores(ds.text), field
@@ -130,7 +130,7 @@ def ablate_topk(root: Path, preset: str, seeds: list[int], values=TOPK_VALUES, c
 
 
 def ablate_pq(root: Path, preset: str, seeds: list[int], values=PQ_VALUES, repeats: int = 9, cancel: CancelToken | None = None) -> AblationResult:
-    from drsplat.index import build_field
+    from drsplat.lang import build_field
 
     table: dict[str, list] = {}
     for seed in seeds:

@@ -286,7 +286,7 @@ def _work_image(image: np.ndarray, max_side: int) -> np.ndarray:
 
 
 def _levels_from_label_maps(label_maps: list[np.ndarray], height: int, width: int, min_area_fraction: float) -> list[MaskSet]:
-    from drsplat.featurefiles import resample_nearest
+    from drsplat.features.format import resample_nearest
 
     min_area = max(16, int(min_area_fraction * height * width))
     return [_partition_to_maskset(resample_nearest(labels, width, height), min_area) for labels in label_maps]
@@ -514,7 +514,7 @@ def _sam_unavailable(model_type: str, cache: Path) -> WeightsUnavailableError:
 
 def resolve_sam_checkpoint(model_type: str = "vit_h", timeout: float = 30.0) -> Path:
     """The official SAM checkpoint for `model_type`, downloaded once into drsplat_cache_dir()."""
-    from drsplat.clip import hf_offline
+    from drsplat.features.clip import hf_offline
 
     if model_type not in SAM_URLS:
         raise DrsplatError(f"unknown SAM model '{model_type}': use one of {', '.join(SAM_URLS)}")

@@ -1,10 +1,10 @@
 """Feature extraction: per-image masks at four levels and one CLIP embedding per mask (LangSplat).
 
-For each training image: masks (SAM or a weight-free generator, drsplat.masks) -> LangSplat's
+For each training image: masks (SAM or a weight-free generator, drsplat.features.masks) -> LangSplat's
 post-processing (masks_update) -> one crop per mask (the masked bounding box, padded to a square,
 resized to the encoder's input size, CLIP-normalised) -> CLIP image embeddings, batched ->
 `<stem>_s.npy` (4, H, W) cumulative mask ids and `<stem>_f.npy` (M, D) float32 embeddings,
-written atomically by drsplat.featurefiles. Valid existing pairs are skipped (resumable).
+written atomically by drsplat.features.format. Valid existing pairs are skipped (resumable).
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat import featurefiles
+from drsplat.features import format as featurefiles
+from drsplat.features.modelid import check_compatible, manifest_clip_entry, manifest_model_id
 from drsplat.errors import DrsplatError
-from drsplat.masks import LEVELS, MaskSet, NmsParams, masks_update
+from drsplat.features.masks import LEVELS, MaskSet, NmsParams, masks_update
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -181,8 +182,7 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
         "mask_generator": generator.name,
         "mask_parameters": generator.parameters(),
         "postprocess": asdict(nms),
-        "clip": {"model": encoder.model_name, "pretrained": encoder.pretrained, "checkpoint": encoder.checkpoint},
-        "clip_model_id": encoder.model_id,
+        **manifest_clip_entry(encoder.model_name, encoder.pretrained, encoder.checkpoint),
         "dim": int(encoder.dim),
         "crop_size": int(encoder.image_size),
         "resolution": resolution,
@@ -195,14 +195,12 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
 
 def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
     """Refuse to add features of another CLIP model or mask generator to an existing folder."""
-    from drsplat.clip import check_compatible
-
     old = featurefiles.read_manifest(features_dir)
     if not old:
         if features_dir.is_dir() and featurefiles.list_stems(features_dir):
             raise DrsplatError(f"{features_dir} already holds feature files without a manifest.json; use a new --out folder so features of different origins are not mixed")
         return
-    old_clip = old.get("clip_model_id") or _clip_id(old)
+    old_clip = manifest_model_id(old)
     check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
     if old.get("mask_generator") != manifest["mask_generator"]:
         raise DrsplatError(
@@ -210,12 +208,6 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
             f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks"
         )
 
-
-def _clip_id(manifest: dict) -> str | None:
-    clip = manifest.get("clip")
-    if isinstance(clip, dict) and clip.get("model"):
-        return f"{clip['model']}/{clip.get('pretrained')}" if clip.get("pretrained") else str(clip["model"])
-    return clip if isinstance(clip, str) else None
 
 
 def extract_features(

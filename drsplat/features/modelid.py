@@ -1,0 +1,77 @@
+"""CLIP model ids: the one owner of how an embedding space is named, recorded and compared.
+
+An id is "model/pretrained" (e.g. "ViT-B-16/laion2b_s34b_b88k"). Feature manifests record it
+(`manifest_clip_entry`), registered PLYs copy it, and queries check it (`check_compatible`): embeddings of
+two different CLIP models live in unrelated spaces and their cosine is meaningless. "unknown" (features made
+without a manifest, e.g. by LangSplat) is compared with anything, with a warning. ORACLE_MODEL_ID names the
+synthetic scenes' oracle space, which only matches itself.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from drsplat.errors import DrsplatError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL = "ViT-B-16"
+DEFAULT_PRETRAINED = "laion2b_s34b_b88k"
+UNKNOWN_MODEL = "unknown"
+ORACLE_MODEL_ID = "oracle"
+CANONICAL_PHRASES = ("object", "things", "stuff", "texture")  # LERF relevancy's negatives (the official code's)
+
+
+def make_model_id(model: str, pretrained: str | None) -> str:
+    """The string that names an embedding space, e.g. "ViT-B-16/laion2b_s34b_b88k" ("oracle" alone)."""
+    return f"{model}/{pretrained}" if pretrained else str(model)
+
+
+def canonical_model_id(model_id: str) -> str:
+    """Ids compare case-insensitively, with ':' and '/' as the same separator."""
+    return model_id.strip().replace(":", "/").lower()
+
+
+def manifest_clip_entry(model: str, pretrained: str | None, checkpoint: str | None = None) -> dict:
+    """The manifest.json keys that record the CLIP model (`clip` and `clip_model_id`, always consistent)."""
+    return {
+        "clip": {"model": model, "pretrained": pretrained or "", "checkpoint": checkpoint},
+        "clip_model_id": make_model_id(model, pretrained),
+    }
+
+
+def manifest_model_id(manifest: dict) -> str:
+    """The CLIP model id of a feature folder's manifest.json: `clip_model_id`, else 'model/pretrained' of
+    `clip`, else UNKNOWN_MODEL (no manifest, or one written by another tool)."""
+    model_id = manifest.get("clip_model_id")
+    if isinstance(model_id, str) and model_id:
+        return model_id
+    clip = manifest.get("clip")
+    if isinstance(clip, dict) and isinstance(clip.get("model"), str) and clip["model"]:
+        pretrained = clip.get("pretrained")
+        return make_model_id(clip["model"], pretrained if isinstance(pretrained, str) else None)
+    if isinstance(clip, str) and clip:
+        return clip
+    return UNKNOWN_MODEL
+
+
+def check_compatible(a: str | None, b: str | None, what_a: str = "the features", what_b: str = "the text encoder") -> None:
+    """Raise DrsplatError unless two CLIP model ids can name the same embedding space.
+
+    A missing id (None, "" or "unknown") on either side is accepted with a warning: nothing says the spaces differ.
+    """
+    known = [m for m in (a, b) if m and m != UNKNOWN_MODEL]
+    if len(known) < 2:
+        if (a or UNKNOWN_MODEL) != (b or UNKNOWN_MODEL):
+            log.warning("the CLIP model of %s is %s and of %s is %s: cannot check they match", what_a, a or UNKNOWN_MODEL, what_b, b or UNKNOWN_MODEL)
+        return
+    if canonical_model_id(known[0]) != canonical_model_id(known[1]):
+        raise DrsplatError(
+            f"CLIP model mismatch: {what_a} were made with {a} but {what_b} is {b}; "
+            f"embeddings of different CLIP models cannot be compared (use --clip-model/--pretrained to match {a})"
+        )
+
+
+def is_oracle(model_id: str | None) -> bool:
+    """True for the synthetic scenes' oracle space (whatever preset/seed suffix an older file carries)."""
+    return bool(model_id) and canonical_model_id(model_id).split("/")[0] == ORACLE_MODEL_ID
