@@ -18,10 +18,9 @@ dense or global, is ever formed.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,13 +29,14 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.features.format import list_stems, read_features_report, resample_nearest
+from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest
+from drsplat.pairlog import PairLog, ViewPairs
 from drsplat.scene import GaussianScene
-from drsplat.utils import CancelToken, atomic_path, progress
+from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: append-only pair log (drsplat.pairlog); 1 was a dense F/W .npz
 DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 
@@ -45,7 +45,8 @@ DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 class RegistrationResult:
     """Registered language features of a scene.
 
-    features: [N, D] float32 unit rows (zero rows where unassigned).
+    features: [N, D] float32 unit rows (zero rows where unassigned); None when the registration
+    streamed Gaussian blocks straight to the PLY (drsplat.streaming), which never holds [N, D].
     weights: [N] float32 total weight Σ_j w_ij (0 = unassigned).
     seconds: wall time; raster_seconds / accumulate_seconds: its two main stages;
     accumulate_cpu_seconds: CPU time of all threads in accumulation (steadier on a busy machine).
@@ -58,7 +59,7 @@ class RegistrationResult:
     mask_embeddings: [M_total, D] every mask embedding used (only with collect_embeddings).
     """
 
-    features: np.ndarray
+    features: np.ndarray | None
     weights: np.ndarray
     num_views: int
     num_pairs: int
@@ -230,6 +231,28 @@ class Accumulator:
             self.flush(keep_last=num_masks)
             offset = 0
 
+    def add_pairs(self, gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+        """Add one view's distinct pairs (as `Coalescer.coalesce` returns them) to the buffer.
+
+        gaussians: [P] int32 ids (rows of F), masks: [P] int32 rows of feats [M, D], weights: [P]
+        float32. Pairs keep their order, so the sums equal `add_view`'s bit for bit.
+        """
+        num_masks = feats.shape[0]
+        offset = self._push_rows(np.asarray(feats, np.float32))
+        start, total = 0, gaussians.shape[0]
+        capacity = self._pair_g.shape[0]
+        while start < total:
+            if self._filled == capacity:
+                self.flush(keep_last=num_masks)
+                offset = 0
+            take = min(capacity - self._filled, total - start)
+            dst = slice(self._filled, self._filled + take)
+            self._pair_g[dst] = gaussians[start : start + take]
+            self._pair_row[dst] = masks[start : start + take] + offset
+            self._pair_w[dst] = weights[start : start + take]
+            self._filled += take
+            start += take
+
     def _push_rows(self, feats: np.ndarray) -> int:
         """Store a view's embeddings after the buffered ones; returns their first row."""
         need = self._num_rows + feats.shape[0]
@@ -292,6 +315,105 @@ def normalize_rows(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np
     return F, bad_total
 
 
+
+class Coalescer:
+    """Turns one view's top-k lists into its distinct (Gaussian, mask) pairs (numba).
+
+    Owns the kernel's scratch arrays ([N] each, 12 bytes per Gaussian) and a pair buffer that
+    grows to the largest view seen, so a view never costs more than its own pairs.
+    """
+
+    def __init__(self, num_gaussians: int, capacity: int = 1 << 20):
+        self._seen = np.full(num_gaussians, -1, np.int32)
+        self._acc = np.zeros(num_gaussians, np.float32)
+        self._touched = np.zeros(num_gaussians, np.int32)
+        self._g = np.zeros(capacity, np.int32)
+        self._m = np.zeros(capacity, np.int32)
+        self._w = np.zeros(capacity, np.float32)
+
+    def coalesce(self, ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """ids, weights: [H, W, k]; mask_ids: [H, W] (-1 = none).
+
+        Returns (gaussians [P] int32, masks [P] int32, weights [P] float32, contributing pairs):
+        w_ij = Σ_{p ∈ mask j} w_i(p), mask by mask in the kernel's order (arrays are copies).
+        """
+        k = ids.shape[-1]
+        ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
+        w2 = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
+        masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
+        pairs = filled = first = 0
+        while True:
+            p, _, first, filled = _coalesce_view_kernel(
+                ids2, w2, masks, num_masks, first, 0, self._seen, self._acc, self._touched, self._g, self._m, self._w, filled,
+            )
+            pairs += p
+            if first >= num_masks:
+                return self._g[:filled].copy(), self._m[:filled].copy(), self._w[:filled].copy(), int(pairs)
+            self._grow()
+
+    def _grow(self) -> None:
+        size = 2 * self._g.shape[0]
+        for name in ("_g", "_m", "_w"):
+            old = getattr(self, name)
+            new = np.zeros(size, old.dtype)
+            new[: old.shape[0]] = old
+            setattr(self, name, new)
+
+
+def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20):
+    """`raster.prepare_scene` without the SH coefficients (registration renders no colour).
+
+    Prepared chunk by chunk, so the float64 copies of the SH never exist at once: ~101 bytes per
+    Gaussian (means and covariances float64, opacity, finite flag). Gaussians with non-finite SH
+    are still flagged non-finite, exactly as prepare_scene does.
+    """
+    from drsplat.raster import PreparedScene, prepare_scene
+
+    n = scene.num_gaussians
+    means = np.empty((n, 3), np.float64)
+    covs = np.empty((n, 3, 3), np.float64)
+    opacities = np.empty(n, np.float32)
+    finite = np.empty(n, bool)
+    for start in range(0, n, chunk):
+        part = prepare_scene(scene.subset(slice(start, start + chunk)))
+        stop = start + part.num_gaussians
+        means[start:stop], covs[start:stop] = part.means, part.covariances
+        opacities[start:stop], finite[start:stop] = part.opacities, part.finite
+    return PreparedScene(means=means, covariances=covs, opacities=opacities, sh=np.zeros((n, 0, 3), np.float32), finite=finite)
+
+
+def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(mask ids [H, W] resampled to the camera size, feats [M, D] float32, masks dropped as non-finite)."""
+    mask_ids, feats, nonfinite = read_features_report(features_dir, cam.name, level, drop_nonfinite=True)
+    return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite
+
+
+def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None):
+    """Rasterize one view and coalesce its pairs. Returns (ViewPairs, the raster buffers to reuse)."""
+    from drsplat.raster import rasterize
+
+    t0 = time.perf_counter()
+    out = rasterize(prepared, cam, topk=topk, out=out)
+    t1 = time.perf_counter()
+    g, m, w, pairs = coalescer.coalesce(out.ids, out.weights, mask_ids, feats.shape[0])
+    used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
+    t2 = time.perf_counter()
+    return ViewPairs(cam.name, feats, g, m, w, used, pairs, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1), out
+
+
+class LocalExecutor:
+    """Computes views' pairs in this process, one view after another (the default)."""
+
+    def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
+        coalescer = Coalescer(prepared.num_gaussians)
+        out = None
+        for cam in views:
+            mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
+            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out)
+            view.num_nonfinite = nonfinite
+            yield view
+
+
 # ----------------------------------------------------------------------------- pairing & checkpoints
 
 
@@ -307,6 +429,40 @@ def pair_views(cameras: Sequence[Camera], stems: Sequence[str]) -> tuple[list[Ca
     missing = [c.name for c in cameras if c.name not in available]
     unmatched = sorted(s for s in stems if s not in names)
     return matched, missing, unmatched
+
+
+def select_views(cameras: Sequence[Camera], features_dir: Path) -> tuple[list[Camera], list[str], list[str]]:
+    """`pair_views` on the feature folder, with the warnings and the error when nothing matches."""
+    stems = list_stems(features_dir)
+    if not stems:
+        raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
+    views, missing, unmatched = pair_views(cameras, stems)
+    if missing:
+        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)", len(missing), len(cameras), features_dir, ", ".join(missing[:3]))
+    if unmatched:
+        log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(unmatched), features_dir, ", ".join(unmatched[:3]))
+    duplicates = len(views) - len({c.name for c in views})
+    if duplicates:
+        log.warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
+    if not views:
+        raise InputError(
+            features_dir,
+            f"no feature file matches a camera image stem (cameras: {', '.join(c.name for c in cameras[:3])}...; "
+            f"features: {', '.join(stems[:3])}...)",
+        )
+    return views, missing, unmatched
+
+
+def feature_dim(features_dir: Path, views: Sequence[Camera]) -> int:
+    """D of the embeddings, from the first view's `_f.npy` header (nothing loaded)."""
+    path = feat_path(features_dir, views[0].name)
+    try:
+        shape = np.load(path, mmap_mode="r").shape
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"not a readable .npy file ({exc})") from None
+    if len(shape) != 2 or shape[1] == 0:
+        raise InputError(path, f"embeddings have shape {shape}, expected (M, D) with D > 0")
+    return int(shape[1])
 
 
 def _scene_digest(scene: GaussianScene) -> str:
@@ -326,8 +482,8 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     return h.hexdigest()
 
 
-def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, collect: bool) -> dict:
-    """What a checkpoint must match to be resumed."""
+def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int) -> dict:
+    """What a checkpoint (pair log) must match to be resumed."""
     return {
         "version": CHECKPOINT_VERSION,
         "num_gaussians": scene.num_gaussians,
@@ -336,56 +492,94 @@ def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_
         "features_dir": str(Path(features_dir).resolve()),
         "topk": int(topk),
         "level": int(level),
-        "collect_embeddings": bool(collect),
     }
 
 
+def open_checkpoint(path: Path, params: dict, views: Sequence[Camera]) -> PairLog:
+    """The pair log at `path`, restarted when its views are not a prefix of `views` in order."""
+    plog = PairLog.open(path, params)
+    names = [r.name for r in plog.records]
+    if names != [c.name for c in views[: len(names)]]:
+        log.warning("%s does not match the order of the views; starting over", path)
+        plog.delete()
+        plog = PairLog.open(path, params)
+    return plog
+
+
 @dataclass
-class _State:
-    acc: Accumulator | None = None
-    done: list[str] = field(default_factory=list)
+class ViewTotals:
+    """Counts and timings summed over registered views."""
+
+    done: int = 0
     num_pairs: int = 0
     num_distinct: int = 0
     num_nonfinite_masks: int = 0
+    raster_seconds: float = 0.0
+    coalesce_seconds: float = 0.0
+    dim: int | None = None
     embeddings: list[np.ndarray] = field(default_factory=list)
 
+    def add(self, view: ViewPairs, features_dir: Path, collect: bool) -> None:
+        if self.dim is None:
+            self.dim = int(view.feats.shape[1])
+        elif view.feats.shape[1] != self.dim:
+            raise InputError(feat_path(features_dir, view.name), f"embeddings are {view.feats.shape[1]}-D but earlier views' are {self.dim}-D")
+        self.done += 1
+        self.num_pairs += view.num_pairs
+        self.num_distinct += view.num_distinct
+        self.num_nonfinite_masks += view.num_nonfinite
+        self.raster_seconds += view.raster_seconds
+        self.coalesce_seconds += view.coalesce_seconds
+        if collect:
+            self.embeddings.append(np.array(view.feats[view.used]))
 
-def save_checkpoint(path: Path, params: dict, state: _State) -> None:
-    """Atomic .npz of the accumulators, the views done and the parameters they belong to."""
-    meta = dict(params, done=state.done, num_pairs=state.num_pairs, num_distinct=state.num_distinct, num_nonfinite_masks=state.num_nonfinite_masks)
-    arrays = {"meta": np.array(json.dumps(meta))}
-    if state.acc is not None:
-        arrays["F"], arrays["W"] = state.acc.sums()
-    if state.embeddings:
-        arrays["embeddings"] = np.concatenate(state.embeddings)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-    log.debug("checkpoint %s: %d views", path, len(state.done))
 
-
-def load_checkpoint(path: Path, params: dict) -> _State | None:
-    """The saved state if `path` holds a checkpoint made with the same `params`, else None."""
-    if not path.is_file():
-        return None
+def run_views(
+    prepared,
+    views: Sequence[Camera],
+    features_dir: Path,
+    level: int,
+    topk: int,
+    consume: Callable[[ViewPairs], None],
+    *,
+    plog: PairLog | None,
+    executor=None,
+    checkpoint_every: int = 10,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> None:
+    """Compute the pairs of the views not yet in `plog`, in view order: append each to the log
+    (the checkpoint) and hand it to `consume`. Views already logged are replayed into `consume` first."""
+    done = 0
+    if plog is not None:
+        for view in plog:
+            consume(view)
+            done += 1
+    if done:
+        log.info("resuming from %s: %d of %d views already registered", plog.path, done, len(views))
+    total = len(views)
+    if on_progress is not None:
+        on_progress(done, total)
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    executor = executor or LocalExecutor()
+    stream = executor.view_pairs(prepared, views[done:], features_dir, level, topk)
+    bar = progress(stream, desc="register", total=total - done, enabled=show_progress, unit="view")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            meta = json.loads(str(data["meta"]))
-            if any(meta.get(k) != v for k, v in params.items()):
-                log.warning("%s was made with other parameters or inputs; starting over", path)
-                return None
-            state = _State(done=list(meta["done"]), num_pairs=int(meta["num_pairs"]), num_distinct=int(meta["num_distinct"]),
-                           num_nonfinite_masks=int(meta["num_nonfinite_masks"]))
-            if "F" in data:
-                state.acc = Accumulator(params["num_gaussians"], data["F"].shape[1])
-                state.acc.F[:] = data["F"]
-                state.acc.W[:] = data["W"]
-            if "embeddings" in data:
-                state.embeddings = [data["embeddings"]]
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        log.warning("%s is not a readable checkpoint (%s); starting over", path, exc)
-        return None
-    return state
+        for view in bar:
+            if plog is not None:
+                plog.append(view, sync=(done + 1) % max(1, checkpoint_every) == 0)
+            consume(view)
+            done += 1
+            if on_progress is not None:
+                on_progress(done, total)
+            if cancel is not None and done < total:
+                cancel.raise_if_cancelled()
+    finally:
+        close = getattr(stream, "close", None)
+        if close is not None:
+            close()
 
 
 # ----------------------------------------------------------------------------- registration
@@ -405,95 +599,57 @@ def register_scene(
     checkpoint_every: int = 10,
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
+    executor=None,
 ) -> RegistrationResult:
-    """Register the mask embeddings of `features_dir` onto the Gaussians of `scene`.
+    """Register the mask embeddings of `features_dir` onto the Gaussians of `scene` (in memory).
 
     cameras: the training views; each pairs with `<name>_s.npy` / `<name>_f.npy` by image stem
     (cameras without features and features without a camera are skipped with a warning).
     Feature maps are resampled to the camera size by nearest neighbour.
-    checkpoint: an .npz path; the sums are saved there every `checkpoint_every` views (and on
-    cancel), and a run with the same inputs resumes from it. It is deleted at the end unless
-    keep_checkpoint (the caller then deletes it once its own output is safely written).
+    checkpoint: path of the pair log (drsplat.pairlog): every finished view's pairs are appended
+    (fsync'd every `checkpoint_every` views), and a run with the same inputs replays it and goes
+    on from there. Deleted at the end unless keep_checkpoint (the caller then deletes it once its
+    own output is safely written).
+    executor: where views' pairs are computed: LocalExecutor (default) or
+    drsplat.distributed.RayExecutor; the result is the same bit for bit.
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
-    from drsplat.raster import prepare_scene, rasterize
-
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
     if topk < 1:
         raise ValueError("topk must be >= 1")
-    stems = list_stems(features_dir)
-    if not stems:
-        raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
-    views, missing, unmatched = pair_views(cameras, stems)
-    if missing:
-        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)", len(missing), len(cameras), features_dir, ", ".join(missing[:3]))
-    if unmatched:
-        log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(unmatched), features_dir, ", ".join(unmatched[:3]))
-    duplicates = len(views) - len({c.name for c in views})
-    if duplicates:
-        log.warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
-    if not views:
-        raise InputError(
-            features_dir,
-            f"no feature file matches a camera image stem (cameras: {', '.join(c.name for c in cameras[:3])}...; "
-            f"features: {', '.join(stems[:3])}...)",
-        )
-
+    views, missing, unmatched = select_views(cameras, features_dir)
     ckpt = Path(checkpoint) if checkpoint is not None else None
-    params = checkpoint_params(scene, views, features_dir, topk, level, collect_embeddings)
-    state = (load_checkpoint(ckpt, params) if ckpt is not None else None) or _State()
-    resumed = len(state.done)
-    if state.done != [c.name for c in views[:resumed]]:  # views run in order: done is a prefix
-        log.warning("%s does not match the order of the views; starting over", ckpt)
-        state, resumed = _State(), 0
-    if resumed:
-        log.info("resuming from %s: %d of %d views already registered", ckpt, resumed, len(views))
-    prepared = prepare_scene(scene)
-    out = None  # the rasterizer's [H, W, k] buffers, reused from view to view
-    raster_s = accumulate_s = accumulate_cpu = allocate_s = 0.0
-    since_checkpoint = 0
-    total = len(views)
-    if on_progress is not None:
-        on_progress(resumed, total)
-    for cam in progress(views[resumed:], desc="register", total=total - resumed, enabled=show_progress, unit="view"):
-        if cancel is not None and cancel.cancelled:
-            if ckpt is not None:
-                save_checkpoint(ckpt, params, state)
-            cancel.raise_if_cancelled()
-        mask_ids, feats, nonfinite = read_features_report(features_dir, cam.name, level, drop_nonfinite=True)
-        state.num_nonfinite_masks += nonfinite
-        if state.acc is None:
-            t0 = time.perf_counter()
-            state.acc = Accumulator(scene.num_gaussians, feats.shape[1])
-            allocate_s = time.perf_counter() - t0
-        if feats.shape[1] != state.acc.dim:
-            raise InputError(features_dir / f"{cam.name}_f.npy", f"embeddings are {feats.shape[1]}-D but earlier views' are {state.acc.dim}-D")
-        mask_ids = resample_nearest(mask_ids, cam.width, cam.height)
-        t0 = time.perf_counter()
-        out = rasterize(prepared, cam, topk=topk, out=out)
-        t1, c1 = time.perf_counter(), time.process_time()
-        pairs, distinct = state.acc.add_view(out.ids, out.weights, mask_ids, feats)
-        accumulate_s += time.perf_counter() - t1
-        accumulate_cpu += time.process_time() - c1
-        raster_s += t1 - t0
-        state.num_pairs += int(pairs)
-        state.num_distinct += int(distinct)
-        if collect_embeddings:
-            used = np.unique(mask_ids[mask_ids >= 0])
-            state.embeddings.append(feats[used])
-        state.done.append(cam.name)
-        since_checkpoint += 1
-        if ckpt is not None and since_checkpoint >= checkpoint_every and len(state.done) < total:
-            save_checkpoint(ckpt, params, state)
-            since_checkpoint = 0
-        if on_progress is not None:
-            on_progress(len(state.done), total)
+    plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level), views) if ckpt is not None else None
+    resumed = len(plog.records) if plog is not None else 0
+    prepared = prepare_geometry(scene)
+    totals = ViewTotals()
+    acc: Accumulator | None = None
+    accumulate_s = accumulate_cpu = allocate_s = 0.0
 
-    if state.acc is None:  # only a checkpoint saved before the first view could get here
-        state.acc = Accumulator(scene.num_gaussians, 1)
+    def consume(view: ViewPairs) -> None:
+        nonlocal acc, accumulate_s, accumulate_cpu, allocate_s
+        totals.add(view, features_dir, collect_embeddings)
+        if acc is None:
+            t0 = time.perf_counter()
+            acc = Accumulator(scene.num_gaussians, totals.dim)
+            allocate_s = time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        acc.add_pairs(view.gaussians, view.masks, view.weights, view.feats)
+        accumulate_s += time.perf_counter() - t0
+        accumulate_cpu += time.process_time() - c0
+
+    try:
+        run_views(prepared, views, features_dir, level, topk, consume, plog=plog, executor=executor, checkpoint_every=checkpoint_every,
+                  show_progress=show_progress, on_progress=on_progress, cancel=cancel)
+    finally:
+        if plog is not None:
+            plog.close()
+    del prepared
+    if acc is None:  # no view had any data
+        acc = Accumulator(scene.num_gaussians, totals.dim or 1)
     t0, c0 = time.perf_counter(), time.process_time()
-    sums = state.acc.sums()
+    sums = acc.sums()
     accumulate_s += time.perf_counter() - t0
     accumulate_cpu += time.process_time() - c0
     features, nonfinite = normalize_rows(*sums)
@@ -501,13 +657,13 @@ def register_scene(
         log.warning("%d Gaussians got non-finite feature sums and are left unassigned", nonfinite)
     result = RegistrationResult(
         features=features,
-        weights=state.acc.W,
-        num_views=len(state.done),
-        num_pairs=state.num_pairs,
-        num_distinct_pairs=state.num_distinct,
+        weights=acc.W,
+        num_views=totals.done,
+        num_pairs=totals.num_pairs,
+        num_distinct_pairs=totals.num_distinct,
         seconds=time.perf_counter() - t_start,
-        raster_seconds=raster_s,
-        accumulate_seconds=accumulate_s,
+        raster_seconds=totals.raster_seconds,
+        accumulate_seconds=accumulate_s + totals.coalesce_seconds,
         accumulate_cpu_seconds=accumulate_cpu,
         allocate_seconds=allocate_s,
         resumed_views=resumed,
@@ -515,12 +671,12 @@ def register_scene(
         level=level,
         missing_features=missing,
         unmatched_features=unmatched,
-        num_nonfinite_masks=state.num_nonfinite_masks,
+        num_nonfinite_masks=totals.num_nonfinite_masks,
         num_nonfinite_features=nonfinite,
-        mask_embeddings=np.concatenate(state.embeddings) if collect_embeddings and state.embeddings else None,
+        mask_embeddings=np.concatenate(totals.embeddings) if collect_embeddings and totals.embeddings else None,
     )
-    if ckpt is not None and not keep_checkpoint:
-        ckpt.unlink(missing_ok=True)
+    if plog is not None and not keep_checkpoint:
+        plog.delete()
     log.info(
         "registered %d views: %d of %d Gaussians assigned, %.1f M contributing pairs, %.1f s",
         result.num_views, result.num_assigned, scene.num_gaussians, result.num_pairs / 1e6, result.seconds,

@@ -536,6 +536,17 @@ def scene_to_vertices(scene: GaussianScene) -> np.ndarray:
     return out
 
 
+def ply_header(vertex_dtype: np.dtype, comments: list[str], count: int) -> bytes:
+    """The binary PLY header of `count` vertices of `vertex_dtype` (as `scene_to_vertices` makes)."""
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comments]
+    lines.append(f"element vertex {count}")
+    for name in vertex_dtype.names:
+        lines.append(f"property {NUMPY_TO_PLY[vertex_dtype[name].str.lstrip('<>=|')]} {name}")
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
 def save_ply(scene: GaussianScene, path: str | Path) -> None:
     """Write `scene` in exactly the INRIA layout (binary little-endian float32), atomically.
 
@@ -544,13 +555,7 @@ def save_ply(scene: GaussianScene, path: str | Path) -> None:
     from drsplat.utils import atomic_path
 
     vertices = scene_to_vertices(scene)
-    lines = ["ply", "format binary_little_endian 1.0"]
-    lines += [f"comment {c}" for c in scene.comments]
-    lines.append(f"element vertex {scene.num_gaussians}")
-    for name in vertices.dtype.names:
-        lines.append(f"property {NUMPY_TO_PLY[vertices.dtype[name].str.lstrip('<>=|')]} {name}")
-    lines.append("end_header")
-    header = ("\n".join(lines) + "\n").encode("ascii")
+    header = ply_header(vertices.dtype, scene.comments, scene.num_gaussians)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(header)

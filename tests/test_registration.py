@@ -269,7 +269,7 @@ def test_cli_interrupt_leaves_no_output(tiny, tmp_path, monkeypatch):
     from drsplat.cli import main
 
     calls = {"n": 0}
-    original = registration.Accumulator.add_view
+    original = registration.Accumulator.add_pairs
 
     def interrupted(self, *a):
         calls["n"] += 1
@@ -277,7 +277,7 @@ def test_cli_interrupt_leaves_no_output(tiny, tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return original(self, *a)
 
-    monkeypatch.setattr(registration.Accumulator, "add_view", interrupted)
+    monkeypatch.setattr(registration.Accumulator, "add_pairs", interrupted)
     out = tmp_path / "out.ply"
     code = main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"])
     assert code == 1 and not out.exists()
@@ -309,7 +309,7 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
     from drsplat.cli import main
 
     calls = {"n": 0}
-    original = registration.Accumulator.add_view
+    original = registration.Accumulator.add_pairs
 
     def add_view_then_ctrl_c(self, *a):
         calls["n"] += 1

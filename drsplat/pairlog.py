@@ -1,0 +1,253 @@
+"""The registration checkpoint: an append-only log of each view's sparse (Gaussian, mask, weight) pairs.
+
+A registration's state after v views is fully described by the distinct (Gaussian, mask) pairs of
+those views with their summed weights, plus the views' mask embeddings. The log stores exactly
+that, one record per view, appended as each view finishes; nothing is ever rewritten. Replaying
+the records in order into `Accumulator.add_pairs` reproduces the running sums bit for bit, and
+the streaming path (drsplat.streaming) reads them block by block.
+
+Layout (little-endian):
+
+    header:  b"DRSPLOG1" | u64 n | n bytes of JSON parameters | u32 crc32(JSON)
+    record:  b"VIEW" | u64 a | u64 b | a bytes of JSON meta | b bytes of payload | u32 crc32(meta + payload)
+    payload: feats [M, D] f32 | gaussian [P] i32 | mask [P] i32 | weight [P] f32 | used [U] i32
+
+Size: 12 bytes per distinct pair plus 4·D per mask (flowers, 50 views at 640 x 480: 15.3 M pairs,
+184 MB, against 1.1 GB for the old dense F checkpoint that was rewritten every 10 views).
+A record cut short by a kill, a bad checksum or a file that is not a log (an older .npz
+checkpoint, a truncated one) is detected: the valid prefix is kept, or the run starts over with
+a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"DRSPLOG1"
+TAG = b"VIEW"
+_U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
+
+
+@dataclass
+class ViewPairs:
+    """One view's contribution: its distinct (Gaussian, mask) pairs with summed weights.
+
+    feats: [M, D] float32 the view's mask embeddings (non-finite ones zeroed, their pixels dropped).
+    gaussians: [P] int32, masks: [P] int32 (rows of feats), weights: [P] float32 w_ij, in the
+    order the coalescing kernel emits them (mask by mask), which fixes the summation order.
+    used: [U] int32 masks that cover at least one pixel (for training a scene codebook).
+    num_pairs: contributing (Gaussian, pixel) pairs; num_nonfinite: masks dropped.
+    raster_seconds / coalesce_seconds: where the time went (not stored in the log).
+    """
+
+    name: str
+    feats: np.ndarray
+    gaussians: np.ndarray
+    masks: np.ndarray
+    weights: np.ndarray
+    used: np.ndarray
+    num_pairs: int
+    num_nonfinite: int = 0
+    raster_seconds: float = 0.0
+    coalesce_seconds: float = 0.0
+
+    @property
+    def num_distinct(self) -> int:
+        return int(self.gaussians.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes)
+
+
+def _encode(view: ViewPairs) -> tuple[bytes, list[np.ndarray]]:
+    meta = {
+        "name": view.name, "M": int(view.feats.shape[0]), "D": int(view.feats.shape[1]), "P": view.num_distinct,
+        "U": int(view.used.shape[0]), "pairs": int(view.num_pairs), "nonfinite": int(view.num_nonfinite),
+    }
+    arrays = [
+        np.ascontiguousarray(view.feats, "<f4"), np.ascontiguousarray(view.gaussians, "<i4"),
+        np.ascontiguousarray(view.masks, "<i4"), np.ascontiguousarray(view.weights, "<f4"), np.ascontiguousarray(view.used, "<i4"),
+    ]
+    return json.dumps(meta).encode(), arrays
+
+
+def _decode(meta: dict, payload: memoryview | bytes) -> ViewPairs:
+    m, d, p, u = meta["M"], meta["D"], meta["P"], meta["U"]
+    buf = np.frombuffer(payload, np.uint8)
+    pos = 0
+
+    def take(count: int, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+        nonlocal pos
+        size = count * 4
+        arr = buf[pos : pos + size].view(dtype).reshape(shape)
+        pos += size
+        return arr
+
+    feats = take(m * d, "<f4", (m, d))
+    g, mk, w, used = take(p, "<i4", (p,)), take(p, "<i4", (p,)), take(p, "<f4", (p,)), take(u, "<i4", (u,))
+    return ViewPairs(meta["name"], feats, g, mk, w, used, int(meta["pairs"]), int(meta["nonfinite"]))
+
+
+def _payload_size(meta: dict) -> int:
+    return 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"])
+
+
+@dataclass
+class LogRecord:
+    """Where a view's record lies in the log (for re-reading it without a scan)."""
+
+    name: str
+    offset: int  # of the payload
+    meta: dict
+
+
+class PairLog:
+    """An append-only registration log at `path` for the parameters `params`.
+
+    `PairLog.open(path, params)` keeps a valid prefix of an existing log with the same parameters
+    (`records`), truncates a torn last record, and starts a new log otherwise (with a warning
+    that says why). `append(view)` adds a record; `read(record)` returns a stored view.
+    """
+
+    def __init__(self, path: Path, params: dict, records: list[LogRecord], file) -> None:
+        self.path = path
+        self.params = params
+        self.records = records
+        self._file = file
+
+    # --------------------------------------------------------------------- opening
+
+    @classmethod
+    def open(cls, path: str | Path, params: dict) -> "PairLog":
+        path = Path(path)
+        records = _valid_records(path, params) if path.exists() else None
+        if records is None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "wb") as f:
+                body = json.dumps(params, sort_keys=True).encode()
+                f.write(MAGIC + _U64.pack(len(body)) + body + _U32.pack(zlib.crc32(body)))
+            records = []
+        return cls(path, params, records, open(path, "r+b"))
+
+    def close(self) -> None:
+        if self._file is not None and not self._file.closed:
+            self._file.close()
+
+    def __enter__(self) -> "PairLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def delete(self) -> None:
+        self.close()
+        self.path.unlink(missing_ok=True)
+
+    # --------------------------------------------------------------------- writing / reading
+
+    def append(self, view: ViewPairs, sync: bool = False) -> None:
+        """Append one view's record (flushed to the OS; fsync'd when `sync`)."""
+        meta_bytes, arrays = _encode(view)
+        size = sum(a.nbytes for a in arrays)
+        f = self._file
+        f.seek(0, os.SEEK_END)
+        start = f.tell()
+        f.write(TAG + _U64.pack(len(meta_bytes)) + _U64.pack(size) + meta_bytes)
+        crc = zlib.crc32(meta_bytes)
+        for a in arrays:
+            raw = memoryview(a).cast("B")
+            f.write(raw)
+            crc = zlib.crc32(raw, crc)
+        f.write(_U32.pack(crc))
+        f.flush()
+        if sync:
+            os.fsync(f.fileno())
+        self.records.append(LogRecord(view.name, start + 4 + 16 + len(meta_bytes), json.loads(meta_bytes)))
+
+    def read(self, record: LogRecord) -> ViewPairs:
+        """The view stored in `record` (checked when the log was opened)."""
+        f = self._file
+        f.flush()
+        f.seek(record.offset)
+        return _decode(record.meta, f.read(_payload_size(record.meta)))
+
+    def __iter__(self) -> Iterator[ViewPairs]:
+        for record in list(self.records):
+            yield self.read(record)
+
+    @property
+    def nbytes(self) -> int:
+        self._file.flush()
+        return os.path.getsize(self.path)
+
+
+def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
+    """The records of a readable log made with `params` (torn tail truncated), or None to start over."""
+    try:
+        size = path.stat().st_size
+        with open(path, "r+b") as f:
+            head = f.read(len(MAGIC) + 8)
+            if head[: len(MAGIC)] != MAGIC or len(head) < len(MAGIC) + 8:
+                log.warning("%s is not a drsplat registration log (an older or truncated checkpoint); starting from scratch", path)
+                return None
+            (n,) = _U64.unpack(head[len(MAGIC) :])
+            body = f.read(n) if n <= size else b""
+            crc = f.read(4)
+            if len(body) != n or len(crc) != 4 or _U32.unpack(crc)[0] != zlib.crc32(body):
+                log.warning("%s has a damaged header (truncated checkpoint); starting from scratch", path)
+                return None
+            saved = json.loads(body)
+            if saved != json.loads(json.dumps(params, sort_keys=True)):
+                log.warning("%s was made with other parameters or inputs; starting over", path)
+                return None
+            records, end = _scan(f, size)
+            if end < size:
+                log.warning("%s: the last view's record is incomplete (the run was killed while writing it); it is redone", path)
+                f.truncate(end)
+            return records
+    except (OSError, ValueError, json.JSONDecodeError) as exc:
+        log.warning("%s is not a readable checkpoint (%s); starting from scratch", path, exc)
+        return None
+
+
+def _scan(f, size: int) -> tuple[list[LogRecord], int]:
+    """Records with valid length and checksum from the current position; (records, end of the last)."""
+    records: list[LogRecord] = []
+    end = f.tell()
+    while True:
+        head = f.read(20)
+        if len(head) < 20 or head[:4] != TAG:
+            return records, end
+        (a,), (b,) = _U64.unpack(head[4:12]), _U64.unpack(head[12:20])
+        if end + 20 + a + b + 4 > size:
+            return records, end
+        meta_bytes = f.read(a)
+        crc = zlib.crc32(meta_bytes)
+        remaining = b
+        while remaining:
+            chunk = f.read(min(remaining, 1 << 24))
+            crc = zlib.crc32(chunk, crc)
+            remaining -= len(chunk)
+        stored = f.read(4)
+        try:
+            meta = json.loads(meta_bytes)
+            ok = _U32.unpack(stored)[0] == crc and _payload_size(meta) == b
+        except (ValueError, KeyError, TypeError, struct.error):
+            ok = False
+        if not ok:
+            return records, end
+        records.append(LogRecord(meta["name"], end + 20 + a, meta))
+        end = f.tell()
