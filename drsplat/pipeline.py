@@ -49,9 +49,9 @@ class PipelineResult:
 
 
 def checkpoint_path_for(out: str | Path) -> Path:
-    """The hidden resumable checkpoint of a registration that writes `out`."""
+    """The hidden resumable checkpoint (pair log) of a registration that writes `out`."""
     out = Path(out)
-    return out.with_name(f".{out.name}.register.npz")
+    return out.with_name(f".{out.name}.register.log")
 
 
 def register_to_ply(

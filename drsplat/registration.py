@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_VERSION = 2  # 2: append-only pair log (drsplat.pairlog); 1 was a dense F/W .npz
 DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
+MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
 
 
 @dataclass
@@ -238,6 +239,8 @@ class Accumulator:
         float32. Pairs keep their order, so the sums equal `add_view`'s bit for bit.
         """
         num_masks = feats.shape[0]
+        if self._num_rows > MAX_BUFFERED_ROWS:  # bound the embedding buffer of sparse views too
+            self.flush()
         offset = self._push_rows(np.asarray(feats, np.float32))
         start, total = 0, gaussians.shape[0]
         capacity = self._pair_g.shape[0]

@@ -317,13 +317,13 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
             os.kill(os.getpid(), signal.SIGINT)
         return original(self, *a)
 
-    monkeypatch.setattr(registration.Accumulator, "add_view", add_view_then_ctrl_c)
+    monkeypatch.setattr(registration.Accumulator, "add_pairs", add_view_then_ctrl_c)
     out = tmp_path / "out.ply"
     args = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"]
     assert main(args) == 1 and not out.exists()
-    assert len(list(tmp_path.glob(".out.ply.register.npz"))) == 1  # the checkpoint, a hidden file
+    assert len(list(tmp_path.glob(".out.ply.register.log"))) == 1  # the checkpoint, a hidden file
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    monkeypatch.setattr(registration.Accumulator, "add_view", original)
+    monkeypatch.setattr(registration.Accumulator, "add_pairs", original)
     assert "stopping after the current view" in capsys.readouterr().err
     assert main(args) == 0
     assert "4 of 16 views already registered" in capsys.readouterr().err
