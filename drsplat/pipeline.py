@@ -30,20 +30,30 @@ class RegisterOptions:
 
     codebook: "none" (exact float16 field), "scene" (PQ trained on this scene) or a faiss codebook path.
     keep_unassigned: keep Gaussians that got no weight (lang_weight 0) instead of pruning them.
+    memory_budget: bytes the registration may use; when the in-memory estimate exceeds it, Gaussians
+    are streamed in blocks (drsplat.streaming, same file). None: in memory if it fits the memory
+    available, else an error that gives the figure and the budget to pass.
+    block_size: stream with blocks of this many Gaussians whatever the estimate (tests, benches).
+    ray: a Ray cluster address ("" or "local" starts a local one) computing views on workers
+    (drsplat.distributed); ray_workers: how many worker tasks at once (default: the cluster's CPUs).
     """
 
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
     codebook: str = "none"
     keep_unassigned: bool = False
+    memory_budget: int | None = None
+    block_size: int | None = None
+    ray: str | None = None
+    ray_workers: int | None = None
 
 
 @dataclass
 class PipelineResult:
-    """What `register_to_ply` wrote: the PLY path, the field and the registration's record."""
+    """What `register_to_ply` wrote: the PLY path, the field (None when streamed) and the registration's record."""
 
     path: Path
-    field: LanguageField
+    field: LanguageField | None
     registration: RegistrationResult
     num_written: int
 
@@ -71,17 +81,45 @@ def register_to_ply(
     resumable: keep a checkpoint beside `out` while working (a cancelled or killed run resumes from it);
     it is deleted once `out` is written.
     """
+    from drsplat.registration import feature_dim, select_views
+    from drsplat.streaming import choose_block, estimate_memory, register_streaming
+
     features_dir, out = Path(features_dir), Path(out)
     clip_model = manifest_model_id(read_manifest(features_dir))
-    ckpt = checkpoint_path_for(out) if resumable else None
-    result = register_scene(
-        scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
-        on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
-        collect_embeddings=options.codebook == "scene",
-    )
+    views = select_views(cameras, features_dir)[0]
+    dim = feature_dim(features_dir, views)
+    codebook = resolve_codebook(options.codebook, dim)  # a bad codebook fails now, not after registering
+    block = options.block_size
+    if block is None:
+        plan = estimate_memory(scene, views, dim, options.topk)
+        block = choose_block(plan, options.memory_budget)
+        log.info("estimated peak memory: %.1f GB in memory%s", plan.in_memory / 1e9,
+                 "" if block is None else f", {plan.streaming(block) / 1e9:.1f} GB streamed in blocks of {block:,} Gaussians")
+    ckpt = checkpoint_path_for(out) if resumable or block is not None else None
+    executor = make_executor(options)
+    try:
+        if block is not None:
+            streamed = register_streaming(
+                scene, cameras, features_dir, out, block_size=block, checkpoint=ckpt, topk=options.topk, level=options.level,
+                codebook=codebook, clip_model=clip_model, keep_unassigned=options.keep_unassigned, executor=executor,
+                show_progress=show_progress, on_progress=on_progress, cancel=cancel,
+            )
+            ckpt.unlink(missing_ok=True)
+            log.info("%s: %d Gaussians in %d blocks of %d, %s field, %d views, %.1f s", out, streamed.num_written, streamed.num_blocks,
+                     block, streamed.field_kind, streamed.registration.num_views, streamed.registration.seconds)
+            return PipelineResult(out, None, streamed.registration, streamed.num_written)
+        result = register_scene(
+            scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
+            on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
+            collect_embeddings=options.codebook == "scene", executor=executor,
+        )
+    finally:
+        if executor is not None:
+            executor.close()
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
-    field = build_field(result.features[keep], result.weights[keep], codebook=options.codebook, clip_model=clip_model,
+    field = build_field(result.features[keep], result.weights[keep], codebook=codebook, clip_model=clip_model,
                         train_embeddings=result.mask_embeddings)
+    result.features = None  # the [N, D] sums are not needed for writing: free them first
     if cancel is not None:
         cancel.raise_if_cancelled()
     out_scene = attach_field(scene.subset(keep), field, out)
@@ -94,3 +132,25 @@ def register_to_ply(
         "kept with lang_weight 0" if options.keep_unassigned else "pruned", field.kind, result.num_views, result.seconds,
     )
     return PipelineResult(out, field, result, out_scene.num_gaussians)
+
+
+def resolve_codebook(codebook: str, dim: int):
+    """'none' / 'scene' as given, or the faiss codebook file loaded and checked against the features' D."""
+    from drsplat.errors import InputError
+    from drsplat.lang import load_codebook
+
+    if codebook in ("none", "scene"):
+        return codebook
+    book = load_codebook(codebook)
+    if book.dim != dim:
+        raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
+    return book
+
+
+def make_executor(options: RegisterOptions):
+    """The Ray executor when options.ray is set, else None (views computed in this process)."""
+    if options.ray is None:
+        return None
+    from drsplat.distributed import RayExecutor
+
+    return RayExecutor(options.ray, workers=options.ray_workers)

@@ -39,6 +39,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="camera resolution as 3DGS's -r: 1, 2, 4, 8 divide, another number is a width in pixels; "
                    "default -1: full size, capped at 1600 px wide")
     p.add_argument("--out", type=Path, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
+    p.add_argument("--memory-budget", default=None, metavar="SIZE",
+                   help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
+                   "streamed in blocks through a pair log on disk, with the same output. Default: in memory if it fits the "
+                   "memory available, else stop and say which budget fits")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="compute views on a Ray cluster (pip install 'drsplat[ray]'): ADDRESS of a running cluster "
+                   "(host:port or 'auto'), or no value to start a local one; same output as without")
+    p.add_argument("--ray-workers", type=int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -79,7 +87,18 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError(f"--resolution: {exc}") from exc
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
-    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned)
+    budget = None
+    if args.memory_budget is not None:
+        from drsplat.streaming import parse_size
+
+        try:
+            budget = parse_size(args.memory_budget)
+        except ValueError as exc:
+            raise DrsplatError(f"--memory-budget: {exc}") from exc
+    if args.ray_workers is not None and args.ray_workers < 1:
+        raise DrsplatError(f"--ray-workers must be at least 1, got {args.ray_workers}")
+    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
+                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers)
     token = CancelToken()
     with cancel_on_sigint(token):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
