@@ -41,23 +41,38 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="image scale as 3DGS -r: -1 full size capped at 1600 px wide, 1/2/4/8 divide, other values a target width")
     p.add_argument("--max-height", type=int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
     p.add_argument("--batch-size", type=int, default=64, metavar="N", help="CLIP crops per batch")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="spread images over Ray workers (pip install 'drsplat[ray]'), one model load per worker: ADDRESS of a "
+                   "running cluster (host:port or 'auto'), or no value to start a local one. With --device cuda each worker "
+                   "requests one GPU. Same files, resumable")
+    p.add_argument("--ray-workers", type=int, default=None, metavar="N", help="Ray workers (default: the cluster's CPUs)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.features.clip import ClipEncoder
-    from drsplat.features.extract import extract_features, feature_cameras, make_manifest
-    from drsplat.features.masks import NmsParams, SamParams, make_generator
+    from drsplat.errors import DrsplatError
+    from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
 
+    if args.ray_workers is not None and args.ray_workers < 1:
+        raise DrsplatError(f"--ray-workers must be at least 1, got {args.ray_workers}")
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
-    encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)
-    sam_params = SamParams(points_per_side=args.sam_points_per_side, crop_n_layers=args.sam_crop_layers)
-    generator = make_generator(args.masks, args.sam_checkpoint, args.sam_model, encoder.device, sam_params)
-    nms = NmsParams()
+    spec = ModelSpec(
+        masks=args.masks, clip_model=args.clip_model, pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
+        sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,
+        sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size,
+    )
     extra = {"source": str(args.source), "sam_checkpoint": str(args.sam_checkpoint or "") if args.masks == "sam" else None}
-    manifest = make_manifest(generator, encoder, nms, args.resolution, args.max_height or None, extra)
-    log.info("%d images from %s; masks %s; CLIP %s on %s", len(cameras), args.source, args.masks, encoder.model_id, encoder.device)
-    report = extract_features(cameras, args.out, generator, encoder, nms, manifest)
+    if args.ray is not None:
+        from drsplat.distributed import extract_features_ray
+
+        log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, args.clip_model)
+        report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,
+                                      max_height=args.max_height or None, manifest_extra=extra)
+    else:
+        generator, encoder = build_models(spec)
+        manifest = make_manifest(generator, encoder, spec.nms, args.resolution, args.max_height or None, extra)
+        log.info("%d images from %s; masks %s; CLIP %s on %s", len(cameras), args.source, args.masks, encoder.model_id, encoder.device)
+        report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest)
     n = len(report.written)
     per = report.times
     log.info(

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.features import format as featurefiles
-from drsplat.features.modelid import check_compatible, manifest_clip_entry, manifest_model_id
+from drsplat.features.modelid import DEFAULT_MODEL, check_compatible, manifest_clip_entry, manifest_model_id
 from drsplat.errors import DrsplatError
 from drsplat.features.masks import LEVELS, MaskSet, NmsParams, masks_update
 from drsplat.utils import CancelToken, progress
@@ -210,6 +210,68 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
 
 
 
+def todo_cameras(cameras: list, out: Path, report: FeatureReport) -> list:
+    """The cameras whose feature pair is missing or incomplete in `out` (complete ones go to report.skipped)."""
+    todo, seen = [], set()
+    for cam in cameras:
+        stem = cam.name
+        if stem in seen:
+            continue
+        seen.add(stem)
+        if featurefiles.is_valid_pair(out, stem):
+            report.skipped.append(stem)
+            continue
+        if featurefiles.seg_path(out, stem).exists() or featurefiles.feat_path(out, stem).exists():
+            log.warning("%s: incomplete or invalid feature files for %s; recomputing them", out, stem)
+            report.redone.append(stem)
+        todo.append(cam)
+    return todo
+
+
+def record_result(out: Path, stem: str, seg: np.ndarray, feats: np.ndarray, times: StageTimes, counts: list[int], report: FeatureReport) -> None:
+    """Drop non-finite embeddings (counted), write the pair atomically and account for it in `report`."""
+    bad_rows = ~np.isfinite(feats).all(axis=1)
+    if bad_rows.any():
+        report.nonfinite_embeddings += int(bad_rows.sum())
+        log.warning("%s: %d embeddings are not finite; their masks are dropped", stem, int(bad_rows.sum()))
+        feats[bad_rows] = 0.0
+        seg[np.isin(seg, np.flatnonzero(bad_rows))] = -1
+    featurefiles.write_features(out, stem, seg, feats)
+    report.written.append(stem)
+    report.times.add(times)
+    report.masks_per_level = [a + b for a, b in zip(report.masks_per_level, counts)]
+    log.debug("%s: %s masks, %.2f s (masks %.2f, post %.2f, crop %.2f, clip %.2f)", stem, counts, times.total, times.masks, times.postprocess, times.crop, times.clip)
+
+
+@dataclass
+class ModelSpec:
+    """How to build the mask generator and the CLIP encoder (the `drsplat features` flags), so that
+    each Ray worker can load its own copy."""
+
+    masks: str = "sam"
+    clip_model: str = DEFAULT_MODEL
+    pretrained: str | None = None
+    clip_checkpoint: Path | None = None
+    sam_checkpoint: Path | None = None
+    sam_model: str = "vit_h"
+    sam_points_per_side: int = 32
+    sam_crop_layers: int = 1
+    device: str = "auto"
+    batch_size: int = 64
+    nms: NmsParams = field(default_factory=NmsParams)
+
+
+def build_models(spec: ModelSpec):
+    """(mask generator, CLIP encoder) of `spec`."""
+    from drsplat.features.clip import ClipEncoder
+    from drsplat.features.masks import SamParams, make_generator
+
+    encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
+    sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
+    generator = make_generator(spec.masks, spec.sam_checkpoint, spec.sam_model, encoder.device, sam_params)
+    return generator, encoder
+
+
 def extract_features(
     cameras: list,
     out_dir: str | Path,
@@ -238,31 +300,17 @@ def extract_features(
         out.mkdir(parents=True, exist_ok=True)
         featurefiles.write_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
+    todo = {c.name for c in todo_cameras(cameras, out, report)}
     bar = progress(cameras, desc="features", total=len(cameras), enabled=show_progress, unit="img")
     for i, cam in enumerate(bar):
         if cancel is not None:
             cancel.raise_if_cancelled()
-        stem = cam.name
-        if featurefiles.is_valid_pair(out, stem):
-            report.skipped.append(stem)
-        else:
-            if featurefiles.seg_path(out, stem).exists() or featurefiles.feat_path(out, stem).exists():
-                log.warning("%s: incomplete or invalid feature files for %s; recomputing them", out, stem)
-                report.redone.append(stem)
+        if cam.name in todo:
+            todo.discard(cam.name)
             seg, feats, times, counts = extract_image(load_image(cam), generator, encoder, nms)
-            bad_rows = ~np.isfinite(feats).all(axis=1)
-            if bad_rows.any():
-                report.nonfinite_embeddings += int(bad_rows.sum())
-                log.warning("%s: %d embeddings are not finite; their masks are dropped", stem, int(bad_rows.sum()))
-                feats[bad_rows] = 0.0
-                seg[np.isin(seg, np.flatnonzero(bad_rows))] = -1
-            featurefiles.write_features(out, stem, seg, feats)
-            report.written.append(stem)
-            report.times.add(times)
-            report.masks_per_level = [a + b for a, b in zip(report.masks_per_level, counts)]
+            record_result(out, cam.name, seg, feats, times, counts, report)
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(masks=sum(counts), sec=f"{times.total:.2f}")
-            log.debug("%s: %s masks, %.2f s (masks %.2f, post %.2f, crop %.2f, clip %.2f)", stem, counts, times.total, times.masks, times.postprocess, times.crop, times.clip)
         if on_progress is not None:
             on_progress(i + 1, len(cameras))
     if manifest is not None:
