@@ -49,12 +49,35 @@ def import_ray():
     return ray
 
 
-def _runtime_env() -> dict:
-    """Ship this drsplat package to the workers, so they run the driver's code whatever is installed there."""
+def _runtime_env(address: str | None) -> dict:
+    """Make workers run the driver's drsplat code whatever is installed on their side.
+
+    On this machine (a local instance, or a cluster address on this host) workers import the
+    package from the driver's folder (PYTHONPATH), which also reuses numba's on-disk cache of
+    compiled kernels; on other hosts Ray ships the package (`py_modules`).
+    """
     import drsplat
 
-    package = Path(drsplat.__file__).parent
+    package = Path(drsplat.__file__).resolve().parent
+    if _on_this_host(address):
+        return {"env_vars": {"PYTHONPATH": str(package.parent)}}
     return {"py_modules": [str(package)], "excludes": ["__pycache__", "*.pyc"]}
+
+
+def _on_this_host(address: str | None) -> bool:
+    if address is None or address in LOCAL_ADDRESSES or address == "auto":
+        return True
+    host = address.split("://", 1)[-1].rpartition(":")[0]
+    try:
+        ip = socket.gethostbyname(host)
+    except OSError:
+        return False
+    if ip.startswith("127."):
+        return True
+    try:
+        return ip in socket.gethostbyname_ex(socket.gethostname())[2]
+    except OSError:
+        return False
 
 
 def _check_reachable(address: str, timeout: float = 3.0) -> None:
@@ -81,14 +104,15 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     An already initialised Ray session is reused.
     """
     ray = import_ray()
+    local = address is None or address in LOCAL_ADDRESSES
+    if not local and address != "auto":
+        _check_reachable(address)
     if ray.is_initialized():
         return False
-    kwargs = {"runtime_env": _runtime_env(), "logging_level": logging.WARNING, "log_to_driver": False}
-    if address is None or address in LOCAL_ADDRESSES:
+    kwargs = {"runtime_env": _runtime_env(address), "logging_level": logging.WARNING, "log_to_driver": False}
+    if local:
         kwargs.update(include_dashboard=False, num_cpus=num_cpus, object_store_memory=object_store_memory)
     else:
-        if address != "auto":
-            _check_reachable(address)
         kwargs["address"] = address
     try:
         ray.init(**kwargs)

@@ -1,0 +1,262 @@
+"""Streaming registration under a memory budget, the pair-log checkpoint and the memory plan.
+
+The streamed file must equal the in-memory one byte for byte; logs cut short, damaged or of
+the old format must be detected; a bad codebook must fail before any view is registered.
+"""
+
+from __future__ import annotations
+
+import logging
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.errors import Cancelled, DrsplatError, InputError
+from drsplat.pairlog import PairLog, ViewPairs
+from drsplat.pipeline import RegisterOptions, checkpoint_path_for, register_to_ply
+from drsplat.registration import Accumulator, Coalescer, accumulate_view_reference, register_scene
+from drsplat.scene import load_ply
+from drsplat.streaming import MemoryPlan, choose_block, estimate_memory, parse_size
+from drsplat.synthetic import write_dataset
+from drsplat.utils import CancelToken
+from tests.test_registration import _random_view
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def inputs(tiny):
+    return load_ply(tiny / "scene.ply"), load_cameras(tiny)
+
+
+@pytest.fixture(scope="module")
+def in_memory(tiny, inputs, tmp_path_factory) -> dict[bool, bytes]:
+    """The in-memory path's files, pruned and with --keep-unassigned."""
+    scene, cams = inputs
+    folder = tmp_path_factory.mktemp("reference")
+    out = {}
+    for keep in (False, True):
+        path = folder / f"keep{keep}.ply"
+        register_to_ply(scene, cams, tiny / "features", path, RegisterOptions(keep_unassigned=keep), show_progress=False)
+        out[keep] = path.read_bytes()
+    return out
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@pytest.mark.parametrize("case", ["random", "tiny_buffer", "empty"])
+def test_coalesced_pairs_replayed_equal_add_view_and_reference(case):
+    """Coalescer + add_pairs (the log's path) = add_view bit for bit = the scipy reference."""
+    rng = np.random.default_rng(3)
+    n, d = 60, 7
+    direct, replay = Accumulator(n, d), Accumulator(n, d, pair_capacity=1 if case == "tiny_buffer" else 1 << 20)
+    coalescer = Coalescer(n, capacity=1)  # grows while coalescing
+    F_ref, W_ref = np.zeros((n, d)), np.zeros(n)
+    for _ in range(3):
+        ids, weights, masks, feats = _random_view(rng, 9, 11, 5, n, 12, empty_fraction=1.0 if case == "empty" else 0.3)
+        feats = feats[:, :d]
+        pairs, distinct = direct.add_view(ids, weights, masks, feats)
+        g, m, w, contributing = coalescer.coalesce(ids, weights, masks, feats.shape[0])
+        assert (contributing, g.size) == (pairs, distinct)
+        replay.add_pairs(g, m, w, feats)
+        accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
+    (F1, W1), (F2, W2) = direct.sums(), replay.sums()
+    np.testing.assert_array_equal(F1, F2)
+    np.testing.assert_array_equal(W1, W2)
+    np.testing.assert_allclose(F2, F_ref, rtol=1e-4, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- streaming = in memory
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_streamed_file_equals_in_memory_byte_for_byte(tiny, inputs, in_memory, tmp_path, keep):
+    scene, cams = inputs
+    out = tmp_path / "streamed.ply"
+    result = register_to_ply(scene, cams, tiny / "features", out, RegisterOptions(block_size=1024, keep_unassigned=keep), show_progress=False)
+    assert result.field is None and result.registration.features is None  # never held [N, D]
+    assert scene.num_gaussians > 2 * 1024  # three blocks
+    assert out.read_bytes() == in_memory[keep]
+    assert not list(tmp_path.glob(".*"))  # log and body file removed
+
+
+def test_streamed_pq_file_equals_in_memory(tiny, inputs, tmp_path):
+    from drsplat.lang import train_codebook
+
+    scene, cams = inputs
+    book = train_codebook(np.random.default_rng(0).normal(size=(3000, 512)).astype(np.float32), m=16)
+    book.save(tmp_path / "general.faiss")
+    a, b = tmp_path / "a" / "mem.ply", tmp_path / "b" / "mem.ply"
+    register_to_ply(scene, cams, tiny / "features", a, RegisterOptions(codebook=str(tmp_path / "general.faiss")), show_progress=False)
+    register_to_ply(scene, cams, tiny / "features", b, RegisterOptions(codebook=str(tmp_path / "general.faiss"), block_size=1024), show_progress=False)
+    assert a.read_bytes() == b.read_bytes()
+    assert (a.parent / "mem.codebook.faiss").read_bytes() == (b.parent / "mem.codebook.faiss").read_bytes()
+
+
+def test_streaming_resumes_after_cancel_and_equals_in_memory(tiny, inputs, in_memory, tmp_path):
+    scene, cams = inputs
+    out = tmp_path / "out.ply"
+    token = CancelToken()
+
+    def stop_after_six(done: int, total: int) -> None:
+        if done == 6:
+            token.cancel()
+
+    options = RegisterOptions(block_size=1024)
+    with pytest.raises(Cancelled):
+        register_to_ply(scene, cams, tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop_after_six)
+    assert not out.exists() and checkpoint_path_for(out).is_file()
+    seen = []
+    result = register_to_ply(scene, cams, tiny / "features", out, options, show_progress=False, on_progress=lambda d, t: seen.append(d))
+    assert result.registration.resumed_views == 6 and seen[0] == 6
+    assert out.read_bytes() == in_memory[False]
+    assert not checkpoint_path_for(out).exists()
+
+
+def test_scene_codebook_with_too_few_embeddings_is_a_clear_error_when_streaming(tiny, inputs, tmp_path):
+    scene, cams = inputs
+    with pytest.raises(DrsplatError, match="at least 2560 mask embeddings"):
+        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook="scene", block_size=1024), show_progress=False)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def _cancelled_log(tiny, inputs, path: Path, views: int) -> None:
+    scene, cams = inputs
+    token = CancelToken()
+
+    def stop(done: int, total: int) -> None:
+        if done == views:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_scene(scene, cams, tiny / "features", checkpoint=path, cancel=token, on_progress=stop, show_progress=False)
+
+
+def test_torn_last_record_is_dropped_and_redone(tiny, inputs, tmp_path, caplog):
+    scene, cams = inputs
+    full = register_scene(scene, cams, tiny / "features", show_progress=False)
+    ckpt = tmp_path / "run.log"
+    _cancelled_log(tiny, inputs, ckpt, 5)
+    ckpt.write_bytes(ckpt.read_bytes()[:-100])  # killed while appending view 5
+    with caplog.at_level(logging.WARNING):
+        resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+    assert "incomplete" in caplog.text and resumed.resumed_views == 4
+    np.testing.assert_array_equal(resumed.features, full.features)
+    np.testing.assert_array_equal(resumed.weights, full.weights)
+
+
+def test_damaged_record_checksum_is_detected(tiny, inputs, tmp_path):
+    scene, cams = inputs
+    ckpt = tmp_path / "run.log"
+    _cancelled_log(tiny, inputs, ckpt, 3)
+    data = bytearray(ckpt.read_bytes())
+    data[-50] ^= 0xFF  # a flipped byte inside the last record's pairs
+    ckpt.write_bytes(bytes(data))
+    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+    assert resumed.resumed_views == 2
+
+
+@pytest.mark.parametrize("content", ["truncated_zip", "empty", "junk"])
+def test_old_or_truncated_checkpoints_restart_from_scratch(tiny, inputs, tmp_path, caplog, content):
+    """An old .npz checkpoint cut short (BadZipFile) no longer blocks every later run."""
+    scene, cams = inputs
+    ckpt = tmp_path / "run.log"
+    if content == "truncated_zip":
+        with zipfile.ZipFile(ckpt, "w") as z:
+            z.writestr("F.npy", b"x" * 5000)
+        ckpt.write_bytes(ckpt.read_bytes()[:3000])
+    else:
+        ckpt.write_bytes(b"" if content == "empty" else b"not a log at all")
+    with caplog.at_level(logging.WARNING):
+        result = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+    assert result.resumed_views == 0 and result.num_views == 16
+    assert "starting from scratch" in caplog.text and not ckpt.exists()
+
+
+def test_log_is_smaller_than_dense_sums_and_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    view = ViewPairs("v0", rng.normal(size=(5, 8)).astype(np.float32), rng.integers(0, 1000, 40).astype(np.int32),
+                     rng.integers(0, 5, 40).astype(np.int32), rng.random(40).astype(np.float32), np.arange(5, dtype=np.int32), 123, 1)
+    params = {"version": 2, "n": 1000}
+    with PairLog.open(tmp_path / "l.log", params) as plog:
+        plog.append(view)
+        plog.append(view)
+    with PairLog.open(tmp_path / "l.log", params) as plog:
+        back = list(plog)
+    assert [v.name for v in back] == ["v0", "v0"] and back[1].num_pairs == 123 and back[1].num_nonfinite == 1
+    for a in ("feats", "gaussians", "masks", "weights", "used"):
+        np.testing.assert_array_equal(getattr(back[1], a), getattr(view, a))
+    with PairLog.open(tmp_path / "l.log", {"version": 2, "n": 999}) as plog:  # other parameters
+        assert plog.records == []
+
+
+def test_bad_codebook_fails_before_registering(tiny, inputs, tmp_path):
+    scene, cams = inputs
+    calls = []
+    junk = tmp_path / "junk.faiss"
+    junk.write_bytes(b"\0" * 64)
+    with pytest.raises(InputError):
+        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(junk)),
+                        show_progress=False, on_progress=lambda d, t: calls.append(d))
+    from drsplat.lang import train_codebook
+
+    small = train_codebook(np.random.default_rng(0).normal(size=(600, 16)).astype(np.float32), m=4)
+    small.save(tmp_path / "d16.faiss")
+    with pytest.raises(InputError, match="dimension 16 differs from the features' dimension 512"):
+        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(tmp_path / "d16.faiss")),
+                        show_progress=False, on_progress=lambda d, t: calls.append(d))
+    assert calls == [] and not checkpoint_path_for(tmp_path / "o.ply").exists()
+
+
+# ----------------------------------------------------------------------------- memory plan
+
+
+def test_parse_size():
+    assert parse_size("8GB") == 8_000_000_000 and parse_size("1.5 GiB") == 3 << 29 and parse_size("512mb") == 512_000_000
+    for bad in ("", "8XB", "-1GB", "0", "nan"):
+        with pytest.raises(ValueError):
+            parse_size(bad)
+
+
+def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
+    """The done-means case as a plan: 5M fully assigned Gaussians x 512-D need ~25 GB in memory."""
+    scene, cams = inputs
+
+    class Big:  # the planner only reads the Gaussian count and the SH width
+        num_gaussians = 5_000_000
+        sh = np.zeros((1, 1, 3))
+
+    plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
+    assert plan.in_memory > 20e9
+    block = choose_block(plan, 8 * 10**9)
+    assert block is not None and 0 < block < 5_000_000 and block % 1024 == 0
+    assert plan.streaming(block) <= 8e9
+    assert choose_block(plan, 64 * 10**9) is None  # fits: in memory
+    with pytest.raises(DrsplatError, match="too small for this scene"):
+        choose_block(plan, 10**9)
+    with pytest.raises(DrsplatError, match=r"needs about .* GB.*--memory-budget \d+GB"):
+        choose_block(plan, None, available=12 * 10**9)
+
+
+def test_plan_keeps_small_scenes_in_memory(inputs):
+    scene, cams = inputs
+    plan = estimate_memory(scene, cams, 512, 40)
+    assert isinstance(plan, MemoryPlan) and choose_block(plan, None) is None
+
+
+def test_cli_memory_budget_errors(tiny, tmp_path):
+    from drsplat.cli import main
+
+    base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
+    assert main(base + ["--memory-budget", "lots"]) == 1
+    assert main(base + ["--memory-budget", "1KB"]) == 1
+    assert not (tmp_path / "o.ply").exists()
