@@ -30,6 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pretrained", default=None, metavar="TAG",
                    help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it only names the weights")
     p.add_argument("--clip-checkpoint", type=Path, default=None, metavar="PATH", help="local open_clip weights file (no download)")
+    p.add_argument("--clip-config", type=Path, default=None, metavar="JSON",
+                   help="open_clip model config file, for an architecture open_clip does not ship (named by --clip-model)")
     p.add_argument("--sam-checkpoint", type=Path, default=None, metavar="PATH", help="local SAM checkpoint (vit_b/l/h, read from the file); no download")
     p.add_argument("--sam-model", choices=("vit_h", "vit_l", "vit_b"), default="vit_h",
                    help="official SAM weights to download into ~/.cache/drsplat when no --sam-checkpoint is given (default vit_h, as LangSplat)")
@@ -59,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     spec = ModelSpec(
         masks=args.masks, clip_model=args.clip_model, pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
         sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,
-        sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size,
+        sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size, clip_config=args.clip_config,
     )
     extra = {"source": str(args.source), "sam_checkpoint": str(args.sam_checkpoint or "") if args.masks == "sam" else None}
     if args.ray is not None:

@@ -258,6 +258,7 @@ class ModelSpec:
     sam_crop_layers: int = 1
     device: str = "auto"
     batch_size: int = 64
+    clip_config: Path | None = None  # an open_clip model config (JSON) for an architecture open_clip does not ship
     nms: NmsParams = field(default_factory=NmsParams)
 
 
@@ -266,6 +267,10 @@ def build_models(spec: ModelSpec):
     from drsplat.features.clip import ClipEncoder
     from drsplat.features.masks import SamParams, make_generator
 
+    if spec.clip_config is not None:
+        import open_clip
+
+        open_clip.add_model_config(spec.clip_config)
     encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
     sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
     generator = make_generator(spec.masks, spec.sam_checkpoint, spec.sam_model, encoder.device, sam_params)

@@ -1,0 +1,176 @@
+"""The Ray backend on a real two-node Ray cluster started on this machine.
+
+A head node and a second node (ray.cluster_utils.Cluster, one CPU each, small object stores)
+run registration views and feature images; results must equal the local path, survive a
+worker killed mid-run, resume after the driver stops, and an unreachable address must be one
+clear error.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.errors import Cancelled, DrsplatError
+from drsplat.pipeline import RegisterOptions, register_to_ply
+from drsplat.registration import register_scene
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
+from drsplat.utils import CancelToken
+
+ray = pytest.importorskip("ray", reason="the Ray backend needs the optional ray package (pip install -e '.[ray]')")
+
+OBJECT_STORE = 80 * 1024 * 1024
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A two-node Ray cluster on this machine; the driver joins it through drsplat.distributed.connect."""
+    from ray.cluster_utils import Cluster
+
+    from drsplat.distributed import connect
+
+    node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
+    c = Cluster(initialize_head=True, head_node_args=node_args)
+    try:
+        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
+        c.wait_for_nodes()
+        connect(c.address)
+        assert len([n for n in ray.nodes() if n["Alive"]]) == 2
+        yield c
+    finally:
+        ray.shutdown()
+        c.shutdown()
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
+
+
+def _executor(**kw):
+    from drsplat.distributed import RayExecutor
+
+    return RayExecutor("auto", **kw)
+
+
+def test_ray_registration_equals_local_in_memory_and_streamed(cluster, tiny, tmp_path):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local = register_scene(scene, cams, tiny / "features", show_progress=False)
+    on_ray = register_scene(scene, cams, tiny / "features", show_progress=False, executor=_executor(workers=2))
+    np.testing.assert_array_equal(on_ray.features, local.features)
+    np.testing.assert_array_equal(on_ray.weights, local.weights)
+    assert (on_ray.num_pairs, on_ray.num_distinct_pairs) == (local.num_pairs, local.num_distinct_pairs)
+    # the pipeline with --ray: streamed blocks, the same file as the local in-memory run
+    a, b = tmp_path / "local.ply", tmp_path / "ray.ply"
+    register_to_ply(scene, cams, tiny / "features", a, RegisterOptions(), show_progress=False)
+    register_to_ply(scene, cams, tiny / "features", b, RegisterOptions(ray="auto", block_size=1024), show_progress=False)
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local = register_scene(scene, cams, tiny / "features", show_progress=False)
+    ckpt = tmp_path / "run.log"
+    token = CancelToken()
+
+    def stop(done: int, total: int) -> None:
+        if done == 7:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_scene(scene, cams, tiny / "features", checkpoint=ckpt, cancel=token, on_progress=stop, show_progress=False,
+                       executor=_executor(views_per_task=1))
+    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False, executor=_executor())
+    assert resumed.resumed_views == 7
+    np.testing.assert_array_equal(resumed.features, local.features)
+
+
+def _task_pids(title: str) -> list[int]:
+    """Processes of this machine whose title Ray set to `title` (a worker running that task)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if (entry / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace").startswith(title):
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tmp_path_factory):
+    data = write_dataset(tmp_path_factory.mktemp("small") / "data", "small", 0, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    local = register_scene(scene, cams, data / "features", show_progress=False)
+    box: dict = {}
+
+    def run() -> None:
+        try:
+            box["result"] = register_scene(scene, cams, data / "features", show_progress=False, executor=_executor(views_per_task=4))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            box["error"] = exc
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    killed = None
+    deadline = time.time() + 60
+    while killed is None and thread.is_alive() and time.time() < deadline:
+        pids = _task_pids("ray::_views_task")
+        if pids:
+            killed = pids[0]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.005)
+    thread.join(120)
+    assert killed is not None, "no worker was caught running a task"
+    assert "error" not in box, box.get("error")
+    np.testing.assert_array_equal(box["result"].features, local.features)
+    np.testing.assert_array_equal(box["result"].weights, local.weights)
+
+
+def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
+    from drsplat.cli import main
+    from drsplat.distributed import connect
+
+    with pytest.raises(DrsplatError, match=r"cannot reach a Ray cluster at 127\.0\.0\.1:9.*ray start --head"):
+        connect("127.0.0.1:9")
+    with pytest.raises(DrsplatError, match="is not an address"):
+        connect("nowhere")
+    t0 = time.time()
+    code = main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
+                 "--out", str(tmp_path / "o.ply"), "--ray", "127.0.0.1:9", "--no-progress"])
+    assert code == 1 and time.time() - t0 < 30 and not (tmp_path / "o.ply").exists()
+
+
+@pytest.mark.slow
+def test_ray_features_equal_local_and_skip_done_images(cluster, tiny, tmp_path):
+    from drsplat.cli import main
+    from drsplat.features import format as featurefiles
+    from tests.test_clip import TINY_CLIP, make_tiny_clip
+
+    clip = make_tiny_clip(tmp_path)
+    args = ["-q", "features", "--source", str(tiny), "--masks", "slic", "--clip-model", TINY_CLIP, "--clip-checkpoint", str(clip),
+            "--clip-config", str(tmp_path / f"{TINY_CLIP}.json"),
+            "--device", "cpu", "--resolution", "64"]
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    assert main(args + ["--out", str(local)]) == 0
+    remote.mkdir()
+    stems = featurefiles.list_stems(local)
+    first = stems[0]
+    for name in (f"{first}_s.npy", f"{first}_f.npy", "manifest.json"):  # one image done already: skipped, not redone
+        (remote / name).write_bytes((local / name).read_bytes())
+    before = (remote / f"{first}_f.npy").stat().st_mtime_ns
+    assert main(args + ["--out", str(remote), "--ray", "auto", "--ray-workers", "2"]) == 0
+    assert featurefiles.list_stems(remote) == stems and (remote / f"{first}_f.npy").stat().st_mtime_ns == before
+    for stem in stems:
+        np.testing.assert_array_equal(np.load(local / f"{stem}_s.npy"), np.load(remote / f"{stem}_s.npy"))
+        np.testing.assert_allclose(np.load(local / f"{stem}_f.npy"), np.load(remote / f"{stem}_f.npy"), atol=1e-5)
+    assert featurefiles.read_manifest(remote)["images"] == len(stems)
+    assert not list(remote.glob(".*"))  # no temp or half files
