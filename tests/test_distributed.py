@@ -75,6 +75,7 @@ def test_ray_registration_equals_local_in_memory_and_streamed(cluster, tiny, tmp
     assert a.read_bytes() == b.read_bytes()
 
 
+@pytest.mark.slow
 def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
     local = register_scene(scene, cams, tiny / "features", show_progress=False)
@@ -106,15 +107,15 @@ def _task_pids(title: str) -> list[int]:
     return pids
 
 
-def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tmp_path_factory):
-    data = write_dataset(tmp_path_factory.mktemp("small") / "data", "small", 0, show_progress=False)
+def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny):
+    data = tiny
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     local = register_scene(scene, cams, data / "features", show_progress=False)
     box: dict = {}
 
     def run() -> None:
         try:
-            box["result"] = register_scene(scene, cams, data / "features", show_progress=False, executor=_executor(views_per_task=4))
+            box["result"] = register_scene(scene, cams, data / "features", show_progress=False, executor=_executor(views_per_task=8))
         except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
             box["error"] = exc
 
@@ -155,8 +156,13 @@ def test_ray_features_equal_local_and_skip_done_images(cluster, tiny, tmp_path):
     from drsplat.features import format as featurefiles
     from tests.test_clip import TINY_CLIP, make_tiny_clip
 
+    from drsplat.cameras import write_transforms_json
+
     clip = make_tiny_clip(tmp_path)
-    args = ["-q", "features", "--source", str(tiny), "--masks", "slic", "--clip-model", TINY_CLIP, "--clip-checkpoint", str(clip),
+    four = tmp_path / "four"
+    four.mkdir()
+    write_transforms_json(load_cameras(tiny)[:4], four / "transforms.json")
+    args = ["-q", "features", "--source", str(four), "--masks", "slic", "--clip-model", TINY_CLIP, "--clip-checkpoint", str(clip),
             "--clip-config", str(tmp_path / f"{TINY_CLIP}.json"),
             "--device", "cpu", "--resolution", "64"]
     local, remote = tmp_path / "local", tmp_path / "ray"
