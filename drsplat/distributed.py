@@ -37,7 +37,6 @@ log = logging.getLogger(__name__)
 
 TASK_RETRIES = 3
 VIEWS_PER_TASK = 2
-IN_FLIGHT_PER_WORKER = 2
 LOCAL_ADDRESSES = ("", "local")
 
 
@@ -133,8 +132,14 @@ def _set_threads() -> None:
 # ----------------------------------------------------------------------------- registration
 
 
-def _views_task(prepared, items: list, topk: int) -> list[ViewPairs]:
-    """Ray task: the ViewPairs of a chunk of views. items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)]."""
+def _views_task(prepared, items: list, topk: int) -> tuple[list[ViewPairs], int, int]:
+    """Ray task: the ViewPairs of a chunk of views, this worker's pid and peak RSS (bytes).
+
+    items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)].
+    """
+    import os
+    import resource
+
     from drsplat.registration import Coalescer, compute_view_pairs
 
     _set_threads()
@@ -145,14 +150,13 @@ def _views_task(prepared, items: list, topk: int) -> list[ViewPairs]:
         view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out)
         view.num_nonfinite = nonfinite
         results.append(view)
-    return results
+    return results, os.getpid(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 class RayExecutor:
     """Computes views' pairs on a Ray cluster (see the module docstring); `close()` when done.
 
-    address: as for `connect`. workers: tasks in flight x 1/IN_FLIGHT_PER_WORKER (default: the
-    cluster's CPUs). views_per_task: views a task renders (amortises the task overhead).
+    address: as for `connect`. workers: tasks running at once (default: the cluster's CPUs). views_per_task: views a task renders (amortises the task overhead).
     """
 
     def __init__(self, address: str | None = None, *, workers: int | None = None, views_per_task: int = VIEWS_PER_TASK, cpus_per_task: float = 1.0):
@@ -161,6 +165,7 @@ class RayExecutor:
         self.workers = int(workers or max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_task)))
         self.views_per_task = max(1, int(views_per_task))
         self._task = ray.remote(num_cpus=cpus_per_task, max_retries=TASK_RETRIES)(_views_task)
+        self.worker_peak_rss: dict[int, int] = {}  # pid -> peak resident bytes, as reported by its tasks
         log.info("Ray: %d worker task(s) at once on %s", self.workers, "a local instance" if self._owns and not address else address)
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
@@ -178,14 +183,16 @@ class RayExecutor:
         submitted = 0
         try:
             for index in range(len(chunks)):
-                while submitted < len(chunks) and len(pending) < self.workers * IN_FLIGHT_PER_WORKER:
+                while submitted < len(chunks) and len(pending) < self.workers:
                     items = [(cam, *load_view_features(features_dir, cam, level)) for cam in chunks[submitted]]
                     pending[self._task.remote(geometry, items, topk)] = submitted
                     submitted += 1
                 while index not in done:
                     ready, _ = ray.wait(list(pending), num_returns=1)
                     for ref in ready:
-                        done[pending.pop(ref)] = _get(ref)
+                        views_done, pid, rss = _get(ref)
+                        done[pending.pop(ref)] = views_done
+                        self.worker_peak_rss[pid] = max(rss, self.worker_peak_rss.get(pid, 0))
                 yield from done.pop(index)
         finally:
             for ref in pending:

@@ -75,11 +75,13 @@ def register_to_ply(
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
     resumable: bool = True,
+    executor=None,
 ) -> PipelineResult:
     """Register `features_dir` onto `scene` and write the registered PLY `out` atomically.
 
     resumable: keep a checkpoint beside `out` while working (a cancelled or killed run resumes from it);
-    it is deleted once `out` is written.
+    it is deleted once `out` is written. executor: where views are computed (default: from
+    options.ray, else this process); one passed in is not closed here.
     """
     from drsplat.registration import feature_dim, select_views
     from drsplat.streaming import choose_block, estimate_memory, register_streaming
@@ -96,7 +98,8 @@ def register_to_ply(
         log.info("estimated peak memory: %.1f GB in memory%s", plan.in_memory / 1e9,
                  "" if block is None else f", {plan.streaming(block) / 1e9:.1f} GB streamed in blocks of {block:,} Gaussians")
     ckpt = checkpoint_path_for(out) if resumable or block is not None else None
-    executor = make_executor(options)
+    owned = executor is None
+    executor = make_executor(options) if owned else executor
     try:
         if block is not None:
             streamed = register_streaming(
@@ -114,7 +117,7 @@ def register_to_ply(
             collect_embeddings=options.codebook == "scene", executor=executor,
         )
     finally:
-        if executor is not None:
+        if owned and executor is not None:
             executor.close()
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=codebook, clip_model=clip_model,

@@ -49,7 +49,8 @@ class RegistrationResult:
     features: [N, D] float32 unit rows (zero rows where unassigned); None when the registration
     streamed Gaussian blocks straight to the PLY (drsplat.streaming), which never holds [N, D].
     weights: [N] float32 total weight Σ_j w_ij (0 = unassigned).
-    seconds: wall time; raster_seconds / accumulate_seconds: its two main stages;
+    seconds: wall time; raster_seconds / accumulate_seconds: its two main stages (accumulation
+    includes coalescing each view's pairs, coalesce_seconds, done where the view is rendered);
     accumulate_cpu_seconds: CPU time of all threads in accumulation (steadier on a busy machine).
     allocate_seconds: creating the N x D sums (page faults of a large array, once per run).
     num_views: views registered (resumed ones included). num_pairs: contributing
@@ -70,6 +71,7 @@ class RegistrationResult:
     accumulate_seconds: float = 0.0
     accumulate_cpu_seconds: float = 0.0
     allocate_seconds: float = 0.0
+    coalesce_seconds: float = 0.0
     resumed_views: int = 0
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
@@ -669,6 +671,7 @@ def register_scene(
         accumulate_seconds=accumulate_s + totals.coalesce_seconds,
         accumulate_cpu_seconds=accumulate_cpu,
         allocate_seconds=allocate_s,
+        coalesce_seconds=totals.coalesce_seconds,
         resumed_views=resumed,
         topk=topk,
         level=level,

@@ -248,7 +248,8 @@ def register_streaming(
     seconds = time.perf_counter() - t_start
     result = RegistrationResult(
         features=None, weights=weights, num_views=totals.done, num_pairs=totals.num_pairs, num_distinct_pairs=totals.num_distinct,
-        seconds=seconds, raster_seconds=totals.raster_seconds, accumulate_seconds=totals.coalesce_seconds, resumed_views=resumed,
+        seconds=seconds, raster_seconds=totals.raster_seconds, accumulate_seconds=totals.coalesce_seconds,
+        coalesce_seconds=totals.coalesce_seconds, resumed_views=resumed,
         topk=topk, level=level, missing_features=missing, unmatched_features=unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
         num_nonfinite_features=nonfinite,
     )

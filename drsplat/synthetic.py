@@ -610,3 +610,47 @@ def _true_mask_labels(seg: np.ndarray, inst: np.ndarray, instance_labels: np.nda
             if len(under):
                 out[m] = instance_labels[np.bincount(under).argmax()]
     return out
+
+
+# ============================================================================= city (scale benchmark)
+# A "city" for `drsplat bench scale`: copies of one written synthetic room on a grid. Owned by the
+# scale work (drsplat/streaming.py, drsplat/distributed.py); kept apart from the room generator above.
+
+
+def tile_city(room: SyntheticScene | GaussianScene, cameras: list[Camera], tiles: int, views: int, width: int,
+              spacing: float | None = None, sh_degree: int = 0) -> tuple[GaussianScene, list[Camera], list[str]]:
+    """A city of `tiles` copies of a room on a square-ish grid, and `views` cameras spread over them.
+
+    room: the room's scene (or its SyntheticScene); cameras: the room's cameras. Tile i is the
+    room shifted by o_i = spacing·(col, row, 0) (spacing: the room's labelled extent + 10 %).
+    View j is room camera j mod C of tile j mod tiles, shifted the same way (t' = t - R·o_i),
+    at `width` pixels wide; it keeps the room camera's name as its features' source: returns
+    (scene, cameras named t<tile>_<name>, the room view name of each camera). SH are cut to
+    `sh_degree` (registration renders no colour; a degree-0 city is 4x smaller).
+    """
+    import dataclasses
+
+    scene = room.scene if isinstance(room, SyntheticScene) else room
+    if spacing is None:
+        lo, hi = np.percentile(scene.means[:, :2], [2, 98], axis=0)
+        spacing = float(1.1 * np.max(hi - lo))
+    cols = int(np.ceil(np.sqrt(tiles)))
+    offsets = np.array([[spacing * (i % cols), spacing * (i // cols), 0.0] for i in range(tiles)], np.float32)
+    n = scene.num_gaussians
+    k = (sh_degree + 1) ** 2
+    city = GaussianScene(
+        means=(scene.means[None] + offsets[:, None]).reshape(-1, 3),
+        quats=np.tile(scene.quats, (tiles, 1)),
+        log_scales=np.tile(scene.log_scales, (tiles, 1)),
+        opacity_logits=np.tile(scene.opacity_logits, tiles),
+        sh=np.tile(scene.sh[:, :k], (tiles, 1, 1)),
+    )
+    out, sources = [], []
+    for j in range(views):
+        tile, cam = j % tiles, cameras[(j // tiles + j) % len(cameras)]
+        cam = cam.scaled(width / cam.width)
+        shift = offsets[tile].astype(np.float64)
+        out.append(dataclasses.replace(cam, t=np.asarray(cam.t, np.float64) - np.asarray(cam.R, np.float64) @ shift,
+                                       name=f"t{tile:05d}_{cam.name}", image_path=None))
+        sources.append(cameras[(j // tiles + j) % len(cameras)].name)
+    return city, out, sources

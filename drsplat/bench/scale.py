@@ -1,0 +1,246 @@
+"""`drsplat bench scale`: registration of a synthetic city, local vs streamed vs Ray, and a projection.
+
+The city (drsplat.synthetic.tile_city) is copies of the `small` room on a grid, built in memory
+in each run (not written: 5M Gaussians), with low-resolution views whose feature files link to
+the room's oracle features. Every configuration runs in its own process so that peak RSS is
+that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (reported by its
+tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
+
+Parts: `compare` (a small city: local in memory, local streamed, Ray with 1 and 2 workers on a
+local Ray instance), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
+and `big` (the done-means run: >= 5M Gaussians, >= 500 views streamed under --budget). The
+projection for 8/64 GPU nodes multiplies per-task costs measured here by task counts; it is a
+model, not a measurement.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from drsplat.bench.common import format_table, machine_line
+
+log = logging.getLogger(__name__)
+
+ROOM_PRESET = "small"
+
+
+def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("scale", help="city-scale registration: local vs streamed vs Ray, peak RSS, projection to GPU nodes")
+    p.add_argument("--part", choices=("all", "compare", "rss", "big"), default="all")
+    p.add_argument("--room", type=Path, default=None, help="a written `small` synthetic dataset (default: written to a temp folder)")
+    p.add_argument("--width", type=int, default=64, help="view width in pixels (height follows the room's 4:3)")
+    p.add_argument("--compare-tiles", type=int, default=16, help="rooms in the comparison city (~18.4k Gaussians each)")
+    p.add_argument("--compare-views", type=int, default=96)
+    p.add_argument("--workers", default="1,2", help="Ray worker counts to compare")
+    p.add_argument("--rss-tiles", default="55,272", help="cities for peak RSS vs N (55 ~ 1M, 272 ~ 5M, 1087 ~ 20M Gaussians)")
+    p.add_argument("--rss-views", type=int, default=20)
+    p.add_argument("--big-tiles", type=int, default=272, help="the done-means city: 272 rooms = 5.0M Gaussians")
+    p.add_argument("--big-views", type=int, default=544)
+    p.add_argument("--budget", default="8GB", help="memory budget of the streamed runs")
+    p.add_argument("--model-images", type=int, default=10_000)
+    p.add_argument("--model-gaussians", type=float, default=50e6)
+    p.add_argument("--model-pixels", type=float, default=1.0e6, help="pixels per image of the projected city")
+    p.add_argument("--gpu-speedup", type=float, default=40.0,
+                   help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
+    p.add_argument("--nodes", default="8,64")
+    p.set_defaults(func=run)
+
+
+# ----------------------------------------------------------------------------- one configuration (child process)
+
+
+def _city(config: dict):
+    from drsplat.cameras import load_cameras
+    from drsplat.scene import load_ply
+    from drsplat.synthetic import tile_city
+
+    room = Path(config["room"])
+    scene, cameras = load_ply(room / "scene.ply"), load_cameras(room, require_images=False)
+    return tile_city(scene, cameras, config["tiles"], config["views"], config["width"])
+
+
+def link_features(room: Path, folder: Path, cameras, sources) -> None:
+    """Feature files of the city's views: symbolic links to the room's (no copy)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "manifest.json").write_bytes((room / "features" / "manifest.json").read_bytes())
+    for cam, src in zip(cameras, sources):
+        for suffix in ("_s.npy", "_f.npy"):
+            link = folder / f"{cam.name}{suffix}"
+            if not link.exists():
+                link.symlink_to((room / "features" / f"{src}{suffix}").resolve())
+
+
+def run_config(config: dict) -> dict:
+    """One registration as `config` says; returns its figures (run inside a fresh process)."""
+    from drsplat.pipeline import RegisterOptions, make_executor, register_to_ply
+    from drsplat.streaming import parse_size, peak_rss
+
+    t0 = time.perf_counter()
+    scene, cameras, _ = _city(config)
+    build_s = time.perf_counter() - t0
+    out = Path(config["out"])
+    options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
+                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"))
+    executor = make_executor(options)
+    t0 = time.perf_counter()
+    try:
+        result = register_to_ply(scene, cameras, config["features"], out, options, show_progress=False, executor=executor)
+    finally:
+        if executor is not None:
+            executor.close()
+    wall = time.perf_counter() - t0
+    digest = hashlib.sha256()
+    with open(out, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 24), b""):
+            digest.update(chunk)
+    size = out.stat().st_size
+    out.unlink()
+    reg = result.registration
+    workers = sorted(executor.worker_peak_rss.values()) if executor is not None else []
+    return {
+        "gaussians": scene.num_gaussians, "views": reg.num_views, "wall": wall, "build": build_s, "raster": reg.raster_seconds,
+        "coalesce": reg.coalesce_seconds, "accumulate": reg.accumulate_seconds,
+        "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": result.field is None, "peak_rss": peak_rss(),
+        "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size,
+    }
+
+
+# ----------------------------------------------------------------------------- the bench (parent process)
+
+
+def _child(config: dict) -> dict:
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    proc = subprocess.run([sys.executable, "-m", "drsplat.bench.scale", json.dumps(config)], env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"bench run {config.get('label')} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _mb(n: float) -> str:
+    return f"{n / 1e6:,.0f}"
+
+
+def _prepare(args, work: Path, tiles: int, views: int, tag: str) -> dict:
+    from drsplat.cameras import load_cameras
+    from drsplat.synthetic import tile_city
+
+    room = args.room
+    cams = load_cameras(room, require_images=False)
+    from drsplat.scene import load_ply
+
+    _, city_cams, sources = tile_city(load_ply(room / "scene.ply"), cams, tiles, views, args.width)
+    feats = work / f"features_{tag}"
+    link_features(room, feats, city_cams, sources)
+    return {"room": str(room), "tiles": tiles, "views": views, "width": args.width, "features": str(feats), "out": str(work / f"{tag}.ply")}
+
+
+def run(args: argparse.Namespace) -> int:
+    from drsplat.synthetic import write_dataset
+
+    with tempfile.TemporaryDirectory(prefix="drsplat-scale-") as tmp:
+        work = Path(tmp)
+        if args.room is None:
+            args.room = write_dataset(work / "room", ROOM_PRESET, 0, show_progress=False)
+        print(machine_line() + " (shared with other jobs; absolute times are noisy)")
+        compare = rss = big = None
+        if args.part in ("all", "compare"):
+            compare = _compare(args, work)
+        if args.part in ("all", "rss"):
+            rss = _rss(args, work)
+        if args.part in ("all", "big"):
+            big = _big(args, work)
+        source = compare or big
+        if source:
+            _projection(args, source)
+    return 0
+
+
+def _compare(args, work: Path) -> list[dict]:
+    base = _prepare(args, work, args.compare_tiles, args.compare_views, "compare")
+    configs = [("local, in memory", {}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
+    configs += [(f"Ray, {w} worker{'s' if w > 1 else ''}", {"ray": "local", "workers": w}) for w in map(int, args.workers.split(","))]
+    rows, results = [], []
+    reference = None
+    for label, extra in configs:
+        r = _child({**base, **extra, "label": label})
+        results.append({**r, "label": label})
+        reference = reference or r["sha"]
+        per_worker = "/".join(_mb(x) for x in r["worker_rss"]) or "-"
+        rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['wall']:.1f}", f"{r['views'] / r['wall']:.2f}", _mb(r["peak_rss"]), per_worker,
+                     "identical" if r["sha"] == reference else "DIFFERENT"])
+    print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned):")
+    print(format_table(["run", "Gaussians", "views", "wall s", "views/s", "driver peak RSS MB", "worker peak RSS MB", "PLY vs local"], rows))
+    return results
+
+
+def _rss(args, work: Path) -> list[dict]:
+    from drsplat.streaming import parse_size
+
+    rows, results = [], []
+    budget = parse_size(args.budget)
+    for tiles in map(int, args.rss_tiles.split(",")):
+        base = _prepare(args, work, tiles, args.rss_views, f"rss{tiles}")
+        for label, extra in (("streamed", {"budget": args.budget}), ("in memory", {})):
+            try:
+                r = _child({**base, **extra, "label": label})
+            except RuntimeError as exc:
+                last = [line for line in str(exc).splitlines() if line.strip()][-1]
+                rows.append([f"{tiles * 18413 / 1e6:.1f} M", label, "-", "-", "-", last[:110]])
+                continue
+            results.append(r)
+            rows.append([f"{r['gaussians'] / 1e6:.2f} M", label + (" (blocks)" if r["streamed"] else ""), _mb(r["peak_rss"]),
+                         f"{r['wall']:.0f}", f"{r['wall'] / r['views']:.2f}", "fits" if r["peak_rss"] <= budget else "over budget"])
+    print(f"\nPeak RSS vs N ({args.rss_views} views, budget {args.budget}; 'in memory' runs without a budget stop when they do not fit):")
+    print(format_table(["N", "run", "peak RSS MB", "wall s", "s/view", "vs budget"], rows))
+    return results
+
+
+def _big(args, work: Path) -> list[dict]:
+    base = _prepare(args, work, args.big_tiles, args.big_views, "big")
+    r = _child({**base, "budget": args.budget, "label": "big"})
+    print(f"\nDone-means run: {r['gaussians']:,} Gaussians, {r['views']} views at {args.width} px, budget {args.budget}, every Gaussian written:")
+    print(format_table(["wall s", "views/s", "peak RSS MB", "streamed", "pairs (M)", "distinct (M)", "PLY GB"],
+                       [[f"{r['wall']:.0f}", f"{r['views'] / r['wall']:.2f}", _mb(r["peak_rss"]), r["streamed"], f"{r['pairs'] / 1e6:.1f}",
+                         f"{r['distinct'] / 1e6:.1f}", f"{r['ply_bytes'] / 1e9:.2f}"]]))
+    return [r]
+
+
+def _projection(args, results: list[dict]) -> None:
+    """Wall time on 8/64 GPU nodes: views x per-view cost / (nodes x speed-up) + the driver's reduce."""
+    local = results[0]
+    pixels = args.width * args.width * 3 / 4
+    per_view = (local["raster"] + local["coalesce"]) / local["views"]  # a worker's task per view, this machine
+    per_pair = max(local["accumulate"] - local["coalesce"], 0.0) / max(local["distinct"], 1)  # the driver's sums per distinct pair
+    per_gaussian = max(local["wall"] - local["raster"] - local["accumulate"], 0.0) / local["gaussians"]  # geometry, field, PLY
+    scale_n = args.model_gaussians / local["gaussians"]
+    scale_px = args.model_pixels / pixels
+    view_cost = per_view * max(scale_n, scale_px)  # projection ~ N, compositing ~ pixels (upper bound: the larger)
+    pairs_per_view = local["distinct"] / local["views"] * scale_px
+    rows = []
+    for nodes in map(int, args.nodes.split(",")):
+        views_s = args.model_images * view_cost / (nodes * args.gpu_speedup)
+        reduce_s = args.model_images * pairs_per_view * per_pair
+        write_s = args.model_gaussians * per_gaussian
+        rows.append([nodes, f"{views_s / 60:.1f}", f"{reduce_s / 60:.1f}", f"{write_s / 60:.1f}", f"{(max(views_s, reduce_s) + write_s) / 60:.1f}"])
+    print(f"\nProjection (a model, not a measurement): {args.model_images:,} images of {args.model_pixels / 1e6:.1f} MP, "
+          f"{args.model_gaussians / 1e6:.0f}M Gaussians. Measured here: {per_view * 1e3:.0f} ms per view at {local['gaussians'] / 1e6:.2f}M "
+          f"Gaussians / {pixels:,.0f} px, {per_pair * 1e9:.0f} ns per distinct pair summed on the driver, {per_gaussian * 1e6:.1f} us per "
+          f"Gaussian for geometry, field and PLY; assumed: one GPU node = "
+          f"{args.gpu_speedup:g}x this machine per view, view cost ~ max(N, pixels) ratio, pairs per view ~ pixels.")
+    print(format_table(["GPU nodes", "views on workers (min)", "driver sums (min)", "field + PLY (min)", "wall (min)"], rows))
+
+
+if __name__ == "__main__":  # a child run: python -m drsplat.bench.scale CONFIG_JSON
+    logging.basicConfig(level=logging.WARNING)
+    print(json.dumps(run_config(json.loads(sys.argv[1]))))
