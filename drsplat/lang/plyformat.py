@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import shutil
 from pathlib import Path
 from urllib.parse import quote, unquote
@@ -13,7 +12,7 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.lang.codebook import load_codebook
-from drsplat.lang.backends import BACKENDS, KINDS, needs_codebook
+from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene
 from drsplat.utils import atomic_path
@@ -49,7 +48,8 @@ def field_extras(field: LanguageField) -> dict[str, np.ndarray]:
 
 
 def is_lang_property(name: str) -> bool:
-    return name == "lang_weight" or name == "lang_norm" or name == "lang_list" or re.fullmatch(r"lang_(code_)?\d+", name) is not None
+    """Every vertex property of the language field starts with `lang_` (no 3DGS property does)."""
+    return name.startswith("lang_")
 
 
 def strip_field(scene: GaussianScene) -> GaussianScene:
@@ -105,8 +105,8 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if meta is None:
         return None
     kind = meta.get("kind")
-    if kind not in KINDS:
-        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(KINDS)}", field="comment drsplat.lang")
+    if kind not in BACKENDS:
+        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field="comment drsplat.lang")
     try:
         dim = int(meta.get("dim", ""))
     except ValueError:
