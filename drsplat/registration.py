@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.errors import InputError
 from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest
 from drsplat.pairlog import PairLog, ViewPairs
@@ -37,8 +38,6 @@ from drsplat.utils import CancelToken, progress
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 2  # 2: append-only pair log (drsplat.pairlog); 1 was a dense F/W .npz
-DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
-DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
 
 

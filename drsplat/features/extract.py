@@ -17,10 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.features import format as featurefiles
-from drsplat.features.modelid import DEFAULT_MODEL, check_compatible, manifest_clip_entry, manifest_model_id
 from drsplat.errors import DrsplatError
-from drsplat.features.masks import LEVELS, MaskSet, NmsParams, masks_update
+from drsplat.features import format as featurefiles
+from drsplat.features.masks import LEVELS, MaskSet
+from drsplat.features.masks.postprocess import NmsParams, masks_update
+from drsplat.features.modelid import (
+    DEFAULT_MODEL,
+    check_compatible,
+    manifest_clip_entry,
+    manifest_model_id,
+)
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -265,7 +271,8 @@ class ModelSpec:
 def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`."""
     from drsplat.features.clip import ClipEncoder
-    from drsplat.features.masks import SamParams, make_generator
+    from drsplat.features.masks import make_generator
+    from drsplat.features.masks.sam import SamParams
 
     if spec.clip_config is not None:
         import open_clip
