@@ -630,7 +630,6 @@ def tile_city(room: SyntheticScene | GaussianScene, cameras: list[Camera], tiles
         spacing = float(1.1 * np.max(hi - lo))
     cols = int(np.ceil(np.sqrt(tiles)))
     offsets = np.array([[spacing * (i % cols), spacing * (i // cols), 0.0] for i in range(tiles)], np.float32)
-    n = scene.num_gaussians
     k = (sh_degree + 1) ** 2
     city = GaussianScene(
         means=(scene.means[None] + offsets[:, None]).reshape(-1, 3),

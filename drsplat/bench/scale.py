@@ -153,11 +153,11 @@ def run(args: argparse.Namespace) -> int:
         if args.room is None:
             args.room = write_dataset(work / "room", ROOM_PRESET, 0, show_progress=False)
         print(machine_line() + " (shared with other jobs; absolute times are noisy)")
-        compare = rss = big = None
+        compare = big = None
         if args.part in ("all", "compare"):
             compare = _compare(args, work)
         if args.part in ("all", "rss"):
-            rss = _rss(args, work)
+            _rss(args, work)
         if args.part in ("all", "big"):
             big = _big(args, work)
         source = compare or big
