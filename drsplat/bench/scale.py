@@ -195,14 +195,14 @@ def _rss(args, work: Path) -> list[dict]:
             try:
                 r = _child({**base, **extra, "label": label})
             except RuntimeError as exc:
-                last = [line for line in str(exc).splitlines() if line.strip()][-1]
-                rows.append([f"{tiles * 18413 / 1e6:.1f} M", label, "-", "-", "-", last[:110]])
+                last = [line for line in str(exc).splitlines() if line.strip()][-1].split("Error: ", 1)[-1]
+                rows.append([f"{tiles * 18413 / 1e6:.1f} M", label, "-", "-", "-", "stops: " + last[:100]])
                 continue
             results.append(r)
-            rows.append([f"{r['gaussians'] / 1e6:.2f} M", label + (" (blocks)" if r["streamed"] else ""), _mb(r["peak_rss"]),
+            rows.append([f"{r['gaussians'] / 1e6:.2f} M", label + (" (blocks)" if r["streamed"] else " (fits: in memory)" if extra else ""), _mb(r["peak_rss"]),
                          f"{r['wall']:.0f}", f"{r['wall'] / r['views']:.2f}", "fits" if r["peak_rss"] <= budget else "over budget"])
     print(f"\nPeak RSS vs N ({args.rss_views} views, budget {args.budget}; 'in memory' runs without a budget stop when they do not fit):")
-    print(format_table(["N", "run", "peak RSS MB", "wall s", "s/view", "vs budget"], rows))
+    print(format_table(["N", "run", "peak RSS MB", "wall s", "wall s / view", "vs budget"], rows))
     return results
 
 
