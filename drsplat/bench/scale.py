@@ -49,6 +49,8 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model-images", type=int, default=10_000)
     p.add_argument("--model-gaussians", type=float, default=50e6)
     p.add_argument("--model-pixels", type=float, default=1.0e6, help="pixels per image of the projected city")
+    p.add_argument("--pixel-cost-us", type=float, default=0.68, help="rasterizer cost per pixel per view (flowers, docs/raster.md)")
+    p.add_argument("--pairs-per-mp", type=float, default=1.0e6, help="distinct pairs per megapixel of a view (flowers: 306k at 640x480)")
     p.add_argument("--gpu-speedup", type=float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
     p.add_argument("--nodes", default="8,64")
@@ -217,27 +219,34 @@ def _big(args, work: Path) -> list[dict]:
 
 
 def _projection(args, results: list[dict]) -> None:
-    """Wall time on 8/64 GPU nodes: views x per-view cost / (nodes x speed-up) + the driver's reduce."""
+    """Wall time on 8/64 GPU nodes from per-task costs measured here x task counts (a model).
+
+    Worker time per view t = a·N + b·P (projection ~ Gaussians, compositing ~ pixels); a comes
+    from the run measured here after removing b·P, b (--pixel-cost-us) from the flowers
+    rasterizer table. Driver time: distinct pairs x its measured cost per pair (pairs per image
+    from --pairs-per-mp, flowers' density), then N x its measured cost per Gaussian for the field
+    and the PLY. Workers run in parallel on nodes x --gpu-speedup; the driver's work is serial.
+    """
     local = results[0]
     pixels = args.width * args.width * 3 / 4
-    per_view = (local["raster"] + local["coalesce"]) / local["views"]  # a worker's task per view, this machine
-    per_pair = max(local["accumulate"] - local["coalesce"], 0.0) / max(local["distinct"], 1)  # the driver's sums per distinct pair
-    per_gaussian = max(local["wall"] - local["raster"] - local["accumulate"], 0.0) / local["gaussians"]  # geometry, field, PLY
-    scale_n = args.model_gaussians / local["gaussians"]
-    scale_px = args.model_pixels / pixels
-    view_cost = per_view * max(scale_n, scale_px)  # projection ~ N, compositing ~ pixels (upper bound: the larger)
-    pairs_per_view = local["distinct"] / local["views"] * scale_px
+    per_view = (local["raster"] + local["coalesce"]) / local["views"]
+    b = args.pixel_cost_us * 1e-6
+    a = max(per_view - b * pixels, 0.0) / local["gaussians"]
+    per_pair = max(local["accumulate"] - local["coalesce"], 0.0) / max(local["distinct"], 1)
+    per_gaussian = max(local["wall"] - local["raster"] - local["accumulate"], 0.0) / local["gaussians"]
+    view_cost = a * args.model_gaussians + b * args.model_pixels
+    pairs = args.model_images * args.pairs_per_mp * args.model_pixels / 1e6
     rows = []
     for nodes in map(int, args.nodes.split(",")):
         views_s = args.model_images * view_cost / (nodes * args.gpu_speedup)
-        reduce_s = args.model_images * pairs_per_view * per_pair
+        reduce_s = pairs * per_pair
         write_s = args.model_gaussians * per_gaussian
         rows.append([nodes, f"{views_s / 60:.1f}", f"{reduce_s / 60:.1f}", f"{write_s / 60:.1f}", f"{(max(views_s, reduce_s) + write_s) / 60:.1f}"])
     print(f"\nProjection (a model, not a measurement): {args.model_images:,} images of {args.model_pixels / 1e6:.1f} MP, "
-          f"{args.model_gaussians / 1e6:.0f}M Gaussians. Measured here: {per_view * 1e3:.0f} ms per view at {local['gaussians'] / 1e6:.2f}M "
-          f"Gaussians / {pixels:,.0f} px, {per_pair * 1e9:.0f} ns per distinct pair summed on the driver, {per_gaussian * 1e6:.1f} us per "
-          f"Gaussian for geometry, field and PLY; assumed: one GPU node = "
-          f"{args.gpu_speedup:g}x this machine per view, view cost ~ max(N, pixels) ratio, pairs per view ~ pixels.")
+          f"{args.model_gaussians / 1e6:.0f}M Gaussians. Measured here ({local['gaussians'] / 1e6:.2f}M Gaussians): {a * 1e9:.0f} ns per "
+          f"Gaussian per view, {per_pair * 1e9:.0f} ns per distinct pair summed on the driver, {per_gaussian * 1e6:.1f} us per Gaussian "
+          f"for geometry, field and PLY. Assumed: {args.pixel_cost_us:g} us per pixel per view, {args.pairs_per_mp / 1e6:g} M distinct "
+          f"pairs per megapixel (flowers), one GPU node = {args.gpu_speedup:g}x this machine per view; driver work serial.")
     print(format_table(["GPU nodes", "views on workers (min)", "driver sums (min)", "field + PLY (min)", "wall (min)"], rows))
 
 
