@@ -38,7 +38,7 @@ def app(registered, dataset):
     assert state.load_scene(registered)
     assert state.load_source(dataset)
     try:
-        viewer = ViewerApp(state, 320, 240, platform="null")
+        viewer = ViewerApp(state, 320, 240, platform="null", layout_path=None)
     except Exception as exc:  # noqa: BLE001
         pytest.skip(f"GLFW null platform with an EGL context is unavailable: {exc}")
     yield viewer
@@ -149,40 +149,41 @@ def test_registration_refuses_without_cameras(dataset, tmp_path):
     assert "training cameras" in state.messages[-1].text
 
 
-def _draw_in_frame(app, *panels):
+def _draw_in_frame(app):
     from imgui_bundle import imgui
 
     imgui.backends.opengl3_new_frame()
     imgui.backends.glfw_new_frame()
     imgui.new_frame()
-    imgui.begin("test")
-    for panel in panels:
-        panel(app)
-    imgui.end()
+    app.panels.show_help = True
+    app.panels.view.show_frusta = True
+    app.panels.draw(app)
+    app.draw_overlays()
     imgui.render()
     imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
 
 
 def test_every_panel_draws_in_every_state(app, tmp_path):
     """Each panel's imgui calls run with a query, a segmentation, a running registration, errors."""
-    from viewer import panels
     from viewer.state import RegistrationJob
 
     state = app.state
-    all_panels = (panels.scene_panel, panels.view_panel, panels.query_panel, panels.display_panel, panels.registration_panel, panels.messages_panel)
-    _draw_in_frame(app, *all_panels)
+    app.panels.expand |= {"Query options", "Registration", "Messages"}
+    _draw_in_frame(app)
     assert state.run_oracle_query(0)
     for mode in ("highlight", "heatmap", "selection", "hide_selection"):
         assert state.set_mode(mode)
-        _draw_in_frame(app, *all_panels)
+        _draw_in_frame(app)
     assert state.run_segmentation(None)
-    app.register_codebook = "file"
+    app.panels.registration.codebook = "file"
     state.error("a long error message " * 10)
     state.registration = RegistrationJob(output=tmp_path / "r.ply", done=3, total=10)
-    _draw_in_frame(app, *all_panels)
+    _draw_in_frame(app)
     state.registration.finished = state.registration.reported = True
     assert not state.start_registration(tmp_path / "r.ply", codebook="")
     assert "codebook file" in state.messages[-1].text
+    app.panels.show_help = False
+    app.panels.view.show_frusta = False
     app.run(max_frames=1)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
-from drsplat.lang import LanguageField, read_field, strip_field
+from drsplat.lang import LanguageField, read_field
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
@@ -38,10 +38,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
     parser.add_argument("--scores", type=Path, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
-    parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a standard 3DGS PLY")
+    parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
+    add_format_argument(parser, "--out")
     parser.add_argument("--top", type=int, default=10, help="how many best Gaussians to print when nothing is written")
     add_clip_arguments(parser)
     parser.set_defaults(func=run)
+
+
+def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
+    from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
+
+    parser.add_argument("--format", choices=EXPORT_FORMATS, default="standard",
+                        help=f"PLY written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
 
 
 def add_clip_arguments(parser: argparse.ArgumentParser) -> None:
@@ -141,7 +149,7 @@ def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) ->
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.scene import save_ply
+    from drsplat.lang import export_scene
     from drsplat.utils import save_npy_atomic
 
     scene, field = load_registered(args.registered)
@@ -159,8 +167,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         mask = best >= threshold
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}")
         if args.out is not None:
-            save_ply(strip_field(scene.subset(mask)), args.out)
-            log.info("wrote %d selected Gaussians to %s", int(mask.sum()), args.out)
+            export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
+            log.info("wrote %d selected Gaussians to %s (%s PLY)", int(mask.sum()), args.out, args.format)
             wrote = True
     if not wrote:
         print_top(best, args.top, "relevancy" if args.relevancy else "cosine")
