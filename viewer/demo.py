@@ -6,11 +6,11 @@ a PQ codebook trained on the scene, unassigned Gaussians kept so the scene looks
 rows match gt/labels.npy) and keeps only what the viewer needs:
 
     registered.ply, registered.codebook.faiss   the scene with its language field
-    transforms.json                             the training cameras (no images)
+    transforms.json, images/*.png               the training cameras and their images (128x96)
     gt/label_names.json, gt/labels.npy          the labels (oracle queries, tests)
     text_embeddings.npy                         the oracle "text" vectors, one per label
 
-about 1.5 MB. `python main.py` opens it at once.
+about 1.9 MB. `python main.py` opens it at once.
 """
 
 from __future__ import annotations
@@ -59,13 +59,19 @@ def build_demo(out_dir: Path, preset: str = DEMO_PRESET, seed: int = DEMO_SEED, 
         built.mkdir()
         options = RegisterOptions(codebook="scene", keep_unassigned=True)
         register_to_ply(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", built / "registered.ply", options, show_progress=show_progress)
-        for name in DEMO_FILES[2:]:
+        names = list(DEMO_FILES) + [f"images/{p.name}" for p in sorted((dataset / "images").glob("*.png"))]
+        for name in names[2:]:
             (built / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(dataset / name, built / name)
-        for name in DEMO_FILES:
+        for name in names:
             (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.move(str(built / name), out_dir / name)
     return out_dir / "registered.ply"
+
+
+def demo_size(folder: Path) -> int:
+    """Bytes of the demo's files."""
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     out = build_demo(args.out_dir or demo_dir())
-    total = sum((out.parent / name).stat().st_size for name in DEMO_FILES)
+    total = demo_size(out.parent)
     log.info("demo scene written to %s (%.1f MB)", out.parent, total / 1e6)
     return 0
 

@@ -112,7 +112,7 @@ class ViewerState:
             scene = load_ply(path)
             lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
-            return self._fail(exc, f"cannot open {path}")
+            return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
         self.set_scene(scene, lang, path)
         return True
 
