@@ -168,7 +168,7 @@ def test_every_panel_draws_in_every_state(app, tmp_path):
     from viewer.state import RegistrationJob
 
     state = app.state
-    app.panels.expand |= {"Query options", "Registration", "Messages"}
+    app.panels.open_next.update({"Query options": True, "Registration": True, "Messages": True})
     _draw_in_frame(app)
     assert state.run_oracle_query(0)
     for mode in ("highlight", "heatmap", "selection", "hide_selection"):

@@ -436,7 +436,7 @@ class ViewerApp:
         if not self.panels.view.show_frusta or not self.state.cameras or self.state.scene is None:
             return
         lo, hi = self.state.scene.bounding_box()
-        depth = 0.05 * float(np.linalg.norm(hi - lo))
+        depth = 0.03 * float(np.linalg.norm(hi - lo))
         camera = self.view.camera()
         segments = project_segments(camera, frustum_segments(self.state.cameras, depth))
         sx, sy = self._framebuffer_scale()
@@ -523,6 +523,7 @@ class ViewerApp:
             return
         center = np.median(self.state.scene.means, axis=0) if self.state.scene is not None and self.state.num_gaussians else None
         self.view.snap_to(cams[index], center)
+        self.panels.view.camera_index = index
         self.camera_changed()
 
     def reset_view(self) -> None:

@@ -327,12 +327,11 @@ class Panels:
     display: DisplayPanel = field(default_factory=DisplayPanel)
     registration: RegistrationPanel = field(default_factory=RegistrationPanel)
     show_help: bool = False
-    expand: set[str] = field(default_factory=set)  # sections to open on the next frame
+    open_next: dict[str, bool] = field(default_factory=dict)  # sections to open (True) / close on the next frame
 
     def _section(self, name: str, default_open: bool = False) -> bool:
-        if name in self.expand:
-            imgui.set_next_item_open(True)
-            self.expand.discard(name)
+        if name in self.open_next:
+            imgui.set_next_item_open(self.open_next.pop(name))
         return imgui.collapsing_header(name, imgui.TreeNodeFlags_.default_open.value if default_open else 0)
 
     def reset_paths(self, state: ViewerState) -> None:
