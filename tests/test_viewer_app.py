@@ -335,7 +335,7 @@ def test_still_frames_are_drawn_progressively_and_equal_a_whole_frame(app, monke
     app.view.rotate(25, 0)
     _settle(app)
     monkeypatch.setattr(viewer.app, "MIN_STILL_CHUNK", 100)
-    monkeypatch.setattr(viewer.app, "next_still_chunk", lambda chunk, num, seconds: 700)
+    monkeypatch.setattr(viewer.app, "next_still_chunk", lambda chunk, num, seconds, target=0: 700)
     app.progressive = True
     app._still_chunk = 700  # the tiny scene in 4 chunks
     app._drawn_key = None

@@ -62,10 +62,17 @@ def calibrated_moving_budget(num: int, full_seconds: float) -> int:
     return int(np.clip(num * share, min(num, MIN_MOVING_SPLATS), num))
 
 
-def next_still_chunk(chunk: int, num: int, seconds: float) -> int:
+def still_chunk_target(frame_overhead: float) -> float:
+    """Draw seconds per GUI frame for a progressive still frame: STILL_CHUNK_SECONDS, or twice the
+    rest of a GUI frame (panels, copy, swap) when that is larger, so that drawing in chunks takes
+    at most ~1.5x the time of one whole draw (total = D + (D / c) * overhead)."""
+    return max(STILL_CHUNK_SECONDS, 2.0 * frame_overhead)
+
+
+def next_still_chunk(chunk: int, num: int, seconds: float, target: float = STILL_CHUNK_SECONDS) -> int:
     """Splats per GUI frame of a progressive still frame, given that `chunk` took `seconds`:
-    proportional towards STILL_CHUNK_SECONDS (x0.5-x2 per step), within [MIN_STILL_CHUNK, num]."""
-    factor = float(np.clip(STILL_CHUNK_SECONDS / max(seconds, 1e-4), 0.5, 2.0))
+    proportional towards `target` seconds (x0.5-x2 per step), within [MIN_STILL_CHUNK, num]."""
+    factor = float(np.clip(target / max(seconds, 1e-4), 0.5, 2.0))
     return int(np.clip(chunk * factor, min(num, MIN_STILL_CHUNK), max(num, 1)))
 
 
@@ -166,6 +173,7 @@ class ViewerApp:
         self._pending: OffscreenTarget | None = None
         self._still: StillFrame | None = None
         self._still_chunk = 0
+        self._frame_overhead = 0.0  # seconds of a GUI frame besides drawing splats (EMA)
         self._drawn_key: tuple | None = None
         self.moving_scale = MOVING_SCALE
         self.render_scale = 1.0
@@ -398,6 +406,7 @@ class ViewerApp:
             self.ctx.clear(*r.background, 0.0)
             start = time.perf_counter()
             total = r.project(camera)
+            r.ctx.finish()
             still = self._still = StillFrame(key, camera, total=total, seconds=time.perf_counter() - start)
             if not self._still_chunk:
                 self._still_chunk = r.num
@@ -409,7 +418,7 @@ class ViewerApp:
         still.drawn += count
         still.seconds += seconds
         if count and not whole:
-            self._still_chunk = next_still_chunk(count, r.num, seconds)
+            self._still_chunk = next_still_chunk(count, r.num, seconds, still_chunk_target(self._frame_overhead))
         if still.drawn < still.total:
             return
         self._target, self._pending = self._pending, self._target
@@ -459,10 +468,14 @@ class ViewerApp:
         self.draw_overlays()
         imgui.render()
         self.sync_scene()
+        scene_start = time.perf_counter()
         self.draw_scene()
+        scene_seconds = time.perf_counter() - scene_start
         imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
         glfw.swap_buffers(self.window)
         self.frame_seconds = time.perf_counter() - start
+        overhead = max(0.0, self.frame_seconds - scene_seconds)
+        self._frame_overhead = 0.8 * self._frame_overhead + 0.2 * overhead
         self.frames += 1
         self.input.events = max(0, self.input.events - 1)
 

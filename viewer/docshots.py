@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         app._still_chunk = max(1, state.num_gaussians // 5)
         import viewer.app as va
 
-        chunk_rule, va.next_still_chunk = va.next_still_chunk, lambda chunk, num, seconds: chunk
+        chunk_rule, va.next_still_chunk = va.next_still_chunk, lambda chunk, num, seconds, target=0: chunk
         try:
             app.view.rotate(30, 0)
             app.input.last_change = 0.0
