@@ -475,7 +475,7 @@ class ViewerApp:
         glfw.swap_buffers(self.window)
         self.frame_seconds = time.perf_counter() - start
         overhead = max(0.0, self.frame_seconds - scene_seconds)
-        self._frame_overhead = 0.8 * self._frame_overhead + 0.2 * overhead
+        self._frame_overhead = overhead if self.frames == 0 else 0.8 * self._frame_overhead + 0.2 * overhead
         self.frames += 1
         self.input.events = max(0, self.input.events - 1)
 
