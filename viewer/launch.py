@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cache_root() -> Path:
-    from drsplat.features.masks import drsplat_cache_dir
+    from drsplat.features.weights import drsplat_cache_dir
 
     return drsplat_cache_dir()
 
@@ -82,9 +82,9 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     Returns (registered.ply, dataset dir) under root/demo (root/demo-<preset> for other presets).
     """
     from drsplat.cameras import load_cameras
+    from drsplat.pipeline import register_to_ply
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
-    from drsplat.pipeline import register_to_ply
 
     root = (root or cache_root()) / ("demo" if preset == DEMO_PRESET else f"demo-{preset}")
     dataset, registered = root / "dataset", root / "registered.ply"

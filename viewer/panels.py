@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-import numpy as np
 from imgui_bundle import imgui
 
 from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
