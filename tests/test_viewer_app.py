@@ -409,8 +409,14 @@ def test_up_axis_roll_and_training_camera_frusta(app):
         view.set_up_axis("diagonal")
 
 
-def test_open_and_drop_a_ply(app, registered, dataset, tmp_path):
+def test_open_and_drop_a_ply(app, registered, dataset, tmp_path, monkeypatch):
+    import viewer.app
+
     state = app.state
+    monkeypatch.setattr(viewer.app.shutil, "which", lambda tool: None)
+    monkeypatch.setattr(viewer.app.sys, "platform", "linux")
+    app.open_file_dialog()
+    assert "no file dialog" in state.messages[-1].text and app._file_dialog is None
     app._dropped = [str(tmp_path / "notes.txt")]
     app.run(max_frames=1)
     assert "none a .ply" in state.messages[-1].text

@@ -10,6 +10,8 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +43,7 @@ IDLE_WAIT_SECONDS = 0.5  # nothing to do: sleep in glfw.wait_events_timeout at m
 JOB_WAIT_SECONDS = 0.1  # a background job (registration, CLIP loading, sort) runs: poll it this often
 ACTIVE_FRAMES = 3  # frames drawn after an input event (imgui settles hover / release states)
 USE_LAYOUT_DEFAULT = object()
+DIALOG_HELPERS = ("zenity", "kdialog", "matedialog", "qarma")  # what portable_file_dialogs runs on Linux
 
 
 def next_moving_budget(budget: int, num: int, seconds: float) -> int:
@@ -565,6 +568,10 @@ class ViewerApp:
         from imgui_bundle import portable_file_dialogs as pfd
 
         if self._file_dialog is not None:
+            return
+        if sys.platform.startswith("linux") and not any(shutil.which(tool) for tool in DIALOG_HELPERS):
+            self.state.error(f"no file dialog on this machine (portable_file_dialogs needs one of {', '.join(DIALOG_HELPERS)}); "
+                             "type the path in the Scene section or drop the PLY on the window")
             return
         folder = str(self.state.scene_path.parent) if self.state.scene_path is not None else os.getcwd()
         try:
