@@ -108,13 +108,9 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
 
 
 def _load_npy(path: str | Path) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(path, f"not a readable .npy array ({exc})") from None
+    from drsplat.utils import load_npy
+
+    return load_npy(path)
 
 
 # ---------------------------------------------------------------------------------------------
