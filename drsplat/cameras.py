@@ -709,8 +709,6 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
     Frames whose pose is non-finite (ScanNet marks tracking failures with −inf) are skipped and
     counted in a warning. Cameras are named by the frame stem, like the images.
     """
-    from PIL import Image
-
     scene_dir = Path(scene_dir)
     pose_dir = scene_dir / "pose"
     if not pose_dir.is_dir():

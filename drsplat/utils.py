@@ -7,13 +7,13 @@ import logging
 import os
 import tempfile
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
-from drsplat.errors import Cancelled, DrsplatError, InputError, OutputError
+from drsplat.errors import Cancelled, InputError, OutputError
 
 log = logging.getLogger("drsplat")
 
@@ -28,16 +28,18 @@ def temp_prefix(path: Path) -> str:
     return f".{path.name}.{os.getpid()}."
 
 
-def sweep_stale_temps(path: str | Path) -> int:
-    """Delete temp files of `path` left by writers that are no longer running; returns how many.
+def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
+    """Delete temp files (or folders) of `path` left by writers that are no longer running; returns how many.
 
-    Temp files are named `.<name>.<pid>.<random>.tmp`; one whose pid is not a live process was
+    Temp files are named `.<name>.<pid>.<random><suffix>`; one whose pid is not a live process was
     left by a killed run (SIGKILL, power loss) and nothing else will ever remove it.
     """
+    import shutil
+
     path = Path(path)
     removed = 0
     try:
-        candidates = list(path.parent.glob(f".{glob_escape(path.name)}.*{TEMP_SUFFIX}"))
+        candidates = list(path.parent.glob(f".{glob_escape(path.name)}.*{suffix}"))
     except OSError:
         return 0
     for tmp in candidates:
@@ -45,12 +47,14 @@ def sweep_stale_temps(path: str | Path) -> int:
         if not pid_text.isdigit() or _pid_alive(int(pid_text)):
             continue
         try:
-            size = tmp.stat().st_size
-            tmp.unlink()
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp)
+            else:
+                tmp.unlink()
         except OSError:
             continue
         removed += 1
-        log.info("removed a stale temporary file of an interrupted run: %s (%d bytes)", tmp, size)
+        log.info("removed a stale temporary %s of an interrupted run: %s", "folder" if suffix != TEMP_SUFFIX else "file", tmp)
     return removed
 
 
@@ -71,6 +75,44 @@ def _pid_alive(pid: int) -> bool:
     except (PermissionError, OverflowError):
         return True
     return True
+
+
+PARTIAL_SUFFIX = ".partial"
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iterator[Path]:
+    """Yield an empty temp folder next to `path`; on success it becomes `path` in one rename.
+
+    An existing `path` is replaced only when it is empty or `replaceable(path)` says it is an
+    earlier output of the same kind (it is moved aside, the new folder renamed in, the old one
+    deleted); otherwise OutputError. On failure or interrupt the temp folder is deleted, and
+    temp folders of killed runs are swept first.
+    """
+    import shutil
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(path, "exists and is not a folder")
+    if path.is_dir() and any(path.iterdir()) and not replaceable(path):
+        raise OutputError(path, "is a non-empty folder that is not an earlier output of this command; choose a new folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sweep_stale_temps(path, PARTIAL_SUFFIX)
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_current_umask())
+    try:
+        yield tmp
+        old = None
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+            os.rmdir(old)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 @contextlib.contextmanager

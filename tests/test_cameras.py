@@ -60,18 +60,25 @@ def test_fern_points_project_onto_their_observations():
     assert errors.mean() < 1.0
 
 
-def test_transforms_json_round_trip_through_opengl(tmp_path):
-    model = read_colmap_model(shared_path("fern", "sparse", "0"))
-    cameras = load_cameras(shared_path("fern"))
-    path = tmp_path / "transforms.json"
+@pytest.mark.parametrize("mount", ["as given", "through a symlink"])
+def test_transforms_json_round_trip_through_opengl(tmp_path, mount):
+    fern = shared_path("fern")
+    if mount == "through a symlink":  # the dataset seen through a symlinked mount must read the same
+        (tmp_path / "mounted").symlink_to(fern.resolve(), target_is_directory=True)
+        fern = tmp_path / "mounted"
+    model = read_colmap_model(fern / "sparse" / "0")
+    cameras = load_cameras(fern)
+    out = tmp_path / "out"
+    path = out / "transforms.json"
     write_transforms_json(cameras, path)
     meta = json.loads(path.read_text())
     assert np.allclose(np.array(meta["frames"][0]["transform_matrix"])[3], [0, 0, 0, 1])
-    again = load_cameras(tmp_path)
+    again = load_cameras(out)
     for a, b in zip(cameras, again):
         np.testing.assert_allclose(a.R, b.R, atol=1e-9)
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)
         assert (a.fx, a.cy, a.width, a.image_path) == (b.fx, b.cy, b.width, b.image_path)
+        assert a.image_path == a.image_path.resolve() and a.image_path.is_file()
     assert reprojection_errors(model, again).mean() < 1.0
 
 
