@@ -80,6 +80,16 @@ def _pid_alive(pid: int) -> bool:
 PARTIAL_SUFFIX = ".partial"
 
 
+def ensure_parent(path: Path) -> None:
+    """Create the folder of an output (and its parents); OutputError when an ancestor is a file."""
+    for ancestor in path.parents:
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise OutputError(path, f"{ancestor} is a file, not a folder")
+            break
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
 @contextlib.contextmanager
 def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iterator[Path]:
     """Yield an empty temp folder next to `path`; on success it becomes `path` in one rename.
@@ -96,7 +106,7 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
         raise OutputError(path, "exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not replaceable(path):
         raise OutputError(path, "is a non-empty folder that is not an earlier output of this command; choose a new folder")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    ensure_parent(path)
     sweep_stale_temps(path, PARTIAL_SUFFIX)
     tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
     os.chmod(tmp, 0o777 & ~_current_umask())
@@ -125,8 +135,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     if path.is_dir():
         raise OutputError(path, "is a directory")
-    if not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
+    ensure_parent(path)
     sweep_stale_temps(path)
     fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=path.parent)
     os.close(fd)
@@ -226,7 +235,7 @@ def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
         size = path.stat().st_size
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, SyntaxError, EOFError, TypeError) as exc:
+    except Exception as exc:  # numpy parses the header with ast/tokenize: any error means a bad header
         raise InputError(path, f"is not a readable .npy array ({str(exc).splitlines()[0][:120] if str(exc) else exc.__class__.__name__})") from None
     if dtype.hasobject:
         raise InputError(path, "holds Python objects (pickle), which drsplat never loads")

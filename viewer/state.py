@@ -450,6 +450,7 @@ class ViewerState:
         Returns the number written, or None (with a message) when there is nothing to export.
         """
         from drsplat.scene import save_ply
+        from drsplat.utils import guard_outputs
 
         if self.scene is None:
             self.error("no scene is loaded")
@@ -462,6 +463,7 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         try:
+            guard_outputs({"the loaded scene": self.scene_path}, {"the export": Path(path)})
             subset = self.scene.subset(selected)
             save_ply(subset, path)
         except Exception as exc:  # noqa: BLE001

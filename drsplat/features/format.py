@@ -164,8 +164,8 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = 1, *,
     feats = _load_npy(fpath, "embedding")
     if seg.ndim == 2:
         seg = seg[None]
-    if seg.ndim != 3:
-        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W)")
+    if seg.ndim != 3 or 0 in seg.shape:
+        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W) with L, H, W > 0")
     if feats.ndim != 2 or feats.shape[1] == 0:
         raise InputError(fpath, f"embeddings have shape {feats.shape}, expected (M, D) with D > 0")
     if not (np.issubdtype(feats.dtype, np.floating) or np.issubdtype(feats.dtype, np.integer)):
