@@ -559,14 +559,18 @@ def test_image_paths_leaving_the_dataset_warn_once_and_never_print_contents(tmp_
 
 def test_codebook_path_in_header_resolves_next_to_the_ply(tmp_path, world, capsys):
     from drsplat.cameras import load_cameras
+    from drsplat.lang import train_codebook
     from drsplat.pipeline import RegisterOptions, register_to_ply
     from drsplat.scene import load_ply
 
+    feats = np.concatenate([np.load(f) for f in sorted((world["ds"] / "features").glob("*_f.npy"))])
+    book = tmp_path / "small.faiss"
+    train_codebook(feats, m=8).save(book)  # M=8: quick to train, still a real PQ field
     sub = tmp_path / "a" / "b"
     sub.mkdir(parents=True)
     reg = sub / "pq.ply"
     register_to_ply(load_ply(world["ds"] / "scene.ply"), load_cameras(world["ds"], require_images=False), world["ds"] / "features",
-                    reg, RegisterOptions(codebook="scene"), show_progress=False, resumable=False)
+                    reg, RegisterOptions(codebook=str(book)), show_progress=False, resumable=False)
     assert run_cli(["query", reg, "--embedding", world["q"]], capsys)[0] == 0  # found beside the PLY, whatever the cwd
     moved = tmp_path / "elsewhere.faiss"
     (sub / "pq.codebook.faiss").rename(moved)

@@ -23,6 +23,7 @@ from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
 from drsplat.pipeline import RegisterOptions, register_to_ply
+from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
@@ -547,8 +548,8 @@ def read_oracle_queries(source: Path) -> OracleQueries | None:
         return None
     try:
         names = json.loads(names_path.read_text())
-        emb = np.load(emb_path)
-    except (OSError, ValueError) as exc:
+        emb = load_npy(emb_path, "embedding array")  # header checked against the file size
+    except (OSError, ValueError, DrsplatError) as exc:
         log.warning("ignoring oracle queries of %s: %s", source, exc)
         return None
     if emb.ndim != 2 or emb.shape[0] != len(names):
