@@ -7,8 +7,8 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
+from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.features.format import FEATURE_FILE_PATTERNS
-from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.utils import CancelToken, cancel_on_signals
 
 log = logging.getLogger(__name__)
@@ -28,7 +28,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
     p.add_argument("--level", type=nonneg_int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
     p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
-    p.add_argument("--codebook", default="none",
+    p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
