@@ -397,8 +397,8 @@ class DatasetPaths:
         target = self.root / name  # an absolute name replaces root, as the file asked
         if _leaves(self.source.parent if self.source.is_file() else self.source, target) and _leaves(self.root, target) and not self.warned:
             self.warned = True
-            log.warning("%s: image paths leave the dataset folder (e.g. frame %d chars long, outside %s); they are followed as given",
-                        self.source, len(name), self.root)
+            log.warning("%s: image path %r leaves the dataset folder %s; it is followed as given (warned once per file)",
+                        self.source, name[:200], self.root)
         try:
             return target.resolve()
         except (OSError, RuntimeError):

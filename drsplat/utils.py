@@ -235,8 +235,8 @@ def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
         size = path.stat().st_size
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
-    except Exception as exc:  # numpy parses the header with ast/tokenize: any error means a bad header
-        raise InputError(path, f"is not a readable .npy array ({str(exc).splitlines()[0][:120] if str(exc) else exc.__class__.__name__})") from None
+    except Exception:  # numpy parses the header with ast/tokenize: any error means a bad header (its text is not echoed)
+        raise InputError(path, "is not a readable .npy array (bad magic or header)") from None
     if dtype.hasobject:
         raise InputError(path, "holds Python objects (pickle), which drsplat never loads")
     if any(d < 0 for d in shape):

@@ -548,7 +548,7 @@ def test_image_paths_leaving_the_dataset_warn_once_and_never_print_contents(tmp_
     (ds / "transforms.json").write_text(json.dumps({"frames": frames[:2]}))
     with caplog.at_level("WARNING"):
         cams = load_cameras(ds)
-    assert len(cams) == 2 and sum("leave the dataset folder" in r.message for r in caplog.records) == 1
+    assert len(cams) == 2 and sum("leaves the dataset folder" in r.getMessage() for r in caplog.records) == 1
     (ds / "transforms.json").write_text(json.dumps({"frames": frames[2:]}))
     from drsplat.errors import InputError
 
