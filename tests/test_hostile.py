@@ -257,6 +257,7 @@ def overwrite_cases(world, tmp_path) -> list[tuple[list, list[Path]]]:
         (["pq", "train", "--embeddings", L, "--out", L], [L]),
         (["eval", "pseudolabels", scene, "--points", scene, "--out", scene], [scene]),
         (["eval", "iou", reg, "--synthetic", ds, "--json", ds / "gt" / "label_names.json"], [ds / "gt"]),
+        (["bench", "query", "--official", reg, "--plot", reg], [reg]),
     ]
 
 
