@@ -98,14 +98,16 @@ class GaussianScene:
     def covariances(self) -> np.ndarray:
         """[N, 3, 3] float64 world covariances Σ = R S Sᵀ Rᵀ with S = diag(scale).
 
-        Computed in float64: Σ is a product of two factors whose scales span many orders of
-        magnitude in trained scenes (1e-4 .. 1e2), and float32 loses the small eigenvalues that
-        Mahalanobis distances (pseudo-labels) divide by.
+        R comes from the quaternions normalised in float64 and S from the scene's float32
+        `scales()`; the product is float64. Scales span many orders of magnitude in trained scenes
+        (1e-4 .. 1e2): a float32 R (orthonormal only to ~1e-7) or a float32 product perturbs the
+        small eigenvalues by ~1e-7 of the largest, and projections and Mahalanobis distances
+        divide by them. A scale that overflows float32 gives an infinite Σ (counted as non-finite).
         """
         q = self.quats.astype(np.float64)
         norm = np.linalg.norm(q, axis=1, keepdims=True)
         q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
-        m = quat_to_rotmat(q) * np.exp(self.log_scales.astype(np.float64))[:, None, :]
+        m = quat_to_rotmat(q) * self.scales().astype(np.float64)[:, None, :]
         return m @ m.transpose(0, 2, 1)
 
     def base_colors(self) -> np.ndarray:

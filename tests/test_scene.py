@@ -220,7 +220,8 @@ def test_written_files_get_normal_permissions(tmp_path):
 
 
 def test_covariances_are_float64_and_match_a_float64_reference():
-    """Σ = R S Sᵀ Rᵀ in float64 (the docs' promise): tiny and huge scales keep their eigenvalues."""
+    """Σ = R S Sᵀ Rᵀ in float64 (the docs' promise), R from float64-normalised quaternions and S the
+    scene's float32 scales: tiny and huge scales keep their eigenvalues (float32 would lose the small ones)."""
     rng = np.random.default_rng(3)
     n = 64
     quats = rng.standard_normal((n, 4)).astype(np.float32)
@@ -233,9 +234,10 @@ def test_covariances_are_float64_and_match_a_float64_reference():
         R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                       [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                       [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-        ref = R @ np.diag(np.exp(2 * log_scales[i].astype(np.float64))) @ R.T
+        scale = np.exp(log_scales[i]).astype(np.float64)  # float32 exp: the scene's own scales
+        ref = R @ np.diag(scale**2) @ R.T
         np.testing.assert_allclose(cov[i], ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
-        eig = np.sort(np.exp(2 * log_scales[i].astype(np.float64)))
+        eig = np.sort(scale**2)
         # float32 would be off by ~1e-7 · max (wiping eigenvalues 1e-13 smaller); float64 by ~1e-16 · max
         np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(cov[i])), eig, rtol=1e-9, atol=1e-12 * eig.max())
 

@@ -224,7 +224,7 @@ def check_faiss_header(path: Path) -> None:
         r.skip_array(1, "codes", expected=ntotal * m)
         return
     if code not in (b"IvPQ", b"IwPQ"):
-        raise InputError(path, "is not a faiss IndexPQ or IndexIVFPQ file (unknown index type code); drsplat reads PQ codebooks only")
+        raise InputError(path, "is not a faiss index file drsplat reads (unknown index type code; drsplat reads IndexPQ and IndexIVFPQ codebooks)")
     d, _ = r.index_header("IndexIVFPQ")
     nlist = int(r.take("Q", "nlist"))
     r.take("Q", "nprobe")
