@@ -23,6 +23,7 @@ from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
 from drsplat.pipeline import RegisterOptions
+from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
@@ -401,6 +402,7 @@ class ViewerState:
         (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
         beside; `drsplat query` reads it). Returns the number written, or None (with a message)."""
         from drsplat.lang import export_scene
+        from drsplat.utils import guard_outputs
 
         if self.scene is None:
             self.error("no scene is loaded")
@@ -414,6 +416,7 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         try:
+            guard_outputs({"the loaded scene": self.scene_path}, {"the export": Path(path)})
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
@@ -477,8 +480,8 @@ def read_oracle_queries(source: Path) -> OracleQueries | None:
         return None
     try:
         names = json.loads(names_path.read_text())
-        emb = np.load(emb_path)
-    except (OSError, ValueError) as exc:
+        emb = load_npy(emb_path, "embedding array")  # header checked against the file size
+    except (OSError, ValueError, DrsplatError) as exc:
         log.warning("ignoring oracle queries of %s: %s", source, exc)
         return None
     if emb.ndim != 2 or emb.shape[0] != len(names):
