@@ -181,6 +181,8 @@ def test_viewer_exports_both_formats(demo, query, tmp_path):
     np.testing.assert_array_equal(back.scores(query[None]), state.field.subset(state.selection).scores(query[None]))
     assert state.export_selection(tmp_path / "a" / "std.ply", "standard") == n
     assert load_ply(tmp_path / "a" / "std.ply").extra == {}
+    assert state.export_selection(registered, "standard") is None, "never over the loaded scene"
+    assert registered.with_name("registered.codebook.faiss").is_file()
 
 
 def _splat_transform() -> list[str] | None:

@@ -401,7 +401,7 @@ class ViewerState:
         """Write the selected Gaussians (`export_mask`) with drsplat.lang.export_scene: `standard`
         (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
         beside; `drsplat query` reads it). Returns the number written, or None (with a message)."""
-        from drsplat.lang import export_scene
+        from drsplat.lang import codebook_path_for, export_scene
         from drsplat.utils import guard_outputs
 
         if self.scene is None:
@@ -416,7 +416,9 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         try:
-            guard_outputs({"the loaded scene": self.scene_path}, {"the export": Path(path)})
+            codebook = codebook_path_for(path) if fmt == "drsplat" else None
+            scene_codebook = codebook_path_for(self.scene_path) if self.scene_path is not None else None
+            guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook}, {"the export": Path(path), "the export's codebook": codebook})
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
