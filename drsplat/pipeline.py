@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import LanguageField, attach_field, build_field
@@ -120,6 +121,8 @@ def register_to_ply(
     finally:
         if owned and executor is not None:
             executor.close()
+    if result.num_assigned == 0:
+        raise DrsplatError(nothing_assigned(result.num_views, features_dir, out))
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=codebook, clip_model=clip_model,
                         train_embeddings=result.mask_embeddings)
@@ -136,6 +139,12 @@ def register_to_ply(
         "kept with lang_weight 0" if options.keep_unassigned else "pruned", field.kind, result.num_views, result.seconds,
     )
     return PipelineResult(out, field, result, out_scene.num_gaussians)
+
+
+def nothing_assigned(num_views: int, features_dir: Path, out: Path) -> str:
+    """The error when registration gave no Gaussian a feature (nothing is written)."""
+    return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
+            f"or every mask of {features_dir} is empty or invalid; nothing was written to {out}")
 
 
 def resolve_codebook(codebook: str, dim: int):

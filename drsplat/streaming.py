@@ -240,7 +240,7 @@ def register_streaming(
         view_seconds = time.perf_counter() - t_start
         book = _codebook_for(codebook, totals)
         totals.embeddings = []
-        weights, written, blocks, nonfinite = _write_blocks(scene, plog, out, block_size, totals.dim or 1, book, clip_model, keep_unassigned,
+        weights, written, blocks, nonfinite = _write_blocks(scene, plog, features_dir, out, block_size, totals.dim or 1, book, clip_model, keep_unassigned,
                                                             show_progress, cancel)
         log_bytes = plog.nbytes
     finally:
@@ -273,7 +273,7 @@ def _codebook_for(codebook, totals: ViewTotals):
     return train_codebook(train, m=128, seed=0)
 
 
-def _write_blocks(scene, plog, out: Path, block_size: int, dim: int, book, clip_model: str, keep_unassigned: bool, show_progress: bool, cancel):
+def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, dim: int, book, clip_model: str, keep_unassigned: bool, show_progress: bool, cancel):
     """Sum, normalise, encode and write each block; then header + body -> `out` (atomic).
 
     Returns (weights [N] float32, Gaussians written, blocks, Gaussians dropped for non-finite sums).
@@ -308,6 +308,10 @@ def _write_blocks(scene, plog, out: Path, block_size: int, dim: int, book, clip_
                 del field, part, vertices
         if header is None:
             raise DrsplatError("the scene has no Gaussians to register")
+        if not np.any(weights > 0):
+            from drsplat.pipeline import nothing_assigned
+
+            raise DrsplatError(nothing_assigned(len(plog.records), features_dir, out))
         with atomic_path(out) as tmp:
             with open(tmp, "wb") as f, open(body_path, "rb") as src:
                 f.write(ply_header(header[0], header[1], written))
