@@ -300,7 +300,7 @@ def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, d
                 keep = np.ones(hi - lo, bool) if keep_unassigned else W > 0
                 field = build_field(F[keep], W[keep], codebook=book, clip_model=clip_model)
                 del F
-                part = attach_field(scene.subset(slice(lo, hi)).subset(keep), field, out)
+                part = _with_meta_rows(attach_field(scene.subset(slice(lo, hi)).subset(keep), field, out), written)
                 vertices = scene_to_vertices(part)
                 header = header or (vertices.dtype, part.comments)
                 body.write(vertices.tobytes())
@@ -312,6 +312,7 @@ def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, d
             from drsplat.pipeline import nothing_assigned
 
             raise DrsplatError(nothing_assigned(len(plog.records), features_dir, out))
+        header = _drop_meta_if_short(body_path, header, written)
         with atomic_path(out) as tmp:
             with open(tmp, "wb") as f, open(body_path, "rb") as src:
                 f.write(ply_header(header[0], header[1], written))
@@ -321,6 +322,56 @@ def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, d
     if nonfinite:
         log.warning("%d Gaussians got non-finite feature sums and are left unassigned", nonfinite)
     return weights, written, len(starts), nonfinite
+
+
+def _meta_period(comments: list[str]) -> np.ndarray | None:
+    """One period of the `lang_meta` column of the field comment (None when it is not carried)."""
+    from drsplat.lang import COMMENT_PREFIX, encode_meta_column
+
+    comment = next((c for c in reversed(comments) if c.startswith(COMMENT_PREFIX)), "")
+    text = comment[len(COMMENT_PREFIX):].strip()
+    return encode_meta_column(text, len(text.encode("utf-8")))
+
+
+def _with_meta_rows(part: GaussianScene, first_row: int) -> GaussianScene:
+    """The block with its `lang_meta` rows numbered from `first_row`, as in the whole file.
+
+    The column's row i holds byte i mod L of the field comment, so a block written alone would
+    restart at 0 (and a block shorter than L would not carry the column at all).
+    """
+    import dataclasses
+
+    from drsplat.lang import META_PROPERTY
+
+    period = _meta_period(part.comments)
+    if period is None:
+        return part
+    column = period[(first_row + np.arange(part.num_gaussians)) % period.shape[0]]
+    extra = {}
+    for name, values in part.extra.items():
+        if name != META_PROPERTY:
+            extra[name] = values
+        if name == "lang_weight":
+            extra[META_PROPERTY] = column
+    return dataclasses.replace(part, extra=extra)
+
+
+def _drop_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
+    """A file of fewer rows than the comment's length carries no `lang_meta` column (as in
+    memory): rewrite the (then tiny) body without it. Returns the header's (dtype, comments)."""
+    from drsplat.lang import META_PROPERTY
+
+    dtype, comments = header
+    period = _meta_period(comments)
+    if META_PROPERTY not in dtype.names or period is None or written >= period.shape[0]:
+        return header
+    rows = np.fromfile(body_path, dtype)
+    names = [n for n in dtype.names if n != META_PROPERTY]
+    kept = np.empty(rows.shape[0], np.dtype([(n, dtype[n]) for n in names]))
+    for n in names:
+        kept[n] = rows[n]
+    body_path.write_bytes(kept.tobytes())
+    return kept.dtype, comments
 
 
 def _block_sums(plog, lo: int, hi: int, dim: int) -> tuple[np.ndarray, np.ndarray]:

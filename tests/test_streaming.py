@@ -260,3 +260,33 @@ def test_cli_memory_budget_errors(tiny, tmp_path):
     assert main(base + ["--memory-budget", "lots"]) == 1
     assert main(base + ["--memory-budget", "1KB"]) == 1
     assert not (tmp_path / "o.ply").exists()
+
+
+@pytest.mark.parametrize("n", [30, 300])
+def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
+    """lang_meta row i holds byte i mod L of the comment: blocks are numbered as in the whole
+    file, and a file shorter than L carries no column (as in memory)."""
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import GaussianScene, ply_header, save_ply, scene_to_vertices
+    from drsplat.streaming import _drop_meta_if_short, _with_meta_rows
+
+    rng = np.random.default_rng(n)
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    feats = rng.normal(size=(n, 16)).astype(np.float32)
+    feats /= np.linalg.norm(feats, axis=1, keepdims=True)
+    weights = rng.random(n).astype(np.float32) + 0.1
+    whole = tmp_path / "whole.ply"
+    save_ply(attach_field(scene, build_field(feats, weights, clip_model="oracle"), whole), whole)
+    body = tmp_path / "body"
+    header, written = None, 0
+    with open(body, "wb") as f:
+        for lo in range(0, n, 8):
+            sl = slice(lo, lo + 8)
+            part = _with_meta_rows(attach_field(scene.subset(sl), build_field(feats[sl], weights[sl], clip_model="oracle"), whole), written)
+            rows = scene_to_vertices(part)
+            header = header or (rows.dtype, part.comments)
+            f.write(rows.tobytes())
+            written += rows.shape[0]
+    dtype, comments = _drop_meta_if_short(body, header, written)
+    assert ply_header(dtype, comments, written) + body.read_bytes() == whole.read_bytes()

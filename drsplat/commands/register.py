@@ -8,6 +8,7 @@ from pathlib import Path
 
 from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.errors import DrsplatError
 from drsplat.features.format import FEATURE_FILE_PATTERNS
 from drsplat.utils import CancelToken, cancel_on_signals
 
@@ -61,8 +62,6 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders={"--features": (args.features, FEATURE_FILE_PATTERNS)})
-    scene = load_ply(args.scene)
-    cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     budget = None
     if args.memory_budget is not None:
         from drsplat.streaming import parse_size
@@ -73,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
             raise DrsplatError(f"--memory-budget: {exc}") from exc
     if args.ray_workers is not None and args.ray_workers < 1:
         raise DrsplatError(f"--ray-workers must be at least 1, got {args.ray_workers}")
+    scene = load_ply(args.scene)
+    cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
                               memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers)
     token = CancelToken()
