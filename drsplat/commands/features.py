@@ -56,7 +56,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.errors import DrsplatError
     from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
 
     if args.out.exists() and not args.out.is_dir():
