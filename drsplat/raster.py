@@ -6,8 +6,8 @@ Conventions (shared with `drsplat.cameras.Camera.project`):
   screen mean is (fx·x/z + cx, fy·y/z + cy). With cx = W/2 this is exactly 3DGS's ndc2Pix
   convention (3DGS evaluates at integer pixel coordinates with means shifted by -0.5) and
   gsplat's.
-- 16 x 16 tiles. A Gaussian is binned into every tile that holds a pixel centre inside its 3σ
-  square (centre ± radius); like 3DGS, it contributes nothing to pixels of other tiles.
+- 16 x 16 tiles. A Gaussian is binned into the tiles of 3DGS's getRect rectangle of its 3σ
+  square (`_tile_rects`); like 3DGS, it contributes nothing to pixels of other tiles.
 - Compositing is 3DGS's, front to back in increasing camera z (ties by Gaussian id):
   α = min(0.99, o·exp(-½ dᵀ Σ'⁻¹ d)), skipped when α < 1/255; with test_T = T·(1 - α), the pixel
   stops before adding a Gaussian that would make test_T < 1e-4. The weight of a contribution is
@@ -227,18 +227,20 @@ def _screen_covariances(cov3d: np.ndarray, pc: np.ndarray, camera: Camera) -> np
 
 
 def _tile_rects(means2d: np.ndarray, radii: np.ndarray, width: int, height: int, tile_size: int) -> np.ndarray:
-    """[M, 4] int32 (tx0, ty0, tx1, ty1): tiles holding a pixel centre within mean ± radius.
+    """[M, 4] int32 (tx0, ty0, tx1, ty1), end-exclusive: 3DGS's getRect.
 
-    Pixel i's centre is i + 0.5, so the pixels covered are ceil(u - 0.5 - r) .. floor(u - 0.5 + r),
-    clipped to the image; an empty range gives tx1 = tx0 = 0.
+    With p = mean - 0.5 (3DGS's pixel coordinates, whose pixel centres are integers), r the
+    integer radius, B the tile size and G the tile count along the axis:
+    tx0 = clamp(floor((p - r) / B), 0, G), tx1 = clamp(floor((p + r + B - 1) / B), 0, G).
+    (3DGS truncates with an int cast; after the clamp to ≥ 0 that is the floor.) A Gaussian whose
+    rectangle is empty is culled.
     """
     rects = np.zeros((means2d.shape[0], 4), np.int32)
     for axis, size in ((0, width), (1, height)):
-        lo = np.clip(np.ceil(means2d[:, axis] - 0.5 - radii), 0, size)
-        hi = np.clip(np.floor(means2d[:, axis] - 0.5 + radii), -1, size - 1)
-        empty = lo > hi
-        rects[:, axis] = np.where(empty, 0, lo // tile_size)
-        rects[:, axis + 2] = np.where(empty, 0, hi // tile_size + 1)
+        grid = -(-size // tile_size)
+        p = means2d[:, axis] - 0.5
+        rects[:, axis] = np.clip(np.floor((p - radii) / tile_size), 0, grid)
+        rects[:, axis + 2] = np.clip(np.floor((p + radii + tile_size - 1) / tile_size), 0, grid)
     return rects
 
 
@@ -321,7 +323,7 @@ def project_gaussians_reference(
 
     A Gaussian is valid when its attributes are finite, `mask` (if given, [N] bool) selects it,
     its camera z ≥ near, o ≥ 1/255 (otherwise α < 1/255 everywhere), Σ' is finite and positive
-    definite, and its 3σ square touches the image. radius = ceil(3·sqrt(λ_max(Σ'))) with 3DGS's
+    definite, and its getRect tile rectangle (`_tile_rects`) is not empty. radius = ceil(3·sqrt(λ_max(Σ'))) with 3DGS's
     λ_max = mid + sqrt(max(0.1, mid² - det)). conic = Σ'⁻¹. qlimits and extents bound the
     ellipse dᵀ Σ'⁻¹ d ≤ q = 2·ln(255·o) outside which α < 1/255 (half-width sqrt(q·Σ'_xx)),
     slightly enlarged; they only tell the kernel which pixels to visit.
