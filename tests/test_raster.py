@@ -7,7 +7,6 @@ import pytest
 
 from drsplat import _raster_kernels as kernels
 from drsplat import raster
-from drsplat.cameras import Camera
 from drsplat.raster import (
     SH_C0,
     SH_C1,
@@ -24,75 +23,14 @@ from drsplat.raster import (
     rasterize_reference,
 )
 from drsplat.scene import GaussianScene, load_ply
+from drsplat.testing import (
+    assert_agree,
+    assert_physical,
+    front_camera,
+    gaussians,
+    random_scene,
+)
 from tests.conftest import shared_path
-
-
-def random_scene(rng: np.random.Generator, n: int, sh_degree: int = 0, spread: float = 1.0, log_scale=(-3.5, -1.0)) -> GaussianScene:
-    return GaussianScene(
-        means=(rng.normal(size=(n, 3)) * spread).astype(np.float32),
-        quats=rng.normal(size=(n, 4)).astype(np.float32),
-        log_scales=rng.uniform(*log_scale, size=(n, 3)).astype(np.float32),
-        opacity_logits=rng.normal(0.0, 2.0, size=n).astype(np.float32),
-        sh=(rng.normal(size=(n, (sh_degree + 1) ** 2, 3)) * 0.6).astype(np.float32),
-    )
-
-
-def gaussians(means, log_scale=-2.0, opacity_logit=30.0, color=None) -> GaussianScene:
-    """Axis-aligned isotropic Gaussians at `means` [N, 3] with one scale, opacity and DC colour."""
-    means = np.asarray(means, np.float32).reshape(-1, 3)
-    n = means.shape[0]
-    sh = np.zeros((n, 1, 3), np.float32)
-    if color is not None:
-        sh[:, 0] = (np.asarray(color, np.float32) - 0.5) / SH_C0
-    return GaussianScene(
-        means=means,
-        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
-        log_scales=np.broadcast_to(np.asarray(log_scale, np.float32), (n, 3)).copy() if np.ndim(log_scale) < 2 else np.asarray(log_scale, np.float32),
-        opacity_logits=np.broadcast_to(np.asarray(opacity_logit, np.float32), (n,)).copy(),
-        sh=sh,
-    )
-
-
-def front_camera(width: int = 40, height: int = 30, cx: float | None = None, cy: float | None = None, z: float = -4.0) -> Camera:
-    """Camera at (0, 0, z) looking along +z, OpenCV axes aligned with the world's."""
-    return look_at_camera([0.0, 0.0, z], [0.0, 0.0, 0.0], width, height, fov_x_deg=50.0, cx=cx, cy=cy)
-
-
-def assert_agree(a, b, tol: float = 1e-5) -> None:
-    """Kernel output `a` equals reference output `b`: weights/rgb/depth/alpha within tol, ids
-    identical except between entries whose weights tie (then their order is arbitrary)."""
-    assert a.ids.shape == b.ids.shape and a.ids.dtype == np.int32 and a.weights.dtype == np.float32
-    np.testing.assert_allclose(a.weights, b.weights, atol=tol, rtol=0)
-    np.testing.assert_allclose(a.alpha, b.alpha, atol=tol, rtol=0)
-    for name in ("rgb", "depth"):
-        x, y = getattr(a, name), getattr(b, name)
-        assert (x is None) == (y is None)
-        if x is not None:
-            np.testing.assert_allclose(x, y, atol=tol, rtol=0)
-    differ = a.ids != b.ids
-    if differ.any():
-        w = b.weights.astype(np.float64)
-        gap_prev = np.abs(np.diff(w, axis=2, prepend=np.inf))
-        gap_next = np.abs(np.diff(w, axis=2, append=-np.inf))
-        tie = np.minimum(gap_prev, gap_next) < 1e-7
-        assert not (differ & ~tie).any(), f"{int((differ & ~tie).sum())} ids differ where weights do not tie"
-    assert a.num_nonfinite == b.num_nonfinite
-
-
-def assert_physical(out, topk: int) -> None:
-    """Invariants of any 3DGS top-k output."""
-    for arr in (out.weights, out.alpha, out.rgb, out.depth):
-        if arr is not None:
-            assert np.isfinite(arr).all()
-    w = out.weights.astype(np.float64)
-    assert (w >= 0).all()
-    assert (np.diff(w, axis=2) <= 0).all(), "weights must be sorted in descending order"
-    assert ((out.ids >= 0) == (w > 0)).all(), "ids are -1 exactly where weights are 0"
-    assert (w.sum(axis=2) <= 1.0 - T_MIN + 1e-6).all()
-    assert (w.sum(axis=2) <= out.alpha + 1e-5).all()
-    assert ((0 <= out.alpha) & (out.alpha <= 1.0 - T_MIN + 1e-6)).all()
-    ids = np.sort(out.ids, axis=2)
-    assert not ((ids[..., 1:] == ids[..., :-1]) & (ids[..., 1:] >= 0)).any(), "a Gaussian appears twice in one pixel"
 
 
 @pytest.mark.parametrize("seed, sh_degree, topk", [(0, 0, 8), (1, 1, 1), (2, 2, 64), (3, 3, 20)])
