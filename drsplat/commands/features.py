@@ -46,8 +46,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.features.clip import ClipEncoder
-    from drsplat.features.extract import extract_features, feature_cameras, make_manifest
-    from drsplat.features.masks import NmsParams, SamParams, make_generator
+    from drsplat.features.extract import (
+        extract_features,
+        feature_cameras,
+        make_manifest,
+    )
+    from drsplat.features.masks import make_generator
+    from drsplat.features.masks.postprocess import NmsParams
+    from drsplat.features.masks.sam import SamParams
 
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
     encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)
