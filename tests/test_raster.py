@@ -401,3 +401,60 @@ def test_any_split_of_the_tiles_gives_bit_identical_images(monkeypatch, n_worker
     assert_agree(out, rasterize_reference(scene, cam, 12, with_rgb=True, with_depth=True))
     for name in ("ids", "weights", "rgb", "depth", "alpha"):
         np.testing.assert_array_equal(getattr(out, name), getattr(baseline, name))
+
+
+def _get_rect_3dgs(point_image, max_radius, grid, block):
+    """INRIA 3DGS's getRect (auxiliary.h), transcribed statement by statement (C's int cast truncates)."""
+    rect_min = [min(grid[i], max(0, int((point_image[i] - max_radius) / block))) for i in range(2)]
+    rect_max = [min(grid[i], max(0, int((point_image[i] + max_radius + block - 1) / block))) for i in range(2)]
+    return rect_min, rect_max
+
+
+def test_tile_rect_rule_is_3dgs_getrect_on_any_position():
+    rng = np.random.default_rng(43)
+    uv = rng.uniform(-60, 140, size=(20000, 2))
+    radii = rng.integers(0, 40, 20000).astype(np.float64)
+    rects = raster._tile_rects(uv, radii, 83, 45, 16)
+    for g in range(uv.shape[0]):
+        rmin, rmax = _get_rect_3dgs(uv[g] - 0.5, int(radii[g]), (6, 3), 16)
+        assert [rmin[0], rmin[1], rmax[0], rmax[1]] == rects[g].tolist(), g
+
+
+@pytest.mark.parametrize("engine", ["numba", "reference", "torch"])
+def test_tile_rectangles_are_3dgs_getrect(engine):
+    """Every projected Gaussian's tiles follow 3DGS's getRect, with 3DGS's point_image = our screen
+    mean - 0.5 (its pixel centres are integers); all engines cull the same Gaussians."""
+    rng = np.random.default_rng(37)
+    scene = random_scene(rng, 3000, spread=2.0, log_scale=(-6.0, 0.5))
+    cam = front_camera(83, 45, cx=30.0, cy=25.0, z=-3.0)
+    if engine == "torch":
+        from drsplat.raster_torch import project_gaussians_torch
+
+        p = project_gaussians_torch(scene, cam)
+        valid, rects, uv, radii = p.valid.numpy(), p.tile_rects.numpy(), p.means2d.numpy(), p.radii.numpy()
+    else:
+        p = (project_gaussians if engine == "numba" else project_gaussians_reference)(scene, cam)
+        valid, rects, uv, radii = p.valid, p.tile_rects, p.means2d, p.radii
+    grid = (-(-cam.width // 16), -(-cam.height // 16))
+    for g in np.flatnonzero(valid):
+        rmin, rmax = _get_rect_3dgs((uv[g, 0] - 0.5, uv[g, 1] - 0.5), int(radii[g]), grid, 16)
+        assert [rmin[0], rmin[1], rmax[0], rmax[1]] == rects[g].tolist(), g
+    assert valid.sum() > 1000
+    np.testing.assert_array_equal(valid, project_gaussians_reference(scene, cam).valid)
+
+
+def test_getrect_differs_from_the_pixel_centre_rule_only_at_tile_borders():
+    """The documented difference (docs/raster.md): getRect may add the tile below/left of p - r and drop
+    the tile whose first pixel lies in [p + r - 1, p + r]; never anything else."""
+    rng = np.random.default_rng(41)
+    p = rng.uniform(-40, 200, 20000)
+    r = rng.integers(0, 30, 20000).astype(float)
+    lo_get = np.clip(np.floor((p - r) / 16), 0, 10)
+    hi_get = np.clip(np.floor((p + r + 15) / 16), 0, 10)
+    first, last = np.clip(np.ceil(p - r), 0, 160), np.clip(np.floor(p + r), -1, 159)
+    nonempty = first <= last
+    lo_px, hi_px = first // 16, last // 16 + 1
+    both = nonempty & (hi_get > lo_get)
+    assert ((lo_get[both] == lo_px[both]) | (lo_get[both] == lo_px[both] - 1)).all()
+    assert ((hi_get[both] == hi_px[both]) | (hi_get[both] == hi_px[both] - 1)).all()
+    assert (lo_get[both] != lo_px[both]).mean() > 0.01 and (hi_get[both] != hi_px[both]).mean() > 0.01
