@@ -30,12 +30,15 @@ class RegisterOptions:
 
     codebook: "none" (exact float16 field), "scene" (PQ trained on this scene) or a faiss codebook path.
     keep_unassigned: keep Gaussians that got no weight (lang_weight 0) instead of pruning them.
+    engine, device: registration's compute engine ("numba" on "cpu", or "torch" on "cpu"/"cuda"; drsplat.device).
     """
 
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
     codebook: str = "none"
     keep_unassigned: bool = False
+    engine: str = "numba"
+    device: str = "cpu"
 
 
 @dataclass
@@ -77,7 +80,7 @@ def register_to_ply(
     result = register_scene(
         scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
         on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
-        collect_embeddings=options.codebook == "scene",
+        collect_embeddings=options.codebook == "scene", engine=options.engine, device=options.device,
     )
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=options.codebook, clip_model=clip_model,
