@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.utils import CancelToken
 
@@ -40,6 +41,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "default -1: full size, capped at 1600 px wide")
     p.add_argument("--out", type=Path, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_device_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -79,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError(f"--resolution: {exc}") from exc
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
-    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned)
+    device, engine = resolve_compute(args)
+    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
+                              engine=engine, device=device)
     token = CancelToken()
     with cancel_on_sigint(token):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

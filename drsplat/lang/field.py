@@ -50,6 +50,7 @@ class LanguageField:
     norms: np.ndarray | None = None
     codebook: Codebook | None = None
     _blocked: np.ndarray | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
+    _on_device: object | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
 
     @property
     def num_gaussians(self) -> int:
@@ -64,7 +65,7 @@ class LanguageField:
             return 2 * self.dim + 4
         return self.codebook.m + 8 + (4 if self.kind == "ivfpq" else 0)
 
-    def scores(self, queries: np.ndarray, lut_bits: int = 32) -> np.ndarray:
+    def scores(self, queries: np.ndarray, lut_bits: int = 32, device: str | None = None) -> np.ndarray:
         """Cosine similarity of every Gaussian to each query: queries [K, D] or [D] -> [N, K] float32.
 
         Queries are L2-normalised; features are compared through their stored norm, so the
@@ -75,15 +76,29 @@ class LanguageField:
         and ignore it. On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) PQ fields are
         scored on a blocked copy of the codes, built by the first call and kept (M more bytes
         per Gaussian).
+        device: None = the numba CPU kernels; "cpu" / "cuda" = the torch kernels on that device
+        (drsplat.lang.torch_scoring; float32 tables only; the field is copied there on first use and kept).
         """
         if lut_bits not in (8, 32):
             raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
         q = unit_rows(self._check_queries(queries))
+        if device is not None:
+            return self.scores_torch(q, device, lut_bits).cpu().numpy()
         if self.kind == "exact":
             return half_scores(self.features, self.norms, q)
         if lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available()):
             return lut_scores_blocked(self.codebook, self.blocked_codes(), self.num_gaussians, self.list_ids, self.norms, q, lut_bits)
         return lut_scores(self.codebook, self.codes, self.list_ids, self.norms, q)
+
+    def scores_torch(self, queries: np.ndarray, device: str, lut_bits: int = 32):
+        """`scores` as a torch tensor [N, K] float32 on `device` (unit queries)."""
+        from drsplat.lang import torch_scoring
+
+        if lut_bits != 32:
+            raise ValueError("8-bit tables are a CPU (AVX-512) kernel; the torch scorer uses float32 tables (lut_bits=32)")
+        if self._on_device is None or str(self._on_device.device) != str(torch_scoring.torch.device(device)):
+            self._on_device = torch_scoring.to_device(self, device)
+        return torch_scoring.field_scores_torch(self, np.asarray(queries, np.float32), self._on_device)
 
     def blocked_codes(self) -> np.ndarray:
         """The codes in the layout of the 8-bit kernel, built on first use: [ceil(N/64), M, 64] uint8."""
