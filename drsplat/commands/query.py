@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import LanguageField, read_field, strip_field
 from drsplat.scene import GaussianScene
@@ -40,16 +41,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--scores", type=Path, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
     parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a standard 3DGS PLY")
     parser.add_argument("--top", type=int, default=10, help="how many best Gaussians to print when nothing is written")
-    add_clip_arguments(parser)
+    add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
 
-def add_clip_arguments(parser: argparse.ArgumentParser) -> None:
+def add_clip_arguments(parser: argparse.ArgumentParser, scoring: bool = False) -> None:
+    """CLIP encoder flags; scoring: --device also places the scoring, with --engine (drsplat.device)."""
     group = parser.add_argument_group("CLIP text encoder (text queries)")
     group.add_argument("--clip-checkpoint", type=Path, metavar="PATH", help="local OpenCLIP weights file")
     group.add_argument("--clip-model", default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
     group.add_argument("--pretrained", default=None, help="pretrained tag (default: the one recorded in the PLY)")
-    group.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"))
+    if scoring:
+        add_device_arguments(parser.add_argument_group("compute (text encoder and scoring)"))
+    else:
+        group.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"))
+
+
+def scoring_device(args: argparse.Namespace) -> str | None:
+    """Where to score (LanguageField.scores' device): None for the numba CPU kernels, else a torch device."""
+    device, engine = resolve_compute(args)
+    return device if engine == "torch" else None
 
 
 def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
@@ -116,13 +127,14 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy
 
     lut_bits = getattr(args, "lut_bits", 32)
+    device = scoring_device(args)
     if not args.relevancy:
-        return cosine(field, queries, lut_bits=lut_bits)
+        return cosine(field, queries, lut_bits=lut_bits, device=device)
     user = split_phrases(args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and (extra is None or user):
         encoder = (encoder_factory or load_encoder)(args, field)
-    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits)
+    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits, device=device)
 
 
 def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:

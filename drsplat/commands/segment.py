@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.query import add_clip_arguments, add_lut_bits_argument, load_registered, split_phrases
+from drsplat.commands.query import add_clip_arguments, add_lut_bits_argument, load_registered, scoring_device, split_phrases
 from drsplat.errors import DrsplatError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
@@ -40,7 +40,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_lut_bits_argument(parser)
     parser.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
     parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (standard 3DGS PLY)")
-    add_clip_arguments(parser)
+    add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
 
@@ -81,7 +81,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
 
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
-    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits)
+    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,
+                  device=scoring_device(args))
     save_npy_atomic(args.out, seg.labels)
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
     if args.ply is not None:
