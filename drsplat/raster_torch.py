@@ -21,6 +21,7 @@ How the work is vectorised (no Python loop over pixels or Gaussians):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -269,20 +270,39 @@ def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.
 
 
 def _merge_topk(best_w: torch.Tensor, best_pos: torch.Tensor, w: torch.Tensor, pos: torch.Tensor, k: int):
-    """The first k of a stable sort by (weight desc, list position asc) of both candidate sets ([..., k_i])."""
+    """The k largest of both candidate sets ([..., k_i]), weight descending.
+
+    best_* come from earlier (smaller) list positions and, being sorted, a stable descending
+    sort of [best, new] keeps the earlier entry first among equal weights, as the sequential rule does.
+    """
     cand_w = torch.cat([best_w, w], dim=-1)
     cand_pos = torch.cat([best_pos, pos], dim=-1)
-    by_pos = torch.argsort(cand_pos, dim=-1)
-    cand_w, cand_pos = torch.gather(cand_w, -1, by_pos), torch.gather(cand_pos, -1, by_pos)
     by_w = torch.sort(cand_w, dim=-1, descending=True, stable=True).indices[..., :k]
     return torch.gather(cand_w, -1, by_w), torch.gather(cand_pos, -1, by_w)
 
 
 @dataclass
+class _Buffers:
+    """Tile-major outputs: ids / weights [n_tiles, P, k], trans [n_tiles, P], rgb [n_tiles, P, 3] | None, dep [n_tiles, P] | None."""
+
+    ids: torch.Tensor
+    weights: torch.Tensor
+    trans: torch.Tensor
+    rgb: torch.Tensor | None
+    dep: torch.Tensor | None
+
+
+@dataclass
 class _TileGroup:
-    """Compositing state of B tiles of P pixels: T [B, P], done [B, P], rgb [B, P, 3], dep [B, P],
+    """Compositing state of the B active tiles of a group (P pixels each): tiles [B], starts / lengths [B]
+    of their lists, pixel centres cx / cy [B, P], T [B, P], done [B, P], rgb [B, P, 3], dep [B, P],
     best_w / best_pos [B, P, k'] running top-k weights and list positions."""
 
+    tiles: torch.Tensor
+    starts: torch.Tensor
+    lengths: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
     trans: torch.Tensor
     done: torch.Tensor
     rgb: torch.Tensor
@@ -290,51 +310,75 @@ class _TileGroup:
     best_w: torch.Tensor
     best_pos: torch.Tensor
 
+    def select(self, keep: torch.Tensor) -> _TileGroup:
+        return _TileGroup(*(getattr(self, f.name)[keep] for f in dataclasses.fields(self)))
 
-def _composite_group(projected: TorchProjected, tiles, starts, lengths, tile_list, topk, chunk, with_rgb, with_depth) -> _TileGroup:
-    """Composite the tiles `tiles` [B] whose lists are tile_list[starts[b]:starts[b] + lengths[b]].
+
+def _new_group(projected: TorchProjected, tiles, starts, lengths) -> _TileGroup:
+    """Fresh state of `tiles`; pixels outside the image start done (they never count)."""
+    dev = tiles.device
+    ts = projected.tile_size
+    n_tiles_x, _ = projected.tile_grid
+    b_count, p_count = tiles.numel(), ts * ts
+    local = torch.arange(p_count, device=dev)
+    pix_x = ((tiles % n_tiles_x) * ts)[:, None] + local[None] % ts
+    pix_y = ((tiles // n_tiles_x) * ts)[:, None] + local[None] // ts
+    f64 = {"dtype": torch.float64, "device": dev}
+    return _TileGroup(
+        tiles=tiles, starts=starts, lengths=lengths, cx=pix_x.double() + 0.5, cy=pix_y.double() + 0.5,
+        trans=torch.ones((b_count, p_count), **f64),
+        done=(pix_x >= projected.width) | (pix_y >= projected.height),
+        rgb=torch.zeros((b_count, p_count, 3), **f64), dep=torch.zeros((b_count, p_count), **f64),
+        best_w=torch.zeros((b_count, p_count, 0), **f64), best_pos=torch.zeros((b_count, p_count, 0), dtype=torch.int64, device=dev),
+    )  # fmt: skip
+
+
+def _store(state: _TileGroup, tile_list: torch.Tensor, out: _Buffers) -> None:
+    """Write the finished tiles of `state` into the tile-major outputs."""
+    tiles = state.tiles
+    out.trans[tiles] = state.trans
+    if out.rgb is not None:
+        out.rgb[tiles] = state.rgb
+    if out.dep is not None:
+        out.dep[tiles] = state.dep
+    kept = state.best_w.shape[-1]
+    if kept:
+        hit = state.best_w > 0
+        gid = tile_list[state.starts[:, None, None] + torch.where(hit, state.best_pos, 0)]
+        out.ids[tiles, :, :kept] = torch.where(hit, gid, -1).to(torch.int32)
+        out.weights[tiles, :, :kept] = state.best_w.float()
+
+
+def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, topk, chunk, out: _Buffers) -> None:
+    """Composite the tiles of `state` (lists tile_list[starts[b]:starts[b] + lengths[b]]) into `out`.
 
     For each chunk of C entries: d = mean2d - pixel centre, power = -½(a·dx² + c·dy²) - b·dx·dy,
     α = min(0.99, o·exp(power)), hit = power ≤ 0 and α ≥ 1/255; T_after = cumprod of (1 - α)
     (1 where not hit) seeded with the carried T (0 once a pixel is done); an entry contributes
-    w = α·T_before iff hit and T_after ≥ 1e-4.
+    w = α·T_before iff hit and T_after ≥ 1e-4. Tiles whose pixels are all done or whose lists
+    are exhausted are stored and dropped from the group after each chunk.
     """
     dev = tile_list.device
-    ts = projected.tile_size
-    n_tiles_x, _ = projected.tile_grid
-    b_count = tiles.numel()
-    p_count = ts * ts
-    local = torch.arange(p_count, device=dev)
-    pix_x = ((tiles % n_tiles_x) * ts)[:, None] + local[None] % ts
-    pix_y = ((tiles // n_tiles_x) * ts)[:, None] + local[None] // ts
-    cx, cy = pix_x.double() + 0.5, pix_y.double() + 0.5
-    state = _TileGroup(
-        trans=torch.ones((b_count, p_count), dtype=torch.float64, device=dev),
-        done=torch.zeros((b_count, p_count), dtype=torch.bool, device=dev),
-        rgb=torch.zeros((b_count, p_count, 3), dtype=torch.float64, device=dev),
-        dep=torch.zeros((b_count, p_count), dtype=torch.float64, device=dev),
-        best_w=torch.zeros((b_count, p_count, 0), dtype=torch.float64, device=dev),
-        best_pos=torch.zeros((b_count, p_count, 0), dtype=torch.int64, device=dev),
-    )
-    longest = int(lengths.max())
+    with_rgb, with_depth = out.rgb is not None, out.dep is not None
     steps = torch.arange(chunk, device=dev)
-    for c0 in range(0, longest, chunk):
+    c0 = 0
+    while state.tiles.numel():
+        longest = int(state.lengths.max())
         pos = c0 + steps[: min(chunk, longest - c0)]
-        in_range = pos[None, :] < lengths[:, None]  # [B, C]
-        g = tile_list[torch.where(in_range, starts[:, None] + pos[None, :], 0)]
+        in_range = pos[None, :] < state.lengths[:, None]  # [B, C]
+        g = tile_list[torch.where(in_range, state.starts[:, None] + pos[None, :], 0)]
         u, v = projected.means2d[g, 0][..., None], projected.means2d[g, 1][..., None]
         ca, cb, cc = (projected.conics[g, i][..., None] for i in range(3))
-        dx = u - cx[:, None, :]
-        dy = v - cy[:, None, :]
+        dx = u - state.cx[:, None, :]
+        dy = v - state.cy[:, None, :]
         power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy  # [B, C, P]
         alpha = torch.clamp(projected.opacities[g].double()[..., None] * torch.exp(power), max=kernels.ALPHA_MAX)
         hit = in_range[..., None] & (power <= 0.0) & (alpha >= kernels.ALPHA_MIN)
-        factor = torch.where(hit, 1.0 - alpha, 1.0)
         seed = torch.where(state.done, 0.0, state.trans)
-        cum = torch.cumprod(torch.cat([seed[:, None, :], factor], dim=1), dim=1)
-        t_before, t_after = cum[:, :-1], cum[:, 1:]
+        cum = torch.cumprod(torch.cat([seed[:, None, :], torch.where(hit, 1.0 - alpha, 1.0)], dim=1), dim=1)
+        t_after = cum[:, 1:]
         ok = hit & (t_after >= kernels.T_MIN)
-        w = torch.where(ok, alpha * t_before, 0.0)
+        w = torch.where(ok, alpha * cum[:, :-1], 0.0)
         state.trans = torch.minimum(state.trans, torch.where(ok, t_after, torch.inf).amin(dim=1))
         state.done |= (hit & (t_after < kernels.T_MIN)).any(dim=1)
         if with_rgb:
@@ -342,12 +386,13 @@ def _composite_group(projected: TorchProjected, tiles, starts, lengths, tile_lis
         if with_depth:
             state.dep += torch.einsum("bcp,bc->bp", w, projected.depths[g].double())
         if topk > 0:
-            cw, ci = torch.sort(w.transpose(1, 2), dim=-1, descending=True, stable=True)
-            keep = min(topk, cw.shape[-1])
-            state.best_w, state.best_pos = _merge_topk(state.best_w, state.best_pos, cw[..., :keep], pos[ci[..., :keep]], topk)
-        if bool(state.done.all()):
-            break
-    return state
+            cw, ci = torch.topk(w.transpose(1, 2), min(topk, w.shape[1]), dim=-1)
+            state.best_w, state.best_pos = _merge_topk(state.best_w, state.best_pos, cw, pos[ci], topk)
+        c0 += chunk
+        finished = state.done.all(dim=1) | (state.lengths <= c0)
+        if bool(finished.any()):
+            _store(state.select(finished), tile_list, out)
+            state = state.select(~finished)
 
 
 def composite_torch(
@@ -372,32 +417,23 @@ def composite_torch(
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
     offsets, counts, tile_list = bin_gaussians_torch(projected)
-    ids = torch.full((n_tiles, p_count, topk), -1, dtype=torch.int32, device=dev)
-    weights = torch.zeros((n_tiles, p_count, topk), dtype=torch.float32, device=dev)
-    trans = torch.ones((n_tiles, p_count), dtype=torch.float64, device=dev)
-    rgb = torch.zeros((n_tiles, p_count, 3), dtype=torch.float64, device=dev) if with_rgb else None
-    dep = torch.zeros((n_tiles, p_count), dtype=torch.float64, device=dev) if with_depth else None
+    out = _Buffers(
+        ids=torch.full((n_tiles, p_count, topk), -1, dtype=torch.int32, device=dev),
+        weights=torch.zeros((n_tiles, p_count, topk), dtype=torch.float32, device=dev),
+        trans=torch.ones((n_tiles, p_count), dtype=torch.float64, device=dev),
+        rgb=torch.zeros((n_tiles, p_count, 3), dtype=torch.float64, device=dev) if with_rgb else None,
+        dep=torch.zeros((n_tiles, p_count), dtype=torch.float64, device=dev) if with_depth else None,
+    )
     by_length = torch.sort(counts, descending=True, stable=True).indices
     lengths_host = counts[by_length].cpu().numpy()
     i = 0
     while i < n_tiles and lengths_host[i] > 0:
-        c = int(min(lengths_host[i], chunk))
-        b = max(1, max_elements // (c * p_count))
+        b = max(1, max_elements // (int(min(lengths_host[i], chunk)) * p_count))
         tiles = by_length[i : i + b]
         tiles = tiles[counts[tiles] > 0]
         i += b
-        state = _composite_group(projected, tiles, offsets[tiles], counts[tiles], tile_list, topk, chunk, with_rgb, with_depth)
-        trans[tiles] = state.trans
-        if with_rgb:
-            rgb[tiles] = state.rgb
-        if with_depth:
-            dep[tiles] = state.dep
-        kept = state.best_w.shape[-1]
-        if kept:
-            hit = state.best_w > 0
-            gid = tile_list[offsets[tiles][:, None, None] + torch.where(hit, state.best_pos, 0)]
-            ids[tiles, :, :kept] = torch.where(hit, gid, -1).to(torch.int32)
-            weights[tiles, :, :kept] = state.best_w.float()
+        _composite_group(projected, _new_group(projected, tiles, offsets[tiles], counts[tiles]), tile_list, topk, chunk, out)
+    ids, weights, trans, rgb, dep = out.ids, out.weights, out.trans, out.rgb, out.dep
     acc = 1.0 - trans
     out_rgb = None
     if with_rgb:
