@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.pipeline import RegisterOptions, register_to_ply
     from drsplat.scene import load_ply
 
+    device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     if args.topk < 1:
         raise DrsplatError(f"--topk must be at least 1, got {args.topk}")
     try:
@@ -81,7 +82,6 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError(f"--resolution: {exc}") from exc
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
-    device, engine = resolve_compute(args)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
                               engine=engine, device=device)
     token = CancelToken()
