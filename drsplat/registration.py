@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.errors import InputError
 from drsplat.features.format import list_stems, read_features_report, resample_nearest
 from drsplat.scene import GaussianScene
@@ -37,8 +38,6 @@ from drsplat.utils import CancelToken, atomic_path, progress
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 1
-DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
-DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 
 
 @dataclass

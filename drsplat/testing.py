@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.raster import T_MIN, RasterOutput, look_at_camera
+from drsplat.cameras import look_at_camera
+from drsplat.raster import T_MIN, RasterOutput
 from drsplat.scene import SH_C0, GaussianScene
 
 

@@ -65,7 +65,7 @@ def test_projection_matches_numba():
     rng = np.random.default_rng(29)
     scene = random_scene(rng, 500, spread=3.0, log_scale=(-9.0, 4.0))
     scene.means[:20] = [0.0, 0.0, -4.0]
-    from drsplat.raster import look_at_camera
+    from drsplat.cameras import look_at_camera
 
     cam = look_at_camera([0.2, -0.1, -4.0], [0.1, 0.2, 0.0], 50, 20, fov_x_deg=70, cx=12.0, cy=15.0)
     a, b = project_gaussians_torch(scene, cam), project_gaussians(scene, cam)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from drsplat.lang import build_field, train_codebook
+from drsplat.lang import LanguageField, build_field, train_codebook
+from drsplat.lang.backends import PQStorage
 from tests.test_index import clip_like, hard_queries
 
 
@@ -31,8 +32,10 @@ def test_torch_scores_equal_cpu_kernels(data, codebook):
     if codebook == "ivf":  # coarse lists: the tables gain the term q · c_list (as an IVFPQ codebook's)
         rng = np.random.default_rng(2)
         coarse = rng.normal(size=(8, x.shape[1])).astype(np.float32) * 0.1
-        field = dataclasses.replace(field, kind="ivfpq", codebook=dataclasses.replace(book, kind="ivfpq", coarse=coarse),
-                                    list_ids=rng.integers(0, 8, len(x)).astype(np.int32))
+        storage = PQStorage(field.codes, rng.integers(0, 8, len(x)).astype(np.int32), field.norms,
+                            dataclasses.replace(book, kind="ivfpq", coarse=coarse))
+        field = LanguageField(field.dim, field.clip_model, field.weights, storage)
+        assert field.kind == "ivfpq"
     q = hard_queries(x.shape[1], np.random.default_rng(5))
     cpu = field.scores(q)
     on_torch = field.scores(q, device="cpu")

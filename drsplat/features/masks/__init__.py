@@ -24,7 +24,6 @@ from pathlib import Path
 
 from drsplat.errors import DrsplatError
 from drsplat.features.masks.base import LEVELS, MaskGenerator, MaskSet, empty_maskset
-from drsplat.features.masks.postprocess import NmsParams, masks_update
 
 
 def _sam(options: dict) -> MaskGenerator:
@@ -64,4 +63,4 @@ def make_generator(name: str, sam_checkpoint: str | Path | None = None, sam_mode
     return GENERATORS[name]({"sam_checkpoint": sam_checkpoint, "sam_model": sam_model, "device": device, "sam_params": sam_params})
 
 
-__all__ = ["GENERATORS", "LEVELS", "MaskGenerator", "MaskSet", "NmsParams", "empty_maskset", "make_generator", "masks_update"]
+__all__ = ["GENERATORS", "LEVELS", "MaskGenerator", "MaskSet", "empty_maskset", "make_generator"]
