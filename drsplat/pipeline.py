@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import LanguageField, attach_field, build_field
@@ -83,6 +84,11 @@ def register_to_ply(
         on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
         collect_embeddings=options.codebook == "scene", engine=options.engine, device=options.device,
     )
+    if result.num_assigned == 0:
+        raise DrsplatError(
+            f"no Gaussian received a language feature from {result.num_views} views: the cameras do not see the scene "
+            f"or every mask of {features_dir} is empty or invalid; nothing was written to {out}"
+        )
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=options.codebook, clip_model=clip_model,
                         train_embeddings=result.mask_embeddings)

@@ -81,7 +81,7 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
     arr = arr.astype(np.float32)
-    bad = ~np.isfinite(arr).all(axis=1) | (np.linalg.norm(np.nan_to_num(arr), axis=1) == 0)
+    bad = ~np.isfinite(arr).all(axis=1) | (np.abs(np.nan_to_num(arr)).max(axis=1) == 0)
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
     return unit_rows(arr)
@@ -108,13 +108,9 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
 
 
 def _load_npy(path: str | Path) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(path, f"not a readable .npy array ({exc})") from None
+    from drsplat.utils import load_npy
+
+    return load_npy(path)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from drsplat.cli import setup_logging
+from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int
 from drsplat.errors import Cancelled, DrsplatError
 
 log = logging.getLogger("viewer")
@@ -30,16 +31,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--features", type=Path, help="feature directory for registering from the GUI (default SOURCE/features)")
     p.add_argument("--clip-checkpoint", type=Path, help="local open_clip checkpoint for text queries")
     p.add_argument("--screenshot", type=Path, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
-    p.add_argument("--camera", type=int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
+    p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
     q.add_argument("--query", metavar="TEXT", help="with --screenshot: highlight what matches TEXT (needs CLIP weights)")
     q.add_argument("--embedding", type=Path, metavar="Q.npy", help="with --screenshot: highlight what matches the embedding Q.npy")
     q.add_argument("--oracle", metavar="LABEL", help="with --screenshot: query a synthetic dataset's oracle label (its ground-truth vector)")
     p.add_argument("--negatives", default="", help="comma-separated negative phrases (relevancy, needs CLIP weights)")
-    p.add_argument("--threshold", type=float, help="selection threshold (default: Otsu's threshold of the scores)")
+    p.add_argument("--threshold", type=float_range(-1.0, 1.0), help="selection threshold (default: Otsu's threshold of the scores)")
     p.add_argument("--mode", choices=("highlight", "heatmap", "selection", "hide_selection", "segmentation"), default="highlight", help="display mode of the screenshot")
-    p.add_argument("--width", type=int, help="screenshot width in pixels (default: the camera's, or 1280)")
-    p.add_argument("--height", type=int, help="screenshot height in pixels (default: the camera's, or 720)")
+    p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280)")
+    p.add_argument("--height", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot height in pixels (default: the camera's, or 720)")
     p.add_argument("--demo-preset", default=DEMO_PRESET, help=argparse.SUPPRESS)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
@@ -152,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose)
     try:
+        guard_args(args, ("screenshot",))
         state = build_state(args)
         if args.screenshot is not None:
             return screenshot(args, state)

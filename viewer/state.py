@@ -23,6 +23,7 @@ from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
 from drsplat.pipeline import RegisterOptions, register_to_ply
+from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
@@ -450,6 +451,7 @@ class ViewerState:
         Returns the number written, or None (with a message) when there is nothing to export.
         """
         from drsplat.scene import save_ply
+        from drsplat.utils import guard_outputs
 
         if self.scene is None:
             self.error("no scene is loaded")
@@ -462,6 +464,7 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         try:
+            guard_outputs({"the loaded scene": self.scene_path}, {"the export": Path(path)})
             subset = self.scene.subset(selected)
             save_ply(subset, path)
         except Exception as exc:  # noqa: BLE001
@@ -545,8 +548,8 @@ def read_oracle_queries(source: Path) -> OracleQueries | None:
         return None
     try:
         names = json.loads(names_path.read_text())
-        emb = np.load(emb_path)
-    except (OSError, ValueError) as exc:
+        emb = load_npy(emb_path, "embedding array")  # header checked against the file size
+    except (OSError, ValueError, DrsplatError) as exc:
         log.warning("ignoring oracle queries of %s: %s", source, exc)
         return None
     if emb.ndim != 2 or emb.shape[0] != len(names):

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.query import add_clip_arguments, add_lut_bits_argument, load_registered, scoring_device, split_phrases
+from drsplat.commands import common
+from drsplat.commands.common import add_clip_arguments, add_lut_bits_argument, float_range, load_registered, scoring_device, split_phrases
 from drsplat.errors import DrsplatError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
@@ -36,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="add a background label: the phrase 'background' with --labels, the last row of L.npy with --embeddings",
     )
-    parser.add_argument("--min-score", type=float, default=None, help="Gaussians whose best cosine is below this get -1")
+    parser.add_argument("--min-score", type=float_range(-1.0, 1.0), default=None, help="Gaussians whose best cosine is below this get -1")
     add_lut_bits_argument(parser)
     parser.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
     parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (standard 3DGS PLY)")
@@ -46,14 +47,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
     """(label embeddings [L, D], background embeddings [1, D] or None, label names)."""
-    from drsplat.commands import query as query_cmd
     from drsplat.query import BACKGROUND_PHRASE, load_query_embeddings, text_embeddings
 
     if args.labels is not None:
         names = split_phrases(args.labels)
         if not names:
             raise DrsplatError("--labels gave no label phrases")
-        encoder = (encoder_factory or query_cmd.load_encoder)(args, field)
+        encoder = (encoder_factory or common.load_encoder)(args, field)
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
         emb = load_query_embeddings(args.embeddings, field.dim)
@@ -77,8 +77,12 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.query import label_colors, segment
     from drsplat.scene import save_ply
-    from drsplat.utils import save_npy_atomic
+    from drsplat.lang import codebook_path_for
+    from drsplat.utils import guard_outputs, save_npy_atomic
 
+    inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
+              "the registered PLY's codebook": codebook_path_for(args.registered)}
+    guard_outputs(inputs, {"--out": args.out, "--ply": args.ply})
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
     seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shutil
 from pathlib import Path
 from urllib.parse import quote, unquote
@@ -11,8 +12,8 @@ from urllib.parse import quote, unquote
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import load_codebook
 from drsplat.lang.backends import BACKENDS, needs_codebook
+from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene
 from drsplat.utils import atomic_path
@@ -111,13 +112,15 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         dim = int(meta.get("dim", ""))
     except ValueError:
         raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field="comment drsplat.lang") from None
+    if not 1 <= dim <= MAX_DIM:
+        raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field="comment drsplat.lang")
     clip_model = meta.get("clip", "unknown")
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
     book = None
     if needs_codebook(kind):
         if "codebook" not in meta:
             raise InputError(ply_path, "a quantised language field names no codebook file", field="comment drsplat.lang")
-        book = load_codebook(ply_path.parent / meta["codebook"])
+        book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
         if f"lang_code_{book.m}" in scene.extra:
@@ -132,6 +135,16 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
     return LanguageField(dim, clip_model, weights, storage)
+
+
+def codebook_named_by(ply_path: Path, name: str) -> Path:
+    """The codebook a PLY header names, relative to the PLY's folder; a name leaving that folder
+    (`../`, absolute) is followed but warned about, since a header is not trusted input."""
+    target = ply_path.parent / name
+    folder = os.path.normpath(os.path.abspath(ply_path.parent))
+    if os.path.commonpath([folder, os.path.normpath(os.path.abspath(target))]) != folder:
+        log.warning("%s: the header names a codebook outside the PLY's folder (%s); reading it as named", ply_path, target)
+    return target
 
 
 def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
