@@ -217,3 +217,19 @@ def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs:
     written = {flag(name): getattr(args, name, None) for name in outputs}
     written.update(extra_outputs or {})
     guard_outputs(inputs, written, protected_folders)
+
+
+def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
+    """`--format standard|drsplat` for the PLY an option (`flag`) writes (drsplat.lang.export_scene)."""
+    from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
+
+    parser.add_argument("--format", choices=EXPORT_FORMATS, default="standard",
+                        help=f"PLY written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
+
+
+def export_outputs(path, fmt: str) -> dict:
+    """The files an export to `path` in format `fmt` writes besides the PLY itself (for
+    guard_outputs): a drsplat PLY's codebook beside it."""
+    from drsplat.lang import codebook_path_for
+
+    return {"the export's codebook": codebook_path_for(path)} if path is not None and fmt == "drsplat" else {}

@@ -11,6 +11,8 @@ import numpy as np
 from drsplat.commands import common
 from drsplat.commands.common import (
     add_clip_arguments,
+    add_format_argument,
+    export_outputs,
     add_lut_bits_argument,
     load_registered,
     nonneg_int,
@@ -18,7 +20,7 @@ from drsplat.commands.common import (
     split_phrases,
     threshold_value,
 )
-from drsplat.lang import LanguageField, strip_field
+from drsplat.lang import LanguageField
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
     parser.add_argument("--scores", type=Path, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
-    parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a standard 3DGS PLY")
+    parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
+    add_format_argument(parser, "--out")
     parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
     add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
@@ -82,14 +85,13 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.lang import codebook_path_for
-    from drsplat.scene import save_ply
+    from drsplat.lang import codebook_path_for, export_scene
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered)}
-    guard_outputs(inputs, {"--scores": args.scores, "--out": args.out})
+    guard_outputs(inputs, {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format)})
     scene, field = load_registered(args.registered)
     queries, single, encoder = build_queries(args, field, encoder_factory)
     scores = compute_scores(args, field, queries, encoder, encoder_factory)
@@ -105,8 +107,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         mask = best >= threshold
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}")
         if args.out is not None:
-            save_ply(strip_field(scene.subset(mask)), args.out)
-            log.info("wrote %d selected Gaussians to %s", int(mask.sum()), args.out)
+            export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
+            log.info("wrote %d selected Gaussians to %s (%s PLY)", int(mask.sum()), args.out, args.format)
             wrote = True
     if not wrote:
         print_top(best, args.top, "relevancy" if args.relevancy else "cosine")
