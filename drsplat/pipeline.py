@@ -38,6 +38,7 @@ class RegisterOptions:
     block_size: stream with blocks of this many Gaussians whatever the estimate (tests, benches).
     ray: a Ray cluster address ("" or "local" starts a local one) computing views on workers
     (drsplat.distributed); ray_workers: how many worker tasks at once (default: the cluster's CPUs).
+    engine, device: registration's compute engine ("numba" on "cpu", or "torch" on "cpu"/"cuda"; drsplat.device).
     """
 
     topk: int = DEFAULT_TOPK
@@ -48,6 +49,8 @@ class RegisterOptions:
     block_size: int | None = None
     ray: str | None = None
     ray_workers: int | None = None
+    engine: str = "numba"
+    device: str = "cpu"
 
 
 @dataclass
@@ -85,7 +88,7 @@ def register_to_ply(
     it is deleted once `out` is written. executor: where views are computed (default: from
     options.ray, else this process); one passed in is not closed here.
     """
-    from drsplat.registration import feature_dim, select_views
+    from drsplat.registration import feature_dim, local_executor, select_views
     from drsplat.streaming import choose_block, estimate_memory, register_streaming
 
     features_dir, out = Path(features_dir), Path(out)
@@ -106,7 +109,8 @@ def register_to_ply(
         if block is not None:
             streamed = register_streaming(
                 scene, cameras, features_dir, out, block_size=block, checkpoint=ckpt, topk=options.topk, level=options.level,
-                codebook=codebook, clip_model=clip_model, keep_unassigned=options.keep_unassigned, executor=executor,
+                codebook=codebook, clip_model=clip_model, keep_unassigned=options.keep_unassigned,
+                executor=executor or local_executor(options.engine, options.device),
                 show_progress=show_progress, on_progress=on_progress, cancel=cancel,
             )
             ckpt.unlink(missing_ok=True)
@@ -116,7 +120,7 @@ def register_to_ply(
         result = register_scene(
             scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
             on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
-            collect_embeddings=options.codebook == "scene", executor=executor,
+            collect_embeddings=options.codebook == "scene", executor=executor, engine=options.engine, device=options.device,
         )
     finally:
         if owned and executor is not None:

@@ -392,12 +392,18 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
     return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite
 
 
-def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None):
-    """Rasterize one view and coalesce its pairs. Returns (ViewPairs, the raster buffers to reuse)."""
+def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None,
+                       render: Callable | None = None):
+    """Rasterize one view (numba, or `render(prepared, cam, topk, out)`) and coalesce its pairs.
+    Returns (ViewPairs, the raster buffers to reuse)."""
     from drsplat.raster import rasterize
 
     t0 = time.perf_counter()
-    out = rasterize(prepared, cam, topk=topk, out=out)
+    if render is None:
+        out = rasterize(prepared, cam, topk=topk, out=out)
+    else:
+        out = render(prepared, cam, topk, out)
+        out = out.numpy() if hasattr(out, "numpy") else out  # a torch engine's output comes back to the host
     t1 = time.perf_counter()
     g, m, w, pairs = coalescer.coalesce(out.ids, out.weights, mask_ids, feats.shape[0])
     used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
@@ -406,16 +412,33 @@ def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.nd
 
 
 class LocalExecutor:
-    """Computes views' pairs in this process, one view after another (the default)."""
+    """Computes views' pairs in this process, one view after another (the default).
+
+    render: (prepared, camera, topk, previous output) -> output with .ids / .weights [H, W, k]
+    (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry).
+    """
+
+    def __init__(self, render: Callable | None = None, prepare: Callable | None = None):
+        self._render = render
+        self.prepare = prepare or prepare_geometry
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
-        coalescer = Coalescer(prepared.num_gaussians)
+        coalescer = Coalescer(int(prepared.num_gaussians))
         out = None
         for cam in views:
             mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
-            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out)
+            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render)
             view.num_nonfinite = nonfinite
             yield view
+
+
+def local_executor(engine: str = "numba", device: str = "cpu") -> LocalExecutor:
+    """The in-process executor rendering with `engine` on `device` (see `compute_engine`)."""
+    if engine == "numba":
+        compute_engine(engine, device)  # checks the device
+        return LocalExecutor()
+    compute = compute_engine(engine, device)
+    return LocalExecutor(render=compute.render, prepare=compute.prepare)
 
 
 # ----------------------------------------------------------------------------- pairing & checkpoints
@@ -586,6 +609,35 @@ def run_views(
             close()
 
 
+# ----------------------------------------------------------------------------- compute engine hook
+
+
+@dataclass
+class ComputeEngine:
+    """How registration rasterizes and accumulates: prepare(scene) once, render(prepared, camera,
+    topk, previous output) per view (an output with .ids / .weights [H, W, k]), accumulator(N, D)
+    and adopt(accumulator) (converts one loaded from a checkpoint)."""
+
+    prepare: Callable
+    render: Callable
+    accumulator: Callable[[int, int], object]
+    adopt: Callable[[object], object]
+
+
+def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
+    """numba: drsplat.raster + `Accumulator` (CPU). torch: drsplat.raster_torch + drsplat.accumulate_torch on `device`."""
+    if engine == "numba":
+        from drsplat.raster import _check_cpu, prepare_scene, rasterize_numba
+
+        _check_cpu("numba", device)
+        return ComputeEngine(prepare_scene, lambda prep, cam, topk, out: rasterize_numba(prep, cam, topk, out=out), Accumulator, lambda acc: acc)
+    if engine == "torch":
+        from drsplat.accumulate_torch import torch_compute_engine
+
+        return torch_compute_engine(device, ComputeEngine)
+    raise ValueError(f"unknown registration engine {engine!r}; choose numba or torch")
+
+
 # ----------------------------------------------------------------------------- registration
 
 
@@ -604,6 +656,8 @@ def register_scene(
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
     executor=None,
+    engine: str = "numba",
+    device: str = "cpu",
 ) -> RegistrationResult:
     """Register the mask embeddings of `features_dir` onto the Gaussians of `scene` (in memory).
 
@@ -616,17 +670,22 @@ def register_scene(
     own output is safely written).
     executor: where views' pairs are computed: LocalExecutor (default) or
     drsplat.distributed.RayExecutor; the result is the same bit for bit.
+    engine, device: "numba" (CPU) or "torch" (CPU or CUDA) rasterizer (`compute_engine`); views are
+    coalesced and summed by the numba kernels whatever renders them, so the pair log, streaming
+    and Ray work with either engine.
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
     if topk < 1:
         raise ValueError("topk must be >= 1")
+    if executor is None:
+        executor = local_executor(engine, device)
     views, missing, unmatched = select_views(cameras, features_dir)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level), views) if ckpt is not None else None
     resumed = len(plog.records) if plog is not None else 0
-    prepared = prepare_geometry(scene)
+    prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
     totals = ViewTotals()
     acc: Accumulator | None = None
     accumulate_s = accumulate_cpu = allocate_s = 0.0

@@ -233,7 +233,7 @@ def register_streaming(
     resumed = len(plog.records)
     totals = ViewTotals()
     try:
-        prepared = prepare_geometry(scene)
+        prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
         run_views(prepared, views, features_dir, level, topk, lambda v: totals.add(v, features_dir, codebook == "scene"), plog=plog,
                   executor=executor, show_progress=show_progress, on_progress=on_progress, cancel=cancel)
         del prepared

@@ -111,12 +111,26 @@ def resolution_value(text: str) -> float:
 # Shared arguments and loaders of the query-like commands (query, segment, eval)
 
 
-def add_clip_arguments(parser: argparse.ArgumentParser) -> None:
+def add_clip_arguments(parser: argparse.ArgumentParser, scoring: bool = False) -> None:
+    """CLIP encoder flags; scoring: --device also places the scoring, with --engine (drsplat.device)."""
     group = parser.add_argument_group("CLIP text encoder (text queries)")
     group.add_argument("--clip-checkpoint", type=Path, metavar="PATH", help="local OpenCLIP weights file")
     group.add_argument("--clip-model", default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
     group.add_argument("--pretrained", default=None, help="pretrained tag (default: the one recorded in the PLY)")
-    group.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"))
+    if scoring:
+        from drsplat.device import add_device_arguments
+
+        add_device_arguments(parser.add_argument_group("compute (text encoder and scoring)"))
+    else:
+        group.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"))
+
+
+def scoring_device(args: argparse.Namespace) -> str | None:
+    """Where to score (LanguageField.scores' device): None for the numba CPU kernels, else a torch device."""
+    from drsplat.device import resolve_compute
+
+    device, engine = resolve_compute(args)
+    return device if engine == "torch" else None
 
 
 def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:

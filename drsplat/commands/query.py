@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
     add_format_argument(parser, "--out")
     parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
-    add_clip_arguments(parser)
+    add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
 
@@ -74,13 +74,14 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy
 
     lut_bits = getattr(args, "lut_bits", 32)
+    device = common.scoring_device(args)
     if not args.relevancy:
-        return cosine(field, queries, lut_bits=lut_bits)
+        return cosine(field, queries, lut_bits=lut_bits, device=device)
     user = split_phrases(args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and (extra is None or user):
         encoder = (encoder_factory or common.load_encoder)(args, field)
-    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits)
+    return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits, device=device)
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:

@@ -9,6 +9,7 @@ from pathlib import Path
 from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.errors import DrsplatError
+from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.features.format import FEATURE_FILE_PATTERNS
 from drsplat.utils import CancelToken, cancel_on_signals
 
@@ -46,6 +47,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "(host:port or 'auto'), or no value to start a local one; same output as without")
     p.add_argument("--ray-workers", type=int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_device_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -55,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.pipeline import RegisterOptions, register_to_ply
     from drsplat.scene import load_ply
 
+    device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
     written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
-                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers)
+                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device)
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

@@ -9,7 +9,16 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands import common
-from drsplat.commands.common import add_clip_arguments, add_format_argument, add_lut_bits_argument, export_outputs, float_range, load_registered, split_phrases
+from drsplat.commands.common import (
+    add_clip_arguments,
+    add_format_argument,
+    add_lut_bits_argument,
+    export_outputs,
+    float_range,
+    load_registered,
+    scoring_device,
+    split_phrases,
+)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
@@ -45,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
     parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (see --format)")
     add_format_argument(parser, "--ply")
-    add_clip_arguments(parser)
+    add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
 
@@ -108,7 +117,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)})
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
-    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits)
+    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,
+                  device=scoring_device(args))
     save_npy_atomic(args.out, seg.labels)
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
     if args.ply is not None:
