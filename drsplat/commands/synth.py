@@ -21,11 +21,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "masks and labels, oracle LangSplat feature files and oracle text embeddings (docs/registration.md).",
     )
     p.add_argument("out_dir", type=Path, help="output folder (created)")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene size (default: tiny)")
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene: tiny, small, demo (a table), or a hard room hard-* (docs/evaluation.md) (default: tiny)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    p.add_argument("--mislabel", type=float, default=0.0, metavar="FRACTION", help="fraction of masks given a wrong label's embedding")
+    p.add_argument("--mislabel", type=float, default=None, metavar="FRACTION",
+                   help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
     p.add_argument("--noise", type=float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
-    p.add_argument("--jitter", type=int, default=0, metavar="PIXELS", help="mask boundaries wander by up to this many pixels")
+    p.add_argument("--jitter", type=int, default=None, metavar="PIXELS",
+                   help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy/hard-room)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -33,9 +35,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from drsplat.synthetic import write_dataset
 
-    if not 0.0 <= args.mislabel <= 1.0:
+    if args.mislabel is not None and not 0.0 <= args.mislabel <= 1.0:
         raise DrsplatError(f"--mislabel must be between 0 and 1, got {args.mislabel}")
-    if args.noise < 0 or args.jitter < 0:
+    if args.noise < 0 or (args.jitter is not None and args.jitter < 0):
         raise DrsplatError("--noise and --jitter must not be negative")
     out = write_dataset(args.out_dir, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
                         jitter=args.jitter, show_progress=not args.no_progress)
