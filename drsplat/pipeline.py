@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.aggregate import DEFAULT_MODE as DEFAULT_AGGREGATE
 from drsplat.cameras import Camera
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
@@ -30,12 +31,14 @@ class RegisterOptions:
 
     codebook: "none" (exact float16 field), "scene" (PQ trained on this scene) or a faiss codebook path.
     keep_unassigned: keep Gaussians that got no weight (lang_weight 0) instead of pruning them.
+    aggregate: aggregation mode (drsplat.aggregate.MODES; "paper" is Dr. Splat's weighted mean).
     """
 
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
     codebook: str = "none"
     keep_unassigned: bool = False
+    aggregate: str = DEFAULT_AGGREGATE
 
 
 @dataclass
@@ -77,7 +80,7 @@ def register_to_ply(
     result = register_scene(
         scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
         on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
-        collect_embeddings=options.codebook == "scene",
+        collect_embeddings=options.codebook == "scene", aggregate=options.aggregate,
     )
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=options.codebook, clip_model=clip_model,

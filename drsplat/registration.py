@@ -56,6 +56,7 @@ class RegistrationResult:
     missing_features: camera names without a feature file; unmatched_features: feature stems
     without a camera. num_nonfinite_masks: masks dropped for non-finite embeddings.
     mask_embeddings: [M_total, D] every mask embedding used (only with collect_embeddings).
+    aggregate: the aggregation mode (drsplat.aggregate); num_rejected: Gaussians it left unassigned.
     """
 
     features: np.ndarray
@@ -76,6 +77,8 @@ class RegistrationResult:
     num_nonfinite_masks: int = 0
     num_nonfinite_features: int = 0
     mask_embeddings: np.ndarray | None = None
+    aggregate: str = "paper"
+    num_rejected: int = 0
 
     @property
     def assigned(self) -> np.ndarray:
@@ -326,9 +329,11 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     return h.hexdigest()
 
 
-def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, collect: bool) -> dict:
+def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, collect: bool,
+                      aggregate: str = "paper") -> dict:
     """What a checkpoint must match to be resumed."""
     return {
+        "aggregate": aggregate,
         "version": CHECKPOINT_VERSION,
         "num_gaussians": scene.num_gaussians,
         "scene": _scene_digest(scene),
@@ -348,6 +353,7 @@ class _State:
     num_distinct: int = 0
     num_nonfinite_masks: int = 0
     embeddings: list[np.ndarray] = field(default_factory=list)
+    aggregate: dict[str, np.ndarray] = field(default_factory=dict)  # drsplat.aggregate statistics
 
 
 def save_checkpoint(path: Path, params: dict, state: _State) -> None:
@@ -358,6 +364,7 @@ def save_checkpoint(path: Path, params: dict, state: _State) -> None:
         arrays["F"], arrays["W"] = state.acc.sums()
     if state.embeddings:
         arrays["embeddings"] = np.concatenate(state.embeddings)
+    arrays.update({f"aggregate_{k}": v for k, v in state.aggregate.items()})
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
@@ -382,6 +389,7 @@ def load_checkpoint(path: Path, params: dict) -> _State | None:
                 state.acc.W[:] = data["W"]
             if "embeddings" in data:
                 state.embeddings = [data["embeddings"]]
+            state.aggregate = {k[len("aggregate_"):]: data[k] for k in data.files if k.startswith("aggregate_")}
     except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
         log.warning("%s is not a readable checkpoint (%s); starting over", path, exc)
         return None
@@ -405,6 +413,7 @@ def register_scene(
     checkpoint_every: int = 10,
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
+    aggregate: str = "paper",
 ) -> RegistrationResult:
     """Register the mask embeddings of `features_dir` onto the Gaussians of `scene`.
 
@@ -414,8 +423,10 @@ def register_scene(
     checkpoint: an .npz path; the sums are saved there every `checkpoint_every` views (and on
     cancel), and a run with the same inputs resumes from it. It is deleted at the end unless
     keep_checkpoint (the caller then deletes it once its own output is safely written).
+    aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
+    from drsplat.aggregate import Aggregator
     from drsplat.raster import prepare_scene, rasterize
 
     t_start = time.perf_counter()
@@ -441,14 +452,17 @@ def register_scene(
         )
 
     ckpt = Path(checkpoint) if checkpoint is not None else None
-    params = checkpoint_params(scene, views, features_dir, topk, level, collect_embeddings)
+    params = checkpoint_params(scene, views, features_dir, topk, level, collect_embeddings, aggregate)
     state = (load_checkpoint(ckpt, params) if ckpt is not None else None) or _State()
+    aggregator = Aggregator(aggregate, scene.num_gaussians)  # --aggregate hook: per-view weights + a post-step
     resumed = len(state.done)
     if state.done != [c.name for c in views[:resumed]]:  # views run in order: done is a prefix
         log.warning("%s does not match the order of the views; starting over", ckpt)
         state, resumed = _State(), 0
     if resumed:
         log.info("resuming from %s: %d of %d views already registered", ckpt, resumed, len(views))
+        aggregator.load_state(state.aggregate)
+    state.aggregate = aggregator.state()
     prepared = prepare_scene(scene)
     out = None  # the rasterizer's [H, W, k] buffers, reused from view to view
     raster_s = accumulate_s = accumulate_cpu = allocate_s = 0.0
@@ -473,7 +487,7 @@ def register_scene(
         t0 = time.perf_counter()
         out = rasterize(prepared, cam, topk=topk, out=out)
         t1, c1 = time.perf_counter(), time.process_time()
-        pairs, distinct = state.acc.add_view(out.ids, out.weights, mask_ids, feats)
+        pairs, distinct = state.acc.add_view(out.ids, aggregator.view_weights(prepared, cam, out), mask_ids, feats)
         accumulate_s += time.perf_counter() - t1
         accumulate_cpu += time.process_time() - c1
         raster_s += t1 - t0
@@ -494,6 +508,7 @@ def register_scene(
         state.acc = Accumulator(scene.num_gaussians, 1)
     t0, c0 = time.perf_counter(), time.process_time()
     sums = state.acc.sums()
+    num_rejected = aggregator.finish(*sums)
     accumulate_s += time.perf_counter() - t0
     accumulate_cpu += time.process_time() - c0
     features, nonfinite = normalize_rows(*sums)
@@ -518,6 +533,8 @@ def register_scene(
         num_nonfinite_masks=state.num_nonfinite_masks,
         num_nonfinite_features=nonfinite,
         mask_embeddings=np.concatenate(state.embeddings) if collect_embeddings and state.embeddings else None,
+        aggregate=aggregate,
+        num_rejected=num_rejected,
     )
     if ckpt is not None and not keep_checkpoint:
         ckpt.unlink(missing_ok=True)

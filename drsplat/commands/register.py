@@ -11,6 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+from drsplat.aggregate import DEFAULT_MODE as DEFAULT_AGGREGATE
+from drsplat.aggregate import MODES as AGGREGATE_MODES
 from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.utils import CancelToken
 
@@ -33,6 +35,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--topk", type=int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--codebook", default="none",
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
+    p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
+                   help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
+                   "(weight by the Gaussian's own falloff / only its 2-sigma ellipse), responsibility (w / pixel sum), "
+                   "*-reject (also leave floaters unassigned); see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
     p.add_argument("--resolution", type=float, default=-1,
@@ -79,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError(f"--resolution: {exc}") from exc
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
-    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned)
+    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
+                              aggregate=args.aggregate)
     token = CancelToken()
     with cancel_on_sigint(token):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
