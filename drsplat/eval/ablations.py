@@ -283,6 +283,18 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
     return AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows, notes)
 
 
+def time_aggregate_modes(ds: Dataset, modes, topk: int = 40, repeats: int = 5, cancel: CancelToken | None = None) -> dict[str, float]:
+    """{mode: median ms per view} over `repeats` registrations of `ds`, modes interleaved within each
+    repeat so that a busy machine slows every mode alike (the ablation's single-run ms/view is noisier)."""
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    for _ in range(repeats):
+        for mode in modes:
+            _check(cancel)
+            res = register(ds, topk, aggregate=mode)
+            times[mode].append(1e3 * res.seconds / max(res.num_views, 1))
+    return {m: float(np.median(t)) for m, t in times.items()}
+
+
 def aggregate_summary(result: AblationResult, baseline: str = "paper", topk: int = 40) -> str:
     """Markdown table per mode at one top-k: per preset seg mIoU vol minus the baseline's, the
     smallest gain over presets, floaters kept and time relative to the baseline."""
@@ -402,6 +414,7 @@ def add_ablate_parser(sub) -> None:
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
     p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
+    p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k or PQ sub-vectors)")
     p.add_argument("--out-dir", type=Path, required=True, metavar="DIR", help="where the PNG, JSON and cached datasets go")
@@ -433,6 +446,15 @@ def run_ablate(args: argparse.Namespace) -> int:
         print(result.markdown())
         print()
         print(aggregate_summary(result, topk=max(values or AGGREGATE_TOPK)))
+        k = max(values or AGGREGATE_TOPK)
+        timed = dataset(root, presets[-1], seeds[0], PRESETS[presets[-1]].mislabel)
+        speed = time_aggregate_modes(timed, modes, k, args.repeats)
+        result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
+        print(f"\nTime per view on {presets[-1]} (seed {seeds[0]}, {timed.scene.num_gaussians} Gaussians, "
+              f"{timed.cameras[0].width}x{timed.cameras[0].height}, top-k {k}), median of {args.repeats} interleaved runs:\n")
+        print("| mode | ms/view | vs paper |\n|---|---:|---:|")
+        for mode, ms in speed.items():
+            print(f"| {mode} | {ms:.1f} | {ms / speed['paper']:.2f}x |")
     elif args.ablation == "topk":
         result = ablate_topk(root, preset, seeds, values or TOPK_VALUES)
     elif args.ablation == "pq":
