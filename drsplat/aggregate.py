@@ -21,8 +21,10 @@ exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ell
 the pixel centre nearest to the mean (Σ' ⪰ 0.3 I, so that centre is at d² ≤ 0.5/0.3 < 4).
 
 Floater rejection (`SurfaceSupport`). In every view, pixel p's surface depth D(p) is the camera
-depth at which the pixel's top-k contributions, front to back, first reach a summed weight of ½
-(+∞ if they never do). A contribution of Gaussian i at p is *in front* when z_i < (1 - τ)·D(p),
+depth at which the pixel's 8 heaviest contributions (the first slots of its top-k list, which the
+rasterizer sorts by weight), taken front to back, first reach a summed weight of ½ (+∞ if they
+never do): the median depth of the pixel, over few enough contributions that it costs little
+and does not depend on k. A contribution of Gaussian i at p is *in front* when z_i < (1 - τ)·D(p),
 τ = 0.05. Over all views Gaussian i collects its peak weight P_i = max_p w_i(p), its total weight
 A_i = Σ_p w_i(p) and its in-front weight B_i = Σ_p w_i(p)·[in front]. It is rejected (left
 unassigned, W_i = 0) when
@@ -51,6 +53,7 @@ DEFAULT_MODE = "paper"
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 SURFACE_WEIGHT = 0.5  # summed weight that defines the pixel's surface depth
+SURFACE_SLOTS = 8  # heaviest contributions of a pixel that define its surface depth
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
@@ -157,11 +160,12 @@ def surface_stats_reference(ids: np.ndarray, weights: np.ndarray, depths: np.nda
     g = ids.reshape(-1, k)
     w = np.where(g >= 0, weights.reshape(-1, k).astype(np.float64), 0.0)
     z = np.where(g >= 0, depths[np.maximum(g, 0)].astype(np.float64), np.inf)
-    order = np.argsort(z, axis=1, kind="stable")
-    cum = np.cumsum(np.take_along_axis(w, order, axis=1), axis=1)
+    zs, ws = z[:, :SURFACE_SLOTS], w[:, :SURFACE_SLOTS]
+    order = np.argsort(zs, axis=1, kind="stable")
+    cum = np.cumsum(np.take_along_axis(ws, order, axis=1), axis=1)
     reached = cum >= SURFACE_WEIGHT
     first = np.argmax(reached, axis=1)
-    surface = np.where(reached.any(axis=1), np.take_along_axis(np.take_along_axis(z, order, axis=1), first[:, None], axis=1)[:, 0], np.inf)
+    surface = np.where(reached.any(axis=1), np.take_along_axis(np.take_along_axis(zs, order, axis=1), first[:, None], axis=1)[:, 0], np.inf)
     in_front = z < (1.0 - tolerance) * surface[:, None]
     valid = g >= 0
     np.maximum.at(peak, g[valid], w[valid])
@@ -169,15 +173,24 @@ def surface_stats_reference(ids: np.ndarray, weights: np.ndarray, depths: np.nda
     np.add.at(front, g[valid], (w * in_front)[valid])
 
 
-@numba.njit(cache=True)
-def _surface_stats_kernel(ids, weights, depths, peak, total, front, tolerance, surface_weight):  # pragma: no cover - jitted
-    """Serial scatter of one view's statistics (threads would race on the per-Gaussian sums)."""
-    n_pix, k = ids.shape
-    zbuf = np.empty(k, np.float64)
-    wbuf = np.empty(k, np.float64)
-    for p in range(n_pix):
+@numba.njit(parallel=True, cache=True)
+def _front_limits_kernel(ids, weights, depths, tolerance, surface_weight, slots, limits):  # pragma: no cover - jitted
+    """limits[p] = (1 - τ)·D(p), D(p) the depth at which pixel p's first `slots` contributions,
+    front to back, first sum to `surface_weight` (+inf if they never do). Parallel over pixels."""
+    n_pix, k_all = ids.shape
+    k = min(k_all, slots)
+    for p in numba.prange(n_pix):
+        limits[p] = np.inf
+        total = 0.0
+        for s in range(k):
+            if ids[p, s] >= 0:
+                total += np.float64(weights[p, s])
+        if total < surface_weight:  # never reaches the surface weight: no sort needed
+            continue
+        zbuf = np.empty(k, np.float64)
+        wbuf = np.empty(k, np.float64)
         n = 0
-        for s in range(k):  # insertion sort of the pixel's contributions by depth (stable)
+        for s in range(k):  # insertion sort of the pixel's contributions by depth
             g = ids[p, s]
             if g < 0:
                 continue
@@ -191,14 +204,20 @@ def _surface_stats_kernel(ids, weights, depths, peak, total, front, tolerance, s
             zbuf[pos] = z
             wbuf[pos] = w
             n += 1
-        surface = np.inf
         cum = 0.0
         for m in range(n):
             cum += wbuf[m]
             if cum >= surface_weight:
-                surface = zbuf[m]
+                limits[p] = (1.0 - tolerance) * zbuf[m]
                 break
-        limit = (1.0 - tolerance) * surface
+
+
+@numba.njit(cache=True)
+def _scatter_stats_kernel(ids, weights, depths, limits, peak, total, front):  # pragma: no cover - jitted
+    """Serial scatter of one view's statistics (threads would race on the per-Gaussian sums)."""
+    n_pix, k = ids.shape
+    for p in range(n_pix):
+        limit = limits[p]
         for s in range(k):
             g = ids[p, s]
             if g < 0:
@@ -215,8 +234,12 @@ def surface_stats(ids: np.ndarray, weights: np.ndarray, depths: np.ndarray, peak
                   tolerance: float = FRONT_TOLERANCE) -> None:
     """`surface_stats_reference` with a numba kernel (peak, total, front: float64 [N], in place)."""
     k = ids.shape[-1]
-    _surface_stats_kernel(np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32),
-                          np.ascontiguousarray(depths, np.float32), peak, total, front, float(tolerance), SURFACE_WEIGHT)
+    ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
+    w2 = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
+    z = np.ascontiguousarray(depths, np.float32)
+    limits = np.empty(ids2.shape[0], np.float64)
+    _front_limits_kernel(ids2, w2, z, float(tolerance), SURFACE_WEIGHT, SURFACE_SLOTS, limits)
+    _scatter_stats_kernel(ids2, w2, z, limits, peak, total, front)
 
 
 def rejected(peak: np.ndarray, total: np.ndarray, front: np.ndarray) -> np.ndarray:
