@@ -10,7 +10,6 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-
 from drsplat.aggregate import DEFAULT_MODE as DEFAULT_AGGREGATE
 from drsplat.aggregate import MODES as AGGREGATE_MODES
 from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK
