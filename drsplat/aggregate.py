@@ -45,11 +45,13 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE
+
 log = logging.getLogger(__name__)
 
 WEIGHTINGS = ("paper", "core", "ellipse", "responsibility")
-MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject")
-DEFAULT_MODE = "paper"
+MODES = AGGREGATE_MODES  # names owned by drsplat.defaults (argument parsers read them without numba)
+DEFAULT_MODE = DEFAULT_AGGREGATE
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 SURFACE_WEIGHT = 0.5  # summed weight that defines the pixel's surface depth

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -640,3 +641,40 @@ def load_image(camera: Camera) -> np.ndarray:
     except OSError as exc:
         raise InputError(camera.image_path, f"is not a readable image ({exc})") from None
     return undistort_image(work, camera, file_size)
+
+
+# ----------------------------------------------------------------------------- look-at cameras
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (R [3, 3], t [3]) of a camera at `eye` looking at `target`, OpenCV axes.
+
+    z = (target - eye)/|.|, x = z × up /|.| (right), y = z × x (down); R has rows x, y, z; t = -R eye.
+    """
+    eye = np.asarray(eye, np.float64)
+    z = np.asarray(target, np.float64) - eye
+    z /= max(np.linalg.norm(z), 1e-12)
+    x = np.cross(z, np.asarray(up, np.float64))
+    if np.linalg.norm(x) < 1e-9:  # up parallel to the view direction: pick any perpendicular
+        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
+def look_at_camera(
+    eye, target, width: int, height: int, fov_x_deg: float = 60.0, up=(0.0, -1.0, 0.0),
+    cx: float | None = None, cy: float | None = None, name: str = "",
+) -> Camera:
+    """An OpenCV pinhole camera at `eye` looking at `target` (pose from `look_at`; image y points along -up).
+
+    fx = fy = (width / 2) / tan(fov_x / 2); the principal point defaults to the image centre.
+    """
+    R, t = look_at(eye, target, up)
+    fx = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    return Camera(
+        R=R, t=t, fx=fx, fy=fx, cx=width / 2 if cx is None else cx, cy=height / 2 if cy is None else cy,
+        width=width, height=height, name=name,
+    )
+

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.aggregate import DEFAULT_MODE as DEFAULT_AGGREGATE
 from drsplat.cameras import Camera
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import LanguageField, attach_field, build_field
-from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK, RegistrationResult, register_scene
+from drsplat.defaults import DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.registration import RegistrationResult, register_scene
 from drsplat.scene import GaussianScene, save_ply
 from drsplat.utils import CancelToken
 
@@ -36,7 +36,7 @@ class RegisterOptions:
 
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
-    codebook: str = "none"
+    codebook: str = DEFAULT_CODEBOOK
     keep_unassigned: bool = False
     aggregate: str = DEFAULT_AGGREGATE
 

@@ -20,7 +20,6 @@ tests check that they agree.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numba
@@ -577,18 +576,3 @@ def rasterize_reference(
     return composite_reference(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background)
 
 
-def look_at_camera(eye, target, width: int, height: int, fov_x_deg: float = 60.0, up=(0.0, -1.0, 0.0), cx: float | None = None, cy: float | None = None) -> Camera:
-    """An OpenCV pinhole camera at `eye` looking at `target` (y down in the image is `up` negated)."""
-    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up, np.float64))
-    if np.linalg.norm(right) < 1e-9:
-        right = np.cross(forward, np.array([1.0, 0.0, 0.0]))
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rot = np.stack([right, down, forward])
-    fx = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
-    return Camera(
-        R=rot, t=-rot @ eye, fx=fx, fy=fx, cx=width / 2 if cx is None else cx, cy=height / 2 if cy is None else cy, width=width, height=height
-    )

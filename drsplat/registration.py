@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_AGGREGATE, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.errors import InputError
 from drsplat.features.format import list_stems, read_features_report, resample_nearest
 from drsplat.scene import GaussianScene
@@ -37,8 +38,6 @@ from drsplat.utils import CancelToken, atomic_path, progress
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 1
-DEFAULT_TOPK = 40  # the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
-DEFAULT_LEVEL = 1  # LangSplat's "s" level of the feature files
 
 
 @dataclass
@@ -77,7 +76,7 @@ class RegistrationResult:
     num_nonfinite_masks: int = 0
     num_nonfinite_features: int = 0
     mask_embeddings: np.ndarray | None = None
-    aggregate: str = "paper"
+    aggregate: str = DEFAULT_AGGREGATE
     num_rejected: int = 0
 
     @property
@@ -330,7 +329,7 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
 
 
 def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, collect: bool,
-                      aggregate: str = "paper") -> dict:
+                      aggregate: str = DEFAULT_AGGREGATE) -> dict:
     """What a checkpoint must match to be resumed."""
     return {
         "aggregate": aggregate,
@@ -413,7 +412,7 @@ def register_scene(
     checkpoint_every: int = 10,
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
-    aggregate: str = "paper",
+    aggregate: str = DEFAULT_AGGREGATE,
 ) -> RegistrationResult:
     """Register the mask embeddings of `features_dir` onto the Gaussians of `scene`.
 

@@ -28,15 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera, write_transforms_json
+from drsplat.cameras import Camera, look_at_camera, write_transforms_json
+from drsplat.features.masks.base import LEVELS
 from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
 from drsplat.scene import SH_C0, GaussianScene
 
 log = logging.getLogger(__name__)
 
-LEVELS = 4  # LangSplat's default, s, m, l
 LIGHT = np.array([0.4, -0.3, 0.866]) / np.linalg.norm([0.4, -0.3, 0.866])
-FEATURE_LEVEL_NAMES = ("default", "s", "m", "l")
 
 
 @dataclass
@@ -456,15 +455,10 @@ def _build_gaussians(preset: Preset, rng: np.random.Generator):
 
 
 def look_at(eye, target, width: int, height: int, fov_x_deg: float = 62.0, name: str = "") -> Camera:
-    """An OpenCV camera at `eye` looking at `target` with world z up."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    forward = _normalize(target - eye)
-    up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
-    right = _normalize(np.cross(forward, up))
-    down = np.cross(forward, right)
-    r = np.stack([right, down, forward])
-    f = 0.5 * width / np.tan(np.radians(fov_x_deg) / 2)
-    return Camera(R=r, t=-r @ eye, fx=f, fy=f, cx=width / 2, cy=height / 2, width=width, height=height, name=name)
+    """An OpenCV camera at `eye` looking at `target` with world z up (y up when looking almost straight down)."""
+    forward = _normalize(np.asarray(target, float) - np.asarray(eye, float))
+    up = (0.0, 0.0, 1.0) if abs(forward[2]) < 0.99 else (0.0, 1.0, 0.0)
+    return look_at_camera(eye, target, width, height, fov_x_deg, up=up, name=name)
 
 
 def make_cameras(preset: Preset, rng: np.random.Generator) -> list[Camera]:
@@ -806,9 +800,9 @@ def oracle_masks_and_embeddings(
     o = syn.oracle
     dim = syn.label_vectors.shape[1]
     num_labels = len(syn.label_names)
-    seg = np.full((LEVELS,) + inst.shape, -1, np.int32)
+    seg = np.full((len(LEVELS),) + inst.shape, -1, np.int32)
     feats, mask_labels = [], []
-    for level in range(LEVELS):
+    for level in range(len(LEVELS)):
         ids = jitter_boundaries(inst, o.jitter, rng)
         present, counts = np.unique(ids[ids >= 0], return_counts=True)
         present = present[counts >= o.min_mask_pixels]
@@ -903,7 +897,7 @@ def write_dataset(
             "mask_generator": "oracle (drsplat.synthetic: one mask per visible object instance)",
             **manifest_clip_entry(ORACLE_MODEL_ID, None),
             "synthetic": {"preset": preset, "seed": seed},
-            "levels": list(FEATURE_LEVEL_NAMES),
+            "levels": list(LEVELS),
             "default_level": 1,
             "dim": int(syn.label_vectors.shape[1]),
             "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter},

@@ -22,9 +22,9 @@ from drsplat.aggregate import (
     view_weights,
     view_weights_reference,
 )
-from drsplat.cameras import load_cameras
+from drsplat.cameras import load_cameras, look_at_camera
 from drsplat.errors import Cancelled
-from drsplat.raster import look_at_camera, project_gaussians, rasterize
+from drsplat.raster import project_gaussians, rasterize
 from drsplat.registration import register_scene
 from drsplat.scene import GaussianScene, load_ply
 from drsplat.synthetic import write_dataset

@@ -10,13 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from drsplat.features.clip import (
-    CANONICAL_PHRASES,
-    ClipEncoder,
-    check_compatible,
-    resolve_pretrained_weights,
-)
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.features.clip import ClipEncoder
+from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
+from drsplat.features.weights import resolve_pretrained_weights
 
 TINY_CLIP = "TinyCLIP-drsplat-test"
 TINY_CFG = {
@@ -132,7 +129,7 @@ def test_unreachable_hub_fails_fast_with_the_same_sentence(monkeypatch, tmp_path
 
     monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
-    monkeypatch.setattr("drsplat.features.clip.host_reachable", lambda url: False)
+    monkeypatch.setattr("drsplat.features.weights.host_reachable", lambda url: False)
     monkeypatch.setattr(open_clip.pretrained, "download_pretrained", lambda *a, **k: pytest.fail("no download without network"))
     with pytest.raises(WeightsUnavailableError) as err:
         resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
@@ -156,7 +153,7 @@ def test_failed_download_is_the_same_sentence(monkeypatch, tmp_path):
         raise ConnectionError("Failed to resolve 'huggingface.co'")  # what httpx/requests raise, in spirit
 
     monkeypatch.setattr(open_clip.pretrained, "download_pretrained", no_network)
-    monkeypatch.setattr("drsplat.features.clip.host_reachable", lambda url: True)  # the probe passes, the download fails
+    monkeypatch.setattr("drsplat.features.weights.host_reachable", lambda url: True)  # the probe passes, the download fails
     with pytest.raises(WeightsUnavailableError) as err:
         resolve_pretrained_weights("ViT-B-16", "laion2b_s34b_b88k")
     assert str(err.value) == OFFLINE_CLIP_MESSAGE

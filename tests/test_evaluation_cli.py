@@ -116,7 +116,7 @@ def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
 def test_lerf_protocol_single_gaussian_known_disc():
     from drsplat.eval.datasets import AnnotatedView
     from drsplat.eval.lerf import lerf_2d_report
-    from drsplat.raster import look_at_camera
+    from drsplat.cameras import look_at_camera
     from drsplat.scene import GaussianScene
 
     cam = look_at_camera((0, 0, -5.0), (0, 0, 0), 120, 120, fov_x_deg=60.0)

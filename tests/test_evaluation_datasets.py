@@ -142,3 +142,28 @@ def test_select_queries_absolute_and_otsu():
     sel, taus = select_queries(s, None)  # Otsu splits each column's two clusters
     assert sel[:, 0].tolist() == [True, True, False, False, False]
     assert sel[:, 1].tolist() == [False, False, True, True, False]
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".xyz"])
+def test_labelled_points_from_an_open3d_cloud_and_a_labels_sidecar(tmp_path, suffix):
+    """A .pcd/.xyz cloud (written by open3d) with labels beside it reads the same as the PLY form."""
+    import open3d as o3d
+
+    from drsplat.eval.datasets import labels_sidecar
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(50, 3))
+    raw = rng.integers(0, 41, size=50)
+    write_labelled_points(tmp_path / "ref.ply", pts, raw)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    path = tmp_path / f"cloud{suffix}"
+    assert o3d.io.write_point_cloud(str(path), cloud)
+    with pytest.raises(InputError, match=r"cloud\..*labels\.npy"):
+        load_labelled_points(path)
+    np.save(labels_sidecar(path), raw[:-1])
+    with pytest.raises(InputError, match="expected 50 integer labels"):
+        load_labelled_points(path)
+    np.save(labels_sidecar(path), raw)
+    got, ref = load_labelled_points(path, classes=["wall", "chair"]), load_labelled_points(tmp_path / "ref.ply", classes=["wall", "chair"])
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-6)  # .xyz is text: rounding only
+    np.testing.assert_array_equal(got.labels, ref.labels)

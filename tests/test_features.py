@@ -12,13 +12,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.features import format as featurefiles
 from drsplat.cameras import load_cameras, write_transforms_json
 from drsplat.cli import main
-from drsplat.features.clip import ClipEncoder
 from drsplat.errors import DrsplatError
-from drsplat.features.extract import crop_masks, extract_features, feature_cameras, make_manifest, segmap_from_levels
-from drsplat.features.masks import MaskSet, NmsParams, SamGenerator, SamParams, load_sam, make_generator
+from drsplat.features import format as featurefiles
+from drsplat.features.clip import ClipEncoder
+from drsplat.features.extract import (
+    crop_masks,
+    extract_features,
+    feature_cameras,
+    make_manifest,
+    segmap_from_levels,
+)
+from drsplat.features.masks import MaskSet, make_generator
+from drsplat.features.masks.postprocess import NmsParams
+from drsplat.features.masks.sam import SamGenerator, SamParams, load_sam
 from tests.conftest import shared_path
 from tests.test_clip import OFFLINE_CLIP_MESSAGE, TINY_CLIP, make_tiny_clip
 from tests.test_masks import make_tiny_sam
@@ -208,7 +216,7 @@ class InterruptingGenerator:
     name = "slic"
 
     def __init__(self, exc: BaseException | None = None, token=None):
-        from drsplat.features.masks import SlicGenerator
+        from drsplat.features.masks.superpixel import SlicGenerator
 
         self.inner, self.calls, self.exc, self.token = SlicGenerator(), 0, exc, token
 

@@ -8,28 +8,27 @@ import pytest
 import torch
 
 from drsplat.errors import InputError, WeightsUnavailableError
-from drsplat.features.masks import (
-    LEVELS,
-    SAM_ARCHITECTURES,
-    FelzenszwalbGenerator,
-    MaskSet,
+from drsplat.features.masks import LEVELS, MaskSet, make_generator
+from drsplat.features.masks.postprocess import (
     NmsParams,
-    SamArchitecture,
-    SamGenerator,
-    SamParams,
-    SlicGenerator,
-    build_sam,
     intersections,
     intersections_reference,
-    load_sam,
-    make_generator,
     mask_nms,
     mask_nms_reference,
     masks_update,
+)
+from drsplat.features.masks.sam import (
+    SAM_ARCHITECTURES,
+    SamArchitecture,
+    SamGenerator,
+    SamParams,
+    build_sam,
+    load_sam,
     remove_small_regions,
-    resolve_sam_checkpoint,
     sam_architecture_from_state_dict,
 )
+from drsplat.features.masks.superpixel import FelzenszwalbGenerator, SlicGenerator
+from drsplat.features.weights import resolve_sam_checkpoint
 from tests.conftest import shared_path
 
 TINY_SAM = SamArchitecture(32, 2, 2, image_size=64, prompt_embed_dim=32, mask_in_chans=8, decoder_mlp_dim=64, iou_head_hidden_dim=32)

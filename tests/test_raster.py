@@ -7,6 +7,7 @@ import pytest
 
 from drsplat import _raster_kernels as kernels
 from drsplat import raster
+from drsplat.cameras import look_at_camera
 from drsplat.cameras import Camera
 from drsplat.raster import (
     SH_C0,
@@ -16,7 +17,6 @@ from drsplat.raster import (
     balance_tiles,
     depth_order,
     eval_sh,
-    look_at_camera,
     prepare_scene,
     project_gaussians,
     project_gaussians_reference,

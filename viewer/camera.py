@@ -13,24 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drsplat.cameras import Camera
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-to-camera (R [3, 3], t [3]) of a camera at `eye` looking at `target`, OpenCV axes.
-
-    z = (target - eye)/|.|, x = z × up /|.| (right), y = z × x (down); R has rows x, y, z; t = -R eye.
-    """
-    eye = np.asarray(eye, np.float64)
-    z = np.asarray(target, np.float64) - eye
-    z /= max(np.linalg.norm(z), 1e-12)
-    x = np.cross(z, np.asarray(up, np.float64))
-    if np.linalg.norm(x) < 1e-9:  # up parallel to the view direction: pick any perpendicular
-        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ eye
+from drsplat.cameras import Camera, look_at
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:

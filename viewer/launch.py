@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -47,7 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cache_root() -> Path:
-    return Path(os.environ.get("DRSPLAT_CACHE", Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "drsplat"))
+    from drsplat.features.weights import drsplat_cache_dir
+
+    return drsplat_cache_dir()
 
 
 def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[Path, Path]:
@@ -56,9 +57,9 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     Returns (registered.ply, dataset dir) under root/demo (root/demo-<preset> for other presets).
     """
     from drsplat.cameras import load_cameras
+    from drsplat.pipeline import register_to_ply
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
-    from drsplat.pipeline import register_to_ply
 
     root = (root or cache_root()) / ("demo" if preset == DEMO_PRESET else f"demo-{preset}")
     dataset, registered = root / "dataset", root / "registered.ply"

@@ -46,7 +46,13 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
 
     from drsplat.cameras import load_image
     from drsplat.features.extract import extract_image
-    from drsplat.features.masks import SAM_ARCHITECTURES, FelzenszwalbGenerator, SamGenerator, SamParams, SlicGenerator, build_sam
+    from drsplat.features.masks.sam import (
+        SAM_ARCHITECTURES,
+        SamGenerator,
+        SamParams,
+        build_sam,
+    )
+    from drsplat.features.masks.superpixel import FelzenszwalbGenerator, SlicGenerator
 
     rows, crop_per_mask, clip_per_mask = [], [], []
     for name in [g.strip() for g in args.generators.split(",") if g.strip()]:
@@ -82,7 +88,7 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
 
 def _warm_up(generator, name: str) -> None:
     """Imports, numba kernel loading and first-call allocations happen outside the timing."""
-    from drsplat.features.masks import masks_update
+    from drsplat.features.masks.postprocess import masks_update
 
     image = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
     levels = generator.generate(image) if name != "sam" else None
@@ -107,7 +113,7 @@ def _overlapping_masks(k: int, height: int, width: int, rng: np.random.Generator
 
 
 def _nms_rows(args) -> list[list[object]]:
-    from drsplat.features.masks import mask_nms, mask_nms_reference
+    from drsplat.features.masks.postprocess import mask_nms, mask_nms_reference
 
     rng = np.random.default_rng(0)
     rows = []

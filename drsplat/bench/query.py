@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, median_seconds, peak_rss_mb
 from drsplat.errors import InputError
-from drsplat.lang import Codebook, LanguageField, blocked_codes, encode_features, load_codebook, lut_scores, lut_scores_blocked, train_codebook
+from drsplat.lang import Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores, lut_scores_blocked, train_codebook
 from drsplat.query import unit_rows
 
 log = logging.getLogger(__name__)
@@ -205,7 +205,8 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
         if f32 is not None:
             f32[start:stop] = x
         for name, book in books.items():
-            codes, ids, norms = encode_features(book, x, np.ones(stop - start, bool))
+            stored = PQStorage.encode(x, np.ones(stop - start, bool), book)
+            codes, ids, norms = stored.codes, stored.list_ids, stored.norms
             coded[name][0][start:stop] = codes
             if ids is not None:
                 coded[name][1][start:stop] = ids
@@ -228,7 +229,7 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
         measure("float32 matmul", 4 * args.dim, lambda: f32 @ q1.T, lambda: f32 @ qb.T, None)
         del f32
     if "float16" in backends:
-        fp16 = LanguageField("exact", args.dim, "bench", np.ones(n, np.float32), features=f16, norms=_norms16(f16))
+        fp16 = LanguageField(args.dim, "bench", np.ones(n, np.float32), ExactStorage(f16, _norms16(f16)))
         measure("float16 exact", 2 * args.dim + 4, lambda: fp16.scores(q1), lambda: fp16.scores(qb), lambda: fp16.scores(queries))
     del f16
     for name, book in books.items():
@@ -247,7 +248,7 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
                 lambda: lut_scores_blocked(book, blocked, n, ids, norms, qb, bits),
                 lambda: lut_scores_blocked(book, blocked, n, ids, norms, queries, bits),
             )
-        del blocked
+        blocked = None  # frees the copy before the next codebook
         if "faiss" in backends and (book.m == 128 or book.kind == "ivfpq"):
             index = faiss_search_index(book, codes, ids)
             top = 1000

@@ -6,7 +6,9 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.features.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED
+from drsplat.features.masks import GENERATORS
+from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
+from drsplat.features.weights import SAM_URLS
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +25,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--source", type=Path, required=True, metavar="DATASET_DIR", help="dataset folder (COLMAP sparse/0, transforms.json or cameras.json, with images)")
     p.add_argument("--out", type=Path, required=True, metavar="FEATURES_DIR", help="features folder to write (created if needed)")
-    p.add_argument("--masks", choices=("sam", "felzenszwalb", "slic"), default="sam",
+    p.add_argument("--masks", choices=tuple(GENERATORS), default="sam",
                    help="mask generator: SAM (default, needs weights) or weight-free superpixels (fast on CPU, lower quality)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and SAM run (fp16 on CUDA, fp32 on CPU)")
     p.add_argument("--clip-model", default=DEFAULT_MODEL, metavar="NAME", help=f"open_clip architecture (default {DEFAULT_MODEL})")
@@ -31,7 +33,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it only names the weights")
     p.add_argument("--clip-checkpoint", type=Path, default=None, metavar="PATH", help="local open_clip weights file (no download)")
     p.add_argument("--sam-checkpoint", type=Path, default=None, metavar="PATH", help="local SAM checkpoint (vit_b/l/h, read from the file); no download")
-    p.add_argument("--sam-model", choices=("vit_h", "vit_l", "vit_b"), default="vit_h",
+    p.add_argument("--sam-model", choices=tuple(SAM_URLS), default="vit_h",
                    help="official SAM weights to download into ~/.cache/drsplat when no --sam-checkpoint is given (default vit_h, as LangSplat)")
     p.add_argument("--sam-points-per-side", type=int, default=32, metavar="N",
                    help="SAM prompt grid per side (LangSplat 32; fewer is faster on a CPU, with fewer small masks)")
@@ -46,8 +48,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.features.clip import ClipEncoder
-    from drsplat.features.extract import extract_features, feature_cameras, make_manifest
-    from drsplat.features.masks import NmsParams, SamParams, make_generator
+    from drsplat.features.extract import (
+        extract_features,
+        feature_cameras,
+        make_manifest,
+    )
+    from drsplat.features.masks import make_generator
+    from drsplat.features.masks.postprocess import NmsParams
+    from drsplat.features.masks.sam import SamParams
 
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
     encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)

@@ -10,9 +10,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from drsplat.aggregate import DEFAULT_MODE as DEFAULT_AGGREGATE
-from drsplat.aggregate import MODES as AGGREGATE_MODES
-from drsplat.registration import DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
@@ -32,7 +30,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
     p.add_argument("--level", type=int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
     p.add_argument("--topk", type=int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
-    p.add_argument("--codebook", default="none",
+    p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "

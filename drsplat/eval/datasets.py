@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.errors import InputError
+from drsplat.errors import DrsplatError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -170,30 +170,26 @@ class LabelledPoints:
     names: list[str]
 
 
+POINT_CLOUD_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")  # read through open3d
+
+
 def load_labelled_points(path: str | Path, raw_names: tuple[str, ...] | list[str] = NYU40_NAMES,
                          classes: list[str] | None = None, label_field: str = "label") -> LabelledPoints:
-    """Read a labelled point cloud such as ScanNet's `<scene>_vh_clean_2.labels.ply`.
+    """Read a labelled point cloud: ScanNet's `<scene>_vh_clean_2.labels.ply`, or any point cloud open3d reads
+    (.pcd, .xyz, .xyzn, .xyzrgb, .pts) with its raw labels beside it in `<file>.labels.npy` ([P] integers).
 
-    The raw label r (vertex property `label_field`) names raw_names[r − 1]; r = 0 is unannotated.
-    With `classes`, only those names are kept (in that order) and every other point becomes −1,
-    e.g. the subsets of NYU40 classes used in published ScanNet tables.
+    The raw label r (PLY vertex property `label_field`, or the sidecar's entries) names raw_names[r − 1];
+    r = 0 is unannotated. With `classes`, only those names are kept (in that order) and every other point
+    becomes −1, e.g. the subsets of NYU40 classes used in published ScanNet tables.
     """
-    from plyfile import PlyData, PlyHeaderParseError
-
     path = Path(path)
-    try:
-        ply = PlyData.read(str(path))
-        vertex = ply["vertex"]
-    except (OSError, KeyError, PlyHeaderParseError, ValueError) as exc:
-        raise InputError(path, f"not a readable PLY point cloud with a vertex element ({exc})") from None
-    names = vertex.data.dtype.names
-    for f in ("x", "y", "z", label_field):
-        if f not in names:
-            raise InputError(path, "vertex property missing (a labelled cloud needs x, y, z and a label)", field=f)
-    pts = np.stack([np.asarray(vertex[k], np.float64) for k in "xyz"], axis=1)
-    raw = np.asarray(vertex[label_field]).astype(np.int64)
+    if path.suffix.lower() in POINT_CLOUD_SUFFIXES:
+        pts, raw, where = _read_open3d_cloud(path)
+    else:
+        pts, raw = _read_labelled_ply(path, label_field)
+        where = label_field
     if raw.size and (raw.min() < 0 or raw.max() > len(raw_names)):
-        raise InputError(path, f"labels range {raw.min()}..{raw.max()}, outside 0..{len(raw_names)} of the label names", field=label_field)
+        raise InputError(path, f"labels range {raw.min()}..{raw.max()}, outside 0..{len(raw_names)} of the label names", field=where)
     labels = raw - 1
     out_names = list(raw_names)
     if classes is not None:
@@ -210,6 +206,55 @@ def load_labelled_points(path: str | Path, raw_names: tuple[str, ...] | list[str
         log.warning("%s: %d points with non-finite coordinates dropped", path, int(bad.sum()))
         pts, labels = pts[~bad], labels[~bad]
     return LabelledPoints(pts, labels, out_names)
+
+
+def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.ndarray]:
+    """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
+    from plyfile import PlyData, PlyHeaderParseError
+
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"]
+    except (OSError, KeyError, PlyHeaderParseError, ValueError) as exc:
+        raise InputError(path, f"not a readable PLY point cloud with a vertex element ({exc})") from None
+    names = vertex.data.dtype.names
+    for f in ("x", "y", "z", label_field):
+        if f not in names:
+            raise InputError(path, "vertex property missing (a labelled cloud needs x, y, z and a label)", field=f)
+    pts = np.stack([np.asarray(vertex[k], np.float64) for k in "xyz"], axis=1)
+    return pts, np.asarray(vertex[label_field]).astype(np.int64)
+
+
+def labels_sidecar(path: str | Path) -> Path:
+    """Where the raw labels of a point cloud without a label property live: `<file>.labels.npy`."""
+    path = Path(path)
+    return path.with_name(path.name + ".labels.npy")
+
+
+def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
+    """([P, 3] float64 points, [P] int64 raw labels from the sidecar, the sidecar's name) via open3d."""
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # most often the system library open3d links against
+        raise DrsplatError(f"reading {path.suffix} point clouds needs open3d, which failed to import ({exc}); "
+                           "on Debian/Ubuntu run `apt install libusb-1.0-0`, or convert the cloud to a labelled PLY") from None
+
+    if not path.is_file():
+        raise InputError(path, "point cloud file does not exist")
+    cloud = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(cloud.points, np.float64)
+    if pts.size == 0:
+        raise InputError(path, "open3d read no points from this file (empty, or not a point cloud of its suffix's format)")
+    sidecar = labels_sidecar(path)
+    if not sidecar.is_file():
+        raise InputError(sidecar, f"missing: a {path.suffix} cloud has no label property, so its raw labels must be in this file ([P] integers)")
+    try:
+        raw = np.load(sidecar, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(sidecar, f"not a readable .npy array ({exc})") from None
+    if raw.ndim != 1 or raw.shape[0] != len(pts) or not np.issubdtype(raw.dtype, np.integer):
+        raise InputError(sidecar, f"expected {len(pts)} integer labels (one per point), got {raw.dtype} of shape {raw.shape}")
+    return pts, raw.astype(np.int64), sidecar.name
 
 
 def write_labelled_points(path: str | Path, points: np.ndarray, raw_labels: np.ndarray, colors: np.ndarray | None = None) -> None:

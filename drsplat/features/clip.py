@@ -11,23 +11,26 @@ one sentence which flag to use; network and hub exceptions never reach the user.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
-from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, check_compatible, make_model_id  # noqa: F401 - check_compatible re-exported for callers of the encoder
-from drsplat.utils import host_reachable
+from drsplat.errors import DrsplatError, InputError
+from drsplat.features.modelid import (  # noqa: F401 - check_compatible re-exported for callers of the encoder
+    CANONICAL_PHRASES,
+    DEFAULT_MODEL,
+    DEFAULT_PRETRAINED,
+    check_compatible,
+    make_model_id,
+)
+from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 
 log = logging.getLogger(__name__)
 
 OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)
 OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
-_HF_FILENAMES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
 
 
 def resolve_device(device: str = "auto") -> str:
@@ -41,96 +44,6 @@ def resolve_device(device: str = "auto") -> str:
     if device == "cuda" and not torch.cuda.is_available():
         raise DrsplatError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
     return device
-
-
-def _env_flag(name: str) -> bool:
-    return os.environ.get(name, "").strip().lower() in ("1", "true", "yes", "on")
-
-
-def hf_offline() -> bool:
-    """True when downloads are disabled (HF_HUB_OFFLINE or DRSPLAT_OFFLINE), read at call time."""
-    return _env_flag("HF_HUB_OFFLINE") or _env_flag("DRSPLAT_OFFLINE")
-
-
-def hf_cache_dir() -> Path:
-    """The Hugging Face hub cache, from the environment at call time (HF_HUB_CACHE, HF_HOME)."""
-    if os.environ.get("HF_HUB_CACHE"):
-        return Path(os.environ["HF_HUB_CACHE"])
-    if os.environ.get("HF_HOME"):
-        return Path(os.environ["HF_HOME"]) / "hub"
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "huggingface" / "hub"
-
-
-def _unavailable(model: str, pretrained: str) -> WeightsUnavailableError:
-    return WeightsUnavailableError(
-        f"OpenCLIP weights for {model} ({pretrained}) are not in the local cache and cannot be downloaded; "
-        "pass --clip-checkpoint PATH to a local open_clip checkpoint, or run once with internet access."
-    )
-
-
-def _cached_hf_file(repo_id: str, filenames: Sequence[str], cache_dir: Path) -> str | None:
-    from huggingface_hub import try_to_load_from_cache
-
-    for name in filenames:
-        found = try_to_load_from_cache(repo_id, name, cache_dir=str(cache_dir))
-        if isinstance(found, str) and os.path.isfile(found):
-            return found
-    return None
-
-
-def resolve_pretrained_weights(model: str, pretrained: str) -> str:
-    """Local file holding open_clip weights for (model, pretrained tag); downloads once if allowed.
-
-    Looks in the HF hub cache first (no network), then downloads unless offline. Any failure
-    becomes one WeightsUnavailableError naming --clip-checkpoint.
-    """
-    import open_clip
-
-    if pretrained.startswith("file:"):
-        raise WeightsUnavailableError(
-            f"the embeddings were made with a local checkpoint ({pretrained[5:]}) of {model}; pass --clip-checkpoint PATH to that file"
-        )
-    cfg = open_clip.get_pretrained_cfg(model, pretrained)
-    if not cfg:
-        tags = ", ".join(open_clip.list_pretrained_tags_by_model(model)) or "none"
-        raise DrsplatError(f"unknown OpenCLIP pretrained tag '{pretrained}' for model {model} (known tags: {tags}); or pass --clip-checkpoint PATH")
-    cache_dir = hf_cache_dir()
-    hub = cfg.get("hf_hub", "")
-    if hub:
-        repo_id, filename = os.path.split(hub)
-        names = tuple(dict.fromkeys(((filename,) if filename else ()) + _HF_FILENAMES))
-        cached = _cached_hf_file(repo_id, names, cache_dir)
-        if cached:
-            return cached
-    elif cfg.get("url"):
-        cached_url = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "clip" / os.path.basename(cfg["url"])
-        if cached_url.is_file():
-            return str(cached_url)
-    source = f"{os.environ.get('HF_ENDPOINT', 'https://huggingface.co')}/{hub}" if hub else cfg["url"]
-    if hf_offline() or not host_reachable(source):
-        raise _unavailable(model, pretrained)
-    try:
-        from open_clip.pretrained import download_pretrained
-
-        with _quiet_open_clip():
-            path = download_pretrained(cfg, cache_dir=str(cache_dir) if hub else None)
-    except Exception:  # requests / huggingface_hub / urllib errors: the user needs the flag, not the trace
-        log.debug("download of %s/%s failed", model, pretrained, exc_info=True)
-        raise _unavailable(model, pretrained) from None
-    if not path or not os.path.isfile(path):
-        raise _unavailable(model, pretrained)
-    return path
-
-
-@contextlib.contextmanager
-def _quiet_open_clip() -> Iterator[None]:
-    """open_clip logs its progress on the root logger at INFO/WARNING; keep the user's log clean."""
-    previous = logging.root.manager.disable
-    logging.disable(logging.WARNING)
-    try:
-        yield
-    finally:
-        logging.disable(previous)
 
 
 class ClipEncoder:

@@ -17,10 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.features import format as featurefiles
-from drsplat.features.modelid import check_compatible, manifest_clip_entry, manifest_model_id
 from drsplat.errors import DrsplatError
-from drsplat.features.masks import LEVELS, MaskSet, NmsParams, masks_update
+from drsplat.features import format as featurefiles
+from drsplat.features.masks import LEVELS, MaskSet
+from drsplat.features.masks.postprocess import NmsParams, masks_update
+from drsplat.features.modelid import (
+    check_compatible,
+    manifest_clip_entry,
+    manifest_model_id,
+)
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)

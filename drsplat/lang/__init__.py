@@ -17,7 +17,8 @@ The registered PLY carries the field in extra vertex properties and a header com
 """
 
 from drsplat.lang.codebook import PQ_BITS, PQ_KSUB, Codebook, codebook_from_index, load_codebook, train_codebook, unit_rows
-from drsplat.lang.field import KINDS, LanguageField, build_field, encode_features
+from drsplat.lang.backends import BACKENDS, KINDS, ExactStorage, PQStorage
+from drsplat.lang.field import LanguageField, build_field
 from drsplat.lang.lut import (
     Q8_BLOCK,
     blocked_codes,
@@ -45,8 +46,8 @@ from drsplat.lang.plyformat import (
 )
 
 __all__ = [
-    "COMMENT_PREFIX", "KINDS", "PQ_BITS", "PQ_KSUB", "Q8_BLOCK", "Codebook", "LanguageField", "attach_field",
-    "blocked_codes", "build_field", "codebook_from_index", "codebook_path_for", "encode_features", "f32_sums",
+    "BACKENDS", "COMMENT_PREFIX", "ExactStorage", "KINDS", "PQStorage", "PQ_BITS", "PQ_KSUB", "Q8_BLOCK", "Codebook", "LanguageField", "attach_field",
+    "blocked_codes", "build_field", "codebook_from_index", "codebook_path_for", "f32_sums",
     "field_comment", "field_extras", "half_scores", "inverse_norms", "is_lang_property", "load_codebook",
     "lut_scores", "lut_scores_blocked", "lut_scores_q8_reference", "lut_scores_reference", "parse_field_comment",
     "q8_sums", "quantize_luts", "read_field", "simd_available", "strip_field", "train_codebook", "unit_rows",

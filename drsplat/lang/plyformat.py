@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import shutil
 from pathlib import Path
 from urllib.parse import quote, unquote
@@ -13,7 +12,8 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.lang.codebook import load_codebook
-from drsplat.lang.field import EXACT_CHUNK, KINDS, LanguageField
+from drsplat.lang.backends import BACKENDS, needs_codebook
+from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene
 from drsplat.utils import atomic_path
 
@@ -43,21 +43,13 @@ def field_comment(field: LanguageField, codebook_name: str | None) -> str:
 def field_extras(field: LanguageField) -> dict[str, np.ndarray]:
     """Extra vertex properties of the field, name -> [N] array (dtype = PLY type)."""
     extras: dict[str, np.ndarray] = {"lang_weight": np.ascontiguousarray(field.weights, np.float32)}
-    if field.kind == "exact":
-        bits = field.features.astype(np.float16).view(np.uint16)
-        for j in range(field.dim):
-            extras[f"lang_{j}"] = np.ascontiguousarray(bits[:, j])
-        return extras
-    for j in range(field.codes.shape[1]):
-        extras[f"lang_code_{j}"] = np.ascontiguousarray(field.codes[:, j], np.uint8)
-    extras["lang_norm"] = np.ascontiguousarray(field.norms, np.float32)
-    if field.kind == "ivfpq":
-        extras["lang_list"] = np.ascontiguousarray(field.list_ids, np.int32)
+    extras.update(field.storage.columns())
     return extras
 
 
 def is_lang_property(name: str) -> bool:
-    return name == "lang_weight" or name == "lang_norm" or name == "lang_list" or re.fullmatch(r"lang_(code_)?\d+", name) is not None
+    """Every vertex property of the language field starts with `lang_` (no 3DGS property does)."""
+    return name.startswith("lang_")
 
 
 def strip_field(scene: GaussianScene) -> GaussianScene:
@@ -79,7 +71,7 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
     base = strip_field(scene)
     name = None
-    if field.kind != "exact":
+    if needs_codebook(field.kind):
         target = codebook_path_for(ply_path)
         name = target.name
         source = field.codebook.path
@@ -113,52 +105,36 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if meta is None:
         return None
     kind = meta.get("kind")
-    if kind not in KINDS:
-        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(KINDS)}", field="comment drsplat.lang")
+    if kind not in BACKENDS:
+        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field="comment drsplat.lang")
     try:
         dim = int(meta.get("dim", ""))
     except ValueError:
         raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field="comment drsplat.lang") from None
     clip_model = meta.get("clip", "unknown")
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
-    if kind == "exact":
-        cols = [_extra(scene, ply_path, f"lang_{j}") for j in range(dim)]
-        features = _stack_columns(cols, np.uint16, scene.num_gaussians, dim).view(np.float16)
-        norms = np.empty(scene.num_gaussians, np.float32)
-        for start in range(0, scene.num_gaussians, EXACT_CHUNK):
-            norms[start : start + EXACT_CHUNK] = np.linalg.norm(features[start : start + EXACT_CHUNK].astype(np.float32), axis=1)
-        nonfinite = int(np.count_nonzero(~np.isfinite(norms)))
-        if nonfinite:
-            log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
-        return LanguageField(kind, dim, clip_model, weights, features=features, norms=norms)
-    if "codebook" not in meta:
-        raise InputError(ply_path, "a quantised language field names no codebook file", field="comment drsplat.lang")
-    book = load_codebook(ply_path.parent / meta["codebook"])
-    if book.kind != kind or book.dim != dim:
-        raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
-    cols = [_extra(scene, ply_path, f"lang_code_{j}") for j in range(book.m)]
-    if f"lang_code_{book.m}" in scene.extra:
-        raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m}", field=f"lang_code_{book.m}")
-    codes = _stack_columns(cols, np.uint8, scene.num_gaussians, book.m)
-    norms = _extra(scene, ply_path, "lang_norm").astype(np.float32)
-    list_ids = None
-    if kind == "ivfpq":
-        list_ids = _extra(scene, ply_path, "lang_list").astype(np.int32)
-        nlist = int(book.index.nlist)
-        bad = (list_ids < 0) | (list_ids >= nlist)
-        if np.any(bad):
-            raise InputError(ply_path, f"{int(bad.sum())} coarse list ids fall outside 0..{nlist - 1}", field="lang_list")
-    return LanguageField(kind, dim, clip_model, weights, codes=codes, list_ids=list_ids, norms=norms, codebook=book)
+    book = None
+    if needs_codebook(kind):
+        if "codebook" not in meta:
+            raise InputError(ply_path, "a quantised language field names no codebook file", field="comment drsplat.lang")
+        book = load_codebook(ply_path.parent / meta["codebook"])
+        if book.kind != kind or book.dim != dim:
+            raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
+        if f"lang_code_{book.m}" in scene.extra:
+            raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m}", field=f"lang_code_{book.m}")
+    try:
+        storage = BACKENDS[kind].from_columns(lambda name: _extra(scene, ply_path, name), scene.num_gaussians, dim, book)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(ply_path, exc.problem, field=exc.field) from None
+    nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
+    if nonfinite:
+        log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
+    return LanguageField(dim, clip_model, weights, storage)
 
 
 def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
     if name not in scene.extra:
         raise InputError(ply_path, "missing vertex property of the language field", field=name)
     return np.asarray(scene.extra[name])
-
-
-def _stack_columns(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
-    out = np.empty((n, width), dtype)
-    for j, col in enumerate(cols):
-        out[:, j] = col.astype(dtype, copy=False)
-    return out

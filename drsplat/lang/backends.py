@@ -1,0 +1,197 @@
+"""Storage backends of a language field: one interface, one class per way of storing features.
+
+Each backend stores N per-Gaussian features and answers cosine queries without decoding them all:
+
+- `exact` (`ExactStorage`): features [N, D] float16 (2·D bytes per Gaussian).
+- `pq` / `ivfpq` (`PQStorage`): a faiss product quantiser, codes [N, M] uint8 (M bytes per Gaussian) and, for
+  the official Dr. Splat `IndexIVFPQ`, a coarse list id per Gaussian; scored through look-up tables.
+
+Every backend keeps norms [N] float32 of what it stores (0 = unassigned) and scores a unit query q as
+q·r_i / |r_i|. A backend class provides:
+
+    kind                         the name written in the registered PLY (`kind=` of its comment)
+    encode(features, assigned, codebook) -> storage      from registered unit features [N, D]
+    scores(q [K, D], lut_bits) -> [N, K]                  the fast path (numba kernels of drsplat.lang.lut)
+    scores_reference(q) -> [N, K]                         decode-then-cosine in float64, for tests
+    reconstruct(index) -> [n, D] float32
+    take(index) -> storage                                the subset of Gaussians `index` selects
+    bytes_per_gaussian() -> int                           stored bytes per Gaussian (norm included)
+    columns() -> {PLY property: [N] array}; from_columns(get, n, dim, codebook) -> storage
+
+Adding a backend is one class here plus one line in BACKENDS (drsplat.lang.plyformat and
+drsplat.lang.field dispatch through it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drsplat.errors import InputError
+from drsplat.lang.codebook import Codebook, unit_rows
+from drsplat.lang.lut import BLOCKED_MIN_M, blocked_codes, half_scores, lut_scores, lut_scores_blocked, lut_scores_reference, simd_available
+
+EXACT_CHUNK = 32768
+ENCODE_CHUNK = 65536
+
+ColumnGetter = Callable[[str], np.ndarray]  # PLY property name -> [N] array (raises InputError when missing)
+
+
+def chunked_row_norms(x: np.ndarray, chunk: int = EXACT_CHUNK) -> np.ndarray:
+    """|x_i| of [N, D] rows in float32, chunk by chunk (no [N, D] float32 copy of a float16 array): [N]."""
+    norms = np.empty(x.shape[0], np.float32)
+    for start in range(0, x.shape[0], chunk):
+        norms[start : start + chunk] = np.linalg.norm(np.asarray(x[start : start + chunk], np.float32), axis=1)
+    return norms
+
+
+@dataclass
+class ExactStorage:
+    """features: [N, D] float16; norms: [N] float32 (0 = unassigned)."""
+
+    features: np.ndarray
+    norms: np.ndarray
+    kind = "exact"
+
+    @classmethod
+    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None) -> "ExactStorage":
+        f16 = np.asarray(features).astype(np.float16)
+        f16[~assigned] = 0
+        return cls(f16, chunked_row_norms(f16))
+
+    def scores(self, q: np.ndarray, lut_bits: int = 32) -> np.ndarray:
+        return half_scores(self.features, self.norms, q)
+
+    def scores_reference(self, q: np.ndarray) -> np.ndarray:
+        f = self.features.astype(np.float64)
+        norm = np.linalg.norm(f, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (f @ q.astype(np.float64).T) / norm[:, None]
+        return np.where(norm[:, None] > 0, s, 0.0).astype(np.float32)
+
+    def reconstruct(self, index: np.ndarray | slice) -> np.ndarray:
+        return self.features[index].astype(np.float32)
+
+    def take(self, index: np.ndarray | slice) -> "ExactStorage":
+        return ExactStorage(self.features[index], self.norms[index])
+
+    def bytes_per_gaussian(self) -> int:
+        return 2 * self.features.shape[1] + 4
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """`lang_0 .. lang_{D-1}`: IEEE float16 bit patterns as ushort (PLY has no half type)."""
+        bits = self.features.astype(np.float16).view(np.uint16)
+        return {f"lang_{j}": np.ascontiguousarray(bits[:, j]) for j in range(bits.shape[1])}
+
+    @classmethod
+    def from_columns(cls, get: ColumnGetter, n: int, dim: int, codebook: Codebook | None = None) -> "ExactStorage":
+        features = stack_columns([get(f"lang_{j}") for j in range(dim)], np.uint16, n, dim).view(np.float16)
+        return cls(features, chunked_row_norms(features))
+
+
+@dataclass
+class PQStorage:
+    """codes: [N, M] uint8; list_ids: [N] int32 coarse lists (ivfpq) or None; norms: [N] float32 of the
+    reconstructions (0 = unassigned); codebook: the faiss quantiser the codes belong to."""
+
+    codes: np.ndarray
+    list_ids: np.ndarray | None
+    norms: np.ndarray
+    codebook: Codebook
+    _blocked: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def kind(self) -> str:
+        return self.codebook.kind
+
+    @classmethod
+    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None) -> "PQStorage":
+        """Encode [N, D] features in chunks; norms are the reconstruction norms |r_i| (0 where not assigned)."""
+        if codebook is None:
+            raise ValueError("a PQ field needs a codebook")
+        n = features.shape[0]
+        codes = np.zeros((n, codebook.m), np.uint8)
+        list_ids = np.zeros(n, np.int32) if codebook.kind == "ivfpq" else None
+        norms = np.zeros(n, np.float32)
+        for start in range(0, n, ENCODE_CHUNK):
+            stop = min(n, start + ENCODE_CHUNK)
+            c, ids = codebook.encode(unit_rows(np.asarray(features[start:stop], np.float32)))
+            codes[start:stop] = c
+            if list_ids is not None:
+                list_ids[start:stop] = ids
+            norms[start:stop] = np.linalg.norm(codebook.decode(c, ids), axis=1)
+        norms[~assigned] = 0
+        return cls(codes, list_ids, norms, codebook)
+
+    def scores(self, q: np.ndarray, lut_bits: int = 32) -> np.ndarray:
+        """On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) the codes are scored in a blocked copy,
+        built by the first call and kept (M more bytes per Gaussian)."""
+        if lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available()):
+            return lut_scores_blocked(self.codebook, self.blocked_codes(), self.codes.shape[0], self.list_ids, self.norms, q, lut_bits)
+        return lut_scores(self.codebook, self.codes, self.list_ids, self.norms, q)
+
+    def blocked_codes(self) -> np.ndarray:
+        """The codes in the layout of the blocked kernels, built on first use: [ceil(N/64), M, 64] uint8."""
+        if self._blocked is None:
+            self._blocked = blocked_codes(self.codes)
+        return self._blocked
+
+    def scores_reference(self, q: np.ndarray) -> np.ndarray:
+        scores = lut_scores_reference(self.codebook, self.codes, self.list_ids, self.norms, q)
+        return np.where(self.norms[:, None] > 0, scores, 0.0).astype(np.float32)
+
+    def reconstruct(self, index: np.ndarray | slice) -> np.ndarray:
+        return self.codebook.decode(self.codes[index], None if self.list_ids is None else self.list_ids[index])
+
+    def take(self, index: np.ndarray | slice) -> "PQStorage":
+        return PQStorage(self.codes[index], None if self.list_ids is None else self.list_ids[index], self.norms[index], self.codebook)
+
+    def bytes_per_gaussian(self) -> int:
+        return self.codebook.m + 4 + (4 if self.list_ids is not None else 0)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """`lang_code_0 .. lang_code_{M-1}` uchar, `lang_norm` float, and `lang_list` int for ivfpq."""
+        cols = {f"lang_code_{j}": np.ascontiguousarray(self.codes[:, j], np.uint8) for j in range(self.codes.shape[1])}
+        cols["lang_norm"] = np.ascontiguousarray(self.norms, np.float32)
+        if self.list_ids is not None:
+            cols["lang_list"] = np.ascontiguousarray(self.list_ids, np.int32)
+        return cols
+
+    @classmethod
+    def from_columns(cls, get: ColumnGetter, n: int, dim: int, codebook: Codebook | None = None) -> "PQStorage":
+        if codebook is None:
+            raise ValueError("a PQ field needs its codebook")
+        codes = stack_columns([get(f"lang_code_{j}") for j in range(codebook.m)], np.uint8, n, codebook.m)
+        norms = get("lang_norm").astype(np.float32)
+        list_ids = None
+        if codebook.kind == "ivfpq":
+            list_ids = get("lang_list").astype(np.int32)
+            bad = (list_ids < 0) | (list_ids >= codebook.nlist)
+            if np.any(bad):
+                raise InputError(None, f"{int(bad.sum())} coarse list ids fall outside 0..{codebook.nlist - 1}", field="lang_list")
+        return cls(codes, list_ids, norms, codebook)
+
+
+Storage = ExactStorage | PQStorage
+
+# kind -> backend class. `needs_codebook`: which kinds store codes of a faiss codebook file.
+BACKENDS: dict[str, type] = {
+    "exact": ExactStorage,
+    "pq": PQStorage,
+    "ivfpq": PQStorage,
+}
+KINDS = tuple(BACKENDS)
+
+
+def needs_codebook(kind: str) -> bool:
+    return BACKENDS[kind] is PQStorage
+
+
+def stack_columns(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
+    """Per-property columns [N] -> one [N, width] array of `dtype`."""
+    out = np.empty((n, width), dtype)
+    for j, col in enumerate(cols):
+        out[:, j] = col.astype(dtype, copy=False)
+    return out
