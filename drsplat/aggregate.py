@@ -282,6 +282,12 @@ class SurfaceSupport:
         return rejected(self.peak, self.total, self.front)
 
 
+def camera_depths(means: np.ndarray, camera) -> np.ndarray:
+    """[N] float32 camera z = R[2]·x + t[2] of means [N, 3] (the rasterizer's depth)."""
+    rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    return (np.asarray(means, np.float64) @ rot[2] + trans[2]).astype(np.float32)
+
+
 # ----------------------------------------------------------------------------- the registration hook
 
 
@@ -300,11 +306,14 @@ class Aggregator:
 
     @property
     def needs_projection(self) -> bool:
-        return self.weighting in ("core", "ellipse") or self.reject
+        return self.weighting in ("core", "ellipse")
 
     def view_weights(self, prepared, camera, out) -> np.ndarray:
-        """[H, W, k] weights to accumulate for one rasterized view (`out`, a RasterOutput)."""
-        if not self.needs_projection and self.weighting == "paper":
+        """[H, W, k] weights to accumulate for one rasterized view (`out`, a RasterOutput).
+
+        prepared: the scene (drsplat.raster.PreparedScene, means [N, 3] float64).
+        """
+        if self.weighting == "paper" and not self.reject:
             return out.weights
         projected = None
         if self.needs_projection:
@@ -312,7 +321,9 @@ class Aggregator:
 
             projected = project_gaussians(prepared, camera)
         if self.reject:
-            surface_stats(out.ids, out.weights, projected.depths, self.support.peak, self.support.total, self.support.front)
+            # camera z of every mean, as the rasterizer sorts by (a projection is not needed for it)
+            depths = projected.depths if projected is not None else camera_depths(prepared.means, camera)
+            surface_stats(out.ids, out.weights, depths, self.support.peak, self.support.total, self.support.front)
         if self.weighting == "paper":
             return out.weights
         means2d = projected.means2d if projected is not None else np.zeros((0, 2))
