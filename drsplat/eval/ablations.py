@@ -381,23 +381,25 @@ def plot(result: AblationResult, path: Path) -> None:
 
 
 def _plot_aggregate(result: AblationResult, plt):
-    """Grouped bars at the largest top-k: seg mIoU (vol) per preset and mode, floaters kept, time per view."""
+    """Grouped bars at the largest top-k: seg mIoU (vol) labelled-only and with unlabelled Gaussians
+    as false positives, per preset and mode; floaters kept and time per view per mode."""
     cols = result.columns
     k = max(r[2] for r in result.rows)
     rows = [r for r in result.rows if r[2] == k]
     presets = list(dict.fromkeys(r[0] for r in rows))
     modes = list(dict.fromkeys(r[1] for r in rows))
     get = {(r[0], r[1]): r for r in rows}
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5), gridspec_kw={"width_ratios": [3, 1.2, 1.2]})
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.5), gridspec_kw={"width_ratios": [3, 3, 1.2, 1.2]})
     width = 0.8 / len(modes)
     xs = np.arange(len(presets))
-    for m, mode in enumerate(modes):
-        axes[0].bar(xs + m * width, [get[p, mode][cols.index("seg mIoU vol")] for p in presets], width, label=mode)
-    lo = min(get[p, mode][cols.index("seg mIoU vol")] for p in presets for mode in modes)
-    axes[0].set(ylim=(max(0.0, lo - 0.05), 1.0), ylabel="seg mIoU (volume-aware)", title=f"segmentation, top-k {k}")
-    axes[0].set_xticks(xs + 0.4 - width / 2, presets, fontsize=8)
+    for ax, metric in zip(axes[:2], ("seg mIoU vol", "seg mIoU vol +unl")):
+        for m, mode in enumerate(modes):
+            ax.bar(xs + m * width, [get[p, mode][cols.index(metric)] for p in presets], width, label=mode)
+        lo = min(get[p, mode][cols.index(metric)] for p in presets for mode in modes)
+        ax.set(ylim=(max(0.0, lo - 0.05), 1.0), ylabel=metric, title=f"{metric}, top-k {k}")
+        ax.set_xticks(xs + 0.4 - width / 2, [p.replace("hard-", "") for p in presets], fontsize=8)
     axes[0].legend(fontsize=7, ncol=2)
-    for ax, col, title in ((axes[1], "floaters kept", "unlabelled Gaussians kept"), (axes[2], "ms/view", "time per view (ms)")):
+    for ax, col, title in ((axes[2], "floaters kept", "unlabelled kept"), (axes[3], "ms/view", "ms per view")):
         ax.bar(np.arange(len(modes)), [np.mean([get[p, mode][cols.index(col)] for p in presets]) for mode in modes], color="C0")
         ax.set_xticks(np.arange(len(modes)), modes, rotation=45, ha="right", fontsize=8)
         ax.set(title=title + " (mean over presets)")
