@@ -362,11 +362,14 @@ def project_points(
             continue
         if not det > 0.0:
             continue
-        lo_x = min(max(math.ceil(u - 0.5 - radius), 0.0), float(width))
-        hi_x = min(max(math.floor(u - 0.5 + radius), -1.0), float(width - 1))
-        lo_y = min(max(math.ceil(v - 0.5 - radius), 0.0), float(height))
-        hi_y = min(max(math.floor(v - 0.5 + radius), -1.0), float(height - 1))
-        if lo_x > hi_x or lo_y > hi_y:
+        # 3DGS's getRect (drsplat.raster._tile_rects), p = mean - 0.5
+        grid_x = float(-(-width // tile_size))
+        grid_y = float(-(-height // tile_size))
+        rx0 = min(max(np.floor((u - 0.5 - radius) / tile_size), 0.0), grid_x)
+        rx1 = min(max(np.floor((u - 0.5 + radius + tile_size - 1) / tile_size), 0.0), grid_x)
+        ry0 = min(max(np.floor((v - 0.5 - radius) / tile_size), 0.0), grid_y)
+        ry1 = min(max(np.floor((v - 0.5 + radius + tile_size - 1) / tile_size), 0.0), grid_y)
+        if rx1 <= rx0 or ry1 <= ry0:
             continue
         q = 2.0 * math.log(o * 255.0)
         out_status[g] = VALID
@@ -376,10 +379,10 @@ def project_points(
         out_conics[g, 1] = -b / det
         out_conics[g, 2] = a / det
         out_radii[g] = np.int32(min(radius, 2.0**30))
-        out_rects[g, 0] = np.int32(lo_x // tile_size)
-        out_rects[g, 1] = np.int32(lo_y // tile_size)
-        out_rects[g, 2] = np.int32(hi_x // tile_size + 1)
-        out_rects[g, 3] = np.int32(hi_y // tile_size + 1)
+        out_rects[g, 0] = np.int32(rx0)
+        out_rects[g, 1] = np.int32(ry0)
+        out_rects[g, 2] = np.int32(rx1)
+        out_rects[g, 3] = np.int32(ry1)
         out_extents[g, 0] = math.sqrt(max(q, 0.0) * a) * EXTENT_SCALE + EXTENT_PAD
         out_extents[g, 1] = math.sqrt(max(q, 0.0) * c) * EXTENT_SCALE + EXTENT_PAD
         out_qlimits[g] = max(q, 0.0) * EXTENT_SCALE + EXTENT_PAD

@@ -9,12 +9,18 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from drsplat.errors import InputError
+
 log = logging.getLogger(__name__)
+
+MAX_IMAGE_SIDE = 1 << 16  # pixels; larger "images" are corrupt metadata, and would size buffers
 
 
 @dataclass
@@ -151,8 +157,6 @@ class _Reader:
     """Bounds-checked little-endian reader for COLMAP binary files."""
 
     def __init__(self, path: Path):
-        from drsplat.errors import InputError
-
         self.path = path
         try:
             self.buf = path.read_bytes()
@@ -161,8 +165,6 @@ class _Reader:
         self.pos = 0
 
     def take(self, dtype: str, count: int = 1) -> np.ndarray:
-        from drsplat.errors import InputError
-
         dt = np.dtype(dtype)
         end = self.pos + dt.itemsize * count
         if end > len(self.buf):
@@ -175,8 +177,6 @@ class _Reader:
         return self.take(dtype)[0].item()
 
     def cstring(self) -> str:
-        from drsplat.errors import InputError
-
         end = self.buf.find(b"\x00", self.pos)
         if end < 0:
             raise InputError(self.path, f"is truncated inside an image name at byte {self.pos}")
@@ -186,8 +186,6 @@ class _Reader:
 
 
 def read_colmap_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
-    from drsplat.errors import InputError
-
     r = _Reader(path)
     cameras = {}
     for _ in range(r.one("<u8")):
@@ -228,25 +226,28 @@ def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
     return points
 
 
-def _data_lines(path: Path) -> list[str]:
-    from drsplat.errors import InputError
-
+def _read_text(path: Path) -> str:
+    """A text file as UTF-8; InputError naming the byte offset of the first bad byte (never its content)."""
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot be read as text ({exc})") from None
-    return [line.strip() for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise InputError(path, f"is not UTF-8 text (invalid byte at offset {exc.start}, line {line})") from None
+
+
+def _data_lines(path: Path) -> list[str]:
+    return [line.strip() for line in _read_text(path).splitlines() if line.strip() and not line.lstrip().startswith("#")]
 
 
 def _parse_fail(path: Path, lineno: int, what: str):
-    from drsplat.errors import InputError
-
     return InputError(path, f"has a malformed {what} line (data line {lineno})")
 
 
 def read_colmap_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
-    from drsplat.errors import InputError
-
     cameras = {}
     for i, line in enumerate(_data_lines(path), start=1):
         w = line.split()
@@ -264,7 +265,7 @@ def read_colmap_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
 
 
 def read_colmap_images_txt(path: Path) -> dict[int, ColmapImage]:
-    lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    lines = [ln for ln in _read_text(path).splitlines() if not ln.startswith("#")]
     images = {}
     for i in range(0, len(lines) - 1, 2):
         w, pts = lines[i].split(), lines[i + 1].split()
@@ -293,8 +294,6 @@ def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
 
 def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
     """Read a COLMAP sparse model folder (binary `*.bin` preferred, else text `*.txt`)."""
-    from drsplat.errors import InputError
-
     d = Path(sparse_dir)
     if (d / "cameras.bin").exists() and (d / "images.bin").exists():
         cams, imgs = read_colmap_cameras_bin(d / "cameras.bin"), read_colmap_images_bin(d / "images.bin")
@@ -312,8 +311,6 @@ def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
 
 def colmap_intrinsics(cam: ColmapCamera, source: Path) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) of an undistorted COLMAP camera; distorted models are refused."""
-    from drsplat.errors import InputError
-
     p = cam.params
     if cam.model == "SIMPLE_PINHOLE":
         return p[0], p[0], p[1], p[2]
@@ -327,60 +324,123 @@ def colmap_intrinsics(cam: ColmapCamera, source: Path) -> tuple[float, float, fl
 
 
 def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> list[Camera]:
-    """Cameras in image-name order (as 3DGS sorts them)."""
+    """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`)."""
     out = []
+    paths = DatasetPaths(images_dir, source)
     for img in sorted(model.images.values(), key=lambda im: im.name):
         cam = model.cameras[img.camera_id]
         fx, fy, cx, cy = (float(v) for v in colmap_intrinsics(cam, source))
-        out.append(Camera(R=qvec_to_rotmat(img.qvec), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
-                          width=cam.width, height=cam.height, image_path=images_dir / img.name, name=Path(img.name).stem))
+        where = f"image {img.name!r}"
+        q = np.asarray(img.qvec, np.float64)
+        if not np.isfinite(q).all() or not np.linalg.norm(q) > 0:
+            raise InputError(source, f"{where} has a zero or non-finite rotation quaternion", field="QW QX QY QZ")
+        camera = Camera(R=qvec_to_rotmat(q), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
+                        width=cam.width, height=cam.height, image_path=paths.image(img.name), name=Path(img.name).stem)
+        validate_camera(camera, source, where)
+        out.append(camera)
     return out
 
 
-def _json(path: Path) -> dict:
+def _json(path: Path):
     import json
 
-    from drsplat.errors import InputError
-
+    text = _read_text(path)
     try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot be read ({exc})") from None
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"is not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    except RecursionError:
+        raise InputError(path, "is JSON nested too deeply to be a camera file") from None
 
 
 def _number(path: Path, record: dict, key: str, default: float | None = None, where: str = "") -> float:
-    from drsplat.errors import InputError
-
     value = record.get(key, default)
     if value is None:
         raise InputError(path, f"is missing{where}", field=key)
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise InputError(path, f"has a non-numeric value{where}: {value!r}", field=key) from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(path, f"has a non-numeric value{where} (a JSON {type(value).__name__}, expected a number)", field=key)
+    value = float(value)
     if not np.isfinite(value):
         raise InputError(path, f"has a non-finite value{where}", field=key)
     return value
 
 
-def _resolve_image(root: Path, file_path: str) -> Path | None:
-    """The image a transforms.json frame names (NeRF-synthetic omits the extension)."""
-    p = (root / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
-    if p.is_file():
-        return p
-    for suffix in IMAGE_SUFFIXES:
-        q = p.with_name(p.name + suffix)
-        if q.is_file():
-            return q
-    return None
+def _size(path: Path, record: dict, key: str, where: str = "") -> int:
+    """An image side from JSON: a whole number in 1..MAX_IMAGE_SIDE."""
+    value = _number(path, record, key, where=where)
+    if value != int(value) or not 1 <= value <= MAX_IMAGE_SIDE:
+        raise InputError(path, f"has {value:g}{where}; an image side must be a whole number of pixels in 1..{MAX_IMAGE_SIDE}", field=key)
+    return int(value)
+
+
+def _leaves(root: Path, target: Path) -> bool:
+    """Whether `target` (lexically, before symlinks) lies outside `root`."""
+    root_abs = os.path.normpath(os.path.abspath(root))
+    target_abs = os.path.normpath(os.path.abspath(target))
+    return os.path.commonpath([root_abs, target_abs]) != root_abs
+
+
+@dataclass
+class DatasetPaths:
+    """Resolves the image paths a camera file names, relative to the dataset folder.
+
+    Paths are made absolute and symlinks resolved (the same rule for every reader, so cameras
+    read from a symlinked mount compare equal to cameras read from the real folder). A path that
+    leaves the dataset folder (`../..`, absolute) is still followed but warned about once per file.
+    """
+
+    root: Path
+    source: Path
+    warned: bool = False
+
+    def image(self, name: str) -> Path:
+        target = self.root / name  # an absolute name replaces root, as the file asked
+        if _leaves(self.source.parent if self.source.is_file() else self.source, target) and _leaves(self.root, target) and not self.warned:
+            self.warned = True
+            log.warning("%s: image path %r leaves the dataset folder %s; it is followed as given (warned once per file)",
+                        self.source, name[:200], self.root)
+        try:
+            return target.resolve()
+        except (OSError, RuntimeError):
+            return Path(os.path.abspath(target))
+
+    def find(self, name: str) -> Path | None:
+        """The image `name` names, trying image suffixes when it has none (NeRF-synthetic), or None."""
+        p = self.image(name)
+        if p.is_file():
+            return p
+        for suffix in IMAGE_SUFFIXES:
+            q = p.with_name(p.name + suffix)
+            if q.is_file():
+                return q
+        return None
+
+
+def validate_camera(camera: Camera, path: Path, where: str) -> None:
+    """Refuse a camera whose values cannot be a real camera: non-finite or non-rotation R, non-finite t,
+    focal lengths <= 0, non-finite principal point, image sides outside 1..MAX_IMAGE_SIDE."""
+    R = np.asarray(camera.R, np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all():
+        raise InputError(path, f"{where} has a non-finite rotation", field="rotation")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.linalg.det(R) > 0:
+        raise InputError(path, f"{where} has a rotation that is not orthonormal with det +1 (all-zero or scaled matrix?)", field="rotation")
+    if not np.isfinite(np.asarray(camera.t, np.float64)).all():
+        raise InputError(path, f"{where} has a non-finite translation", field="translation")
+    for name in ("fx", "fy"):
+        value = getattr(camera, name)
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(path, f"{where} has focal length {name}={value!r}; it must be a positive number", field=name)
+    for name in ("cx", "cy"):
+        if not np.isfinite(getattr(camera, name)):
+            raise InputError(path, f"{where} has a non-finite principal point", field=name)
+    for name in ("width", "height"):
+        value = getattr(camera, name)
+        if not 1 <= value <= MAX_IMAGE_SIDE:
+            raise InputError(path, f"{where} has {name}={value}; it must be in 1..{MAX_IMAGE_SIDE}", field=name)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
     from PIL import Image
-
-    from drsplat.errors import InputError
 
     try:
         with Image.open(path) as im:
@@ -407,113 +467,207 @@ def w2c_opencv_to_c2w_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def read_transforms_json(path: Path) -> tuple[list[Camera], int]:
+def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[Camera], int]:
     """Cameras of a NeRF-synthetic or instant-ngp/nerfstudio transforms.json.
 
     Returns (cameras, number of frames skipped because their image is missing). Per-frame
     intrinsics override the shared ones. OpenCV distortion (k1, k2, p1, p2) is kept on the
-    camera and removed by `load_image`; fisheye models are refused.
+    camera and removed by `load_image`; fisheye models are refused. Every value is type- and
+    range-checked (`validate_camera`); errors name the frame and the field.
     """
-    from drsplat.errors import InputError
-
     meta = _json(path)
+    if not isinstance(meta, dict):
+        raise InputError(path, f"is a JSON {type(meta).__name__}; a transforms.json is an object with a 'frames' list")
     frames = meta.get("frames")
     if not isinstance(frames, list):
         raise InputError(path, "has no 'frames' list", field="frames")
-    if meta.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
-        raise InputError(path, f"uses camera_model {meta['camera_model']!r}; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
-    root = path.parent
+    camera_model = meta.get("camera_model", "OPENCV")
+    if camera_model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
+        raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
+    paths = DatasetPaths(path.parent, path)
     cameras, missing = [], 0
     for i, frame in enumerate(frames):
-        rec = {**meta, **frame}
         where = f" in frame {i}"
-        if "file_path" not in frame:
-            raise InputError(path, f"frame {i} has no image path", field="file_path")
-        image = _resolve_image(root, str(frame["file_path"]))
+        if not isinstance(frame, dict):
+            raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
+        rec = {**meta, **frame}
+        if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
+            raise InputError(path, f"frame {i} has no image path string", field="file_path")
+        image = paths.find(frame["file_path"])
         if image is None:
             missing += 1
             continue
         try:
             c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
         except (KeyError, TypeError, ValueError):
-            raise InputError(path, f"frame {i} has no valid 4x4 matrix", field="transform_matrix") from None
+            raise InputError(path, f"frame {i} has no valid 4x4 matrix of numbers", field="transform_matrix") from None
         if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
             raise InputError(path, f"frame {i} has a transform_matrix of shape {c2w.shape} or with non-finite values", field="transform_matrix")
         if "w" in rec and "h" in rec:
-            width, height = int(_number(path, rec, "w", where=where)), int(_number(path, rec, "h", where=where))
+            width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
         else:
             width, height = _image_size(image)
         if "fl_x" in rec:
             fx = _number(path, rec, "fl_x", where=where)
             fy = _number(path, rec, "fl_y", fx, where=where)
         elif "camera_angle_x" in rec:
-            fx = 0.5 * width / np.tan(0.5 * _number(path, rec, "camera_angle_x", where=where))
-            fy = 0.5 * height / np.tan(0.5 * rec["camera_angle_y"]) if "camera_angle_y" in rec else fx
+            fx = _focal_from_angle(path, rec, "camera_angle_x", width, where)
+            fy = _focal_from_angle(path, rec, "camera_angle_y", height, where) if "camera_angle_y" in rec else fx
         else:
             raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
         dist = np.array([_number(path, rec, k, 0.0, where=where) for k in ("k1", "k2", "p1", "p2")])
-        if any(abs(float(rec.get(k, 0.0) or 0.0)) > 0 for k in ("k3", "k4")):
+        if any(_number(path, rec, k, 0.0, where=where) != 0 for k in ("k3", "k4")):
             raise InputError(path, f"has k3/k4 distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field="k3")
+        if np.allclose(c2w[:3, :3], 0):
+            raise InputError(path, f"frame {i} has an all-zero rotation in its transform_matrix", field="transform_matrix")
         R, t = c2w_opengl_to_w2c_opencv(c2w)
-        cameras.append(Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, image_path=image,
-                              name=image.stem, distortion=dist if np.any(dist != 0) else None))
+        camera = Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, image_path=image,
+                        name=image.stem, distortion=dist if np.any(dist != 0) else None)
+        validate_camera(camera, path, f"frame {i}")
+        cameras.append(camera)
     return cameras, missing
+
+
+def _focal_from_angle(path: Path, rec: dict, key: str, side: int, where: str) -> float:
+    """f = side / (2 tan(angle / 2)) for a field-of-view angle in (0, pi) radians."""
+    angle = _number(path, rec, key, where=where)
+    if not 0 < angle < np.pi:
+        raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must lie in (0, pi)", field=key)
+    return 0.5 * side / np.tan(0.5 * angle)
 
 
 def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], int]:
     """Cameras of a 3DGS `cameras.json` (c2w rotation and position, OpenCV axes, centred principal point)."""
-    from drsplat.errors import InputError
-
     records = _json(path)
     if not isinstance(records, list):
         raise InputError(path, "is not a list of cameras as 3DGS writes it")
+    paths = DatasetPaths(images_dir, path) if images_dir is not None else None
     cameras, missing = [], 0
     for i, rec in enumerate(records):
         where = f" in camera {i}"
+        if not isinstance(rec, dict):
+            raise InputError(path, f"camera {i} is a JSON {type(rec).__name__}, expected an object")
         try:
             rot = np.asarray(rec["rotation"], dtype=np.float64)
             pos = np.asarray(rec["position"], dtype=np.float64)
-            name = str(rec["img_name"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(path, f"camera {i} lacks a valid {exc}", field=str(exc).strip("'")) from None
+            name = rec["img_name"]
+        except KeyError as exc:
+            raise InputError(path, f"camera {i} has no {exc}", field=str(exc).strip("'")) from None
+        except (TypeError, ValueError):
+            raise InputError(path, f"camera {i} has a rotation or position that is not numbers", field="rotation") from None
+        if not isinstance(name, (str, int)):
+            raise InputError(path, f"camera {i} has an img_name that is not a string", field="img_name")
+        name = str(name)
         if rot.shape != (3, 3) or pos.shape != (3,):
             raise InputError(path, f"camera {i} has rotation {rot.shape} / position {pos.shape}", field="rotation")
-        width, height = int(_number(path, rec, "width", where=where)), int(_number(path, rec, "height", where=where))
-        image = _resolve_image(images_dir, name) if images_dir is not None else None
-        if images_dir is not None and image is None:
+        width, height = _size(path, rec, "width", where), _size(path, rec, "height", where)
+        image = paths.find(name) if paths is not None else None
+        if paths is not None and image is None:
             missing += 1
             continue
         R = rot.T
-        cameras.append(Camera(R=R, t=-R @ pos, fx=_number(path, rec, "fx", where=where), fy=_number(path, rec, "fy", where=where),
-                              cx=width / 2, cy=height / 2, width=width, height=height, image_path=image, name=Path(name).stem))
+        camera = Camera(R=R, t=-R @ pos, fx=_number(path, rec, "fx", where=where), fy=_number(path, rec, "fy", where=where),
+                        cx=width / 2, cy=height / 2, width=width, height=height, image_path=image, name=Path(name).stem)
+        validate_camera(camera, path, f"camera {i}")
+        cameras.append(camera)
     return cameras, missing
 
 
-def detect_dataset(source: str | Path) -> tuple[str, Path]:
-    """Find the camera description of a dataset folder, as 3DGS's `-s` does.
+# ---------------------------------------------------------------------------------------------- reader registry
 
-    Returns (kind, path) with kind in colmap, transforms, cameras_json.
-    """
-    from drsplat.errors import InputError
 
-    src = Path(source)
-    if src.is_file():
-        if src.suffix == ".json":
-            return ("cameras_json" if src.name == "cameras.json" else "transforms"), src
-        raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
-    if not src.is_dir():
-        raise InputError(src, "does not exist")
-    for sparse in (src / "sparse" / "0", src / "sparse"):
+@dataclass(frozen=True)
+class DatasetReader:
+    """One camera format. find(source) -> the file or folder describing the cameras of a dataset
+    folder (or of a file the user named directly), None if it is not this format;
+    read(found, require_images) -> (cameras, frames skipped for a missing image)."""
+
+    kind: str
+    description: str
+    find: Callable[[Path], Path | None]
+    read: Callable[[Path, bool], tuple[list[Camera], int]]
+
+
+def _find_colmap(src: Path) -> Path | None:
+    for sparse in (src / "sparse" / "0", src / "sparse", src):
         if (sparse / "cameras.bin").exists() or (sparse / "cameras.txt").exists():
-            return "colmap", sparse
-    for name in ("transforms_train.json", "transforms.json"):
-        if (src / name).exists():
-            return "transforms", src / name
-    if (src / "cameras.json").exists():
-        return "cameras_json", src / "cameras.json"
-    raise InputError(src, "has no COLMAP model (sparse/0), transforms.json or cameras.json")
+            return sparse
+    return None
+
+
+def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], int]:
+    root = sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
+    cameras = cameras_from_colmap(read_colmap_model(sparse), root / "images", sparse)
+    if not require_images:
+        return cameras, 0
+    present = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]
+    return present, len(cameras) - len(present)
+
+
+def _find_transforms(src: Path) -> Path | None:
+    if src.is_file():
+        return src if src.suffix == ".json" and src.name != "cameras.json" else None
+    return next((src / n for n in ("transforms_train.json", "transforms.json") if (src / n).is_file()), None)
+
+
+def _read_transforms(path: Path, require_images: bool) -> tuple[list[Camera], int]:
+    if path.name == "transforms_train.json" and (path.parent / "transforms_test.json").exists():
+        log.info("using the training split %s (transforms_test.json is not used for registration)", path)
+    return read_transforms_json(path, require_images)
+
+
+def _find_cameras_json(src: Path) -> Path | None:
+    if src.is_file():
+        return src if src.name == "cameras.json" else None
+    return src / "cameras.json" if (src / "cameras.json").is_file() else None
+
+
+def _read_cameras_json(path: Path, require_images: bool) -> tuple[list[Camera], int]:
+    images_dir = path.parent / "images"
+    return read_3dgs_cameras_json(path, images_dir if images_dir.is_dir() else None)
+
+
+def _find_scannet(src: Path) -> Path | None:
+    return src if src.is_dir() and (src / "pose").is_dir() and (src / "intrinsic" / "intrinsic_color.txt").is_file() else None
+
+
+def _read_scannet(scene_dir: Path, require_images: bool) -> tuple[list[Camera], int]:
+    return load_scannet_cameras(scene_dir), 0
+
+
+# Detection order; adding a format = its find/read functions and one line here.
+DATASET_READERS: tuple[DatasetReader, ...] = (
+    DatasetReader("colmap", "COLMAP model (sparse/0)", _find_colmap, _read_colmap),
+    DatasetReader("transforms", "transforms.json (NeRF-synthetic, instant-ngp, nerfstudio)", _find_transforms, _read_transforms),
+    DatasetReader("cameras_json", "3DGS cameras.json", _find_cameras_json, _read_cameras_json),
+    DatasetReader("scannet", "ScanNet export (pose/, intrinsic/intrinsic_color.txt, color/)", _find_scannet, _read_scannet),
+)
+
+
+def dataset_reader(kind: str) -> DatasetReader:
+    for reader in DATASET_READERS:
+        if reader.kind == kind:
+            return reader
+    raise KeyError(f"no dataset reader {kind!r}; known: {', '.join(r.kind for r in DATASET_READERS)}")
+
+
+def detect_dataset(source: str | Path) -> tuple[str, Path]:
+    """Find the camera description of a dataset folder (or a camera file), as 3DGS's `-s` does.
+
+    Returns (kind, path), kind one of the `DATASET_READERS` (colmap, transforms, cameras_json, scannet).
+    """
+    src = Path(source)
+    if not src.exists():
+        raise InputError(src, "does not exist")
+    for reader in DATASET_READERS:
+        found = reader.find(src)
+        if found is not None:
+            return reader.kind, found
+    if src.is_file():
+        raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
+    raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS))
 
 
 def resolution_scale(width: int, resolution: float) -> float:
@@ -532,33 +686,71 @@ def resolution_scale(width: int, resolution: float) -> float:
 
 
 def load_cameras(source: str | Path, resolution: float = -1, require_images: bool = True) -> list[Camera]:
-    """Training cameras of a dataset (COLMAP, transforms.json or 3DGS cameras.json), OpenCV convention.
+    """Training cameras of a dataset (any of `DATASET_READERS`), OpenCV convention.
 
     Frames whose image is missing are skipped with one warning that counts them. With
     `resolution` images and intrinsics are scaled together (see `resolution_scale`).
     """
-    from drsplat.errors import InputError
-
     kind, path = detect_dataset(source)
-    missing = 0
-    if kind == "colmap":
-        root = path.parent.parent if path.name == "0" else path.parent
-        cameras = cameras_from_colmap(read_colmap_model(path), root / "images", path)
-        if require_images:
-            present = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]
-            missing, cameras = len(cameras) - len(present), present
-    elif kind == "transforms":
-        cameras, missing = read_transforms_json(path)
-        if path.name == "transforms_train.json" and (path.parent / "transforms_test.json").exists():
-            log.info("using the training split %s (transforms_test.json is not used for registration)", path)
-    else:
-        images_dir = path.parent / "images"
-        cameras, missing = read_3dgs_cameras_json(path, images_dir if images_dir.is_dir() else None)
+    cameras, missing = dataset_reader(kind).read(path, require_images)
     if missing:
         log.warning("%s: %d frame(s) skipped because their image file is missing (%d cameras kept)", path, missing, len(cameras))
     if not cameras:
-        raise InputError(path, "yields no usable camera")
-    return [c.scaled(resolution_scale(c.width, resolution)) if resolution_scale(c.width, resolution) != 1.0 else c for c in cameras]
+        raise InputError(path, "yields no usable camera" + (" (every image file is missing)" if missing else ""))
+    out = []
+    for c in cameras:
+        scale = resolution_scale(c.width, resolution)
+        out.append(c.scaled(scale) if scale != 1.0 else c)
+    return out
+
+
+def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]:
+    """Cameras of an exported ScanNet scene: pose/<i>.txt (camera-to-world), intrinsic/intrinsic_color.txt, color/<i>.jpg.
+
+    Frames whose pose is non-finite (ScanNet marks tracking failures with −inf) are skipped and
+    counted in a warning. Cameras are named by the frame stem, like the images.
+    """
+    scene_dir = Path(scene_dir)
+    pose_dir = scene_dir / "pose"
+    if not pose_dir.is_dir():
+        raise InputError(scene_dir, "no pose/ folder (export the .sens file with ScanNet's SensReader)")
+    K = _read_matrix(scene_dir / "intrinsic" / "intrinsic_color.txt")
+    poses = sorted(pose_dir.glob("*.txt"), key=lambda p: (len(p.stem), p.stem))[:: max(1, stride)]
+    cameras, skipped = [], 0
+    size: tuple[int, int] | None = None
+    for pose_path in poses:
+        c2w = _read_matrix(pose_path)
+        if not np.isfinite(c2w).all():
+            skipped += 1
+            continue
+        image = next((scene_dir / "color" / f"{pose_path.stem}{ext}" for ext in (".jpg", ".png") if (scene_dir / "color" / f"{pose_path.stem}{ext}").exists()), None)
+        if size is None:
+            if image is None:
+                raise InputError(scene_dir / "color", f"no colour image for frame {pose_path.stem} (needed for the image size)")
+            size = _image_size(image)
+        R = c2w[:3, :3].T
+        t = -R @ c2w[:3, 3]
+        camera = Camera(R=R, t=t, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=size[0], height=size[1],
+                        image_path=image, name=pose_path.stem)
+        validate_camera(camera, pose_path, f"frame {pose_path.stem}")
+        cameras.append(camera)
+    if skipped:
+        log.warning("%s: %d frames with invalid (non-finite) poses skipped", scene_dir, skipped)
+    if not cameras:
+        raise InputError(pose_dir, "no frame with a valid pose")
+    return cameras
+
+
+def _read_matrix(path: Path) -> np.ndarray:
+    """A 4 x 4 matrix of numbers from a text file (ScanNet poses and intrinsics)."""
+    rows = [line.split() for line in _read_text(path).splitlines() if line.strip()]
+    try:
+        m = np.array([[float(v) for v in row] for row in rows], dtype=np.float64)
+    except ValueError:
+        raise InputError(path, "is not a 4 x 4 matrix of numbers") from None
+    if m.shape != (4, 4):
+        raise InputError(path, f"expected a 4 x 4 matrix, found shape {m.shape}")
+    return m
 
 
 def write_transforms_json(cameras: list[Camera], path: str | Path, image_root: str | Path | None = None) -> None:
@@ -624,8 +816,6 @@ def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int
 def load_image(camera: Camera) -> np.ndarray:
     """[H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed."""
     from PIL import Image
-
-    from drsplat.errors import InputError
 
     if camera.image_path is None:
         raise InputError(None, f"camera {camera.name!r} has no image file")

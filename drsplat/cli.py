@@ -1,18 +1,25 @@
 """The `drsplat` command line: one subcommand per module in drsplat/commands.
 
 Exit codes follow Python conventions: 0 success, 1 a user-facing error (bad input, missing
-weights, cancelled), 2 a usage error (argparse).
+weights, cancelled, an output that cannot be written), 2 a usage error (argparse, or a
+`drsplat.errors.UsageError` raised by a command). SIGTERM is handled like Ctrl-C; a closed
+stdout (`drsplat ... | head`) ends the command quietly.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import contextlib
 import logging
+import os
+import signal
 import sys
+import threading
 
 from drsplat import __version__
-from drsplat.errors import Cancelled, DrsplatError
+from drsplat.errors import Cancelled, DrsplatError, UsageError
+from drsplat.utils import describe_os_error
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
 
@@ -40,17 +47,64 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
     try:
-        result = args.func(args)
+        with sigterm_as_interrupt():
+            result = args.func(args)
     except Cancelled as exc:
         log.error("%s; no partial output was written", exc)
         return 1
     except KeyboardInterrupt:
         log.error("interrupted; no partial output was written")
         return 1
+    except UsageError as exc:
+        parser.print_usage(sys.stderr)
+        log.error("%s", exc)
+        return 2
     except DrsplatError as exc:
         log.error("%s", exc)
         return 1
+    except BrokenPipeError:
+        _silence_stdout()
+        return 0
+    except MemoryError:
+        log.error("out of memory: the input is larger than this machine can hold (see the command's --help for options that use less)")
+        return 1
+    except OSError as exc:
+        log.error("%s", describe_os_error(exc))
+        return 1
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _silence_stdout()
     return int(result or 0)
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt like Ctrl-C, so atomic writes clean up their temp files.
+
+    Commands with a cancellable long job replace this with `drsplat.utils.cancel_on_signals`.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _silence_stdout() -> None:
+    """After a closed pipe, point stdout at /dev/null so the interpreter's final flush is silent."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":

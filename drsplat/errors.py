@@ -28,3 +28,16 @@ class WeightsUnavailableError(DrsplatError):
 
 class Cancelled(DrsplatError):
     """A long job was cancelled by the user (Ctrl-C or a cancel button)."""
+
+
+class OutputError(DrsplatError):
+    """An output cannot be written (it is an input, a directory, on a full or read-only disk...)."""
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = problem
+        super().__init__(f"cannot write {self.path if self.path is not None else 'the output'}: {problem}")
+
+
+class UsageError(DrsplatError):
+    """A command-line value that is out of range; the CLI exits 2 as argparse does."""

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import LanguageField, attach_field, build_field
@@ -32,12 +33,15 @@ class RegisterOptions:
     codebook: "none" (exact float16 field), "scene" (PQ trained on this scene) or a faiss codebook path.
     keep_unassigned: keep Gaussians that got no weight (lang_weight 0) instead of pruning them.
     aggregate: aggregation mode (drsplat.aggregate.MODES; "paper" is Dr. Splat's weighted mean).
+    engine, device: registration's compute engine ("numba" on "cpu", or "torch" on "cpu"/"cuda"; drsplat.device).
     """
 
     topk: int = DEFAULT_TOPK
     level: int = DEFAULT_LEVEL
     codebook: str = DEFAULT_CODEBOOK
     keep_unassigned: bool = False
+    engine: str = "numba"
+    device: str = "cpu"
     aggregate: str = DEFAULT_AGGREGATE
 
 
@@ -80,8 +84,14 @@ def register_to_ply(
     result = register_scene(
         scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
         on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
-        collect_embeddings=options.codebook == "scene", aggregate=options.aggregate,
+        collect_embeddings=options.codebook == "scene", engine=options.engine, device=options.device,
+        aggregate=options.aggregate,
     )
+    if result.num_assigned == 0:
+        raise DrsplatError(
+            f"no Gaussian received a language feature from {result.num_views} views: the cameras do not see the scene "
+            f"or every mask of {features_dir} is empty or invalid; nothing was written to {out}"
+        )
     keep = np.ones(scene.num_gaussians, bool) if options.keep_unassigned else result.assigned
     field = build_field(result.features[keep], result.weights[keep], codebook=options.codebook, clip_model=clip_model,
                         train_embeddings=result.mask_embeddings)

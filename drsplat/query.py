@@ -81,7 +81,7 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
     arr = arr.astype(np.float32)
-    bad = ~np.isfinite(arr).all(axis=1) | (np.linalg.norm(np.nan_to_num(arr), axis=1) == 0)
+    bad = ~np.isfinite(arr).all(axis=1) | (np.abs(np.nan_to_num(arr)).max(axis=1) == 0)
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
     return unit_rows(arr)
@@ -108,25 +108,21 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
 
 
 def _load_npy(path: str | Path) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(path, f"not a readable .npy array ({exc})") from None
+    from drsplat.utils import load_npy
+
+    return load_npy(path)
 
 
 # ---------------------------------------------------------------------------------------------
 # Scores
 
 
-def cosine(field: LanguageField, queries: np.ndarray, lut_bits: int = 32) -> np.ndarray:
+def cosine(field: LanguageField, queries: np.ndarray, lut_bits: int = 32, device: str | None = None) -> np.ndarray:
     """cos(q_k, f_i) of every Gaussian and query: queries [K, D] -> [N, K] float32 (0 if unassigned).
 
     lut_bits: 32 exact look-up tables, 8 the faster 8-bit tables (PQ fields; see LanguageField.scores).
     """
-    return field.scores(queries, lut_bits=lut_bits)
+    return field.scores(queries, lut_bits=lut_bits, device=device)
 
 
 def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:
@@ -152,7 +148,8 @@ def relevancy_reference(positive: np.ndarray, negative: np.ndarray, temperature:
     return out.astype(np.float32)
 
 
-def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE, lut_bits: int = 32) -> np.ndarray:
+def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE, lut_bits: int = 32,
+              device: str | None = None) -> np.ndarray:
     """LERF relevancy of every Gaussian: queries [K, D], negatives [C, D] -> [N, K] in [0, 1].
 
     negatives are the canonical phrases' embeddings ("object", "things", "stuff", "texture"),
@@ -162,7 +159,7 @@ def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, 
     neg = unit_rows(negatives)
     if neg.shape[0] == 0:
         raise DrsplatError("relevancy needs at least one negative embedding")
-    scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits)
+    scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits, device=device)
     return relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
 
 
@@ -216,7 +213,8 @@ class Segmentation:
     scores: np.ndarray
 
 
-def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.ndarray | None = None, min_score: float | None = None, lut_bits: int = 32) -> Segmentation:
+def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.ndarray | None = None, min_score: float | None = None, lut_bits: int = 32,
+            device: str | None = None) -> Segmentation:
     """Label every Gaussian with argmax_l cos(e_l, f_i) over labels [L, D].
 
     background: [D] or [B, D] embeddings of background phrases; Gaussians they win get -1.
@@ -225,7 +223,7 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     labels_emb = unit_rows(label_embeddings)
     n_labels = labels_emb.shape[0]
     queries = labels_emb if background is None else np.concatenate([labels_emb, unit_rows(background)])
-    scores = field.scores(queries, lut_bits=lut_bits)
+    scores = field.scores(queries, lut_bits=lut_bits, device=device)
     best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
     best_score = scores[np.arange(scores.shape[0]), best]
     labels = np.where(best < n_labels, best, -1).astype(np.int32)

@@ -6,20 +6,23 @@ Conventions (shared with `drsplat.cameras.Camera.project`):
   screen mean is (fx·x/z + cx, fy·y/z + cy). With cx = W/2 this is exactly 3DGS's ndc2Pix
   convention (3DGS evaluates at integer pixel coordinates with means shifted by -0.5) and
   gsplat's.
-- 16 x 16 tiles. A Gaussian is binned into every tile that holds a pixel centre inside its 3σ
-  square (centre ± radius); like 3DGS, it contributes nothing to pixels of other tiles.
+- 16 x 16 tiles. A Gaussian is binned into the tiles of 3DGS's getRect rectangle of its 3σ
+  square (`_tile_rects`); like 3DGS, it contributes nothing to pixels of other tiles.
 - Compositing is 3DGS's, front to back in increasing camera z (ties by Gaussian id):
   α = min(0.99, o·exp(-½ dᵀ Σ'⁻¹ d)), skipped when α < 1/255; with test_T = T·(1 - α), the pixel
   stops before adding a Gaussian that would make test_T < 1e-4. The weight of a contribution is
   w = T·α, so Σ w = 1 - T_final ≤ 1 - 1e-4.
 
-`rasterize` (numba) and `rasterize_reference` (numpy, per pixel) return the same `RasterOutput`;
-tests check that they agree.
+Engines (`ENGINES`, chosen by `rasterize(..., engine=...)`): "numba" (`rasterize_numba`, the CPU
+default), "reference" (`rasterize_reference`, numpy, per pixel) and "torch" (drsplat.raster_torch,
+CPU or CUDA). All return the same `RasterOutput`; tests check that they agree (drsplat.testing).
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -161,12 +164,19 @@ def prepare_scene(scene: GaussianScene | PreparedScene) -> PreparedScene:
 def sh_basis(dirs: np.ndarray, num_coeffs: int) -> list[np.ndarray]:
     """The first `num_coeffs` (1, 4, 9 or 16) real SH basis functions in 3DGS's order and signs.
 
-    dirs: [N, 3] unit vectors. Returns a list of [N] float64 arrays: C0; -C1·y, C1·z, -C1·x;
-    C2·(xy, yz, 2z² - x² - y², xz, x² - y²); C3·(y(3x² - y²), xyz, y(4z² - x² - y²),
-    z(2z² - 3x² - 3y²), x(4z² - x² - y²), z(x² - y²), x(x² - 3y²)).
+    dirs: [N, 3] unit vectors. Returns a list of [N] float64 arrays (`sh_basis_xyz`).
     """
     x, y, z = (dirs[:, i].astype(np.float64) for i in range(3))
-    basis = [np.full(dirs.shape[0], SH_C0)]
+    return sh_basis_xyz(x, y, z, num_coeffs)
+
+
+def sh_basis_xyz(x, y, z, num_coeffs: int) -> list:
+    """`sh_basis` of the direction components x, y, z: [N] arrays of any array library (numpy, torch).
+
+    C0; -C1·y, C1·z, -C1·x; C2·(xy, yz, 2z² - x² - y², xz, x² - y²); C3·(y(3x² - y²), xyz,
+    y(4z² - x² - y²), z(2z² - 3x² - 3y²), x(4z² - x² - y²), z(x² - y²), x(x² - 3y²)).
+    """
+    basis = [x * 0.0 + SH_C0]
     if num_coeffs > 1:
         basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if num_coeffs > 4:
@@ -226,18 +236,20 @@ def _screen_covariances(cov3d: np.ndarray, pc: np.ndarray, camera: Camera) -> np
 
 
 def _tile_rects(means2d: np.ndarray, radii: np.ndarray, width: int, height: int, tile_size: int) -> np.ndarray:
-    """[M, 4] int32 (tx0, ty0, tx1, ty1): tiles holding a pixel centre within mean ± radius.
+    """[M, 4] int32 (tx0, ty0, tx1, ty1), end-exclusive: 3DGS's getRect.
 
-    Pixel i's centre is i + 0.5, so the pixels covered are ceil(u - 0.5 - r) .. floor(u - 0.5 + r),
-    clipped to the image; an empty range gives tx1 = tx0 = 0.
+    With p = mean - 0.5 (3DGS's pixel coordinates, whose pixel centres are integers), r the
+    integer radius, B the tile size and G the tile count along the axis:
+    tx0 = clamp(floor((p - r) / B), 0, G), tx1 = clamp(floor((p + r + B - 1) / B), 0, G).
+    (3DGS truncates with an int cast; after the clamp to ≥ 0 that is the floor.) A Gaussian whose
+    rectangle is empty is culled.
     """
     rects = np.zeros((means2d.shape[0], 4), np.int32)
     for axis, size in ((0, width), (1, height)):
-        lo = np.clip(np.ceil(means2d[:, axis] - 0.5 - radii), 0, size)
-        hi = np.clip(np.floor(means2d[:, axis] - 0.5 + radii), -1, size - 1)
-        empty = lo > hi
-        rects[:, axis] = np.where(empty, 0, lo // tile_size)
-        rects[:, axis + 2] = np.where(empty, 0, hi // tile_size + 1)
+        grid = -(-size // tile_size)
+        p = means2d[:, axis] - 0.5
+        rects[:, axis] = np.clip(np.floor((p - radii) / tile_size), 0, grid)
+        rects[:, axis + 2] = np.clip(np.floor((p + radii + tile_size - 1) / tile_size), 0, grid)
     return rects
 
 
@@ -320,7 +332,7 @@ def project_gaussians_reference(
 
     A Gaussian is valid when its attributes are finite, `mask` (if given, [N] bool) selects it,
     its camera z ≥ near, o ≥ 1/255 (otherwise α < 1/255 everywhere), Σ' is finite and positive
-    definite, and its 3σ square touches the image. radius = ceil(3·sqrt(λ_max(Σ'))) with 3DGS's
+    definite, and its getRect tile rectangle (`_tile_rects`) is not empty. radius = ceil(3·sqrt(λ_max(Σ'))) with 3DGS's
     λ_max = mid + sqrt(max(0.1, mid² - det)). conic = Σ'⁻¹. qlimits and extents bound the
     ellipse dᵀ Σ'⁻¹ d ≤ q = 2·ln(255·o) outside which α < 1/255 (half-width sqrt(q·Σ'_xx)),
     slightly enlarged; they only tell the kernel which pixels to visit.
@@ -468,7 +480,7 @@ def render_projected(
     )
 
 
-def rasterize(
+def rasterize_numba(
     scene: GaussianScene | PreparedScene,
     camera: Camera,
     topk: int = 40,
@@ -479,6 +491,7 @@ def rasterize(
     mask: np.ndarray | None = None,
     near: float = NEAR,
     out: RasterOutput | None = None,
+    device: str = "cpu",
 ) -> RasterOutput:
     """Render one view and keep the top-k Gaussians of every pixel (numba engine).
 
@@ -489,6 +502,7 @@ def rasterize(
     the compositing rules).
     """
     _check_args(topk, background)
+    _check_cpu("numba", device)
     projected = project_gaussians(scene, camera, near, mask=mask, with_colors=with_rgb)
     return render_projected(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, out=out)
 
@@ -569,10 +583,95 @@ def rasterize_reference(
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | None = None,
     near: float = NEAR,
+    out: RasterOutput | None = None,
+    device: str = "cpu",
 ) -> RasterOutput:
-    """`rasterize` with the plain numpy per-pixel compositor (for tests on tiny images)."""
+    """`rasterize` with the plain numpy per-pixel compositor (for tests on tiny images; `out` is unused)."""
     _check_args(topk, background)
+    _check_cpu("reference", device)
     projected = project_gaussians_reference(scene, camera, near, mask=mask, with_colors=with_rgb)
     return composite_reference(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background)
 
+
+def _check_cpu(engine: str, device: str | None) -> None:
+    if device not in (None, "cpu"):
+        raise ValueError(f"the {engine} rasterizer runs on the CPU only, not on {device!r} (use engine='torch')")
+
+
+@dataclass(frozen=True)
+class Engine:
+    """A rasterizer engine: `render` has `rasterize`'s signature (without `engine`); `prepare(scene,
+    device)` returns what `render` takes as its scene fastest (done once per scene, reused per view).
+    Both are "module:function" entry points imported on first use (torch loads only when asked for)."""
+
+    render: str
+    prepare: str
+
+    @staticmethod
+    def _load(entry: str) -> Callable:
+        module, name = entry.split(":")
+        return getattr(importlib.import_module(module), name)
+
+    def render_fn(self) -> Callable[..., RasterOutput]:
+        return self._load(self.render)
+
+    def prepare_fn(self) -> Callable:
+        return self._load(self.prepare)
+
+
+# The registry: a new engine is one module plus one line here.
+ENGINES: dict[str, Engine] = {
+    "numba": Engine("drsplat.raster:rasterize_numba", "drsplat.raster:_prepare_cpu"),
+    "reference": Engine("drsplat.raster:rasterize_reference", "drsplat.raster:_prepare_cpu"),
+    "torch": Engine("drsplat.raster_torch:rasterize", "drsplat.raster_torch:prepare_scene_torch"),
+}
+
+
+def get_engine(name: str) -> Engine:
+    """The registered engine `name` (ValueError naming the choices otherwise)."""
+    try:
+        return ENGINES[name]
+    except KeyError:
+        raise ValueError(f"unknown rasterizer engine {name!r}; choose one of {', '.join(ENGINES)}") from None
+
+
+def _prepare_cpu(scene: GaussianScene | PreparedScene, device: str = "cpu") -> PreparedScene:
+    _check_cpu("numba", device)
+    return prepare_scene(scene)
+
+
+def prepare_for_engine(scene, engine: str = "numba", device: str = "cpu"):
+    """`scene` made ready for many `rasterize(..., engine=engine, device=device)` calls
+    (a PreparedScene for the CPU engines, tensors on `device` for torch)."""
+    return get_engine(engine).prepare_fn()(scene, device)
+
+
+def rasterize(
+    scene,
+    camera: Camera,
+    topk: int = 40,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    background=(0.0, 0.0, 0.0),
+    mask: np.ndarray | None = None,
+    near: float = NEAR,
+    out: RasterOutput | None = None,
+    engine: str = "numba",
+    device: str = "cpu",
+) -> RasterOutput:
+    """Render one view and keep the top-k Gaussians of every pixel, with the engine `engine`.
+
+    scene: a GaussianScene or, to skip per-scene work on every view, `prepare_for_engine(scene,
+    engine, device)` (for numba: `prepare_scene(scene)`).
+    mask: [N] bool restricts rendering to a subset of Gaussians (ids stay scene ids).
+    out: buffers of a previous call to reuse (see `render_projected`; numba only).
+    engine: a key of ENGINES ("numba", "reference", "torch"); device: "cpu" or a torch device
+    ("cuda", "cuda:1") for the torch engine. Every engine returns the same RasterOutput (numpy) of
+    camera.height x camera.width pixels; tests hold them to the reference (drsplat.testing).
+    """
+    render = rasterize_numba if engine == "numba" else get_engine(engine).render_fn()
+    return render(
+        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, mask=mask, near=near, out=out, device=device
+    )
 

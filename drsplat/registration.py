@@ -395,6 +395,35 @@ def load_checkpoint(path: Path, params: dict) -> _State | None:
     return state
 
 
+# ----------------------------------------------------------------------------- compute engine hook
+
+
+@dataclass
+class ComputeEngine:
+    """How registration rasterizes and accumulates: prepare(scene) once, render(prepared, camera,
+    topk, previous output) per view (an output with .ids / .weights [H, W, k]), accumulator(N, D)
+    and adopt(accumulator) (converts one loaded from a checkpoint)."""
+
+    prepare: Callable
+    render: Callable
+    accumulator: Callable[[int, int], object]
+    adopt: Callable[[object], object]
+
+
+def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
+    """numba: drsplat.raster + `Accumulator` (CPU). torch: drsplat.raster_torch + drsplat.accumulate_torch on `device`."""
+    if engine == "numba":
+        from drsplat.raster import _check_cpu, prepare_scene, rasterize_numba
+
+        _check_cpu("numba", device)
+        return ComputeEngine(prepare_scene, lambda prep, cam, topk, out: rasterize_numba(prep, cam, topk, out=out), Accumulator, lambda acc: acc)
+    if engine == "torch":
+        from drsplat.accumulate_torch import torch_compute_engine
+
+        return torch_compute_engine(device, ComputeEngine)
+    raise ValueError(f"unknown registration engine {engine!r}; choose numba or torch")
+
+
 # ----------------------------------------------------------------------------- registration
 
 
@@ -412,6 +441,8 @@ def register_scene(
     checkpoint_every: int = 10,
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
+    engine: str = "numba",
+    device: str = "cpu",
     aggregate: str = DEFAULT_AGGREGATE,
 ) -> RegistrationResult:
     """Register the mask embeddings of `features_dir` onto the Gaussians of `scene`.
@@ -422,12 +453,16 @@ def register_scene(
     checkpoint: an .npz path; the sums are saved there every `checkpoint_every` views (and on
     cancel), and a run with the same inputs resumes from it. It is deleted at the end unless
     keep_checkpoint (the caller then deletes it once its own output is safely written).
-    aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat).
+    engine, device: "numba" (CPU) or "torch" (CPU or CUDA) rasterizer + accumulator (`compute_engine`).
+    aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat;
+    the other modes run on the numba engine).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
     from drsplat.aggregate import Aggregator
-    from drsplat.raster import prepare_scene, rasterize
 
+    if aggregate != "paper" and engine != "numba":
+        raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
+    compute = compute_engine(engine, device)
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
     if topk < 1:
@@ -462,7 +497,7 @@ def register_scene(
         log.info("resuming from %s: %d of %d views already registered", ckpt, resumed, len(views))
         aggregator.load_state(state.aggregate)
     state.aggregate = aggregator.state()
-    prepared = prepare_scene(scene)
+    prepared = compute.prepare(scene)
     out = None  # the rasterizer's [H, W, k] buffers, reused from view to view
     raster_s = accumulate_s = accumulate_cpu = allocate_s = 0.0
     since_checkpoint = 0
@@ -478,13 +513,14 @@ def register_scene(
         state.num_nonfinite_masks += nonfinite
         if state.acc is None:
             t0 = time.perf_counter()
-            state.acc = Accumulator(scene.num_gaussians, feats.shape[1])
+            state.acc = compute.accumulator(scene.num_gaussians, feats.shape[1])
             allocate_s = time.perf_counter() - t0
         if feats.shape[1] != state.acc.dim:
             raise InputError(features_dir / f"{cam.name}_f.npy", f"embeddings are {feats.shape[1]}-D but earlier views' are {state.acc.dim}-D")
         mask_ids = resample_nearest(mask_ids, cam.width, cam.height)
         t0 = time.perf_counter()
-        out = rasterize(prepared, cam, topk=topk, out=out)
+        state.acc = compute.adopt(state.acc)
+        out = compute.render(prepared, cam, topk, out)
         t1, c1 = time.perf_counter(), time.process_time()
         pairs, distinct = state.acc.add_view(out.ids, aggregator.view_weights(prepared, cam, out), mask_ids, feats)
         accumulate_s += time.perf_counter() - t1
@@ -515,7 +551,7 @@ def register_scene(
         log.warning("%d Gaussians got non-finite feature sums and are left unassigned", nonfinite)
     result = RegistrationResult(
         features=features,
-        weights=state.acc.W,
+        weights=sums[1],
         num_views=len(state.done),
         num_pairs=state.num_pairs,
         num_distinct_pairs=state.num_distinct,

@@ -96,8 +96,18 @@ class GaussianScene:
         return quat_to_rotmat(self.unit_quats())
 
     def covariances(self) -> np.ndarray:
-        """[N, 3, 3] world covariances Σ = R S Sᵀ Rᵀ with S = diag(scale)."""
-        m = self.rotations() * self.scales()[:, None, :]
+        """[N, 3, 3] float64 world covariances Σ = R S Sᵀ Rᵀ with S = diag(scale).
+
+        R comes from the quaternions normalised in float64 and S from the scene's float32
+        `scales()`; the product is float64. Scales span many orders of magnitude in trained scenes
+        (1e-4 .. 1e2): a float32 R (orthonormal only to ~1e-7) or a float32 product perturbs the
+        small eigenvalues by ~1e-7 of the largest, and projections and Mahalanobis distances
+        divide by them. A scale that overflows float32 gives an infinite Σ (counted as non-finite).
+        """
+        q = self.quats.astype(np.float64)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+        m = quat_to_rotmat(q) * self.scales().astype(np.float64)[:, None, :]
         return m @ m.transpose(0, 2, 1)
 
     def base_colors(self) -> np.ndarray:
@@ -158,12 +168,26 @@ CORE_PROPERTIES = {"x", "y", "z", "nx", "ny", "nz", "opacity"} | {f"scale_{i}" f
 
 @dataclass
 class PlyElement:
-    """One element of a PLY header: name, row count and (name, numpy dtype string) properties."""
+    """One element of a PLY header: name, row count and (name, numpy dtype string) properties.
+
+    A list property has dtype "list" and its (count type, item type) in `list_types`.
+    """
 
     name: str
     count: int
     properties: list[tuple[str, str]]
     has_lists: bool = False
+    list_types: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+    def min_row_bytes(self, fmt: str) -> int:
+        """The fewest bytes one row can take: fixed sizes plus list counts (binary), or one
+        character and a separator per value (ASCII)."""
+        if fmt == "ascii":
+            return 2 * len(self.properties)
+        total = 0
+        for name, t in self.properties:
+            total += np.dtype(self.list_types[name][0]).itemsize if t == "list" else np.dtype(t).itemsize
+        return total
 
 
 @dataclass
@@ -241,7 +265,7 @@ def read_ply_header(path: Path) -> PlyHeader:
         key = words[0]
         if key == "format":
             if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise _fail(path, f"has an unknown format line {raw!r} (header line {lineno})")
+                raise _fail(path, f"has an unknown format line (header line {lineno}); expected ascii, binary_little_endian or binary_big_endian")
             fmt = words[1]
         elif key == "comment":
             comments.append(raw[len("comment"):].strip())
@@ -249,42 +273,85 @@ def read_ply_header(path: Path) -> PlyHeader:
             continue
         elif key == "element":
             if len(words) != 3 or not words[2].isdigit():
-                raise _fail(path, f"has a malformed element line {raw!r} (header line {lineno})")
+                raise _fail(path, f"has a malformed element line (header line {lineno})")
+            if any(e.name == words[1] for e in elements):
+                raise _fail(path, f"declares element '{words[1]}' twice (header line {lineno})", field=words[1])
             elements.append(PlyElement(words[1], int(words[2]), []))
         elif key == "property":
             if not elements:
                 raise _fail(path, f"declares a property before any element (header line {lineno})")
-            if len(words) == 5 and words[1] == "list":
+            if len(words) == 5 and words[1] == "list" and words[2] in PLY_TYPES and words[3] in PLY_TYPES:
+                name, dtype = words[4], "list"
                 elements[-1].has_lists = True
-                elements[-1].properties.append((words[4], "list"))
+                elements[-1].list_types[name] = (PLY_TYPES[words[2]], PLY_TYPES[words[3]])
             elif len(words) == 3 and words[1] in PLY_TYPES:
-                elements[-1].properties.append((words[2], PLY_TYPES[words[1]]))
+                name, dtype = words[2], PLY_TYPES[words[1]]
             else:
-                raise _fail(path, f"has a malformed property line {raw!r} (header line {lineno})")
+                raise _fail(path, f"has a malformed property line (header line {lineno})")
+            if any(name == existing for existing, _ in elements[-1].properties):
+                raise _fail(path, f"declares property '{name}' twice in element '{elements[-1].name}' (header line {lineno})", field=name)
+            elements[-1].properties.append((name, dtype))
         else:
-            raise _fail(path, f"has an unknown header keyword {key!r} (header line {lineno})")
+            raise _fail(path, f"has an unknown header keyword (header line {lineno})")
     if fmt is None:
         raise _fail(path, "has no 'format' line in its header")
     return PlyHeader(fmt, elements, comments, nl + 1)
 
 
+NEEDED_ELEMENTS = ("vertex", "chunk", "sh")  # what the INRIA and compressed layouts read
+
+
+def check_element_sizes(path: Path, header: PlyHeader, size: int) -> None:
+    """Refuse a header whose element counts need more bytes than the file holds.
+
+    Every element (list properties too, at their smallest) is sized before anything is
+    allocated, so a 1 kB file declaring 2e9 faces is an error, not a 15 GB allocation.
+    """
+    remaining = size - header.data_offset
+    need = 0
+    for element in header.elements:
+        need += element.count * element.min_row_bytes(header.format)
+        if need > remaining:
+            raise _fail(path, f"declares {element.count} rows of element '{element.name}' (with the elements before it at least "
+                              f"{need} bytes of data) but only {max(0, remaining)} bytes follow the header: the file is truncated "
+                              "or its header is wrong", field=element.name)
+
+
 def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
-    """Read every element of a PLY into structured numpy arrays (binary fast path, plyfile for ASCII)."""
+    """Read the 3DGS elements of a PLY into structured numpy arrays (binary fast path, plyfile for ASCII).
+
+    Header counts are checked against the file size first (`check_element_sizes`). Binary list
+    elements (e.g. mesh faces) are skipped when they follow the elements drsplat reads and refused
+    when they precede them (their size is unknown without parsing every row).
+    """
     path = Path(path)
     header = read_ply_header(path)
-    if header.format == "ascii" or any(e.has_lists for e in header.elements):
+    size = path.stat().st_size
+    check_element_sizes(path, header, size)
+    for element in header.elements:
+        if element.has_lists and element.name in NEEDED_ELEMENTS:
+            raise _fail(path, f"element '{element.name}' has list properties, which 3DGS files never have", field=element.name)
+    if header.format == "ascii":
         return header, _read_with_plyfile(path)
     endian = "<" if header.format == "binary_little_endian" else ">"
     data: dict[str, np.ndarray] = {}
     offset = header.data_offset
-    size = path.stat().st_size
+    needed_left = {e.name for e in header.elements if e.name in NEEDED_ELEMENTS}
     for element in header.elements:
+        if not needed_left:
+            break  # nothing drsplat reads follows: later elements (faces, ...) are never loaded
+        if element.has_lists:
+            raise _fail(path, f"has a list element '{element.name}' before the 3DGS data ({', '.join(sorted(needed_left))}); "
+                              "drsplat cannot size it without parsing it. Move or drop it (3DGS files have no list elements)",
+                        field=element.name)
         dtype = np.dtype([(name, endian + t) for name, t in element.properties])
         need = dtype.itemsize * element.count
         if offset + need > size:
             raise _fail(path, f"is truncated: element '{element.name}' needs {need} bytes of data but only {max(0, size - offset)} remain", field=element.name)
-        array = np.fromfile(path, dtype=dtype, count=element.count, offset=offset)
-        data[element.name] = array.astype(array.dtype.newbyteorder("=")) if endian == ">" else array
+        if element.name in NEEDED_ELEMENTS:
+            array = np.fromfile(path, dtype=dtype, count=element.count, offset=offset)
+            data[element.name] = array.astype(array.dtype.newbyteorder("=")) if endian == ">" else array
+            needed_left.discard(element.name)
         offset += need
     return header, data
 
@@ -295,7 +362,7 @@ def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # plyfile raises many types for malformed ASCII
-        raise _fail(path, f"could not be parsed as PLY data ({exc.__class__.__name__}: {str(exc).splitlines()[0][:200] if str(exc) else 'no detail'})") from None
+        raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__})") from None
     out = {}
     for element in ply.elements:
         if any(p.__class__.__name__ == "PlyListProperty" for p in element.properties):
@@ -340,6 +407,9 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     degree = next((d for d, c in SH_REST_COUNTS.items() if c == n_rest), None)
     if degree is None:
         raise _fail(path, f"has {n_rest} f_rest_* properties; 3DGS files have 0, 9, 24 or 45 (SH degree 0-3)", field="f_rest_*")
+    missing = [f"f_rest_{i}" for i in range(n_rest) if f"f_rest_{i}" not in names]
+    if missing:
+        raise _fail(path, f"numbers its {n_rest} f_rest_* properties wrongly: {missing[0]} is missing (expected f_rest_0..f_rest_{n_rest - 1})", field=missing[0])
     n = len(vertex)
     for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(3)), *(f"f_dc_{i}" for i in range(3))):
         _require(path, vertex, name)
@@ -384,7 +454,8 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
     11-10-11 bits lerped in the chunk range; rotation 2-10-10-10 ("smallest three": 2 bits name
     the largest component, the others are stored in [-1/√2, 1/√2]); colour 8-8-8-8 with RGB lerped
     in the chunk colour range (0.5 + C0·f_dc) and A the activated opacity. Optional `sh` element:
-    uchar f_rest, value = (v + 0.5)/256 · 8 − 4 (0 maps to 0... as the encoder writes).
+    uchar f_rest v, value = (t − 0.5) · 8 with t = 0 for v = 0, 1 for v = 255, (v + 0.5)/256
+    otherwise, so the end codes decode to exactly ±4 (as PlayCanvas splat-transform decodes them).
     """
     vertex, chunk = data["vertex"], data["chunk"]
     n = len(vertex)
@@ -431,14 +502,23 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         degree = next((d for d, cnt in SH_REST_COUNTS.items() if cnt == n_rest), None)
         if degree is None or len(shv) != n:
             raise _fail(path, f"is a compressed PLY whose 'sh' element has {n_rest} properties x {len(shv)} rows", field="sh")
-        raw = np.stack([shv[f"f_rest_{i}"] for i in range(n_rest)], axis=1).astype(np.float32)
-        rest = (raw + 0.5) / 256.0 * 8.0 - 4.0
+        if any(f"f_rest_{i}" not in shv.dtype.names for i in range(n_rest)):
+            raise _fail(path, f"is a compressed PLY whose 'sh' element does not name its properties f_rest_0..f_rest_{n_rest - 1}", field="sh")
+        raw = np.stack([shv[f"f_rest_{i}"] for i in range(n_rest)], axis=1)
+        rest = decode_sh_bytes(raw)
     k = 1 if rest is None else (rest.shape[1] // 3 + 1)
     sh = np.zeros((n, k, 3), np.float32)
     sh[:, 0] = dc
     if rest is not None:
         sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
     return {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": logits, "sh": sh, "extra": {}}
+
+
+def decode_sh_bytes(codes: np.ndarray) -> np.ndarray:
+    """Compressed-PLY SH bytes -> coefficients in [-4, 4]: v -> (t - 0.5)·8, t = 0 | 1 | (v + 0.5)/256 for v = 0 | 255 | else."""
+    v = np.asarray(codes).astype(np.float32)
+    t = np.where(v == 0, 0.0, np.where(v == 255, 1.0, (v + 0.5) / 256.0))
+    return ((t - 0.5) * 8.0).astype(np.float32)
 
 
 def _unpack_smallest_three(packed: np.ndarray) -> np.ndarray:

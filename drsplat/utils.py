@@ -7,15 +7,122 @@ import logging
 import os
 import tempfile
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
+from drsplat.errors import Cancelled, InputError, OutputError
+
 log = logging.getLogger("drsplat")
 
 T = TypeVar("T")
+
+
+TEMP_SUFFIX = ".tmp"
+
+
+def temp_prefix(path: Path) -> str:
+    """Prefix of the temp files `atomic_path` makes for `path`: `.<name>.<pid>.` (pid finds stale ones)."""
+    return f".{path.name}.{os.getpid()}."
+
+
+def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
+    """Delete temp files (or folders) of `path` left by writers that are no longer running; returns how many.
+
+    Temp files are named `.<name>.<pid>.<random><suffix>`; one whose pid is not a live process was
+    left by a killed run (SIGKILL, power loss) and nothing else will ever remove it.
+    """
+    import shutil
+
+    path = Path(path)
+    removed = 0
+    try:
+        candidates = list(path.parent.glob(f".{glob_escape(path.name)}.*{suffix}"))
+    except OSError:
+        return 0
+    for tmp in candidates:
+        pid_text = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
+        if not pid_text.isdigit() or _pid_alive(int(pid_text)):
+            continue
+        try:
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp)
+            else:
+                tmp.unlink()
+        except OSError:
+            continue
+        removed += 1
+        log.info("removed a stale temporary %s of an interrupted run: %s", "folder" if suffix != TEMP_SUFFIX else "file", tmp)
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    """`name` with glob metacharacters escaped."""
+    import glob
+
+    return glob.escape(name)
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+PARTIAL_SUFFIX = ".partial"
+
+
+def ensure_parent(path: Path) -> None:
+    """Create the folder of an output (and its parents); OutputError when an ancestor is a file."""
+    for ancestor in path.parents:
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise OutputError(path, f"{ancestor} is a file, not a folder")
+            break
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iterator[Path]:
+    """Yield an empty temp folder next to `path`; on success it becomes `path` in one rename.
+
+    An existing `path` is replaced only when it is empty or `replaceable(path)` says it is an
+    earlier output of the same kind (it is moved aside, the new folder renamed in, the old one
+    deleted); otherwise OutputError. On failure or interrupt the temp folder is deleted, and
+    temp folders of killed runs are swept first.
+    """
+    import shutil
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(path, "exists and is not a folder")
+    if path.is_dir() and any(path.iterdir()) and not replaceable(path):
+        raise OutputError(path, "is a non-empty folder that is not an earlier output of this command; choose a new folder")
+    ensure_parent(path)
+    sweep_stale_temps(path, PARTIAL_SUFFIX)
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_current_umask())
+    try:
+        yield tmp
+        old = None
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+            os.rmdir(old)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -23,10 +130,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to `path`; rename it over `path` only if the block succeeds.
 
     Readers never see a half-written file, and an interrupted job leaves the old file intact.
+    Temp files of earlier killed runs writing the same path are swept first (`sweep_stale_temps`).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    if path.is_dir():
+        raise OutputError(path, "is a directory")
+    ensure_parent(path)
+    sweep_stale_temps(path)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
@@ -72,8 +183,6 @@ class CancelToken:
         return self._event.is_set()
 
     def raise_if_cancelled(self) -> None:
-        from drsplat.errors import Cancelled
-
         if self._event.is_set():
             raise Cancelled("cancelled by the user")
 
@@ -101,3 +210,155 @@ def host_reachable(url: str, timeout: float = 3.0) -> bool:
             return True
     except OSError:
         return False
+
+
+# ----------------------------------------------------------------------------- .npy inputs
+
+MAX_NPY_HEADER_BYTES = 1 << 16
+
+
+def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, data offset) of an .npy file, read from its header only.
+
+    Raises InputError for a file that is not an .npy array, an object/pickle dtype, or a shape
+    whose data would need more bytes than the file holds (a header cannot make us allocate).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found" if not path.exists() else "is not a file")
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _fortran, dtype = reader(f, max_header_size=MAX_NPY_HEADER_BYTES)
+            offset = f.tell()
+        size = path.stat().st_size
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    except Exception:  # numpy parses the header with ast/tokenize: any error means a bad header (its text is not echoed)
+        raise InputError(path, "is not a readable .npy array (bad magic or header)") from None
+    if dtype.hasobject:
+        raise InputError(path, "holds Python objects (pickle), which drsplat never loads")
+    if any(d < 0 for d in shape):
+        raise InputError(path, f"has a negative dimension in its shape {shape}")
+    need = dtype.itemsize
+    for d in shape:
+        need *= int(d)
+    if offset + need > size:
+        raise InputError(path, f"is truncated: its header declares shape {shape} {dtype} ({need} bytes) but only {max(0, size - offset)} bytes of data follow")
+    return tuple(int(d) for d in shape), dtype, offset
+
+
+def load_npy(path: str | Path, what: str = "array") -> np.ndarray:
+    """np.load of a trusted-size .npy: header checked against the file size first, never pickles.
+
+    The one reader of every user-supplied .npy (queries, ids, labels, features, embeddings).
+    """
+    path = Path(path)
+    npy_header(path)
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(path, f"is not a readable .npy {what} ({str(exc).splitlines()[0][:120] if str(exc) else exc.__class__.__name__})") from None
+
+
+# ----------------------------------------------------------------------------- outputs
+
+def _resolved(path: Path) -> Path:
+    try:
+        return path.expanduser().resolve()
+    except (OSError, RuntimeError):
+        return path.absolute()
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if _resolved(a) == _resolved(b):
+        return True
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def guard_outputs(
+    inputs: dict[str, str | Path | None],
+    outputs: dict[str, str | Path | None],
+    protected_folders: dict[str, tuple[str | Path | None, tuple[str, ...]]] | None = None,
+) -> None:
+    """Refuse to run when an output would replace an input, another output or a protected file.
+
+    inputs / outputs: flag name -> path (None = not given). Paths are compared resolved (symlinks
+    followed) and by inode (hard links). protected_folders: flag -> (folder, glob patterns): an
+    output inside that folder matching a pattern (e.g. `*_f.npy` in a features folder) is refused.
+    An output that is an existing directory is refused too. Raises OutputError naming both flags.
+    """
+    given_in = {k: Path(v) for k, v in inputs.items() if v is not None}
+    given_out = {k: Path(v) for k, v in outputs.items() if v is not None}
+    seen: dict[Path, str] = {}
+    for flag, out in given_out.items():
+        if out.is_dir():
+            raise OutputError(out, f"{flag} names a directory; give a file path")
+        for in_flag, inp in given_in.items():
+            if _same_file(out, inp):
+                raise OutputError(out, f"{flag} is the same file as the input {in_flag}; writing it would destroy the input. Choose another output path")
+        key = _resolved(out)
+        if key in seen:
+            raise OutputError(out, f"{flag} and {seen[key]} name the same file")
+        seen[key] = flag
+        for folder_flag, (folder, patterns) in (protected_folders or {}).items():
+            if folder is None:
+                continue
+            if _resolved(out).parent == _resolved(Path(folder)) and any(_resolved(out).match(p) for p in patterns):
+                raise OutputError(out, f"{flag} lies in the {folder_flag} folder and is named like one of its files ({', '.join(patterns)}); choose another output path")
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One sentence for an OSError (usually on an output): the path and the cause in words."""
+    import errno
+
+    causes = {
+        errno.ENOSPC: "the disk is full",
+        errno.EDQUOT: "the disk quota is exceeded",
+        errno.EROFS: "the file system is read-only",
+        errno.EACCES: "permission denied",
+        errno.EPERM: "operation not permitted",
+        errno.EISDIR: "the path is a directory",
+        errno.ENOTDIR: "a parent of the path is not a directory",
+        errno.ENOENT: "the parent directory does not exist",
+        errno.ENAMETOOLONG: "the file name is too long",
+        errno.EFBIG: "the file is too large for this file system",
+    }
+    cause = causes.get(exc.errno or -1, exc.strerror or exc.__class__.__name__)
+    where = exc.filename if exc.filename is not None else "an output or input file"
+    return f"{where}: {cause}"
+
+
+# ----------------------------------------------------------------------------- signals
+
+@contextlib.contextmanager
+def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Iterator[None]:
+    """Ctrl-C or SIGTERM cancels cleanly (the worker checks `token`); a second Ctrl-C aborts at once.
+
+    Outside the main thread signal handlers cannot be installed and this does nothing.
+    """
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum, frame):
+        if token.cancelled:
+            raise KeyboardInterrupt
+        name = "Ctrl-C" if signum == signal.SIGINT else "SIGTERM"
+        log.warning("%s: stopping after %s (Ctrl-C again to abort at once)", name, what)
+        token.cancel()
+
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

@@ -204,6 +204,10 @@ def test_cli_lists_modes_and_rejects_unknown(hard_tiny, tmp_path):
                           "--features", str(hard_tiny / "features"), "--out", str(tmp_path / "x.ply"), "--aggregate", "median"],
                          capture_output=True, text=True, check=False)
     assert bad.returncode == 2 and "median" in bad.stderr and not (tmp_path / "x.ply").exists()
+    torch_engine = subprocess.run([sys.executable, "-m", "drsplat", "register", str(hard_tiny / "scene.ply"), "--source", str(hard_tiny),
+                                   "--features", str(hard_tiny / "features"), "--out", str(tmp_path / "x.ply"), "--aggregate", "reject",
+                                   "--engine", "torch"], capture_output=True, text=True, check=False)
+    assert torch_engine.returncode == 1 and "numba engine only" in torch_engine.stderr and not (tmp_path / "x.ply").exists()
 
 
 def test_pipeline_writes_fewer_gaussians_with_rejection(hard_tiny, tmp_path):

@@ -60,18 +60,25 @@ def test_fern_points_project_onto_their_observations():
     assert errors.mean() < 1.0
 
 
-def test_transforms_json_round_trip_through_opengl(tmp_path):
-    model = read_colmap_model(shared_path("fern", "sparse", "0"))
-    cameras = load_cameras(shared_path("fern"))
-    path = tmp_path / "transforms.json"
+@pytest.mark.parametrize("mount", ["as given", "through a symlink"])
+def test_transforms_json_round_trip_through_opengl(tmp_path, mount):
+    fern = shared_path("fern")
+    if mount == "through a symlink":  # the dataset seen through a symlinked mount must read the same
+        (tmp_path / "mounted").symlink_to(fern.resolve(), target_is_directory=True)
+        fern = tmp_path / "mounted"
+    model = read_colmap_model(fern / "sparse" / "0")
+    cameras = load_cameras(fern)
+    out = tmp_path / "out"
+    path = out / "transforms.json"
     write_transforms_json(cameras, path)
     meta = json.loads(path.read_text())
     assert np.allclose(np.array(meta["frames"][0]["transform_matrix"])[3], [0, 0, 0, 1])
-    again = load_cameras(tmp_path)
+    again = load_cameras(out)
     for a, b in zip(cameras, again):
         np.testing.assert_allclose(a.R, b.R, atol=1e-9)
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)
         assert (a.fx, a.cy, a.width, a.image_path) == (b.fx, b.cy, b.width, b.image_path)
+        assert a.image_path == a.image_path.resolve() and a.image_path.is_file()
     assert reprojection_errors(model, again).mean() < 1.0
 
 
@@ -175,3 +182,64 @@ def test_3dgs_cameras_json(tmp_path):
     for a, b in zip(cameras, loaded):
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+
+
+def _tiny_colmap(root, image_names=("a.png", "b.png")):
+    from PIL import Image
+
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (root / "images").mkdir()
+    (sparse / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
+    lines = []
+    for i, name in enumerate(image_names, start=1):
+        Image.new("RGB", (64, 48)).save(root / "images" / name)
+        lines += [f"{i} 1 0 0 0 {0.1 * i} 0 4 1 {name}", ""]
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_colmap_and_transforms_resolve_image_paths_the_same_through_a_symlink(tmp_path):
+    """Issue 13 item 7: both readers give resolved image paths, so a dataset read through a
+    symlinked mount equals the dataset read directly, and a round trip through transforms.json
+    keeps the paths (no ../shared fixture needed)."""
+    real = _tiny_colmap(tmp_path / "real")
+    (tmp_path / "mount").symlink_to(real, target_is_directory=True)
+    direct, linked = load_cameras(real), load_cameras(tmp_path / "mount")
+    assert [c.image_path for c in direct] == [c.image_path for c in linked] == [real.resolve() / "images" / n for n in ("a.png", "b.png")]
+    out = tmp_path / "elsewhere"
+    write_transforms_json(linked, out / "transforms.json")
+    again = load_cameras(out)
+    assert [c.image_path for c in again] == [c.image_path for c in direct]
+    for a, b in zip(direct, again):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-12)
+
+
+def test_dataset_reader_registry_detects_every_format(tmp_path):
+    """One registry (DATASET_READERS) detects and reads COLMAP, transforms.json, cameras.json and ScanNet."""
+    from PIL import Image
+
+    from drsplat.cameras import DATASET_READERS, detect_dataset
+
+    assert [r.kind for r in DATASET_READERS] == ["colmap", "transforms", "cameras_json", "scannet"]
+    colmap = _tiny_colmap(tmp_path / "colmap")
+    write_transforms_json(load_cameras(colmap), tmp_path / "tj" / "transforms.json")
+    cj = tmp_path / "cj"
+    cj.mkdir()
+    (cj / "cameras.json").write_text(json.dumps([{"id": 0, "img_name": "a", "width": 64, "height": 48, "position": [0, 0, -4],
+                                                  "rotation": np.eye(3).tolist(), "fx": 50, "fy": 50}]))
+    scan = tmp_path / "scene0000_00"
+    for sub in ("pose", "intrinsic", "color"):
+        (scan / sub).mkdir(parents=True)
+    K = np.eye(4)
+    K[0, 0] = K[1, 1] = 50.0
+    K[0, 2], K[1, 2] = 32.0, 24.0
+    np.savetxt(scan / "intrinsic" / "intrinsic_color.txt", K)
+    np.savetxt(scan / "pose" / "0.txt", np.eye(4))
+    Image.new("RGB", (64, 48)).save(scan / "color" / "0.jpg")
+    expected = {colmap: "colmap", tmp_path / "tj": "transforms", tmp_path / "tj" / "transforms.json": "transforms", cj: "cameras_json", scan: "scannet"}
+    for source, kind in expected.items():
+        assert detect_dataset(source)[0] == kind
+        cams = load_cameras(source, require_images=False)
+        assert cams and all((c.width, c.height, c.fx) == (64, 48, 50.0) for c in cams), kind

@@ -201,7 +201,7 @@ def test_eval_iou_from_points_with_class_subset(registered, capsys):
 def test_eval_cli_rejects_bad_options(registered, capsys):
     r = registered
     base = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"), *query_args(r)]
-    assert main(base + ["--taus", "1:0:0.1"]) == 1
+    assert main(base + ["--taus", "1:0:0.1"]) == 2  # a usage error, as argparse would give
     assert "--taus" in capsys.readouterr().err
     assert main(base + ["--weighting", "volume,mass"]) == 1
     assert "mass" in capsys.readouterr().err

@@ -43,8 +43,12 @@ def weights(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def fern3(tmp_path_factory) -> Path:
     """A dataset of three real fern photos (a transforms.json pointing at ../shared/data)."""
+    import dataclasses
+
     cameras = load_cameras(shared_path("fern"))[:3]
     folder = tmp_path_factory.mktemp("fern3")
+    (folder / "images").symlink_to(shared_path("fern", "images"), target_is_directory=True)  # paths stay inside the dataset
+    cameras = [dataclasses.replace(c, image_path=folder / "images" / c.image_path.name) for c in cameras]
     write_transforms_json(cameras, folder / "transforms.json")
     return folder
 

@@ -179,10 +179,10 @@ def test_query_cli_embedding_scores_and_selection(tmp_path, registered, fields, 
 
 
 def test_query_cli_click_text_and_relevancy(tmp_path, registered, world, monkeypatch, capsys):
-    from drsplat.commands import query as query_cmd
+    from drsplat.commands import common as common_cmd
 
     _, _, lab, dirs = world
-    monkeypatch.setattr(query_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
     ids = np.flatnonzero(lab == 4)[:3]
     np.save(tmp_path / "ids.npy", ids)
     assert main(["query", str(registered["pq"]), "--gaussians", str(tmp_path / "ids.npy"), "--scores", str(tmp_path / "c.npy")]) == 0
@@ -216,7 +216,7 @@ def test_query_cli_errors(tmp_path, registered, capsys):
 
 
 def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkeypatch, capsys):
-    from drsplat.commands import query as query_cmd
+    from drsplat.commands import common as common_cmd
 
     _, _, lab, dirs = world
     np.save(tmp_path / "L.npy", dirs)
@@ -229,7 +229,7 @@ def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkey
     same = got == got[10]
     np.testing.assert_allclose(rgb[same], np.broadcast_to(rgb[10], rgb[same].shape), atol=1e-5)
     assert not np.allclose(rgb[got == 0][0], rgb[got == 1][0])
-    monkeypatch.setattr(query_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
     assert main(["segment", str(registered["pq"]), "--labels", "lbl0,lbl1,lbl2,lbl3", "--out", str(tmp_path / "t.npy")]) == 0
     t = np.load(tmp_path / "t.npy")
     assert np.mean(t[4:][lab[4:] < 4] == lab[4:][lab[4:] < 4]) > 0.97

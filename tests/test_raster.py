@@ -8,7 +8,6 @@ import pytest
 from drsplat import _raster_kernels as kernels
 from drsplat import raster
 from drsplat.cameras import look_at_camera
-from drsplat.cameras import Camera
 from drsplat.raster import (
     SH_C0,
     SH_C1,
@@ -24,75 +23,14 @@ from drsplat.raster import (
     rasterize_reference,
 )
 from drsplat.scene import GaussianScene, load_ply
+from drsplat.testing import (
+    assert_agree,
+    assert_physical,
+    front_camera,
+    gaussians,
+    random_scene,
+)
 from tests.conftest import shared_path
-
-
-def random_scene(rng: np.random.Generator, n: int, sh_degree: int = 0, spread: float = 1.0, log_scale=(-3.5, -1.0)) -> GaussianScene:
-    return GaussianScene(
-        means=(rng.normal(size=(n, 3)) * spread).astype(np.float32),
-        quats=rng.normal(size=(n, 4)).astype(np.float32),
-        log_scales=rng.uniform(*log_scale, size=(n, 3)).astype(np.float32),
-        opacity_logits=rng.normal(0.0, 2.0, size=n).astype(np.float32),
-        sh=(rng.normal(size=(n, (sh_degree + 1) ** 2, 3)) * 0.6).astype(np.float32),
-    )
-
-
-def gaussians(means, log_scale=-2.0, opacity_logit=30.0, color=None) -> GaussianScene:
-    """Axis-aligned isotropic Gaussians at `means` [N, 3] with one scale, opacity and DC colour."""
-    means = np.asarray(means, np.float32).reshape(-1, 3)
-    n = means.shape[0]
-    sh = np.zeros((n, 1, 3), np.float32)
-    if color is not None:
-        sh[:, 0] = (np.asarray(color, np.float32) - 0.5) / SH_C0
-    return GaussianScene(
-        means=means,
-        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
-        log_scales=np.broadcast_to(np.asarray(log_scale, np.float32), (n, 3)).copy() if np.ndim(log_scale) < 2 else np.asarray(log_scale, np.float32),
-        opacity_logits=np.broadcast_to(np.asarray(opacity_logit, np.float32), (n,)).copy(),
-        sh=sh,
-    )
-
-
-def front_camera(width: int = 40, height: int = 30, cx: float | None = None, cy: float | None = None, z: float = -4.0) -> Camera:
-    """Camera at (0, 0, z) looking along +z, OpenCV axes aligned with the world's."""
-    return look_at_camera([0.0, 0.0, z], [0.0, 0.0, 0.0], width, height, fov_x_deg=50.0, cx=cx, cy=cy)
-
-
-def assert_agree(a, b, tol: float = 1e-5) -> None:
-    """Kernel output `a` equals reference output `b`: weights/rgb/depth/alpha within tol, ids
-    identical except between entries whose weights tie (then their order is arbitrary)."""
-    assert a.ids.shape == b.ids.shape and a.ids.dtype == np.int32 and a.weights.dtype == np.float32
-    np.testing.assert_allclose(a.weights, b.weights, atol=tol, rtol=0)
-    np.testing.assert_allclose(a.alpha, b.alpha, atol=tol, rtol=0)
-    for name in ("rgb", "depth"):
-        x, y = getattr(a, name), getattr(b, name)
-        assert (x is None) == (y is None)
-        if x is not None:
-            np.testing.assert_allclose(x, y, atol=tol, rtol=0)
-    differ = a.ids != b.ids
-    if differ.any():
-        w = b.weights.astype(np.float64)
-        gap_prev = np.abs(np.diff(w, axis=2, prepend=np.inf))
-        gap_next = np.abs(np.diff(w, axis=2, append=-np.inf))
-        tie = np.minimum(gap_prev, gap_next) < 1e-7
-        assert not (differ & ~tie).any(), f"{int((differ & ~tie).sum())} ids differ where weights do not tie"
-    assert a.num_nonfinite == b.num_nonfinite
-
-
-def assert_physical(out, topk: int) -> None:
-    """Invariants of any 3DGS top-k output."""
-    for arr in (out.weights, out.alpha, out.rgb, out.depth):
-        if arr is not None:
-            assert np.isfinite(arr).all()
-    w = out.weights.astype(np.float64)
-    assert (w >= 0).all()
-    assert (np.diff(w, axis=2) <= 0).all(), "weights must be sorted in descending order"
-    assert ((out.ids >= 0) == (w > 0)).all(), "ids are -1 exactly where weights are 0"
-    assert (w.sum(axis=2) <= 1.0 - T_MIN + 1e-6).all()
-    assert (w.sum(axis=2) <= out.alpha + 1e-5).all()
-    assert ((0 <= out.alpha) & (out.alpha <= 1.0 - T_MIN + 1e-6)).all()
-    ids = np.sort(out.ids, axis=2)
-    assert not ((ids[..., 1:] == ids[..., :-1]) & (ids[..., 1:] >= 0)).any(), "a Gaussian appears twice in one pixel"
 
 
 @pytest.mark.parametrize("seed, sh_degree, topk", [(0, 0, 8), (1, 1, 1), (2, 2, 64), (3, 3, 20)])
@@ -298,8 +236,10 @@ def test_projection_kernel_matches_reference():
     assert 0 < a.valid.sum() < 500 and a.num_behind == b.num_behind > 0
     for name in ("radii", "tile_rects"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-    for name in ("means2d", "conics", "extents", "qlimits", "depths"):
+    for name in ("means2d", "extents", "qlimits", "depths"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-12)
+    # conics invert 2D covariances of condition up to ~1e8 here (log-scales -9..4, float64 Σ): agreement ~ cond · eps
+    np.testing.assert_allclose(a.conics, b.conics, rtol=1e-7, atol=1e-12)
     assert a.num_nonfinite == b.num_nonfinite == 0
 
 
@@ -463,3 +403,60 @@ def test_any_split_of_the_tiles_gives_bit_identical_images(monkeypatch, n_worker
     assert_agree(out, rasterize_reference(scene, cam, 12, with_rgb=True, with_depth=True))
     for name in ("ids", "weights", "rgb", "depth", "alpha"):
         np.testing.assert_array_equal(getattr(out, name), getattr(baseline, name))
+
+
+def _get_rect_3dgs(point_image, max_radius, grid, block):
+    """INRIA 3DGS's getRect (auxiliary.h), transcribed statement by statement (C's int cast truncates)."""
+    rect_min = [min(grid[i], max(0, int((point_image[i] - max_radius) / block))) for i in range(2)]
+    rect_max = [min(grid[i], max(0, int((point_image[i] + max_radius + block - 1) / block))) for i in range(2)]
+    return rect_min, rect_max
+
+
+def test_tile_rect_rule_is_3dgs_getrect_on_any_position():
+    rng = np.random.default_rng(43)
+    uv = rng.uniform(-60, 140, size=(20000, 2))
+    radii = rng.integers(0, 40, 20000).astype(np.float64)
+    rects = raster._tile_rects(uv, radii, 83, 45, 16)
+    for g in range(uv.shape[0]):
+        rmin, rmax = _get_rect_3dgs(uv[g] - 0.5, int(radii[g]), (6, 3), 16)
+        assert [rmin[0], rmin[1], rmax[0], rmax[1]] == rects[g].tolist(), g
+
+
+@pytest.mark.parametrize("engine", ["numba", "reference", "torch"])
+def test_tile_rectangles_are_3dgs_getrect(engine):
+    """Every projected Gaussian's tiles follow 3DGS's getRect, with 3DGS's point_image = our screen
+    mean - 0.5 (its pixel centres are integers); all engines cull the same Gaussians."""
+    rng = np.random.default_rng(37)
+    scene = random_scene(rng, 3000, spread=2.0, log_scale=(-6.0, 0.5))
+    cam = front_camera(83, 45, cx=30.0, cy=25.0, z=-3.0)
+    if engine == "torch":
+        from drsplat.raster_torch import project_gaussians_torch
+
+        p = project_gaussians_torch(scene, cam)
+        valid, rects, uv, radii = p.valid.numpy(), p.tile_rects.numpy(), p.means2d.numpy(), p.radii.numpy()
+    else:
+        p = (project_gaussians if engine == "numba" else project_gaussians_reference)(scene, cam)
+        valid, rects, uv, radii = p.valid, p.tile_rects, p.means2d, p.radii
+    grid = (-(-cam.width // 16), -(-cam.height // 16))
+    for g in np.flatnonzero(valid):
+        rmin, rmax = _get_rect_3dgs((uv[g, 0] - 0.5, uv[g, 1] - 0.5), int(radii[g]), grid, 16)
+        assert [rmin[0], rmin[1], rmax[0], rmax[1]] == rects[g].tolist(), g
+    assert valid.sum() > 1000
+    np.testing.assert_array_equal(valid, project_gaussians_reference(scene, cam).valid)
+
+
+def test_getrect_differs_from_the_pixel_centre_rule_only_at_tile_borders():
+    """The documented difference (docs/raster.md): getRect may add the tile below/left of p - r and drop
+    the tile whose first pixel lies in [p + r - 1, p + r]; never anything else."""
+    rng = np.random.default_rng(41)
+    p = rng.uniform(-40, 200, 20000)
+    r = rng.integers(0, 30, 20000).astype(float)
+    lo_get = np.clip(np.floor((p - r) / 16), 0, 10)
+    hi_get = np.clip(np.floor((p + r + 15) / 16), 0, 10)
+    first, last = np.clip(np.ceil(p - r), 0, 160), np.clip(np.floor(p + r), -1, 159)
+    nonempty = first <= last
+    lo_px, hi_px = first // 16, last // 16 + 1
+    both = nonempty & (hi_get > lo_get)
+    assert ((lo_get[both] == lo_px[both]) | (lo_get[both] == lo_px[both] - 1)).all()
+    assert ((hi_get[both] == hi_px[both]) | (hi_get[both] == hi_px[both] - 1)).all()
+    assert (lo_get[both] != lo_px[both]).mean() > 0.01 and (hi_get[both] != hi_px[both]).mean() > 0.01

@@ -217,3 +217,56 @@ def test_written_files_get_normal_permissions(tmp_path):
     mask = os.umask(0o022)
     os.umask(mask)
     assert (path.stat().st_mode & 0o777) == 0o666 & ~mask
+
+
+def test_covariances_are_float64_and_match_a_float64_reference():
+    """Σ = R S Sᵀ Rᵀ in float64 (the docs' promise), R from float64-normalised quaternions and S the
+    scene's float32 scales: tiny and huge scales keep their eigenvalues (float32 would lose the small ones)."""
+    rng = np.random.default_rng(3)
+    n = 64
+    quats = rng.standard_normal((n, 4)).astype(np.float32)
+    log_scales = rng.uniform(-12, 5, (n, 3)).astype(np.float32)  # scales 6e-6 .. 150
+    scene = GaussianScene(np.zeros((n, 3), np.float32), quats, log_scales, np.zeros(n, np.float32), np.zeros((n, 1, 3), np.float32))
+    cov = scene.covariances()
+    assert cov.dtype == np.float64
+    for i in range(n):
+        w, x, y, z = quats[i].astype(np.float64) / np.linalg.norm(quats[i].astype(np.float64))
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        scale = np.exp(log_scales[i]).astype(np.float64)  # float32 exp: the scene's own scales
+        ref = R @ np.diag(scale**2) @ R.T
+        np.testing.assert_allclose(cov[i], ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+        eig = np.sort(scale**2)
+        # float32 would be off by ~1e-7 · max (wiping eigenvalues 1e-13 smaller); float64 by ~1e-16 · max
+        np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(cov[i])), eig, rtol=1e-9, atol=1e-12 * eig.max())
+
+
+def test_compressed_sh_codes_decode_like_splat_transform():
+    """PlayCanvas splat-transform's decoder: t = 0 for code 0, 1 for 255, (v + 0.5)/256 otherwise; value = (t - 0.5)·8.
+
+    Values derived by hand from that rule: 0 -> -4, 255 -> +4, 128 -> (128.5/256 - 0.5)·8 = 0.015625,
+    1 -> 1.5/32 - 4 = -3.953125, 254 -> 254.5/32 - 4 = 3.953125.
+    """
+    from drsplat.scene import decode_sh_bytes
+
+    codes = np.array([0, 255, 128, 1, 254], np.uint8)
+    np.testing.assert_array_equal(decode_sh_bytes(codes), np.array([-4.0, 4.0, 0.015625, -3.953125, 3.953125], np.float32))
+
+
+def test_compressed_ply_with_sh_end_codes_loads_to_plus_minus_four(tmp_path):
+    """A hand-built compressed PLY (1 splat, degree 1): f_rest codes 0 and 255 read back as -4 and +4."""
+    chunk_props = [f"{k}_{a}" for k in ("min", "max") for a in "xyz"] + [f"{k}_scale_{a}" for k in ("min", "max") for a in "xyz"]
+    lines = ["ply", "format binary_little_endian 1.0", "element chunk 1"] + [f"property float {p}" for p in chunk_props]
+    lines += ["element vertex 1"] + [f"property uint packed_{p}" for p in ("position", "rotation", "scale", "color")]
+    lines += ["element sh 1"] + [f"property uchar f_rest_{i}" for i in range(9)] + ["end_header"]
+    chunk = np.array([0, 0, 0, 1, 1, 1, -1, -1, -1, 1, 1, 1], "<f4").tobytes()
+    rot = (0 << 30) | (511 << 20) | (511 << 10) | 511
+    vertex = np.array([0, rot, 0, 0xFFFFFF80], "<u4").tobytes()
+    sh = np.array([0, 255, 0, 255, 0, 255, 128, 1, 254], np.uint8).tobytes()
+    path = tmp_path / "c.ply"
+    path.write_bytes(("\n".join(lines) + "\n").encode() + chunk + vertex + sh)
+    scene, report = load_ply_report(path)
+    assert report.layout == "compressed" and scene.sh_degree == 1
+    rest = scene.sh[0, 1:, :].T.reshape(-1)  # back to file order (channel-major)
+    np.testing.assert_array_equal(rest, np.array([-4, 4, -4, 4, -4, 4, 0.015625, -3.953125, 3.953125], np.float32))

@@ -38,7 +38,7 @@ def app(registered, dataset):
     assert state.load_scene(registered)
     assert state.load_source(dataset)
     try:
-        viewer = ViewerApp(state, 320, 240, platform="null")
+        viewer = ViewerApp(state, 320, 240, platform="null", layout_path=None)
     except Exception as exc:  # noqa: BLE001
         pytest.skip(f"GLFW null platform with an EGL context is unavailable: {exc}")
     yield viewer
@@ -149,40 +149,41 @@ def test_registration_refuses_without_cameras(dataset, tmp_path):
     assert "training cameras" in state.messages[-1].text
 
 
-def _draw_in_frame(app, *panels):
+def _draw_in_frame(app):
     from imgui_bundle import imgui
 
     imgui.backends.opengl3_new_frame()
     imgui.backends.glfw_new_frame()
     imgui.new_frame()
-    imgui.begin("test")
-    for panel in panels:
-        panel(app)
-    imgui.end()
+    app.panels.show_help = True
+    app.panels.view.show_frusta = True
+    app.panels.draw(app)
+    app.draw_overlays()
     imgui.render()
     imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
 
 
 def test_every_panel_draws_in_every_state(app, tmp_path):
     """Each panel's imgui calls run with a query, a segmentation, a running registration, errors."""
-    from viewer import panels
     from viewer.state import RegistrationJob
 
     state = app.state
-    all_panels = (panels.scene_panel, panels.view_panel, panels.query_panel, panels.display_panel, panels.registration_panel, panels.messages_panel)
-    _draw_in_frame(app, *all_panels)
+    app.panels.open_next.update({"Query options": True, "Registration": True, "Messages": True})
+    _draw_in_frame(app)
     assert state.run_oracle_query(0)
     for mode in ("highlight", "heatmap", "selection", "hide_selection"):
         assert state.set_mode(mode)
-        _draw_in_frame(app, *all_panels)
+        _draw_in_frame(app)
     assert state.run_segmentation(None)
-    app.register_codebook = "file"
+    app.panels.registration.codebook = "file"
     state.error("a long error message " * 10)
     state.registration = RegistrationJob(output=tmp_path / "r.ply", done=3, total=10)
-    _draw_in_frame(app, *all_panels)
+    _draw_in_frame(app)
     state.registration.finished = state.registration.reported = True
     assert not state.start_registration(tmp_path / "r.ply", codebook="")
     assert "codebook file" in state.messages[-1].text
+    app.panels.show_help = False
+    app.panels.view.show_frusta = False
     app.run(max_frames=1)
 
 
@@ -237,3 +238,229 @@ def test_viewer_and_cli_registration_write_the_same_ply(dataset, tmp_path):
     assert cli_out.read_bytes() == gui_out.read_bytes()
     field = read_field(load_ply(cli_out), cli_out)
     assert field.clip_model == "oracle"
+
+
+def _press(app, key, frames=1, ctrl=False, shift=False):
+    """A key press and release through imgui's input queue (what the GLFW backend feeds it)."""
+    from imgui_bundle import imgui
+
+    io = imgui.get_io()
+    mods = [m for m, on in ((imgui.Key.mod_ctrl, ctrl), (imgui.Key.mod_shift, shift)) if on]
+    for m in mods:
+        io.add_key_event(m, True)
+    io.add_key_event(key, True)
+    app.run(max_frames=frames)
+    io.add_key_event(key, False)
+    for m in mods:
+        io.add_key_event(m, False)
+    app.run(max_frames=1)
+
+
+def test_hotkeys_snap_reset_toggle_highlight_and_help(app):
+    from imgui_bundle import imgui
+
+    state = app.state
+    app.release_focus()
+    app.panels.view.camera_index = 0
+    _press(app, imgui.Key.n)
+    np.testing.assert_allclose(app.view.camera().R, state.cameras[1].R, atol=1e-6)
+    _press(app, imgui.Key.p)
+    np.testing.assert_allclose(app.view.camera().R, state.cameras[0].R, atol=1e-6)
+    _press(app, imgui.Key.r)
+    np.testing.assert_allclose(app.view.eye, app.view.home[0])
+    assert state.run_oracle_query(state.oracle.names.index("ball"))
+    assert state.mode == "highlight"
+    _press(app, imgui.Key.h)
+    assert state.mode == "color"
+    _press(app, imgui.Key.h)
+    assert state.mode == "highlight"
+    _press(app, imgui.Key.f1)
+    assert app.panels.show_help
+    _press(app, imgui.Key.escape)
+    assert not app.panels.show_help
+
+
+def test_wasd_moves_after_a_widget_had_focus_but_not_while_typing(app):
+    from imgui_bundle import imgui
+
+    app.view.mode = "fly"
+    imgui.set_window_focus("drsplat")  # a click on a panel: imgui keeps keyboard focus (it used to block WASD)
+    app.run(max_frames=1)
+    eye = app.view.eye.copy()
+    _press(app, imgui.Key.w, frames=3)
+    assert np.linalg.norm(app.view.eye - eye) > 0, "WASD moves while a panel (not a text field) has focus"
+    _press(app, imgui.Key.slash)  # focus the query field: typing
+    app.run(max_frames=2)
+    assert imgui.get_io().want_text_input
+    eye = app.view.eye.copy()
+    _press(app, imgui.Key.w, frames=3)
+    np.testing.assert_allclose(app.view.eye, eye, err_msg="keys typed into a text field do not move the camera")
+    _press(app, imgui.Key.escape)
+    app.run(max_frames=2)
+    assert not imgui.get_io().want_text_input, "Esc gives the keys back to the scene"
+    app.view.mode = "orbit"
+
+
+def test_ctrl_e_exports_in_the_chosen_format(app, tmp_path):
+    from imgui_bundle import imgui
+
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply
+
+    state = app.state
+    assert state.run_oracle_query(state.oracle.names.index("ball"))
+    app.panels.query.export_path = str(tmp_path / "ball.ply")
+    app.panels.query.export_format = "drsplat"
+    app.release_focus()
+    _press(app, imgui.Key.e, ctrl=True)
+    out = tmp_path / "ball.ply"
+    assert out.is_file() and read_field(load_ply(out), out) is not None
+    assert "drsplat PLY" in state.messages[-1].text
+
+
+def _settle(app):
+    """Let the background sort finish and its order be drawn."""
+    deadline = time.time() + 20
+    app.run(max_frames=1)
+    while app.renderer.sorter.busy or app.still_progress() is not None:
+        assert time.time() < deadline
+        app.run(max_frames=1)
+        time.sleep(0.01)
+
+
+def test_still_frames_are_drawn_progressively_and_equal_a_whole_frame(app, monkeypatch):
+    import viewer.app
+
+    app.input.last_change = 0.0  # still
+    app.view.rotate(25, 0)
+    _settle(app)
+    monkeypatch.setattr(viewer.app, "MIN_STILL_CHUNK", 100)
+    monkeypatch.setattr(viewer.app, "next_still_chunk", lambda chunk, num, seconds, target=0: 700)
+    app.progressive = True
+    app._still_chunk = 700  # the tiny scene in 4 chunks
+    app._drawn_key = None
+    progress = []
+    for _ in range(10):
+        app.run(max_frames=1)
+        progress.append(app.still_progress())
+        if progress[-1] is None:
+            break
+    assert len(progress) >= 4 and progress[-1] is None, progress
+    assert all(0 < p < 1 for p in progress[:-1]), "the status line shows the progress in between"
+    chunked = _screen(app).copy()
+    app.progressive = False
+    app._drawn_key = None
+    app.run(max_frames=1)
+    app.progressive = True
+    np.testing.assert_array_equal(chunked, _screen(app), err_msg="chunks drawn in order blend to the same image")
+
+
+def test_the_loop_sleeps_when_nothing_changes(app, monkeypatch):
+    import viewer.app as va
+
+    assert va.idle_timeout(True, 0, False) is None
+    assert va.idle_timeout(False, 2, False) is None, "input arrived: draw now"
+    assert va.idle_timeout(False, 0, True) == va.JOB_WAIT_SECONDS
+    assert va.idle_timeout(False, 0, False) == va.IDLE_WAIT_SECONDS
+    app.input.last_change = 0.0
+    app.run(max_frames=4)
+    deadline = time.time() + 10
+    while app.renderer.sorter.busy and time.time() < deadline:
+        app.run(max_frames=1)
+    _settle(app)
+    app.input.events = 0
+    waited = []
+    monkeypatch.setattr(va.glfw, "wait_events_timeout", waited.append)
+    assert app.wait_for_events() == va.IDLE_WAIT_SECONDS
+    assert waited == [va.IDLE_WAIT_SECONDS], "idle: the loop sleeps in glfw.wait_events_timeout instead of spinning"
+    frames = app.frames
+    app.frame()
+    assert app.renderer.times.drawn and app._drawn_key is not None and app.still_progress() is None
+    app.camera_changed()
+    assert app.wait_timeout() is None, "the camera moves: draw at once"
+    assert app.frames == frames + 1
+
+
+def test_up_axis_roll_and_training_camera_frusta(app):
+    from viewer.camera import frustum_segments, project_segments
+
+    view = app.view
+    cams = app.state.cameras
+    view.set_up_axis("+Z")
+    np.testing.assert_allclose(view.up, [0, 0, 1])
+    view.set_up_axis("auto", cams)
+    mean_up = -np.mean([c.R[1] for c in cams], axis=0)
+    np.testing.assert_allclose(view.up, mean_up / np.linalg.norm(mean_up))
+    R0 = view.camera().R
+    view.set_roll(np.pi / 2)
+    R1 = view.camera().R
+    np.testing.assert_allclose(R1[2], R0[2], atol=1e-12, err_msg="roll keeps the view direction")
+    np.testing.assert_allclose(R1[0], -R0[1], atol=1e-12)
+    view.set_roll(0.0)
+    # a camera sees its own frustum's far rectangle on its image border
+    cam = cams[2]
+    uv = project_segments(cam, frustum_segments([cam], 0.5))
+    corners = uv[1::2].reshape(-1, 2)
+    assert np.allclose(np.sort(np.unique(np.round(corners[:, 0], 6))), [0, cam.width]) and np.allclose(np.sort(np.unique(np.round(corners[:, 1], 6))), [0, cam.height])
+    # a segment reaching behind the camera is clipped at the near plane, one wholly behind is dropped
+    behind = np.array([[cam.center - 2 * cam.R[2], cam.center - 3 * cam.R[2]], [cam.center + cam.R[2], cam.center - cam.R[2]]])
+    assert project_segments(cam, behind).shape == (1, 2, 2)
+    with pytest.raises(ValueError):
+        view.set_up_axis("diagonal")
+
+
+def test_open_and_drop_a_ply(app, registered, dataset, tmp_path, monkeypatch):
+    import viewer.app
+
+    state = app.state
+    monkeypatch.setattr(viewer.app.shutil, "which", lambda tool: None)
+    monkeypatch.setattr(viewer.app.sys, "platform", "linux")
+    app.open_file_dialog()
+    assert "no file dialog" in state.messages[-1].text and app._file_dialog is None
+    app._dropped = [str(tmp_path / "notes.txt")]
+    app.run(max_frames=1)
+    assert "none a .ply" in state.messages[-1].text
+    app._dropped = [str(dataset / "scene.ply")]
+    app.run(max_frames=1)
+    assert state.scene_path == dataset / "scene.ply" and state.field is None
+    assert not app.open_scene(tmp_path / "missing.ply")
+    assert state.scene_path == dataset / "scene.ply", "a failed open keeps the scene"
+    assert app.open_scene(registered)
+    assert state.load_source(dataset)
+    app.run(max_frames=2)
+    assert app.renderer.num == state.num_gaussians
+
+
+def test_layout_file_lives_in_the_user_config_dir(app, monkeypatch, tmp_path):
+    from imgui_bundle import imgui
+
+    from viewer.paths import default_layout_path, derived_output, writable_output
+
+    assert imgui.get_io().get_ini_filename() in ("", None), "the tests' window keeps no layout file"
+    monkeypatch.setenv("DRSPLAT_CONFIG_DIR", str(tmp_path / "cfg"))
+    assert default_layout_path() == tmp_path / "cfg" / "imgui.ini"
+    monkeypatch.delenv("DRSPLAT_CONFIG_DIR")
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    assert default_layout_path() == tmp_path / "xdg" / "drsplat" / "imgui.ini"
+    # outputs next to a read-only scene fall back to the user data dir
+    monkeypatch.setenv("DRSPLAT_DATA_DIR", str(tmp_path / "data"))
+    scene = tmp_path / "ro" / "scene.ply"
+    scene.parent.mkdir()
+    assert derived_output(scene, "_registered") == tmp_path / "ro" / "scene_registered.ply"
+    import viewer.paths
+
+    monkeypatch.setattr(viewer.paths.os, "access", lambda path, mode: False)
+    assert writable_output(tmp_path / "ro" / "x.ply") == tmp_path / "data" / "x.ply"
+    assert derived_output(scene, "_registered") == tmp_path / "data" / "scene_registered.ply"
+
+
+def test_no_display_is_reported_before_anything_is_generated(monkeypatch, capsys):
+    import viewer.launch
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("DRSPLAT_VIEWER_PLATFORM", raising=False)
+    monkeypatch.setattr(viewer.launch, "build_state", lambda args: pytest.fail("nothing may be loaded or generated"))
+    assert viewer.launch.main([]) == 1
+    err = capsys.readouterr().err
+    assert "no display" in err and "--screenshot" in err and err.count("ERROR") == 1

@@ -1,7 +1,7 @@
 """Viewer, headless: EGL rendering against drsplat.raster, query highlights, export, screenshots.
 
-The demo scene is the tiny synthetic preset, generated and registered by viewer.launch.prepare_demo
-(the same path `python main.py` takes on first run) into a temporary cache.
+The demo scene is the pre-registered one shipped in assets/demo (the tiny synthetic preset, PQ
+field, unassigned Gaussians kept so rows match gt/labels.npy): what `python main.py` opens.
 """
 
 from __future__ import annotations
@@ -29,12 +29,11 @@ def gl_context():
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    from viewer.launch import prepare_demo
+def demo():
+    from viewer.demo import demo_available, demo_dir
 
-    root = tmp_path_factory.mktemp("cache")
-    registered, dataset = prepare_demo("tiny", root)
-    return registered, dataset
+    assert demo_available(), "assets/demo is missing: rebuild it with `python -m viewer.demo`"
+    return demo_dir() / "registered.ply", demo_dir()
 
 
 @pytest.fixture
@@ -143,12 +142,16 @@ def test_view_dependent_colour_matches_the_rasterizer_for_every_sh_degree(gl_con
 
 
 def _gt_labels(state) -> np.ndarray:
-    """Ground-truth labels of the loaded (registered, pruned) scene, matched to the original by position."""
+    """Ground-truth labels of the loaded scene: row for row when it kept every Gaussian (the shipped
+    demo), else (a pruned registration) matched to the original scene by position."""
     from drsplat.eval.metrics import match_gaussians
     from drsplat.scene import load_ply
 
+    labels = np.load(state.source_dir / "gt" / "labels.npy")
+    if labels.shape[0] == state.num_gaussians:
+        return labels
     original = load_ply(state.source_dir / "scene.ply")
-    return np.load(state.source_dir / "gt" / "labels.npy")[match_gaussians(original.means, state.scene.means)]
+    return labels[match_gaussians(original.means, state.scene.means)]
 
 
 def test_highlight_appears_where_the_selection_projects_and_nowhere_else(state, gl_context):
@@ -257,7 +260,7 @@ def test_text_query_with_an_encoder_uses_relevancy_and_negatives(state):
 def test_export_writes_a_ply_that_loads_back_with_the_selection(state, tmp_path):
     from drsplat.scene import load_ply
 
-    assert state.export_selection(tmp_path / "none.ply") is None
+    assert state.export_selection(tmp_path / "none.ply") is None  # standard format by default
     assert "selection is empty" in state.messages[-1].text
     assert state.run_oracle_query(_label_index(state, "crate"))
     selected = state.selection
@@ -316,10 +319,11 @@ def test_screenshot_command_writes_a_png_of_the_scene(demo, tmp_path, monkeypatc
     assert image.std() > 10
     highlight = (image[..., 0] > 180) & (image[..., 2] > 150) & (image[..., 1] < 90)
     assert highlight.sum() > 5, "the queried ball must be highlighted"
-    # the demo path: no SCENE, generated into the cache on first run (already there: reused)
-    monkeypatch.setenv("DRSPLAT_CACHE", str(registered.parent.parent))
+    # the demo path: no SCENE opens the shipped demo at once (nothing generated)
+    monkeypatch.setenv("DRSPLAT_CACHE", str(tmp_path / "cache"))
     out2 = tmp_path / "demo.png"
-    assert main(["--demo-preset", "tiny", "--screenshot", str(out2), "--width", "96", "--height", "64"]) == 0
+    assert main(["--screenshot", str(out2), "--width", "96", "--height", "64", "--oracle", "mug"]) == 0
+    assert not (tmp_path / "cache").exists(), "the shipped demo needs no generation"
     assert np.asarray(Image.open(out2)).shape == (64, 96, 3)
 
 
@@ -331,7 +335,8 @@ def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--camera", "99"]) == 1
     assert "out of range" in capsys.readouterr().err
     assert main([str(tmp_path / "missing.ply"), "--screenshot", str(out)]) == 1
-    assert "missing.ply" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "missing.ply" in err and err.count("ERROR") == 1, "a start-up error is printed once"
     assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--oracle", "unicorn"]) == 1
     assert "unicorn" in capsys.readouterr().err
     assert not out.exists()

@@ -10,6 +10,8 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +24,9 @@ import moderngl
 
 from drsplat.cameras import Camera
 from drsplat.utils import atomic_path
-from viewer.camera import ViewController, camera_for_size
+from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
+from viewer.panels import Panels
+from viewer.paths import default_layout_path
 from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
 from viewer.state import ViewerState
 
@@ -33,6 +37,13 @@ MOVING_SCALE = 0.5  # render resolution factor while the camera moves
 MOVING_FRAME_SECONDS = 0.1  # the moving subsample adapts towards this draw time
 MIN_MOVING_SPLATS = 20_000
 FLY_SPEED = 0.4  # scene-distance units per second (times the orbit distance)
+STILL_CHUNK_SECONDS = 0.05  # a still frame is drawn in chunks of about this much draw time per GUI frame
+MIN_STILL_CHUNK = 5_000
+IDLE_WAIT_SECONDS = 0.5  # nothing to do: sleep in glfw.wait_events_timeout at most this long
+JOB_WAIT_SECONDS = 0.1  # a background job (registration, CLIP loading, sort) runs: poll it this often
+ACTIVE_FRAMES = 3  # frames drawn after an input event (imgui settles hover / release states)
+USE_LAYOUT_DEFAULT = object()
+DIALOG_HELPERS = ("zenity", "kdialog", "matedialog", "qarma")  # what portable_file_dialogs runs on Linux
 
 
 def next_moving_budget(budget: int, num: int, seconds: float) -> int:
@@ -52,6 +63,30 @@ def calibrated_moving_budget(num: int, full_seconds: float) -> int:
     cheaper per splat, so this starts a little low and next_moving_budget grows it."""
     share = MOVING_FRAME_SECONDS / max(full_seconds, 1e-4)
     return int(np.clip(num * share, min(num, MIN_MOVING_SPLATS), num))
+
+
+def still_chunk_target(frame_overhead: float) -> float:
+    """Draw seconds per GUI frame for a progressive still frame: STILL_CHUNK_SECONDS, or twice the
+    rest of a GUI frame (panels, copy, swap) when that is larger, so that drawing in chunks takes
+    at most ~1.5x the time of one whole draw (total = D + (D / c) * overhead)."""
+    return max(STILL_CHUNK_SECONDS, 2.0 * frame_overhead)
+
+
+def next_still_chunk(chunk: int, num: int, seconds: float, target: float = STILL_CHUNK_SECONDS) -> int:
+    """Splats per GUI frame of a progressive still frame, given that `chunk` took `seconds`:
+    proportional towards `target` seconds (x0.5-x2 per step), within [MIN_STILL_CHUNK, num]."""
+    factor = float(np.clip(target / max(seconds, 1e-4), 0.5, 2.0))
+    return int(np.clip(chunk * factor, min(num, MIN_STILL_CHUNK), max(num, 1)))
+
+
+def idle_timeout(animating: bool, events_pending: int, jobs_running: bool) -> float | None:
+    """How long the main loop may sleep in glfw.wait_events_timeout before the next frame:
+    None (do not wait: draw now) while the camera moves, a still frame is being drawn or input
+    arrived in the last ACTIVE_FRAMES frames; JOB_WAIT_SECONDS while a background job runs (its
+    progress shows); IDLE_WAIT_SECONDS otherwise (any input event wakes the loop at once)."""
+    if animating or events_pending > 0:
+        return None
+    return JOB_WAIT_SECONDS if jobs_running else IDLE_WAIT_SECONDS
 
 
 def save_png(image: np.ndarray, path: str | Path) -> Path:
@@ -87,18 +122,49 @@ class InputState:
     last_change: float = 0.0
     last_time: float = 0.0
     drag_distance: float = 0.0
+    events: int = 0  # frames still to draw after input events (see idle_timeout)
+
+
+@dataclass
+class StillFrame:
+    """A still frame drawn progressively: the view it is of, and how far the draw got."""
+
+    key: tuple
+    camera: Camera
+    drawn: int = 0
+    total: int = 0
+    seconds: float = 0.0  # summed draw time
+
+    @property
+    def fraction(self) -> float:
+        return self.drawn / self.total if self.total else 1.0
 
 
 class ViewerApp:
-    """The window: camera input, splat drawing, the panels (viewer.panels) and screenshots."""
+    """The window: camera input, hotkeys, splat drawing (progressive when still), the panels
+    (viewer.panels, which own their widget state), file open / drop, and screenshots.
 
-    def __init__(self, state: ViewerState, width: int = 1280, height: int = 720, title: str = "drsplat viewer", platform: str | None = None):
+    layout_path: the imgui layout file (default: viewer.paths.default_layout_path(), in the
+    per-user config dir); None keeps no layout file (tests).
+    """
+
+    def __init__(self, state: ViewerState, width: int = 1280, height: int = 720, title: str = "drsplat viewer", platform: str | None = None, layout_path=USE_LAYOUT_DEFAULT):
         self.state = state
         self.platform = platform or os.environ.get("DRSPLAT_VIEWER_PLATFORM")
         self.window = self._create_window(width, height, title)
         self.ctx = moderngl.create_context(require=GL_REQUIRE)
+        self.input = InputState(last_time=time.perf_counter())
+        self._dropped: list[str] = []
+        self._install_event_callbacks()
         imgui.create_context()
-        imgui.get_io().config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value
+        io = imgui.get_io()
+        io.config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value | imgui.ConfigFlags_.docking_enable.value
+        self.layout_path = default_layout_path() if layout_path is USE_LAYOUT_DEFAULT else layout_path
+        if self.layout_path is None:
+            io.set_ini_filename(None)
+        else:
+            Path(self.layout_path).parent.mkdir(parents=True, exist_ok=True)
+            io.set_ini_filename(str(self.layout_path))
         imgui.backends.glfw_init_for_opengl(ctypes.cast(self.window, ctypes.c_void_p).value, True)
         imgui.backends.opengl3_init("#version 330")
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
@@ -107,33 +173,32 @@ class ViewerApp:
         self.renderer: SplatRenderer | None = None
         self.blitter = Blitter(self.ctx)
         self._target: OffscreenTarget | None = None
+        self._pending: OffscreenTarget | None = None
+        self._still: StillFrame | None = None
+        self._still_chunk = 0
+        self._frame_overhead = 0.0  # seconds of a GUI frame besides drawing splats (EMA)
         self._drawn_key: tuple | None = None
         self.moving_scale = MOVING_SCALE
         self.render_scale = 1.0
+        self.fly_speed = FLY_SPEED
+        self.progressive = True
         self._scene_version = -1
         self._budget_calibrated = False
         self._style_version = -1
-        self.input = InputState(last_time=time.perf_counter())
-        self.click_to_query = False
-        self.camera_index = 0
-        self.export_path = str(default_export_path(state))
-        self.screenshot_path = "screenshot.png"
-        self.register_output = str(default_registered_path(state))
-        self.register_topk = 40
-        self.register_level = 1
-        self.register_codebook = "none"
-        self.register_codebook_path = ""
-        self.query_text = ""
-        self.embedding_path = ""
-        self.segment_text = ""
+        self._file_dialog = None
+        self.panels = Panels()
+        self.panels.reset_paths(state)
         self.frame_seconds = 0.0
+        self.frames = 0
 
     def _create_window(self, width: int, height: int, title: str):
         preload_torch()
         if self.platform == "null":
             glfw.init_hint(glfw.PLATFORM, glfw.PLATFORM_NULL)
+        glfw.ERROR_REPORTING = "ignore"  # pyGLFW would print raw warnings; errors reach _glfw_error
+        glfw.set_error_callback(_glfw_error)
         if not glfw.init():
-            raise RuntimeError("GLFW could not be initialised (no display? use --screenshot for offscreen rendering)")
+            raise RuntimeError(no_display_message())
         if self.platform == "null":
             glfw.window_hint(glfw.CONTEXT_CREATION_API, glfw.EGL_CONTEXT_API)
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 4)
@@ -143,10 +208,27 @@ class ViewerApp:
         window = glfw.create_window(width, height, title, None, None)
         if not window:
             glfw.terminate()
-            raise RuntimeError("could not open an OpenGL 4.3 window (the viewer needs compute shaders)")
+            raise RuntimeError("could not open an OpenGL 4.3 window (the viewer needs compute shaders); use --screenshot for offscreen rendering")
         glfw.make_context_current(window)
         glfw.swap_interval(1)
         return window
+
+    def _install_event_callbacks(self) -> None:
+        """Callbacks that wake the render loop (imgui's backend, installed after, chains to them)
+        and collect dropped files."""
+
+        def wake(*_args) -> None:
+            self.input.events = ACTIVE_FRAMES
+
+        for setter in (glfw.set_cursor_pos_callback, glfw.set_mouse_button_callback, glfw.set_scroll_callback, glfw.set_key_callback,
+                       glfw.set_char_callback, glfw.set_window_size_callback, glfw.set_window_focus_callback, glfw.set_window_refresh_callback):
+            setter(self.window, wake)
+
+        def drop(_window, paths) -> None:
+            self._dropped.extend(paths)
+            wake()
+
+        glfw.set_drop_callback(self.window, drop)
 
     # ---------------------------------------------------------------- per frame
 
@@ -161,10 +243,12 @@ class ViewerApp:
                 self.renderer = SplatRenderer(self.ctx, state.scene)
                 fb_w, fb_h = glfw.get_framebuffer_size(self.window)
                 self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h)
+                self.panels.view.up_axis = "auto"
             self._scene_version = state.scene_version
             self._budget_calibrated = False
             self._style_version = -1
             self._drawn_key = None
+            self._still = None
         if self.renderer is not None and state.style_version != self._style_version:
             self.renderer.set_style(state.style())
             self._style_version = state.style_version
@@ -182,44 +266,109 @@ class ViewerApp:
         now = time.perf_counter()
         dt, self.input.last_time = now - self.input.last_time, now
         if not io.want_capture_mouse:
-            delta = io.mouse_delta
-            if imgui.is_mouse_clicked(imgui.MouseButton_.left):
-                self.input.drag_distance = 0.0
-            if imgui.is_mouse_down(imgui.MouseButton_.left) and (delta.x or delta.y):
-                self.input.drag_distance += abs(delta.x) + abs(delta.y)
-                if io.key_shift:
-                    self.view.pan(delta.x, delta.y)
-                else:
-                    self.view.rotate(delta.x, delta.y)
-                self.camera_changed()
-            if imgui.is_mouse_down(imgui.MouseButton_.right) and (delta.x or delta.y):
+            self._handle_mouse(io)
+        if keyboard_to_scene(io.want_text_input):
+            self.handle_hotkeys(io)
+            if self.view.mode == "fly":
+                self._fly(io, dt)
+        if imgui.is_key_pressed(imgui.Key.escape, False):
+            self.release_focus()
+            self.panels.show_help = False
+
+    def _handle_mouse(self, io) -> None:
+        delta = io.mouse_delta
+        if imgui.is_mouse_clicked(imgui.MouseButton_.left) or imgui.is_mouse_clicked(imgui.MouseButton_.right):
+            self.input.drag_distance = 0.0
+            self.release_focus()  # a click on the scene gives the keys back to the scene (WASD)
+        if imgui.is_mouse_down(imgui.MouseButton_.left) and (delta.x or delta.y):
+            self.input.drag_distance += abs(delta.x) + abs(delta.y)
+            if io.key_shift:
                 self.view.pan(delta.x, delta.y)
-                self.camera_changed()
-            if io.mouse_wheel:
+            else:
+                self.view.rotate(delta.x, delta.y)
+            self.camera_changed()
+        if imgui.is_mouse_down(imgui.MouseButton_.right) and (delta.x or delta.y):
+            self.view.pan(delta.x, delta.y)
+            self.camera_changed()
+        if io.mouse_wheel:
+            if self.view.mode == "fly":
+                self.fly_speed = float(np.clip(self.fly_speed * 1.2 ** io.mouse_wheel, 0.02, 5.0))
+                self.state.info(f"fly speed {self.fly_speed:.2f}")
+            else:
                 self.view.zoom(io.mouse_wheel)
                 self.camera_changed()
-            if imgui.is_mouse_released(imgui.MouseButton_.left) and self.input.drag_distance < 3 and (self.click_to_query or io.key_ctrl):
-                scale = self._framebuffer_scale()
-                self.state.click_query(self.view.camera(), io.mouse_pos.x * scale[0], io.mouse_pos.y * scale[1])
-        if not io.want_capture_keyboard and self.view.mode == "fly":
-            step = FLY_SPEED * max(self.view.distance, 1e-3) * dt * (3.0 if io.key_shift else 1.0)
-            move = np.zeros(3)
-            for key, axis, sign in ((imgui.Key.w, 2, 1), (imgui.Key.s, 2, -1), (imgui.Key.d, 0, 1), (imgui.Key.a, 0, -1), (imgui.Key.e, 1, -1), (imgui.Key.q, 1, 1)):
-                if imgui.is_key_down(key):
-                    move[axis] += sign * step
-            if move.any():
-                self.view.move(move)
-                self.camera_changed()
+        if imgui.is_mouse_released(imgui.MouseButton_.left) and self.input.drag_distance < 3 and (self.panels.query.click_to_query or io.key_ctrl):
+            scale = self._framebuffer_scale()
+            self.state.click_query(self.view.camera(), io.mouse_pos.x * scale[0], io.mouse_pos.y * scale[1])
+
+    def _fly(self, io, dt: float) -> None:
+        step = self.fly_speed * max(self.view.distance, 1e-3) * dt * (3.0 if io.key_shift else 1.0)
+        move = np.zeros(3)
+        for key, axis, sign in ((imgui.Key.w, 2, 1), (imgui.Key.s, 2, -1), (imgui.Key.d, 0, 1), (imgui.Key.a, 0, -1), (imgui.Key.e, 1, -1), (imgui.Key.q, 1, 1)):
+            if imgui.is_key_down(key) and not io.key_ctrl:
+                move[axis] += sign * step
+        if move.any():
+            self.view.move(move)
+            self.camera_changed()
+
+    def handle_hotkeys(self, io) -> None:
+        """The hotkeys of viewer.panels.HOTKEYS (only when imgui does not want text input)."""
+        pressed = lambda key: imgui.is_key_pressed(key, False)  # noqa: E731
+        ctrl = io.key_ctrl
+        if pressed(imgui.Key.f1) or (pressed(imgui.Key.slash) and io.key_shift):
+            self.panels.show_help = not self.panels.show_help
+        elif pressed(imgui.Key.slash) or (ctrl and pressed(imgui.Key.f)):
+            self.panels.query.request_focus()
+        elif ctrl and pressed(imgui.Key.e):
+            self.panels.query.export(self.state)
+        elif ctrl and pressed(imgui.Key.o):
+            self.open_file_dialog()
+        elif ctrl:
+            return
+        elif pressed(imgui.Key.h):
+            self.toggle_highlight()
+        elif pressed(imgui.Key.r):
+            self.reset_view()
+        elif pressed(imgui.Key.n):
+            self.panels.view.step_camera(self, 1)
+        elif pressed(imgui.Key.p):
+            self.panels.view.step_camera(self, -1)
+        elif pressed(imgui.Key.f):
+            self.view.mode = "orbit" if self.view.mode == "fly" else "fly"
+            self.state.info(f"{self.view.mode} mode")
+
+    def release_focus(self) -> None:
+        """Take keyboard focus from imgui's widgets (the keys then move the camera)."""
+        imgui.set_window_focus(None)
+
+    def toggle_highlight(self) -> None:
+        state = self.state
+        if state.query is None:
+            state.error("nothing to highlight: run a query first")
+            return
+        state.set_mode("color" if state.mode == "highlight" else "highlight")
 
     def _framebuffer_scale(self) -> tuple[float, float]:
         win_w, win_h = glfw.get_window_size(self.window)
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
         return fb_w / max(win_w, 1), fb_h / max(win_h, 1)
 
+    def _target_for(self, target: OffscreenTarget | None, camera: Camera) -> OffscreenTarget:
+        if target is None or (target.width, target.height) != (camera.width, camera.height):
+            if target is not None:
+                target.release()
+            target = OffscreenTarget(self.ctx, camera.width, camera.height)
+        return target
+
     def draw_scene(self) -> None:
-        """Splats are rendered on demand into an offscreen image (at MOVING_SCALE resolution and
-        with the moving subsample while the camera moves), then stretched over the window; a
-        frame where nothing changed only redraws the panels."""
+        """Splats are rendered on demand into an offscreen image, then copied (or stretched) over
+        the window; a frame where nothing changed only redraws the panels.
+
+        Moving: MOVING_SCALE resolution and the moving subsample, one frame at once. Still: the
+        exact full frame, drawn progressively (`progressive`) in chunks of about
+        STILL_CHUNK_SECONDS per GUI frame into a second image, which replaces the shown one
+        when complete; input is handled between chunks, and a camera change abandons it.
+        """
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
         if (fb_w, fb_h) != (self.view.width, self.view.height) and fb_w > 0 and fb_h > 0:
             self.view.resize(fb_w, fb_h)
@@ -229,20 +378,18 @@ class ViewerApp:
             camera = camera_for_size(self.view.camera(), max(1, int(fb_w * scale)), max(1, int(fb_h * scale)))
             if self.renderer.update_order(camera):
                 self._drawn_key = None
+                self._still = None
             key = (camera.R.tobytes(), camera.t.tobytes(), camera.fx, camera.width, camera.height, moving)
-            if key != self._drawn_key:
-                if self._target is None or (self._target.width, self._target.height) != (camera.width, camera.height):
-                    if self._target is not None:
-                        self._target.release()
-                    self._target = OffscreenTarget(self.ctx, camera.width, camera.height)
-                self._target.use()
-                self.renderer.draw(camera, moving=moving)
-                self._drawn_key = key
-                if moving:
+            if moving:
+                self._still = None
+                if key != self._drawn_key:
+                    self._target = self._target_for(self._target, camera)
+                    self._target.use()
+                    self.renderer.draw(camera, moving=True)
+                    self._drawn_key = key
                     self.adapt_moving_budget(self.renderer.times.draw)
-                elif not self._budget_calibrated:
-                    self.renderer.moving_budget = calibrated_moving_budget(self.renderer.num, self.renderer.times.draw)
-                    self._budget_calibrated = True
+            elif key != self._drawn_key:
+                self._draw_still_chunk(key, camera)
         self.ctx.screen.use()
         self.ctx.viewport = (0, 0, fb_w, fb_h)
         self.ctx.clear(0.0, 0.0, 0.0, 1.0)
@@ -252,42 +399,123 @@ class ViewerApp:
             else:
                 self.blitter.draw(self._target.texture)
 
+    def _draw_still_chunk(self, key: tuple, camera: Camera) -> None:
+        r = self.renderer
+        still = self._still
+        whole = not self.progressive or self._target is None or not self._budget_calibrated
+        if still is None or still.key != key:
+            self._pending = self._target_for(self._pending, camera)
+            self._pending.use()
+            self.ctx.clear(*r.background, 0.0)
+            start = time.perf_counter()
+            total = r.project(camera)
+            r.ctx.finish()
+            still = self._still = StillFrame(key, camera, total=total, seconds=time.perf_counter() - start)
+            if not self._still_chunk:
+                self._still_chunk = r.num
+        self._pending.use()
+        count = still.total - still.drawn if whole else min(self._still_chunk, still.total - still.drawn)
+        start = time.perf_counter()
+        r.draw_range(still.drawn, count)
+        seconds = time.perf_counter() - start
+        still.drawn += count
+        still.seconds += seconds
+        if count and not whole:
+            self._still_chunk = next_still_chunk(count, r.num, seconds, still_chunk_target(self._frame_overhead))
+        if still.drawn < still.total:
+            return
+        self._target, self._pending = self._pending, self._target
+        self._drawn_key = key
+        self._still = None
+        r.times.draw, r.times.drawn = still.seconds, still.total
+        if not self._budget_calibrated:
+            r.moving_budget = calibrated_moving_budget(r.num, still.seconds)
+            self._still_chunk = max(MIN_STILL_CHUNK, int(r.num * STILL_CHUNK_SECONDS / max(still.seconds, 1e-4)))
+            self._budget_calibrated = True
+
+    def still_progress(self) -> float | None:
+        """The progressive still frame's completed fraction, None when none is being drawn."""
+        return None if self._still is None else self._still.fraction
+
     def adapt_moving_budget(self, seconds: float) -> None:
         """Scale the moving subsample so that moving frames take about MOVING_FRAME_SECONDS."""
         r = self.renderer
         r.moving_budget = next_moving_budget(r.moving_budget, r.num, seconds)
 
-    def frame(self) -> None:
-        """One iteration of the main loop."""
-        from viewer.panels import draw_panels
+    def draw_overlays(self) -> None:
+        """Training-camera frusta (View panel), in imgui's background draw list (over the splats,
+        under the panels)."""
+        if not self.panels.view.show_frusta or not self.state.cameras or self.state.scene is None:
+            return
+        lo, hi = self.state.scene.bounding_box()
+        depth = 0.03 * float(np.linalg.norm(hi - lo))
+        camera = self.view.camera()
+        segments = project_segments(camera, frustum_segments(self.state.cameras, depth))
+        sx, sy = self._framebuffer_scale()
+        draw = imgui.get_background_draw_list()
+        color = imgui.get_color_u32(imgui.ImVec4(1.0, 0.85, 0.2, 0.9))
+        for (u0, v0), (u1, v1) in segments:
+            draw.add_line(imgui.ImVec2(u0 / sx, v0 / sy), imgui.ImVec2(u1 / sx, v1 / sy), color, 1.5)
 
+    def frame(self) -> None:
+        """One iteration of the main loop (events are polled or waited for by `run`)."""
         start = time.perf_counter()
-        glfw.poll_events()
         self.state.poll_registration()
+        self._poll_file_inputs()
         self.sync_scene()
         imgui.backends.opengl3_new_frame()
         imgui.backends.glfw_new_frame()
         imgui.new_frame()
         self.handle_input()
-        draw_panels(self)
+        self.panels.draw(self)
+        self.draw_overlays()
         imgui.render()
         self.sync_scene()
+        scene_start = time.perf_counter()
         self.draw_scene()
+        scene_seconds = time.perf_counter() - scene_start
         imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
         glfw.swap_buffers(self.window)
         self.frame_seconds = time.perf_counter() - start
+        overhead = max(0.0, self.frame_seconds - scene_seconds)
+        self._frame_overhead = overhead if self.frames == 0 else 0.8 * self._frame_overhead + 0.2 * overhead
+        self.frames += 1
+        self.input.events = max(0, self.input.events - 1)
+
+    def wait_timeout(self) -> float | None:
+        """idle_timeout of the current state."""
+        r = self.renderer
+        animating = self.moving or self._still is not None or (self.view.mode == "fly" and self._fly_keys_down())
+        sort_pending = r is not None and r.sorter.busy
+        job = self.state.registration
+        jobs = (job is not None and not job.finished) or sort_pending or self._file_dialog is not None or self.state.encoder_loading
+        return idle_timeout(animating, self.input.events, jobs)
+
+    def _fly_keys_down(self) -> bool:
+        return any(glfw.get_key(self.window, k) == glfw.PRESS for k in (glfw.KEY_W, glfw.KEY_A, glfw.KEY_S, glfw.KEY_D, glfw.KEY_Q, glfw.KEY_E))
+
+    def wait_for_events(self) -> float | None:
+        """Poll (something animates) or sleep until an event or the timeout; returns the timeout used."""
+        timeout = self.wait_timeout()
+        if timeout is None:
+            glfw.poll_events()
+        else:
+            glfw.wait_events_timeout(timeout)
+        return timeout
 
     def run(self, max_frames: int | None = None) -> None:
         frames = 0
         while not glfw.window_should_close(self.window) and (max_frames is None or frames < max_frames):
+            self.wait_for_events() if max_frames is None else glfw.poll_events()
             self.frame()
             frames += 1
 
     def close(self) -> None:
         if self.renderer is not None:
             self.renderer.release()
-        if self._target is not None:
-            self._target.release()
+        for target in (self._target, self._pending):
+            if target is not None:
+                target.release()
         self.blitter.release()
         imgui.backends.opengl3_shutdown()
         imgui.backends.glfw_shutdown()
@@ -297,6 +525,13 @@ class ViewerApp:
 
     # ---------------------------------------------------------------- actions used by the panels
 
+    def frame_stats(self) -> str:
+        r = self.renderer
+        if r is None:
+            return "no splats"
+        t = r.times
+        return f"frame {self.frame_seconds * 1000:.0f} ms, draw {t.draw * 1000:.0f} ms, {t.drawn:,} splats" + (" (moving subsample)" if t.drawn < r.num else "")
+
     def snap_to_camera(self, index: int) -> None:
         cams = self.state.cameras
         if not 0 <= index < len(cams):
@@ -304,11 +539,59 @@ class ViewerApp:
             return
         center = np.median(self.state.scene.means, axis=0) if self.state.scene is not None and self.state.num_gaussians else None
         self.view.snap_to(cams[index], center)
+        self.panels.view.camera_index = index
         self.camera_changed()
 
     def reset_view(self) -> None:
         self.view.reset()
         self.camera_changed()
+
+    def open_scene(self, path: str | Path) -> bool:
+        """Open another PLY (Scene panel, file dialog, drop). The training cameras and oracle
+        labels are kept when it lies in the same folder as the current scene (an export or a
+        registration of it), else dropped."""
+        path = Path(str(path).strip())
+        if not str(path):
+            self.state.error("type the path of a PLY to open")
+            return False
+        same_folder = self.state.scene_path is not None and path.resolve().parent == self.state.scene_path.resolve().parent
+        if not self.state.load_scene(path):
+            return False
+        if not same_folder:
+            self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
+        self.state.start_text_encoder()
+        self.panels.reset_paths(self.state)
+        return True
+
+    def open_file_dialog(self) -> None:
+        """A native file-open dialog (imgui-bundle's portable_file_dialogs), polled each frame."""
+        from imgui_bundle import portable_file_dialogs as pfd
+
+        if self._file_dialog is not None:
+            return
+        if sys.platform.startswith("linux") and not any(shutil.which(tool) for tool in DIALOG_HELPERS):
+            self.state.error(f"no file dialog on this machine (portable_file_dialogs needs one of {', '.join(DIALOG_HELPERS)}); "
+                             "type the path in the Scene section or drop the PLY on the window")
+            return
+        folder = str(self.state.scene_path.parent) if self.state.scene_path is not None else os.getcwd()
+        try:
+            self._file_dialog = pfd.open_file("Open a 3DGS PLY", folder, ["PLY files", "*.ply", "All files", "*"])
+        except Exception as exc:  # noqa: BLE001 - no dialog helper (zenity/kdialog) on this machine
+            self.state.error(f"no file dialog available ({exc}); type the path in the Scene panel or drop the file on the window")
+
+    def _poll_file_inputs(self) -> None:
+        dropped, self._dropped = self._dropped, []
+        plys = [p for p in dropped if p.lower().endswith(".ply")]
+        if dropped and not plys:
+            self.state.error(f"dropped {len(dropped)} file(s), none a .ply: drop a 3DGS PLY to open it")
+        if plys:
+            self.open_scene(plys[0])
+        dialog = self._file_dialog
+        if dialog is not None and dialog.ready(0):
+            self._file_dialog = None
+            chosen = dialog.result()
+            if chosen:
+                self.open_scene(chosen[0])
 
     def screenshot(self, path: str | Path) -> None:
         """Save the splats of the current view (without the panels) as PNG."""
@@ -319,17 +602,25 @@ class ViewerApp:
             image = render_offscreen(self.ctx, self.renderer, self.view.camera())
             save_png(image, path)
             self._drawn_key = None
+            self._still = None
         except Exception as exc:  # noqa: BLE001 - reported in the GUI
             self.state.error(f"screenshot to {path} failed: {exc}")
             return
         self.state.info(f"screenshot {image.shape[1]}x{image.shape[0]} saved to {path}")
 
 
-def default_export_path(state: ViewerState) -> Path:
-    base = state.scene_path if state.scene_path is not None else Path("scene.ply")
-    return base.with_name(base.stem + "_selection.ply")
+def keyboard_to_scene(want_text_input: bool) -> bool:
+    """Keys move the camera and trigger hotkeys unless a text field is being edited (imgui's
+    want_capture_keyboard is also true when a panel merely has focus, which blocked WASD)."""
+    return not want_text_input
 
 
-def default_registered_path(state: ViewerState) -> Path:
-    base = state.scene_path if state.scene_path is not None else Path("scene.ply")
-    return base.with_name(base.stem + "_registered.ply")
+def no_display_message() -> str:
+    return ("no display: the viewer window needs an X11/Wayland display (DISPLAY or WAYLAND_DISPLAY); "
+            "on a headless machine use `python main.py SCENE --screenshot OUT.png` or run it under xvfb-run")
+
+
+def _glfw_error(code: int, description: bytes | str) -> None:
+    """GLFW errors go to the log once, as one line (not GLFW's raw warnings)."""
+    text = description.decode(errors="replace") if isinstance(description, bytes) else str(description)
+    log.debug("GLFW error %#x: %s", code, text)

@@ -35,7 +35,43 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--repeats", type=int, default=5, help="frames per measurement (median reported)")
     p.add_argument("--screenshot", type=Path, help="also save the 542k (or first) frame to this PNG")
+    p.add_argument("--progressive", action="store_true",
+                   help="instead: the GUI's still frame drawn whole vs progressively (the window on GLFW's null platform)")
     p.set_defaults(func=run)
+
+
+def progressive_timings(app, scene: GaussianScene, repeats: int) -> dict[str, float]:
+    """Seconds of the window's (`app`, a viewer.app.ViewerApp) still frame of `scene` drawn whole
+    (one GUI frame) and progressively (GUI frames: count, median, longest, until complete),
+    medians over `repeats` new still views (a 1-degree turn each, so no re-sort)."""
+    import statistics
+
+    app.state.set_scene(scene)
+    app.input.last_change = 0.0
+    app.run(max_frames=1)
+    while app.renderer.sorter.busy or app.still_progress() is not None:
+        app.run(max_frames=1)
+    rows: dict[str, list[float]] = {"whole": [], "frames": [], "median": [], "longest": [], "complete": []}
+    for _ in range(repeats):
+        app.progressive = False
+        app.view.rotate(1, 0)
+        app.input.last_change = 0.0
+        start = time.perf_counter()
+        app.run(max_frames=1)
+        rows["whole"].append(time.perf_counter() - start)
+        app.progressive = True
+        app.view.rotate(1, 0)
+        app.input.last_change = 0.0
+        frames, start = [], time.perf_counter()
+        while not frames or app.still_progress() is not None:
+            t = time.perf_counter()
+            app.run(max_frames=1)
+            frames.append(time.perf_counter() - t)
+        rows["complete"].append(time.perf_counter() - start)
+        rows["frames"].append(len(frames))
+        rows["median"].append(statistics.median(frames))
+        rows["longest"].append(max(frames))
+    return {k: statistics.median(v) for k, v in rows.items()}
 
 
 def random_scene(n: int, seed: int = 0) -> GaussianScene:
@@ -163,6 +199,8 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise DrsplatError(f"--sizes: unknown size(s) {', '.join(unknown)}; choose among {', '.join(SIZES)}")
     base = load_ply(args.ply) if args.ply is not None and Path(args.ply).is_file() else None
+    if args.progressive:
+        return run_progressive(args, names, base)
     ctx = create_offscreen_context()
     print(f"viewer frame time, {args.width}x{args.height}, {ctx.info['GL_RENDERER']}, median of {args.repeats} frames, load average {os.getloadavg()[0]:.1f}")
     print(f"{'splats':>9} {'scene':<22} {'sort':>6} {'exact':>6} {'upload':>6} {'project':>7} {'draw':>6} {'fps idle-sort':>13} {'fps sort/frame':>14} "
@@ -192,4 +230,26 @@ def run(args: argparse.Namespace) -> int:
         save_png(shot, args.screenshot)
         print(f"screenshot: {args.screenshot}")
     ctx.release()
+    return 0
+
+
+def run_progressive(args: argparse.Namespace, names: list[str], base: GaussianScene | None) -> int:
+    print(f"still frame in the window, {args.width}x{args.height}, whole vs progressive, median of {args.repeats} still views, load average {os.getloadavg()[0]:.1f}")
+    from viewer.app import ViewerApp
+    from viewer.state import ViewerState
+
+    print(f"{'splats':>9} {'scene':<22} {'whole':>7} {'GUI frames':>10} {'median frame':>12} {'longest frame':>13} {'complete':>8}")
+    app = ViewerApp(ViewerState(), args.width, args.height, platform="null", layout_path=None)  # one window: GLFW cannot re-detect a context after glfwTerminate
+    for name in names:
+        scene, origin = bench_scene(name, base)
+        if scene is None:
+            print(f"{name:>9} skipped: {args.ply} is absent")
+            continue
+        t = progressive_timings(app, scene, args.repeats)
+        print(f"{scene.num_gaussians:>9,} {origin:<22} {t['whole'] * 1000:>6.0f}m {t['frames']:>10.0f} {t['median'] * 1000:>11.0f}m "
+              f"{t['longest'] * 1000:>12.0f}m {t['complete'] * 1000:>7.0f}m")
+    print("columns (ms): whole = the GUI frame that draws the still frame at once (input blocked meanwhile); progressive: "
+          "GUI frames until the still frame is complete, their median and longest time (the longest holds the compute "
+          "projection), and the time until complete")
+    app.close()
     return 0

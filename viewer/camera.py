@@ -24,6 +24,17 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
 
 
+UP_AXES = {
+    "auto": None,  # the training cameras' mean up vector, else a guess from the scene's shape
+    "+Y": (0.0, 1.0, 0.0),
+    "-Y": (0.0, -1.0, 0.0),
+    "+Z": (0.0, 0.0, 1.0),
+    "-Z": (0.0, 0.0, -1.0),
+    "+X": (1.0, 0.0, 0.0),
+    "-X": (-1.0, 0.0, 0.0),
+}
+
+
 def intrinsics_for(width: int, height: int, fov_y_deg: float) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) of a centred pinhole camera with vertical field of view fov_y_deg."""
     fy = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
@@ -45,6 +56,8 @@ class ViewController:
     fov_y_deg: float = 60.0
     mode: str = "orbit"
     rotate_speed: float = 0.005
+    roll: float = 0.0  # radians about the view direction, applied after look_at
+    auto_up: np.ndarray | None = field(default=None, repr=False)
     home: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -65,6 +78,7 @@ class ViewController:
             view = cls(eye=np.zeros(3), target=np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]), width=width, height=height)
             view.snap_to(cameras[0], scene_center=_robust_center(means))
             view.up = _mean_up(cameras)
+            view.auto_up = view.up.copy()
             view.home = (view.eye.copy(), view.target.copy(), view.up.copy())
             return view
         center = _robust_center(means)
@@ -76,7 +90,7 @@ class ViewController:
         side = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         offset = (np.cross(up, side) * 0.8 + side * 0.6 + up * 0.7)
         eye = center + 2.2 * radius * offset / np.linalg.norm(offset)
-        return cls(eye=eye, target=center, up=up, width=width, height=height)
+        return cls(eye=eye, target=center, up=up, width=width, height=height, auto_up=up.copy())
 
     @property
     def distance(self) -> float:
@@ -89,8 +103,30 @@ class ViewController:
     def camera(self) -> Camera:
         """The current view as an OpenCV `Camera` of the viewport size."""
         R, t = look_at(self.eye, self.target, self.up)
+        if self.roll:
+            roll = rotation_about(np.array([0.0, 0.0, 1.0]), self.roll)
+            R, t = roll @ R, roll @ t
         fx, fy, cx, cy = intrinsics_for(self.width, self.height, self.fov_y_deg)
         return Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=self.width, height=self.height, name="view")
+
+    def set_up_axis(self, name: str, cameras: list[Camera] | None = None) -> None:
+        """World up for orbiting and the horizon: one of UP_AXES; "auto" is the training cameras'
+        mean up vector (-mean of their y axes) when there are cameras, else the home guess."""
+        if name not in UP_AXES:
+            raise ValueError(f"unknown up axis {name!r}; expected one of {', '.join(UP_AXES)}")
+        if UP_AXES[name] is not None:
+            up = np.asarray(UP_AXES[name], np.float64)
+        elif cameras:
+            up = _mean_up(cameras)
+        else:
+            up = self.auto_up if self.auto_up is not None else self.up
+        self.up = up / np.linalg.norm(up)
+        self.roll = 0.0
+        if self.home is not None:
+            self.home = (self.home[0], self.home[1], self.up.copy())
+
+    def set_roll(self, radians: float) -> None:
+        self.roll = float(radians)
 
     def resize(self, width: int, height: int) -> None:
         self.width, self.height = max(1, int(width)), max(1, int(height))
@@ -117,7 +153,7 @@ class ViewController:
 
     def pan(self, dx: float, dy: float) -> None:
         """Move eye and target together in the image plane, dx, dy in pixels at the target depth."""
-        R, _ = look_at(self.eye, self.target, self.up)
+        R = self.camera().R
         per_pixel = self.distance * 2 * math.tan(math.radians(self.fov_y_deg) / 2) / self.height
         shift = (-dx * R[0] - dy * R[1]) * per_pixel
         self.eye = self.eye + shift
@@ -133,7 +169,7 @@ class ViewController:
 
     def move(self, delta_cam: np.ndarray) -> None:
         """Fly: translate eye and target by delta_cam [3] in camera axes (x right, y down, z forward)."""
-        R, _ = look_at(self.eye, self.target, self.up)
+        R = self.camera().R
         shift = R.T @ np.asarray(delta_cam, np.float64)
         self.eye = self.eye + shift
         self.target = self.target + shift
@@ -148,11 +184,42 @@ class ViewController:
         self.eye = center
         self.target = center + R[2] * distance
         self.up = -R[1]
+        self.roll = 0.0
         self.fov_y_deg = math.degrees(2 * math.atan(0.5 * camera.height / camera.fy))
 
     def reset(self) -> None:
         assert self.home is not None
         self.eye, self.target, self.up = (a.copy() for a in self.home)
+        self.roll = 0.0
+
+
+def frustum_segments(cameras: list[Camera], depth: float) -> np.ndarray:
+    """[C * 8, 2, 3] world-space segments drawing each camera's frustum: 4 edges from its centre to
+    its image corners at `depth` along the view axis, and the 4 edges of that image rectangle."""
+    segments = []
+    for cam in cameras:
+        R = np.asarray(cam.R, np.float64)
+        c = cam.center
+        corners = [c + R.T @ (np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]) * depth)
+                   for u, v in ((0, 0), (cam.width, 0), (cam.width, cam.height), (0, cam.height))]
+        for k in range(4):
+            segments += [(c, corners[k]), (corners[k], corners[(k + 1) % 4])]
+    return np.asarray(segments, np.float64).reshape(-1, 2, 3)
+
+
+def project_segments(camera: Camera, segments: np.ndarray, near: float = 1e-3) -> np.ndarray:
+    """[S, 2, 3] world segments -> [K, 2, 2] pixel segments of `camera`, clipped at depth `near`
+    (a segment wholly behind the camera is dropped)."""
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    p = segments @ R.T + t  # [S, 2, 3] camera coordinates
+    z0, z1 = p[:, 0, 2], p[:, 1, 2]
+    keep = (z0 > near) | (z1 > near)
+    p, z0, z1 = p[keep], z0[keep], z1[keep]
+    a = _onto_near_plane(p[:, 0], p[:, 1], near)
+    b = _onto_near_plane(p[:, 1], p[:, 0], near)
+    ends = np.stack([a, b], axis=1)
+    uv = ends[..., :2] / ends[..., 2:3] * np.array([camera.fx, camera.fy]) + np.array([camera.cx, camera.cy])
+    return uv
 
 
 def camera_for_size(camera: Camera, width: int | None, height: int | None) -> Camera:
@@ -165,6 +232,14 @@ def camera_for_size(camera: Camera, width: int | None, height: int | None) -> Ca
         height = int(round(camera.height * width / camera.width))
     sx, sy = width / camera.width, height / camera.height
     return dataclasses.replace(camera, fx=camera.fx * sx, fy=camera.fy * sy, cx=camera.cx * sx, cy=camera.cy * sy, width=width, height=height)
+
+
+def _onto_near_plane(p: np.ndarray, other: np.ndarray, near: float) -> np.ndarray:
+    """[S, 3] endpoints p, those behind depth `near` moved along the segment to it (other in front)."""
+    behind = p[:, 2] < near
+    dz = other[:, 2] - p[:, 2]
+    s = np.clip((near - p[:, 2]) / np.where(behind, dz, 1.0), 0.0, 1.0)[:, None]
+    return np.where(behind[:, None], p + s * (other - p), p)
 
 
 def _robust_center(means: np.ndarray) -> np.ndarray:

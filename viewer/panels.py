@@ -1,180 +1,405 @@
-"""imgui-bundle panels: drawing only. Every action calls `ViewerState` or `ViewerApp` methods."""
+"""imgui-bundle panels. Each panel owns its widget state (text fields, paths, choices) and calls
+`ViewerState` actions or the host's (`PanelHost`: the window) for everything else.
+
+Layout: one resizable, dockable window "drsplat" whose top part (query, threshold, export) is
+always visible, the rest (scene, view, display, registration, messages) in collapsible sections
+that scroll below it; a status line at the bottom of the window (the latest message, the
+progressive frame's progress); a help overlay (F1 or ?) listing the hotkeys (HOTKEYS).
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
 
 from imgui_bundle import imgui
 
-from viewer.state import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
-
-if TYPE_CHECKING:
-    from viewer.app import ViewerApp
+from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
+from viewer.camera import UP_AXES, ViewController
+from viewer.paths import derived_output
+from viewer.state import ViewerState
+from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
 
 ERROR_COLOR = imgui.ImVec4(1.0, 0.45, 0.4, 1.0)
 NOTE_COLOR = imgui.ImVec4(0.95, 0.8, 0.4, 1.0)
 CODEBOOKS = ("none", "scene", "file")
+CODEBOOK_NAMES = ["none (exact fp16)", "scene (PQ trained here)", "faiss file"]
+EXPORT_NAMES = ["standard 3DGS PLY", "drsplat PLY (+ field)"]
+MAIN_WINDOW = "drsplat"
+PANEL_WIDTH = 400
+STATUS_HEIGHT = 26
+
+# (keys, action) shown in the help overlay; viewer.app.ViewerApp.handle_hotkeys implements them
+HOTKEYS = (
+    ("F1 / ?", "show or hide this help"),
+    ("/ or Ctrl+F", "focus the text query"),
+    ("H", "toggle the highlight of the selection"),
+    ("Ctrl+E", "export the selection (the format chosen in the panel)"),
+    ("R", "reset the view"),
+    ("N / P", "snap to the next / previous training camera"),
+    ("F", "switch between orbit and fly"),
+    ("Ctrl+O", "open a PLY (file dialog); or drop a PLY on the window"),
+    ("Esc", "leave a text field (keys go back to the scene); close this help"),
+    ("WASD, Q/E", "fly: move, down/up (Shift: faster); wheel: zoom (fly: speed)"),
+    ("drag / right drag", "rotate / pan; Ctrl+click: query what is under the cursor"),
+)
 
 
-def draw_panels(app: "ViewerApp") -> None:
-    imgui.set_next_window_pos(imgui.ImVec2(8, 8), imgui.Cond_.first_use_ever.value)
-    imgui.set_next_window_size(imgui.ImVec2(380, 640), imgui.Cond_.first_use_ever.value)
-    imgui.begin("drsplat")
-    if imgui.collapsing_header("Scene", imgui.TreeNodeFlags_.default_open.value):
-        scene_panel(app)
-    if imgui.collapsing_header("View", imgui.TreeNodeFlags_.default_open.value):
-        view_panel(app)
-    if imgui.collapsing_header("Query", imgui.TreeNodeFlags_.default_open.value):
-        query_panel(app)
-    if imgui.collapsing_header("Display", imgui.TreeNodeFlags_.default_open.value):
-        display_panel(app)
-    if imgui.collapsing_header("Registration"):
-        registration_panel(app)
-    if imgui.collapsing_header("Messages", imgui.TreeNodeFlags_.default_open.value):
-        messages_panel(app)
-    imgui.end()
+class PanelHost(Protocol):
+    """What the panels need from the window (viewer.app.ViewerApp implements it)."""
+
+    state: ViewerState
+    view: ViewController
+    frame_seconds: float
+    render_scale: float
+    fly_speed: float
+
+    def snap_to_camera(self, index: int) -> None: ...
+    def reset_view(self) -> None: ...
+    def camera_changed(self) -> None: ...
+    def screenshot(self, path: str | Path) -> None: ...
+    def open_scene(self, path: str | Path) -> bool: ...
+    def open_file_dialog(self) -> None: ...
+    def frame_stats(self) -> str: ...
+    def still_progress(self) -> float | None: ...
 
 
-def scene_panel(app: "ViewerApp") -> None:
-    state = app.state
-    if state.scene is None:
-        imgui.text("no scene loaded")
-        return
-    imgui.text_wrapped(f"file: {state.scene_path}")
-    imgui.text(f"Gaussians: {state.num_gaussians:,}   SH degree: {state.scene.sh_degree}")
-    lo, hi = state.scene.bounding_box()
-    imgui.text(f"bounds: [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}]")
-    if state.field is not None:
-        f = state.field
-        imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {int((f.weights > 0).sum()):,} assigned")
-    else:
-        imgui.text_colored(NOTE_COLOR, "no language field (see Registration)")
-    imgui.text(f"training cameras: {len(state.cameras)}")
-    r = app.renderer
-    if r is not None:
-        t = r.times
-        imgui.text(f"frame {app.frame_seconds * 1000:.0f} ms: draw {t.draw * 1000:.0f}, sort {t.sort * 1000:.0f}, upload {t.upload * 1000:.0f} ms")
-        imgui.text(f"drawn: {t.drawn:,}" + ("  (moving subsample)" if t.drawn < r.num else ""))
+# ---------------------------------------------------------------- panels
 
 
-def view_panel(app: "ViewerApp") -> None:
-    view = app.view
-    if imgui.radio_button("orbit", view.mode == "orbit"):
-        view.mode = "orbit"
-    imgui.same_line()
-    if imgui.radio_button("fly (WASD QE)", view.mode == "fly"):
-        view.mode = "fly"
-    imgui.same_line()
-    if imgui.button("reset view"):
-        app.reset_view()
-    _, app.render_scale = imgui.slider_float("resolution", app.render_scale, 0.25, 1.0, "%.2fx")
-    changed, fov = imgui.slider_float("fov", view.fov_y_deg, 20.0, 110.0, "%.0f deg")
-    if changed:
-        view.fov_y_deg = fov
-        app.camera_changed()
-    n = len(app.state.cameras)
-    if n:
-        changed, app.camera_index = imgui.slider_int("camera", app.camera_index, 0, n - 1)
+@dataclass
+class QueryPanel:
+    """Query text, Q.npy file, click-to-query, and the export (path + format)."""
+
+    text: str = ""
+    embedding_path: str = ""
+    export_path: str = ""
+    export_format: str = "standard"
+    click_to_query: bool = False
+    focus_requested: bool = False
+
+    def reset_paths(self, state: ViewerState) -> None:
+        self.export_path = str(derived_output(state.scene_path, "_selection"))
+
+    def request_focus(self) -> None:
+        self.focus_requested = True
+
+    def export(self, state: ViewerState) -> int | None:
+        return state.export_selection(self.export_path, self.export_format)
+
+    def draw_essentials(self, host: PanelHost) -> None:
+        """Always visible: the text query, the threshold, the selection count and the export."""
+        state = host.state
+        if self.focus_requested:
+            imgui.set_keyboard_focus_here()
+            self.focus_requested = False
+        imgui.set_next_item_width(-70)
+        entered, self.text = imgui.input_text_with_hint("##text", "text query (/ to focus)", self.text, imgui.InputTextFlags_.enter_returns_true.value)
         imgui.same_line()
-        if imgui.button("snap") or changed:
-            app.snap_to_camera(app.camera_index)
-    _, app.screenshot_path = imgui.input_text("##shot", app.screenshot_path)
-    imgui.same_line()
-    if imgui.button("screenshot"):
-        app.screenshot(app.screenshot_path)
-    imgui.text_disabled("drag: rotate, shift/right drag: pan, wheel: zoom, ctrl+click: query")
-
-
-def query_panel(app: "ViewerApp") -> None:
-    state = app.state
-    imgui.text_wrapped(state.encoder_status)
-    entered, app.query_text = imgui.input_text_with_hint("##text", "text query", app.query_text, imgui.InputTextFlags_.enter_returns_true.value)
-    imgui.same_line()
-    if imgui.button("search") or entered:
-        state.run_text_query(app.query_text)
-    _, state.negatives = imgui.input_text_with_hint("negatives", "comma-separated phrases", state.negatives)
-    _, app.click_to_query = imgui.checkbox("click to query (or ctrl+click)", app.click_to_query)
-    _, app.embedding_path = imgui.input_text_with_hint("##emb", "Q.npy embedding file", app.embedding_path)
-    imgui.same_line()
-    if imgui.button("query file"):
-        state.run_embedding_query(app.embedding_path)
-    if state.oracle is not None:
-        imgui.text_colored(NOTE_COLOR, "oracle labels (synthetic ground-truth vectors, not CLIP):")
-        for i, name in enumerate(state.oracle.names):
-            if i % 4:
-                imgui.same_line()
-            if imgui.small_button(f"{name}##oracle{i}"):
-                state.run_oracle_query(i)
-    q = state.query
-    if q is None:
-        return
-    imgui.separator()
-    imgui.text_wrapped(f"{q.source} query: {q.name} ({q.metric})")
-    lo, hi = state.score_range()
-    changed, value = imgui.slider_float("threshold", state.threshold, lo, hi, "%.3f")
-    if changed:
-        state.set_threshold(value)
-    imgui.text(f"selected: {int(state.selection.sum()):,} of {state.num_gaussians:,}")
-    _, app.export_path = imgui.input_text("##export", app.export_path)
-    imgui.same_line()
-    if imgui.button("export PLY"):
-        state.export_selection(app.export_path)
-    if imgui.button("clear query"):
-        state.clear_query()
-
-
-def display_panel(app: "ViewerApp") -> None:
-    state = app.state
-    for mode in DISPLAY_MODES:
-        if imgui.radio_button(DISPLAY_MODE_NAMES[mode], state.mode == mode):
-            state.set_mode(mode)
-    if state.mode == "highlight":
-        imgui.color_button("highlight", imgui.ImVec4(*HIGHLIGHT_RGB, 1.0))
+        if imgui.button("search") or entered:
+            state.run_text_query(self.text)
+        if state.oracle is not None:
+            imgui.text_colored(NOTE_COLOR, "oracle labels (ground-truth vectors, not CLIP):")
+            for i, name in enumerate(state.oracle.names):
+                if i % 5:
+                    imgui.same_line()
+                if imgui.small_button(f"{name}##oracle{i}"):
+                    state.run_oracle_query(i)
+        q = state.query
+        if q is None:
+            imgui.text_disabled("no query yet: type a phrase, pick a label, or ctrl+click the scene")
+            return
+        imgui.text_wrapped(f"{q.source} query: {q.name} ({q.metric})")
+        lo, hi = state.score_range()
+        imgui.set_next_item_width(-70)
+        changed, value = imgui.slider_float("threshold", state.threshold, lo, hi, "%.3f")
+        if changed:
+            state.set_threshold(value)
+        imgui.text(f"selected: {int(state.selection.sum()):,} of {state.num_gaussians:,}")
         imgui.same_line()
-        imgui.text("above threshold")
-    _, app.segment_text = imgui.input_text_with_hint("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), app.segment_text)
-    imgui.same_line()
-    if imgui.button("segment"):
-        names = [s.strip() for s in app.segment_text.split(",") if s.strip()]
-        state.run_segmentation(names or None)
-    if state.segmentation is not None:
-        for name, color in zip(state.segment_names, state.segment_colors):
-            imgui.color_button(f"##{name}", imgui.ImVec4(*[float(c) for c in color], 1.0))
-            imgui.same_line()
-            imgui.text(name)
+        if imgui.small_button("clear query"):
+            state.clear_query()
+        current = EXPORT_FORMATS.index(self.export_format)
+        imgui.set_next_item_width(-70)
+        changed, current = imgui.combo("format", current, EXPORT_NAMES)
+        if changed:
+            self.export_format = EXPORT_FORMATS[current]
+        if imgui.is_item_hovered():
+            imgui.set_tooltip(EXPORT_FORMAT_HELP[self.export_format])
+        imgui.set_next_item_width(-70)
+        _, self.export_path = imgui.input_text("##export", self.export_path)
+        imgui.same_line()
+        if imgui.button("export"):
+            self.export(state)
+
+    def draw_more(self, host: PanelHost) -> None:
+        state = host.state
+        imgui.text_wrapped(state.encoder_status)
+        _, state.negatives = imgui.input_text_with_hint("negatives", "comma-separated phrases", state.negatives)
+        _, self.click_to_query = imgui.checkbox("click to query (or ctrl+click)", self.click_to_query)
+        imgui.set_next_item_width(-90)
+        entered, self.embedding_path = imgui.input_text_with_hint("##emb", "Q.npy embedding file", self.embedding_path, imgui.InputTextFlags_.enter_returns_true.value)
+        imgui.same_line()
+        if imgui.button("query file") or entered:
+            state.run_embedding_query(self.embedding_path)
 
 
-def registration_panel(app: "ViewerApp") -> None:
-    state = app.state
-    imgui.text_wrapped(f"dataset: {state.source_dir or '(none: start with --source DIR)'}")
-    imgui.text_wrapped(f"features: {state.features_dir or '(none: --features DIR)'}")
-    _, app.register_output = imgui.input_text("output", app.register_output)
-    _, app.register_topk = imgui.input_int("top-k", app.register_topk)
-    app.register_topk = max(1, app.register_topk)
-    _, app.register_level = imgui.slider_int("level", app.register_level, 0, 3)
-    current = CODEBOOKS.index(app.register_codebook) if app.register_codebook in CODEBOOKS else 2
-    changed, current = imgui.combo("codebook", current, ["none (exact fp16)", "scene (PQ trained here)", "faiss file"])
-    if changed:
-        app.register_codebook = CODEBOOKS[current]
-    if app.register_codebook == "file":
-        _, app.register_codebook_path = imgui.input_text_with_hint("##codebook", "pq_index.faiss", app.register_codebook_path)
-    job = state.registration
-    if job is not None and not job.finished:
-        imgui.progress_bar(job.fraction, imgui.ImVec2(-1, 0), f"{job.done}/{job.total} views")
-        if imgui.button("cancel"):
-            state.cancel_registration()
-    elif imgui.button("register"):
-        codebook = app.register_codebook_path if app.register_codebook == "file" else app.register_codebook
-        state.start_registration(app.register_output, app.register_topk, app.register_level, codebook)
+@dataclass
+class ScenePanel:
+    open_path: str = ""
 
-
-def messages_panel(app: "ViewerApp") -> None:
-    imgui.push_text_wrap_pos(0.0)
-    for message in app.state.messages[-8:]:
-        if message.level == "error":
-            imgui.text_colored(ERROR_COLOR, message.text)
-        elif message.level == "warning":
-            imgui.text_colored(NOTE_COLOR, message.text)
+    def draw(self, host: PanelHost) -> None:
+        state = host.state
+        imgui.set_next_item_width(-110)
+        entered, self.open_path = imgui.input_text_with_hint("##open", "scene.ply (or drop a PLY)", self.open_path, imgui.InputTextFlags_.enter_returns_true.value)
+        imgui.same_line()
+        if imgui.button("open") or entered:
+            host.open_scene(self.open_path)
+        imgui.same_line()
+        if imgui.button("..."):
+            host.open_file_dialog()
+        if state.scene is None:
+            imgui.text("no scene loaded")
+            return
+        imgui.text_wrapped(f"file: {state.scene_path}")
+        imgui.text(f"Gaussians: {state.num_gaussians:,}   SH degree: {state.scene.sh_degree}")
+        lo, hi = state.scene.bounding_box()
+        imgui.text(f"bounds: [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}]")
+        if state.field is not None:
+            f = state.field
+            imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {int((f.weights > 0).sum()):,} assigned")
         else:
-            imgui.text(message.text)
+            imgui.text_colored(NOTE_COLOR, "no language field (see Registration)")
+        imgui.text(f"training cameras: {len(state.cameras)}")
+        imgui.text(host.frame_stats())
+
+
+@dataclass
+class ViewPanel:
+    camera_index: int = 0
+    screenshot_path: str = ""
+    up_axis: str = "auto"
+    show_frusta: bool = False
+
+    def reset_paths(self, state: ViewerState) -> None:
+        self.screenshot_path = str(derived_output(state.scene_path, "_screenshot").with_suffix(".png"))
+
+    def draw(self, host: PanelHost) -> None:
+        view = host.view
+        if imgui.radio_button("orbit", view.mode == "orbit"):
+            view.mode = "orbit"
+        imgui.same_line()
+        if imgui.radio_button("fly (WASD QE)", view.mode == "fly"):
+            view.mode = "fly"
+        imgui.same_line()
+        if imgui.button("reset view (R)"):
+            host.reset_view()
+        names = list(UP_AXES)
+        changed, current = imgui.combo("up axis", names.index(self.up_axis), names)
+        if changed:
+            self.up_axis = names[current]
+            view.set_up_axis(self.up_axis, host.state.cameras)
+            host.camera_changed()
+        changed, roll = imgui.slider_float("roll", math.degrees(view.roll), -180.0, 180.0, "%.0f deg")
+        if changed:
+            view.set_roll(math.radians(roll))
+            host.camera_changed()
+        _, host.fly_speed = imgui.slider_float("fly speed", host.fly_speed, 0.02, 5.0, "%.2f", imgui.SliderFlags_.logarithmic.value)
+        _, host.render_scale = imgui.slider_float("resolution", host.render_scale, 0.25, 1.0, "%.2fx")
+        changed, fov = imgui.slider_float("fov", view.fov_y_deg, 20.0, 110.0, "%.0f deg")
+        if changed:
+            view.fov_y_deg = fov
+            host.camera_changed()
+        n = len(host.state.cameras)
+        if n:
+            self.camera_index = min(self.camera_index, n - 1)
+            changed, self.camera_index = imgui.slider_int("camera (N/P)", self.camera_index, 0, n - 1)
+            imgui.same_line()
+            if imgui.button("snap") or changed:
+                host.snap_to_camera(self.camera_index)
+            changed, self.show_frusta = imgui.checkbox("training-camera frusta", self.show_frusta)
+            if changed:
+                host.camera_changed()
+        imgui.set_next_item_width(-90)
+        _, self.screenshot_path = imgui.input_text("##shot", self.screenshot_path)
+        imgui.same_line()
+        if imgui.button("screenshot"):
+            host.screenshot(self.screenshot_path)
+
+    def step_camera(self, host: PanelHost, step: int) -> None:
+        n = len(host.state.cameras)
+        if n == 0:
+            host.state.error("no training cameras to snap to (start with --source DATASET)")
+            return
+        self.camera_index = (self.camera_index + step) % n
+        host.snap_to_camera(self.camera_index)
+
+
+@dataclass
+class DisplayPanel:
+    segment_text: str = ""
+
+    def draw(self, host: PanelHost) -> None:
+        state = host.state
+        for mode in DISPLAY_MODES:
+            if imgui.radio_button(DISPLAY_MODE_NAMES[mode], state.mode == mode):
+                state.set_mode(mode)
+        if state.mode == "highlight":
+            imgui.color_button("highlight", imgui.ImVec4(*HIGHLIGHT_RGB, 1.0))
+            imgui.same_line()
+            imgui.text("above threshold (H toggles)")
+        imgui.set_next_item_width(-80)
+        entered, self.segment_text = imgui.input_text_with_hint("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), self.segment_text, imgui.InputTextFlags_.enter_returns_true.value)
+        imgui.same_line()
+        if imgui.button("segment") or entered:
+            names = [s.strip() for s in self.segment_text.split(",") if s.strip()]
+            state.run_segmentation(names or None)
+        if state.segmentation is not None:
+            for name, color in zip(state.segment_names, state.segment_colors):
+                imgui.color_button(f"##{name}", imgui.ImVec4(*[float(c) for c in color], 1.0))
+                imgui.same_line()
+                imgui.text(name)
+
+
+@dataclass
+class RegistrationPanel:
+    output: str = ""
+    topk: int = 40
+    level: int = 1
+    codebook: str = "none"
+    codebook_path: str = ""
+
+    def reset_paths(self, state: ViewerState) -> None:
+        self.output = str(derived_output(state.scene_path, "_registered"))
+
+    def draw(self, host: PanelHost) -> None:
+        state = host.state
+        imgui.text_wrapped(f"dataset: {state.source_dir or '(none: start with --source DIR)'}")
+        imgui.text_wrapped(f"features: {state.features_dir or '(none: --features DIR)'}")
+        _, self.output = imgui.input_text("output", self.output)
+        _, self.topk = imgui.input_int("top-k", self.topk)
+        self.topk = max(1, self.topk)
+        _, self.level = imgui.slider_int("level", self.level, 0, 3)
+        changed, current = imgui.combo("codebook", CODEBOOKS.index(self.codebook), CODEBOOK_NAMES)
+        if changed:
+            self.codebook = CODEBOOKS[current]
+        if self.codebook == "file":
+            _, self.codebook_path = imgui.input_text_with_hint("##codebook", "pq_index.faiss", self.codebook_path)
+        job = state.registration
+        if job is not None and not job.finished:
+            imgui.progress_bar(job.fraction, imgui.ImVec2(-1, 0), f"{job.done}/{job.total} views")
+            if imgui.button("cancel"):
+                state.cancel_registration()
+        elif imgui.button("register"):
+            codebook = self.codebook_path if self.codebook == "file" else self.codebook
+            state.start_registration(self.output, self.topk, self.level, codebook)
+
+
+def draw_message(level: str, text: str) -> None:
+    if level == "error":
+        imgui.text_colored(ERROR_COLOR, text)
+    elif level == "warning":
+        imgui.text_colored(NOTE_COLOR, text)
+    else:
+        imgui.text(text)
+
+
+def messages_panel(host: PanelHost) -> None:
+    imgui.push_text_wrap_pos(0.0)
+    for message in host.state.messages[-12:]:
+        draw_message(message.level, message.text)
     imgui.pop_text_wrap_pos()
+
+
+# ---------------------------------------------------------------- the window
+
+
+@dataclass
+class Panels:
+    """All panels, their widget state, the status line and the help overlay."""
+
+    query: QueryPanel = field(default_factory=QueryPanel)
+    scene: ScenePanel = field(default_factory=ScenePanel)
+    view: ViewPanel = field(default_factory=ViewPanel)
+    display: DisplayPanel = field(default_factory=DisplayPanel)
+    registration: RegistrationPanel = field(default_factory=RegistrationPanel)
+    show_help: bool = False
+    open_next: dict[str, bool] = field(default_factory=dict)  # sections to open (True) / close on the next frame
+
+    def _section(self, name: str, default_open: bool = False) -> bool:
+        if name in self.open_next:
+            imgui.set_next_item_open(self.open_next.pop(name))
+        return imgui.collapsing_header(name, imgui.TreeNodeFlags_.default_open.value if default_open else 0)
+
+    def reset_paths(self, state: ViewerState) -> None:
+        """Default output paths for a newly loaded scene (writable: viewer.paths.derived_output)."""
+        self.query.reset_paths(state)
+        self.view.reset_paths(state)
+        self.registration.reset_paths(state)
+
+    def draw(self, host: PanelHost) -> None:
+        viewport = imgui.get_main_viewport()
+        imgui.dock_space_over_viewport(0, viewport, imgui.DockNodeFlags_.passthru_central_node.value)
+        imgui.set_next_window_pos(imgui.ImVec2(viewport.work_pos.x + 8, viewport.work_pos.y + 8), imgui.Cond_.first_use_ever.value)
+        height = max(200.0, viewport.work_size.y - 16)
+        imgui.set_next_window_size(imgui.ImVec2(min(PANEL_WIDTH, viewport.work_size.x - 16), height), imgui.Cond_.first_use_ever.value)
+        imgui.begin(MAIN_WINDOW)
+        self.query.draw_essentials(host)
+        imgui.separator()
+        imgui.begin_child("sections", imgui.ImVec2(0, -STATUS_HEIGHT))
+        if self._section("Query options"):
+            self.query.draw_more(host)
+        if self._section("Scene", default_open=True):
+            self.scene.draw(host)
+        if self._section("View", default_open=True):
+            self.view.draw(host)
+        if self._section("Display", default_open=True):
+            self.display.draw(host)
+        if self._section("Registration"):
+            self.registration.draw(host)
+        if self._section("Messages"):
+            messages_panel(host)
+        imgui.end_child()
+        self.draw_status(host)
+        imgui.end()
+        if self.show_help:
+            self.draw_help()
+
+    def draw_status(self, host: PanelHost) -> None:
+        """The status line: the still frame's progress, else the latest message (F1: help)."""
+        imgui.separator()
+        progress = host.still_progress()
+        if progress is not None:
+            imgui.progress_bar(progress, imgui.ImVec2(-1, 0), f"drawing the still frame {100 * progress:.0f}%")
+            return
+        latest = host.state.messages.latest()
+        text = "F1: help" if latest is None else latest.text
+        level = "info" if latest is None else latest.level
+        draw_message(level, _one_line(text))
+        if latest is not None and imgui.is_item_hovered():
+            imgui.set_tooltip(latest.text)
+
+    def draw_help(self) -> None:
+        viewport = imgui.get_main_viewport()
+        center = imgui.ImVec2(viewport.work_pos.x + viewport.work_size.x / 2, viewport.work_pos.y + viewport.work_size.y / 2)
+        imgui.set_next_window_pos(center, imgui.Cond_.always.value, imgui.ImVec2(0.5, 0.5))
+        imgui.set_next_window_bg_alpha(0.92)
+        flags = imgui.WindowFlags_.always_auto_resize.value | imgui.WindowFlags_.no_docking.value | imgui.WindowFlags_.no_saved_settings.value | imgui.WindowFlags_.no_collapse.value
+        opened, self.show_help = imgui.begin("Hotkeys", self.show_help, flags)
+        if opened:
+            if imgui.begin_table("hotkeys", 2):
+                for keys, action in HOTKEYS:
+                    imgui.table_next_row()
+                    imgui.table_next_column()
+                    imgui.text_colored(NOTE_COLOR, keys)
+                    imgui.table_next_column()
+                    imgui.text(action)
+                imgui.end_table()
+        imgui.end()
+
+
+def _one_line(text: str, limit: int = 160) -> str:
+    line = text.splitlines()[0] if text else ""
+    return line if len(line) <= limit else line[: limit - 1] + "…"

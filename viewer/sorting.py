@@ -132,6 +132,7 @@ class BackgroundSorter:
         self._result: SortResult | None = None
         self._generation = 0
         self._closed = False
+        self._running = False
         self._thread = threading.Thread(target=self._run, name="splat-sorter", daemon=True)
         self._thread.start()
 
@@ -148,6 +149,12 @@ class BackgroundSorter:
             self._wanted = forward.copy()
             self._lock.notify()
             return True
+
+    @property
+    def busy(self) -> bool:
+        """A sort is queued, running, or done but not yet polled (the GUI must keep polling)."""
+        with self._lock:
+            return self._wanted is not None or self._running or self._result is not None
 
     def poll(self) -> SortResult | None:
         with self._lock:
@@ -185,7 +192,9 @@ class BackgroundSorter:
                 if self._closed:
                     return
                 forward, self._wanted = self._wanted, None
+                self._running = True
             result = self._sort(forward)
             with self._lock:
                 self._last_sorted = forward
                 self._result = result
+                self._running = False

@@ -22,31 +22,14 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
-from drsplat.pipeline import RegisterOptions, register_to_ply
+from drsplat.pipeline import RegisterOptions
+from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
+from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
+from viewer.registration import RegistrationJob, start_job
+from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
-
-DISPLAY_MODES = ("color", "highlight", "heatmap", "selection", "hide_selection", "segmentation")
-DISPLAY_MODE_NAMES = {
-    "color": "scene colours",
-    "highlight": "highlight above threshold",
-    "heatmap": "relevancy heat map",
-    "selection": "selection only",
-    "hide_selection": "hide selection",
-    "segmentation": "segmentation",
-}
-HIGHLIGHT_RGB = (1.0, 0.1, 0.85)
-HIGHLIGHT_MIX = 0.85
-SEGMENT_MIX = 0.8
-HEATMAP_MIX = 0.9
-
-
-@dataclass
-class Message:
-    level: str  # "info" | "warning" | "error"
-    text: str
-
 
 @dataclass
 class QueryResult:
@@ -57,24 +40,6 @@ class QueryResult:
     scores: np.ndarray
     metric: str  # "relevancy" | "cosine"
     picked: np.ndarray | None = None  # Gaussian ids a click query started from
-
-
-@dataclass
-class RegistrationJob:
-    """A registration running on a worker thread: progress (done, total), cancel, outcome."""
-
-    output: Path
-    thread: threading.Thread | None = None
-    cancel: object | None = None
-    done: int = 0
-    total: int = 0
-    finished: bool = False
-    reported: bool = False
-    error: str | None = None
-
-    @property
-    def fraction(self) -> float:
-        return self.done / self.total if self.total else 0.0
 
 
 @dataclass
@@ -106,7 +71,7 @@ class ViewerState:
         self.segmentation = None  # drsplat.query.Segmentation | None
         self.segment_names: list[str] = []
         self.segment_colors = np.zeros((0, 3), np.float32)
-        self.messages: list[Message] = []
+        self.messages = MessageLog()
         self.registration: RegistrationJob | None = None
         self.style_version = 0
         self.scene_version = 0
@@ -116,12 +81,13 @@ class ViewerState:
     # ---------------------------------------------------------------- messages
 
     def info(self, text: str) -> None:
-        log.info("%s", text)
-        self.messages.append(Message("info", text))
+        self.messages.add("info", text)
+
+    def warning(self, text: str) -> None:
+        self.messages.add("warning", text)
 
     def error(self, text: str) -> None:
-        log.error("%s", text)
-        self.messages.append(Message("error", text))
+        self.messages.add("error", text)
 
     def _fail(self, exc: BaseException, what: str) -> bool:
         if isinstance(exc, (DrsplatError, ValueError, OSError)):
@@ -147,7 +113,7 @@ class ViewerState:
             scene = load_ply(path)
             lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
-            return self._fail(exc, f"cannot open {path}")
+            return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
         self.set_scene(scene, lang, path)
         return True
 
@@ -214,6 +180,10 @@ class ViewerState:
             self.encoder = encoder
         self.encoder_status = f"CLIP text encoder ready ({encoder.model_id})"
 
+    @property
+    def encoder_loading(self) -> bool:
+        return self.encoder_status.startswith("loading")
+
     # ---------------------------------------------------------------- queries
 
     def _require_field(self) -> bool:
@@ -236,7 +206,7 @@ class ViewerState:
             neg = dq.negative_embeddings(self.encoder, self.field, negatives)
             return dq.relevancy(self.field, q, neg)[:, 0], "relevancy"
         if negatives:
-            self.messages.append(Message("warning", "negative phrases need a CLIP text encoder; scoring by cosine without them"))
+            self.warning("negative phrases need a CLIP text encoder; scoring by cosine without them")
         return dq.cosine(self.field, q)[:, 0], "cosine"
 
     def _set_query(self, result: QueryResult) -> None:
@@ -357,7 +327,7 @@ class ViewerState:
             self.error(f"unknown display mode {mode!r}")
             return False
         if mode == "segmentation" and self.segmentation is None:
-            self.error("run a segmentation first (label list in the Query panel)")
+            self.error("run a segmentation first (labels field and 'segment' button in the Display panel)")
             return False
         self.mode = mode
         self.style_version += 1
@@ -414,68 +384,54 @@ class ViewerState:
     # ---------------------------------------------------------------- style
 
     def style(self) -> np.ndarray:
-        """Per-splat style for the renderer, [N, 4] float32 (r, g, b, mix); mix < 0 hides a splat."""
-        n = self.num_gaussians
-        style = np.zeros((n, 4), np.float32)
-        if n == 0:
-            return style
-        if self.mode == "segmentation" and self.segmentation is not None:
-            labels = self.segmentation.labels
-            labelled = labels >= 0
-            style[labelled, :3] = self.segment_colors[labels[labelled]]
-            style[labelled, 3] = SEGMENT_MIX
-            return style
-        if self.query is None or self.mode == "color":
-            return style
-        selected = self.selection
-        if self.mode == "highlight":
-            style[selected, :3] = HIGHLIGHT_RGB
-            style[selected, 3] = HIGHLIGHT_MIX
-        elif self.mode == "heatmap":
-            lo, hi = self.score_range()
-            t = np.clip((np.nan_to_num(self.query.scores, nan=lo) - lo) / (hi - lo), 0, 1)
-            style[:, :3] = heat_colors(t)
-            style[:, 3] = HEATMAP_MIX
-        elif self.mode == "selection":
-            style[~selected, 3] = -1.0
-        elif self.mode == "hide_selection":
-            style[selected, 3] = -1.0
-        return style
+        """Per-splat style for the renderer, [N, 4] float32 (viewer.style.splat_style of the current mode)."""
+        seg = self.segmentation
+        if self.query is None:
+            return splat_style(self.num_gaussians, self.mode, labels=None if seg is None else seg.labels, label_colors=self.segment_colors)
+        return splat_style(self.num_gaussians, self.mode, self.query.scores, self.selection, self.score_range(),
+                           None if seg is None else seg.labels, self.segment_colors)
 
     # ---------------------------------------------------------------- export
 
-    def export_selection(self, path: str | Path) -> int | None:
-        """Write the selected Gaussians as an INRIA PLY (drsplat.scene.save_ply of scene.subset).
+    def export_mask(self) -> np.ndarray:
+        """[N] bool the Gaussians an export writes: the selection, or what is shown in hide-selection mode."""
+        return ~self.selection if self.mode == "hide_selection" else self.selection
 
-        Returns the number written, or None (with a message) when there is nothing to export.
-        """
-        from drsplat.scene import save_ply
+    def export_selection(self, path: str | Path, fmt: str = "standard") -> int | None:
+        """Write the selected Gaussians (`export_mask`) with drsplat.lang.export_scene: `standard`
+        (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
+        beside; `drsplat query` reads it). Returns the number written, or None (with a message)."""
+        from drsplat.lang import codebook_path_for, export_scene
+        from drsplat.utils import guard_outputs
 
         if self.scene is None:
             self.error("no scene is loaded")
             return None
-        selected = self.selection
-        if self.mode == "hide_selection":
-            selected = ~selected
+        if fmt == "drsplat" and self.field is None:
+            self.error("this scene has no language field: export it as a standard 3DGS PLY")
+            return None
+        selected = self.export_mask()
         count = int(selected.sum())
         if count == 0:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         try:
-            subset = self.scene.subset(selected)
-            save_ply(subset, path)
+            codebook = codebook_path_for(path) if fmt == "drsplat" else None
+            scene_codebook = codebook_path_for(self.scene_path) if self.scene_path is not None else None
+            guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook}, {"the export": Path(path), "the export's codebook": codebook})
+            export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
             return None
-        self.info(f"exported {count:,} Gaussians to {path}")
+        self.info(f"exported {count:,} Gaussians to {path} ({'standard 3DGS' if fmt == 'standard' else 'drsplat'} PLY)")
         return count
 
     # ---------------------------------------------------------------- registration
 
     def start_registration(self, output: str | Path, topk: int = 40, level: int = 1, codebook: str = "none", background: bool = True) -> bool:
-        """Register the scene with the features of `features_dir` (drsplat.registration) on a
-        worker thread, store the field (drsplat.lang) in `output`, then load it."""
-        from drsplat.utils import CancelToken
+        """Register the scene with the features of `features_dir` (drsplat.pipeline, the CLI's
+        pipeline and defaults) on a worker thread
+        (viewer.registration), store the field in `output`, then load it."""
 
         if self.scene is None or self.scene_path is None:
             self.error("no scene file is loaded")
@@ -492,29 +448,15 @@ class ViewerState:
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
-        job = RegistrationJob(output=Path(output), cancel=CancelToken())
-        self.registration = job
-        args = (job, self.scene, list(self.cameras), Path(self.features_dir), topk, level, codebook)
-        if background:
-            job.thread = threading.Thread(target=self._register, args=args, name="registration", daemon=True)
-            job.thread.start()
-        else:
-            self._register(*args)
+        options = RegisterOptions(topk=topk, level=level, codebook=codebook)
+        self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
+        if not background:
             self.poll_registration()
         return True
 
     def cancel_registration(self) -> None:
         if self.registration is not None and not self.registration.finished:
             self.registration.cancel.cancel()
-
-    def _register(self, job: RegistrationJob, scene: GaussianScene, cameras: list[Camera], features_dir: Path, topk: int, level: int, codebook: str) -> None:
-        try:
-            register_to_ply(scene, cameras, features_dir, job.output, RegisterOptions(topk=topk, level=level, codebook=codebook), show_progress=False, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
-        except BaseException as exc:  # noqa: BLE001 - reported in the GUI
-            job.error = str(exc) or type(exc).__name__
-            log.debug("registration failed", exc_info=True)
-        finally:
-            job.finished = True
 
     def poll_registration(self) -> bool:
         """When a finished registration is pending: report it, load its output; True when done now."""
@@ -533,11 +475,6 @@ class ViewerState:
         return True
 
 
-def _progress(job: RegistrationJob, done: int, total: int) -> None:
-    job.done, job.total = done, total
-
-
-
 def read_oracle_queries(source: Path) -> OracleQueries | None:
     """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
     names_path, emb_path = source / "gt" / "label_names.json", source / "text_embeddings.npy"
@@ -545,18 +482,11 @@ def read_oracle_queries(source: Path) -> OracleQueries | None:
         return None
     try:
         names = json.loads(names_path.read_text())
-        emb = np.load(emb_path)
-    except (OSError, ValueError) as exc:
+        emb = load_npy(emb_path, "embedding array")  # header checked against the file size
+    except (OSError, ValueError, DrsplatError) as exc:
         log.warning("ignoring oracle queries of %s: %s", source, exc)
         return None
     if emb.ndim != 2 or emb.shape[0] != len(names):
         log.warning("ignoring oracle queries of %s: %d names but embeddings of shape %s", source, len(names), emb.shape)
         return None
     return OracleQueries([str(n) for n in names], emb.astype(np.float32))
-
-
-def heat_colors(t: np.ndarray) -> np.ndarray:
-    """[N] values in [0, 1] -> [N, 3] RGB of matplotlib's 'turbo' colour map."""
-    from matplotlib import colormaps
-
-    return colormaps["turbo"](np.asarray(t, np.float64))[:, :3].astype(np.float32)

@@ -47,6 +47,8 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, default=5, help="timed repeats (median); fewer are used above 1M")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--plot", type=Path, default=Path("bench_query.png"), help="PNG of speed against error")
+    p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
+                   help="also time the torch scorer on this device against the numba kernels (ratio and max |Δ| per backend)")
     p.set_defaults(func=run)
 
 
@@ -215,6 +217,13 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
     thresholds = localisation_thresholds(exact, labels, q_labels)
     repeats = args.repeats if n <= 1_000_000 else max(2, args.repeats // 2)
     rows: list[Row] = []
+    if getattr(args, "device", None):
+        fields = [("float16 exact", LanguageField(args.dim, "bench", np.ones(n, np.float32), ExactStorage(f16, _norms16(f16))))]
+        for name, book in books.items():
+            codes, ids, norms = coded[name]
+            fields.append((f"PQ M={book.m}" if book.kind == "pq" else f"official IVFPQ M={book.m}",
+                           LanguageField(args.dim, "bench", np.ones(n, np.float32), PQStorage(codes, ids, norms, book))))
+        args.device_rows.extend(device_rows(fields, n, q1, queries, args.device, repeats))
 
     def measure(name: str, bpg: float, single, batch, scores_all) -> None:
         wall, cpu = cpu_and_wall(single, repeats)
@@ -254,6 +263,21 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
             top = 1000
             measure(label + f" faiss search top-{top}", bpg, lambda: index.search(q1, top), lambda: index.search(qb, top), None)
             del index
+    return rows
+
+
+def device_rows(fields: list[tuple[str, LanguageField]], n: int, q1: np.ndarray, queries: np.ndarray, device: str, repeats: int) -> list[list]:
+    """Per field: numba CPU ms/query, torch ms/query on `device` (scores back in host memory), their ratio and the max |Δ| of the scores."""
+    from drsplat.device import resolve_device
+
+    dev = resolve_device(device)
+    rows = []
+    for name, fld in fields:
+        numba_s = median_seconds(lambda f=fld: f.scores(q1), repeats)
+        torch_s = median_seconds(lambda f=fld: f.scores(q1, device=dev), repeats)  # warm-up inside: copies the field once
+        diff = float(np.abs(fld.scores(queries, device=dev) - fld.scores(queries)).max())
+        rows.append([name, f"{n:,}", dev, 1e3 * numba_s, 1e3 * torch_s, numba_s / torch_s, diff])
+        fld._on_device = None  # free the device copy
     return rows
 
 
@@ -322,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
     model = EmbeddingModel.create(args.dim, args.labels, args.seed)
     books = train_books(args, model, backends)
     rows: list[Row] = []
+    args.device_rows = []
     for n in sizes:
         rows.extend(bench_size(args, n, model, books, backends))
     print(f"one cosine query over N Gaussians (D={args.dim}); K=16 batch column is per query; errors vs float32 cosine over {args.queries} text queries")
@@ -332,6 +357,9 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     print(f"threshold T per query: midway between the mean exact cosine of the queried class and of the rest; faiss search rows time top-k only (no all-N scores); peak RSS {peak_rss_mb():.0f} MB")
+    if args.device_rows:
+        print("torch scorer against the numba kernels (one query; speed-up = numba ms / torch ms; max |Δ| over all queries)")
+        print(format_table(["backend", "N", "device", "numba ms", "torch ms", "speed-up", "max |Δ|"], args.device_rows))
     print(machine_line())
     plot(rows, args.plot)
     print(f"plot: {args.plot}")

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, peak_rss_mb
+from drsplat.device import add_device_arguments, resolve_compute
 
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 
@@ -37,10 +38,14 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--real-topk", type=int, default=40, help="top-k on the real scene (default: 40)")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
+    p.add_argument("--gaussians", default=None, metavar="N",
+                   help="speed table on a random scene of N Gaussians built in memory (e.g. 500k) instead of --real")
+    p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
+    add_device_arguments(p)
     p.set_defaults(func=run)
 
 
-def _timed_register(scene, cameras, features_dir, topk: int, repeats: int):
+def _timed_register(scene, cameras, features_dir, topk: int, repeats: int, engine: str = "numba", device: str = "cpu"):
     """(last result, median wall seconds, median CPU seconds of all threads, all results)."""
     import logging
 
@@ -50,13 +55,13 @@ def _timed_register(scene, cameras, features_dir, topk: int, repeats: int):
     level = logger.level
     logger.setLevel(logging.ERROR)  # the warm-up on one view would warn about the other views
     try:
-        register_scene(scene, cameras[:1], features_dir, topk=topk, show_progress=False)  # numba compile
+        register_scene(scene, cameras[:1], features_dir, topk=topk, show_progress=False, engine=engine, device=device)  # compile / warm up
     finally:
         logger.setLevel(level)
     results, walls, cpus = [], [], []
     for _ in range(max(1, repeats)):
         t0, c0 = time.perf_counter(), time.process_time()
-        results.append(register_scene(scene, cameras, features_dir, topk=topk, show_progress=False))
+        results.append(register_scene(scene, cameras, features_dir, topk=topk, show_progress=False, engine=engine, device=device))
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
     return results[-1], statistics.median(walls), statistics.median(cpus), results
@@ -172,13 +177,71 @@ def real_table(path: Path, views: int, width: int, height: int, topk: int, repea
     return head + "\n" + format_table(["stage", "ms (wall)", "ms/view", "ms/1M pairs"], rows)
 
 
+def blob_scene(n: int, seed: int = 0):
+    """A random scene of n Gaussians in a unit-ish blob (sizes and opacities like a trained scene's), for timing."""
+    from drsplat.testing import random_scene
+
+    scene = random_scene(np.random.default_rng(seed), n, sh_degree=0, spread=1.0, log_scale=(-5.5, -3.0))
+    scene.opacity_logits[:] = np.random.default_rng(seed + 1).normal(1.0, 2.0, n).astype(np.float32)
+    return scene
+
+
+def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int) -> str:
+    """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement."""
+    from drsplat.raster import prepare_for_engine, rasterize
+    from drsplat.testing import agreement
+
+    cameras = orbit_cameras(scene.means, views, width, height)
+    with tempfile.TemporaryDirectory() as tmp:
+        features_dir = Path(tmp)
+        random_mask_features(features_dir, cameras, np.random.default_rng(0))
+        base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats)
+        other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device)
+    wdiff, mismatch = 0.0, 0.0
+    prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
+    for cam in cameras[:agree_views]:
+        a = rasterize(prep_n, cam, topk)
+        b = rasterize(prep_o, cam, topk, engine=engine, device=device)
+        w, m = agreement(b, a)
+        wdiff, mismatch = max(wdiff, w), max(mismatch, m)
+    feat_diff = float(np.abs(other.features - base.features).max()) if base.features.size else 0.0
+
+    def stage(runs, attr):
+        return statistics.median(getattr(r, attr) for r in runs)
+
+    rows = []
+    for label, runs, total in (("numba (cpu)", base_runs, base_s), (f"{engine} ({device})", other_runs, other_s)):
+        raster, acc = stage(runs, "raster_seconds"), stage(runs, "accumulate_seconds")
+        rows.append([label, 1e3 * total / views, 1e3 * raster / views, 1e3 * acc / views, base_s / total,
+                     stage(base_runs, "raster_seconds") / raster if raster else float("nan")])
+    head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, 512-D random masks; "
+            f"median of {repeats}. Agreement on {min(agree_views, views)} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of "
+            f"top-k slots; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
+    return head + "\n" + format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
+
+
 def run(args: argparse.Namespace) -> int:
     topks = [int(k) for k in args.topks.split(",") if k.strip()]
     width, _, height = args.size.partition("x")
     if not args.skip_synthetic:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats))
         print()
-    if not args.skip_real:
+    device, engine = resolve_compute(args)
+    if engine != "numba" and not args.skip_real:
+        if args.gaussians:
+            from drsplat.bench.query import parse_count
+
+            scene, name = blob_scene(parse_count(args.gaussians)), f"random blob scene {args.gaussians}"
+        elif args.real.exists():
+            from drsplat.scene import load_ply
+
+            scene, name = load_ply(args.real), args.real.name
+        else:
+            print(f"skipped the engine table: {args.real} is absent (pass --real SCENE.ply or --gaussians N)")
+            scene = None
+        if scene is not None:
+            print(engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device, args.agree_views))
+    elif not args.skip_real:
         if args.real.exists():
             print(real_table(args.real, args.views, int(width), int(height), args.real_topk, args.repeats))
         else:

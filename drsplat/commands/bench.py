@@ -25,3 +25,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         except ImportError:
             continue  # optional GUI dependencies missing: that bench is simply not offered
         add_bench(benches)
+    for bench in benches.choices.values():
+        func = bench.get_default("func")
+        if func is not None:
+            bench.set_defaults(func=_guarded(func))
+
+
+BENCH_OUTPUTS = ("plot", "screenshot", "out", "json")  # argument names benches write to
+
+
+def _guarded(func):
+    """A bench's run, preceded by the output guard: no bench writes its plot or screenshot over an input."""
+    import functools
+
+    @functools.wraps(func)
+    def run(args: argparse.Namespace) -> int:
+        from drsplat.commands.common import guard_args
+
+        guard_args(args, tuple(name for name in BENCH_OUTPUTS if getattr(args, name, None) is not None))
+        return func(args)
+
+    return run

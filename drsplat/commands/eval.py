@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.commands.common import float_range, guard_args, int_range, positive_float, threshold_value
 from drsplat.errors import DrsplatError, InputError
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_query_arguments(parser: argparse.ArgumentParser, names_help: str) -> None:
-    from drsplat.commands.query import add_clip_arguments
+    from drsplat.commands.common import add_clip_arguments
 
     q = parser.add_argument_group("label queries")
     q.add_argument("--label-names", type=Path, metavar="NAMES.json", help=names_help)
@@ -61,8 +62,8 @@ def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--weighting", default="volume,count", metavar="LIST",
                    help="comma-separated subset of volume (Dr. Splat), count (OpenGaussian), voxel; default volume,count")
     t.add_argument("--taus", default="0:1:0.01", metavar="START:STOP:STEP", help="localisation threshold grid (inclusive)")
-    t.add_argument("--voxel-resolution", type=int, default=96, help="voxels along the longest side of the labelled region")
-    t.add_argument("--voxel-empty", type=float, default=0.01, help="α-mass below which a voxel is empty")
+    t.add_argument("--voxel-resolution", type=int_range(1, 2048), default=96, help="voxels along the longest side of the labelled region")
+    t.add_argument("--voxel-empty", type=float_range(0.0, None), default=0.01, help="α-mass below which a voxel is empty")
     t.add_argument("--curve", action="store_true", help="print the whole localisation grid search")
     t.add_argument("--json", type=Path, metavar="OUT.json", help="also write the full report (per label, curves) as JSON")
     t.add_argument("--original", type=Path, metavar="SCENE.ply",
@@ -89,7 +90,7 @@ def _add_iou(sub) -> None:
 def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("pseudo-labels from a labelled point cloud")
     g.add_argument("--classes", default=None, metavar="A,B,...", help="keep only these label names (others become unlabelled)")
-    g.add_argument("--radius", type=float, default=3.0, help="Mahalanobis radius r (points with D <= r^2 vote)")
+    g.add_argument("--radius", type=positive_float, default=3.0, help="Mahalanobis radius r (points with D <= r^2 vote)")
     g.add_argument("--vote", choices=("gaussian", "count"), default="gaussian", help="vote weight exp(-D/2) (default) or 1")
     g.add_argument("--engine", choices=("grid", "kdtree"), default="grid", help="neighbour search: numba point grid (default) or scipy KD-trees")
 
@@ -121,8 +122,8 @@ def _add_lerf(sub) -> None:
     p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
-    p.add_argument("--threshold", default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
-    p.add_argument("--alpha-threshold", type=float, default=0.5, help="rendered occupancy above which a pixel is selected")
+    p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
+    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=0.5, help="rendered occupancy above which a pixel is selected")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="also write per-view results as JSON")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
@@ -162,7 +163,7 @@ def load_gt_labels(path: Path, n: int, num_labels: int) -> np.ndarray:
 
 def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarray:
     """[N, L] scores of every Gaussian for every label: cosine, or relevancy with --relevancy."""
-    from drsplat.commands.query import load_encoder
+    from drsplat.commands.common import load_encoder
     from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy, text_embeddings
 
     encoder = None
@@ -181,13 +182,24 @@ def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarra
     return relevancy(field, queries, negative_embeddings(encoder, field, [], extra))
 
 
+MAX_TAUS = 10_001  # localisation thresholds searched; each costs one pass over the scores
+
+
 def parse_taus(text: str) -> np.ndarray:
+    """START:STOP:STEP -> the inclusive grid; at most MAX_TAUS finite values (UsageError otherwise)."""
+    from drsplat.errors import UsageError
+
     try:
         start, stop, step = (float(x) for x in text.split(":"))
     except ValueError:
-        raise DrsplatError(f"--taus must be START:STOP:STEP, got {text!r}") from None
+        raise UsageError(f"--taus must be START:STOP:STEP, got {text!r}") from None
+    if not all(np.isfinite([start, stop, step])):
+        raise UsageError(f"--taus {text!r}: START, STOP and STEP must be finite numbers")
     if step <= 0 or stop < start:
-        raise DrsplatError(f"--taus {text!r}: need STEP > 0 and STOP >= START")
+        raise UsageError(f"--taus {text!r}: need STEP > 0 and STOP >= START")
+    count = np.floor((stop - start) / step + 0.5) + 1
+    if count > MAX_TAUS:
+        raise UsageError(f"--taus {text!r} is a grid of {count:.3g} thresholds; at most {MAX_TAUS} (use a larger STEP)")
     return np.round(np.arange(start, stop + 0.5 * step, step), 6)
 
 
@@ -225,7 +237,7 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
 
 def load_eval_scene(args: argparse.Namespace):
     """(scene to evaluate on, registered field, index of registered Gaussians in that scene or None)."""
-    from drsplat.commands.query import load_registered
+    from drsplat.commands.common import load_registered
     from drsplat.eval.metrics import match_gaussians
     from drsplat.scene import load_ply
 
@@ -286,6 +298,8 @@ def run_iou(args: argparse.Namespace) -> int:
         args.original = args.original or ds / "scene.ply"
     elif args.gt_labels is None and args.gt_points is None:
         raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
+    parse_taus(args.taus)
+    guard_args(args, ("json",))
     scene, field, index = load_eval_scene(args)
     if args.gt_labels is not None:
         names = load_label_names(args.label_names)
@@ -300,6 +314,8 @@ def run_scannet(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES, find_scannet_labels
     from drsplat.utils import save_npy_atomic
 
+    parse_taus(args.taus)
+    guard_args(args, ("json", "save_labels"))
     scene, field, index = load_eval_scene(args)
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     gt, names = pseudo_from_cloud(args, scene, find_scannet_labels(args.scene_dir), raw)
@@ -313,6 +329,7 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.scene import load_ply
     from drsplat.utils import atomic_path, save_npy_atomic
 
+    guard_args(args, ("out", "names_out"))
     scene = load_ply(args.scene)
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
@@ -329,10 +346,11 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
 
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import load_cameras
-    from drsplat.commands.query import load_registered
+    from drsplat.commands.common import load_registered
     from drsplat.eval.datasets import load_lerf_annotations
     from drsplat.eval.lerf import lerf_2d_report, select_queries
 
+    guard_args(args, ("json",))
     scene, field = load_registered(args.registered)
     views = load_lerf_annotations(args.annotations)
     categories = sorted({c for v in views for c in v.masks})

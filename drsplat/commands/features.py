@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from drsplat.commands.common import int_range, nonneg_int, resolution_value
+from drsplat.errors import OutputError
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 from drsplat.features.weights import SAM_URLS
@@ -35,14 +37,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sam-checkpoint", type=Path, default=None, metavar="PATH", help="local SAM checkpoint (vit_b/l/h, read from the file); no download")
     p.add_argument("--sam-model", choices=tuple(SAM_URLS), default="vit_h",
                    help="official SAM weights to download into ~/.cache/drsplat when no --sam-checkpoint is given (default vit_h, as LangSplat)")
-    p.add_argument("--sam-points-per-side", type=int, default=32, metavar="N",
+    p.add_argument("--sam-points-per-side", type=int_range(1, 256), default=32, metavar="N",
                    help="SAM prompt grid per side (LangSplat 32; fewer is faster on a CPU, with fewer small masks)")
-    p.add_argument("--sam-crop-layers", type=int, default=1, metavar="N",
+    p.add_argument("--sam-crop-layers", type=int_range(0, 4), default=1, metavar="N",
                    help="SAM crop layers (LangSplat 1: the image plus 4 overlapping crops; 0 is ~5x faster)")
-    p.add_argument("--resolution", type=float, default=-1, metavar="R",
+    p.add_argument("--resolution", type=resolution_value, default=-1, metavar="R",
                    help="image scale as 3DGS -r: -1 full size capped at 1600 px wide, 1/2/4/8 divide, other values a target width")
-    p.add_argument("--max-height", type=int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
-    p.add_argument("--batch-size", type=int, default=64, metavar="N", help="CLIP crops per batch")
+    p.add_argument("--max-height", type=nonneg_int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
+    p.add_argument("--batch-size", type=int_range(1, 4096), default=64, metavar="N", help="CLIP crops per batch")
     p.set_defaults(func=run)
 
 
@@ -56,6 +58,9 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.features.masks import make_generator
     from drsplat.features.masks.postprocess import NmsParams
     from drsplat.features.masks.sam import SamParams
+
+    if args.out.exists() and not args.out.is_dir():
+        raise OutputError(args.out, "--out must be a features folder, but a file has that name")
 
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
     encoder = ClipEncoder(args.clip_model, args.pretrained, args.clip_checkpoint, args.device, args.batch_size)

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.commands.common import MAX_COUNT, guard_args, int_range, positive_int, seed_int
 from drsplat.errors import InputError
+from drsplat.lang.codebook import PQ_KSUB
 
 log = logging.getLogger(__name__)
 
@@ -30,9 +32,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--embeddings", type=Path, nargs="+", default=[], metavar="A.npy", help="embedding arrays (n, D)")
     source.add_argument("--features", type=Path, nargs="+", default=[], metavar="DIR", help="LangSplat feature folders (<stem>_f.npy)")
     train.add_argument("--out", type=Path, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
-    train.add_argument("--m", type=int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
-    train.add_argument("--max-train", type=int, default=200_000, help="use at most this many embeddings (random subset)")
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--m", type=positive_int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
+    train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset)")
+    train.add_argument("--seed", type=seed_int, default=0)
     train.set_defaults(func=run_train)
 
     info = actions.add_parser("info", help="print what a codebook file contains")
@@ -43,7 +45,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
     """All embedding rows [n, D] float32 from .npy files and feature folders (finite nonzero rows)."""
     from drsplat.features.format import FEAT_SUFFIX
-    from drsplat.query import _load_npy
+    from drsplat.utils import load_npy
 
     files = list(arrays)
     for folder in folders:
@@ -57,7 +59,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
         raise InputError(None, "no embeddings given: use --embeddings A.npy or --features DIR")
     parts, dim = [], None
     for path in files:
-        arr = _load_npy(path)
+        arr = load_npy(path, "embedding array")
         if arr.ndim != 2 or arr.shape[1] == 0 or arr.dtype.kind not in "fiu":
             raise InputError(path, f"expected a float array (n, D), got shape {arr.shape} dtype {arr.dtype}")
         if dim is not None and arr.shape[1] != dim:
@@ -72,8 +74,9 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from drsplat.lang import PQ_KSUB, train_codebook
+    from drsplat.lang import train_codebook
 
+    guard_args(args, ("out",))
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
         raise InputError(None, f"--m {args.m} does not divide the embedding dimension {x.shape[1]}")

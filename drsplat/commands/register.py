@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import signal
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
+from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
-from drsplat.utils import CancelToken
+from drsplat.device import add_device_arguments, resolve_compute
+from drsplat.features.format import FEATURE_FILE_PATTERNS
+from drsplat.utils import CancelToken, cancel_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -28,8 +27,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, metavar="SCENE.ply", help="trained 3DGS scene (PLY)")
     p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0) or transforms.json")
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
-    p.add_argument("--level", type=int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
-    p.add_argument("--topk", type=int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
+    p.add_argument("--level", type=nonneg_int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
+    p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
@@ -38,53 +37,37 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "*-reject (also leave floaters unassigned); see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
-    p.add_argument("--resolution", type=float, default=-1,
+    p.add_argument("--resolution", type=resolution_value, default=-1,
                    help="camera resolution as 3DGS's -r: 1, 2, 4, 8 divide, another number is a width in pixels; "
                    "default -1: full size, capped at 1600 px wide")
     p.add_argument("--out", type=Path, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_device_arguments(p)
     p.set_defaults(func=run)
 
 
-@contextlib.contextmanager
-def cancel_on_sigint(token: CancelToken) -> Iterator[None]:
-    """First Ctrl-C cancels cleanly at the end of the current view; a second one interrupts."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.getsignal(signal.SIGINT)
-
-    def handler(signum, frame):
-        if token.cancelled:
-            raise KeyboardInterrupt
-        log.warning("stopping after the current view (Ctrl-C again to abort at once)")
-        token.cancel()
-
-    signal.signal(signal.SIGINT, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-
 def run(args: argparse.Namespace) -> int:
-    from drsplat.cameras import load_cameras, resolution_scale
+    from drsplat.cameras import load_cameras
     from drsplat.errors import DrsplatError
+    from drsplat.lang import codebook_path_for
     from drsplat.pipeline import RegisterOptions, register_to_ply
     from drsplat.scene import load_ply
 
-    if args.topk < 1:
-        raise DrsplatError(f"--topk must be at least 1, got {args.topk}")
-    try:
-        resolution_scale(1000, args.resolution)
-    except ValueError as exc:
-        raise DrsplatError(f"--resolution: {exc}") from exc
+    device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
+    if args.aggregate != "paper" and engine != "numba":
+        raise DrsplatError(f"--aggregate {args.aggregate} runs on the numba engine only; use --engine numba or --aggregate paper")
+    codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
+    written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
+    if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
+        written_codebook = None  # the codebook already sits where the registered PLY names it
+    guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file},
+               extra_outputs={"the codebook written beside --out": written_codebook},
+               protected_folders={"--features": (args.features, FEATURE_FILE_PATTERNS)})
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
-                              aggregate=args.aggregate)
+                              engine=engine, device=device, aggregate=args.aggregate)
     token = CancelToken()
-    with cancel_on_sigint(token):
+    with cancel_on_signals(token, "the current view"):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
     return 0

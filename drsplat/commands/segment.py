@@ -8,8 +8,18 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.query import add_clip_arguments, add_lut_bits_argument, load_registered, split_phrases
-from drsplat.errors import DrsplatError
+from drsplat.commands import common
+from drsplat.commands.common import (
+    add_clip_arguments,
+    add_format_argument,
+    add_lut_bits_argument,
+    export_outputs,
+    float_range,
+    load_registered,
+    scoring_device,
+    split_phrases,
+)
+from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 
@@ -31,38 +41,61 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--labels", metavar="A,B,...", help="comma-separated label phrases (needs CLIP weights)")
     source.add_argument("--embeddings", type=Path, metavar="L.npy", help="label embeddings (L, D)")
+    parser.add_argument("--names", type=Path, metavar="NAMES.json",
+                        help="names of the --embeddings rows (a JSON list); default: gt/label_names.json beside L.npy "
+                        "when it has one name per row (synthetic datasets), else label_0, label_1, ...")
     parser.add_argument(
         "--background",
         action="store_true",
         help="add a background label: the phrase 'background' with --labels, the last row of L.npy with --embeddings",
     )
-    parser.add_argument("--min-score", type=float, default=None, help="Gaussians whose best cosine is below this get -1")
+    parser.add_argument("--min-score", type=float_range(-1.0, 1.0), default=None, help="Gaussians whose best cosine is below this get -1")
     add_lut_bits_argument(parser)
     parser.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
-    parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (standard 3DGS PLY)")
-    add_clip_arguments(parser)
+    parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (see --format)")
+    add_format_argument(parser, "--ply")
+    add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
 
 def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
     """(label embeddings [L, D], background embeddings [1, D] or None, label names)."""
-    from drsplat.commands import query as query_cmd
     from drsplat.query import BACKGROUND_PHRASE, load_query_embeddings, text_embeddings
 
     if args.labels is not None:
         names = split_phrases(args.labels)
         if not names:
             raise DrsplatError("--labels gave no label phrases")
-        encoder = (encoder_factory or query_cmd.load_encoder)(args, field)
+        encoder = (encoder_factory or common.load_encoder)(args, field)
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
         emb = load_query_embeddings(args.embeddings, field.dim)
-        names = [f"label_{i}" for i in range(emb.shape[0] - int(args.background))]
+        names = embedding_names(args.embeddings, getattr(args, "names", None), emb.shape[0] - int(args.background))
     if args.background:
         if emb.shape[0] < 2:
             raise DrsplatError("--background needs at least one label besides the background row")
         return emb[:-1], emb[-1:], names
     return emb, None, names
+
+
+def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> list[str]:
+    """Names of `count` label embeddings: NAMES.json (a JSON list) when given, else the dataset's
+    gt/label_names.json beside the embeddings when it names exactly `count` labels, else label_i."""
+    import json
+
+    explicit = names_path is not None
+    path = names_path if explicit else embeddings.parent / "gt" / "label_names.json"
+    if explicit or path.is_file():
+        try:
+            names = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"is not a readable JSON list of names ({exc})") from None
+        if isinstance(names, list) and len(names) == count:
+            return [str(n) for n in names]
+        if explicit:
+            raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
+        log.info("ignoring %s: it does not name the %d label rows", path, count)
+    return [f"label_{i}" for i in range(count)]
 
 
 def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray) -> GaussianScene:
@@ -75,18 +108,22 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
+    from drsplat.lang import codebook_path_for, export_scene
     from drsplat.query import label_colors, segment
-    from drsplat.scene import save_ply
-    from drsplat.utils import save_npy_atomic
+    from drsplat.utils import guard_outputs, save_npy_atomic
 
+    inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
+              "the registered PLY's codebook": codebook_path_for(args.registered)}
+    guard_outputs(inputs, {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)})
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
-    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits)
+    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,
+                  device=scoring_device(args))
     save_npy_atomic(args.out, seg.labels)
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
     if args.ply is not None:
-        save_ply(coloured_scene(scene, seg.labels, label_colors(len(names))), args.ply)
-        log.info("wrote the label-coloured scene to %s", args.ply)
+        export_scene(coloured_scene(scene, seg.labels, label_colors(len(names))), field, args.ply, args.format)
+        log.info("wrote the label-coloured scene to %s (%s PLY)", args.ply, args.format)
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
     print(f"{'label':<24} {'gaussians':>10}")
     for i, name in enumerate(names):

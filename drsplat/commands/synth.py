@@ -6,9 +6,11 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.errors import DrsplatError
+from drsplat.commands.common import float_range, int_range, nonneg_float, seed_int
 
 log = logging.getLogger(__name__)
+
+MAX_JITTER = 64  # pixels
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -18,28 +20,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "synth",
         help="write a synthetic scene with exact ground truth and oracle LangSplat features",
         description="Write a synthetic 3DGS dataset: scene.ply, transforms.json, rendered images, ground-truth "
-        "masks and labels, oracle LangSplat feature files and oracle text embeddings (docs/registration.md).",
+        "masks and labels, oracle LangSplat feature files and oracle text embeddings (docs/registration.md). "
+        "The folder is built beside OUT_DIR and renamed into place at the end, so an interrupted run leaves nothing.",
     )
-    p.add_argument("out_dir", type=Path, help="output folder (created)")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene: tiny, small, demo (a table), or a hard room hard-* (docs/evaluation.md) (default: tiny)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    p.add_argument("--mislabel", type=float, default=None, metavar="FRACTION",
+    p.add_argument("out_dir", type=Path, help="output folder (created; an earlier synthetic dataset there is replaced)")
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene: tiny, small, demo (a table), or a hard room hard-* (docs/registration.md) (default: tiny)")
+    p.add_argument("--seed", type=seed_int, default=0, help="random seed, 0..2^32-1 (default: 0)")
+    p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
                    help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
-    p.add_argument("--noise", type=float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
-    p.add_argument("--jitter", type=int, default=None, metavar="PIXELS",
-                   help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy/hard-room)")
+    p.add_argument("--noise", type=nonneg_float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
+    p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
+                   help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
+def is_synthetic_dataset(folder: Path) -> bool:
+    """Whether `folder` holds an earlier `drsplat synth` output (safe to replace)."""
+    return (folder / "scene.ply").is_file() and (folder / "gt" / "label_names.json").is_file() and (folder / "text_embeddings.npy").is_file()
+
+
 def run(args: argparse.Namespace) -> int:
     from drsplat.synthetic import write_dataset
+    from drsplat.utils import CancelToken, atomic_folder, cancel_on_signals
 
-    if args.mislabel is not None and not 0.0 <= args.mislabel <= 1.0:
-        raise DrsplatError(f"--mislabel must be between 0 and 1, got {args.mislabel}")
-    if args.noise < 0 or (args.jitter is not None and args.jitter < 0):
-        raise DrsplatError("--noise and --jitter must not be negative")
-    out = write_dataset(args.out_dir, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
-                        jitter=args.jitter, show_progress=not args.no_progress)
-    log.info("synthetic dataset written to %s", out)
+    token = CancelToken()
+    with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, is_synthetic_dataset) as tmp:
+        write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
+                      jitter=args.jitter, show_progress=not args.no_progress, cancel=token)
+        token.raise_if_cancelled()
+    log.info("synthetic dataset written to %s", args.out_dir)
     return 0

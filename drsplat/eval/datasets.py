@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera
+from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 
 log = logging.getLogger(__name__)
@@ -212,6 +212,9 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
     """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
     from plyfile import PlyData, PlyHeaderParseError
 
+    from drsplat.scene import check_element_sizes, read_ply_header
+
+    check_element_sizes(path, read_ply_header(path), path.stat().st_size)  # no allocation from a lying header
     try:
         ply = PlyData.read(str(path))
         vertex = ply["vertex"]
@@ -248,10 +251,9 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
     sidecar = labels_sidecar(path)
     if not sidecar.is_file():
         raise InputError(sidecar, f"missing: a {path.suffix} cloud has no label property, so its raw labels must be in this file ([P] integers)")
-    try:
-        raw = np.load(sidecar, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(sidecar, f"not a readable .npy array ({exc})") from None
+    from drsplat.utils import load_npy
+
+    raw = load_npy(sidecar, "label array")
     if raw.ndim != 1 or raw.shape[0] != len(pts) or not np.issubdtype(raw.dtype, np.integer):
         raise InputError(sidecar, f"expected {len(pts)} integer labels (one per point), got {raw.dtype} of shape {raw.shape}")
     return pts, raw.astype(np.int64), sidecar.name
@@ -284,51 +286,3 @@ def find_scannet_labels(scene_dir: str | Path) -> Path:
     if not found:
         raise InputError(scene_dir, "no *_vh_clean_2.labels.ply in this ScanNet scene folder")
     return found[0]
-
-
-def _read_matrix(path: Path) -> np.ndarray:
-    try:
-        m = np.loadtxt(path, dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"not a 4 x 4 matrix of numbers ({exc})") from None
-    if m.shape != (4, 4):
-        raise InputError(path, f"expected a 4 x 4 matrix, found shape {m.shape}")
-    return m
-
-
-def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]:
-    """Cameras of an exported ScanNet scene: pose/<i>.txt (camera-to-world), intrinsic/intrinsic_color.txt, color/<i>.jpg.
-
-    Frames whose pose is non-finite (ScanNet marks tracking failures with −inf) are skipped and
-    counted in a warning. Cameras are named by the frame stem, like the images.
-    """
-    from PIL import Image
-
-    scene_dir = Path(scene_dir)
-    pose_dir = scene_dir / "pose"
-    if not pose_dir.is_dir():
-        raise InputError(scene_dir, "no pose/ folder (export the .sens file with ScanNet's SensReader)")
-    K = _read_matrix(scene_dir / "intrinsic" / "intrinsic_color.txt")
-    poses = sorted(pose_dir.glob("*.txt"), key=lambda p: (len(p.stem), p.stem))[:: max(1, stride)]
-    cameras, skipped = [], 0
-    size: tuple[int, int] | None = None
-    for pose_path in poses:
-        c2w = _read_matrix(pose_path)
-        if not np.isfinite(c2w).all():
-            skipped += 1
-            continue
-        image = next((scene_dir / "color" / f"{pose_path.stem}{ext}" for ext in (".jpg", ".png") if (scene_dir / "color" / f"{pose_path.stem}{ext}").exists()), None)
-        if size is None:
-            if image is None:
-                raise InputError(scene_dir / "color", f"no colour image for frame {pose_path.stem} (needed for the image size)")
-            with Image.open(image) as im:
-                size = im.size
-        R = c2w[:3, :3].T
-        t = -R @ c2w[:3, 3]
-        cameras.append(Camera(R=R, t=t, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=size[0], height=size[1],
-                              image_path=image, name=pose_path.stem))
-    if skipped:
-        log.warning("%s: %d frames with invalid (non-finite) poses skipped", scene_dir, skipped)
-    if not cameras:
-        raise InputError(pose_dir, "no frame with a valid pose")
-    return cameras

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.device import resolve_device  # noqa: F401 - re-exported: the encoder's callers import it from here
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import (  # noqa: F401 - check_compatible re-exported for callers of the encoder
     CANONICAL_PHRASES,
@@ -31,19 +32,6 @@ log = logging.getLogger(__name__)
 
 OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)
 OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
-
-
-def resolve_device(device: str = "auto") -> str:
-    """"auto" -> "cuda" when available else "cpu"; "cuda" without a GPU is an error."""
-    import torch
-
-    if device not in ("auto", "cpu", "cuda"):
-        raise DrsplatError(f"unknown device '{device}': use auto, cpu or cuda")
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise DrsplatError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
-    return device
 
 
 class ClipEncoder:

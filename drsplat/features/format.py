@@ -23,13 +23,14 @@ from typing import Any
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.utils import atomic_path, save_npy_atomic
+from drsplat.utils import atomic_path, load_npy, save_npy_atomic
 
 log = logging.getLogger(__name__)
 
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
 MANIFEST_NAME = "manifest.json"
+FEATURE_FILE_PATTERNS = (f"*{SEG_SUFFIX}", f"*{FEAT_SUFFIX}", MANIFEST_NAME)  # what an output must not be named inside a features folder
 
 
 def seg_path(features_dir: str | Path, stem: str) -> Path:
@@ -105,15 +106,7 @@ def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
 def _load_npy(path: Path, what: str) -> np.ndarray:
     if not path.is_file():
         raise InputError(path, f"{what} file is missing")
-    try:
-        shape, _, size = _npy_header(path)
-        if path.stat().st_size < size:
-            raise InputError(path, f"file is truncated: header says {shape} but only {path.stat().st_size} of {size} bytes are present")
-        return np.load(path, allow_pickle=False)
-    except InputError:
-        raise
-    except (OSError, ValueError, SyntaxError, EOFError) as exc:
-        raise InputError(path, f"not a readable .npy file ({exc})") from exc
+    return load_npy(path, what)
 
 
 def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
@@ -171,8 +164,8 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = 1, *,
     feats = _load_npy(fpath, "embedding")
     if seg.ndim == 2:
         seg = seg[None]
-    if seg.ndim != 3:
-        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W)")
+    if seg.ndim != 3 or 0 in seg.shape:
+        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W) with L, H, W > 0")
     if feats.ndim != 2 or feats.shape[1] == 0:
         raise InputError(fpath, f"embeddings have shape {feats.shape}, expected (M, D) with D > 0")
     if not (np.issubdtype(feats.dtype, np.floating) or np.issubdtype(feats.dtype, np.integer)):

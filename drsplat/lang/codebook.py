@@ -124,13 +124,144 @@ def codebook_from_index(index: object, path: Path | None = None) -> Codebook:
     return Codebook(kind=kind, dim=int(index.d), m=int(pq.M), centroids=centroids, coarse=coarse, index=index, path=path, owner=owner)
 
 
+MAX_DIM = 1 << 16  # embedding dimensions; CLIP models use 512-1024
+
+
+class _FaissHeaderReader:
+    """Bounds-checked reader of the little-endian fields faiss writes (index_write.cpp)."""
+
+    def __init__(self, path: Path, data: bytes):
+        self.path, self.data, self.pos = path, data, 0
+
+    def take(self, fmt: str, what: str) -> int | float:
+        import struct
+
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise InputError(self.path, f"faiss file is truncated inside {what} (byte {self.pos})")
+        (value,) = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return value
+
+    def skip_array(self, itemsize: int, what: str, expected: int | None = None) -> int:
+        """A faiss vector: size_t count then count items; checked against `expected` and the file size."""
+        count = int(self.take("Q", what))
+        if expected is not None and count != expected:
+            raise InputError(self.path, f"faiss {what} holds {count} values, expected {expected}: the file is corrupt", field=what)
+        if self.pos + count * itemsize > len(self.data):
+            raise InputError(self.path, f"faiss {what} declares {count} values ({count * itemsize} bytes) but only "
+                                        f"{len(self.data) - self.pos} bytes remain: the file is truncated or corrupt", field=what)
+        self.pos += count * itemsize
+        return count
+
+    def fourcc(self) -> bytes:
+        if self.pos + 4 > len(self.data):
+            raise InputError(self.path, "faiss file is truncated (no index type)")
+        code = self.data[self.pos : self.pos + 4]
+        self.pos += 4
+        return code
+
+    def check_list_sizes(self, nlist: int, code_size: int) -> None:
+        """The ArrayInvertedLists sizes ("full": nlist counts, "sprs": (list, count) pairs) fit the file."""
+        kind = self.fourcc()
+        if kind == b"full":
+            count = self.skip_array(8, "inverted list sizes", expected=nlist)
+            sizes = np.frombuffer(self.data, "<u8", count, self.pos - 8 * count)
+        elif kind == b"sprs":
+            count = self.skip_array(8, "inverted list sizes")
+            sizes = np.frombuffer(self.data, "<u8", count, self.pos - 8 * count)[1::2]
+        else:
+            raise InputError(self.path, "faiss inverted lists have an unknown size encoding", field="invlists")
+        total = int(sizes.astype(np.float64).sum())
+        if total * (code_size + 8) > len(self.data) - self.pos:
+            raise InputError(self.path, f"faiss inverted lists declare {total} entries, more than the file holds", field="invlists")
+
+    def index_header(self, what: str) -> tuple[int, int]:
+        """(d, ntotal) of faiss's common index header, with d in 1..MAX_DIM and ntotal >= 0."""
+        d = int(self.take("i", f"{what} d"))
+        ntotal = int(self.take("q", f"{what} ntotal"))
+        self.take("q", "header")
+        self.take("q", "header")
+        self.take("B", f"{what} is_trained")
+        metric = int(self.take("i", f"{what} metric"))
+        if metric > 1:
+            self.take("f", f"{what} metric_arg")
+        if not 1 <= d <= MAX_DIM:
+            raise InputError(self.path, f"faiss {what} has dimension d={d}; expected 1..{MAX_DIM}", field="d")
+        if ntotal < 0 or ntotal > len(self.data):
+            raise InputError(self.path, f"faiss {what} claims {ntotal} vectors, impossible in a {len(self.data)}-byte file", field="ntotal")
+        return d, ntotal
+
+    def product_quantizer(self, d: int) -> int:
+        """M of a ProductQuantizer block, after checking d, M, nbits and the centroid count."""
+        pq_d, m, nbits = int(self.take("Q", "pq d")), int(self.take("Q", "pq M")), int(self.take("Q", "pq nbits"))
+        if pq_d != d:
+            raise InputError(self.path, f"faiss PQ dimension {pq_d} differs from the index dimension {d}", field="pq d")
+        if not 1 <= m <= d or d % m:
+            raise InputError(self.path, f"faiss PQ has M={m} sub-vectors, which does not divide d={d}", field="M")
+        if nbits != PQ_BITS:
+            raise InputError(self.path, f"PQ codes have {nbits} bits; drsplat stores 8-bit codes only", field="nbits")
+        self.skip_array(4, "pq centroids", expected=d * PQ_KSUB)
+        return m
+
+
+def check_faiss_header(path: Path) -> None:
+    """Validate a faiss IndexPQ / IndexIVFPQ file's header against its size before faiss reads it.
+
+    faiss trusts every count it reads (a codebook with 3 bytes changed made it allocate 10 GB):
+    d, M, nbits, nlist, the centroid, code and inverted-list sizes are checked here first, and
+    index types other than IndexPQ and IndexIVFPQ (flat coarse quantiser) are refused.
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    r = _FaissHeaderReader(path, data)
+    code = r.fourcc()
+    if code == b"IxPq":
+        d, ntotal = r.index_header("IndexPQ")
+        m = r.product_quantizer(d)
+        r.skip_array(1, "codes", expected=ntotal * m)
+        return
+    if code not in (b"IvPQ", b"IwPQ"):
+        raise InputError(path, "is not a faiss index file drsplat reads (unknown index type code; drsplat reads IndexPQ and IndexIVFPQ codebooks)")
+    d, _ = r.index_header("IndexIVFPQ")
+    nlist = int(r.take("Q", "nlist"))
+    r.take("Q", "nprobe")
+    if not 1 <= nlist <= len(data) // (4 * d):
+        raise InputError(path, f"faiss IndexIVFPQ has nlist={nlist} coarse centroids, impossible in a {len(data)}-byte file", field="nlist")
+    quantizer = r.fourcc()
+    if quantizer not in (b"IxFI", b"IxF2", b"IxFl"):
+        raise InputError(path, "faiss IndexIVFPQ has a coarse quantiser that is not a flat index; drsplat reads flat quantisers only", field="quantizer")
+    qd, qn = r.index_header("coarse quantiser")
+    if qd != d or qn != nlist:
+        raise InputError(path, f"faiss coarse quantiser has d={qd}, {qn} centroids; the index has d={d}, nlist={nlist}", field="quantizer")
+    r.skip_array(4, "coarse centroids", expected=nlist * d)
+    r.take("B", "direct map type")
+    r.skip_array(8, "direct map")
+    r.take("B", "by_residual")
+    code_size = int(r.take("Q", "code_size"))
+    m = r.product_quantizer(d)
+    if code_size != m:
+        raise InputError(path, f"faiss IndexIVFPQ code_size={code_size} differs from M={m}", field="code_size")
+    if r.fourcc() == b"ilar":
+        lists, list_code_size = int(r.take("Q", "invlists nlist")), int(r.take("Q", "invlists code_size"))
+        if lists != nlist or list_code_size != code_size:
+            raise InputError(path, f"faiss inverted lists have nlist={lists}, code_size={list_code_size}; expected {nlist}, {code_size}", field="invlists")
+        r.check_list_sizes(nlist, code_size)
+
+
 def load_codebook(path: str | Path) -> Codebook:
-    """Read a faiss codebook file (IndexPQ from `drsplat pq train`, or the official IndexIVFPQ)."""
+    """Read a faiss codebook file (IndexPQ from `drsplat pq train`, or the official IndexIVFPQ).
+
+    The header is validated against the file size first (`check_faiss_header`).
+    """
     faiss = _faiss()
 
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "codebook file not found")
+    check_faiss_header(path)
     try:
         index = faiss.read_index(str(path))
     except RuntimeError as exc:
@@ -167,7 +298,15 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     return codebook_from_index(index)
 
 def unit_rows(x: np.ndarray) -> np.ndarray:
-    """Rows divided by their L2 norm (zero rows stay zero): [K, D] float32."""
+    """Rows divided by their L2 norm: [K, D] float32; zero and non-finite rows become zero.
+
+    Each row is first divided by its largest magnitude (y = x / max|x|, then y / ||y||), so a
+    huge finite row (1e30) normalises correctly instead of overflowing the norm to inf.
+    """
     x = np.atleast_2d(np.asarray(x, np.float32))
-    norm = np.linalg.norm(x, axis=1, keepdims=True)
-    return np.where(norm > 0, x / np.where(norm > 0, norm, 1), 0).astype(np.float32)
+    with np.errstate(invalid="ignore", over="ignore"):
+        scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
+        ok = np.isfinite(scale) & (scale > 0) & np.isfinite(x).all(axis=1, keepdims=True)
+        y = np.where(ok, x / np.where(ok, scale, 1), 0)
+        norm = np.linalg.norm(y, axis=1, keepdims=True)
+        return np.where(ok, y / np.where(ok, norm, 1), 0).astype(np.float32)

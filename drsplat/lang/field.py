@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ class LanguageField:
     clip_model: str
     weights: np.ndarray
     storage: Storage
+    _on_device: object | None = dataclasses.field(default=None, init=False, repr=False, compare=False)  # torch_scoring.DeviceField
 
     @property
     def kind(self) -> str:
@@ -74,7 +76,7 @@ class LanguageField:
         """Stored bytes per Gaussian in the PLY (weight and norm included)."""
         return self.storage.bytes_per_gaussian() + 4
 
-    def scores(self, queries: np.ndarray, lut_bits: int = 32) -> np.ndarray:
+    def scores(self, queries: np.ndarray, lut_bits: int = 32, device: str | None = None) -> np.ndarray:
         """Cosine similarity of every Gaussian to each query: queries [K, D] or [D] -> [N, K] float32.
 
         Queries are L2-normalised; features are compared through their stored norm, so the
@@ -83,10 +85,25 @@ class LanguageField:
         lut_bits: 32 (default) scores PQ fields with float32 tables (exact up to rounding);
         8 uses 8-bit tables (`lut_scores_blocked`, an approximation). Exact fields have no tables
         and ignore it.
+        device: None = the numba CPU kernels; "cpu" / "cuda" = the torch kernels on that device
+        (drsplat.lang.torch_scoring; float32 tables only; the field is copied there on first use and kept).
         """
         if lut_bits not in (8, 32):
             raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
-        return self.storage.scores(unit_rows(self._check_queries(queries)), lut_bits)
+        q = unit_rows(self._check_queries(queries))
+        if device is not None:
+            return self.scores_torch(q, device, lut_bits).cpu().numpy()
+        return self.storage.scores(q, lut_bits)
+
+    def scores_torch(self, queries: np.ndarray, device: str, lut_bits: int = 32):
+        """`scores` as a torch tensor [N, K] float32 on `device` (unit queries)."""
+        from drsplat.lang import torch_scoring
+
+        if lut_bits != 32:
+            raise ValueError("8-bit tables are a CPU (AVX-512) kernel; the torch scorer uses float32 tables (lut_bits=32)")
+        if self._on_device is None or str(self._on_device.device) != str(torch_scoring.torch.device(device)):
+            self._on_device = torch_scoring.to_device(self, device)
+        return torch_scoring.field_scores_torch(self, np.asarray(queries, np.float32), self._on_device)
 
     def scores_reference(self, queries: np.ndarray) -> np.ndarray:
         """Decode-then-cosine reference of `scores` (float64 math): [N, K]."""

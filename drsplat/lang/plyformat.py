@@ -1,9 +1,29 @@
-"""The registered-PLY format: how a `LanguageField` is stored in extra vertex properties of an INRIA PLY (the one place it is specified)."""
+"""The registered-PLY format: how a `LanguageField` is stored in extra vertex properties of an INRIA PLY (the one place it is specified).
+
+A registered PLY is an INRIA-layout PLY plus:
+
+- the header comment `drsplat.lang kind=<exact|pq|ivfpq> dim=<D> clip=<model> [codebook=<file>]`
+  (values URL-quoted), the field's metadata;
+- the same metadata as a vertex property, `lang_meta` (ushort), for tools that keep vertex
+  properties but drop header comments (PlayCanvas splat-transform does): with b the metadata's
+  UTF-8 bytes (the comment without its prefix, L = len(b) <= 255), row i holds
+  (k << 8) | b[k] with k = i mod L. Every row carries one (position, byte) pair, so the text can
+  be read back after rows are reordered or subset (each position by majority over its rows) as
+  long as every position keeps a row; 2 bytes per Gaussian;
+- `lang_weight` float: total registration weight (0 = unassigned);
+- exact: `lang_0 .. lang_{D-1}` ushort holding float16 bit patterns; pq / ivfpq:
+  `lang_code_0 .. lang_code_{M-1}` uchar, `lang_norm` float, ivfpq also `lang_list` int; the
+  codebook file (`<stem>.codebook.faiss`) sits next to the PLY, named in the metadata.
+
+Readers take the comment when present (files written before `lang_meta` existed have only it),
+else `lang_meta`.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shutil
 from pathlib import Path
 from urllib.parse import quote, unquote
@@ -11,8 +31,8 @@ from urllib.parse import quote, unquote
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import load_codebook
 from drsplat.lang.backends import BACKENDS, needs_codebook
+from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene
 from drsplat.utils import atomic_path
@@ -20,6 +40,8 @@ from drsplat.utils import atomic_path
 log = logging.getLogger(__name__)
 
 COMMENT_PREFIX = "drsplat.lang"
+META_PROPERTY = "lang_meta"
+META_MAX_BYTES = 255
 
 
 # --------------------------------------------------------------------------------------------
@@ -40,9 +62,44 @@ def field_comment(field: LanguageField, codebook_name: str | None) -> str:
     return " ".join(parts)
 
 
-def field_extras(field: LanguageField) -> dict[str, np.ndarray]:
-    """Extra vertex properties of the field, name -> [N] array (dtype = PLY type)."""
+def encode_meta_column(text: str, n: int) -> np.ndarray | None:
+    """[n] uint16 `lang_meta` column of a metadata text: row i = (k << 8) | byte[k], k = i mod L.
+
+    None when the text cannot be carried: empty, longer than META_MAX_BYTES, or more bytes than
+    rows (a scene of fewer Gaussians than the text's length keeps the comment form only).
+    """
+    data = text.encode("utf-8")
+    if not data or len(data) > META_MAX_BYTES or n < len(data):
+        return None
+    k = np.arange(n, dtype=np.int64) % len(data)
+    return ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16)
+
+
+def decode_meta_column(column: np.ndarray) -> str | None:
+    """The metadata text of a `lang_meta` column (any row order, any subset keeping each position),
+    or None when it does not decode: L = 1 + the largest position, each byte by majority vote."""
+    values = np.asarray(column).astype(np.int64, copy=False)
+    if values.size == 0 or values.min() < 0 or values.max() > 0xFFFF:
+        return None
+    pos, byte = values >> 8, values & 0xFF
+    length = int(pos.max()) + 1
+    counts = np.zeros((length, 256), np.int64)
+    np.add.at(counts, (pos, byte), 1)
+    if np.any(counts.sum(axis=1) == 0):
+        return None
+    try:
+        return counts.argmax(axis=1).astype(np.uint8).tobytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+
+
+def field_extras(field: LanguageField, meta: str | None = None) -> dict[str, np.ndarray]:
+    """Extra vertex properties of the field, name -> [N] array (dtype = PLY type); `meta`, the
+    comment's text without its prefix, adds the `lang_meta` column when it fits."""
     extras: dict[str, np.ndarray] = {"lang_weight": np.ascontiguousarray(field.weights, np.float32)}
+    column = None if meta is None else encode_meta_column(meta, field.num_gaussians)
+    if column is not None:
+        extras[META_PROPERTY] = column
     extras.update(field.storage.columns())
     return extras
 
@@ -80,9 +137,10 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
                 shutil.copyfile(source, tmp)
         elif source is None or source.resolve() != target.resolve():
             field.codebook.save(target)
+    comment = field_comment(field, name)
     extra = dict(base.extra)
-    extra.update(field_extras(field))
-    return dataclasses.replace(base, extra=extra, comments=base.comments + [field_comment(field, name)])
+    extra.update(field_extras(field, comment[len(COMMENT_PREFIX):].strip()))
+    return dataclasses.replace(base, extra=extra, comments=base.comments + [comment])
 
 
 def parse_field_comment(comments: list[str]) -> dict[str, str] | None:
@@ -90,18 +148,35 @@ def parse_field_comment(comments: list[str]) -> dict[str, str] | None:
     for comment in comments:
         tokens = comment.split()
         if tokens and tokens[0] == COMMENT_PREFIX:
-            return {k: unquote(v) for k, _, v in (t.partition("=") for t in tokens[1:])}
+            return _parse_pairs(tokens[1:])
     return None
 
 
+def _parse_pairs(tokens: list[str]) -> dict[str, str]:
+    return {k: unquote(v) for k, _, v in (t.partition("=") for t in tokens)}
+
+
+def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str] | None:
+    """The field's key=value metadata: the header comment, else the `lang_meta` column (a file
+    whose comments a tool dropped); None for a scene without a language field."""
+    meta = parse_field_comment(scene.comments)
+    if meta is not None or META_PROPERTY not in scene.extra:
+        return meta
+    text = decode_meta_column(scene.extra[META_PROPERTY])
+    if text is None:
+        raise InputError(ply_path, "the language field's metadata column does not decode (rows lost or altered)", field=META_PROPERTY)
+    return _parse_pairs(text.split())
+
+
 def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | None:
-    """The language field of a scene loaded from `ply_path` (None if it has no drsplat.lang comment).
+    """The language field of a scene loaded from `ply_path` (None if it has neither a drsplat.lang
+    comment nor a `lang_meta` column).
 
     Raises InputError naming the PLY (or codebook) file and the field for missing properties,
     an unknown kind, a missing codebook, or codes that do not fit the codebook.
     """
     ply_path = Path(ply_path)
-    meta = parse_field_comment(scene.comments)
+    meta = field_metadata(scene, ply_path)
     if meta is None:
         return None
     kind = meta.get("kind")
@@ -111,13 +186,15 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         dim = int(meta.get("dim", ""))
     except ValueError:
         raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field="comment drsplat.lang") from None
+    if not 1 <= dim <= MAX_DIM:
+        raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field="comment drsplat.lang")
     clip_model = meta.get("clip", "unknown")
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
     book = None
     if needs_codebook(kind):
         if "codebook" not in meta:
             raise InputError(ply_path, "a quantised language field names no codebook file", field="comment drsplat.lang")
-        book = load_codebook(ply_path.parent / meta["codebook"])
+        book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
         if f"lang_code_{book.m}" in scene.extra:
@@ -134,7 +211,51 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     return LanguageField(dim, clip_model, weights, storage)
 
 
+def codebook_named_by(ply_path: Path, name: str) -> Path:
+    """The codebook a PLY header names, relative to the PLY's folder; a name leaving that folder
+    (`../`, absolute) is followed but warned about, since a header is not trusted input."""
+    target = ply_path.parent / name
+    folder = os.path.normpath(os.path.abspath(ply_path.parent))
+    if os.path.commonpath([folder, os.path.normpath(os.path.abspath(target))]) != folder:
+        log.warning("%s: the header names a codebook outside the PLY's folder (%s); reading it as named", ply_path, target)
+    return target
+
+
 def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
     if name not in scene.extra:
         raise InputError(ply_path, "missing vertex property of the language field", field=name)
     return np.asarray(scene.extra[name])
+
+
+# --------------------------------------------------------------------------------------------
+# Exports
+
+EXPORT_FORMATS = ("standard", "drsplat")
+EXPORT_FORMAT_HELP = {
+    "standard": "standard 3DGS PLY (INRIA layout only, for other tools)",
+    "drsplat": "drsplat PLY (with the language field, its codebook copied beside it; `drsplat query` reads it)",
+}
+
+
+def standard_scene(scene: GaussianScene) -> GaussianScene:
+    """The scene in the INRIA layout only: no extra vertex properties, no drsplat.lang comment."""
+    return dataclasses.replace(strip_field(scene), extra={})
+
+
+def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | Path, fmt: str = "standard") -> GaussianScene:
+    """Write `scene` (with `field`, the same rows) to `path` as a standard or a drsplat PLY.
+
+    standard: `standard_scene(scene)`, which every 3DGS tool opens. drsplat: the scene with the
+    field attached (`attach_field`: metadata comment + `lang_meta` column, codebook written
+    beside `path`), so that `read_field` on the written file gives the field back. Returns the
+    scene written.
+    """
+    from drsplat.scene import save_ply
+
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}")
+    if fmt == "drsplat" and field is None:
+        raise ValueError("a drsplat PLY needs a language field; this scene has none (use the standard format)")
+    out = standard_scene(scene) if fmt == "standard" else attach_field(scene, field, path)
+    save_ply(out, path)
+    return out

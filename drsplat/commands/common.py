@@ -1,0 +1,235 @@
+"""What several subcommands share: argument validators (bad values exit 2) and CLI helpers.
+
+Validators are argparse `type=` callables: a value out of range raises ArgumentTypeError, so
+argparse prints the usage and the flag's name and exits 2 before any work starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.errors import DrsplatError, InputError
+from drsplat.lang import LanguageField, read_field
+from drsplat.scene import GaussianScene
+
+log = logging.getLogger(__name__)
+
+DEFAULT_RELEVANCY_THRESHOLD = 0.5
+MAX_TOPK = 1024  # Gaussians kept per pixel; the paper uses 40 and the ablation plateaus from 10
+MAX_IMAGE_WIDTH = 16384  # --resolution as a width, viewer windows (larger than any GPU texture)
+MAX_COUNT = 10**9  # generic upper bound for "how many" flags (--top, --max-train...)
+
+
+# ---------------------------------------------------------------------------------------------
+# Validators (argparse type=)
+
+
+def _number(text: str, kind: type) -> float | int:
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer in [lo, hi] (either bound may be None)."""
+
+    def parse(text: str) -> int:
+        value = int(_number(text, int))
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"{value} is out of range: expected {_describe(lo, hi)}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite float in [lo, hi] ((lo, hi] with lo_open)."""
+
+    def parse(text: str) -> float:
+        value = float(_number(text, float))
+        low_bad = lo is not None and (value <= lo if lo_open else value < lo)
+        if low_bad or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"{value:g} is out of range: expected {_describe(lo, hi, lo_open)}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def _describe(lo, hi, lo_open: bool = False) -> str:
+    if lo is not None and hi is not None:
+        return f"{lo} {'<' if lo_open else '<='} value <= {hi}"
+    if lo is not None:
+        return f"value {'>' if lo_open else '>='} {lo}"
+    return f"value <= {hi}"
+
+
+positive_int = int_range(1, MAX_COUNT)
+nonneg_int = int_range(0, MAX_COUNT)
+seed_int = int_range(0, 2**32 - 1)  # numpy and faiss seeds are unsigned 32-bit
+topk_int = int_range(1, MAX_TOPK)
+unit_fraction = float_range(0.0, 1.0)
+nonneg_float = float_range(0.0, None)
+positive_float = float_range(0.0, None, lo_open=True)
+
+
+def threshold_value(text: str) -> str:
+    """argparse type for --threshold: 'auto' or a finite number in [-1, 1] (cosine and relevancy range).
+
+    Returned as text ('auto' or the number) so `resolve_threshold` keeps one code path.
+    """
+    if text == "auto":
+        return text
+    value = float(_number(text, float))
+    if not -1.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{value:g} is outside [-1, 1], the range of cosine and relevancy scores (or use 'auto')")
+    return repr(value)
+
+
+def resolution_value(text: str) -> float:
+    """argparse type for 3DGS-style -r: -1, 1, 2, 4, 8 or a target width in pixels (finite, <= MAX_IMAGE_WIDTH)."""
+    value = float(_number(text, float))
+    if value == -1 or value in (1, 2, 4, 8):
+        return value
+    if not 0 < value <= MAX_IMAGE_WIDTH:
+        raise argparse.ArgumentTypeError(f"{value:g}: expected -1 (full size, capped at 1600 px), 1, 2, 4, 8 or a width in 1..{MAX_IMAGE_WIDTH} pixels")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Shared arguments and loaders of the query-like commands (query, segment, eval)
+
+
+def add_clip_arguments(parser: argparse.ArgumentParser, scoring: bool = False) -> None:
+    """CLIP encoder flags; scoring: --device also places the scoring, with --engine (drsplat.device)."""
+    group = parser.add_argument_group("CLIP text encoder (text queries)")
+    group.add_argument("--clip-checkpoint", type=Path, metavar="PATH", help="local OpenCLIP weights file")
+    group.add_argument("--clip-model", default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
+    group.add_argument("--pretrained", default=None, help="pretrained tag (default: the one recorded in the PLY)")
+    if scoring:
+        from drsplat.device import add_device_arguments
+
+        add_device_arguments(parser.add_argument_group("compute (text encoder and scoring)"))
+    else:
+        group.add_argument("--device", default="cpu", choices=("auto", "cpu", "cuda"))
+
+
+def scoring_device(args: argparse.Namespace) -> str | None:
+    """Where to score (LanguageField.scores' device): None for the numba CPU kernels, else a torch device."""
+    from drsplat.device import resolve_compute
+
+    device, engine = resolve_compute(args)
+    return device if engine == "torch" else None
+
+
+def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--lut-bits", type=int, choices=(32, 8), default=32,
+                        help="PQ look-up tables: 32 exact float32 (default), 8 faster 8-bit tables (see `drsplat bench query` for the error)")
+
+
+def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
+    """Load a registered PLY and its language field (InputError if it has none or rows were dropped)."""
+    from drsplat.scene import load_ply_report
+
+    scene, report = load_ply_report(path)
+    dropped = report.dropped_nan_rows + report.dropped_inf_rows
+    if dropped:
+        raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so scores could not follow the file order")
+    field = read_field(scene, path)
+    if field is None:
+        raise InputError(path, "has no language field (no 'drsplat.lang' header comment); run drsplat register first")
+    return scene, field
+
+
+def load_encoder(args: argparse.Namespace, field: LanguageField):
+    """The CLIP text encoder for a field: architecture and tag default to the field's model id."""
+    from drsplat.features.clip import DEFAULT_MODEL, ClipEncoder
+    from drsplat.features.modelid import is_oracle
+
+    if is_oracle(field.clip_model):
+        raise DrsplatError(
+            "this scene's features are synthetic oracle embeddings, not CLIP: query it with --embedding "
+            "(rows of the synthetic dataset's text_embeddings.npy) instead of text"
+        )
+    model, pretrained = DEFAULT_MODEL, None
+    if "/" in field.clip_model:
+        model, pretrained = field.clip_model.split("/", 1)
+    return ClipEncoder(
+        model=args.clip_model or model,
+        pretrained=args.pretrained or pretrained,
+        checkpoint=args.clip_checkpoint,
+        device=args.device,
+    )
+
+
+def split_phrases(text: str) -> list[str]:
+    return [p.strip() for p in text.split(",") if p.strip()]
+
+
+def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:
+    """The selection threshold: a number, or 'auto' (Otsu); None = 0.5 for relevancy, 'auto' for cosine."""
+    from drsplat.query import otsu_threshold
+
+    if value is None:
+        value = str(DEFAULT_RELEVANCY_THRESHOLD) if relevancy else "auto"
+    if value == "auto":
+        threshold = otsu_threshold(scores)
+        log.info("automatic (Otsu) threshold: %.4f", threshold)
+        return threshold
+    try:
+        threshold = float(value)
+    except ValueError:
+        raise DrsplatError(f"--threshold must be a number or 'auto', got {value!r}") from None
+    if not math.isfinite(threshold):
+        raise DrsplatError(f"--threshold must be finite, got {value!r}")
+    return threshold
+
+
+def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs: dict[str, Path | None] | None = None,
+               extra_outputs: dict[str, Path | None] | None = None, protected_folders: dict[str, tuple[Path | None, tuple[str, ...]]] | None = None) -> None:
+    """`drsplat.utils.guard_outputs` over a parsed command line: every Path-valued argument that is
+    not one of `outputs` (attribute names) is an input. Raises OutputError before any work starts."""
+    from drsplat.utils import guard_outputs
+
+    def flag(name: str) -> str:
+        return "--" + name.replace("_", "-")
+
+    inputs: dict[str, Path | None] = {}
+    for name, value in vars(args).items():
+        if name in outputs:
+            continue
+        if isinstance(value, Path):
+            inputs[flag(name)] = value
+        elif isinstance(value, list) and value and all(isinstance(v, Path) for v in value):
+            inputs.update({f"{flag(name)} {v}": v for v in value})
+    inputs.update(extra_inputs or {})
+    written = {flag(name): getattr(args, name, None) for name in outputs}
+    written.update(extra_outputs or {})
+    guard_outputs(inputs, written, protected_folders)
+
+
+def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
+    """`--format standard|drsplat` for the PLY an option (`flag`) writes (drsplat.lang.export_scene)."""
+    from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
+
+    parser.add_argument("--format", choices=EXPORT_FORMATS, default="standard",
+                        help=f"PLY written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
+
+
+def export_outputs(path, fmt: str) -> dict:
+    """The files an export to `path` in format `fmt` writes besides the PLY itself (for
+    guard_outputs): a drsplat PLY's codebook beside it."""
+    from drsplat.lang import codebook_path_for
+
+    return {"the export's codebook": codebook_path_for(path)} if path is not None and fmt == "drsplat" else {}

@@ -1,0 +1,56 @@
+"""One owner of device choice: "auto" | "cpu" | "cuda", and the engine that suits a device.
+
+torch is imported only inside these functions, so importing this module (the CLI does) costs
+nothing; `resolve_device("cpu")` does not import torch at all.
+"""
+
+from __future__ import annotations
+
+from drsplat.errors import DrsplatError
+
+DEVICES = ("auto", "cpu", "cuda")
+ENGINES = ("numba", "torch")
+
+
+def resolve_device(device: str = "auto") -> str:
+    """"auto" -> "cuda" when a CUDA GPU is available, else "cpu"; "cuda" without a GPU is an error."""
+    if device not in DEVICES:
+        raise DrsplatError(f"unknown device '{device}': use auto, cpu or cuda")
+    if device == "cpu":
+        return "cpu"
+    import torch
+
+    available = torch.cuda.is_available()
+    if device == "auto":
+        return "cuda" if available else "cpu"
+    if not available:
+        raise DrsplatError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
+    return "cuda"
+
+
+def resolve_engine(engine: str | None, device: str) -> str:
+    """The compute engine for a resolved `device`: `engine` if given, else torch on cuda and numba on the CPU.
+
+    numba runs on the CPU only, so numba with cuda is an error.
+    """
+    if engine is None:
+        return "torch" if device == "cuda" else "numba"
+    if engine not in ENGINES:
+        raise DrsplatError(f"unknown engine '{engine}': use numba or torch")
+    if engine == "numba" and device != "cpu":
+        raise DrsplatError(f"--engine numba runs on the CPU only; use --engine torch with --device {device}")
+    return engine
+
+
+def add_device_arguments(parser) -> None:
+    """--device auto|cpu|cuda and --engine numba|torch on an argparse parser (resolved by `resolve_compute`)."""
+    parser.add_argument("--device", default="auto", choices=DEVICES, help="where to compute: auto (cuda if available), cpu or cuda")
+    parser.add_argument(
+        "--engine", default=None, choices=ENGINES, help="compute engine: numba (CPU) or torch (CPU or CUDA); default torch on cuda, numba on cpu"
+    )
+
+
+def resolve_compute(args) -> tuple[str, str]:
+    """(device, engine) from parsed --device / --engine flags."""
+    device = resolve_device(getattr(args, "device", "auto") or "auto")
+    return device, resolve_engine(getattr(args, "engine", None), device)

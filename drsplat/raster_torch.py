@@ -1,0 +1,498 @@
+"""Torch engine of the top-k rasterizer: the math of drsplat.raster in torch ops (CPU or CUDA).
+
+Same conventions and rules as drsplat.raster (module docstring there; docs/raster.md): EWA
+projection, 3DGS's getRect tiles, front-to-back compositing with α = min(0.99, o·exp(power)),
+α < 1/255 skipped, stop before T·(1 - α) < 1e-4, per-pixel top-k by w = T·α (stable: ties keep
+the front one first). Everything is computed in float64 like the numba kernel, so on a CPU the
+two agree to rounding (tests: tests/test_raster_torch.py, helpers in drsplat.testing).
+
+How the work is vectorised (no Python loop over pixels or Gaussians):
+- projection: elementwise over the N Gaussians;
+- binning: every (Gaussian, tile) pair of the getRect rectangles is listed in depth order and
+  stably sorted by tile, so each tile's list stays front to back (like gsplat's isect lists);
+- compositing: tiles are sorted by list length and taken in groups of B tiles; each group walks
+  its lists in chunks of C entries and evaluates α for [B, C, P] (P = pixels of a tile) at once.
+  The transmittance before each entry is the running product of (1 - α) along the chunk,
+  `cumprod` seeded with the carried T, so an entry contributes iff its T·(1 - α) ≥ 1e-4 (T only
+  decreases, so the first failing entry ends the pixel, as the sequential rule does). The chunk's
+  weights are merged into the running top-k by a stable sort on (weight desc, list position).
+  B·C·P is bounded by `max_elements` (memory, not results).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from drsplat import _raster_kernels as kernels
+from drsplat.cameras import Camera
+from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, prepare_scene, sh_basis_xyz
+from drsplat.scene import GaussianScene
+
+log = logging.getLogger(__name__)
+
+CHUNK = 256  # list entries per compositing step
+MAX_ELEMENTS_CPU = 1 << 21  # B·C·P per step: ~16 MB per float64 temporary
+MAX_ELEMENTS_CUDA = 1 << 25  # ~256 MB per float64 temporary
+
+
+@dataclass
+class TorchScene:
+    """`drsplat.raster.PreparedScene` as tensors on one device.
+
+    means: [N, 3] float64. covariances: [N, 3, 3] float64. opacities: [N] float32.
+    sh: [N, K, 3] float32. finite: [N] bool. num_nonfinite: Gaussians flagged non-finite.
+    """
+
+    means: torch.Tensor
+    covariances: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    finite: torch.Tensor
+    num_nonfinite: int
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+
+def prepare_scene_torch(scene: GaussianScene | PreparedScene | TorchScene, device: str | torch.device = "cpu") -> TorchScene:
+    """The view-independent arrays of `scene` on `device` (drsplat.raster.prepare_scene, then copied)."""
+    device = torch.device(device)
+    if isinstance(scene, TorchScene):
+        if scene.device == device or (device.index is None and scene.device.type == device.type):
+            return scene
+        return TorchScene(*(getattr(scene, f).to(device) for f in ("means", "covariances", "opacities", "sh", "finite")), scene.num_nonfinite)
+    prep = prepare_scene(scene)
+    return TorchScene(
+        means=torch.from_numpy(prep.means).to(device),
+        covariances=torch.from_numpy(prep.covariances).to(device),
+        opacities=torch.from_numpy(prep.opacities).to(device),
+        sh=torch.from_numpy(prep.sh).to(device),
+        finite=torch.from_numpy(prep.finite).to(device),
+        num_nonfinite=prep.num_nonfinite,
+    )
+
+
+@dataclass
+class TorchProjected:
+    """Screen-space Gaussians of one view (tensors indexed by Gaussian id; see drsplat.raster.Projected).
+
+    means2d: [N, 2] float64. conics: [N, 3] float64. depths: [N] float32 camera z.
+    radii: [N] float64 3σ radius. opacities: [N] float32. valid: [N] bool.
+    tile_rects: [N, 4] int64 (tx0, ty0, tx1, ty1), end-exclusive. colors: [N, 3] float32 or None.
+    """
+
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    depths: torch.Tensor
+    radii: torch.Tensor
+    opacities: torch.Tensor
+    valid: torch.Tensor
+    tile_rects: torch.Tensor
+    colors: torch.Tensor | None
+    width: int
+    height: int
+    tile_size: int = TILE_SIZE
+    num_nonfinite: int = 0
+    num_behind: int = 0
+
+    @property
+    def tile_grid(self) -> tuple[int, int]:
+        """(tiles in x, tiles in y)."""
+        return -(-self.width // self.tile_size), -(-self.height // self.tile_size)
+
+
+@dataclass
+class TorchRasterOutput:
+    """`drsplat.raster.RasterOutput` as tensors on the device (ids [H, W, k] int32, weights float32, ...)."""
+
+    ids: torch.Tensor
+    weights: torch.Tensor
+    rgb: torch.Tensor | None
+    depth: torch.Tensor | None
+    alpha: torch.Tensor
+    num_nonfinite: int = 0
+
+    def numpy(self) -> RasterOutput:
+        """The same output as numpy arrays (a RasterOutput)."""
+
+        def host(t):
+            return None if t is None else t.cpu().numpy()
+
+        return RasterOutput(host(self.ids), host(self.weights), host(self.rgb), host(self.depth), host(self.alpha), self.num_nonfinite)
+
+
+def _screen_space(ts: TorchScene, camera: Camera):
+    """Camera-space depth and EWA screen covariance of every Gaussian, in the numba kernel's order of operations.
+
+    Returns (pz [N], u [N], v [N], a, b, c [N]: Σ' = [[a, b], [b, c]]) as float64; the math is
+    drsplat.raster._screen_covariances (Σ' = J W Σ Wᵀ Jᵀ + 0.3·I, J clamped at 1.3x the field of view).
+    """
+    dev = ts.device
+    rot = torch.as_tensor(np.asarray(camera.R, np.float64), device=dev)
+    t = torch.as_tensor(np.asarray(camera.t, np.float64), device=dev)
+    m = ts.means
+    px = rot[0, 0] * m[:, 0] + rot[0, 1] * m[:, 1] + rot[0, 2] * m[:, 2] + t[0]
+    py = rot[1, 0] * m[:, 0] + rot[1, 1] * m[:, 1] + rot[1, 2] * m[:, 2] + t[1]
+    pz = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
+    fx, fy, cx, cy, w, h = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height
+    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
+    lim_x_pos, lim_x_neg = (w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
+    lim_y_pos, lim_y_neg = (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+    tx = pz * torch.clamp(px / pz, -lim_x_neg, lim_x_pos)
+    ty = pz * torch.clamp(py / pz, -lim_y_neg, lim_y_pos)
+    jx, jy = fx / pz, fy / pz
+    jxz, jyz = -fx * tx / (pz * pz), -fy * ty / (pz * pz)
+    a0 = [jx * rot[0, i] + jxz * rot[2, i] for i in range(3)]
+    a1 = [jy * rot[1, i] + jyz * rot[2, i] for i in range(3)]
+    cv = ts.covariances
+    s0 = [cv[:, i, 0] * a0[0] + cv[:, i, 1] * a0[1] + cv[:, i, 2] * a0[2] for i in range(3)]
+    s1 = [cv[:, i, 0] * a1[0] + cv[:, i, 1] * a1[1] + cv[:, i, 2] * a1[2] for i in range(3)]
+    a = a0[0] * s0[0] + a0[1] * s0[1] + a0[2] * s0[2] + kernels.BLUR
+    b = a1[0] * s0[0] + a1[1] * s0[1] + a1[2] * s0[2]
+    c = a1[0] * s1[0] + a1[1] * s1[1] + a1[2] * s1[2] + kernels.BLUR
+    u = fx * px / pz + cx
+    v = fy * py / pz + cy
+    return pz, u, v, a, b, c
+
+
+def _tile_rects(u: torch.Tensor, v: torch.Tensor, radius: torch.Tensor, width: int, height: int, tile_size: int) -> torch.Tensor:
+    """[N, 4] int64: 3DGS's getRect (the rule of drsplat.raster._tile_rects)."""
+    cols = []
+    for lo in (True, False):
+        for mean, size in ((u, width), (v, height)):
+            grid = float(-(-size // tile_size))
+            p = mean - 0.5
+            edge = torch.floor((p - radius) / tile_size) if lo else torch.floor((p + radius + tile_size - 1) / tile_size)
+            cols.append(torch.clamp(torch.nan_to_num(edge, nan=0.0), 0.0, grid))
+    return torch.stack(cols, dim=1).to(torch.int64)
+
+
+def project_gaussians_torch(
+    scene: GaussianScene | PreparedScene | TorchScene,
+    camera: Camera,
+    near: float = NEAR,
+    *,
+    mask: np.ndarray | torch.Tensor | None = None,
+    with_colors: bool = False,
+    tile_size: int = TILE_SIZE,
+    device: str | torch.device = "cpu",
+) -> TorchProjected:
+    """Project every Gaussian (drsplat.raster.project_gaussians_reference's rules, as tensors on the device)."""
+    ts = prepare_scene_torch(scene, device)
+    n = ts.num_gaussians
+    usable = ts.finite
+    if mask is not None:
+        mask_t = torch.as_tensor(np.asarray(mask) if not isinstance(mask, torch.Tensor) else mask, device=ts.device)
+        if mask_t.shape != (n,) or mask_t.dtype != torch.bool:
+            raise ValueError(f"mask must be a bool array of shape ({n},), got {mask_t.dtype} {tuple(mask_t.shape)}")
+        usable = usable & mask_t
+    pz, u, v, a, b, c = _screen_space(ts, camera)
+    in_front = usable & (pz >= near)
+    behind = usable & ~in_front
+    det = a * c - b * b
+    mid = 0.5 * (a + c)
+    radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))))
+    considered = in_front & (ts.opacities.double() >= kernels.ALPHA_MIN)
+    finite = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c) & torch.isfinite(u) & torch.isfinite(v) & torch.isfinite(radius)
+    rects = _tile_rects(u, v, radius, camera.width, camera.height, tile_size)
+    nonempty = (rects[:, 2] > rects[:, 0]) & (rects[:, 3] > rects[:, 1])
+    valid = considered & finite & (det > 0) & nonempty
+    zero = torch.zeros((), dtype=torch.float64, device=ts.device)
+    out = TorchProjected(
+        means2d=torch.where(valid[:, None], torch.stack([u, v], 1), zero),
+        conics=torch.where(valid[:, None], torch.stack([c / det, -b / det, a / det], 1), zero),
+        depths=torch.where(usable, pz, zero).float(),
+        radii=torch.where(valid, radius, zero),
+        opacities=ts.opacities,
+        valid=valid,
+        tile_rects=torch.where(valid[:, None], rects, 0),
+        colors=None,
+        width=int(camera.width),
+        height=int(camera.height),
+        tile_size=tile_size,
+        num_nonfinite=ts.num_nonfinite + int((considered & ~finite).sum()),
+        num_behind=int(behind.sum()),
+    )
+    if with_colors:
+        out.colors = _colors(ts, camera, valid)
+    return out
+
+
+def _colors(ts: TorchScene, camera: Camera, valid: torch.Tensor) -> torch.Tensor:
+    """[N, 3] float32 SH colours for the direction camera centre -> mean (0 where not valid); drsplat.raster.eval_sh."""
+    centre = torch.as_tensor(np.asarray(camera.center, np.float64), device=ts.device)
+    dirs = ts.means - centre
+    norm = torch.linalg.norm(dirs, dim=1, keepdim=True)
+    dirs = dirs / torch.where(norm > 0, norm, torch.ones_like(norm))
+    sh = ts.sh.double()
+    rgb = torch.full((ts.num_gaussians, 3), 0.5, dtype=torch.float64, device=ts.device)
+    for i, y_i in enumerate(sh_basis_xyz(dirs[:, 0], dirs[:, 1], dirs[:, 2], sh.shape[1])):
+        rgb = rgb + y_i[:, None] * sh[:, i]
+    return torch.where(valid[:, None], torch.clamp(rgb, min=0.0), 0.0).float()
+
+
+def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-tile lists of Gaussian ids, front to back.
+
+    Returns (offsets [n_tiles] int64, counts [n_tiles] int64, ids [E] int64): tile t owns
+    ids[offsets[t]:offsets[t] + counts[t]], in increasing depth (ties by id, as drsplat.raster.depth_order).
+    """
+    dev = projected.valid.device
+    n_tiles_x, n_tiles_y = projected.tile_grid
+    n_tiles = n_tiles_x * n_tiles_y
+    idx = torch.nonzero(projected.valid).reshape(-1)
+    depth = projected.depths[idx] + 0.0  # -0 sorts as +0
+    order = idx[torch.sort(depth, stable=True).indices]
+    r = projected.tile_rects[order]
+    span_x = r[:, 2] - r[:, 0]
+    per = span_x * (r[:, 3] - r[:, 1])
+    total = int(per.sum()) if per.numel() else 0
+    if total == 0:
+        empty = torch.zeros(n_tiles, dtype=torch.int64, device=dev)
+        return empty, empty.clone(), torch.zeros(0, dtype=torch.int64, device=dev)
+    rank = torch.repeat_interleave(torch.arange(order.numel(), device=dev), per)
+    local = torch.arange(total, device=dev) - torch.repeat_interleave(torch.cumsum(per, 0) - per, per)
+    tile = (r[rank, 1] + local // span_x[rank]) * n_tiles_x + r[rank, 0] + local % span_x[rank]
+    tile_sorted, perm = torch.sort(tile, stable=True)
+    counts = torch.bincount(tile_sorted, minlength=n_tiles)
+    offsets = torch.cumsum(counts, 0) - counts
+    return offsets, counts, order[rank[perm]]
+
+
+def _merge_topk(best_w: torch.Tensor, best_pos: torch.Tensor, w: torch.Tensor, pos: torch.Tensor, k: int):
+    """The k largest of both candidate sets ([..., k_i]), weight descending.
+
+    best_* come from earlier (smaller) list positions and, being sorted, a stable descending
+    sort of [best, new] keeps the earlier entry first among equal weights, as the sequential rule does.
+    """
+    cand_w = torch.cat([best_w, w], dim=-1)
+    cand_pos = torch.cat([best_pos, pos], dim=-1)
+    by_w = torch.sort(cand_w, dim=-1, descending=True, stable=True).indices[..., :k]
+    return torch.gather(cand_w, -1, by_w), torch.gather(cand_pos, -1, by_w)
+
+
+@dataclass
+class _Buffers:
+    """Tile-major outputs: ids / weights [n_tiles, P, k], trans [n_tiles, P], rgb [n_tiles, P, 3] | None, dep [n_tiles, P] | None."""
+
+    ids: torch.Tensor
+    weights: torch.Tensor
+    trans: torch.Tensor
+    rgb: torch.Tensor | None
+    dep: torch.Tensor | None
+
+
+@dataclass
+class _TileGroup:
+    """Compositing state of the B active tiles of a group (P pixels each): tiles [B], starts / lengths [B]
+    of their lists, pixel centres cx / cy [B, P], T [B, P], done [B, P], rgb [B, P, 3], dep [B, P],
+    best_w / best_pos [B, P, k'] running top-k weights and list positions."""
+
+    tiles: torch.Tensor
+    starts: torch.Tensor
+    lengths: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    trans: torch.Tensor
+    done: torch.Tensor
+    rgb: torch.Tensor
+    dep: torch.Tensor
+    best_w: torch.Tensor
+    best_pos: torch.Tensor
+
+    def select(self, keep: torch.Tensor) -> _TileGroup:
+        return _TileGroup(*(getattr(self, f.name)[keep] for f in dataclasses.fields(self)))
+
+
+def _new_group(projected: TorchProjected, tiles, starts, lengths) -> _TileGroup:
+    """Fresh state of `tiles`; pixels outside the image start done (they never count)."""
+    dev = tiles.device
+    ts = projected.tile_size
+    n_tiles_x, _ = projected.tile_grid
+    b_count, p_count = tiles.numel(), ts * ts
+    local = torch.arange(p_count, device=dev)
+    pix_x = ((tiles % n_tiles_x) * ts)[:, None] + local[None] % ts
+    pix_y = ((tiles // n_tiles_x) * ts)[:, None] + local[None] // ts
+    f64 = {"dtype": torch.float64, "device": dev}
+    return _TileGroup(
+        tiles=tiles, starts=starts, lengths=lengths, cx=pix_x.double() + 0.5, cy=pix_y.double() + 0.5,
+        trans=torch.ones((b_count, p_count), **f64),
+        done=(pix_x >= projected.width) | (pix_y >= projected.height),
+        rgb=torch.zeros((b_count, p_count, 3), **f64), dep=torch.zeros((b_count, p_count), **f64),
+        best_w=torch.zeros((b_count, p_count, 0), **f64), best_pos=torch.zeros((b_count, p_count, 0), dtype=torch.int64, device=dev),
+    )  # fmt: skip
+
+
+def _store(state: _TileGroup, tile_list: torch.Tensor, out: _Buffers) -> None:
+    """Write the finished tiles of `state` into the tile-major outputs."""
+    tiles = state.tiles
+    out.trans[tiles] = state.trans
+    if out.rgb is not None:
+        out.rgb[tiles] = state.rgb
+    if out.dep is not None:
+        out.dep[tiles] = state.dep
+    kept = state.best_w.shape[-1]
+    if kept:
+        hit = state.best_w > 0
+        gid = tile_list[state.starts[:, None, None] + torch.where(hit, state.best_pos, 0)]
+        out.ids[tiles, :, :kept] = torch.where(hit, gid, -1).to(torch.int32)
+        out.weights[tiles, :, :kept] = state.best_w.float()
+
+
+def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, topk, chunk, out: _Buffers) -> None:
+    """Composite the tiles of `state` (lists tile_list[starts[b]:starts[b] + lengths[b]]) into `out`.
+
+    For each chunk of C entries: d = mean2d - pixel centre, power = -½(a·dx² + c·dy²) - b·dx·dy,
+    α = min(0.99, o·exp(power)), hit = power ≤ 0 and α ≥ 1/255; T_after = cumprod of (1 - α)
+    (1 where not hit) seeded with the carried T (0 once a pixel is done); an entry contributes
+    w = α·T_before iff hit and T_after ≥ 1e-4. Tiles whose pixels are all done or whose lists
+    are exhausted are stored and dropped from the group after each chunk.
+    """
+    dev = tile_list.device
+    with_rgb, with_depth = out.rgb is not None, out.dep is not None
+    steps = torch.arange(chunk, device=dev)
+    c0 = 0
+    while state.tiles.numel():
+        longest = int(state.lengths.max())
+        pos = c0 + steps[: min(chunk, longest - c0)]
+        in_range = pos[None, :] < state.lengths[:, None]  # [B, C]
+        g = tile_list[torch.where(in_range, state.starts[:, None] + pos[None, :], 0)]
+        u, v = projected.means2d[g, 0][..., None], projected.means2d[g, 1][..., None]
+        ca, cb, cc = (projected.conics[g, i][..., None] for i in range(3))
+        dx = u - state.cx[:, None, :]
+        dy = v - state.cy[:, None, :]
+        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy  # [B, C, P]
+        alpha = torch.clamp(projected.opacities[g].double()[..., None] * torch.exp(power), max=kernels.ALPHA_MAX)
+        hit = in_range[..., None] & (power <= 0.0) & (alpha >= kernels.ALPHA_MIN)
+        seed = torch.where(state.done, 0.0, state.trans)
+        cum = torch.cumprod(torch.cat([seed[:, None, :], torch.where(hit, 1.0 - alpha, 1.0)], dim=1), dim=1)
+        t_after = cum[:, 1:]
+        ok = hit & (t_after >= kernels.T_MIN)
+        w = torch.where(ok, alpha * cum[:, :-1], 0.0)
+        state.trans = torch.minimum(state.trans, torch.where(ok, t_after, torch.inf).amin(dim=1))
+        state.done |= (hit & (t_after < kernels.T_MIN)).any(dim=1)
+        if with_rgb:
+            state.rgb += torch.einsum("bcp,bcd->bpd", w, projected.colors[g].double())
+        if with_depth:
+            state.dep += torch.einsum("bcp,bc->bp", w, projected.depths[g].double())
+        if topk > 0:
+            cw, ci = torch.topk(w.transpose(1, 2), min(topk, w.shape[1]), dim=-1)
+            state.best_w, state.best_pos = _merge_topk(state.best_w, state.best_pos, cw, pos[ci], topk)
+        c0 += chunk
+        finished = state.done.all(dim=1) | (state.lengths <= c0)
+        if bool(finished.any()):
+            _store(state.select(finished), tile_list, out)
+            state = state.select(~finished)
+
+
+def composite_torch(
+    projected: TorchProjected,
+    topk: int = 40,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    background=(0.0, 0.0, 0.0),
+    chunk: int = CHUNK,
+    max_elements: int | None = None,
+) -> TorchRasterOutput:
+    """Bin and composite `projected` (module docstring); outputs stay on its device."""
+    bg = _check_args(topk, background)
+    if with_rgb and projected.colors is None:
+        raise ValueError("with_rgb needs TorchProjected.colors (project_gaussians_torch(..., with_colors=True))")
+    dev = projected.valid.device
+    if max_elements is None:
+        max_elements = MAX_ELEMENTS_CUDA if dev.type == "cuda" else MAX_ELEMENTS_CPU
+    ts = projected.tile_size
+    p_count = ts * ts
+    n_tiles_x, n_tiles_y = projected.tile_grid
+    n_tiles = n_tiles_x * n_tiles_y
+    offsets, counts, tile_list = bin_gaussians_torch(projected)
+    out = _Buffers(
+        ids=torch.full((n_tiles, p_count, topk), -1, dtype=torch.int32, device=dev),
+        weights=torch.zeros((n_tiles, p_count, topk), dtype=torch.float32, device=dev),
+        trans=torch.ones((n_tiles, p_count), dtype=torch.float64, device=dev),
+        rgb=torch.zeros((n_tiles, p_count, 3), dtype=torch.float64, device=dev) if with_rgb else None,
+        dep=torch.zeros((n_tiles, p_count), dtype=torch.float64, device=dev) if with_depth else None,
+    )
+    by_length = torch.sort(counts, descending=True, stable=True).indices
+    lengths_host = counts[by_length].cpu().numpy()
+    i = 0
+    while i < n_tiles and lengths_host[i] > 0:
+        b = max(1, max_elements // (int(min(lengths_host[i], chunk)) * p_count))
+        tiles = by_length[i : i + b]
+        tiles = tiles[counts[tiles] > 0]
+        i += b
+        _composite_group(projected, _new_group(projected, tiles, offsets[tiles], counts[tiles]), tile_list, topk, chunk, out)
+    ids, weights, trans, rgb, dep = out.ids, out.weights, out.trans, out.rgb, out.dep
+    acc = 1.0 - trans
+    out_rgb = None
+    if with_rgb:
+        out_rgb = (rgb + trans[..., None] * torch.as_tensor(bg, dtype=torch.float64, device=dev)).float()
+    out_depth = None
+    if with_depth:
+        out_depth = torch.where(acc > 0, dep / torch.where(acc > 0, acc, 1.0), 0.0).float()
+    h, w = projected.height, projected.width
+
+    def image(t: torch.Tensor | None) -> torch.Tensor | None:
+        if t is None:
+            return None
+        rest = t.shape[2:]
+        t = t.reshape(n_tiles_y, n_tiles_x, ts, ts, *rest).transpose(1, 2).reshape(n_tiles_y * ts, n_tiles_x * ts, *rest)
+        return t[:h, :w].contiguous()
+
+    return TorchRasterOutput(image(ids), image(weights), image(out_rgb), image(out_depth), image(acc.float()), projected.num_nonfinite)
+
+
+def rasterize_torch(
+    scene: GaussianScene | PreparedScene | TorchScene,
+    camera: Camera,
+    topk: int = 40,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    background=(0.0, 0.0, 0.0),
+    mask: np.ndarray | torch.Tensor | None = None,
+    near: float = NEAR,
+    device: str | torch.device | None = None,
+    max_elements: int | None = None,
+) -> TorchRasterOutput:
+    """Render one view with the torch engine; the output stays on the device (tensors).
+
+    device: where to run; None = the device of a TorchScene, else the CPU.
+    """
+    _check_args(topk, background)
+    if device is None:
+        device = scene.device if isinstance(scene, TorchScene) else "cpu"
+    projected = project_gaussians_torch(scene, camera, near, mask=mask, with_colors=with_rgb, device=device)
+    return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, max_elements=max_elements)
+
+
+def rasterize(
+    scene: GaussianScene | PreparedScene | TorchScene,
+    camera: Camera,
+    topk: int = 40,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    background=(0.0, 0.0, 0.0),
+    mask: np.ndarray | None = None,
+    near: float = NEAR,
+    out: RasterOutput | None = None,
+    device: str | None = "cpu",
+) -> RasterOutput:
+    """The torch engine behind `drsplat.raster.rasterize(..., engine="torch")`: numpy RasterOutput (`out` unused)."""
+    if isinstance(scene, TorchScene) and device in (None, "cpu") and scene.device.type != "cpu":
+        device = scene.device
+    return rasterize_torch(
+        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, mask=mask, near=near, device=device
+    ).numpy()

@@ -1,0 +1,208 @@
+"""A catalogue of hostile inputs, generated (never committed as binaries).
+
+Each builder writes one bad file into a folder and returns its path; `CATALOGUE` lists them by
+class so tests (and the report) can count classes x cases. Files are tiny: the point of the
+memory bombs is a header that claims far more data than the file holds.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+INRIA_PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+               "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def ply_bytes(header_lines: list[str], body: bytes = b"", fmt: str = "binary_little_endian") -> bytes:
+    return ("\n".join(["ply", f"format {fmt} 1.0", *header_lines, "end_header"]) + "\n").encode("ascii") + body
+
+
+def vertex_header(count: int, props: list[str] = INRIA_PROPS, ptype: str = "float") -> list[str]:
+    return [f"element vertex {count}"] + [f"property {ptype} {p}" for p in props]
+
+
+def vertex_body(count: int, props: list[str] = INRIA_PROPS) -> bytes:
+    rows = np.zeros((count, len(props)), "<f4")
+    if "rot_0" in props:
+        rows[:, props.index("rot_0")] = 1.0
+    return rows.tobytes()
+
+
+# ---------------------------------------------------------------------------------------------- PLY
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+PLY_CASES: dict[str, Callable[[Path], bytes]] = {
+    # memory bombs: counts that the bytes cannot hold
+    "face_2e9_after_vertex": lambda d: ply_bytes(vertex_header(2) + ["element face 2000000000", "property list uchar int vertex_indices"], vertex_body(2) + b"\x03" + b"\0" * 12),
+    "face_2e9_before_vertex": lambda d: ply_bytes(["element face 2000000000", "property list uchar int vertex_indices"] + vertex_header(2), b"\0" * 600),
+    "vertex_2e9": lambda d: ply_bytes(vertex_header(2_000_000_000), vertex_body(3)),
+    "vertex_1e15_ascii": lambda d: ply_bytes(vertex_header(10**15), b"0 " * 17 + b"\n", fmt="ascii"),
+    "chunk_bomb_compressed": lambda d: ply_bytes(["element chunk 900000000"] + [f"property float {n}" for n in ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z")]
+                                                 + ["element vertex 1", "property uint packed_position"], b"\0" * 100),
+    "list_in_vertex": lambda d: ply_bytes(["element vertex 1", "property list uchar float x"], b"\0" * 8),
+    "list_count_type_bogus": lambda d: ply_bytes(["element vertex 1", "property list blob float x"], b"\0" * 8),
+    # malformed headers and layouts
+    "duplicate_property": lambda d: ply_bytes(vertex_header(1, INRIA_PROPS + ["x"]), b"\0" * 72),
+    "duplicate_element": lambda d: ply_bytes(vertex_header(1) + vertex_header(1), vertex_body(2)),
+    "misnumbered_f_rest": lambda d: ply_bytes(vertex_header(1, INRIA_PROPS + [f"f_rest_{i}" for i in range(8)] + ["f_rest_42"]), vertex_body(1, INRIA_PROPS + ["f"] * 9)),
+    "truncated_body": lambda d: ply_bytes(vertex_header(10), vertex_body(3)),
+    "non_ascii_header": lambda d: b"ply\nformat binary_little_endian 1.0\ncomment \xff\xfe\n" + ply_bytes(vertex_header(1))[36:],
+    "no_end_header": lambda d: b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n",
+    "unknown_keyword": lambda d: ply_bytes(["elephant vertex 1"]),
+    "bad_format": lambda d: ply_bytes(vertex_header(1), vertex_body(1), fmt="binary_middle_endian"),
+    "negative_count": lambda d: ply_bytes(vertex_header(1)[:0] + ["element vertex -5"] + [f"property float {p}" for p in INRIA_PROPS]),
+    "missing_rot": lambda d: ply_bytes(vertex_header(1, INRIA_PROPS[:-1]), vertex_body(1, INRIA_PROPS[:-1])),
+    "not_a_ply": lambda d: b"\x89PNG\r\n\x1a\n" + b"\0" * 64,
+    "empty_file": lambda d: b"",
+    "ascii_garbage_rows": lambda d: ply_bytes(vertex_header(2), b"1 2 3\nfoo bar\n" + b"0 " * 40, fmt="ascii"),
+}
+
+PLY_BOMBS = ("face_2e9_after_vertex", "face_2e9_before_vertex", "vertex_2e9", "vertex_1e15_ascii", "chunk_bomb_compressed")
+
+
+def make_ply(folder: Path, name: str) -> Path:
+    return _write(folder / f"{name}.ply", PLY_CASES[name](folder))
+
+
+# ---------------------------------------------------------------------------------------------- .npy
+
+
+def npy_with_header(header: dict, body: bytes = b"") -> bytes:
+    text = repr(header).encode("latin1")
+    pad = 64 - (10 + len(text) + 1) % 64
+    text += b" " * pad + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + body
+
+
+NPY_CASES: dict[str, Callable[[], bytes]] = {
+    "shape_1e12": lambda: npy_with_header({"descr": "<f4", "fortran_order": False, "shape": (10**12,)}, b"\0" * 64),
+    "shape_2d_bomb": lambda: npy_with_header({"descr": "<f4", "fortran_order": False, "shape": (10**7, 10**6)}, b"\0" * 64),
+    "object_pickle": lambda: npy_with_header({"descr": "|O", "fortran_order": False, "shape": (1,)}, b"\x80\x04N."),
+    "truncated": lambda: npy_with_header({"descr": "<f4", "fortran_order": False, "shape": (100,)}, b"\0" * 12),
+    "bad_magic": lambda: b"NOTNUMPY" + b"\0" * 100,
+    "bad_header_syntax": lambda: b"\x93NUMPY\x01\x00" + struct.pack("<H", 54) + b"{'descr': '<f4', 'shape': (((((((((( " + b" " * 17 + b"\n",
+    "empty_file": lambda: b"",
+}
+NPY_BOMBS = ("shape_1e12", "shape_2d_bomb")
+
+
+def make_npy(folder: Path, name: str) -> Path:
+    return _write(folder / f"{name}.npy", NPY_CASES[name]())
+
+
+# ---------------------------------------------------------------------------------------------- cameras
+
+
+def _c2w() -> list[list[float]]:
+    m = np.eye(4)
+    m[:3, 3] = [0, 0, 4]
+    return m.tolist()
+
+
+def _frame(**kw) -> dict:
+    frame = {"file_path": "images/v.png", "transform_matrix": _c2w(), "fl_x": 50.0, "w": 64, "h": 48}
+    frame.update(kw)
+    return frame
+
+
+TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
+    # name: (JSON document, a word the error must contain)
+    "top_level_list": ([_frame()], "frames"),
+    "frames_not_list": ({"frames": {"a": 1}}, "frames"),
+    "frame_not_dict": ({"frames": [3]}, "frame 0"),
+    "string_camera_angle_y": (None, "camera_angle_y"),  # written by make_transforms_dataset
+    "string_k3": ({"frames": [_frame(k3="0.1")]}, "k3"),
+    "width_zero": ({"frames": [_frame(w=0)]}, "'w'"),
+    "fractional_height": ({"frames": [_frame(h=47.5)]}, "'h'"),
+    "nan_focal": ({"frames": [_frame(fl_x=float("nan"))]}, "fl_x"),
+    "negative_focal": ({"frames": [_frame(fl_x=-50.0)]}, "fx"),
+    "zero_focal": ({"frames": [_frame(fl_x=0.0)]}, "fx"),
+    "huge_width": ({"frames": [_frame(w=10**9)]}, "'w'"),
+    "all_zero_matrix": ({"frames": [_frame(transform_matrix=np.zeros((4, 4)).tolist())]}, "transform_matrix"),
+    "scaled_rotation": ({"frames": [_frame(transform_matrix=(np.eye(4) * 3).tolist())]}, "rotation"),
+    "nan_translation": ({"frames": [_frame(transform_matrix=[[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]}, "transform_matrix"),
+    "matrix_of_strings": ({"frames": [_frame(transform_matrix=[["a"] * 4] * 4)]}, "transform_matrix"),
+    "file_path_int": ({"frames": [_frame(file_path=7)]}, "file_path"),
+    "bool_width": ({"frames": [_frame(w=True)]}, "'w'"),
+    "angle_out_of_range": ({"camera_angle_x": 4.0, "frames": [{k: v for k, v in _frame().items() if k != "fl_x"}]}, "camera_angle_x"),
+    "deep_nesting": (None, "JSON"),  # written as text below
+}
+
+
+def make_transforms_dataset(folder: Path, name: str) -> Path:
+    """A transforms.json dataset with one 64x48 image and the bad document `name`."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "images").mkdir(exist_ok=True)
+    Image.new("RGB", (64, 48)).save(folder / "images" / "v.png")
+    doc, _ = TRANSFORMS_CASES[name]
+    if name == "string_camera_angle_y":
+        frame = _frame()
+        del frame["fl_x"]
+        doc = {"camera_angle_x": 0.7, "camera_angle_y": "wide", "frames": [frame]}
+    text = "[" * 100_000 + "]" * 100_000 if name == "deep_nesting" else json.dumps(doc)
+    (folder / "transforms.json").write_text(text)
+    return folder
+
+
+CAMERAS_JSON_CASES: dict[str, tuple[object, str]] = {
+    "not_a_list": ({"a": 1}, "list"),
+    "record_not_dict": ([5], "camera 0"),
+    "missing_rotation": ([{"position": [0, 0, 0], "img_name": "v", "width": 64, "height": 48, "fx": 50, "fy": 50}], "rotation"),
+    "string_width": ([{"rotation": np.eye(3).tolist(), "position": [0, 0, 0], "img_name": "v", "width": "64", "height": 48, "fx": 50, "fy": 50}], "width"),
+    "negative_fy": ([{"rotation": np.eye(3).tolist(), "position": [0, 0, 0], "img_name": "v", "width": 64, "height": 48, "fx": 50, "fy": -5}], "fy"),
+    "zero_rotation": ([{"rotation": np.zeros((3, 3)).tolist(), "position": [0, 0, 0], "img_name": "v", "width": 64, "height": 48, "fx": 50, "fy": 50}], "rotation"),
+}
+
+
+def make_cameras_json_dataset(folder: Path, name: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "cameras.json").write_text(json.dumps(CAMERAS_JSON_CASES[name][0]))
+    return folder
+
+
+COLMAP_CASES: dict[str, tuple[str, str, str]] = {
+    # name: (cameras.txt, images.txt, a word the error must contain)
+    "non_utf8": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v\xe9.png\n\n", "UTF-8"),
+    "zero_quaternion": ("1 PINHOLE 64 48 50 50 32 24\n", "1 0 0 0 0 0 0 4 1 v.png\n\n", "quaternion"),
+    "nan_translation": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 nan 0 4 1 v.png\n\n", "translation"),
+    "negative_focal": ("1 PINHOLE 64 48 -50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "fx"),
+    "nan_focal": ("1 PINHOLE 64 48 nan 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "fx"),
+    "zero_width": ("1 PINHOLE 0 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "width"),
+    "negative_width": ("1 PINHOLE -64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "width"),
+    "missing_camera": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 9 v.png\n\n", "camera 9"),
+}
+
+
+def make_colmap_dataset(folder: Path, name: str) -> Path:
+    cams, imgs, _ = COLMAP_CASES[name]
+    sparse = folder / "sparse" / "0"
+    sparse.mkdir(parents=True, exist_ok=True)
+    (sparse / "cameras.txt").write_text(cams)
+    (sparse / "images.txt").write_bytes(imgs.encode("latin1"))
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------- counts
+
+
+def catalogue_counts() -> dict[str, int]:
+    """Hostile input classes and how many generated cases each holds (for the report)."""
+    return {
+        "PLY headers / layouts (memory bombs included)": len(PLY_CASES),
+        ".npy headers (memory bombs, pickles, truncation)": len(NPY_CASES),
+        "transforms.json values": len(TRANSFORMS_CASES),
+        "3DGS cameras.json values": len(CAMERAS_JSON_CASES),
+        "COLMAP text values": len(COLMAP_CASES),
+    }

@@ -1,0 +1,73 @@
+"""Device handling (drsplat.device) and the torch engine end to end through the CLI."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from drsplat.device import resolve_device, resolve_engine
+from drsplat.errors import DrsplatError
+
+NO_CUDA = not torch.cuda.is_available()
+
+
+def test_cli_help_does_not_import_torch():
+    code = "import sys, contextlib, io\nfrom drsplat.cli import main\n"
+    code += "for argv in ([], ['register'], ['query'], ['segment'], ['bench', 'register'], ['bench', 'query']):\n"
+    code += "    with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+    code += "        main(argv + ['--help'])\n"
+    code += "print('torch' in sys.modules)\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_engine_defaults_and_errors():
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_engine(None, "cpu") == "numba" and resolve_engine(None, "cuda") == "torch"
+    assert resolve_engine("torch", "cpu") == "torch"
+    with pytest.raises(DrsplatError, match="CPU only"):
+        resolve_engine("numba", "cuda")
+    with pytest.raises(DrsplatError, match="unknown device"):
+        resolve_device("tpu")
+    assert resolve_device("auto") == ("cpu" if NO_CUDA else "cuda")
+
+
+@pytest.mark.skipif(not NO_CUDA, reason="this machine has a CUDA GPU")
+def test_cuda_asked_for_without_a_gpu_is_one_clear_error(tmp_path, capsys):
+    from drsplat.cli import main
+
+    with pytest.raises(DrsplatError, match="no CUDA GPU is available"):
+        resolve_device("cuda")
+    args = ["register", str(tmp_path / "s.ply"), "--source", str(tmp_path), "--features", str(tmp_path), "--out", str(tmp_path / "o.ply"), "--device", "cuda"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "no CUDA GPU is available" in err and "Traceback" not in err
+
+
+def test_cli_torch_engine_on_cpu_matches_numba(tmp_path):
+    """register / query / segment with --engine torch --device cpu give what the numba engine gives."""
+    from drsplat.cli import main
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply
+
+    torch.set_num_threads(1)
+    data = tmp_path / "data"
+    assert main(["synth", str(data), "--preset", "tiny", "--seed", "1", "--no-progress"]) == 0
+    base = ["register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"), "--topk", "5", "--no-progress"]
+    assert main(base + ["--out", str(tmp_path / "numba.ply"), "--engine", "numba"]) == 0
+    assert main(base + ["--out", str(tmp_path / "torch.ply"), "--engine", "torch", "--device", "cpu"]) == 0
+    fa, fb = (read_field(load_ply(tmp_path / f"{e}.ply"), tmp_path / f"{e}.ply") for e in ("numba", "torch"))
+    assert fa.num_gaussians == fb.num_gaussians > 100
+    np.testing.assert_allclose(fb.features.astype(np.float32), fa.features.astype(np.float32), atol=2e-3)
+    text = data / "text_embeddings.npy"
+    for engine in ("numba", "torch"):
+        assert main(["query", str(tmp_path / "numba.ply"), "--embedding", str(text), "--scores", str(tmp_path / f"q_{engine}.npy"),
+                     "--engine", engine, "--device", "cpu"]) == 0
+        assert main(["segment", str(tmp_path / "numba.ply"), "--embeddings", str(text), "--out", str(tmp_path / f"s_{engine}.npy"),
+                     "--engine", engine, "--device", "cpu"]) == 0
+    np.testing.assert_allclose(np.load(tmp_path / "q_torch.npy"), np.load(tmp_path / "q_numba.npy"), atol=1e-5)
+    np.testing.assert_array_equal(np.load(tmp_path / "s_torch.npy"), np.load(tmp_path / "s_numba.npy"))

@@ -1,0 +1,212 @@
+"""Exports that round-trip: the registered-PLY metadata column (drsplat.lang.plyformat), the
+standard and drsplat export formats of `drsplat query --out` / `drsplat segment --ply` and of the
+viewer, and a PLY whose header comments were dropped by another tool (splat-transform does)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drsplat.lang import (
+    META_PROPERTY,
+    decode_meta_column,
+    encode_meta_column,
+    export_scene,
+    field_metadata,
+    read_field,
+)
+from drsplat.scene import load_ply, save_ply
+
+
+@pytest.fixture(scope="module")
+def demo():
+    from viewer.demo import demo_available, demo_dir
+
+    assert demo_available(), "assets/demo is missing: rebuild it with `python -m viewer.demo`"
+    return demo_dir() / "registered.ply", demo_dir()
+
+
+@pytest.fixture(scope="module")
+def query(demo):
+    """(Q.npy path, oracle vector) of the demo's 'mug' label."""
+    _, folder = demo
+    names = json.loads((folder / "gt" / "label_names.json").read_text())
+    return np.load(folder / "text_embeddings.npy")[names.index("mug")]
+
+
+@given(st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=0x2FF), min_size=1, max_size=80), st.integers(0, 400), st.randoms(use_true_random=False))
+@settings(max_examples=60, deadline=None)
+def test_meta_column_survives_reordering_and_subsets_keeping_each_position(text, extra_rows, rnd):
+    data = text.encode()
+    column = encode_meta_column(text, len(data) + extra_rows)
+    if len(data) > 255:
+        assert column is None
+        return
+    assert column.dtype == np.uint16 and column.shape == (len(data) + extra_rows,)
+    rows = list(range(column.size))
+    rnd.shuffle(rows)
+    assert decode_meta_column(column[rows]) == text
+    # any subset keeping one row per position decodes: the first len(data) rows of a permutation of positions
+    keep = sorted(rows[: column.size // 2], key=lambda i: i % len(data))
+    positions = {i % len(data) for i in keep}
+    if len(positions) == len(data):
+        assert decode_meta_column(column[keep]) == text
+
+
+def test_meta_column_refuses_what_it_cannot_carry():
+    assert encode_meta_column("kind=pq", 3) is None, "fewer rows than bytes"
+    assert encode_meta_column("x" * 256, 1000) is None
+    assert encode_meta_column("", 10) is None
+    column = encode_meta_column("kind=pq dim=512", 100)
+    assert decode_meta_column(column[column >> 8 != 3]) is None, "a lost position does not decode"
+
+
+def test_majority_vote_outvotes_a_few_altered_rows():
+    column = encode_meta_column("kind=exact dim=4", 1600)
+    column[:5] = (column[:5] & 0xFF00) | ord("#")
+    assert decode_meta_column(column) == "kind=exact dim=4"
+
+
+def _strip_comments(src: Path, dst: Path, permute_seed: int | None = None) -> None:
+    """What splat-transform's ply -> ply does to a drsplat PLY: properties and rows kept, header comments dropped
+    (optionally rows reordered, as its --morton-order does)."""
+    scene = load_ply(src)
+    if permute_seed is not None:
+        scene = scene.subset(np.random.default_rng(permute_seed).permutation(scene.num_gaussians))
+    scene.comments.clear()
+    save_ply(scene, dst)
+
+
+def test_field_survives_a_tool_that_drops_header_comments(demo, query, tmp_path):
+    registered, _ = demo
+    scene = load_ply(registered)
+    field = read_field(scene, registered)
+    assert META_PROPERTY in scene.extra, "the shipped demo carries the metadata column"
+    out = tmp_path / "no_comments.ply"
+    _strip_comments(registered, out, permute_seed=3)
+    shutil.copyfile(field.codebook.path, tmp_path / field.codebook.path.name)
+    back_scene = load_ply(out)
+    assert not any(c.startswith("drsplat.lang") for c in back_scene.comments)
+    assert field_metadata(back_scene, out) == field_metadata(scene, registered)
+    back = read_field(back_scene, out)
+    assert back is not None and (back.kind, back.dim, back.clip_model) == (field.kind, field.dim, field.clip_model)
+    order = np.random.default_rng(3).permutation(scene.num_gaussians)
+    np.testing.assert_array_equal(back.scores(query[None])[:, 0], field.scores(query[None])[order, 0])
+
+
+def test_files_with_the_comment_only_still_read(demo, tmp_path):
+    """PLYs written before the metadata column existed: the comment alone names the field."""
+    registered, _ = demo
+    scene = load_ply(registered)
+    old = tmp_path / "old.ply"
+    scene.extra.pop(META_PROPERTY)
+    save_ply(scene, old)
+    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
+    assert read_field(load_ply(old), old).kind == "pq"
+
+
+def test_export_formats_standard_and_drsplat(demo, query, tmp_path):
+    registered, _ = demo
+    scene = load_ply(registered)
+    field = read_field(scene, registered)
+    mask = field.scores(query[None])[:, 0] > 0.2
+    assert 0 < mask.sum() < scene.num_gaussians
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    export_scene(scene.subset(mask), field.subset(mask), other / "std.ply", "standard")
+    std = load_ply(other / "std.ply")
+    assert std.extra == {} and read_field(std, other / "std.ply") is None, "standard: INRIA layout only"
+    export_scene(scene.subset(mask), field.subset(mask), other / "sel.ply", "drsplat")
+    assert (other / "sel.codebook.faiss").is_file(), "the codebook is copied beside the export"
+    back = read_field(load_ply(other / "sel.ply"), other / "sel.ply")
+    np.testing.assert_array_equal(back.scores(query[None]), field.subset(mask).scores(query[None]))
+    with pytest.raises(ValueError, match="format"):
+        export_scene(scene, field, other / "x.ply", "splat")
+
+
+def test_cli_query_can_query_its_own_drsplat_export(demo, query, tmp_path, capsys):
+    from drsplat.cli import main
+
+    registered, _ = demo
+    q = tmp_path / "q.npy"
+    np.save(q, query)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    assert main(["query", str(registered), "--embedding", str(q), "--out", str(out_dir / "mug.ply"), "--format", "drsplat"]) == 0
+    first = capsys.readouterr().out
+    count = int(first.split()[0])
+    assert main(["query", str(out_dir / "mug.ply"), "--embedding", str(q), "--threshold", "-1"]) == 0
+    assert f"{count} of {count} Gaussians" in capsys.readouterr().out
+    assert main(["query", str(registered), "--embedding", str(q), "--out", str(out_dir / "std.ply")]) == 0
+    assert main(["query", str(out_dir / "std.ply"), "--embedding", str(q)]) == 1, "the standard export has no field"
+
+
+def test_cli_segment_prints_the_dataset_label_names_and_exports(demo, tmp_path, capsys):
+    from drsplat.cli import main
+
+    registered, folder = demo
+    names = json.loads((folder / "gt" / "label_names.json").read_text())
+    assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--out", str(tmp_path / "l.npy"),
+                 "--ply", str(tmp_path / "seg.ply"), "--format", "drsplat"]) == 0
+    printed = capsys.readouterr().out
+    assert all(name in printed for name in names) and "label_0" not in printed
+    assert read_field(load_ply(tmp_path / "seg.ply"), tmp_path / "seg.ply") is not None
+    bad = tmp_path / "names.json"
+    bad.write_text(json.dumps(["a", "b"]))
+    assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--names", str(bad), "--out", str(tmp_path / "l2.npy")]) == 1
+    assert "names.json" in capsys.readouterr().err
+
+
+def test_viewer_exports_both_formats(demo, query, tmp_path):
+    from viewer.state import ViewerState
+
+    registered, folder = demo
+    state = ViewerState()
+    assert state.load_scene(registered) and state.load_source(folder)
+    assert state.run_oracle_query(state.oracle.names.index("mug"))
+    (tmp_path / "a" / "dir.ply").mkdir(parents=True)
+    assert state.export_selection(tmp_path / "a" / "dir.ply", "drsplat") is None
+    assert "export to" in state.messages[-1].text, "a write failure is a reported error, not a traceback"
+    n = state.export_selection(tmp_path / "a" / "mug.ply", "drsplat")
+    assert n == int(state.selection.sum()) > 0
+    back = read_field(load_ply(tmp_path / "a" / "mug.ply"), tmp_path / "a" / "mug.ply")
+    np.testing.assert_array_equal(back.scores(query[None]), state.field.subset(state.selection).scores(query[None]))
+    assert state.export_selection(tmp_path / "a" / "std.ply", "standard") == n
+    assert load_ply(tmp_path / "a" / "std.ply").extra == {}
+    assert state.export_selection(registered, "standard") is None, "never over the loaded scene"
+    assert registered.with_name("registered.codebook.faiss").is_file()
+
+
+def _splat_transform() -> list[str] | None:
+    """The splat-transform command: $SPLAT_TRANSFORM (a path to its bin), or on PATH."""
+    explicit = os.environ.get("SPLAT_TRANSFORM")
+    if explicit and Path(explicit).is_file():
+        return [explicit]
+    found = shutil.which("splat-transform")
+    return [found] if found else None
+
+
+def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
+    """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
+    command = _splat_transform()
+    if command is None:
+        pytest.skip("splat-transform is not installed (npm install @playcanvas/splat-transform; set SPLAT_TRANSFORM to its bin)")
+    registered, _ = demo
+    field = read_field(load_ply(registered), registered)
+    src = tmp_path / "mug.ply"
+    export_scene(load_ply(registered), field, src, "drsplat")
+    for name, flags in (("plain.ply", []), ("morton.ply", ["-M"])):
+        subprocess.run([*command, "-q", "-w", str(src), *flags, str(tmp_path / name)], check=True, timeout=120, capture_output=True)
+        converted = load_ply(tmp_path / name)
+        assert not any(c.startswith("drsplat.lang") for c in converted.comments), "splat-transform drops comments"
+        back = read_field(converted, tmp_path / name)
+        assert back is not None and back.kind == field.kind
+        assert np.allclose(np.sort(back.scores(query[None])[:, 0]), np.sort(field.scores(query[None])[:, 0]))
