@@ -18,7 +18,7 @@ from drsplat.errors import DrsplatError
 from drsplat.features.format import read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import LanguageField, attach_field, build_field
-from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.defaults import DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.registration import RegistrationResult, register_scene
 from drsplat.scene import GaussianScene, save_ply
 from drsplat.utils import CancelToken
@@ -38,6 +38,7 @@ class RegisterOptions:
     block_size: stream with blocks of this many Gaussians whatever the estimate (tests, benches).
     ray: a Ray cluster address ("" or "local" starts a local one) computing views on workers
     (drsplat.distributed); ray_workers: how many worker tasks at once (default: the cluster's CPUs).
+    aggregate: aggregation mode (drsplat.aggregate.MODES; "paper" is Dr. Splat's weighted mean).
     engine, device: registration's compute engine ("numba" on "cpu", or "torch" on "cpu"/"cuda"; drsplat.device).
     """
 
@@ -51,6 +52,7 @@ class RegisterOptions:
     ray_workers: int | None = None
     engine: str = "numba"
     device: str = "cpu"
+    aggregate: str = DEFAULT_AGGREGATE
 
 
 @dataclass
@@ -97,6 +99,8 @@ def register_to_ply(
     dim = feature_dim(features_dir, views)
     codebook = resolve_codebook(options.codebook, dim)  # a bad codebook fails now, not after registering
     block = options.block_size
+    if options.aggregate != "paper" and (block is not None or options.memory_budget is not None):
+        raise DrsplatError(f"--aggregate {options.aggregate} runs in memory only; drop --memory-budget or use --aggregate paper")
     if block is None:
         plan = estimate_memory(scene, views, dim, options.topk)
         block = choose_block(plan, options.memory_budget)
@@ -121,6 +125,7 @@ def register_to_ply(
             scene, cameras, features_dir, topk=options.topk, level=options.level, show_progress=show_progress,
             on_progress=on_progress, cancel=cancel, checkpoint=ckpt, keep_checkpoint=True,
             collect_embeddings=options.codebook == "scene", executor=executor, engine=options.engine, device=options.device,
+            aggregate=options.aggregate,
         )
     finally:
         if owned and executor is not None:

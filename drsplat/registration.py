@@ -28,8 +28,8 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.defaults import DEFAULT_LEVEL, DEFAULT_TOPK
-from drsplat.errors import InputError
+from drsplat.defaults import DEFAULT_AGGREGATE, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.errors import DrsplatError, InputError
 from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest
 from drsplat.pairlog import PairLog, ViewPairs
 from drsplat.scene import GaussianScene
@@ -58,6 +58,7 @@ class RegistrationResult:
     missing_features: camera names without a feature file; unmatched_features: feature stems
     without a camera. num_nonfinite_masks: masks dropped for non-finite embeddings.
     mask_embeddings: [M_total, D] every mask embedding used (only with collect_embeddings).
+    aggregate: the aggregation mode (drsplat.aggregate); num_rejected: Gaussians it left unassigned.
     """
 
     features: np.ndarray | None
@@ -79,6 +80,8 @@ class RegistrationResult:
     num_nonfinite_masks: int = 0
     num_nonfinite_features: int = 0
     mask_embeddings: np.ndarray | None = None
+    aggregate: str = DEFAULT_AGGREGATE
+    num_rejected: int = 0
 
     @property
     def assigned(self) -> np.ndarray:
@@ -393,7 +396,7 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
 
 
 def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None,
-                       render: Callable | None = None):
+                       render: Callable | None = None, weights: Callable | None = None):
     """Rasterize one view (numba, or `render(prepared, cam, topk, out)`) and coalesce its pairs.
     Returns (ViewPairs, the raster buffers to reuse)."""
     from drsplat.raster import rasterize
@@ -405,7 +408,8 @@ def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.nd
         out = render(prepared, cam, topk, out)
         out = out.numpy() if hasattr(out, "numpy") else out  # a torch engine's output comes back to the host
     t1 = time.perf_counter()
-    g, m, w, pairs = coalescer.coalesce(out.ids, out.weights, mask_ids, feats.shape[0])
+    view_weights = out.weights if weights is None else weights(prepared, cam, out)
+    g, m, w, pairs = coalescer.coalesce(out.ids, view_weights, mask_ids, feats.shape[0])
     used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
     t2 = time.perf_counter()
     return ViewPairs(cam.name, feats, g, m, w, used, pairs, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1), out
@@ -415,11 +419,14 @@ class LocalExecutor:
     """Computes views' pairs in this process, one view after another (the default).
 
     render: (prepared, camera, topk, previous output) -> output with .ids / .weights [H, W, k]
-    (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry).
+    (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry);
+    weights: (prepared, camera, output) -> [H, W, k] weights to accumulate (the --aggregate hook;
+    default: the rasterizer's w = T·α).
     """
 
-    def __init__(self, render: Callable | None = None, prepare: Callable | None = None):
+    def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None):
         self._render = render
+        self._weights = weights
         self.prepare = prepare or prepare_geometry
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
@@ -427,18 +434,18 @@ class LocalExecutor:
         out = None
         for cam in views:
             mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
-            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render)
+            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render, weights=self._weights)
             view.num_nonfinite = nonfinite
             yield view
 
 
-def local_executor(engine: str = "numba", device: str = "cpu") -> LocalExecutor:
+def local_executor(engine: str = "numba", device: str = "cpu", weights: Callable | None = None) -> LocalExecutor:
     """The in-process executor rendering with `engine` on `device` (see `compute_engine`)."""
     if engine == "numba":
         compute_engine(engine, device)  # checks the device
-        return LocalExecutor()
+        return LocalExecutor(weights=weights)
     compute = compute_engine(engine, device)
-    return LocalExecutor(render=compute.render, prepare=compute.prepare)
+    return LocalExecutor(render=compute.render, prepare=compute.prepare, weights=weights)
 
 
 # ----------------------------------------------------------------------------- pairing & checkpoints
@@ -509,9 +516,11 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     return h.hexdigest()
 
 
-def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int) -> dict:
+def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int,
+                      aggregate: str = DEFAULT_AGGREGATE) -> dict:
     """What a checkpoint (pair log) must match to be resumed."""
     return {
+        "aggregate": aggregate,
         "version": CHECKPOINT_VERSION,
         "num_gaussians": scene.num_gaussians,
         "scene": _scene_digest(scene),
@@ -545,6 +554,7 @@ class ViewTotals:
     coalesce_seconds: float = 0.0
     dim: int | None = None
     embeddings: list[np.ndarray] = field(default_factory=list)
+    aggregate: dict[str, np.ndarray] = field(default_factory=dict)  # drsplat.aggregate statistics
 
     def add(self, view: ViewPairs, features_dir: Path, collect: bool) -> None:
         if self.dim is None:
@@ -658,6 +668,7 @@ def register_scene(
     executor=None,
     engine: str = "numba",
     device: str = "cpu",
+    aggregate: str = DEFAULT_AGGREGATE,
 ) -> RegistrationResult:
     """Register the mask embeddings of `features_dir` onto the Gaussians of `scene` (in memory).
 
@@ -673,18 +684,32 @@ def register_scene(
     engine, device: "numba" (CPU) or "torch" (CPU or CUDA) rasterizer (`compute_engine`); views are
     coalesced and summed by the numba kernels whatever renders them, so the pair log, streaming
     and Ray work with either engine.
+    aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat;
+    the other modes run locally on the numba engine, in memory; modes with floater rejection
+    do not resume from a checkpoint).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
+    from drsplat.aggregate import Aggregator
+
+    if aggregate != "paper" and engine != "numba":
+        raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
+    if aggregate != "paper" and executor is not None and not isinstance(executor, LocalExecutor):
+        raise DrsplatError(f"--aggregate {aggregate} runs in this process only (not with --ray); use --aggregate paper on a cluster")
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
     if topk < 1:
         raise ValueError("topk must be >= 1")
-    if executor is None:
-        executor = local_executor(engine, device)
     views, missing, unmatched = select_views(cameras, features_dir)
     ckpt = Path(checkpoint) if checkpoint is not None else None
-    plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level), views) if ckpt is not None else None
+    plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate), views) if ckpt is not None else None
+    aggregator = Aggregator(aggregate, scene.num_gaussians)  # --aggregate hook: per-view weights + a post-step
+    if aggregator.state() and plog is not None and plog.records:
+        log.warning("--aggregate %s keeps per-view statistics that the pair log does not hold; starting over", aggregate)
+        plog.delete()
+        plog = PairLog.open(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate))
     resumed = len(plog.records) if plog is not None else 0
+    if executor is None:
+        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights)
     prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
     totals = ViewTotals()
     acc: Accumulator | None = None
@@ -713,6 +738,7 @@ def register_scene(
         acc = Accumulator(scene.num_gaussians, totals.dim or 1)
     t0, c0 = time.perf_counter(), time.process_time()
     sums = acc.sums()
+    num_rejected = aggregator.finish(*sums)
     accumulate_s += time.perf_counter() - t0
     accumulate_cpu += time.process_time() - c0
     features, nonfinite = normalize_rows(*sums)
@@ -738,6 +764,8 @@ def register_scene(
         num_nonfinite_masks=totals.num_nonfinite_masks,
         num_nonfinite_features=nonfinite,
         mask_embeddings=np.concatenate(totals.embeddings) if collect_embeddings and totals.embeddings else None,
+        aggregate=aggregate,
+        num_rejected=num_rejected,
     )
     if plog is not None and not keep_checkpoint:
         plog.delete()

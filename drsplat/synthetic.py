@@ -50,6 +50,34 @@ class ObjectSpec:
 
 
 @dataclass
+class RoomParams:
+    """Knobs of the hard "room" layout (`_build_room`); geometry is drawn from the seed.
+
+    Counts are per scene. half_size: range of the room's half-extent (m). thin_radius: range of
+    pole/cable/stem radii. faint_fraction: share of object Gaussians made semi-transparent
+    (opacity 0.1-0.6, as trained 3DGS scenes have many). floater_fraction: unlabelled small faint
+    Gaussians as a share of all. num_blobs: huge faint unlabelled Gaussians inside the room.
+    grazing_views / far_views / low_views: cameras looking along a wall, from the far side of the
+    room at a small object, and from near the floor.
+    """
+
+    half_size: tuple[float, float] = (1.8, 2.4)
+    num_poles: int = 2
+    num_cables: int = 2
+    num_stems: int = 2
+    num_small: int = 4
+    num_wall_items: int = 2
+    num_boxes: int = 2
+    thin_radius: tuple[float, float] = (0.006, 0.02)
+    faint_fraction: float = 0.08
+    floater_fraction: float = 0.01
+    num_blobs: int = 4
+    grazing_views: int = 3
+    far_views: int = 3
+    low_views: int = 2
+
+
+@dataclass
 class Preset:
     """Size of a synthetic dataset."""
 
@@ -64,6 +92,10 @@ class Preset:
     num_floaters: int = 30
     num_background: int = 6
     sh_degree: int = 3
+    layout: str = "table"  # key of LAYOUTS: how the Gaussians and cameras are made
+    room: RoomParams | None = None  # the "room" layout's knobs
+    jitter: int = 0  # default oracle mask boundary jitter (pixels) of this preset
+    mislabel: float = 0.0  # default oracle mislabelled-mask fraction of this preset
 
 
 @dataclass
@@ -151,6 +183,29 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+def _room_preset(name: str, num_gaussians: int, views: int, width: int, height: int, *, jitter: int = 0, mislabel: float = 0.0,
+                 **room) -> Preset:
+    return Preset(name, (), num_gaussians, views, 0, width, height, num_floaters=0, num_background=0, layout="room",
+                  room=RoomParams(**room), jitter=jitter, mislabel=mislabel)
+
+
+# Hard rooms (docs/evaluation.md, "Aggregation"): each stresses one thing registration gets wrong;
+# all have ~1% unlabelled floaters, huge faint blobs and 8% semi-transparent object Gaussians.
+HARD_PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        _room_preset("hard-thin", 12000, 12, 160, 120, num_poles=4, num_cables=3, num_stems=3, num_small=2),
+        _room_preset("hard-small", 12000, 10, 160, 120, num_small=10, far_views=5, num_poles=1, num_cables=1, num_stems=1),
+        _room_preset("hard-grazing", 12000, 6, 160, 120, grazing_views=7, low_views=4, far_views=1),
+        _room_preset("hard-lowres", 12000, 12, 80, 60),
+        _room_preset("hard-noisy", 12000, 12, 160, 120, jitter=2, mislabel=0.1, floater_fraction=0.03, num_blobs=8, faint_fraction=0.15),
+        _room_preset("hard-room", 30000, 14, 320, 240, num_poles=3, num_cables=2, num_stems=2, num_small=6, num_wall_items=3, jitter=1),
+        _room_preset("hard-tiny", 4000, 8, 96, 72, num_poles=2, num_cables=1, num_stems=1, num_small=3, grazing_views=2, far_views=2, low_views=1),
+    )
+}
+PRESETS.update(HARD_PRESETS)
+
+
 def _normalize(x: np.ndarray, axis: int = -1) -> np.ndarray:
     norm = np.linalg.norm(x, axis=axis, keepdims=True)
     return x / np.where(norm > 0, norm, 1.0)
@@ -203,14 +258,19 @@ def _grid_on_rect(count: int, w: float, h: float, rng: np.random.Generator) -> n
     return np.clip(uv, 0, 1) * np.array([w, h])
 
 
-def _box_faces(center, size, top_only: bool = False):
-    """(origin, u_axis, v_axis, normal) per face; u, v are edge vectors of the face."""
+def _box_faces(center, size, top_only: bool = False, faces_kept=None):
+    """(origin, u_axis, v_axis, normal) per face; u, v are edge vectors of the face.
+
+    top_only keeps the +z face; faces_kept, a list of (axis, sign), keeps those faces only.
+    """
     c, s = np.asarray(center, float), np.asarray(size, float) / 2
     faces = []
     for axis in ((2,) if top_only else (0, 1, 2)):
         a1, a2 = [i for i in range(3) if i != axis]
         for sign in (1.0, -1.0):
             if top_only and sign < 0:
+                continue
+            if faces_kept is not None and (axis, sign) not in [tuple(f) for f in faces_kept]:
                 continue
             normal = np.zeros(3)
             normal[axis] = sign
@@ -224,7 +284,7 @@ def _box_faces(center, size, top_only: bool = False):
 def object_area(spec: ObjectSpec) -> float:
     p = spec.params
     if spec.kind in ("box", "plate"):
-        return float(sum(np.linalg.norm(u) * np.linalg.norm(v) for _, u, v, _ in _box_faces(p["center"], p["size"], p.get("top_only", False))))
+        return float(sum(np.linalg.norm(u) * np.linalg.norm(v) for _, u, v, _ in _box_faces(p["center"], p["size"], p.get("top_only", False), p.get("faces"))))
     if spec.kind == "sphere":
         return float(4 * np.pi * p["radius"] ** 2)
     if spec.kind == "cylinder":
@@ -241,7 +301,7 @@ def sample_surface(spec: ObjectSpec, count: int, rng: np.random.Generator) -> tu
     """
     p = spec.params
     if spec.kind in ("box", "plate"):
-        faces = _box_faces(p["center"], p["size"], p.get("top_only", False))
+        faces = _box_faces(p["center"], p["size"], p.get("top_only", False), p.get("faces"))
         areas = np.array([np.linalg.norm(u) * np.linalg.norm(v) for _, u, v, _ in faces])
         pts, nrm = [], []
         for (origin, u, v, normal), area in zip(faces, areas):
@@ -418,6 +478,259 @@ def make_cameras(preset: Preset, rng: np.random.Generator) -> list[Camera]:
     return cams
 
 
+# ----------------------------------------------------------------------------- the hard "room" layout
+
+ROOM_HEIGHT = 2.4
+WALL_THICKNESS = 0.04
+
+
+@dataclass
+class RoomObject:
+    """One object instance of a room: its geometry and its (category) label name."""
+
+    spec: ObjectSpec
+    label: str
+
+
+def _wall_frame(wall: int, hx: float, hy: float):
+    """(point on the wall's inner face at floor height, unit direction along it, inward normal, length)
+    of wall 0..3 (-x, +x, -y, +y)."""
+    if wall < 2:
+        sign = -1.0 if wall == 0 else 1.0
+        return np.array([sign * hx, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), np.array([-sign, 0.0, 0.0]), 2 * hy
+    sign = -1.0 if wall == 2 else 1.0
+    return np.array([0.0, sign * hy, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, -sign, 0.0]), 2 * hx
+
+
+def _room_objects(room: RoomParams, rng: np.random.Generator) -> tuple[list[RoomObject], float, float]:
+    """Random objects of a room (walls, floor, thin, small and wall-mounted things), and (hx, hy).
+
+    Objects stand against the walls (a pole or a cabinet a few cm from a wall, a cable along it, a
+    frame on it), small things sit on the floor or on a cabinet; footprints do not overlap.
+    """
+    hx, hy = rng.uniform(*room.half_size, 2)
+    objs: list[RoomObject] = [
+        RoomObject(ObjectSpec("floor", "plate", {"center": (0, 0, -0.01), "size": (2 * hx, 2 * hy, 0.02), "top_only": True},
+                              tuple(rng.uniform(0.4, 0.6, 3))), "floor")
+    ]
+    wall_rgb = rng.uniform(0.55, 0.8, 3)
+    for wall in range(4):
+        base, along, inward, length = _wall_frame(wall, hx, hy)
+        axis = 0 if wall < 2 else 1
+        size = [0.0, 0.0, ROOM_HEIGHT]
+        size[axis] = WALL_THICKNESS
+        size[1 - axis] = length
+        centre = base - inward * WALL_THICKNESS / 2 + np.array([0, 0, ROOM_HEIGHT / 2])
+        spec = ObjectSpec(f"wall_{wall}", "plate", {"center": tuple(centre), "size": tuple(size), "faces": [(axis, float(inward[axis]))]},
+                          tuple(np.clip(wall_rgb + rng.normal(0, 0.04, 3), 0, 1)))
+        objs.append(RoomObject(spec, "wall"))
+    taken: list[tuple[np.ndarray, float]] = []  # footprint (centre xy, radius) of each object
+
+    def place(radius: float, gap: tuple[float, float], tries: int = 60):
+        """A free spot against a random wall: (wall, base, along, inward, xy) or None."""
+        for _ in range(tries):
+            wall = int(rng.integers(4))
+            base, along, inward, length = _wall_frame(wall, hx, hy)
+            t = rng.uniform(-length / 2 + 0.3, length / 2 - 0.3)
+            xy = (base + along * t + inward * (rng.uniform(*gap) + radius))[:2]
+            if all(np.linalg.norm(xy - c) > radius + r + 0.05 for c, r in taken):
+                taken.append((xy, radius))
+                return wall, base, along, inward, xy
+        return None
+
+    def color():
+        return tuple(rng.uniform(0.1, 0.95, 3))
+
+    for i in range(room.num_boxes):
+        size = rng.uniform(0.3, 0.6, 3)
+        spot = place(0.5 * float(np.hypot(size[0], size[1])), (0.0, 0.02))
+        if spot:
+            xy = spot[4]
+            objs.append(RoomObject(ObjectSpec(f"cabinet_{i}", "box", {"center": (xy[0], xy[1], size[2] / 2), "size": tuple(size)}, color()), "cabinet"))
+    for i in range(room.num_poles):
+        r, h = rng.uniform(*room.thin_radius), rng.uniform(0.8, 2.0)
+        spot = place(r, (0.03, 0.25))
+        if spot:
+            xy = spot[4]
+            objs.append(RoomObject(ObjectSpec(f"pole_{i}", "cylinder", {"center": (xy[0], xy[1], h / 2), "radius": r, "height": h, "axis": 2}, color()), "pole"))
+    for i in range(room.num_cables):
+        wall = int(rng.integers(4))
+        base, along, inward, length = _wall_frame(wall, hx, hy)
+        r = rng.uniform(*room.thin_radius) * 0.6
+        cable_len = rng.uniform(0.8, min(2.0, length - 0.4))
+        t = rng.uniform(-length / 2 + cable_len / 2 + 0.1, length / 2 - cable_len / 2 - 0.1)
+        centre = base + along * t + inward * (r + rng.uniform(0.01, 0.08)) + np.array([0, 0, rng.uniform(0.3, 2.0)])
+        objs.append(RoomObject(ObjectSpec(f"cable_{i}", "cylinder", {"center": tuple(centre), "radius": r, "height": cable_len,
+                                                                     "axis": 1 if wall < 2 else 0}, color()), "cable"))
+    for i in range(room.num_stems):
+        pot_r, pot_h = rng.uniform(0.07, 0.12), rng.uniform(0.12, 0.25)
+        spot = place(pot_r, (0.02, 0.3))
+        if spot:
+            xy = spot[4]
+            stem_r, stem_h = rng.uniform(*room.thin_radius) * 0.5, rng.uniform(0.3, 0.7)
+            objs.append(RoomObject(ObjectSpec(f"pot_{i}", "cylinder", {"center": (xy[0], xy[1], pot_h / 2), "radius": pot_r, "height": pot_h, "axis": 2},
+                                              color()), "pot"))
+            objs.append(RoomObject(ObjectSpec(f"stem_{i}", "cylinder", {"center": (xy[0], xy[1], pot_h + stem_h / 2), "radius": stem_r,
+                                                                        "height": stem_h, "axis": 2}, (0.2, 0.6, 0.2)), "stem"))
+    for i in range(room.num_wall_items):
+        wall = int(rng.integers(4))
+        base, along, inward, length = _wall_frame(wall, hx, hy)
+        w, h = rng.uniform(0.2, 0.6), rng.uniform(0.15, 0.45)
+        centre = base + along * rng.uniform(-length / 2 + 0.4, length / 2 - 0.4) + inward * 0.012 + np.array([0, 0, rng.uniform(0.9, 1.8)])
+        axis = 0 if wall < 2 else 1
+        size = [0.0, 0.0, h]
+        size[axis], size[1 - axis] = 0.02, w
+        objs.append(RoomObject(ObjectSpec(f"frame_{i}", "plate", {"center": tuple(centre), "size": tuple(size)}, color()), "frame"))
+    cabinets = [o.spec for o in objs if o.label == "cabinet"]
+    for i in range(room.num_small):
+        kind = "sphere" if rng.random() < 0.5 else "box"
+        r = rng.uniform(0.03, 0.07)
+        if cabinets and rng.random() < 0.4:  # on a cabinet, else on the floor against a wall
+            cab = cabinets[int(rng.integers(len(cabinets)))].params
+            half = np.asarray(cab["size"]) / 2
+            xy = np.asarray(cab["center"][:2]) + rng.uniform(-1, 1, 2) * np.maximum(half[:2] - r, 0)
+            z0 = cab["center"][2] + half[2]
+        else:
+            spot = place(r, (0.0, 0.4))
+            if not spot:
+                continue
+            xy, z0 = spot[4], 0.0
+        if kind == "sphere":
+            spec = ObjectSpec(f"ball_{i}", "sphere", {"center": (xy[0], xy[1], z0 + r), "radius": r}, color())
+        else:
+            spec = ObjectSpec(f"cube_{i}", "box", {"center": (xy[0], xy[1], z0 + r), "size": (2 * r, 2 * r, 2 * r)}, color())
+        objs.append(RoomObject(spec, "ball" if kind == "sphere" else "cube"))
+    return objs, float(hx), float(hy)
+
+
+def _thin_cylinder_surface(spec: ObjectSpec, spacing: float, rng: np.random.Generator):
+    """Gaussians of a thin cylinder, elongated along its axis as 3DGS fits thin structures.
+
+    8 Gaussians around the circumference, spaced `along` = max(spacing, 2.5x the circumferential
+    spacing) along the axis (no caps). Returns points [P, 3], rotations [P, 3, 3] (columns:
+    circumferential tangent, axis, outward normal) and scales [P, 3].
+    """
+    p = spec.params
+    r, h, axis = p["radius"], p["height"], p["axis"]
+    around = 2 * np.pi * r / 8
+    along = max(spacing, 2.5 * around)
+    n_along = max(2, int(round(h / along)))
+    ang = (np.arange(8)[None, :] + 0.5 * (np.arange(n_along)[:, None] % 2) + rng.uniform(-0.15, 0.15, (n_along, 8))) * (2 * np.pi / 8)
+    z = ((np.arange(n_along) + 0.5) / n_along * h - h / 2)[:, None] + np.zeros_like(ang)
+    ang, z = ang.ravel(), z.ravel()
+    perm = {2: [0, 1, 2], 0: [2, 0, 1], 1: [1, 2, 0]}[axis]
+    normal = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)[:, perm]
+    tangent = np.stack([-np.sin(ang), np.cos(ang), np.zeros_like(ang)], 1)[:, perm]
+    axis_dir = np.broadcast_to(np.eye(3)[axis], normal.shape)
+    pts = np.asarray(p["center"]) + (r * np.stack([np.cos(ang), np.sin(ang), z / r], 1))[:, perm]
+    rot = np.stack([tangent, axis_dir, normal], axis=2)
+    scales = np.stack([np.full(len(pts), 0.6 * around), np.full(len(pts), 0.6 * h / n_along), np.full(len(pts), 0.05 * around)], 1)
+    return pts, rot, scales
+
+
+def _build_room(preset: Preset, rng: np.random.Generator):
+    """All Gaussians of a hard room (see RoomParams): (scene, labels [N], instances [N], instance labels, names)."""
+    room = preset.room or RoomParams()
+    objs, hx, hy = _room_objects(room, rng)
+    names = sorted({o.label for o in objs}, key=[o.label for o in objs].index)
+    specs = [o.spec for o in objs]
+    thin = [o.spec.kind == "cylinder" and o.spec.params["radius"] < 0.03 for o in objs]
+    num_floaters = int(round(room.floater_fraction * preset.num_gaussians))
+    budget = preset.num_gaussians - num_floaters - room.num_blobs
+    area = sum(object_area(s) for s, t in zip(specs, thin) if not t)
+    thin_count = sum(8 * max(2, int(round(s.params["height"] / (2.5 * 2 * np.pi * s.params["radius"] / 8)))) for s, t in zip(specs, thin) if t)
+    spacing = np.sqrt(area / max(budget - thin_count, 100))
+    means, rots, scales, colors, inst = [], [], [], [], []
+    for k, (spec, is_thin) in enumerate(zip(specs, thin)):
+        if is_thin:
+            pts, rot, sc = _thin_cylinder_surface(spec, spacing, rng)
+            nrm = rot[:, :, 2]
+        else:
+            # small objects get at least ~40 Gaussians (3DGS densifies detail)
+            count = max(40, int(round(object_area(spec) / spacing**2)))
+            pts, nrm, _ = sample_surface(spec, count, rng)
+            rot = _frame_from_normals(nrm)
+            local = np.sqrt(object_area(spec) / max(len(pts), 1))
+            sc = np.concatenate([local * rng.uniform(0.55, 0.75, (len(pts), 2)), np.full((len(pts), 1), local * 0.05)], 1)
+        hidden = np.zeros(len(pts), bool)
+        for other in specs:
+            if other is not spec:
+                hidden |= inside_object(other, pts, margin=0.005) | inside_object(other, pts + 0.02 * nrm, margin=0.005)
+        rgb = np.asarray(spec.color) + rng.normal(0, 0.03, (len(pts), 3))
+        rgb = np.clip(rgb * (0.7 + 0.3 * np.clip(nrm @ LIGHT, 0, 1))[:, None], 0, 1)
+        means.append(pts[~hidden])
+        rots.append(rot[~hidden])
+        scales.append(sc[~hidden])
+        colors.append(rgb[~hidden])
+        inst.append(np.full(int((~hidden).sum()), k, np.int32))
+    n_obj = sum(len(m) for m in means)
+    opacity = rng.uniform(0.85, 0.98, n_obj)
+    faint = rng.random(n_obj) < room.faint_fraction
+    opacity[faint] = rng.uniform(0.1, 0.6, int(faint.sum()))
+    nf, nb = num_floaters, room.num_blobs
+    f_means = np.c_[rng.uniform(-hx + 0.1, hx - 0.1, nf), rng.uniform(-hy + 0.1, hy - 0.1, nf), rng.uniform(0.1, ROOM_HEIGHT - 0.2, nf)]
+    f_scales = np.exp(rng.uniform(np.log(0.01), np.log(0.06), (nf, 3)))
+    f_opacity = rng.uniform(0.03, 0.3, nf)
+    b_means = np.c_[rng.uniform(-hx, hx, nb) * 0.6, rng.uniform(-hy, hy, nb) * 0.6, rng.uniform(0.4, 1.6, nb)]
+    b_scales = np.exp(rng.uniform(np.log(0.3), np.log(1.0), (nb, 3)))
+    b_opacity = rng.uniform(0.03, 0.12, nb)
+    extra_rgb = rng.uniform(0.3, 0.9, (nf + nb, 3))
+    extra_quats = _normalize(rng.normal(size=(nf + nb, 4))).astype(np.float32)
+    opac = np.clip(np.concatenate([opacity, f_opacity, b_opacity]), 1e-4, 1 - 1e-4)
+    scene = GaussianScene(
+        means=np.concatenate(means + [f_means, b_means]).astype(np.float32),
+        quats=np.concatenate([rotmat_to_quat(np.concatenate(rots)), extra_quats]).astype(np.float32),
+        log_scales=np.log(np.concatenate(scales + [f_scales, b_scales])).astype(np.float32),
+        opacity_logits=np.log(opac / (1 - opac)).astype(np.float32),
+        sh=_rgb_to_sh(np.concatenate(colors + [extra_rgb]), preset.sh_degree, rng, 0.01),
+        comments=[f"drsplat.synthetic preset={preset.name}"],
+    )
+    instances = np.concatenate(inst + [np.full(nf + nb, -1, np.int32)])
+    instance_labels = np.array([names.index(o.label) for o in objs], np.int32)
+    labels = np.where(instances >= 0, instance_labels[np.maximum(instances, 0)], -1).astype(np.int32)
+    return scene, labels, instances, instance_labels, names
+
+
+def _room_bounds(scene: GaussianScene, labels: np.ndarray) -> tuple[float, float]:
+    """(hx, hy) of a room from its wall Gaussians' extent."""
+    pts = scene.means[labels >= 0]
+    return float(np.abs(pts[:, 0]).max()), float(np.abs(pts[:, 1]).max())
+
+
+def make_room_cameras(preset: Preset, syn_scene: GaussianScene, labels: np.ndarray, instances: np.ndarray, names: list[str],
+                      rng: np.random.Generator) -> list[Camera]:
+    """Views of a room from inside it: overviews across the room, grazing views along a wall,
+    far views of a small or thin object from the opposite side, and views from near the floor."""
+    room = preset.room or RoomParams()
+    hx, hy = _room_bounds(syn_scene, labels)
+    w, h = preset.width, preset.height
+    cams = []
+    for i in range(preset.num_orbit_views):
+        ang = 2 * np.pi * (i + 0.5) / max(preset.num_orbit_views, 1) + rng.uniform(-0.2, 0.2)
+        eye = (0.55 * hx * np.cos(ang), 0.55 * hy * np.sin(ang), rng.uniform(1.3, 1.9))
+        target = (-0.9 * hx * np.cos(ang + rng.uniform(-0.6, 0.6)), -0.9 * hy * np.sin(ang + rng.uniform(-0.6, 0.6)), rng.uniform(0.3, 1.0))
+        cams.append(look_at(eye, target, w, h, fov_x_deg=70.0, name=f"orbit_{i:03d}"))
+    for i in range(room.grazing_views):
+        wall = int(rng.integers(4))
+        base, along, inward, length = _wall_frame(wall, hx, hy)
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        eye = base + along * sign * (length / 2 - 0.2) + inward * rng.uniform(0.25, 0.6) + np.array([0, 0, rng.uniform(0.5, 1.6)])
+        target = base - along * sign * (length / 2) + inward * rng.uniform(0.0, 0.3) + np.array([0, 0, rng.uniform(0.3, 1.2)])
+        cams.append(look_at(eye, target, w, h, fov_x_deg=60.0, name=f"grazing_{i:03d}"))
+    small = [k for k, n in enumerate(names) if n in ("ball", "cube", "pole", "stem", "cable")]
+    for i in range(room.far_views):
+        pick = np.isin(labels, small) if small else labels >= 0
+        centre = syn_scene.means[rng.choice(np.flatnonzero(pick))].astype(np.float64)
+        eye = np.array([-np.sign(centre[0]) * 0.8 * hx, -np.sign(centre[1]) * 0.8 * hy, rng.uniform(1.0, 1.8)]) + rng.uniform(-0.2, 0.2, 3)
+        cams.append(look_at(eye, centre, w, h, fov_x_deg=55.0, name=f"far_{i:03d}"))
+    for i in range(room.low_views):
+        ang = rng.uniform(0, 2 * np.pi)
+        eye = (0.5 * hx * np.cos(ang), 0.5 * hy * np.sin(ang), rng.uniform(0.12, 0.3))
+        target = (-hx * np.cos(ang), -hy * np.sin(ang), rng.uniform(0.1, 0.4))
+        cams.append(look_at(eye, target, w, h, fov_x_deg=75.0, name=f"low_{i:03d}"))
+    return cams
+
+
 def make_embedding_basis(num_labels: int, dim: int, rng: np.random.Generator):
     """(c [D], c_t [D], v [L, D]): mutually orthogonal unit vectors."""
     if num_labels + 2 > dim:
@@ -432,10 +745,14 @@ def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
     p = PRESETS[preset]
-    oracle = oracle or OracleParams()
+    oracle = oracle or OracleParams(jitter=p.jitter, mislabel_fraction=p.mislabel)
     rng = np.random.default_rng(seed)
-    scene, labels, instances, instance_labels, names = _build_gaussians(p, rng)
-    cameras = make_cameras(p, rng)
+    if p.layout == "room":
+        scene, labels, instances, instance_labels, names = _build_room(p, rng)
+        cameras = make_room_cameras(p, scene, labels, instances, names, rng)
+    else:
+        scene, labels, instances, instance_labels, names = _build_gaussians(p, rng)
+        cameras = make_cameras(p, rng)
     c, c_t, v = make_embedding_basis(len(names), p.dim, np.random.default_rng([seed, 1]))
     text = _normalize(oracle.text_a * c_t + oracle.text_b * v).astype(np.float32)
     return SyntheticScene(preset, seed, scene, cameras, labels, instances, instance_labels, names, v, c, c_t, text, oracle)
@@ -523,13 +840,15 @@ def write_dataset(
     preset: str = "tiny",
     seed: int = 0,
     *,
-    mislabel_fraction: float = 0.0,
+    mislabel_fraction: float | None = None,
     noise: float = 0.15,
-    jitter: int = 0,
+    jitter: int | None = None,
     show_progress: bool = True,
     cancel=None,
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
+
+    mislabel_fraction, jitter: oracle mask corruption; None takes the preset's default.
 
     Every file is written atomically; the manifest and scene.ply come last, so an interrupted
     run leaves no scene.ply claiming a complete dataset.
@@ -540,6 +859,10 @@ def write_dataset(
     from drsplat.scene import save_ply
     from drsplat.utils import atomic_path, progress, save_npy_atomic
 
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
+    mislabel_fraction = PRESETS[preset].mislabel if mislabel_fraction is None else mislabel_fraction
+    jitter = PRESETS[preset].jitter if jitter is None else jitter
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
     out = Path(out_dir)

@@ -201,3 +201,98 @@ def test_presets_scale_up():
     assert 50_000 <= sizes["demo"] <= 100_000
     with pytest.raises(ValueError, match="unknown preset"):
         make_synthetic("huge", 0)
+
+
+# ----------------------------------------------------------------------------- hard room presets
+
+
+def _digest(syn) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    for arr in (syn.scene.means, syn.scene.opacity_logits, syn.labels, np.stack([c.R for c in syn.cameras])):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()
+
+
+def test_table_presets_are_unchanged_by_the_hard_ones():
+    # digests of make_synthetic(preset, 0) before the room layout existed (other tests depend on these scenes)
+    assert _digest(make_synthetic("tiny", 0)) == "d9aba5ce634402869507a99bf08fa84542012e79"
+    assert _digest(make_synthetic("small", 0)) == "1db0b1fa5409be73e314882887bb16e6c85a342a"
+
+
+def test_hard_presets_have_the_hard_cases_and_vary_with_the_seed():
+    from drsplat.synthetic import HARD_PRESETS
+
+    assert {"hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room"} <= set(HARD_PRESETS)
+    a, b = make_synthetic("hard-thin", 0), make_synthetic("hard-thin", 1)
+    assert _digest(a) != _digest(b) and a.scene.num_gaussians != b.scene.num_gaussians
+    for syn in (a, b):
+        labels, scales, opac = syn.labels, syn.scene.scales(), syn.scene.opacities()
+        n = syn.scene.num_gaussians
+        unlabelled = labels < 0
+        floaters = unlabelled & (scales.max(axis=1) < 0.2)
+        blobs = unlabelled & (scales.max(axis=1) >= 0.3)
+        assert 0.005 * n <= floaters.sum() <= 0.03 * n and opac[floaters].max() <= 0.3
+        assert blobs.sum() >= 2 and opac[blobs].max() <= 0.12
+        faint = (labels >= 0) & (opac < 0.7)
+        assert 0.04 < faint.sum() / (labels >= 0).sum() < 0.15  # semi-transparent object Gaussians, as trained scenes have
+        for thin in ("pole", "cable", "stem"):
+            sel = labels == syn.label_names.index(thin)
+            assert sel.sum() >= 16 and scales[sel].min(axis=1).max() < 0.003  # flat
+        assert {"wall", "floor", "pole", "cable", "stem", "ball"} <= set(syn.label_names) or "cube" in syn.label_names
+        kinds = {c.name.split("_")[0] for c in syn.cameras}
+        assert kinds == {"orbit", "grazing", "far", "low"}
+        low = [c for c in syn.cameras if c.name.startswith("low")]
+        assert all(c.center[2] < 0.35 for c in low)
+
+
+def test_grazing_views_look_along_a_wall():
+    syn = make_synthetic("hard-grazing", 3)
+    wall = syn.scene.means[syn.labels == syn.label_names.index("wall")]
+    hx, hy = np.abs(wall[:, 0]).max(), np.abs(wall[:, 1]).max()
+    for cam in (c for c in syn.cameras if c.name.startswith("grazing")):
+        forward = cam.R[2]
+        gaps = (hx - abs(cam.center[0]), hy - abs(cam.center[1]))  # distance to the nearest x / y wall
+        # some wall within 0.7 m of the camera is seen at a grazing angle (view direction < 30° off its plane)
+        assert any(gap < 0.7 and abs(forward[axis]) < 0.5 for axis, gap in enumerate(gaps))
+
+
+def test_thin_objects_are_sub_pixel_in_some_views():
+    syn = make_synthetic("hard-lowres", 0)
+    pole = syn.labels == syn.label_names.index("pole")
+    widths = []
+    for inst in np.unique(syn.instances[pole]):
+        pts = syn.scene.means[syn.instances == inst]
+        radius = np.median(np.linalg.norm(pts[:, :2] - pts[:, :2].mean(axis=0), axis=1))  # vertical poles
+        assert radius < 0.025
+        for cam in syn.cameras:
+            uv, z = cam.project(pts)
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            if inside.any():
+                widths.append(2 * radius * cam.fx / np.median(z[inside]))
+    assert widths and min(widths) < 1.0
+
+
+def test_hard_preset_ground_truth_is_exact(tmp_path):
+    from drsplat.synthetic import render_view
+
+    out = write_dataset(tmp_path / "hard", "hard-tiny", 2, show_progress=False)
+    syn = make_synthetic("hard-tiny", 2)
+    labels = np.load(out / "gt" / "labels.npy")
+    np.testing.assert_array_equal(labels, syn.labels)
+    np.testing.assert_array_equal(labels, np.where(syn.instances >= 0, syn.instance_labels[np.maximum(syn.instances, 0)], -1))
+    seen = set()
+    for cam in syn.cameras[:4]:
+        mask = np.load(out / "gt" / "masks" / f"{cam.name}.npy")
+        np.testing.assert_array_equal(mask, render_view(syn, cam).label_mask)  # the masks are the renderer's vote, exactly
+        seen |= set(np.unique(mask[mask >= 0]).tolist())
+    assert syn.label_names.index("wall") in seen
+    manifest = read_manifest(out / "features")
+    assert manifest["params"]["jitter"] == 0 and manifest["counts"]["mislabelled_masks"] == 0
+
+
+def test_noisy_preset_defaults_corrupt_the_masks():
+    syn = make_synthetic("hard-noisy", 0)
+    assert syn.oracle.mislabel_fraction == pytest.approx(0.1) and syn.oracle.jitter == 2
+    assert make_synthetic("tiny", 0).oracle.mislabel_fraction == 0.0

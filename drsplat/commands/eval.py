@@ -5,7 +5,7 @@
     drsplat eval scannet REGISTERED.ply --scene-dir scans/scene0000_00 [--classes wall,floor,...]
     drsplat eval pseudolabels SCENE.ply --points cloud.labels.ply --out labels.npy
     drsplat eval lerf REGISTERED.ply --source lerf_ovs/figurines --annotations lerf_ovs/label/figurines
-    drsplat eval ablate topk|pq|robustness|metrics --preset tiny --out-dir DIR
+    drsplat eval ablate topk|pq|robustness|metrics|aggregate [--preset tiny] --out-dir DIR
 """
 
 from __future__ import annotations

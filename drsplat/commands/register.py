@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
-from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.errors import DrsplatError
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.features.format import FEATURE_FILE_PATTERNS
@@ -32,6 +32,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
+    p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
+                   help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
+                   "(weight by the Gaussian's own falloff / only its 2-sigma ellipse), responsibility (w / pixel sum), "
+                   "*-reject (also leave floaters unassigned); see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
     p.add_argument("--resolution", type=resolution_value, default=-1,
@@ -53,11 +57,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import load_cameras
+    from drsplat.errors import DrsplatError
     from drsplat.lang import codebook_path_for
     from drsplat.pipeline import RegisterOptions, register_to_ply
     from drsplat.scene import load_ply
 
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
+    if args.aggregate != "paper" and engine != "numba":
+        raise DrsplatError(f"--aggregate {args.aggregate} runs on the numba engine only; use --engine numba or --aggregate paper")
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
     written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
@@ -78,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
-                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device)
+                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
+                              aggregate=args.aggregate)
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

@@ -24,11 +24,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "The folder is built beside OUT_DIR and renamed into place at the end, so an interrupted run leaves nothing.",
     )
     p.add_argument("out_dir", type=Path, help="output folder (created; an earlier synthetic dataset there is replaced)")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene size (default: tiny)")
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene: tiny, small, demo (a table), or a hard room hard-* (docs/registration.md) (default: tiny)")
     p.add_argument("--seed", type=seed_int, default=0, help="random seed, 0..2^32-1 (default: 0)")
-    p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION", help="fraction of masks given a wrong label's embedding")
+    p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
+                   help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
     p.add_argument("--noise", type=nonneg_float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
-    p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=0, metavar="PIXELS", help="mask boundaries wander by up to this many pixels")
+    p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
+                   help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -4,6 +4,9 @@
     pq          PQ sub-vectors M ∈ {32, 64, 128, 256} (and exact float16): mIoU, bytes per Gaussian, query time
     robustness  mislabelled-mask fraction and embedding noise against mIoU
     metrics     volume-aware vs count vs voxel IoU across scenes and settings (the paper's Fig. S3)
+    aggregate   aggregation modes (drsplat.aggregate) x top-k on the hard room presets: seg / loc mIoU
+                (volume and count; labelled-only and with unlabelled Gaussians as false positives),
+                floaters kept, labelled coverage, time per view
 
 Every ablation prints a Markdown table, and writes `<out-dir>/ablation_<name>.png` (plot) and
 `<out-dir>/ablation_<name>.json` (the numbers). Synthetic datasets are cached in
@@ -26,7 +29,9 @@ from drsplat.utils import CancelToken, atomic_path
 
 log = logging.getLogger(__name__)
 
-ABLATIONS = ("topk", "pq", "robustness", "metrics")
+ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
+AGGREGATE_PRESETS = ("hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
+AGGREGATE_TOPK = (10, 40)
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)
@@ -81,10 +86,11 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
 
 
-def register(ds: Dataset, topk: int = 40, collect: bool = False):
+def register(ds: Dataset, topk: int = 40, collect: bool = False, aggregate: str = "paper"):
     from drsplat.registration import register_scene
 
-    return register_scene(ds.scene, ds.cameras, ds.path / "features", topk=topk, show_progress=False, collect_embeddings=collect)
+    return register_scene(ds.scene, ds.cameras, ds.path / "features", topk=topk, show_progress=False, collect_embeddings=collect,
+                          aggregate=aggregate)
 
 
 def evaluate(ds: Dataset, scores: np.ndarray, assigned: np.ndarray, weightings=("volume",), voxel_resolution: int = 64) -> dict:
@@ -215,6 +221,100 @@ def ablate_metrics(root: Path, preset: str, seeds: list[int], cancel: CancelToke
                           {"points": points, "correlation": {t: {k: list(v) for k, v in c.items()} for t, c in corr.items()}})
 
 
+AGGREGATE_COLUMNS = ["preset", "mode", "top-k", "seg mIoU vol", "seg mIoU vol +unl", "seg mIoU count", "seg mIoU count +unl",
+                     "loc mIoU vol", "loc mIoU vol lab", "loc mIoU count", "floaters kept", "labelled coverage", "ms/view"]
+
+
+def aggregate_metrics(ds: Dataset, result) -> list[float]:
+    """The aggregate ablation's numbers for one registration (AGGREGATE_COLUMNS[3:]).
+
+    "+unl": segmentation with unlabelled Gaussians kept: an assigned unlabelled Gaussian is a false
+    positive of the label it takes (unassigned ones predict nothing). "lab": localisation on the
+    labelled Gaussians only (the plain loc column counts selected unlabelled ones as false
+    positives). floaters kept: share of unlabelled Gaussians assigned; labelled coverage: share of
+    labelled Gaussians assigned.
+    """
+    from drsplat.eval.metrics import argmax_labels, scene_weights, segmentation_iou
+
+    scores, _ = exact_scores(ds, result)
+    assigned = result.weights > 0
+    reps = evaluate(ds, scores, assigned, ("volume", "count"))
+    labelled = ds.gt >= 0
+    lab_ds = Dataset(ds.path, ds.scene.subset(labelled), ds.cameras, ds.gt[labelled], ds.names, ds.text)
+    lab = evaluate(lab_ds, scores[labelled], assigned[labelled], ("volume",))
+    pred = np.where(assigned, argmax_labels(scores), -1)
+    with_unl = {}
+    for weighting in ("volume", "count"):
+        w, _ = scene_weights(ds.scene, weighting)
+        iou, _ = segmentation_iou(pred, ds.gt, w, len(ds.names), ignore_unlabelled=False)
+        with_unl[weighting] = float(np.nanmean(iou))
+    return [float(reps["seg", "volume"].miou), with_unl["volume"], float(reps["seg", "count"].miou), with_unl["count"],
+            float(reps["loc", "volume"].miou), float(lab["loc", "volume"].miou), float(reps["loc", "count"].miou),
+            float(assigned[~labelled].mean()) if (~labelled).any() else 0.0, float(assigned[labelled].mean()),
+            1e3 * result.seconds / max(result.num_views, 1)]
+
+
+def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (0,), modes=None, topks=AGGREGATE_TOPK,
+                     cancel: CancelToken | None = None) -> AblationResult:
+    """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS)."""
+    from drsplat.aggregate import MODES
+    from drsplat.synthetic import PRESETS
+
+    modes = tuple(modes or MODES)
+    first = dataset(root, presets[0], seeds[0], PRESETS[presets[0]].mislabel)
+    for k in topks:  # warm-up: compiled kernels load once, not inside the timings
+        for mode in modes:
+            register(first, int(k), aggregate=mode)
+    rows = []
+    for preset in presets:
+        for k in topks:
+            for mode in modes:
+                per = []
+                for seed in seeds:
+                    _check(cancel)
+                    ds = dataset(root, preset, seed, PRESETS[preset].mislabel)
+                    per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
+                rows.append([preset, mode, int(k), *map(float, np.mean(per, axis=0))])
+                log.info("%s k=%d %s: %s", preset, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
+    notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); each preset's default oracle corruption "
+             "(hard-noisy: 10% mislabelled masks, 2 px jitter; hard-room: 1 px jitter). vol = volume-aware, count = OpenGaussian's; "
+             "+unl = unlabelled Gaussians that stay assigned count as false positives; lab = labelled Gaussians only; "
+             "ms/view = whole registration time / views."]
+    return AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows, notes)
+
+
+def time_aggregate_modes(ds: Dataset, modes, topk: int = 40, repeats: int = 5, cancel: CancelToken | None = None) -> dict[str, float]:
+    """{mode: median ms per view} over `repeats` registrations of `ds`, modes interleaved within each
+    repeat so that a busy machine slows every mode alike (the ablation's single-run ms/view is noisier)."""
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    for _ in range(repeats):
+        for mode in modes:
+            _check(cancel)
+            res = register(ds, topk, aggregate=mode)
+            times[mode].append(1e3 * res.seconds / max(res.num_views, 1))
+    return {m: float(np.median(t)) for m, t in times.items()}
+
+
+def aggregate_summary(result: AblationResult, baseline: str = "paper", topk: int = 40) -> str:
+    """Markdown table per mode at one top-k: per preset seg mIoU vol minus the baseline's, the
+    smallest gain over presets, floaters kept and time relative to the baseline."""
+    cols = result.columns
+    seg, fl, cov, ms = (cols.index(c) for c in ("seg mIoU vol", "floaters kept", "labelled coverage", "ms/view"))
+    rows = [r for r in result.rows if r[2] == topk]
+    presets = list(dict.fromkeys(r[0] for r in rows))
+    modes = list(dict.fromkeys(r[1] for r in rows))
+    get = {(r[0], r[1]): r for r in rows}
+    lines = ["| mode | " + " | ".join(f"Δseg {p}" for p in presets) + " | min Δseg | floaters kept | labelled coverage | time vs paper |",
+             "|---|" + "---:|" * (len(presets) + 4)]
+    for mode in modes:
+        d = [get[p, mode][seg] - get[p, baseline][seg] for p in presets]
+        fk = np.mean([get[p, mode][fl] for p in presets])
+        cv = min(get[p, mode][cov] for p in presets)
+        speed = np.mean([get[p, mode][ms] / get[p, baseline][ms] for p in presets])
+        lines.append(f"| {mode} | " + " | ".join(f"{x:+.3f}" for x in d) + f" | {min(d):+.3f} | {fk:.3f} | {cv:.3f} | {speed:.2f}x |")
+    return "\n".join(lines)
+
+
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     if len(a) < 2 or a.std() == 0 or b.std() == 0:
         return float("nan")
@@ -236,7 +336,9 @@ def plot(result: AblationResult, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if result.name == "metrics":
+    if result.name == "aggregate":
+        fig = _plot_aggregate(result, plt)
+    elif result.name == "metrics":
         fig, axes = plt.subplots(2, 2, figsize=(9, 8))
         for r, task in enumerate(("loc", "seg")):
             pts = result.extra["points"][task]
@@ -278,6 +380,32 @@ def plot(result: AblationResult, path: Path) -> None:
     plt.close(fig)
 
 
+def _plot_aggregate(result: AblationResult, plt):
+    """Grouped bars at the largest top-k: seg mIoU (vol) labelled-only and with unlabelled Gaussians
+    as false positives, per preset and mode; floaters kept and time per view per mode."""
+    cols = result.columns
+    k = max(r[2] for r in result.rows)
+    rows = [r for r in result.rows if r[2] == k]
+    presets = list(dict.fromkeys(r[0] for r in rows))
+    modes = list(dict.fromkeys(r[1] for r in rows))
+    get = {(r[0], r[1]): r for r in rows}
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.5), gridspec_kw={"width_ratios": [3, 3, 1.2, 1.2]})
+    width = 0.8 / len(modes)
+    xs = np.arange(len(presets))
+    for ax, metric in zip(axes[:2], ("seg mIoU vol", "seg mIoU vol +unl")):
+        for m, mode in enumerate(modes):
+            ax.bar(xs + m * width, [get[p, mode][cols.index(metric)] for p in presets], width, label=mode)
+        lo = min(get[p, mode][cols.index(metric)] for p in presets for mode in modes)
+        ax.set(ylim=(max(0.0, lo - 0.05), 1.0), ylabel=metric, title=f"{metric}, top-k {k}")
+        ax.set_xticks(xs + 0.4 - width / 2, [p.replace("hard-", "") for p in presets], fontsize=8)
+    axes[0].legend(fontsize=7, ncol=2)
+    for ax, col, title in ((axes[2], "floaters kept", "unlabelled kept"), (axes[3], "ms/view", "ms per view")):
+        ax.bar(np.arange(len(modes)), [np.mean([get[p, mode][cols.index(col)] for p in presets]) for mode in modes], color="C0")
+        ax.set_xticks(np.arange(len(modes)), modes, rotation=45, ha="right", fontsize=8)
+        ax.set(title=title + " (mean over presets)")
+    return fig
+
+
 # ---------------------------------------------------------------------------------------------- CLI
 
 
@@ -285,7 +413,10 @@ def add_ablate_parser(sub) -> None:
     p = sub.add_parser("ablate", help="reproduce the paper's ablations on synthetic scenes (tables + PNG plots)",
                        description=__doc__.split("\n\n")[0] + "; see docs/evaluation.md.")
     p.add_argument("ablation", choices=ABLATIONS)
-    p.add_argument("--preset", default="tiny", help="synthetic preset (tiny, small, demo)")
+    p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
+                   help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
+    p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
+    p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k or PQ sub-vectors)")
     p.add_argument("--out-dir", type=Path, required=True, metavar="DIR", help="where the PNG, JSON and cached datasets go")
@@ -301,15 +432,39 @@ def run_ablate(args: argparse.Namespace) -> int:
     except ValueError:
         raise DrsplatError("--seeds and --values take comma-separated integers") from None
     root = args.out_dir / "datasets"
-    if args.ablation == "topk":
-        result = ablate_topk(root, args.preset, seeds, values or TOPK_VALUES)
+    preset = args.preset or "tiny"
+    if args.ablation == "aggregate":
+        from drsplat.aggregate import MODES
+        from drsplat.synthetic import PRESETS
+
+        presets = tuple(p.strip() for p in args.preset.split(",")) if args.preset else AGGREGATE_PRESETS
+        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else MODES
+        bad = [p for p in presets if p not in PRESETS] + [m for m in modes if m not in MODES]
+        if bad:
+            raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(MODES)})")
+        if "paper" not in modes:
+            modes = ("paper",) + modes  # the baseline of the summary
+        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK)
+        k = max(values or AGGREGATE_TOPK)
+        timed = dataset(root, presets[-1], seeds[0], PRESETS[presets[-1]].mislabel)
+        speed = time_aggregate_modes(timed, modes, k, args.repeats)
+        result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
+        lines = [result.markdown(), "", aggregate_summary(result, topk=k), "",
+                 f"Time per view on {presets[-1]} (seed {seeds[0]}, {timed.scene.num_gaussians} Gaussians, "
+                 f"{timed.cameras[0].width}x{timed.cameras[0].height}, top-k {k}), median of {args.repeats} interleaved runs:", "",
+                 "| mode | ms/view | vs paper |", "|---|---:|---:|"]
+        lines += [f"| {mode} | {ms:.1f} | {ms / speed['paper']:.2f}x |" for mode, ms in speed.items()]
+        print("\n".join(lines))  # noqa: T201 - the tables the user asked for
+    elif args.ablation == "topk":
+        result = ablate_topk(root, preset, seeds, values or TOPK_VALUES)
     elif args.ablation == "pq":
-        result = ablate_pq(root, args.preset, seeds, values or PQ_VALUES)
+        result = ablate_pq(root, preset, seeds, values or PQ_VALUES)
     elif args.ablation == "robustness":
-        result = ablate_robustness(root, args.preset, seeds)
+        result = ablate_robustness(root, preset, seeds)
     else:
-        result = ablate_metrics(root, args.preset, seeds)
-    print(result.markdown())  # noqa: T201 - the table the user asked for
+        result = ablate_metrics(root, preset, seeds)
+    if args.ablation != "aggregate":
+        print(result.markdown())  # noqa: T201 - the table the user asked for
     png = args.out_dir / f"ablation_{result.name}.png"
     plot(result, png)
     with atomic_path(args.out_dir / f"ablation_{result.name}.json") as tmp:
