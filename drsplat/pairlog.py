@@ -112,6 +112,7 @@ class LogRecord:
     name: str
     offset: int  # of the payload
     meta: dict
+    start: int = 0  # of the record
 
 
 class PairLog:
@@ -175,7 +176,14 @@ class PairLog:
         f.flush()
         if sync:
             os.fsync(f.fileno())
-        self.records.append(LogRecord(view.name, start + 4 + 16 + len(meta_bytes), json.loads(meta_bytes)))
+        self.records.append(LogRecord(view.name, start + 4 + 16 + len(meta_bytes), json.loads(meta_bytes), start))
+
+    def truncate(self, count: int) -> None:
+        """Keep only the first `count` records (the views a companion snapshot covers)."""
+        if count < len(self.records):
+            self._file.flush()
+            self._file.truncate(self.records[count].start)
+            del self.records[count:]
 
     def read(self, record: LogRecord) -> ViewPairs:
         """The view stored in `record` (checked when the log was opened)."""
@@ -249,5 +257,5 @@ def _scan(f, size: int) -> tuple[list[LogRecord], int]:
             ok = False
         if not ok:
             return records, end
-        records.append(LogRecord(meta["name"], end + 20 + a, meta))
+        records.append(LogRecord(meta["name"], end + 20 + a, meta, end))
         end = f.tell()

@@ -142,6 +142,7 @@ def register_to_ply(
     save_ply(out_scene, out)
     if ckpt is not None:
         ckpt.unlink(missing_ok=True)
+        ckpt.with_name(ckpt.name + ".aggregate.npz").unlink(missing_ok=True)  # an aggregation mode's statistics
     log.info(
         "%s: %d Gaussians (%d unassigned, %s), %s field, %d views, %.1f s",
         out, out_scene.num_gaussians, scene.num_gaussians - result.num_assigned,

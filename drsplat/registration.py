@@ -648,6 +648,33 @@ def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
     raise ValueError(f"unknown registration engine {engine!r}; choose numba or torch")
 
 
+def _save_aggregate(path: Path, views: int, aggregator) -> None:
+    """Snapshot of an aggregation mode's per-view statistics after `views` views (atomic)."""
+    from drsplat.utils import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, views=np.int64(views), **aggregator.state())
+
+
+def _resume_aggregate(plog: PairLog | None, path: Path, aggregator) -> None:
+    """Load the statistics snapshot and cut the log back to the views it covers (or start over)."""
+    if plog is None or not plog.records:
+        path.unlink(missing_ok=True)
+        return
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            views = int(data["views"])
+            arrays = {k: data[k] for k in data.files if k != "views"}
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        log.warning("%s is missing or unreadable (%s); the aggregation statistics restart with the views", path, exc)
+        views, arrays = 0, {}
+    if views > len(plog.records) or any(a.shape != (aggregator.support.peak.shape[0],) for a in arrays.values()):
+        views, arrays = 0, {}
+    plog.truncate(views)
+    aggregator.load_state(arrays)
+
+
 # ----------------------------------------------------------------------------- registration
 
 
@@ -703,10 +730,9 @@ def register_scene(
     ckpt = Path(checkpoint) if checkpoint is not None else None
     plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate), views) if ckpt is not None else None
     aggregator = Aggregator(aggregate, scene.num_gaussians)  # --aggregate hook: per-view weights + a post-step
-    if aggregator.state() and plog is not None and plog.records:
-        log.warning("--aggregate %s keeps per-view statistics that the pair log does not hold; starting over", aggregate)
-        plog.delete()
-        plog = PairLog.open(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate))
+    stats_path = ckpt.with_name(ckpt.name + ".aggregate.npz") if ckpt is not None and aggregator.state() else None
+    if stats_path is not None:
+        _resume_aggregate(plog, stats_path, aggregator)
     resumed = len(plog.records) if plog is not None else 0
     if executor is None:
         executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights)
@@ -718,6 +744,8 @@ def register_scene(
     def consume(view: ViewPairs) -> None:
         nonlocal acc, accumulate_s, accumulate_cpu, allocate_s
         totals.add(view, features_dir, collect_embeddings)
+        if stats_path is not None and totals.done > resumed and totals.done % max(1, checkpoint_every) == 0:
+            _save_aggregate(stats_path, totals.done, aggregator)
         if acc is None:
             t0 = time.perf_counter()
             acc = Accumulator(scene.num_gaussians, totals.dim)
@@ -769,6 +797,8 @@ def register_scene(
     )
     if plog is not None and not keep_checkpoint:
         plog.delete()
+    if stats_path is not None and not keep_checkpoint:
+        stats_path.unlink(missing_ok=True)
     log.info(
         "registered %d views: %d of %d Gaussians assigned, %.1f M contributing pairs, %.1f s",
         result.num_views, result.num_assigned, scene.num_gaussians, result.num_pairs / 1e6, result.seconds,

@@ -8,7 +8,6 @@ from pathlib import Path
 
 from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
-from drsplat.errors import DrsplatError
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.features.format import FEATURE_FILE_PATTERNS
 from drsplat.utils import CancelToken, cancel_on_signals
