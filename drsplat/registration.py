@@ -712,8 +712,8 @@ def register_scene(
     coalesced and summed by the numba kernels whatever renders them, so the pair log, streaming
     and Ray work with either engine.
     aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat;
-    the other modes run locally on the numba engine, in memory; modes with floater rejection
-    do not resume from a checkpoint).
+    the other modes run locally on the numba engine, in memory; the statistics of floater
+    rejection are snapshotted beside the log every `checkpoint_every` views).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
     from drsplat.aggregate import Aggregator
