@@ -31,6 +31,7 @@ import numpy as np
 from drsplat import _raster_kernels as kernels
 from drsplat.cameras import Camera
 from drsplat.scene import SH_C0, GaussianScene
+from drsplat.defaults import DEFAULT_TOPK
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,11 @@ class PreparedScene:
         return int(self.finite.size - np.count_nonzero(self.finite))
 
 
+def tile_grid(width: int, height: int, tile_size: int = TILE_SIZE) -> tuple[int, int]:
+    """(tiles in x, tiles in y) covering a width x height image: ceil(width / tile), ceil(height / tile)."""
+    return -(-width // tile_size), -(-height // tile_size)
+
+
 @dataclass
 class Projected:
     """Screen-space Gaussians of one view (all arrays indexed by Gaussian id).
@@ -133,8 +139,7 @@ class Projected:
 
     @property
     def tile_grid(self) -> tuple[int, int]:
-        """(tiles in x, tiles in y)."""
-        return -(-self.width // self.tile_size), -(-self.height // self.tile_size)
+        return tile_grid(self.width, self.height, self.tile_size)
 
 
 def prepare_scene(scene: GaussianScene | PreparedScene) -> PreparedScene:
@@ -436,7 +441,7 @@ def balance_tiles(entries: np.ndarray, n_workers: int, chunks_per_worker: int = 
 
 def render_projected(
     projected: Projected,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -483,7 +488,7 @@ def render_projected(
 def rasterize_numba(
     scene: GaussianScene | PreparedScene,
     camera: Camera,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -509,7 +514,7 @@ def rasterize_numba(
 
 def composite_reference(
     projected: Projected,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -576,7 +581,7 @@ def _composite_pixel(projected: Projected, cand: np.ndarray, px: int, py: int, b
 def rasterize_reference(
     scene: GaussianScene | PreparedScene,
     camera: Camera,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -649,7 +654,7 @@ def prepare_for_engine(scene, engine: str = "numba", device: str = "cpu"):
 def rasterize(
     scene,
     camera: Camera,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,

@@ -30,8 +30,9 @@ import torch
 
 from drsplat import _raster_kernels as kernels
 from drsplat.cameras import Camera
-from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, prepare_scene, sh_basis_xyz
+from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, prepare_scene, sh_basis_xyz, tile_grid
 from drsplat.scene import GaussianScene
+from drsplat.defaults import DEFAULT_TOPK
 
 log = logging.getLogger(__name__)
 
@@ -107,8 +108,7 @@ class TorchProjected:
 
     @property
     def tile_grid(self) -> tuple[int, int]:
-        """(tiles in x, tiles in y)."""
-        return -(-self.width // self.tile_size), -(-self.height // self.tile_size)
+        return tile_grid(self.width, self.height, self.tile_size)
 
 
 @dataclass
@@ -397,7 +397,7 @@ def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, to
 
 def composite_torch(
     projected: TorchProjected,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -456,7 +456,7 @@ def composite_torch(
 def rasterize_torch(
     scene: GaussianScene | PreparedScene | TorchScene,
     camera: Camera,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
@@ -480,7 +480,7 @@ def rasterize_torch(
 def rasterize(
     scene: GaussianScene | PreparedScene | TorchScene,
     camera: Camera,
-    topk: int = 40,
+    topk: int = DEFAULT_TOPK,
     *,
     with_rgb: bool = False,
     with_depth: bool = False,

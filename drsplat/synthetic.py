@@ -913,7 +913,7 @@ def write_dataset(
             + "\n"
         )
     save_ply(syn.scene, out / "scene.ply")
-    log.info("wrote %s: %d Gaussians, %d views, %d masks (%d mislabelled)", out, syn.scene.num_gaussians, len(syn.cameras), total_masks, mislabelled)
+    log.debug("wrote %s: %d Gaussians, %d views, %d masks (%d mislabelled)", out, syn.scene.num_gaussians, len(syn.cameras), total_masks, mislabelled)
     return out
 
 

@@ -10,12 +10,7 @@ from drsplat.accumulate_torch import TorchAccumulator
 from drsplat.registration import Accumulator, accumulate_view_reference
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_views(rng, n, dim, views=4, h=20, w=24, k=5, masks=7):

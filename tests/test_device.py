@@ -71,3 +71,17 @@ def test_cli_torch_engine_on_cpu_matches_numba(tmp_path):
                      "--engine", engine, "--device", "cpu"]) == 0
     np.testing.assert_allclose(np.load(tmp_path / "q_torch.npy"), np.load(tmp_path / "q_numba.npy"), atol=1e-5)
     np.testing.assert_array_equal(np.load(tmp_path / "s_torch.npy"), np.load(tmp_path / "s_numba.npy"))
+
+
+def test_viewer_device_flags(tmp_path, capsys):
+    """`python main.py --device cuda` without a GPU stops in one line; the registration options follow the flags."""
+    import torch
+
+    from viewer.launch import build_parser, build_state, main
+
+    if not torch.cuda.is_available():
+        assert main(["--device", "cuda", "--screenshot", str(tmp_path / "x.png")]) == 1
+        assert "no CUDA GPU is available" in capsys.readouterr().err
+        assert not (tmp_path / "x.png").exists()
+    state = build_state(build_parser().parse_args(["--device", "cpu", "--engine", "torch"]))
+    assert (state.device, state.engine) == ("cpu", "torch")

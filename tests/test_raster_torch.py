@@ -11,13 +11,7 @@ from drsplat.raster_torch import TorchScene, composite_torch, project_gaussians_
 from drsplat.testing import assert_agree, check_engine, front_camera, hard_cases, random_case, random_scene, stacked_case
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Small tensors on a shared 2-core machine: torch's thread pool only adds waiting."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def torch_engine(*args, **kwargs):

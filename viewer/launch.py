@@ -36,6 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", type=Path, help="dataset directory with the training cameras (COLMAP, transforms.json or cameras.json)")
     p.add_argument("--features", type=Path, help="feature directory for registering from the GUI (default SOURCE/features)")
     p.add_argument("--clip-checkpoint", type=Path, help="local open_clip checkpoint for text queries")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and registration started from the viewer run (default auto: cuda when present)")
+    p.add_argument("--engine", choices=("numba", "torch"), default=None, help="registration engine (default: torch on cuda, numba on the CPU)")
     p.add_argument("--screenshot", type=Path, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
     p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
@@ -103,8 +105,12 @@ def build_state(args: argparse.Namespace):
     """A ViewerState with the scene, cameras, features and encoder the arguments name."""
     from viewer.state import ViewerState
 
+    from drsplat.device import resolve_device, resolve_engine
+
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
+    state.device = resolve_device(args.device)  # a DrsplatError (cuda absent) is reported by main in one line
+    state.engine = resolve_engine(args.engine, state.device)
     scene_path, source = args.scene, args.source
     if scene_path is None:
         scene_path, demo_source = demo_scene(args.demo_preset)

@@ -17,6 +17,7 @@ from typing import Protocol
 from imgui_bundle import imgui
 
 from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
+from drsplat.defaults import DEFAULT_LEVEL, DEFAULT_TOPK
 from viewer.camera import UP_AXES, ViewController
 from viewer.paths import derived_output
 from viewer.state import ViewerState
@@ -266,8 +267,8 @@ class DisplayPanel:
 @dataclass
 class RegistrationPanel:
     output: str = ""
-    topk: int = 40
-    level: int = 1
+    topk: int = DEFAULT_TOPK
+    level: int = DEFAULT_LEVEL
     codebook: str = "none"
     codebook_path: str = ""
 

@@ -25,6 +25,7 @@ from drsplat.features.modelid import is_oracle
 from drsplat.pipeline import RegisterOptions
 from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
+from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
@@ -61,6 +62,8 @@ class ViewerState:
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
+        self.device = "cpu"  # resolved (drsplat.device): where CLIP, registration and scoring run
+        self.engine: str | None = None  # registration's compute engine; None = the device's default
         self.oracle: OracleQueries | None = None
         self.encoder = None
         self.encoder_status = "no language field loaded"
@@ -169,7 +172,7 @@ class ViewerState:
         if name in ("", "unknown"):
             name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
         try:
-            encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device="cpu")
+            encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.device)
         except WeightsUnavailableError as exc:
             self.encoder_status = f"Text queries are off: {exc}"
             return
@@ -428,7 +431,7 @@ class ViewerState:
 
     # ---------------------------------------------------------------- registration
 
-    def start_registration(self, output: str | Path, topk: int = 40, level: int = 1, codebook: str = "none", background: bool = True) -> bool:
+    def start_registration(self, output: str | Path, topk: int = DEFAULT_TOPK, level: int = DEFAULT_LEVEL, codebook: str = DEFAULT_CODEBOOK, background: bool = True) -> bool:
         """Register the scene with the features of `features_dir` (drsplat.pipeline, the CLI's
         pipeline and defaults) on a worker thread
         (viewer.registration), store the field in `output`, then load it."""
@@ -448,7 +451,9 @@ class ViewerState:
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
-        options = RegisterOptions(topk=topk, level=level, codebook=codebook)
+        from drsplat.device import resolve_engine
+
+        options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=resolve_engine(self.engine, self.device), device=self.device)
         self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
         if not background:
             self.poll_registration()

@@ -22,6 +22,7 @@ import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, peak_rss_mb
 from drsplat.device import add_device_arguments, resolve_compute
+from drsplat.defaults import DEFAULT_TOPK
 
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 
@@ -35,7 +36,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--real", type=Path, default=DEFAULT_REAL, help="real scene for the speed table (default: flowers.ply)")
     p.add_argument("--views", type=int, default=50, help="orbiting views on the real scene (default: 50)")
     p.add_argument("--size", default="640x480", help="real-scene view size WxH (default: 640x480)")
-    p.add_argument("--real-topk", type=int, default=40, help="top-k on the real scene (default: 40)")
+    p.add_argument("--real-topk", type=int, default=DEFAULT_TOPK, help=f"top-k on the real scene (default: {DEFAULT_TOPK})")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
     p.add_argument("--gaussians", default=None, metavar="N",

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.utils import CancelToken, atomic_path
+from drsplat.defaults import DEFAULT_TOPK
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +87,7 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
 
 
-def register(ds: Dataset, topk: int = 40, collect: bool = False, aggregate: str = "paper"):
+def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper"):
     from drsplat.registration import register_scene
 
     return register_scene(ds.scene, ds.cameras, ds.path / "features", topk=topk, show_progress=False, collect_embeddings=collect,
@@ -283,7 +284,7 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
     return AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows, notes)
 
 
-def time_aggregate_modes(ds: Dataset, modes, topk: int = 40, repeats: int = 5, cancel: CancelToken | None = None) -> dict[str, float]:
+def time_aggregate_modes(ds: Dataset, modes, topk: int = DEFAULT_TOPK, repeats: int = 5, cancel: CancelToken | None = None) -> dict[str, float]:
     """{mode: median ms per view} over `repeats` registrations of `ds`, modes interleaved within each
     repeat so that a busy machine slows every mode alike (the ablation's single-run ms/view is noisier)."""
     times: dict[str, list[float]] = {m: [] for m in modes}
@@ -295,7 +296,7 @@ def time_aggregate_modes(ds: Dataset, modes, topk: int = 40, repeats: int = 5, c
     return {m: float(np.median(t)) for m, t in times.items()}
 
 
-def aggregate_summary(result: AblationResult, baseline: str = "paper", topk: int = 40) -> str:
+def aggregate_summary(result: AblationResult, baseline: str = "paper", topk: int = DEFAULT_TOPK) -> str:
     """Markdown table per mode at one top-k: per preset seg mIoU vol minus the baseline's, the
     smallest gain over presets, floaters kept and time relative to the baseline."""
     cols = result.columns

@@ -24,6 +24,7 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.utils import atomic_path, load_npy, save_npy_atomic
+from drsplat.defaults import DEFAULT_LEVEL
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +145,7 @@ def level_offsets(seg: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
 
 
-def read_features(features_dir: str | Path, stem: str, level: int = 1, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def read_features(features_dir: str | Path, stem: str, level: int = DEFAULT_LEVEL, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Mask ids of one level and all embeddings of one image.
 
     Returns mask_ids: [H, W] int32, -1 = none, indices into feats; feats: [M, D] float32.
@@ -157,7 +158,7 @@ def read_features(features_dir: str | Path, stem: str, level: int = 1, *, drop_n
     return ids, feats
 
 
-def read_features_report(features_dir: str | Path, stem: str, level: int = 1, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAULT_LEVEL, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
     """`read_features` plus the number of embeddings dropped for non-finite values."""
     spath, fpath = seg_path(features_dir, stem), feat_path(features_dir, stem)
     seg = _load_npy(spath, "mask-id")
