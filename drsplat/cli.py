@@ -34,7 +34,17 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         importlib.import_module(f"drsplat.commands.{name}").add_parser(subparsers)
+    for sub in subparsers.choices.values():
+        _add_verbosity(sub)
     return parser
+
+
+def _add_verbosity(sub: argparse.ArgumentParser) -> None:
+    """-v / -q after the subcommand too (`drsplat register ... -q`); SUPPRESS keeps the global flag's value."""
+    group = sub.add_argument_group("logging")
+    for flags, dest, text in ((("-v", "--verbose"), "verbose", "debug logging"), (("-q", "--quiet"), "quiet", "warnings and errors only")):
+        if not any(f in sub._option_string_actions for f in flags):
+            group.add_argument(*flags, dest=dest, action="store_true", default=argparse.SUPPRESS, help=text)
 
 
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
