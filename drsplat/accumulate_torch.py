@@ -8,7 +8,8 @@ i·M + j, then `index_add_`), and folded into the running sums
 
 with `index_add_` in blocks of pairs (memory: N·D + one view's pairs, never N x M). The views
 stream through; nothing of a view is kept once it is added. Same interface as `Accumulator`
-(add_view, flush, sums), so registration picks either (`register_scene(..., engine=...)`).
+(add_view, add_pairs, flush, sums): registration sums the views' pairs with either
+(`register_scene(..., engine=...)`, through `torch_compute_engine`).
 """
 
 from __future__ import annotations
@@ -33,14 +34,6 @@ class TorchAccumulator:
         self.F = torch.zeros((num_gaussians, dim), dtype=torch.float32, device=self.device)
         self.W = torch.zeros(num_gaussians, dtype=torch.float32, device=self.device)
         self.pair_block = max(1, int(pair_block))
-
-    @classmethod
-    def from_sums(cls, F: np.ndarray, W: np.ndarray, device: str | torch.device = "cpu") -> TorchAccumulator:
-        """An accumulator continuing from saved sums (a resumed checkpoint)."""
-        acc = cls(F.shape[0], F.shape[1], device)
-        acc.F.copy_(torch.as_tensor(np.asarray(F, np.float32)))
-        acc.W.copy_(torch.as_tensor(np.asarray(W, np.float32)))
-        return acc
 
     @property
     def dim(self) -> int:
@@ -68,11 +61,21 @@ class TorchAccumulator:
         """
         rows = _as_tensor(feats, self.device, torch.float32)
         gauss, mask, w, entries = self.view_pairs(ids, weights, mask_ids, rows.shape[0])
+        self._fold(gauss, mask, w, rows)
+        return entries, int(gauss.numel())
+
+    def add_pairs(self, gaussians, masks, weights, feats) -> None:
+        """Add one view's distinct pairs (gaussians [P], masks [P] rows of feats [M, D], weights [P]), as
+        registration's executors produce them (`drsplat.registration.Coalescer`)."""
+        self._fold(_as_tensor(gaussians, self.device, torch.int64), _as_tensor(masks, self.device, torch.int64),
+                   _as_tensor(weights, self.device, torch.float32), _as_tensor(feats, self.device, torch.float32))
+
+    def _fold(self, gauss: torch.Tensor, mask: torch.Tensor, w: torch.Tensor, rows: torch.Tensor) -> None:
+        """F[g] += w · rows[m] and W[g] += w, in blocks of pairs (bounds the [block, D] temporary)."""
         for start in range(0, gauss.numel(), self.pair_block):
             sl = slice(start, start + self.pair_block)
             self.F.index_add_(0, gauss[sl], w[sl, None] * rows[mask[sl]])
         self.W.index_add_(0, gauss, w)
-        return entries, int(gauss.numel())
 
     def flush(self, keep_last: int = 0) -> None:
         """Nothing is buffered: views are folded in as they are added."""
@@ -86,7 +89,6 @@ def torch_compute_engine(device: str | torch.device, record):
     """registration's ComputeEngine (`record`) for the torch rasterizer + TorchAccumulator on `device`:
     rasterized views stay on the device from the rasterizer to the sums."""
     from drsplat.raster_torch import prepare_scene_torch, rasterize_torch
-    from drsplat.registration import Accumulator
 
     device = torch.device(device)
 
@@ -96,14 +98,8 @@ def torch_compute_engine(device: str | torch.device, record):
             torch.cuda.synchronize(device)  # honest per-stage timings
         return out
 
-    def adopt(acc):
-        if isinstance(acc, Accumulator):
-            return TorchAccumulator.from_sums(*acc.sums(), device)
-        return acc
-
     return record(
         prepare=lambda scene: prepare_scene_torch(scene, device),
         render=render,
         accumulator=lambda n, dim: TorchAccumulator(n, dim, device),
-        adopt=adopt,
     )

@@ -624,14 +624,13 @@ def run_views(
 
 @dataclass
 class ComputeEngine:
-    """How registration rasterizes and accumulates: prepare(scene) once, render(prepared, camera,
-    topk, previous output) per view (an output with .ids / .weights [H, W, k]), accumulator(N, D)
-    and adopt(accumulator) (converts one loaded from a checkpoint)."""
+    """How registration rasterizes and sums: prepare(scene) once, render(prepared, camera, topk,
+    previous output) per view (an output with .ids / .weights [H, W, k]), and accumulator(N, D), the
+    running sums the views' pairs are added to (`add_pairs`, `sums`)."""
 
     prepare: Callable
     render: Callable
     accumulator: Callable[[int, int], object]
-    adopt: Callable[[object], object]
 
 
 def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
@@ -640,7 +639,7 @@ def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
         from drsplat.raster import _check_cpu, prepare_scene, rasterize_numba
 
         _check_cpu("numba", device)
-        return ComputeEngine(prepare_scene, lambda prep, cam, topk, out: rasterize_numba(prep, cam, topk, out=out), Accumulator, lambda acc: acc)
+        return ComputeEngine(prepare_scene, lambda prep, cam, topk, out: rasterize_numba(prep, cam, topk, out=out), Accumulator)
     if engine == "torch":
         from drsplat.accumulate_torch import torch_compute_engine
 
@@ -738,7 +737,8 @@ def register_scene(
         executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights)
     prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
     totals = ViewTotals()
-    acc: Accumulator | None = None
+    new_accumulator = compute_engine(engine, device).accumulator  # numba's on the CPU, torch's on `device`
+    acc = None
     accumulate_s = accumulate_cpu = allocate_s = 0.0
 
     def consume(view: ViewPairs) -> None:
@@ -748,7 +748,7 @@ def register_scene(
             _save_aggregate(stats_path, totals.done, aggregator)
         if acc is None:
             t0 = time.perf_counter()
-            acc = Accumulator(scene.num_gaussians, totals.dim)
+            acc = new_accumulator(scene.num_gaussians, totals.dim)
             allocate_s = time.perf_counter() - t0
         t0, c0 = time.perf_counter(), time.process_time()
         acc.add_pairs(view.gaussians, view.masks, view.weights, view.feats)
@@ -763,7 +763,7 @@ def register_scene(
             plog.close()
     del prepared
     if acc is None:  # no view had any data
-        acc = Accumulator(scene.num_gaussians, totals.dim or 1)
+        acc = new_accumulator(scene.num_gaussians, totals.dim or 1)
     t0, c0 = time.perf_counter(), time.process_time()
     sums = acc.sums()
     num_rejected = aggregator.finish(*sums)

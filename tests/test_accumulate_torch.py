@@ -41,12 +41,24 @@ def test_torch_accumulator_equals_numba_and_reference():
     assert (w1 > 0).sum() > 0.9 * n
 
 
-def test_resumed_sums_continue():
-    acc = TorchAccumulator.from_sums(np.ones((3, 2), np.float32), np.full(3, 2.0, np.float32))
-    acc.add_view(np.array([[[1]]]), np.array([[[0.5]]], np.float32), np.array([[0]]), np.array([[2.0, 4.0]], np.float32))
-    F, W = acc.sums()
-    np.testing.assert_allclose(F, [[1, 1], [2, 3], [1, 1]])
-    np.testing.assert_allclose(W, [2, 2.5, 2])
+def test_add_pairs_equals_numba_and_is_what_the_torch_engine_sums_with():
+    """Registration sums coalesced pairs (`add_pairs`): the torch accumulator gives numba's sums."""
+    from drsplat.registration import Coalescer, compute_engine
+
+    rng = np.random.default_rng(1)
+    n, dim = 200, 8
+    numba_acc = Accumulator(n, dim, pair_capacity=64)
+    torch_acc = compute_engine("torch", "cpu").accumulator(n, dim)
+    assert isinstance(torch_acc, TorchAccumulator)
+    coalescer = Coalescer(n)
+    for ids, weights, mask_ids, feats in random_views(rng, n, dim, views=5):
+        g, m, w, _ = coalescer.coalesce(ids, weights, mask_ids, feats.shape[0])
+        numba_acc.add_pairs(g, m, w, feats)
+        torch_acc.add_pairs(g, m, w, feats)
+    (f1, w1), (f2, w2) = numba_acc.sums(), torch_acc.sums()
+    np.testing.assert_allclose(f2, f1, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(w2, w1, rtol=1e-5, atol=1e-6)
+    assert (w1 > 0).sum() > 0.5 * n
 
 
 def test_torch_registration_equals_numba_registration(tmp_path):
