@@ -109,8 +109,9 @@ def build_state(args: argparse.Namespace):
 
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
-    state.device = resolve_device(args.device)  # a DrsplatError (cuda absent) is reported by main in one line
-    state.engine = resolve_engine(args.engine, state.device)
+    if args.device != "auto":  # an explicit device is checked now (cuda absent: one line from main); auto waits for first use
+        resolve_engine(args.engine, resolve_device(args.device))
+    state.device, state.engine = args.device, args.engine
     scene_path, source = args.scene, args.source
     if scene_path is None:
         scene_path, demo_source = demo_scene(args.demo_preset)

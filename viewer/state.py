@@ -62,7 +62,7 @@ class ViewerState:
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
-        self.device = "cpu"  # resolved (drsplat.device): where CLIP, registration and scoring run
+        self.device = "cpu"  # auto | cpu | cuda (drsplat.device): where CLIP and registration run, resolved on use
         self.engine: str | None = None  # registration's compute engine; None = the device's default
         self.oracle: OracleQueries | None = None
         self.encoder = None
@@ -165,7 +165,8 @@ class ViewerState:
             self._load_encoder()
 
     def _load_encoder(self) -> None:
-        from drsplat.features.clip import DEFAULT_MODEL, DEFAULT_PRETRAINED, ClipEncoder
+        from drsplat.features.clip import ClipEncoder
+        from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 
         model_id = self.field.clip_model if self.field is not None else ""
         name, _, pretrained = model_id.partition("/")
@@ -451,9 +452,15 @@ class ViewerState:
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
-        from drsplat.device import resolve_engine
+        from drsplat.device import resolve_device, resolve_engine
 
-        options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=resolve_engine(self.engine, self.device), device=self.device)
+        try:
+            device = resolve_device(self.device)
+            engine = resolve_engine(self.engine, device)
+        except DrsplatError as exc:
+            self.error(str(exc))
+            return False
+        options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=engine, device=device)
         self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
         if not background:
             self.poll_registration()

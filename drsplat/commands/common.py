@@ -154,7 +154,8 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
 
 def load_encoder(args: argparse.Namespace, field: LanguageField):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id."""
-    from drsplat.features.clip import DEFAULT_MODEL, ClipEncoder
+    from drsplat.features.clip import ClipEncoder
+    from drsplat.features.modelid import DEFAULT_MODEL
     from drsplat.features.modelid import is_oracle
 
     if is_oracle(field.clip_model):

@@ -6,7 +6,7 @@ Hugging Face hub cache. Without either (offline, empty cache) a `WeightsUnavaila
 one sentence which flag to use; network and hub exceptions never reach the user.
 
 `model_id` ("ViT-B-16/laion2b_s34b_b88k") is written into feature manifests and registered PLYs;
-`check_compatible` refuses to compare embeddings of different models.
+`drsplat.features.modelid.check_compatible` refuses to compare embeddings of different models.
 """
 
 from __future__ import annotations
@@ -17,15 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.device import resolve_device  # noqa: F401 - re-exported: the encoder's callers import it from here
+from drsplat.device import resolve_device
 from drsplat.errors import DrsplatError, InputError
-from drsplat.features.modelid import (  # noqa: F401 - check_compatible re-exported for callers of the encoder
-    CANONICAL_PHRASES,
-    DEFAULT_MODEL,
-    DEFAULT_PRETRAINED,
-    check_compatible,
-    make_model_id,
-)
+from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 
 log = logging.getLogger(__name__)

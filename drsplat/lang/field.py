@@ -11,7 +11,7 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, unit_rows
-from drsplat.lang.backends import BACKENDS, KINDS, ExactStorage, Storage  # noqa: F401 - KINDS is part of this module's API
+from drsplat.lang.backends import BACKENDS, ExactStorage, Storage
 
 log = logging.getLogger(__name__)
 
