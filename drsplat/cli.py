@@ -47,9 +47,22 @@ def _add_verbosity(sub: argparse.ArgumentParser) -> None:
             group.add_argument(*flags, dest=dest, action="store_true", default=argparse.SUPPRESS, help=text)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever `sys.stderr` is when a record is emitted, not the stream of the first call (a
+    caller that swapped stderr, such as a test capture, never leaves the log pointing at a closed stream)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True)
+    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -179,21 +179,22 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     meta = field_metadata(scene, ply_path)
     if meta is None:
         return None
+    where = "comment drsplat.lang" if parse_field_comment(scene.comments) is not None else META_PROPERTY  # what the error names
     kind = meta.get("kind")
     if kind not in BACKENDS:
-        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field="comment drsplat.lang")
+        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field=where)
     try:
         dim = int(meta.get("dim", ""))
     except ValueError:
-        raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field="comment drsplat.lang") from None
+        raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field=where) from None
     if not 1 <= dim <= MAX_DIM:
-        raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field="comment drsplat.lang")
+        raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field=where)
     clip_model = meta.get("clip", "unknown")
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
     book = None
     if needs_codebook(kind):
         if "codebook" not in meta:
-            raise InputError(ply_path, "a quantised language field names no codebook file", field="comment drsplat.lang")
+            raise InputError(ply_path, "a quantised language field names no codebook file", field=where)
         book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
