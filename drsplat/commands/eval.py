@@ -80,7 +80,7 @@ def _add_iou(sub) -> None:
     gt.add_argument("--synthetic", type=Path, metavar="DATASET",
                     help="a `drsplat synth` dataset: shorthand for its gt/labels.npy, gt/label_names.json, text_embeddings.npy and scene.ply (--original)")
     gt.add_argument("--gt-labels", type=Path, metavar="LABELS.npy", help="(N,) int label per Gaussian, -1 none")
-    gt.add_argument("--gt-points", type=Path, metavar="CLOUD.ply", help="labelled point cloud (ScanNet *_vh_clean_2.labels.ply layout)")
+    gt.add_argument("--gt-points", type=Path, metavar="CLOUD", help="labelled point cloud: a PLY with a label property (ScanNet *_vh_clean_2.labels.ply), or .pcd/.xyz/.pts with labels in CLOUD.labels.npy")
     _add_pseudo_arguments(p)
     _add_query_arguments(p, "JSON list of label names (label id = index); with --gt-points, the names of the cloud's raw labels 1..K (default NYU40)")
     _add_task_arguments(p)
@@ -109,7 +109,7 @@ def _add_scannet(sub) -> None:
 def _add_pseudolabels(sub) -> None:
     p = sub.add_parser("pseudolabels", help="label every Gaussian from a labelled point cloud (Mahalanobis vote)")
     p.add_argument("scene", type=Path, metavar="SCENE.ply")
-    p.add_argument("--points", type=Path, required=True, metavar="CLOUD.ply", help="labelled cloud (x, y, z, label; ScanNet layout)")
+    p.add_argument("--points", type=Path, required=True, metavar="CLOUD", help="labelled cloud: PLY with x, y, z, label (ScanNet layout), or .pcd/.xyz/.pts with labels in CLOUD.labels.npy")
     p.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
     p.add_argument("--names-out", type=Path, metavar="NAMES.json", help="write the label names (index = label id)")
     p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
