@@ -10,6 +10,7 @@ from numba import njit, prange
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+MEDIAN_T = 0.5  # the median Gaussian is the one that takes the transmittance T down to this
 BLUR = 0.3
 EXTENT_SCALE = 1.001  # safety margins of the α ≥ 1/255 ellipse (it only limits the pixels visited)
 EXTENT_PAD = 1e-3
@@ -140,12 +141,14 @@ def composite_tiles(
     n_tiles_x: int,
     with_rgb: bool,
     with_depth: bool,
+    with_median: bool,
     background: np.ndarray,
     out_ids: np.ndarray,
     out_weights: np.ndarray,
     out_rgb: np.ndarray,
     out_depth: np.ndarray,
     out_alpha: np.ndarray,
+    out_median: np.ndarray,
 ) -> None:
     """Front-to-back compositing of every tile, Gaussian-outer like 3DGS's shared-memory loop.
 
@@ -157,7 +160,8 @@ def composite_tiles(
     per-pixel test is the exact 3DGS rule, so the ellipse changes speed, not results. Rows and
     tiles whose pixels all reached the transmittance floor are skipped. Writes every element of out_ids [H, W, k], out_weights [H, W, k],
     out_rgb [H, W, 3] = Σ w·c + T·background, out_depth [H, W] = Σ w·z / Σ w (0 where Σ w = 0)
-    and out_alpha [H, W] = 1 - T.
+    out_alpha [H, W] = 1 - T and out_median [H, W] = the median Gaussian: the id of the
+    contribution that takes T from above ½ to ≤ ½ (-1 where T stays above ½).
     """
     k = out_ids.shape[2]
     n_px = tile_size * tile_size
@@ -171,6 +175,7 @@ def composite_tiles(
         ibuf = np.empty((n_px, max(k, 1)), np.int32)
         rgb = np.empty((n_px, 3), np.float64)
         dep = np.empty(n_px, np.float64)
+        med = np.empty(n_px, np.int32)
         row_active = np.empty(tile_size, np.int64)
         for slot in range(worker_starts[worker], worker_starts[worker + 1]):
             t = tile_order[slot]
@@ -185,6 +190,7 @@ def composite_tiles(
                 done[p] = False
                 count[p] = 0
                 dep[p] = 0.0
+                med[p] = -1
                 rgb[p, 0] = 0.0
                 rgb[p, 1] = 0.0
                 rgb[p, 2] = 0.0
@@ -251,6 +257,8 @@ def composite_tiles(
                             rgb[pix, 2] += w * colors[g, 2]
                         if with_depth:
                             dep[pix] += w * z
+                        if with_median and test_t <= MEDIAN_T < t_now:
+                            med[pix] = g
                         trans[pix] = test_t
                 if n_active == 0:
                     break
@@ -275,6 +283,8 @@ def composite_tiles(
                             out_rgb[py, px, ch] = rgb[p, ch] + trans[p] * background[ch]
                     if with_depth:
                         out_depth[py, px] = dep[p] / acc if acc > 0.0 else 0.0
+                    if with_median:
+                        out_median[py, px] = med[p]
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

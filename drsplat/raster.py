@@ -43,6 +43,7 @@ BLUR = kernels.BLUR
 ALPHA_MIN = kernels.ALPHA_MIN
 ALPHA_MAX = kernels.ALPHA_MAX
 T_MIN = kernels.T_MIN
+MEDIAN_T = kernels.MEDIAN_T
 
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -67,6 +68,9 @@ class RasterOutput:
     depth: [H, W] float32 expected camera z, Σ w·z / Σ w (0 where nothing contributes), or None.
     alpha: [H, W] float32 accumulated opacity 1 - T_final (= Σ of all weights, not only the top k).
     num_nonfinite: Gaussians dropped because an attribute or their projection was not finite.
+    median_ids: [H, W] int32 the median Gaussian: the one whose contribution takes T from above ½
+    to ≤ ½, i.e. where the summed weight of all contributions (not only the top k), front to
+    back, reaches ½; -1 where it never does. depths[median_ids] is the median depth. Or None.
     """
 
     ids: np.ndarray
@@ -75,6 +79,7 @@ class RasterOutput:
     depth: np.ndarray | None
     alpha: np.ndarray
     num_nonfinite: int = 0
+    median_ids: np.ndarray | None = None
 
 
 @dataclass
@@ -445,6 +450,7 @@ def render_projected(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     out: RasterOutput | None = None,
 ) -> RasterOutput:
@@ -468,12 +474,13 @@ def render_projected(
     rgb = _buffer(None if out is None else out.rgb, (h, w, 3) if with_rgb else (0, 0, 3), np.float32)
     depth = _buffer(None if out is None else out.depth, (h, w) if with_depth else (0, 0), np.float32)
     alpha = _buffer(None if out is None else out.alpha, (h, w), np.float32)
+    median = _buffer(None if out is None else out.median_ids, (h, w) if with_median else (0, 0), np.int32)
     colors = projected.colors if with_rgb else np.zeros((0, 3), np.float32)
     tile_order, worker_starts = balance_tiles(np.diff(offsets), numba.get_num_threads())
     kernels.composite_tiles(
         tile_order, worker_starts, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
-        projected.qlimits, projected.depths, colors, w, h, projected.tile_size, n_tiles_x, with_rgb, with_depth, bg,
-        ids, weights, rgb, depth, alpha,
+        projected.qlimits, projected.depths, colors, w, h, projected.tile_size, n_tiles_x, with_rgb, with_depth, with_median, bg,
+        ids, weights, rgb, depth, alpha, median,
     )  # fmt: skip
     return RasterOutput(
         ids=ids,
@@ -482,6 +489,7 @@ def render_projected(
         depth=depth if with_depth else None,
         alpha=alpha,
         num_nonfinite=projected.num_nonfinite,
+        median_ids=median if with_median else None,
     )
 
 
@@ -492,6 +500,7 @@ def rasterize_numba(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | None = None,
     near: float = NEAR,
@@ -509,7 +518,8 @@ def rasterize_numba(
     _check_args(topk, background)
     _check_cpu("numba", device)
     projected = project_gaussians(scene, camera, near, mask=mask, with_colors=with_rgb)
-    return render_projected(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, out=out)
+    return render_projected(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
+                            background=background, out=out)
 
 
 def composite_reference(
@@ -518,6 +528,7 @@ def composite_reference(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
 ) -> RasterOutput:
     """Plain numpy compositing, one pixel at a time (slow; the reference for the kernel).
@@ -526,6 +537,7 @@ def composite_reference(
     whose tile rectangle holds the pixel's tile, in depth order. For each, d = mean2d - p,
     α = min(0.99, o·exp(-½ dᵀ Σ'⁻¹ d)); those with power > 0 or α < 1/255 are skipped; then
     front to back, test_T = T·(1 - α), stop if test_T < 1e-4, else w = T·α and T = test_T.
+    The median Gaussian is the contribution after which T ≤ ½ for the first time.
     """
     bg = _check_args(topk, background)
     if with_rgb and projected.colors is None:
@@ -540,6 +552,7 @@ def composite_reference(
         depth=np.zeros((h, w), np.float32) if with_depth else None,
         alpha=np.zeros((h, w), np.float32),
         num_nonfinite=projected.num_nonfinite,
+        median_ids=np.full((h, w), -1, np.int32) if with_median else None,
     )
     tiles_x, tiles_y = projected.tile_grid
     for ty in range(tiles_y):
@@ -559,11 +572,14 @@ def _composite_pixel(projected: Projected, cand: np.ndarray, px: int, py: int, b
     alphas = np.minimum(ALPHA_MAX, projected.opacities[cand].astype(np.float64) * np.exp(power))
     hit = (power <= 0) & (alphas >= ALPHA_MIN)
     t = 1.0
+    median = -1
     contrib, contrib_w = [], []
     for g, al in zip(cand[hit], alphas[hit]):
         test_t = t * (1.0 - al)
         if test_t < T_MIN:
             break
+        if test_t <= MEDIAN_T < t:
+            median = int(g)
         contrib.append(g)
         contrib_w.append(al * t)
         t = test_t
@@ -576,6 +592,8 @@ def _composite_pixel(projected: Projected, cand: np.ndarray, px: int, py: int, b
         out.rgb[py, px] = ws @ projected.colors[gs].astype(np.float64) + t * bg
     if out.depth is not None and 1.0 - t > 0:
         out.depth[py, px] = ws @ projected.depths[gs].astype(np.float64) / (1.0 - t)
+    if out.median_ids is not None:
+        out.median_ids[py, px] = median
 
 
 def rasterize_reference(
@@ -585,6 +603,7 @@ def rasterize_reference(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | None = None,
     near: float = NEAR,
@@ -595,7 +614,8 @@ def rasterize_reference(
     _check_args(topk, background)
     _check_cpu("reference", device)
     projected = project_gaussians_reference(scene, camera, near, mask=mask, with_colors=with_rgb)
-    return composite_reference(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background)
+    return composite_reference(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
+                               background=background)
 
 
 def _check_cpu(engine: str, device: str | None) -> None:
@@ -658,6 +678,7 @@ def rasterize(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | None = None,
     near: float = NEAR,
@@ -677,6 +698,7 @@ def rasterize(
     """
     render = rasterize_numba if engine == "numba" else get_engine(engine).render_fn()
     return render(
-        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, mask=mask, near=near, out=out, device=device
+        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background, mask=mask,
+        near=near, out=out, device=device,
     )
 

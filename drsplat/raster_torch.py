@@ -121,6 +121,7 @@ class TorchRasterOutput:
     depth: torch.Tensor | None
     alpha: torch.Tensor
     num_nonfinite: int = 0
+    median_ids: torch.Tensor | None = None
 
     def numpy(self) -> RasterOutput:
         """The same output as numpy arrays (a RasterOutput)."""
@@ -128,7 +129,8 @@ class TorchRasterOutput:
         def host(t):
             return None if t is None else t.cpu().numpy()
 
-        return RasterOutput(host(self.ids), host(self.weights), host(self.rgb), host(self.depth), host(self.alpha), self.num_nonfinite)
+        return RasterOutput(host(self.ids), host(self.weights), host(self.rgb), host(self.depth), host(self.alpha), self.num_nonfinite,
+                            host(self.median_ids))
 
 
 def _screen_space(ts: TorchScene, camera: Camera):
@@ -283,13 +285,15 @@ def _merge_topk(best_w: torch.Tensor, best_pos: torch.Tensor, w: torch.Tensor, p
 
 @dataclass
 class _Buffers:
-    """Tile-major outputs: ids / weights [n_tiles, P, k], trans [n_tiles, P], rgb [n_tiles, P, 3] | None, dep [n_tiles, P] | None."""
+    """Tile-major outputs: ids / weights [n_tiles, P, k], trans [n_tiles, P], rgb [n_tiles, P, 3] | None, dep [n_tiles, P] | None,
+    med [n_tiles, P] | None (median Gaussian, as a position in the tile's list)."""
 
     ids: torch.Tensor
     weights: torch.Tensor
     trans: torch.Tensor
     rgb: torch.Tensor | None
     dep: torch.Tensor | None
+    med: torch.Tensor | None = None
 
 
 @dataclass
@@ -307,6 +311,7 @@ class _TileGroup:
     done: torch.Tensor
     rgb: torch.Tensor
     dep: torch.Tensor
+    med: torch.Tensor
     best_w: torch.Tensor
     best_pos: torch.Tensor
 
@@ -329,6 +334,7 @@ def _new_group(projected: TorchProjected, tiles, starts, lengths) -> _TileGroup:
         trans=torch.ones((b_count, p_count), **f64),
         done=(pix_x >= projected.width) | (pix_y >= projected.height),
         rgb=torch.zeros((b_count, p_count, 3), **f64), dep=torch.zeros((b_count, p_count), **f64),
+        med=torch.full((b_count, p_count), -1, dtype=torch.int64, device=dev),
         best_w=torch.zeros((b_count, p_count, 0), **f64), best_pos=torch.zeros((b_count, p_count, 0), dtype=torch.int64, device=dev),
     )  # fmt: skip
 
@@ -341,6 +347,10 @@ def _store(state: _TileGroup, tile_list: torch.Tensor, out: _Buffers) -> None:
         out.rgb[tiles] = state.rgb
     if out.dep is not None:
         out.dep[tiles] = state.dep
+    if out.med is not None:
+        picked = state.med >= 0
+        gid = tile_list[state.starts[:, None] + torch.where(picked, state.med, 0)]
+        out.med[tiles] = torch.where(picked, gid, -1)
     kept = state.best_w.shape[-1]
     if kept:
         hit = state.best_w > 0
@@ -355,11 +365,12 @@ def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, to
     For each chunk of C entries: d = mean2d - pixel centre, power = -½(a·dx² + c·dy²) - b·dx·dy,
     α = min(0.99, o·exp(power)), hit = power ≤ 0 and α ≥ 1/255; T_after = cumprod of (1 - α)
     (1 where not hit) seeded with the carried T (0 once a pixel is done); an entry contributes
-    w = α·T_before iff hit and T_after ≥ 1e-4. Tiles whose pixels are all done or whose lists
+    w = α·T_before iff hit and T_after ≥ 1e-4; the median Gaussian is the contributing entry
+    with T_before > ½ ≥ T_after (one per pixel at most: T only falls). Tiles whose pixels are all done or whose lists
     are exhausted are stored and dropped from the group after each chunk.
     """
     dev = tile_list.device
-    with_rgb, with_depth = out.rgb is not None, out.dep is not None
+    with_rgb, with_depth, with_median = out.rgb is not None, out.dep is not None, out.med is not None
     steps = torch.arange(chunk, device=dev)
     c0 = 0
     while state.tiles.numel():
@@ -385,6 +396,10 @@ def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, to
             state.rgb += torch.einsum("bcp,bcd->bpd", w, projected.colors[g].double())
         if with_depth:
             state.dep += torch.einsum("bcp,bc->bp", w, projected.depths[g].double())
+        if with_median:
+            cross = ok & (t_after <= kernels.MEDIAN_T) & (cum[:, :-1] > kernels.MEDIAN_T)  # [B, C, P]
+            at = torch.where(cross, pos[None, :, None], 0).sum(dim=1)  # the crossing entry's position in the list
+            state.med = torch.where(cross.any(dim=1), at, state.med)
         if topk > 0:
             cw, ci = torch.topk(w.transpose(1, 2), min(topk, w.shape[1]), dim=-1)
             state.best_w, state.best_pos = _merge_topk(state.best_w, state.best_pos, cw, pos[ci], topk)
@@ -401,6 +416,7 @@ def composite_torch(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     chunk: int = CHUNK,
     max_elements: int | None = None,
@@ -423,6 +439,7 @@ def composite_torch(
         trans=torch.ones((n_tiles, p_count), dtype=torch.float64, device=dev),
         rgb=torch.zeros((n_tiles, p_count, 3), dtype=torch.float64, device=dev) if with_rgb else None,
         dep=torch.zeros((n_tiles, p_count), dtype=torch.float64, device=dev) if with_depth else None,
+        med=torch.full((n_tiles, p_count), -1, dtype=torch.int64, device=dev) if with_median else None,
     )
     by_length = torch.sort(counts, descending=True, stable=True).indices
     lengths_host = counts[by_length].cpu().numpy()
@@ -450,7 +467,8 @@ def composite_torch(
         t = t.reshape(n_tiles_y, n_tiles_x, ts, ts, *rest).transpose(1, 2).reshape(n_tiles_y * ts, n_tiles_x * ts, *rest)
         return t[:h, :w].contiguous()
 
-    return TorchRasterOutput(image(ids), image(weights), image(out_rgb), image(out_depth), image(acc.float()), projected.num_nonfinite)
+    median = image(out.med.to(torch.int32)) if with_median else None
+    return TorchRasterOutput(image(ids), image(weights), image(out_rgb), image(out_depth), image(acc.float()), projected.num_nonfinite, median)
 
 
 def rasterize_torch(
@@ -460,6 +478,7 @@ def rasterize_torch(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | torch.Tensor | None = None,
     near: float = NEAR,
@@ -474,7 +493,8 @@ def rasterize_torch(
     if device is None:
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
     projected = project_gaussians_torch(scene, camera, near, mask=mask, with_colors=with_rgb, device=device)
-    return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, max_elements=max_elements)
+    return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
+                           max_elements=max_elements)
 
 
 def rasterize(
@@ -484,6 +504,7 @@ def rasterize(
     *,
     with_rgb: bool = False,
     with_depth: bool = False,
+    with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     mask: np.ndarray | None = None,
     near: float = NEAR,
@@ -494,5 +515,6 @@ def rasterize(
     if isinstance(scene, TorchScene) and device in (None, "cpu") and scene.device.type != "cpu":
         device = scene.device
     return rasterize_torch(
-        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, background=background, mask=mask, near=near, device=device
+        scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background, mask=mask,
+        near=near, device=device,
     ).numpy()

@@ -396,14 +396,15 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
 
 
 def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None,
-                       render: Callable | None = None, weights: Callable | None = None):
+                       render: Callable | None = None, weights: Callable | None = None, median: bool = False):
     """Rasterize one view (numba, or `render(prepared, cam, topk, out)`) and coalesce its pairs.
+    median: have the numba rasterizer return each pixel's median Gaussian too (for `weights`).
     Returns (ViewPairs, the raster buffers to reuse)."""
     from drsplat.raster import rasterize
 
     t0 = time.perf_counter()
     if render is None:
-        out = rasterize(prepared, cam, topk=topk, out=out)
+        out = rasterize(prepared, cam, topk=topk, out=out, with_median=median)
     else:
         out = render(prepared, cam, topk, out)
         out = out.numpy() if hasattr(out, "numpy") else out  # a torch engine's output comes back to the host
@@ -421,12 +422,15 @@ class LocalExecutor:
     render: (prepared, camera, topk, previous output) -> output with .ids / .weights [H, W, k]
     (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry);
     weights: (prepared, camera, output) -> [H, W, k] weights to accumulate (the --aggregate hook;
-    default: the rasterizer's w = T·α).
+    default: the rasterizer's w = T·α); median: rasterize with the median Gaussians (what
+    `weights` may read, numba only).
     """
 
-    def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None):
+    def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None,
+                 median: bool = False):
         self._render = render
         self._weights = weights
+        self._median = median
         self.prepare = prepare or prepare_geometry
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
@@ -434,16 +438,17 @@ class LocalExecutor:
         out = None
         for cam in views:
             mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
-            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render, weights=self._weights)
+            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render, weights=self._weights,
+                                           median=self._median)
             view.num_nonfinite = nonfinite
             yield view
 
 
-def local_executor(engine: str = "numba", device: str = "cpu", weights: Callable | None = None) -> LocalExecutor:
+def local_executor(engine: str = "numba", device: str = "cpu", weights: Callable | None = None, median: bool = False) -> LocalExecutor:
     """The in-process executor rendering with `engine` on `device` (see `compute_engine`)."""
     if engine == "numba":
         compute_engine(engine, device)  # checks the device
-        return LocalExecutor(weights=weights)
+        return LocalExecutor(weights=weights, median=median)
     compute = compute_engine(engine, device)
     return LocalExecutor(render=compute.render, prepare=compute.prepare, weights=weights)
 
@@ -668,7 +673,8 @@ def _resume_aggregate(plog: PairLog | None, path: Path, aggregator) -> None:
     except (OSError, ValueError, KeyError, EOFError) as exc:
         log.warning("%s is missing or unreadable (%s); the aggregation statistics restart with the views", path, exc)
         views, arrays = 0, {}
-    if views > len(plog.records) or any(a.shape != (aggregator.support.peak.shape[0],) for a in arrays.values()):
+    expected = aggregator.state()
+    if views > len(plog.records) or set(arrays) != set(expected) or any(a.shape != expected[k].shape for k, a in arrays.items()):
         views, arrays = 0, {}
     plog.truncate(views)
     aggregator.load_state(arrays)
@@ -719,7 +725,7 @@ def register_scene(
 
     if aggregate != "paper" and engine != "numba":
         raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
-    if aggregate != "paper" and executor is not None and not isinstance(executor, LocalExecutor):
+    if aggregate != "paper" and executor is not None:  # the mode's hook lives in the executor this function builds
         raise DrsplatError(f"--aggregate {aggregate} runs in this process only (not with --ray); use --aggregate paper on a cluster")
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
@@ -728,13 +734,14 @@ def register_scene(
     views, missing, unmatched = select_views(cameras, features_dir)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate), views) if ckpt is not None else None
-    aggregator = Aggregator(aggregate, scene.num_gaussians)  # --aggregate hook: per-view weights + a post-step
+    aggregator = Aggregator(aggregate, scene)  # --aggregate hook: per-view weights + a post-step
     stats_path = ckpt.with_name(ckpt.name + ".aggregate.npz") if ckpt is not None and aggregator.state() else None
     if stats_path is not None:
         _resume_aggregate(plog, stats_path, aggregator)
     resumed = len(plog.records) if plog is not None else 0
     if executor is None:
-        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights)
+        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights,
+                                  median=aggregator.needs_median)
     prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
     totals = ViewTotals()
     new_accumulator = compute_engine(engine, device).accumulator  # numba's on the CPU, torch's on `device`

@@ -110,6 +110,20 @@ class GaussianScene:
         m = quat_to_rotmat(q) * self.scales().astype(np.float64)[:, None, :]
         return m @ m.transpose(0, 2, 1)
 
+    def precisions(self) -> np.ndarray:
+        """[N, 3, 3] float64 Σ⁻¹ = R S⁻² Rᵀ, built from the scales rather than by inverting Σ (flat
+        Gaussians, scales 1e-8 of their largest, make Σ singular in float64 but Σ⁻¹ is exact this
+        way). Zero where a scale is 0, infinite or not finite (such Gaussians are not rendered)."""
+        q = self.quats.astype(np.float64)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            inv_scale = np.exp(-self.log_scales.astype(np.float64))
+            m = quat_to_rotmat(q) * inv_scale[:, None, :]
+            prec = m @ m.transpose(0, 2, 1)
+        prec[~np.isfinite(prec).all(axis=(1, 2))] = 0.0
+        return prec
+
     def base_colors(self) -> np.ndarray:
         """[N, 3] view-independent RGB in [0, 1]: clip(0.5 + C0 · sh_dc)."""
         return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)

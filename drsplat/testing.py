@@ -66,7 +66,7 @@ def random_case(seed: int, n: int = 400, sh_degree: int = 0, topk: int = 8) -> R
     rng = np.random.default_rng(seed)
     scene = random_scene(rng, n, sh_degree)
     cam = look_at_camera(rng.normal(size=3) * 0.5 + [0, 0, -4], [0, 0, 0], 48, 34, fov_x_deg=55, cx=20.3, cy=19.1)
-    return RasterCase(f"random-{seed}", scene, cam, topk, dict(with_rgb=True, with_depth=True, background=(0.2, 0.5, 0.9)))
+    return RasterCase(f"random-{seed}", scene, cam, topk, dict(with_rgb=True, with_depth=True, with_median=True, background=(0.2, 0.5, 0.9)))
 
 
 def stacked_case(count: int = 10_000) -> RasterCase:
@@ -74,28 +74,28 @@ def stacked_case(count: int = 10_000) -> RasterCase:
     cam = front_camera(24, 18)
     centre = np.linalg.solve(cam.R, np.array([(10.5 - cam.cx) / cam.fx * 4, (7.5 - cam.cy) / cam.fy * 4, 4.0]) - cam.t)
     scene = gaussians(np.tile(centre, (count, 1)), log_scale=-9.0, opacity_logit=0.0)
-    return RasterCase("stacked", scene, cam, 64, dict(with_rgb=True, with_depth=True))
+    return RasterCase("stacked", scene, cam, 64, dict(with_rgb=True, with_depth=True, with_median=True))
 
 
 def hard_cases() -> list[RasterCase]:
     """The scenes that broke rasterizers before: empty, all behind, camera inside a Gaussian,
     extreme scales, opacity 0 / saturated, stacked Gaussians at the T floor, off-centre non-square."""
     rng = np.random.default_rng(7)
-    cases = [RasterCase("empty", gaussians(np.zeros((0, 3))), front_camera(24, 18), 5, dict(with_rgb=True, with_depth=True, background=(1.0, 0.0, 0.5)))]
+    cases = [RasterCase("empty", gaussians(np.zeros((0, 3))), front_camera(24, 18), 5, dict(with_rgb=True, with_depth=True, with_median=True, background=(1.0, 0.0, 0.5)))]
     behind = random_scene(rng, 200)
     behind.means[:, 2] = -5.0 - np.abs(behind.means[:, 2])
-    cases.append(RasterCase("behind", behind, front_camera(24, 18), 4, dict(with_depth=True)))
+    cases.append(RasterCase("behind", behind, front_camera(24, 18), 4, dict(with_depth=True, with_median=True)))
     inside = gaussians(
         [[0.0, 0.0, -3.5], [0.0, 0.0, -4.2], [0.3, -0.1, 1.0]], log_scale=[[1.5, 1.0, 2.0], [1.0, 1.0, 1.0], [-2, -2, -2]],
         opacity_logit=[-1.0, 2.0, 30.0], color=[0.3, 0.6, 0.9],
     )  # fmt: skip
-    cases.append(RasterCase("camera-inside", inside, front_camera(40, 30, cx=14.0, cy=17.5), 3, dict(with_rgb=True, with_depth=True)))
+    cases.append(RasterCase("camera-inside", inside, front_camera(40, 30, cx=14.0, cy=17.5), 3, dict(with_rgb=True, with_depth=True, with_median=True)))
     extreme = random_scene(np.random.default_rng(11), 120)
     extreme.log_scales[:40] = np.log(1e-8)
     extreme.log_scales[40:45] = np.log(1e4)
     extreme.log_scales[45:50, 0] = np.log(1e4)
     extreme.opacity_logits[40:50] = -3.0
-    cases.append(RasterCase("extreme-scales", extreme, front_camera(40, 30, cx=23.0, cy=11.0), 16, dict(with_rgb=True, with_depth=True)))
+    cases.append(RasterCase("extreme-scales", extreme, front_camera(40, 30, cx=23.0, cy=11.0), 16, dict(with_rgb=True, with_depth=True, with_median=True)))
     opacity = random_scene(np.random.default_rng(13), 200)
     opacity.opacity_logits[:50] = -30.0
     opacity.opacity_logits[50:100] = 30.0
@@ -103,7 +103,7 @@ def hard_cases() -> list[RasterCase]:
     cases.append(stacked_case())
     offc = random_scene(np.random.default_rng(31), 300, sh_degree=1)
     cam = look_at_camera([0.3, -0.2, -4.0], [0.0, 0.1, 0.0], 53, 21, fov_x_deg=70, cx=40.0, cy=3.5)
-    cases.append(RasterCase("off-centre-non-square", offc, cam, 10, dict(with_rgb=True, with_depth=True)))
+    cases.append(RasterCase("off-centre-non-square", offc, cam, 10, dict(with_rgb=True, with_depth=True, with_median=True)))
     return cases
 
 
@@ -118,6 +118,9 @@ def assert_agree(a: RasterOutput, b: RasterOutput, tol: float = 1e-5) -> None:
         assert (x is None) == (y is None), name
         if x is not None:
             np.testing.assert_allclose(x, y, atol=tol, rtol=0)
+    assert (a.median_ids is None) == (b.median_ids is None)
+    if a.median_ids is not None:
+        np.testing.assert_array_equal(a.median_ids, b.median_ids)
     differ = a.ids != b.ids
     if differ.any():
         w = b.weights.astype(np.float64)
@@ -149,6 +152,10 @@ def assert_physical(out: RasterOutput, topk: int) -> None:
     assert (w.sum(axis=2) <= 1.0 - T_MIN + 1e-6).all()
     assert (w.sum(axis=2) <= out.alpha + 1e-5).all()
     assert ((0 <= out.alpha) & (out.alpha <= 1.0 - T_MIN + 1e-6)).all()
+    if out.median_ids is not None:  # set exactly where the accumulated opacity reached ½
+        assert out.median_ids.dtype == np.int32
+        assert (out.median_ids[out.alpha >= 0.5 + 1e-6] >= 0).all()
+        assert (out.median_ids[out.alpha < 0.5 - 1e-6] == -1).all()
     ids = np.sort(out.ids, axis=2)
     assert not ((ids[..., 1:] == ids[..., :-1]) & (ids[..., 1:] >= 0)).any(), "a Gaussian appears twice in one pixel"
 

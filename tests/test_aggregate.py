@@ -15,7 +15,9 @@ from drsplat.aggregate import (
     MODES,
     WEIGHTINGS,
     Aggregator,
-    rejected,
+    RayGeometry,
+    ray_depths_reference,
+    SurfaceSupport,
     split_mode,
     surface_stats,
     surface_stats_reference,
@@ -76,36 +78,103 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
 
 
+def _random_stats_inputs(rng, case, n=40, h=7, w=11, k=12):
+    """A random scene's ray geometry, a camera, top-k lists and median Gaussians like the rasterizer's."""
+    from drsplat.testing import random_scene
+
+    scene = random_scene(rng, n, spread=0.6, log_scale=(-3.0, -0.5))
+    if case == "hard":
+        scene.log_scales[:6, 2] = np.log(1e-8)  # flat discs: Σ is singular, Σ⁻¹ is not
+        scene.log_scales[6:8] = np.log(50.0)  # huge blobs (the clamp is wide)
+        scene.means[8:12] = scene.means[8]  # coincident means
+    cam = look_at_camera(rng.normal(size=3) * 0.3 + [0, 0, -4], [0, 0, 0], w, h, fov_x_deg=60)
+    ids, weights, _, _, _ = _random_view(rng, h, w, k, n, case)
+    median = np.where(rng.random((h, w)) < 0.3, -1, ids[..., 0]).astype(np.int32)
+    return RayGeometry.from_scene(scene), cam, ids, weights, median
+
+
 @pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1"])
 def test_surface_stats_kernel_agrees_with_reference(case):
     rng = np.random.default_rng(abs(hash(case)) % 2**32)
-    k = 1 if case == "k1" else 12  # more slots than the surface depth looks at
-    n = 40
-    got = [np.zeros(n) for _ in range(3)]
-    want = [np.zeros(n) for _ in range(3)]
-    for _ in range(3):  # several views accumulate
-        ids, weights, _, _, depths = _random_view(rng, 7, 11, k, n, case)
-        surface_stats(ids, weights, depths, *got)
-        surface_stats_reference(ids, weights, depths, *want)
-    for g, w in zip(got, want):
-        np.testing.assert_allclose(g, w, rtol=1e-9, atol=1e-12)
-    peak, total, front = got
-    assert (front <= total + 1e-12).all() and (peak <= total + 1e-12).all()
+    got, want = SurfaceSupport.zeros(40), SurfaceSupport.zeros(40)
+    scratch = None
+    for _ in range(3):  # several views accumulate, the scratch buffers are reused
+        geometry, cam, ids, weights, median = _random_stats_inputs(rng, case, k=1 if case == "k1" else 12)
+        scratch = surface_stats(geometry, cam, ids, weights, median, got, scratch=scratch)
+        surface_stats_reference(geometry, cam, ids, weights, median, want)
+        assert not scratch.mark.any() and not scratch.view_total.any()  # scratch left clean for the next view
+    for name, g in got.arrays().items():
+        np.testing.assert_allclose(g, want.arrays()[name], rtol=1e-9, atol=1e-12, err_msg=name)
+    assert (got.front <= got.total + 1e-12).all() and (got.peak <= got.total + 1e-12).all()
+    assert (got.views_front <= got.views_seen).all() and (got.views_seen <= 3).all()
+    if case == "random":
+        assert (got.front > 0).any() and (got.front < got.total).any() and (got.views_front > 0).any()
 
 
-def test_surface_depth_and_rejection_rule_by_hand():
-    # pixel 0: floater (id 0, z=1, w=0.1) in front of a wall (id 1, z=5, w=0.85): the wall is the surface
-    # pixel 1: a faint Gaussian on the wall (id 2, z=5.02, w=0.1) behind the wall Gaussian: on the surface
-    # pixel 2: a thin opaque pole (id 3, z=3, w=0.6) in front of the wall: the pole itself is the surface
-    ids = np.array([[[1, 0], [1, 2], [3, 1]]], np.int32)
-    weights = np.array([[[0.85, 0.1], [0.85, 0.1], [0.6, 0.35]]], np.float32)
-    depths = np.array([1.0, 5.0, 5.02, 3.0], np.float32)
-    peak, total, front = np.zeros(4), np.zeros(4), np.zeros(4)
-    surface_stats(ids, weights, depths, peak, total, front)
-    np.testing.assert_allclose(front, [0.1, 0.0, 0.0, 0.0], atol=1e-7)
-    np.testing.assert_array_equal(rejected(peak, total, front), [True, False, False, False])
-    # a faint Gaussian in front that is the dominant contribution somewhere (peak ≥ ½) is kept
-    assert not rejected(np.array([0.5]), np.array([1.0]), np.array([1.0]))[0]
+def test_ray_depth_is_the_plane_of_a_flat_gaussian_and_the_projection_of_a_round_one():
+    from drsplat.testing import gaussians
+
+    cam = look_at_camera([0.0, 1.0, -3.0], [0.0, 0.0, 1.0], 40, 30, fov_x_deg=60)  # looks down on the floor y = 0
+    floor = gaussians([[0.0, 0.0, 1.0]], log_scale=[[0.0, np.log(1e-8), 0.0]])  # a flat disc in y = 0, 1 m wide
+    ball = gaussians([[0.2, 0.3, 0.5]], log_scale=-1.0)
+    ids = np.zeros((30, 40, 1), np.int32)
+    rot, trans = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    origin = -rot.T @ trans
+    ys, xs = np.mgrid[0:30, 0:40]
+    dirs = np.stack([(xs + 0.5 - cam.cx) / cam.fx, (ys + 0.5 - cam.cy) / cam.fy, np.ones((30, 40))], -1) @ rot
+    t_floor = -origin[1] / dirs[..., 1]  # ray meets y = 0 (camera z = t)
+    zc = floor.means[0].astype(np.float64) @ rot[2] + trans[2]
+    inside = np.abs(t_floor - zc) < 3.0  # the clamp: the mean's depth ± 3 max scale
+    depth = ray_depths_reference(RayGeometry.from_scene(floor), cam, ids)[..., 0]
+    np.testing.assert_allclose(depth[inside], t_floor[inside], rtol=1e-6)
+    mu = ball.means[0].astype(np.float64) - origin
+    want = (dirs @ mu) / (dirs * dirs).sum(-1)  # closest point of the ray to an isotropic mean
+    zc_ball = ball.means[0].astype(np.float64) @ rot[2] + trans[2]
+    near = np.abs(want - zc_ball) < 3 * np.exp(-1.0)
+    got = ray_depths_reference(RayGeometry.from_scene(ball), cam, ids)[..., 0]
+    assert near.mean() > 0.5
+    np.testing.assert_allclose(got[near], want[near], rtol=1e-9)
+    np.testing.assert_allclose(got[~near], np.clip(want, zc_ball - 3 * np.exp(-1.0), zc_ball + 3 * np.exp(-1.0))[~near], rtol=1e-9)
+    # the kernel agrees on the same rays (flags against a known surface depth)
+    for scene_, ref in ((floor, depth), (ball, want)):
+        geometry = RayGeometry.from_scene(scene_)
+        support = SurfaceSupport.zeros(1)
+        one = np.zeros((30, 40, 2), np.int32)
+        one[..., 1] = -1
+        scratch = surface_stats(geometry, cam, one, np.full((30, 40, 2), 0.1, np.float32), np.zeros((30, 40), np.int32), support)
+        assert not scratch.flags[:, 0].any()  # a Gaussian is never in front of itself
+        assert support.total[0] == pytest.approx(0.1 * 30 * 40) and support.views_seen[0] == 1 and np.isfinite(ref).all()
+
+
+def test_rejection_rule_by_hand():
+    sup = SurfaceSupport(peak=np.array([0.3, 0.9, 0.3, 0.3, 0.3, 0.0]), total=np.array([1.0, 1, 1, 1, 1, 0]),
+                         front=np.array([0.8, 0.8, 0.5, 0.8, 0.0, 0.0]), views_seen=np.array([4, 4, 4, 4, 4, 0], np.int32),
+                         views_front=np.array([3, 3, 3, 2, 0, 0], np.int32))
+    # haze in front in most views (rejected); dominant somewhere (kept); half its weight in front (kept: strict);
+    # in front in only half the views, e.g. one close-up view holding most of its weight (kept); behind (kept); never seen (kept)
+    np.testing.assert_array_equal(sup.rejected(), [True, False, False, False, False, False])
+
+
+def test_median_gaussian_of_a_rendered_floater_and_wall():
+    """The rasterizer's median Gaussian is the wall behind a faint floater, and -1 off the wall."""
+    cam = look_at_camera([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], 32, 24, fov_x_deg=50.0)
+    gx, gy = np.meshgrid(np.linspace(-0.5, 0.5, 12), np.linspace(-0.5, 0.5, 12))
+    wall = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+    means = np.concatenate([wall, [[0.0, 0.0, -2.0]]]).astype(np.float32)
+    n = len(means)
+    scene = GaussianScene(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
+                          log_scales=np.log(np.tile([0.08, 0.08, 0.01], (n, 1))).astype(np.float32),
+                          opacity_logits=np.r_[np.full(n - 1, 4.0), -1.5].astype(np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    out = rasterize(scene, cam, 8, with_median=True)
+    assert 0 <= out.median_ids[12, 16] < n - 1  # a wall Gaussian, not the floater
+    assert n - 1 in out.ids[12, 16]  # the floater contributes there, in front of the surface
+    assert out.median_ids[0, 0] == -1  # nothing there
+    sup = SurfaceSupport.zeros(n)
+    surface_stats(RayGeometry.from_scene(scene), cam, out.ids, out.weights, out.median_ids, sup)
+    assert sup.front[n - 1] == pytest.approx(sup.total[n - 1]) and sup.total[n - 1] > 0  # all its weight is in front
+    assert sup.views_front[n - 1] == sup.views_seen[n - 1] == 1
+    # the wall is not in front of itself (only its rim counts, where the opacity stays below ½: D = +inf)
+    assert sup.front[: n - 1].sum() < 0.1 * sup.total[: n - 1].sum()
 
 
 def test_mode_names():
@@ -129,10 +198,10 @@ def test_rejection_on_a_rendered_wall():
     quats = np.tile([1.0, 0, 0, 0], (n, 1))
     scene = GaussianScene(means=means, quats=quats.astype(np.float32), log_scales=log_scales.astype(np.float32),
                           opacity_logits=np.log(opac / (1 - opac)).astype(np.float32), sh=rng.uniform(0, 1, (n, 1, 3)).astype(np.float32))
-    agg = Aggregator("reject", n)
+    agg = Aggregator("reject", scene)
     for eye in ([0, 0, -1.0], [0.6, 0.2, -1.0], [-0.5, -0.4, -0.8]):
         cam = look_at_camera(eye, [0, 0, 3.0], 64, 48)
-        out = rasterize(scene, cam, topk=8)
+        out = rasterize(scene, cam, topk=8, with_median=agg.needs_median)
         np.testing.assert_array_equal(agg.view_weights(scene, cam, out), out.weights)  # weights untouched
     drop = agg.support.rejected()
     assert drop[-2] and not drop[-1] and not drop[:-2].any()
