@@ -49,16 +49,18 @@ from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility")
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")
 MODES = AGGREGATE_MODES  # names owned by drsplat.defaults (argument parsers read them without numba)
 DEFAULT_MODE = DEFAULT_AGGREGATE
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
+ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 SURFACE_WEIGHT = 0.5  # summed weight that defines the pixel's surface depth
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
-_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3}
+_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
+_PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
 
 
 def split_mode(mode: str) -> tuple[str, bool]:
@@ -75,12 +77,13 @@ def split_mode(mode: str) -> tuple[str, bool]:
 # ----------------------------------------------------------------------------- per-view weights
 
 
-def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray) -> np.ndarray:
+def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
+                           anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """Per-pixel weights of a weighting (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; means2d: [N, 2] screen means
-    (pixel centres at +0.5), conics: [N, 3] (a, b, c) of Σ'⁻¹. Returns [H, W, k] float32
-    (0 where ids < 0).
+    (pixel centres at +0.5), conics: [N, 3] (a, b, c) of Σ'⁻¹; anchor_gain: c of "anchor".
+    Returns [H, W, k] float32 (0 where ids < 0).
     """
     w = np.where(ids >= 0, weights.astype(np.float64), 0.0)
     if weighting == "paper":
@@ -99,11 +102,23 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
         return (w * np.exp(np.minimum(power, 0.0))).astype(np.float32)
     if weighting == "ellipse":
         return np.where(-2.0 * power <= ELLIPSE_D2, w, 0.0).astype(np.float32)
+    at_centre = (np.floor(means2d[g, 0]) == xs[..., None]) & (np.floor(means2d[g, 1]) == ys[..., None])
+    if weighting == "centre":
+        return np.where(at_centre, w, 0.0).astype(np.float32)
+    if weighting == "anchor":
+        return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
     raise ValueError(f"unknown weighting {weighting!r}")
 
 
+def footprint_area(conics: np.ndarray) -> np.ndarray:
+    """[N] A = 2π·sqrt(det Σ') = 2π / sqrt(a·c - b²) of conics [N, 3]: Σ_p exp(-½ d²) over the
+    pixels, the Gaussian's screen footprint in pixels (0 where the conic is degenerate)."""
+    det = conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2
+    return np.where(det > 0, 2.0 * np.pi / np.sqrt(np.where(det > 0, det, 1.0)), 0.0)
+
+
 @numba.njit(parallel=True, cache=True)
-def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out):  # pragma: no cover - jitted
+def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, out):  # pragma: no cover - jitted
     """out[y, x, s] = the weighting `code` (see _WEIGHTING_CODE) of slot s of pixel (x, y)."""
     h, wd, k = ids.shape
     for y in numba.prange(h):
@@ -125,6 +140,16 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out): 
                     out[y, x, s] = w
                 elif code == 3:
                     out[y, x, s] = w / total if total > 0.0 else 0.0
+                elif code >= 4:
+                    at_centre = np.floor(means2d[g, 0]) == x and np.floor(means2d[g, 1]) == y
+                    if code == 4:
+                        out[y, x, s] = w if at_centre else 0.0
+                    elif at_centre:
+                        det = conics[g, 0] * conics[g, 2] - conics[g, 1] * conics[g, 1]
+                        area = 2.0 * np.pi / np.sqrt(det) if det > 0.0 else 0.0
+                        out[y, x, s] = w * (1.0 + anchor_gain * area)
+                    else:
+                        out[y, x, s] = w
                 else:
                     dx = means2d[g, 0] - px
                     dy = means2d[g, 1] - py
@@ -136,14 +161,14 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out): 
 
 
 def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                 out: np.ndarray | None = None) -> np.ndarray:
+                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """`view_weights_reference` with a numba kernel; out: a [H, W, k] float32 buffer to reuse."""
     if weighting not in _WEIGHTING_CODE:
         raise ValueError(f"unknown weighting {weighting!r}")
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
     _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
-                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, out)
+                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
     return out
 
 
@@ -306,7 +331,7 @@ class Aggregator:
 
     @property
     def needs_projection(self) -> bool:
-        return self.weighting in ("core", "ellipse")
+        return self.weighting in _PROJECTED
 
     def view_weights(self, prepared, camera, out) -> np.ndarray:
         """[H, W, k] weights to accumulate for one rasterized view (`out`, a RasterOutput).
