@@ -12,13 +12,30 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                                                        its peak, d² = dᵀ Σ'⁻¹ d (footprint-core weighting)
     ellipse         w · [d² ≤ 4]                       only pixels inside the Gaussian's 2σ ellipse
     responsibility  w / Σ_k w                          share of the pixel's (top-k) weight it carries
+    centre          w · [p = c_i]                      only the pixel c_i = (⌊u_i⌋, ⌊v_i⌋) that holds the
+                                                       Gaussian's projected centre (u_i, v_i) (issue 14's
+                                                       centre-pixel baseline; occluded centres keep their
+                                                       small T·α)
+    anchor          w · (1 + c·A_i·[p = c_i])          the paper's w everywhere plus a centre vote worth
+                                                       c = ANCHOR_GAIN footprints: A_i = 2π·sqrt(det Σ'_i)
+                                                       = 2π / sqrt(a·c - b²) = Σ_p exp(-½ d²), so an
+                                                       unoccluded Gaussian's centre pixel weighs about as
+                                                       much as its whole footprint, an occluded one little
     reject          w, then floater rejection
     core-reject     core, then floater rejection
     ellipse-reject  ellipse, then floater rejection
+    anchor-reject   anchor, then floater rejection
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
 the pixel centre nearest to the mean (Σ' ⪰ 0.3 I, so that centre is at d² ≤ 0.5/0.3 < 4).
+centre and anchor target masks that follow true silhouettes (a SAM mask of a photo; the
+`hard-silhouette` preset): a Gaussian straddling a thin object's silhouette puts most of its
+footprint on the background's mask, while its centre lies on the object. On masks made by the
+Gaussians' own weighted vote (the other hard-* presets) the paper's w is what drew the boundaries,
+and both lose (docs/registration.md, "Centre and anchor weightings"). ANCHOR_GAIN c = 1 was
+picked over {0.5, 2, 8, 32} on seed 0 of hard-silhouette, -thin, -small and -lowres: larger c moves
+anchor towards centre (more gain on hard-silhouette, large losses elsewhere), 0.5 gains less.
 
 Floater rejection (`SurfaceSupport`). In every view, pixel p's surface depth D(p) is the camera
 depth at which the pixel's top-k contributions, taken front to back, first reach a summed weight

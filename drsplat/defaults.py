@@ -8,4 +8,4 @@ DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels ar
 DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene, a path names a faiss codebook
 DEFAULT_AGGREGATE = "paper"  # registration's aggregation mode: Dr. Splat's weighted mean (drsplat.aggregate, docs/registration.md)
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
-                   "centre", "anchor", "centre-reject", "anchor-reject")  # drsplat.aggregate implements them
+                   "centre", "anchor", "anchor-reject")  # drsplat.aggregate implements them

@@ -31,7 +31,7 @@ from drsplat.defaults import DEFAULT_TOPK
 log = logging.getLogger(__name__)
 
 ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
-AGGREGATE_PRESETS = ("hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
+AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
