@@ -63,7 +63,6 @@ def test_centre_weightings_kernel_agrees_with_reference_on_centred_inputs(weight
         got = view_weights(weighting, ids, weights, means2d, conics, anchor_gain=gain)
         want = view_weights_reference(weighting, ids, weights, means2d, conics, anchor_gain=gain)
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
-    at = np.zeros(ids.shape, bool)
     g = np.maximum(ids, 0)
     at = (ids >= 0) & (np.floor(means2d[g, 0]) == np.arange(9)[None, :, None]) & (np.floor(means2d[g, 1]) == np.arange(7)[:, None, None])
     assert at.sum() > 20  # the case really exercises centre pixels
