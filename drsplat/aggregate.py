@@ -12,13 +12,30 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                                                        its peak, d² = dᵀ Σ'⁻¹ d (footprint-core weighting)
     ellipse         w · [d² ≤ 4]                       only pixels inside the Gaussian's 2σ ellipse
     responsibility  w / Σ_k w                          share of the pixel's (top-k) weight it carries
+    centre          w · [p = c_i]                      only the pixel c_i = (⌊u_i⌋, ⌊v_i⌋) that holds the
+                                                       Gaussian's projected centre (u_i, v_i) (issue 14's
+                                                       centre-pixel baseline; occluded centres keep their
+                                                       small T·α)
+    anchor          w · (1 + c·A_i·[p = c_i])          the paper's w everywhere plus a centre vote worth
+                                                       c = ANCHOR_GAIN footprints: A_i = 2π·sqrt(det Σ'_i)
+                                                       = 2π / sqrt(a·c - b²) = Σ_p exp(-½ d²), so an
+                                                       unoccluded Gaussian's centre pixel weighs about as
+                                                       much as its whole footprint, an occluded one little
     reject          w, then floater rejection
     core-reject     core, then floater rejection
     ellipse-reject  ellipse, then floater rejection
+    anchor-reject   anchor, then floater rejection
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
 the pixel centre nearest to the mean (Σ' ⪰ 0.3 I, so that centre is at d² ≤ 0.5/0.3 < 4).
+centre and anchor target masks that follow true silhouettes (a SAM mask of a photo; the
+`hard-silhouette` preset): a Gaussian straddling a thin object's silhouette puts most of its
+footprint on the background's mask, while its centre lies on the object. On masks made by the
+Gaussians' own weighted vote (the other hard-* presets) the paper's w is what drew the boundaries,
+and both lose (docs/registration.md, "Centre and anchor weightings"). ANCHOR_GAIN c = 1 was
+picked over {0.5, 2, 8, 32} on seed 0 of hard-silhouette, -thin, -small and -lowres: larger c moves
+anchor towards centre (more gain on hard-silhouette, large losses elsewhere), 0.5 gains less.
 
 Floater rejection (`SurfaceSupport`). Depths are taken where the pixel's ray meets a Gaussian,
 not at its mean: t*_i(p) = dᵀ Σ_i⁻¹ (μ_i - o) / dᵀ Σ_i⁻¹ d, the point of largest density along the
@@ -61,15 +78,17 @@ from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility")
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")
 MODES = AGGREGATE_MODES  # names owned by drsplat.defaults (argument parsers read them without numba)
 DEFAULT_MODE = DEFAULT_AGGREGATE
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
+ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
-_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3}
+_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
+_PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
 
 
 def split_mode(mode: str) -> tuple[str, bool]:
@@ -86,12 +105,13 @@ def split_mode(mode: str) -> tuple[str, bool]:
 # ----------------------------------------------------------------------------- per-view weights
 
 
-def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray) -> np.ndarray:
+def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
+                           anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """Per-pixel weights of a weighting (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; means2d: [N, 2] screen means
-    (pixel centres at +0.5), conics: [N, 3] (a, b, c) of Σ'⁻¹. Returns [H, W, k] float32
-    (0 where ids < 0).
+    (pixel centres at +0.5), conics: [N, 3] (a, b, c) of Σ'⁻¹; anchor_gain: c of "anchor".
+    Returns [H, W, k] float32 (0 where ids < 0).
     """
     w = np.where(ids >= 0, weights.astype(np.float64), 0.0)
     if weighting == "paper":
@@ -110,11 +130,23 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
         return (w * np.exp(np.minimum(power, 0.0))).astype(np.float32)
     if weighting == "ellipse":
         return np.where(-2.0 * power <= ELLIPSE_D2, w, 0.0).astype(np.float32)
+    at_centre = (np.floor(means2d[g, 0]) == xs[..., None]) & (np.floor(means2d[g, 1]) == ys[..., None])
+    if weighting == "centre":
+        return np.where(at_centre, w, 0.0).astype(np.float32)
+    if weighting == "anchor":
+        return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
     raise ValueError(f"unknown weighting {weighting!r}")
 
 
+def footprint_area(conics: np.ndarray) -> np.ndarray:
+    """[N] A = 2π·sqrt(det Σ') = 2π / sqrt(a·c - b²) of conics [N, 3]: Σ_p exp(-½ d²) over the
+    pixels, the Gaussian's screen footprint in pixels (0 where the conic is degenerate)."""
+    det = conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2
+    return np.where(det > 0, 2.0 * np.pi / np.sqrt(np.where(det > 0, det, 1.0)), 0.0)
+
+
 @numba.njit(parallel=True, cache=True)
-def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out):  # pragma: no cover - jitted
+def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, out):  # pragma: no cover - jitted
     """out[y, x, s] = the weighting `code` (see _WEIGHTING_CODE) of slot s of pixel (x, y)."""
     h, wd, k = ids.shape
     for y in numba.prange(h):
@@ -136,6 +168,16 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out): 
                     out[y, x, s] = w
                 elif code == 3:
                     out[y, x, s] = w / total if total > 0.0 else 0.0
+                elif code >= 4:
+                    at_centre = np.floor(means2d[g, 0]) == x and np.floor(means2d[g, 1]) == y
+                    if code == 4:
+                        out[y, x, s] = w if at_centre else 0.0
+                    elif at_centre:
+                        det = conics[g, 0] * conics[g, 2] - conics[g, 1] * conics[g, 1]
+                        area = 2.0 * np.pi / np.sqrt(det) if det > 0.0 else 0.0
+                        out[y, x, s] = w * (1.0 + anchor_gain * area)
+                    else:
+                        out[y, x, s] = w
                 else:
                     dx = means2d[g, 0] - px
                     dy = means2d[g, 1] - py
@@ -147,14 +189,14 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, out): 
 
 
 def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                 out: np.ndarray | None = None) -> np.ndarray:
+                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """`view_weights_reference` with a numba kernel; out: a [H, W, k] float32 buffer to reuse."""
     if weighting not in _WEIGHTING_CODE:
         raise ValueError(f"unknown weighting {weighting!r}")
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
     _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
-                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, out)
+                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
     return out
 
 
@@ -419,7 +461,7 @@ class Aggregator:
 
     @property
     def needs_projection(self) -> bool:
-        return self.weighting in ("core", "ellipse")
+        return self.weighting in _PROJECTED
 
     @property
     def needs_median(self) -> bool:

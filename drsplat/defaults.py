@@ -7,4 +7,5 @@ DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)
 DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene, a path names a faiss codebook
 DEFAULT_AGGREGATE = "paper"  # registration's aggregation mode: Dr. Splat's weighted mean (drsplat.aggregate, docs/registration.md)
-AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject")  # drsplat.aggregate implements them
+AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
+                   "centre", "anchor", "anchor-reject")  # drsplat.aggregate implements them

@@ -6,10 +6,19 @@ trained 3DGS scene would be. It also contains the cases that make registration h
 low-opacity floaters, a few huge background Gaussians, a small object hidden behind a larger one
 and thin objects. Cameras orbit the scene and some stand inside it.
 
-Ground truth per view comes from the same rasterizer the registration uses. A pixel belongs to
-the object instance with the largest summed contribution w = T·α among the pixel's top-k
-Gaussians (the unlabelled floaters and background Gaussians vote for "none"); this is more
-stable at silhouettes than the single top-1 Gaussian.
+Ground truth per view comes from one of two sources (`OracleParams.mask_source`, a preset's
+`mask_source`):
+
+    render    the same rasterizer the registration uses: a pixel belongs to the object instance
+              with the largest summed contribution w = T·α among the pixel's top-k Gaussians (the
+              unlabelled floaters and background Gaussians vote for "none"); more stable at
+              silhouettes than the single top-1 Gaussian. Mask boundaries follow the Gaussians'
+              blurry footprints, so they agree with the registration's own weights.
+    geometry  analytic ray casting of the objects' true surfaces (`ray_cast_instances`): the ray
+              through the pixel centre hits the nearest box, sphere, closed cylinder or panel.
+              Mask boundaries are the true silhouettes, as a SAM mask of a real photo follows the
+              image's edges, and a Gaussian straddling a silhouette spreads part of its footprint
+              over the neighbour's mask (the `hard-silhouette` preset).
 
 Oracle features stand in for SAM + CLIP: one mask per visible object instance, and for the
 mask of label l the embedding normalize(a·c + b·v_l + noise), where v_l is the label's fixed
@@ -96,11 +105,16 @@ class Preset:
     room: RoomParams | None = None  # the "room" layout's knobs
     jitter: int = 0  # default oracle mask boundary jitter (pixels) of this preset
     mislabel: float = 0.0  # default oracle mislabelled-mask fraction of this preset
+    mask_source: str = "render"  # where the oracle's instance maps come from (MASK_SOURCES)
 
 
 @dataclass
 class OracleParams:
-    """Oracle embedding model: image embedding normalize(a·c + b·v_l + noise·n/√D)."""
+    """Oracle embedding model: image embedding normalize(a·c + b·v_l + noise·n/√D).
+
+    mask_source: "render" (weighted vote of the rendered Gaussians) or "geometry" (ray-cast true
+    silhouettes); see the module docstring.
+    """
 
     a: float = 1.0
     b: float = 0.8
@@ -110,6 +124,7 @@ class OracleParams:
     mislabel_fraction: float = 0.0
     jitter: int = 0
     min_mask_pixels: int = 4
+    mask_source: str = "render"
 
 
 @dataclass
@@ -122,6 +137,7 @@ class SyntheticScene:
     label_names: [L] names, index = label id.
     label_vectors: [L, D] unit vectors v_l. common_vector: [D] image component c.
     text_vectors: [L, D] oracle text embeddings (with a modality gap).
+    instance_specs: [I] the geometry of each object instance (what "geometry" masks ray-cast).
     """
 
     preset: str
@@ -137,6 +153,7 @@ class SyntheticScene:
     text_common_vector: np.ndarray
     text_vectors: np.ndarray
     oracle: OracleParams = field(default_factory=OracleParams)
+    instance_specs: list[ObjectSpec] = field(default_factory=list)
 
     def image_prototypes(self) -> np.ndarray:
         """[L, D] noise-free image embeddings normalize(a·c + b·v_l)."""
@@ -183,10 +200,13 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+MASK_SOURCES = ("render", "geometry")
+
+
 def _room_preset(name: str, num_gaussians: int, views: int, width: int, height: int, *, jitter: int = 0, mislabel: float = 0.0,
-                 **room) -> Preset:
+                 mask_source: str = "render", **room) -> Preset:
     return Preset(name, (), num_gaussians, views, 0, width, height, num_floaters=0, num_background=0, layout="room",
-                  room=RoomParams(**room), jitter=jitter, mislabel=mislabel)
+                  room=RoomParams(**room), jitter=jitter, mislabel=mislabel, mask_source=mask_source)
 
 
 # Hard rooms (docs/evaluation.md, "Aggregation"): each stresses one thing registration gets wrong;
@@ -201,6 +221,10 @@ HARD_PRESETS: dict[str, Preset] = {
         _room_preset("hard-noisy", 12000, 12, 160, 120, jitter=2, mislabel=0.1, floater_fraction=0.03, num_blobs=8, faint_fraction=0.15),
         _room_preset("hard-room", 30000, 14, 320, 240, num_poles=3, num_cables=2, num_stems=2, num_small=6, num_wall_items=3, jitter=1),
         _room_preset("hard-tiny", 4000, 8, 96, 72, num_poles=2, num_cables=1, num_stems=1, num_small=3, grazing_views=2, far_views=2, low_views=1),
+        # true-silhouette masks (ray cast), thin and small things against the walls, Gaussians about
+        # as wide as the thin objects: the silhouette case of issue 14 (docs/registration.md)
+        _room_preset("hard-silhouette", 20000, 12, 320, 240, mask_source="geometry", num_poles=4, num_cables=3, num_stems=3, num_small=8,
+                     num_wall_items=3, far_views=4),
     )
 }
 PRESETS.update(HARD_PRESETS)
@@ -451,7 +475,7 @@ def _build_gaussians(preset: Preset, rng: np.random.Generator):
     )
     obj_labels = np.concatenate(labels)
     labels_all = np.concatenate([obj_labels, np.full(nf + nb, -1, np.int32)])
-    return scene, labels_all, labels_all.copy(), np.arange(len(specs), dtype=np.int32), [s.name for s in specs]
+    return scene, labels_all, labels_all.copy(), np.arange(len(specs), dtype=np.int32), [s.name for s in specs], specs
 
 
 def look_at(eye, target, width: int, height: int, fov_x_deg: float = 62.0, name: str = "") -> Camera:
@@ -688,7 +712,7 @@ def _build_room(preset: Preset, rng: np.random.Generator):
     instances = np.concatenate(inst + [np.full(nf + nb, -1, np.int32)])
     instance_labels = np.array([names.index(o.label) for o in objs], np.int32)
     labels = np.where(instances >= 0, instance_labels[np.maximum(instances, 0)], -1).astype(np.int32)
-    return scene, labels, instances, instance_labels, names
+    return scene, labels, instances, instance_labels, names, specs
 
 
 def _room_bounds(scene: GaussianScene, labels: np.ndarray) -> tuple[float, float]:
@@ -745,17 +769,19 @@ def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
     p = PRESETS[preset]
-    oracle = oracle or OracleParams(jitter=p.jitter, mislabel_fraction=p.mislabel)
+    oracle = oracle or OracleParams(jitter=p.jitter, mislabel_fraction=p.mislabel, mask_source=p.mask_source)
+    if oracle.mask_source not in MASK_SOURCES:
+        raise ValueError(f"unknown mask source {oracle.mask_source!r} (choose from {', '.join(MASK_SOURCES)})")
     rng = np.random.default_rng(seed)
     if p.layout == "room":
-        scene, labels, instances, instance_labels, names = _build_room(p, rng)
+        scene, labels, instances, instance_labels, names, specs = _build_room(p, rng)
         cameras = make_room_cameras(p, scene, labels, instances, names, rng)
     else:
-        scene, labels, instances, instance_labels, names = _build_gaussians(p, rng)
+        scene, labels, instances, instance_labels, names, specs = _build_gaussians(p, rng)
         cameras = make_cameras(p, rng)
     c, c_t, v = make_embedding_basis(len(names), p.dim, np.random.default_rng([seed, 1]))
     text = _normalize(oracle.text_a * c_t + oracle.text_b * v).astype(np.float32)
-    return SyntheticScene(preset, seed, scene, cameras, labels, instances, instance_labels, names, v, c, c_t, text, oracle)
+    return SyntheticScene(preset, seed, scene, cameras, labels, instances, instance_labels, names, v, c, c_t, text, oracle, list(specs))
 
 
 # ----------------------------------------------------------------------------- rendering & oracle features
@@ -773,6 +799,86 @@ def instance_map(ids: np.ndarray, weights: np.ndarray, instances: np.ndarray, nu
     votes = np.stack([np.sum(w * (inst == i), axis=-1) for i in range(-1, num_instances)], axis=-1)
     best = np.argmax(votes, axis=-1) - 1
     return np.where(votes.max(axis=-1) > 0, best, -1).astype(np.int32)
+
+
+RAY_NEAR = 0.01  # hits closer than this to the camera (camera z) are ignored, as the rasterizer's near plane
+
+
+def pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(origin [3], directions [H·W, 3]) of the rays through the pixel centres (x + 0.5, y + 0.5),
+    row-major; each direction has camera z = 1, so a ray parameter t is the camera depth."""
+    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width]
+    d_cam = np.stack([(xs.ravel() + 0.5 - camera.cx) / camera.fx, (ys.ravel() + 0.5 - camera.cy) / camera.fy, np.ones(xs.size)], 1)
+    rot = np.asarray(camera.R, np.float64)
+    return camera.center.astype(np.float64), d_cam @ rot
+
+
+def ray_hit_depth(spec: ObjectSpec, origin: np.ndarray, dirs: np.ndarray, near: float = RAY_NEAR) -> np.ndarray:
+    """[R] ray parameter t ≥ near of the first hit of each ray origin + t·dirs with the solid of
+    `spec` (+inf on a miss). Boxes and plates: the axis-aligned slab test on the whole box;
+    spheres: |o + t·d - c| = r; cylinders (axis-aligned, closed): side |radial| = r within the
+    height, caps within the radius; panels: the two-sided rectangle."""
+    p = spec.params
+    c = np.asarray(p["center"], np.float64)
+    o = origin - c
+    inf = np.full(len(dirs), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if spec.kind in ("box", "plate"):
+            half = np.asarray(p["size"], np.float64) / 2
+            safe = np.where(dirs == 0, 1e-300, dirs)
+            t1, t2 = (-half - o) / safe, (half - o) / safe
+            t_in = np.minimum(t1, t2).max(axis=1)
+            t_out = np.maximum(t1, t2).min(axis=1)
+            return np.where((t_out >= t_in) & (t_in >= near), t_in, inf)
+        if spec.kind == "sphere":
+            return _first_root(np.sum(dirs * dirs, 1), 2 * dirs @ o, float(o @ o) - p["radius"] ** 2, near)
+        if spec.kind == "cylinder":
+            axis, r, h = p["axis"], p["radius"], p["height"]
+            rad = [i for i in range(3) if i != axis]
+            d2, o2 = dirs[:, rad], o[rad]
+            t_side = _first_root(np.sum(d2 * d2, 1), 2 * d2 @ o2, float(o2 @ o2) - r * r, near)
+            t_side = np.where(np.abs(o[axis] + t_side * dirs[:, axis]) <= h / 2, t_side, np.inf)
+            best = t_side
+            for cap in (-h / 2, h / 2):
+                t_cap = (cap - o[axis]) / dirs[:, axis]
+                radial = o2 + t_cap[:, None] * d2
+                ok = (t_cap >= near) & (np.sum(radial * radial, 1) <= r * r)
+                best = np.minimum(best, np.where(ok, t_cap, np.inf))
+            return best
+        if spec.kind == "panel":
+            w, h = p["size"]
+            facing = _normalize(np.asarray(p["facing"], np.float64))
+            right = _normalize(np.cross(np.array([0.0, 0.0, 1.0]), facing))
+            up = np.cross(facing, right)
+            t = -(o @ facing) / (dirs @ facing)
+            q = o + t[:, None] * dirs
+            ok = (t >= near) & (np.abs(q @ right) <= w / 2) & (np.abs(q @ up) <= h / 2)
+            return np.where(ok, t, inf)
+    raise ValueError(f"unknown object kind {spec.kind}")
+
+
+def _first_root(a: np.ndarray, b: np.ndarray, c: float, near: float) -> np.ndarray:
+    """Smallest root t ≥ near of a·t² + b·t + c = 0 per ray (+inf if none): the entry point, or the
+    exit point when the ray starts inside."""
+    disc = b * b - 4 * a * c
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t0, t1 = (-b - sq) / (2 * a), (-b + sq) / (2 * a)
+    t = np.where(t0 >= near, t0, np.where(t1 >= near, t1, np.inf))
+    return np.where(disc >= 0, t, np.inf)
+
+
+def ray_cast_instances(specs: list[ObjectSpec], camera: Camera) -> np.ndarray:
+    """[H, W] int32 instance whose true surface the ray through the pixel centre hits first (index
+    into `specs`), -1 where it hits none: the objects' exact silhouettes ("geometry" masks)."""
+    origin, dirs = pixel_rays(camera)
+    best_t = np.full(len(dirs), np.inf)
+    best = np.full(len(dirs), -1, np.int32)
+    for k, spec in enumerate(specs):
+        t = ray_hit_depth(spec, origin, dirs)
+        closer = t < best_t
+        best_t[closer] = t[closer]
+        best[closer] = k
+    return best.reshape(camera.height, camera.width)
 
 
 def jitter_boundaries(ids: np.ndarray, jitter: int, rng: np.random.Generator) -> np.ndarray:
@@ -826,11 +932,15 @@ class RenderedView:
 
 
 def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
-    """RGB and ground-truth masks of one view, from one rasterizer pass."""
+    """RGB and ground-truth masks of one view: one rasterizer pass, and the instance map from it
+    ("render" masks) or from ray casting the objects ("geometry" masks)."""
     from drsplat.raster import rasterize
 
     out = rasterize(syn.scene, camera, topk=topk, with_rgb=True, background=np.array([1.0, 1.0, 1.0], np.float32))
-    inst = instance_map(out.ids, out.weights, syn.instances, len(syn.instance_labels))
+    if syn.oracle.mask_source == "geometry":
+        inst = ray_cast_instances(syn.instance_specs, camera)
+    else:
+        inst = instance_map(out.ids, out.weights, syn.instances, len(syn.instance_labels))
     labels = np.where(inst >= 0, syn.instance_labels[np.maximum(inst, 0)], -1).astype(np.int32)
     return RenderedView(np.asarray(out.rgb, np.float32), labels, inst)
 
@@ -843,12 +953,14 @@ def write_dataset(
     mislabel_fraction: float | None = None,
     noise: float = 0.15,
     jitter: int | None = None,
+    mask_source: str | None = None,
     show_progress: bool = True,
     cancel=None,
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
 
-    mislabel_fraction, jitter: oracle mask corruption; None takes the preset's default.
+    mislabel_fraction, jitter: oracle mask corruption; mask_source: "render" or "geometry"
+    (module docstring); None takes the preset's default.
 
     Every file is written atomically; the manifest and scene.ply come last, so an interrupted
     run leaves no scene.ply claiming a complete dataset.
@@ -863,10 +975,11 @@ def write_dataset(
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
     mislabel_fraction = PRESETS[preset].mislabel if mislabel_fraction is None else mislabel_fraction
     jitter = PRESETS[preset].jitter if jitter is None else jitter
+    mask_source = PRESETS[preset].mask_source if mask_source is None else mask_source
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
     out = Path(out_dir)
-    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter)
+    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source)
     syn = make_synthetic(preset, seed, oracle=oracle)
     for sub in ("images", "gt/masks", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -900,7 +1013,9 @@ def write_dataset(
             "levels": list(LEVELS),
             "default_level": 1,
             "dim": int(syn.label_vectors.shape[1]),
-            "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter},
+            # mask_source only when not the default, so that datasets of the "render" presets stay byte-identical
+            "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter,
+                       **({"mask_source": mask_source} if mask_source != "render" else {})},
             "counts": {"views": len(syn.cameras), "masks": total_masks, "mislabelled_masks": mislabelled},
         },
     )

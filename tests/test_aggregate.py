@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 
 from drsplat.aggregate import (
+    ANCHOR_GAIN,
     MODES,
     WEIGHTINGS,
     Aggregator,
     RayGeometry,
-    ray_depths_reference,
     SurfaceSupport,
+    footprint_area,
+    ray_depths_reference,
     split_mode,
     surface_stats,
     surface_stats_reference,
@@ -73,7 +75,9 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
     got = view_weights(weighting, ids, weights, means2d, conics)
     want = view_weights_reference(weighting, ids, weights, means2d, conics)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
-    assert (got[ids < 0] == 0).all() and (got <= np.where(weighting == "responsibility", 1.0, weights) + 1e-6).all()
+    bound = {"responsibility": np.ones_like(weights),
+             "anchor": weights * (1.0 + ANCHOR_GAIN * footprint_area(conics)[np.maximum(ids, 0)])}.get(weighting, weights)
+    assert (got[ids < 0] == 0).all() and (got <= bound * (1 + 1e-6) + 1e-6).all()
     if weighting == "paper":
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
 

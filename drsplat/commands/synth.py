@@ -14,7 +14,7 @@ MAX_JITTER = 64  # pixels
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    from drsplat.synthetic import PRESETS
+    from drsplat.synthetic import MASK_SOURCES, PRESETS
 
     p = subparsers.add_parser(
         "synth",
@@ -31,6 +31,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=nonneg_float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
     p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
                    help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
+    p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
+                   help="oracle masks from the rendered Gaussians' weighted vote (render) or ray-cast true silhouettes "
+                        "(geometry) (default: the preset's, render except hard-silhouette)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -47,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     token = CancelToken()
     with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, is_synthetic_dataset) as tmp:
         write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
-                      jitter=args.jitter, show_progress=not args.no_progress, cancel=token)
+                      jitter=args.jitter, mask_source=args.mask_source, show_progress=not args.no_progress, cancel=token)
         token.raise_if_cancelled()
     log.info("synthetic dataset written to %s", args.out_dir)
     return 0

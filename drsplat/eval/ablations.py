@@ -31,7 +31,7 @@ from drsplat.defaults import DEFAULT_TOPK
 log = logging.getLogger(__name__)
 
 ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
-AGGREGATE_PRESETS = ("hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
+AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
@@ -74,15 +74,16 @@ class AblationResult:
         return {"name": self.name, "columns": self.columns, "rows": self.rows, "notes": self.notes, **self.extra}
 
 
-def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE) -> Dataset:
-    """Write (once) and load a synthetic dataset with the given oracle corruption."""
+def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None) -> Dataset:
+    """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
+    override the preset's oracle mask source, "render" or "geometry"; drsplat.synthetic)."""
     from drsplat.cameras import load_cameras
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
 
-    path = root / f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}"
+    path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else ""))
     if not (path / "scene.ply").exists():
-        write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, show_progress=False)
+        write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
 
@@ -256,13 +257,14 @@ def aggregate_metrics(ds: Dataset, result) -> list[float]:
 
 
 def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (0,), modes=None, topks=AGGREGATE_TOPK,
-                     cancel: CancelToken | None = None) -> AblationResult:
-    """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS)."""
+                     cancel: CancelToken | None = None, mask_source: str | None = None) -> AblationResult:
+    """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS).
+    mask_source: every preset's oracle masks from this source (None: each preset's own)."""
     from drsplat.aggregate import MODES
     from drsplat.synthetic import PRESETS
 
     modes = tuple(modes or MODES)
-    first = dataset(root, presets[0], seeds[0], PRESETS[presets[0]].mislabel)
+    first = dataset(root, presets[0], seeds[0], PRESETS[presets[0]].mislabel, mask_source=mask_source)
     for k in topks:  # warm-up: compiled kernels load once, not inside the timings
         for mode in modes:
             register(first, int(k), aggregate=mode)
@@ -273,11 +275,13 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
                 per = []
                 for seed in seeds:
                     _check(cancel)
-                    ds = dataset(root, preset, seed, PRESETS[preset].mislabel)
+                    ds = dataset(root, preset, seed, PRESETS[preset].mislabel, mask_source=mask_source)
                     per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
                 rows.append([preset, mode, int(k), *map(float, np.mean(per, axis=0))])
                 log.info("%s k=%d %s: %s", preset, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
-    notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); each preset's default oracle corruption "
+    notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); oracle masks: "
+             f"{mask_source + ' (every preset)' if mask_source else 'each preset own (geometry for hard-silhouette, render otherwise)'}; "
+             "each preset's default oracle corruption "
              "(hard-noisy: 10% mislabelled masks, 2 px jitter; hard-room: 1 px jitter). vol = volume-aware, count = OpenGaussian's; "
              "+unl = unlabelled Gaussians that stay assigned count as false positives; lab = labelled Gaussians only; "
              "ms/view = whole registration time / views."]
@@ -417,6 +421,9 @@ def add_ablate_parser(sub) -> None:
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
     p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
+    p.add_argument("--mask-source", choices=("render", "geometry"), default=None,
+                   help="aggregate: oracle masks of every preset from the rendered Gaussians' vote or ray-cast true silhouettes "
+                        "(default: each preset's own)")
     p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k or PQ sub-vectors)")
@@ -445,9 +452,9 @@ def run_ablate(args: argparse.Namespace) -> int:
             raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(MODES)})")
         if "paper" not in modes:
             modes = ("paper",) + modes  # the baseline of the summary
-        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK)
+        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_source=args.mask_source)
         k = max(values or AGGREGATE_TOPK)
-        timed = dataset(root, presets[-1], seeds[0], PRESETS[presets[-1]].mislabel)
+        timed = dataset(root, presets[-1], seeds[0], PRESETS[presets[-1]].mislabel, mask_source=args.mask_source)
         speed = time_aggregate_modes(timed, modes, k, args.repeats)
         result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
         lines = [result.markdown(), "", aggregate_summary(result, topk=k), "",
