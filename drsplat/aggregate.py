@@ -458,6 +458,7 @@ class Aggregator:
         self.num_rejected = 0
         self._buffer: np.ndarray | None = None
         self._scratch: StatsScratch | None = None
+        self._rejected: np.ndarray | None = None
 
     @property
     def needs_projection(self) -> bool:
@@ -491,17 +492,38 @@ class Aggregator:
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer
 
-    def finish(self, F: np.ndarray, W: np.ndarray) -> int:
-        """Post-step on the sums F [N, D], W [N]: rejected Gaussians get W = 0 and F = 0 (unassigned).
-        Returns the number of Gaussians rejected that had weight."""
+    def finish(self, F: np.ndarray, W: np.ndarray, start: int = 0) -> int:
+        """Post-step on the sums of Gaussians start .. start + B (all of them, or a block when
+        streaming), F [B, D], W [B], once every view is in: rejected Gaussians get W = 0 and F = 0
+        (unassigned). Returns how many of them were rejected that had weight (also added to
+        `num_rejected`)."""
         if not self.reject:
             return 0
-        drop = self.support.rejected() & (W > 0)
+        if self._rejected is None:
+            self._rejected = self.support.rejected()
+        drop = self._rejected[start:start + W.shape[0]] & (W > 0)
         F[drop] = 0.0
         W[drop] = 0.0
-        self.num_rejected = int(np.count_nonzero(drop))
-        log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface)", self.mode, self.num_rejected)
-        return self.num_rejected
+        count = int(np.count_nonzero(drop))
+        self.num_rejected += count
+        return count
+
+    def log_rejected(self) -> None:
+        if self.reject:
+            log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface)", self.mode, self.num_rejected)
+
+    @staticmethod
+    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int) -> tuple[int, int]:
+        """(bytes held while views are rasterized, bytes held until the sums are finished) by `mode`
+        for a scene of `num_gaussians` and views of at most `pixels` pixels (registration's
+        memory plan)."""
+        weighting, reject = split_mode(mode)
+        views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
+        kept = 0
+        if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
+            kept = 32 * num_gaussians
+            views += (21 + 80) * num_gaussians + pixels * topk + pixels * 4
+        return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:
         """Arrays to checkpoint (empty for modes without statistics)."""

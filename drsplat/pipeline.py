@@ -90,7 +90,7 @@ def register_to_ply(
     it is deleted once `out` is written. executor: where views are computed (default: from
     options.ray, else this process); one passed in is not closed here.
     """
-    from drsplat.registration import feature_dim, local_executor, select_views
+    from drsplat.registration import feature_dim, select_views
     from drsplat.streaming import choose_block, estimate_memory, register_streaming
 
     features_dir, out = Path(features_dir), Path(out)
@@ -99,10 +99,8 @@ def register_to_ply(
     dim = feature_dim(features_dir, views)
     codebook = resolve_codebook(options.codebook, dim)  # a bad codebook fails now, not after registering
     block = options.block_size
-    if options.aggregate != "paper" and (block is not None or options.memory_budget is not None):
-        raise DrsplatError(f"--aggregate {options.aggregate} runs in memory only; drop --memory-budget or use --aggregate paper")
     if block is None:
-        plan = estimate_memory(scene, views, dim, options.topk)
+        plan = estimate_memory(scene, views, dim, options.topk, aggregate=options.aggregate)
         block = choose_block(plan, options.memory_budget)
         log.info("estimated peak memory: %.1f GB in memory%s", plan.in_memory / 1e9,
                  "" if block is None else f", {plan.streaming(block) / 1e9:.1f} GB streamed in blocks of {block:,} Gaussians")
@@ -114,10 +112,10 @@ def register_to_ply(
             streamed = register_streaming(
                 scene, cameras, features_dir, out, block_size=block, checkpoint=ckpt, topk=options.topk, level=options.level,
                 codebook=codebook, clip_model=clip_model, keep_unassigned=options.keep_unassigned,
-                executor=executor or local_executor(options.engine, options.device),
-                show_progress=show_progress, on_progress=on_progress, cancel=cancel,
+                executor=executor, show_progress=show_progress, on_progress=on_progress, cancel=cancel,
+                aggregate=options.aggregate, engine=options.engine, device=options.device,
             )
-            ckpt.unlink(missing_ok=True)
+            _remove_checkpoint(ckpt)
             log.info("%s: %d Gaussians in %d blocks of %d, %s field, %d views, %.1f s", out, streamed.num_written, streamed.num_blocks,
                      block, streamed.field_kind, streamed.registration.num_views, streamed.registration.seconds)
             return PipelineResult(out, None, streamed.registration, streamed.num_written)
@@ -141,8 +139,7 @@ def register_to_ply(
     out_scene = attach_field(scene.subset(keep), field, out)
     save_ply(out_scene, out)
     if ckpt is not None:
-        ckpt.unlink(missing_ok=True)
-        ckpt.with_name(ckpt.name + ".aggregate.npz").unlink(missing_ok=True)  # an aggregation mode's statistics
+        _remove_checkpoint(ckpt)
     log.info(
         "%s: %d Gaussians (%d unassigned, %s), %s field, %d views, %.1f s",
         out, out_scene.num_gaussians, scene.num_gaussians - result.num_assigned,
@@ -168,6 +165,14 @@ def resolve_codebook(codebook: str, dim: int):
     if book.dim != dim:
         raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
     return book
+
+
+def _remove_checkpoint(ckpt: Path) -> None:
+    """Delete the pair log and an aggregation mode's statistics beside it (the output is safe)."""
+    from drsplat.registration import aggregate_stats_path
+
+    ckpt.unlink(missing_ok=True)
+    aggregate_stats_path(ckpt).unlink(missing_ok=True)
 
 
 def make_executor(options: RegisterOptions):

@@ -36,6 +36,7 @@ from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
+CHECKPOINT_EVERY = 10  # views between snapshots of an aggregation mode's statistics (the pair log itself is per view)
 
 CHECKPOINT_VERSION = 2  # 2: append-only pair log (drsplat.pairlog); 1 was a dense F/W .npz
 MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
@@ -586,7 +587,7 @@ def run_views(
     *,
     plog: PairLog | None,
     executor=None,
-    checkpoint_every: int = 10,
+    checkpoint_every: int = CHECKPOINT_EVERY,
     show_progress: bool = True,
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
@@ -652,6 +653,38 @@ def compute_engine(engine: str = "numba", device: str = "cpu") -> ComputeEngine:
     raise ValueError(f"unknown registration engine {engine!r}; choose numba or torch")
 
 
+def aggregate_stats_path(checkpoint: Path) -> Path:
+    """Where an aggregation mode's statistics are snapshotted beside the pair log `checkpoint`."""
+    return checkpoint.with_name(checkpoint.name + ".aggregate.npz")
+
+
+def start_aggregation(aggregate: str, scene: GaussianScene, plog: PairLog | None, checkpoint: Path | None, executor=None,
+                      engine: str = "numba", device: str = "cpu"):
+    """(Aggregator, path of its statistics snapshot or None, executor) for a registration run with
+    `--aggregate aggregate` (in memory or streamed): the mode's statistics resumed beside the pair
+    log (which is cut back to the views they cover), and the in-process executor carrying its
+    per-view hook when `executor` is None."""
+    from drsplat.aggregate import Aggregator
+
+    if aggregate != "paper" and engine != "numba":
+        raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
+    if aggregate != "paper" and executor is not None:  # the mode's hook lives in the executor built here
+        raise DrsplatError(f"--aggregate {aggregate} runs in this process only (not with --ray); use --aggregate paper on a cluster")
+    aggregator = Aggregator(aggregate, scene)
+    stats_path = aggregate_stats_path(checkpoint) if checkpoint is not None and aggregator.state() else None
+    if stats_path is not None:
+        _resume_aggregate(plog, stats_path, aggregator)
+    if executor is None:
+        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights, median=aggregator.needs_median)
+    return aggregator, stats_path, executor
+
+
+def save_aggregation(stats_path: Path | None, done: int, resumed: int, every: int, aggregator) -> None:
+    """Snapshot the mode's statistics every `every` new views (beside the pair log, which holds the sums)."""
+    if stats_path is not None and done > resumed and done % max(1, every) == 0:
+        _save_aggregate(stats_path, done, aggregator)
+
+
 def _save_aggregate(path: Path, views: int, aggregator) -> None:
     """Snapshot of an aggregation mode's per-view statistics after `views` views (atomic)."""
     from drsplat.utils import atomic_path
@@ -694,7 +727,7 @@ def register_scene(
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
     checkpoint: str | Path | None = None,
-    checkpoint_every: int = 10,
+    checkpoint_every: int = CHECKPOINT_EVERY,
     keep_checkpoint: bool = False,
     collect_embeddings: bool = False,
     executor=None,
@@ -721,12 +754,6 @@ def register_scene(
     rejection are snapshotted beside the log every `checkpoint_every` views).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).
     """
-    from drsplat.aggregate import Aggregator
-
-    if aggregate != "paper" and engine != "numba":
-        raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
-    if aggregate != "paper" and executor is not None:  # the mode's hook lives in the executor this function builds
-        raise DrsplatError(f"--aggregate {aggregate} runs in this process only (not with --ray); use --aggregate paper on a cluster")
     t_start = time.perf_counter()
     features_dir = Path(features_dir)
     if topk < 1:
@@ -734,14 +761,8 @@ def register_scene(
     views, missing, unmatched = select_views(cameras, features_dir)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     plog = open_checkpoint(ckpt, checkpoint_params(scene, views, features_dir, topk, level, aggregate), views) if ckpt is not None else None
-    aggregator = Aggregator(aggregate, scene)  # --aggregate hook: per-view weights + a post-step
-    stats_path = ckpt.with_name(ckpt.name + ".aggregate.npz") if ckpt is not None and aggregator.state() else None
-    if stats_path is not None:
-        _resume_aggregate(plog, stats_path, aggregator)
+    aggregator, stats_path, executor = start_aggregation(aggregate, scene, plog, ckpt, executor, engine, device)
     resumed = len(plog.records) if plog is not None else 0
-    if executor is None:
-        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights,
-                                  median=aggregator.needs_median)
     prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
     totals = ViewTotals()
     new_accumulator = compute_engine(engine, device).accumulator  # numba's on the CPU, torch's on `device`
@@ -751,8 +772,7 @@ def register_scene(
     def consume(view: ViewPairs) -> None:
         nonlocal acc, accumulate_s, accumulate_cpu, allocate_s
         totals.add(view, features_dir, collect_embeddings)
-        if stats_path is not None and totals.done > resumed and totals.done % max(1, checkpoint_every) == 0:
-            _save_aggregate(stats_path, totals.done, aggregator)
+        save_aggregation(stats_path, totals.done, resumed, checkpoint_every, aggregator)
         if acc is None:
             t0 = time.perf_counter()
             acc = new_accumulator(scene.num_gaussians, totals.dim)
@@ -774,6 +794,7 @@ def register_scene(
     t0, c0 = time.perf_counter(), time.process_time()
     sums = acc.sums()
     num_rejected = aggregator.finish(*sums)
+    aggregator.log_rejected()
     accumulate_s += time.perf_counter() - t0
     accumulate_cpu += time.process_time() - c0
     features, nonfinite = normalize_rows(*sums)

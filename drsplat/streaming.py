@@ -38,8 +38,10 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_AGGREGATE
 from drsplat.errors import DrsplatError
 from drsplat.registration import (
+    CHECKPOINT_EVERY,
     Accumulator,
     RegistrationResult,
     ViewTotals,
@@ -48,7 +50,9 @@ from drsplat.registration import (
     open_checkpoint,
     prepare_geometry,
     run_views,
+    save_aggregation,
     select_views,
+    start_aggregation,
 )
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
 from drsplat.utils import CancelToken, atomic_path, progress
@@ -138,12 +142,17 @@ class MemoryPlan:
         return int(min(max(block, 0), -(-self.num_gaussians // BLOCK_ALIGN) * BLOCK_ALIGN))
 
 
-def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, topk: int, base: int | None = None) -> MemoryPlan:
-    """Estimate the peak memory of registering `views` onto `scene` with `dim`-D embeddings."""
+def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, topk: int, base: int | None = None,
+                    aggregate: str = DEFAULT_AGGREGATE) -> MemoryPlan:
+    """Estimate the peak memory of registering `views` onto `scene` with `dim`-D embeddings
+    (and the statistics of aggregation mode `aggregate`, kept until the sums are finished)."""
+    from drsplat.aggregate import Aggregator
+
     n = scene.num_gaussians
-    base = current_rss() if base is None else base
     pixels = max((c.width * c.height for c in views), default=0)
-    view = n * (PROJECTION_BYTES + SCRATCH_BYTES) + pixels * topk * (8 + 2 * PAIR_BYTES)
+    mode_views, mode_kept = Aggregator.memory_bytes(aggregate, n, pixels, topk)
+    base = (current_rss() if base is None else base) + mode_kept
+    view = n * (PROJECTION_BYTES + SCRATCH_BYTES) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
     views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
     accumulate = n * (4 * dim + 16) + max(1 << 23, n) * PAIR_BYTES
     row_bytes = scene.sh.shape[1] * 12 + 64
@@ -216,8 +225,15 @@ def register_streaming(
     show_progress: bool = True,
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
+    aggregate: str = DEFAULT_AGGREGATE,
+    engine: str = "numba",
+    device: str = "cpu",
 ) -> StreamResult:
     """Register and write the registered PLY `out` in Gaussian blocks of `block_size` (module docstring).
+
+    executor: None (views rasterized in this process with `engine` on `device`) or a RayExecutor
+    (paper mode only). aggregate: the aggregation mode (drsplat.aggregate); its per-Gaussian
+    statistics stay in memory and are snapshotted beside the pair log.
 
     codebook: "none", "scene" (trained on the scene's mask embeddings) or a loaded
     drsplat.lang.Codebook. checkpoint: the pair log; it is kept (the caller deletes it after
@@ -229,19 +245,27 @@ def register_streaming(
     if block_size < 1:
         raise ValueError("block_size must be >= 1")
     views, missing, unmatched = select_views(cameras, features_dir)
-    plog = open_checkpoint(checkpoint, checkpoint_params(scene, views, features_dir, topk, level), views)
-    resumed = len(plog.records)
+    plog = open_checkpoint(checkpoint, checkpoint_params(scene, views, features_dir, topk, level, aggregate), views)
     totals = ViewTotals()
+    stats_path = None
     try:
+        aggregator, stats_path, executor = start_aggregation(aggregate, scene, plog, checkpoint, executor, engine, device)
+        resumed = len(plog.records)
+
+        def consume(view) -> None:
+            totals.add(view, features_dir, codebook == "scene")
+            save_aggregation(stats_path, totals.done, resumed, CHECKPOINT_EVERY, aggregator)
+
         prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
-        run_views(prepared, views, features_dir, level, topk, lambda v: totals.add(v, features_dir, codebook == "scene"), plog=plog,
-                  executor=executor, show_progress=show_progress, on_progress=on_progress, cancel=cancel)
+        run_views(prepared, views, features_dir, level, topk, consume, plog=plog, executor=executor, checkpoint_every=CHECKPOINT_EVERY,
+                  show_progress=show_progress, on_progress=on_progress, cancel=cancel)
         del prepared
         view_seconds = time.perf_counter() - t_start
         book = _codebook_for(codebook, totals)
         totals.embeddings = []
         weights, written, blocks, nonfinite = _write_blocks(scene, plog, features_dir, out, block_size, totals.dim or 1, book, clip_model, keep_unassigned,
-                                                            show_progress, cancel)
+                                                            show_progress, cancel, aggregator)
+        aggregator.log_rejected()
         log_bytes = plog.nbytes
     finally:
         plog.close()
@@ -251,7 +275,7 @@ def register_streaming(
         seconds=seconds, raster_seconds=totals.raster_seconds, accumulate_seconds=totals.coalesce_seconds,
         coalesce_seconds=totals.coalesce_seconds, resumed_views=resumed,
         topk=topk, level=level, missing_features=missing, unmatched_features=unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
-        num_nonfinite_features=nonfinite,
+        num_nonfinite_features=nonfinite, aggregate=aggregate, num_rejected=aggregator.num_rejected,
     )
     kind = "exact" if book == "none" else book.kind
     return StreamResult(result, written, blocks, block_size, log_bytes, kind, view_seconds, seconds - view_seconds)
@@ -273,8 +297,10 @@ def _codebook_for(codebook, totals: ViewTotals):
     return train_codebook(train, m=128, seed=0)
 
 
-def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, dim: int, book, clip_model: str, keep_unassigned: bool, show_progress: bool, cancel):
-    """Sum, normalise, encode and write each block; then header + body -> `out` (atomic).
+def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, dim: int, book, clip_model: str, keep_unassigned: bool, show_progress: bool, cancel,
+                  aggregator=None):
+    """Sum, (reject: drop the aggregator's rejected Gaussians,) normalise, encode and write each
+    block; then header + body -> `out` (atomic).
 
     Returns (weights [N] float32, Gaussians written, blocks, Gaussians dropped for non-finite sums).
     """
@@ -294,6 +320,8 @@ def _write_blocks(scene, plog, features_dir: Path, out: Path, block_size: int, d
                     cancel.raise_if_cancelled()
                 hi = min(n, lo + block_size)
                 F, W = _block_sums(plog, lo, hi, dim)
+                if aggregator is not None:
+                    aggregator.finish(F, W, lo)
                 F, bad = normalize_rows(F, W)
                 nonfinite += bad
                 weights[lo:hi] = W

@@ -292,3 +292,46 @@ def test_pipeline_writes_fewer_gaussians_with_rejection(hard_tiny, tmp_path):
                           show_progress=False)
     assert rej.registration.num_rejected > 0
     assert rej.num_written == paper.num_written - rej.registration.num_rejected
+
+
+def test_streamed_rejection_equals_in_memory_and_resumes(hard_tiny, tmp_path, monkeypatch):
+    """--aggregate reject under --memory-budget (Gaussian blocks) writes the in-memory file byte for byte,
+    also when cancelled mid-way and resumed from the statistics snapshot."""
+    import drsplat.streaming as streaming
+    from drsplat.pipeline import RegisterOptions, checkpoint_path_for, register_to_ply
+    from drsplat.registration import aggregate_stats_path
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    mem = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "mem.ply", RegisterOptions(topk=10, aggregate=RECOMMENDED),
+                          show_progress=False)
+    options = RegisterOptions(topk=10, aggregate=RECOMMENDED, block_size=512)
+    streamed = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "streamed.ply", options, show_progress=False)
+    assert streamed.field is None and scene.num_gaussians > 4 * 512
+    assert streamed.registration.num_rejected == mem.registration.num_rejected > 0
+    assert (tmp_path / "streamed.ply").read_bytes() == (tmp_path / "mem.ply").read_bytes()
+
+    monkeypatch.setattr(streaming, "CHECKPOINT_EVERY", 2)
+    out = tmp_path / "resumed.ply"
+    token = CancelToken()
+
+    def stop(done: int, total: int) -> None:
+        if done == 5:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_to_ply(scene, cams, hard_tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop)
+    assert aggregate_stats_path(checkpoint_path_for(out)).is_file()
+    resumed = register_to_ply(scene, cams, hard_tiny / "features", out, options, show_progress=False)
+    assert resumed.registration.resumed_views == 4  # the log is cut back to the last snapshot
+    assert out.read_bytes() == (tmp_path / "mem.ply").read_bytes()
+    assert not checkpoint_path_for(out).exists() and not aggregate_stats_path(checkpoint_path_for(out)).exists()
+
+
+def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
+    from drsplat.streaming import estimate_memory
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    paper = estimate_memory(scene, cams, 512, 40, base=0)
+    rej = estimate_memory(scene, cams, 512, 40, base=0, aggregate="reject")
+    assert rej.views - paper.views >= 100 * scene.num_gaussians  # statistics, scratch and ray geometry
+    assert rej.in_memory > paper.in_memory
