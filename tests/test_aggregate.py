@@ -335,3 +335,12 @@ def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
     rej = estimate_memory(scene, cams, 512, 40, base=0, aggregate="reject")
     assert rej.views - paper.views >= 100 * scene.num_gaussians  # statistics, scratch and ray geometry
     assert rej.in_memory > paper.in_memory
+
+
+def test_non_paper_modes_refuse_an_outside_executor(hard_tiny):
+    """A cluster executor computes views elsewhere, without the mode's per-view hook: one clear error."""
+    from drsplat.errors import DrsplatError
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    with pytest.raises(DrsplatError, match="not with --ray"):
+        register_scene(scene, cams, hard_tiny / "features", show_progress=False, aggregate=RECOMMENDED, executor=object())
