@@ -269,6 +269,17 @@ def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.n
 
 
 @dataclass
+class ViewStats:
+    """One view's rejection statistics of the Gaussians it sees (each id once): ids [T] int32;
+    peak (max w), total (Σ w) and front (Σ w in front of the surface) [T] float64."""
+
+    ids: np.ndarray
+    peak: np.ndarray
+    total: np.ndarray
+    front: np.ndarray
+
+
+@dataclass
 class SurfaceSupport:
     """The rejection statistics of a registration, [N] each: peak (max w), total (A = Σ w),
     front (B = Σ w in front of the surface) as float64; views_seen (views that see the Gaussian) and
@@ -292,6 +303,16 @@ class SurfaceSupport:
     def arrays(self) -> dict[str, np.ndarray]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
+    def add(self, view: ViewStats) -> None:
+        """Fold one view's statistics in (views are folded in view order, so the sums do not depend
+        on where the views were computed)."""
+        ids = view.ids
+        self.peak[ids] = np.maximum(self.peak[ids], view.peak)
+        self.total[ids] += view.total
+        self.front[ids] += view.front
+        self.views_seen[ids] += 1
+        self.views_front[ids] += view.front > FRONT_MAX * view.total
+
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> SurfaceSupport:
         """The statistics from `arrays()` output (KeyError naming a missing one)."""
@@ -299,9 +320,8 @@ class SurfaceSupport:
 
 
 def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
-                            support: SurfaceSupport, tolerance: float = FRONT_TOLERANCE) -> None:
-    """Add one view to the rejection statistics `support` in place (numpy reference; math in the
-    module docstring).
+                            tolerance: float = FRONT_TOLERANCE) -> ViewStats:
+    """One view's rejection statistics (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] (raw w = T·α); median_ids: [H, W] the rasterizer's median Gaussian
     (-1 where the pixel's opacity never reaches ½: D(p) = +inf). A contribution is in front
@@ -314,16 +334,12 @@ def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weig
     valid = g >= 0
     w = np.where(valid, weights.reshape(-1, k).astype(np.float64), 0.0)
     in_front = depth < (1.0 - tolerance) * surface
-    n = support.peak.shape[0]
-    view_total, view_front, seen = np.zeros(n), np.zeros(n), np.zeros(n, bool)
-    np.add.at(view_total, g[valid], w[valid])
-    np.add.at(view_front, g[valid], (w * in_front)[valid])
-    seen[g[valid]] = True
-    np.maximum.at(support.peak, g[valid], w[valid])
-    support.total += view_total
-    support.front += view_front
-    support.views_seen += seen
-    support.views_front += seen & (view_front > FRONT_MAX * view_total)
+    seen, inverse = np.unique(g[valid], return_inverse=True)
+    peak, total, front = np.zeros(seen.size), np.zeros(seen.size), np.zeros(seen.size)
+    np.maximum.at(peak, inverse, w[valid])
+    np.add.at(total, inverse, w[valid])
+    np.add.at(front, inverse, (w * in_front)[valid])
+    return ViewStats(seen.astype(np.int32), peak, total, front)
 
 
 @numba.njit(inline="always")
@@ -368,15 +384,14 @@ def _front_flags_kernel(ids, median_ids, width, means, prec, reach, rot, origin,
 
 
 @numba.njit(cache=True)
-def _scatter_stats_kernel(ids, weights, flags, front_max, peak, total, front, views_seen, views_front, view_total, view_front, touched, mark):  # pragma: no cover - jitted
-    """One view's statistics: over every slot (p, s), g = ids[p, s]: peak[g] = max w, total[g] += w,
-    front[g] += w·flags[p, s]; then per Gaussian seen views_seen[g] += 1 and views_front[g] += 1 when
-    its in-front weight in this view exceeds front_max of its weight in this view.
+def _view_stats_kernel(ids, weights, flags, view_peak, view_total, view_front, touched, mark):  # pragma: no cover - jitted
+    """One view's per-Gaussian max w, Σ w and Σ w·flags over every slot (p, s), g = ids[p, s],
+    returned compacted as (ids [T], peak [T], total [T], front [T]) in first-seen order.
 
-    view_total, view_front [N] float64 and mark [N] bool are scratch, zero / False on entry and
-    exit; touched [N] int32 lists the Gaussians seen. Serial: threads would race on the sums, and
-    splitting the Gaussians between threads makes each one read every slot (measured 4x slower
-    than this on 2 busy cores).
+    view_peak, view_total, view_front [N] float64 and mark [N] bool are scratch, zero / False on
+    entry and exit; touched [N] int32 lists the Gaussians seen. Serial: threads would race on the
+    sums, and splitting the Gaussians between threads makes each one read every slot (measured 4x
+    slower than this on 2 busy cores).
     """
     n_pix, k = ids.shape
     n_touched = 0
@@ -390,21 +405,25 @@ def _scatter_stats_kernel(ids, weights, flags, front_max, peak, total, front, vi
                 mark[g] = True
                 touched[n_touched] = g
                 n_touched += 1
-            if w > peak[g]:
-                peak[g] = w
+            if w > view_peak[g]:
+                view_peak[g] = w
             view_total[g] += w
             if flags[p, s]:
                 view_front[g] += w
+    out_ids = touched[:n_touched].copy()
+    out_peak = np.empty(n_touched)
+    out_total = np.empty(n_touched)
+    out_front = np.empty(n_touched)
     for j in range(n_touched):
         g = touched[j]
-        total[g] += view_total[g]
-        front[g] += view_front[g]
-        views_seen[g] += 1
-        if view_front[g] > front_max * view_total[g]:
-            views_front[g] += 1
+        out_peak[j] = view_peak[g]
+        out_total[j] = view_total[g]
+        out_front[j] = view_front[g]
+        view_peak[g] = 0.0
         view_total[g] = 0.0
         view_front[g] = 0.0
         mark[g] = False
+    return out_ids, out_peak, out_total, out_front
 
 
 @dataclass
@@ -412,6 +431,7 @@ class StatsScratch:
     """Reusable buffers of `surface_stats`: flags [H·W, k] bool, and [N] view sums, list and marks."""
 
     flags: np.ndarray
+    view_peak: np.ndarray
     view_total: np.ndarray
     view_front: np.ndarray
     touched: np.ndarray
@@ -419,46 +439,52 @@ class StatsScratch:
 
     @classmethod
     def new(cls, num_pixels: int, k: int, n: int) -> StatsScratch:
-        return cls(np.empty((num_pixels, k), np.bool_), np.zeros(n), np.zeros(n), np.zeros(n, np.int32), np.zeros(n, np.bool_))
+        return cls(np.empty((num_pixels, k), np.bool_), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n, np.int32), np.zeros(n, np.bool_))
 
 
-def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray, support: SurfaceSupport,
-                  tolerance: float = FRONT_TOLERANCE, scratch: StatsScratch | None = None) -> StatsScratch:
+def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
+                  tolerance: float = FRONT_TOLERANCE, scratch: StatsScratch | None = None) -> tuple[ViewStats, StatsScratch]:
     """`surface_stats_reference` with numba kernels (the in-front test in parallel over pixels, the
-    sums serially). scratch: buffers of a previous call to reuse; returns the ones used."""
+    sums serially). scratch: buffers of a previous call to reuse; returns (stats, the buffers used)."""
     h, w, k = ids.shape
     ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
-    n = support.peak.shape[0]
+    n = geometry.reach.shape[0]
     if scratch is None or scratch.flags.shape != ids2.shape or scratch.mark.shape[0] != n:
         scratch = StatsScratch.new(ids2.shape[0], k, n)
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     _front_flags_kernel(ids2, np.ascontiguousarray(median_ids.reshape(-1), np.int32), w, geometry.means, geometry.precisions, geometry.reach,
                         np.ascontiguousarray(rot), -rot.T @ trans, float(trans[2]), float(camera.fx), float(camera.fy), float(camera.cx),
                         float(camera.cy), float(tolerance), scratch.flags)
-    _scatter_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), scratch.flags, FRONT_MAX, support.peak, support.total,
-                          support.front, support.views_seen, support.views_front, scratch.view_total, scratch.view_front, scratch.touched, scratch.mark)
-    return scratch
+    stats = ViewStats(*_view_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), scratch.flags, scratch.view_peak,
+                                          scratch.view_total, scratch.view_front, scratch.touched, scratch.mark))
+    return stats, scratch
 
 
 # ----------------------------------------------------------------------------- the registration hook
 
 
-class Aggregator:
-    """What registration calls for a mode: `view_weights` per view, `finish` on the sums.
+@dataclass
+class ViewHook:
+    """The per-view part of a mode: runs where a view is rasterized (this process or a Ray worker,
+    so it is picklable and holds no running sums). Called as hook(prepared, camera, out) with a
+    RasterOutput, it returns ([H, W, k] weights to accumulate, the view's ViewStats or None).
 
-    For "paper" both are no-ops (the view's w is used as it is) and no projection is done.
+    geometry: the scene's RayGeometry (floater rejection), else None.
     """
 
-    def __init__(self, mode: str, scene):
-        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
-        self.mode = mode
-        self.weighting, self.reject = split_mode(mode)
-        self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
-        self.geometry = RayGeometry.from_scene(scene) if self.reject else None
-        self.num_rejected = 0
-        self._buffer: np.ndarray | None = None
-        self._scratch: StatsScratch | None = None
-        self._rejected: np.ndarray | None = None
+    mode: str
+    geometry: RayGeometry | None = None
+    _buffer: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    _scratch: StatsScratch | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.weighting, self.reject = split_mode(self.mode)
+
+    def __getstate__(self) -> dict:  # buffers are rebuilt where the hook runs
+        return {"mode": self.mode, "geometry": self.geometry}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["mode"], state["geometry"])
 
     @property
     def needs_projection(self) -> bool:
@@ -469,28 +495,48 @@ class Aggregator:
         """Whether the views must be rasterized with_median (floater rejection's surface)."""
         return self.reject
 
-    def view_weights(self, prepared, camera, out) -> np.ndarray:
-        """[H, W, k] weights to accumulate for one rasterized view (`out`, a RasterOutput).
-
-        prepared: the scene (drsplat.raster.PreparedScene, means [N, 3] float64).
-        """
-        if self.weighting == "paper" and not self.reject:
-            return out.weights
-        projected = None
+    def __call__(self, prepared, camera, out) -> tuple[np.ndarray, ViewStats | None]:
+        """prepared: the scene (drsplat.raster.PreparedScene, means [N, 3] float64)."""
+        stats = None
+        if self.reject:
+            if out.median_ids is None:
+                raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
+            stats, self._scratch = surface_stats(self.geometry, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
+        if self.weighting == "paper":
+            return out.weights, stats
+        means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
             from drsplat.raster import project_gaussians
 
             projected = project_gaussians(prepared, camera)
-        if self.reject:
-            if out.median_ids is None:
-                raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
-            self._scratch = surface_stats(self.geometry, camera, out.ids, out.weights, out.median_ids, self.support, scratch=self._scratch)
-        if self.weighting == "paper":
-            return out.weights
-        means2d = projected.means2d if projected is not None else np.zeros((0, 2))
-        conics = projected.conics if projected is not None else np.zeros((0, 3))
+            means2d, conics = projected.means2d, projected.conics
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
-        return self._buffer
+        return self._buffer, stats
+
+
+class Aggregator:
+    """A mode's state in one registration: its per-view `hook` (None for "paper": the view's w is
+    used as it is), the folded statistics (`add` per view, in view order) and `finish` on the sums."""
+
+    def __init__(self, mode: str, scene):
+        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
+        self.mode = mode
+        self.weighting, self.reject = split_mode(mode)
+        self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
+        self.hook = None if mode == "paper" else ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None)
+        self.num_rejected = 0
+        self._rejected: np.ndarray | None = None
+
+    @property
+    def needs_median(self) -> bool:
+        return self.reject
+
+    def add(self, stats: ViewStats | None) -> None:
+        """Fold one view's statistics (from the hook's second output) into the running support."""
+        if self.reject:
+            if stats is None:
+                raise ValueError(f"--aggregate {self.mode}: a view came without its rejection statistics")
+            self.support.add(stats)
 
     def finish(self, F: np.ndarray, W: np.ndarray, start: int = 0) -> int:
         """Post-step on the sums of Gaussians start .. start + B (all of them, or a block when

@@ -132,10 +132,11 @@ def _set_threads() -> None:
 # ----------------------------------------------------------------------------- registration
 
 
-def _views_task(prepared, items: list, topk: int) -> tuple[list[ViewPairs], int, int]:
+def _views_task(prepared, items: list, topk: int, hook=None) -> tuple[list[ViewPairs], int, int]:
     """Ray task: the ViewPairs of a chunk of views, this worker's pid and peak RSS (bytes).
 
-    items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)].
+    items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)]. hook: an aggregation mode's
+    per-view hook (drsplat.aggregate.ViewHook) or None; its statistics travel in ViewPairs.stats.
     """
     import os
     import resource
@@ -147,7 +148,8 @@ def _views_task(prepared, items: list, topk: int) -> tuple[list[ViewPairs], int,
     out = None
     results = []
     for cam, mask_ids, feats, nonfinite in items:
-        view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out)
+        view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, weights=hook,
+                                       median=hook is not None and hook.needs_median)
         view.num_nonfinite = nonfinite
         results.append(view)
     return results, os.getpid(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
@@ -166,7 +168,12 @@ class RayExecutor:
         self.views_per_task = max(1, int(views_per_task))
         self._task = ray.remote(num_cpus=cpus_per_task, max_retries=TASK_RETRIES)(_views_task)
         self.worker_peak_rss: dict[int, int] = {}  # pid -> peak resident bytes, as reported by its tasks
+        self._hook = None
         log.info("Ray: %d worker task(s) at once on %s", self.workers, "a local instance" if self._owns and not address else address)
+
+    def set_hook(self, hook) -> None:
+        """Run an aggregation mode's per-view hook (drsplat.aggregate.ViewHook) on the workers."""
+        self._hook = hook
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
         """The ViewPairs of `views`, in order (tasks run out of order; results are reordered)."""
@@ -178,6 +185,7 @@ class RayExecutor:
         if not chunks:
             return
         geometry = ray.put(prepared)
+        hook = ray.put(self._hook)  # the mode's RayGeometry goes to the object store once, like the scene
         pending: dict = {}
         done: dict[int, list[ViewPairs]] = {}
         submitted = 0
@@ -185,7 +193,7 @@ class RayExecutor:
             for index in range(len(chunks)):
                 while submitted < len(chunks) and len(pending) < self.workers:
                     items = [(cam, *load_view_features(features_dir, cam, level)) for cam in chunks[submitted]]
-                    pending[self._task.remote(geometry, items, topk)] = submitted
+                    pending[self._task.remote(geometry, items, topk, hook)] = submitted
                     submitted += 1
                 while index not in done:
                     ready, _ = ray.wait(list(pending), num_returns=1)
@@ -197,7 +205,7 @@ class RayExecutor:
         finally:
             for ref in pending:
                 ray.cancel(ref, force=True)
-            del geometry
+            del geometry, hook
 
     def close(self) -> None:
         if self._owns:

@@ -50,6 +50,8 @@ class ViewPairs:
     used: [U] int32 masks that cover at least one pixel (for training a scene codebook).
     num_pairs: contributing (Gaussian, pixel) pairs; num_nonfinite: masks dropped.
     raster_seconds / coalesce_seconds: where the time went (not stored in the log).
+    stats: the aggregation mode's per-view statistics (drsplat.aggregate.ViewStats), or None
+    (not stored in the log: a resume reads them from their own snapshot).
     """
 
     name: str
@@ -62,6 +64,7 @@ class ViewPairs:
     num_nonfinite: int = 0
     raster_seconds: float = 0.0
     coalesce_seconds: float = 0.0
+    stats: object | None = None
 
     @property
     def num_distinct(self) -> int:

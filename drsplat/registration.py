@@ -410,11 +410,11 @@ def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.nd
         out = render(prepared, cam, topk, out)
         out = out.numpy() if hasattr(out, "numpy") else out  # a torch engine's output comes back to the host
     t1 = time.perf_counter()
-    view_weights = out.weights if weights is None else weights(prepared, cam, out)
+    view_weights, stats = (out.weights, None) if weights is None else weights(prepared, cam, out)
     g, m, w, pairs = coalescer.coalesce(out.ids, view_weights, mask_ids, feats.shape[0])
     used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
     t2 = time.perf_counter()
-    return ViewPairs(cam.name, feats, g, m, w, used, pairs, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1), out
+    return ViewPairs(cam.name, feats, g, m, w, used, pairs, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1, stats=stats), out
 
 
 class LocalExecutor:
@@ -422,9 +422,9 @@ class LocalExecutor:
 
     render: (prepared, camera, topk, previous output) -> output with .ids / .weights [H, W, k]
     (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry);
-    weights: (prepared, camera, output) -> [H, W, k] weights to accumulate (the --aggregate hook;
-    default: the rasterizer's w = T·α); median: rasterize with the median Gaussians (what
-    `weights` may read, numba only).
+    weights: (prepared, camera, output) -> ([H, W, k] weights to accumulate, per-view statistics or
+    None): the --aggregate hook (drsplat.aggregate.ViewHook; default: the rasterizer's w = T·α);
+    median: rasterize with the median Gaussians (what `weights` may read, numba only).
     """
 
     def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None,
@@ -668,20 +668,27 @@ def start_aggregation(aggregate: str, scene: GaussianScene, plog: PairLog | None
 
     if aggregate != "paper" and engine != "numba":
         raise ValueError(f"--aggregate {aggregate} needs the numba engine (its kernels take numpy arrays), not {engine}")
-    if aggregate != "paper" and executor is not None:  # the mode's hook lives in the executor built here
-        raise DrsplatError(f"--aggregate {aggregate} runs in this process only (not with --ray); use --aggregate paper on a cluster")
     aggregator = Aggregator(aggregate, scene)
+    if aggregator.hook is not None and executor is not None:  # views computed elsewhere run the mode's hook there
+        if not hasattr(executor, "set_hook"):
+            raise DrsplatError(f"--aggregate {aggregate} needs an executor that runs its per-view hook ({type(executor).__name__} does not)")
+        executor.set_hook(aggregator.hook)
     stats_path = aggregate_stats_path(checkpoint) if checkpoint is not None and aggregator.state() else None
     if stats_path is not None:
         _resume_aggregate(plog, stats_path, aggregator)
     if executor is None:
-        executor = local_executor(engine, device, weights=None if aggregate == "paper" else aggregator.view_weights, median=aggregator.needs_median)
+        executor = local_executor(engine, device, weights=aggregator.hook, median=aggregator.needs_median)
     return aggregator, stats_path, executor
 
 
-def save_aggregation(stats_path: Path | None, done: int, resumed: int, every: int, aggregator) -> None:
-    """Snapshot the mode's statistics every `every` new views (beside the pair log, which holds the sums)."""
-    if stats_path is not None and done > resumed and done % max(1, every) == 0:
+def track_aggregation(aggregator, view: ViewPairs, done: int, resumed: int, stats_path: Path | None, every: int) -> None:
+    """After the `done`-th view: fold a newly computed view's statistics (the first `resumed`
+    views are replayed from the log and already in the resumed snapshot), and snapshot them every
+    `every` new views beside the pair log, which holds the sums."""
+    if done <= resumed:
+        return
+    aggregator.add(view.stats)
+    if stats_path is not None and done % max(1, every) == 0:
         _save_aggregate(stats_path, done, aggregator)
 
 
@@ -772,7 +779,7 @@ def register_scene(
     def consume(view: ViewPairs) -> None:
         nonlocal acc, accumulate_s, accumulate_cpu, allocate_s
         totals.add(view, features_dir, collect_embeddings)
-        save_aggregation(stats_path, totals.done, resumed, checkpoint_every, aggregator)
+        track_aggregation(aggregator, view, totals.done, resumed, stats_path, checkpoint_every)
         if acc is None:
             t0 = time.perf_counter()
             acc = new_accumulator(scene.num_gaussians, totals.dim)

@@ -50,9 +50,9 @@ from drsplat.registration import (
     open_checkpoint,
     prepare_geometry,
     run_views,
-    save_aggregation,
     select_views,
     start_aggregation,
+    track_aggregation,
 )
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
 from drsplat.utils import CancelToken, atomic_path, progress
@@ -254,7 +254,7 @@ def register_streaming(
 
         def consume(view) -> None:
             totals.add(view, features_dir, codebook == "scene")
-            save_aggregation(stats_path, totals.done, resumed, CHECKPOINT_EVERY, aggregator)
+            track_aggregation(aggregator, view, totals.done, resumed, stats_path, CHECKPOINT_EVERY)
 
         prepared = executor.prepare(scene) if hasattr(executor, "prepare") else prepare_geometry(scene)
         run_views(prepared, views, features_dir, level, topk, consume, plog=plog, executor=executor, checkpoint_every=CHECKPOINT_EVERY,

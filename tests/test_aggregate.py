@@ -104,9 +104,12 @@ def test_surface_stats_kernel_agrees_with_reference(case):
     scratch = None
     for _ in range(3):  # several views accumulate, the scratch buffers are reused
         geometry, cam, ids, weights, median = _random_stats_inputs(rng, case, k=1 if case == "k1" else 12)
-        scratch = surface_stats(geometry, cam, ids, weights, median, got, scratch=scratch)
-        surface_stats_reference(geometry, cam, ids, weights, median, want)
-        assert not scratch.mark.any() and not scratch.view_total.any()  # scratch left clean for the next view
+        stats, scratch = surface_stats(geometry, cam, ids, weights, median, scratch=scratch)
+        ref = surface_stats_reference(geometry, cam, ids, weights, median)
+        assert sorted(stats.ids.tolist()) == ref.ids.tolist()  # each Gaussian seen once
+        got.add(stats)
+        want.add(ref)
+        assert not scratch.mark.any() and not scratch.view_total.any() and not scratch.view_peak.any()  # clean for the next view
     for name, g in got.arrays().items():
         np.testing.assert_allclose(g, want.arrays()[name], rtol=1e-9, atol=1e-12, err_msg=name)
     assert (got.front <= got.total + 1e-12).all() and (got.peak <= got.total + 1e-12).all()
@@ -145,7 +148,8 @@ def test_ray_depth_is_the_plane_of_a_flat_gaussian_and_the_projection_of_a_round
         support = SurfaceSupport.zeros(1)
         one = np.zeros((30, 40, 2), np.int32)
         one[..., 1] = -1
-        scratch = surface_stats(geometry, cam, one, np.full((30, 40, 2), 0.1, np.float32), np.zeros((30, 40), np.int32), support)
+        stats, scratch = surface_stats(geometry, cam, one, np.full((30, 40, 2), 0.1, np.float32), np.zeros((30, 40), np.int32))
+        support.add(stats)
         assert not scratch.flags[:, 0].any()  # a Gaussian is never in front of itself
         assert support.total[0] == pytest.approx(0.1 * 30 * 40) and support.views_seen[0] == 1 and np.isfinite(ref).all()
 
@@ -174,7 +178,7 @@ def test_median_gaussian_of_a_rendered_floater_and_wall():
     assert n - 1 in out.ids[12, 16]  # the floater contributes there, in front of the surface
     assert out.median_ids[0, 0] == -1  # nothing there
     sup = SurfaceSupport.zeros(n)
-    surface_stats(RayGeometry.from_scene(scene), cam, out.ids, out.weights, out.median_ids, sup)
+    sup.add(surface_stats(RayGeometry.from_scene(scene), cam, out.ids, out.weights, out.median_ids)[0])
     assert sup.front[n - 1] == pytest.approx(sup.total[n - 1]) and sup.total[n - 1] > 0  # all its weight is in front
     assert sup.views_front[n - 1] == sup.views_seen[n - 1] == 1
     # the wall is not in front of itself (only its rim counts, where the opacity stays below ½: D = +inf)
@@ -206,7 +210,9 @@ def test_rejection_on_a_rendered_wall():
     for eye in ([0, 0, -1.0], [0.6, 0.2, -1.0], [-0.5, -0.4, -0.8]):
         cam = look_at_camera(eye, [0, 0, 3.0], 64, 48)
         out = rasterize(scene, cam, topk=8, with_median=agg.needs_median)
-        np.testing.assert_array_equal(agg.view_weights(scene, cam, out), out.weights)  # weights untouched
+        weights, stats = agg.hook(scene, cam, out)
+        np.testing.assert_array_equal(weights, out.weights)  # weights untouched
+        agg.add(stats)
     drop = agg.support.rejected()
     assert drop[-2] and not drop[-1] and not drop[:-2].any()
 
@@ -337,10 +343,27 @@ def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
     assert rej.in_memory > paper.in_memory
 
 
-def test_non_paper_modes_refuse_an_outside_executor(hard_tiny):
-    """A cluster executor computes views elsewhere, without the mode's per-view hook: one clear error."""
+def test_non_paper_modes_refuse_an_executor_without_their_hook(hard_tiny):
+    """An executor that cannot run the mode's per-view hook where it renders: one clear error."""
     from drsplat.errors import DrsplatError
 
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    with pytest.raises(DrsplatError, match="not with --ray"):
+    with pytest.raises(DrsplatError, match="needs an executor that runs its per-view hook"):
         register_scene(scene, cams, hard_tiny / "features", show_progress=False, aggregate=RECOMMENDED, executor=object())
+
+
+def test_view_hook_survives_pickling(hard_tiny):
+    """The hook travels to Ray workers: a pickled copy gives the same weights and statistics."""
+    import pickle
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    hook = Aggregator("anchor-reject", scene).hook
+    out = rasterize(scene, cams[0], 10, with_median=True)
+    w1, s1 = hook(scene, cams[0], out)
+    w1 = w1.copy()
+    copy = pickle.loads(pickle.dumps(hook))
+    assert copy._buffer is None and copy._scratch is None  # buffers are not shipped
+    w2, s2 = copy(scene, cams[0], out)
+    np.testing.assert_array_equal(w1, w2)
+    for name in ("ids", "peak", "total", "front"):
+        np.testing.assert_array_equal(getattr(s1, name), getattr(s2, name))

@@ -75,6 +75,22 @@ def test_ray_registration_equals_local_in_memory_and_streamed(cluster, tiny, tmp
     assert a.read_bytes() == b.read_bytes()
 
 
+def test_ray_registration_with_floater_rejection_equals_local(cluster, tmp_path_factory, tmp_path):
+    """--aggregate on a cluster: the workers run the mode's hook, the driver folds their per-view
+    statistics in view order: the same sums, rejections and file as the local run."""
+    data = write_dataset(tmp_path_factory.mktemp("hard") / "data", "hard-tiny", 0, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    local = register_scene(scene, cams, data / "features", show_progress=False, aggregate="anchor-reject")
+    on_ray = register_scene(scene, cams, data / "features", show_progress=False, aggregate="anchor-reject", executor=_executor(workers=2))
+    assert on_ray.num_rejected == local.num_rejected > 0
+    np.testing.assert_array_equal(on_ray.weights, local.weights)
+    np.testing.assert_array_equal(on_ray.features, local.features)
+    a, b = tmp_path / "local.ply", tmp_path / "ray.ply"
+    register_to_ply(scene, cams, data / "features", a, RegisterOptions(aggregate="reject"), show_progress=False)
+    register_to_ply(scene, cams, data / "features", b, RegisterOptions(aggregate="reject", ray="auto", block_size=512), show_progress=False)
+    assert a.read_bytes() == b.read_bytes()
+
+
 @pytest.mark.slow
 def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
