@@ -61,8 +61,8 @@ their centre pixels) are kept. The view vote keeps surface Gaussians whose weigh
 by one close-up view in which a box edge puts them in front of a neighbour's plane (measured on
 the hard rooms: 0-17 labelled Gaussians rejected per room by weight alone, 0-2 with the vote,
 for 1-3% fewer floaters rejected).
-Memory: five [N] arrays for the statistics (32 bytes per Gaussian), per-view scratch (21 bytes)
-and the scene's Σ⁻¹ and means ([N, 9] float64, `RayGeometry`); nothing per (Gaussian, mask).
+Memory: five [N] arrays for the statistics (32 bytes per Gaussian), per-view scratch (29 bytes)
+and the scene's means, Σ⁻¹ and reach (80 bytes, `RayGeometry`); nothing per (Gaussian, mask).
 """
 
 from __future__ import annotations
@@ -74,13 +74,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE
+from drsplat.defaults import AGGREGATE_MODES
 
 log = logging.getLogger(__name__)
 
 WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")
-MODES = AGGREGATE_MODES  # names owned by drsplat.defaults (argument parsers read them without numba)
-DEFAULT_MODE = DEFAULT_AGGREGATE
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
@@ -93,8 +91,8 @@ _PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the
 
 def split_mode(mode: str) -> tuple[str, bool]:
     """(weighting, reject) of a mode name; ValueError for an unknown mode."""
-    if mode not in MODES:
-        raise ValueError(f"unknown aggregation mode {mode!r} (choose from {', '.join(MODES)})")
+    if mode not in AGGREGATE_MODES:
+        raise ValueError(f"unknown aggregation mode {mode!r} (choose from {', '.join(AGGREGATE_MODES)})")
     if mode == "reject":
         return "paper", True
     if mode.endswith("-reject"):
@@ -227,14 +225,6 @@ class RayGeometry:
         return cls(np.where(bad[:, None], 0.0, means), np.ascontiguousarray(packed), np.where(bad, 0.0, reach))
 
 
-def _pixel_rays(camera, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """(origin [3], world directions [H·W, 3] scaled so that camera z advances by 1 per unit)."""
-    rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    ys, xs = np.mgrid[0:height, 0:width]
-    r = np.stack([(xs + 0.5 - camera.cx) / camera.fx, (ys + 0.5 - camera.cy) / camera.fy, np.ones((height, width))], axis=-1)
-    return -rot.T @ trans, r.reshape(-1, 3) @ rot
-
-
 def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.ndarray:
     """Camera depth at which pixel p's ray meets Gaussian ids[p, s] (numpy reference).
 
@@ -250,7 +240,9 @@ def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.n
     Returns [H, W, k] float64, +inf where ids < 0.
     """
     h, w, k = ids.shape
-    origin, dirs = _pixel_rays(camera, h, w)
+    if (h, w) != (camera.height, camera.width):
+        raise ValueError(f"top-k lists of {w}x{h} pixels do not match the {camera.width}x{camera.height} camera")
+    origin, dirs = camera.pixel_rays()
     g = np.maximum(ids.reshape(-1, k), 0)
     p = geometry.precisions[g]  # [P, k, 6]
     d = dirs[:, None, :]
@@ -521,15 +513,11 @@ class Aggregator:
     def __init__(self, mode: str, scene):
         """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
         self.mode = mode
-        self.weighting, self.reject = split_mode(mode)
+        self.reject = split_mode(mode)[1]
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
         self.hook = None if mode == "paper" else ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None)
         self.num_rejected = 0
         self._rejected: np.ndarray | None = None
-
-    @property
-    def needs_median(self) -> bool:
-        return self.reject
 
     def add(self, stats: ViewStats | None) -> None:
         """Fold one view's statistics (from the hook's second output) into the running support."""
@@ -568,7 +556,7 @@ class Aggregator:
         kept = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
-            views += (21 + 80) * num_gaussians + pixels * topk + pixels * 4
+            views += (29 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
         return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:

@@ -139,20 +139,19 @@ def _views_task(prepared, items: list, topk: int, hook=None) -> tuple[list[ViewP
     per-view hook (drsplat.aggregate.ViewHook) or None; its statistics travel in ViewPairs.stats.
     """
     import os
-    import resource
 
     from drsplat.registration import Coalescer, compute_view_pairs
+    from drsplat.streaming import peak_rss
 
     _set_threads()
     coalescer = Coalescer(prepared.num_gaussians)
     out = None
     results = []
     for cam, mask_ids, feats, nonfinite in items:
-        view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, weights=hook,
-                                       median=hook is not None and hook.needs_median)
+        view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, weights=hook)
         view.num_nonfinite = nonfinite
         results.append(view)
-    return results, os.getpid(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return results, os.getpid(), peak_rss()
 
 
 class RayExecutor:

@@ -127,10 +127,9 @@ class TorchRasterOutput:
         """The same output as numpy arrays (a RasterOutput)."""
 
         def host(t):
-            return None if t is None else t.cpu().numpy()
+            return t.cpu().numpy() if isinstance(t, torch.Tensor) else t
 
-        return RasterOutput(host(self.ids), host(self.weights), host(self.rgb), host(self.depth), host(self.alpha), self.num_nonfinite,
-                            host(self.median_ids))
+        return RasterOutput(**{f.name: host(getattr(self, f.name)) for f in dataclasses.fields(self)})  # the same fields by name
 
 
 def _screen_space(ts: TorchScene, camera: Camera):

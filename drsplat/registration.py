@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
+import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -397,15 +398,16 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
 
 
 def compute_view_pairs(prepared, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, topk: int, coalescer: Coalescer, out=None,
-                       render: Callable | None = None, weights: Callable | None = None, median: bool = False):
+                       render: Callable | None = None, weights: Callable | None = None):
     """Rasterize one view (numba, or `render(prepared, cam, topk, out)`) and coalesce its pairs.
-    median: have the numba rasterizer return each pixel's median Gaussian too (for `weights`).
+    weights: the --aggregate hook (drsplat.aggregate.ViewHook) or None; the numba rasterizer also
+    returns each pixel's median Gaussian when the hook `needs_median`.
     Returns (ViewPairs, the raster buffers to reuse)."""
     from drsplat.raster import rasterize
 
     t0 = time.perf_counter()
     if render is None:
-        out = rasterize(prepared, cam, topk=topk, out=out, with_median=median)
+        out = rasterize(prepared, cam, topk=topk, out=out, with_median=getattr(weights, "needs_median", False))
     else:
         out = render(prepared, cam, topk, out)
         out = out.numpy() if hasattr(out, "numpy") else out  # a torch engine's output comes back to the host
@@ -423,15 +425,12 @@ class LocalExecutor:
     render: (prepared, camera, topk, previous output) -> output with .ids / .weights [H, W, k]
     (default: the numba rasterizer); prepare: scene -> what render takes (default: prepare_geometry);
     weights: (prepared, camera, output) -> ([H, W, k] weights to accumulate, per-view statistics or
-    None): the --aggregate hook (drsplat.aggregate.ViewHook; default: the rasterizer's w = T·α);
-    median: rasterize with the median Gaussians (what `weights` may read, numba only).
+    None): the --aggregate hook (drsplat.aggregate.ViewHook; default: the rasterizer's w = T·α).
     """
 
-    def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None,
-                 median: bool = False):
+    def __init__(self, render: Callable | None = None, prepare: Callable | None = None, weights: Callable | None = None):
         self._render = render
         self._weights = weights
-        self._median = median
         self.prepare = prepare or prepare_geometry
 
     def view_pairs(self, prepared, views: Sequence[Camera], features_dir: Path, level: int, topk: int) -> Iterator[ViewPairs]:
@@ -439,17 +438,16 @@ class LocalExecutor:
         out = None
         for cam in views:
             mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
-            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render, weights=self._weights,
-                                           median=self._median)
+            view, out = compute_view_pairs(prepared, cam, mask_ids, feats, topk, coalescer, out, render=self._render, weights=self._weights)
             view.num_nonfinite = nonfinite
             yield view
 
 
-def local_executor(engine: str = "numba", device: str = "cpu", weights: Callable | None = None, median: bool = False) -> LocalExecutor:
+def local_executor(engine: str = "numba", device: str = "cpu", weights: Callable | None = None) -> LocalExecutor:
     """The in-process executor rendering with `engine` on `device` (see `compute_engine`)."""
     if engine == "numba":
         compute_engine(engine, device)  # checks the device
-        return LocalExecutor(weights=weights, median=median)
+        return LocalExecutor(weights=weights)
     compute = compute_engine(engine, device)
     return LocalExecutor(render=compute.render, prepare=compute.prepare, weights=weights)
 
@@ -560,7 +558,6 @@ class ViewTotals:
     coalesce_seconds: float = 0.0
     dim: int | None = None
     embeddings: list[np.ndarray] = field(default_factory=list)
-    aggregate: dict[str, np.ndarray] = field(default_factory=dict)  # drsplat.aggregate statistics
 
     def add(self, view: ViewPairs, features_dir: Path, collect: bool) -> None:
         if self.dim is None:
@@ -677,7 +674,7 @@ def start_aggregation(aggregate: str, scene: GaussianScene, plog: PairLog | None
     if stats_path is not None:
         _resume_aggregate(plog, stats_path, aggregator)
     if executor is None:
-        executor = local_executor(engine, device, weights=aggregator.hook, median=aggregator.needs_median)
+        executor = local_executor(engine, device, weights=aggregator.hook)
     return aggregator, stats_path, executor
 
 
@@ -707,17 +704,37 @@ def _resume_aggregate(plog: PairLog | None, path: Path, aggregator) -> None:
         path.unlink(missing_ok=True)
         return
     try:
-        with np.load(path, allow_pickle=False) as data:
-            views = int(data["views"])
-            arrays = {k: data[k] for k in data.files if k != "views"}
-    except (OSError, ValueError, KeyError, EOFError) as exc:
+        views, arrays = _load_snapshot(path, aggregator.state())
+    except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
         log.warning("%s is missing or unreadable (%s); the aggregation statistics restart with the views", path, exc)
         views, arrays = 0, {}
-    expected = aggregator.state()
-    if views > len(plog.records) or set(arrays) != set(expected) or any(a.shape != expected[k].shape for k, a in arrays.items()):
+    if views > len(plog.records):  # the log was cut shorter than the snapshot: start over
         views, arrays = 0, {}
     plog.truncate(views)
     aggregator.load_state(arrays)
+
+
+def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:
+    """(views, arrays) of a statistics snapshot. Its members must be `views` (a number) and exactly
+    the arrays of `expected`, with their shapes and numeric dtypes: checked from the .npy headers
+    inside the zip before anything is read (a damaged or foreign file cannot make us allocate)."""
+    from drsplat.utils import read_npy_header
+
+    with zipfile.ZipFile(path) as archive:
+        members = {name.removesuffix(".npy"): name for name in archive.namelist()}
+        if set(members) != set(expected) | {"views"}:
+            raise ValueError(f"holds {sorted(members)}, expected {sorted(set(expected) | {'views'})}")
+        for name, member in members.items():
+            with archive.open(member) as f:
+                shape, dtype = read_npy_header(f)
+            want = () if name == "views" else expected[name].shape
+            if shape != want or dtype.kind not in "iuf":
+                raise ValueError(f"{name} has shape {shape} {dtype}, expected {want} numbers")
+    with np.load(path, allow_pickle=False) as data:
+        views = int(data["views"])
+        if views < 0:
+            raise ValueError(f"covers {views} views")
+        return views, {name: data[name] for name in expected}
 
 
 # ----------------------------------------------------------------------------- registration
@@ -756,7 +773,7 @@ def register_scene(
     engine, device: "numba" (CPU) or "torch" (CPU or CUDA) rasterizer (`compute_engine`); views are
     coalesced and summed by the numba kernels whatever renders them, so the pair log, streaming
     and Ray work with either engine.
-    aggregate: how pixel weights are turned into Gaussian features (drsplat.aggregate.MODES; "paper" = Dr. Splat;
+    aggregate: how pixel weights are turned into Gaussian features (drsplat.defaults.AGGREGATE_MODES; "paper" = Dr. Splat;
     the other modes run locally on the numba engine, in memory; the statistics of floater
     rejection are snapshotted beside the log every `checkpoint_every` views).
     Returns a RegistrationResult with f_i = normalize(Σ_j w_ij f_j) (math in the module docstring).

@@ -86,26 +86,25 @@ def format_size(n: float) -> str:
     return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
 
 
-def available_memory() -> int:
-    """MemAvailable of /proc/meminfo in bytes (0 when unknown)."""
+def _proc_bytes(path: str, key: str) -> int:
+    """The `key:` line of a /proc file (in kB there) in bytes; 0 when unknown."""
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
     return 0
+
+
+def available_memory() -> int:
+    """MemAvailable of /proc/meminfo in bytes (0 when unknown)."""
+    return _proc_bytes("/proc/meminfo", "MemAvailable")
 
 
 def current_rss() -> int:
     """Resident memory of this process now (VmRSS), in bytes."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return 0
+    return _proc_bytes("/proc/self/status", "VmRSS")
 
 
 def peak_rss() -> int:
@@ -232,7 +231,7 @@ def register_streaming(
     """Register and write the registered PLY `out` in Gaussian blocks of `block_size` (module docstring).
 
     executor: None (views rasterized in this process with `engine` on `device`) or a RayExecutor
-    (paper mode only). aggregate: the aggregation mode (drsplat.aggregate); its per-Gaussian
+    (which runs the mode's per-view hook on its workers). aggregate: the aggregation mode (drsplat.aggregate); its per-Gaussian
     statistics stay in memory and are snapshotted beside the pair log.
 
     codebook: "none", "scene" (trained on the scene's mask embeddings) or a loaded

@@ -801,23 +801,13 @@ def instance_map(ids: np.ndarray, weights: np.ndarray, instances: np.ndarray, nu
     return np.where(votes.max(axis=-1) > 0, best, -1).astype(np.int32)
 
 
-RAY_NEAR = 0.01  # hits closer than this to the camera (camera z) are ignored, as the rasterizer's near plane
-
-
-def pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(origin [3], directions [H·W, 3]) of the rays through the pixel centres (x + 0.5, y + 0.5),
-    row-major; each direction has camera z = 1, so a ray parameter t is the camera depth."""
-    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width]
-    d_cam = np.stack([(xs.ravel() + 0.5 - camera.cx) / camera.fx, (ys.ravel() + 0.5 - camera.cy) / camera.fy, np.ones(xs.size)], 1)
-    rot = np.asarray(camera.R, np.float64)
-    return camera.center.astype(np.float64), d_cam @ rot
-
-
-def ray_hit_depth(spec: ObjectSpec, origin: np.ndarray, dirs: np.ndarray, near: float = RAY_NEAR) -> np.ndarray:
-    """[R] ray parameter t ≥ near of the first hit of each ray origin + t·dirs with the solid of
+def ray_hit_depth(spec: ObjectSpec, origin: np.ndarray, dirs: np.ndarray, near: float | None = None) -> np.ndarray:
+    """[R] ray parameter t ≥ near (default: the rasterizer's near plane) of the first hit of each ray origin + t·dirs with the solid of
     `spec` (+inf on a miss). Boxes and plates: the axis-aligned slab test on the whole box;
     spheres: |o + t·d - c| = r; cylinders (axis-aligned, closed): side |radial| = r within the
     height, caps within the radius; panels: the two-sided rectangle."""
+    if near is None:
+        from drsplat.raster import NEAR as near
     p = spec.params
     c = np.asarray(p["center"], np.float64)
     o = origin - c
@@ -870,7 +860,7 @@ def _first_root(a: np.ndarray, b: np.ndarray, c: float, near: float) -> np.ndarr
 def ray_cast_instances(specs: list[ObjectSpec], camera: Camera) -> np.ndarray:
     """[H, W] int32 instance whose true surface the ray through the pixel centre hits first (index
     into `specs`), -1 where it hits none: the objects' exact silhouettes ("geometry" masks)."""
-    origin, dirs = pixel_rays(camera)
+    origin, dirs = camera.pixel_rays()
     best_t = np.full(len(dirs), np.inf)
     best = np.full(len(dirs), -1, np.int32)
     for k, spec in enumerate(specs):

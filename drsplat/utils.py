@@ -217,6 +217,15 @@ def host_reachable(url: str, timeout: float = 3.0) -> bool:
 MAX_NPY_HEADER_BYTES = 1 << 16
 
 
+def read_npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) from the .npy header at the position of the binary file object `f` (left at
+    the data); numpy's errors for a bad magic or header pass through (its text is not trusted)."""
+    version = np.lib.format.read_magic(f)
+    reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, _fortran, dtype = reader(f, max_header_size=MAX_NPY_HEADER_BYTES)
+    return shape, dtype
+
+
 def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
     """(shape, dtype, data offset) of an .npy file, read from its header only.
 
@@ -228,9 +237,7 @@ def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
         raise InputError(path, "file not found" if not path.exists() else "is not a file")
     try:
         with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, _fortran, dtype = reader(f, max_header_size=MAX_NPY_HEADER_BYTES)
+            shape, dtype = read_npy_header(f)
             offset = f.tell()
         size = path.stat().st_size
     except OSError as exc:

@@ -13,7 +13,6 @@ import pytest
 
 from drsplat.aggregate import (
     ANCHOR_GAIN,
-    MODES,
     WEIGHTINGS,
     Aggregator,
     RayGeometry,
@@ -27,6 +26,7 @@ from drsplat.aggregate import (
     view_weights_reference,
 )
 from drsplat.cameras import load_cameras, look_at_camera
+from drsplat.defaults import AGGREGATE_MODES as MODES
 from drsplat.errors import Cancelled
 from drsplat.raster import project_gaussians, rasterize
 from drsplat.registration import register_scene
@@ -209,7 +209,7 @@ def test_rejection_on_a_rendered_wall():
     agg = Aggregator("reject", scene)
     for eye in ([0, 0, -1.0], [0.6, 0.2, -1.0], [-0.5, -0.4, -0.8]):
         cam = look_at_camera(eye, [0, 0, 3.0], 64, 48)
-        out = rasterize(scene, cam, topk=8, with_median=agg.needs_median)
+        out = rasterize(scene, cam, topk=8, with_median=agg.hook.needs_median)
         weights, stats = agg.hook(scene, cam, out)
         np.testing.assert_array_equal(weights, out.weights)  # weights untouched
         agg.add(stats)
@@ -367,3 +367,42 @@ def test_view_hook_survives_pickling(hard_tiny):
     np.testing.assert_array_equal(w1, w2)
     for name in ("ids", "peak", "total", "front"):
         np.testing.assert_array_equal(getattr(s1, name), getattr(s2, name))
+
+
+@pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views"])
+def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
+    """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
+    fresh one (its headers are checked before anything is read, so a huge shape cannot allocate)."""
+    import io
+    import zipfile
+
+    from drsplat.registration import aggregate_stats_path
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    fresh = register_scene(scene, cams, hard_tiny / "features", topk=10, show_progress=False, aggregate=RECOMMENDED)
+    ckpt, token = tmp_path / "run.log", CancelToken()
+    with pytest.raises(Cancelled):
+        register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, checkpoint_every=2, cancel=token,
+                       on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False, aggregate=RECOMMENDED)
+    snapshot = aggregate_stats_path(ckpt)
+    with np.load(snapshot) as data:
+        arrays = {k: data[k] for k in data.files}
+    if damage == "not a zip":
+        snapshot.write_bytes(b"PK\x03\x04 not a zip")
+    elif damage == "views is an array":
+        np.savez(snapshot.open("wb"), **{**arrays, "views": np.arange(3)})
+    elif damage == "negative views":
+        np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
+    else:
+        header = io.BytesIO()
+        np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+        with zipfile.ZipFile(snapshot, "w") as archive:
+            for name, value in arrays.items():
+                buf = io.BytesIO()
+                np.save(buf, value)
+                archive.writestr(name + ".npy", header.getvalue() if name == "peak" else buf.getvalue())
+    with caplog.at_level("WARNING"):
+        resumed = register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, show_progress=False, aggregate=RECOMMENDED)
+    assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
+    np.testing.assert_array_equal(resumed.weights, fresh.weights)
+    assert sum("aggregate.npz is missing or unreadable" in r.getMessage() for r in caplog.records) == 1

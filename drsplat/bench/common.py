@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import platform
-import resource
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -23,7 +22,9 @@ def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) 
 
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far, in MB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    from drsplat.streaming import peak_rss
+
+    return peak_rss() / 2**20
 
 
 def machine_line() -> str:

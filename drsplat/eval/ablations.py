@@ -260,7 +260,7 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
                      cancel: CancelToken | None = None, mask_source: str | None = None) -> AblationResult:
     """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS).
     mask_source: every preset's oracle masks from this source (None: each preset's own)."""
-    from drsplat.aggregate import MODES
+    from drsplat.defaults import AGGREGATE_MODES as MODES
     from drsplat.synthetic import PRESETS
 
     modes = tuple(modes or MODES)
@@ -442,7 +442,7 @@ def run_ablate(args: argparse.Namespace) -> int:
     root = args.out_dir / "datasets"
     preset = args.preset or "tiny"
     if args.ablation == "aggregate":
-        from drsplat.aggregate import MODES
+        from drsplat.defaults import AGGREGATE_MODES as MODES
         from drsplat.synthetic import PRESETS
 
         presets = tuple(p.strip() for p in args.preset.split(",")) if args.preset else AGGREGATE_PRESETS

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.utils import atomic_path, load_npy, save_npy_atomic
+from drsplat.utils import atomic_path, load_npy, npy_header, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL
 
 log = logging.getLogger(__name__)
@@ -73,20 +73,6 @@ def write_features(features_dir: str | Path, stem: str, seg: np.ndarray, feats: 
     save_npy_atomic(seg_path(features_dir, stem), np.ascontiguousarray(seg, dtype=dtype))
 
 
-def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
-    """(shape, dtype, expected file size) from an .npy header, without reading the data."""
-    with open(path, "rb") as f:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-        else:
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-        offset = f.tell()
-    if dtype.hasobject:
-        raise ValueError("object arrays are not feature files")
-    return shape, dtype, offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-
-
 def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
     """True if both files of `stem` exist, have readable headers, full data and matching shapes.
 
@@ -95,10 +81,11 @@ def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
     """
     paths = seg_path(features_dir, stem), feat_path(features_dir, stem)
     try:
-        (s_shape, s_dtype, s_size), (f_shape, f_dtype, f_size) = (_npy_header(p) for p in paths)
-        if paths[0].stat().st_size != s_size or paths[1].stat().st_size != f_size:
-            return False
-    except (OSError, ValueError, SyntaxError, EOFError):
+        (s_shape, s_dtype, s_offset), (f_shape, f_dtype, f_offset) = (npy_header(p) for p in paths)
+        for path, shape, dtype, offset in ((paths[0], s_shape, s_dtype, s_offset), (paths[1], f_shape, f_dtype, f_offset)):
+            if path.stat().st_size != offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:  # trailing bytes: not ours
+                return False
+    except (InputError, OSError):
         return False
     kinds_ok = s_dtype.kind in "iuf" and f_dtype.kind in "fiu"
     return kinds_ok and len(s_shape) in (2, 3) and len(f_shape) == 2 and f_shape[1] > 0
