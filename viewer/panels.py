@@ -96,10 +96,8 @@ class QueryPanel:
         if self.focus_requested:
             imgui.set_keyboard_focus_here()
             self.focus_requested = False
-        imgui.set_next_item_width(-70)
-        entered, self.text = imgui.input_text_with_hint("##text", "text query (/ to focus)", self.text, imgui.InputTextFlags_.enter_returns_true.value)
-        imgui.same_line()
-        if imgui.button("search") or entered:
+        self.text, submitted = submit_field("##text", "text query (/ to focus)", self.text, "search", -70)
+        if submitted:
             state.run_text_query(self.text)
         if state.oracle is not None:
             imgui.text_colored(NOTE_COLOR, "oracle labels (ground-truth vectors, not CLIP):")
@@ -140,10 +138,8 @@ class QueryPanel:
         imgui.text_wrapped(state.encoder_status)
         _, state.negatives = imgui.input_text_with_hint("negatives", "comma-separated phrases", state.negatives)
         _, self.click_to_query = imgui.checkbox("click to query (or ctrl+click)", self.click_to_query)
-        imgui.set_next_item_width(-90)
-        entered, self.embedding_path = imgui.input_text_with_hint("##emb", "Q.npy embedding file", self.embedding_path, imgui.InputTextFlags_.enter_returns_true.value)
-        imgui.same_line()
-        if imgui.button("query file") or entered:
+        self.embedding_path, submitted = submit_field("##emb", "Q.npy embedding file", self.embedding_path, "query file", -90)
+        if submitted:
             state.run_embedding_query(self.embedding_path)
 
 
@@ -153,10 +149,8 @@ class ScenePanel:
 
     def draw(self, host: PanelHost) -> None:
         state = host.state
-        imgui.set_next_item_width(-110)
-        entered, self.open_path = imgui.input_text_with_hint("##open", "scene.ply (or drop a PLY)", self.open_path, imgui.InputTextFlags_.enter_returns_true.value)
-        imgui.same_line()
-        if imgui.button("open") or entered:
+        self.open_path, submitted = submit_field("##open", "scene.ply (or drop a PLY)", self.open_path, "open", -110)
+        if submitted:
             host.open_scene(self.open_path)
         imgui.same_line()
         if imgui.button("..."):
@@ -251,10 +245,8 @@ class DisplayPanel:
             imgui.color_button("highlight", imgui.ImVec4(*HIGHLIGHT_RGB, 1.0))
             imgui.same_line()
             imgui.text("above threshold (H toggles)")
-        imgui.set_next_item_width(-80)
-        entered, self.segment_text = imgui.input_text_with_hint("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), self.segment_text, imgui.InputTextFlags_.enter_returns_true.value)
-        imgui.same_line()
-        if imgui.button("segment") or entered:
+        self.segment_text, submitted = submit_field("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), self.segment_text, "segment", -80)
+        if submitted:
             names = [s.strip() for s in self.segment_text.split(",") if s.strip()]
             state.run_segmentation(names or None)
         if state.segmentation is not None:
@@ -296,6 +288,16 @@ class RegistrationPanel:
         elif imgui.button("register"):
             codebook = self.codebook_path if self.codebook == "file" else self.codebook
             state.start_registration(self.output, self.topk, self.level, codebook)
+
+
+def submit_field(widget_id: str, hint: str, value: str, button: str, width: float) -> tuple[str, bool]:
+    """A text field (`width` as imgui's set_next_item_width) and a button beside it: (the edited
+    text, whether it was submitted by the button or by Enter in the field)."""
+    imgui.set_next_item_width(width)
+    entered, value = imgui.input_text_with_hint(widget_id, hint, value, imgui.InputTextFlags_.enter_returns_true.value)
+    imgui.same_line()
+    clicked = imgui.button(button)
+    return value, bool(clicked or entered)
 
 
 def draw_message(level: str, text: str) -> None:
