@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
+from drsplat.scene import quat_to_rotmat
+from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -155,8 +157,6 @@ class ColmapModel:
 
 def qvec_to_rotmat(qvec: np.ndarray) -> np.ndarray:
     """[4] (w, x, y, z) -> [3, 3] rotation (normalised first)."""
-    from drsplat.scene import quat_to_rotmat
-
     q = np.asarray(qvec, dtype=np.float64)
     return quat_to_rotmat((q / np.linalg.norm(q))[None])[0]
 
@@ -765,8 +765,6 @@ def write_transforms_json(cameras: list[Camera], path: str | Path, image_root: s
     """Write cameras as a nerfstudio-style transforms.json (OpenGL c2w, per-frame intrinsics), atomically."""
     import json
     import os
-
-    from drsplat.utils import atomic_path
 
     path = Path(path)
     root = Path(image_root) if image_root is not None else path.parent

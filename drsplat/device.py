@@ -6,10 +6,10 @@ nothing; `resolve_device("cpu")` does not import torch at all.
 
 from __future__ import annotations
 
+from drsplat.defaults import ENGINES
 from drsplat.errors import DrsplatError
 
 DEVICES = ("auto", "cpu", "cuda")
-ENGINES = ("numba", "torch")
 
 
 def resolve_device(device: str = "auto") -> str:

@@ -21,6 +21,7 @@ import numpy as np
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
 from drsplat.lang import LanguageField, unit_rows
+from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
 
@@ -108,8 +109,6 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
 
 
 def _load_npy(path: str | Path) -> np.ndarray:
-    from drsplat.utils import load_npy
-
     return load_npy(path)
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
+from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -646,8 +647,6 @@ def save_ply(scene: GaussianScene, path: str | Path) -> None:
 
     Extra per-Gaussian properties follow rot_3 with their own types; comments go in the header.
     """
-    from drsplat.utils import atomic_path
-
     vertices = scene_to_vertices(scene)
     header = ply_header(vertices.dtype, scene.comments, scene.num_gaussians)
     with atomic_path(path) as tmp:

@@ -40,7 +40,10 @@ import numpy as np
 from drsplat.cameras import Camera, look_at_camera, write_transforms_json
 from drsplat.features.masks.base import LEVELS
 from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
-from drsplat.scene import SH_C0, GaussianScene
+from drsplat.scene import SH_C0, GaussianScene, save_ply
+from drsplat.features.format import write_features, write_manifest
+from drsplat.raster import NEAR, rasterize
+from drsplat.utils import atomic_path, progress, save_npy_atomic
 
 log = logging.getLogger(__name__)
 
@@ -806,8 +809,7 @@ def ray_hit_depth(spec: ObjectSpec, origin: np.ndarray, dirs: np.ndarray, near: 
     `spec` (+inf on a miss). Boxes and plates: the axis-aligned slab test on the whole box;
     spheres: |o + t·d - c| = r; cylinders (axis-aligned, closed): side |radial| = r within the
     height, caps within the radius; panels: the two-sided rectangle."""
-    if near is None:
-        from drsplat.raster import NEAR as near
+    near = NEAR if near is None else near
     p = spec.params
     c = np.asarray(p["center"], np.float64)
     o = origin - c
@@ -924,8 +926,6 @@ class RenderedView:
 def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
     """RGB and ground-truth masks of one view: one rasterizer pass, and the instance map from it
     ("render" masks) or from ray casting the objects ("geometry" masks)."""
-    from drsplat.raster import rasterize
-
     out = rasterize(syn.scene, camera, topk=topk, with_rgb=True, background=np.array([1.0, 1.0, 1.0], np.float32))
     if syn.oracle.mask_source == "geometry":
         inst = ray_cast_instances(syn.instance_specs, camera)
@@ -956,10 +956,6 @@ def write_dataset(
     run leaves no scene.ply claiming a complete dataset.
     """
     from PIL import Image
-
-    from drsplat.features.format import write_features, write_manifest
-    from drsplat.scene import save_ply
-    from drsplat.utils import atomic_path, progress, save_npy_atomic
 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
@@ -1036,7 +1032,7 @@ def _true_mask_labels(seg: np.ndarray, inst: np.ndarray, instance_labels: np.nda
 
 # ============================================================================= city (scale benchmark)
 # A "city" for `drsplat bench scale`: copies of one written synthetic room on a grid. Owned by the
-# scale work (drsplat/streaming.py, drsplat/distributed.py); kept apart from the room generator above.
+# scale work (drsplat/registration: plan, sink, ray); kept apart from the room generator above.
 
 
 def tile_city(room: SyntheticScene | GaussianScene, cameras: list[Camera], tiles: int, views: int, width: int,

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.aggregate import (
+from drsplat.registration.aggregate import (
     ANCHOR_GAIN,
     WEIGHTINGS,
     Aggregator,
@@ -29,7 +29,9 @@ from drsplat.cameras import load_cameras, look_at_camera
 from drsplat.defaults import AGGREGATE_MODES as MODES
 from drsplat.errors import Cancelled
 from drsplat.raster import project_gaussians, rasterize
-from drsplat.registration import register_scene
+from drsplat.registration import RegisterOptions, register, register_features
+from drsplat.registration.checkpoint import aggregate_stats_path, checkpoint_path_for
+from drsplat.registration.plan import estimate_memory
 from drsplat.scene import GaussianScene, load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -233,15 +235,15 @@ def test_core_weights_equal_the_compositor_falloff():
 
 def test_paper_mode_is_the_default_and_unchanged(hard_tiny):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    a = register_scene(scene, cams, hard_tiny / "features", topk=10, show_progress=False)
-    b = register_scene(scene, cams, hard_tiny / "features", topk=10, show_progress=False, aggregate="paper")
+    a = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10), show_progress=False)
+    b = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
     np.testing.assert_array_equal(a.features, b.features)
     assert a.aggregate == "paper" and a.num_rejected == 0
 
 
 def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    full = register_scene(scene, cams, hard_tiny / "features", topk=10, show_progress=False, aggregate=RECOMMENDED)
+    full = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), show_progress=False)
     ckpt = tmp_path / "run.npz"
     token = CancelToken()
 
@@ -250,9 +252,8 @@ def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
             token.cancel()
 
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, checkpoint_every=2, cancel=token,
-                       on_progress=stop, show_progress=False, aggregate=RECOMMENDED)
-    resumed = register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, show_progress=False, aggregate=RECOMMENDED)
+        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=stop, show_progress=False)
+    resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 4 and resumed.num_rejected == full.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, full.weights)
     np.testing.assert_allclose(resumed.features, full.features, atol=1e-6)
@@ -267,8 +268,8 @@ def test_recommended_mode_beats_paper_and_rejects_floaters(hard_tiny):
     ds = Dataset(hard_tiny, load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny), np.load(hard_tiny / "gt" / "labels.npy").astype(np.int64),
                  json.loads((hard_tiny / "gt" / "label_names.json").read_text()), np.load(hard_tiny / "text_embeddings.npy"))
     col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
-    paper = aggregate_metrics(ds, register_scene(ds.scene, ds.cameras, hard_tiny / "features", show_progress=False))
-    best = aggregate_metrics(ds, register_scene(ds.scene, ds.cameras, hard_tiny / "features", show_progress=False, aggregate=RECOMMENDED))
+    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(), show_progress=False))
+    best = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate=RECOMMENDED), show_progress=False))
     assert best[col["seg mIoU vol +unl"]] >= paper[col["seg mIoU vol +unl"]] + 0.02
     assert best[col["loc mIoU vol"]] >= paper[col["loc mIoU vol"]] + 0.02
     assert best[col["seg mIoU vol"]] >= paper[col["seg mIoU vol"]] - 1e-9  # labelled-only: never worse
@@ -283,40 +284,29 @@ def test_cli_lists_modes_and_rejects_unknown(hard_tiny, tmp_path):
                           "--features", str(hard_tiny / "features"), "--out", str(tmp_path / "x.ply"), "--aggregate", "median"],
                          capture_output=True, text=True, check=False)
     assert bad.returncode == 2 and "median" in bad.stderr and not (tmp_path / "x.ply").exists()
-    torch_engine = subprocess.run([sys.executable, "-m", "drsplat", "register", str(hard_tiny / "scene.ply"), "--source", str(hard_tiny),
-                                   "--features", str(hard_tiny / "features"), "--out", str(tmp_path / "x.ply"), "--aggregate", "reject",
-                                   "--engine", "torch"], capture_output=True, text=True, check=False)
-    assert torch_engine.returncode == 1 and "numba engine only" in torch_engine.stderr and not (tmp_path / "x.ply").exists()
 
 
-def test_pipeline_writes_fewer_gaussians_with_rejection(hard_tiny, tmp_path):
-    from drsplat.pipeline import RegisterOptions, register_to_ply
-
+def test_registered_ply_has_fewer_gaussians_with_rejection(hard_tiny, tmp_path):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    paper = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10), show_progress=False)
-    rej = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "rej.ply", RegisterOptions(topk=10, aggregate="reject"),
+    paper = register(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10), show_progress=False)
+    rej = register(scene, cams, hard_tiny / "features", tmp_path / "rej.ply", RegisterOptions(topk=10, aggregate="reject"),
                           show_progress=False)
-    assert rej.registration.num_rejected > 0
-    assert rej.num_written == paper.num_written - rej.registration.num_rejected
+    assert rej.num_rejected > 0
+    assert rej.num_written == paper.num_written - rej.num_rejected
 
 
-def test_streamed_rejection_equals_in_memory_and_resumes(hard_tiny, tmp_path, monkeypatch):
+def test_rejection_in_blocks_equals_one_block_and_resumes(hard_tiny, tmp_path):
     """--aggregate reject under --memory-budget (Gaussian blocks) writes the in-memory file byte for byte,
     also when cancelled mid-way and resumed from the statistics snapshot."""
-    import drsplat.streaming as streaming
-    from drsplat.pipeline import RegisterOptions, checkpoint_path_for, register_to_ply
-    from drsplat.registration import aggregate_stats_path
-
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    mem = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "mem.ply", RegisterOptions(topk=10, aggregate=RECOMMENDED),
+    mem = register(scene, cams, hard_tiny / "features", tmp_path / "mem.ply", RegisterOptions(topk=10, aggregate=RECOMMENDED),
                           show_progress=False)
     options = RegisterOptions(topk=10, aggregate=RECOMMENDED, block_size=512)
-    streamed = register_to_ply(scene, cams, hard_tiny / "features", tmp_path / "streamed.ply", options, show_progress=False)
-    assert streamed.field is None and scene.num_gaussians > 4 * 512
-    assert streamed.registration.num_rejected == mem.registration.num_rejected > 0
+    streamed = register(scene, cams, hard_tiny / "features", tmp_path / "streamed.ply", options, show_progress=False)
+    assert streamed.num_blocks > 4 and mem.num_blocks == 1
+    assert streamed.num_rejected == mem.num_rejected > 0
     assert (tmp_path / "streamed.ply").read_bytes() == (tmp_path / "mem.ply").read_bytes()
 
-    monkeypatch.setattr(streaming, "CHECKPOINT_EVERY", 2)
     out = tmp_path / "resumed.ply"
     token = CancelToken()
 
@@ -325,31 +315,20 @@ def test_streamed_rejection_equals_in_memory_and_resumes(hard_tiny, tmp_path, mo
             token.cancel()
 
     with pytest.raises(Cancelled):
-        register_to_ply(scene, cams, hard_tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop)
+        register(scene, cams, hard_tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop, checkpoint_every=2)
     assert aggregate_stats_path(checkpoint_path_for(out)).is_file()
-    resumed = register_to_ply(scene, cams, hard_tiny / "features", out, options, show_progress=False)
-    assert resumed.registration.resumed_views == 4  # the log is cut back to the last snapshot
+    resumed = register(scene, cams, hard_tiny / "features", out, options, show_progress=False)
+    assert resumed.resumed_views == 4  # the log is cut back to the last snapshot
     assert out.read_bytes() == (tmp_path / "mem.ply").read_bytes()
     assert not checkpoint_path_for(out).exists() and not aggregate_stats_path(checkpoint_path_for(out)).exists()
 
 
 def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
-    from drsplat.streaming import estimate_memory
-
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
     paper = estimate_memory(scene, cams, 512, 40, base=0)
     rej = estimate_memory(scene, cams, 512, 40, base=0, aggregate="reject")
     assert rej.views - paper.views >= 100 * scene.num_gaussians  # statistics, scratch and ray geometry
     assert rej.in_memory > paper.in_memory
-
-
-def test_non_paper_modes_refuse_an_executor_without_their_hook(hard_tiny):
-    """An executor that cannot run the mode's per-view hook where it renders: one clear error."""
-    from drsplat.errors import DrsplatError
-
-    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    with pytest.raises(DrsplatError, match="needs an executor that runs its per-view hook"):
-        register_scene(scene, cams, hard_tiny / "features", show_progress=False, aggregate=RECOMMENDED, executor=object())
 
 
 def test_view_hook_survives_pickling(hard_tiny):
@@ -376,14 +355,11 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     import io
     import zipfile
 
-    from drsplat.registration import aggregate_stats_path
-
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    fresh = register_scene(scene, cams, hard_tiny / "features", topk=10, show_progress=False, aggregate=RECOMMENDED)
+    fresh = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), show_progress=False)
     ckpt, token = tmp_path / "run.log", CancelToken()
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, checkpoint_every=2, cancel=token,
-                       on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False, aggregate=RECOMMENDED)
+        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False)
     snapshot = aggregate_stats_path(ckpt)
     with np.load(snapshot) as data:
         arrays = {k: data[k] for k in data.files}
@@ -402,7 +378,7 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
                 np.save(buf, value)
                 archive.writestr(name + ".npy", header.getvalue() if name == "peak" else buf.getvalue())
     with caplog.at_level("WARNING"):
-        resumed = register_scene(scene, cams, hard_tiny / "features", topk=10, checkpoint=ckpt, show_progress=False, aggregate=RECOMMENDED)
+        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, fresh.weights)
     assert sum("aggregate.npz is missing or unreadable" in r.getMessage() for r in caplog.records) == 1

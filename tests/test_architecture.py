@@ -30,8 +30,11 @@ def test_the_library_never_imports_the_viewer():
 
 
 def test_stages_import_only_earlier_stages():
-    """scene -> cameras -> features -> registration -> lang (index) -> query: no module imports a later stage."""
-    order = ["drsplat.scene", "drsplat.cameras", "drsplat.features", "drsplat.registration", "drsplat.lang", "drsplat.query"]
+    """scene -> cameras -> features -> lang -> registration -> query: no module imports a later stage.
+
+    lang (the field's storage: codebooks, backends, scoring, the registered-PLY format) depends on the
+    scene alone; registration encodes its output into it and query reads it."""
+    order = ["drsplat.scene", "drsplat.cameras", "drsplat.features", "drsplat.lang", "drsplat.registration", "drsplat.query"]
     for rank, stage in enumerate(order):
         path = ROOT / Path(*stage.split("."))
         files = list(path.rglob("*.py")) if path.is_dir() else [path.with_suffix(".py")]

@@ -19,8 +19,7 @@ import pytest
 
 from drsplat.cameras import load_cameras
 from drsplat.errors import Cancelled, DrsplatError
-from drsplat.pipeline import RegisterOptions, register_to_ply
-from drsplat.registration import register_scene
+from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -32,10 +31,10 @@ OBJECT_STORE = 80 * 1024 * 1024
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A two-node Ray cluster on this machine; the driver joins it through drsplat.distributed.connect."""
+    """A two-node Ray cluster on this machine; the driver joins it through drsplat.cluster.connect."""
     from ray.cluster_utils import Cluster
 
-    from drsplat.distributed import connect
+    from drsplat.cluster import connect
 
     node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
     c = Cluster(initialize_head=True, head_node_args=node_args)
@@ -55,23 +54,20 @@ def tiny(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
 
 
-def _executor(**kw):
-    from drsplat.distributed import RayExecutor
-
-    return RayExecutor("auto", **kw)
+ON_RAY = RegisterOptions(ray="auto")
 
 
 def test_ray_registration_equals_local_in_memory_and_streamed(cluster, tiny, tmp_path):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
-    local = register_scene(scene, cams, tiny / "features", show_progress=False)
-    on_ray = register_scene(scene, cams, tiny / "features", show_progress=False, executor=_executor(workers=2))
+    local = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
+    on_ray = register_features(scene, cams, tiny / "features", RegisterOptions(ray="auto", ray_workers=2), show_progress=False)
     np.testing.assert_array_equal(on_ray.features, local.features)
     np.testing.assert_array_equal(on_ray.weights, local.weights)
     assert (on_ray.num_pairs, on_ray.num_distinct_pairs) == (local.num_pairs, local.num_distinct_pairs)
     # the pipeline with --ray: streamed blocks, the same file as the local in-memory run
     a, b = tmp_path / "local.ply", tmp_path / "ray.ply"
-    register_to_ply(scene, cams, tiny / "features", a, RegisterOptions(), show_progress=False)
-    register_to_ply(scene, cams, tiny / "features", b, RegisterOptions(ray="auto", block_size=1024), show_progress=False)
+    register(scene, cams, tiny / "features", a, RegisterOptions(), show_progress=False)
+    register(scene, cams, tiny / "features", b, RegisterOptions(ray="auto", block_size=1024), show_progress=False)
     assert a.read_bytes() == b.read_bytes()
 
 
@@ -80,21 +76,21 @@ def test_ray_registration_with_floater_rejection_equals_local(cluster, tmp_path_
     statistics in view order: the same sums, rejections and file as the local run."""
     data = write_dataset(tmp_path_factory.mktemp("hard") / "data", "hard-tiny", 0, show_progress=False)
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    local = register_scene(scene, cams, data / "features", show_progress=False, aggregate="anchor-reject")
-    on_ray = register_scene(scene, cams, data / "features", show_progress=False, aggregate="anchor-reject", executor=_executor(workers=2))
+    local = register_features(scene, cams, data / "features", RegisterOptions(aggregate="anchor-reject"), show_progress=False)
+    on_ray = register_features(scene, cams, data / "features", RegisterOptions(aggregate="anchor-reject", ray="auto", ray_workers=2), show_progress=False)
     assert on_ray.num_rejected == local.num_rejected > 0
     np.testing.assert_array_equal(on_ray.weights, local.weights)
     np.testing.assert_array_equal(on_ray.features, local.features)
     a, b = tmp_path / "local.ply", tmp_path / "ray.ply"
-    register_to_ply(scene, cams, data / "features", a, RegisterOptions(aggregate="reject"), show_progress=False)
-    register_to_ply(scene, cams, data / "features", b, RegisterOptions(aggregate="reject", ray="auto", block_size=512), show_progress=False)
+    register(scene, cams, data / "features", a, RegisterOptions(aggregate="reject"), show_progress=False)
+    register(scene, cams, data / "features", b, RegisterOptions(aggregate="reject", ray="auto", block_size=512), show_progress=False)
     assert a.read_bytes() == b.read_bytes()
 
 
 @pytest.mark.slow
-def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path):
+def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path, monkeypatch):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
-    local = register_scene(scene, cams, tiny / "features", show_progress=False)
+    local = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
     ckpt = tmp_path / "run.log"
     token = CancelToken()
 
@@ -102,10 +98,11 @@ def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path
         if done == 7:
             token.cancel()
 
+    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 1)
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, tiny / "features", checkpoint=ckpt, cancel=token, on_progress=stop, show_progress=False,
-                       executor=_executor(views_per_task=1))
-    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False, executor=_executor())
+        register_features(scene, cams, tiny / "features", ON_RAY, checkpoint=ckpt, cancel=token, on_progress=stop, show_progress=False)
+    monkeypatch.undo()
+    resumed = register_features(scene, cams, tiny / "features", ON_RAY, checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 7
     np.testing.assert_array_equal(resumed.features, local.features)
 
@@ -123,15 +120,16 @@ def _task_pids(title: str) -> list[int]:
     return pids
 
 
-def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny):
+def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny, monkeypatch):
     data = tiny
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    local = register_scene(scene, cams, data / "features", show_progress=False)
+    local = register_features(scene, cams, data / "features", RegisterOptions(), show_progress=False)
     box: dict = {}
+    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 8)  # tasks long enough to be caught running
 
     def run() -> None:
         try:
-            box["result"] = register_scene(scene, cams, data / "features", show_progress=False, executor=_executor(views_per_task=8))
+            box["result"] = register_features(scene, cams, data / "features", ON_RAY, show_progress=False)
         except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
             box["error"] = exc
 
@@ -154,7 +152,7 @@ def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny
 
 def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
     from drsplat.cli import main
-    from drsplat.distributed import connect
+    from drsplat.cluster import connect
 
     with pytest.raises(DrsplatError, match=r"cannot reach a Ray cluster at 127\.0\.0\.1:9.*ray start --head"):
         connect("127.0.0.1:9")
@@ -196,3 +194,23 @@ def test_ray_features_equal_local_and_skip_done_images(cluster, tiny, tmp_path):
         np.testing.assert_allclose(np.load(local / f"{stem}_f.npy"), np.load(remote / f"{stem}_f.npy"), atol=1e-5)
     assert featurefiles.read_manifest(remote)["images"] == len(stems)
     assert not list(remote.glob(".*"))  # no temp or half files
+
+
+@pytest.mark.parametrize("engine", ["numba", "torch"])
+def test_every_mode_on_ray_writes_the_local_file(cluster, tmp_path_factory, tmp_path, engine):
+    """The Ray place of the engine x place x mode matrix (tests/test_registration_matrix.py covers the
+    local place): every --aggregate mode, computed by tasks with `engine`, in Gaussian blocks, writes the
+    bytes of the local numba one-block run."""
+    from drsplat.defaults import AGGREGATE_MODES
+
+    data = tmp_path_factory.getbasetemp() / "matrix-hard"
+    if not (data / "scene.ply").exists():
+        write_dataset(data, "hard-tiny", 0, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)[:4]
+    for mode in AGGREGATE_MODES:
+        local, on_ray = tmp_path / mode / "local" / "reg.ply", tmp_path / mode / "ray" / "reg.ply"
+        register(scene, cams, data / "features", local, RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+        options = RegisterOptions(topk=10, aggregate=mode, engine=engine, ray="auto", ray_workers=2, block_size=1024)
+        result = register(scene, cams, data / "features", on_ray, options, show_progress=False)
+        assert result.num_blocks == 3 and result.worker_peak_rss, mode
+        assert on_ray.read_bytes() == local.read_bytes(), mode

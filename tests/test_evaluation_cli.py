@@ -41,7 +41,7 @@ def test_eval_iou_matches_the_library(registered, capsys):
     from drsplat.cameras import load_cameras
     from drsplat.eval.metrics import evaluate_scene
     from drsplat.lang import build_field
-    from drsplat.registration import register_scene
+    from drsplat.registration import RegisterOptions, register_features
     from drsplat.scene import load_ply
 
     r = registered
@@ -56,7 +56,7 @@ def test_eval_iou_matches_the_library(registered, capsys):
     assert set(got) == {("loc", "volume"), ("seg", "volume"), ("loc", "count"), ("seg", "count")}
 
     scene = load_ply(r["ds"] / "scene.ply")
-    res = register_scene(scene, load_cameras(r["ds"]), r["ds"] / "features", show_progress=False)
+    res = register_features(scene, load_cameras(r["ds"]), r["ds"] / "features", RegisterOptions(), show_progress=False)
     scores = build_field(res.features, res.weights).scores(np.load(r["ds"] / "text_embeddings.npy"))
     gt = np.load(r["ds"] / "gt" / "labels.npy")
     expect = {(x.task, x.weighting): x for x in evaluate_scene(scene, scores, gt, r["names"], assigned=res.weights > 0)}

@@ -92,14 +92,14 @@ def _restore_logging():
 def world(tmp_path_factory):
     """A tiny synthetic dataset, its registered PLY (exact) and a query embedding."""
     from drsplat.cameras import load_cameras
-    from drsplat.pipeline import register_to_ply
+    from drsplat.registration import register
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
 
     root = tmp_path_factory.mktemp("hostile")
     ds = write_dataset(root / "ds", "tiny", 0, show_progress=False)
     reg = root / "reg.ply"
-    register_to_ply(load_ply(ds / "scene.ply"), load_cameras(ds, require_images=False), ds / "features", reg, show_progress=False, resumable=False)
+    register(load_ply(ds / "scene.ply"), load_cameras(ds, require_images=False), ds / "features", reg, show_progress=False, resumable=False)
     emb = np.load(ds / "text_embeddings.npy")
     np.save(root / "q.npy", emb[0])
     np.save(root / "L.npy", emb)
@@ -561,7 +561,7 @@ def test_image_paths_leaving_the_dataset_warn_once_and_never_print_contents(tmp_
 def test_codebook_path_in_header_resolves_next_to_the_ply(tmp_path, world, capsys):
     from drsplat.cameras import load_cameras
     from drsplat.lang import train_codebook
-    from drsplat.pipeline import RegisterOptions, register_to_ply
+    from drsplat.registration import RegisterOptions, register
     from drsplat.scene import load_ply
 
     feats = np.concatenate([np.load(f) for f in sorted((world["ds"] / "features").glob("*_f.npy"))])
@@ -570,7 +570,7 @@ def test_codebook_path_in_header_resolves_next_to_the_ply(tmp_path, world, capsy
     sub = tmp_path / "a" / "b"
     sub.mkdir(parents=True)
     reg = sub / "pq.ply"
-    register_to_ply(load_ply(world["ds"] / "scene.ply"), load_cameras(world["ds"], require_images=False), world["ds"] / "features",
+    register(load_ply(world["ds"] / "scene.ply"), load_cameras(world["ds"], require_images=False), world["ds"] / "features",
                     reg, RegisterOptions(codebook=str(book)), show_progress=False, resumable=False)
     assert run_cli(["query", reg, "--embedding", world["q"]], capsys)[0] == 0  # found beside the PLY, whatever the cwd
     moved = tmp_path / "elsewhere.faiss"

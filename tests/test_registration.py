@@ -15,7 +15,10 @@ from drsplat.cameras import load_cameras
 from drsplat.errors import Cancelled, InputError
 from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
 from drsplat.features.format import read_features, write_features
-from drsplat.registration import Accumulator, accumulate_view_reference, normalize_rows, pair_views, register_scene
+from drsplat.registration import RegisterOptions, register_features
+from drsplat.registration.coalesce import Coalescer, coalesce_reference
+from drsplat.registration.sums import Accumulator, accumulate_view_reference, normalize_rows
+from drsplat.registration.views import pair_views
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -29,6 +32,13 @@ def tiny(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def tiny_mislabelled(tmp_path_factory) -> Path:
     return write_dataset(tmp_path_factory.mktemp("tiny") / "mislabelled", "tiny", 0, mislabel_fraction=0.1, show_progress=False)
+
+
+def add_view(coalescer: Coalescer, acc: Accumulator, ids, weights, masks, feats) -> tuple[int, int]:
+    """Coalesce one view and add its pairs, as registration does; (contributing pairs, distinct pairs)."""
+    g, m, w, pairs = coalescer.coalesce(ids, weights, masks, feats.shape[0])
+    acc.add_pairs(g, m, w, feats)
+    return pairs, g.shape[0]
 
 
 def _random_view(rng, h, w, k, n, m, empty_fraction=0.3):
@@ -59,7 +69,7 @@ def test_kernel_agrees_with_reference(case):
         k = 1
     if case == "many_masks":
         m = 400
-    acc = Accumulator(n, 7)
+    acc, coalescer = Accumulator(n, 7), Coalescer(n, capacity=4)
     F_ref, W_ref = np.zeros((n, 7), np.float64), np.zeros(n, np.float64)
     total_pairs = 0
     for view in range(3):  # several views: the kernel's scratch must be clean between views and masks
@@ -73,7 +83,15 @@ def test_kernel_agrees_with_reference(case):
             weights[:] = 0
         if case == "duplicate_ids":
             ids[..., 1] = np.where(ids[..., 1] >= 0, ids[..., 0], -1)  # a Gaussian listed twice: both count
-        pairs, distinct = acc.add_view(ids, weights, masks, feats)
+        g, mk, w, pairs = coalescer.coalesce(ids, weights, masks, m)
+        acc.add_pairs(g, mk, w, feats)
+        distinct = g.shape[0]
+        rg, rm, rw, rpairs = coalesce_reference(ids, weights, masks, m)
+        order = np.lexsort((g, mk))  # the kernel emits first-seen order within a mask, the reference sorted
+        np.testing.assert_array_equal(g[order], rg)
+        np.testing.assert_array_equal(mk[order], rm)
+        np.testing.assert_allclose(w[order], rw, rtol=1e-5, atol=1e-7)
+        assert pairs == rpairs
         total_pairs += pairs
         assert pairs == accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
         flat_m = np.repeat(masks.reshape(-1), k)
@@ -95,18 +113,18 @@ def test_accumulator_memory_is_n_times_d_not_n_times_m():
     weights = rng.uniform(0, 0.1, (h, w, k)).astype(np.float32)
     masks = rng.integers(-1, m, size=(h, w)).astype(np.int32)
     feats = rng.normal(size=(m, d)).astype(np.float32)
-    acc = Accumulator(n, d)
-    acc.add_view(ids[:2], weights[:2], masks[:2], feats)  # compile outside the measurement
+    acc, coalescer = Accumulator(n, d), Coalescer(n)
+    add_view(coalescer, acc, ids[:2], weights[:2], masks[:2], feats)  # compile outside the measurement
     tracemalloc.start()
     tracemalloc.reset_peak()
-    pairs, distinct = acc.add_view(ids, weights, masks, feats)
+    pairs, distinct = add_view(coalescer, acc, ids, weights, masks, feats)
     acc.sums()
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert distinct > 100_000
     inputs = ids.nbytes + weights.nbytes + masks.nbytes
-    # pixel order, per-mask and per-Gaussian offsets, a pair order: nothing of size N x M
-    assert peak < inputs + 16 * h * w + 8 * m + 8 * n + 8 * distinct + 1_000_000
+    # pixel order, per-mask and per-Gaussian offsets, the view's pairs and a pair order: nothing of size N x M
+    assert peak < inputs + 16 * h * w + 8 * m + 8 * n + 24 * distinct + 1_000_000
 
 
 def test_normalize_rows_zeroes_unassigned_and_nonfinite():
@@ -125,7 +143,7 @@ def _scores(tiny: Path, result):
 
 def _fidelity(tiny: Path, topk: int = 40):
     scene = load_ply(tiny / "scene.ply")
-    result = register_scene(scene, load_cameras(tiny), tiny / "features", topk=topk, show_progress=False)
+    result = register_features(scene, load_cameras(tiny), tiny / "features", RegisterOptions(topk=topk), show_progress=False)
     gt = np.load(tiny / "gt" / "labels.npy")
     names = json.loads((tiny / "gt" / "label_names.json").read_text())
     d, _ = significance_weights(scene.log_scales, scene.opacity_logits)
@@ -162,7 +180,7 @@ def test_top1_is_worse_than_top40_on_segmentation(tiny):
 def test_resume_from_checkpoint_equals_uninterrupted_run(tiny, tmp_path):
     scene = load_ply(tiny / "scene.ply")
     cams = load_cameras(tiny)
-    full = register_scene(scene, cams, tiny / "features", show_progress=False)
+    full = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
     ckpt = tmp_path / "run.npz"
     token = CancelToken()
 
@@ -171,12 +189,10 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(tiny, tmp_path):
             token.cancel()
 
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, tiny / "features", checkpoint=ckpt, checkpoint_every=3, cancel=token,
-                       on_progress=stop_after_five, show_progress=False)
+        register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=ckpt, checkpoint_every=3, cancel=token, on_progress=stop_after_five, show_progress=False)
     assert ckpt.is_file()
     seen = []
-    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, checkpoint_every=3,
-                             on_progress=lambda d, t: seen.append(d), show_progress=False)
+    resumed = register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=ckpt, checkpoint_every=3, on_progress=lambda d, t: seen.append(d), show_progress=False)
     assert resumed.resumed_views == 5 and seen[0] == 5 and seen[-1] == 16
     np.testing.assert_array_equal(resumed.features, full.features)
     np.testing.assert_array_equal(resumed.weights, full.weights)
@@ -189,12 +205,12 @@ def test_checkpoint_with_other_parameters_is_not_resumed(tiny, tmp_path, caplog)
     cams = load_cameras(tiny)
     ckpt = tmp_path / "run.npz"
     token = CancelToken()
-    token.cancel()
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, tiny / "features", topk=10, checkpoint=ckpt, cancel=token, show_progress=False)
+        register_features(scene, cams, tiny / "features", RegisterOptions(topk=10), checkpoint=ckpt, cancel=token, show_progress=False,
+                          on_progress=lambda done, total: done == 2 and token.cancel())
     assert ckpt.is_file()
     with caplog.at_level(logging.WARNING):
-        result = register_scene(scene, cams, tiny / "features", topk=20, checkpoint=ckpt, show_progress=False)
+        result = register_features(scene, cams, tiny / "features", RegisterOptions(topk=20), checkpoint=ckpt, show_progress=False)
     assert result.resumed_views == 0 and "other parameters" in caplog.text
 
 
@@ -206,15 +222,15 @@ def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
         ids, f = read_features(tiny / "features", cam.name, level=1)
         write_features(feats, cam.name, ids, f)
     write_features(feats, "stray_image", np.zeros((2, 2), np.int32), np.ones((1, 512), np.float32))
-    matched, missing, unmatched = pair_views(cams, [c.name for c in cams[:4]] + ["stray_image"])
-    assert [c.name for c in matched] == [c.name for c in cams[:4]] and unmatched == ["stray_image"] and len(missing) == 12
+    sel = pair_views(cams, [c.name for c in cams[:4]] + ["stray_image"])
+    assert [c.name for c in sel.views] == [c.name for c in cams[:4]] and sel.unmatched == ["stray_image"] and len(sel.missing) == 12
     with caplog.at_level(logging.WARNING):
-        result = register_scene(load_ply(tiny / "scene.ply"), cams, feats, show_progress=False)
+        result = register_features(load_ply(tiny / "scene.ply"), cams, feats, RegisterOptions(), show_progress=False)
     assert result.num_views == 4 and len(result.missing_features) == 12 and result.unmatched_features == ["stray_image"]
     assert "12 of 16 cameras have no feature file" in caplog.text and "stray_image" in caplog.text
     renamed = [dataclasses.replace(c, name=f"other_{c.name}") for c in cams]
     with pytest.raises(InputError, match="no feature file matches a camera image stem"):
-        register_scene(load_ply(tiny / "scene.ply"), renamed, feats, show_progress=False)
+        register_features(load_ply(tiny / "scene.ply"), renamed, feats, RegisterOptions(), show_progress=False)
 
 
 def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
@@ -225,8 +241,8 @@ def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
         ids, f = read_features(tiny / "features", cam.name, level=1)
         write_features(up, cam.name, np.repeat(np.repeat(ids, 2, axis=0), 2, axis=1), f)
     scene = load_ply(tiny / "scene.ply")
-    a = register_scene(scene, cams, tiny / "features", show_progress=False)
-    b = register_scene(scene, cams, up, level=0, show_progress=False)
+    a = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
+    b = register_features(scene, cams, up, RegisterOptions(level=0), show_progress=False)
     np.testing.assert_array_equal(a.features, b.features)
 
 
@@ -236,7 +252,7 @@ def test_nonfinite_embeddings_are_dropped_and_counted(tiny, tmp_path):
     ids, f = read_features(tiny / "features", cams[0].name, level=1)
     f[ids[ids >= 0][0]] = np.nan
     write_features(feats, cams[0].name, ids, f)
-    result = register_scene(load_ply(tiny / "scene.ply"), cams, feats, show_progress=False)
+    result = register_features(load_ply(tiny / "scene.ply"), cams, feats, RegisterOptions(), show_progress=False)
     assert result.num_nonfinite_masks == 1 and np.isfinite(result.features).all()
 
 
@@ -265,7 +281,7 @@ def test_cli_synth_register_query(tmp_path):
 
 def test_cli_interrupt_leaves_no_output(tiny, tmp_path, monkeypatch):
     """A KeyboardInterrupt in the middle of registration writes no PLY (exit code 1)."""
-    import drsplat.registration as registration
+    import drsplat.registration.sums as registration
     from drsplat.cli import main
 
     calls = {"n": 0}
@@ -288,11 +304,11 @@ def test_small_pair_buffer_flushes_mid_view_and_agrees():
     """A buffer smaller than one view's pairs forces flushes in the middle of a view."""
     rng = np.random.default_rng(7)
     n = 40
-    small, big = Accumulator(n, 7, pair_capacity=1), Accumulator(n, 7)
+    small, big, coalescer = Accumulator(n, 7, pair_capacity=1), Accumulator(n, 7), Coalescer(n)
     F_ref, W_ref = np.zeros((n, 7)), np.zeros(n)
     for _ in range(4):
         ids, weights, masks, feats = _random_view(rng, 12, 10, 6, n, 30)
-        assert small.add_view(ids, weights, masks, feats) == big.add_view(ids, weights, masks, feats)
+        assert add_view(coalescer, small, ids, weights, masks, feats) == add_view(coalescer, big, ids, weights, masks, feats)
         accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
     (F, W), (F_big, W_big) = small.sums(), big.sums()
     np.testing.assert_allclose(F, F_ref, rtol=1e-4, atol=1e-5)
@@ -305,7 +321,7 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
     import os
     import signal
 
-    import drsplat.registration as registration
+    import drsplat.registration.sums as registration
     from drsplat.cli import main
 
     calls = {"n": 0}

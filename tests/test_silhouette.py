@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from drsplat.aggregate import ANCHOR_GAIN, footprint_area, view_weights, view_weights_reference
+from drsplat.registration.aggregate import ANCHOR_GAIN, footprint_area, view_weights, view_weights_reference
 from drsplat.cameras import load_cameras, look_at_camera
 from drsplat.raster import project_gaussians, rasterize
-from drsplat.registration import register_scene
+from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import GaussianScene, load_ply
 from drsplat.synthetic import (
     PRESETS,
@@ -185,7 +185,7 @@ def test_centre_and_anchor_beat_paper_on_true_silhouettes(tmp_path):
                  json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
     seg = AGGREGATE_COLUMNS.index("seg mIoU vol") - 3
     cov = AGGREGATE_COLUMNS.index("labelled coverage") - 3
-    got = {m: aggregate_metrics(ds, register_scene(ds.scene, ds.cameras, path / "features", topk=10, show_progress=False, aggregate=m))
+    got = {m: aggregate_metrics(ds, register_features(ds.scene, ds.cameras, path / "features", RegisterOptions(topk=10, aggregate=m), show_progress=False))
            for m in ("paper", "centre", "anchor")}
     assert got["anchor"][seg] >= got["paper"][seg] + 0.04
     assert got["centre"][seg] >= got["paper"][seg] + 0.08

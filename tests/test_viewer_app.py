@@ -21,10 +21,10 @@ def dataset(tmp_path_factory):
 def registered(dataset, tmp_path_factory):
     from drsplat.cameras import load_cameras
     from drsplat.scene import load_ply
-    from drsplat.pipeline import register_to_ply
+    from drsplat.registration import register
 
     out = tmp_path_factory.mktemp("reg") / "registered.ply"
-    register_to_ply(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
+    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
     return out
 
 
@@ -134,7 +134,7 @@ def test_registration_can_be_cancelled_without_output(dataset, tmp_path):
     assert state.registration.error is not None and "cancel" in state.registration.error
     assert "registration did not finish" in state.messages[-1].text
     assert not out.exists()
-    from drsplat.pipeline import checkpoint_path_for
+    from drsplat.registration.checkpoint import checkpoint_path_for
 
     left = set(tmp_path.glob(".cancelled.ply*"))
     assert left <= {checkpoint_path_for(out)}, f"only the resumable checkpoint may stay, found {left}"

@@ -1,7 +1,7 @@
 """The pre-registered demo scene shipped in assets/demo/, and the command that rebuilds it.
 
 `python -m viewer.demo [OUT_DIR]` (default assets/demo) writes the `tiny` synthetic preset
-(drsplat.synthetic, seed 0), registers it with the one pipeline (drsplat.pipeline.register_to_ply,
+(drsplat.synthetic, seed 0), registers it with the one pipeline (drsplat.registration.register,
 a PQ codebook trained on the scene, unassigned Gaussians kept so the scene looks whole and its
 rows match gt/labels.npy) and keeps only what the viewer needs:
 
@@ -47,7 +47,7 @@ def build_demo(out_dir: Path, preset: str = DEMO_PRESET, seed: int = DEMO_SEED, 
     leaves the previous demo untouched.
     """
     from drsplat.cameras import load_cameras
-    from drsplat.pipeline import RegisterOptions, register_to_ply
+    from drsplat.registration import RegisterOptions, register
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
 
@@ -58,7 +58,7 @@ def build_demo(out_dir: Path, preset: str = DEMO_PRESET, seed: int = DEMO_SEED, 
         built = Path(tmp) / "out"
         built.mkdir()
         options = RegisterOptions(codebook="scene", keep_unassigned=True)
-        register_to_ply(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", built / "registered.ply", options, show_progress=show_progress)
+        register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", built / "registered.ply", options, show_progress=show_progress)
         names = list(DEMO_FILES) + [f"images/{p.name}" for p in sorted((dataset / "images").glob("*.png"))]
         for name in names[2:]:
             (built / name).parent.mkdir(parents=True, exist_ok=True)

@@ -85,7 +85,7 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     Returns (registered.ply, dataset dir) under root/demo (root/demo-<preset> for other presets).
     """
     from drsplat.cameras import load_cameras
-    from drsplat.pipeline import register_to_ply
+    from drsplat.registration import register
     from drsplat.scene import load_ply
     from drsplat.synthetic import write_dataset
 
@@ -97,7 +97,7 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
         log.info("generating the %s demo scene in %s (first run only)", preset, dataset)
         write_dataset(dataset, preset, seed=0, show_progress=True)
     log.info("registering the demo scene (first run only)")
-    register_to_ply(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", registered, show_progress=True)
+    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", registered, show_progress=True)
     return registered, dataset
 
 

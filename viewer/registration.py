@@ -1,4 +1,4 @@
-"""Registration started from the viewer: a job on a worker thread running drsplat.pipeline.register_to_ply
+"""Registration started from the viewer: a job on a worker thread running drsplat.registration.register
 (the same pipeline as `drsplat register`), with progress, cancel and its outcome."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.cameras import Camera
-from drsplat.pipeline import RegisterOptions, register_to_ply
+from drsplat.registration import RegisterOptions, register
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
 
@@ -41,7 +41,7 @@ class RegistrationJob:
 def run_registration(job: RegistrationJob, scene: GaussianScene, cameras: list[Camera], features_dir: Path, options: RegisterOptions) -> None:
     """The job's body: register, write job.output atomically; errors and cancellation end up in job.error."""
     try:
-        register_to_ply(scene, cameras, features_dir, job.output, options, show_progress=False, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
+        register(scene, cameras, features_dir, job.output, options, show_progress=False, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
     except BaseException as exc:  # noqa: BLE001 - reported in the GUI
         job.error = str(exc) or type(exc).__name__
         log.debug("registration failed", exc_info=True)

@@ -22,7 +22,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
-from drsplat.pipeline import RegisterOptions
+from drsplat.registration import RegisterOptions
 from drsplat.utils import load_npy
 from drsplat.scene import GaussianScene
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
@@ -433,7 +433,7 @@ class ViewerState:
     # ---------------------------------------------------------------- registration
 
     def start_registration(self, output: str | Path, topk: int = DEFAULT_TOPK, level: int = DEFAULT_LEVEL, codebook: str = DEFAULT_CODEBOOK, background: bool = True) -> bool:
-        """Register the scene with the features of `features_dir` (drsplat.pipeline, the CLI's
+        """Register the scene with the features of `features_dir` (drsplat.registration.register, the CLI's
         pipeline and defaults) on a worker thread
         (viewer.registration), store the field in `output`, then load it."""
 

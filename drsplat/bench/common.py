@@ -7,6 +7,8 @@ import statistics
 import time
 from collections.abc import Callable, Sequence
 
+from drsplat.memory import peak_rss
+
 
 def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
     """Median wall time of `fn()` over `repeats` runs after `warmup` untimed runs."""
@@ -22,8 +24,6 @@ def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) 
 
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far, in MB."""
-    from drsplat.streaming import peak_rss
-
     return peak_rss() / 2**20
 
 

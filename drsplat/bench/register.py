@@ -50,19 +50,20 @@ def _timed_register(scene, cameras, features_dir, topk: int, repeats: int, engin
     """(last result, median wall seconds, median CPU seconds of all threads, all results)."""
     import logging
 
-    from drsplat.registration import register_scene
+    from drsplat.registration import RegisterOptions, register_features
 
+    options = RegisterOptions(topk=topk, engine=engine, device=device)
     logger = logging.getLogger("drsplat.registration")
     level = logger.level
     logger.setLevel(logging.ERROR)  # the warm-up on one view would warn about the other views
     try:
-        register_scene(scene, cameras[:1], features_dir, topk=topk, show_progress=False, engine=engine, device=device)  # compile / warm up
+        register_features(scene, cameras[:1], features_dir, options, show_progress=False)  # compile / warm up
     finally:
         logger.setLevel(level)
     results, walls, cpus = [], [], []
     for _ in range(max(1, repeats)):
         t0, c0 = time.perf_counter(), time.process_time()
-        results.append(register_scene(scene, cameras, features_dir, topk=topk, show_progress=False, engine=engine, device=device))
+        results.append(register_features(scene, cameras, features_dir, options, show_progress=False))
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
     return results[-1], statistics.median(walls), statistics.median(cpus), results

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 from drsplat.bench.common import format_table, machine_line
+from drsplat.memory import parse_size, peak_rss
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +84,7 @@ def link_features(room: Path, folder: Path, cameras, sources) -> None:
 
 def run_config(config: dict) -> dict:
     """One registration as `config` says; returns its figures (run inside a fresh process)."""
-    from drsplat.pipeline import RegisterOptions, make_executor, register_to_ply
-    from drsplat.streaming import parse_size, peak_rss
+    from drsplat.registration import RegisterOptions, register
 
     t0 = time.perf_counter()
     scene, cameras, _ = _city(config)
@@ -92,13 +92,8 @@ def run_config(config: dict) -> dict:
     out = Path(config["out"])
     options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
                               block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"))
-    executor = make_executor(options)
     t0 = time.perf_counter()
-    try:
-        result = register_to_ply(scene, cameras, config["features"], out, options, show_progress=False, executor=executor)
-    finally:
-        if executor is not None:
-            executor.close()
+    reg = register(scene, cameras, config["features"], out, options, show_progress=False)
     wall = time.perf_counter() - t0
     digest = hashlib.sha256()
     with open(out, "rb") as f:
@@ -106,12 +101,11 @@ def run_config(config: dict) -> dict:
             digest.update(chunk)
     size = out.stat().st_size
     out.unlink()
-    reg = result.registration
-    workers = sorted(executor.worker_peak_rss.values()) if executor is not None else []
+    workers = sorted(reg.worker_peak_rss.values())
     return {
         "gaussians": scene.num_gaussians, "views": reg.num_views, "wall": wall, "build": build_s, "raster": reg.raster_seconds,
         "coalesce": reg.coalesce_seconds, "accumulate": reg.accumulate_seconds,
-        "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": result.field is None, "peak_rss": peak_rss(),
+        "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": reg.num_blocks > 1, "peak_rss": peak_rss(),
         "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size,
     }
 
@@ -187,8 +181,6 @@ def _compare(args, work: Path) -> list[dict]:
 
 
 def _rss(args, work: Path) -> list[dict]:
-    from drsplat.streaming import parse_size
-
     rows, results = [], []
     budget = parse_size(args.budget)
     for tiles in map(int, args.rss_tiles.split(",")):

@@ -14,14 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.defaults import MAX_TOPK
 from drsplat.errors import DrsplatError, InputError
+from drsplat.memory import parse_size
 from drsplat.lang import LanguageField, read_field
 from drsplat.scene import GaussianScene
 
 log = logging.getLogger(__name__)
 
 DEFAULT_RELEVANCY_THRESHOLD = 0.5
-MAX_TOPK = 1024  # Gaussians kept per pixel; the paper uses 40 and the ablation plateaus from 10
 MAX_IMAGE_WIDTH = 16384  # --resolution as a width, viewer windows (larger than any GPU texture)
 MAX_COUNT = 10**9  # generic upper bound for "how many" flags (--top, --max-train...)
 
@@ -76,6 +77,17 @@ def _describe(lo, hi, lo_open: bool = False) -> str:
 
 
 positive_int = int_range(1, MAX_COUNT)
+
+
+def size_value(text: str) -> int:
+    """argparse type: a size in bytes ('8GB', '512MB', '16GiB')."""
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+size_value.__name__ = "size"
 nonneg_int = int_range(0, MAX_COUNT)
 seed_int = int_range(0, 2**32 - 1)  # numpy and faiss seeds are unsigned 32-bit
 topk_int = int_range(1, MAX_TOPK)

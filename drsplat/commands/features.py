@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     )
     extra = {"source": str(args.source), "sam_checkpoint": str(args.sam_checkpoint or "") if args.masks == "sam" else None}
     if args.ray is not None:
-        from drsplat.distributed import extract_features_ray
+        from drsplat.features.ray import extract_features_ray
 
         log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, args.clip_model)
         report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import guard_args, nonneg_int, resolution_value, topk_int
+from drsplat.commands.common import guard_args, nonneg_int, positive_int, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.features.format import FEATURE_FILE_PATTERNS
@@ -43,14 +43,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="camera resolution as 3DGS's -r: 1, 2, 4, 8 divide, another number is a width in pixels; "
                    "default -1: full size, capped at 1600 px wide")
     p.add_argument("--out", type=Path, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
-    p.add_argument("--memory-budget", default=None, metavar="SIZE",
+    p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
                    "streamed in blocks through a pair log on disk, with the same output. Default: in memory if it fits the "
                    "memory available, else stop and say which budget fits")
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="compute views on a Ray cluster (pip install 'drsplat[ray]'): ADDRESS of a running cluster "
                    "(host:port or 'auto'), or no value to start a local one; same output as without")
-    p.add_argument("--ray-workers", type=int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
+    p.add_argument("--ray-workers", type=positive_int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_arguments(p)
     p.set_defaults(func=run)
@@ -58,14 +58,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import load_cameras
-    from drsplat.errors import DrsplatError
     from drsplat.lang import codebook_path_for
-    from drsplat.pipeline import RegisterOptions, register_to_ply
+    from drsplat.registration import RegisterOptions, register
     from drsplat.scene import load_ply
 
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
-    if args.aggregate != "paper" and engine != "numba":
-        raise DrsplatError(f"--aggregate {args.aggregate} runs on the numba engine only; use --engine numba or --aggregate paper")
+    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
+                              memory_budget=args.memory_budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
+                              aggregate=args.aggregate)
+    options.check()
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
     written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
@@ -73,22 +74,9 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders={"--features": (args.features, FEATURE_FILE_PATTERNS)})
-    budget = None
-    if args.memory_budget is not None:
-        from drsplat.streaming import parse_size
-
-        try:
-            budget = parse_size(args.memory_budget)
-        except ValueError as exc:
-            raise DrsplatError(f"--memory-budget: {exc}") from exc
-    if args.ray_workers is not None and args.ray_workers < 1:
-        raise DrsplatError(f"--ray-workers must be at least 1, got {args.ray_workers}")
     scene = load_ply(args.scene)
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
-    options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
-                              memory_budget=budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
-                              aggregate=args.aggregate)
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
-        register_to_ply(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
+        register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
     return 0

@@ -4,7 +4,7 @@
     pq          PQ sub-vectors M ∈ {32, 64, 128, 256} (and exact float16): mIoU, bytes per Gaussian, query time
     robustness  mislabelled-mask fraction and embedding noise against mIoU
     metrics     volume-aware vs count vs voxel IoU across scenes and settings (the paper's Fig. S3)
-    aggregate   aggregation modes (drsplat.aggregate) x top-k on the hard room presets: seg / loc mIoU
+    aggregate   aggregation modes (drsplat.registration.aggregate) x top-k on the hard room presets: seg / loc mIoU
                 (volume and count; labelled-only and with unlabelled Gaussians as false positives),
                 floaters kept, labelled coverage, time per view
 
@@ -26,7 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.utils import CancelToken, atomic_path
-from drsplat.defaults import DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_TOPK
+from drsplat.cameras import load_cameras
+from drsplat.errors import DrsplatError
+from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
+from drsplat.lang import build_field
+from drsplat.registration import RegisterOptions, register_features
+from drsplat.scene import load_ply
+from drsplat.synthetic import PRESETS, write_dataset
 
 log = logging.getLogger(__name__)
 
@@ -77,10 +84,6 @@ class AblationResult:
 def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None) -> Dataset:
     """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
     override the preset's oracle mask source, "render" or "geometry"; drsplat.synthetic)."""
-    from drsplat.cameras import load_cameras
-    from drsplat.scene import load_ply
-    from drsplat.synthetic import write_dataset
-
     path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else ""))
     if not (path / "scene.ply").exists():
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, show_progress=False)
@@ -89,23 +92,17 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
 
 
 def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper"):
-    from drsplat.registration import register_scene
-
-    return register_scene(ds.scene, ds.cameras, ds.path / "features", topk=topk, show_progress=False, collect_embeddings=collect,
-                          aggregate=aggregate)
+    return register_features(ds.scene, ds.cameras, ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
+                             collect_embeddings=collect)
 
 
 def evaluate(ds: Dataset, scores: np.ndarray, assigned: np.ndarray, weightings=("volume",), voxel_resolution: int = 64) -> dict:
     """{(task, weighting): IoUReport} for one scored scene (unassigned Gaussians never selected)."""
-    from drsplat.eval.metrics import evaluate_scene
-
     reps = evaluate_scene(ds.scene, scores, ds.gt, ds.names, ("loc", "seg"), weightings, voxel_resolution=voxel_resolution, assigned=assigned)
     return {(r.task, r.weighting): r for r in reps}
 
 
 def exact_scores(ds: Dataset, result) -> tuple[np.ndarray, object]:
-    from drsplat.lang import build_field
-
     field = build_field(result.features, result.weights)
     return field.scores(ds.text), field
 
@@ -138,8 +135,6 @@ def ablate_topk(root: Path, preset: str, seeds: list[int], values=TOPK_VALUES, c
 
 
 def ablate_pq(root: Path, preset: str, seeds: list[int], values=PQ_VALUES, repeats: int = 9, cancel: CancelToken | None = None) -> AblationResult:
-    from drsplat.lang import build_field
-
     table: dict[str, list] = {}
     for seed in seeds:
         _check(cancel)
@@ -236,8 +231,6 @@ def aggregate_metrics(ds: Dataset, result) -> list[float]:
     positives). floaters kept: share of unlabelled Gaussians assigned; labelled coverage: share of
     labelled Gaussians assigned.
     """
-    from drsplat.eval.metrics import argmax_labels, scene_weights, segmentation_iou
-
     scores, _ = exact_scores(ds, result)
     assigned = result.weights > 0
     reps = evaluate(ds, scores, assigned, ("volume", "count"))
@@ -260,10 +253,7 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
                      cancel: CancelToken | None = None, mask_source: str | None = None) -> AblationResult:
     """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS).
     mask_source: every preset's oracle masks from this source (None: each preset's own)."""
-    from drsplat.defaults import AGGREGATE_MODES as MODES
-    from drsplat.synthetic import PRESETS
-
-    modes = tuple(modes or MODES)
+    modes = tuple(modes or AGGREGATE_MODES)
     first = dataset(root, presets[0], seeds[0], PRESETS[presets[0]].mislabel, mask_source=mask_source)
     for k in topks:  # warm-up: compiled kernels load once, not inside the timings
         for mode in modes:
@@ -432,8 +422,6 @@ def add_ablate_parser(sub) -> None:
 
 
 def run_ablate(args: argparse.Namespace) -> int:
-    from drsplat.errors import DrsplatError
-
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
         values = None if args.values is None else [int(v) for v in args.values.split(",") if v.strip()]
@@ -442,14 +430,11 @@ def run_ablate(args: argparse.Namespace) -> int:
     root = args.out_dir / "datasets"
     preset = args.preset or "tiny"
     if args.ablation == "aggregate":
-        from drsplat.defaults import AGGREGATE_MODES as MODES
-        from drsplat.synthetic import PRESETS
-
         presets = tuple(p.strip() for p in args.preset.split(",")) if args.preset else AGGREGATE_PRESETS
-        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else MODES
-        bad = [p for p in presets if p not in PRESETS] + [m for m in modes if m not in MODES]
+        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else AGGREGATE_MODES
+        bad = [p for p in presets if p not in PRESETS] + [m for m in modes if m not in AGGREGATE_MODES]
         if bad:
-            raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(MODES)})")
+            raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(AGGREGATE_MODES)})")
         if "paper" not in modes:
             modes = ("paper",) + modes  # the baseline of the summary
         result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_source=args.mask_source)

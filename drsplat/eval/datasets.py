@@ -32,6 +32,8 @@ import numpy as np
 
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
+from drsplat.scene import check_element_sizes, read_ply_header
+from drsplat.utils import atomic_path, load_npy
 
 log = logging.getLogger(__name__)
 
@@ -136,8 +138,6 @@ def write_lerf_view(out_dir: str | Path, name: str, masks: dict[str, np.ndarray]
     """Write a view in the LERF-OVS layout (`<name>.json` polygons + `<name>.jpg`). Returns the JSON path."""
     from PIL import Image
 
-    from drsplat.utils import atomic_path
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     height, width = next(iter(masks.values())).shape if masks else (image.shape[0], image.shape[1])
@@ -212,8 +212,6 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
     """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
     from plyfile import PlyData, PlyHeaderParseError
 
-    from drsplat.scene import check_element_sizes, read_ply_header
-
     check_element_sizes(path, read_ply_header(path), path.stat().st_size)  # no allocation from a lying header
     try:
         ply = PlyData.read(str(path))
@@ -251,7 +249,6 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
     sidecar = labels_sidecar(path)
     if not sidecar.is_file():
         raise InputError(sidecar, f"missing: a {path.suffix} cloud has no label property, so its raw labels must be in this file ([P] integers)")
-    from drsplat.utils import load_npy
 
     raw = load_npy(sidecar, "label array")
     if raw.ndim != 1 or raw.shape[0] != len(pts) or not np.issubdtype(raw.dtype, np.integer):
@@ -262,8 +259,6 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
 def write_labelled_points(path: str | Path, points: np.ndarray, raw_labels: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write a ScanNet-style labelled cloud (x, y, z, red, green, blue, alpha, label ushort)."""
     from plyfile import PlyData, PlyElement
-
-    from drsplat.utils import atomic_path
 
     n = len(points)
     rgb = np.full((n, 3), 128, np.uint8) if colors is None else np.asarray(colors, np.uint8)

@@ -19,6 +19,8 @@ from drsplat.cameras import Camera
 from drsplat.eval.datasets import AnnotatedView
 from drsplat.errors import InputError
 from drsplat.utils import CancelToken, progress
+from drsplat.query import otsu_threshold
+from drsplat.raster import prepare_scene, rasterize
 
 log = logging.getLogger(__name__)
 
@@ -92,8 +94,6 @@ def select_queries(scores: np.ndarray, threshold: float | None = None) -> tuple[
     threshold: one absolute τ for every query, or None for Otsu's threshold per query (the
     `drsplat query --threshold auto` rule). Non-finite scores are never selected.
     """
-    from drsplat.query import otsu_threshold
-
     s = np.asarray(scores, np.float64)
     s = np.where(np.isfinite(s), s, -np.inf)
     taus = np.array([threshold if threshold is not None else otsu_threshold(s[:, l]) for l in range(s.shape[1])], np.float64)
@@ -110,8 +110,6 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
     Categories without a selection are reported and skipped; views without a camera are listed
     in `missing_views`.
     """
-    from drsplat.raster import prepare_scene, rasterize
-
     by_name = {c.name: c for c in cameras}
     prepared = prepare_scene(scene)
     rows: list[SelectionRow] = []

@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
-from drsplat.features.masks import LEVELS, MaskSet
+from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
 from drsplat.features.modelid import (
     DEFAULT_MODEL,
@@ -28,6 +28,10 @@ from drsplat.features.modelid import (
     manifest_model_id,
 )
 from drsplat.utils import CancelToken, progress
+import drsplat
+from drsplat.cameras import load_cameras, load_image
+from drsplat.features.clip import ClipEncoder
+from drsplat.features.masks.sam import SamParams
 
 log = logging.getLogger(__name__)
 
@@ -156,8 +160,6 @@ def extract_image(image: np.ndarray, generator, encoder, nms: NmsParams = NmsPar
 def feature_cameras(source: str | Path, resolution: float = -1, max_height: int | None = MAX_HEIGHT) -> list:
     """Training cameras at the resolution features are made at: `load_cameras(resolution)`, then
     LangSplat's cap of `max_height` rows (registration resamples id maps to its render size)."""
-    from drsplat.cameras import load_cameras
-
     cameras = load_cameras(source, resolution=resolution)
     if max_height:
         cameras = [c.scaled(max_height / c.height) if c.height > max_height else c for c in cameras]
@@ -167,8 +169,6 @@ def feature_cameras(source: str | Path, resolution: float = -1, max_height: int 
 def versions() -> dict[str, str]:
     """Versions of the libraries that shape the features."""
     from importlib.metadata import PackageNotFoundError, version
-
-    import drsplat
 
     out = {"drsplat": drsplat.__version__, "numpy": np.__version__}
     for pkg in ("torch", "open_clip_torch", "segment-anything", "scikit-image"):
@@ -270,10 +270,6 @@ class ModelSpec:
 
 def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`."""
-    from drsplat.features.clip import ClipEncoder
-    from drsplat.features.masks import make_generator
-    from drsplat.features.masks.sam import SamParams
-
     if spec.clip_config is not None:
         import open_clip
 
@@ -303,8 +299,6 @@ def extract_features(
     interrupted run (Ctrl-C, cancel) leaves only complete pairs. `manifest` (make_manifest) is
     checked against an existing one (same CLIP model and mask generator) and written first.
     """
-    from drsplat.cameras import load_image
-
     out = Path(out_dir)
     report = FeatureReport()
     if manifest is not None:

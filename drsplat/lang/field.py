@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,7 +98,7 @@ class LanguageField:
 
     def scores_torch(self, queries: np.ndarray, device: str, lut_bits: int = 32):
         """`scores` as a torch tensor [N, K] float32 on `device` (unit queries)."""
-        from drsplat.lang import torch_scoring
+        from drsplat.lang import torch_scoring  # imports torch: only when a torch device is asked for
 
         if lut_bits != 32:
             raise ValueError("8-bit tables are a CPU (AVX-512) kernel; the torch scorer uses float32 tables (lut_bits=32)")
@@ -159,18 +160,29 @@ def build_field(
     return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book))
 
 
-def _scene_training_set(features: np.ndarray, assigned: np.ndarray, train: np.ndarray | None, seed: int) -> np.ndarray:
+def scene_sample_ids(candidates: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Sorted ids of at most SCENE_FEATURE_SAMPLE Gaussians, drawn from the ids `candidates` [n],
+    whose features top up a scene codebook's training set when the masks are too few."""
+    rng = np.random.default_rng(seed)
+    take = rng.choice(candidates, size=min(candidates.size, SCENE_FEATURE_SAMPLE), replace=False) if candidates.size else candidates
+    return np.sort(take)
+
+
+def scene_training_set(train: np.ndarray | None, sample_features: Callable[[], np.ndarray], dim: int) -> np.ndarray:
+    """A scene codebook's training set [n, D]: the scene's mask embeddings `train`, topped up with
+    `sample_features()` (unit features of sampled Gaussians, `scene_sample_ids`) when they are
+    fewer than SCENE_MIN_TRAIN. InputError when even that is fewer than PQ_KSUB rows."""
     parts = [] if train is None else [np.asarray(train, np.float32)]
     have = sum(p.shape[0] for p in parts)
     if have < SCENE_MIN_TRAIN:
-        rng = np.random.default_rng(seed)
-        ids = np.flatnonzero(assigned)
-        take = rng.choice(ids, size=min(ids.size, SCENE_FEATURE_SAMPLE), replace=False) if ids.size else ids
-        parts.append(np.asarray(features[np.sort(take)], np.float32))
-        log.info("scene codebook: %d mask embeddings topped up with %d Gaussian features", have, take.size)
-    x = np.concatenate(parts) if parts else np.zeros((0, features.shape[1]), np.float32)
+        extra = np.asarray(sample_features(), np.float32)
+        parts.append(extra)
+        log.info("scene codebook: %d mask embeddings topped up with %d Gaussian features", have, extra.shape[0])
+    x = np.concatenate(parts) if parts else np.zeros((0, dim), np.float32)
     if x.shape[0] < PQ_KSUB:
         raise InputError(None, f"a scene codebook needs at least {PQ_KSUB} embeddings to train, the scene has {x.shape[0]}; use --codebook none or a general codebook")
     return x
 
 
+def _scene_training_set(features: np.ndarray, assigned: np.ndarray, train: np.ndarray | None, seed: int) -> np.ndarray:
+    return scene_training_set(train, lambda: features[scene_sample_ids(np.flatnonzero(assigned), seed)], features.shape[1])

@@ -34,7 +34,7 @@ from drsplat.errors import InputError
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, save_ply
 from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
@@ -251,8 +251,6 @@ def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | 
     beside `path`), so that `read_field` on the written file gives the field back. Returns the
     scene written.
     """
-    from drsplat.scene import save_ply
-
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}")
     if fmt == "drsplat" and field is None:

@@ -24,26 +24,22 @@ from pathlib import Path
 
 from drsplat.errors import DrsplatError
 from drsplat.features.masks.base import LEVELS, MaskGenerator, MaskSet, empty_maskset
+from drsplat.features.masks.superpixel import FelzenszwalbGenerator, SlicGenerator
+from drsplat.features.weights import resolve_sam_checkpoint
+from drsplat.features.masks.sam import load_sam, SamGenerator
 
 
 def _sam(options: dict) -> MaskGenerator:
-    from drsplat.features.masks.sam import SamGenerator, load_sam
-    from drsplat.features.weights import resolve_sam_checkpoint
-
     checkpoint = options.get("sam_checkpoint")
     checkpoint = Path(checkpoint) if checkpoint is not None else resolve_sam_checkpoint(options.get("sam_model", "vit_h"))
     return SamGenerator(load_sam(checkpoint, options.get("device", "cpu")), options.get("sam_params"))
 
 
 def _felzenszwalb(options: dict) -> MaskGenerator:
-    from drsplat.features.masks.superpixel import FelzenszwalbGenerator
-
     return FelzenszwalbGenerator()
 
 
 def _slic(options: dict) -> MaskGenerator:
-    from drsplat.features.masks.superpixel import SlicGenerator
-
     return SlicGenerator()
 
 

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from drsplat.features.masks.base import MaskSet
+from drsplat.features.format import resample_nearest
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +37,6 @@ def _work_image(image: np.ndarray, max_side: int) -> np.ndarray:
 
 
 def _levels_from_label_maps(label_maps: list[np.ndarray], height: int, width: int, min_area_fraction: float) -> list[MaskSet]:
-    from drsplat.features.format import resample_nearest
-
     min_area = max(16, int(min_area_fraction * height * width))
     return [_partition_to_maskset(resample_nearest(labels, width, height), min_area) for labels in label_maps]
 

@@ -33,17 +33,14 @@ centre and anchor target masks that follow true silhouettes (a SAM mask of a pho
 `hard-silhouette` preset): a Gaussian straddling a thin object's silhouette puts most of its
 footprint on the background's mask, while its centre lies on the object. On masks made by the
 Gaussians' own weighted vote (the other hard-* presets) the paper's w is what drew the boundaries,
-and both lose (docs/registration.md, "Centre and anchor weightings"). ANCHOR_GAIN c = 1 was
-picked over {0.5, 2, 8, 32} on seed 0 of hard-silhouette, -thin, -small and -lowres: larger c moves
-anchor towards centre (more gain on hard-silhouette, large losses elsewhere), 0.5 gains less.
+and both lose (docs/registration.md, "Centre and anchor weightings"; how c = ANCHOR_GAIN was chosen:
+"Design choices, measured").
 
 Floater rejection (`SurfaceSupport`). Depths are taken where the pixel's ray meets a Gaussian,
 not at its mean: t*_i(p) = dᵀ Σ_i⁻¹ (μ_i - o) / dᵀ Σ_i⁻¹ d, the point of largest density along the
 ray o + t·d (camera z = t), clamped to the mean's depth ± 3 max scale (`ray_depths_reference`).
 For a flat Gaussian that is the plane it lies in, so a large floor or wall Gaussian seen at a
-grazing angle is not "in front" of its own surface over the far half of its footprint (taking the
-mean's depth rejected 4-38 labelled floor and wall Gaussians per hard room and kept more
-floaters). In every view, pixel p's surface depth D(p) = t* of the pixel's median Gaussian, the
+grazing angle is not "in front" of its own surface over the far half of its footprint. In every view, pixel p's surface depth D(p) = t* of the pixel's median Gaussian, the
 one whose contribution takes the transmittance T from above ½ to ≤ ½ (the rasterizer returns it:
 `rasterize(..., with_median=True)`; D = +∞ where the opacity never reaches ½). A contribution of
 Gaussian i at p is *in front* when t*_i(p) < (1 - τ)·D(p), τ = 0.05. Over all views Gaussian i
@@ -58,9 +55,8 @@ i.e. it is never the dominant contribution of any pixel and mostly renders as ha
 the visible surface, by weight and in most views: what a floater or a faint blob in free space
 does. Faint Gaussians lying on a surface (D ≈ their depth) and thin opaque structures (P ≥ ½ at
 their centre pixels) are kept. The view vote keeps surface Gaussians whose weight is dominated
-by one close-up view in which a box edge puts them in front of a neighbour's plane (measured on
-the hard rooms: 0-17 labelled Gaussians rejected per room by weight alone, 0-2 with the vote,
-for 1-3% fewer floaters rejected).
+by one close-up view in which a box edge puts them in front of a neighbour's plane (what each of
+these choices changed on the hard rooms: docs/registration.md, "Design choices, measured").
 Memory: five [N] arrays for the statistics (32 bytes per Gaussian), per-view scratch (29 bytes)
 and the scene's means, Σ⁻¹ and reach (80 bytes, `RayGeometry`); nothing per (Gaussian, mask).
 """
@@ -75,6 +71,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import AGGREGATE_MODES
+from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
@@ -235,8 +232,6 @@ def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.n
 
     (the plane a flat Gaussian lies in; the mean's projection onto the ray for a round one),
     clamped to z_i ± 3·max scale (z_i the mean's camera depth; z_i itself where dᵀΣ⁻¹d ≤ 0).
-    (Falling back to z_i where the ray passes outside the 3σ ellipsoid was measured too: it
-    rejected more labelled Gaussians at box edges, 4-18 per room against 1-10.)
     Returns [H, W, k] float64, +inf where ids < 0.
     """
     h, w, k = ids.shape
@@ -382,8 +377,7 @@ def _view_stats_kernel(ids, weights, flags, view_peak, view_total, view_front, t
 
     view_peak, view_total, view_front [N] float64 and mark [N] bool are scratch, zero / False on
     entry and exit; touched [N] int32 lists the Gaussians seen. Serial: threads would race on the
-    sums, and splitting the Gaussians between threads makes each one read every slot (measured 4x
-    slower than this on 2 busy cores).
+    sums, and splitting the Gaussians between threads makes each of them read every slot.
     """
     n_pix, k = ids.shape
     n_touched = 0
@@ -458,14 +452,14 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
 @dataclass
 class ViewHook:
     """The per-view part of a mode: runs where a view is rasterized (this process or a Ray worker,
-    so it is picklable and holds no running sums). Called as hook(prepared, camera, out) with a
-    RasterOutput, it returns ([H, W, k] weights to accumulate, the view's ViewStats or None).
+    so it is picklable and holds no running sums). Called as hook(geometry, camera, out) with the
+    view's RasterOutput, it returns ([H, W, k] weights to accumulate, the view's ViewStats or None).
 
-    geometry: the scene's RayGeometry (floater rejection), else None.
+    rays: the scene's RayGeometry (floater rejection), else None.
     """
 
     mode: str
-    geometry: RayGeometry | None = None
+    rays: RayGeometry | None = None
     _buffer: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _scratch: StatsScratch | None = dataclasses.field(default=None, repr=False, compare=False)
 
@@ -473,13 +467,14 @@ class ViewHook:
         self.weighting, self.reject = split_mode(self.mode)
 
     def __getstate__(self) -> dict:  # buffers are rebuilt where the hook runs
-        return {"mode": self.mode, "geometry": self.geometry}
+        return {"mode": self.mode, "rays": self.rays}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["mode"], state["geometry"])
+        self.__init__(state["mode"], state["rays"])
 
     @property
     def needs_projection(self) -> bool:
+        """Whether the hook projects the scene (its weighting reads screen means and conics)."""
         return self.weighting in _PROJECTED
 
     @property
@@ -487,20 +482,19 @@ class ViewHook:
         """Whether the views must be rasterized with_median (floater rejection's surface)."""
         return self.reject
 
-    def __call__(self, prepared, camera, out) -> tuple[np.ndarray, ViewStats | None]:
-        """prepared: the scene (drsplat.raster.PreparedScene, means [N, 3] float64)."""
+    def __call__(self, geometry: PreparedScene | None, camera, out) -> tuple[np.ndarray, ViewStats | None]:
+        """geometry: the scene's CPU geometry (means [N, 3] float64, covariances), needed when
+        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids)."""
         stats = None
         if self.reject:
             if out.median_ids is None:
                 raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
-            stats, self._scratch = surface_stats(self.geometry, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
+            stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
         if self.weighting == "paper":
             return out.weights, stats
         means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
-            from drsplat.raster import project_gaussians
-
-            projected = project_gaussians(prepared, camera)
+            projected = project_gaussians(geometry, camera)
             means2d, conics = projected.means2d, projected.conics
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer, stats
@@ -533,14 +527,21 @@ class Aggregator:
         `num_rejected`)."""
         if not self.reject:
             return 0
-        if self._rejected is None:
-            self._rejected = self.support.rejected()
-        drop = self._rejected[start:start + W.shape[0]] & (W > 0)
+        drop = self.rejected()[start:start + W.shape[0]] & (W > 0)
         F[drop] = 0.0
         W[drop] = 0.0
         count = int(np.count_nonzero(drop))
         self.num_rejected += count
         return count
+
+    def rejected(self) -> np.ndarray | None:
+        """[N] bool, the Gaussians the mode leaves unassigned (computed once every view is in), or
+        None for modes that reject nothing."""
+        if not self.reject:
+            return None
+        if self._rejected is None:
+            self._rejected = self.support.rejected()
+        return self._rejected
 
     def log_rejected(self) -> None:
         if self.reject:

@@ -1,7 +1,8 @@
-"""Streaming registration under a memory budget, the pair-log checkpoint and the memory plan.
+"""Registration in Gaussian blocks under a memory budget, the pair-log checkpoint and the memory plan.
 
-The streamed file must equal the in-memory one byte for byte; logs cut short, damaged or of
-the old format must be detected; a bad codebook must fail before any view is registered.
+A file written in blocks must equal the one-block file byte for byte, for every codebook choice;
+logs cut short, damaged or of the old format must be detected; a bad codebook must fail before any
+view is registered.
 """
 
 from __future__ import annotations
@@ -15,11 +16,14 @@ import pytest
 
 from drsplat.cameras import load_cameras
 from drsplat.errors import Cancelled, DrsplatError, InputError
-from drsplat.pairlog import PairLog, ViewPairs
-from drsplat.pipeline import RegisterOptions, checkpoint_path_for, register_to_ply
-from drsplat.registration import Accumulator, Coalescer, accumulate_view_reference, register_scene
+from drsplat.memory import parse_size
+from drsplat.registration import RegisterOptions, register, register_features
+from drsplat.registration.checkpoint import checkpoint_path_for
+from drsplat.registration.coalesce import Coalescer
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.plan import MemoryPlan, choose_block, estimate_memory
+from drsplat.registration.sums import Accumulator, accumulate_view_reference
 from drsplat.scene import load_ply
-from drsplat.streaming import MemoryPlan, choose_block, estimate_memory, parse_size
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
 from tests.test_registration import _random_view
@@ -43,7 +47,7 @@ def in_memory(tiny, inputs, tmp_path_factory) -> dict[bool, bytes]:
     out = {}
     for keep in (False, True):
         path = folder / f"keep{keep}.ply"
-        register_to_ply(scene, cams, tiny / "features", path, RegisterOptions(keep_unassigned=keep), show_progress=False)
+        register(scene, cams, tiny / "features", path, RegisterOptions(keep_unassigned=keep), show_progress=False)
         out[keep] = path.read_bytes()
     return out
 
@@ -52,22 +56,21 @@ def in_memory(tiny, inputs, tmp_path_factory) -> dict[bool, bytes]:
 
 
 @pytest.mark.parametrize("case", ["random", "tiny_buffer", "empty"])
-def test_coalesced_pairs_replayed_equal_add_view_and_reference(case):
-    """Coalescer + add_pairs (the log's path) = add_view bit for bit = the scipy reference."""
+def test_pair_buffers_of_any_size_give_the_same_bits(case):
+    """Coalescer + add_pairs with a 1-pair buffer equal a large buffer bit for bit, and the scipy reference."""
     rng = np.random.default_rng(3)
     n, d = 60, 7
-    direct, replay = Accumulator(n, d), Accumulator(n, d, pair_capacity=1 if case == "tiny_buffer" else 1 << 20)
+    big, small = Accumulator(n, d), Accumulator(n, d, pair_capacity=1 if case == "tiny_buffer" else 1 << 20)
     coalescer = Coalescer(n, capacity=1)  # grows while coalescing
     F_ref, W_ref = np.zeros((n, d)), np.zeros(n)
     for _ in range(3):
         ids, weights, masks, feats = _random_view(rng, 9, 11, 5, n, 12, empty_fraction=1.0 if case == "empty" else 0.3)
         feats = feats[:, :d]
-        pairs, distinct = direct.add_view(ids, weights, masks, feats)
         g, m, w, contributing = coalescer.coalesce(ids, weights, masks, feats.shape[0])
-        assert (contributing, g.size) == (pairs, distinct)
-        replay.add_pairs(g, m, w, feats)
-        accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
-    (F1, W1), (F2, W2) = direct.sums(), replay.sums()
+        assert contributing == accumulate_view_reference(F_ref, W_ref, ids, weights, masks, feats)
+        big.add_pairs(g, m, w, feats)
+        small.add_pairs(g, m, w, feats)
+    (F1, W1), (F2, W2) = big.sums(), small.sums()
     np.testing.assert_array_equal(F1, F2)
     np.testing.assert_array_equal(W1, W2)
     np.testing.assert_allclose(F2, F_ref, rtol=1e-4, atol=1e-5)
@@ -80,9 +83,8 @@ def test_coalesced_pairs_replayed_equal_add_view_and_reference(case):
 def test_streamed_file_equals_in_memory_byte_for_byte(tiny, inputs, in_memory, tmp_path, keep):
     scene, cams = inputs
     out = tmp_path / "streamed.ply"
-    result = register_to_ply(scene, cams, tiny / "features", out, RegisterOptions(block_size=1024, keep_unassigned=keep), show_progress=False)
-    assert result.field is None and result.registration.features is None  # never held [N, D]
-    assert scene.num_gaussians > 2 * 1024  # three blocks
+    result = register(scene, cams, tiny / "features", out, RegisterOptions(block_size=1024, keep_unassigned=keep), show_progress=False)
+    assert result.features is None and result.num_blocks == 3  # never held [N, D]
     assert out.read_bytes() == in_memory[keep]
     assert not list(tmp_path.glob(".*"))  # log and body file removed
 
@@ -94,8 +96,8 @@ def test_streamed_pq_file_equals_in_memory(tiny, inputs, tmp_path):
     book = train_codebook(np.random.default_rng(0).normal(size=(3000, 512)).astype(np.float32), m=16)
     book.save(tmp_path / "general.faiss")
     a, b = tmp_path / "a" / "mem.ply", tmp_path / "b" / "mem.ply"
-    register_to_ply(scene, cams, tiny / "features", a, RegisterOptions(codebook=str(tmp_path / "general.faiss")), show_progress=False)
-    register_to_ply(scene, cams, tiny / "features", b, RegisterOptions(codebook=str(tmp_path / "general.faiss"), block_size=1024), show_progress=False)
+    register(scene, cams, tiny / "features", a, RegisterOptions(codebook=str(tmp_path / "general.faiss")), show_progress=False)
+    register(scene, cams, tiny / "features", b, RegisterOptions(codebook=str(tmp_path / "general.faiss"), block_size=1024), show_progress=False)
     assert a.read_bytes() == b.read_bytes()
     assert (a.parent / "mem.codebook.faiss").read_bytes() == (b.parent / "mem.codebook.faiss").read_bytes()
 
@@ -111,19 +113,25 @@ def test_streaming_resumes_after_cancel_and_equals_in_memory(tiny, inputs, in_me
 
     options = RegisterOptions(block_size=1024)
     with pytest.raises(Cancelled):
-        register_to_ply(scene, cams, tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop_after_six)
+        register(scene, cams, tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop_after_six)
     assert not out.exists() and checkpoint_path_for(out).is_file()
     seen = []
-    result = register_to_ply(scene, cams, tiny / "features", out, options, show_progress=False, on_progress=lambda d, t: seen.append(d))
-    assert result.registration.resumed_views == 6 and seen[0] == 6
+    result = register(scene, cams, tiny / "features", out, options, show_progress=False, on_progress=lambda d, t: seen.append(d))
+    assert result.resumed_views == 6 and seen[0] == 6
     assert out.read_bytes() == in_memory[False]
     assert not checkpoint_path_for(out).exists()
 
 
-def test_scene_codebook_with_too_few_embeddings_is_a_clear_error_when_streaming(tiny, inputs, tmp_path):
+def test_scene_codebook_in_blocks_writes_the_same_bytes_as_one_block(tiny, inputs, tmp_path):
+    """The scene codebook is trained once, the same way in every plan (masks topped up with a sample of
+    Gaussians the sink sums), so `--codebook scene` gives the same file and codebook with and without blocks."""
     scene, cams = inputs
-    with pytest.raises(DrsplatError, match="at least 2560 mask embeddings"):
-        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook="scene", block_size=1024), show_progress=False)
+    a, b = tmp_path / "one" / "reg.ply", tmp_path / "blocks" / "reg.ply"
+    one = register(scene, cams, tiny / "features", a, RegisterOptions(codebook="scene"), show_progress=False)
+    many = register(scene, cams, tiny / "features", b, RegisterOptions(codebook="scene", block_size=1024), show_progress=False)
+    assert one.num_blocks == 1 and many.num_blocks > 1 and one.field_kind == "pq"
+    assert a.read_bytes() == b.read_bytes()
+    assert (a.parent / "reg.codebook.faiss").read_bytes() == (b.parent / "reg.codebook.faiss").read_bytes()
 
 
 # ----------------------------------------------------------------------------- checkpoints
@@ -138,17 +146,17 @@ def _cancelled_log(tiny, inputs, path: Path, views: int) -> None:
             token.cancel()
 
     with pytest.raises(Cancelled):
-        register_scene(scene, cams, tiny / "features", checkpoint=path, cancel=token, on_progress=stop, show_progress=False)
+        register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=path, cancel=token, on_progress=stop, show_progress=False)
 
 
 def test_torn_last_record_is_dropped_and_redone(tiny, inputs, tmp_path, caplog):
     scene, cams = inputs
-    full = register_scene(scene, cams, tiny / "features", show_progress=False)
+    full = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
     ckpt = tmp_path / "run.log"
     _cancelled_log(tiny, inputs, ckpt, 5)
     ckpt.write_bytes(ckpt.read_bytes()[:-100])  # killed while appending view 5
     with caplog.at_level(logging.WARNING):
-        resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+        resumed = register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=ckpt, show_progress=False)
     assert "incomplete" in caplog.text and resumed.resumed_views == 4
     np.testing.assert_array_equal(resumed.features, full.features)
     np.testing.assert_array_equal(resumed.weights, full.weights)
@@ -161,7 +169,7 @@ def test_damaged_record_checksum_is_detected(tiny, inputs, tmp_path):
     data = bytearray(ckpt.read_bytes())
     data[-50] ^= 0xFF  # a flipped byte inside the last record's pairs
     ckpt.write_bytes(bytes(data))
-    resumed = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+    resumed = register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 2
 
 
@@ -177,7 +185,7 @@ def test_old_or_truncated_checkpoints_restart_from_scratch(tiny, inputs, tmp_pat
     else:
         ckpt.write_bytes(b"" if content == "empty" else b"not a log at all")
     with caplog.at_level(logging.WARNING):
-        result = register_scene(scene, cams, tiny / "features", checkpoint=ckpt, show_progress=False)
+        result = register_features(scene, cams, tiny / "features", RegisterOptions(), checkpoint=ckpt, show_progress=False)
     assert result.resumed_views == 0 and result.num_views == 16
     assert "starting from scratch" in caplog.text and not ckpt.exists()
 
@@ -205,14 +213,14 @@ def test_bad_codebook_fails_before_registering(tiny, inputs, tmp_path):
     junk = tmp_path / "junk.faiss"
     junk.write_bytes(b"\0" * 64)
     with pytest.raises(InputError):
-        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(junk)),
+        register(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(junk)),
                         show_progress=False, on_progress=lambda d, t: calls.append(d))
     from drsplat.lang import train_codebook
 
     small = train_codebook(np.random.default_rng(0).normal(size=(600, 16)).astype(np.float32), m=4)
     small.save(tmp_path / "d16.faiss")
     with pytest.raises(InputError, match="dimension 16 differs from the features' dimension 512"):
-        register_to_ply(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(tmp_path / "d16.faiss")),
+        register(scene, cams, tiny / "features", tmp_path / "o.ply", RegisterOptions(codebook=str(tmp_path / "d16.faiss")),
                         show_progress=False, on_progress=lambda d, t: calls.append(d))
     assert calls == [] and not checkpoint_path_for(tmp_path / "o.ply").exists()
 
@@ -228,7 +236,7 @@ def test_parse_size():
 
 
 def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
-    """The done-means case as a plan: 5M fully assigned Gaussians x 512-D need ~25 GB in memory."""
+    """The done-means case as a plan: 5M Gaussians x 512-D hold 10 GB of sums in one block (more than 8 GB)."""
     scene, cams = inputs
 
     class Big:  # the planner only reads the Gaussian count and the SH width
@@ -236,11 +244,11 @@ def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
         sh = np.zeros((1, 1, 3))
 
     plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
-    assert plan.in_memory > 20e9
+    assert plan.in_memory > 5_000_000 * 512 * 4
     block = choose_block(plan, 8 * 10**9)
-    assert block is not None and 0 < block < 5_000_000 and block % 1024 == 0
-    assert plan.streaming(block) <= 8e9
-    assert choose_block(plan, 64 * 10**9) is None  # fits: in memory
+    assert 0 < block < 5_000_000 and block % 1024 == 0
+    assert plan.peak(block) <= 8e9
+    assert choose_block(plan, 64 * 10**9) == 5_000_000  # fits: one block
     with pytest.raises(DrsplatError, match="too small for this scene"):
         choose_block(plan, 10**9)
     with pytest.raises(DrsplatError, match=r"needs about .* GB.*--memory-budget \d+GB"):
@@ -250,15 +258,17 @@ def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
 def test_plan_keeps_small_scenes_in_memory(inputs):
     scene, cams = inputs
     plan = estimate_memory(scene, cams, 512, 40)
-    assert isinstance(plan, MemoryPlan) and choose_block(plan, None) is None
+    assert isinstance(plan, MemoryPlan) and choose_block(plan, None) == scene.num_gaussians
 
 
 def test_cli_memory_budget_errors(tiny, tmp_path):
     from drsplat.cli import main
 
     base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
-    assert main(base + ["--memory-budget", "lots"]) == 1
-    assert main(base + ["--memory-budget", "1KB"]) == 1
+    with pytest.raises(SystemExit) as usage:  # not a size: argparse's usage error
+        main(base + ["--memory-budget", "lots"])
+    assert usage.value.code == 2
+    assert main(base + ["--memory-budget", "1KB"]) == 1  # a size, too small for this scene
     assert not (tmp_path / "o.ply").exists()
 
 
@@ -268,7 +278,7 @@ def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
     file, and a file shorter than L carries no column (as in memory)."""
     from drsplat.lang import attach_field, build_field
     from drsplat.scene import GaussianScene, ply_header, save_ply, scene_to_vertices
-    from drsplat.streaming import _drop_meta_if_short, _with_meta_rows
+    from drsplat.registration.output import _drop_meta_if_short, _with_meta_rows
 
     rng = np.random.default_rng(n)
     scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),

@@ -1,0 +1,133 @@
+"""Connecting to a Ray cluster (the optional `ray` extra): one owner of addresses, runtime environment
+and worker threads, used by Ray registration (drsplat.registration.ray) and Ray features
+(drsplat.features.ray).
+
+`ray` is optional (`pip install 'drsplat[ray]'`); without it `import_ray` raises a DrsplatError that
+says so. Nothing here imports ray at module level.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from drsplat.errors import DrsplatError
+
+log = logging.getLogger(__name__)
+
+TASK_RETRIES = 3
+LOCAL_ADDRESSES = ("", "local")
+
+
+@dataclass(frozen=True)
+class ClusterOptions:
+    """Where Ray work runs. address: None / "" / "local" starts a local Ray instance, "auto" joins
+    the cluster of this machine, "HOST:PORT" a running cluster. workers: tasks or actors at once
+    (default: the cluster's CPUs). views_per_task: registration views a task computes (default:
+    drsplat.registration.ray.VIEWS_PER_TASK)."""
+
+    address: str | None = None
+    workers: int | None = None
+    views_per_task: int | None = None
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise DrsplatError("--ray needs the ray package: pip install 'drsplat[ray]' (ray==2.60.0)") from None
+    return ray
+
+
+def _runtime_env(address: str | None) -> dict:
+    """Make workers run the driver's drsplat code whatever is installed on their side.
+
+    On this machine (a local instance, or a cluster address on this host) workers import the
+    package from the driver's folder (PYTHONPATH), which also reuses numba's on-disk cache of
+    compiled kernels; on other hosts Ray ships the package (`py_modules`).
+    """
+    package = Path(__file__).resolve().parent  # the drsplat package folder
+    if _on_this_host(address):
+        return {"env_vars": {"PYTHONPATH": str(package.parent)}}
+    return {"py_modules": [str(package)], "excludes": ["__pycache__", "*.pyc"]}
+
+
+def _on_this_host(address: str | None) -> bool:
+    if address is None or address in LOCAL_ADDRESSES or address == "auto":
+        return True
+    host = address.split("://", 1)[-1].rpartition(":")[0]
+    try:
+        ip = socket.gethostbyname(host)
+    except OSError:
+        return False
+    if ip.startswith("127."):
+        return True
+    try:
+        return ip in socket.gethostbyname_ex(socket.gethostname())[2]
+    except OSError:
+        return False
+
+
+def _check_reachable(address: str, timeout: float = 3.0) -> None:
+    """A clear error at once when host:port accepts no connection (ray.init would wait much longer)."""
+    target = address.split("://", 1)[-1]
+    host, _, port = target.rpartition(":")
+    if not host or not port.isdigit():
+        raise DrsplatError(f"--ray {address!r} is not an address: expected HOST:PORT (as printed by `ray start --head`), 'auto', or nothing for a local cluster")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout):
+            return
+    except OSError as exc:
+        raise DrsplatError(
+            f"cannot reach a Ray cluster at {address} ({exc.strerror or exc}); start one with `ray start --head` "
+            f"and pass the address it prints, or use --ray with no address for a local cluster"
+        ) from None
+
+
+def connect(address: str | None, *, num_cpus: int | None = None, object_store_memory: int | None = None) -> bool:
+    """Connect this process to Ray. Returns True when this call started Ray (the caller shuts it down).
+
+    address: None / "" / "local" starts a local Ray instance; "auto" joins the cluster this machine
+    belongs to; "HOST:PORT" (or ray://HOST:PORT) joins that cluster, checked first to be reachable.
+    An already initialised Ray session is reused.
+    """
+    ray = import_ray()
+    local = address is None or address in LOCAL_ADDRESSES
+    if not local and address != "auto":
+        _check_reachable(address)
+    if ray.is_initialized():
+        return False
+    kwargs = {"runtime_env": _runtime_env(address), "logging_level": logging.WARNING, "log_to_driver": False}
+    if local:
+        kwargs.update(include_dashboard=False, num_cpus=num_cpus, object_store_memory=object_store_memory)
+    else:
+        kwargs["address"] = address
+    try:
+        ray.init(**kwargs)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}") from None
+    return True
+
+
+def set_worker_threads() -> None:
+    """numba threads = the CPUs Ray gave this task (workers otherwise oversubscribe the node)."""
+    import numba
+    import ray
+
+    cpus = ray.get_runtime_context().get_assigned_resources().get("CPU", 1)
+    numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, int(round(cpus)))))
+
+
+@contextmanager
+def session(address: str | None) -> Iterator[None]:
+    """Connected to Ray inside the block; a Ray instance this block started is shut down after it."""
+    owns = connect(address)
+    try:
+        yield
+    finally:
+        if owns:
+            import_ray().shutdown()

@@ -1,0 +1,121 @@
+"""Feature extraction on a Ray cluster: `extract_features` with the images spread over actors.
+
+One actor per worker loads the mask generator and CLIP once (on a GPU of its own when the device
+is CUDA: as many actors as the cluster has GPUs, never more, so none waits forever for a GPU);
+the driver sends images and writes the returned `<stem>_s.npy` / `<stem>_f.npy` atomically itself,
+so a dead worker (actor restarted, call retried) leaves no half or duplicate file, and complete
+pairs already on disk are skipped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import load_image
+from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_threads
+from drsplat.errors import DrsplatError
+from drsplat.features import format as featurefiles
+from drsplat.features.extract import (
+    FeatureReport,
+    build_models,
+    check_manifest_compatible,
+    extract_image,
+    make_manifest,
+    record_result,
+    todo_cameras,
+)
+from drsplat.utils import CancelToken, progress
+
+
+def actor_count(resources: dict, gpus_per_actor: int, workers: int | None, address: str | None) -> int:
+    """Actors to start: `workers` or one per CPU, and never more than the cluster's GPUs when each
+    actor needs one (more would wait for a GPU forever). resources: ray.cluster_resources()."""
+    cpus = max(1, int(resources.get("CPU", 1)))
+    if not gpus_per_actor:
+        return int(workers or cpus)
+    gpus = int(resources.get("GPU", 0))
+    if gpus == 0:
+        raise DrsplatError(f"features on --device cuda need GPUs, but the Ray cluster at {address or 'a local instance'} has none; use --device cpu")
+    return min(int(workers or gpus), gpus)
+
+
+class _FeatureWorker:
+    """Ray actor: one model load per worker, then one image per call."""
+
+    def __init__(self, spec) -> None:
+        set_worker_threads()
+        self.generator, self.encoder = build_models(spec)
+        self.nms = spec.nms
+
+    def manifest(self, resolution: float, max_height: int | None, extra: dict | None) -> dict:
+        return make_manifest(self.generator, self.encoder, self.nms, resolution, max_height, extra)
+
+    def extract(self, stem: str, image: np.ndarray):
+        seg, feats, times, counts = extract_image(image, self.generator, self.encoder, self.nms)
+        return stem, seg, feats, times, counts
+
+
+def extract_features_ray(
+    cameras: list,
+    out_dir: str | Path,
+    spec,
+    *,
+    address: str | None = None,
+    workers: int | None = None,
+    resolution: float = -1,
+    max_height: int | None = None,
+    manifest_extra: dict | None = None,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+):
+    """`extract_features` with the images spread over Ray actors (same files; see the module docstring).
+
+    spec: drsplat.features.extract.ModelSpec (how each worker builds its models). Returns the
+    FeatureReport. GPU workers (spec.device == "cuda") each request one GPU.
+    """
+    ray = import_ray()
+    from ray.util import ActorPool
+
+    out = Path(out_dir)
+    owns = connect(address)
+    try:
+        gpus = 1 if spec.device == "cuda" else 0
+        count = actor_count(ray.cluster_resources(), gpus, workers, address)
+        actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
+        actors = [actor.remote(spec) for _ in range(count)]
+        manifest = ray.get(actors[0].manifest.remote(resolution, max_height, manifest_extra))
+        check_manifest_compatible(out, manifest)
+        out.mkdir(parents=True, exist_ok=True)
+        featurefiles.write_manifest(out, manifest)
+        report = FeatureReport()
+        todo = todo_cameras(cameras, out, report)
+        pool = ActorPool(actors)
+        for cam in todo:
+            pool.submit(lambda a, c: a.extract.remote(c.name, load_image(c)), cam)
+        finished = len(report.skipped)
+        if on_progress is not None:
+            on_progress(finished, len(cameras))
+        for _ in progress(range(len(todo)), desc="features", total=len(todo), enabled=show_progress, unit="img"):
+            if cancel is not None and cancel.cancelled:
+                for a in actors:
+                    ray.kill(a)
+                cancel.raise_if_cancelled()
+            try:
+                stem, seg, feats, times, counts = pool.get_next_unordered()
+            except ray.exceptions.RayTaskError as exc:
+                raise exc.as_instanceof_cause() from None
+            except ray.exceptions.RayError as exc:
+                raise DrsplatError(f"a Ray feature worker failed after {TASK_RETRIES} retries: {exc}") from None
+            record_result(out, stem, seg, feats, times, counts, report)
+            finished += 1
+            if on_progress is not None:
+                on_progress(finished, len(cameras))
+        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped)})
+        return report
+    finally:
+        if owns:
+            ray.shutdown()

@@ -1,0 +1,58 @@
+"""Sizes and this process's memory: '8GB' -> bytes, bytes -> '8.0 GB', /proc readings.
+
+Foundation module (numpy only): the CLI's --memory-budget validator, registration's memory plan,
+the Ray workers and the benches all read memory through here.
+"""
+
+from __future__ import annotations
+
+import re
+import resource
+from pathlib import Path
+
+import numpy as np
+
+_UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "m": 1e6, "mb": 1e6, "g": 1e9, "gb": 1e9, "t": 1e12, "tb": 1e12,
+          "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30, "tib": 1 << 40}
+
+
+def parse_size(text: str) -> int:
+    """'8GB', '8 GiB', '512MB', '1e9' -> bytes (GB = 10^9, GiB = 2^30)."""
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
+    if not match or match.group(2).lower() not in _UNITS:
+        raise ValueError(f"{text!r} is not a size (examples: 8GB, 512MB, 16GiB)")
+    value = float(match.group(1)) * _UNITS[match.group(2).lower()]
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{text!r} is not a positive size")
+    return int(value)
+
+
+def format_size(n: float) -> str:
+    """Bytes as '1.3 GB' (from 1 GB up) or '512 MB'."""
+    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
+
+
+def _proc_bytes(path: str, key: str) -> int:
+    """The `key:` line of a /proc file (in kB there) in bytes; 0 when unknown."""
+    try:
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def available_memory() -> int:
+    """MemAvailable of /proc/meminfo in bytes (0 when unknown)."""
+    return _proc_bytes("/proc/meminfo", "MemAvailable")
+
+
+def current_rss() -> int:
+    """Resident memory of this process now (VmRSS), in bytes."""
+    return _proc_bytes("/proc/self/status", "VmRSS")
+
+
+def peak_rss() -> int:
+    """Peak resident memory of this process so far (ru_maxrss), in bytes."""
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024

@@ -1,0 +1,190 @@
+"""A registration's resumable state beside its output: the pair log and the mode's statistics.
+
+`<dir>/.<out name>.register.log` is the append-only pair log (drsplat.registration.pairlog): every
+finished view's distinct (Gaussian, mask, weight) pairs, which is all the running sums depend on.
+An aggregation mode with per-Gaussian statistics (floater rejection) snapshots them beside it every
+CHECKPOINT_EVERY views (`.register.log.aggregate.npz`); a resume cuts the log back to the views
+the snapshot covers. A checkpoint is resumed only when the scene, the views (names, intrinsics,
+poses, order), the feature folder, top-k, level and mode are the same (`checkpoint_params`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import tempfile
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.memory import format_size
+from drsplat.registration.aggregate import Aggregator
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.scene import GaussianScene
+from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 2  # 2: append-only pair log; 1 was a dense F/W .npz
+CHECKPOINT_EVERY = 10  # views between fsyncs of the log and snapshots of a mode's statistics
+
+
+def checkpoint_path_for(out: str | Path) -> Path:
+    """The hidden resumable checkpoint (pair log) of a registration that writes `out`."""
+    out = Path(out)
+    return out.with_name(f".{out.name}.register.log")
+
+
+def aggregate_stats_path(checkpoint: Path) -> Path:
+    """Where an aggregation mode's statistics are snapshotted beside the pair log `checkpoint`."""
+    return checkpoint.with_name(checkpoint.name + ".aggregate.npz")
+
+
+def _scene_digest(scene: GaussianScene) -> str:
+    h = hashlib.sha1()
+    h.update(str(scene.num_gaussians).encode())
+    step = max(1, scene.num_gaussians // 4096)
+    for arr in (scene.means, scene.log_scales, scene.opacity_logits, scene.quats):
+        h.update(np.ascontiguousarray(arr[::step]).tobytes())
+    return h.hexdigest()
+
+
+def _views_digest(cameras: Sequence[Camera]) -> str:
+    h = hashlib.sha1()
+    for c in cameras:
+        h.update(f"{c.name}|{c.width}x{c.height}|{c.fx:.6g},{c.fy:.6g},{c.cx:.6g},{c.cy:.6g}|".encode())
+        h.update(np.asarray(c.R, np.float64).round(9).tobytes() + np.asarray(c.t, np.float64).round(9).tobytes())
+    return h.hexdigest()
+
+
+def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str) -> dict:
+    """What a checkpoint (pair log) must match to be resumed."""
+    return {
+        "aggregate": aggregate,
+        "version": CHECKPOINT_VERSION,
+        "num_gaussians": scene.num_gaussians,
+        "scene": _scene_digest(scene),
+        "views": _views_digest(cameras),
+        "features_dir": str(Path(features_dir).resolve()),
+        "topk": int(topk),
+        "level": int(level),
+    }
+
+
+class Checkpoint:
+    """The pair log at `path` (resumed when it matches `params` and its views are a prefix of
+    `views`) and the statistics snapshot of `aggregator`'s mode beside it.
+
+    temporary: the log only backs a run in blocks that is not resumable: it is removed whatever
+    happens. every: views between fsyncs and statistics snapshots. `resumed`: views replayed from the log (their statistics are already in the snapshot).
+    """
+
+    def __init__(self, path: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator, temporary: bool = False,
+                 every: int = CHECKPOINT_EVERY):
+        self.path = Path(path)
+        self.temporary = temporary
+        self.every = max(1, int(every))
+        self.total = len(views)
+        self.log = PairLog.open(self.path, params)
+        names = [r.name for r in self.log.records]
+        if names != [c.name for c in views[: len(names)]]:
+            log.warning("%s does not match the order of the views; starting over", self.path)
+            self.log.delete()
+            self.log = PairLog.open(self.path, params)
+        self.aggregator = aggregator
+        self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
+        if self.stats_path is not None:
+            self._resume_stats()
+        self.resumed = len(self.log.records)
+
+    @classmethod
+    def temporary_beside(cls, out: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator) -> "Checkpoint":
+        """A fresh log in `out`'s folder for a run in blocks that keeps no checkpoint."""
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=out.parent, delete=False) as f:
+            path = Path(f.name)
+        path.unlink()
+        return cls(path, params, views, aggregator, temporary=True)
+
+    @property
+    def done(self) -> int:
+        return len(self.log.records)
+
+    def replay(self):
+        """The logged views, in order (ViewPairs without statistics)."""
+        return iter(self.log)
+
+    def append(self, view: ViewPairs) -> None:
+        """Log one newly computed view (fsync'd every CHECKPOINT_EVERY views) and snapshot the mode's
+        statistics (already folded in) at the same points (every `self.every` views)."""
+        done = self.done + 1
+        sync = done % self.every == 0
+        self.log.append(view, sync=sync and not self.temporary)
+        if sync and self.stats_path is not None and not self.temporary:
+            with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
+                np.savez(f, views=np.int64(done), **self.aggregator.state())
+
+    def close(self) -> None:
+        self.log.close()
+
+    def remove(self) -> None:
+        """Delete the log and the statistics snapshot (the output is safe, or the run is abandoned)."""
+        self.log.delete()
+        if self.stats_path is not None:
+            self.stats_path.unlink(missing_ok=True)
+
+    def describe(self) -> str:
+        """'PATH (N of M views, S)': what a stopped run leaves behind."""
+        size = self.path.stat().st_size if self.path.exists() else 0
+        return f"{self.path} ({self.done} of {self.total} views, {format_size(size)})"
+
+    def leave(self, why: str) -> None:
+        """A run ended early (`why`): keep a log that holds views, with one message saying what it is;
+        remove a temporary one or one that holds nothing."""
+        self.close()
+        if self.temporary or self.done == 0:
+            self.remove()
+            return
+        log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
+                    why, self.describe())
+
+    # ------------------------------------------------------------------ the mode's statistics
+
+    def _resume_stats(self) -> None:
+        """Load the statistics snapshot and cut the log back to the views it covers (or start over)."""
+        if not self.log.records:
+            self.stats_path.unlink(missing_ok=True)
+            return
+        try:
+            views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
+        except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
+            log.warning("%s is missing or unreadable (%s); the aggregation statistics restart with the views", self.stats_path, exc)
+            views, arrays = 0, {}
+        if views > len(self.log.records):  # the log was cut shorter than the snapshot: start over
+            views, arrays = 0, {}
+        self.log.truncate(views)
+        self.aggregator.load_state(arrays)
+
+
+def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:
+    """(views, arrays) of a statistics snapshot. Its members must be `views` (a number) and exactly
+    the arrays of `expected`, with their shapes and numeric dtypes: checked from the .npy headers
+    inside the zip before anything is read (a damaged or foreign file cannot make us allocate)."""
+    with zipfile.ZipFile(path) as archive:
+        members = {name.removesuffix(".npy"): name for name in archive.namelist()}
+        if set(members) != set(expected) | {"views"}:
+            raise ValueError(f"holds {sorted(members)}, expected {sorted(set(expected) | {'views'})}")
+        for name, member in members.items():
+            with archive.open(member) as f:
+                shape, dtype = read_npy_header(f)
+            want = () if name == "views" else expected[name].shape
+            if shape != want or dtype.kind not in "iuf":
+                raise ValueError(f"{name} has shape {shape} {dtype}, expected {want} numbers")
+    with np.load(path, allow_pickle=False) as data:
+        views = int(data["views"])
+        if views < 0:
+            raise ValueError(f"covers {views} views")
+        return views, {name: data[name] for name in expected}

@@ -1,0 +1,114 @@
+"""Computing one view of a registration, the same way in every place and with every engine.
+
+`ViewComputer` rasterizes a view with the job's engine (a key of drsplat.raster.ENGINES: "numba"
+on the CPU, "torch" on the CPU or a CUDA device) keeping each pixel's top-k (ids, weights); runs
+the aggregation mode's per-view hook where the view was rendered
+(drsplat.registration.aggregate.ViewHook: reweighting, floater statistics); and coalesces the
+pixels into the view's distinct (Gaussian, mask) pairs (drsplat.registration.coalesce). Every
+engine computes the same pairs for the same view, so the registered field does not depend on it
+(tests/test_registration_matrix.py).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.errors import UsageError
+from drsplat.defaults import ENGINES
+from drsplat.raster import ENGINES as RASTER_ENGINES
+from drsplat.raster import PreparedScene, get_engine, prepare_scene
+from drsplat.registration.aggregate import ViewHook
+from drsplat.registration.coalesce import Coalescer
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.views import load_view_features
+from drsplat.scene import GaussianScene
+
+CPU_ONLY_ENGINES = ("numba",)
+
+
+@dataclass(frozen=True)
+class ViewJob:
+    """What computing a view needs besides the scene; picklable, the same in every place.
+
+    features_dir / level: where the views' LangSplat masks and embeddings are. topk: Gaussians
+    kept per pixel. engine / device: the rasterizer (drsplat.raster.ENGINES) and where it runs.
+    hook: the aggregation mode's per-view hook, or None (the paper's w = T·α as it is).
+    """
+
+    features_dir: Path
+    level: int
+    topk: int
+    engine: str = "numba"
+    device: str = "cpu"
+    hook: ViewHook | None = None
+
+
+def check_engine(engine: str, device: str) -> None:
+    """UsageError in one sentence when registration cannot run `engine` on `device`."""
+    if engine not in ENGINES or engine not in RASTER_ENGINES:  # the numpy reference rasterizer is for tests
+        raise UsageError(f"unknown registration engine {engine!r}; choose {' or '.join(ENGINES)}")
+    if engine in CPU_ONLY_ENGINES and device != "cpu":
+        raise UsageError(f"the {engine} engine runs on the CPU only, not on {device!r}; use --engine torch with --device {device}")
+
+
+def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScene:
+    """`raster.prepare_scene` without the SH coefficients (registration renders no colour).
+
+    Prepared chunk by chunk, so the float64 copies of the SH never exist at once: ~101 bytes per
+    Gaussian (means and covariances float64, opacity, finite flag). Gaussians with non-finite SH
+    are still flagged non-finite, exactly as prepare_scene does.
+    """
+    n = scene.num_gaussians
+    means = np.empty((n, 3), np.float64)
+    covs = np.empty((n, 3, 3), np.float64)
+    opacities = np.empty(n, np.float32)
+    finite = np.empty(n, bool)
+    for start in range(0, n, chunk):
+        part = prepare_scene(scene.subset(slice(start, start + chunk)))
+        stop = start + part.num_gaussians
+        means[start:stop], covs[start:stop] = part.means, part.covariances
+        opacities[start:stop], finite[start:stop] = part.opacities, part.finite
+    return PreparedScene(means=means, covariances=covs, opacities=opacities, sh=np.zeros((n, 0, 3), np.float32), finite=finite)
+
+
+class ViewComputer:
+    """Computes views with one engine on one device (see the module docstring).
+
+    geometry: the scene's CPU geometry (`prepare_geometry`); the engine prepares its own form of it
+    once (tensors on the device for torch). Holds the coalescer's [N] scratch and the previous
+    view's raster buffers, reused from view to view.
+    """
+
+    def __init__(self, geometry: PreparedScene, job: ViewJob):
+        check_engine(job.engine, job.device)
+        engine = get_engine(job.engine)
+        self.job = job
+        self._render = engine.render_fn()
+        self._prepared = engine.prepare_fn()(geometry, job.device)
+        hook = job.hook
+        self._geometry = geometry if hook is not None and hook.needs_projection else None  # the hook projects on the CPU
+        self._with_median = hook is not None and hook.needs_median
+        self._coalescer = Coalescer(geometry.num_gaussians)
+        self._out = None
+
+    def compute(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0) -> ViewPairs:
+        """The ViewPairs of view `cam` with its mask ids [H, W] and embeddings feats [M, D]."""
+        t0 = time.perf_counter()
+        self._out = self._render(self._prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+        t1 = time.perf_counter()
+        hook = self.job.hook
+        weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out)
+        g, m, w, pairs = self._coalescer.coalesce(self._out.ids, weights, mask_ids, feats.shape[0])
+        used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
+        t2 = time.perf_counter()
+        return ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1,
+                         stats=stats)
+
+    def load_and_compute(self, cam: Camera) -> ViewPairs:
+        """`compute` with the view's features read from the job's feature folder."""
+        return self.compute(cam, *load_view_features(self.job.features_dir, cam, self.job.level))

@@ -1,0 +1,423 @@
+"""The one registration driver, for every engine, place, aggregation mode and memory plan.
+
+    plan       choose_block: one block of N Gaussians, or blocks that fit --memory-budget
+    views      an executor (engine x place) yields each view's pairs in view order; the mode's
+               hook ran where the view was rendered; the driver folds the mode's statistics,
+               logs the view (checkpoint) and hands it to the sink
+    sums       the sink gives each block's sums F, W (MemorySink: kept live; LogSink: replayed)
+    finish     the mode's step on the sums (floater rejection), normalise, prune
+    codebook   one step: none, a loaded file, or trained on the scene's masks (+ a sample of
+               Gaussians summed by the sink), the same whatever the plan
+    target     PlyTarget writes the registered PLY (one writer), ArrayTarget keeps [N, D]
+
+`register` writes the registered PLY (drsplat register, the viewer, the benches); `register_features`
+returns the features in memory (evaluation, tests). Both run `run_registration`. Since every block's
+sums are the same bits whatever the plan and the place, so is the output (tested byte for byte).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.errors import Cancelled, DrsplatError, InputError
+from drsplat.features.format import feat_path, read_manifest
+from drsplat.features.modelid import manifest_model_id
+from drsplat.lang import Codebook, load_codebook, train_codebook
+from drsplat.lang.field import scene_sample_ids, scene_training_set
+from drsplat.memory import format_size
+from drsplat.registration.aggregate import Aggregator
+from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
+from drsplat.registration.compute import ViewJob, prepare_geometry
+from drsplat.registration.executor import open_executor
+from drsplat.registration.options import RegisterOptions
+from drsplat.registration.output import ArrayTarget, PlyTarget, Target
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.plan import choose_block, estimate_memory
+from drsplat.registration.sink import LogSink, MemorySink, Sink
+from drsplat.registration.sums import normalize_rows
+from drsplat.registration.views import ViewSelection, feature_dim, select_views
+from drsplat.scene import GaussianScene
+from drsplat.utils import CancelToken, progress
+
+log = logging.getLogger(__name__)
+
+SCENE_CODEBOOK_M = 128  # sub-vectors of a scene codebook (the paper's general codebook has 128 x 8 bits)
+
+
+@dataclass
+class RegistrationResult:
+    """What a registration computed and, for `register`, wrote.
+
+    features: [N, D] float32 unit rows, zero where unassigned (`register_features`); None when a
+    PLY was written instead. weights: [N] float32 total weight W_i = Σ_j w_ij (0 = unassigned).
+    path / num_written: the registered PLY and its rows (`register`).
+    seconds: wall time; view_seconds: the view pass (raster_seconds rendering and coalesce_seconds
+    coalescing, where the views were computed, plus logging and summing here); accumulate_seconds:
+    coalescing + summing (live, or the blocks' replays); accumulate_cpu_seconds: CPU time of all
+    threads in summing. num_views: views registered (resumed ones included); num_pairs:
+    contributing (Gaussian, pixel) pairs; num_distinct_pairs: (Gaussian, mask) pairs summed.
+    missing_features: camera names without a feature file; unmatched_features: feature stems
+    without a camera. num_nonfinite_masks: masks dropped for non-finite embeddings;
+    num_nonfinite_features: Gaussians left unassigned for non-finite sums. mask_embeddings:
+    [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
+    num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
+    memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
+    resident bytes of the Ray workers.
+    """
+
+    features: np.ndarray | None
+    weights: np.ndarray
+    num_views: int = 0
+    num_pairs: int = 0
+    num_distinct_pairs: int = 0
+    seconds: float = 0.0
+    view_seconds: float = 0.0
+    raster_seconds: float = 0.0
+    coalesce_seconds: float = 0.0
+    accumulate_seconds: float = 0.0
+    accumulate_cpu_seconds: float = 0.0
+    resumed_views: int = 0
+    topk: int = 0
+    level: int = 0
+    missing_features: list[str] = field(default_factory=list)
+    unmatched_features: list[str] = field(default_factory=list)
+    num_nonfinite_masks: int = 0
+    num_nonfinite_features: int = 0
+    mask_embeddings: np.ndarray | None = None
+    aggregate: str = ""
+    num_rejected: int = 0
+    block_size: int = 0
+    num_blocks: int = 0
+    log_bytes: int = 0
+    path: Path | None = None
+    num_written: int = 0
+    field_kind: str = ""
+    worker_peak_rss: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def assigned(self) -> np.ndarray:
+        """[N] bool, Gaussians that received weight."""
+        return self.weights > 0
+
+    @property
+    def num_assigned(self) -> int:
+        return int(np.count_nonzero(self.weights > 0))
+
+
+@dataclass
+class ViewTotals:
+    """Counts and timings summed over the registered views, and what the codebook step needs."""
+
+    dim: int
+    features_dir: Path
+    collect: bool
+    done: int = 0
+    num_pairs: int = 0
+    num_distinct: int = 0
+    num_nonfinite_masks: int = 0
+    raster_seconds: float = 0.0
+    coalesce_seconds: float = 0.0
+    sum_seconds: float = 0.0
+    sum_cpu_seconds: float = 0.0
+    embeddings: list[np.ndarray] = field(default_factory=list)
+    positive: np.ndarray | None = None  # [N] bool: some pair gave the Gaussian weight > 0
+
+    def add(self, view: ViewPairs) -> None:
+        if view.feats.shape[1] != self.dim:
+            raise InputError(feat_path(self.features_dir, view.name), f"embeddings are {view.feats.shape[1]}-D but earlier views' are {self.dim}-D")
+        self.done += 1
+        self.num_pairs += view.num_pairs
+        self.num_distinct += view.num_distinct
+        self.num_nonfinite_masks += view.num_nonfinite
+        self.raster_seconds += view.raster_seconds
+        self.coalesce_seconds += view.coalesce_seconds
+        self.positive[view.gaussians[view.weights > 0]] = True
+        if self.collect:
+            self.embeddings.append(np.array(view.feats[view.used]))
+
+    def mask_embeddings(self) -> np.ndarray | None:
+        return np.concatenate(self.embeddings) if self.embeddings else None
+
+
+@dataclass
+class Run:
+    """One registration's inputs, after checking: the scene, its views, D and the options."""
+
+    scene: GaussianScene
+    selection: ViewSelection
+    features_dir: Path
+    dim: int
+    options: RegisterOptions
+
+    @property
+    def views(self) -> list[Camera]:
+        return self.selection.views
+
+
+def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: str | Path, options: RegisterOptions) -> Run:
+    """Check the options and pair the cameras with the feature files (nothing heavy is loaded)."""
+    options.check()
+    features_dir = Path(features_dir)
+    selection = select_views(cameras, features_dir)
+    return Run(scene, selection, features_dir, feature_dim(features_dir, selection.views), options)
+
+
+def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
+    """'none' / 'scene' as given, or the faiss codebook file loaded and checked against the features' D."""
+    if codebook in ("none", "scene"):
+        return codebook
+    book = load_codebook(codebook)
+    if book.dim != dim:
+        raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
+    return book
+
+
+def nothing_assigned(num_views: int, features_dir: Path, out: Path | None) -> str:
+    """The error when registration gave no Gaussian a feature (nothing is written)."""
+    written = f"; nothing was written to {out}" if out is not None else ""
+    return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
+            f"or every mask of {features_dir} is empty or invalid{written}")
+
+
+def run_registration(
+    run: Run,
+    target: Target,
+    *,
+    checkpoint: Path | None = None,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+    out: Path | None = None,
+    collect_embeddings: bool = False,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> RegistrationResult:
+    """Register `run` into `target` (module docstring).
+
+    checkpoint: the pair log to resume from and keep while working (None: no checkpoint; a run in
+    blocks then logs into a temporary file beside `out`). It is removed once the target is closed;
+    a run that stops early keeps it when it holds views and says so; checkpoint_every: views between
+    its fsyncs and the mode's statistics snapshots. collect_embeddings: keep the
+    masks' embeddings in the result (always collected for a scene codebook).
+    """
+    t_start = time.perf_counter()
+    scene, options = run.scene, run.options
+    n = scene.num_gaussians
+    codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    block = options.block_size or _plan_block(run)
+    aggregator = Aggregator(options.aggregate, scene)
+    params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate)
+    if checkpoint is not None:
+        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
+    elif block < n:
+        ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
+    else:
+        ckpt = None
+    totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=np.zeros(n, bool))
+    try:
+        sink: Sink = MemorySink(n, run.dim) if block >= n else LogSink(n, run.dim, ckpt.log, block)
+        worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, show_progress, on_progress, cancel)
+        view_seconds = time.perf_counter() - t_start
+        candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
+        if not candidates.any():
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+        if codebook == "scene":
+            codebook = _train_scene_codebook(totals, sink, candidates)
+        target.open(codebook)
+        weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
+        if not np.any(weights > 0):
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+        written = target.close()
+    except BaseException as exc:
+        target.abort()
+        if ckpt is not None:
+            ckpt.leave(_why(exc))
+        raise
+    log_bytes = ckpt.log.nbytes if ckpt is not None else 0
+    if ckpt is not None:
+        ckpt.remove()
+    aggregator.log_rejected()
+    if nonfinite:
+        log.warning("%d Gaussians got non-finite feature sums and are left unassigned", nonfinite)
+    return RegistrationResult(
+        features=getattr(target, "features", None), weights=weights, num_views=totals.done, num_pairs=totals.num_pairs,
+        num_distinct_pairs=totals.num_distinct, seconds=time.perf_counter() - t_start, view_seconds=view_seconds,
+        raster_seconds=totals.raster_seconds, coalesce_seconds=totals.coalesce_seconds,
+        accumulate_seconds=totals.coalesce_seconds + totals.sum_seconds + sum_seconds, accumulate_cpu_seconds=totals.sum_cpu_seconds + sum_cpu,
+        resumed_views=ckpt.resumed if ckpt is not None else 0, topk=options.topk, level=options.level,
+        missing_features=run.selection.missing, unmatched_features=run.selection.unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
+        num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
+        num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
+        field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss,
+    )
+
+
+def _plan_block(run: Run) -> int:
+    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, aggregate=run.options.aggregate)
+    block = choose_block(plan, run.options.memory_budget)
+    if block < run.scene.num_gaussians:
+        log.info("estimated peak memory: %s in one block, %s in blocks of %s Gaussians", format_size(plan.in_memory),
+                 format_size(plan.peak(block)), f"{block:,}")
+    return block
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, (Cancelled, KeyboardInterrupt)):
+        return "stopped"
+    if isinstance(exc, OSError):
+        return f"{exc.filename or 'a file'}: {exc.strerror or exc}"
+    return "failed"
+
+
+def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, show_progress: bool,
+               on_progress, cancel) -> dict[int, int]:
+    """Replay the checkpoint's views, then compute the others with the executor, in view order:
+    fold the mode's statistics, log the view, add it to the sink. Returns the workers' peak RSS."""
+
+    def consume(view: ViewPairs) -> None:
+        totals.add(view)
+        t0, c0 = time.perf_counter(), time.process_time()
+        sink.add(view)
+        totals.sum_seconds += time.perf_counter() - t0
+        totals.sum_cpu_seconds += time.process_time() - c0
+
+    total = len(run.views)
+    if ckpt is not None:
+        for view in ckpt.replay():
+            consume(view)
+        if ckpt.done:
+            log.info("resuming from %s: %d of %d views already registered", ckpt.path, ckpt.done, total)
+    if on_progress is not None:
+        on_progress(totals.done, total)
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    if totals.done == total:
+        return {}
+    options = run.options
+    job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook)
+    executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
+    stream = executor.view_pairs(run.views[totals.done :])
+    try:
+        for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
+            aggregator.add(view.stats)
+            if ckpt is not None:
+                ckpt.append(view)
+            consume(view)
+            if on_progress is not None:
+                on_progress(totals.done, total)
+            if cancel is not None and totals.done < total:
+                cancel.raise_if_cancelled()
+    finally:
+        stream.close()
+        executor.close()
+    return dict(getattr(executor, "worker_peak_rss", {}))
+
+
+def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:
+    """The scene codebook: PQ trained on the masks' embeddings, topped up with the unit features of a
+    sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan)."""
+
+    def sample_features() -> np.ndarray:
+        ids = scene_sample_ids(np.flatnonzero(candidates))
+        F, W = sink.sample(ids)
+        F, _ = normalize_rows(F, W)
+        return F[W > 0]
+
+    train = scene_training_set(totals.mask_embeddings(), sample_features, totals.dim)
+    totals.embeddings = []
+    return train_codebook(train, m=SCENE_CODEBOOK_M, seed=0)
+
+
+def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target, show_progress: bool, cancel):
+    """Per block: the mode's step on the sums, normalise, prune, hand to the target.
+    Returns (weights [N], Gaussians dropped for non-finite sums, blocks, seconds summing, CPU seconds summing)."""
+    n = run.scene.num_gaussians
+    weights = np.zeros(n, np.float32)
+    nonfinite = blocks = 0
+    sum_seconds = sum_cpu = 0.0
+    count = sink.num_blocks
+    stream = sink.blocks()
+    bar = progress(range(count), desc="blocks", total=count, enabled=show_progress and count > 1, unit="block")
+    for _ in bar:
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        t0, c0 = time.perf_counter(), time.process_time()
+        block = next(stream)
+        sum_seconds += time.perf_counter() - t0
+        sum_cpu += time.process_time() - c0
+        aggregator.finish(block.F, block.W, block.lo)
+        _, bad = normalize_rows(block.F, block.W)
+        nonfinite += bad
+        weights[block.lo : block.hi] = block.W
+        keep = np.ones(block.hi - block.lo, bool) if run.options.keep_unassigned else block.W > 0
+        target.add(block, keep)
+        blocks += 1
+    return weights, nonfinite, blocks, sum_seconds, sum_cpu
+
+
+def register(
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    features_dir: str | Path,
+    out: str | Path,
+    options: RegisterOptions = RegisterOptions(),
+    *,
+    resumable: bool = True,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> RegistrationResult:
+    """Register `features_dir` onto `scene` and write the registered PLY `out` atomically.
+
+    resumable: keep a checkpoint beside `out` while working (`checkpoint_path_for(out)`): a cancelled
+    or killed run resumes from it; it is deleted once `out` is written. checkpoint_every: views
+    between the checkpoint's fsyncs and the mode's statistics snapshots.
+    """
+    out = Path(out)
+    run = prepare_run(scene, cameras, features_dir, options)
+    clip_model = manifest_model_id(read_manifest(run.features_dir))
+    target = PlyTarget(scene, out, clip_model)
+    result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
+                              show_progress=show_progress,
+                              on_progress=on_progress, cancel=cancel)
+    log.info("%s: %d Gaussians (%d unassigned, %s), %s field, %d views in %d block(s), %.1f s", out, result.num_written,
+             n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind, result.num_views,
+             result.num_blocks, result.seconds)
+    return result
+
+
+def n_unassigned(result: RegistrationResult) -> int:
+    return int(result.weights.shape[0]) - result.num_assigned
+
+
+def register_features(
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    features_dir: str | Path,
+    options: RegisterOptions = RegisterOptions(),
+    *,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+    collect_embeddings: bool = False,
+    show_progress: bool = True,
+    on_progress: Callable[[int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> RegistrationResult:
+    """Register `features_dir` onto `scene` and return the features [N, D] in memory (result.features:
+    unit rows, zero where unassigned). checkpoint: a pair log to resume from (removed at the end)."""
+    run = prepare_run(scene, cameras, features_dir, options)
+    target = ArrayTarget(scene.num_gaussians, run.dim)
+    result = run_registration(run, target, checkpoint=Path(checkpoint) if checkpoint is not None else None, checkpoint_every=checkpoint_every,
+                              collect_embeddings=collect_embeddings,
+                              show_progress=show_progress, on_progress=on_progress, cancel=cancel)
+    log.info("registered %d views: %d of %d Gaussians assigned, %.1f M contributing pairs, %.1f s",
+             result.num_views, result.num_assigned, scene.num_gaussians, result.num_pairs / 1e6, result.seconds)
+    return result

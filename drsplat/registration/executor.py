@@ -1,0 +1,60 @@
+"""Executors: the place where a registration's views are computed (local or Ray), with any engine.
+
+An executor runs `ViewComputer`s (drsplat.registration.compute) and yields the views' ViewPairs
+in view order:
+
+    place   executor                                             registered in
+    local   LocalExecutor: this process, view by view            EXECUTORS
+    ray     RayExecutor: tasks on a Ray cluster (registration.ray)  EXECUTORS
+
+Every (engine, place) pair gives the same pairs, hence the same field (tests/test_registration_matrix.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Protocol
+
+from drsplat.cameras import Camera
+from drsplat.cluster import ClusterOptions
+from drsplat.errors import UsageError
+from drsplat.raster import PreparedScene
+from drsplat.registration.compute import ViewComputer, ViewJob
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.ray import RayExecutor
+
+
+class Executor(Protocol):
+    """A place that computes views: their ViewPairs in view order, then `close()`."""
+
+    def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]: ...
+
+    def close(self) -> None: ...
+
+
+class LocalExecutor:
+    """Computes views in this process, one after another (the default place)."""
+
+    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None):
+        """cluster: unused here (every place takes it)."""
+        self._computer = ViewComputer(geometry, job)
+
+    def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]:
+        for cam in views:
+            yield self._computer.load_and_compute(cam)
+
+    def close(self) -> None:
+        self._computer = None
+
+
+# The places: a new one is a class taking (geometry, job, cluster) with view_pairs / close, and one line here.
+EXECUTORS = {"local": LocalExecutor, "ray": RayExecutor}
+
+
+def open_executor(place: str, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None) -> Executor:
+    """The executor of `place` ("local" or "ray") computing `job`'s views of `geometry`."""
+    try:
+        factory = EXECUTORS[place]
+    except KeyError:
+        raise UsageError(f"unknown place {place!r}; choose {' or '.join(EXECUTORS)}") from None
+    return factory(geometry, job, cluster)

@@ -1,0 +1,61 @@
+"""What a user chooses for one registration: `RegisterOptions`, checked up front in one sentence each."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from drsplat.cluster import ClusterOptions
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, MAX_TOPK
+from drsplat.errors import UsageError
+from drsplat.registration.compute import check_engine
+
+
+@dataclass(frozen=True)
+class RegisterOptions:
+    """The CLI flags of `drsplat register` and the viewer's registration panel.
+
+    topk: Gaussians kept per pixel. level: the LangSplat mask level. codebook: "none" (exact float16
+    field), "scene" (PQ trained on this scene) or a faiss codebook path. keep_unassigned: keep
+    Gaussians that got no weight (lang_weight 0) instead of pruning them.
+    memory_budget: bytes the registration may use; None: one block if it fits the memory available,
+    else an error that gives the budget to pass (drsplat.registration.plan). block_size: Gaussians
+    per block whatever the estimate (tests, benches). ray: a Ray cluster address ("" or "local"
+    starts a local one) that computes the views; ray_workers: tasks at once (default: the cluster's
+    CPUs). engine, device: the rasterizer ("numba" on "cpu", "torch" on "cpu" / "cuda").
+    aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's).
+    """
+
+    topk: int = DEFAULT_TOPK
+    level: int = DEFAULT_LEVEL
+    codebook: str = DEFAULT_CODEBOOK
+    keep_unassigned: bool = False
+    memory_budget: int | None = None
+    block_size: int | None = None
+    ray: str | None = None
+    ray_workers: int | None = None
+    engine: str = "numba"
+    device: str = "cpu"
+    aggregate: str = DEFAULT_AGGREGATE
+
+    @property
+    def place(self) -> str:
+        """Where the views are computed: "local" or "ray" (drsplat.registration.executor.EXECUTORS)."""
+        return "local" if self.ray is None else "ray"
+
+    @property
+    def cluster(self) -> ClusterOptions:
+        return ClusterOptions(self.ray, self.ray_workers)
+
+    def check(self) -> None:
+        """UsageError naming the first option that cannot run (before anything is loaded or computed)."""
+        if not 1 <= self.topk <= MAX_TOPK:
+            raise UsageError(f"topk must be between 1 and {MAX_TOPK}, got {self.topk}")
+        if self.level < 0:
+            raise UsageError(f"level must be >= 0, got {self.level}")
+        if self.aggregate not in AGGREGATE_MODES:
+            raise UsageError(f"unknown aggregation mode {self.aggregate!r}; choose from {', '.join(AGGREGATE_MODES)}")
+        for name in ("memory_budget", "block_size", "ray_workers"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise UsageError(f"{name.replace('_', '-')} must be at least 1, got {value}")
+        check_engine(self.engine, self.device)

@@ -1,0 +1,174 @@
+"""Targets: where a registration's finished blocks go (unit features and weights per Gaussian).
+
+    target       what it makes
+    PlyTarget    the registered PLY: rows encoded with the codebook (drsplat.lang), appended to a
+                 body file chunk by chunk, then header + body -> the output, atomically
+    ArrayTarget  features [N, D] and weights [N] in memory (evaluation, tests, the Python API)
+
+The PLY is written the same way for one block or many, so a file does not depend on the memory
+plan. Per row the encoding (float16 or PQ codes) and the `lang_meta` column only depend on the
+row and its index in the file, so chunks and blocks join into the bytes of a single write.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from drsplat.errors import DrsplatError
+from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column
+from drsplat.registration.plan import WRITE_CHUNK
+from drsplat.registration.sink import Block
+from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
+from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix
+
+
+class Target(Protocol):
+    """Receives the finished blocks in Gaussian order: `open(codebook)`, `add(block, keep)` per block
+    (block.F unit rows, zero where unassigned; keep [B] bool: the rows to store), `close()`;
+    `abort()` when the run fails."""
+
+    def open(self, codebook: Codebook | str) -> None: ...
+
+    def add(self, block: Block, keep: np.ndarray) -> None: ...
+
+    def close(self) -> int: ...
+
+    def abort(self) -> None: ...
+
+
+class ArrayTarget:
+    """features [N, D] float32 (unit rows, zero where unassigned or not kept) in memory; the
+    sums of a single block are kept as they are, not copied."""
+
+    def __init__(self, num_gaussians: int, dim: int):
+        self.num_gaussians, self.dim = num_gaussians, dim
+        self.features: np.ndarray | None = None
+
+    def open(self, codebook: Codebook | str) -> None:
+        pass
+
+    def add(self, block: Block, keep: np.ndarray) -> None:
+        F = block.F
+        F[~keep] = 0.0
+        if block.lo == 0 and block.hi == self.num_gaussians:
+            self.features = F
+            return
+        if self.features is None:
+            self.features = np.zeros((self.num_gaussians, self.dim), np.float32)
+        self.features[block.lo : block.hi] = F
+
+    def close(self) -> int:
+        if self.features is None:
+            self.features = np.zeros((self.num_gaussians, self.dim), np.float32)
+        return self.num_gaussians
+
+    def abort(self) -> None:
+        self.features = None
+
+
+class PlyTarget:
+    """The registered PLY `out` of `scene` (see the module docstring). clip_model: the embedding
+    space's id written in the field's metadata."""
+
+    def __init__(self, scene: GaussianScene, out: Path, clip_model: str):
+        self.scene, self.out, self.clip_model = scene, Path(out), clip_model
+        self.written = 0
+        self._codebook: Codebook | str = "none"
+        self._header: tuple | None = None
+        self._body = None
+        self._body_path: Path | None = None
+
+    def open(self, codebook: Codebook | str) -> None:
+        self._codebook = codebook
+        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=self.out.parent)
+        self._body_path = Path(name)
+        self._body = os.fdopen(fd, "wb")
+
+    def add(self, block: Block, keep: np.ndarray) -> None:
+        """Encode and append the kept rows of `block`, WRITE_CHUNK Gaussians at a time."""
+        for lo in range(block.lo, block.hi, WRITE_CHUNK):
+            hi = min(block.hi, lo + WRITE_CHUNK)
+            rows = slice(lo - block.lo, hi - block.lo)
+            chunk_keep = keep[rows]
+            field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=self._codebook, clip_model=self.clip_model)
+            part = _with_meta_rows(attach_field(self.scene.subset(slice(lo, hi)).subset(chunk_keep), field, self.out), self.written)
+            vertices = scene_to_vertices(part)
+            self._header = self._header or (vertices.dtype, part.comments)
+            self._write(vertices.tobytes())
+            self.written += int(vertices.shape[0])
+
+    def close(self) -> int:
+        """Header + body -> `out` (atomic); returns the rows written."""
+        self._body.close()
+        try:
+            if self._header is None:
+                raise DrsplatError(f"the scene has no Gaussians to write to {self.out}")
+            dtype, comments = _drop_meta_if_short(self._body_path, self._header, self.written)
+            with atomic_path(self.out) as tmp:
+                with open(tmp, "wb") as f, open(self._body_path, "rb") as src:
+                    f.write(ply_header(dtype, comments, self.written))
+                    shutil.copyfileobj(src, f, 1 << 24)
+        finally:
+            self._body_path.unlink(missing_ok=True)
+        return self.written
+
+    def abort(self) -> None:
+        if self._body is not None:
+            self._body.close()
+        if self._body_path is not None:
+            self._body_path.unlink(missing_ok=True)
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self._body.write(data)
+        except OSError as exc:  # name the file: a bare ENOSPC from write() carries none
+            raise OSError(exc.errno, exc.strerror, str(self._body_path)) from None
+
+
+def _meta_period(comments: list[str]) -> np.ndarray | None:
+    """One period of the `lang_meta` column of the field comment (None when it is not carried)."""
+    comment = next((c for c in reversed(comments) if c.startswith(COMMENT_PREFIX)), "")
+    text = comment[len(COMMENT_PREFIX):].strip()
+    return encode_meta_column(text, len(text.encode("utf-8")))
+
+
+def _with_meta_rows(part: GaussianScene, first_row: int) -> GaussianScene:
+    """The block with its `lang_meta` rows numbered from `first_row`, as in the whole file.
+
+    The column's row i holds byte i mod L of the field comment, so a block written alone would
+    restart at 0 (and a block shorter than L would not carry the column at all).
+    """
+    period = _meta_period(part.comments)
+    if period is None:
+        return part
+    column = period[(first_row + np.arange(part.num_gaussians)) % period.shape[0]]
+    extra = {}
+    for name, values in part.extra.items():
+        if name != META_PROPERTY:
+            extra[name] = values
+        if name == "lang_weight":
+            extra[META_PROPERTY] = column
+    return dataclasses.replace(part, extra=extra)
+
+
+def _drop_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
+    """A file of fewer rows than the comment's length carries no `lang_meta` column (as in
+    memory): rewrite the (then tiny) body without it. Returns the header's (dtype, comments)."""
+    dtype, comments = header
+    period = _meta_period(comments)
+    if META_PROPERTY not in dtype.names or period is None or written >= period.shape[0]:
+        return header
+    rows = np.fromfile(body_path, dtype)
+    names = [n for n in dtype.names if n != META_PROPERTY]
+    kept = np.empty(rows.shape[0], np.dtype([(n, dtype[n]) for n in names]))
+    for n in names:
+        kept[n] = rows[n]
+    body_path.write_bytes(kept.tobytes())
+    return kept.dtype, comments

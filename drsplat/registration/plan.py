@@ -1,0 +1,124 @@
+"""The memory plan of a registration: one block of Gaussians (sums held in memory while the views
+are computed) or many (sums per block, replayed from the pair log), chosen for a budget.
+
+A registration holds the scene, its prepared geometry (~101 B per Gaussian) and one view in flight
+(projection ~160 B per Gaussian, its top-k buffers and pairs) while views are computed, and the
+sums F [B, D] float32 + W [B] of a block of B Gaussians. With one block (B = N) the sums are kept
+as the views arrive; with several, views' pairs go to the pair log and each block replays it
+(drsplat.registration.sink). Rows are encoded and written in chunks of at most WRITE_CHUNK
+Gaussians either way, so the output costs ~10·D bytes per Gaussian of one chunk, not of the scene.
+Rasterizing a view with only a block's Gaussians would drop the occluders of other blocks and
+change T·α, so views are always rendered whole, exactly once.
+
+`estimate_memory` turns that into a `MemoryPlan`, and `choose_block` into a block size for a budget.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_AGGREGATE
+from drsplat.errors import DrsplatError
+from drsplat.memory import available_memory, current_rss, format_size
+from drsplat.registration.aggregate import Aggregator
+from drsplat.scene import GaussianScene
+
+GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
+PROJECTION_BYTES = 160  # one view's Projected arrays, depth order keys and tile lists, per Gaussian
+SCRATCH_BYTES = 12  # the coalescer's seen / acc / touched arrays
+PAIR_BYTES = 12  # one distinct (Gaussian, mask, weight) pair
+SUM_BYTES = 16  # per Gaussian of a block besides F's 4·D: W, the accumulator's counting sort
+OUTPUT_COPIES = 10  # bytes per Gaussian per embedding value while a chunk of rows is encoded and written
+WRITE_CHUNK = 1 << 15  # Gaussians encoded and written at a time
+BLOCK_ALIGN = 1024  # block sizes are multiples of this
+OVERHEAD = 256 << 20  # interpreter, numba, faiss, buffers not counted above
+
+
+@dataclass
+class MemoryPlan:
+    """Estimated peak resident memory of a registration, in bytes.
+
+    base: what the process holds already (the loaded scene, libraries, the aggregation mode's
+    statistics). views: the peak of the view pass without sums (geometry + one view + scratch).
+    sum_bytes: per Gaussian of a block's sums (F row, W, sorting). write_bytes: per Gaussian of
+    a chunk being encoded and written. pair_buffer: the accumulator's pair buffer.
+    """
+
+    num_gaussians: int
+    dim: int
+    base: int
+    views: int
+    sum_bytes: int
+    write_bytes: int
+    pair_buffer: int
+
+    def peak(self, block: int) -> int:
+        """Peak with blocks of `block` Gaussians (block >= N: one block, summed while views run)."""
+        n = self.num_gaussians
+        write = min(block, n, WRITE_CHUNK) * self.write_bytes
+        if block >= n:
+            sums = n * self.sum_bytes + self.pair_buffer
+            return max(self.views + sums, self.base + OVERHEAD + sums + write)
+        return max(self.views, self.base + OVERHEAD + block * self.sum_bytes + self.pair_buffer + write)
+
+    @property
+    def in_memory(self) -> int:
+        return self.peak(self.num_gaussians)
+
+    def block_for(self, budget: int) -> int:
+        """The largest aligned block that fits `budget` (0 when even the view pass does not)."""
+        if self.views > budget:
+            return 0
+        room = budget - self.base - OVERHEAD - self.pair_buffer - min(self.num_gaussians, WRITE_CHUNK) * self.write_bytes
+        block = room // self.sum_bytes // BLOCK_ALIGN * BLOCK_ALIGN
+        return int(min(max(block, 0), -(-self.num_gaussians // BLOCK_ALIGN) * BLOCK_ALIGN))
+
+
+def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, topk: int, base: int | None = None,
+                    aggregate: str = DEFAULT_AGGREGATE) -> MemoryPlan:
+    """Estimate the peak memory of registering `views` onto `scene` with `dim`-D embeddings
+    (and the statistics of aggregation mode `aggregate`, kept until the sums are finished).
+    base: bytes already held (default: this process's resident memory now)."""
+    n = scene.num_gaussians
+    pixels = max((c.width * c.height for c in views), default=0)
+    mode_views, mode_kept = Aggregator.memory_bytes(aggregate, n, pixels, topk)
+    base = (current_rss() if base is None else base) + mode_kept
+    view = n * (PROJECTION_BYTES + SCRATCH_BYTES) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
+    views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
+    row_bytes = scene.sh.shape[1] * 12 + 64
+    return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
+                      pair_buffer=(1 << 23) * PAIR_BYTES)
+
+
+def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = None) -> int:
+    """The block size to register with: N (one block, in memory) or fewer Gaussians per block.
+
+    budget None: one block when the estimate fits the memory available now, otherwise a
+    DrsplatError with the figure and the --memory-budget that fits. With a budget: one block
+    when it fits the budget, else the largest blocks that do; an error when even one view does not.
+    """
+    n = plan.num_gaussians
+    if budget is None:
+        free = (available_memory() if available is None else available) + current_rss()
+        if free == 0 or plan.in_memory <= 0.9 * free:
+            return n
+        fits = int(0.8 * free)
+        hint = (f"rerun with --memory-budget {fits / 1e9:.0f}GB to register Gaussians in blocks (same result)"
+                if plan.block_for(fits) > 0 else
+                f"even in blocks, one view needs about {format_size(plan.views)}; use a machine with more memory or fewer, smaller views")
+        raise DrsplatError(
+            f"registering {n:,} Gaussians with {plan.dim}-D features in memory needs about "
+            f"{format_size(plan.in_memory)}, but only {format_size(free)} is available: {hint}"
+        )
+    if plan.in_memory <= budget:
+        return n
+    block = plan.block_for(budget)
+    if block <= 0:
+        need = plan.views + plan.pair_buffer + BLOCK_ALIGN * plan.sum_bytes + min(n, WRITE_CHUNK) * plan.write_bytes
+        raise DrsplatError(
+            f"--memory-budget {format_size(budget)} is too small for this scene: the view pass alone (scene, geometry, "
+            f"one view) needs about {format_size(plan.views)}; give at least {format_size(need)}"
+        )
+    return block

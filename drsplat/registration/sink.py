@@ -1,0 +1,103 @@
+"""Sinks: where views' pairs are summed per Gaussian block, one per memory plan.
+
+    plan          sink        how the sums of a block [lo, hi) come to be
+    one block     MemorySink  F [N, D], W [N] kept while the views arrive (drsplat.registration.sums)
+    many blocks   LogSink     after the views, each block replays the pair log keeping its pairs
+
+A Gaussian's pairs reach its row in the same order in both (view order, then the order of the
+view's pairs), so a block's sums are the same bits whichever sink made them. `sample` sums a few
+chosen Gaussians the same way (a scene codebook's training sample).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.sums import Accumulator
+
+
+@dataclass
+class Block:
+    """The sums of Gaussians lo .. hi-1: F [hi - lo, D] = Σ w_ij f_j and W [hi - lo] = Σ w_ij (float32)."""
+
+    lo: int
+    hi: int
+    F: np.ndarray
+    W: np.ndarray
+
+
+class Sink(Protocol):
+    """Receives every view's pairs in view order (`add`), then gives the sums block by block."""
+
+    num_blocks: int
+
+    def add(self, view: ViewPairs) -> None: ...
+
+    def blocks(self) -> Iterator[Block]: ...
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class MemorySink:
+    """One block of all N Gaussians, summed as the views arrive."""
+
+    num_blocks = 1
+
+    def __init__(self, num_gaussians: int, dim: int):
+        self._acc = Accumulator(num_gaussians, dim)
+
+    def add(self, view: ViewPairs) -> None:
+        self._acc.add_pairs(view.gaussians, view.masks, view.weights, view.feats)
+
+    def blocks(self) -> Iterator[Block]:
+        F, W = self._acc.sums()
+        yield Block(0, F.shape[0], F, W)
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the Gaussians `ids` [S] (copies)."""
+        F, W = self._acc.sums()
+        return F[ids], W[ids]
+
+
+class LogSink:
+    """Blocks of `block` consecutive Gaussians, each summed by replaying the pair log `plog`
+    (the views are logged by the driver, so `add` keeps nothing)."""
+
+    def __init__(self, num_gaussians: int, dim: int, plog: PairLog, block: int):
+        if block < 1:
+            raise ValueError("block must be >= 1")
+        self.num_gaussians, self.dim, self.block = num_gaussians, dim, int(block)
+        self._log = plog
+
+    @property
+    def num_blocks(self) -> int:
+        return -(-self.num_gaussians // self.block)
+
+    def add(self, view: ViewPairs) -> None:
+        pass
+
+    def blocks(self) -> Iterator[Block]:
+        for lo in range(0, self.num_gaussians, self.block):
+            hi = min(self.num_gaussians, lo + self.block)
+            F, W = self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)
+            yield Block(lo, hi, F, W)
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""
+        row = np.full(self.num_gaussians, -1, np.int32)
+        row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+        return self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0])
+
+    def _replay(self, select, to_row, rows: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sums over the log's pairs whose Gaussian g passes select(g), added at row to_row(g), in log order."""
+        acc = Accumulator(rows, self.dim)
+        for view in self._log:
+            keep = select(view.gaussians)
+            if keep.any():
+                acc.add_pairs(to_row(view.gaussians[keep]).astype(np.int32), view.masks[keep], view.weights[keep], view.feats)
+        return acc.sums()

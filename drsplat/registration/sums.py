@@ -1,0 +1,165 @@
+"""Running per-Gaussian sums of registration, and their normalisation.
+
+With w_ij the summed weight of Gaussian i in mask j of one view (drsplat.registration.coalesce) and
+f_j that mask's embedding, registration keeps
+
+    F_i = Σ_views Σ_j w_ij f_j   [N, D] float32,     W_i = Σ_views Σ_j w_ij   [N] float32
+
+and each Gaussian's feature is f_i = F_i / |F_i| = normalize(Σ_j w_ij f_j / W_i) (W_i > 0), its
+weight W_i (0 = unassigned). Pairs are buffered and folded into F grouped by Gaussian (each F row
+read and written once per flush, which keeps the N·D array's memory traffic low); a Gaussian's
+pairs are added one by one in the order they arrive, so the sums do not depend on when flushes
+happen, on block boundaries or on where the views were computed: the same views in the same
+order give the same bits. Memory: N·D + the buffer, never Gaussians x masks.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
+
+
+@numba.njit(parallel=True, cache=True)
+def _flush_pairs_kernel(pair_g, pair_row, pair_w, filled, rows, F, W):  # pragma: no cover - jitted
+    """F[g] += Σ w·rows[row] and W[g] += Σ w over the buffered pairs, one Gaussian per thread
+    at a time (pairs grouped by Gaussian with a counting sort), so each F row is read and
+    written once per flush."""
+    num_gaussians, dim = F.shape
+    starts = np.zeros(num_gaussians + 1, np.int64)
+    for i in range(filled):
+        starts[pair_g[i] + 1] += 1
+    for g in range(num_gaussians):
+        starts[g + 1] += starts[g]
+    order = np.empty(filled, np.int32)
+    fill = starts[:num_gaussians].copy()
+    for i in range(filled):
+        g = pair_g[i]
+        order[fill[g]] = i
+        fill[g] += 1
+    for g in numba.prange(num_gaussians):
+        if starts[g] == starts[g + 1]:
+            continue
+        f = F[g]
+        for o in range(starts[g], starts[g + 1]):
+            i = order[o]
+            w = pair_w[i]
+            row = rows[pair_row[i]]
+            W[g] += w  # pair by pair in view order: the sums do not depend on when flushes happen
+            for d in range(dim):  # row views, not F[g, d]: this loop must vectorise
+                f[d] += w * row[d]
+
+
+class Accumulator:
+    """Running sums F [N, D] = Σ_j w_ij f_j and W [N] = Σ_j w_ij.
+
+    Views' distinct (Gaussian, mask) pairs and the embeddings of their masks are buffered; a flush
+    folds the buffer into F grouped by Gaussian, so memory is N·D + the buffer (`pair_capacity`
+    pairs, at least N), never Gaussians x masks.
+    """
+
+    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23):
+        self.F = np.empty((num_gaussians, dim), np.float32)
+        self.F.fill(0.0)  # touch every page now, not inside the first flush
+        self.W = np.zeros(num_gaussians, np.float32)
+        capacity = max(pair_capacity, num_gaussians, 1)
+        self._pair_g = np.zeros(capacity, np.int32)
+        self._pair_row = np.zeros(capacity, np.int32)
+        self._pair_w = np.zeros(capacity, np.float32)
+        self._filled = 0
+        self._rows = np.zeros((256, dim), np.float32)
+        self._num_rows = 0
+
+    @property
+    def dim(self) -> int:
+        return self.F.shape[1]
+
+    def add_pairs(self, gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+        """Add one view's distinct pairs (as `Coalescer.coalesce` returns them) to the buffer.
+
+        gaussians: [P] int32 ids (rows of F), masks: [P] int32 rows of feats [M, D], weights: [P]
+        float32. Pairs are summed in the order given, so the same pairs in the same order give the
+        same bits wherever they were computed.
+        """
+        num_masks = feats.shape[0]
+        if self._num_rows > MAX_BUFFERED_ROWS:  # bound the embedding buffer of sparse views too
+            self.flush()
+        offset = self._push_rows(np.asarray(feats, np.float32))
+        start, total = 0, gaussians.shape[0]
+        capacity = self._pair_g.shape[0]
+        while start < total:
+            if self._filled == capacity:
+                self.flush(keep_last=num_masks)
+                offset = 0
+            take = min(capacity - self._filled, total - start)
+            dst = slice(self._filled, self._filled + take)
+            self._pair_g[dst] = gaussians[start : start + take]
+            self._pair_row[dst] = masks[start : start + take] + offset
+            self._pair_w[dst] = weights[start : start + take]
+            self._filled += take
+            start += take
+
+    def _push_rows(self, feats: np.ndarray) -> int:
+        """Store a view's embeddings after the buffered ones; returns their first row."""
+        need = self._num_rows + feats.shape[0]
+        if need > self._rows.shape[0]:
+            grown = np.zeros((max(need, 2 * self._rows.shape[0]), self.dim), np.float32)
+            grown[: self._num_rows] = self._rows[: self._num_rows]
+            self._rows = grown
+        self._rows[self._num_rows : need] = feats
+        offset, self._num_rows = self._num_rows, need
+        return offset
+
+    def flush(self, keep_last: int = 0) -> None:
+        """Fold the buffered pairs into F and W; keep the last `keep_last` embedding rows (the
+        view being added) as rows 0..keep_last-1."""
+        if self._filled:
+            _flush_pairs_kernel(self._pair_g, self._pair_row, self._pair_w, self._filled, self._rows, self.F, self.W)
+        self._filled = 0
+        if keep_last:
+            self._rows[:keep_last] = self._rows[self._num_rows - keep_last : self._num_rows].copy()
+        self._num_rows = keep_last
+
+    def sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """(F [N, D], W [N]) with every added view folded in."""
+        self.flush()
+        return self.F, self.W
+
+
+def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, feats: np.ndarray) -> int:
+    """Obviously-correct reference of coalescing one view and adding its pairs (scipy sparse, float64).
+
+    A = sparse [N, M] with A_ij = Σ_p [mask(p) = j] Σ_s [id_s(p) = i] w_s(p); then F += A·feats
+    and W += A·1. Returns the number of contributing pairs.
+    """
+    import scipy.sparse  # only the tests' reference needs scipy.sparse
+
+    k = ids.shape[-1]
+    g = ids.reshape(-1).astype(np.int64)
+    m = np.repeat(mask_ids.reshape(-1).astype(np.int64), k)
+    w = weights.reshape(-1).astype(np.float64)
+    keep = (g >= 0) & (m >= 0)
+    a = scipy.sparse.coo_matrix((w[keep], (g[keep], m[keep])), shape=(F.shape[0], feats.shape[0])).tocsr()
+    F += (a @ feats.astype(np.float64)).astype(F.dtype)
+    W += np.asarray(a.sum(axis=1)).reshape(-1).astype(W.dtype)
+    return int(np.count_nonzero(keep))
+
+
+def normalize_rows(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, int]:
+    """In place: F_i <- F_i / |F_i| where W_i > 0 and F_i is finite and non-zero; other rows -> 0
+    (and their W_i -> 0). F: [N, D] float32, W: [N] float32.
+
+    Returns (F, count of rows dropped for non-finite values).
+    """
+    bad_total = 0
+    for start in range(0, F.shape[0], chunk):
+        f, w = F[start : start + chunk], W[start : start + chunk]
+        norm = np.sqrt(np.einsum("nd,nd->n", f, f, dtype=np.float64))
+        finite = np.isfinite(norm) & np.isfinite(w)
+        bad_total += int(np.count_nonzero(~finite & (w != 0)))
+        ok = finite & (w > 0) & (norm > 0)
+        f[ok] /= norm[ok, None].astype(np.float32)
+        f[~ok] = 0.0
+        w[~ok] = 0.0
+    return F, bad_total

@@ -1,0 +1,80 @@
+"""Which views a registration uses: cameras paired with LangSplat feature files by image stem.
+
+Owns the pairing rule (camera name == feature stem), the warnings that count what is skipped, the
+embedding size D read from a header, and loading one view's mask ids resampled to its camera.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.errors import InputError
+from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest
+from drsplat.utils import npy_header
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ViewSelection:
+    """views: cameras with features, in camera order; missing: camera names without a feature
+    file; unmatched: feature stems without a camera."""
+
+    views: list[Camera]
+    missing: list[str] = field(default_factory=list)
+    unmatched: list[str] = field(default_factory=list)
+
+
+def pair_views(cameras: Sequence[Camera], stems: Sequence[str]) -> ViewSelection:
+    """Match cameras to feature files by image stem."""
+    available = set(stems)
+    names = {c.name for c in cameras}
+    return ViewSelection(
+        views=[c for c in cameras if c.name in available],
+        missing=[c.name for c in cameras if c.name not in available],
+        unmatched=sorted(s for s in stems if s not in names),
+    )
+
+
+def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection:
+    """`pair_views` on the feature folder, with the warnings and the error when nothing matches."""
+    stems = list_stems(features_dir)
+    if not stems:
+        raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
+    sel = pair_views(cameras, stems)
+    if sel.missing:
+        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)", len(sel.missing), len(cameras), features_dir,
+                    ", ".join(sel.missing[:3]))
+    if sel.unmatched:
+        log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
+    duplicates = len(sel.views) - len({c.name for c in sel.views})
+    if duplicates:
+        log.warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
+    if not sel.views:
+        raise InputError(
+            features_dir,
+            f"no feature file matches a camera image stem (cameras: {', '.join(c.name for c in cameras[:3])}...; "
+            f"features: {', '.join(stems[:3])}...)",
+        )
+    return sel
+
+
+def feature_dim(features_dir: Path, views: Sequence[Camera]) -> int:
+    """D of the embeddings, from the first view's `_f.npy` header (nothing loaded)."""
+    path = feat_path(features_dir, views[0].name)
+    shape = npy_header(path)[0]
+    if len(shape) != 2 or shape[1] == 0:
+        raise InputError(path, f"embeddings have shape {shape}, expected (M, D) with D > 0")
+    return int(shape[1])
+
+
+def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(mask ids [H, W] resampled to the camera size, feats [M, D] float32, masks dropped as non-finite)."""
+    mask_ids, feats, nonfinite = read_features_report(features_dir, cam.name, level, drop_nonfinite=True)
+    return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite

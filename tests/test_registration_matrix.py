@@ -1,0 +1,101 @@
+"""Every engine x memory plan x aggregation mode, in this process: the same registered file, or a refusal up front.
+
+The reference is the numba engine in one block. The torch engine (on the CPU here) and Gaussian
+blocks must write the same bytes for every `--aggregate` mode; the Ray place is covered the same
+way on a real cluster in tests/test_distributed.py. Options that cannot run are refused before
+anything is loaded, in one sentence.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.defaults import AGGREGATE_MODES
+from drsplat.errors import InputError, UsageError
+from drsplat.registration import RegisterOptions, register
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
+
+VIEWS = 6  # enough views for every mode to assign, reject and reweight something
+BLOCK = 512  # hard-tiny has ~2,300 Gaussians: five blocks
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    data = write_dataset(tmp_path_factory.mktemp("matrix") / "hard", "hard-tiny", 0, show_progress=False)
+    return load_ply(data / "scene.ply"), load_cameras(data)[:VIEWS], data / "features"
+
+
+@pytest.fixture(scope="module")
+def reference(room, tmp_path_factory) -> dict[str, bytes]:
+    """The numba engine's one-block file of every mode."""
+    scene, cams, features = room
+    folder = tmp_path_factory.mktemp("reference")
+    files = {}
+    for mode in AGGREGATE_MODES:
+        out = folder / mode / "reg.ply"
+        register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+        files[mode] = out.read_bytes()
+    return files
+
+
+def test_modes_give_different_fields(reference):
+    """The matrix would prove nothing if the modes all wrote the same file."""
+    assert len(set(reference.values())) == len(AGGREGATE_MODES)
+
+
+@pytest.mark.parametrize("engine,block", [("numba", BLOCK), ("torch", None), ("torch", BLOCK)])
+@pytest.mark.parametrize("mode", AGGREGATE_MODES)
+def test_every_engine_and_plan_writes_the_reference_file(room, reference, tmp_path, engine, block, mode):
+    scene, cams, features = room
+    out = tmp_path / mode / "reg.ply"
+    result = register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, engine=engine, device="cpu", block_size=block),
+                      show_progress=False)
+    assert result.num_blocks == (1 if block is None else -(-scene.num_gaussians // block))
+    assert out.read_bytes() == reference[mode]
+
+
+@pytest.mark.parametrize("options,message", [
+    (RegisterOptions(engine="numba", device="cuda"), "numba engine runs on the CPU only"),
+    (RegisterOptions(engine="reference"), "unknown registration engine 'reference'"),
+    (RegisterOptions(aggregate="median"), "unknown aggregation mode 'median'"),
+    (RegisterOptions(topk=0), "topk must be between 1 and 1024"),
+    (RegisterOptions(memory_budget=0), "memory-budget must be at least 1"),
+    (RegisterOptions(ray="auto", ray_workers=0), "ray-workers must be at least 1"),
+])
+def test_what_cannot_run_is_refused_up_front(room, tmp_path, options, message):
+    scene, cams, features = room
+    with pytest.raises(UsageError, match=message):
+        register(scene, cams, features, tmp_path / "x.ply", options, show_progress=False)
+    assert list(tmp_path.iterdir()) == []  # nothing written, no checkpoint
+
+
+@pytest.mark.parametrize("bad_view", [0, 3])
+def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_path, bad_view, caplog):
+    """A run that fails on its first view leaves nothing behind; one that fails later keeps the log of the
+    views done, says so in one warning, and the rerun (input fixed) resumes and writes the reference file."""
+    scene, cams, features = room
+    copy = tmp_path / "features"
+    shutil.copytree(features, copy)
+    bad = copy / f"{cams[bad_view].name}_f.npy"
+    good = bad.read_bytes()
+    bad.write_bytes(good[:200])  # truncated
+    out = tmp_path / "out" / "reg.ply"
+    with caplog.at_level("WARNING"), pytest.raises(InputError, match=bad.name):
+        register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
+    assert not out.exists()
+    left = sorted(p.name for p in out.parent.iterdir()) if out.parent.exists() else []
+    if bad_view == 0:
+        assert left == [] and "checkpoint" not in caplog.text
+        return
+    assert left == [".reg.ply.register.log"]
+    assert f"kept the registration checkpoint {out.parent / '.reg.ply.register.log'} (3 of {VIEWS} views" in caplog.text
+    bad.write_bytes(good)
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        result = register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
+    assert result.resumed_views == 3 and "3 of 6 views already registered" in caplog.text
+    assert sorted(p.name for p in out.parent.iterdir()) == ["reg.ply"]
