@@ -28,8 +28,10 @@ def parse_size(text: str) -> int:
 
 
 def format_size(n: float) -> str:
-    """Bytes as '1.3 GB' (from 1 GB up) or '512 MB'."""
-    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
+    """Bytes as '1.3 GB' (from 1 GB up), '512 MB' (from 1 MB up) or '34 kB'."""
+    if n >= 1e9:
+        return f"{n / 1e9:.1f} GB"
+    return f"{n / 1e6:.0f} MB" if n >= 1e6 else f"{n / 1e3:.0f} kB"
 
 
 def _proc_bytes(path: str, key: str) -> int:

@@ -122,7 +122,10 @@ class Checkpoint:
         statistics (already folded in) at the same points (every `self.every` views)."""
         done = self.done + 1
         sync = done % self.every == 0
-        self.log.append(view, sync=sync and not self.temporary)
+        try:
+            self.log.append(view, sync=sync and not self.temporary)
+        except OSError as exc:  # name the file: a bare ENOSPC from write() carries none
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from None
         if sync and self.stats_path is not None and not self.temporary:
             with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
                 np.savez(f, views=np.int64(done), **self.aggregator.state())

@@ -45,7 +45,7 @@ from drsplat.registration.sink import LogSink, MemorySink, Sink
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import ViewSelection, feature_dim, select_views
 from drsplat.scene import GaussianScene
-from drsplat.utils import CancelToken, progress
+from drsplat.utils import CancelToken, describe_os_error, progress
 
 log = logging.getLogger(__name__)
 
@@ -269,11 +269,12 @@ def _plan_block(run: Run) -> int:
 
 
 def _why(exc: BaseException) -> str:
+    """How a registration ended early, for the message about what it left behind."""
     if isinstance(exc, (Cancelled, KeyboardInterrupt)):
-        return "stopped"
+        return "registration stopped"
     if isinstance(exc, OSError):
-        return f"{exc.filename or 'a file'}: {exc.strerror or exc}"
-    return "failed"
+        return f"registration stopped ({describe_os_error(exc)})"
+    return "registration failed"
 
 
 def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, show_progress: bool,

@@ -128,8 +128,8 @@ class PlyTarget:
     def _write(self, data: bytes) -> None:
         try:
             self._body.write(data)
-        except OSError as exc:  # name the file: a bare ENOSPC from write() carries none
-            raise OSError(exc.errno, exc.strerror, str(self._body_path)) from None
+        except OSError as exc:  # name the output being written (through its temp body file): a bare ENOSPC carries no name
+            raise OSError(exc.errno, exc.strerror, str(self.out)) from None
 
 
 def _meta_period(comments: list[str]) -> np.ndarray | None:
