@@ -32,12 +32,17 @@ OBJECT_STORE = 80 * 1024 * 1024
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A two-node Ray cluster on this machine; the driver joins it through drsplat.distributed.connect."""
+    """A two-node Ray cluster on this machine; the driver joins it through drsplat.distributed.connect.
+
+    The cluster's nodes are started from this process (ray.cluster_utils), which installs Ray's
+    SIGTERM handler here (a node's shutdown hook); it is put back when the cluster stops.
+    """
     from ray.cluster_utils import Cluster
 
     from drsplat.distributed import connect
 
     node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
+    sigterm = signal.getsignal(signal.SIGTERM)
     c = Cluster(initialize_head=True, head_node_args=node_args)
     try:
         c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
@@ -48,6 +53,7 @@ def cluster():
     finally:
         ray.shutdown()
         c.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
 
 
 @pytest.fixture(scope="module")
