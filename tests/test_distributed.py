@@ -158,6 +158,38 @@ def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny
     np.testing.assert_array_equal(box["result"].weights, local.weights)
 
 
+def test_joining_ray_leaves_print_the_sigterm_handler_and_the_environment_alone(cluster, monkeypatch):
+    """ray.init replaces the SIGTERM handler (the CLI's clean interrupt) and sets PYTHONBREAKPOINT;
+    Ray's progress-bar manager, once created (the first time the driver relays a worker's output or
+    death), replaces builtins.print, and numba then cannot compile code calling get_num_threads."""
+    import builtins
+
+    import numba
+    from ray.experimental import tqdm_ray
+
+    from drsplat.distributed import connect
+
+    ray.shutdown()
+    monkeypatch.setenv("PYTHONBREAKPOINT", "pdb.set_trace")
+    print_before = builtins.print
+    mine = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGTERM, mine)
+    try:
+        assert connect(cluster.address)
+        assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert os.environ["PYTHONBREAKPOINT"] == "pdb.set_trace"
+    tqdm_ray.instance()  # what a relayed worker message calls: the manager exists already, print stays
+    assert builtins.print is print_before
+
+    @numba.njit
+    def threads() -> int:
+        return numba.get_num_threads()
+
+    assert threads() >= 1
+
+
 def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
     from drsplat.cli import main
     from drsplat.distributed import connect
