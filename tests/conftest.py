@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
 
@@ -19,6 +20,19 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real fixture {path} is absent (../shared/data is not beside the project)")
     return path
+
+
+def import_needing_system_library(module: str, apt_package: str):
+    """`module`, imported; when it is installed but cannot load (a system library it links
+    against is missing), the test is skipped with the package that provides the library."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name != module:
+            pytest.skip(f"{module} failed to import ({exc}); on Debian/Ubuntu: apt install {apt_package}")
+        pytest.skip(f"{module} is not installed (pip install {module})")
+    except (ImportError, OSError) as exc:  # e.g. "libusb-1.0.so.0: cannot open shared object file"
+        pytest.skip(f"{module} failed to import ({exc}); on Debian/Ubuntu: apt install {apt_package}")
 
 
 @pytest.fixture
