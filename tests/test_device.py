@@ -83,8 +83,8 @@ def test_viewer_device_flags(tmp_path, capsys):
         assert "no CUDA GPU is available" in capsys.readouterr().err
         assert not (tmp_path / "x.png").exists()
     state = build_state(build_parser().parse_args(["--device", "cpu", "--engine", "torch"]))
-    assert (state.device, state.engine) == ("cpu", "torch")
-    state.device, state.engine, state.features_dir = "cuda", "numba", tmp_path
+    assert (state.settings.device, state.settings.engine) == ("cpu", "torch")
+    state.settings.device, state.settings.engine, state.features_dir = "cuda", "numba", tmp_path
     if not torch.cuda.is_available():
         assert not state.start_registration(tmp_path / "r.ply", background=False)
         assert "no CUDA GPU is available" in state.messages[-1].text
