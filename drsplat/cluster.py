@@ -8,8 +8,12 @@ says so. Nothing here imports ray at module level.
 
 from __future__ import annotations
 
+import builtins
 import logging
+import os
+import signal
 import socket
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -107,10 +111,42 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     else:
         kwargs["address"] = address
     try:
-        ray.init(**kwargs)
+        with _process_state_kept():
+            ray.init(**kwargs)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}") from None
     return True
+
+
+@contextmanager
+def _process_state_kept() -> Iterator[None]:
+    """Keep what belongs to the program using drsplat, not to Ray, as it was across ray.init.
+
+    ray.init replaces the SIGTERM handler (with sys.exit: the CLI's own handler, which turns
+    SIGTERM into a clean interrupt, would be lost) and sets PYTHONBREAKPOINT to Ray's debugger.
+    The first worker output or worker-death error that Ray's driver relays replaces
+    builtins.print with ray.experimental.tqdm_ray.safe_print, from a background thread; numba then
+    cannot compile jitted code that calls numba.get_num_threads() (its implementation prints).
+    Creating Ray's progress-bar manager now, print put back, means Ray never replaces print later
+    (the manager replaces it only when it is created).
+    """
+    from ray.experimental import tqdm_ray
+
+    keep_print = builtins.print
+    tqdm_ray.instance()
+    builtins.print = keep_print
+    in_main_thread = threading.current_thread() is threading.main_thread()  # signal handlers are the main thread's
+    keep_sigterm = signal.getsignal(signal.SIGTERM) if in_main_thread else None
+    keep_breakpoint = os.environ.get("PYTHONBREAKPOINT")
+    try:
+        yield
+    finally:
+        if keep_sigterm is not None:
+            signal.signal(signal.SIGTERM, keep_sigterm)
+        if keep_breakpoint is None:
+            os.environ.pop("PYTHONBREAKPOINT", None)
+        else:
+            os.environ["PYTHONBREAKPOINT"] = keep_breakpoint
 
 
 def set_worker_threads() -> None:

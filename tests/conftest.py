@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
 
 import pytest
+
+from tests.process_state import ProcessState, root_logger_kept
 
 # ../shared/data beside the checkout (a symlink works), or wherever DRSPLAT_SHARED_DATA points
 SHARED_DATA = Path(os.environ.get("DRSPLAT_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
@@ -17,6 +20,19 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real fixture {path} is absent (../shared/data is not beside the project)")
     return path
+
+
+def import_needing_system_library(module: str, apt_package: str):
+    """`module`, imported; when it is installed but cannot load (a system library it links
+    against is missing), the test is skipped with the package that provides the library."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name != module:
+            pytest.skip(f"{module} failed to import ({exc}); on Debian/Ubuntu: apt install {apt_package}")
+        pytest.skip(f"{module} is not installed (pip install {module})")
+    except (ImportError, OSError) as exc:  # e.g. "libusb-1.0.so.0: cannot open shared object file"
+        pytest.skip(f"{module} failed to import ({exc}); on Debian/Ubuntu: apt install {apt_package}")
 
 
 @pytest.fixture
@@ -33,3 +49,40 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--reverse-files", action="store_true", help="run the test files in reverse order (each file's tests keep their order): finds tests that depend on what an earlier file left behind")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--reverse-files"):
+        items[:] = reversed_by_file(items)
+
+
+def reversed_by_file(items: list[pytest.Item]) -> list[pytest.Item]:
+    """The items with their files in reverse order; within a file the order is unchanged."""
+    by_file: dict[Path, list[pytest.Item]] = {}
+    for item in items:
+        by_file.setdefault(item.path, []).append(item)
+    return [item for path in reversed(by_file) for item in by_file[path]]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def module_leaves_the_process_as_it_found_it():
+    """Module fixtures (a Ray cluster, a window) included: checked after the module's teardown."""
+    yield from _unchanged_process("this module's tests or fixtures")
+
+
+@pytest.fixture(autouse=True)
+def test_leaves_the_process_as_it_found_it():
+    yield from _unchanged_process("this test")
+
+
+def _unchanged_process(what: str):
+    before = ProcessState.capture()
+    with root_logger_kept():
+        yield
+    changed = before.changes(ProcessState.capture())
+    if changed:
+        pytest.fail(f"{what} changed process-wide state that later tests see (restore it): " + "; ".join(changed), pytrace=False)

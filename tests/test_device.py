@@ -48,13 +48,12 @@ def test_cuda_asked_for_without_a_gpu_is_one_clear_error(tmp_path, capsys):
     assert "no CUDA GPU is available" in err and "Traceback" not in err
 
 
-def test_cli_torch_engine_on_cpu_matches_numba(tmp_path):
+def test_cli_torch_engine_on_cpu_matches_numba(tmp_path, one_torch_thread):
     """register / query / segment with --engine torch --device cpu give what the numba engine gives."""
     from drsplat.cli import main
     from drsplat.lang import read_field
     from drsplat.scene import load_ply
 
-    torch.set_num_threads(1)
     data = tmp_path / "data"
     assert main(["synth", str(data), "--preset", "tiny", "--seed", "1", "--no-progress"]) == 0
     base = ["register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"), "--topk", "5", "--no-progress"]
@@ -84,8 +83,8 @@ def test_viewer_device_flags(tmp_path, capsys):
         assert "no CUDA GPU is available" in capsys.readouterr().err
         assert not (tmp_path / "x.png").exists()
     state = build_state(build_parser().parse_args(["--device", "cpu", "--engine", "torch"]))
-    assert (state.device, state.engine) == ("cpu", "torch")
-    state.device, state.engine, state.features_dir = "cuda", "numba", tmp_path
+    assert (state.settings.device, state.settings.engine) == ("cpu", "torch")
+    state.settings.device, state.settings.engine, state.features_dir = "cuda", "numba", tmp_path
     if not torch.cuda.is_available():
         assert not state.start_registration(tmp_path / "r.ply", background=False)
         assert "no CUDA GPU is available" in state.messages[-1].text

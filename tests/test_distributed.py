@@ -31,12 +31,17 @@ OBJECT_STORE = 80 * 1024 * 1024
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A two-node Ray cluster on this machine; the driver joins it through drsplat.cluster.connect."""
+    """A two-node Ray cluster on this machine; the driver joins it through drsplat.cluster.connect.
+
+    The cluster's nodes are started from this process (ray.cluster_utils), which installs Ray's
+    SIGTERM handler here (a node's shutdown hook); it is put back when the cluster stops.
+    """
     from ray.cluster_utils import Cluster
 
     from drsplat.cluster import connect
 
     node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
+    sigterm = signal.getsignal(signal.SIGTERM)
     c = Cluster(initialize_head=True, head_node_args=node_args)
     try:
         c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
@@ -47,6 +52,7 @@ def cluster():
     finally:
         ray.shutdown()
         c.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
 
 
 @pytest.fixture(scope="module")
@@ -148,6 +154,38 @@ def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny
     assert "error" not in box, box.get("error")
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)
+
+
+def test_joining_ray_leaves_print_the_sigterm_handler_and_the_environment_alone(cluster, monkeypatch):
+    """ray.init replaces the SIGTERM handler (the CLI's clean interrupt) and sets PYTHONBREAKPOINT;
+    Ray's progress-bar manager, once created (the first time the driver relays a worker's output or
+    death), replaces builtins.print, and numba then cannot compile code calling get_num_threads."""
+    import builtins
+
+    import numba
+    from ray.experimental import tqdm_ray
+
+    from drsplat.cluster import connect
+
+    ray.shutdown()
+    monkeypatch.setenv("PYTHONBREAKPOINT", "pdb.set_trace")
+    print_before = builtins.print
+    mine = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGTERM, mine)
+    try:
+        assert connect(cluster.address)
+        assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert os.environ["PYTHONBREAKPOINT"] == "pdb.set_trace"
+    tqdm_ray.instance()  # what a relayed worker message calls: the manager exists already, print stays
+    assert builtins.print is print_before
+
+    @numba.njit
+    def threads() -> int:
+        return numba.get_num_threads()
+
+    assert threads() >= 1
 
 
 def test_unreachable_address_is_one_clear_error(tiny, tmp_path):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.abc
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -19,8 +21,11 @@ from drsplat.eval.datasets import (
     write_labelled_points,
     write_lerf_view,
 )
-from drsplat.errors import InputError
+from drsplat.errors import DrsplatError, InputError
 from drsplat.eval.lerf import mask_iou
+from tests.conftest import import_needing_system_library
+
+OPEN3D_SYSTEM_PACKAGE = "libusb-1.0-0"  # open3d links against libusb-1.0.so.0
 
 
 def test_polygon_mask_fills_boundary_pixels_like_fillpoly():
@@ -147,7 +152,7 @@ def test_select_queries_absolute_and_otsu():
 @pytest.mark.parametrize("suffix", [".pcd", ".xyz"])
 def test_labelled_points_from_an_open3d_cloud_and_a_labels_sidecar(tmp_path, suffix):
     """A .pcd/.xyz cloud (written by open3d) with labels beside it reads the same as the PLY form."""
-    import open3d as o3d
+    o3d = import_needing_system_library("open3d", OPEN3D_SYSTEM_PACKAGE)
 
     from drsplat.eval.datasets import labels_sidecar
 
@@ -167,3 +172,28 @@ def test_labelled_points_from_an_open3d_cloud_and_a_labels_sidecar(tmp_path, suf
     got, ref = load_labelled_points(path, classes=["wall", "chair"]), load_labelled_points(tmp_path / "ref.ply", classes=["wall", "chair"])
     np.testing.assert_allclose(got.points, ref.points, atol=1e-6)  # .xyz is text: rounding only
     np.testing.assert_array_equal(got.labels, ref.labels)
+
+
+class _MissingSystemLibrary(importlib.abc.MetaPathFinder):
+    """Makes `import open3d` fail the way it does where libusb is not installed."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "open3d" or name.startswith("open3d."):
+            raise ImportError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")
+        return None
+
+
+@pytest.fixture
+def open3d_without_libusb(monkeypatch):
+    for name in [m for m in sys.modules if m == "open3d" or m.startswith("open3d.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setattr(sys, "meta_path", [_MissingSystemLibrary(), *sys.meta_path])
+
+
+def test_without_libusb_open3d_tests_skip_and_the_reader_names_the_package(open3d_without_libusb, tmp_path):
+    with pytest.raises(pytest.skip.Exception, match=f"apt install {OPEN3D_SYSTEM_PACKAGE}"):
+        import_needing_system_library("open3d", OPEN3D_SYSTEM_PACKAGE)
+    cloud = tmp_path / "cloud.pcd"
+    cloud.write_text("not read: open3d cannot load")
+    with pytest.raises(DrsplatError, match=f"apt install {OPEN3D_SYSTEM_PACKAGE}"):
+        load_labelled_points(cloud)

@@ -156,7 +156,7 @@ def _draw_in_frame(app):
     imgui.backends.glfw_new_frame()
     imgui.new_frame()
     app.panels.show_help = True
-    app.panels.view.show_frusta = True
+    app.state.settings.view.show_frusta = True
     app.panels.draw(app)
     app.draw_overlays()
     imgui.render()
@@ -175,7 +175,7 @@ def test_every_panel_draws_in_every_state(app, tmp_path):
         assert state.set_mode(mode)
         _draw_in_frame(app)
     assert state.run_segmentation(None)
-    app.panels.registration.codebook = "file"
+    state.settings.registration.codebook = "file"
     state.error("a long error message " * 10)
     state.registration = RegistrationJob(output=tmp_path / "r.ply", done=3, total=10)
     _draw_in_frame(app)
@@ -183,7 +183,7 @@ def test_every_panel_draws_in_every_state(app, tmp_path):
     assert not state.start_registration(tmp_path / "r.ply", codebook="")
     assert "codebook file" in state.messages[-1].text
     app.panels.show_help = False
-    app.panels.view.show_frusta = False
+    state.settings.view.show_frusta = False
     app.run(max_frames=1)
 
 
@@ -261,7 +261,7 @@ def test_hotkeys_snap_reset_toggle_highlight_and_help(app):
 
     state = app.state
     app.release_focus()
-    app.panels.view.camera_index = 0
+    state.settings.view.camera_index = 0
     _press(app, imgui.Key.n)
     np.testing.assert_allclose(app.view.camera().R, state.cameras[1].R, atol=1e-6)
     _press(app, imgui.Key.p)
@@ -309,13 +309,37 @@ def test_ctrl_e_exports_in_the_chosen_format(app, tmp_path):
 
     state = app.state
     assert state.run_oracle_query(state.oracle.names.index("ball"))
-    app.panels.query.export_path = str(tmp_path / "ball.ply")
-    app.panels.query.export_format = "drsplat"
+    state.settings.export.path = str(tmp_path / "ball.ply")
+    state.settings.export.format = "drsplat"
     app.release_focus()
     _press(app, imgui.Key.e, ctrl=True)
     out = tmp_path / "ball.ply"
     assert out.is_file() and read_field(load_ply(out), out) is not None
     assert "drsplat PLY" in state.messages[-1].text
+
+
+def test_the_window_follows_the_settings(app, registered, dataset):
+    """What the panels write into state.settings is what the window does."""
+    import glfw
+    from imgui_bundle import imgui
+
+    state, view = app.state, app.state.settings.view
+    fb_w, fb_h = glfw.get_framebuffer_size(app.window)
+    view.render_scale = 0.5
+    app.input.last_change = 0.0
+    app._drawn_key = None
+    _settle(app)
+    assert (app._target.width, app._target.height) == (fb_w // 2, fb_h // 2), "the still frame is rendered at the resolution setting"
+    view.render_scale = 1.0
+    view.camera_index = 4
+    app.release_focus()
+    _press(app, imgui.Key.n)
+    assert view.camera_index == 5, "N steps from the camera the settings hold"
+    np.testing.assert_allclose(app.view.camera().R, state.cameras[5].R, atol=1e-6)
+    state.settings.export.path = "typed.ply"
+    assert app.open_scene(registered)
+    assert state.settings.export.path == str(registered.with_name(registered.stem + "_selection.ply")), "a new scene resets the default paths"
+    assert state.load_source(dataset)
 
 
 def _settle(app):

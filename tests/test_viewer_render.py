@@ -248,7 +248,7 @@ def test_text_query_with_an_encoder_uses_relevancy_and_negatives(state):
             return np.stack([table.get(p, rng.normal(size=state.field.dim)) for p in phrases]).astype(np.float32)
 
     state.encoder = OracleTextEncoder()
-    state.negatives = "table"
+    state.settings.query.negatives = "table"
     assert state.run_text_query("ball")
     assert state.query.metric == "relevancy"
     assert np.all((state.query.scores >= 0) & (state.query.scores <= 1))

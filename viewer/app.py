@@ -28,6 +28,7 @@ from viewer.camera import ViewController, camera_for_size, frustum_segments, pro
 from viewer.panels import Panels
 from viewer.paths import default_layout_path
 from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
+from viewer.settings import FLY_SPEED_RANGE
 from viewer.state import ViewerState
 
 log = logging.getLogger(__name__)
@@ -36,7 +37,6 @@ MOVING_SECONDS = 0.25
 MOVING_SCALE = 0.5  # render resolution factor while the camera moves
 MOVING_FRAME_SECONDS = 0.1  # the moving subsample adapts towards this draw time
 MIN_MOVING_SPLATS = 20_000
-FLY_SPEED = 0.4  # scene-distance units per second (times the orbit distance)
 STILL_CHUNK_SECONDS = 0.05  # a still frame is drawn in chunks of about this much draw time per GUI frame
 MIN_STILL_CHUNK = 5_000
 IDLE_WAIT_SECONDS = 0.5  # nothing to do: sleep in glfw.wait_events_timeout at most this long
@@ -142,7 +142,8 @@ class StillFrame:
 
 class ViewerApp:
     """The window: camera input, hotkeys, splat drawing (progressive when still), the panels
-    (viewer.panels, which own their widget state), file open / drop, and screenshots.
+    (viewer.panels, called through `Panels`' methods only), file open / drop, and screenshots.
+    What the user chose (speeds, resolution, paths...) is read from `state.settings`.
 
     layout_path: the imgui layout file (default: viewer.paths.default_layout_path(), in the
     per-user config dir); None keeps no layout file (tests).
@@ -179,15 +180,13 @@ class ViewerApp:
         self._frame_overhead = 0.0  # seconds of a GUI frame besides drawing splats (EMA)
         self._drawn_key: tuple | None = None
         self.moving_scale = MOVING_SCALE
-        self.render_scale = 1.0
-        self.fly_speed = FLY_SPEED
-        self.progressive = True
+        self.progressive = True  # draw still frames in chunks (benches and tests turn it off)
         self._scene_version = -1
         self._budget_calibrated = False
         self._style_version = -1
         self._file_dialog = None
         self.panels = Panels()
-        self.panels.reset_paths(state)
+        state.settings.reset_paths(state.scene_path)
         self.frame_seconds = 0.0
         self.frames = 0
 
@@ -243,7 +242,7 @@ class ViewerApp:
                 self.renderer = SplatRenderer(self.ctx, state.scene)
                 fb_w, fb_h = glfw.get_framebuffer_size(self.window)
                 self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h)
-                self.panels.view.up_axis = "auto"
+                state.settings.view.up_axis = "auto"
             self._scene_version = state.scene_version
             self._budget_calibrated = False
             self._style_version = -1
@@ -273,7 +272,7 @@ class ViewerApp:
                 self._fly(io, dt)
         if imgui.is_key_pressed(imgui.Key.escape, False):
             self.release_focus()
-            self.panels.show_help = False
+            self.panels.close_help()
 
     def _handle_mouse(self, io) -> None:
         delta = io.mouse_delta
@@ -292,17 +291,18 @@ class ViewerApp:
             self.camera_changed()
         if io.mouse_wheel:
             if self.view.mode == "fly":
-                self.fly_speed = float(np.clip(self.fly_speed * 1.2 ** io.mouse_wheel, 0.02, 5.0))
-                self.state.info(f"fly speed {self.fly_speed:.2f}")
+                settings = self.state.settings.view
+                settings.fly_speed = float(np.clip(settings.fly_speed * 1.2 ** io.mouse_wheel, *FLY_SPEED_RANGE))
+                self.state.info(f"fly speed {settings.fly_speed:.2f}")
             else:
                 self.view.zoom(io.mouse_wheel)
                 self.camera_changed()
-        if imgui.is_mouse_released(imgui.MouseButton_.left) and self.input.drag_distance < 3 and (self.panels.query.click_to_query or io.key_ctrl):
+        if imgui.is_mouse_released(imgui.MouseButton_.left) and self.input.drag_distance < 3 and (self.state.settings.query.click_to_query or io.key_ctrl):
             scale = self._framebuffer_scale()
             self.state.click_query(self.view.camera(), io.mouse_pos.x * scale[0], io.mouse_pos.y * scale[1])
 
     def _fly(self, io, dt: float) -> None:
-        step = self.fly_speed * max(self.view.distance, 1e-3) * dt * (3.0 if io.key_shift else 1.0)
+        step = self.state.settings.view.fly_speed * max(self.view.distance, 1e-3) * dt * (3.0 if io.key_shift else 1.0)
         move = np.zeros(3)
         for key, axis, sign in ((imgui.Key.w, 2, 1), (imgui.Key.s, 2, -1), (imgui.Key.d, 0, 1), (imgui.Key.a, 0, -1), (imgui.Key.e, 1, -1), (imgui.Key.q, 1, 1)):
             if imgui.is_key_down(key) and not io.key_ctrl:
@@ -316,11 +316,11 @@ class ViewerApp:
         pressed = lambda key: imgui.is_key_pressed(key, False)  # noqa: E731
         ctrl = io.key_ctrl
         if pressed(imgui.Key.f1) or (pressed(imgui.Key.slash) and io.key_shift):
-            self.panels.show_help = not self.panels.show_help
+            self.panels.toggle_help()
         elif pressed(imgui.Key.slash) or (ctrl and pressed(imgui.Key.f)):
-            self.panels.query.request_focus()
+            self.panels.focus_query()
         elif ctrl and pressed(imgui.Key.e):
-            self.panels.query.export(self.state)
+            self.state.export_selection()
         elif ctrl and pressed(imgui.Key.o):
             self.open_file_dialog()
         elif ctrl:
@@ -330,9 +330,9 @@ class ViewerApp:
         elif pressed(imgui.Key.r):
             self.reset_view()
         elif pressed(imgui.Key.n):
-            self.panels.view.step_camera(self, 1)
+            self.step_camera(1)
         elif pressed(imgui.Key.p):
-            self.panels.view.step_camera(self, -1)
+            self.step_camera(-1)
         elif pressed(imgui.Key.f):
             self.view.mode = "orbit" if self.view.mode == "fly" else "fly"
             self.state.info(f"{self.view.mode} mode")
@@ -374,7 +374,7 @@ class ViewerApp:
             self.view.resize(fb_w, fb_h)
         if self.renderer is not None and fb_w > 0 and fb_h > 0:
             moving = self.moving
-            scale = self.render_scale * (self.moving_scale if moving else 1.0)
+            scale = self.state.settings.view.render_scale * (self.moving_scale if moving else 1.0)
             camera = camera_for_size(self.view.camera(), max(1, int(fb_w * scale)), max(1, int(fb_h * scale)))
             if self.renderer.update_order(camera):
                 self._drawn_key = None
@@ -445,7 +445,7 @@ class ViewerApp:
     def draw_overlays(self) -> None:
         """Training-camera frusta (View panel), in imgui's background draw list (over the splats,
         under the panels)."""
-        if not self.panels.view.show_frusta or not self.state.cameras or self.state.scene is None:
+        if not self.state.settings.view.show_frusta or not self.state.cameras or self.state.scene is None:
             return
         lo, hi = self.state.scene.bounding_box()
         depth = 0.03 * float(np.linalg.norm(hi - lo))
@@ -539,8 +539,16 @@ class ViewerApp:
             return
         center = np.median(self.state.scene.means, axis=0) if self.state.scene is not None and self.state.num_gaussians else None
         self.view.snap_to(cams[index], center)
-        self.panels.view.camera_index = index
+        self.state.settings.view.camera_index = index
         self.camera_changed()
+
+    def step_camera(self, step: int) -> None:
+        """Snap to the training camera `step` after the current one (N / P), wrapping around."""
+        n = len(self.state.cameras)
+        if n == 0:
+            self.state.error("no training cameras to snap to (start with --source DATASET)")
+            return
+        self.snap_to_camera((self.state.settings.view.camera_index + step) % n)
 
     def reset_view(self) -> None:
         self.view.reset()
@@ -560,7 +568,7 @@ class ViewerApp:
         if not same_folder:
             self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
         self.state.start_text_encoder()
-        self.panels.reset_paths(self.state)
+        self.state.settings.reset_paths(self.state.scene_path)
         return True
 
     def open_file_dialog(self) -> None:

@@ -59,22 +59,22 @@ def main(argv: list[str] | None = None) -> int:
         shots = {}
         app.snap_to_camera(2)
         state.run_oracle_query(state.oracle.names.index("mug"))
-        app.panels.query.export_format = "drsplat"
+        state.settings.export.format = "drsplat"
         settle(app)
         shots["viewer_panel.png"] = window_image(app)
 
-        app.panels.show_help = True
+        app.panels.toggle_help()
         settle(app)
         shots["viewer_help.png"] = window_image(app)
-        app.panels.show_help = False
+        app.panels.close_help()
 
-        app.panels.view.show_frusta = True
-        app.panels.view.up_axis = "auto"
+        state.settings.view.show_frusta = True
+        state.settings.view.up_axis = "auto"
         app.reset_view()
         app.view.zoom(-6)
         settle(app)
         shots["viewer_frusta.png"] = window_image(app)
-        app.panels.view.show_frusta = False
+        state.settings.view.show_frusta = False
 
         state.run_segmentation(None)
         app.panels.open_next.update({"Scene": False, "View": False, "Registration": True, "Messages": True})

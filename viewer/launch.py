@@ -111,7 +111,7 @@ def build_state(args: argparse.Namespace):
     state.clip_checkpoint = args.clip_checkpoint
     if args.device != "auto":  # an explicit device is checked now (cuda absent: one line from main); auto waits for first use
         resolve_engine(args.engine, resolve_device(args.device))
-    state.device, state.engine = args.device, args.engine
+    state.settings.device, state.settings.engine = args.device, args.engine
     scene_path, source = args.scene, args.source
     if scene_path is None:
         scene_path, demo_source = demo_scene(args.demo_preset)
@@ -138,7 +138,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
     else:
         view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720)
         camera = view.camera()
-    state.negatives = args.negatives
+    state.settings.query.negatives = args.negatives
     wants_query = bool(args.query or args.embedding or args.oracle)
     if args.query or args.negatives:
         state.start_text_encoder(background=False)

@@ -1,5 +1,8 @@
-"""imgui-bundle panels. Each panel owns its widget state (text fields, paths, choices) and calls
-`ViewerState` actions or the host's (`PanelHost`: the window) for everything else.
+"""imgui-bundle panels. They show and edit the viewer's settings (`state.settings`,
+viewer.settings.ViewerSettings: paths, choices, speeds), call `ViewerState` actions or the
+host's (`PanelHost`: the window) for everything else, and own only widget state (text typed for
+a one-shot action, which sections are open, the help overlay). The window talks to them through
+`Panels`' public methods, never their fields.
 
 Layout: one resizable, dockable window "drsplat" whose top part (query, threshold, export) is
 always visible, the rest (scene, view, display, registration, messages) in collapsible sections
@@ -17,15 +20,13 @@ from typing import Protocol
 from imgui_bundle import imgui
 
 from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
-from drsplat.defaults import DEFAULT_LEVEL, DEFAULT_TOPK
 from viewer.camera import UP_AXES, ViewController
-from viewer.paths import derived_output
+from viewer.settings import CODEBOOK_CHOICES, FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import ViewerState
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
 
 ERROR_COLOR = imgui.ImVec4(1.0, 0.45, 0.4, 1.0)
 NOTE_COLOR = imgui.ImVec4(0.95, 0.8, 0.4, 1.0)
-CODEBOOKS = ("none", "scene", "file")
 CODEBOOK_NAMES = ["none (exact fp16)", "scene (PQ trained here)", "faiss file"]
 EXPORT_NAMES = ["standard 3DGS PLY", "drsplat PLY (+ field)"]
 MAIN_WINDOW = "drsplat"
@@ -53,9 +54,6 @@ class PanelHost(Protocol):
 
     state: ViewerState
     view: ViewController
-    frame_seconds: float
-    render_scale: float
-    fly_speed: float
 
     def snap_to_camera(self, index: int) -> None: ...
     def reset_view(self) -> None: ...
@@ -72,23 +70,14 @@ class PanelHost(Protocol):
 
 @dataclass
 class QueryPanel:
-    """Query text, Q.npy file, click-to-query, and the export (path + format)."""
+    """Query text, Q.npy file, and the query and export settings."""
 
     text: str = ""
     embedding_path: str = ""
-    export_path: str = ""
-    export_format: str = "standard"
-    click_to_query: bool = False
     focus_requested: bool = False
-
-    def reset_paths(self, state: ViewerState) -> None:
-        self.export_path = str(derived_output(state.scene_path, "_selection"))
 
     def request_focus(self) -> None:
         self.focus_requested = True
-
-    def export(self, state: ViewerState) -> int | None:
-        return state.export_selection(self.export_path, self.export_format)
 
     def draw_essentials(self, host: PanelHost) -> None:
         """Always visible: the text query, the threshold, the selection count and the export."""
@@ -120,24 +109,25 @@ class QueryPanel:
         imgui.same_line()
         if imgui.small_button("clear query"):
             state.clear_query()
-        current = EXPORT_FORMATS.index(self.export_format)
+        export = state.settings.export
         imgui.set_next_item_width(-70)
-        changed, current = imgui.combo("format", current, EXPORT_NAMES)
+        changed, current = imgui.combo("format", EXPORT_FORMATS.index(export.format), EXPORT_NAMES)
         if changed:
-            self.export_format = EXPORT_FORMATS[current]
+            export.format = EXPORT_FORMATS[current]
         if imgui.is_item_hovered():
-            imgui.set_tooltip(EXPORT_FORMAT_HELP[self.export_format])
+            imgui.set_tooltip(EXPORT_FORMAT_HELP[export.format])
         imgui.set_next_item_width(-70)
-        _, self.export_path = imgui.input_text("##export", self.export_path)
+        _, export.path = imgui.input_text("##export", export.path)
         imgui.same_line()
         if imgui.button("export"):
-            self.export(state)
+            state.export_selection()
 
     def draw_more(self, host: PanelHost) -> None:
         state = host.state
+        settings = state.settings.query
         imgui.text_wrapped(state.encoder_status)
-        _, state.negatives = imgui.input_text_with_hint("negatives", "comma-separated phrases", state.negatives)
-        _, self.click_to_query = imgui.checkbox("click to query (or ctrl+click)", self.click_to_query)
+        _, settings.negatives = imgui.input_text_with_hint("negatives", "comma-separated phrases", settings.negatives)
+        _, settings.click_to_query = imgui.checkbox("click to query (or ctrl+click)", settings.click_to_query)
         self.embedding_path, submitted = submit_field("##emb", "Q.npy embedding file", self.embedding_path, "query file", -90)
         if submitted:
             state.run_embedding_query(self.embedding_path)
@@ -173,16 +163,10 @@ class ScenePanel:
 
 @dataclass
 class ViewPanel:
-    camera_index: int = 0
-    screenshot_path: str = ""
-    up_axis: str = "auto"
-    show_frusta: bool = False
-
-    def reset_paths(self, state: ViewerState) -> None:
-        self.screenshot_path = str(derived_output(state.scene_path, "_screenshot").with_suffix(".png"))
+    """Camera mode, up axis, roll, speeds, resolution, training cameras, screenshot."""
 
     def draw(self, host: PanelHost) -> None:
-        view = host.view
+        view, settings = host.view, host.state.settings.view
         if imgui.radio_button("orbit", view.mode == "orbit"):
             view.mode = "orbit"
         imgui.same_line()
@@ -192,44 +176,36 @@ class ViewPanel:
         if imgui.button("reset view (R)"):
             host.reset_view()
         names = list(UP_AXES)
-        changed, current = imgui.combo("up axis", names.index(self.up_axis), names)
+        changed, current = imgui.combo("up axis", names.index(settings.up_axis), names)
         if changed:
-            self.up_axis = names[current]
-            view.set_up_axis(self.up_axis, host.state.cameras)
+            settings.up_axis = names[current]
+            view.set_up_axis(settings.up_axis, host.state.cameras)
             host.camera_changed()
         changed, roll = imgui.slider_float("roll", math.degrees(view.roll), -180.0, 180.0, "%.0f deg")
         if changed:
             view.set_roll(math.radians(roll))
             host.camera_changed()
-        _, host.fly_speed = imgui.slider_float("fly speed", host.fly_speed, 0.02, 5.0, "%.2f", imgui.SliderFlags_.logarithmic.value)
-        _, host.render_scale = imgui.slider_float("resolution", host.render_scale, 0.25, 1.0, "%.2fx")
+        _, settings.fly_speed = imgui.slider_float("fly speed", settings.fly_speed, *FLY_SPEED_RANGE, "%.2f", imgui.SliderFlags_.logarithmic.value)
+        _, settings.render_scale = imgui.slider_float("resolution", settings.render_scale, *RENDER_SCALE_RANGE, "%.2fx")
         changed, fov = imgui.slider_float("fov", view.fov_y_deg, 20.0, 110.0, "%.0f deg")
         if changed:
             view.fov_y_deg = fov
             host.camera_changed()
         n = len(host.state.cameras)
         if n:
-            self.camera_index = min(self.camera_index, n - 1)
-            changed, self.camera_index = imgui.slider_int("camera (N/P)", self.camera_index, 0, n - 1)
+            settings.camera_index = min(settings.camera_index, n - 1)
+            changed, settings.camera_index = imgui.slider_int("camera (N/P)", settings.camera_index, 0, n - 1)
             imgui.same_line()
             if imgui.button("snap") or changed:
-                host.snap_to_camera(self.camera_index)
-            changed, self.show_frusta = imgui.checkbox("training-camera frusta", self.show_frusta)
+                host.snap_to_camera(settings.camera_index)
+            changed, settings.show_frusta = imgui.checkbox("training-camera frusta", settings.show_frusta)
             if changed:
                 host.camera_changed()
         imgui.set_next_item_width(-90)
-        _, self.screenshot_path = imgui.input_text("##shot", self.screenshot_path)
+        _, settings.screenshot_path = imgui.input_text("##shot", settings.screenshot_path)
         imgui.same_line()
         if imgui.button("screenshot"):
-            host.screenshot(self.screenshot_path)
-
-    def step_camera(self, host: PanelHost, step: int) -> None:
-        n = len(host.state.cameras)
-        if n == 0:
-            host.state.error("no training cameras to snap to (start with --source DATASET)")
-            return
-        self.camera_index = (self.camera_index + step) % n
-        host.snap_to_camera(self.camera_index)
+            host.screenshot(settings.screenshot_path)
 
 
 @dataclass
@@ -258,36 +234,28 @@ class DisplayPanel:
 
 @dataclass
 class RegistrationPanel:
-    output: str = ""
-    topk: int = DEFAULT_TOPK
-    level: int = DEFAULT_LEVEL
-    codebook: str = "none"
-    codebook_path: str = ""
-
-    def reset_paths(self, state: ViewerState) -> None:
-        self.output = str(derived_output(state.scene_path, "_registered"))
+    """The registration settings, its progress and cancel button."""
 
     def draw(self, host: PanelHost) -> None:
-        state = host.state
+        state, settings = host.state, host.state.settings.registration
         imgui.text_wrapped(f"dataset: {state.source_dir or '(none: start with --source DIR)'}")
         imgui.text_wrapped(f"features: {state.features_dir or '(none: --features DIR)'}")
-        _, self.output = imgui.input_text("output", self.output)
-        _, self.topk = imgui.input_int("top-k", self.topk)
-        self.topk = max(1, self.topk)
-        _, self.level = imgui.slider_int("level", self.level, 0, 3)
-        changed, current = imgui.combo("codebook", CODEBOOKS.index(self.codebook), CODEBOOK_NAMES)
+        _, settings.output = imgui.input_text("output", settings.output)
+        _, settings.topk = imgui.input_int("top-k", settings.topk)
+        settings.topk = max(1, settings.topk)
+        _, settings.level = imgui.slider_int("level", settings.level, 0, 3)
+        changed, current = imgui.combo("codebook", CODEBOOK_CHOICES.index(settings.codebook), CODEBOOK_NAMES)
         if changed:
-            self.codebook = CODEBOOKS[current]
-        if self.codebook == "file":
-            _, self.codebook_path = imgui.input_text_with_hint("##codebook", "pq_index.faiss", self.codebook_path)
+            settings.codebook = CODEBOOK_CHOICES[current]
+        if settings.codebook == "file":
+            _, settings.codebook_file = imgui.input_text_with_hint("##codebook", "pq_index.faiss", settings.codebook_file)
         job = state.registration
         if job is not None and not job.finished:
             imgui.progress_bar(job.fraction, imgui.ImVec2(-1, 0), f"{job.done}/{job.total} views")
             if imgui.button("cancel"):
                 state.cancel_registration()
         elif imgui.button("register"):
-            codebook = self.codebook_path if self.codebook == "file" else self.codebook
-            state.start_registration(self.output, self.topk, self.level, codebook)
+            state.start_registration(settings.output, settings.topk, settings.level, settings.codebook_argument)
 
 
 def submit_field(widget_id: str, hint: str, value: str, button: str, width: float) -> tuple[str, bool]:
@@ -321,7 +289,8 @@ def messages_panel(host: PanelHost) -> None:
 
 @dataclass
 class Panels:
-    """All panels, their widget state, the status line and the help overlay."""
+    """All panels, their widget state, the status line and the help overlay (what the window
+    calls: `draw`, `focus_query`, `toggle_help`, `close_help`)."""
 
     query: QueryPanel = field(default_factory=QueryPanel)
     scene: ScenePanel = field(default_factory=ScenePanel)
@@ -336,11 +305,15 @@ class Panels:
             imgui.set_next_item_open(self.open_next.pop(name))
         return imgui.collapsing_header(name, imgui.TreeNodeFlags_.default_open.value if default_open else 0)
 
-    def reset_paths(self, state: ViewerState) -> None:
-        """Default output paths for a newly loaded scene (writable: viewer.paths.derived_output)."""
-        self.query.reset_paths(state)
-        self.view.reset_paths(state)
-        self.registration.reset_paths(state)
+    def focus_query(self) -> None:
+        """Put the keyboard focus in the text query on the next frame."""
+        self.query.request_focus()
+
+    def toggle_help(self) -> None:
+        self.show_help = not self.show_help
+
+    def close_help(self) -> None:
+        self.show_help = False
 
     def draw(self, host: PanelHost) -> None:
         viewport = imgui.get_main_viewport()

@@ -1,7 +1,8 @@
 """The viewer's state and actions, free of any GUI or GL code (testable headless).
 
 `ViewerState` owns the scene, its language field, the current query's scores, the selection and
-the display mode, and turns them into a per-splat style for the renderer. Every number comes
+the display mode, and the user's settings (`settings`: viewer.settings.ViewerSettings, which the
+panels edit), and turns them into a per-splat style for the renderer. Every number comes
 from the drsplat library: scores from `drsplat.query`, picks from `drsplat.raster`, the
 registration from `drsplat.registration` and `drsplat.lang`. Actions never raise for bad
 input: they record a message (shown in the GUI) and return False.
@@ -28,6 +29,7 @@ from drsplat.scene import GaussianScene
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
+from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
@@ -62,15 +64,13 @@ class ViewerState:
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
-        self.device = "cpu"  # auto | cpu | cuda (drsplat.device): where CLIP and registration run, resolved on use
-        self.engine: str | None = None  # registration's compute engine; None = the device's default
+        self.settings = ViewerSettings()
         self.oracle: OracleQueries | None = None
         self.encoder = None
         self.encoder_status = "no language field loaded"
         self.query: QueryResult | None = None
         self.threshold = 0.5
         self.mode = "color"
-        self.negatives = ""
         self.segmentation = None  # drsplat.query.Segmentation | None
         self.segment_names: list[str] = []
         self.segment_colors = np.zeros((0, 3), np.float32)
@@ -173,7 +173,7 @@ class ViewerState:
         if name in ("", "unknown"):
             name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
         try:
-            encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.device)
+            encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.settings.device)
         except WeightsUnavailableError as exc:
             self.encoder_status = f"Text queries are off: {exc}"
             return
@@ -205,7 +205,7 @@ class ViewerState:
         from drsplat import query as dq
 
         q = dq.unit_rows(embeddings)[:1]
-        negatives = [p.strip() for p in self.negatives.split(",") if p.strip()]
+        negatives = [p.strip() for p in self.settings.query.negatives.split(",") if p.strip()]
         if self.encoder is not None:
             neg = dq.negative_embeddings(self.encoder, self.field, negatives)
             return dq.relevancy(self.field, q, neg)[:, 0], "relevancy"
@@ -401,13 +401,16 @@ class ViewerState:
         """[N] bool the Gaussians an export writes: the selection, or what is shown in hide-selection mode."""
         return ~self.selection if self.mode == "hide_selection" else self.selection
 
-    def export_selection(self, path: str | Path, fmt: str = "standard") -> int | None:
+    def export_selection(self, path: str | Path | None = None, fmt: str | None = None) -> int | None:
         """Write the selected Gaussians (`export_mask`) with drsplat.lang.export_scene: `standard`
         (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
-        beside; `drsplat query` reads it). Returns the number written, or None (with a message)."""
+        beside; `drsplat query` reads it); the path and format default to the export settings.
+        Returns the number written, or None (with a message)."""
         from drsplat.lang import codebook_path_for, export_scene
         from drsplat.utils import guard_outputs
 
+        path = self.settings.export.path if path is None else path
+        fmt = self.settings.export.format if fmt is None else fmt
         if self.scene is None:
             self.error("no scene is loaded")
             return None
@@ -455,8 +458,8 @@ class ViewerState:
         from drsplat.device import resolve_device, resolve_engine
 
         try:
-            device = resolve_device(self.device)
-            engine = resolve_engine(self.engine, device)
+            device = resolve_device(self.settings.device)
+            engine = resolve_engine(self.settings.engine, device)
         except DrsplatError as exc:
             self.error(str(exc))
             return False

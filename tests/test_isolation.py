@@ -1,0 +1,45 @@
+"""The suite's own guarantees: files can run in any order (--reverse-files), and a test that
+leaves process-wide state changed is reported (tests/process_state.py, checked by conftest)."""
+
+from __future__ import annotations
+
+import builtins
+import os
+import signal
+from pathlib import Path
+from types import SimpleNamespace
+
+from tests.conftest import reversed_by_file
+from tests.process_state import ProcessState
+
+
+def test_reverse_files_reverses_the_files_and_keeps_each_files_order():
+    items = [SimpleNamespace(path=Path(f), name=n) for f, n in [("a.py", 1), ("a.py", 2), ("b.py", 3), ("c.py", 4), ("c.py", 5)]]
+    assert [i.name for i in reversed_by_file(items)] == [4, 5, 3, 1, 2]
+
+
+def test_the_guard_names_what_a_test_changed(monkeypatch, tmp_path):
+    before = ProcessState.capture()
+    assert before.changes(ProcessState.capture()) == []
+    monkeypatch.setattr(builtins, "print", lambda *args, **kwargs: None)  # what Ray's driver did
+    monkeypatch.setenv("DRSPLAT_ISOLATION_PROBE", "1")
+    monkeypatch.chdir(tmp_path)
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: None)
+    try:
+        changes = before.changes(ProcessState.capture())
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert "builtins.print" in changes and "os.environ['DRSPLAT_ISOLATION_PROBE']" in changes and "the SIGUSR1 handler" in changes
+    assert any(c.startswith("the working directory") and str(tmp_path) in c for c in changes)
+    monkeypatch.undo()
+    assert before.changes(ProcessState.capture()) == [] and os.getcwd() == before.cwd
+
+
+def test_an_environment_variable_a_library_sets_on_import_may_appear_but_not_change(monkeypatch):
+    monkeypatch.delenv("TCM_ENABLE", raising=False)
+    before = ProcessState.capture()
+    monkeypatch.setenv("TCM_ENABLE", "1")  # open3d's import
+    assert before.changes(ProcessState.capture()) == []
+    after_import = ProcessState.capture()
+    monkeypatch.setenv("TCM_ENABLE", "0")
+    assert after_import.changes(ProcessState.capture()) == ["os.environ['TCM_ENABLE']"]
