@@ -116,7 +116,7 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
     approximation costs. The moving frame is the GUI's: the subsample starts from
     `calibrated_moving_budget` and adapts with `next_moving_budget` for MOVING_FRAMES frames;
     the budget it settles on, the median time of the last frames and their error are reported."""
-    from viewer.app import MOVING_SCALE, calibrated_moving_budget, next_moving_budget
+    from viewer.app import MOVING_SCALE, calibrated_moving_budget, next_moving_budget  # moderngl, imgui and glfw: GL only when a window or an image is made
     from viewer.camera import ViewController, camera_for_size
     from viewer.renderer import OffscreenTarget, SplatRenderer
     from viewer.sorting import SortResult
@@ -191,7 +191,7 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
 def run(args: argparse.Namespace) -> int:
     from drsplat.errors import DrsplatError
     from drsplat.scene import load_ply
-    from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_png
+    from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_png  # moderngl, imgui and glfw: GL only when a window or an image is made
     from viewer.renderer import create_offscreen_context
 
     names = [s.strip() for s in args.sizes.split(",") if s.strip()]
@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_progressive(args: argparse.Namespace, names: list[str], base: GaussianScene | None) -> int:
     print(f"still frame in the window, {args.width}x{args.height}, whole vs progressive, median of {args.repeats} still views, load average {os.getloadavg()[0]:.1f}")
-    from viewer.app import ViewerApp
+    from viewer.app import ViewerApp  # moderngl, imgui and glfw: GL only when a window or an image is made
     from viewer.state import ViewerState
 
     print(f"{'splats':>9} {'scene':<22} {'whole':>7} {'GUI frames':>10} {'median frame':>12} {'longest frame':>13} {'complete':>8}")

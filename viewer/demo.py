@@ -22,6 +22,10 @@ import sys
 import tempfile
 from pathlib import Path
 
+from drsplat.cameras import load_cameras
+from drsplat.registration import RegisterOptions, register
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
 from viewer.assets import asset_path
 
 log = logging.getLogger(__name__)
@@ -46,10 +50,6 @@ def build_demo(out_dir: Path, preset: str = DEMO_PRESET, seed: int = DEMO_SEED, 
     Built in a temporary folder next to `out_dir` and moved in file by file, so a failed build
     leaves the previous demo untouched.
     """
-    from drsplat.cameras import load_cameras
-    from drsplat.registration import RegisterOptions, register
-    from drsplat.scene import load_ply
-    from drsplat.synthetic import write_dataset
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from viewer.demo import demo_dir
+from viewer.state import ViewerState
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +41,7 @@ def settle(app, seconds: float = 20.0) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from viewer.app import ViewerApp, save_png
-    from viewer.demo import demo_dir
-    from viewer.state import ViewerState
+    from viewer.app import ViewerApp, save_png  # moderngl, imgui and glfw: GL only when a window or an image is made
 
     parser = argparse.ArgumentParser(prog="python -m viewer.docshots", description=__doc__.splitlines()[0])
     parser.add_argument("out_dir", type=Path)
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         app.panels.open_next.update({"Scene": True, "View": True, "Registration": False, "Messages": False})
         # a still frame in progress: small chunks so the status line shows it part-way
         app._still_chunk = max(1, state.num_gaussians // 5)
-        import viewer.app as va
+        import viewer.app as va  # moderngl, imgui and glfw: GL only when a window or an image is made
 
         chunk_rule, va.next_still_chunk = va.next_still_chunk, lambda chunk, num, seconds, target=0: chunk
         try:

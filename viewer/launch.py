@@ -13,9 +13,18 @@ import os
 import sys
 from pathlib import Path
 
+from drsplat.cameras import load_cameras
 from drsplat.cli import setup_logging
 from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int
+from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
+from drsplat.features.weights import drsplat_cache_dir
+from drsplat.registration import register
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
+from viewer.camera import ViewController, camera_for_size
+from viewer.demo import demo_available, demo_dir
+from viewer.state import ViewerState
 
 log = logging.getLogger("viewer")
 
@@ -55,7 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cache_root() -> Path:
-    from drsplat.features.weights import drsplat_cache_dir
 
     return drsplat_cache_dir()
 
@@ -63,7 +71,6 @@ def cache_root() -> Path:
 def demo_scene(preset: str | None) -> tuple[Path, Path]:
     """(registered PLY, dataset dir) of the demo: the shipped assets/demo when no preset is asked
     for (and it is present), else a generated preset (prepare_demo)."""
-    from viewer.demo import demo_available, demo_dir
 
     if preset is None and demo_available():
         folder = demo_dir()
@@ -84,10 +91,6 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
 
     Returns (registered.ply, dataset dir) under root/demo (root/demo-<preset> for other presets).
     """
-    from drsplat.cameras import load_cameras
-    from drsplat.registration import register
-    from drsplat.scene import load_ply
-    from drsplat.synthetic import write_dataset
 
     root = (root or cache_root()) / ("demo" if preset == DEMO_PRESET else f"demo-{preset}")
     dataset, registered = root / "dataset", root / "registered.ply"
@@ -103,9 +106,7 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
 
 def build_state(args: argparse.Namespace):
     """A ViewerState with the scene, cameras, features and encoder the arguments name."""
-    from viewer.state import ViewerState
 
-    from drsplat.device import resolve_device, resolve_engine
 
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
@@ -126,8 +127,7 @@ def build_state(args: argparse.Namespace):
 
 
 def screenshot(args: argparse.Namespace, state) -> int:
-    from viewer.app import render_screenshot
-    from viewer.camera import ViewController, camera_for_size
+    from viewer.app import render_screenshot  # moderngl, imgui and glfw: GL only when a window or an image is made
 
     if args.camera is not None:
         if not state.cameras:
@@ -170,7 +170,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
 
 
 def interactive(state) -> int:
-    from viewer.app import ViewerApp
+    from viewer.app import ViewerApp  # moderngl, imgui and glfw: GL only when a window or an image is made
 
     app = ViewerApp(state)
     state.start_text_encoder()
@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         guard_args(args, ("screenshot",))
         if args.screenshot is None and not display_available(os.environ.get("DRSPLAT_VIEWER_PLATFORM")):
-            from viewer.app import no_display_message
+            from viewer.app import no_display_message  # moderngl, imgui and glfw: GL only when a window or an image is made
 
             log.error("%s", no_display_message())
             return 1

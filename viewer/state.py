@@ -20,19 +20,26 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera
-from drsplat.errors import DrsplatError, WeightsUnavailableError
-from drsplat.features.modelid import is_oracle
-from drsplat.registration import RegisterOptions
-from drsplat.utils import load_npy
-from drsplat.scene import GaussianScene
+from drsplat import query as dq
+from drsplat.cameras import Camera, load_cameras
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.device import resolve_device, resolve_engine
+from drsplat.errors import DrsplatError, WeightsUnavailableError
+from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
+from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
+from drsplat.lang import codebook_path_for, export_scene, read_field
+from drsplat.query import load_query_embeddings, otsu_threshold, select
+from drsplat.raster import prepare_scene, rasterize
+from drsplat.registration import RegisterOptions
+from drsplat.scene import GaussianScene, load_ply
+from drsplat.utils import guard_outputs, load_npy
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
+
 
 @dataclass
 class QueryResult:
@@ -108,8 +115,6 @@ class ViewerState:
 
     def load_scene(self, path: str | Path) -> bool:
         """Load a PLY and its language field (if registered); clears the query."""
-        from drsplat.lang import read_field
-        from drsplat.scene import load_ply
 
         try:
             path = Path(path)
@@ -133,7 +138,6 @@ class ViewerState:
 
     def load_source(self, source: str | Path) -> bool:
         """Training cameras of a dataset directory, and its oracle label queries if it has them."""
-        from drsplat.cameras import load_cameras
 
         try:
             source = Path(source)
@@ -165,8 +169,6 @@ class ViewerState:
             self._load_encoder()
 
     def _load_encoder(self) -> None:
-        from drsplat.features.clip import ClipEncoder
-        from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 
         model_id = self.field.clip_model if self.field is not None else ""
         name, _, pretrained = model_id.partition("/")
@@ -202,7 +204,6 @@ class ViewerState:
     def _score(self, embeddings: np.ndarray) -> tuple[np.ndarray, str]:
         """Scores [N] of one query [D]: relevancy when a CLIP encoder provides the canonical
         negatives (plus the user's negative phrases), else cosine."""
-        from drsplat import query as dq
 
         q = dq.unit_rows(embeddings)[:1]
         negatives = [p.strip() for p in self.settings.query.negatives.split(",") if p.strip()]
@@ -214,7 +215,6 @@ class ViewerState:
         return dq.cosine(self.field, q)[:, 0], "cosine"
 
     def _set_query(self, result: QueryResult) -> None:
-        from drsplat.query import otsu_threshold
 
         self.query = result
         self.threshold = float(otsu_threshold(result.scores))
@@ -224,7 +224,6 @@ class ViewerState:
         self.info(f"{result.source} query '{result.name}' ({result.metric}): {int(self.selection.sum()):,} Gaussians at threshold {self.threshold:.3f}")
 
     def run_text_query(self, text: str) -> bool:
-        from drsplat import query as dq
 
         text = text.strip()
         if not text:
@@ -259,7 +258,6 @@ class ViewerState:
 
     def run_embedding_query(self, path: str | Path) -> bool:
         """Query with the first row of an embedding file Q.npy ([D] or [K, D])."""
-        from drsplat.query import load_query_embeddings
 
         if not self._require_field():
             return False
@@ -277,7 +275,6 @@ class ViewerState:
         Rasterizes a (2·radius + 1)² window around the pixel with drsplat.raster (the weights the
         registration uses) and keeps each Gaussian's largest weight in the window.
         """
-        from drsplat.raster import prepare_scene, rasterize
 
         if self.scene is None:
             return np.zeros(0, np.int64)
@@ -298,7 +295,6 @@ class ViewerState:
 
     def click_query(self, camera: Camera, u: float, v: float) -> bool:
         """Pick the Gaussians under the cursor, then score every Gaussian by similarity to them."""
-        from drsplat import query as dq
 
         if not self._require_field():
             return False
@@ -340,7 +336,6 @@ class ViewerState:
     @property
     def selection(self) -> np.ndarray:
         """[N] bool Gaussians at or above the threshold (drsplat.query.select); empty without a query."""
-        from drsplat.query import select
 
         if self.query is None:
             return np.zeros(self.num_gaussians, bool)
@@ -359,7 +354,6 @@ class ViewerState:
 
     def run_segmentation(self, names: list[str] | None = None) -> bool:
         """Argmax segmentation (drsplat.query.segment) over typed labels (CLIP) or the oracle labels."""
-        from drsplat import query as dq
 
         if not self._require_field():
             return False
@@ -406,8 +400,6 @@ class ViewerState:
         (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
         beside; `drsplat query` reads it); the path and format default to the export settings.
         Returns the number written, or None (with a message)."""
-        from drsplat.lang import codebook_path_for, export_scene
-        from drsplat.utils import guard_outputs
 
         path = self.settings.export.path if path is None else path
         fmt = self.settings.export.format if fmt is None else fmt
@@ -455,7 +447,6 @@ class ViewerState:
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
-        from drsplat.device import resolve_device, resolve_engine
 
         try:
             device = resolve_device(self.settings.device)
