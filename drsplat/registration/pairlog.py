@@ -4,7 +4,7 @@ A registration's state after v views is fully described by the distinct (Gaussia
 those views with their summed weights, plus the views' mask embeddings. The log stores exactly
 that, one record per view, appended as each view finishes; nothing is ever rewritten. Replaying
 the records in order into `Accumulator.add_pairs` reproduces the running sums bit for bit, and
-the streaming path (drsplat.streaming) reads them block by block.
+a budgeted run (LogSink in drsplat.registration.sink) reads them block by block.
 
 Layout (little-endian):
 
