@@ -461,14 +461,32 @@ def render_projected(
     allocating ~100 MB per 640x480 view at k = 40 when rendering many views); the returned
     RasterOutput then shares them.
     """
+    _check_args(topk, background)
+    if with_rgb and projected.colors is None:
+        raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
+    offsets, tile_ids = bin_tiles(projected)
+    return composite_projected(projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
+                               background=background, out=out)
+
+
+def composite_projected(
+    projected: Projected,
+    offsets: np.ndarray,
+    tile_ids: np.ndarray,
+    topk: int = DEFAULT_TOPK,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    with_median: bool = False,
+    background=(0.0, 0.0, 0.0),
+    out: RasterOutput | None = None,
+) -> RasterOutput:
+    """The compositing half of `render_projected`, on tile lists from `bin_tiles` (kernels.composite_tiles)."""
     bg = _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
     h, w = projected.height, projected.width
-    n_tiles_x, n_tiles_y = projected.tile_grid
-    offsets, tile_ids = kernels.bin_gaussians(
-        depth_order(projected), projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
-    )
+    n_tiles_x = projected.tile_grid[0]
     ids = _buffer(None if out is None else out.ids, (h, w, topk), np.int32)
     weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)
     rgb = _buffer(None if out is None else out.rgb, (h, w, 3) if with_rgb else (0, 0, 3), np.float32)
