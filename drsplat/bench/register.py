@@ -194,7 +194,8 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
     kernel, sorted slots) and `normalize_rows_reference`; top-k: what registration runs
     (`render_topk`: the ids-and-weights kernel, unordered slots) and `normalize_rows`. The exact
     tile sets (`bin_tiles(exact=True)`) are timed as a third binning. Stages shared by both
-    (projection, depth sort, coalescing, summing) are the same code, timed once per path. The
+    (projection, depth sort, binning, coalescing, summing) are the same code: one median over
+    both paths' samples. The
     last line counts the pixels whose top-k list (as a set of (id, weight)) differs between them.
     """
     import numba
@@ -257,13 +258,18 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
     n = len(cameras)
     stages = ["project", "depth sort", "bin (getRect tiles)", "composite", "coalesce", "sum pairs (add + flush)", "normalize (per run / views)"]
     rows, totals = [], {"reference": 0.0, "top-k": 0.0}
+    shared = ("project", "depth sort", "bin (getRect tiles)", "coalesce", "sum pairs (add + flush)")
     for stage in stages:
         vals = {}
         for name in ("reference", "top-k"):
-            got = times.get((name, stage)) or times.get(("top-k", stage))  # summing is one code for both
+            if stage in shared:  # one code for both paths: one median over both paths' samples
+                got = times.get(("reference", stage), []) + times.get(("top-k", stage), [])
+            else:
+                got = times[(name, stage)]
             vals[name] = 1e3 * (got[0] / n if stage.startswith("normalize") else statistics.median(got))
             totals[name] += vals[name]
-        rows.append([stage, vals["reference"], vals["top-k"], vals["reference"] / vals["top-k"] if vals["top-k"] else float("nan")])
+        label = stage + (" (same code)" if stage in shared else "")
+        rows.append([label, vals["reference"], vals["top-k"], vals["reference"] / vals["top-k"] if vals["top-k"] else float("nan")])
     rows.append(["total per view", totals["reference"], totals["top-k"], totals["reference"] / totals["top-k"]])
     exact_ms = 1e3 * statistics.median(times[("top-k", "bin (exact tiles, not used)")])
     head = (f"{path.name}: per-stage ms per view (median of {n} views {width}x{height}, top-{topk}, {numba.get_num_threads()} threads), "
