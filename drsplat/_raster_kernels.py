@@ -525,19 +525,27 @@ def evicted_first(wbuf, sbuf, p, a, b) -> bool:
 
 @njit(cache=True, error_model="numpy", inline="always")
 def sift_down(wbuf, ibuf, sbuf, p, i, n) -> None:
-    """Restore the heap order below slot i of pixel p's first n slots (`evicted_first` at the root)."""
+    """Restore the heap order below slot i of pixel p's first n slots (`evicted_first` at the root):
+    children that leave before the entry at i move up one level, and the entry drops into the hole."""
+    w = wbuf[p, i]
+    g = ibuf[p, i]
+    s = sbuf[p, i]
     while True:
         child = 2 * i + 1
         if child >= n:
-            return
+            break
         if child + 1 < n and evicted_first(wbuf, sbuf, p, child + 1, child):
             child += 1
-        if not evicted_first(wbuf, sbuf, p, child, i):
-            return
-        wbuf[p, i], wbuf[p, child] = wbuf[p, child], wbuf[p, i]
-        ibuf[p, i], ibuf[p, child] = ibuf[p, child], ibuf[p, i]
-        sbuf[p, i], sbuf[p, child] = sbuf[p, child], sbuf[p, i]
+        cw = wbuf[p, child]
+        if not (cw < w or (cw == w and sbuf[p, child] > s)):
+            break
+        wbuf[p, i] = cw
+        ibuf[p, i] = ibuf[p, child]
+        sbuf[p, i] = sbuf[p, child]
         i = child
+    wbuf[p, i] = w
+    ibuf[p, i] = g
+    sbuf[p, i] = s
 
 
 @njit(cache=True, error_model="numpy", inline="always")
