@@ -396,3 +396,359 @@ def project_points(
         out_extents[g, 0] = math.sqrt(max(q, 0.0) * a) * EXTENT_SCALE + EXTENT_PAD
         out_extents[g, 1] = math.sqrt(max(q, 0.0) * c) * EXTENT_SCALE + EXTENT_PAD
         out_qlimits[g] = max(q, 0.0) * EXTENT_SCALE + EXTENT_PAD
+
+
+# ----------------------------------------------------------------------------- the registration path
+# Ids and weights only (plus the median Gaussian when asked), exact opacity-aware tile sets, and a
+# top-k buffer kept sorted as contributions arrive. drsplat.raster.render_topk drives these; the
+# kernels above (composite_tiles, bin_gaussians) stay the reference they must agree with.
+
+ACCUTILE_PAD = 0.01  # pixels added around the α ≥ 1/255 ellipse's span of a tile row (rounding)
+NARROW_BOX = 10.0  # boxes narrower than this (pixels) are visited row by row whole: cheaper than the ellipse's span (-6% measured)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def ellipse_tile_span(u, v, ca, cb, cc, q, ty, tile_size, height, rx0, rx1):
+    """(tx0, tx1), end-exclusive, of the tiles of tile row ty that the ellipse
+    a·dx² + 2b·dx·dy + c·dy² ≤ q (dx = u - X, dy = v - Y, conic (a, b, c)) meets at a pixel centre
+    (X, Y) = (px + 0.5, py + 0.5), clipped to [rx0, rx1); empty (tx0 ≥ tx1) when it meets none.
+
+    On a horizontal line dy the ellipse spans dx ∈ (-b·dy ± sqrt(a·q - det·dy²)) / a, det = ac - b²,
+    for dy² ≤ a·q / det. The right end is concave in dy, its maximum sqrt(q·c/det) at
+    dy = -(b/c)·sqrt(q·c/det); so over the band of the row's pixel centres its largest value is
+    at that dy clamped into the band (the left end likewise, mirrored), padded by ACCUTILE_PAD.
+    """
+    det = ca * cc - cb * cb
+    y_lo = ty * tile_size + 0.5
+    y_hi = min(ty * tile_size + tile_size, height) - 0.5
+    reach_y = math.sqrt(max(ca * q / det, 0.0)) + ACCUTILE_PAD
+    d_lo = max(v - y_hi, -reach_y)  # the band in dy = v - Y
+    d_hi = min(v - y_lo, reach_y)
+    if d_lo > d_hi:
+        return 0, 0
+    reach_x = math.sqrt(max(q * cc / det, 0.0))
+    dy_right = min(max(-(cb / cc) * reach_x, d_lo), d_hi)
+    dy_left = min(max((cb / cc) * reach_x, d_lo), d_hi)
+    dx_max = (-cb * dy_right + math.sqrt(max(ca * q - det * dy_right * dy_right, 0.0))) / ca + ACCUTILE_PAD
+    dx_min = (-cb * dy_left - math.sqrt(max(ca * q - det * dy_left * dy_left, 0.0))) / ca - ACCUTILE_PAD
+    # pixels whose centre X = px + 0.5 lies in [u - dx_max, u - dx_min]
+    px0 = math.ceil(u - dx_max - 0.5)
+    px1 = math.floor(u - dx_min - 0.5)
+    tx0 = max(float(rx0), math.floor(px0 / tile_size))
+    tx1 = min(float(rx1), math.floor(px1 / tile_size) + 1.0)
+    if tx0 >= tx1:
+        return 0, 0
+    return int(tx0), int(tx1)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def snug_rect(g, tile_rects, means2d, extents, tile_size):
+    """(tx0, ty0, tx1, ty1), end-exclusive: the tiles of Gaussian g's getRect rectangle that its
+    α ≥ 1/255 bounding box (±extents around the mean, Speedy-Splat's SnugBox) meets at a pixel centre."""
+    u = means2d[g, 0] - 0.5
+    v = means2d[g, 1] - 0.5
+    ex = extents[g, 0] + ACCUTILE_PAD
+    ey = extents[g, 1] + ACCUTILE_PAD
+    tx0 = max(float(tile_rects[g, 0]), math.floor(math.ceil(u - ex) / tile_size))
+    tx1 = min(float(tile_rects[g, 2]), math.floor(math.floor(u + ex) / tile_size) + 1.0)
+    ty0 = max(float(tile_rects[g, 1]), math.floor(math.ceil(v - ey) / tile_size))
+    ty1 = min(float(tile_rects[g, 3]), math.floor(math.floor(v + ey) / tile_size) + 1.0)
+    if tx0 >= tx1 or ty0 >= ty1:
+        return 0, 0, 0, 0
+    return int(tx0), int(ty0), int(tx1), int(ty1)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height):
+    """The tiles of row ty of `rect` (snug_rect) that Gaussian g's α ≥ 1/255 ellipse meets: the
+    whole row when the rectangle is one tile wide or tall (the box is then exact enough), else
+    `ellipse_tile_span` (AccuTile)."""
+    if rect[2] - rect[0] <= 1 or rect[3] - rect[1] <= 1:
+        return rect[0], rect[2]
+    return ellipse_tile_span(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], qlimits[g], ty, tile_size, height,
+                             rect[0], rect[2])
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, tile_size, height, n_tiles_x, n_tiles, n_chunks=1):
+    """`bin_gaussians` restricted to the tiles the α ≥ 1/255 ellipse meets (Speedy-Splat's SnugBox
+    and AccuTile).
+
+    A Gaussian goes into tile (tx, ty) of its getRect rectangle `tile_rects` only when its
+    α ≥ 1/255 box meets a pixel centre of the tile (`snug_rect`) and, for rectangles at least
+    two tiles wide and tall, its ellipse dᵀ Σ'⁻¹ d ≤ qlimits does too (`row_tiles`). Both hold
+    every pixel where α ≥ 1/255, so every tile dropped is one where the Gaussian contributes
+    nothing: compositing gives the same result with fewer tile visits. Same outputs and order as
+    bin_gaussians: offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32, front to back per tile.
+    """
+    m = order.shape[0]
+    n_chunks = max(1, min(m, n_chunks))
+    step = -(-m // n_chunks) if m > 0 else 1
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for i in range(c * step, min(m, (c + 1) * step)):
+            g = order[i]
+            rect = snug_rect(g, tile_rects, means2d, extents, tile_size)
+            for ty in range(rect[1], rect[3]):
+                tx0, tx1 = row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height)
+                for tx in range(tx0, tx1):
+                    counts[c, ty * n_tiles_x + tx] += 1
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    total = 0
+    for t in range(n_tiles):
+        offsets[t] = total
+        for c in range(n_chunks):
+            here = counts[c, t]
+            counts[c, t] = total
+            total += here
+    offsets[n_tiles] = total
+    ids = np.empty(total, np.int32)
+    for c in prange(n_chunks):
+        fill = counts[c]
+        for i in range(c * step, min(m, (c + 1) * step)):
+            g = order[i]
+            rect = snug_rect(g, tile_rects, means2d, extents, tile_size)
+            for ty in range(rect[1], rect[3]):
+                tx0, tx1 = row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height)
+                for tx in range(tx0, tx1):
+                    t = ty * n_tiles_x + tx
+                    ids[fill[t]] = g
+                    fill[t] += 1
+    return offsets, ids
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def evicted_first(wbuf, sbuf, p, a, b) -> bool:
+    """Whether slot a of pixel p leaves the top k before slot b: lighter, or as heavy and later."""
+    return wbuf[p, a] < wbuf[p, b] or (wbuf[p, a] == wbuf[p, b] and sbuf[p, a] > sbuf[p, b])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def sift_down(wbuf, ibuf, sbuf, p, i, n) -> None:
+    """Restore the heap order below slot i of pixel p's first n slots (`evicted_first` at the root):
+    children that leave before the entry at i move up one level, and the entry drops into the hole."""
+    w = wbuf[p, i]
+    g = ibuf[p, i]
+    s = sbuf[p, i]
+    while True:
+        child = 2 * i + 1
+        if child >= n:
+            break
+        if child + 1 < n and evicted_first(wbuf, sbuf, p, child + 1, child):
+            child += 1
+        cw = wbuf[p, child]
+        if not (cw < w or (cw == w and sbuf[p, child] > s)):
+            break
+        wbuf[p, i] = cw
+        ibuf[p, i] = ibuf[p, child]
+        sbuf[p, i] = sbuf[p, child]
+        i = child
+    wbuf[p, i] = w
+    ibuf[p, i] = g
+    sbuf[p, i] = s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def offer_topk(wbuf, ibuf, sbuf, count, p, w, g, seq) -> None:
+    """Offer contribution (w, g), arrival number seq (increasing), to pixel p's k best.
+
+    Until k entries are held a newcomer is appended; the k-th makes the buffer a min-heap whose
+    root is the entry to evict first (the lightest; among equal weights the latest, which a stable
+    sort by descending weight puts last). Then a newcomer replaces the root only if strictly
+    heavier (one of equal weight would sort after it) and sifts down: O(log k) per replacement,
+    no rescans. So the buffer always holds the first k entries of a stable sort of the
+    contributions so far by descending weight, in heap order (`write_ranked` sorts them).
+    """
+    k = wbuf.shape[1]
+    n = count[p]
+    if n < k:
+        wbuf[p, n] = w
+        ibuf[p, n] = g
+        sbuf[p, n] = seq
+        count[p] = n + 1
+        if n + 1 == k:
+            for i in range(k // 2 - 1, -1, -1):
+                sift_down(wbuf, ibuf, sbuf, p, i, k)
+    elif w > wbuf[p, 0]:
+        wbuf[p, 0] = w
+        ibuf[p, 0] = g
+        sbuf[p, 0] = seq
+        sift_down(wbuf, ibuf, sbuf, p, 0, k)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def write_ranked(wbuf, ibuf, sbuf, n, p, out_ids, out_weights, py, px, ranked) -> None:
+    """Write pixel p's n entries to out_* at (py, px), -1 / 0 in the k - n slots after them.
+
+    ranked=False writes the n entries as they lie in the buffer (heap order). ranked=True sorts
+    them first (insertion sort on (weight desc, arrival)), for the order every engine promises.
+    """
+    k = out_ids.shape[2]
+    for i in range(1, n if ranked else 0):
+        w = wbuf[p, i]
+        g = ibuf[p, i]
+        s = sbuf[p, i]
+        pos = i
+        while pos > 0 and (wbuf[p, pos - 1] < w or (wbuf[p, pos - 1] == w and sbuf[p, pos - 1] > s)):
+            wbuf[p, pos] = wbuf[p, pos - 1]
+            ibuf[p, pos] = ibuf[p, pos - 1]
+            sbuf[p, pos] = sbuf[p, pos - 1]
+            pos -= 1
+        wbuf[p, pos] = w
+        ibuf[p, pos] = g
+        sbuf[p, pos] = s
+    for m in range(n):
+        out_ids[py, px, m] = ibuf[p, m]
+        out_weights[py, px, m] = wbuf[p, m]
+    for m in range(n, k):
+        out_ids[py, px, m] = -1
+        out_weights[py, px, m] = 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def retire_pixel(row_lo, row_hi, done, ly, lx, tw) -> None:
+    """Shrink row ly's span [row_lo, row_hi] of pixels still compositing after pixel lx is done."""
+    base = ly * tw
+    lo = row_lo[ly]
+    hi = row_hi[ly]
+    while lo <= hi and done[base + lo]:
+        lo += 1
+    while hi >= lo and done[base + hi]:
+        hi -= 1
+    row_lo[ly] = lo
+    row_hi[ly] = hi
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def composite_topk(
+    tile_order: np.ndarray,
+    worker_starts: np.ndarray,
+    offsets: np.ndarray,
+    tile_ids: np.ndarray,
+    means2d: np.ndarray,
+    conics: np.ndarray,
+    opacities: np.ndarray,
+    extents: np.ndarray,
+    qlimits: np.ndarray,
+    width: int,
+    height: int,
+    tile_size: int,
+    n_tiles_x: int,
+    with_median: bool,
+    ranked: bool,
+    out_ids: np.ndarray,
+    out_weights: np.ndarray,
+    out_alpha: np.ndarray,
+    out_median: np.ndarray,
+) -> None:
+    """`composite_tiles` for registration: ids, weights, alpha (and the median Gaussian), nothing else.
+
+    The same per-pixel 3DGS rules in float64, so the same contributions bit for bit; faster by:
+    a top-k buffer that is a heap once full (`offer_topk`: O(log k) per replacement instead of a
+    shift and a rescan of the k slots), per-row spans of the pixels still compositing
+    (`retire_pixel`: finished pixels are not visited again), the ellipse's row span only for
+    boxes at least NARROW_BOX wide, no colour or depth work, and, with
+    ranked=False, no per-pixel sort: the k slots then hold the same entries in heap order
+    (`write_ranked`). The tile lists may be bin_gaussians' or bin_gaussians_exact's.
+    out_ids [H, W, k] int32, out_weights [H, W, k] float32, out_alpha [H, W], out_median [H, W]
+    (only with_median) are all written.
+    """
+    k = out_ids.shape[2]
+    n_px = tile_size * tile_size
+    for worker in prange(worker_starts.shape[0] - 1):
+        trans = np.empty(n_px, np.float64)
+        done = np.empty(n_px, np.bool_)
+        count = np.empty(n_px, np.int64)
+        wbuf = np.empty((n_px, max(k, 1)), np.float64)
+        ibuf = np.empty((n_px, max(k, 1)), np.int32)
+        sbuf = np.empty((n_px, max(k, 1)), np.int64)  # arrival numbers: positions in the tile's list
+        med = np.empty(n_px, np.int32)
+        row_lo = np.empty(tile_size, np.int64)
+        row_hi = np.empty(tile_size, np.int64)
+        for slot in range(worker_starts[worker], worker_starts[worker + 1]):
+            t = tile_order[slot]
+            x0 = (t % n_tiles_x) * tile_size
+            y0 = (t // n_tiles_x) * tile_size
+            x1 = min(x0 + tile_size, width)
+            y1 = min(y0 + tile_size, height)
+            tw = x1 - x0
+            th = y1 - y0
+            for p in range(th * tw):
+                trans[p] = 1.0
+                done[p] = False
+                count[p] = 0
+                med[p] = -1
+            n_active = tw * th
+            for ly in range(th):
+                row_lo[ly] = 0
+                row_hi[ly] = tw - 1
+            for j in range(offsets[t], offsets[t + 1]):
+                g = tile_ids[j]
+                u = means2d[g, 0]
+                v = means2d[g, 1]
+                ex = extents[g, 0]
+                ey = extents[g, 1]
+                fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
+                fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
+                fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
+                fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
+                if fx0 > fx1 or fy0 > fy1:
+                    continue
+                ca = conics[g, 0]
+                cb = conics[g, 1]
+                cc = conics[g, 2]
+                qmax = qlimits[g]
+                power_min = -0.5 * qmax
+                o = np.float64(opacities[g])
+                narrow = fx1 - fx0 < NARROW_BOX
+                for py in range(int(fy0), int(fy1) + 1):
+                    ly = py - y0
+                    lo = row_lo[ly]
+                    hi = row_hi[ly]
+                    if lo > hi:
+                        continue
+                    dy = v - (py + 0.5)
+                    rx0 = max(fx0, float(x0 + lo))
+                    rx1 = min(fx1, float(x0 + hi))
+                    if not narrow:  # a narrow box's row: the ellipse's span costs more than the pixels it skips
+                        disc = cb * cb * dy * dy - ca * (cc * dy * dy - qmax)
+                        if disc < 0.0:
+                            continue
+                        root = math.sqrt(disc)
+                        rx0 = max(rx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                        rx1 = min(rx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                    row = ly * tw - x0
+                    for px in range(int(rx0), int(rx1) + 1):
+                        pix = row + px
+                        if done[pix]:
+                            continue
+                        dx = u - (px + 0.5)
+                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                        if power > 0.0 or power < power_min:
+                            continue
+                        alpha = min(ALPHA_MAX, o * math.exp(power))
+                        if alpha < ALPHA_MIN:
+                            continue
+                        t_now = trans[pix]
+                        test_t = t_now * (1.0 - alpha)
+                        if test_t < T_MIN:
+                            done[pix] = True
+                            n_active -= 1
+                            retire_pixel(row_lo, row_hi, done, ly, px - x0, tw)
+                            continue
+                        if k > 0:
+                            offer_topk(wbuf, ibuf, sbuf, count, pix, alpha * t_now, g, j)
+                        if with_median and test_t <= MEDIAN_T < t_now:
+                            med[pix] = g
+                        trans[pix] = test_t
+                if n_active == 0:
+                    break
+            for ly in range(th):
+                py = y0 + ly
+                for lx in range(tw):
+                    px = x0 + lx
+                    p = ly * tw + lx
+                    write_ranked(wbuf, ibuf, sbuf, count[p], p, out_ids, out_weights, py, px, ranked)
+                    out_alpha[py, px] = 1.0 - trans[p]
+                    if with_median:
+                        out_median[py, px] = med[p]

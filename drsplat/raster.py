@@ -461,14 +461,32 @@ def render_projected(
     allocating ~100 MB per 640x480 view at k = 40 when rendering many views); the returned
     RasterOutput then shares them.
     """
+    _check_args(topk, background)
+    if with_rgb and projected.colors is None:
+        raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
+    offsets, tile_ids = bin_tiles(projected)
+    return composite_projected(projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
+                               background=background, out=out)
+
+
+def composite_projected(
+    projected: Projected,
+    offsets: np.ndarray,
+    tile_ids: np.ndarray,
+    topk: int = DEFAULT_TOPK,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    with_median: bool = False,
+    background=(0.0, 0.0, 0.0),
+    out: RasterOutput | None = None,
+) -> RasterOutput:
+    """The compositing half of `render_projected`, on tile lists from `bin_tiles` (kernels.composite_tiles)."""
     bg = _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
     h, w = projected.height, projected.width
-    n_tiles_x, n_tiles_y = projected.tile_grid
-    offsets, tile_ids = kernels.bin_gaussians(
-        depth_order(projected), projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
-    )
+    n_tiles_x = projected.tile_grid[0]
     ids = _buffer(None if out is None else out.ids, (h, w, topk), np.int32)
     weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)
     rgb = _buffer(None if out is None else out.rgb, (h, w, 3) if with_rgb else (0, 0, 3), np.float32)
@@ -491,6 +509,101 @@ def render_projected(
         num_nonfinite=projected.num_nonfinite,
         median_ids=median if with_median else None,
     )
+
+
+def bin_tiles(projected: Projected, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per-tile lists of Gaussian ids, front to back: offsets [n_tiles + 1] int64, ids [offsets[-1]] int32.
+
+    exact=False: every tile of each Gaussian's getRect rectangle (3DGS's rule, `render_projected`).
+    exact=True: only those of its tiles that the α ≥ 1/255 ellipse meets (`bin_gaussians_exact`,
+    Speedy-Splat's AccuTile); compositing then gives the same result, with fewer tile visits.
+    """
+    n_tiles_x, n_tiles_y = projected.tile_grid
+    order = depth_order(projected)
+    n_chunks = BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
+    if not exact:
+        return kernels.bin_gaussians(order, projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, n_chunks)
+    return kernels.bin_gaussians_exact(order, projected.tile_rects, projected.means2d, projected.conics, projected.extents, projected.qlimits,
+                                       projected.tile_size, projected.height, n_tiles_x, n_tiles_x * n_tiles_y, n_chunks)
+
+
+def composite_topk(
+    projected: Projected,
+    offsets: np.ndarray,
+    tile_ids: np.ndarray,
+    topk: int = DEFAULT_TOPK,
+    *,
+    with_median: bool = False,
+    ranked: bool = True,
+    out: RasterOutput | None = None,
+) -> RasterOutput:
+    """Composite binned tiles (`bin_tiles`) keeping only ids, weights, alpha and (with_median) the median.
+
+    The registration's compositor (kernels.composite_topk): float64, the same per-pixel rules
+    as `render_projected`, without colour or depth. ranked=True: the same ids, weights, alpha and
+    median bit for bit. ranked=False: each pixel's slots hold the same (id, weight) entries, in no
+    particular order (the -1 / 0 padding still last); what registration needs, since it sums
+    a pixel's entries per (Gaussian, mask) whatever their order, and it skips a sort per pixel.
+    out: buffers to reuse, as in `render_projected`.
+    """
+    _check_args(topk, (0.0, 0.0, 0.0))
+    h, w = projected.height, projected.width
+    ids = _buffer(None if out is None else out.ids, (h, w, topk), np.int32)
+    weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)
+    alpha = _buffer(None if out is None else out.alpha, (h, w), np.float32)
+    median = _buffer(None if out is None else out.median_ids, (h, w) if with_median else (0, 0), np.int32)
+    tile_order, worker_starts = balance_tiles(np.diff(offsets), numba.get_num_threads())
+    kernels.composite_topk(
+        tile_order, worker_starts, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
+        projected.qlimits, w, h, projected.tile_size, projected.tile_grid[0], with_median, ranked, ids, weights, alpha, median,
+    )  # fmt: skip
+    return RasterOutput(ids=ids, weights=weights, rgb=None, depth=None, alpha=alpha, num_nonfinite=projected.num_nonfinite,
+                        median_ids=median if with_median else None)
+
+
+def render_topk(
+    projected: Projected,
+    topk: int = DEFAULT_TOPK,
+    *,
+    with_median: bool = False,
+    ranked: bool = True,
+    exact_tiles: bool = False,
+    out: RasterOutput | None = None,
+) -> RasterOutput:
+    """`render_projected` for callers that need only the top-k ids and weights (registration):
+    `bin_tiles(exact=exact_tiles)` then `composite_topk` (see there for `ranked`)."""
+    offsets, tile_ids = bin_tiles(projected, exact=exact_tiles)
+    return composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked, out=out)
+
+
+def rasterize_topk(
+    scene: GaussianScene | PreparedScene,
+    camera: Camera,
+    topk: int = DEFAULT_TOPK,
+    *,
+    with_rgb: bool = False,
+    with_depth: bool = False,
+    with_median: bool = False,
+    background=(0.0, 0.0, 0.0),
+    mask: np.ndarray | None = None,
+    near: float = NEAR,
+    out: RasterOutput | None = None,
+    device: str = "cpu",
+    ranked: bool = False,
+) -> RasterOutput:
+    """The registration's CPU rasterizer: `rasterize_numba` for the top-k lists only (`render_topk`).
+
+    Same signature as rasterize, plus `ranked`; with_rgb / with_depth must be False (this path
+    computes neither) and background is unused. By default (ranked=False) a pixel's k slots
+    are the top-k entries in no particular order (`composite_topk`); ranked=True sorts them as
+    every other engine does.
+    """
+    if with_rgb or with_depth:
+        raise ValueError("rasterize_topk computes ids, weights, alpha and the median only; use rasterize for rgb or depth")
+    _check_args(topk, background)
+    _check_cpu("numba", device)
+    projected = project_gaussians(scene, camera, near, mask=mask)
+    return render_topk(projected, topk, with_median=with_median, ranked=ranked, out=out)
 
 
 def rasterize_numba(
@@ -627,10 +740,12 @@ def _check_cpu(engine: str, device: str | None) -> None:
 class Engine:
     """A rasterizer engine: `render` has `rasterize`'s signature (without `engine`); `prepare(scene,
     device)` returns what `render` takes as its scene fastest (done once per scene, reused per view).
-    Both are "module:function" entry points imported on first use (torch loads only when asked for)."""
+    Both are "module:function" entry points imported on first use (torch loads only when asked for).
+    topk: optionally, a faster `render` for ids, weights and the median only (registration)."""
 
     render: str
     prepare: str
+    topk: str | None = None
 
     @staticmethod
     def _load(entry: str) -> Callable:
@@ -643,10 +758,16 @@ class Engine:
     def prepare_fn(self) -> Callable:
         return self._load(self.prepare)
 
+    def topk_fn(self) -> Callable[..., RasterOutput]:
+        """The engine's renderer for callers that need only ids, weights and the median
+        (registration): `topk` if the engine has one (numba: `rasterize_topk`, whose slots are
+        unordered), else `render`."""
+        return self._load(self.topk or self.render)
+
 
 # The registry: a new engine is one module plus one line here.
 ENGINES: dict[str, Engine] = {
-    "numba": Engine("drsplat.raster:rasterize_numba", "drsplat.raster:_prepare_cpu"),
+    "numba": Engine("drsplat.raster:rasterize_numba", "drsplat.raster:_prepare_cpu", topk="drsplat.raster:rasterize_topk"),
     "reference": Engine("drsplat.raster:rasterize_reference", "drsplat.raster:_prepare_cpu"),
     "torch": Engine("drsplat.raster_torch:rasterize", "drsplat.raster_torch:prepare_scene_torch"),
 }

@@ -5,8 +5,10 @@ Two tables:
    paper's ablation): ms per view, ms per 1M contributing (Gaussian, pixel) pairs, and the
    volume-weighted segmentation / localisation mIoU;
 2. a real scene (default ../shared/data/ply/flowers.ply, 542k Gaussians) seen by orbiting
-   640x480 views with synthetic masks and 512-D embeddings: time per view split into
-   rasterization and accumulation, ms per 1M pairs, peak RSS.
+   640x480 views with synthetic masks and 512-D embeddings: first the per-stage ms per view of
+   the reference compositor next to the registration's top-k one (`stage_table`), then the
+   whole registration: time per view split into rasterization and accumulation, ms per 1M
+   pairs, peak RSS.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--real-topk", type=int, default=DEFAULT_TOPK, help=f"top-k on the real scene (default: {DEFAULT_TOPK})")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
+    p.add_argument("--skip-stages", action="store_true", help="no per-stage split (reference vs top-k compositor) on the real scene")
     p.add_argument("--gaussians", default=None, metavar="N",
                    help="speed table on a random scene of N Gaussians built in memory (e.g. 500k) instead of --real")
     p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
@@ -162,12 +165,10 @@ def real_table(path: Path, views: int, width: int, height: int, topk: int, repea
     raster_s = statistics.median(r.raster_seconds for r in runs)
     acc_s = statistics.median(r.accumulate_seconds for r in runs)
     acc_cpu = statistics.median(r.accumulate_cpu_seconds for r in runs)
-    alloc_s = statistics.median(r.allocate_seconds for r in runs)
     mpairs = result.num_pairs / 1e6
     views = result.num_views
     rows = [
         ["total (incl. feature I/O, normalise)", 1e3 * seconds, 1e3 * seconds / views, 1e3 * seconds / mpairs],
-        ["  allocate F [N, D] (once per run)", 1e3 * alloc_s, 1e3 * alloc_s / views, 1e3 * alloc_s / mpairs],
         ["  rasterize top-k", 1e3 * raster_s, 1e3 * raster_s / views, 1e3 * raster_s / mpairs],
         ["  accumulate pairs (numba)", 1e3 * acc_s, 1e3 * acc_s / views, 1e3 * acc_s / mpairs],
         ["  accumulate, CPU time of all threads", 1e3 * acc_cpu, 1e3 * acc_cpu / views, 1e3 * acc_cpu / mpairs],
@@ -177,6 +178,126 @@ def real_table(path: Path, views: int, width: int, height: int, topk: int, repea
             f"512-D random-mask features; {mpairs:.1f} M contributing pairs, {result.num_distinct_pairs / 1e6:.2f} M distinct "
             f"(Gaussian, mask) pairs, {result.num_assigned:,} Gaussians assigned; median of {repeats}")
     return head + "\n" + format_table(["stage", "ms (wall)", "ms/view", "ms/1M pairs"], rows)
+
+
+def _canonical_lists(ids: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's (id, weight) slots ordered by id: the same lists compare equal whatever their slot order."""
+    order = np.argsort(np.where(ids < 0, np.iinfo(np.int32).max, ids), axis=-1, kind="stable")
+    return np.take_along_axis(ids, order, -1), np.take_along_axis(weights, order, -1)
+
+
+def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim: int = 512) -> str:
+    """Per-stage ms per view of one registration view, the reference compositor next to the top-k one.
+
+    Both paths run on every view, interleaved (reference first), so machine load hits both alike;
+    medians over the views. reference: `render_projected` (getRect tiles, the colour/depth
+    kernel, sorted slots) and `normalize_rows_reference`; top-k: what registration runs
+    (`render_topk`: the ids-and-weights kernel, unordered slots) and `normalize_rows`. The exact
+    tile sets (`bin_tiles(exact=True)`) are timed as a third binning. Stages shared by both
+    (projection, depth sort, binning, coalescing, summing) are the same code: one median over
+    both paths' samples. The
+    last line counts the pixels whose top-k list (as a set of (id, weight)) differs between them.
+    """
+    import numba
+
+    from drsplat import raster
+    from drsplat.registration.coalesce import Coalescer
+    from drsplat.registration.compute import prepare_geometry
+    from drsplat.registration.sums import Accumulator, normalize_rows, normalize_rows_reference
+    from drsplat.scene import load_ply
+
+    scene = load_ply(path)
+    geometry = prepare_geometry(scene)
+    cameras = orbit_cameras(scene.means, views, width, height)
+    rng = np.random.default_rng(0)
+    coalescer = Coalescer(geometry.num_gaussians)
+    acc = Accumulator(geometry.num_gaussians, dim)
+    times: dict[tuple[str, str], list[float]] = {}
+    outs: dict[str, raster.RasterOutput | None] = {"reference": None, "top-k": None}
+    changed_pixels = changed_views = 0
+    n_tiles_x, n_tiles_y = raster.tile_grid(width, height)
+    chunks = raster.BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
+
+    cpu: dict[str, list[float]] = {"reference": [], "top-k": []}
+
+    def timed(path_name: str, stage: str, fn):
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = fn()
+        times.setdefault((path_name, stage), []).append(time.perf_counter() - t0)
+        if stage == "composite":
+            cpu[path_name].append(time.process_time() - c0)
+        return result
+
+    entries = {"reference": [], "top-k": [], "exact": []}
+    for i, cam in enumerate([cameras[0]] + cameras):  # the first view twice: compile / warm up, not counted
+        masks = rng.integers(-1, 60, (height // 8 + 1, width // 8 + 1)).astype(np.int32).repeat(8, 0).repeat(8, 1)[:height, :width]
+        feats = rng.normal(size=(60, dim)).astype(np.float32)
+        for name in ("reference", "top-k"):
+            projected = timed(name, "project", lambda: raster.project_gaussians(geometry, cam))
+            order = timed(name, "depth sort", lambda: raster.depth_order(projected))
+            offsets, tile_ids = timed(name, "bin (getRect tiles)", lambda: kernels_bin(projected, order, n_tiles_x, n_tiles_y, chunks))
+            if name == "reference":
+                out = timed(name, "composite", lambda: raster.composite_projected(projected, offsets, tile_ids, topk, out=outs[name]))
+            else:
+                out = timed(name, "composite", lambda: raster.composite_topk(projected, offsets, tile_ids, topk, ranked=False, out=outs[name]))
+                exact = timed(name, "bin (exact tiles, not used)", lambda: raster.bin_tiles(projected, exact=True))
+                entries["exact"].append(exact[1].size)
+            entries[name].append(tile_ids.size)
+            outs[name] = out
+            g, m, w, _ = timed(name, "coalesce", lambda: coalescer.coalesce(out.ids, out.weights, masks, feats.shape[0]))
+            if name == "top-k":
+                timed(name, "buffer pairs", lambda: acc.add_pairs(g, m, w, feats))
+        if i == 0:
+            times.clear()
+            cpu["reference"].clear()
+            cpu["top-k"].clear()
+            continue
+        ref, new = outs["reference"], outs["top-k"]
+        a, b = _canonical_lists(ref.ids, ref.weights), _canonical_lists(new.ids, new.weights)
+        differ = np.any((a[0] != b[0]) | (a[1] != b[1]), axis=-1)
+        changed_pixels += int(differ.sum())
+        changed_views += int(differ.any())
+    F, W = timed("top-k", "sum pairs (per run / views)", acc.sums)  # flushes every buffered pair, as registration does when its buffer fills
+    F2, W2 = F.copy(), W.copy()
+    timed("reference", "normalize (per run / views)", lambda: normalize_rows_reference(F2, W2))
+    timed("top-k", "normalize (per run / views)", lambda: normalize_rows(F, W))
+    n = len(cameras)
+    stages = ["project", "depth sort", "bin (getRect tiles)", "composite", "coalesce", "buffer pairs", "sum pairs (per run / views)",
+              "normalize (per run / views)"]
+    rows, totals = [], {"reference": 0.0, "top-k": 0.0}
+    shared = ("project", "depth sort", "bin (getRect tiles)", "coalesce", "buffer pairs", "sum pairs (per run / views)")
+    for stage in stages:
+        vals = {}
+        for name in ("reference", "top-k"):
+            if stage in shared:  # one code for both paths: one median over both paths' samples
+                got = times.get(("reference", stage), []) + times.get(("top-k", stage), [])
+            else:
+                got = times[(name, stage)]
+            vals[name] = 1e3 * (got[0] / n if "per run" in stage else statistics.median(got))
+            totals[name] += vals[name]
+        label = stage + (" (same code)" if stage in shared else "")
+        rows.append([label, vals["reference"], vals["top-k"], vals["reference"] / vals["top-k"] if vals["top-k"] else float("nan")])
+    rows.append(["total per view", totals["reference"], totals["top-k"], totals["reference"] / totals["top-k"]])
+    exact_ms = 1e3 * statistics.median(times[("top-k", "bin (exact tiles, not used)")])
+    ratios = [a / b for a, b in zip(times[("reference", "composite")], times[("top-k", "composite")])]
+    head = (f"{path.name}: per-stage ms per view (median of {n} views {width}x{height}, top-{topk}, {numba.get_num_threads()} threads), "
+            f"reference compositor vs the registration's top-k compositor, interleaved per view")
+    foot = (f"composite speed-up, median of the {n} per-view ratios (each pair run back to back): {statistics.median(ratios):.2f} "
+            f"(range {min(ratios):.2f}-{max(ratios):.2f}); CPU seconds of all threads, median per view: "
+            f"{1e3 * statistics.median(cpu['reference']):.0f} vs {1e3 * statistics.median(cpu['top-k']):.0f} ms "
+            f"({statistics.median(cpu['reference']) / statistics.median(cpu['top-k']):.2f}x; less sensitive to other jobs than wall time)\n"
+            f"tile-list entries per view: getRect {statistics.median(entries['top-k']) / 1e6:.2f} M, exact α ≥ 1/255 tiles "
+            f"{statistics.median(entries['exact']) / 1e6:.2f} M (binning them: {exact_ms:.1f} ms/view, not used)\n"
+            f"top-k lists that differ from the reference (as sets of (id, weight)): {changed_pixels} pixels in {changed_views} of {n} views "
+            f"(both float64; a float32 compositor is not implemented)")
+    return head + "\n" + format_table(["stage", "reference ms/view", "top-k ms/view", "speed-up"], rows) + "\n" + foot
+
+
+def kernels_bin(projected, order, n_tiles_x: int, n_tiles_y: int, chunks: int):
+    """3DGS getRect binning of a depth order (the part of raster.bin_tiles after the sort)."""
+    from drsplat import _raster_kernels
+
+    return _raster_kernels.bin_gaussians(order, projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, chunks)
 
 
 def blob_scene(n: int, seed: int = 0):
@@ -245,6 +366,9 @@ def run(args: argparse.Namespace) -> int:
             print(engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device, args.agree_views))
     elif not args.skip_real:
         if args.real.exists():
+            if not args.skip_stages:
+                print(stage_table(args.real, args.views, int(width), int(height), args.real_topk))
+                print()
             print(real_table(args.real, args.views, int(width), int(height), args.real_topk, args.repeats))
         else:
             print(f"skipped the real-scene table: {args.real} is absent (pass --real SCENE.ply)")

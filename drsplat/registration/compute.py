@@ -88,7 +88,7 @@ class ViewComputer:
         check_engine(job.engine, job.device)
         engine = get_engine(job.engine)
         self.job = job
-        self._render = engine.render_fn()
+        self._render = engine.topk_fn()  # ids and weights only: registration sums a pixel's slots whatever their order
         self._prepared = engine.prepare_fn()(geometry, job.device)
         hook = job.hook
         self._geometry = geometry if hook is not None and hook.needs_projection else None  # the hook projects on the CPU

@@ -146,9 +146,53 @@ def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, wei
     return int(np.count_nonzero(keep))
 
 
-def normalize_rows(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, int]:
+@numba.njit(parallel=True, cache=True)
+def _normalize_rows_kernel(F, W):  # pragma: no cover - jitted
+    """`normalize_rows` row by row in parallel; returns the count of rows dropped for non-finite values."""
+    n, dim = F.shape
+    bad = np.zeros(n, np.int64)
+    for i in numba.prange(n):
+        f = F[i]
+        total = 0.0
+        for d in range(dim):
+            x = np.float64(f[d])
+            total += x * x
+        norm = np.sqrt(total)
+        w = W[i]
+        finite = np.isfinite(norm) and np.isfinite(w)
+        if not finite and w != 0:
+            bad[i] = 1
+        if finite and w > 0 and norm > 0:
+            scale = np.float32(norm)
+            for d in range(dim):
+                f[d] /= scale
+        else:
+            for d in range(dim):
+                f[d] = 0.0
+            W[i] = 0.0
+    return bad.sum()
+
+
+def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, int]:
     """In place: F_i <- F_i / |F_i| where W_i > 0 and F_i is finite and non-zero; other rows -> 0
     (and their W_i -> 0). F: [N, D] float32, W: [N] float32.
+
+    |F_i| is summed in float64 and rounded to float32 before the division, as in
+    `normalize_rows_reference`; one pass over F in parallel (the reference makes several
+    passes and a float64 copy of each chunk). The float64 sums may round differently in the last
+    bit, so a row can differ from the reference's by one float32 ulp where its norm lies on a
+    float32 rounding boundary. Returns (F, count of rows dropped for non-finite values).
+    """
+    if F.shape[0] == 0:
+        return F, 0
+    if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32):
+        return normalize_rows_reference(F, W)
+    return F, int(_normalize_rows_kernel(F, W))
+
+
+def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, int]:
+    """Reference of `normalize_rows` (numpy, chunk by chunk): in place F_i <- F_i / |F_i| where
+    W_i > 0 and F_i is finite and non-zero; other rows -> 0 (and their W_i -> 0).
 
     Returns (F, count of rows dropped for non-finite values).
     """

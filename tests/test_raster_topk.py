@@ -1,0 +1,160 @@
+"""The registration's top-k rasterizer (`raster.render_topk` / `rasterize_topk`) against the reference kernel.
+
+The reference is `render_projected` (the float64 compositor every engine agrees with), itself
+held to the numpy per-pixel `composite_reference` in tests/test_raster.py. The top-k path runs the
+same float64 arithmetic, so ranked output must be identical bit for bit; unranked output must
+hold the same (id, weight) entries per pixel; the exact tile sets must not change anything.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drsplat import _raster_kernels as kernels
+from drsplat import raster
+from drsplat.cameras import look_at_camera
+from drsplat.raster import bin_tiles, project_gaussians, render_projected, render_topk, rasterize_reference, rasterize_topk
+from drsplat.registration.sums import normalize_rows, normalize_rows_reference
+from drsplat.scene import load_ply
+from drsplat.testing import RasterCase, assert_agree, assert_physical, front_camera, gaussians, hard_cases, random_case, random_scene
+from tests.conftest import shared_path
+
+
+def _near_threshold_case() -> RasterCase:
+    """Opacities within a hair of 1/255 (α ≥ 1/255 only right at the centre, or nowhere), big and tiny
+    Gaussians, and pairs of equal Gaussians (exact weight ties at the k-th slot)."""
+    rng = np.random.default_rng(5)
+    scene = random_scene(rng, 300, log_scale=(-6.0, 0.5))
+    logit = np.log((1 / 255) / (1 - 1 / 255))
+    scene.opacity_logits[:80] = logit + rng.uniform(-1e-4, 1e-3, 80).astype(np.float32)
+    scene.means[150:200] = scene.means[100:150]  # identical twins: ties in every pixel they cover
+    scene.quats[150:200], scene.log_scales[150:200] = scene.quats[100:150], scene.log_scales[100:150]
+    scene.opacity_logits[150:200] = scene.opacity_logits[100:150]
+    return RasterCase("near-1/255-and-ties", scene, front_camera(48, 40, cx=21.0, cy=22.5), 6, dict(with_median=True))
+
+
+def _cases() -> list[RasterCase]:
+    return [random_case(s, topk=k) for s, k in ((0, 8), (1, 3), (2, 40))] + hard_cases() + [_near_threshold_case()]
+
+
+def _sorted_by_id(ids: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's slots ordered by id (-1 last): a canonical form of an unordered top-k list."""
+    key = np.where(ids < 0, np.iinfo(np.int32).max, ids)
+    order = np.argsort(key, axis=-1, kind="stable")
+    return np.take_along_axis(ids, order, -1), np.take_along_axis(weights, order, -1)
+
+
+@pytest.mark.parametrize("case", _cases(), ids=lambda c: c.name)
+def test_topk_path_gives_the_reference_kernels_lists_bit_for_bit(case):
+    with_median = bool(case.kwargs.get("with_median", False))
+    projected = project_gaussians(case.scene, case.camera)
+    ref = render_projected(projected, case.topk, with_median=with_median)
+    for exact_tiles in (False, True):
+        ranked = render_topk(projected, case.topk, with_median=with_median, ranked=True, exact_tiles=exact_tiles)
+        np.testing.assert_array_equal(ranked.ids, ref.ids)
+        np.testing.assert_array_equal(ranked.weights, ref.weights)
+        np.testing.assert_array_equal(ranked.alpha, ref.alpha)
+        if with_median:
+            np.testing.assert_array_equal(ranked.median_ids, ref.median_ids)
+        assert_physical(ranked, case.topk)
+        loose = render_topk(projected, case.topk, with_median=with_median, ranked=False, exact_tiles=exact_tiles)
+        for a, b in zip(_sorted_by_id(loose.ids, loose.weights), _sorted_by_id(ref.ids, ref.weights)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(loose.alpha, ref.alpha)
+
+
+@pytest.mark.parametrize("case", [random_case(3, topk=8), _near_threshold_case()], ids=lambda c: c.name)
+def test_topk_path_agrees_with_the_numpy_reference(case):
+    """Against the per-pixel numpy compositor: ids identical except between weights that tie, weights within 1e-5."""
+    a = rasterize_topk(case.scene, case.camera, case.topk, with_median=True, ranked=True)
+    b = rasterize_reference(case.scene, case.camera, case.topk, with_median=True)
+    b.rgb = b.depth = None
+    assert_agree(a, b)
+
+
+def test_exact_tile_sets_are_subsets_of_getrect_and_smaller():
+    rng = np.random.default_rng(9)
+    scene = random_scene(rng, 3000, log_scale=(-4.0, -1.0))
+    scene.opacity_logits[:] = rng.normal(-3.0, 2.0, scene.num_gaussians).astype(np.float32)  # many faint ones: small α ellipses
+    cam = look_at_camera([0.2, -0.1, -4.0], [0.0, 0.0, 0.0], 160, 120, fov_x_deg=55)
+    projected = project_gaussians(scene, cam)
+    full_off, full_ids = bin_tiles(projected, exact=False)
+    off, ids = bin_tiles(projected, exact=True)
+    assert 0 < ids.size < 0.9 * full_ids.size
+    for t in range(off.size - 1):
+        kept, every = ids[off[t] : off[t + 1]], full_ids[full_off[t] : full_off[t + 1]]
+        assert np.isin(kept, every).all()
+        np.testing.assert_array_equal(kept, every[np.isin(every, kept)])  # same front-to-back order
+
+
+def test_views_that_see_nothing():
+    scene = gaussians([[0.0, 0.0, -9.0], [5.0, 5.0, 0.0]])  # behind the camera, and far off-screen
+    out = rasterize_topk(scene, front_camera(20, 16), 5, with_median=True)
+    assert (out.ids == -1).all() and (out.weights == 0).all() and (out.alpha == 0).all() and (out.median_ids == -1).all()
+
+
+def test_rasterize_topk_refuses_colour_and_depth():
+    with pytest.raises(ValueError, match="ids, weights, alpha and the median only"):
+        rasterize_topk(gaussians([[0.0, 0.0, 0.0]]), front_camera(), 4, with_rgb=True)
+
+
+def test_registration_uses_the_topk_path_for_numba_only():
+    assert raster.get_engine("numba").topk_fn() is rasterize_topk
+    assert raster.get_engine("reference").topk_fn() is raster.rasterize_reference
+
+
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_heap_buffer_keeps_the_first_k_of_a_stable_sort(k):
+    rng = np.random.default_rng(k)
+    out_ids, out_w = np.empty((1, 1, k), np.int32), np.empty((1, 1, k), np.float32)
+    for trial in range(300):
+        n = int(rng.integers(0, 4 * k + 2))
+        levels = rng.uniform(0.01, 1.0, size=int(rng.integers(1, 4)))
+        w = rng.choice(levels, n) if trial % 2 else rng.uniform(0.0, 1.0, n)  # many exact ties / none
+        wbuf, ibuf, sbuf = np.empty((2, k)), np.empty((2, k), np.int32), np.empty((2, k), np.int64)
+        count = np.zeros(2, np.int64)
+        for g, wg in enumerate(w):
+            kernels.offer_topk(wbuf, ibuf, sbuf, count, 1, wg, g, g)
+        best = np.argsort(-w, kind="stable")[:k]
+        assert count[1] == best.size
+        kernels.write_ranked(wbuf, ibuf, sbuf, count[1], 1, out_ids, out_w, 0, 0, True)
+        np.testing.assert_array_equal(out_ids[0, 0, : best.size], best)
+        np.testing.assert_array_equal(out_w[0, 0, : best.size], w[best].astype(np.float32))
+        assert (out_ids[0, 0, best.size :] == -1).all()
+
+
+def test_topk_path_on_real_flowers_views():
+    scene = load_ply(shared_path("ply", "flowers.ply"))
+    from drsplat.bench.register import orbit_cameras  # the bench's views of a real scene
+
+    prepared = raster.prepare_scene(scene)
+    for cam in orbit_cameras(scene.means, 12, 96, 72)[::4]:
+        projected = project_gaussians(prepared, cam)
+        ref = render_projected(projected, 40, with_median=True)
+        ranked = render_topk(projected, 40, with_median=True, ranked=True, exact_tiles=True)
+        assert (ref.ids >= 0).mean() > 0.3  # the view sees the scene
+        np.testing.assert_array_equal(ranked.ids, ref.ids)
+        np.testing.assert_array_equal(ranked.weights, ref.weights)
+        np.testing.assert_array_equal(ranked.median_ids, ref.median_ids)
+
+
+def test_normalize_rows_matches_its_reference():
+    rng = np.random.default_rng(4)
+    F = rng.normal(size=(500, 37)).astype(np.float32) * rng.uniform(1e-6, 1e6, (500, 1)).astype(np.float32)
+    W = rng.uniform(0.0, 2.0, 500).astype(np.float32)
+    W[:20] = 0.0
+    F[20:30] = 0.0
+    F[30:35, 3] = np.nan
+    F[35:40, 0] = np.inf
+    W[40:45] = np.nan
+    F[45:50] = 1e36  # squares overflow float32, not the float64 sum
+    a, wa = F.copy(), W.copy()
+    b, wb = F.copy(), W.copy()
+    _, bad_a = normalize_rows(a, wa)
+    _, bad_b = normalize_rows_reference(b, wb)
+    assert bad_a == bad_b == 15
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(wa, wb)
+    ok = wa > 0
+    np.testing.assert_allclose(np.linalg.norm(a[ok].astype(np.float64), axis=1), 1.0, rtol=1e-6)
