@@ -587,3 +587,124 @@ def test_codebook_path_in_header_resolves_next_to_the_ply(tmp_path, world, capsy
 def test_catalogue_counts():
     counts = catalogue_counts()
     assert all(n >= 5 for n in counts.values()) and sum(counts.values()) >= 60
+
+
+# ---------------------------------------------------------------------------------------------- round 2 (issue 27)
+
+
+def test_a_view_with_no_masks_is_a_view_that_assigns_nothing(tmp_path, world, capsys):
+    """What the features step writes for a frame with no segments: feats [0, D], seg all -1.
+
+    Was: TypeError (memoryview cast of a zero-size array) in the pair log. Now it registers, in
+    memory and under --memory-budget to the same bytes, equal to a view whose masks cover no pixel."""
+    import shutil
+
+    outs = {}
+    for variant in ("no_masks", "masks_cover_nothing"):
+        feats = tmp_path / variant
+        shutil.copytree(world["ds"] / "features", feats)
+        seg = np.load(feats / "orbit_000_s.npy")
+        np.save(feats / "orbit_000_s.npy", np.full(seg.shape, -1, seg.dtype))
+        if variant == "no_masks":
+            np.save(feats / "orbit_000_f.npy", np.zeros((0, world["dim"]), np.float32))
+        for budget in ([], ["--memory-budget", "3GB"]):
+            out = tmp_path / f"{variant}{len(budget)}.ply"
+            code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
+                                 "--out", out, "--no-progress", *budget], capsys)
+            assert code == 0, err
+            outs[out.name] = out.read_bytes()
+    assert len(set(outs.values())) == 1, "in memory, budgeted, no masks and empty masks must give the same registration"
+
+
+def test_outputs_that_are_devices_fifos_or_symlinks(tmp_path, world, capsys):
+    """A device or FIFO output is written in place (never replaced by a regular file); a symlink's target is written."""
+    import stat
+    import threading
+
+    base = ["query", world["reg"], "--embedding", world["q"]]
+    ref = tmp_path / "ref.npy"
+    assert run_cli([*base, "--scores", ref], capsys)[0] == 0
+    # /dev/full: one error naming the device and "no space left", exit 1 (was: "wrote cosine scores", exit 0)
+    for flag in (["--scores", "/dev/full"], ["--out", "/dev/full", "--threshold", "0.1"]):
+        code, err = run_cli([*base, *flag], capsys)
+        assert code == 1, err
+        (line,) = error_lines(err)
+        assert "/dev/full" in line and "no space left" in line, line
+        assert stat.S_ISCHR(os.stat("/dev/full").st_mode)
+    assert run_cli([*base, "--scores", os.devnull], capsys)[0] == 0
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode), "/dev/null must stay a device"
+    # a symlink: the link stays, its target gets the data
+    target = tmp_path / "sub" / "target.npy"
+    target.parent.mkdir()
+    target.write_bytes(b"old")
+    link = tmp_path / "link.npy"
+    link.symlink_to(target)
+    assert run_cli([*base, "--scores", link], capsys)[0] == 0
+    assert link.is_symlink() and target.read_bytes() == ref.read_bytes()
+    # a FIFO: its reader gets the data (was: the FIFO was replaced by a file)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()))
+    reader.start()
+    code = run_cli([*base, "--scores", fifo], capsys)[0]
+    reader.join(timeout=30)
+    assert code == 0 and stat.S_ISFIFO(os.stat(fifo).st_mode) and got == [ref.read_bytes()]
+
+
+@pytest.mark.parametrize("flag", [["--scores", "s.npy"], ["--out", "o.ply", "--threshold", "0.0"]])
+def test_disk_full_and_file_size_limit_during_query_outputs(tmp_path, world, flag):
+    """Real faults in a child process: RLIMIT_FSIZE makes the write fail (EFBIG, or numpy's short write);
+    the error names the output and the cause, exit 1, and nothing is left under the name or as a temp file."""
+    script = textwrap.dedent("""
+        import resource, sys
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
+        from drsplat.cli import main
+        sys.exit(main(sys.argv[1:]))
+    """)
+    out = tmp_path / flag[1]
+    argv = ["query", str(world["reg"]), "--embedding", str(world["q"]), flag[0], str(out), *flag[2:]]
+    proc = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, cwd=ROOT,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    (line,) = error_lines(proc.stderr)
+    assert str(out) in line and ("file too large" in line or "stopped short" in line), line
+    assert not out.exists() and not list(tmp_path.glob(f".{out.name}.*"))
+
+
+def test_injected_enospc_at_the_write_of_query_out(tmp_path, world, capsys, monkeypatch):
+    """OSError(ENOSPC) raised by the PLY writer itself (no file name on it): the error names --out."""
+    import builtins
+
+    import drsplat.scene as scene_module
+
+    class FullDisk:
+        """A file whose writes fail as on a full disk after the first 100 bytes."""
+
+        def __init__(self, f):
+            self.f, self.n = f, 0
+
+        def write(self, data):
+            self.n += len(data)
+            if self.n > 100:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self.f.write(data)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    def fake_open(file, mode="r", *a, **k):
+        f = builtins.open(file, mode, *a, **k)
+        return FullDisk(f) if "w" in mode else f
+
+    monkeypatch.setattr(scene_module, "open", fake_open, raising=False)
+    out = tmp_path / "sel.ply"
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--out", out, "--threshold", "0.0"], capsys)
+    monkeypatch.undo()
+    assert code == 1
+    (line,) = error_lines(err)
+    assert str(out) in line and "no space left" in line, line
+    assert not out.exists() and not list(tmp_path.glob(".sel.ply.*"))
