@@ -708,3 +708,50 @@ def test_injected_enospc_at_the_write_of_query_out(tmp_path, world, capsys, monk
     (line,) = error_lines(err)
     assert str(out) in line and "no space left" in line, line
     assert not out.exists() and not list(tmp_path.glob(".sel.ply.*"))
+
+
+def test_default_device_does_not_import_torch_without_a_driver(tmp_path, world):
+    """`--device auto` asks the driver first: info, query, segment and register with default flags leave torch
+    (and ray, open_clip, moderngl) unimported where no NVIDIA driver is present (was: query peaked at 1.25 GB)."""
+    from drsplat.bench.startup import command_rows, measure
+    from drsplat.device import nvidia_driver_present
+
+    if nvidia_driver_present():
+        pytest.skip("an NVIDIA driver is present: --device auto rightly asks torch for the GPU")
+    work = tmp_path
+    (work / "reg.ply").symlink_to(world["reg"])
+    np.save(work / "q.npy", np.load(world["q"]))
+    np.save(work / "L.npy", np.load(world["L"]))
+    for label, mode, argv in command_rows(world["ds"], work):
+        result = measure(mode, argv)
+        assert result["code"] in (0, None), label
+        if mode == "plain":
+            assert result["heavy"] == [], f"{label} imported {result['heavy']}"
+        else:
+            assert result["heavy"] == ["torch"]  # the comparison row imports it on purpose
+
+
+def test_driver_probe_decides_without_torch(monkeypatch):
+    import ctypes.util
+    import shutil
+
+    import drsplat.device as device
+
+    monkeypatch.setattr(os.path, "exists", lambda p: False)
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)
+    assert device.nvidia_driver_present() is False and device.cuda_available() is False
+    assert device.resolve_device("auto") == "cpu"
+    monkeypatch.setattr(shutil, "which", lambda name: "/usr/bin/nvidia-smi" if name == "nvidia-smi" else None)
+    assert device.nvidia_driver_present() is True
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["bench", "query", "--sizes", "0"], "--sizes"), (["bench", "query", "--sizes", "1M,x"], "--sizes"),
+    (["bench", "register", "--topks", "a,b"], "--topks"), (["bench", "register", "--topks", "5,0"], "--topks"),
+    (["bench", "register", "--gaussians", "-3"], "--gaussians"), (["bench", "startup", "--repeats", "0"], "--repeats"),
+])
+def test_bench_list_flags_are_usage_errors_before_any_work(capsys, argv, words):
+    """Was: `bench query --sizes 0` raised ValueError after 70 s of work; `--topks a,b` an int parse traceback."""
+    code, err = run_cli(argv, capsys)  # argparse refuses it, so no bench work has started
+    assert code == 2 and words in err, err
