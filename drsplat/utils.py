@@ -90,6 +90,32 @@ def ensure_parent(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
 
 
+def check_output_writable(path: str | Path) -> None:
+    """OutputError now, before long work, when `path` could not be written later.
+
+    Probes with a real temp file in the nearest existing folder of `path` (os.access is wrong for
+    root, ACLs and read-only mounts alike); an existing special file (device, FIFO) is left to its writer.
+    """
+    path = output_target(Path(path))
+    if path.is_dir():
+        raise OutputError(path, "is a directory; give a file path")
+    if is_special_file(path):
+        return
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise OutputError(path, f"{folder} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=folder)
+    except OSError as exc:
+        raise OutputError(path, f"the folder {folder} does not accept new files ({(exc.strerror or str(exc)).lower()})") from None
+    os.close(fd)
+    os.unlink(probe)
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputError(path, "exists and is not writable (permission denied)")
+
+
 @contextlib.contextmanager
 def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iterator[Path]:
     """Yield an empty temp folder next to `path`; on success it becomes `path` in one rename.

@@ -425,12 +425,18 @@ def test_embedding_values(tmp_path, world, capsys):
         np.save(tmp_path / f"{name}.npy", value)
         code, err = run_cli(["query", reg, "--embedding", tmp_path / f"{name}.npy"], capsys)
         assert code == 1 and f"{name}.npy" in err, err
-    # a huge finite vector is the same direction: same scores as the unit vector (was: all zero, everything selected)
-    np.save(tmp_path / "huge.npy", (q / np.abs(q).max() * 3e38).astype(np.float32))
-    for name in ("huge", None):
-        src = tmp_path / "huge.npy" if name else world["q"]
+    # a large but representable vector is the same direction: same scores as the unit vector
+    np.save(tmp_path / "large.npy", (q / np.abs(q).max() * 1e30).astype(np.float32))
+    for name in ("large", None):
+        src = tmp_path / "large.npy" if name else world["q"]
         assert run_cli(["query", reg, "--embedding", src, "--scores", tmp_path / f"s_{name}.npy"], capsys)[0] == 0
-    np.testing.assert_allclose(np.load(tmp_path / "s_huge.npy"), np.load(tmp_path / "s_None.npy"), atol=1e-5)
+    np.testing.assert_allclose(np.load(tmp_path / "s_large.npy"), np.load(tmp_path / "s_None.npy"), atol=1e-5)
+    # 3e38 values: the norm overflows float32; refused naming the file, nothing scored (issue 27: was scored silently)
+    for name, value in (("huge", (q / np.abs(q).max() * 3e38).astype(np.float32)), ("full", np.full_like(q, 3e38))):
+        np.save(tmp_path / f"{name}.npy", value)
+        code, err = run_cli(["query", reg, "--embedding", tmp_path / f"{name}.npy", "--scores", tmp_path / f"s_{name}.npy"], capsys)
+        assert code == 1 and f"{name}.npy" in err and "norm" in err, err
+        assert not (tmp_path / f"s_{name}.npy").exists()
     big = np.array([[1e30, 1e30, 0.0], [np.nan, 1, 1], [0, 0, 0], [-3e38, 0, 0]], np.float32)
     np.testing.assert_allclose(unit_rows(big), [[2**-0.5, 2**-0.5, 0], [0, 0, 0], [0, 0, 0], [-1, 0, 0]], atol=1e-6)
 
@@ -755,3 +761,102 @@ def test_bench_list_flags_are_usage_errors_before_any_work(capsys, argv, words):
     """Was: `bench query --sizes 0` raised ValueError after 70 s of work; `--topks a,b` an int parse traceback."""
     code, err = run_cli(argv, capsys)  # argparse refuses it, so no bench work has started
     assert code == 2 and words in err, err
+
+
+def test_resolution_that_leaves_most_gaussians_unassigned_warns(tmp_path, world, capsys):
+    """Was: `register --resolution 0.001` wrote 364 of 2,763 Gaussians without a word."""
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
+                         "--out", tmp_path / "r.ply", "--no-progress", "--resolution", "0.001"], capsys)
+    assert code == 0
+    (warning,) = [line for line in err.splitlines() if line.startswith("WARNING") and "got nothing" in line]
+    assert "1x1 px" in warning and "--resolution" in warning
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
+                         "--out", tmp_path / "ok.ply", "--no-progress"], capsys)
+    assert code == 0 and "got nothing" not in err  # a normal run stays quiet
+
+
+def test_uint64_mask_id_that_wraps_to_minus_one_is_refused(tmp_path, world, capsys):
+    import shutil
+
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    seg = np.load(feats / "orbit_000_s.npy").astype(np.int64)
+    seg[seg < 0] = 0
+    seg.flat[0] = -1  # becomes 2^64-1 as uint64: silently "no mask" after astype(int64)
+    np.save(feats / "orbit_000_s.npy", seg.astype(np.uint64))
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
+                         "--out", tmp_path / "r.ply", "--no-progress"], capsys)
+    assert code == 1
+    (line,) = error_lines(err)
+    assert "orbit_000_s.npy" in line and str(2**64 - 1) in line, line
+
+
+def test_info_findings_for_short_counts_zero_rows_and_infinite_scales(tmp_path, capsys):
+    """Was: "findings none" for all three, and numpy's overflow warning for the scale."""
+    import warnings
+
+    rows = np.zeros((4, 17), "<f4")
+    rows[:, 13] = 1.0
+    rows[1, 10] = 100.0  # exp(100) overflows float32
+    cases = {
+        "short": (ply_bytes(vertex_header(3), vertex_body(10)), "vertex count (3) may be smaller than the data"),
+        "zero": (ply_bytes(vertex_header(0)), "no Gaussians"),
+        "bigscale": (ply_bytes(vertex_header(4), rows.tobytes()), "1 Gaussians have a log scale above 88.7"),
+    }
+    for name, (data, words) in cases.items():
+        path = tmp_path / f"{name}.ply"
+        path.write_bytes(data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a numpy RuntimeWarning (overflow in exp) fails the test
+            code = main(["info", str(path), "--json"])
+        summary = json.loads(capsys.readouterr().out)
+        assert code == 0 and any(words in f for f in summary["findings"]), (name, summary["findings"])
+
+
+def zero_gaussian_copy(reg: Path, out: Path) -> Path:
+    """The registered PLY's header with `element vertex 0` and no rows (what a filter that keeps nothing writes)."""
+    import re
+
+    data = reg.read_bytes()
+    head = data[: data.index(b"end_header\n") + len(b"end_header\n")]
+    out.write_bytes(re.sub(rb"element vertex \d+", b"element vertex 0", head))
+    return out
+
+
+def test_zero_gaussian_registered_ply_is_one_error(tmp_path, world, capsys):
+    """Was: query and segment exited 0 with empty outputs; the viewer opened an empty scene."""
+    from viewer.launch import main as viewer_main
+    from viewer.state import ViewerState
+
+    empty = zero_gaussian_copy(world["reg"], tmp_path / "empty.ply")
+    for argv in (["query", empty, "--embedding", world["q"], "--scores", tmp_path / "s.npy"],
+                 ["segment", empty, "--embeddings", world["L"], "--out", tmp_path / "seg.npy"]):
+        code, err = run_cli(argv, capsys)
+        assert code == 1
+        (line,) = error_lines(err)
+        assert "empty.ply" in line and "no Gaussians" in line, line
+    assert not (tmp_path / "s.npy").exists() and not (tmp_path / "seg.npy").exists()
+    state = ViewerState()
+    assert not state.load_scene(empty) and "no Gaussians" in state.messages[-1].text
+    assert viewer_main([str(empty), "--screenshot", str(tmp_path / "shot.png")]) == 1
+    err = capsys.readouterr().err
+    assert "no Gaussians" in err and "Traceback" not in err
+
+
+def test_screenshot_into_an_unwritable_folder_fails_before_rendering(tmp_path, world, capsys, monkeypatch):
+    """Was: a PermissionError traceback after loading and rendering. Now one error first."""
+    import viewer.launch as launch
+
+    def no_state(args):
+        raise AssertionError("the scene was loaded before the output was checked")
+
+    monkeypatch.setattr(launch, "build_state", no_state)
+    if os.geteuid() == 0:
+        target = Path("/proc/drsplat-shot.png")  # root can write anywhere but /proc
+    else:
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        target = locked / "sub" / "shot.png"
+    assert launch.main([str(world["reg"]), "--screenshot", str(target)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(error_lines(err)) == 1 and str(target) in err, err

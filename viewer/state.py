@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.errors import DrsplatError, WeightsUnavailableError
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.modelid import is_oracle
 from drsplat.registration import RegisterOptions
 from drsplat.utils import load_npy
@@ -114,6 +114,8 @@ class ViewerState:
         try:
             path = Path(path)
             scene = load_ply(path)
+            if scene.num_gaussians == 0:
+                raise InputError(path, "holds no Gaussians (0 rows): there is nothing to show; open another PLY")
             lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
