@@ -860,3 +860,37 @@ def test_screenshot_into_an_unwritable_folder_fails_before_rendering(tmp_path, w
     assert launch.main([str(world["reg"]), "--screenshot", str(target)]) == 1
     err = capsys.readouterr().err
     assert "Traceback" not in err and len(error_lines(err)) == 1 and str(target) in err, err
+
+
+@pytest.mark.parametrize("n", [1, 7, 78])
+def test_small_exports_stay_queryable_after_their_comments_are_dropped(tmp_path, capsys, n):
+    """Was: an export of fewer Gaussians than the metadata has bytes had no `lang_meta` column, so after a tool
+    that drops header comments (splat-transform ply -> ply) it was no longer queryable. Now the text is spread
+    over ceil(L / n) columns; the round trip gives the same scores."""
+    import shutil
+
+    from drsplat.lang import export_scene, is_meta_column, read_field
+    from drsplat.scene import load_ply, save_ply
+    from viewer.demo import demo_dir
+
+    registered = demo_dir() / "registered.ply"
+    scene = load_ply(registered)
+    field = read_field(scene, registered)
+    q = np.load(demo_dir() / "text_embeddings.npy")[3]
+    keep = np.argsort(-field.scores(q[None])[:, 0], kind="stable")[:n]
+    name = "a-long-export-name-" + "x" * 50 + ".ply"  # an ~90-byte codebook name in the metadata, as in the report
+    small = tmp_path / "export" / name
+    export_scene(scene.subset(keep), field.subset(keep), small, "drsplat")
+    written = load_ply(small)
+    assert sum(is_meta_column(k) for k in written.extra) > 1
+    # what splat-transform does: rows and properties kept, header comments dropped; the codebook copied along
+    stripped = tmp_path / "elsewhere" / name
+    stripped.parent.mkdir()
+    written.comments.clear()
+    save_ply(written, stripped)
+    for book in small.parent.glob("*.faiss"):
+        shutil.copyfile(book, stripped.parent / book.name)
+    np.save(tmp_path / "q.npy", q)
+    code, err = run_cli(["query", stripped, "--embedding", tmp_path / "q.npy", "--scores", tmp_path / "s.npy"], capsys)
+    assert code == 0, err
+    np.testing.assert_allclose(np.load(tmp_path / "s.npy"), field.scores(q[None])[keep, 0], atol=1e-6)
