@@ -894,3 +894,73 @@ def test_small_exports_stay_queryable_after_their_comments_are_dropped(tmp_path,
     code, err = run_cli(["query", stripped, "--embedding", tmp_path / "q.npy", "--scores", tmp_path / "s.npy"], capsys)
     assert code == 0, err
     np.testing.assert_allclose(np.load(tmp_path / "s.npy"), field.scores(q[None])[keep, 0], atol=1e-6)
+
+
+@pytest.fixture
+def headless_imgui():
+    """An imgui context with no window or GL (text layout only); destroyed afterwards."""
+    from imgui_bundle import imgui
+
+    ctx = imgui.create_context()
+    io = imgui.get_io()
+    io.display_size = imgui.ImVec2(800, 600)
+    io.backend_flags |= imgui.BackendFlags_.renderer_has_textures.value
+    yield imgui
+    imgui.destroy_context(ctx)
+
+
+def test_status_line_wraps_instead_of_cutting_the_message(headless_imgui):
+    """Was: the status line was cut at the panel's width, so "Text queries are off because ..." could not be read."""
+    from types import SimpleNamespace
+
+    from viewer.panels import Panels
+    from viewer.state import ViewerState
+
+    imgui = headless_imgui
+    state = ViewerState()
+    message = ("Text queries are off because this scene's features are synthetic oracle vectors (use the oracle labels below); "
+               "for a real scene pass --clip-checkpoint PATH to a local open_clip checkpoint.")
+    state.error(message)
+    host = SimpleNamespace(state=state, still_progress=lambda: None)
+    panels = Panels()
+    imgui.new_frame()
+    imgui.set_next_window_size(imgui.ImVec2(320, 400))
+    imgui.begin("panel")
+    reserved = panels.status_height(host)
+    panels.draw_status(host)
+    drawn = imgui.get_item_rect_size()
+    width = imgui.get_window_width()
+    imgui.end()
+    imgui.render()
+    assert panels.status_message(host) == ("error", message), "the whole message is drawn"
+    line = imgui.get_text_line_height()
+    assert drawn.x <= width and drawn.y > 3 * line, "wrapped over several lines within the panel"
+    assert reserved >= drawn.y, "the panel reserves room for every wrapped line"
+
+
+def test_first_screen_says_what_to_do_next():
+    from viewer.demo import demo_dir
+    from viewer.state import ViewerState
+
+    state = ViewerState()
+    assert "Open a scene" in state.next_step()
+    assert state.load_scene(demo_dir() / "registered.ply") and state.load_source(demo_dir())
+    hint = state.next_step()
+    assert hint.startswith("Next:") and "click a label" in hint and "F1" in hint
+    state.field = None
+    assert "Registration panel" in state.next_step()
+
+
+def test_bundled_demo_outputs_default_to_the_working_folder():
+    """Was: export and screenshot paths of the bundled demo pointed into the package's assets/demo/."""
+    from viewer.demo import demo_dir
+    from viewer.paths import BUNDLED_ASSETS, user_data_dir
+    from viewer.settings import ViewerSettings
+
+    settings = ViewerSettings()
+    settings.reset_paths(demo_dir() / "registered.ply")
+    expected = Path.cwd() if os.access(Path.cwd(), os.W_OK) else user_data_dir()
+    for path in (settings.export.path, settings.view.screenshot_path, settings.registration.output):
+        assert Path(path).parent == expected, path
+        assert BUNDLED_ASSETS not in Path(path).resolve().parents
+    assert Path(settings.view.screenshot_path).name == "registered_screenshot.png"

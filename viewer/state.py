@@ -149,6 +149,21 @@ class ViewerState:
         self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
         return True
 
+    def next_step(self) -> str:
+        """What a person should do next, for the first screen (shown until a query runs)."""
+        if self.scene is None:
+            return "Open a scene: type a PLY path in the Scene panel, or drop a .ply file on the window."
+        if self.field is None:
+            return ("This scene has no language field yet: open the Registration panel and press 'register' "
+                    "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
+        steps = []
+        if self.oracle is not None:
+            steps.append(f"click a label above (e.g. '{self.oracle.names[min(3, len(self.oracle.names) - 1)]}') to highlight it")
+        if self.encoder is not None:
+            steps.append("type what to find (e.g. 'a mug') and press Enter")
+        steps.append("ctrl+click a splat to find similar ones")
+        return "Next: " + ", or ".join(steps) + ". Drag to orbit, scroll to zoom, F1 lists every key."
+
     def start_text_encoder(self, background: bool = True) -> None:
         """Load the CLIP text encoder matching the field's model (on a thread when `background`).
 
