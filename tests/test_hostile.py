@@ -903,6 +903,7 @@ def headless_imgui():
 
     ctx = imgui.create_context()
     io = imgui.get_io()
+    io.set_ini_filename(None)  # no imgui.ini written into the working folder
     io.display_size = imgui.ImVec2(800, 600)
     io.backend_flags |= imgui.BackendFlags_.renderer_has_textures.value
     yield imgui
