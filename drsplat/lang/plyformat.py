@@ -240,10 +240,26 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         if exc.path is not None:
             raise
         raise InputError(ply_path, exc.problem, field=exc.field) from None
+    storage = _without_altered_codes(storage, ply_path)
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
     return LanguageField(dim, clip_model, weights, storage)
+
+
+def _without_altered_codes(storage, ply_path: Path):
+    """PQ storage whose rows with altered codes (`PQStorage.norm_mismatches`) score 0, with one warning."""
+    if not hasattr(storage, "norm_mismatches"):
+        return storage  # exact float16 features carry no redundancy to check
+    bad = storage.norm_mismatches()
+    if not bad.any():
+        return storage
+    log.warning("%s: %d of %d Gaussians have PQ codes that do not reproduce their stored norm (lang_norm): the file was "
+                "altered (flipped bytes?) or its codebook is not the one it was written with; they score 0",
+                ply_path, int(bad.sum()), bad.shape[0])
+    norms = storage.norms.copy()
+    norms[bad] = 0.0
+    return dataclasses.replace(storage, norms=norms)
 
 
 def codebook_named_by(ply_path: Path, name: str) -> Path:
