@@ -27,6 +27,8 @@ from drsplat.cli import main
 from tests.hostile_catalogue import (
     CAMERAS_JSON_CASES,
     COLMAP_CASES,
+    FEATURE_VIEW_CASES,
+    INFO_FINDING_CASES,
     NPY_BOMBS,
     NPY_CASES,
     PLY_BOMBS,
@@ -35,6 +37,7 @@ from tests.hostile_catalogue import (
     catalogue_counts,
     make_cameras_json_dataset,
     make_colmap_dataset,
+    make_info_ply,
     make_npy,
     make_ply,
     make_transforms_dataset,
@@ -775,42 +778,37 @@ def test_resolution_that_leaves_most_gaussians_unassigned_warns(tmp_path, world,
     assert code == 0 and "got nothing" not in err  # a normal run stays quiet
 
 
-def test_uint64_mask_id_that_wraps_to_minus_one_is_refused(tmp_path, world, capsys):
-    import shutil
-
-    feats = tmp_path / "features"
-    shutil.copytree(world["ds"] / "features", feats)
-    seg = np.load(feats / "orbit_000_s.npy").astype(np.int64)
-    seg[seg < 0] = 0
-    seg.flat[0] = -1  # becomes 2^64-1 as uint64: silently "no mask" after astype(int64)
-    np.save(feats / "orbit_000_s.npy", seg.astype(np.uint64))
-    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
-                         "--out", tmp_path / "r.ply", "--no-progress"], capsys)
-    assert code == 1
-    (line,) = error_lines(err)
-    assert "orbit_000_s.npy" in line and str(2**64 - 1) in line, line
-
-
-def test_info_findings_for_short_counts_zero_rows_and_infinite_scales(tmp_path, capsys):
-    """Was: "findings none" for all three, and numpy's overflow warning for the scale."""
+@pytest.mark.parametrize("name", sorted(INFO_FINDING_CASES))
+def test_info_findings(tmp_path, capsys, name):
+    """Was: "findings none" for a count smaller than the data, zero rows and overflowing scales (with numpy's warning)."""
     import warnings
 
-    rows = np.zeros((4, 17), "<f4")
-    rows[:, 13] = 1.0
-    rows[1, 10] = 100.0  # exp(100) overflows float32
-    cases = {
-        "short": (ply_bytes(vertex_header(3), vertex_body(10)), "vertex count (3) may be smaller than the data"),
-        "zero": (ply_bytes(vertex_header(0)), "no Gaussians"),
-        "bigscale": (ply_bytes(vertex_header(4), rows.tobytes()), "1 Gaussians have a log scale above 88.7"),
-    }
-    for name, (data, words) in cases.items():
-        path = tmp_path / f"{name}.ply"
-        path.write_bytes(data)
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # a numpy RuntimeWarning (overflow in exp) fails the test
-            code = main(["info", str(path), "--json"])
-        summary = json.loads(capsys.readouterr().out)
-        assert code == 0 and any(words in f for f in summary["findings"]), (name, summary["findings"])
+    path = make_info_ply(tmp_path, name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a numpy RuntimeWarning (overflow in exp) fails the test
+        code = main(["info", str(path), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    words = INFO_FINDING_CASES[name][1]
+    assert code == 0 and any(words in f for f in summary["findings"]), summary["findings"]
+
+
+@pytest.mark.parametrize("name", sorted(FEATURE_VIEW_CASES))
+def test_feature_view_cases(tmp_path, world, capsys, name):
+    import shutil
+
+    mutate, words = FEATURE_VIEW_CASES[name]
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    mutate(feats, "orbit_000", world["dim"])
+    out = tmp_path / "r.ply"
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
+                         "--out", out, "--no-progress"], capsys)
+    if words is None:
+        assert code == 0 and out.is_file(), err
+    else:
+        assert code == 1 and not out.exists()
+        (line,) = error_lines(err)
+        assert "orbit_000_s.npy" in line and words in line, line
 
 
 def zero_gaussian_copy(reg: Path, out: Path) -> Path:

@@ -2,7 +2,8 @@
 
 Every row runs in a fresh interpreter (a subprocess), so imports are not shared between rows:
 import s = time to import drsplat.cli and build its parser (every command pays it), run s = the
-command itself, peak RSS = the child's ru_maxrss, heavy = which of torch / ray / open_clip /
+command itself, peak RSS = the child's VmHWM (ru_maxrss would include the bench's own peak, which
+a forked child inherits across exec), heavy = which of torch / ray / open_clip /
 moderngl the command left in sys.modules. The row marked "torch imported first" runs `query` after
 importing torch, which is what `--device auto` cost on a machine without a GPU before it asked the
 driver first (drsplat.device.nvidia_driver_present).
@@ -39,8 +40,16 @@ with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.St
         code = exc.code
 t2 = time.perf_counter()
 heavy = [m for m in {heavy!r} if m in sys.modules]
-print(json.dumps({{"code": code, "import_s": t1 - t0, "run_s": t2 - t1,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "heavy": heavy}}))
+def peak_mb():
+    # VmHWM: this image's peak; ru_maxrss would carry the forking parent's peak across exec
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({{"code": code, "import_s": t1 - t0, "run_s": t2 - t1, "peak_mb": peak_mb(), "heavy": heavy}}))
 """
 
 
