@@ -175,6 +175,13 @@ def is_special_file(path: Path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def work_folder(path: str | Path) -> Path:
+    """Where the temp and checkpoint files of an output `path` go: beside its (resolved) target, or the
+    system temp folder when it is a device or FIFO (never /dev)."""
+    target = output_target(Path(path))
+    return Path(tempfile.gettempdir()) if is_special_file(target) else target.parent
+
+
 def naming_path(exc: OSError, path: Path, *temps: Path) -> OSError:
     """`exc` with `path` as its filename when it names none or only one of our temp files.
 

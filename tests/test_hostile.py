@@ -998,3 +998,24 @@ def test_flipped_pq_code_bytes_are_detected_and_score_zero(tmp_path, capsys):
     intact = np.setdiff1d(np.arange(len(scores)), rows)
     np.testing.assert_allclose(scores[intact], field.scores(q[None])[intact, 0], atol=1e-6)
     assert np.count_nonzero(scores[rows] == 0) == caught
+
+
+def test_register_into_a_device_writes_in_place_and_keeps_nothing_in_dev(tmp_path, world, capsys):
+    """`register --out /dev/full`: one error naming the device; its temp body and checkpoint go to the temp
+    folder, never into /dev (as root they used to be created there)."""
+    import tempfile
+
+    from drsplat.registration.checkpoint import checkpoint_path_for
+
+    before = set(os.listdir("/dev"))
+    checkpoint = checkpoint_path_for("/dev/full")
+    assert checkpoint.parent == Path(tempfile.gettempdir())
+    try:
+        code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
+                             "--out", "/dev/full", "--no-progress"], capsys)
+        assert code == 1
+        (line,) = error_lines(err)
+        assert "/dev/full" in line and "no space left" in line, line
+        assert set(os.listdir("/dev")) == before
+    finally:
+        checkpoint.unlink(missing_ok=True)

@@ -26,7 +26,7 @@ from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, 
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
-from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix
+from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix, work_folder
 
 
 class Target(Protocol):
@@ -87,7 +87,7 @@ class PlyTarget:
 
     def open(self, codebook: Codebook | str) -> None:
         self._codebook = codebook
-        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=self.out.parent)
+        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
         self._body_path = Path(name)
         self._body = os.fdopen(fd, "wb")
 
