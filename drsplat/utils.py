@@ -411,7 +411,7 @@ def describe_os_error(exc: OSError) -> str:
     import errno
 
     causes = {
-        errno.ENOSPC: "no space left on the device (the disk is full)",
+        errno.ENOSPC: "the disk is full (no space left on the device)",
         errno.EDQUOT: "the disk quota is exceeded",
         errno.EROFS: "the file system is read-only",
         errno.EACCES: "permission denied",
