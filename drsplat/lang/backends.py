@@ -31,7 +31,16 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.lang.codebook import Codebook, unit_rows
-from drsplat.lang.lut import BLOCKED_MIN_M, blocked_codes, half_scores, lut_scores, lut_scores_blocked, lut_scores_reference, simd_available
+from drsplat.lang.lut import (
+    BLOCKED_MIN_M,
+    blocked_codes,
+    code_table_sums,
+    half_scores,
+    lut_scores,
+    lut_scores_blocked,
+    lut_scores_reference,
+    simd_available,
+)
 
 EXACT_CHUNK = 32768
 ENCODE_CHUNK = 65536
@@ -142,9 +151,7 @@ class PQStorage:
         recomputed = np.zeros(n, np.float64)
         if self.list_ids is None:
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
-            for j in range(self.codes.shape[1]):
-                recomputed += table[j, self.codes[:, j]]
-            recomputed = np.sqrt(recomputed)
+            recomputed = np.sqrt(code_table_sums(self.codes, table))
         else:
             for start in range(0, n, ENCODE_CHUNK):
                 stop = min(n, start + ENCODE_CHUNK)
