@@ -1,7 +1,8 @@
 """One owner of device choice: "auto" | "cpu" | "cuda", and the engine that suits a device.
 
 torch is imported only inside these functions, so importing this module (the CLI does) costs
-nothing; `resolve_device("cpu")` does not import torch at all.
+nothing; `resolve_device("cpu")` does not import torch at all, nor does "auto" on a machine
+without an NVIDIA driver (`nvidia_driver_present`).
 """
 
 from __future__ import annotations
@@ -12,15 +13,46 @@ from drsplat.errors import DrsplatError
 DEVICES = ("auto", "cpu", "cuda")
 
 
+def nvidia_driver_present() -> bool:
+    """Whether an NVIDIA driver could serve a CUDA GPU here, from cheap checks that import nothing heavy.
+
+    Any of: the kernel module's /proc/driver/nvidia, a loadable libcuda (ctypes.util.find_library),
+    an `nvidia-smi` on PATH. False means torch.cuda.is_available() would be False too, so the
+    ~0.6 GB and ~2 s of importing the CUDA build of torch are not spent to learn it.
+    """
+    import ctypes.util
+    import os
+    import shutil
+
+    if os.path.exists("/proc/driver/nvidia"):
+        return True
+    if shutil.which("nvidia-smi") is not None:
+        return True
+    try:
+        return ctypes.util.find_library("cuda") is not None
+    except (OSError, RuntimeError):  # find_library runs ldconfig/gcc; a broken toolchain means "not found"
+        return False
+
+
+def cuda_available() -> bool:
+    """torch.cuda.is_available(), asked only where an NVIDIA driver is present (`nvidia_driver_present`)."""
+    if not nvidia_driver_present():
+        return False
+    import torch  # only here: a driver is present, so the answer needs torch
+
+    return bool(torch.cuda.is_available())
+
+
 def resolve_device(device: str = "auto") -> str:
-    """"auto" -> "cuda" when a CUDA GPU is available, else "cpu"; "cuda" without a GPU is an error."""
+    """"auto" -> "cuda" when a CUDA GPU is available, else "cpu"; "cuda" without a GPU is an error.
+
+    Without an NVIDIA driver neither "auto" nor "cpu" imports torch.
+    """
     if device not in DEVICES:
         raise DrsplatError(f"unknown device '{device}': use auto, cpu or cuda")
     if device == "cpu":
         return "cpu"
-    import torch
-
-    available = torch.cuda.is_available()
+    available = cuda_available()
     if device == "auto":
         return "cuda" if available else "cpu"
     if not available:

@@ -85,6 +85,11 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     bad = ~np.isfinite(arr).all(axis=1) | (np.abs(np.nan_to_num(arr)).max(axis=1) == 0)
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
+    norms = np.linalg.norm(arr.astype(np.float64), axis=1)
+    huge = norms > np.finfo(np.float32).max  # its float32 norm is inf: garbage, not an embedding (CLIP's are near 1)
+    if huge.any():
+        raise InputError(path, f"rows {np.flatnonzero(huge)[:10].tolist()} have a norm of {norms[huge].max():.3g}, beyond float32's range "
+                               "(the sum of squares overflows); this is not an embedding: rescale it")
     return unit_rows(arr)
 
 

@@ -90,6 +90,32 @@ def ensure_parent(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
 
 
+def check_output_writable(path: str | Path) -> None:
+    """OutputError now, before long work, when `path` could not be written later.
+
+    Probes with a real temp file in the nearest existing folder of `path` (os.access is wrong for
+    root, ACLs and read-only mounts alike); an existing special file (device, FIFO) is left to its writer.
+    """
+    path = output_target(Path(path))
+    if path.is_dir():
+        raise OutputError(path, "is a directory; give a file path")
+    if is_special_file(path):
+        return
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise OutputError(path, f"{folder} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=folder)
+    except OSError as exc:
+        raise OutputError(path, f"the folder {folder} does not accept new files ({(exc.strerror or str(exc)).lower()})") from None
+    os.close(fd)
+    os.unlink(probe)
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputError(path, "exists and is not writable (permission denied)")
+
+
 @contextlib.contextmanager
 def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iterator[Path]:
     """Yield an empty temp folder next to `path`; on success it becomes `path` in one rename.
@@ -125,16 +151,70 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+def output_target(path: str | Path) -> Path:
+    """Where writing `path` lands: a symlink's resolved target (the link itself stays), else `path`."""
+    path = Path(path)
+    if path.is_symlink():
+        return Path(os.path.realpath(path))
+    return path
+
+
+def is_special_file(path: Path) -> bool:
+    """Whether `path` exists and is a character/block device, FIFO or socket (not a regular file or folder).
+
+    Such an output is written in place: a temp file renamed over it would replace the node
+    (run as root, `--out /dev/null` would replace /dev/null for the whole system; a FIFO's reader
+    would never get the data).
+    """
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def work_folder(path: str | Path) -> Path:
+    """Where the temp and checkpoint files of an output `path` go: beside its (resolved) target, or the
+    system temp folder when it is a device or FIFO (never /dev)."""
+    target = output_target(Path(path))
+    return Path(tempfile.gettempdir()) if is_special_file(target) else target.parent
+
+
+def naming_path(exc: OSError, path: Path, *temps: Path) -> OSError:
+    """`exc` with `path` as its filename when it names none or only one of our temp files.
+
+    A failed write (ENOSPC, EFBIG) carries no file name; the user needs the output's name, not the
+    temp file's. Returns `exc` itself when it already names another file.
+    """
+    if exc.filename is None or any(str(exc.filename) == str(t) for t in temps):
+        renamed = OSError(exc.errno, exc.strerror or str(exc) or exc.__class__.__name__, str(path))
+        renamed.__cause__ = exc
+        return renamed
+    return exc
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to `path`; rename it over `path` only if the block succeeds.
 
     Readers never see a half-written file, and an interrupted job leaves the old file intact.
     Temp files of earlier killed runs writing the same path are swept first (`sweep_stale_temps`).
+    A symlinked `path` is written (atomically) at its resolved target, so the link stays a link;
+    an existing device or FIFO (`is_special_file`) is yielded itself and written in place.
+    An OSError in the block that names no file (a full disk) is re-raised naming `path`.
     """
-    path = Path(path)
+    shown = Path(path)
+    path = output_target(shown)
     if path.is_dir():
-        raise OutputError(path, "is a directory")
+        raise OutputError(shown, "is a directory")
+    if is_special_file(path):
+        try:
+            yield path
+        except OSError as exc:
+            raise naming_path(exc, shown) from None
+        return
     ensure_parent(path)
     sweep_stale_temps(path)
     fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=path.parent)
@@ -144,6 +224,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:
+        raise naming_path(exc, shown, tmp_path) from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -166,7 +248,12 @@ def save_npy_atomic(path: str | Path, array: np.ndarray) -> None:
     """np.save through a temp file + rename (np.save would append .npy to a temp name)."""
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.save(f, array)
+            if is_special_file(tmp):  # a FIFO or device cannot seek, which np.save's fast path asks for
+                array = np.ascontiguousarray(array)
+                np.lib.format.write_array_header_1_0(f, np.lib.format.header_data_from_array_1_0(array))
+                f.write(array.reshape(-1).view(np.uint8))
+            else:
+                np.save(f, array)
 
 
 class CancelToken:
@@ -324,7 +411,7 @@ def describe_os_error(exc: OSError) -> str:
     import errno
 
     causes = {
-        errno.ENOSPC: "the disk is full",
+        errno.ENOSPC: "the disk is full (no space left on the device)",
         errno.EDQUOT: "the disk quota is exceeded",
         errno.EROFS: "the file system is read-only",
         errno.EACCES: "permission denied",
@@ -333,9 +420,12 @@ def describe_os_error(exc: OSError) -> str:
         errno.ENOTDIR: "a parent of the path is not a directory",
         errno.ENOENT: "the parent directory does not exist",
         errno.ENAMETOOLONG: "the file name is too long",
-        errno.EFBIG: "the file is too large for this file system",
+        errno.EFBIG: "file too large (for this file system or the process's file-size limit)",
+        errno.ENXIO: "no reader or device behind this special file",
     }
-    cause = causes.get(exc.errno or -1, exc.strerror or exc.__class__.__name__)
+    cause = causes.get(exc.errno or -1) or exc.strerror or str(exc) or f"{exc.__class__.__name__} (the system gave no cause)"
+    if exc.errno is None and "written" in cause:  # numpy's tofile after a short write: the OS error itself is lost
+        cause = f"the write stopped short ({cause}): the disk is full or a file-size limit was reached"
     where = exc.filename if exc.filename is not None else "an output or input file"
     return f"{where}: {cause}"
 

@@ -194,6 +194,71 @@ def make_colmap_dataset(folder: Path, name: str) -> Path:
     return folder
 
 
+# ---------------------------------------------------------------------------------------------- round 2 (issue 27)
+
+
+def _inria_rows(count: int) -> np.ndarray:
+    rows = np.zeros((count, len(INRIA_PROPS)), "<f4")
+    rows[:, INRIA_PROPS.index("rot_0")] = 1.0
+    return rows
+
+
+def _with(count: int, prop: str, row: int, value: float) -> bytes:
+    rows = _inria_rows(count)
+    rows[row, INRIA_PROPS.index(prop)] = value
+    return ply_bytes(vertex_header(count), rows.tobytes())
+
+
+INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
+    # name: (PLY bytes, words `drsplat info` must list among its findings) -- was "findings none" for the first three
+    "count_smaller_than_data": (lambda: ply_bytes(vertex_header(3), vertex_body(10)), "vertex count (3) may be smaller than the data"),
+    "zero_rows": (lambda: ply_bytes(vertex_header(0)), "no Gaussians"),
+    "overflowing_scale": (lambda: _with(4, "scale_1", 1, 100.0), "1 Gaussians have a log scale above 88.7"),
+    "infinite_opacity": (lambda: _with(4, "opacity", 2, np.inf), "infinite opacity logits clamped"),
+    "zero_quaternion": (lambda: _with(4, "rot_0", 0, 0.0), "zero quaternions replaced"),
+}
+
+
+def make_info_ply(folder: Path, name: str) -> Path:
+    return _write(folder / f"{name}.ply", INFO_FINDING_CASES[name][0]())
+
+
+def _view_without_masks(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.full(seg.shape, -1, seg.dtype))
+    np.save(features / f"{stem}_f.npy", np.zeros((0, dim), np.float32))
+
+
+def _masks_cover_nothing(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.full(seg.shape, -1, seg.dtype))
+
+
+def _ids_as(dtype: str, wrap: bool = False) -> Callable[[Path, str, int], None]:
+    def mutate(features: Path, stem: str, dim: int) -> None:
+        seg = np.load(features / f"{stem}_s.npy").astype(np.int64)
+        if wrap:
+            seg[seg < 0] = 0
+            seg.flat[0] = -1  # 2^64-1 as uint64: wrapped to -1 ("no mask") by a plain astype(int64)
+        np.save(features / f"{stem}_s.npy", seg.astype(dtype) if not wrap else seg.astype(np.uint64))
+    return mutate
+
+
+FEATURE_VIEW_CASES: dict[str, tuple[Callable[[Path, str, int], None], str | None]] = {
+    # name: (mutates one view of a features folder, None = registers (exit 0) | words of the one error)
+    "no_masks": (_view_without_masks, None),  # was: TypeError in the pair log (memoryview cast)
+    "masks_cover_nothing": (_masks_cover_nothing, None),
+    "ids_as_float32": (_ids_as("float32"), None),
+    "ids_as_int64": (_ids_as("int64"), None),
+    "uint64_wraps_to_minus_one": (_ids_as("uint64", wrap=True), str(2**64 - 1)),
+}
+
+SPECIAL_OUTPUTS = ("/dev/full", "/dev/null", "fifo", "symlink", "rlimit_fsize", "injected_enospc")  # tests/test_hostile.py
+
+SILENT_RUN_CASES = ("resolution_0.001", "embedding_norm_overflow", "zero_gaussian_registered_ply", "flipped_pq_codes",
+                    "screenshot_into_unwritable_folder", "bench_list_flags")
+
+
 # ---------------------------------------------------------------------------------------------- counts
 
 
@@ -205,4 +270,8 @@ def catalogue_counts() -> dict[str, int]:
         "transforms.json values": len(TRANSFORMS_CASES),
         "3DGS cameras.json values": len(CAMERAS_JSON_CASES),
         "COLMAP text values": len(COLMAP_CASES),
+        "info findings (short count, zero rows, overflowing scale, ...)": len(INFO_FINDING_CASES),
+        "feature views (no masks, id dtypes, wrapped uint64)": len(FEATURE_VIEW_CASES),
+        "outputs that are not regular files or fail mid-write": len(SPECIAL_OUTPUTS),
+        "formerly silent runs (now one warning or error)": len(SILENT_RUN_CASES),
     }

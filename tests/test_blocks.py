@@ -275,10 +275,10 @@ def test_cli_memory_budget_errors(tiny, tmp_path):
 @pytest.mark.parametrize("n", [30, 300])
 def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
     """lang_meta row i holds byte i mod L of the comment: blocks are numbered as in the whole
-    file, and a file shorter than L carries no column (as in memory)."""
+    file, and a file shorter than L carries the text in ceil(L / n) columns (as in memory)."""
     from drsplat.lang import attach_field, build_field
     from drsplat.scene import GaussianScene, ply_header, save_ply, scene_to_vertices
-    from drsplat.registration.output import _drop_meta_if_short, _with_meta_rows
+    from drsplat.registration.output import _widen_meta_if_short, _with_meta_rows
 
     rng = np.random.default_rng(n)
     scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
@@ -298,5 +298,5 @@ def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
             header = header or (rows.dtype, part.comments)
             f.write(rows.tobytes())
             written += rows.shape[0]
-    dtype, comments = _drop_meta_if_short(body, header, written)
+    dtype, comments = _widen_meta_if_short(body, header, written)
     assert ply_header(dtype, comments, written) + body.read_bytes() == whole.read_bytes()

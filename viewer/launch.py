@@ -25,6 +25,7 @@ from drsplat.synthetic import write_dataset
 from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
 from viewer.state import ViewerState
+from drsplat.utils import check_output_writable, describe_os_error
 
 log = logging.getLogger("viewer")
 
@@ -186,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose)
     try:
         guard_args(args, ("screenshot",))
+        if args.screenshot is not None:  # before loading, registering or rendering: an unwritable folder is the first thing to say
+            check_output_writable(args.screenshot)
         if args.screenshot is None and not display_available(os.environ.get("DRSPLAT_VIEWER_PLATFORM")):
             from viewer.app import no_display_message  # moderngl, imgui and glfw: GL only when a window or an image is made
 
@@ -205,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except RuntimeError as exc:  # no display / no OpenGL 4.3
         log.error("%s", exc)
+        return 1
+    except OSError as exc:  # a write that failed after the check (disk full): the path and the cause
+        log.error("%s", describe_os_error(exc))
         return 1
 
 

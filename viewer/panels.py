@@ -97,7 +97,9 @@ class QueryPanel:
                     state.run_oracle_query(i)
         q = state.query
         if q is None:
-            imgui.text_disabled("no query yet: type a phrase, pick a label, or ctrl+click the scene")
+            imgui.push_text_wrap_pos(0.0)
+            imgui.text_colored(NOTE_COLOR, state.next_step())  # the first screen says what to do next
+            imgui.pop_text_wrap_pos()
             return
         imgui.text_wrapped(f"{q.source} query: {q.name} ({q.metric})")
         lo, hi = state.score_range()
@@ -324,7 +326,7 @@ class Panels:
         imgui.begin(MAIN_WINDOW)
         self.query.draw_essentials(host)
         imgui.separator()
-        imgui.begin_child("sections", imgui.ImVec2(0, -STATUS_HEIGHT))
+        imgui.begin_child("sections", imgui.ImVec2(0, -self.status_height(host)))
         if self._section("Query options"):
             self.query.draw_more(host)
         if self._section("Scene", default_open=True):
@@ -343,19 +345,33 @@ class Panels:
         if self.show_help:
             self.draw_help()
 
+    def status_height(self, host: PanelHost) -> float:
+        """Pixels the status line needs at the bottom: its message wrapped to the panel's width (at least one line)."""
+        if host.still_progress() is not None:
+            return STATUS_HEIGHT
+        text = self.status_message(host)[1]
+        wrapped = imgui.calc_text_size(text, False, max(1.0, imgui.get_content_region_avail().x)).y
+        return max(STATUS_HEIGHT, wrapped + STATUS_HEIGHT - imgui.get_text_line_height())
+
+    @staticmethod
+    def status_message(host: PanelHost) -> tuple[str, str]:
+        """(level, text) of the status line: the latest message, else the help hint."""
+        latest = host.state.messages.latest()
+        if latest is None:
+            return "info", "F1: help"
+        return latest.level, status_text(latest.text)
+
     def draw_status(self, host: PanelHost) -> None:
-        """The status line: the still frame's progress, else the latest message (F1: help)."""
+        """The status line: the still frame's progress, else the latest message (F1: help), wrapped."""
         imgui.separator()
         progress = host.still_progress()
         if progress is not None:
             imgui.progress_bar(progress, imgui.ImVec2(-1, 0), f"drawing the still frame {100 * progress:.0f}%")
             return
-        latest = host.state.messages.latest()
-        text = "F1: help" if latest is None else latest.text
-        level = "info" if latest is None else latest.level
-        draw_message(level, _one_line(text))
-        if latest is not None and imgui.is_item_hovered():
-            imgui.set_tooltip(latest.text)
+        level, text = self.status_message(host)
+        imgui.push_text_wrap_pos(0.0)  # wrapped at the panel's edge: an error is read in full, not cut at the width
+        draw_message(level, text)
+        imgui.pop_text_wrap_pos()
 
     def draw_help(self) -> None:
         viewport = imgui.get_main_viewport()
@@ -376,6 +392,10 @@ class Panels:
         imgui.end()
 
 
-def _one_line(text: str, limit: int = 160) -> str:
-    line = text.splitlines()[0] if text else ""
-    return line if len(line) <= limit else line[: limit - 1] + "…"
+STATUS_MAX_CHARS = 600  # a few wrapped lines at most; the Messages section keeps the full text
+
+
+def status_text(text: str, limit: int = STATUS_MAX_CHARS) -> str:
+    """The status line's text: the whole message (wrapped when drawn), lines joined, cut only past `limit`."""
+    joined = " ".join(line.strip() for line in text.splitlines() if line.strip())
+    return joined if len(joined) <= limit else joined[: limit - 1] + "…"

@@ -3,7 +3,7 @@
 - config: $DRSPLAT_CONFIG_DIR, else $XDG_CONFIG_HOME/drsplat (~/.config/drsplat): the imgui layout
   (`imgui.ini`), never the working directory;
 - data: $DRSPLAT_DATA_DIR, else $XDG_DATA_HOME/drsplat (~/.local/share/drsplat): where outputs go
-  when the scene's own folder is read-only (e.g. the demo of an installed package).
+  when the scene's own folder (or, for the bundled demo, the working folder) is read-only.
 """
 
 from __future__ import annotations
@@ -38,7 +38,22 @@ def writable_output(preferred: Path) -> Path:
     return user_data_dir() / preferred.name
 
 
+BUNDLED_ASSETS = Path(__file__).resolve().parents[1] / "assets"  # the demo shipped with the package (viewer.demo)
+
+
+def is_bundled(path: Path) -> bool:
+    """Whether `path` lies in the package's own assets (inside the install tree, not the user's files)."""
+    try:
+        path.resolve().relative_to(BUNDLED_ASSETS)
+    except (ValueError, OSError, RuntimeError):
+        return False
+    return True
+
+
 def derived_output(scene_path: Path | None, suffix: str) -> Path:
-    """`<scene stem><suffix>.ply` beside the scene (or in the user data dir when that is read-only)."""
+    """`<scene stem><suffix>.ply` beside the scene; in the current working folder for the bundled demo
+    (never inside the package); in the user data dir when that folder is read-only."""
     base = scene_path if scene_path is not None else user_data_dir() / "scene.ply"
+    if scene_path is not None and is_bundled(scene_path):
+        base = Path.cwd() / scene_path.name
     return writable_output(base.with_name(base.stem + suffix + ".ply"))

@@ -24,7 +24,7 @@ from drsplat import query as dq
 from drsplat.cameras import Camera, load_cameras
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import DrsplatError, WeightsUnavailableError
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import codebook_path_for, export_scene, read_field
@@ -119,6 +119,8 @@ class ViewerState:
         try:
             path = Path(path)
             scene = load_ply(path)
+            if scene.num_gaussians == 0:
+                raise InputError(path, "holds no Gaussians (0 rows): there is nothing to show; open another PLY")
             lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
@@ -150,6 +152,21 @@ class ViewerState:
         self.oracle = read_oracle_queries(source)
         self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
         return True
+
+    def next_step(self) -> str:
+        """What a person should do next, for the first screen (shown until a query runs)."""
+        if self.scene is None:
+            return "Open a scene: type a PLY path in the Scene panel, or drop a .ply file on the window."
+        if self.field is None:
+            return ("This scene has no language field yet: open the Registration panel and press 'register' "
+                    "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
+        steps = []
+        if self.oracle is not None:
+            steps.append(f"click a label above (e.g. '{self.oracle.names[min(3, len(self.oracle.names) - 1)]}') to highlight it")
+        if self.encoder is not None:
+            steps.append("type what to find (e.g. 'a mug') and press Enter")
+        steps.append("ctrl+click a splat to find similar ones")
+        return "Next: " + ", or ".join(steps) + ". Drag to orbit, scroll to zoom, F1 lists every key."
 
     def start_text_encoder(self, background: bool = True) -> None:
         """Load the CLIP text encoder matching the field's model (on a thread when `background`).

@@ -44,3 +44,68 @@ def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> st
     widths = [max(len(h), *(len(r[i]) for r in body)) if body else len(h) for i, h in enumerate(headers)]
     line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
     return "\n".join([line(headers), "|" + "|".join("-" * (w + 2) for w in widths) + "|", *(line(r) for r in body)])
+
+
+# ----------------------------------------------------------------------------- argparse types (checked before any work)
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def parse_count(text: str) -> int:
+    """'100k' -> 100000, '1.5M' -> 1500000, '42' -> 42; ValueError for anything else."""
+    text = text.strip().lower().replace("_", "")
+    scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:], 1)
+    return int(float(text[:-1] if scale > 1 else text) * scale)
+
+
+def count_list(text: str) -> list[int]:
+    """argparse type: comma-separated counts >= 1 ('100k,1M'), refused at parse time (not after minutes of work)."""
+    import argparse
+
+    items = [s for s in text.split(",") if s.strip()]
+    if not items:
+        raise argparse.ArgumentTypeError("give at least one size, e.g. 100k,1M")
+    values = []
+    for item in items:
+        try:
+            value = parse_count(item)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"cannot read the size '{item.strip()}' (use e.g. 100k, 1M, 5M)") from None
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"sizes must be at least 1, got '{item.strip()}'")
+        values.append(value)
+    return values
+
+
+def positive_int_list(text: str) -> list[int]:
+    """argparse type: comma-separated integers >= 1 ('1,5,10')."""
+    import argparse
+
+    items = [s for s in text.split(",") if s.strip()]
+    if not items:
+        raise argparse.ArgumentTypeError("give at least one value, e.g. 1,5,10")
+    try:
+        return [positive_int(s.strip()) for s in items]
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"in '{text}': {exc}") from None
+
+
+def count_arg(text: str) -> int:
+    """argparse type: one count >= 1 ('500k')."""
+    import argparse
+
+    values = count_list(text)
+    if len(values) != 1:
+        raise argparse.ArgumentTypeError(f"give one size, not '{text}'")
+    return values[0]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, median_seconds, peak_rss_mb
+from drsplat.bench.common import count_arg, count_list, format_table, machine_line, median_seconds, peak_rss_mb, positive_int
 from drsplat.errors import InputError
 from drsplat.lang import Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores, lut_scores_blocked, train_codebook
 from drsplat.query import unit_rows
@@ -35,7 +35,7 @@ GAUSSIAN_NOISE = 0.2
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("query", help="ms/query and error against exact for every language-field backend")
-    p.add_argument("--sizes", default="100k,1M", help="comma-separated Gaussian counts, e.g. 100k,1M,5M (default 100k,1M)")
+    p.add_argument("--sizes", type=count_list, default="100k,1M", help="comma-separated Gaussian counts, e.g. 100k,1M,5M (default 100k,1M)")
     p.add_argument("--backends", default=",".join(BACKENDS), help=f"subset of {','.join(BACKENDS)}")
     p.add_argument("--dim", type=int, default=512)
     p.add_argument("--labels", type=int, default=40, help="object classes in the synthetic embeddings")
@@ -43,8 +43,8 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--train", type=int, default=5_000, help="embeddings used to train the general PQ codebooks")
     p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "drsplat-bench-query", help="trained codebooks are kept here for reuse")
     p.add_argument("--official", type=Path, default=DEFAULT_OFFICIAL, help="official Dr. Splat IVFPQ codebook (skipped when absent)")
-    p.add_argument("--max-float32", default="2M", help="skip the float32 baseline above this N (it needs 2 KB per Gaussian)")
-    p.add_argument("--repeats", type=int, default=5, help="timed repeats (median); fewer are used above 1M")
+    p.add_argument("--max-float32", type=count_arg, default="2M", help="skip the float32 baseline above this N (it needs 2 KB per Gaussian)")
+    p.add_argument("--repeats", type=positive_int, default=5, help="timed repeats (median); fewer are used above 1M")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--plot", type=Path, default=Path("bench_query.png"), help="PNG of speed against error")
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
@@ -125,15 +125,6 @@ class Row:
     notes: list[str] = field(default_factory=list)
 
 
-def parse_count(text: str) -> int:
-    text = text.strip().lower().replace("_", "")
-    scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:], 1)
-    try:
-        return int(float(text[:-1] if scale > 1 else text) * scale)
-    except ValueError:
-        raise InputError(None, f"cannot read the size {text!r} (use e.g. 100k, 1M, 5M)") from None
-
-
 def cpu_and_wall(fn, repeats: int) -> tuple[float, float]:
     """(median wall seconds, median process CPU seconds) of fn() after one warm-up."""
     fn()
@@ -192,7 +183,7 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
     q_labels = rng.choice(model.label_dirs.shape[0], size=args.queries, replace=False)
     queries = model.texts(q_labels)
     q1, qb = queries[:1], np.repeat(queries, -(-BATCH // len(queries)), axis=0)[:BATCH]
-    keep32 = "float32" in backends and n <= parse_count(args.max_float32)
+    keep32 = "float32" in backends and n <= args.max_float32
     f32 = np.empty((n, args.dim), np.float32) if keep32 else None
     f16 = np.empty((n, args.dim), np.float16)
     exact = np.empty((n, len(queries)), np.float32)
@@ -338,7 +329,7 @@ def plot(rows: list[Row], path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    sizes = [parse_count(s) for s in args.sizes.split(",") if s.strip()]
+    sizes = args.sizes
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     unknown = sorted(set(backends) - set(BACKENDS))
     if unknown:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, peak_rss_mb
+from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int, positive_int_list
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import DEFAULT_TOPK
 
@@ -32,17 +32,17 @@ DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("register", help="registration ms/view, ms per 1M pairs, RSS; mIoU against top-k")
     p.add_argument("--preset", default="small", help="synthetic preset for the accuracy table (default: small)")
-    p.add_argument("--topks", default="1,5,10,20,40", help="comma-separated top-k values (default: 1,5,10,20,40)")
+    p.add_argument("--topks", type=positive_int_list, default="1,5,10,20,40", help="comma-separated top-k values (default: 1,5,10,20,40)")
     p.add_argument("--mislabel", type=float, default=0.0, help="fraction of mislabelled synthetic masks (default: 0)")
-    p.add_argument("--repeats", type=int, default=3, help="timed repeats per row, median reported (default: 3)")
+    p.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per row, median reported (default: 3)")
     p.add_argument("--real", type=Path, default=DEFAULT_REAL, help="real scene for the speed table (default: flowers.ply)")
-    p.add_argument("--views", type=int, default=50, help="orbiting views on the real scene (default: 50)")
+    p.add_argument("--views", type=positive_int, default=50, help="orbiting views on the real scene (default: 50)")
     p.add_argument("--size", default="640x480", help="real-scene view size WxH (default: 640x480)")
     p.add_argument("--real-topk", type=int, default=DEFAULT_TOPK, help=f"top-k on the real scene (default: {DEFAULT_TOPK})")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
     p.add_argument("--skip-stages", action="store_true", help="no per-stage split (reference vs top-k compositor) on the real scene")
-    p.add_argument("--gaussians", default=None, metavar="N",
+    p.add_argument("--gaussians", type=count_arg, default=None, metavar="N",
                    help="speed table on a random scene of N Gaussians built in memory (e.g. 500k) instead of --real")
     p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
     add_device_arguments(p)
@@ -344,7 +344,7 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
 
 
 def run(args: argparse.Namespace) -> int:
-    topks = [int(k) for k in args.topks.split(",") if k.strip()]
+    topks = args.topks
     width, _, height = args.size.partition("x")
     if not args.skip_synthetic:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats))
@@ -352,9 +352,7 @@ def run(args: argparse.Namespace) -> int:
     device, engine = resolve_compute(args)
     if engine != "numba" and not args.skip_real:
         if args.gaussians:
-            from drsplat.bench.query import parse_count
-
-            scene, name = blob_scene(parse_count(args.gaussians)), f"random blob scene {args.gaussians}"
+            scene, name = blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
         elif args.real.exists():
             from drsplat.scene import load_ply
 

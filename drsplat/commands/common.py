@@ -155,6 +155,8 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
     from drsplat.scene import load_ply_report
 
     scene, report = load_ply_report(path)
+    if scene.num_gaussians == 0:
+        raise InputError(path, "holds no Gaussians (0 rows): there is nothing to query or segment")
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:
         raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so scores could not follow the file order")

@@ -38,7 +38,8 @@ def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
         "bbox_min": [float(v) for v in lo],
         "bbox_max": [float(v) for v in hi],
         "opacity": _stats(scene.opacities()),
-        "scale": _stats(scene.scales().max(axis=1) if scene.num_gaussians else np.zeros(0)),
+        # float64: a log scale above 88.7 overflows float32 (reported as a finding, without numpy's warning)
+        "scale": _stats(np.exp(scene.log_scales.astype(np.float64)).max(axis=1) if scene.num_gaussians else np.zeros(0)),
         "nonfinite_rows": report.nonfinite_rows,
         "dropped_rows": report.dropped_nan_rows + report.dropped_inf_rows,
         "clamped_opacity": report.clamped_opacity,

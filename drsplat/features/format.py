@@ -99,6 +99,11 @@ def _load_npy(path: Path, what: str) -> np.ndarray:
 
 def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
     """Mask ids of any int/float dtype as int64; non-integer or non-finite floats are errors."""
+    if np.issubdtype(seg.dtype, np.unsignedinteger) and seg.size and seg.dtype.itemsize >= 8:
+        top = int(seg.max())
+        if top > np.iinfo(np.int64).max:  # astype(int64) would wrap 2^64-1 to -1 ("no mask") silently
+            raise InputError(path, f"mask id {top} ({seg.dtype}) is out of range: unsigned ids cannot mean -1 (no mask); "
+                                   "store ids in a signed integer dtype with -1 for no mask")
     if np.issubdtype(seg.dtype, np.integer) or seg.dtype == np.bool_:
         return seg.astype(np.int64, copy=False)
     if not np.issubdtype(seg.dtype, np.floating):

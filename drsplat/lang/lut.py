@@ -168,6 +168,36 @@ def lut_scores_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.nda
     return np.where(norm[:, None] > 0, scores, 0.0).astype(np.float32)
 
 
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _code_table_sums_kernel(codes, table, out):  # pragma: no cover - jitted
+    n, m = codes.shape
+    for i in numba.prange(n):
+        total = 0.0
+        for j in range(m):
+            total += table[j, codes[i, j]]
+        out[i] = total
+
+
+def code_table_sums(codes: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """[N] float64 s_i = Σ_m table[m, codes[i, m]] (codes: [N, M] uint8, table: [M, 256] float64).
+
+    With table[m, k] = |c_{m,k}|² this is |r_i|², the squared norm of a PQ reconstruction (the
+    sub-vectors are concatenated). Summed in m order, exactly as `code_table_sums_reference`."""
+    codes = np.ascontiguousarray(codes, np.uint8)
+    out = np.zeros(codes.shape[0], np.float64)
+    if codes.shape[0] and codes.shape[1]:
+        _code_table_sums_kernel(codes, np.ascontiguousarray(table, np.float64), out)
+    return out
+
+
+def code_table_sums_reference(codes: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """numpy reference of `code_table_sums`: one gather per sub-quantiser."""
+    out = np.zeros(codes.shape[0], np.float64)
+    for j in range(codes.shape[1]):
+        out += table[j, codes[:, j]]
+    return out
+
+
 def inverse_norms(norms: np.ndarray) -> np.ndarray:
     """1/|r| with 0 for zero (or non-finite) norms: [N] float32."""
     norms = np.asarray(norms, np.float32)

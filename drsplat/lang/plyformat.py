@@ -9,7 +9,9 @@ A registered PLY is an INRIA-layout PLY plus:
   UTF-8 bytes (the comment without its prefix, L = len(b) <= 255), row i holds
   (k << 8) | b[k] with k = i mod L. Every row carries one (position, byte) pair, so the text can
   be read back after rows are reordered or subset (each position by majority over its rows) as
-  long as every position keeps a row; 2 bytes per Gaussian;
+  long as every position keeps a row; 2 bytes per Gaussian. A scene of n < L rows gets
+  C = ceil(L / n) columns `lang_meta`, `lang_meta_1`, ... (`encode_meta_columns`), so small
+  exports stay queryable without their comment;
 - `lang_weight` float: total registration weight (0 = unassigned);
 - exact: `lang_0 .. lang_{D-1}` ushort holding float16 bit patterns; pq / ivfpq:
   `lang_code_0 .. lang_code_{M-1}` uchar, `lang_norm` float, ivfpq also `lang_list` int; the
@@ -75,6 +77,38 @@ def encode_meta_column(text: str, n: int) -> np.ndarray | None:
     return ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16)
 
 
+def meta_column_name(j: int) -> str:
+    """Name of the j-th metadata column: `lang_meta`, then `lang_meta_1`, `lang_meta_2`, ..."""
+    return META_PROPERTY if j == 0 else f"{META_PROPERTY}_{j}"
+
+
+def is_meta_column(name: str) -> bool:
+    return name == META_PROPERTY or (name.startswith(META_PROPERTY + "_") and name[len(META_PROPERTY) + 1 :].isdigit())
+
+
+def encode_meta_columns(text: str, n: int) -> dict[str, np.ndarray]:
+    """The metadata text as C = ceil(L / n) uint16 columns of n rows, name -> [n] column.
+
+    Cell (i, j) holds (k << 8) | byte[k] with k = (i·C + j) mod L, so every position has a cell
+    even when the scene has fewer rows than the text has bytes (a small export: a 78-Gaussian PQ
+    export with an 80-byte codebook name gets 2 columns). C = 1 is exactly `encode_meta_column`.
+    Empty when nothing can be carried: no rows, an empty text or one over META_MAX_BYTES.
+    """
+    data = text.encode("utf-8")
+    if n <= 0 or not data or len(data) > META_MAX_BYTES:
+        return {}
+    count = -(-len(data) // n)
+    k = (np.arange(n * count, dtype=np.int64) % len(data)).reshape(n, count)
+    cells = ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16)
+    return {meta_column_name(j): np.ascontiguousarray(cells[:, j]) for j in range(count)}
+
+
+def meta_cells(extra: dict[str, np.ndarray]) -> np.ndarray | None:
+    """Every metadata cell of a scene's extra properties (all `lang_meta*` columns), or None."""
+    columns = [np.asarray(v).reshape(-1) for name, v in extra.items() if is_meta_column(name)]
+    return np.concatenate(columns) if columns else None
+
+
 def decode_meta_column(column: np.ndarray) -> str | None:
     """The metadata text of a `lang_meta` column (any row order, any subset keeping each position),
     or None when it does not decode: L = 1 + the largest position, each byte by majority vote."""
@@ -97,9 +131,8 @@ def field_extras(field: LanguageField, meta: str | None = None) -> dict[str, np.
     """Extra vertex properties of the field, name -> [N] array (dtype = PLY type); `meta`, the
     comment's text without its prefix, adds the `lang_meta` column when it fits."""
     extras: dict[str, np.ndarray] = {"lang_weight": np.ascontiguousarray(field.weights, np.float32)}
-    column = None if meta is None else encode_meta_column(meta, field.num_gaussians)
-    if column is not None:
-        extras[META_PROPERTY] = column
+    if meta is not None:
+        extras.update(encode_meta_columns(meta, field.num_gaussians))
     extras.update(field.storage.columns())
     return extras
 
@@ -160,9 +193,10 @@ def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str]
     """The field's key=value metadata: the header comment, else the `lang_meta` column (a file
     whose comments a tool dropped); None for a scene without a language field."""
     meta = parse_field_comment(scene.comments)
-    if meta is not None or META_PROPERTY not in scene.extra:
+    cells = meta_cells(scene.extra)
+    if meta is not None or cells is None:
         return meta
-    text = decode_meta_column(scene.extra[META_PROPERTY])
+    text = decode_meta_column(cells)
     if text is None:
         raise InputError(ply_path, "the language field's metadata column does not decode (rows lost or altered)", field=META_PROPERTY)
     return _parse_pairs(text.split())
@@ -206,10 +240,26 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         if exc.path is not None:
             raise
         raise InputError(ply_path, exc.problem, field=exc.field) from None
+    storage = _without_altered_codes(storage, ply_path)
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
     return LanguageField(dim, clip_model, weights, storage)
+
+
+def _without_altered_codes(storage, ply_path: Path):
+    """PQ storage whose rows with altered codes (`PQStorage.norm_mismatches`) score 0, with one warning."""
+    if not hasattr(storage, "norm_mismatches"):
+        return storage  # exact float16 features carry no redundancy to check
+    bad = storage.norm_mismatches()
+    if not bad.any():
+        return storage
+    log.warning("%s: %d of %d Gaussians have PQ codes that do not reproduce their stored norm (lang_norm): the file was "
+                "altered (flipped bytes?) or its codebook is not the one it was written with; they score 0",
+                ply_path, int(bad.sum()), bad.shape[0])
+    norms = storage.norms.copy()
+    norms[bad] = 0.0
+    return dataclasses.replace(storage, norms=norms)
 
 
 def codebook_named_by(ply_path: Path, name: str) -> Path:

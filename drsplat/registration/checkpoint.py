@@ -24,7 +24,7 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.scene import GaussianScene
-from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix
+from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +33,10 @@ CHECKPOINT_EVERY = 10  # views between fsyncs of the log and snapshots of a mode
 
 
 def checkpoint_path_for(out: str | Path) -> Path:
-    """The hidden resumable checkpoint (pair log) of a registration that writes `out`."""
+    """The hidden resumable checkpoint (pair log) of a registration that writes `out` (beside it; in the
+    temp folder for a device or FIFO output, `drsplat.utils.work_folder`)."""
     out = Path(out)
-    return out.with_name(f".{out.name}.register.log")
+    return work_folder(out) / f".{out.name}.register.log"
 
 
 def aggregate_stats_path(checkpoint: Path) -> Path:

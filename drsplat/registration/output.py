@@ -22,11 +22,11 @@ from typing import Protocol
 import numpy as np
 
 from drsplat.errors import DrsplatError
-from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column
+from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column, encode_meta_columns, is_meta_column
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
-from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix
+from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix, work_folder
 
 
 class Target(Protocol):
@@ -87,7 +87,7 @@ class PlyTarget:
 
     def open(self, codebook: Codebook | str) -> None:
         self._codebook = codebook
-        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=self.out.parent)
+        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
         self._body_path = Path(name)
         self._body = os.fdopen(fd, "wb")
 
@@ -110,7 +110,7 @@ class PlyTarget:
         try:
             if self._header is None:
                 raise DrsplatError(f"the scene has no Gaussians to write to {self.out}")
-            dtype, comments = _drop_meta_if_short(self._body_path, self._header, self.written)
+            dtype, comments = _widen_meta_if_short(self._body_path, self._header, self.written)
             with atomic_path(self.out) as tmp:
                 with open(tmp, "wb") as f, open(self._body_path, "rb") as src:
                     f.write(ply_header(dtype, comments, self.written))
@@ -151,24 +151,35 @@ def _with_meta_rows(part: GaussianScene, first_row: int) -> GaussianScene:
     column = period[(first_row + np.arange(part.num_gaussians)) % period.shape[0]]
     extra = {}
     for name, values in part.extra.items():
-        if name != META_PROPERTY:
+        if not is_meta_column(name):  # a block shorter than L got several columns from attach_field: one, numbered as in the file
             extra[name] = values
         if name == "lang_weight":
             extra[META_PROPERTY] = column
     return dataclasses.replace(part, extra=extra)
 
 
-def _drop_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
-    """A file of fewer rows than the comment's length carries no `lang_meta` column (as in
-    memory): rewrite the (then tiny) body without it. Returns the header's (dtype, comments)."""
+def _widen_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
+    """A file of fewer rows than the comment's length carries its metadata in several columns
+    (`encode_meta_columns`, as in memory): rewrite the (then tiny) body with them. Returns the
+    header's (dtype, comments)."""
     dtype, comments = header
     period = _meta_period(comments)
     if META_PROPERTY not in dtype.names or period is None or written >= period.shape[0]:
         return header
+    comment = next(c for c in reversed(comments) if c.startswith(COMMENT_PREFIX))
+    columns = encode_meta_columns(comment[len(COMMENT_PREFIX):].strip(), written)
     rows = np.fromfile(body_path, dtype)
-    names = [n for n in dtype.names if n != META_PROPERTY]
-    kept = np.empty(rows.shape[0], np.dtype([(n, dtype[n]) for n in names]))
-    for n in names:
-        kept[n] = rows[n]
-    body_path.write_bytes(kept.tobytes())
-    return kept.dtype, comments
+    fields: list[tuple[str, np.dtype]] = []
+    for name in dtype.names:
+        if name != META_PROPERTY:
+            fields.append((name, dtype[name]))
+        if name == "lang_weight":
+            fields.extend((meta, np.dtype("<u2")) for meta in columns)
+    widened = np.empty(rows.shape[0], np.dtype(fields))
+    for name in dtype.names:
+        if name != META_PROPERTY:
+            widened[name] = rows[name]
+    for name, column in columns.items():
+        widened[name] = column
+    body_path.write_bytes(widened.tobytes())
+    return widened.dtype, comments

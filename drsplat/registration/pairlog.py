@@ -172,7 +172,7 @@ class PairLog:
         f.write(TAG + _U64.pack(len(meta_bytes)) + _U64.pack(size) + meta_bytes)
         crc = zlib.crc32(meta_bytes)
         for a in arrays:
-            raw = memoryview(a).cast("B")
+            raw = a.reshape(-1).view(np.uint8)  # flat bytes; memoryview.cast refuses a zero-size [0, D] array (a view with no masks)
             f.write(raw)
             crc = zlib.crc32(raw, crc)
         f.write(_U32.pack(crc))
