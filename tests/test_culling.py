@@ -110,3 +110,19 @@ def test_morton_codes_order_nearby_points_together():
     pts = np.array([[0.0, 0, 0], [1, 1, 1], [0.01, 0, 0], [0.99, 1, 1]])
     order = np.argsort(morton_codes(pts))
     assert {int(order[0]), int(order[1])} == {0, 2}
+
+
+def test_synth_city_is_the_bench_city_and_registers(tmp_path):
+    from drsplat.synthetic import CityPreset, write_city
+
+    preset = CityPreset(room="tiny", tiles=4, views=8, width=48)
+    out = write_city(tmp_path / "city", preset, show_progress=False)
+    assert not (out / "room").exists()
+    scene, cams = load_ply(out / "scene.ply"), load_cameras(out, require_images=False)
+    room = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    expect, expect_cams, _ = tile_city(load_ply(room / "scene.ply"), load_cameras(room), 4, 8, 48)
+    np.testing.assert_array_equal(scene.means, expect.means)
+    assert [c.name for c in cams] == [c.name for c in expect_cams]
+    assert np.load(out / "gt" / "labels.npy").shape == (scene.num_gaussians,)
+    reg = register(scene, cams, out / "features", tmp_path / "field.ply", RegisterOptions(), show_progress=False)
+    assert reg.num_views == 8 and reg.num_pairs > 0
