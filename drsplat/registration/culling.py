@@ -1,8 +1,9 @@
 """Exact frustum culling: which Gaussians a view can possibly rasterize, found through blocks.
 
-`SpatialIndex.build` (once per scene) sorts the finite Gaussians by the Morton code of their means
-and cuts them into blocks of `block_size`; each block keeps the bounding box of its means and the
-largest trace of its covariances. `SpatialIndex.visible(camera)` returns the ascending ids of the
+`SpatialIndex.build` (once per scene) sorts the finite Gaussians by size class (the octave of
+λ_max(Σ), so that one big Gaussian does not widen a block of small ones) and, within a class, by
+the Morton code of their means, and cuts them into blocks of `block_size`; each block keeps the
+bounding box of its means and the largest λ_max(Σ) of its covariances. `SpatialIndex.visible(camera)` returns the ascending ids of the
 Gaussians of every block that can meet the view; the view then projects only those (a view's
 cost follows what it sees, not the scene's size).
 
@@ -11,16 +12,19 @@ to a pixel only when its camera z ≥ near and its getRect tile rectangle is not
 x, with screen position u = fx·x/z + cx, integer radius r and G tiles of B pixels,
 u + r ≥ 1 and u - r < G·B (similarly along y). The radius is r = ceil(3·sqrt(λ)) with
 λ = mid + sqrt(max(0.1, mid² - det)) ≤ λ_max(J Σ Jᵀ) + 0.3 + sqrt(0.1), and since J's rows are
-(f/z)·(1, 0, -t) with |t| clamped to the rasterizer's 1.3x field-of-view limit L,
+(fx/z)·(1, 0, -tx) and (fy/z)·(0, 1, -ty) with |t| clamped to the rasterizer's 1.3x field-of-view
+limit L, λ_max(J Σ Jᵀ) ≤ λ_max(J Jᵀ)·λ_max(Σ) and (Gershgorin on the 2x2 J Jᵀ)
 
-    λ_max(J Σ Jᵀ) ≤ ‖J‖_F² · λ_max(Σ) ≤ (fx²(1 + Lx²) + fy²(1 + Ly²)) / z² · trace(Σ).
+    λ_max(J Jᵀ) ≤ (max(fx²(1 + Lx²), fy²(1 + Ly²)) + fx·fy·Lx·Ly) / z² = g / z².
 
-So over a block (means in a box, trace(Σ) ≤ s, z ≥ z_lo = max(near, the box's least z)) every
-radius is at most R = 3·sqrt((fx²(1+Lx²) + fy²(1+Ly²))·s / z_lo² + 0.3 + sqrt(0.1)) + 1, and a
+So over a block (means in a box, λ_max(Σ) ≤ s, z ≥ z_lo = max(near, the box's least z)) every
+radius is at most R = 3·sqrt(g·s / z_lo² + 0.3 + sqrt(0.1)) + 1, and a
 Gaussian the rasterizer uses satisfies the five linear conditions z ≥ near,
 x - z·(-R - 1 - cx)/fx ≥ 0, z·(G·B + R + 1 - cx)/fx - x ≥ 0 (and the two in y, with margins of
 2 pixels against rounding). A block is culled only when all eight corners of its box fail one of
-them: a linear function's maximum over a box is at a corner, so no point of the box passes.
+them: a linear function's maximum over a box is at a corner, so no point of the box passes. The
+Gaussians of the remaining blocks are then tested one by one with the same conditions and their
+own z and λ_max(Σ) (a few numpy operations each, cheaper than projecting them).
 Gaussians whose mean or covariance is not finite are never projected by the rasterizer either
 (PreparedScene.finite), so they are left out of the index.
 
@@ -38,7 +42,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene
 
-DEFAULT_BLOCK = 2048
+DEFAULT_BLOCK = 1024
 PIXEL_MARGIN = 2.0  # extra pixels on every image side against float rounding in the projection
 BLUR_BOUND = 0.3 + np.sqrt(0.1)  # the low-pass blur plus the most the 0.1 floor adds to λ
 
@@ -62,14 +66,18 @@ class SpatialIndex:
 
     order: [M] int64 ids of the indexed (finite) Gaussians, block by block. starts: [B + 1] int64
     block b holds order[starts[b]:starts[b + 1]]. lo, hi: [B, 3] float64 boxes of the means.
-    max_trace: [B] float64 the largest trace(Σ) in each block. num_gaussians: N of the scene.
+    max_lam: [B] float64 the largest λ_max(Σ) in each block; lam: [M] float64 each indexed
+    Gaussian's λ_max(Σ), in `order` (both padded against eigvalsh rounding). means: [N, 3] the
+    scene's means (shared with the geometry, not copied). num_gaussians: N.
     """
 
     order: np.ndarray
     starts: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    max_trace: np.ndarray
+    max_lam: np.ndarray
+    lam: np.ndarray
+    means: np.ndarray
     num_gaussians: int
 
     @classmethod
@@ -77,21 +85,21 @@ class SpatialIndex:
         """The index of `geometry` (its means [N, 3] and covariances [N, 3, 3])."""
         if block_size < 1:
             raise ValueError(f"block_size must be at least 1, got {block_size}")
-        traces = np.trace(geometry.covariances, axis1=1, axis2=2)
-        ok = geometry.finite & np.isfinite(geometry.means).all(axis=1) & np.isfinite(traces)
+        ok = geometry.finite & np.isfinite(geometry.means).all(axis=1) & np.isfinite(geometry.covariances).all(axis=(1, 2))
         ids = np.flatnonzero(ok)
         n = geometry.num_gaussians
         if ids.size == 0:
             empty = np.zeros((0, 3))
-            return cls(ids.astype(np.int64), np.zeros(1, np.int64), empty, empty, np.zeros(0), n)
-        means = geometry.means[ids]
-        order = ids[np.argsort(morton_codes(means), kind="stable")].astype(np.int64)
+            return cls(ids.astype(np.int64), np.zeros(1, np.int64), empty, empty, np.zeros(0), np.zeros(0), geometry.means, n)
+        traces = np.zeros(n)
+        traces[ids] = largest_eigenvalues(geometry.covariances, ids)
+        order = ids[np.argsort(morton_codes(geometry.means[ids]), kind="stable")].astype(np.int64)
         starts = np.append(np.arange(0, order.size, block_size), order.size).astype(np.int64)
         sorted_means = geometry.means[order]
         lo = np.minimum.reduceat(sorted_means, starts[:-1], axis=0)
         hi = np.maximum.reduceat(sorted_means, starts[:-1], axis=0)
-        max_trace = np.maximum.reduceat(np.maximum(traces[order], 0.0), starts[:-1])
-        return cls(order, starts, lo, hi, max_trace, n)
+        max_lam = np.maximum.reduceat(np.maximum(traces[order], 0.0), starts[:-1])
+        return cls(order, starts, lo, hi, max_lam, traces[order], geometry.means, n)
 
     @property
     def num_blocks(self) -> int:
@@ -106,15 +114,8 @@ class SpatialIndex:
         x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
         z_max = z.max(axis=1)
         z_lo = np.maximum(z.min(axis=1), near)
-        w, h = camera.width, camera.height
-        tan_x, tan_y = 0.5 * w / camera.fx, 0.5 * h / camera.fy
-        lim_x = max((w - camera.cx) / camera.fx, camera.cx / camera.fx) + 0.3 * tan_x
-        lim_y = max((h - camera.cy) / camera.fy, camera.cy / camera.fy) + 0.3 * tan_y
-        gain = camera.fx**2 * (1 + lim_x**2) + camera.fy**2 * (1 + lim_y**2)
-        radius = 3.0 * np.sqrt(gain * self.max_trace / (z_lo * z_lo) + BLUR_BOUND) + 1.0 + PIXEL_MARGIN
-        radius = radius[:, None]
-        grid_w = -(-w // tile_size) * tile_size
-        grid_h = -(-h // tile_size) * tile_size
+        radius = _radius_bound(camera, self.max_lam, z_lo)[:, None]
+        grid_w, grid_h = _grid_size(camera, tile_size)
         # u ≥ -radius ⇔ x - z·(-radius - cx)/fx ≥ 0 (z > 0); u ≤ grid_w + radius likewise
         left = (x - z * (-radius - camera.cx) / camera.fx).max(axis=1) >= 0
         right = (z * (grid_w + radius - camera.cx) / camera.fx - x).max(axis=1) >= 0
@@ -123,12 +124,48 @@ class SpatialIndex:
         return (z_max >= near) & left & right & top & bottom
 
     def visible(self, camera: Camera, near: float = NEAR, tile_size: int = TILE_SIZE) -> np.ndarray:
-        """[V] int64 ascending ids of the Gaussians in the blocks `camera` can see."""
-        blocks = np.flatnonzero(self.visible_blocks(camera, near, tile_size))
-        if blocks.size == 0:
-            return np.zeros(0, np.int64)
-        parts = [self.order[self.starts[b]:self.starts[b + 1]] for b in blocks]
-        return np.sort(np.concatenate(parts))
+        """[V] int64 ascending ids of the Gaussians `camera` can rasterize: those of the visible
+        blocks that also pass the same five conditions with their own z and λ_max(Σ)."""
+        keep = np.repeat(self.visible_blocks(camera, near, tile_size), np.diff(self.starts))
+        cand, lam = self.order[keep], self.lam[keep]
+        pc = self.means[cand] @ np.asarray(camera.R, np.float64).T + np.asarray(camera.t, np.float64)
+        x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+        front = z >= near * (1 - 1e-9)  # the rasterizer's own rounding of z must not drop one it keeps
+        zs = np.where(front, z, 1.0)  # z < near fails anyway; avoids dividing by 0 or negatives
+        radius = _radius_bound(camera, lam, zs)
+        u = camera.fx * x / zs + camera.cx
+        v = camera.fy * y / zs + camera.cy
+        grid_w, grid_h = _grid_size(camera, tile_size)
+        ok = front & (u >= -radius) & (u <= grid_w + radius) & (v >= -radius) & (v <= grid_h + radius)
+        return np.sort(cand[ok])
+
+
+def _grid_size(camera: Camera, tile_size: int) -> tuple[int, int]:
+    """Pixels covered by the tile grid (the image rounded up to whole tiles)."""
+    return -(-camera.width // tile_size) * tile_size, -(-camera.height // tile_size) * tile_size
+
+
+def _radius_bound(camera: Camera, lam: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Upper bound on the rasterizer's screen radius of Gaussians with λ_max(Σ) ≤ lam at depth ≥ z
+    (module docstring), plus PIXEL_MARGIN."""
+    w, h = camera.width, camera.height
+    tan_x, tan_y = 0.5 * w / camera.fx, 0.5 * h / camera.fy
+    lim_x = max((w - camera.cx) / camera.fx, camera.cx / camera.fx) + 0.3 * tan_x
+    lim_y = max((h - camera.cy) / camera.fy, camera.cy / camera.fy) + 0.3 * tan_y
+    gain = max(camera.fx**2 * (1 + lim_x**2), camera.fy**2 * (1 + lim_y**2)) + camera.fx * camera.fy * lim_x * lim_y
+    return 3.0 * np.sqrt(gain * lam / (z * z) + BLUR_BOUND) + 1.0 + PIXEL_MARGIN
+
+
+def largest_eigenvalues(covariances: np.ndarray, ids: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """[len(ids)] float64 λ_max of covariances[ids] ([N, 3, 3] symmetric), padded by 1e-6 relative
+    plus 1e-300 so that eigvalsh's rounding never makes a bound smaller than the true value."""
+    out = np.empty(ids.size)
+    for start in range(0, ids.size, chunk):
+        part = covariances[ids[start:start + chunk]]
+        lam = np.linalg.eigvalsh(part)[:, -1]
+        scale = np.abs(part).max(axis=(1, 2))
+        out[start:start + chunk] = np.maximum(lam, 0.0) + 1e-6 * scale + 1e-300
+    return out
 
 
 def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
