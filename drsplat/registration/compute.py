@@ -85,10 +85,11 @@ class ViewComputer:
 
     geometry: the scene's CPU geometry (`prepare_geometry`); the engine prepares its own form of it
     once (tensors on the device for torch). Holds the coalescer's [N] scratch and the previous
-    view's raster buffers, reused from view to view.
+    view's raster buffers, reused from view to view. index: the scene's culling index when built
+    already (a Ray task gets the driver's from the object store instead of building it per task).
     """
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob):
+    def __init__(self, geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None = None):
         check_engine(job.engine, job.device)
         engine = get_engine(job.engine)
         self.job = job
@@ -100,7 +101,8 @@ class ViewComputer:
         self._coalescer = Coalescer(geometry.num_gaussians)
         self._out = None
         # culling subsets the CPU geometry per view; the torch engine keeps its tensors on the device
-        self._index = SpatialIndex.build(geometry) if job.cull and isinstance(self._prepared, PreparedScene) else None
+        culls = job.cull and isinstance(self._prepared, PreparedScene)
+        self._index = (index or SpatialIndex.build(geometry)) if culls else None
         self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
 
     def compute(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0) -> ViewPairs:
