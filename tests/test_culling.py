@@ -83,7 +83,7 @@ def test_view_computer_pairs_equal_with_and_without_culling(city):
         for field in ("gaussians", "masks", "weights", "used"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{cam.name} {field}")
         assert a.num_pairs == b.num_pairs > 0
-    assert culled.projected < 0.75 * full.projected  # orbit views of a 4x4 city still see neighbouring rooms
+    assert culled.projected < 0.5 * full.projected
 
 
 def test_registered_field_bytes_equal_with_and_without_culling(tiny, tmp_path):

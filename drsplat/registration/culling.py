@@ -77,7 +77,7 @@ class SpatialIndex:
     hi: np.ndarray
     max_lam: np.ndarray
     lam: np.ndarray
-    means: np.ndarray
+    points: np.ndarray
     num_gaussians: int
 
     @classmethod
@@ -90,7 +90,7 @@ class SpatialIndex:
         n = geometry.num_gaussians
         if ids.size == 0:
             empty = np.zeros((0, 3))
-            return cls(ids.astype(np.int64), np.zeros(1, np.int64), empty, empty, np.zeros(0), np.zeros(0), geometry.means, n)
+            return cls(ids.astype(np.int64), np.zeros(1, np.int64), empty, empty, np.zeros(0), np.zeros(0), np.zeros((3, 0)), n)
         traces = np.zeros(n)
         traces[ids] = largest_eigenvalues(geometry.covariances, ids)
         order = ids[np.argsort(morton_codes(geometry.means[ids]), kind="stable")].astype(np.int64)
@@ -99,7 +99,7 @@ class SpatialIndex:
         lo = np.minimum.reduceat(sorted_means, starts[:-1], axis=0)
         hi = np.maximum.reduceat(sorted_means, starts[:-1], axis=0)
         max_lam = np.maximum.reduceat(np.maximum(traces[order], 0.0), starts[:-1])
-        return cls(order, starts, lo, hi, max_lam, traces[order], geometry.means, n)
+        return cls(order, starts, lo, hi, max_lam, traces[order], np.ascontiguousarray(sorted_means.T), n)
 
     @property
     def num_blocks(self) -> int:
@@ -128,8 +128,9 @@ class SpatialIndex:
         blocks that also pass the same five conditions with their own z and λ_max(Σ)."""
         keep = np.repeat(self.visible_blocks(camera, near, tile_size), np.diff(self.starts))
         cand, lam = self.order[keep], self.lam[keep]
-        pc = self.means[cand] @ np.asarray(camera.R, np.float64).T + np.asarray(camera.t, np.float64)
-        x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+        px, py, pz = (row[keep] for row in self.points)
+        rot, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+        x, y, z = (rot[i, 0] * px + rot[i, 1] * py + rot[i, 2] * pz + t[i] for i in range(3))
         front = z >= near * (1 - 1e-9)  # the rasterizer's own rounding of z must not drop one it keeps
         zs = np.where(front, z, 1.0)  # z < near fails anyway; avoids dividing by 0 or negatives
         radius = _radius_bound(camera, lam, zs)
