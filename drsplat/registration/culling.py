@@ -126,7 +126,10 @@ class SpatialIndex:
     def visible(self, camera: Camera, near: float = NEAR, tile_size: int = TILE_SIZE) -> np.ndarray:
         """[V] int64 ascending ids of the Gaussians `camera` can rasterize: those of the visible
         blocks that also pass the same five conditions with their own z and λ_max(Σ)."""
-        keep = np.repeat(self.visible_blocks(camera, near, tile_size), np.diff(self.starts))
+        blocks = np.flatnonzero(self.visible_blocks(camera, near, tile_size))
+        sizes = self.starts[blocks + 1] - self.starts[blocks]
+        # positions in `order` of the visible blocks' Gaussians (cost follows them, not M)
+        keep = np.arange(int(sizes.sum())) + np.repeat(self.starts[blocks] - np.cumsum(sizes) + sizes, sizes)
         cand, lam = self.order[keep], self.lam[keep]
         px, py, pz = (row[keep] for row in self.points)
         rot, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
@@ -138,7 +141,9 @@ class SpatialIndex:
         v = camera.fy * y / zs + camera.cy
         grid_w, grid_h = _grid_size(camera, tile_size)
         ok = front & (u >= -radius) & (u <= grid_w + radius) & (v >= -radius) & (v <= grid_h + radius)
-        return np.sort(cand[ok])
+        seen = np.zeros(self.num_gaussians, bool)  # a scatter and a scan: several times faster than sorting the ids
+        seen[cand[ok]] = True
+        return np.flatnonzero(seen)
 
 
 def _grid_size(camera: Camera, tile_size: int) -> tuple[int, int]:
