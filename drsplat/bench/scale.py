@@ -6,8 +6,8 @@ the room's oracle features. Every configuration runs in its own process so that 
 that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (reported by its
 tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
 
-Parts: `compare` (a small city: local in memory, local streamed, Ray with 1 and 2 workers on a
-local Ray instance), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
+Parts: `compare` (a small city: local in memory with and without frustum culling, local
+streamed, Ray with 1 and 2 workers on a local Ray instance; `--json FILE` writes its records), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
 and `big` (the done-means run: >= 5M Gaussians, >= 500 views streamed under --budget). The
 projection for 8/64 GPU nodes multiplies per-task costs measured here by task counts; it is a
 model, not a measurement.
