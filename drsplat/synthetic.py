@@ -37,10 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera, look_at_camera, write_transforms_json
+from drsplat.cameras import Camera, load_cameras, look_at_camera, write_transforms_json
 from drsplat.features.masks.base import LEVELS
 from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
-from drsplat.scene import SH_C0, GaussianScene, save_ply
+from drsplat.scene import SH_C0, GaussianScene, load_ply, save_ply
 from drsplat.features.format import write_features, write_manifest
 from drsplat.raster import NEAR, rasterize
 from drsplat.utils import atomic_path, progress, save_npy_atomic
@@ -1071,3 +1071,52 @@ def tile_city(room: SyntheticScene | GaussianScene, cameras: list[Camera], tiles
                                        name=f"t{tile:05d}_{cam.name}", image_path=None))
         sources.append(cameras[(j // tiles + j) % len(cameras)].name)
     return city, out, sources
+
+
+@dataclass(frozen=True)
+class CityPreset:
+    """`drsplat synth --preset city`: `tiles` copies of the `room` preset on a grid and `views` cameras
+    spread over them at `width` pixels (each view sees about one room: the culled, scale path)."""
+
+    room: str = "small"
+    tiles: int = 16
+    views: int = 96
+    width: int = 64
+
+
+CITY_PRESETS: dict[str, CityPreset] = {"city": CityPreset()}
+
+
+def write_city(out_dir: str | Path, preset: str | CityPreset = "city", seed: int = 0, *, show_progress: bool = True, cancel=None) -> Path:
+    """Write the city `preset` (a CITY_PRESETS name or a CityPreset) into `out_dir`: the room is written once (in
+    out_dir/room, removed at the end), tiled by `tile_city` (the same city `drsplat bench scale`
+    registers), and each city view's feature files are copies of its source room view's, its image
+    the room view's image resized."""
+    import shutil
+
+    city = CITY_PRESETS[preset] if isinstance(preset, str) else preset
+    out = Path(out_dir)
+    room = write_dataset(out / "room", city.room, seed, show_progress=show_progress, cancel=cancel)
+    scene, cams, sources = tile_city(load_ply(room / "scene.ply"), load_cameras(room, require_images=False), city.tiles, city.views, city.width)
+    from PIL import Image
+
+    for sub in ("features", "gt", "images"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    for cam, src in zip(cams, sources):
+        for suffix in ("_s.npy", "_f.npy"):
+            shutil.copyfile(room / "features" / f"{src}{suffix}", out / "features" / f"{cam.name}{suffix}")
+        # the room view's picture at the city view's size (a city view is its room view, shifted)
+        with Image.open(room / "images" / f"{src}.png") as image:
+            image.resize((cam.width, cam.height), Image.BILINEAR).save(out / "images" / f"{cam.name}.png", format="PNG")
+    manifest = json.loads((room / "features" / "manifest.json").read_text())
+    manifest["synthetic"] = {"preset": "city", "seed": seed, "room": city.room, "tiles": city.tiles, "views": city.views, "width": city.width}
+    manifest.setdefault("counts", {})["views"] = len(cams)
+    write_manifest(out / "features", manifest)
+    for name in ("text_embeddings.npy", "gt/label_names.json"):
+        shutil.copyfile(room / name, out / name)
+    save_npy_atomic(out / "gt" / "labels.npy", np.tile(np.load(room / "gt" / "labels.npy"), city.tiles))  # tile-major, as tile_city
+    write_transforms_json(cams, out / "transforms.json")
+    save_ply(scene, out / "scene.ply")
+    shutil.rmtree(room)
+    log.debug("wrote city %s: %d Gaussians, %d views", out, scene.num_gaussians, len(cams))
+    return out

@@ -6,8 +6,8 @@ the room's oracle features. Every configuration runs in its own process so that 
 that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (reported by its
 tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
 
-Parts: `compare` (a small city: local in memory, local streamed, Ray with 1 and 2 workers on a
-local Ray instance), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
+Parts: `compare` (a small city: local in memory with and without frustum culling, local
+streamed, Ray with 1 and 2 workers on a local Ray instance; `--json FILE` writes its records), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
 and `big` (the done-means run: >= 5M Gaussians, >= 500 views streamed under --budget). The
 projection for 8/64 GPU nodes multiplies per-task costs measured here by task counts; it is a
 model, not a measurement.
@@ -55,6 +55,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gpu-speedup", type=float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
     p.add_argument("--nodes", default="8,64")
+    p.add_argument("--json", type=Path, default=None, help="also write the compare runs as JSON records to this file")
     p.set_defaults(func=run)
 
 
@@ -90,11 +91,12 @@ def run_config(config: dict) -> dict:
     scene, cameras, _ = _city(config)
     build_s = time.perf_counter() - t0
     out = Path(config["out"])
+    cull = config.get("cull", True)
     options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
-                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"))
-    t0 = time.perf_counter()
+                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"), cull=cull)
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
     reg = register(scene, cameras, config["features"], out, options, show_progress=False)
-    wall = time.perf_counter() - t0
+    wall, driver_cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
     digest = hashlib.sha256()
     with open(out, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 24), b""):
@@ -106,8 +108,26 @@ def run_config(config: dict) -> dict:
         "gaussians": scene.num_gaussians, "views": reg.num_views, "wall": wall, "build": build_s, "raster": reg.raster_seconds,
         "coalesce": reg.coalesce_seconds, "accumulate": reg.accumulate_seconds,
         "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": reg.num_blocks > 1, "peak_rss": peak_rss(),
-        "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size,
+        "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size, "driver_cpu": driver_cpu, "cull": cull,
+        "projected_per_view": _projected_per_view(scene, cameras) if cull else float(scene.num_gaussians),
     }
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process (all its threads), the driver's busy time."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _projected_per_view(scene, cameras) -> float:
+    """Mean Gaussians a culled view projects: the same index and test the registration's views use."""
+    from drsplat.registration.compute import prepare_geometry
+    from drsplat.registration.culling import SpatialIndex
+
+    index = SpatialIndex.build(prepare_geometry(scene))
+    return float(sum(index.visible(cam).size for cam in cameras) / max(len(cameras), 1))
 
 
 # ----------------------------------------------------------------------------- the bench (parent process)
@@ -164,20 +184,44 @@ def run(args: argparse.Namespace) -> int:
 
 def _compare(args, work: Path) -> list[dict]:
     base = _prepare(args, work, args.compare_tiles, args.compare_views, "compare")
-    configs = [("local, in memory", {}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
+    configs = [("local, in memory", {}), ("local, in memory, no culling", {"cull": False}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
     configs += [(f"Ray, {w} worker{'s' if w > 1 else ''}", {"ray": "local", "workers": w}) for w in map(int, args.workers.split(","))]
     rows, results = [], []
     reference = None
     for label, extra in configs:
         r = _child({**base, **extra, "label": label})
-        results.append({**r, "label": label})
+        results.append({**r, "label": label, **extra})
         reference = reference or r["sha"]
         per_worker = "/".join(_mb(x) for x in r["worker_rss"]) or "-"
-        rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['wall']:.1f}", f"{r['views'] / r['wall']:.2f}", _mb(r["peak_rss"]), per_worker,
-                     "identical" if r["sha"] == reference else "DIFFERENT"])
+        rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['projected_per_view']:,.0f}", f"{r['wall']:.1f}", f"{r['raster']:.1f}",
+                     f"{r['driver_cpu']:.1f}", _mb(r["peak_rss"]), per_worker, "identical" if r["sha"] == reference else "DIFFERENT"])
     print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned):")
-    print(format_table(["run", "Gaussians", "views", "wall s", "views/s", "driver peak RSS MB", "worker peak RSS MB", "PLY vs local"], rows))
+    print(format_table(["run", "Gaussians", "views", "projected / view", "wall s", "raster s", "driver CPU s", "driver peak RSS MB",
+                        "worker peak RSS MB", "PLY vs local"], rows))
+    if args.json:
+        write_records(args.json, results)
     return results
+
+
+def write_records(path: Path, results: list[dict]) -> None:
+    """The compare runs as JSON records (place, nodes, workers, wall_s, driver_busy_s, sha256, ...).
+
+    nodes: Ray machines; the bench's Ray runs start one local Ray instance (1 node). driver_busy_s:
+    the driver process's CPU seconds during `register` (its threads included, so for a local run it
+    is the whole computation).
+    """
+    from drsplat.utils import atomic_path
+
+    records = []
+    for r in results:
+        place = "ray" if r.get("ray") else "streamed" if r["streamed"] else "local"
+        records.append({
+            "label": r["label"], "place": place, "nodes": 1, "workers": r.get("workers", 1), "cull": r["cull"], "wall_s": round(r["wall"], 3),
+            "driver_busy_s": round(r["driver_cpu"], 3), "raster_s": round(r["raster"], 3), "sha256": r["sha"], "gaussians": r["gaussians"],
+            "views": r["views"], "projected_per_view": r["projected_per_view"], "driver_peak_rss": r["peak_rss"], "worker_peak_rss": r["worker_rss"],
+        })
+    with atomic_path(Path(path)) as tmp:
+        Path(tmp).write_text(json.dumps(records, indent=1))
 
 
 def _rss(args, work: Path) -> list[dict]:

@@ -14,7 +14,7 @@ MAX_JITTER = 64  # pixels
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    from drsplat.synthetic import MASK_SOURCES, PRESETS
+    from drsplat.synthetic import CITY_PRESETS, MASK_SOURCES, PRESETS
 
     p = subparsers.add_parser(
         "synth",
@@ -24,7 +24,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "The folder is built beside OUT_DIR and renamed into place at the end, so an interrupted run leaves nothing.",
     )
     p.add_argument("out_dir", type=Path, help="output folder (created; an earlier synthetic dataset there is replaced)")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS), help="scene: tiny, small, demo (a table), or a hard room hard-* (docs/registration.md) (default: tiny)")
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS) + sorted(CITY_PRESETS),
+                   help="scene: tiny, small, demo (a table), a hard room hard-* (docs/registration.md), or city (16 small rooms on a grid, "
+                        "96 views that each see about one room: the scale path of `drsplat bench scale`; no images) (default: tiny)")
     p.add_argument("--seed", type=seed_int, default=0, help="random seed, 0..2^32-1 (default: 0)")
     p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
                    help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
@@ -44,13 +46,16 @@ def is_synthetic_dataset(folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.synthetic import write_dataset
+    from drsplat.synthetic import CITY_PRESETS, write_city, write_dataset
     from drsplat.utils import CancelToken, atomic_folder, cancel_on_signals
 
     token = CancelToken()
     with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, is_synthetic_dataset) as tmp:
-        write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
-                      jitter=args.jitter, mask_source=args.mask_source, show_progress=not args.no_progress, cancel=token)
+        if args.preset in CITY_PRESETS:
+            write_city(tmp, args.preset, args.seed, show_progress=not args.no_progress, cancel=token)
+        else:
+            write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
+                          jitter=args.jitter, mask_source=args.mask_source, show_progress=not args.no_progress, cancel=token)
         token.raise_if_cancelled()
     log.info("synthetic dataset written to %s", args.out_dir)
     return 0

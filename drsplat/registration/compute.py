@@ -24,6 +24,7 @@ from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
 from drsplat.registration.aggregate import ViewHook
 from drsplat.registration.coalesce import Coalescer
+from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features
 from drsplat.scene import GaussianScene
@@ -38,6 +39,8 @@ class ViewJob:
     features_dir / level: where the views' LangSplat masks and embeddings are. topk: Gaussians
     kept per pixel. engine / device: the rasterizer (drsplat.raster.ENGINES) and where it runs.
     hook: the aggregation mode's per-view hook, or None (the paper's w = T·α as it is).
+    cull: project only the Gaussians the view can see (drsplat.registration.culling; exact, CPU
+    engines); False projects all of them.
     """
 
     features_dir: Path
@@ -46,6 +49,7 @@ class ViewJob:
     engine: str = "numba"
     device: str = "cpu"
     hook: ViewHook | None = None
+    cull: bool = True
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -81,10 +85,11 @@ class ViewComputer:
 
     geometry: the scene's CPU geometry (`prepare_geometry`); the engine prepares its own form of it
     once (tensors on the device for torch). Holds the coalescer's [N] scratch and the previous
-    view's raster buffers, reused from view to view.
+    view's raster buffers, reused from view to view. index: the scene's culling index when built
+    already (a Ray task gets the driver's from the object store instead of building it per task).
     """
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob):
+    def __init__(self, geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None = None):
         check_engine(job.engine, job.device)
         engine = get_engine(job.engine)
         self.job = job
@@ -95,11 +100,15 @@ class ViewComputer:
         self._with_median = hook is not None and hook.needs_median
         self._coalescer = Coalescer(geometry.num_gaussians)
         self._out = None
+        # culling subsets the CPU geometry per view; the torch engine keeps its tensors on the device
+        culls = job.cull and isinstance(self._prepared, PreparedScene)
+        self._index = (index or SpatialIndex.build(geometry)) if culls else None
+        self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
 
     def compute(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0) -> ViewPairs:
         """The ViewPairs of view `cam` with its mask ids [H, W] and embeddings feats [M, D]."""
         t0 = time.perf_counter()
-        self._out = self._render(self._prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+        self._out = self._rasterize(cam)
         t1 = time.perf_counter()
         hook = self.job.hook
         weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out)
@@ -108,6 +117,20 @@ class ViewComputer:
         t2 = time.perf_counter()
         return ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1,
                          stats=stats)
+
+    def _rasterize(self, cam: Camera):
+        """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling."""
+        if self._index is None:
+            self.projected += self._prepared.num_gaussians if isinstance(self._prepared, PreparedScene) else 0
+            return self._render(self._prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+        ids = self._index.visible(cam)
+        self.projected += int(ids.size)
+        out = self._render(subset_geometry(self._prepared, ids), cam, self.job.topk, with_median=self._with_median, out=self._out,
+                           device=self.job.device)
+        remap_ids(out.ids, ids)
+        if out.median_ids is not None:
+            remap_ids(out.median_ids, ids)
+        return out
 
     def load_and_compute(self, cam: Camera) -> ViewPairs:
         """`compute` with the view's features read from the job's feature folder."""

@@ -302,7 +302,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     if totals.done == total:
         return {}
     options = run.options
-    job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook)
+    job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
     try:

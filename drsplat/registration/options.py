@@ -23,6 +23,7 @@ class RegisterOptions:
     starts a local one) that computes the views; ray_workers: tasks at once (default: the cluster's
     CPUs). engine, device: the rasterizer ("numba" on "cpu", "torch" on "cpu" / "cuda").
     aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's).
+    cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
     """
 
     topk: int = DEFAULT_TOPK
@@ -36,6 +37,7 @@ class RegisterOptions:
     engine: str = "numba"
     device: str = "cpu"
     aggregate: str = DEFAULT_AGGREGATE
+    cull: bool = True
 
     @property
     def place(self) -> str:

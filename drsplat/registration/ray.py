@@ -23,6 +23,7 @@ from drsplat.errors import DrsplatError
 from drsplat.memory import peak_rss
 from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob
+from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features
 
@@ -31,13 +32,14 @@ log = logging.getLogger(__name__)
 VIEWS_PER_TASK = 2
 
 
-def _views_task(geometry: PreparedScene, job: ViewJob, items: list) -> tuple[list[ViewPairs], int, int]:
+def _views_task(geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None, items: list) -> tuple[list[ViewPairs], int, int]:
     """Ray task: the ViewPairs of a chunk of views, this worker's pid and peak RSS (bytes).
 
+    index: the scene's culling index (built once on the driver), or None without culling.
     items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)].
     """
     set_worker_threads()
-    computer = ViewComputer(geometry, job)
+    computer = ViewComputer(geometry, job, index)
     views = [computer.compute(cam, mask_ids, feats, nonfinite) for cam, mask_ids, feats, nonfinite in items]
     return views, os.getpid(), peak_rss()
 
@@ -74,6 +76,7 @@ class RayExecutor:
         if not chunks:
             return
         geometry, job = ray.put(self._geometry), ray.put(self._job)  # once per run, like the hook's geometry inside the job
+        culling = ray.put(SpatialIndex.build(self._geometry) if self._job.cull else None)  # not rebuilt by every task
         pending: dict = {}
         done: dict[int, list[ViewPairs]] = {}
         submitted = 0
@@ -81,7 +84,7 @@ class RayExecutor:
             for index in range(len(chunks)):
                 while submitted < len(chunks) and len(pending) < self.workers:
                     items = [(cam, *load_view_features(self._job.features_dir, cam, self._job.level)) for cam in chunks[submitted]]
-                    pending[self._task.remote(geometry, job, items)] = submitted
+                    pending[self._task.remote(geometry, job, culling, items)] = submitted
                     submitted += 1
                 while index not in done:
                     ready, _ = ray.wait(list(pending), num_returns=1)
@@ -93,7 +96,7 @@ class RayExecutor:
         finally:
             for ref in pending:
                 ray.cancel(ref, force=True)
-            del geometry, job
+            del geometry, job, culling
 
     def close(self) -> None:
         if self._owns:

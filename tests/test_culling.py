@@ -1,0 +1,128 @@
+"""Exact frustum culling (drsplat.registration.culling): the same top-k lists and field bytes as
+projecting every Gaussian, on views that see all of a scene and views that see a small part of it."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.raster import prepare_scene, rasterize
+from drsplat.registration import RegisterOptions, register
+from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+from drsplat.registration.culling import SpatialIndex, morton_codes
+from drsplat.scene import load_ply
+from drsplat.synthetic import tile_city, write_dataset
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def city(tiny):
+    """16 copies of the tiny room on a grid; each view looks into one room (sees a small part)."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    city_scene, city_cams, _ = tile_city(scene, cams, 16, 12, 64)
+    return city_scene, city_cams
+
+
+def _hard_cameras(cams):
+    """The room's first camera pulled back (sees everything), moved past the room (sees nothing), off-centre."""
+    cam = cams[0]
+    back = dataclasses.replace(cam, t=np.asarray(cam.t) + np.array([0.0, 0.0, 30.0]), name="far")
+    away = dataclasses.replace(cam, t=np.asarray(cam.t) + np.array([0.0, 0.0, -100.0]), name="away")  # all behind it
+    shifted = dataclasses.replace(cam, cx=cam.cx + 0.7 * cam.width, name="offcentre")
+    return [back, away, shifted]
+
+
+def _render_both(scene, cams, topk=6):
+    prep = prepare_scene(scene)
+    index = SpatialIndex.build(prep, block_size=64)
+    seen = []
+    for cam in cams:
+        full = rasterize(prep, cam, topk, with_median=True)
+        ids = index.visible(cam)
+        mask = np.zeros(prep.num_gaussians, bool)
+        mask[ids] = True
+        culled = rasterize(prep, cam, topk, with_median=True, mask=mask)
+        np.testing.assert_array_equal(culled.ids, full.ids, err_msg=cam.name)
+        np.testing.assert_array_equal(culled.weights, full.weights, err_msg=cam.name)
+        np.testing.assert_array_equal(culled.median_ids, full.median_ids, err_msg=cam.name)
+        seen.append(ids.size / prep.num_gaussians)
+    return seen
+
+
+def test_culled_renders_equal_full_renders_in_the_room(tiny):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    seen = _render_both(scene, list(cams) + _hard_cameras(cams))
+    assert seen[-3] > 0.9  # pulled back: the whole room is in view
+    assert seen[-2] == 0.0  # turned away: nothing
+
+
+def test_city_views_see_a_small_part_and_render_the_same(city):
+    scene, cams = city
+    seen = _render_both(scene, cams[:6])
+    assert np.mean(seen) < 0.5, seen
+
+
+def test_view_computer_pairs_equal_with_and_without_culling(city):
+    scene, cams = city
+    geometry = prepare_geometry(scene)
+    rng = np.random.default_rng(3)
+    culled = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=True))
+    full = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=False))
+    for cam in cams[:4]:
+        masks = rng.integers(-1, 7, (cam.height, cam.width)).astype(np.int32)
+        feats = rng.normal(size=(7, 8)).astype(np.float32)
+        a, b = culled.compute(cam, masks, feats), full.compute(cam, masks, feats)
+        for field in ("gaussians", "masks", "weights", "used"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{cam.name} {field}")
+        assert a.num_pairs == b.num_pairs > 0
+    assert culled.projected < 0.5 * full.projected
+
+
+def test_registered_field_bytes_equal_with_and_without_culling(tiny, tmp_path):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    paths = []
+    for cull in (True, False):
+        path = tmp_path / f"cull{cull}.ply"
+        register(scene, cams, tiny / "features", path, RegisterOptions(cull=cull), show_progress=False)
+        paths.append(path.read_bytes())
+    assert paths[0] == paths[1]
+
+
+def test_nonfinite_gaussians_are_left_out_of_the_index(tiny):
+    prep = prepare_scene(load_ply(tiny / "scene.ply"))
+    prep.means[5] = np.nan
+    prep.finite[5] = False
+    index = SpatialIndex.build(prep, block_size=100)
+    assert 5 not in index.order
+    assert index.order.size == prep.num_gaussians - 1
+    assert np.isfinite(index.lo).all()
+
+
+def test_morton_codes_order_nearby_points_together():
+    pts = np.array([[0.0, 0, 0], [1, 1, 1], [0.01, 0, 0], [0.99, 1, 1]])
+    order = np.argsort(morton_codes(pts))
+    assert {int(order[0]), int(order[1])} == {0, 2}
+
+
+def test_synth_city_is_the_bench_city_and_registers(tmp_path):
+    from drsplat.synthetic import CityPreset, write_city
+
+    preset = CityPreset(room="tiny", tiles=4, views=8, width=48)
+    out = write_city(tmp_path / "city", preset, show_progress=False)
+    assert not (out / "room").exists()
+    scene, cams = load_ply(out / "scene.ply"), load_cameras(out, require_images=False)
+    room = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    expect, expect_cams, _ = tile_city(load_ply(room / "scene.ply"), load_cameras(room), 4, 8, 48)
+    np.testing.assert_array_equal(scene.means, expect.means)
+    assert [c.name for c in cams] == [c.name for c in expect_cams]
+    assert np.load(out / "gt" / "labels.npy").shape == (scene.num_gaussians,)
+    reg = register(scene, cams, out / "features", tmp_path / "field.ply", RegisterOptions(), show_progress=False)
+    assert reg.num_views == 8 and reg.num_pairs > 0
