@@ -75,15 +75,18 @@ from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "focus", "explain")
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
+EXPLAIN_ITERATIONS = 3  # EM iterations of the explain weighting per view (docs/registration.md, "Design choices, measured")
+FOCUS_GAIN = 4.0  # c of the focus mode: a visible centre's extra vote, in units of the Gaussian's footprint
+FOCUS_PROMINENCE = 0.5  # the centre vote counts where w_i(c_i) ≥ this x the pixel's largest w (not occluded there)
 ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
-_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
-_PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
+_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5, "focus": 6}
+_PROJECTED = ("core", "ellipse", "centre", "anchor", "focus")  # weightings that need the view's screen means / conics
 
 
 def split_mode(mode: str) -> tuple[str, bool]:
@@ -101,7 +104,7 @@ def split_mode(mode: str) -> tuple[str, bool]:
 
 
 def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                           anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
+                           anchor_gain: float = ANCHOR_GAIN, focus_gain: float = FOCUS_GAIN) -> np.ndarray:
     """Per-pixel weights of a weighting (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; means2d: [N, 2] screen means
@@ -130,6 +133,9 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
         return np.where(at_centre, w, 0.0).astype(np.float32)
     if weighting == "anchor":
         return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
+    if weighting == "focus":
+        prominent = w >= FOCUS_PROMINENCE * w.max(axis=-1, keepdims=True)
+        return (w * (1.0 + focus_gain * footprint_area(conics)[g] * (at_centre & prominent & (ids >= 0)))).astype(np.float32)
     raise ValueError(f"unknown weighting {weighting!r}")
 
 
@@ -141,7 +147,7 @@ def footprint_area(conics: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, out):  # pragma: no cover - jitted
+def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, focus_gain, out):  # pragma: no cover - jitted
     """out[y, x, s] = the weighting `code` (see _WEIGHTING_CODE) of slot s of pixel (x, y)."""
     h, wd, k = ids.shape
     for y in numba.prange(h):
@@ -153,6 +159,10 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
                 for s in range(k):
                     if ids[y, x, s] >= 0:
                         total += np.float64(weights[y, x, s])
+            elif code == 6:  # the pixel's largest w
+                for s in range(k):
+                    if ids[y, x, s] >= 0 and np.float64(weights[y, x, s]) > total:
+                        total = np.float64(weights[y, x, s])
             for s in range(k):
                 g = ids[y, x, s]
                 if g < 0:
@@ -167,10 +177,10 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
                     at_centre = np.floor(means2d[g, 0]) == x and np.floor(means2d[g, 1]) == y
                     if code == 4:
                         out[y, x, s] = w if at_centre else 0.0
-                    elif at_centre:
+                    elif at_centre and (code == 5 or w >= FOCUS_PROMINENCE * total):
                         det = conics[g, 0] * conics[g, 2] - conics[g, 1] * conics[g, 1]
                         area = 2.0 * np.pi / np.sqrt(det) if det > 0.0 else 0.0
-                        out[y, x, s] = w * (1.0 + anchor_gain * area)
+                        out[y, x, s] = w * (1.0 + (anchor_gain if code == 5 else focus_gain) * area)
                     else:
                         out[y, x, s] = w
                 else:
@@ -184,14 +194,188 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
 
 
 def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
+                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN, focus_gain: float = FOCUS_GAIN) -> np.ndarray:
     """`view_weights_reference` with a numba kernel; out: a [H, W, k] float32 buffer to reuse."""
     if weighting not in _WEIGHTING_CODE:
         raise ValueError(f"unknown weighting {weighting!r}")
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
     _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
-                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
+                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), float(focus_gain), out)
+    return out
+
+
+# ----------------------------------------------------------------------------- per-view explanation (EM)
+
+
+def explain_weights_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, iterations: int = EXPLAIN_ITERATIONS) -> np.ndarray:
+    """Per-pixel weights of the "explain" weighting (numpy reference; math in `explain_weights`).
+
+    ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; mask_ids: [H, W] the view's mask
+    per pixel (-1 none). Returns [H, W, k] float32 (0 where ids < 0 or the pixel has no mask).
+    """
+    k = ids.shape[-1]
+    g = ids.reshape(-1, k).astype(np.int64)
+    m = np.broadcast_to(mask_ids.reshape(-1, 1), g.shape).astype(np.int64)
+    w = weights.reshape(-1, k).astype(np.float64)
+    valid = (g >= 0) & (m >= 0)
+    out = np.zeros(g.shape, np.float64)
+    if not valid.any():
+        return out.reshape(ids.shape).astype(np.float32)
+    base = int(m[valid].max()) + 1
+    keys, pair = np.unique(g[valid] * base + m[valid], return_inverse=True)
+    pair_g = keys // base
+    gauss, owner = np.unique(pair_g, return_inverse=True)
+    wv = w[valid]
+    v = np.bincount(pair, wv, keys.size)  # w_ij of the view (the paper's pair weights)
+    total = np.bincount(owner, v, gauss.size)  # T_i
+    q = v / total[owner]
+    slot_pair = np.full(g.shape, -1, np.int64)
+    slot_pair[valid] = pair
+    for _ in range(iterations):
+        share = np.where(valid, w * q[np.maximum(slot_pair, 0)], 0.0)
+        denom = share.sum(axis=1, keepdims=True)
+        r = np.where(denom > 0, share / np.where(denom > 0, denom, 1.0), 0.0)
+        c = np.bincount(pair, r[valid], keys.size)
+        rsum = np.bincount(owner, c, gauss.size)
+        q = np.where(rsum[owner] > 0, c / np.where(rsum[owner] > 0, rsum[owner], 1.0), q)
+    scale = np.where(v > 0, total[owner] * q / np.where(v > 0, v, 1.0), 0.0)
+    out[valid] = wv * scale[pair]
+    return out.reshape(ids.shape).astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _explain_kernel(ids, weights, mask_ids, iterations, seen, slot_pair, out):  # pragma: no cover - jitted
+    """out[p, s] = the "explain" weight of slot s of pixel p (`explain_weights`); serial, float64 sums.
+
+    seen [N] int32 (-1 on entry and exit), slot_pair [P, k] int32 scratch.
+    """
+    n_pix, k = ids.shape
+    n_pairs = 0
+    # pair index of every slot: (Gaussian, mask) pairs in first-seen order of the slots
+    pair_g = np.empty(n_pix * k, np.int32)
+    pair_m = np.empty(n_pix * k, np.int32)
+    head = np.empty(n_pix * k, np.int32)  # per pair: next pair of the same Gaussian (linked lists per Gaussian)
+    for p in range(n_pix):
+        m = mask_ids[p]
+        for s in range(k):
+            g = ids[p, s]
+            if g < 0 or m < 0:
+                slot_pair[p, s] = -1
+                continue
+            # walk Gaussian g's pairs (few: the masks it touches in this view)
+            j = seen[g]
+            found = -1
+            while j >= 0:
+                if pair_m[j] == m:
+                    found = j
+                    break
+                j = head[j]
+            if found < 0:
+                found = n_pairs
+                pair_g[found] = g
+                pair_m[found] = m
+                head[found] = seen[g]
+                seen[g] = found
+                n_pairs += 1
+            slot_pair[p, s] = found
+    v = np.zeros(n_pairs)
+    for p in range(n_pix):
+        for s in range(k):
+            j = slot_pair[p, s]
+            if j >= 0:
+                v[j] += weights[p, s]
+    q = np.empty(n_pairs)
+    total = np.zeros(n_pairs)  # T_i of the pair's Gaussian, stored per pair
+    c = np.zeros(n_pairs)
+    for j in range(n_pairs):  # per Gaussian (at its newest pair, the head of its list): T_i and q_ij
+        g = pair_g[j]
+        if seen[g] != j:
+            continue
+        t = 0.0
+        i = j
+        while i >= 0:
+            t += v[i]
+            i = head[i]
+        i = j
+        while i >= 0:
+            total[i] = t
+            q[i] = v[i] / t if t > 0.0 else 0.0
+            i = head[i]
+    for _ in range(iterations):
+        c[:] = 0.0
+        for p in range(n_pix):
+            denom = 0.0
+            for s in range(k):
+                j = slot_pair[p, s]
+                if j >= 0:
+                    denom += np.float64(weights[p, s]) * q[j]
+            if denom > 0.0:
+                for s in range(k):
+                    j = slot_pair[p, s]
+                    if j >= 0:
+                        c[j] += np.float64(weights[p, s]) * q[j] / denom
+        for j in range(n_pairs):
+            g = pair_g[j]
+            if seen[g] != j:
+                continue
+            rs = 0.0
+            i = j
+            while i >= 0:
+                rs += c[i]
+                i = head[i]
+            if rs > 0.0:
+                i = j
+                while i >= 0:
+                    q[i] = c[i] / rs
+                    i = head[i]
+    for p in range(n_pix):
+        for s in range(k):
+            j = slot_pair[p, s]
+            if j < 0:
+                out[p, s] = 0.0
+            elif v[j] > 0.0:
+                out[p, s] = np.float64(weights[p, s]) * (total[j] * q[j] / v[j])
+            else:
+                out[p, s] = 0.0
+    for j in range(n_pairs):
+        seen[pair_g[j]] = -1
+    return n_pairs
+
+
+def explain_weights(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int, iterations: int = EXPLAIN_ITERATIONS,
+                    out: np.ndarray | None = None, seen: np.ndarray | None = None) -> np.ndarray:
+    """The "explain" weighting of one view: which of a pixel's Gaussians explain its mask (EM).
+
+    ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; mask_ids: [H, W] (-1 none); out: a
+    [H, W, k] float32 buffer to reuse. Returns [H, W, k] float32.
+
+    Model: pixel p's mask m(p) was emitted by one of its Gaussians, Gaussian i chosen with
+    probability ∝ w_i(p), and Gaussian i emits mask j of this view with probability q_ij. EM from
+    the paper's shares q_ij = w_ij / T_i (w_ij = Σ_{p ∈ j} w_i(p), T_i = Σ_j w_ij):
+
+        E: r_i(p) = w_i(p)·q_{i,m(p)} / Σ_s w_s(p)·q_{s,m(p)}     (who explains pixel p's mask)
+        M: q_ij = Σ_{p ∈ j} r_i(p) / Σ_p r_i(p)
+
+    `iterations` times, then the view contributes T_i·q_ij to pair (i, j) (each slot's share
+    proportional to its w): a Gaussian's total weight in the view stays the paper's (so coverage
+    and floater statistics do not change), only its split between masks does. A silhouette
+    Gaussian whose footprint spills onto the background keeps its object's mask, because the
+    background's own Gaussians explain the background pixels (r small there) while on the
+    object's pixels only the object's Gaussians compete. This is a per-view, label-space stand-in
+    for the render-consistent least-squares solve (it never mixes views, so it costs one pass over
+    the view's slots per iteration and no memory beyond the view: slot → pair indices [H·W·k]
+    int32 and per-pair float64 arrays).
+    """
+    h, w, k = ids.shape
+    ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
+    if out is None or out.shape != ids.shape:
+        out = np.empty(ids.shape, np.float32)
+    if seen is None or seen.shape[0] != num_gaussians:
+        seen = np.full(num_gaussians, -1, np.int32)
+    slot_pair = np.empty(ids2.shape, np.int32)
+    _explain_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(mask_ids.reshape(-1), np.int32),
+                    int(iterations), seen, slot_pair, out.reshape(-1, k))
     return out
 
 
@@ -462,6 +646,7 @@ class ViewHook:
     rays: RayGeometry | None = None
     _buffer: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _scratch: StatsScratch | None = dataclasses.field(default=None, repr=False, compare=False)
+    _seen: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.weighting, self.reject = split_mode(self.mode)
@@ -482,9 +667,10 @@ class ViewHook:
         """Whether the views must be rasterized with_median (floater rejection's surface)."""
         return self.reject
 
-    def __call__(self, geometry: PreparedScene | None, camera, out) -> tuple[np.ndarray, ViewStats | None]:
+    def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> tuple[np.ndarray, ViewStats | None]:
         """geometry: the scene's CPU geometry (means [N, 3] float64, covariances), needed when
-        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids)."""
+        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids).
+        mask_ids: [H, W] the view's masks (-1 none), read by the explain weighting."""
         stats = None
         if self.reject:
             if out.median_ids is None:
@@ -492,6 +678,14 @@ class ViewHook:
             stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
         if self.weighting == "paper":
             return out.weights, stats
+        if self.weighting == "explain":
+            if mask_ids is None:
+                raise ValueError(f"--aggregate {self.mode} needs the view's mask ids")
+            n = self.rays.reach.shape[0] if self.rays is not None else int(out.ids.max()) + 1
+            if self._seen is None or self._seen.shape[0] < n:
+                self._seen = np.full(max(n, 1), -1, np.int32)
+            self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
+            return self._buffer, stats
         means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
             projected = project_gaussians(geometry, camera)
@@ -554,6 +748,8 @@ class Aggregator:
         memory plan)."""
         weighting, reject = split_mode(mode)
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
+        if weighting == "explain":  # slot -> pair indices and the per-pair arrays (at most one pair per slot)
+            views += pixels * topk * (4 + 12 + 32) + 4 * num_gaussians
         kept = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
