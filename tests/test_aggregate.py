@@ -13,10 +13,13 @@ import pytest
 
 from drsplat.registration.aggregate import (
     ANCHOR_GAIN,
+    FOCUS_GAIN,
     WEIGHTINGS,
     Aggregator,
     RayGeometry,
     SurfaceSupport,
+    explain_weights,
+    explain_weights_reference,
     footprint_area,
     ray_depths_reference,
     split_mode,
@@ -78,10 +81,53 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
     want = view_weights_reference(weighting, ids, weights, means2d, conics)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     bound = {"responsibility": np.ones_like(weights),
-             "anchor": weights * (1.0 + ANCHOR_GAIN * footprint_area(conics)[np.maximum(ids, 0)])}.get(weighting, weights)
+             "anchor": weights * (1.0 + ANCHOR_GAIN * footprint_area(conics)[np.maximum(ids, 0)]),
+             "focus": weights * (1.0 + FOCUS_GAIN * footprint_area(conics)[np.maximum(ids, 0)])}.get(weighting, weights)
     assert (got[ids < 0] == 0).all() and (got <= bound * (1 + 1e-6) + 1e-6).all()
     if weighting == "paper":
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
+
+
+@pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1", "no_masks"])
+def test_explain_kernel_agrees_with_reference_and_keeps_each_gaussians_view_weight(case):
+    rng = np.random.default_rng(abs(hash(("explain", case))) % 2**32)
+    k = 1 if case == "k1" else 6
+    n = 40
+    ids, weights, _, _, _ = _random_view(rng, 9, 13, k, n, case)
+    mask_ids = np.full((9, 13), -1, np.int32) if case == "no_masks" else rng.integers(-1, 4, (9, 13)).astype(np.int32)
+    for iterations in (0, 1, 3):
+        got = explain_weights(ids, weights, mask_ids, n, iterations=iterations)
+        want = explain_weights_reference(ids, weights, mask_ids, iterations=iterations)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+        # a Gaussian's total weight in the view (over pixels with a mask) is the paper's; only its split between masks moves
+        counted = (ids >= 0) & (mask_ids[..., None] >= 0)
+        g = np.where(counted, ids, 0).reshape(-1)
+        paper_total = np.bincount(g, np.where(counted, weights, 0).reshape(-1).astype(np.float64), n)
+        np.testing.assert_allclose(np.bincount(g, got.reshape(-1).astype(np.float64), n), paper_total, rtol=1e-5, atol=1e-6)
+        assert (got[~counted] == 0).all() and (got >= 0).all()
+        if iterations == 0:
+            np.testing.assert_allclose(got, np.where(counted, weights, 0), rtol=1e-5, atol=1e-7)
+
+
+def test_explain_gives_a_spilling_silhouette_gaussian_its_object():
+    """One row of pixels: an object mask (0) of 2 pixels, background (1) beside it. Gaussian 0 sits on
+    the object but 60% of its weight falls on the background, where background Gaussians 1..3
+    dominate; the paper splits it 40/60 (background wins), explain gives it the object."""
+    w_obj = np.array([0.5, 0.5], np.float32)  # Gaussian 0 alone on the object's 2 pixels
+    ids = np.full((1, 5, 2), -1, np.int32)
+    weights = np.zeros((1, 5, 2), np.float32)
+    ids[0, :2, 0], weights[0, :2, 0] = 0, w_obj
+    for x, bg in zip(range(2, 5), (1, 2, 3)):  # background pixels: its own Gaussian in front, Gaussian 0 behind
+        ids[0, x] = [bg, 0]
+        weights[0, x] = [0.9, 0.5]
+    mask_ids = np.array([[0, 0, 1, 1, 1]], np.int32)
+    paper = np.where(ids >= 0, weights, 0)
+    got = explain_weights(ids, weights, mask_ids, 4, iterations=3)
+    share = lambda w, m: float(w[0][(ids[0] == 0) & (mask_ids[0][:, None] == m)].sum())  # noqa: E731
+    assert share(paper, 1) > share(paper, 0)  # the paper's mean is the background's
+    assert share(got, 0) > share(got, 1)
+    np.testing.assert_allclose(share(got, 0) + share(got, 1), share(paper, 0) + share(paper, 1), rtol=1e-6)
+    np.testing.assert_allclose(got[0, 2:, 0], weights[0, 2:, 0], rtol=1e-6)  # background Gaussians keep the background
 
 
 def _random_stats_inputs(rng, case, n=40, h=7, w=11, k=12):

@@ -75,7 +75,8 @@ from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "focus", "explain")
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "focus")  # per-pixel (`view_weights`)
+MASK_WEIGHTINGS = ("explain",)  # also read the view's masks (`explain_weights`)
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 EXPLAIN_ITERATIONS = 3  # EM iterations of the explain weighting per view (docs/registration.md, "Design choices, measured")
 FOCUS_GAIN = 4.0  # c of the focus mode: a visible centre's extra vote, in units of the Gaussian's footprint
@@ -229,7 +230,8 @@ def explain_weights_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np
     wv = w[valid]
     v = np.bincount(pair, wv, keys.size)  # w_ij of the view (the paper's pair weights)
     total = np.bincount(owner, v, gauss.size)  # T_i
-    q = v / total[owner]
+    t = total[owner]
+    q = np.where(t > 0, v / np.where(t > 0, t, 1.0), 0.0)
     slot_pair = np.full(g.shape, -1, np.int64)
     slot_pair[valid] = pair
     for _ in range(iterations):
