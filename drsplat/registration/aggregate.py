@@ -90,15 +90,33 @@ _WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "ce
 _PROJECTED = ("core", "ellipse", "centre", "anchor", "focus")  # weightings that need the view's screen means / conics
 
 
-def split_mode(mode: str) -> tuple[str, bool]:
-    """(weighting, reject) of a mode name; ValueError for an unknown mode."""
+@dataclass(frozen=True)
+class Stages:
+    """A mode as its stages: the per-pixel weighting, then (vote) robust votes across views
+    (drsplat.registration.vote) instead of the weighted mean, then (reject) floater rejection."""
+
+    weighting: str
+    vote: bool
+    reject: bool
+
+
+def mode_stages(mode: str) -> Stages:
+    """The stages of a mode name "[WEIGHTING][-vote][-reject]" ("vote" alone: paper weights);
+    ValueError for an unknown mode."""
     if mode not in AGGREGATE_MODES:
         raise ValueError(f"unknown aggregation mode {mode!r} (choose from {', '.join(AGGREGATE_MODES)})")
-    if mode == "reject":
-        return "paper", True
-    if mode.endswith("-reject"):
-        return mode[: -len("-reject")], True
-    return mode, False
+    parts = mode.split("-")
+    reject = parts[-1] == "reject"
+    parts = parts[:-1] if reject else parts
+    vote = bool(parts) and parts[-1] == "vote"
+    parts = parts[:-1] if vote else parts
+    return Stages(parts[0] if parts else "paper", vote, reject)
+
+
+def split_mode(mode: str) -> tuple[str, bool]:
+    """(weighting, reject) of a mode name; ValueError for an unknown mode."""
+    stages = mode_stages(mode)
+    return stages.weighting, stages.reject
 
 
 # ----------------------------------------------------------------------------- per-view weights
@@ -703,9 +721,11 @@ class Aggregator:
     def __init__(self, mode: str, scene):
         """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
         self.mode = mode
-        self.reject = split_mode(mode)[1]
+        stages = mode_stages(mode)
+        self.reject, self.vote = stages.reject, stages.vote
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
-        self.hook = None if mode == "paper" else ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None)
+        needs_hook = stages.weighting != "paper" or self.reject
+        self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
         self.num_rejected = 0
         self._rejected: np.ndarray | None = None
 
@@ -748,7 +768,8 @@ class Aggregator:
         """(bytes held while views are rasterized, bytes held until the sums are finished) by `mode`
         for a scene of `num_gaussians` and views of at most `pixels` pixels (registration's
         memory plan)."""
-        weighting, reject = split_mode(mode)
+        stages = mode_stages(mode)
+        weighting, reject = stages.weighting, stages.reject
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
         if weighting == "explain":  # slot -> pair indices and the per-pair arrays (at most one pair per slot)
             views += pixels * topk * (4 + 12 + 32) + 4 * num_gaussians
@@ -756,6 +777,10 @@ class Aggregator:
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
             views += (29 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
+        if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
+            from drsplat.registration.vote import VOTE_SLOTS  # vote imports the sinks; kept off this module's import path
+
+            kept += (12 * VOTE_SLOTS + 12) * num_gaussians
         return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:
