@@ -13,6 +13,7 @@ from drsplat.errors import Cancelled
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.aggregate import mode_stages
 from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import MemorySink
 from drsplat.registration.vote import MaskClusters, VoteSink, vote_reference
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
@@ -66,12 +67,12 @@ def test_mask_clusters_group_noisy_masks_of_a_label():
         assert float(means[cluster] @ labels[label]) > 0.99
 
 
-@pytest.mark.parametrize("gamma", [0.0, 0.5, 1.0])
-def test_vote_slots_agree_with_the_reference(gamma):
-    rng = np.random.default_rng(int(gamma * 10))
+@pytest.mark.parametrize("presence", [0.0, 0.1, 0.3])
+def test_vote_slots_agree_with_the_reference(presence):
+    rng = np.random.default_rng(int(presence * 10))
     labels = _labels(rng, 5)
     n = 30
-    sink = VoteSink(n, D, gamma=gamma)
+    sink = VoteSink(n, D, presence=presence)
     views = []
     for v in range(6):
         feats = _unit(labels + rng.normal(scale=0.02, size=labels.shape))
@@ -83,28 +84,43 @@ def test_vote_slots_agree_with_the_reference(gamma):
         w[:3] = 0.0  # zero-weight pairs vote nothing
         view = _view(f"v{v}", feats, g, m, w)
         sink.add(view)
-        views.append((g, sink.clusters.per_view[-1][m], w))
-    (block,) = list(sink.blocks())
-    want_F, want_W = vote_reference(views, n, sink.clusters.means(), gamma=gamma)
-    np.testing.assert_allclose(block.F, want_F, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(block.W, want_W, rtol=1e-6)
+        views.append((g, sink.clusters.per_view[-1][m], w, feats[m]))
     F, W = sink.sample(np.array([2, 7, 11]))
+    (block,) = list(sink.blocks())
+    want_F = vote_reference(views, n, sink.clusters.means(), presence=presence)
+    np.testing.assert_allclose(block.F, want_F, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(block.W, sum(np.bincount(g, w, n) for g, _, w, _ in views), rtol=1e-6)
     np.testing.assert_array_equal(F, block.F[[2, 7, 11]])
+    paper = MemorySink(n, D)
+    for v, (g, _, w, f) in enumerate(views):
+        paper.add(_view(f"v{v}", f, g, np.arange(g.size), w))
+    (plain,) = list(paper.blocks())
+    single = np.array([len(set(np.concatenate([c[g == i] for g, c, w, _ in views])[
+        np.concatenate([w[g == i] for g, c, w, _ in views]) > 0].tolist())) <= 1 for i in range(n)])
+    assert single.any() and (~single).any()
+    np.testing.assert_array_equal(block.F[single], plain.F[single])  # one cluster: the paper's sums, bit for bit
+    assert (np.abs(block.F[~single] - plain.F[~single]).max(axis=1) > 1e-3).any()  # minority clusters trimmed
 
 
 def test_a_mislabelled_close_up_view_is_outvoted():
     """Four views see Gaussian 0 in a mask of label A with weight 1; one close-up view sees it in a
-    mislabelled mask (label B) with weight 5. The paper's mean leans to B; the vote keeps A."""
+    mislabelled mask (label B) with weight 5. The paper's mean leans to B; the vote keeps A (and
+    trims B's pairs out of the mean); Gaussian 1, with weight in A only, keeps the paper's sum bit for bit."""
     rng = np.random.default_rng(3)
     a, b = _labels(rng, 2)
-    sink = VoteSink(1, D)
+    sink = VoteSink(2, D)
     paper = np.zeros(D)
     for v, (feat, w) in enumerate([(a, 1.0)] * 4 + [(b, 5.0)]):
-        sink.add(_view(f"v{v}", feat[None], [0], [0], [w]))
+        sink.add(_view(f"v{v}", feat[None], [0, 1], [0, 0], [w, 0.5 if v < 4 else 0.0]))
         paper += w * feat
     (block,) = list(sink.blocks())
     assert paper @ b > paper @ a
-    assert block.F[0] @ a > 0.99 * np.linalg.norm(block.F[0])
+    np.testing.assert_allclose(block.F[0], 4 * a, atol=1e-5)
+    paper_sink = MemorySink(2, D)
+    for v, (feat, w) in enumerate([(a, 1.0)] * 4 + [(b, 5.0)]):
+        paper_sink.add(_view(f"v{v}", feat[None], [0, 1], [0, 0], [w, 0.5 if v < 4 else 0.0]))
+    (plain,) = list(paper_sink.blocks())
+    np.testing.assert_array_equal(block.F[1], plain.F[1])
     assert block.W[0] == pytest.approx(9.0)
 
 
@@ -112,7 +128,7 @@ def test_full_slots_keep_the_majority_cluster():
     """With 2 slots and 4 clusters met in turn, the cluster holding most of the votes survives (space-saving)."""
     rng = np.random.default_rng(4)
     labels = _labels(rng, 4)
-    sink = VoteSink(1, D, slots=2, gamma=0.0)
+    sink = VoteSink(1, D, slots=2, presence=0.0)
     for v, (label, w) in enumerate([(0, 3.0), (1, 0.5), (2, 0.5), (0, 3.0), (3, 0.5)]):
         sink.add(_view(f"v{v}", labels[label][None], [0], [0], [w]))
     (block,) = list(sink.blocks())

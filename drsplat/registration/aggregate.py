@@ -780,7 +780,7 @@ class Aggregator:
         if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
             from drsplat.registration.vote import VOTE_SLOTS  # vote imports the sinks; kept off this module's import path
 
-            kept += (12 * VOTE_SLOTS + 12) * num_gaussians
+            kept += (20 * VOTE_SLOTS + 8) * num_gaussians
         return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:

@@ -1,34 +1,40 @@
-"""Robust votes across views: the `-vote` stage of an aggregation mode (`--aggregate vote`, ...).
+"""Robust votes across views: the `-vote` stage of an aggregation mode (`--aggregate vote-reject`, ...).
 
-The paper's mean f_i = normalize(Σ_j w_ij f_j) lets one mislabelled view flip a Gaussian, and a
-close-up view, whose footprint covers many pixels, carries most of w. The vote stage instead:
+The paper's mean f_i = normalize(Σ_j w_ij f_j) lets one mislabelled view move a Gaussian, most of
+all a close-up one, whose footprint covers many pixels and so carries most of w. The vote stage
+keeps the paper's sums and trims them:
 
-1. groups the views' masks by embedding: a mask joins the existing cluster whose leader (its
+1. the views' masks are grouped by embedding: a mask joins the existing cluster whose leader (its
    first mask) is most similar if that cosine is ≥ CLUSTER_COSINE, else founds a new one
-   (`MaskClusters`, in view order, so the same views give the same clusters everywhere);
-2. per Gaussian i and cluster c sums the votes
+   (`MaskClusters`, in view order, so the same views give the same clusters everywhere); μ_c =
+   normalize(Σ_{j ∈ c} f_j) is a cluster's mean embedding;
+2. per Gaussian i and cluster c, every view votes by presence, not by area:
 
-       V_ic = Σ_views Σ_{j ∈ view, cluster(j) = c} w_ij / T_iv^γ,     T_iv = Σ_{j ∈ view} w_ij
+       V_ic = Σ_views min(1, s_icv / ρ),   s_icv = Σ_{j ∈ view, cluster(j) = c} w_ij / Σ_{j ∈ view} w_ij
 
-   (γ = VIEW_POWER: 0 is the paper's weight, 1 gives every view that sees the Gaussian one vote
-   split between its masks), kept in VOTE_SLOTS slots per Gaussian with the space-saving rule
-   (a new cluster replaces the smallest slot and inherits its count, so a cluster holding more
-   than 1/VOTE_SLOTS of the votes is never lost);
-3. keeps the winning cluster c* = argmax_c V_ic and the slots whose cluster means have cosine
-   ≥ CLUSTER_COSINE with c*'s, and sets
+   (ρ = PRESENCE: a cluster holding at least that share of the Gaussian's weight in a view gets
+   the view's full vote, so a close-up view counts once), together with the paper's weight of the
+   cluster S_ic = Σ_views Σ_{j ∈ c} w_ij; both kept in VOTE_SLOTS slots per Gaussian with the
+   space-saving rule (a new cluster replaces the smallest slot and inherits its counts, so a
+   cluster voted by more than 1/VOTE_SLOTS of the views is never lost);
+3. the winner c* = argmax_c V_ic; a cluster c is trimmed when it is not like the winner
+   (μ_c·μ_c* < CLUSTER_COSINE) and is a minority of the views, V_ic < MINORITY·V_ic*:
 
-       f_i = normalize(Σ_{c ∈ group} V_ic μ_c),   μ_c = normalize(Σ_{j ∈ c} f_j)
+       F_i = Σ_j w_ij f_j − Σ_{c trimmed} S_ic μ_c
 
-   so a minority of mislabelled views is outvoted, and the feature is the consensus embedding of
-   the masks of the winning group (mean over the whole scene's masks of those clusters, not only
-   the Gaussian's own). The Gaussian's weight W_i = Σ w_ij stays the paper's, so coverage and
-   floater rejection do not change.
+   A mislabelled mask is one view's (V small against the views that agree) and is trimmed; a
+   silhouette Gaussian whose footprint spills onto the background in every view keeps both
+   labels (both are present in every view), exactly as the paper has it. A Gaussian with one
+   cluster keeps the paper's sums bit for bit. The trimmed part is counted at the cluster's mean
+   embedding, not at the Gaussian's own masks' (an approximation: exact when a cluster's masks
+   agree, off by their spread within CLUSTER_COSINE otherwise). W_i = Σ w_ij stays the paper's,
+   so coverage and floater rejection do not change.
 
-Memory: VOTE_SLOTS·12 + 12 bytes per Gaussian (slots, W, a view-total scratch) instead of the
-paper's F [N, D] (4·D bytes), plus K·D·12 bytes for K clusters and 4 bytes per mask for the
-views' cluster ids. Under a memory budget the per-Gaussian slots are summed block by block from
-the pair log (`VoteSink` with a log), pair by pair in the same order as in memory, so the bits do
-not depend on the plan or the place.
+Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
+scratch), K·D·12 bytes for K clusters and 4 bytes per mask for the views' cluster ids. Under a
+memory budget the slots are summed block by block from the pair log with the block's F
+(`VoteSink` with a log), pair by pair in the same order as in memory, so the bits do not depend
+on the plan or the place (tests/test_registration_matrix.py).
 """
 
 from __future__ import annotations
@@ -40,10 +46,12 @@ import numpy as np
 
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block
+from drsplat.registration.sums import Accumulator
 
 VOTE_SLOTS = 8  # candidate clusters kept per Gaussian
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
-VIEW_POWER = 0.5  # γ: each view's votes are w_ij / T_iv^γ (docs/registration.md, "Design choices, measured")
+MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
+PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
 
 
 class MaskClusters:
@@ -107,10 +115,11 @@ class MaskClusters:
 
 
 @numba.njit(cache=True)
-def _vote_view_kernel(rows, clusters, weights, gamma, total, slot_c, slot_v, W):  # pragma: no cover - jitted
-    """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / W, clusters [P],
-    weights [P] float32) into the vote slots (module docstring, step 2), pair by pair in order.
-    total: [rows] float64 scratch, zero on entry and exit."""
+def _vote_view_kernel(rows, clusters, weights, presence, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
+    """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
+    weights [P] float32) into the vote slots (module docstring, step 2), pair by pair in order:
+    slot_v the votes V_ic, slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what
+    the trimmed mean removes). total: [rows] float64 scratch, zero on entry and exit."""
     num_slots = slot_c.shape[1]
     for p in range(rows.shape[0]):
         total[rows[p]] += weights[p]
@@ -118,10 +127,9 @@ def _vote_view_kernel(rows, clusters, weights, gamma, total, slot_c, slot_v, W):
         r = rows[p]
         c = clusters[p]
         w = np.float64(weights[p])
-        W[r] += weights[p]
         if c < 0 or not w > 0.0:
             continue
-        v = w if gamma == 0.0 else w / total[r] ** gamma
+        v = min(1.0, w / (total[r] * presence)) if presence > 0.0 else w
         hit = -1
         low = 0
         for s in range(num_slots):
@@ -130,75 +138,80 @@ def _vote_view_kernel(rows, clusters, weights, gamma, total, slot_c, slot_v, W):
                 break
             if slot_v[r, s] < slot_v[r, low]:
                 low = s
-        if hit >= 0:
-            slot_c[r, hit] = c
-            slot_v[r, hit] += v
-        else:  # space-saving: the smallest slot's cluster is replaced, its count inherited
-            slot_c[r, low] = c
-            slot_v[r, low] += v
+        if hit < 0:  # space-saving: the smallest slot's cluster is replaced, its counts inherited
+            hit = low
+        slot_c[r, hit] = c
+        slot_v[r, hit] += v
+        slot_s[r, hit] += w
     for p in range(rows.shape[0]):
         total[rows[p]] = 0.0
 
 
-def vote_features(slot_c: np.ndarray, slot_v: np.ndarray, means: np.ndarray, threshold: float = CLUSTER_COSINE) -> np.ndarray:
-    """F [B, D] float32 = Σ_{c ∈ group_i} V_ic μ_c (module docstring, step 3; zero rows where no vote).
+def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+    """In place on the paper's sums F [B, D] float32: F_i -= Σ_{c ∉ group_i} S_ic μ_c (module
+    docstring, step 3); rows with a single voted cluster are left bit for bit as they are.
 
-    slot_c: [B, S] int32 clusters (-1 empty), slot_v: [B, S] float64 votes, means: [K, D] unit μ_c.
+    slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S] float64 votes / paper weights,
+    means: [K, D] unit μ_c. Returns F.
     """
-    b, _ = slot_c.shape
-    F = np.zeros((b, means.shape[1]), np.float32)
-    has = slot_c[:, 0] >= 0
-    if not has.any() or means.shape[0] == 0:
+    b = slot_c.shape[0]
+    mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if slot_c.shape[1] > 1 else np.zeros(0, np.int64)
+    if mixed.size == 0 or means.shape[0] == 0 or b == 0:
         return F
-    votes = np.where(slot_c >= 0, slot_v, -np.inf)
-    win = slot_c[np.arange(b), np.argmax(votes, axis=1)]  # first of equal maxima
-    cw = np.maximum(slot_c, 0)
-    sim = np.einsum("bsd,bd->bs", means[cw], means[np.maximum(win, 0)])
-    keep = (slot_c >= 0) & (sim >= threshold) & has[:, None]
-    keep |= (slot_c == win[:, None]) & has[:, None]
-    coef = np.where(keep, slot_v, 0.0)
-    F[:] = np.einsum("bs,bsd->bd", coef, means[cw]).astype(np.float32)
+    c, v, w = slot_c[mixed], slot_v[mixed], slot_s[mixed]
+    votes = np.where(c >= 0, v, -np.inf)
+    win = c[np.arange(mixed.size), np.argmax(votes, axis=1)]  # first of equal maxima
+    cw = np.maximum(c, 0)
+    sim = np.einsum("bsd,bd->bs", means[cw], means[win])
+    v_win = np.max(votes, axis=1, keepdims=True)
+    drop = (c >= 0) & (sim < threshold) & (c != win[:, None]) & (v < minority * v_win)
+    coef = np.where(drop, w, 0.0)
+    F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
     return F
 
 
-def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int, means: np.ndarray,
-                   gamma: float = VIEW_POWER, threshold: float = CLUSTER_COSINE) -> tuple[np.ndarray, np.ndarray]:
+def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int, means: np.ndarray,
+                   presence: float = PRESENCE, threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
     """Obviously-correct reference of the vote stage with unbounded slots (numpy, float64).
 
-    views: per view (gaussians [P], clusters [P], weights [P]). Returns (F [N, D] float64 before
-    normalisation, W [N]): V_ic summed exactly; agrees with the kernel whenever no Gaussian meets
-    more than VOTE_SLOTS clusters.
+    views: per view (gaussians [P], clusters [P], weights [P], embeddings [P, D] of the pairs'
+    masks). Returns F [N, D] float64 before normalisation: the paper's Σ w_ij f_j less the pairs
+    of the clusters outside each Gaussian's winning group, each counted as S_ic μ_c (agrees with the
+    kernel whenever no Gaussian meets more than VOTE_SLOTS clusters).
     """
     k = means.shape[0]
     V = np.zeros((num_gaussians, k))
-    W = np.zeros(num_gaussians)
-    for g, c, w in views:
+    S = np.zeros((num_gaussians, k))
+    F = np.zeros((num_gaussians, means.shape[1]))
+    for g, c, w, f in views:
         w = w.astype(np.float64)
-        W += np.bincount(g, w, num_gaussians)
+        np.add.at(F, g, w[:, None] * f)
         total = np.bincount(g, w, num_gaussians)
         ok = (c >= 0) & (w > 0)
-        v = w[ok] / total[g[ok]] ** gamma if gamma else w[ok]
+        v = np.minimum(1.0, w[ok] / (total[g[ok]] * presence)) if presence else w[ok]
         np.add.at(V, (g[ok], c[ok]), v)
-    F = np.zeros((num_gaussians, means.shape[1]))
-    for i in np.flatnonzero(V.max(axis=1) > 0):
+        np.add.at(S, (g[ok], c[ok]), w[ok])
+    for i in np.flatnonzero((V > 0).sum(axis=1) > 1):
         win = int(np.argmax(V[i]))
-        group = (V[i] > 0) & (means @ means[win] >= threshold)
-        group[win] = True
-        F[i] = V[i, group] @ means[group]
-    return F, W
+        drop = (V[i] > 0) & (means @ means[win] < threshold) & (V[i] < minority * V[i, win])
+        drop[win] = False
+        F[i] -= S[i, drop] @ means[drop]
+    return F
 
 
 class VoteSink:
-    """A sink (drsplat.registration.sink) whose blocks hold the vote stage's features.
+    """A sink (drsplat.registration.sink) whose blocks hold the paper's sums trimmed by the vote.
 
-    Without a log, the vote slots of all N Gaussians are kept while the views arrive; with one
-    (a plan of several blocks), each block replays the log keeping its Gaussians' pairs. Either
-    way `add` assigns the view's masks to clusters (every view, replayed ones included, in order).
+    Without a log, the paper's sums (an Accumulator) and the vote slots of all N Gaussians are kept
+    while the views arrive; with one (a plan of several blocks), each block replays the log keeping
+    its Gaussians' pairs into both. Either way `add` assigns the view's masks to clusters (every
+    view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
     """
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
-                 slots: int = VOTE_SLOTS, gamma: float = VIEW_POWER):
-        self.num_gaussians, self.dim, self.slots, self.gamma = num_gaussians, dim, int(slots), float(gamma)
+                 slots: int = VOTE_SLOTS, presence: float = PRESENCE):
+        self.num_gaussians, self.dim, self.slots, self.presence = num_gaussians, dim, int(slots), float(presence)
         self.clusters = MaskClusters(dim)
         self._log = plog
         self.block = num_gaussians if plog is None else int(block)
@@ -207,7 +220,8 @@ class VoteSink:
         self._state = None if plog is not None else self._empty(num_gaussians)
 
     def _empty(self, rows: int):
-        return (np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)), np.zeros(rows, np.float32), np.zeros(rows))
+        return (Accumulator(rows, self.dim), np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)),
+                np.zeros((rows, self.slots)), np.zeros(rows))
 
     @property
     def num_blocks(self) -> int:
@@ -216,38 +230,44 @@ class VoteSink:
     def add(self, view: ViewPairs) -> None:
         ids = self.clusters.add(view.feats)
         if self._state is not None:
-            self._fold(self._state, view.gaussians, ids[view.masks], view.weights)
+            self._fold(self._state, view.gaussians, view.masks, ids, view.weights, view.feats)
 
-    def _fold(self, state, rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray) -> None:
-        slot_c, slot_v, W, total = state
-        _vote_view_kernel(np.ascontiguousarray(rows, np.int32), np.ascontiguousarray(clusters, np.int32),
-                          np.ascontiguousarray(weights, np.float32), self.gamma, total, slot_c, slot_v, W)
+    def _fold(self, state, rows: np.ndarray, masks: np.ndarray, cluster_of_mask: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+        acc, slot_c, slot_v, slot_s, total = state
+        rows = np.ascontiguousarray(rows, np.int32)
+        acc.add_pairs(rows, masks, weights, feats)
+        _vote_view_kernel(rows, np.ascontiguousarray(cluster_of_mask[masks], np.int32), np.ascontiguousarray(weights, np.float32),
+                          self.presence, total, slot_c, slot_v, slot_s)
+
+    def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
+        acc, slot_c, slot_v, slot_s, _ = state
+        F, W = acc.sums()
+        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means()), W
 
     def blocks(self) -> Iterator[Block]:
-        means = self.clusters.means()
+        if self._state is not None:
+            F, W = self._finish(self._state)
+            yield Block(0, self.num_gaussians, F, W)
+            return
         for lo in range(0, self.num_gaussians, self.block):
             hi = min(self.num_gaussians, lo + self.block)
-            if self._state is not None:
-                slot_c, slot_v, W, _ = self._state
-            else:
-                slot_c, slot_v, W, _ = self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)
-            yield Block(lo, hi, vote_features(slot_c, slot_v, means), W)
+            F, W = self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
+            yield Block(lo, hi, F, W)
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
-        means = self.clusters.means()
         if self._state is not None:
-            slot_c, slot_v, W, _ = self._state
-            return vote_features(slot_c[ids], slot_v[ids], means), W[ids].copy()
+            acc, slot_c, slot_v, slot_s, _ = self._state
+            F, W = acc.sums()
+            return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means()), W[ids].copy()
         row = np.full(self.num_gaussians, -1, np.int32)
         row[ids] = np.arange(ids.shape[0], dtype=np.int32)
-        slot_c, slot_v, W, _ = self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0])
-        return vote_features(slot_c, slot_v, means), W
+        return self._finish(self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0]))
 
     def _replay(self, select, to_row, rows: int):
         state = self._empty(rows)
         for index, view in enumerate(self._log):
             keep = select(view.gaussians)
             if keep.any():
-                self._fold(state, to_row(view.gaussians[keep]), self.clusters.per_view[index][view.masks[keep]], view.weights[keep])
+                self._fold(state, to_row(view.gaussians[keep]), view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
         return state
