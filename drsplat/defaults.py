@@ -9,6 +9,6 @@ DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels ar
 DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene, a path names a faiss codebook
 DEFAULT_AGGREGATE = "paper"  # registration's aggregation mode: Dr. Splat's weighted mean (drsplat.registration.aggregate, docs/registration.md)
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
-                   "centre", "anchor", "anchor-reject", "explain", "explain-reject", "focus", "focus-reject",
-                   "vote", "vote-reject", "explain-vote-reject", "focus-vote-reject")  # drsplat.registration.aggregate implements them
+                   "centre", "anchor", "anchor-reject", "explain", "explain-reject",
+                   "vote", "vote-reject", "explain-vote-reject")  # drsplat.registration.aggregate implements them
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)

@@ -13,7 +13,6 @@ import pytest
 
 from drsplat.registration.aggregate import (
     ANCHOR_GAIN,
-    FOCUS_GAIN,
     WEIGHTINGS,
     Aggregator,
     RayGeometry,
@@ -81,8 +80,7 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
     want = view_weights_reference(weighting, ids, weights, means2d, conics)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     bound = {"responsibility": np.ones_like(weights),
-             "anchor": weights * (1.0 + ANCHOR_GAIN * footprint_area(conics)[np.maximum(ids, 0)]),
-             "focus": weights * (1.0 + FOCUS_GAIN * footprint_area(conics)[np.maximum(ids, 0)])}.get(weighting, weights)
+             "anchor": weights * (1.0 + ANCHOR_GAIN * footprint_area(conics)[np.maximum(ids, 0)])}.get(weighting, weights)
     assert (got[ids < 0] == 0).all() and (got <= bound * (1 + 1e-6) + 1e-6).all()
     if weighting == "paper":
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))

@@ -25,6 +25,14 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
     core-reject     core, then floater rejection
     ellipse-reject  ellipse, then floater rejection
     anchor-reject   anchor, then floater rejection
+    explain         w redistributed between the view's masks by who explains each pixel's mask
+                    (per-view EM, `explain_weights`: a label-space stand-in for a render-consistent
+                    solve); the Gaussian's total weight in the view is kept
+    vote            w, then the mean trimmed of clusters of masks that a minority of views vote
+                    for (drsplat.registration.vote: mislabelled masks outvoted)
+    explain-reject, vote-reject, explain-vote-reject   the stages in that order
+
+A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`).
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
@@ -75,25 +83,23 @@ from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "focus")  # per-pixel (`view_weights`)
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")  # per-pixel (`view_weights`)
 MASK_WEIGHTINGS = ("explain",)  # also read the view's masks (`explain_weights`)
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 EXPLAIN_ITERATIONS = 3  # EM iterations of the explain weighting per view (docs/registration.md, "Design choices, measured")
-FOCUS_GAIN = 4.0  # c of the focus mode: a visible centre's extra vote, in units of the Gaussian's footprint
-FOCUS_PROMINENCE = 0.5  # the centre vote counts where w_i(c_i) ≥ this x the pixel's largest w (not occluded there)
 ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
-_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5, "focus": 6}
-_PROJECTED = ("core", "ellipse", "centre", "anchor", "focus")  # weightings that need the view's screen means / conics
+_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
+_PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
 
 
 @dataclass(frozen=True)
 class Stages:
-    """A mode as its stages: the per-pixel weighting, then (vote) robust votes across views
-    (drsplat.registration.vote) instead of the weighted mean, then (reject) floater rejection."""
+    """A mode as its stages: the per-view weighting, then (vote) the weighted mean trimmed by robust
+    votes across views (drsplat.registration.vote), then (reject) floater rejection."""
 
     weighting: str
     vote: bool
@@ -123,7 +129,7 @@ def split_mode(mode: str) -> tuple[str, bool]:
 
 
 def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                           anchor_gain: float = ANCHOR_GAIN, focus_gain: float = FOCUS_GAIN) -> np.ndarray:
+                           anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """Per-pixel weights of a weighting (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; means2d: [N, 2] screen means
@@ -152,9 +158,6 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
         return np.where(at_centre, w, 0.0).astype(np.float32)
     if weighting == "anchor":
         return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
-    if weighting == "focus":
-        prominent = w >= FOCUS_PROMINENCE * w.max(axis=-1, keepdims=True)
-        return (w * (1.0 + focus_gain * footprint_area(conics)[g] * (at_centre & prominent & (ids >= 0)))).astype(np.float32)
     raise ValueError(f"unknown weighting {weighting!r}")
 
 
@@ -166,7 +169,7 @@ def footprint_area(conics: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, focus_gain, out):  # pragma: no cover - jitted
+def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, out):  # pragma: no cover - jitted
     """out[y, x, s] = the weighting `code` (see _WEIGHTING_CODE) of slot s of pixel (x, y)."""
     h, wd, k = ids.shape
     for y in numba.prange(h):
@@ -178,10 +181,6 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
                 for s in range(k):
                     if ids[y, x, s] >= 0:
                         total += np.float64(weights[y, x, s])
-            elif code == 6:  # the pixel's largest w
-                for s in range(k):
-                    if ids[y, x, s] >= 0 and np.float64(weights[y, x, s]) > total:
-                        total = np.float64(weights[y, x, s])
             for s in range(k):
                 g = ids[y, x, s]
                 if g < 0:
@@ -196,10 +195,10 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
                     at_centre = np.floor(means2d[g, 0]) == x and np.floor(means2d[g, 1]) == y
                     if code == 4:
                         out[y, x, s] = w if at_centre else 0.0
-                    elif at_centre and (code == 5 or w >= FOCUS_PROMINENCE * total):
+                    elif at_centre:
                         det = conics[g, 0] * conics[g, 2] - conics[g, 1] * conics[g, 1]
                         area = 2.0 * np.pi / np.sqrt(det) if det > 0.0 else 0.0
-                        out[y, x, s] = w * (1.0 + (anchor_gain if code == 5 else focus_gain) * area)
+                        out[y, x, s] = w * (1.0 + anchor_gain * area)
                     else:
                         out[y, x, s] = w
                 else:
@@ -213,14 +212,14 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
 
 
 def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray,
-                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN, focus_gain: float = FOCUS_GAIN) -> np.ndarray:
+                 out: np.ndarray | None = None, anchor_gain: float = ANCHOR_GAIN) -> np.ndarray:
     """`view_weights_reference` with a numba kernel; out: a [H, W, k] float32 buffer to reuse."""
     if weighting not in _WEIGHTING_CODE:
         raise ValueError(f"unknown weighting {weighting!r}")
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
     _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
-                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), float(focus_gain), out)
+                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
     return out
 
 
