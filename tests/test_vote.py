@@ -14,7 +14,7 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.aggregate import mode_stages
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
-from drsplat.registration.vote import MaskClusters, VoteSink, vote_reference
+from drsplat.registration.vote import MaskClusters, VoteSink, trimmed_features, trimmed_features_reference, vote_reference
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -100,6 +100,30 @@ def test_vote_slots_agree_with_the_reference(presence):
     assert single.any() and (~single).any()
     np.testing.assert_array_equal(block.F[single], plain.F[single])  # one cluster: the paper's sums, bit for bit
     assert (np.abs(block.F[~single] - plain.F[~single]).max(axis=1) > 1e-3).any()  # minority clusters trimmed
+
+
+@pytest.mark.parametrize("case", ["random", "ties", "one_cluster", "empty"])
+def test_trim_kernel_agrees_with_reference(case):
+    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    b, slots, k = 200, 4, 9
+    means = _labels(rng, k)
+    means[1] = _unit(means[0] + 0.1 * rng.normal(size=D))  # a near-duplicate cluster: never trimmed against 0
+    filled = rng.integers(0, slots + 1, b) if case != "one_cluster" else np.ones(b, int)
+    if case == "empty":
+        filled[:] = 0
+    slot_c = np.full((b, slots), -1, np.int32)
+    for i, f in enumerate(filled):
+        slot_c[i, :f] = rng.choice(k, f, replace=False)
+    slot_v = np.where(slot_c >= 0, rng.integers(1, 4, (b, slots)).astype(np.float64) if case == "ties" else rng.uniform(0, 5, (b, slots)), 0.0)
+    slot_s = np.where(slot_c >= 0, rng.uniform(0, 5, (b, slots)), 0.0)
+    F = rng.normal(size=(b, D)).astype(np.float32)
+    got = trimmed_features(F.copy(), slot_c, slot_v, slot_s, means)
+    want = trimmed_features_reference(F.copy(), slot_c, slot_v, slot_s, means)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    untouched = (slot_c[:, 1] < 0)
+    np.testing.assert_array_equal(got[untouched], F[untouched])
+    if case == "random":
+        assert (np.abs(got - F).max(axis=1) > 1e-3).sum() > 10
 
 
 def test_a_mislabelled_close_up_view_is_outvoted():

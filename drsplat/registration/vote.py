@@ -147,10 +147,11 @@ def _vote_view_kernel(rows, clusters, weights, presence, total, slot_c, slot_v, 
         total[rows[p]] = 0.0
 
 
-def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
                      threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
-    """In place on the paper's sums F [B, D] float32: F_i -= Σ_{c ∉ group_i} S_ic μ_c (module
-    docstring, step 3); rows with a single voted cluster are left bit for bit as they are.
+    """Numpy reference of `trimmed_features`: in place on the paper's sums F [B, D] float32,
+    F_i -= Σ_{c trimmed} S_ic μ_c (module docstring, step 3); rows with one voted cluster are left
+    bit for bit as they are.
 
     slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S] float64 votes / paper weights,
     means: [K, D] unit μ_c. Returns F.
@@ -168,6 +169,52 @@ def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot
     drop = (c >= 0) & (sim < threshold) & (c != win[:, None]) & (v < minority * v_win)
     coef = np.where(drop, w, 0.0)
     F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
+    return F
+
+
+@numba.njit(parallel=True, cache=True)
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority):  # pragma: no cover - jitted
+    """`trimmed_features_reference`, one Gaussian per thread at a time (rows are independent)."""
+    b, num_slots = slot_c.shape
+    dim = F.shape[1]
+    for i in numba.prange(b):
+        if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
+            continue
+        best = 0
+        for s in range(1, num_slots):
+            if slot_c[i, s] >= 0 and slot_v[i, s] > slot_v[i, best]:
+                best = s
+        win = slot_c[i, best]
+        v_win = slot_v[i, best]
+        row = np.empty(dim)
+        for d in range(dim):
+            row[d] = F[i, d]
+        changed = False
+        for s in range(num_slots):
+            c = slot_c[i, s]
+            if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
+                continue
+            sim = np.float32(0.0)
+            for d in range(dim):
+                sim += means[c, d] * means[win, d]
+            if sim < threshold:
+                changed = True
+                for d in range(dim):
+                    row[d] -= slot_s[i, s] * np.float64(means[c, d])
+        if changed:
+            for d in range(dim):
+                F[i, d] = row[d]
+
+
+def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+    """In place on the paper's sums F [B, D] float32: F_i -= Σ_{c trimmed} S_ic μ_c (module
+    docstring, step 3; numba, one Gaussian per thread); rows with one voted cluster are left bit
+    for bit as they are. slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S]
+    float64 votes / paper weights, means: [K, D] unit μ_c float32. Returns F."""
+    if F.shape[0] == 0 or means.shape[0] == 0:
+        return F
+    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority))
     return F
 
 
