@@ -277,12 +277,16 @@ def test_core_weights_equal_the_compositor_falloff():
     np.testing.assert_allclose(core[..., 0][hit], alpha * (alpha / 0.5), rtol=1e-5)
 
 
-def test_paper_mode_is_the_default_and_unchanged(hard_tiny):
+def test_default_mode_is_vote_reject_and_paper_still_runs(hard_tiny):
+    """The default is `vote-reject` (chosen in docs/evaluation.md, "Choosing the default"); `paper`
+    stays available and rejects nothing."""
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
     a = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10), show_progress=False)
-    b = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
+    b = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
     np.testing.assert_array_equal(a.features, b.features)
-    assert a.aggregate == "paper" and a.num_rejected == 0
+    assert a.aggregate == "vote-reject" and a.num_rejected > 0
+    paper = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
+    assert paper.aggregate == "paper" and paper.num_rejected == 0 and paper.num_assigned > a.num_assigned
 
 
 def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
@@ -312,7 +316,7 @@ def test_recommended_mode_beats_paper_and_rejects_floaters(hard_tiny):
     ds = Dataset(hard_tiny, load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny), np.load(hard_tiny / "gt" / "labels.npy").astype(np.int64),
                  json.loads((hard_tiny / "gt" / "label_names.json").read_text()), np.load(hard_tiny / "text_embeddings.npy"))
     col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
-    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(), show_progress=False))
+    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate="paper"), show_progress=False))
     best = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate=RECOMMENDED), show_progress=False))
     assert best[col["seg mIoU vol +unl"]] >= paper[col["seg mIoU vol +unl"]] + 0.02
     assert best[col["loc mIoU vol"]] >= paper[col["loc mIoU vol"]] + 0.02
@@ -332,7 +336,7 @@ def test_cli_lists_modes_and_rejects_unknown(hard_tiny, tmp_path):
 
 def test_registered_ply_has_fewer_gaussians_with_rejection(hard_tiny, tmp_path):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    paper = register(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10), show_progress=False)
+    paper = register(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
     rej = register(scene, cams, hard_tiny / "features", tmp_path / "rej.ply", RegisterOptions(topk=10, aggregate="reject"),
                           show_progress=False)
     assert rej.num_rejected > 0
@@ -369,10 +373,12 @@ def test_rejection_in_blocks_equals_one_block_and_resumes(hard_tiny, tmp_path):
 
 def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    paper = estimate_memory(scene, cams, 512, 40, base=0)
+    paper = estimate_memory(scene, cams, 512, 40, base=0, aggregate="paper")
     rej = estimate_memory(scene, cams, 512, 40, base=0, aggregate="reject")
     assert rej.views - paper.views >= 100 * scene.num_gaussians  # statistics, scratch and ray geometry
     assert rej.in_memory > paper.in_memory
+    vote = estimate_memory(scene, cams, 512, 40, base=0)  # the default, vote-reject: the vote slots on top
+    assert vote.in_memory - rej.in_memory >= 160 * scene.num_gaussians
 
 
 def test_view_hook_survives_pickling(hard_tiny):

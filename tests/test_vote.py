@@ -188,3 +188,27 @@ def test_cancelled_vote_registration_resumes_to_the_same_features(hard_tiny, tmp
                                show_progress=False)
     assert blocks.num_blocks > 1
     np.testing.assert_array_equal(blocks.features, full.features)
+
+
+@pytest.mark.parametrize("mislabel", [0.0, 0.2])
+def test_default_outvotes_mislabelled_masks_and_keeps_clean_rooms(hard_tiny, tmp_path_factory, mislabel):
+    """hard-tiny seed 0, top-k 40 (measured, paper -> the default vote-reject): labelled seg mIoU vol
+    0.890 -> 0.888 on clean masks, 0.640 -> 0.761 with 20% of the masks mislabelled; floaters kept
+    1.00 -> 0.02, labelled coverage 1.000. Asserted with slack."""
+    import json
+
+    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
+
+    root = hard_tiny if mislabel == 0 else write_dataset(tmp_path_factory.mktemp("mis") / "hard-tiny", "hard-tiny", 0, mislabel_fraction=mislabel,
+                                                         show_progress=False)
+    ds = Dataset(root, load_ply(root / "scene.ply"), load_cameras(root), np.load(root / "gt" / "labels.npy").astype(np.int64),
+                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
+    col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
+    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, root / "features", RegisterOptions(aggregate="paper"), show_progress=False))
+    default = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, root / "features", RegisterOptions(), show_progress=False))
+    seg = col["seg mIoU vol"]
+    if mislabel:
+        assert default[seg] >= paper[seg] + 0.08
+    else:
+        assert default[seg] >= paper[seg] - 0.005
+    assert default[col["floaters kept"]] < 0.1 and default[col["labelled coverage"]] >= 0.99
