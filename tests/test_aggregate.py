@@ -366,7 +366,7 @@ def test_rejection_in_blocks_equals_one_block_and_resumes(hard_tiny, tmp_path):
         register(scene, cams, hard_tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop, checkpoint_every=2)
     assert aggregate_stats_path(checkpoint_path_for(out)).is_file()
     resumed = register(scene, cams, hard_tiny / "features", out, options, show_progress=False)
-    assert resumed.resumed_views == 4  # the log is cut back to the last snapshot
+    assert resumed.resumed_views == 5  # a clean stop snapshots the statistics of every logged view (a kill: the last periodic one)
     assert out.read_bytes() == (tmp_path / "mem.ply").read_bytes()
     assert not checkpoint_path_for(out).exists() and not aggregate_stats_path(checkpoint_path_for(out)).exists()
 

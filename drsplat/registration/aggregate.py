@@ -726,6 +726,7 @@ class Aggregator:
         needs_hook = stages.weighting != "paper" or self.reject
         self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
         self.num_rejected = 0
+        self.views_folded = 0  # views whose statistics are in `support` (a checkpoint snapshots only a consistent state)
         self._rejected: np.ndarray | None = None
 
     def add(self, stats: ViewStats | None) -> None:
@@ -734,6 +735,7 @@ class Aggregator:
             if stats is None:
                 raise ValueError(f"--aggregate {self.mode}: a view came without its rejection statistics")
             self.support.add(stats)
+            self.views_folded += 1
 
     def finish(self, F: np.ndarray, W: np.ndarray, start: int = 0) -> int:
         """Post-step on the sums of Gaussians start .. start + B (all of them, or a block when

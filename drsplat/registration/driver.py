@@ -311,9 +311,11 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     stream = executor.view_pairs(run.views[totals.done :])
     try:
         for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
-            aggregator.add(view.stats)
             if ckpt is not None:
                 ckpt.append(view)
+            aggregator.add(view.stats)
+            if ckpt is not None:
+                ckpt.folded()
             consume(view)
             if on_progress is not None:
                 on_progress(totals.done, total)
