@@ -10,10 +10,13 @@ keeps the paper's sums and trims them:
    normalize(Σ_{j ∈ c} f_j) is a cluster's mean embedding;
 2. per Gaussian i and cluster c, every view votes by presence, not by area:
 
-       V_ic = Σ_views min(1, s_icv / ρ),   s_icv = Σ_{j ∈ view, cluster(j) = c} w_ij / Σ_{j ∈ view} w_ij
+       V_ic = Σ_views min(1, s_icv / ρ) · min(1, T_iv / T₀),
+       s_icv = Σ_{j ∈ view, cluster(j) = c} w_ij / T_iv,   T_iv = Σ_{j ∈ view} w_ij
 
    (ρ = PRESENCE: a cluster holding at least that share of the Gaussian's weight in a view gets
-   the view's full vote, so a close-up view counts once), together with the paper's weight of the
+   the view's full vote, so a close-up view counts once; T₀ = FULL_VIEW: a view in which the
+   Gaussian is faint, far or mostly hidden, T_iv < T₀, votes in proportion, since a small object
+   seen from afar has no mask of its own there and lands in its surroundings' mask), together with the paper's weight of the
    cluster S_ic = Σ_views Σ_{j ∈ c} w_ij; both kept in VOTE_SLOTS slots per Gaussian with the
    space-saving rule (a new cluster replaces the smallest slot and inherits its counts, so a
    cluster voted by more than 1/VOTE_SLOTS of the views is never lost);
@@ -51,6 +54,7 @@ from drsplat.registration.sums import Accumulator
 VOTE_SLOTS = 8  # candidate clusters kept per Gaussian
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
+FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
 PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
 
 
@@ -115,7 +119,7 @@ class MaskClusters:
 
 
 @numba.njit(cache=True)
-def _vote_view_kernel(rows, clusters, weights, presence, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
+def _vote_view_kernel(rows, clusters, weights, presence, full_view, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
     """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
     weights [P] float32) into the vote slots (module docstring, step 2), pair by pair in order:
     slot_v the votes V_ic, slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what
@@ -129,7 +133,7 @@ def _vote_view_kernel(rows, clusters, weights, presence, total, slot_c, slot_v, 
         w = np.float64(weights[p])
         if c < 0 or not w > 0.0:
             continue
-        v = min(1.0, w / (total[r] * presence)) if presence > 0.0 else w
+        v = min(1.0, w / (total[r] * presence)) * min(1.0, total[r] / full_view) if presence > 0.0 else w
         hit = -1
         low = 0
         for s in range(num_slots):
@@ -219,7 +223,8 @@ def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot
 
 
 def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int, means: np.ndarray,
-                   presence: float = PRESENCE, threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+                   presence: float = PRESENCE, threshold: float = CLUSTER_COSINE, minority: float = MINORITY,
+                   full_view: float = FULL_VIEW) -> np.ndarray:
     """Obviously-correct reference of the vote stage with unbounded slots (numpy, float64).
 
     views: per view (gaussians [P], clusters [P], weights [P], embeddings [P, D] of the pairs'
@@ -236,7 +241,8 @@ def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
         np.add.at(F, g, w[:, None] * f)
         total = np.bincount(g, w, num_gaussians)
         ok = (c >= 0) & (w > 0)
-        v = np.minimum(1.0, w[ok] / (total[g[ok]] * presence)) if presence else w[ok]
+        t = total[g[ok]]
+        v = np.minimum(1.0, w[ok] / (t * presence)) * np.minimum(1.0, t / full_view) if presence else w[ok]
         np.add.at(V, (g[ok], c[ok]), v)
         np.add.at(S, (g[ok], c[ok]), w[ok])
     for i in np.flatnonzero((V > 0).sum(axis=1) > 1):
@@ -257,8 +263,8 @@ class VoteSink:
     """
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
-                 slots: int = VOTE_SLOTS, presence: float = PRESENCE):
-        self.num_gaussians, self.dim, self.slots, self.presence = num_gaussians, dim, int(slots), float(presence)
+                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW):
+        self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
         self.clusters = MaskClusters(dim)
         self._log = plog
         self.block = num_gaussians if plog is None else int(block)
@@ -284,7 +290,7 @@ class VoteSink:
         rows = np.ascontiguousarray(rows, np.int32)
         acc.add_pairs(rows, masks, weights, feats)
         _vote_view_kernel(rows, np.ascontiguousarray(cluster_of_mask[masks], np.int32), np.ascontiguousarray(weights, np.float32),
-                          self.presence, total, slot_c, slot_v, slot_s)
+                          self.presence, self.full_view, total, slot_c, slot_v, slot_s)
 
     def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
         acc, slot_c, slot_v, slot_s, _ = state
