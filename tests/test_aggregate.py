@@ -432,3 +432,20 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, fresh.weights)
     assert sum("aggregate.npz is missing or unreadable" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):
+    """`ablate aggregate` over mask sources x corruptions names each room's setting and builds each
+    corrupted dataset (the mislabelled one differs from the clean one); unknown names are refused."""
+    from drsplat.eval.ablations import ablate_aggregate
+
+    result = ablate_aggregate(tmp_path, ("hard-tiny",), [0], ("paper", "vote-reject"), (10,), mask_sources=("render", "geometry"),
+                              corruptions=("clean", "mislabel20"))
+    names = [r[0] for r in result.rows]
+    assert names == [f"hard-tiny {s} {c}" for s in ("render", "geometry") for c in ("clean", "mislabel20") for _ in range(2)]
+    seg = {(r[0], r[1]): r[3] for r in result.rows}
+    assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny render mislabel20", "paper"] + 0.05
+    assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny geometry clean", "paper"]
+    bad = subprocess.run([sys.executable, "-m", "drsplat", "eval", "ablate", "aggregate", "--corruptions", "bogus", "--out-dir", str(tmp_path / "x")],
+                         capture_output=True, text=True, check=False)
+    assert bad.returncode != 0 and "bogus" in bad.stderr and "mislabel10" in bad.stderr
