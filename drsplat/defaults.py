@@ -7,7 +7,8 @@ MAX_TOPK = 1024  # Gaussians kept per pixel at most (top-k buffers are [H, W, k]
 DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)
 DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene, a path names a faiss codebook
-DEFAULT_AGGREGATE = "paper"  # registration's aggregation mode: Dr. Splat's weighted mean (drsplat.registration.aggregate, docs/registration.md)
+DEFAULT_AGGREGATE = "vote-reject"  # registration's aggregation mode: the paper's weighted mean trimmed by votes across views, floaters rejected (docs/evaluation.md, "Choosing the default")
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
-                   "centre", "anchor", "anchor-reject")  # drsplat.registration.aggregate implements them
+                   "centre", "anchor", "anchor-reject", "explain", "explain-reject",
+                   "vote", "vote-reject", "explain-vote-reject")  # drsplat.registration.aggregate implements them
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)

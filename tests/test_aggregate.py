@@ -17,6 +17,8 @@ from drsplat.registration.aggregate import (
     Aggregator,
     RayGeometry,
     SurfaceSupport,
+    explain_weights,
+    explain_weights_reference,
     footprint_area,
     ray_depths_reference,
     split_mode,
@@ -82,6 +84,48 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
     assert (got[ids < 0] == 0).all() and (got <= bound * (1 + 1e-6) + 1e-6).all()
     if weighting == "paper":
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
+
+
+@pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1", "no_masks"])
+def test_explain_kernel_agrees_with_reference_and_keeps_each_gaussians_view_weight(case):
+    rng = np.random.default_rng(abs(hash(("explain", case))) % 2**32)
+    k = 1 if case == "k1" else 6
+    n = 40
+    ids, weights, _, _, _ = _random_view(rng, 9, 13, k, n, case)
+    mask_ids = np.full((9, 13), -1, np.int32) if case == "no_masks" else rng.integers(-1, 4, (9, 13)).astype(np.int32)
+    for iterations in (0, 1, 3):
+        got = explain_weights(ids, weights, mask_ids, n, iterations=iterations)
+        want = explain_weights_reference(ids, weights, mask_ids, iterations=iterations)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+        # a Gaussian's total weight in the view (over pixels with a mask) is the paper's; only its split between masks moves
+        counted = (ids >= 0) & (mask_ids[..., None] >= 0)
+        g = np.where(counted, ids, 0).reshape(-1)
+        paper_total = np.bincount(g, np.where(counted, weights, 0).reshape(-1).astype(np.float64), n)
+        np.testing.assert_allclose(np.bincount(g, got.reshape(-1).astype(np.float64), n), paper_total, rtol=1e-5, atol=1e-6)
+        assert (got[~counted] == 0).all() and (got >= 0).all()
+        if iterations == 0:
+            np.testing.assert_allclose(got, np.where(counted, weights, 0), rtol=1e-5, atol=1e-7)
+
+
+def test_explain_gives_a_spilling_silhouette_gaussian_its_object():
+    """One row of pixels: an object mask (0) of 2 pixels, background (1) beside it. Gaussian 0 sits on
+    the object but 60% of its weight falls on the background, where background Gaussians 1..3
+    dominate; the paper splits it 40/60 (background wins), explain gives it the object."""
+    w_obj = np.array([0.5, 0.5], np.float32)  # Gaussian 0 alone on the object's 2 pixels
+    ids = np.full((1, 5, 2), -1, np.int32)
+    weights = np.zeros((1, 5, 2), np.float32)
+    ids[0, :2, 0], weights[0, :2, 0] = 0, w_obj
+    for x, bg in zip(range(2, 5), (1, 2, 3)):  # background pixels: its own Gaussian in front, Gaussian 0 behind
+        ids[0, x] = [bg, 0]
+        weights[0, x] = [0.9, 0.5]
+    mask_ids = np.array([[0, 0, 1, 1, 1]], np.int32)
+    paper = np.where(ids >= 0, weights, 0)
+    got = explain_weights(ids, weights, mask_ids, 4, iterations=3)
+    share = lambda w, m: float(w[0][(ids[0] == 0) & (mask_ids[0][:, None] == m)].sum())  # noqa: E731
+    assert share(paper, 1) > share(paper, 0)  # the paper's mean is the background's
+    assert share(got, 0) > share(got, 1)
+    np.testing.assert_allclose(share(got, 0) + share(got, 1), share(paper, 0) + share(paper, 1), rtol=1e-6)
+    np.testing.assert_allclose(got[0, 2:, 0], weights[0, 2:, 0], rtol=1e-6)  # background Gaussians keep the background
 
 
 def _random_stats_inputs(rng, case, n=40, h=7, w=11, k=12):
@@ -233,12 +277,16 @@ def test_core_weights_equal_the_compositor_falloff():
     np.testing.assert_allclose(core[..., 0][hit], alpha * (alpha / 0.5), rtol=1e-5)
 
 
-def test_paper_mode_is_the_default_and_unchanged(hard_tiny):
+def test_default_mode_is_vote_reject_and_paper_still_runs(hard_tiny):
+    """The default is `vote-reject` (chosen in docs/evaluation.md, "Choosing the default"); `paper`
+    stays available and rejects nothing."""
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
     a = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10), show_progress=False)
-    b = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
+    b = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
     np.testing.assert_array_equal(a.features, b.features)
-    assert a.aggregate == "paper" and a.num_rejected == 0
+    assert a.aggregate == "vote-reject" and a.num_rejected > 0
+    paper = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
+    assert paper.aggregate == "paper" and paper.num_rejected == 0 and paper.num_assigned > a.num_assigned
 
 
 def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
@@ -268,7 +316,7 @@ def test_recommended_mode_beats_paper_and_rejects_floaters(hard_tiny):
     ds = Dataset(hard_tiny, load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny), np.load(hard_tiny / "gt" / "labels.npy").astype(np.int64),
                  json.loads((hard_tiny / "gt" / "label_names.json").read_text()), np.load(hard_tiny / "text_embeddings.npy"))
     col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
-    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(), show_progress=False))
+    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate="paper"), show_progress=False))
     best = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate=RECOMMENDED), show_progress=False))
     assert best[col["seg mIoU vol +unl"]] >= paper[col["seg mIoU vol +unl"]] + 0.02
     assert best[col["loc mIoU vol"]] >= paper[col["loc mIoU vol"]] + 0.02
@@ -288,7 +336,7 @@ def test_cli_lists_modes_and_rejects_unknown(hard_tiny, tmp_path):
 
 def test_registered_ply_has_fewer_gaussians_with_rejection(hard_tiny, tmp_path):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    paper = register(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10), show_progress=False)
+    paper = register(scene, cams, hard_tiny / "features", tmp_path / "paper.ply", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
     rej = register(scene, cams, hard_tiny / "features", tmp_path / "rej.ply", RegisterOptions(topk=10, aggregate="reject"),
                           show_progress=False)
     assert rej.num_rejected > 0
@@ -318,17 +366,19 @@ def test_rejection_in_blocks_equals_one_block_and_resumes(hard_tiny, tmp_path):
         register(scene, cams, hard_tiny / "features", out, options, show_progress=False, cancel=token, on_progress=stop, checkpoint_every=2)
     assert aggregate_stats_path(checkpoint_path_for(out)).is_file()
     resumed = register(scene, cams, hard_tiny / "features", out, options, show_progress=False)
-    assert resumed.resumed_views == 4  # the log is cut back to the last snapshot
+    assert resumed.resumed_views == 5  # a clean stop snapshots the statistics of every logged view (a kill: the last periodic one)
     assert out.read_bytes() == (tmp_path / "mem.ply").read_bytes()
     assert not checkpoint_path_for(out).exists() and not aggregate_stats_path(checkpoint_path_for(out)).exists()
 
 
 def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    paper = estimate_memory(scene, cams, 512, 40, base=0)
+    paper = estimate_memory(scene, cams, 512, 40, base=0, aggregate="paper")
     rej = estimate_memory(scene, cams, 512, 40, base=0, aggregate="reject")
     assert rej.views - paper.views >= 100 * scene.num_gaussians  # statistics, scratch and ray geometry
     assert rej.in_memory > paper.in_memory
+    vote = estimate_memory(scene, cams, 512, 40, base=0)  # the default, vote-reject: the vote slots on top
+    assert vote.in_memory - rej.in_memory >= 160 * scene.num_gaussians
 
 
 def test_view_hook_survives_pickling(hard_tiny):
@@ -382,3 +432,20 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, fresh.weights)
     assert sum("aggregate.npz is missing or unreadable" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):
+    """`ablate aggregate` over mask sources x corruptions names each room's setting and builds each
+    corrupted dataset (the mislabelled one differs from the clean one); unknown names are refused."""
+    from drsplat.eval.ablations import ablate_aggregate
+
+    result = ablate_aggregate(tmp_path, ("hard-tiny",), [0], ("paper", "vote-reject"), (10,), mask_sources=("render", "geometry"),
+                              corruptions=("clean", "mislabel20"))
+    names = [r[0] for r in result.rows]
+    assert names == [f"hard-tiny {s} {c}" for s in ("render", "geometry") for c in ("clean", "mislabel20") for _ in range(2)]
+    seg = {(r[0], r[1]): r[3] for r in result.rows}
+    assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny render mislabel20", "paper"] + 0.05
+    assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny geometry clean", "paper"]
+    bad = subprocess.run([sys.executable, "-m", "drsplat", "eval", "ablate", "aggregate", "--corruptions", "bogus", "--out-dir", str(tmp_path / "x")],
+                         capture_output=True, text=True, check=False)
+    assert bad.returncode != 0 and "bogus" in bad.stderr and "mislabel10" in bad.stderr

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from drsplat.cli import main
-from drsplat.registration.checkpoint import checkpoint_path_for
+from drsplat.registration.checkpoint import aggregate_stats_path, checkpoint_path_for
 from drsplat.registration.output import PlyTarget
 from drsplat.registration.pairlog import PairLog
 from drsplat.synthetic import write_dataset
@@ -75,7 +75,8 @@ def test_disk_full_while_writing_the_output_keeps_the_checkpoint_and_the_rerun_r
     assert main(_args(tiny, out, "--memory-budget", "16GB")) == 1
     err = capsys.readouterr().err
     assert f"{out}: the disk is full" in err
-    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == [checkpoint_path_for(out).name]  # no half file, no temp body
+    left = sorted(p.name for p in tmp_path.iterdir())  # no half file, no temp body: the log and the mode's statistics snapshot
+    assert not out.exists() and left == sorted([checkpoint_path_for(out).name, aggregate_stats_path(checkpoint_path_for(out)).name])
     assert f"kept the registration checkpoint {checkpoint_path_for(out)} (16 of 16 views" in err and "resumes from it" in err
     monkeypatch.undo()  # space freed
     assert main(_args(tiny, out)) == 0

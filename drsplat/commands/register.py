@@ -34,9 +34,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
                    "(weight by the Gaussian's own falloff / only its 2-sigma ellipse), responsibility (w / pixel sum), "
-                   "centre / anchor (only / also a vote at the pixel of its projected centre), *-reject (also leave "
-                   "floaters unassigned; `reject` is recommended for scenes with floaters); see docs/registration.md "
-                   "(default: %(default)s)")
+                   "centre / anchor (only / also a vote at the pixel of its projected centre), explain (per-view EM: "
+                   "who explains each pixel's mask), *-vote (the mean trimmed of masks a minority of views vote for: "
+                   "mislabelled masks), *-reject (also leave floaters unassigned); stages combine as "
+                   "WEIGHTING-vote-reject; see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
     p.add_argument("--resolution", type=resolution_value, default=-1,

@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
 AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
+# oracle corruptions of the aggregate ablation: name -> (mislabelled-mask fraction, boundary jitter in
+# pixels); "own" is each preset's default (hard-noisy 10% + 2 px, hard-room 1 px, others clean)
+CORRUPTIONS = {"own": (None, None), "clean": (0.0, 0), "mislabel10": (0.1, 2), "mislabel20": (0.2, 0)}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)
@@ -81,12 +84,15 @@ class AblationResult:
         return {"name": self.name, "columns": self.columns, "rows": self.rows, "notes": self.notes, **self.extra}
 
 
-def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None) -> Dataset:
+def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None,
+            jitter: int | None = None) -> Dataset:
     """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
-    override the preset's oracle mask source, "render" or "geometry"; drsplat.synthetic)."""
-    path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else ""))
+    override the preset's oracle mask source, "render" or "geometry"; jitter: the masks' boundary
+    jitter in pixels, None the preset's; drsplat.synthetic)."""
+    path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else "")
+                   + (f"-j{jitter}" if jitter is not None else ""))
     if not (path / "scene.ply").exists():
-        write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, show_progress=False)
+        write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
 
@@ -249,26 +255,39 @@ def aggregate_metrics(ds: Dataset, result) -> list[float]:
             1e3 * result.seconds / max(result.num_views, 1)]
 
 
+def _corrupted(root: Path, preset: str, seed: int, mask_source: str | None, corruption: str) -> Dataset:
+    mislabel, jitter = CORRUPTIONS[corruption]
+    return dataset(root, preset, seed, PRESETS[preset].mislabel if mislabel is None else mislabel, mask_source=mask_source, jitter=jitter)
+
+
 def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (0,), modes=None, topks=AGGREGATE_TOPK,
-                     cancel: CancelToken | None = None, mask_source: str | None = None) -> AblationResult:
+                     cancel: CancelToken | None = None, mask_source: str | None = None, mask_sources=None,
+                     corruptions=("own",)) -> AblationResult:
     """Every aggregation mode x top-k on every hard preset, mean over seeds (AGGREGATE_COLUMNS).
-    mask_source: every preset's oracle masks from this source (None: each preset's own)."""
+    mask_source: every preset's oracle masks from this source (None: each preset's own);
+    mask_sources: several of them (rows then name "preset source corruption"); corruptions: keys
+    of CORRUPTIONS (several: rows name them)."""
     modes = tuple(modes or AGGREGATE_MODES)
-    first = dataset(root, presets[0], seeds[0], PRESETS[presets[0]].mislabel, mask_source=mask_source)
+    sources = tuple(mask_sources) if mask_sources else (mask_source,)
+    named = len(sources) > 1 or tuple(corruptions) != ("own",)
+    first = _corrupted(root, presets[0], seeds[0], sources[0], corruptions[0])
     for k in topks:  # warm-up: compiled kernels load once, not inside the timings
         for mode in modes:
             register(first, int(k), aggregate=mode)
     rows = []
     for preset in presets:
-        for k in topks:
-            for mode in modes:
-                per = []
-                for seed in seeds:
-                    _check(cancel)
-                    ds = dataset(root, preset, seed, PRESETS[preset].mislabel, mask_source=mask_source)
-                    per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
-                rows.append([preset, mode, int(k), *map(float, np.mean(per, axis=0))])
-                log.info("%s k=%d %s: %s", preset, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
+        for source in sources:
+            for corruption in corruptions:
+                name = f"{preset} {source or 'own'} {corruption}" if named else preset
+                for k in topks:
+                    for mode in modes:
+                        per = []
+                        for seed in seeds:
+                            _check(cancel)
+                            ds = _corrupted(root, preset, seed, source, corruption)
+                            per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
+                        rows.append([name, mode, int(k), *map(float, np.mean(per, axis=0))])
+                        log.info("%s k=%d %s: %s", name, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
     notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); oracle masks: "
              f"{mask_source + ' (every preset)' if mask_source else 'each preset own (geometry for hard-silhouette, render otherwise)'}; "
              "each preset's default oracle corruption "
@@ -411,9 +430,11 @@ def add_ablate_parser(sub) -> None:
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
     p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
-    p.add_argument("--mask-source", choices=("render", "geometry"), default=None,
-                   help="aggregate: oracle masks of every preset from the rendered Gaussians' vote or ray-cast true silhouettes "
-                        "(default: each preset's own)")
+    p.add_argument("--mask-source", default=None, metavar="SRC[,SRC]",
+                   help="aggregate: oracle masks of every preset from the rendered Gaussians' vote (render) or ray-cast true silhouettes "
+                        "(geometry); a comma-separated list compares both (default: each preset's own)")
+    p.add_argument("--corruptions", default="own", metavar="C[,C]",
+                   help=f"aggregate: oracle corruptions to compare ({', '.join(CORRUPTIONS)}; default: each preset's own)")
     p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k or PQ sub-vectors)")
@@ -437,9 +458,15 @@ def run_ablate(args: argparse.Namespace) -> int:
             raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(AGGREGATE_MODES)})")
         if "paper" not in modes:
             modes = ("paper",) + modes  # the baseline of the summary
-        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_source=args.mask_source)
+        sources = tuple(s.strip() for s in args.mask_source.split(",")) if args.mask_source else (None,)
+        corruptions = tuple(c.strip() for c in args.corruptions.split(",") if c.strip())
+        bad = [s for s in sources if s not in (None, "render", "geometry")] + [c for c in corruptions if c not in CORRUPTIONS]
+        if bad or not corruptions:
+            raise DrsplatError(f"unknown mask source or corruption: {', '.join(bad) or '(none given)'} "
+                               f"(mask sources: render, geometry; corruptions: {', '.join(CORRUPTIONS)})")
+        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_sources=sources, corruptions=corruptions)
         k = max(values or AGGREGATE_TOPK)
-        timed = dataset(root, presets[-1], seeds[0], PRESETS[presets[-1]].mislabel, mask_source=args.mask_source)
+        timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
         speed = time_aggregate_modes(timed, modes, k, args.repeats)
         result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
         lines = [result.markdown(), "", aggregate_summary(result, topk=k), "",

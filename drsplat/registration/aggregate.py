@@ -25,6 +25,14 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
     core-reject     core, then floater rejection
     ellipse-reject  ellipse, then floater rejection
     anchor-reject   anchor, then floater rejection
+    explain         w redistributed between the view's masks by who explains each pixel's mask
+                    (per-view EM, `explain_weights`: a label-space stand-in for a render-consistent
+                    solve); the Gaussian's total weight in the view is kept
+    vote            w, then the mean trimmed of clusters of masks that a minority of views vote
+                    for (drsplat.registration.vote: mislabelled masks outvoted)
+    explain-reject, vote-reject, explain-vote-reject   the stages in that order
+
+A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`).
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
@@ -75,8 +83,10 @@ from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")  # per-pixel (`view_weights`)
+MASK_WEIGHTINGS = ("explain",)  # also read the view's masks (`explain_weights`)
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
+EXPLAIN_ITERATIONS = 3  # EM iterations of the explain weighting per view (docs/registration.md, "Design choices, measured")
 ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
@@ -86,15 +96,33 @@ _WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "ce
 _PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
 
 
-def split_mode(mode: str) -> tuple[str, bool]:
-    """(weighting, reject) of a mode name; ValueError for an unknown mode."""
+@dataclass(frozen=True)
+class Stages:
+    """A mode as its stages: the per-view weighting, then (vote) the weighted mean trimmed by robust
+    votes across views (drsplat.registration.vote), then (reject) floater rejection."""
+
+    weighting: str
+    vote: bool
+    reject: bool
+
+
+def mode_stages(mode: str) -> Stages:
+    """The stages of a mode name "[WEIGHTING][-vote][-reject]" ("vote" alone: paper weights);
+    ValueError for an unknown mode."""
     if mode not in AGGREGATE_MODES:
         raise ValueError(f"unknown aggregation mode {mode!r} (choose from {', '.join(AGGREGATE_MODES)})")
-    if mode == "reject":
-        return "paper", True
-    if mode.endswith("-reject"):
-        return mode[: -len("-reject")], True
-    return mode, False
+    parts = mode.split("-")
+    reject = parts[-1] == "reject"
+    parts = parts[:-1] if reject else parts
+    vote = bool(parts) and parts[-1] == "vote"
+    parts = parts[:-1] if vote else parts
+    return Stages(parts[0] if parts else "paper", vote, reject)
+
+
+def split_mode(mode: str) -> tuple[str, bool]:
+    """(weighting, reject) of a mode name; ValueError for an unknown mode."""
+    stages = mode_stages(mode)
+    return stages.weighting, stages.reject
 
 
 # ----------------------------------------------------------------------------- per-view weights
@@ -192,6 +220,181 @@ def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: 
         out = np.empty(ids.shape, np.float32)
     _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
                          np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
+    return out
+
+
+# ----------------------------------------------------------------------------- per-view explanation (EM)
+
+
+def explain_weights_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, iterations: int = EXPLAIN_ITERATIONS) -> np.ndarray:
+    """Per-pixel weights of the "explain" weighting (numpy reference; math in `explain_weights`).
+
+    ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; mask_ids: [H, W] the view's mask
+    per pixel (-1 none). Returns [H, W, k] float32 (0 where ids < 0 or the pixel has no mask).
+    """
+    k = ids.shape[-1]
+    g = ids.reshape(-1, k).astype(np.int64)
+    m = np.broadcast_to(mask_ids.reshape(-1, 1), g.shape).astype(np.int64)
+    w = weights.reshape(-1, k).astype(np.float64)
+    valid = (g >= 0) & (m >= 0)
+    out = np.zeros(g.shape, np.float64)
+    if not valid.any():
+        return out.reshape(ids.shape).astype(np.float32)
+    base = int(m[valid].max()) + 1
+    keys, pair = np.unique(g[valid] * base + m[valid], return_inverse=True)
+    pair_g = keys // base
+    gauss, owner = np.unique(pair_g, return_inverse=True)
+    wv = w[valid]
+    v = np.bincount(pair, wv, keys.size)  # w_ij of the view (the paper's pair weights)
+    total = np.bincount(owner, v, gauss.size)  # T_i
+    t = total[owner]
+    q = np.where(t > 0, v / np.where(t > 0, t, 1.0), 0.0)
+    slot_pair = np.full(g.shape, -1, np.int64)
+    slot_pair[valid] = pair
+    for _ in range(iterations):
+        share = np.where(valid, w * q[np.maximum(slot_pair, 0)], 0.0)
+        denom = share.sum(axis=1, keepdims=True)
+        r = np.where(denom > 0, share / np.where(denom > 0, denom, 1.0), 0.0)
+        c = np.bincount(pair, r[valid], keys.size)
+        rsum = np.bincount(owner, c, gauss.size)
+        q = np.where(rsum[owner] > 0, c / np.where(rsum[owner] > 0, rsum[owner], 1.0), q)
+    scale = np.where(v > 0, total[owner] * q / np.where(v > 0, v, 1.0), 0.0)
+    out[valid] = wv * scale[pair]
+    return out.reshape(ids.shape).astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _explain_kernel(ids, weights, mask_ids, iterations, seen, slot_pair, out):  # pragma: no cover - jitted
+    """out[p, s] = the "explain" weight of slot s of pixel p (`explain_weights`); serial, float64 sums.
+
+    seen [N] int32 (-1 on entry and exit), slot_pair [P, k] int32 scratch.
+    """
+    n_pix, k = ids.shape
+    n_pairs = 0
+    # pair index of every slot: (Gaussian, mask) pairs in first-seen order of the slots
+    pair_g = np.empty(n_pix * k, np.int32)
+    pair_m = np.empty(n_pix * k, np.int32)
+    head = np.empty(n_pix * k, np.int32)  # per pair: next pair of the same Gaussian (linked lists per Gaussian)
+    for p in range(n_pix):
+        m = mask_ids[p]
+        for s in range(k):
+            g = ids[p, s]
+            if g < 0 or m < 0:
+                slot_pair[p, s] = -1
+                continue
+            # walk Gaussian g's pairs (few: the masks it touches in this view)
+            j = seen[g]
+            found = -1
+            while j >= 0:
+                if pair_m[j] == m:
+                    found = j
+                    break
+                j = head[j]
+            if found < 0:
+                found = n_pairs
+                pair_g[found] = g
+                pair_m[found] = m
+                head[found] = seen[g]
+                seen[g] = found
+                n_pairs += 1
+            slot_pair[p, s] = found
+    v = np.zeros(n_pairs)
+    for p in range(n_pix):
+        for s in range(k):
+            j = slot_pair[p, s]
+            if j >= 0:
+                v[j] += weights[p, s]
+    q = np.empty(n_pairs)
+    total = np.zeros(n_pairs)  # T_i of the pair's Gaussian, stored per pair
+    c = np.zeros(n_pairs)
+    for j in range(n_pairs):  # per Gaussian (at its newest pair, the head of its list): T_i and q_ij
+        g = pair_g[j]
+        if seen[g] != j:
+            continue
+        t = 0.0
+        i = j
+        while i >= 0:
+            t += v[i]
+            i = head[i]
+        i = j
+        while i >= 0:
+            total[i] = t
+            q[i] = v[i] / t if t > 0.0 else 0.0
+            i = head[i]
+    for _ in range(iterations):
+        c[:] = 0.0
+        for p in range(n_pix):
+            denom = 0.0
+            for s in range(k):
+                j = slot_pair[p, s]
+                if j >= 0:
+                    denom += np.float64(weights[p, s]) * q[j]
+            if denom > 0.0:
+                for s in range(k):
+                    j = slot_pair[p, s]
+                    if j >= 0:
+                        c[j] += np.float64(weights[p, s]) * q[j] / denom
+        for j in range(n_pairs):
+            g = pair_g[j]
+            if seen[g] != j:
+                continue
+            rs = 0.0
+            i = j
+            while i >= 0:
+                rs += c[i]
+                i = head[i]
+            if rs > 0.0:
+                i = j
+                while i >= 0:
+                    q[i] = c[i] / rs
+                    i = head[i]
+    for p in range(n_pix):
+        for s in range(k):
+            j = slot_pair[p, s]
+            if j < 0:
+                out[p, s] = 0.0
+            elif v[j] > 0.0:
+                out[p, s] = np.float64(weights[p, s]) * (total[j] * q[j] / v[j])
+            else:
+                out[p, s] = 0.0
+    for j in range(n_pairs):
+        seen[pair_g[j]] = -1
+    return n_pairs
+
+
+def explain_weights(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int, iterations: int = EXPLAIN_ITERATIONS,
+                    out: np.ndarray | None = None, seen: np.ndarray | None = None) -> np.ndarray:
+    """The "explain" weighting of one view: which of a pixel's Gaussians explain its mask (EM).
+
+    ids, weights: [H, W, k] top-k ids (-1 none) and w = T·α; mask_ids: [H, W] (-1 none); out: a
+    [H, W, k] float32 buffer to reuse. Returns [H, W, k] float32.
+
+    Model: pixel p's mask m(p) was emitted by one of its Gaussians, Gaussian i chosen with
+    probability ∝ w_i(p), and Gaussian i emits mask j of this view with probability q_ij. EM from
+    the paper's shares q_ij = w_ij / T_i (w_ij = Σ_{p ∈ j} w_i(p), T_i = Σ_j w_ij):
+
+        E: r_i(p) = w_i(p)·q_{i,m(p)} / Σ_s w_s(p)·q_{s,m(p)}     (who explains pixel p's mask)
+        M: q_ij = Σ_{p ∈ j} r_i(p) / Σ_p r_i(p)
+
+    `iterations` times, then the view contributes T_i·q_ij to pair (i, j) (each slot's share
+    proportional to its w): a Gaussian's total weight in the view stays the paper's (so coverage
+    and floater statistics do not change), only its split between masks does. A silhouette
+    Gaussian whose footprint spills onto the background keeps its object's mask, because the
+    background's own Gaussians explain the background pixels (r small there) while on the
+    object's pixels only the object's Gaussians compete. This is a per-view, label-space stand-in
+    for the render-consistent least-squares solve (it never mixes views, so it costs one pass over
+    the view's slots per iteration and no memory beyond the view: slot → pair indices [H·W·k]
+    int32 and per-pair float64 arrays).
+    """
+    h, w, k = ids.shape
+    ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
+    if out is None or out.shape != ids.shape:
+        out = np.empty(ids.shape, np.float32)
+    if seen is None or seen.shape[0] != num_gaussians:
+        seen = np.full(num_gaussians, -1, np.int32)
+    slot_pair = np.empty(ids2.shape, np.int32)
+    _explain_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(mask_ids.reshape(-1), np.int32),
+                    int(iterations), seen, slot_pair, out.reshape(-1, k))
     return out
 
 
@@ -462,6 +665,7 @@ class ViewHook:
     rays: RayGeometry | None = None
     _buffer: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _scratch: StatsScratch | None = dataclasses.field(default=None, repr=False, compare=False)
+    _seen: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.weighting, self.reject = split_mode(self.mode)
@@ -482,9 +686,10 @@ class ViewHook:
         """Whether the views must be rasterized with_median (floater rejection's surface)."""
         return self.reject
 
-    def __call__(self, geometry: PreparedScene | None, camera, out) -> tuple[np.ndarray, ViewStats | None]:
+    def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> tuple[np.ndarray, ViewStats | None]:
         """geometry: the scene's CPU geometry (means [N, 3] float64, covariances), needed when
-        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids)."""
+        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids).
+        mask_ids: [H, W] the view's masks (-1 none), read by the explain weighting."""
         stats = None
         if self.reject:
             if out.median_ids is None:
@@ -492,6 +697,14 @@ class ViewHook:
             stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
         if self.weighting == "paper":
             return out.weights, stats
+        if self.weighting == "explain":
+            if mask_ids is None:
+                raise ValueError(f"--aggregate {self.mode} needs the view's mask ids")
+            n = self.rays.reach.shape[0] if self.rays is not None else int(out.ids.max()) + 1
+            if self._seen is None or self._seen.shape[0] < n:
+                self._seen = np.full(max(n, 1), -1, np.int32)
+            self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
+            return self._buffer, stats
         means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
             projected = project_gaussians(geometry, camera)
@@ -507,10 +720,13 @@ class Aggregator:
     def __init__(self, mode: str, scene):
         """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
         self.mode = mode
-        self.reject = split_mode(mode)[1]
+        stages = mode_stages(mode)
+        self.reject, self.vote = stages.reject, stages.vote
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
-        self.hook = None if mode == "paper" else ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None)
+        needs_hook = stages.weighting != "paper" or self.reject
+        self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
         self.num_rejected = 0
+        self.views_folded = 0  # views whose statistics are in `support` (a checkpoint snapshots only a consistent state)
         self._rejected: np.ndarray | None = None
 
     def add(self, stats: ViewStats | None) -> None:
@@ -519,6 +735,7 @@ class Aggregator:
             if stats is None:
                 raise ValueError(f"--aggregate {self.mode}: a view came without its rejection statistics")
             self.support.add(stats)
+            self.views_folded += 1
 
     def finish(self, F: np.ndarray, W: np.ndarray, start: int = 0) -> int:
         """Post-step on the sums of Gaussians start .. start + B (all of them, or a block when
@@ -552,12 +769,19 @@ class Aggregator:
         """(bytes held while views are rasterized, bytes held until the sums are finished) by `mode`
         for a scene of `num_gaussians` and views of at most `pixels` pixels (registration's
         memory plan)."""
-        weighting, reject = split_mode(mode)
+        stages = mode_stages(mode)
+        weighting, reject = stages.weighting, stages.reject
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
+        if weighting == "explain":  # slot -> pair indices and the per-pair arrays (at most one pair per slot)
+            views += pixels * topk * (4 + 12 + 32) + 4 * num_gaussians
         kept = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
             views += (29 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
+        if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
+            from drsplat.registration.vote import VOTE_SLOTS  # vote imports the sinks; kept off this module's import path
+
+            kept += (20 * VOTE_SLOTS + 8) * num_gaussians
         return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:

@@ -119,17 +119,23 @@ class Checkpoint:
         return iter(self.log)
 
     def append(self, view: ViewPairs) -> None:
-        """Log one newly computed view (fsync'd every CHECKPOINT_EVERY views) and snapshot the mode's
-        statistics (already folded in) at the same points (every `self.every` views)."""
+        """Log one newly computed view (fsync'd every `self.every` views). Called before the view's
+        statistics are folded, so a failed append leaves them covering exactly the logged views."""
         done = self.done + 1
-        sync = done % self.every == 0
         try:
-            self.log.append(view, sync=sync and not self.temporary)
+            self.log.append(view, sync=done % self.every == 0 and not self.temporary)
         except OSError as exc:  # name the file: a bare ENOSPC from write() carries none
             raise OSError(exc.errno, exc.strerror, str(self.path)) from None
-        if sync and self.stats_path is not None and not self.temporary:
-            with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
-                np.savez(f, views=np.int64(done), **self.aggregator.state())
+
+    def folded(self) -> None:
+        """The last logged view's statistics are folded in: snapshot them at the fsync points."""
+        if self.done % self.every == 0 and self.stats_path is not None and not self.temporary:
+            self._snapshot(self.done)
+
+    def _snapshot(self, views: int) -> None:
+        """Write the mode's statistics as covering the first `views` logged views."""
+        with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, views=np.int64(views), **self.aggregator.state())
 
     def close(self) -> None:
         self.log.close()
@@ -152,6 +158,11 @@ class Checkpoint:
         if self.temporary or self.done == 0:
             self.remove()
             return
+        if self.stats_path is not None and self.aggregator.views_folded == self.done:
+            try:  # the statistics cover exactly the logged views: the rerun resumes from all of them
+                self._snapshot(self.done)
+            except OSError as exc:  # a full disk: the last periodic snapshot still stands
+                log.debug("no statistics snapshot at the stop (%s)", exc)
         log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
                     why, self.describe())
 
@@ -171,6 +182,7 @@ class Checkpoint:
             views, arrays = 0, {}
         self.log.truncate(views)
         self.aggregator.load_state(arrays)
+        self.aggregator.views_folded = views
 
 
 def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:

@@ -111,7 +111,7 @@ class ViewComputer:
         self._out = self._rasterize(cam)
         t1 = time.perf_counter()
         hook = self.job.hook
-        weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out)
+        weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids)
         g, m, w, pairs = self._coalescer.coalesce(self._out.ids, weights, mask_ids, feats.shape[0])
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         t2 = time.perf_counter()

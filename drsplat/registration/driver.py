@@ -44,6 +44,7 @@ from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.sink import LogSink, MemorySink, Sink
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import ViewSelection, feature_dim, select_views
+from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
 
@@ -222,7 +223,10 @@ def run_registration(
         ckpt = None
     totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=np.zeros(n, bool))
     try:
-        sink: Sink = MemorySink(n, run.dim) if block >= n else LogSink(n, run.dim, ckpt.log, block)
+        if aggregator.vote:
+            sink: Sink = VoteSink(n, run.dim) if block >= n else VoteSink(n, run.dim, ckpt.log, block)
+        else:
+            sink = MemorySink(n, run.dim) if block >= n else LogSink(n, run.dim, ckpt.log, block)
         worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, show_progress, on_progress, cancel)
         view_seconds = time.perf_counter() - t_start
         candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
@@ -307,9 +311,11 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     stream = executor.view_pairs(run.views[totals.done :])
     try:
         for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
-            aggregator.add(view.stats)
             if ckpt is not None:
                 ckpt.append(view)
+            aggregator.add(view.stats)
+            if ckpt is not None:
+                ckpt.folded()
             consume(view)
             if on_progress is not None:
                 on_progress(totals.done, total)

@@ -22,7 +22,8 @@ class RegisterOptions:
     per block whatever the estimate (tests, benches). ray: a Ray cluster address ("" or "local"
     starts a local one) that computes the views; ray_workers: tasks at once (default: the cluster's
     CPUs). engine, device: the rasterizer ("numba" on "cpu", "torch" on "cpu" / "cuda").
-    aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's).
+    aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's, the
+    default "vote-reject" trims its mean by votes across views and rejects floaters).
     cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
     """
 

@@ -1,0 +1,326 @@
+"""Robust votes across views: the `-vote` stage of an aggregation mode (`--aggregate vote-reject`, ...).
+
+The paper's mean f_i = normalize(Σ_j w_ij f_j) lets one mislabelled view move a Gaussian, most of
+all a close-up one, whose footprint covers many pixels and so carries most of w. The vote stage
+keeps the paper's sums and trims them:
+
+1. the views' masks are grouped by embedding: a mask joins the existing cluster whose leader (its
+   first mask) is most similar if that cosine is ≥ CLUSTER_COSINE, else founds a new one
+   (`MaskClusters`, in view order, so the same views give the same clusters everywhere); μ_c =
+   normalize(Σ_{j ∈ c} f_j) is a cluster's mean embedding;
+2. per Gaussian i and cluster c, every view votes by presence, not by area:
+
+       V_ic = Σ_views min(1, s_icv / ρ) · min(1, T_iv / T₀),
+       s_icv = Σ_{j ∈ view, cluster(j) = c} w_ij / T_iv,   T_iv = Σ_{j ∈ view} w_ij
+
+   (ρ = PRESENCE: a cluster holding at least that share of the Gaussian's weight in a view gets
+   the view's full vote, so a close-up view counts once; T₀ = FULL_VIEW: a view in which the
+   Gaussian is faint, far or mostly hidden, T_iv < T₀, votes in proportion, since a small object
+   seen from afar has no mask of its own there and lands in its surroundings' mask), together with the paper's weight of the
+   cluster S_ic = Σ_views Σ_{j ∈ c} w_ij; both kept in VOTE_SLOTS slots per Gaussian with the
+   space-saving rule (a new cluster replaces the smallest slot and inherits its counts, so a
+   cluster voted by more than 1/VOTE_SLOTS of the views is never lost);
+3. the winner c* = argmax_c V_ic; a cluster c is trimmed when it is not like the winner
+   (μ_c·μ_c* < CLUSTER_COSINE) and is a minority of the views, V_ic < MINORITY·V_ic*:
+
+       F_i = Σ_j w_ij f_j − Σ_{c trimmed} S_ic μ_c
+
+   A mislabelled mask is one view's (V small against the views that agree) and is trimmed; a
+   silhouette Gaussian whose footprint spills onto the background in every view keeps both
+   labels (both are present in every view), exactly as the paper has it. A Gaussian with one
+   cluster keeps the paper's sums bit for bit. The trimmed part is counted at the cluster's mean
+   embedding, not at the Gaussian's own masks' (an approximation: exact when a cluster's masks
+   agree, off by their spread within CLUSTER_COSINE otherwise). W_i = Σ w_ij stays the paper's,
+   so coverage and floater rejection do not change.
+
+Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
+scratch), K·D·12 bytes for K clusters and 4 bytes per mask for the views' cluster ids. Under a
+memory budget the slots are summed block by block from the pair log with the block's F
+(`VoteSink` with a log), pair by pair in the same order as in memory, so the bits do not depend
+on the plan or the place (tests/test_registration_matrix.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numba
+import numpy as np
+
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.sink import Block
+from drsplat.registration.sums import Accumulator
+
+VOTE_SLOTS = 8  # candidate clusters kept per Gaussian
+CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
+MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
+FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
+PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
+
+
+class MaskClusters:
+    """Leader clustering of the views' mask embeddings, in view order (module docstring).
+
+    leaders: [K, D] float32 unit embeddings of each cluster's first mask; sums: [K, D] float64
+    Σ of the member embeddings; per_view: the [M] int32 cluster of each mask of every view added
+    (-1 for a zero embedding: a mask dropped for non-finite values).
+    """
+
+    def __init__(self, dim: int, threshold: float = CLUSTER_COSINE):
+        self.dim, self.threshold = dim, float(threshold)
+        self._leaders = np.zeros((64, dim), np.float32)
+        self._sums = np.zeros((64, dim), np.float64)
+        self.count = 0
+        self.per_view: list[np.ndarray] = []
+
+    @property
+    def leaders(self) -> np.ndarray:
+        return self._leaders[: self.count]
+
+    def add(self, feats: np.ndarray) -> np.ndarray:
+        """Assign one view's masks feats [M, D] (in order) and remember the ids; returns them [M] int32."""
+        feats = np.asarray(feats, np.float32)
+        norms = np.linalg.norm(feats.astype(np.float64), axis=1)
+        ids = np.full(feats.shape[0], -1, np.int32)
+        cos = feats @ self.leaders.T if self.count else np.zeros((feats.shape[0], 0), np.float32)
+        for j in range(feats.shape[0]):
+            if not norms[j] > 0:
+                continue
+            unit = feats[j] / np.float32(norms[j])
+            best = int(np.argmax(cos[j])) if cos.shape[1] else -1
+            if best >= 0 and cos[j, best] / norms[j] >= self.threshold:
+                ids[j] = best
+            else:
+                if self.count > cos.shape[1]:  # leaders founded by this view's earlier masks
+                    new = self._leaders[cos.shape[1] : self.count] @ unit
+                    k = int(np.argmax(new))
+                    if new[k] >= self.threshold:
+                        ids[j] = cos.shape[1] + k
+                if ids[j] < 0:
+                    ids[j] = self._found(unit)
+            self._sums[ids[j]] += feats[j]
+        self.per_view.append(ids)
+        return ids
+
+    def _found(self, unit: np.ndarray) -> int:
+        if self.count == self._leaders.shape[0]:
+            grow = self._leaders.shape[0]
+            self._leaders = np.concatenate([self._leaders, np.zeros((grow, self.dim), np.float32)])
+            self._sums = np.concatenate([self._sums, np.zeros((grow, self.dim), np.float64)])
+        self._leaders[self.count] = unit
+        self.count += 1
+        return self.count - 1
+
+    def means(self) -> np.ndarray:
+        """[K, D] float32 unit cluster means μ_c = normalize(Σ_{j ∈ c} f_j)."""
+        sums = self._sums[: self.count]
+        norm = np.linalg.norm(sums, axis=1, keepdims=True)
+        return (sums / np.where(norm > 0, norm, 1.0)).astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _vote_view_kernel(rows, clusters, weights, presence, full_view, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
+    """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
+    weights [P] float32) into the vote slots (module docstring, step 2), pair by pair in order:
+    slot_v the votes V_ic, slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what
+    the trimmed mean removes). total: [rows] float64 scratch, zero on entry and exit."""
+    num_slots = slot_c.shape[1]
+    for p in range(rows.shape[0]):
+        total[rows[p]] += weights[p]
+    for p in range(rows.shape[0]):
+        r = rows[p]
+        c = clusters[p]
+        w = np.float64(weights[p])
+        if c < 0 or not w > 0.0:
+            continue
+        v = min(1.0, w / (total[r] * presence)) * min(1.0, total[r] / full_view) if presence > 0.0 else w
+        hit = -1
+        low = 0
+        for s in range(num_slots):
+            if slot_c[r, s] == c or slot_c[r, s] < 0:
+                hit = s
+                break
+            if slot_v[r, s] < slot_v[r, low]:
+                low = s
+        if hit < 0:  # space-saving: the smallest slot's cluster is replaced, its counts inherited
+            hit = low
+        slot_c[r, hit] = c
+        slot_v[r, hit] += v
+        slot_s[r, hit] += w
+    for p in range(rows.shape[0]):
+        total[rows[p]] = 0.0
+
+
+def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+    """Numpy reference of `trimmed_features`: in place on the paper's sums F [B, D] float32,
+    F_i -= Σ_{c trimmed} S_ic μ_c (module docstring, step 3); rows with one voted cluster are left
+    bit for bit as they are.
+
+    slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S] float64 votes / paper weights,
+    means: [K, D] unit μ_c. Returns F.
+    """
+    b = slot_c.shape[0]
+    mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if slot_c.shape[1] > 1 else np.zeros(0, np.int64)
+    if mixed.size == 0 or means.shape[0] == 0 or b == 0:
+        return F
+    c, v, w = slot_c[mixed], slot_v[mixed], slot_s[mixed]
+    votes = np.where(c >= 0, v, -np.inf)
+    win = c[np.arange(mixed.size), np.argmax(votes, axis=1)]  # first of equal maxima
+    cw = np.maximum(c, 0)
+    sim = np.einsum("bsd,bd->bs", means[cw], means[win])
+    v_win = np.max(votes, axis=1, keepdims=True)
+    drop = (c >= 0) & (sim < threshold) & (c != win[:, None]) & (v < minority * v_win)
+    coef = np.where(drop, w, 0.0)
+    F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
+    return F
+
+
+@numba.njit(parallel=True, cache=True)
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority):  # pragma: no cover - jitted
+    """`trimmed_features_reference`, one Gaussian per thread at a time (rows are independent)."""
+    b, num_slots = slot_c.shape
+    dim = F.shape[1]
+    for i in numba.prange(b):
+        if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
+            continue
+        best = 0
+        for s in range(1, num_slots):
+            if slot_c[i, s] >= 0 and slot_v[i, s] > slot_v[i, best]:
+                best = s
+        win = slot_c[i, best]
+        v_win = slot_v[i, best]
+        row = np.empty(dim)
+        for d in range(dim):
+            row[d] = F[i, d]
+        changed = False
+        for s in range(num_slots):
+            c = slot_c[i, s]
+            if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
+                continue
+            sim = np.float32(0.0)
+            for d in range(dim):
+                sim += means[c, d] * means[win, d]
+            if sim < threshold:
+                changed = True
+                for d in range(dim):
+                    row[d] -= slot_s[i, s] * np.float64(means[c, d])
+        if changed:
+            for d in range(dim):
+                F[i, d] = row[d]
+
+
+def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+    """In place on the paper's sums F [B, D] float32: F_i -= Σ_{c trimmed} S_ic μ_c (module
+    docstring, step 3; numba, one Gaussian per thread); rows with one voted cluster are left bit
+    for bit as they are. slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S]
+    float64 votes / paper weights, means: [K, D] unit μ_c float32. Returns F."""
+    if F.shape[0] == 0 or means.shape[0] == 0:
+        return F
+    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority))
+    return F
+
+
+def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int, means: np.ndarray,
+                   presence: float = PRESENCE, threshold: float = CLUSTER_COSINE, minority: float = MINORITY,
+                   full_view: float = FULL_VIEW) -> np.ndarray:
+    """Obviously-correct reference of the vote stage with unbounded slots (numpy, float64).
+
+    views: per view (gaussians [P], clusters [P], weights [P], embeddings [P, D] of the pairs'
+    masks). Returns F [N, D] float64 before normalisation: the paper's Σ w_ij f_j less the pairs
+    of the clusters outside each Gaussian's winning group, each counted as S_ic μ_c (agrees with the
+    kernel whenever no Gaussian meets more than VOTE_SLOTS clusters).
+    """
+    k = means.shape[0]
+    V = np.zeros((num_gaussians, k))
+    S = np.zeros((num_gaussians, k))
+    F = np.zeros((num_gaussians, means.shape[1]))
+    for g, c, w, f in views:
+        w = w.astype(np.float64)
+        np.add.at(F, g, w[:, None] * f)
+        total = np.bincount(g, w, num_gaussians)
+        ok = (c >= 0) & (w > 0)
+        t = total[g[ok]]
+        v = np.minimum(1.0, w[ok] / (t * presence)) * np.minimum(1.0, t / full_view) if presence else w[ok]
+        np.add.at(V, (g[ok], c[ok]), v)
+        np.add.at(S, (g[ok], c[ok]), w[ok])
+    for i in np.flatnonzero((V > 0).sum(axis=1) > 1):
+        win = int(np.argmax(V[i]))
+        drop = (V[i] > 0) & (means @ means[win] < threshold) & (V[i] < minority * V[i, win])
+        drop[win] = False
+        F[i] -= S[i, drop] @ means[drop]
+    return F
+
+
+class VoteSink:
+    """A sink (drsplat.registration.sink) whose blocks hold the paper's sums trimmed by the vote.
+
+    Without a log, the paper's sums (an Accumulator) and the vote slots of all N Gaussians are kept
+    while the views arrive; with one (a plan of several blocks), each block replays the log keeping
+    its Gaussians' pairs into both. Either way `add` assigns the view's masks to clusters (every
+    view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
+    """
+
+    def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
+                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW):
+        self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
+        self.clusters = MaskClusters(dim)
+        self._log = plog
+        self.block = num_gaussians if plog is None else int(block)
+        if self.block < 1:
+            raise ValueError("block must be >= 1")
+        self._state = None if plog is not None else self._empty(num_gaussians)
+
+    def _empty(self, rows: int):
+        return (Accumulator(rows, self.dim), np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)),
+                np.zeros((rows, self.slots)), np.zeros(rows))
+
+    @property
+    def num_blocks(self) -> int:
+        return max(1, -(-self.num_gaussians // self.block))
+
+    def add(self, view: ViewPairs) -> None:
+        ids = self.clusters.add(view.feats)
+        if self._state is not None:
+            self._fold(self._state, view.gaussians, view.masks, ids, view.weights, view.feats)
+
+    def _fold(self, state, rows: np.ndarray, masks: np.ndarray, cluster_of_mask: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+        acc, slot_c, slot_v, slot_s, total = state
+        rows = np.ascontiguousarray(rows, np.int32)
+        acc.add_pairs(rows, masks, weights, feats)
+        _vote_view_kernel(rows, np.ascontiguousarray(cluster_of_mask[masks], np.int32), np.ascontiguousarray(weights, np.float32),
+                          self.presence, self.full_view, total, slot_c, slot_v, slot_s)
+
+    def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
+        acc, slot_c, slot_v, slot_s, _ = state
+        F, W = acc.sums()
+        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means()), W
+
+    def blocks(self) -> Iterator[Block]:
+        if self._state is not None:
+            F, W = self._finish(self._state)
+            yield Block(0, self.num_gaussians, F, W)
+            return
+        for lo in range(0, self.num_gaussians, self.block):
+            hi = min(self.num_gaussians, lo + self.block)
+            F, W = self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
+            yield Block(lo, hi, F, W)
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
+        if self._state is not None:
+            acc, slot_c, slot_v, slot_s, _ = self._state
+            F, W = acc.sums()
+            return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means()), W[ids].copy()
+        row = np.full(self.num_gaussians, -1, np.int32)
+        row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+        return self._finish(self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0]))
+
+    def _replay(self, select, to_row, rows: int):
+        state = self._empty(rows)
+        for index, view in enumerate(self._log):
+            keep = select(view.gaussians)
+            if keep.any():
+                self._fold(state, to_row(view.gaussians[keep]), view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
+        return state

@@ -1,0 +1,214 @@
+"""The vote stage (drsplat.registration.vote): clusters, slots against the reference, a mislabelled
+close-up view outvoted, and a cancelled vote registration resuming to the same features."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.errors import Cancelled
+from drsplat.registration import RegisterOptions, register_features
+from drsplat.registration.aggregate import mode_stages
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import MemorySink
+from drsplat.registration.vote import MaskClusters, VoteSink, trimmed_features, trimmed_features_reference, vote_reference
+from drsplat.scene import load_ply
+from drsplat.synthetic import write_dataset
+from drsplat.utils import CancelToken
+
+D = 16
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _labels(rng, count: int) -> np.ndarray:
+    return _unit(rng.normal(size=(count, D)))
+
+
+def _view(name: str, feats: np.ndarray, gaussians, masks, weights) -> ViewPairs:
+    g = np.asarray(gaussians, np.int32)
+    return ViewPairs(name, feats, g, np.asarray(masks, np.int32), np.asarray(weights, np.float32), np.unique(np.asarray(masks, np.int32)), int(g.size))
+
+
+def test_mode_stages():
+    s = mode_stages("paper")
+    assert (s.weighting, s.vote, s.reject) == ("paper", False, False)
+    s = mode_stages("explain-vote-reject")
+    assert (s.weighting, s.vote, s.reject) == ("explain", True, True)
+    s = mode_stages("vote")
+    assert (s.weighting, s.vote, s.reject) == ("paper", True, False)
+    s = mode_stages("anchor-reject")
+    assert (s.weighting, s.vote, s.reject) == ("anchor", False, True)
+    with pytest.raises(ValueError, match="unknown aggregation mode"):
+        mode_stages("vote-vote")
+
+
+def test_mask_clusters_group_noisy_masks_of_a_label():
+    rng = np.random.default_rng(0)
+    labels = _labels(rng, 3)
+    clusters = MaskClusters(D, threshold=0.9)
+    seen = []
+    for _ in range(4):  # four views, each with a noisy mask of every label (shuffled) and a dropped one
+        order = rng.permutation(3)
+        feats = _unit(labels[order] + rng.normal(scale=0.05, size=(3, D)))
+        feats = np.vstack([feats, np.zeros((1, D), np.float32)])
+        ids = clusters.add(feats)
+        assert ids[-1] == -1
+        seen.append(dict(zip(order.tolist(), ids[:3].tolist())))
+    assert clusters.count == 3
+    assert all(s == seen[0] for s in seen)  # the same label always lands in the same cluster
+    means = clusters.means()
+    for label, cluster in seen[0].items():
+        assert float(means[cluster] @ labels[label]) > 0.99
+
+
+@pytest.mark.parametrize("presence", [0.0, 0.1, 0.3])
+def test_vote_slots_agree_with_the_reference(presence):
+    rng = np.random.default_rng(int(presence * 10))
+    labels = _labels(rng, 5)
+    n = 30
+    sink = VoteSink(n, D, presence=presence)
+    views = []
+    for v in range(6):
+        feats = _unit(labels + rng.normal(scale=0.02, size=labels.shape))
+        g = rng.integers(0, n, 60).astype(np.int32)
+        m = rng.integers(0, 5, 60).astype(np.int32)
+        keep = np.unique(g * 5 + m, return_index=True)[1]  # distinct (Gaussian, mask) pairs, as coalescing gives
+        g, m = g[keep], m[keep]
+        w = rng.uniform(0, 1, g.size).astype(np.float32)
+        w[:3] = 0.0  # zero-weight pairs vote nothing
+        view = _view(f"v{v}", feats, g, m, w)
+        sink.add(view)
+        views.append((g, sink.clusters.per_view[-1][m], w, feats[m]))
+    F, W = sink.sample(np.array([2, 7, 11]))
+    (block,) = list(sink.blocks())
+    want_F = vote_reference(views, n, sink.clusters.means(), presence=presence)
+    np.testing.assert_allclose(block.F, want_F, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(block.W, sum(np.bincount(g, w, n) for g, _, w, _ in views), rtol=1e-6)
+    np.testing.assert_array_equal(F, block.F[[2, 7, 11]])
+    paper = MemorySink(n, D)
+    for v, (g, _, w, f) in enumerate(views):
+        paper.add(_view(f"v{v}", f, g, np.arange(g.size), w))
+    (plain,) = list(paper.blocks())
+    single = np.array([len(set(np.concatenate([c[g == i] for g, c, w, _ in views])[
+        np.concatenate([w[g == i] for g, c, w, _ in views]) > 0].tolist())) <= 1 for i in range(n)])
+    assert single.any() and (~single).any()
+    np.testing.assert_array_equal(block.F[single], plain.F[single])  # one cluster: the paper's sums, bit for bit
+    assert (np.abs(block.F[~single] - plain.F[~single]).max(axis=1) > 1e-3).any()  # minority clusters trimmed
+
+
+@pytest.mark.parametrize("case", ["random", "ties", "one_cluster", "empty"])
+def test_trim_kernel_agrees_with_reference(case):
+    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    b, slots, k = 200, 4, 9
+    means = _labels(rng, k)
+    means[1] = _unit(means[0] + 0.1 * rng.normal(size=D))  # a near-duplicate cluster: never trimmed against 0
+    filled = rng.integers(0, slots + 1, b) if case != "one_cluster" else np.ones(b, int)
+    if case == "empty":
+        filled[:] = 0
+    slot_c = np.full((b, slots), -1, np.int32)
+    for i, f in enumerate(filled):
+        slot_c[i, :f] = rng.choice(k, f, replace=False)
+    slot_v = np.where(slot_c >= 0, rng.integers(1, 4, (b, slots)).astype(np.float64) if case == "ties" else rng.uniform(0, 5, (b, slots)), 0.0)
+    slot_s = np.where(slot_c >= 0, rng.uniform(0, 5, (b, slots)), 0.0)
+    F = rng.normal(size=(b, D)).astype(np.float32)
+    got = trimmed_features(F.copy(), slot_c, slot_v, slot_s, means)
+    want = trimmed_features_reference(F.copy(), slot_c, slot_v, slot_s, means)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    untouched = (slot_c[:, 1] < 0)
+    np.testing.assert_array_equal(got[untouched], F[untouched])
+    if case == "random":
+        assert (np.abs(got - F).max(axis=1) > 1e-3).sum() > 10
+
+
+def test_a_mislabelled_close_up_view_is_outvoted():
+    """Four views see Gaussian 0 in a mask of label A with weight 1; one close-up view sees it in a
+    mislabelled mask (label B) with weight 5. The paper's mean leans to B; the vote keeps A (and
+    trims B's pairs out of the mean); Gaussian 1, with weight in A only, keeps the paper's sum bit for bit."""
+    rng = np.random.default_rng(3)
+    a, b = _labels(rng, 2)
+    sink = VoteSink(2, D)
+    paper = np.zeros(D)
+    for v, (feat, w) in enumerate([(a, 1.0)] * 4 + [(b, 5.0)]):
+        sink.add(_view(f"v{v}", feat[None], [0, 1], [0, 0], [w, 0.5 if v < 4 else 0.0]))
+        paper += w * feat
+    (block,) = list(sink.blocks())
+    assert paper @ b > paper @ a
+    np.testing.assert_allclose(block.F[0], 4 * a, atol=1e-5)
+    paper_sink = MemorySink(2, D)
+    for v, (feat, w) in enumerate([(a, 1.0)] * 4 + [(b, 5.0)]):
+        paper_sink.add(_view(f"v{v}", feat[None], [0, 1], [0, 0], [w, 0.5 if v < 4 else 0.0]))
+    (plain,) = list(paper_sink.blocks())
+    np.testing.assert_array_equal(block.F[1], plain.F[1])
+    assert block.W[0] == pytest.approx(9.0)
+
+
+def test_full_slots_keep_the_majority_cluster():
+    """With 2 slots and 4 clusters met in turn, the cluster holding most of the votes survives (space-saving)."""
+    rng = np.random.default_rng(4)
+    labels = _labels(rng, 4)
+    sink = VoteSink(1, D, slots=2, presence=0.0)
+    for v, (label, w) in enumerate([(0, 3.0), (1, 0.5), (2, 0.5), (0, 3.0), (3, 0.5)]):
+        sink.add(_view(f"v{v}", labels[label][None], [0], [0], [w]))
+    (block,) = list(sink.blocks())
+    f = block.F[0] / np.linalg.norm(block.F[0])
+    assert int(np.argmax(labels @ f)) == 0 and float(labels[0] @ f) > 0.95
+
+
+@pytest.fixture(scope="module")
+def hard_tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("vote") / "hard-tiny", "hard-tiny", 0, show_progress=False)
+
+
+def test_cancelled_vote_registration_resumes_to_the_same_features(hard_tiny, tmp_path):
+    """The clusters are rebuilt from the replayed views in order, so a resumed run equals an uninterrupted one."""
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    options = RegisterOptions(topk=10, aggregate="vote-reject")
+    full = register_features(scene, cams, hard_tiny / "features", options, show_progress=False)
+    ckpt = tmp_path / "run.log"
+    token = CancelToken()
+
+    def stop(done: int, total: int) -> None:
+        if done == 3:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register_features(scene, cams, hard_tiny / "features", options, checkpoint=ckpt, checkpoint_every=1, cancel=token, on_progress=stop,
+                          show_progress=False)
+    resumed = register_features(scene, cams, hard_tiny / "features", options, checkpoint=ckpt, show_progress=False)
+    assert resumed.resumed_views == 3
+    np.testing.assert_array_equal(resumed.weights, full.weights)
+    np.testing.assert_array_equal(resumed.features, full.features)
+    blocks = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate="vote-reject", block_size=700),
+                               show_progress=False)
+    assert blocks.num_blocks > 1
+    np.testing.assert_array_equal(blocks.features, full.features)
+
+
+@pytest.mark.parametrize("mislabel", [0.0, 0.2])
+def test_default_outvotes_mislabelled_masks_and_keeps_clean_rooms(hard_tiny, tmp_path_factory, mislabel):
+    """hard-tiny seed 0, top-k 40 (measured, paper -> the default vote-reject): labelled seg mIoU vol
+    0.890 -> 0.888 on clean masks, 0.640 -> 0.761 with 20% of the masks mislabelled; floaters kept
+    1.00 -> 0.02, labelled coverage 1.000. Asserted with slack."""
+    import json
+
+    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
+
+    root = hard_tiny if mislabel == 0 else write_dataset(tmp_path_factory.mktemp("mis") / "hard-tiny", "hard-tiny", 0, mislabel_fraction=mislabel,
+                                                         show_progress=False)
+    ds = Dataset(root, load_ply(root / "scene.ply"), load_cameras(root), np.load(root / "gt" / "labels.npy").astype(np.int64),
+                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
+    col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
+    paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, root / "features", RegisterOptions(aggregate="paper"), show_progress=False))
+    default = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, root / "features", RegisterOptions(), show_progress=False))
+    seg = col["seg mIoU vol"]
+    if mislabel:
+        assert default[seg] >= paper[seg] + 0.08
+    else:
+        assert default[seg] >= paper[seg] - 0.005
+    assert default[col["floaters kept"]] < 0.1 and default[col["labelled coverage"]] >= 0.99
