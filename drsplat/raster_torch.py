@@ -483,17 +483,38 @@ def rasterize_torch(
     near: float = NEAR,
     device: str | torch.device | None = None,
     max_elements: int | None = None,
+    fused: bool | None = None,
 ) -> TorchRasterOutput:
     """Render one view with the torch engine; the output stays on the device (tensors).
 
     device: where to run; None = the device of a TorchScene, else the CPU.
+    fused: composite with the fused Triton top-k kernel (drsplat.raster_triton) instead of the
+    torch ops; None = on CUDA devices when Triton is installed and no RGB / depth is asked for (the
+    kernel keeps ids, weights, alpha and the median). True on a CPU is refused (outside the tests'
+    interpreter).
     """
     _check_args(topk, background)
     if device is None:
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
     projected = project_gaussians_torch(scene, camera, near, mask=mask, with_colors=with_rgb, device=device)
+    if fused is None:
+        fused = projected.valid.device.type == "cuda" and not (with_rgb or with_depth) and _triton_available()
+    if fused:
+        if with_rgb or with_depth:
+            raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
+        from drsplat import raster_triton  # imports triton: only when the fused kernel is asked for
+
+        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, topk, with_median=with_median)
+        return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
                            max_elements=max_elements)
+
+
+def _triton_available() -> bool:
+    """Whether the fused Triton kernel can be compiled (triton installed)."""
+    import importlib.util
+
+    return importlib.util.find_spec("triton") is not None
 
 
 def rasterize(
