@@ -22,9 +22,11 @@ _DATA_DEPENDENT = {"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
 
 @dataclass
 class OpCounts:
-    """ops: aten calls; syncs: the host-syncing ones among them; by_name: calls per op name."""
+    """ops: aten calls; views: those that only make a view (no kernel launch on a GPU); syncs: the
+    host-syncing ones; by_name: calls per op name."""
 
     ops: int = 0
+    views: int = 0
     syncs: int = 0
     by_name: Counter = field(default_factory=Counter)
     syncs_by_name: Counter = field(default_factory=Counter)
@@ -57,6 +59,7 @@ class OpCounter(TorchDispatchMode):
         kwargs = kwargs or {}
         name = f"aten::{func._schema.name.split('::')[-1]}" + (f".{func._overloadname}" if func._overloadname != "default" else "")
         self.counts.ops += 1
+        self.counts.views += bool(func.is_view)
         self.counts.by_name[name] += 1
         if is_host_sync(name, args, kwargs):
             self.counts.syncs += 1
