@@ -76,11 +76,11 @@ def _composite_topk_source(
     count = tl.load(counts_ptr + tile)
     slots = tl.arange(0, KP)
     real = (slots < topk)[None, :] & (local >= 0)[:, None]  # [BLOCK, KP]
-    buf_w = tl.where(real, -1.0, float("inf")).to(tl.float64)  # padding never evicted
+    buf_w = tl.where(real, -1.0, 2.0).to(tl.float64)  # empty: -1; padding: 2 > any weight, never evicted
     buf_pos = (-1 - slots[None, :] + tl.zeros([BLOCK, KP], tl.int32)).to(tl.int32)  # empty slots: distinct negatives
     trans = tl.full([BLOCK], 1.0, tl.float64)
     med = tl.full([BLOCK], -1, tl.int32)
-    j = 0
+    j = tl.zeros([], dtype=tl.int32)  # a typed loop-carried counter (list positions are int32)
     while (j < count) & (n_active > 0):
         g = tl.load(list_ptr + start + j)
         u = tl.load(means_ptr + 2 * g)
@@ -193,3 +193,37 @@ def _finish(projected, slot_w, slot_pos, trans, med, offsets, tile_list):
         return t[:h, :w].contiguous()
 
     return image(ids), image(weights), image((1.0 - trans).float()), None if median is None else image(median)
+
+
+def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, tile: int = 16) -> str:
+    """The kernel compiled to PTX for CUDA compute capability `capability` (90: H100), without a GPU.
+
+    Runs Triton's front end and NVIDIA backend stages (ttir -> ttgir -> llir -> ptx), not ptxas, so
+    it checks that the source compiles in Triton's typed mode (the interpreter is looser) but says
+    nothing about registers or speed. Uses Triton's backend API (checked with triton 3.8).
+    """
+    from triton._C.libtriton import ir  # Triton internals, only for this offline check
+    from triton.backends.compiler import GPUTarget
+    from triton.backends.nvidia.compiler import CUDABackend
+    from triton.compiler import ASTSource
+
+    fn = _kernel()
+    pointers = {"offsets_ptr": "*i64", "counts_ptr": "*i64", "list_ptr": "*i64", "means_ptr": "*fp64", "conics_ptr": "*fp64",
+                "opacities_ptr": "*fp32", "out_w_ptr": "*fp64", "out_pos_ptr": "*i32", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
+    consts = {"TILE": tile, "BLOCK": block, "KP": kp, "ALPHA_MIN": kernels.ALPHA_MIN, "ALPHA_MAX": kernels.ALPHA_MAX, "T_MIN": kernels.T_MIN,
+              "MEDIAN_T": kernels.MEDIAN_T}
+    signature = {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32"), **dict.fromkeys(consts, "constexpr")}
+    source = ASTSource(fn=fn, signature=signature, constexprs={(fn.arg_names.index(k),): v for k, v in consts.items()})
+    target = GPUTarget("cuda", capability, 32)
+    backend = CUDABackend(target)
+    options = backend.parse_options({})
+    context = ir.context()
+    ir.load_dialects(context)
+    backend.load_dialects(context)
+    module = source.make_ir(target, options, backend.get_codegen_implementation(options), backend.get_module_map(), context)
+    stages: dict = {}
+    backend.add_stages(stages, options, source.language)
+    metadata: dict = {}
+    for name in ("ttir", "ttgir", "llir", "ptx"):
+        module = stages[name](module, metadata)
+    return module
