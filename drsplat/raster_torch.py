@@ -16,7 +16,10 @@ How the work is vectorised (no Python loop over pixels or Gaussians):
   `cumprod` seeded with the carried T, so an entry contributes iff its T·(1 - α) ≥ 1e-4 (T only
   decreases, so the first failing entry ends the pixel, as the sequential rule does). The chunk's
   weights are merged into the running top-k by a stable sort on (weight desc, list position).
-  B·C·P is bounded by `max_elements` (memory, not results).
+  B·C·P is bounded by `max_elements` (memory, not results). Each group's chunk count is known on
+  the host (list lengths are copied once per view), so the loop never waits for the device.
+- on CUDA, `rasterize_torch` composites top-k ids / weights / alpha / median with the fused Triton
+  kernel of drsplat.raster_triton instead (same rules, one launch), unless RGB or depth is asked for.
 """
 
 from __future__ import annotations
