@@ -16,7 +16,10 @@ How the work is vectorised (no Python loop over pixels or Gaussians):
   `cumprod` seeded with the carried T, so an entry contributes iff its T·(1 - α) ≥ 1e-4 (T only
   decreases, so the first failing entry ends the pixel, as the sequential rule does). The chunk's
   weights are merged into the running top-k by a stable sort on (weight desc, list position).
-  B·C·P is bounded by `max_elements` (memory, not results).
+  B·C·P is bounded by `max_elements` (memory, not results). Each group's chunk count is known on
+  the host (list lengths are copied once per view), so the loop never waits for the device.
+- on CUDA, `rasterize_torch` composites top-k ids / weights / alpha / median with the fused Triton
+  kernel of drsplat.raster_triton instead (same rules, one launch), unless RGB or depth is asked for.
 """
 
 from __future__ import annotations
@@ -103,8 +106,8 @@ class TorchProjected:
     width: int
     height: int
     tile_size: int = TILE_SIZE
-    num_nonfinite: int = 0
-    num_behind: int = 0
+    num_nonfinite: int | torch.Tensor = 0  # 0-d tensors as projected (reading them would wait for the device)
+    num_behind: int | torch.Tensor = 0
 
     @property
     def tile_grid(self) -> tuple[int, int]:
@@ -120,7 +123,7 @@ class TorchRasterOutput:
     rgb: torch.Tensor | None
     depth: torch.Tensor | None
     alpha: torch.Tensor
-    num_nonfinite: int = 0
+    num_nonfinite: int | torch.Tensor = 0  # a 0-d tensor until the output is copied to the host
     median_ids: torch.Tensor | None = None
 
     def numpy(self) -> RasterOutput:
@@ -129,7 +132,9 @@ class TorchRasterOutput:
         def host(t):
             return t.cpu().numpy() if isinstance(t, torch.Tensor) else t
 
-        return RasterOutput(**{f.name: host(getattr(self, f.name)) for f in dataclasses.fields(self)})  # the same fields by name
+        fields = {f.name: host(getattr(self, f.name)) for f in dataclasses.fields(self)}  # the same fields by name
+        fields["num_nonfinite"] = int(fields["num_nonfinite"])
+        return RasterOutput(**fields)
 
 
 def _screen_space(ts: TorchScene, camera: Camera):
@@ -138,13 +143,11 @@ def _screen_space(ts: TorchScene, camera: Camera):
     Returns (pz [N], u [N], v [N], a, b, c [N]: Σ' = [[a, b], [b, c]]) as float64; the math is
     drsplat.raster._screen_covariances (Σ' = J W Σ Wᵀ Jᵀ + 0.3·I, J clamped at 1.3x the field of view).
     """
-    dev = ts.device
-    rot = torch.as_tensor(np.asarray(camera.R, np.float64), device=dev)
-    t = torch.as_tensor(np.asarray(camera.t, np.float64), device=dev)
+    rot = [[float(x) for x in row] for row in np.asarray(camera.R, np.float64)]  # host floats: no device scalars, same double math
+    t = [float(x) for x in np.asarray(camera.t, np.float64)]
     m = ts.means
-    px = rot[0, 0] * m[:, 0] + rot[0, 1] * m[:, 1] + rot[0, 2] * m[:, 2] + t[0]
-    py = rot[1, 0] * m[:, 0] + rot[1, 1] * m[:, 1] + rot[1, 2] * m[:, 2] + t[1]
-    pz = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
+    mx, my, mz = m.unbind(1)
+    px, py, pz = (rot[i][0] * mx + rot[i][1] * my + rot[i][2] * mz + t[i] for i in range(3))
     fx, fy, cx, cy, w, h = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height
     tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
     lim_x_pos, lim_x_neg = (w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
@@ -153,14 +156,16 @@ def _screen_space(ts: TorchScene, camera: Camera):
     ty = pz * torch.clamp(py / pz, -lim_y_neg, lim_y_pos)
     jx, jy = fx / pz, fy / pz
     jxz, jyz = -fx * tx / (pz * pz), -fy * ty / (pz * pz)
-    a0 = [jx * rot[0, i] + jxz * rot[2, i] for i in range(3)]
-    a1 = [jy * rot[1, i] + jyz * rot[2, i] for i in range(3)]
+    # rows of J·W, [N, 2, 3]: jac[:, 0, i] = jx·R[0, i] + jxz·R[2, i], jac[:, 1, i] = jy·R[1, i] + jyz·R[2, i]
+    r0, r1, r2 = (torch.tensor(rot[i], dtype=torch.float64, device=m.device) for i in range(3))
+    jac = torch.stack([jx[:, None] * r0 + jxz[:, None] * r2, jy[:, None] * r1 + jyz[:, None] * r2], 1)
     cv = ts.covariances
-    s0 = [cv[:, i, 0] * a0[0] + cv[:, i, 1] * a0[1] + cv[:, i, 2] * a0[2] for i in range(3)]
-    s1 = [cv[:, i, 0] * a1[0] + cv[:, i, 1] * a1[1] + cv[:, i, 2] * a1[2] for i in range(3)]
-    a = a0[0] * s0[0] + a0[1] * s0[1] + a0[2] * s0[2] + kernels.BLUR
-    b = a1[0] * s0[0] + a1[1] * s0[1] + a1[2] * s0[2]
-    c = a1[0] * s1[0] + a1[1] * s1[1] + a1[2] * s1[2] + kernels.BLUR
+    # s[:, r, i] = Σ_j cv[:, i, j]·jac[:, r, j], summed j = 0, 1, 2 in that order (the numba kernel's rounding)
+    s = cv[:, None, :, 0] * jac[:, :, 0, None] + cv[:, None, :, 1] * jac[:, :, 1, None] + cv[:, None, :, 2] * jac[:, :, 2, None]
+    ab = jac[:, :, None, 0] * s[:, None, :, 0] + jac[:, :, None, 1] * s[:, None, :, 1] + jac[:, :, None, 2] * s[:, None, :, 2]  # [N, 2, 2]
+    a = ab[:, 0, 0] + kernels.BLUR
+    b = ab[:, 1, 0]
+    c = ab[:, 1, 1] + kernels.BLUR
     u = fx * px / pz + cx
     v = fy * py / pz + cy
     return pz, u, v, a, b, c
@@ -204,7 +209,7 @@ def project_gaussians_torch(
     mid = 0.5 * (a + c)
     radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))))
     considered = in_front & (ts.opacities.double() >= kernels.ALPHA_MIN)
-    finite = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c) & torch.isfinite(u) & torch.isfinite(v) & torch.isfinite(radius)
+    finite = torch.isfinite(torch.stack([a, b, c, u, v, radius])).all(dim=0)
     rects = _tile_rects(u, v, radius, camera.width, camera.height, tile_size)
     nonempty = (rects[:, 2] > rects[:, 0]) & (rects[:, 3] > rects[:, 1])
     valid = considered & finite & (det > 0) & nonempty
@@ -221,8 +226,8 @@ def project_gaussians_torch(
         width=int(camera.width),
         height=int(camera.height),
         tile_size=tile_size,
-        num_nonfinite=ts.num_nonfinite + int((considered & ~finite).sum()),
-        num_behind=int(behind.sum()),
+        num_nonfinite=ts.num_nonfinite + (considered & ~finite).sum(),  # 0-d tensors: read when the output reaches the host
+        num_behind=behind.sum(),
     )
     if with_colors:
         out.colors = _colors(ts, camera, valid)
@@ -251,9 +256,10 @@ def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.
     dev = projected.valid.device
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
-    idx = torch.nonzero(projected.valid).reshape(-1)
-    depth = projected.depths[idx] + 0.0  # -0 sorts as +0
-    order = idx[torch.sort(depth, stable=True).indices]
+    # all N ids by depth, invalid ones last (their rects are empty: they add no entries); a stable
+    # sort of the valid depths alone gives the same order of the valid ids, without a nonzero()
+    depth = torch.where(projected.valid, projected.depths + 0.0, torch.inf)  # -0 sorts as +0
+    order = torch.sort(depth, stable=True).indices
     r = projected.tile_rects[order]
     span_x = r[:, 2] - r[:, 0]
     per = span_x * (r[:, 3] - r[:, 1])
@@ -261,8 +267,8 @@ def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.
     if total == 0:
         empty = torch.zeros(n_tiles, dtype=torch.int64, device=dev)
         return empty, empty.clone(), torch.zeros(0, dtype=torch.int64, device=dev)
-    rank = torch.repeat_interleave(torch.arange(order.numel(), device=dev), per)
-    local = torch.arange(total, device=dev) - torch.repeat_interleave(torch.cumsum(per, 0) - per, per)
+    rank = torch.repeat_interleave(torch.arange(order.numel(), device=dev), per, output_size=total)
+    local = torch.arange(total, device=dev) - torch.repeat_interleave(torch.cumsum(per, 0) - per, per, output_size=total)
     tile = (r[rank, 1] + local // span_x[rank]) * n_tiles_x + r[rank, 0] + local % span_x[rank]
     tile_sorted, perm = torch.sort(tile, stable=True)
     counts = torch.bincount(tile_sorted, minlength=n_tiles)
@@ -314,9 +320,6 @@ class _TileGroup:
     best_w: torch.Tensor
     best_pos: torch.Tensor
 
-    def select(self, keep: torch.Tensor) -> _TileGroup:
-        return _TileGroup(*(getattr(self, f.name)[keep] for f in dataclasses.fields(self)))
-
 
 def _new_group(projected: TorchProjected, tiles, starts, lengths) -> _TileGroup:
     """Fresh state of `tiles`; pixels outside the image start done (they never count)."""
@@ -358,22 +361,21 @@ def _store(state: _TileGroup, tile_list: torch.Tensor, out: _Buffers) -> None:
         out.weights[tiles, :, :kept] = state.best_w.float()
 
 
-def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, topk, chunk, out: _Buffers) -> None:
+def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, topk, chunk, longest: int, out: _Buffers) -> None:
     """Composite the tiles of `state` (lists tile_list[starts[b]:starts[b] + lengths[b]]) into `out`.
 
     For each chunk of C entries: d = mean2d - pixel centre, power = -½(a·dx² + c·dy²) - b·dx·dy,
     α = min(0.99, o·exp(power)), hit = power ≤ 0 and α ≥ 1/255; T_after = cumprod of (1 - α)
     (1 where not hit) seeded with the carried T (0 once a pixel is done); an entry contributes
     w = α·T_before iff hit and T_after ≥ 1e-4; the median Gaussian is the contributing entry
-    with T_before > ½ ≥ T_after (one per pixel at most: T only falls). Tiles whose pixels are all done or whose lists
-    are exhausted are stored and dropped from the group after each chunk.
+    with T_before > ½ ≥ T_after (one per pixel at most: T only falls). longest: the group's longest
+    list, known on the host, so the chunk loop has a fixed trip count and never waits for the device
+    (pixels that are done and tiles whose lists are exhausted contribute nothing in later chunks).
     """
     dev = tile_list.device
     with_rgb, with_depth, with_median = out.rgb is not None, out.dep is not None, out.med is not None
     steps = torch.arange(chunk, device=dev)
-    c0 = 0
-    while state.tiles.numel():
-        longest = int(state.lengths.max())
+    for c0 in range(0, longest, chunk):
         pos = c0 + steps[: min(chunk, longest - c0)]
         in_range = pos[None, :] < state.lengths[:, None]  # [B, C]
         g = tile_list[torch.where(in_range, state.starts[:, None] + pos[None, :], 0)]
@@ -402,11 +404,7 @@ def _composite_group(projected: TorchProjected, state: _TileGroup, tile_list, to
         if topk > 0:
             cw, ci = torch.topk(w.transpose(1, 2), min(topk, w.shape[1]), dim=-1)
             state.best_w, state.best_pos = _merge_topk(state.best_w, state.best_pos, cw, pos[ci], topk)
-        c0 += chunk
-        finished = state.done.all(dim=1) | (state.lengths <= c0)
-        if bool(finished.any()):
-            _store(state.select(finished), tile_list, out)
-            state = state.select(~finished)
+    _store(state, tile_list, out)
 
 
 def composite_torch(
@@ -442,13 +440,13 @@ def composite_torch(
     )
     by_length = torch.sort(counts, descending=True, stable=True).indices
     lengths_host = counts[by_length].cpu().numpy()
+    n_busy = int(np.count_nonzero(lengths_host))
     i = 0
-    while i < n_tiles and lengths_host[i] > 0:
+    while i < n_busy:
         b = max(1, max_elements // (int(min(lengths_host[i], chunk)) * p_count))
-        tiles = by_length[i : i + b]
-        tiles = tiles[counts[tiles] > 0]
+        tiles = by_length[i : min(i + b, n_busy)]
+        _composite_group(projected, _new_group(projected, tiles, offsets[tiles], counts[tiles]), tile_list, topk, chunk, int(lengths_host[i]), out)
         i += b
-        _composite_group(projected, _new_group(projected, tiles, offsets[tiles], counts[tiles]), tile_list, topk, chunk, out)
     ids, weights, trans, rgb, dep = out.ids, out.weights, out.trans, out.rgb, out.dep
     acc = 1.0 - trans
     out_rgb = None
@@ -483,17 +481,38 @@ def rasterize_torch(
     near: float = NEAR,
     device: str | torch.device | None = None,
     max_elements: int | None = None,
+    fused: bool | None = None,
 ) -> TorchRasterOutput:
     """Render one view with the torch engine; the output stays on the device (tensors).
 
     device: where to run; None = the device of a TorchScene, else the CPU.
+    fused: composite with the fused Triton top-k kernel (drsplat.raster_triton) instead of the
+    torch ops; None = on CUDA devices when Triton is installed and no RGB / depth is asked for (the
+    kernel keeps ids, weights, alpha and the median). True on a CPU is refused (outside the tests'
+    interpreter).
     """
     _check_args(topk, background)
     if device is None:
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
     projected = project_gaussians_torch(scene, camera, near, mask=mask, with_colors=with_rgb, device=device)
+    if fused is None:
+        fused = projected.valid.device.type == "cuda" and not (with_rgb or with_depth) and _triton_available()
+    if fused:
+        if with_rgb or with_depth:
+            raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
+        from drsplat import raster_triton  # imports triton: only when the fused kernel is asked for
+
+        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, topk, with_median=with_median)
+        return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
                            max_elements=max_elements)
+
+
+def _triton_available() -> bool:
+    """Whether the fused Triton kernel can be compiled (triton installed)."""
+    import importlib.util
+
+    return importlib.util.find_spec("triton") is not None
 
 
 def rasterize(

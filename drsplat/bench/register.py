@@ -45,6 +45,10 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gaussians", type=count_arg, default=None, metavar="N",
                    help="speed table on a random scene of N Gaussians built in memory (e.g. 500k) instead of --real")
     p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
+    p.add_argument("--count-views", type=int, default=2,
+                   help="views whose torch ops and host syncs are counted, after one warm-up view (default: 2)")
+    p.add_argument("--json", type=Path, default=None, metavar="FILE",
+                   help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     add_device_arguments(p)
     p.set_defaults(func=run)
 
@@ -309,8 +313,10 @@ def blob_scene(n: int, seed: int = 0):
     return scene
 
 
-def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int) -> str:
-    """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement."""
+def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int,
+                 count_views: int = 2) -> tuple[str, dict]:
+    """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement;
+    then `engine`'s per-view ops and host syncs (`per_view_counts`). Returns (text, the counts record)."""
     from drsplat.raster import prepare_for_engine, rasterize
     from drsplat.testing import agreement
 
@@ -320,6 +326,7 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         random_mask_features(features_dir, cameras, np.random.default_rng(0))
         base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats)
         other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device)
+        counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device)
     wdiff, mismatch = 0.0, 0.0
     prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
     for cam in cameras[:agree_views]:
@@ -340,7 +347,73 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
     head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, 512-D random masks; "
             f"median of {repeats}. Agreement on {min(agree_views, views)} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of "
             f"top-k slots; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
-    return head + "\n" + format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
+    table = format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
+    return head + "\n" + table + "\n\n" + counts_table(counts), counts
+
+
+def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str) -> dict:
+    """What computing one view costs `engine` on `device` (drsplat.registration.compute.ViewComputer.compute:
+    rasterize, per-view hook, coalesce): torch ops and host syncs per view (drsplat.bench.opcount),
+    the median wall ms per view (timed without the counter) and peak device memory (CUDA).
+
+    The first camera is a warm-up (compilation, caches) and is not counted; the rest are.
+    """
+    import torch
+
+    from drsplat.bench.opcount import OpCounter
+    from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+    from drsplat.registration.views import load_view_features
+
+    computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device))
+    cuda = device.startswith("cuda")
+    ops, views_only, syncs, ms, sync_names = [], [], [], [], None
+    for i, cam in enumerate(cameras):
+        mask_ids, feats, *_ = load_view_features(features_dir, cam, 0)
+        if cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        t0 = time.perf_counter()
+        computer.compute(cam, mask_ids, feats)
+        if cuda:
+            torch.cuda.synchronize()
+        if i == 0:
+            continue
+        ms.append(1e3 * (time.perf_counter() - t0))
+        with OpCounter() as counter:
+            computer.compute(cam, mask_ids, feats)
+        ops.append(counter.counts.ops)
+        views_only.append(counter.counts.views)
+        syncs.append(counter.counts.syncs)
+        sync_names = counter.counts.syncs_by_name
+    views = len(ms)
+    return {
+        "engine": engine, "device": device, "views": views,
+        "ops_per_view": statistics.median(ops) if views else None,
+        "view_ops_per_view": statistics.median(views_only) if views else None,
+        "host_syncs_per_view": statistics.median(syncs) if views else None,
+        "ms_per_view": statistics.median(ms) if views else None,
+        "peak_device_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
+        "host_syncs_by_op": dict(sync_names.most_common()) if sync_names else {},
+    }  # fmt: skip
+
+
+def counts_table(counts: dict) -> str:
+    """The per-view record of `per_view_counts` as a table."""
+    peak = counts["peak_device_mb"]
+    syncs = ", ".join(f"{k} x{v}" for k, v in counts["host_syncs_by_op"].items()) or "none"
+    head = (f"per-view work of {counts['engine']} ({counts['device']}), median of {counts['views']} views after a warm-up "
+            f"(ops: aten calls; host syncs: {syncs})")
+    row = [counts["engine"], counts["device"], counts["ops_per_view"], counts["view_ops_per_view"], counts["host_syncs_per_view"], counts["ms_per_view"],
+           "n/a (cpu)" if peak is None else peak]
+    return head + "\n" + format_table(["engine", "device", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view", "peak device MB"], [row])
+
+
+def write_json(path: Path, record: dict) -> None:
+    """`record` as JSON at `path`, written atomically."""
+    from drsplat.utils import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(record, indent=2) + "\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -350,6 +423,10 @@ def run(args: argparse.Namespace) -> int:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats))
         print()
     device, engine = resolve_compute(args)
+    if args.json is not None and (engine == "numba" or args.skip_real):
+        from drsplat.errors import UsageError
+
+        raise UsageError("--json records the torch engine's per-view figures: add --engine torch (and leave out --skip-real)")
     if engine != "numba" and not args.skip_real:
         if args.gaussians:
             scene, name = blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
@@ -361,7 +438,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"skipped the engine table: {args.real} is absent (pass --real SCENE.ply or --gaussians N)")
             scene = None
         if scene is not None:
-            print(engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device, args.agree_views))
+            text, counts = engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device,
+                                        args.agree_views, args.count_views)
+            print(text)
+            if args.json is not None:
+                write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
+                print(f"wrote {args.json}")
     elif not args.skip_real:
         if args.real.exists():
             if not args.skip_stages:

@@ -1,0 +1,84 @@
+"""The op / host-sync counter behind `drsplat bench register --json`, and the record it writes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from drsplat.bench.opcount import OpCounter
+from drsplat.errors import UsageError
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def counted(fn):
+    with OpCounter() as counter:
+        fn()
+    return counter.counts
+
+
+def test_counter_tells_syncing_ops_from_the_rest():
+    x = torch.arange(10.0)
+    mask = x > 4
+    idx = torch.tensor([1, 3])
+    assert counted(lambda: x * 2 + 1).syncs == 0
+    assert counted(lambda: x * 2 + 1).ops == 2
+    assert counted(lambda: x[idx]).syncs == 0, "integer indexing has a fixed output size"
+    assert counted(lambda: x[mask]).syncs == 1, "boolean-mask indexing waits for the mask"
+    assert counted(lambda: x.sum().item()).syncs == 1
+    assert counted(lambda: torch.nonzero(mask)).syncs == 1
+    reps = torch.tensor([1, 2, 0])
+    assert counted(lambda: torch.repeat_interleave(torch.arange(3), reps)).syncs == 1
+    assert counted(lambda: torch.repeat_interleave(torch.arange(3), reps, output_size=3)).syncs == 0
+    views = counted(lambda: x[2:5].unsqueeze(0))
+    assert views.ops == views.views == 2
+
+
+def test_torch_engine_view_has_one_host_sync_and_equals_numba():
+    """The per-view path of the torch engine reads the device once (the size of the tile lists)."""
+    from drsplat.raster import rasterize
+    from drsplat.raster_torch import rasterize_torch
+    from drsplat.testing import random_case
+
+    case = random_case(3, n=200, topk=6)
+    out = None
+
+    def render():
+        nonlocal out
+        out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True)
+
+    counts = counted(render)
+    assert counts.syncs == 1, dict(counts.syncs_by_name)
+    host = out.numpy()
+    ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
+    np.testing.assert_array_equal(host.ids, ref.ids)
+    np.testing.assert_array_equal(host.weights, ref.weights)
+    np.testing.assert_array_equal(host.median_ids, ref.median_ids)
+    assert host.num_nonfinite == ref.num_nonfinite and isinstance(host.num_nonfinite, int)
+
+
+def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
+    from drsplat.cli import main
+
+    out = tmp_path / "counts.json"
+    code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--repeats", "1",
+                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    record = json.loads(out.read_text())
+    assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1
+    assert 0 < record["view_ops_per_view"] < record["ops_per_view"] < 2000
+    assert record["host_syncs_per_view"] == 1 and record["ms_per_view"] > 0
+    printed = capsys.readouterr().out
+    assert "host syncs/view" in printed and "ops/view" in printed
+
+
+def test_bench_json_needs_the_torch_engine(tmp_path):
+    from drsplat.bench.register import run
+    from drsplat.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "register", "--skip-synthetic", "--engine", "numba", "--device", "cpu", "--json", str(tmp_path / "x.json")])
+    with pytest.raises(UsageError, match="--engine torch"):
+        run(args)
