@@ -502,7 +502,8 @@ def rasterize_torch(
             raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
         from drsplat import raster_triton  # imports triton: only when the fused kernel is asked for
 
-        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, topk, with_median=with_median)
+        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, bin_gaussians_torch(projected), topk,
+                                                                          with_median=with_median)
         return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
                            max_elements=max_elements)

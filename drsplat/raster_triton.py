@@ -131,14 +131,14 @@ def _kernel():
     return triton.jit(_composite_topk_source)
 
 
-def composite_topk_triton(projected, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None):
+def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None):
     """Top-k ids [H, W, k] int32 and weights [H, W, k] float32, alpha [H, W] float32 (and median ids [H, W] int32 or None).
 
     projected: a drsplat.raster_torch.TorchProjected on a CUDA device (or on the CPU under TRITON_INTERPRET=1: the tests).
-    The tile lists come from drsplat.raster_torch.bin_gaussians_torch; the rest is one kernel
-    launch plus `_finish`'s fixed-size sort and gathers (no host synchronisation).
+    bins: the tile lists (offsets [T], counts [T], tile_list [L]) of drsplat.raster_torch.bin_gaussians_torch,
+    passed in so that this module does not import its caller. The rest is one kernel launch plus
+    `_finish`'s fixed-size sort and gathers (no host synchronisation).
     """
-    from drsplat.raster_torch import bin_gaussians_torch  # raster_torch imports torch; this module is loaded only with it
 
     _check_args(topk, (0.0, 0.0, 0.0))
     dev = projected.valid.device
@@ -152,7 +152,7 @@ def composite_topk_triton(projected, topk: int = DEFAULT_TOPK, *, with_median: b
         raise ValueError(f"block {block} must divide the {p_count} pixels of a tile")
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
-    offsets, counts, tile_list = bin_gaussians_torch(projected)
+    offsets, counts, tile_list = bins
     if tile_list.numel() == 0:  # nothing visible: a one-entry list keeps the gathers in range (every count is 0)
         tile_list = torch.zeros(1, dtype=torch.int64, device=dev)
     kp = max(1, 1 << max(0, topk - 1).bit_length())
