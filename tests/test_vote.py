@@ -67,6 +67,19 @@ def test_mask_clusters_group_noisy_masks_of_a_label():
         assert float(means[cluster] @ labels[label]) > 0.99
 
 
+def test_masks_that_reach_no_gaussian_neither_found_nor_move_clusters():
+    """A view's masks that cover no Gaussian (an empty segment, a mask off the scene) must leave the
+    clusters, and so the field, as if the view had no such masks."""
+    rng = np.random.default_rng(1)
+    labels = _labels(rng, 2)
+    with_extra, without = MaskClusters(D), MaskClusters(D)
+    stray = _unit(rng.normal(size=(1, D)))
+    ids = with_extra.add(np.vstack([labels, stray]), present=np.array([True, True, False]))
+    assert ids[-1] == -1 and with_extra.count == 2
+    without.add(labels)
+    np.testing.assert_array_equal(with_extra.means(), without.means())
+
+
 @pytest.mark.parametrize("presence", [0.0, 0.1, 0.3])
 def test_vote_slots_agree_with_the_reference(presence):
     rng = np.random.default_rng(int(presence * 10))

@@ -77,14 +77,18 @@ class MaskClusters:
     def leaders(self) -> np.ndarray:
         return self._leaders[: self.count]
 
-    def add(self, feats: np.ndarray) -> np.ndarray:
-        """Assign one view's masks feats [M, D] (in order) and remember the ids; returns them [M] int32."""
+    def add(self, feats: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+        """Assign one view's masks feats [M, D] (in order) and remember the ids; returns them [M] int32.
+
+        present: [M] bool, the masks that reached some Gaussian; the others get -1 and neither found
+        nor move a cluster (a mask that covers nothing must not change the field).
+        """
         feats = np.asarray(feats, np.float32)
         norms = np.linalg.norm(feats.astype(np.float64), axis=1)
         ids = np.full(feats.shape[0], -1, np.int32)
         cos = feats @ self.leaders.T if self.count else np.zeros((feats.shape[0], 0), np.float32)
         for j in range(feats.shape[0]):
-            if not norms[j] > 0:
+            if not norms[j] > 0 or (present is not None and not present[j]):
                 continue
             unit = feats[j] / np.float32(norms[j])
             best = int(np.argmax(cos[j])) if cos.shape[1] else -1
@@ -281,7 +285,9 @@ class VoteSink:
         return max(1, -(-self.num_gaussians // self.block))
 
     def add(self, view: ViewPairs) -> None:
-        ids = self.clusters.add(view.feats)
+        present = np.zeros(view.feats.shape[0], bool)
+        present[view.masks] = True
+        ids = self.clusters.add(view.feats, present)
         if self._state is not None:
             self._fold(self._state, view.gaussians, view.masks, ids, view.weights, view.feats)
 
