@@ -366,6 +366,7 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         keep = np.ones(block.hi - block.lo, bool) if run.options.keep_unassigned else block.W > 0
         target.add(block, keep)
         blocks += 1
+        del block, keep  # the next block's sums must not be allocated while this one's are alive (the plan counts one)
     return weights, nonfinite, blocks, sum_seconds, sum_cpu
 
 

@@ -84,8 +84,8 @@ class LogSink:
     def blocks(self) -> Iterator[Block]:
         for lo in range(0, self.num_gaussians, self.block):
             hi = min(self.num_gaussians, lo + self.block)
-            F, W = self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)
-            yield Block(lo, hi, F, W)
+            # no local keeps the block across the yield: the next block's sums are allocated only after the caller drops this one
+            yield Block(lo, hi, *self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""

@@ -310,8 +310,8 @@ class VoteSink:
             return
         for lo in range(0, self.num_gaussians, self.block):
             hi = min(self.num_gaussians, lo + self.block)
-            F, W = self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
-            yield Block(lo, hi, F, W)
+            # as LogSink.blocks: nothing here holds a block across the yield
+            yield Block(lo, hi, *self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
