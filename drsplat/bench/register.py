@@ -352,42 +352,57 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
 
 
 def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str) -> dict:
-    """What computing one view costs `engine` on `device` (drsplat.registration.compute.ViewComputer.compute:
-    rasterize, per-view hook, coalesce): torch ops and host syncs per view (drsplat.bench.opcount),
-    the median wall ms per view (timed without the counter) and peak device memory (CUDA).
+    """What computing and summing one view costs `engine` on `device` with the "paper" mode (no
+    per-view hook): drsplat.registration.compute.ViewComputer.compute (rasterize, coalesce) and the
+    sink's `add`. Torch ops and host syncs per view (drsplat.bench.opcount), the median wall ms per
+    view (timed without the counter) and peak device memory (CUDA).
 
-    The first camera is a warm-up (compilation, caches) and is not counted; the rest are.
+    For the torch engine both ways are measured: pairs coalesced and summed on the device
+    (drsplat.registration.device_sums, what registration does in that mode: the record's top-level
+    figures) and the lists copied to the host for the numba coalescer and sums (`host_sums`). The
+    first camera is a warm-up (compilation, caches) and is not counted; the rest are.
     """
+    record = _count_views(scene, cameras, features_dir, topk, engine, device, on_device=engine == "torch")
+    if engine == "torch":
+        record["host_sums"] = _count_views(scene, cameras, features_dir, topk, engine, device, on_device=False)
+    return record
+
+
+def _count_views(scene, cameras, features_dir: Path, topk: int, engine: str, device: str, on_device: bool) -> dict:
     import torch
 
     from drsplat.bench.opcount import OpCounter
     from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+    from drsplat.registration.device_sums import DeviceSink
+    from drsplat.registration.sink import MemorySink
     from drsplat.registration.views import load_view_features
 
-    computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device))
+    computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
     cuda = device.startswith("cuda")
-    ops, views_only, syncs, ms, sync_names = [], [], [], [], None
+    ops, views_only, syncs, ms, sync_names, sink = [], [], [], [], None, None
     for i, cam in enumerate(cameras):
         mask_ids, feats, *_ = load_view_features(features_dir, cam, 0)
+        if sink is None:
+            sink = DeviceSink(scene.num_gaussians, feats.shape[1], device) if on_device else MemorySink(scene.num_gaussians, feats.shape[1])
         if cuda:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        computer.compute(cam, mask_ids, feats)
+        sink.add(computer.compute(cam, mask_ids, feats))
         if cuda:
             torch.cuda.synchronize()
         if i == 0:
             continue
         ms.append(1e3 * (time.perf_counter() - t0))
         with OpCounter() as counter:
-            computer.compute(cam, mask_ids, feats)
+            sink.add(computer.compute(cam, mask_ids, feats))
         ops.append(counter.counts.ops)
         views_only.append(counter.counts.views)
         syncs.append(counter.counts.syncs)
         sync_names = counter.counts.syncs_by_name
     views = len(ms)
     return {
-        "engine": engine, "device": device, "views": views,
+        "engine": engine, "device": device, "views": views, "sums": device if on_device else "host",
         "ops_per_view": statistics.median(ops) if views else None,
         "view_ops_per_view": statistics.median(views_only) if views else None,
         "host_syncs_per_view": statistics.median(syncs) if views else None,
@@ -398,14 +413,15 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
 
 
 def counts_table(counts: dict) -> str:
-    """The per-view record of `per_view_counts` as a table."""
-    peak = counts["peak_device_mb"]
-    syncs = ", ".join(f"{k} x{v}" for k, v in counts["host_syncs_by_op"].items()) or "none"
-    head = (f"per-view work of {counts['engine']} ({counts['device']}), median of {counts['views']} views after a warm-up "
-            f"(ops: aten calls; host syncs: {syncs})")
-    row = [counts["engine"], counts["device"], counts["ops_per_view"], counts["view_ops_per_view"], counts["host_syncs_per_view"], counts["ms_per_view"],
-           "n/a (cpu)" if peak is None else peak]
-    return head + "\n" + format_table(["engine", "device", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view", "peak device MB"], [row])
+    """The per-view records of `per_view_counts` as a table (device sums, then host sums when measured)."""
+    records = [counts] + ([counts["host_sums"]] if "host_sums" in counts else [])
+    syncs = "; ".join(f"sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
+    head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate paper, compute + sink add, median of {counts['views']} "
+            f"views after a warm-up (ops: aten calls; host syncs: {syncs})")
+    rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
+             "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
+    return head + "\n" + format_table(["engine", "device", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
+                                       "peak device MB"], rows)
 
 
 def write_json(path: Path, record: dict) -> None:

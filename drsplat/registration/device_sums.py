@@ -113,7 +113,8 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     out = rasterize_torch(scene, camera, topk, device=scene.device)
     masks = torch.from_numpy(np.ascontiguousarray(mask_ids)).to(scene.device)
     pairs = coalesce_torch(out.ids, out.weights, masks, num_masks, scene.num_gaussians)
-    distinct, contributing = pairs.counts.tolist()
+    both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
+    distinct, contributing = both >> 32, both & 0xFFFFFFFF
     return pairs.trimmed(distinct), contributing
 
 
@@ -151,16 +152,16 @@ class DeviceSink:
 
     def add(self, view: ViewPairs) -> None:
         pairs = view.device
-        if pairs is None:  # a view replayed from the log
-            g = torch.from_numpy(np.asarray(view.gaussians, np.int64)).to(self.device)
-            m = torch.from_numpy(np.asarray(view.masks, np.int64)).to(self.device)
-            w = torch.from_numpy(np.asarray(view.weights, np.float32)).to(self.device)
+        if pairs is None:  # a view replayed from the log (read-only arrays: copied)
+            g = torch.from_numpy(view.gaussians.astype(np.int64)).to(self.device)
+            m = torch.from_numpy(view.masks.astype(np.int64)).to(self.device)
+            w = torch.from_numpy(np.array(view.weights, np.float32)).to(self.device)
         else:
             g, m, w = pairs.gaussians, pairs.masks, pairs.weights
         total = int(g.shape[0])
         if total == 0:
             return
-        feats = torch.from_numpy(np.ascontiguousarray(view.feats, np.float32)).to(self.device)
+        feats = torch.from_numpy(np.array(view.feats, np.float32)).to(self.device)  # [M, D], once per view
         self.W.index_add_(0, g, w)
         for start in range(0, total, self.chunk):
             part = slice(start, start + self.chunk)
