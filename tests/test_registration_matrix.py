@@ -1,7 +1,8 @@
 """Every engine x memory plan x aggregation mode, in this process: the same registered file, or a refusal up front.
 
 The reference is the numba engine in one block. The torch engine (on the CPU here) and Gaussian
-blocks must write the same bytes for every `--aggregate` mode; the Ray place is covered the same
+blocks must write the same bytes for every `--aggregate` mode (the torch engine with `paper` in
+one block coalesces and sums on its device: drsplat.registration.device_sums); the Ray place is covered the same
 way on a real cluster in tests/test_distributed.py. Options that cannot run are refused before
 anything is loaded, in one sentence.
 """

@@ -357,59 +357,76 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     sink's `add`. Torch ops and host syncs per view (drsplat.bench.opcount), the median wall ms per
     view (timed without the counter) and peak device memory (CUDA).
 
-    For the torch engine both ways are measured: pairs coalesced and summed on the device
-    (drsplat.registration.device_sums, what registration does in that mode: the record's top-level
-    figures) and the lists copied to the host for the numba coalescer and sums (`host_sums`). The
-    first camera is a warm-up (compilation, caches) and is not counted; the rest are.
+    For the torch engine both ways are measured, interleaved view by view: pairs coalesced and
+    summed on the device (drsplat.registration.device_sums, what registration does in that mode:
+    the record's top-level figures) and the lists copied to the host for the numba coalescer and
+    sums (`host_sums`). The first camera is a warm-up (compilation, caches) and is not counted.
     """
-    record = _count_views(scene, cameras, features_dir, topk, engine, device, on_device=engine == "torch")
-    if engine == "torch":
-        record["host_sums"] = _count_views(scene, cameras, features_dir, topk, engine, device, on_device=False)
+    ways = [True, False] if engine == "torch" else [False]
+    counters = [_ViewCounter(scene, features_dir, topk, engine, device, on_device) for on_device in ways]
+    for i, cam in enumerate(cameras):
+        for counter in counters:
+            counter.view(cam, counted=i > 0)
+    record = counters[0].record()
+    if len(counters) > 1:
+        record["host_sums"] = counters[1].record()
     return record
 
 
-def _count_views(scene, cameras, features_dir: Path, topk: int, engine: str, device: str, on_device: bool) -> dict:
-    import torch
+class _ViewCounter:
+    """One way of computing and summing views (`per_view_counts`), with its per-view figures."""
 
-    from drsplat.bench.opcount import OpCounter
-    from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
-    from drsplat.registration.device_sums import DeviceSink
-    from drsplat.registration.sink import MemorySink
-    from drsplat.registration.views import load_view_features
+    def __init__(self, scene, features_dir: Path, topk: int, engine: str, device: str, on_device: bool):
+        from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
 
-    computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
-    cuda = device.startswith("cuda")
-    ops, views_only, syncs, ms, sync_names, sink = [], [], [], [], None, None
-    for i, cam in enumerate(cameras):
-        mask_ids, feats, *_ = load_view_features(features_dir, cam, 0)
-        if sink is None:
-            sink = DeviceSink(scene.num_gaussians, feats.shape[1], device) if on_device else MemorySink(scene.num_gaussians, feats.shape[1])
+        self.scene, self.features_dir, self.engine, self.device, self.on_device = scene, features_dir, engine, device, on_device
+        self.computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
+        self.sink = None
+        self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
+
+    def view(self, cam, counted: bool) -> None:
+        import torch
+
+        from drsplat.bench.opcount import OpCounter
+        from drsplat.registration.device_sums import DeviceSink
+        from drsplat.registration.sink import MemorySink
+        from drsplat.registration.views import load_view_features
+
+        mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
+        if self.sink is None:
+            n = self.scene.num_gaussians
+            self.sink = DeviceSink(n, feats.shape[1], self.device) if self.on_device else MemorySink(n, feats.shape[1])
+        cuda = self.device.startswith("cuda")
         if cuda:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        sink.add(computer.compute(cam, mask_ids, feats))
+        self.sink.add(self.computer.compute(cam, mask_ids, feats))
         if cuda:
             torch.cuda.synchronize()
-        if i == 0:
-            continue
-        ms.append(1e3 * (time.perf_counter() - t0))
+            self.peak_mb = max(self.peak_mb or 0.0, torch.cuda.max_memory_allocated() / 2**20)
+        if not counted:
+            return
+        self.ms.append(1e3 * (time.perf_counter() - t0))
         with OpCounter() as counter:
-            sink.add(computer.compute(cam, mask_ids, feats))
-        ops.append(counter.counts.ops)
-        views_only.append(counter.counts.views)
-        syncs.append(counter.counts.syncs)
-        sync_names = counter.counts.syncs_by_name
-    views = len(ms)
-    return {
-        "engine": engine, "device": device, "views": views, "sums": device if on_device else "host",
-        "ops_per_view": statistics.median(ops) if views else None,
-        "view_ops_per_view": statistics.median(views_only) if views else None,
-        "host_syncs_per_view": statistics.median(syncs) if views else None,
-        "ms_per_view": statistics.median(ms) if views else None,
-        "peak_device_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
-        "host_syncs_by_op": dict(sync_names.most_common()) if sync_names else {},
-    }  # fmt: skip
+            self.sink.add(self.computer.compute(cam, mask_ids, feats))
+        self.ops.append(counter.counts.ops)
+        self.views_only.append(counter.counts.views)
+        self.syncs.append(counter.counts.syncs)
+        self.sync_names = counter.counts.syncs_by_name
+
+    def record(self) -> dict:
+        views = len(self.ms)
+
+        def median(values):
+            return statistics.median(values) if views else None
+
+        return {
+            "engine": self.engine, "device": self.device, "views": views, "sums": self.device if self.on_device else "host",
+            "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
+            "ms_per_view": median(self.ms), "peak_device_mb": self.peak_mb,
+            "host_syncs_by_op": dict(self.sync_names.most_common()) if self.sync_names else {},
+        }
 
 
 def counts_table(counts: dict) -> str:
