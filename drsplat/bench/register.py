@@ -383,6 +383,7 @@ class _ViewCounter:
         self.computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
         self.sink = None
         self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
+        self.after_raster_ms = []  # coalescing and summing (on CUDA: from the render's issue to the sums' end)
 
     def view(self, cam, counted: bool) -> None:
         import torch
@@ -401,13 +402,15 @@ class _ViewCounter:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        self.sink.add(self.computer.compute(cam, mask_ids, feats))
+        view = self.computer.compute(cam, mask_ids, feats)
+        self.sink.add(view)
         if cuda:
             torch.cuda.synchronize()
             self.peak_mb = max(self.peak_mb or 0.0, torch.cuda.max_memory_allocated() / 2**20)
         if not counted:
             return
         self.ms.append(1e3 * (time.perf_counter() - t0))
+        self.after_raster_ms.append(self.ms[-1] - 1e3 * view.raster_seconds)
         with OpCounter() as counter:
             self.sink.add(self.computer.compute(cam, mask_ids, feats))
         self.ops.append(counter.counts.ops)
@@ -416,7 +419,13 @@ class _ViewCounter:
         self.sync_names = counter.counts.syncs_by_name
 
     def record(self) -> dict:
+        """The per-view medians, and the sums' hand-over after the views (`blocks`: the device sink's
+        copy to the host, the host sink's last flush of its buffered pairs into F)."""
         views = len(self.ms)
+        t0 = time.perf_counter()
+        for _ in self.sink.blocks() if self.sink is not None else ():
+            pass
+        blocks_ms = 1e3 * (time.perf_counter() - t0)
 
         def median(values):
             return statistics.median(values) if views else None
@@ -424,7 +433,8 @@ class _ViewCounter:
         return {
             "engine": self.engine, "device": self.device, "views": views, "sums": self.device if self.on_device else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
-            "ms_per_view": median(self.ms), "peak_device_mb": self.peak_mb,
+            "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
+            "peak_device_mb": self.peak_mb,
             "host_syncs_by_op": dict(self.sync_names.most_common()) if self.sync_names else {},
         }
 
@@ -436,9 +446,9 @@ def counts_table(counts: dict) -> str:
     head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate paper, compute + sink add, median of {counts['views']} "
             f"views after a warm-up (ops: aten calls; host syncs: {syncs})")
     rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
-             "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
+             r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
     return head + "\n" + format_table(["engine", "device", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
-                                       "peak device MB"], rows)
+                                       "coalesce + sum ms/view", "sums to host ms (once)", "peak device MB"], rows)
 
 
 def write_json(path: Path, record: dict) -> None:

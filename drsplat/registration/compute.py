@@ -134,11 +134,11 @@ class ViewComputer:
     def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int) -> ViewPairs:
         """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""
         t0 = time.perf_counter()
-        pairs, contributing = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0])
+        pairs, contributing, raster_seconds = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0])
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         none = np.zeros(0, np.int32)
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,
-                         raster_seconds=time.perf_counter() - t0, device=pairs)
+                         raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, device=pairs)
 
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling."""

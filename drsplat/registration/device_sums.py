@@ -18,6 +18,7 @@ engine.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -103,19 +104,23 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts)
 
 
-def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int) -> tuple[DevicePairs, int]:
+def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int) -> tuple[DevicePairs, int, float]:
     """Render `camera` on the scene's device and coalesce its pairs there (`coalesce_torch`).
 
     mask_ids: [H, W] the view's masks (-1 none; copied to the device). Returns (the view's
-    DevicePairs trimmed to its P distinct pairs, contributing slots): the two counts are the one
-    read of the device this adds to a view (the rasterizer reads one more, the size of its tile lists).
+    DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
+    were issued): the two counts are the one read of the device this adds to a view (the rasterizer
+    reads one more, the size of its tile lists). On CUDA the render runs on after it was issued, so
+    the seconds then split the view where the host waited, not where the device worked.
     """
+    t0 = time.perf_counter()
     out = rasterize_torch(scene, camera, topk, device=scene.device)
+    raster_seconds = time.perf_counter() - t0
     masks = torch.from_numpy(np.ascontiguousarray(mask_ids)).to(scene.device)
     pairs = coalesce_torch(out.ids, out.weights, masks, num_masks, scene.num_gaussians)
     both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
     distinct, contributing = both >> 32, both & 0xFFFFFFFF
-    return pairs.trimmed(distinct), contributing
+    return pairs.trimmed(distinct), contributing, raster_seconds
 
 
 def sums_fit_device(num_gaussians: int, dim: int, device: str) -> bool:
