@@ -37,6 +37,19 @@ def test_counter_tells_syncing_ops_from_the_rest():
     assert views.ops == views.views == 2
 
 
+def test_copies_that_wait_for_a_device_are_syncs():
+    """Device -> CPU always waits; CPU -> device waits unless the source is pinned and the copy
+    non_blocking (checked on the op's arguments: no GPU is needed to tell)."""
+    from drsplat.bench.opcount import is_host_sync
+
+    cpu = torch.zeros(3)
+    cuda = torch.device("cuda")
+    assert is_host_sync("aten::_to_copy", (cpu,), {"device": cuda})
+    assert is_host_sync("aten::_to_copy", (cpu,), {"device": cuda, "non_blocking": True}), "pageable memory waits"
+    assert not is_host_sync("aten::_to_copy", (cpu,), {"device": torch.device("cpu")})
+    assert not is_host_sync("aten::_to_copy", (cpu,), {"dtype": torch.float64})
+
+
 def test_torch_engine_view_has_one_host_sync_and_equals_numba():
     """The per-view path of the torch engine reads the device once (the size of the tile lists)."""
     from drsplat.raster import rasterize

@@ -64,6 +64,17 @@ class DevicePairs:
         return host[0].copy(), host[1].copy(), host[2].view(np.float32).copy()
 
 
+def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """`array` (a writable host array) on `device` without the host waiting for queued device work:
+    a copy from pageable memory to CUDA waits for the stream, so the array is staged in pinned
+    memory and copied with non_blocking (the caching host allocator keeps the pinned copy until the
+    copy is done). On the CPU: a tensor sharing the array."""
+    tensor = torch.from_numpy(array)
+    if device.type != "cuda":
+        return tensor
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
 def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int, num_gaussians: int) -> DevicePairs:
     """A view's distinct (Gaussian, mask) pairs with summed weights, on the tensors' device.
 
@@ -116,7 +127,7 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     t0 = time.perf_counter()
     out = rasterize_torch(scene, camera, topk, device=scene.device)
     raster_seconds = time.perf_counter() - t0
-    masks = torch.from_numpy(np.ascontiguousarray(mask_ids)).to(scene.device)
+    masks = to_device(np.array(mask_ids, np.int32), scene.device)
     pairs = coalesce_torch(out.ids, out.weights, masks, num_masks, scene.num_gaussians)
     both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
     distinct, contributing = both >> 32, both & 0xFFFFFFFF
@@ -158,15 +169,15 @@ class DeviceSink:
     def add(self, view: ViewPairs) -> None:
         pairs = view.device
         if pairs is None:  # a view replayed from the log (read-only arrays: copied)
-            g = torch.from_numpy(view.gaussians.astype(np.int64)).to(self.device)
-            m = torch.from_numpy(view.masks.astype(np.int64)).to(self.device)
-            w = torch.from_numpy(np.array(view.weights, np.float32)).to(self.device)
+            g = to_device(view.gaussians.astype(np.int64), self.device)
+            m = to_device(view.masks.astype(np.int64), self.device)
+            w = to_device(np.array(view.weights, np.float32), self.device)
         else:
             g, m, w = pairs.gaussians, pairs.masks, pairs.weights
         total = int(g.shape[0])
         if total == 0:
             return
-        feats = torch.from_numpy(np.array(view.feats, np.float32)).to(self.device)  # [M, D], once per view
+        feats = to_device(np.array(view.feats, np.float32), self.device)  # [M, D], once per view
         self.W.index_add_(0, g, w)
         for start in range(0, total, self.chunk):
             part = slice(start, start + self.chunk)
@@ -183,5 +194,5 @@ class DeviceSink:
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (host copies)."""
-        index = torch.from_numpy(np.asarray(ids, np.int64)).to(self.device)
+        index = to_device(np.array(ids, np.int64), self.device)
         return self.F[index].cpu().numpy().copy(), self.W[index].cpu().numpy().copy()
