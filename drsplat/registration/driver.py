@@ -291,6 +291,7 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
         from drsplat.registration.device_sums import DeviceSink, sums_fit_device
 
         if sums_fit_device(n, dim, run.options.device):
+            log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)
             return DeviceSink(n, dim, run.options.device), True
         log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{n:,}", run.options.device)
     return MemorySink(n, dim), on_device
