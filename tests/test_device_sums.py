@@ -175,3 +175,27 @@ def test_a_device_run_resumes_from_its_pair_log(room, tmp_path):
     result = register(scene, cams, copy, out, options, show_progress=False)
     assert result.resumed_views == 2 and result.sums_on == "cpu"
     assert out.read_bytes() == reference.read_bytes()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same code above)")
+def test_on_cuda_pairs_and_sums_equal_numba_to_float32_rounding():
+    """On CUDA index_add adds with atomics in no fixed order: the same pairs, weights and sums to float32 rounding."""
+    n, dim = 3000, 16
+    device_sink, host_sink = DeviceSink(n, dim, "cuda"), MemorySink(n, dim)
+    for _, ids, weights, masks, num_masks, num_gaussians in CASES:
+        pairs = coalesce_torch(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), num_masks, num_gaussians)
+        distinct, contributing = (int(c) for c in pairs.counts)
+        tg, tm, tw = pairs.trimmed(distinct).to_host()
+        g, m, w, want_pairs = Coalescer(num_gaussians).coalesce(ids, weights, masks, num_masks)
+        assert (distinct, contributing) == (g.shape[0], want_pairs)
+        got, want = np.lexsort((tg, tm)), np.lexsort((g, m))
+        np.testing.assert_array_equal(np.stack([tg, tm])[:, got], np.stack([g, m])[:, want])
+        np.testing.assert_allclose(tw[got], w[want], rtol=1e-6)
+    for device_view, host_view in views_of(1, 6, n, dim):
+        device_view.device = type(device_view.device)(*(t.cuda() for t in (device_view.device.gaussians, device_view.device.masks,
+                                                                            device_view.device.weights, device_view.device.counts)))
+        device_sink.add(device_view)
+        host_sink.add(host_view)
+    (block,), (want,) = list(device_sink.blocks()), list(host_sink.blocks())
+    np.testing.assert_allclose(block.W, want.W, rtol=1e-5)
+    np.testing.assert_allclose(block.F, want.F, rtol=1e-5, atol=1e-5)
