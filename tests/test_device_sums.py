@@ -3,6 +3,7 @@ held to the numba coalescer and the host accumulator, and registration through t
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
@@ -87,6 +88,40 @@ def test_coalescing_never_waits_for_the_device():
     assert counter.counts.ops < 60
 
 
+WEIGHTINGS = ("paper", "responsibility", "core", "ellipse", "centre", "anchor")
+
+
+def projection(seed: int, n: int, h: int, w: int):
+    """Screen means [n, 2] (some exactly on pixel edges, some off screen) and conics [n, 3] (some degenerate)."""
+    rng = np.random.default_rng(seed)
+    means2d = np.stack([rng.uniform(-2, w + 2, n), rng.uniform(-2, h + 2, n)], 1)
+    means2d[: n // 4] = np.floor(means2d[: n // 4])  # centres on pixel corners: floor decides the centre pixel
+    a, c = rng.uniform(0.05, 2.0, n), rng.uniform(0.05, 2.0, n)
+    b = rng.uniform(-1, 1, n) * np.sqrt(a * c)
+    b[n // 4 : n // 3] = np.sqrt(a * c)[n // 4 : n // 3] * 1.5  # det < 0: no footprint area
+    return means2d, np.stack([a, b, c], 1)
+
+
+@pytest.mark.parametrize("weighting", WEIGHTINGS)
+@pytest.mark.parametrize("case", ["random", "all empty", "k = 1"])
+def test_device_weightings_equal_numba(weighting, case):
+    """Each per-view weighting ported to torch gives the numba kernel's float32 weights (and the reference's)."""
+    from drsplat.registration.aggregate import view_weights, view_weights_reference
+    from drsplat.registration.device_sums import view_weights_torch
+
+    h, w, n = 14, 11, 60
+    ids, weights, _ = random_view(5, h, w, 1 if case == "k = 1" else 6, n, 3)
+    if case == "all empty":
+        ids[:] = -1
+    means2d, conics = projection(6, n, h, w)
+    want = view_weights(weighting, ids, weights, means2d, conics)
+    got = view_weights_torch(weighting, *(torch.from_numpy(a) for a in (ids, weights, means2d, conics))).numpy()
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(got, view_weights_reference(weighting, ids, weights, means2d, conics), rtol=1e-6)
+    if weighting != "paper" and case == "random":
+        assert not np.array_equal(got, weights * (ids >= 0)), "the weighting changed something"
+
+
 def views_of(seed: int, count: int, n: int, dim: int):
     """`count` views' (DevicePairs, feats, host arrays) of random top-k lists over n Gaussians."""
     rng = np.random.default_rng(seed)
@@ -144,7 +179,7 @@ def room(tmp_path_factory):
 
 
 def test_registration_sums_on_the_device_and_equals_numba(room):
-    """--engine torch with the paper mode keeps its sums on the device (no pair log here) and gives numba's field."""
+    """--engine torch with the paper and core modes keeps its sums on the device (no pair log here) and gives numba's field."""
     scene, cams, features = room
     want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
     got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu"), show_progress=False)
@@ -153,8 +188,14 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
     assert got.num_assigned > 0
     np.testing.assert_array_equal(got.weights, want.weights)
     np.testing.assert_array_equal(got.features, want.features)
-    other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="core", engine="torch", device="cpu"), show_progress=False)
-    assert other.sums_on == "host", "a mode with a per-view hook sums on the host"
+    core = RegisterOptions(topk=8, aggregate="core")
+    want = register_features(scene, cams, features, core, show_progress=False)
+    got = register_features(scene, cams, features, dataclasses.replace(core, engine="torch", device="cpu"), show_progress=False)
+    assert got.sums_on == "cpu", "a weighting ported to torch runs on the device too"
+    np.testing.assert_array_equal(got.features, want.features)
+    other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="explain", engine="torch", device="cpu"),
+                              show_progress=False)
+    assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
 
 
 def test_a_device_run_resumes_from_its_pair_log(room, tmp_path):

@@ -22,7 +22,7 @@ from drsplat.errors import UsageError
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
-from drsplat.registration.aggregate import ViewHook
+from drsplat.registration.aggregate import DEVICE_WEIGHTINGS, ViewHook
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
@@ -53,6 +53,12 @@ class ViewJob:
     hook: ViewHook | None = None
     cull: bool = True
     device_pairs: bool = False
+
+
+def hook_runs_on_device(hook: ViewHook | None) -> bool:
+    """Whether a mode's per-view hook has a torch form (drsplat.registration.device_sums): none, or a
+    weighting of DEVICE_WEIGHTINGS without floater rejection (its surface statistics are numba kernels)."""
+    return hook is None or (hook.weighting in DEVICE_WEIGHTINGS and not hook.reject)
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -109,8 +115,8 @@ class ViewComputer:
         self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
         self._render_pairs = None
         if job.device_pairs:
-            if job.engine != "torch" or hook is not None:
-                raise ValueError("pairs are coalesced on the device with the torch engine and no aggregation hook only")
+            if job.engine != "torch" or not hook_runs_on_device(hook):
+                raise ValueError("pairs are coalesced on the device with the torch engine and a per-view weighting ported to torch only")
             # imports torch: only the torch engine's device path needs it
             from drsplat.registration.device_sums import render_pairs
 
@@ -134,7 +140,8 @@ class ViewComputer:
     def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int) -> ViewPairs:
         """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""
         t0 = time.perf_counter()
-        pairs, contributing, raster_seconds = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0])
+        weighting = self.job.hook.weighting if self.job.hook is not None else "paper"
+        pairs, contributing, raster_seconds = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting)
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         none = np.zeros(0, np.int32)
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from drsplat.cameras import Camera
-from drsplat.raster_torch import TorchScene, rasterize_torch
+from drsplat.raster_torch import TorchScene, project_gaussians_torch, rasterize_torch
+from drsplat.registration.aggregate import ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, PROJECTED_WEIGHTINGS
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block
 
@@ -115,10 +116,52 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts)
 
 
-def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int) -> tuple[DevicePairs, int, float]:
-    """Render `camera` on the scene's device and coalesce its pairs there (`coalesce_torch`).
+def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means2d: torch.Tensor | None = None,
+                       conics: torch.Tensor | None = None, anchor_gain: float = ANCHOR_GAIN) -> torch.Tensor:
+    """A weighting's per-slot weights on the device: drsplat.registration.aggregate.view_weights in torch
+    (the math in that module's docstring; float64 like its kernel, the pixel's total summed slot by slot).
 
-    mask_ids: [H, W] the view's masks (-1 none; copied to the device). Returns (the view's
+    ids, weights: [H, W, k] (-1 = empty); means2d: [N, 2], conics: [N, 3] (a, b, c) of the view's
+    projection (float64; needed by core, ellipse, centre, anchor). Returns [H, W, k] float32, 0 where ids < 0.
+    """
+    if weighting not in DEVICE_WEIGHTINGS:
+        raise ValueError(f"unknown weighting {weighting!r}")
+    valid = ids >= 0
+    zero = torch.zeros((), dtype=torch.float64, device=ids.device)
+    w = torch.where(valid, weights.to(torch.float64), zero)
+    if weighting == "paper":
+        return w.to(torch.float32)
+    if weighting == "responsibility":
+        total = torch.cumsum(w, -1)[..., -1:]  # slot by slot, as the kernel adds them
+        return torch.where(total > 0, w / torch.where(total > 0, total, torch.ones_like(total)), zero).to(torch.float32)
+    h, wd, _ = ids.shape
+    g = ids.clamp(min=0).to(torch.int64)
+    xs = torch.arange(wd, dtype=torch.float64, device=ids.device)[None, :, None]
+    ys = torch.arange(h, dtype=torch.float64, device=ids.device)[:, None, None]
+    mx, my = means2d[g, 0], means2d[g, 1]
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    if weighting in ("core", "ellipse"):
+        dx, dy = mx - (xs + 0.5), my - (ys + 0.5)
+        power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+        out = w * torch.exp(torch.clamp(power, max=0.0)) if weighting == "core" else torch.where(-2.0 * power <= ELLIPSE_D2, w, zero)
+    else:
+        at_centre = (torch.floor(mx) == xs) & (torch.floor(my) == ys)
+        if weighting == "centre":
+            out = torch.where(at_centre, w, zero)
+        else:
+            det = a * c - b * b
+            area = torch.where(det > 0, 2.0 * torch.pi / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
+            out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
+    return torch.where(valid, out, zero).to(torch.float32)
+
+
+def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
+                 weighting: str = "paper") -> tuple[DevicePairs, int, float]:
+    """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
+    pairs there (`coalesce_torch`).
+
+    mask_ids: [H, W] the view's masks (-1 none; copied to the device). weighting: the aggregation
+    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more). Returns (the view's
     DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
     were issued): the two counts are the one read of the device this adds to a view (the rasterizer
     reads one more, the size of its tile lists). On CUDA the render runs on after it was issued, so
@@ -127,8 +170,12 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     t0 = time.perf_counter()
     out = rasterize_torch(scene, camera, topk, device=scene.device)
     raster_seconds = time.perf_counter() - t0
+    weights = out.weights
+    if weighting != "paper":
+        projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
+        weights = view_weights_torch(weighting, out.ids, out.weights, *((projected.means2d, projected.conics) if projected else ()))
     masks = to_device(np.array(mask_ids, np.int32), scene.device)
-    pairs = coalesce_torch(out.ids, out.weights, masks, num_masks, scene.num_gaussians)
+    pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
     both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
     distinct, contributing = both >> 32, both & 0xFFFFFFFF
     return pairs.trimmed(distinct), contributing, raster_seconds

@@ -35,7 +35,7 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, prepare_geometry
+from drsplat.registration.compute import ViewJob, hook_runs_on_device, prepare_geometry
 from drsplat.registration.executor import open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -267,10 +267,12 @@ def run_registration(
 
 def device_pairs_apply(options: RegisterOptions, aggregator: Aggregator) -> bool:
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
-    the torch engine in this process with a mode that has no per-view hook and no votes ("paper");
-    the other modes' hooks and the vote sink are numba kernels on the host, and Ray workers return
-    host pairs."""
-    return options.engine == "torch" and options.place == "local" and aggregator.hook is None and not aggregator.vote
+    the torch engine in this process with a mode whose per-view weighting has a torch form and that
+    neither rejects floaters nor votes (paper, core, ellipse, responsibility, centre, anchor); the
+    surface statistics, the explain weighting and the vote sink are numba kernels on the host, and
+    Ray workers return host pairs."""
+    return (options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
+            and not aggregator.vote)
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
