@@ -198,6 +198,20 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
     assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
 
 
+def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplog):
+    """When F and W do not fit the device's free memory, the views' pairs are copied to the host sums instead."""
+    import drsplat.registration.device_sums as device_sums
+
+    scene, cams, features = room
+    monkeypatch.setattr(device_sums, "sums_fit_device", lambda n, dim, device: False)
+    options = RegisterOptions(topk=8, aggregate="paper")
+    want = register_features(scene, cams, features, options, show_progress=False)
+    with caplog.at_level("INFO"):
+        got = register_features(scene, cams, features, dataclasses.replace(options, engine="torch", device="cpu"), show_progress=False)
+    assert got.sums_on == "host" and "do not fit the free memory of cpu: summing on the host" in caplog.text
+    np.testing.assert_array_equal(got.features, want.features)
+
+
 def test_a_device_run_resumes_from_its_pair_log(room, tmp_path):
     """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's file."""
     scene, cams, features = room

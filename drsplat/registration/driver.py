@@ -349,8 +349,9 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     stream = executor.view_pairs(run.views[totals.done :])
     try:
         for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
+            if ckpt is not None or sink.place == "host":
+                view = view.on_host()  # for the log or the host sums: one copy of the view's pairs
             if ckpt is not None:
-                view = view.on_host()  # the log keeps every view's pairs: one copy of them per view
                 ckpt.append(view)
             aggregator.add(view.stats)
             if ckpt is not None:

@@ -56,7 +56,6 @@ class MemorySink:
         self._acc = Accumulator(num_gaussians, dim)
 
     def add(self, view: ViewPairs) -> None:
-        view = view.on_host()  # pairs coalesced on a device whose sums could not be kept there
         self._acc.add_pairs(view.gaussians, view.masks, view.weights, view.feats)
 
     def blocks(self) -> Iterator[Block]:
