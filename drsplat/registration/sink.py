@@ -32,9 +32,12 @@ class Block:
 
 
 class Sink(Protocol):
-    """Receives every view's pairs in view order (`add`), then gives the sums block by block."""
+    """Receives every view's pairs in view order (`add`), then gives the sums block by block.
+    place: where the sums are kept, "host" or a torch device (drsplat.registration.device_sums.DeviceSink,
+    which also tells which Gaussians got weight: `positive`)."""
 
     num_blocks: int
+    place: str
 
     def add(self, view: ViewPairs) -> None: ...
 
@@ -47,6 +50,7 @@ class MemorySink:
     """One block of all N Gaussians, summed as the views arrive."""
 
     num_blocks = 1
+    place = "host"
 
     def __init__(self, num_gaussians: int, dim: int):
         self._acc = Accumulator(num_gaussians, dim)
@@ -67,6 +71,8 @@ class MemorySink:
 class LogSink:
     """Blocks of `block` consecutive Gaussians, each summed by replaying the pair log `plog`
     (the views are logged by the driver, so `add` keeps nothing)."""
+
+    place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog, block: int):
         if block < 1:

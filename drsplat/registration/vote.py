@@ -266,6 +266,8 @@ class VoteSink:
     view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
     """
 
+    place = "host"
+
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
                  slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW):
         self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
