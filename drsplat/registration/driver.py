@@ -6,6 +6,8 @@
                logs the view (checkpoint) and hands it to the sink
     sums       the sink gives each block's sums F, W (MemorySink: kept live; LogSink: replayed)
     finish     the mode's step on the sums (floater rejection), normalise, prune
+    reduce     on Ray in blocks, writing a PLY: sums, finish and encoding of each block run in a
+               reducer task that writes a part; the driver assembles the parts (registration.reduce)
     codebook   one step: none, a loaded file, or trained on the scene's masks (+ a sample of
                Gaussians summed by the sink), the same whatever the plan
     target     PlyTarget writes the registered PLY (one writer), ArrayTarget keeps [N, D]
@@ -72,7 +74,8 @@ class RegistrationResult:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
-    resident bytes of the Ray workers.
+    resident bytes of the Ray workers (reducers included). finish_cpu_seconds: this process's CPU
+    time after the view pass; reducers: the blocks were finished by reducer tasks.
     """
 
     features: np.ndarray | None
@@ -103,8 +106,8 @@ class RegistrationResult:
     num_written: int = 0
     field_kind: str = ""
     worker_peak_rss: dict[int, int] = field(default_factory=dict)
-    finish_cpu_seconds: float = 0.0  # this process's CPU time after the view pass (summing, finishing, writing)
-    reducers: bool = False  # the blocks were finished by reducer tasks (drsplat.registration.reduce)
+    finish_cpu_seconds: float = 0.0
+    reducers: bool = False
 
     @property
     def assigned(self) -> np.ndarray:
@@ -226,7 +229,7 @@ def run_registration(
         ckpt = None
     totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=np.zeros(n, bool))
     # the partitioned reduce (Ray, blocks, a PLY): its Ray connection outlives the view pass's executor
-    pool = ReducePool(options.cluster) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
+    pool = ReducePool(options.cluster, cancel) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
     reduce: BlockReduce | None = None
     try:
         if aggregator.vote:

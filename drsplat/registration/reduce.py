@@ -64,10 +64,11 @@ from drsplat.registration.sink import LogSink
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.vote import MaskClusters, VoteSink
 from drsplat.scene import GaussianScene, ply_header
-from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix, work_folder
+from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, work_folder
 
 log = logging.getLogger(__name__)
 
+WAIT_SECONDS = 0.5  # between checks of the cancel token while reducers run
 COPY_ROWS = WRITE_CHUNK  # rows of a part read, patched and written at a time by the driver
 
 
@@ -229,17 +230,18 @@ def assemble_parts(out: Path, parts: list[PartResult]) -> int:
 def _copy_parts(f, parts: list[PartResult], dtype: np.dtype, period: np.ndarray | None) -> None:
     """Append the parts' rows to `f`; `lang_meta` row i of the file = period[i mod L]."""
     first = 0
+    buffer = np.empty(COPY_ROWS, dtype)  # one chunk, read into, patched and written in place (no copies)
     for part in parts:
         size = os.path.getsize(part.path)
         if size != part.rows * dtype.itemsize:
             raise DrsplatError(f"the part of block {part.index} ({part.path}) holds {size} bytes, its reducer wrote {part.rows} rows of {dtype.itemsize}")
         with open(part.path, "rb") as src:
             for start in range(0, part.rows, COPY_ROWS):
-                count = min(COPY_ROWS, part.rows - start)
-                rows = np.frombuffer(src.read(count * dtype.itemsize), dtype).copy()
+                rows = buffer[: min(COPY_ROWS, part.rows - start)]
+                src.readinto(memoryview(rows).cast("B"))
                 if period is not None:
-                    rows[META_PROPERTY] = period[(first + start + np.arange(count)) % period.shape[0]]
-                f.write(rows.tobytes())
+                    rows[META_PROPERTY] = period[(first + start + np.arange(rows.shape[0])) % period.shape[0]]
+                f.write(memoryview(rows).cast("B"))
         first += part.rows
 
 
@@ -256,8 +258,10 @@ class ReducePool:
     workers: reducer tasks at once (default: the cluster's CPUs).
     """
 
-    def __init__(self, cluster: ClusterOptions):
+    def __init__(self, cluster: ClusterOptions, cancel: CancelToken | None = None):
+        """cancel: checked while reducers run (a cancelled run stops them and keeps its checkpoint)."""
         ray = import_ray()
+        self.cancel = cancel
         self._owns = connect(cluster.address)
         self.workers = int(cluster.workers or max(1, int(ray.cluster_resources().get("CPU", 1))))
         self.worker_peak_rss: dict[int, int] = {}
@@ -310,7 +314,9 @@ class ReducePool:
                 while submitted < count and len(pending) < self.workers:
                     pending[submit(submitted)] = submitted
                     submitted += 1
-                ready, _ = ray.wait(list(pending), num_returns=1)
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=WAIT_SECONDS)
+                if self.cancel is not None:
+                    self.cancel.raise_if_cancelled()
                 for ref in ready:
                     i = pending.pop(ref)
                     results[i] = _get(ref, job, names[i])
@@ -366,7 +372,9 @@ class BlockReduce:
         """Every block finished by a reducer (`aggregator`: the run's Aggregator, whose rejected
         mask is sliced per block and whose num_rejected gets the reducers' counts). Returns
         (the parts in block order, weights [N] float32: the result's W)."""
+        t0 = time.perf_counter()
         parts = self.pool.reduce(self.job, scene, shared_codebook(codebook, Path(self.job.out)), aggregator.rejected())
+        log.info("%d blocks finished by reducer tasks (%d at once) in %.1f s", len(parts), self.pool.workers, time.perf_counter() - t0)
         weights = np.zeros(self.job.num_gaussians, np.float32)
         for part in parts:
             weights[part.lo : part.hi] = part.weights
