@@ -179,6 +179,25 @@ def test_a_failing_reducer_names_its_block_and_the_checkpoint_resumes(cluster, t
     assert sha(out) == sha(local) and not checkpoint_path_for(out).exists()
 
 
+def test_a_run_cancelled_while_reducers_run_keeps_its_checkpoint(cluster, tiny, tmp_path):
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    out = tmp_path / "reg.ply"
+    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024)
+    token = CancelToken()
+
+    def cancel_after_the_views(done: int, total: int) -> None:
+        if done == total:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register(scene, cams, tiny / "features", out, options, on_progress=cancel_after_the_views, cancel=token, show_progress=False)
+    assert not out.exists() and checkpoint_path_for(out).exists()
+    assert register(scene, cams, tiny / "features", out, options, show_progress=False).resumed_views == len(cams)
+
+
 def test_without_reducers_the_driver_finishes_the_same_bytes(cluster, tiny, tmp_path):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
     local, on_ray, result = _register_both(scene, cams, tiny / "features", tmp_path, reducers=False)
