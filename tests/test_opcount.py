@@ -37,6 +37,19 @@ def test_counter_tells_syncing_ops_from_the_rest():
     assert views.ops == views.views == 2
 
 
+def test_copies_that_wait_for_a_device_are_syncs():
+    """Device -> CPU always waits; CPU -> device waits unless the source is pinned and the copy
+    non_blocking (checked on the op's arguments: no GPU is needed to tell)."""
+    from drsplat.bench.opcount import is_host_sync
+
+    cpu = torch.zeros(3)
+    cuda = torch.device("cuda")
+    assert is_host_sync("aten::_to_copy", (cpu,), {"device": cuda})
+    assert is_host_sync("aten::_to_copy", (cpu,), {"device": cuda, "non_blocking": True}), "pageable memory waits"
+    assert not is_host_sync("aten::_to_copy", (cpu,), {"device": torch.device("cpu")})
+    assert not is_host_sync("aten::_to_copy", (cpu,), {"dtype": torch.float64})
+
+
 def test_torch_engine_view_has_one_host_sync_and_equals_numba():
     """The per-view path of the torch engine reads the device once (the size of the tile lists)."""
     from drsplat.raster import rasterize
@@ -70,9 +83,13 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     record = json.loads(out.read_text())
     assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1
     assert 0 < record["view_ops_per_view"] < record["ops_per_view"] < 2000
-    assert record["host_syncs_per_view"] == 1 and record["ms_per_view"] > 0
+    # sums on the device: the tile lists' size and the view's pair counts; on the host: the tile lists' size
+    # (the copies of the top-k lists to the host wait for a CUDA device but are no aten op on a CPU)
+    assert record["sums"] == "cpu" and record["host_syncs_per_view"] == 2 and record["ms_per_view"] > 0
+    host = record["host_sums"]
+    assert host["sums"] == "host" and host["host_syncs_per_view"] == 1 and 0 < host["ops_per_view"] < record["ops_per_view"]
     printed = capsys.readouterr().out
-    assert "host syncs/view" in printed and "ops/view" in printed
+    assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed
 
 
 def test_bench_json_needs_the_torch_engine(tmp_path):

@@ -1,7 +1,8 @@
 """Every engine x memory plan x aggregation mode, in this process: the same registered file, or a refusal up front.
 
 The reference is the numba engine in one block. The torch engine (on the CPU here) and Gaussian
-blocks must write the same bytes for every `--aggregate` mode; the Ray place is covered the same
+blocks must write the same bytes for every `--aggregate` mode (the torch engine with DEVICE_MODES
+weights, coalesces and sums on its device: drsplat.registration.device_sums); the Ray place is covered the same
 way on a real cluster in tests/test_distributed.py. Options that cannot run are refused before
 anything is loaded, in one sentence.
 """
@@ -21,6 +22,7 @@ from drsplat.synthetic import write_dataset
 
 VIEWS = 6  # enough views for every mode to assign, reject and reweight something
 BLOCK = 512  # hard-tiny has ~2,300 Gaussians: five blocks
+DEVICE_MODES = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")  # weight, coalesce and sum on the torch device
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +57,8 @@ def test_every_engine_and_plan_writes_the_reference_file(room, reference, tmp_pa
     result = register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, engine=engine, device="cpu", block_size=block),
                       show_progress=False)
     assert result.num_blocks == (1 if block is None else -(-scene.num_gaussians // block))
+    # the torch engine sums on its device in one block of a mode whose per-view weighting has a torch form
+    assert result.sums_on == ("cpu" if engine == "torch" and block is None and mode in DEVICE_MODES else "host")
     assert out.read_bytes() == reference[mode]
 
 

@@ -4,7 +4,9 @@ An op is one aten call that reaches the dispatcher (one kernel launch on a GPU, 
 sync is an op that makes the host wait for the device on CUDA: reading a scalar
 (`aten::_local_scalar_dense`, behind `.item()`, `int(t)`, `bool(t)`), ops whose output size
 depends on the data (`nonzero`, boolean-mask indexing and `masked_select`, `unique`,
-`repeat_interleave` without an output size) and copies from a device to the CPU. The same ops are
+`repeat_interleave` without an output size), copies from a device to the CPU, and copies from
+the CPU to a device that are blocking or from pageable memory (CUDA waits for the stream's queued
+work before it copies pageable memory; only a pinned source with non_blocking runs ahead). The same ops are
 counted on a CPU, where they cost no synchronisation but show what a GPU run would wait for.
 """
 
@@ -44,8 +46,22 @@ def is_host_sync(name: str, args: tuple, kwargs: dict) -> bool:
     if name in ("aten::_to_copy", "aten::copy_"):
         src = args[1] if name == "aten::copy_" else args[0]
         dst_device = args[0].device if name == "aten::copy_" else kwargs.get("device")
-        return isinstance(src, torch.Tensor) and src.device.type != "cpu" and dst_device is not None and torch.device(dst_device).type == "cpu"
+        if not isinstance(src, torch.Tensor) or dst_device is None:
+            return False
+        dst = torch.device(dst_device).type
+        if src.device.type != "cpu":
+            return dst == "cpu"
+        non_blocking = args[2] if name == "aten::copy_" and len(args) > 2 else kwargs.get("non_blocking", False)
+        return dst != "cpu" and not (non_blocking and _pinned(src))
     return False
+
+
+def _pinned(tensor: torch.Tensor) -> bool:
+    """Whether a CPU tensor is in pinned memory (False where this torch has no accelerator to pin for)."""
+    try:
+        return bool(tensor.is_pinned())
+    except RuntimeError:
+        return False
 
 
 class OpCounter(TorchDispatchMode):

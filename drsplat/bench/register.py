@@ -355,60 +355,103 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
 
 
 def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str) -> dict:
-    """What computing one view costs `engine` on `device` (drsplat.registration.compute.ViewComputer.compute:
-    rasterize, per-view hook, coalesce): torch ops and host syncs per view (drsplat.bench.opcount),
-    the median wall ms per view (timed without the counter) and peak device memory (CUDA).
+    """What computing and summing one view costs `engine` on `device` with the "paper" mode (no
+    per-view hook): drsplat.registration.compute.ViewComputer.compute (rasterize, coalesce) and the
+    sink's `add`. Torch ops and host syncs per view (drsplat.bench.opcount), the median wall ms per
+    view (timed without the counter) and peak device memory (CUDA).
 
-    The first camera is a warm-up (compilation, caches) and is not counted; the rest are.
+    For the torch engine both ways are measured, interleaved view by view: pairs coalesced and
+    summed on the device (drsplat.registration.device_sums, what registration does in that mode:
+    the record's top-level figures) and the lists copied to the host for the numba coalescer and
+    sums (`host_sums`). The first camera is a warm-up (compilation, caches) and is not counted.
     """
-    import torch
-
-    from drsplat.bench.opcount import OpCounter
-    from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
-    from drsplat.registration.views import load_view_features
-
-    computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device))
-    cuda = device.startswith("cuda")
-    ops, views_only, syncs, ms, sync_names = [], [], [], [], None
+    ways = [True, False] if engine == "torch" else [False]
+    counters = [_ViewCounter(scene, features_dir, topk, engine, device, on_device) for on_device in ways]
     for i, cam in enumerate(cameras):
-        mask_ids, feats, *_ = load_view_features(features_dir, cam, 0)
+        for counter in counters:
+            counter.view(cam, counted=i > 0)
+    record = counters[0].record()
+    if len(counters) > 1:
+        record["host_sums"] = counters[1].record()
+    return record
+
+
+class _ViewCounter:
+    """One way of computing and summing views (`per_view_counts`), with its per-view figures."""
+
+    def __init__(self, scene, features_dir: Path, topk: int, engine: str, device: str, on_device: bool):
+        from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+
+        self.scene, self.features_dir, self.engine, self.device, self.on_device = scene, features_dir, engine, device, on_device
+        self.computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
+        self.sink = None
+        self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
+        self.after_raster_ms = []  # coalescing and summing (on CUDA: from the render's issue to the sums' end)
+
+    def view(self, cam, counted: bool) -> None:
+        import torch
+
+        from drsplat.bench.opcount import OpCounter
+        from drsplat.registration.device_sums import DeviceSink
+        from drsplat.registration.sink import MemorySink
+        from drsplat.registration.views import load_view_features
+
+        mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
+        if self.sink is None:
+            n = self.scene.num_gaussians
+            self.sink = DeviceSink(n, feats.shape[1], self.device) if self.on_device else MemorySink(n, feats.shape[1])
+        cuda = self.device.startswith("cuda")
         if cuda:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        computer.compute(cam, mask_ids, feats)
+        view = self.computer.compute(cam, mask_ids, feats)
+        self.sink.add(view)
         if cuda:
             torch.cuda.synchronize()
-        if i == 0:
-            continue
-        ms.append(1e3 * (time.perf_counter() - t0))
+            self.peak_mb = max(self.peak_mb or 0.0, torch.cuda.max_memory_allocated() / 2**20)
+        if not counted:
+            return
+        self.ms.append(1e3 * (time.perf_counter() - t0))
+        self.after_raster_ms.append(self.ms[-1] - 1e3 * view.raster_seconds)
         with OpCounter() as counter:
-            computer.compute(cam, mask_ids, feats)
-        ops.append(counter.counts.ops)
-        views_only.append(counter.counts.views)
-        syncs.append(counter.counts.syncs)
-        sync_names = counter.counts.syncs_by_name
-    views = len(ms)
-    return {
-        "engine": engine, "device": device, "views": views,
-        "ops_per_view": statistics.median(ops) if views else None,
-        "view_ops_per_view": statistics.median(views_only) if views else None,
-        "host_syncs_per_view": statistics.median(syncs) if views else None,
-        "ms_per_view": statistics.median(ms) if views else None,
-        "peak_device_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
-        "host_syncs_by_op": dict(sync_names.most_common()) if sync_names else {},
-    }  # fmt: skip
+            self.sink.add(self.computer.compute(cam, mask_ids, feats))
+        self.ops.append(counter.counts.ops)
+        self.views_only.append(counter.counts.views)
+        self.syncs.append(counter.counts.syncs)
+        self.sync_names = counter.counts.syncs_by_name
+
+    def record(self) -> dict:
+        """The per-view medians, and the sums' hand-over after the views (`blocks`: the device sink's
+        copy to the host, the host sink's last flush of its buffered pairs into F)."""
+        views = len(self.ms)
+        t0 = time.perf_counter()
+        for _ in self.sink.blocks() if self.sink is not None else ():
+            pass
+        blocks_ms = 1e3 * (time.perf_counter() - t0)
+
+        def median(values):
+            return statistics.median(values) if views else None
+
+        return {
+            "engine": self.engine, "device": self.device, "views": views, "sums": self.device if self.on_device else "host",
+            "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
+            "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
+            "peak_device_mb": self.peak_mb,
+            "host_syncs_by_op": dict(self.sync_names.most_common()) if self.sync_names else {},
+        }
 
 
 def counts_table(counts: dict) -> str:
-    """The per-view record of `per_view_counts` as a table."""
-    peak = counts["peak_device_mb"]
-    syncs = ", ".join(f"{k} x{v}" for k, v in counts["host_syncs_by_op"].items()) or "none"
-    head = (f"per-view work of {counts['engine']} ({counts['device']}), median of {counts['views']} views after a warm-up "
-            f"(ops: aten calls; host syncs: {syncs})")
-    row = [counts["engine"], counts["device"], counts["ops_per_view"], counts["view_ops_per_view"], counts["host_syncs_per_view"], counts["ms_per_view"],
-           "n/a (cpu)" if peak is None else peak]
-    return head + "\n" + format_table(["engine", "device", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view", "peak device MB"], [row])
+    """The per-view records of `per_view_counts` as a table (device sums, then host sums when measured)."""
+    records = [counts] + ([counts["host_sums"]] if "host_sums" in counts else [])
+    syncs = "; ".join(f"sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
+    head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate paper, compute + sink add, median of {counts['views']} "
+            f"views after a warm-up (ops: aten calls; host syncs: {syncs})")
+    rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
+             r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
+    return head + "\n" + format_table(["engine", "device", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
+                                       "coalesce + sum ms/view", "sums to host ms (once)", "peak device MB"], rows)
 
 
 def write_json(path: Path, record: dict) -> None:

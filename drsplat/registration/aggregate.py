@@ -93,7 +93,8 @@ PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
 _WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
-_PROJECTED = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
+PROJECTED_WEIGHTINGS = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
+DEVICE_WEIGHTINGS = tuple(_WEIGHTING_CODE)  # ported to torch (drsplat.registration.device_sums.view_weights_torch)
 
 
 @dataclass(frozen=True)
@@ -679,7 +680,7 @@ class ViewHook:
     @property
     def needs_projection(self) -> bool:
         """Whether the hook projects the scene (its weighting reads screen means and conics)."""
-        return self.weighting in _PROJECTED
+        return self.weighting in PROJECTED_WEIGHTINGS
 
     @property
     def needs_median(self) -> bool:

@@ -22,7 +22,7 @@ from drsplat.errors import UsageError
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
-from drsplat.registration.aggregate import ViewHook
+from drsplat.registration.aggregate import DEVICE_WEIGHTINGS, ViewHook
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
@@ -41,6 +41,8 @@ class ViewJob:
     hook: the aggregation mode's per-view hook, or None (the paper's w = T·α as it is).
     cull: project only the Gaussians the view can see (drsplat.registration.culling; exact, CPU
     engines); False projects all of them.
+    device_pairs: coalesce on the torch engine's device and leave the pairs there
+    (drsplat.registration.device_sums; the torch engine without a hook, in this process).
     """
 
     features_dir: Path
@@ -50,6 +52,13 @@ class ViewJob:
     device: str = "cpu"
     hook: ViewHook | None = None
     cull: bool = True
+    device_pairs: bool = False
+
+
+def hook_runs_on_device(hook: ViewHook | None) -> bool:
+    """Whether a mode's per-view hook has a torch form (drsplat.registration.device_sums): none, or a
+    weighting of DEVICE_WEIGHTINGS without floater rejection (its surface statistics are numba kernels)."""
+    return hook is None or (hook.weighting in DEVICE_WEIGHTINGS and not hook.reject)
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -104,9 +113,19 @@ class ViewComputer:
         culls = job.cull and isinstance(self._prepared, PreparedScene)
         self._index = (index or SpatialIndex.build(geometry)) if culls else None
         self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
+        self._render_pairs = None
+        if job.device_pairs:
+            if job.engine != "torch" or not hook_runs_on_device(hook):
+                raise ValueError("pairs are coalesced on the device with the torch engine and a per-view weighting ported to torch only")
+            # imports torch: only the torch engine's device path needs it
+            from drsplat.registration.device_sums import render_pairs
+
+            self._render_pairs = render_pairs
 
     def compute(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0) -> ViewPairs:
         """The ViewPairs of view `cam` with its mask ids [H, W] and embeddings feats [M, D]."""
+        if self._render_pairs is not None:
+            return self._compute_on_device(cam, mask_ids, feats, nonfinite)
         t0 = time.perf_counter()
         self._out = self._rasterize(cam)
         t1 = time.perf_counter()
@@ -117,6 +136,16 @@ class ViewComputer:
         t2 = time.perf_counter()
         return ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1,
                          stats=stats)
+
+    def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int) -> ViewPairs:
+        """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""
+        t0 = time.perf_counter()
+        weighting = self.job.hook.weighting if self.job.hook is not None else "paper"
+        pairs, contributing, raster_seconds = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting)
+        used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
+        none = np.zeros(0, np.int32)
+        return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,
+                         raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, device=pairs)
 
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling."""

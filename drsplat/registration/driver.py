@@ -37,7 +37,7 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, prepare_geometry
+from drsplat.registration.compute import ViewJob, hook_runs_on_device, prepare_geometry
 from drsplat.registration.executor import open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -74,8 +74,9 @@ class RegistrationResult:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
-    resident bytes of the Ray workers (reducers included). finish_cpu_seconds: this process's CPU
-    time after the view pass; reducers: the blocks were finished by reducer tasks.
+    resident bytes of the Ray workers (reducers included). sums_on: where the per-Gaussian sums were
+    kept ("host", or the torch device: drsplat.registration.device_sums). finish_cpu_seconds: this
+    process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
     """
 
     features: np.ndarray | None
@@ -106,6 +107,7 @@ class RegistrationResult:
     num_written: int = 0
     field_kind: str = ""
     worker_peak_rss: dict[int, int] = field(default_factory=dict)
+    sums_on: str = "host"
     finish_cpu_seconds: float = 0.0
     reducers: bool = False
 
@@ -232,11 +234,10 @@ def run_registration(
     pool = ReducePool(options.cluster, cancel) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
     reduce: BlockReduce | None = None
     try:
-        if aggregator.vote:
-            sink: Sink = VoteSink(n, run.dim) if block >= n else VoteSink(n, run.dim, ckpt.log, block)
-        else:
-            sink = MemorySink(n, run.dim) if block >= n else LogSink(n, run.dim, ckpt.log, block)
-        worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, show_progress, on_progress, cancel)
+        sink, device_pairs = _open_sink(run, aggregator, ckpt, block)
+        worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
+        if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
+            totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
         candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
         if not candidates.any():
@@ -282,8 +283,42 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss,
-        finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
+        sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
     )
+
+
+def device_pairs_apply(options: RegisterOptions, aggregator: Aggregator) -> bool:
+    """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
+    the torch engine in this process with a mode whose per-view weighting has a torch form and that
+    neither rejects floaters nor votes (paper, core, ellipse, responsibility, centre, anchor); the
+    surface statistics, the explain weighting and the vote sink are numba kernels on the host, and
+    Ray workers return host pairs."""
+    return (options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
+            and not aggregator.vote)
+
+
+def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
+    """The sink of the plan and whether views keep their pairs on the device.
+
+    One block with device pairs: a DeviceSink (F, W on the device; on CUDA when they fit its free
+    memory, else the host MemorySink). Blocks: the pairs are logged and each block replays the log on
+    the host (LogSink, VoteSink), whatever the engine.
+    """
+    n, dim = run.scene.num_gaussians, run.dim
+    if aggregator.vote:
+        return (VoteSink(n, dim) if block >= n else VoteSink(n, dim, ckpt.log, block)), False
+    on_device = device_pairs_apply(run.options, aggregator)
+    if block < n:
+        return LogSink(n, dim, ckpt.log, block), on_device
+    if on_device:
+        # imports torch: only the torch engine keeps its sums on the device
+        from drsplat.registration.device_sums import DeviceSink, sums_fit_device
+
+        if sums_fit_device(n, dim, run.options.device):
+            log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)
+            return DeviceSink(n, dim, run.options.device), True
+        log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{n:,}", run.options.device)
+    return MemorySink(n, dim), on_device
 
 
 def _plan_block(run: Run) -> int:
@@ -304,10 +339,11 @@ def _why(exc: BaseException) -> str:
     return "registration failed"
 
 
-def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, show_progress: bool,
-               on_progress, cancel) -> dict[int, int]:
+def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, device_pairs: bool,
+               show_progress: bool, on_progress, cancel) -> dict[int, int]:
     """Replay the checkpoint's views, then compute the others with the executor, in view order:
-    fold the mode's statistics, log the view, add it to the sink. Returns the workers' peak RSS."""
+    fold the mode's statistics, log the view, add it to the sink. device_pairs: views keep their
+    pairs on the torch engine's device (copied to the host only to be logged). Returns the workers' peak RSS."""
 
     def consume(view: ViewPairs) -> None:
         totals.add(view)
@@ -329,11 +365,14 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     if totals.done == total:
         return {}
     options = run.options
-    job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull)
+    job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
+                  device_pairs=device_pairs)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
     try:
         for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
+            if ckpt is not None or sink.place == "host":
+                view = view.on_host()  # for the log or the host sums: one copy of the view's pairs
             if ckpt is not None:
                 ckpt.append(view)
             aggregator.add(view.stats)
@@ -389,6 +428,7 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         keep = np.ones(block.hi - block.lo, bool) if run.options.keep_unassigned else block.W > 0
         target.add(block, keep)
         blocks += 1
+        del block, keep  # the next block's sums must not be allocated while this one's are alive (the plan counts one)
     return weights, nonfinite, blocks, sum_seconds, sum_cpu
 
 

@@ -21,6 +21,7 @@ a warning.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -52,6 +53,8 @@ class ViewPairs:
     raster_seconds / coalesce_seconds: where the time went (not stored in the log).
     stats: the aggregation mode's per-view statistics (drsplat.aggregate.ViewStats), or None
     (not stored in the log: a resume reads them from their own snapshot).
+    device: the pairs on the torch engine's device (drsplat.registration.device_sums.DevicePairs),
+    or None; gaussians / masks / weights are then empty until `on_host` copies them (not logged).
     """
 
     name: str
@@ -65,10 +68,18 @@ class ViewPairs:
     raster_seconds: float = 0.0
     coalesce_seconds: float = 0.0
     stats: object | None = None
+    device: object | None = None
 
     @property
     def num_distinct(self) -> int:
-        return int(self.gaussians.shape[0])
+        return self.device.num_distinct if self.device is not None else int(self.gaussians.shape[0])
+
+    def on_host(self) -> ViewPairs:
+        """This view with its pairs on the host: itself, or a copy holding the device pairs' host arrays."""
+        if self.device is None or self.gaussians.shape[0] == self.device.num_distinct:
+            return self
+        g, m, w = self.device.to_host()
+        return dataclasses.replace(self, gaussians=g, masks=m, weights=w)
 
     @property
     def nbytes(self) -> int:

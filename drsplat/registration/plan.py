@@ -11,6 +11,10 @@ Rasterizing a view with only a block's Gaussians would drop the occluders of oth
 change T·α, so views are always rendered whole, exactly once.
 
 `estimate_memory` turns that into a `MemoryPlan`, and `choose_block` into a block size for a budget.
+The torch engine's device sums (drsplat.registration.device_sums.DeviceSink) are the one-block
+plan's F and W on its device: on the CPU the same bytes as the host accumulator's (its chunked
+update stands in for the pair buffer); on CUDA they are checked against the device's free memory
+instead, and a plan of several blocks always sums on the host from the pair log.
 """
 
 from __future__ import annotations

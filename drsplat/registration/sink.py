@@ -32,9 +32,12 @@ class Block:
 
 
 class Sink(Protocol):
-    """Receives every view's pairs in view order (`add`), then gives the sums block by block."""
+    """Receives every view's pairs in view order (`add`), then gives the sums block by block.
+    place: where the sums are kept, "host" or a torch device (drsplat.registration.device_sums.DeviceSink,
+    which also tells which Gaussians got weight: `positive`)."""
 
     num_blocks: int
+    place: str
 
     def add(self, view: ViewPairs) -> None: ...
 
@@ -47,6 +50,7 @@ class MemorySink:
     """One block of all N Gaussians, summed as the views arrive."""
 
     num_blocks = 1
+    place = "host"
 
     def __init__(self, num_gaussians: int, dim: int):
         self._acc = Accumulator(num_gaussians, dim)
@@ -68,6 +72,8 @@ class LogSink:
     """Blocks of `block` consecutive Gaussians, each summed by replaying the pair log `plog`
     (the views are logged by the driver, so `add` keeps nothing)."""
 
+    place = "host"
+
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog, block: int):
         if block < 1:
             raise ValueError("block must be >= 1")
@@ -83,12 +89,12 @@ class LogSink:
 
     def blocks(self) -> Iterator[Block]:
         for lo in range(0, self.num_gaussians, self.block):
+            # no local keeps the block across the yield: the next block's sums are allocated only after the caller drops this one
             yield self.block_sums(lo, min(self.num_gaussians, lo + self.block))
 
     def block_sums(self, lo: int, hi: int) -> Block:
         """The sums of Gaussians lo .. hi-1 from one replay of the log (a reducer's block, drsplat.registration.reduce)."""
-        F, W = self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)
-        return Block(lo, hi, F, W)
+        return Block(lo, hi, *self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""

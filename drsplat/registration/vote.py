@@ -266,6 +266,8 @@ class VoteSink:
     view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
     """
 
+    place = "host"
+
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
                  slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None):
         """clusters: the views' clusters made already (a reducer replaying a block of a finished view
@@ -311,13 +313,13 @@ class VoteSink:
             yield Block(0, self.num_gaussians, F, W)
             return
         for lo in range(0, self.num_gaussians, self.block):
+            # as LogSink.blocks: nothing here holds a block across the yield
             yield self.block_sums(lo, min(self.num_gaussians, lo + self.block))
 
     def block_sums(self, lo: int, hi: int) -> Block:
         """The trimmed sums of Gaussians lo .. hi-1 from one replay of the log (needs the log; a
         reducer's block, drsplat.registration.reduce)."""
-        F, W = self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
-        return Block(lo, hi, F, W)
+        return Block(lo, hi, *self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""

@@ -1,0 +1,245 @@
+"""Registration's per-view coalescing and per-Gaussian sums in torch, on the device a view was rendered on.
+
+The torch engine renders a view's top-k lists on its device (CPU or CUDA). Instead of copying the
+lists [H, W, k] to the host for the numba coalescer and sums (drsplat.registration.coalesce,
+drsplat.registration.sums), this module keeps them there:
+
+    coalesce_torch   ids, weights [H, W, k], mask ids [H, W] -> the view's distinct (Gaussian, mask)
+                     pairs with summed weights, fixed-size ops only (no host synchronisation)
+    DeviceSink       F [N, D], W [N] on the device, each view's pairs added in view order
+                     (index_add), copied to the host once, when the sink gives its one block
+
+The driver (drsplat.registration.driver) reads two numbers per view from the device (the view's
+distinct and contributing pair counts, to size the sums' update); the pairs themselves reach the
+host only when a pair log is kept (a checkpoint, or a run in Gaussian blocks), through
+`DevicePairs.to_host`. torch is imported here: the driver imports this module only for the torch
+engine.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from drsplat.cameras import Camera
+from drsplat.raster_torch import TorchScene, project_gaussians_torch, rasterize_torch
+from drsplat.registration.aggregate import ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, PROJECTED_WEIGHTINGS
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import Block
+
+PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
+DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
+
+
+@dataclass
+class DevicePairs:
+    """One view's distinct (Gaussian, mask) pairs on the device.
+
+    gaussians: [P] int64, masks: [P] int64 (rows of the view's embeddings), weights: [P] float32
+    w_ij, sorted by (mask, Gaussian). When `coalesce_torch` returns them they are padded to the
+    view's H·W·k slots (padding: Gaussian = num_gaussians, mask 0, weight 0, after the real pairs)
+    and `counts` [2] int64 holds (distinct pairs P, contributing slots); `trimmed` cuts them to P.
+    """
+
+    gaussians: torch.Tensor
+    masks: torch.Tensor
+    weights: torch.Tensor
+    counts: torch.Tensor
+
+    @property
+    def num_distinct(self) -> int:
+        return int(self.gaussians.shape[0])
+
+    def trimmed(self, distinct: int) -> DevicePairs:
+        """The first `distinct` pairs (views of the tensors; `distinct` read from `counts` by the caller)."""
+        return DevicePairs(self.gaussians[:distinct], self.masks[:distinct], self.weights[:distinct], self.counts)
+
+    def to_host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(gaussians [P] int32, masks [P] int32, weights [P] float32) on the host, in one copy."""
+        packed = torch.stack([self.gaussians.to(torch.int32), self.masks.to(torch.int32), self.weights.view(torch.int32)])
+        host = packed.cpu().numpy()
+        return host[0].copy(), host[1].copy(), host[2].view(np.float32).copy()
+
+
+def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """`array` (a writable host array) on `device` without the host waiting for queued device work:
+    a copy from pageable memory to CUDA waits for the stream, so the array is staged in pinned
+    memory and copied with non_blocking (the caching host allocator keeps the pinned copy until the
+    copy is done). On the CPU: a tensor sharing the array."""
+    tensor = torch.from_numpy(array)
+    if device.type != "cuda":
+        return tensor
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
+def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int, num_gaussians: int) -> DevicePairs:
+    """A view's distinct (Gaussian, mask) pairs with summed weights, on the tensors' device.
+
+    ids: [H, W, k] int (-1 = empty slot); weights: [H, W, k] float32; mask_ids: [H, W] int (-1 =
+    no mask). The view contributes, for every (i, j) with at least one slot,
+
+        w_ij = Σ_{p ∈ mask j} Σ_s [id_s(p) = i] w_s(p)
+
+    Every slot gets the key j·N + i (N = num_gaussians; empty slots and unmasked pixels the key
+    M·N, after all others); a stable sort groups equal keys in pixel-then-slot order, and a
+    segment sum (index_add over the segment numbers, a cumulative sum of the key changes) adds
+    each group's weights in that order, as the numba coalescer does (drsplat.registration.coalesce).
+    All shapes are fixed by H·W·k, so nothing waits for the device.
+
+    Order rule: pairs come out sorted by (mask, Gaussian); numba's come mask by mask with the
+    Gaussians in first-seen order. Both give each Gaussian its masks in increasing order, which is
+    the only order the per-Gaussian sums depend on. Returns `DevicePairs` padded to H·W·k entries,
+    counts = (distinct pairs, contributing slots).
+    """
+    device = ids.device
+    k = int(ids.shape[-1]) if ids.dim() == 3 else 1
+    g = ids.reshape(-1).to(torch.int64)
+    m = mask_ids.reshape(-1, 1).to(device=device, dtype=torch.int64).expand(-1, k).reshape(-1)
+    valid = (g >= 0) & (m >= 0) & (m < num_masks)
+    empty_key = num_masks * num_gaussians
+    keys = torch.where(valid, m * num_gaussians + g, torch.full_like(g, empty_key))
+    sorted_keys, order = torch.sort(keys, stable=True)
+    w = torch.where(valid, weights.reshape(-1).to(torch.float32), torch.zeros((), dtype=torch.float32, device=device))[order]
+    starts = torch.ones_like(sorted_keys, dtype=torch.bool)
+    starts[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    segment = torch.cumsum(starts, 0) - 1
+    sums = torch.zeros_like(w).index_add_(0, segment, w)
+    first_key = torch.full_like(sorted_keys, empty_key).scatter_(0, segment, sorted_keys)  # a segment's keys are all equal
+    real = first_key < empty_key
+    gaussians = torch.where(real, first_key % max(num_gaussians, 1), torch.full_like(first_key, num_gaussians))
+    masks = torch.where(real, first_key // max(num_gaussians, 1), torch.zeros_like(first_key))
+    counts = torch.stack([(starts & (sorted_keys < empty_key)).sum(), valid.sum()])
+    return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts)
+
+
+def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means2d: torch.Tensor | None = None,
+                       conics: torch.Tensor | None = None, anchor_gain: float = ANCHOR_GAIN) -> torch.Tensor:
+    """A weighting's per-slot weights on the device: drsplat.registration.aggregate.view_weights in torch
+    (the math in that module's docstring; float64 like its kernel, the pixel's total summed slot by slot).
+
+    ids, weights: [H, W, k] (-1 = empty); means2d: [N, 2], conics: [N, 3] (a, b, c) of the view's
+    projection (float64; needed by core, ellipse, centre, anchor). Returns [H, W, k] float32, 0 where ids < 0.
+    """
+    if weighting not in DEVICE_WEIGHTINGS:
+        raise ValueError(f"unknown weighting {weighting!r}")
+    valid = ids >= 0
+    zero = torch.zeros((), dtype=torch.float64, device=ids.device)
+    w = torch.where(valid, weights.to(torch.float64), zero)
+    if weighting == "paper":
+        return w.to(torch.float32)
+    if weighting == "responsibility":
+        total = torch.cumsum(w, -1)[..., -1:]  # slot by slot, as the kernel adds them
+        return torch.where(total > 0, w / torch.where(total > 0, total, torch.ones_like(total)), zero).to(torch.float32)
+    h, wd, _ = ids.shape
+    g = ids.clamp(min=0).to(torch.int64)
+    xs = torch.arange(wd, dtype=torch.float64, device=ids.device)[None, :, None]
+    ys = torch.arange(h, dtype=torch.float64, device=ids.device)[:, None, None]
+    mx, my = means2d[g, 0], means2d[g, 1]
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    if weighting in ("core", "ellipse"):
+        dx, dy = mx - (xs + 0.5), my - (ys + 0.5)
+        power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+        out = w * torch.exp(torch.clamp(power, max=0.0)) if weighting == "core" else torch.where(-2.0 * power <= ELLIPSE_D2, w, zero)
+    else:
+        at_centre = (torch.floor(mx) == xs) & (torch.floor(my) == ys)
+        if weighting == "centre":
+            out = torch.where(at_centre, w, zero)
+        else:
+            det = a * c - b * b
+            area = torch.where(det > 0, 2.0 * torch.pi / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
+            out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
+    return torch.where(valid, out, zero).to(torch.float32)
+
+
+def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
+                 weighting: str = "paper") -> tuple[DevicePairs, int, float]:
+    """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
+    pairs there (`coalesce_torch`).
+
+    mask_ids: [H, W] the view's masks (-1 none; copied to the device). weighting: the aggregation
+    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more). Returns (the view's
+    DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
+    were issued): the two counts are the one read of the device this adds to a view (the rasterizer
+    reads one more, the size of its tile lists). On CUDA the render runs on after it was issued, so
+    the seconds then split the view where the host waited, not where the device worked.
+    """
+    t0 = time.perf_counter()
+    out = rasterize_torch(scene, camera, topk, device=scene.device)
+    raster_seconds = time.perf_counter() - t0
+    weights = out.weights
+    if weighting != "paper":
+        projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
+        weights = view_weights_torch(weighting, out.ids, out.weights, *((projected.means2d, projected.conics) if projected else ()))
+    masks = to_device(np.array(mask_ids, np.int32), scene.device)
+    pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
+    both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
+    distinct, contributing = both >> 32, both & 0xFFFFFFFF
+    return pairs.trimmed(distinct), contributing, raster_seconds
+
+
+def sums_fit_device(num_gaussians: int, dim: int, device: str) -> bool:
+    """Whether F [N, D] and W [N] (float32) fit the free memory of a CUDA `device`; always True
+    for the CPU, whose memory the registration's plan budgets (drsplat.registration.plan)."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return True
+    free, _ = torch.cuda.mem_get_info(dev)
+    return DEVICE_HEADROOM * 4 * num_gaussians * (dim + 1) + 8 * PAIR_CHUNK * dim <= free
+
+
+class DeviceSink:
+    """The one block of all N Gaussians, summed on `device` as the views arrive (drsplat.registration.sink).
+
+    F [N, D] = Σ w_ij f_j and W [N] = Σ w_ij (float32) stay on the device; each view's pairs are
+    added with index_add in the order given (views in view order, a view's pairs sorted by (mask,
+    Gaussian)), its embeddings copied to the device once. Views replayed from a pair log (host
+    arrays) are added the same way. `blocks` copies the sums to the host once.
+
+    On a CPU index_add adds a row's pairs one after another, so the sums are the host
+    accumulator's bits; on CUDA it adds with atomics in no fixed order, so sums agree to float32
+    rounding and may differ between runs in the last bits.
+    """
+
+    num_blocks = 1
+
+    def __init__(self, num_gaussians: int, dim: int, device: str, chunk: int = PAIR_CHUNK):
+        self.device = torch.device(device)
+        self.place = str(self.device)
+        self.F = torch.zeros((num_gaussians, dim), dtype=torch.float32, device=self.device)
+        self.W = torch.zeros(num_gaussians, dtype=torch.float32, device=self.device)
+        self.chunk = int(chunk)
+
+    def add(self, view: ViewPairs) -> None:
+        pairs = view.device
+        if pairs is None:  # a view replayed from the log (read-only arrays: copied)
+            g = to_device(view.gaussians.astype(np.int64), self.device)
+            m = to_device(view.masks.astype(np.int64), self.device)
+            w = to_device(np.array(view.weights, np.float32), self.device)
+        else:
+            g, m, w = pairs.gaussians, pairs.masks, pairs.weights
+        total = int(g.shape[0])
+        if total == 0:
+            return
+        feats = to_device(np.array(view.feats, np.float32), self.device)  # [M, D], once per view
+        self.W.index_add_(0, g, w)
+        for start in range(0, total, self.chunk):
+            part = slice(start, start + self.chunk)
+            self.F.index_add_(0, g[part], w[part, None] * feats[m[part]])
+
+    def positive(self) -> np.ndarray:
+        """[N] bool: Gaussians some pair gave weight > 0 (W_i > 0: a float32 sum of non-negative
+        weights is positive exactly when one of them is)."""
+        return (self.W > 0).cpu().numpy()
+
+    def blocks(self) -> Iterator[Block]:
+        F, W = self.F.cpu().numpy(), self.W.cpu().numpy()
+        yield Block(0, F.shape[0], F, W)
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the Gaussians `ids` [S] (host copies)."""
+        index = to_device(np.array(ids, np.int64), self.device)
+        return self.F[index].cpu().numpy().copy(), self.W[index].cpu().numpy().copy()

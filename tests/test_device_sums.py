@@ -1,0 +1,256 @@
+"""Coalescing and per-Gaussian sums on the torch engine's device (drsplat.registration.device_sums),
+held to the numba coalescer and the host accumulator, and registration through them."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from drsplat.bench.opcount import OpCounter
+from drsplat.errors import InputError
+from drsplat.registration import RegisterOptions, register, register_features
+from drsplat.registration.coalesce import Coalescer, coalesce_reference
+from drsplat.registration.device_sums import DeviceSink, coalesce_torch
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import MemorySink
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def random_view(seed: int, h: int, w: int, k: int, n: int, m: int, empty: float = 0.2, unmasked: float = 0.2):
+    """ids [h, w, k] (distinct per pixel, -1 for a share `empty`), weights (0, 1], masks [h, w] (-1 for a share `unmasked`)."""
+    rng = np.random.default_rng(seed)
+    ids = np.stack([rng.permutation(n)[:k] for _ in range(h * w)]).reshape(h, w, k).astype(np.int32) if h * w else np.zeros((h, w, k), np.int32)
+    ids[rng.random(ids.shape) < empty] = -1
+    weights = rng.uniform(1e-4, 1.0, ids.shape).astype(np.float32)
+    masks = rng.integers(0, m, (h, w)).astype(np.int32)
+    masks[rng.random((h, w)) < unmasked] = -1
+    return ids, weights, masks
+
+
+def hard_views():
+    """(name, ids, weights, masks, num_masks, num_gaussians): the cases a coalescer gets wrong first."""
+    ids, weights, masks = random_view(7, 6, 5, 4, 30, 3)
+    yield "empty view", np.zeros((0, 0, 4), np.int32), np.zeros((0, 0, 4), np.float32), np.zeros((0, 0), np.int32), 3, 30
+    yield "one mask", ids, weights, np.zeros_like(masks), 1, 30
+    yield "k = 1", *random_view(8, 9, 7, 1, 40, 4), 4, 40
+    yield "all pixels masked out", ids, weights, np.full_like(masks, -1), 3, 30
+    yield "every id -1", np.full_like(ids, -1), weights, masks, 3, 30
+    yield "one Gaussian everywhere", np.where(ids >= 0, 0, -1).astype(np.int32), weights, masks, 3, 30
+    yield "unused masks", ids, weights, masks, 50, 30
+    yield "one pixel", ids[:1, :1], weights[:1, :1], masks[:1, :1], 3, 30
+
+
+def random_views():
+    for seed, (h, w, k, n, m) in enumerate([(12, 10, 5, 80, 6), (20, 16, 16, 400, 12), (8, 8, 40, 60, 2), (30, 20, 3, 5000, 30)]):
+        yield f"random {h}x{w} k={k}", *random_view(seed, h, w, k, n, m), m, n
+
+
+CASES = list(random_views()) + list(hard_views())
+
+
+def torch_pairs(ids, weights, masks, num_masks, num_gaussians):
+    """coalesce_torch's pairs on the host, trimmed to the count it reports, and its counts."""
+    pairs = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), num_masks, num_gaussians)
+    distinct, contributing = (int(c) for c in pairs.counts)
+    return (*pairs.trimmed(distinct).to_host(), distinct, contributing)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_device_pairs_equal_numba_pairs(case):
+    """The same pairs as the numba coalescer with the same float32 weights (sums in the same order);
+    sorted by (mask, Gaussian), so each Gaussian meets its masks in numba's order."""
+    _, ids, weights, masks, num_masks, n = case
+    g, m, w, pairs = Coalescer(n).coalesce(ids, weights, masks, num_masks)
+    tg, tm, tw, distinct, contributing = torch_pairs(ids, weights, masks, num_masks, n)
+    assert (distinct, contributing) == (g.shape[0], pairs)
+    order = np.lexsort((tg, tm))
+    np.testing.assert_array_equal(order, np.arange(distinct), err_msg="pairs sorted by (mask, Gaussian)")
+    by_gaussian, numba_by_gaussian = np.argsort(tg, kind="stable"), np.argsort(g, kind="stable")
+    np.testing.assert_array_equal(tg[by_gaussian], g[numba_by_gaussian])
+    np.testing.assert_array_equal(tm[by_gaussian], m[numba_by_gaussian], err_msg="a Gaussian's masks in numba's order")
+    np.testing.assert_array_equal(tw[by_gaussian], w[numba_by_gaussian])
+    rg, rm, rw, rpairs = coalesce_reference(ids, weights, masks, num_masks)
+    assert rpairs == contributing
+    np.testing.assert_array_equal(np.stack([tm, tg]), np.stack([rm, rg]))
+    np.testing.assert_allclose(tw, rw, rtol=1e-5)
+
+
+def test_coalescing_never_waits_for_the_device():
+    ids, weights, masks = (torch.from_numpy(a) for a in random_view(3, 16, 12, 8, 300, 9))
+    with OpCounter() as counter:
+        coalesce_torch(ids, weights, masks, 9, 300)
+    assert counter.counts.syncs == 0, dict(counter.counts.syncs_by_name)
+    assert counter.counts.ops < 60
+
+
+WEIGHTINGS = ("paper", "responsibility", "core", "ellipse", "centre", "anchor")
+
+
+def projection(seed: int, n: int, h: int, w: int):
+    """Screen means [n, 2] (some exactly on pixel edges, some off screen) and conics [n, 3] (some degenerate)."""
+    rng = np.random.default_rng(seed)
+    means2d = np.stack([rng.uniform(-2, w + 2, n), rng.uniform(-2, h + 2, n)], 1)
+    means2d[: n // 4] = np.floor(means2d[: n // 4])  # centres on pixel corners: floor decides the centre pixel
+    a, c = rng.uniform(0.05, 2.0, n), rng.uniform(0.05, 2.0, n)
+    b = rng.uniform(-1, 1, n) * np.sqrt(a * c)
+    b[n // 4 : n // 3] = np.sqrt(a * c)[n // 4 : n // 3] * 1.5  # det < 0: no footprint area
+    return means2d, np.stack([a, b, c], 1)
+
+
+@pytest.mark.parametrize("weighting", WEIGHTINGS)
+@pytest.mark.parametrize("case", ["random", "all empty", "k = 1"])
+def test_device_weightings_equal_numba(weighting, case):
+    """Each per-view weighting ported to torch gives the numba kernel's float32 weights (and the reference's)."""
+    from drsplat.registration.aggregate import view_weights, view_weights_reference
+    from drsplat.registration.device_sums import view_weights_torch
+
+    h, w, n = 14, 11, 60
+    ids, weights, _ = random_view(5, h, w, 1 if case == "k = 1" else 6, n, 3)
+    if case == "all empty":
+        ids[:] = -1
+    means2d, conics = projection(6, n, h, w)
+    want = view_weights(weighting, ids, weights, means2d, conics)
+    got = view_weights_torch(weighting, *(torch.from_numpy(a) for a in (ids, weights, means2d, conics))).numpy()
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(got, view_weights_reference(weighting, ids, weights, means2d, conics), rtol=1e-6)
+    if weighting != "paper" and case == "random":
+        assert not np.array_equal(got, weights * (ids >= 0)), "the weighting changed something"
+
+
+def views_of(seed: int, count: int, n: int, dim: int):
+    """`count` views' (DevicePairs, feats, host arrays) of random top-k lists over n Gaussians."""
+    rng = np.random.default_rng(seed)
+    for v in range(count):
+        m = int(rng.integers(1, 9))
+        ids, weights, masks = random_view(seed * 100 + v, 10, 9, 6, n, m)
+        feats = rng.normal(size=(m, dim)).astype(np.float32)
+        pairs = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
+        distinct, contributing = (int(c) for c in pairs.counts)
+        g, mk, w, _ = Coalescer(n).coalesce(ids, weights, masks, m)
+        none = np.zeros(0, np.int32)
+        device_view = ViewPairs(f"v{v}", feats, none, none, np.zeros(0, np.float32), none, contributing, device=pairs.trimmed(distinct))
+        host_view = ViewPairs(f"v{v}", feats, g, mk, w, none, contributing)
+        yield device_view, host_view
+
+
+def test_device_sink_sums_equal_the_host_accumulator():
+    """Device pairs and replayed host pairs, mixed, give the host sums' bits (on the CPU); the sums
+    reach the host as one block; `positive` and `sample` agree with the host sink."""
+    n, dim = 3000, 16
+    device_sink, host_sink = DeviceSink(n, dim, "cpu", chunk=7), MemorySink(n, dim)
+    for v, (device_view, host_view) in enumerate(views_of(1, 6, n, dim)):
+        device_sink.add(host_view if v % 3 == 2 else device_view)  # every third view as a log replay gives it
+        host_sink.add(host_view)
+    ids = np.array([0, 5, 17, 2999])
+    for got, want in zip(device_sink.sample(ids), host_sink.sample(ids)):
+        np.testing.assert_array_equal(got, want)
+    (block,), (want,) = list(device_sink.blocks()), list(host_sink.blocks())
+    assert (block.lo, block.hi) == (0, n)
+    np.testing.assert_array_equal(block.F, want.F)
+    np.testing.assert_array_equal(block.W, want.W)
+    assert block.W.any() and not block.W.all()
+    np.testing.assert_array_equal(device_sink.positive(), want.W > 0)
+
+
+def test_device_pairs_reach_the_host_for_the_log():
+    n, dim = 50, 4
+    for device_view, host_view in views_of(2, 3, n, dim):
+        copied = device_view.on_host()
+        assert copied.num_distinct == host_view.num_distinct == device_view.num_distinct
+        order, want = np.lexsort((copied.gaussians, copied.masks)), np.lexsort((host_view.gaussians, host_view.masks))
+        for a, b in ((copied.gaussians, host_view.gaussians), (copied.masks, host_view.masks), (copied.weights, host_view.weights)):
+            np.testing.assert_array_equal(a[order], b[want])
+        assert host_view.on_host() is host_view
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    from drsplat.cameras import load_cameras
+    from drsplat.scene import load_ply
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path_factory.mktemp("devsum") / "hard", "hard-tiny", 0, show_progress=False)
+    return load_ply(data / "scene.ply"), load_cameras(data)[:4], data / "features"
+
+
+def test_registration_sums_on_the_device_and_equals_numba(room):
+    """--engine torch with the paper and core modes keeps its sums on the device (no pair log here) and gives numba's field."""
+    scene, cams, features = room
+    want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
+    got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu"), show_progress=False)
+    assert (got.sums_on, want.sums_on) == ("cpu", "host")
+    assert (got.num_pairs, got.num_distinct_pairs, got.num_assigned) == (want.num_pairs, want.num_distinct_pairs, want.num_assigned)
+    assert got.num_assigned > 0
+    np.testing.assert_array_equal(got.weights, want.weights)
+    np.testing.assert_array_equal(got.features, want.features)
+    core = RegisterOptions(topk=8, aggregate="core")
+    want = register_features(scene, cams, features, core, show_progress=False)
+    got = register_features(scene, cams, features, dataclasses.replace(core, engine="torch", device="cpu"), show_progress=False)
+    assert got.sums_on == "cpu", "a weighting ported to torch runs on the device too"
+    np.testing.assert_array_equal(got.features, want.features)
+    other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="explain", engine="torch", device="cpu"),
+                              show_progress=False)
+    assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
+
+
+def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplog):
+    """When F and W do not fit the device's free memory, the views' pairs are copied to the host sums instead."""
+    import drsplat.registration.device_sums as device_sums
+
+    scene, cams, features = room
+    monkeypatch.setattr(device_sums, "sums_fit_device", lambda n, dim, device: False)
+    options = RegisterOptions(topk=8, aggregate="paper")
+    want = register_features(scene, cams, features, options, show_progress=False)
+    with caplog.at_level("INFO"):
+        got = register_features(scene, cams, features, dataclasses.replace(options, engine="torch", device="cpu"), show_progress=False)
+    assert got.sums_on == "host" and "do not fit the free memory of cpu: summing on the host" in caplog.text
+    np.testing.assert_array_equal(got.features, want.features)
+
+
+def test_a_device_run_resumes_from_its_pair_log(room, tmp_path):
+    """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's file."""
+    scene, cams, features = room
+    reference = tmp_path / "numba.ply"
+    register(scene, cams, features, reference, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
+    copy = tmp_path / "features"
+    shutil.copytree(features, copy)
+    bad = copy / f"{cams[2].name}_f.npy"
+    good = bad.read_bytes()
+    bad.write_bytes(good[:100])
+    out = tmp_path / "out" / "reg.ply"
+    options = RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu")
+    with pytest.raises(InputError, match=bad.name):
+        register(scene, cams, copy, out, options, show_progress=False)
+    bad.write_bytes(good)
+    result = register(scene, cams, copy, out, options, show_progress=False)
+    assert result.resumed_views == 2 and result.sums_on == "cpu"
+    assert out.read_bytes() == reference.read_bytes()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same code above)")
+def test_on_cuda_pairs_and_sums_equal_numba_to_float32_rounding():
+    """On CUDA index_add adds with atomics in no fixed order: the same pairs, weights and sums to float32 rounding."""
+    n, dim = 3000, 16
+    device_sink, host_sink = DeviceSink(n, dim, "cuda"), MemorySink(n, dim)
+    for _, ids, weights, masks, num_masks, num_gaussians in CASES:
+        pairs = coalesce_torch(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), num_masks, num_gaussians)
+        distinct, contributing = (int(c) for c in pairs.counts)
+        tg, tm, tw = pairs.trimmed(distinct).to_host()
+        g, m, w, want_pairs = Coalescer(num_gaussians).coalesce(ids, weights, masks, num_masks)
+        assert (distinct, contributing) == (g.shape[0], want_pairs)
+        got, want = np.lexsort((tg, tm)), np.lexsort((g, m))
+        np.testing.assert_array_equal(np.stack([tg, tm])[:, got], np.stack([g, m])[:, want])
+        np.testing.assert_allclose(tw[got], w[want], rtol=1e-6)
+    for device_view, host_view in views_of(1, 6, n, dim):
+        device_view.device = type(device_view.device)(*(t.cuda() for t in (device_view.device.gaussians, device_view.device.masks,
+                                                                            device_view.device.weights, device_view.device.counts)))
+        device_sink.add(device_view)
+        host_sink.add(host_view)
+    (block,), (want,) = list(device_sink.blocks()), list(host_sink.blocks())
+    np.testing.assert_allclose(block.W, want.W, rtol=1e-5)
+    np.testing.assert_allclose(block.F, want.F, rtol=1e-5, atol=1e-5)
