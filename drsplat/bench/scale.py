@@ -93,7 +93,8 @@ def run_config(config: dict) -> dict:
     out = Path(config["out"])
     cull = config.get("cull", True)
     options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
-                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"), cull=cull)
+                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"), cull=cull,
+                              reducers=config.get("reducers", True))
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
     reg = register(scene, cameras, config["features"], out, options, show_progress=False)
     wall, driver_cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
@@ -110,6 +111,7 @@ def run_config(config: dict) -> dict:
         "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": reg.num_blocks > 1, "peak_rss": peak_rss(),
         "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size, "driver_cpu": driver_cpu, "cull": cull,
         "projected_per_view": _projected_per_view(scene, cameras) if cull else float(scene.num_gaussians),
+        "reduce": {"reducers": reg.reducers, "tail_wall_s": round(reg.seconds - reg.view_seconds, 3), "tail_driver_cpu_s": round(reg.finish_cpu_seconds, 3)},
     }
 
 
@@ -186,6 +188,7 @@ def _compare(args, work: Path) -> list[dict]:
     base = _prepare(args, work, args.compare_tiles, args.compare_views, "compare")
     configs = [("local, in memory", {}), ("local, in memory, no culling", {"cull": False}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
     configs += [(f"Ray, {w} worker{'s' if w > 1 else ''}", {"ray": "local", "workers": w}) for w in map(int, args.workers.split(","))]
+    configs += _reduce_configs(args, configs[2][1]["block"])
     rows, results = [], []
     reference = None
     for label, extra in configs:
@@ -198,9 +201,26 @@ def _compare(args, work: Path) -> list[dict]:
     print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned):")
     print(format_table(["run", "Gaussians", "views", "projected / view", "wall s", "raster s", "driver CPU s", "driver peak RSS MB",
                         "worker peak RSS MB", "PLY vs local"], rows))
+    _print_reduce(results)
     if args.json:
         write_records(args.json, results)
     return results
+
+
+def _reduce_configs(args, block: int) -> list[tuple[str, dict]]:
+    """Ray in 4 blocks, most workers: the blocks finished by the driver, then by reducer tasks (the partitioned reduce)."""
+    workers = max(map(int, args.workers.split(",")))
+    ray = {"ray": "local", "workers": workers, "block": block}
+    return [(f"Ray, {workers} workers, 4 blocks, driver finishes", {**ray, "reducers": False}),
+            (f"Ray, {workers} workers, 4 blocks, reducers", {**ray, "reducers": True})]
+
+
+def _print_reduce(results: list[dict]) -> None:
+    """The finishing tail (after the view pass: sums, finish, encode, write) of the runs that have one."""
+    rows = [[r["label"], "yes" if r["reduce"]["reducers"] else "no", f"{r['reduce']['tail_wall_s']:.2f}", f"{r['reduce']['tail_driver_cpu_s']:.2f}",
+             f"{r['wall']:.1f}", f"{r['driver_cpu']:.1f}"] for r in results if r.get("block")]
+    print("\nFinishing tail (after the view pass) of the runs in blocks:")
+    print(format_table(["run", "reducers", "tail wall s", "tail driver CPU s", "wall s", "driver CPU s"], rows))
 
 
 def write_records(path: Path, results: list[dict]) -> None:
@@ -219,6 +239,7 @@ def write_records(path: Path, results: list[dict]) -> None:
             "label": r["label"], "place": place, "nodes": 1, "workers": r.get("workers", 1), "cull": r["cull"], "wall_s": round(r["wall"], 3),
             "driver_busy_s": round(r["driver_cpu"], 3), "raster_s": round(r["raster"], 3), "sha256": r["sha"], "gaussians": r["gaussians"],
             "views": r["views"], "projected_per_view": r["projected_per_view"], "driver_peak_rss": r["peak_rss"], "worker_peak_rss": r["worker_rss"],
+            "reduce": r["reduce"],
         })
     with atomic_path(Path(path)) as tmp:
         Path(tmp).write_text(json.dumps(records, indent=1))

@@ -151,6 +151,19 @@ def strip_field(scene: GaussianScene) -> GaussianScene:
     )
 
 
+def write_codebook_beside(codebook, ply_path: str | Path) -> Path:
+    """Write `codebook` (a Codebook) beside `ply_path` as `<stem>.codebook.faiss` (copied from its
+    file, saved when it has none; nothing when it is that file already); returns that path."""
+    target = codebook_path_for(ply_path)
+    source = codebook.path
+    if source is not None and source.is_file() and source.resolve() != target.resolve():
+        with atomic_path(target) as tmp:
+            shutil.copyfile(source, tmp)
+    elif source is None or source.resolve() != target.resolve():
+        codebook.save(target)
+    return target
+
+
 def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Path) -> GaussianScene:
     """The scene with the field's extra properties and header comment; writes the codebook.
 
@@ -160,16 +173,7 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     if field.num_gaussians != scene.num_gaussians:
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
     base = strip_field(scene)
-    name = None
-    if needs_codebook(field.kind):
-        target = codebook_path_for(ply_path)
-        name = target.name
-        source = field.codebook.path
-        if source is not None and source.is_file() and source.resolve() != target.resolve():
-            with atomic_path(target) as tmp:
-                shutil.copyfile(source, tmp)
-        elif source is None or source.resolve() != target.resolve():
-            field.codebook.save(target)
+    name = write_codebook_beside(field.codebook, ply_path).name if needs_codebook(field.kind) else None
     comment = field_comment(field, name)
     extra = dict(base.extra)
     extra.update(field_extras(field, comment[len(COMMENT_PREFIX):].strip()))

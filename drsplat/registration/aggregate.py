@@ -714,6 +714,16 @@ class ViewHook:
         return self._buffer, stats
 
 
+def reject_rows(F: np.ndarray, W: np.ndarray, rejected: np.ndarray) -> int:
+    """In place: rows with rejected [B] bool and W > 0 get W = 0 and F = 0 (unassigned); F [B, D],
+    W [B]. Returns how many rows were dropped (the finish step of floater rejection on a block,
+    run by the driver or by a reducer with its block's slice of the rejected mask)."""
+    drop = rejected & (W > 0)
+    F[drop] = 0.0
+    W[drop] = 0.0
+    return int(np.count_nonzero(drop))
+
+
 class Aggregator:
     """A mode's state in one registration: its per-view `hook` (None for "paper": the view's w is
     used as it is), the folded statistics (`add` per view, in view order) and `finish` on the sums."""
@@ -745,10 +755,7 @@ class Aggregator:
         `num_rejected`)."""
         if not self.reject:
             return 0
-        drop = self.rejected()[start:start + W.shape[0]] & (W > 0)
-        F[drop] = 0.0
-        W[drop] = 0.0
-        count = int(np.count_nonzero(drop))
+        count = reject_rows(F, W, self.rejected()[start:start + W.shape[0]])
         self.num_rejected += count
         return count
 

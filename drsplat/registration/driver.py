@@ -6,6 +6,8 @@
                logs the view (checkpoint) and hands it to the sink
     sums       the sink gives each block's sums F, W (MemorySink: kept live; LogSink: replayed)
     finish     the mode's step on the sums (floater rejection), normalise, prune
+    reduce     on Ray in blocks, writing a PLY: sums, finish and encoding of each block run in a
+               reducer task that writes a part; the driver assembles the parts (registration.reduce)
     codebook   one step: none, a loaded file, or trained on the scene's masks (+ a sample of
                Gaussians summed by the sink), the same whatever the plan
     target     PlyTarget writes the registered PLY (one writer), ArrayTarget keeps [N, D]
@@ -41,6 +43,7 @@ from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
+from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, make_job, wants_reducers
 from drsplat.registration.sink import LogSink, MemorySink, Sink
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import ViewSelection, feature_dim, select_views
@@ -71,8 +74,9 @@ class RegistrationResult:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
-    resident bytes of the Ray workers. sums_on: where the per-Gaussian sums were kept ("host", or the
-    torch device: drsplat.registration.device_sums).
+    resident bytes of the Ray workers (reducers included). sums_on: where the per-Gaussian sums were
+    kept ("host", or the torch device: drsplat.registration.device_sums). finish_cpu_seconds: this
+    process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
     """
 
     features: np.ndarray | None
@@ -104,6 +108,8 @@ class RegistrationResult:
     field_kind: str = ""
     worker_peak_rss: dict[int, int] = field(default_factory=dict)
     sums_on: str = "host"
+    finish_cpu_seconds: float = 0.0
+    reducers: bool = False
 
     @property
     def assigned(self) -> np.ndarray:
@@ -224,27 +230,43 @@ def run_registration(
     else:
         ckpt = None
     totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=np.zeros(n, bool))
+    # the partitioned reduce (Ray, blocks, a PLY): its Ray connection outlives the view pass's executor
+    pool = ReducePool(options.cluster, cancel) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
+    reduce: BlockReduce | None = None
     try:
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block)
         worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
-        view_seconds = time.perf_counter() - t_start
+        view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
         candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
         if not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+        if pool is not None:
+            reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned, getattr(sink, "clusters", None), target.out,
+                                                target.clip_model))
         if codebook == "scene":
-            codebook = _train_scene_codebook(totals, sink, candidates)
-        target.open(codebook)
-        weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
-        if not np.any(weights > 0):
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
-        written = target.close()
+            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
+        if reduce is None:
+            target.open(codebook)
+            weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
+            if not np.any(weights > 0):
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+            written = target.close()
+        else:
+            weights, nonfinite, blocks, sum_seconds, sum_cpu, written = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
     except BaseException as exc:
         target.abort()
         if ckpt is not None:
             ckpt.leave(_why(exc))
         raise
+    finally:
+        if reduce is not None:
+            reduce.close()
+        if pool is not None:
+            pool.close()
+    if pool is not None:  # the reducers' workers too
+        worker_rss = {pid: max(rss, worker_rss.get(pid, 0)) for pid, rss in {**worker_rss, **pool.worker_peak_rss}.items()}
     log_bytes = ckpt.log.nbytes if ckpt is not None else 0
     if ckpt is not None:
         ckpt.remove()
@@ -261,7 +283,7 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss,
-        sums_on=sink.place,
+        sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
     )
 
 
@@ -408,6 +430,17 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         blocks += 1
         del block, keep  # the next block's sums must not be allocated while this one's are alive (the plan counts one)
     return weights, nonfinite, blocks, sum_seconds, sum_cpu
+
+
+def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebook, totals: ViewTotals, out: Path | None):
+    """The blocks finished by reducer tasks, then the parts assembled into `out` (drsplat.registration.reduce).
+    Returns what `_finish_blocks` does, and the rows written."""
+    parts, weights = reduce.finish(run.scene, codebook, aggregator)
+    if not np.any(weights > 0):
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+    written = assemble_parts(Path(reduce.job.out), parts)
+    return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
+            written)
 
 
 def register(

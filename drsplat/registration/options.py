@@ -25,6 +25,8 @@ class RegisterOptions:
     aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's, the
     default "vote-reject" trims its mean by votes across views and rejects floaters).
     cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
+    reducers: on Ray and in blocks, each block is summed, finished, encoded and written by a Ray
+    task (drsplat.registration.reduce; the same bytes); False: by the driver, block after block.
     """
 
     topk: int = DEFAULT_TOPK
@@ -39,6 +41,7 @@ class RegisterOptions:
     device: str = "cpu"
     aggregate: str = DEFAULT_AGGREGATE
     cull: bool = True
+    reducers: bool = True
 
     @property
     def place(self) -> str:

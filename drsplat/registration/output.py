@@ -16,6 +16,7 @@ import dataclasses
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
@@ -93,14 +94,8 @@ class PlyTarget:
 
     def add(self, block: Block, keep: np.ndarray) -> None:
         """Encode and append the kept rows of `block`, WRITE_CHUNK Gaussians at a time."""
-        for lo in range(block.lo, block.hi, WRITE_CHUNK):
-            hi = min(block.hi, lo + WRITE_CHUNK)
-            rows = slice(lo - block.lo, hi - block.lo)
-            chunk_keep = keep[rows]
-            field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=self._codebook, clip_model=self.clip_model)
-            part = _with_meta_rows(attach_field(self.scene.subset(slice(lo, hi)).subset(chunk_keep), field, self.out), self.written)
-            vertices = scene_to_vertices(part)
-            self._header = self._header or (vertices.dtype, part.comments)
+        for vertices, comments in encode_rows(self.scene, self.out, self.clip_model, self._codebook, block, keep, self.written):
+            self._header = self._header or (vertices.dtype, comments)
             self._write(vertices.tobytes())
             self.written += int(vertices.shape[0])
 
@@ -130,6 +125,24 @@ class PlyTarget:
             self._body.write(data)
         except OSError as exc:  # name the output being written (through its temp body file): a bare ENOSPC carries no name
             raise OSError(exc.errno, exc.strerror, str(self.out)) from None
+
+
+def encode_rows(scene: GaussianScene, out: Path, clip_model: str, codebook: Codebook | str, block: Block, keep: np.ndarray,
+                first_row: int) -> Iterator[tuple[np.ndarray, list[str]]]:
+    """The kept rows of `block` as PLY vertex records, WRITE_CHUNK Gaussians at a time: (vertices
+    [R] structured, the header comments) per chunk, `lang_meta` numbered from `first_row` (the
+    index in the file of the block's first kept row). keep: [hi - lo] bool. The one encoder of
+    registered rows (PlyTarget and the reducers, drsplat.registration.reduce)."""
+    written = first_row
+    for lo in range(block.lo, block.hi, WRITE_CHUNK):
+        hi = min(block.hi, lo + WRITE_CHUNK)
+        rows = slice(lo - block.lo, hi - block.lo)
+        chunk_keep = keep[rows]
+        field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=codebook, clip_model=clip_model)
+        part = _with_meta_rows(attach_field(scene.subset(slice(lo, hi)).subset(chunk_keep), field, out), written)
+        vertices = scene_to_vertices(part)
+        yield vertices, part.comments
+        written += int(vertices.shape[0])
 
 
 def _meta_period(comments: list[str]) -> np.ndarray | None:

@@ -157,6 +157,37 @@ class PairLog:
             records = []
         return cls(path, params, records, open(path, "r+b"))
 
+    @classmethod
+    def reader(cls, path: str | Path, params: dict, records: list[LogRecord]) -> "PairLog":
+        """The log at `path`, opened read-only with the `records` its writer knows (a reducer on
+        another process or node replaying it; nothing is scanned or truncated).
+
+        OSError when the file cannot be opened; ValueError when it is not that log: another header,
+        other parameters, or shorter than its records (another file at the same path on this node)."""
+        path = Path(path)
+        f = open(path, "rb")
+        try:
+            head = f.read(len(MAGIC) + 8)
+            if len(head) < len(MAGIC) + 8 or head[: len(MAGIC)] != MAGIC:
+                raise ValueError("not a drsplat registration log")
+            (n,) = _U64.unpack(head[len(MAGIC) :])
+            body = f.read(min(n, 1 << 20))
+            if len(body) != n or json.loads(body) != json.loads(json.dumps(params, sort_keys=True)):
+                raise ValueError("a log of other parameters or inputs")
+            end = records[-1].offset + _payload_size(records[-1].meta) + 4 if records else 0
+            size = os.fstat(f.fileno()).st_size
+            if size < end:
+                raise ValueError(f"{size} bytes, its {len(records)} views need {end}")
+        except BaseException:
+            f.close()
+            raise
+        return cls(path, params, list(records), f)
+
+    def sync(self) -> None:
+        """Flush and fsync the log (before other processes or nodes read it)."""
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
     def close(self) -> None:
         if self._file is not None and not self._file.closed:
             self._file.close()

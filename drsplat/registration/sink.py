@@ -89,9 +89,12 @@ class LogSink:
 
     def blocks(self) -> Iterator[Block]:
         for lo in range(0, self.num_gaussians, self.block):
-            hi = min(self.num_gaussians, lo + self.block)
             # no local keeps the block across the yield: the next block's sums are allocated only after the caller drops this one
-            yield Block(lo, hi, *self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
+            yield self.block_sums(lo, min(self.num_gaussians, lo + self.block))
+
+    def block_sums(self, lo: int, hi: int) -> Block:
+        """The sums of Gaussians lo .. hi-1 from one replay of the log (a reducer's block, drsplat.registration.reduce)."""
+        return Block(lo, hi, *self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""

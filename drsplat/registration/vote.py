@@ -269,9 +269,11 @@ class VoteSink:
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
-                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW):
+                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None):
+        """clusters: the views' clusters made already (a reducer replaying a block of a finished view
+        pass gets the driver's); None: made by `add`."""
         self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
-        self.clusters = MaskClusters(dim)
+        self.clusters = MaskClusters(dim) if clusters is None else clusters
         self._log = plog
         self.block = num_gaussians if plog is None else int(block)
         if self.block < 1:
@@ -311,9 +313,13 @@ class VoteSink:
             yield Block(0, self.num_gaussians, F, W)
             return
         for lo in range(0, self.num_gaussians, self.block):
-            hi = min(self.num_gaussians, lo + self.block)
             # as LogSink.blocks: nothing here holds a block across the yield
-            yield Block(lo, hi, *self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)))
+            yield self.block_sums(lo, min(self.num_gaussians, lo + self.block))
+
+    def block_sums(self, lo: int, hi: int) -> Block:
+        """The trimmed sums of Gaussians lo .. hi-1 from one replay of the log (needs the log; a
+        reducer's block, drsplat.registration.reduce)."""
+        return Block(lo, hi, *self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""

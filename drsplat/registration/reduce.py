@@ -1,0 +1,387 @@
+"""The partitioned reduce: a registration's Gaussian blocks finished by Ray tasks, not by the driver.
+
+A run on Ray (`--ray`) in blocks (`--memory-budget`, `RegisterOptions.block_size`) has logged every
+view's pairs (drsplat.registration.pairlog) by the end of its view pass. Then, instead of the
+driver replaying the log block after block, one reducer task per block (at most `workers` at once)
+
+    opens the pair log read-only by its path          (storage every node shares: module note below)
+    replays it keeping its block's pairs, in view order   LogSink / VoteSink.block_sums, the driver's code
+    runs the mode's finish step on its slice              reject_rows with its slice of the rejected mask
+    normalises, prunes, encodes with the codebook         normalize_rows, output.encode_rows
+    writes its rows to a part file, returns its counts    PartResult: rows, non-finite, rejected, W
+
+and the driver assembles header + parts into the output atomically (`assemble_parts`), streaming
+each part in chunks. The bytes are the local run's: a Gaussian's pairs reach its row in the log's
+order in every block replay (the sums are the same bits), the rows are encoded by the same code,
+and `lang_meta` (row i holds byte i mod L of the field comment, i the row's index in the whole
+file) is patched while streaming: part b's rows are numbered from the prefix sum of the kept rows
+of blocks 0 .. b-1, known only once every reducer is done (they run at the same time). A file of
+fewer rows than L gets its widened columns (`_widen_meta_if_short`) exactly as a single write.
+
+Codebooks: `none` and a faiss file are the same object for every reducer (the codebook file
+beside the output is written once, by the driver, before the reducers start); `--codebook scene`
+is trained on the masks' embeddings topped up with a sample of Gaussians that the reducers sum
+(`BlockReduce.sample`, one sample task per block holding sampled ids: the same rows, the same
+bits as the driver's LogSink.sample), so it gives the local run's codebook and bytes. Every
+aggregation mode is supported: floater rejection's statistics stay on the driver, a reducer gets
+its block's slice of the rejected mask; the vote stage's mask clusters (made on the driver in view
+order) go to every reducer.
+
+Shared storage: reducers open the pair log and write their parts by path, beside the output (the
+checkpoint's folder). On a local (multi-node) cluster that is the same file system; a cluster of
+several machines needs that folder on storage they all mount at the same path (NFS, ...). A reducer
+that cannot read the log, or finds another file there, fails with an error that says so.
+
+Left on the driver: the scene, the mode's per-Gaussian statistics ([N] arrays of floater
+rejection, its rejected mask), totals.positive [N] bool and the result's weights [N] float32
+(each reducer returns its block's W); nothing of size N x D.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import shutil
+import socket
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads
+from drsplat.errors import DrsplatError
+from drsplat.lang import META_PROPERTY, Codebook
+from drsplat.lang.plyformat import write_codebook_beside
+from drsplat.memory import peak_rss
+from drsplat.registration.aggregate import reject_rows
+from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
+from drsplat.registration.pairlog import LogRecord, PairLog
+from drsplat.registration.plan import WRITE_CHUNK
+from drsplat.registration.sink import LogSink
+from drsplat.registration.sums import normalize_rows
+from drsplat.registration.vote import MaskClusters, VoteSink
+from drsplat.scene import GaussianScene, ply_header
+from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, work_folder
+
+log = logging.getLogger(__name__)
+
+WAIT_SECONDS = 0.5  # between checks of the cancel token while reducers run
+COPY_ROWS = WRITE_CHUNK  # rows of a part read, patched and written at a time by the driver
+
+
+@dataclass(frozen=True)
+class ReduceJob:
+    """What every reducer of one registration shares (put in the object store once).
+
+    log_path / params / records: the pair log and what its writer knows of it. block: Gaussians
+    per block (the last one shorter). clusters: the vote stage's mask clusters, None without it.
+    out / clip_model: the output (names the codebook in the field comment) and the embedding
+    space's id. parts_dir: where the parts are written (beside the output).
+    """
+
+    log_path: str
+    params: dict
+    records: list[LogRecord]
+    num_gaussians: int
+    dim: int
+    block: int
+    keep_unassigned: bool
+    clusters: MaskClusters | None
+    out: str
+    clip_model: str
+    parts_dir: str
+
+    @property
+    def num_blocks(self) -> int:
+        return -(-self.num_gaussians // self.block)
+
+    def bounds(self, index: int) -> tuple[int, int]:
+        lo = index * self.block
+        return lo, min(self.num_gaussians, lo + self.block)
+
+    def part_path(self, index: int) -> Path:
+        return Path(self.parts_dir) / f"block{index:06d}.part"
+
+
+@dataclass
+class PartResult:
+    """One reducer's block: rows kept and written to `path`; header: (vertex dtype, comments) of its
+    first chunk; weights [hi - lo] float32 W after finishing (0 = unassigned); nonfinite / rejected:
+    Gaussians dropped for non-finite sums / by the mode; sum_seconds / sum_cpu_seconds: the replay;
+    seconds: the whole task; pid / peak_rss: the worker."""
+
+    index: int
+    lo: int
+    hi: int
+    rows: int
+    header: tuple
+    weights: np.ndarray
+    nonfinite: int
+    rejected: int
+    path: str
+    sum_seconds: float
+    sum_cpu_seconds: float
+    seconds: float
+    pid: int
+    peak_rss: int
+
+
+def open_log(job: ReduceJob, index: int) -> PairLog:
+    """The job's pair log, opened read-only here (a worker process, maybe on another node);
+    DrsplatError naming the block and the path when this process cannot read that log."""
+    lo, hi = job.bounds(index)
+    try:
+        return PairLog.reader(job.log_path, job.params, job.records)
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise DrsplatError(
+            f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,}) on {socket.gethostname()} cannot read the pair log "
+            f"{job.log_path} ({why}): the partitioned reduce needs the output's folder on storage every Ray node shares at the same path"
+        ) from None
+
+
+def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
+    """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes)."""
+    if job.clusters is not None:
+        return VoteSink(job.num_gaussians, job.dim, plog, job.block, clusters=job.clusters)
+    return LogSink(job.num_gaussians, job.dim, plog, job.block)
+
+
+def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, index: int, rejected: np.ndarray | None) -> PartResult:
+    """Finish block `index` of `job` into its part file (module docstring): replay, the mode's
+    finish (rejected: [hi - lo] bool, the block's slice of the rejected mask, or None),
+    normalise, prune, encode. scene: the whole scene (rows lo .. hi-1 are read)."""
+    t0 = time.perf_counter()
+    lo, hi = job.bounds(index)
+    c0 = time.process_time()
+    with open_log(job, index) as plog:
+        block = block_sink(job, plog).block_sums(lo, hi)
+    sum_seconds, sum_cpu = time.perf_counter() - t0, time.process_time() - c0
+    dropped = reject_rows(block.F, block.W, rejected) if rejected is not None else 0
+    _, nonfinite = normalize_rows(block.F, block.W)
+    keep = np.ones(hi - lo, bool) if job.keep_unassigned else block.W > 0
+    path = job.part_path(index)
+    rows, header = 0, None
+    try:
+        with open(path, "wb") as f:  # a retried task rewrites its part from the start
+            for vertices, comments in encode_rows(scene, Path(job.out), job.clip_model, codebook, block, keep, 0):
+                header = header or (vertices.dtype, comments)
+                f.write(vertices.tobytes())
+                rows += int(vertices.shape[0])
+    except OSError as exc:
+        raise DrsplatError(f"the reducer of block {index} could not write its part {path} ({exc.strerror or exc})") from None
+    return PartResult(index, lo, hi, rows, header, np.array(block.W), int(nonfinite), dropped, str(path), sum_seconds, sum_cpu,
+                      time.perf_counter() - t0, os.getpid(), peak_rss())
+
+
+def sample_block(job: ReduceJob, index: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct, inside block `index`), summed
+    from the log as the driver's sink would (a scene codebook's training sample)."""
+    with open_log(job, index) as plog:
+        return block_sink(job, plog).sample(ids)
+
+
+def _reduce_task(job, scene, codebook, index, rejected):
+    """Ray task around `reduce_block` (numba threads = the CPUs Ray gave it)."""
+    set_worker_threads()
+    return reduce_block(job, scene, codebook, index, rejected)
+
+
+def _sample_task(job, index, ids):
+    set_worker_threads()
+    return sample_block(job, index, ids)
+
+
+# ----------------------------------------------------------------------------- the driver's side
+
+
+def assemble_parts(out: Path, parts: list[PartResult]) -> int:
+    """Header + the parts, in block order, into `out` (atomically): each part streamed COPY_ROWS
+    rows at a time with its `lang_meta` rows renumbered from the kept rows before it, so the bytes
+    are those of a single write (drsplat.registration.output.PlyTarget). Returns the rows written.
+
+    The header is the first block's (its dtype and comments, as PlyTarget takes its first chunk's);
+    a file of fewer rows than the field comment's length gets the widened `lang_meta_*` columns.
+    """
+    if not parts or parts[0].header is None:
+        raise DrsplatError(f"the scene has no Gaussians to write to {out}")
+    dtype, comments = parts[0].header
+    total = sum(p.rows for p in parts)
+    period = _meta_period(comments) if META_PROPERTY in dtype.names else None
+    if period is not None and total < period.shape[0]:  # a short file: a tiny body, widened as a single write widens it
+        with tempfile.TemporaryDirectory(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out)) as tmp:
+            body = Path(tmp) / "body"
+            with open(body, "wb") as f:
+                _copy_parts(f, parts, dtype, period)
+            dtype, comments = _widen_meta_if_short(body, (dtype, comments), total)
+            with atomic_path(out) as target, open(target, "wb") as f, open(body, "rb") as src:
+                f.write(ply_header(dtype, comments, total))
+                shutil.copyfileobj(src, f)
+        return total
+    with atomic_path(out) as target, open(target, "wb") as f:
+        f.write(ply_header(dtype, comments, total))
+        _copy_parts(f, parts, dtype, period)
+    return total
+
+
+def _copy_parts(f, parts: list[PartResult], dtype: np.dtype, period: np.ndarray | None) -> None:
+    """Append the parts' rows to `f`; `lang_meta` row i of the file = period[i mod L]."""
+    first = 0
+    buffer = np.empty(COPY_ROWS, dtype)  # one chunk, read into, patched and written in place (no copies)
+    for part in parts:
+        size = os.path.getsize(part.path)
+        if size != part.rows * dtype.itemsize:
+            raise DrsplatError(f"the part of block {part.index} ({part.path}) holds {size} bytes, its reducer wrote {part.rows} rows of {dtype.itemsize}")
+        with open(part.path, "rb") as src:
+            for start in range(0, part.rows, COPY_ROWS):
+                rows = buffer[: min(COPY_ROWS, part.rows - start)]
+                src.readinto(memoryview(rows).cast("B"))
+                if period is not None:
+                    rows[META_PROPERTY] = period[(first + start + np.arange(rows.shape[0])) % period.shape[0]]
+                f.write(memoryview(rows).cast("B"))
+        first += part.rows
+
+
+def wants_reducers(place: str, reducers: bool, block: int, num_gaussians: int, writes_ply: bool) -> bool:
+    """Whether a run finishes its blocks with reducers: on Ray, in blocks, writing a PLY (features
+    kept in memory, `register_features`, are finished by the driver) and not switched off."""
+    return place == "ray" and reducers and block < num_gaussians and writes_ply
+
+
+class ReducePool:
+    """The Ray connection of a run whose blocks reducers finish: opened before the view pass (so
+    the executor joins it and it outlives the executor), closed after the output is written.
+
+    workers: reducer tasks at once (default: the cluster's CPUs).
+    """
+
+    def __init__(self, cluster: ClusterOptions, cancel: CancelToken | None = None):
+        """cancel: checked while reducers run (a cancelled run stops them and keeps its checkpoint)."""
+        ray = import_ray()
+        self.cancel = cancel
+        self._owns = connect(cluster.address)
+        self.workers = int(cluster.workers or max(1, int(ray.cluster_resources().get("CPU", 1))))
+        self.worker_peak_rss: dict[int, int] = {}
+
+    def close(self) -> None:
+        if self._owns:
+            import_ray().shutdown()
+            self._owns = False
+
+    def reduce(self, job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, rejected: np.ndarray | None) -> list[PartResult]:
+        """Every block of `job` through a reducer task, at most `workers` at once; the parts in block
+        order. A failed reducer (after Ray's retries) is a DrsplatError naming its block; the others
+        are cancelled."""
+        ray = import_ray()
+        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_reduce_task)
+        job_ref, scene_ref, book_ref = ray.put(job), ray.put(scene), ray.put(codebook)
+
+        def submit(index: int):
+            lo, hi = job.bounds(index)
+            return task.remote(job_ref, scene_ref, book_ref, index, None if rejected is None else np.array(rejected[lo:hi]))
+
+        results = self._run(job, submit)
+        for part in results:
+            self.worker_peak_rss[part.pid] = max(part.peak_rss, self.worker_peak_rss.get(part.pid, 0))
+        return results
+
+    def sample(self, job: ReduceJob, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the sorted distinct Gaussians `ids` [S]: one task per block holding
+        some of them, concatenated in block order (= the order of `ids`)."""
+        ray = import_ray()
+        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_sample_task)
+        job_ref = ray.put(job)
+        cuts = np.searchsorted(ids, np.arange(job.num_blocks + 1) * job.block)
+        blocks = [b for b in range(job.num_blocks) if cuts[b + 1] > cuts[b]]
+        parts = self._run(job, lambda i: task.remote(job_ref, blocks[i], ids[cuts[blocks[i]] : cuts[blocks[i] + 1]]), len(blocks), blocks)
+        if not parts:
+            return np.zeros((0, job.dim), np.float32), np.zeros(0, np.float32)
+        return np.concatenate([F for F, _ in parts]), np.concatenate([W for _, W in parts])
+
+    def _run(self, job: ReduceJob, submit, count: int | None = None, names: list[int] | None = None) -> list:
+        """submit(i) for i < count (default: every block), `workers` in flight; results in order."""
+        ray = import_ray()
+        count = job.num_blocks if count is None else count
+        names = names or list(range(count))
+        results: list = [None] * count
+        pending: dict = {}
+        submitted = 0
+        try:
+            while submitted < count or pending:
+                while submitted < count and len(pending) < self.workers:
+                    pending[submit(submitted)] = submitted
+                    submitted += 1
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=WAIT_SECONDS)
+                if self.cancel is not None:
+                    self.cancel.raise_if_cancelled()
+                for ref in ready:
+                    i = pending.pop(ref)
+                    results[i] = _get(ref, job, names[i])
+        finally:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+        return results
+
+
+def _get(ref, job: ReduceJob, index: int):
+    ray = import_ray()
+    lo, hi = job.bounds(index)
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as exc:
+        cause = exc.cause if isinstance(getattr(exc, "cause", None), BaseException) else exc
+        if isinstance(cause, DrsplatError):
+            raise DrsplatError(str(cause)) from None
+        raise DrsplatError(f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,}) failed: {type(cause).__name__}: {cause}") from None
+    except ray.exceptions.RayError as exc:  # the worker died more than TASK_RETRIES times, node lost, ...
+        raise DrsplatError(f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,}) failed after {TASK_RETRIES} retries: {exc}") from None
+
+
+def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unassigned: bool, clusters: MaskClusters | None, out: Path,
+             clip_model: str) -> ReduceJob:
+    """The job of a run whose view pass is done: the log synced to storage, a parts folder beside
+    `out` (a temp folder named after `out`, swept if a killed run leaves it)."""
+    plog.sync()
+    parts = tempfile.mkdtemp(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out))
+    return ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
+                     clusters, str(out), clip_model, parts)
+
+
+def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
+    """The codebook the reducers encode with: its file written beside `out` once, here (as the
+    first chunk of a single write writes it), and named there, so no reducer writes it again."""
+    if isinstance(codebook, str):
+        return codebook
+    return dataclasses.replace(codebook, path=write_codebook_beside(codebook, out))
+
+
+class BlockReduce:
+    """One run's reduce on `pool`: the scene codebook's sample (`sample`, what the driver's sink
+    would give) and the blocks (`finish`)."""
+
+    def __init__(self, pool: ReducePool, job: ReduceJob):
+        self.pool, self.job = pool, job
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.pool.sample(self.job, ids)
+
+    def finish(self, scene: GaussianScene, codebook: Codebook | str, aggregator) -> tuple[list[PartResult], np.ndarray]:
+        """Every block finished by a reducer (`aggregator`: the run's Aggregator, whose rejected
+        mask is sliced per block and whose num_rejected gets the reducers' counts). Returns
+        (the parts in block order, weights [N] float32: the result's W)."""
+        t0 = time.perf_counter()
+        parts = self.pool.reduce(self.job, scene, shared_codebook(codebook, Path(self.job.out)), aggregator.rejected())
+        log.info("%d blocks finished by reducer tasks (%d at once) in %.1f s", len(parts), self.pool.workers, time.perf_counter() - t0)
+        weights = np.zeros(self.job.num_gaussians, np.float32)
+        for part in parts:
+            weights[part.lo : part.hi] = part.weights
+            part.weights = None  # the result's copy is enough
+            aggregator.num_rejected += part.rejected
+        return parts, weights
+
+    def close(self) -> None:
+        """Remove the parts folder (written or not)."""
+        shutil.rmtree(self.job.parts_dir, ignore_errors=True)

@@ -1,0 +1,271 @@
+"""The partitioned reduce (drsplat.registration.reduce): blocks finished by Ray reducer tasks.
+
+On a two-node Ray cluster started inside a fixture (tests/test_distributed.py's), a run on Ray in
+blocks must write the local in-memory run's bytes, whatever the mode and codebook; `lang_meta`
+must be numbered as in a single write across blocks that keep some, all or no rows, and in a short
+file; a failing reducer must name its block and leave the checkpoint that resumes. The assembling
+step is also tested without Ray, against PlyTarget on the same blocks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras
+from drsplat.errors import DrsplatError
+from drsplat.registration import RegisterOptions, register
+from drsplat.registration.checkpoint import checkpoint_path_for
+from drsplat.registration.output import PlyTarget, _meta_period
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.reduce import ReduceJob, assemble_parts, reduce_block
+from drsplat.registration.sink import LogSink
+from drsplat.registration.sums import normalize_rows
+from drsplat.scene import GaussianScene, load_ply
+from drsplat.synthetic import write_dataset
+
+try:  # imported with the module, as tests/test_distributed.py does: importing ray sets RAY_CLIENT_MODE once
+    import ray
+except ImportError:  # the tests without Ray still run
+    ray = None
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def general_book(tmp_path_factory) -> Path:
+    """A tiny faiss PQ codebook file (512-D, 16 sub-quantisers), as a user's general codebook."""
+    from drsplat.lang import train_codebook
+
+    path = tmp_path_factory.mktemp("book") / "general.faiss"
+    train_codebook(np.random.default_rng(0).normal(size=(3000, 512)).astype(np.float32), m=16).save(path)
+    return path
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _register_both(scene, cams, features, tmp_path: Path, **options) -> tuple[Path, Path, object]:
+    local, on_ray = tmp_path / "local" / "reg.ply", tmp_path / "ray" / "reg.ply"
+    register(scene, cams, features, local, RegisterOptions(**options), show_progress=False)
+    result = register(scene, cams, features, on_ray, RegisterOptions(ray="auto", ray_workers=2, block_size=1024, **options), show_progress=False)
+    return local, on_ray, result
+
+
+# ----------------------------------------------------------------------------- on a Ray cluster
+
+
+OBJECT_STORE = 80 * 1024 * 1024
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A two-node Ray cluster on this machine, as tests/test_distributed.py starts it (the SIGTERM
+    handler its nodes install here is put back when it stops)."""
+    import signal
+
+    if ray is None:
+        pytest.skip("the partitioned reduce needs the optional ray package (pip install -e '.[ray]')")
+    from ray.cluster_utils import Cluster
+
+    from drsplat.cluster import connect
+
+    sigterm = signal.getsignal(signal.SIGTERM)
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False})
+    try:
+        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
+        c.wait_for_nodes()
+        connect(c.address)
+        yield c
+    finally:
+        ray.shutdown()
+        c.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
+
+
+@pytest.mark.parametrize("aggregate", ["paper", "vote-reject"])
+@pytest.mark.parametrize("book", ["none", "faiss"])
+def test_reducers_write_the_local_in_memory_bytes(cluster, tiny, general_book, tmp_path, aggregate, book):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    codebook = str(general_book) if book == "faiss" else "none"
+    local, on_ray, result = _register_both(scene, cams, tiny / "features", tmp_path, aggregate=aggregate, codebook=codebook)
+    assert result.reducers and result.num_blocks == -(-scene.num_gaussians // 1024) >= 3
+    assert sha(on_ray) == sha(local)
+    if book == "faiss":
+        assert (on_ray.parent / "reg.codebook.faiss").read_bytes() == (local.parent / "reg.codebook.faiss").read_bytes()
+    assert result.worker_peak_rss  # the reducers' workers reported
+    assert not [p.name for p in on_ray.parent.iterdir() if p.name != "reg.ply" and not p.name.endswith(".faiss")]  # no parts, no log left
+
+
+def test_scene_codebook_from_the_reducers_sample_gives_the_local_bytes(cluster, tiny, tmp_path):
+    """--codebook scene: the reducers sum the training sample (one task per block), the same rows as the driver's sink."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local, on_ray, result = _register_both(scene, cams, tiny / "features", tmp_path, codebook="scene")
+    assert result.reducers
+    assert (on_ray.parent / "reg.codebook.faiss").read_bytes() == (local.parent / "reg.codebook.faiss").read_bytes()
+    assert sha(on_ray) == sha(local)
+
+
+def _with_unseen_block(scene: GaussianScene) -> GaussianScene:
+    """The scene with 1024 copies of its first Gaussians far behind every camera inserted as rows
+    1024 .. 2047: with blocks of 1024 the second block keeps no row."""
+    order = np.concatenate([np.arange(1024), np.arange(1024), np.arange(1024, scene.num_gaussians)])
+    out = scene.subset(order)
+    means = np.array(out.means)
+    means[1024:2048] += np.float32(1e6)
+    return dataclasses.replace(out, means=means)
+
+
+def test_meta_column_across_blocks_with_an_empty_one(cluster, tiny, tmp_path):
+    scene, cams = _with_unseen_block(load_ply(tiny / "scene.ply")), load_cameras(tiny)
+    local, on_ray, result = _register_both(scene, cams, tiny / "features", tmp_path)
+    assert result.reducers and not result.weights[1024:2048].any() and result.weights[:1024].any() and result.weights[2048:].any()
+    assert sha(on_ray) == sha(local)
+    written = load_ply(on_ray)
+    assert written.num_gaussians == result.num_written == result.num_assigned
+    period = _meta_period(written.comments)
+    np.testing.assert_array_equal(written.extra["lang_meta"], period[np.arange(written.num_gaussians) % period.shape[0]])
+
+
+def test_short_file_gets_the_widened_meta_columns(cluster, tiny, tmp_path):
+    """Fewer kept rows than the field comment's bytes, spread over blocks: the widened columns of a single write."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    full = register(scene, cams, tiny / "features", tmp_path / "all.ply", RegisterOptions(), show_progress=False)
+    assigned = np.flatnonzero(full.weights > 0)
+    kept = np.r_[assigned[assigned < 1024][:8], assigned[assigned >= 2048][:8]]  # blocks 0 and 2; the rest moved out of sight
+    means = np.array(scene.means)
+    far = np.ones(scene.num_gaussians, bool)
+    far[kept] = False
+    means[far] += np.float32(1e6)
+    few = dataclasses.replace(scene, means=means)
+    local, on_ray, result = _register_both(few, cams, tiny / "features", tmp_path)
+    written = load_ply(on_ray)
+    assert result.reducers and 0 < result.num_written < _meta_period(written.comments).shape[0]
+    assert "lang_meta_1" in written.extra
+    assert sha(on_ray) == sha(local)
+
+
+def _failing_reduce_task(job, scene, codebook, index, rejected):
+    """A reducer whose block 1 fails (runs on a worker: imported there by reference)."""
+    if index == 1:
+        raise RuntimeError("the disk under block 1 is gone")
+    from drsplat.registration.reduce import _reduce_task
+
+    return _reduce_task(job, scene, codebook, index, rejected)
+
+
+def test_a_failing_reducer_names_its_block_and_the_checkpoint_resumes(cluster, tiny, tmp_path, monkeypatch):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local = tmp_path / "local.ply"
+    register(scene, cams, tiny / "features", local, RegisterOptions(), show_progress=False)
+    out = tmp_path / "ray" / "reg.ply"
+    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024)
+    monkeypatch.setattr("drsplat.registration.reduce._reduce_task", _failing_reduce_task)
+    with pytest.raises(DrsplatError, match=r"reducer of block 1 \(Gaussians 1,024\.\.2,047\) failed: RuntimeError: the disk under block 1"):
+        register(scene, cams, tiny / "features", out, options, show_progress=False)
+    monkeypatch.undo()
+    assert not out.exists() and checkpoint_path_for(out).exists()
+    assert not [p for p in out.parent.iterdir() if p.is_dir()]  # the parts folder is gone
+    resumed = register(scene, cams, tiny / "features", out, options, show_progress=False)
+    assert resumed.resumed_views == len(cams) and resumed.reducers
+    assert sha(out) == sha(local) and not checkpoint_path_for(out).exists()
+
+
+def test_a_run_cancelled_while_reducers_run_keeps_its_checkpoint(cluster, tiny, tmp_path):
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    out = tmp_path / "reg.ply"
+    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024)
+    token = CancelToken()
+
+    def cancel_after_the_views(done: int, total: int) -> None:
+        if done == total:
+            token.cancel()
+
+    with pytest.raises(Cancelled):
+        register(scene, cams, tiny / "features", out, options, on_progress=cancel_after_the_views, cancel=token, show_progress=False)
+    assert not out.exists() and checkpoint_path_for(out).exists()
+    assert register(scene, cams, tiny / "features", out, options, show_progress=False).resumed_views == len(cams)
+
+
+def test_without_reducers_the_driver_finishes_the_same_bytes(cluster, tiny, tmp_path):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local, on_ray, result = _register_both(scene, cams, tiny / "features", tmp_path, reducers=False)
+    assert not result.reducers and sha(on_ray) == sha(local)
+
+
+# ----------------------------------------------------------------------------- without Ray
+
+
+def _random_log(path: Path, n: int, dim: int, views: int, seed: int, seen: np.ndarray) -> PairLog:
+    """A pair log of random views whose pairs touch only the Gaussians `seen` [n] bool."""
+    rng = np.random.default_rng(seed)
+    plog = PairLog.open(path, {"test": seed})
+    ids = np.flatnonzero(seen)
+    for v in range(views):
+        m = int(rng.integers(1, 6))
+        p = int(rng.integers(0, 3 * ids.size + 1))
+        g = rng.choice(ids, size=p).astype(np.int32)
+        feats = rng.normal(size=(m, dim)).astype(np.float32)
+        plog.append(ViewPairs(f"v{v}", feats, g, rng.integers(0, m, p).astype(np.int32), rng.uniform(1e-3, 1, p).astype(np.float32),
+                              np.arange(m, dtype=np.int32), p))
+    return plog
+
+
+@pytest.mark.parametrize("case", ["empty_middle_block", "short_file"])
+def test_assembled_parts_equal_a_single_write(tmp_path, case):
+    """reduce_block per block + assemble_parts = PlyTarget fed by LogSink, byte for byte: lang_meta
+    renumbered across parts (one keeps no row), and a file shorter than the comment widened."""
+    n, dim, block = 300, 16, 100
+    rng = np.random.default_rng(1)
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    seen = np.ones(n, bool)
+    if case == "empty_middle_block":
+        seen[100:200] = False
+    else:
+        seen[:] = False
+        seen[[3, 7, 150, 151, 290]] = True
+    plog = _random_log(tmp_path / "pairs.log", n, dim, 5, 2, seen)
+    plog.sync()
+    expected = tmp_path / "single" / "reg.ply"
+    expected.parent.mkdir()
+    target = PlyTarget(scene, expected, "oracle")
+    target.open("none")
+    for b in LogSink(n, dim, plog, block).blocks():
+        normalize_rows(b.F, b.W)
+        target.add(b, b.W > 0)
+    written = target.close()
+    out = tmp_path / "parts" / "reg.ply"
+    out.parent.mkdir()
+    parts_dir = tmp_path / "parts" / "p"
+    parts_dir.mkdir()
+    job = ReduceJob(str(plog.path), plog.params, list(plog.records), n, dim, block, False, None, str(out), "oracle", str(parts_dir))
+    parts = [reduce_block(job, scene, "none", i, None) for i in range(job.num_blocks)]
+    rows = [p.rows for p in parts]
+    assert sum(rows) == written and (rows[1] == 0 < rows[0] if case == "empty_middle_block" else 0 < written < 60)
+    assert assemble_parts(out, parts) == written
+    assert out.read_bytes() == expected.read_bytes()
+    if case == "short_file":
+        assert "lang_meta_1" in load_ply(out).extra
+
+
+def test_a_log_the_reducer_cannot_read_is_one_clear_error(tmp_path):
+    job = ReduceJob(str(tmp_path / "elsewhere" / "pairs.log"), {}, [], 10, 4, 5, False, None, str(tmp_path / "o.ply"), "oracle", str(tmp_path))
+    with pytest.raises(DrsplatError, match=r"reducer of block 1 \(Gaussians 5\.\.9\).*cannot read the pair log .*elsewhere/pairs\.log.*storage every Ray node shares"):
+        reduce_block(job, None, "none", 1, None)
+    other = PairLog.open(tmp_path / "other.log", {"a": 1})
+    other.close()
+    job = dataclasses.replace(job, log_path=str(tmp_path / "other.log"), params={"a": 2})
+    with pytest.raises(DrsplatError, match="other parameters"):
+        reduce_block(job, None, "none", 0, None)
