@@ -20,7 +20,9 @@ from drsplat.registration.solve import (
     slot_sums,
     slot_sums_reference,
     solve_coefficients,
+    SolveResult,
     solve_registration,
+    solved_features,
     target_sums,
     target_view_reference,
 )
@@ -159,3 +161,18 @@ def test_solve_modes_register_and_are_refused_in_blocks(hard_tiny, tmp_path):
     assert moved.sum() > 0
     with pytest.raises(UsageError, match="cannot run under a --memory-budget"):
         register_features(scene, cams, features, RegisterOptions(topk=10, aggregate="solve-vote-reject", block_size=100), show_progress=False)
+
+
+def test_solved_features_move_the_slot_part_and_keep_gaussians_with_nothing_positive():
+    means = np.eye(3, dtype=np.float32)  # three clusters, unit means
+    slot_c = np.array([[0, 1], [0, 1], [2, -1]], np.int32)
+    prior = np.array([[0.25, 0.75], [0.5, 0.5], [1.0, 0.0]])
+    x = np.array([[0.9, 0.1], [-0.2, -0.1], [1.0, 0.0]])
+    total = np.array([4.0, 2.0, 1.0])
+    F = (prior[:, :, None] * means[np.maximum(slot_c, 0)]).sum(1).astype(np.float32) * total[:, None].astype(np.float32)
+    F[0] += np.float32(0.5) * means[2]  # weight on a mask outside the slots: kept
+    before = F.copy()
+    changed = solved_features(F, SolveResult(slot_c, prior, x, total, 1, [1.0], (1.0, 0.5)), means)
+    assert changed == 1
+    np.testing.assert_allclose(F[0], [3.6, 0.4, 0.5], rtol=1e-6)  # T·x on the slots, the rest as it was
+    np.testing.assert_array_equal(F[1:], before[1:])  # all ≤ 0: the paper's; at x̄: bit for bit

@@ -26,7 +26,8 @@ weights favour the pixels a Gaussian dominates (its core) over the faint tails w
 Gaussian already explains the pixel.
 
 The feature then replaces the slot part of the sums: F_i ← F_i + T_i Σ_s (max(x_is, 0) − x̄_is) μ_{c_is}
-(μ_c the cluster's unit mean); a Gaussian whose solve stays at x̄ keeps F_i bit for bit; W_i is
+(μ_c the cluster's unit mean); a Gaussian whose solve stays at x̄, or whose coefficients are all
+≤ 0, keeps F_i bit for bit; W_i is
 unchanged, so coverage and floater rejection do not move. Negative coefficients are clipped
 (a projection onto non-negative mixtures; the CG itself is unconstrained).
 
@@ -353,7 +354,9 @@ def solve_coefficients(render: Callable[[], Iterable[SolveView]], n: int, lam: f
 def solved_features(F: np.ndarray, result: SolveResult, means: np.ndarray) -> int:
     """F [n, D] ← F + T Σ_s (max(x_s, 0) − x̄_s) μ_{c_s} in place (module docstring); means [K, D]
     the clusters' unit means. Returns how many Gaussians changed."""
-    delta = np.where(result.slot_c >= 0, np.maximum(result.x, 0.0) - result.prior, 0.0) * result.total[:, None]
+    kept = np.where(result.slot_c >= 0, np.maximum(result.x, 0.0), 0.0)
+    delta = (kept - np.where(result.slot_c >= 0, result.prior, 0.0)) * result.total[:, None]
+    delta[kept.sum(axis=1) <= 0] = 0.0  # nothing positive left: keep the paper's sums (the rest would be rounding noise's direction)
     changed = np.flatnonzero(np.any(delta != 0.0, axis=1))
     for start in range(0, changed.size, 1 << 16):  # bounded scratch: [chunk, S, D]
         rows = changed[start:start + (1 << 16)]
