@@ -10,5 +10,8 @@ DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene
 DEFAULT_AGGREGATE = "vote-reject"  # registration's aggregation mode: the paper's weighted mean trimmed by votes across views, floaters rejected (docs/evaluation.md, "Choosing the default")
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
                    "centre", "anchor", "anchor-reject", "explain", "explain-reject",
-                   "vote", "vote-reject", "explain-vote-reject")  # drsplat.registration.aggregate implements them
+                   "vote", "vote-reject", "explain-vote-reject",
+                   "solve", "solve-reject", "solve-vote", "solve-vote-reject")  # drsplat.registration.aggregate implements them
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
+VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
+SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsplat.registration.solve)

@@ -17,12 +17,13 @@ from drsplat.cameras import load_cameras
 from drsplat.defaults import AGGREGATE_MODES
 from drsplat.errors import InputError, UsageError
 from drsplat.registration import RegisterOptions, register
+from drsplat.registration.aggregate import mode_stages
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 
 VIEWS = 6  # enough views for every mode to assign, reject and reweight something
 BLOCK = 512  # hard-tiny has ~2,300 Gaussians: five blocks
-DEVICE_MODES = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")  # weight, coalesce and sum on the torch device
+DEVICE_MODES = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "solve")  # weight, coalesce and sum on the torch device
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +55,13 @@ def test_modes_give_different_fields(reference):
 def test_every_engine_and_plan_writes_the_reference_file(room, reference, tmp_path, engine, block, mode):
     scene, cams, features = room
     out = tmp_path / mode / "reg.ply"
-    result = register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, engine=engine, device="cpu", block_size=block),
-                      show_progress=False)
+    options = RegisterOptions(topk=10, aggregate=mode, engine=engine, device="cpu", block_size=block)
+    if block is not None and mode_stages(mode).solve:  # the solve needs every Gaussian in one block: refused up front
+        with pytest.raises(UsageError, match="solves over all Gaussians in one block in memory and cannot run under a --memory-budget"):
+            register(scene, cams, features, out, options, show_progress=False)
+        assert not out.parent.exists() or list(out.parent.iterdir()) == []
+        return
+    result = register(scene, cams, features, out, options, show_progress=False)
     assert result.num_blocks == (1 if block is None else -(-scene.num_gaussians // block))
     # the torch engine sums on its device in one block of a mode whose per-view weighting has a torch form
     assert result.sums_on == ("cpu" if engine == "torch" and block is None and mode in DEVICE_MODES else "host")

@@ -31,8 +31,13 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
     vote            w, then the mean trimmed of clusters of masks that a minority of views vote
                     for (drsplat.registration.vote: mislabelled masks outvoted)
     explain-reject, vote-reject, explain-vote-reject   the stages in that order
+    solve           w, then the render-consistent solve on the sums (drsplat.registration.solve:
+                    features that re-render the views' masks best, Tikhonov toward the paper's
+                    mean, conjugate gradients; one block in memory only)
+    solve-reject, solve-vote, solve-vote-reject   the solve on the (vote-trimmed) sums, then rejection
 
-A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`).
+A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`); WEIGHTING "solve"
+means the paper's w in the views and the solve stage on the sums.
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
@@ -78,7 +83,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES
+from drsplat.defaults import AGGREGATE_MODES, SOLVE_SLOTS, VOTE_SLOTS
 from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
@@ -105,6 +110,7 @@ class Stages:
     weighting: str
     vote: bool
     reject: bool
+    solve: bool = False  # the render-consistent solve on the sums (weighting "paper" in the views)
 
 
 def mode_stages(mode: str) -> Stages:
@@ -117,6 +123,8 @@ def mode_stages(mode: str) -> Stages:
     parts = parts[:-1] if reject else parts
     vote = bool(parts) and parts[-1] == "vote"
     parts = parts[:-1] if vote else parts
+    if parts and parts[0] == "solve":
+        return Stages("paper", vote, reject, solve=True)
     return Stages(parts[0] if parts else "paper", vote, reject)
 
 
@@ -732,7 +740,7 @@ class Aggregator:
         """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
         self.mode = mode
         stages = mode_stages(mode)
-        self.reject, self.vote = stages.reject, stages.vote
+        self.reject, self.vote, self.solve = stages.reject, stages.vote, stages.solve
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
         needs_hook = stages.weighting != "paper" or self.reject
         self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
@@ -787,9 +795,9 @@ class Aggregator:
             kept = 32 * num_gaussians
             views += (29 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
-            from drsplat.registration.vote import VOTE_SLOTS  # vote imports the sinks; kept off this module's import path
-
             kept += (20 * VOTE_SLOTS + 8) * num_gaussians
+        if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
+            kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept
 
     def state(self) -> dict[str, np.ndarray]:

@@ -147,6 +147,11 @@ class ViewComputer:
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,
                          raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, device=pairs)
 
+    def rasterize(self, cam: Camera):
+        """The view's top-k RasterOutput (ids, weights [H, W, k], scene ids) with this computer's engine
+        and culling; no hook (the solve stage re-renders with it)."""
+        return self._rasterize(cam)
+
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling."""
         if self._index is None:

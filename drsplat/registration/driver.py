@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.errors import Cancelled, DrsplatError, InputError
+from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
@@ -44,6 +44,7 @@ from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, make_job, wants_reducers
+from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import ViewSelection, feature_dim, select_views
@@ -222,6 +223,9 @@ def run_registration(
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     block = options.block_size or _plan_block(run)
     aggregator = Aggregator(options.aggregate, scene)
+    if aggregator.solve and block < n:
+        raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
+                         f"--memory-budget (or --block-size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
@@ -421,6 +425,8 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         block = next(stream)
         sum_seconds += time.perf_counter() - t0
         sum_cpu += time.process_time() - c0
+        if aggregator.solve:  # the solve stage (one block: refused up front otherwise), before floater rejection
+            _solve_block(run, block)
         aggregator.finish(block.F, block.W, block.lo)
         _, bad = normalize_rows(block.F, block.W)
         nonfinite += bad
@@ -441,6 +447,14 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     written = assemble_parts(Path(reduce.job.out), parts)
     return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written)
+
+
+def _solve_block(run: Run, block) -> None:
+    """The render-consistent solve on the whole scene's sums (drsplat.registration.solve), re-rendering
+    the views with the registration's engine in this process."""
+    options = run.options
+    solve_registration(prepare_geometry(run.scene), run.views, run.features_dir, options.level, options.topk, options.engine, options.device,
+                       block.F)
 
 
 def register(

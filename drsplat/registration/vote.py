@@ -47,11 +47,11 @@ from collections.abc import Iterator
 import numba
 import numpy as np
 
+from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block
 from drsplat.registration.sums import Accumulator
 
-VOTE_SLOTS = 8  # candidate clusters kept per Gaussian
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
 FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
