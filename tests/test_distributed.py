@@ -126,12 +126,14 @@ def _task_pids(title: str) -> list[int]:
     return pids
 
 
-def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny, monkeypatch):
+def test_killed_worker_is_restarted_its_calls_retried_and_the_result_is_unchanged(cluster, tiny, monkeypatch):
+    """A worker actor killed while it computes views (with more calls queued on it) is restarted
+    with its geometry, its calls run again, and the field is the local one."""
     data = tiny
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     local = register_features(scene, cams, data / "features", RegisterOptions(), show_progress=False)
     box: dict = {}
-    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 8)  # tasks long enough to be caught running
+    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 8)  # calls long enough to be caught running
 
     def run() -> None:
         try:
@@ -144,13 +146,13 @@ def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny
     killed = None
     deadline = time.time() + 60
     while killed is None and thread.is_alive() and time.time() < deadline:
-        pids = _task_pids("ray::_views_task")
+        pids = _task_pids("ray::_ViewWorker.compute")
         if pids:
             killed = pids[0]
             os.kill(killed, signal.SIGKILL)
         time.sleep(0.005)
     thread.join(120)
-    assert killed is not None, "no worker was caught running a task"
+    assert killed is not None, "no worker was caught running a call"
     assert "error" not in box, box.get("error")
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)

@@ -35,7 +35,7 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, prepare_geometry
+from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
 from drsplat.registration.executor import open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -71,7 +71,8 @@ class RegistrationResult:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
-    resident bytes of the Ray workers.
+    resident bytes of the Ray workers. workers: the WorkerStats of the processes that computed
+    views (this one for a local run): first and later views' seconds, numba kernels cached/compiled.
     """
 
     features: np.ndarray | None
@@ -102,6 +103,7 @@ class RegistrationResult:
     num_written: int = 0
     field_kind: str = ""
     worker_peak_rss: dict[int, int] = field(default_factory=dict)
+    workers: list[WorkerStats] = field(default_factory=list)
 
     @property
     def assigned(self) -> np.ndarray:
@@ -227,7 +229,7 @@ def run_registration(
             sink: Sink = VoteSink(n, run.dim) if block >= n else VoteSink(n, run.dim, ckpt.log, block)
         else:
             sink = MemorySink(n, run.dim) if block >= n else LogSink(n, run.dim, ckpt.log, block)
-        worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, show_progress, on_progress, cancel)
+        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, show_progress, on_progress, cancel)
         view_seconds = time.perf_counter() - t_start
         candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
         if not candidates.any():
@@ -259,7 +261,7 @@ def run_registration(
         missing_features=run.selection.missing, unmatched_features=run.selection.unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
-        field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss,
+        field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
     )
 
 
@@ -282,9 +284,10 @@ def _why(exc: BaseException) -> str:
 
 
 def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, show_progress: bool,
-               on_progress, cancel) -> dict[int, int]:
+               on_progress, cancel) -> tuple[list[WorkerStats], dict[int, int]]:
     """Replay the checkpoint's views, then compute the others with the executor, in view order:
-    fold the mode's statistics, log the view, add it to the sink. Returns the workers' peak RSS."""
+    fold the mode's statistics, log the view, add it to the sink. Returns the WorkerStats of the
+    processes that computed views and the Ray workers' peak RSS (pid -> bytes)."""
 
     def consume(view: ViewPairs) -> None:
         totals.add(view)
@@ -304,7 +307,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     if cancel is not None:
         cancel.raise_if_cancelled()
     if totals.done == total:
-        return {}
+        return [], {}
     options = run.options
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
@@ -324,7 +327,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     finally:
         stream.close()
         executor.close()
-    return dict(getattr(executor, "worker_peak_rss", {}))
+    return list(executor.worker_stats.values()), dict(getattr(executor, "worker_peak_rss", {}))
 
 
 def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:
