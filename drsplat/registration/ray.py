@@ -67,12 +67,19 @@ class _ViewWorker:
     def __init__(self, geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None) -> None:
         set_worker_threads()
         self._job = job
-        self._computer = ViewComputer(geometry, job, index)
         self._views = 0
+        self._error: Exception | None = None
+        try:
+            self._computer = ViewComputer(geometry, job, index)
+        except Exception as exc:  # noqa: BLE001 - kept and reported by compute: an actor dying in __init__ says only that it died
+            self._error = DrsplatError(f"a Ray registration worker on node {socket.gethostname()} could not start the {job.engine} engine "
+                                       f"on {job.device}: {exc}")
 
     def compute(self, cameras: list[Camera]) -> _CallResult:
         """The ViewPairs of `cameras`, their features read here; stops at the first view that fails."""
         stats, views = WorkerStats(), []
+        if self._error is not None:
+            return _CallResult(views, stats.refresh(), self._error)
         try:
             for cam in cameras:
                 t0 = time.perf_counter()
