@@ -149,6 +149,22 @@ def _process_state_kept() -> Iterator[None]:
             os.environ["PYTHONBREAKPOINT"] = keep_breakpoint
 
 
+def worker_slots(nodes: list[dict], gpus_per_worker: int) -> int:
+    """Workers of one CPU (and `gpus_per_worker` GPUs) the cluster can run at once: the sum over its
+    live nodes of what fits on each. Starting more actors than this would leave some waiting for
+    resources forever, and the calls queued on them with them. nodes: ray.nodes()."""
+    slots = 0
+    for node in nodes:
+        if not node.get("Alive", False):
+            continue
+        resources = node.get("Resources", {})
+        fit = int(resources.get("CPU", 0))
+        if gpus_per_worker:
+            fit = min(fit, int(resources.get("GPU", 0)) // gpus_per_worker)
+        slots += fit
+    return slots
+
+
 def set_worker_threads() -> None:
     """numba threads = the CPUs Ray gave this task (workers otherwise oversubscribe the node)."""
     import numba

@@ -21,6 +21,9 @@ class InputError(DrsplatError):
             where += f": field '{field}'"
         super().__init__(f"{where}: {problem}")
 
+    def __reduce__(self):  # rebuilt from its parts when pickled (a Ray worker's error reaching the driver)
+        return type(self), (self.path, self.problem, self.field)
+
 
 class WeightsUnavailableError(DrsplatError):
     """Model weights could not be found or downloaded."""
@@ -37,6 +40,9 @@ class OutputError(DrsplatError):
         self.path = None if path is None else Path(path)
         self.problem = problem
         super().__init__(f"cannot write {self.path if self.path is not None else 'the output'}: {problem}")
+
+    def __reduce__(self):  # rebuilt from its parts when pickled, as InputError
+        return type(self), (self.path, self.problem)
 
 
 class UsageError(DrsplatError):

@@ -113,6 +113,56 @@ def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path
     np.testing.assert_array_equal(resumed.features, local.features)
 
 
+def test_ray_workers_read_their_features_and_a_missing_file_fails_where_the_local_run_does(cluster, tiny, tmp_path, caplog):
+    """The workers read the feature files (the driver ships cameras): a file missing on a worker is
+    one error naming the file and the node and saying every node needs the folder at the same path;
+    the views before it are logged as a local run logs them (here view 3, the second of a call), and
+    the rerun with the file back resumes from them and writes the local file."""
+    import shutil
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)[:8]
+    features = tmp_path / "features"
+    shutil.copytree(tiny / "features", features)
+    missing = features / f"{cams[3].name}_f.npy"
+    kept = missing.read_bytes()
+    missing.unlink()  # its _s.npy stays: the driver pairs the view, the worker finds no embeddings
+    out, reference = tmp_path / "out" / "reg.ply", tmp_path / "local.ply"
+    register(scene, cams, tiny / "features", reference, RegisterOptions(), show_progress=False)
+    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024)
+    with caplog.at_level("WARNING"), pytest.raises(DrsplatError) as failed:
+        register(scene, cams, features, out, options, show_progress=False)
+    message = str(failed.value)
+    assert message.startswith(f"{missing}: embedding file is missing on the Ray worker node ")
+    assert f"every node needs {features} at the same path" in message
+    assert f"(3 of {len(cams)} views" in caplog.text and not out.exists()
+    missing.write_bytes(kept)
+    resumed = register(scene, cams, features, out, options, show_progress=False)
+    assert resumed.resumed_views == 3
+    assert out.read_bytes() == reference.read_bytes()
+
+
+def test_ray_workers_load_the_kernels_their_node_compiled(cluster, tiny):
+    """Kernels are compiled once per node: after this process ran the views (its kernels are in
+    numba's on-disk cache beside the package the workers import), every Ray worker loads them from
+    the cache and compiles none; each reports its first view apart from the later ones."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    local = register_features(scene, cams, tiny / "features", RegisterOptions(), show_progress=False)
+    assert [w.pid for w in local.workers] == [os.getpid()] and len(local.workers[0].later_view_seconds) == len(cams) - 1
+    on_ray = register_features(scene, cams, tiny / "features", RegisterOptions(ray="auto", ray_workers=2), show_progress=False)
+    assert len(on_ray.workers) == 2 and set(on_ray.worker_peak_rss) == {w.pid for w in on_ray.workers}
+    for worker in on_ray.workers:
+        assert worker.kernels_compiled == 0 and worker.kernels_cached > 0, worker
+        assert worker.first_view_seconds is not None
+    assert sum(1 + len(w.later_view_seconds) for w in on_ray.workers) == len(cams)
+
+
+def test_cuda_on_a_cluster_without_gpus_is_refused_up_front(cluster, tiny):
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    options = RegisterOptions(ray="auto", engine="torch", device="cuda")
+    with pytest.raises(DrsplatError, match=r"^--device cuda on Ray needs workers with a GPU and a CPU on one node, but the cluster at auto has none$"):
+        register_features(scene, cams, tiny / "features", options, show_progress=False)
+
+
 def _task_pids(title: str) -> list[int]:
     """Processes of this machine whose title Ray set to `title` (a worker running that task)."""
     pids = []
@@ -126,12 +176,14 @@ def _task_pids(title: str) -> list[int]:
     return pids
 
 
-def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny, monkeypatch):
+def test_killed_worker_is_restarted_its_calls_retried_and_the_result_is_unchanged(cluster, tiny, monkeypatch):
+    """A worker actor killed while it computes views (with more calls queued on it) is restarted
+    with its geometry, its calls run again, and the field is the local one."""
     data = tiny
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     local = register_features(scene, cams, data / "features", RegisterOptions(), show_progress=False)
     box: dict = {}
-    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 8)  # tasks long enough to be caught running
+    monkeypatch.setattr("drsplat.registration.ray.VIEWS_PER_TASK", 8)  # calls long enough to be caught running
 
     def run() -> None:
         try:
@@ -144,13 +196,13 @@ def test_killed_worker_task_is_retried_and_the_result_is_unchanged(cluster, tiny
     killed = None
     deadline = time.time() + 60
     while killed is None and thread.is_alive() and time.time() < deadline:
-        pids = _task_pids("ray::_views_task")
+        pids = _task_pids("ray::_ViewWorker.compute")
         if pids:
             killed = pids[0]
             os.kill(killed, signal.SIGKILL)
         time.sleep(0.005)
     thread.join(120)
-    assert killed is not None, "no worker was caught running a task"
+    assert killed is not None, "no worker was caught running a call"
     assert "error" not in box, box.get("error")
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)

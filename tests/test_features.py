@@ -31,6 +31,11 @@ from tests.conftest import shared_path
 from tests.test_clip import OFFLINE_CLIP_MESSAGE, TINY_CLIP, make_tiny_clip
 from tests.test_masks import make_tiny_sam
 
+try:  # imported with the module: importing ray sets RAY_CLIENT_MODE, which the process-state guard would blame on a test
+    import ray
+except ImportError:
+    ray = None
+
 WIDTH = 96  # fern is 504 x 378; features at 96 x 72 keep the tests fast
 
 
@@ -254,3 +259,70 @@ def test_interrupt_and_cancel_leave_only_complete_pairs(fern3, weights, tmp_path
         extract_features(cameras, out2, InterruptingGenerator(token=token), encoder, show_progress=False, cancel=token)
     assert featurefiles.list_stems(out2) == ["image000", "image001"]  # the image in progress completes, then it stops
     assert not list(out2.glob(".*.tmp"))
+
+
+# ----------------------------------------------------------------------------- Ray, --device cuda
+
+
+def test_ray_cuda_actor_count_is_one_per_gpu_with_a_cpu_beside_it():
+    """One feature actor per worker slot: a GPU with a CPU on its node; a cluster without GPUs is refused."""
+    from drsplat.features.ray import actor_count
+
+    def node(cpus: float, gpus: float = 0, alive: bool = True) -> dict:
+        return {"Alive": alive, "Resources": {"CPU": cpus, **({"GPU": gpus} if gpus else {})}}
+
+    nodes = [node(8, 2), node(0, 4), node(1, 4), node(16, 8, alive=False)]  # 2 + 0 (no CPU) + 1 (one CPU) + dead
+    assert actor_count(nodes, 1, None, "h:1") == 3
+    assert actor_count(nodes, 1, 10, "h:1") == 3  # more would wait forever
+    assert actor_count(nodes, 1, 2, "h:1") == 2
+    assert actor_count(nodes, 0, None, "h:1") == 9  # CPU workers: one per CPU
+    with pytest.raises(DrsplatError, match=r"need GPUs, but the Ray cluster at h:1 has none; use --device cpu"):
+        actor_count([node(8), node(4)], 1, None, "h:1")
+
+
+@pytest.fixture
+def fake_gpu_cluster():
+    """A local two-node Ray cluster that declares three GPUs Ray cannot use: two on a head node with
+    three CPUs, one on a node without a CPU (no actor fits there)."""
+    if ray is None:
+        pytest.skip("Ray features need the optional ray package (pip install -e '.[ray]')")
+    import signal
+
+    from ray.cluster_utils import Cluster
+
+    from drsplat.device import cuda_available
+
+    if cuda_available():
+        pytest.skip("this machine has a CUDA GPU: the declared fake GPUs would map onto real ones")
+    sigterm = signal.getsignal(signal.SIGTERM)
+    store = 80 * 1024 * 1024
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 3, "num_gpus": 2, "object_store_memory": store, "include_dashboard": False})
+    try:
+        c.add_node(num_cpus=0, num_gpus=1, object_store_memory=store)
+        c.wait_for_nodes()
+        yield c
+    finally:
+        ray.shutdown()
+        c.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
+
+
+def test_ray_features_on_cuda_start_one_actor_per_usable_gpu_and_never_hang(fern3, weights, tmp_path, fake_gpu_cluster, caplog):
+    """--ray --device cuda on a cluster whose declared GPUs torch cannot see (this machine has none):
+    two actors (the GPU without a CPU beside it gets none, more were asked for), and the run ends at
+    once with one error that says why, instead of waiting for a GPU or restarting workers forever."""
+    import time
+
+    from drsplat.features.extract import ModelSpec
+    from drsplat.features.ray import extract_features_ray
+
+    spec = ModelSpec(masks="slic", clip_model=TINY_CLIP, clip_checkpoint=weights["clip"], device="cuda",
+                     clip_config=weights["clip"].parent / f"{TINY_CLIP}.json")
+    t0 = time.monotonic()
+    with caplog.at_level("INFO", logger="drsplat.features.ray"), pytest.raises(
+            DrsplatError, match=r"^2 of 2 Ray feature workers could not load their models: --device cuda was requested but no CUDA GPU"):
+        extract_features_ray(load_cameras(fern3), tmp_path / "out", spec, address=fake_gpu_cluster.address, workers=4, show_progress=False)
+    assert time.monotonic() - t0 < 120  # a hang would be stopped here, not a timing claim
+    assert "features on 2 Ray actor(s) (one per GPU)" in caplog.text
+    assert "4 feature workers asked for, but the cluster fits 2 (one per GPU)" in caplog.text
+    assert not (tmp_path / "out").exists()

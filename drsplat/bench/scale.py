@@ -7,7 +7,7 @@ that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (repo
 tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
 
 Parts: `compare` (a small city: local in memory with and without frustum culling, local
-streamed, Ray with 1 and 2 workers on a local Ray instance; `--json FILE` writes its records), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
+streamed, Ray on local clusters of 1 and 2 one-CPU nodes, the 2-node one also with an empty kernel cache; `--json FILE` writes its records), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
 and `big` (the done-means run: >= 5M Gaussians, >= 500 views streamed under --budget). The
 projection for 8/64 GPU nodes multiplies per-task costs measured here by task counts; it is a
 model, not a measurement.
@@ -20,10 +20,13 @@ import hashlib
 import json
 import logging
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from drsplat.bench.common import format_table, machine_line
@@ -84,7 +87,12 @@ def link_features(room: Path, folder: Path, cameras, sources) -> None:
 
 
 def run_config(config: dict) -> dict:
-    """One registration as `config` says; returns its figures (run inside a fresh process)."""
+    """One registration as `config` says; returns its figures (run inside a fresh process).
+
+    config["nodes"] > 0 runs the views on a Ray cluster of that many nodes of one CPU each, started
+    here on this machine (ray.cluster_utils) and stopped after the run: the first views are the
+    first after the cluster started.
+    """
     from drsplat.registration import RegisterOptions, register
 
     t0 = time.perf_counter()
@@ -92,12 +100,19 @@ def run_config(config: dict) -> dict:
     build_s = time.perf_counter() - t0
     out = Path(config["out"])
     cull = config.get("cull", True)
-    options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
-                              block_size=config.get("block"), ray=config.get("ray"), ray_workers=config.get("workers"), cull=cull,
-                              reducers=config.get("reducers", True))
-    t0, cpu0 = time.perf_counter(), _cpu_seconds()
-    reg = register(scene, cameras, config["features"], out, options, show_progress=False)
-    wall, driver_cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
+    with _ray_cluster(config.get("nodes", 0)) as address:
+        options = RegisterOptions(keep_unassigned=True, memory_budget=parse_size(config["budget"]) if config.get("budget") else None,
+                                  block_size=config.get("block"), ray=address, ray_workers=config.get("workers"), cull=cull,
+                                  reducers=config.get("reducers", True))
+        views_done: list[float] = []  # (wall, driver CPU) when the last view was summed: the view pass apart from finishing
+
+        def on_progress(done: int, total: int) -> None:
+            if done == total and not views_done:
+                views_done.extend([time.perf_counter() - t0, _cpu_seconds() - cpu0])
+
+        t0, cpu0 = time.perf_counter(), _cpu_seconds()
+        reg = register(scene, cameras, config["features"], out, options, show_progress=False, on_progress=on_progress)
+        wall, driver_cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
     digest = hashlib.sha256()
     with open(out, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 24), b""):
@@ -105,6 +120,7 @@ def run_config(config: dict) -> dict:
     size = out.stat().st_size
     out.unlink()
     workers = sorted(reg.worker_peak_rss.values())
+    later = [s for w in reg.workers for s in w.later_view_seconds]
     return {
         "gaussians": scene.num_gaussians, "views": reg.num_views, "wall": wall, "build": build_s, "raster": reg.raster_seconds,
         "coalesce": reg.coalesce_seconds, "accumulate": reg.accumulate_seconds,
@@ -112,7 +128,30 @@ def run_config(config: dict) -> dict:
         "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size, "driver_cpu": driver_cpu, "cull": cull,
         "projected_per_view": _projected_per_view(scene, cameras) if cull else float(scene.num_gaussians),
         "reduce": {"reducers": reg.reducers, "tail_wall_s": round(reg.seconds - reg.view_seconds, 3), "tail_driver_cpu_s": round(reg.finish_cpu_seconds, 3)},
+        "first_view": max(w.first_view_seconds for w in reg.workers if w.first_view_seconds is not None),
+        "later_view": statistics.median(later) if later else None,
+        "kernels_compiled": sum(w.kernels_compiled for w in reg.workers), "kernels_cached": sum(w.kernels_cached for w in reg.workers),
+        "views_wall": views_done[0], "views_driver_cpu": views_done[1],
     }
+
+
+@contextmanager
+def _ray_cluster(nodes: int) -> Iterator[str | None]:
+    """The address of a Ray cluster of `nodes` one-CPU nodes on this machine, or None for no Ray."""
+    if not nodes:
+        yield None
+        return
+    from ray.cluster_utils import Cluster
+
+    store = 256 * 1024 * 1024
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": store, "include_dashboard": False})
+    try:
+        for _ in range(nodes - 1):
+            cluster.add_node(num_cpus=1, object_store_memory=store)
+        cluster.wait_for_nodes()
+        yield cluster.address
+    finally:
+        cluster.shutdown()
 
 
 def _cpu_seconds() -> float:
@@ -136,9 +175,13 @@ def _projected_per_view(scene, cameras) -> float:
 
 
 def _child(config: dict) -> dict:
+    """Run `config` in a fresh process; config["numba_cache"] names an (empty) NUMBA_CACHE_DIR for it
+    and the workers it starts: every kernel is compiled in that run."""
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    if config.get("numba_cache"):
+        env["NUMBA_CACHE_DIR"] = config["numba_cache"]
     proc = subprocess.run([sys.executable, "-m", "drsplat.bench.scale", json.dumps(config)], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"bench run {config.get('label')} failed:\n{proc.stderr[-3000:]}")
@@ -187,7 +230,9 @@ def run(args: argparse.Namespace) -> int:
 def _compare(args, work: Path) -> list[dict]:
     base = _prepare(args, work, args.compare_tiles, args.compare_views, "compare")
     configs = [("local, in memory", {}), ("local, in memory, no culling", {"cull": False}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
-    configs += [(f"Ray, {w} worker{'s' if w > 1 else ''}", {"ray": "local", "workers": w}) for w in map(int, args.workers.split(","))]
+    counts = list(map(int, args.workers.split(",")))
+    configs += [(f"Ray, {w} node{'s' if w > 1 else ''} x 1 worker", {"nodes": w, "workers": w}) for w in counts]
+    configs.append((f"Ray, {counts[-1]} nodes, empty kernel cache", {"nodes": counts[-1], "workers": counts[-1], "numba_cache": str(work / "numba-cold")}))
     configs += _reduce_configs(args, configs[2][1]["block"])
     rows, results = [], []
     reference = None
@@ -196,11 +241,18 @@ def _compare(args, work: Path) -> list[dict]:
         results.append({**r, "label": label, **extra})
         reference = reference or r["sha"]
         per_worker = "/".join(_mb(x) for x in r["worker_rss"]) or "-"
+        later = f"{r['later_view']:.3f}" if r["later_view"] is not None else "-"
         rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['projected_per_view']:,.0f}", f"{r['wall']:.1f}", f"{r['raster']:.1f}",
-                     f"{r['driver_cpu']:.1f}", _mb(r["peak_rss"]), per_worker, "identical" if r["sha"] == reference else "DIFFERENT"])
-    print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned):")
-    print(format_table(["run", "Gaussians", "views", "projected / view", "wall s", "raster s", "driver CPU s", "driver peak RSS MB",
-                        "worker peak RSS MB", "PLY vs local"], rows))
+                     f"{r['driver_cpu']:.1f}", f"{100 * r['driver_cpu'] / r['wall']:.0f}%",
+                     f"{r['views_wall']:.1f}", f"{100 * r['views_driver_cpu'] / r['views_wall']:.0f}%", f"{r['first_view']:.2f}", later,
+                     f"{r['kernels_compiled']}/{r['kernels_cached']}", _mb(r["peak_rss"]), per_worker, "identical" if r["sha"] == reference else "DIFFERENT"])
+    print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned);"
+          " Ray nodes are one-CPU nodes on this machine, started per run:")
+    print(format_table(["run", "Gaussians", "views", "projected / view", "wall s", "raster s", "driver CPU s", "driver busy", "view pass s",
+                        "driver busy in view pass", "first view s",
+                        "later views s (median)", "kernels compiled/cached", "driver peak RSS MB", "worker peak RSS MB", "PLY vs local"], rows))
+    print("first view: the slowest worker's first view (feature read, kernels loaded from numba's cache or compiled, render, pairs); "
+          "driver busy: driver CPU / wall;\nview pass: from the start to the last view summed (the rest is finishing: normalise, encode, write the PLY).")
     _print_reduce(results)
     if args.json:
         write_records(args.json, results)
@@ -210,7 +262,7 @@ def _compare(args, work: Path) -> list[dict]:
 def _reduce_configs(args, block: int) -> list[tuple[str, dict]]:
     """Ray in 4 blocks, most workers: the blocks finished by the driver, then by reducer tasks (the partitioned reduce)."""
     workers = max(map(int, args.workers.split(",")))
-    ray = {"ray": "local", "workers": workers, "block": block}
+    ray = {"nodes": workers, "workers": workers, "block": block}
     return [(f"Ray, {workers} workers, 4 blocks, driver finishes", {**ray, "reducers": False}),
             (f"Ray, {workers} workers, 4 blocks, reducers", {**ray, "reducers": True})]
 
@@ -226,19 +278,26 @@ def _print_reduce(results: list[dict]) -> None:
 def write_records(path: Path, results: list[dict]) -> None:
     """The compare runs as JSON records (place, nodes, workers, wall_s, driver_busy_s, sha256, ...).
 
-    nodes: Ray machines; the bench's Ray runs start one local Ray instance (1 node). driver_busy_s:
-    the driver process's CPU seconds during `register` (its threads included, so for a local run it
-    is the whole computation).
+    nodes: Ray nodes (one-CPU nodes started on this machine). driver_busy_s: the driver process's
+    CPU seconds during `register` (its threads included, so for a local run it is the whole
+    computation). first_view_s: the slowest worker's first view after the cluster started
+    (kernels loaded from numba's cache, or compiled with numba_cache "empty"); later_view_s: the
+    median of the other views; kernels_compiled / kernels_cached: summed over the workers.
+    view_pass_s / view_pass_driver_busy_s: wall and driver CPU from the start to the last view summed.
     """
     from drsplat.utils import atomic_path
 
     records = []
     for r in results:
-        place = "ray" if r.get("ray") else "streamed" if r["streamed"] else "local"
+        place = "ray" if r.get("nodes") else "streamed" if r["streamed"] else "local"
         records.append({
-            "label": r["label"], "place": place, "nodes": 1, "workers": r.get("workers", 1), "cull": r["cull"], "wall_s": round(r["wall"], 3),
-            "driver_busy_s": round(r["driver_cpu"], 3), "raster_s": round(r["raster"], 3), "sha256": r["sha"], "gaussians": r["gaussians"],
-            "views": r["views"], "projected_per_view": r["projected_per_view"], "driver_peak_rss": r["peak_rss"], "worker_peak_rss": r["worker_rss"],
+            "label": r["label"], "place": place, "nodes": r.get("nodes") or 1, "workers": r.get("workers", 1), "cull": r["cull"],
+            "wall_s": round(r["wall"], 3), "driver_busy_s": round(r["driver_cpu"], 3), "raster_s": round(r["raster"], 3), "sha256": r["sha"],
+            "gaussians": r["gaussians"], "views": r["views"], "projected_per_view": r["projected_per_view"], "driver_peak_rss": r["peak_rss"],
+            "worker_peak_rss": r["worker_rss"], "first_view_s": round(r["first_view"], 4),
+            "later_view_s": None if r["later_view"] is None else round(r["later_view"], 4), "kernels_compiled": r["kernels_compiled"],
+            "kernels_cached": r["kernels_cached"], "numba_cache": "empty" if r.get("numba_cache") else "warm",
+            "view_pass_s": round(r["views_wall"], 3), "view_pass_driver_busy_s": round(r["views_driver_cpu"], 3),
             "reduce": r["reduce"],
         })
     with atomic_path(Path(path)) as tmp:

@@ -58,7 +58,8 @@ class StageTimes:
 
 @dataclass
 class FeatureReport:
-    """What `extract_features` did: stems written and skipped, masks per level, timings."""
+    """What `extract_features` did: stems written and skipped, masks per level, timings; workers:
+    the Ray actors that extracted (0 in this process)."""
 
     written: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
@@ -66,6 +67,7 @@ class FeatureReport:
     masks_per_level: list[int] = field(default_factory=lambda: [0] * len(LEVELS))
     nonfinite_embeddings: int = 0
     times: StageTimes = field(default_factory=StageTimes)
+    workers: int = 0
 
 
 def square_pad_box(y0: int, y1: int, x0: int, x1: int) -> tuple[int, int]:

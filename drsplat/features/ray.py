@@ -1,21 +1,25 @@
 """Feature extraction on a Ray cluster: `extract_features` with the images spread over actors.
 
 One actor per worker loads the mask generator and CLIP once (on a GPU of its own when the device
-is CUDA: as many actors as the cluster has GPUs, never more, so none waits forever for a GPU);
-the driver sends images and writes the returned `<stem>_s.npy` / `<stem>_f.npy` atomically itself,
-so a dead worker (actor restarted, call retried) leaves no half or duplicate file, and complete
-pairs already on disk are skipped.
+is CUDA: one actor per GPU that has a CPU beside it on its node, never more, so none waits forever
+for a slot; a cluster without GPUs is refused up front); every actor is checked to have started
+before any image is sent, so a worker that cannot load its models (no usable GPU on its node) is
+one error, not a wait. The driver sends images and writes the returned `<stem>_s.npy` /
+`<stem>_f.npy` atomically itself, so a dead worker (actor restarted, call retried) leaves no half
+or duplicate file, and complete pairs already on disk are skipped.
 """
 
 from __future__ import annotations
 
+import logging
+import socket
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.cameras import load_image
-from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_threads
+from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_threads, worker_slots
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
@@ -29,26 +33,38 @@ from drsplat.features.extract import (
 )
 from drsplat.utils import CancelToken, progress
 
+log = logging.getLogger(__name__)
 
-def actor_count(resources: dict, gpus_per_actor: int, workers: int | None, address: str | None) -> int:
-    """Actors to start: `workers` or one per CPU, and never more than the cluster's GPUs when each
-    actor needs one (more would wait for a GPU forever). resources: ray.cluster_resources()."""
-    cpus = max(1, int(resources.get("CPU", 1)))
-    if not gpus_per_actor:
-        return int(workers or cpus)
-    gpus = int(resources.get("GPU", 0))
-    if gpus == 0:
+
+def actor_count(nodes: list[dict], gpus_per_actor: int, workers: int | None, address: str | None) -> int:
+    """Actors to start: `workers`, or one per worker slot (drsplat.cluster.worker_slots: a CPU, and
+    a GPU on the same node when each actor needs one), never more than the slots (the others would
+    wait for one forever). nodes: ray.nodes()."""
+    slots = worker_slots(nodes, gpus_per_actor)
+    if gpus_per_actor and slots == 0:
         raise DrsplatError(f"features on --device cuda need GPUs, but the Ray cluster at {address or 'a local instance'} has none; use --device cpu")
-    return min(int(workers or gpus), gpus)
+    if workers and workers > slots:
+        log.warning("Ray: %d feature workers asked for, but the cluster fits %d%s; using %d", workers, slots,
+                    " (one per GPU)" if gpus_per_actor else "", slots)
+    return max(1, min(int(workers or slots), slots))
 
 
 class _FeatureWorker:
-    """Ray actor: one model load per worker, then one image per call."""
+    """Ray actor: one model load per worker, then one image per call. A worker that cannot load its
+    models keeps the error and reports it (`start_error`) instead of dying, so the driver says why."""
 
     def __init__(self, spec) -> None:
         set_worker_threads()
-        self.generator, self.encoder = build_models(spec)
+        try:
+            self.generator, self.encoder = build_models(spec)
+        except DrsplatError as exc:
+            self.error = f"{exc} (Ray node {socket.gethostname()})"
+        else:
+            self.error = None
         self.nms = spec.nms
+
+    def start_error(self) -> str | None:
+        return self.error
 
     def manifest(self, resolution: float, max_height: int | None, extra: dict | None) -> dict:
         return make_manifest(self.generator, self.encoder, self.nms, resolution, max_height, extra)
@@ -56,6 +72,17 @@ class _FeatureWorker:
     def extract(self, stem: str, image: np.ndarray):
         seg, feats, times, counts = extract_image(image, self.generator, self.encoder, self.nms)
         return stem, seg, feats, times, counts
+
+
+def _check_started(actors: list) -> None:
+    """One DrsplatError when any actor could not load its models (e.g. a GPU Ray declared that torch cannot use)."""
+    ray = import_ray()
+    try:
+        errors = [e for e in ray.get([a.start_error.remote() for a in actors]) if e is not None]
+    except ray.exceptions.RayError as exc:
+        raise DrsplatError(f"a Ray feature worker could not start: {exc}") from None
+    if errors:
+        raise DrsplatError(f"{len(errors)} of {len(actors)} Ray feature workers could not load their models: {errors[0]}")
 
 
 def extract_features_ray(
@@ -82,11 +109,14 @@ def extract_features_ray(
 
     out = Path(out_dir)
     owns = connect(address)
+    actors: list = []
     try:
         gpus = 1 if spec.device == "cuda" else 0
-        count = actor_count(ray.cluster_resources(), gpus, workers, address)
+        count = actor_count(ray.nodes(), gpus, workers, address)
         actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
         actors = [actor.remote(spec) for _ in range(count)]
+        log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
+        _check_started(actors)
         manifest = ray.get(actors[0].manifest.remote(resolution, max_height, manifest_extra))
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
@@ -115,7 +145,10 @@ def extract_features_ray(
             if on_progress is not None:
                 on_progress(finished, len(cameras))
         featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped)})
+        report.workers = count
         return report
     finally:
+        for a in actors:  # their models and GPUs go back to the cluster now, not when this driver exits
+            ray.kill(a, no_restart=True)
         if owns:
             ray.shutdown()

@@ -11,14 +11,18 @@ engine computes the same pairs for the same view, so the registered field does n
 
 from __future__ import annotations
 
+import os
+import statistics
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import UsageError
+from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
@@ -169,3 +173,69 @@ class ViewComputer:
     def load_and_compute(self, cam: Camera) -> ViewPairs:
         """`compute` with the view's features read from the job's feature folder."""
         return self.compute(cam, *load_view_features(self.job.features_dir, cam, self.job.level))
+
+
+@dataclass
+class WorkerStats:
+    """What one process computing views did (this process for a local run, a Ray worker's otherwise).
+
+    first_view_seconds: its first view, from reading the features to the pairs, which includes
+    loading its numba kernels from the on-disk cache or compiling them; later_view_seconds: each
+    later view's. kernels_cached / kernels_compiled: numba kernels this process loaded from the
+    cache / compiled (`kernel_cache_counts`). peak_rss: its peak resident bytes.
+    """
+
+    pid: int = field(default_factory=os.getpid)
+    first_view_seconds: float | None = None
+    later_view_seconds: list[float] = field(default_factory=list)
+    kernels_cached: int = 0
+    kernels_compiled: int = 0
+    peak_rss: int = 0
+
+    def add_view(self, seconds: float) -> None:
+        if self.first_view_seconds is None:
+            self.first_view_seconds = seconds
+        else:
+            self.later_view_seconds.append(seconds)
+
+    def merge(self, other: "WorkerStats") -> None:
+        """Fold in a later report of the same process (a Ray worker reports per call, in any order;
+        its counts and peak only grow)."""
+        if other.first_view_seconds is not None:
+            self.first_view_seconds = other.first_view_seconds
+        self.later_view_seconds.extend(other.later_view_seconds)
+        self.kernels_cached = max(self.kernels_cached, other.kernels_cached)
+        self.kernels_compiled = max(self.kernels_compiled, other.kernels_compiled)
+        self.peak_rss = max(self.peak_rss, other.peak_rss)
+
+    def refresh(self) -> "WorkerStats":
+        """Read this process's kernel counts and peak RSS now; returns self."""
+        self.kernels_cached, self.kernels_compiled = kernel_cache_counts()
+        self.peak_rss = peak_rss()
+        return self
+
+    @property
+    def median_later_view_seconds(self) -> float | None:
+        return statistics.median(self.later_view_seconds) if self.later_view_seconds else None
+
+
+def kernel_cache_counts() -> tuple[int, int]:
+    """(kernels loaded from numba's on-disk cache, kernels compiled) by this process so far.
+
+    Counted over the numba dispatchers of drsplat's loaded modules (`Dispatcher.stats`: a cache
+    lookup that finds the kernel is a hit, one that does not compiles it and is a miss); every
+    kernel is `cache=True`, so a process whose node compiled them already compiles none.
+    """
+    hits = misses = 0
+    seen: set[int] = set()
+    for name, module in list(sys.modules.items()):
+        if module is None or not (name == "drsplat" or name.startswith("drsplat.")):
+            continue
+        for value in list(vars(module).values()):
+            stats = getattr(value, "stats", None)
+            if id(value) in seen or not hasattr(stats, "cache_hits"):
+                continue
+            seen.add(id(value))
+            hits += sum(stats.cache_hits.values())
+            misses += sum(stats.cache_misses.values())
+    return hits, misses

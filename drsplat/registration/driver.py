@@ -37,7 +37,7 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, hook_runs_on_device, prepare_geometry
+from drsplat.registration.compute import ViewJob, WorkerStats, hook_runs_on_device, prepare_geometry
 from drsplat.registration.executor import open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -78,6 +78,8 @@ class RegistrationResult:
     resident bytes of the Ray workers (reducers included). sums_on: where the per-Gaussian sums were
     kept ("host", or the torch device: drsplat.registration.device_sums). finish_cpu_seconds: this
     process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
+    workers: the WorkerStats of the processes that computed views (this one for a local run): first
+    and later views' seconds, numba kernels cached/compiled.
     """
 
     features: np.ndarray | None
@@ -111,6 +113,7 @@ class RegistrationResult:
     sums_on: str = "host"
     finish_cpu_seconds: float = 0.0
     reducers: bool = False
+    workers: list[WorkerStats] = field(default_factory=list)
 
     @property
     def assigned(self) -> np.ndarray:
@@ -239,7 +242,7 @@ def run_registration(
     reduce: BlockReduce | None = None
     try:
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block)
-        worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
+        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
@@ -286,7 +289,7 @@ def run_registration(
         missing_features=run.selection.missing, unmatched_features=run.selection.unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
-        field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss,
+        field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
         sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
     )
 
@@ -344,10 +347,11 @@ def _why(exc: BaseException) -> str:
 
 
 def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, device_pairs: bool,
-               show_progress: bool, on_progress, cancel) -> dict[int, int]:
+               show_progress: bool, on_progress, cancel) -> tuple[list[WorkerStats], dict[int, int]]:
     """Replay the checkpoint's views, then compute the others with the executor, in view order:
     fold the mode's statistics, log the view, add it to the sink. device_pairs: views keep their
-    pairs on the torch engine's device (copied to the host only to be logged). Returns the workers' peak RSS."""
+    pairs on the torch engine's device (copied to the host only to be logged). Returns the WorkerStats
+    of the processes that computed views and the Ray workers' peak RSS (pid -> bytes)."""
 
     def consume(view: ViewPairs) -> None:
         totals.add(view)
@@ -367,7 +371,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     if cancel is not None:
         cancel.raise_if_cancelled()
     if totals.done == total:
-        return {}
+        return [], {}
     options = run.options
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
                   device_pairs=device_pairs)
@@ -390,7 +394,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     finally:
         stream.close()
         executor.close()
-    return dict(getattr(executor, "worker_peak_rss", {}))
+    return list(executor.worker_stats.values()), dict(getattr(executor, "worker_peak_rss", {}))
 
 
 def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:

@@ -5,13 +5,14 @@ in view order:
 
     place   executor                                             registered in
     local   LocalExecutor: this process, view by view            EXECUTORS
-    ray     RayExecutor: tasks on a Ray cluster (registration.ray)  EXECUTORS
+    ray     RayExecutor: actors on a Ray cluster (registration.ray) EXECUTORS
 
 Every (engine, place) pair gives the same pairs, hence the same field (tests/test_registration_matrix.py).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Sequence
 from typing import Protocol
 
@@ -19,13 +20,16 @@ from drsplat.cameras import Camera
 from drsplat.cluster import ClusterOptions
 from drsplat.errors import UsageError
 from drsplat.raster import PreparedScene
-from drsplat.registration.compute import ViewComputer, ViewJob
+from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.ray import RayExecutor
 
 
 class Executor(Protocol):
-    """A place that computes views: their ViewPairs in view order, then `close()`."""
+    """A place that computes views: their ViewPairs in view order, then `close()`; worker_stats:
+    pid -> WorkerStats of the processes that computed them."""
+
+    worker_stats: dict[int, WorkerStats]
 
     def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]: ...
 
@@ -33,15 +37,24 @@ class Executor(Protocol):
 
 
 class LocalExecutor:
-    """Computes views in this process, one after another (the default place)."""
+    """Computes views in this process, one after another (the default place).
+
+    worker_stats: {this pid: WorkerStats} (first view, later views, kernels), as a Ray worker reports.
+    """
 
     def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None):
         """cluster: unused here (every place takes it)."""
         self._computer = ViewComputer(geometry, job)
+        self._stats = WorkerStats()
+        self.worker_stats = {self._stats.pid: self._stats}
 
     def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]:
         for cam in views:
-            yield self._computer.load_and_compute(cam)
+            t0 = time.perf_counter()
+            view = self._computer.load_and_compute(cam)
+            self._stats.add_view(time.perf_counter() - t0)
+            yield view
+        self._stats.refresh()
 
     def close(self) -> None:
         self._computer = None

@@ -1,114 +1,216 @@
-"""Ray registration: a registration's views computed by tasks on a Ray cluster (place "ray").
+"""Ray registration: a registration's views computed by stateful actors on a Ray cluster (place "ray").
 
-The driver puts the scene's CPU geometry and the view job (engine, device, top-k, the aggregation
-mode's per-view hook) in the object store once, reads each view's feature files itself (workers
-need no shared file system) and submits chunks of views as tasks. A task computes its views with
-a `ViewComputer` (drsplat.registration.compute), the same code as a local run, with the job's
-engine on the job's device (a task asks Ray for one GPU when the device is CUDA), and returns the
-views' sparse (Gaussian, mask, weight) pairs, never anything N x M or N x D. The executor yields
-them in view order, so the driver logs and sums them exactly as a local run does (bit for bit).
-A worker that dies is replaced and its task retried (`TASK_RETRIES`); a killed driver resumes from
-its checkpoint.
+One actor per worker slot (`_ViewWorker`: one CPU, plus one GPU when the job's device is CUDA)
+holds for its life:
+
+- the scene's CPU geometry, put in the object store once by the driver: the workers of a node
+  read the node's one copy (numpy arrays come out of Ray's shared memory without a copy);
+- the culling index (drsplat.registration.culling), built once on the driver, shipped the same way;
+- one `ViewComputer` (drsplat.registration.compute) with the job's engine on the job's device:
+  the same code as a local run, its buffers reused from view to view.
+
+The driver ships cameras only. A worker reads its views' feature files itself from the job's
+features folder (`load_view_features`), so every node needs that folder at the same path (a
+shared file system, or a copy): a file missing on a worker is an error that names the node.
+Each actor has `IN_FLIGHT` calls of `views_per_task` views queued (submitted ahead), so it never
+waits for the driver; results come back out of order and are yielded in view order, so the
+driver logs and sums them exactly as a local run does (bit for bit). A view that fails (bad
+feature file) fails where the local run would: the views before it are yielded first.
+
+Kernels are compiled once per node: every numba kernel is `cache=True`, and a node's workers
+import the package from one folder (the driver's on its host, the package Ray unpacks once per
+node elsewhere), so the first worker to compile a kernel stores it beside the source and the
+node's other workers (and restarted ones) load it. Each worker reports its first view's seconds
+(kernel loading included), its later views' and its kernel cache hits and misses (`WorkerStats`).
+
+A worker that dies is restarted with the same geometry and its queued calls retried
+(`TASK_RETRIES` times each); a killed driver resumes from its checkpoint.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import os
+import socket
+import time
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 
 from drsplat.cameras import Camera
-from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads
-from drsplat.errors import DrsplatError
-from drsplat.memory import peak_rss
+from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads, worker_slots
+from drsplat.errors import DrsplatError, InputError
 from drsplat.raster import PreparedScene
-from drsplat.registration.compute import ViewComputer, ViewJob
+from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features
 
 log = logging.getLogger(__name__)
 
-VIEWS_PER_TASK = 2
+VIEWS_PER_TASK = 2  # views per actor call: a call's overhead is small next to a view's
+IN_FLIGHT = 2  # calls queued on each actor at once, so it starts its next views while the driver sums
 
 
-def _views_task(geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None, items: list) -> tuple[list[ViewPairs], int, int]:
-    """Ray task: the ViewPairs of a chunk of views, this worker's pid and peak RSS (bytes).
+@dataclass
+class _CallResult:
+    """One actor call: the views computed (in order), the worker's report, and the error that
+    stopped the call at the next view, if any (raised by the driver in view order)."""
 
-    index: the scene's culling index (built once on the driver), or None without culling.
-    items: [(camera, mask_ids [H, W], feats [M, D], nonfinite)].
-    """
-    set_worker_threads()
-    computer = ViewComputer(geometry, job, index)
-    views = [computer.compute(cam, mask_ids, feats, nonfinite) for cam, mask_ids, feats, nonfinite in items]
-    return views, os.getpid(), peak_rss()
+    views: list[ViewPairs]
+    stats: WorkerStats
+    error: Exception | None = None
+
+
+class _ViewWorker:
+    """Ray actor: the geometry, the culling index and one ViewComputer for its life (module docstring)."""
+
+    def __init__(self, geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None) -> None:
+        set_worker_threads()
+        self._job = job
+        self._views = 0
+        self._error: Exception | None = None
+        try:
+            self._computer = ViewComputer(geometry, job, index)
+        except Exception as exc:  # noqa: BLE001 - kept and reported by compute: an actor dying in __init__ says only that it died
+            self._error = DrsplatError(f"a Ray registration worker on node {socket.gethostname()} could not start the {job.engine} engine "
+                                       f"on {job.device}: {exc}")
+
+    def compute(self, cameras: list[Camera]) -> _CallResult:
+        """The ViewPairs of `cameras`, their features read here; stops at the first view that fails."""
+        stats, views = WorkerStats(), []
+        if self._error is not None:
+            return _CallResult(views, stats.refresh(), self._error)
+        try:
+            for cam in cameras:
+                t0 = time.perf_counter()
+                views.append(self._computer.compute(cam, *self._read(cam)))
+                seconds = time.perf_counter() - t0
+                if self._views == 0:
+                    stats.first_view_seconds = seconds
+                else:
+                    stats.later_view_seconds.append(seconds)
+                self._views += 1
+        except DrsplatError as exc:
+            return _CallResult(views, stats.refresh(), exc)
+        return _CallResult(views, stats.refresh())
+
+    def _read(self, cam: Camera):
+        try:
+            return load_view_features(self._job.features_dir, cam, self._job.level)
+        except InputError as exc:
+            if exc.path is None or exc.path.exists():
+                raise
+            raise InputError(exc.path, f"{exc.problem} on the Ray worker node {socket.gethostname()}: Ray workers read the feature "
+                             f"files themselves, so every node needs {self._job.features_dir} at the same path (a shared file system "
+                             "or a copy)", exc.field) from None
 
 
 class RayExecutor:
-    """Computes views on a Ray cluster (see the module docstring); `close()` when done.
+    """Computes views on stateful Ray actors (see the module docstring); `close()` when done.
 
-    cluster: the address, the number of tasks running at once (default: the cluster's CPUs, or GPUs
-    for a CUDA job) and the views a task computes (amortises the task overhead).
+    cluster: the address, the number of actors (default and most: one per CPU of the cluster, or
+    one per GPU for a CUDA job; more would wait forever for a slot) and the views per actor call.
+    worker_stats: pid -> WorkerStats of every worker process (a restarted worker is a new pid);
+    worker_peak_rss: pid -> peak resident bytes.
     """
 
     def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None):
         cluster = cluster or ClusterOptions()
         ray = import_ray()
         self._owns = connect(cluster.address)
-        gpus = 1 if job.device.startswith("cuda") else 0
-        resource = "GPU" if gpus else "CPU"
-        available = int(ray.cluster_resources().get(resource, 0))
-        if gpus and available == 0:
+        self._actors: list = []
+        self._refs: tuple = ()
+        self.worker_stats: dict[int, WorkerStats] = {}
+        where = "a local instance" if self._owns and not cluster.address else cluster.address
+        try:
+            gpus = 1 if job.device.startswith("cuda") else 0
+            slots = worker_slots(ray.nodes(), gpus)
+            if slots == 0:
+                need = "a GPU and a CPU on one node" if gpus else "a CPU"
+                raise DrsplatError(f"--device {job.device} on Ray needs workers with {need}, but the cluster at {where} has none")
+            self.workers = min(int(cluster.workers or slots), slots)
+            if cluster.workers and cluster.workers > slots:
+                log.warning("Ray: %d workers asked for, but the cluster fits %d; using %d", cluster.workers, slots, slots)
+            self.views_per_task = max(1, int(cluster.views_per_task or VIEWS_PER_TASK))
+            if gpus:  # Ray shows each actor its own GPU only, as device 0
+                job = dataclasses.replace(job, device="cuda")
+            culling = SpatialIndex.build(geometry) if job.cull else None  # built once, not by every worker
+            self._refs = (ray.put(geometry), ray.put(job), ray.put(culling))
+            actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=TASK_RETRIES, max_task_retries=TASK_RETRIES)(_ViewWorker)
+            self._actors = [actor.remote(*self._refs) for _ in range(self.workers)]
+        except BaseException:
             self.close()
-            raise DrsplatError(f"--device {job.device} on Ray needs GPUs, but the cluster at {cluster.address or 'a local instance'} has none")
-        self.workers = int(cluster.workers or max(1, available))
-        self.views_per_task = max(1, int(cluster.views_per_task or VIEWS_PER_TASK))
-        self._task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=TASK_RETRIES)(_views_task)
-        self._geometry = geometry
-        self._job = job
-        self.worker_peak_rss: dict[int, int] = {}  # pid -> peak resident bytes, as reported by its tasks
-        log.info("Ray: %d worker task(s) at once on %s", self.workers, "a local instance" if self._owns and not cluster.address else cluster.address)
+            raise
+        log.info("Ray: %d worker actor(s) on %s", self.workers, where)
+
+    @property
+    def worker_peak_rss(self) -> dict[int, int]:
+        return {pid: stats.peak_rss for pid, stats in self.worker_stats.items()}
 
     def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]:
-        """The ViewPairs of `views`, in order (tasks run out of order; results are reordered)."""
+        """The ViewPairs of `views`, in order (calls finish out of order; results are reordered).
+
+        Calls go to the actor with the fewest queued, at most IN_FLIGHT each, and never more than
+        2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here).
+        """
         ray = import_ray()
         chunks = [list(views[i : i + self.views_per_task]) for i in range(0, len(views), self.views_per_task)]
-        if not chunks:
-            return
-        geometry, job = ray.put(self._geometry), ray.put(self._job)  # once per run, like the hook's geometry inside the job
-        culling = ray.put(SpatialIndex.build(self._geometry) if self._job.cull else None)  # not rebuilt by every task
-        pending: dict = {}
-        done: dict[int, list[ViewPairs]] = {}
+        window = 2 * IN_FLIGHT * len(self._actors)
+        queued: dict = {}  # ref -> (chunk index, actor index)
+        load = [0] * len(self._actors)  # calls queued per actor
+        finished: dict[int, _CallResult] = {}
         submitted = 0
+
+        def top_up(first_unyielded: int) -> None:
+            nonlocal submitted
+            while submitted < min(len(chunks), first_unyielded + window):
+                actor = min(range(len(load)), key=load.__getitem__)
+                if load[actor] >= IN_FLIGHT:
+                    return
+                queued[self._actors[actor].compute.remote(chunks[submitted])] = (submitted, actor)
+                load[actor] += 1
+                submitted += 1
+
         try:
             for index in range(len(chunks)):
-                while submitted < len(chunks) and len(pending) < self.workers:
-                    items = [(cam, *load_view_features(self._job.features_dir, cam, self._job.level)) for cam in chunks[submitted]]
-                    pending[self._task.remote(geometry, job, culling, items)] = submitted
-                    submitted += 1
-                while index not in done:
-                    ready, _ = ray.wait(list(pending), num_returns=1)
+                top_up(index)
+                while index not in finished:
+                    ready, _ = ray.wait(list(queued), num_returns=1)
                     for ref in ready:
-                        views_done, pid, rss = _get(ref)
-                        done[pending.pop(ref)] = views_done
-                        self.worker_peak_rss[pid] = max(rss, self.worker_peak_rss.get(pid, 0))
-                yield from done.pop(index)
+                        chunk, actor = queued.pop(ref)
+                        load[actor] -= 1
+                        finished[chunk] = self._collect(ref)
+                    top_up(index)
+                result = finished.pop(index)
+                yield from result.views
+                if result.error is not None:
+                    raise result.error
         finally:
-            for ref in pending:
-                ray.cancel(ref, force=True)
-            del geometry, job, culling
+            queued.clear()  # the calls still queued end with the actors (close)
+
+    def _collect(self, ref) -> _CallResult:
+        result = _get(ref)
+        stats = self.worker_stats.setdefault(result.stats.pid, WorkerStats(result.stats.pid))
+        stats.merge(result.stats)
+        return result
 
     def close(self) -> None:
+        """Stop the actors (their geometry leaves the object store) and a Ray instance this executor started."""
+        if self._actors or self._refs:
+            ray = import_ray()
+            for actor in self._actors:
+                ray.kill(actor, no_restart=True)
+            self._actors, self._refs = [], ()
         if self._owns:
             import_ray().shutdown()
             self._owns = False
 
 
-def _get(ref):
+def _get(ref) -> _CallResult:
     ray = import_ray()
     try:
         return ray.get(ref)
-    except ray.exceptions.RayTaskError as exc:  # a Python error inside the task: show the original one
+    except ray.exceptions.RayTaskError as exc:  # a Python error inside the call: show the original one
         raise exc.as_instanceof_cause() from None
     except ray.exceptions.RayError as exc:  # the worker died more than TASK_RETRIES times, node lost, ...
-        raise DrsplatError(f"a Ray task failed after {TASK_RETRIES} retries: {exc}") from None
+        raise DrsplatError(f"a Ray registration worker failed after {TASK_RETRIES} restarts: {exc}") from None
