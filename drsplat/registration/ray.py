@@ -62,28 +62,32 @@ class _CallResult:
 
 
 class _ViewWorker:
-    """Ray actor: the geometry, the culling index and one ViewComputer for its life (module docstring)."""
+    """Ray actor: the geometry, the culling index and one ViewComputer for its life (module docstring).
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob, index: SpatialIndex | None) -> None:
+    The shared objects come with every call as object-store references ([geometry, job, index],
+    nested so that Ray does not fetch them per call) and are fetched by the first call only; a
+    restarted worker fetches them again with its first retried call. (Constructor arguments in the
+    object store would make Ray warn that a restart could lose them.)
+    """
+
+    def __init__(self) -> None:
         set_worker_threads()
-        self._job = job
-        self._views = 0
+        self._job: ViewJob | None = None
+        self._computer: ViewComputer | None = None
         self._error: Exception | None = None
-        try:
-            self._computer = ViewComputer(geometry, job, index)
-        except Exception as exc:  # noqa: BLE001 - kept and reported by compute: an actor dying in __init__ says only that it died
-            self._error = DrsplatError(f"a Ray registration worker on node {socket.gethostname()} could not start the {job.engine} engine "
-                                       f"on {job.device}: {exc}")
+        self._views = 0
 
-    def compute(self, cameras: list[Camera]) -> _CallResult:
-        """The ViewPairs of `cameras`, their features read here; stops at the first view that fails."""
+    def compute(self, shared: list, cameras: list[Camera]) -> _CallResult:
+        """The ViewPairs of `cameras`, their features read here; stops at the first view that fails.
+
+        shared: [geometry, job, index] references (see the class docstring).
+        """
         stats, views = WorkerStats(), []
-        if self._error is not None:
-            return _CallResult(views, stats.refresh(), self._error)
         try:
             for cam in cameras:
                 t0 = time.perf_counter()
-                views.append(self._computer.compute(cam, *self._read(cam)))
+                computer = self._computer or self._start(shared)
+                views.append(computer.compute(cam, *self._read(cam)))
                 seconds = time.perf_counter() - t0
                 if self._views == 0:
                     stats.first_view_seconds = seconds
@@ -93,6 +97,21 @@ class _ViewWorker:
         except DrsplatError as exc:
             return _CallResult(views, stats.refresh(), exc)
         return _CallResult(views, stats.refresh())
+
+    def _start(self, shared: list) -> ViewComputer:
+        """This worker's ViewComputer on the shared geometry and index (first call only); a worker that
+        cannot start its engine (no usable GPU, ...) keeps the reason and gives it for every call."""
+        if self._error is not None:
+            raise self._error
+        geometry, job, index = import_ray().get(shared)
+        try:
+            self._computer = ViewComputer(geometry, job, index)
+        except Exception as exc:  # noqa: BLE001 - reported as one sentence instead of a dead worker's traceback
+            self._error = DrsplatError(f"a Ray registration worker on node {socket.gethostname()} could not start the {job.engine} engine "
+                                       f"on {job.device}: {exc}")
+            raise self._error from None
+        self._job = job
+        return self._computer
 
     def _read(self, cam: Camera):
         try:
@@ -119,7 +138,7 @@ class RayExecutor:
         ray = import_ray()
         self._owns = connect(cluster.address)
         self._actors: list = []
-        self._refs: tuple = ()
+        self._refs: list = []  # [geometry, job, culling index] in the object store
         self.worker_stats: dict[int, WorkerStats] = {}
         where = "a local instance" if self._owns and not cluster.address else cluster.address
         try:
@@ -135,9 +154,9 @@ class RayExecutor:
             if gpus:  # Ray shows each actor its own GPU only, as device 0
                 job = dataclasses.replace(job, device="cuda")
             culling = SpatialIndex.build(geometry) if job.cull else None  # built once, not by every worker
-            self._refs = (ray.put(geometry), ray.put(job), ray.put(culling))
+            self._refs = [ray.put(geometry), ray.put(job), ray.put(culling)]
             actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=TASK_RETRIES, max_task_retries=TASK_RETRIES)(_ViewWorker)
-            self._actors = [actor.remote(*self._refs) for _ in range(self.workers)]
+            self._actors = [actor.remote() for _ in range(self.workers)]
         except BaseException:
             self.close()
             raise
@@ -167,7 +186,7 @@ class RayExecutor:
                 actor = min(range(len(load)), key=load.__getitem__)
                 if load[actor] >= IN_FLIGHT:
                     return
-                queued[self._actors[actor].compute.remote(chunks[submitted])] = (submitted, actor)
+                queued[self._actors[actor].compute.remote(self._refs, chunks[submitted])] = (submitted, actor)
                 load[actor] += 1
                 submitted += 1
 
@@ -200,7 +219,7 @@ class RayExecutor:
             ray = import_ray()
             for actor in self._actors:
                 ray.kill(actor, no_restart=True)
-            self._actors, self._refs = [], ()
+            self._actors, self._refs = [], []
         if self._owns:
             import_ray().shutdown()
             self._owns = False
