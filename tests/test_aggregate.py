@@ -38,7 +38,7 @@ from drsplat.scene import GaussianScene, load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
 
-RECOMMENDED = "reject"
+REJECT = "reject"  # floater rejection on the paper's weights (the default adds the vote stage: DEFAULT_AGGREGATE)
 
 
 @pytest.fixture(scope="module")
@@ -291,7 +291,7 @@ def test_default_mode_is_vote_reject_and_paper_still_runs(hard_tiny):
 
 def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    full = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), show_progress=False)
+    full = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), show_progress=False)
     ckpt = tmp_path / "run.npz"
     token = CancelToken()
 
@@ -300,8 +300,8 @@ def test_resume_keeps_rejection_statistics(hard_tiny, tmp_path):
             token.cancel()
 
     with pytest.raises(Cancelled):
-        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=stop, show_progress=False)
-    resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, show_progress=False)
+        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=stop, show_progress=False)
+    resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 4 and resumed.num_rejected == full.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, full.weights)
     np.testing.assert_allclose(resumed.features, full.features, atol=1e-6)
@@ -317,7 +317,7 @@ def test_recommended_mode_beats_paper_and_rejects_floaters(hard_tiny):
                  json.loads((hard_tiny / "gt" / "label_names.json").read_text()), np.load(hard_tiny / "text_embeddings.npy"))
     col = {c: i - 3 for i, c in enumerate(AGGREGATE_COLUMNS)}
     paper = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate="paper"), show_progress=False))
-    best = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate=RECOMMENDED), show_progress=False))
+    best = aggregate_metrics(ds, register_features(ds.scene, ds.cameras, hard_tiny / "features", RegisterOptions(aggregate=REJECT), show_progress=False))
     assert best[col["seg mIoU vol +unl"]] >= paper[col["seg mIoU vol +unl"]] + 0.02
     assert best[col["loc mIoU vol"]] >= paper[col["loc mIoU vol"]] + 0.02
     assert best[col["seg mIoU vol"]] >= paper[col["seg mIoU vol"]] - 1e-9  # labelled-only: never worse
@@ -347,9 +347,9 @@ def test_rejection_in_blocks_equals_one_block_and_resumes(hard_tiny, tmp_path):
     """--aggregate reject under --memory-budget (Gaussian blocks) writes the in-memory file byte for byte,
     also when cancelled mid-way and resumed from the statistics snapshot."""
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    mem = register(scene, cams, hard_tiny / "features", tmp_path / "mem.ply", RegisterOptions(topk=10, aggregate=RECOMMENDED),
+    mem = register(scene, cams, hard_tiny / "features", tmp_path / "mem.ply", RegisterOptions(topk=10, aggregate=REJECT),
                           show_progress=False)
-    options = RegisterOptions(topk=10, aggregate=RECOMMENDED, block_size=512)
+    options = RegisterOptions(topk=10, aggregate=REJECT, block_size=512)
     streamed = register(scene, cams, hard_tiny / "features", tmp_path / "streamed.ply", options, show_progress=False)
     assert streamed.num_blocks > 4 and mem.num_blocks == 1
     assert streamed.num_rejected == mem.num_rejected > 0
@@ -406,10 +406,10 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     import zipfile
 
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
-    fresh = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), show_progress=False)
+    fresh = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), show_progress=False)
     ckpt, token = tmp_path / "run.log", CancelToken()
     with pytest.raises(Cancelled):
-        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False)
+        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False)
     snapshot = aggregate_stats_path(ckpt)
     with np.load(snapshot) as data:
         arrays = {k: data[k] for k in data.files}
@@ -428,7 +428,7 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
                 np.save(buf, value)
                 archive.writestr(name + ".npy", header.getvalue() if name == "peak" else buf.getvalue())
     with caplog.at_level("WARNING"):
-        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=RECOMMENDED), checkpoint=ckpt, show_progress=False)
+        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, show_progress=False)
     assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, fresh.weights)
     assert sum("aggregate.npz is missing or unreadable" in r.getMessage() for r in caplog.records) == 1

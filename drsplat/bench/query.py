@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import count_arg, count_list, format_table, machine_line, median_seconds, peak_rss_mb, positive_int
+from drsplat.commands.common import positive_int
+from drsplat.bench.common import count_arg, count_list, format_table, machine_line, median_seconds, peak_rss_mb
 from drsplat.errors import InputError
 from drsplat.lang import Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores, lut_scores_blocked, train_codebook
 from drsplat.query import unit_rows

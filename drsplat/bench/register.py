@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int, positive_int_list
+from drsplat.commands.common import positive_int
+from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
 

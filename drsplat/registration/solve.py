@@ -375,23 +375,25 @@ def solve_registration(geometry, cameras, features_dir, level: int, topk: int, e
     ViewComputer) and moves F toward the solved mixtures. geometry: the scene's PreparedScene."""
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device))
     clusters = MaskClusters(F.shape[1])
-    labels = []
     for cam in cameras:
         mask_ids, feats, _ = load_view_features(features_dir, cam, level)
         flat = mask_ids.reshape(-1)
         present = np.zeros(feats.shape[0], bool)
         present[np.unique(flat[flat >= 0])] = True
-        ids = clusters.add(feats, present)  # a mask that covers no pixel founds no cluster
-        labels.append(np.where(flat >= 0, ids[np.maximum(flat, 0)] if ids.size else -1, -1).astype(np.int32))
+        clusters.add(feats, present)  # a mask that covers no pixel founds no cluster
 
     def render() -> Iterable[SolveView]:
-        for cam, lab in zip(cameras, labels):
+        # each pass reads the view's masks again rather than keeping [views, H·W] labels in memory
+        # (one view's labels is what the memory plan counts; the read costs far less than the render)
+        for cam, cluster_of_mask in zip(cameras, clusters.per_view):
+            flat = load_view_features(features_dir, cam, level)[0].reshape(-1)
+            labels = np.where(flat >= 0, cluster_of_mask[np.maximum(flat, 0)] if cluster_of_mask.size else -1, -1).astype(np.int32)
             out = computer.rasterize(cam)
             k = out.ids.shape[-1]
             ids, weights = out.ids.reshape(-1, k), out.weights.reshape(-1, k)
             order = np.argsort(ids, axis=1, kind="stable")  # engines may order a pixel's slots differently: sums in id order
             yield SolveView(np.ascontiguousarray(np.take_along_axis(ids, order, 1), np.int32),
-                            np.ascontiguousarray(np.take_along_axis(weights, order, 1), np.float32), lab)
+                            np.ascontiguousarray(np.take_along_axis(weights, order, 1), np.float32), labels)
 
     result = solve_coefficients(render, geometry.num_gaussians, lam, iterations)
     changed = solved_features(F, result, clusters.means())
