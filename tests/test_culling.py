@@ -13,7 +13,7 @@ from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
-from drsplat.registration.culling import SpatialIndex, morton_codes
+from drsplat.registration.culling import SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes
 from drsplat.scene import load_ply
 from drsplat.synthetic import tile_city, write_dataset
 
@@ -126,3 +126,31 @@ def test_synth_city_is_the_bench_city_and_registers(tmp_path):
     assert np.load(out / "gt" / "labels.npy").shape == (scene.num_gaussians,)
     reg = register(scene, cams, out / "features", tmp_path / "field.ply", RegisterOptions(), show_progress=False)
     assert reg.num_views == 8 and reg.num_pairs > 0
+
+
+def _rotations(rng, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+@pytest.mark.parametrize("case", ["random", "needles_and_discs", "isotropic", "double_root", "zero_and_tiny", "huge"])
+def test_closed_form_largest_eigenvalue_bounds_lapacks_tightly(case):
+    """The index's λ_max (closed form) is never below LAPACK's and above it by at most the pad: culling
+    stays exact (never drops a Gaussian a view can see) without loosening the bound."""
+    rng = np.random.default_rng(len(case))
+    n = 20_000
+    log_scales = {"random": rng.uniform(-6, 2, (n, 3)), "needles_and_discs": rng.choice([-12.0, -6.0, 1.0], (n, 3)),
+                  "isotropic": np.repeat(rng.uniform(-5, 1, (n, 1)), 3, 1), "double_root": np.c_[rng.uniform(-3, 0, (n, 1)).repeat(2, 1), rng.uniform(-3, 0, (n, 1))],
+                  "zero_and_tiny": rng.choice([-700.0, -200.0, -30.0], (n, 3)), "huge": rng.uniform(30, 60, (n, 3))}[case]
+    rot = _rotations(rng, n)
+    cov = rot @ (np.exp(log_scales)[:, :, None] ** 2 * np.transpose(rot, (0, 2, 1)))
+    if case == "zero_and_tiny":
+        cov[: n // 4] = 0.0
+    ids = np.arange(n)
+    got, ref = largest_eigenvalues(cov, ids), largest_eigenvalues_reference(cov, ids)
+    scale = np.abs(cov).max(axis=(1, 2))
+    assert np.all(got >= ref) and np.all(np.isfinite(got))
+    assert np.all(got - np.maximum(ref, 0) <= 2e-6 * scale + 1e-299)

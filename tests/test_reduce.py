@@ -91,8 +91,8 @@ def cluster():
         signal.signal(signal.SIGTERM, sigterm)
 
 
-@pytest.mark.parametrize("aggregate", ["paper", "vote-reject"])
-@pytest.mark.parametrize("book", ["none", "faiss"])
+# pairwise, not the full product: each codebook and each mode once (every mode on Ray: tests/test_distributed.py)
+@pytest.mark.parametrize(("book", "aggregate"), [("none", "paper"), ("faiss", "vote-reject")])
 def test_reducers_write_the_local_in_memory_bytes(cluster, tiny, general_book, tmp_path, aggregate, book):
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
     codebook = str(general_book) if book == "faiss" else "none"

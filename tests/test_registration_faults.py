@@ -86,7 +86,7 @@ def test_disk_full_while_writing_the_output_keeps_the_checkpoint_and_the_rerun_r
 
 def test_disk_full_while_logging_views_names_the_log(tiny, uninterrupted, tmp_path, monkeypatch, capsys):
     out = tmp_path / "reg.ply"
-    _fill_disk_in(PairLog, "_file", "__init__", 5 * 7 + 1, monkeypatch)  # a record is 7 writes: the 6th view's first fails
+    _fill_disk_in(PairLog, "_file", "__init__", 5 * 8 + 1, monkeypatch)  # a record is 8 writes: the 6th view's first fails
     assert main(_args(tiny, out)) == 1
     err = capsys.readouterr().err
     assert f"{checkpoint_path_for(out)}: the disk is full" in err and "(5 of 16 views" in err

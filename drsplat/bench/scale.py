@@ -57,7 +57,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pairs-per-mp", type=float, default=1.0e6, help="distinct pairs per megapixel of a view (flowers: 306k at 640x480)")
     p.add_argument("--gpu-speedup", type=float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
-    p.add_argument("--nodes", default="8,64")
+    p.add_argument("--nodes", default="1,8,64")
     p.add_argument("--json", type=Path, default=None, help="also write the compare runs as JSON records to this file")
     p.set_defaults(func=run)
 
@@ -105,8 +105,11 @@ def run_config(config: dict) -> dict:
                                   block_size=config.get("block"), ray=address, ray_workers=config.get("workers"), cull=cull,
                                   reducers=config.get("reducers", True))
         views_done: list[float] = []  # (wall, driver CPU) when the last view was summed: the view pass apart from finishing
+        first_done: list[float] = []  # driver CPU when the first view was summed: the run's fixed costs before any pair
 
         def on_progress(done: int, total: int) -> None:
+            if done >= 1 and not first_done:
+                first_done.append(_cpu_seconds() - cpu0)
             if done == total and not views_done:
                 views_done.extend([time.perf_counter() - t0, _cpu_seconds() - cpu0])
 
@@ -131,7 +134,8 @@ def run_config(config: dict) -> dict:
         "first_view": max(w.first_view_seconds for w in reg.workers if w.first_view_seconds is not None),
         "later_view": statistics.median(later) if later else None,
         "kernels_compiled": sum(w.kernels_compiled for w in reg.workers), "kernels_cached": sum(w.kernels_cached for w in reg.workers),
-        "views_wall": views_done[0], "views_driver_cpu": views_done[1],
+        "views_wall": views_done[0], "views_driver_cpu": views_done[1], "first_view_driver_cpu": first_done[0] if first_done else 0.0,
+        "reducer_seconds": reg.reducer_seconds, "reducer_sum_seconds": reg.reducer_sum_seconds,
     }
 
 
@@ -214,16 +218,15 @@ def run(args: argparse.Namespace) -> int:
         if args.room is None:
             args.room = write_dataset(work / "room", ROOM_PRESET, 0, show_progress=False)
         print(machine_line() + " (shared with other jobs; absolute times are noisy)")
-        compare = big = None
+        compare = None
         if args.part in ("all", "compare"):
             compare = _compare(args, work)
         if args.part in ("all", "rss"):
             _rss(args, work)
         if args.part in ("all", "big"):
-            big = _big(args, work)
-        source = compare or big
-        if source:
-            _projection(args, source)
+            _big(args, work)
+        if compare:
+            _projection(args, compare)
     return 0
 
 
@@ -234,18 +237,25 @@ def _compare(args, work: Path) -> list[dict]:
     configs += [(f"Ray, {w} node{'s' if w > 1 else ''} x 1 worker", {"nodes": w, "workers": w}) for w in counts]
     configs.append((f"Ray, {counts[-1]} nodes, empty kernel cache", {"nodes": counts[-1], "workers": counts[-1], "numba_cache": str(work / "numba-cold")}))
     configs += _reduce_configs(args, configs[2][1]["block"])
+    # the reducers run again with views of 4x the width (more pairs): per-pair costs are the slope between the two
+    wide = _prepare(argparse.Namespace(**{**vars(args), "width": 4 * args.width}), work, args.compare_tiles, args.compare_views, "compare-wide")
+    configs.append((f"{configs[-1][0]}, {4 * args.width} px views", {**configs[-1][1], "wide": True}))
     rows, results = [], []
     reference = None
     for label, extra in configs:
-        r = _child({**base, **extra, "label": label})
+        r = _child({**(wide if extra.get("wide") else base), **extra, "label": label})
         results.append({**r, "label": label, **extra})
-        reference = reference or r["sha"]
+        if extra.get("wide"):  # other views, another file: compared with nothing
+            verdict = "(other views)"
+        else:
+            reference = reference or r["sha"]
+            verdict = "identical" if r["sha"] == reference else "DIFFERENT"
         per_worker = "/".join(_mb(x) for x in r["worker_rss"]) or "-"
         later = f"{r['later_view']:.3f}" if r["later_view"] is not None else "-"
         rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['projected_per_view']:,.0f}", f"{r['wall']:.1f}", f"{r['raster']:.1f}",
                      f"{r['driver_cpu']:.1f}", f"{100 * r['driver_cpu'] / r['wall']:.0f}%",
                      f"{r['views_wall']:.1f}", f"{100 * r['views_driver_cpu'] / r['views_wall']:.0f}%", f"{r['first_view']:.2f}", later,
-                     f"{r['kernels_compiled']}/{r['kernels_cached']}", _mb(r["peak_rss"]), per_worker, "identical" if r["sha"] == reference else "DIFFERENT"])
+                     f"{r['kernels_compiled']}/{r['kernels_cached']}", _mb(r["peak_rss"]), per_worker, verdict])
     print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned);"
           " Ray nodes are one-CPU nodes on this machine, started per run:")
     print(format_table(["run", "Gaussians", "views", "projected / view", "wall s", "raster s", "driver CPU s", "driver busy", "view pass s",
@@ -283,7 +293,10 @@ def write_records(path: Path, results: list[dict]) -> None:
     computation). first_view_s: the slowest worker's first view after the cluster started
     (kernels loaded from numba's cache, or compiled with numba_cache "empty"); later_view_s: the
     median of the other views; kernels_compiled / kernels_cached: summed over the workers.
-    view_pass_s / view_pass_driver_busy_s: wall and driver CPU from the start to the last view summed.
+    view_pass_s / view_pass_driver_busy_s: wall and driver CPU from the start to the last view summed;
+    view_pass_first_view_driver_busy_s: driver CPU until the first view was summed (fixed costs).
+    reduce: tail (after the view pass) wall and driver CPU, and the reducer tasks' seconds summed over
+    blocks (whole tasks, and their log replays).
     """
     from drsplat.utils import atomic_path
 
@@ -298,7 +311,8 @@ def write_records(path: Path, results: list[dict]) -> None:
             "later_view_s": None if r["later_view"] is None else round(r["later_view"], 4), "kernels_compiled": r["kernels_compiled"],
             "kernels_cached": r["kernels_cached"], "numba_cache": "empty" if r.get("numba_cache") else "warm",
             "view_pass_s": round(r["views_wall"], 3), "view_pass_driver_busy_s": round(r["views_driver_cpu"], 3),
-            "reduce": r["reduce"],
+            "view_pass_first_view_driver_busy_s": round(r["first_view_driver_cpu"], 3),
+            "reduce": {**r["reduce"], "reducer_seconds": round(r["reducer_seconds"], 3), "reducer_replay_seconds": round(r["reducer_sum_seconds"], 3)},
         })
     with atomic_path(Path(path)) as tmp:
         Path(tmp).write_text(json.dumps(records, indent=1))
@@ -335,35 +349,65 @@ def _big(args, work: Path) -> list[dict]:
 
 
 def _projection(args, results: list[dict]) -> None:
-    """Wall time on 8/64 GPU nodes from per-task costs measured here x task counts (a model).
+    """Wall time on 1 / 8 / 64 GPU nodes from per-task costs measured in the compare runs x task counts (a model).
 
-    Worker time per view t = a·N + b·P (projection ~ Gaussians, compositing ~ pixels); a comes
-    from the run measured here after removing b·P, b (--pixel-cost-us) from the flowers
-    rasterizer table. Driver time: distinct pairs x its measured cost per pair (pairs per image
-    from --pairs-per-mp, flowers' density), then N x its measured cost per Gaussian for the field
-    and the PLY. Workers run in parallel on nodes x --gpu-speedup; the driver's work is serial.
+    Views: t = a·N + b·P per view on a worker (projection ~ Gaussians, compositing ~ pixels); a from
+    the local run after removing b·P, b (--pixel-cost-us) from the flowers rasterizer table; workers
+    run in parallel on nodes x --gpu-speedup. The per-pair costs are slopes between the two Ray
+    reducers runs, whose views differ only in width (so in pairs): the driver's view-pass CPU after
+    the first view (receiving, logging, folding) and the reducers' log replay; what the slope does
+    not explain is charged per view (driver) and per Gaussian (reducers: allocation, finish,
+    encoding). The driver's CPU after the view pass is charged per Gaussian (assembly). With V views,
+    D distinct pairs, N Gaussians and k nodes (one reducer each):
+
+        wall = max(views / k, V · driver_per_view + D · driver_per_pair) + (D · replay_per_pair + N · reducer_per_gaussian) / k
+               + N · assemble_per_gaussian
     """
     local = results[0]
+    runs = [r for r in results if r.get("reducers") and r["reduce"]["reducers"]]
+    if len(runs) < 2:
+        print("\nProjection: needs the compare part's two Ray runs with reducers (--part compare or all)")
+        return
+    narrow, wide = runs[0], runs[-1]
     pixels = args.width * args.width * 3 / 4
     per_view = (local["raster"] + local["coalesce"]) / local["views"]
     b = args.pixel_cost_us * 1e-6
     a = max(per_view - b * pixels, 0.0) / local["gaussians"]
-    per_pair = max(local["accumulate"] - local["coalesce"], 0.0) / max(local["distinct"], 1)
-    per_gaussian = max(local["wall"] - local["raster"] - local["accumulate"], 0.0) / local["gaussians"]
+
+    def driver_views(r):  # the driver's view-pass CPU after its first view, and the pairs it covered
+        return max(r["views_driver_cpu"] - r["first_view_driver_cpu"], 0.0), r["distinct"] * (r["views"] - 1) / max(r["views"], 1)
+
+    (c0, p0), (c1, p1) = driver_views(narrow), driver_views(wide)
+    driver_per_pair = max(c1 - c0, 0.0) / max(p1 - p0, 1.0)
+    driver_per_view = max(c0 - driver_per_pair * p0, 0.0) / max(narrow["views"] - 1, 1)
+    replay_per_pair = max(wide["reducer_sum_seconds"] - narrow["reducer_sum_seconds"], 0.0) / max(wide["distinct"] - narrow["distinct"], 1)
+    reducer_per_gaussian = max(narrow["reducer_seconds"] - replay_per_pair * narrow["distinct"], 0.0) / narrow["gaussians"]
+    assemble_per_gaussian = narrow["reduce"]["tail_driver_cpu_s"] / narrow["gaussians"]
     view_cost = a * args.model_gaussians + b * args.model_pixels
     pairs = args.model_images * args.pairs_per_mp * args.model_pixels / 1e6
-    rows = []
+    rows, walls = [], {}
     for nodes in map(int, args.nodes.split(",")):
         views_s = args.model_images * view_cost / (nodes * args.gpu_speedup)
-        reduce_s = pairs * per_pair
-        write_s = args.model_gaussians * per_gaussian
-        rows.append([nodes, f"{views_s / 60:.1f}", f"{reduce_s / 60:.1f}", f"{write_s / 60:.1f}", f"{(max(views_s, reduce_s) + write_s) / 60:.1f}"])
+        log_s = args.model_images * driver_per_view + pairs * driver_per_pair
+        reduce_s = (pairs * replay_per_pair + args.model_gaussians * reducer_per_gaussian) / nodes
+        assemble_s = args.model_gaussians * assemble_per_gaussian
+        walls[nodes] = max(views_s, log_s) + reduce_s + assemble_s
+        rows.append([nodes, f"{views_s / 60:.1f}", f"{log_s / 60:.1f}", f"{reduce_s / 60:.1f}", f"{assemble_s / 60:.1f}", f"{walls[nodes] / 60:.1f}",
+                     "driver" if log_s > views_s else "workers"])
     print(f"\nProjection (a model, not a measurement): {args.model_images:,} images of {args.model_pixels / 1e6:.1f} MP, "
-          f"{args.model_gaussians / 1e6:.0f}M Gaussians. Measured here ({local['gaussians'] / 1e6:.2f}M Gaussians): {a * 1e9:.0f} ns per "
-          f"Gaussian per view, {per_pair * 1e9:.0f} ns per distinct pair summed on the driver, {per_gaussian * 1e6:.1f} us per Gaussian "
-          f"for geometry, field and PLY. Assumed: {args.pixel_cost_us:g} us per pixel per view, {args.pairs_per_mp / 1e6:g} M distinct "
-          f"pairs per megapixel (flowers), one GPU node = {args.gpu_speedup:g}x this machine per view; driver work serial.")
-    print(format_table(["GPU nodes", "views on workers (min)", "driver sums (min)", "field + PLY (min)", "wall (min)"], rows))
+          f"{args.model_gaussians / 1e6:.0f}M Gaussians, {pairs / 1e9:.1f} G distinct pairs. Measured here: {a * 1e9:.0f} ns per Gaussian per "
+          f"view ({local['gaussians'] / 1e6:.2f}M Gaussians, culled); driver {driver_per_view * 1e3:.1f} ms per view + {driver_per_pair * 1e9:.0f} ns "
+          f"per pair received and logged; reducers {replay_per_pair * 1e9:.0f} ns per pair replayed + {reducer_per_gaussian * 1e6:.1f} us per "
+          f"Gaussian; driver {assemble_per_gaussian * 1e6:.2f} us per Gaussian assembled (per-pair costs: the slope between the "
+          f"{args.width} and {4 * args.width} px reducers runs, {narrow['distinct'] / 1e6:.2f} and {wide['distinct'] / 1e6:.2f} M pairs). Assumed: "
+          f"{args.pixel_cost_us:g} us per pixel per view, {args.pairs_per_mp / 1e6:g} M distinct pairs per megapixel (flowers), one GPU node "
+          f"= {args.gpu_speedup:g}x this machine per view, one reducer per node.")
+    print(format_table(["GPU nodes", "views on workers (min)", "driver receives + logs (min)", "reducers (min)", "driver assembles (min)",
+                        "wall (min)", "view pass bound by"], rows))
+    counts = sorted(walls)
+    if len(counts) > 1:
+        lo, hi = counts[-2], counts[-1]
+        print(f"speed-up {lo} -> {hi} nodes: {walls[lo] / walls[hi]:.1f}x")
 
 
 if __name__ == "__main__":  # a child run: python -m drsplat.bench.scale CONFIG_JSON

@@ -47,6 +47,8 @@ class ViewJob:
     engines); False projects all of them.
     device_pairs: coalesce on the torch engine's device and leave the pairs there
     (drsplat.registration.device_sums; the torch engine without a hook, in this process).
+    group_pairs: hand out host pairs grouped by Gaussian chunk (`ViewPairs.grouped`, the pair log's
+    record order), so the process that computed the view sorts them, not the driver that logs it.
     """
 
     features_dir: Path
@@ -57,6 +59,7 @@ class ViewJob:
     hook: ViewHook | None = None
     cull: bool = True
     device_pairs: bool = False
+    group_pairs: bool = False
 
 
 def hook_runs_on_device(hook: ViewHook | None) -> bool:
@@ -137,9 +140,11 @@ class ViewComputer:
         weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids)
         g, m, w, pairs = self._coalescer.coalesce(self._out.ids, weights, mask_ids, feats.shape[0])
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
-        t2 = time.perf_counter()
-        return ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, raster_seconds=t1 - t0, coalesce_seconds=t2 - t1,
-                         stats=stats)
+        view = ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, stats=stats)
+        if self.job.group_pairs:
+            view = view.grouped()
+        view.raster_seconds, view.coalesce_seconds = t1 - t0, time.perf_counter() - t1
+        return view
 
     def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int) -> ViewPairs:
         """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""

@@ -79,7 +79,9 @@ class RegistrationResult:
     kept ("host", or the torch device: drsplat.registration.device_sums). finish_cpu_seconds: this
     process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
     workers: the WorkerStats of the processes that computed views (this one for a local run): first
-    and later views' seconds, numba kernels cached/compiled.
+    and later views' seconds, numba kernels cached/compiled. reducer_seconds / reducer_sum_seconds:
+    the reducer tasks' seconds summed over the blocks, whole tasks / their replays of the log (0
+    without reducers).
     """
 
     features: np.ndarray | None
@@ -114,6 +116,8 @@ class RegistrationResult:
     finish_cpu_seconds: float = 0.0
     reducers: bool = False
     workers: list[WorkerStats] = field(default_factory=list)
+    reducer_seconds: float = 0.0
+    reducer_sum_seconds: float = 0.0
 
     @property
     def assigned(self) -> np.ndarray:
@@ -240,6 +244,7 @@ def run_registration(
     # the partitioned reduce (Ray, blocks, a PLY): its Ray connection outlives the view pass's executor
     pool = ReducePool(options.cluster, cancel) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
     reduce: BlockReduce | None = None
+    reducer_seconds = (0.0, 0.0)
     try:
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
@@ -261,7 +266,8 @@ def run_registration(
                 raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
             written = target.close()
         else:
-            weights, nonfinite, blocks, sum_seconds, sum_cpu, written = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
+            weights, nonfinite, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
+            reducer_seconds = (task_seconds, sum_seconds)
     except BaseException as exc:
         target.abort()
         if ckpt is not None:
@@ -291,6 +297,7 @@ def run_registration(
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
         sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
+        reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1],
     )
 
 
@@ -374,7 +381,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
         return [], {}
     options = run.options
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
-                  device_pairs=device_pairs)
+                  device_pairs=device_pairs, group_pairs=ckpt is not None)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
     try:
@@ -444,13 +451,13 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
 
 def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebook, totals: ViewTotals, out: Path | None):
     """The blocks finished by reducer tasks, then the parts assembled into `out` (drsplat.registration.reduce).
-    Returns what `_finish_blocks` does, and the rows written."""
+    Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
         raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
     written = assemble_parts(Path(reduce.job.out), parts)
     return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
-            written)
+            written, sum(p.seconds for p in parts))
 
 
 def _solve_block(run: Run, block) -> None:

@@ -70,7 +70,8 @@ class MemorySink:
 
 class LogSink:
     """Blocks of `block` consecutive Gaussians, each summed by replaying the pair log `plog`
-    (the views are logged by the driver, so `add` keeps nothing)."""
+    (the views are logged by the driver, so `add` keeps nothing). A block reads only its Gaussian
+    chunks' pairs of each record (PairLog.block_views)."""
 
     place = "host"
 
@@ -94,19 +95,19 @@ class LogSink:
 
     def block_sums(self, lo: int, hi: int) -> Block:
         """The sums of Gaussians lo .. hi-1 from one replay of the log (a reducer's block, drsplat.registration.reduce)."""
-        return Block(lo, hi, *self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo))
+        acc = Accumulator(hi - lo, self.dim)
+        for view in self._log.block_views(lo, hi):  # only the chunks of [lo, hi) are read
+            if view.gaussians.size:
+                acc.add_pairs(view.gaussians - np.int32(lo), view.masks, view.weights, view.feats)
+        return Block(lo, hi, *acc.sums())
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""
         row = np.full(self.num_gaussians, -1, np.int32)
         row[ids] = np.arange(ids.shape[0], dtype=np.int32)
-        return self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0])
-
-    def _replay(self, select, to_row, rows: int) -> tuple[np.ndarray, np.ndarray]:
-        """Sums over the log's pairs whose Gaussian g passes select(g), added at row to_row(g), in log order."""
-        acc = Accumulator(rows, self.dim)
-        for view in self._log:
-            keep = select(view.gaussians)
+        acc = Accumulator(ids.shape[0], self.dim)
+        for view in self._log.block_views(int(ids[0]), int(ids[-1]) + 1) if ids.size else ():
+            keep = row[view.gaussians] >= 0
             if keep.any():
-                acc.add_pairs(to_row(view.gaussians[keep]).astype(np.int32), view.masks[keep], view.weights[keep], view.feats)
+                acc.add_pairs(row[view.gaussians[keep]], view.masks[keep], view.weights[keep], view.feats)
         return acc.sums()

@@ -319,7 +319,11 @@ class VoteSink:
     def block_sums(self, lo: int, hi: int) -> Block:
         """The trimmed sums of Gaussians lo .. hi-1 from one replay of the log (needs the log; a
         reducer's block, drsplat.registration.reduce)."""
-        return Block(lo, hi, *self._finish(self._replay(lambda g: (g >= lo) & (g < hi), lambda g: g - lo, hi - lo)))
+        state = self._empty(hi - lo)
+        for index, view in enumerate(self._log.block_views(lo, hi)):  # only the chunks of [lo, hi) are read
+            if view.gaussians.size:
+                self._fold(state, view.gaussians - np.int32(lo), view.masks, self.clusters.per_view[index], view.weights, view.feats)
+        return Block(lo, hi, *self._finish(state))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
@@ -329,12 +333,9 @@ class VoteSink:
             return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means()), W[ids].copy()
         row = np.full(self.num_gaussians, -1, np.int32)
         row[ids] = np.arange(ids.shape[0], dtype=np.int32)
-        return self._finish(self._replay(lambda g: row[g] >= 0, lambda g: row[g], ids.shape[0]))
-
-    def _replay(self, select, to_row, rows: int):
-        state = self._empty(rows)
-        for index, view in enumerate(self._log):
-            keep = select(view.gaussians)
+        state = self._empty(ids.shape[0])
+        for index, view in enumerate(self._log.block_views(int(ids[0]), int(ids[-1]) + 1) if ids.size else ()):
+            keep = row[view.gaussians] >= 0
             if keep.any():
-                self._fold(state, to_row(view.gaussians[keep]), view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
-        return state
+                self._fold(state, row[view.gaussians[keep]], view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
+        return self._finish(state)
