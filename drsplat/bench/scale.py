@@ -30,6 +30,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from drsplat.bench.common import format_table, machine_line
+from drsplat.commands.common import positive_int
 from drsplat.memory import parse_size, peak_rss
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gpu-speedup", type=float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
     p.add_argument("--nodes", default="1,8,64")
+    p.add_argument("--reducers-per-node", type=positive_int, default=1, help="reducer tasks per node in the projection (each holds one block)")
     p.add_argument("--json", type=Path, default=None, help="also write the compare runs as JSON records to this file")
     p.set_defaults(func=run)
 
@@ -135,7 +137,7 @@ def run_config(config: dict) -> dict:
         "later_view": statistics.median(later) if later else None,
         "kernels_compiled": sum(w.kernels_compiled for w in reg.workers), "kernels_cached": sum(w.kernels_cached for w in reg.workers),
         "views_wall": views_done[0], "views_driver_cpu": views_done[1], "first_view_driver_cpu": first_done[0] if first_done else 0.0,
-        "reducer_seconds": reg.reducer_seconds, "reducer_sum_seconds": reg.reducer_sum_seconds,
+        "reducer_seconds": reg.reducer_seconds, "reducer_sum_seconds": reg.reducer_sum_seconds, "driver_view_cpu": reg.driver_view_cpu_seconds,
     }
 
 
@@ -237,7 +239,7 @@ def _compare(args, work: Path) -> list[dict]:
     configs += [(f"Ray, {w} node{'s' if w > 1 else ''} x 1 worker", {"nodes": w, "workers": w}) for w in counts]
     configs.append((f"Ray, {counts[-1]} nodes, empty kernel cache", {"nodes": counts[-1], "workers": counts[-1], "numba_cache": str(work / "numba-cold")}))
     configs += _reduce_configs(args, configs[2][1]["block"])
-    # the reducers run again with views of 4x the width (more pairs): per-pair costs are the slope between the two
+    # the reducers run again with views of 4x the width: more pairs per view, the projection's source
     wide = _prepare(argparse.Namespace(**{**vars(args), "width": 4 * args.width}), work, args.compare_tiles, args.compare_views, "compare-wide")
     configs.append((f"{configs[-1][0]}, {4 * args.width} px views", {**configs[-1][1], "wide": True}))
     rows, results = [], []
@@ -294,7 +296,8 @@ def write_records(path: Path, results: list[dict]) -> None:
     (kernels loaded from numba's cache, or compiled with numba_cache "empty"); later_view_s: the
     median of the other views; kernels_compiled / kernels_cached: summed over the workers.
     view_pass_s / view_pass_driver_busy_s: wall and driver CPU from the start to the last view summed;
-    view_pass_first_view_driver_busy_s: driver CPU until the first view was summed (fixed costs).
+    view_pass_first_view_driver_busy_s: driver CPU until the first view was summed (fixed costs);
+    view_results_driver_busy_s: driver CPU on the views' results (logging, folding, sums).
     reduce: tail (after the view pass) wall and driver CPU, and the reducer tasks' seconds summed over
     blocks (whole tasks, and their log replays).
     """
@@ -311,7 +314,7 @@ def write_records(path: Path, results: list[dict]) -> None:
             "later_view_s": None if r["later_view"] is None else round(r["later_view"], 4), "kernels_compiled": r["kernels_compiled"],
             "kernels_cached": r["kernels_cached"], "numba_cache": "empty" if r.get("numba_cache") else "warm",
             "view_pass_s": round(r["views_wall"], 3), "view_pass_driver_busy_s": round(r["views_driver_cpu"], 3),
-            "view_pass_first_view_driver_busy_s": round(r["first_view_driver_cpu"], 3),
+            "view_pass_first_view_driver_busy_s": round(r["first_view_driver_cpu"], 3), "view_results_driver_busy_s": round(r["driver_view_cpu"], 3),
             "reduce": {**r["reduce"], "reducer_seconds": round(r["reducer_seconds"], 3), "reducer_replay_seconds": round(r["reducer_sum_seconds"], 3)},
         })
     with atomic_path(Path(path)) as tmp:
@@ -353,55 +356,51 @@ def _projection(args, results: list[dict]) -> None:
 
     Views: t = a·N + b·P per view on a worker (projection ~ Gaussians, compositing ~ pixels); a from
     the local run after removing b·P, b (--pixel-cost-us) from the flowers rasterizer table; workers
-    run in parallel on nodes x --gpu-speedup. The per-pair costs are slopes between the two Ray
-    reducers runs, whose views differ only in width (so in pairs): the driver's view-pass CPU after
-    the first view (receiving, logging, folding) and the reducers' log replay; what the slope does
-    not explain is charged per view (driver) and per Gaussian (reducers: allocation, finish,
-    encoding). The driver's CPU after the view pass is charged per Gaussian (assembly). With V views,
-    D distinct pairs, N Gaussians and k nodes (one reducer each):
+    run in parallel on nodes x --gpu-speedup. The other costs come from the Ray reducers run with
+    the widest views (the most pairs per view): the driver's CPU on the views' results (logging,
+    folding) per distinct pair, the rest of its view-pass CPU after the first view (Ray calls) per
+    view; the reducers' log replay per pair and the rest of their task time (allocation, finish,
+    encoding) per Gaussian, `--reducers-per-node` reducers per node; the driver's CPU after the view
+    pass (assembly) per Gaussian. With V views, D distinct pairs, N Gaussians and k nodes:
 
-        wall = max(views / k, V · driver_per_view + D · driver_per_pair) + (D · replay_per_pair + N · reducer_per_gaussian) / k
-               + N · assemble_per_gaussian
+        wall = max(views / k, V · driver_per_view + D · driver_per_pair)
+               + (D · replay_per_pair + N · reducer_per_gaussian) / (k · reducers_per_node) + N · assemble_per_gaussian
     """
     local = results[0]
     runs = [r for r in results if r.get("reducers") and r["reduce"]["reducers"]]
-    if len(runs) < 2:
-        print("\nProjection: needs the compare part's two Ray runs with reducers (--part compare or all)")
+    if not runs:
+        print("\nProjection: needs the compare part's Ray run with reducers (--part compare or all)")
         return
-    narrow, wide = runs[0], runs[-1]
+    ray = max(runs, key=lambda r: r["distinct"])
     pixels = args.width * args.width * 3 / 4
     per_view = (local["raster"] + local["coalesce"]) / local["views"]
     b = args.pixel_cost_us * 1e-6
     a = max(per_view - b * pixels, 0.0) / local["gaussians"]
-
-    def driver_views(r):  # the driver's view-pass CPU after its first view, and the pairs it covered
-        return max(r["views_driver_cpu"] - r["first_view_driver_cpu"], 0.0), r["distinct"] * (r["views"] - 1) / max(r["views"], 1)
-
-    (c0, p0), (c1, p1) = driver_views(narrow), driver_views(wide)
-    driver_per_pair = max(c1 - c0, 0.0) / max(p1 - p0, 1.0)
-    driver_per_view = max(c0 - driver_per_pair * p0, 0.0) / max(narrow["views"] - 1, 1)
-    replay_per_pair = max(wide["reducer_sum_seconds"] - narrow["reducer_sum_seconds"], 0.0) / max(wide["distinct"] - narrow["distinct"], 1)
-    reducer_per_gaussian = max(narrow["reducer_seconds"] - replay_per_pair * narrow["distinct"], 0.0) / narrow["gaussians"]
-    assemble_per_gaussian = narrow["reduce"]["tail_driver_cpu_s"] / narrow["gaussians"]
+    driver_per_pair = ray["driver_view_cpu"] / max(ray["distinct"], 1)
+    calls = max(ray["views_driver_cpu"] - ray["first_view_driver_cpu"] - ray["driver_view_cpu"], 0.0)
+    driver_per_view = calls / max(ray["views"] - 1, 1)
+    replay_per_pair = ray["reducer_sum_seconds"] / max(ray["distinct"], 1)
+    reducer_per_gaussian = max(ray["reducer_seconds"] - ray["reducer_sum_seconds"], 0.0) / ray["gaussians"]
+    assemble_per_gaussian = ray["reduce"]["tail_driver_cpu_s"] / ray["gaussians"]
     view_cost = a * args.model_gaussians + b * args.model_pixels
     pairs = args.model_images * args.pairs_per_mp * args.model_pixels / 1e6
     rows, walls = [], {}
     for nodes in map(int, args.nodes.split(",")):
         views_s = args.model_images * view_cost / (nodes * args.gpu_speedup)
         log_s = args.model_images * driver_per_view + pairs * driver_per_pair
-        reduce_s = (pairs * replay_per_pair + args.model_gaussians * reducer_per_gaussian) / nodes
+        reduce_s = (pairs * replay_per_pair + args.model_gaussians * reducer_per_gaussian) / (nodes * args.reducers_per_node)
         assemble_s = args.model_gaussians * assemble_per_gaussian
         walls[nodes] = max(views_s, log_s) + reduce_s + assemble_s
         rows.append([nodes, f"{views_s / 60:.1f}", f"{log_s / 60:.1f}", f"{reduce_s / 60:.1f}", f"{assemble_s / 60:.1f}", f"{walls[nodes] / 60:.1f}",
                      "driver" if log_s > views_s else "workers"])
     print(f"\nProjection (a model, not a measurement): {args.model_images:,} images of {args.model_pixels / 1e6:.1f} MP, "
           f"{args.model_gaussians / 1e6:.0f}M Gaussians, {pairs / 1e9:.1f} G distinct pairs. Measured here: {a * 1e9:.0f} ns per Gaussian per "
-          f"view ({local['gaussians'] / 1e6:.2f}M Gaussians, culled); driver {driver_per_view * 1e3:.1f} ms per view + {driver_per_pair * 1e9:.0f} ns "
-          f"per pair received and logged; reducers {replay_per_pair * 1e9:.0f} ns per pair replayed + {reducer_per_gaussian * 1e6:.1f} us per "
-          f"Gaussian; driver {assemble_per_gaussian * 1e6:.2f} us per Gaussian assembled (per-pair costs: the slope between the "
-          f"{args.width} and {4 * args.width} px reducers runs, {narrow['distinct'] / 1e6:.2f} and {wide['distinct'] / 1e6:.2f} M pairs). Assumed: "
-          f"{args.pixel_cost_us:g} us per pixel per view, {args.pairs_per_mp / 1e6:g} M distinct pairs per megapixel (flowers), one GPU node "
-          f"= {args.gpu_speedup:g}x this machine per view, one reducer per node.")
+          f"view ({local['gaussians'] / 1e6:.2f}M Gaussians, culled); from '{ray['label']}' ({ray['distinct'] / ray['views'] / 1e3:.1f}k pairs per "
+          f"view): driver {driver_per_pair * 1e9:.0f} ns per pair received and logged + {driver_per_view * 1e3:.1f} ms per view in Ray calls, "
+          f"reducers {replay_per_pair * 1e9:.0f} ns per pair replayed + {reducer_per_gaussian * 1e6:.1f} us per Gaussian, driver "
+          f"{assemble_per_gaussian * 1e6:.2f} us per Gaussian assembled. Assumed: {args.pixel_cost_us:g} us per pixel per view, "
+          f"{args.pairs_per_mp / 1e6:g} M distinct pairs per megapixel (flowers), one GPU node = {args.gpu_speedup:g}x this machine per view, "
+          f"{args.reducers_per_node} reducer(s) per node.")
     print(format_table(["GPU nodes", "views on workers (min)", "driver receives + logs (min)", "reducers (min)", "driver assembles (min)",
                         "wall (min)", "view pass bound by"], rows))
     counts = sorted(walls)

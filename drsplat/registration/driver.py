@@ -81,7 +81,9 @@ class RegistrationResult:
     workers: the WorkerStats of the processes that computed views (this one for a local run): first
     and later views' seconds, numba kernels cached/compiled. reducer_seconds / reducer_sum_seconds:
     the reducer tasks' seconds summed over the blocks, whole tasks / their replays of the log (0
-    without reducers).
+    without reducers). driver_view_cpu_seconds: this process's CPU time (all threads) on the
+    computed views' results as they arrived (logging, the mode's statistics, the sink), the
+    driver's per-view work apart from waiting for the views and its fixed costs.
     """
 
     features: np.ndarray | None
@@ -118,6 +120,7 @@ class RegistrationResult:
     workers: list[WorkerStats] = field(default_factory=list)
     reducer_seconds: float = 0.0
     reducer_sum_seconds: float = 0.0
+    driver_view_cpu_seconds: float = 0.0
 
     @property
     def assigned(self) -> np.ndarray:
@@ -144,6 +147,7 @@ class ViewTotals:
     coalesce_seconds: float = 0.0
     sum_seconds: float = 0.0
     sum_cpu_seconds: float = 0.0
+    driver_view_cpu_seconds: float = 0.0  # this process's CPU on computed views' results: log, fold, sums
     embeddings: list[np.ndarray] = field(default_factory=list)
     positive: np.ndarray | None = None  # [N] bool: some pair gave the Gaussian weight > 0
 
@@ -297,7 +301,7 @@ def run_registration(
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
         sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
-        reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1],
+        reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
     )
 
 
@@ -386,6 +390,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     stream = executor.view_pairs(run.views[totals.done :])
     try:
         for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
+            c0 = time.process_time()
             if ckpt is not None or sink.place == "host":
                 view = view.on_host()  # for the log or the host sums: one copy of the view's pairs
             if ckpt is not None:
@@ -394,6 +399,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
             if ckpt is not None:
                 ckpt.folded()
             consume(view)
+            totals.driver_view_cpu_seconds += time.process_time() - c0
             if on_progress is not None:
                 on_progress(totals.done, total)
             if cancel is not None and totals.done < total:
