@@ -6,7 +6,7 @@ the room's oracle features. Every configuration runs in its own process so that 
 that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (reported by its
 tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
 
-Parts: `compare` (a small city: local in memory with and without frustum culling, local
+Parts: `replay` (block replays of a pair log: chunked reads vs whole records), `compare` (a small city: local in memory with and without frustum culling, local
 streamed, Ray on local clusters of 1 and 2 one-CPU nodes, the 2-node one also with an empty kernel cache; `--json FILE` writes its records), `rss` (peak RSS vs N, streamed under the budget, in memory where it fits)
 and `big` (the done-means run: >= 5M Gaussians, >= 500 views streamed under --budget). The
 projection for 8/64 GPU nodes multiplies per-task costs measured here by task counts; it is a
@@ -40,7 +40,7 @@ ROOM_PRESET = "small"
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("scale", help="city-scale registration: local vs streamed vs Ray, peak RSS, projection to GPU nodes")
-    p.add_argument("--part", choices=("all", "compare", "rss", "big"), default="all")
+    p.add_argument("--part", choices=("all", "compare", "rss", "big", "replay"), default="all")
     p.add_argument("--room", type=Path, default=None, help="a written `small` synthetic dataset (default: written to a temp folder)")
     p.add_argument("--width", type=int, default=64, help="view width in pixels (height follows the room's 4:3)")
     p.add_argument("--compare-tiles", type=int, default=16, help="rooms in the comparison city (~18.4k Gaussians each)")
@@ -58,6 +58,10 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pairs-per-mp", type=float, default=1.0e6, help="distinct pairs per megapixel of a view (flowers: 306k at 640x480)")
     p.add_argument("--gpu-speedup", type=float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
+    p.add_argument("--replay-gaussians", type=positive_int, default=2_000_000, help="replay part: Gaussians of the synthetic pair log")
+    p.add_argument("--replay-views", type=positive_int, default=60)
+    p.add_argument("--replay-pairs", type=positive_int, default=300_000, help="replay part: distinct pairs per view")
+    p.add_argument("--replay-blocks", type=positive_int, default=4)
     p.add_argument("--nodes", default="1,8,64")
     p.add_argument("--reducers-per-node", type=positive_int, default=1, help="reducer tasks per node in the projection (each holds one block)")
     p.add_argument("--json", type=Path, default=None, help="also write the compare runs as JSON records to this file")
@@ -227,6 +231,8 @@ def run(args: argparse.Namespace) -> int:
             _rss(args, work)
         if args.part in ("all", "big"):
             _big(args, work)
+        if args.part in ("all", "replay"):
+            _replay(args, work)
         if compare:
             _projection(args, compare)
     return 0
@@ -348,7 +354,85 @@ def _big(args, work: Path) -> list[dict]:
     print(format_table(["wall s", "views/s", "peak RSS MB", "streamed", "pairs (M)", "distinct (M)", "PLY GB"],
                        [[f"{r['wall']:.0f}", f"{r['views'] / r['wall']:.2f}", _mb(r["peak_rss"]), r["streamed"], f"{r['pairs'] / 1e6:.1f}",
                          f"{r['distinct'] / 1e6:.1f}", f"{r['ply_bytes'] / 1e9:.2f}"]]))
+    replay = max(r["accumulate"] - r["coalesce"], 0.0)
+    tail = r["wall"] - r["views_wall"]
+    stages = [("city built in memory (before register)", r["build"]), ("view pass", r["views_wall"]),
+              ("  rasterize (culled, top-k)", r["raster"]), ("  coalesce + group pairs", r["coalesce"]),
+              ("  log, statistics, the rest of the view pass", r["views_wall"] - r["raster"] - r["coalesce"]),
+              ("blocks: replay the log's chunks", replay), ("blocks: finish, encode, write the PLY", tail - replay)]
+    print("Per stage (wall s; the view pass's parts are summed per view):")
+    print(format_table(["stage", "s", "share of register"], [[name, f"{sec:.1f}", "-" if "built" in name else f"{100 * sec / r['wall']:.0f}%"]
+                                                               for name, sec in stages]))
     return [r]
+
+
+def _replay(args, work: Path, dim: int = 512, masks: int = 200, repeats: int = 3) -> None:
+    """Block replays of one pair log: reading only each block's Gaussian chunks of every record
+    (`PairLog.block_views`, what LogSink and the reducers do) vs reading every record whole and
+    filtering (the layout before chunks). The same sums are asserted; times are medians."""
+    import numpy as np
+
+    from drsplat.registration.pairlog import PairLog, ViewPairs
+    from drsplat.registration.sink import LogSink
+    from drsplat.registration.sums import Accumulator
+
+    rng = np.random.default_rng(0)
+    n, per_mask = args.replay_gaussians, max(args.replay_pairs // masks, 1)
+    path = work / "replay.log"
+    with PairLog.open(path, {"bench": "replay"}) as plog:
+        for v in range(args.replay_views):  # each view sees a window of the scene, mask by mask
+            centre = int(rng.integers(0, n))
+            g = np.concatenate([(centre + rng.integers(-n // 7, n // 7, per_mask)) % n for _ in range(masks)]).astype(np.int32)
+            plog.append(ViewPairs(f"v{v}", rng.normal(size=(masks, dim)).astype(np.float32), g, np.repeat(np.arange(masks, dtype=np.int32), per_mask),
+                                  rng.random(g.size).astype(np.float32), np.arange(masks, dtype=np.int32), g.size))
+    block = -(-n // args.replay_blocks)
+
+    def whole_records(plog: PairLog, lo: int, hi: int):
+        acc = Accumulator(hi - lo, dim)
+        for view in plog:
+            keep = (view.gaussians >= lo) & (view.gaussians < hi)
+            if keep.any():
+                acc.add_pairs(view.gaussians[keep] - np.int32(lo), view.masks[keep], view.weights[keep], view.feats)
+        return acc.sums()
+
+    times: dict[str, list[float]] = {"whole records": [], "chunks only": []}
+    read: dict[str, int] = {}
+    with PairLog.open(path, {"bench": "replay"}) as plog:
+        size = plog.nbytes
+        sink = LogSink(n, dim, plog, block)
+        for _ in range(repeats):
+            spent = {k: 0.0 for k in times}
+            for lo in range(0, n, block):
+                hi = min(n, lo + block)
+                t0 = time.perf_counter()
+                F, W = whole_records(plog, lo, hi)
+                t1 = time.perf_counter()
+                got = sink.block_sums(lo, hi)
+                spent["whole records"] += t1 - t0
+                spent["chunks only"] += time.perf_counter() - t1
+                if not (np.array_equal(F, got.F) and np.array_equal(W, got.W)):
+                    raise RuntimeError(f"block {lo}..{hi}: chunked replay differs from the whole-record replay")
+                del F, W, got
+            for k, v in spent.items():
+                times[k].append(v)
+        read["whole records"] = size * -(-n // block)
+        read["chunks only"] = sum(_chunk_bytes(plog, r, lo, min(n, lo + block)) for r in plog.records for lo in range(0, n, block))
+    base = statistics.median(times["whole records"])
+    print(f"\nBlock replays of a pair log ({size / 1e6:,.0f} MB: {args.replay_views} views x {args.replay_pairs:,} pairs, N = {n:,}, "
+          f"{-(-n // block)} blocks, D = {dim}, page cache warm; median of {repeats}; the same sums asserted):")
+    print(format_table(["replay", "all blocks s", "speed-up", "bytes read MB"],
+                       [[k, f"{statistics.median(v):.2f}", f"{base / statistics.median(v):.2f}x", f"{read[k] / 1e6:,.0f}"] for k, v in times.items()]))
+
+
+def _chunk_bytes(plog, record, lo: int, hi: int) -> int:
+    """Bytes `PairLog.read_block` reads of `record` for Gaussians lo .. hi-1 (embeddings, used masks, chunk starts, the chunks' pairs)."""
+    from drsplat.registration.pairlog import CHUNK_SHIFT
+
+    meta = record.meta
+    c = meta["C"]
+    first, last = min(lo >> CHUNK_SHIFT, c), min(((hi - 1) >> CHUNK_SHIFT) + 1, c)
+    starts = plog.read(record).chunk_starts
+    return 4 * meta["M"] * meta["D"] + 4 * meta["U"] + 8 * (c + 1) + 12 * int(starts[max(last, first)] - starts[first])
 
 
 def _projection(args, results: list[dict]) -> None:
