@@ -143,6 +143,36 @@ def _random_stats_inputs(rng, case, n=40, h=7, w=11, k=12):
     return RayGeometry.from_scene(scene), cam, ids, weights, median
 
 
+@pytest.mark.parametrize("case", ["random", "hard"])
+def test_folding_view_statistics_matches_the_numpy_fold_bit_for_bit(case):
+    """SurfaceSupport.add (one numba pass, on the driver for every view) and add_reference (numpy)
+    give the same bits over many views: repeated Gaussians, empty views, zeros, huge and NaN values,
+    ties at the front threshold."""
+    from drsplat.registration.aggregate import FRONT_MAX, ViewStats
+
+    rng = np.random.default_rng(11 if case == "random" else 12)
+    n = 500
+    got, want = SurfaceSupport.zeros(n), SurfaceSupport.zeros(n)
+    for v in range(40):
+        count = 0 if v % 9 == 4 else int(rng.integers(1, n))
+        ids = rng.choice(n, size=count, replace=False).astype(np.int32)
+        peak, total = rng.random(count), rng.random(count) * 3
+        front = rng.random(count) * total
+        if case == "hard" and count:
+            pick = rng.integers(0, count, size=max(count // 5, 1))
+            peak[pick[::3]], total[pick[1::3]] = 0.0, 1e300
+            front[pick[2::3]] = FRONT_MAX * total[pick[2::3]]  # exactly at the threshold: not "in front"
+            if v == 7:
+                peak[0], total[-1] = np.nan, np.nan
+        view = ViewStats(ids, peak, total, front)
+        got.add(view)
+        want.add_reference(view)
+    for name, g in got.arrays().items():
+        w = want.arrays()[name]
+        assert g.dtype == w.dtype and np.array_equal(g, w, equal_nan=True), name
+    assert got.views_seen.sum() > 0 and (case == "random" or np.isnan(got.peak).any())
+
+
 @pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1"])
 def test_surface_stats_kernel_agrees_with_reference(case):
     rng = np.random.default_rng(abs(hash(case)) % 2**32)

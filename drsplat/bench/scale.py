@@ -431,13 +431,11 @@ def _block_arrays(block) -> tuple:
 
 def _chunk_bytes(plog, record, lo: int, hi: int) -> int:
     """Bytes `PairLog.read_block` reads of `record` for Gaussians lo .. hi-1 (embeddings, used masks, chunk starts, the chunks' pairs)."""
-    from drsplat.registration.pairlog import CHUNK_SHIFT
+    from drsplat.registration.pairlog import chunk_span
 
     meta = record.meta
-    c = meta["C"]
-    first, last = min(lo >> CHUNK_SHIFT, c), min(((hi - 1) >> CHUNK_SHIFT) + 1, c)
-    starts = plog.read(record).chunk_starts
-    return 4 * meta["M"] * meta["D"] + 4 * meta["U"] + 8 * (c + 1) + 12 * int(starts[max(last, first)] - starts[first])
+    s0, s1 = chunk_span(plog.read(record).chunk_starts, lo, hi)
+    return 4 * meta["M"] * meta["D"] + 4 * meta["U"] + 8 * (meta["C"] + 1) + 12 * (s1 - s0)
 
 
 def _projection(args, results: list[dict]) -> None:

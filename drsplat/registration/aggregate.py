@@ -478,6 +478,22 @@ class ViewStats:
     front: np.ndarray
 
 
+@numba.njit(cache=True)
+def _fold_stats_kernel(ids, peak_v, total_v, front_v, front_max, peak, total, front, views_seen, views_front):  # pragma: no cover - jitted
+    """SurfaceSupport.add's fold in one pass over the view's (distinct) ids; NaN propagates through
+    the max as np.maximum's does."""
+    for j in range(ids.shape[0]):
+        i = ids[j]
+        p, v = peak[i], peak_v[j]
+        if v > p or v != v:
+            peak[i] = v
+        total[i] += total_v[j]
+        front[i] += front_v[j]
+        views_seen[i] += 1
+        if front_v[j] > front_max * total_v[j]:
+            views_front[i] += 1
+
+
 @dataclass
 class SurfaceSupport:
     """The rejection statistics of a registration, [N] each: peak (max w), total (A = Σ w),
@@ -504,7 +520,18 @@ class SurfaceSupport:
 
     def add(self, view: ViewStats) -> None:
         """Fold one view's statistics in (views are folded in view order, so the sums do not depend
-        on where the views were computed)."""
+        on where the views were computed): for each Gaussian i the view sees,
+
+            P_i = max(P_i, p_i),  A_i += a_i,  B_i += b_i,  views_seen_i += 1,  views_front_i += [b_i > FRONT_MAX·a_i]
+
+        in one pass (`_fold_stats_kernel`; `add_reference` is the numpy form, the same bits). It
+        runs on the driver for every view of a `-reject` mode."""
+        _fold_stats_kernel(np.ascontiguousarray(view.ids, np.int32), np.ascontiguousarray(view.peak, np.float64),
+                           np.ascontiguousarray(view.total, np.float64), np.ascontiguousarray(view.front, np.float64), FRONT_MAX,
+                           self.peak, self.total, self.front, self.views_seen, self.views_front)
+
+    def add_reference(self, view: ViewStats) -> None:
+        """`add` in numpy (the view's ids are distinct)."""
         ids = view.ids
         self.peak[ids] = np.maximum(self.peak[ids], view.peak)
         self.total[ids] += view.total

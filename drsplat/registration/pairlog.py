@@ -151,6 +151,15 @@ def _payload_size(meta: dict) -> int:
     return 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)
 
 
+def chunk_span(starts: np.ndarray, lo: int, hi: int) -> tuple[int, int]:
+    """The pairs (s0, s1) of a record whose chunks meet Gaussians lo .. hi-1; starts: its [C + 1]
+    chunk starts. Empty (s0 == s1) when the range is empty or past the record's last chunk."""
+    c = starts.shape[0] - 1
+    first = min(lo >> CHUNK_SHIFT, c)
+    last = min(((hi - 1) >> CHUNK_SHIFT) + 1, c) if hi > lo else first
+    return int(starts[first]), int(starts[max(last, first)])
+
+
 @dataclass
 class LogRecord:
     """Where a view's record lies in the log (for re-reading it without a scan)."""
@@ -275,7 +284,7 @@ class PairLog:
         one seek each, then filtered exactly."""
         meta = record.meta
         m, d, p, u, c = meta["M"], meta["D"], meta["P"], meta["U"], meta["C"]
-        f = self._file
+        f = self._file  # one handle, one reader: a reducer opens its own
         f.flush()
 
         def read_at(pos: int, count: int, dtype: str) -> np.ndarray:
@@ -289,8 +298,7 @@ class PairLog:
         feats = read_at(0, m * d, "<f4").reshape(m, d)
         pairs_at = 4 * m * d
         starts = read_at(pairs_at + 12 * p + 4 * u, c + 1, "<i8")
-        first, last = min(lo >> CHUNK_SHIFT, c), min(((hi - 1) >> CHUNK_SHIFT) + 1, c) if hi > lo else 0
-        s0, s1 = int(starts[first]), int(starts[max(last, first)])
+        s0, s1 = chunk_span(starts, lo, hi)
         g = read_at(pairs_at + 4 * s0, s1 - s0, "<i4")
         mk = read_at(pairs_at + 4 * (p + s0), s1 - s0, "<i4")
         w = read_at(pairs_at + 4 * (2 * p + s0), s1 - s0, "<f4")
