@@ -210,15 +210,19 @@ def _digest(syn) -> str:
     import hashlib
 
     h = hashlib.sha1()
-    for arr in (syn.scene.means, syn.scene.opacity_logits, syn.labels, np.stack([c.R for c in syn.cameras])):
+    # the rotations come out of a BLAS product whose last bit depends on the CPU's OpenBLAS kernel
+    # (OPENBLAS_CORETYPE Haswell vs SkylakeX): rounded to 12 decimals, they hash the same on both
+    rotations = np.round(np.stack([c.R for c in syn.cameras]).astype(np.float64), 12) + 0.0  # + 0.0: no -0.0
+    for arr in (syn.scene.means, syn.scene.opacity_logits, syn.labels, rotations):
         h.update(np.ascontiguousarray(arr).tobytes())
     return h.hexdigest()
 
 
 def test_table_presets_are_unchanged_by_the_hard_ones():
-    # digests of make_synthetic(preset, 0) before the room layout existed (other tests depend on these scenes)
-    assert _digest(make_synthetic("tiny", 0)) == "d9aba5ce634402869507a99bf08fa84542012e79"
-    assert _digest(make_synthetic("small", 0)) == "1db0b1fa5409be73e314882887bb16e6c85a342a"
+    # digests of make_synthetic(preset, 0) before the room layout existed (other tests depend on these scenes),
+    # the rotations rounded (see _digest)
+    assert _digest(make_synthetic("tiny", 0)) == "efdec1ed64f1602fc55ed3f7b5aee363fa337ffe"
+    assert _digest(make_synthetic("small", 0)) == "3d612cb749c44decd03c5b8f1dc8aa7178a27a62"
 
 
 def test_hard_presets_have_the_hard_cases_and_vary_with_the_seed():
