@@ -231,6 +231,18 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def replace_with_temp(tmp: Path, path: str | Path) -> None:
+    """Rename the finished temp file `tmp` (made beside `path`'s target with `temp_prefix`) over
+    `path` as `atomic_path` does: normal permissions, a symlink's resolved target replaced (the link
+    stays a link); an OSError names `path`."""
+    shown = Path(path)
+    try:
+        os.chmod(tmp, 0o666 & ~_current_umask())
+        os.replace(tmp, output_target(shown))
+    except OSError as exc:
+        raise naming_path(exc, shown, tmp) from None
+
+
 def _current_umask() -> int:
     """The process umask, read without changing it where /proc allows (os.umask is not thread-safe)."""
     try:

@@ -13,7 +13,8 @@ from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
-from drsplat.registration.culling import SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes
+from drsplat.registration.culling import (SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes, remap_ids,
+                                         remap_ids_reference)
 from drsplat.scene import load_ply
 from drsplat.synthetic import tile_city, write_dataset
 
@@ -154,3 +155,25 @@ def test_closed_form_largest_eigenvalue_bounds_lapacks_tightly(case):
     scale = np.abs(cov).max(axis=(1, 2))
     assert np.all(got >= ref) and np.all(np.isfinite(got))
     assert np.all(got - np.maximum(ref, 0) <= 2e-6 * scale + 1e-299)
+
+
+@pytest.mark.parametrize("case", ["random", "all_empty", "none_empty", "one_visible", "strided"])
+def test_remap_kernel_matches_the_numpy_remap(case):
+    """The parallel remap of a culled view's local ids to scene ids equals the numpy form on random
+    and hard inputs (every slot empty, none, one visible Gaussian, a non-contiguous array)."""
+    rng = np.random.default_rng(len(case))
+    ids = np.sort(rng.choice(2_000_000_000, 5000, replace=False)).astype(np.int64)  # scene ids near the int32 limit
+    local = rng.integers(-1, ids.size, size=(17, 23, 8)).astype(np.int32)
+    if case == "all_empty":
+        local[:] = -1
+    if case == "none_empty":
+        local = np.abs(local)
+    if case == "one_visible":
+        ids, local = ids[:1], np.where(local >= 0, 0, -1).astype(np.int32)
+    if case == "strided":
+        local = local[:, ::2]
+    want = remap_ids_reference(local.copy(), ids)
+    got = local.copy() if case != "strided" else local
+    assert remap_ids(got, ids) is got
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == np.int32

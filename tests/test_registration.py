@@ -16,7 +16,7 @@ from drsplat.errors import Cancelled, InputError
 from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
 from drsplat.features.format import read_features, write_features
 from drsplat.registration import RegisterOptions, register_features
-from drsplat.registration.coalesce import Coalescer, coalesce_reference
+from drsplat.registration.coalesce import Coalescer, coalesce_reference, split_masks
 from drsplat.registration.sums import Accumulator, accumulate_view_reference, normalize_rows
 from drsplat.registration.views import pair_views
 from drsplat.scene import load_ply
@@ -60,7 +60,8 @@ def _random_view(rng, h, w, k, n, m, empty_fraction=0.3):
     "case",
     ["random", "single_gaussian", "no_masks", "one_mask", "k1", "all_empty", "duplicate_ids", "many_masks"],
 )
-def test_kernel_agrees_with_reference(case):
+@pytest.mark.parametrize("parts", [1, 3])
+def test_kernel_agrees_with_reference(case, parts):
     rng = np.random.default_rng(hash(case) % 2**32)
     n, m, k = 50, 6, 8
     if case == "single_gaussian":
@@ -69,7 +70,7 @@ def test_kernel_agrees_with_reference(case):
         k = 1
     if case == "many_masks":
         m = 400
-    acc, coalescer = Accumulator(n, 7), Coalescer(n, capacity=4)
+    acc, coalescer = Accumulator(n, 7), Coalescer(n, capacity=4, parts=parts)
     F_ref, W_ref = np.zeros((n, 7), np.float64), np.zeros(n, np.float64)
     total_pairs = 0
     for view in range(3):  # several views: the kernel's scratch must be clean between views and masks
@@ -102,6 +103,42 @@ def test_kernel_agrees_with_reference(case):
     np.testing.assert_allclose(F, F_ref, rtol=1e-4, atol=1e-5)
     if case in ("no_masks", "all_empty"):
         assert total_pairs == 0 and not W.any()
+
+
+@pytest.mark.parametrize("case", ["random", "one_big_mask", "more_parts_than_masks", "empty_masks_between"])
+def test_parallel_parts_give_the_serial_pairs_in_the_same_order(case):
+    """The masks coalesced in 2..7 parts give exactly the pairs, bits and order of one part (the
+    summation order downstream depends on that order), also when the buffers grow mid-view."""
+    rng = np.random.default_rng(len(case))
+    n, m, k = 300, 40, 6
+    ids, weights, masks, _ = _random_view(rng, 23, 31, k, n, m)
+    if case == "one_big_mask":
+        masks[:, :25] = 7  # one mask holds most pixels
+    if case == "more_parts_than_masks":
+        m = 2
+        masks = np.where(masks >= 0, masks % 2, -1).astype(masks.dtype)
+    if case == "empty_masks_between":
+        masks = np.where(masks % 3 == 0, masks, -1).astype(masks.dtype)
+    want = Coalescer(n, capacity=1, parts=1).coalesce(ids, weights, masks, m)
+    for parts in range(2, 8):
+        got = Coalescer(n, capacity=1, parts=parts).coalesce(ids, weights, masks, m)
+        for a, b in zip(got[:3], want[:3]):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+        assert got[3] == want[3]
+    rg, rm, rw, rpairs = coalesce_reference(ids, weights, masks, m)
+    order = np.lexsort((want[0], want[1]))
+    np.testing.assert_array_equal(want[0][order], rg)
+    np.testing.assert_array_equal(want[1][order], rm)
+    assert want[3] == rpairs
+
+
+def test_split_masks_balances_pixels():
+    starts = np.array([0, 10, 10, 30, 31, 100])  # masks of 10, 0, 20, 1, 69 pixels
+    bounds = split_masks(starts, 2)
+    assert bounds[0] == 0 and bounds[-1] == 5 and np.all(np.diff(bounds) >= 0)
+    assert list(bounds) == [0, 4, 5]  # 31 pixels | 69: the cut nearest half of the pixels from below
+    assert list(split_masks(np.array([0]), 3)) == [0, 0, 0, 0]  # no masks
 
 
 def test_accumulator_memory_is_n_times_d_not_n_times_m():

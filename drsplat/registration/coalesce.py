@@ -7,9 +7,10 @@ w_i(p). The view contributes
 
 for every (i, j) with at least one such slot. Pixels are bucketed by mask (counting sort); per
 mask the weights of its pixels' Gaussians are summed in a scratch array of N floats, so a view
-costs O(pixels·k + N) and never forms anything Gaussians x masks. The pairs come out mask by
-mask, Gaussians in first-seen order: that order fixes the summation order downstream
-(drsplat.registration.sums), so every place that coalesces a view gets the same bits.
+costs O(pixels·k) after an O(N) allocation, and never forms anything Gaussians x masks. The masks
+are cut into contiguous parts coalesced in parallel, each with its own scratch; the pairs come out
+mask by mask, Gaussians in first-seen order, for any number of parts: that order fixes the summation
+order downstream (drsplat.registration.sums), so every place that coalesces a view gets the same bits.
 """
 
 from __future__ import annotations
@@ -19,104 +20,143 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def _coalesce_view_kernel(ids, weights, mask_ids, num_masks, first_mask, row_offset, seen, acc, touched, out_g, out_row, out_w, filled):  # pragma: no cover - jitted
-    """Append the view's distinct (Gaussian, mask) pairs with summed weights to the out_* buffers.
-
-    Pixels are bucketed by mask (counting sort); per mask the weights of its pixels' top-k
-    Gaussians are summed in `acc` (scratch [N], `seen` [N] all -1 on entry and exit). Starts at
-    mask `first_mask`; stops before a mask whose pairs might not fit. Mask m is written as row
-    row_offset + m. Returns (contributing pairs, distinct pairs, next mask, filled).
-    """
-    num_pixels, k = ids.shape
-    num_gaussians = seen.shape[0]
-    capacity = out_g.shape[0]
+def _bucket_pixels(mask_ids, num_masks):  # pragma: no cover - jitted
+    """Counting sort of the pixels by mask: (starts [M + 1], order [pixels in a mask]); mask m's
+    pixels are order[starts[m] : starts[m + 1]], in pixel order. Pixels with mask -1 are left out."""
     starts = np.zeros(num_masks + 1, np.int64)
-    for p in range(num_pixels):
+    for p in range(mask_ids.shape[0]):
         m = mask_ids[p]
-        if m >= first_mask:
+        if m >= 0:
             starts[m + 1] += 1
     for m in range(num_masks):
         starts[m + 1] += starts[m]
     order = np.empty(starts[num_masks], np.int64)
     fill = starts[:num_masks].copy()
-    for p in range(num_pixels):
+    for p in range(mask_ids.shape[0]):
         m = mask_ids[p]
-        if m >= first_mask:
+        if m >= 0:
             order[fill[m]] = p
             fill[m] += 1
-    num_pairs = 0
-    num_distinct = 0
-    for m in range(first_mask, num_masks):
-        bound = min(num_gaussians, (starts[m + 1] - starts[m]) * k)
-        if filled + bound > capacity:
-            return num_pairs, num_distinct, m, filled
-        count = 0
-        for o in range(starts[m], starts[m + 1]):
-            p = order[o]
-            for s in range(k):
-                g = ids[p, s]
-                if g < 0:
-                    continue
-                if seen[g] != m:
-                    seen[g] = m
-                    acc[g] = 0.0
-                    touched[count] = g
-                    count += 1
-                acc[g] += weights[p, s]
-                num_pairs += 1
-        for t in range(count):
-            g = touched[t]
-            out_g[filled] = g
-            out_row[filled] = row_offset + m
-            out_w[filled] = acc[g]
-            filled += 1
-            seen[g] = -1
-        num_distinct += count
-    return num_pairs, num_distinct, num_masks, filled
+    return starts, order
 
+
+@numba.njit(cache=True, parallel=True)
+def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, part_filled, part_pairs, seen, acc, touched,
+                           out_g, out_row, out_w):  # pragma: no cover - jitted
+    """Coalesce the view's masks in parts, one part per thread.
+
+    Part t owns masks part_next[t] .. part_end[t] - 1 (contiguous) and its own scratch seen[t],
+    acc[t], touched[t] ([N] each; seen all -1 on entry and exit) and output row out_*[t]. Per mask
+    the weights of its pixels' top-k Gaussians are summed in acc[t] in pixel and slot order, and
+    the distinct Gaussians are appended in first-seen order: the same bits and order as a serial
+    pass over the masks, whatever the number of parts. A part stops before a mask whose pairs
+    might not fit its output row (part_next[t] then says where it resumes once the rows grow).
+    part_filled[t] / part_pairs[t]: its pairs written / contributing pairs, updated in place.
+    """
+    k = ids.shape[1]
+    num_gaussians = seen.shape[1]
+    capacity = out_g.shape[1]
+    for t in numba.prange(part_end.shape[0]):
+        filled = part_filled[t]
+        pairs = 0
+        m = part_next[t]
+        while m < part_end[t]:
+            bound = min(num_gaussians, (starts[m + 1] - starts[m]) * k)
+            if filled + bound > capacity:
+                break
+            count = 0
+            for o in range(starts[m], starts[m + 1]):
+                p = order[o]
+                for s in range(k):
+                    g = ids[p, s]
+                    if g < 0:
+                        continue
+                    if seen[t, g] != m:
+                        seen[t, g] = m
+                        acc[t, g] = 0.0
+                        touched[t, count] = g
+                        count += 1
+                    acc[t, g] += weights[p, s]
+                    pairs += 1
+            for c in range(count):
+                g = touched[t, c]
+                out_g[t, filled] = g
+                out_row[t, filled] = m
+                out_w[t, filled] = acc[t, g]
+                filled += 1
+                seen[t, g] = -1
+            m += 1
+        part_next[t] = m
+        part_filled[t] = filled
+        part_pairs[t] += pairs
+
+
+def coalesce_parts() -> int:
+    """Parts a Coalescer cuts a view's masks into by default: one per numba thread."""
+    return max(1, numba.get_num_threads())
+
+
+def split_masks(starts: np.ndarray, parts: int) -> np.ndarray:
+    """[parts + 1] mask boundaries cutting masks 0 .. M-1 into contiguous parts of about equal
+    pixel counts: each inner boundary b is the one whose pixel count before it, starts[b], is
+    nearest to an equal share (starts: [M + 1] the counting sort's mask starts)."""
+    num_masks = starts.shape[0] - 1
+    targets = starts[-1] * np.arange(1, parts) / parts
+    above = np.minimum(np.searchsorted(starts, targets, side="left"), num_masks)
+    below = np.maximum(above - 1, 0)
+    inner = np.where(targets - starts[below] <= starts[above] - targets, below, above)
+    return np.maximum.accumulate(np.concatenate([[0], inner, [num_masks]]).astype(np.int64))
 
 
 class Coalescer:
-    """Turns one view's top-k lists into its distinct (Gaussian, mask) pairs (numba).
+    """Turns one view's top-k lists into its distinct (Gaussian, mask) pairs (numba, in parallel over
+    contiguous parts of the masks).
 
-    Owns the kernel's scratch arrays ([N] each, 12 bytes per Gaussian) and a pair buffer that
-    grows to the largest view seen, so a view never costs more than its own pairs.
+    Owns the kernel's scratch arrays (12 bytes per Gaussian per part: `parts`, default numba's
+    threads) and per part a pair buffer that grows to the largest share of a view seen, so a view
+    never costs more than its own pairs. The pairs are the same, in the same order, for any number
+    of parts.
     """
 
-    def __init__(self, num_gaussians: int, capacity: int = 1 << 20):
-        self._seen = np.full(num_gaussians, -1, np.int32)
-        self._acc = np.zeros(num_gaussians, np.float32)
-        self._touched = np.zeros(num_gaussians, np.int32)
-        self._g = np.zeros(capacity, np.int32)
-        self._m = np.zeros(capacity, np.int32)
-        self._w = np.zeros(capacity, np.float32)
+    def __init__(self, num_gaussians: int, capacity: int = 1 << 20, parts: int | None = None):
+        self.parts = max(1, int(parts or coalesce_parts()))
+        self._seen = np.full((self.parts, num_gaussians), -1, np.int32)
+        self._acc = np.zeros((self.parts, num_gaussians), np.float32)
+        self._touched = np.zeros((self.parts, num_gaussians), np.int32)
+        self._alloc(max(1, capacity // self.parts))
 
     def coalesce(self, ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """ids, weights: [H, W, k]; mask_ids: [H, W] (-1 = none).
+        """ids, weights: [H, W, k]; mask_ids: [H, W] (-1 = none, else < num_masks).
 
         Returns (gaussians [P] int32, masks [P] int32, weights [P] float32, contributing pairs):
-        w_ij = Σ_{p ∈ mask j} w_i(p), mask by mask in the kernel's order (arrays are copies).
+        w_ij = Σ_{p ∈ mask j} w_i(p), mask by mask, Gaussians in first-seen order (arrays are copies).
         """
         k = ids.shape[-1]
         ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
         w2 = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
         masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
-        pairs = filled = first = 0
+        starts, order = _bucket_pixels(masks, num_masks)
+        bounds = split_masks(starts, self.parts)
+        nxt, end = bounds[:-1].copy(), bounds[1:].copy()
+        filled = np.zeros(self.parts, np.int64)
+        pairs = np.zeros(self.parts, np.int64)
         while True:
-            p, _, first, filled = _coalesce_view_kernel(
-                ids2, w2, masks, num_masks, first, 0, self._seen, self._acc, self._touched, self._g, self._m, self._w, filled,
-            )
-            pairs += p
-            if first >= num_masks:
-                return self._g[:filled].copy(), self._m[:filled].copy(), self._w[:filled].copy(), int(pairs)
-            self._grow()
+            _coalesce_parts_kernel(ids2, w2, order, starts, end, nxt, filled, pairs, self._seen, self._acc, self._touched,
+                                   self._g, self._m, self._w)
+            if np.all(nxt >= end):
+                break
+            self._alloc(2 * self._g.shape[1])
+        rows = [slice(0, int(f)) for f in filled]
+        return (np.concatenate([self._g[t, r] for t, r in enumerate(rows)]), np.concatenate([self._m[t, r] for t, r in enumerate(rows)]),
+                np.concatenate([self._w[t, r] for t, r in enumerate(rows)]), int(pairs.sum()))
 
-    def _grow(self) -> None:
-        size = 2 * self._g.shape[0]
-        for name in ("_g", "_m", "_w"):
-            old = getattr(self, name)
-            new = np.zeros(size, old.dtype)
-            new[: old.shape[0]] = old
+    def _alloc(self, size: int) -> None:
+        """Pair rows of `size` per part, keeping what the old rows hold."""
+        for name, dtype in (("_g", np.int32), ("_m", np.int32), ("_w", np.float32)):
+            new = np.zeros((self.parts, size), dtype)
+            old = getattr(self, name, None)
+            if old is not None:
+                new[:, : old.shape[1]] = old
             setattr(self, name, new)
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from drsplat.cameras import Camera
@@ -201,8 +202,28 @@ def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
                          sh=geometry.sh[ids], finite=geometry.finite[ids])
 
 
+@numba.njit(parallel=True, cache=True)
+def _remap_kernel(flat, ids):  # pragma: no cover - jitted
+    for i in numba.prange(flat.shape[0]):
+        g = flat[i]
+        if g >= 0:
+            flat[i] = ids[g]
+
+
 def remap_ids(local_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Per-pixel ids of a culled render [H, W, k] (-1 where empty) as scene ids, in place."""
+    """Per-pixel ids of a culled render [H, W, k] (-1 where empty) as scene ids, in place:
+    local id g becomes ids[g] (ids: [V] the view's visible scene ids). A parallel numba pass
+    (numpy's boolean gather and scatter took ~10x longer over a view's H·W·k slots);
+    `remap_ids_reference` is the numpy form."""
+    flat = local_ids.reshape(-1)
+    if not np.shares_memory(flat, local_ids):  # not contiguous: reshape copied
+        return remap_ids_reference(local_ids, ids)
+    _remap_kernel(flat, ids)
+    return local_ids
+
+
+def remap_ids_reference(local_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """`remap_ids` in numpy (the reference)."""
     hit = local_ids >= 0
     local_ids[hit] = ids[local_ids[hit]].astype(local_ids.dtype)
     return local_ids

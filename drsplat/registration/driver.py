@@ -264,7 +264,8 @@ def run_registration(
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
-            target.open(codebook)
+            # the kept rows as far as known now (the header's room; drsplat.registration.output.PlyTarget)
+            target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
                 raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

@@ -2,7 +2,8 @@
 
     target       what it makes
     PlyTarget    the registered PLY: rows encoded with the codebook (drsplat.lang), appended to a
-                 body file chunk by chunk, then header + body -> the output, atomically
+                 body file chunk by chunk, then header + body -> the output, atomically (in place
+                 behind a reserved header when the row count's digits were foreseen)
     ArrayTarget  features [N, D] and weights [N] in memory (evaluation, tests, the Python API)
 
 The PLY is written the same way for one block or many, so a file does not depend on the memory
@@ -22,12 +23,13 @@ from typing import Protocol
 
 import numpy as np
 
-from drsplat.errors import DrsplatError
 from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column, encode_meta_columns, is_meta_column
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
-from drsplat.utils import TEMP_SUFFIX, atomic_path, temp_prefix, work_folder
+from drsplat.errors import DrsplatError, OutputError
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, ensure_parent, is_special_file, output_target, replace_with_temp, sweep_stale_temps,
+                           temp_prefix, work_folder)
 
 
 class Target(Protocol):
@@ -35,7 +37,7 @@ class Target(Protocol):
     (block.F unit rows, zero where unassigned; keep [B] bool: the rows to store), `close()`;
     `abort()` when the run fails."""
 
-    def open(self, codebook: Codebook | str) -> None: ...
+    def open(self, codebook: Codebook | str, rows_hint: int | None = None) -> None: ...
 
     def add(self, block: Block, keep: np.ndarray) -> None: ...
 
@@ -52,7 +54,7 @@ class ArrayTarget:
         self.num_gaussians, self.dim = num_gaussians, dim
         self.features: np.ndarray | None = None
 
-    def open(self, codebook: Codebook | str) -> None:
+    def open(self, codebook: Codebook | str, rows_hint: int | None = None) -> None:
         pass
 
     def add(self, block: Block, keep: np.ndarray) -> None:
@@ -76,7 +78,15 @@ class ArrayTarget:
 
 class PlyTarget:
     """The registered PLY `out` of `scene` (see the module docstring). clip_model: the embedding
-    space's id written in the field's metadata."""
+    space's id written in the field's metadata.
+
+    The header holds the final row count, known only once every block is written. With a
+    `rows_hint` (the expected count) and a regular-file output, the body is written into the
+    output's temp file behind room for the header of `rows_hint` rows: when the final count has as
+    many digits, the header goes into that room and the temp file is renamed over `out`, so the
+    body is written once. Otherwise (a device or FIFO, other digits, a short file whose metadata
+    is widened) header + body are copied into `out` (`atomic_path`).
+    """
 
     def __init__(self, scene: GaussianScene, out: Path, clip_model: str):
         self.scene, self.out, self.clip_model = scene, Path(out), clip_model
@@ -85,17 +95,32 @@ class PlyTarget:
         self._header: tuple | None = None
         self._body = None
         self._body_path: Path | None = None
+        self._rows_hint: int | None = None
+        self._body_offset = 0  # where the body starts in the body file (room for the header)
 
-    def open(self, codebook: Codebook | str) -> None:
+    def open(self, codebook: Codebook | str, rows_hint: int | None = None) -> None:
+        """Start the body; rows_hint: the rows expected (the kept Gaussians), or None."""
         self._codebook = codebook
-        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
+        target = output_target(self.out)
+        in_place = rows_hint is not None and not is_special_file(target)
+        if in_place:
+            if target.is_dir():
+                raise OutputError(self.out, "is a directory")
+            ensure_parent(target)
+            sweep_stale_temps(target)
+        self._rows_hint = rows_hint if in_place else None
+        fd, name = tempfile.mkstemp(prefix=temp_prefix(target if in_place else self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
         self._body_path = Path(name)
         self._body = os.fdopen(fd, "wb")
 
     def add(self, block: Block, keep: np.ndarray) -> None:
         """Encode and append the kept rows of `block`, WRITE_CHUNK Gaussians at a time."""
         for vertices, comments in encode_rows(self.scene, self.out, self.clip_model, self._codebook, block, keep, self.written):
-            self._header = self._header or (vertices.dtype, comments)
+            if self._header is None:
+                self._header = (vertices.dtype, comments)
+                if self._rows_hint is not None:  # the header's room: its length depends on the count's digits only
+                    self._body_offset = len(ply_header(vertices.dtype, comments, self._rows_hint))
+                    self._body.seek(self._body_offset)
             self._write(vertices.tobytes())
             self.written += int(vertices.shape[0])
 
@@ -105,11 +130,18 @@ class PlyTarget:
         try:
             if self._header is None:
                 raise DrsplatError(f"the scene has no Gaussians to write to {self.out}")
-            dtype, comments = _widen_meta_if_short(self._body_path, self._header, self.written)
-            with atomic_path(self.out) as tmp:
-                with open(tmp, "wb") as f, open(self._body_path, "rb") as src:
-                    f.write(ply_header(dtype, comments, self.written))
-                    shutil.copyfileobj(src, f, 1 << 24)
+            dtype, comments, offset = _widen_meta_if_short(self._body_path, self._header, self.written, self._body_offset)
+            header = ply_header(dtype, comments, self.written)
+            if offset > 0 and len(header) == offset:
+                with open(self._body_path, "r+b") as f:
+                    f.write(header)
+                replace_with_temp(self._body_path, self.out)
+            else:
+                with atomic_path(self.out) as tmp:
+                    with open(tmp, "wb") as f, open(self._body_path, "rb") as src:
+                        f.write(header)
+                        src.seek(offset)
+                        shutil.copyfileobj(src, f, 1 << 24)
         finally:
             self._body_path.unlink(missing_ok=True)
         return self.written
@@ -171,17 +203,18 @@ def _with_meta_rows(part: GaussianScene, first_row: int) -> GaussianScene:
     return dataclasses.replace(part, extra=extra)
 
 
-def _widen_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
+def _widen_meta_if_short(body_path: Path, header: tuple, written: int, offset: int = 0) -> tuple:
     """A file of fewer rows than the comment's length carries its metadata in several columns
-    (`encode_meta_columns`, as in memory): rewrite the (then tiny) body with them. Returns the
-    header's (dtype, comments)."""
+    (`encode_meta_columns`, as in memory): rewrite the (then tiny) body, which starts at `offset`
+    of `body_path`, with them, from offset 0. Returns the header's (dtype, comments) and where the
+    body starts."""
     dtype, comments = header
     period = _meta_period(comments)
     if META_PROPERTY not in dtype.names or period is None or written >= period.shape[0]:
-        return header
+        return dtype, comments, offset
     comment = next(c for c in reversed(comments) if c.startswith(COMMENT_PREFIX))
     columns = encode_meta_columns(comment[len(COMMENT_PREFIX):].strip(), written)
-    rows = np.fromfile(body_path, dtype)
+    rows = np.fromfile(body_path, dtype, offset=offset)
     fields: list[tuple[str, np.dtype]] = []
     for name in dtype.names:
         if name != META_PROPERTY:
@@ -195,4 +228,4 @@ def _widen_meta_if_short(body_path: Path, header: tuple, written: int) -> tuple:
     for name, column in columns.items():
         widened[name] = column
     body_path.write_bytes(widened.tobytes())
-    return widened.dtype, comments
+    return widened.dtype, comments, 0

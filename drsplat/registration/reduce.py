@@ -216,7 +216,7 @@ def assemble_parts(out: Path, parts: list[PartResult]) -> int:
             body = Path(tmp) / "body"
             with open(body, "wb") as f:
                 _copy_parts(f, parts, dtype, period)
-            dtype, comments = _widen_meta_if_short(body, (dtype, comments), total)
+            dtype, comments, _ = _widen_meta_if_short(body, (dtype, comments), total)
             with atomic_path(out) as target, open(target, "wb") as f, open(body, "rb") as src:
                 f.write(ply_header(dtype, comments, total))
                 shutil.copyfileobj(src, f)
