@@ -177,3 +177,28 @@ def test_remap_kernel_matches_the_numpy_remap(case):
     assert remap_ids(got, ids) is got
     np.testing.assert_array_equal(got, want)
     assert got.dtype == np.int32
+
+
+@pytest.mark.parametrize("block_size", [1, 64, 4096])
+def test_visible_kernel_matches_the_numpy_test(city, tiny, block_size):
+    """The parallel per-Gaussian test returns exactly the numpy reference's ids: city views (a
+    small part), the room's hard cameras (everything, nothing, off-centre), near-plane and huge
+    Gaussians, and an index with one Gaussian per block or one block for all."""
+    scene, cams = city
+    prep = prepare_scene(scene)
+    rng = np.random.default_rng(block_size)
+    cam = cams[0]
+    near_plane = (np.asarray(cam.R).T @ (np.array([0.0, 0.0, 0.01]) - np.asarray(cam.t)))  # a mean on the near plane
+    prep.means[:3] = near_plane
+    prep.covariances[3:6] *= 1e6  # huge Gaussians
+    index = SpatialIndex.build(prep, block_size=block_size)
+    room_cams = _hard_cameras(load_cameras(tiny))
+    jittered = [dataclasses.replace(c, t=np.asarray(c.t) + rng.normal(scale=0.5, size=3), name=f"j{i}") for i, c in enumerate(cams[:4])]
+    sizes = []
+    for c in list(cams) + room_cams + jittered:
+        got, want = index.visible(c), index.visible_reference(c)
+        np.testing.assert_array_equal(got, want, err_msg=c.name)
+        assert got.dtype == np.int64
+        sizes.append(got.size)
+    assert min(sizes) == 0 and max(sizes) > 0  # the "away" camera sees nothing
+

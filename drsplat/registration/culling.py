@@ -126,7 +126,18 @@ class SpatialIndex:
 
     def visible(self, camera: Camera, near: float = NEAR, tile_size: int = TILE_SIZE) -> np.ndarray:
         """[V] int64 ascending ids of the Gaussians `camera` can rasterize: those of the visible
-        blocks that also pass the same five conditions with their own z and λ_max(Σ)."""
+        blocks that also pass the same five conditions with their own z and λ_max(Σ) (a parallel
+        numba pass over the visible blocks; `visible_reference` is the numpy form, same ids)."""
+        blocks = np.flatnonzero(self.visible_blocks(camera, near, tile_size))
+        grid_w, grid_h = _grid_size(camera, tile_size)
+        seen = np.zeros(self.num_gaussians, bool)
+        _visible_kernel(blocks, self.starts, self.order, self.lam, self.points, np.ascontiguousarray(camera.R, np.float64),
+                        np.ascontiguousarray(camera.t, np.float64), float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                        near * (1 - 1e-9), _radius_gain(camera), float(grid_w), float(grid_h), seen)
+        return np.flatnonzero(seen)
+
+    def visible_reference(self, camera: Camera, near: float = NEAR, tile_size: int = TILE_SIZE) -> np.ndarray:
+        """`visible` in numpy (the reference)."""
         blocks = np.flatnonzero(self.visible_blocks(camera, near, tile_size))
         sizes = self.starts[blocks + 1] - self.starts[blocks]
         # positions in `order` of the visible blocks' Gaussians (cost follows them, not M)
@@ -147,20 +158,47 @@ class SpatialIndex:
         return np.flatnonzero(seen)
 
 
+@numba.njit(parallel=True, cache=True)
+def _visible_kernel(blocks, starts, order, lam, points, rot, t, fx, fy, cx, cy, z_min, gain, grid_w, grid_h, seen):  # pragma: no cover - jitted
+    """seen[order[j]] = True for every Gaussian j of the `blocks` that passes the five conditions
+    with its own z and λ_max(Σ) (SpatialIndex.visible_reference, the same arithmetic in the same
+    order, so the same ids). In parallel over blocks: each Gaussian is in one block."""
+    for bi in numba.prange(blocks.shape[0]):
+        b = blocks[bi]
+        for j in range(starts[b], starts[b + 1]):
+            px = points[0, j]
+            py = points[1, j]
+            pz = points[2, j]
+            z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + t[2]
+            if not z >= z_min:
+                continue
+            x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + t[0]
+            y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + t[1]
+            radius = 3.0 * np.sqrt(gain * lam[j] / (z * z) + BLUR_BOUND) + 1.0 + PIXEL_MARGIN
+            u = fx * x / z + cx
+            v = fy * y / z + cy
+            if u >= -radius and u <= grid_w + radius and v >= -radius and v <= grid_h + radius:
+                seen[order[j]] = True
+
+
 def _grid_size(camera: Camera, tile_size: int) -> tuple[int, int]:
     """Pixels covered by the tile grid (the image rounded up to whole tiles)."""
     return -(-camera.width // tile_size) * tile_size, -(-camera.height // tile_size) * tile_size
 
 
-def _radius_bound(camera: Camera, lam: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Upper bound on the rasterizer's screen radius of Gaussians with λ_max(Σ) ≤ lam at depth ≥ z
-    (module docstring), plus PIXEL_MARGIN."""
+def _radius_gain(camera: Camera) -> float:
+    """g of the module docstring: λ_max(J Jᵀ) ≤ g / z² for rays within the rasterizer's 1.3x field-of-view limit."""
     w, h = camera.width, camera.height
     tan_x, tan_y = 0.5 * w / camera.fx, 0.5 * h / camera.fy
     lim_x = max((w - camera.cx) / camera.fx, camera.cx / camera.fx) + 0.3 * tan_x
     lim_y = max((h - camera.cy) / camera.fy, camera.cy / camera.fy) + 0.3 * tan_y
-    gain = max(camera.fx**2 * (1 + lim_x**2), camera.fy**2 * (1 + lim_y**2)) + camera.fx * camera.fy * lim_x * lim_y
-    return 3.0 * np.sqrt(gain * lam / (z * z) + BLUR_BOUND) + 1.0 + PIXEL_MARGIN
+    return float(max(camera.fx**2 * (1 + lim_x**2), camera.fy**2 * (1 + lim_y**2)) + camera.fx * camera.fy * lim_x * lim_y)
+
+
+def _radius_bound(camera: Camera, lam: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Upper bound on the rasterizer's screen radius of Gaussians with λ_max(Σ) ≤ lam at depth ≥ z
+    (module docstring), plus PIXEL_MARGIN."""
+    return 3.0 * np.sqrt(_radius_gain(camera) * lam / (z * z) + BLUR_BOUND) + 1.0 + PIXEL_MARGIN
 
 
 def largest_eigenvalues(covariances: np.ndarray, ids: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
