@@ -386,7 +386,7 @@ def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
             header = header or (rows.dtype, part.comments)
             f.write(rows.tobytes())
             written += rows.shape[0]
-    dtype, comments = _widen_meta_if_short(body, header, written)
+    dtype, comments, _ = _widen_meta_if_short(body, header, written)
     assert ply_header(dtype, comments, written) + body.read_bytes() == whole.read_bytes()
 
 
@@ -403,7 +403,7 @@ class _BlockWatcher:
         gc.collect()
         return sum(ref() is not None for ref in self.refs)
 
-    def open(self, codebook) -> None:
+    def open(self, codebook, rows_hint=None) -> None:
         pass
 
     def add(self, block, keep) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -12,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drsplat.errors import InputError
-from drsplat.scene import GaussianScene, load_ply, load_ply_report, save_ply
+from drsplat.scene import GaussianScene, load_ply, load_ply_report, save_ply, scene_to_vertices
 from tests.conftest import shared_path
 
 
@@ -270,3 +271,34 @@ def test_compressed_ply_with_sh_end_codes_loads_to_plus_minus_four(tmp_path):
     assert report.layout == "compressed" and scene.sh_degree == 1
     rest = scene.sh[0, 1:, :].T.reshape(-1)  # back to file order (channel-major)
     np.testing.assert_array_equal(rest, np.array([-4, 4, -4, 4, -4, 4, 0.015625, -3.953125, 3.953125], np.float32))
+
+
+@pytest.mark.parametrize("case", ["float16_base", "uint16_base", "reversed", "gaps", "mixed", "fortran", "one_column", "taller_base"])
+def test_vertices_from_column_views_equal_those_from_separate_columns(case):
+    """scene_to_vertices writes a run of extras that are consecutive columns of one [N, D] array
+    (ExactStorage.columns) as one block: the bytes equal per-column writes of separate copies, and
+    runs it cannot take as a block (reversed, gaps, a Fortran base, a taller base) fall back."""
+    rng = np.random.default_rng(len(case))
+    n, d = 37, 9
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=rng.normal(size=(n, 4)).astype(np.float32),
+                          log_scales=rng.normal(size=(n, 3)).astype(np.float32), opacity_logits=rng.normal(size=n).astype(np.float32),
+                          sh=rng.normal(size=(n, 4, 3)).astype(np.float32))
+    half = rng.normal(size=(n if case != "taller_base" else 2 * n, d)).astype(np.float16)
+    if case == "fortran":
+        half = np.asfortranarray(half)
+    bits = half.view(np.uint16) if case != "uint16_base" else np.ascontiguousarray(half.view(np.uint16))
+    if case == "taller_base":
+        bits = bits[::2]
+    order = list(range(d))[::-1] if case == "reversed" else [0, 1, 2, 5, 6, 7, 8] if case == "gaps" else [3] if case == "one_column" else list(range(d))
+    extra = {"lang_weight": rng.random(n).astype(np.float32)}
+    extra.update({f"lang_{j}": bits[:, j] for j in order})
+    if case == "mixed":
+        extra["lang_list"] = rng.integers(0, 9, n).astype(np.int32)
+        extra.update({f"code_{j}": rng.integers(0, 255, n).astype(np.uint8) for j in range(3)})
+    copies = {name: np.array(values, copy=True) for name, values in extra.items()}
+    got = scene_to_vertices(dataclasses.replace(scene, extra=extra))
+    want = scene_to_vertices(dataclasses.replace(scene, extra=copies))
+    assert got.dtype == want.dtype
+    assert got.tobytes() == want.tobytes()
+    for name in order[:2]:
+        np.testing.assert_array_equal(got[f"lang_{name}"], bits[:, name])

@@ -92,7 +92,8 @@ class ExactStorage:
     def columns(self) -> dict[str, np.ndarray]:
         """`lang_0 .. lang_{D-1}`: IEEE float16 bit patterns as ushort (PLY has no half type)."""
         bits = self.features.astype(np.float16).view(np.uint16)
-        return {f"lang_{j}": np.ascontiguousarray(bits[:, j]) for j in range(bits.shape[1])}
+        # column views of one [N, D] array, not copies: scene_to_vertices writes such a run of columns as one block
+        return {f"lang_{j}": bits[:, j] for j in range(bits.shape[1])}
 
     @classmethod
     def from_columns(cls, get: ColumnGetter, n: int, dim: int, codebook: Codebook | None = None) -> "ExactStorage":
