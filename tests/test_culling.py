@@ -77,14 +77,20 @@ def test_view_computer_pairs_equal_with_and_without_culling(city):
     rng = np.random.default_rng(3)
     culled = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=True))
     full = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=False))
-    for cam in cams[:4]:
+    n = geometry.num_gaussians
+    overview = dataclasses.replace(cams[0], t=np.asarray(cams[0].t) + np.array([0.0, 0.0, 60.0]), name="overview")  # the whole city in view
+    projected = []
+    for cam in cams[:4] + [overview]:
         masks = rng.integers(-1, 7, (cam.height, cam.width)).astype(np.int32)
         feats = rng.normal(size=(7, 8)).astype(np.float32)
+        before = culled.projected
         a, b = culled.compute(cam, masks, feats), full.compute(cam, masks, feats)
+        projected.append(culled.projected - before)
         for field in ("gaussians", "masks", "weights", "used"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{cam.name} {field}")
         assert a.num_pairs == b.num_pairs > 0
-    assert culled.projected < 0.5 * full.projected
+    assert max(projected[:4]) < 0.35 * n  # room views render their culled subset
+    assert projected[4] == n and culled._index.visible(overview).size > 0.35 * n  # most of the city in view: rendered whole
 
 
 def test_registered_field_bytes_equal_with_and_without_culling(tiny, tmp_path):

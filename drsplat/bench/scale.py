@@ -173,12 +173,15 @@ def _cpu_seconds() -> float:
 
 
 def _projected_per_view(scene, cameras) -> float:
-    """Mean Gaussians a culled view projects: the same index and test the registration's views use."""
-    from drsplat.registration.compute import prepare_geometry
+    """Mean Gaussians a culled view projects: the same index, test and whole-scene rule the
+    registration's views use (`ViewComputer`)."""
+    from drsplat.registration.compute import prepare_geometry, renders_whole
     from drsplat.registration.culling import SpatialIndex
 
+    n = scene.num_gaussians
     index = SpatialIndex.build(prepare_geometry(scene))
-    return float(sum(index.visible(cam).size for cam in cameras) / max(len(cameras), 1))
+    sizes = [index.visible(cam).size for cam in cameras]
+    return float(sum(n if renders_whole(size, n) else size for size in sizes) / max(len(cameras), 1))
 
 
 # ----------------------------------------------------------------------------- the bench (parent process)
