@@ -175,16 +175,18 @@ class ViewComputer:
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling
         and they are at most FULL_RENDER_FRACTION of the scene."""
+        def render(prepared):
+            return self._render(prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+
         if self._index is None:
             self.projected += self._prepared.num_gaussians if isinstance(self._prepared, PreparedScene) else 0
-            return self._render(self._prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+            return render(self._prepared)
         ids = self._index.visible(cam)
         if renders_whole(ids.size, self._prepared.num_gaussians):
             self.projected += self._prepared.num_gaussians
-            return self._render(self._prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+            return render(self._prepared)
         self.projected += int(ids.size)
-        out = self._render(subset_geometry(self._prepared, ids), cam, self.job.topk, with_median=self._with_median, out=self._out,
-                           device=self.job.device)
+        out = render(subset_geometry(self._prepared, ids))
         remap_ids(out.ids, ids)
         if out.median_ids is not None:
             remap_ids(out.median_ids, ids)
