@@ -680,7 +680,7 @@ def _column_block(items: list[tuple[str, np.ndarray]], i: int, dtype: np.dtype) 
     name, first = items[i]
     base = first.base
     size = first.itemsize
-    if (base is None or first.ndim != 1 or base.ndim != 2 or not base.flags.c_contiguous or base.itemsize != size
+    if (not isinstance(base, np.ndarray) or first.ndim != 1 or base.ndim != 2 or not base.flags.c_contiguous or base.itemsize != size
             or first.strides != (base.strides[0],) or base.shape[0] != first.shape[0] or dtype.fields[name][0] != first.dtype):
         return None
     start = first.__array_interface__["data"][0] - base.__array_interface__["data"][0]

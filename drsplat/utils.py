@@ -80,13 +80,19 @@ def _pid_alive(pid: int) -> bool:
 PARTIAL_SUFFIX = ".partial"
 
 
+def file_ancestor(path: Path) -> Path | None:
+    """The nearest existing ancestor of `path` when it is not a folder (then `path` cannot be created), else None."""
+    for ancestor in Path(path).parents:
+        if ancestor.exists():
+            return None if ancestor.is_dir() else ancestor
+    return None
+
+
 def ensure_parent(path: Path) -> None:
     """Create the folder of an output (and its parents); OutputError when an ancestor is a file."""
-    for ancestor in path.parents:
-        if ancestor.exists():
-            if not ancestor.is_dir():
-                raise OutputError(path, f"{ancestor} is a file, not a folder")
-            break
+    blocker = file_ancestor(path)
+    if blocker is not None:
+        raise OutputError(path, f"{blocker} is a file, not a folder")
     path.parent.mkdir(parents=True, exist_ok=True)
 
 
@@ -206,24 +212,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     An OSError in the block that names no file (a full disk) is re-raised naming `path`.
     """
     shown = Path(path)
-    path = output_target(shown)
-    if path.is_dir():
-        raise OutputError(shown, "is a directory")
-    if is_special_file(path):
+    target = output_target(shown)
+    if is_special_file(target):
         try:
-            yield path
+            yield target
         except OSError as exc:
             raise naming_path(exc, shown) from None
         return
-    ensure_parent(path)
-    sweep_stale_temps(path)
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
+    tmp_path = temp_beside(shown)
     try:
         yield tmp_path
-        os.replace(tmp_path, path)
+        replace_with_temp(tmp_path, shown)
     except OSError as exc:
         raise naming_path(exc, shown, tmp_path) from None
     finally:
@@ -231,13 +230,28 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def temp_beside(path: str | Path) -> Path:
+    """A new empty temp file beside the regular-file output `path` (a symlink's resolved target),
+    with normal permissions, to be renamed over it by `replace_with_temp` (`atomic_path` does
+    both). Stale temps of killed writers are swept first; OutputError when `path` is a folder or
+    one of its ancestors a file."""
+    shown = Path(path)
+    target = output_target(shown)
+    if target.is_dir():
+        raise OutputError(shown, "is a directory")
+    ensure_parent(target)
+    sweep_stale_temps(target)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(target), suffix=TEMP_SUFFIX, dir=target.parent)
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
+    return Path(tmp)
+
+
 def replace_with_temp(tmp: Path, path: str | Path) -> None:
-    """Rename the finished temp file `tmp` (made beside `path`'s target with `temp_prefix`) over
-    `path` as `atomic_path` does: normal permissions, a symlink's resolved target replaced (the link
-    stays a link); an OSError names `path`."""
+    """Rename the finished temp file `tmp` (from `temp_beside(path)`) over `path`'s target (a
+    symlink stays a link); an OSError names `path`."""
     shown = Path(path)
     try:
-        os.chmod(tmp, 0o666 & ~_current_umask())
         os.replace(tmp, output_target(shown))
     except OSError as exc:
         raise naming_path(exc, shown, tmp) from None
@@ -404,6 +418,9 @@ def guard_outputs(
     for flag, out in given_out.items():
         if out.is_dir():
             raise OutputError(out, f"{flag} names a directory; give a file path")
+        blocker = file_ancestor(out)
+        if blocker is not None:
+            raise OutputError(out, f"{flag} lies under {blocker}, which is a file, not a folder")
         for in_flag, inp in given_in.items():
             if _same_file(out, inp):
                 raise OutputError(out, f"{flag} is the same file as the input {in_flag}; writing it would destroy the input. Choose another output path")

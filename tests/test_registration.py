@@ -16,7 +16,7 @@ from drsplat.errors import Cancelled, InputError
 from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
 from drsplat.features.format import read_features, write_features
 from drsplat.registration import RegisterOptions, register_features
-from drsplat.registration.coalesce import Coalescer, coalesce_reference, split_masks
+from drsplat.registration.coalesce import EXTRA_SCRATCH_LIMIT, SCRATCH_BYTES, Coalescer, coalesce_parts, coalesce_reference, split_masks
 from drsplat.registration.sums import Accumulator, accumulate_view_reference, normalize_rows
 from drsplat.registration.views import pair_views
 from drsplat.scene import load_ply
@@ -131,6 +131,19 @@ def test_parallel_parts_give_the_serial_pairs_in_the_same_order(case):
     np.testing.assert_array_equal(want[0][order], rg)
     np.testing.assert_array_equal(want[1][order], rm)
     assert want[3] == rpairs
+
+
+def test_coalescer_parts_keep_their_extra_scratch_within_the_limit():
+    """Parallel parts cost SCRATCH_BYTES per Gaussian each: one per thread on small scenes, as many
+    as fit EXTRA_SCRATCH_LIMIT beyond the first on large ones (one part at 50M Gaussians)."""
+    import numba
+
+    assert coalesce_parts(1000) == numba.get_num_threads()
+    assert coalesce_parts(50_000_000) == 1
+    for n in (1, 10_000_000, 22_369_622, 30_000_000):
+        parts = coalesce_parts(n)
+        assert 1 <= parts <= numba.get_num_threads() and (parts - 1) * SCRATCH_BYTES * n <= EXTRA_SCRATCH_LIMIT
+    assert Coalescer(500)._seen.shape == (coalesce_parts(500), 500)
 
 
 def test_split_masks_balances_pixels():

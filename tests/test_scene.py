@@ -273,7 +273,8 @@ def test_compressed_ply_with_sh_end_codes_loads_to_plus_minus_four(tmp_path):
     np.testing.assert_array_equal(rest, np.array([-4, 4, -4, 4, -4, 4, 0.015625, -3.953125, 3.953125], np.float32))
 
 
-@pytest.mark.parametrize("case", ["float16_base", "uint16_base", "reversed", "gaps", "mixed", "fortran", "one_column", "taller_base"])
+@pytest.mark.parametrize("case", ["float16_base", "uint16_base", "reversed", "gaps", "mixed", "fortran", "one_column", "taller_base",
+                                  "bytes_base"])
 def test_vertices_from_column_views_equal_those_from_separate_columns(case):
     """scene_to_vertices writes a run of extras that are consecutive columns of one [N, D] array
     (ExactStorage.columns) as one block: the bytes equal per-column writes of separate copies, and
@@ -289,9 +290,13 @@ def test_vertices_from_column_views_equal_those_from_separate_columns(case):
     bits = half.view(np.uint16) if case != "uint16_base" else np.ascontiguousarray(half.view(np.uint16))
     if case == "taller_base":
         bits = bits[::2]
+    if case == "bytes_base":  # columns over a bytes buffer (np.frombuffer): their base is not an ndarray
+        bits = np.frombuffer(np.ascontiguousarray(half).tobytes(), np.uint16).reshape(n, d)
     order = list(range(d))[::-1] if case == "reversed" else [0, 1, 2, 5, 6, 7, 8] if case == "gaps" else [3] if case == "one_column" else list(range(d))
     extra = {"lang_weight": rng.random(n).astype(np.float32)}
     extra.update({f"lang_{j}": bits[:, j] for j in order})
+    if case == "bytes_base":
+        extra.update({f"raw_{j}": np.frombuffer(bits[:, j].tobytes(), np.uint16) for j in range(2)})
     if case == "mixed":
         extra["lang_list"] = rng.integers(0, 9, n).astype(np.int32)
         extra.update({f"code_{j}": rng.integers(0, 255, n).astype(np.uint8) for j in range(3)})

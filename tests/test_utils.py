@@ -7,7 +7,8 @@ import socket
 import numpy as np
 import pytest
 
-from drsplat.utils import atomic_path, host_reachable, save_npy_atomic
+from drsplat.errors import OutputError
+from drsplat.utils import atomic_path, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic, temp_beside
 
 
 def test_host_reachable_on_loopback():
@@ -32,3 +33,36 @@ def test_atomic_path_leaves_old_file_on_failure(tmp_path):
             raise RuntimeError("interrupted")
     np.testing.assert_array_equal(np.load(target), np.arange(3))
     assert [p.name for p in tmp_path.iterdir()] == ["a.npy"]
+
+
+def test_an_output_under_a_file_is_refused_before_anything_runs(tmp_path):
+    """--out a/b.ply where a is a file: one error naming the flag and the file in the way, from the
+    output guard (before any work) and from the temp-file maker; nothing is created."""
+    blocker = tmp_path / "scene.ply"
+    blocker.write_bytes(b"ply")
+    out = blocker / "sub" / "reg.ply"
+    with pytest.raises(OutputError, match=r"--out lies under .*scene\.ply, which is a file, not a folder"):
+        guard_outputs({"--scene": blocker}, {"--out": out})
+    with pytest.raises(OutputError, match=r"scene\.ply is a file, not a folder"):
+        temp_beside(out)
+    with pytest.raises(OutputError, match="is a directory"):
+        temp_beside(tmp_path)
+    assert blocker.read_bytes() == b"ply" and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
+def test_a_temp_beside_an_output_is_committed_through_a_link(tmp_path):
+    """temp_beside + replace_with_temp (what atomic_path does): the temp lies beside the link's
+    target with normal permissions, and the link stays a link to the new bytes."""
+    real = tmp_path / "real" / "out.bin"
+    real.parent.mkdir()
+    real.write_bytes(b"old")
+    link = tmp_path / "link.bin"
+    link.symlink_to(real)
+    tmp = temp_beside(link)
+    assert tmp.parent == real.parent and tmp.name.startswith(".out.bin.")
+    with atomic_path(tmp_path / "probe") as probe:
+        probe.write_bytes(b"x")
+    assert (tmp.stat().st_mode & 0o777) == ((tmp_path / "probe").stat().st_mode & 0o777)
+    tmp.write_bytes(b"new")
+    replace_with_temp(tmp, link)
+    assert link.is_symlink() and real.read_bytes() == b"new" and not tmp.exists()

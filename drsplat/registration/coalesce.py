@@ -91,9 +91,16 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
         part_pairs[t] += pairs
 
 
-def coalesce_parts() -> int:
-    """Parts a Coalescer cuts a view's masks into by default: one per numba thread."""
-    return max(1, numba.get_num_threads())
+SCRATCH_BYTES = 12  # per Gaussian per part: the seen / acc / touched arrays
+EXTRA_SCRATCH_LIMIT = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 600 MB each)
+
+
+def coalesce_parts(num_gaussians: int) -> int:
+    """Parts a Coalescer cuts a view's masks into by default: one per numba thread, as long as
+    the extra parts' scratch (SCRATCH_BYTES per Gaussian each) stays within EXTRA_SCRATCH_LIMIT.
+    The pairs do not depend on it."""
+    affordable = 1 + EXTRA_SCRATCH_LIMIT // max(SCRATCH_BYTES * num_gaussians, 1)
+    return int(max(1, min(numba.get_num_threads(), affordable)))
 
 
 def split_masks(starts: np.ndarray, parts: int) -> np.ndarray:
@@ -112,14 +119,14 @@ class Coalescer:
     """Turns one view's top-k lists into its distinct (Gaussian, mask) pairs (numba, in parallel over
     contiguous parts of the masks).
 
-    Owns the kernel's scratch arrays (12 bytes per Gaussian per part: `parts`, default numba's
-    threads) and per part a pair buffer that grows to the largest share of a view seen, so a view
+    Owns the kernel's scratch arrays (SCRATCH_BYTES per Gaussian per part: `parts`, default
+    `coalesce_parts`) and per part a pair buffer that grows to the largest share of a view seen, so a view
     never costs more than its own pairs. The pairs are the same, in the same order, for any number
     of parts.
     """
 
     def __init__(self, num_gaussians: int, capacity: int = 1 << 20, parts: int | None = None):
-        self.parts = max(1, int(parts or coalesce_parts()))
+        self.parts = max(1, int(parts or coalesce_parts(num_gaussians)))
         self._seen = np.full((self.parts, num_gaussians), -1, np.int32)
         self._acc = np.zeros((self.parts, num_gaussians), np.float32)
         self._touched = np.zeros((self.parts, num_gaussians), np.int32)

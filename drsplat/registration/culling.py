@@ -253,10 +253,9 @@ def remap_ids(local_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
     local id g becomes ids[g] (ids: [V] the view's visible scene ids). A parallel numba pass
     (numpy's boolean gather and scatter took ~10x longer over a view's H·W·k slots);
     `remap_ids_reference` is the numpy form."""
-    flat = local_ids.reshape(-1)
-    if not np.shares_memory(flat, local_ids):  # not contiguous: reshape copied
+    if not local_ids.flags.c_contiguous:  # a flat view would be a copy
         return remap_ids_reference(local_ids, ids)
-    _remap_kernel(flat, ids)
+    _remap_kernel(local_ids.reshape(-1), ids)
     return local_ids
 
 

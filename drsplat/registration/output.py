@@ -27,9 +27,9 @@ from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, 
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
-from drsplat.errors import DrsplatError, OutputError
-from drsplat.utils import (TEMP_SUFFIX, atomic_path, ensure_parent, is_special_file, output_target, replace_with_temp, sweep_stale_temps,
-                           temp_prefix, work_folder)
+from drsplat.errors import DrsplatError
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, is_special_file, output_target, replace_with_temp, temp_beside, temp_prefix,
+                           work_folder)
 
 
 class Target(Protocol):
@@ -101,15 +101,13 @@ class PlyTarget:
     def open(self, codebook: Codebook | str, rows_hint: int | None = None) -> None:
         """Start the body; rows_hint: the rows expected (the kept Gaussians), or None."""
         self._codebook = codebook
-        target = output_target(self.out)
-        in_place = rows_hint is not None and not is_special_file(target)
-        if in_place:
-            if target.is_dir():
-                raise OutputError(self.out, "is a directory")
-            ensure_parent(target)
-            sweep_stale_temps(target)
-        self._rows_hint = rows_hint if in_place else None
-        fd, name = tempfile.mkstemp(prefix=temp_prefix(target if in_place else self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
+        if rows_hint is not None and not is_special_file(output_target(self.out)):  # the body becomes the output: atomic_path's temp
+            self._rows_hint = rows_hint
+            self._body_path = temp_beside(self.out)
+            self._body = open(self._body_path, "wb")
+            return
+        self._rows_hint = None
+        fd, name = tempfile.mkstemp(prefix=temp_prefix(self.out), suffix=TEMP_SUFFIX, dir=work_folder(self.out))
         self._body_path = Path(name)
         self._body = os.fdopen(fd, "wb")
 

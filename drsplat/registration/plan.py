@@ -27,12 +27,11 @@ from drsplat.defaults import DEFAULT_AGGREGATE
 from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.coalesce import coalesce_parts
+from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
 from drsplat.scene import GaussianScene
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
 PROJECTION_BYTES = 160  # one view's Projected arrays, depth order keys and tile lists, per Gaussian
-SCRATCH_BYTES = 12  # the coalescer's seen / acc / touched arrays, per part (one part per numba thread)
 PAIR_BYTES = 12  # one distinct (Gaussian, mask, weight) pair
 SUM_BYTES = 16  # per Gaussian of a block besides F's 4·D: W, the accumulator's counting sort
 OUTPUT_COPIES = 10  # bytes per Gaussian per embedding value while a chunk of rows is encoded and written
@@ -90,7 +89,7 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     pixels = max((c.width * c.height for c in views), default=0)
     mode_views, mode_kept = Aggregator.memory_bytes(aggregate, n, pixels, topk)
     base = (current_rss() if base is None else base) + mode_kept
-    view = n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts()) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
+    view = n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
     views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
     row_bytes = scene.sh.shape[1] * 12 + 64
     return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
