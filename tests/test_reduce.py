@@ -21,8 +21,9 @@ from drsplat.errors import DrsplatError
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.checkpoint import checkpoint_path_for
 from drsplat.registration.output import PlyTarget, _meta_period
-from drsplat.registration.pairlog import PairLog, ViewPairs
-from drsplat.registration.reduce import ReduceJob, assemble_parts, reduce_block
+from drsplat.registration.aggregate import SurfaceSupport, ViewStats
+from drsplat.registration.pairlog import PairLog, ShardWriter, ViewPairs
+from drsplat.registration.reduce import ReduceJob, assemble_parts, block_support, reduce_block
 from drsplat.registration.sink import LogSink
 from drsplat.registration.sums import normalize_rows
 from drsplat.scene import GaussianScene, load_ply
@@ -173,7 +174,8 @@ def test_a_failing_reducer_names_its_block_and_the_checkpoint_resumes(cluster, t
         register(scene, cams, tiny / "features", out, options, show_progress=False)
     monkeypatch.undo()
     assert not out.exists() and checkpoint_path_for(out).exists()
-    assert not [p for p in out.parent.iterdir() if p.is_dir()]  # the parts folder is gone
+    # the parts folder is gone; the workers' shards of the log stay with the checkpoint
+    assert [p.name for p in out.parent.iterdir() if p.is_dir()] == [checkpoint_path_for(out).name + ".shards"]
     resumed = register(scene, cams, tiny / "features", out, options, show_progress=False)
     assert resumed.resumed_views == len(cams) and resumed.reducers
     assert sha(out) == sha(local) and not checkpoint_path_for(out).exists()
@@ -195,7 +197,26 @@ def test_a_run_cancelled_while_reducers_run_keeps_its_checkpoint(cluster, tiny, 
     with pytest.raises(Cancelled):
         register(scene, cams, tiny / "features", out, options, on_progress=cancel_after_the_views, cancel=token, show_progress=False)
     assert not out.exists() and checkpoint_path_for(out).exists()
+    # the workers logged the views' pairs in their shards; the driver's log holds a pointer per view and no pair
+    records = _logged_records(checkpoint_path_for(out))
+    assert [r.name for r in records] == [c.name for c in cams]
+    assert all(r.meta["P"] == 0 and r.meta["shard"]["file"].startswith(".reg.ply.register.log.shards/") for r in records)
+    assert sum(r.meta["shard"]["meta"]["P"] for r in records) > 0 and all("T" in r.meta["shard"]["meta"] for r in records)
     assert register(scene, cams, tiny / "features", out, options, show_progress=False).resumed_views == len(cams)
+    assert not checkpoint_path_for(out).exists() and not [p for p in tmp_path.iterdir() if p.name != "reg.ply"]
+
+
+def _logged_records(path: Path) -> list:
+    """The records of the pair log at `path`, opened with the parameters in its own header."""
+    import json
+    import struct
+
+    with open(path, "rb") as f:
+        f.read(8)
+        (n,) = struct.unpack("<Q", f.read(8))
+        params = json.loads(f.read(n))
+    with PairLog.open(path, params) as plog:
+        return list(plog.records)
 
 
 def test_without_reducers_the_driver_finishes_the_same_bytes(cluster, tiny, tmp_path):
@@ -269,3 +290,122 @@ def test_a_log_the_reducer_cannot_read_is_one_clear_error(tmp_path):
     job = dataclasses.replace(job, log_path=str(tmp_path / "other.log"), params={"a": 2})
     with pytest.raises(DrsplatError, match="other parameters"):
         reduce_block(job, None, "none", 0, None)
+
+
+# ----------------------------------------------------------------------------- the workers' shards (without Ray)
+
+
+def _view_with_stats(rng, name: str, n: int, dim: int) -> ViewPairs:
+    """A random view over Gaussians 0 .. n-1 (several 2^16 chunks) with floater statistics: each seen
+    Gaussian once, a third of them faint and mostly in front (rejected once every view agrees)."""
+    m = int(rng.integers(1, 5))
+    p = int(rng.integers(0, 4000))
+    g = rng.integers(0, n, p).astype(np.int32)
+    seen = rng.permutation(np.unique(np.r_[g, rng.integers(0, n, 500)]).astype(np.int32))  # any order, as the hook's first-seen order
+    total = rng.uniform(0.01, 2.0, seen.size)
+    faint = (seen % 3) == 0
+    peak = np.where(faint, 0.1, rng.uniform(0.0, 1.0, seen.size))
+    front = np.where(faint, 0.9, rng.uniform(0.0, 1.0, seen.size)) * total
+    return ViewPairs(name, rng.normal(size=(m, dim)).astype(np.float32), g, rng.integers(0, m, p).astype(np.int32),
+                     rng.uniform(1e-3, 1, p).astype(np.float32), np.arange(m, dtype=np.int32), p,
+                     stats=ViewStats(seen, peak, total, front))
+
+
+def test_shard_pointers_give_the_workers_pairs_and_the_driver_statistics(tmp_path):
+    """Two workers log views in shards, the driver logs pointers: every block reads the pairs a
+    whole log holds, and the statistics folded per block are the driver's fold of the whole views,
+    bit for bit, so the rejected mask is the same."""
+    n, dim = 200_000, 8
+    rng = np.random.default_rng(3)
+    params = {"test": "shards"}
+    folder = tmp_path / "reg.log.shards"
+    writers = [ShardWriter(folder, params) for _ in range(2)]
+    pointers, whole = PairLog.open(tmp_path / "reg.log", params), PairLog.open(tmp_path / "whole.log", params)
+    support = SurfaceSupport.zeros(n)
+    for v in range(7):
+        view = _view_with_stats(rng, f"v{v}", n, dim)
+        whole.append(view)
+        support.add(view.stats)
+        pointer = writers[v % 2].write(view)
+        assert pointer.gaussians.size == 0 and pointer.stats is None and pointer.num_distinct == view.num_distinct
+        np.testing.assert_array_equal(pointer.present, np.isin(np.arange(view.feats.shape[0]), view.masks))
+        pointers.append(pointer)
+    for w in writers:
+        w.sync()
+    assert len({p.name for p in folder.iterdir()}) == 2
+    assert all(r.meta["P"] == 0 and "shard" in r.meta for r in pointers.records)  # the driver's log holds no pair
+    assert support.rejected().any() and not support.rejected().all()
+    reader = PairLog.reader(pointers.path, params, pointers.records)  # a reducer's view of it
+    for lo, hi in [(0, n), (70_000, 140_000), (65_535, 65_537), (n - 10, n)]:
+        for a, b in zip(reader.block_views(lo, hi), whole.block_views(lo, hi)):
+            for name in ("gaussians", "masks", "weights", "feats"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        got = block_support(reader, lo, hi)
+        for name, values in support.arrays().items():
+            np.testing.assert_array_equal(getattr(got, name), values[lo:hi])
+        np.testing.assert_array_equal(got.rejected(), support.rejected()[lo:hi])
+    replayed = list(reader)  # a resumed driver's replay: pointers with the masks that reached a Gaussian
+    assert [v.num_distinct for v in replayed] == [r.meta["shard"]["meta"]["P"] for r in pointers.records]
+    assert all(v.present is not None and v.gaussians.size == 0 for v in replayed)
+    reader.close()
+    with pytest.raises(ValueError, match="holds no floater statistics"):
+        block_support(whole, 0, n)
+    # a reducer on a node that does not see a shard: one error naming the block, the file and the storage it needs
+    (tmp_path / writers[1].file).unlink()
+    job = ReduceJob(str(pointers.path), params, list(pointers.records), n, dim, n // 2, False, None, str(tmp_path / "o.ply"), "oracle",
+                    str(tmp_path), reject=True)
+    with pytest.raises(DrsplatError, match=rf"reducer of block 1 \(Gaussians 100,000\.\.199,999\).*{writers[1].file}: the worker's shard "
+                                           r"holding view v1 cannot be read \(No such file or directory\).*storage every Ray node shares"):
+        reduce_block(job, None, "none", 1, None)
+
+
+def test_a_resume_keeps_the_views_whose_shard_records_are_there(tmp_path, caplog):
+    from drsplat.registration.aggregate import Aggregator
+    from drsplat.registration.checkpoint import Checkpoint, shards_path
+    from drsplat.cameras import Camera
+
+    n, dim = 1000, 4
+    rng = np.random.default_rng(4)
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    cams = [Camera(np.eye(3), np.zeros(3), 8.0, 8.0, 4.0, 4.0, 8, 8, name=f"v{i}") for i in range(6)]
+    params = {"shards": True, "test": 1}
+    path = tmp_path / "reg.log"
+
+    def checkpoint() -> Checkpoint:
+        return Checkpoint(path, params, cams, Aggregator("vote-reject", scene, stats_on_reducers=True))
+
+    ckpt = checkpoint()
+    assert ckpt.shards_dir == shards_path(path) and ckpt.shards_dir.is_dir() and ckpt.resumed == 0
+    writers = [ShardWriter(ckpt.shards_dir, params) for _ in range(2)]
+    for i, cam in enumerate(cams):
+        ckpt.append(writers[i % 2].write(_view_with_stats(rng, cam.name, n, dim)))
+    for w in writers:
+        w.sync()
+        w.close()
+    ckpt.close()
+    assert checkpoint().resumed == 6
+    cut = tmp_path / writers[1].file  # views 1, 3, 5: the shard loses its last record's tail
+    with open(cut, "r+b") as f:
+        f.truncate(cut.stat().st_size - 10)
+    again = checkpoint()
+    assert again.resumed == 5 and "view v5 needs" in caplog.text
+    again.close()
+    replaced = tmp_path / writers[0].file  # views 0, 2, 4: another file of the same size at that path
+    replaced.write_bytes(bytes(replaced.stat().st_size))
+    assert checkpoint().resumed == 0 and "view v0 needs a record of" in caplog.text
+    assert not list(shards_path(path).iterdir())  # a fresh log starts with an empty folder
+
+
+def test_a_killed_temporary_runs_shards_are_swept(tmp_path):
+    """A run in blocks without a checkpoint logs into a temp file; its shards' folder is a temp folder of
+    the output too, so the next run writing that output removes a killed run's."""
+    from drsplat.registration.checkpoint import shards_path
+    from drsplat.utils import sweep_stale_temps
+
+    dead = 2**22 + 12345  # above Linux's default pid_max: no live process has it
+    folder = shards_path(tmp_path / f".reg.ply.{dead}.ab12cd.tmp")
+    assert folder.name == f".reg.ply.{dead}.ab12cd.shards.tmp"
+    folder.mkdir()
+    (folder / "host-1-abc.log").write_bytes(b"x")
+    assert sweep_stale_temps(tmp_path / "reg.ply") == 1 and not folder.exists()

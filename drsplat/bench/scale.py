@@ -142,6 +142,7 @@ def run_config(config: dict) -> dict:
         "kernels_compiled": sum(w.kernels_compiled for w in reg.workers), "kernels_cached": sum(w.kernels_cached for w in reg.workers),
         "views_wall": views_done[0], "views_driver_cpu": views_done[1], "first_view_driver_cpu": first_done[0] if first_done else 0.0,
         "reducer_seconds": reg.reducer_seconds, "reducer_sum_seconds": reg.reducer_sum_seconds, "driver_view_cpu": reg.driver_view_cpu_seconds,
+        "worker_log_seconds": sum(w.log_seconds for w in reg.workers), "log_bytes": reg.log_bytes,
     }
 
 
@@ -307,6 +308,8 @@ def write_records(path: Path, results: list[dict]) -> None:
     view_pass_s / view_pass_driver_busy_s: wall and driver CPU from the start to the last view summed;
     view_pass_first_view_driver_busy_s: driver CPU until the first view was summed (fixed costs);
     view_results_driver_busy_s: driver CPU on the views' results (logging, folding, sums).
+    worker_log_s: the workers' seconds writing their shards of the log (runs with reducers);
+    log_bytes: the pair log's bytes, shards included.
     reduce: tail (after the view pass) wall and driver CPU, and the reducer tasks' seconds summed over
     blocks (whole tasks, and their log replays).
     """
@@ -325,6 +328,7 @@ def write_records(path: Path, results: list[dict]) -> None:
             "view_pass_s": round(r["views_wall"], 3), "view_pass_driver_busy_s": round(r["views_driver_cpu"], 3),
             "view_pass_first_view_driver_busy_s": round(r["first_view_driver_cpu"], 3), "view_results_driver_busy_s": round(r["driver_view_cpu"], 3),
             "reduce": {**r["reduce"], "reducer_seconds": round(r["reducer_seconds"], 3), "reducer_replay_seconds": round(r["reducer_sum_seconds"], 3)},
+            "worker_log_s": round(r["worker_log_seconds"], 3), "log_bytes": r["log_bytes"],
         })
     with atomic_path(Path(path)) as tmp:
         Path(tmp).write_text(json.dumps(records, indent=1))
@@ -445,15 +449,17 @@ def _projection(args, results: list[dict]) -> None:
     """Wall time on 1 / 8 / 64 GPU nodes from per-task costs measured in the compare runs x task counts (a model).
 
     Views: t = a·N + b·P per view on a worker (projection ~ Gaussians, compositing ~ pixels); a from
-    the local run after removing b·P, b (--pixel-cost-us) from the flowers rasterizer table; workers
-    run in parallel on nodes x --gpu-speedup. The other costs come from the Ray reducers run with
-    the widest views (the most pairs per view): the driver's CPU on the views' results (logging,
-    folding) per distinct pair, the rest of its view-pass CPU after the first view (Ray calls) per
-    view; the reducers' log replay per pair and the rest of their task time (allocation, finish,
-    encoding) per Gaussian, `--reducers-per-node` reducers per node; the driver's CPU after the view
-    pass (assembly) per Gaussian. With V views, D distinct pairs, N Gaussians and k nodes:
+    the local run after removing b·P, b (--pixel-cost-us) from the flowers rasterizer table; plus the
+    worker's writes of its shard of the log per distinct pair; workers run in parallel on nodes x
+    --gpu-speedup. The other costs come from the Ray reducers run with the widest views (the most
+    pairs per view): the driver's CPU per view after the first (Ray calls, a pointer logged, the
+    vote's mask clusters: the workers log the pairs, so none of it grows with them); the reducers'
+    replay of the shards per pair (sums and floater statistics) and the rest of their task time
+    (allocation, finish, encoding) per Gaussian, `--reducers-per-node` reducers per node; the
+    driver's CPU after the view pass (assembly) per Gaussian. With V views, D distinct pairs, N
+    Gaussians and k nodes:
 
-        wall = max(views / k, V · driver_per_view + D · driver_per_pair)
+        wall = max(V · ((a·N + b·P) / gpu_speedup + D/V · log_per_pair) / k, V · driver_per_view)
                + (D · replay_per_pair + N · reducer_per_gaussian) / (k · reducers_per_node) + N · assemble_per_gaussian
     """
     local = results[0]
@@ -466,18 +472,17 @@ def _projection(args, results: list[dict]) -> None:
     per_view = (local["raster"] + local["coalesce"]) / local["views"]
     b = args.pixel_cost_us * 1e-6
     a = max(per_view - b * pixels, 0.0) / local["gaussians"]
-    driver_per_pair = ray["driver_view_cpu"] / max(ray["distinct"], 1)
-    calls = max(ray["views_driver_cpu"] - ray["first_view_driver_cpu"] - ray["driver_view_cpu"], 0.0)
-    driver_per_view = calls / max(ray["views"] - 1, 1)
+    log_per_pair = ray["worker_log_seconds"] / max(ray["distinct"], 1)
+    driver_per_view = max(ray["views_driver_cpu"] - ray["first_view_driver_cpu"], 0.0) / max(ray["views"] - 1, 1)
     replay_per_pair = ray["reducer_sum_seconds"] / max(ray["distinct"], 1)
     reducer_per_gaussian = max(ray["reducer_seconds"] - ray["reducer_sum_seconds"], 0.0) / ray["gaussians"]
     assemble_per_gaussian = ray["reduce"]["tail_driver_cpu_s"] / ray["gaussians"]
-    view_cost = a * args.model_gaussians + b * args.model_pixels
     pairs = args.model_images * args.pairs_per_mp * args.model_pixels / 1e6
+    view_cost = (a * args.model_gaussians + b * args.model_pixels) / args.gpu_speedup + log_per_pair * pairs / args.model_images
     rows, walls = [], {}
     for nodes in map(int, args.nodes.split(",")):
-        views_s = args.model_images * view_cost / (nodes * args.gpu_speedup)
-        log_s = args.model_images * driver_per_view + pairs * driver_per_pair
+        views_s = args.model_images * view_cost / nodes
+        log_s = args.model_images * driver_per_view
         reduce_s = (pairs * replay_per_pair + args.model_gaussians * reducer_per_gaussian) / (nodes * args.reducers_per_node)
         assemble_s = args.model_gaussians * assemble_per_gaussian
         walls[nodes] = max(views_s, log_s) + reduce_s + assemble_s
@@ -486,12 +491,12 @@ def _projection(args, results: list[dict]) -> None:
     print(f"\nProjection (a model, not a measurement): {args.model_images:,} images of {args.model_pixels / 1e6:.1f} MP, "
           f"{args.model_gaussians / 1e6:.0f}M Gaussians, {pairs / 1e9:.1f} G distinct pairs. Measured here: {a * 1e9:.0f} ns per Gaussian per "
           f"view ({local['gaussians'] / 1e6:.2f}M Gaussians, culled); from '{ray['label']}' ({ray['distinct'] / ray['views'] / 1e3:.1f}k pairs per "
-          f"view): driver {driver_per_pair * 1e9:.0f} ns per pair received and logged + {driver_per_view * 1e3:.1f} ms per view in Ray calls, "
-          f"reducers {replay_per_pair * 1e9:.0f} ns per pair replayed + {reducer_per_gaussian * 1e6:.1f} us per Gaussian, driver "
-          f"{assemble_per_gaussian * 1e6:.2f} us per Gaussian assembled. Assumed: {args.pixel_cost_us:g} us per pixel per view, "
-          f"{args.pairs_per_mp / 1e6:g} M distinct pairs per megapixel (flowers), one GPU node = {args.gpu_speedup:g}x this machine per view, "
-          f"{args.reducers_per_node} reducer(s) per node.")
-    print(format_table(["GPU nodes", "views on workers (min)", "driver receives + logs (min)", "reducers (min)", "driver assembles (min)",
+          f"view): workers {log_per_pair * 1e9:.0f} ns per pair written to their shards, driver {driver_per_view * 1e3:.1f} ms per view "
+          f"(Ray calls, pointers, mask clusters), reducers {replay_per_pair * 1e9:.0f} ns per pair replayed (sums and statistics) + "
+          f"{reducer_per_gaussian * 1e6:.1f} us per Gaussian, driver {assemble_per_gaussian * 1e6:.2f} us per Gaussian assembled. Assumed: "
+          f"{args.pixel_cost_us:g} us per pixel per view, {args.pairs_per_mp / 1e6:g} M distinct pairs per megapixel (flowers), one GPU node = "
+          f"{args.gpu_speedup:g}x this machine per view (not the shard writes), {args.reducers_per_node} reducer(s) per node.")
+    print(format_table(["GPU nodes", "views on workers (min)", "driver per view (min)", "reducers (min)", "driver assembles (min)",
                         "wall (min)", "view pass bound by"], rows))
     counts = sorted(walls)
     if len(counts) > 1:

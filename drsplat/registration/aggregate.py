@@ -763,12 +763,15 @@ class Aggregator:
     """A mode's state in one registration: its per-view `hook` (None for "paper": the view's w is
     used as it is), the folded statistics (`add` per view, in view order) and `finish` on the sums."""
 
-    def __init__(self, mode: str, scene):
-        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`)."""
+    def __init__(self, mode: str, scene, stats_on_reducers: bool = False):
+        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`).
+        stats_on_reducers: the views' statistics are logged by the workers and folded per block by
+        the reducers (drsplat.registration.reduce): nothing is folded here, `rejected()` is None
+        and the reducers' counts come in through `num_rejected`."""
         self.mode = mode
         stages = mode_stages(mode)
         self.reject, self.vote, self.solve = stages.reject, stages.vote, stages.solve
-        self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject else None
+        self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject and not stats_on_reducers else None
         needs_hook = stages.weighting != "paper" or self.reject
         self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
         self.num_rejected = 0
@@ -777,7 +780,7 @@ class Aggregator:
 
     def add(self, stats: ViewStats | None) -> None:
         """Fold one view's statistics (from the hook's second output) into the running support."""
-        if self.reject:
+        if self.support is not None:
             if stats is None:
                 raise ValueError(f"--aggregate {self.mode}: a view came without its rejection statistics")
             self.support.add(stats)
@@ -788,7 +791,7 @@ class Aggregator:
         streaming), F [B, D], W [B], once every view is in: rejected Gaussians get W = 0 and F = 0
         (unassigned). Returns how many of them were rejected that had weight (also added to
         `num_rejected`)."""
-        if not self.reject:
+        if self.support is None:
             return 0
         count = reject_rows(F, W, self.rejected()[start:start + W.shape[0]])
         self.num_rejected += count
@@ -796,8 +799,8 @@ class Aggregator:
 
     def rejected(self) -> np.ndarray | None:
         """[N] bool, the Gaussians the mode leaves unassigned (computed once every view is in), or
-        None for modes that reject nothing."""
-        if not self.reject:
+        None for modes that reject nothing and when the reducers fold the statistics."""
+        if self.support is None:
             return None
         if self._rejected is None:
             self._rejected = self.support.rejected()

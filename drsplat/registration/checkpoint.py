@@ -4,14 +4,20 @@
 finished view's distinct (Gaussian, mask, weight) pairs, which is all the running sums depend on.
 An aggregation mode with per-Gaussian statistics (floater rejection) snapshots them beside it every
 CHECKPOINT_EVERY views (`.register.log.aggregate.npz`); a resume cuts the log back to the views
-the snapshot covers. A checkpoint is resumed only when the scene, the views (names, intrinsics,
+the snapshot covers. A run whose blocks reducers finish (Ray) has its view workers log the views
+into shards (`.register.log.shards/`, drsplat.registration.pairlog.ShardWriter) and keeps only a
+pointer per view in the log; the statistics are then in the shards, and a resume keeps the views
+whose shard records are all there. A checkpoint is resumed only when the scene, the views (names, intrinsics,
 poses, order), the feature folder, top-k, level and mode are the same (`checkpoint_params`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
+import os
+import shutil
 import tempfile
 import zipfile
 from collections.abc import Sequence
@@ -22,7 +28,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.pairlog import TAG, PairLog, ViewPairs, payload_size
 from drsplat.scene import GaussianScene
 from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, work_folder
 
@@ -61,9 +67,21 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     return h.hexdigest()
 
 
-def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str) -> dict:
-    """What a checkpoint (pair log) must match to be resumed."""
-    return {
+def shards_path(checkpoint: Path) -> Path:
+    """The folder of the view workers' shards beside the pair log `checkpoint` (a temporary log's
+    is a temp folder too, `.<out>.<pid>.<random>.shards.tmp`, so a killed run's is swept)."""
+    name = checkpoint.name
+    if name.endswith(TEMP_SUFFIX):
+        return checkpoint.with_name(name[: -len(TEMP_SUFFIX)] + ".shards" + TEMP_SUFFIX)
+    return checkpoint.with_name(name + ".shards")
+
+
+def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str,
+                      shards: bool = False) -> dict:
+    """What a checkpoint (pair log) must match to be resumed. shards: the views are logged by the
+    workers into shards (a log of pointers resumes only as one)."""
+    extra = {"shards": True} if shards else {}
+    return {**extra,
         "aggregate": aggregate,
         "version": CHECKPOINT_VERSION,
         "num_gaussians": scene.num_gaussians,
@@ -81,6 +99,8 @@ class Checkpoint:
 
     temporary: the log only backs a run in blocks that is not resumable: it is removed whatever
     happens. every: views between fsyncs and statistics snapshots. `resumed`: views replayed from the log (their statistics are already in the snapshot).
+    shards: the views are logged by the workers (`shards_dir`, made empty for a fresh log) and the
+    log holds pointers (params has "shards").
     """
 
     def __init__(self, path: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator, temporary: bool = False,
@@ -89,6 +109,7 @@ class Checkpoint:
         self.temporary = temporary
         self.every = max(1, int(every))
         self.total = len(views)
+        self.shards_dir = shards_path(self.path) if params.get("shards") else None
         self.log = PairLog.open(self.path, params)
         names = [r.name for r in self.log.records]
         if names != [c.name for c in views[: len(names)]]:
@@ -99,6 +120,8 @@ class Checkpoint:
         self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
         if self.stats_path is not None:
             self._resume_stats()
+        if self.shards_dir is not None:
+            self._resume_shards()
         self.resumed = len(self.log.records)
 
     @classmethod
@@ -113,6 +136,14 @@ class Checkpoint:
     @property
     def done(self) -> int:
         return len(self.log.records)
+
+    @property
+    def nbytes(self) -> int:
+        """The log's bytes and its shards'."""
+        size = os.path.getsize(self.path)
+        if self.shards_dir is not None and self.shards_dir.is_dir():
+            size += sum(p.stat().st_size for p in self.shards_dir.iterdir() if p.is_file())
+        return size
 
     def replay(self):
         """The logged views, in order (ViewPairs without statistics)."""
@@ -141,15 +172,18 @@ class Checkpoint:
         self.log.close()
 
     def remove(self) -> None:
-        """Delete the log and the statistics snapshot (the output is safe, or the run is abandoned)."""
+        """Delete the log, its shards and the statistics snapshot (the output is safe, or the run is abandoned)."""
         self.log.delete()
         if self.stats_path is not None:
             self.stats_path.unlink(missing_ok=True)
+        if self.shards_dir is not None:
+            shutil.rmtree(self.shards_dir, ignore_errors=True)
 
     def describe(self) -> str:
         """'PATH (N of M views, S)': what a stopped run leaves behind."""
-        size = self.path.stat().st_size if self.path.exists() else 0
-        return f"{self.path} ({self.done} of {self.total} views, {format_size(size)})"
+        size = self.nbytes if self.path.exists() else 0
+        shards = f", with the workers' shards in {self.shards_dir.name}" if self.shards_dir is not None else ""
+        return f"{self.path} ({self.done} of {self.total} views, {format_size(size)}{shards})"
 
     def leave(self, why: str) -> None:
         """A run ended early (`why`): keep a log that holds views, with one message saying what it is;
@@ -165,6 +199,27 @@ class Checkpoint:
                 log.debug("no statistics snapshot at the stop (%s)", exc)
         log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
                     why, self.describe())
+
+    # ------------------------------------------------------------------ the workers' shards
+
+    def _resume_shards(self) -> None:
+        """Keep the logged views whose shard records are all there (a shard lost or cut short: the
+        log is cut back to the views before it, with a warning); a fresh log gets an empty folder."""
+        files: dict[str, object] = {}
+        try:
+            for i, record in enumerate(self.log.records):
+                problem = _shard_record_problem(self.path.parent, record.meta.get("shard"), files)
+                if problem is not None:
+                    log.warning("%s: view %s %s; resuming from the %d views before it", self.path, record.name, problem, i)
+                    self.log.truncate(i)
+                    break
+        finally:
+            for f in files.values():
+                if f is not None:
+                    f.close()
+        if not self.log.records:  # nothing to resume: the old shards are of no use
+            shutil.rmtree(self.shards_dir, ignore_errors=True)
+        self.shards_dir.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ the mode's statistics
 
@@ -183,6 +238,32 @@ class Checkpoint:
         self.log.truncate(views)
         self.aggregator.load_state(arrays)
         self.aggregator.views_folded = views
+
+
+def _shard_record_problem(folder: Path, ref: dict | None, files: dict) -> str | None:
+    """Why the shard record a pointer `ref` names cannot be resumed from, or None when it is there:
+    the file holds a record header at its start whose meta is the pointer's and whose payload and
+    checksum fit in the file (the payload itself is read by the reducers). files: shard name ->
+    open file (or None when it cannot be opened), shared between calls."""
+    if ref is None:
+        return "holds no shard pointer"
+    name = ref["file"]
+    if name not in files:
+        try:
+            files[name] = open(folder / name, "rb")
+        except OSError:
+            files[name] = None
+    f = files[name]
+    if f is None:
+        return f"needs {folder / name}, which is missing or unreadable"
+    meta = json.dumps(ref["meta"]).encode()
+    start, offset = int(ref["start"]), int(ref["offset"])
+    f.seek(start)
+    head = f.read(20 + len(meta))
+    if (len(head) != 20 + len(meta) or head[:4] != TAG or head[20:] != meta or offset != start + 20 + len(meta)
+            or os.fstat(f.fileno()).st_size < offset + payload_size(ref["meta"]) + 4):
+        return f"needs a record of {folder / name} that is not there (the shard was cut short or replaced)"
+    return None
 
 
 def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:

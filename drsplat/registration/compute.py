@@ -60,6 +60,9 @@ class ViewJob:
     (drsplat.registration.device_sums; the torch engine without a hook, in this process).
     group_pairs: hand out host pairs grouped by Gaussian chunk (`ViewPairs.grouped`, the pair log's
     record order), so the process that computed the view sorts them, not the driver that logs it.
+    shard_dir / log_params: the views are logged by the Ray workers that compute them, each into a
+    shard of its own in this folder (drsplat.registration.pairlog.ShardWriter, with the log's
+    parameters), and the driver gets pointers; None: the driver logs them.
     """
 
     features_dir: Path
@@ -71,6 +74,8 @@ class ViewJob:
     cull: bool = True
     device_pairs: bool = False
     group_pairs: bool = False
+    shard_dir: str | None = None
+    log_params: dict | None = None
 
 
 def hook_runs_on_device(hook: ViewHook | None) -> bool:
@@ -204,7 +209,8 @@ class WorkerStats:
     first_view_seconds: its first view, from reading the features to the pairs, which includes
     loading its numba kernels from the on-disk cache or compiling them; later_view_seconds: each
     later view's. kernels_cached / kernels_compiled: numba kernels this process loaded from the
-    cache / compiled (`kernel_cache_counts`). peak_rss: its peak resident bytes.
+    cache / compiled (`kernel_cache_counts`). peak_rss: its peak resident bytes. log_seconds: time
+    writing its shard of the log (included in the views' seconds; 0 when the driver logs).
     """
 
     pid: int = field(default_factory=os.getpid)
@@ -213,6 +219,7 @@ class WorkerStats:
     kernels_cached: int = 0
     kernels_compiled: int = 0
     peak_rss: int = 0
+    log_seconds: float = 0.0
 
     def add_view(self, seconds: float) -> None:
         if self.first_view_seconds is None:
@@ -229,6 +236,7 @@ class WorkerStats:
         self.kernels_cached = max(self.kernels_cached, other.kernels_cached)
         self.kernels_compiled = max(self.kernels_compiled, other.kernels_compiled)
         self.peak_rss = max(self.peak_rss, other.peak_rss)
+        self.log_seconds += other.log_seconds
 
     def refresh(self) -> "WorkerStats":
         """Read this process's kernel counts and peak RSS now; returns self."""

@@ -6,8 +6,10 @@
                logs the view (checkpoint) and hands it to the sink
     sums       the sink gives each block's sums F, W (MemorySink: kept live; LogSink: replayed)
     finish     the mode's step on the sums (floater rejection), normalise, prune
-    reduce     on Ray in blocks, writing a PLY: sums, finish and encoding of each block run in a
-               reducer task that writes a part; the driver assembles the parts (registration.reduce)
+    reduce     on Ray in blocks, writing a PLY: the workers log the views in shards (the driver
+               logs pointers and folds nothing); sums, the statistics' fold, finish and encoding
+               of each block run in a reducer task that writes a part; the driver assembles the
+               parts (registration.reduce)
     codebook   one step: none, a loaded file, or trained on the scene's masks (+ a sample of
                Gaussians summed by the sink), the same whatever the plan
     target     PlyTarget writes the registered PLY (one writer), ArrayTarget keeps [N, D]
@@ -149,7 +151,7 @@ class ViewTotals:
     sum_cpu_seconds: float = 0.0
     driver_view_cpu_seconds: float = 0.0  # this process's CPU on computed views' results: log, fold, sums
     embeddings: list[np.ndarray] = field(default_factory=list)
-    positive: np.ndarray | None = None  # [N] bool: some pair gave the Gaussian weight > 0
+    positive: np.ndarray | None = None  # [N] bool: some pair gave the Gaussian weight > 0 (None: the reducers know)
 
     def add(self, view: ViewPairs) -> None:
         if view.feats.shape[1] != self.dim:
@@ -160,7 +162,8 @@ class ViewTotals:
         self.num_nonfinite_masks += view.num_nonfinite
         self.raster_seconds += view.raster_seconds
         self.coalesce_seconds += view.coalesce_seconds
-        self.positive[view.gaussians[view.weights > 0]] = True
+        if self.positive is not None:
+            self.positive[view.gaussians[view.weights > 0]] = True
         if self.collect:
             self.embeddings.append(np.array(view.feats[view.used]))
 
@@ -233,20 +236,21 @@ def run_registration(
     n = scene.num_gaussians
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     block = options.block_size or _plan_block(run)
-    aggregator = Aggregator(options.aggregate, scene)
+    # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
+    reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
+    aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
     if aggregator.solve and block < n:
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
                          f"--memory-budget (or --block-size) that splits the scene into blocks of {block:,}")
-    params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate)
+    params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
     elif block < n:
         ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
     else:
         ckpt = None
-    totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=np.zeros(n, bool))
-    # the partitioned reduce (Ray, blocks, a PLY): its Ray connection outlives the view pass's executor
-    pool = ReducePool(options.cluster, cancel) if wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget)) else None
+    totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool))
+    pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
     reduce: BlockReduce | None = None
     reducer_seconds = (0.0, 0.0)
     try:
@@ -255,12 +259,14 @@ def run_registration(
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
-        candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
-        if not candidates.any():
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
-        if pool is not None:
+        if pool is None:
+            candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
+        else:  # the pairs and statistics are in the workers' shards: the reducers know the candidates
             reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned, getattr(sink, "clusters", None), target.out,
-                                                target.clip_model))
+                                                target.clip_model, reject=aggregator.reject))
+            candidates = reduce.candidates() if codebook == "scene" else None
+        if candidates is not None and not candidates.any():
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
@@ -285,7 +291,7 @@ def run_registration(
             pool.close()
     if pool is not None:  # the reducers' workers too
         worker_rss = {pid: max(rss, worker_rss.get(pid, 0)) for pid, rss in {**worker_rss, **pool.worker_peak_rss}.items()}
-    log_bytes = ckpt.log.nbytes if ckpt is not None else 0
+    log_bytes = ckpt.nbytes if ckpt is not None else 0
     if ckpt is not None:
         ckpt.remove()
     aggregator.log_rejected()
@@ -385,8 +391,10 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     if totals.done == total:
         return [], {}
     options = run.options
+    shards = ckpt is not None and ckpt.shards_dir is not None
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
-                  device_pairs=device_pairs, group_pairs=ckpt is not None)
+                  device_pairs=device_pairs, group_pairs=ckpt is not None, shard_dir=str(ckpt.shards_dir.resolve()) if shards else None,
+                  log_params=ckpt.log.params if shards else None)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
     try:

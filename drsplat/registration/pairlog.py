@@ -11,6 +11,7 @@ Layout (little-endian):
     header:  b"DRSPLOG2" | u64 n | n bytes of JSON parameters | u32 crc32(JSON)
     record:  b"VIEW" | u64 a | u64 b | a bytes of JSON meta | b bytes of payload | u32 crc32(meta + payload)
     payload: feats [M, D] f32 | gaussian [P] i32 | mask [P] i32 | weight [P] f32 | used [U] i32 | starts [C + 1] i64
+             [ | stat ids [T] i32 | peak [T] f64 | total [T] f64 | front [T] f64 | stat starts [S + 1] i64 ]   (meta has "T")
 
 A record's pairs are grouped by Gaussian chunk (chunk c = Gaussians c·2^16 .. (c+1)·2^16 - 1,
 `CHUNK_SHIFT`), stably: chunk c's pairs are pairs starts[c] .. starts[c+1] - 1, in the order the
@@ -23,6 +24,14 @@ not once per block.
 Size: 12 bytes per distinct pair plus 4·D per mask and 8 per chunk (flowers, 50 views at 640 x
 480: 15.3 M pairs, 184 MB, against 1.1 GB for the old dense F checkpoint that was rewritten every
 10 views).
+Worker shards (the partitioned reduce on Ray, drsplat.registration.reduce): each view worker
+appends its own views' records, with their floater statistics (the optional section, grouped by
+chunk like the pairs), to a shard of its own (`ShardWriter`) in a folder beside the log, and the
+driver's log holds only a small pointer record per view (meta "shard": the shard file, relative to
+the log's folder, and where the record lies; its embeddings and the masks that reached a Gaussian,
+"present"). Reading a pointer's pairs (`read_block`) or statistics (`read_stats_block`) follows it
+into the shard, so the driver never receives, writes or reads a view's pairs.
+
 A record cut short by a kill, a bad checksum or a file that is not a log (an older .npz
 checkpoint, a truncated one) is detected: the valid prefix is kept, or the run starts over with
 a warning.
@@ -34,13 +43,17 @@ import dataclasses
 import json
 import logging
 import os
+import socket
 import struct
+import uuid
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from drsplat.registration.aggregate import ViewStats
 
 log = logging.getLogger(__name__)
 
@@ -61,11 +74,15 @@ class ViewPairs:
     used: [U] int32 masks that cover at least one pixel (for training a scene codebook).
     num_pairs: contributing (Gaussian, pixel) pairs; num_nonfinite: masks dropped.
     raster_seconds / coalesce_seconds: where the time went (not stored in the log).
-    stats: the aggregation mode's per-view statistics (drsplat.aggregate.ViewStats), or None
-    (not stored in the log: a resume reads them from their own snapshot).
+    stats: the aggregation mode's per-view statistics (drsplat.registration.aggregate.ViewStats), or
+    None (stored only in a worker's shard; the driver's log resumes them from their own snapshot).
     device: the pairs on the torch engine's device (drsplat.registration.device_sums.DevicePairs),
     or None; gaussians / masks / weights are then empty until `on_host` copies them (not logged).
     chunk_starts: [C + 1] int64 when the pairs are grouped by Gaussian chunk (`grouped`), else None.
+    present: [M] bool, the masks that reached some Gaussian, or None (then read from `masks`);
+    shard: where a worker logged this view's pairs and statistics (`ShardWriter`: the shard file
+    relative to the log's folder, the record's offsets and meta), or None; with a shard the host
+    pairs are empty and `present` is set.
     """
 
     name: str
@@ -81,10 +98,22 @@ class ViewPairs:
     stats: object | None = None
     device: object | None = None
     chunk_starts: np.ndarray | None = None
+    present: np.ndarray | None = None
+    shard: dict | None = None
 
     @property
     def num_distinct(self) -> int:
+        if self.shard is not None:
+            return int(self.shard["meta"]["P"])
         return self.device.num_distinct if self.device is not None else int(self.gaussians.shape[0])
+
+    def present_masks(self) -> np.ndarray:
+        """[M] bool: the masks that reached some Gaussian in this view."""
+        if self.present is not None:
+            return self.present
+        present = np.zeros(self.feats.shape[0], bool)
+        present[self.masks] = True
+        return present
 
     def on_host(self) -> ViewPairs:
         """This view with its pairs on the host: itself, or a copy holding the device pairs' host arrays."""
@@ -99,14 +128,8 @@ class ViewPairs:
         summing the grouped view gives the same bits. O(P) radix sort on 16-bit chunk keys."""
         if self.chunk_starts is not None:
             return self
-        g, m, w = self.gaussians, self.masks, self.weights
-        chunks = (g >> CHUNK_SHIFT).astype(np.uint16)  # int32 ids: chunk < 2^15, and numpy's stable sort of 16-bit keys is a radix sort
-        count = int(chunks.max()) + 1 if g.size else 0
-        starts = np.zeros(count + 1, np.int64)
-        np.cumsum(np.bincount(chunks, minlength=count), out=starts[1:])
-        if count > 1 and np.any(chunks[1:] < chunks[:-1]):
-            order = np.argsort(chunks, kind="stable")
-            g, m, w = g[order], m[order], w[order]
+        order, starts = chunk_grouping(self.gaussians)
+        g, m, w = (self.gaussians, self.masks, self.weights) if order is None else (self.gaussians[order], self.masks[order], self.weights[order])
         return dataclasses.replace(self, gaussians=g, masks=m, weights=w, chunk_starts=starts)
 
     @property
@@ -114,18 +137,55 @@ class ViewPairs:
         return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes)
 
 
-def _encode(view: ViewPairs) -> tuple[bytes, list[np.ndarray]]:
+def chunk_grouping(ids: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(order, starts): the stable order that groups `ids` [P] int32 by Gaussian chunk (None when
+    they are grouped already) and the [C + 1] int64 chunk starts of the grouped ids. O(P) radix sort
+    on 16-bit chunk keys."""
+    chunks = (ids >> CHUNK_SHIFT).astype(np.uint16)  # int32 ids: chunk < 2^15, and numpy's stable sort of 16-bit keys is a radix sort
+    count = int(chunks.max()) + 1 if ids.size else 0
+    starts = np.zeros(count + 1, np.int64)
+    np.cumsum(np.bincount(chunks, minlength=count), out=starts[1:])
+    order = np.argsort(chunks, kind="stable") if count > 1 and np.any(chunks[1:] < chunks[:-1]) else None
+    return order, starts
+
+
+def _stats_arrays(stats) -> tuple[dict, list[np.ndarray]]:
+    """The optional statistics section of a record (a view's ViewStats grouped by Gaussian chunk):
+    its meta entries and arrays. A view's statistics hold each Gaussian once, so any order folds to
+    the same bits (drsplat.registration.aggregate.SurfaceSupport.add)."""
+    order, starts = chunk_grouping(np.asarray(stats.ids, np.int32))
+    columns = [np.asarray(stats.ids, np.int32), np.asarray(stats.peak, np.float64), np.asarray(stats.total, np.float64),
+               np.asarray(stats.front, np.float64)]
+    if order is not None:
+        columns = [c[order] for c in columns]
+    dtypes = ("<i4", "<f8", "<f8", "<f8")
+    return ({"T": int(columns[0].shape[0]), "S": int(starts.shape[0] - 1)},
+            [np.ascontiguousarray(c, t) for c, t in zip(columns, dtypes)] + [np.ascontiguousarray(starts, "<i8")])
+
+
+def _encode(view: ViewPairs, with_stats: bool = False) -> tuple[bytes, list[np.ndarray]]:
+    """A record's meta and payload arrays: the view's pairs (grouped by chunk), with its statistics
+    when `with_stats` (a worker's shard); a view logged in a shard gets a pointer record (no pairs)."""
     view = view.grouped()  # done by the worker that computed it when the job asked (ViewJob.group_pairs)
     meta = {
-        "name": view.name, "M": int(view.feats.shape[0]), "D": int(view.feats.shape[1]), "P": view.num_distinct,
+        "name": view.name, "M": int(view.feats.shape[0]), "D": int(view.feats.shape[1]), "P": int(view.gaussians.shape[0]),
         "U": int(view.used.shape[0]), "C": int(view.chunk_starts.shape[0] - 1), "pairs": int(view.num_pairs),
         "nonfinite": int(view.num_nonfinite),
     }
+    if view.shard is not None:
+        meta["shard"] = view.shard
+        meta["present"] = np.flatnonzero(view.present_masks()).tolist()
     arrays = [
         np.ascontiguousarray(view.feats, "<f4"), np.ascontiguousarray(view.gaussians, "<i4"),
         np.ascontiguousarray(view.masks, "<i4"), np.ascontiguousarray(view.weights, "<f4"), np.ascontiguousarray(view.used, "<i4"),
         np.ascontiguousarray(view.chunk_starts, "<i8"),
     ]
+    if with_stats:
+        if view.stats is None:
+            raise ValueError(f"view {view.name}: no statistics to log")
+        extra, stats = _stats_arrays(view.stats)
+        meta.update(extra)
+        arrays += stats
     return json.dumps(meta).encode(), arrays
 
 
@@ -136,19 +196,32 @@ def _decode(meta: dict, payload: memoryview | bytes) -> ViewPairs:
 
     def take(count: int, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
         nonlocal pos
-        size = count * 4
+        size = count * np.dtype(dtype).itemsize
         arr = buf[pos : pos + size].view(dtype).reshape(shape)
         pos += size
         return arr
 
     feats = take(m * d, "<f4", (m, d))
     g, mk, w, used = take(p, "<i4", (p,)), take(p, "<i4", (p,)), take(p, "<f4", (p,)), take(u, "<i4", (u,))
-    starts = buf[pos : pos + 8 * (meta["C"] + 1)].view("<i8")
-    return ViewPairs(meta["name"], feats, g, mk, w, used, int(meta["pairs"]), int(meta["nonfinite"]), chunk_starts=starts)
+    starts = take(meta["C"] + 1, "<i8", (meta["C"] + 1,))
+    stats = None
+    if "T" in meta:
+        t = meta["T"]
+        stats = ViewStats(take(t, "<i4", (t,)), take(t, "<f8", (t,)), take(t, "<f8", (t,)), take(t, "<f8", (t,)))
+    present = None
+    if "present" in meta:
+        present = np.zeros(m, bool)
+        present[np.asarray(meta["present"], np.int64)] = True
+    return ViewPairs(meta["name"], feats, g, mk, w, used, int(meta["pairs"]), int(meta["nonfinite"]), stats=stats, chunk_starts=starts,
+                     present=present, shard=meta.get("shard"))
 
 
-def _payload_size(meta: dict) -> int:
-    return 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)
+def payload_size(meta: dict) -> int:
+    """The bytes of a record's payload, from its meta (the statistics section included)."""
+    size = 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)
+    if "T" in meta:
+        size += 28 * meta["T"] + 8 * (meta["S"] + 1)
+    return size
 
 
 def chunk_span(starts: np.ndarray, lo: int, hi: int) -> tuple[int, int]:
@@ -158,6 +231,10 @@ def chunk_span(starts: np.ndarray, lo: int, hi: int) -> tuple[int, int]:
     first = min(lo >> CHUNK_SHIFT, c)
     last = min(((hi - 1) >> CHUNK_SHIFT) + 1, c) if hi > lo else first
     return int(starts[first]), int(starts[max(last, first)])
+
+
+class ShardError(ValueError):
+    """A pointer record's shard is missing or is not that log's (names the file)."""
 
 
 @dataclass
@@ -183,6 +260,7 @@ class PairLog:
         self.params = params
         self.records = records
         self._file = file
+        self._shards: dict[str, PairLog] = {}  # shard file -> its reader (pointer records lead there)
 
     # --------------------------------------------------------------------- opening
 
@@ -215,7 +293,7 @@ class PairLog:
             body = f.read(min(n, 1 << 20))
             if len(body) != n or json.loads(body) != json.loads(json.dumps(params, sort_keys=True)):
                 raise ValueError("a log of other parameters or inputs")
-            end = records[-1].offset + _payload_size(records[-1].meta) + 4 if records else 0
+            end = records[-1].offset + payload_size(records[-1].meta) + 4 if records else 0
             size = os.fstat(f.fileno()).st_size
             if size < end:
                 raise ValueError(f"{size} bytes, its {len(records)} views need {end}")
@@ -230,6 +308,9 @@ class PairLog:
         os.fsync(self._file.fileno())
 
     def close(self) -> None:
+        for shard in self._shards.values():
+            shard.close()
+        self._shards.clear()
         if self._file is not None and not self._file.closed:
             self._file.close()
 
@@ -245,9 +326,10 @@ class PairLog:
 
     # --------------------------------------------------------------------- writing / reading
 
-    def append(self, view: ViewPairs, sync: bool = False) -> None:
-        """Append one view's record (flushed to the OS; fsync'd when `sync`)."""
-        meta_bytes, arrays = _encode(view)
+    def append(self, view: ViewPairs, sync: bool = False, with_stats: bool = False) -> None:
+        """Append one view's record (flushed to the OS; fsync'd when `sync`); with its statistics when
+        `with_stats` (a worker's shard), a pointer record when the view lies in a shard."""
+        meta_bytes, arrays = _encode(view, with_stats)
         size = sum(a.nbytes for a in arrays)
         f = self._file
         f.seek(0, os.SEEK_END)
@@ -276,14 +358,10 @@ class PairLog:
         f = self._file
         f.flush()
         f.seek(record.offset)
-        return _decode(record.meta, f.read(_payload_size(record.meta)))
+        return _decode(record.meta, f.read(payload_size(record.meta)))
 
-    def read_block(self, record: LogRecord, lo: int, hi: int) -> ViewPairs:
-        """The view stored in `record` with only the pairs of Gaussians lo .. hi-1 (in record order):
-        its embeddings, its chunk starts and the pairs of the chunks that meet [lo, hi), read with
-        one seek each, then filtered exactly."""
-        meta = record.meta
-        m, d, p, u, c = meta["M"], meta["D"], meta["P"], meta["U"], meta["C"]
+    def _reader_at(self, record: LogRecord):
+        """read_at(pos, count, dtype): `count` items of `dtype` at byte `pos` of the record's payload."""
         f = self._file  # one handle, one reader: a reducer opens its own
         f.flush()
 
@@ -295,6 +373,33 @@ class PairLog:
                 raise ValueError(f"{self.path}: the record of view {record.name} is cut short")
             return np.frombuffer(raw, dtype)
 
+        return read_at
+
+    def _in_shard(self, record: LogRecord) -> tuple[PairLog, LogRecord] | None:
+        """(the shard's reader, the view's record there) for a pointer record, else None."""
+        ref = record.meta.get("shard")
+        if ref is None:
+            return None
+        shard = self._shards.get(ref["file"])
+        if shard is None:
+            path = self.path.parent / ref["file"]
+            try:
+                shard = self._shards[ref["file"]] = PairLog.reader(path, self.params, [])
+            except (OSError, ValueError) as exc:
+                why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+                raise ShardError(f"{path}: the worker's shard holding view {record.name} cannot be read ({why})") from None
+        return shard, LogRecord(record.name, int(ref["offset"]), ref["meta"], int(ref["start"]))
+
+    def read_block(self, record: LogRecord, lo: int, hi: int) -> ViewPairs:
+        """The view stored in `record` with only the pairs of Gaussians lo .. hi-1 (in record order):
+        its embeddings, its chunk starts and the pairs of the chunks that meet [lo, hi), read with
+        one seek each, then filtered exactly. A pointer record's pairs are read from its shard."""
+        shard = self._in_shard(record)
+        if shard is not None:
+            return shard[0].read_block(shard[1], lo, hi)
+        meta = record.meta
+        m, d, p, u, c = meta["M"], meta["D"], meta["P"], meta["U"], meta["C"]
+        read_at = self._reader_at(record)
         feats = read_at(0, m * d, "<f4").reshape(m, d)
         pairs_at = 4 * m * d
         starts = read_at(pairs_at + 12 * p + 4 * u, c + 1, "<i8")
@@ -307,6 +412,28 @@ class PairLog:
         if not keep.all():
             g, mk, w = g[keep], mk[keep], w[keep]
         return ViewPairs(record.name, feats, g, mk, w, used, int(meta["pairs"]), int(meta["nonfinite"]))
+
+    def read_stats_block(self, record: LogRecord, lo: int, hi: int) -> ViewStats:
+        """The statistics of Gaussians lo .. hi-1 in `record` (a shard's record, or a pointer to one;
+        ids are scene ids), read from the chunks that meet [lo, hi). ValueError for a record
+        without statistics."""
+        shard = self._in_shard(record)
+        if shard is not None:
+            return shard[0].read_stats_block(shard[1], lo, hi)
+        meta = record.meta
+        if "T" not in meta:
+            raise ValueError(f"{self.path}: the record of view {record.name} holds no floater statistics")
+        t = meta["T"]
+        at = 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)  # the statistics section
+        read_at = self._reader_at(record)
+        starts = read_at(at + 28 * t, meta["S"] + 1, "<i8")
+        s0, s1 = chunk_span(starts, lo, hi)
+        ids = read_at(at + 4 * s0, s1 - s0, "<i4")
+        columns = [read_at(at + 4 * t + 8 * (j * t + s0), s1 - s0, "<f8") for j in range(3)]
+        keep = (ids >= lo) & (ids < hi)
+        if not keep.all():
+            ids, columns = ids[keep], [c[keep] for c in columns]
+        return ViewStats(ids, *columns)
 
     def __iter__(self) -> Iterator[ViewPairs]:
         for record in list(self.records):
@@ -373,10 +500,39 @@ def _scan(f, size: int) -> tuple[list[LogRecord], int]:
         stored = f.read(4)
         try:
             meta = json.loads(meta_bytes)
-            ok = _U32.unpack(stored)[0] == crc and _payload_size(meta) == b
+            ok = _U32.unpack(stored)[0] == crc and payload_size(meta) == b
         except (ValueError, KeyError, TypeError, struct.error):
             ok = False
         if not ok:
             return records, end
         records.append(LogRecord(meta["name"], end + 20 + a, meta, end))
         end = f.tell()
+
+
+class ShardWriter:
+    """A view worker's own log (module docstring): the records of the views it computes, with their
+    statistics, appended to a new file `<host>-<pid>-<random>.log` in `folder` (a restarted worker
+    starts another file, so no two processes ever write one shard). `write(view)` returns the view
+    as the driver gets it: no pairs, no statistics, `shard` pointing at its record, `present` set.
+    """
+
+    def __init__(self, folder: str | Path, params: dict):
+        folder = Path(folder)
+        self.file = f"{folder.name}/{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}.log"
+        self.log = PairLog.open(folder.parent / self.file, params)
+
+    def write(self, view: ViewPairs) -> ViewPairs:
+        self.log.append(view, with_stats=view.stats is not None)
+        record = self.log.records[-1]
+        del self.log.records[-1]  # the driver keeps the places; a worker's list would only grow
+        none = np.zeros(0, np.int32)
+        return dataclasses.replace(view, gaussians=none, masks=none, weights=np.zeros(0, np.float32), stats=None, chunk_starts=None,
+                                   present=view.present_masks(), shard={"file": self.file, "offset": record.offset, "start": record.start,
+                                                                        "meta": record.meta})
+
+    def sync(self) -> None:
+        """fsync the shard: the driver logs pointers to its records only after this."""
+        self.log.sync()
+
+    def close(self) -> None:
+        self.log.close()

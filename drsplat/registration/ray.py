@@ -9,6 +9,12 @@ holds for its life:
 - one `ViewComputer` (drsplat.registration.compute) with the job's engine on the job's device:
   the same code as a local run, its buffers reused from view to view.
 
+With a log in shards (ViewJob.shard_dir: a run whose blocks reducers finish), each worker also
+appends its views' records, pairs and floater statistics, to a shard of its own in the shared
+checkpoint folder (drsplat.registration.pairlog.ShardWriter), fsyncs it at the end of each call and
+returns the views without their pairs: the driver logs a pointer per view and never receives a
+pair (drsplat.registration.reduce reads them back per block).
+
 The driver ships cameras only. A worker reads its views' feature files itself from the job's
 features folder (`load_view_features`), so every node needs that folder at the same path (a
 shared file system, or a copy): a file missing on a worker is an error that names the node.
@@ -42,7 +48,7 @@ from drsplat.errors import DrsplatError, InputError
 from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
 from drsplat.registration.culling import SpatialIndex
-from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.pairlog import ShardWriter, ViewPairs
 from drsplat.registration.views import load_view_features
 
 log = logging.getLogger(__name__)
@@ -76,6 +82,7 @@ class _ViewWorker:
         self._computer: ViewComputer | None = None
         self._error: Exception | None = None
         self._views = 0
+        self._shard: ShardWriter | None = None
 
     def compute(self, shared: list, cameras: list[Camera]) -> _CallResult:
         """The ViewPairs of `cameras`, their features read here; stops at the first view that fails.
@@ -83,11 +90,17 @@ class _ViewWorker:
         shared: [geometry, job, index] references (see the class docstring).
         """
         stats, views = WorkerStats(), []
+        error = None
         try:
             for cam in cameras:
                 t0 = time.perf_counter()
                 computer = self._computer or self._start(shared)
-                views.append(computer.compute(cam, *self._read(cam)))
+                view = computer.compute(cam, *self._read(cam))
+                if self._shard is not None:
+                    t1 = time.perf_counter()
+                    view = self._shard.write(view)
+                    stats.log_seconds += time.perf_counter() - t1
+                views.append(view)
                 seconds = time.perf_counter() - t0
                 if self._views == 0:
                     stats.first_view_seconds = seconds
@@ -95,8 +108,12 @@ class _ViewWorker:
                     stats.later_view_seconds.append(seconds)
                 self._views += 1
         except DrsplatError as exc:
-            return _CallResult(views, stats.refresh(), exc)
-        return _CallResult(views, stats.refresh())
+            error = exc
+        if self._shard is not None and views:
+            t1 = time.perf_counter()
+            self._shard.sync()  # before the driver logs pointers to these records
+            stats.log_seconds += time.perf_counter() - t1
+        return _CallResult(views, stats.refresh(), error)
 
     def _start(self, shared: list) -> ViewComputer:
         """This worker's ViewComputer on the shared geometry and index (first call only); a worker that
@@ -111,6 +128,15 @@ class _ViewWorker:
                                        f"on {job.device}: {exc}")
             raise self._error from None
         self._job = job
+        if job.shard_dir is not None:
+            try:
+                self._shard = ShardWriter(job.shard_dir, job.log_params)
+            except OSError as exc:
+                self._computer = None
+                self._error = DrsplatError(f"a Ray registration worker on node {socket.gethostname()} cannot write its shard of the log in "
+                                           f"{job.shard_dir} ({exc.strerror or exc}): the partitioned reduce needs the output's folder on "
+                                           "storage every Ray node shares at the same path")
+                raise self._error from None
         return self._computer
 
     def _read(self, cam: Camera):

@@ -1,40 +1,47 @@
 """The partitioned reduce: a registration's Gaussian blocks finished by Ray tasks, not by the driver.
 
-A run on Ray (`--ray`) in blocks (`--memory-budget`, `RegisterOptions.block_size`) has logged every
-view's pairs (drsplat.registration.pairlog) by the end of its view pass. Then, instead of the
-driver replaying the log block after block, one reducer task per block (at most `workers` at once)
+A run on Ray (`--ray`) in blocks (`--memory-budget`, `RegisterOptions.block_size`) writing a PLY
+logs its views where they are computed: each view worker appends its views' records (pairs grouped
+by Gaussian chunk, and the floater statistics of a `-reject` mode) to a shard of its own beside the
+checkpoint (drsplat.registration.pairlog.ShardWriter), and the driver logs one pointer per view
+(the shard, the record's place, its mask embeddings and the masks that reached a Gaussian). The
+driver never receives a pair. After the view pass, one reducer task per block (at most `workers`
+at once)
 
     opens the pair log read-only by its path          (storage every node shares: module note below)
-    replays it keeping its block's pairs, in view order   LogSink / VoteSink.block_sums, the driver's code
-    runs the mode's finish step on its slice              reject_rows with its slice of the rejected mask
+    replays it keeping its block's pairs, in view order   LogSink / VoteSink.block_sums; pointers lead into the shards
+    folds its block's floater statistics in view order    block_support: SurfaceSupport.add, the driver's fold
+    runs the mode's finish step on its block              reject_rows with the block's rejected mask
     normalises, prunes, encodes with the codebook         normalize_rows, output.encode_rows
     writes its rows to a part file, returns its counts    PartResult: rows, non-finite, rejected, W
 
 and the driver assembles header + parts into the output atomically (`assemble_parts`), streaming
 each part in chunks. The bytes are the local run's: a Gaussian's pairs reach its row in the log's
-order in every block replay (the sums are the same bits), the rows are encoded by the same code,
-and `lang_meta` (row i holds byte i mod L of the field comment, i the row's index in the whole
-file) is patched while streaming: part b's rows are numbered from the prefix sum of the kept rows
-of blocks 0 .. b-1, known only once every reducer is done (they run at the same time). A file of
-fewer rows than L gets its widened columns (`_widen_meta_if_short`) exactly as a single write.
+order in every block replay (the sums are the same bits), its statistics are folded in view order
+(the same bits, so the same rejected mask), the rows are encoded by the same code, and `lang_meta`
+(row i holds byte i mod L of the field comment, i the row's index in the whole file) is patched
+while streaming: part b's rows are numbered from the prefix sum of the kept rows of blocks
+0 .. b-1, known only once every reducer is done (they run at the same time). A file of fewer rows
+than L gets its widened columns (`_widen_meta_if_short`) exactly as a single write.
 
 Codebooks: `none` and a faiss file are the same object for every reducer (the codebook file
 beside the output is written once, by the driver, before the reducers start); `--codebook scene`
-is trained on the masks' embeddings topped up with a sample of Gaussians that the reducers sum
-(`BlockReduce.sample`, one sample task per block holding sampled ids: the same rows, the same
-bits as the driver's LogSink.sample), so it gives the local run's codebook and bytes. Every
-aggregation mode is supported: floater rejection's statistics stay on the driver, a reducer gets
-its block's slice of the rejected mask; the vote stage's mask clusters (made on the driver in view
-order) go to every reducer.
+is trained on the masks' embeddings topped up with a sample of the Gaussians that will be
+assigned: the reducers first tell which those are (`candidates_block`, one task per block: weight
+received and not rejected), then sum the sampled ones (`BlockReduce.sample`, one task per block
+holding sampled ids: the same rows, the same bits as the driver's LogSink.sample), so it gives the
+local run's codebook and bytes. Every aggregation mode is supported; the vote stage's mask
+clusters (made on the driver in view order from the pointers' embeddings) go to every reducer.
 
-Shared storage: reducers open the pair log and write their parts by path, beside the output (the
-checkpoint's folder). On a local (multi-node) cluster that is the same file system; a cluster of
-several machines needs that folder on storage they all mount at the same path (NFS, ...). A reducer
-that cannot read the log, or finds another file there, fails with an error that says so.
+Shared storage: workers write their shards, reducers open the log and the shards and write their
+parts by path, beside the output (the checkpoint's folder). On a local (multi-node) cluster that is
+the same file system; a cluster of several machines needs that folder on storage they all mount at
+the same path (NFS, ...). A worker that cannot write its shard, or a reducer that cannot read the
+log, fails with an error that says so.
 
-Left on the driver: the scene, the mode's per-Gaussian statistics ([N] arrays of floater
-rejection, its rejected mask), totals.positive [N] bool and the result's weights [N] float32
-(each reducer returns its block's W); nothing of size N x D.
+Left on the driver: the scene, per view a pointer and its masks' embeddings (the vote's clusters),
+and the result's weights [N] float32 (each reducer returns its block's W); nothing of size N x D,
+no pair and no per-Gaussian statistic.
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ import shutil
 import socket
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,9 +64,9 @@ from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
-from drsplat.registration.aggregate import reject_rows
+from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
 from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
-from drsplat.registration.pairlog import LogRecord, PairLog
+from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import LogSink
 from drsplat.registration.sums import normalize_rows
@@ -79,7 +87,8 @@ class ReduceJob:
     log_path / params / records: the pair log and what its writer knows of it. block: Gaussians
     per block (the last one shorter). clusters: the vote stage's mask clusters, None without it.
     out / clip_model: the output (names the codebook in the field comment) and the embedding
-    space's id. parts_dir: where the parts are written (beside the output).
+    space's id. parts_dir: where the parts are written (beside the output). reject: the mode rejects
+    floaters and the views' statistics are in the log's shards: each reducer folds its block's.
     """
 
     log_path: str
@@ -93,6 +102,7 @@ class ReduceJob:
     out: str
     clip_model: str
     parts_dir: str
+    reject: bool = False
 
     @property
     def num_blocks(self) -> int:
@@ -143,6 +153,17 @@ def open_log(job: ReduceJob, index: int) -> PairLog:
         ) from None
 
 
+@contextmanager
+def shard_errors(index: int, lo: int, hi: int):
+    """A worker's shard that this reducer cannot read becomes one DrsplatError naming the block, the
+    file and the shared storage the partitioned reduce needs."""
+    try:
+        yield
+    except ShardError as exc:
+        raise DrsplatError(f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,}) on {socket.gethostname()}: {exc}: the partitioned "
+                           "reduce needs the output's folder on storage every Ray node shares at the same path") from None
+
+
 def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes)."""
     if job.clusters is not None:
@@ -157,8 +178,10 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
     t0 = time.perf_counter()
     lo, hi = job.bounds(index)
     c0 = time.process_time()
-    with open_log(job, index) as plog:
+    with open_log(job, index) as plog, shard_errors(index, lo, hi):
         block = block_sink(job, plog).block_sums(lo, hi)
+        if rejected is None and job.reject:
+            rejected = block_support(plog, lo, hi).rejected()
     sum_seconds, sum_cpu = time.perf_counter() - t0, time.process_time() - c0
     dropped = reject_rows(block.F, block.W, rejected) if rejected is not None else 0
     _, nonfinite = normalize_rows(block.F, block.W)
@@ -177,10 +200,34 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
                       time.perf_counter() - t0, os.getpid(), peak_rss())
 
 
+def block_support(plog: PairLog, lo: int, hi: int) -> SurfaceSupport:
+    """The floater statistics of Gaussians lo .. hi-1 (rows 0 .. hi-lo-1), folded from the log's
+    records in view order exactly as the driver folds whole views (SurfaceSupport.add: per Gaussian,
+    the same values in the same order, so the same bits and the same rejected mask)."""
+    support = SurfaceSupport.zeros(hi - lo)
+    for record in plog.records:
+        stats = plog.read_stats_block(record, lo, hi)
+        support.add(ViewStats(stats.ids - np.int32(lo), stats.peak, stats.total, stats.front))
+    return support
+
+
+def candidates_block(job: ReduceJob, index: int) -> np.ndarray:
+    """[hi - lo] bool: the Gaussians of block `index` that some pair gave weight and the mode does
+    not reject (the driver's `candidates` when the views were logged in shards)."""
+    lo, hi = job.bounds(index)
+    positive = np.zeros(hi - lo, bool)
+    with open_log(job, index) as plog, shard_errors(index, lo, hi):
+        for view in plog.block_views(lo, hi):
+            positive[view.gaussians[view.weights > 0] - lo] = True
+        if job.reject:
+            positive &= ~block_support(plog, lo, hi).rejected()
+    return positive
+
+
 def sample_block(job: ReduceJob, index: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct, inside block `index`), summed
     from the log as the driver's sink would (a scene codebook's training sample)."""
-    with open_log(job, index) as plog:
+    with open_log(job, index) as plog, shard_errors(index, *job.bounds(index)):
         return block_sink(job, plog).sample(ids)
 
 
@@ -193,6 +240,11 @@ def _reduce_task(job, scene, codebook, index, rejected):
 def _sample_task(job, index, ids):
     set_worker_threads()
     return sample_block(job, index, ids)
+
+
+def _candidates_task(job, index):
+    set_worker_threads()
+    return candidates_block(job, index)
 
 
 # ----------------------------------------------------------------------------- the driver's side
@@ -301,6 +353,13 @@ class ReducePool:
             return np.zeros((0, job.dim), np.float32), np.zeros(0, np.float32)
         return np.concatenate([F for F, _ in parts]), np.concatenate([W for _, W in parts])
 
+    def candidates(self, job: ReduceJob) -> np.ndarray:
+        """[N] bool, `candidates_block` of every block, one task each."""
+        ray = import_ray()
+        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_candidates_task)
+        job_ref = ray.put(job)
+        return np.concatenate(self._run(job, lambda i: task.remote(job_ref, i)))
+
     def _run(self, job: ReduceJob, submit, count: int | None = None, names: list[int] | None = None) -> list:
         """submit(i) for i < count (default: every block), `workers` in flight; results in order."""
         ray = import_ray()
@@ -341,13 +400,14 @@ def _get(ref, job: ReduceJob, index: int):
 
 
 def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unassigned: bool, clusters: MaskClusters | None, out: Path,
-             clip_model: str) -> ReduceJob:
+             clip_model: str, reject: bool = False) -> ReduceJob:
     """The job of a run whose view pass is done: the log synced to storage, a parts folder beside
-    `out` (a temp folder named after `out`, swept if a killed run leaves it)."""
+    `out` (a temp folder named after `out`, swept if a killed run leaves it). reject: the reducers
+    fold the floater statistics from the log's shards."""
     plog.sync()
     parts = tempfile.mkdtemp(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out))
     return ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
-                     clusters, str(out), clip_model, parts)
+                     clusters, str(out), clip_model, parts, reject)
 
 
 def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
@@ -367,6 +427,10 @@ class BlockReduce:
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.pool.sample(self.job, ids)
+
+    def candidates(self) -> np.ndarray:
+        """[N] bool: the Gaussians that will be assigned (a scene codebook samples them)."""
+        return self.pool.candidates(self.job)
 
     def finish(self, scene: GaussianScene, codebook: Codebook | str, aggregator) -> tuple[list[PartResult], np.ndarray]:
         """Every block finished by a reducer (`aggregator`: the run's Aggregator, whose rejected

@@ -289,9 +289,7 @@ class VoteSink:
         return max(1, -(-self.num_gaussians // self.block))
 
     def add(self, view: ViewPairs) -> None:
-        present = np.zeros(view.feats.shape[0], bool)
-        present[view.masks] = True
-        ids = self.clusters.add(view.feats, present)
+        ids = self.clusters.add(view.feats, view.present_masks())
         if self._state is not None:
             self._fold(self._state, view.gaussians, view.masks, ids, view.weights, view.feats)
 
