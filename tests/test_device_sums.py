@@ -168,6 +168,88 @@ def test_device_pairs_reach_the_host_for_the_log():
         assert host_view.on_host() is host_view
 
 
+def stats_view(seed: int, h: int, w: int, k: int, n: int, case: str = "random"):
+    """(RayGeometry, camera, ids [h, w, k] with -1 padding last, weights, median ids [h, w]) of
+    random Gaussians in front of a random camera; the cases: flat and round Gaussians, zero
+    precisions (dᵀΣ⁻¹d = 0: the mean's depth), a share of pixels without a median."""
+    from drsplat.cameras import Camera
+    from drsplat.registration.aggregate import RayGeometry
+
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    cam = Camera(q * np.sign(np.linalg.det(q)), rng.normal(size=3) * 0.3, 0.9 * w, 0.9 * w, w / 2 + 0.3, h / 2 - 0.2, w, h)
+    means = (rng.normal(size=(n, 3)) * 0.5 + np.array([0.0, 0.0, 4.0]) - cam.t) @ cam.R  # world points that land in front
+    axes = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    scales = rng.uniform(0.02, 0.4, (n, 3))
+    scales[: n // 3, 2] = 1e-6  # flat
+    prec = np.einsum("nij,nj,nkj->nik", axes, 1.0 / scales**2, axes)
+    packed = np.stack([prec[:, 0, 0], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 1], prec[:, 1, 2], prec[:, 2, 2]], 1)
+    packed[n // 3 : n // 3 + n // 10] = 0.0  # no precision: the ray depth is the mean's depth
+    rays = RayGeometry(means, np.ascontiguousarray(packed), 3.0 * scales.max(1))
+    ids, weights, _ = random_view(seed, h, w, k, n, 2)
+    order = np.argsort(ids < 0, axis=-1, kind="stable")  # the rasterizer's rule: -1 padding after the entries
+    ids, weights = np.take_along_axis(ids, order, -1), np.take_along_axis(weights, order, -1)
+    weights[ids < 0] = 0.0
+    median = np.where(rng.random((h, w)) < 0.2, -1, ids[..., 0]).astype(np.int32)
+    if case == "no median":
+        median[:] = -1
+    elif case == "every slot empty":
+        ids[:], weights[:], median[:] = -1, 0.0, -1
+    return rays, cam, ids, weights, median
+
+
+STATS_CASES = [("random", 14, 11, 6, 90), ("random", 9, 13, 1, 40), ("random", 1, 1, 40, 60), ("no median", 8, 8, 5, 30),
+               ("every slot empty", 6, 5, 4, 20)]
+
+
+@pytest.mark.parametrize("case,h,w,k,n", STATS_CASES, ids=[f"{c[0]} {c[1]}x{c[2]} k={c[3]}" for c in STATS_CASES])
+def test_device_floater_statistics_equal_numba(case, h, w, k, n):
+    """The in-front flags and the per-view max / sums of a `-reject` mode, computed in torch, are
+    the numba kernels' bits (and the numpy reference's statistics)."""
+    from drsplat.registration.aggregate import surface_stats, surface_stats_reference
+    from drsplat.registration.device_sums import DeviceRays, front_flags_torch, view_stats_torch
+
+    rays, cam, ids, weights, median = stats_view(3 + h, h, w, k, n, case)
+    want, scratch = surface_stats(rays, cam, ids, weights, median)
+    flags = front_flags_torch(DeviceRays.from_host(rays, torch.device("cpu")), cam, torch.from_numpy(ids), torch.from_numpy(median))
+    np.testing.assert_array_equal(flags.numpy(), scratch.flags)
+    if case == "random" and k > 1:
+        assert 0 < flags.sum() < (ids >= 0).sum(), "some slots in front, some not"
+    got = view_stats_torch(torch.from_numpy(ids), torch.from_numpy(weights), flags, n)
+    np.testing.assert_array_equal(np.flatnonzero(got.touched.numpy()), np.sort(want.ids))
+    for name in ("peak", "total", "front"):
+        dense = np.zeros(n)
+        dense[want.ids] = getattr(want, name)
+        np.testing.assert_array_equal(getattr(got, name).numpy(), dense)
+    reference = surface_stats_reference(rays, cam, ids, weights, median)
+    np.testing.assert_array_equal(reference.ids, np.flatnonzero(got.touched.numpy()))
+    np.testing.assert_allclose(got.front.numpy()[reference.ids], reference.front, rtol=1e-12)
+
+
+def test_device_support_folds_to_the_host_bits():
+    """Views folded on the device, after a host snapshot of earlier ones (a resume), give the host
+    fold's arrays bit for bit, and the same rejected mask."""
+    from drsplat.registration.aggregate import SurfaceSupport, surface_stats
+    from drsplat.registration.device_sums import DeviceRays, front_flags_torch, view_stats_torch
+
+    n = 70
+    host, device = SurfaceSupport.zeros(n), None
+    for v in range(8):
+        rays, cam, ids, weights, median = stats_view(40 + v, 10, 12, 5, n)
+        stats, _ = surface_stats(rays, cam, ids, weights, median)
+        host.add(stats)
+        flags = front_flags_torch(DeviceRays.from_host(rays, torch.device("cpu")), cam, torch.from_numpy(ids), torch.from_numpy(median))
+        view = view_stats_torch(torch.from_numpy(ids), torch.from_numpy(weights), flags, n)
+        if v == 3:  # the first views as a snapshot on the host, as a resumed run gets them
+            device = SurfaceSupport.from_arrays(device.arrays())
+        device = view.support_for(device if device is not None else SurfaceSupport.zeros(n))
+        device.add(view)
+    for name, values in host.arrays().items():
+        np.testing.assert_array_equal(device.arrays()[name], values)
+    np.testing.assert_array_equal(device.rejected(), host.rejected())
+    assert host.views_front.any() and (host.views_seen > 1).any()
+
+
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     from drsplat.cameras import load_cameras
@@ -196,6 +278,12 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
     other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="explain", engine="torch", device="cpu"),
                               show_progress=False)
     assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
+    for mode in ("core-reject", "vote-reject"):  # floater statistics on the device; the vote sink gets host pairs
+        want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode), show_progress=False)
+        got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode, engine="torch", device="cpu"),
+                                show_progress=False)
+        assert got.sums_on == ("cpu" if mode == "core-reject" else "host") and got.num_rejected == want.num_rejected > 0
+        np.testing.assert_array_equal(got.features, want.features)
 
 
 def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplog):

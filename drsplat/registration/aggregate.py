@@ -783,6 +783,9 @@ class Aggregator:
         if self.support is not None:
             if stats is None:
                 raise ValueError(f"--aggregate {self.mode}: a view came without its rejection statistics")
+            on_device = getattr(stats, "support_for", None)  # a view computed on the torch engine's device (device_sums.DeviceViewStats)
+            if on_device is not None:
+                self.support = on_device(self.support)
             self.support.add(stats)
             self.views_folded += 1
 

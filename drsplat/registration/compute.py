@@ -80,8 +80,9 @@ class ViewJob:
 
 def hook_runs_on_device(hook: ViewHook | None) -> bool:
     """Whether a mode's per-view hook has a torch form (drsplat.registration.device_sums): none, or a
-    weighting of DEVICE_WEIGHTINGS without floater rejection (its surface statistics are numba kernels)."""
-    return hook is None or (hook.weighting in DEVICE_WEIGHTINGS and not hook.reject)
+    weighting of DEVICE_WEIGHTINGS, with or without floater rejection (not `explain`, an EM per pixel
+    in numba)."""
+    return hook is None or hook.weighting in DEVICE_WEIGHTINGS
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -137,13 +138,16 @@ class ViewComputer:
         self._index = (index or SpatialIndex.build(geometry)) if culls else None
         self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
         self._render_pairs = None
+        self._rays = None
         if job.device_pairs:
             if job.engine != "torch" or not hook_runs_on_device(hook):
                 raise ValueError("pairs are coalesced on the device with the torch engine and a per-view weighting ported to torch only")
             # imports torch: only the torch engine's device path needs it
-            from drsplat.registration.device_sums import render_pairs
+            from drsplat.registration.device_sums import DeviceRays, render_pairs
 
             self._render_pairs = render_pairs
+            if hook is not None and hook.reject:  # the floater statistics are computed on the device too
+                self._rays = DeviceRays.from_host(hook.rays, self._prepared.device)
 
     def compute(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0) -> ViewPairs:
         """The ViewPairs of view `cam` with its mask ids [H, W] and embeddings feats [M, D]."""
@@ -166,11 +170,12 @@ class ViewComputer:
         """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""
         t0 = time.perf_counter()
         weighting = self.job.hook.weighting if self.job.hook is not None else "paper"
-        pairs, contributing, raster_seconds = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting)
+        pairs, contributing, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
+                                                                        self._rays)
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         none = np.zeros(0, np.int32)
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,
-                         raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, device=pairs)
+                         raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, stats=stats, device=pairs)
 
     def rasterize(self, cam: Camera):
         """The view's top-k RasterOutput (ids, weights [H, W, k], scene ids) with this computer's engine

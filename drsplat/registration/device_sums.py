@@ -8,6 +8,10 @@ drsplat.registration.sums), this module keeps them there:
                      pairs with summed weights, fixed-size ops only (no host synchronisation)
     DeviceSink       F [N, D], W [N] on the device, each view's pairs added in view order
                      (index_add), copied to the host once, when the sink gives its one block
+    view_stats_torch a `-reject` mode's per-view floater statistics (the in-front test of every
+                     slot against the pixel's median Gaussian, per-Gaussian max / sums), and
+    DeviceSupport    their fold over the views, kept on the device (copied to the host for a
+                     checkpoint snapshot and once at the end, for the rejected mask)
 
 The driver (drsplat.registration.driver) reads two numbers per view from the device (the view's
 distinct and contributing pair counts, to size the sums' update); the pairs themselves reach the
@@ -27,7 +31,8 @@ import torch
 
 from drsplat.cameras import Camera
 from drsplat.raster_torch import TorchScene, project_gaussians_torch, rasterize_torch
-from drsplat.registration.aggregate import ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, PROJECTED_WEIGHTINGS
+from drsplat.registration.aggregate import (ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS,
+                                            RayGeometry, SurfaceSupport)
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block
 
@@ -155,21 +160,153 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
     return torch.where(valid, out, zero).to(torch.float32)
 
 
+@dataclass
+class DeviceRays:
+    """drsplat.registration.aggregate.RayGeometry on a device: means [N, 3], precisions [N, 6]
+    (xx, xy, xz, yy, yz, zz) and reach [N], float64."""
+
+    means: torch.Tensor
+    precisions: torch.Tensor
+    reach: torch.Tensor
+
+    @classmethod
+    def from_host(cls, rays: RayGeometry, device: torch.device) -> DeviceRays:
+        return cls(*(to_device(np.array(a, np.float64), device) for a in (rays.means, rays.precisions, rays.reach)))
+
+
+def ray_depths_torch(rays: DeviceRays, g: torch.Tensor, dx, dy, dz, origin: np.ndarray, rot: np.ndarray, tz: float) -> torch.Tensor:
+    """t* of Gaussians g [P, S] (ids ≥ 0) on the pixels' rays o + t·d, d = (dx, dy, dz) [P, 1]:
+    `aggregate._ray_depth` (math in `ray_depths_reference`) in float64 tensors, each sum in the
+    kernel's order, so the same bits on a CPU."""
+    p = rays.precisions[g]  # [P, S, 6]
+    pdx = p[..., 0] * dx + p[..., 1] * dy + p[..., 2] * dz
+    pdy = p[..., 1] * dx + p[..., 3] * dy + p[..., 4] * dz
+    pdz = p[..., 2] * dx + p[..., 4] * dy + p[..., 5] * dz
+    m = rays.means[g]
+    mx, my, mz = m[..., 0], m[..., 1], m[..., 2]
+    zc = float(rot[2, 0]) * mx + float(rot[2, 1]) * my + float(rot[2, 2]) * mz + tz
+    den = pdx * dx + pdy * dy + pdz * dz
+    t = (pdx * (mx - float(origin[0])) + pdy * (my - float(origin[1])) + pdz * (mz - float(origin[2]))) / den
+    reach = rays.reach[g]
+    return torch.where(den > 0.0, torch.minimum(torch.maximum(t, zc - reach), zc + reach), zc)
+
+
+def front_flags_torch(rays: DeviceRays, camera: Camera, ids: torch.Tensor, median_ids: torch.Tensor,
+                      tolerance: float = FRONT_TOLERANCE) -> torch.Tensor:
+    """[H·W, k] bool: slot (p, s) is in front of the pixel's surface, t*_{ids[p, s]}(p) < (1 - τ)·D(p)
+    with D(p) the median Gaussian's t* (+inf where median_ids[p] < 0); False for empty slots.
+    `aggregate._front_flags_kernel` in torch. ids: [H, W, k], median_ids: [H, W]."""
+    h, w, k = ids.shape
+    dev = ids.device
+    rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    origin, tz = -rot.T @ trans, float(trans[2])
+    pix = torch.arange(h * w, device=dev)
+    rx = ((pix % w).to(torch.float64) + 0.5 - float(camera.cx)) / float(camera.fx)
+    ry = ((pix // w).to(torch.float64) + 0.5 - float(camera.cy)) / float(camera.fy)
+    dx = (float(rot[0, 0]) * rx + float(rot[1, 0]) * ry + float(rot[2, 0]))[:, None]  # d = Rᵀ (rx, ry, 1)
+    dy = (float(rot[0, 1]) * rx + float(rot[1, 1]) * ry + float(rot[2, 1]))[:, None]
+    dz = (float(rot[0, 2]) * rx + float(rot[1, 2]) * ry + float(rot[2, 2]))[:, None]
+    g = ids.reshape(-1, k).to(torch.int64)
+    med = median_ids.reshape(-1, 1).to(torch.int64)
+    surface = ray_depths_torch(rays, med.clamp(min=0), dx, dy, dz, origin, rot, tz)
+    limit = torch.where(med >= 0, (1.0 - tolerance) * surface, torch.inf)
+    depth = ray_depths_torch(rays, g.clamp(min=0), dx, dy, dz, origin, rot, tz)
+    return (g >= 0) & (depth < limit)
+
+
+@dataclass
+class DeviceViewStats:
+    """One view's floater statistics on the device, [N] each: peak (max w), total (Σ w), front
+    (Σ w in front of the surface) float64, touched bool (the view sees the Gaussian). The dense
+    form of aggregate.ViewStats: fixed sizes, so nothing waits for the device."""
+
+    peak: torch.Tensor
+    total: torch.Tensor
+    front: torch.Tensor
+    touched: torch.Tensor
+
+    def support_for(self, support: SurfaceSupport | DeviceSupport) -> DeviceSupport:
+        """The running support to fold this view into: `support`, moved to this view's device once."""
+        return support if isinstance(support, DeviceSupport) else DeviceSupport.from_host(support, self.peak.device)
+
+
+def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tensor, num_gaussians: int) -> DeviceViewStats:
+    """A view's per-Gaussian max w, Σ w and Σ w·flags over its slots (`aggregate._view_stats_kernel`).
+
+    ids, weights: [H, W, k] (-1 empty; raw w = T·α); flags: [H·W, k] (`front_flags_torch`). Empty
+    slots go to a spare row N. index_add on a CPU adds a row's slots in pixel-then-slot order, as
+    the kernel does, and an unflagged slot adds +0.0, so the sums are the kernel's bits; on CUDA
+    the atomics add in no fixed order."""
+    n = num_gaussians
+    g = ids.reshape(-1).to(torch.int64)
+    valid = g >= 0
+    row = torch.where(valid, g, n)
+    zero = torch.zeros((), dtype=torch.float64, device=g.device)
+    w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
+    f64 = {"dtype": torch.float64, "device": g.device}
+    peak = torch.zeros(n + 1, **f64).scatter_reduce_(0, row, w, "amax")
+    total = torch.zeros(n + 1, **f64).index_add_(0, row, w)
+    front = torch.zeros(n + 1, **f64).index_add_(0, row, torch.where(flags.reshape(-1), w, zero))
+    touched = torch.zeros(n + 1, dtype=torch.bool, device=g.device).index_fill_(0, row, True)
+    return DeviceViewStats(peak[:n], total[:n], front[:n], touched[:n])
+
+
+class DeviceSupport:
+    """aggregate.SurfaceSupport kept on a device: the views' statistics folded in view order,
+
+        P_i = max(P_i, p_i),  A_i += a_i,  B_i += b_i,  views_seen_i += 1,  views_front_i += [b_i > FRONT_MAX·a_i]
+
+    for the Gaussians each view touches (an untouched one adds p = a = b = 0, which changes no bit:
+    P ≥ 0, x + 0.0 = x), so the same bits as the host fold. `arrays()` copies it to the host (a
+    checkpoint snapshot), `rejected()` too."""
+
+    def __init__(self, peak: torch.Tensor, total: torch.Tensor, front: torch.Tensor, views_seen: torch.Tensor, views_front: torch.Tensor):
+        self.peak, self.total, self.front, self.views_seen, self.views_front = peak, total, front, views_seen, views_front
+
+    @classmethod
+    def from_host(cls, support: SurfaceSupport, device: torch.device) -> DeviceSupport:
+        return cls(*(to_device(np.array(a), device) for a in support.arrays().values()))
+
+    def add(self, view: DeviceViewStats) -> None:
+        if not isinstance(view, DeviceViewStats):
+            raise TypeError("the device's floater statistics fold only views computed on the device")
+        self.peak = torch.maximum(self.peak, view.peak)  # NaN propagates, as the host fold's max
+        self.total += view.total
+        self.front += view.front
+        self.views_seen += view.touched.to(torch.int32)
+        self.views_front += (view.touched & (view.front > FRONT_MAX * view.total)).to(torch.int32)
+
+    def host(self) -> SurfaceSupport:
+        return SurfaceSupport(*(t.cpu().numpy().copy() for t in (self.peak, self.total, self.front, self.views_seen, self.views_front)))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return self.host().arrays()
+
+    def rejected(self) -> np.ndarray:
+        return self.host().rejected()
+
+
 def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
-                 weighting: str = "paper") -> tuple[DevicePairs, int, float]:
+                 weighting: str = "paper", rays: DeviceRays | None = None) -> tuple[DevicePairs, int, float, DeviceViewStats | None]:
     """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
     pairs there (`coalesce_torch`).
 
     mask_ids: [H, W] the view's masks (-1 none; copied to the device). weighting: the aggregation
-    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more). Returns (the view's
+    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more). rays:
+    the scene's ray geometry on the device for a `-reject` mode (the view is rendered with its
+    median Gaussians and its floater statistics computed there), else None. Returns (the view's
     DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
-    were issued): the two counts are the one read of the device this adds to a view (the rasterizer
-    reads one more, the size of its tile lists). On CUDA the render runs on after it was issued, so
-    the seconds then split the view where the host waited, not where the device worked.
+    were issued, its DeviceViewStats or None): the two counts are the one read of the device this
+    adds to a view (the rasterizer reads one more, the size of its tile lists). On CUDA the render
+    runs on after it was issued, so the seconds then split the view where the host waited, not
+    where the device worked.
     """
     t0 = time.perf_counter()
-    out = rasterize_torch(scene, camera, topk, device=scene.device)
+    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device)
     raster_seconds = time.perf_counter() - t0
+    stats = None
+    if rays is not None:
+        stats = view_stats_torch(out.ids, out.weights, front_flags_torch(rays, camera, out.ids, out.median_ids), scene.num_gaussians)
     weights = out.weights
     if weighting != "paper":
         projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
@@ -178,7 +315,7 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
     both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
     distinct, contributing = both >> 32, both & 0xFFFFFFFF
-    return pairs.trimmed(distinct), contributing, raster_seconds
+    return pairs.trimmed(distinct), contributing, raster_seconds, stats
 
 
 def sums_fit_device(num_gaussians: int, dim: int, device: str) -> bool:

@@ -314,12 +314,11 @@ def run_registration(
 
 def device_pairs_apply(options: RegisterOptions, aggregator: Aggregator) -> bool:
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
-    the torch engine in this process with a mode whose per-view weighting has a torch form and that
-    neither rejects floaters nor votes (paper, core, ellipse, responsibility, centre, anchor); the
-    surface statistics, the explain weighting and the vote sink are numba kernels on the host, and
-    Ray workers return host pairs."""
-    return (options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
-            and not aggregator.vote)
+    the torch engine in this process with a mode whose per-view weighting has a torch form (all but
+    `explain`, an EM per pixel in numba); floater statistics are then computed and folded on the
+    device too, and a `-vote` mode's sink gets each view's pairs copied to the host (not its top-k
+    lists). Ray workers return host pairs."""
+    return options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
@@ -330,9 +329,9 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     the host (LogSink, VoteSink), whatever the engine.
     """
     n, dim = run.scene.num_gaussians, run.dim
-    if aggregator.vote:
-        return (VoteSink(n, dim) if block >= n else VoteSink(n, dim, ckpt.log, block)), False
     on_device = device_pairs_apply(run.options, aggregator)
+    if aggregator.vote:  # its vote slots are a numba fold over host pairs
+        return (VoteSink(n, dim) if block >= n else VoteSink(n, dim, ckpt.log, block)), on_device
     if block < n:
         return LogSink(n, dim, ckpt.log, block), on_device
     if on_device:
