@@ -300,23 +300,26 @@ def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplo
     np.testing.assert_array_equal(got.features, want.features)
 
 
-def test_a_device_run_resumes_from_its_pair_log(room, tmp_path):
-    """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's file."""
+@pytest.mark.parametrize("mode,sums_on", [("paper", "cpu"), ("vote-reject", "host")])
+def test_a_device_run_resumes_from_its_pair_log(room, tmp_path, mode, sums_on):
+    """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's
+    file (vote-reject: the device's floater statistics snapshotted on the host at the failure, and
+    folded on the device again after the resume)."""
     scene, cams, features = room
     reference = tmp_path / "numba.ply"
-    register(scene, cams, features, reference, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
+    register(scene, cams, features, reference, RegisterOptions(topk=8, aggregate=mode), show_progress=False)
     copy = tmp_path / "features"
     shutil.copytree(features, copy)
     bad = copy / f"{cams[2].name}_f.npy"
     good = bad.read_bytes()
     bad.write_bytes(good[:100])
     out = tmp_path / "out" / "reg.ply"
-    options = RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu")
+    options = RegisterOptions(topk=8, aggregate=mode, engine="torch", device="cpu")
     with pytest.raises(InputError, match=bad.name):
         register(scene, cams, copy, out, options, show_progress=False)
     bad.write_bytes(good)
     result = register(scene, cams, copy, out, options, show_progress=False)
-    assert result.resumed_views == 2 and result.sums_on == "cpu"
+    assert result.resumed_views == 2 and result.sums_on == sums_on
     assert out.read_bytes() == reference.read_bytes()
 
 
