@@ -157,6 +157,74 @@ def test_device_sink_sums_equal_the_host_accumulator():
     np.testing.assert_array_equal(device_sink.positive(), want.W > 0)
 
 
+@pytest.mark.parametrize("slots,presence", [(8, 0.1), (2, 0.1), (3, 0.0)])
+def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence):
+    """vote_view_torch against the numba kernel: the same slots bit for bit, over views whose
+    Gaussians meet more clusters than slots (space-saving replacements), pairs without a cluster,
+    zero weights, and presence 0 (votes = weights)."""
+    from drsplat.registration.device_sums import vote_view_torch
+    from drsplat.registration.vote import FULL_VIEW, _vote_view_kernel
+
+    n, rng = 25, np.random.default_rng(slots)
+    host = (np.full((n, slots), -1, np.int32), np.zeros((n, slots)), np.zeros((n, slots)))
+    dev = (torch.full((n + 1, slots), -1, dtype=torch.int32), torch.zeros((n + 1, slots), dtype=torch.float64),
+           torch.zeros((n + 1, slots), dtype=torch.float64))
+    scratch = np.zeros(n)
+    for _ in range(12):
+        p = int(rng.integers(0, 60))
+        rows = rng.integers(0, n, p).astype(np.int32)
+        clusters = rng.integers(-1, 9, p).astype(np.int32)
+        weights = rng.uniform(0, 1, p).astype(np.float32)
+        weights[rng.random(p) < 0.1] = 0.0
+        _vote_view_kernel(rows, clusters, weights, presence, FULL_VIEW, scratch, *host)
+        vote_view_torch(torch.from_numpy(rows.astype(np.int64)), torch.from_numpy(clusters.astype(np.int64)), torch.from_numpy(weights),
+                        presence, FULL_VIEW, *dev)
+    for want, got in zip(host, dev):
+        np.testing.assert_array_equal(got[:n].numpy(), want)
+    assert (host[0] >= 0).all(axis=1).any(), "some Gaussian filled its slots"
+
+
+def mislabelled_views(seed: int, count: int, n: int, dim: int):
+    """views_of's pairs, but every mask of a view shows one object (its embedding near A), except
+    in two views, where a third of the masks carry other embeddings (mislabels the vote trims)."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=dim)
+    for v in range(count):
+        m = 3
+        ids, weights, masks = random_view(seed * 100 + v, 10, 9, 6, n, m)
+        feats = (a + 0.01 * rng.normal(size=(m, dim))).astype(np.float32)
+        if v in (1, 5):
+            feats[2] = rng.normal(size=dim)
+        pairs = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
+        distinct, contributing = (int(c) for c in pairs.counts)
+        g, mk, w, _ = Coalescer(n).coalesce(ids, weights, masks, m)
+        none = np.zeros(0, np.int32)
+        yield (ViewPairs(f"v{v}", feats, none, none, np.zeros(0, np.float32), none, contributing, device=pairs.trimmed(distinct)),
+               ViewPairs(f"v{v}", feats, g, mk, w, none, contributing))
+
+
+def test_device_vote_sink_equals_the_host_vote_sink():
+    """DeviceVoteSink (device pairs and replayed host pairs, mixed) gives VoteSink's trimmed sums,
+    W and samples bit for bit; with two slots per Gaussian, so clusters are replaced."""
+    from drsplat.registration.device_sums import DeviceVoteSink
+    from drsplat.registration.vote import VoteSink
+
+    n, dim = 40, 8
+    device_sink, host_sink, paper = DeviceVoteSink(n, dim, "cpu", slots=2), VoteSink(n, dim, slots=2), MemorySink(n, dim)
+    for v, (device_view, host_view) in enumerate(mislabelled_views(6, 9, n, dim)):
+        device_sink.add(host_view if v % 3 == 2 else device_view)
+        host_sink.add(host_view)
+        paper.add(host_view)
+    assert device_sink.clusters.count == host_sink.clusters.count > 2
+    ids = np.array([0, 3, 39])  # sampled before the blocks, as the driver does (the host sink trims its sums in place)
+    for a, b in zip(device_sink.sample(ids), host_sink.sample(ids)):
+        np.testing.assert_array_equal(a, b)
+    (got,), (want,) = list(device_sink.blocks()), list(host_sink.blocks())
+    np.testing.assert_array_equal(got.F, want.F)
+    np.testing.assert_array_equal(got.W, want.W)
+    assert not np.array_equal(got.F, next(paper.blocks()).F), "the vote trimmed something"
+
+
 def test_device_pairs_reach_the_host_for_the_log():
     n, dim = 50, 4
     for device_view, host_view in views_of(2, 3, n, dim):
@@ -278,11 +346,11 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
     other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="explain", engine="torch", device="cpu"),
                               show_progress=False)
     assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
-    for mode in ("core-reject", "vote-reject"):  # floater statistics on the device; the vote sink gets host pairs
+    for mode in ("core-reject", "vote-reject"):  # floater statistics and the vote's slots on the device
         want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode), show_progress=False)
         got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode, engine="torch", device="cpu"),
                                 show_progress=False)
-        assert got.sums_on == ("cpu" if mode == "core-reject" else "host") and got.num_rejected == want.num_rejected > 0
+        assert got.sums_on == "cpu" and got.num_rejected == want.num_rejected > 0
         np.testing.assert_array_equal(got.features, want.features)
 
 
@@ -291,16 +359,19 @@ def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplo
     import drsplat.registration.device_sums as device_sums
 
     scene, cams, features = room
-    monkeypatch.setattr(device_sums, "sums_fit_device", lambda n, dim, device: False)
-    options = RegisterOptions(topk=8, aggregate="paper")
-    want = register_features(scene, cams, features, options, show_progress=False)
-    with caplog.at_level("INFO"):
-        got = register_features(scene, cams, features, dataclasses.replace(options, engine="torch", device="cpu"), show_progress=False)
-    assert got.sums_on == "host" and "do not fit the free memory of cpu: summing on the host" in caplog.text
-    np.testing.assert_array_equal(got.features, want.features)
+    asked = []
+    monkeypatch.setattr(device_sums, "sums_fit_device", lambda n, dim, device, extra=0: asked.append(extra) or False)
+    for mode in ("paper", "vote-reject"):  # the vote's slots are asked for too, and go to the host VoteSink
+        options = RegisterOptions(topk=8, aggregate=mode)
+        want = register_features(scene, cams, features, options, show_progress=False)
+        with caplog.at_level("INFO"):
+            got = register_features(scene, cams, features, dataclasses.replace(options, engine="torch", device="cpu"), show_progress=False)
+        assert got.sums_on == "host" and "do not fit the free memory of cpu: summing on the host" in caplog.text
+        np.testing.assert_array_equal(got.features, want.features)
+    assert asked == [0, device_sums.VOTE_SLOT_BYTES]
 
 
-@pytest.mark.parametrize("mode,sums_on", [("paper", "cpu"), ("vote-reject", "host")])
+@pytest.mark.parametrize("mode,sums_on", [("paper", "cpu"), ("vote-reject", "cpu")])
 def test_a_device_run_resumes_from_its_pair_log(room, tmp_path, mode, sums_on):
     """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's
     file (vote-reject: the device's floater statistics snapshotted on the host at the failure, and

@@ -23,8 +23,8 @@ from drsplat.synthetic import write_dataset
 
 VIEWS = 6  # enough views for every mode to assign, reject and reweight something
 BLOCK = 512  # hard-tiny has ~2,300 Gaussians: five blocks
-# weight, coalesce, reject and sum on the torch device (explain is a numba EM; the vote's sink folds host pairs)
-DEVICE_MODES = tuple(m for m in AGGREGATE_MODES if mode_stages(m).weighting != "explain" and not mode_stages(m).vote)
+# weight, coalesce, reject, vote and sum on the torch device (explain is a numba EM per pixel)
+DEVICE_MODES = tuple(m for m in AGGREGATE_MODES if mode_stages(m).weighting != "explain")
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,8 @@ drsplat.registration.sums), this module keeps them there:
                      pairs with summed weights, fixed-size ops only (no host synchronisation)
     DeviceSink       F [N, D], W [N] on the device, each view's pairs added in view order
                      (index_add), copied to the host once, when the sink gives its one block
+    DeviceVoteSink   a `-vote` mode's sink on the device: the paper's sums (DeviceSink) and the vote
+                     slots (`vote_view_torch`), trimmed on the host once, at the end
     view_stats_torch a `-reject` mode's per-view floater statistics (the in-front test of every
                      slot against the pixel's median Gaussian, per-Gaussian max / sums), and
     DeviceSupport    their fold over the views, kept on the device (copied to the host for a
@@ -33,8 +35,10 @@ from drsplat.cameras import Camera
 from drsplat.raster_torch import TorchScene, project_gaussians_torch, rasterize_torch
 from drsplat.registration.aggregate import (ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS,
                                             RayGeometry, SurfaceSupport)
+from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, trimmed_features
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
@@ -318,14 +322,15 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     return pairs.trimmed(distinct), contributing, raster_seconds, stats
 
 
-def sums_fit_device(num_gaussians: int, dim: int, device: str) -> bool:
-    """Whether F [N, D] and W [N] (float32) fit the free memory of a CUDA `device`; always True
-    for the CPU, whose memory the registration's plan budgets (drsplat.registration.plan)."""
+def sums_fit_device(num_gaussians: int, dim: int, device: str, extra_per_gaussian: int = 0) -> bool:
+    """Whether F [N, D] and W [N] (float32), plus `extra_per_gaussian` bytes per Gaussian (a vote's
+    slots), fit the free memory of a CUDA `device`; always True for the CPU, whose memory the
+    registration's plan budgets (drsplat.registration.plan)."""
     dev = torch.device(device)
     if dev.type != "cuda":
         return True
     free, _ = torch.cuda.mem_get_info(dev)
-    return DEVICE_HEADROOM * 4 * num_gaussians * (dim + 1) + 8 * PAIR_CHUNK * dim <= free
+    return DEVICE_HEADROOM * num_gaussians * (4 * (dim + 1) + extra_per_gaussian) + 8 * PAIR_CHUNK * dim <= free
 
 
 class DeviceSink:
@@ -380,3 +385,107 @@ class DeviceSink:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (host copies)."""
         index = to_device(np.array(ids, np.int64), self.device)
         return self.F[index].cpu().numpy().copy(), self.W[index].cpu().numpy().copy()
+
+
+def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float,
+                    slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
+    """`vote._vote_view_kernel` on the device: fold one view's pairs into the vote slots, in place.
+
+    rows: [P] int64 Gaussians, clusters: [P] int64 (-1 none), weights: [P] float32, in the view's
+    pair order; slot_c [N + 1, S] int32 (-1 empty), slot_v / slot_s [N + 1, S] float64, whose
+    spare row N takes the writes of pairs that do nothing. A Gaussian's pairs act one after
+    another (the space-saving rule depends on its slots as earlier pairs left them), so the pairs
+    are grouped by Gaussian, stably, and round r folds each Gaussian's r-th pair at once:
+
+        T_iv = Σ_{j ∈ view} w_ij (float64, in pair order), v = min(1, w / (T·ρ)) · min(1, T / T₀)
+        slot = the cluster's slot, else the first empty one, else the one of fewest votes (first of
+        equal), which the cluster takes over with its counts; V += v, S += w
+
+    Rounds: the most pairs one Gaussian has in the view (one read of the device per view).
+    Equal to the kernel bit for bit on the CPU (one addition per slot and round, in its order).
+    """
+    p = int(rows.shape[0])
+    if p == 0:
+        return
+    dev, n = rows.device, slot_c.shape[0] - 1
+    w = weights.to(torch.float64)
+    total = torch.zeros(n + 1, dtype=torch.float64, device=dev).index_add_(0, rows, w)[rows]
+    order = torch.sort(rows, stable=True).indices
+    g, c, w, total = rows[order], clusters[order], w[order], total[order]
+    steps = torch.arange(p, device=dev)
+    first = torch.ones(p, dtype=torch.bool, device=dev)
+    first[1:] = g[1:] != g[:-1]
+    rank = steps - torch.cummax(torch.where(first, steps, 0), 0).values
+    one = torch.ones((), dtype=torch.float64, device=dev)
+    v = torch.minimum(one, w / (total * presence)) * torch.minimum(one, total / full_view) if presence > 0.0 else w
+    acting = (c >= 0) & (w > 0.0)
+    for r in range(int(rank.max()) + 1):
+        on = acting & (rank == r)
+        row = torch.where(on, g, n)  # at most one acting pair per Gaussian in a round: no two writes meet, but in the spare row
+        sc = slot_c[row]
+        match = (sc == c[:, None].to(torch.int32)) | (sc < 0)
+        slot = torch.where(match.any(1), torch.argmax(match.to(torch.int8), 1), torch.argmin(slot_v[row], 1))
+        slot_c[row, slot] = torch.where(on, c.to(torch.int32), sc.gather(1, slot[:, None])[:, 0])
+        slot_v.index_put_((row, slot), torch.where(on, v, 0.0), accumulate=True)
+        slot_s.index_put_((row, slot), torch.where(on, w, 0.0), accumulate=True)
+
+
+VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: a slot's cluster (int32), votes and weight (float64)
+
+
+class DeviceVoteSink:
+    """The `-vote` stage's sink on the device (drsplat.registration.vote.VoteSink's one-block form):
+    the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view by
+    `vote_view_torch`; the views' mask clusters on the host (a view's embeddings, in view order).
+    `blocks` copies F, W and the slots to the host once and trims there (`trimmed_features`), so
+    the result is the host VoteSink's bits on a CPU.
+    """
+
+    num_blocks = 1
+
+    def __init__(self, num_gaussians: int, dim: int, device: str, slots: int = VOTE_SLOTS, presence: float = PRESENCE,
+                 full_view: float = FULL_VIEW):
+        self._sums = DeviceSink(num_gaussians, dim, device)
+        self.device, self.place = self._sums.device, self._sums.place
+        self.presence, self.full_view = float(presence), float(full_view)
+        self.clusters = MaskClusters(dim)
+        rows = (num_gaussians + 1, int(slots))  # + the spare row of vote_view_torch
+        self.slot_c = torch.full(rows, -1, dtype=torch.int32, device=self.device)
+        self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
+        self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
+
+    def add(self, view: ViewPairs) -> None:
+        pairs = view.device
+        if pairs is None:  # a view replayed from the log
+            rows = to_device(view.gaussians.astype(np.int64), self.device)
+            masks = to_device(view.masks.astype(np.int64), self.device)
+            weights = to_device(np.array(view.weights, np.float32), self.device)
+            present = view.present_masks()
+        else:
+            rows, masks, weights = pairs.gaussians, pairs.masks, pairs.weights
+            m = view.feats.shape[0]
+            present = torch.zeros(m, dtype=torch.bool, device=self.device).index_fill_(0, masks, True).cpu().numpy()  # M flags
+        cluster_of_mask = to_device(self.clusters.add(view.feats, present).astype(np.int64), self.device)
+        self._sums.add(view)
+        if rows.shape[0]:
+            vote_view_torch(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, self.slot_c, self.slot_v, self.slot_s)
+
+    def positive(self) -> np.ndarray:
+        return self._sums.positive()
+
+    def _trimmed(self, index: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray]:
+        n = self.slot_c.shape[0] - 1
+        F, W = self._sums.F, self._sums.W
+        c, v, s = self.slot_c[:n], self.slot_v[:n], self.slot_s[:n]
+        if index is not None:
+            F, W, c, v, s = F[index], W[index], c[index], v[index], s[index]
+        F = F.cpu().numpy().copy()
+        return trimmed_features(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters.means()), W.cpu().numpy().copy()
+
+    def blocks(self) -> Iterator[Block]:
+        F, W = self._trimmed(None)
+        yield Block(0, F.shape[0], F, W)
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(F [S, D], W [S]) of the Gaussians `ids` [S], trimmed (host copies)."""
+        return self._trimmed(to_device(np.array(ids, np.int64), self.device))

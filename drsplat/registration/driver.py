@@ -316,33 +316,32 @@ def device_pairs_apply(options: RegisterOptions, aggregator: Aggregator) -> bool
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
     the torch engine in this process with a mode whose per-view weighting has a torch form (all but
     `explain`, an EM per pixel in numba); floater statistics are then computed and folded on the
-    device too, and a `-vote` mode's sink gets each view's pairs copied to the host (not its top-k
-    lists). Ray workers return host pairs."""
+    device too, and a `-vote` mode's slots are folded there (device_sums.DeviceVoteSink). Ray
+    workers return host pairs."""
     return options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
     """The sink of the plan and whether views keep their pairs on the device.
 
-    One block with device pairs: a DeviceSink (F, W on the device; on CUDA when they fit its free
-    memory, else the host MemorySink). Blocks: the pairs are logged and each block replays the log on
-    the host (LogSink, VoteSink), whatever the engine.
+    One block with device pairs: a DeviceSink, or a DeviceVoteSink for a `-vote` mode (F, W and the
+    vote slots on the device; on CUDA when they fit its free memory, else the host MemorySink /
+    VoteSink). Blocks: the pairs are logged and each block replays the log on the host (LogSink,
+    VoteSink), whatever the engine.
     """
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options, aggregator)
-    if aggregator.vote:  # its vote slots are a numba fold over host pairs
-        return (VoteSink(n, dim) if block >= n else VoteSink(n, dim, ckpt.log, block)), on_device
     if block < n:
-        return LogSink(n, dim, ckpt.log, block), on_device
+        return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     if on_device:
         # imports torch: only the torch engine keeps its sums on the device
-        from drsplat.registration.device_sums import DeviceSink, sums_fit_device
+        from drsplat.registration.device_sums import VOTE_SLOT_BYTES, DeviceSink, DeviceVoteSink, sums_fit_device
 
-        if sums_fit_device(n, dim, run.options.device):
+        if sums_fit_device(n, dim, run.options.device, VOTE_SLOT_BYTES if aggregator.vote else 0):
             log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)
-            return DeviceSink(n, dim, run.options.device), True
+            return (DeviceVoteSink if aggregator.vote else DeviceSink)(n, dim, run.options.device), True
         log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{n:,}", run.options.device)
-    return MemorySink(n, dim), on_device
+    return (VoteSink(n, dim) if aggregator.vote else MemorySink(n, dim)), on_device
 
 
 def _plan_block(run: Run) -> int:
