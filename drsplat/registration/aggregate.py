@@ -424,20 +424,7 @@ class RayGeometry:
 
     @classmethod
     def from_scene(cls, scene) -> RayGeometry:
-        """From a GaussianScene: `from_scene_reference` in one parallel numba pass (it runs on the
-        driver of every `-reject` registration; numpy's took ~1 µs per Gaussian, 0.3 s of a small
-        Ray run's driver). Per Gaussian, in float64: q normalised (identity for a zero or non-finite
-        norm), R(q), Σ⁻¹ = R S⁻² Rᵀ (all six entries 0 when one is not finite), reach = 3·max scale;
-        a Gaussian with a non-finite mean or reach gets mean 0 and reach 0."""
-        n = scene.num_gaussians
-        means, packed, reach = np.empty((n, 3)), np.empty((n, 6)), np.empty(n)
-        _ray_geometry_kernel(np.ascontiguousarray(scene.means), np.ascontiguousarray(scene.quats), np.ascontiguousarray(scene.log_scales),
-                             means, packed, reach)
-        return cls(means, packed, reach)
-
-    @classmethod
-    def from_scene_reference(cls, scene) -> RayGeometry:
-        """From a GaussianScene (built from quaternions and scales: exact for flat Gaussians; numpy)."""
+        """From a GaussianScene (built from quaternions and scales: exact for flat Gaussians)."""
         prec = scene.precisions()
         packed = np.stack([prec[:, 0, 0], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 1], prec[:, 1, 2], prec[:, 2, 2]], axis=1)
         with np.errstate(over="ignore", invalid="ignore"):
@@ -445,54 +432,6 @@ class RayGeometry:
         means = np.asarray(scene.means, np.float64)
         bad = ~(np.isfinite(reach) & np.isfinite(means).all(axis=1))
         return cls(np.where(bad[:, None], 0.0, means), np.ascontiguousarray(packed), np.where(bad, 0.0, reach))
-
-
-@numba.njit(parallel=True, cache=True)
-def _ray_geometry_kernel(means_in, quats, log_scales, means, packed, reach):  # pragma: no cover - jitted
-    """RayGeometry.from_scene's arrays, one Gaussian per iteration (math in its docstring)."""
-    for i in numba.prange(quats.shape[0]):
-        qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
-        norm = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if norm > 0.0:
-            qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
-        else:
-            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-        r = np.empty((3, 3))
-        r[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
-        r[0, 1] = 2.0 * (qx * qy - qw * qz)
-        r[0, 2] = 2.0 * (qx * qz + qw * qy)
-        r[1, 0] = 2.0 * (qx * qy + qw * qz)
-        r[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
-        r[1, 2] = 2.0 * (qy * qz - qw * qx)
-        r[2, 0] = 2.0 * (qx * qz - qw * qy)
-        r[2, 1] = 2.0 * (qy * qz + qw * qx)
-        r[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
-        largest = -np.inf
-        for b in range(3):
-            log_scale = np.float64(log_scales[i, b])
-            inv = np.exp(-log_scale)
-            for a in range(3):
-                r[a, b] *= inv  # m = R S⁻¹
-            if log_scale > largest or log_scale != log_scale:  # NaN wins, as numpy's max
-                largest = log_scale if largest == largest else largest
-        finite = True
-        k = 0
-        for a in range(3):
-            for c in range(a, 3):
-                v = r[a, 0] * r[c, 0] + r[a, 1] * r[c, 1] + r[a, 2] * r[c, 2]
-                packed[i, k] = v
-                finite = finite and np.isfinite(v)
-                k += 1
-        if not finite:
-            for k in range(6):
-                packed[i, k] = 0.0
-        reach_i = 3.0 * np.exp(largest)
-        ok = np.isfinite(reach_i)
-        for a in range(3):
-            ok = ok and np.isfinite(np.float64(means_in[i, a]))
-        for a in range(3):
-            means[i, a] = np.float64(means_in[i, a]) if ok else 0.0
-        reach[i] = reach_i if ok else 0.0
 
 
 def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.ndarray:
