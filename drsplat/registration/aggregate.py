@@ -423,15 +423,24 @@ class RayGeometry:
     reach: np.ndarray
 
     @classmethod
-    def from_scene(cls, scene) -> RayGeometry:
-        """From a GaussianScene (built from quaternions and scales: exact for flat Gaussians)."""
-        prec = scene.precisions()
-        packed = np.stack([prec[:, 0, 0], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 1], prec[:, 1, 2], prec[:, 2, 2]], axis=1)
-        with np.errstate(over="ignore", invalid="ignore"):
-            reach = 3.0 * np.exp(scene.log_scales.astype(np.float64)).max(axis=1)
-        means = np.asarray(scene.means, np.float64)
-        bad = ~(np.isfinite(reach) & np.isfinite(means).all(axis=1))
-        return cls(np.where(bad[:, None], 0.0, means), np.ascontiguousarray(packed), np.where(bad, 0.0, reach))
+    def from_scene(cls, scene, chunk: int = 1 << 20) -> RayGeometry:
+        """From a GaussianScene (built from quaternions and scales: exact for flat Gaussians), `chunk`
+        Gaussians at a time, so Σ⁻¹'s [chunk, 3, 3] float64 temporaries (~250 bytes per Gaussian:
+        12 GB at 50M in one go) stay ~250 MB; every row is the same as in one go."""
+        n = scene.num_gaussians
+        out = cls(np.empty((n, 3)), np.empty((n, 6)), np.empty(n))
+        for start in range(0, n, chunk):
+            part = scene.subset(slice(start, start + chunk))
+            stop = start + part.num_gaussians
+            prec = part.precisions()
+            out.precisions[start:stop] = np.stack([prec[:, 0, 0], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 1], prec[:, 1, 2], prec[:, 2, 2]], 1)
+            with np.errstate(over="ignore", invalid="ignore"):
+                reach = 3.0 * np.exp(part.log_scales.astype(np.float64)).max(axis=1)
+            means = np.asarray(part.means, np.float64)
+            bad = ~(np.isfinite(reach) & np.isfinite(means).all(axis=1))
+            out.means[start:stop] = np.where(bad[:, None], 0.0, means)
+            out.reach[start:stop] = np.where(bad, 0.0, reach)
+        return out
 
 
 def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.ndarray:

@@ -74,8 +74,9 @@ class ViewPairs:
     used: [U] int32 masks that cover at least one pixel (for training a scene codebook).
     num_pairs: contributing (Gaussian, pixel) pairs; num_nonfinite: masks dropped.
     raster_seconds / coalesce_seconds: where the time went (not stored in the log).
-    stats: the aggregation mode's per-view statistics (drsplat.registration.aggregate.ViewStats), or
-    None (stored only in a worker's shard; the driver's log resumes them from their own snapshot).
+    stats: the aggregation mode's per-view statistics (drsplat.registration.aggregate.ViewStats; on
+    the torch device path drsplat.registration.device_sums.DeviceViewStats), or None (stored only in
+    a worker's shard; the driver's log resumes them from their own snapshot).
     device: the pairs on the torch engine's device (drsplat.registration.device_sums.DevicePairs),
     or None; gaussians / masks / weights are then empty until `on_host` copies them (not logged).
     chunk_starts: [C + 1] int64 when the pairs are grouped by Gaussian chunk (`grouped`), else None.
