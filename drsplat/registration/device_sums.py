@@ -16,9 +16,10 @@ drsplat.registration.sums), this module keeps them there:
                      checkpoint snapshot and once at the end, for the rejected mask)
 
 The driver (drsplat.registration.driver) reads two numbers per view from the device (the view's
-distinct and contributing pair counts, to size the sums' update); the pairs themselves reach the
-host only when a pair log is kept (a checkpoint, or a run in Gaussian blocks), through
-`DevicePairs.to_host`. torch is imported here: the driver imports this module only for the torch
+distinct and contributing pair counts, to size the sums' update), and a `-vote` mode two more
+(the vote's rounds, and the M flags of the masks that reached a Gaussian, for the mask clusters
+made on the host); the pairs themselves reach the host only when a pair log is kept (a
+checkpoint, or a run in Gaussian blocks), through `DevicePairs.to_host`. torch is imported here: the driver imports this module only for the torch
 engine.
 """
 
