@@ -78,10 +78,10 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
 
     out = tmp_path / "counts.json"
     code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--repeats", "1",
-                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out)])
+                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out), "--aggregate", "paper"])
     assert code == 0
     record = json.loads(out.read_text())
-    assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1
+    assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1 and record["aggregate"] == "paper"
     assert 0 < record["view_ops_per_view"] < record["ops_per_view"] < 2000
     # sums on the device: the tile lists' size and the view's pair counts; on the host: the tile lists' size
     # (the copies of the top-k lists to the host wait for a CUDA device but are no aten op on a CPU)
@@ -90,6 +90,22 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     assert host["sums"] == "host" and host["host_syncs_per_view"] == 1 and 0 < host["ops_per_view"] < record["ops_per_view"]
     printed = capsys.readouterr().out
     assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed
+
+
+def test_bench_counts_the_default_mode_on_the_device(tmp_path):
+    """--aggregate vote-reject (the default): floater statistics and vote slots on the device cost one
+    more read per view than paper (the vote's rounds; the M flags of the masks that reached a
+    Gaussian are one more copy on CUDA, no aten op on a CPU); the host way copies the top-k lists
+    and runs the numba hook."""
+    from drsplat.cli import main
+
+    out = tmp_path / "counts.json"
+    code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--repeats", "1",
+                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    record = json.loads(out.read_text())
+    assert record["aggregate"] == "vote-reject" and record["sums"] == "cpu" and record["host_syncs_per_view"] == 3
+    assert record["host_sums"]["sums"] == "host" and record["host_sums"]["host_syncs_per_view"] == 1
 
 
 def test_bench_json_needs_the_torch_engine(tmp_path):

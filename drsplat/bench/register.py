@@ -318,7 +318,7 @@ def blob_scene(n: int, seed: int = 0):
 
 
 def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int,
-                 count_views: int = 2) -> tuple[str, dict]:
+                 count_views: int = 2, aggregate: str = "paper") -> tuple[str, dict]:
     """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement;
     then `engine`'s per-view ops and host syncs (`per_view_counts`). Returns (text, the counts record)."""
     from drsplat.raster import prepare_for_engine, rasterize
@@ -328,9 +328,9 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
     with tempfile.TemporaryDirectory() as tmp:
         features_dir = Path(tmp)
         random_mask_features(features_dir, cameras, np.random.default_rng(0))
-        base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats)
-        other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device)
-        counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device)
+        base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
+        other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
+        counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, aggregate)
     wdiff, mismatch = 0.0, 0.0
     prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
     for cam in cameras[:agree_views]:
@@ -348,26 +348,33 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         raster, acc = stage(runs, "raster_seconds"), stage(runs, "accumulate_seconds")
         rows.append([label, 1e3 * total / views, 1e3 * raster / views, 1e3 * acc / views, base_s / total,
                      stage(base_runs, "raster_seconds") / raster if raster else float("nan")])
-    head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, 512-D random masks; "
+    head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, 512-D random masks, "
+            f"--aggregate {aggregate}; "
             f"median of {repeats}. Agreement on {min(agree_views, views)} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of "
             f"top-k slots; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
     table = format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
     return head + "\n" + table + "\n\n" + counts_table(counts), counts
 
 
-def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str) -> dict:
-    """What computing and summing one view costs `engine` on `device` with the "paper" mode (no
-    per-view hook): drsplat.registration.compute.ViewComputer.compute (rasterize, coalesce) and the
-    sink's `add`. Torch ops and host syncs per view (drsplat.bench.opcount), the median wall ms per
-    view (timed without the counter) and peak device memory (CUDA).
+def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str, aggregate: str = "paper") -> dict:
+    """What computing and summing one view costs `engine` on `device` with the `aggregate` mode:
+    drsplat.registration.compute.ViewComputer.compute (rasterize, the mode's per-view hook,
+    coalesce), the fold of the mode's statistics and the sink's `add`. Torch ops and host syncs per
+    view (drsplat.bench.opcount), the median wall ms per view (timed without the counter) and peak
+    device memory (CUDA).
 
-    For the torch engine both ways are measured, interleaved view by view: pairs coalesced and
-    summed on the device (drsplat.registration.device_sums, what registration does in that mode:
-    the record's top-level figures) and the lists copied to the host for the numba coalescer and
-    sums (`host_sums`). The first camera is a warm-up (compilation, caches) and is not counted.
+    For the torch engine both ways are measured when the mode has a device form, interleaved view
+    by view: pairs coalesced and summed on the device (drsplat.registration.device_sums, what
+    registration does in that mode: the record's top-level figures) and the lists copied to the host
+    for the numba hook, coalescer and sums (`host_sums`). The first camera is a warm-up
+    (compilation, caches) and is not counted.
     """
-    ways = [True, False] if engine == "torch" else [False]
-    counters = [_ViewCounter(scene, features_dir, topk, engine, device, on_device) for on_device in ways]
+    from drsplat.registration.aggregate import Aggregator
+    from drsplat.registration.compute import hook_runs_on_device
+
+    on_device = engine == "torch" and hook_runs_on_device(Aggregator(aggregate, scene).hook)
+    ways = [True, False] if on_device else [False]
+    counters = [_ViewCounter(scene, features_dir, topk, engine, device, way, aggregate) for way in ways]
     for i, cam in enumerate(cameras):
         for counter in counters:
             counter.view(cam, counted=i > 0)
@@ -380,11 +387,14 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
 class _ViewCounter:
     """One way of computing and summing views (`per_view_counts`), with its per-view figures."""
 
-    def __init__(self, scene, features_dir: Path, topk: int, engine: str, device: str, on_device: bool):
+    def __init__(self, scene, features_dir: Path, topk: int, engine: str, device: str, on_device: bool, aggregate: str = "paper"):
+        from drsplat.registration.aggregate import Aggregator
         from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
 
         self.scene, self.features_dir, self.engine, self.device, self.on_device = scene, features_dir, engine, device, on_device
-        self.computer = ViewComputer(prepare_geometry(scene), ViewJob(features_dir, 0, topk, engine, device, device_pairs=on_device))
+        self.aggregator = Aggregator(aggregate, scene)
+        job = ViewJob(features_dir, 0, topk, engine, device, self.aggregator.hook, device_pairs=on_device)
+        self.computer = ViewComputer(prepare_geometry(scene), job)
         self.sink = None
         self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
         self.after_raster_ms = []  # coalescing and summing (on CUDA: from the render's issue to the sums' end)
@@ -393,34 +403,43 @@ class _ViewCounter:
         import torch
 
         from drsplat.bench.opcount import OpCounter
-        from drsplat.registration.device_sums import DeviceSink
+        from drsplat.registration.device_sums import DeviceSink, DeviceVoteSink
         from drsplat.registration.sink import MemorySink
         from drsplat.registration.views import load_view_features
+        from drsplat.registration.vote import VoteSink
 
         mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
         if self.sink is None:
-            n = self.scene.num_gaussians
-            self.sink = DeviceSink(n, feats.shape[1], self.device) if self.on_device else MemorySink(n, feats.shape[1])
+            n, vote = self.scene.num_gaussians, self.aggregator.vote
+            if self.on_device:
+                self.sink = (DeviceVoteSink if vote else DeviceSink)(n, feats.shape[1], self.device)
+            else:
+                self.sink = (VoteSink if vote else MemorySink)(n, feats.shape[1])
         cuda = self.device.startswith("cuda")
         if cuda:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        view = self.computer.compute(cam, mask_ids, feats)
-        self.sink.add(view)
+        self._add(self.computer.compute(cam, mask_ids, feats))
         if cuda:
             torch.cuda.synchronize()
             self.peak_mb = max(self.peak_mb or 0.0, torch.cuda.max_memory_allocated() / 2**20)
         if not counted:
             return
         self.ms.append(1e3 * (time.perf_counter() - t0))
-        self.after_raster_ms.append(self.ms[-1] - 1e3 * view.raster_seconds)
+        self.after_raster_ms.append(self.ms[-1] - 1e3 * self._raster_seconds)
         with OpCounter() as counter:
-            self.sink.add(self.computer.compute(cam, mask_ids, feats))
+            self._add(self.computer.compute(cam, mask_ids, feats))
         self.ops.append(counter.counts.ops)
         self.views_only.append(counter.counts.views)
         self.syncs.append(counter.counts.syncs)
         self.sync_names = counter.counts.syncs_by_name
+
+    def _add(self, view) -> None:
+        """The driver's part of a view: the mode's statistics folded, the pairs summed."""
+        self._raster_seconds = view.raster_seconds
+        self.aggregator.add(view.stats)
+        self.sink.add(view)
 
     def record(self) -> dict:
         """The per-view medians, and the sums' hand-over after the views (`blocks`: the device sink's
@@ -435,7 +454,8 @@ class _ViewCounter:
             return statistics.median(values) if views else None
 
         return {
-            "engine": self.engine, "device": self.device, "views": views, "sums": self.device if self.on_device else "host",
+            "engine": self.engine, "device": self.device, "aggregate": self.aggregator.mode, "views": views,
+            "sums": self.device if self.on_device else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
             "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,
@@ -447,7 +467,8 @@ def counts_table(counts: dict) -> str:
     """The per-view records of `per_view_counts` as a table (device sums, then host sums when measured)."""
     records = [counts] + ([counts["host_sums"]] if "host_sums" in counts else [])
     syncs = "; ".join(f"sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
-    head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate paper, compute + sink add, median of {counts['views']} "
+    head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate {counts['aggregate']}, compute + statistics + sink add, "
+            f"median of {counts['views']} "
             f"views after a warm-up (ops: aten calls; host syncs: {syncs})")
     rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
              r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
@@ -486,7 +507,7 @@ def run(args: argparse.Namespace) -> int:
             scene = None
         if scene is not None:
             text, counts = engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device,
-                                        args.agree_views, args.count_views)
+                                        args.agree_views, args.count_views, args.aggregate)
             print(text)
             if args.json is not None:
                 write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
