@@ -409,3 +409,29 @@ def test_a_killed_temporary_runs_shards_are_swept(tmp_path):
     folder.mkdir()
     (folder / "host-1-abc.log").write_bytes(b"x")
     assert sweep_stale_temps(tmp_path / "reg.ply") == 1 and not folder.exists()
+
+
+def test_a_worker_that_cannot_write_its_shard_names_its_node(tmp_path, monkeypatch):
+    """A view worker whose node does not see the checkpoint's folder (here: the shard folder lies
+    under a file) reports it in one sentence for every call, naming the node and the folder,
+    instead of a dead worker's traceback. The actor class runs in this process: the object store
+    is replaced by the objects themselves."""
+    import socket
+    from types import SimpleNamespace
+
+    import drsplat.registration.ray as ray_module
+    from drsplat.registration.compute import ViewJob, prepare_geometry
+
+    data = write_dataset(tmp_path / "data", "tiny", 0, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a folder")
+    job = ViewJob(data / "features", 0, 8, shard_dir=str(blocked / "reg.ply.register.log.shards"), log_params={"test": 1})
+    monkeypatch.setattr(ray_module, "import_ray", lambda: SimpleNamespace(get=lambda refs: refs))
+    monkeypatch.setattr(ray_module, "set_worker_threads", lambda: None)  # a Ray worker's thread count: not this process's
+    worker = ray_module._ViewWorker()
+    for _ in range(2):  # the reason is kept: every later call gives it again
+        result = worker.compute([prepare_geometry(scene), job, None], cams[:1])
+        assert result.views == [] and isinstance(result.error, DrsplatError)
+        assert f"worker on node {socket.gethostname()} cannot write its shard of the log in {blocked}" in str(result.error)
+        assert "storage every Ray node shares at the same path" in str(result.error)
