@@ -154,13 +154,13 @@ def test_short_file_gets_the_widened_meta_columns(cluster, tiny, tmp_path):
     assert sha(on_ray) == sha(local)
 
 
-def _failing_reduce_task(job, scene, codebook, index, rejected):
+def _failing_reduce_task(job, scene, codebook, index):
     """A reducer whose block 1 fails (runs on a worker: imported there by reference)."""
     if index == 1:
         raise RuntimeError("the disk under block 1 is gone")
     from drsplat.registration.reduce import _reduce_task
 
-    return _reduce_task(job, scene, codebook, index, rejected)
+    return _reduce_task(job, scene, codebook, index)
 
 
 def test_a_failing_reducer_names_its_block_and_the_checkpoint_resumes(cluster, tiny, tmp_path, monkeypatch):
@@ -272,7 +272,7 @@ def test_assembled_parts_equal_a_single_write(tmp_path, case):
     parts_dir = tmp_path / "parts" / "p"
     parts_dir.mkdir()
     job = ReduceJob(str(plog.path), plog.params, list(plog.records), n, dim, block, False, None, str(out), "oracle", str(parts_dir))
-    parts = [reduce_block(job, scene, "none", i, None) for i in range(job.num_blocks)]
+    parts = [reduce_block(job, scene, "none", i) for i in range(job.num_blocks)]
     rows = [p.rows for p in parts]
     assert sum(rows) == written and (rows[1] == 0 < rows[0] if case == "empty_middle_block" else 0 < written < 60)
     assert assemble_parts(out, parts) == written
@@ -284,12 +284,12 @@ def test_assembled_parts_equal_a_single_write(tmp_path, case):
 def test_a_log_the_reducer_cannot_read_is_one_clear_error(tmp_path):
     job = ReduceJob(str(tmp_path / "elsewhere" / "pairs.log"), {}, [], 10, 4, 5, False, None, str(tmp_path / "o.ply"), "oracle", str(tmp_path))
     with pytest.raises(DrsplatError, match=r"reducer of block 1 \(Gaussians 5\.\.9\).*cannot read the pair log .*elsewhere/pairs\.log.*storage every Ray node shares"):
-        reduce_block(job, None, "none", 1, None)
+        reduce_block(job, None, "none", 1)
     other = PairLog.open(tmp_path / "other.log", {"a": 1})
     other.close()
     job = dataclasses.replace(job, log_path=str(tmp_path / "other.log"), params={"a": 2})
     with pytest.raises(DrsplatError, match="other parameters"):
-        reduce_block(job, None, "none", 0, None)
+        reduce_block(job, None, "none", 0)
 
 
 # ----------------------------------------------------------------------------- the workers' shards (without Ray)
@@ -356,12 +356,13 @@ def test_shard_pointers_give_the_workers_pairs_and_the_driver_statistics(tmp_pat
                     str(tmp_path), reject=True)
     with pytest.raises(DrsplatError, match=rf"reducer of block 1 \(Gaussians 100,000\.\.199,999\).*{writers[1].file}: the worker's shard "
                                            r"holding view v1 cannot be read \(No such file or directory\).*storage every Ray node shares"):
-        reduce_block(job, None, "none", 1, None)
+        reduce_block(job, None, "none", 1)
 
 
 def test_a_resume_keeps_the_views_whose_shard_records_are_there(tmp_path, caplog):
     from drsplat.registration.aggregate import Aggregator
-    from drsplat.registration.checkpoint import Checkpoint, shards_path
+    from drsplat.registration.checkpoint import Checkpoint
+    from drsplat.registration.pairlog import shards_folder as shards_path
     from drsplat.cameras import Camera
 
     n, dim = 1000, 4
@@ -397,10 +398,36 @@ def test_a_resume_keeps_the_views_whose_shard_records_are_there(tmp_path, caplog
     assert not list(shards_path(path).iterdir())  # a fresh log starts with an empty folder
 
 
+def test_a_pointer_that_leads_out_of_the_shards_folder_is_refused(tmp_path, caplog):
+    """A log whose pointer names a path outside its shards folder (edited by hand, or hostile:
+    '../', an absolute path, a nested folder): a resume reads nothing there and starts over, and a
+    reducer's read is one ShardError naming the pointer; the file outside is never opened."""
+    from drsplat.registration.pairlog import ShardError
+
+    n, dim = 1000, 4
+    params = {"test": "hostile"}
+    outside = tmp_path / "secret.log"
+    outside.write_bytes(b"DRSPLOG2 not yours")
+    writer = ShardWriter(tmp_path / "reg.log.shards", params)
+    good = writer.write(_view_with_stats(np.random.default_rng(5), "v0", n, dim))
+    writer.sync()
+    for name in ("../secret.log", str(outside), "reg.log.shards/sub/x.log", "other.shards/x.log", "reg.log.shards/.."):
+        plog = PairLog.open(tmp_path / "reg.log", params)
+        plog.truncate(0)
+        plog.append(dataclasses.replace(good, shard={**good.shard, "file": name}))
+        with pytest.raises(ShardError, match=r"pointer names .* not a shard in reg\.log\.shards"):
+            plog.read_block(plog.records[0], 0, n)
+        plog.close()
+        from drsplat.registration.checkpoint import _shard_record_problem
+
+        assert "which is not a file of reg.log.shards" in _shard_record_problem(tmp_path / "reg.log", plog.records[0].meta["shard"], {})
+    writer.close()
+
+
 def test_a_killed_temporary_runs_shards_are_swept(tmp_path):
     """A run in blocks without a checkpoint logs into a temp file; its shards' folder is a temp folder of
     the output too, so the next run writing that output removes a killed run's."""
-    from drsplat.registration.checkpoint import shards_path
+    from drsplat.registration.pairlog import shards_folder as shards_path
     from drsplat.utils import sweep_stale_temps
 
     dead = 2**22 + 12345  # above Linux's default pid_max: no live process has it

@@ -403,18 +403,12 @@ class _ViewCounter:
         import torch
 
         from drsplat.bench.opcount import OpCounter
-        from drsplat.registration.device_sums import DeviceSink, DeviceVoteSink
-        from drsplat.registration.sink import MemorySink
+        from drsplat.registration.driver import one_block_sink
         from drsplat.registration.views import load_view_features
-        from drsplat.registration.vote import VoteSink
 
         mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
         if self.sink is None:
-            n, vote = self.scene.num_gaussians, self.aggregator.vote
-            if self.on_device:
-                self.sink = (DeviceVoteSink if vote else DeviceSink)(n, feats.shape[1], self.device)
-            else:
-                self.sink = (VoteSink if vote else MemorySink)(n, feats.shape[1])
+            self.sink = one_block_sink(self.scene.num_gaussians, feats.shape[1], self.aggregator.vote, self.device if self.on_device else None)
         cuda = self.device.startswith("cuda")
         if cuda:
             torch.cuda.synchronize()
@@ -455,7 +449,7 @@ class _ViewCounter:
 
         return {
             "engine": self.engine, "device": self.device, "aggregate": self.aggregator.mode, "views": views,
-            "sums": self.device if self.on_device else "host",
+            "sums": self.sink.place if self.sink is not None else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
             "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,

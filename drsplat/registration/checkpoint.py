@@ -28,7 +28,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import TAG, PairLog, ViewPairs, payload_size
+from drsplat.registration.pairlog import TAG, PairLog, ShardError, ViewPairs, payload_size, shard_file, shards_folder
 from drsplat.scene import GaussianScene
 from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, work_folder
 
@@ -67,15 +67,6 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     return h.hexdigest()
 
 
-def shards_path(checkpoint: Path) -> Path:
-    """The folder of the view workers' shards beside the pair log `checkpoint` (a temporary log's
-    is a temp folder too, `.<out>.<pid>.<random>.shards.tmp`, so a killed run's is swept)."""
-    name = checkpoint.name
-    if name.endswith(TEMP_SUFFIX):
-        return checkpoint.with_name(name[: -len(TEMP_SUFFIX)] + ".shards" + TEMP_SUFFIX)
-    return checkpoint.with_name(name + ".shards")
-
-
 def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str,
                       shards: bool = False) -> dict:
     """What a checkpoint (pair log) must match to be resumed. shards: the views are logged by the
@@ -109,7 +100,7 @@ class Checkpoint:
         self.temporary = temporary
         self.every = max(1, int(every))
         self.total = len(views)
-        self.shards_dir = shards_path(self.path) if params.get("shards") else None
+        self.shards_dir = shards_folder(self.path) if params.get("shards") else None
         self.log = PairLog.open(self.path, params)
         names = [r.name for r in self.log.records]
         if names != [c.name for c in views[: len(names)]]:
@@ -208,7 +199,7 @@ class Checkpoint:
         files: dict[str, object] = {}
         try:
             for i, record in enumerate(self.log.records):
-                problem = _shard_record_problem(self.path.parent, record.meta.get("shard"), files)
+                problem = _shard_record_problem(self.path, record.meta.get("shard"), files)
                 if problem is not None:
                     log.warning("%s: view %s %s; resuming from the %d views before it", self.path, record.name, problem, i)
                     self.log.truncate(i)
@@ -240,29 +231,33 @@ class Checkpoint:
         self.aggregator.views_folded = views
 
 
-def _shard_record_problem(folder: Path, ref: dict | None, files: dict) -> str | None:
-    """Why the shard record a pointer `ref` names cannot be resumed from, or None when it is there:
-    the file holds a record header at its start whose meta is the pointer's and whose payload and
-    checksum fit in the file (the payload itself is read by the reducers). files: shard name ->
-    open file (or None when it cannot be opened), shared between calls."""
+def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str | None:
+    """Why the shard record a pointer `ref` of the log `log_path` names cannot be resumed from, or
+    None when it is there: a shard of the log's folder (`pairlog.shard_file`) holding a record
+    header at its start whose meta is the pointer's and whose payload and checksum fit in the file
+    (the payload itself is read by the reducers). files: shard path -> open file (or None when it
+    cannot be opened), shared between calls."""
     if ref is None:
         return "holds no shard pointer"
-    name = ref["file"]
-    if name not in files:
+    try:
+        path = shard_file(log_path, ref)
+    except ShardError:
+        return f"names {ref.get('file')!r}, which is not a file of {shards_folder(log_path).name}"
+    if path not in files:
         try:
-            files[name] = open(folder / name, "rb")
+            files[path] = open(path, "rb")
         except OSError:
-            files[name] = None
-    f = files[name]
+            files[path] = None
+    f = files[path]
     if f is None:
-        return f"needs {folder / name}, which is missing or unreadable"
+        return f"needs {path}, which is missing or unreadable"
     meta = json.dumps(ref["meta"]).encode()
     start, offset = int(ref["start"]), int(ref["offset"])
     f.seek(start)
     head = f.read(20 + len(meta))
     if (len(head) != 20 + len(meta) or head[:4] != TAG or head[20:] != meta or offset != start + 20 + len(meta)
             or os.fstat(f.fileno()).st_size < offset + payload_size(ref["meta"]) + 4):
-        return f"needs a record of {folder / name} that is not there (the shard was cut short or replaced)"
+        return f"needs a record of {path} that is not there (the shard was cut short or replaced)"
     return None
 
 

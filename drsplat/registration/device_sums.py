@@ -68,6 +68,10 @@ class DevicePairs:
         """The first `distinct` pairs (views of the tensors; `distinct` read from `counts` by the caller)."""
         return DevicePairs(self.gaussians[:distinct], self.masks[:distinct], self.weights[:distinct], self.counts)
 
+    def present(self, num_masks: int) -> np.ndarray:
+        """[num_masks] bool on the host: the masks some pair holds (M flags copied, not the pairs)."""
+        return torch.zeros(num_masks, dtype=torch.bool, device=self.masks.device).index_fill_(0, self.masks, True).cpu().numpy()
+
     def to_host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(gaussians [P] int32, masks [P] int32, weights [P] float32) on the host, in one copy."""
         packed = torch.stack([self.gaussians.to(torch.int32), self.masks.to(torch.int32), self.weights.view(torch.int32)])
@@ -461,12 +465,9 @@ class DeviceVoteSink:
             rows = to_device(view.gaussians.astype(np.int64), self.device)
             masks = to_device(view.masks.astype(np.int64), self.device)
             weights = to_device(np.array(view.weights, np.float32), self.device)
-            present = view.present_masks()
         else:
             rows, masks, weights = pairs.gaussians, pairs.masks, pairs.weights
-            m = view.feats.shape[0]
-            present = torch.zeros(m, dtype=torch.bool, device=self.device).index_fill_(0, masks, True).cpu().numpy()  # M flags
-        cluster_of_mask = to_device(self.clusters.add(view.feats, present).astype(np.int64), self.device)
+        cluster_of_mask = to_device(self.clusters.add(view.feats, view.present_masks()).astype(np.int64), self.device)
         self._sums.add(view)
         if rows.shape[0]:
             vote_view_torch(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, self.slot_c, self.slot_v, self.slot_s)

@@ -333,15 +333,24 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     on_device = device_pairs_apply(run.options, aggregator)
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
-    if on_device:
+    sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
+    if sink.place != "host":
+        log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)
+    return sink, on_device
+
+
+def one_block_sink(num_gaussians: int, dim: int, vote: bool, device: str | None = None) -> Sink:
+    """The sink of all N Gaussians in one block: on the torch `device` (DeviceSink, or DeviceVoteSink
+    for a `-vote` mode) when its sums (and a vote's slots) fit the device's free memory, else, or
+    when device is None, on the host (MemorySink, VoteSink)."""
+    if device is not None:
         # imports torch: only the torch engine keeps its sums on the device
         from drsplat.registration.device_sums import VOTE_SLOT_BYTES, DeviceSink, DeviceVoteSink, sums_fit_device
 
-        if sums_fit_device(n, dim, run.options.device, VOTE_SLOT_BYTES if aggregator.vote else 0):
-            log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)
-            return (DeviceVoteSink if aggregator.vote else DeviceSink)(n, dim, run.options.device), True
-        log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{n:,}", run.options.device)
-    return (VoteSink(n, dim) if aggregator.vote else MemorySink(n, dim)), on_device
+        if sums_fit_device(num_gaussians, dim, device, VOTE_SLOT_BYTES if vote else 0):
+            return (DeviceVoteSink if vote else DeviceSink)(num_gaussians, dim, device)
+        log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{num_gaussians:,}", device)
+    return VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
 
 
 def _plan_block(run: Run) -> int:

@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.registration.aggregate import ViewStats
+from drsplat.utils import TEMP_SUFFIX
 
 log = logging.getLogger(__name__)
 
@@ -109,9 +110,12 @@ class ViewPairs:
         return self.device.num_distinct if self.device is not None else int(self.gaussians.shape[0])
 
     def present_masks(self) -> np.ndarray:
-        """[M] bool: the masks that reached some Gaussian in this view."""
+        """[M] bool: the masks that reached some Gaussian in this view (from the device when its pairs
+        are there only: M flags copied, not the pairs)."""
         if self.present is not None:
             return self.present
+        if self.device is not None and self.gaussians.shape[0] != self.device.num_distinct:
+            return self.device.present(self.feats.shape[0])
         present = np.zeros(self.feats.shape[0], bool)
         present[self.masks] = True
         return present
@@ -217,9 +221,15 @@ def _decode(meta: dict, payload: memoryview | bytes) -> ViewPairs:
                      present=present, shard=meta.get("shard"))
 
 
+def _pairs_section_size(meta: dict) -> int:
+    """Bytes of a record's payload before its optional statistics section (embeddings, pairs, used
+    masks, chunk starts)."""
+    return 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)
+
+
 def payload_size(meta: dict) -> int:
     """The bytes of a record's payload, from its meta (the statistics section included)."""
-    size = 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)
+    size = _pairs_section_size(meta)
     if "T" in meta:
         size += 28 * meta["T"] + 8 * (meta["S"] + 1)
     return size
@@ -235,7 +245,28 @@ def chunk_span(starts: np.ndarray, lo: int, hi: int) -> tuple[int, int]:
 
 
 class ShardError(ValueError):
-    """A pointer record's shard is missing or is not that log's (names the file)."""
+    """A pointer record's shard is missing, is not that log's, or lies outside its folder (names the file)."""
+
+
+def shards_folder(log_path: Path) -> Path:
+    """The folder of the view workers' shards beside the log `log_path` (a temporary log's is a temp
+    folder too, `.<out>.<pid>.<random>.shards.tmp`, so a killed run's is swept with it)."""
+    name = log_path.name
+    if name.endswith(TEMP_SUFFIX):
+        return log_path.with_name(name[: -len(TEMP_SUFFIX)] + ".shards" + TEMP_SUFFIX)
+    return log_path.with_name(name + ".shards")
+
+
+def shard_file(log_path: Path, ref: dict) -> Path:
+    """The shard a pointer record `ref` of the log `log_path` names, which must be a plain file name
+    in the log's shards folder (`<folder>/<name>`): a log read back from disk never leads a reader
+    to another path. ShardError otherwise."""
+    name = ref.get("file") if isinstance(ref, dict) else None
+    folder = shards_folder(log_path)
+    parts = name.split("/") if isinstance(name, str) else []
+    if len(parts) != 2 or parts[0] != folder.name or parts[1] in ("", ".", "..") or "\\" in parts[1] or "\0" in parts[1]:
+        raise ShardError(f"{log_path}: a view's pointer names {name!r}, not a shard in {folder.name}")
+    return folder / parts[1]
 
 
 @dataclass
@@ -383,7 +414,7 @@ class PairLog:
             return None
         shard = self._shards.get(ref["file"])
         if shard is None:
-            path = self.path.parent / ref["file"]
+            path = shard_file(self.path, ref)
             try:
                 shard = self._shards[ref["file"]] = PairLog.reader(path, self.params, [])
             except (OSError, ValueError) as exc:
@@ -425,7 +456,7 @@ class PairLog:
         if "T" not in meta:
             raise ValueError(f"{self.path}: the record of view {record.name} holds no floater statistics")
         t = meta["T"]
-        at = 4 * (meta["M"] * meta["D"] + 3 * meta["P"] + meta["U"]) + 8 * (meta["C"] + 1)  # the statistics section
+        at = _pairs_section_size(meta)
         read_at = self._reader_at(record)
         starts = read_at(at + 28 * t, meta["S"] + 1, "<i8")
         s0, s1 = chunk_span(starts, lo, hi)
@@ -519,7 +550,8 @@ class ShardWriter:
 
     def __init__(self, folder: str | Path, params: dict):
         folder = Path(folder)
-        self.file = f"{folder.name}/{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}.log"
+        host = socket.gethostname().replace("/", "_")
+        self.file = f"{folder.name}/{host}-{os.getpid()}-{uuid.uuid4().hex[:12]}.log"
         self.log = PairLog.open(folder.parent / self.file, params)
 
     def write(self, view: ViewPairs) -> ViewPairs:

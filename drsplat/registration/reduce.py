@@ -171,17 +171,16 @@ def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     return LogSink(job.num_gaussians, job.dim, plog, job.block)
 
 
-def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, index: int, rejected: np.ndarray | None) -> PartResult:
+def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, index: int) -> PartResult:
     """Finish block `index` of `job` into its part file (module docstring): replay, the mode's
-    finish (rejected: [hi - lo] bool, the block's slice of the rejected mask, or None),
+    finish (floater rejection with the block's own statistics, `block_support`, when job.reject),
     normalise, prune, encode. scene: the whole scene (rows lo .. hi-1 are read)."""
     t0 = time.perf_counter()
     lo, hi = job.bounds(index)
     c0 = time.process_time()
     with open_log(job, index) as plog, shard_errors(index, lo, hi):
         block = block_sink(job, plog).block_sums(lo, hi)
-        if rejected is None and job.reject:
-            rejected = block_support(plog, lo, hi).rejected()
+        rejected = block_support(plog, lo, hi).rejected() if job.reject else None
     sum_seconds, sum_cpu = time.perf_counter() - t0, time.process_time() - c0
     dropped = reject_rows(block.F, block.W, rejected) if rejected is not None else 0
     _, nonfinite = normalize_rows(block.F, block.W)
@@ -231,10 +230,10 @@ def sample_block(job: ReduceJob, index: int, ids: np.ndarray) -> tuple[np.ndarra
         return block_sink(job, plog).sample(ids)
 
 
-def _reduce_task(job, scene, codebook, index, rejected):
+def _reduce_task(job, scene, codebook, index):
     """Ray task around `reduce_block` (numba threads = the CPUs Ray gave it)."""
     set_worker_threads()
-    return reduce_block(job, scene, codebook, index, rejected)
+    return reduce_block(job, scene, codebook, index)
 
 
 def _sample_task(job, index, ids):
@@ -323,7 +322,7 @@ class ReducePool:
             import_ray().shutdown()
             self._owns = False
 
-    def reduce(self, job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, rejected: np.ndarray | None) -> list[PartResult]:
+    def reduce(self, job: ReduceJob, scene: GaussianScene, codebook: Codebook | str) -> list[PartResult]:
         """Every block of `job` through a reducer task, at most `workers` at once; the parts in block
         order. A failed reducer (after Ray's retries) is a DrsplatError naming its block; the others
         are cancelled."""
@@ -331,11 +330,7 @@ class ReducePool:
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_reduce_task)
         job_ref, scene_ref, book_ref = ray.put(job), ray.put(scene), ray.put(codebook)
 
-        def submit(index: int):
-            lo, hi = job.bounds(index)
-            return task.remote(job_ref, scene_ref, book_ref, index, None if rejected is None else np.array(rejected[lo:hi]))
-
-        results = self._run(job, submit)
+        results = self._run(job, lambda index: task.remote(job_ref, scene_ref, book_ref, index))
         for part in results:
             self.worker_peak_rss[part.pid] = max(part.peak_rss, self.worker_peak_rss.get(part.pid, 0))
         return results
@@ -433,11 +428,11 @@ class BlockReduce:
         return self.pool.candidates(self.job)
 
     def finish(self, scene: GaussianScene, codebook: Codebook | str, aggregator) -> tuple[list[PartResult], np.ndarray]:
-        """Every block finished by a reducer (`aggregator`: the run's Aggregator, whose rejected
-        mask is sliced per block and whose num_rejected gets the reducers' counts). Returns
+        """Every block finished by a reducer (`aggregator`: the run's Aggregator, whose num_rejected
+        gets the reducers' counts: each reducer folds its own block's floater statistics). Returns
         (the parts in block order, weights [N] float32: the result's W)."""
         t0 = time.perf_counter()
-        parts = self.pool.reduce(self.job, scene, shared_codebook(codebook, Path(self.job.out)), aggregator.rejected())
+        parts = self.pool.reduce(self.job, scene, shared_codebook(codebook, Path(self.job.out)))
         log.info("%d blocks finished by reducer tasks (%d at once) in %.1f s", len(parts), self.pool.workers, time.perf_counter() - t0)
         weights = np.zeros(self.job.num_gaussians, np.float32)
         for part in parts:
