@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -404,6 +405,8 @@ def project_points(
 # kernels above (composite_tiles, bin_gaussians) stay the reference they must agree with.
 
 ACCUTILE_PAD = 0.01  # pixels added around the α ≥ 1/255 ellipse's span of a tile row (rounding)
+LANE_BLOCK = 16  # composite_topk evaluates a tile row's powers in blocks of this many lanes (64 is a multiple)
+BLOCK_BITS = np.uint64((1 << LANE_BLOCK) - 1)
 NARROW_BOX = 10.0  # boxes narrower than this (pixels) are visited row by row whole: cheaper than the ellipse's span (-6% measured)
 
 
@@ -524,11 +527,10 @@ def evicted_first(wbuf, sbuf, p, a, b) -> bool:
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def sift_down(wbuf, ibuf, sbuf, p, i, n) -> None:
+def sift_down(wbuf, sbuf, p, i, n) -> None:
     """Restore the heap order below slot i of pixel p's first n slots (`evicted_first` at the root):
     children that leave before the entry at i move up one level, and the entry drops into the hole."""
     w = wbuf[p, i]
-    g = ibuf[p, i]
     s = sbuf[p, i]
     while True:
         child = 2 * i + 1
@@ -540,65 +542,61 @@ def sift_down(wbuf, ibuf, sbuf, p, i, n) -> None:
         if not (cw < w or (cw == w and sbuf[p, child] > s)):
             break
         wbuf[p, i] = cw
-        ibuf[p, i] = ibuf[p, child]
         sbuf[p, i] = sbuf[p, child]
         i = child
     wbuf[p, i] = w
-    ibuf[p, i] = g
     sbuf[p, i] = s
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def offer_topk(wbuf, ibuf, sbuf, count, p, w, g, seq) -> None:
-    """Offer contribution (w, g), arrival number seq (increasing), to pixel p's k best.
+def offer_topk(wbuf, sbuf, count, p, w, seq) -> None:
+    """Offer weight w, arrival number seq (increasing; the entry's place in its tile list), to pixel p's k best.
 
+    wbuf: [P, k] float64 weights, sbuf: [P, k] int32 arrival numbers, count: [P] slots used.
     Until k entries are held a newcomer is appended; the k-th makes the buffer a min-heap whose
     root is the entry to evict first (the lightest; among equal weights the latest, which a stable
     sort by descending weight puts last). Then a newcomer replaces the root only if strictly
     heavier (one of equal weight would sort after it) and sifts down: O(log k) per replacement,
     no rescans. So the buffer always holds the first k entries of a stable sort of the
     contributions so far by descending weight, in heap order (`write_ranked` sorts them).
+    The Gaussian id is not stored: it is the tile list's entry at seq.
     """
     k = wbuf.shape[1]
     n = count[p]
     if n < k:
         wbuf[p, n] = w
-        ibuf[p, n] = g
         sbuf[p, n] = seq
         count[p] = n + 1
         if n + 1 == k:
             for i in range(k // 2 - 1, -1, -1):
-                sift_down(wbuf, ibuf, sbuf, p, i, k)
+                sift_down(wbuf, sbuf, p, i, k)
     elif w > wbuf[p, 0]:
         wbuf[p, 0] = w
-        ibuf[p, 0] = g
         sbuf[p, 0] = seq
-        sift_down(wbuf, ibuf, sbuf, p, 0, k)
+        sift_down(wbuf, sbuf, p, 0, k)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def write_ranked(wbuf, ibuf, sbuf, n, p, out_ids, out_weights, py, px, ranked) -> None:
+def write_ranked(wbuf, sbuf, n, p, tile_list, out_ids, out_weights, py, px, ranked) -> None:
     """Write pixel p's n entries to out_* at (py, px), -1 / 0 in the k - n slots after them.
 
+    tile_list: the tile's Gaussian ids in arrival order (an entry's id is tile_list[seq]).
     ranked=False writes the n entries as they lie in the buffer (heap order). ranked=True sorts
     them first (insertion sort on (weight desc, arrival)), for the order every engine promises.
     """
     k = out_ids.shape[2]
     for i in range(1, n if ranked else 0):
         w = wbuf[p, i]
-        g = ibuf[p, i]
         s = sbuf[p, i]
         pos = i
         while pos > 0 and (wbuf[p, pos - 1] < w or (wbuf[p, pos - 1] == w and sbuf[p, pos - 1] > s)):
             wbuf[p, pos] = wbuf[p, pos - 1]
-            ibuf[p, pos] = ibuf[p, pos - 1]
             sbuf[p, pos] = sbuf[p, pos - 1]
             pos -= 1
         wbuf[p, pos] = w
-        ibuf[p, pos] = g
         sbuf[p, pos] = s
     for m in range(n):
-        out_ids[py, px, m] = ibuf[p, m]
+        out_ids[py, px, m] = tile_list[sbuf[p, m]]
         out_weights[py, px, m] = wbuf[p, m]
     for m in range(n, k):
         out_ids[py, px, m] = -1
@@ -606,17 +604,9 @@ def write_ranked(wbuf, ibuf, sbuf, n, p, out_ids, out_weights, py, px, ranked) -
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def retire_pixel(row_lo, row_hi, done, ly, lx, tw) -> None:
-    """Shrink row ly's span [row_lo, row_hi] of pixels still compositing after pixel lx is done."""
-    base = ly * tw
-    lo = row_lo[ly]
-    hi = row_hi[ly]
-    while lo <= hi and done[base + lo]:
-        lo += 1
-    while hi >= lo and done[base + hi]:
-        hi -= 1
-    row_lo[ly] = lo
-    row_hi[ly] = hi
+def lane_span(lo, hi):
+    """The uint64 bit mask of lanes lo..hi (0 <= lo, hi <= 63; empty when lo > hi: no bit is both >= lo and <= hi)."""
+    return ((np.uint64(2) << np.uint64(hi)) - np.uint64(1)) & ~((np.uint64(1) << np.uint64(lo)) - np.uint64(1))
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -644,12 +634,19 @@ def composite_topk(
     """`composite_tiles` for registration: ids, weights, alpha (and the median Gaussian), nothing else.
 
     The same per-pixel 3DGS rules in float64, so the same contributions bit for bit; faster by:
-    a top-k buffer that is a heap once full (`offer_topk`: O(log k) per replacement instead of a
-    shift and a rescan of the k slots), per-row spans of the pixels still compositing
-    (`retire_pixel`: finished pixels are not visited again), the ellipse's row span only for
-    boxes at least NARROW_BOX wide, no colour or depth work, and, with
-    ranked=False, no per-pixel sort: the k slots then hold the same entries in heap order
-    (`write_ranked`). The tile lists may be bin_gaussians' or bin_gaussians_exact's.
+    - each tile row's pixels still compositing are the bits of one uint64 (`active`; tile_size
+      <= 64), so a Gaussian's row visits only those (trailing-zero count), and a row with none
+      costs one AND;
+    - a row is done in two passes: the power of every lane of the row's span, without a branch,
+      giving the bits of the lanes inside the α window; then the exp, transmittance and top-k of
+      those lanes only (the window test, taken in the middle of the loop, mispredicted at every
+      ellipse edge);
+    - a top-k buffer that is a heap once full (`offer_topk`: O(log k) per replacement), holding
+      (float64 weight, int32 place in the tile list): the id is read from the list at write time;
+    - the ellipse's row span only for boxes at least NARROW_BOX wide, no colour or depth work,
+      and, with ranked=False, no per-pixel sort: the k slots then hold the same entries in heap
+      order (`write_ranked`).
+    The tile lists may be bin_gaussians' or bin_gaussians_exact's.
     out_ids [H, W, k] int32, out_weights [H, W, k] float32, out_alpha [H, W], out_median [H, W]
     (only with_median) are all written.
     """
@@ -657,14 +654,12 @@ def composite_topk(
     n_px = tile_size * tile_size
     for worker in prange(worker_starts.shape[0] - 1):
         trans = np.empty(n_px, np.float64)
-        done = np.empty(n_px, np.bool_)
         count = np.empty(n_px, np.int64)
         wbuf = np.empty((n_px, max(k, 1)), np.float64)
-        ibuf = np.empty((n_px, max(k, 1)), np.int32)
-        sbuf = np.empty((n_px, max(k, 1)), np.int64)  # arrival numbers: positions in the tile's list
+        sbuf = np.empty((n_px, max(k, 1)), np.int32)  # arrival numbers: places in the tile's list
         med = np.empty(n_px, np.int32)
-        row_lo = np.empty(tile_size, np.int64)
-        row_hi = np.empty(tile_size, np.int64)
+        active = np.empty(tile_size, np.uint64)
+        power_of = np.empty(64, np.float64)
         for slot in range(worker_starts[worker], worker_starts[worker + 1]):
             t = tile_order[slot]
             x0 = (t % n_tiles_x) * tile_size
@@ -675,14 +670,13 @@ def composite_topk(
             th = y1 - y0
             for p in range(th * tw):
                 trans[p] = 1.0
-                done[p] = False
                 count[p] = 0
                 med[p] = -1
             n_active = tw * th
             for ly in range(th):
-                row_lo[ly] = 0
-                row_hi[ly] = tw - 1
-            for j in range(offsets[t], offsets[t + 1]):
+                active[ly] = lane_span(0, tw - 1)
+            first = offsets[t]
+            for j in range(first, offsets[t + 1]):
                 g = tile_ids[j]
                 u = means2d[g, 0]
                 v = means2d[g, 1]
@@ -701,54 +695,66 @@ def composite_topk(
                 power_min = -0.5 * qmax
                 o = np.float64(opacities[g])
                 narrow = fx1 - fx0 < NARROW_BOX
+                box = lane_span(int(fx0) - x0, int(fx1) - x0)
+                seq = np.int32(j - first)
                 for py in range(int(fy0), int(fy1) + 1):
                     ly = py - y0
-                    lo = row_lo[ly]
-                    hi = row_hi[ly]
-                    if lo > hi:
+                    lanes = active[ly] & box
+                    if lanes == 0:
                         continue
                     dy = v - (py + 0.5)
-                    rx0 = max(fx0, float(x0 + lo))
-                    rx1 = min(fx1, float(x0 + hi))
                     if not narrow:  # a narrow box's row: the ellipse's span costs more than the pixels it skips
                         disc = cb * cb * dy * dy - ca * (cc * dy * dy - qmax)
                         if disc < 0.0:
                             continue
                         root = math.sqrt(disc)
-                        rx0 = max(rx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
-                        rx1 = min(rx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
-                    row = ly * tw - x0
-                    for px in range(int(rx0), int(rx1) + 1):
-                        pix = row + px
-                        if done[pix]:
+                        rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                        rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                        if not rx0 <= rx1:
                             continue
-                        dx = u - (px + 0.5)
-                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                        if power > 0.0 or power < power_min:
+                        lanes &= lane_span(int(rx0) - x0, int(rx1) - x0)
+                        if lanes == 0:
                             continue
-                        alpha = min(ALPHA_MAX, o * math.exp(power))
+                    inside = np.uint64(0)
+                    for base in range(0, tw, LANE_BLOCK):
+                        if (lanes >> np.uint64(base)) & BLOCK_BITS == 0:
+                            continue
+                        block = np.uint64(0)
+                        for lane in range(LANE_BLOCK):  # a constant trip count: numba vectorises it
+                            dx = u - (x0 + base + lane + 0.5)
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            power_of[base + lane] = power
+                            block |= np.uint64(not (power > 0.0 or power < power_min)) << np.uint64(lane)
+                        inside |= block << np.uint64(base)
+                    inside &= lanes
+                    row = ly * tw
+                    while inside != 0:
+                        lx = np.int64(trailing_zeros(inside))
+                        inside &= inside - np.uint64(1)
+                        alpha = min(ALPHA_MAX, o * math.exp(power_of[lx]))
                         if alpha < ALPHA_MIN:
                             continue
+                        pix = row + lx
                         t_now = trans[pix]
                         test_t = t_now * (1.0 - alpha)
                         if test_t < T_MIN:
-                            done[pix] = True
+                            active[ly] &= ~(np.uint64(1) << np.uint64(lx))
                             n_active -= 1
-                            retire_pixel(row_lo, row_hi, done, ly, px - x0, tw)
                             continue
                         if k > 0:
-                            offer_topk(wbuf, ibuf, sbuf, count, pix, alpha * t_now, g, j)
+                            offer_topk(wbuf, sbuf, count, pix, alpha * t_now, seq)
                         if with_median and test_t <= MEDIAN_T < t_now:
                             med[pix] = g
                         trans[pix] = test_t
                 if n_active == 0:
                     break
+            tile_list = tile_ids[first:offsets[t + 1]]
             for ly in range(th):
                 py = y0 + ly
                 for lx in range(tw):
                     px = x0 + lx
                     p = ly * tw + lx
-                    write_ranked(wbuf, ibuf, sbuf, count[p], p, out_ids, out_weights, py, px, ranked)
+                    write_ranked(wbuf, sbuf, count[p], p, tile_list, out_ids, out_weights, py, px, ranked)
                     out_alpha[py, px] = 1.0 - trans[p]
                     if with_median:
                         out_median[py, px] = med[p]

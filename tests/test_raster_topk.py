@@ -73,6 +73,26 @@ def test_topk_path_agrees_with_the_numpy_reference(case):
     assert_agree(a, b)
 
 
+@pytest.mark.parametrize("tile_size", [1, 5, 37, 64])
+def test_any_tile_size_up_to_64_gives_the_reference_lists(tile_size):
+    """Tile rows are 64-bit lane masks: rows of 1 to 64 pixels (64: every bit, the mask's edge case)."""
+    scene = random_scene(np.random.default_rng(6), 600)
+    cam = look_at_camera([0.3, -0.2, -4.0], [0.0, 0.0, 0.0], 140, 70, fov_x_deg=55, cx=66.2, cy=30.7)  # full 64-pixel rows and a ragged edge
+    projected = project_gaussians(scene, cam, tile_size=tile_size)
+    ref = render_projected(projected, 6, with_median=True)
+    ranked = render_topk(projected, 6, with_median=True, ranked=True)
+    assert (ref.ids >= 0).any()
+    for name in ("ids", "weights", "alpha", "median_ids"):
+        np.testing.assert_array_equal(getattr(ranked, name), getattr(ref, name))
+
+
+def test_topk_path_refuses_tiles_wider_than_its_masks():
+    case = random_case(6, topk=6)
+    projected = project_gaussians(case.scene, case.camera, tile_size=65)
+    with pytest.raises(ValueError, match="tile_size 65 is over 64"):
+        render_topk(projected, case.topk)
+
+
 def test_exact_tile_sets_are_subsets_of_getrect_and_smaller():
     rng = np.random.default_rng(9)
     scene = random_scene(rng, 3000, log_scale=(-4.0, -1.0))
@@ -112,13 +132,13 @@ def test_heap_buffer_keeps_the_first_k_of_a_stable_sort(k):
         n = int(rng.integers(0, 4 * k + 2))
         levels = rng.uniform(0.01, 1.0, size=int(rng.integers(1, 4)))
         w = rng.choice(levels, n) if trial % 2 else rng.uniform(0.0, 1.0, n)  # many exact ties / none
-        wbuf, ibuf, sbuf = np.empty((2, k)), np.empty((2, k), np.int32), np.empty((2, k), np.int64)
+        wbuf, sbuf = np.empty((2, k)), np.empty((2, k), np.int32)
         count = np.zeros(2, np.int64)
         for g, wg in enumerate(w):
-            kernels.offer_topk(wbuf, ibuf, sbuf, count, 1, wg, g, g)
+            kernels.offer_topk(wbuf, sbuf, count, 1, wg, g)
         best = np.argsort(-w, kind="stable")[:k]
         assert count[1] == best.size
-        kernels.write_ranked(wbuf, ibuf, sbuf, count[1], 1, out_ids, out_w, 0, 0, True)
+        kernels.write_ranked(wbuf, sbuf, count[1], 1, np.arange(n, dtype=np.int32), out_ids, out_w, 0, 0, True)
         np.testing.assert_array_equal(out_ids[0, 0, : best.size], best)
         np.testing.assert_array_equal(out_w[0, 0, : best.size], w[best].astype(np.float32))
         assert (out_ids[0, 0, best.size :] == -1).all()
