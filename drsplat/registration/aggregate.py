@@ -639,11 +639,12 @@ def _view_stats_kernel(ids, weights, flags, view_peak, view_total, view_front, t
                 mark[g] = True
                 touched[n_touched] = g
                 n_touched += 1
-            if w > view_peak[g]:
-                view_peak[g] = w
+            # selects, not branches: the flags and the running maxima follow no pattern a branch
+            # predictor learns (1.7x on flowers views); adding 0.0 leaves a sum's bits as they are
+            peak = view_peak[g]
+            view_peak[g] = w if w > peak else peak
             view_total[g] += w
-            if flags[p, s]:
-                view_front[g] += w
+            view_front[g] += w if flags[p, s] else 0.0
     out_ids = touched[:n_touched].copy()
     out_peak = np.empty(n_touched)
     out_total = np.empty(n_touched)
