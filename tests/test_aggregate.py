@@ -13,6 +13,7 @@ import pytest
 
 from drsplat.registration.aggregate import (
     ANCHOR_GAIN,
+    FRONT_TOLERANCE,
     WEIGHTINGS,
     Aggregator,
     RayGeometry,
@@ -210,6 +211,30 @@ def test_surface_stats_kernel_agrees_with_reference(case):
     assert (got.views_front <= got.views_seen).all() and (got.views_seen <= 3).all()
     if case == "random":
         assert (got.front > 0).any() and (got.front < got.total).any() and (got.views_front > 0).any()
+
+
+def test_in_front_flags_equal_the_reference_with_hostile_geometry():
+    """The kernel's in-front flags (which skip t* when the near clamp is behind the limit) are the
+    reference's, bit for bit: Σ⁻¹ with infinities (t* NaN), zero reach, Gaussians far behind and
+    far in front of the median, and pixels with no median."""
+    rng = np.random.default_rng(21)
+    geometry, cam, ids, weights, median = _random_stats_inputs(rng, "hard", n=40, h=9, w=13, k=10)
+    geometry.precisions[12:16] = np.inf  # t* = NaN: never in front
+    geometry.precisions[16, 0] = np.nan
+    geometry.reach[17:20] = 0.0  # t* = the mean's depth
+    axis = np.asarray(cam.R, np.float64)[2]
+    geometry.means[20:26] += 30.0 * axis  # far behind every surface
+    geometry.means[26:30] -= 3.5 * axis  # in front of it
+    median[0] = ids[0, :, 0]
+    _, scratch = surface_stats(geometry, cam, ids, weights, median)
+    depth = ray_depths_reference(geometry, cam, ids)
+    surface = ray_depths_reference(geometry, cam, median[..., None])
+    want = (depth < (1.0 - FRONT_TOLERANCE) * surface) & (ids >= 0)
+    got = scratch.flags.reshape(ids.shape)
+    np.testing.assert_array_equal(got, want)
+    seen = ids[ids >= 0]
+    assert np.isin(np.arange(12, 17), seen).any() and np.isin(np.arange(20, 26), seen).any()
+    assert got.any() and not got.all()
 
 
 def test_ray_depth_is_the_plane_of_a_flat_gaussian_and_the_projection_of_a_round_one():

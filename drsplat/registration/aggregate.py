@@ -614,6 +614,11 @@ def _front_flags_kernel(ids, median_ids, width, means, prec, reach, rot, origin,
                 for r in range(s, k):
                     flags[p, r] = False
                 break
+            # t* is clamped to [zc - reach, zc + reach] (NaN stays NaN, and is not < limit): a Gaussian
+            # whose nearest clamp is behind the limit is not in front, without its Σ⁻¹ or a division
+            if rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g] >= limit:
+                flags[p, s] = False
+                continue
             flags[p, s] = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
                                      rot[2, 0], rot[2, 1], rot[2, 2], tz) < limit
 
