@@ -163,10 +163,11 @@ def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence):
     Gaussians meet more clusters than slots (space-saving replacements), pairs without a cluster,
     zero weights, and presence 0 (votes = weights)."""
     from drsplat.registration.device_sums import vote_view_torch
-    from drsplat.registration.vote import FULL_VIEW, _vote_view_kernel
+    from drsplat.registration.vote import FULL_VIEW, _rows_order, _vote_view_kernel
 
     n, rng = 25, np.random.default_rng(slots)
     host = (np.full((n, slots), -1, np.int32), np.zeros((n, slots)), np.zeros((n, slots)))
+    by_row = tuple(a.copy() for a in host)  # the same fold, pairs walked row by row (what VoteSink does)
     dev = (torch.full((n + 1, slots), -1, dtype=torch.int32), torch.zeros((n + 1, slots), dtype=torch.float64),
            torch.zeros((n + 1, slots), dtype=torch.float64))
     scratch = np.zeros(n)
@@ -176,11 +177,13 @@ def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence):
         clusters = rng.integers(-1, 9, p).astype(np.int32)
         weights = rng.uniform(0, 1, p).astype(np.float32)
         weights[rng.random(p) < 0.1] = 0.0
-        _vote_view_kernel(rows, clusters, weights, presence, FULL_VIEW, scratch, *host)
+        _vote_view_kernel(rows, clusters, weights, np.arange(p), presence, FULL_VIEW, scratch, *host)
+        _vote_view_kernel(rows, clusters, weights, _rows_order(rows), presence, FULL_VIEW, scratch, *by_row)
         vote_view_torch(torch.from_numpy(rows.astype(np.int64)), torch.from_numpy(clusters.astype(np.int64)), torch.from_numpy(weights),
                         presence, FULL_VIEW, *dev)
-    for want, got in zip(host, dev):
+    for want, got, walked in zip(host, dev, by_row):
         np.testing.assert_array_equal(got[:n].numpy(), want)
+        np.testing.assert_array_equal(walked, want)
     assert (host[0] >= 0).all(axis=1).any(), "some Gaussian filled its slots"
 
 

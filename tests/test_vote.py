@@ -115,6 +115,20 @@ def test_vote_slots_agree_with_the_reference(presence):
     assert (np.abs(block.F[~single] - plain.F[~single]).max(axis=1) > 1e-3).any()  # minority clusters trimmed
 
 
+@pytest.mark.parametrize("high", [1, 70_000, 2**31 - 1])
+def test_rows_order_is_a_stable_sort_by_row(high):
+    """The vote's pair order (`_rows_order`, two 16-bit radix passes) is numpy's stable argsort:
+    rows above 2**16 (the second digit), many repeats, one row, none."""
+    from drsplat.registration.vote import _rows_order
+
+    rng = np.random.default_rng(high % 97)
+    for size in (0, 1, 7, 5000):
+        rows = rng.integers(0, high, size).astype(np.int32)
+        if size > 2:
+            rows[: size // 3] = rows[0]  # repeats
+        np.testing.assert_array_equal(_rows_order(rows), np.argsort(rows, kind="stable"))
+
+
 @pytest.mark.parametrize("case", ["random", "ties", "one_cluster", "empty"])
 def test_trim_kernel_agrees_with_reference(case):
     rng = np.random.default_rng(abs(hash(case)) % 2**32)
