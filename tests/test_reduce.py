@@ -424,6 +424,38 @@ def test_a_pointer_that_leads_out_of_the_shards_folder_is_refused(tmp_path, capl
     writer.close()
 
 
+@pytest.mark.parametrize("bad", [{"start": -5}, {"start": "12"}, {"offset": 10**30}, {"start": 10**30}, {"meta": None}, {"meta": {"M": 1}},
+                                 {"offset": 3}, "meta-counts"], ids=str)
+def test_a_malformed_pointer_is_refused_before_any_read(tmp_path, bad):
+    """A pointer's offsets and counts come from a file: negative, non-integer, huge or inconsistent
+    ones (a log edited by hand or hostile) give one ShardError naming the shard on a reducer's read,
+    and a resume starts over with a warning, instead of a seek error or a read of 10^30 bytes."""
+    from drsplat.registration.checkpoint import _shard_record_problem
+    from drsplat.registration.pairlog import ShardError
+
+    n, dim, params = 1000, 4, {"test": "malformed"}
+    writer = ShardWriter(tmp_path / "reg.log.shards", params)
+    good = writer.write(_view_with_stats(np.random.default_rng(6), "v0", n, dim))
+    writer.sync()
+    if bad == "meta-counts":  # the shard's own counts, grown: they no longer match its record
+        ref = {**good.shard, "meta": {**good.shard["meta"], "P": 10**12}}
+    else:
+        ref = {**good.shard, **bad}
+    plog = PairLog.open(tmp_path / "reg.log", params)
+    plog.append(dataclasses.replace(good, shard=ref))
+    shard = tmp_path / writer.file
+    with pytest.raises(ShardError, match=rf"{shard.name}: the (pointer to it is malformed|record is not there)"):
+        plog.read_block(plog.records[0], 0, n)
+    problem = _shard_record_problem(tmp_path / "reg.log", ref, {})
+    assert problem.startswith(f"needs a record of {shard}, but the ")
+    plog.truncate(0)  # the unaltered pointer reads the view
+    plog.append(good)
+    assert plog.read_block(plog.records[0], 0, n).gaussians.size == good.num_distinct
+    assert _shard_record_problem(tmp_path / "reg.log", good.shard, {}) is None
+    plog.close()
+    writer.close()
+
+
 def test_a_killed_temporary_runs_shards_are_swept(tmp_path):
     """A run in blocks without a checkpoint logs into a temp file; its shards' folder is a temp folder of
     the output too, so the next run writing that output removes a killed run's."""

@@ -14,7 +14,6 @@ poses, order), the feature folder, top-k, level and mode are the same (`checkpoi
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import shutil
@@ -28,7 +27,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import TAG, PairLog, ShardError, ViewPairs, payload_size, shard_file, shards_folder
+from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
 from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, work_folder
 
@@ -233,16 +232,15 @@ class Checkpoint:
 
 def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str | None:
     """Why the shard record a pointer `ref` of the log `log_path` names cannot be resumed from, or
-    None when it is there: a shard of the log's folder (`pairlog.shard_file`) holding a record
-    header at its start whose meta is the pointer's and whose payload and checksum fit in the file
-    (the payload itself is read by the reducers). files: shard path -> open file (or None when it
-    cannot be opened), shared between calls."""
+    None when it is there (`pairlog.shard_file`, `pairlog.pointed_record`: the payload itself is read
+    by the reducers). files: shard path -> open file (or None when it cannot be opened), shared
+    between calls."""
     if ref is None:
         return "holds no shard pointer"
     try:
         path = shard_file(log_path, ref)
     except ShardError:
-        return f"names {ref.get('file')!r}, which is not a file of {shards_folder(log_path).name}"
+        return f"names {ref.get('file') if isinstance(ref, dict) else ref!r}, which is not a file of {shards_folder(log_path).name}"
     if path not in files:
         try:
             files[path] = open(path, "rb")
@@ -251,13 +249,10 @@ def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str 
     f = files[path]
     if f is None:
         return f"needs {path}, which is missing or unreadable"
-    meta = json.dumps(ref["meta"]).encode()
-    start, offset = int(ref["start"]), int(ref["offset"])
-    f.seek(start)
-    head = f.read(20 + len(meta))
-    if (len(head) != 20 + len(meta) or head[:4] != TAG or head[20:] != meta or offset != start + 20 + len(meta)
-            or os.fstat(f.fileno()).st_size < offset + payload_size(ref["meta"]) + 4):
-        return f"needs a record of {path} that is not there (the shard was cut short or replaced)"
+    try:
+        pointed_record(path, ref, f)
+    except ShardError as exc:
+        return f"needs a record of {path}, but {str(exc).split(': ', 1)[1]}"
     return None
 
 

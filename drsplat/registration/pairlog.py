@@ -269,6 +269,31 @@ def shard_file(log_path: Path, ref: dict) -> Path:
     return folder / parts[1]
 
 
+_SIZE_KEYS = ("M", "D", "P", "U", "C")  # a record's counts (with "T", "S" when it holds statistics)
+
+
+def pointed_record(path: Path, ref: dict, f) -> LogRecord:
+    """The record of shard `path` (open as `f`, binary) that the pointer `ref` names, checked
+    before anything is read by its sizes: its start and offset non-negative integers, its counts
+    non-negative integers, a record header at `start` whose meta is the pointer's, whose lengths
+    are that meta's and whose payload and checksum fit in the file. A pointer comes from a log on
+    disk, so nothing in it is trusted. ShardError (naming the file) otherwise."""
+    meta = ref.get("meta")
+    start, offset = ref.get("start"), ref.get("offset")
+    counts = [meta.get(k) for k in _SIZE_KEYS + (("T", "S") if "T" in meta else ())] if isinstance(meta, dict) else [None]
+    if not all(type(v) is int and 0 <= v < 1 << 62 for v in [start, offset, *counts]):
+        raise ShardError(f"{path}: the pointer to it is malformed (offsets and counts must be non-negative integers)")
+    meta_bytes = json.dumps(meta).encode()
+    size = payload_size(meta)
+    f.seek(start)
+    head = f.read(20 + len(meta_bytes))
+    if (len(head) != 20 + len(meta_bytes) or head[:4] != TAG or _U64.unpack(head[4:12])[0] != len(meta_bytes)
+            or _U64.unpack(head[12:20])[0] != size or head[20:] != meta_bytes or offset != start + 20 + len(meta_bytes)
+            or os.fstat(f.fileno()).st_size < offset + size + 4):
+        raise ShardError(f"{path}: the record is not there (the shard was cut short or replaced)")
+    return LogRecord(str(meta.get("name")), offset, meta, start)
+
+
 @dataclass
 class LogRecord:
     """Where a view's record lies in the log (for re-reading it without a scan)."""
@@ -412,15 +437,15 @@ class PairLog:
         ref = record.meta.get("shard")
         if ref is None:
             return None
-        shard = self._shards.get(ref["file"])
+        path = shard_file(self.path, ref)
+        shard = self._shards.get(path.name)
         if shard is None:
-            path = shard_file(self.path, ref)
             try:
-                shard = self._shards[ref["file"]] = PairLog.reader(path, self.params, [])
+                shard = self._shards[path.name] = PairLog.reader(path, self.params, [])
             except (OSError, ValueError) as exc:
                 why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
                 raise ShardError(f"{path}: the worker's shard holding view {record.name} cannot be read ({why})") from None
-        return shard, LogRecord(record.name, int(ref["offset"]), ref["meta"], int(ref["start"]))
+        return shard, pointed_record(path, ref, shard._file)
 
     def read_block(self, record: LogRecord, lo: int, hi: int) -> ViewPairs:
         """The view stored in `record` with only the pairs of Gaussians lo .. hi-1 (in record order):
