@@ -405,7 +405,8 @@ def project_points(
 # kernels above (composite_tiles, bin_gaussians) stay the reference they must agree with.
 
 ACCUTILE_PAD = 0.01  # pixels added around the α ≥ 1/255 ellipse's span of a tile row (rounding)
-LANE_BLOCK = 16  # composite_topk evaluates a tile row's powers in blocks of this many lanes (64 is a multiple)
+MAX_TILE_LANES = 64  # composite_topk keeps a tile row's pixels as the bits of one uint64: tiles at most this wide
+LANE_BLOCK = 16  # composite_topk evaluates a tile row's powers in blocks of this many lanes (MAX_TILE_LANES is a multiple)
 BLOCK_BITS = np.uint64((1 << LANE_BLOCK) - 1)
 NARROW_BOX = 10.0  # boxes narrower than this (pixels) are visited row by row whole: cheaper than the ellipse's span (-6% measured)
 
@@ -659,7 +660,7 @@ def composite_topk(
         sbuf = np.empty((n_px, max(k, 1)), np.int32)  # arrival numbers: places in the tile's list
         med = np.empty(n_px, np.int32)
         active = np.empty(tile_size, np.uint64)
-        power_of = np.empty(64, np.float64)
+        power_of = np.empty(MAX_TILE_LANES, np.float64)
         for slot in range(worker_starts[worker], worker_starts[worker + 1]):
             t = tile_order[slot]
             x0 = (t % n_tiles_x) * tile_size

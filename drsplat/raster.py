@@ -36,7 +36,6 @@ from drsplat.defaults import DEFAULT_TOPK
 log = logging.getLogger(__name__)
 
 TILE_SIZE = 16
-MAX_TOPK_TILE = 64  # composite_topk's tile rows are uint64 lane masks
 NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
 TILE_CHUNKS_PER_WORKER = 8  # runs of neighbouring tiles per compositing thread (`balance_tiles`)
@@ -548,9 +547,9 @@ def composite_topk(
     out: buffers to reuse, as in `render_projected`.
     """
     _check_args(topk, (0.0, 0.0, 0.0))
-    if projected.tile_size > MAX_TOPK_TILE:
+    if projected.tile_size > kernels.MAX_TILE_LANES:
         raise ValueError(f"composite_topk keeps a tile row's pixels in one 64-bit mask: tile_size {projected.tile_size} "
-                         f"is over {MAX_TOPK_TILE}; use render_projected")
+                         f"is over {kernels.MAX_TILE_LANES}; use render_projected")
     h, w = projected.height, projected.width
     ids = _buffer(None if out is None else out.ids, (h, w, topk), np.int32)
     weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from drsplat.bench.opcount import OpCounter
+from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import InputError
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.coalesce import Coalescer, coalesce_reference
@@ -371,7 +372,7 @@ def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplo
             got = register_features(scene, cams, features, dataclasses.replace(options, engine="torch", device="cpu"), show_progress=False)
         assert got.sums_on == "host" and "do not fit the free memory of cpu: summing on the host" in caplog.text
         np.testing.assert_array_equal(got.features, want.features)
-    assert asked == [0, device_sums.VOTE_SLOT_BYTES]
+    assert asked == [0, VOTE_SLOT_BYTES]
 
 
 @pytest.mark.parametrize("mode,sums_on", [("paper", "cpu"), ("vote-reject", "cpu")])

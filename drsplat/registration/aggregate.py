@@ -83,7 +83,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, SOLVE_SLOTS, VOTE_SLOTS
+from drsplat.defaults import AGGREGATE_MODES, SOLVE_SLOTS, VOTE_SLOT_BYTES
 from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
@@ -843,7 +843,7 @@ class Aggregator:
             kept = 32 * num_gaussians
             views += (29 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
-            kept += (20 * VOTE_SLOTS + 8) * num_gaussians
+            kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept

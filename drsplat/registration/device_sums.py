@@ -435,9 +435,6 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
         slot_s.index_put_((row, slot), torch.where(on, w, 0.0), accumulate=True)
 
 
-VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: a slot's cluster (int32), votes and weight (float64)
-
-
 class DeviceVoteSink:
     """The `-vote` stage's sink on the device (drsplat.registration.vote.VoteSink's one-block form):
     the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view by

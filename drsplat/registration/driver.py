@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
@@ -345,7 +346,7 @@ def one_block_sink(num_gaussians: int, dim: int, vote: bool, device: str | None 
     when device is None, on the host (MemorySink, VoteSink)."""
     if device is not None:
         # imports torch: only the torch engine keeps its sums on the device
-        from drsplat.registration.device_sums import VOTE_SLOT_BYTES, DeviceSink, DeviceVoteSink, sums_fit_device
+        from drsplat.registration.device_sums import DeviceSink, DeviceVoteSink, sums_fit_device
 
         if sums_fit_device(num_gaussians, dim, device, VOTE_SLOT_BYTES if vote else 0):
             return (DeviceVoteSink if vote else DeviceSink)(num_gaussians, dim, device)

@@ -318,6 +318,7 @@ class PairLog:
         self.records = records
         self._file = file
         self._shards: dict[str, PairLog] = {}  # shard file -> its reader (pointer records lead there)
+        self._pointed: dict[tuple[str, int], LogRecord] = {}  # (shard file, pointer's start) -> its checked record
 
     # --------------------------------------------------------------------- opening
 
@@ -445,7 +446,10 @@ class PairLog:
             except (OSError, ValueError) as exc:
                 why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
                 raise ShardError(f"{path}: the worker's shard holding view {record.name} cannot be read ({why})") from None
-        return shard, pointed_record(path, ref, shard._file)
+        key = (path.name, record.start)
+        if key not in self._pointed:  # checked once per reader: a reducer reads a record once per block
+            self._pointed[key] = pointed_record(path, ref, shard._file)
+        return shard, self._pointed[key]
 
     def read_block(self, record: LogRecord, lo: int, hi: int) -> ViewPairs:
         """The view stored in `record` with only the pairs of Gaussians lo .. hi-1 (in record order):

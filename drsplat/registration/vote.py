@@ -125,7 +125,9 @@ class MaskClusters:
 @numba.njit(cache=True)
 def _rows_order(rows):  # pragma: no cover - jitted
     """[P] int64: the pairs' indices stably sorted by row (rows [P] >= 0 int32), by two 16-bit radix
-    passes: O(P), whatever the number of rows."""
+    passes: O(P), whatever the number of rows. Its reference is numpy's stable argsort (tested);
+    numpy's own two-pass radix (argsort of uint16 digits) gave the same order 2-3 ms slower per
+    flowers view."""
     n = rows.shape[0]
     order = np.arange(n)
     spare = np.empty(n, np.int64)
