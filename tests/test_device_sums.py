@@ -123,6 +123,36 @@ def test_device_weightings_equal_numba(weighting, case):
         assert not np.array_equal(got, weights * (ids >= 0)), "the weighting changed something"
 
 
+EXPLAIN_CASES = [
+    ("random", *random_view(11, 14, 11, 6, 60, 4)),
+    ("k = 1", *random_view(12, 9, 7, 1, 40, 3)),
+    ("k = 40, few Gaussians", *random_view(13, 6, 5, 40, 45, 2, empty=0.5)),
+    ("every id -1", np.full((5, 4, 3), -1, np.int32), np.ones((5, 4, 3), np.float32), np.zeros((5, 4), np.int32)),
+    ("no masks", *random_view(14, 7, 6, 4, 30, 3, unmasked=1.0)),
+    ("one Gaussian everywhere", np.zeros((6, 5, 1), np.int32), np.full((6, 5, 1), 0.5, np.float32), np.arange(30).reshape(6, 5).astype(np.int32) % 3),
+    ("zero weights", random_view(15, 8, 8, 5, 50, 4)[0], np.zeros((8, 8, 5), np.float32), random_view(15, 8, 8, 5, 50, 4)[2]),
+    ("empty view", np.zeros((0, 0, 4), np.int32), np.zeros((0, 0, 4), np.float32), np.zeros((0, 0), np.int32)),
+]
+
+
+@pytest.mark.parametrize("case,ids,weights,masks", EXPLAIN_CASES, ids=[c[0] for c in EXPLAIN_CASES])
+def test_device_explain_equals_the_numba_em(case, ids, weights, masks):
+    """The explain EM on the device gives the numba kernel's float32 weights bit for bit (its sums in the
+    kernel's order), for 0, 1 and 3 iterations, without waiting for the device."""
+    from drsplat.registration.aggregate import explain_weights
+    from drsplat.registration.device_sums import explain_weights_torch
+
+    n = int(max(ids.max(initial=-1) + 1, 1))
+    for iterations in (0, 1, 3):
+        want = explain_weights(ids, weights, masks, n, iterations=iterations)
+        with OpCounter() as counter:
+            got = explain_weights_torch(*(torch.from_numpy(a) for a in (ids, weights, masks)), n, iterations).numpy()
+        assert got.tobytes() == want.tobytes(), f"{iterations} iterations: max |Δ| {np.abs(got - want).max(initial=0):.3e}"
+        assert counter.counts.syncs == 0, dict(counter.counts.syncs_by_name)
+    if case == "random":
+        assert not np.array_equal(got, np.where((ids >= 0) & (masks[..., None] >= 0), weights, 0)), "the EM moved some weight"
+
+
 def views_of(seed: int, count: int, n: int, dim: int):
     """`count` views' (DevicePairs, feats, host arrays) of random top-k lists over n Gaussians."""
     rng = np.random.default_rng(seed)
@@ -347,10 +377,7 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
     got = register_features(scene, cams, features, dataclasses.replace(core, engine="torch", device="cpu"), show_progress=False)
     assert got.sums_on == "cpu", "a weighting ported to torch runs on the device too"
     np.testing.assert_array_equal(got.features, want.features)
-    other = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="explain", engine="torch", device="cpu"),
-                              show_progress=False)
-    assert other.sums_on == "host", "the explain weighting is a numba kernel: the host path"
-    for mode in ("core-reject", "vote-reject"):  # floater statistics and the vote's slots on the device
+    for mode in ("core-reject", "vote-reject", "explain-vote-reject"):  # floater statistics, the vote's slots and the EM on the device
         want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode), show_progress=False)
         got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode, engine="torch", device="cpu"),
                                 show_progress=False)

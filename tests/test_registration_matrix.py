@@ -23,8 +23,6 @@ from drsplat.synthetic import write_dataset
 
 VIEWS = 6  # enough views for every mode to assign, reject and reweight something
 BLOCK = 512  # hard-tiny has ~2,300 Gaussians: five blocks
-# weight, coalesce, reject, vote and sum on the torch device (explain is a numba EM per pixel)
-DEVICE_MODES = tuple(m for m in AGGREGATE_MODES if mode_stages(m).weighting != "explain")
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +62,8 @@ def test_every_engine_and_plan_writes_the_reference_file(room, reference, tmp_pa
         return
     result = register(scene, cams, features, out, options, show_progress=False)
     assert result.num_blocks == (1 if block is None else -(-scene.num_gaussians // block))
-    # the torch engine sums on its device in one block of a mode whose per-view weighting has a torch form
-    assert result.sums_on == ("cpu" if engine == "torch" and block is None and mode in DEVICE_MODES else "host")
+    # the torch engine weights, coalesces, rejects, votes and sums on its device in one block, whatever the mode
+    assert result.sums_on == ("cpu" if engine == "torch" and block is None else "host")
     assert out.read_bytes() == reference[mode]
 
 

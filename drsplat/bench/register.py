@@ -363,17 +363,13 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     view (drsplat.bench.opcount), the median wall ms per view (timed without the counter) and peak
     device memory (CUDA).
 
-    For the torch engine both ways are measured when the mode has a device form, interleaved view
+    For the torch engine both ways are measured, interleaved view
     by view: pairs coalesced and summed on the device (drsplat.registration.device_sums, what
     registration does in that mode: the record's top-level figures) and the lists copied to the host
     for the numba hook, coalescer and sums (`host_sums`). The first camera is a warm-up
     (compilation, caches) and is not counted.
     """
-    from drsplat.registration.aggregate import Aggregator
-    from drsplat.registration.compute import hook_runs_on_device
-
-    on_device = engine == "torch" and hook_runs_on_device(Aggregator(aggregate, scene).hook)
-    ways = [True, False] if on_device else [False]
+    ways = [True, False] if engine == "torch" else [False]
     counters = [_ViewCounter(scene, features_dir, topk, engine, device, way, aggregate) for way in ways]
     for i, cam in enumerate(cameras):
         for counter in counters:

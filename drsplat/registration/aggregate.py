@@ -99,7 +99,6 @@ FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front 
 
 _WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
 PROJECTED_WEIGHTINGS = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
-DEVICE_WEIGHTINGS = tuple(_WEIGHTING_CODE)  # ported to torch (drsplat.registration.device_sums.view_weights_torch)
 
 
 @dataclass(frozen=True)

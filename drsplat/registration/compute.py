@@ -26,7 +26,7 @@ from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
-from drsplat.registration.aggregate import DEVICE_WEIGHTINGS, ViewHook
+from drsplat.registration.aggregate import ViewHook
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
@@ -57,7 +57,7 @@ class ViewJob:
     cull: project only the Gaussians the view can see (drsplat.registration.culling; exact, CPU
     engines); False projects all of them.
     device_pairs: coalesce on the torch engine's device and leave the pairs there
-    (drsplat.registration.device_sums; the torch engine without a hook, in this process).
+    (drsplat.registration.device_sums; the torch engine in this process, any mode).
     group_pairs: hand out host pairs grouped by Gaussian chunk (`ViewPairs.grouped`, the pair log's
     record order), so the process that computed the view sorts them, not the driver that logs it.
     shard_dir / log_params: the views are logged by the Ray workers that compute them, each into a
@@ -76,13 +76,6 @@ class ViewJob:
     group_pairs: bool = False
     shard_dir: str | None = None
     log_params: dict | None = None
-
-
-def hook_runs_on_device(hook: ViewHook | None) -> bool:
-    """Whether a mode's per-view hook has a torch form (drsplat.registration.device_sums): none, or a
-    weighting of DEVICE_WEIGHTINGS, with or without floater rejection (not `explain`, an EM per pixel
-    in numba)."""
-    return hook is None or hook.weighting in DEVICE_WEIGHTINGS
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -140,8 +133,8 @@ class ViewComputer:
         self._render_pairs = None
         self._rays = None
         if job.device_pairs:
-            if job.engine != "torch" or not hook_runs_on_device(hook):
-                raise ValueError("pairs are coalesced on the device with the torch engine and a per-view weighting ported to torch only")
+            if job.engine != "torch":
+                raise ValueError("pairs are coalesced on the device with the torch engine only")
             # imports torch: only the torch engine's device path needs it
             from drsplat.registration.device_sums import DeviceRays, render_pairs
 

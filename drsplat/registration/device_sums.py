@@ -6,6 +6,8 @@ drsplat.registration.sums), this module keeps them there:
 
     coalesce_torch   ids, weights [H, W, k], mask ids [H, W] -> the view's distinct (Gaussian, mask)
                      pairs with summed weights, fixed-size ops only (no host synchronisation)
+    view_weights_torch, explain_weights_torch
+                     every mode's per-view weighting (the explain EM included) on the device
     DeviceSink       F [N, D], W [N] on the device, each view's pairs added in view order
                      (index_add), copied to the host once, when the sink gives its one block
     DeviceVoteSink   a `-vote` mode's sink on the device: the paper's sums (DeviceSink) and the vote
@@ -34,7 +36,7 @@ import torch
 
 from drsplat.cameras import Camera
 from drsplat.raster_torch import TorchScene, project_gaussians_torch, rasterize_torch
-from drsplat.registration.aggregate import (ANCHOR_GAIN, DEVICE_WEIGHTINGS, ELLIPSE_D2, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS,
+from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
                                             RayGeometry, SurfaceSupport)
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.pairlog import ViewPairs
@@ -138,7 +140,7 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
     ids, weights: [H, W, k] (-1 = empty); means2d: [N, 2], conics: [N, 3] (a, b, c) of the view's
     projection (float64; needed by core, ellipse, centre, anchor). Returns [H, W, k] float32, 0 where ids < 0.
     """
-    if weighting not in DEVICE_WEIGHTINGS:
+    if weighting not in WEIGHTINGS:
         raise ValueError(f"unknown weighting {weighting!r}")
     valid = ids >= 0
     zero = torch.zeros((), dtype=torch.float64, device=ids.device)
@@ -167,6 +169,59 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
             area = torch.where(det > 0, 2.0 * torch.pi / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
             out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
     return torch.where(valid, out, zero).to(torch.float32)
+
+
+def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_gaussians: int,
+                          iterations: int = EXPLAIN_ITERATIONS) -> torch.Tensor:
+    """The "explain" weighting of one view on the device (`aggregate.explain_weights`; its EM and math there).
+
+    ids, weights: [H, W, k] (-1 = empty slot; ids < num_gaussians); mask_ids: [H, W] (-1 = no mask).
+    Returns [H, W, k] float32, 0 where ids < 0 or the pixel has no mask. Fixed-size ops only (the
+    pairs live in arrays of H·W·k + 1 rows, the last a spare for empty slots), `iterations` rounds
+    of ~12 ops, no host synchronisation. Every sum is taken in the kernel's order, so the same bits
+    on a CPU:
+    - a slot's pair (i, j) is its segment in a stable sort by the key j·N + i; the per-pair sums
+      v_ij and c_ij run over the slots in pixel-then-slot order (index_add in slot order);
+    - a pixel's denominator adds its slots one by one (cumsum along the slots);
+    - the per-Gaussian sums T_i and Σ_j c_ij add the Gaussian's pairs newest first, as the kernel's
+      linked lists do: the pairs ordered by their first slot, descending, before the index_add.
+    """
+    dev = ids.device
+    shape, k = ids.shape, int(ids.shape[-1])
+    g = ids.reshape(-1).to(torch.int64)
+    slots = g.shape[0]
+    n = max(int(num_gaussians), 1)
+    m = mask_ids.reshape(-1, 1).to(device=dev, dtype=torch.int64).expand(-1, k).reshape(-1)
+    valid = (g >= 0) & (m >= 0)
+    zero = torch.zeros((), dtype=torch.float64, device=dev)
+    keys = torch.where(valid, m * n + g, torch.full_like(g, torch.iinfo(torch.int64).max))
+    sorted_keys, order = torch.sort(keys, stable=True)
+    starts = torch.ones_like(sorted_keys, dtype=torch.bool)
+    starts[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    pair = torch.empty_like(g).scatter_(0, order, torch.cumsum(starts, 0) - 1)
+    pair = torch.where(valid, pair, slots)  # [S] the slot's pair; empty slots: the spare row
+    pair_g = torch.full((slots + 1,), n, dtype=torch.int64, device=dev).scatter_(0, pair, torch.where(valid, g, n))
+    first = torch.full((slots + 1,), slots, dtype=torch.int64, device=dev).scatter_reduce_(
+        0, pair, torch.arange(slots, device=dev), "amin")
+    newest_first = torch.sort(first, descending=True, stable=True).indices
+    by_gaussian = pair_g[newest_first]
+
+    def per_gaussian(values: torch.Tensor) -> torch.Tensor:  # Σ over the pair's Gaussian's pairs, newest first, per pair
+        return torch.zeros(n + 1, dtype=torch.float64, device=dev).index_add_(0, by_gaussian, values[newest_first])[pair_g]
+
+    w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
+    v = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, pair, w)
+    total = per_gaussian(v)
+    q = torch.where(total > 0.0, v / torch.where(total > 0.0, total, 1.0), zero)
+    for _ in range(int(iterations)):
+        share = torch.where(valid, w * q[pair], zero).reshape(-1, k)
+        denom = torch.cumsum(share, -1)[:, -1:]
+        r = torch.where(denom > 0.0, share / torch.where(denom > 0.0, denom, 1.0), zero).reshape(-1)
+        c = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, pair, torch.where(valid, r, zero))
+        rs = per_gaussian(c)
+        q = torch.where(rs > 0.0, c / torch.where(rs > 0.0, rs, 1.0), q)
+    scale = torch.where(v > 0.0, total * q / torch.where(v > 0.0, v, 1.0), zero)
+    return torch.where(valid, w * scale[pair], zero).to(torch.float32).reshape(shape)
 
 
 @dataclass
@@ -301,7 +356,8 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     pairs there (`coalesce_torch`).
 
     mask_ids: [H, W] the view's masks (-1 none; copied to the device). weighting: the aggregation
-    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more). rays:
+    mode's per-view weighting (core, ellipse, centre, anchor project the scene once more; explain
+    runs its EM on the view's slots and masks, `explain_weights_torch`). rays:
     the scene's ray geometry on the device for a `-reject` mode (the view is rendered with its
     median Gaussians and its floater statistics computed there), else None. Returns (the view's
     DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
@@ -317,10 +373,12 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     if rays is not None:
         stats = view_stats_torch(out.ids, out.weights, front_flags_torch(rays, camera, out.ids, out.median_ids), scene.num_gaussians)
     weights = out.weights
-    if weighting != "paper":
+    masks = to_device(np.array(mask_ids, np.int32), scene.device)
+    if weighting == "explain":
+        weights = explain_weights_torch(out.ids, out.weights, masks, scene.num_gaussians)
+    elif weighting != "paper":
         projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
         weights = view_weights_torch(weighting, out.ids, out.weights, *((projected.means2d, projected.conics) if projected else ()))
-    masks = to_device(np.array(mask_ids, np.int32), scene.device)
     pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
     both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
     distinct, contributing = both >> 32, both & 0xFFFFFFFF

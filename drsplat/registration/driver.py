@@ -40,7 +40,7 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, WorkerStats, hook_runs_on_device, prepare_geometry
+from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
 from drsplat.registration.executor import open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -313,13 +313,12 @@ def run_registration(
     )
 
 
-def device_pairs_apply(options: RegisterOptions, aggregator: Aggregator) -> bool:
+def device_pairs_apply(options: RegisterOptions) -> bool:
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
-    the torch engine in this process with a mode whose per-view weighting has a torch form (all but
-    `explain`, an EM per pixel in numba); floater statistics are then computed and folded on the
-    device too, and a `-vote` mode's slots are folded there (device_sums.DeviceVoteSink). Ray
-    workers return host pairs."""
-    return options.engine == "torch" and options.place == "local" and hook_runs_on_device(aggregator.hook)
+    the torch engine in this process, with any mode (every per-view weighting has a torch form);
+    floater statistics are then computed and folded on the device too, and a `-vote` mode's slots
+    are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs."""
+    return options.engine == "torch" and options.place == "local"
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
@@ -331,7 +330,7 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     VoteSink), whatever the engine.
     """
     n, dim = run.scene.num_gaussians, run.dim
-    on_device = device_pairs_apply(run.options, aggregator)
+    on_device = device_pairs_apply(run.options)
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
