@@ -314,7 +314,8 @@ def project_points(
 
     intrinsics: [4] (fx, fy, cx, cy). out_status: [N] int8, VALID, BEHIND (z < near), NONFINITE
     (projection not finite), or CULLED (unusable, transparent, degenerate or off-screen).
-    Outputs of non-valid Gaussians are left untouched except out_depths and out_status.
+    Every output row is written: a non-valid Gaussian gets zeros (its depth: the camera z, 0
+    when unusable), so the outputs may be reused buffers holding a previous view.
     """
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     tan_x = 0.5 * width / fx
@@ -325,6 +326,12 @@ def project_points(
     lim_y_neg = cy / fy + 0.3 * tan_y
     for g in prange(means.shape[0]):
         out_status[g] = CULLED
+        out_means2d[g, 0] = out_means2d[g, 1] = 0.0
+        out_conics[g, 0] = out_conics[g, 1] = out_conics[g, 2] = 0.0
+        out_radii[g] = 0
+        out_rects[g, 0] = out_rects[g, 1] = out_rects[g, 2] = out_rects[g, 3] = 0
+        out_extents[g, 0] = out_extents[g, 1] = 0.0
+        out_qlimits[g] = 0.0
         if not usable[g]:
             out_depths[g] = 0.0
             continue

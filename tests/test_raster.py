@@ -317,6 +317,41 @@ def test_reused_buffers_give_the_same_result():
     assert_agree(reused, fresh, tol=0)
 
 
+PROJECTED_ARRAYS = ("means2d", "conics", "depths", "radii", "valid", "tile_rects", "extents", "qlimits")
+
+
+def test_reused_projection_buffers_give_a_fresh_projection():
+    """project_gaussians(out=previous) overwrites every row: buffers full of NaN and of another view's
+    Gaussians (valid ones where this view's are culled, behind or non-finite) give a fresh call's
+    arrays bit for bit; a smaller scene takes the first rows of the same memory, a larger one new arrays."""
+    rng = np.random.default_rng(41)
+    scene = random_scene(rng, 400, spread=3.0, log_scale=(-9.0, 4.0))
+    scene.means[:20] = [0.0, 0.0, -4.0]  # at the camera centre: behind the near plane
+    scene.opacity_logits[20:30] = -20.0  # transparent: culled
+    scene.means[30, 0] = np.nan  # non-finite
+    prep = prepare_scene(scene)
+    cams = [look_at_camera([0.2, -0.1, -4.0], [0.1, 0.2, 0.0], 50, 20, fov_x_deg=70), front_camera(32, 24)]
+    poisoned = project_gaussians(prep, cams[1])
+    for name in PROJECTED_ARRAYS:
+        arr = getattr(poisoned, name)
+        arr[...] = np.nan if arr.dtype.kind == "f" else (True if arr.dtype == bool else 7)
+    with np.errstate(invalid="ignore"):
+        got = project_gaussians(prep, cams[0], out=poisoned)
+        want = project_gaussians(prep, cams[0])
+    assert 0 < want.valid.sum() < 400 and want.num_behind > 0 and want.num_nonfinite == 1
+    for name in PROJECTED_ARRAYS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        assert np.shares_memory(getattr(got, name), getattr(poisoned, name)), f"{name} was not reused"
+    assert (got.num_behind, got.num_nonfinite) == (want.num_behind, want.num_nonfinite)
+    small = prepare_scene(scene.subset(np.arange(100, 300)))
+    part = project_gaussians(small, cams[1], out=got)
+    assert np.shares_memory(part.conics, got.conics) and part.conics.shape == (200, 3)
+    for name in PROJECTED_ARRAYS:
+        np.testing.assert_array_equal(getattr(part, name), getattr(project_gaussians(small, cams[1]), name), err_msg=name)
+    bigger = prepare_scene(random_scene(rng, 900))
+    assert not np.shares_memory(project_gaussians(bigger, cams[1], out=part).means2d, part.means2d)
+
+
 def test_kernel_matches_reference_on_a_real_capture():
     scene = load_ply(shared_path("ply", "guitar.ply"))  # real 3DGS output, with +inf opacities
     scene = prepare_scene(scene.subset(np.arange(0, scene.num_gaussians, 8)))
