@@ -374,7 +374,7 @@ def project_points(
         v = fy * py / pz + cy
         det = a * c - b * b
         mid = 0.5 * (a + c)
-        radius = math.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))
+        radius = np.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))  # a float: math.ceil would overflow int64 for enormous Gaussians
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(u) and math.isfinite(v) and math.isfinite(radius)):
             out_status[g] = NONFINITE
             continue

@@ -154,7 +154,7 @@ def _screen_space(ts: TorchScene, camera: Camera):
     lim_y_pos, lim_y_neg = (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
     tx = pz * torch.clamp(px / pz, -lim_x_neg, lim_x_pos)
     ty = pz * torch.clamp(py / pz, -lim_y_neg, lim_y_pos)
-    jx, jy = fx / pz, fy / pz
+    jx, jy = torch.full_like(pz, fx) / pz, torch.full_like(pz, fy) / pz  # a true division: scalar / tensor is reciprocal · scalar in torch
     jxz, jyz = -fx * tx / (pz * pz), -fy * ty / (pz * pz)
     # rows of J·W, [N, 2, 3]: jac[:, 0, i] = jx·R[0, i] + jxz·R[2, i], jac[:, 1, i] = jy·R[1, i] + jyz·R[2, i]
     r0, r1, r2 = (torch.tensor(rot[i], dtype=torch.float64, device=m.device) for i in range(3))
@@ -195,13 +195,7 @@ def project_gaussians_torch(
 ) -> TorchProjected:
     """Project every Gaussian (drsplat.raster.project_gaussians_reference's rules, as tensors on the device)."""
     ts = prepare_scene_torch(scene, device)
-    n = ts.num_gaussians
-    usable = ts.finite
-    if mask is not None:
-        mask_t = torch.as_tensor(np.asarray(mask) if not isinstance(mask, torch.Tensor) else mask, device=ts.device)
-        if mask_t.shape != (n,) or mask_t.dtype != torch.bool:
-            raise ValueError(f"mask must be a bool array of shape ({n},), got {mask_t.dtype} {tuple(mask_t.shape)}")
-        usable = usable & mask_t
+    usable = _usable(ts, mask)
     pz, u, v, a, b, c = _screen_space(ts, camera)
     in_front = usable & (pz >= near)
     behind = usable & ~in_front
@@ -232,6 +226,33 @@ def project_gaussians_torch(
     if with_colors:
         out.colors = _colors(ts, camera, valid)
     return out
+
+
+def _usable(ts: TorchScene, mask: np.ndarray | torch.Tensor | None) -> torch.Tensor:
+    """[N] bool: the Gaussians with finite attributes that `mask` ([N] bool, if given) selects."""
+    if mask is None:
+        return ts.finite
+    n = ts.num_gaussians
+    mask_t = torch.as_tensor(np.asarray(mask) if not isinstance(mask, torch.Tensor) else mask, device=ts.device)
+    if mask_t.shape != (n,) or mask_t.dtype != torch.bool:
+        raise ValueError(f"mask must be a bool array of shape ({n},), got {mask_t.dtype} {tuple(mask_t.shape)}")
+    return ts.finite & mask_t
+
+
+def project_gaussians_fused(scene: GaussianScene | PreparedScene | TorchScene, camera: Camera, near: float = NEAR, *,
+                            mask: np.ndarray | torch.Tensor | None = None, tile_size: int = TILE_SIZE,
+                            device: str | torch.device = "cpu") -> TorchProjected:
+    """`project_gaussians_torch` (no colours) in one Triton kernel launch instead of ~186 torch ops
+    (drsplat.raster_triton.project_triton: the same float64 math in the same order, so the same
+    bits). Runs on CUDA devices (and on the CPU under Triton's interpreter: the tests)."""
+    from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
+
+    ts = prepare_scene_torch(scene, device)
+    means2d, conics, depths, radii, rects, status = raster_triton.project_triton(ts.means, ts.covariances, ts.opacities, _usable(ts, mask),
+                                                                                 camera, near, tile_size)
+    return TorchProjected(means2d=means2d, conics=conics, depths=depths, radii=radii, opacities=ts.opacities, valid=status == 0,
+                          tile_rects=rects, colors=None, width=int(camera.width), height=int(camera.height), tile_size=tile_size,
+                          num_nonfinite=ts.num_nonfinite + (status == 2).sum(), num_behind=(status == 1).sum())
 
 
 def _colors(ts: TorchScene, camera: Camera, valid: torch.Tensor) -> torch.Tensor:
@@ -486,25 +507,27 @@ def rasterize_torch(
     """Render one view with the torch engine; the output stays on the device (tensors).
 
     device: where to run; None = the device of a TorchScene, else the CPU.
-    fused: composite with the fused Triton top-k kernel (drsplat.raster_triton) instead of the
-    torch ops; None = on CUDA devices when Triton is installed and no RGB / depth is asked for (the
-    kernel keeps ids, weights, alpha and the median). True on a CPU is refused (outside the tests'
-    interpreter).
+    fused: project and composite with the fused Triton kernels (drsplat.raster_triton: one launch
+    each) instead of the torch ops; None = on CUDA devices when Triton is installed and no RGB /
+    depth is asked for (the kernels keep ids, weights, alpha and the median). True on a CPU is
+    refused (outside the tests' interpreter).
     """
     _check_args(topk, background)
     if device is None:
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
-    projected = project_gaussians_torch(scene, camera, near, mask=mask, with_colors=with_rgb, device=device)
+    ts = prepare_scene_torch(scene, device)
     if fused is None:
-        fused = projected.valid.device.type == "cuda" and not (with_rgb or with_depth) and _triton_available()
+        fused = ts.device.type == "cuda" and not (with_rgb or with_depth) and _triton_available()
     if fused:
         if with_rgb or with_depth:
             raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
-        from drsplat import raster_triton  # imports triton: only when the fused kernel is asked for
+        from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
 
+        projected = project_gaussians_fused(ts, camera, near, mask=mask, device=ts.device)
         ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, bin_gaussians_torch(projected), topk,
                                                                           with_median=with_median)
         return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median)
+    projected = project_gaussians_torch(ts, camera, near, mask=mask, with_colors=with_rgb, device=ts.device)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
                            max_elements=max_elements)
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import torch
 
 from drsplat import _raster_kernels as kernels
@@ -118,17 +119,155 @@ def _composite_topk_source(
     tl.store(out_pos_ptr + at, buf_pos)
 
 
+def _project_source(
+    means_ptr, cov_ptr, opacities_ptr, usable_ptr,
+    out_means_ptr, out_conics_ptr, out_depths_ptr, out_radii_ptr, out_rects_ptr, out_status_ptr, camera_ptr, n,
+    TILE: tl.constexpr, BLOCK: tl.constexpr, BLUR: tl.constexpr, ALPHA_MIN: tl.constexpr,
+):  # fmt: skip
+    """Program b: Gaussians b·BLOCK .. +BLOCK, drsplat._raster_kernels.project_points's EWA math in
+    float64 with the torch engine's order of operations (drsplat.raster_torch._screen_space).
+
+    Writes depths [N] float32 (camera z; 0 where not usable) and status [N] int8 (0 valid,
+    1 behind the near plane, 2 projection not finite, 3 culled), and for every Gaussian means2d
+    [N, 2], conics [N, 3], radii [N] float64 and tile rectangles [N, 4] int64 (getRect), zeros
+    where not valid.
+    """
+    # the camera as float64 values in memory: a Python float argument would be typed fp32
+    r00, r01, r02 = tl.load(camera_ptr), tl.load(camera_ptr + 1), tl.load(camera_ptr + 2)
+    r10, r11, r12 = tl.load(camera_ptr + 3), tl.load(camera_ptr + 4), tl.load(camera_ptr + 5)
+    r20, r21, r22 = tl.load(camera_ptr + 6), tl.load(camera_ptr + 7), tl.load(camera_ptr + 8)
+    t0, t1, t2 = tl.load(camera_ptr + 9), tl.load(camera_ptr + 10), tl.load(camera_ptr + 11)
+    fx, fy, cx, cy = tl.load(camera_ptr + 12), tl.load(camera_ptr + 13), tl.load(camera_ptr + 14), tl.load(camera_ptr + 15)
+    lim_x_pos, lim_x_neg = tl.load(camera_ptr + 16), tl.load(camera_ptr + 17)
+    lim_y_pos, lim_y_neg = tl.load(camera_ptr + 18), tl.load(camera_ptr + 19)
+    near, grid_x, grid_y = tl.load(camera_ptr + 20), tl.load(camera_ptr + 21), tl.load(camera_ptr + 22)
+    g = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = g < n
+    mx = tl.load(means_ptr + 3 * g, mask=live, other=0.0)
+    my = tl.load(means_ptr + 3 * g + 1, mask=live, other=0.0)
+    mz = tl.load(means_ptr + 3 * g + 2, mask=live, other=0.0)
+    usable = tl.load(usable_ptr + g, mask=live, other=0) != 0
+    px = r00 * mx + r01 * my + r02 * mz + t0
+    py = r10 * mx + r11 * my + r12 * mz + t1
+    pz = r20 * mx + r21 * my + r22 * mz + t2
+    in_front = usable & (pz >= near)
+    considered = in_front & (tl.load(opacities_ptr + g, mask=live, other=0.0).to(tl.float64) >= ALPHA_MIN)
+    tx = pz * tl.minimum(tl.maximum(px / pz, -lim_x_neg), lim_x_pos)
+    ty = pz * tl.minimum(tl.maximum(py / pz, -lim_y_neg), lim_y_pos)
+    jx = fx / pz
+    jy = fy / pz
+    jxz = -fx * tx / (pz * pz)
+    jyz = -fy * ty / (pz * pz)
+    a00 = jx * r00 + jxz * r20
+    a01 = jx * r01 + jxz * r21
+    a02 = jx * r02 + jxz * r22
+    a10 = jy * r10 + jyz * r20
+    a11 = jy * r11 + jyz * r21
+    a12 = jy * r12 + jyz * r22
+    c00 = tl.load(cov_ptr + 9 * g, mask=live, other=0.0)
+    c01 = tl.load(cov_ptr + 9 * g + 1, mask=live, other=0.0)
+    c02 = tl.load(cov_ptr + 9 * g + 2, mask=live, other=0.0)
+    c10 = tl.load(cov_ptr + 9 * g + 3, mask=live, other=0.0)
+    c11 = tl.load(cov_ptr + 9 * g + 4, mask=live, other=0.0)
+    c12 = tl.load(cov_ptr + 9 * g + 5, mask=live, other=0.0)
+    c20 = tl.load(cov_ptr + 9 * g + 6, mask=live, other=0.0)
+    c21 = tl.load(cov_ptr + 9 * g + 7, mask=live, other=0.0)
+    c22 = tl.load(cov_ptr + 9 * g + 8, mask=live, other=0.0)
+    s00 = c00 * a00 + c01 * a01 + c02 * a02
+    s01 = c10 * a00 + c11 * a01 + c12 * a02
+    s02 = c20 * a00 + c21 * a01 + c22 * a02
+    s10 = c00 * a10 + c01 * a11 + c02 * a12
+    s11 = c10 * a10 + c11 * a11 + c12 * a12
+    s12 = c20 * a10 + c21 * a11 + c22 * a12
+    a = a00 * s00 + a01 * s01 + a02 * s02 + BLUR
+    b = a10 * s00 + a11 * s01 + a12 * s02
+    c = a10 * s10 + a11 * s11 + a12 * s12 + BLUR
+    u = fx * px / pz + cx
+    v = fy * py / pz + cy
+    det = a * c - b * b
+    mid = 0.5 * (a + c)
+    radius = tl.ceil(3.0 * tl.sqrt(mid + tl.sqrt(tl.maximum(mid * mid - det, 0.1))))
+    # x - x is 0 exactly when x is finite (NaN for ±inf and NaN)
+    finite = (a - a == 0.0) & (b - b == 0.0) & (c - c == 0.0) & (u - u == 0.0) & (v - v == 0.0) & (radius - radius == 0.0)
+    x0 = tl.floor((u - 0.5 - radius) / TILE)
+    y0 = tl.floor((v - 0.5 - radius) / TILE)
+    x1 = tl.floor((u - 0.5 + radius + TILE - 1) / TILE)
+    y1 = tl.floor((v - 0.5 + radius + TILE - 1) / TILE)
+    x0 = tl.minimum(tl.maximum(tl.where(x0 == x0, x0, 0.0), 0.0), grid_x)
+    y0 = tl.minimum(tl.maximum(tl.where(y0 == y0, y0, 0.0), 0.0), grid_y)
+    x1 = tl.minimum(tl.maximum(tl.where(x1 == x1, x1, 0.0), 0.0), grid_x)
+    y1 = tl.minimum(tl.maximum(tl.where(y1 == y1, y1, 0.0), 0.0), grid_y)
+    valid = considered & finite & (det > 0.0) & (x1 > x0) & (y1 > y0)
+    status = tl.where(valid, 0, tl.where(usable & ~in_front, 1, tl.where(considered & ~finite, 2, 3))).to(tl.int8)
+    tl.store(out_status_ptr + g, status, mask=live)
+    tl.store(out_depths_ptr + g, tl.where(usable, pz, 0.0).to(tl.float32), mask=live)
+    tl.store(out_means_ptr + 2 * g, tl.where(valid, u, 0.0), mask=live)
+    tl.store(out_means_ptr + 2 * g + 1, tl.where(valid, v, 0.0), mask=live)
+    tl.store(out_conics_ptr + 3 * g, tl.where(valid, c / det, 0.0), mask=live)
+    tl.store(out_conics_ptr + 3 * g + 1, tl.where(valid, -b / det, 0.0), mask=live)
+    tl.store(out_conics_ptr + 3 * g + 2, tl.where(valid, a / det, 0.0), mask=live)
+    tl.store(out_radii_ptr + g, tl.where(valid, radius, 0.0), mask=live)
+    tl.store(out_rects_ptr + 4 * g, tl.where(valid, x0, 0.0).to(tl.int64), mask=live)
+    tl.store(out_rects_ptr + 4 * g + 1, tl.where(valid, y0, 0.0).to(tl.int64), mask=live)
+    tl.store(out_rects_ptr + 4 * g + 2, tl.where(valid, x1, 0.0).to(tl.int64), mask=live)
+    tl.store(out_rects_ptr + 4 * g + 3, tl.where(valid, y1, 0.0).to(tl.int64), mask=live)
+
+
 def interpreting() -> bool:
     """Whether Triton runs kernels in its CPU interpreter (TRITON_INTERPRET=1, read when triton is imported)."""
     return triton is not None and bool(triton.knobs.runtime.interpret)
 
 
 @functools.cache
-def _kernel():
-    """The kernel: compiled for CUDA, or interpreted under TRITON_INTERPRET=1 (triton.jit decides)."""
+def _kernel(source=_composite_topk_source):
+    """A kernel (default: the top-k compositing): compiled for CUDA, or interpreted under
+    TRITON_INTERPRET=1 (triton.jit decides)."""
     if triton is None:
         raise DrsplatError("the fused top-k kernel needs triton (it comes with torch's CUDA builds: pip install triton)")
-    return triton.jit(_composite_topk_source)
+    return triton.jit(source)
+
+
+def _check_device(dev: torch.device) -> None:
+    if dev.type != "cuda" and not interpreting():
+        raise DrsplatError(f"the fused Triton top-k kernel runs on CUDA devices only, not on {dev.type!r}; use the torch compositing there")
+
+
+PROJECT_BLOCK = 256  # Gaussians per projection program
+
+
+def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera, near: float,
+                   tile_size: int) -> tuple[torch.Tensor, ...]:
+    """Project every Gaussian in one kernel launch (`_project_source`): the torch engine's
+    `project_gaussians_torch` (186 ops per view) fused, the same float64 math in the same order.
+
+    means: [N, 3] float64, covariances: [N, 3, 3] float64, opacities: [N] float32, usable: [N]
+    bool, on a CUDA device (or the CPU under the interpreter). Returns (means2d [N, 2], conics
+    [N, 3], depths [N] float32, radii [N] float64, tile_rects [N, 4] int64, status [N] int8: 0
+    valid, 1 behind, 2 not finite, 3 culled). FMA contraction is off, so the products round as
+    the numba and torch engines' do.
+    """
+    dev = means.device
+    _check_device(dev)
+    n = int(means.shape[0])
+    f64 = {"dtype": torch.float64, "device": dev}
+    out = (torch.empty((n, 2), **f64), torch.empty((n, 3), **f64), torch.empty(n, dtype=torch.float32, device=dev), torch.empty(n, **f64),
+           torch.empty((n, 4), dtype=torch.int64, device=dev), torch.empty(n, dtype=torch.int8, device=dev))
+    if n == 0:
+        return out
+    rot = [float(x) for x in np.asarray(camera.R, np.float64).reshape(-1)]
+    t = [float(x) for x in np.asarray(camera.t, np.float64)]
+    fx, fy, cx, cy, w, h = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height
+    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
+    limits = ((w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y)
+    grids = (float(-(-w // tile_size)), float(-(-h // tile_size)))
+    values = torch.tensor([*rot, *t, fx, fy, cx, cy, *limits, float(near), *grids], dtype=torch.float64)
+    launch = {} if interpreting() else {"enable_fp_fusion": False}
+    _kernel(_project_source)[(triton.cdiv(n, PROJECT_BLOCK),)](
+        means.contiguous(), covariances.contiguous(), opacities.contiguous(), usable.to(torch.int8), *out,
+        values.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else values, n,
+        TILE=tile_size, BLOCK=PROJECT_BLOCK, BLUR=kernels.BLUR, ALPHA_MIN=kernels.ALPHA_MIN, **launch,
+    )  # fmt: skip
+    return out
 
 
 def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None):
@@ -143,8 +282,7 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     _check_args(topk, (0.0, 0.0, 0.0))
     dev = projected.valid.device
     interpret = interpreting()
-    if dev.type != "cuda" and not interpret:
-        raise DrsplatError(f"the fused Triton top-k kernel runs on CUDA devices only, not on {dev.type!r}; use the torch compositing there")
+    _check_device(dev)
     ts = projected.tile_size
     p_count = ts * ts
     block = block or (INTERPRET_BLOCK if interpret else CUDA_BLOCK)
@@ -196,33 +334,47 @@ def _finish(projected, slot_w, slot_pos, trans, med, offsets, tile_list):
 
 
 def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, tile: int = 16) -> str:
-    """The kernel compiled to PTX for CUDA compute capability `capability` (90: H100), without a GPU.
+    """The compositing kernel compiled to PTX for CUDA compute capability `capability` (90: H100), without a GPU.
 
     Runs Triton's front end and NVIDIA backend stages (ttir -> ttgir -> llir -> ptx), not ptxas, so
     it checks that the source compiles in Triton's typed mode (the interpreter is looser) but says
     nothing about registers or speed. Uses Triton's backend API (checked with triton 3.8).
     """
+    pointers = {"offsets_ptr": "*i64", "counts_ptr": "*i64", "list_ptr": "*i64", "means_ptr": "*fp64", "conics_ptr": "*fp64",
+                "opacities_ptr": "*fp32", "out_w_ptr": "*fp64", "out_pos_ptr": "*i32", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
+    consts = {"TILE": tile, "BLOCK": block, "KP": kp, "ALPHA_MIN": kernels.ALPHA_MIN, "ALPHA_MAX": kernels.ALPHA_MAX, "T_MIN": kernels.T_MIN,
+              "MEDIAN_T": kernels.MEDIAN_T}
+    return _ptx(_composite_topk_source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability)
+
+
+def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:
+    """The projection kernel compiled to PTX (as `compile_ptx`), with FMA contraction off as launched."""
+    pointers = {"means_ptr": "*fp64", "cov_ptr": "*fp64", "opacities_ptr": "*fp32", "usable_ptr": "*i8", "out_means_ptr": "*fp64",
+                "out_conics_ptr": "*fp64", "out_depths_ptr": "*fp32", "out_radii_ptr": "*fp64", "out_rects_ptr": "*i64",
+                "out_status_ptr": "*i8", "camera_ptr": "*fp64", "n": "i32"}
+    consts = {"TILE": tile, "BLOCK": PROJECT_BLOCK, "BLUR": kernels.BLUR, "ALPHA_MIN": kernels.ALPHA_MIN}
+    return _ptx(_project_source, pointers, consts, capability, enable_fp_fusion=False)
+
+
+def _ptx(source, signature: dict, consts: dict, capability: int, **options) -> str:
+    """PTX of one kernel source for sm_`capability` (Triton's stages up to ptx, no GPU)."""
     from triton._C.libtriton import ir  # Triton internals, only for this offline check
     from triton.backends.compiler import GPUTarget
     from triton.backends.nvidia.compiler import CUDABackend
     from triton.compiler import ASTSource
 
-    fn = _kernel()
-    pointers = {"offsets_ptr": "*i64", "counts_ptr": "*i64", "list_ptr": "*i64", "means_ptr": "*fp64", "conics_ptr": "*fp64",
-                "opacities_ptr": "*fp32", "out_w_ptr": "*fp64", "out_pos_ptr": "*i32", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
-    consts = {"TILE": tile, "BLOCK": block, "KP": kp, "ALPHA_MIN": kernels.ALPHA_MIN, "ALPHA_MAX": kernels.ALPHA_MAX, "T_MIN": kernels.T_MIN,
-              "MEDIAN_T": kernels.MEDIAN_T}
-    signature = {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32"), **dict.fromkeys(consts, "constexpr")}
-    source = ASTSource(fn=fn, signature=signature, constexprs={(fn.arg_names.index(k),): v for k, v in consts.items()})
+    fn = _kernel(source)
+    signature = {**signature, **dict.fromkeys(consts, "constexpr")}
+    ast = ASTSource(fn=fn, signature=signature, constexprs={(fn.arg_names.index(k),): v for k, v in consts.items()})
     target = GPUTarget("cuda", capability, 32)
     backend = CUDABackend(target)
-    options = backend.parse_options({})
+    parsed = backend.parse_options(options)
     context = ir.context()
     ir.load_dialects(context)
     backend.load_dialects(context)
-    module = source.make_ir(target, options, backend.get_codegen_implementation(options), backend.get_module_map(), context)
+    module = ast.make_ir(target, parsed, backend.get_codegen_implementation(parsed), backend.get_module_map(), context)
     stages: dict = {}
-    backend.add_stages(stages, options, source.language)
+    backend.add_stages(stages, parsed, ast.language)
     metadata: dict = {}
     for name in ("ttir", "ttgir", "llir", "ptx"):
         module = stages[name](module, metadata)

@@ -229,10 +229,12 @@ def test_projection_kernel_matches_reference():
     rng = np.random.default_rng(29)
     scene = random_scene(rng, 500, spread=3.0, log_scale=(-9.0, 4.0))
     scene.means[:20] = [0.0, 0.0, -4.0]  # at the camera centre
+    scene.log_scales[20:24] = 60.0  # enormous: a screen radius past 2^63 pixels (it once overflowed an int64 and was culled)
     cam = look_at_camera([0.2, -0.1, -4.0], [0.1, 0.2, 0.0], 50, 20, fov_x_deg=70, cx=12.0, cy=15.0)
     prep = prepare_scene(scene)
     a, b = project_gaussians(prep, cam), project_gaussians_reference(prep, cam)
     np.testing.assert_array_equal(a.valid, b.valid)
+    assert b.valid[20:24].any() and (a.radii[20:24][b.valid[20:24]] == 2**30).all()
     assert 0 < a.valid.sum() < 500 and a.num_behind == b.num_behind > 0
     for name in ("radii", "tile_rects"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

@@ -35,16 +35,44 @@ CASES = {
     **{c.name: (lambda c=c: c) for c in hard_cases() if c.name in ("empty", "behind", "camera-inside", "opacity-0-and-1")},
 }
 
+def _nonfinite_case():
+    """NaN and infinite attributes, an overflowing scale, Gaussians behind the camera and culled by
+    opacity: every status the projection kernel writes."""
+    case = random_case(4, n=200, topk=4)
+    scene = case.scene
+    scene.means[0, 1] = np.nan
+    scene.quats[1, 2] = np.inf
+    scene.log_scales[2, 0] = 200.0  # exp overflows: an infinite covariance
+    scene.log_scales[3] = 60.0  # finite but enormous: the screen covariance overflows
+    scene.opacity_logits[4:8] = -30.0  # transparent: culled
+    scene.means[8:12, 2] = -10.0  # behind the camera
+    return case
+
+
+# the projection kernel alone (cheap in the interpreter: one program per 256 Gaussians)
+PROJECT_CASES = {
+    **{name: make for name, make in CASES.items()},
+    "big-random": lambda: random_case(7, n=3000, topk=4),
+    "nonfinite": _nonfinite_case,
+    **{c.name: (lambda c=c: c) for c in hard_cases() if c.name in ("extreme-scales", "off-centre-non-square")},
+}
+
 WORKER = """
 import json, sys
 import numpy as np
-from drsplat.raster_torch import rasterize_torch
-from tests.test_raster_triton import CASES
+from drsplat.raster_torch import project_gaussians_fused, rasterize_torch
+from tests.test_raster_triton import CASES, PROJECT_CASES
 for name in json.loads(sys.argv[1]):
     case = CASES[name]()
     out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True, fused=True)
     np.savez(sys.argv[2] + "/" + name + ".npz", ids=out.ids.numpy(), weights=out.weights.numpy(), alpha=out.alpha.numpy(),
              median=out.median_ids.numpy())
+for name in PROJECT_CASES:
+    case = PROJECT_CASES[name]()
+    with np.errstate(all="ignore"):
+        p = project_gaussians_fused(case.scene, case.camera)
+    np.savez(sys.argv[2] + "/project-" + name + ".npz", means2d=p.means2d.numpy(), conics=p.conics.numpy(), depths=p.depths.numpy(),
+             radii=p.radii.numpy(), valid=p.valid.numpy(), tile_rects=p.tile_rects.numpy(), counts=[int(p.num_nonfinite), int(p.num_behind)])
 """
 
 
@@ -90,6 +118,24 @@ def test_fused_kernel_topk_equals_numba(interpreted, name):
         assert (ref.ids[..., -1] >= 0).any(), "the top-k lists should fill (so the kernel's eviction runs) on some pixels"
 
 
+@pytest.mark.parametrize("name", list(PROJECT_CASES))
+def test_fused_projection_equals_numba_bit_for_bit(interpreted, name):
+    """The projection kernel (one launch instead of ~186 torch ops) gives numba's projection bit for
+    bit: the same float64 operations in the same order, FMA contraction off."""
+    from drsplat.raster import prepare_scene, project_gaussians
+
+    case = PROJECT_CASES[name]()
+    got = np.load(interpreted / f"project-{name}.npz")
+    with np.errstate(all="ignore"):
+        ref = project_gaussians(prepare_scene(case.scene), case.camera)
+    for field in ("means2d", "conics", "depths", "valid", "tile_rects"):
+        np.testing.assert_array_equal(got[field], getattr(ref, field), err_msg=field)
+    np.testing.assert_array_equal(np.minimum(got["radii"], 2.0**30), ref.radii.astype(np.float64))  # numba stores int32, capped
+    assert got["counts"].tolist() == [ref.num_nonfinite, ref.num_behind]
+    if name == "nonfinite":
+        assert ref.num_nonfinite >= 3 and ref.num_behind >= 4 and ref.valid.sum() > 100
+
+
 def test_fused_kernel_is_refused_on_the_cpu():
     """Outside the interpreter the kernel compiles for CUDA only: one sentence saying so."""
     from drsplat.raster_torch import rasterize_torch
@@ -108,3 +154,16 @@ def test_fused_kernel_compiles_to_ptx_for_an_h100():
     except (ImportError, AttributeError) as exc:  # Triton's backend API moved: the check cannot run, the kernel may still be fine
         pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
     assert ".target sm_90" in ptx and ".entry _composite_topk_source" in ptx
+
+
+def test_fused_projection_compiles_to_ptx_without_fma():
+    """The projection kernel compiles in Triton's typed mode for sm_90, with IEEE float64 division and
+    square roots and no fused multiply-adds (they would round differently from numba's)."""
+    from drsplat.raster_triton import compile_project_ptx
+
+    try:
+        ptx = compile_project_ptx(90)
+    except (ImportError, AttributeError) as exc:
+        pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
+    assert ".entry _project_source" in ptx and "div.rn.f64" in ptx and "sqrt.rn.f64" in ptx
+    assert "fma" not in ptx

@@ -166,7 +166,7 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
             out = torch.where(at_centre, w, zero)
         else:
             det = a * c - b * b
-            area = torch.where(det > 0, 2.0 * torch.pi / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
+            area = torch.where(det > 0, torch.full_like(det, 2.0 * torch.pi) / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
             out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
     return torch.where(valid, out, zero).to(torch.float32)
 
