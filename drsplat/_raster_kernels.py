@@ -204,10 +204,10 @@ def composite_tiles(
                 v = means2d[g, 1]
                 ex = extents[g, 0]
                 ey = extents[g, 1]
-                fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
-                fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
-                fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
-                fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
+                fx0 = max(float(x0), np.ceil(u - 0.5 - ex))
+                fx1 = min(float(x1 - 1), np.floor(u - 0.5 + ex))
+                fy0 = max(float(y0), np.ceil(v - 0.5 - ey))
+                fy1 = min(float(y1 - 1), np.floor(v - 0.5 + ey))
                 if fx0 > fx1 or fy0 > fy1:
                     continue
                 ca = conics[g, 0]
@@ -228,8 +228,8 @@ def composite_tiles(
                     if disc < 0.0:
                         continue
                     root = math.sqrt(disc)
-                    rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
-                    rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                    rx0 = max(fx0, np.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                    rx1 = min(fx1, np.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
                     row = ly * tw - x0
                     for px in range(int(rx0), int(rx1) + 1):
                         pix = row + px
@@ -374,7 +374,7 @@ def project_points(
         v = fy * py / pz + cy
         det = a * c - b * b
         mid = 0.5 * (a + c)
-        radius = np.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))  # a float: math.ceil would overflow int64 for enormous Gaussians
+        radius = np.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(u) and math.isfinite(v) and math.isfinite(radius)):
             out_status[g] = NONFINITE
             continue
@@ -443,10 +443,10 @@ def ellipse_tile_span(u, v, ca, cb, cc, q, ty, tile_size, height, rx0, rx1):
     dx_max = (-cb * dy_right + math.sqrt(max(ca * q - det * dy_right * dy_right, 0.0))) / ca + ACCUTILE_PAD
     dx_min = (-cb * dy_left - math.sqrt(max(ca * q - det * dy_left * dy_left, 0.0))) / ca - ACCUTILE_PAD
     # pixels whose centre X = px + 0.5 lies in [u - dx_max, u - dx_min]
-    px0 = math.ceil(u - dx_max - 0.5)
-    px1 = math.floor(u - dx_min - 0.5)
-    tx0 = max(float(rx0), math.floor(px0 / tile_size))
-    tx1 = min(float(rx1), math.floor(px1 / tile_size) + 1.0)
+    px0 = np.ceil(u - dx_max - 0.5)
+    px1 = np.floor(u - dx_min - 0.5)
+    tx0 = max(float(rx0), np.floor(px0 / tile_size))
+    tx1 = min(float(rx1), np.floor(px1 / tile_size) + 1.0)
     if tx0 >= tx1:
         return 0, 0
     return int(tx0), int(tx1)
@@ -460,10 +460,10 @@ def snug_rect(g, tile_rects, means2d, extents, tile_size):
     v = means2d[g, 1] - 0.5
     ex = extents[g, 0] + ACCUTILE_PAD
     ey = extents[g, 1] + ACCUTILE_PAD
-    tx0 = max(float(tile_rects[g, 0]), math.floor(math.ceil(u - ex) / tile_size))
-    tx1 = min(float(tile_rects[g, 2]), math.floor(math.floor(u + ex) / tile_size) + 1.0)
-    ty0 = max(float(tile_rects[g, 1]), math.floor(math.ceil(v - ey) / tile_size))
-    ty1 = min(float(tile_rects[g, 3]), math.floor(math.floor(v + ey) / tile_size) + 1.0)
+    tx0 = max(float(tile_rects[g, 0]), np.floor(np.ceil(u - ex) / tile_size))
+    tx1 = min(float(tile_rects[g, 2]), np.floor(np.floor(u + ex) / tile_size) + 1.0)
+    ty0 = max(float(tile_rects[g, 1]), np.floor(np.ceil(v - ey) / tile_size))
+    ty1 = min(float(tile_rects[g, 3]), np.floor(np.floor(v + ey) / tile_size) + 1.0)
     if tx0 >= tx1 or ty0 >= ty1:
         return 0, 0, 0, 0
     return int(tx0), int(ty0), int(tx1), int(ty1)
@@ -690,10 +690,10 @@ def composite_topk(
                 v = means2d[g, 1]
                 ex = extents[g, 0]
                 ey = extents[g, 1]
-                fx0 = max(float(x0), math.ceil(u - 0.5 - ex))
-                fx1 = min(float(x1 - 1), math.floor(u - 0.5 + ex))
-                fy0 = max(float(y0), math.ceil(v - 0.5 - ey))
-                fy1 = min(float(y1 - 1), math.floor(v - 0.5 + ey))
+                fx0 = max(float(x0), np.ceil(u - 0.5 - ex))
+                fx1 = min(float(x1 - 1), np.floor(u - 0.5 + ex))
+                fy0 = max(float(y0), np.ceil(v - 0.5 - ey))
+                fy1 = min(float(y1 - 1), np.floor(v - 0.5 + ey))
                 if fx0 > fx1 or fy0 > fy1:
                     continue
                 ca = conics[g, 0]
@@ -716,8 +716,8 @@ def composite_topk(
                         if disc < 0.0:
                             continue
                         root = math.sqrt(disc)
-                        rx0 = max(fx0, math.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
-                        rx1 = min(fx1, math.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
+                        rx0 = max(fx0, np.floor(u - 0.5 - (root - cb * dy) / ca) - 1.0)
+                        rx1 = min(fx1, np.ceil(u - 0.5 + (root + cb * dy) / ca) + 1.0)
                         if not rx0 <= rx1:
                             continue
                         lanes &= lane_span(int(rx0) - x0, int(rx1) - x0)
