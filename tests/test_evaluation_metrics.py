@@ -136,7 +136,9 @@ def test_splat_kernel_matches_reference_random_and_hard():
     covs[3] = np.zeros((3, 3))
     means[4] = [np.nan, 0, 0]
     alpha[5] = np.inf
+    covs[6] = np.eye(3) * 1e60  # enormous: its voxel range overflowed an int64 in math.floor (its mass here is ~1e-90: a range check)
     channels = rng.integers(-1, 3, 40)
+    channels[6] = 0
     grid = VoxelGrid(np.array([-1.2, -1.0, -1.1]), 0.1, (24, 21, 23))
     fast = splat_mass(means, covs, alpha, channels, 3, grid)
     ref = splat_mass_reference(means, covs, alpha, channels, 3, grid)

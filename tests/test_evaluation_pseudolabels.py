@@ -75,6 +75,7 @@ def test_both_engines_match_brute_force_with_small_chunks():
     g = (rng.uniform(-1, 1, (n, 3)), quat_to_rotmat(q), rng.uniform(0.02, 0.3, (n, 3)))
     g[2][0] = [np.nan, 0.1, 0.1]  # non-finite: skipped
     g[2][1] = [5.0, 5.0, 5.0]  # huge: sees every point
+    g[2][2] = [1e30, 1e30, 1e30]  # enormous: its cell range once overflowed an int64 and it saw no point
     pts = rng.uniform(-1.2, 1.2, (p, 3))
     labels = rng.integers(-1, 6, p)
     for weighting in ("gaussian", "count"):

@@ -162,8 +162,8 @@ def _grid_vote_kernel(todo, means, inv6, half, pts, cls, cell_start, origin, h, 
         hi = np.empty(3, np.int64)
         dims = (nx, ny, nz)
         for k in range(3):
-            a = math.floor((means[i, k] - half[i, k] - origin[k]) / h)
-            b = math.floor((means[i, k] + half[i, k] - origin[k]) / h)
+            a = np.floor((means[i, k] - half[i, k] - origin[k]) / h)
+            b = np.floor((means[i, k] + half[i, k] - origin[k]) / h)
             lo[k] = int(min(max(a, 0.0), dims[k]))
             hi[k] = int(max(min(b, dims[k] - 1.0), -1.0))
         q0, q1, q2, q3, q4, q5 = inv6[i, 0], inv6[i, 1], inv6[i, 2], inv6[i, 3], inv6[i, 4], inv6[i, 5]
