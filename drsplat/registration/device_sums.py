@@ -199,11 +199,13 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     starts = torch.ones_like(sorted_keys, dtype=torch.bool)
     starts[1:] = sorted_keys[1:] != sorted_keys[:-1]
     pair = torch.empty_like(g).scatter_(0, order, torch.cumsum(starts, 0) - 1)
+    del keys, sorted_keys, order, starts  # [S] int64 each: ~100 MB apiece on a 640x480 view at k = 40
     pair = torch.where(valid, pair, slots)  # [S] the slot's pair; empty slots: the spare row
     pair_g = torch.full((slots + 1,), n, dtype=torch.int64, device=dev).scatter_(0, pair, torch.where(valid, g, n))
     first = torch.full((slots + 1,), slots, dtype=torch.int64, device=dev).scatter_reduce_(
         0, pair, torch.arange(slots, device=dev), "amin")
     newest_first = torch.sort(first, descending=True, stable=True).indices
+    del first, g, m
     by_gaussian = pair_g[newest_first]
 
     def per_gaussian(values: torch.Tensor) -> torch.Tensor:  # Σ over the pair's Gaussian's pairs, newest first, per pair
