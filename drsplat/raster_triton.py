@@ -141,7 +141,7 @@ def _project_source(
     lim_x_pos, lim_x_neg = tl.load(camera_ptr + 16), tl.load(camera_ptr + 17)
     lim_y_pos, lim_y_neg = tl.load(camera_ptr + 18), tl.load(camera_ptr + 19)
     near, grid_x, grid_y = tl.load(camera_ptr + 20), tl.load(camera_ptr + 21), tl.load(camera_ptr + 22)
-    g = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    g = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)  # int64: 9·g passes 2^31 past 238 M Gaussians
     live = g < n
     mx = tl.load(means_ptr + 3 * g, mask=live, other=0.0)
     my = tl.load(means_ptr + 3 * g + 1, mask=live, other=0.0)
