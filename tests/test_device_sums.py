@@ -447,3 +447,17 @@ def test_on_cuda_pairs_and_sums_equal_numba_to_float32_rounding():
     (block,), (want,) = list(device_sink.blocks()), list(host_sink.blocks())
     np.testing.assert_allclose(block.W, want.W, rtol=1e-5)
     np.testing.assert_allclose(block.F, want.F, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same code above)")
+@pytest.mark.parametrize("case,ids,weights,masks", EXPLAIN_CASES, ids=[c[0] for c in EXPLAIN_CASES])
+def test_on_cuda_explain_equals_the_numba_em_to_float32_rounding(case, ids, weights, masks):
+    """On CUDA the EM's index_add sums in no fixed order: numba's weights to float32 rounding."""
+    from drsplat.registration.aggregate import explain_weights
+    from drsplat.registration.device_sums import explain_weights_torch
+
+    n = int(max(ids.max(initial=-1) + 1, 1))
+    want = explain_weights(ids, weights, masks, n)
+    got = explain_weights_torch(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), n).cpu().numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+

@@ -97,6 +97,20 @@ def test_engine_registry_and_device_errors():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_cuda_fused_projection_equals_numba():
+    """The Triton projection compiled for the GPU (FMA off, IEEE division and square roots) gives
+    numba's projection; exact on the interpreter, and expected exact here too."""
+    from drsplat.raster_torch import project_gaussians_fused
+
+    for case in [random_case(8, n=3000, topk=4), *hard_cases()]:
+        with np.errstate(all="ignore"):
+            got = project_gaussians_fused(case.scene, case.camera, device="cuda")
+            want = project_gaussians(case.scene, case.camera)
+        for name in ("means2d", "conics", "depths", "valid", "tile_rects"):
+            np.testing.assert_array_equal(getattr(got, name).cpu().numpy(), getattr(want, name), err_msg=f"{case.name}: {name}")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 def test_cuda_matches_cpu():
     case = random_case(5, n=2000, sh_degree=2, topk=20)
     assert_agree(rasterize(case.scene, case.camera, case.topk, engine="torch", device="cuda", **case.kwargs),
