@@ -745,7 +745,8 @@ class ViewHook:
 
     def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> tuple[np.ndarray, ViewStats | None]:
         """geometry: the scene's CPU geometry (means [N, 3] float64, covariances), needed when
-        `needs_projection`. out: the view's RasterOutput (ids, weights [H, W, k], median_ids).
+        `needs_projection` (the render's own projection, `out.projected`, is reused when it covers
+        every Gaussian). out: the view's RasterOutput (ids, weights [H, W, k], median_ids).
         mask_ids: [H, W] the view's masks (-1 none), read by the explain weighting."""
         stats = None
         if self.reject:
@@ -764,7 +765,9 @@ class ViewHook:
             return self._buffer, stats
         means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
-            projected = project_gaussians(geometry, camera)
+            projected = getattr(out, "projected", None)
+            if projected is None or projected.means2d.shape[0] != geometry.num_gaussians:  # a culled render projected a subset
+                projected = project_gaussians(geometry, camera)
             means2d, conics = projected.means2d, projected.conics
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer, stats
