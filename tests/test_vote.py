@@ -14,7 +14,7 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.aggregate import mode_stages
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
-from drsplat.registration.vote import MaskClusters, VoteSink, trimmed_features, trimmed_features_reference, vote_reference
+from drsplat.registration.vote import MaskClusters, VoteSink, dot_rows, trimmed_features, trimmed_features_reference, vote_reference
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -46,6 +46,22 @@ def test_mode_stages():
     assert (s.weighting, s.vote, s.reject) == ("anchor", False, True)
     with pytest.raises(ValueError, match="unknown aggregation mode"):
         mode_stages("vote-vote")
+
+
+@pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000)])
+def test_dot_rows_agrees_with_a_matrix_product(m, c, d):
+    """The clusters' cosines (numba, on numba's threads) against numpy's feats @ rows.T: float32
+    rounding apart, the same numbers; zero rows give 0; empty inputs give empty shapes."""
+    rng = np.random.default_rng(m * 1000 + c)
+    feats, rows = rng.normal(size=(m, d)).astype(np.float32), rng.normal(size=(c, d)).astype(np.float32)
+    if c > 2:
+        rows[1] = 0.0
+    got = dot_rows(feats, rows)
+    assert got.shape == (m, c) and got.dtype == np.float32
+    want = feats.astype(np.float64) @ rows.astype(np.float64).T
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4 * np.sqrt(d))
+    if c > 2 and m:
+        assert (got[:, 1] == 0.0).all()
 
 
 def test_mask_clusters_group_noisy_masks_of_a_label():

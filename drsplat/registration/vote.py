@@ -58,6 +58,31 @@ FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this
 PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
 
 
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _dot_rows_kernel(feats, rows, out):  # pragma: no cover - jitted
+    """out[j, c] = feats[j] · rows[c] (float32; fastmath lets the sum over D vectorise).
+
+    Parallel over rows on numba's own threads. A BLAS sgemm gives the same products ~as fast, but
+    OpenBLAS's threads then busy-wait for a while and take a core from the rasterizer's next
+    parallel kernels: on 2 cores that cost ~40 ms per flowers view (binning and projection 2-3x
+    slower) in every `-vote` mode, docs/registration.md."""
+    m, d = feats.shape
+    for c in numba.prange(rows.shape[0]):
+        for j in range(m):
+            s = np.float32(0.0)
+            for k in range(d):
+                s += feats[j, k] * rows[c, k]
+            out[j, c] = s
+
+
+def dot_rows(feats: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """[M, C] float32 feats [M, D] · rows [C, D]ᵀ (`_dot_rows_kernel`; `feats @ rows.T` is its reference)."""
+    out = np.empty((feats.shape[0], rows.shape[0]), np.float32)
+    if out.size:
+        _dot_rows_kernel(np.ascontiguousarray(feats, np.float32), np.ascontiguousarray(rows, np.float32), out)
+    return out
+
+
 class MaskClusters:
     """Leader clustering of the views' mask embeddings, in view order (module docstring).
 
@@ -86,7 +111,7 @@ class MaskClusters:
         feats = np.asarray(feats, np.float32)
         norms = np.linalg.norm(feats.astype(np.float64), axis=1)
         ids = np.full(feats.shape[0], -1, np.int32)
-        cos = feats @ self.leaders.T if self.count else np.zeros((feats.shape[0], 0), np.float32)
+        cos = dot_rows(feats, self.leaders)
         for j in range(feats.shape[0]):
             if not norms[j] > 0 or (present is not None and not present[j]):
                 continue
@@ -96,7 +121,7 @@ class MaskClusters:
                 ids[j] = best
             else:
                 if self.count > cos.shape[1]:  # leaders founded by this view's earlier masks
-                    new = self._leaders[cos.shape[1] : self.count] @ unit
+                    new = dot_rows(unit[None, :], self._leaders[cos.shape[1] : self.count])[0]
                     k = int(np.argmax(new))
                     if new[k] >= self.threshold:
                         ids[j] = cos.shape[1] + k
