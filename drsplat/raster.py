@@ -219,6 +219,15 @@ def eval_sh(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.maximum(result, 0.0)
 
 
+def clamp_limits(camera: Camera) -> tuple[float, float, float, float]:
+    """(x/z max, -(x/z) max, y/z max, -(y/z) max): the tangents at which the EWA Jacobian clamps a
+    mean's direction, 1.3x the field of view around the principal point as 3DGS does (every
+    engine's projection takes them from here; the numba kernel computes the same expressions)."""
+    w, h, fx, fy, cx, cy = camera.width, camera.height, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
+    return (w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+
+
 def _screen_covariances(cov3d: np.ndarray, pc: np.ndarray, camera: Camera) -> np.ndarray:
     """EWA splatting: Σ' = J W Σ Wᵀ Jᵀ + 0.3·I.
 
@@ -229,10 +238,7 @@ def _screen_covariances(cov3d: np.ndarray, pc: np.ndarray, camera: Camera) -> np
     the image do not blow up. The 0.3 px² blur is 3DGS's low-pass filter.
     """
     x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
-    w, h = camera.width, camera.height
-    tan_x, tan_y = 0.5 * w / camera.fx, 0.5 * h / camera.fy
-    lim_x_pos, lim_x_neg = (w - camera.cx) / camera.fx + 0.3 * tan_x, camera.cx / camera.fx + 0.3 * tan_x
-    lim_y_pos, lim_y_neg = (h - camera.cy) / camera.fy + 0.3 * tan_y, camera.cy / camera.fy + 0.3 * tan_y
+    lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = clamp_limits(camera)
     tx = z * np.clip(x / z, -lim_x_neg, lim_x_pos)
     ty = z * np.clip(y / z, -lim_y_neg, lim_y_pos)
     rot = np.asarray(camera.R, np.float64)
@@ -291,31 +297,21 @@ def _empty_projected(n: int, camera: Camera, tile_size: int) -> Projected:
     )
 
 
-def _rows(previous: np.ndarray | None, n: int, tail: tuple[int, ...], dtype) -> np.ndarray:
-    """[n, *tail] rows of `previous`'s backing array when it has that many rows of that shape and
-    dtype (a view of it), else a new array. Its contents are whatever was there."""
-    full = previous if previous is None or previous.base is None else previous.base
-    if (isinstance(full, np.ndarray) and full.ndim == 1 + len(tail) and full.shape[1:] == tail and full.shape[0] >= n
-            and full.dtype == dtype and full.flags.c_contiguous and full.flags.writeable):
-        return full[:n]
-    return np.empty((n, *tail), dtype)
-
-
 def _projected_buffers(previous: Projected | None, n: int, camera: Camera, tile_size: int) -> Projected:
-    """A Projected for n Gaussians on `previous`'s arrays where they can hold them (`_rows`),
+    """A Projected for n Gaussians on `previous`'s arrays where they can hold them (`_buffer`),
     new ones otherwise; the contents are left for project_points to overwrite."""
     if previous is None:
         return _empty_projected(n, camera, tile_size)
     return Projected(
-        means2d=_rows(previous.means2d, n, (2,), np.float64),
-        conics=_rows(previous.conics, n, (3,), np.float64),
-        depths=_rows(previous.depths, n, (), np.float32),
-        radii=_rows(previous.radii, n, (), np.int32),
+        means2d=_buffer(previous.means2d, (n, 2), np.float64),
+        conics=_buffer(previous.conics, (n, 3), np.float64),
+        depths=_buffer(previous.depths, (n,), np.float32),
+        radii=_buffer(previous.radii, (n,), np.int32),
         opacities=previous.opacities,
-        valid=_rows(previous.valid, n, (), np.bool_),
-        tile_rects=_rows(previous.tile_rects, n, (4,), np.int32),
-        extents=_rows(previous.extents, n, (2,), np.float64),
-        qlimits=_rows(previous.qlimits, n, (), np.float64),
+        valid=_buffer(previous.valid, (n,), np.bool_),
+        tile_rects=_buffer(previous.tile_rects, (n, 4), np.int32),
+        extents=_buffer(previous.extents, (n, 2), np.float64),
+        qlimits=_buffer(previous.qlimits, (n,), np.float64),
         colors=None,
         width=int(camera.width),
         height=int(camera.height),
@@ -455,9 +451,16 @@ def _check_args(topk: int, background) -> np.ndarray:
 
 
 def _buffer(previous: np.ndarray | None, shape: tuple[int, ...], dtype) -> np.ndarray:
-    """`previous` if it has this shape and dtype (and is writable and contiguous), else a new array."""
-    if previous is not None and previous.shape == shape and previous.dtype == dtype and previous.flags.c_contiguous and previous.flags.writeable:
-        return previous
+    """An array of `shape` and `dtype` on `previous`'s memory when it can hold it, else a new one:
+    `previous` itself when it has that shape, else the first shape[0] rows of the array it is a view
+    of (or is) when that has at least as many rows of shape[1:] (a smaller culled subset reuses a
+    larger view's buffers). It must be writable and contiguous; the contents are whatever was there."""
+    full = previous if previous is None or previous.base is None else previous.base
+    if previous is not None and previous.shape == shape:
+        full = previous
+    if (isinstance(full, np.ndarray) and full.shape[1:] == tuple(shape[1:]) and full.ndim == len(shape) and full.shape[0] >= shape[0]
+            and full.dtype == dtype and full.flags.c_contiguous and full.flags.writeable):
+        return full if full.shape[0] == shape[0] else full[: shape[0]]
     return np.empty(shape, dtype)
 
 

@@ -33,7 +33,7 @@ import torch
 
 from drsplat import _raster_kernels as kernels
 from drsplat.cameras import Camera
-from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, prepare_scene, sh_basis_xyz, tile_grid
+from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, clamp_limits, prepare_scene, sh_basis_xyz, tile_grid
 from drsplat.scene import GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
 
@@ -148,10 +148,8 @@ def _screen_space(ts: TorchScene, camera: Camera):
     m = ts.means
     mx, my, mz = m.unbind(1)
     px, py, pz = (rot[i][0] * mx + rot[i][1] * my + rot[i][2] * mz + t[i] for i in range(3))
-    fx, fy, cx, cy, w, h = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height
-    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
-    lim_x_pos, lim_x_neg = (w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_y_pos, lim_y_neg = (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+    fx, fy, cx, cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+    lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = clamp_limits(camera)
     tx = pz * torch.clamp(px / pz, -lim_x_neg, lim_x_pos)
     ty = pz * torch.clamp(py / pz, -lim_y_neg, lim_y_pos)
     jx, jy = torch.full_like(pz, fx) / pz, torch.full_like(pz, fy) / pz  # a true division: scalar / tensor is reciprocal · scalar in torch
@@ -250,9 +248,9 @@ def project_gaussians_fused(scene: GaussianScene | PreparedScene | TorchScene, c
     ts = prepare_scene_torch(scene, device)
     means2d, conics, depths, radii, rects, status = raster_triton.project_triton(ts.means, ts.covariances, ts.opacities, _usable(ts, mask),
                                                                                  camera, near, tile_size)
-    return TorchProjected(means2d=means2d, conics=conics, depths=depths, radii=radii, opacities=ts.opacities, valid=status == 0,
+    return TorchProjected(means2d=means2d, conics=conics, depths=depths, radii=radii, opacities=ts.opacities, valid=status == kernels.VALID,
                           tile_rects=rects, colors=None, width=int(camera.width), height=int(camera.height), tile_size=tile_size,
-                          num_nonfinite=ts.num_nonfinite + (status == 2).sum(), num_behind=(status == 1).sum())
+                          num_nonfinite=ts.num_nonfinite + (status == kernels.NONFINITE).sum(), num_behind=(status == kernels.BEHIND).sum())
 
 
 def _colors(ts: TorchScene, camera: Camera, valid: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ import torch
 from drsplat import _raster_kernels as kernels
 from drsplat.defaults import DEFAULT_TOPK
 from drsplat.errors import DrsplatError
-from drsplat.raster import _check_args
+from drsplat.raster import _check_args, clamp_limits, tile_grid
 
 try:  # triton comes with torch's CUDA builds; without it only the pure-torch compositing exists
     import triton
@@ -123,12 +123,13 @@ def _project_source(
     means_ptr, cov_ptr, opacities_ptr, usable_ptr,
     out_means_ptr, out_conics_ptr, out_depths_ptr, out_radii_ptr, out_rects_ptr, out_status_ptr, camera_ptr, n,
     TILE: tl.constexpr, BLOCK: tl.constexpr, BLUR: tl.constexpr, ALPHA_MIN: tl.constexpr,
+    VALID: tl.constexpr, BEHIND: tl.constexpr, NONFINITE: tl.constexpr, CULLED: tl.constexpr,
 ):  # fmt: skip
     """Program b: Gaussians b·BLOCK .. +BLOCK, drsplat._raster_kernels.project_points's EWA math in
     float64 with the torch engine's order of operations (drsplat.raster_torch._screen_space).
 
-    Writes depths [N] float32 (camera z; 0 where not usable) and status [N] int8 (0 valid,
-    1 behind the near plane, 2 projection not finite, 3 culled), and for every Gaussian means2d
+    Writes depths [N] float32 (camera z; 0 where not usable) and status [N] int8 (the numba
+    kernel's VALID, BEHIND the near plane, NONFINITE projection or CULLED), and for every Gaussian means2d
     [N, 2], conics [N, 3], radii [N] float64 and tile rectangles [N, 4] int64 (getRect), zeros
     where not valid.
     """
@@ -198,7 +199,7 @@ def _project_source(
     x1 = tl.minimum(tl.maximum(tl.where(x1 == x1, x1, 0.0), 0.0), grid_x)
     y1 = tl.minimum(tl.maximum(tl.where(y1 == y1, y1, 0.0), 0.0), grid_y)
     valid = considered & finite & (det > 0.0) & (x1 > x0) & (y1 > y0)
-    status = tl.where(valid, 0, tl.where(usable & ~in_front, 1, tl.where(considered & ~finite, 2, 3))).to(tl.int8)
+    status = tl.where(valid, VALID, tl.where(usable & ~in_front, BEHIND, tl.where(considered & ~finite, NONFINITE, CULLED))).to(tl.int8)
     tl.store(out_status_ptr + g, status, mask=live)
     tl.store(out_depths_ptr + g, tl.where(usable, pz, 0.0).to(tl.float32), mask=live)
     tl.store(out_means_ptr + 2 * g, tl.where(valid, u, 0.0), mask=live)
@@ -235,6 +236,12 @@ def _check_device(dev: torch.device) -> None:
 PROJECT_BLOCK = 256  # Gaussians per projection program
 
 
+def _project_constants() -> dict:
+    """The numba kernels' constants the projection kernel takes as constexprs (one definition: drsplat._raster_kernels)."""
+    return {"BLUR": kernels.BLUR, "ALPHA_MIN": kernels.ALPHA_MIN, "VALID": kernels.VALID, "BEHIND": kernels.BEHIND,
+            "NONFINITE": kernels.NONFINITE, "CULLED": kernels.CULLED}
+
+
 def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera, near: float,
                    tile_size: int) -> tuple[torch.Tensor, ...]:
     """Project every Gaussian in one kernel launch (`_project_source`): the torch engine's
@@ -242,9 +249,9 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
 
     means: [N, 3] float64, covariances: [N, 3, 3] float64, opacities: [N] float32, usable: [N]
     bool, on a CUDA device (or the CPU under the interpreter). Returns (means2d [N, 2], conics
-    [N, 3], depths [N] float32, radii [N] float64, tile_rects [N, 4] int64, status [N] int8: 0
-    valid, 1 behind, 2 not finite, 3 culled). FMA contraction is off, so the products round as
-    the numba and torch engines' do.
+    [N, 3], depths [N] float32, radii [N] float64, tile_rects [N, 4] int64, status [N] int8:
+    drsplat._raster_kernels' VALID / BEHIND / NONFINITE / CULLED). FMA contraction is off, so the
+    products round as the numba and torch engines' do.
     """
     dev = means.device
     _check_device(dev)
@@ -256,16 +263,14 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
         return out
     rot = [float(x) for x in np.asarray(camera.R, np.float64).reshape(-1)]
     t = [float(x) for x in np.asarray(camera.t, np.float64)]
-    fx, fy, cx, cy, w, h = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height
-    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
-    limits = ((w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y)
-    grids = (float(-(-w // tile_size)), float(-(-h // tile_size)))
-    values = torch.tensor([*rot, *t, fx, fy, cx, cy, *limits, float(near), *grids], dtype=torch.float64)
+    intrinsics = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    grids = [float(g) for g in tile_grid(camera.width, camera.height, tile_size)]
+    values = torch.tensor([*rot, *t, *intrinsics, *clamp_limits(camera), float(near), *grids], dtype=torch.float64)
     launch = {} if interpreting() else {"enable_fp_fusion": False}
     _kernel(_project_source)[(triton.cdiv(n, PROJECT_BLOCK),)](
         means.contiguous(), covariances.contiguous(), opacities.contiguous(), usable.to(torch.int8), *out,
         values.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else values, n,
-        TILE=tile_size, BLOCK=PROJECT_BLOCK, BLUR=kernels.BLUR, ALPHA_MIN=kernels.ALPHA_MIN, **launch,
+        TILE=tile_size, BLOCK=PROJECT_BLOCK, **_project_constants(), **launch,
     )  # fmt: skip
     return out
 
@@ -352,7 +357,7 @@ def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:
     pointers = {"means_ptr": "*fp64", "cov_ptr": "*fp64", "opacities_ptr": "*fp32", "usable_ptr": "*i8", "out_means_ptr": "*fp64",
                 "out_conics_ptr": "*fp64", "out_depths_ptr": "*fp32", "out_radii_ptr": "*fp64", "out_rects_ptr": "*i64",
                 "out_status_ptr": "*i8", "camera_ptr": "*fp64", "n": "i32"}
-    consts = {"TILE": tile, "BLOCK": PROJECT_BLOCK, "BLUR": kernels.BLUR, "ALPHA_MIN": kernels.ALPHA_MIN}
+    consts = {"TILE": tile, "BLOCK": PROJECT_BLOCK, **_project_constants()}
     return _ptx(_project_source, pointers, consts, capability, enable_fp_fusion=False)
 
 

@@ -136,14 +136,15 @@ def test_splat_kernel_matches_reference_random_and_hard():
     covs[3] = np.zeros((3, 3))
     means[4] = [np.nan, 0, 0]
     alpha[5] = np.inf
-    covs[6] = np.eye(3) * 1e60  # enormous: its voxel range overflowed an int64 in math.floor (its mass here is ~1e-90: a range check)
+    covs[6] = np.eye(3) * 1e60  # enormous: its voxel range once overflowed an int64 in math.floor and it splatted nothing
     channels = rng.integers(-1, 3, 40)
-    channels[6] = 0
+    channels[6], channels[1] = 0, 1  # channel 0 has voxels that only the enormous one reaches (mass ~1e-95 there)
     grid = VoxelGrid(np.array([-1.2, -1.0, -1.1]), 0.1, (24, 21, 23))
     fast = splat_mass(means, covs, alpha, channels, 3, grid)
     ref = splat_mass_reference(means, covs, alpha, channels, 3, grid)
     assert np.isfinite(fast).all()
     np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(fast > 0, ref > 0)  # every voxel a Gaussian reaches, however faintly
 
 
 def test_splat_mass_is_conserved_for_large_and_subvoxel_gaussians():

@@ -252,7 +252,7 @@ def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str 
     try:
         pointed_record(path, ref, f)
     except ShardError as exc:
-        return f"needs a record of {path}, but {str(exc).split(': ', 1)[1]}"
+        return f"needs a record of {path}, but {exc.reason}"
     return None
 
 

@@ -245,7 +245,12 @@ def chunk_span(starts: np.ndarray, lo: int, hi: int) -> tuple[int, int]:
 
 
 class ShardError(ValueError):
-    """A pointer record's shard is missing, is not that log's, or lies outside its folder (names the file)."""
+    """A pointer record's shard is missing, is not that log's, or lies outside its folder: the
+    message names the file; `reason` is the message without it."""
+
+    def __init__(self, path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = path, reason
 
 
 def shards_folder(log_path: Path) -> Path:
@@ -265,7 +270,7 @@ def shard_file(log_path: Path, ref: dict) -> Path:
     folder = shards_folder(log_path)
     parts = name.split("/") if isinstance(name, str) else []
     if len(parts) != 2 or parts[0] != folder.name or parts[1] in ("", ".", "..") or "\\" in parts[1] or "\0" in parts[1]:
-        raise ShardError(f"{log_path}: a view's pointer names {name!r}, not a shard in {folder.name}")
+        raise ShardError(log_path, f"a view's pointer names {name!r}, not a shard in {folder.name}")
     return folder / parts[1]
 
 
@@ -282,7 +287,7 @@ def pointed_record(path: Path, ref: dict, f) -> LogRecord:
     start, offset = ref.get("start"), ref.get("offset")
     counts = [meta.get(k) for k in _SIZE_KEYS + (("T", "S") if "T" in meta else ())] if isinstance(meta, dict) else [None]
     if not all(type(v) is int and 0 <= v < 1 << 62 for v in [start, offset, *counts]):
-        raise ShardError(f"{path}: the pointer to it is malformed (offsets and counts must be non-negative integers)")
+        raise ShardError(path, "the pointer to it is malformed (offsets and counts must be non-negative integers)")
     meta_bytes = json.dumps(meta).encode()
     size = payload_size(meta)
     f.seek(start)
@@ -290,7 +295,7 @@ def pointed_record(path: Path, ref: dict, f) -> LogRecord:
     if (len(head) != 20 + len(meta_bytes) or head[:4] != TAG or _U64.unpack(head[4:12])[0] != len(meta_bytes)
             or _U64.unpack(head[12:20])[0] != size or head[20:] != meta_bytes or offset != start + 20 + len(meta_bytes)
             or os.fstat(f.fileno()).st_size < offset + size + 4):
-        raise ShardError(f"{path}: the record is not there (the shard was cut short or replaced)")
+        raise ShardError(path, "the record is not there (the shard was cut short or replaced)")
     return LogRecord(str(meta.get("name")), offset, meta, start)
 
 
@@ -445,7 +450,7 @@ class PairLog:
                 shard = self._shards[path.name] = PairLog.reader(path, self.params, [])
             except (OSError, ValueError) as exc:
                 why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-                raise ShardError(f"{path}: the worker's shard holding view {record.name} cannot be read ({why})") from None
+                raise ShardError(path, f"the worker's shard holding view {record.name} cannot be read ({why})") from None
         key = (path.name, record.start)
         if key not in self._pointed:  # checked once per reader: a reducer reads a record once per block
             self._pointed[key] = pointed_record(path, ref, shard._file)

@@ -62,10 +62,10 @@ PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of
 def _dot_rows_kernel(feats, rows, out):  # pragma: no cover - jitted
     """out[j, c] = feats[j] · rows[c] (float32; fastmath lets the sum over D vectorise).
 
-    Parallel over rows on numba's own threads. A BLAS sgemm gives the same products ~as fast, but
-    OpenBLAS's threads then busy-wait for a while and take a core from the rasterizer's next
-    parallel kernels: on 2 cores that cost ~40 ms per flowers view (binning and projection 2-3x
-    slower) in every `-vote` mode, docs/registration.md."""
+    Parallel over rows on numba's own threads. A BLAS sgemm is a little faster (1.5 vs 2.1 ms for
+    55 masks x 2,750 leaders x 512), but OpenBLAS's threads then busy-wait for a while and take a
+    core from the rasterizer's next parallel kernels: on 2 cores binning and projection ran 2-3x
+    slower in every `-vote` mode (docs/registration.md)."""
     m, d = feats.shape
     for c in numba.prange(rows.shape[0]):
         for j in range(m):
