@@ -15,8 +15,9 @@ Top-k without sorting inside the loop: each pixel holds k unsorted slots (weight
 a newcomer replaces the slot with the smallest weight — the latest-arrived among equal smallest —
 when its weight is strictly larger. So the slots end up holding exactly the first k entries of a
 stable sort of all the pixel's contributions by descending weight (a later equal weight never
-displaces an earlier one), which is what the numba kernel keeps; `_finish` then sorts the k
-slots by (weight descending, list position ascending) and turns positions into Gaussian ids.
+displaces an earlier one), which is what the numba kernel keeps; at the end the kernel sorts
+each pixel's k slots by (float32 weight descending, list position ascending) with tl.sort, and
+`_finish` turns positions into Gaussian ids.
 
 The kernel source is one function; under TRITON_INTERPRET=1 (read by triton when it is imported,
 so the tests set it in a subprocess) Triton runs it with numpy on the CPU, which is how the tests
@@ -43,7 +44,10 @@ except ImportError:  # pragma: no cover - depends on the torch build
     triton = None
     tl = None
 
-CUDA_BLOCK = 64  # pixels per program on a GPU: 64 x k slots of (float64, int32) per program
+# pixels and warps per program on a GPU. H100, flowers 640x480, top-40 (compositing + the slot sort, ms a view):
+# 16 pixels / 1 warp 23.5, 16/2 26.4, 32/1 28.4, 32/2 27.1, 32/4 26.2, 64/2 50, 64/4 30, 64/8 42, 128/4 48, 256/4 263 (spills)
+CUDA_BLOCK = 16
+CUDA_WARPS = 1
 INTERPRET_BLOCK = 256  # a whole tile per program in the interpreter (fewer, larger numpy steps)
 
 
@@ -54,16 +58,25 @@ def available() -> bool:
 
 def _composite_topk_source(
     offsets_ptr, counts_ptr, list_ptr, means_ptr, conics_ptr, opacities_ptr,
-    out_w_ptr, out_pos_ptr, out_trans_ptr, out_med_ptr,
+    out_key_ptr, out_trans_ptr, out_med_ptr,
     width, height, n_tiles_x, topk,
     TILE: tl.constexpr, BLOCK: tl.constexpr, KP: tl.constexpr,
     ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr, MEDIAN_T: tl.constexpr,
 ):  # fmt: skip
     """Program (tile, block): pixels block·BLOCK .. +BLOCK of the tile (row-major inside the tile).
 
-    Writes out_w / out_pos [n_tiles, TILE², KP] (unsorted slots: weight float64, -1 where empty;
-    list position int32), out_trans [n_tiles, TILE²] final T and out_med [n_tiles, TILE²] the list
-    position of the median Gaussian (-1: none). Slots ≥ topk are padding (KP is a power of two).
+    Writes out_key [n_tiles, TILE², KP] int64, each pixel's slots sorted descending by the key
+
+        (bits of float32(w)) · 2³¹ + (2³¹ - 1 - list position)     (-1: no Gaussian)
+
+    (a positive float's bits order as the float does: weight descending, then list position
+    ascending), out_trans [n_tiles, TILE²] final T and out_med [n_tiles, TILE²] the list position
+    of the median Gaussian (-1: none). KP is topk rounded up to a power of two (tl.sort's need).
+
+    The eviction (a min / max over the KP slots of every pixel) runs only for an entry that beats
+    some pixel's smallest slot, which each pixel keeps (min_w): once the slots are full, the
+    weights T·α mostly fall along the list and few entries do (on an H100, flowers: 88 -> 26 ms
+    a view). An entry that no pixel of the block takes skips the rest of its step.
     """
     tile = tl.program_id(0)
     local = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
@@ -79,6 +92,7 @@ def _composite_topk_source(
     real = (slots < topk)[None, :] & (local >= 0)[:, None]  # [BLOCK, KP]
     buf_w = tl.where(real, -1.0, 2.0).to(tl.float64)  # empty: -1; padding: 2 > any weight, never evicted
     buf_pos = (-1 - slots[None, :] + tl.zeros([BLOCK, KP], tl.int32)).to(tl.int32)  # empty slots: distinct negatives
+    min_w = tl.min(buf_w, axis=1)
     trans = tl.full([BLOCK], 1.0, tl.float64)
     med = tl.full([BLOCK], -1, tl.int32)
     j = tl.zeros([], dtype=tl.int32)  # a typed loop-carried counter (list positions are int32)
@@ -95,28 +109,32 @@ def _composite_topk_source(
         power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
         alpha = tl.minimum(o * tl.exp(tl.minimum(power, 0.0)), ALPHA_MAX)
         hit = (~done) & (power <= 0.0) & (alpha >= ALPHA_MIN)
-        test_t = trans * (1.0 - alpha)
-        stop = hit & (test_t < T_MIN)
-        ok = hit & (test_t >= T_MIN)
-        w = alpha * trans
-        med = tl.where(ok & (test_t <= MEDIAN_T) & (trans > MEDIAN_T), j, med)
-        # evict the smallest slot, the latest-arrived among equal smallest, if w beats it strictly
-        min_w = tl.min(buf_w, axis=1)
-        tie = buf_w == min_w[:, None]
-        last = tl.max(tl.where(tie, buf_pos, -KP - 1), axis=1)
-        replace = tie & (buf_pos == last[:, None]) & (ok & (w > min_w))[:, None]
-        buf_w = tl.where(replace, w[:, None], buf_w)
-        buf_pos = tl.where(replace, j, buf_pos)
-        trans = tl.where(ok, test_t, trans)
-        done = done | stop
-        n_active -= tl.sum(stop.to(tl.int32), axis=0)
+        if tl.sum(hit.to(tl.int32), axis=0) > 0:
+            test_t = trans * (1.0 - alpha)
+            stop = hit & (test_t < T_MIN)
+            ok = hit & (test_t >= T_MIN)
+            w = alpha * trans
+            med = tl.where(ok & (test_t <= MEDIAN_T) & (trans > MEDIAN_T), j, med)
+            # evict the smallest slot, the latest-arrived among equal smallest, if w beats it strictly
+            better = ok & (w > min_w)
+            if tl.sum(better.to(tl.int32), axis=0) > 0:
+                tie = buf_w == min_w[:, None]
+                last = tl.max(tl.where(tie, buf_pos, -KP - 1), axis=1)
+                replace = tie & (buf_pos == last[:, None]) & better[:, None]
+                buf_w = tl.where(replace, w[:, None], buf_w)
+                buf_pos = tl.where(replace, j, buf_pos)
+                min_w = tl.min(buf_w, axis=1)
+            trans = tl.where(ok, test_t, trans)
+            done = done | stop
+            n_active -= tl.sum(stop.to(tl.int32), axis=0)
         j += 1
     base = tile * TILE * TILE + local
     tl.store(out_trans_ptr + base, trans)
     tl.store(out_med_ptr + base, med)
-    at = base[:, None] * KP + slots[None, :]
-    tl.store(out_w_ptr + at, buf_w)
-    tl.store(out_pos_ptr + at, buf_pos)
+    filled = real & (buf_w > 0.0)
+    bits = buf_w.to(tl.float32).to(tl.int32, bitcast=True).to(tl.int64)
+    key = tl.where(filled, (bits << 31) | (0x7FFFFFFF - buf_pos.to(tl.int64)), -1)
+    tl.store(out_key_ptr + base.to(tl.int64)[:, None] * KP + slots[None, :], tl.sort(key, dim=1, descending=True))
 
 
 def _project_source(
@@ -275,13 +293,15 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
     return out
 
 
-def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None):
+def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None,
+                          num_warps: int | None = None):
     """Top-k ids [H, W, k] int32 and weights [H, W, k] float32, alpha [H, W] float32 (and median ids [H, W] int32 or None).
 
     projected: a drsplat.raster_torch.TorchProjected on a CUDA device (or on the CPU under TRITON_INTERPRET=1: the tests).
     bins: the tile lists (offsets [T], counts [T], tile_list [L]) of drsplat.raster_torch.bin_gaussians_torch,
-    passed in so that this module does not import its caller. The rest is one kernel launch plus
-    `_finish`'s fixed-size sort and gathers (no host synchronisation).
+    passed in so that this module does not import its caller. block / num_warps: pixels and warps
+    per program (default CUDA_BLOCK, CUDA_WARPS). The rest is one kernel launch plus `_finish`'s
+    gathers (no host synchronisation).
     """
 
     _check_args(topk, (0.0, 0.0, 0.0))
@@ -299,29 +319,33 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     if tile_list.numel() == 0:  # nothing visible: a one-entry list keeps the gathers in range (every count is 0)
         tile_list = torch.zeros(1, dtype=torch.int64, device=dev)
     kp = max(1, 1 << max(0, topk - 1).bit_length())
-    out_w = torch.empty((n_tiles, p_count, kp), dtype=torch.float64, device=dev)
-    out_pos = torch.empty((n_tiles, p_count, kp), dtype=torch.int32, device=dev)
+    out_key = torch.empty((n_tiles, p_count, kp), dtype=torch.int64, device=dev)
     out_trans = torch.empty((n_tiles, p_count), dtype=torch.float64, device=dev)
     out_med = torch.empty((n_tiles, p_count), dtype=torch.int32, device=dev)
+    launch = {} if interpret else {"enable_fp_fusion": False, "num_warps": num_warps or CUDA_WARPS}
     _kernel()[(n_tiles, p_count // block)](
         offsets, counts, tile_list, projected.means2d.contiguous(), projected.conics.contiguous(), projected.opacities.contiguous(),
-        out_w, out_pos, out_trans, out_med, projected.width, projected.height, n_tiles_x, topk,
+        out_key, out_trans, out_med, projected.width, projected.height, n_tiles_x, topk,
         TILE=ts, BLOCK=block, KP=kp, ALPHA_MIN=kernels.ALPHA_MIN, ALPHA_MAX=kernels.ALPHA_MAX, T_MIN=kernels.T_MIN, MEDIAN_T=kernels.MEDIAN_T,
+        **launch,
     )  # fmt: skip
-    return _finish(projected, out_w[..., :topk], out_pos[..., :topk], out_trans, out_med if with_median else None, offsets, tile_list)
+    return _finish(projected, out_key[..., :topk], out_trans, out_med if with_median else None, offsets, tile_list)
 
 
-def _finish(projected, slot_w, slot_pos, trans, med, offsets, tile_list):
-    """Sort each pixel's slots [n_tiles, P, k] by (weight descending, list position ascending), map
-    list positions to Gaussian ids and tiles to the image (ids -1 / weights 0 in empty slots)."""
-    by_pos = torch.sort(slot_pos, dim=-1, stable=True).indices
-    slot_w, slot_pos = torch.gather(slot_w, -1, by_pos), torch.gather(slot_pos, -1, by_pos)
-    by_w = torch.sort(slot_w, dim=-1, descending=True, stable=True).indices
-    slot_w, slot_pos = torch.gather(slot_w, -1, by_w), torch.gather(slot_pos, -1, by_w)
-    filled = slot_w > 0
+def _finish(projected, key, trans, med, offsets, tile_list):
+    """Each pixel's sorted slot keys [n_tiles, P, k] (the kernel's) as Gaussian ids and float32
+    weights, tiles laid out as the image (ids -1 / weights 0 in empty slots).
+
+    The kernel orders a pixel's slots by float32 weight; numba by the float64 weight, so two slots
+    whose float64 weights round to the same float32 may come in the other order, with equal output
+    weights. (Sorting here instead, two stable sorts by position then weight, took 5.5 ms of a
+    flowers view on an H100.)
+    """
+    filled = key >= 0
+    pos = 0x7FFFFFFF - (key & 0x7FFFFFFF)
     first = offsets[:, None, None]
-    ids = torch.where(filled, tile_list[torch.where(filled, first + slot_pos, 0)], -1).to(torch.int32)
-    weights = torch.where(filled, slot_w, 0.0).float()
+    ids = torch.where(filled, tile_list[torch.where(filled, first + pos, 0)], -1).to(torch.int32)
+    weights = torch.where(filled, (key >> 31).to(torch.int32).view(torch.float32), 0.0)
     median = None
     if med is not None:
         has = med >= 0
@@ -346,10 +370,11 @@ def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, til
     nothing about registers or speed. Uses Triton's backend API (checked with triton 3.8).
     """
     pointers = {"offsets_ptr": "*i64", "counts_ptr": "*i64", "list_ptr": "*i64", "means_ptr": "*fp64", "conics_ptr": "*fp64",
-                "opacities_ptr": "*fp32", "out_w_ptr": "*fp64", "out_pos_ptr": "*i32", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
+                "opacities_ptr": "*fp32", "out_key_ptr": "*i64", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
     consts = {"TILE": tile, "BLOCK": block, "KP": kp, "ALPHA_MIN": kernels.ALPHA_MIN, "ALPHA_MAX": kernels.ALPHA_MAX, "T_MIN": kernels.T_MIN,
               "MEDIAN_T": kernels.MEDIAN_T}
-    return _ptx(_composite_topk_source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability)
+    return _ptx(_composite_topk_source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability,
+                enable_fp_fusion=False)
 
 
 def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:

@@ -48,6 +48,19 @@ def test_cuda_asked_for_without_a_gpu_is_one_clear_error(tmp_path, capsys):
     assert "no CUDA GPU is available" in err and "Traceback" not in err
 
 
+@pytest.mark.skipif(not NO_CUDA, reason="this machine has a CUDA GPU")
+def test_kernel_bench_without_a_gpu_says_so_before_reading_the_scene(tmp_path, capsys):
+    """`drsplat bench kernel` times Triton kernels that compile for CUDA only: one sentence, exit 1,
+    and a bad --configs entry is a usage error (exit 2) that names it."""
+    from drsplat.cli import main
+
+    assert main(["bench", "kernel", "--real", str(tmp_path / "absent.ply")]) == 1
+    err = capsys.readouterr().err
+    assert "run on a CUDA GPU only" in err and "Traceback" not in err
+    assert main(["bench", "kernel", "--configs", "16x1,24x1"]) == 2
+    assert "'24x1' is not PIXELSxWARPS" in capsys.readouterr().err
+
+
 def test_cli_torch_engine_on_cpu_matches_numba(tmp_path, one_torch_thread):
     """register / query / segment with --engine torch --device cpu give what the numba engine gives."""
     from drsplat.cli import main

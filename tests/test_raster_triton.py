@@ -20,6 +20,8 @@ import pytest
 
 pytest.importorskip("triton")
 
+import torch  # noqa: E402
+
 from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.raster import rasterize  # noqa: E402
 from drsplat.testing import hard_cases, random_case, stacked_case  # noqa: E402
@@ -134,6 +136,22 @@ def test_fused_projection_equals_numba_bit_for_bit(interpreted, name):
     assert got["counts"].tolist() == [ref.num_nonfinite, ref.num_behind]
     if name == "nonfinite":
         assert ref.num_nonfinite >= 3 and ref.num_behind >= 4 and ref.valid.sum() > 100
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same source in the interpreter above)")
+def test_on_cuda_fused_kernel_topk_equals_numba():
+    """The kernel compiled for the GPU against numba on every interpreter case, the hard cases and
+    a 20k-Gaussian scene with full top-40 lists (the eviction guard and the prefetched entries at scale)."""
+    from drsplat.raster_torch import rasterize_torch
+
+    cases = [make() for make in CASES.values()] + list(hard_cases()) + [random_case(9, n=20000, topk=40)]
+    for case in cases:
+        with np.errstate(all="ignore"):
+            out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True, fused=True, device="cuda")
+            ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
+        assert_topk_equal(out.ids.cpu().numpy(), out.weights.cpu().numpy(), ref.ids, ref.weights)
+        np.testing.assert_allclose(out.alpha.cpu().numpy(), ref.alpha, rtol=1e-5, atol=1e-7, err_msg=case.name)
+        np.testing.assert_array_equal(out.median_ids.cpu().numpy(), ref.median_ids, err_msg=case.name)
 
 
 def test_fused_kernel_is_refused_on_the_cpu():

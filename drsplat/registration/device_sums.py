@@ -100,8 +100,10 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
 
         w_ij = Σ_{p ∈ mask j} Σ_s [id_s(p) = i] w_s(p)
 
-    Every slot gets the key j·N + i (N = num_gaussians; empty slots and unmasked pixels the key
-    M·N, after all others); a stable sort groups equal keys in pixel-then-slot order, and a
+    Every slot gets the key j·N + i (N = num_gaussians; an empty slot or unmasked pixel the key
+    M·N + its slot index, after all others and each its own group, so that the segment sum below
+    does not pile millions of zeros onto one address: on CUDA those atomics serialise, 4 ms of a
+    flowers view); a stable sort groups equal keys in pixel-then-slot order, and a
     segment sum (index_add over the segment numbers, a cumulative sum of the key changes) adds
     each group's weights in that order, as the numba coalescer does (drsplat.registration.coalesce).
     All shapes are fixed by H·W·k, so nothing waits for the device.
@@ -117,7 +119,7 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     m = mask_ids.reshape(-1, 1).to(device=device, dtype=torch.int64).expand(-1, k).reshape(-1)
     valid = (g >= 0) & (m >= 0) & (m < num_masks)
     empty_key = num_masks * num_gaussians
-    keys = torch.where(valid, m * num_gaussians + g, torch.full_like(g, empty_key))
+    keys = torch.where(valid, m * num_gaussians + g, empty_key + torch.arange(g.shape[0], device=device))
     sorted_keys, order = torch.sort(keys, stable=True)
     w = torch.where(valid, weights.reshape(-1).to(torch.float32), torch.zeros((), dtype=torch.float32, device=device))[order]
     starts = torch.ones_like(sorted_keys, dtype=torch.bool)
@@ -299,21 +301,24 @@ class DeviceViewStats:
 def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tensor, num_gaussians: int) -> DeviceViewStats:
     """A view's per-Gaussian max w, Σ w and Σ w·flags over its slots (`aggregate._view_stats_kernel`).
 
-    ids, weights: [H, W, k] (-1 empty; raw w = T·α); flags: [H·W, k] (`front_flags_torch`). Empty
-    slots go to a spare row N. index_add on a CPU adds a row's slots in pixel-then-slot order, as
-    the kernel does, and an unflagged slot adds +0.0, so the sums are the kernel's bits; on CUDA
-    the atomics add in no fixed order."""
+    ids, weights: [H, W, k] (-1 empty; raw w = T·α); flags: [H·W, k] (`front_flags_torch`). An
+    empty slot adds w = 0 to row (slot index mod N + 1), which changes no bit (the rows hold +0.0
+    or sums and maxima of weights ≥ 0), and marks the spare row N touched: spread so, the empty
+    slots do not all add onto one address (on CUDA those atomics serialise, 12 ms of a flowers
+    view). index_add on a CPU adds a row's slots in pixel-then-slot order, as the kernel does,
+    and an unflagged slot adds +0.0, so the sums are the kernel's bits; on CUDA the atomics add
+    in no fixed order."""
     n = num_gaussians
     g = ids.reshape(-1).to(torch.int64)
     valid = g >= 0
-    row = torch.where(valid, g, n)
+    row = torch.where(valid, g, torch.arange(g.shape[0], device=g.device) % (n + 1))
     zero = torch.zeros((), dtype=torch.float64, device=g.device)
     w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
     f64 = {"dtype": torch.float64, "device": g.device}
     peak = torch.zeros(n + 1, **f64).scatter_reduce_(0, row, w, "amax")
     total = torch.zeros(n + 1, **f64).index_add_(0, row, w)
     front = torch.zeros(n + 1, **f64).index_add_(0, row, torch.where(flags.reshape(-1), w, zero))
-    touched = torch.zeros(n + 1, dtype=torch.bool, device=g.device).index_fill_(0, row, True)
+    touched = torch.zeros(n + 1, dtype=torch.bool, device=g.device).index_fill_(0, torch.where(valid, g, n), True)
     return DeviceViewStats(peak[:n], total[:n], front[:n], touched[:n])
 
 
@@ -457,42 +462,54 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
     """`vote._vote_view_kernel` on the device: fold one view's pairs into the vote slots, in place.
 
     rows: [P] int64 Gaussians, clusters: [P] int64 (-1 none), weights: [P] float32, in the view's
-    pair order; slot_c [N + 1, S] int32 (-1 empty), slot_v / slot_s [N + 1, S] float64, whose
-    spare row N takes the writes of pairs that do nothing. A Gaussian's pairs act one after
-    another (the space-saving rule depends on its slots as earlier pairs left them), so the pairs
-    are grouped by Gaussian, stably, and round r folds each Gaussian's r-th pair at once:
+    pair order; slot_c [N, S] int32 (-1 empty), slot_v / slot_s [N, S] float64. A Gaussian's pairs
+    act one after another (the space-saving rule depends on its slots as earlier pairs left them),
+    so the acting pairs (a cluster and w > 0) are numbered within their Gaussian, in pair order, and
+    round r folds every Gaussian's r-th acting pair at once: a contiguous run of the pairs sorted by
+    that number, one pair per Gaussian, so no two writes of a round meet:
 
         T_iv = Σ_{j ∈ view} w_ij (float64, in pair order), v = min(1, w / (T·ρ)) · min(1, T / T₀)
         slot = the cluster's slot, else the first empty one, else the one of fewest votes (first of
         equal), which the cluster takes over with its counts; V += v, S += w
 
-    Rounds: the most pairs one Gaussian has in the view (one read of the device per view).
-    Equal to the kernel bit for bit on the CPU (one addition per slot and round, in its order).
+    Reads the device twice per view (the number of rounds, then each round's run length). Equal
+    to the kernel bit for bit on the CPU (one addition per slot and round, in its order), and on
+    CUDA too as long as T_iv is: its index_add adds in no fixed order there, but a float64 sum of
+    float32 weights is exact in any order unless they span more than 2^29.
     """
     p = int(rows.shape[0])
     if p == 0:
         return
-    dev, n = rows.device, slot_c.shape[0] - 1
+    dev, n = rows.device, slot_c.shape[0]
     w = weights.to(torch.float64)
-    total = torch.zeros(n + 1, dtype=torch.float64, device=dev).index_add_(0, rows, w)[rows]
+    total = torch.zeros(n, dtype=torch.float64, device=dev).index_add_(0, rows, w)[rows]
     order = torch.sort(rows, stable=True).indices
     g, c, w, total = rows[order], clusters[order], w[order], total[order]
+    one = torch.ones((), dtype=torch.float64, device=dev)
+    v = torch.minimum(one, w / (total * presence)) * torch.minimum(one, total / full_view) if presence > 0.0 else w
+    acting = ((c >= 0) & (w > 0.0)).to(torch.int64)
+    before = torch.cumsum(acting, 0) - acting  # acting pairs before each pair, over all Gaussians
     steps = torch.arange(p, device=dev)
     first = torch.ones(p, dtype=torch.bool, device=dev)
     first[1:] = g[1:] != g[:-1]
-    rank = steps - torch.cummax(torch.where(first, steps, 0), 0).values
-    one = torch.ones((), dtype=torch.float64, device=dev)
-    v = torch.minimum(one, w / (total * presence)) * torch.minimum(one, total / full_view) if presence > 0.0 else w
-    acting = (c >= 0) & (w > 0.0)
-    for r in range(int(rank.max()) + 1):
-        on = acting & (rank == r)
-        row = torch.where(on, g, n)  # at most one acting pair per Gaussian in a round: no two writes meet, but in the spare row
+    group_start = torch.cummax(torch.where(first, steps, 0), 0).values
+    rank = torch.where(acting > 0, before - before[group_start], p)  # p: not acting, after every round
+    rank, by_round = torch.sort(rank, stable=True)
+    rounds = int(torch.where(rank < p, rank, -1).max()) + 1
+    if rounds == 0:
+        return
+    ends = torch.searchsorted(rank, torch.arange(1, rounds + 1, device=dev)).tolist()
+    begin = 0
+    for end in ends:
+        pick = by_round[begin:end]
+        begin = end
+        row, cl = g[pick], c[pick].to(torch.int32)
         sc = slot_c[row]
-        match = (sc == c[:, None].to(torch.int32)) | (sc < 0)
+        match = (sc == cl[:, None]) | (sc < 0)
         slot = torch.where(match.any(1), torch.argmax(match.to(torch.int8), 1), torch.argmin(slot_v[row], 1))
-        slot_c[row, slot] = torch.where(on, c.to(torch.int32), sc.gather(1, slot[:, None])[:, 0])
-        slot_v.index_put_((row, slot), torch.where(on, v, 0.0), accumulate=True)
-        slot_s.index_put_((row, slot), torch.where(on, w, 0.0), accumulate=True)
+        slot_c[row, slot] = cl
+        slot_v[row, slot] = slot_v[row, slot] + v[pick]
+        slot_s[row, slot] = slot_s[row, slot] + w[pick]
 
 
 class DeviceVoteSink:
@@ -511,7 +528,7 @@ class DeviceVoteSink:
         self.device, self.place = self._sums.device, self._sums.place
         self.presence, self.full_view = float(presence), float(full_view)
         self.clusters = MaskClusters(dim)
-        rows = (num_gaussians + 1, int(slots))  # + the spare row of vote_view_torch
+        rows = (num_gaussians, int(slots))
         self.slot_c = torch.full(rows, -1, dtype=torch.int32, device=self.device)
         self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
@@ -533,9 +550,8 @@ class DeviceVoteSink:
         return self._sums.positive()
 
     def _trimmed(self, index: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray]:
-        n = self.slot_c.shape[0] - 1
         F, W = self._sums.F, self._sums.W
-        c, v, s = self.slot_c[:n], self.slot_v[:n], self.slot_s[:n]
+        c, v, s = self.slot_c, self.slot_v, self.slot_s
         if index is not None:
             F, W, c, v, s = F[index], W[index], c[index], v[index], s[index]
         F = F.cpu().numpy().copy()

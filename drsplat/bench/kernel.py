@@ -1,0 +1,115 @@
+"""`drsplat bench kernel`: the fused Triton top-k kernel on a CUDA GPU, per launch configuration.
+
+For a real scene seen by orbiting views: the projection and the tile binning (ms per view), then
+for each (pixels, warps) per program the compositing with its slot sort and id lookup
+(`raster_triton.composite_topk_triton`, median ms per view over repeats, after one compiling
+call), with its agreement against the numba engine on the first view (top-k ids, weights,
+median ids). The default configuration is `raster_triton.CUDA_BLOCK` x `CUDA_WARPS`; the table is
+what chose it. Needs a CUDA GPU (Triton compiles for CUDA only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drsplat.bench.common import format_table, machine_line
+from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
+from drsplat.commands.common import positive_int
+from drsplat.defaults import DEFAULT_TOPK
+from drsplat.errors import DrsplatError, UsageError
+
+DEFAULT_CONFIGS = "16x1,16x2,32x2,32x4,64x4"
+TILE_PIXELS = 256  # a 16 x 16 tile
+
+
+def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("kernel", help="the fused Triton top-k kernel on a CUDA GPU: ms per view per launch configuration")
+    p.add_argument("--real", type=Path, default=DEFAULT_REAL, help="scene to render (default: ../shared/data/ply/flowers.ply)")
+    p.add_argument("--views", type=positive_int, default=2, help="orbiting views timed (default: 2)")
+    p.add_argument("--size", default="640x480", help="view size WxH (default: 640x480)")
+    p.add_argument("--topk", type=positive_int, default=DEFAULT_TOPK, help=f"top-k per pixel (default: {DEFAULT_TOPK})")
+    p.add_argument("--configs", default=DEFAULT_CONFIGS,
+                   help=f"comma-separated PIXELSxWARPS per program; PIXELS must divide a tile's {TILE_PIXELS} (default: {DEFAULT_CONFIGS})")
+    p.add_argument("--repeats", type=positive_int, default=7, help="timed calls per view and configuration, median reported (default: 7)")
+    p.set_defaults(func=run)
+
+
+def parse_configs(text: str) -> list[tuple[int, int]]:
+    """'16x1,32x4' -> [(16, 1), (32, 4)]; UsageError naming the bad entry."""
+    configs = []
+    for item in text.split(","):
+        block, _, warps = item.strip().partition("x")
+        if not (block.isdigit() and warps.isdigit()) or int(block) == 0 or TILE_PIXELS % int(block) or int(warps) not in (1, 2, 4, 8, 16):
+            raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS with PIXELS dividing {TILE_PIXELS} and WARPS 1, 2, 4, 8 or 16")
+        configs.append((int(block), int(warps)))
+    return configs
+
+
+def _timed(fn, repeats: int):
+    """(median ms of `repeats` calls, the last result), each call timed with CUDA events."""
+    import torch
+
+    times, result = [], None
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        result = fn()
+        end.record()
+        torch.cuda.synchronize()
+        times.append(start.elapsed_time(end))
+    return statistics.median(times), result
+
+
+def run(args: argparse.Namespace) -> int:
+    configs = parse_configs(args.configs)
+    width, _, height = args.size.partition("x")
+    from drsplat.device import cuda_available
+
+    if not cuda_available():  # before the scene is read
+        raise DrsplatError("drsplat bench kernel times the fused Triton kernels, which run on a CUDA GPU only, and none is available")
+    if not args.real.exists():
+        raise UsageError(f"--real {args.real}: no such file")
+    from drsplat import raster_triton
+    from drsplat.raster import rasterize
+    from drsplat.raster_torch import bin_gaussians_torch, prepare_scene_torch, project_gaussians_fused
+    from drsplat.registration.compute import prepare_geometry
+    from drsplat.scene import load_ply
+
+    scene = load_ply(args.real)
+    cameras = orbit_cameras(scene.means, args.views, int(width), int(height))
+    geometry = prepare_geometry(scene)
+    prepared = prepare_scene_torch(geometry, "cuda")
+    rows, stages = [], []
+    for index, cam in enumerate(cameras):
+        project_ms, projected = _timed(lambda: project_gaussians_fused(prepared, cam, device=prepared.device), args.repeats)
+        bin_ms, bins = _timed(lambda: bin_gaussians_torch(projected), args.repeats)
+        stages.append([cam.name, project_ms, bin_ms, int(bins[2].numel())])
+        reference = rasterize(geometry, cam, args.topk, with_median=True, engine="numba") if index == 0 else None
+        for block, warps in configs:
+            def composite():
+                return raster_triton.composite_topk_triton(projected, bins, args.topk, with_median=True, block=block, num_warps=warps)
+
+            t0 = time.perf_counter()
+            composite()  # compiles this configuration once
+            ms, (ids, weights, _, median) = _timed(composite, args.repeats)
+            agree = ["", "", ""]
+            if reference is not None:
+                agree = [float((ids.cpu().numpy() != reference.ids).mean()), float(np.abs(weights.cpu().numpy() - reference.weights).max()),
+                         float((median.cpu().numpy() != reference.median_ids).mean())]
+            rows.append([cam.name, f"{block}x{warps}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
+    import torch
+
+    print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {args.size}, top-{args.topk}, "
+          f"{torch.cuda.get_device_name(0)}; median of {args.repeats} calls")
+    print(format_table(["view", "project ms", "bin ms", "tile-list entries"], stages))
+    print()
+    print(format_table(["view", "pixels x warps", "first call ms (compile)", "composite ms", "id mismatch vs numba", "max |Δw|",
+                        "median-id mismatch"], rows))
+    print(f"defaults: {raster_triton.CUDA_BLOCK}x{raster_triton.CUDA_WARPS}")
+    print(machine_line())
+    return 0
