@@ -180,8 +180,12 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     ids, weights: [H, W, k] (-1 = empty slot; ids < num_gaussians); mask_ids: [H, W] (-1 = no mask).
     Returns [H, W, k] float32, 0 where ids < 0 or the pixel has no mask. Fixed-size ops only (the
     pairs live in arrays of H·W·k + 1 rows, the last a spare for empty slots), `iterations` rounds
-    of ~12 ops, no host synchronisation. Every sum is taken in the kernel's order, so the same bits
-    on a CPU:
+    of ~12 ops, no host synchronisation. An empty slot's zeros are added to its own slot's row
+    (and an unused pair's to Gaussian row (its row mod N + 1)), not all onto the spare row: that
+    changes no bit, since every sum starts at +0.0 and adds values ≥ 0, and on CUDA keeps millions
+    of atomics off one address (which serialised them in the coalescing and the floater
+    statistics: 4 and 12 ms of a flowers view on an H100; here unmeasured). Every sum is taken in
+    the kernel's order, so the same bits on a CPU:
     - a slot's pair (i, j) is its segment in a stable sort by the key j·N + i; the per-pair sums
       v_ij and c_ij run over the slots in pixel-then-slot order (index_add in slot order);
     - a pixel's denominator adds its slots one by one (cumsum along the slots);
@@ -202,26 +206,29 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     starts[1:] = sorted_keys[1:] != sorted_keys[:-1]
     pair = torch.empty_like(g).scatter_(0, order, torch.cumsum(starts, 0) - 1)
     del keys, sorted_keys, order, starts  # [S] int64 each: ~100 MB apiece on a 640x480 view at k = 40
+    index = torch.arange(slots, device=dev)
+    adds_to = torch.where(valid, pair, index)  # [S] where the slot's values add (an empty slot adds zeros to its own row)
     pair = torch.where(valid, pair, slots)  # [S] the slot's pair; empty slots: the spare row
     pair_g = torch.full((slots + 1,), n, dtype=torch.int64, device=dev).scatter_(0, pair, torch.where(valid, g, n))
     first = torch.full((slots + 1,), slots, dtype=torch.int64, device=dev).scatter_reduce_(
-        0, pair, torch.arange(slots, device=dev), "amin")
+        0, adds_to, torch.where(valid, index, slots), "amin")  # an empty slot offers `slots`, which lowers no row
     newest_first = torch.sort(first, descending=True, stable=True).indices
     del first, g, m
     by_gaussian = pair_g[newest_first]
+    by_gaussian = torch.where(by_gaussian < n, by_gaussian, torch.arange(slots + 1, device=dev) % (n + 1))  # unused pairs add 0
 
     def per_gaussian(values: torch.Tensor) -> torch.Tensor:  # Σ over the pair's Gaussian's pairs, newest first, per pair
         return torch.zeros(n + 1, dtype=torch.float64, device=dev).index_add_(0, by_gaussian, values[newest_first])[pair_g]
 
     w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
-    v = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, pair, w)
+    v = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, adds_to, w)
     total = per_gaussian(v)
     q = torch.where(total > 0.0, v / torch.where(total > 0.0, total, 1.0), zero)
     for _ in range(int(iterations)):
         share = torch.where(valid, w * q[pair], zero).reshape(-1, k)
         denom = torch.cumsum(share, -1)[:, -1:]
         r = torch.where(denom > 0.0, share / torch.where(denom > 0.0, denom, 1.0), zero).reshape(-1)
-        c = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, pair, torch.where(valid, r, zero))
+        c = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, adds_to, torch.where(valid, r, zero))
         rs = per_gaussian(c)
         q = torch.where(rs > 0.0, c / torch.where(rs > 0.0, rs, 1.0), q)
     scale = torch.where(v > 0.0, total * q / torch.where(v > 0.0, v, 1.0), zero)
