@@ -78,7 +78,8 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
 
     out = tmp_path / "counts.json"
     code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--repeats", "1",
-                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out), "--aggregate", "paper"])
+                 "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out), "--aggregate", "paper",
+                 "--profile-views", "1"])
     assert code == 0
     record = json.loads(out.read_text())
     assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1 and record["aggregate"] == "paper"
@@ -90,13 +91,15 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     assert host["sums"] == "host" and host["host_syncs_per_view"] == 1 and 0 < host["ops_per_view"] < record["ops_per_view"]
     printed = capsys.readouterr().out
     assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed
+    profile = printed[printed.index("where 1 views' time went"):]  # --profile-views: the profiler's table of the view's ops
+    assert "aten::sort" in profile and "Self CPU time total" in profile
 
 
 def test_bench_counts_the_default_mode_on_the_device(tmp_path):
     """--aggregate vote-reject (the default): floater statistics and vote slots on the device cost one
-    more read per view than paper (the vote's rounds; the M flags of the masks that reached a
-    Gaussian are one more copy on CUDA, no aten op on a CPU); the host way copies the top-k lists
-    and runs the numba hook."""
+    more read per view than paper (the vote's number of rounds; its runs' ends and the M flags of
+    the masks that reached a Gaussian are two more copies on CUDA, no aten op on a CPU); the host
+    way copies the top-k lists and runs the numba hook."""
     from drsplat.cli import main
 
     out = tmp_path / "counts.json"

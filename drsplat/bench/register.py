@@ -48,6 +48,9 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
     p.add_argument("--count-views", type=int, default=2,
                    help="views whose torch ops and host syncs are counted, after one warm-up view (default: 2)")
+    p.add_argument("--profile-views", type=int, default=0, metavar="N",
+                   help="torch engine: N more views under torch's profiler, and a table of where their time went, by device "
+                        "time on CUDA (default: 0, none)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
@@ -318,7 +321,7 @@ def blob_scene(n: int, seed: int = 0):
 
 
 def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int,
-                 count_views: int = 2, aggregate: str = "paper") -> tuple[str, dict]:
+                 count_views: int = 2, aggregate: str = "paper", profile_views: int = 0) -> tuple[str, dict]:
     """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement;
     then `engine`'s per-view ops and host syncs (`per_view_counts`). Returns (text, the counts record)."""
     from drsplat.raster import prepare_for_engine, rasterize
@@ -331,6 +334,7 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
         other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
         counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, aggregate)
+        profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, aggregate) if profile_views > 0 else ""
     wdiff, mismatch = 0.0, 0.0
     prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
     for cam in cameras[:agree_views]:
@@ -353,7 +357,7 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
             f"median of {repeats}. Agreement on {min(agree_views, views)} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of "
             f"top-k slots; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
     table = format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
-    return head + "\n" + table + "\n\n" + counts_table(counts), counts
+    return head + "\n" + table + "\n\n" + counts_table(counts) + (f"\n\n{profile}" if profile else ""), counts
 
 
 def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str, aggregate: str = "paper") -> dict:
@@ -378,6 +382,27 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     if len(counters) > 1:
         record["host_sums"] = counters[1].record()
     return record
+
+
+def profile_table(scene, cameras, features_dir: Path, topk: int, device: str, aggregate: str = "paper", rows: int = 25) -> str:
+    """Where the torch engine's time goes on `device`: the views after the first (a warm-up) computed
+    and summed as registration does (pairs on the device) under torch.profiler; its table of the
+    `rows` costliest ops and kernels, by self device time on CUDA, by self CPU time on a CPU."""
+    import torch
+
+    counter = _ViewCounter(scene, features_dir, topk, "torch", device, True, aggregate)
+    counter.view(cameras[0], counted=False)
+    cuda = device.startswith("cuda")
+    activities = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
+    with torch.profiler.profile(activities=activities) as prof:
+        for cam in cameras[1:]:
+            counter.view(cam, counted=False)
+    averages = prof.key_averages()
+    key = "self_cpu_time_total"
+    if cuda:  # the name of the device column changed between torch versions
+        key = "self_device_time_total" if hasattr(averages[0], "self_device_time_total") else "self_cuda_time_total"
+    return (f"where {len(cameras) - 1} views' time went (torch.profiler, --aggregate {aggregate}, sorted by {key}):\n"
+            + averages.table(sort_by=key, row_limit=rows, max_name_column_width=70))
 
 
 class _ViewCounter:
@@ -497,7 +522,7 @@ def run(args: argparse.Namespace) -> int:
             scene = None
         if scene is not None:
             text, counts = engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device,
-                                        args.agree_views, args.count_views, args.aggregate)
+                                        args.agree_views, args.count_views, args.aggregate, args.profile_views)
             print(text)
             if args.json is not None:
                 write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
