@@ -97,3 +97,13 @@ def count_arg(text: str) -> int:
     if len(values) != 1:
         raise argparse.ArgumentTypeError(f"give one size, not '{text}'")
     return values[0]
+
+
+def view_size(text: str) -> tuple[int, int]:
+    """argparse type: a view size 'WxH' of two integers >= 1 ('640x480') -> (640, 480)."""
+    import argparse
+
+    width, sep, height = text.lower().partition("x")
+    if not (sep and width.strip().isdigit() and height.strip().isdigit() and int(width) > 0 and int(height) > 0):
+        raise argparse.ArgumentTypeError(f"'{text}' is not WxH with two whole numbers >= 1, e.g. 640x480")
+    return int(width), int(height)

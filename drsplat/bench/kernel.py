@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line
+from drsplat.bench.common import format_table, machine_line, view_size
 from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
 from drsplat.commands.common import positive_int
 from drsplat.defaults import DEFAULT_TOPK
@@ -31,7 +31,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("kernel", help="the fused Triton top-k kernel on a CUDA GPU: ms per view per launch configuration")
     p.add_argument("--real", type=Path, default=DEFAULT_REAL, help="scene to render (default: ../shared/data/ply/flowers.ply)")
     p.add_argument("--views", type=positive_int, default=2, help="orbiting views timed (default: 2)")
-    p.add_argument("--size", default="640x480", help="view size WxH (default: 640x480)")
+    p.add_argument("--size", type=view_size, default="640x480", help="view size WxH (default: 640x480)")
     p.add_argument("--topk", type=positive_int, default=DEFAULT_TOPK, help=f"top-k per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--configs", default=DEFAULT_CONFIGS,
                    help=f"comma-separated PIXELSxWARPS per program; PIXELS must divide a tile's {TILE_PIXELS} (default: {DEFAULT_CONFIGS})")
@@ -67,7 +67,7 @@ def _timed(fn, repeats: int):
 
 def run(args: argparse.Namespace) -> int:
     configs = parse_configs(args.configs)
-    width, _, height = args.size.partition("x")
+    width, height = args.size
     from drsplat.device import cuda_available
 
     if not cuda_available():  # before the scene is read
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.scene import load_ply
 
     scene = load_ply(args.real)
-    cameras = orbit_cameras(scene.means, args.views, int(width), int(height))
+    cameras = orbit_cameras(scene.means, args.views, width, height)
     geometry = prepare_geometry(scene)
     prepared = prepare_scene_torch(geometry, "cuda")
     rows, stages = [], []
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
             rows.append([cam.name, f"{block}x{warps}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
     import torch
 
-    print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {args.size}, top-{args.topk}, "
+    print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {width}x{height}, top-{args.topk}, "
           f"{torch.cuda.get_device_name(0)}; median of {args.repeats} calls")
     print(format_table(["view", "project ms", "bin ms", "tile-list entries"], stages))
     print()

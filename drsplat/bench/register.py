@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import positive_int
-from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list
+from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list, view_size
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
 
@@ -38,7 +38,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per row, median reported (default: 3)")
     p.add_argument("--real", type=Path, default=DEFAULT_REAL, help="real scene for the speed table (default: flowers.ply)")
     p.add_argument("--views", type=positive_int, default=50, help="orbiting views on the real scene (default: 50)")
-    p.add_argument("--size", default="640x480", help="real-scene view size WxH (default: 640x480)")
+    p.add_argument("--size", type=view_size, default="640x480", help="real-scene view size WxH (default: 640x480)")
     p.add_argument("--real-topk", type=int, default=DEFAULT_TOPK, help=f"top-k on the real scene (default: {DEFAULT_TOPK})")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
@@ -501,7 +501,7 @@ def write_json(path: Path, record: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     topks = args.topks
-    width, _, height = args.size.partition("x")
+    width, height = args.size
     if not args.skip_synthetic:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats, args.aggregate))
         print()
@@ -521,7 +521,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"skipped the engine table: {args.real} is absent (pass --real SCENE.ply or --gaussians N)")
             scene = None
         if scene is not None:
-            text, counts = engine_table(scene, name, args.views, int(width), int(height), args.real_topk, args.repeats, engine, device,
+            text, counts = engine_table(scene, name, args.views, width, height, args.real_topk, args.repeats, engine, device,
                                         args.agree_views, args.count_views, args.aggregate, args.profile_views)
             print(text)
             if args.json is not None:
@@ -530,9 +530,9 @@ def run(args: argparse.Namespace) -> int:
     elif not args.skip_real:
         if args.real.exists():
             if not args.skip_stages:
-                print(stage_table(args.real, args.views, int(width), int(height), args.real_topk))
+                print(stage_table(args.real, args.views, width, height, args.real_topk))
                 print()
-            print(real_table(args.real, args.views, int(width), int(height), args.real_topk, args.repeats, args.aggregate))
+            print(real_table(args.real, args.views, width, height, args.real_topk, args.repeats, args.aggregate))
         else:
             print(f"skipped the real-scene table: {args.real} is absent (pass --real SCENE.ply)")
     print(f"peak RSS {peak_rss_mb():.0f} MB")
