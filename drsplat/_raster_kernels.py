@@ -312,18 +312,14 @@ def project_points(
 ) -> None:
     """Per-Gaussian EWA projection; the same math as drsplat.raster.project_gaussians_reference.
 
-    intrinsics: [4] (fx, fy, cx, cy). out_status: [N] int8, VALID, BEHIND (z < near), NONFINITE
+    intrinsics: [8] (fx, fy, cx, cy, then the clamp tangents of drsplat.raster.clamp_limits:
+    x/z max, -(x/z) max, y/z max, -(y/z) max). out_status: [N] int8, VALID, BEHIND (z < near), NONFINITE
     (projection not finite), or CULLED (unusable, transparent, degenerate or off-screen).
     Every output row is written: a non-valid Gaussian gets zeros (its depth: the camera z, 0
     when unusable), so the outputs may be reused buffers holding a previous view.
     """
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    tan_x = 0.5 * width / fx
-    tan_y = 0.5 * height / fy
-    lim_x_pos = (width - cx) / fx + 0.3 * tan_x
-    lim_x_neg = cx / fx + 0.3 * tan_x
-    lim_y_pos = (height - cy) / fy + 0.3 * tan_y
-    lim_y_neg = cy / fy + 0.3 * tan_y
+    lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = intrinsics[4], intrinsics[5], intrinsics[6], intrinsics[7]
     for g in prange(means.shape[0]):
         out_status[g] = CULLED
         out_means2d[g, 0] = out_means2d[g, 1] = 0.0

@@ -222,7 +222,7 @@ def eval_sh(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 def clamp_limits(camera: Camera) -> tuple[float, float, float, float]:
     """(x/z max, -(x/z) max, y/z max, -(y/z) max): the tangents at which the EWA Jacobian clamps a
     mean's direction, 1.3x the field of view around the principal point as 3DGS does (every
-    engine's projection takes them from here; the numba kernel computes the same expressions)."""
+    engine's projection takes them from here, the numba and Triton kernels as arguments)."""
     w, h, fx, fy, cx, cy = camera.width, camera.height, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
     tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
     return (w - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (h - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
@@ -351,7 +351,7 @@ def project_gaussians(
     out = _projected_buffers(out, n, camera, tile_size)
     out.opacities = prep.opacities
     status = np.empty(n, np.int8)
-    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy, *clamp_limits(camera)], np.float64)
     kernels.project_points(
         prep.means, prep.covariances, prep.opacities, usable, np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64),
         intrinsics, out.width, out.height, float(near), tile_size,

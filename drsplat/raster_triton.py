@@ -44,8 +44,9 @@ except ImportError:  # pragma: no cover - depends on the torch build
     triton = None
     tl = None
 
-# pixels and warps per program on a GPU. H100, flowers 640x480, top-40 (compositing + the slot sort, ms a view):
-# 16 pixels / 1 warp 23.5, 16/2 26.4, 32/1 28.4, 32/2 27.1, 32/4 26.2, 64/2 50, 64/4 30, 64/8 42, 128/4 48, 256/4 263 (spills)
+# pixels and warps per program on a GPU: on an H100, flowers 640x480, top-40, this kernel composites a
+# view in 18.8 ms at 16 x 1, 22.3 at 16 x 2, 22.5 at 32 x 4, 23.6 at 32 x 2 (`drsplat bench kernel`;
+# the sweeps of its earlier versions, up to 256 pixels, are in docs/gpu.md)
 CUDA_BLOCK = 16
 CUDA_WARPS = 1
 INTERPRET_BLOCK = 256  # a whole tile per program in the interpreter (fewer, larger numpy steps)
@@ -75,8 +76,9 @@ def _composite_topk_source(
 
     The eviction (a min / max over the KP slots of every pixel) runs only for an entry that beats
     some pixel's smallest slot, which each pixel keeps (min_w): once the slots are full, the
-    weights T·α mostly fall along the list and few entries do (on an H100, flowers: 88 -> 26 ms
-    a view). An entry that no pixel of the block takes skips the rest of its step.
+    weights T·α mostly fall along the list and few entries do (on an H100, flowers: 88.6 -> 32.7 ms
+    a view at 64 pixels x 4 warps). An entry that no pixel of the block takes skips the rest of
+    its step.
     """
     tile = tl.program_id(0)
     local = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)

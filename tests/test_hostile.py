@@ -760,6 +760,7 @@ def test_driver_probe_decides_without_torch(monkeypatch):
     (["bench", "register", "--topks", "a,b"], "--topks"), (["bench", "register", "--topks", "5,0"], "--topks"),
     (["bench", "register", "--gaussians", "-3"], "--gaussians"), (["bench", "startup", "--repeats", "0"], "--repeats"),
     (["bench", "register", "--size", "640by480"], "--size: '640by480' is not WxH"), (["bench", "kernel", "--size", "0x5"], "--size"),
+    (["bench", "register", "--profile-views", "-2"], "--profile-views"),
 ])
 def test_bench_list_flags_are_usage_errors_before_any_work(capsys, argv, words):
     """Was: `bench query --sizes 0` raised ValueError after 70 s of work; `--topks a,b` an int parse

@@ -99,11 +99,19 @@ def count_arg(text: str) -> int:
     return values[0]
 
 
+def whole_pair(text: str) -> tuple[int, int] | None:
+    """'AxB' with two whole numbers >= 1 -> (A, B); None for anything else."""
+    a, sep, b = text.strip().lower().partition("x")
+    if not (sep and a.strip().isdigit() and b.strip().isdigit() and int(a) > 0 and int(b) > 0):
+        return None
+    return int(a), int(b)
+
+
 def view_size(text: str) -> tuple[int, int]:
     """argparse type: a view size 'WxH' of two integers >= 1 ('640x480') -> (640, 480)."""
     import argparse
 
-    width, sep, height = text.lower().partition("x")
-    if not (sep and width.strip().isdigit() and height.strip().isdigit() and int(width) > 0 and int(height) > 0):
+    size = whole_pair(text)
+    if size is None:
         raise argparse.ArgumentTypeError(f"'{text}' is not WxH with two whole numbers >= 1, e.g. 640x480")
-    return int(width), int(height)
+    return size

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, view_size
+from drsplat.bench.common import format_table, machine_line, view_size, whole_pair
 from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
 from drsplat.commands.common import positive_int
 from drsplat.defaults import DEFAULT_TOPK
@@ -43,10 +43,10 @@ def parse_configs(text: str) -> list[tuple[int, int]]:
     """'16x1,32x4' -> [(16, 1), (32, 4)]; UsageError naming the bad entry."""
     configs = []
     for item in text.split(","):
-        block, _, warps = item.strip().partition("x")
-        if not (block.isdigit() and warps.isdigit()) or int(block) == 0 or TILE_PIXELS % int(block) or int(warps) not in (1, 2, 4, 8, 16):
+        pair = whole_pair(item)
+        if pair is None or TILE_PIXELS % pair[0] or pair[1] not in (1, 2, 4, 8, 16):
             raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS with PIXELS dividing {TILE_PIXELS} and WARPS 1, 2, 4, 8 or 16")
-        configs.append((int(block), int(warps)))
+        configs.append(pair)
     return configs
 
 

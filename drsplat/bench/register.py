@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import positive_int
+from drsplat.commands.common import int_range, positive_int
 from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list, view_size
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
@@ -48,7 +48,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
     p.add_argument("--count-views", type=int, default=2,
                    help="views whose torch ops and host syncs are counted, after one warm-up view (default: 2)")
-    p.add_argument("--profile-views", type=int, default=0, metavar="N",
+    p.add_argument("--profile-views", type=int_range(0), default=0, metavar="N",
                    help="torch engine: N more views under torch's profiler, and a table of where their time went, by device "
                         "time on CUDA (default: 0, none)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",

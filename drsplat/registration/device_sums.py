@@ -92,6 +92,16 @@ def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
     return tensor.pin_memory().to(device, non_blocking=True)
 
 
+def spread_rows(used: torch.Tensor, rows: torch.Tensor, num_rows: int) -> torch.Tensor:
+    """[S] int64: `rows` where `used`, else the entry's index mod `num_rows`.
+
+    For the targets of an index_add / amax whose unused entries add zeros: sent to one spare row,
+    millions of them serialise on one address under CUDA's atomics (4 ms of a flowers view in the
+    coalescing, 12 ms in the floater statistics, on an H100); spread, each adds its zero where it
+    changes no bit (sums start at +0.0 and add values >= 0)."""
+    return torch.where(used, rows, torch.arange(rows.shape[0], device=rows.device) % num_rows)
+
+
 def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int, num_gaussians: int) -> DevicePairs:
     """A view's distinct (Gaussian, mask) pairs with summed weights, on the tensors' device.
 
@@ -180,12 +190,9 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     ids, weights: [H, W, k] (-1 = empty slot; ids < num_gaussians); mask_ids: [H, W] (-1 = no mask).
     Returns [H, W, k] float32, 0 where ids < 0 or the pixel has no mask. Fixed-size ops only (the
     pairs live in arrays of H·W·k + 1 rows, the last a spare for empty slots), `iterations` rounds
-    of ~12 ops, no host synchronisation. An empty slot's zeros are added to its own slot's row
-    (and an unused pair's to Gaussian row (its row mod N + 1)), not all onto the spare row: that
-    changes no bit, since every sum starts at +0.0 and adds values ≥ 0, and on CUDA keeps millions
-    of atomics off one address (which serialised them in the coalescing and the floater
-    statistics: 4 and 12 ms of a flowers view on an H100; here unmeasured). Every sum is taken in
-    the kernel's order, so the same bits on a CPU:
+    of ~12 ops, no host synchronisation. Empty slots and unused pairs add their zeros to spread
+    rows (`spread_rows`; unmeasured on a GPU here). Every sum is taken in the kernel's order, so the
+    same bits on a CPU:
     - a slot's pair (i, j) is its segment in a stable sort by the key j·N + i; the per-pair sums
       v_ij and c_ij run over the slots in pixel-then-slot order (index_add in slot order);
     - a pixel's denominator adds its slots one by one (cumsum along the slots);
@@ -207,7 +214,7 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     pair = torch.empty_like(g).scatter_(0, order, torch.cumsum(starts, 0) - 1)
     del keys, sorted_keys, order, starts  # [S] int64 each: ~100 MB apiece on a 640x480 view at k = 40
     index = torch.arange(slots, device=dev)
-    adds_to = torch.where(valid, pair, index)  # [S] where the slot's values add (an empty slot adds zeros to its own row)
+    adds_to = spread_rows(valid, pair, slots)  # [S] where the slot's values add
     pair = torch.where(valid, pair, slots)  # [S] the slot's pair; empty slots: the spare row
     pair_g = torch.full((slots + 1,), n, dtype=torch.int64, device=dev).scatter_(0, pair, torch.where(valid, g, n))
     first = torch.full((slots + 1,), slots, dtype=torch.int64, device=dev).scatter_reduce_(
@@ -215,7 +222,7 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     newest_first = torch.sort(first, descending=True, stable=True).indices
     del first, g, m
     by_gaussian = pair_g[newest_first]
-    by_gaussian = torch.where(by_gaussian < n, by_gaussian, torch.arange(slots + 1, device=dev) % (n + 1))  # unused pairs add 0
+    by_gaussian = spread_rows(by_gaussian < n, by_gaussian, n + 1)  # unused pairs add 0
 
     def per_gaussian(values: torch.Tensor) -> torch.Tensor:  # Σ over the pair's Gaussian's pairs, newest first, per pair
         return torch.zeros(n + 1, dtype=torch.float64, device=dev).index_add_(0, by_gaussian, values[newest_first])[pair_g]
@@ -309,16 +316,15 @@ def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tens
     """A view's per-Gaussian max w, Σ w and Σ w·flags over its slots (`aggregate._view_stats_kernel`).
 
     ids, weights: [H, W, k] (-1 empty; raw w = T·α); flags: [H·W, k] (`front_flags_torch`). An
-    empty slot adds w = 0 to row (slot index mod N + 1), which changes no bit (the rows hold +0.0
-    or sums and maxima of weights ≥ 0), and marks the spare row N touched: spread so, the empty
-    slots do not all add onto one address (on CUDA those atomics serialise, 12 ms of a flowers
-    view). index_add on a CPU adds a row's slots in pixel-then-slot order, as the kernel does,
+    empty slot adds w = 0 to a spread row (`spread_rows`; its maximum too, which changes no row:
+    they hold maxima of weights ≥ 0) and marks the spare row N touched. index_add on a CPU adds a
+    row's slots in pixel-then-slot order, as the kernel does,
     and an unflagged slot adds +0.0, so the sums are the kernel's bits; on CUDA the atomics add
     in no fixed order."""
     n = num_gaussians
     g = ids.reshape(-1).to(torch.int64)
     valid = g >= 0
-    row = torch.where(valid, g, torch.arange(g.shape[0], device=g.device) % (n + 1))
+    row = spread_rows(valid, g, n + 1)
     zero = torch.zeros((), dtype=torch.float64, device=g.device)
     w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
     f64 = {"dtype": torch.float64, "device": g.device}
