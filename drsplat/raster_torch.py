@@ -515,7 +515,7 @@ def rasterize_torch(
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
     ts = prepare_scene_torch(scene, device)
     if fused is None:
-        fused = ts.device.type == "cuda" and not (with_rgb or with_depth) and _triton_available()
+        fused = ts.device.type == "cuda" and not (with_rgb or with_depth) and triton_available()
     if fused:
         if with_rgb or with_depth:
             raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
@@ -530,7 +530,7 @@ def rasterize_torch(
                            max_elements=max_elements)
 
 
-def _triton_available() -> bool:
+def triton_available() -> bool:
     """Whether the fused Triton kernel can be compiled (triton installed)."""
     import importlib.util
 

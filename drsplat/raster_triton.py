@@ -2,8 +2,10 @@
 
 Projection, tile binning and the depth sort stay in torch on the device (drsplat.raster_torch:
 `project_gaussians_torch`, `bin_gaussians_torch`); one Triton program then composites a block of
-BLOCK pixels of one 16x16 tile, walking the tile's depth-sorted list front to back and keeping
-each pixel's top-k in registers (local memory when they spill). The rules are the numba kernel's
+BLOCK pixels of one 16x16 tile (by default one pixel), walking the tile's depth-sorted list front
+to back, CHUNK entries per step (`_composite_topk_chunked_source`; one entry per step:
+`_composite_topk_source`, the first design), and keeping each pixel's top-k in registers. The
+rules are the numba kernel's
 (drsplat._raster_kernels.composite_tiles), in float64 like it:
 
     d = mean2d - pixel centre, power = -½(a·dx² + c·dy²) - b·dx·dy
@@ -19,8 +21,8 @@ displaces an earlier one), which is what the numba kernel keeps; at the end the 
 each pixel's k slots by (float32 weight descending, list position ascending) with tl.sort, and
 `_finish` turns positions into Gaussian ids.
 
-The kernel source is one function; under TRITON_INTERPRET=1 (read by triton when it is imported,
-so the tests set it in a subprocess) Triton runs it with numpy on the CPU, which is how the tests
+Each kernel source is one function (with jitted helpers); under TRITON_INTERPRET=1 (read by triton
+when it is imported, so the tests set it in a subprocess) Triton runs it with numpy on the CPU, which is how the tests
 check the same source against numba (tests/test_raster_triton.py). Otherwise it is compiled for
 CUDA and refused on any other device.
 """
@@ -44,11 +46,12 @@ except ImportError:  # pragma: no cover - depends on the torch build
     triton = None
     tl = None
 
-# pixels and warps per program on a GPU: on an H100, flowers 640x480, top-40, this kernel composites a
-# view in 18.8 ms at 16 x 1, 22.3 at 16 x 2, 22.5 at 32 x 4, 23.6 at 32 x 2 (`drsplat bench kernel`;
-# the sweeps of its earlier versions, up to 256 pixels, are in docs/gpu.md)
-CUDA_BLOCK = 16
+# pixels, warps and list entries per step of a program on a GPU (chunk 0: the per-entry kernel): on an H100, flowers
+# 640x480, top-40, the per-entry kernel composites a view in 18.6 ms at 16 x 1; the chunked one in 8.3 ms at 8 x 1 x 16
+# and ~5 ms at 1 x 1 x 32 (`drsplat bench kernel`; docs/gpu.md)
+CUDA_BLOCK = 1
 CUDA_WARPS = 1
+CUDA_CHUNK = 32
 INTERPRET_BLOCK = 256  # a whole tile per program in the interpreter (fewer, larger numpy steps)
 
 
@@ -80,16 +83,8 @@ def _composite_topk_source(
     a view at 64 pixels x 4 warps). An entry that no pixel of the block takes skips the rest of
     its step.
     """
-    tile = tl.program_id(0)
-    local = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
-    px = (tile % n_tiles_x) * TILE + local % TILE
-    py = (tile // n_tiles_x) * TILE + local // TILE
-    cx = px.to(tl.float64) + 0.5
-    cy = py.to(tl.float64) + 0.5
-    done = (px >= width) | (py >= height)
+    tile, local, cx, cy, done, start, count = _program_pixels(offsets_ptr, counts_ptr, width, height, n_tiles_x, TILE, BLOCK)
     n_active = tl.sum((~done).to(tl.int32), axis=0)
-    start = tl.load(offsets_ptr + tile)
-    count = tl.load(counts_ptr + tile)
     slots = tl.arange(0, KP)
     real = (slots < topk)[None, :] & (local >= 0)[:, None]  # [BLOCK, KP]
     buf_w = tl.where(real, -1.0, 2.0).to(tl.float64)  # empty: -1; padding: 2 > any weight, never evicted
@@ -137,6 +132,155 @@ def _composite_topk_source(
     bits = buf_w.to(tl.float32).to(tl.int32, bitcast=True).to(tl.int64)
     key = tl.where(filled, (bits << 31) | (0x7FFFFFFF - buf_pos.to(tl.int64)), -1)
     tl.store(out_key_ptr + base.to(tl.int64)[:, None] * KP + slots[None, :], tl.sort(key, dim=1, descending=True))
+
+
+def _composite_topk_chunked_source(
+    offsets_ptr, counts_ptr, list_ptr, means_ptr, conics_ptr, opacities_ptr,
+    out_key_ptr, out_trans_ptr, out_med_ptr, fill_pos_ptr,
+    width, height, n_tiles_x, topk,
+    TILE: tl.constexpr, BLOCK: tl.constexpr, KP: tl.constexpr, CHUNK: tl.constexpr,
+    ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr, MEDIAN_T: tl.constexpr,
+):  # fmt: skip
+    """`_composite_topk_source`'s program and outputs, walking the list CHUNK entries at a time
+    (`_chunk_weights`: every entry's α, T and w at once) in two phases.
+
+    Filling: while every pixel of the block has empty slots, each chunk's ok entries go to the
+    next empty slots in one step: written to the pixel's out_key row (as float64 bits) and
+    fill_pos row, not to registers (a gather of them into the [BLOCK, KP] slots inside the loop
+    does not compile in Triton 3.6-3.8). This is what the eviction rule does with empty slots (an
+    empty slot is the smallest, the empties are taken in slot order).
+    Evicting: once some pixel's slots are full, the slots are read back, the chunk's remaining ok
+    entries and every later chunk's that beat a pixel's smallest slot enter one at a time, in
+    list order, by the per-entry kernel's eviction rule (so the slots are the same): a loop whose
+    trips are the most entries any pixel of the block takes from a chunk, which once the slots are
+    full is mostly none.
+    """
+    tile, local, cx, cy, done, start, count = _program_pixels(offsets_ptr, counts_ptr, width, height, n_tiles_x, TILE, BLOCK)
+    n_active = tl.sum((~done).to(tl.int32), axis=0)
+    slots = tl.arange(0, KP)
+    cols = tl.arange(0, CHUNK)
+    base = tile * TILE * TILE + local
+    row = base.to(tl.int64)[:, None] * KP  # [BLOCK, 1]: the pixel's KP slots in out_key / fill_pos
+    trans = tl.full([BLOCK], 1.0, tl.float64)
+    med = tl.full([BLOCK], -1, tl.int32)
+    n_filled = tl.zeros([BLOCK], tl.int32)
+    take = tl.zeros([BLOCK, CHUNK], tl.int1)  # the last filling chunk's entries left for the eviction
+    w = tl.zeros([BLOCK, CHUNK], tl.float64)
+    j = tl.zeros([], dtype=tl.int32)  # a typed loop-carried counter (list positions are int32)
+    filling = n_active > 0
+    while (j < count) & filling:
+        ok, w, trans, med, done = _chunk_weights(j, cols, start, count, list_ptr, means_ptr, conics_ptr, opacities_ptr, cx, cy,
+                                                 trans, med, done, ALPHA_MIN, ALPHA_MAX, T_MIN, MEDIAN_T)
+        n_active = tl.sum((~done).to(tl.int32), axis=0)
+        rank = tl.cumsum(ok.to(tl.int32), axis=1) - 1
+        fill = ok & (rank < (topk - n_filled)[:, None])
+        at = row + (n_filled[:, None] + rank)
+        tl.store(out_key_ptr + at, w.to(tl.int64, bitcast=True), mask=fill)
+        tl.store(fill_pos_ptr + at, (j + cols)[None, :] + tl.zeros([BLOCK, CHUNK], tl.int32), mask=fill)
+        n_filled += tl.sum(fill.to(tl.int32), axis=1)
+        take = ok & ~fill
+        j += CHUNK
+        filling = (n_active > 0) & (tl.max(n_filled, axis=0) < topk)
+    tl.debug_barrier()  # the filled slots, written by other threads of the program, are read back
+    real = (slots < topk)[None, :] & (local >= 0)[:, None]  # [BLOCK, KP]
+    stored = slots[None, :] < n_filled[:, None]
+    buf_w = tl.where(real, -1.0, 2.0).to(tl.float64)  # empty: -1; padding: 2 > any weight, never evicted
+    buf_w = tl.where(stored, tl.load(out_key_ptr + row + slots[None, :], mask=stored, other=0).to(tl.float64, bitcast=True), buf_w)
+    buf_pos = (-1 - slots[None, :] + tl.zeros([BLOCK, KP], tl.int32)).to(tl.int32)  # empty slots: distinct negatives
+    buf_pos = tl.where(stored, tl.load(fill_pos_ptr + row + slots[None, :], mask=stored, other=0), buf_pos)
+    min_w = tl.min(buf_w, axis=1)
+    j -= CHUNK  # the last filling chunk's leftover entries first
+    take = take & (w > min_w[:, None])
+    evicting = True
+    while evicting:
+        while tl.sum(take.to(tl.int32)) > 0:
+            c = tl.min(tl.where(take, cols[None, :], CHUNK), axis=1)  # each pixel's first entry to take
+            better = c < CHUNK
+            w_in = tl.max(tl.where(cols[None, :] == c[:, None], w, -1.0), axis=1)
+            # evict the smallest slot, the latest-arrived among equal smallest
+            tie = buf_w == min_w[:, None]
+            last = tl.max(tl.where(tie, buf_pos, -KP - 1), axis=1)
+            replace = tie & (buf_pos == last[:, None]) & better[:, None]
+            buf_w = tl.where(replace, w_in[:, None], buf_w)
+            buf_pos = tl.where(replace, (j + c)[:, None], buf_pos)
+            min_w = tl.min(buf_w, axis=1)
+            take = take & (cols[None, :] > c[:, None]) & (w > min_w[:, None])
+        j += CHUNK
+        evicting = (j < count) & (n_active > 0)
+        if evicting:
+            ok, w, trans, med, done = _chunk_weights(j, cols, start, count, list_ptr, means_ptr, conics_ptr, opacities_ptr, cx, cy,
+                                                     trans, med, done, ALPHA_MIN, ALPHA_MAX, T_MIN, MEDIAN_T)
+            n_active = tl.sum((~done).to(tl.int32), axis=0)
+            take = ok & (w > min_w[:, None])
+    tl.store(out_trans_ptr + base, trans)
+    tl.store(out_med_ptr + base, med)
+    filled = real & (buf_w > 0.0)
+    bits = buf_w.to(tl.float32).to(tl.int32, bitcast=True).to(tl.int64)
+    key = tl.where(filled, (bits << 31) | (0x7FFFFFFF - buf_pos.to(tl.int64)), -1)
+    tl.debug_barrier()  # every thread has read the filled slots before any key overwrites them
+    tl.store(out_key_ptr + row + slots[None, :], tl.sort(key, dim=1, descending=True))
+
+
+def _chunk_weights(j, cols, start, count, list_ptr, means_ptr, conics_ptr, opacities_ptr, cx, cy, trans, med, done,
+                   ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr, MEDIAN_T: tl.constexpr):  # fmt: skip
+    """List entries j .. j+CHUNK of a tile for BLOCK pixels at once: (ok [BLOCK, CHUNK], w [BLOCK,
+    CHUNK], and the pixels' new T, median list position and done flags [BLOCK]).
+
+        before_c = T · Π_{i<c} f_i,  after_c = T · Π_{i≤c} f_i,  f_i = 1 - α_i on a hit, else 1
+        (one associative scan of (before, after) pairs: (b, a) ∘ (b', a') = (a·b', a·a'))
+        ok_c = hit_c and after_c ≥ T_MIN;  w_c = α_c · before_c
+
+    The products are the per-entry kernel's T ← T·(1 - α) (a compiled scan may associate them
+    differently: the last bits of T can differ). Since after_c never grows, the entries after a
+    pixel's stopping one are not ok, its new T is the smallest ok after_c, and its median entry
+    is the one ok entry with after_c ≤ ½ < before_c.
+    """
+    pos = j + cols
+    inside = pos < count
+    g = tl.load(list_ptr + start + pos, mask=inside, other=0)
+    u = tl.load(means_ptr + 2 * g, mask=inside, other=0.0)[None, :]
+    v = tl.load(means_ptr + 2 * g + 1, mask=inside, other=0.0)[None, :]
+    ca = tl.load(conics_ptr + 3 * g, mask=inside, other=0.0)[None, :]
+    cb = tl.load(conics_ptr + 3 * g + 1, mask=inside, other=0.0)[None, :]
+    cc = tl.load(conics_ptr + 3 * g + 2, mask=inside, other=0.0)[None, :]
+    o = tl.load(opacities_ptr + g, mask=inside, other=0.0).to(tl.float64)[None, :]
+    dx = u - cx[:, None]
+    dy = v - cy[:, None]
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+    alpha = tl.minimum(o * tl.exp(tl.minimum(power, 0.0)), ALPHA_MAX)
+    hit = (~done)[:, None] & inside[None, :] & (power <= 0.0) & (alpha >= ALPHA_MIN)
+    factor = tl.where(hit, 1.0 - alpha, 1.0)
+    first = (cols == 0)[None, :]
+    lead = tl.where(first, trans[:, None], 1.0)
+    before, after = tl.associative_scan((lead, tl.where(first, trans[:, None] * factor, factor)), 1, _transmittance_products)
+    ok = hit & (after >= T_MIN)
+    crossing = ok & (after <= MEDIAN_T) & (before > MEDIAN_T)
+    med = tl.maximum(med, tl.max(tl.where(crossing, pos[None, :], -1), axis=1))
+    trans = tl.minimum(trans, tl.min(tl.where(ok, after, 2.0), axis=1))
+    done = done | (tl.max((hit & (after < T_MIN)).to(tl.int32), axis=1) > 0)
+    return ok, alpha * before, trans, med, done
+
+
+def _program_pixels(offsets_ptr, counts_ptr, width, height, n_tiles_x, TILE: tl.constexpr, BLOCK: tl.constexpr):
+    """Program (tile, block)'s pixels: (tile, local index in the tile [BLOCK], pixel centres cx, cy
+    [BLOCK] float64, done [BLOCK]: outside the image, the tile's list start and length)."""
+    tile = tl.program_id(0)
+    local = tl.program_id(1) * BLOCK + tl.arange(0, BLOCK)
+    px = (tile % n_tiles_x) * TILE + local % TILE
+    py = (tile // n_tiles_x) * TILE + local // TILE
+    done = (px >= width) | (py >= height)
+    return tile, local, px.to(tl.float64) + 0.5, py.to(tl.float64) + 0.5, done, tl.load(offsets_ptr + tile), tl.load(counts_ptr + tile)
+
+
+def _transmittance_products(before_left, after_left, before_right, after_right):
+    """The scan's combine for (T before the segment's last entry, T after it): (b, a) ∘ (b', a') = (a·b', a·a')."""
+    return after_left * before_right, after_left * after_right
+
+
+if triton is not None:  # a scan's combine and a kernel's helpers are themselves Triton functions
+    _transmittance_products = triton.jit(_transmittance_products)
+    _chunk_weights = triton.jit(_chunk_weights)
+    _program_pixels = triton.jit(_program_pixels)
 
 
 def _project_source(
@@ -240,9 +384,9 @@ def interpreting() -> bool:
 
 
 @functools.cache
-def _kernel(source=_composite_topk_source):
-    """A kernel (default: the top-k compositing): compiled for CUDA, or interpreted under
-    TRITON_INTERPRET=1 (triton.jit decides)."""
+def triton_kernel(source=_composite_topk_source):
+    """A kernel source (default: the per-entry top-k compositing) as a Triton kernel, once per
+    source: compiled for CUDA, or interpreted under TRITON_INTERPRET=1 (triton.jit decides)."""
     if triton is None:
         raise DrsplatError("the fused top-k kernel needs triton (it comes with torch's CUDA builds: pip install triton)")
     return triton.jit(source)
@@ -287,7 +431,7 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
     grids = [float(g) for g in tile_grid(camera.width, camera.height, tile_size)]
     values = torch.tensor([*rot, *t, *intrinsics, *clamp_limits(camera), float(near), *grids], dtype=torch.float64)
     launch = {} if interpreting() else {"enable_fp_fusion": False}
-    _kernel(_project_source)[(triton.cdiv(n, PROJECT_BLOCK),)](
+    triton_kernel(_project_source)[(triton.cdiv(n, PROJECT_BLOCK),)](
         means.contiguous(), covariances.contiguous(), opacities.contiguous(), usable.to(torch.int8), *out,
         values.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else values, n,
         TILE=tile_size, BLOCK=PROJECT_BLOCK, **_project_constants(), **launch,
@@ -296,13 +440,14 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
 
 
 def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_median: bool = False, block: int | None = None,
-                          num_warps: int | None = None):
+                          num_warps: int | None = None, chunk: int | None = None):
     """Top-k ids [H, W, k] int32 and weights [H, W, k] float32, alpha [H, W] float32 (and median ids [H, W] int32 or None).
 
     projected: a drsplat.raster_torch.TorchProjected on a CUDA device (or on the CPU under TRITON_INTERPRET=1: the tests).
     bins: the tile lists (offsets [T], counts [T], tile_list [L]) of drsplat.raster_torch.bin_gaussians_torch,
     passed in so that this module does not import its caller. block / num_warps: pixels and warps
-    per program (default CUDA_BLOCK, CUDA_WARPS). The rest is one kernel launch plus `_finish`'s
+    per program (default CUDA_BLOCK, CUDA_WARPS); chunk: list entries per step (default CUDA_CHUNK; 0: the per-entry
+    kernel, `_composite_topk_source`). The rest is one kernel launch plus `_finish`'s
     gathers (no host synchronisation).
     """
 
@@ -325,9 +470,16 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     out_trans = torch.empty((n_tiles, p_count), dtype=torch.float64, device=dev)
     out_med = torch.empty((n_tiles, p_count), dtype=torch.int32, device=dev)
     launch = {} if interpret else {"enable_fp_fusion": False, "num_warps": num_warps or CUDA_WARPS}
-    _kernel()[(n_tiles, p_count // block)](
+    chunk = CUDA_CHUNK if chunk is None else chunk
+    scratch = ()
+    if chunk:
+        kernel, launch = triton_kernel(_composite_topk_chunked_source), {**launch, "CHUNK": chunk}
+        scratch = (torch.empty((n_tiles, p_count, kp), dtype=torch.int32, device=dev),)
+    else:
+        kernel = triton_kernel()
+    kernel[(n_tiles, p_count // block)](
         offsets, counts, tile_list, projected.means2d.contiguous(), projected.conics.contiguous(), projected.opacities.contiguous(),
-        out_key, out_trans, out_med, projected.width, projected.height, n_tiles_x, topk,
+        out_key, out_trans, out_med, *scratch, projected.width, projected.height, n_tiles_x, topk,
         TILE=ts, BLOCK=block, KP=kp, ALPHA_MIN=kernels.ALPHA_MIN, ALPHA_MAX=kernels.ALPHA_MAX, T_MIN=kernels.T_MIN, MEDIAN_T=kernels.MEDIAN_T,
         **launch,
     )  # fmt: skip
@@ -364,7 +516,8 @@ def _finish(projected, key, trans, med, offsets, tile_list):
     return image(ids), image(weights), image((1.0 - trans).float()), None if median is None else image(median)
 
 
-def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, tile: int = 16) -> str:
+def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, tile: int = 16, chunk: int = CUDA_CHUNK,
+                num_warps: int = CUDA_WARPS) -> str:
     """The compositing kernel compiled to PTX for CUDA compute capability `capability` (90: H100), without a GPU.
 
     Runs Triton's front end and NVIDIA backend stages (ttir -> ttgir -> llir -> ptx), not ptxas, so
@@ -375,8 +528,12 @@ def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, til
                 "opacities_ptr": "*fp32", "out_key_ptr": "*i64", "out_trans_ptr": "*fp64", "out_med_ptr": "*i32"}
     consts = {"TILE": tile, "BLOCK": block, "KP": kp, "ALPHA_MIN": kernels.ALPHA_MIN, "ALPHA_MAX": kernels.ALPHA_MAX, "T_MIN": kernels.T_MIN,
               "MEDIAN_T": kernels.MEDIAN_T}
-    return _ptx(_composite_topk_source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability,
-                enable_fp_fusion=False)
+    source = _composite_topk_source
+    if chunk:
+        source, consts = _composite_topk_chunked_source, {**consts, "CHUNK": chunk}
+        pointers = {**pointers, "fill_pos_ptr": "*i32"}  # after out_med_ptr, as in the source
+    return kernel_ptx(source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability,
+                enable_fp_fusion=False, num_warps=num_warps)
 
 
 def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:
@@ -385,17 +542,17 @@ def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:
                 "out_conics_ptr": "*fp64", "out_depths_ptr": "*fp32", "out_radii_ptr": "*fp64", "out_rects_ptr": "*i64",
                 "out_status_ptr": "*i8", "camera_ptr": "*fp64", "n": "i32"}
     consts = {"TILE": tile, "BLOCK": PROJECT_BLOCK, **_project_constants()}
-    return _ptx(_project_source, pointers, consts, capability, enable_fp_fusion=False)
+    return kernel_ptx(_project_source, pointers, consts, capability, enable_fp_fusion=False)
 
 
-def _ptx(source, signature: dict, consts: dict, capability: int, **options) -> str:
+def kernel_ptx(source, signature: dict, consts: dict, capability: int, **options) -> str:
     """PTX of one kernel source for sm_`capability` (Triton's stages up to ptx, no GPU)."""
     from triton._C.libtriton import ir  # Triton internals, only for this offline check
     from triton.backends.compiler import GPUTarget
     from triton.backends.nvidia.compiler import CUDABackend
     from triton.compiler import ASTSource
 
-    fn = _kernel(source)
+    fn = triton_kernel(source)
     signature = {**signature, **dict.fromkeys(consts, "constexpr")}
     ast = ASTSource(fn=fn, signature=signature, constexprs={(fn.arg_names.index(k),): v for k, v in consts.items()})
     target = GPUTarget("cuda", capability, 32)

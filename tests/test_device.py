@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import DrsplatError
+from drsplat.errors import DrsplatError, UsageError
 
 NO_CUDA = not torch.cuda.is_available()
 
@@ -59,6 +59,17 @@ def test_kernel_bench_without_a_gpu_says_so_before_reading_the_scene(tmp_path, c
     assert "run on a CUDA GPU only" in err and "Traceback" not in err
     assert main(["bench", "kernel", "--configs", "16x1,24x1"]) == 2
     assert "'24x1' is not PIXELSxWARPS" in capsys.readouterr().err
+    assert main(["bench", "kernel", "--configs", "1x1x32,1x1x24"]) == 2
+    assert "'1x1x24' is not PIXELSxWARPS[xCHUNK]" in capsys.readouterr().err
+
+
+def test_kernel_bench_configs_parse_pixels_warps_and_chunk():
+    from drsplat.bench.kernel import parse_configs
+
+    assert parse_configs("16x1x0, 1x1x32,8x2", 32) == [(16, 1, 0), (1, 1, 32), (8, 2, 32)]
+    for bad in ("16x1x", "x1x32", "16x3x32", "16x1x32x4", "16", "-1x1x32"):
+        with pytest.raises(UsageError, match="PIXELSxWARPS"):
+            parse_configs(bad, 32)
 
 
 def test_cli_torch_engine_on_cpu_matches_numba(tmp_path, one_torch_thread):

@@ -81,6 +81,17 @@ def test_device_pairs_equal_numba_pairs(case):
     np.testing.assert_allclose(tw, rw, rtol=1e-5)
 
 
+def test_coalescing_sorts_keys_past_int32_the_same_way():
+    """Keys mask·N + Gaussian below 2^31 are sorted as int32 (half a radix sort's passes); a scene whose
+    keys pass 2^31 (here 20 masks x 2^27 Gaussians) sorts them as int64, with the same pairs."""
+    ids, weights, masks = random_view(11, 14, 10, 6, 40, 20)
+    small = torch_pairs(ids, weights, masks, 20, 40)
+    large = torch_pairs(ids, weights, masks, 20, 2**27)
+    assert 20 * 2**27 > 2**31 and small[3] > 10
+    for a, b in zip(small, large):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_coalescing_never_waits_for_the_device():
     ids, weights, masks = (torch.from_numpy(a) for a in random_view(3, 16, 12, 8, 300, 9))
     with OpCounter() as counter:

@@ -59,16 +59,28 @@ PROJECT_CASES = {
     **{c.name: (lambda c=c: c) for c in hard_cases() if c.name in ("extreme-scales", "off-centre-non-square")},
 }
 
+# the other kernels and launch shapes, on a few cases: (case, pixels per program, list entries per step; 0 = the per-entry kernel)
+VARIANTS = {"per-entry": [("random-0-k5", 16, 0), ("random-2-k16", 16, 0), ("stacked-k64", 64, 0)],
+            "chunked-16-pixels-8-entries": [("random-2-k16", 16, 8), ("random-1-k1", 16, 8)]}
+
 WORKER = """
 import json, sys
 import numpy as np
-from drsplat.raster_torch import project_gaussians_fused, rasterize_torch
-from tests.test_raster_triton import CASES, PROJECT_CASES
+from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_fused, rasterize_torch
+from drsplat.raster_triton import composite_topk_triton
+from tests.test_raster_triton import CASES, PROJECT_CASES, VARIANTS
 for name in json.loads(sys.argv[1]):
     case = CASES[name]()
     out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True, fused=True)
     np.savez(sys.argv[2] + "/" + name + ".npz", ids=out.ids.numpy(), weights=out.weights.numpy(), alpha=out.alpha.numpy(),
              median=out.median_ids.numpy())
+for variant, runs in VARIANTS.items():
+    for name, block, chunk in runs:
+        case = CASES[name]()
+        p = project_gaussians_fused(case.scene, case.camera)
+        ids, weights, alpha, median = composite_topk_triton(p, bin_gaussians_torch(p), case.topk, with_median=True, block=block, chunk=chunk)
+        np.savez(sys.argv[2] + "/" + variant + "-" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(),
+                 median=median.numpy())
 for name in PROJECT_CASES:
     case = PROJECT_CASES[name]()
     with np.errstate(all="ignore"):
@@ -120,6 +132,18 @@ def test_fused_kernel_topk_equals_numba(interpreted, name):
         assert (ref.ids[..., -1] >= 0).any(), "the top-k lists should fill (so the kernel's eviction runs) on some pixels"
 
 
+@pytest.mark.parametrize("variant, name", [(v, run[0]) for v, runs in VARIANTS.items() for run in runs])
+def test_other_kernels_and_launch_shapes_equal_numba(interpreted, variant, name):
+    """The per-entry kernel (the bench's before) and the chunked one with several pixels per program
+    (which fill their slots at different chunks) give numba's lists too."""
+    case = CASES[name]()
+    got = np.load(interpreted / f"{variant}-{name}.npz")
+    ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
+    assert_topk_equal(got["ids"], got["weights"], ref.ids, ref.weights)
+    np.testing.assert_allclose(got["alpha"], ref.alpha, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(got["median"], ref.median_ids)
+
+
 @pytest.mark.parametrize("name", list(PROJECT_CASES))
 def test_fused_projection_equals_numba_bit_for_bit(interpreted, name):
     """The projection kernel (one launch instead of ~186 torch ops) gives numba's projection bit for
@@ -139,19 +163,23 @@ def test_fused_projection_equals_numba_bit_for_bit(interpreted, name):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same source in the interpreter above)")
-def test_on_cuda_fused_kernel_topk_equals_numba():
+@pytest.mark.parametrize("block, chunk", [(None, None), (16, 0), (8, 16)], ids=["default", "per-entry", "chunked-8-pixels"])
+def test_on_cuda_fused_kernel_topk_equals_numba(block, chunk):
     """The kernel compiled for the GPU against numba on every interpreter case, the hard cases and
-    a 20k-Gaussian scene with full top-40 lists (the eviction guard and the prefetched entries at scale)."""
-    from drsplat.raster_torch import rasterize_torch
+    a 20k-Gaussian scene with full top-40 lists (the eviction guard, the fill and the chunks at scale)."""
+    from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_fused
+    from drsplat.raster_triton import composite_topk_triton
 
     cases = [make() for make in CASES.values()] + list(hard_cases()) + [random_case(9, n=20000, topk=40)]
     for case in cases:
         with np.errstate(all="ignore"):
-            out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True, fused=True, device="cuda")
+            projected = project_gaussians_fused(case.scene, case.camera, device="cuda")
+            ids, weights, alpha, median = composite_topk_triton(projected, bin_gaussians_torch(projected), case.topk, with_median=True,
+                                                                block=block, chunk=chunk)
             ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
-        assert_topk_equal(out.ids.cpu().numpy(), out.weights.cpu().numpy(), ref.ids, ref.weights)
-        np.testing.assert_allclose(out.alpha.cpu().numpy(), ref.alpha, rtol=1e-5, atol=1e-7, err_msg=case.name)
-        np.testing.assert_array_equal(out.median_ids.cpu().numpy(), ref.median_ids, err_msg=case.name)
+        assert_topk_equal(ids.cpu().numpy(), weights.cpu().numpy(), ref.ids, ref.weights)
+        np.testing.assert_allclose(alpha.cpu().numpy(), ref.alpha, rtol=1e-5, atol=1e-7, err_msg=case.name)
+        np.testing.assert_array_equal(median.cpu().numpy(), ref.median_ids, err_msg=case.name)
 
 
 def test_fused_kernel_is_refused_on_the_cpu():
@@ -163,15 +191,17 @@ def test_fused_kernel_is_refused_on_the_cpu():
         rasterize_torch(case.scene, case.camera, case.topk, fused=True)
 
 
-def test_fused_kernel_compiles_to_ptx_for_an_h100():
-    """Triton's typed compiler (stricter than the interpreter) accepts the source: PTX for sm_90, no GPU needed."""
-    from drsplat.raster_triton import compile_ptx
+@pytest.mark.parametrize("chunk, entry", [(None, "_composite_topk_chunked_source"), (0, "_composite_topk_source")])
+def test_fused_kernel_compiles_to_ptx_for_an_h100(chunk, entry):
+    """Triton's typed compiler (stricter than the interpreter, and the one that refuses some layouts
+    inside loops) accepts the sources: PTX for sm_90, no GPU needed."""
+    from drsplat.raster_triton import CUDA_CHUNK, compile_ptx
 
     try:
-        ptx = compile_ptx(90)
+        ptx = compile_ptx(90, chunk=CUDA_CHUNK if chunk is None else chunk)
     except (ImportError, AttributeError) as exc:  # Triton's backend API moved: the check cannot run, the kernel may still be fine
         pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
-    assert ".target sm_90" in ptx and ".entry _composite_topk_source" in ptx
+    assert ".target sm_90" in ptx and f".entry {entry}" in ptx
 
 
 def test_fused_projection_compiles_to_ptx_without_fma():

@@ -1,11 +1,12 @@
 """`drsplat bench kernel`: the fused Triton top-k kernel on a CUDA GPU, per launch configuration.
 
 For a real scene seen by orbiting views: the projection and the tile binning (ms per view), then
-for each (pixels, warps) per program the compositing with its slot sort and id lookup
+for each (pixels, warps, list entries per step) of a program the compositing with its slot sort and
+id lookup
 (`raster_triton.composite_topk_triton`, median ms per view over repeats, after one compiling
 call), with its agreement against the numba engine on the first view (top-k ids, weights,
-median ids). The default configuration is `raster_triton.CUDA_BLOCK` x `CUDA_WARPS`; the table is
-what chose it. Needs a CUDA GPU (Triton compiles for CUDA only).
+median ids). The default configuration is `raster_triton.CUDA_BLOCK` x `CUDA_WARPS` x `CUDA_CHUNK`
+(chunk 0: the per-entry kernel, one list entry per step); the table is what chose it. Needs a CUDA GPU (Triton compiles for CUDA only).
 """
 
 from __future__ import annotations
@@ -17,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, view_size, whole_pair
+from drsplat.bench.common import format_table, machine_line, view_size
 from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
 from drsplat.commands.common import positive_int
 from drsplat.defaults import DEFAULT_TOPK
 from drsplat.errors import DrsplatError, UsageError
 
-DEFAULT_CONFIGS = "16x1,16x2,32x2,32x4,64x4"
+DEFAULT_CONFIGS = "16x1x0,8x1x16,2x1x32,1x1x32,1x1x64"
 TILE_PIXELS = 256  # a 16 x 16 tile
 
 
@@ -34,19 +35,26 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=view_size, default="640x480", help="view size WxH (default: 640x480)")
     p.add_argument("--topk", type=positive_int, default=DEFAULT_TOPK, help=f"top-k per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--configs", default=DEFAULT_CONFIGS,
-                   help=f"comma-separated PIXELSxWARPS per program; PIXELS must divide a tile's {TILE_PIXELS} (default: {DEFAULT_CONFIGS})")
+                   help=f"comma-separated PIXELSxWARPS[xCHUNK] per program (CHUNK: list entries per step, 0 = the per-entry kernel, "
+                        f"default the library's); PIXELS must divide a tile's {TILE_PIXELS} (default: {DEFAULT_CONFIGS})")
     p.add_argument("--repeats", type=positive_int, default=7, help="timed calls per view and configuration, median reported (default: 7)")
     p.set_defaults(func=run)
 
 
-def parse_configs(text: str) -> list[tuple[int, int]]:
-    """'16x1,32x4' -> [(16, 1), (32, 4)]; UsageError naming the bad entry."""
+def parse_configs(text: str, default_chunk: int) -> list[tuple[int, int, int]]:
+    """'16x1,32x4x16,16x1x0' -> [(16, 1, default_chunk), (32, 4, 16), (16, 1, 0)]: (pixels, warps, list entries per
+    step; 0: one at a time); UsageError naming the bad entry."""
     configs = []
     for item in text.split(","):
-        pair = whole_pair(item)
-        if pair is None or TILE_PIXELS % pair[0] or pair[1] not in (1, 2, 4, 8, 16):
-            raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS with PIXELS dividing {TILE_PIXELS} and WARPS 1, 2, 4, 8 or 16")
-        configs.append(pair)
+        parts = item.strip().lower().split("x")
+        numbers = [int(p) for p in parts if p.strip().isdigit()]
+        if len(parts) == 2 and len(numbers) == 2:
+            numbers.append(default_chunk)
+        pixels, warps, chunk = numbers if len(parts) in (2, 3) and len(numbers) == 3 else (0, 0, -1)
+        if pixels < 1 or TILE_PIXELS % pixels or warps not in (1, 2, 4, 8, 16) or chunk < 0 or chunk & (chunk - 1):
+            raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS[xCHUNK] with PIXELS dividing {TILE_PIXELS}, WARPS 1, 2, 4, 8 "
+                             "or 16 and CHUNK 0 (one list entry at a time) or a power of two")
+        configs.append((pixels, warps, chunk))
     return configs
 
 
@@ -66,7 +74,9 @@ def _timed(fn, repeats: int):
 
 
 def run(args: argparse.Namespace) -> int:
-    configs = parse_configs(args.configs)
+    from drsplat import raster_triton
+
+    configs = parse_configs(args.configs, raster_triton.CUDA_CHUNK)
     width, height = args.size
     from drsplat.device import cuda_available
 
@@ -74,7 +84,6 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError("drsplat bench kernel times the fused Triton kernels, which run on a CUDA GPU only, and none is available")
     if not args.real.exists():
         raise UsageError(f"--real {args.real}: no such file")
-    from drsplat import raster_triton
     from drsplat.raster import rasterize
     from drsplat.raster_torch import bin_gaussians_torch, prepare_scene_torch, project_gaussians_fused
     from drsplat.registration.compute import prepare_geometry
@@ -90,9 +99,10 @@ def run(args: argparse.Namespace) -> int:
         bin_ms, bins = _timed(lambda: bin_gaussians_torch(projected), args.repeats)
         stages.append([cam.name, project_ms, bin_ms, int(bins[2].numel())])
         reference = rasterize(geometry, cam, args.topk, with_median=True, engine="numba") if index == 0 else None
-        for block, warps in configs:
+        for block, warps, chunk in configs:
             def composite():
-                return raster_triton.composite_topk_triton(projected, bins, args.topk, with_median=True, block=block, num_warps=warps)
+                return raster_triton.composite_topk_triton(projected, bins, args.topk, with_median=True, block=block, num_warps=warps,
+                                                           chunk=chunk)
 
             t0 = time.perf_counter()
             composite()  # compiles this configuration once
@@ -101,15 +111,15 @@ def run(args: argparse.Namespace) -> int:
             if reference is not None:
                 agree = [float((ids.cpu().numpy() != reference.ids).mean()), float(np.abs(weights.cpu().numpy() - reference.weights).max()),
                          float((median.cpu().numpy() != reference.median_ids).mean())]
-            rows.append([cam.name, f"{block}x{warps}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
+            rows.append([cam.name, f"{block}x{warps}x{chunk}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
     import torch
 
     print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {width}x{height}, top-{args.topk}, "
           f"{torch.cuda.get_device_name(0)}; median of {args.repeats} calls")
     print(format_table(["view", "project ms", "bin ms", "tile-list entries"], stages))
     print()
-    print(format_table(["view", "pixels x warps", "first call ms (compile)", "composite ms", "id mismatch vs numba", "max |Δw|",
+    print(format_table(["view", "pixels x warps x chunk", "first call ms (compile)", "composite ms", "id mismatch vs numba", "max |Δw|",
                         "median-id mismatch"], rows))
-    print(f"defaults: {raster_triton.CUDA_BLOCK}x{raster_triton.CUDA_WARPS}")
+    print(f"defaults: {raster_triton.CUDA_BLOCK}x{raster_triton.CUDA_WARPS}x{raster_triton.CUDA_CHUNK} (chunk 0: one list entry per step)")
     print(machine_line())
     return 0
