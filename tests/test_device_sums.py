@@ -15,7 +15,7 @@ from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import InputError
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.coalesce import Coalescer, coalesce_reference
-from drsplat.registration.device_sums import DeviceSink, coalesce_torch
+from drsplat.registration.device_sums import DeviceSink, coalesce_torch, slot_sums
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
 
@@ -477,3 +477,21 @@ def test_on_cuda_explain_equals_the_numba_em_to_float32_rounding(case, ids, weig
     got = explain_weights_torch(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), n).cpu().numpy()
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
 
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU"))])
+def test_slot_sums_add_slot_after_slot(device):
+    """A pixel's total is its slots added in order (the numba kernels' order), bit for bit: values
+    whose sum depends on the order (1e16 next to ones), k = 1 and 40, and no slots at all."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0.0, 1.0, (6, 9, 40))
+    x[..., ::7] *= 1e16  # an order-dependent sum: the ones vanish or not
+    for values in (x, x[..., :1], x[..., :0]):
+        got = slot_sums(torch.from_numpy(values).to(device)).cpu().numpy()
+        ref = np.zeros(values.shape[:-1] + (1,))
+        for s in range(values.shape[-1]):
+            ref[..., 0] = ref[..., 0] + values[..., s]
+        assert got.shape == ref.shape
+        np.testing.assert_array_equal(got, ref)
+    tree = torch.from_numpy(x).sum(-1, keepdim=True).numpy()
+    assert (tree != slot_sums(torch.from_numpy(x)).numpy()).any(), "the case should tell a pairwise sum from a sequential one"

@@ -102,6 +102,22 @@ def spread_rows(used: torch.Tensor, rows: torch.Tensor, num_rows: int) -> torch.
     return torch.where(used, rows, torch.arange(rows.shape[0], device=rows.device) % num_rows)
 
 
+def slot_sums(values: torch.Tensor) -> torch.Tensor:
+    """Σ over the last axis, added one slot after the other as the numba kernels do: [..., k] -> [..., 1].
+
+    A cumulative sum along the slots laid out as the outer axis ([k, rest], one copy): CUDA scans
+    an outer axis with one thread per column, adding in order, where its innermost-axis scan
+    (the slots' own layout) adds in a tree and took 2 ms a call on a flowers view's [H·W, 40]
+    float64 weights on an H100 (the explain EM's largest cost there, 2026-11-27; this form's
+    GPU time is unmeasured). The CPU adds in order either way.
+    """
+    k = values.shape[-1]
+    if k == 0:
+        return values.new_zeros(*values.shape[:-1], 1)
+    rows = values.reshape(-1, k).t().contiguous()
+    return torch.cumsum(rows, 0)[-1].reshape(*values.shape[:-1], 1)
+
+
 def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int, num_gaussians: int) -> DevicePairs:
     """A view's distinct (Gaussian, mask) pairs with summed weights, on the tensors' device.
 
@@ -162,7 +178,7 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
     if weighting == "paper":
         return w.to(torch.float32)
     if weighting == "responsibility":
-        total = torch.cumsum(w, -1)[..., -1:]  # slot by slot, as the kernel adds them
+        total = slot_sums(w)  # slot by slot, as the kernel adds them
         return torch.where(total > 0, w / torch.where(total > 0, total, torch.ones_like(total)), zero).to(torch.float32)
     h, wd, _ = ids.shape
     g = ids.clamp(min=0).to(torch.int64)
@@ -197,7 +213,7 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     same bits on a CPU:
     - a slot's pair (i, j) is its segment in a stable sort by the key j·N + i; the per-pair sums
       v_ij and c_ij run over the slots in pixel-then-slot order (index_add in slot order);
-    - a pixel's denominator adds its slots one by one (cumsum along the slots);
+    - a pixel's denominator adds its slots one by one (`slot_sums`);
     - the per-Gaussian sums T_i and Σ_j c_ij add the Gaussian's pairs newest first, as the kernel's
       linked lists do: the pairs ordered by their first slot, descending, before the index_add.
     """
@@ -235,7 +251,7 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     q = torch.where(total > 0.0, v / torch.where(total > 0.0, total, 1.0), zero)
     for _ in range(int(iterations)):
         share = torch.where(valid, w * q[pair], zero).reshape(-1, k)
-        denom = torch.cumsum(share, -1)[:, -1:]
+        denom = slot_sums(share)
         r = torch.where(denom > 0.0, share / torch.where(denom > 0.0, denom, 1.0), zero).reshape(-1)
         c = torch.zeros(slots + 1, dtype=torch.float64, device=dev).index_add_(0, adds_to, torch.where(valid, r, zero))
         rs = per_gaussian(c)
