@@ -48,7 +48,7 @@ except ImportError:  # pragma: no cover - depends on the torch build
 
 # pixels, warps and list entries per step of a program on a GPU (chunk 0: the per-entry kernel): on an H100, flowers
 # 640x480, top-40, the per-entry kernel composites a view in 18.6 ms at 16 x 1; the chunked one in 8.3 ms at 8 x 1 x 16
-# and ~5 ms at 1 x 1 x 32 (`drsplat bench kernel`; docs/gpu.md)
+# and 4.8 ms at 1 x 1 x 32, with the empty slots filled through memory (`drsplat bench kernel`; docs/gpu.md)
 CUDA_BLOCK = 1
 CUDA_WARPS = 1
 CUDA_CHUNK = 32
