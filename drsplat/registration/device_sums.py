@@ -105,11 +105,11 @@ def spread_rows(used: torch.Tensor, rows: torch.Tensor, num_rows: int) -> torch.
 def slot_sums(values: torch.Tensor) -> torch.Tensor:
     """Σ over the last axis, added one slot after the other as the numba kernels do: [..., k] -> [..., 1].
 
-    A cumulative sum along the slots laid out as the outer axis ([k, rest], one copy): CUDA scans
-    an outer axis with one thread per column, adding in order, where its innermost-axis scan
-    (the slots' own layout) adds in a tree and took 2 ms a call on a flowers view's [H·W, 40]
-    float64 weights on an H100 (the explain EM's largest cost there, 2026-11-27; this form's
-    GPU time is unmeasured). The CPU adds in order either way.
+    A cumulative sum along the slots laid out as the outer axis ([k, rest], one copy): torch's CUDA
+    scan of an outer axis runs one thread per column, adding in order, where its innermost-axis
+    scan (the slots' own layout) is a parallel scan, which took 2 ms a call on a flowers view's
+    [H·W, 40] float64 weights on an H100 (the explain EM's largest cost there, 2026-11-27; this
+    form's GPU time is unmeasured). The CPU adds in order either way.
     """
     k = values.shape[-1]
     if k == 0:
