@@ -66,13 +66,16 @@ class Camera:
         """[3] camera centre in world coordinates, -Rᵀ t."""
         return -self.R.T @ self.t
 
+    def ray_origin(self) -> np.ndarray:
+        """[3] float64 origin of the pixel rays, -Rᵀ t computed in float64 (`center` keeps R's dtype)."""
+        return -np.asarray(self.R, np.float64).T @ np.asarray(self.t, np.float64)
+
     def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """(origin [3], directions [H·W, 3]) of the rays through the pixel centres (x + 0.5, y + 0.5),
         row-major: d = Rᵀ((x + ½ - cx)/fx, (y + ½ - cy)/fy, 1), so a point o + t·d has camera depth t."""
         ys, xs = np.mgrid[0 : self.height, 0 : self.width]
         d_cam = np.stack([(xs.ravel() + 0.5 - self.cx) / self.fx, (ys.ravel() + 0.5 - self.cy) / self.fy, np.ones(xs.size)], 1)
-        rot = np.asarray(self.R, np.float64)
-        return -rot.T @ np.asarray(self.t, np.float64), d_cam @ rot
+        return self.ray_origin(), d_cam @ np.asarray(self.R, np.float64)
 
     def world_to_camera(self, points: np.ndarray) -> np.ndarray:
         """points: [P, 3] world -> [P, 3] camera coordinates."""

@@ -55,9 +55,20 @@ CUDA_CHUNK = 32
 INTERPRET_BLOCK = 256  # a whole tile per program in the interpreter (fewer, larger numpy steps)
 
 
-def available() -> bool:
-    """Whether Triton is importable (the fused kernel can run at all)."""
-    return triton is not None
+MAX_CHUNK = 1024  # list entries per step: a bound on the [pixels, entries] block, far past the measured best (32-64)
+
+
+def launch_problem(block: int, num_warps: int, chunk: int, tile_pixels: int) -> str | None:
+    """What is wrong with a compositing launch of `block` pixels, `num_warps` warps and `chunk` list
+    entries per step (0: the per-entry kernel) on tiles of `tile_pixels`, or None: Triton needs
+    powers of two, and a program's pixels must divide its tile's."""
+    if block < 1 or tile_pixels % block:
+        return f"pixels per program {block} must divide the {tile_pixels} pixels of a tile"
+    if num_warps not in (1, 2, 4, 8, 16):
+        return f"warps per program {num_warps} must be 1, 2, 4, 8 or 16"
+    if chunk < 0 or chunk > MAX_CHUNK or chunk & (chunk - 1):
+        return f"list entries per step {chunk} must be 0 (one at a time) or a power of two up to {MAX_CHUNK}"
+    return None
 
 
 def _composite_topk_source(
@@ -384,9 +395,9 @@ def interpreting() -> bool:
 
 
 @functools.cache
-def triton_kernel(source=_composite_topk_source):
-    """A kernel source (default: the per-entry top-k compositing) as a Triton kernel, once per
-    source: compiled for CUDA, or interpreted under TRITON_INTERPRET=1 (triton.jit decides)."""
+def triton_kernel(source):
+    """A kernel source as a Triton kernel, once per source: compiled for CUDA, or interpreted under
+    TRITON_INTERPRET=1 (triton.jit decides)."""
     if triton is None:
         raise DrsplatError("the fused top-k kernel needs triton (it comes with torch's CUDA builds: pip install triton)")
     return triton.jit(source)
@@ -454,12 +465,15 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     _check_args(topk, (0.0, 0.0, 0.0))
     dev = projected.valid.device
     interpret = interpreting()
-    _check_device(dev)
     ts = projected.tile_size
     p_count = ts * ts
-    block = block or (INTERPRET_BLOCK if interpret else CUDA_BLOCK)
-    if p_count % block:
-        raise ValueError(f"block {block} must divide the {p_count} pixels of a tile")
+    block = (INTERPRET_BLOCK if interpret else CUDA_BLOCK) if block is None else block
+    num_warps = CUDA_WARPS if num_warps is None else num_warps
+    chunk = CUDA_CHUNK if chunk is None else chunk
+    problem = launch_problem(block, num_warps, chunk, p_count)
+    if problem:
+        raise ValueError(problem)
+    _check_device(dev)
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
     offsets, counts, tile_list = bins
@@ -469,14 +483,13 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     out_key = torch.empty((n_tiles, p_count, kp), dtype=torch.int64, device=dev)
     out_trans = torch.empty((n_tiles, p_count), dtype=torch.float64, device=dev)
     out_med = torch.empty((n_tiles, p_count), dtype=torch.int32, device=dev)
-    launch = {} if interpret else {"enable_fp_fusion": False, "num_warps": num_warps or CUDA_WARPS}
-    chunk = CUDA_CHUNK if chunk is None else chunk
+    launch = {} if interpret else {"enable_fp_fusion": False, "num_warps": num_warps}
     scratch = ()
     if chunk:
         kernel, launch = triton_kernel(_composite_topk_chunked_source), {**launch, "CHUNK": chunk}
         scratch = (torch.empty((n_tiles, p_count, kp), dtype=torch.int32, device=dev),)
     else:
-        kernel = triton_kernel()
+        kernel = triton_kernel(_composite_topk_source)
     kernel[(n_tiles, p_count // block)](
         offsets, counts, tile_list, projected.means2d.contiguous(), projected.conics.contiguous(), projected.opacities.contiguous(),
         out_key, out_trans, out_med, *scratch, projected.width, projected.height, n_tiles_x, topk,

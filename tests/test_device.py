@@ -58,18 +58,21 @@ def test_kernel_bench_without_a_gpu_says_so_before_reading_the_scene(tmp_path, c
     err = capsys.readouterr().err
     assert "run on a CUDA GPU only" in err and "Traceback" not in err
     assert main(["bench", "kernel", "--configs", "16x1,24x1"]) == 2
-    assert "'24x1' is not PIXELSxWARPS" in capsys.readouterr().err
+    assert "'24x1': pixels per program 24 must divide the 256 pixels of a tile" in capsys.readouterr().err
     assert main(["bench", "kernel", "--configs", "1x1x32,1x1x24"]) == 2
-    assert "'1x1x24' is not PIXELSxWARPS[xCHUNK]" in capsys.readouterr().err
+    assert "'1x1x24': list entries per step 24 must be 0 (one at a time) or a power of two" in capsys.readouterr().err
 
 
 def test_kernel_bench_configs_parse_pixels_warps_and_chunk():
     from drsplat.bench.kernel import parse_configs
 
-    assert parse_configs("16x1x0, 1x1x32,8x2", 32) == [(16, 1, 0), (1, 1, 32), (8, 2, 32)]
-    for bad in ("16x1x", "x1x32", "16x3x32", "16x1x32x4", "16", "-1x1x32"):
-        with pytest.raises(UsageError, match="PIXELSxWARPS"):
-            parse_configs(bad, 32)
+    assert parse_configs("16x1x0, 1x1x32,8x2") == [(16, 1, 0), (1, 1, 32), (8, 2, None)]
+    for bad in ("16x1x", "x1x32", "16x1x32x4", "16", "-1x1x32"):
+        with pytest.raises(UsageError, match="is not PIXELSxWARPS"):
+            parse_configs(bad)
+    for bad, problem in (("16x3x32", "warps per program 3"), ("0x1x32", "pixels per program 0"), ("1x1x2048", "up to 1024")):
+        with pytest.raises(UsageError, match=problem):
+            parse_configs(bad)
 
 
 def test_cli_torch_engine_on_cpu_matches_numba(tmp_path, one_torch_thread):

@@ -182,6 +182,20 @@ def test_on_cuda_fused_kernel_topk_equals_numba(block, chunk):
         np.testing.assert_array_equal(median.cpu().numpy(), ref.median_ids, err_msg=case.name)
 
 
+@pytest.mark.parametrize("launch, problem", [({"chunk": 3}, "list entries per step 3"), ({"block": 24}, "pixels per program 24"),
+                                             ({"num_warps": 3}, "warps per program 3"), ({"chunk": 4096}, "up to 1024")])
+def test_bad_launch_shapes_are_named_before_any_launch(launch, problem):
+    """A launch Triton cannot compile (a chunk or warp count that is no power of two, pixels that do
+    not divide a tile) is one ValueError naming it, not an error from inside Triton's compiler."""
+    from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_torch
+    from drsplat.raster_triton import composite_topk_triton
+
+    case = random_case(0, n=20, topk=3)
+    projected = project_gaussians_torch(case.scene, case.camera)
+    with pytest.raises(ValueError, match=problem):
+        composite_topk_triton(projected, bin_gaussians_torch(projected), 3, **launch)
+
+
 def test_fused_kernel_is_refused_on_the_cpu():
     """Outside the interpreter the kernel compiles for CUDA only: one sentence saying so."""
     from drsplat.raster_torch import rasterize_torch

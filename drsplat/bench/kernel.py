@@ -41,19 +41,21 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_configs(text: str, default_chunk: int) -> list[tuple[int, int, int]]:
-    """'16x1,32x4x16,16x1x0' -> [(16, 1, default_chunk), (32, 4, 16), (16, 1, 0)]: (pixels, warps, list entries per
-    step; 0: one at a time); UsageError naming the bad entry."""
+def parse_configs(text: str) -> list[tuple[int, int, int | None]]:
+    """'16x1,32x4x16,16x1x0' -> [(16, 1, None), (32, 4, 16), (16, 1, 0)]: (pixels, warps, list entries per step;
+    None: the library's default, 0: one at a time), each checked by `raster_triton.launch_problem`; UsageError naming the bad entry."""
+    from drsplat.raster_triton import launch_problem  # imports torch and triton: only once the bench runs
+
     configs = []
     for item in text.split(","):
         parts = item.strip().lower().split("x")
         numbers = [int(p) for p in parts if p.strip().isdigit()]
-        if len(parts) == 2 and len(numbers) == 2:
-            numbers.append(default_chunk)
-        pixels, warps, chunk = numbers if len(parts) in (2, 3) and len(numbers) == 3 else (0, 0, -1)
-        if pixels < 1 or TILE_PIXELS % pixels or warps not in (1, 2, 4, 8, 16) or chunk < 0 or chunk & (chunk - 1):
-            raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS[xCHUNK] with PIXELS dividing {TILE_PIXELS}, WARPS 1, 2, 4, 8 "
-                             "or 16 and CHUNK 0 (one list entry at a time) or a power of two")
+        if len(parts) not in (2, 3) or len(numbers) != len(parts):
+            raise UsageError(f"--configs: {item.strip()!r} is not PIXELSxWARPS[xCHUNK] (whole numbers)")
+        pixels, warps, chunk = numbers[0], numbers[1], numbers[2] if len(numbers) == 3 else None
+        problem = launch_problem(pixels, warps, 0 if chunk is None else chunk, TILE_PIXELS)
+        if problem:
+            raise UsageError(f"--configs: {item.strip()!r}: {problem}")
         configs.append((pixels, warps, chunk))
     return configs
 
@@ -74,9 +76,7 @@ def _timed(fn, repeats: int):
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat import raster_triton
-
-    configs = parse_configs(args.configs, raster_triton.CUDA_CHUNK)
+    configs = parse_configs(args.configs)
     width, height = args.size
     from drsplat.device import cuda_available
 
@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         raise DrsplatError("drsplat bench kernel times the fused Triton kernels, which run on a CUDA GPU only, and none is available")
     if not args.real.exists():
         raise UsageError(f"--real {args.real}: no such file")
+    from drsplat import raster_triton
     from drsplat.raster import rasterize
     from drsplat.raster_torch import bin_gaussians_torch, prepare_scene_torch, project_gaussians_fused
     from drsplat.registration.compute import prepare_geometry
@@ -111,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
             if reference is not None:
                 agree = [float((ids.cpu().numpy() != reference.ids).mean()), float(np.abs(weights.cpu().numpy() - reference.weights).max()),
                          float((median.cpu().numpy() != reference.median_ids).mean())]
-            rows.append([cam.name, f"{block}x{warps}x{chunk}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
+            shown = raster_triton.CUDA_CHUNK if chunk is None else chunk
+            rows.append([cam.name, f"{block}x{warps}x{shown}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
     import torch
 
     print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {width}x{height}, top-{args.topk}, "

@@ -699,7 +699,7 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
         scratch = StatsScratch.new(ids2.shape[0], k, n)
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     _front_flags_kernel(ids2, np.ascontiguousarray(median_ids.reshape(-1), np.int32), w, geometry.means, geometry.precisions, geometry.reach,
-                        np.ascontiguousarray(rot), -rot.T @ trans, float(trans[2]), float(camera.fx), float(camera.fy), float(camera.cx),
+                        np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]), float(camera.fx), float(camera.fy), float(camera.cx),
                         float(camera.cy), float(tolerance), scratch.near, scratch.flags)
     stats = ViewStats(*_view_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), scratch.flags, scratch.view_peak,
                                           scratch.view_total, scratch.view_front, scratch.touched, scratch.mark))

@@ -2,7 +2,8 @@
 
 The torch form gathers each slot's Gaussian (6 precisions, 3 means, reach) as [H·W, k] float64
 tensors and runs ~40 elementwise ops over them: on an H100, ~50 gathers of ~175 µs and as many
-products per flowers view (640x480, k = 40, 12 M slots), about 10 ms. This kernel reads each
+products per flowers view (640x480, k = 40, 12 M slots); with this kernel the view's gathers went
+from 9.5 to 1.7 ms and its device time from 32.6 to 18.5 ms (vote-reject, 2026-11-27). It reads each
 slot's Gaussian once and keeps the arithmetic in registers: the same float64 operations in the
 same order, FMA contraction off, so the same bits (tests/test_front_triton.py runs it in Triton's
 interpreter against the torch form on the CPU).
@@ -98,14 +99,13 @@ def front_flags_triton(means: torch.Tensor, precisions: torch.Tensor, reach: tor
     if dev.type != "cuda" and not interpreting():
         raise ValueError(f"the fused in-front kernel runs on CUDA devices only, not on {dev.type!r}")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    origin = -rot.T @ trans
-    values = [*rot.reshape(-1), *origin, trans[2], camera.fx, camera.fy, camera.cx, camera.cy, 1.0 - tolerance]
+    values = [*rot.reshape(-1), *camera.ray_origin(), trans[2], camera.fx, camera.fy, camera.cx, camera.cy, 1.0 - tolerance]
     params = torch.tensor([float(v) for v in values], dtype=torch.float64)
     params = params.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else params
     flags = torch.empty((h * w, k), dtype=torch.int8, device=dev)
     n_pixels = h * w
     if n_pixels == 0 or k == 0:
-        return flags.bool()
+        return flags.view(torch.bool)
     kp = 1 << max(0, k - 1).bit_length()
     launch = {} if interpreting() else {"enable_fp_fusion": False}
     triton_kernel(_front_flags_source)[(triton.cdiv(n_pixels, BLOCK),)](
