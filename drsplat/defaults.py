@@ -11,7 +11,8 @@ DEFAULT_AGGREGATE = "vote-reject"  # registration's aggregation mode: the paper'
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
                    "centre", "anchor", "anchor-reject", "explain", "explain-reject",
                    "vote", "vote-reject", "explain-vote-reject",
-                   "solve", "solve-reject", "solve-vote", "solve-vote-reject")  # drsplat.registration.aggregate implements them
+                   "solve", "solve-reject", "solve-vote", "solve-vote-reject",
+                   "check", "check-reject", "check-vote", "check-vote-reject")  # drsplat.registration.aggregate implements them
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)

@@ -35,9 +35,14 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                     features that re-render the views' masks best, Tikhonov toward the paper's
                     mean, conjugate gradients; one block in memory only)
     solve-reject, solve-vote, solve-vote-reject   the solve on the (vote-trimmed) sums, then rejection
+    check           w, with the masks that the other views contradict dropped before the sums
+                    (drsplat.registration.check: a mislabelled mask judged over all its Gaussians;
+                    one block in memory only)
+    check-reject, check-vote, check-vote-reject   the check, then the vote and / or rejection
 
 A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`); WEIGHTING "solve"
-means the paper's w in the views and the solve stage on the sums.
+means the paper's w in the views and the solve stage on the sums, "check" the paper's w and the
+check stage before the sums.
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
@@ -110,6 +115,7 @@ class Stages:
     vote: bool
     reject: bool
     solve: bool = False  # the render-consistent solve on the sums (weighting "paper" in the views)
+    check: bool = False  # masks dropped by the cross-view check before the sums (weighting "paper" in the views)
 
 
 def mode_stages(mode: str) -> Stages:
@@ -124,6 +130,8 @@ def mode_stages(mode: str) -> Stages:
     parts = parts[:-1] if vote else parts
     if parts and parts[0] == "solve":
         return Stages("paper", vote, reject, solve=True)
+    if parts and parts[0] == "check":
+        return Stages("paper", vote, reject, check=True)
     return Stages(parts[0] if parts else "paper", vote, reject)
 
 
@@ -794,7 +802,7 @@ class Aggregator:
         and the reducers' counts come in through `num_rejected`."""
         self.mode = mode
         stages = mode_stages(mode)
-        self.reject, self.vote, self.solve = stages.reject, stages.vote, stages.solve
+        self.reject, self.vote, self.solve, self.check = stages.reject, stages.vote, stages.solve, stages.check
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject and not stats_on_reducers else None
         needs_hook = stages.weighting != "paper" or self.reject
         self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
@@ -852,6 +860,8 @@ class Aggregator:
             kept = 32 * num_gaussians
             views += (37 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
+            kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
+        if stages.check:  # the check's own slots (drsplat.registration.check; its record of the pairs grows with the views, not counted here)
             kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)

@@ -38,7 +38,8 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
-from drsplat.registration.aggregate import Aggregator
+from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.check import CheckSink
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
 from drsplat.registration.executor import open_executor
@@ -240,8 +241,9 @@ def run_registration(
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
-    if aggregator.solve and block < n:
-        raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
+    if (aggregator.solve or aggregator.check) and block < n:
+        what = "solves over all Gaussians" if aggregator.solve else "checks masks over all Gaussians' pairs"
+        raise UsageError(f"--aggregate {options.aggregate} {what} in one block in memory and cannot run under a "
                          f"--memory-budget (or --block-size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
@@ -317,8 +319,9 @@ def device_pairs_apply(options: RegisterOptions) -> bool:
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
     the torch engine in this process, with any mode (every per-view weighting has a torch form);
     floater statistics are then computed and folded on the device too, and a `-vote` mode's slots
-    are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs."""
-    return options.engine == "torch" and options.place == "local"
+    are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs, and so does a
+    `check-` mode (its record of the pairs is on the host: drsplat.registration.check)."""
+    return options.engine == "torch" and options.place == "local" and not mode_stages(options.aggregate).check
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
@@ -333,6 +336,8 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     on_device = device_pairs_apply(run.options)
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
+    if aggregator.check:  # the check's record and slots, then the mode's own sink fed with the kept pairs
+        return CheckSink(n, dim, one_block_sink(n, dim, aggregator.vote)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
     if sink.place != "host":
         log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)

@@ -1,0 +1,353 @@
+"""Cross-view mask check: the `check` stage of an aggregation mode (`--aggregate check-vote-reject`, ...).
+
+The vote stage (drsplat.registration.vote) decides per Gaussian, so it needs several views of the
+Gaussian to outvote one wrong mask: a Gaussian seen in two views, one of them mislabelled, keeps
+both labels. A mislabel, though, is a property of a whole mask: every Gaussian under a mislabelled
+mask is seen elsewhere under its true label. The check pools that evidence over the mask's
+Gaussians and drops whole masks:
+
+1. while the views arrive, their masks are grouped by embedding (`MaskClusters`, as the vote stage
+   does) and every Gaussian collects presence votes V_ic per cluster c in VOTE_SLOTS slots
+   (`_fold_votes_kernel`): a view gives cluster c the vote min(1, s_icv / (ρ·T_iv)) · min(1, T_iv / T₀),
+   s_icv the Gaussian's weight in the view's masks of c, T_iv its weight in the view (the vote
+   stage's rule with ρ = PRESENCE, T₀ = FULL_VIEW, taken per cluster: one view is at most one
+   vote); the views' pairs are kept (`PairRecord`);
+2. once every view is in, mask j of view v asks the other views what its Gaussians are:
+
+       q_jc = Σ_{i ∈ j} w_ij (V_ic − v_icv) / Σ_{i ∈ j} w_ij
+
+   (v_icv: view v's own vote, so that a mask never supports itself; `mask_support`), in units of
+   views. own_j = Σ_{c like c(j)} q_jc over the clusters like the mask's own (μ_c·μ_c(j) ≥
+   CLUSTER_COSINE, itself included), alt_j = max_{c unlike} q_jc. Mask j is dropped when
+
+       alt_j ≥ CHECK_MIN_VIEWS   and   own_j < CHECK_SUPPORT · alt_j
+
+   i.e. at least two views' worth of other evidence agree on another label and the mask's own
+   label has almost none there. A small object seen clearly in one view (its Gaussians elsewhere
+   faint or spilling into the background: weak, split votes) or a label that a minority of other
+   views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view mask check");
+3. the sums (and the vote stage after it) are made from the kept pairs in the same order. A
+   Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
+   assigned does not change.
+
+Memory: the views' distinct pairs (PAIR_BYTES = 12 per pair) and embeddings while the views arrive,
+plus VOTE_SLOT_BYTES + 8 bytes per Gaussian for the slots; per view of the check a dense [M, K]
+float64 support table (M masks, K clusters). The stage needs all Gaussians in one block:
+registration refuses it with a --memory-budget that splits the scene into blocks.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from drsplat.defaults import VOTE_SLOTS
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import Block, Sink
+from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, _rows_order
+
+log = logging.getLogger(__name__)
+
+CHECK_MIN_VIEWS = 2.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
+CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
+
+
+@dataclass
+class MaskVerdicts:
+    """The check's outcome: keep [V] arrays of [M_v] bool per view (True: the mask's pairs are summed),
+    and the masks it dropped, judged (with enough evidence to judge) and present (with pairs)."""
+
+    keep: list[np.ndarray]
+    dropped: int
+    judged: int
+    present: int
+
+
+def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, num_rows: int, num_clusters: int,
+                         presence: float = PRESENCE, full_view: float = FULL_VIEW) -> np.ndarray:
+    """[num_rows, K] float64: one view's presence votes v_icv = min(1, s_icv / (ρ·T_iv)) · min(1, T_iv / T₀),
+    s_icv = Σ_{j: cluster(j) = c} w_ij, T_iv = Σ_j w_ij: one vote per view and cluster at most
+    (numpy reference; rows [P], clusters [P] (-1: none), weights [P] of the view's pairs)."""
+    w = weights.astype(np.float64)
+    total = np.bincount(rows, w, num_rows)
+    ok = (clusters >= 0) & (w > 0)
+    s = np.zeros((num_rows, num_clusters))
+    np.add.at(s, (rows[ok], clusters[ok]), w[ok])
+    t = np.where(total > 0, total, 1.0)[:, None]
+    return np.where(s > 0, np.minimum(1.0, s / (t * presence)) * np.minimum(1.0, t / full_view), 0.0)
+
+
+def mask_support_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
+                           means: np.ndarray, threshold: float = CLUSTER_COSINE) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Obviously-correct reference of step 2 with unbounded slots (numpy, float64).
+
+    views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none)).
+    means: [K, D] unit cluster means. Returns per view (own [M], alt [M], mass [M]): the other
+    views' support of the mask's own label and of the best unlike one, in views, and Σ_i w_ij
+    (agrees with `mask_support` whenever no Gaussian meets more than VOTE_SLOTS clusters).
+    """
+    k = means.shape[0]
+    votes = [view_votes_reference(g, c[m], w, num_gaussians, k) for g, m, w, c in views]
+    V = np.sum(votes, axis=0) if votes else np.zeros((num_gaussians, k))
+    like = (means @ means.T) >= threshold if k else np.zeros((0, 0), bool)
+    out = []
+    for (g, m, w, c), own_votes in zip(views, votes):
+        num_masks = c.shape[0]
+        q = np.zeros((num_masks, k))
+        np.add.at(q, m, w.astype(np.float64)[:, None] * (V - own_votes)[g])
+        mass = np.bincount(m, w.astype(np.float64), num_masks)
+        q /= np.where(mass > 0, mass, 1.0)[:, None]
+        cm = np.maximum(c, 0)
+        own = np.where(c >= 0, (q * like[cm]).sum(axis=1) if k else 0.0, 0.0)
+        alt = np.where(c >= 0, np.where(~like[cm], q, 0.0).max(axis=1, initial=0.0) if k else 0.0, 0.0)
+        out.append((own, alt, mass))
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes):  # pragma: no cover - jitted
+    """One Gaussian's presence votes in one view, per cluster: pairs order[start:end] (all of the
+    Gaussian's pairs in the view, clusters [P] per pair, -1 none). Writes the distinct clusters to
+    found[:n] and their votes min(1, s_c / (ρ·T)) · min(1, T / T₀) to votes[:n] (s_c: the
+    cluster's weight, T: the Gaussian's weight in the view); returns n. found / votes: scratch of
+    at least end - start entries."""
+    t = 0.0
+    for i in range(start, end):
+        t += np.float64(weights[order[i]])
+    n = 0
+    for i in range(start, end):
+        p = order[i]
+        c = clusters[p]
+        w = np.float64(weights[p])
+        if c < 0 or not w > 0.0:
+            continue
+        hit = -1
+        for s in range(n):
+            if found[s] == c:
+                hit = s
+                break
+        if hit < 0:
+            hit = n
+            found[n] = c
+            votes[n] = 0.0
+            n += 1
+        votes[hit] += w
+    for s in range(n):
+        votes[s] = min(1.0, votes[s] / (t * presence)) * min(1.0, t / full_view)
+    return n
+
+
+@numba.njit(cache=True)
+def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot_c, slot_v):  # pragma: no cover - jitted
+    """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
+    cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
+    cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
+    row (`_rows_order`)."""
+    num_slots = slot_c.shape[1]
+    n = order.shape[0]
+    found = np.empty(n, np.int32)
+    votes = np.empty(n)
+    start = 0
+    while start < n:
+        r = rows[order[start]]
+        end = start
+        while end < n and rows[order[end]] == r:
+            end += 1
+        for d in range(_group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)):
+            c = found[d]
+            hit = -1
+            low = 0
+            for s in range(num_slots):
+                if slot_c[r, s] == c or slot_c[r, s] < 0:
+                    hit = s
+                    break
+                if slot_v[r, s] < slot_v[r, low]:
+                    low = s
+            if hit < 0:
+                hit = low
+            slot_c[r, hit] = c
+            slot_v[r, hit] += votes[d]
+        start = end
+
+
+@numba.njit(cache=True)
+def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, q, mass):  # pragma: no cover - jitted
+    """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
+    (one view, `mask_support` step 2). clusters: [P] the cluster of each pair's mask; order: the
+    pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive."""
+    num_slots = slot_c.shape[1]
+    n = order.shape[0]
+    found = np.empty(n, np.int32)
+    votes = np.empty(n)
+    own = np.zeros(num_slots)
+    start = 0
+    while start < n:
+        r = rows[order[start]]
+        end = start
+        while end < n and rows[order[end]] == r:
+            end += 1
+        found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+        for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
+            own[s] = 0.0
+            for d in range(found_n):
+                if slot_c[r, s] == found[d]:
+                    own[s] = votes[d]
+        for i in range(start, end):
+            p = order[i]
+            w = np.float64(weights[p])
+            j = masks[p]
+            mass[j] += w
+            for s in range(num_slots):
+                c = slot_c[r, s]
+                if c < 0:
+                    break
+                other = slot_v[r, s] - own[s]
+                if other > 0.0:
+                    q[j, c] += w * other
+        start = end
+
+
+@numba.njit(cache=True)
+def _own_alt_kernel(q, mass, clusters_of_mask, means, threshold, own, alt):  # pragma: no cover - jitted
+    """own[j] = Σ_{c like c(j)} q[j, c] / mass[j], alt[j] = max_{c unlike} q[j, c] / mass[j] (0 for
+    masks without a cluster or pairs); "like" is μ_c·μ_c(j) ≥ threshold, dotted only where q > 0."""
+    num_masks, k = q.shape
+    dim = means.shape[1]
+    for j in range(num_masks):
+        own[j] = 0.0
+        alt[j] = 0.0
+        cj = clusters_of_mask[j]
+        if cj < 0 or not mass[j] > 0.0:
+            continue
+        for c in range(k):
+            value = q[j, c]
+            if not value > 0.0:
+                continue
+            sim = np.float32(0.0)
+            for d in range(dim):
+                sim += means[c, d] * means[cj, d]
+            if sim >= threshold:
+                own[j] += value
+            elif value > alt[j]:
+                alt[j] = value
+        own[j] /= mass[j]
+        alt[j] /= mass[j]
+
+
+class PairRecord:
+    """The views' pairs as they arrived (gaussians, masks, weights) with their embeddings and the
+    masks' clusters; what the check reads twice (support, then the kept sums)."""
+
+    def __init__(self, dim: int):
+        self.clusters = MaskClusters(dim)
+        self.views: list[ViewPairs] = []
+
+    def add(self, view: ViewPairs) -> np.ndarray:
+        """Keep `view` (its host pairs) and return its masks' clusters [M] int32."""
+        self.views.append(ViewPairs(view.name, view.feats, np.ascontiguousarray(view.gaussians, np.int32),
+                                    np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
+                                    view.used, view.num_pairs, view.num_nonfinite))
+        return self.clusters.add(view.feats, view.present_masks())
+
+    @property
+    def nbytes(self) -> int:
+        return sum(v.gaussians.nbytes + v.masks.nbytes + v.weights.nbytes + v.feats.nbytes for v in self.views)
+
+
+def mask_support(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, presence: float = PRESENCE, full_view: float = FULL_VIEW,
+                 threshold: float = CLUSTER_COSINE) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Step 2 for every recorded view (module docstring): per view (own [M], alt [M], mass [M]).
+    slot_c / slot_v: [N, S] the Gaussians' clusters and votes folded over all views (step 1)."""
+    means = np.ascontiguousarray(record.clusters.means(), np.float32)
+    k = means.shape[0]
+    out = []
+    for view, clusters in zip(record.views, record.clusters.per_view):
+        num_masks = clusters.shape[0]
+        q = np.zeros((num_masks, k))
+        mass = np.zeros(num_masks)
+        own = np.zeros(num_masks)
+        alt = np.zeros(num_masks)
+        if view.gaussians.size and k:
+            _support_kernel(view.gaussians, view.masks, view.weights, np.ascontiguousarray(clusters[view.masks], np.int32),
+                            _rows_order(view.gaussians), slot_c, slot_v, presence, full_view, q, mass)
+            _own_alt_kernel(q, mass, clusters, means, np.float32(threshold), own, alt)
+        elif view.gaussians.size:
+            np.add.at(mass, view.masks, view.weights.astype(np.float64))
+        out.append((own, alt, mass))
+    return out
+
+
+def verdicts(support: list[tuple[np.ndarray, np.ndarray, np.ndarray]], min_views: float = CHECK_MIN_VIEWS,
+             min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
+    """Step 2's rule on `mask_support`'s output: drop mask j when alt_j ≥ min_views and
+    own_j < min_share · alt_j."""
+    keep, dropped, judged, present = [], 0, 0, 0
+    for own, alt, mass in support:
+        judge = (mass > 0) & (alt >= min_views)
+        drop = judge & (own < min_share * alt)
+        keep.append(~drop)
+        dropped += int(drop.sum())
+        judged += int(judge.sum())
+        present += int((mass > 0).sum())
+    return MaskVerdicts(keep, dropped, judged, present)
+
+
+def kept_pairs(record: PairRecord, keep: list[np.ndarray], num_gaussians: int) -> list[np.ndarray]:
+    """Per view, [P] bool: the pairs of kept masks, and every pair of a Gaussian that would keep none
+    (step 3: which Gaussians are assigned does not change)."""
+    kept = [k[v.masks] for v, k in zip(record.views, keep)]
+    any_kept = np.zeros(num_gaussians, bool)
+    for view, k in zip(record.views, kept):
+        any_kept[view.gaussians[k & (view.weights > 0)]] = True
+    return [k | ~any_kept[v.gaussians] for v, k in zip(record.views, kept)]
+
+
+class CheckSink:
+    """A sink (drsplat.registration.sink) whose blocks are `inner`'s sums of the pairs the check keeps.
+
+    `add` records each view and folds its presence votes into the slots (step 1); the first call of
+    `blocks` or `sample` judges the masks (step 2), replays the kept pairs into `inner` in view
+    order (step 3) and frees the record. One block of all N Gaussians, on the host."""
+
+    place = "host"
+    num_blocks = 1
+
+    def __init__(self, num_gaussians: int, dim: int, inner: Sink, slots: int = VOTE_SLOTS):
+        self.num_gaussians = num_gaussians
+        self.inner = inner
+        self.record = PairRecord(dim)
+        self._slot_c = np.full((num_gaussians, slots), -1, np.int32)
+        self._slot_v = np.zeros((num_gaussians, slots))
+        self.verdicts: MaskVerdicts | None = None
+
+    def add(self, view: ViewPairs) -> None:
+        clusters = self.record.add(view)
+        kept = self.record.views[-1]
+        if kept.gaussians.size:
+            _fold_votes_kernel(kept.gaussians, np.ascontiguousarray(clusters[kept.masks], np.int32), kept.weights, _rows_order(kept.gaussians),
+                               PRESENCE, FULL_VIEW, self._slot_c, self._slot_v)
+
+    def _judge(self) -> None:
+        if self.verdicts is not None:
+            return
+        record = self.record
+        self.verdicts = verdicts(mask_support(record, self._slot_c, self._slot_v))
+        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge)", self.verdicts.dropped, self.verdicts.present,
+                 self.verdicts.judged)
+        self._slot_c = self._slot_v = None  # the inner sink's sums take their place
+        for view, keep in zip(record.views, kept_pairs(record, self.verdicts.keep, self.num_gaussians)):
+            self.inner.add(ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,
+                                     view.num_pairs, view.num_nonfinite))
+        self.record = None
+
+    def blocks(self) -> Iterator[Block]:
+        self._judge()
+        yield from self.inner.blocks()
+
+    def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self._judge()
+        return self.inner.sample(ids)
