@@ -200,3 +200,30 @@ def test_check_is_refused_in_blocks_and_runs_on_the_torch_engine(mislabelled_roo
                               show_progress=False)
     assert torch.sums_on == "host"
     np.testing.assert_array_equal(torch.features, numba.features)
+
+
+def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path):
+    """The record and the slots are rebuilt from the replayed views in order, so a resumed run of a
+    check mode writes what an uninterrupted one does (and drops masks: the case is not vacuous)."""
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    root, scene, cams = mislabelled_room
+    options = RegisterOptions(topk=10, aggregate="check-vote-reject")
+    full = register_features(scene, cams, root / "features", options, show_progress=False)
+    paper_vote = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
+    assert not np.array_equal(full.features, paper_vote.features)
+    token = CancelToken()
+
+    def stop(done: int, total: int) -> None:
+        if done == 3:
+            token.cancel()
+
+    ckpt = tmp_path / "run.log"
+    with pytest.raises(Cancelled):
+        register_features(scene, cams, root / "features", options, checkpoint=ckpt, checkpoint_every=1, cancel=token, on_progress=stop,
+                          show_progress=False)
+    resumed = register_features(scene, cams, root / "features", options, checkpoint=ckpt, show_progress=False)
+    assert resumed.resumed_views == 3
+    np.testing.assert_array_equal(resumed.weights, full.weights)
+    np.testing.assert_array_equal(resumed.features, full.features)

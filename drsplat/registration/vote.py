@@ -10,10 +10,14 @@ keeps the paper's sums and trims them:
    normalize(Σ_{j ∈ c} f_j) is a cluster's mean embedding;
 2. per Gaussian i and cluster c, every view votes by presence, not by area:
 
-       V_ic = Σ_views min(1, s_icv / ρ) · min(1, T_iv / T₀),
-       s_icv = Σ_{j ∈ view, cluster(j) = c} w_ij / T_iv,   T_iv = Σ_{j ∈ view} w_ij
+       V_ic = Σ_views Σ_{j ∈ view, cluster(j) = c} min(1, s_ijv / ρ) · min(1, T_iv / T₀),
+       s_ijv = w_ij / T_iv,   T_iv = Σ_{j ∈ view} w_ij
 
-   (ρ = PRESENCE: a cluster holding at least that share of the Gaussian's weight in a view gets
+   (one vote per (Gaussian, mask) pair: a Gaussian inside two masks of one cluster in a view, two
+   instances of a label, gets up to two votes there; the cross-view check,
+   drsplat.registration.check, counts one per view and cluster)
+
+   (ρ = PRESENCE: a mask holding at least that share of the Gaussian's weight in a view gets
    the view's full vote, so a close-up view counts once; T₀ = FULL_VIEW: a view in which the
    Gaussian is faint, far or mostly hidden, T_iv < T₀, votes in proportion, since a small object
    seen from afar has no mask of its own there and lands in its surroundings' mask), together with the paper's weight of the
