@@ -16,4 +16,5 @@ AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)
+CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
 SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsplat.registration.solve)

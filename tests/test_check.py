@@ -15,11 +15,14 @@ from drsplat.registration.aggregate import Stages, mode_stages
 from drsplat.registration.check import (
     CheckSink,
     PairRecord,
+    _agreement_kernel,
     _fold_votes_kernel,
+    _own_alt_kernel,
+    check_masks,
+    check_reference,
     kept_pairs,
-    mask_support,
-    mask_support_reference,
-    verdicts,
+    like_threshold,
+    view_support,
     view_votes_reference,
 )
 from drsplat.registration.pairlog import ViewPairs
@@ -77,24 +80,39 @@ def _random_views(rng, n: int, labels: np.ndarray, num_views: int, hard: bool) -
 
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (1, False), (2, True), (3, True)])
-def test_mask_support_agrees_with_the_reference(seed, hard):
-    """The kernels (votes folded into slots, the other views' support per mask) against the dense
-    numpy reference, on random views with at most 4 clusters (the slots never overflow) and, with
-    `hard`, zero and 1e-30 weights, a mask without a cluster and a view with no pairs."""
+@pytest.mark.parametrize("like", [0.5, 0.95])
+def test_check_kernels_agree_with_the_reference(seed, hard, like):
+    """The kernels (votes folded into slots, the other views' support per mask, the agreement with
+    the consensus, own and the grouped alt) against the dense numpy reference, on random views with
+    at most 4 labels (the slots never overflow), two "like" cosines and, with `hard`, zero and
+    1e-30 weights, a mask without a cluster and a view with no pairs."""
     rng = np.random.default_rng(seed)
     n = 40
     labels = _unit(rng.normal(size=(4, D)))
     views = _random_views(rng, n, labels, 7, hard)
     record, slot_c, slot_v = _record(views, n)
-    got = mask_support(record, slot_c, slot_v)
-    ref = mask_support_reference([(v.gaussians, v.masks, v.weights, c) for v, c in zip(record.views, record.clusters.per_view)], n,
-                                 record.clusters.means().astype(np.float64))
-    assert len(got) == len(ref) == 7
-    for (own, alt, mass), (r_own, r_alt, r_mass) in zip(got, ref):
-        np.testing.assert_allclose(mass, r_mass, rtol=1e-12)
-        np.testing.assert_allclose(own, r_own, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(alt, r_alt, rtol=1e-9, atol=1e-12)
-    assert any((alt > 0).any() for _, alt, _ in got) and any((own > 0).any() for own, _, _ in got)  # the case exercises both
+    means = np.ascontiguousarray(record.clusters.means(), np.float32)
+    ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, record.clusters.per_view)], n,
+                          means, like)
+    assert len(ref) == 7
+    for view, clusters, (r_mass, r_total, r_agree, r_own, r_alt) in zip(record.views, record.clusters.per_view, ref):
+        sup = view_support(view, clusters, slot_c, slot_v, means.shape[0])
+        agree, total, own, alt = (np.zeros(clusters.shape[0]) for _ in range(4))
+        _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
+        _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
+        np.testing.assert_allclose(sup.mass, r_mass, rtol=1e-12)
+        for got, want in [(total, r_total), (agree, r_agree), (own, r_own), (alt, r_alt)]:
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+    assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
+
+
+def test_like_threshold_is_halfway_between_agreement_and_difference():
+    """½ (median agreement + median cosine between two masks of one view); None without either."""
+    a, b, c = np.eye(3)
+    views = [np.stack([a, b]), np.stack([a, (a + c) / np.sqrt(2), np.zeros(3)])]  # cosines 0 and 0.707 (the zero row is ignored)
+    assert like_threshold(np.array([0.9, 1.0, 0.8]), views) == pytest.approx(0.5 * (0.9 + 0.5 * np.sqrt(0.5)))
+    assert like_threshold(np.zeros(0), views) is None
+    assert like_threshold(np.array([1.0]), [np.stack([a]), np.stack([b, np.zeros(3)])]) is None
 
 
 def test_view_votes_are_one_per_view_and_cluster():
@@ -134,33 +152,63 @@ def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
     np.testing.assert_allclose(block.W[:5], 4.0)
 
 
+def _with_context(views: list[ViewPairs], context: np.ndarray, gaussian: int) -> list[ViewPairs]:
+    """Each view with one more mask, label `context`, over Gaussian `gaussian` alone: a second
+    instance per view and a mask that agrees with its other views, so the scene's "like" cosine
+    is defined (`like_threshold`)."""
+    out = []
+    for v in views:
+        m = v.feats.shape[0]
+        out.append(_view(v.name, np.concatenate([v.feats, context[None]]), np.append(v.gaussians, gaussian), np.append(v.masks, m),
+                         np.append(v.weights, 1.0)))
+    return out
+
+
 def test_what_the_check_keeps():
     """Not judged: a Gaussian seen in one view only (no other evidence), a small object whose other
     views are faint (its Gaussians elsewhere weak: fewer than CHECK_MIN_VIEWS votes for another
     label), a label that a minority of the other views share. And a Gaussian whose every pair is in
-    dropped masks keeps them (coverage unchanged)."""
+    dropped masks keeps them (coverage unchanged). The like cosine is defined in every case."""
     rng = np.random.default_rng(1)
-    a, b = _unit(rng.normal(size=(2, D)))
+    a, b, c = _unit(rng.normal(size=(3, D)))
     # Gaussian 0: seen as B faintly (T = 0.1 < T₀) in 4 views, as A clearly in one: 4 x 0.2 = 0.8 votes for B < 2
-    views = [_view(f"f{v}", b[None], [0], [0], [0.1]) for v in range(4)] + [_view("clear", a[None], [0], [0], [1.0])]
-    record, slot_c, slot_v = _record(views, 1)
-    assert verdicts(mask_support(record, slot_c, slot_v)).dropped == 0
-    # Gaussian 0 as A in 2 of 6 other views, B in 4: own 2 >= 0.1 x 4
+    views = _with_context([_view(f"f{v}", b[None], [0], [0], [0.1]) for v in range(4)] + [_view("clear", a[None], [0], [0], [1.0])], c, 1)
+    record, slot_c, slot_v = _record(views, 2)
+    result = check_masks(record, slot_c, slot_v)
+    assert result.like is not None and result.dropped == 0
+    # Gaussian 0 as A in 3 of 7 views, B in 4: A's masks see own 2 >= 0.1 x 4
     views = [_view(f"b{v}", b[None], [0], [0], [1.0]) for v in range(4)] + [_view(f"a{v}", a[None], [0], [0], [1.0]) for v in range(3)]
-    record, slot_c, slot_v = _record(views, 1)
-    assert verdicts(mask_support(record, slot_c, slot_v)).dropped == 0
+    record, slot_c, slot_v = _record(_with_context(views, c, 1), 2)
+    result = check_masks(record, slot_c, slot_v)
+    assert result.like is not None and result.dropped == 0 and result.judged > 0
     # one view only
     record, slot_c, slot_v = _record([_view("only", np.stack([a, b]), [0, 1], [0, 1], [1.0, 1.0])], 2)
-    result = verdicts(mask_support(record, slot_c, slot_v))
+    result = check_masks(record, slot_c, slot_v)
     assert result.dropped == 0 and result.judged == 0 and result.present == 2
-    # Gaussian 1 is only under the dropped mask of view 4 (with Gaussians 0-4 that other views contradict): it keeps its pair
+    # Gaussian 20 is only under the dropped mask of view 4 (with Gaussians 0-4 that other views contradict): it keeps its pair
     _, _, views = _mislabel_scene(rng)
     views[4] = _view("v4", views[4].feats, list(range(5)) + [20], [0] * 6, [1.0] * 6)
     record, slot_c, slot_v = _record(views, 21)
-    result = verdicts(mask_support(record, slot_c, slot_v))
+    result = check_masks(record, slot_c, slot_v)
     assert not result.keep[4][0]
     kept = kept_pairs(record, result.keep, 21)
     np.testing.assert_array_equal(kept[4], [False] * 5 + [True])
+
+
+def test_a_label_split_by_noise_is_still_one_label():
+    """Mask embeddings of label A spread so far (cosine ~0.8) that the clustering (0.9) gives each
+    view's A its own cluster: the mislabelled mask (B) over A's Gaussians is still dropped, since
+    the like cosine comes from the scene and alt sums A's clusters back together."""
+    rng = np.random.default_rng(5)
+    a, b, c = _unit(rng.normal(size=(3, D)))
+    noisy = [_unit(a + 0.55 * _unit(rng.normal(size=D))) for _ in range(4)]
+    assert max(float(x @ y) for i, x in enumerate(noisy) for y in noisy[i + 1:]) < 0.9
+    views = [_view(f"v{v}", np.stack([noisy[v], c]), np.arange(6), [0] * 5 + [1], np.ones(6)) for v in range(4)]
+    views.append(_view("wrong", np.stack([b, c]), np.arange(6), [0] * 5 + [1], np.ones(6)))
+    record, slot_c, slot_v = _record(views, 6)
+    assert record.clusters.count >= 6  # A split into several clusters
+    result = check_masks(record, slot_c, slot_v)
+    assert not result.keep[4][0] and result.dropped == 1
 
 
 def test_mode_stages_with_the_check():

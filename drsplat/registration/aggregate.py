@@ -88,7 +88,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, SOLVE_SLOTS, VOTE_SLOT_BYTES
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, VOTE_SLOT_BYTES
 from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
@@ -862,7 +862,7 @@ class Aggregator:
         if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
             kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
         if stages.check:  # the check's own slots (drsplat.registration.check; its record of the pairs grows with the views, not counted here)
-            kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
+            kept += 12 * CHECK_SLOTS * num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept

@@ -7,7 +7,7 @@ mask is seen elsewhere under its true label. The check pools that evidence over 
 Gaussians and drops whole masks:
 
 1. while the views arrive, their masks are grouped by embedding (`MaskClusters`, as the vote stage
-   does) and every Gaussian collects presence votes V_ic per cluster c in VOTE_SLOTS slots
+   does) and every Gaussian collects presence votes V_ic per cluster c in CHECK_SLOTS slots
    (`_fold_votes_kernel`): a view gives cluster c the vote min(1, s_icv / (ρ·T_iv)) · min(1, T_iv / T₀),
    s_icv the Gaussian's weight in the view's masks of c, T_iv its weight in the view (the vote
    stage's rule with ρ = PRESENCE, T₀ = FULL_VIEW, taken per cluster: one view is at most one
@@ -16,9 +16,21 @@ Gaussians and drops whole masks:
 
        q_jc = Σ_{i ∈ j} w_ij (V_ic − v_icv) / Σ_{i ∈ j} w_ij
 
-   (v_icv: view v's own vote, so that a mask never supports itself; `mask_support`), in units of
-   views. own_j = Σ_{c like c(j)} q_jc over the clusters like the mask's own (μ_c·μ_c(j) ≥
-   CLUSTER_COSINE, itself included), alt_j = max_{c unlike} q_jc. Mask j is dropped when
+   (v_icv: view v's own vote, so that a mask never supports itself; `view_support`), in units of
+   views. Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
+   (one object's crops from different views can be farther apart than the clustering's 0.9):
+
+       like = ½ (median_j f̂_j·ĉ_j + median cos(f_j, f_k) over two masks j ≠ k of one view)
+
+   ĉ_j = normalize(Σ_c q_jc μ_c) the consensus of mask j's Gaussians (`_agreement_kernel`; the
+   median over masks with at least CHECK_MIN_VIEWS of other votes): halfway between how well a
+   mask usually agrees with its Gaussians' other views and how alike two different instances of
+   a view are (`like_threshold`). Then (`_own_alt_kernel`)
+
+       own_j = Σ_{c: μ_c·f̂_j ≥ like} q_jc,   alt_j = Σ_{c unlike, μ_c·μ_c* ≥ like} q_jc
+
+   c* the unlike cluster with the largest q: alt is the support of the best other label, its
+   clusters that split by noise summed back together. Mask j is dropped when
 
        alt_j ≥ CHECK_MIN_VIEWS   and   own_j < CHECK_SUPPORT · alt_j
 
@@ -31,8 +43,10 @@ Gaussians and drops whole masks:
    assigned does not change.
 
 Memory: the views' distinct pairs (PAIR_BYTES = 12 per pair) and embeddings while the views arrive,
-plus VOTE_SLOT_BYTES + 8 bytes per Gaussian for the slots; per view of the check a dense [M, K]
-float64 support table (M masks, K clusters). The stage needs all Gaussians in one block:
+plus 12·CHECK_SLOTS bytes per Gaussian for the slots (twice the vote's: a label split by
+embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
+32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol); per view of the check a dense [M, K]
+float64 support table (M masks, K clusters), made twice (the like cosine needs every view's). The stage needs all Gaussians in one block:
 registration refuses it with a --memory-budget that splits the scene into blocks.
 """
 
@@ -45,10 +59,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import VOTE_SLOTS
+from drsplat.defaults import CHECK_SLOTS
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, Sink
-from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, _rows_order
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, _rows_order
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +79,7 @@ class MaskVerdicts:
     dropped: int
     judged: int
     present: int
+    like: float | None = None  # the scene's "like" cosine (`like_threshold`), None: too little to judge
 
 
 def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, num_rows: int, num_clusters: int,
@@ -81,30 +96,43 @@ def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.nda
     return np.where(s > 0, np.minimum(1.0, s / (t * presence)) * np.minimum(1.0, t / full_view), 0.0)
 
 
-def mask_support_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
-                           means: np.ndarray, threshold: float = CLUSTER_COSINE) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
+                    means: np.ndarray, like: float | None = None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Obviously-correct reference of step 2 with unbounded slots (numpy, float64).
 
-    views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none)).
-    means: [K, D] unit cluster means. Returns per view (own [M], alt [M], mass [M]): the other
-    views' support of the mask's own label and of the best unlike one, in views, and Σ_i w_ij
-    (agrees with `mask_support` whenever no Gaussian meets more than VOTE_SLOTS clusters).
+    views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none),
+    embeddings [M, D]). means: [K, D] unit cluster means. like: the "like" cosine (None: own and alt
+    are 0). Returns per view (mass [M], total [M], agree [M], own [M], alt [M]) as `_agreement_kernel`
+    and `_own_alt_kernel` define them (agrees with `check_masks`' kernels whenever no Gaussian meets
+    more than CHECK_SLOTS clusters).
     """
     k = means.shape[0]
-    votes = [view_votes_reference(g, c[m], w, num_gaussians, k) for g, m, w, c in views]
+    means = means.astype(np.float64)
+    votes = [view_votes_reference(g, c[m], w, num_gaussians, k) for g, m, w, c, _ in views]
     V = np.sum(votes, axis=0) if votes else np.zeros((num_gaussians, k))
-    like = (means @ means.T) >= threshold if k else np.zeros((0, 0), bool)
     out = []
-    for (g, m, w, c), own_votes in zip(views, votes):
+    for (g, m, w, c, feats), own_votes in zip(views, votes):
         num_masks = c.shape[0]
         q = np.zeros((num_masks, k))
         np.add.at(q, m, w.astype(np.float64)[:, None] * (V - own_votes)[g])
         mass = np.bincount(m, w.astype(np.float64), num_masks)
-        q /= np.where(mass > 0, mass, 1.0)[:, None]
-        cm = np.maximum(c, 0)
-        own = np.where(c >= 0, (q * like[cm]).sum(axis=1) if k else 0.0, 0.0)
-        alt = np.where(c >= 0, np.where(~like[cm], q, 0.0).max(axis=1, initial=0.0) if k else 0.0, 0.0)
-        out.append((own, alt, mass))
+        units = unit_rows(feats)
+        units[c < 0] = 0.0
+        has = mass > 0
+        total = np.where(has, np.where(q > 0, q, 0.0).sum(axis=1) / np.where(has, mass, 1.0), 0.0)
+        consensus = np.where(q > 0, q, 0.0) @ means
+        norm = np.linalg.norm(consensus, axis=1)
+        agree = np.where(has & (norm > 0), (consensus * units).sum(axis=1) / np.where(norm > 0, norm, 1.0), 0.0)
+        own, alt = np.zeros(num_masks), np.zeros(num_masks)
+        for j in np.flatnonzero(has) if like is not None else ():
+            present = q[j] > 0
+            is_like = present & (means @ units[j] >= like)
+            unlike = present & ~is_like
+            own[j] = q[j, is_like].sum() / mass[j]
+            if unlike.any():
+                best = int(np.flatnonzero(unlike)[np.argmax(q[j, unlike])])  # first of equal maxima
+                alt[j] = q[j, unlike & (means @ means[best] >= like)].sum() / mass[j]
+        out.append((mass, total, agree, own, alt))
     return out
 
 
@@ -177,7 +205,7 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
 @numba.njit(cache=True)
 def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, q, mass):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
-    (one view, `mask_support` step 2). clusters: [P] the cluster of each pair's mask; order: the
+    (one view, `view_support`, step 2). clusters: [P] the cluster of each pair's mask; order: the
     pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive."""
     num_slots = slot_c.shape[1]
     n = order.shape[0]
@@ -212,28 +240,70 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
 
 
 @numba.njit(cache=True)
-def _own_alt_kernel(q, mass, clusters_of_mask, means, threshold, own, alt):  # pragma: no cover - jitted
-    """own[j] = Σ_{c like c(j)} q[j, c] / mass[j], alt[j] = max_{c unlike} q[j, c] / mass[j] (0 for
-    masks without a cluster or pairs); "like" is μ_c·μ_c(j) ≥ threshold, dotted only where q > 0."""
+def _agreement_kernel(q, mass, units, means, agree, total):  # pragma: no cover - jitted
+    """Per mask j: total[j] = Σ_c q[j, c] / mass[j] (the other views' votes, in views) and
+    agree[j] = f̂_j · ĉ_j, ĉ_j = normalize(Σ_c q[j, c] μ_c) (the cosine between the mask's unit
+    embedding and its Gaussians' consensus); 0 for masks without pairs or consensus."""
     num_masks, k = q.shape
     dim = means.shape[1]
+    consensus = np.empty(dim)
+    for j in range(num_masks):
+        agree[j] = 0.0
+        total[j] = 0.0
+        if not mass[j] > 0.0:
+            continue
+        for d in range(dim):
+            consensus[d] = 0.0
+        for c in range(k):
+            value = q[j, c]
+            if value > 0.0:
+                total[j] += value
+                for d in range(dim):
+                    consensus[d] += value * means[c, d]
+        total[j] /= mass[j]
+        norm = 0.0
+        dot = 0.0
+        for d in range(dim):
+            norm += consensus[d] * consensus[d]
+            dot += consensus[d] * units[j, d]
+        if norm > 0.0:
+            agree[j] = dot / np.sqrt(norm)
+
+
+@numba.njit(cache=True)
+def _own_alt_kernel(q, mass, units, means, like, own, alt):  # pragma: no cover - jitted
+    """own[j] = Σ_{c like j} q[j, c] / mass[j], "like" μ_c · f̂_j ≥ `like`; alt[j] = Σ_{c in the group
+    of c*} q[j, c] / mass[j], c* the unlike cluster of largest q and its group the unlike clusters c
+    with μ_c · μ_c* ≥ `like` (0 for masks without pairs). Dotted only where q > 0."""
+    num_masks, k = q.shape
+    dim = means.shape[1]
+    sims = np.empty(k)
     for j in range(num_masks):
         own[j] = 0.0
         alt[j] = 0.0
-        cj = clusters_of_mask[j]
-        if cj < 0 or not mass[j] > 0.0:
+        if not mass[j] > 0.0:
             continue
+        best = -1
         for c in range(k):
             value = q[j, c]
             if not value > 0.0:
                 continue
-            sim = np.float32(0.0)
+            sim = 0.0
             for d in range(dim):
-                sim += means[c, d] * means[cj, d]
-            if sim >= threshold:
+                sim += np.float64(means[c, d]) * units[j, d]
+            sims[c] = sim
+            if sim >= like:
                 own[j] += value
-            elif value > alt[j]:
-                alt[j] = value
+            elif best < 0 or value > q[j, best]:
+                best = c
+        if best >= 0:
+            for c in range(k):
+                if q[j, c] > 0.0 and sims[c] < like:
+                    sim = 0.0
+                    for d in range(dim):
+                        sim += np.float64(means[c, d]) * np.float64(means[best, d])
+                    if sim >= like:
+                        alt[j] += q[j, c]
         own[j] /= mass[j]
         alt[j] /= mass[j]
 
@@ -258,42 +328,83 @@ class PairRecord:
         return sum(v.gaussians.nbytes + v.masks.nbytes + v.weights.nbytes + v.feats.nbytes for v in self.views)
 
 
-def mask_support(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, presence: float = PRESENCE, full_view: float = FULL_VIEW,
-                 threshold: float = CLUSTER_COSINE) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Step 2 for every recorded view (module docstring): per view (own [M], alt [M], mass [M]).
+def unit_rows(feats: np.ndarray) -> np.ndarray:
+    """[M, D] float64 unit rows of feats (zero rows stay zero)."""
+    f = np.asarray(feats, np.float64)
+    norm = np.linalg.norm(f, axis=1, keepdims=True)
+    return np.divide(f, norm, out=np.zeros_like(f), where=norm > 0)
+
+
+@dataclass
+class ViewSupport:
+    """One view's masks as the check sees them: q [M, K] the other views' votes per cluster (divided
+    by mass in own / alt / total), mass [M] = Σ_i w_ij, units [M, D] the unit embeddings."""
+
+    q: np.ndarray
+    mass: np.ndarray
+    units: np.ndarray
+
+
+def view_support(view: ViewPairs, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, num_clusters: int,
+                 presence: float = PRESENCE, full_view: float = FULL_VIEW) -> ViewSupport:
+    """Step 2's q for one recorded view (`_support_kernel`). clusters: [M] the view's mask clusters;
     slot_c / slot_v: [N, S] the Gaussians' clusters and votes folded over all views (step 1)."""
+    num_masks = clusters.shape[0]
+    q = np.zeros((num_masks, num_clusters))
+    mass = np.zeros(num_masks)
+    if view.gaussians.size and num_clusters:
+        _support_kernel(view.gaussians, view.masks, view.weights, np.ascontiguousarray(clusters[view.masks], np.int32),
+                        _rows_order(view.gaussians), slot_c, slot_v, presence, full_view, q, mass)
+    elif view.gaussians.size:
+        np.add.at(mass, view.masks, view.weights.astype(np.float64))
+    units = unit_rows(view.feats)
+    units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
+    return ViewSupport(q, mass, units)
+
+
+def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
+    """The scene's "like" cosine, halfway between what a mask's consensus usually is and what two
+    different things are: ½ (median agreement of the judged masks + median cosine between two
+    masks of one view, which show different instances). None when either is missing (then nothing
+    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks with pairs."""
+    between = []
+    for units in view_units:
+        units = units[np.linalg.norm(units, axis=1) > 0]
+        if units.shape[0] > 1:
+            cos = units @ units.T
+            between.append(cos[np.triu_indices(units.shape[0], 1)])
+    if agreements.size == 0 or not between:
+        return None
+    return 0.5 * (float(np.median(agreements)) + float(np.median(np.concatenate(between))))
+
+
+def check_masks(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
+                min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
+    """Steps 2 (module docstring) on the record and the folded slots: the verdict on every mask.
+    Two passes over the views (q is recomputed, not kept: [M, K] per view)."""
     means = np.ascontiguousarray(record.clusters.means(), np.float32)
     k = means.shape[0]
-    out = []
+    agreements, units_with_pairs = [], []
     for view, clusters in zip(record.views, record.clusters.per_view):
-        num_masks = clusters.shape[0]
-        q = np.zeros((num_masks, k))
-        mass = np.zeros(num_masks)
-        own = np.zeros(num_masks)
-        alt = np.zeros(num_masks)
-        if view.gaussians.size and k:
-            _support_kernel(view.gaussians, view.masks, view.weights, np.ascontiguousarray(clusters[view.masks], np.int32),
-                            _rows_order(view.gaussians), slot_c, slot_v, presence, full_view, q, mass)
-            _own_alt_kernel(q, mass, clusters, means, np.float32(threshold), own, alt)
-        elif view.gaussians.size:
-            np.add.at(mass, view.masks, view.weights.astype(np.float64))
-        out.append((own, alt, mass))
-    return out
-
-
-def verdicts(support: list[tuple[np.ndarray, np.ndarray, np.ndarray]], min_views: float = CHECK_MIN_VIEWS,
-             min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
-    """Step 2's rule on `mask_support`'s output: drop mask j when alt_j ≥ min_views and
-    own_j < min_share · alt_j."""
+        sup = view_support(view, clusters, slot_c, slot_v, k)
+        agree, total = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
+        _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
+        agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
+        units_with_pairs.append(sup.units[sup.mass > 0])
+    like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for own, alt, mass in support:
-        judge = (mass > 0) & (alt >= min_views)
+    for view, clusters in zip(record.views, record.clusters.per_view):
+        sup = view_support(view, clusters, slot_c, slot_v, k)
+        own, alt = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
+        if like is not None:
+            _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
+        judge = (sup.mass > 0) & (alt >= min_views)
         drop = judge & (own < min_share * alt)
         keep.append(~drop)
         dropped += int(drop.sum())
         judged += int(judge.sum())
-        present += int((mass > 0).sum())
-    return MaskVerdicts(keep, dropped, judged, present)
+        present += int((sup.mass > 0).sum())
+    return MaskVerdicts(keep, dropped, judged, present, like)
 
 
 def kept_pairs(record: PairRecord, keep: list[np.ndarray], num_gaussians: int) -> list[np.ndarray]:
@@ -316,7 +427,7 @@ class CheckSink:
     place = "host"
     num_blocks = 1
 
-    def __init__(self, num_gaussians: int, dim: int, inner: Sink, slots: int = VOTE_SLOTS):
+    def __init__(self, num_gaussians: int, dim: int, inner: Sink, slots: int = CHECK_SLOTS):
         self.num_gaussians = num_gaussians
         self.inner = inner
         self.record = PairRecord(dim)
@@ -335,9 +446,10 @@ class CheckSink:
         if self.verdicts is not None:
             return
         record = self.record
-        self.verdicts = verdicts(mask_support(record, self._slot_c, self._slot_v))
-        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge)", self.verdicts.dropped, self.verdicts.present,
-                 self.verdicts.judged)
+        self.verdicts = check_masks(record, self._slot_c, self._slot_v)
+        like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
+        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)", self.verdicts.dropped,
+                 self.verdicts.present, self.verdicts.judged, like)
         self._slot_c = self._slot_v = None  # the inner sink's sums take their place
         for view, keep in zip(record.views, kept_pairs(record, self.verdicts.keep, self.num_gaussians)):
             self.inner.add(ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,
