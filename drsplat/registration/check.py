@@ -60,9 +60,10 @@ import numba
 import numpy as np
 
 from drsplat.defaults import CHECK_SLOTS
+from drsplat.memory import format_size
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, Sink
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, _rows_order
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, _rows_order, space_saving_slot
 
 log = logging.getLogger(__name__)
 
@@ -169,35 +170,31 @@ def _group_votes(order, start, end, weights, clusters, presence, full_view, foun
     return n
 
 
+@numba.njit(cache=True, inline="always")
+def _run_end(rows, order, start):  # pragma: no cover - jitted
+    """The end of the run of pairs order[start:end] on the same row as order[start] (pairs sorted by row)."""
+    end = start
+    while end < order.shape[0] and rows[order[end]] == rows[order[start]]:
+        end += 1
+    return end
+
+
 @numba.njit(cache=True)
 def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot_c, slot_v):  # pragma: no cover - jitted
     """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
     cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
     cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
     row (`_rows_order`)."""
-    num_slots = slot_c.shape[1]
     n = order.shape[0]
     found = np.empty(n, np.int32)
     votes = np.empty(n)
     start = 0
     while start < n:
         r = rows[order[start]]
-        end = start
-        while end < n and rows[order[end]] == r:
-            end += 1
+        end = _run_end(rows, order, start)
         for d in range(_group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)):
-            c = found[d]
-            hit = -1
-            low = 0
-            for s in range(num_slots):
-                if slot_c[r, s] == c or slot_c[r, s] < 0:
-                    hit = s
-                    break
-                if slot_v[r, s] < slot_v[r, low]:
-                    low = s
-            if hit < 0:
-                hit = low
-            slot_c[r, hit] = c
+            hit = space_saving_slot(slot_c, slot_v, r, found[d])
+            slot_c[r, hit] = found[d]
             slot_v[r, hit] += votes[d]
         start = end
 
@@ -215,9 +212,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     start = 0
     while start < n:
         r = rows[order[start]]
-        end = start
-        while end < n and rows[order[end]] == r:
-            end += 1
+        end = _run_end(rows, order, start)
         found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
         for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
             own[s] = 0.0
@@ -448,8 +443,8 @@ class CheckSink:
         record = self.record
         self.verdicts = check_masks(record, self._slot_c, self._slot_v)
         like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
-        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)", self.verdicts.dropped,
-                 self.verdicts.present, self.verdicts.judged, like)
+        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s; record of the pairs %s)",
+                 self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like, format_size(record.nbytes))
         self._slot_c = self._slot_v = None  # the inner sink's sums take their place
         for view, keep in zip(record.views, kept_pairs(record, self.verdicts.keep, self.num_gaussians)):
             self.inner.add(ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,

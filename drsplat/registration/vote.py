@@ -175,6 +175,20 @@ def _rows_order(rows):  # pragma: no cover - jitted
     return order
 
 
+@numba.njit(cache=True, inline="always")
+def space_saving_slot(slot_c, slot_v, r, c):  # pragma: no cover - jitted
+    """The slot of row r that cluster c goes to (space-saving): its own slot, else the first empty
+    one (-1), else the slot with the fewest votes slot_v, whose cluster c replaces and whose counts
+    it inherits; so a cluster holding more than 1/S of a row's votes is never lost."""
+    low = 0
+    for s in range(slot_c.shape[1]):
+        if slot_c[r, s] == c or slot_c[r, s] < 0:
+            return s
+        if slot_v[r, s] < slot_v[r, low]:
+            low = s
+    return low
+
+
 @numba.njit(cache=True)
 def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
     """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
@@ -185,7 +199,6 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
     A pair reads and writes its own row only, so any order that keeps each row's pairs in their
     given order (`_rows_order`) gives the same bits; sorted by row, the [rows, S] slots are walked
     in order instead of at random (2-3x on flowers views)."""
-    num_slots = slot_c.shape[1]
     for i in range(order.shape[0]):
         p = order[i]
         total[rows[p]] += weights[p]
@@ -197,16 +210,7 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
         if c < 0 or not w > 0.0:
             continue
         v = min(1.0, w / (total[r] * presence)) * min(1.0, total[r] / full_view) if presence > 0.0 else w
-        hit = -1
-        low = 0
-        for s in range(num_slots):
-            if slot_c[r, s] == c or slot_c[r, s] < 0:
-                hit = s
-                break
-            if slot_v[r, s] < slot_v[r, low]:
-                low = s
-        if hit < 0:  # space-saving: the smallest slot's cluster is replaced, its counts inherited
-            hit = low
+        hit = space_saving_slot(slot_c, slot_v, r, c)
         slot_c[r, hit] = c
         slot_v[r, hit] += v
         slot_s[r, hit] += w
