@@ -125,6 +125,7 @@ class TorchRasterOutput:
     alpha: torch.Tensor
     num_nonfinite: int | torch.Tensor = 0  # a 0-d tensor until the output is copied to the host
     median_ids: torch.Tensor | None = None
+    tile_entries: torch.Tensor | None = None  # 0-d int64: the tile-list entries the view needed (TileLists.needed)
 
     def numpy(self) -> RasterOutput:
         """The same output as numpy arrays (a RasterOutput)."""
@@ -132,7 +133,8 @@ class TorchRasterOutput:
         def host(t):
             return t.cpu().numpy() if isinstance(t, torch.Tensor) else t
 
-        fields = {f.name: host(getattr(self, f.name)) for f in dataclasses.fields(self)}  # the same fields by name
+        host_names = {f.name for f in dataclasses.fields(RasterOutput)}
+        fields = {f.name: host(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name in host_names}  # the same fields by name
         fields["num_nonfinite"] = int(fields["num_nonfinite"])
         return RasterOutput(**fields)
 
@@ -266,11 +268,40 @@ def _colors(ts: TorchScene, camera: Camera, valid: torch.Tensor) -> torch.Tensor
     return torch.where(valid[:, None], torch.clamp(rgb, min=0.0), 0.0).float()
 
 
-def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-tile lists of Gaussian ids, front to back.
+@dataclass
+class TileLists:
+    """Per-tile lists of Gaussian ids, front to back (`tile_lists_torch`).
 
-    Returns (offsets [n_tiles] int64, counts [n_tiles] int64, ids [E] int64): tile t owns
-    ids[offsets[t]:offsets[t] + counts[t]], in increasing depth (ties by id, as drsplat.raster.depth_order).
+    offsets [n_tiles] int64, counts [n_tiles] int64, ids [L] int64: tile t owns
+    ids[offsets[t]:offsets[t] + counts[t]], in increasing depth (ties by id, as drsplat.raster.depth_order);
+    entries past the lists are padding. needed: 0-d int64, the entries the view's lists need; the
+    lists are whole iff needed <= L (a list sized without reading the device can fall short: `overflowed`).
+    """
+
+    offsets: torch.Tensor
+    counts: torch.Tensor
+    ids: torch.Tensor
+    needed: torch.Tensor
+
+    def overflowed(self) -> torch.Tensor:
+        """0-d bool: the lists were cut short (more entries needed than they hold)."""
+        return self.needed > self.ids.shape[0]
+
+    def as_tuple(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.offsets, self.counts, self.ids
+
+
+def tile_lists_torch(projected: TorchProjected, capacity: int | None = None) -> TileLists:
+    """The view's tile lists, sized exactly (capacity None: the host reads the entries' number from
+    the device, one synchronisation) or with `capacity` entries (nothing read; lists cut short past
+    it, which `TileLists.overflowed` says).
+
+    Every Gaussian of the depth order owns the entries [end_g - n_g, end_g) of the flat list
+    (n_g = its getRect rectangle's tiles, end = the inclusive cumulative sum), so entry e belongs to
+    the first Gaussian with end_g > e (a binary search) and is that Gaussian's (e - end_g + n_g)-th
+    tile in row order; a stable sort by tile keeps each list in depth order. Entries past the last
+    end get the tile n_tiles and sort after every list, so the lists of a capacity at least the
+    needed number are the exact ones, entry for entry.
     """
     dev = projected.valid.device
     n_tiles_x, n_tiles_y = projected.tile_grid
@@ -282,17 +313,28 @@ def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.
     r = projected.tile_rects[order]
     span_x = r[:, 2] - r[:, 0]
     per = span_x * (r[:, 3] - r[:, 1])
-    total = int(per.sum()) if per.numel() else 0
-    if total == 0:
+    ends = torch.cumsum(per, 0)
+    needed = ends[-1] if ends.numel() else torch.zeros((), dtype=torch.int64, device=dev)
+    size = (int(needed) if ends.numel() else 0) if capacity is None else int(capacity)
+    if size == 0 or ends.numel() == 0:
         empty = torch.zeros(n_tiles, dtype=torch.int64, device=dev)
-        return empty, empty.clone(), torch.zeros(0, dtype=torch.int64, device=dev)
-    rank = torch.repeat_interleave(torch.arange(order.numel(), device=dev), per, output_size=total)
-    local = torch.arange(total, device=dev) - torch.repeat_interleave(torch.cumsum(per, 0) - per, per, output_size=total)
-    tile = (r[rank, 1] + local // span_x[rank]) * n_tiles_x + r[rank, 0] + local % span_x[rank]
-    tile_sorted, perm = torch.sort(tile, stable=True)
-    counts = torch.bincount(tile_sorted, minlength=n_tiles)
+        return TileLists(empty, empty.clone(), torch.zeros(max(size, 0), dtype=torch.int64, device=dev), needed)
+    entry = torch.arange(size, device=dev)
+    rank = torch.searchsorted(ends, entry, right=True)
+    listed = rank < ends.numel()
+    rank = torch.clamp(rank, max=ends.numel() - 1)
+    local = entry - (ends[rank] - per[rank])
+    width = torch.clamp(span_x[rank], min=1)  # padding entries may land on an empty rectangle
+    tile = (r[rank, 1] + local // width) * n_tiles_x + r[rank, 0] + local % width
+    tile_sorted, perm = torch.sort(torch.where(listed, tile, n_tiles), stable=True)
+    counts = torch.bincount(tile_sorted, minlength=n_tiles + 1)[:n_tiles]
     offsets = torch.cumsum(counts, 0) - counts
-    return offsets, counts, order[rank[perm]]
+    return TileLists(offsets, counts, order[rank[perm]], needed)
+
+
+def bin_gaussians_torch(projected: TorchProjected) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(offsets [n_tiles], counts [n_tiles], ids [E]) int64 of the exact tile lists (`tile_lists_torch`)."""
+    return tile_lists_torch(projected).as_tuple()
 
 
 def _merge_topk(best_w: torch.Tensor, best_pos: torch.Tensor, w: torch.Tensor, pos: torch.Tensor, k: int):
@@ -436,8 +478,11 @@ def composite_torch(
     background=(0.0, 0.0, 0.0),
     chunk: int = CHUNK,
     max_elements: int | None = None,
+    lists: TileLists | None = None,
 ) -> TorchRasterOutput:
-    """Bin and composite `projected` (module docstring); outputs stay on its device."""
+    """Bin and composite `projected` (module docstring); outputs stay on its device.
+
+    lists: its tile lists (`tile_lists_torch`), else made here exactly."""
     bg = _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs TorchProjected.colors (project_gaussians_torch(..., with_colors=True))")
@@ -448,7 +493,8 @@ def composite_torch(
     p_count = ts * ts
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
-    offsets, counts, tile_list = bin_gaussians_torch(projected)
+    lists = tile_lists_torch(projected) if lists is None else lists
+    offsets, counts, tile_list = lists.as_tuple()
     out = _Buffers(
         ids=torch.full((n_tiles, p_count, topk), -1, dtype=torch.int32, device=dev),
         weights=torch.zeros((n_tiles, p_count, topk), dtype=torch.float32, device=dev),
@@ -484,7 +530,8 @@ def composite_torch(
         return t[:h, :w].contiguous()
 
     median = image(out.med.to(torch.int32)) if with_median else None
-    return TorchRasterOutput(image(ids), image(weights), image(out_rgb), image(out_depth), image(acc.float()), projected.num_nonfinite, median)
+    return TorchRasterOutput(image(ids), image(weights), image(out_rgb), image(out_depth), image(acc.float()), projected.num_nonfinite, median,
+                             lists.needed)
 
 
 def rasterize_torch(
@@ -501,9 +548,14 @@ def rasterize_torch(
     device: str | torch.device | None = None,
     max_elements: int | None = None,
     fused: bool | None = None,
+    tile_capacity: int | None = None,
 ) -> TorchRasterOutput:
     """Render one view with the torch engine; the output stays on the device (tensors).
 
+    tile_capacity: size the view's tile lists to this many entries without reading the device
+    (`tile_lists_torch`); the output is then right only if `tile_entries` (the entries needed, a
+    0-d tensor in the output) is at most it, which the caller checks when it reads the device
+    anyway. None: sized exactly (one read of the device).
     device: where to run; None = the device of a TorchScene, else the CPU.
     fused: project and composite with the fused Triton kernels (drsplat.raster_triton: one launch
     each) instead of the torch ops; None = on CUDA devices when Triton is installed and no RGB /
@@ -522,12 +574,12 @@ def rasterize_torch(
         from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
 
         projected = project_gaussians_fused(ts, camera, near, mask=mask, device=ts.device)
-        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, bin_gaussians_torch(projected), topk,
-                                                                          with_median=with_median)
-        return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median)
+        lists = tile_lists_torch(projected, tile_capacity)
+        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, lists.as_tuple(), topk, with_median=with_median)
+        return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median, lists.needed)
     projected = project_gaussians_torch(ts, camera, near, mask=mask, with_colors=with_rgb, device=ts.device)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
-                           max_elements=max_elements)
+                           max_elements=max_elements, lists=tile_lists_torch(projected, tile_capacity))
 
 
 def triton_available() -> bool:

@@ -401,6 +401,69 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
         np.testing.assert_array_equal(got.features, want.features)
 
 
+@pytest.mark.parametrize("mode", ["paper", "vote-reject"])
+@pytest.mark.parametrize("policy", ["learned", "always short"])
+def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, mode, policy):
+    """The first view sizes its tile lists exactly and later ones from the views read before them
+    (nothing read inside a view); a view whose lists fell short ("always short": capacity 1) is
+    computed again with exact lists before any of it is summed. Either way: numba's field, bit for bit."""
+    import drsplat.registration.device_sums as device_sums
+
+    scene, cams, features = room
+    asked = []
+    render_pairs = device_sums.render_pairs
+
+    def spy(*args):
+        asked.append(args[7])  # tile_capacity
+        return render_pairs(*args)
+
+    monkeypatch.setattr(device_sums, "render_pairs", spy)
+    if policy == "always short":
+        monkeypatch.setattr(device_sums.TileCapacity, "capacity", lambda self: 1 if self.recent else None)
+    want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode), show_progress=False)
+    got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate=mode, engine="torch", device="cpu"), show_progress=False)
+    assert got.sums_on == "cpu" and (got.num_pairs, got.num_distinct_pairs) == (want.num_pairs, want.num_distinct_pairs)
+    np.testing.assert_array_equal(got.features, want.features)
+    np.testing.assert_array_equal(got.weights, want.weights)
+    if policy == "learned":  # view 2 is computed before view 1's sizes are read: both exact, the rest sized
+        assert asked[:2] == [None, None] and len(asked) == len(cams) and all(c is not None and c % device_sums.TILE_ROUND == 0 for c in asked[2:])
+    else:  # every sized view fell short and was computed again, exactly (the redo comes after the next view's render)
+        assert asked[:2] == [None, None] and asked.count(1) == len(cams) - 2 and asked.count(None) == 2 + len(cams) - 2
+
+
+def test_one_view_behind_hands_on_each_view_after_the_next_is_computed():
+    """The same views in order, each resolved only once the next one was computed; when computing a view
+    fails, the one before it is still handed on, then the error."""
+    from drsplat.registration.executor import one_view_behind
+
+    events = []
+
+    class View:
+        def __init__(self, i):
+            self.i = i
+
+        def resolved(self):
+            events.append(("resolved", self.i))
+            return self
+
+    def computed(count, fail_at=None):
+        for i in range(count):
+            if i == fail_at:
+                raise InputError("view.npy", "truncated")
+            events.append(("computed", i))
+            yield View(i)
+
+    assert [v.i for v in one_view_behind(computed(3))] == [0, 1, 2]
+    assert events == [("computed", 0), ("computed", 1), ("resolved", 0), ("computed", 2), ("resolved", 1), ("resolved", 2)]
+    events.clear()
+    got = []
+    with pytest.raises(InputError, match="truncated"):
+        for view in one_view_behind(computed(3, fail_at=2)):
+            got.append(view.i)
+    assert got == [0, 1] and events[-1] == ("resolved", 1)
+    assert list(one_view_behind(iter(()))) == []
+
+
 def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplog):
     """When F and W do not fit the device's free memory, the views' pairs are copied to the host sums instead."""
     import drsplat.registration.device_sums as device_sums

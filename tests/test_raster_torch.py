@@ -115,3 +115,46 @@ def test_cuda_matches_cpu():
     case = random_case(5, n=2000, sh_degree=2, topk=20)
     assert_agree(rasterize(case.scene, case.camera, case.topk, engine="torch", device="cuda", **case.kwargs),
                  numba_engine(case.scene, case.camera, case.topk, **case.kwargs))
+
+
+def _lists(lists, tile: int) -> np.ndarray:
+    start, count = int(lists.offsets[tile]), int(lists.counts[tile])
+    return lists.ids[start:start + count].numpy()
+
+
+@pytest.mark.parametrize("case", [random_case(5, n=300, topk=4)] + [c for c in hard_cases() if c.name in ("empty", "behind", "extreme-scales")],
+                         ids=lambda c: c.name)
+def test_tile_lists_sized_without_a_read_equal_the_exact_ones(case):
+    """Lists sized to a capacity at least the entries needed are the exact lists entry for entry (and
+    nothing is read from the device: no host sync); a capacity below it is reported as overflowed."""
+    from drsplat.bench.opcount import OpCounter
+    from drsplat.raster_torch import tile_lists_torch
+
+    proj = project_gaussians_torch(case.scene, case.camera)
+    exact = tile_lists_torch(proj)
+    needed = int(exact.needed)
+    assert exact.ids.shape[0] == needed and not bool(exact.overflowed())
+    for capacity in (needed, needed + 1, 2 * needed + 100):
+        with OpCounter() as counter:
+            sized = tile_lists_torch(proj, capacity)
+        assert counter.counts.syncs == 0 and sized.ids.shape[0] == capacity and not bool(sized.overflowed())
+        assert int(sized.needed) == needed
+        np.testing.assert_array_equal(sized.counts.numpy(), exact.counts.numpy())
+        np.testing.assert_array_equal(sized.offsets.numpy(), exact.offsets.numpy())
+        for tile in range(exact.counts.shape[0]):
+            np.testing.assert_array_equal(_lists(sized, tile), _lists(exact, tile))
+    if needed > 1:
+        short = tile_lists_torch(proj, needed - 1)
+        assert bool(short.overflowed()) and int(short.counts.sum()) == needed - 1
+
+
+def test_a_render_with_sized_tile_lists_equals_the_exact_one_and_reports_the_entries():
+    case = random_case(6, n=300, topk=5)
+    exact = rasterize_torch(case.scene, case.camera, 5, with_median=True)
+    needed = int(exact.tile_entries)
+    roomy = rasterize_torch(case.scene, case.camera, 5, with_median=True, tile_capacity=needed + 1000)
+    assert int(roomy.tile_entries) == needed
+    for name in ("ids", "weights", "alpha", "median_ids"):
+        np.testing.assert_array_equal(getattr(roomy, name).numpy(), getattr(exact, name).numpy())
+    short = rasterize_torch(case.scene, case.camera, 5, tile_capacity=needed // 2)
+    assert int(short.tile_entries) == needed > needed // 2, "the output says how many entries it needed"

@@ -4,7 +4,9 @@ An op is one aten call that reaches the dispatcher (one kernel launch on a GPU, 
 sync is an op that makes the host wait for the device on CUDA: reading a scalar
 (`aten::_local_scalar_dense`, behind `.item()`, `int(t)`, `bool(t)`), ops whose output size
 depends on the data (`nonzero`, boolean-mask indexing and `masked_select`, `unique`,
-`repeat_interleave` without an output size), copies from a device to the CPU, and copies from
+`repeat_interleave` without an output size), copies from a device to the CPU (except with
+non_blocking into pinned memory, which the host reads later, after an event: a read a view late,
+drsplat.registration.device_sums.DeviceRead), and copies from
 the CPU to a device that are blocking or from pageable memory (CUDA waits for the stream's queued
 work before it copies pageable memory; only a pinned source with non_blocking runs ahead). The same ops are
 counted on a CPU, where they cost no synchronisation but show what a GPU run would wait for.
@@ -49,9 +51,9 @@ def is_host_sync(name: str, args: tuple, kwargs: dict) -> bool:
         if not isinstance(src, torch.Tensor) or dst_device is None:
             return False
         dst = torch.device(dst_device).type
-        if src.device.type != "cpu":
-            return dst == "cpu"
         non_blocking = args[2] if name == "aten::copy_" and len(args) > 2 else kwargs.get("non_blocking", False)
+        if src.device.type != "cpu":  # into pinned memory with non_blocking: queued, the host reads it after an event
+            return dst == "cpu" and not (name == "aten::copy_" and non_blocking and _pinned(args[0]))
         return dst != "cpu" and not (non_blocking and _pinned(src))
     return False
 

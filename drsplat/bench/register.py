@@ -417,6 +417,7 @@ class _ViewCounter:
         job = ViewJob(features_dir, 0, topk, engine, device, self.aggregator.hook, device_pairs=on_device)
         self.computer = ViewComputer(prepare_geometry(scene), job)
         self.sink = None
+        self._pending = None  # the view computed last, handed to the sink once the next one is computed (as the driver does)
         self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
         self.after_raster_ms = []  # coalescing and summing (on CUDA: from the render's issue to the sums' end)
 
@@ -435,7 +436,9 @@ class _ViewCounter:
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         t0 = time.perf_counter()
-        self._add(self.computer.compute(cam, mask_ids, feats))
+        self._step(cam, mask_ids, feats)
+        if not counted:  # a warm-up: its sizes read now, so that the counted views size their tile lists from it
+            self._flush()
         if cuda:
             torch.cuda.synchronize()
             self.peak_mb = max(self.peak_mb or 0.0, torch.cuda.max_memory_allocated() / 2**20)
@@ -444,15 +447,27 @@ class _ViewCounter:
         self.ms.append(1e3 * (time.perf_counter() - t0))
         self.after_raster_ms.append(self.ms[-1] - 1e3 * self._raster_seconds)
         with OpCounter() as counter:
-            self._add(self.computer.compute(cam, mask_ids, feats))
+            self._step(cam, mask_ids, feats)
         self.ops.append(counter.counts.ops)
         self.views_only.append(counter.counts.views)
         self.syncs.append(counter.counts.syncs)
         self.sync_names = counter.counts.syncs_by_name
 
+    def _step(self, cam, mask_ids, feats) -> None:
+        """One view's work in the driver's order (drsplat.registration.executor.one_view_behind):
+        compute this view, then read the sizes of the one before and sum it."""
+        view = self.computer.compute(cam, mask_ids, feats)
+        self._raster_seconds = view.raster_seconds
+        self._flush()
+        self._pending = view
+
+    def _flush(self) -> None:
+        if self._pending is not None:
+            self._add(self._pending.resolved())
+            self._pending = None
+
     def _add(self, view) -> None:
         """The driver's part of a view: the mode's statistics folded, the pairs summed."""
-        self._raster_seconds = view.raster_seconds
         self.aggregator.add(view.stats)
         self.sink.add(view)
 
@@ -460,6 +475,7 @@ class _ViewCounter:
         """The per-view medians, and the sums' hand-over after the views (`blocks`: the device sink's
         copy to the host, the host sink's last flush of its buffered pairs into F)."""
         views = len(self.ms)
+        self._flush()
         t0 = time.perf_counter()
         for _ in self.sink.blocks() if self.sink is not None else ():
             pass

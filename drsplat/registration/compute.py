@@ -132,13 +132,16 @@ class ViewComputer:
         self.projected = 0  # Gaussians handed to the rasterizer, summed over this computer's views
         self._render_pairs = None
         self._rays = None
+        self._tiles = None  # the device path's TileCapacity: tile lists sized from the views read before
         if job.device_pairs:
             if job.engine != "torch":
                 raise ValueError("pairs are coalesced on the device with the torch engine only")
             # imports torch: only the torch engine's device path needs it
-            from drsplat.registration.device_sums import DeviceRays, render_pairs
+            from drsplat.registration.device_sums import DeviceRays, PendingSizes, TileCapacity, render_pairs
 
             self._render_pairs = render_pairs
+            self._pending_sizes = PendingSizes
+            self._tiles = TileCapacity()
             if hook is not None and hook.reject:  # the floater statistics are computed on the device too
                 self._rays = DeviceRays.from_host(hook.rays, self._prepared.device)
 
@@ -159,15 +162,19 @@ class ViewComputer:
         view.raster_seconds, view.coalesce_seconds = t1 - t0, time.perf_counter() - t1
         return view
 
-    def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int) -> ViewPairs:
-        """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays empty)."""
+    def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int, exact: bool = False) -> ViewPairs:
+        """`compute` with the pairs coalesced and left on the device (ViewPairs.device; host arrays
+        empty) and its sizes pending (`ViewPairs.resolved` reads them; nothing is read here unless
+        the tile lists are sized exactly: `exact`, or no view was read yet)."""
         t0 = time.perf_counter()
         weighting = self.job.hook.weighting if self.job.hook is not None else "paper"
-        pairs, contributing, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
-                                                                        self._rays)
+        capacity = None if exact else self._tiles.capacity()
+        pairs, read, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
+                                                                self._rays, capacity)
+        pairs.pending = self._pending_sizes(read, capacity, self._tiles.saw, lambda: self._compute_on_device(cam, mask_ids, feats, nonfinite, exact=True))
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         none = np.zeros(0, np.int32)
-        return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, contributing, num_nonfinite=nonfinite,
+        return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, 0, num_nonfinite=nonfinite,
                          raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, stats=stats, device=pairs)
 
     def rasterize(self, cam: Camera):

@@ -17,19 +17,26 @@ drsplat.registration.sums), this module keeps them there:
     DeviceSupport    their fold over the views, kept on the device (copied to the host for a
                      checkpoint snapshot and once at the end, for the rejected mask)
 
-The driver (drsplat.registration.driver) reads two numbers per view from the device (the view's
-distinct and contributing pair counts, to size the sums' update), and a `-vote` mode two more
-(the vote's rounds, and the M flags of the masks that reached a Gaussian, for the mask clusters
-made on the host); the pairs themselves reach the host only when a pair log is kept (a
-checkpoint, or a run in Gaussian blocks), through `DevicePairs.to_host`. torch is imported here: the driver imports this module only for the torch
-engine.
+A view's sizes are read one view late: its tile lists are sized from the views before it
+(`TileCapacity`, nothing read), and its distinct and contributing pair counts and the tile
+entries it needed travel to the host in one small copy that does not wait (`DeviceRead`). The
+driver takes each view only once the next one is computed (drsplat.registration.executor.
+one_view_behind), so by the time it reads a view's sizes the device has long finished them and is
+busy with the next view; a view whose tile lists fell short is computed again with exact lists
+(`DevicePairs.resolve`) before anything of it is summed, so every view is summed whole and in
+order. A `-vote` mode still reads the device inside a view (the vote's rounds, and the M flags
+of the masks that reached a Gaussian, for the mask clusters made on the host); the pairs
+themselves reach the host only when a pair log is kept (a checkpoint, or a run in Gaussian
+blocks), through `DevicePairs.to_host`. torch is imported here: the driver imports this module
+only for the torch engine.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -45,6 +52,74 @@ from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, trimmed
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
+TILE_HEADROOM = 1.25  # tile-list entries allocated per entry the recent views needed
+TILE_WINDOW = 8  # recent views whose tile-list sizes set the next view's
+TILE_ROUND = 1 << 16  # tile-list sizes are multiples of this (fewer distinct sizes for the caching allocator)
+
+
+class DeviceRead:
+    """A few int64 values of the device that the host reads later without waiting for the work
+    queued after them: on CUDA copied with non_blocking into pinned memory and marked by an event,
+    so `values` waits only for the work up to the copy (a view late, long done); on a CPU the
+    tensor itself.
+
+    values: [K] int64 on the device.
+    """
+
+    def __init__(self, values: torch.Tensor):
+        self._event = None
+        self._host = values
+        if values.device.type == "cuda":
+            self._host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)
+            self._host.copy_(values, non_blocking=True)
+            self._event = torch.cuda.Event()
+            self._event.record()
+        self._values: list[int] | None = None
+
+    @property
+    def event(self):
+        """The torch.cuda.Event recorded after the values were made (None on a CPU)."""
+        return self._event
+
+    def values(self) -> list[int]:
+        if self._values is None:
+            if self._event is not None:
+                self._event.synchronize()
+            self._values = [int(x) for x in self._host.tolist()]
+        return self._values
+
+
+@dataclass
+class TileCapacity:
+    """How many tile-list entries to allocate for a view without reading the device: TILE_HEADROOM x
+    the most any of the last TILE_WINDOW views read needed, rounded up to a multiple of TILE_ROUND;
+    None (size exactly, one read) before any view was read. A view that needs more is computed again
+    (`DevicePairs.resolve`), and its size joins the window."""
+
+    recent: list[int] = field(default_factory=list)
+
+    def capacity(self) -> int | None:
+        if not self.recent:
+            return None
+        want = max(1, int(np.ceil(TILE_HEADROOM * max(self.recent))))
+        return -(-want // TILE_ROUND) * TILE_ROUND
+
+    def saw(self, needed: int) -> None:
+        self.recent = (self.recent + [int(needed)])[-TILE_WINDOW:]
+
+
+@dataclass
+class PendingSizes:
+    """What a view computed on the device still has to learn from it (`DevicePairs.resolve`).
+
+    read: (distinct pairs, contributing slots, tile-list entries needed); tile_capacity: the entries
+    its tile lists held (None: sized exactly); on_read: told the entries needed (`TileCapacity.saw`);
+    redo: the view computed again with exact tile lists (a new, pending ViewPairs)."""
+
+    read: DeviceRead
+    tile_capacity: int | None
+    on_read: Callable[[int], None]
+    redo: Callable[[], ViewPairs]
 
 
 @dataclass
@@ -55,29 +130,64 @@ class DevicePairs:
     w_ij, sorted by (mask, Gaussian). When `coalesce_torch` returns them they are padded to the
     view's H·W·k slots (padding: Gaussian = num_gaussians, mask 0, weight 0, after the real pairs)
     and `counts` [2] int64 holds (distinct pairs P, contributing slots); `trimmed` cuts them to P.
+    mask_flags: [M] int64, 1 for the masks some pair holds (or None). pending: the sizes not read yet
+    (`resolve`), or None. ready: on CUDA, the event after which the pairs are made (`to_host`).
     """
 
     gaussians: torch.Tensor
     masks: torch.Tensor
     weights: torch.Tensor
     counts: torch.Tensor
+    mask_flags: torch.Tensor | None = None
+    pending: PendingSizes | None = None
+    ready: object | None = None  # a torch.cuda.Event recorded once the pairs were made (CUDA), else None
 
     @property
     def num_distinct(self) -> int:
+        if self.pending is not None:
+            raise RuntimeError("the view's sizes are not read yet: take ViewPairs.resolved() first")
         return int(self.gaussians.shape[0])
 
     def trimmed(self, distinct: int) -> DevicePairs:
         """The first `distinct` pairs (views of the tensors; `distinct` read from `counts` by the caller)."""
-        return DevicePairs(self.gaussians[:distinct], self.masks[:distinct], self.weights[:distinct], self.counts)
+        return DevicePairs(self.gaussians[:distinct], self.masks[:distinct], self.weights[:distinct], self.counts, self.mask_flags)
+
+    def resolve(self, view: ViewPairs) -> ViewPairs:
+        """`view` (whose pairs these are) with its sizes read: the pairs trimmed, num_pairs and the
+        present masks set, or, when its tile lists fell short, the view computed again with exact
+        lists and resolved."""
+        distinct, contributing, needed, *present = self.pending.read.values()
+        self.pending.on_read(needed)
+        if self.pending.tile_capacity is not None and needed > self.pending.tile_capacity:
+            return self.pending.redo().resolved()
+        pairs = dataclasses.replace(self.trimmed(distinct), ready=self.pending.read.event)
+        return dataclasses.replace(view, num_pairs=contributing, device=pairs, present=np.array(present, bool))
 
     def present(self, num_masks: int) -> np.ndarray:
         """[num_masks] bool on the host: the masks some pair holds (M flags copied, not the pairs)."""
         return torch.zeros(num_masks, dtype=torch.bool, device=self.masks.device).index_fill_(0, self.masks, True).cpu().numpy()
 
     def to_host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(gaussians [P] int32, masks [P] int32, weights [P] float32) on the host, in one copy."""
-        packed = torch.stack([self.gaussians.to(torch.int32), self.masks.to(torch.int32), self.weights.view(torch.int32)])
-        host = packed.cpu().numpy()
+        """(gaussians [P] int32, masks [P] int32, weights [P] float32) on the host, in one copy.
+
+        On CUDA, when the pairs' DeviceRead marked where they were done (`ready`), the packing and
+        the copy run on a side stream that waits for that mark only, so the host waits for this
+        copy, not for the next view's render queued after it (the driver takes a view while the
+        next one renders). Unmeasured on a GPU."""
+
+        def packed() -> torch.Tensor:
+            return torch.stack([self.gaussians.to(torch.int32), self.masks.to(torch.int32), self.weights.view(torch.int32)])
+
+        if self.ready is None:
+            host = packed().cpu().numpy()
+        else:
+            side = torch.cuda.Stream(device=self.gaussians.device)
+            side.wait_event(self.ready)
+            with torch.cuda.stream(side):
+                pinned = torch.empty((3, self.gaussians.shape[0]), dtype=torch.int32, pin_memory=True)
+                pinned.copy_(packed(), non_blocking=True)
+            side.synchronize()
+            host = pinned.numpy()
         return host[0].copy(), host[1].copy(), host[2].view(np.float32).copy()
 
 
@@ -159,7 +269,8 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     gaussians = torch.where(real, first_key % max(num_gaussians, 1), torch.full_like(first_key, num_gaussians)).to(torch.int64)
     masks = torch.where(real, first_key // max(num_gaussians, 1), torch.zeros_like(first_key)).to(torch.int64)
     counts = torch.stack([(starts & (sorted_keys < empty_key)).sum(), valid.sum()])
-    return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts)
+    flags = torch.zeros(num_masks + 1, dtype=torch.int64, device=device).index_fill_(0, torch.where(valid, m, num_masks), 1)[:num_masks]
+    return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts, flags)
 
 
 def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means2d: torch.Tensor | None = None,
@@ -397,8 +508,8 @@ class DeviceSupport:
         return self.host().rejected()
 
 
-def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
-                 weighting: str = "paper", rays: DeviceRays | None = None) -> tuple[DevicePairs, int, float, DeviceViewStats | None]:
+def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int, weighting: str = "paper",
+                 rays: DeviceRays | None = None, tile_capacity: int | None = None) -> tuple[DevicePairs, DeviceRead, float, DeviceViewStats | None]:
     """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
     pairs there (`coalesce_torch`).
 
@@ -406,15 +517,16 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     mode's per-view weighting (core, ellipse, centre, anchor project the scene once more; explain
     runs its EM on the view's slots and masks, `explain_weights_torch`). rays:
     the scene's ray geometry on the device for a `-reject` mode (the view is rendered with its
-    median Gaussians and its floater statistics computed there), else None. Returns (the view's
-    DevicePairs trimmed to its P distinct pairs, contributing slots, seconds until the render's ops
-    were issued, its DeviceViewStats or None): the two counts are the one read of the device this
-    adds to a view (the rasterizer reads one more, the size of its tile lists). On CUDA the render
-    runs on after it was issued, so the seconds then split the view where the host waited, not
-    where the device worked.
+    median Gaussians and its floater statistics computed there), else None. tile_capacity: the
+    tile lists' size (`TileCapacity`; None: exact, the one read of the device inside a view).
+    Returns (the view's DevicePairs padded to H·W·k, the DeviceRead of (distinct pairs P,
+    contributing slots, tile-list entries needed, the M present-mask flags), seconds until the render's ops were issued, its
+    DeviceViewStats or None): nothing is read here. The pairs are right when the entries needed fit
+    tile_capacity. On CUDA the render runs on after it was issued, so the seconds then split the
+    view where the host waited, not where the device worked.
     """
     t0 = time.perf_counter()
-    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device)
+    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device, tile_capacity=tile_capacity)
     raster_seconds = time.perf_counter() - t0
     stats = None
     if rays is not None:
@@ -427,9 +539,8 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
         projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
         weights = view_weights_torch(weighting, out.ids, out.weights, *((projected.means2d, projected.conics) if projected else ()))
     pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
-    both = int((pairs.counts[0] << 32) | pairs.counts[1])  # one read for both counts (each < 2**31: H·W·k slots)
-    distinct, contributing = both >> 32, both & 0xFFFFFFFF
-    return pairs.trimmed(distinct), contributing, raster_seconds, stats
+    read = DeviceRead(torch.cat([pairs.counts, out.tile_entries.reshape(1).to(pairs.counts.device), pairs.mask_flags]))
+    return pairs, read, raster_seconds, stats
 
 
 def sums_fit_device(num_gaussians: int, dim: int, device: str, extra_per_gaussian: int = 0) -> bool:
@@ -497,30 +608,28 @@ class DeviceSink:
         return self.F[index].cpu().numpy().copy(), self.W[index].cpu().numpy().copy()
 
 
-def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float,
-                    slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
-    """`vote._vote_view_kernel` on the device: fold one view's pairs into the vote slots, in place.
+@dataclass
+class VoteRounds:
+    """One view's pairs laid out for the vote's rounds (`vote_rounds_torch`), on the device.
 
-    rows: [P] int64 Gaussians, clusters: [P] int64 (-1 none), weights: [P] float32, in the view's
-    pair order; slot_c [N, S] int32 (-1 empty), slot_v / slot_s [N, S] float64. A Gaussian's pairs
-    act one after another (the space-saving rule depends on its slots as earlier pairs left them),
-    so the acting pairs (a cluster and w > 0) are numbered within their Gaussian, in pair order, and
-    round r folds every Gaussian's r-th acting pair at once: a contiguous run of the pairs sorted by
-    that number, one pair per Gaussian, so no two writes of a round meet:
+    g / c: [P] int64 Gaussians and clusters, w / v: [P] float64 weights and votes, in the pairs'
+    order sorted by Gaussian (stable); by_round: [P] positions of the pairs by (round, order);
+    read: (rounds, then the end of each of up to M rounds in by_round), read by `fold_vote_rounds`."""
 
-        T_iv = Σ_{j ∈ view} w_ij (float64, in pair order), v = min(1, w / (T·ρ)) · min(1, T / T₀)
-        slot = the cluster's slot, else the first empty one, else the one of fewest votes (first of
-        equal), which the cluster takes over with its counts; V += v, S += w
+    g: torch.Tensor
+    c: torch.Tensor
+    w: torch.Tensor
+    v: torch.Tensor
+    by_round: torch.Tensor
+    read: DeviceRead
 
-    Reads the device twice per view (the number of rounds, then each round's run length). Equal
-    to the kernel bit for bit on the CPU (one addition per slot and round, in its order), and on
-    CUDA too as long as T_iv is: its index_add adds in no fixed order there, but a float64 sum of
-    float32 weights is exact in any order unless they span more than 2^29.
-    """
-    p = int(rows.shape[0])
-    if p == 0:
-        return
-    dev, n = rows.device, slot_c.shape[0]
+
+def vote_rounds_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float,
+                      num_masks: int, num_gaussians: int) -> VoteRounds:
+    """The first half of `vote_view_torch`: the votes and the rounds of one view's P > 0 pairs, without
+    reading the device (its sizes travel in a DeviceRead). A Gaussian has at most one pair per mask,
+    so at most `num_masks` rounds."""
+    dev, n, p = rows.device, max(int(num_gaussians), 1), int(rows.shape[0])
     w = weights.to(torch.float64)
     total = torch.zeros(n, dtype=torch.float64, device=dev).index_add_(0, rows, w)[rows]
     order = torch.sort(rows, stable=True).indices
@@ -535,13 +644,19 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
     group_start = torch.cummax(torch.where(first, steps, 0), 0).values
     rank = torch.where(acting > 0, before - before[group_start], p)  # p: not acting, after every round
     rank, by_round = torch.sort(rank, stable=True)
-    rounds = int(torch.where(rank < p, rank, -1).max()) + 1
-    if rounds == 0:
-        return
-    ends = torch.searchsorted(rank, torch.arange(1, rounds + 1, device=dev)).tolist()
+    rounds = torch.where(rank < p, rank, -1).max().reshape(1) + 1
+    ends = torch.searchsorted(rank, torch.arange(1, max(int(num_masks), 1) + 1, device=dev))
+    return VoteRounds(g, c, w, v, by_round, DeviceRead(torch.cat([rounds, ends])))
+
+
+def fold_vote_rounds(rounds: VoteRounds, slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
+    """The second half of `vote_view_torch`: fold the view's rounds into the slots, in place (reads
+    its DeviceRead: a view late in DeviceVoteSink, when the device is done with it)."""
+    count, *ends = rounds.read.values()
+    g, c, w, v = rounds.g, rounds.c, rounds.w, rounds.v
     begin = 0
-    for end in ends:
-        pick = by_round[begin:end]
+    for end in ends[:count]:
+        pick = rounds.by_round[begin:end]
         begin = end
         row, cl = g[pick], c[pick].to(torch.int32)
         sc = slot_c[row]
@@ -552,12 +667,41 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
         slot_s[row, slot] = slot_s[row, slot] + w[pick]
 
 
+def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float,
+                    slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor, num_masks: int | None = None) -> None:
+    """`vote._vote_view_kernel` on the device: fold one view's pairs into the vote slots, in place.
+
+    rows: [P] int64 Gaussians, clusters: [P] int64 (-1 none), weights: [P] float32, in the view's
+    pair order; slot_c [N, S] int32 (-1 empty), slot_v / slot_s [N, S] float64. A Gaussian's pairs
+    act one after another (the space-saving rule depends on its slots as earlier pairs left them),
+    so the acting pairs (a cluster and w > 0) are numbered within their Gaussian, in pair order, and
+    round r folds every Gaussian's r-th acting pair at once: a contiguous run of the pairs sorted by
+    that number, one pair per Gaussian, so no two writes of a round meet:
+
+        T_iv = Σ_{j ∈ view} w_ij (float64, in pair order), v = min(1, w / (T·ρ)) · min(1, T / T₀)
+        slot = the cluster's slot, else the first empty one, else the one of fewest votes (first of
+        equal), which the cluster takes over with its counts; V += v, S += w
+
+    num_masks: the view's masks (bounds the rounds; None: P). `vote_rounds_torch` then
+    `fold_vote_rounds`, which reads the rounds' ends (DeviceVoteSink reads them a view late). Equal
+    to the kernel bit for bit on the CPU (one addition per slot and round, in its order), and on
+    CUDA too as long as T_iv is: its index_add adds in no fixed order there, but a float64 sum of
+    float32 weights is exact in any order unless they span more than 2^29.
+    """
+    if rows.shape[0] == 0:
+        return
+    limit = int(rows.shape[0]) if num_masks is None else num_masks
+    fold_vote_rounds(vote_rounds_torch(rows, clusters, weights, presence, full_view, limit, slot_c.shape[0]), slot_c, slot_v, slot_s)
+
+
 class DeviceVoteSink:
     """The `-vote` stage's sink on the device (drsplat.registration.vote.VoteSink's one-block form):
-    the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view by
-    `vote_view_torch`; the views' mask clusters on the host (a view's embeddings, in view order).
-    `blocks` copies F, W and the slots to the host once and trims there (`trimmed_features`), so
-    the result is the host VoteSink's bits on a CPU.
+    the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view as
+    `vote_view_torch` does, but a view late: `add` lays out a view's rounds (`vote_rounds_torch`)
+    and folds the view before it (`fold_vote_rounds`), whose rounds the device finished long ago,
+    so reading their number does not wait; the views' mask clusters on the host (a view's
+    embeddings, in view order). `blocks` folds the last view, copies F, W and the slots to the host
+    once and trims there (`trimmed_features`), so the result is the host VoteSink's bits on a CPU.
     """
 
     num_blocks = 1
@@ -572,6 +716,7 @@ class DeviceVoteSink:
         self.slot_c = torch.full(rows, -1, dtype=torch.int32, device=self.device)
         self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
+        self._unfolded: VoteRounds | None = None  # the last view's rounds, folded when the next view arrives
 
     def add(self, view: ViewPairs) -> None:
         pairs = view.device
@@ -583,13 +728,21 @@ class DeviceVoteSink:
             rows, masks, weights = pairs.gaussians, pairs.masks, pairs.weights
         cluster_of_mask = to_device(self.clusters.add(view.feats, view.present_masks()).astype(np.int64), self.device)
         self._sums.add(view)
+        self._fold()
         if rows.shape[0]:
-            vote_view_torch(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, self.slot_c, self.slot_v, self.slot_s)
+            self._unfolded = vote_rounds_torch(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, view.feats.shape[0],
+                                               self.slot_c.shape[0])
+
+    def _fold(self) -> None:
+        if self._unfolded is not None:
+            fold_vote_rounds(self._unfolded, self.slot_c, self.slot_v, self.slot_s)
+            self._unfolded = None
 
     def positive(self) -> np.ndarray:
         return self._sums.positive()
 
     def _trimmed(self, index: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray]:
+        self._fold()
         F, W = self._sums.F, self._sums.W
         c, v, s = self.slot_c, self.slot_v, self.slot_s
         if index is not None:

@@ -42,7 +42,7 @@ from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.check import CheckSink
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
-from drsplat.registration.executor import open_executor
+from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
@@ -409,8 +409,9 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
                   log_params=ckpt.log.params if shards else None)
     executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
+    views = one_view_behind(stream) if device_pairs else stream  # a device view's sizes are read while the next one renders
     try:
-        for view in progress(stream, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
+        for view in progress(views, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
             c0 = time.process_time()
             if ckpt is not None or sink.place == "host":
                 view = view.on_host()  # for the log or the host sums: one copy of the view's pairs

@@ -13,7 +13,7 @@ Every (engine, place) pair gives the same pairs, hence the same field (tests/tes
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Protocol
 
 from drsplat.cameras import Camera
@@ -58,6 +58,29 @@ class LocalExecutor:
 
     def close(self) -> None:
         self._computer = None
+
+
+def one_view_behind(views: Iterable[ViewPairs]) -> Iterator[ViewPairs]:
+    """`views` in order, each resolved (`ViewPairs.resolved`) and handed on only once the next one
+    was computed: a view computed on a device has its sizes read while the device works on the next
+    one, so reading them does not leave the device idle. The same views, in the same order; when
+    computing a view fails, the view before it is still handed on first (a checkpoint keeps it)."""
+    pending = None
+    stream = iter(views)
+    while True:
+        try:
+            view = next(stream)
+        except StopIteration:
+            break
+        except BaseException:
+            if pending is not None:
+                yield pending.resolved()
+            raise
+        if pending is not None:
+            yield pending.resolved()
+        pending = view
+    if pending is not None:
+        yield pending.resolved()
 
 
 # The places: a new one is a class taking (geometry, job, cluster) with view_pairs / close, and one line here.

@@ -109,6 +109,14 @@ class ViewPairs:
             return int(self.shard["meta"]["P"])
         return self.device.num_distinct if self.device is not None else int(self.gaussians.shape[0])
 
+    def resolved(self) -> ViewPairs:
+        """This view with the sizes of its device pairs read (drsplat.registration.device_sums.
+        DevicePairs.resolve: a view computed on a device learns them a view late); itself when none
+        are pending."""
+        if self.device is None or getattr(self.device, "pending", None) is None:
+            return self
+        return self.device.resolve(self)
+
     def present_masks(self) -> np.ndarray:
         """[M] bool: the masks that reached some Gaussian in this view (from the device when its pairs
         are there only: M flags copied, not the pairs)."""
