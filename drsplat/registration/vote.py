@@ -60,6 +60,7 @@ CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this sim
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
 FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
 PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
+VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -189,33 +190,72 @@ def space_saving_slot(slot_c, slot_v, r, c):  # pragma: no cover - jitted
     return low
 
 
-@numba.njit(cache=True)
-def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
-    """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
-    weights [P] float32) into the vote slots (module docstring, step 2), pair by pair in the given
-    order [P] (a permutation): slot_v the votes V_ic, slot_s the paper's weight S_ic = Σ w_ij of the
-    slot's cluster (what the trimmed mean removes). total: [rows] float64 scratch, zero on entry and exit.
-
-    A pair reads and writes its own row only, so any order that keeps each row's pairs in their
-    given order (`_rows_order`) gives the same bits; sorted by row, the [rows, S] slots are walked
-    in order instead of at random (2-3x on flowers views)."""
-    for i in range(order.shape[0]):
-        p = order[i]
-        total[rows[p]] += weights[p]
-    for i in range(order.shape[0]):
-        p = order[i]
-        r = rows[p]
-        c = clusters[p]
-        w = np.float64(weights[p])
+def vote_view_reference(rows, clusters, weights, presence, full_view, slot_c, slot_v, slot_s) -> None:
+    """Plain-Python reference of `_vote_view_kernel`: fold one view's pairs, one after another in the
+    given order, into the slots (in place; module docstring, step 2). The per-Gaussian total
+    T_iv = Σ_j w_ij is summed in float64 in pair order first."""
+    total = {}
+    for r, w in zip(rows.tolist(), weights.tolist()):
+        total[r] = total.get(r, 0.0) + w
+    for r, c, w in zip(rows.tolist(), clusters.tolist(), weights.tolist()):
         if c < 0 or not w > 0.0:
             continue
         v = min(1.0, w / (total[r] * presence)) * min(1.0, total[r] / full_view) if presence > 0.0 else w
-        hit = space_saving_slot(slot_c, slot_v, r, c)
+        hit = next((s for s in range(slot_c.shape[1]) if slot_c[r, s] == c or slot_c[r, s] < 0), None)
+        if hit is None:
+            hit = int(np.argmin(slot_v[r]))  # the first of the fewest votes
         slot_c[r, hit] = c
         slot_v[r, hit] += v
         slot_s[r, hit] += w
-    for i in range(order.shape[0]):
-        total[rows[order[i]]] = 0.0
+
+
+@numba.njit(cache=True)
+def _row_aligned_cuts(rows, order, parts):  # pragma: no cover - jitted
+    """[parts + 1] int64 cuts of `order` (pairs grouped by row) into about equal parts that never
+    split a row's run (some may be empty)."""
+    n = order.shape[0]
+    cuts = np.empty(parts + 1, np.int64)
+    cuts[0] = 0
+    cuts[parts] = n
+    for c in range(1, parts):
+        i = max(c * n // parts, cuts[c - 1])
+        while 0 < i < n and rows[order[i]] == rows[order[i - 1]]:
+            i += 1
+        cuts[c] = i
+    return cuts
+
+
+@numba.njit(cache=True, parallel=True)
+def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total, slot_c, slot_v, slot_s):  # pragma: no cover - jitted
+    """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
+    weights [P] float32) into the vote slots (module docstring, step 2): slot_v the votes V_ic,
+    slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what the trimmed mean removes).
+    order [P]: the pairs grouped by row, each row's pairs in their given order (`_rows_order`).
+    total: [rows] float64 scratch, zero on entry and exit.
+
+    A pair reads and writes its own row only, so the view is cut into VOTE_PARTS row-aligned parts
+    folded in parallel, each in order: the bits of `vote_view_reference` taking the pairs in that
+    order (tested); sorted by row, the [rows, S] slots are walked in order instead of at random."""
+    cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
+    for part in numba.prange(VOTE_PARTS):
+        lo, hi = cuts[part], cuts[part + 1]
+        for i in range(lo, hi):
+            p = order[i]
+            total[rows[p]] += weights[p]
+        for i in range(lo, hi):
+            p = order[i]
+            r = rows[p]
+            c = clusters[p]
+            w = np.float64(weights[p])
+            if c < 0 or not w > 0.0:
+                continue
+            v = min(1.0, w / (total[r] * presence)) * min(1.0, total[r] / full_view) if presence > 0.0 else w
+            hit = space_saving_slot(slot_c, slot_v, r, c)
+            slot_c[r, hit] = c
+            slot_v[r, hit] += v
+            slot_s[r, hit] += w
+        for i in range(lo, hi):
+            total[rows[order[i]]] = 0.0
 
 
 def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
