@@ -431,6 +431,34 @@ def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, mode,
         assert asked[:2] == [None, None] and asked.count(1) == len(cams) - 2 and asked.count(None) == 2 + len(cams) - 2
 
 
+def test_views_that_see_nothing_then_more_than_learned_give_numbas_field(room, monkeypatch):
+    """The tile lists' size swings: a view turned away from the scene (no tile entries, no pairs), then
+    views needing more entries than any view read before them (their lists fall short, sized
+    tightly here, and they are computed again); the device path still writes numba's field."""
+    import drsplat.registration.device_sums as device_sums
+
+    scene, cams, features = room
+    monkeypatch.setattr(device_sums, "TILE_ROUND", 1)
+    monkeypatch.setattr(device_sums, "TILE_HEADROOM", 1.0)
+    seen, asked = [], []
+    saw, render_pairs = device_sums.TileCapacity.saw, device_sums.render_pairs
+    monkeypatch.setattr(device_sums.TileCapacity, "saw", lambda self, needed: seen.append(needed) or saw(self, needed))
+    monkeypatch.setattr(device_sums, "render_pairs", lambda *args: asked.append(args[7]) or render_pairs(*args))
+    flip = np.diag([-1.0, 1.0, -1.0])  # half a turn about the camera's y axis: it looks away from the scene
+    centre = scene.means.mean(axis=0)
+    eye = -cams[0].R.T @ cams[0].t
+    far = centre + 1e3 * (eye - centre) / np.linalg.norm(eye - centre)
+    away = dataclasses.replace(cams[0], R=flip @ cams[0].R, t=-(flip @ cams[0].R) @ far)
+    views = [away, cams[1], cams[0], cams[3]]
+    want = register_features(scene, views, features, RegisterOptions(topk=8, aggregate="vote-reject"), show_progress=False)
+    got = register_features(scene, views, features, RegisterOptions(topk=8, aggregate="vote-reject", engine="torch", device="cpu"),
+                            show_progress=False)
+    assert got.sums_on == "cpu" and got.num_assigned == want.num_assigned > 0
+    np.testing.assert_array_equal(got.features, want.features)
+    assert seen[0] == 0, "the first view sees nothing"
+    assert asked[2] == 1 and asked.count(None) > 2, "a view sized from the empty one fell short and was computed again"
+
+
 def test_one_view_behind_hands_on_each_view_after_the_next_is_computed():
     """The same views in order, each resolved only once the next one was computed; when computing a view
     fails, the one before it is still handed on, then the error."""
