@@ -24,10 +24,11 @@ driver takes each view only once the next one is computed (drsplat.registration.
 one_view_behind), so by the time it reads a view's sizes the device has long finished them and is
 busy with the next view; a view whose tile lists fell short is computed again with exact lists
 (`DevicePairs.resolve`) before anything of it is summed, so every view is summed whole and in
-order. A `-vote` mode still reads the device inside a view (the vote's rounds, and the M flags
-of the masks that reached a Gaussian, for the mask clusters made on the host); the pairs
-themselves reach the host only when a pair log is kept (a checkpoint, or a run in Gaussian
-blocks), through `DevicePairs.to_host`. torch is imported here: the driver imports this module
+order. The M flags of the masks that reached a Gaussian (for a `-vote` mode's mask clusters, made
+on the host) travel in the same read, and the vote's rounds are folded one view late too
+(`DeviceVoteSink`), so no mode reads the device inside a view. The pairs themselves reach the
+host only when a pair log is kept (a checkpoint, or a run in Gaussian blocks), through
+`DevicePairs.to_host`. torch is imported here: the driver imports this module
 only for the torch engine.
 """
 
