@@ -205,16 +205,16 @@ CUDA = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available
 @pytest.mark.parametrize("device", ["cpu", CUDA])
 @pytest.mark.parametrize("slots,presence", [(8, 0.1), (2, 0.1), (3, 0.0)])
 def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence, device):
-    """vote_view_torch against the numba kernel: the same slots bit for bit, over views whose
-    Gaussians meet more clusters than slots (space-saving replacements), pairs without a cluster,
-    zero weights, and presence 0 (votes = weights). Bit for bit on CUDA too: a round writes each
-    slot once, with no atomics."""
+    """vote_view_torch against the plain-loop reference and the numba kernel (pairs walked row by row,
+    what VoteSink does): the same slots bit for bit, over views whose Gaussians meet more clusters
+    than slots (space-saving replacements), pairs without a cluster, zero weights, and presence 0
+    (votes = weights). Bit for bit on CUDA too: a round writes each slot once, with no atomics."""
     from drsplat.registration.device_sums import vote_view_torch
-    from drsplat.registration.vote import FULL_VIEW, _rows_order, _vote_view_kernel
+    from drsplat.registration.vote import FULL_VIEW, _rows_order, _vote_view_kernel, vote_view_reference
 
     n, rng = 25, np.random.default_rng(slots)
     host = (np.full((n, slots), -1, np.int32), np.zeros((n, slots)), np.zeros((n, slots)))
-    by_row = tuple(a.copy() for a in host)  # the same fold, pairs walked row by row (what VoteSink does)
+    by_row = tuple(a.copy() for a in host)  # the kernel: pairs walked row by row, in parallel over row-aligned parts
     dev = (torch.full((n, slots), -1, dtype=torch.int32, device=device), torch.zeros((n, slots), dtype=torch.float64, device=device),
            torch.zeros((n, slots), dtype=torch.float64, device=device))
     scratch = np.zeros(n)
@@ -224,7 +224,7 @@ def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence, device):
         clusters = rng.integers(-1, 9, p).astype(np.int32)
         weights = rng.uniform(0, 1, p).astype(np.float32)
         weights[rng.random(p) < 0.1] = 0.0
-        _vote_view_kernel(rows, clusters, weights, np.arange(p), presence, FULL_VIEW, scratch, *host)
+        vote_view_reference(rows, clusters, weights, presence, FULL_VIEW, *host)
         _vote_view_kernel(rows, clusters, weights, _rows_order(rows), presence, FULL_VIEW, scratch, *by_row)
         vote_view_torch(torch.from_numpy(rows.astype(np.int64)).to(device), torch.from_numpy(clusters.astype(np.int64)).to(device),
                         torch.from_numpy(weights).to(device), presence, FULL_VIEW, *dev)
