@@ -63,12 +63,13 @@ from drsplat.defaults import CHECK_SLOTS
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, Sink
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, _rows_order, space_saving_slot
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, _row_aligned_cuts, _rows_order, space_saving_slot
 
 log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 2.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
+SUPPORT_CACHE_BYTES = 256 << 20  # the views' support tables kept between the check's two passes when they fit in this
 
 
 @dataclass
@@ -179,24 +180,28 @@ def _run_end(rows, order, start):  # pragma: no cover - jitted
     return end
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot_c, slot_v):  # pragma: no cover - jitted
     """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
     cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
     cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
-    row (`_rows_order`)."""
-    n = order.shape[0]
-    found = np.empty(n, np.int32)
-    votes = np.empty(n)
-    start = 0
-    while start < n:
-        r = rows[order[start]]
-        end = _run_end(rows, order, start)
-        for d in range(_group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)):
-            hit = space_saving_slot(slot_c, slot_v, r, found[d])
-            slot_c[r, hit] = found[d]
-            slot_v[r, hit] += votes[d]
-        start = end
+    row (`_rows_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
+    view are folded in parallel (vote._row_aligned_cuts): the same bits as one pass."""
+    cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
+    for part in numba.prange(VOTE_PARTS):
+        lo, hi = cuts[part], cuts[part + 1]
+        found = np.empty(hi - lo, np.int32)
+        votes = np.empty(hi - lo)
+        start = lo
+        while start < hi:
+            r = rows[order[start]]
+            end = _run_end(rows, order, start)
+            n_found = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+            for d in range(n_found):
+                hit = space_saving_slot(slot_c, slot_v, r, found[d])
+                slot_c[r, hit] = found[d]
+                slot_v[r, hit] += votes[d]
+            start = end
 
 
 @numba.njit(cache=True)
@@ -376,20 +381,25 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> floa
 def check_masks(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
                 min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
     """Steps 2 (module docstring) on the record and the folded slots: the verdict on every mask.
-    Two passes over the views (q is recomputed, not kept: [M, K] per view)."""
+    Two passes over the views; each view's support ([M, K] q, its masses and unit embeddings) is
+    kept between them when all of them fit in SUPPORT_CACHE_BYTES, else computed again (the same bits)."""
     means = np.ascontiguousarray(record.clusters.means(), np.float32)
     k = means.shape[0]
     agreements, units_with_pairs = [], []
+    size = sum(c.shape[0] * (k + 1 + means.shape[1]) * 8 for c in record.clusters.per_view)
+    kept = [] if size <= SUPPORT_CACHE_BYTES else None  # q, mass and units of every view, for the second pass
     for view, clusters in zip(record.views, record.clusters.per_view):
         sup = view_support(view, clusters, slot_c, slot_v, k)
+        if kept is not None:
+            kept.append(sup)
         agree, total = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
         _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[sup.mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for view, clusters in zip(record.views, record.clusters.per_view):
-        sup = view_support(view, clusters, slot_c, slot_v, k)
+    for index, (view, clusters) in enumerate(zip(record.views, record.clusters.per_view)):
+        sup = kept[index] if kept is not None else view_support(view, clusters, slot_c, slot_v, k)
         own, alt = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
         if like is not None:
             _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
