@@ -126,15 +126,21 @@ def assert_topk_equal(ids, weights, ref_ids, ref_weights) -> None:
         assert not (differ & ~near_tie).any(), f"{int((differ & ~near_tie).sum())} ids differ where weights do not tie"
 
 
-@pytest.mark.parametrize("name", list(CASES))
-def test_fused_kernel_topk_equals_numba(interpreted, name):
+def assert_matches_numba(got, name: str):
+    """The saved outputs `got` (ids, weights, alpha, median) of case `name` against numba's render; returns numba's."""
     case = CASES[name]()
-    got = np.load(interpreted / f"{name}.npz")
     ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
-    assert got["ids"].shape == ref.ids.shape and got["ids"].dtype == np.int32 and got["weights"].dtype == np.float32
     assert_topk_equal(got["ids"], got["weights"], ref.ids, ref.weights)
     np.testing.assert_allclose(got["alpha"], ref.alpha, rtol=1e-5, atol=1e-7)
     np.testing.assert_array_equal(got["median"], ref.median_ids)
+    return ref
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_fused_kernel_topk_equals_numba(interpreted, name):
+    got = np.load(interpreted / f"{name}.npz")
+    ref = assert_matches_numba(got, name)
+    assert got["ids"].shape == ref.ids.shape and got["ids"].dtype == np.int32 and got["weights"].dtype == np.float32
     if name.startswith(("random", "stacked")):
         assert (ref.ids[..., 0] >= 0).any(), "the case should have contributions"
     if name.startswith("random"):
@@ -145,24 +151,14 @@ def test_fused_kernel_topk_equals_numba(interpreted, name):
 def test_other_kernels_and_launch_shapes_equal_numba(interpreted, variant, name):
     """The per-entry kernel (the bench's before) and the chunked one with several pixels per program
     (which fill their slots at different chunks) give numba's lists too."""
-    case = CASES[name]()
-    got = np.load(interpreted / f"{variant}-{name}.npz")
-    ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
-    assert_topk_equal(got["ids"], got["weights"], ref.ids, ref.weights)
-    np.testing.assert_allclose(got["alpha"], ref.alpha, rtol=1e-5, atol=1e-7)
-    np.testing.assert_array_equal(got["median"], ref.median_ids)
+    assert_matches_numba(np.load(interpreted / f"{variant}-{name}.npz"), name)
 
 
 @pytest.mark.parametrize("name", SIZED)
 def test_fused_kernel_on_lists_sized_with_room_to_spare_equals_numba(interpreted, name):
     """Lists sized to a capacity past the entries needed (registration's device path sizes them from
     the views before) leave padding after the last list; the kernel reads only the lists."""
-    case = CASES[name]()
-    got = np.load(interpreted / f"sized-{name}.npz")
-    ref = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
-    assert_topk_equal(got["ids"], got["weights"], ref.ids, ref.weights)
-    np.testing.assert_allclose(got["alpha"], ref.alpha, rtol=1e-5, atol=1e-7)
-    np.testing.assert_array_equal(got["median"], ref.median_ids)
+    assert_matches_numba(np.load(interpreted / f"sized-{name}.npz"), name)
 
 
 @pytest.mark.parametrize("name", list(PROJECT_CASES))

@@ -137,10 +137,9 @@ class ViewComputer:
             if job.engine != "torch":
                 raise ValueError("pairs are coalesced on the device with the torch engine only")
             # imports torch: only the torch engine's device path needs it
-            from drsplat.registration.device_sums import DeviceRays, PendingSizes, TileCapacity, render_pairs
+            from drsplat.registration.device_sums import DeviceRays, TileCapacity, render_pairs
 
             self._render_pairs = render_pairs
-            self._pending_sizes = PendingSizes
             self._tiles = TileCapacity()
             if hook is not None and hook.reject:  # the floater statistics are computed on the device too
                 self._rays = DeviceRays.from_host(hook.rays, self._prepared.device)
@@ -171,7 +170,7 @@ class ViewComputer:
         capacity = None if exact else self._tiles.capacity()
         pairs, read, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
                                                                 self._rays, capacity)
-        pairs.pending = self._pending_sizes(read, capacity, self._tiles.saw, lambda: self._compute_on_device(cam, mask_ids, feats, nonfinite, exact=True))
+        pairs.pending = self._tiles.pending(read, capacity, lambda: self._compute_on_device(cam, mask_ids, feats, nonfinite, exact=True))
         used = np.unique(mask_ids[mask_ids >= 0]).astype(np.int32)
         none = np.zeros(0, np.int32)
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, 0, num_nonfinite=nonfinite,

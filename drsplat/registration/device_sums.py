@@ -108,6 +108,11 @@ class TileCapacity:
     def saw(self, needed: int) -> None:
         self.recent = (self.recent + [int(needed)])[-TILE_WINDOW:]
 
+    def pending(self, read: DeviceRead, capacity: int | None, redo: Callable[[], ViewPairs]) -> PendingSizes:
+        """The PendingSizes of a view rendered with lists of `capacity` entries: its read tells this
+        policy the entries needed."""
+        return PendingSizes(read, capacity, self.saw, redo)
+
 
 @dataclass
 class PendingSizes:
@@ -164,9 +169,9 @@ class DevicePairs:
         pairs = dataclasses.replace(self.trimmed(distinct), ready=self.pending.read.event)
         return dataclasses.replace(view, num_pairs=contributing, device=pairs, present=np.array(present, bool))
 
-    def present(self, num_masks: int) -> np.ndarray:
-        """[num_masks] bool on the host: the masks some pair holds (M flags copied, not the pairs)."""
-        return torch.zeros(num_masks, dtype=torch.bool, device=self.masks.device).index_fill_(0, self.masks, True).cpu().numpy()
+    def present(self) -> np.ndarray:
+        """[M] bool on the host: the masks some pair holds (`mask_flags` copied, not the pairs)."""
+        return self.mask_flags.cpu().numpy().astype(bool)
 
     def to_host(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(gaussians [P] int32, masks [P] int32, weights [P] float32) on the host, in one copy.
@@ -253,7 +258,8 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     device = ids.device
     k = int(ids.shape[-1]) if ids.dim() == 3 else 1
     g = ids.reshape(-1).to(torch.int64)
-    m = mask_ids.reshape(-1, 1).to(device=device, dtype=torch.int64).expand(-1, k).reshape(-1)
+    pixel_masks = mask_ids.reshape(-1).to(device=device, dtype=torch.int64)
+    m = pixel_masks[:, None].expand(-1, k).reshape(-1)
     valid = (g >= 0) & (m >= 0) & (m < num_masks)
     empty_key = num_masks * num_gaussians
     keys = torch.where(valid, m * num_gaussians + g, empty_key + torch.arange(g.shape[0], device=device))
@@ -270,7 +276,9 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     gaussians = torch.where(real, first_key % max(num_gaussians, 1), torch.full_like(first_key, num_gaussians)).to(torch.int64)
     masks = torch.where(real, first_key // max(num_gaussians, 1), torch.zeros_like(first_key)).to(torch.int64)
     counts = torch.stack([(starts & (sorted_keys < empty_key)).sum(), valid.sum()])
-    flags = torch.zeros(num_masks + 1, dtype=torch.int64, device=device).index_fill_(0, torch.where(valid, m, num_masks), 1)[:num_masks]
+    # a mask holds a pair iff one of its pixels has a valid slot: flagged per pixel, not per slot
+    reached = torch.where(valid.view(-1, k).any(1), pixel_masks, num_masks)
+    flags = torch.zeros(num_masks + 1, dtype=torch.int64, device=device).index_fill_(0, reached, 1)[:num_masks]
     return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts, flags)
 
 

@@ -123,7 +123,7 @@ class ViewPairs:
         if self.present is not None:
             return self.present
         if self.device is not None and self.gaussians.shape[0] != self.device.num_distinct:
-            return self.device.present(self.feats.shape[0])
+            return self.device.present()
         present = np.zeros(self.feats.shape[0], bool)
         present[self.masks] = True
         return present
