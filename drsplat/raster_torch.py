@@ -18,8 +18,10 @@ How the work is vectorised (no Python loop over pixels or Gaussians):
   weights are merged into the running top-k by a stable sort on (weight desc, list position).
   B·C·P is bounded by `max_elements` (memory, not results). Each group's chunk count is known on
   the host (list lengths are copied once per view), so the loop never waits for the device.
-- on CUDA, `rasterize_torch` composites top-k ids / weights / alpha / median with the fused Triton
-  kernel of drsplat.raster_triton instead (same rules, one launch), unless RGB or depth is asked for.
+- `rasterize_torch` renders top-k ids / weights / alpha / median with the fused op
+  drsplat.raster_ops.render_topk instead (same rules, one dispatcher call: numba's kernels on a
+  CPU, Triton's on CUDA), unless RGB or depth is asked for; the torch ops here stay the torch
+  reference (fused=False) and the path for RGB and depth.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 import torch
 
 from drsplat import _raster_kernels as kernels
+from drsplat import raster_ops
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene, RasterOutput, _check_args, clamp_limits, prepare_scene, sh_basis_xyz, tile_grid
 from drsplat.scene import GaussianScene
@@ -557,29 +560,56 @@ def rasterize_torch(
     0-d tensor in the output) is at most it, which the caller checks when it reads the device
     anyway. None: sized exactly (one read of the device).
     device: where to run; None = the device of a TorchScene, else the CPU.
-    fused: project and composite with the fused Triton kernels (drsplat.raster_triton: one launch
-    each) instead of the torch ops; None = on CUDA devices when Triton is installed and no RGB /
-    depth is asked for (the kernels keep ids, weights, alpha and the median). True on a CPU is
-    refused (outside the tests' interpreter).
+    fused: render with the fused top-k op (drsplat.raster_ops.render_topk: numba's kernels on a CPU,
+    Triton's on CUDA; one dispatcher call) instead of the torch ops below (the torch reference);
+    None = wherever the op has a kernel (`has_fused_kernel`) and no RGB / depth is asked for (the
+    op keeps ids, weights, alpha and the median).
     """
     _check_args(topk, background)
     if device is None:
         device = scene.device if isinstance(scene, TorchScene) else "cpu"
     ts = prepare_scene_torch(scene, device)
     if fused is None:
-        fused = ts.device.type == "cuda" and not (with_rgb or with_depth) and triton_available()
+        fused = not (with_rgb or with_depth) and has_fused_kernel(ts.device)
     if fused:
         if with_rgb or with_depth:
-            raise ValueError("the fused Triton kernel keeps top-k ids, weights, alpha and the median only; use fused=False for RGB or depth")
-        from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
-
-        projected = project_gaussians_fused(ts, camera, near, mask=mask, device=ts.device)
-        lists = tile_lists_torch(projected, tile_capacity)
-        ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, lists.as_tuple(), topk, with_median=with_median)
-        return TorchRasterOutput(ids, weights, None, None, alpha, projected.num_nonfinite, median, lists.needed)
+            raise ValueError("the fused top-k op keeps ids, weights, alpha and the median only; use fused=False for RGB or depth")
+        ids, weights, alpha, median, entries, nonfinite, _ = raster_ops.render_topk(
+            ts.means, ts.covariances, ts.opacities, _usable(ts, mask), raster_ops.camera_values(camera), int(camera.width), int(camera.height),
+            float(near), TILE_SIZE, topk, with_median, -1 if tile_capacity is None else int(tile_capacity),
+        )  # fmt: skip
+        return TorchRasterOutput(ids, weights, None, None, alpha, nonfinite + ts.num_nonfinite, median if with_median else None, entries)
     projected = project_gaussians_torch(ts, camera, near, mask=mask, with_colors=with_rgb, device=ts.device)
     return composite_torch(projected, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
                            max_elements=max_elements, lists=tile_lists_torch(projected, tile_capacity))
+
+
+def render_topk_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera: list[float],
+                       width: int, height: int, near: float, tile_size: int, topk: int, with_median: bool, capacity: int):
+    """The CUDA kernel of `drsplat::render_topk` (drsplat.raster_ops, its arguments and outputs):
+    Triton's projection (`project_gaussians_fused`), the tile lists (`tile_lists_torch`, `capacity`
+    entries; < 0: exact, one read) and Triton's compositing. Runs on the CPU under Triton's
+    interpreter (the tests)."""
+    from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
+
+    cam = raster_ops.camera_from_values(camera, width, height)
+    ts = TorchScene(means, covariances, opacities, means.new_zeros((means.shape[0], 0, 3), dtype=torch.float32), usable, 0)
+    projected = project_gaussians_fused(ts, cam, near, tile_size=tile_size, device=means.device)
+    lists = tile_lists_torch(projected, None if capacity < 0 else capacity)
+    ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, lists.as_tuple(), topk, with_median=with_median)
+    if median is None:
+        median = torch.zeros((0, 0), dtype=torch.int32, device=means.device)
+    return ids, weights, alpha, median, lists.needed.reshape(()).clone(), torch.as_tensor(projected.num_nonfinite, device=means.device).clone(), \
+        projected.num_behind.clone()
+
+
+raster_ops.render_topk.register_kernel("cuda")(render_topk_triton)
+
+
+def has_fused_kernel(device: torch.device) -> bool:
+    """Whether the fused top-k op (`raster_ops.render_topk`) has a kernel for `device`: the CPU
+    always (numba), CUDA when Triton is installed."""
+    return device.type == "cpu" or (device.type == "cuda" and triton_available())
 
 
 def triton_available() -> bool:
@@ -602,11 +632,13 @@ def rasterize(
     near: float = NEAR,
     out: RasterOutput | None = None,
     device: str | None = "cpu",
+    fused: bool | None = None,
 ) -> RasterOutput:
-    """The torch engine behind `drsplat.raster.rasterize(..., engine="torch")`: numpy RasterOutput (`out` unused)."""
+    """The torch engine behind `drsplat.raster.rasterize(..., engine="torch")`: numpy RasterOutput
+    (`out` unused; `fused` as in `rasterize_torch`)."""
     if isinstance(scene, TorchScene) and device in (None, "cpu") and scene.device.type != "cpu":
         device = scene.device
     return rasterize_torch(
         scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background, mask=mask,
-        near=near, device=device,
+        near=near, device=device, fused=fused,
     ).numpy()

@@ -15,7 +15,7 @@ from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import InputError
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.coalesce import Coalescer, coalesce_reference
-from drsplat.registration.device_sums import DeviceSink, coalesce_torch, slot_sums
+from drsplat.registration.device_sums import DeviceSink, coalesce_pairs, coalesce_pairs_op, coalesce_torch, slot_sums
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
 
@@ -54,20 +54,22 @@ def random_views():
 CASES = list(random_views()) + list(hard_views())
 
 
-def torch_pairs(ids, weights, masks, num_masks, num_gaussians):
-    """coalesce_torch's pairs on the host, trimmed to the count it reports, and its counts."""
-    pairs = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), num_masks, num_gaussians)
+def torch_pairs(ids, weights, masks, num_masks, num_gaussians, coalesce=coalesce_torch):
+    """`coalesce`'s pairs on the host, trimmed to the count it reports, and its counts."""
+    pairs = coalesce(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), num_masks, num_gaussians)
     distinct, contributing = (int(c) for c in pairs.counts)
     return (*pairs.trimmed(distinct).to_host(), distinct, contributing)
 
 
+@pytest.mark.parametrize("coalesce", [coalesce_torch, coalesce_pairs], ids=["torch ops", "op"])
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
-def test_device_pairs_equal_numba_pairs(case):
+def test_device_pairs_equal_numba_pairs(case, coalesce):
     """The same pairs as the numba coalescer with the same float32 weights (sums in the same order);
-    sorted by (mask, Gaussian), so each Gaussian meets its masks in numba's order."""
+    sorted by (mask, Gaussian), so each Gaussian meets its masks in numba's order. Both the torch
+    ops and the op (the numba coalescer behind it on a CPU)."""
     _, ids, weights, masks, num_masks, n = case
     g, m, w, pairs = Coalescer(n).coalesce(ids, weights, masks, num_masks)
-    tg, tm, tw, distinct, contributing = torch_pairs(ids, weights, masks, num_masks, n)
+    tg, tm, tw, distinct, contributing = torch_pairs(ids, weights, masks, num_masks, n, coalesce)
     assert (distinct, contributing) == (g.shape[0], pairs)
     order = np.lexsort((tg, tm))
     np.testing.assert_array_equal(order, np.arange(distinct), err_msg="pairs sorted by (mask, Gaussian)")
@@ -79,6 +81,46 @@ def test_device_pairs_equal_numba_pairs(case):
     assert rpairs == contributing
     np.testing.assert_array_equal(np.stack([tm, tg]), np.stack([rm, rg]))
     np.testing.assert_allclose(tw, rw, rtol=1e-5)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_the_coalescing_op_equals_the_torch_ops(case):
+    """Pairs, counts and mask flags of the op (numba behind it on a CPU) equal coalesce_torch's, bit
+    for bit, also with mask ids past the view's masks (no pair, as for -1); the op is one dispatcher
+    call without a host sync."""
+    _, ids, weights, masks, num_masks, n = case
+    masks = np.where(masks == 1, num_masks + 3, masks).astype(masks.dtype)
+    args = (torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), num_masks, n)
+    want = coalesce_torch(*args)
+    with OpCounter() as counter:
+        got = coalesce_pairs(*args)
+    assert counter.counts.by_name["drsplat::coalesce_pairs"] == 1 and counter.counts.syncs == 0
+    assert torch.equal(got.counts, want.counts) and torch.equal(got.mask_flags, want.mask_flags)
+    distinct = int(want.counts[0])
+    assert got.gaussians.shape[0] == distinct, "on a CPU exactly the distinct pairs"
+    for a, b in zip(got.trimmed(distinct).to_host(), want.trimmed(distinct).to_host()):
+        assert a.tobytes() == b.tobytes()
+
+
+def test_the_coalescing_op_passes_torch_opcheck():
+    ids, weights, masks = (torch.from_numpy(a) for a in random_view(5, 9, 7, 4, 60, 5))
+    torch.library.opcheck(coalesce_pairs_op, (ids, weights, masks, 5, 60), test_utils=("test_schema", "test_faketensor"))
+
+
+def test_pairs_sorted_within_masks_equal_a_lexsort():
+    from drsplat.registration.coalesce import sort_within_masks
+
+    rng = np.random.default_rng(3)
+    masks = np.sort(rng.integers(0, 7, 500)).astype(np.int32)
+    gaussians = np.concatenate([rng.permutation(1000)[: int((masks == j).sum())] for j in range(7)]).astype(np.int32)
+    weights = rng.random(500).astype(np.float32)
+    order = np.lexsort((gaussians, masks))
+    want = gaussians[order], masks[order], weights[order]
+    sort_within_masks(gaussians, masks, weights)
+    for a, b in zip((gaussians, masks, weights), want):
+        np.testing.assert_array_equal(a, b)
+    empty = np.zeros(0, np.int32)
+    sort_within_masks(empty, empty, np.zeros(0, np.float32))
 
 
 def test_coalescing_sorts_keys_past_int32_the_same_way():
@@ -401,9 +443,32 @@ def test_registration_sums_on_the_device_and_equals_numba(room):
         np.testing.assert_array_equal(got.features, want.features)
 
 
+@pytest.fixture
+def torch_ops_render(monkeypatch):
+    """Registration's torch engine rendering with the torch ops (the CUDA path's sized tile lists)
+    instead of the fused op, whose numba kernels size the lists on the host on a CPU."""
+    import drsplat.raster_torch
+
+    monkeypatch.setattr(drsplat.raster_torch, "has_fused_kernel", lambda device: False)
+
+
+def test_on_a_cpu_the_fused_op_sizes_every_view_exactly(room, monkeypatch):
+    """No view is sized from earlier ones or computed twice: the op reads no device to size its lists."""
+    import drsplat.registration.device_sums as device_sums
+
+    scene, cams, features = room
+    asked = []
+    render_pairs = device_sums.render_pairs
+    monkeypatch.setattr(device_sums, "render_pairs", lambda *args: asked.append(args[7]) or render_pairs(*args))
+    want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
+    got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu"), show_progress=False)
+    assert asked == [None] * len(cams)
+    np.testing.assert_array_equal(got.features, want.features)
+
+
 @pytest.mark.parametrize("mode", ["paper", "vote-reject"])
 @pytest.mark.parametrize("policy", ["learned", "always short"])
-def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, mode, policy):
+def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, torch_ops_render, mode, policy):
     """The first view sizes its tile lists exactly and later ones from the views read before them
     (nothing read inside a view); a view whose lists fell short ("always short": capacity 1) is
     computed again with exact lists before any of it is summed. Either way: numba's field, bit for bit."""
@@ -431,7 +496,7 @@ def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, mode,
         assert asked[:2] == [None, None] and asked.count(1) == len(cams) - 2 and asked.count(None) == 2 + len(cams) - 2
 
 
-def test_views_that_see_nothing_then_more_than_learned_give_numbas_field(room, monkeypatch):
+def test_views_that_see_nothing_then_more_than_learned_give_numbas_field(room, monkeypatch, torch_ops_render):
     """The tile lists' size swings: a view turned away from the scene (no tile entries, no pairs), then
     views needing more entries than any view read before them (their lists fall short, sized
     tightly here, and they are computed again); the device path still writes numba's field."""
@@ -586,3 +651,116 @@ def test_slot_sums_add_slot_after_slot(device):
         np.testing.assert_array_equal(got, ref)
     tree = torch.from_numpy(x).sum(-1, keepdim=True).numpy()
     assert (tree != slot_sums(torch.from_numpy(x)).numpy()).any(), "the case should tell a pairwise sum from a sequential one"
+
+
+@pytest.mark.parametrize("case,h,w,k,n", STATS_CASES, ids=[f"{c[0]} {c[1]}x{c[2]} k={c[3]}" for c in STATS_CASES])
+def test_the_floater_statistics_op_equals_the_torch_ops(case, h, w, k, n):
+    """drsplat::view_stats (numba behind it on a CPU) against front_flags_torch + view_stats_torch,
+    bit for bit; one dispatcher call, no host sync; torch's op checks (schema, fake kernel)."""
+    from drsplat.raster_ops import camera_values
+    from drsplat.registration.device_sums import DeviceRays, front_flags_torch, view_stats, view_stats_op, view_stats_torch
+
+    rays, cam, ids, weights, median = stats_view(3 + h, h, w, k, n, case)
+    device_rays = DeviceRays.from_host(rays, torch.device("cpu"))
+    tensors = [torch.from_numpy(a) for a in (ids, weights, median)]
+    want = view_stats_torch(tensors[0], tensors[1], front_flags_torch(device_rays, cam, tensors[0], tensors[2]), n)
+    with OpCounter() as counter:
+        got = view_stats(device_rays, cam, *tensors)
+    assert counter.counts.by_name["drsplat::view_stats"] == 1 and counter.counts.syncs == 0
+    for name in ("peak", "total", "front", "touched"):
+        assert getattr(got, name).numpy().tobytes() == getattr(want, name).numpy().tobytes(), name
+    args = (*tensors, device_rays.means, device_rays.precisions, device_rays.reach, camera_values(cam), 0.05)
+    torch.library.opcheck(view_stats_op, args, test_utils=("test_schema", "test_faketensor"))
+
+
+@pytest.mark.parametrize("case,ids,weights,masks", EXPLAIN_CASES, ids=[c[0] for c in EXPLAIN_CASES])
+def test_the_explain_op_equals_the_torch_ops(case, ids, weights, masks):
+    from drsplat.registration.device_sums import explain_weights_op, explain_weights_torch
+
+    n = int(max(ids.max(initial=-1) + 1, 1))
+    args = tuple(torch.from_numpy(a) for a in (ids, weights, masks))
+    for iterations in (0, 3):
+        want = explain_weights_torch(*args, n, iterations)
+        with OpCounter() as counter:
+            got = explain_weights_op(*args, n, iterations)
+        assert counter.counts.by_name["drsplat::explain_weights"] == 1 and counter.counts.syncs == 0
+        assert got.numpy().tobytes() == want.numpy().tobytes(), f"{iterations} iterations"
+    if ids.size:
+        torch.library.opcheck(explain_weights_op, (*args, n, 2), test_utils=("test_schema", "test_faketensor"))
+
+
+@pytest.mark.parametrize("slots,presence", [(8, 0.1), (2, 0.1), (3, 0.0)])
+def test_the_vote_op_folds_as_the_torch_ops(slots, presence):
+    """drsplat::vote_fold (numba behind it on a CPU) folds views into the slots as vote_view_torch
+    does, bit for bit, in place (pairs given in the views' (mask, Gaussian) order, not by row)."""
+    from drsplat.registration.device_sums import vote_fold_op, vote_view_torch
+    from drsplat.registration.vote import FULL_VIEW
+
+    n, rng = 25, np.random.default_rng(slots + 40)
+
+    def slots_():
+        return (torch.full((n, slots), -1, dtype=torch.int32), torch.zeros((n, slots), dtype=torch.float64),
+                torch.zeros((n, slots), dtype=torch.float64))
+
+    want, got = slots_(), slots_()
+    for _ in range(12):
+        p = int(rng.integers(0, 60))
+        rows = torch.from_numpy(rng.integers(0, n, p))
+        clusters = torch.from_numpy(rng.integers(-1, 9, p))
+        weights = torch.from_numpy(np.where(rng.random(p) < 0.1, 0.0, rng.uniform(0, 1, p)).astype(np.float32))
+        vote_view_torch(rows, clusters, weights, presence, FULL_VIEW, *want)
+        with OpCounter() as counter:
+            vote_fold_op(rows, clusters, weights, presence, FULL_VIEW, 9, *got)
+        assert counter.counts.by_name["drsplat::vote_fold"] == 1 and counter.counts.syncs == 0
+    for a, b in zip(got, want):
+        assert a.numpy().tobytes() == b.numpy().tobytes()
+    assert (want[0] >= 0).all(axis=1).any(), "some Gaussian filled its slots"
+
+
+def test_the_sums_op_adds_as_the_torch_ops():
+    """drsplat::add_pairs (the host accumulator's numba kernel behind it on a CPU) gives index_add's
+    bits: a Gaussian's pairs in pair order over several views, pairs spread over chunks, repeated
+    Gaussians and masks, zero weights, a view without pairs; one dispatcher call, in place."""
+    from drsplat.registration.device_sums import add_pairs_op, add_pairs_torch
+
+    rng = np.random.default_rng(8)
+    n, dim = 40, 7
+    want = (torch.zeros((n, dim)), torch.zeros(n))
+    got = (torch.zeros((n, dim)), torch.zeros(n))
+    for p in (50, 0, 200, 3):
+        m = 6
+        g = torch.from_numpy(rng.integers(0, n, p))
+        masks = torch.from_numpy(rng.integers(0, m, p))
+        w = torch.from_numpy(np.where(rng.random(p) < 0.1, 0.0, rng.uniform(0, 2, p)).astype(np.float32))
+        feats = torch.from_numpy(rng.normal(size=(m, dim)).astype(np.float32))
+        add_pairs_torch(*want, g, masks, w, feats, chunk=16)
+        with OpCounter() as counter:
+            add_pairs_op(*got, g, masks, w, feats, 16)
+        assert counter.counts.ops == 1 and counter.counts.by_name["drsplat::add_pairs"] == 1
+    for a, b in zip(got, want):
+        assert a.numpy().tobytes() == b.numpy().tobytes()
+    assert (want[1] > 0).sum() > n // 2
+
+
+@pytest.mark.parametrize("weighting", [w for w in WEIGHTINGS if w != "paper"])
+def test_the_weighting_op_equals_the_torch_ops(weighting):
+    """drsplat::view_weights (numba's projection and weighting behind it on a CPU) gives the torch
+    projection + view_weights_torch's bits on a rendered view; one dispatcher call."""
+    from drsplat.raster import NEAR
+    from drsplat.raster_ops import camera_values
+    from drsplat.raster_torch import prepare_scene_torch, project_gaussians_torch, rasterize_torch
+    from drsplat.registration.device_sums import view_weights_op, view_weights_torch
+    from drsplat.testing import random_case
+
+    case = random_case(9, n=400, topk=6)
+    ts = prepare_scene_torch(case.scene)
+    out = rasterize_torch(ts, case.camera, case.topk)
+    projected = project_gaussians_torch(ts, case.camera)
+    want = view_weights_torch(weighting, out.ids, out.weights, projected.means2d, projected.conics, anchor_gain=2.5)
+    args = (weighting, out.ids, out.weights, ts.means, ts.covariances, ts.opacities, ts.finite, camera_values(case.camera), NEAR, 2.5)
+    with OpCounter() as counter:
+        got = view_weights_op(*args)
+    assert counter.counts.ops == 1 and counter.counts.syncs == 0
+    assert got.numpy().tobytes() == want.numpy().tobytes()
+    assert not torch.equal(got, out.weights), "the weighting changed something"
+    torch.library.opcheck(view_weights_op, args, test_utils=("test_schema", "test_faketensor"))

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from drsplat.raster import ENGINES, prepare_for_engine, project_gaussians, rasterize
+from drsplat.raster_torch import rasterize as torch_rasterize
 from drsplat.raster_torch import TorchScene, composite_torch, project_gaussians_torch, rasterize_torch
 from drsplat.testing import assert_agree, check_engine, front_camera, hard_cases, random_case, random_scene, stacked_case
 
@@ -15,7 +16,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def torch_engine(*args, **kwargs):
-    return rasterize(*args, engine="torch", **kwargs)
+    """The torch ops (the reference: the fused op runs numba's kernels on a CPU, tests/test_raster_ops.py)."""
+    return torch_rasterize(*args, fused=False, **kwargs)
 
 
 def numba_engine(*args, **kwargs):
@@ -150,11 +152,11 @@ def test_tile_lists_sized_without_a_read_equal_the_exact_ones(case):
 
 def test_a_render_with_sized_tile_lists_equals_the_exact_one_and_reports_the_entries():
     case = random_case(6, n=300, topk=5)
-    exact = rasterize_torch(case.scene, case.camera, 5, with_median=True)
+    exact = rasterize_torch(case.scene, case.camera, 5, with_median=True, fused=False)
     needed = int(exact.tile_entries)
-    roomy = rasterize_torch(case.scene, case.camera, 5, with_median=True, tile_capacity=needed + 1000)
+    roomy = rasterize_torch(case.scene, case.camera, 5, with_median=True, tile_capacity=needed + 1000, fused=False)
     assert int(roomy.tile_entries) == needed
     for name in ("ids", "weights", "alpha", "median_ids"):
         np.testing.assert_array_equal(getattr(roomy, name).numpy(), getattr(exact, name).numpy())
-    short = rasterize_torch(case.scene, case.camera, 5, tile_capacity=needed // 2)
+    short = rasterize_torch(case.scene, case.camera, 5, tile_capacity=needed // 2, fused=False)
     assert int(short.tile_entries) == needed > needed // 2, "the output says how many entries it needed"

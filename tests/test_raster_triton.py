@@ -2,7 +2,7 @@
 
 Triton reads TRITON_INTERPRET when it is imported, so the kernel runs in one subprocess with the
 variable set (this process's environment is untouched); that subprocess renders every case through
-`rasterize_torch(..., fused=True)` with the interpreter and saves the outputs, which are compared here
+the fused op's CUDA kernel (`raster_torch.render_topk_triton`) with the interpreter and saves the outputs, which are compared here
 with numba's: ids identical except between near-ties (weights within 1e-6 relative), weights within
 1e-5 relative, alpha and median ids equal.
 """
@@ -69,14 +69,13 @@ SIZED = ["random-0-k5"]
 WORKER = """
 import json, sys
 import numpy as np
-from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_fused, rasterize_torch, tile_lists_torch
+from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_fused, tile_lists_torch
 from drsplat.raster_triton import composite_topk_triton
-from tests.test_raster_triton import CASES, PROJECT_CASES, SIZED, VARIANTS
+from tests.test_raster_triton import CASES, PROJECT_CASES, SIZED, VARIANTS, triton_op_kernel
 for name in json.loads(sys.argv[1]):
     case = CASES[name]()
-    out = rasterize_torch(case.scene, case.camera, case.topk, with_median=True, fused=True)
-    np.savez(sys.argv[2] + "/" + name + ".npz", ids=out.ids.numpy(), weights=out.weights.numpy(), alpha=out.alpha.numpy(),
-             median=out.median_ids.numpy())
+    ids, weights, alpha, median = triton_op_kernel(case)[:4]
+    np.savez(sys.argv[2] + "/" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(), median=median.numpy())
 for variant, runs in VARIANTS.items():
     for name, block, chunk in runs:
         case = CASES[name]()
@@ -97,6 +96,18 @@ for name in PROJECT_CASES:
     np.savez(sys.argv[2] + "/project-" + name + ".npz", means2d=p.means2d.numpy(), conics=p.conics.numpy(), depths=p.depths.numpy(),
              radii=p.radii.numpy(), valid=p.valid.numpy(), tile_rects=p.tile_rects.numpy(), counts=[int(p.num_nonfinite), int(p.num_behind)])
 """
+
+
+def triton_op_kernel(case):
+    """The fused op's CUDA kernel (`render_topk_triton`) on `case`, on the CPU: its 7 outputs."""
+    from drsplat.raster import NEAR, TILE_SIZE
+    from drsplat.raster_ops import camera_values
+    from drsplat.raster_torch import prepare_scene_torch, render_topk_triton
+
+    ts = prepare_scene_torch(case.scene)
+    cam = case.camera
+    return render_topk_triton(ts.means, ts.covariances, ts.opacities, ts.finite, camera_values(cam), cam.width, cam.height, NEAR, TILE_SIZE,
+                              case.topk, True, -1)
 
 
 def _small(case):
@@ -215,11 +226,9 @@ def test_bad_launch_shapes_are_named_before_any_launch(launch, problem):
 
 def test_fused_kernel_is_refused_on_the_cpu():
     """Outside the interpreter the kernel compiles for CUDA only: one sentence saying so."""
-    from drsplat.raster_torch import rasterize_torch
-
     case = random_case(0, n=20, topk=3)
     with pytest.raises(DrsplatError, match="runs on CUDA devices only"):
-        rasterize_torch(case.scene, case.camera, case.topk, fused=True)
+        triton_op_kernel(case)
 
 
 @pytest.mark.parametrize("chunk, entry", [(None, "_composite_topk_chunked_source"), (0, "_composite_topk_source")])

@@ -1,6 +1,10 @@
 """Counting the torch ops and host synchronisations of a piece of work (a TorchDispatchMode).
 
-An op is one aten call that reaches the dispatcher (one kernel launch on a GPU, roughly). A host
+An op is one call that reaches the dispatcher (one kernel launch on a GPU, roughly): an aten op,
+or a custom op such as drsplat::render_topk (drsplat.raster_ops), which counts once plus every
+torch op its kernel issues in turn: on CUDA the torch ops around a Triton launch (the launches of
+a Triton kernel itself are not torch ops and are not counted), on a CPU the few a numba kernel's
+wrapper makes. Counters do not nest across a custom op: the innermost counts it. A host
 sync is an op that makes the host wait for the device on CUDA: reading a scalar
 (`aten::_local_scalar_dense`, behind `.item()`, `int(t)`, `bool(t)`), ops whose output size
 depends on the data (`nonzero`, boolean-mask indexing and `masked_select`, `unique`,
@@ -20,14 +24,17 @@ from dataclasses import dataclass, field
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-_DATA_DEPENDENT = {"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_select", "aten::unique", "aten::_unique2", "aten::unique_dim",
+# aten::item reaches a mode as itself only inside a custom op's kernel (below autograd, where it is
+# not yet decomposed into _local_scalar_dense, which the mode then does not see)
+_DATA_DEPENDENT = {"aten::_local_scalar_dense", "aten::item", "aten::nonzero", "aten::masked_select", "aten::unique", "aten::_unique2", "aten::unique_dim",
                    "aten::unique_consecutive", "aten::nonzero_static"}
 
 
 @dataclass
 class OpCounts:
-    """ops: aten calls; views: those that only make a view (no kernel launch on a GPU); syncs: the
-    host-syncing ones; by_name: calls per op name."""
+    """ops: dispatcher calls (aten ops, and custom ops with the torch ops their kernels issue);
+    views: those that only make a view (no kernel launch on a GPU); syncs: the host-syncing ones;
+    by_name: calls per op name."""
 
     ops: int = 0
     views: int = 0
@@ -58,6 +65,16 @@ def is_host_sync(name: str, args: tuple, kwargs: dict) -> bool:
     return False
 
 
+def _custom_kernel(name: str, args: tuple):
+    """The Python kernel that custom op `name` (torch.library.custom_op) runs on its tensor
+    arguments' device, or None (an op defined otherwise, or a torch without this registry)."""
+    from torch._library import custom_ops
+
+    opdef = getattr(custom_ops, "OPDEFS", {}).get(name)
+    device = next((a.device.type for a in args if isinstance(a, torch.Tensor)), None)
+    return None if opdef is None or device is None else getattr(opdef, "_backend_fns", {}).get(device)
+
+
 def _pinned(tensor: torch.Tensor) -> bool:
     """Whether a CPU tensor is in pinned memory (False where this torch has no accelerator to pin for)."""
     try:
@@ -75,11 +92,28 @@ class OpCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        name = f"aten::{func._schema.name.split('::')[-1]}" + (f".{func._overloadname}" if func._overloadname != "default" else "")
+        name = func._schema.name + (f".{func._overloadname}" if func._overloadname != "default" else "")
         self.counts.ops += 1
         self.counts.views += bool(func.is_view)
         self.counts.by_name[name] += 1
         if is_host_sync(name, args, kwargs):
             self.counts.syncs += 1
             self.counts.syncs_by_name[name] += 1
-        return func(*args, **kwargs)
+        if name.startswith("aten::"):
+            return func(*args, **kwargs)
+        # a custom op (drsplat::...): the torch ops its kernel issues count too (on CUDA the fused
+        # op's tile lists are torch ops around its Triton launches; numba's CPU kernel issues few)
+        kernel = _custom_kernel(func._schema.name, args)
+        if kernel is None:
+            return func(*args, **kwargs)
+        with OpCounter() as inner:  # the kernel called directly: through the dispatcher it would come back here
+            out = kernel(*args, **kwargs)
+        self._fold(inner.counts)
+        return out
+
+    def _fold(self, inner: OpCounts) -> None:
+        self.counts.ops += inner.ops
+        self.counts.views += inner.views
+        self.counts.syncs += inner.syncs
+        self.counts.by_name.update(inner.by_name)
+        self.counts.syncs_by_name.update(inner.syncs_by_name)

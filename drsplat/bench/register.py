@@ -500,7 +500,7 @@ def counts_table(counts: dict) -> str:
     syncs = "; ".join(f"sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
     head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate {counts['aggregate']}, compute + statistics + sink add, "
             f"median of {counts['views']} "
-            f"views after a warm-up (ops: aten calls; host syncs: {syncs})")
+            f"views after a warm-up (ops: dispatcher calls, a drsplat:: op counted with the torch ops its kernel issues; host syncs: {syncs})")
     rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
              r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
     return head + "\n" + format_table(["engine", "device", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",

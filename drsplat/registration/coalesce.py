@@ -91,6 +91,29 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
         part_pairs[t] += pairs
 
 
+@numba.njit(cache=True, parallel=True)
+def _sort_within_masks_kernel(gaussians, masks, weights, bounds):  # pragma: no cover - jitted
+    """Each run gaussians[bounds[r]:bounds[r + 1]] (one mask's pairs, distinct Gaussians) sorted by
+    Gaussian in place, its masks and weights moved with it; runs in parallel."""
+    for r in numba.prange(bounds.shape[0] - 1):
+        lo, hi = bounds[r], bounds[r + 1]
+        if hi - lo < 2:
+            continue
+        order = np.argsort(gaussians[lo:hi]) + lo
+        g, m, w = gaussians[order], masks[order], weights[order]
+        gaussians[lo:hi], masks[lo:hi], weights[lo:hi] = g, m, w
+
+
+def sort_within_masks(gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray) -> None:
+    """Pairs that come mask by mask (`Coalescer.coalesce`: masks ascending, Gaussians in first-seen
+    order) sorted by (mask, Gaussian) in place: gaussians [P], masks [P], weights [P]. The same
+    order as `np.lexsort((gaussians, masks))`, each mask sorted on its own (in parallel)."""
+    if masks.size == 0:
+        return
+    bounds = np.flatnonzero(np.diff(masks)) + 1
+    _sort_within_masks_kernel(gaussians, masks, weights, np.concatenate([[0], bounds, [masks.size]]).astype(np.int64))
+
+
 SCRATCH_BYTES = 12  # per Gaussian per part: the seen / acc / touched arrays
 EXTRA_SCRATCH_LIMIT = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 600 MB each)
 

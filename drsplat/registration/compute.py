@@ -140,7 +140,7 @@ class ViewComputer:
             from drsplat.registration.device_sums import DeviceRays, TileCapacity, render_pairs
 
             self._render_pairs = render_pairs
-            self._tiles = TileCapacity()
+            self._tiles = TileCapacity.for_device(self._prepared.device)
             if hook is not None and hook.reject:  # the floater statistics are computed on the device too
                 self._rays = DeviceRays.from_host(hook.rays, self._prepared.device)
 

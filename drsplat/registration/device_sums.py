@@ -5,7 +5,9 @@ lists [H, W, k] to the host for the numba coalescer and sums (drsplat.registrati
 drsplat.registration.sums), this module keeps them there:
 
     coalesce_torch   ids, weights [H, W, k], mask ids [H, W] -> the view's distinct (Gaussian, mask)
-                     pairs with summed weights, fixed-size ops only (no host synchronisation)
+                     pairs with summed weights, fixed-size ops only (no host synchronisation);
+    coalesce_pairs   the same as one torch op (`coalesce_pairs_op`: the numba coalescer on a CPU,
+                     coalesce_torch on CUDA), what registration calls
     view_weights_torch, explain_weights_torch
                      every mode's per-view weighting (the explain EM included) on the device
     DeviceSink       F [N, D], W [N] on the device, each view's pairs added in view order
@@ -16,6 +18,13 @@ drsplat.registration.sums), this module keeps them there:
                      slot against the pixel's median Gaussian, per-Gaussian max / sums), and
     DeviceSupport    their fold over the views, kept on the device (copied to the host for a
                      checkpoint snapshot and once at the end, for the rejected mask)
+
+Each per-view stage is also one torch op (torch.library) with a kernel per device, and
+registration calls the ops: `coalesce_pairs_op`, `view_stats_op` (front flags and statistics),
+`explain_weights_op`, `vote_fold_op`, beside drsplat.raster_ops.render_topk. On a CPU their kernels
+are the host path's numba kernels (the same bits: each op is tested against its torch form here),
+so a CPU view is a few dozen dispatcher calls; on CUDA they are the torch forms here (and Triton
+kernels), whose torch ops the bench's counter counts inside the op.
 
 A view's sizes are read one view late: its tile lists are sized from the views before it
 (`TileCapacity`, nothing read), and its distinct and contributing pair counts and the tile
@@ -43,13 +52,18 @@ import numpy as np
 import torch
 
 from drsplat.cameras import Camera
+from drsplat.raster import NEAR, project_gaussians
+from drsplat import raster_ops, raster_torch
+from drsplat.raster_ops import host_array, host_tensor
 from drsplat.raster_torch import TorchScene, triton_available, project_gaussians_torch, rasterize_torch
 from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
-                                            RayGeometry, SurfaceSupport)
+                                            RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
 from drsplat.defaults import VOTE_SLOTS
+from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, trimmed_features
+from drsplat.registration.sums import add_pairs_in_place
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, MaskClusters, fold_view_votes, trimmed_features
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
@@ -98,12 +112,19 @@ class TileCapacity:
     (`DevicePairs.resolve`), and its size joins the window."""
 
     recent: list[int] = field(default_factory=list)
+    exact: bool = False  # size every view exactly (`for_device`)
 
     def capacity(self) -> int | None:
-        if not self.recent:
+        if self.exact or not self.recent:
             return None
         want = max(1, int(np.ceil(TILE_HEADROOM * max(self.recent))))
         return -(-want // TILE_ROUND) * TILE_ROUND
+
+    @classmethod
+    def for_device(cls, device: torch.device) -> TileCapacity:
+        """The policy for views rendered on `device`: exact on a CPU when the fused op renders
+        there (its numba kernels size the lists on the host, reading no device), learned otherwise."""
+        return cls(exact=device.type == "cpu" and raster_torch.has_fused_kernel(device))
 
     def saw(self, needed: int) -> None:
         self.recent = (self.recent + [int(needed)])[-TILE_WINDOW:]
@@ -133,8 +154,8 @@ class DevicePairs:
     """One view's distinct (Gaussian, mask) pairs on the device.
 
     gaussians: [P] int64, masks: [P] int64 (rows of the view's embeddings), weights: [P] float32
-    w_ij, sorted by (mask, Gaussian). When `coalesce_torch` returns them they are padded to the
-    view's H·W·k slots (padding: Gaussian = num_gaussians, mask 0, weight 0, after the real pairs)
+    w_ij, sorted by (mask, Gaussian). When `coalesce_torch` (or `coalesce_pairs` on CUDA; on a CPU
+    it returns the P pairs exactly) returns them they are padded to the view's H·W·k slots (padding: Gaussian = num_gaussians, mask 0, weight 0, after the real pairs)
     and `counts` [2] int64 holds (distinct pairs P, contributing slots); `trimmed` cuts them to P.
     mask_flags: [M] int64, 1 for the masks some pair holds (or None). pending: the sizes not read yet
     (`resolve`), or None. ready: on CUDA, the event after which the pairs are made (`to_host`).
@@ -202,7 +223,7 @@ def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
     a copy from pageable memory to CUDA waits for the stream, so the array is staged in pinned
     memory and copied with non_blocking (the caching host allocator keeps the pinned copy until the
     copy is done). On the CPU: a tensor sharing the array."""
-    tensor = torch.from_numpy(array)
+    tensor = host_tensor(array)
     if device.type != "cuda":
         return tensor
     return tensor.pin_memory().to(device, non_blocking=True)
@@ -280,6 +301,51 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     reached = torch.where(valid.view(-1, k).any(1), pixel_masks, num_masks)
     flags = torch.zeros(num_masks + 1, dtype=torch.int64, device=device).index_fill_(0, reached, 1)[:num_masks]
     return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts, flags)
+
+
+@torch.library.custom_op("drsplat::coalesce_pairs", mutates_args=())
+def coalesce_pairs_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int,
+                      num_gaussians: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`coalesce_torch` as one op: (gaussians, masks, weights, counts, mask flags) of its DevicePairs.
+
+    Kernels: cpu, the numba coalescer (drsplat.registration.coalesce.Coalescer, the same float32
+    sums in the same order) with each mask's pairs sorted by Gaussian, exactly the P distinct pairs
+    (no padding: the host knows P at once); cuda, `coalesce_torch` itself (padded to H·W·k, nothing read).
+    """
+    raise NotImplementedError(f"drsplat::coalesce_pairs has kernels for cpu and cuda only, not for {ids.device.type!r}")
+
+
+@coalesce_pairs_op.register_kernel("cpu")
+def _coalesce_pairs_cpu(ids, weights, mask_ids, num_masks, num_gaussians):
+    k = int(ids.shape[-1]) if ids.dim() == 3 else 1
+    masks = host_array(mask_ids).astype(np.int32).reshape(ids.shape[:2])
+    masks = np.where(masks < num_masks, masks, -1)  # as coalesce_torch: a mask id past the view's masks holds no pair
+    g, m, w, contributing = Coalescer(num_gaussians, capacity=1 << 16).coalesce(host_array(ids).reshape(*masks.shape, k), host_array(weights),
+                                                                                masks, num_masks)
+    sort_within_masks(g, m, w)
+    flags = np.zeros(num_masks, np.int64)
+    flags[m] = 1
+    counts = np.array([g.size, contributing], np.int64)
+    return tuple(host_tensor(a) for a in (g.astype(np.int64), m.astype(np.int64), w, counts, flags))
+
+
+@coalesce_pairs_op.register_kernel("cuda")
+def _coalesce_pairs_cuda(ids, weights, mask_ids, num_masks, num_gaussians):
+    pairs = coalesce_torch(ids, weights, mask_ids, num_masks, num_gaussians)
+    return pairs.gaussians, pairs.masks, pairs.weights, pairs.counts, pairs.mask_flags
+
+
+@coalesce_pairs_op.register_fake
+def _coalesce_pairs_fake(ids, weights, mask_ids, num_masks, num_gaussians):
+    size = torch.library.get_ctx().new_dynamic_size()  # P on a CPU, H·W·k on CUDA
+    return (ids.new_empty(size, dtype=torch.int64), ids.new_empty(size, dtype=torch.int64), weights.new_empty(size, dtype=torch.float32),
+            ids.new_empty(2, dtype=torch.int64), ids.new_empty(num_masks, dtype=torch.int64))
+
+
+def coalesce_pairs(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int, num_gaussians: int) -> DevicePairs:
+    """The view's DevicePairs through `coalesce_pairs_op` (one dispatcher call): `coalesce_torch`'s
+    pairs, counts and flags; on a CPU exactly the P pairs, on CUDA padded to H·W·k."""
+    return DevicePairs(*coalesce_pairs_op(ids, weights.to(torch.float32), mask_ids, int(num_masks), int(num_gaussians)))
 
 
 def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means2d: torch.Tensor | None = None,
@@ -378,6 +444,65 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
         q = torch.where(rs > 0.0, c / torch.where(rs > 0.0, rs, 1.0), q)
     scale = torch.where(v > 0.0, total * q / torch.where(v > 0.0, v, 1.0), zero)
     return torch.where(valid, w * scale[pair], zero).to(torch.float32).reshape(shape)
+
+
+@torch.library.custom_op("drsplat::view_weights", mutates_args=())
+def view_weights_op(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means: torch.Tensor, covariances: torch.Tensor,
+                    opacities: torch.Tensor, usable: torch.Tensor, camera: list[float], near: float, anchor_gain: float) -> torch.Tensor:
+    """A per-pixel weighting's [H, W, k] float32 weights as one op (`view_weights_torch`), the view
+    projected first for the weightings that read screen means and conics (PROJECTED_WEIGHTINGS;
+    means [N, 3], covariances [N, 3, 3], opacities [N], usable [N]: the TorchScene; camera:
+    `raster_ops.camera_values`). Kernels: cpu, numba's projection and `aggregate.view_weights` (the
+    host hook's kernels: the same bits); cuda, `project_gaussians_torch` and `view_weights_torch`."""
+    raise NotImplementedError(f"drsplat::view_weights has kernels for cpu and cuda only, not for {ids.device.type!r}")
+
+
+@view_weights_op.register_kernel("cpu")
+def _view_weights_cpu(weighting, ids, weights, means, covariances, opacities, usable, camera, near, anchor_gain):
+    h, w, _ = ids.shape
+    screen = np.zeros((0, 2)), np.zeros((0, 3))
+    if weighting in PROJECTED_WEIGHTINGS:
+        projected = project_gaussians(raster_ops.host_scene(means, covariances, opacities, usable), raster_ops.camera_from_values(camera, w, h), near)
+        screen = projected.means2d, projected.conics
+    return host_tensor(view_weights(weighting, host_array(ids), host_array(weights), *screen, anchor_gain=anchor_gain))
+
+
+@view_weights_op.register_kernel("cuda")
+def _view_weights_cuda(weighting, ids, weights, means, covariances, opacities, usable, camera, near, anchor_gain):
+    h, w, _ = ids.shape
+    screen = ()
+    if weighting in PROJECTED_WEIGHTINGS:
+        scene = TorchScene(means, covariances, opacities, means.new_zeros((means.shape[0], 0, 3), dtype=torch.float32), usable, 0)
+        projected = project_gaussians_torch(scene, raster_ops.camera_from_values(camera, w, h), near, device=means.device)
+        screen = projected.means2d, projected.conics
+    return view_weights_torch(weighting, ids, weights, *screen, anchor_gain=anchor_gain)
+
+
+@view_weights_op.register_fake
+def _view_weights_fake(weighting, ids, weights, means, covariances, opacities, usable, camera, near, anchor_gain):
+    return weights.new_empty(ids.shape, dtype=torch.float32)
+
+
+@torch.library.custom_op("drsplat::explain_weights", mutates_args=())
+def explain_weights_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_gaussians: int, iterations: int) -> torch.Tensor:
+    """`explain_weights_torch` as one op ([H, W, k] float32). Kernels: cpu, the host hook's numba EM
+    (`aggregate.explain_weights`: the same bits); cuda, `explain_weights_torch`."""
+    raise NotImplementedError(f"drsplat::explain_weights has kernels for cpu and cuda only, not for {ids.device.type!r}")
+
+
+@explain_weights_op.register_kernel("cpu")
+def _explain_weights_cpu(ids, weights, mask_ids, num_gaussians, iterations):
+    return host_tensor(explain_weights(host_array(ids), host_array(weights), host_array(mask_ids), num_gaussians, iterations))
+
+
+@explain_weights_op.register_kernel("cuda")
+def _explain_weights_cuda(ids, weights, mask_ids, num_gaussians, iterations):
+    return explain_weights_torch(ids, weights, mask_ids, num_gaussians, iterations)
+
+
+@explain_weights_op.register_fake
+def _explain_weights_fake(ids, weights, mask_ids, num_gaussians, iterations):
+    return weights.new_empty(ids.shape, dtype=torch.float32)
 
 
 @dataclass
@@ -482,6 +607,57 @@ def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tens
     return DeviceViewStats(peak[:n], total[:n], front[:n], touched[:n])
 
 
+@torch.library.custom_op("drsplat::view_stats", mutates_args=())
+def view_stats_op(ids: torch.Tensor, weights: torch.Tensor, median_ids: torch.Tensor, means: torch.Tensor, precisions: torch.Tensor,
+                  reach: torch.Tensor, camera: list[float], tolerance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A `-reject` mode's per-view floater statistics as one op: (peak, total, front [N] float64,
+    touched [N] bool) of `view_stats_torch` over `front_flags`' in-front test.
+
+    ids, weights: [H, W, k]; median_ids: [H, W]; means [N, 3], precisions [N, 6], reach [N]: the
+    scene's DeviceRays; camera: `raster_ops.camera_values`. Kernels: cpu, the numba kernels of the
+    host hook (`aggregate.surface_stats`: the same bits), its compact statistics laid out dense;
+    cuda, `front_flags` (one Triton launch) and `view_stats_torch`.
+    """
+    raise NotImplementedError(f"drsplat::view_stats has kernels for cpu and cuda only, not for {ids.device.type!r}")
+
+
+@view_stats_op.register_kernel("cpu")
+def _view_stats_cpu(ids, weights, median_ids, means, precisions, reach, camera, tolerance):
+    h, w, _ = ids.shape
+    cam = raster_ops.camera_from_values(camera, w, h)
+    rays = RayGeometry(*(np.ascontiguousarray(host_array(t)) for t in (means, precisions, reach)))
+    stats, _ = surface_stats(rays, cam, host_array(ids), host_array(weights), host_array(median_ids), tolerance)
+    n = reach.shape[0]
+    dense = [np.zeros(n) for _ in range(3)]
+    for out, values in zip(dense, (stats.peak, stats.total, stats.front)):
+        out[stats.ids] = values
+    touched = np.zeros(n, bool)
+    touched[stats.ids] = True
+    return tuple(host_tensor(a) for a in (*dense, touched))
+
+
+@view_stats_op.register_kernel("cuda")
+def _view_stats_cuda(ids, weights, median_ids, means, precisions, reach, camera, tolerance):
+    h, w, _ = ids.shape
+    cam = raster_ops.camera_from_values(camera, w, h)
+    flags = front_flags(DeviceRays(means, precisions, reach), cam, ids, median_ids, tolerance)
+    stats = view_stats_torch(ids, weights, flags, int(reach.shape[0]))
+    return stats.peak, stats.total, stats.front, stats.touched
+
+
+@view_stats_op.register_fake
+def _view_stats_fake(ids, weights, median_ids, means, precisions, reach, camera, tolerance):
+    n = reach.shape[0]
+    return (*(reach.new_empty(n, dtype=torch.float64) for _ in range(3)), reach.new_empty(n, dtype=torch.bool))
+
+
+def view_stats(rays: DeviceRays, camera: Camera, ids: torch.Tensor, weights: torch.Tensor, median_ids: torch.Tensor,
+               tolerance: float = FRONT_TOLERANCE) -> DeviceViewStats:
+    """The view's DeviceViewStats through `view_stats_op` (one dispatcher call)."""
+    return DeviceViewStats(*view_stats_op(ids, weights, median_ids, rays.means, rays.precisions, rays.reach, raster_ops.camera_values(camera),
+                                          float(tolerance)))
+
+
 class DeviceSupport:
     """aggregate.SurfaceSupport kept on a device: the views' statistics folded in view order,
 
@@ -520,7 +696,7 @@ class DeviceSupport:
 def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int, weighting: str = "paper",
                  rays: DeviceRays | None = None, tile_capacity: int | None = None) -> tuple[DevicePairs, DeviceRead, float, DeviceViewStats | None]:
     """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
-    pairs there (`coalesce_torch`).
+    pairs there (`coalesce_pairs`).
 
     mask_ids: [H, W] the view's masks (-1 none; copied to the device). weighting: the aggregation
     mode's per-view weighting (core, ellipse, centre, anchor project the scene once more; explain
@@ -539,15 +715,15 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     raster_seconds = time.perf_counter() - t0
     stats = None
     if rays is not None:
-        stats = view_stats_torch(out.ids, out.weights, front_flags(rays, camera, out.ids, out.median_ids), scene.num_gaussians)
+        stats = view_stats(rays, camera, out.ids, out.weights, out.median_ids)
     weights = out.weights
     masks = to_device(np.array(mask_ids, np.int32), scene.device)
     if weighting == "explain":
-        weights = explain_weights_torch(out.ids, out.weights, masks, scene.num_gaussians)
+        weights = explain_weights_op(out.ids, out.weights, masks, scene.num_gaussians, EXPLAIN_ITERATIONS)
     elif weighting != "paper":
-        projected = project_gaussians_torch(scene, camera, device=scene.device) if weighting in PROJECTED_WEIGHTINGS else None
-        weights = view_weights_torch(weighting, out.ids, out.weights, *((projected.means2d, projected.conics) if projected else ()))
-    pairs = coalesce_torch(out.ids, weights, masks, num_masks, scene.num_gaussians)
+        weights = view_weights_op(weighting, out.ids, out.weights, scene.means, scene.covariances, scene.opacities, scene.finite,
+                                  raster_ops.camera_values(camera), NEAR, ANCHOR_GAIN)
+    pairs = coalesce_pairs(out.ids, weights, masks, num_masks, scene.num_gaussians)
     read = DeviceRead(torch.cat([pairs.counts, out.tile_entries.reshape(1).to(pairs.counts.device), pairs.mask_flags]))
     return pairs, read, raster_seconds, stats
 
@@ -561,6 +737,35 @@ def sums_fit_device(num_gaussians: int, dim: int, device: str, extra_per_gaussia
         return True
     free, _ = torch.cuda.mem_get_info(dev)
     return DEVICE_HEADROOM * num_gaussians * (4 * (dim + 1) + extra_per_gaussian) + 8 * PAIR_CHUNK * dim <= free
+
+
+@torch.library.custom_op("drsplat::add_pairs", mutates_args=("F", "W"))
+def add_pairs_op(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, masks: torch.Tensor, weights: torch.Tensor, feats: torch.Tensor,
+                 chunk: int) -> None:
+    """F[g] += w·feats[m], W[g] += w for one view's pairs (g, m, w), in place; a Gaussian's pairs in
+    pair order, the product rounded to float32 before the add. F [N, D], W [N] float32; gaussians,
+    masks [P] int64; weights [P] float32; feats [M, D] float32. Kernels: cpu, the host
+    accumulator's numba kernel (`sums.add_pairs_in_place`: the same bits, in parallel over
+    Gaussians); cuda, `index_add_` of W and of F in chunks of `chunk` pairs (a [chunk, D] product)."""
+    raise NotImplementedError(f"drsplat::add_pairs has kernels for cpu and cuda only, not for {F.device.type!r}")
+
+
+@add_pairs_op.register_kernel("cpu")
+def _add_pairs_cpu(F, W, gaussians, masks, weights, feats, chunk):
+    add_pairs_in_place(host_array(F), host_array(W), *(host_array(t) for t in (gaussians, masks, weights, feats)))
+
+
+def add_pairs_torch(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, masks: torch.Tensor, weights: torch.Tensor, feats: torch.Tensor,
+                    chunk: int = PAIR_CHUNK) -> None:
+    """`add_pairs_op` in torch ops, its CUDA kernel (index_add adds a row's pairs in pair order on a
+    CPU; with atomics in no fixed order on CUDA)."""
+    W.index_add_(0, gaussians, weights)
+    for start in range(0, int(gaussians.shape[0]), chunk):
+        part = slice(start, start + chunk)
+        F.index_add_(0, gaussians[part], weights[part, None] * feats[masks[part]])
+
+
+add_pairs_op.register_kernel("cuda")(add_pairs_torch)
 
 
 class DeviceSink:
@@ -597,10 +802,7 @@ class DeviceSink:
         if total == 0:
             return
         feats = to_device(np.array(view.feats, np.float32), self.device)  # [M, D], once per view
-        self.W.index_add_(0, g, w)
-        for start in range(0, total, self.chunk):
-            part = slice(start, start + self.chunk)
-            self.F.index_add_(0, g[part], w[part, None] * feats[m[part]])
+        add_pairs_op(self.F, self.W, g, m, w, feats, self.chunk)
 
     def positive(self) -> np.ndarray:
         """[N] bool: Gaussians some pair gave weight > 0 (W_i > 0: a float32 sum of non-negative
@@ -703,6 +905,26 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
     fold_vote_rounds(vote_rounds_torch(rows, clusters, weights, presence, full_view, limit, slot_c.shape[0]), slot_c, slot_v, slot_s)
 
 
+@torch.library.custom_op("drsplat::vote_fold", mutates_args=("slot_c", "slot_v", "slot_s"))
+def vote_fold_op(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float, num_masks: int,
+                 slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
+    """`vote_view_torch` as one op: fold one view's pairs into the vote slots, in place (arguments
+    as there). Kernels: cpu, the numba kernel of the host VoteSink (`vote.fold_view_votes`: the
+    same bits); cuda, `vote_view_torch` (which reads the view's number of rounds: DeviceVoteSink
+    on CUDA lays the rounds out and folds them a view late instead)."""
+    raise NotImplementedError(f"drsplat::vote_fold has kernels for cpu and cuda only, not for {rows.device.type!r}")
+
+
+@vote_fold_op.register_kernel("cpu")
+def _vote_fold_cpu(rows, clusters, weights, presence, full_view, num_masks, slot_c, slot_v, slot_s):
+    fold_view_votes(*(host_array(t) for t in (rows, clusters, weights)), presence, full_view, *(host_array(t) for t in (slot_c, slot_v, slot_s)))
+
+
+@vote_fold_op.register_kernel("cuda")
+def _vote_fold_cuda(rows, clusters, weights, presence, full_view, num_masks, slot_c, slot_v, slot_s):
+    vote_view_torch(rows, clusters, weights, presence, full_view, slot_c, slot_v, slot_s, num_masks)
+
+
 class DeviceVoteSink:
     """The `-vote` stage's sink on the device (drsplat.registration.vote.VoteSink's one-block form):
     the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view as
@@ -738,7 +960,12 @@ class DeviceVoteSink:
         cluster_of_mask = to_device(self.clusters.add(view.feats, view.present_masks()).astype(np.int64), self.device)
         self._sums.add(view)
         self._fold()
-        if rows.shape[0]:
+        if rows.shape[0] == 0:
+            return
+        if self.device.type == "cpu":  # no device to wait for: the view folded now, by the op's numba kernel
+            vote_fold_op(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, view.feats.shape[0], self.slot_c, self.slot_v,
+                         self.slot_s)
+        else:
             self._unfolded = vote_rounds_torch(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, view.feats.shape[0],
                                                self.slot_c.shape[0])
 

@@ -51,6 +51,16 @@ def _flush_pairs_kernel(pair_g, pair_row, pair_w, filled, rows, F, W):  # pragma
                 f[d] += w * row[d]
 
 
+def add_pairs_in_place(F: np.ndarray, W: np.ndarray, gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+    """F[g] += w·feats[m] and W[g] += w for every pair (g, m, w), a Gaussian's pairs in the order
+    given (`_flush_pairs_kernel`, unbuffered): F [N, D] / W [N] float32, in place; gaussians,
+    masks [P] (rows of F and of feats [M, D]), weights [P] float32."""
+    if gaussians.shape[0] == 0:
+        return
+    _flush_pairs_kernel(np.ascontiguousarray(gaussians, np.int32), np.ascontiguousarray(masks, np.int32),
+                        np.ascontiguousarray(weights, np.float32), int(gaussians.shape[0]), np.ascontiguousarray(feats, np.float32), F, W)
+
+
 class Accumulator:
     """Running sums F [N, D] = Σ_j w_ij f_j and W [N] = Σ_j w_ij.
 

@@ -258,6 +258,18 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
             total[rows[order[i]]] = 0.0
 
 
+def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, presence: float, full_view: float, slot_c: np.ndarray,
+                    slot_v: np.ndarray, slot_s: np.ndarray, total: np.ndarray | None = None) -> None:
+    """Fold one view's pairs into the vote slots in place (`_vote_view_kernel`: module docstring,
+    step 2). rows [P] (Gaussians, rows of the slots), clusters [P] (-1 none), weights [P] float32, in
+    the view's pair order; slot_c [N, S] int32, slot_v / slot_s [N, S] float64; total: [N] float64
+    zeros (scratch, zero again on return), or None for new ones."""
+    rows = np.ascontiguousarray(rows, np.int32)
+    total = np.zeros(slot_c.shape[0]) if total is None else total
+    _vote_view_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32), _rows_order(rows),
+                      float(presence), float(full_view), total, slot_c, slot_v, slot_s)
+
+
 def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
                      threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
     """Numpy reference of `trimmed_features`: in place on the paper's sums F [B, D] float32,
@@ -400,8 +412,7 @@ class VoteSink:
         acc, slot_c, slot_v, slot_s, total = state
         rows = np.ascontiguousarray(rows, np.int32)
         acc.add_pairs(rows, masks, weights, feats)
-        _vote_view_kernel(rows, np.ascontiguousarray(cluster_of_mask[masks], np.int32), np.ascontiguousarray(weights, np.float32),
-                          _rows_order(rows), self.presence, self.full_view, total, slot_c, slot_v, slot_s)
+        fold_view_votes(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, slot_c, slot_v, slot_s, total)
 
     def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
         acc, slot_c, slot_v, slot_s, _ = state
