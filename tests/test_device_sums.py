@@ -295,14 +295,17 @@ def mislabelled_views(seed: int, count: int, n: int, dim: int):
                ViewPairs(f"v{v}", feats, g, mk, w, none, contributing))
 
 
-def test_device_vote_sink_equals_the_host_vote_sink():
+@pytest.mark.parametrize("lagged", [False, True], ids=["folded now (the op)", "folded a view late (CUDA without Triton)"])
+def test_device_vote_sink_equals_the_host_vote_sink(lagged):
     """DeviceVoteSink (device pairs and replayed host pairs, mixed) gives VoteSink's trimmed sums,
-    W and samples bit for bit; with two slots per Gaussian, so clusters are replaced."""
+    W and samples bit for bit; with two slots per Gaussian, so clusters are replaced. Both ways of
+    folding: each view by the vote op, or its rounds laid out and folded when the next view comes."""
     from drsplat.registration.device_sums import DeviceVoteSink
     from drsplat.registration.vote import VoteSink
 
     n, dim = 40, 8
     device_sink, host_sink, paper = DeviceVoteSink(n, dim, "cpu", slots=2), VoteSink(n, dim, slots=2), MemorySink(n, dim)
+    device_sink.lagged = lagged
     for v, (device_view, host_view) in enumerate(mislabelled_views(6, 9, n, dim)):
         device_sink.add(host_view if v % 3 == 2 else device_view)
         host_sink.add(host_view)

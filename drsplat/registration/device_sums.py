@@ -910,8 +910,9 @@ def vote_fold_op(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tens
                  slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
     """`vote_view_torch` as one op: fold one view's pairs into the vote slots, in place (arguments
     as there). Kernels: cpu, the numba kernel of the host VoteSink (`vote.fold_view_votes`: the
-    same bits); cuda, `vote_view_torch` (which reads the view's number of rounds: DeviceVoteSink
-    on CUDA lays the rounds out and folds them a view late instead)."""
+    same bits); cuda, one Triton launch after a sort (drsplat.registration.vote_triton: a program
+    per Gaussian, nothing read), or without Triton `vote_view_torch` (which reads the view's number
+    of rounds: DeviceVoteSink then lays the rounds out and folds them a view late instead)."""
     raise NotImplementedError(f"drsplat::vote_fold has kernels for cpu and cuda only, not for {rows.device.type!r}")
 
 
@@ -922,17 +923,24 @@ def _vote_fold_cpu(rows, clusters, weights, presence, full_view, num_masks, slot
 
 @vote_fold_op.register_kernel("cuda")
 def _vote_fold_cuda(rows, clusters, weights, presence, full_view, num_masks, slot_c, slot_v, slot_s):
-    vote_view_torch(rows, clusters, weights, presence, full_view, slot_c, slot_v, slot_s, num_masks)
+    if triton_available():
+        from drsplat.registration.vote_triton import vote_fold_triton  # imports triton
+
+        vote_fold_triton(rows, clusters, weights, presence, full_view, slot_c, slot_v, slot_s)
+    else:
+        vote_view_torch(rows, clusters, weights, presence, full_view, slot_c, slot_v, slot_s, num_masks)
 
 
 class DeviceVoteSink:
     """The `-vote` stage's sink on the device (drsplat.registration.vote.VoteSink's one-block form):
-    the paper's sums in a DeviceSink, the vote slots [N, S] on the device, folded per view as
-    `vote_view_torch` does, but a view late: `add` lays out a view's rounds (`vote_rounds_torch`)
-    and folds the view before it (`fold_vote_rounds`), whose rounds the device finished long ago,
-    so reading their number does not wait; the views' mask clusters on the host (a view's
-    embeddings, in view order). `blocks` folds the last view, copies F, W and the slots to the host
-    once and trims there (`trimmed_features`), so the result is the host VoteSink's bits on a CPU.
+    the paper's sums in a DeviceSink, the vote slots [N, S] on the device, each view folded by the
+    vote op (`vote_fold_op`: numba on a CPU, one Triton launch on CUDA), or where that op would
+    read the device (CUDA without Triton: `lagged`) as `vote_view_torch` does but a view late: `add`
+    lays out a view's rounds (`vote_rounds_torch`) and folds the view before it
+    (`fold_vote_rounds`), whose rounds the device finished long ago, so reading their number does
+    not wait. The views' mask clusters are made on the host (a view's embeddings, in view order).
+    `blocks` folds the last view, copies F, W and the slots to the host once and trims there
+    (`trimmed_features`), so the result is the host VoteSink's bits on a CPU.
     """
 
     num_blocks = 1
@@ -948,6 +956,9 @@ class DeviceVoteSink:
         self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self._unfolded: VoteRounds | None = None  # the last view's rounds, folded when the next view arrives
+        # the vote op folds a view without reading the device on a CPU (numba) and on CUDA with Triton;
+        # otherwise its rounds are laid out now and folded a view late
+        self.lagged = not (self.device.type == "cpu" or triton_available())
 
     def add(self, view: ViewPairs) -> None:
         pairs = view.device
@@ -962,7 +973,7 @@ class DeviceVoteSink:
         self._fold()
         if rows.shape[0] == 0:
             return
-        if self.device.type == "cpu":  # no device to wait for: the view folded now, by the op's numba kernel
+        if not self.lagged:
             vote_fold_op(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, view.feats.shape[0], self.slot_c, self.slot_v,
                          self.slot_s)
         else:
