@@ -310,7 +310,9 @@ def coalesce_pairs_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.
 
     Kernels: cpu, the numba coalescer (drsplat.registration.coalesce.Coalescer, the same float32
     sums in the same order) with each mask's pairs sorted by Gaussian, exactly the P distinct pairs
-    (no padding: the host knows P at once); cuda, `coalesce_torch` itself (padded to H·W·k, nothing read).
+    (no padding: the host knows P at once); cuda, two Triton launches around a sort
+    (drsplat.registration.coalesce_triton: the segment sums added in order, so numba's bits and the
+    same in every run), or without Triton `coalesce_torch` itself (both padded to H·W·k, nothing read).
     """
     raise NotImplementedError(f"drsplat::coalesce_pairs has kernels for cpu and cuda only, not for {ids.device.type!r}")
 
@@ -331,6 +333,10 @@ def _coalesce_pairs_cpu(ids, weights, mask_ids, num_masks, num_gaussians):
 
 @coalesce_pairs_op.register_kernel("cuda")
 def _coalesce_pairs_cuda(ids, weights, mask_ids, num_masks, num_gaussians):
+    if triton_available():
+        from drsplat.registration.coalesce_triton import coalesce_triton  # imports triton
+
+        return coalesce_triton(ids, weights, mask_ids, num_masks, num_gaussians)
     pairs = coalesce_torch(ids, weights, mask_ids, num_masks, num_gaussians)
     return pairs.gaussians, pairs.masks, pairs.weights, pairs.counts, pairs.mask_flags
 
@@ -746,7 +752,9 @@ def add_pairs_op(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, mask
     pair order, the product rounded to float32 before the add. F [N, D], W [N] float32; gaussians,
     masks [P] int64; weights [P] float32; feats [M, D] float32. Kernels: cpu, the host
     accumulator's numba kernel (`sums.add_pairs_in_place`: the same bits, in parallel over
-    Gaussians); cuda, `index_add_` of W and of F in chunks of `chunk` pairs (a [chunk, D] product)."""
+    Gaussians); cuda, one Triton launch after a sort by Gaussian (drsplat.registration.sums_triton:
+    each F row read and written once, the pairs added in order, so numba's bits and the same in
+    every run), or without Triton `add_pairs_torch` (index_add of F in chunks of `chunk` pairs)."""
     raise NotImplementedError(f"drsplat::add_pairs has kernels for cpu and cuda only, not for {F.device.type!r}")
 
 
@@ -765,7 +773,14 @@ def add_pairs_torch(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, m
         F.index_add_(0, gaussians[part], weights[part, None] * feats[masks[part]])
 
 
-add_pairs_op.register_kernel("cuda")(add_pairs_torch)
+@add_pairs_op.register_kernel("cuda")
+def _add_pairs_cuda(F, W, gaussians, masks, weights, feats, chunk):
+    if triton_available():
+        from drsplat.registration.sums_triton import add_pairs_triton  # imports triton
+
+        add_pairs_triton(F, W, gaussians, masks, weights, feats)
+    else:
+        add_pairs_torch(F, W, gaussians, masks, weights, feats, chunk)
 
 
 class DeviceSink:

@@ -1,0 +1,101 @@
+"""The fused coalescing kernels (drsplat.registration.coalesce_triton) against `coalesce_torch`, bit for bit.
+
+Triton reads TRITON_INTERPRET when it is imported, so the kernels run in one subprocess with the
+variable set (this process's environment is untouched), which coalesces every case of
+tests/test_device_sums.py and saves the outputs; the test process compares them with
+`coalesce_torch`'s (itself held to the numba coalescer there).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("triton")
+
+import torch  # noqa: E402
+
+from drsplat.registration.device_sums import coalesce_torch  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def cases():
+    """The coalescing cases of tests/test_device_sums.py, plus mask ids past the view's masks and
+    keys past 2^31 (20 masks x 2^27 Gaussians: int64 sort keys)."""
+    from tests.test_device_sums import CASES, random_view
+
+    out = {name: (ids, weights, masks, m, n) for name, ids, weights, masks, m, n in CASES}
+    ids, weights, masks = random_view(21, 12, 10, 5, 70, 6)
+    out["mask ids past the masks"] = (ids, weights, np.where(masks == 2, 9, masks).astype(masks.dtype), 6, 70)
+    ids, weights, masks = random_view(11, 14, 10, 6, 40, 20)
+    out["keys past 2^31"] = (ids, weights, masks, 20, 2**27)
+    return out
+
+
+WORKER = """
+import json, sys
+import numpy as np
+import torch
+from drsplat.registration.coalesce_triton import coalesce_triton
+from tests.test_coalesce_triton import cases
+for i, (name, (ids, weights, masks, m, n)) in enumerate(cases().items()):
+    out = coalesce_triton(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
+    np.savez(sys.argv[1] + "/" + str(i) + ".npz", **{key: t.numpy() for key, t in zip(["g", "m", "w", "counts", "flags"], out)})
+"""
+
+NAMES = list(cases())
+
+
+@pytest.fixture(scope="module")
+def interpreted(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("coalesce")
+    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
+    done = subprocess.run([sys.executable, "-c", WORKER, str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_fused_coalescing_equals_the_torch_ops(interpreted, name):
+    """The same padded pairs, counts and mask flags as coalesce_torch, bit for bit (the sums added
+    slot after slot in pixel order, as the numba coalescer adds them)."""
+    ids, weights, masks, m, n = cases()[name]
+    want = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
+    got = np.load(interpreted / f"{NAMES.index(name)}.npz")
+    for key, tensor in zip(["g", "m", "w", "counts", "flags"], (want.gaussians, want.masks, want.weights, want.counts, want.mask_flags)):
+        assert got[key].dtype == tensor.numpy().dtype and got[key].tobytes() == tensor.numpy().tobytes(), key
+
+
+def test_fused_coalescing_is_refused_on_the_cpu():
+    from drsplat.registration.coalesce_triton import coalesce_triton
+
+    with pytest.raises(ValueError, match="runs on CUDA devices only"):
+        coalesce_triton(torch.zeros((2, 2, 1), dtype=torch.int32), torch.ones((2, 2, 1)), torch.zeros((2, 2), dtype=torch.int32), 1, 4)
+
+
+def test_fused_coalescing_compiles_to_ptx():
+    from drsplat.registration.coalesce_triton import compile_coalesce_ptx
+
+    try:
+        ptx = compile_coalesce_ptx(90)
+    except (ImportError, AttributeError) as exc:
+        pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
+    assert ".entry _segments_source" in ptx and "add.f32" in ptx and "fma" not in ptx
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the same source in the interpreter above)")
+@pytest.mark.parametrize("name", NAMES)
+def test_on_cuda_fused_coalescing_equals_the_torch_ops_on_the_cpu(name):
+    from drsplat.registration.coalesce_triton import coalesce_triton
+
+    ids, weights, masks, m, n = cases()[name]
+    want = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
+    got = coalesce_triton(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), m, n)
+    for a, b in zip(got, (want.gaussians, want.masks, want.weights, want.counts, want.mask_flags)):
+        assert a.cpu().numpy().tobytes() == b.numpy().tobytes()
