@@ -1,21 +1,21 @@
-"""A view's coalescing on CUDA in two Triton launches around one sort: `device_sums.coalesce_torch` fused, run-to-run exact.
+"""A view's coalescing on CUDA in two Triton launches around a sort: `device_sums.coalesce_torch` fused.
 
-`coalesce_torch` is ~56 torch ops, and its segment sums are `index_add`, whose CUDA atomics add a
-segment's weights in no fixed order. Here:
+`coalesce_torch` is ~56 torch ops. Here:
 
 1. `_keys_source`, per slot: the key j·N + i of its (Gaussian i, mask j) pair (an empty slot or
    unmasked pixel: M·N + its slot index, after all others, each its own segment), its weight (0
    where not a pair), the contributing slots counted and the masks that hold a pair flagged (an
    atomic add of integers and stores of 1: exact in any order);
-2. a stable sort of the keys (torch), so each segment keeps its slots in pixel-then-slot order,
-   and the segments numbered by a cumulative sum of the key changes (torch);
-3. `_segments_source`, per position: a segment's first position walks its segment in order and
-   writes the pair (Gaussian, mask, Σ w added one slot after the other, as the numba coalescer
-   adds), at the segment's number; the real segments are counted.
+2. a stable sort of the keys, so each segment keeps its slots in pixel-then-slot order; the
+   segments numbered by a cumulative sum of the key changes; each segment's weights summed by
+   `index_add` over the segment numbers (torch: in order on a CPU, with atomics in no fixed order
+   on CUDA, as `coalesce_torch`);
+3. `_segments_source`, per position: a real segment's first position writes its pair's Gaussian
+   and mask at the segment's number; the real segments are counted.
 
-The same outputs as `coalesce_torch` (DevicePairs padded to H·W·k, sorted by (mask, Gaussian)),
-with the numba coalescer's float32 sums on any device (tests/test_coalesce_triton.py runs it in
-Triton's interpreter against `coalesce_torch`).
+The same outputs as `coalesce_torch` (DevicePairs padded to H·W·k, sorted by (mask, Gaussian)) in
+~20 ops instead of ~56 (tests/test_coalesce_triton.py runs it in Triton's interpreter against
+`coalesce_torch`, bit for bit).
 """
 
 from __future__ import annotations
@@ -49,27 +49,18 @@ def _keys_source(ids_ptr, weights_ptr, masks_ptr, keys_ptr, w_ptr, flags_ptr, co
     tl.atomic_add(counts_ptr + 1, tl.sum(valid.to(tl.int64), axis=0))
 
 
-def _segments_source(keys_ptr, order_ptr, w_ptr, segment_ptr, out_g_ptr, out_m_ptr, out_w_ptr, counts_ptr, S, num_gaussians, empty,
-                     BLOCK: tl.constexpr):  # fmt: skip
-    """Sorted positions b·BLOCK .. +BLOCK: each real segment's first position sums its slots' w in
-    order and writes (Gaussian, mask, Σ w) at its segment number; counts[0] += real segments."""
+def _segments_source(keys_ptr, segment_ptr, out_g_ptr, out_m_ptr, counts_ptr, S, num_gaussians, empty, BLOCK: tl.constexpr):
+    """Sorted positions b·BLOCK .. +BLOCK: each real segment's first position writes its pair's
+    (Gaussian, mask) at its segment number; counts[0] += real segments."""
     pos = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     live = pos < S
     key = tl.load(keys_ptr + pos, mask=live, other=-1)
     before = tl.load(keys_ptr + pos - 1, mask=live & (pos > 0), other=-1)
     first = live & (key != before) & (key < empty)
-    total = tl.zeros([BLOCK], dtype=tl.float32)
-    at = pos
-    walking = first
-    while tl.max(walking.to(tl.int32), axis=0) > 0:
-        total += tl.where(walking, tl.load(w_ptr + tl.load(order_ptr + at, mask=walking, other=0), mask=walking, other=0.0), 0.0)
-        at += 1
-        walking = walking & (at < S) & (tl.load(keys_ptr + at, mask=walking & (at < S), other=-1) == key)
     n = tl.maximum(num_gaussians, 1)
     seg = tl.load(segment_ptr + pos, mask=first, other=0)
     tl.store(out_g_ptr + seg, key % n, mask=first)
     tl.store(out_m_ptr + seg, key // n, mask=first)
-    tl.store(out_w_ptr + seg, total, mask=first)
     tl.atomic_add(counts_ptr, tl.sum(first.to(tl.int64), axis=0))
 
 
@@ -103,13 +94,19 @@ def coalesce_triton(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Te
     changes = torch.ones(slots, dtype=torch.int32, device=dev)
     changes[1:] = (sorted_keys[1:] != sorted_keys[:-1]).to(torch.int32)
     segment = torch.cumsum(changes, 0, dtype=torch.int64) - 1
-    triton_kernel(_segments_source)[grid](sorted_keys, order, w, segment, out_g, out_m, out_w, counts, slots, int(num_gaussians), empty,
-                                          BLOCK=BLOCK)  # fmt: skip
+    # each segment's weights added in its slots' order: sequential on a CPU (numba's bits); CUDA's
+    # atomics add them in no fixed order, where a walk of each segment in order would serialise a
+    # large Gaussian's thousands of slots in one mask on one thread
+    out_w.index_add_(0, segment, w[order])
+    triton_kernel(_segments_source)[grid](sorted_keys, segment, out_g, out_m, counts, slots, int(num_gaussians), empty, BLOCK=BLOCK)
     return out_g, out_m, out_w, counts, flags[: int(num_masks)]
 
 
 def compile_coalesce_ptx(capability: int = 90) -> str:
-    """The segments kernel compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`)."""
-    pointers = {"keys_ptr": "*i32", "order_ptr": "*i64", "w_ptr": "*fp32", "segment_ptr": "*i64", "out_g_ptr": "*i64", "out_m_ptr": "*i64",
-                "out_w_ptr": "*fp32", "counts_ptr": "*i64", "S": "i64", "num_gaussians": "i64", "empty": "i64"}
-    return kernel_ptx(_segments_source, pointers, {"BLOCK": BLOCK}, capability)
+    """Both kernels compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`), one after the other."""
+    keys = {"ids_ptr": "*i32", "weights_ptr": "*fp32", "masks_ptr": "*i32", "keys_ptr": "*i64", "w_ptr": "*fp32", "flags_ptr": "*i64",
+            "counts_ptr": "*i64", "S": "i64", "k": "i32", "num_masks": "i32", "num_gaussians": "i32"}
+    segments = {"keys_ptr": "*i32", "segment_ptr": "*i64", "out_g_ptr": "*i64", "out_m_ptr": "*i64", "counts_ptr": "*i64", "S": "i64",
+                "num_gaussians": "i64", "empty": "i64"}
+    return (kernel_ptx(_keys_source, keys, {"BLOCK": BLOCK}, capability)
+            + kernel_ptx(_segments_source, segments, {"BLOCK": BLOCK}, capability))

@@ -310,9 +310,10 @@ def coalesce_pairs_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.
 
     Kernels: cpu, the numba coalescer (drsplat.registration.coalesce.Coalescer, the same float32
     sums in the same order) with each mask's pairs sorted by Gaussian, exactly the P distinct pairs
-    (no padding: the host knows P at once); cuda, two Triton launches around a sort
-    (drsplat.registration.coalesce_triton: the segment sums added in order, so numba's bits and the
-    same in every run), or without Triton `coalesce_torch` itself (both padded to H·W·k, nothing read).
+    (no padding: the host knows P at once); cuda, two Triton launches around a sort and an
+    index_add (drsplat.registration.coalesce_triton: ~20 ops), or without Triton `coalesce_torch`
+    itself (both padded to H·W·k, nothing read; their float32 atomics add a pair's slots in no
+    fixed order there).
     """
     raise NotImplementedError(f"drsplat::coalesce_pairs has kernels for cpu and cuda only, not for {ids.device.type!r}")
 
