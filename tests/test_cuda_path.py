@@ -1,0 +1,87 @@
+"""Registration through the torch ops' CUDA kernels, run on the CPU: the GPU path's glue end to end.
+
+Each per-view op of the torch engine (drsplat.raster_ops.render_topk, and in
+drsplat.registration.device_sums the coalescing, weighting, floater statistics, vote and sums ops)
+has a CPU kernel (numba) and a CUDA kernel (Triton launches and torch ops). The CUDA kernels are
+held to the torch forms one by one under Triton's interpreter (tests/test_raster_triton.py,
+tests/test_coalesce_triton.py, ...); here a whole registration runs through them: one subprocess,
+with TRITON_INTERPRET=1, registers the ops' CUDA kernels as their CPU kernels (that process only)
+and sizes the tile lists from earlier views as on CUDA, registers a small scene in two modes and
+saves the fields, which must equal the numba engine's.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("triton")
+
+from drsplat.registration import RegisterOptions, register_features  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+MODES = ["core-reject", "explain-vote-reject"]  # between them every op: render, weighting, EM, statistics, coalescing, vote, sums
+
+
+def small_world(folder: Path):
+    """A 300-Gaussian blob, 3 orbiting 24x16 views and random mask features written to `folder`."""
+    from drsplat.bench.register import blob_scene, orbit_cameras, random_mask_features
+
+    scene = blob_scene(300, seed=3)
+    cameras = orbit_cameras(scene.means, 3, 24, 16)
+    random_mask_features(folder, cameras, np.random.default_rng(1))
+    return scene, cameras
+
+
+WORKER = """
+import sys
+from pathlib import Path
+import numpy as np
+import drsplat.raster_torch as raster_torch
+import drsplat.registration.device_sums as device_sums
+from drsplat.raster_ops import render_topk
+from drsplat.registration import RegisterOptions, register_features
+from drsplat.registration.front_triton import front_flags_triton
+from tests.test_cuda_path import MODES, small_world
+
+# the CUDA kernels as the CPU kernels, in this process only
+render_topk.register_kernel("cpu")(raster_torch.render_topk_triton)
+for op, kernel in [(device_sums.coalesce_pairs_op, device_sums._coalesce_pairs_cuda), (device_sums.view_weights_op, device_sums._view_weights_cuda),
+                   (device_sums.explain_weights_op, device_sums._explain_weights_cuda), (device_sums.view_stats_op, device_sums._view_stats_cuda),
+                   (device_sums.vote_fold_op, device_sums._vote_fold_cuda), (device_sums.add_pairs_op, device_sums._add_pairs_cuda)]:
+    op.register_kernel("cpu")(kernel)
+device_sums.triton_available = lambda: True
+device_sums.front_flags = lambda rays, camera, ids, median_ids, tolerance=device_sums.FRONT_TOLERANCE: front_flags_triton(
+    rays.means, rays.precisions, rays.reach, camera, ids, median_ids, tolerance)
+device_sums.TileCapacity.for_device = classmethod(lambda cls, device: cls())  # sized from earlier views, as on CUDA
+out = Path(sys.argv[1])
+scene, cameras = small_world(out / "features")
+for mode in MODES:
+    got = register_features(scene, cameras, out / "features", RegisterOptions(topk=6, aggregate=mode, engine="torch", device="cpu"),
+                            show_progress=False)
+    np.savez(out / (mode + ".npz"), features=got.features, weights=got.weights, sums_on=got.sums_on, pairs=got.num_pairs)
+"""
+
+
+@pytest.fixture(scope="module")
+def cuda_path(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cuda-path")
+    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
+    done = subprocess.run([sys.executable, "-c", WORKER, str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_registration_through_the_cuda_kernels_equals_numba(cuda_path, mode):
+    scene, cameras = small_world(cuda_path / "numba-features")
+    want = register_features(scene, cameras, cuda_path / "numba-features", RegisterOptions(topk=6, aggregate=mode), show_progress=False)
+    got = np.load(cuda_path / f"{mode}.npz")
+    assert str(got["sums_on"]) == "cpu" and int(got["pairs"]) == want.num_pairs > 0
+    np.testing.assert_array_equal(got["weights"], want.weights)
+    np.testing.assert_array_equal(got["features"], want.features)
