@@ -2,12 +2,14 @@
 
     render_topk(means [N, 3] f64, covariances [N, 3, 3] f64, opacities [N] f32, usable [N] bool,
                 camera [16] (R row-major, t, fx, fy, cx, cy), width, height, near, tile_size, topk,
-                with_median, capacity)
+                with_median, capacity, ranked)
       -> ids [H, W, k] int32, weights [H, W, k] f32, alpha [H, W] f32, median [H, W] int32 ([0, 0]
          without with_median), tile_entries, num_nonfinite, num_behind (0-d int64)
 
 The same rules as every engine (drsplat.raster's module docstring): EWA projection, getRect tiles,
-front-to-back compositing, each pixel's top-k by w = T·α, ranked by weight.
+front-to-back compositing, each pixel's top-k by w = T·α, ranked by weight (ranked=False: the
+same entries in no particular order, padding still last, where the kernel can skip the sort:
+registration sums a pixel's slots whatever their order; the CUDA kernel always ranks).
 
 Kernels:
 - cpu: the numba kernels (`drsplat.raster.project_gaussians`, `bin_tiles`, `composite_topk`,
@@ -75,26 +77,26 @@ def camera_from_values(values: list[float], width: int, height: int) -> Camera:
 
 @torch.library.custom_op("drsplat::render_topk", mutates_args=())
 def render_topk(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera: list[float], width: int,
-                height: int, near: float, tile_size: int, topk: int, with_median: bool,
-                capacity: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                height: int, near: float, tile_size: int, topk: int, with_median: bool, capacity: int,
+                ranked: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """See the module docstring; the kernels are registered per device."""
     raise NotImplementedError(f"drsplat::render_topk has kernels for cpu and cuda only, not for {means.device.type!r}")
 
 
 @render_topk.register_kernel("cpu")
-def _render_topk_cpu(means, covariances, opacities, usable, camera, width, height, near, tile_size, topk, with_median, capacity):
+def _render_topk_cpu(means, covariances, opacities, usable, camera, width, height, near, tile_size, topk, with_median, capacity, ranked):
     """The numba kernels on the tensors' memory; the outputs are the kernels' fresh arrays."""
     prep = host_scene(means, covariances, opacities, usable)
     projected = raster.project_gaussians(prep, camera_from_values(camera, width, height), near, tile_size=tile_size)
     offsets, tile_ids = raster.bin_tiles(projected)
-    out = raster.composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=True)
+    out = raster.composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked)
     median = out.median_ids if with_median else np.zeros((0, 0), np.int32)
     counts = [int(offsets[-1]), projected.num_nonfinite - prep.num_nonfinite, projected.num_behind]  # the kernel's own non-finite count
     return tuple(host_tensor(a) for a in (out.ids, out.weights, out.alpha, median, *(np.array(c, np.int64) for c in counts)))
 
 
 @render_topk.register_fake
-def _render_topk_fake(means, covariances, opacities, usable, camera, width, height, near, tile_size, topk, with_median, capacity):
+def _render_topk_fake(means, covariances, opacities, usable, camera, width, height, near, tile_size, topk, with_median, capacity, ranked):
     def new(shape, dtype):
         return means.new_empty(shape, dtype=dtype)
 

@@ -552,6 +552,7 @@ def rasterize_torch(
     max_elements: int | None = None,
     fused: bool | None = None,
     tile_capacity: int | None = None,
+    ranked: bool = True,
 ) -> TorchRasterOutput:
     """Render one view with the torch engine; the output stays on the device (tensors).
 
@@ -564,6 +565,8 @@ def rasterize_torch(
     Triton's on CUDA; one dispatcher call) instead of the torch ops below (the torch reference);
     None = wherever the op has a kernel (`has_fused_kernel`) and no RGB / depth is asked for (the
     op keeps ids, weights, alpha and the median).
+    ranked: each pixel's slots by weight, as every engine; False lets the fused op's CPU kernel
+    skip that sort (the same entries, padding last: what registration needs). The torch ops rank always.
     """
     _check_args(topk, background)
     if device is None:
@@ -576,7 +579,7 @@ def rasterize_torch(
             raise ValueError("the fused top-k op keeps ids, weights, alpha and the median only; use fused=False for RGB or depth")
         ids, weights, alpha, median, entries, nonfinite, _ = raster_ops.render_topk(
             ts.means, ts.covariances, ts.opacities, _usable(ts, mask), raster_ops.camera_values(camera), int(camera.width), int(camera.height),
-            float(near), TILE_SIZE, topk, with_median, -1 if tile_capacity is None else int(tile_capacity),
+            float(near), TILE_SIZE, topk, with_median, -1 if tile_capacity is None else int(tile_capacity), ranked,
         )  # fmt: skip
         return TorchRasterOutput(ids, weights, None, None, alpha, nonfinite + ts.num_nonfinite, median if with_median else None, entries)
     projected = project_gaussians_torch(ts, camera, near, mask=mask, with_colors=with_rgb, device=ts.device)
@@ -585,11 +588,11 @@ def rasterize_torch(
 
 
 def render_topk_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera: list[float],
-                       width: int, height: int, near: float, tile_size: int, topk: int, with_median: bool, capacity: int):
+                       width: int, height: int, near: float, tile_size: int, topk: int, with_median: bool, capacity: int, ranked: bool = True):
     """The CUDA kernel of `drsplat::render_topk` (drsplat.raster_ops, its arguments and outputs):
     Triton's projection (`project_gaussians_fused`), the tile lists (`tile_lists_torch`, `capacity`
-    entries; < 0: exact, one read) and Triton's compositing. Runs on the CPU under Triton's
-    interpreter (the tests)."""
+    entries; < 0: exact, one read) and Triton's compositing, whose slots are always ranked (by
+    float32 weight). Runs on the CPU under Triton's interpreter (the tests)."""
     from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
 
     cam = raster_ops.camera_from_values(camera, width, height)

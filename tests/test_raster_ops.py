@@ -24,11 +24,11 @@ CASES = [random_case(0, topk=8), random_case(1, n=900, topk=1), random_case(2, t
          *[c for c in hard_cases() if c.name != "stacked"]]
 
 
-def _op_args(case, with_median=True, capacity=-1):
+def _op_args(case, with_median=True, capacity=-1, ranked=True):
     ts = prepare_scene_torch(case.scene)
     cam = case.camera
     return (ts.means, ts.covariances, ts.opacities, ts.finite, camera_values(cam), cam.width, cam.height, NEAR, TILE_SIZE, case.topk,
-            with_median, capacity)
+            with_median, capacity, ranked)
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.name)
@@ -55,6 +55,23 @@ def test_op_reports_the_tile_entries_and_counts_of_the_torch_reference(case):
     assert int(out[4]) == int(tile_lists_torch(projected).needed)
     assert int(out[5]) + prepare_scene_torch(case.scene).num_nonfinite == int(projected.num_nonfinite)
     assert int(out[6]) == int(projected.num_behind)
+
+
+def test_unranked_slots_hold_the_same_entries_padding_last():
+    """ranked=False (registration's render): each pixel's slots are the ranked ones in some order,
+    the -1 / 0 padding still after them (the in-front test stops at the first empty slot)."""
+    case = random_case(8, topk=6)
+    ranked = render_topk(*_op_args(case))
+    unranked = render_topk(*_op_args(case, ranked=False))
+    for a, b in zip(ranked[2:], unranked[2:]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    ids, weights = unranked[0].numpy(), unranked[1].numpy()
+    order = np.lexsort((ids, -weights.astype(np.float64)), axis=-1)
+    np.testing.assert_array_equal(np.take_along_axis(ids, order, -1), np.take_along_axis(ranked[0].numpy(), np.lexsort(
+        (ranked[0].numpy(), -ranked[1].numpy().astype(np.float64)), axis=-1), -1))
+    filled = ids >= 0
+    assert not (~filled[..., :-1] & filled[..., 1:]).any(), "padding last"
+    assert (ids != ranked[0].numpy()).any(), "the case should leave some pixel's slots unranked"
 
 
 def test_op_ignores_a_short_capacity_on_the_cpu():

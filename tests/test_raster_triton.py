@@ -107,7 +107,7 @@ def triton_op_kernel(case):
     ts = prepare_scene_torch(case.scene)
     cam = case.camera
     return render_topk_triton(ts.means, ts.covariances, ts.opacities, ts.finite, camera_values(cam), cam.width, cam.height, NEAR, TILE_SIZE,
-                              case.topk, True, -1)
+                              case.topk, True, -1, True)
 
 
 def _small(case):

@@ -718,7 +718,7 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     view where the host waited, not where the device worked.
     """
     t0 = time.perf_counter()
-    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device, tile_capacity=tile_capacity)
+    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device, tile_capacity=tile_capacity, ranked=False)
     raster_seconds = time.perf_counter() - t0
     stats = None
     if rays is not None:
