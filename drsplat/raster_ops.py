@@ -75,17 +75,11 @@ def camera_from_values(values: list[float], width: int, height: int) -> Camera:
     return Camera(R=v[:9].reshape(3, 3), t=v[9:12].copy(), fx=v[12], fy=v[13], cx=v[14], cy=v[15], width=int(width), height=int(height))
 
 
-@torch.library.custom_op("drsplat::render_topk", mutates_args=())
+@torch.library.custom_op("drsplat::render_topk", mutates_args=(), device_types="cpu")
 def render_topk(means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor, camera: list[float], width: int,
                 height: int, near: float, tile_size: int, topk: int, with_median: bool, capacity: int,
                 ranked: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """See the module docstring; the kernels are registered per device."""
-    raise NotImplementedError(f"drsplat::render_topk has kernels for cpu and cuda only, not for {means.device.type!r}")
-
-
-@render_topk.register_kernel("cpu")
-def _render_topk_cpu(means, covariances, opacities, usable, camera, width, height, near, tile_size, topk, with_median, capacity, ranked):
-    """The numba kernels on the tensors' memory; the outputs are the kernels' fresh arrays."""
+    """See the module docstring. This body is the CPU kernel (numba); drsplat.raster_torch registers the CUDA one."""
     prep = host_scene(means, covariances, opacities, usable)
     projected = raster.project_gaussians(prep, camera_from_values(camera, width, height), near, tile_size=tile_size)
     offsets, tile_ids = raster.bin_tiles(projected)

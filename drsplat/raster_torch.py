@@ -62,6 +62,11 @@ class TorchScene:
     finite: torch.Tensor
     num_nonfinite: int
 
+    @classmethod
+    def geometry(cls, means: torch.Tensor, covariances: torch.Tensor, opacities: torch.Tensor, usable: torch.Tensor) -> TorchScene:
+        """The geometry a torch op is handed (no SH; `usable` as `finite`, so nothing more is counted non-finite)."""
+        return cls(means, covariances, opacities, means.new_zeros((means.shape[0], 0, 3), dtype=torch.float32), usable, 0)
+
     @property
     def device(self) -> torch.device:
         return self.means.device
@@ -596,8 +601,7 @@ def render_topk_triton(means: torch.Tensor, covariances: torch.Tensor, opacities
     from drsplat import raster_triton  # imports triton: only when the fused kernels are asked for
 
     cam = raster_ops.camera_from_values(camera, width, height)
-    ts = TorchScene(means, covariances, opacities, means.new_zeros((means.shape[0], 0, 3), dtype=torch.float32), usable, 0)
-    projected = project_gaussians_fused(ts, cam, near, tile_size=tile_size, device=means.device)
+    projected = project_gaussians_fused(TorchScene.geometry(means, covariances, opacities, usable), cam, near, tile_size=tile_size, device=means.device)
     lists = tile_lists_torch(projected, None if capacity < 0 else capacity)
     ids, weights, alpha, median = raster_triton.composite_topk_triton(projected, lists.as_tuple(), topk, with_median=with_median)
     if median is None:

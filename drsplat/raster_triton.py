@@ -403,9 +403,25 @@ def triton_kernel(source):
     return triton.jit(source)
 
 
-def _check_device(dev: torch.device) -> None:
+def require_cuda(dev: torch.device, kernel: str) -> None:
+    """DrsplatError in one sentence unless `kernel` (a name, "the fused ... kernel") can run on
+    `dev`: a CUDA device, or any device under Triton's interpreter (the tests)."""
     if dev.type != "cuda" and not interpreting():
-        raise DrsplatError(f"the fused Triton top-k kernel runs on CUDA devices only, not on {dev.type!r}; use the torch compositing there")
+        raise DrsplatError(f"{kernel} runs on CUDA devices only, not on {dev.type!r}")
+
+
+def strict_launch(**options) -> dict:
+    """A launch's options with FMA contraction off (products round as numba's and torch's do), plus
+    `options`; none under the interpreter, which takes no compiler options."""
+    return {} if interpreting() else {"enable_fp_fusion": False, **options}
+
+
+def row_runs(rows: torch.Tensor, num_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(order [P], starts [num_rows + 1]): `rows` [P] int64 stably sorted (each row's entries keep
+    their order), row r's entries at order[starts[r]:starts[r + 1]]; for kernels that run one
+    program per row (entries of rows ≥ num_rows, padding, sort after every run). Nothing is read."""
+    by_row, order = torch.sort(rows, stable=True)
+    return order, torch.searchsorted(by_row, torch.arange(num_rows + 1, device=rows.device, dtype=by_row.dtype))
 
 
 PROJECT_BLOCK = 256  # Gaussians per projection program
@@ -429,7 +445,7 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
     products round as the numba and torch engines' do.
     """
     dev = means.device
-    _check_device(dev)
+    require_cuda(dev, "the fused Triton projection kernel")
     n = int(means.shape[0])
     f64 = {"dtype": torch.float64, "device": dev}
     out = (torch.empty((n, 2), **f64), torch.empty((n, 3), **f64), torch.empty(n, dtype=torch.float32, device=dev), torch.empty(n, **f64),
@@ -441,7 +457,7 @@ def project_triton(means: torch.Tensor, covariances: torch.Tensor, opacities: to
     intrinsics = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
     grids = [float(g) for g in tile_grid(camera.width, camera.height, tile_size)]
     values = torch.tensor([*rot, *t, *intrinsics, *clamp_limits(camera), float(near), *grids], dtype=torch.float64)
-    launch = {} if interpreting() else {"enable_fp_fusion": False}
+    launch = strict_launch()
     triton_kernel(_project_source)[(triton.cdiv(n, PROJECT_BLOCK),)](
         means.contiguous(), covariances.contiguous(), opacities.contiguous(), usable.to(torch.int8), *out,
         values.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else values, n,
@@ -473,7 +489,7 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     problem = launch_problem(block, num_warps, chunk, p_count)
     if problem:
         raise ValueError(problem)
-    _check_device(dev)
+    require_cuda(dev, "the fused Triton top-k kernel")
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
     offsets, counts, tile_list = bins
@@ -483,7 +499,7 @@ def composite_topk_triton(projected, bins, topk: int = DEFAULT_TOPK, *, with_med
     out_key = torch.empty((n_tiles, p_count, kp), dtype=torch.int64, device=dev)
     out_trans = torch.empty((n_tiles, p_count), dtype=torch.float64, device=dev)
     out_med = torch.empty((n_tiles, p_count), dtype=torch.int32, device=dev)
-    launch = {} if interpret else {"enable_fp_fusion": False, "num_warps": num_warps}
+    launch = strict_launch(num_warps=num_warps)
     scratch = ()
     if chunk:
         kernel, launch = triton_kernel(_composite_topk_chunked_source), {**launch, "CHUNK": chunk}

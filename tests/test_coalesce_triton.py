@@ -8,9 +8,6 @@ tests/test_device_sums.py and saves the outputs; the test process compares them 
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +17,9 @@ pytest.importorskip("triton")
 
 import torch  # noqa: E402
 
+from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.device_sums import coalesce_torch  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
 
 
 def cases():
@@ -55,9 +52,7 @@ NAMES = list(cases())
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("coalesce")
-    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
-    done = subprocess.run([sys.executable, "-c", WORKER, str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stderr[-3000:]
+    run_interpreted(WORKER, str(out), timeout=900)
     return out
 
 
@@ -75,17 +70,14 @@ def test_fused_coalescing_equals_the_torch_ops(interpreted, name):
 def test_fused_coalescing_is_refused_on_the_cpu():
     from drsplat.registration.coalesce_triton import coalesce_triton
 
-    with pytest.raises(ValueError, match="runs on CUDA devices only"):
+    with pytest.raises(DrsplatError, match="runs on CUDA devices only"):
         coalesce_triton(torch.zeros((2, 2, 1), dtype=torch.int32), torch.ones((2, 2, 1)), torch.zeros((2, 2), dtype=torch.int32), 1, 4)
 
 
 def test_fused_coalescing_compiles_to_ptx():
     from drsplat.registration.coalesce_triton import compile_coalesce_ptx
 
-    try:
-        ptx = compile_coalesce_ptx(90)
-    except (ImportError, AttributeError) as exc:
-        pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
+    ptx = compiled_ptx(compile_coalesce_ptx, 90)
     assert ".entry _keys_source" in ptx and ".entry _segments_source" in ptx and "atom" in ptx
 
 

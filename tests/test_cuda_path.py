@@ -12,9 +12,6 @@ saves the fields, which must equal the numba engine's.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +20,8 @@ import pytest
 pytest.importorskip("triton")
 
 from drsplat.registration import RegisterOptions, register_features  # noqa: E402
+from tests.interpreted import run_interpreted  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 MODES = ["core-reject", "explain-vote-reject"]  # between them every op: render, weighting, EM, statistics, coalescing, vote, sums
 
 
@@ -71,9 +68,7 @@ for mode in MODES:
 @pytest.fixture(scope="module")
 def cuda_path(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("cuda-path")
-    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
-    done = subprocess.run([sys.executable, "-c", WORKER, str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stderr[-3000:]
+    run_interpreted(WORKER, str(out), timeout=900)
     return out
 
 

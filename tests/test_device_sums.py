@@ -102,6 +102,14 @@ def test_the_coalescing_op_equals_the_torch_ops(case):
         assert a.tobytes() == b.tobytes()
 
 
+def test_the_coalescing_op_names_mismatched_shapes():
+    ids, weights, masks = (torch.from_numpy(a) for a in random_view(5, 9, 7, 4, 60, 5))
+    with pytest.raises(ValueError, match=r"mask ids \(7, 9\) \[H, W\]"):
+        coalesce_pairs(ids, weights, masks.t(), 5, 60)
+    with pytest.raises(ValueError, match=r"must be \[H, W, k\]"):
+        coalesce_pairs(ids, weights[..., :2], masks, 5, 60)
+
+
 def test_the_coalescing_op_passes_torch_opcheck():
     ids, weights, masks = (torch.from_numpy(a) for a in random_view(5, 9, 7, 4, 60, 5))
     torch.library.opcheck(coalesce_pairs_op, (ids, weights, masks, 5, 60), test_utils=("test_schema", "test_faketensor"))

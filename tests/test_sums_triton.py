@@ -10,9 +10,6 @@ which on a CPU adds a Gaussian's pairs in order).
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +19,10 @@ pytest.importorskip("triton")
 
 import torch  # noqa: E402
 
+from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.device_sums import add_pairs_torch  # noqa: E402
 from drsplat.registration.sums import add_pairs_in_place  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
 
 # (Gaussians, embedding dimension, seed); "crowded": 2 Gaussians take every pair
 CASES = {"d7": (30, 7, 0), "d1": (12, 1, 1), "d64-padded": (40, 64, 2), "crowded": (2, 5, 3)}
@@ -69,10 +66,7 @@ for name in json.loads(sys.argv[1]):
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sums")
-    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
-    done = subprocess.run([sys.executable, "-c", WORKER, json.dumps(list(CASES)), str(out)], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
+    run_interpreted(WORKER, json.dumps(list(CASES)), str(out), timeout=600)
     return out
 
 
@@ -94,7 +88,7 @@ def test_fused_sums_equal_numba_and_the_torch_form(interpreted, name):
 def test_fused_sums_are_refused_on_the_cpu():
     from drsplat.registration.sums_triton import add_pairs_triton
 
-    with pytest.raises(ValueError, match="runs on CUDA devices only"):
+    with pytest.raises(DrsplatError, match="runs on CUDA devices only"):
         add_pairs_triton(torch.zeros((2, 3)), torch.zeros(2), torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64), torch.ones(1),
                          torch.ones((1, 3)))
 
@@ -103,10 +97,7 @@ def test_fused_sums_kernel_compiles_to_ptx_without_fma():
     """Typed mode for sm_90 and no fused multiply-adds: w·f rounds to float32 before the add, as numba's."""
     from drsplat.registration.sums_triton import compile_sums_ptx
 
-    try:
-        ptx = compile_sums_ptx(90)
-    except (ImportError, AttributeError) as exc:
-        pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
+    ptx = compiled_ptx(compile_sums_ptx, 90)
     assert ".entry _add_pairs_source" in ptx and "mul.rn.f32" in ptx and "add.rn.f32" in ptx and "fma" not in ptx
 
 

@@ -9,9 +9,6 @@ the slots; the test process folds the same views with `vote.vote_view_reference`
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,9 +18,9 @@ pytest.importorskip("triton")
 
 import torch  # noqa: E402
 
+from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.vote import FULL_VIEW, fold_view_votes, vote_view_reference  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
 
 # (slots per Gaussian, presence ρ, Gaussians, seed); "ties": votes = weights from {0.25, 0.5}, so
 # full slots often tie on the fewest votes (the first of them is replaced)
@@ -70,10 +67,7 @@ for name in json.loads(sys.argv[1]):
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("vote")
-    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
-    done = subprocess.run([sys.executable, "-c", WORKER, json.dumps(list(CASES)), str(out)], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
+    run_interpreted(WORKER, json.dumps(list(CASES)), str(out), timeout=600)
     return out
 
 
@@ -97,7 +91,7 @@ def test_fused_vote_fold_is_refused_on_the_cpu():
     from drsplat.registration.vote_triton import vote_fold_triton
 
     slots = [torch.from_numpy(a) for a in empty_slots("1-slot")]
-    with pytest.raises(ValueError, match="runs on CUDA devices only"):
+    with pytest.raises(DrsplatError, match="runs on CUDA devices only"):
         vote_fold_triton(torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64), torch.ones(1), 0.1, FULL_VIEW, *slots)
 
 
@@ -105,10 +99,7 @@ def test_fused_vote_kernel_compiles_to_ptx_without_fma():
     """Typed mode for sm_90, IEEE float64 division and no fused multiply-adds (numba's rounding)."""
     from drsplat.registration.vote_triton import compile_vote_ptx
 
-    try:
-        ptx = compile_vote_ptx(90)
-    except (ImportError, AttributeError) as exc:
-        pytest.skip(f"triton's backend API differs from 3.8's ({exc})")
+    ptx = compiled_ptx(compile_vote_ptx, 90)
     assert ".entry _vote_fold_source" in ptx and "div.rn.f64" in ptx and "fma" not in ptx
 
 

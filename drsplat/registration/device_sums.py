@@ -303,7 +303,14 @@ def coalesce_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Ten
     return DevicePairs(gaussians, masks, torch.where(real, sums, torch.zeros_like(sums)), counts, flags)
 
 
-@torch.library.custom_op("drsplat::coalesce_pairs", mutates_args=())
+def check_view_shapes(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor) -> None:
+    """ValueError in one sentence unless ids and weights are [H, W, k] and mask_ids [H, W]."""
+    if ids.dim() != 3 or weights.shape != ids.shape or tuple(mask_ids.shape) != tuple(ids.shape[:2]):
+        raise ValueError(f"a view's top-k ids {tuple(ids.shape)} and weights {tuple(weights.shape)} must be [H, W, k] and its mask ids "
+                         f"{tuple(mask_ids.shape)} [H, W]")
+
+
+@torch.library.custom_op("drsplat::coalesce_pairs", mutates_args=(), device_types="cpu")
 def coalesce_pairs_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_masks: int,
                       num_gaussians: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """`coalesce_torch` as one op: (gaussians, masks, weights, counts, mask flags) of its DevicePairs.
@@ -311,15 +318,11 @@ def coalesce_pairs_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.
     Kernels: cpu, the numba coalescer (drsplat.registration.coalesce.Coalescer, the same float32
     sums in the same order) with each mask's pairs sorted by Gaussian, exactly the P distinct pairs
     (no padding: the host knows P at once); cuda, two Triton launches around a sort and an
-    index_add (drsplat.registration.coalesce_triton: ~20 ops), or without Triton `coalesce_torch`
+    index_add (drsplat.registration.coalesce_triton: 24 torch ops), or without Triton `coalesce_torch`
     itself (both padded to H·W·k, nothing read; their float32 atomics add a pair's slots in no
     fixed order there).
     """
-    raise NotImplementedError(f"drsplat::coalesce_pairs has kernels for cpu and cuda only, not for {ids.device.type!r}")
-
-
-@coalesce_pairs_op.register_kernel("cpu")
-def _coalesce_pairs_cpu(ids, weights, mask_ids, num_masks, num_gaussians):
+    check_view_shapes(ids, weights, mask_ids)
     k = int(ids.shape[-1]) if ids.dim() == 3 else 1
     masks = host_array(mask_ids).astype(np.int32).reshape(ids.shape[:2])
     masks = np.where(masks < num_masks, masks, -1)  # as coalesce_torch: a mask id past the view's masks holds no pair
@@ -334,6 +337,7 @@ def _coalesce_pairs_cpu(ids, weights, mask_ids, num_masks, num_gaussians):
 
 @coalesce_pairs_op.register_kernel("cuda")
 def _coalesce_pairs_cuda(ids, weights, mask_ids, num_masks, num_gaussians):
+    check_view_shapes(ids, weights, mask_ids)
     if triton_available():
         from drsplat.registration.coalesce_triton import coalesce_triton  # imports triton
 
@@ -453,7 +457,7 @@ def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: to
     return torch.where(valid, w * scale[pair], zero).to(torch.float32).reshape(shape)
 
 
-@torch.library.custom_op("drsplat::view_weights", mutates_args=())
+@torch.library.custom_op("drsplat::view_weights", mutates_args=(), device_types="cpu")
 def view_weights_op(weighting: str, ids: torch.Tensor, weights: torch.Tensor, means: torch.Tensor, covariances: torch.Tensor,
                     opacities: torch.Tensor, usable: torch.Tensor, camera: list[float], near: float, anchor_gain: float) -> torch.Tensor:
     """A per-pixel weighting's [H, W, k] float32 weights as one op (`view_weights_torch`), the view
@@ -461,11 +465,6 @@ def view_weights_op(weighting: str, ids: torch.Tensor, weights: torch.Tensor, me
     means [N, 3], covariances [N, 3, 3], opacities [N], usable [N]: the TorchScene; camera:
     `raster_ops.camera_values`). Kernels: cpu, numba's projection and `aggregate.view_weights` (the
     host hook's kernels: the same bits); cuda, `project_gaussians_torch` and `view_weights_torch`."""
-    raise NotImplementedError(f"drsplat::view_weights has kernels for cpu and cuda only, not for {ids.device.type!r}")
-
-
-@view_weights_op.register_kernel("cpu")
-def _view_weights_cpu(weighting, ids, weights, means, covariances, opacities, usable, camera, near, anchor_gain):
     h, w, _ = ids.shape
     screen = np.zeros((0, 2)), np.zeros((0, 3))
     if weighting in PROJECTED_WEIGHTINGS:
@@ -479,8 +478,8 @@ def _view_weights_cuda(weighting, ids, weights, means, covariances, opacities, u
     h, w, _ = ids.shape
     screen = ()
     if weighting in PROJECTED_WEIGHTINGS:
-        scene = TorchScene(means, covariances, opacities, means.new_zeros((means.shape[0], 0, 3), dtype=torch.float32), usable, 0)
-        projected = project_gaussians_torch(scene, raster_ops.camera_from_values(camera, w, h), near, device=means.device)
+        projected = project_gaussians_torch(TorchScene.geometry(means, covariances, opacities, usable), raster_ops.camera_from_values(camera, w, h), near,
+                                            device=means.device)
         screen = projected.means2d, projected.conics
     return view_weights_torch(weighting, ids, weights, *screen, anchor_gain=anchor_gain)
 
@@ -490,15 +489,10 @@ def _view_weights_fake(weighting, ids, weights, means, covariances, opacities, u
     return weights.new_empty(ids.shape, dtype=torch.float32)
 
 
-@torch.library.custom_op("drsplat::explain_weights", mutates_args=())
+@torch.library.custom_op("drsplat::explain_weights", mutates_args=(), device_types="cpu")
 def explain_weights_op(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_gaussians: int, iterations: int) -> torch.Tensor:
     """`explain_weights_torch` as one op ([H, W, k] float32). Kernels: cpu, the host hook's numba EM
     (`aggregate.explain_weights`: the same bits); cuda, `explain_weights_torch`."""
-    raise NotImplementedError(f"drsplat::explain_weights has kernels for cpu and cuda only, not for {ids.device.type!r}")
-
-
-@explain_weights_op.register_kernel("cpu")
-def _explain_weights_cpu(ids, weights, mask_ids, num_gaussians, iterations):
     return host_tensor(explain_weights(host_array(ids), host_array(weights), host_array(mask_ids), num_gaussians, iterations))
 
 
@@ -614,7 +608,7 @@ def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tens
     return DeviceViewStats(peak[:n], total[:n], front[:n], touched[:n])
 
 
-@torch.library.custom_op("drsplat::view_stats", mutates_args=())
+@torch.library.custom_op("drsplat::view_stats", mutates_args=(), device_types="cpu")
 def view_stats_op(ids: torch.Tensor, weights: torch.Tensor, median_ids: torch.Tensor, means: torch.Tensor, precisions: torch.Tensor,
                   reach: torch.Tensor, camera: list[float], tolerance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """A `-reject` mode's per-view floater statistics as one op: (peak, total, front [N] float64,
@@ -625,11 +619,6 @@ def view_stats_op(ids: torch.Tensor, weights: torch.Tensor, median_ids: torch.Te
     host hook (`aggregate.surface_stats`: the same bits), its compact statistics laid out dense;
     cuda, `front_flags` (one Triton launch) and `view_stats_torch`.
     """
-    raise NotImplementedError(f"drsplat::view_stats has kernels for cpu and cuda only, not for {ids.device.type!r}")
-
-
-@view_stats_op.register_kernel("cpu")
-def _view_stats_cpu(ids, weights, median_ids, means, precisions, reach, camera, tolerance):
     h, w, _ = ids.shape
     cam = raster_ops.camera_from_values(camera, w, h)
     rays = RayGeometry(*(np.ascontiguousarray(host_array(t)) for t in (means, precisions, reach)))
@@ -746,7 +735,7 @@ def sums_fit_device(num_gaussians: int, dim: int, device: str, extra_per_gaussia
     return DEVICE_HEADROOM * num_gaussians * (4 * (dim + 1) + extra_per_gaussian) + 8 * PAIR_CHUNK * dim <= free
 
 
-@torch.library.custom_op("drsplat::add_pairs", mutates_args=("F", "W"))
+@torch.library.custom_op("drsplat::add_pairs", mutates_args=("F", "W"), device_types="cpu")
 def add_pairs_op(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, masks: torch.Tensor, weights: torch.Tensor, feats: torch.Tensor,
                  chunk: int) -> None:
     """F[g] += w·feats[m], W[g] += w for one view's pairs (g, m, w), in place; a Gaussian's pairs in
@@ -756,11 +745,6 @@ def add_pairs_op(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, mask
     Gaussians); cuda, one Triton launch after a sort by Gaussian (drsplat.registration.sums_triton:
     each F row read and written once, the pairs added in order, so numba's bits and the same in
     every run), or without Triton `add_pairs_torch` (index_add of F in chunks of `chunk` pairs)."""
-    raise NotImplementedError(f"drsplat::add_pairs has kernels for cpu and cuda only, not for {F.device.type!r}")
-
-
-@add_pairs_op.register_kernel("cpu")
-def _add_pairs_cpu(F, W, gaussians, masks, weights, feats, chunk):
     add_pairs_in_place(host_array(F), host_array(W), *(host_array(t) for t in (gaussians, masks, weights, feats)))
 
 
@@ -921,7 +905,7 @@ def vote_view_torch(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.T
     fold_vote_rounds(vote_rounds_torch(rows, clusters, weights, presence, full_view, limit, slot_c.shape[0]), slot_c, slot_v, slot_s)
 
 
-@torch.library.custom_op("drsplat::vote_fold", mutates_args=("slot_c", "slot_v", "slot_s"))
+@torch.library.custom_op("drsplat::vote_fold", mutates_args=("slot_c", "slot_v", "slot_s"), device_types="cpu")
 def vote_fold_op(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tensor, presence: float, full_view: float, num_masks: int,
                  slot_c: torch.Tensor, slot_v: torch.Tensor, slot_s: torch.Tensor) -> None:
     """`vote_view_torch` as one op: fold one view's pairs into the vote slots, in place (arguments
@@ -929,11 +913,6 @@ def vote_fold_op(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.Tens
     same bits); cuda, one Triton launch after a sort (drsplat.registration.vote_triton: a program
     per Gaussian, nothing read), or without Triton `vote_view_torch` (which reads the view's number
     of rounds: DeviceVoteSink then lays the rounds out and folds them a view late instead)."""
-    raise NotImplementedError(f"drsplat::vote_fold has kernels for cpu and cuda only, not for {rows.device.type!r}")
-
-
-@vote_fold_op.register_kernel("cpu")
-def _vote_fold_cpu(rows, clusters, weights, presence, full_view, num_masks, slot_c, slot_v, slot_s):
     fold_view_votes(*(host_array(t) for t in (rows, clusters, weights)), presence, full_view, *(host_array(t) for t in (slot_c, slot_v, slot_s)))
 
 

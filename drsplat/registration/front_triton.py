@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from drsplat.cameras import Camera
-from drsplat.raster_triton import interpreting, kernel_ptx, triton_kernel
+from drsplat.raster_triton import kernel_ptx, require_cuda, strict_launch, triton_kernel
 
 try:  # triton comes with torch's CUDA builds
     import triton
@@ -96,8 +96,7 @@ def front_flags_triton(means: torch.Tensor, precisions: torch.Tensor, reach: tor
     ids [H, W, k], median_ids [H, W] int32, on a CUDA device (or the CPU under the interpreter)."""
     h, w, k = ids.shape
     dev = ids.device
-    if dev.type != "cuda" and not interpreting():
-        raise ValueError(f"the fused in-front kernel runs on CUDA devices only, not on {dev.type!r}")
+    require_cuda(dev, "the fused in-front kernel")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     values = [*rot.reshape(-1), *camera.ray_origin(), trans[2], camera.fx, camera.fy, camera.cx, camera.cy, 1.0 - tolerance]
     params = torch.tensor([float(v) for v in values], dtype=torch.float64)
@@ -107,7 +106,7 @@ def front_flags_triton(means: torch.Tensor, precisions: torch.Tensor, reach: tor
     if n_pixels == 0 or k == 0:
         return flags.view(torch.bool)
     kp = 1 << max(0, k - 1).bit_length()
-    launch = {} if interpreting() else {"enable_fp_fusion": False}
+    launch = strict_launch()
     triton_kernel(_front_flags_source)[(triton.cdiv(n_pixels, BLOCK),)](
         ids.contiguous(), median_ids.contiguous(), means.contiguous(), precisions.contiguous(), reach.contiguous(), params, flags,
         n_pixels, w, k, BLOCK=BLOCK, KP=kp, **launch,

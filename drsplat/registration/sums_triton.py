@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from drsplat.raster_triton import interpreting, kernel_ptx, triton_kernel
+from drsplat.raster_triton import kernel_ptx, require_cuda, row_runs, strict_launch, triton_kernel
 
 try:  # triton comes with torch's CUDA builds
     import triton
@@ -54,14 +54,12 @@ def add_pairs_triton(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, 
     float32 contiguous; gaussians [P] int64 (N: padding), masks [P] int64, weights [P] float32;
     feats [M, D] float32. On a CUDA device (or the CPU under the interpreter)."""
     dev = F.device
-    if dev.type != "cuda" and not interpreting():
-        raise ValueError(f"the fused sums kernel runs on CUDA devices only, not on {dev.type!r}")
+    require_cuda(dev, "the fused sums kernel")
     n, dim = F.shape
     if gaussians.shape[0] == 0 or n == 0:
         return
-    by_gaussian, order = torch.sort(gaussians, stable=True)
-    starts = torch.searchsorted(by_gaussian, torch.arange(n + 1, device=dev, dtype=by_gaussian.dtype))
-    launch = {} if interpreting() else {"enable_fp_fusion": False}
+    order, starts = row_runs(gaussians, n)
+    launch = strict_launch()
     triton_kernel(_add_pairs_source)[(n,)](
         masks[order].contiguous(), weights[order].to(torch.float32).contiguous(), starts, feats.to(torch.float32).contiguous(), F, W, dim,
         BLOCK_D=triton.next_power_of_2(max(dim, 1)), **launch,

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from drsplat.raster_triton import interpreting, kernel_ptx, triton_kernel
+from drsplat.raster_triton import kernel_ptx, require_cuda, row_runs, strict_launch, triton_kernel
 
 try:  # triton comes with torch's CUDA builds
     import triton
@@ -76,16 +76,14 @@ def vote_fold_triton(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.
     order; slot_c [N, S] int32, slot_v / slot_s [N, S] float64, contiguous, on a CUDA device (or the
     CPU under the interpreter)."""
     dev = rows.device
-    if dev.type != "cuda" and not interpreting():
-        raise ValueError(f"the fused vote kernel runs on CUDA devices only, not on {dev.type!r}")
+    require_cuda(dev, "the fused vote kernel")
     n, slots = slot_c.shape
     if rows.shape[0] == 0 or n == 0:
         return
-    by_row, order = torch.sort(rows, stable=True)
-    starts = torch.searchsorted(by_row, torch.arange(n + 1, device=dev, dtype=by_row.dtype))
+    order, starts = row_runs(rows, n)
     params = torch.tensor([float(presence), float(full_view)], dtype=torch.float64)
     params = params.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else params
-    launch = {} if interpreting() else {"enable_fp_fusion": False}
+    launch = strict_launch()
     triton_kernel(_vote_fold_source)[(n,)](
         clusters[order].to(torch.int32).contiguous(), weights[order].to(torch.float32).contiguous(), starts, params, slot_c, slot_v, slot_s,
         slots, SP=1 << max(0, slots - 1).bit_length(), **launch,
