@@ -72,6 +72,10 @@ def camera_from_values(values: list[float], width: int, height: int) -> Camera:
     if len(values) != CAMERA_VALUES:
         raise ValueError(f"render_topk's camera holds {CAMERA_VALUES} values (R, t, fx, fy, cx, cy), got {len(values)}")
     v = np.asarray(values, np.float64)
+    if not np.isfinite(v).all() or not (width >= 1 and height >= 1):
+        # a camera loaded from a file passed cameras.validate_camera; this guards the op's own arguments
+        raise ValueError(f"render_topk's camera must have finite values and an image of at least 1x1 pixels, got {int((~np.isfinite(v)).sum())} "
+                         f"non-finite values and {width}x{height}")
     return Camera(R=v[:9].reshape(3, 3), t=v[9:12].copy(), fx=v[12], fy=v[13], cx=v[14], cy=v[15], width=int(width), height=int(height))
 
 

@@ -111,6 +111,10 @@ def test_camera_values_round_trip_and_a_wrong_length_is_named():
                                                                       case.camera.width, case.camera.height)
     with pytest.raises(ValueError, match="camera holds 16 values"):
         camera_from_values([1.0] * 15, 4, 4)
+    with pytest.raises(ValueError, match="1 non-finite values and 4x4"):
+        camera_from_values([1.0] * 15 + [float("nan")], 4, 4)
+    with pytest.raises(ValueError, match="0 non-finite values and -1x4"):
+        camera_from_values([1.0] * 16, -1, 4)
 
 
 def test_rgb_or_depth_take_the_torch_ops_and_fused_refuses_them():
