@@ -9,25 +9,27 @@ import numpy as np
 import pytest
 
 from drsplat.cameras import load_cameras
-from drsplat.errors import UsageError
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.aggregate import Stages, mode_stages
 from drsplat.registration.check import (
     CheckSink,
+    KeptPairs,
+    MaskVerdicts,
     PairRecord,
+    ViewSupport,
     _agreement_kernel,
-    _fold_votes_kernel,
     _own_alt_kernel,
-    check_masks,
+    add_view_support,
     check_reference,
-    kept_pairs,
+    fold_block_votes,
+    judge_masks,
     like_threshold,
-    view_support,
+    view_supports,
     view_votes_reference,
 )
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
-from drsplat.registration.vote import _rows_order
+from drsplat.registration.vote import MaskClusters
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 
@@ -44,17 +46,19 @@ def _view(name: str, feats: np.ndarray, gaussians, masks, weights) -> ViewPairs:
                      np.unique(np.asarray(masks, np.int32)), int(g.size))
 
 
-def _record(views: list[ViewPairs], n: int) -> tuple[PairRecord, np.ndarray, np.ndarray]:
-    """The record and the folded slots (8 per Gaussian) of `views`, as CheckSink.add makes them."""
-    record = PairRecord(D)
-    slot_c, slot_v = np.full((n, 8), -1, np.int32), np.zeros((n, 8))
+def _record(views: list[ViewPairs], n: int) -> tuple[PairRecord, MaskClusters]:
+    """The record and the mask clusters of `views`, as CheckSink.add makes them in one block."""
+    record, clusters = PairRecord(n), MaskClusters(D)
     for view in views:
-        clusters = record.add(view)
-        kept = record.views[-1]
-        if kept.gaussians.size:
-            _fold_votes_kernel(kept.gaussians, np.ascontiguousarray(clusters[kept.masks], np.int32), kept.weights,
-                               _rows_order(kept.gaussians), 0.1, 0.5, slot_c, slot_v)
-    return record, slot_c, slot_v
+        clusters.add(view.feats, view.present_masks())
+        record.add(view)
+    return record, clusters
+
+
+def _judge(views: list[ViewPairs], n: int, block: int | None = None) -> tuple[MaskVerdicts, PairRecord]:
+    """The verdicts on `views` (8 slots per Gaussian), judged in blocks of `block` Gaussians (None: one)."""
+    record, clusters = _record(views, n)
+    return judge_masks(record, clusters, n, block or n, slots=8), record
 
 
 def _random_views(rng, n: int, labels: np.ndarray, num_views: int, hard: bool) -> list[ViewPairs]:
@@ -90,20 +94,70 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
     n = 40
     labels = _unit(rng.normal(size=(4, D)))
     views = _random_views(rng, n, labels, 7, hard)
-    record, slot_c, slot_v = _record(views, n)
-    means = np.ascontiguousarray(record.clusters.means(), np.float32)
-    ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, record.clusters.per_view)], n,
+    record, clusters = _record(views, n)
+    means = np.ascontiguousarray(clusters.means(), np.float32)
+    slot_c, slot_v = fold_block_votes(record.block_views(0, n), clusters.per_view, 0, n, slots=8)
+    ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, clusters.per_view)], n,
                           means, like)
     assert len(ref) == 7
-    for view, clusters, (r_mass, r_total, r_agree, r_own, r_alt) in zip(record.views, record.clusters.per_view, ref):
-        sup = view_support(view, clusters, slot_c, slot_v, means.shape[0])
-        agree, total, own, alt = (np.zeros(clusters.shape[0]) for _ in range(4))
+    for view, c, (r_mass, r_total, r_agree, r_own, r_alt) in zip(record.views, clusters.per_view, ref):
+        sup = ViewSupport.empty(view.feats, c, means.shape[0])
+        add_view_support(view, 0, c, slot_c, slot_v, sup)
+        agree, total, own, alt = (np.zeros(c.shape[0]) for _ in range(4))
         _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
         _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
         np.testing.assert_allclose(sup.mass, r_mass, rtol=1e-12)
         for got, want in [(total, r_total), (agree, r_agree), (own, r_own), (alt, r_alt)]:
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
+
+
+@pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
+def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard):
+    """Blocks of 1, 7 and 13 Gaussians (a block with no pair at all among them) give one block's
+    verdicts, like cosine and kept pairs bit for bit: each q[j, c] adds its terms in Gaussian order
+    whatever the plan. Both cases drop masks; the hard one (zero and 1e-30 weights, an empty view)
+    has Gaussians with no kept pair of positive weight, which keep all theirs."""
+    rng = np.random.default_rng(seed)
+    labels = _unit(rng.normal(size=(4, D)))
+    truth = np.arange(45) % 4  # Gaussian i is label i % 4; Gaussians 40-44 are never seen
+    views = []
+    for v in range(9):
+        seen = np.flatnonzero(rng.random(40) < 0.7)
+        masks = truth[seen].astype(np.int32)
+        feats = _unit(labels + rng.normal(scale=0.02, size=(4, D)))
+        if v % 3 == 0:
+            feats[v % 4] = labels[(v + 1) % 4]  # a mislabelled mask: something to drop
+        w = rng.uniform(0.2, 1.0, seen.size).astype(np.float32)
+        if hard:
+            w[:2] = 0.0
+            w[2:4] = 1e-30
+        views.append(_view(f"v{v}", feats, seen, masks, w))
+    if hard:
+        views.append(_view("empty", labels[:2], [], [], []))
+    views.append(_view("far", labels[:1], [45, 46], [0, 0], [1.0, 1.0]))  # Gaussians past the others: blocks of nothing before them
+    n = 47
+    one, record = _judge(views, n)
+    assert one.dropped > 0 and one.like is not None
+    clusters = _record(views, n)[1]
+    supports = view_supports(record, clusters, n, n, slots=8)
+    one_kept = KeptPairs(record, one.keep, n, n)
+    assert not hard or not one_kept.any_kept[:40].all()  # the hard case: Gaussians with no kept pair of positive weight
+    whole = list(one_kept.block_views(0, n))
+    for block in (1, 7, 13):
+        got, _ = _judge(views, n, block)
+        for a, b in zip(view_supports(record, clusters, n, block, slots=8), supports):
+            np.testing.assert_array_equal(a.q, b.q)
+            np.testing.assert_array_equal(a.mass, b.mass)
+        assert got.like == one.like and (got.dropped, got.judged, got.present) == (one.dropped, one.judged, one.present)
+        for a, b in zip(got.keep, one.keep):
+            np.testing.assert_array_equal(a, b)
+        kept = KeptPairs(record, got.keep, n, block)
+        for lo in range(0, n, block):  # each block's kept pairs are the one-block kept pairs of its Gaussians, in order
+            for part, full in zip(kept.block_views(lo, lo + block), whole):
+                inside = (full.gaussians >= lo) & (full.gaussians < lo + block)
+                np.testing.assert_array_equal(part.gaussians, full.gaussians[inside])
+                np.testing.assert_array_equal(part.weights, full.weights[inside])
 
 
 def test_like_threshold_is_halfway_between_agreement_and_difference():
@@ -139,7 +193,7 @@ def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
     correct mask is kept, and the other Gaussians' sums are the paper's bit for bit."""
     rng = np.random.default_rng(0)
     a, b, views = _mislabel_scene(rng, close_up=5.0)
-    sink, paper = CheckSink(20, D, MemorySink(20, D)), MemorySink(20, D)
+    sink, paper = CheckSink(20, D, vote=False), MemorySink(20, D)
     for view in views:
         sink.add(view)
         paper.add(view)
@@ -173,26 +227,24 @@ def test_what_the_check_keeps():
     a, b, c = _unit(rng.normal(size=(3, D)))
     # Gaussian 0: seen as B faintly (T = 0.1 < T₀) in 4 views, as A clearly in one: 4 x 0.2 = 0.8 votes for B < 2
     views = _with_context([_view(f"f{v}", b[None], [0], [0], [0.1]) for v in range(4)] + [_view("clear", a[None], [0], [0], [1.0])], c, 1)
-    record, slot_c, slot_v = _record(views, 2)
-    result = check_masks(record, slot_c, slot_v)
+    result, _ = _judge(views, 2)
     assert result.like is not None and result.dropped == 0
     # Gaussian 0 as A in 3 of 7 views, B in 4: A's masks see own 2 >= 0.1 x 4
     views = [_view(f"b{v}", b[None], [0], [0], [1.0]) for v in range(4)] + [_view(f"a{v}", a[None], [0], [0], [1.0]) for v in range(3)]
-    record, slot_c, slot_v = _record(_with_context(views, c, 1), 2)
-    result = check_masks(record, slot_c, slot_v)
+    result, _ = _judge(_with_context(views, c, 1), 2)
     assert result.like is not None and result.dropped == 0 and result.judged > 0
     # one view only
-    record, slot_c, slot_v = _record([_view("only", np.stack([a, b]), [0, 1], [0, 1], [1.0, 1.0])], 2)
-    result = check_masks(record, slot_c, slot_v)
+    result, _ = _judge([_view("only", np.stack([a, b]), [0, 1], [0, 1], [1.0, 1.0])], 2)
     assert result.dropped == 0 and result.judged == 0 and result.present == 2
     # Gaussian 20 is only under the dropped mask of view 4 (with Gaussians 0-4 that other views contradict): it keeps its pair
     _, _, views = _mislabel_scene(rng)
     views[4] = _view("v4", views[4].feats, list(range(5)) + [20], [0] * 6, [1.0] * 6)
-    record, slot_c, slot_v = _record(views, 21)
-    result = check_masks(record, slot_c, slot_v)
+    result, record = _judge(views, 21)
     assert not result.keep[4][0]
-    kept = kept_pairs(record, result.keep, 21)
-    np.testing.assert_array_equal(kept[4], [False] * 5 + [True])
+    kept = KeptPairs(record, result.keep, 21, 21)
+    last = list(kept.block_views(0, 21))[4]
+    np.testing.assert_array_equal(last.gaussians, [20])
+    assert kept.present()[4][0] and not kept.any_kept[20]  # the dropped mask still has a pair: the vote still clusters it
 
 
 def test_a_label_split_by_noise_is_still_one_label():
@@ -205,9 +257,9 @@ def test_a_label_split_by_noise_is_still_one_label():
     assert max(float(x @ y) for i, x in enumerate(noisy) for y in noisy[i + 1:]) < 0.9
     views = [_view(f"v{v}", np.stack([noisy[v], c]), np.arange(6), [0] * 5 + [1], np.ones(6)) for v in range(4)]
     views.append(_view("wrong", np.stack([b, c]), np.arange(6), [0] * 5 + [1], np.ones(6)))
-    record, slot_c, slot_v = _record(views, 6)
-    assert record.clusters.count >= 6  # A split into several clusters
-    result = check_masks(record, slot_c, slot_v)
+    record, clusters = _record(views, 6)
+    assert clusters.count >= 6  # A split into several clusters
+    result = judge_masks(record, clusters, 6, 6, slots=8)
     assert not result.keep[4][0] and result.dropped == 1
 
 
@@ -239,15 +291,25 @@ def test_check_beats_the_vote_on_mislabelled_masks(mislabelled_room):
     assert checked[col["floaters kept"]] < 0.1 and checked[col["labelled coverage"]] >= 0.99
 
 
-def test_check_is_refused_in_blocks_and_runs_on_the_torch_engine(mislabelled_room):
+def test_check_in_blocks_and_on_the_torch_engine_gives_the_one_block_features(mislabelled_room):
+    """In blocks the check judges from the pair log; the same features as one block in memory (and
+    masks are dropped: the case is not vacuous). Ray's reducers leave a check mode's blocks to the driver."""
+    from drsplat.registration.reduce import wants_reducers
+
     root, scene, cams = mislabelled_room
-    with pytest.raises(UsageError, match="checks masks over all Gaussians' pairs in one block in memory"):
-        register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="check", block_size=500), show_progress=False)
-    numba = register_features(scene, cams[:4], root / "features", RegisterOptions(topk=10, aggregate="check"), show_progress=False)
-    torch = register_features(scene, cams[:4], root / "features", RegisterOptions(topk=10, aggregate="check", engine="torch", device="cpu"),
+    one = register_features(scene, cams[:6], root / "features", RegisterOptions(topk=10, aggregate="check-vote"), show_progress=False)
+    plain = register_features(scene, cams[:6], root / "features", RegisterOptions(topk=10, aggregate="vote"), show_progress=False)
+    assert not np.array_equal(one.features, plain.features)
+    blocks = register_features(scene, cams[:6], root / "features", RegisterOptions(topk=10, aggregate="check-vote", block_size=500),
+                               show_progress=False)
+    assert blocks.num_blocks == -(-scene.num_gaussians // 500)
+    np.testing.assert_array_equal(blocks.features, one.features)
+    torch = register_features(scene, cams[:6], root / "features", RegisterOptions(topk=10, aggregate="check-vote", engine="torch", device="cpu"),
                               show_progress=False)
     assert torch.sums_on == "host"
-    np.testing.assert_array_equal(torch.features, numba.features)
+    np.testing.assert_array_equal(torch.features, one.features)
+    assert wants_reducers("ray", True, 500, scene.num_gaussians, True, "vote-reject")
+    assert not wants_reducers("ray", True, 500, scene.num_gaussians, True, "check-vote-reject")
 
 
 def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path):

@@ -308,9 +308,9 @@ def test_every_mode_on_ray_writes_the_local_file(cluster, tmp_path_factory, engi
         local, on_ray = data / "local" / mode / "reg.ply", tmp_path / mode / "reg.ply"
         if not local.exists():  # the local reference, shared by both engines' runs
             register(scene, cams, data / "features", local, RegisterOptions(topk=10, aggregate=mode), show_progress=False)
-        stages = mode_stages(mode)  # the solve and the check run in one block only (refused in blocks: tests/test_registration_matrix.py)
-        solve = stages.solve or stages.check
-        options = RegisterOptions(topk=10, aggregate=mode, engine=engine, ray="auto", ray_workers=2, block_size=None if solve else 1024)
+        stages = mode_stages(mode)  # the solve runs in one block only (refused in blocks: tests/test_registration_matrix.py)
+        options = RegisterOptions(topk=10, aggregate=mode, engine=engine, ray="auto", ray_workers=2, block_size=None if stages.solve else 1024)
         result = register(scene, cams, data / "features", on_ray, options, show_progress=False)
-        assert result.num_blocks == (1 if solve else 3) and result.worker_peak_rss, mode
+        assert result.num_blocks == (1 if stages.solve else 3) and result.worker_peak_rss, mode
+        assert result.reducers == (not stages.solve and not stages.check), mode  # a check's blocks are judged and summed by the driver
         assert on_ray.read_bytes() == local.read_bytes(), mode

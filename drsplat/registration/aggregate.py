@@ -846,26 +846,28 @@ class Aggregator:
             log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface)", self.mode, self.num_rejected)
 
     @staticmethod
-    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int) -> tuple[int, int]:
-        """(bytes held while views are rasterized, bytes held until the sums are finished) by `mode`
-        for a scene of `num_gaussians` and views of at most `pixels` pixels (registration's
-        memory plan)."""
+    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int) -> tuple[int, int, int]:
+        """(bytes held while views are rasterized, bytes held until the sums are finished, bytes per
+        Gaussian of a block of sums) by `mode` for a scene of `num_gaussians` and views of at most
+        `pixels` pixels (registration's memory plan)."""
         stages = mode_stages(mode)
         weighting, reject = stages.weighting, stages.reject
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
         if weighting == "explain":  # slot -> pair indices and the per-pair arrays (at most one pair per slot)
             views += pixels * topk * (4 + 12 + 32) + 4 * num_gaussians
-        kept = 0
+        kept = per_block = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
             views += (37 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
-        if stages.vote:  # vote slots, W and a scratch per Gaussian (the weighted mean's F is counted by the plan anyway)
-            kept += (VOTE_SLOT_BYTES + 8) * num_gaussians
-        if stages.check:  # the check's own slots (drsplat.registration.check; its record of the pairs grows with the views, not counted here)
-            kept += 12 * CHECK_SLOTS * num_gaussians
+        if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
+            per_block += VOTE_SLOT_BYTES + 8
+        if stages.check:  # the check's slots per Gaussian of a block, its flag per Gaussian (drsplat.registration.check; the
+            # views' support tables and, in one block, its record of the pairs grow with the views and masks: not counted here)
+            per_block += 12 * CHECK_SLOTS
+            kept += num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
-        return views + kept, kept
+        return views + kept, kept, per_block
 
     def state(self) -> dict[str, np.ndarray]:
         """Arrays to checkpoint (empty for modes without statistics)."""

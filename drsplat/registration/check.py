@@ -7,16 +7,16 @@ mask is seen elsewhere under its true label. The check pools that evidence over 
 Gaussians and drops whole masks:
 
 1. while the views arrive, their masks are grouped by embedding (`MaskClusters`, as the vote stage
-   does) and every Gaussian collects presence votes V_ic per cluster c in CHECK_SLOTS slots
-   (`_fold_votes_kernel`): a view gives cluster c the vote min(1, s_icv / (ρ·T_iv)) · min(1, T_iv / T₀),
+   does); once every view is in, every Gaussian collects presence votes V_ic per cluster c in
+   CHECK_SLOTS slots (`fold_block_votes`, `_fold_votes_kernel`): a view gives cluster c the vote min(1, s_icv / (ρ·T_iv)) · min(1, T_iv / T₀),
    s_icv the Gaussian's weight in the view's masks of c, T_iv its weight in the view (the vote
    stage's rule with ρ = PRESENCE, T₀ = FULL_VIEW, taken per cluster: one view is at most one
-   vote); the views' pairs are kept (`PairRecord`);
+   vote);
 2. once every view is in, mask j of view v asks the other views what its Gaussians are:
 
        q_jc = Σ_{i ∈ j} w_ij (V_ic − v_icv) / Σ_{i ∈ j} w_ij
 
-   (v_icv: view v's own vote, so that a mask never supports itself; `view_support`), in units of
+   (v_icv: view v's own vote, so that a mask never supports itself; `add_view_support`), in units of
    views. Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
    (one object's crops from different views can be farther apart than the clustering's 0.9):
 
@@ -42,12 +42,15 @@ Gaussians and drops whole masks:
    Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
    assigned does not change.
 
-Memory: the views' distinct pairs (PAIR_BYTES = 12 per pair) and embeddings while the views arrive,
-plus 12·CHECK_SLOTS bytes per Gaussian for the slots (twice the vote's: a label split by
-embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
-32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol); per view of the check a dense [M, K]
-float64 support table (M masks, K clusters), made twice (the like cosine needs every view's). The stage needs all Gaussians in one block:
-registration refuses it with a --memory-budget that splits the scene into blocks.
+Where the pairs come from: with one block of Gaussians and no pair log, the views' distinct pairs
+(PAIR_BYTES = 12 per pair) are kept in memory (PairRecord); in blocks (a --memory-budget that
+splits the scene) the check replays the pair log instead. Steps 1 and 2 run block by block: a
+block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
+by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
+32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
+dense [M, K] float64 support table (M masks, K clusters) over all blocks, so that each q[j, c]
+adds its terms in Gaussian order whatever the plan: the same verdicts, and the same output bytes,
+in one block or many. Step 3 keeps one flag per Gaussian ([N] bool).
 """
 
 from __future__ import annotations
@@ -61,15 +64,14 @@ import numpy as np
 
 from drsplat.defaults import CHECK_SLOTS
 from drsplat.memory import format_size
-from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.sink import Block, Sink
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, _row_aligned_cuts, _rows_order, space_saving_slot
+from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.sink import Block, LogSink, MemorySink, PairSource, Sink
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, _rows_order, space_saving_slot
 
 log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 2.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
-SUPPORT_CACHE_BYTES = 256 << 20  # the views' support tables kept between the check's two passes when they fit in this
 
 
 @dataclass
@@ -309,19 +311,28 @@ def _own_alt_kernel(q, mass, units, means, like, own, alt):  # pragma: no cover 
 
 
 class PairRecord:
-    """The views' pairs as they arrived (gaussians, masks, weights) with their embeddings and the
-    masks' clusters; what the check reads twice (support, then the kept sums)."""
+    """The views' pairs kept in memory in arrival order: what the check replays in one block without
+    a pair log (in blocks it replays the log). `block_views` reads it as PairLog.block_views does."""
 
-    def __init__(self, dim: int):
-        self.clusters = MaskClusters(dim)
+    def __init__(self, num_gaussians: int):
+        self.num_gaussians = num_gaussians
         self.views: list[ViewPairs] = []
 
-    def add(self, view: ViewPairs) -> np.ndarray:
-        """Keep `view` (its host pairs) and return its masks' clusters [M] int32."""
+    def add(self, view: ViewPairs) -> None:
+        """Keep `view`'s host pairs (copies: the caller may reuse its buffers for the next view)."""
         self.views.append(ViewPairs(view.name, view.feats, np.ascontiguousarray(view.gaussians, np.int32),
                                     np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
                                     view.used, view.num_pairs, view.num_nonfinite))
-        return self.clusters.add(view.feats, view.present_masks())
+
+    def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]:
+        """Every view in order, holding only the pairs of Gaussians lo .. hi-1 (in record order)."""
+        for view in self.views:
+            if lo <= 0 and hi >= self.num_gaussians:
+                yield view
+                continue
+            keep = (view.gaussians >= lo) & (view.gaussians < hi)
+            yield ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,
+                            view.num_pairs, view.num_nonfinite)
 
     @property
     def nbytes(self) -> int:
@@ -344,22 +355,40 @@ class ViewSupport:
     mass: np.ndarray
     units: np.ndarray
 
+    @classmethod
+    def empty(cls, feats: np.ndarray, clusters: np.ndarray, num_clusters: int) -> ViewSupport:
+        """Zero sums for a view's masks: feats [M, D], clusters [M] (-1: never judged)."""
+        units = unit_rows(feats)
+        units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
+        return cls(np.zeros((clusters.shape[0], num_clusters)), np.zeros(clusters.shape[0]), units)
 
-def view_support(view: ViewPairs, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, num_clusters: int,
-                 presence: float = PRESENCE, full_view: float = FULL_VIEW) -> ViewSupport:
-    """Step 2's q for one recorded view (`_support_kernel`). clusters: [M] the view's mask clusters;
-    slot_c / slot_v: [N, S] the Gaussians' clusters and votes folded over all views (step 1)."""
-    num_masks = clusters.shape[0]
-    q = np.zeros((num_masks, num_clusters))
-    mass = np.zeros(num_masks)
-    if view.gaussians.size and num_clusters:
-        _support_kernel(view.gaussians, view.masks, view.weights, np.ascontiguousarray(clusters[view.masks], np.int32),
-                        _rows_order(view.gaussians), slot_c, slot_v, presence, full_view, q, mass)
-    elif view.gaussians.size:
-        np.add.at(mass, view.masks, view.weights.astype(np.float64))
-    units = unit_rows(view.feats)
-    units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
-    return ViewSupport(q, mass, units)
+
+def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
+                     slots: int = CHECK_SLOTS) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 for Gaussians lo .. hi-1: their presence votes over `views` (every view in order, with
+    those Gaussians' pairs) folded into slots (slot_c [hi - lo, S] int32 clusters, -1 free; slot_v
+    [hi - lo, S] float64 votes). per_view: each view's [M] mask clusters. A Gaussian's slots depend on
+    its own pairs only, so they are the same bits whatever block holds it."""
+    slot_c = np.full((hi - lo, slots), -1, np.int32)
+    slot_v = np.zeros((hi - lo, slots))
+    for view, clusters in zip(views, per_view):
+        if view.gaussians.size:
+            rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
+            _fold_votes_kernel(rows, np.ascontiguousarray(clusters[view.masks], np.int32), np.ascontiguousarray(view.weights, np.float32),
+                               _rows_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
+    return slot_c, slot_v
+
+
+def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, support: ViewSupport) -> None:
+    """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support.q and
+    support.mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
+    Gaussians' slots folded over all views. The terms of q[j, c] are added in Gaussian order, so
+    blocks taken in increasing `lo` give one block's bits."""
+    if view.gaussians.size:
+        rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
+        _support_kernel(rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
+                        np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
+                        support.q, support.mass)
 
 
 def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
@@ -378,29 +407,47 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> floa
     return 0.5 * (float(np.median(agreements)) + float(np.median(np.concatenate(between))))
 
 
-def check_masks(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
-                min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
-    """Steps 2 (module docstring) on the record and the folded slots: the verdict on every mask.
-    Two passes over the views; each view's support ([M, K] q, its masses and unit embeddings) is
-    kept between them when all of them fit in SUPPORT_CACHE_BYTES, else computed again (the same bits)."""
-    means = np.ascontiguousarray(record.clusters.means(), np.float32)
-    k = means.shape[0]
+def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
+                min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
+    """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
+    support (`view_supports`) in blocks of `block` Gaussians."""
+    means = np.ascontiguousarray(clusters.means(), np.float32)
+    return _verdicts(view_supports(source, clusters, num_gaussians, block, slots), means, min_views, min_share)
+
+
+def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS) -> list[ViewSupport]:
+    """Every view's support: per block of `block` Gaussians, one replay of `source` folds the block's
+    votes into slots (`fold_block_votes`, [block, S]) and a second adds its pairs' support to every
+    view's [M, K] table (`add_view_support`). The tables (Σ_v M_v · K · 8 bytes) live over all
+    blocks, taken in increasing order, so every plan gives the same bits.
+
+    clusters: the views' mask clusters (MaskClusters of every view, in order).
+    """
+    k = clusters.count
+    supports = [ViewSupport.empty(view.feats, c, k) for view, c in zip(source.block_views(0, 0), clusters.per_view)]
+    log.info("mask check: %d masks x %d clusters, support tables %s", sum(s.mass.shape[0] for s in supports), k,
+             format_size(sum(s.q.nbytes for s in supports)))
+    for lo in range(0, num_gaussians, block):
+        hi = min(num_gaussians, lo + block)
+        slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
+        for view, c, support in zip(source.block_views(lo, hi), clusters.per_view, supports):
+            add_view_support(view, lo, c, slot_c, slot_v, support)
+        del slot_c, slot_v  # the next block's slots replace them
+    return supports
+
+
+def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
+    """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
     agreements, units_with_pairs = [], []
-    size = sum(c.shape[0] * (k + 1 + means.shape[1]) * 8 for c in record.clusters.per_view)
-    kept = [] if size <= SUPPORT_CACHE_BYTES else None  # q, mass and units of every view, for the second pass
-    for view, clusters in zip(record.views, record.clusters.per_view):
-        sup = view_support(view, clusters, slot_c, slot_v, k)
-        if kept is not None:
-            kept.append(sup)
-        agree, total = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
+    for sup in supports:
+        agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
         _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[sup.mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for index, (view, clusters) in enumerate(zip(record.views, record.clusters.per_view)):
-        sup = kept[index] if kept is not None else view_support(view, clusters, slot_c, slot_v, k)
-        own, alt = np.zeros(clusters.shape[0]), np.zeros(clusters.shape[0])
+    for sup in supports:
+        own, alt = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
         if like is not None:
             _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
         judge = (sup.mass > 0) & (alt >= min_views)
@@ -412,59 +459,106 @@ def check_masks(record: PairRecord, slot_c: np.ndarray, slot_v: np.ndarray, min_
     return MaskVerdicts(keep, dropped, judged, present, like)
 
 
-def kept_pairs(record: PairRecord, keep: list[np.ndarray], num_gaussians: int) -> list[np.ndarray]:
-    """Per view, [P] bool: the pairs of kept masks, and every pair of a Gaussian that would keep none
-    (step 3: which Gaussians are assigned does not change)."""
-    kept = [k[v.masks] for v, k in zip(record.views, keep)]
-    any_kept = np.zeros(num_gaussians, bool)
-    for view, k in zip(record.views, kept):
-        any_kept[view.gaussians[k & (view.weights > 0)]] = True
-    return [k | ~any_kept[v.gaussians] for v, k in zip(record.views, kept)]
+class KeptPairs:
+    """The pairs the check keeps, read block by block like a pair log (step 3): a view's pairs in
+    kept masks, and every pair of a Gaussian that would keep none (which Gaussians are assigned
+    does not change).
+
+    any_kept: [N] bool, the Gaussians with a kept pair of positive weight (one replay of `source`
+    per block).
+    """
+
+    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int):
+        self.source, self.keep, self.num_gaussians, self.block = source, keep, num_gaussians, block
+        self.any_kept = np.zeros(num_gaussians, bool)
+        for lo in range(0, num_gaussians, block):
+            for view, k in zip(source.block_views(lo, min(num_gaussians, lo + block)), keep):
+                self.any_kept[view.gaussians[k[view.masks] & (view.weights > 0)]] = True
+
+    def _kept(self, view: ViewPairs, keep: np.ndarray) -> np.ndarray:
+        """[P] bool: the pairs of `view` (mask verdicts `keep` [M]) that are summed."""
+        return keep[view.masks] | ~self.any_kept[view.gaussians]
+
+    def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]:
+        """Every view in order with the kept pairs of Gaussians lo .. hi-1."""
+        for view, k in zip(self.source.block_views(lo, hi), self.keep):
+            kept = self._kept(view, k)
+            yield view if kept.all() else ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept],
+                                                    view.used, view.num_pairs, view.num_nonfinite)
+
+    def present(self) -> list[np.ndarray]:
+        """Per view [M] bool: the masks with a kept pair (one more replay per block)."""
+        present = [np.zeros(k.shape[0], bool) for k in self.keep]
+        for lo in range(0, self.num_gaussians, self.block):
+            for view, k, flags in zip(self.source.block_views(lo, min(self.num_gaussians, lo + self.block)), self.keep, present):
+                flags[view.masks[self._kept(view, k)]] = True
+        return present
+
+    def clusters(self, dim: int) -> MaskClusters:
+        """The views' mask clusters made from the masks with kept pairs: what the vote stage makes
+        of the kept views when they are added to it one by one."""
+        clusters = MaskClusters(dim)
+        for view, present in zip(self.source.block_views(0, 0), self.present()):
+            clusters.add(view.feats, present)
+        return clusters
 
 
 class CheckSink:
-    """A sink (drsplat.registration.sink) whose blocks are `inner`'s sums of the pairs the check keeps.
+    """A sink (drsplat.registration.sink) whose blocks are the mode's sums of the pairs the check keeps.
 
-    `add` records each view and folds its presence votes into the slots (step 1); the first call of
-    `blocks` or `sample` judges the masks (step 2), replays the kept pairs into `inner` in view
-    order (step 3) and frees the record. One block of all N Gaussians, on the host."""
+    `add` clusters each view's masks and, without a pair log (one block), records its pairs
+    (PairRecord); with one (`plog`, blocks of `block` Gaussians) the driver has logged them. The
+    first call of `blocks` or `sample` judges the masks (`judge_masks`), then the mode's own sink
+    (VoteSink for a `-vote` mode, else MemorySink / LogSink) sums the kept pairs (KeptPairs), on
+    the host. Every plan gives the same bits.
+    """
 
     place = "host"
-    num_blocks = 1
 
-    def __init__(self, num_gaussians: int, dim: int, inner: Sink, slots: int = CHECK_SLOTS):
-        self.num_gaussians = num_gaussians
-        self.inner = inner
-        self.record = PairRecord(dim)
-        self._slot_c = np.full((num_gaussians, slots), -1, np.int32)
-        self._slot_v = np.zeros((num_gaussians, slots))
+    def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
+                 slots: int = CHECK_SLOTS):
+        self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
+        self.block = num_gaussians if plog is None else int(block)
+        if self.block < 1 and num_gaussians:
+            raise ValueError("block must be >= 1")
+        self.record = PairRecord(num_gaussians) if plog is None else None
+        self._source: PairSource = plog if plog is not None else self.record
+        self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
+        # one block: the mode's sink is made now, before the views, as without the check. Its 1.1 GB
+        # of sums faulted in after flowers' view pass took 2.4 s (numpy asks for huge pages; the
+        # kernel compacts memory first), against 0.27 s made here
+        self._inner: Sink | None = (VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)) if plog is None else None
+
+    @property
+    def num_blocks(self) -> int:
+        return max(1, -(-self.num_gaussians // max(self.block, 1)))
 
     def add(self, view: ViewPairs) -> None:
-        clusters = self.record.add(view)
-        kept = self.record.views[-1]
-        if kept.gaussians.size:
-            _fold_votes_kernel(kept.gaussians, np.ascontiguousarray(clusters[kept.masks], np.int32), kept.weights, _rows_order(kept.gaussians),
-                               PRESENCE, FULL_VIEW, self._slot_c, self._slot_v)
+        self.clusters.add(view.feats, view.present_masks())
+        if self.record is not None:
+            self.record.add(view)
 
-    def _judge(self) -> None:
-        if self.verdicts is not None:
-            return
-        record = self.record
-        self.verdicts = check_masks(record, self._slot_c, self._slot_v)
-        like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
-        log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s; record of the pairs %s)",
-                 self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like, format_size(record.nbytes))
-        self._slot_c = self._slot_v = None  # the inner sink's sums take their place
-        for view, keep in zip(record.views, kept_pairs(record, self.verdicts.keep, self.num_gaussians)):
-            self.inner.add(ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,
-                                     view.num_pairs, view.num_nonfinite))
-        self.record = None
+    def _judged(self) -> Sink:
+        """The sink of the kept pairs, the masks judged first."""
+        if self.verdicts is None:
+            n, block = self.num_gaussians, max(self.block, 1)
+            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots)
+            like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
+            log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
+                     self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
+            kept = KeptPairs(self._source, self.verdicts.keep, n, block)
+            if self.record is not None:  # one block: the kept views fed in order to the sink made with this one
+                for view in kept.block_views(0, n):
+                    self._inner.add(view)
+                self.record = self._source = None  # the sums hold what the record did
+            else:
+                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim)) if self.vote
+                               else LogSink(n, self.dim, kept, self.block))
+        return self._inner
 
     def blocks(self) -> Iterator[Block]:
-        self._judge()
-        yield from self.inner.blocks()
+        yield from self._judged().blocks()
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        self._judge()
-        return self.inner.sample(ids)
+        return self._judged().sample(ids)

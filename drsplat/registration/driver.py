@@ -239,11 +239,10 @@ def run_registration(
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     block = options.block_size or _plan_block(run)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
-    reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
+    reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget), options.aggregate)
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
-    if (aggregator.solve or aggregator.check) and block < n:
-        what = "solves over all Gaussians" if aggregator.solve else "checks masks over all Gaussians' pairs"
-        raise UsageError(f"--aggregate {options.aggregate} {what} in one block in memory and cannot run under a "
+    if aggregator.solve and block < n:
+        raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
                          f"--memory-budget (or --block-size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
@@ -330,14 +329,14 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     One block with device pairs: a DeviceSink, or a DeviceVoteSink for a `-vote` mode (F, W and the
     vote slots on the device; on CUDA when they fit its free memory, else the host MemorySink /
     VoteSink). Blocks: the pairs are logged and each block replays the log on the host (LogSink,
-    VoteSink), whatever the engine.
+    VoteSink), whatever the engine. A `check-` mode: CheckSink, in one block or many.
     """
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options)
+    if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
+        return CheckSink(n, dim, aggregator.vote, ckpt.log if block < n else None, block), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
-    if aggregator.check:  # the check's record and slots, then the mode's own sink fed with the kept pairs
-        return CheckSink(n, dim, one_block_sink(n, dim, aggregator.vote)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
     if sink.place != "host":
         log.info("coalescing and summing on %s (torch engine, --aggregate %s)", run.options.device, run.options.aggregate)

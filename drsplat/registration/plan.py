@@ -46,7 +46,7 @@ class MemoryPlan:
 
     base: what the process holds already (the loaded scene, libraries, the aggregation mode's
     statistics). views: the peak of the view pass without sums (geometry + one view + scratch).
-    sum_bytes: per Gaussian of a block's sums (F row, W, sorting). write_bytes: per Gaussian of
+    sum_bytes: per Gaussian of a block's sums (F row, W, sorting, the mode's slots). write_bytes: per Gaussian of
     a chunk being encoded and written. pair_buffer: the accumulator's pair buffer.
     """
 
@@ -87,12 +87,12 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     base: bytes already held (default: this process's resident memory now)."""
     n = scene.num_gaussians
     pixels = max((c.width * c.height for c in views), default=0)
-    mode_views, mode_kept = Aggregator.memory_bytes(aggregate, n, pixels, topk)
+    mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
     base = (current_rss() if base is None else base) + mode_kept
     view = n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
     views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
     row_bytes = scene.sh.shape[1] * 12 + 64
-    return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
+    return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + mode_block, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
                       pair_buffer=(1 << 23) * PAIR_BYTES)
 
 

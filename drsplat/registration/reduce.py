@@ -64,7 +64,7 @@ from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
-from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
+from drsplat.registration.aggregate import SurfaceSupport, ViewStats, mode_stages, reject_rows
 from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
@@ -296,10 +296,12 @@ def _copy_parts(f, parts: list[PartResult], dtype: np.dtype, period: np.ndarray 
         first += part.rows
 
 
-def wants_reducers(place: str, reducers: bool, block: int, num_gaussians: int, writes_ply: bool) -> bool:
+def wants_reducers(place: str, reducers: bool, block: int, num_gaussians: int, writes_ply: bool, aggregate: str) -> bool:
     """Whether a run finishes its blocks with reducers: on Ray, in blocks, writing a PLY (features
-    kept in memory, `register_features`, are finished by the driver) and not switched off."""
-    return place == "ray" and reducers and block < num_gaussians and writes_ply
+    kept in memory, `register_features`, are finished by the driver), not switched off, and not a
+    `check-` mode (its verdicts need every block's pairs before any block is summed: the driver
+    judges and sums its blocks)."""
+    return place == "ray" and reducers and block < num_gaussians and writes_ply and not mode_stages(aggregate).check
 
 
 class ReducePool:

@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from drsplat.registration.pairlog import PairLog, ViewPairs
+from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sums import Accumulator
 
 
@@ -29,6 +29,13 @@ class Block:
     hi: int
     F: np.ndarray
     W: np.ndarray
+
+
+class PairSource(Protocol):
+    """Views' pairs that can be read again block by block, every view in order with only the pairs of
+    Gaussians lo .. hi-1: a PairLog, the check's PairRecord and KeptPairs (drsplat.registration.check)."""
+
+    def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]: ...
 
 
 class Sink(Protocol):
@@ -75,7 +82,7 @@ class LogSink:
 
     place = "host"
 
-    def __init__(self, num_gaussians: int, dim: int, plog: PairLog, block: int):
+    def __init__(self, num_gaussians: int, dim: int, plog: PairSource, block: int):
         if block < 1:
             raise ValueError("block must be >= 1")
         self.num_gaussians, self.dim, self.block = num_gaussians, dim, int(block)

@@ -52,8 +52,8 @@ import numba
 import numpy as np
 
 from drsplat.defaults import VOTE_SLOTS
-from drsplat.registration.pairlog import PairLog, ViewPairs
-from drsplat.registration.sink import Block
+from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.sink import Block, PairSource
 from drsplat.registration.sums import Accumulator
 
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
@@ -383,7 +383,7 @@ class VoteSink:
 
     place = "host"
 
-    def __init__(self, num_gaussians: int, dim: int, plog: PairLog | None = None, block: int | None = None,
+    def __init__(self, num_gaussians: int, dim: int, plog: PairSource | None = None, block: int | None = None,
                  slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None):
         """clusters: the views' clusters made already (a reducer replaying a block of a finished view
         pass gets the driver's); None: made by `add`."""
