@@ -1,13 +1,17 @@
 """Sizes and this process's memory: '8GB' -> bytes, bytes -> '8.0 GB', /proc readings.
 
 Foundation module (numpy only): the CLI's --memory-budget validator, registration's memory plan,
-the Ray workers and the benches all read memory through here.
+the Ray workers and the benches all read memory through here; the CLI and the viewer run with
+numpy's huge-page advice off (`small_pages`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 import resource
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -58,3 +62,40 @@ def current_rss() -> int:
 def peak_rss() -> int:
     """Peak resident memory of this process so far (ru_maxrss), in bytes."""
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+HUGEPAGE_ENV = "NUMPY_MADVISE_HUGEPAGE"  # numpy's own switch for its huge-page advice, read when numpy is imported
+
+
+def _hugepage_setter():
+    """numpy's switch behind NUMPY_MADVISE_HUGEPAGE (a private function; None where this numpy has none)."""
+    core = getattr(np, "_core", None) or getattr(np, "core", None)
+    return getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
+
+
+@contextlib.contextmanager
+def small_pages() -> Iterator[None]:
+    """Run the block with numpy's arrays in ordinary 4 kB pages; numpy's setting is put back after.
+
+    numpy advises Linux to back every array of 4 MB or more with transparent huge pages
+    (madvise). Where the kernel compacts memory before it hands out a huge page
+    (/sys/kernel/mm/transparent_hugepage/defrag = madvise, the default of common distributions)
+    and the machine's memory is fragmented, every fresh array stalls while it is faulted in:
+    flowers' 1.1 GB of sums took 2.6 s to allocate instead of 0.39 s, and a 12-view registration
+    ran 762 instead of 532 ms per view (docs/registration.md, "Huge pages"). A user's own
+    NUMPY_MADVISE_HUGEPAGE decides instead when it is set.
+    """
+    setter = _hugepage_setter()
+    if setter is None or HUGEPAGE_ENV in os.environ:
+        yield
+        return
+    previous = setter(False)
+    try:
+        yield
+    finally:
+        setter(bool(previous))
+
+
+def worker_hugepage_env() -> dict[str, str]:
+    """The environment that gives a worker process (Ray) the same huge-page choice as `small_pages`."""
+    return {HUGEPAGE_ENV: os.environ.get(HUGEPAGE_ENV, "0")}
