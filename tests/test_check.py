@@ -206,6 +206,26 @@ def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
     np.testing.assert_allclose(block.W[:5], 4.0)
 
 
+def test_judging_is_cancelled_between_blocks():
+    """A cancelled token stops the judging of the masks (a long pass over every block's pairs) with
+    Cancelled, before any block's sums; uncancelled, the same sink judges and sums."""
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    _, _, views = _mislabel_scene(np.random.default_rng(0), close_up=5.0)
+    token = CancelToken()
+    sink = CheckSink(20, D, vote=True, cancel=token)
+    for view in views:
+        sink.add(view)
+    token.cancel()
+    with pytest.raises(Cancelled):
+        next(sink.blocks())
+    assert sink.verdicts is None
+    sink.cancel = None
+    (block,) = list(sink.blocks())
+    assert sink.verdicts.dropped == 1 and block.W.shape == (20,)
+
+
 def _with_context(views: list[ViewPairs], context: np.ndarray, gaussian: int) -> list[ViewPairs]:
     """Each view with one more mask, label `context`, over Gaussian `gaussian` alone: a second
     instance per view and a mask that agrees with its other views, so the scene's "like" cosine
@@ -312,15 +332,17 @@ def test_check_in_blocks_and_on_the_torch_engine_gives_the_one_block_features(mi
     assert not wants_reducers("ray", True, 500, scene.num_gaussians, True, "check-vote-reject")
 
 
-def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path):
-    """The record and the slots are rebuilt from the replayed views in order, so a resumed run of a
-    check mode writes what an uninterrupted one does (and drops masks: the case is not vacuous)."""
+@pytest.mark.parametrize("block", [None, 700])
+def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path, block):
+    """The record (one block) or the log (blocks), and the clusters, are rebuilt from the replayed
+    views in order, so a resumed run of a check mode writes what an uninterrupted one-block run
+    does (and drops masks: the case is not vacuous)."""
     from drsplat.errors import Cancelled
     from drsplat.utils import CancelToken
 
     root, scene, cams = mislabelled_room
-    options = RegisterOptions(topk=10, aggregate="check-vote-reject")
-    full = register_features(scene, cams, root / "features", options, show_progress=False)
+    full = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="check-vote-reject"), show_progress=False)
+    options = RegisterOptions(topk=10, aggregate="check-vote-reject", block_size=block)
     paper_vote = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
     assert not np.array_equal(full.features, paper_vote.features)
     token = CancelToken()

@@ -67,6 +67,7 @@ from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, MemorySink, PairSource, Sink
 from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, _rows_order, space_saving_slot
+from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
 
@@ -408,27 +409,39 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> floa
 
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
-                min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT) -> MaskVerdicts:
+                min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT, cancel: CancelToken | None = None,
+                show_progress: bool = False) -> MaskVerdicts:
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
     support (`view_supports`) in blocks of `block` Gaussians."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
-    return _verdicts(view_supports(source, clusters, num_gaussians, block, slots), means, min_views, min_share)
+    supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress)
+    return _verdicts(supports, means, min_views, min_share)
 
 
-def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS) -> list[ViewSupport]:
+def _blocks(num_gaussians: int, block: int, cancel: CancelToken | None, show_progress: bool = False) -> Iterator[tuple[int, int]]:
+    """(lo, hi) of each block in order; cancel is checked before each, a bar shown for several."""
+    count = -(-num_gaussians // block)
+    for lo in progress(range(0, num_gaussians, block), desc="mask check", total=count, enabled=show_progress and count > 1, unit="block"):
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        yield lo, min(num_gaussians, lo + block)
+
+
+def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
+                  cancel: CancelToken | None = None, show_progress: bool = False) -> list[ViewSupport]:
     """Every view's support: per block of `block` Gaussians, one replay of `source` folds the block's
     votes into slots (`fold_block_votes`, [block, S]) and a second adds its pairs' support to every
     view's [M, K] table (`add_view_support`). The tables (Σ_v M_v · K · 8 bytes) live over all
     blocks, taken in increasing order, so every plan gives the same bits.
 
-    clusters: the views' mask clusters (MaskClusters of every view, in order).
+    clusters: the views' mask clusters (MaskClusters of every view, in order). cancel: checked
+    before each block (Cancelled); show_progress: a bar over the blocks.
     """
     k = clusters.count
     supports = [ViewSupport.empty(view.feats, c, k) for view, c in zip(source.block_views(0, 0), clusters.per_view)]
     log.info("mask check: %d masks x %d clusters, support tables %s", sum(s.mass.shape[0] for s in supports), k,
              format_size(sum(s.q.nbytes for s in supports)))
-    for lo in range(0, num_gaussians, block):
-        hi = min(num_gaussians, lo + block)
+    for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
         for view, c, support in zip(source.block_views(lo, hi), clusters.per_view, supports):
             add_view_support(view, lo, c, slot_c, slot_v, support)
@@ -468,11 +481,11 @@ class KeptPairs:
     per block).
     """
 
-    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int):
+    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None):
         self.source, self.keep, self.num_gaussians, self.block = source, keep, num_gaussians, block
         self.any_kept = np.zeros(num_gaussians, bool)
-        for lo in range(0, num_gaussians, block):
-            for view, k in zip(source.block_views(lo, min(num_gaussians, lo + block)), keep):
+        for lo, hi in _blocks(num_gaussians, block, cancel):
+            for view, k in zip(source.block_views(lo, hi), keep):
                 self.any_kept[view.gaussians[k[view.masks] & (view.weights > 0)]] = True
 
     def _kept(self, view: ViewPairs, keep: np.ndarray) -> np.ndarray:
@@ -489,8 +502,8 @@ class KeptPairs:
     def present(self) -> list[np.ndarray]:
         """Per view [M] bool: the masks with a kept pair (one more replay per block)."""
         present = [np.zeros(k.shape[0], bool) for k in self.keep]
-        for lo in range(0, self.num_gaussians, self.block):
-            for view, k, flags in zip(self.source.block_views(lo, min(self.num_gaussians, lo + self.block)), self.keep, present):
+        for lo, hi in _blocks(self.num_gaussians, self.block, None):
+            for view, k, flags in zip(self.source.block_views(lo, hi), self.keep, present):
                 flags[view.masks[self._kept(view, k)]] = True
         return present
 
@@ -516,8 +529,10 @@ class CheckSink:
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
-                 slots: int = CHECK_SLOTS):
+                 slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False):
+        """cancel: checked before each block of the judging (Cancelled); show_progress: a bar over its blocks."""
         self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
+        self.cancel, self.show_progress = cancel, show_progress
         self.block = num_gaussians if plog is None else int(block)
         if self.block < 1 and num_gaussians:
             raise ValueError("block must be >= 1")
@@ -543,11 +558,11 @@ class CheckSink:
         """The sink of the kept pairs, the masks judged first."""
         if self.verdicts is None:
             n, block = self.num_gaussians, max(self.block, 1)
-            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots)
+            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
-            kept = KeptPairs(self._source, self.verdicts.keep, n, block)
+            kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
             if self.record is not None:  # one block: the kept views fed in order to the sink made with this one
                 for view in kept.block_views(0, n):
                     self._inner.add(view)

@@ -256,7 +256,7 @@ def run_registration(
     reduce: BlockReduce | None = None
     reducer_seconds = (0.0, 0.0)
     try:
-        sink, device_pairs = _open_sink(run, aggregator, ckpt, block)
+        sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
@@ -323,18 +323,20 @@ def device_pairs_apply(options: RegisterOptions) -> bool:
     return options.engine == "torch" and options.place == "local" and not mode_stages(options.aggregate).check
 
 
-def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int) -> tuple[Sink, bool]:
+def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int, cancel: CancelToken | None = None,
+               show_progress: bool = False) -> tuple[Sink, bool]:
     """The sink of the plan and whether views keep their pairs on the device.
 
     One block with device pairs: a DeviceSink, or a DeviceVoteSink for a `-vote` mode (F, W and the
     vote slots on the device; on CUDA when they fit its free memory, else the host MemorySink /
     VoteSink). Blocks: the pairs are logged and each block replays the log on the host (LogSink,
-    VoteSink), whatever the engine. A `check-` mode: CheckSink, in one block or many.
+    VoteSink), whatever the engine. A `check-` mode: CheckSink, in one block or many (`cancel` and
+    `show_progress` for its judging of the masks).
     """
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options)
     if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
-        return CheckSink(n, dim, aggregator.vote, ckpt.log if block < n else None, block), on_device
+        return CheckSink(n, dim, aggregator.vote, ckpt.log if block < n else None, block, cancel=cancel, show_progress=show_progress), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
