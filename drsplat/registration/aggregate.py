@@ -862,7 +862,7 @@ class Aggregator:
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8
         if stages.check:  # the check's slots per Gaussian of a block, its flag per Gaussian (drsplat.registration.check; the
-            # views' support tables and, in one block, its record of the pairs grow with the views and masks: not counted here)
+            # views' support tables, and its record of the pairs in one block without a checkpoint, grow with the views: not counted)
             per_block += 12 * CHECK_SLOTS
             kept += num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)

@@ -42,9 +42,9 @@ Gaussians and drops whole masks:
    Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
    assigned does not change.
 
-Where the pairs come from: with one block of Gaussians and no pair log, the views' distinct pairs
-(PAIR_BYTES = 12 per pair) are kept in memory (PairRecord); in blocks (a --memory-budget that
-splits the scene) the check replays the pair log instead. Steps 1 and 2 run block by block: a
+Where the pairs come from: the pair log when the run keeps one (a checkpoint, and always in blocks:
+a --memory-budget that splits the scene); otherwise the views' distinct pairs (PAIR_BYTES = 12 per
+pair) are kept in memory (PairRecord). Steps 1 and 2 run block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
 32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
@@ -519,31 +519,36 @@ class KeptPairs:
 class CheckSink:
     """A sink (drsplat.registration.sink) whose blocks are the mode's sums of the pairs the check keeps.
 
-    `add` clusters each view's masks and, without a pair log (one block), records its pairs
-    (PairRecord); with one (`plog`, blocks of `block` Gaussians) the driver has logged them. The
-    first call of `blocks` or `sample` judges the masks (`judge_masks`), then the mode's own sink
-    (VoteSink for a `-vote` mode, else MemorySink / LogSink) sums the kept pairs (KeptPairs), on
-    the host. Every plan gives the same bits.
+    `add` clusters each view's masks and, without a pair log, records its pairs (PairRecord); with
+    one (`plog`: a checkpoint, or the log of a plan in blocks of `block` Gaussians) the driver has
+    logged them and the check replays the log. The first call of `blocks` or `sample` judges the
+    masks (`judge_masks`), then the mode's own sink (VoteSink for a `-vote` mode, else MemorySink /
+    LogSink) sums the kept pairs (KeptPairs), on the host. Every plan gives the same bits.
     """
 
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
                  slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False):
-        """cancel: checked before each block of the judging (Cancelled); show_progress: a bar over its blocks."""
+        """block: Gaussians per block (None: one block). cancel: checked before each block of the
+        judging (Cancelled); show_progress: a bar over its blocks."""
         self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
         self.cancel, self.show_progress = cancel, show_progress
-        self.block = num_gaussians if plog is None else int(block)
+        self.block = num_gaussians if block is None else int(block)
         if self.block < 1 and num_gaussians:
             raise ValueError("block must be >= 1")
+        if plog is None and self.block < num_gaussians:
+            raise ValueError("a check in blocks replays the pair log: plog is needed")
         self.record = PairRecord(num_gaussians) if plog is None else None
-        self._source: PairSource = plog if plog is not None else self.record
+        self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
         # one block: the mode's sink is made now, before the views, as without the check. Its 1.1 GB
         # of sums faulted in after flowers' view pass took 2.4 s (numpy asks for huge pages; the
         # kernel compacts memory first), against 0.27 s made here
-        self._inner: Sink | None = (VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)) if plog is None else None
+        self._inner: Sink | None = None
+        if self.block >= num_gaussians:
+            self._inner = VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
 
     @property
     def num_blocks(self) -> int:
@@ -563,7 +568,7 @@ class CheckSink:
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
             kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
-            if self.record is not None:  # one block: the kept views fed in order to the sink made with this one
+            if self._inner is not None:  # one block: the kept views fed in order to the sink made with this one
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
                 self.record = self._source = None  # the sums hold what the record did

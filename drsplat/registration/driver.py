@@ -336,7 +336,8 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options)
     if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
-        return CheckSink(n, dim, aggregator.vote, ckpt.log if block < n else None, block, cancel=cancel, show_progress=show_progress), on_device
+        # with a checkpoint (always in blocks) the check replays its log rather than keeping the pairs in memory
+        return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, cancel=cancel, show_progress=show_progress), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
