@@ -19,7 +19,6 @@ import threading
 
 from drsplat import __version__
 from drsplat.errors import Cancelled, DrsplatError, UsageError
-from drsplat.memory import small_pages
 from drsplat.utils import describe_os_error
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
@@ -71,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
     try:
-        with sigterm_as_interrupt(), small_pages():
+        with sigterm_as_interrupt():
             result = args.func(args)
     except Cancelled as exc:
         log.error("%s; no partial output was written", exc)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.errors import DrsplatError
-from drsplat.memory import worker_hugepage_env
 
 log = logging.getLogger(__name__)
 
@@ -53,13 +52,12 @@ def _runtime_env(address: str | None) -> dict:
 
     On this machine (a local instance, or a cluster address on this host) workers import the
     package from the driver's folder (PYTHONPATH), which also reuses numba's on-disk cache of
-    compiled kernels; on other hosts Ray ships the package (`py_modules`). Workers run with numpy's
-    huge-page advice as the CLI does (drsplat.memory.small_pages).
+    compiled kernels; on other hosts Ray ships the package (`py_modules`).
     """
     package = Path(__file__).resolve().parent  # the drsplat package folder
     if _on_this_host(address):
-        return {"env_vars": {"PYTHONPATH": str(package.parent), **worker_hugepage_env()}}
-    return {"py_modules": [str(package)], "excludes": ["__pycache__", "*.pyc"], "env_vars": worker_hugepage_env()}
+        return {"env_vars": {"PYTHONPATH": str(package.parent)}}
+    return {"py_modules": [str(package)], "excludes": ["__pycache__", "*.pyc"]}
 
 
 def _on_this_host(address: str | None) -> bool:

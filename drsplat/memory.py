@@ -1,17 +1,15 @@
 """Sizes and this process's memory: '8GB' -> bytes, bytes -> '8.0 GB', /proc readings.
 
 Foundation module (numpy only): the CLI's --memory-budget validator, registration's memory plan,
-the Ray workers and the benches all read memory through here; the CLI and the viewer run with
-numpy's huge-page advice off (`small_pages`).
+the Ray workers and the benches all read memory through here; a registration's large one-time
+arrays are allocated in small pages here (`small_page_zeros`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
+import mmap
 import re
 import resource
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -64,38 +62,28 @@ def peak_rss() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
-HUGEPAGE_ENV = "NUMPY_MADVISE_HUGEPAGE"  # numpy's own switch for its huge-page advice, read when numpy is imported
 
+def small_page_zeros(shape: int | tuple[int, ...], dtype=np.float32) -> np.ndarray:
+    """A zero array in ordinary 4 kB pages: anonymous memory that numpy has not advised the kernel
+    to back with transparent huge pages (numpy does for every array of 4 MB or more).
 
-def _hugepage_setter():
-    """numpy's switch behind NUMPY_MADVISE_HUGEPAGE (a private function; None where this numpy has none)."""
-    core = getattr(np, "_core", None) or getattr(np, "core", None)
-    return getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
-
-
-@contextlib.contextmanager
-def small_pages() -> Iterator[None]:
-    """Run the block with numpy's arrays in ordinary 4 kB pages; numpy's setting is put back after.
-
-    numpy advises Linux to back every array of 4 MB or more with transparent huge pages
-    (madvise). Where the kernel compacts memory before it hands out a huge page
-    (/sys/kernel/mm/transparent_hugepage/defrag = madvise, the default of common distributions)
-    and the machine's memory is fragmented, every fresh array stalls while it is faulted in:
-    flowers' 1.1 GB of sums took 2.6 s to allocate instead of 0.39 s, and a 12-view registration
-    ran 762 instead of 532 ms per view (docs/registration.md, "Huge pages"). A user's own
-    NUMPY_MADVISE_HUGEPAGE decides instead when it is set.
+    For the large arrays a registration takes once, after the scene is loaded (the sums F [N, D],
+    an in-memory field, vote slots). Where the kernel compacts memory before it hands out a huge
+    page (/sys/kernel/mm/transparent_hugepage/defrag = madvise, common) and memory is fragmented,
+    faulting such an array in stalls: flowers' 1.1 GB of sums took 2.59 s instead of 0.39 s
+    (docs/registration.md, "Huge pages"). Arrays made and freed every view keep numpy's advice:
+    there huge pages freed by the last view are handed out again at once, and small pages were
+    measured slower (the torch engine's per-view outputs: 264 -> 377 ms of rendering per view).
     """
-    setter = _hugepage_setter()
-    if setter is None or HUGEPAGE_ENV in os.environ:
-        yield
-        return
-    previous = setter(False)
-    try:
-        yield
-    finally:
-        setter(bool(previous))
+    shape = (int(shape),) if np.isscalar(shape) else tuple(int(n) for n in shape)
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if nbytes < SMALL_PAGES_FROM:  # numpy gives these small pages anyway
+        return np.zeros(shape, dtype)
+    buf = mmap.mmap(-1, nbytes)  # anonymous: zero pages, faulted in on first touch
+    if hasattr(mmap, "MADV_NOHUGEPAGE"):  # also where THP is "always"
+        buf.madvise(mmap.MADV_NOHUGEPAGE)
+    return np.frombuffer(buf, dtype, count=nbytes // dtype.itemsize).reshape(shape)
 
 
-def worker_hugepage_env() -> dict[str, str]:
-    """The environment that gives a worker process (Ray) the same huge-page choice as `small_pages`."""
-    return {HUGEPAGE_ENV: os.environ.get(HUGEPAGE_ENV, "0")}
+SMALL_PAGES_FROM = 4 << 20  # numpy advises huge pages from this many bytes on

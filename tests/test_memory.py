@@ -1,51 +1,49 @@
-"""drsplat.memory.small_pages: numpy's huge-page advice off while the CLI, the viewer and the Ray
-workers run (the kernel's compaction stalls every fresh array on a fragmented machine), numpy's own
-setting put back after, and a user's NUMPY_MADVISE_HUGEPAGE obeyed."""
+"""drsplat.memory.small_page_zeros: a registration's large one-time arrays in ordinary pages (the
+kernel's compaction for huge pages stalled every fresh array on a fragmented machine)."""
 
 from __future__ import annotations
 
-import argparse
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from drsplat import cli
-from drsplat.cluster import _runtime_env
-from drsplat.memory import HUGEPAGE_ENV, small_pages
-
-get_advice = getattr(getattr(np, "_core", None) or np.core, "multiarray")._get_madvise_hugepage
+from drsplat.memory import SMALL_PAGES_FROM, small_page_zeros
+from drsplat.registration.sums import Accumulator
 
 
-@pytest.fixture
-def no_user_choice(monkeypatch):
-    monkeypatch.delenv(HUGEPAGE_ENV, raising=False)
+def _thp_eligible(array: np.ndarray) -> bool | None:
+    """THPeligible of the mapping holding `array` (/proc/self/smaps), None where unknown."""
+    try:
+        text = Path("/proc/self/smaps").read_text()
+    except OSError:
+        return None
+    address = array.__array_interface__["data"][0] + array.nbytes // 2  # numpy advises the aligned middle of an array
+    for block in re.split(r"\n(?=[0-9a-f]+-[0-9a-f]+ )", text):
+        lo, hi = (int(x, 16) for x in block.split(" ", 1)[0].split("-"))
+        if lo <= address < hi:
+            match = re.search(r"THPeligible:\s+(\d)", block)
+            return None if match is None else match.group(1) == "1"
+    return None
 
 
-def test_small_pages_turns_the_advice_off_and_puts_it_back(no_user_choice):
-    before = get_advice()
-    with small_pages():
-        assert get_advice() is False
-    assert get_advice() == before
-    with pytest.raises(ValueError), small_pages():
-        raise ValueError("a failing command")
-    assert get_advice() == before
+@pytest.mark.parametrize("shape,dtype", [((1000, 512), np.float32), (3_000_000, np.float64), ((7, 3), np.int32), (0, np.float32)])
+def test_small_page_zeros_is_a_writable_zero_array(shape, dtype):
+    a = small_page_zeros(shape, dtype)
+    assert a.shape == ((shape,) if np.isscalar(shape) else shape) and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+    assert not a.any()
+    if a.size:
+        a.flat[-1] = 3
+        assert a.flat[-1] == 3 and a.sum() == 3
 
 
-def test_a_users_numpy_switch_decides(monkeypatch):
-    monkeypatch.setenv(HUGEPAGE_ENV, "1")
-    before = get_advice()
-    with small_pages():
-        assert get_advice() == before
-    assert _runtime_env(None)["env_vars"][HUGEPAGE_ENV] == "1"
-
-
-def test_the_cli_and_the_ray_workers_run_with_small_pages(no_user_choice, monkeypatch):
-    seen = []
-    parser = argparse.ArgumentParser()
-    parser.set_defaults(func=lambda args: seen.append(get_advice()), verbose=0, quiet=False)
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
-    before = get_advice()
-    assert cli.main([]) == 0
-    assert seen == [False] and get_advice() == before
-    assert _runtime_env(None)["env_vars"][HUGEPAGE_ENV] == "0"
-    assert _runtime_env("10.255.255.1:6379")["env_vars"][HUGEPAGE_ENV] == "0"  # another host: the package shipped, the same choice
+def test_large_arrays_are_not_advised_huge_pages():
+    """Where numpy's own large array is eligible for transparent huge pages, ours is not (skipped
+    where the kernel reports no THP eligibility, e.g. THP off)."""
+    theirs = np.zeros(4 * SMALL_PAGES_FROM, np.uint8)
+    if not _thp_eligible(theirs):
+        pytest.skip("this kernel gives numpy's arrays no transparent huge pages")
+    ours = small_page_zeros(4 * SMALL_PAGES_FROM, np.uint8)
+    assert _thp_eligible(ours) is False
+    assert _thp_eligible(Accumulator(10_000, 512).F) is False  # the sums, made once per registration

@@ -19,7 +19,6 @@ from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, in
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
 from drsplat.features.weights import drsplat_cache_dir
-from drsplat.memory import small_pages
 from drsplat.registration import register
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
@@ -195,11 +194,10 @@ def main(argv: list[str] | None = None) -> int:
 
             log.error("%s", no_display_message())
             return 1
-        with small_pages():  # the registration it runs allocates as the CLI's does (drsplat.memory.small_pages)
-            state = build_state(args)
-            if args.screenshot is not None:
-                return screenshot(args, state)
-            return interactive(state)
+        state = build_state(args)
+        if args.screenshot is not None:
+            return screenshot(args, state)
+        return interactive(state)
     except (Cancelled, KeyboardInterrupt):
         log.error("interrupted; no partial output was written")
         return 1

@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 
 from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column, encode_meta_columns, is_meta_column
+from drsplat.memory import small_page_zeros
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
@@ -64,7 +65,7 @@ class ArrayTarget:
             self.features = F
             return
         if self.features is None:
-            self.features = np.zeros((self.num_gaussians, self.dim), np.float32)
+            self.features = small_page_zeros((self.num_gaussians, self.dim), np.float32)  # made once: no huge pages (drsplat.memory)
         self.features[block.lo : block.hi] = F
 
     def close(self) -> int:

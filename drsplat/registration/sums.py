@@ -18,6 +18,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from drsplat.memory import small_page_zeros
+
 MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
 
 
@@ -70,7 +72,7 @@ class Accumulator:
     """
 
     def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23):
-        self.F = np.empty((num_gaussians, dim), np.float32)
+        self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
         self.F.fill(0.0)  # touch every page now, not inside the first flush
         self.W = np.zeros(num_gaussians, np.float32)
         capacity = max(pair_capacity, num_gaussians, 1)
