@@ -62,13 +62,15 @@ def peak_rss() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
+SMALL_PAGES_FROM = 4 << 20  # numpy advises huge pages from this many bytes on
+
 
 def small_page_zeros(shape: int | tuple[int, ...], dtype=np.float32) -> np.ndarray:
     """A zero array in ordinary 4 kB pages: anonymous memory that numpy has not advised the kernel
     to back with transparent huge pages (numpy does for every array of 4 MB or more).
 
-    For the large arrays a registration takes once, after the scene is loaded (the sums F [N, D],
-    an in-memory field, vote slots). Where the kernel compacts memory before it hands out a huge
+    For the large arrays a registration makes once (the accumulator's sums F [N, D], the in-memory
+    field of a run in blocks). Where the kernel compacts memory before it hands out a huge
     page (/sys/kernel/mm/transparent_hugepage/defrag = madvise, common) and memory is fragmented,
     faulting such an array in stalls: flowers' 1.1 GB of sums took 2.59 s instead of 0.39 s
     (docs/registration.md, "Huge pages"). Arrays made and freed every view keep numpy's advice:
@@ -85,5 +87,3 @@ def small_page_zeros(shape: int | tuple[int, ...], dtype=np.float32) -> np.ndarr
         buf.madvise(mmap.MADV_NOHUGEPAGE)
     return np.frombuffer(buf, dtype, count=nbytes // dtype.itemsize).reshape(shape)
 
-
-SMALL_PAGES_FROM = 4 << 20  # numpy advises huge pages from this many bytes on

@@ -25,6 +25,13 @@ def run_interpreted(worker: str, *argv: str, timeout: int = 900) -> None:
     assert done.returncode == 0, done.stderr[-3000:]
 
 
+def interpreted_outputs(out: Path, worker: str, *argv: str, timeout: int = 900) -> Path:
+    """`run_interpreted(worker, *argv, out)`: a worker that writes its results into the folder `out`
+    (its last argument); returns `out`."""
+    run_interpreted(worker, *argv, str(out), timeout=timeout)
+    return out
+
+
 def compiled_ptx(compile_ptx: Callable[..., str], *args, **kwargs) -> str:
     """`compile_ptx(*args, **kwargs)`, or a skip where Triton's backend API moved (the check cannot
     run there; the kernel may still be fine)."""

@@ -29,7 +29,7 @@ from drsplat.registration.check import (
 )
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
-from drsplat.registration.vote import MaskClusters
+from drsplat.registration.vote import MaskClusters, VoteSink
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 
@@ -193,7 +193,7 @@ def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
     correct mask is kept, and the other Gaussians' sums are the paper's bit for bit."""
     rng = np.random.default_rng(0)
     a, b, views = _mislabel_scene(rng, close_up=5.0)
-    sink, paper = CheckSink(20, D, vote=False), MemorySink(20, D)
+    sink, paper = CheckSink(20, D, vote=False, inner=MemorySink(20, D)), MemorySink(20, D)
     for view in views:
         sink.add(view)
         paper.add(view)
@@ -214,7 +214,7 @@ def test_judging_is_cancelled_between_blocks():
 
     _, _, views = _mislabel_scene(np.random.default_rng(0), close_up=5.0)
     token = CancelToken()
-    sink = CheckSink(20, D, vote=True, cancel=token)
+    sink = CheckSink(20, D, vote=True, inner=VoteSink(20, D), cancel=token)
     for view in views:
         sink.add(view)
     token.cancel()

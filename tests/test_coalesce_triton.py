@@ -19,7 +19,7 @@ import torch  # noqa: E402
 
 from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.device_sums import coalesce_torch  # noqa: E402
-from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
+from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 
 def cases():
@@ -51,9 +51,7 @@ NAMES = list(cases())
 
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("coalesce")
-    run_interpreted(WORKER, str(out), timeout=900)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("coalesce"), WORKER, timeout=900)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -20,7 +20,7 @@ import pytest
 pytest.importorskip("triton")
 
 from drsplat.registration import RegisterOptions, register_features  # noqa: E402
-from tests.interpreted import run_interpreted  # noqa: E402
+from tests.interpreted import interpreted_outputs  # noqa: E402
 
 MODES = ["core-reject", "explain-vote-reject"]  # between them every op: render, weighting, EM, statistics, coalescing, vote, sums
 
@@ -67,9 +67,7 @@ for mode in MODES:
 
 @pytest.fixture(scope="module")
 def cuda_path(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("cuda-path")
-    run_interpreted(WORKER, str(out), timeout=900)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("cuda-path"), WORKER, timeout=900)
 
 
 @pytest.mark.parametrize("mode", MODES)

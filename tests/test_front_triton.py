@@ -21,7 +21,7 @@ from drsplat.raster import rasterize  # noqa: E402
 from drsplat.registration.aggregate import FRONT_TOLERANCE, RayGeometry  # noqa: E402
 from drsplat.registration.device_sums import DeviceRays, front_flags_torch  # noqa: E402
 from drsplat.testing import random_case  # noqa: E402
-from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
+from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 
 def _inputs(name: str):
@@ -63,9 +63,7 @@ for name in json.loads(sys.argv[1]):
 
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("front")
-    run_interpreted(WORKER, json.dumps(CASES), str(out), timeout=600)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("front"), WORKER, json.dumps(CASES), timeout=600)
 
 
 @pytest.mark.parametrize("name", CASES)

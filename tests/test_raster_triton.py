@@ -22,7 +22,7 @@ import torch  # noqa: E402
 from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.raster import rasterize  # noqa: E402
 from drsplat.testing import hard_cases, random_case, stacked_case  # noqa: E402
-from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
+from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 # small scenes: the interpreter takes ~10 ms per list entry of a tile
 CASES = {
@@ -114,9 +114,7 @@ def _small(case):
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
     """Folder of <case>.npz written by the fused kernel under Triton's interpreter (one subprocess)."""
-    out = tmp_path_factory.mktemp("triton")
-    run_interpreted(WORKER, json.dumps(list(CASES)), str(out), timeout=900)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("triton"), WORKER, json.dumps(list(CASES)), timeout=900)
 
 
 def assert_topk_equal(ids, weights, ref_ids, ref_weights) -> None:

@@ -22,7 +22,7 @@ import torch  # noqa: E402
 from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.device_sums import add_pairs_torch  # noqa: E402
 from drsplat.registration.sums import add_pairs_in_place  # noqa: E402
-from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
+from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 # (Gaussians, embedding dimension, seed); "crowded": 2 Gaussians take every pair
 CASES = {"d7": (30, 7, 0), "d1": (12, 1, 1), "d64-padded": (40, 64, 2), "crowded": (2, 5, 3)}
@@ -65,9 +65,7 @@ for name in json.loads(sys.argv[1]):
 
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("sums")
-    run_interpreted(WORKER, json.dumps(list(CASES)), str(out), timeout=600)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("sums"), WORKER, json.dumps(list(CASES)), timeout=600)
 
 
 @pytest.mark.parametrize("name", list(CASES))

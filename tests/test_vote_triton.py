@@ -20,7 +20,7 @@ import torch  # noqa: E402
 
 from drsplat.errors import DrsplatError  # noqa: E402
 from drsplat.registration.vote import FULL_VIEW, fold_view_votes, vote_view_reference  # noqa: E402
-from tests.interpreted import compiled_ptx, run_interpreted  # noqa: E402
+from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 # (slots per Gaussian, presence ρ, Gaussians, seed); "ties": votes = weights from {0.25, 0.5}, so
 # full slots often tie on the fewest votes (the first of them is replaced)
@@ -66,9 +66,7 @@ for name in json.loads(sys.argv[1]):
 
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("vote")
-    run_interpreted(WORKER, json.dumps(list(CASES)), str(out), timeout=600)
-    return out
+    return interpreted_outputs(tmp_path_factory.mktemp("vote"), WORKER, json.dumps(list(CASES)), timeout=600)
 
 
 @pytest.mark.parametrize("name", list(CASES))

@@ -65,7 +65,7 @@ import numpy as np
 from drsplat.defaults import CHECK_SLOTS
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
-from drsplat.registration.sink import Block, LogSink, MemorySink, PairSource, Sink
+from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, _rows_order, space_saving_slot
 from drsplat.utils import CancelToken, progress
 
@@ -335,10 +335,6 @@ class PairRecord:
             yield ViewPairs(view.name, view.feats, view.gaussians[keep], view.masks[keep], view.weights[keep], view.used,
                             view.num_pairs, view.num_nonfinite)
 
-    @property
-    def nbytes(self) -> int:
-        return sum(v.gaussians.nbytes + v.masks.nbytes + v.weights.nbytes + v.feats.nbytes for v in self.views)
-
 
 def unit_rows(feats: np.ndarray) -> np.ndarray:
     """[M, D] float64 unit rows of feats (zero rows stay zero)."""
@@ -522,33 +518,33 @@ class CheckSink:
     `add` clusters each view's masks and, without a pair log, records its pairs (PairRecord); with
     one (`plog`: a checkpoint, or the log of a plan in blocks of `block` Gaussians) the driver has
     logged them and the check replays the log. The first call of `blocks` or `sample` judges the
-    masks (`judge_masks`), then the mode's own sink (VoteSink for a `-vote` mode, else MemorySink /
-    LogSink) sums the kept pairs (KeptPairs), on the host. Every plan gives the same bits.
+    masks (`judge_masks`), then the mode's own sink (`inner` in one block; VoteSink for a `-vote`
+    mode, else LogSink, in blocks) sums the kept pairs (KeptPairs), on the host. Every plan gives
+    the same bits.
     """
 
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
-                 slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False):
-        """block: Gaussians per block (None: one block). cancel: checked before each block of the
-        judging (Cancelled); show_progress: a bar over its blocks."""
+                 inner: Sink | None = None, slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False):
+        """block: Gaussians per block (None: one block). inner: in one block, the mode's own sink of
+        all N Gaussians, made by the caller before the views as without the check (the kept views are
+        added to it); in blocks None, the kept pairs are replayed into a VoteSink / LogSink. cancel:
+        checked before each block of the judging (Cancelled); show_progress: a bar over its blocks."""
         self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
         self.cancel, self.show_progress = cancel, show_progress
         self.block = num_gaussians if block is None else int(block)
         if self.block < 1 and num_gaussians:
             raise ValueError("block must be >= 1")
+        if (inner is None) != (self.block < num_gaussians):
+            raise ValueError("a check in one block sums into `inner`; in blocks it makes its own sink (inner None)")
         if plog is None and self.block < num_gaussians:
             raise ValueError("a check in blocks replays the pair log: plog is needed")
         self.record = PairRecord(num_gaussians) if plog is None else None
         self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
-        # one block: the mode's sink is made now, before the views, as without the check. Its 1.1 GB
-        # of sums faulted in after flowers' view pass took 2.4 s (numpy asks for huge pages; the
-        # kernel compacts memory first), against 0.27 s made here
-        self._inner: Sink | None = None
-        if self.block >= num_gaussians:
-            self._inner = VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
+        self._inner = inner
 
     @property
     def num_blocks(self) -> int:
@@ -568,7 +564,7 @@ class CheckSink:
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
             kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
-            if self._inner is not None:  # one block: the kept views fed in order to the sink made with this one
+            if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
                 self.record = self._source = None  # the sums hold what the record did

@@ -243,7 +243,7 @@ def run_registration(
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
     if aggregator.solve and block < n:
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
-                         f"--memory-budget (or --block-size) that splits the scene into blocks of {block:,}")
+                         f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
@@ -337,7 +337,9 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     on_device = device_pairs_apply(run.options)
     if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
         # with a checkpoint (always in blocks) the check replays its log rather than keeping the pairs in memory
-        return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, cancel=cancel, show_progress=show_progress), on_device
+        inner = one_block_sink(n, dim, aggregator.vote) if block >= n else None
+        return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, inner, cancel=cancel,
+                         show_progress=show_progress), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)
