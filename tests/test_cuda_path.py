@@ -22,7 +22,8 @@ pytest.importorskip("triton")
 from drsplat.registration import RegisterOptions, register_features  # noqa: E402
 from tests.interpreted import interpreted_outputs  # noqa: E402
 
-MODES = ["core-reject", "explain-vote-reject"]  # between them every op: render, weighting, EM, statistics, coalescing, vote, sums
+# between them every op: render, weighting, EM, statistics, coalescing, vote, sums; and a check mode's pairs copied to the host
+MODES = ["core-reject", "explain-vote-reject", "check-vote-reject"]
 
 
 def small_world(folder: Path):
@@ -61,7 +62,7 @@ scene, cameras = small_world(out / "features")
 for mode in MODES:
     got = register_features(scene, cameras, out / "features", RegisterOptions(topk=6, aggregate=mode, engine="torch", device="cpu"),
                             show_progress=False)
-    np.savez(out / (mode + ".npz"), features=got.features, weights=got.weights, sums_on=got.sums_on, pairs=got.num_pairs)
+    np.savez(out / (mode + ".npz"), features=got.features, weights=got.weights, sums_on=got.sums_on, pairs_on=got.pairs_on, pairs=got.num_pairs)
 """
 
 
@@ -75,6 +76,7 @@ def test_registration_through_the_cuda_kernels_equals_numba(cuda_path, mode):
     scene, cameras = small_world(cuda_path / "numba-features")
     want = register_features(scene, cameras, cuda_path / "numba-features", RegisterOptions(topk=6, aggregate=mode), show_progress=False)
     got = np.load(cuda_path / f"{mode}.npz")
-    assert str(got["sums_on"]) == "cpu" and int(got["pairs"]) == want.num_pairs > 0
+    assert str(got["pairs_on"]) == "cpu" and int(got["pairs"]) == want.num_pairs > 0
+    assert str(got["sums_on"]) == ("host" if mode.startswith("check") else "cpu")  # the check judges and sums on the host
     np.testing.assert_array_equal(got["weights"], want.weights)
     np.testing.assert_array_equal(got["features"], want.features)

@@ -146,6 +146,24 @@ def test_bench_counts_the_default_mode_on_the_device(tmp_path):
     assert record["host_sums"]["sums"] == "host" and record["host_sums"]["host_syncs_per_view"] == 0
 
 
+def test_bench_counts_a_check_mode_coalesced_on_the_device(tmp_path):
+    """--aggregate check-vote-reject: the views are coalesced on the device and only their distinct
+    pairs go to the host, where the check records them (no host sync inside a view); the judging and
+    the sums come after the views."""
+    from drsplat.cli import main
+
+    out = tmp_path / "counts.json"
+    code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "3", "--size", "48x32", "--repeats", "1",
+                 "--agree-views", "1", "--count-views", "2", "--engine", "torch", "--device", "cpu", "--json", str(out),
+                 "--aggregate", "check-vote-reject"])
+    assert code == 0
+    record = json.loads(out.read_text())
+    assert record["aggregate"] == "check-vote-reject" and record["pairs"] == "cpu" and record["sums"] == "host"
+    assert record["host_syncs_per_view"] == 0 and 0 < record["ops_per_view"] <= 100
+    host = record["host_sums"]  # the top-k lists copied to the host for the numba hook and coalescer
+    assert host["pairs"] == "host" and host["sums"] == "host" and host["ops_per_view"] < record["ops_per_view"]
+
+
 def test_bench_json_needs_the_torch_engine(tmp_path):
     from drsplat.bench.register import run
     from drsplat.cli import build_parser

@@ -363,7 +363,9 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
 def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, device: str, aggregate: str = "paper") -> dict:
     """What computing and summing one view costs `engine` on `device` with the `aggregate` mode:
     drsplat.registration.compute.ViewComputer.compute (rasterize, the mode's per-view hook,
-    coalesce), the fold of the mode's statistics and the sink's `add`. Torch ops and host syncs per
+    coalesce), the fold of the mode's statistics and the sink's `add` (a `check-` mode's: the view's
+    pairs copied to the host and recorded; its judging and sums after the views are the record's
+    `blocks_ms`). Torch ops and host syncs per
     view (drsplat.bench.opcount), the median wall ms per view (timed without the counter) and peak
     device memory (CUDA).
 
@@ -430,7 +432,13 @@ class _ViewCounter:
 
         mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
         if self.sink is None:
-            self.sink = one_block_sink(self.scene.num_gaussians, feats.shape[1], self.aggregator.vote, self.device if self.on_device else None)
+            n, dim, vote = self.scene.num_gaussians, feats.shape[1], self.aggregator.vote
+            if self.aggregator.check:  # as the driver does in one block without a checkpoint: the views recorded, judged and summed at the end
+                from drsplat.registration.check import CheckSink
+
+                self.sink = CheckSink(n, dim, vote, inner=one_block_sink(n, dim, vote))
+            else:
+                self.sink = one_block_sink(n, dim, vote, self.device if self.on_device else None)
         cuda = self.device.startswith("cuda")
         if cuda:
             torch.cuda.synchronize()
@@ -467,7 +475,10 @@ class _ViewCounter:
             self._pending = None
 
     def _add(self, view) -> None:
-        """The driver's part of a view: the mode's statistics folded, the pairs summed."""
+        """The driver's part of a view: its pairs copied to a host sink, the mode's statistics folded,
+        the pairs summed (or recorded, in a `check-` mode)."""
+        if self.sink.place == "host":
+            view = view.on_host()
         self.aggregator.add(view.stats)
         self.sink.add(view)
 
@@ -486,7 +497,7 @@ class _ViewCounter:
 
         return {
             "engine": self.engine, "device": self.device, "aggregate": self.aggregator.mode, "views": views,
-            "sums": self.sink.place if self.sink is not None else "host",
+            "pairs": self.device if self.on_device else "host", "sums": self.sink.place if self.sink is not None else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
             "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,
@@ -497,13 +508,13 @@ class _ViewCounter:
 def counts_table(counts: dict) -> str:
     """The per-view records of `per_view_counts` as a table (device sums, then host sums when measured)."""
     records = [counts] + ([counts["host_sums"]] if "host_sums" in counts else [])
-    syncs = "; ".join(f"sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
+    syncs = "; ".join(f"pairs on {r['pairs']}, sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
     head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate {counts['aggregate']}, compute + statistics + sink add, "
             f"median of {counts['views']} "
             f"views after a warm-up (ops: dispatcher calls, a drsplat:: op counted with the torch ops its kernel issues; host syncs: {syncs})")
-    rows = [[r["engine"], r["device"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
+    rows = [[r["engine"], r["device"], r["pairs"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
              r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
-    return head + "\n" + format_table(["engine", "device", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
+    return head + "\n" + format_table(["engine", "device", "pairs on", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
                                        "coalesce + sum ms/view", "sums to host ms (once)", "peak device MB"], rows)
 
 

@@ -38,7 +38,7 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
-from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.check import CheckSink
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
@@ -80,7 +80,9 @@ class RegistrationResult:
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
     resident bytes of the Ray workers (reducers included). sums_on: where the per-Gaussian sums were
-    kept ("host", or the torch device: drsplat.registration.device_sums). finish_cpu_seconds: this
+    kept ("host", or the torch device: drsplat.registration.device_sums). pairs_on: where each view
+    was coalesced into its (Gaussian, mask) pairs ("host", or the torch device; a `check-` mode
+    coalesces there and sums on the host). finish_cpu_seconds: this
     process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
     workers: the WorkerStats of the processes that computed views (this one for a local run): first
     and later views' seconds, numba kernels cached/compiled. reducer_seconds / reducer_sum_seconds:
@@ -119,6 +121,7 @@ class RegistrationResult:
     field_kind: str = ""
     worker_peak_rss: dict[int, int] = field(default_factory=dict)
     sums_on: str = "host"
+    pairs_on: str = "host"
     finish_cpu_seconds: float = 0.0
     reducers: bool = False
     workers: list[WorkerStats] = field(default_factory=list)
@@ -309,7 +312,7 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
-        sums_on=sink.place, finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
+        sums_on=sink.place, pairs_on=options.device if device_pairs else "host", finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
     )
 
@@ -318,9 +321,10 @@ def device_pairs_apply(options: RegisterOptions) -> bool:
     """Whether views are coalesced on the torch engine's device (drsplat.registration.device_sums):
     the torch engine in this process, with any mode (every per-view weighting has a torch form);
     floater statistics are then computed and folded on the device too, and a `-vote` mode's slots
-    are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs, and so does a
-    `check-` mode (its record of the pairs is on the host: drsplat.registration.check)."""
-    return options.engine == "torch" and options.place == "local" and not mode_stages(options.aggregate).check
+    are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs. A `check-` mode
+    coalesces on the device too; the driver copies each view's distinct pairs to the host for its
+    record or log (its judging and sums are on the host: drsplat.registration.check)."""
+    return options.engine == "torch" and options.place == "local"
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int, cancel: CancelToken | None = None,
@@ -338,6 +342,9 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
         # with a checkpoint (always in blocks) the check replays its log rather than keeping the pairs in memory
         inner = one_block_sink(n, dim, aggregator.vote) if block >= n else None
+        if on_device:
+            log.info("coalescing on %s; the mask check judges and sums on the host (torch engine, --aggregate %s)", run.options.device,
+                     run.options.aggregate)
         return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, inner, cancel=cancel,
                          show_progress=show_progress), on_device
     if block < n:
