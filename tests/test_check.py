@@ -245,7 +245,7 @@ def test_what_the_check_keeps():
     dropped masks keeps them (coverage unchanged). The like cosine is defined in every case."""
     rng = np.random.default_rng(1)
     a, b, c = _unit(rng.normal(size=(3, D)))
-    # Gaussian 0: seen as B faintly (T = 0.1 < T₀) in 4 views, as A clearly in one: 4 x 0.2 = 0.8 votes for B < 2
+    # Gaussian 0: seen as B faintly (T = 0.1 < T₀) in 4 views, as A clearly in one: 4 x 0.2 = 0.8 votes for B < CHECK_MIN_VIEWS
     views = _with_context([_view(f"f{v}", b[None], [0], [0], [0.1]) for v in range(4)] + [_view("clear", a[None], [0], [0], [1.0])], c, 1)
     result, _ = _judge(views, 2)
     assert result.like is not None and result.dropped == 0
@@ -265,6 +265,28 @@ def test_what_the_check_keeps():
     last = list(kept.block_views(0, 21))[4]
     np.testing.assert_array_equal(last.gaussians, [20])
     assert kept.present()[4][0] and not kept.any_kept[20]  # the dropped mask still has a pair: the vote still clusters it
+
+
+def test_one_clear_view_is_enough_to_drop_a_mask_no_other_view_shares():
+    """A wall region (Gaussians 0-4) seen in two views only, under a wall mask in one and a mislabel
+    in the other: counted per Gaussian it is one view against one. Pooled over the masks it is not:
+    the wall mask's other Gaussians (5-9) are wall in two more views, so its own label has support,
+    while the mislabel's Gaussians have one clear view (CHECK_MIN_VIEWS) of wall and none of its label.
+    The mislabel is dropped, the wall masks kept; with two views' worth required it was kept."""
+    wall, pole, other = np.linalg.qr(np.random.default_rng(2).normal(size=(D, 3)))[0].T.astype(np.float32)  # three unlike labels
+    views = [_view("wide", wall[None], np.arange(10), np.zeros(10), np.ones(10)),
+             _view("mislabel", pole[None], np.arange(5), np.zeros(5), np.ones(5))]
+    views += [_view(f"near{v}", wall[None], np.arange(5, 10), np.zeros(5), np.ones(5)) for v in range(2)]
+    result, _ = _judge(_with_context(views, other, 10), 11)
+    assert result.like is not None and result.dropped == 1
+    assert not result.keep[1][0] and result.keep[0][0] and result.keep[2][0] and result.keep[3][0]
+    strict, _ = _judge_with(_with_context(views, other, 10), 11, min_views=2.0)
+    assert strict.dropped == 0 and strict.keep[1][0]
+
+
+def _judge_with(views: list[ViewPairs], n: int, min_views: float) -> tuple[MaskVerdicts, PairRecord]:
+    record, clusters = _record(views, n)
+    return judge_masks(record, clusters, n, n, slots=8, min_views=min_views), record
 
 
 def test_a_label_split_by_noise_is_still_one_label():

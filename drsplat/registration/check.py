@@ -34,10 +34,13 @@ Gaussians and drops whole masks:
 
        alt_j ≥ CHECK_MIN_VIEWS   and   own_j < CHECK_SUPPORT · alt_j
 
-   i.e. at least two views' worth of other evidence agree on another label and the mask's own
-   label has almost none there. A small object seen clearly in one view (its Gaussians elsewhere
-   faint or spilling into the background: weak, split votes) or a label that a minority of other
-   views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view mask check");
+   i.e. at least one view's worth of other evidence agrees on another label and the mask's own
+   label has almost none there (two views' worth until 2026-11-27: one gave the same verdicts on
+   every clean room and more dropped mislabels, docs/registration.md "Design choices, measured").
+   A small object seen clearly in one view (its Gaussians elsewhere faint or spilling into the
+   background: weak, split votes, each view's vote scaled by T_iv / T₀) or a label that a minority
+   of other views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view
+   mask check");
 3. the sums (and the vote stage after it) are made from the kept pairs in the same order. A
    Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
    assigned does not change.
@@ -71,7 +74,7 @@ from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
 
-CHECK_MIN_VIEWS = 2.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
+CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 
 
