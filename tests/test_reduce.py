@@ -115,6 +115,19 @@ def test_scene_codebook_from_the_reducers_sample_gives_the_local_bytes(cluster, 
     assert sha(on_ray) == sha(local)
 
 
+def test_a_check_mode_judged_by_the_driver_and_summed_by_reducers_gives_the_local_bytes(cluster, tmp_path_factory, tmp_path):
+    """--aggregate check-vote-reject with --codebook scene on mislabelled masks: the driver judges the
+    masks from the shards, the reducers sum the kept pairs, the codebook's sample included."""
+    data = write_dataset(tmp_path_factory.mktemp("mislabelled") / "data", "tiny", 0, mislabel_fraction=0.3, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    local, on_ray, result = _register_both(scene, cams, data / "features", tmp_path, codebook="scene", aggregate="check-vote-reject")
+    plain = tmp_path / "plain" / "reg.ply"  # the check drops masks here: without it the file differs
+    register(scene, cams, data / "features", plain, RegisterOptions(codebook="scene", aggregate="vote-reject"), show_progress=False)
+    assert result.reducers and sha(plain) != sha(local)
+    assert (on_ray.parent / "reg.codebook.faiss").read_bytes() == (local.parent / "reg.codebook.faiss").read_bytes()
+    assert sha(on_ray) == sha(local)
+
+
 def _with_unseen_block(scene: GaussianScene) -> GaussianScene:
     """The scene with 1024 copies of its first Gaussians far behind every camera inserted as rows
     1024 .. 2047: with blocks of 1024 the second block keeps no row."""

@@ -480,8 +480,15 @@ class KeptPairs:
     per block).
     """
 
-    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None):
+    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None,
+                 any_kept: np.ndarray | None = None):
+        """any_kept: the flags when known already (a reducer gets the driver's), else found here."""
         self.source, self.keep, self.num_gaussians, self.block = source, keep, num_gaussians, block
+        if any_kept is not None:
+            if any_kept.shape != (num_gaussians,):
+                raise ValueError(f"any_kept holds {any_kept.shape[0]} flags for {num_gaussians} Gaussians")
+            self.any_kept = any_kept
+            return
         self.any_kept = np.zeros(num_gaussians, bool)
         for lo, hi in _blocks(num_gaussians, block, cancel):
             for view, k in zip(source.block_views(lo, hi), keep):
@@ -548,6 +555,8 @@ class CheckSink:
         self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
         self._inner = inner
+        self._kept: KeptPairs | None = None
+        self._summed = False
 
     @property
     def num_blocks(self) -> int:
@@ -558,22 +567,32 @@ class CheckSink:
         if self.record is not None:
             self.record.add(view)
 
-    def _judged(self) -> Sink:
-        """The sink of the kept pairs, the masks judged first."""
-        if self.verdicts is None:
+    def kept_pairs(self) -> KeptPairs:
+        """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are
+        made of, here or by reducers (drsplat.registration.reduce, given `keep` and `any_kept`)."""
+        if self._kept is None:
+            if self._summed:
+                raise RuntimeError("the kept pairs of a check in one block are summed already")
             n, block = self.num_gaussians, max(self.block, 1)
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
-            kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
+            self._kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
+        return self._kept
+
+    def _judged(self) -> Sink:
+        """The sink of the kept pairs, the masks judged first."""
+        if not self._summed:
+            n, kept = self.num_gaussians, self.kept_pairs()
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
-                self.record = self._source = None  # the sums hold what the record did
+                self.record = self._source = self._kept = None  # the sums hold what the record did
             else:
                 self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim)) if self.vote
                                else LogSink(n, self.dim, kept, self.block))
+            self._summed = True
         return self._inner
 
     def blocks(self) -> Iterator[Block]:

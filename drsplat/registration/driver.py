@@ -242,7 +242,7 @@ def run_registration(
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     block = options.block_size or _plan_block(run)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
-    reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget), options.aggregate)
+    reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
     if aggregator.solve and block < n:
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
@@ -267,8 +267,11 @@ def run_registration(
         if pool is None:
             candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
         else:  # the pairs and statistics are in the workers' shards: the reducers know the candidates
-            reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned, getattr(sink, "clusters", None), target.out,
-                                                target.clip_model, reject=aggregator.reject))
+            # a check mode's masks are judged here, from the log (pairs only); the reducers sum what it keeps
+            kept = sink.kept_pairs() if aggregator.check else None
+            clusters = (kept.clusters(run.dim) if aggregator.vote else None) if kept is not None else getattr(sink, "clusters", None)
+            reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned, clusters, target.out,
+                                                target.clip_model, reject=aggregator.reject, kept=kept))
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

@@ -31,7 +31,11 @@ assigned: the reducers first tell which those are (`candidates_block`, one task 
 received and not rejected), then sum the sampled ones (`BlockReduce.sample`, one task per block
 holding sampled ids: the same rows, the same bits as the driver's LogSink.sample), so it gives the
 local run's codebook and bytes. Every aggregation mode is supported; the vote stage's mask
-clusters (made on the driver in view order from the pointers' embeddings) go to every reducer.
+clusters (made on the driver in view order from the pointers' embeddings) go to every reducer. A
+`check-` mode's masks are judged on the driver first, by replays of the log (pairs only; its
+verdicts need every block's pairs before any block is summed); the job carries the verdicts
+(`keep`, `any_kept`, and for `-vote` the clusters of the kept masks) and each reducer sums its
+block's kept pairs (check.KeptPairs).
 
 Shared storage: workers write their shards, reducers open the log and the shards and write their
 parts by path, beside the output (the checkpoint's folder). On a local (multi-node) cluster that is
@@ -41,7 +45,8 @@ log, fails with an error that says so.
 
 Left on the driver: the scene, per view a pointer and its masks' embeddings (the vote's clusters),
 and the result's weights [N] float32 (each reducer returns its block's W); nothing of size N x D,
-no pair and no per-Gaussian statistic.
+no pair and no per-Gaussian statistic (a `check-` mode's judging reads the pairs block by block
+and keeps one block's vote slots, every view's support table and [N] flags).
 """
 
 from __future__ import annotations
@@ -64,7 +69,8 @@ from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
-from drsplat.registration.aggregate import SurfaceSupport, ViewStats, mode_stages, reject_rows
+from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
+from drsplat.registration.check import KeptPairs
 from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
@@ -89,6 +95,9 @@ class ReduceJob:
     out / clip_model: the output (names the codebook in the field comment) and the embedding
     space's id. parts_dir: where the parts are written (beside the output). reject: the mode rejects
     floaters and the views' statistics are in the log's shards: each reducer folds its block's.
+    keep / any_kept: a `check-` mode's verdicts, judged by the driver (per view [M] bool: the kept
+    masks; [N] bool: the Gaussians with a kept pair), so that each reducer sums its block's kept
+    pairs (drsplat.registration.check.KeptPairs); None otherwise.
     """
 
     log_path: str
@@ -103,6 +112,8 @@ class ReduceJob:
     clip_model: str
     parts_dir: str
     reject: bool = False
+    keep: list[np.ndarray] | None = None
+    any_kept: np.ndarray | None = None
 
     @property
     def num_blocks(self) -> int:
@@ -165,10 +176,12 @@ def shard_errors(index: int, lo: int, hi: int):
 
 
 def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
-    """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes)."""
+    """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes),
+    summing only the pairs a `check-` mode keeps (the driver's verdicts: job.keep)."""
+    source = plog if job.keep is None else KeptPairs(plog, job.keep, job.num_gaussians, job.block, any_kept=job.any_kept)
     if job.clusters is not None:
-        return VoteSink(job.num_gaussians, job.dim, plog, job.block, clusters=job.clusters)
-    return LogSink(job.num_gaussians, job.dim, plog, job.block)
+        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters)
+    return LogSink(job.num_gaussians, job.dim, source, job.block)
 
 
 def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str, index: int) -> PartResult:
@@ -296,12 +309,13 @@ def _copy_parts(f, parts: list[PartResult], dtype: np.dtype, period: np.ndarray 
         first += part.rows
 
 
-def wants_reducers(place: str, reducers: bool, block: int, num_gaussians: int, writes_ply: bool, aggregate: str) -> bool:
+def wants_reducers(place: str, reducers: bool, block: int, num_gaussians: int, writes_ply: bool) -> bool:
     """Whether a run finishes its blocks with reducers: on Ray, in blocks, writing a PLY (features
-    kept in memory, `register_features`, are finished by the driver), not switched off, and not a
-    `check-` mode (its verdicts need every block's pairs before any block is summed: the driver
-    judges and sums its blocks)."""
-    return place == "ray" and reducers and block < num_gaussians and writes_ply and not mode_stages(aggregate).check
+    kept in memory, `register_features`, are finished by the driver), not switched off. In a
+    `check-` mode the driver judges the masks first (its verdicts need every block's pairs before
+    any block is summed: replays of the pair log, no D-dimensional work) and the reducers sum the
+    kept pairs."""
+    return place == "ray" and reducers and block < num_gaussians and writes_ply
 
 
 class ReducePool:
@@ -397,14 +411,16 @@ def _get(ref, job: ReduceJob, index: int):
 
 
 def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unassigned: bool, clusters: MaskClusters | None, out: Path,
-             clip_model: str, reject: bool = False) -> ReduceJob:
+             clip_model: str, reject: bool = False, kept: KeptPairs | None = None) -> ReduceJob:
     """The job of a run whose view pass is done: the log synced to storage, a parts folder beside
     `out` (a temp folder named after `out`, swept if a killed run leaves it). reject: the reducers
-    fold the floater statistics from the log's shards."""
+    fold the floater statistics from the log's shards. kept: a `check-` mode's judged pairs (the
+    reducers get its masks' verdicts and flags, not its source)."""
     plog.sync()
     parts = tempfile.mkdtemp(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out))
     return ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
-                     clusters, str(out), clip_model, parts, reject)
+                     clusters, str(out), clip_model, parts, reject, kept.keep if kept is not None else None,
+                     kept.any_kept if kept is not None else None)
 
 
 def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
