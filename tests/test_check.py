@@ -104,12 +104,41 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
         sup = ViewSupport.empty(view.feats, c, means.shape[0])
         add_view_support(view, 0, c, slot_c, slot_v, sup)
         agree, total, own, alt = (np.zeros(c.shape[0]) for _ in range(4))
-        _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
-        _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
+        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
+        _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own, alt)
         np.testing.assert_allclose(sup.mass, r_mass, rtol=1e-12)
         for got, want in [(total, r_total), (agree, r_agree), (own, r_own), (alt, r_alt)]:
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
+
+
+def test_support_tables_hold_only_the_pairs_that_occur():
+    """Many labels, few per mask: 40 views of 5 masks, each mask over 10 Gaussians of its own that
+    one other view also sees under another label. About 200 clusters, so dense tables would hold
+    200 masks x ~200 clusters; the sparse ones hold the (mask, cluster) pairs that occur (here one
+    per mask: the other view's label), with the reference's sums."""
+    rng = np.random.default_rng(4)
+    labels = _unit(rng.normal(size=(205, D)))  # random directions: almost none within the clustering's 0.9 of another
+    views, n = [], 40 * 5 * 10
+    for v in range(40):
+        g = np.arange(v * 50, v * 50 + 50, dtype=np.int32)
+        views.append(_view(f"a{v}", labels[5 * v:5 * v + 5], g, np.repeat(np.arange(5), 10), np.ones(50)))
+    for v in range(40):  # each Gaussian once more, in the next view's Gaussians' place, under labels shifted by one
+        g = np.arange(v * 50, v * 50 + 50, dtype=np.int32)
+        views.append(_view(f"b{v}", labels[5 * v + 1:5 * v + 6], g, np.repeat(np.arange(5), 10), np.ones(50)))
+    record, clusters = _record(views, n)
+    supports = view_supports(record, clusters, n, n, slots=8)
+    masks = sum(s.mass.shape[0] for s in supports)
+    assert clusters.count > 150 and masks == 400
+    assert sum(s.num_entries for s in supports) == masks  # each mask meets one other cluster
+    means = np.ascontiguousarray(clusters.means(), np.float32)
+    ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, clusters.per_view)], n, means, 0.9)
+    for sup, (r_mass, r_total, r_agree, _, _) in zip(supports, ref):
+        agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
+        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
+        np.testing.assert_allclose(total, r_total, rtol=1e-12)
+        np.testing.assert_allclose(agree, r_agree, rtol=1e-6, atol=1e-9)
+        assert sup.dense().shape == (sup.mass.shape[0], clusters.count)
 
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
@@ -147,7 +176,7 @@ def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard)
     for block in (1, 7, 13):
         got, _ = _judge(views, n, block)
         for a, b in zip(view_supports(record, clusters, n, block, slots=8), supports):
-            np.testing.assert_array_equal(a.q, b.q)
+            np.testing.assert_array_equal(a.dense(), b.dense())
             np.testing.assert_array_equal(a.mass, b.mass)
         assert got.like == one.like and (got.dropped, got.judged, got.present) == (one.dropped, one.judged, one.present)
         for a, b in zip(got.keep, one.keep):

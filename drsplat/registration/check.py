@@ -51,9 +51,11 @@ pair) are kept in memory (PairRecord). Steps 1 and 2 run block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
 32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
-dense [M, K] float64 support table (M masks, K clusters) over all blocks, so that each q[j, c]
-adds its terms in Gaussian order whatever the plan: the same verdicts, and the same output bytes,
-in one block or many. Step 3 keeps one flag per Gaussian ([N] bool).
+sparse support table over all blocks (`ViewSupport`: 16 bytes per (mask, cluster) pair that occurs;
+M masks x K clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is
+summed), so that each
+q[j, c] adds its terms in Gaussian order whatever the plan: the same verdicts, and the same output
+bytes, in one block or many. Step 3 keeps one flag per Gaussian ([N] bool).
 """
 
 from __future__ import annotations
@@ -211,12 +213,29 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
 
 
 @numba.njit(cache=True)
-def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, q, mass):  # pragma: no cover - jitted
+def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
+                    scratch, touched, mass):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
-    (one view, `view_support`, step 2). clusters: [P] the cluster of each pair's mask; order: the
-    pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive."""
+    (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
+    the pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive.
+
+    q arrives and leaves as entries (entry_mask, entry_cluster [E] int32, entry_value [E] float64:
+    the pairs (j, c) met so far); returns the new entries (the old ones first, in their order). It
+    is summed in scratch [M, K] float64 (zero) with touched [M, K] bool (False), both left as they
+    came: the old entries are put there first, so each q[j, c] adds its terms in the order a dense
+    table would, the same bits."""
     num_slots = slot_c.shape[1]
     n = order.shape[0]
+    count = entry_mask.shape[0]
+    cap = min(scratch.shape[0] * scratch.shape[1], count + n * num_slots)  # every (j, c) at most once
+    met_j = np.empty(cap, np.int32)
+    met_c = np.empty(cap, np.int32)
+    for e in range(count):
+        j, c = entry_mask[e], entry_cluster[e]
+        scratch[j, c] = entry_value[e]
+        touched[j, c] = True
+        met_j[e] = j
+        met_c[e] = c
     found = np.empty(n, np.int32)
     votes = np.empty(n)
     own = np.zeros(num_slots)
@@ -241,16 +260,30 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                     break
                 other = slot_v[r, s] - own[s]
                 if other > 0.0:
-                    q[j, c] += w * other
+                    if not touched[j, c]:
+                        touched[j, c] = True
+                        met_j[count] = j
+                        met_c[count] = c
+                        count += 1
+                    scratch[j, c] += w * other
         start = end
+    out_value = np.empty(count)
+    for e in range(count):
+        j, c = met_j[e], met_c[e]
+        out_value[e] = scratch[j, c]
+        scratch[j, c] = 0.0
+        touched[j, c] = False
+    return met_j[:count].copy(), met_c[:count].copy(), out_value
 
 
 @numba.njit(cache=True)
-def _agreement_kernel(q, mass, units, means, agree, total):  # pragma: no cover - jitted
+def _agreement_kernel(starts, clusters, values, mass, units, means, agree, total):  # pragma: no cover - jitted
     """Per mask j: total[j] = Σ_c q[j, c] / mass[j] (the other views' votes, in views) and
     agree[j] = f̂_j · ĉ_j, ĉ_j = normalize(Σ_c q[j, c] μ_c) (the cosine between the mask's unit
-    embedding and its Gaussians' consensus); 0 for masks without pairs or consensus."""
-    num_masks, k = q.shape
+    embedding and its Gaussians' consensus); 0 for masks without pairs or consensus. q as
+    compressed rows (`ViewSupport.rows`: mask j's entries at starts[j] .. starts[j + 1] - 1, in
+    cluster order)."""
+    num_masks = mass.shape[0]
     dim = means.shape[1]
     consensus = np.empty(dim)
     for j in range(num_masks):
@@ -260,9 +293,10 @@ def _agreement_kernel(q, mass, units, means, agree, total):  # pragma: no cover 
             continue
         for d in range(dim):
             consensus[d] = 0.0
-        for c in range(k):
-            value = q[j, c]
+        for e in range(starts[j], starts[j + 1]):
+            value = values[e]
             if value > 0.0:
+                c = clusters[e]
                 total[j] += value
                 for d in range(dim):
                     consensus[d] += value * means[c, d]
@@ -277,39 +311,43 @@ def _agreement_kernel(q, mass, units, means, agree, total):  # pragma: no cover 
 
 
 @numba.njit(cache=True)
-def _own_alt_kernel(q, mass, units, means, like, own, alt):  # pragma: no cover - jitted
+def _own_alt_kernel(starts, clusters, values, mass, units, means, like, own, alt):  # pragma: no cover - jitted
     """own[j] = Σ_{c like j} q[j, c] / mass[j], "like" μ_c · f̂_j ≥ `like`; alt[j] = Σ_{c in the group
-    of c*} q[j, c] / mass[j], c* the unlike cluster of largest q and its group the unlike clusters c
-    with μ_c · μ_c* ≥ `like` (0 for masks without pairs). Dotted only where q > 0."""
-    num_masks, k = q.shape
+    of c*} q[j, c] / mass[j], c* the unlike cluster of largest q (the first in cluster order of
+    equal ones) and its group the unlike clusters c with μ_c · μ_c* ≥ `like` (0 for masks without
+    pairs). Dotted only where q > 0. q as compressed rows (`_agreement_kernel`)."""
+    num_masks = mass.shape[0]
     dim = means.shape[1]
-    sims = np.empty(k)
+    sims = np.empty(values.shape[0])
     for j in range(num_masks):
         own[j] = 0.0
         alt[j] = 0.0
         if not mass[j] > 0.0:
             continue
         best = -1
-        for c in range(k):
-            value = q[j, c]
+        for e in range(starts[j], starts[j + 1]):
+            value = values[e]
             if not value > 0.0:
                 continue
+            c = clusters[e]
             sim = 0.0
             for d in range(dim):
                 sim += np.float64(means[c, d]) * units[j, d]
-            sims[c] = sim
+            sims[e] = sim
             if sim >= like:
                 own[j] += value
-            elif best < 0 or value > q[j, best]:
-                best = c
+            elif best < 0 or value > values[best]:
+                best = e
         if best >= 0:
-            for c in range(k):
-                if q[j, c] > 0.0 and sims[c] < like:
+            b = clusters[best]
+            for e in range(starts[j], starts[j + 1]):
+                if values[e] > 0.0 and sims[e] < like:
+                    c = clusters[e]
                     sim = 0.0
                     for d in range(dim):
-                        sim += np.float64(means[c, d]) * np.float64(means[best, d])
+                        sim += np.float64(means[c, d]) * np.float64(means[b, d])
                     if sim >= like:
-                        alt[j] += q[j, c]
+                        alt[j] += values[e]
         own[j] /= mass[j]
         alt[j] /= mass[j]
 
@@ -348,10 +386,20 @@ def unit_rows(feats: np.ndarray) -> np.ndarray:
 
 @dataclass
 class ViewSupport:
-    """One view's masks as the check sees them: q [M, K] the other views' votes per cluster (divided
-    by mass in own / alt / total), mass [M] = Σ_i w_ij, units [M, D] the unit embeddings."""
+    """One view's masks as the check sees them: the other views' votes per (mask, cluster) pair that
+    occurs, q[j, c] (divided by mass in own / alt / total), mass [M] = Σ_i w_ij and units [M, D] the
+    unit embeddings.
 
-    q: np.ndarray
+    q is sparse: entries (mask [E] int32, cluster [E] int32, value [E] float64) for the pairs (j, c)
+    with c in a slot of one of mask j's Gaussians, in the order they were met; `rows()` gives them
+    per mask in cluster order. A view's masks meet a few clusters each, so the tables hold
+    ~(masks) x (clusters per mask) entries where dense [M, K] tables held every mask x every
+    cluster (200 k masks x 5 k clusters: 8 GB dense)."""
+
+    entry_mask: np.ndarray
+    entry_cluster: np.ndarray
+    entry_value: np.ndarray
+    num_clusters: int
     mass: np.ndarray
     units: np.ndarray
 
@@ -360,7 +408,45 @@ class ViewSupport:
         """Zero sums for a view's masks: feats [M, D], clusters [M] (-1: never judged)."""
         units = unit_rows(feats)
         units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
-        return cls(np.zeros((clusters.shape[0], num_clusters)), np.zeros(clusters.shape[0]), units)
+        none = np.zeros(0, np.int32)
+        return cls(none, none, np.zeros(0), int(num_clusters), np.zeros(clusters.shape[0]), units)
+
+    @property
+    def num_entries(self) -> int:
+        return int(self.entry_value.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return 16 * self.num_entries
+
+    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q as compressed rows: (starts [M + 1] int64, clusters [E] int32, values [E] float64), the
+        entries of mask j at starts[j] .. starts[j + 1] - 1 in increasing cluster order."""
+        order = np.lexsort((self.entry_cluster, self.entry_mask))
+        starts = np.searchsorted(self.entry_mask[order], np.arange(self.mass.shape[0] + 1), side="left").astype(np.int64)
+        return starts, np.ascontiguousarray(self.entry_cluster[order]), np.ascontiguousarray(self.entry_value[order])
+
+    def dense(self) -> np.ndarray:
+        """q as a dense [M, K] table (tests)."""
+        q = np.zeros((self.mass.shape[0], self.num_clusters))
+        q[self.entry_mask, self.entry_cluster] = self.entry_value
+        return q
+
+
+class SupportScratch:
+    """The dense scratch `_support_kernel` sums one view in: [M, K] float64 zeros and bool flags,
+    sized for the largest view's M and reused (left zero by every call)."""
+
+    def __init__(self, num_clusters: int):
+        self.num_clusters = num_clusters
+        self._values = np.zeros(0)
+        self._touched = np.zeros(0, bool)
+
+    def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray]:
+        size = num_masks * self.num_clusters
+        if size > self._values.shape[0]:
+            self._values, self._touched = np.zeros(size), np.zeros(size, bool)
+        return self._values[:size].reshape(num_masks, self.num_clusters), self._touched[:size].reshape(num_masks, self.num_clusters)
 
 
 def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
@@ -379,16 +465,20 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
     return slot_c, slot_v
 
 
-def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, support: ViewSupport) -> None:
-    """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support.q and
-    support.mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
-    Gaussians' slots folded over all views. The terms of q[j, c] are added in Gaussian order, so
-    blocks taken in increasing `lo` give one block's bits."""
+def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, support: ViewSupport,
+                     scratch: SupportScratch | None = None) -> None:
+    """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support's q
+    and mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
+    Gaussians' slots folded over all views; scratch: reused between calls (None: a new one). The
+    terms of q[j, c] are added in Gaussian order, so blocks taken in increasing `lo` give one
+    block's bits."""
     if view.gaussians.size:
         rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
-        _support_kernel(rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-                        np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
-                        support.q, support.mass)
+        values, touched = (scratch or SupportScratch(support.num_clusters)).take(support.mass.shape[0])
+        support.entry_mask, support.entry_cluster, support.entry_value = _support_kernel(
+            rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
+            np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
+            support.entry_mask, support.entry_cluster, support.entry_value, values, touched, support.mass)
 
 
 def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
@@ -430,21 +520,23 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
                   cancel: CancelToken | None = None, show_progress: bool = False) -> list[ViewSupport]:
     """Every view's support: per block of `block` Gaussians, one replay of `source` folds the block's
     votes into slots (`fold_block_votes`, [block, S]) and a second adds its pairs' support to every
-    view's [M, K] table (`add_view_support`). The tables (Σ_v M_v · K · 8 bytes) live over all
-    blocks, taken in increasing order, so every plan gives the same bits.
+    view's sparse table (`add_view_support`). The tables live over all blocks, taken in increasing
+    order, so every plan gives the same bits.
 
     clusters: the views' mask clusters (MaskClusters of every view, in order). cancel: checked
     before each block (Cancelled); show_progress: a bar over the blocks.
     """
     k = clusters.count
     supports = [ViewSupport.empty(view.feats, c, k) for view, c in zip(source.block_views(0, 0), clusters.per_view)]
-    log.info("mask check: %d masks x %d clusters, support tables %s", sum(s.mass.shape[0] for s in supports), k,
-             format_size(sum(s.q.nbytes for s in supports)))
+    scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
         for view, c, support in zip(source.block_views(lo, hi), clusters.per_view, supports):
-            add_view_support(view, lo, c, slot_c, slot_v, support)
+            add_view_support(view, lo, c, slot_c, slot_v, support, scratch)
         del slot_c, slot_v  # the next block's slots replace them
+    log.info("mask check: %d masks x %d clusters, %d support entries (%s; dense tables would take %s)", sum(s.mass.shape[0] for s in supports),
+             k, sum(s.num_entries for s in supports), format_size(sum(s.nbytes for s in supports)),
+             format_size(8 * k * sum(s.mass.shape[0] for s in supports)))
     return supports
 
 
@@ -453,7 +545,7 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
     agreements, units_with_pairs = [], []
     for sup in supports:
         agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
-        _agreement_kernel(sup.q, sup.mass, sup.units, means, agree, total)
+        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[sup.mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
@@ -461,7 +553,7 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
     for sup in supports:
         own, alt = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
         if like is not None:
-            _own_alt_kernel(sup.q, sup.mass, sup.units, means, like, own, alt)
+            _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own, alt)
         judge = (sup.mass > 0) & (alt >= min_views)
         drop = judge & (own < min_share * alt)
         keep.append(~drop)
