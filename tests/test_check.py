@@ -377,7 +377,7 @@ def test_check_in_blocks_and_on_the_torch_engine_gives_the_one_block_features(mi
     np.testing.assert_array_equal(blocks.features, one.features)
     torch = register_features(scene, cams[:6], root / "features", RegisterOptions(topk=10, aggregate="check-vote", engine="torch", device="cpu"),
                               show_progress=False)
-    assert torch.sums_on == "host"
+    assert torch.pairs_on == torch.sums_on == "cpu"  # coalesced on the device, judged on the host, the kept pairs summed on the device
     np.testing.assert_array_equal(torch.features, one.features)
     # on Ray the driver judges the masks from the log and reducers sum the kept pairs (tests/test_distributed.py)
     assert wants_reducers("ray", True, 500, scene.num_gaussians, True) and not wants_reducers("ray", True, 500, scene.num_gaussians, False)

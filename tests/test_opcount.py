@@ -148,8 +148,8 @@ def test_bench_counts_the_default_mode_on_the_device(tmp_path):
 
 def test_bench_counts_a_check_mode_coalesced_on_the_device(tmp_path):
     """--aggregate check-vote-reject: the views are coalesced on the device and only their distinct
-    pairs go to the host, where the check records them (no host sync inside a view); the judging and
-    the sums come after the views."""
+    pairs go to the host, where the check records them (no host sync inside a view); after the
+    views it judges the masks there and sums the kept pairs on the device."""
     from drsplat.cli import main
 
     out = tmp_path / "counts.json"
@@ -158,7 +158,7 @@ def test_bench_counts_a_check_mode_coalesced_on_the_device(tmp_path):
                  "--aggregate", "check-vote-reject"])
     assert code == 0
     record = json.loads(out.read_text())
-    assert record["aggregate"] == "check-vote-reject" and record["pairs"] == "cpu" and record["sums"] == "host"
+    assert record["aggregate"] == "check-vote-reject" and record["pairs"] == record["sums"] == "cpu"
     assert record["host_syncs_per_view"] == 0 and 0 < record["ops_per_view"] <= 100
     host = record["host_sums"]  # the top-k lists copied to the host for the numba hook and coalescer
     assert host["pairs"] == "host" and host["sums"] == "host" and host["ops_per_view"] < record["ops_per_view"]

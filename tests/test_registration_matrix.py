@@ -64,10 +64,10 @@ def test_every_engine_and_plan_writes_the_reference_file(room, reference, tmp_pa
         return
     result = register(scene, cams, features, out, options, show_progress=False)
     assert result.num_blocks == (1 if block is None else -(-scene.num_gaussians // block))
-    # the torch engine weights, coalesces, rejects and votes on its device in every mode and plan; it sums there in one
-    # block, in every mode but the check's (whose judging needs every view's pairs: they are copied to the host)
+    # the torch engine weights, coalesces, rejects and votes on its device in every mode and plan, and sums there in one
+    # block (a check mode copies the views' pairs to the host for its judging, then sums the kept ones on the device)
     assert result.pairs_on == ("cpu" if engine == "torch" else "host")
-    assert result.sums_on == ("cpu" if engine == "torch" and block is None and not stages.check else "host")
+    assert result.sums_on == ("cpu" if engine == "torch" and block is None else "host")
     assert out.read_bytes() == reference[mode]
 
 

@@ -436,7 +436,7 @@ class _ViewCounter:
             if self.aggregator.check:  # as the driver does in one block without a checkpoint: the views recorded, judged and summed at the end
                 from drsplat.registration.check import CheckSink
 
-                self.sink = CheckSink(n, dim, vote, inner=one_block_sink(n, dim, vote))
+                self.sink = CheckSink(n, dim, vote, inner=one_block_sink(n, dim, vote, self.device if self.on_device else None))
             else:
                 self.sink = one_block_sink(n, dim, vote, self.device if self.on_device else None)
         cuda = self.device.startswith("cuda")
@@ -497,7 +497,8 @@ class _ViewCounter:
 
         return {
             "engine": self.engine, "device": self.device, "aggregate": self.aggregator.mode, "views": views,
-            "pairs": self.device if self.on_device else "host", "sums": self.sink.place if self.sink is not None else "host",
+            "pairs": self.device if self.on_device else "host",
+            "sums": getattr(self.sink, "sums_on", self.sink.place) if self.sink is not None else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
             "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,

@@ -654,6 +654,13 @@ class CheckSink:
     def num_blocks(self) -> int:
         return max(1, -(-self.num_gaussians // max(self.block, 1)))
 
+    @property
+    def sums_on(self) -> str:
+        """Where the kept pairs are summed: in one block the caller's sink's place (the torch device,
+        when the views were coalesced there), in blocks the host. The views themselves come to the
+        host (`place`), for the record or the log the judging replays."""
+        return self._inner.place if self.block >= self.num_gaussians and self._inner is not None else "host"
+
     def add(self, view: ViewPairs) -> None:
         self.clusters.add(view.feats, view.present_masks())
         if self.record is not None:

@@ -82,7 +82,8 @@ class RegistrationResult:
     resident bytes of the Ray workers (reducers included). sums_on: where the per-Gaussian sums were
     kept ("host", or the torch device: drsplat.registration.device_sums). pairs_on: where each view
     was coalesced into its (Gaussian, mask) pairs ("host", or the torch device; a `check-` mode
-    coalesces there and sums on the host). finish_cpu_seconds: this
+    copies them to the host for its judging, then sums the kept ones where sums_on says).
+    finish_cpu_seconds: this
     process's CPU time after the view pass; reducers: the blocks were finished by reducer tasks.
     workers: the WorkerStats of the processes that computed views (this one for a local run): first
     and later views' seconds, numba kernels cached/compiled. reducer_seconds / reducer_sum_seconds:
@@ -315,7 +316,7 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
-        sums_on=sink.place, pairs_on=options.device if device_pairs else "host", finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
+        sums_on=getattr(sink, "sums_on", sink.place), pairs_on=options.device if device_pairs else "host", finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
     )
 
@@ -344,10 +345,10 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     on_device = device_pairs_apply(run.options)
     if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
         # with a checkpoint (always in blocks) the check replays its log rather than keeping the pairs in memory
-        inner = one_block_sink(n, dim, aggregator.vote) if block >= n else None
+        inner = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None) if block >= n else None
         if on_device:
-            log.info("coalescing on %s; the mask check judges and sums on the host (torch engine, --aggregate %s)", run.options.device,
-                     run.options.aggregate)
+            log.info("coalescing on %s; the mask check judges on the host and sums the kept pairs on %s (torch engine, --aggregate %s)",
+                     run.options.device, "the host" if inner is None or inner.place == "host" else run.options.device, run.options.aggregate)
         return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, inner, cancel=cancel,
                          show_progress=show_progress), on_device
     if block < n:
