@@ -287,3 +287,32 @@ def test_cli_eight_bit_tables_match_exact_tables_closely(tmp_path, registered, w
     assert main(["segment", str(registered["pq"]), "--embeddings", str(tmp_path / "q.npy"), "--lut-bits", "8", "--out", str(tmp_path / "l8.npy")]) == 0
     assert main(["segment", str(registered["pq"]), "--embeddings", str(tmp_path / "q.npy"), "--out", str(tmp_path / "l32.npy")]) == 0
     assert np.mean(np.load(tmp_path / "l8.npy") == np.load(tmp_path / "l32.npy")) > 0.99
+
+
+def test_exact_norms_are_computed_only_when_scored(tmp_path):
+    """Writing an exact field needs no norms (the registered PLY never stores them): the encoded
+    storage computes them on first use, equal to the row norms of its float16 rows, and the field
+    read back from the file scores as the one in memory."""
+    from drsplat.lang.backends import ExactStorage, chunked_row_norms
+    from drsplat.lang.field import LanguageField
+    from drsplat.lang.plyformat import attach_field, read_field
+    from drsplat.scene import GaussianScene, load_ply, save_ply
+
+    rng = np.random.default_rng(0)
+    n, dim = 40, 16
+    feats = rng.normal(size=(n, dim)).astype(np.float32)
+    assigned = rng.random(n) > 0.2
+    storage = ExactStorage.encode(feats, assigned)
+    assert storage.known_norms is None
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    field = LanguageField(dim, "test/model", assigned.astype(np.float32), storage)
+    path = tmp_path / "exact.ply"
+    save_ply(attach_field(scene, field, path), path)
+    assert storage.known_norms is None  # written without them
+    np.testing.assert_array_equal(storage.norms, chunked_row_norms(storage.features))
+    assert (storage.norms[~assigned] == 0).all() and (storage.norms[assigned] > 0).all()
+    q = rng.normal(size=(2, dim)).astype(np.float32)
+    np.testing.assert_array_equal(read_field(load_ply(path), path).scores(q), field.scores(q))
+    half = storage.take(np.arange(0, n, 2))
+    np.testing.assert_array_equal(half.norms, storage.norms[::2])
