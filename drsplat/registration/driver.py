@@ -316,7 +316,8 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
-        sums_on=getattr(sink, "sums_on", sink.place), pairs_on=options.device if device_pairs else "host", finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
+        sums_on=getattr(sink, "sums_on", sink.place), pairs_on=options.device if device_pairs else "host",
+        finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
     )
 
@@ -327,7 +328,8 @@ def device_pairs_apply(options: RegisterOptions) -> bool:
     floater statistics are then computed and folded on the device too, and a `-vote` mode's slots
     are folded there (device_sums.DeviceVoteSink). Ray workers return host pairs. A `check-` mode
     coalesces on the device too; the driver copies each view's distinct pairs to the host for its
-    record or log (its judging and sums are on the host: drsplat.registration.check)."""
+    record or log, where it judges the masks, and in one block sums the kept pairs on the device
+    (drsplat.registration.check)."""
     return options.engine == "torch" and options.place == "local"
 
 
