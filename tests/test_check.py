@@ -383,6 +383,25 @@ def test_check_in_blocks_and_on_the_torch_engine_gives_the_one_block_features(mi
     assert wants_reducers("ray", True, 500, scene.num_gaussians, True) and not wants_reducers("ray", True, 500, scene.num_gaussians, False)
 
 
+def test_a_check_without_a_checkpoint_replays_a_temporary_log(mislabelled_room, tmp_path, monkeypatch):
+    """In one block without a checkpoint (`register_features`) the check does not keep every view's
+    pairs in memory (a PairRecord, unbounded by the memory plan): it logs them to a temporary pair
+    log, as a run in blocks does, replays it and removes it. The features are a kept checkpoint's."""
+    import tempfile
+
+    root, scene, cams = mislabelled_room
+    options = RegisterOptions(topk=10, aggregate="check-vote")
+    kept = register_features(scene, cams[:6], root / "features", options, checkpoint=tmp_path / "kept.log", show_progress=False)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))  # where register_features puts its temporary log
+    result = register_features(scene, cams[:6], root / "features", options, show_progress=False)
+    assert result.num_blocks == 1 and result.log_bytes > 0
+    assert list(temp.iterdir()) == []  # the log is gone
+    np.testing.assert_array_equal(result.features, kept.features)
+    np.testing.assert_array_equal(result.weights, kept.weights)
+
+
 @pytest.mark.parametrize("block", [None, 700])
 def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path, block):
     """The record (one block) or the log (blocks), and the clusters, are rebuilt from the replayed

@@ -45,9 +45,10 @@ Gaussians and drops whole masks:
    Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
    assigned does not change.
 
-Where the pairs come from: the pair log when the run keeps one (a checkpoint, and always in blocks:
-a --memory-budget that splits the scene); otherwise the views' distinct pairs (PAIR_BYTES = 12 per
-pair) are kept in memory (PairRecord). Steps 1 and 2 run block by block: a
+Where the pairs come from: the pair log, which registration always keeps for a check mode (its
+checkpoint, the log of a plan in blocks, or a temporary one); a CheckSink made without a log keeps
+the views' distinct pairs (PAIR_BYTES = 12 per pair) in memory (PairRecord). Steps 1 and 2 run
+block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
 32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a

@@ -251,7 +251,7 @@ def run_registration(
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
-    elif block < n:
+    elif block < n or aggregator.check:  # blocks replay a log; so does a check, rather than keep every view's pairs in memory
         ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
     else:
         ckpt = None
