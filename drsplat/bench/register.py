@@ -433,7 +433,9 @@ class _ViewCounter:
         mask_ids, feats, *_ = load_view_features(self.features_dir, cam, 0)
         if self.sink is None:
             n, dim, vote = self.scene.num_gaussians, feats.shape[1], self.aggregator.vote
-            if self.aggregator.check:  # as the driver does in one block without a checkpoint: the views recorded, judged and summed at the end
+            # a check mode: the views recorded in memory, judged and summed after them (the driver logs them instead: a log's
+            # writes are left out of this count in every mode)
+            if self.aggregator.check:
                 from drsplat.registration.check import CheckSink
 
                 self.sink = CheckSink(n, dim, vote, inner=one_block_sink(n, dim, vote, self.device if self.on_device else None))
@@ -485,6 +487,8 @@ class _ViewCounter:
     def record(self) -> dict:
         """The per-view medians, and the sums' hand-over after the views (`blocks`: the device sink's
         copy to the host, the host sink's last flush of its buffered pairs into F)."""
+        from drsplat.registration.sink import sums_place
+
         views = len(self.ms)
         self._flush()
         t0 = time.perf_counter()
@@ -498,7 +502,7 @@ class _ViewCounter:
         return {
             "engine": self.engine, "device": self.device, "aggregate": self.aggregator.mode, "views": views,
             "pairs": self.device if self.on_device else "host",
-            "sums": getattr(self.sink, "sums_on", self.sink.place) if self.sink is not None else "host",
+            "sums": sums_place(self.sink) if self.sink is not None else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
             "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,

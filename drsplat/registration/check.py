@@ -544,17 +544,18 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
 def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
     agreements, units_with_pairs = [], []
-    for sup in supports:
+    rows = [sup.rows() for sup in supports]  # each view's entries sorted once, read by both kernels
+    for sup, q in zip(supports, rows):
         agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
-        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
+        _agreement_kernel(*q, sup.mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[sup.mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for sup in supports:
+    for sup, q in zip(supports, rows):
         own, alt = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
         if like is not None:
-            _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own, alt)
+            _own_alt_kernel(*q, sup.mass, sup.units, means, like, own, alt)
         judge = (sup.mass > 0) & (alt >= min_views)
         drop = judge & (own < min_share * alt)
         keep.append(~drop)
@@ -660,7 +661,7 @@ class CheckSink:
         """Where the kept pairs are summed: in one block the caller's sink's place (the torch device,
         when the views were coalesced there), in blocks the host. The views themselves come to the
         host (`place`), for the record or the log the judging replays."""
-        return self._inner.place if self.block >= self.num_gaussians and self._inner is not None else "host"
+        return self._inner.place if self._inner is not None else "host"
 
     def add(self, view: ViewPairs) -> None:
         self.clusters.add(view.feats, view.present_masks())

@@ -49,7 +49,7 @@ from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, make_job, wants_reducers
 from drsplat.registration.solve import solve_registration
-from drsplat.registration.sink import LogSink, MemorySink, Sink
+from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import ViewSelection, feature_dim, select_views
 from drsplat.registration.vote import VoteSink
@@ -316,7 +316,7 @@ def run_registration(
         num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
-        sums_on=getattr(sink, "sums_on", sink.place), pairs_on=options.device if device_pairs else "host",
+        sums_on=sums_place(sink), pairs_on=options.device if device_pairs else "host",
         finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
     )
@@ -345,13 +345,12 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
     """
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options)
-    if aggregator.check:  # the masks judged over every view's pairs (recorded, or the log's in blocks), then the kept pairs summed
-        # with a checkpoint (always in blocks) the check replays its log rather than keeping the pairs in memory
+    if aggregator.check:  # the masks judged over every view's pairs, replayed from the log (run_registration always keeps one), then the kept pairs summed
         inner = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None) if block >= n else None
         if on_device:
             log.info("coalescing on %s; the mask check judges on the host and sums the kept pairs on %s (torch engine, --aggregate %s)",
                      run.options.device, "the host" if inner is None or inner.place == "host" else run.options.device, run.options.aggregate)
-        return CheckSink(n, dim, aggregator.vote, ckpt.log if ckpt is not None else None, block, inner, cancel=cancel,
+        return CheckSink(n, dim, aggregator.vote, ckpt.log, block, inner, cancel=cancel,
                          show_progress=show_progress), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device

@@ -40,8 +40,10 @@ class PairSource(Protocol):
 
 class Sink(Protocol):
     """Receives every view's pairs in view order (`add`), then gives the sums block by block.
-    place: where the sums are kept, "host" or a torch device (drsplat.registration.device_sums.DeviceSink,
-    which also tells which Gaussians got weight: `positive`)."""
+    place: where `add` takes the views' pairs and keeps the sums, "host" or a torch device
+    (drsplat.registration.device_sums.DeviceSink, which also tells which Gaussians got weight:
+    `positive`); a sink that takes them on the host and sums elsewhere says so in `sums_on`
+    (`sums_place`)."""
 
     num_blocks: int
     place: str
@@ -51,6 +53,14 @@ class Sink(Protocol):
     def blocks(self) -> Iterator[Block]: ...
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+
+def sums_place(sink: Sink) -> str:
+    """Where `sink` keeps its sums: its `place`, or its `sums_on` where the two differ (the cross-view
+    check takes the views' pairs on the host and, in one block, sums the kept ones on the torch
+    device: drsplat.registration.check.CheckSink)."""
+    return getattr(sink, "sums_on", sink.place)
 
 
 class MemorySink:
