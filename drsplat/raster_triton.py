@@ -546,7 +546,7 @@ def _finish(projected, key, trans, med, offsets, tile_list):
 
 
 def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, tile: int = 16, chunk: int = CUDA_CHUNK,
-                num_warps: int = CUDA_WARPS) -> str:
+                num_warps: int = CUDA_WARPS, ones: bool = False) -> str:
     """The compositing kernel compiled to PTX for CUDA compute capability `capability` (90: H100), without a GPU.
 
     Runs Triton's front end and NVIDIA backend stages (ttir -> ttgir -> llir -> ptx), not ptxas, so
@@ -561,21 +561,29 @@ def compile_ptx(capability: int = 90, block: int = CUDA_BLOCK, kp: int = 64, til
     if chunk:
         source, consts = _composite_topk_chunked_source, {**consts, "CHUNK": chunk}
         pointers = {**pointers, "fill_pos_ptr": "*i32"}  # after out_med_ptr, as in the source
-    return kernel_ptx(source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability,
+    return kernel_ptx(source, {**pointers, **dict.fromkeys(("width", "height", "n_tiles_x", "topk"), "i32")}, consts, capability, ones,
                 enable_fp_fusion=False, num_warps=num_warps)
 
 
-def compile_project_ptx(capability: int = 90, tile: int = 16) -> str:
+def compile_project_ptx(capability: int = 90, tile: int = 16, ones: bool = False) -> str:
     """The projection kernel compiled to PTX (as `compile_ptx`), with FMA contraction off as launched."""
     pointers = {"means_ptr": "*fp64", "cov_ptr": "*fp64", "opacities_ptr": "*fp32", "usable_ptr": "*i8", "out_means_ptr": "*fp64",
                 "out_conics_ptr": "*fp64", "out_depths_ptr": "*fp32", "out_radii_ptr": "*fp64", "out_rects_ptr": "*i64",
                 "out_status_ptr": "*i8", "camera_ptr": "*fp64", "n": "i32"}
     consts = {"TILE": tile, "BLOCK": PROJECT_BLOCK, **_project_constants()}
-    return kernel_ptx(_project_source, pointers, consts, capability, enable_fp_fusion=False)
+    return kernel_ptx(_project_source, pointers, consts, capability, ones, enable_fp_fusion=False)
 
 
-def kernel_ptx(source, signature: dict, consts: dict, capability: int, **options) -> str:
-    """PTX of one kernel source for sm_`capability` (Triton's stages up to ptx, no GPU)."""
+def kernel_ptx(source, signature: dict, consts: dict, capability: int, ones: bool = False, **options) -> str:
+    """PTX of one kernel source for sm_`capability` (Triton's stages up to ptx, no GPU).
+
+    `ones`: every integer scalar argument 1, passed as a constant, as Triton specialises an integer
+    argument equal to 1 at launch (one mask, k = 1, a one-pixel-wide view): the source must compile
+    with a Python int there too (`.to` on one does not; found on an H100, 2026-11-27)."""
+    if ones:
+        scalars = [name for name, kind in signature.items() if not kind.startswith("*")]
+        signature = {name: kind for name, kind in signature.items() if name not in scalars}
+        consts = {**dict.fromkeys(scalars, 1), **consts}
     from triton._C.libtriton import ir  # Triton internals, only for this offline check
     from triton.backends.compiler import GPUTarget
     from triton.backends.nvidia.compiler import CUDABackend

@@ -72,10 +72,11 @@ def test_fused_coalescing_is_refused_on_the_cpu():
         coalesce_triton(torch.zeros((2, 2, 1), dtype=torch.int32), torch.ones((2, 2, 1)), torch.zeros((2, 2), dtype=torch.int32), 1, 4)
 
 
-def test_fused_coalescing_compiles_to_ptx():
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
+def test_fused_coalescing_compiles_to_ptx(ones):
     from drsplat.registration.coalesce_triton import compile_coalesce_ptx
 
-    ptx = compiled_ptx(compile_coalesce_ptx, 90)
+    ptx = compiled_ptx(compile_coalesce_ptx, 90, ones=ones)
     assert ".entry _keys_source" in ptx and ".entry _segments_source" in ptx and "atom" in ptx
 
 
@@ -87,5 +88,9 @@ def test_on_cuda_fused_coalescing_equals_the_torch_ops_on_the_cpu(name):
     ids, weights, masks, m, n = cases()[name]
     want = coalesce_torch(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
     got = coalesce_triton(*(torch.from_numpy(a).cuda() for a in (ids, weights, masks)), m, n)
-    for a, b in zip(got, (want.gaussians, want.masks, want.weights, want.counts, want.mask_flags)):
+    out_g, out_m, out_w, out_counts, out_flags = got
+    for a, b in zip((out_g, out_m, out_counts, out_flags), (want.gaussians, want.masks, want.counts, want.mask_flags)):
         assert a.cpu().numpy().tobytes() == b.numpy().tobytes()
+    # a pair's weight is a sum of its slots' weights: CUDA's atomics add them in no fixed order
+    # (an H100 gave the last bit differently on 3 cases, 2026-11-27)
+    np.testing.assert_allclose(out_w.cpu().numpy(), want.weights.numpy(), rtol=1e-5, atol=0)

@@ -775,3 +775,23 @@ def test_the_weighting_op_equals_the_torch_ops(weighting):
     assert got.numpy().tobytes() == want.numpy().tobytes()
     assert not torch.equal(got, out.weights), "the weighting changed something"
     torch.library.opcheck(view_weights_op, args, test_utils=("test_schema", "test_faketensor"))
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA])
+@pytest.mark.parametrize(
+    "shape, dtype, chunk_bytes",
+    [((13, 5), torch.float32, 40), ((13, 5), torch.float32, 1), ((1000, 7), torch.float32, 4096), ((7,), torch.int64, 16),
+     ((4, 2, 3), torch.int32, 24), ((0, 5), torch.float32, 64), ((3,), torch.float64, 1 << 30)],
+    ids=["two rows a chunk", "a chunk under one row", "many chunks, last one short", "1-D", "3-D", "empty", "one chunk"],
+)
+def test_sums_staged_to_the_host_chunk_by_chunk_equal_the_tensor(device, shape, dtype, chunk_bytes):
+    """`to_host` through two staging buffers (pinned on CUDA, where F's hand-over uses it): every
+    row once, in place, in a new array of the tensor's dtype and shape."""
+    from drsplat.registration.device_sums import to_host
+
+    want = (torch.rand(shape, generator=torch.Generator().manual_seed(3)) * 1e4).to(dtype)
+    tensor = want.to(device)
+    got = to_host(tensor, staged=True, chunk_bytes=chunk_bytes)
+    assert got.dtype == want.numpy().dtype and got.shape == tuple(shape)
+    assert got.tobytes() == want.numpy().tobytes()
+    assert not np.shares_memory(got, tensor.cpu().numpy())

@@ -80,11 +80,12 @@ def test_fused_front_flags_equal_the_torch_form(interpreted, name):
         assert not got.any()
 
 
-def test_fused_front_kernel_compiles_to_ptx_without_fma():
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
+def test_fused_front_kernel_compiles_to_ptx_without_fma(ones):
     """Typed mode for sm_90, IEEE float64 division and no fused multiply-adds (numba's and torch's rounding)."""
     from drsplat.registration.front_triton import compile_front_ptx
 
-    ptx = compiled_ptx(compile_front_ptx, 90)
+    ptx = compiled_ptx(compile_front_ptx, 90, ones=ones)
     assert ".entry _front_flags_source" in ptx and "div.rn.f64" in ptx and "fma" not in ptx
 
 

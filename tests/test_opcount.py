@@ -121,12 +121,13 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     # each (their numba kernels on a CPU), the rest the sink's add and the view's sizes
     assert 0 < record["view_ops_per_view"] < record["ops_per_view"] <= 100
     assert record["sums"] == "cpu" and record["host_syncs_per_view"] == 0 and record["ms_per_view"] > 0
+    assert record["streamed_ms_per_view"] > 0 and record["host_sums"]["streamed_ms_per_view"] > 0  # views back to back, both ways
     # the host way: the op sizes its tile lists on the host (no read of a device on a CPU); the copies
     # of the top-k lists to the host would wait for a CUDA device but are no aten op on a CPU
     host = record["host_sums"]
     assert host["sums"] == "host" and host["host_syncs_per_view"] == 0 and 0 < host["ops_per_view"] < record["ops_per_view"]
     printed = capsys.readouterr().out
-    assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed
+    assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed and "back to back ms/view" in printed
     profile = printed[printed.index("where 1 views' time went"):]  # --profile-views: the profiler's table of the view's ops
     assert "drsplat::render_topk" in profile and "drsplat::coalesce_pairs" in profile and "Self CPU time total" in profile
 

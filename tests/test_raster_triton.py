@@ -222,21 +222,23 @@ def test_fused_kernel_is_refused_on_the_cpu():
         triton_op_kernel(case)
 
 
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
 @pytest.mark.parametrize("chunk, entry", [(None, "_composite_topk_chunked_source"), (0, "_composite_topk_source")])
-def test_fused_kernel_compiles_to_ptx_for_an_h100(chunk, entry):
+def test_fused_kernel_compiles_to_ptx_for_an_h100(chunk, entry, ones):
     """Triton's typed compiler (stricter than the interpreter, and the one that refuses some layouts
     inside loops) accepts the sources: PTX for sm_90, no GPU needed."""
     from drsplat.raster_triton import CUDA_CHUNK, compile_ptx
 
-    ptx = compiled_ptx(compile_ptx, 90, chunk=CUDA_CHUNK if chunk is None else chunk)
+    ptx = compiled_ptx(compile_ptx, 90, chunk=CUDA_CHUNK if chunk is None else chunk, ones=ones)
     assert ".target sm_90" in ptx and f".entry {entry}" in ptx
 
 
-def test_fused_projection_compiles_to_ptx_without_fma():
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
+def test_fused_projection_compiles_to_ptx_without_fma(ones):
     """The projection kernel compiles in Triton's typed mode for sm_90, with IEEE float64 division and
     square roots and no fused multiply-adds (they would round differently from numba's)."""
     from drsplat.raster_triton import compile_project_ptx
 
-    ptx = compiled_ptx(compile_project_ptx, 90)
+    ptx = compiled_ptx(compile_project_ptx, 90, ones=ones)
     assert ".entry _project_source" in ptx and "div.rn.f64" in ptx and "sqrt.rn.f64" in ptx
     assert "fma" not in ptx

@@ -404,3 +404,27 @@ def test_clip_model_id_comes_from_the_manifest():
     assert clip_model_name({"clip_model_id": "ViT-B-16/laion2b_s34b_b88k", "clip": {"model": "x"}}) == "ViT-B-16/laion2b_s34b_b88k"
     assert clip_model_name({"clip": {"model": "ViT-L-14", "pretrained": "openai"}}) == "ViT-L-14/openai"
     assert clip_model_name({"clip": "ViT-B-32/openai"}) == "ViT-B-32/openai"
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int32, np.int64])
+@pytest.mark.parametrize(
+    "case",
+    ["random", "no mask anywhere", "empty image", "one pixel", "other negatives", "ids past 4x the pixels", "one id"],
+)
+def test_masks_present_equal_the_sorted_unique_ids(case, dtype):
+    """A view's present masks (counted, not sorted) are np.unique's: ascending int32, negatives left out."""
+    from drsplat.registration.views import masks_present
+
+    rng = np.random.default_rng(7)
+    image = {
+        "random": rng.integers(-1, 60, (48, 64)),
+        "no mask anywhere": np.full((8, 8), -1),
+        "empty image": np.zeros((0, 5)),
+        "one pixel": np.array([[3]]),
+        "other negatives": rng.integers(-200, 9, (20, 30)),
+        "ids past 4x the pixels": np.where(rng.random((10, 12)) < 0.5, 30000, rng.integers(-1, 4, (10, 12))),
+        "one id": np.full((5, 7), 2),
+    }[case].astype(dtype)
+    got = masks_present(image)
+    want = np.unique(image[image >= 0]).astype(np.int32)
+    assert got.dtype == np.int32 and np.array_equal(got, want)

@@ -91,11 +91,12 @@ def test_fused_sums_are_refused_on_the_cpu():
                          torch.ones((1, 3)))
 
 
-def test_fused_sums_kernel_compiles_to_ptx_without_fma():
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
+def test_fused_sums_kernel_compiles_to_ptx_without_fma(ones):
     """Typed mode for sm_90 and no fused multiply-adds: w·f rounds to float32 before the add, as numba's."""
     from drsplat.registration.sums_triton import compile_sums_ptx
 
-    ptx = compiled_ptx(compile_sums_ptx, 90)
+    ptx = compiled_ptx(compile_sums_ptx, 90, ones=ones)
     assert ".entry _add_pairs_source" in ptx and "mul.rn.f32" in ptx and "add.rn.f32" in ptx and "fma" not in ptx
 
 

@@ -48,7 +48,7 @@ def test_mode_stages():
         mode_stages("vote-vote")
 
 
-@pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000)])
+@pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000), (1, 40, 512), (2, 3, 768)])
 def test_dot_rows_agrees_with_a_matrix_product(m, c, d):
     """The clusters' cosines (numba, on numba's threads) against numpy's feats @ rows.T: float32
     rounding apart, the same numbers; zero rows give 0; empty inputs give empty shapes."""
@@ -62,6 +62,9 @@ def test_dot_rows_agrees_with_a_matrix_product(m, c, d):
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4 * np.sqrt(d))
     if c > 2 and m:
         assert (got[:, 1] == 0.0).all()
+    # the small products run on the calling thread, the large on numba's threads: the same bits either way
+    for parallel in (True, False):
+        assert dot_rows(feats, rows, parallel=parallel).tobytes() == got.tobytes()
 
 
 def test_mask_clusters_group_noisy_masks_of_a_label():

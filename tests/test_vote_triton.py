@@ -93,11 +93,12 @@ def test_fused_vote_fold_is_refused_on_the_cpu():
         vote_fold_triton(torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64), torch.ones(1), 0.1, FULL_VIEW, *slots)
 
 
-def test_fused_vote_kernel_compiles_to_ptx_without_fma():
+@pytest.mark.parametrize("ones", [False, True], ids=["scalars", "scalars equal to 1 (Triton passes them as constants)"])
+def test_fused_vote_kernel_compiles_to_ptx_without_fma(ones):
     """Typed mode for sm_90, IEEE float64 division and no fused multiply-adds (numba's rounding)."""
     from drsplat.registration.vote_triton import compile_vote_ptx
 
-    ptx = compiled_ptx(compile_vote_ptx, 90)
+    ptx = compiled_ptx(compile_vote_ptx, 90, ones=ones)
     assert ".entry _vote_fold_source" in ptx and "div.rn.f64" in ptx and "fma" not in ptx
 
 

@@ -27,6 +27,7 @@ from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
 
+STREAM_VIEWS = 8  # at least this many views timed back to back (the counted cameras repeated)
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 
 
@@ -367,7 +368,8 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     pairs copied to the host and recorded; its judging and sums after the views are the record's
     `blocks_ms`). Torch ops and host syncs per
     view (drsplat.bench.opcount), the median wall ms per view (timed without the counter) and peak
-    device memory (CUDA).
+    device memory (CUDA); and the same views (repeated to `STREAM_VIEWS`) computed back to back,
+    synchronised only before and after them (`streamed_ms_per_view`: a registration's rate).
 
     For the torch engine both ways are measured, interleaved view
     by view: pairs coalesced and summed on the device (drsplat.registration.device_sums, what
@@ -375,11 +377,16 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     for the numba hook, coalescer and sums (`host_sums`). The first camera is a warm-up
     (compilation, caches) and is not counted.
     """
+    from drsplat.registration.views import load_view_features
+
     ways = [True, False] if engine == "torch" else [False]
     counters = [_ViewCounter(scene, features_dir, topk, engine, device, way, aggregate) for way in ways]
     for i, cam in enumerate(cameras):
         for counter in counters:
             counter.view(cam, counted=i > 0)
+    loaded = [(cam, *load_view_features(features_dir, cam, 0)[:2]) for cam in cameras[1:]]
+    for counter in counters:
+        counter.stream(loaded * -(-STREAM_VIEWS // max(len(loaded), 1)))
     record = counters[0].record()
     if len(counters) > 1:
         record["host_sums"] = counters[1].record()
@@ -422,6 +429,7 @@ class _ViewCounter:
         self._pending = None  # the view computed last, handed to the sink once the next one is computed (as the driver does)
         self.ops, self.views_only, self.syncs, self.ms, self.sync_names, self.peak_mb = [], [], [], [], None, None
         self.after_raster_ms = []  # coalescing and summing (on CUDA: from the render's issue to the sums' end)
+        self.streamed_ms = None  # ms per view computed back to back (`stream`)
 
     def view(self, cam, counted: bool) -> None:
         import torch
@@ -462,6 +470,26 @@ class _ViewCounter:
         self.views_only.append(counter.counts.views)
         self.syncs.append(counter.counts.syncs)
         self.sync_names = counter.counts.syncs_by_name
+
+    def stream(self, views: list) -> None:
+        """`views` [(camera, mask ids, embeddings)] computed and summed back to back as the driver
+        does (each view added once the next is computed), the device synchronised only before and
+        after them: the rate of a registration's views, where `view` times one view alone (on CUDA
+        the host then waits for each view's last kernel, and the device for the host's first launches)."""
+        import torch
+
+        if not views:
+            return
+        cuda = self.device.startswith("cuda")
+        if cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        for cam, mask_ids, feats in views:
+            self._step(cam, mask_ids, feats)
+        self._flush()
+        if cuda:
+            torch.cuda.synchronize()
+        self.streamed_ms = 1e3 * (time.perf_counter() - t0) / len(views)
 
     def _step(self, cam, mask_ids, feats) -> None:
         """One view's work in the driver's order (drsplat.registration.executor.one_view_behind):
@@ -504,7 +532,8 @@ class _ViewCounter:
             "pairs": self.device if self.on_device else "host",
             "sums": sums_place(self.sink) if self.sink is not None else "host",
             "ops_per_view": median(self.ops), "view_ops_per_view": median(self.views_only), "host_syncs_per_view": median(self.syncs),
-            "ms_per_view": median(self.ms), "coalesce_sum_ms_per_view": median(self.after_raster_ms), "blocks_ms": blocks_ms,
+            "ms_per_view": median(self.ms), "streamed_ms_per_view": self.streamed_ms, "coalesce_sum_ms_per_view": median(self.after_raster_ms),
+            "blocks_ms": blocks_ms,
             "peak_device_mb": self.peak_mb,
             "host_syncs_by_op": dict(self.sync_names.most_common()) if self.sync_names else {},
         }
@@ -516,11 +545,13 @@ def counts_table(counts: dict) -> str:
     syncs = "; ".join(f"pairs on {r['pairs']}, sums on {r['sums']}: " + (", ".join(f"{k} x{v}" for k, v in r["host_syncs_by_op"].items()) or "none") for r in records)
     head = (f"per-view work of {counts['engine']} ({counts['device']}), --aggregate {counts['aggregate']}, compute + statistics + sink add, "
             f"median of {counts['views']} "
-            f"views after a warm-up (ops: dispatcher calls, a drsplat:: op counted with the torch ops its kernel issues; host syncs: {syncs})")
+            f"views after a warm-up, each alone (synchronised before and after it; back to back: {STREAM_VIEWS} or more views in a row, "
+            f"synchronised at the ends) (ops: dispatcher calls, a drsplat:: op counted with the torch ops its kernel issues; host syncs: {syncs})")
     rows = [[r["engine"], r["device"], r["pairs"], r["sums"], r["ops_per_view"], r["view_ops_per_view"], r["host_syncs_per_view"], r["ms_per_view"],
-             r["coalesce_sum_ms_per_view"], r["blocks_ms"], "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
+             r["streamed_ms_per_view"], r["coalesce_sum_ms_per_view"], r["blocks_ms"],
+             "n/a (cpu)" if r["peak_device_mb"] is None else r["peak_device_mb"]] for r in records]
     return head + "\n" + format_table(["engine", "device", "pairs on", "sums on", "ops/view", "of them views (no launch)", "host syncs/view", "ms/view",
-                                       "coalesce + sum ms/view", "sums to host ms (once)", "peak device MB"], rows)
+                                       "back to back ms/view", "coalesce + sum ms/view", "sums to host ms (once)", "peak device MB"], rows)
 
 
 def write_json(path: Path, record: dict) -> None:

@@ -34,15 +34,17 @@ except ImportError:  # pragma: no cover - depends on the torch build
 BLOCK = 256  # slots (or sorted positions) per program
 
 
-def _keys_source(ids_ptr, weights_ptr, masks_ptr, keys_ptr, w_ptr, flags_ptr, counts_ptr, S, k, num_masks, num_gaussians,
+def _keys_source(ids_ptr, weights_ptr, masks_ptr, keys_ptr, w_ptr, flags_ptr, counts_ptr, S, k, num_masks, num_gaussians, empty,
                  BLOCK: tl.constexpr):  # fmt: skip
-    """Slots b·BLOCK .. +BLOCK: keys [S] int64, w [S] float32, flags [M] (1 where a pair), counts[1] += pairs."""
+    """Slots b·BLOCK .. +BLOCK: keys [S] int64, w [S] float32, flags [M] (1 where a pair), counts[1] += pairs.
+
+    `empty` = M·N comes from the host: Triton passes an integer argument equal to 1 as a Python
+    constant, on which a method such as `.to` does not exist (1 mask failed to compile on an H100)."""
     slot = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     live = slot < S
     g = tl.load(ids_ptr + slot, mask=live, other=-1).to(tl.int64)
     m = tl.load(masks_ptr + slot // k, mask=live, other=-1).to(tl.int64)
     valid = live & (g >= 0) & (m >= 0) & (m < num_masks)
-    empty = num_masks.to(tl.int64) * num_gaussians
     tl.store(keys_ptr + slot, tl.where(valid, m * num_gaussians + g, empty + slot), mask=live)
     tl.store(w_ptr + slot, tl.where(valid, tl.load(weights_ptr + slot, mask=live, other=0.0), 0.0), mask=live)
     tl.store(flags_ptr + tl.where(valid, m, 0), tl.full([BLOCK], 1, tl.int64), mask=valid)
@@ -57,10 +59,9 @@ def _segments_source(keys_ptr, segment_ptr, out_g_ptr, out_m_ptr, counts_ptr, S,
     key = tl.load(keys_ptr + pos, mask=live, other=-1)
     before = tl.load(keys_ptr + pos - 1, mask=live & (pos > 0), other=-1)
     first = live & (key != before) & (key < empty)
-    n = tl.maximum(num_gaussians, 1)
     seg = tl.load(segment_ptr + pos, mask=first, other=0)
-    tl.store(out_g_ptr + seg, key % n, mask=first)
-    tl.store(out_m_ptr + seg, key // n, mask=first)
+    tl.store(out_g_ptr + seg, key % num_gaussians, mask=first)
+    tl.store(out_m_ptr + seg, key // num_gaussians, mask=first)
     tl.atomic_add(counts_ptr, tl.sum(first.to(tl.int64), axis=0))
 
 
@@ -86,7 +87,7 @@ def coalesce_triton(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Te
     grid = (triton.cdiv(slots, BLOCK),)
     triton_kernel(_keys_source)[grid](ids.reshape(-1).contiguous(), weights.reshape(-1).to(torch.float32).contiguous(),
                                       mask_ids.reshape(-1).to(device=dev).contiguous(), keys, w, flags, counts, slots, k, int(num_masks),
-                                      int(num_gaussians), BLOCK=BLOCK)  # fmt: skip
+                                      int(num_gaussians), empty, BLOCK=BLOCK)  # fmt: skip
     if empty + slots < 2**31:  # the same order from a radix sort of half the passes (as coalesce_torch)
         keys = keys.to(torch.int32)
     sorted_keys, order = torch.sort(keys, stable=True)
@@ -97,15 +98,16 @@ def coalesce_triton(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Te
     # atomics add them in no fixed order, where a walk of each segment in order would serialise a
     # large Gaussian's thousands of slots in one mask on one thread
     out_w.index_add_(0, segment, w[order])
-    triton_kernel(_segments_source)[grid](sorted_keys, segment, out_g, out_m, counts, slots, int(num_gaussians), empty, BLOCK=BLOCK)
+    triton_kernel(_segments_source)[grid](sorted_keys, segment, out_g, out_m, counts, slots, max(int(num_gaussians), 1), empty, BLOCK=BLOCK)
     return out_g, out_m, out_w, counts, flags[: int(num_masks)]
 
 
-def compile_coalesce_ptx(capability: int = 90) -> str:
-    """Both kernels compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`), one after the other."""
+def compile_coalesce_ptx(capability: int = 90, ones: bool = False) -> str:
+    """Both kernels compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`),
+    one after the other; `ones` as there."""
     keys = {"ids_ptr": "*i32", "weights_ptr": "*fp32", "masks_ptr": "*i32", "keys_ptr": "*i64", "w_ptr": "*fp32", "flags_ptr": "*i64",
-            "counts_ptr": "*i64", "S": "i64", "k": "i32", "num_masks": "i32", "num_gaussians": "i32"}
+            "counts_ptr": "*i64", "S": "i64", "k": "i32", "num_masks": "i32", "num_gaussians": "i32", "empty": "i64"}
     segments = {"keys_ptr": "*i32", "segment_ptr": "*i64", "out_g_ptr": "*i64", "out_m_ptr": "*i64", "counts_ptr": "*i64", "S": "i64",
                 "num_gaussians": "i64", "empty": "i64"}
-    return (kernel_ptx(_keys_source, keys, {"BLOCK": BLOCK}, capability)
-            + kernel_ptx(_segments_source, segments, {"BLOCK": BLOCK}, capability))
+    return (kernel_ptx(_keys_source, keys, {"BLOCK": BLOCK}, capability, ones)
+            + kernel_ptx(_segments_source, segments, {"BLOCK": BLOCK}, capability, ones))

@@ -70,6 +70,7 @@ DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the ch
 TILE_HEADROOM = 1.25  # tile-list entries allocated per entry the recent views needed
 TILE_WINDOW = 8  # recent views whose tile-list sizes set the next view's
 TILE_ROUND = 1 << 16  # tile-list sizes are multiples of this (fewer distinct sizes for the caching allocator)
+STAGE_BYTES = 64 << 20  # bytes per pinned buffer when large sums are copied to the host (`to_host`)
 
 
 class DeviceRead:
@@ -222,11 +223,61 @@ def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
     """`array` (a writable host array) on `device` without the host waiting for queued device work:
     a copy from pageable memory to CUDA waits for the stream, so the array is staged in pinned
     memory and copied with non_blocking (the caching host allocator keeps the pinned copy until the
-    copy is done). On the CPU: a tensor sharing the array."""
+    copy is done). On the CPU: a tensor sharing the array.
+
+    The array is copied into the pinned buffer by numpy, on one thread: `tensor.pin_memory()` copies
+    with torch's thread pool, and for a view's mask ids (1.2 MB) or embeddings that took 1-5 ms of
+    the H100 machine's host per view (2026-11-27), while the GPU waited for the next launch."""
     tensor = host_tensor(array)
     if device.type != "cuda":
         return tensor
-    return tensor.pin_memory().to(device, non_blocking=True)
+    pinned = torch.empty(tensor.shape, dtype=tensor.dtype, pin_memory=True)
+    pinned.numpy()[...] = array
+    return pinned.to(device, non_blocking=True)
+
+
+def to_host(tensor: torch.Tensor, staged: bool | None = None, chunk_bytes: int = STAGE_BYTES) -> np.ndarray:
+    """`tensor` [R, ...] as a host array: on a CPU the tensor's own memory (no copy), on CUDA a new
+    array filled `chunk_bytes` of rows at a time through two pinned buffers (`staged`, default on
+    CUDA; on a CPU too when asked, with unpinned buffers, as the tests do).
+
+    A plain `.cpu()` copies a large tensor into pageable memory through the driver's own staging:
+    F of flowers (542k x 512 float32, 1.1 GB) took 783 ms on an H100 (1.4 GB/s, 2026-11-27). Here
+    the device copies rows into one pinned buffer while the host moves the other's rows into the
+    array, so the bus runs at pinned speed and the host's copy overlaps it.
+    """
+    staged = tensor.device.type == "cuda" if staged is None else staged
+    if not staged:
+        return tensor.cpu().numpy()
+    out = np.empty(tuple(tensor.shape), dtype=torch.empty(0, dtype=tensor.dtype).numpy().dtype)
+    if tensor.numel() == 0:
+        return out
+    flat = tensor.contiguous().reshape(tensor.shape[0] if tensor.dim() else 1, -1)
+    host = out.reshape(flat.shape)
+    step = max(1, int(chunk_bytes) // (flat.shape[1] * flat.element_size()))
+    pinned = tensor.device.type == "cuda"
+    buffers = [torch.empty((min(step, flat.shape[0]), flat.shape[1]), dtype=flat.dtype, pin_memory=pinned) for _ in range(2)]
+    queued: list[tuple[int, int, torch.Tensor, object]] = []  # (first row, rows, buffer, event) in flight
+
+    def drain() -> None:
+        start, rows, buffer, event = queued.pop(0)
+        if event is not None:
+            event.synchronize()
+        host[start : start + rows] = buffer[:rows].numpy()
+
+    for i, start in enumerate(range(0, flat.shape[0], step)):
+        rows, buffer = min(step, flat.shape[0] - start), buffers[i % 2]
+        buffer[:rows].copy_(flat[start : start + rows], non_blocking=pinned)
+        event = None
+        if pinned:
+            event = torch.cuda.Event()
+            event.record()
+        queued.append((start, rows, buffer, event))
+        if len(queued) == 2:  # the other buffer's copy was queued earlier: empty it while this one fills
+            drain()
+    while queued:
+        drain()
+    return out
 
 
 def spread_rows(used: torch.Tensor, rows: torch.Tensor, num_rows: int) -> torch.Tensor:
@@ -810,7 +861,7 @@ class DeviceSink:
         return (self.W > 0).cpu().numpy()
 
     def blocks(self) -> Iterator[Block]:
-        F, W = self.F.cpu().numpy(), self.W.cpu().numpy()
+        F, W = to_host(self.F), self.W.cpu().numpy()
         yield Block(0, F.shape[0], F, W)
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -991,7 +1042,7 @@ class DeviceVoteSink:
             F, W, c, v, s = F[index], W[index], c[index], v[index], s[index]
         # a fresh host array except the whole of F on a CPU, which is then trimmed in place (as VoteSink's
         # blocks do): a copy of F there (1.1 GB on flowers) cost 2 s of page faults
-        F = F.cpu().numpy()
+        F = to_host(F)
         return trimmed_features(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters.means()), W.cpu().numpy().copy()
 
     def blocks(self) -> Iterator[Block]:

@@ -114,8 +114,8 @@ def front_flags_triton(means: torch.Tensor, precisions: torch.Tensor, reach: tor
     return flags.view(torch.bool)
 
 
-def compile_front_ptx(capability: int = 90, k: int = 40) -> str:
+def compile_front_ptx(capability: int = 90, k: int = 40, ones: bool = False) -> str:
     """The kernel compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`), FMA contraction off as launched."""
     pointers = {"ids_ptr": "*i32", "median_ptr": "*i32", "means_ptr": "*fp64", "prec_ptr": "*fp64", "reach_ptr": "*fp64", "camera_ptr": "*fp64",
                 "flags_ptr": "*i8", "n_pixels": "i32", "width": "i32", "k": "i32"}
-    return kernel_ptx(_front_flags_source, pointers, {"BLOCK": BLOCK, "KP": 1 << max(0, k - 1).bit_length()}, capability, enable_fp_fusion=False)
+    return kernel_ptx(_front_flags_source, pointers, {"BLOCK": BLOCK, "KP": 1 << max(0, k - 1).bit_length()}, capability, ones, enable_fp_fusion=False)

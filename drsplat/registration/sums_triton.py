@@ -66,8 +66,8 @@ def add_pairs_triton(F: torch.Tensor, W: torch.Tensor, gaussians: torch.Tensor, 
     )  # fmt: skip
 
 
-def compile_sums_ptx(capability: int = 90, dim: int = 512) -> str:
+def compile_sums_ptx(capability: int = 90, dim: int = 512, ones: bool = False) -> str:
     """The kernel compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`), FMA contraction off as launched."""
     pointers = {"masks_ptr": "*i64", "weights_ptr": "*fp32", "starts_ptr": "*i64", "feats_ptr": "*fp32", "F_ptr": "*fp32", "W_ptr": "*fp32",
                 "D": "i32"}
-    return kernel_ptx(_add_pairs_source, pointers, {"BLOCK_D": 1 << max(0, dim - 1).bit_length()}, capability, enable_fp_fusion=False)
+    return kernel_ptx(_add_pairs_source, pointers, {"BLOCK_D": 1 << max(0, dim - 1).bit_length()}, capability, ones, enable_fp_fusion=False)

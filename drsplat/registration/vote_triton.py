@@ -90,8 +90,8 @@ def vote_fold_triton(rows: torch.Tensor, clusters: torch.Tensor, weights: torch.
     )  # fmt: skip
 
 
-def compile_vote_ptx(capability: int = 90, slots: int = 8) -> str:
+def compile_vote_ptx(capability: int = 90, slots: int = 8, ones: bool = False) -> str:
     """The kernel compiled to PTX for sm_`capability` without a GPU (`raster_triton.kernel_ptx`), FMA contraction off as launched."""
     pointers = {"clusters_ptr": "*i32", "weights_ptr": "*fp32", "starts_ptr": "*i64", "params_ptr": "*fp64", "slot_c_ptr": "*i32",
                 "slot_v_ptr": "*fp64", "slot_s_ptr": "*fp64", "S": "i32"}
-    return kernel_ptx(_vote_fold_source, pointers, {"SP": 1 << max(0, slots - 1).bit_length()}, capability, enable_fp_fusion=False)
+    return kernel_ptx(_vote_fold_source, pointers, {"SP": 1 << max(0, slots - 1).bit_length()}, capability, ones, enable_fp_fusion=False)
