@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 
 import numpy as np
@@ -113,7 +114,7 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     out = tmp_path / "counts.json"
     code = main(["bench", "register", "--skip-synthetic", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--repeats", "1",
                  "--agree-views", "1", "--count-views", "1", "--engine", "torch", "--device", "cpu", "--json", str(out), "--aggregate", "paper",
-                 "--profile-views", "1"])
+                 "--profile-views", "1", "--trace", str(tmp_path / "views.json.gz")])
     assert code == 0
     record = json.loads(out.read_text())
     assert record["engine"] == "torch" and record["device"] == "cpu" and record["views"] == 1 and record["aggregate"] == "paper"
@@ -130,6 +131,43 @@ def test_bench_register_json_records_the_per_view_counts(tmp_path, capsys):
     assert "host syncs/view" in printed and "ops/view" in printed and "sums on" in printed and "back to back ms/view" in printed
     profile = printed[printed.index("where 1 views' time went"):]  # --profile-views: the profiler's table of the view's ops
     assert "drsplat::render_topk" in profile and "drsplat::coalesce_pairs" in profile and "Self CPU time total" in profile
+    # --trace: the profiled views' chrome trace, gzipped (a CPU run has no device timeline to print)
+    trace = json.loads(gzip.decompress((tmp_path / "views.json.gz").read_bytes()))
+    assert any(e.get("name") == "drsplat::render_topk" for e in trace["traceEvents"])
+    assert "device timeline" not in profile
+
+
+def test_bench_register_trace_without_profiled_views_is_refused_before_any_work(tmp_path, capsys):
+    from drsplat.cli import main
+
+    code = main(["bench", "register", "--gaussians", "1500", "--views", "2", "--size", "48x32", "--engine", "torch", "--device", "cpu",
+                 "--trace", str(tmp_path / "t.json")])
+    assert code == 2
+    captured = capsys.readouterr()
+    assert "--trace" in captured.err and "--profile-views" in captured.err
+    assert "|" not in captured.out and not (tmp_path / "t.json").exists()  # no table was computed first
+
+
+def test_device_timeline_counts_busy_time_once_and_the_gaps_the_device_waited():
+    """Overlapping kernels count once; an idle stretch over the threshold is a gap, a shorter one is not;
+    host events are not device work; a trace without device work (a CPU run) has no timeline."""
+    from drsplat.bench.register import device_timeline
+
+    def event(cat, ts, dur):
+        return {"ph": "X", "cat": cat, "name": cat, "ts": ts, "dur": dur}
+
+    trace = {"traceEvents": [
+        event("kernel", 0, 10), event("kernel", 5, 10),  # overlap: busy 0 .. 15
+        event("cpu_op", 15, 900),  # the host, not the device
+        event("gpu_memcpy", 1000, 100),  # after a 0.985 ms gap
+        event("gpu_memset", 1300, 50),  # after a 0.2 ms gap: under the threshold
+        {"ph": "i", "cat": "kernel", "name": "instant", "ts": 2000},  # not a span
+    ]}
+    timeline = device_timeline(trace, threshold_ms=0.3)
+    assert timeline.busy_ms == pytest.approx(0.165) and timeline.span_ms == pytest.approx(1.35)
+    assert timeline.gaps_ms == pytest.approx([0.985])
+    assert "1 idle gaps over 0.3 ms" in timeline.line(2, 0.3)
+    assert device_timeline({"traceEvents": [event("cpu_op", 0, 5)]}) is None
 
 
 def test_bench_counts_the_default_mode_on_the_device(tmp_path):

@@ -18,6 +18,7 @@ import json
 import statistics
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,9 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--profile-views", type=int_range(0), default=0, metavar="N",
                    help="torch engine: N more views under torch's profiler, and a table of where their time went, by device "
                         "time on CUDA (default: 0, none)")
+    p.add_argument("--trace", type=Path, default=None, metavar="FILE",
+                   help="with --profile-views: also write the profiled views' chrome trace to FILE (gzipped for a .gz name; "
+                        "open it in Perfetto or chrome://tracing)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
@@ -322,7 +326,7 @@ def blob_scene(n: int, seed: int = 0):
 
 
 def engine_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, engine: str, device: str, agree_views: int,
-                 count_views: int = 2, aggregate: str = "paper", profile_views: int = 0) -> tuple[str, dict]:
+                 count_views: int = 2, aggregate: str = "paper", profile_views: int = 0, trace: Path | None = None) -> tuple[str, dict]:
     """The same registration with numba (CPU) and with `engine` on `device`: times as ratios, and agreement;
     then `engine`'s per-view ops and host syncs (`per_view_counts`). Returns (text, the counts record)."""
     from drsplat.raster import prepare_for_engine, rasterize
@@ -335,7 +339,7 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
         other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
         counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, aggregate)
-        profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, aggregate) if profile_views > 0 else ""
+        profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, aggregate, trace=trace) if profile_views > 0 else ""
     wdiff, mismatch = 0.0, 0.0
     prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
     for cam in cameras[:agree_views]:
@@ -393,25 +397,90 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     return record
 
 
-def profile_table(scene, cameras, features_dir: Path, topk: int, device: str, aggregate: str = "paper", rows: int = 25) -> str:
+@dataclass
+class DeviceTimeline:
+    """How busy the device was over a profiled stretch: span_ms from its first kernel's start to its
+    last one's end, busy_ms covered by at least one kernel, copy or memset, gaps_ms the idle
+    stretches longer than the threshold (in time order)."""
+
+    span_ms: float
+    busy_ms: float
+    gaps_ms: list[float]
+
+    def line(self, views: int, threshold_ms: float) -> str:
+        idle = sum(self.gaps_ms)
+        return (f"device timeline over {views} views back to back: busy {self.busy_ms:.1f} of {self.span_ms:.1f} ms "
+                f"({self.busy_ms / max(views, 1):.2f} ms a view); {len(self.gaps_ms)} idle gaps over {threshold_ms:g} ms, "
+                f"{idle:.1f} ms in all" + (f" (longest {max(self.gaps_ms):.2f} ms: the device waited for the host)" if self.gaps_ms else ""))
+
+
+DEVICE_EVENT_KINDS = ("kernel", "gpu_memcpy", "gpu_memset")  # chrome-trace categories of work on the device
+
+
+def device_timeline(trace: dict, threshold_ms: float = 0.3) -> DeviceTimeline | None:
+    """The DeviceTimeline of a torch.profiler chrome trace (`export_chrome_trace`'s JSON), or None
+    when it holds no device work (a CPU run). Overlapping kernels count once."""
+    spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in trace.get("traceEvents", [])
+                   if e.get("ph") == "X" and e.get("cat") in DEVICE_EVENT_KINDS)
+    if not spans:
+        return None
+    busy, gaps, end = 0.0, [], spans[0][0]
+    for start, stop in spans:
+        if start - end > 1e3 * threshold_ms:
+            gaps.append((start - end) / 1e3)
+        if stop > end:
+            busy += stop - max(start, end)
+            end = stop
+    return DeviceTimeline((end - spans[0][0]) / 1e3, busy / 1e3, gaps)
+
+
+def profile_table(scene, cameras, features_dir: Path, topk: int, device: str, aggregate: str = "paper", rows: int = 25,
+                  trace: Path | None = None) -> str:
     """Where the torch engine's time goes on `device`: the views after the first (a warm-up) computed
-    and summed as registration does (pairs on the device) under torch.profiler; its table of the
-    `rows` costliest ops and kernels, by self device time on CUDA, by self CPU time on a CPU."""
+    and summed back to back as registration does (pairs on the device, `_ViewCounter.stream`) under
+    torch.profiler; its table of the `rows` costliest ops and kernels, by self device time on CUDA,
+    by self CPU time on a CPU. On CUDA also the device's timeline (`device_timeline`): how long it
+    sat idle waiting for the host. trace: where to write the chrome trace (gzipped when the name
+    ends in .gz), for chrome://tracing or Perfetto."""
     import torch
+
+    from drsplat.registration.views import load_view_features
 
     counter = _ViewCounter(scene, features_dir, topk, "torch", device, True, aggregate)
     counter.view(cameras[0], counted=False)
+    loaded = [(cam, *load_view_features(features_dir, cam, 0)[:2]) for cam in cameras[1:]]
     cuda = device.startswith("cuda")
     activities = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
     with torch.profiler.profile(activities=activities) as prof:
-        for cam in cameras[1:]:
-            counter.view(cam, counted=False)
+        counter.stream(loaded)
+    timeline = _write_trace(prof, trace)
     averages = prof.key_averages()
     key = "self_cpu_time_total"
     if cuda:  # the name of the device column changed between torch versions
         key = "self_device_time_total" if hasattr(averages[0], "self_device_time_total") else "self_cuda_time_total"
-    return (f"where {len(cameras) - 1} views' time went (torch.profiler, --aggregate {aggregate}, sorted by {key}):\n"
-            + averages.table(sort_by=key, row_limit=rows, max_name_column_width=70))
+    table = (f"where {len(cameras) - 1} views' time went (torch.profiler, --aggregate {aggregate}, sorted by {key}):\n"
+             + averages.table(sort_by=key, row_limit=rows, max_name_column_width=70))
+    return table + (f"\n{timeline.line(len(loaded), TIMELINE_GAP_MS)}" if timeline is not None else "")
+
+
+TIMELINE_GAP_MS = 0.3  # idle stretches of the device longer than this are counted as gaps
+
+
+def _write_trace(prof, trace: Path | None) -> DeviceTimeline | None:
+    """The profile's DeviceTimeline (read from its chrome trace), the trace kept at `trace` if given
+    (written atomically; gzipped for a .gz name)."""
+    import gzip
+
+    from drsplat.utils import atomic_path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = Path(tmp) / "trace.json"
+        prof.export_chrome_trace(str(raw))
+        text = raw.read_bytes()
+    if trace is not None:
+        with atomic_path(trace) as out:
+            out.write_bytes(gzip.compress(text) if trace.name.endswith(".gz") else text)
+    return device_timeline(json.loads(text), TIMELINE_GAP_MS)
 
 
 class _ViewCounter:
@@ -562,17 +631,24 @@ def write_json(path: Path, record: dict) -> None:
         tmp.write_text(json.dumps(record, indent=2) + "\n")
 
 
+def _check_outputs(args: argparse.Namespace, engine: str) -> None:
+    """--json and --trace record the torch engine's views: refused up front (before any table) where none are measured."""
+    from drsplat.errors import UsageError
+
+    if args.json is not None and (engine == "numba" or args.skip_real):
+        raise UsageError("--json records the torch engine's per-view figures: add --engine torch (and leave out --skip-real)")
+    if args.trace is not None and (engine == "numba" or args.skip_real or args.profile_views == 0):
+        raise UsageError("--trace keeps the trace of the torch engine's profiled views: add --engine torch and --profile-views N")
+
+
 def run(args: argparse.Namespace) -> int:
     topks = args.topks
     width, height = args.size
+    device, engine = resolve_compute(args)
+    _check_outputs(args, engine)
     if not args.skip_synthetic:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats, args.aggregate))
         print()
-    device, engine = resolve_compute(args)
-    if args.json is not None and (engine == "numba" or args.skip_real):
-        from drsplat.errors import UsageError
-
-        raise UsageError("--json records the torch engine's per-view figures: add --engine torch (and leave out --skip-real)")
     if engine != "numba" and not args.skip_real:
         if args.gaussians:
             scene, name = blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
@@ -585,7 +661,7 @@ def run(args: argparse.Namespace) -> int:
             scene = None
         if scene is not None:
             text, counts = engine_table(scene, name, args.views, width, height, args.real_topk, args.repeats, engine, device,
-                                        args.agree_views, args.count_views, args.aggregate, args.profile_views)
+                                        args.agree_views, args.count_views, args.aggregate, args.profile_views, args.trace)
             print(text)
             if args.json is not None:
                 write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
