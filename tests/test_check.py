@@ -428,3 +428,43 @@ def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_r
     assert resumed.resumed_views == 3
     np.testing.assert_array_equal(resumed.weights, full.weights)
     np.testing.assert_array_equal(resumed.features, full.features)
+
+
+@pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
+@pytest.mark.parametrize("block", [1, 7, 13, 40])
+def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, block):
+    """What reducers compute (each block's support alone, `block_partial_supports`), added by the
+    driver (`merge_partial_supports`), in any order of the blocks: the one-block tables exactly
+    (the fixed-point sums are integers), so the verdicts and the output bytes do not depend on
+    where the blocks fall or who sums them."""
+    from drsplat.registration.check import block_partial_supports, merge_partial_supports, view_supports
+
+    rng = np.random.default_rng(seed)
+    n = 40
+    views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, hard)
+    record, clusters = _record(views, n)
+    whole = view_supports(record, clusters, n, n)
+    parts = [block_partial_supports(record.block_views(lo, min(n, lo + block)), record.block_views(lo, min(n, lo + block)), clusters.per_view,
+                                    clusters.count, lo, min(n, lo + block)) for lo in range(0, n, block)]
+    feats = [v.feats for v in record.views]
+    for blocks in (parts, parts[::-1]):
+        merged = merge_partial_supports(blocks, feats, clusters.per_view, clusters.count)
+        assert len(merged) == len(whole)
+        for a, b in zip(merged, whole):
+            np.testing.assert_array_equal(a.dense(), b.dense())
+            np.testing.assert_array_equal(a.mass_fixed, b.mass_fixed)
+            assert a.num_entries == b.num_entries
+            np.testing.assert_array_equal(a.units, b.units)
+
+
+def test_views_too_heavy_for_the_exact_sums_are_one_clear_error():
+    """The support's fixed point holds q < 2³⁹: views whose weights could pass it are refused in one
+    sentence naming the problem and a way out, instead of sums that wrap around."""
+    from drsplat.errors import DrsplatError
+    from drsplat.registration.check import fixed_point_fits
+
+    fixed_point_fits(3e7, 16000)  # 16,000 views of 8K images fit
+    with pytest.raises(DrsplatError, match="range of its exact sums.*--aggregate vote-reject"):
+        fixed_point_fits(3e7, 20000)
+    with pytest.raises(DrsplatError, match="range"):
+        fixed_point_fits(float("inf"), 3)

@@ -115,12 +115,26 @@ def test_scene_codebook_from_the_reducers_sample_gives_the_local_bytes(cluster, 
     assert sha(on_ray) == sha(local)
 
 
-def test_a_check_mode_judged_by_the_driver_and_summed_by_reducers_gives_the_local_bytes(cluster, tmp_path_factory, tmp_path):
-    """--aggregate check-vote-reject with --codebook scene on mislabelled masks: the driver judges the
-    masks from the shards, the reducers sum the kept pairs, the codebook's sample included."""
+def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(cluster, tmp_path_factory, tmp_path, monkeypatch):
+    """--aggregate check-vote-reject with --codebook scene on mislabelled masks: the reducers sum
+    their blocks' parts of the support tables (the driver only adds them: its own replay of the
+    support is made to fail here), the driver judges the masks, the reducers sum the kept pairs, the
+    codebook's sample included: the local run's bytes."""
+    import drsplat.registration.check as check
+
     data = write_dataset(tmp_path_factory.mktemp("mislabelled") / "data", "tiny", 0, mislabel_fraction=0.3, show_progress=False)
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    local, on_ray, result = _register_both(scene, cams, data / "features", tmp_path, codebook="scene", aggregate="check-vote-reject")
+    local, on_ray = tmp_path / "local" / "reg.ply", tmp_path / "ray" / "reg.ply"
+    options = dict(codebook="scene", aggregate="check-vote-reject")
+    register(scene, cams, data / "features", local, RegisterOptions(**options), show_progress=False)
+
+    def replayed_on_the_driver(*args, **kwargs):
+        raise AssertionError("the driver replayed the log for the support tables")
+
+    monkeypatch.setattr(check, "view_supports", replayed_on_the_driver)
+    result = register(scene, cams, data / "features", on_ray, RegisterOptions(ray="auto", ray_workers=2, block_size=1024, **options),
+                      show_progress=False)
+    monkeypatch.undo()
     plain = tmp_path / "plain" / "reg.ply"  # the check drops masks here: without it the file differs
     register(scene, cams, data / "features", plain, RegisterOptions(codebook="scene", aggregate="vote-reject"), show_progress=False)
     assert result.reducers and sha(plain) != sha(local)

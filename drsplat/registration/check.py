@@ -54,21 +54,26 @@ by embedding noise takes several clusters; on hard-room with 20% mislabels and n
 32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
 sparse support table over all blocks (`ViewSupport`: 16 bytes per (mask, cluster) pair that occurs;
 M masks x K clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is
-summed), so that each
-q[j, c] adds its terms in Gaussian order whatever the plan: the same verdicts, and the same output
-bytes, in one block or many. Step 3 keeps one flag per Gaussian ([N] bool).
+summed). Every term of q[j, c]
+and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
+q = 2³⁹, pixels x views), so the sums are the same integers in any order and any partition: one
+block, blocks, or on Ray the reducers' parts of their blocks added by the driver
+(`block_partial_supports`, `merge_partial_supports`; since 2026-11-27, sixth session: before, float64
+sums in Gaussian order, which only one process could make). The same verdicts, and the same output
+bytes, in every plan and place. Step 3 keeps one flag per Gaussian ([N] bool), found block by block.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from drsplat.defaults import CHECK_SLOTS
+from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
@@ -78,6 +83,7 @@ from drsplat.utils import CancelToken, progress
 log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
+SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 
 
@@ -109,7 +115,8 @@ def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.nda
 
 def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
                     means: np.ndarray, like: float | None = None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """Obviously-correct reference of step 2 with unbounded slots (numpy, float64).
+    """Obviously-correct reference of step 2 with unbounded slots (numpy, float64), every term and
+    weight rounded to the kernels' fixed point (units of 2⁻²⁴, SUPPORT_SCALE) before it is summed.
 
     views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none),
     embeddings [M, D]). means: [K, D] unit cluster means. like: the "like" cosine (None: own and alt
@@ -125,8 +132,10 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     for (g, m, w, c, feats), own_votes in zip(views, votes):
         num_masks = c.shape[0]
         q = np.zeros((num_masks, k))
-        np.add.at(q, m, w.astype(np.float64)[:, None] * (V - own_votes)[g])
-        mass = np.bincount(m, w.astype(np.float64), num_masks)
+        other = np.maximum(V - own_votes, 0.0)[g]  # the kernel adds the positive terms only
+        np.add.at(q, m, np.floor(w.astype(np.float64)[:, None] * other * SUPPORT_SCALE + 0.5))
+        q /= SUPPORT_SCALE
+        mass = np.bincount(m, np.floor(w.astype(np.float64) * SUPPORT_SCALE + 0.5), num_masks) / SUPPORT_SCALE
         units = unit_rows(feats)
         units[c < 0] = 0.0
         has = mass > 0
@@ -213,6 +222,12 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
             start = end
 
 
+@numba.njit(cache=True, inline="always")
+def _fixed(x):  # pragma: no cover - jitted
+    """x ≥ 0 in units of 2⁻²⁴ (SUPPORT_SCALE), rounded to the nearest."""
+    return np.int64(x * SUPPORT_SCALE + 0.5)
+
+
 @numba.njit(cache=True)
 def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
                     scratch, touched, mass):  # pragma: no cover - jitted
@@ -220,11 +235,14 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
     the pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive.
 
-    q arrives and leaves as entries (entry_mask, entry_cluster [E] int32, entry_value [E] float64:
+    Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
+    the same in any order and any partition of the Gaussians: one block, blocks in any order, or
+    reducers' partial tables summed by the driver (`merge_partial_supports`).
+
+    q arrives and leaves as entries (entry_mask, entry_cluster [E] int32, entry_value [E] int64:
     the pairs (j, c) met so far); returns the new entries (the old ones first, in their order). It
-    is summed in scratch [M, K] float64 (zero) with touched [M, K] bool (False), both left as they
-    came: the old entries are put there first, so each q[j, c] adds its terms in the order a dense
-    table would, the same bits."""
+    is summed in scratch [M, K] int64 (zero) with touched [M, K] bool (False), both left as they
+    came. mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
     n = order.shape[0]
     count = entry_mask.shape[0]
@@ -254,7 +272,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
             p = order[i]
             w = np.float64(weights[p])
             j = masks[p]
-            mass[j] += w
+            mass[j] += _fixed(w)
             for s in range(num_slots):
                 c = slot_c[r, s]
                 if c < 0:
@@ -266,13 +284,13 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                         met_j[count] = j
                         met_c[count] = c
                         count += 1
-                    scratch[j, c] += w * other
+                    scratch[j, c] += _fixed(w * other)
         start = end
-    out_value = np.empty(count)
+    out_value = np.empty(count, np.int64)
     for e in range(count):
         j, c = met_j[e], met_c[e]
         out_value[e] = scratch[j, c]
-        scratch[j, c] = 0.0
+        scratch[j, c] = 0
         touched[j, c] = False
     return met_j[:count].copy(), met_c[:count].copy(), out_value
 
@@ -391,17 +409,18 @@ class ViewSupport:
     occurs, q[j, c] (divided by mass in own / alt / total), mass [M] = Σ_i w_ij and units [M, D] the
     unit embeddings.
 
-    q is sparse: entries (mask [E] int32, cluster [E] int32, value [E] float64) for the pairs (j, c)
-    with c in a slot of one of mask j's Gaussians, in the order they were met; `rows()` gives them
-    per mask in cluster order. A view's masks meet a few clusters each, so the tables hold
-    ~(masks) x (clusters per mask) entries where dense [M, K] tables held every mask x every
-    cluster (200 k masks x 5 k clusters: 8 GB dense)."""
+    q is sparse: entries (mask [E] int32, cluster [E] int32, fixed [E] int64: q · SUPPORT_SCALE)
+    for the pairs (j, c) with c in a slot of one of mask j's Gaussians, in the order they were met;
+    `rows()` gives them per mask in cluster order, as float64. A view's masks meet a few clusters
+    each, so the tables hold ~(masks) x (clusters per mask) entries where dense [M, K] tables held
+    every mask x every cluster (200 k masks x 5 k clusters: 8 GB dense). mass_fixed: [M] int64,
+    `mass` its float64 values."""
 
     entry_mask: np.ndarray
     entry_cluster: np.ndarray
-    entry_value: np.ndarray
+    entry_fixed: np.ndarray
     num_clusters: int
-    mass: np.ndarray
+    mass_fixed: np.ndarray
     units: np.ndarray
 
     @classmethod
@@ -410,7 +429,17 @@ class ViewSupport:
         units = unit_rows(feats)
         units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
         none = np.zeros(0, np.int32)
-        return cls(none, none, np.zeros(0), int(num_clusters), np.zeros(clusters.shape[0]), units)
+        return cls(none, none, np.zeros(0, np.int64), int(num_clusters), np.zeros(clusters.shape[0], np.int64), units)
+
+    @property
+    def entry_value(self) -> np.ndarray:
+        """[E] float64 q of the entries."""
+        return self.entry_fixed / SUPPORT_SCALE
+
+    @property
+    def mass(self) -> np.ndarray:
+        """[M] float64 Σ_i w_ij of each mask."""
+        return self.mass_fixed / SUPPORT_SCALE
 
     @property
     def num_entries(self) -> int:
@@ -424,29 +453,29 @@ class ViewSupport:
         """q as compressed rows: (starts [M + 1] int64, clusters [E] int32, values [E] float64), the
         entries of mask j at starts[j] .. starts[j + 1] - 1 in increasing cluster order."""
         order = np.lexsort((self.entry_cluster, self.entry_mask))
-        starts = np.searchsorted(self.entry_mask[order], np.arange(self.mass.shape[0] + 1), side="left").astype(np.int64)
-        return starts, np.ascontiguousarray(self.entry_cluster[order]), np.ascontiguousarray(self.entry_value[order])
+        starts = np.searchsorted(self.entry_mask[order], np.arange(self.mass_fixed.shape[0] + 1), side="left").astype(np.int64)
+        return starts, np.ascontiguousarray(self.entry_cluster[order]), self.entry_fixed[order] / SUPPORT_SCALE
 
     def dense(self) -> np.ndarray:
         """q as a dense [M, K] table (tests)."""
-        q = np.zeros((self.mass.shape[0], self.num_clusters))
+        q = np.zeros((self.mass_fixed.shape[0], self.num_clusters))
         q[self.entry_mask, self.entry_cluster] = self.entry_value
         return q
 
 
 class SupportScratch:
-    """The dense scratch `_support_kernel` sums one view in: [M, K] float64 zeros and bool flags,
+    """The dense scratch `_support_kernel` sums one view in: [M, K] int64 zeros and bool flags,
     sized for the largest view's M and reused (left zero by every call)."""
 
     def __init__(self, num_clusters: int):
         self.num_clusters = num_clusters
-        self._values = np.zeros(0)
+        self._values = np.zeros(0, np.int64)
         self._touched = np.zeros(0, bool)
 
     def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray]:
         size = num_masks * self.num_clusters
         if size > self._values.shape[0]:
-            self._values, self._touched = np.zeros(size), np.zeros(size, bool)
+            self._values, self._touched = np.zeros(size, np.int64), np.zeros(size, bool)
         return self._values[:size].reshape(num_masks, self.num_clusters), self._touched[:size].reshape(num_masks, self.num_clusters)
 
 
@@ -475,11 +504,83 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     block's bits."""
     if view.gaussians.size:
         rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
-        values, touched = (scratch or SupportScratch(support.num_clusters)).take(support.mass.shape[0])
-        support.entry_mask, support.entry_cluster, support.entry_value = _support_kernel(
+        values, touched = (scratch or SupportScratch(support.num_clusters)).take(support.mass_fixed.shape[0])
+        support.entry_mask, support.entry_cluster, support.entry_fixed = _support_kernel(
             rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
             np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
-            support.entry_mask, support.entry_cluster, support.entry_value, values, touched, support.mass)
+            support.entry_mask, support.entry_cluster, support.entry_fixed, values, touched, support.mass_fixed)
+
+
+def fixed_point_fits(heaviest_view: float, num_views: int) -> None:
+    """DrsplatError when the support sums could leave the fixed point's range: q[j, c] ≤ mass_j ·
+    views (a view votes at most 1 per cluster) and a mask's mass is at most its view's Σ w, so
+    heaviest_view · num_views must stay under 2³⁹ (2⁶³ units of 2⁻²⁴; with paper weights Σ w ≤ the
+    view's pixels: 5.5e11 is 16,000 views of 8K images)."""
+    bound = heaviest_view * max(num_views, 1)
+    if not bound < 2.0**63 / SUPPORT_SCALE:
+        raise DrsplatError(f"the mask check cannot judge these views: a view's weights sum to {heaviest_view:.3g} over {num_views} views, "
+                           f"past the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
+                           f"(--aggregate vote-reject) or with fewer views")
+
+
+@dataclass
+class PartialSupport:
+    """One view's support from one block of Gaussians (a reducer's part of `ViewSupport`): entries
+    (mask [E] int32, cluster [E] int32, fixed [E] int64) and mass_fixed [M] int64, in the kernel's
+    fixed point, so the parts of every block add up exactly (`merge_partial_supports`)."""
+
+    entry_mask: np.ndarray
+    entry_cluster: np.ndarray
+    entry_fixed: np.ndarray
+    mass_fixed: np.ndarray
+
+
+def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], num_clusters: int, lo: int,
+                           hi: int, slots: int = CHECK_SLOTS) -> list[PartialSupport]:
+    """Steps 1 and 2 for Gaussians lo .. hi-1 alone: their votes folded over `views` (every view in
+    order, with those Gaussians' pairs), then each view's support from those Gaussians' pairs
+    (`pair_views`: a second replay of the same views). per_view: each view's [M] mask clusters.
+    What a reducer computes for its block; the driver adds the blocks' parts."""
+    slot_c, slot_v = fold_block_votes(views, per_view, lo, hi, slots)
+    scratch = SupportScratch(num_clusters)
+    parts = []
+    for view, clusters in zip(pair_views, per_view):
+        none = np.zeros(0, np.int32)
+        support = ViewSupport(none, none, np.zeros(0, np.int64), num_clusters, np.zeros(clusters.shape[0], np.int64), np.zeros((0, 0)))
+        add_view_support(view, lo, clusters, slot_c, slot_v, support, scratch)
+        parts.append(PartialSupport(support.entry_mask, support.entry_cluster, support.entry_fixed, support.mass_fixed))
+    return parts
+
+
+def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.ndarray], per_view: list[np.ndarray],
+                           num_clusters: int) -> list[ViewSupport]:
+    """Every view's ViewSupport from the blocks' parts (`block_partial_supports`, blocks x views):
+    the entries of each (mask, cluster) and the masses added as integers, exact in any order, so
+    the same numbers as `view_supports` in one block. feats: each view's [M, D] embeddings."""
+    supports = []
+    for v, (f, clusters) in enumerate(zip(feats, per_view)):
+        support = ViewSupport.empty(f, clusters, num_clusters)
+        parts = [block[v] for block in blocks]
+        if parts:
+            support.mass_fixed = np.sum([p.mass_fixed for p in parts], axis=0, dtype=np.int64).reshape(clusters.shape[0])
+            masks = np.concatenate([p.entry_mask for p in parts])
+            cluster = np.concatenate([p.entry_cluster for p in parts])
+            fixed = np.concatenate([p.entry_fixed for p in parts])
+            key = masks.astype(np.int64) * max(num_clusters, 1) + cluster
+            unique, inverse = np.unique(key, return_inverse=True)
+            support.entry_fixed = _sum_by(inverse.reshape(-1), fixed, unique.size)
+            support.entry_mask = (unique // max(num_clusters, 1)).astype(np.int32)
+            support.entry_cluster = (unique % max(num_clusters, 1)).astype(np.int32)
+        supports.append(support)
+    return supports
+
+
+def _sum_by(groups: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """[count] int64: the sums of int64 `values` by group id (np.add.at keeps them integers; a
+    float bincount would round sums past 2⁵³)."""
+    out = np.zeros(count, np.int64)
+    np.add.at(out, groups, values)
+    return out
 
 
 def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
@@ -500,11 +601,13 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> floa
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
                 min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT, cancel: CancelToken | None = None,
-                show_progress: bool = False) -> MaskVerdicts:
+                show_progress: bool = False, supports: list[ViewSupport] | None = None) -> MaskVerdicts:
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
-    support (`view_supports`) in blocks of `block` Gaussians."""
+    support (`view_supports`) in blocks of `block` Gaussians, or from `supports` when they were
+    summed elsewhere (reducers' parts, `merge_partial_supports`: the same numbers)."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
-    supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress)
+    if supports is None:
+        supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress)
     return _verdicts(supports, means, min_views, min_share)
 
 
@@ -535,33 +638,38 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
         for view, c, support in zip(source.block_views(lo, hi), clusters.per_view, supports):
             add_view_support(view, lo, c, slot_c, slot_v, support, scratch)
         del slot_c, slot_v  # the next block's slots replace them
-    log.info("mask check: %d masks x %d clusters, %d support entries (%s; dense tables would take %s)", sum(s.mass.shape[0] for s in supports),
-             k, sum(s.num_entries for s in supports), format_size(sum(s.nbytes for s in supports)),
-             format_size(8 * k * sum(s.mass.shape[0] for s in supports)))
+    _log_supports(supports, k)
     return supports
+
+
+def _log_supports(supports: list[ViewSupport], num_clusters: int) -> None:
+    masks = sum(s.mass_fixed.shape[0] for s in supports)
+    log.info("mask check: %d masks x %d clusters, %d support entries (%s; dense tables would take %s)", masks, num_clusters,
+             sum(s.num_entries for s in supports), format_size(sum(s.nbytes for s in supports)), format_size(8 * num_clusters * masks))
 
 
 def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
     agreements, units_with_pairs = [], []
     rows = [sup.rows() for sup in supports]  # each view's entries sorted once, read by both kernels
-    for sup, q in zip(supports, rows):
-        agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
-        _agreement_kernel(*q, sup.mass, sup.units, means, agree, total)
+    masses = [sup.mass for sup in supports]
+    for sup, q, mass in zip(supports, rows, masses):
+        agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
+        _agreement_kernel(*q, mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
-        units_with_pairs.append(sup.units[sup.mass > 0])
+        units_with_pairs.append(sup.units[mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for sup, q in zip(supports, rows):
-        own, alt = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
+    for sup, q, mass in zip(supports, rows, masses):
+        own, alt = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
-            _own_alt_kernel(*q, sup.mass, sup.units, means, like, own, alt)
-        judge = (sup.mass > 0) & (alt >= min_views)
+            _own_alt_kernel(*q, mass, sup.units, means, like, own, alt)
+        judge = (mass > 0) & (alt >= min_views)
         drop = judge & (own < min_share * alt)
         keep.append(~drop)
         dropped += int(drop.sum())
         judged += int(judge.sum())
-        present += int((sup.mass > 0).sum())
+        present += int((mass > 0).sum())
     return MaskVerdicts(keep, dropped, judged, present, like)
 
 
@@ -570,30 +678,42 @@ class KeptPairs:
     kept masks, and every pair of a Gaussian that would keep none (which Gaussians are assigned
     does not change).
 
-    any_kept: [N] bool, the Gaussians with a kept pair of positive weight (one replay of `source`
-    per block).
+    any_kept: [N] bool, the Gaussians with a kept pair of positive weight. A Gaussian's flag depends
+    on its own pairs only, so it is found block by block when a block is first read (one more
+    replay of that block): a reducer finds its own block's, and nobody replays every block for it.
     """
 
     def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None,
                  any_kept: np.ndarray | None = None):
-        """any_kept: the flags when known already (a reducer gets the driver's), else found here."""
-        self.source, self.keep, self.num_gaussians, self.block = source, keep, num_gaussians, block
-        if any_kept is not None:
-            if any_kept.shape != (num_gaussians,):
-                raise ValueError(f"any_kept holds {any_kept.shape[0]} flags for {num_gaussians} Gaussians")
-            self.any_kept = any_kept
+        """any_kept: the flags when known already, else found block by block as the blocks are read."""
+        self.source, self.keep, self.num_gaussians, self.block, self.cancel = source, keep, num_gaussians, block, cancel
+        if any_kept is not None and any_kept.shape != (num_gaussians,):
+            raise ValueError(f"any_kept holds {any_kept.shape[0]} flags for {num_gaussians} Gaussians")
+        self._any_kept = np.zeros(num_gaussians, bool) if any_kept is None else any_kept
+        self._known = np.full(num_gaussians, any_kept is not None)
+
+    @property
+    def any_kept(self) -> np.ndarray:
+        """[N] bool, every block's flags (found now for the blocks not read yet)."""
+        for lo, hi in _blocks(self.num_gaussians, self.block, self.cancel):
+            self._find(lo, hi)
+        return self._any_kept
+
+    def _find(self, lo: int, hi: int) -> None:
+        """The flags of Gaussians lo .. hi-1, by one replay of that range unless known."""
+        if self._known[lo:hi].all():
             return
-        self.any_kept = np.zeros(num_gaussians, bool)
-        for lo, hi in _blocks(num_gaussians, block, cancel):
-            for view, k in zip(source.block_views(lo, hi), keep):
-                self.any_kept[view.gaussians[k[view.masks] & (view.weights > 0)]] = True
+        for view, k in zip(self.source.block_views(lo, hi), self.keep):
+            self._any_kept[view.gaussians[k[view.masks] & (view.weights > 0)]] = True
+        self._known[lo:hi] = True
 
     def _kept(self, view: ViewPairs, keep: np.ndarray) -> np.ndarray:
-        """[P] bool: the pairs of `view` (mask verdicts `keep` [M]) that are summed."""
-        return keep[view.masks] | ~self.any_kept[view.gaussians]
+        """[P] bool: the pairs of `view` (mask verdicts `keep` [M]) that are summed (their Gaussians' flags found)."""
+        return keep[view.masks] | ~self._any_kept[view.gaussians]
 
     def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]:
         """Every view in order with the kept pairs of Gaussians lo .. hi-1."""
+        self._find(lo, hi)
         for view, k in zip(self.source.block_views(lo, hi), self.keep):
             kept = self._kept(view, k)
             yield view if kept.all() else ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept],
@@ -603,6 +723,7 @@ class KeptPairs:
         """Per view [M] bool: the masks with a kept pair (one more replay per block)."""
         present = [np.zeros(k.shape[0], bool) for k in self.keep]
         for lo, hi in _blocks(self.num_gaussians, self.block, None):
+            self._find(lo, hi)
             for view, k, flags in zip(self.source.block_views(lo, hi), self.keep, present):
                 flags[view.masks[self._kept(view, k)]] = True
         return present
@@ -651,6 +772,7 @@ class CheckSink:
         self._inner = inner
         self._kept: KeptPairs | None = None
         self._summed = False
+        self._heaviest_view = 0.0  # the largest Σ w of a view's pairs: bounds every mask's mass (fixed_point_fits)
 
     @property
     def num_blocks(self) -> int:
@@ -665,17 +787,27 @@ class CheckSink:
 
     def add(self, view: ViewPairs) -> None:
         self.clusters.add(view.feats, view.present_masks())
+        self._heaviest_view = max(self._heaviest_view, float(np.sum(view.weights, dtype=np.float64)))
         if self.record is not None:
             self.record.add(view)
 
-    def kept_pairs(self) -> KeptPairs:
+    def kept_pairs(self, partial_supports: Callable[[], list[list[PartialSupport]]] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are
-        made of, here or by reducers (drsplat.registration.reduce, given `keep` and `any_kept`)."""
+        made of, here or by reducers (drsplat.registration.reduce, given `keep` and `any_kept`).
+        partial_supports: the blocks' parts of the support tables, summed elsewhere (reducers, one
+        block each: drsplat.registration.reduce.ReducePool.supports); None: summed here by replays."""
         if self._kept is None:
             if self._summed:
                 raise RuntimeError("the kept pairs of a check in one block are summed already")
             n, block = self.num_gaussians, max(self.block, 1)
-            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress)
+            fixed_point_fits(self._heaviest_view, len(self.clusters.per_view))
+            supports = None
+            if partial_supports is not None:
+                feats = [view.feats for view in self._source.block_views(0, 0)]
+                supports = merge_partial_supports(partial_supports(), feats, self.clusters.per_view, self.clusters.count)
+                _log_supports(supports, self.clusters.count)
+            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
+                                        supports=supports)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)

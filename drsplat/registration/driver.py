@@ -47,7 +47,7 @@ from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
-from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, make_job, wants_reducers
+from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, wants_reducers
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import normalize_rows
@@ -268,11 +268,15 @@ def run_registration(
         if pool is None:
             candidates = totals.positive if aggregator.rejected() is None else totals.positive & ~aggregator.rejected()
         else:  # the pairs and statistics are in the workers' shards: the reducers know the candidates
-            # a check mode's masks are judged here, from the log (pairs only); the reducers sum what it keeps
-            kept = sink.kept_pairs() if aggregator.check else None
-            clusters = (kept.clusters(run.dim) if aggregator.vote else None) if kept is not None else getattr(sink, "clusters", None)
-            reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned, clusters, target.out,
-                                                target.clip_model, reject=aggregator.reject, kept=kept))
+            # a check mode: the reducers sum their blocks' parts of the support tables, the driver adds them (exactly)
+            # and judges the masks, then the reducers sum the pairs it keeps
+            check = sink if aggregator.check else None
+            reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned,
+                                                None if check is not None else getattr(sink, "clusters", None), target.out,
+                                                target.clip_model, reject=aggregator.reject, check=check))
+            if check is not None:
+                kept = check.kept_pairs(partial_supports=lambda: pool.supports(reduce.job))
+                reduce.job = judged(reduce.job, kept, kept.clusters(run.dim) if aggregator.vote else None)
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

@@ -32,10 +32,15 @@ received and not rejected), then sum the sampled ones (`BlockReduce.sample`, one
 holding sampled ids: the same rows, the same bits as the driver's LogSink.sample), so it gives the
 local run's codebook and bytes. Every aggregation mode is supported; the vote stage's mask
 clusters (made on the driver in view order from the pointers' embeddings) go to every reducer. A
-`check-` mode's masks are judged on the driver first, by replays of the log (pairs only; its
-verdicts need every block's pairs before any block is summed); the job carries the verdicts
-(`keep`, `any_kept`, and for `-vote` the clusters of the kept masks) and each reducer sums its
-block's kept pairs (check.KeptPairs).
+`check-` mode's masks are judged before any block is summed, since the verdicts need every block's
+pairs:
+1. each reducer sums its block's part of the support tables (`support_block`, one task per block:
+   the block's votes folded, then its pairs' support, in fixed point);
+2. the driver adds the parts (integers, exact in any order: the one-block tables) and judges;
+3. the job carries the verdicts (`keep`, and for `-vote` the clusters of the kept masks, whose
+   flags the driver still finds by two replays of the log, pairs only);
+4. each reducer sums its block's kept pairs (check.KeptPairs, which first finds its block's
+   Gaussians with a kept pair).
 
 Shared storage: workers write their shards, reducers open the log and the shards and write their
 parts by path, beside the output (the checkpoint's folder). On a local (multi-node) cluster that is
@@ -45,8 +50,9 @@ log, fails with an error that says so.
 
 Left on the driver: the scene, per view a pointer and its masks' embeddings (the vote's clusters),
 and the result's weights [N] float32 (each reducer returns its block's W); nothing of size N x D,
-no pair and no per-Gaussian statistic (a `check-` mode's judging reads the pairs block by block
-and keeps one block's vote slots, every view's support table and [N] flags).
+no pair and no per-Gaussian statistic (a `check-` mode's judging keeps every view's support table,
+added from the reducers' parts; for `-vote`, the kept masks' flags take two replays of the pairs,
+block by block, with one block's [hi - lo] flags).
 """
 
 from __future__ import annotations
@@ -70,7 +76,7 @@ from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
 from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
-from drsplat.registration.check import KeptPairs
+from drsplat.registration.check import CheckSink, KeptPairs, PartialSupport, block_partial_supports
 from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
@@ -95,9 +101,11 @@ class ReduceJob:
     out / clip_model: the output (names the codebook in the field comment) and the embedding
     space's id. parts_dir: where the parts are written (beside the output). reject: the mode rejects
     floaters and the views' statistics are in the log's shards: each reducer folds its block's.
-    keep / any_kept: a `check-` mode's verdicts, judged by the driver (per view [M] bool: the kept
-    masks; [N] bool: the Gaussians with a kept pair), so that each reducer sums its block's kept
-    pairs (drsplat.registration.check.KeptPairs); None otherwise.
+    keep: a `check-` mode's verdicts, judged by the driver (per view [M] bool: the kept masks), so
+    that each reducer sums its block's kept pairs (drsplat.registration.check.KeptPairs, which
+    finds the block's Gaussians with a kept pair); None otherwise. check_clusters / check_slots:
+    before the verdicts, a `check-` mode's mask clusters (per view [M] int32, and K) and vote slots,
+    from which each reducer sums its block's part of the support tables (`support_block`).
     """
 
     log_path: str
@@ -113,7 +121,9 @@ class ReduceJob:
     parts_dir: str
     reject: bool = False
     keep: list[np.ndarray] | None = None
-    any_kept: np.ndarray | None = None
+    check_clusters: list[np.ndarray] | None = None
+    check_num_clusters: int = 0
+    check_slots: int = 0
 
     @property
     def num_blocks(self) -> int:
@@ -178,7 +188,7 @@ def shard_errors(index: int, lo: int, hi: int):
 def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes),
     summing only the pairs a `check-` mode keeps (the driver's verdicts: job.keep)."""
-    source = plog if job.keep is None else KeptPairs(plog, job.keep, job.num_gaussians, job.block, any_kept=job.any_kept)
+    source = plog if job.keep is None else KeptPairs(plog, job.keep, job.num_gaussians, job.block)
     if job.clusters is not None:
         return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters)
     return LogSink(job.num_gaussians, job.dim, source, job.block)
@@ -241,6 +251,21 @@ def sample_block(job: ReduceJob, index: int, ids: np.ndarray) -> tuple[np.ndarra
     from the log as the driver's sink would (a scene codebook's training sample)."""
     with open_log(job, index) as plog, shard_errors(index, *job.bounds(index)):
         return block_sink(job, plog).sample(ids)
+
+
+def support_block(job: ReduceJob, index: int) -> list[PartialSupport]:
+    """Block `index`'s part of a `check-` mode's support tables, per view (check.block_partial_supports:
+    the block's votes folded, then its pairs' support, two replays of the block): the driver adds
+    every block's parts, exactly, and judges the masks from the sums."""
+    lo, hi = job.bounds(index)
+    with open_log(job, index) as plog, shard_errors(index, lo, hi):
+        return block_partial_supports(plog.block_views(lo, hi), plog.block_views(lo, hi), job.check_clusters, job.check_num_clusters, lo, hi,
+                                      job.check_slots)
+
+
+def _support_task(job, index):
+    set_worker_threads()
+    return support_block(job, index)
 
 
 def _reduce_task(job, scene, codebook, index):
@@ -364,6 +389,14 @@ class ReducePool:
             return np.zeros((0, job.dim), np.float32), np.zeros(0, np.float32)
         return np.concatenate([F for F, _ in parts]), np.concatenate([W for _, W in parts])
 
+    def supports(self, job: ReduceJob) -> list[list[PartialSupport]]:
+        """`support_block` of every block, one task each: blocks x views of a `check-` mode's
+        partial support tables (check.merge_partial_supports adds them)."""
+        ray = import_ray()
+        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
+        job_ref = ray.put(job)
+        return self._run(job, lambda i: task.remote(job_ref, i))
+
     def candidates(self, job: ReduceJob) -> np.ndarray:
         """[N] bool, `candidates_block` of every block, one task each."""
         ray = import_ray()
@@ -411,16 +444,26 @@ def _get(ref, job: ReduceJob, index: int):
 
 
 def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unassigned: bool, clusters: MaskClusters | None, out: Path,
-             clip_model: str, reject: bool = False, kept: KeptPairs | None = None) -> ReduceJob:
+             clip_model: str, reject: bool = False, check: CheckSink | None = None) -> ReduceJob:
     """The job of a run whose view pass is done: the log synced to storage, a parts folder beside
     `out` (a temp folder named after `out`, swept if a killed run leaves it). reject: the reducers
-    fold the floater statistics from the log's shards. kept: a `check-` mode's judged pairs (the
-    reducers get its masks' verdicts and flags, not its source)."""
+    fold the floater statistics from the log's shards. check: a `check-` mode's sink, whose mask
+    clusters and slots let the reducers sum the support tables (`judged` then adds the verdicts)."""
     plog.sync()
     parts = tempfile.mkdtemp(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out))
-    return ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
-                     clusters, str(out), clip_model, parts, reject, kept.keep if kept is not None else None,
-                     kept.any_kept if kept is not None else None)
+    job = ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
+                    clusters, str(out), clip_model, parts, reject)
+    if check is not None:
+        job = dataclasses.replace(job, check_clusters=list(check.clusters.per_view), check_num_clusters=check.clusters.count,
+                                  check_slots=check.slots)
+    return job
+
+
+def judged(job: ReduceJob, kept: KeptPairs, clusters: MaskClusters | None) -> ReduceJob:
+    """The job once a `check-` mode's masks are judged: the reducers get the verdicts of `kept` (not
+    its source; each finds its own block's Gaussians with a kept pair) and, for `-vote`, the
+    clusters of the kept masks; the clusters for the support are dropped."""
+    return dataclasses.replace(job, keep=kept.keep, clusters=clusters, check_clusters=None, check_num_clusters=0, check_slots=0)
 
 
 def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
