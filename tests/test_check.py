@@ -468,3 +468,24 @@ def test_views_too_heavy_for_the_exact_sums_are_one_clear_error():
         fixed_point_fits(3e7, 20000)
     with pytest.raises(DrsplatError, match="range"):
         fixed_point_fits(float("inf"), 3)
+
+
+def test_kept_masks_flagged_block_by_block_equal_the_whole_replay():
+    """What reducers flag (`block_present` of their blocks, ORed by the driver) is `present()`'s
+    flags, and the kept masks' clusters made from them are the same."""
+    rng = np.random.default_rng(5)
+    n = 40
+    views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, True)
+    record, clusters = _record(views, n)
+    keep = [rng.random(c.shape[0]) < 0.6 for c in clusters.per_view]
+    whole = KeptPairs(record, keep, n, n)
+    want = whole.present()
+    for block in (1, 7, 13):
+        parts = [KeptPairs(record, keep, n, block).block_present(lo, min(n, lo + block)) for lo in range(0, n, block)]
+        got = [np.logical_or.reduce(flags) for flags in zip(*parts)]
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        merged = whole.clusters(D, present=got)
+        assert merged.count == whole.clusters(D).count
+        np.testing.assert_array_equal(merged.means(), whole.clusters(D).means())
+    assert any(not f.all() for f in want) and any(f.any() for f in want)  # the case keeps some masks and drops others

@@ -719,21 +719,30 @@ class KeptPairs:
             yield view if kept.all() else ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept],
                                                     view.used, view.num_pairs, view.num_nonfinite)
 
-    def present(self) -> list[np.ndarray]:
-        """Per view [M] bool: the masks with a kept pair (one more replay per block)."""
+    def block_present(self, lo: int, hi: int) -> list[np.ndarray]:
+        """Per view [M] bool: the masks with a kept pair of a Gaussian lo .. hi-1 (a reducer's part
+        of `present`; one replay of the range, two when its flags are not found yet)."""
+        self._find(lo, hi)
         present = [np.zeros(k.shape[0], bool) for k in self.keep]
-        for lo, hi in _blocks(self.num_gaussians, self.block, None):
-            self._find(lo, hi)
-            for view, k, flags in zip(self.source.block_views(lo, hi), self.keep, present):
-                flags[view.masks[self._kept(view, k)]] = True
+        for view, k, flags in zip(self.source.block_views(lo, hi), self.keep, present):
+            flags[view.masks[self._kept(view, k)]] = True
         return present
 
-    def clusters(self, dim: int) -> MaskClusters:
+    def present(self) -> list[np.ndarray]:
+        """Per view [M] bool: the masks with a kept pair, every block's `block_present` ORed."""
+        present = [np.zeros(k.shape[0], bool) for k in self.keep]
+        for lo, hi in _blocks(self.num_gaussians, self.block, None):
+            for flags, part in zip(present, self.block_present(lo, hi)):
+                flags |= part
+        return present
+
+    def clusters(self, dim: int, present: list[np.ndarray] | None = None) -> MaskClusters:
         """The views' mask clusters made from the masks with kept pairs: what the vote stage makes
-        of the kept views when they are added to it one by one."""
+        of the kept views when they are added to it one by one. present: the per-view flags when
+        found elsewhere (reducers' `block_present`, ORed), else `present()` here."""
         clusters = MaskClusters(dim)
-        for view, present in zip(self.source.block_views(0, 0), self.present()):
-            clusters.add(view.feats, present)
+        for view, flags in zip(self.source.block_views(0, 0), self.present() if present is None else present):
+            clusters.add(view.feats, flags)
         return clusters
 
 

@@ -276,7 +276,9 @@ def run_registration(
                                                 target.clip_model, reject=aggregator.reject, check=check))
             if check is not None:
                 kept = check.kept_pairs(partial_supports=lambda: pool.supports(reduce.job))
-                reduce.job = judged(reduce.job, kept, kept.clusters(run.dim) if aggregator.vote else None)
+                reduce.job = judged(reduce.job, kept, None)
+                if aggregator.vote:  # the kept masks' clusters, from the reducers' flags of the masks left with pairs
+                    reduce.job = judged(reduce.job, kept, kept.clusters(run.dim, present=pool.present(reduce.job)))
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

@@ -37,10 +37,11 @@ pairs:
 1. each reducer sums its block's part of the support tables (`support_block`, one task per block:
    the block's votes folded, then its pairs' support, in fixed point);
 2. the driver adds the parts (integers, exact in any order: the one-block tables) and judges;
-3. the job carries the verdicts (`keep`, and for `-vote` the clusters of the kept masks, whose
-   flags the driver still finds by two replays of the log, pairs only);
+3. the job carries the verdicts (`keep`); for `-vote` each reducer also flags the masks left with
+   a kept pair in its block (`present_block`), and the driver ORs the flags and makes the kept
+   masks' clusters from them;
 4. each reducer sums its block's kept pairs (check.KeptPairs, which first finds its block's
-   Gaussians with a kept pair).
+   Gaussians with a kept pair). The driver replays no pair.
 
 Shared storage: workers write their shards, reducers open the log and the shards and write their
 parts by path, beside the output (the checkpoint's folder). On a local (multi-node) cluster that is
@@ -51,8 +52,7 @@ log, fails with an error that says so.
 Left on the driver: the scene, per view a pointer and its masks' embeddings (the vote's clusters),
 and the result's weights [N] float32 (each reducer returns its block's W); nothing of size N x D,
 no pair and no per-Gaussian statistic (a `check-` mode's judging keeps every view's support table,
-added from the reducers' parts; for `-vote`, the kept masks' flags take two replays of the pairs,
-block by block, with one block's [hi - lo] flags).
+added from the reducers' parts, and its [M] flags per view).
 """
 
 from __future__ import annotations
@@ -263,6 +263,20 @@ def support_block(job: ReduceJob, index: int) -> list[PartialSupport]:
                                       job.check_slots)
 
 
+def present_block(job: ReduceJob, index: int) -> list[np.ndarray]:
+    """Block `index`'s part of a judged `check-` mode's kept-mask flags (per view [M] bool: the
+    masks with a kept pair of a Gaussian in the block, check.KeptPairs.block_present); the driver
+    ORs every block's and makes the `-vote` stage's clusters of the kept masks from them."""
+    lo, hi = job.bounds(index)
+    with open_log(job, index) as plog, shard_errors(index, lo, hi):
+        return KeptPairs(plog, job.keep, job.num_gaussians, job.block).block_present(lo, hi)
+
+
+def _present_task(job, index):
+    set_worker_threads()
+    return present_block(job, index)
+
+
 def _support_task(job, index):
     set_worker_threads()
     return support_block(job, index)
@@ -396,6 +410,14 @@ class ReducePool:
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
         job_ref = ray.put(job)
         return self._run(job, lambda i: task.remote(job_ref, i))
+
+    def present(self, job: ReduceJob) -> list[np.ndarray]:
+        """Per view [M] bool: `present_block` of every block, one task each, ORed."""
+        ray = import_ray()
+        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_present_task)
+        job_ref = ray.put(job)
+        parts = self._run(job, lambda i: task.remote(job_ref, i))
+        return [np.logical_or.reduce(flags) for flags in zip(*parts)] if parts else []
 
     def candidates(self, job: ReduceJob) -> np.ndarray:
         """[N] bool, `candidates_block` of every block, one task each."""
