@@ -3,6 +3,7 @@ mislabelled mask judged over all its Gaussians, what it must keep, and registrat
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -457,17 +458,29 @@ def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, bloc
             np.testing.assert_array_equal(a.units, b.units)
 
 
-def test_views_too_heavy_for_the_exact_sums_are_one_clear_error():
-    """The support's fixed point holds q < 2³⁹: views whose weights could pass it are refused in one
-    sentence naming the problem and a way out, instead of sums that wrap around."""
+def test_views_too_many_for_the_exact_sums_are_one_clear_error_before_any_work(mislabelled_room, monkeypatch):
+    """The support's fixed point holds q < 2³⁹: runs whose views x pixels could pass it are refused
+    in one sentence naming the problem and a way out, before any view is rendered, instead of sums
+    that wrap around."""
     from drsplat.errors import DrsplatError
+    from drsplat.registration import RegisterOptions, register_features
     from drsplat.registration.check import fixed_point_fits
 
-    fixed_point_fits(3e7, 16000)  # 16,000 views of 8K images fit
+    fixed_point_fits(7680 * 4320, 16000)  # 16,000 views of 8K images fit
     with pytest.raises(DrsplatError, match="range of its exact sums.*--aggregate vote-reject"):
-        fixed_point_fits(3e7, 20000)
-    with pytest.raises(DrsplatError, match="range"):
-        fixed_point_fits(float("inf"), 3)
+        fixed_point_fits(7680 * 4320, 20000)
+    # through registration: the room's views claiming 2^19 x 2^19 pixels each, refused before any is rendered
+    import drsplat.registration.compute as compute
+
+    root, scene, cams = mislabelled_room
+    huge = [dataclasses.replace(cam, width=1 << 19, height=1 << 19) for cam in cams]
+
+    def rendered(*args, **kwargs):
+        raise AssertionError("a view was computed")
+
+    monkeypatch.setattr(compute.ViewComputer, "compute", rendered)
+    with pytest.raises(DrsplatError, match=f"cannot judge {len(cams)} views of up to {(1 << 38):,} pixels"):
+        register_features(scene, huge, root / "features", RegisterOptions(aggregate="check-vote-reject"), show_progress=False)
 
 
 def test_kept_masks_flagged_block_by_block_equal_the_whole_replay():

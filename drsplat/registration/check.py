@@ -511,16 +511,15 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
             support.entry_mask, support.entry_cluster, support.entry_fixed, values, touched, support.mass_fixed)
 
 
-def fixed_point_fits(heaviest_view: float, num_views: int) -> None:
-    """DrsplatError when the support sums could leave the fixed point's range: q[j, c] ≤ mass_j ·
-    views (a view votes at most 1 per cluster) and a mask's mass is at most its view's Σ w, so
-    heaviest_view · num_views must stay under 2³⁹ (2⁶³ units of 2⁻²⁴; with paper weights Σ w ≤ the
-    view's pixels: 5.5e11 is 16,000 views of 8K images)."""
-    bound = heaviest_view * max(num_views, 1)
-    if not bound < 2.0**63 / SUPPORT_SCALE:
-        raise DrsplatError(f"the mask check cannot judge these views: a view's weights sum to {heaviest_view:.3g} over {num_views} views, "
-                           f"past the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
-                           f"(--aggregate vote-reject) or with fewer views")
+def fixed_point_fits(max_pixels: int, num_views: int) -> None:
+    """DrsplatError when the support sums could leave the fixed point's range, checked before any
+    view is rendered: q[j, c] ≤ mass_j · views (a view votes at most 1 per cluster), and a mask's
+    mass is at most its view's pixels (the check's paper weights sum to ≤ 1 a pixel), so
+    max_pixels · num_views must stay under 2³⁹ (2⁶³ units of 2⁻²⁴): 16,000 views of 8K images."""
+    if not float(max_pixels) * max(num_views, 1) < 2.0**63 / SUPPORT_SCALE:
+        raise DrsplatError(f"--aggregate check-...: the mask check cannot judge {num_views:,} views of up to {max_pixels:,} pixels: "
+                           f"views x pixels pass the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
+                           f"(--aggregate vote-reject) or with fewer or smaller views")
 
 
 @dataclass
@@ -781,7 +780,6 @@ class CheckSink:
         self._inner = inner
         self._kept: KeptPairs | None = None
         self._summed = False
-        self._heaviest_view = 0.0  # the largest Σ w of a view's pairs: bounds every mask's mass (fixed_point_fits)
 
     @property
     def num_blocks(self) -> int:
@@ -796,7 +794,6 @@ class CheckSink:
 
     def add(self, view: ViewPairs) -> None:
         self.clusters.add(view.feats, view.present_masks())
-        self._heaviest_view = max(self._heaviest_view, float(np.sum(view.weights, dtype=np.float64)))
         if self.record is not None:
             self.record.add(view)
 
@@ -809,7 +806,6 @@ class CheckSink:
             if self._summed:
                 raise RuntimeError("the kept pairs of a check in one block are summed already")
             n, block = self.num_gaussians, max(self.block, 1)
-            fixed_point_fits(self._heaviest_view, len(self.clusters.per_view))
             supports = None
             if partial_supports is not None:
                 feats = [view.feats for view in self._source.block_views(0, 0)]

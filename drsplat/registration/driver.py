@@ -38,8 +38,8 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
-from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.check import CheckSink
+from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
@@ -241,6 +241,8 @@ def run_registration(
     scene, options = run.scene, run.options
     n = scene.num_gaussians
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
+        fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views))
     block = options.block_size or _plan_block(run)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
