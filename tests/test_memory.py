@@ -47,3 +47,19 @@ def test_large_arrays_are_not_advised_huge_pages():
     ours = small_page_zeros(4 * SMALL_PAGES_FROM, np.uint8)
     assert _thp_eligible(ours) is False
     assert _thp_eligible(Accumulator(10_000, 512).F) is False  # the sums, made once per registration
+
+
+@pytest.mark.parametrize("shape,dtype", [((1000, 512), np.float32), ((7, 3), np.int32), (0, np.float64), ((5,), np.float64), ((2, 3, 4), np.uint8)])
+def test_zeroing_in_parallel_equals_fill_in_place(shape, dtype):
+    """The sums' first touch on numba's threads (`zero_in_parallel`) against its reference `fill(0)`:
+    every element zero, in place (the same buffer), any shape; a non-contiguous array is refused."""
+    from drsplat.registration.sums import zero_in_parallel
+
+    a = (np.random.default_rng(1).random(shape) * 100 + 1).astype(dtype)
+    want = a.copy()
+    want.fill(0)
+    before = a.__array_interface__["data"][0]
+    assert zero_in_parallel(a) is a and a.__array_interface__["data"][0] == before
+    np.testing.assert_array_equal(a, want)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        zero_in_parallel(np.ones((4, 6))[:, ::2])

@@ -63,6 +63,26 @@ def add_pairs_in_place(F: np.ndarray, W: np.ndarray, gaussians: np.ndarray, mask
                         np.ascontiguousarray(weights, np.float32), int(gaussians.shape[0]), np.ascontiguousarray(feats, np.float32), F, W)
 
 
+@numba.njit(parallel=True, cache=True)
+def _zero_kernel(flat):  # pragma: no cover - jitted
+    """flat[:] = 0 on numba's threads."""
+    for i in numba.prange(flat.shape[0]):
+        flat[i] = 0
+
+
+def zero_in_parallel(array: np.ndarray) -> np.ndarray:
+    """`array.fill(0)` (its reference) on numba's threads, in place; array: any contiguous array.
+
+    For the first touch of a large fresh array in small pages: the page faults then run on every
+    thread. Flowers' sums F (542k x 512 float32, 1.1 GB) took 0.36 s against 0.59 s for `fill` on
+    2 cores (2026-11-27)."""
+    if not array.flags.c_contiguous:
+        raise ValueError("zero_in_parallel needs a C-contiguous array (a flat view of it)")
+    if array.size:
+        _zero_kernel(array.reshape(-1))
+    return array
+
+
 class Accumulator:
     """Running sums F [N, D] = Σ_j w_ij f_j and W [N] = Σ_j w_ij.
 
@@ -73,7 +93,7 @@ class Accumulator:
 
     def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23):
         self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
-        self.F.fill(0.0)  # touch every page now, not inside the first flush
+        zero_in_parallel(self.F)  # touch every page now, not inside the first flush
         self.W = np.zeros(num_gaussians, np.float32)
         capacity = max(pair_capacity, num_gaussians, 1)
         self._pair_g = np.zeros(capacity, np.int32)
