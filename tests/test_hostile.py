@@ -261,6 +261,9 @@ def overwrite_cases(world, tmp_path) -> list[tuple[list, list[Path]]]:
         (["eval", "pseudolabels", scene, "--points", scene, "--out", scene], [scene]),
         (["eval", "iou", reg, "--synthetic", ds, "--json", ds / "gt" / "label_names.json"], [ds / "gt"]),
         (["bench", "query", "--official", reg, "--plot", reg], [reg]),
+        (["bench", "register", "--skip-synthetic", "--real", reg, "--engine", "torch", "--device", "cpu", "--profile-views", "1",
+          "--trace", reg], [reg]),
+        (["bench", "register", "--skip-synthetic", "--real", reg, "--engine", "torch", "--device", "cpu", "--json", reg], [reg]),
     ]
 
 

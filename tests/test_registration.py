@@ -411,9 +411,9 @@ def test_clip_model_id_comes_from_the_manifest():
     "case",
     ["random", "no mask anywhere", "empty image", "one pixel", "other negatives", "ids past 4x the pixels", "one id"],
 )
-def test_masks_present_equal_the_sorted_unique_ids(case, dtype):
+def test_used_masks_equal_the_sorted_unique_ids(case, dtype):
     """A view's present masks (counted, not sorted) are np.unique's: ascending int32, negatives left out."""
-    from drsplat.registration.views import masks_present
+    from drsplat.registration.views import used_masks
 
     rng = np.random.default_rng(7)
     image = {
@@ -425,6 +425,6 @@ def test_masks_present_equal_the_sorted_unique_ids(case, dtype):
         "ids past 4x the pixels": np.where(rng.random((10, 12)) < 0.5, 30000, rng.integers(-1, 4, (10, 12))),
         "one id": np.full((5, 7), 2),
     }[case].astype(dtype)
-    got = masks_present(image)
+    got = used_masks(image)
     want = np.unique(image[image >= 0]).astype(np.int32)
     assert got.dtype == np.int32 and np.array_equal(got, want)

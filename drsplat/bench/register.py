@@ -381,14 +381,12 @@ def per_view_counts(scene, cameras, features_dir: Path, topk: int, engine: str, 
     for the numba hook, coalescer and sums (`host_sums`). The first camera is a warm-up
     (compilation, caches) and is not counted.
     """
-    from drsplat.registration.views import load_view_features
-
     ways = [True, False] if engine == "torch" else [False]
     counters = [_ViewCounter(scene, features_dir, topk, engine, device, way, aggregate) for way in ways]
     for i, cam in enumerate(cameras):
         for counter in counters:
             counter.view(cam, counted=i > 0)
-    loaded = [(cam, *load_view_features(features_dir, cam, 0)[:2]) for cam in cameras[1:]]
+    loaded = _loaded_views(features_dir, cameras[1:])
     for counter in counters:
         counter.stream(loaded * -(-STREAM_VIEWS // max(len(loaded), 1)))
     record = counters[0].record()
@@ -444,16 +442,14 @@ def profile_table(scene, cameras, features_dir: Path, topk: int, device: str, ag
     ends in .gz), for chrome://tracing or Perfetto."""
     import torch
 
-    from drsplat.registration.views import load_view_features
-
     counter = _ViewCounter(scene, features_dir, topk, "torch", device, True, aggregate)
     counter.view(cameras[0], counted=False)
-    loaded = [(cam, *load_view_features(features_dir, cam, 0)[:2]) for cam in cameras[1:]]
+    loaded = _loaded_views(features_dir, cameras[1:])
     cuda = device.startswith("cuda")
     activities = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
     with torch.profiler.profile(activities=activities) as prof:
         counter.stream(loaded)
-    timeline = _write_trace(prof, trace)
+    timeline = _write_trace(prof, trace) if cuda or trace is not None else None  # a CPU trace has no device timeline
     averages = prof.key_averages()
     key = "self_cpu_time_total"
     if cuda:  # the name of the device column changed between torch versions
@@ -481,6 +477,13 @@ def _write_trace(prof, trace: Path | None) -> DeviceTimeline | None:
         with atomic_path(trace) as out:
             out.write_bytes(gzip.compress(text) if trace.name.endswith(".gz") else text)
     return device_timeline(json.loads(text), TIMELINE_GAP_MS)
+
+
+def _loaded_views(features_dir: Path, cameras) -> list[tuple]:
+    """[(camera, mask ids [H, W], embeddings [M, D])] of `cameras`, read once before views are timed back to back."""
+    from drsplat.registration.views import load_view_features
+
+    return [(cam, *load_view_features(features_dir, cam, 0)[:2]) for cam in cameras]
 
 
 class _ViewCounter:

@@ -31,7 +31,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             bench.set_defaults(func=_guarded(func))
 
 
-BENCH_OUTPUTS = ("plot", "screenshot", "out", "json")  # argument names benches write to
+BENCH_OUTPUTS = ("plot", "screenshot", "out", "json", "trace")  # argument names benches write to
 
 
 def _guarded(func):

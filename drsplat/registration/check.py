@@ -495,8 +495,8 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
     return slot_c, slot_v
 
 
-def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, support: ViewSupport,
-                     scratch: SupportScratch | None = None) -> None:
+def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray,
+                     support: ViewSupport | PartialSupport, scratch: SupportScratch | None = None) -> None:
     """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support's q
     and mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
     Gaussians' slots folded over all views; scratch: reused between calls (None: a new one). The
@@ -504,20 +504,22 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     block's bits."""
     if view.gaussians.size:
         rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
-        values, touched = (scratch or SupportScratch(support.num_clusters)).take(support.mass_fixed.shape[0])
+        if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
+            scratch = SupportScratch(support.num_clusters)
+        values, touched = scratch.take(support.mass_fixed.shape[0])
         support.entry_mask, support.entry_cluster, support.entry_fixed = _support_kernel(
             rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
             np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
             support.entry_mask, support.entry_cluster, support.entry_fixed, values, touched, support.mass_fixed)
 
 
-def fixed_point_fits(max_pixels: int, num_views: int) -> None:
+def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> None:
     """DrsplatError when the support sums could leave the fixed point's range, checked before any
     view is rendered: q[j, c] ≤ mass_j · views (a view votes at most 1 per cluster), and a mask's
     mass is at most its view's pixels (the check's paper weights sum to ≤ 1 a pixel), so
     max_pixels · num_views must stay under 2³⁹ (2⁶³ units of 2⁻²⁴): 16,000 views of 8K images."""
     if not float(max_pixels) * max(num_views, 1) < 2.0**63 / SUPPORT_SCALE:
-        raise DrsplatError(f"--aggregate check-...: the mask check cannot judge {num_views:,} views of up to {max_pixels:,} pixels: "
+        raise DrsplatError(f"--aggregate {mode}: the mask check cannot judge {num_views:,} views of up to {max_pixels:,} pixels: "
                            f"views x pixels pass the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
                            f"(--aggregate vote-reject) or with fewer or smaller views")
 
@@ -533,6 +535,11 @@ class PartialSupport:
     entry_fixed: np.ndarray
     mass_fixed: np.ndarray
 
+    @classmethod
+    def empty(cls, num_masks: int) -> PartialSupport:
+        none = np.zeros(0, np.int32)
+        return cls(none, none, np.zeros(0, np.int64), np.zeros(num_masks, np.int64))
+
 
 def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], num_clusters: int, lo: int,
                            hi: int, slots: int = CHECK_SLOTS) -> list[PartialSupport]:
@@ -544,10 +551,9 @@ def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[View
     scratch = SupportScratch(num_clusters)
     parts = []
     for view, clusters in zip(pair_views, per_view):
-        none = np.zeros(0, np.int32)
-        support = ViewSupport(none, none, np.zeros(0, np.int64), num_clusters, np.zeros(clusters.shape[0], np.int64), np.zeros((0, 0)))
-        add_view_support(view, lo, clusters, slot_c, slot_v, support, scratch)
-        parts.append(PartialSupport(support.entry_mask, support.entry_cluster, support.entry_fixed, support.mass_fixed))
+        part = PartialSupport.empty(clusters.shape[0])
+        add_view_support(view, lo, clusters, slot_c, slot_v, part, scratch)
+        parts.append(part)
     return parts
 
 
@@ -565,21 +571,12 @@ def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.nd
             masks = np.concatenate([p.entry_mask for p in parts])
             cluster = np.concatenate([p.entry_cluster for p in parts])
             fixed = np.concatenate([p.entry_fixed for p in parts])
-            key = masks.astype(np.int64) * max(num_clusters, 1) + cluster
-            unique, inverse = np.unique(key, return_inverse=True)
-            support.entry_fixed = _sum_by(inverse.reshape(-1), fixed, unique.size)
-            support.entry_mask = (unique // max(num_clusters, 1)).astype(np.int32)
-            support.entry_cluster = (unique % max(num_clusters, 1)).astype(np.int32)
+            order = np.lexsort((cluster, masks))
+            first = np.flatnonzero(np.r_[True, (np.diff(masks[order]) != 0) | (np.diff(cluster[order]) != 0)]) if order.size else order
+            support.entry_mask, support.entry_cluster = masks[order][first], cluster[order][first]
+            support.entry_fixed = np.add.reduceat(fixed[order], first) if order.size else fixed  # integer sums: exact
         supports.append(support)
     return supports
-
-
-def _sum_by(groups: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
-    """[count] int64: the sums of int64 `values` by group id (np.add.at keeps them integers; a
-    float bincount would round sums past 2⁵³)."""
-    out = np.zeros(count, np.int64)
-    np.add.at(out, groups, values)
-    return out
 
 
 def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
@@ -682,14 +679,10 @@ class KeptPairs:
     replay of that block): a reducer finds its own block's, and nobody replays every block for it.
     """
 
-    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None,
-                 any_kept: np.ndarray | None = None):
-        """any_kept: the flags when known already, else found block by block as the blocks are read."""
+    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None):
         self.source, self.keep, self.num_gaussians, self.block, self.cancel = source, keep, num_gaussians, block, cancel
-        if any_kept is not None and any_kept.shape != (num_gaussians,):
-            raise ValueError(f"any_kept holds {any_kept.shape[0]} flags for {num_gaussians} Gaussians")
-        self._any_kept = np.zeros(num_gaussians, bool) if any_kept is None else any_kept
-        self._known = np.full(num_gaussians, any_kept is not None)
+        self._any_kept = np.zeros(num_gaussians, bool)
+        self._known = np.zeros(num_gaussians, bool)  # the Gaussians whose flag was found
 
     @property
     def any_kept(self) -> np.ndarray:
@@ -799,7 +792,7 @@ class CheckSink:
 
     def kept_pairs(self, partial_supports: Callable[[], list[list[PartialSupport]]] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are
-        made of, here or by reducers (drsplat.registration.reduce, given `keep` and `any_kept`).
+        made of, here or by reducers (drsplat.registration.reduce, given the verdicts `keep`).
         partial_supports: the blocks' parts of the support tables, summed elsewhere (reducers, one
         block each: drsplat.registration.reduce.ReducePool.supports); None: summed here by replays."""
         if self._kept is None:

@@ -30,7 +30,7 @@ from drsplat.registration.aggregate import ViewHook
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.views import load_view_features, masks_present
+from drsplat.registration.views import load_view_features, used_masks
 from drsplat.scene import GaussianScene
 
 CPU_ONLY_ENGINES = ("numba",)
@@ -154,7 +154,7 @@ class ViewComputer:
         hook = self.job.hook
         weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids)
         g, m, w, pairs = self._coalescer.coalesce(self._out.ids, weights, mask_ids, feats.shape[0])
-        used = masks_present(mask_ids)
+        used = used_masks(mask_ids)
         view = ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, stats=stats)
         if self.job.group_pairs:
             view = view.grouped()
@@ -171,7 +171,7 @@ class ViewComputer:
         pairs, read, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
                                                                 self._rays, capacity)
         pairs.pending = self._tiles.pending(read, capacity, lambda: self._compute_on_device(cam, mask_ids, feats, nonfinite, exact=True))
-        used = masks_present(mask_ids)
+        used = used_masks(mask_ids)
         none = np.zeros(0, np.int32)
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, 0, num_nonfinite=nonfinite,
                          raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, stats=stats, device=pairs)

@@ -21,6 +21,7 @@ sums are the same bits whatever the plan and the place, so is the output (tested
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 import time
@@ -242,7 +243,7 @@ def run_registration(
     n = scene.num_gaussians
     codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
-        fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views))
+        fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views), options.aggregate)
     block = options.block_size or _plan_block(run)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
@@ -278,9 +279,9 @@ def run_registration(
                                                 target.clip_model, reject=aggregator.reject, check=check))
             if check is not None:
                 kept = check.kept_pairs(partial_supports=lambda: pool.supports(reduce.job))
-                reduce.job = judged(reduce.job, kept, None)
+                reduce.job = judged(reduce.job, kept.keep)
                 if aggregator.vote:  # the kept masks' clusters, from the reducers' flags of the masks left with pairs
-                    reduce.job = judged(reduce.job, kept, kept.clusters(run.dim, present=pool.present(reduce.job)))
+                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim, present=pool.present(reduce.job)))
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

@@ -481,11 +481,11 @@ def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unass
     return job
 
 
-def judged(job: ReduceJob, kept: KeptPairs, clusters: MaskClusters | None) -> ReduceJob:
-    """The job once a `check-` mode's masks are judged: the reducers get the verdicts of `kept` (not
-    its source; each finds its own block's Gaussians with a kept pair) and, for `-vote`, the
-    clusters of the kept masks; the clusters for the support are dropped."""
-    return dataclasses.replace(job, keep=kept.keep, clusters=clusters, check_clusters=None, check_num_clusters=0, check_slots=0)
+def judged(job: ReduceJob, keep: list[np.ndarray]) -> ReduceJob:
+    """The job once a `check-` mode's masks are judged: the reducers get the verdicts `keep` (per
+    view [M] bool; each reducer finds its own block's Gaussians with a kept pair); the clusters
+    for the support are dropped. A `-vote` mode then adds the kept masks' clusters (`clusters`)."""
+    return dataclasses.replace(job, keep=keep, check_clusters=None, check_num_clusters=0, check_slots=0)
 
 
 def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:

@@ -80,9 +80,10 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
     return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite
 
 
-def masks_present(mask_ids: np.ndarray) -> np.ndarray:
-    """The mask ids that occur in a view's mask image, ascending: [U] int32 from mask_ids [H, W]
-    (negative: no mask); `np.unique(mask_ids[mask_ids >= 0])`, the reference.
+def used_masks(mask_ids: np.ndarray) -> np.ndarray:
+    """The mask ids that occur in a view's mask image (ViewPairs.used), ascending: [U] int32 from
+    mask_ids [H, W] (negative: no mask); `np.unique(mask_ids[mask_ids >= 0])`, the reference. Not
+    ViewPairs.present_masks, the masks that reached a Gaussian.
 
     Counted with a bincount over the pixels rather than sorted: the sort took ~6 ms of host time
     per 640x480 view on the H100 machine's slower cores, time in which the GPU waited (2026-11-27),

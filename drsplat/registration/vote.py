@@ -64,33 +64,34 @@ PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on 
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 
 
+@numba.njit(fastmath=True, cache=True, inline="always")
+def _dot_row(feats, rows, c, out):  # pragma: no cover - jitted
+    """out[:, c] = feats · rows[c] (float32; fastmath lets the sum over D vectorise): the loop both kernels run."""
+    m, d = feats.shape
+    for j in range(m):
+        s = np.float32(0.0)
+        for k in range(d):
+            s += feats[j, k] * rows[c, k]
+        out[j, c] = s
+
+
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _dot_rows_kernel(feats, rows, out):  # pragma: no cover - jitted
-    """out[j, c] = feats[j] · rows[c] (float32; fastmath lets the sum over D vectorise).
+    """out[j, c] = feats[j] · rows[c], parallel over rows on numba's own threads.
 
-    Parallel over rows on numba's own threads. A BLAS sgemm is a little faster (1.5 vs 2.1 ms for
-    55 masks x 2,750 leaders x 512), but OpenBLAS's threads then busy-wait for a while and take a
-    core from the rasterizer's next parallel kernels: on 2 cores binning and projection ran 2-3x
-    slower in every `-vote` mode (docs/registration.md)."""
-    m, d = feats.shape
+    A BLAS sgemm is a little faster (1.5 vs 2.1 ms for 55 masks x 2,750 leaders x 512), but
+    OpenBLAS's threads then busy-wait for a while and take a core from the rasterizer's next
+    parallel kernels: on 2 cores binning and projection ran 2-3x slower in every `-vote` mode
+    (docs/registration.md)."""
     for c in numba.prange(rows.shape[0]):
-        for j in range(m):
-            s = np.float32(0.0)
-            for k in range(d):
-                s += feats[j, k] * rows[c, k]
-            out[j, c] = s
+        _dot_row(feats, rows, c, out)
 
 
 @numba.njit(fastmath=True, cache=True)
 def _dot_rows_serial_kernel(feats, rows, out):  # pragma: no cover - jitted
-    """`_dot_rows_kernel` on the calling thread: the same loops, so the same bits (tested)."""
-    m, d = feats.shape
+    """`_dot_rows_kernel` on the calling thread: the same loop, so the same bits (tested)."""
     for c in range(rows.shape[0]):
-        for j in range(m):
-            s = np.float32(0.0)
-            for k in range(d):
-                s += feats[j, k] * rows[c, k]
-            out[j, c] = s
+        _dot_row(feats, rows, c, out)
 
 
 def dot_rows(feats: np.ndarray, rows: np.ndarray, parallel: bool | None = None) -> np.ndarray:
@@ -98,8 +99,9 @@ def dot_rows(feats: np.ndarray, rows: np.ndarray, parallel: bool | None = None) 
 
     parallel: None picks by size. Products under PARALLEL_MACS multiply-adds run on the calling
     thread: a mask that founds a cluster is compared with the view's earlier new leaders (1 x a few
-    x 512), and starting numba's threads for that cost ~1-2 ms a call against ~1 µs of work, which
-    on flowers (10 views, random masks: ~1,100 such calls) was 1.3 s of a check-vote-reject run."""
+    x 512). Waking numba's threads for that cost 2.3 µs a call on an idle 2-core machine against
+    1.0 µs on the calling thread, but ~2.4 ms a call with both cores busy, which on flowers (10
+    views, random masks: ~1,100 such calls) was 1.3 s of a check-vote-reject run (2026-11-27)."""
     out = np.empty((feats.shape[0], rows.shape[0]), np.float32)
     if out.size:
         if parallel is None:
