@@ -23,6 +23,11 @@ from drsplat.utils import atomic_path
 log = logging.getLogger(__name__)
 
 MAX_IMAGE_SIDE = 1 << 16  # pixels; larger "images" are corrupt metadata, and would size buffers
+# Intrinsics relative to the image side: a focal length of 1e-6 to 1e6 image widths (a field of
+# view from about 6e-5 degrees to within 3e-4 degrees of 180) and a principal point within 1e6
+# widths of the image hold every real lens with a wide margin; beyond, the projection maths overflows.
+MIN_FOCAL_RATIO = 1e-6
+MAX_INTRINSIC_RATIO = 1e6
 
 
 @dataclass
@@ -150,6 +155,8 @@ class ColmapModel:
     cameras: dict[int, ColmapCamera]
     images: dict[int, ColmapImage]
     points: dict[int, np.ndarray]  # point3D id -> [3] xyz
+    cameras_path: Path | None = None  # the files read, for errors about their records
+    images_path: Path | None = None
 
     def points_array(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids [P] int64, xyz [P, 3] float64) of all 3D points."""
@@ -187,6 +194,14 @@ class _Reader:
     def one(self, dtype: str):
         return self.take(dtype)[0].item()
 
+    def finish(self, count: int, records: str, field: str) -> None:
+        """Refuse bytes after the declared records: a count smaller than the records present
+        would otherwise drop the rest silently."""
+        left = len(self.buf) - self.pos
+        if left:
+            raise InputError(self.path, f"declares {count} {records} but {left} bytes follow the last of them "
+                             "(the count may be smaller than the records present, or the file has trailing data)", field=field)
+
     def cstring(self) -> str:
         end = self.buf.find(b"\x00", self.pos)
         if end < 0:
@@ -196,24 +211,35 @@ class _Reader:
         return text
 
 
+def _unique_id(path: Path, seen: dict, record_id: int, field: str, where: str) -> None:
+    """Refuse a second record with the same id (a dict keyed by id would keep only the last one)."""
+    if record_id in seen:
+        raise InputError(path, f"{where} repeats {field} {record_id} of an earlier record; ids must be unique", field=field)
+
+
 def read_colmap_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
     r = _Reader(path)
-    cameras = {}
-    for _ in range(r.one("<u8")):
+    cameras: dict[int, ColmapCamera] = {}
+    declared = r.one("<u8")
+    for k in range(declared):
         cam_id, model_id = r.one("<i4"), r.one("<i4")
+        _unique_id(path, cameras, cam_id, "CAMERA_ID", f"camera record {k}")
         if model_id not in COLMAP_MODELS:
             raise InputError(path, f"camera {cam_id} has unknown model id {model_id}", field="model_id")
         name, count = COLMAP_MODELS[model_id]
         width, height = r.one("<u8"), r.one("<u8")
         cameras[cam_id] = ColmapCamera(cam_id, name, int(width), int(height), r.take("<f8", count).copy())
+    r.finish(declared, "cameras", "num_cameras")
     return cameras
 
 
 def read_colmap_images_bin(path: Path) -> dict[int, ColmapImage]:
     r = _Reader(path)
-    images = {}
-    for _ in range(r.one("<u8")):
+    images: dict[int, ColmapImage] = {}
+    declared = r.one("<u8")
+    for k in range(declared):
         image_id = r.one("<u4")
+        _unique_id(path, images, image_id, "IMAGE_ID", f"image record {k}")
         qvec, tvec = r.take("<f8", 4).copy(), r.take("<f8", 3).copy()
         camera_id = r.one("<u4")
         name = r.cstring()
@@ -221,19 +247,22 @@ def read_colmap_images_bin(path: Path) -> dict[int, ColmapImage]:
         obs = r.take([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], num)  # type: ignore[arg-type]
         xys = np.stack([obs["x"], obs["y"]], axis=1) if num else np.zeros((0, 2))
         images[image_id] = ColmapImage(image_id, qvec, tvec, camera_id, name, xys, obs["id"].copy())
+    r.finish(declared, "images", "num_reg_images")
     return images
 
 
 def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
     r = _Reader(path)
     points = {}
-    for _ in range(r.one("<u8")):
+    declared = r.one("<u8")
+    for _ in range(declared):
         pid = r.one("<u8")
         xyz = r.take("<f8", 3).copy()
         r.take("u1", 3)
         r.one("<f8")
         r.take("<i4", 2 * r.one("<u8"))
         points[int(pid)] = xyz
+    r.finish(declared, "points", "num_points3D")
     return points
 
 
@@ -271,25 +300,87 @@ def read_colmap_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
             raise _parse_fail(path, i, "camera") from None
         if cam.params.size != COLMAP_MODEL_IDS[model][1]:
             raise InputError(path, f"camera {cam.camera_id} ({model}) has {cam.params.size} parameters, expected {COLMAP_MODEL_IDS[model][1]}", field="PARAMS")
+        _unique_id(path, cameras, cam.camera_id, "CAMERA_ID", f"camera line {i}")
         cameras[cam.camera_id] = cam
     return cameras
 
 
 def read_colmap_images_txt(path: Path) -> dict[int, ColmapImage]:
-    lines = [ln for ln in _read_text(path).splitlines() if not ln.startswith("#")]
-    images = {}
-    for i in range(0, len(lines) - 1, 2):
-        w, pts = lines[i].split(), lines[i + 1].split()
-        if not w:
+    """images.txt: per image an image line (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME) and the
+    line after it, its POINTS2D (X Y POINT3D_ID triples, may be empty; may be missing at the end of
+    the file, as COLMAP's own readers allow). Comment lines are skipped, and blank lines between
+    records too, so a stray blank line shifts nothing; any other line where an image line is due is
+    an error naming its line number, never a record dropped."""
+    lines = _read_text(path).split("\n")
+    images: dict[int, ColmapImage] = {}
+    pending: tuple[int, list[str]] | None = None  # the image line waiting for its POINTS2D line
+    for lineno, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if line.startswith("#"):
             continue
-        try:
-            obs = np.array([float(x) for x in pts], dtype=np.float64).reshape(-1, 3)
-            img = ColmapImage(int(w[0]), np.array(w[1:5], float), np.array(w[5:8], float), int(w[8]), " ".join(w[9:]),
-                              obs[:, :2].copy(), obs[:, 2].astype(np.int64))
-        except (IndexError, ValueError):
-            raise _parse_fail(path, i // 2 + 1, "image") from None
-        images[img.image_id] = img
+        words = line.split()
+        if pending is not None:
+            if words and _parse_points2d(words) is None and _is_image_line(words):
+                raise InputError(path, f"line {lineno} is an image line where the POINTS2D line of the image on line {pending[0]} "
+                                 "is due (every image line is followed by its POINTS2D line, empty when it has none)", field="POINTS2D")
+            _add_image(path, images, pending, lineno, words)
+            pending = None
+        elif words:
+            if not _is_image_line(words):
+                raise InputError(path, f"line {lineno} is not an image line (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME)", field="IMAGE_ID")
+            pending = (lineno, line.split(maxsplit=9))  # the name is the rest of the line, its spaces kept
+    if pending is not None:  # the last image without its POINTS2D line: no observations
+        _add_image(path, images, pending, len(lines), [])
+    _check_declared_images(path, lines, len(images))
     return images
+
+
+def _is_image_line(words: list[str]) -> bool:
+    """IMAGE_ID (integer), 7 numbers, CAMERA_ID (integer) and a name."""
+    if len(words) < 10:
+        return False
+    try:
+        int(words[0]), int(words[8])
+        [float(w) for w in words[1:8]]
+    except ValueError:
+        return False
+    return True
+
+
+def _parse_points2d(words: list[str]) -> np.ndarray | None:
+    """[P, 3] (X, Y, POINT3D_ID) of a POINTS2D line, None when it is not one."""
+    if len(words) % 3:
+        return None
+    try:
+        return np.array([float(w) for w in words], dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        return None
+
+
+def _add_image(path: Path, images: dict[int, ColmapImage], pending: tuple[int, list[str]], lineno: int, words: list[str]) -> None:
+    """Add the image of `pending` (its line number and words) with the POINTS2D `words` of line `lineno`."""
+    image_line, w = pending
+    obs = _parse_points2d(words)
+    if obs is None:
+        raise InputError(path, f"line {lineno}, the POINTS2D line of the image on line {image_line}, is not X Y POINT3D_ID triples", field="POINTS2D")
+    image_id = int(w[0])
+    _unique_id(path, images, image_id, "IMAGE_ID", f"line {image_line}")
+    images[image_id] = ColmapImage(image_id, np.array(w[1:5], float), np.array(w[5:8], float), int(w[8]), w[9],
+                                   obs[:, :2].copy(), obs[:, 2].astype(np.int64))
+
+
+def _check_declared_images(path: Path, lines: list[str], count: int) -> None:
+    """Warn when the header comment COLMAP writes ("# Number of images: N, ...") gives another count
+    than the records read: lines were lost or added (or the file was edited by hand)."""
+    for lineno, line in enumerate(lines, start=1):
+        if not line.startswith("#"):
+            return
+        _, _, rest = line.partition("Number of images:")
+        if rest:
+            declared = rest.split(",")[0].strip()
+            if declared.isdigit() and int(declared) != count:
+                log.warning("%s: line %d declares %s images but %d image records were read", path, lineno, declared, count)
+            return
 
 
 def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
@@ -307,17 +398,19 @@ def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
     """Read a COLMAP sparse model folder (binary `*.bin` preferred, else text `*.txt`)."""
     d = Path(sparse_dir)
     if (d / "cameras.bin").exists() and (d / "images.bin").exists():
+        ext = ".bin"
         cams, imgs = read_colmap_cameras_bin(d / "cameras.bin"), read_colmap_images_bin(d / "images.bin")
         points = read_colmap_points_bin(d / "points3D.bin") if (d / "points3D.bin").exists() else {}
     elif (d / "cameras.txt").exists() and (d / "images.txt").exists():
+        ext = ".txt"
         cams, imgs = read_colmap_cameras_txt(d / "cameras.txt"), read_colmap_images_txt(d / "images.txt")
         points = read_colmap_points_txt(d / "points3D.txt") if (d / "points3D.txt").exists() else {}
     else:
         raise InputError(d, "is not a COLMAP sparse model (no cameras.bin/images.bin or cameras.txt/images.txt)")
     for img in imgs.values():
         if img.camera_id not in cams:
-            raise InputError(d, f"image {img.name!r} refers to camera {img.camera_id}, which the model does not have", field="CAMERA_ID")
-    return ColmapModel(cams, imgs, points)
+            raise InputError(d / f"images{ext}", f"image {img.name!r} refers to camera {img.camera_id}, which the model does not have", field="CAMERA_ID")
+    return ColmapModel(cams, imgs, points, d / f"cameras{ext}", d / f"images{ext}")
 
 
 def colmap_intrinsics(cam: ColmapCamera, source: Path) -> tuple[float, float, float, float]:
@@ -341,13 +434,16 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
     for img in sorted(model.images.values(), key=lambda im: im.name):
         cam = model.cameras[img.camera_id]
         fx, fy, cx, cy = (float(v) for v in colmap_intrinsics(cam, source))
-        where = f"image {img.name!r}"
+        where = f"image {img.image_id} ({img.name!r})"
+        images_file = model.images_path or source
+        check_image_name(images_file, img.name, where, "NAME")
         q = np.asarray(img.qvec, np.float64)
         if not np.isfinite(q).all() or not np.linalg.norm(q) > 0:
-            raise InputError(source, f"{where} has a zero or non-finite rotation quaternion", field="QW QX QY QZ")
+            raise InputError(images_file, f"{where} has a zero or non-finite rotation quaternion", field="QW QX QY QZ")
         camera = Camera(R=qvec_to_rotmat(q), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
                         width=cam.width, height=cam.height, image_path=paths.image(img.name), name=Path(img.name).stem)
-        validate_camera(camera, source, where)
+        validate_intrinsics(camera, model.cameras_path or source, f"camera {cam.camera_id} (used by {where})")
+        validate_camera(camera, images_file, where)
         out.append(camera)
     return out
 
@@ -427,9 +523,16 @@ class DatasetPaths:
         return None
 
 
+def check_image_name(path: Path, name: str, where: str, field: str) -> None:
+    """Refuse an image name with a NUL byte: no file system allows one (Python raises ValueError
+    on it), so it is a corrupt record, not a missing image."""
+    if "\x00" in name:
+        raise InputError(path, f"{where} has an image name with a NUL byte (at character {name.index(chr(0))}); a file name cannot hold one", field=field)
+
+
 def validate_camera(camera: Camera, path: Path, where: str) -> None:
     """Refuse a camera whose values cannot be a real camera: non-finite or non-rotation R, non-finite t,
-    focal lengths <= 0, non-finite principal point, image sides outside 1..MAX_IMAGE_SIDE."""
+    or intrinsics that `validate_intrinsics` refuses."""
     R = np.asarray(camera.R, np.float64)
     if R.shape != (3, 3) or not np.isfinite(R).all():
         raise InputError(path, f"{where} has a non-finite rotation", field="rotation")
@@ -437,17 +540,35 @@ def validate_camera(camera: Camera, path: Path, where: str) -> None:
         raise InputError(path, f"{where} has a rotation that is not orthonormal with det +1 (all-zero or scaled matrix?)", field="rotation")
     if not np.isfinite(np.asarray(camera.t, np.float64)).all():
         raise InputError(path, f"{where} has a non-finite translation", field="translation")
-    for name in ("fx", "fy"):
-        value = getattr(camera, name)
-        if not (np.isfinite(value) and value > 0):
-            raise InputError(path, f"{where} has focal length {name}={value!r}; it must be a positive number", field=name)
-    for name in ("cx", "cy"):
-        if not np.isfinite(getattr(camera, name)):
-            raise InputError(path, f"{where} has a non-finite principal point", field=name)
+    validate_intrinsics(camera, path, where)
+
+
+def validate_intrinsics(camera: Camera, path: Path, where: str) -> None:
+    """Refuse image sides outside 1..MAX_IMAGE_SIDE, focal lengths that are not positive and finite,
+    non-finite principal points, and intrinsics implausibly far from the image size (`_check_intrinsic`)."""
     for name in ("width", "height"):
         value = getattr(camera, name)
         if not 1 <= value <= MAX_IMAGE_SIDE:
             raise InputError(path, f"{where} has {name}={value}; it must be in 1..{MAX_IMAGE_SIDE}", field=name)
+    for name, side in (("fx", "width"), ("fy", "height")):
+        value = getattr(camera, name)
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(path, f"{where} has focal length {name}={value!r}; it must be a positive number", field=name)
+        _check_intrinsic(path, where, name, value, side, getattr(camera, side), MIN_FOCAL_RATIO)
+    for name, side in (("cx", "width"), ("cy", "height")):
+        value = getattr(camera, name)
+        if not np.isfinite(value):
+            raise InputError(path, f"{where} has a non-finite principal point", field=name)
+        _check_intrinsic(path, where, name, value, side, getattr(camera, side), -MAX_INTRINSIC_RATIO)
+
+
+def _check_intrinsic(path: Path, where: str, name: str, value: float, side_name: str, side: int, low_ratio: float) -> None:
+    """Refuse an intrinsic (pixels) outside [low_ratio·side, MAX_INTRINSIC_RATIO·side]: no lens is
+    that far from its image, and the culling bound (squares of fx, cx/fx) would overflow float."""
+    low, high = low_ratio * side, MAX_INTRINSIC_RATIO * side
+    if not low <= value <= high:
+        raise InputError(path, f"{where} has {name}={value:g} for an image {side} pixels in {side_name}; it must lie in "
+                         f"[{low:g}, {high:g}] ({low_ratio:g} to {MAX_INTRINSIC_RATIO:g} times the {side_name})", field=name)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -504,6 +625,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         rec = {**meta, **frame}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
             raise InputError(path, f"frame {i} has no image path string", field="file_path")
+        check_image_name(path, frame["file_path"], f"frame {i}", "file_path")
         image = paths.find(frame["file_path"])
         if image is None:
             missing += 1
@@ -571,6 +693,7 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Ca
         if not isinstance(name, (str, int)):
             raise InputError(path, f"camera {i} has an img_name that is not a string", field="img_name")
         name = str(name)
+        check_image_name(path, name, f"camera {i}", "img_name")
         if rot.shape != (3, 3) or pos.shape != (3,):
             raise InputError(path, f"camera {i} has rotation {rot.shape} / position {pos.shape}", field="rotation")
         width, height = _size(path, rec, "width", where), _size(path, rec, "height", where)
@@ -589,16 +712,23 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Ca
 # ---------------------------------------------------------------------------------------------- reader registry
 
 
+def _found_file(found: Path) -> list[Path]:
+    """The camera files of a format described by one file: that file."""
+    return [found] if found.is_file() else []
+
+
 @dataclass(frozen=True)
 class DatasetReader:
     """One camera format. find(source) -> the file or folder describing the cameras of a dataset
     folder (or of a file the user named directly), None if it is not this format;
-    read(found, require_images) -> (cameras, frames skipped for a missing image)."""
+    read(found, require_images) -> (cameras, frames skipped for a missing image);
+    files(found) -> the files `read` reads besides the images (inputs no output may replace)."""
 
     kind: str
     description: str
     find: Callable[[Path], Path | None]
     read: Callable[[Path, bool], tuple[list[Camera], int]]
+    files: Callable[[Path], list[Path]] = _found_file
 
 
 def _find_colmap(src: Path) -> Path | None:
@@ -615,6 +745,10 @@ def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], int]
         return cameras, 0
     present = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]
     return present, len(cameras) - len(present)
+
+
+def _colmap_files(sparse: Path) -> list[Path]:
+    return [sparse / f"{name}{ext}" for name in ("cameras", "images", "points3D") for ext in (".bin", ".txt") if (sparse / f"{name}{ext}").is_file()]
 
 
 def _find_transforms(src: Path) -> Path | None:
@@ -648,12 +782,16 @@ def _read_scannet(scene_dir: Path, require_images: bool) -> tuple[list[Camera], 
     return load_scannet_cameras(scene_dir), 0
 
 
+def _scannet_files(scene_dir: Path) -> list[Path]:
+    return [scene_dir / "intrinsic" / "intrinsic_color.txt", *sorted((scene_dir / "pose").glob("*.txt"))]
+
+
 # Detection order; adding a format = its find/read functions and one line here.
 DATASET_READERS: tuple[DatasetReader, ...] = (
-    DatasetReader("colmap", "COLMAP model (sparse/0)", _find_colmap, _read_colmap),
+    DatasetReader("colmap", "COLMAP model (sparse/0)", _find_colmap, _read_colmap, _colmap_files),
     DatasetReader("transforms", "transforms.json (NeRF-synthetic, instant-ngp, nerfstudio)", _find_transforms, _read_transforms),
     DatasetReader("cameras_json", "3DGS cameras.json", _find_cameras_json, _read_cameras_json),
-    DatasetReader("scannet", "ScanNet export (pose/, intrinsic/intrinsic_color.txt, color/)", _find_scannet, _read_scannet),
+    DatasetReader("scannet", "ScanNet export (pose/, intrinsic/intrinsic_color.txt, color/)", _find_scannet, _read_scannet, _scannet_files),
 )
 
 
@@ -679,6 +817,15 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
     if src.is_file():
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
     raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS))
+
+
+def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]:
+    """The files a dataset's cameras were read from and the images they name, as `guard_outputs`
+    inputs (description -> path): an output must replace none of them."""
+    kind, found = detect_dataset(source)
+    inputs = {f"--source's camera file {path}": path for path in dataset_reader(kind).files(found)}
+    inputs.update({f"--source's image {c.image_path}": c.image_path for c in cameras if c.image_path is not None})
+    return inputs
 
 
 def resolution_scale(width: int, resolution: float) -> float:

@@ -439,6 +439,42 @@ def trailing_bytes(header: PlyHeader, size: int) -> int:
     return max(0, size - end)
 
 
+FLOAT_EXACT_BITS = {2: 11, 4: 24, 8: 53}  # float itemsize -> bits of the integers it holds exactly
+
+
+def check_integer_column(path: Path, name: str, column: np.ndarray, storage: str, meaning: str, bit_pattern: bool) -> None:
+    """Refuse a vertex property that drsplat stores as the PLY integer type `storage` (e.g. 'ushort')
+    but whose declared type would be misread when cast to it.
+
+    Another integer type is read exactly when its values fit `storage`'s bits (a signed type of the
+    same width is the same bits); a float type when its values are whole numbers that fit (a tool
+    that converted every property to float). Refused: values that do not fit or are not whole
+    (real numbers where codes or bit patterns belong, which the cast would turn into garbage or 0),
+    and, for bit patterns (`bit_pattern`: float16 bits, packed fields), types too narrow to hold
+    every pattern (their high bits are gone). InputError names the property, both types and a row.
+    """
+    want = np.dtype(PLY_TYPES[storage])
+    have = column.dtype
+    if have.kind == want.kind and have.itemsize == want.itemsize:
+        return
+    declared = NUMPY_TO_PLY.get(f"{have.kind}{have.itemsize}", str(have))
+    bits = 8 * want.itemsize
+    capacity = 8 * have.itemsize if have.kind in "iu" else FLOAT_EXACT_BITS.get(have.itemsize, 0)
+    expected = f"expected {storage} ({meaning}), as drsplat writes it"
+    if have.kind not in "iuf" or (bit_pattern and capacity < bits):
+        raise _fail(path, f"property {name} is declared {declared}, which cannot hold every {bits}-bit value; {expected}", field=name)
+    if have.kind in "iu" and have.itemsize <= want.itemsize:
+        return  # narrower or same-width integers: every value keeps its bits
+    values = np.asarray(column, np.float64) if have.kind == "f" else np.asarray(column)
+    low, high = -(1 << (bits - 1)), (1 << bits) - 1
+    with np.errstate(invalid="ignore"):
+        bad = ~((values >= low) & (values <= high)) | ((values != np.floor(values)) if have.kind == "f" else False)
+    if np.any(bad):
+        row = int(np.argmax(bad))
+        raise _fail(path, f"property {name} is declared {declared} and row {row} holds {column[row].item()!r}, which is not a whole "
+                    f"number in {low}..{high}: casting it to {storage} would misread it; {expected}", field=name)
+
+
 def _require(path: Path, vertex: np.ndarray, name: str) -> np.ndarray:
     if name not in vertex.dtype.names:
         raise _fail(path, "is missing a required vertex property of the 3DGS layout", field=name)
@@ -506,6 +542,7 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
     for name in ("packed_position", "packed_rotation", "packed_scale", "packed_color"):
         if name not in vertex.dtype.names:
             raise _fail(path, "is a compressed PLY missing a packed vertex property", field=name)
+        check_integer_column(path, name, vertex[name], "uint", "packed bit fields", bit_pattern=True)
     need_chunks = (n + 255) // 256
     if len(chunk) < need_chunks:
         raise _fail(path, f"is a compressed PLY with {len(chunk)} chunks for {n} splats (needs {need_chunks})", field="chunk")

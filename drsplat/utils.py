@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import tempfile
@@ -23,27 +24,42 @@ T = TypeVar("T")
 TEMP_SUFFIX = ".tmp"
 
 
+TEMP_NAME_BYTES = 200  # longest output name kept whole in its temp names: '.', '.<pid>.<random>.partial' take up to 26 of 255 bytes
+
+
+def temp_stem(path: Path) -> str:
+    """The part of `path`'s temp names that stands for its name: the name, or for a name too long
+    to fit a temp name in a file system's 255 bytes, its start and a hash of all of it (still unique)."""
+    data = path.name.encode("utf-8", "surrogateescape")
+    if len(data) <= TEMP_NAME_BYTES:
+        return path.name
+    digest = hashlib.sha1(data).hexdigest()[:12]
+    head = data[: TEMP_NAME_BYTES - len(digest) - 1].decode("utf-8", "ignore")  # never half a character
+    return f"{head}~{digest}"
+
+
 def temp_prefix(path: Path) -> str:
-    """Prefix of the temp files `atomic_path` makes for `path`: `.<name>.<pid>.` (pid finds stale ones)."""
-    return f".{path.name}.{os.getpid()}."
+    """Prefix of the temp files `atomic_path` makes for `path`: `.<stem>.<pid>.` (`temp_stem`; pid finds stale ones)."""
+    return f".{temp_stem(path)}.{os.getpid()}."
 
 
 def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
     """Delete temp files (or folders) of `path` left by writers that are no longer running; returns how many.
 
-    Temp files are named `.<name>.<pid>.<random><suffix>`; one whose pid is not a live process was
+    Temp files are named `.<stem>.<pid>.<random><suffix>` (`temp_stem`); one whose pid is not a live process was
     left by a killed run (SIGKILL, power loss) and nothing else will ever remove it.
     """
     import shutil
 
     path = Path(path)
+    stem = temp_stem(path)
     removed = 0
     try:
-        candidates = list(path.parent.glob(f".{glob_escape(path.name)}.*{suffix}"))
+        candidates = list(path.parent.glob(f".{glob_escape(stem)}.*{suffix}"))
     except OSError:
         return 0
     for tmp in candidates:
-        pid_text = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
+        pid_text = tmp.name[len(stem) + 2 :].split(".", 1)[0]
         if not pid_text.isdigit() or _pid_alive(int(pid_text)):
             continue
         try:

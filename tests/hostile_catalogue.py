@@ -136,6 +136,11 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "bool_width": ({"frames": [_frame(w=True)]}, "'w'"),
     "angle_out_of_range": ({"camera_angle_x": 4.0, "frames": [{k: v for k, v in _frame().items() if k != "fl_x"}]}, "camera_angle_x"),
     "deep_nesting": (None, "JSON"),  # written as text below
+    # round 3: finite but absurd intrinsics overflowed the culling bound; a NUL byte in a name raised ValueError
+    "focal_1e300": ({"frames": [_frame(fl_x=1e300)]}, "field 'fx': frame 0 has fx=1e+300"),
+    "focal_1e-300": ({"frames": [_frame(fl_x=1e-300)]}, "field 'fx': frame 0 has fx=1e-300"),
+    "cx_1e300": ({"frames": [_frame(cx=1e300)]}, "field 'cx': frame 0 has cx=1e+300"),
+    "nul_in_file_path": ({"frames": [_frame(file_path="images/v\x00.png")]}, "field 'file_path': frame 0 has an image name with a NUL byte"),
 }
 
 
@@ -182,6 +187,17 @@ COLMAP_CASES: dict[str, tuple[str, str, str]] = {
     "zero_width": ("1 PINHOLE 0 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "width"),
     "negative_width": ("1 PINHOLE -64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", "width"),
     "missing_camera": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 9 v.png\n\n", "camera 9"),
+    # round 3
+    "focal_1e300": ("1 PINHOLE 64 48 1e300 1e300 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", r"cameras\.txt: field 'fx': camera 1 .*fx=1e\+300"),
+    "cy_1e300": ("1 PINHOLE 64 48 50 50 32 1e300\n", "1 1 0 0 0 0 0 4 1 v.png\n\n", r"cameras\.txt: field 'cy': camera 1 .*cy=1e\+300"),
+    "nul_in_name": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v\x00.png\n\n", r"images\.txt: field 'NAME': image 1 .*NUL byte"),
+    "duplicate_image_id": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n1 1 0 0 0 0 0 5 1 w.png\n\n",
+                           r"images\.txt: field 'IMAGE_ID': line 3 repeats IMAGE_ID 1"),
+    "duplicate_camera_id": ("1 PINHOLE 64 48 50 50 32 24\n1 PINHOLE 64 48 60 60 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n\n",
+                            r"cameras\.txt: field 'CAMERA_ID': camera line 2 repeats CAMERA_ID 1"),
+    "image_line_missing_points2d": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n2 1 0 0 0 0 0 5 1 w.png\n\n",
+                                    r"images\.txt: field 'POINTS2D': line 2 is an image line where the POINTS2D line of the image on line 1"),
+    "points2d_not_triples": ("1 PINHOLE 64 48 50 50 32 24\n", "1 1 0 0 0 0 0 4 1 v.png\n1.0 2.0\n", r"images\.txt: field 'POINTS2D': line 2"),
 }
 
 

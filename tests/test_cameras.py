@@ -243,3 +243,100 @@ def test_dataset_reader_registry_detects_every_format(tmp_path):
         assert detect_dataset(source)[0] == kind
         cams = load_cameras(source, require_images=False)
         assert cams and all((c.width, c.height, c.fx) == (64, 48, 50.0) for c in cams), kind
+
+
+# ---------------------------------------------------------------------------------------------- round 3: COLMAP records
+
+
+def colmap_text_lines(cameras, blank_lines: int = 0, last_points_line: bool = True) -> tuple[str, str]:
+    """(cameras.txt, images.txt) of `cameras` (one PINHOLE camera each, empty POINTS2D lines);
+    `blank_lines` extra blank lines after each record, the last POINTS2D line dropped when asked."""
+    from drsplat.synthetic import rotmat_to_quat
+
+    cams, imgs = [], ["# Image list with two lines of data per image:", f"# Number of images: {len(cameras)}, mean observations per image: 0"]
+    for i, c in enumerate(cameras, start=1):
+        cams.append(f"{i} PINHOLE {c.width} {c.height} {c.fx!r} {c.fy!r} {c.cx!r} {c.cy!r}")
+        q = rotmat_to_quat(np.asarray(c.R, np.float64)[None])[0]
+        imgs += [f"{i} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in c.t)} {i} {c.image_path.name}", ""]
+        imgs += [""] * blank_lines
+    if not last_points_line:
+        imgs = imgs[: len(imgs) - 1 - blank_lines]
+    return "\n".join(cams) + "\n", "\n".join(imgs) + "\n"
+
+
+def _colmap_bin(cameras, declared_images: int | None = None, duplicate: str | None = None) -> tuple[bytes, bytes]:
+    """(cameras.bin, images.bin) of `cameras`, with another declared image count or a repeated id."""
+    import struct
+
+    from drsplat.synthetic import rotmat_to_quat
+
+    cam_ids = [1 if duplicate == "camera" else i for i in range(1, len(cameras) + 1)]
+    img_ids = [1 if duplicate == "image" else i for i in range(1, len(cameras) + 1)]
+    cams = struct.pack("<Q", len(cameras)) + b"".join(
+        struct.pack("<iiQQ4d", k, 1, c.width, c.height, c.fx, c.fy, c.cx, c.cy) for k, c in zip(cam_ids, cameras))
+    imgs = struct.pack("<Q", len(cameras) if declared_images is None else declared_images) + b"".join(
+        struct.pack("<I4d3dI", k, *rotmat_to_quat(np.asarray(c.R, np.float64)[None])[0], *c.t, i) + c.image_path.name.encode() + b"\0" + struct.pack("<Q", 0)
+        for i, (k, c) in enumerate(zip(img_ids, cameras), start=1))
+    return cams, imgs
+
+
+def _write_model(root, files: dict[str, str | bytes]):
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    for name, data in files.items():
+        (sparse / name).write_bytes(data.encode() if isinstance(data, str) else data)
+    return root
+
+
+@pytest.fixture
+def four_cameras(tmp_path):
+    return load_cameras(_tiny_colmap(tmp_path / "src", ("a.png", "b.png", "c.png", "d.png")))
+
+
+@pytest.mark.parametrize("blank_lines, last_points_line", [(1, True), (2, True), (0, False), (1, False)])
+def test_colmap_images_txt_keeps_every_record_despite_blank_lines(tmp_path, four_cameras, blank_lines, last_points_line):
+    """Round 3 C1: images.txt was read as fixed line pairs: one extra blank line dropped every later
+    image (3 of 16 views, exit 0) and a last record without its POINTS2D line was dropped. Now
+    every record is kept, with the same poses as the well-formed file."""
+    cams, imgs = colmap_text_lines(four_cameras, blank_lines, last_points_line)
+    loaded = load_cameras(_write_model(tmp_path / "m", {"cameras.txt": cams, "images.txt": imgs}), require_images=False)
+    assert [c.name for c in loaded] == ["a", "b", "c", "d"]
+    for a, b in zip(four_cameras, loaded):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-12)
+
+
+def test_colmap_images_txt_count_comment_that_disagrees_is_a_warning(tmp_path, four_cameras, caplog):
+    """Round 3 C1: records read against the "# Number of images" comment COLMAP writes."""
+    cams, imgs = colmap_text_lines(four_cameras)
+    imgs = imgs.replace("Number of images: 4", "Number of images: 5")
+    with caplog.at_level(logging.WARNING):
+        assert len(load_cameras(_write_model(tmp_path / "m", {"cameras.txt": cams, "images.txt": imgs}), require_images=False)) == 4
+    assert "images.txt: line 2 declares 5 images but 4 image records were read" in caplog.text
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("count_smaller", r"images\.bin: field 'num_reg_images': declares 1 images but \d+ bytes follow the last of them"),
+    ("duplicate_image", r"images\.bin: field 'IMAGE_ID': image record 1 repeats IMAGE_ID 1"),
+    ("duplicate_camera", r"cameras\.bin: field 'CAMERA_ID': camera record 1 repeats CAMERA_ID 1"),
+    ("trailing_camera_bytes", r"cameras\.bin: field 'num_cameras': declares 4 cameras but 7 bytes follow"),
+])
+def test_colmap_binary_counts_and_ids(tmp_path, four_cameras, case, expected):
+    """Round 3 C2/C3: a declared count smaller than the records present (the rest ignored) and
+    repeated ids (last one won) were silent; now one error naming the file, the field and the numbers."""
+    cams, imgs = _colmap_bin(four_cameras, declared_images=1 if case == "count_smaller" else None,
+                             duplicate={"duplicate_image": "image", "duplicate_camera": "camera"}.get(case))
+    if case == "trailing_camera_bytes":
+        cams += b"\0" * 7
+    root = _write_model(tmp_path / "m", {"cameras.bin": cams, "images.bin": imgs})
+    with pytest.raises(InputError, match=expected):
+        load_cameras(root, require_images=False)
+
+
+def test_colmap_binary_model_reads_like_the_text_model(tmp_path, four_cameras):
+    """The binary writer of these tests is a valid model: the same cameras as the text one."""
+    cams, imgs = _colmap_bin(four_cameras)
+    loaded = load_cameras(_write_model(tmp_path / "m", {"cameras.bin": cams, "images.bin": imgs}), require_images=False)
+    assert [c.name for c in loaded] == ["a", "b", "c", "d"]
+    for a, b in zip(four_cameras, loaded):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)

@@ -1037,3 +1037,156 @@ def test_code_table_sums_kernel_matches_its_reference():
     for codes in cases:
         table = rng.random((codes.shape[1], 256)) * 10.0 ** rng.integers(-3, 4, (codes.shape[1], 1))
         np.testing.assert_array_equal(code_table_sums(codes, table), code_table_sums_reference(codes, table))
+
+
+# ---------------------------------------------------------------------------------------------- round 3
+
+
+def _first_image(ds: Path) -> Path:
+    return sorted((ds / "images").iterdir())[0]
+
+
+def _colmap_copy(world, tmp_path) -> Path:
+    """The world's cameras as a COLMAP text model (sparse/0) whose images are the world's images."""
+    from drsplat.cameras import load_cameras
+
+    from tests.test_cameras import colmap_text_lines
+
+    root = tmp_path / "colmap"
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "images").symlink_to(world["ds"] / "images", target_is_directory=True)
+    cams, imgs = colmap_text_lines(load_cameras(world["ds"], require_images=False))
+    (root / "sparse" / "0" / "cameras.txt").write_text(cams)
+    (root / "sparse" / "0" / "images.txt").write_text(imgs)
+    return root
+
+
+ROUND3_OVERWRITES = {
+    # name: (world, tmp_path) -> (argv, the input files that must keep their bytes, a word the error must name)
+    "register_out_is_transforms_json": lambda w, t: (
+        ["register", w["ds"] / "scene.ply", "--source", w["ds"], "--features", w["ds"] / "features", "--out", w["ds"] / "transforms.json"],
+        [w["ds"] / "transforms.json"], "camera file"),
+    "register_out_is_a_training_image": lambda w, t: (
+        ["register", w["ds"] / "scene.ply", "--source", w["ds"], "--features", w["ds"] / "features", "--out", _first_image(w["ds"])],
+        [w["ds"] / "images"], "image"),
+    "register_out_is_colmap_images_txt": lambda w, t: (
+        ["register", w["ds"] / "scene.ply", "--source", _colmap_copy(w, t), "--features", w["ds"] / "features",
+         "--out", t / "colmap" / "sparse" / "0" / "images.txt"], [t / "colmap" / "sparse" / "0"], "camera file"),
+    "pq_train_out_is_a_feature_file": lambda w, t: (
+        ["pq", "train", "--features", w["ds"] / "features", "--out", sorted((w["ds"] / "features").glob("*_f.npy"))[0]],
+        [w["ds"] / "features"], "--features folder"),
+    "segment_out_is_names": lambda w, t: (
+        ["segment", w["reg"], "--embeddings", w["ds"] / "text_embeddings.npy", "--names", w["ds"] / "gt" / "label_names.json",
+         "--out", w["ds"] / "gt" / "label_names.json"], [w["ds"] / "gt"], "--names"),
+    "segment_out_is_default_names": lambda w, t: (
+        ["segment", w["reg"], "--embeddings", w["ds"] / "text_embeddings.npy", "--out", w["ds"] / "gt" / "label_names.json"],
+        [w["ds"] / "gt"], "gt/label_names.json"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(ROUND3_OVERWRITES))
+def test_outputs_onto_camera_files_images_features_and_names_are_refused(tmp_path, world, capsys, name):
+    """Round 3 A1-A3: register --out onto a camera file or image of --source, pq train --out onto a
+    feature file, segment --out onto the names file (given or found by default): exit 1, one error
+    naming the output and the input, every input byte unchanged."""
+    argv, inputs, word = ROUND3_OVERWRITES[name](world, tmp_path)
+    before = digest(*inputs)
+    code, err = run_cli(argv, capsys)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert "cannot write" in line and Path(argv[argv.index("--out") + 1]).name in line and word in line, line
+    assert digest(*inputs) == before
+
+
+def _with_lang_columns(world, path: Path, convert) -> Path:
+    """A copy of the world's registered PLY whose lang_<j> columns are `convert(ushort column)`."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(world["reg"])
+    extra = {k: (convert(v) if k[5:].isdigit() and k.startswith("lang_") else v) for k, v in scene.extra.items()}
+    save_ply(dataclasses.replace(scene, extra=extra), path)
+    return path
+
+
+def test_lang_columns_declared_float_are_read_only_when_they_hold_the_bits(tmp_path, world, capsys):
+    """Round 3 C4: lang_<j> declared float holding the real features (not float16 bits) was cast
+    to ushort, every score 0, no word; now one error naming the file, the property and both types.
+    Floats holding the ushort values (a tool that widened every property) still read exactly."""
+    bits = tmp_path / "bits.ply"
+    real = tmp_path / "real.ply"
+    _with_lang_columns(world, bits, lambda v: v.astype(np.float32))
+    _with_lang_columns(world, real, lambda v: v.view(np.float16).astype(np.float32))
+    ref, got = tmp_path / "ref.npy", tmp_path / "got.npy"
+    assert run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", ref], capsys)[0] == 0
+    assert run_cli(["query", bits, "--embedding", world["q"], "--scores", got], capsys)[0] == 0
+    np.testing.assert_array_equal(np.load(got), np.load(ref))
+    before = digest(real)
+    code, err = run_cli(["query", real, "--embedding", world["q"], "--scores", tmp_path / "s.npy"], capsys)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert "real.ply" in line and "field 'lang_0'" in line and "declared float" in line and "expected ushort" in line, line
+    assert not (tmp_path / "s.npy").exists() and digest(real) == before
+
+
+def test_compressed_ply_packed_property_declared_float_is_refused(tmp_path):
+    """Round 3 C4: a SuperSplat packed_* property declared float with non-whole values is refused
+    naming it and both types; the same file with the declared uint loads."""
+    from drsplat.errors import InputError
+    from drsplat.scene import load_ply
+
+    ranges = [f"{p}_{a}" for p in ("min", "max", "min_scale", "max_scale") for a in "xyz"]
+    chunk = np.array([[0, 0, 0, 1, 1, 1, -5, -5, -5, 0, 0, 0]], "<f4").tobytes()
+    packed = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+
+    def compressed(position_type: str, position: bytes) -> bytes:
+        header = ["element chunk 1", *(f"property float {r}" for r in ranges), "element vertex 1",
+                  f"property {position_type} packed_position", *(f"property uint {p}" for p in packed[1:])]
+        return ply_bytes(header, chunk + position + np.array([1 << 30, 0, 0xFFFFFFFF], "<u4").tobytes())
+
+    good = tmp_path / "good.ply"
+    good.write_bytes(compressed("uint", np.array([123456789], "<u4").tobytes()))
+    assert load_ply(good).num_gaussians == 1
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(compressed("float", np.array([0.25], "<f4").tobytes()))
+    with pytest.raises(InputError, match=r"bad\.ply: field 'packed_position': property packed_position is declared float.*expected uint"):
+        load_ply(bad)
+
+
+def test_registered_ply_whose_comment_dim_disagrees_with_its_columns_names_the_ply(tmp_path, world, capsys):
+    """Round 3 D1: the header says dim=D/2 but the file has D lang_<j> columns: the error names the
+    PLY and the mismatch (it blamed the query file)."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(world["reg"])
+    dim = world["dim"]
+    comments = [c.replace(f"dim={dim}", f"dim={dim // 2}") for c in scene.comments]
+    ply = tmp_path / "half.ply"
+    save_ply(dataclasses.replace(scene, comments=comments), ply)
+    code, err = run_cli(["query", ply, "--embedding", world["q"], "--scores", tmp_path / "s.npy"], capsys)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert "half.ply" in line and f"dim={dim // 2}" in line and f"{dim} feature columns" in line and "q.npy" not in line, line
+
+
+def test_output_names_too_long_for_a_temp_name_are_written(tmp_path, world, capsys):
+    """Round 3 D2: a 251-byte output name (valid) was refused because '.NAME.PID.RANDOM.tmp' passed
+    255 bytes; temp names now shorten long names (same folder, a hash keeps them unique)."""
+    from drsplat.utils import temp_stem
+
+    out = tmp_path / ("s" * 247 + ".npy")
+    stale = tmp_path / f".{temp_stem(out)}.999999999.x1y2.tmp"  # left by a dead writer: swept under the short name too
+    stale.write_bytes(b"half")
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", out], capsys)
+    assert code == 0, err
+    assert np.load(out).shape == (load_scene_rows(world["reg"]),)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+def load_scene_rows(path: Path) -> int:
+    from drsplat.scene import load_ply
+
+    return load_ply(path).num_gaussians

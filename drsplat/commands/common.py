@@ -234,6 +234,17 @@ def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs:
     guard_outputs(inputs, written, protected_folders)
 
 
+def protected_feature_folders(flag: str, folders: list[Path | None]) -> dict[str, tuple[Path | None, tuple[str, ...]]]:
+    """`guard_args`' protected_folders for feature folders given to `flag`: an output there may not
+    be named like a feature file (`*_f.npy`, `*_s.npy`, manifest.json), which it would replace."""
+    from drsplat.features.format import FEATURE_FILE_PATTERNS
+
+    given = [f for f in folders if f is not None]
+    if len(given) == 1:
+        return {flag: (given[0], FEATURE_FILE_PATTERNS)}
+    return {f"{flag} {folder}": (folder, FEATURE_FILE_PATTERNS) for folder in given}
+
+
 def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
     """`--format standard|drsplat` for the PLY an option (`flag`) writes (drsplat.lang.export_scene)."""
     from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS

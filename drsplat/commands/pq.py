@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import MAX_COUNT, guard_args, int_range, positive_int, seed_int
+from drsplat.commands.common import MAX_COUNT, guard_args, int_range, positive_int, protected_feature_folders, seed_int
 from drsplat.errors import InputError
 from drsplat.lang.codebook import PQ_KSUB
 
@@ -76,7 +76,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
 def run_train(args: argparse.Namespace) -> int:
     from drsplat.lang import train_codebook
 
-    guard_args(args, ("out",))
+    guard_args(args, ("out",), protected_folders=protected_feature_folders("--features", args.features))
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
         raise InputError(None, f"--m {args.m} does not divide the embedding dimension {x.shape[1]}")

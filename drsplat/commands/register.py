@@ -6,10 +6,9 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import guard_args, nonneg_int, positive_int, resolution_value, size_value, topk_int
+from drsplat.commands.common import guard_args, nonneg_int, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
-from drsplat.features.format import FEATURE_FILE_PATTERNS
 from drsplat.utils import CancelToken, cancel_on_signals
 
 log = logging.getLogger(__name__)
@@ -58,7 +57,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.cameras import load_cameras
+    from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.lang import codebook_path_for
     from drsplat.registration import RegisterOptions, register
     from drsplat.scene import load_ply
@@ -72,11 +71,12 @@ def run(args: argparse.Namespace) -> int:
     written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
         written_codebook = None  # the codebook already sits where the registered PLY names it
-    guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file},
-               extra_outputs={"the codebook written beside --out": written_codebook},
-               protected_folders={"--features": (args.features, FEATURE_FILE_PATTERNS)})
-    scene = load_ply(args.scene)
+    # the cameras come first: the files they were read from and the images they name are inputs too
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
+    guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
+               extra_outputs={"the codebook written beside --out": written_codebook},
+               protected_folders=protected_feature_folders("--features", [args.features]))
+    scene = load_ply(args.scene)
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

@@ -84,7 +84,7 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
     import json
 
     explicit = names_path is not None
-    path = names_path if explicit else embeddings.parent / "gt" / "label_names.json"
+    path = names_path if explicit else default_names_path(embeddings)
     if explicit or path.is_file():
         try:
             names = json.loads(path.read_text())
@@ -96,6 +96,22 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
             raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
         log.info("ignoring %s: it does not name the %d label rows", path, count)
     return [f"label_{i}" for i in range(count)]
+
+
+def default_names_path(embeddings: Path) -> Path:
+    """Where a synthetic dataset keeps the names of its label embeddings: gt/label_names.json beside them."""
+    return embeddings.parent / "gt" / "label_names.json"
+
+
+def names_input(args: argparse.Namespace) -> Path | None:
+    """The names file `embedding_names` will read (--names, else the default beside --embeddings when
+    it exists), or None: an input that no output may replace."""
+    if getattr(args, "embeddings", None) is None:
+        return None
+    if getattr(args, "names", None) is not None:
+        return args.names
+    default = default_names_path(args.embeddings)
+    return default if default.is_file() else None
 
 
 def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray) -> GaussianScene:
@@ -113,7 +129,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
-              "the registered PLY's codebook": codebook_path_for(args.registered)}
+              "the registered PLY's codebook": codebook_path_for(args.registered),
+              "--names" if getattr(args, "names", None) is not None else "--names (by default gt/label_names.json)": names_input(args)}
     guard_outputs(inputs, {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)})
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)

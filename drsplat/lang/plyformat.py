@@ -36,7 +36,7 @@ from drsplat.errors import InputError
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
-from drsplat.scene import GaussianScene, save_ply
+from drsplat.scene import GaussianScene, check_integer_column, save_ply
 from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
@@ -200,6 +200,9 @@ def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str]
     cells = meta_cells(scene.extra)
     if meta is not None or cells is None:
         return meta
+    for name, column in scene.extra.items():
+        if is_meta_column(name):
+            check_stored_type(Path(ply_path), name, np.asarray(column))
     text = decode_meta_column(cells)
     if text is None:
         raise InputError(ply_path, "the language field's metadata column does not decode (rows lost or altered)", field=META_PROPERTY)
@@ -228,6 +231,9 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if not 1 <= dim <= MAX_DIM:
         raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field=where)
     clip_model = meta.get("clip", "unknown")
+    if not needs_codebook(kind) and f"lang_{dim}" in scene.extra:
+        raise InputError(ply_path, f"declares dim={dim} but has {_feature_columns(scene)} feature columns lang_<j>, "
+                         f"so the metadata does not describe this file's features", field=where)
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
     book = None
     if needs_codebook(kind):
@@ -249,6 +255,11 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
     return LanguageField(dim, clip_model, weights, storage)
+
+
+def _feature_columns(scene: GaussianScene) -> int:
+    """How many exact-feature properties (`lang_<j>`) a scene has."""
+    return sum(1 for name in scene.extra if name.startswith("lang_") and name[len("lang_"):].isdigit())
 
 
 def _without_altered_codes(storage, ply_path: Path):
@@ -277,9 +288,35 @@ def codebook_named_by(ply_path: Path, name: str) -> Path:
 
 
 def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
+    """A language-field property, its declared type checked (`check_stored_type`)."""
     if name not in scene.extra:
         raise InputError(ply_path, "missing vertex property of the language field", field=name)
-    return np.asarray(scene.extra[name])
+    column = np.asarray(scene.extra[name])
+    check_stored_type(ply_path, name, column)
+    return column
+
+
+def integer_storage(name: str) -> tuple[str, str, bool] | None:
+    """(PLY type, meaning, holds bit patterns) of a language property stored as integers, None for
+    the float ones (lang_weight, lang_norm): what `check_integer_column` checks it against."""
+    suffix = name[len("lang_"):]
+    if suffix.isdigit():
+        return "ushort", "float16 bit patterns", True
+    if is_meta_column(name):
+        return "ushort", "metadata position << 8 | byte", True
+    if suffix.startswith("code_"):
+        return "uchar", "PQ codes", False
+    if name == "lang_list":
+        return "int", "coarse list ids", False
+    return None
+
+
+def check_stored_type(ply_path: Path, name: str, column: np.ndarray) -> None:
+    """Refuse a language property whose declared PLY type would be misread as its storage type
+    (floats holding real features where float16 bits belong cast to 0)."""
+    storage = integer_storage(name)
+    if storage is not None:
+        check_integer_column(ply_path, name, column, storage[0], storage[1], bit_pattern=storage[2])
 
 
 # --------------------------------------------------------------------------------------------
