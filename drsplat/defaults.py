@@ -7,12 +7,15 @@ MAX_TOPK = 1024  # Gaussians kept per pixel at most (top-k buffers are [H, W, k]
 DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)
 DEFAULT_CODEBOOK = "none"  # exact float16 field; "scene" trains PQ on the scene, a path names a faiss codebook
-DEFAULT_AGGREGATE = "vote-reject"  # registration's aggregation mode: the paper's weighted mean trimmed by votes across views, floaters rejected (docs/evaluation.md, "Choosing the default")
+DEFAULT_AGGREGATE = "fit-check-vote-reject"  # registration's aggregation mode: the fit stage's footprint (paper or sharp), contradicted masks dropped, the mean trimmed by votes across views, floaters rejected (docs/evaluation.md, "The fit stage")
 AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core-reject", "ellipse-reject",
                    "centre", "anchor", "anchor-reject", "explain", "explain-reject",
                    "vote", "vote-reject", "explain-vote-reject",
                    "solve", "solve-reject", "solve-vote", "solve-vote-reject",
-                   "check", "check-reject", "check-vote", "check-vote-reject")  # drsplat.registration.aggregate implements them
+                   "check", "check-reject", "check-vote", "check-vote-reject",
+                   "sharp", "sharp-reject", "sharp-vote", "sharp-vote-reject",
+                   "fit", "fit-reject", "fit-vote", "fit-vote-reject",
+                   "sharp-check-vote-reject", "fit-check-vote-reject")  # drsplat.registration.aggregate implements them
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)

@@ -150,7 +150,7 @@ def test_coalescing_never_waits_for_the_device():
     assert counter.counts.ops < 60
 
 
-WEIGHTINGS = ("paper", "responsibility", "core", "ellipse", "centre", "anchor")
+WEIGHTINGS = ("paper", "responsibility", "core", "ellipse", "centre", "anchor", "sharp")
 
 
 def projection(seed: int, n: int, h: int, w: int):

@@ -127,8 +127,9 @@ def test_ray_workers_read_their_features_and_a_missing_file_fails_where_the_loca
     kept = missing.read_bytes()
     missing.unlink()  # its _s.npy stays: the driver pairs the view, the worker finds no embeddings
     out, reference = tmp_path / "out" / "reg.ply", tmp_path / "local.ply"
-    register(scene, cams, tiny / "features", reference, RegisterOptions(), show_progress=False)
-    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024)
+    # not the default's fit stage: it reads its probe views (1, 3, 5, 7 of 8) on the driver first
+    register(scene, cams, tiny / "features", reference, RegisterOptions(aggregate="check-vote-reject"), show_progress=False)
+    options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024, aggregate="check-vote-reject")
     with caplog.at_level("WARNING"), pytest.raises(DrsplatError) as failed:
         register(scene, cams, features, out, options, show_progress=False)
     message = str(failed.value)

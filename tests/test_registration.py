@@ -371,26 +371,26 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
     import os
     import signal
 
-    import drsplat.registration.sums as registration
+    import drsplat.registration.compute as registration
     from drsplat.cli import main
 
     calls = {"n": 0}
-    original = registration.Accumulator.add_pairs
+    original = registration.ViewComputer.compute
 
-    def add_view_then_ctrl_c(self, *a):
+    def add_view_then_ctrl_c(self, *a):  # every mode computes its views here (a check mode sums them after the pass)
         calls["n"] += 1
         if calls["n"] == 4:
             os.kill(os.getpid(), signal.SIGINT)
         return original(self, *a)
 
-    monkeypatch.setattr(registration.Accumulator, "add_pairs", add_view_then_ctrl_c)
+    monkeypatch.setattr(registration.ViewComputer, "compute", add_view_then_ctrl_c)
     out = tmp_path / "out.ply"
     args = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"]
     before = signal.getsignal(signal.SIGINT)  # Python's default, or SIG_IGN where the suite was started in the background
     assert main(args) == 1 and not out.exists()
     assert len(list(tmp_path.glob(".out.ply.register.log"))) == 1  # the checkpoint, a hidden file
     assert signal.getsignal(signal.SIGINT) is before  # the command's own handler is gone again
-    monkeypatch.setattr(registration.Accumulator, "add_pairs", original)
+    monkeypatch.setattr(registration.ViewComputer, "compute", original)
     assert "stopping after the current view" in capsys.readouterr().err
     assert main(args) == 0
     assert "4 of 16 views already registered" in capsys.readouterr().err

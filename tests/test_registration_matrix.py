@@ -18,6 +18,7 @@ from drsplat.defaults import AGGREGATE_MODES
 from drsplat.errors import InputError, UsageError
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.aggregate import mode_stages
+from drsplat.registration.fit import probe_views, resolve_mode
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 
@@ -46,8 +47,12 @@ def reference(room, tmp_path_factory) -> dict[str, bytes]:
 
 
 def test_modes_give_different_fields(reference):
-    """The matrix would prove nothing if the modes all wrote the same file."""
-    assert len(set(reference.values())) == len(AGGREGATE_MODES)
+    """The matrix would prove nothing if the modes all wrote the same file. A fit mode resolves to
+    one of them (drsplat.registration.fit): on this room's footprint masks, the paper's."""
+    concrete = [m for m in AGGREGATE_MODES if mode_stages(m).weighting != "fit"]
+    assert len({reference[m] for m in concrete}) == len(concrete)
+    for mode in set(AGGREGATE_MODES) - set(concrete):
+        assert reference[mode] == reference[resolve_mode(mode, "paper")]
 
 
 @pytest.mark.parametrize("engine,block", [("numba", BLOCK), ("torch", None), ("torch", BLOCK)])
@@ -86,10 +91,11 @@ def test_what_cannot_run_is_refused_up_front(room, tmp_path, options, message):
     assert list(tmp_path.iterdir()) == []  # nothing written, no checkpoint
 
 
-@pytest.mark.parametrize("bad_view", [0, 3])
+@pytest.mark.parametrize("bad_view", [0, 3, 4])
 def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_path, bad_view, caplog):
-    """A run that fails on its first view leaves nothing behind; one that fails later keeps the log of the
-    views done, says so in one warning, and the rerun (input fixed) resumes and writes the reference file."""
+    """A run that fails on its first view, or in the default mode's fit stage (views 0, 2, 3 and 5 of
+    6 are its probe views), leaves nothing behind; one that fails later keeps the log of the views
+    done, says so in one warning, and the rerun (input fixed) resumes and writes the reference file."""
     scene, cams, features = room
     copy = tmp_path / "features"
     shutil.copytree(features, copy)
@@ -101,15 +107,15 @@ def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_p
         register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
     assert not out.exists()
     left = sorted(p.name for p in out.parent.iterdir()) if out.parent.exists() else []
-    if bad_view == 0:
+    if bad_view in probe_views(VIEWS):
         assert left == [] and "checkpoint" not in caplog.text
         return
-    # the log, and the default mode's per-view statistics beside it (vote-reject keeps some)
+    # the log, and the default mode's per-view statistics beside it (its -reject stage keeps some)
     assert left[0] == ".reg.ply.register.log" and all(name.startswith(".reg.ply.register.log") for name in left)
-    assert f"kept the registration checkpoint {out.parent / '.reg.ply.register.log'} (3 of {VIEWS} views" in caplog.text
+    assert f"kept the registration checkpoint {out.parent / '.reg.ply.register.log'} ({bad_view} of {VIEWS} views" in caplog.text
     bad.write_bytes(good)
     caplog.clear()
     with caplog.at_level("INFO"):
         result = register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
-    assert result.resumed_views == 3 and "3 of 6 views already registered" in caplog.text
+    assert result.resumed_views == bad_view and f"{bad_view} of 6 views already registered" in caplog.text
     assert sorted(p.name for p in out.parent.iterdir()) == ["reg.ply"]

@@ -338,8 +338,9 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         random_mask_features(features_dir, cameras, np.random.default_rng(0))
         base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
         other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
-        counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, aggregate)
-        profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, aggregate, trace=trace) if profile_views > 0 else ""
+        per_view = base.aggregate  # a fit mode's views run the mode its fit stage resolved to
+        counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, per_view)
+        profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, per_view, trace=trace) if profile_views > 0 else ""
     wdiff, mismatch = 0.0, 0.0
     prep_n, prep_o = prepare_for_engine(scene, "numba"), prepare_for_engine(scene, engine, device)
     for cam in cameras[:agree_views]:

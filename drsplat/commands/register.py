@@ -34,7 +34,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
                    "(weight by the Gaussian's own falloff / only its 2-sigma ellipse), responsibility (w / pixel sum), "
                    "centre / anchor (only / also a vote at the pixel of its projected centre), explain (per-view EM: "
-                   "who explains each pixel's mask), *-vote (the mean trimmed of masks a minority of views vote for: "
+                   "who explains each pixel's mask), sharp (the Gaussian's footprint before 3DGS's 0.3 px2 screen filter: "
+                   "masks that follow true silhouettes), fit (paper or sharp, whichever re-renders a few probe views' masks "
+                   "better), *-vote (the mean trimmed of masks a minority of views vote for: "
                    "mislabelled masks), *-reject (also leave floaters unassigned); stages combine as "
                    "WEIGHTING-vote-reject; see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",

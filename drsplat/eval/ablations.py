@@ -395,28 +395,43 @@ def plot(result: AblationResult, path: Path) -> None:
 
 
 def _plot_aggregate(result: AblationResult, plt):
-    """Grouped bars at the largest top-k: seg mIoU (vol) labelled-only and with unlabelled Gaussians
-    as false positives, per preset and mode; floaters kept and time per view per mode."""
+    """At the largest top-k: seg mIoU vol (labelled only, and with unlabelled Gaussians as false
+    positives) per mode, averaged over the presets of each mask source and corruption (the rows'
+    labels after the preset name; one group when there are none); floaters kept per mode; and speed
+    against error: the mean labelled seg mIoU over every row against the time per view relative
+    to the first mode (the interleaved timing when there is one, else the rows' ms/view)."""
     cols = result.columns
     k = max(r[2] for r in result.rows)
     rows = [r for r in result.rows if r[2] == k]
-    presets = list(dict.fromkeys(r[0] for r in rows))
     modes = list(dict.fromkeys(r[1] for r in rows))
-    get = {(r[0], r[1]): r for r in rows}
-    fig, axes = plt.subplots(1, 4, figsize=(20, 4.5), gridspec_kw={"width_ratios": [3, 3, 1.2, 1.2]})
+
+    def group(label: str) -> str:
+        return label.split(" ", 1)[1] if " " in label else "all"
+
+    groups = list(dict.fromkeys(group(r[0]) for r in rows))
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.5), gridspec_kw={"width_ratios": [3, 3, 1.2, 1.6]})
     width = 0.8 / len(modes)
-    xs = np.arange(len(presets))
+    xs = np.arange(len(groups))
     for ax, metric in zip(axes[:2], ("seg mIoU vol", "seg mIoU vol +unl")):
-        for m, mode in enumerate(modes):
-            ax.bar(xs + m * width, [get[p, mode][cols.index(metric)] for p in presets], width, label=mode)
-        lo = min(get[p, mode][cols.index(metric)] for p in presets for mode in modes)
-        ax.set(ylim=(max(0.0, lo - 0.05), 1.0), ylabel=metric, title=f"{metric}, top-k {k}")
-        ax.set_xticks(xs + 0.4 - width / 2, [p.replace("hard-", "") for p in presets], fontsize=8)
+        c = cols.index(metric)
+        means = {(g, m): np.mean([r[c] for r in rows if r[1] == m and group(r[0]) == g]) for g in groups for m in modes}
+        for i, mode in enumerate(modes):
+            ax.bar(xs + i * width, [means[g, mode] for g in groups], width, label=mode)
+        ax.set(ylim=(max(0.0, min(means.values()) - 0.05), 1.0), ylabel=metric, title=f"{metric}, top-k {k}, mean over presets")
+        ax.set_xticks(xs + 0.4 - width / 2, groups, fontsize=8)
     axes[0].legend(fontsize=7, ncol=2)
-    for ax, col, title in ((axes[2], "floaters kept", "unlabelled kept"), (axes[3], "ms/view", "ms per view")):
-        ax.bar(np.arange(len(modes)), [np.mean([get[p, mode][cols.index(col)] for p in presets]) for mode in modes], color="C0")
-        ax.set_xticks(np.arange(len(modes)), modes, rotation=45, ha="right", fontsize=8)
-        ax.set(title=title + " (mean over presets)")
+    floaters = cols.index("floaters kept")
+    axes[2].bar(np.arange(len(modes)), [np.mean([r[floaters] for r in rows if r[1] == m]) for m in modes], color="C0")
+    axes[2].set_xticks(np.arange(len(modes)), modes, rotation=45, ha="right", fontsize=8)
+    axes[2].set(title="unlabelled kept (mean)")
+    timing = result.extra.get("timing", {}).get("ms_per_view", {})
+    ms = {m: timing.get(m, np.mean([r[cols.index("ms/view")] for r in rows if r[1] == m])) for m in modes}
+    seg = cols.index("seg mIoU vol")
+    for i, mode in enumerate(modes):
+        x, y = ms[mode] / ms[modes[0]], np.mean([r[seg] for r in rows if r[1] == mode])
+        axes[3].scatter([x], [y], color=f"C{i}", s=40)
+        axes[3].annotate(mode, (x, y), fontsize=7, xytext=(4, 2), textcoords="offset points")
+    axes[3].set(xlabel=f"time per view vs {modes[0]}", ylabel="labelled seg mIoU vol (mean of all rows)", title="speed against error")
     return fig
 
 

@@ -21,10 +21,26 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                                                        = 2π / sqrt(a·c - b²) = Σ_p exp(-½ d²), so an
                                                        unoccluded Gaussian's centre pixel weighs about as
                                                        much as its whole footprint, an occluded one little
+    sharp           w · max(exp(-½ dᵀ (Σ₀⁻¹ - Σ'⁻¹) d), SHARP_FLOOR)
+                                                       the Gaussian's own footprint before 3DGS's screen-space
+                                                       low-pass filter: Σ' = Σ₂ + 0.3·I is what the rasterizer
+                                                       evaluates (Σ₂ = J W Σ Wᵀ Jᵀ), Σ₀ = Σ₂ + SHARP_BLUR·I
+                                                       keeps 0.001 px² of it (positive definite for a point-
+                                                       like Gaussian too); so w̃ = T·o·exp(-½ dᵀ Σ₀⁻¹ d) where
+                                                       α is not clamped: the pixel centre sampled through the
+                                                       surface patch's true extent, as a ray-cast silhouette
+                                                       is. Σ₀ ⪯ Σ' makes the factor ≤ 1; it is ~1 over a
+                                                       Gaussian many pixels wide and falls off fast around a
+                                                       thin or small one. The floor (1e-4) keeps every
+                                                       Gaussian the paper assigns assigned (one that never
+                                                       covers a pixel centre keeps the paper's proportions)
+    fit             per registration, paper or sharp: the footprint whose labelling re-renders a few
+                    probe views' masks better (drsplat.registration.fit)
     reject          w, then floater rejection
     core-reject     core, then floater rejection
     ellipse-reject  ellipse, then floater rejection
     anchor-reject   anchor, then floater rejection
+    sharp-reject, sharp-vote, sharp-vote-reject, fit-reject, fit-vote, fit-vote-reject   the stages in that order
     explain         w redistributed between the view's masks by who explains each pixel's mask
                     (per-view EM, `explain_weights`: a label-space stand-in for a render-consistent
                     solve); the Gaussian's total weight in the view is kept
@@ -39,10 +55,11 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                     (drsplat.registration.check: a mislabelled mask judged over all its Gaussians;
                     one block in memory only)
     check-reject, check-vote, check-vote-reject   the check, then the vote and / or rejection
+    sharp-check-vote-reject, fit-check-vote-reject   the check on the sharp / the fit stage's weights
 
-A mode's name lists its stages, "[WEIGHTING][-vote][-reject]" (`mode_stages`); WEIGHTING "solve"
-means the paper's w in the views and the solve stage on the sums, "check" the paper's w and the
-check stage before the sums.
+A mode's name lists its stages, "[WEIGHTING][-check][-vote][-reject]" (`mode_stages`); WEIGHTING
+"solve" means the paper's w in the views and the solve stage on the sums; "check" alone, the
+paper's w and the check stage before the sums.
 
 d is the offset of the Gaussian's screen mean from the pixel centre and Σ' its screen covariance,
 exactly as the compositor evaluates α = min(0.99, o·exp(-½ d²)); the 2σ ellipse always holds
@@ -83,27 +100,34 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, VOTE_SLOT_BYTES
+from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
-WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor")  # per-pixel (`view_weights`)
+WEIGHTINGS = ("paper", "core", "ellipse", "responsibility", "centre", "anchor", "sharp")  # per-pixel (`view_weights`)
 MASK_WEIGHTINGS = ("explain",)  # also read the view's masks (`explain_weights`)
 ELLIPSE_D2 = 4.0  # squared Mahalanobis radius of the ellipse mode (2σ)
 EXPLAIN_ITERATIONS = 3  # EM iterations of the explain weighting per view (docs/registration.md, "Design choices, measured")
 ANCHOR_GAIN = 1.0  # c of the anchor mode: the centre pixel's extra vote, in units of the Gaussian's footprint
+SHARP_BLUR = 0.001  # px² of 3DGS's 0.3 px² low-pass filter the sharp weighting keeps (module docstring)
+SHARP_FLOOR = 1e-4  # the sharp factor's floor: a Gaussian the paper assigns stays assigned (module docstring)
+SHARP_LOG_FLOOR = float(np.log(SHARP_FLOOR))  # below this exponent the factor is the floor
+# 1/n!, n = 14 .. 0: the Taylor terms of exp(q/16) (`sharp_exp`)
+SHARP_EXP_TERMS = tuple(1.0 / math.factorial(n) for n in range(14, -1, -1))
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
-_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5}
-PROJECTED_WEIGHTINGS = ("core", "ellipse", "centre", "anchor")  # weightings that need the view's screen means / conics
+_WEIGHTING_CODE = {"paper": 0, "core": 1, "ellipse": 2, "responsibility": 3, "centre": 4, "anchor": 5, "sharp": 6}
+PROJECTED_WEIGHTINGS = ("core", "ellipse", "centre", "anchor", "sharp")  # weightings that need the view's screen means / conics
 
 
 @dataclass(frozen=True)
@@ -115,12 +139,12 @@ class Stages:
     vote: bool
     reject: bool
     solve: bool = False  # the render-consistent solve on the sums (weighting "paper" in the views)
-    check: bool = False  # masks dropped by the cross-view check before the sums (weighting "paper" in the views)
+    check: bool = False  # masks dropped by the cross-view check before the sums (drsplat.registration.check)
 
 
 def mode_stages(mode: str) -> Stages:
-    """The stages of a mode name "[WEIGHTING][-vote][-reject]" ("vote" alone: paper weights);
-    ValueError for an unknown mode."""
+    """The stages of a mode name "[WEIGHTING][-check][-vote][-reject]" ("vote" or "check" alone:
+    paper weights; "solve" is a stage on the paper's weights); ValueError for an unknown mode."""
     if mode not in AGGREGATE_MODES:
         raise ValueError(f"unknown aggregation mode {mode!r} (choose from {', '.join(AGGREGATE_MODES)})")
     parts = mode.split("-")
@@ -130,9 +154,9 @@ def mode_stages(mode: str) -> Stages:
     parts = parts[:-1] if vote else parts
     if parts and parts[0] == "solve":
         return Stages("paper", vote, reject, solve=True)
-    if parts and parts[0] == "check":
-        return Stages("paper", vote, reject, check=True)
-    return Stages(parts[0] if parts else "paper", vote, reject)
+    check = bool(parts) and parts[-1] == "check"
+    parts = parts[:-1] if check else parts
+    return Stages(parts[0] if parts else "paper", vote, reject, check=check)
 
 
 def split_mode(mode: str) -> tuple[str, bool]:
@@ -174,7 +198,29 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
         return np.where(at_centre, w, 0.0).astype(np.float32)
     if weighting == "anchor":
         return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
+    if weighting == "sharp":
+        da, db, dc = sharpening(conics).T
+        q = -0.5 * (da[g] * dx * dx + dc[g] * dy * dy) - db[g] * dx * dy
+        return (w * np.maximum(np.exp(np.minimum(q, 0.0)), SHARP_FLOOR)).astype(np.float32)
     raise ValueError(f"unknown weighting {weighting!r}")
+
+
+def sharpening(conics: np.ndarray) -> np.ndarray:
+    """[N, 3] (a, b, c) of Δ = Σ₀⁻¹ - Σ'⁻¹ for conics [N, 3] = Σ'⁻¹ (the sharp weighting's
+    exponent is -½ dᵀ Δ d): Σ' = conic⁻¹, Σ₀ = Σ' - (BLUR - SHARP_BLUR)·I. Rows whose conic or Σ₀
+    is not positive definite (not rendered, or rounding) get Δ = 0: the paper's weight."""
+    a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
+    det = a * c - b * b
+    ok = det > 0
+    safe = np.where(ok, det, 1.0)
+    sxx = c / safe - (BLUR - SHARP_BLUR)
+    sxy = -b / safe
+    syy = a / safe - (BLUR - SHARP_BLUR)
+    det0 = sxx * syy - sxy * sxy
+    ok &= (det0 > 0) & (sxx > 0)
+    safe0 = np.where(ok, det0, 1.0)
+    delta = np.stack([syy / safe0 - a, -sxy / safe0 - b, sxx / safe0 - c], axis=1)
+    return np.where(ok[:, None], delta, 0.0)
 
 
 def footprint_area(conics: np.ndarray) -> np.ndarray:
@@ -234,9 +280,73 @@ def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: 
         raise ValueError(f"unknown weighting {weighting!r}")
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
-    _view_weights_kernel(_WEIGHTING_CODE[weighting], np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32),
-                         np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64), ELLIPSE_D2, float(anchor_gain), out)
+    ids, weights = np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32)
+    means2d, conics = np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64)
+    if weighting == "sharp":
+        delta = np.empty_like(conics)
+        _sharpening_kernel(conics, BLUR - SHARP_BLUR, delta)
+        parts = max(1, min(ids.shape[0], 4 * numba.get_num_threads()))  # runs of rows, each with one row buffer
+        _sharp_weights_kernel(ids, weights, means2d, delta, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
+        return out
+    _view_weights_kernel(_WEIGHTING_CODE[weighting], ids, weights, means2d, conics, ELLIPSE_D2, float(anchor_gain), out)
     return out
+
+
+@numba.njit(inline="always")
+def sharp_exp(q):  # pragma: no cover - jitted
+    """exp(q) for SHARP_LOG_FLOOR ≤ q ≤ 0 as (Σ_{n ≤ 14} (q/16)ⁿ / n!)¹⁶: Horner, then four squarings
+    (relative error 9e-15 at most there: tests/test_fit.py). No library call, so a loop of it
+    vectorises; the torch engine evaluates the same operations (`device_sums.sharp_exp_torch`)."""
+    t = q * 0.0625
+    p = 0.0
+    for c in SHARP_EXP_TERMS:
+        p = p * t + c
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@numba.njit(parallel=True, cache=True)
+def _sharpening_kernel(conics, shift, out):  # pragma: no cover - jitted
+    """out[g] = `sharpening`(conics)[g], the same operations, in parallel over the Gaussians."""
+    for g in numba.prange(conics.shape[0]):
+        a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+        out[g, 0] = out[g, 1] = out[g, 2] = 0.0
+        det = a * c - b * b
+        if det > 0.0:
+            sxx, sxy, syy = c / det - shift, -b / det, a / det - shift
+            det0 = sxx * syy - sxy * sxy
+            if det0 > 0.0 and sxx > 0.0:
+                out[g, 0] = syy / det0 - a
+                out[g, 1] = -sxy / det0 - b
+                out[g, 2] = sxx / det0 - c
+
+
+@numba.njit(parallel=True, cache=True)
+def _sharp_weights_kernel(ids, weights, means2d, delta, log_floor, floor, parts, out):  # pragma: no cover - jitted
+    """out = the sharp weighting of each slot, over `parts` runs of rows in parallel: per row, first
+    the exponents q = -½ dᵀ Δ d (gathers; 0 for an empty slot), then w · max(sharp_exp(clamp(q,
+    log_floor, 0)), floor) over the row's slots in one branch-free loop (vectorised)."""
+    h, wd, k = ids.shape
+    for part in numba.prange(parts):
+        q = np.empty((wd, k))  # one row's exponents, reused by the part's rows
+        for y in range(part * h // parts, (part + 1) * h // parts):
+            py = y + 0.5
+            for x in range(wd):
+                px = x + 0.5
+                for s in range(k):
+                    g = ids[y, x, s]
+                    if g < 0:
+                        q[x, s] = 0.0
+                        continue
+                    dx = means2d[g, 0] - px
+                    dy = means2d[g, 1] - py
+                    q[x, s] = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
+            for x in range(wd):
+                for s in range(k):
+                    w = np.float64(weights[y, x, s]) if ids[y, x, s] >= 0 else 0.0
+                    out[y, x, s] = w * max(sharp_exp(min(max(q[x, s], log_floor), 0.0)), floor)
 
 
 # ----------------------------------------------------------------------------- per-view explanation (EM)

@@ -155,6 +155,11 @@ class Coalescer:
         self._touched = np.zeros((self.parts, num_gaussians), np.int32)
         self._alloc(max(1, capacity // self.parts))
 
+    @property
+    def num_gaussians(self) -> int:
+        """N: the Gaussians a view's ids index."""
+        return self._seen.shape[1]
+
     def coalesce(self, ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """ids, weights: [H, W, k]; mask_ids: [H, W] (-1 = none, else < num_masks).
 

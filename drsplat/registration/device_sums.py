@@ -56,7 +56,8 @@ from drsplat.raster import NEAR, project_gaussians
 from drsplat import raster_ops, raster_torch
 from drsplat.raster_ops import host_array, host_tensor
 from drsplat.raster_torch import TorchScene, triton_available, project_gaussians_torch, rasterize_torch
-from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
+from drsplat._raster_kernels import BLUR
+from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
                                             RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
@@ -438,6 +439,9 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
         dx, dy = mx - (xs + 0.5), my - (ys + 0.5)
         power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
         out = w * torch.exp(torch.clamp(power, max=0.0)) if weighting == "core" else torch.where(-2.0 * power <= ELLIPSE_D2, w, zero)
+    elif weighting == "sharp":
+        q = torch.clamp(_sharp_exponent(mx - (xs + 0.5), my - (ys + 0.5), a, b, c), min=SHARP_LOG_FLOOR, max=0.0)
+        out = w * torch.clamp(sharp_exp_torch(q), min=SHARP_FLOOR)
     else:
         at_centre = (torch.floor(mx) == xs) & (torch.floor(my) == ys)
         if weighting == "centre":
@@ -447,6 +451,34 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
             area = torch.where(det > 0, torch.full_like(det, 2.0 * torch.pi) / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
             out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
     return torch.where(valid, out, zero).to(torch.float32)
+
+
+def _sharp_exponent(dx: torch.Tensor, dy: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """-½ dᵀ Δ d of the sharp weighting per slot, in the numba kernel's order of operations
+    (Δ = Σ₀⁻¹ - Σ'⁻¹: drsplat.registration.aggregate.sharpening; 0 where the conic or Σ₀ is not
+    positive definite)."""
+    one = torch.ones_like(a)
+    det = a * c - b * b
+    safe = torch.where(det > 0, det, one)
+    shift = BLUR - SHARP_BLUR
+    sxx, sxy, syy = c / safe - shift, -b / safe, a / safe - shift
+    det0 = sxx * syy - sxy * sxy
+    ok = (det > 0) & (det0 > 0) & (sxx > 0)
+    safe0 = torch.where(ok, det0, one)
+    q = -0.5 * ((syy / safe0 - a) * dx * dx + (sxx / safe0 - c) * dy * dy) - (-sxy / safe0 - b) * dx * dy
+    return torch.where(ok, q, torch.zeros_like(q))
+
+
+def sharp_exp_torch(q: torch.Tensor) -> torch.Tensor:
+    """exp(q) for SHARP_LOG_FLOOR ≤ q ≤ 0 in the operations of the numba kernel's
+    `aggregate.sharp_exp` (Horner over SHARP_EXP_TERMS in q/16, four squarings): the same bits."""
+    t = q * 0.0625
+    p = torch.zeros_like(q)
+    for c in SHARP_EXP_TERMS:
+        p = p * t + c
+    for _ in range(4):
+        p = p * p
+    return p
 
 
 def explain_weights_torch(ids: torch.Tensor, weights: torch.Tensor, mask_ids: torch.Tensor, num_gaussians: int,

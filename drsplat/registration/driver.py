@@ -40,6 +40,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.fit import FitChoice, resolve_fit
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
@@ -91,7 +92,8 @@ class RegistrationResult:
     the reducer tasks' seconds summed over the blocks, whole tasks / their replays of the log (0
     without reducers). driver_view_cpu_seconds: this process's CPU time (all threads) on the
     computed views' results as they arrived (logging, the mode's statistics, the sink), the
-    driver's per-view work apart from waiting for the views and its fixed costs.
+    driver's per-view work apart from waiting for the views and its fixed costs. aggregate: the mode
+    that ran (a `fit` mode resolved to its footprint's); fit: the fit stage's decision, or None.
     """
 
     features: np.ndarray | None
@@ -130,6 +132,7 @@ class RegistrationResult:
     reducer_seconds: float = 0.0
     reducer_sum_seconds: float = 0.0
     driver_view_cpu_seconds: float = 0.0
+    fit: FitChoice | None = None
 
     @property
     def assigned(self) -> np.ndarray:
@@ -239,9 +242,12 @@ def run_registration(
     masks' embeddings in the result (always collected for a scene codebook).
     """
     t_start = time.perf_counter()
+    codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    # a fit mode's footprint is picked on its probe views before any view is summed
+    mode, fit = resolve_fit(run.options.aggregate, run.scene, run.views, run.features_dir, run.options.level, run.options.topk, cancel)
+    run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=mode))
     scene, options = run.scene, run.options
     n = scene.num_gaussians
-    codebook = resolve_codebook(options.codebook, run.dim)  # a bad codebook fails now, not after registering
     if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
         fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views), options.aggregate)
     block = options.block_size or _plan_block(run)
@@ -328,6 +334,7 @@ def run_registration(
         sums_on=sums_place(sink), pairs_on=options.device if device_pairs else "host",
         finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
+        fit=fit,
     )
 
 

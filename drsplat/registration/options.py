@@ -23,7 +23,8 @@ class RegisterOptions:
     starts a local one) that computes the views; ray_workers: tasks at once (default: the cluster's
     CPUs). engine, device: the rasterizer ("numba" on "cpu", "torch" on "cpu" / "cuda").
     aggregate: the aggregation mode (drsplat.defaults.AGGREGATE_MODES; "paper" is Dr. Splat's, the
-    default "vote-reject" trims its mean by votes across views and rejects floaters).
+    default "fit-check-vote-reject" weights by the footprint the masks follow (drsplat.registration.fit),
+    drops the masks the other views contradict, trims its mean by votes across views and rejects floaters).
     cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
     reducers: on Ray and in blocks, each block is summed, finished, encoded and written by a Ray
     task (drsplat.registration.reduce; the same bytes); False: by the driver, block after block.

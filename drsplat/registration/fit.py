@@ -1,0 +1,252 @@
+"""The fit stage (`--aggregate fit...`): do the masks follow the Gaussians' filtered footprints or
+their sharp ones?
+
+Whether a view's masks follow the footprints the rasterizer draws (3DGS's 0.3 px² screen-space
+low-pass filter included: the `paper` weights w) or the objects' true silhouettes (the surface
+patches themselves, sampled at the pixel centres: the `sharp` weights w̃ of
+drsplat.registration.aggregate) depends on the scene, its training and its segmenter, which a user
+cannot know, and it decides which weighting is right: on thin and small objects each loses where
+the other wins (docs/evaluation.md, "The fit stage"). The fit stage asks the data. In P probe views
+(`probe_views`: evenly spaced in the view list) and for each footprint u ∈ {paper, sharp}:
+
+    ℓ_u(g) = argmax_j Σ_{p : m(p) = j} u_g(p)         the view's own labelling of its Gaussians
+    r_u(p) = argmax_j Σ_s u_s(p)·[ℓ_u(g_s) = j]         that labelling re-rendered (s: p's top-k slots)
+    S_u    = mean over the masks j of the view of IoU({p : m(p) = j}, {p : r_u(p) = j})
+
+with m(p) the view's mask ids (-1 none); ties go to the lower mask id, a Gaussian with no weight on
+any mask takes no label, a pixel with no labelled weight renders none. The registration then runs
+with the sharp weights when the probe views' mean of S_sharp - S_paper is above zero, and with the
+paper's otherwise: "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`),
+and everything downstream (places, blocks, the pair log's header) sees that mode. The probe renders
+on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
+
+Cost: P extra top-k renders and, per probe view, two coalescings and two re-renders, O(H·W·k).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numba
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.raster import PreparedScene, prepare_scene, rasterize_topk
+from drsplat.registration.aggregate import view_weights
+from drsplat.registration.coalesce import Coalescer
+from drsplat.registration.views import load_view_features
+from drsplat.utils import CancelToken
+
+log = logging.getLogger(__name__)
+
+FIT_PROBES = 4  # probe views of the fit stage (evenly spaced; all views when there are fewer)
+FOOTPRINTS = ("paper", "sharp")
+
+
+@dataclass
+class FitChoice:
+    """The fit stage's decision: footprint "paper" or "sharp"; views: the probe views' names;
+    paper, sharp: [P] their scores S_u (module docstring)."""
+
+    footprint: str
+    views: list[str]
+    paper: np.ndarray
+    sharp: np.ndarray
+
+    @property
+    def margin(self) -> float:
+        """mean(S_sharp - S_paper) over the probe views (0 without any)."""
+        return float(np.mean(self.sharp - self.paper)) if len(self.views) else 0.0
+
+
+def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
+    """[min(count, num_views)] indices ⌊(i + ½)·V / P⌋ of the probe views, ascending and distinct."""
+    p = min(count, num_views)
+    return np.floor((np.arange(p) + 0.5) * num_views / max(p, 1)).astype(np.int64)
+
+
+def resolve_mode(mode: str, footprint: str) -> str:
+    """The concrete mode of a fit mode: "fit[-vote][-reject]" -> "[vote][-reject]" (paper; bare
+    "fit" -> "paper") or "sharp[-vote][-reject]"; other modes are returned as they are."""
+    if footprint not in FOOTPRINTS:
+        raise ValueError(f"unknown footprint {footprint!r} (choose from {', '.join(FOOTPRINTS)})")
+    if mode != "fit" and not mode.startswith("fit-"):
+        return mode
+    rest = mode[len("fit"):]
+    if footprint == "sharp":
+        return "sharp" + rest
+    return rest[1:] if rest else "paper"
+
+
+# ----------------------------------------------------------------------------- the score of one footprint
+
+
+def view_labels_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int) -> np.ndarray:
+    """[N] int32 ℓ(g) = argmax_j Σ_{p ∈ mask j} u_g(p) (ties: the lower j; -1: no weight on any mask).
+    ids, weights: [H, W, k]; mask_ids: [H, W]. numpy reference of `view_labels`."""
+    k = ids.shape[-1]
+    g = ids.reshape(-1, k)
+    m = np.broadcast_to(mask_ids.reshape(-1, 1), g.shape)
+    ok = (g >= 0) & (m >= 0)
+    keys, inverse = np.unique(np.stack([g[ok], m[ok]], 1), axis=0, return_inverse=True)
+    sums = np.zeros(len(keys), np.float32)  # float32, added in pixel then slot order: the coalesced pairs' sums
+    np.add.at(sums, inverse.ravel(), weights.reshape(-1, k)[ok].astype(np.float32))
+    labels = np.full(num_gaussians, -1, np.int32)
+    best = np.zeros(num_gaussians, np.float32)
+    for (gi, mj), s in zip(keys, sums):  # keys ascend by (g, m): a later mask wins only when strictly heavier
+        if s > best[gi]:
+            best[gi], labels[gi] = s, mj
+    return labels
+
+
+@numba.njit(cache=True)
+def _labels_kernel(g, m, w, best, labels):  # pragma: no cover - jitted
+    """labels[g] = the mask of g's heaviest pair (ties: the lower mask); best, labels [N]: 0, -1 on entry."""
+    for t in range(g.shape[0]):
+        i, j, s = g[t], m[t], w[t]
+        if s > best[i] or (s == best[i] and s > 0.0 and j < labels[i]):
+            best[i] = s
+            labels[i] = j
+
+
+def view_labels(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int, coalescer: Coalescer) -> np.ndarray:
+    """`view_labels_reference` from the view's coalesced pairs (drsplat.registration.coalesce)."""
+    g, m, w, _ = coalescer.coalesce(ids, weights, mask_ids, num_masks)
+    n = coalescer.num_gaussians
+    best, labels = np.zeros(n, np.float32), np.full(n, -1, np.int32)
+    _labels_kernel(g, m, w, best, labels)
+    return labels
+
+
+def rerender_reference(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """[H, W] int32 r(p) = argmax_j Σ_s u_s(p)·[ℓ(g_s) = j] (ties: the lower j; -1 where no slot
+    has a labelled Gaussian with weight > 0). numpy reference of the re-render in `footprint_score`."""
+    lab = np.where(ids >= 0, labels[np.maximum(ids, 0)], -1)
+    u = np.where(lab >= 0, weights.astype(np.float64), 0.0)
+    top = int(labels.max()) + 1 if labels.size else 0
+    out = np.full(ids.shape[:2], -1, np.int32)
+    best = np.zeros(ids.shape[:2])
+    for j in range(top):
+        s = np.where(lab == j, u, 0.0).sum(axis=-1)
+        win = s > best
+        out[win], best[win] = j, s[win]
+    return out
+
+
+def mask_iou_score(mask_ids: np.ndarray, rendered: np.ndarray) -> float:
+    """S = mean over the masks j present in mask_ids [H, W] of IoU(mask_ids = j, rendered = j)."""
+    present = np.unique(mask_ids[mask_ids >= 0])
+    if present.size == 0:
+        return 0.0
+    ious = [np.count_nonzero((mask_ids == j) & (rendered == j)) / np.count_nonzero((mask_ids == j) | (rendered == j)) for j in present]
+    return float(np.mean(ious))
+
+
+@numba.njit(parallel=True, cache=True)
+def _rerender_counts_kernel(ids, weights, labels, mask_ids, num_masks, parts, inter, area_r):  # pragma: no cover - jitted
+    """Per part t of the pixels: inter[t, j] = #{p : r(p) = m(p) = j}, area_r[t, j] = #{p : r(p) = j}
+    (r: the re-render of `rerender_reference`; the pixel's label sums in slot order, float64)."""
+    n_pix, k = ids.shape
+    for t in numba.prange(parts):
+        lab = np.empty(k, np.int32)
+        acc = np.empty(k)
+        for p in range(t * n_pix // parts, (t + 1) * n_pix // parts):
+            used = 0
+            for s in range(k):
+                g = ids[p, s]
+                if g < 0:
+                    continue
+                j = labels[g]
+                if j < 0:
+                    continue
+                u = np.float64(weights[p, s])
+                found = False
+                for e in range(used):
+                    if lab[e] == j:
+                        acc[e] += u
+                        found = True
+                        break
+                if not found:
+                    lab[used] = j
+                    acc[used] = u
+                    used += 1
+            r = -1
+            top = 0.0
+            for e in range(used):
+                if acc[e] > top or (acc[e] == top and top > 0.0 and lab[e] < r):
+                    top = acc[e]
+                    r = lab[e]
+            if 0 <= r < num_masks:
+                area_r[t, r] += 1
+                if mask_ids[p] == r:
+                    inter[t, r] += 1
+
+
+def footprint_score(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int, coalescer: Coalescer) -> float:
+    """S_u of one view for the per-slot weights u = `weights` [H, W, k] (module docstring): the view's
+    labelling re-rendered and compared with its masks mask_ids [H, W], mask by mask."""
+    labels = view_labels(ids, weights, mask_ids, num_masks, coalescer)
+    k = ids.shape[-1]
+    parts = max(1, numba.get_num_threads())
+    inter = np.zeros((parts, num_masks), np.int64)
+    area_r = np.zeros((parts, num_masks), np.int64)
+    masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
+    _rerender_counts_kernel(np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32),
+                            labels, masks, num_masks, parts, inter, area_r)
+    area_m = np.bincount(masks[masks >= 0], minlength=num_masks)[:num_masks]
+    present = area_m > 0
+    if not present.any():
+        return 0.0
+    i, r = inter.sum(0)[present], area_r.sum(0)[present]
+    return float(np.mean(i / (area_m[present] + r - i)))
+
+
+def footprint_score_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int) -> float:
+    """`footprint_score` in numpy."""
+    return mask_iou_score(mask_ids, rerender_reference(ids, weights, view_labels_reference(ids, weights, mask_ids, num_gaussians)))
+
+
+# ----------------------------------------------------------------------------- the probe
+
+
+def probe_scores(prepared: PreparedScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
+                 coalescer: Coalescer) -> tuple[float, float]:
+    """(S_paper, S_sharp) of one view: its top-k render with the numba engine, then each footprint's score."""
+    out = rasterize_topk(prepared, camera, topk)
+    projected = out.projected
+    sharp = view_weights("sharp", out.ids, out.weights, projected.means2d, projected.conics)
+    return (footprint_score(out.ids, out.weights, mask_ids, num_masks, coalescer),
+            footprint_score(out.ids, sharp, mask_ids, num_masks, coalescer))
+
+
+def choose_footprint(scene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, count: int = FIT_PROBES,
+                     cancel: CancelToken | None = None) -> FitChoice:
+    """The fit stage's decision for a registration of `views` (module docstring); scene: a
+    GaussianScene or PreparedScene; cancel: checked before each probe view."""
+    prepared = scene if isinstance(scene, PreparedScene) else prepare_scene(scene)
+    coalescer = Coalescer(prepared.num_gaussians)
+    picks = [views[i] for i in probe_views(len(views), count)]
+    paper, sharp = np.zeros(len(picks)), np.zeros(len(picks))
+    for t, cam in enumerate(picks):
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        mask_ids, feats, _ = load_view_features(features_dir, cam, level)
+        paper[t], sharp[t] = probe_scores(prepared, cam, topk, mask_ids, feats.shape[0], coalescer)
+    choice = FitChoice("sharp" if len(picks) and float(np.mean(sharp - paper)) > 0.0 else "paper", [c.name for c in picks], paper, sharp)
+    log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
+             "sharp %.3f)", len(picks), "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
+             float(np.mean(paper)) if len(picks) else 0.0, float(np.mean(sharp)) if len(picks) else 0.0)
+    return choice
+
+
+def resolve_fit(mode: str, scene, views: Sequence[Camera], features_dir: Path, level: int, topk: int,
+                cancel: CancelToken | None = None) -> tuple[str, FitChoice | None]:
+    """(the concrete mode, the fit stage's decision) for `mode`: a fit mode is decided on its probe
+    views (`choose_footprint`) and resolved (`resolve_mode`); any other mode is returned with None."""
+    if mode != "fit" and not mode.startswith("fit-"):
+        return mode, None
+    choice = choose_footprint(scene, views, features_dir, level, topk, cancel=cancel)
+    return resolve_mode(mode, choice.footprint), choice
