@@ -173,6 +173,26 @@ def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, sour
     assert footprint_score_reference(out.ids, out.weights, masks, scene.num_gaussians) == pytest.approx(choice.paper[0], abs=1e-9)
 
 
+def test_a_culled_probe_view_scores_as_the_whole_scene_does(rooms):
+    """The probe culls as the view pass does (a view that sees few Gaussians renders that subset,
+    its ids and projection the subset's); the scores compare no ids, so they are the full render's."""
+    from drsplat.registration.compute import prepare_geometry, renders_whole
+    from drsplat.registration.culling import SpatialIndex
+    from drsplat.registration.fit import probe_render, probe_scores
+    from drsplat.registration.views import load_view_features
+
+    data = rooms["geometry"]
+    geometry = prepare_geometry(load_ply(data / "scene.ply"))
+    index = SpatialIndex.build(geometry)
+    culled = 0
+    for cam in load_cameras(data):
+        culled += not renders_whole(index.visible(cam).size, geometry.num_gaussians)
+        masks, feats, _ = load_view_features(data / "features", cam, 1)
+        got = probe_scores(probe_render(geometry, index, cam, 40), masks, feats.shape[0])
+        assert got == probe_scores(rasterize_topk(geometry, cam, 40), masks, feats.shape[0])
+    assert culled >= 1
+
+
 def test_a_cancelled_fit_stage_stops_before_its_first_probe_view(rooms):
     from drsplat.errors import Cancelled
     from drsplat.utils import CancelToken

@@ -20,7 +20,8 @@ paper's otherwise: "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject
 and everything downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
 
-Cost: P extra top-k renders and, per probe view, two coalescings and two re-renders, O(H·W·k).
+Cost: P extra top-k renders (culled as the view pass culls, on the registration's geometry without
+its SH) and, per probe view, the sharp weights, two coalescings and two re-renders, O(H·W·k).
 """
 
 from __future__ import annotations
@@ -34,9 +35,11 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.raster import PreparedScene, prepare_scene, rasterize_topk
+from drsplat.raster import PreparedScene, rasterize_topk
 from drsplat.registration.aggregate import view_weights
 from drsplat.registration.coalesce import Coalescer
+from drsplat.registration.compute import prepare_geometry, renders_whole
+from drsplat.registration.culling import SpatialIndex, subset_geometry
 from drsplat.registration.views import load_view_features
 from drsplat.utils import CancelToken
 
@@ -212,11 +215,19 @@ def footprint_score_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np
 # ----------------------------------------------------------------------------- the probe
 
 
-def probe_scores(prepared: PreparedScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int,
-                 coalescer: Coalescer) -> tuple[float, float]:
-    """(S_paper, S_sharp) of one view: its top-k render with the numba engine, then each footprint's score."""
-    out = rasterize_topk(prepared, camera, topk)
+def probe_render(geometry: PreparedScene, index: SpatialIndex, camera: Camera, topk: int):
+    """The view's top-k RasterOutput with the numba engine, culled as the view pass culls
+    (drsplat.registration.compute.renders_whole): ids and projection are those of the rendered
+    subset, which the scores do not mind (they never compare Gaussian ids)."""
+    visible = index.visible(camera)
+    part = geometry if renders_whole(visible.size, geometry.num_gaussians) else subset_geometry(geometry, visible)
+    return rasterize_topk(part, camera, topk)
+
+
+def probe_scores(out, mask_ids: np.ndarray, num_masks: int) -> tuple[float, float]:
+    """(S_paper, S_sharp) of one rendered view (`probe_render`): each footprint's score."""
     projected = out.projected
+    coalescer = Coalescer(projected.means2d.shape[0])
     sharp = view_weights("sharp", out.ids, out.weights, projected.means2d, projected.conics)
     return (footprint_score(out.ids, out.weights, mask_ids, num_masks, coalescer),
             footprint_score(out.ids, sharp, mask_ids, num_masks, coalescer))
@@ -226,15 +237,15 @@ def choose_footprint(scene, views: Sequence[Camera], features_dir: Path, level: 
                      cancel: CancelToken | None = None) -> FitChoice:
     """The fit stage's decision for a registration of `views` (module docstring); scene: a
     GaussianScene or PreparedScene; cancel: checked before each probe view."""
-    prepared = scene if isinstance(scene, PreparedScene) else prepare_scene(scene)
-    coalescer = Coalescer(prepared.num_gaussians)
+    geometry = scene if isinstance(scene, PreparedScene) else prepare_geometry(scene)
+    index = SpatialIndex.build(geometry)
     picks = [views[i] for i in probe_views(len(views), count)]
     paper, sharp = np.zeros(len(picks)), np.zeros(len(picks))
     for t, cam in enumerate(picks):
         if cancel is not None:
             cancel.raise_if_cancelled()
         mask_ids, feats, _ = load_view_features(features_dir, cam, level)
-        paper[t], sharp[t] = probe_scores(prepared, cam, topk, mask_ids, feats.shape[0], coalescer)
+        paper[t], sharp[t] = probe_scores(probe_render(geometry, index, cam, topk), mask_ids, feats.shape[0])
     choice = FitChoice("sharp" if len(picks) and float(np.mean(sharp - paper)) > 0.0 else "paper", [c.name for c in picks], paper, sharp)
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
              "sharp %.3f)", len(picks), "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
