@@ -630,12 +630,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         if image is None:
             missing += 1
             continue
-        try:
-            c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        except (KeyError, TypeError, ValueError):
-            raise InputError(path, f"frame {i} has no valid 4x4 matrix of numbers", field="transform_matrix") from None
-        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-            raise InputError(path, f"frame {i} has a transform_matrix of shape {c2w.shape} or with non-finite values", field="transform_matrix")
+        c2w = _transform_matrix(path, frame, i)
         if "w" in rec and "h" in rec:
             width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
         else:
@@ -661,6 +656,32 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         validate_camera(camera, path, f"frame {i}")
         cameras.append(camera)
     return cameras, missing
+
+
+def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
+    """Frame i's transform_matrix: 4x4 JSON numbers (a string "1" is not one), finite, with the
+    bottom row [0, 0, 0, 1] within 1e-6 (only the top 3x4 is used: another bottom row means the
+    matrix is not a camera-to-world pose, e.g. a transposed or projective one)."""
+    import json
+
+    rows = frame.get("transform_matrix")
+    if not isinstance(rows, list) or not all(isinstance(r, list) for r in rows):
+        raise InputError(path, f"frame {i} has no valid 4x4 matrix of numbers", field="transform_matrix")
+    for r, row in enumerate(rows):
+        for c, v in enumerate(row):
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise InputError(path, f"frame {i} has {json.dumps(v)[:40]} at row {r}, column {c}; expected a 4x4 matrix of numbers",
+                                 field="transform_matrix")
+    try:
+        c2w = np.asarray(rows, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(path, f"frame {i} has no valid 4x4 matrix of numbers", field="transform_matrix") from None
+    if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+        raise InputError(path, f"frame {i} has a transform_matrix of shape {c2w.shape} or with non-finite values", field="transform_matrix")
+    if np.abs(c2w[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
+        raise InputError(path, f"frame {i} has the bottom row {c2w[3].tolist()} in its transform_matrix; expected [0, 0, 0, 1] "
+                               "(a camera-to-world pose; a transposed matrix has its translation there)", field="transform_matrix")
+    return c2w
 
 
 def _focal_from_angle(path: Path, rec: dict, key: str, side: int, where: str) -> float:

@@ -129,7 +129,7 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "zero_focal": ({"frames": [_frame(fl_x=0.0)]}, "fx"),
     "huge_width": ({"frames": [_frame(w=10**9)]}, "'w'"),
     "all_zero_matrix": ({"frames": [_frame(transform_matrix=np.zeros((4, 4)).tolist())]}, "transform_matrix"),
-    "scaled_rotation": ({"frames": [_frame(transform_matrix=(np.eye(4) * 3).tolist())]}, "rotation"),
+    "scaled_rotation": ({"frames": [_frame(transform_matrix=np.diag([3.0, 3.0, 3.0, 1.0]).tolist())]}, "rotation"),  # eye(4) * 3 is now a bottom-row error
     "nan_translation": ({"frames": [_frame(transform_matrix=[[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]}, "transform_matrix"),
     "matrix_of_strings": ({"frames": [_frame(transform_matrix=[["a"] * 4] * 4)]}, "transform_matrix"),
     "file_path_int": ({"frames": [_frame(file_path=7)]}, "file_path"),
@@ -141,6 +141,15 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "focal_1e-300": ({"frames": [_frame(fl_x=1e-300)]}, "field 'fx': frame 0 has fx=1e-300"),
     "cx_1e300": ({"frames": [_frame(cx=1e300)]}, "field 'cx': frame 0 has cx=1e+300"),
     "nul_in_file_path": ({"frames": [_frame(file_path="images/v\x00.png")]}, "field 'file_path': frame 0 has an image name with a NUL byte"),
+    # round 3 (C6): the bottom row was never read; a string "1" was parsed as a number
+    "bottom_row_not_0001": ({"frames": [_frame(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.5, 0, 0, 1]])]},
+                            "field 'transform_matrix': frame 0 has the bottom row [0.5, 0.0, 0.0, 1.0]"),
+    "transposed_matrix": ({"frames": [_frame(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.1, 0.2, 3, 1]])]},
+                          "expected [0, 0, 0, 1]"),
+    "string_one_in_matrix": ({"frames": [_frame(transform_matrix=[["1", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]},
+                             "field 'transform_matrix': frame 0 has \"1\" at row 0, column 0"),
+    "bool_in_matrix": ({"frames": [_frame(transform_matrix=[[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]},
+                       "frame 0 has true at row 0, column 0"),
 }
 
 
@@ -260,6 +269,21 @@ def _ids_as(dtype: str, wrap: bool = False) -> Callable[[Path, str, int], None]:
     return mutate
 
 
+def _mask_map_transposed(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.ascontiguousarray(np.swapaxes(seg, -1, -2)))  # (L, W, H): stretched before
+
+
+def _mask_map_bool(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", seg >= 0)  # False was read as mask 0, True as mask 1
+
+
+def _mask_map_half_resolution(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.ascontiguousarray(seg[..., ::2, ::2]))  # a uniform scale: resampled
+
+
 FEATURE_VIEW_CASES: dict[str, tuple[Callable[[Path, str, int], None], str | None]] = {
     # name: (mutates one view of a features folder, None = registers (exit 0) | words of the one error)
     "no_masks": (_view_without_masks, None),  # was: TypeError in the pair log (memoryview cast)
@@ -267,6 +291,9 @@ FEATURE_VIEW_CASES: dict[str, tuple[Callable[[Path, str, int], None], str | None
     "ids_as_float32": (_ids_as("float32"), None),
     "ids_as_int64": (_ids_as("int64"), None),
     "uint64_wraps_to_minus_one": (_ids_as("uint64", wrap=True), str(2**64 - 1)),
+    "mask_map_half_resolution": (_mask_map_half_resolution, None),
+    "mask_map_transposed": (_mask_map_transposed, "differ (a transposed or cropped map?)"),
+    "mask_map_bool": (_mask_map_bool, "dtype bool"),
 }
 
 SPECIAL_OUTPUTS = ("/dev/full", "/dev/null", "fifo", "symlink", "rlimit_fsize", "injected_enospc")  # tests/test_hostile.py
@@ -287,7 +314,7 @@ def catalogue_counts() -> dict[str, int]:
         "3DGS cameras.json values": len(CAMERAS_JSON_CASES),
         "COLMAP text values": len(COLMAP_CASES),
         "info findings (short count, zero rows, overflowing scale, ...)": len(INFO_FINDING_CASES),
-        "feature views (no masks, id dtypes, wrapped uint64)": len(FEATURE_VIEW_CASES),
+        "feature views (no masks, id dtypes, wrapped uint64, mask map shapes)": len(FEATURE_VIEW_CASES),
         "outputs that are not regular files or fail mid-write": len(SPECIAL_OUTPUTS),
         "formerly silent runs (now one warning or error)": len(SILENT_RUN_CASES),
     }

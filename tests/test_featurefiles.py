@@ -151,6 +151,31 @@ def test_resample_nearest_matches_scaled_intrinsics():
     np.testing.assert_array_equal(resample_nearest(up, 64, 48), src)
 
 
+def test_mask_maps_of_another_aspect_ratio_are_refused_not_stretched(tmp_path):
+    """Uniform scales (half resolution, odd sizes rounded down) are resampled; a transposed or cropped
+    map is one error naming the _s.npy file and both sizes (was: stretched silently)."""
+    from drsplat.registration.views import load_view_features
+
+    rng = np.random.default_rng(7)
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=60.0, fy=60.0, cx=50.0, cy=37.0, width=101, height=75, name="a")
+    feats = rng.normal(size=(4, 3)).astype(np.float32)
+    for h, w in ((75, 101), (37, 50), (18, 25), (150, 202), (2, 3)):
+        write_features(tmp_path, "a", rng.integers(-1, 4, size=(h, w)), feats)
+        assert load_view_features(tmp_path, cam, 0)[0].shape == (75, 101)
+    for h, w in ((101, 75), (75, 90), (60, 101), (18, 30)):
+        write_features(tmp_path, "a", rng.integers(-1, 4, size=(h, w)), feats)
+        with pytest.raises(InputError, match=rf"a_s.npy: field 'shape': mask map is {w}x{h} .* camera 'a' is 101x75"):
+            load_view_features(tmp_path, cam, 0)
+
+
+def test_bool_mask_maps_are_refused(tmp_path):
+    """Was: False read as mask 0, True as mask 1."""
+    np.save(seg_path(tmp_path, "a"), np.ones((6, 8), bool))
+    np.save(feat_path(tmp_path, "a"), np.ones((2, 3), np.float32))
+    with pytest.raises(InputError, match="a_s.npy: mask ids have dtype bool"):
+        read_features(tmp_path, "a")
+
+
 def test_manifest_round_trip_and_errors(tmp_path):
     assert read_manifest(tmp_path) == {}
     manifest = {"mask_generator": "oracle", "clip": {"model": "ViT-B-16", "pretrained": "laion2b_s34b_b88k"}, "params": {"levels": 4}}

@@ -395,6 +395,8 @@ def test_bad_flag_values_are_usage_errors(tmp_path, world, capsys):
         (["features", "--source", ds, "--out", tmp_path / "f", "--resolution", "inf"], "--resolution"),
         (["segment", reg, "--embeddings", q, "--out", tmp_path / "l.npy", "--min-score", "nan"], "--min-score"),
         (["eval", "lerf", reg, "--source", ds, "--annotations", ds, "--threshold", "inf"], "--threshold"),
+    ] + [
+        (["segment", reg, "--labels", v, "--out", tmp_path / "l.npy"], "--labels") for v in ("", ",", " , ")  # was exit 1
     ]
     for argv, flag in cases:
         code, err = run_cli(argv, capsys)
@@ -815,6 +817,76 @@ def test_feature_view_cases(tmp_path, world, capsys, name):
         assert code == 1 and not out.exists()
         (line,) = error_lines(err)
         assert "orbit_000_s.npy" in line and words in line, line
+
+
+def test_an_embedding_size_that_differs_between_views_is_refused_before_any_view(tmp_path, world, capsys):
+    """Was: found in the view pass, after the earlier views were registered (a checkpoint left behind)."""
+    import shutil
+
+    from drsplat.registration.checkpoint import checkpoint_path_for
+
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    stems = sorted(p.name[: -len("_f.npy")] for p in feats.glob("*_f.npy"))
+    last = feats / f"{stems[-1]}_f.npy"
+    np.save(last, np.zeros((np.load(last).shape[0], world["dim"] + 1), np.float32))
+    out = tmp_path / "r.ply"
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
+                         "--out", out, "--no-progress"], capsys)
+    assert code == 1 and not out.exists()
+    assert not checkpoint_path_for(out).exists()  # refused before the first view was registered
+    (line,) = error_lines(err)
+    assert last.name in line and f"D = {world['dim'] + 1}" in line and f"D = {world['dim']}" in line, line
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_a_codebook_with_non_finite_centroids_is_refused(tmp_path, world, capsys, value):
+    """Was: `pq info` reported nothing wrong, `register --codebook` accepted it and `query` blamed
+    flipped code bytes."""
+    import faiss
+
+    rng = np.random.default_rng(0)
+    index = faiss.IndexPQ(world["dim"], 8, 8, faiss.METRIC_INNER_PRODUCT)
+    index.pq.cp.min_points_per_centroid = 1
+    index.train(rng.standard_normal((300, world["dim"])).astype(np.float32))
+    centroids = faiss.vector_to_array(index.pq.centroids)
+    centroids[5:55] = value
+    faiss.copy_array_to_vector(centroids, index.pq.centroids)
+    book = tmp_path / "bad.faiss"
+    faiss.write_index(index, str(book))
+    out = tmp_path / "r.ply"
+    for argv in (["pq", "info", book],
+                 ["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
+                  "--out", out, "--codebook", book, "--no-progress"]):
+        code, err = run_cli(argv, capsys)
+        assert code == 1, (argv, err)
+        (line,) = error_lines(err)
+        assert "bad.faiss" in line and "pq centroids" in line and f"50 of the {centroids.size}" in line, line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("entries, index, words", [
+    ([["x"]], 0, "not a string"),
+    ([7], 0, "not a string"),
+    ([None], 0, "not a string"),
+    ([""], 0, "empty name"),
+    (["  "], 0, "empty name"),
+    (["ok", "a\nb"], 1, "control character"),
+    (["ok", "a\u0000b"], 1, "control character"),
+    (["ok", "dup", "dup"], 2, "repeats the name \"dup\" of entry 1"),
+], ids=["list", "number", "null", "empty", "blank", "newline", "nul", "duplicate"])
+def test_segment_names_must_be_distinct_non_empty_strings(tmp_path, world, capsys, entries, index, words):
+    """Was: `[["x"], ...]`, empty and repeated names accepted; newlines and NULs printed raw in the table."""
+    count = np.load(world["L"]).shape[0]
+    names = [f"label {i}" for i in range(count)]
+    names[: len(entries)] = entries
+    path = tmp_path / "names.json"
+    path.write_text(json.dumps(names))
+    out = tmp_path / "l.npy"
+    code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--names", path, "--out", out], capsys)
+    assert code == 1 and not out.exists(), err
+    (line,) = error_lines(err)
+    assert "names.json" in line and f"entry {index} " in line and words in line, line
 
 
 def zero_gaussian_copy(reg: Path, out: Path) -> Path:

@@ -36,9 +36,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "centre / anchor (only / also a vote at the pixel of its projected centre), explain (per-view EM: "
                    "who explains each pixel's mask), sharp (the Gaussian's footprint before 3DGS's 0.3 px2 screen filter: "
                    "masks that follow true silhouettes), fit (paper or sharp, whichever re-renders a few probe views' masks "
-                   "better), *-vote (the mean trimmed of masks a minority of views vote for: "
+                   "better), *-check (drop the masks the other views contradict), *-vote (the mean trimmed of masks a minority of views vote for: "
                    "mislabelled masks), *-reject (also leave floaters unassigned); stages combine as "
-                   "WEIGHTING-vote-reject; see docs/registration.md (default: %(default)s)")
+                   "WEIGHTING[-check][-vote][-reject]; see docs/registration.md (default: %(default)s)")
     p.add_argument("--keep-unassigned", action="store_true",
                    help="keep Gaussians that got no weight (lang_weight 0) instead of pruning them")
     p.add_argument("--resolution", type=resolution_value, default=-1,

@@ -19,7 +19,7 @@ from drsplat.commands.common import (
     scoring_device,
     split_phrases,
 )
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 
@@ -63,9 +63,7 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
     from drsplat.query import BACKGROUND_PHRASE, load_query_embeddings, text_embeddings
 
     if args.labels is not None:
-        names = split_phrases(args.labels)
-        if not names:
-            raise DrsplatError("--labels gave no label phrases")
+        names = label_phrases(args.labels)
         encoder = (encoder_factory or common.load_encoder)(args, field)
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
@@ -76,6 +74,14 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
             raise DrsplatError("--background needs at least one label besides the background row")
         return emb[:-1], emb[-1:], names
     return emb, None, names
+
+
+def label_phrases(text: str) -> list[str]:
+    """The --labels phrases; none (`""`, `","`, `" , "`) is a usage error, as a missing value is."""
+    names = split_phrases(text)
+    if not names:
+        raise UsageError(f"--labels {text!r} gives no label phrases; expected comma-separated phrases such as 'chair,table'")
+    return names
 
 
 def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> list[str]:
@@ -91,11 +97,32 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
         except (OSError, ValueError) as exc:
             raise InputError(path, f"is not a readable JSON list of names ({exc})") from None
         if isinstance(names, list) and len(names) == count:
-            return [str(n) for n in names]
+            return checked_names(path, names)
         if explicit:
             raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
         log.info("ignoring %s: it does not name the %d label rows", path, count)
     return [f"label_{i}" for i in range(count)]
+
+
+def checked_names(path: Path, names: list) -> list[str]:
+    """The names as given, or one error naming the first entry that is not a non-empty string
+    without control characters, or that repeats an earlier name (the names label the printed
+    table and the coloured PLY's legend: a list, a blank or a twice-used name would mislabel it)."""
+    import json
+
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        shown = json.dumps(name)[:60]
+        if not isinstance(name, str):
+            raise InputError(path, f"entry {i} is {shown}, not a string; expected a JSON list of label names")
+        if not name.strip():
+            raise InputError(path, f"entry {i} is an empty name ({shown})")
+        if any(ch < " " or ch == "\x7f" for ch in name):
+            raise InputError(path, f"entry {i} ({shown}) holds a control character (newline, tab, NUL...)")
+        if name in seen:
+            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[name]}")
+        seen[name] = i
+    return names
 
 
 def default_names_path(embeddings: Path) -> Path:
@@ -131,6 +158,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered),
               "--names" if getattr(args, "names", None) is not None else "--names (by default gt/label_names.json)": names_input(args)}
+    if args.labels is not None:
+        label_phrases(args.labels)  # a usage error before any file is read
     guard_outputs(inputs, {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)})
     scene, field = load_registered(args.registered)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)

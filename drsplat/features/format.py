@@ -104,7 +104,9 @@ def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
         if top > np.iinfo(np.int64).max:  # astype(int64) would wrap 2^64-1 to -1 ("no mask") silently
             raise InputError(path, f"mask id {top} ({seg.dtype}) is out of range: unsigned ids cannot mean -1 (no mask); "
                                    "store ids in a signed integer dtype with -1 for no mask")
-    if np.issubdtype(seg.dtype, np.integer) or seg.dtype == np.bool_:
+    if seg.dtype == np.bool_:  # a binary mask, not ids: False would become mask 0 and True mask 1
+        raise InputError(path, "mask ids have dtype bool, expected integers or floats (-1 = no mask, else an embedding row)")
+    if np.issubdtype(seg.dtype, np.integer):
         return seg.astype(np.int64, copy=False)
     if not np.issubdtype(seg.dtype, np.floating):
         raise InputError(path, f"mask ids have dtype {seg.dtype}, expected integers or floats")

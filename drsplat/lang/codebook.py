@@ -121,6 +121,9 @@ def codebook_from_index(index: object, path: Path | None = None) -> Codebook:
         coarse = quantizer.reconstruct_n(0, quantizer.ntotal).astype(np.float32)
         if not index.by_residual:
             coarse = None
+    _check_finite(centroids, "pq centroids", path)
+    if coarse is not None:
+        _check_finite(coarse, "coarse centroids", path)
     return Codebook(kind=kind, dim=int(index.d), m=int(pq.M), centroids=centroids, coarse=coarse, index=index, path=path, owner=owner)
 
 
@@ -249,6 +252,14 @@ def check_faiss_header(path: Path) -> None:
         if lists != nlist or list_code_size != code_size:
             raise InputError(path, f"faiss inverted lists have nlist={lists}, code_size={list_code_size}; expected {nlist}, {code_size}", field="invlists")
         r.check_list_sizes(nlist, code_size)
+
+
+def _check_finite(values: np.ndarray, what: str, path: Path | None) -> None:
+    """Refuse NaN/inf centroids: every code decoded through them would score NaN (a corrupt file,
+    not flipped code bytes, which is what a query would otherwise suspect)."""
+    bad = int(np.count_nonzero(~np.isfinite(values)))
+    if bad:
+        raise InputError(path, f"{bad} of the {values.size} {what} values are not finite (NaN/inf): the codebook is corrupt", field=what)
 
 
 def load_codebook(path: str | Path) -> Codebook:

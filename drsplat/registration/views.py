@@ -1,7 +1,8 @@
 """Which views a registration uses: cameras paired with LangSplat feature files by image stem.
 
 Owns the pairing rule (camera name == feature stem), the warnings that count what is skipped, the
-embedding size D read from a header, and loading one view's mask ids resampled to its camera.
+embedding size D read from the headers (the same in every view), and loading one view's mask ids
+resampled to its camera (a uniform scale only).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest
+from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest, seg_path
 from drsplat.utils import npy_header
 
 log = logging.getLogger(__name__)
@@ -66,8 +67,24 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
 
 
 def feature_dim(features_dir: Path, views: Sequence[Camera]) -> int:
-    """D of the embeddings, from the first view's `_f.npy` header (nothing loaded)."""
-    path = feat_path(features_dir, views[0].name)
+    """D of the embeddings, from the `_f.npy` headers of every view (nothing loaded).
+
+    Every view must have the first view's D: a view that differs would otherwise be found only in
+    the view pass, after earlier views were registered and checkpointed.
+    """
+    dim = _header_dim(feat_path(features_dir, views[0].name))
+    for cam in views[1:]:
+        path = feat_path(features_dir, cam.name)
+        other = _header_dim(path)
+        if other != dim:
+            first = feat_path(features_dir, views[0].name).name
+            raise InputError(path, f"embeddings have D = {other} but {first} (the first view) has D = {dim}; "
+                                   "every view's embeddings must have the same size", field="shape")
+    return dim
+
+
+def _header_dim(path: Path) -> int:
+    """D of one `_f.npy` file, from its header."""
     shape = npy_header(path)[0]
     if len(shape) != 2 or shape[1] == 0:
         raise InputError(path, f"embeddings have shape {shape}, expected (M, D) with D > 0")
@@ -75,9 +92,41 @@ def feature_dim(features_dir: Path, views: Sequence[Camera]) -> int:
 
 
 def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """(mask ids [H, W] resampled to the camera size, feats [M, D] float32, masks dropped as non-finite)."""
+    """(mask ids [H, W] resampled to the camera size, feats [M, D] float32, masks dropped as non-finite).
+
+    A mask map of another aspect ratio than the camera's is an error, not stretched: it is a
+    transposed, cropped or foreign map (a uniform scale, e.g. half resolution, is resampled).
+    """
     mask_ids, feats, nonfinite = read_features_report(features_dir, cam.name, level, drop_nonfinite=True)
+    h, w = mask_ids.shape
+    if not same_aspect(w, h, cam.width, cam.height):
+        raise InputError(seg_path(features_dir, cam.name),
+                         f"mask map is {w}x{h} (width x height) but camera '{cam.name}' is {cam.width}x{cam.height}: "
+                         f"aspect ratios {w / h:.4g} and {cam.width / cam.height:.4g} differ (a transposed or cropped map?); "
+                         "only a uniform scale of the camera size is resampled", field="shape")
     return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite
+
+
+ASPECT_TOLERANCE = 0.01  # relative; beyond the rounding of a downscaled size
+
+
+def same_aspect(w: int, h: int, width: int, height: int) -> bool:
+    """True if a w x h map is the width x height image uniformly scaled.
+
+    Within ASPECT_TOLERANCE, or within one pixel of rounding per side of either size: a small map
+    downscaled from an odd size (e.g. 25x18 from 101x75), or a small render of a large map, is off
+    by more than 1% through rounding alone.
+    """
+    if abs((w / h) / (width / height) - 1.0) <= ASPECT_TOLERANCE:
+        return True
+    return _rounds_to(w, h, width, height) or _rounds_to(width, height, w, h)
+
+
+def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
+    """True if one scale s gives w and h within a pixel: |w - s·width| <= 1 and |h - s·height| <= 1."""
+    lo_x, hi_x = (w - 1) / width, (w + 1) / width
+    lo_y, hi_y = (h - 1) / height, (h + 1) / height
+    return max(lo_x, lo_y) <= min(hi_x, hi_y)
 
 
 def used_masks(mask_ids: np.ndarray) -> np.ndarray:
