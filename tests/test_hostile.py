@@ -819,26 +819,6 @@ def test_feature_view_cases(tmp_path, world, capsys, name):
         assert "orbit_000_s.npy" in line and words in line, line
 
 
-def test_an_embedding_size_that_differs_between_views_is_refused_before_any_view(tmp_path, world, capsys):
-    """Was: found in the view pass, after the earlier views were registered (a checkpoint left behind)."""
-    import shutil
-
-    from drsplat.registration.checkpoint import checkpoint_path_for
-
-    feats = tmp_path / "features"
-    shutil.copytree(world["ds"] / "features", feats)
-    stems = sorted(p.name[: -len("_f.npy")] for p in feats.glob("*_f.npy"))
-    last = feats / f"{stems[-1]}_f.npy"
-    np.save(last, np.zeros((np.load(last).shape[0], world["dim"] + 1), np.float32))
-    out = tmp_path / "r.ply"
-    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats,
-                         "--out", out, "--no-progress"], capsys)
-    assert code == 1 and not out.exists()
-    assert not checkpoint_path_for(out).exists()  # refused before the first view was registered
-    (line,) = error_lines(err)
-    assert last.name in line and f"D = {world['dim'] + 1}" in line and f"D = {world['dim']}" in line, line
-
-
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_a_codebook_with_non_finite_centroids_is_refused(tmp_path, world, capsys, value):
     """Was: `pq info` reported nothing wrong, `register --codebook` accepted it and `query` blamed

@@ -1,8 +1,8 @@
 """Which views a registration uses: cameras paired with LangSplat feature files by image stem.
 
 Owns the pairing rule (camera name == feature stem), the warnings that count what is skipped, the
-embedding size D read from the headers (the same in every view), and loading one view's mask ids
-resampled to its camera (a uniform scale only).
+embedding size D read from a header, and loading one view's mask ids resampled to its camera (a
+uniform scale only).
 """
 
 from __future__ import annotations
@@ -67,24 +67,10 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
 
 
 def feature_dim(features_dir: Path, views: Sequence[Camera]) -> int:
-    """D of the embeddings, from the `_f.npy` headers of every view (nothing loaded).
-
-    Every view must have the first view's D: a view that differs would otherwise be found only in
-    the view pass, after earlier views were registered and checkpointed.
-    """
-    dim = _header_dim(feat_path(features_dir, views[0].name))
-    for cam in views[1:]:
-        path = feat_path(features_dir, cam.name)
-        other = _header_dim(path)
-        if other != dim:
-            first = feat_path(features_dir, views[0].name).name
-            raise InputError(path, f"embeddings have D = {other} but {first} (the first view) has D = {dim}; "
-                                   "every view's embeddings must have the same size", field="shape")
-    return dim
-
-
-def _header_dim(path: Path) -> int:
-    """D of one `_f.npy` file, from its header."""
+    """D of the embeddings, from the first view's `_f.npy` header (nothing loaded). A later view of
+    another D is refused when it is read (on Ray by the worker that reads it: the driver need not
+    hold every view's files)."""
+    path = feat_path(features_dir, views[0].name)
     shape = npy_header(path)[0]
     if len(shape) != 2 or shape[1] == 0:
         raise InputError(path, f"embeddings have shape {shape}, expected (M, D) with D > 0")
