@@ -39,8 +39,9 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
+from drsplat.raster import PreparedScene
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.fit import FitChoice, resolve_fit
+from drsplat.registration.fit import FitChoice, is_fit_mode, resolve_fit
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
@@ -243,8 +244,9 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
-    # a fit mode's footprint is picked on its probe views before any view is summed
-    mode, fit = resolve_fit(run.options.aggregate, run.scene, run.views, run.features_dir, run.options.level, run.options.topk, cancel)
+    # a fit mode's footprint is picked on its probe views before any view is summed, on the geometry the view pass then uses
+    geometry = prepare_geometry(run.scene) if is_fit_mode(run.options.aggregate) else None
+    mode, fit = resolve_fit(run.options.aggregate, geometry, run.views, run.features_dir, run.options.level, run.options.topk, cancel)
     run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=mode))
     scene, options = run.scene, run.options
     n = scene.num_gaussians
@@ -270,7 +272,7 @@ def run_registration(
     reducer_seconds = (0.0, 0.0)
     try:
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
-        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel)
+        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, geometry)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
@@ -409,10 +411,11 @@ def _why(exc: BaseException) -> str:
 
 
 def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, device_pairs: bool,
-               show_progress: bool, on_progress, cancel) -> tuple[list[WorkerStats], dict[int, int]]:
+               show_progress: bool, on_progress, cancel, geometry: PreparedScene | None = None) -> tuple[list[WorkerStats], dict[int, int]]:
     """Replay the checkpoint's views, then compute the others with the executor, in view order:
     fold the mode's statistics, log the view, add it to the sink. device_pairs: views keep their
-    pairs on the torch engine's device (copied to the host only to be logged). Returns the WorkerStats
+    pairs on the torch engine's device (copied to the host only to be logged). geometry: the scene's
+    `prepare_geometry`, when made already (the fit stage's); else made here. Returns the WorkerStats
     of the processes that computed views and the Ray workers' peak RSS (pid -> bytes)."""
 
     def consume(view: ViewPairs) -> None:
@@ -439,7 +442,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
                   device_pairs=device_pairs, group_pairs=ckpt is not None, shard_dir=str(ckpt.shards_dir.resolve()) if shards else None,
                   log_params=ckpt.log.params if shards else None)
-    executor = open_executor(options.place, prepare_geometry(run.scene), job, options.cluster)
+    executor = open_executor(options.place, geometry if geometry is not None else prepare_geometry(run.scene), job, options.cluster)
     stream = executor.view_pairs(run.views[totals.done :])
     views = one_view_behind(stream) if device_pairs else stream  # a device view's sizes are read while the next one renders
     try:

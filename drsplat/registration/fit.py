@@ -71,12 +71,17 @@ def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
     return np.floor((np.arange(p) + 0.5) * num_views / max(p, 1)).astype(np.int64)
 
 
+def is_fit_mode(mode: str) -> bool:
+    """Whether `mode` starts with the fit stage ("fit" or "fit-...")."""
+    return mode == "fit" or mode.startswith("fit-")
+
+
 def resolve_mode(mode: str, footprint: str) -> str:
     """The concrete mode of a fit mode: "fit[-vote][-reject]" -> "[vote][-reject]" (paper; bare
     "fit" -> "paper") or "sharp[-vote][-reject]"; other modes are returned as they are."""
     if footprint not in FOOTPRINTS:
         raise ValueError(f"unknown footprint {footprint!r} (choose from {', '.join(FOOTPRINTS)})")
-    if mode != "fit" and not mode.startswith("fit-"):
+    if not is_fit_mode(mode):
         return mode
     rest = mode[len("fit"):]
     if footprint == "sharp":
@@ -246,7 +251,8 @@ def choose_footprint(scene, views: Sequence[Camera], features_dir: Path, level: 
             cancel.raise_if_cancelled()
         mask_ids, feats, _ = load_view_features(features_dir, cam, level)
         paper[t], sharp[t] = probe_scores(probe_render(geometry, index, cam, topk), mask_ids, feats.shape[0])
-    choice = FitChoice("sharp" if len(picks) and float(np.mean(sharp - paper)) > 0.0 else "paper", [c.name for c in picks], paper, sharp)
+    choice = FitChoice("paper", [c.name for c in picks], paper, sharp)
+    choice.footprint = "sharp" if choice.margin > 0.0 else "paper"
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
              "sharp %.3f)", len(picks), "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
              float(np.mean(paper)) if len(picks) else 0.0, float(np.mean(sharp)) if len(picks) else 0.0)
@@ -257,7 +263,7 @@ def resolve_fit(mode: str, scene, views: Sequence[Camera], features_dir: Path, l
                 cancel: CancelToken | None = None) -> tuple[str, FitChoice | None]:
     """(the concrete mode, the fit stage's decision) for `mode`: a fit mode is decided on its probe
     views (`choose_footprint`) and resolved (`resolve_mode`); any other mode is returned with None."""
-    if mode != "fit" and not mode.startswith("fit-"):
+    if not is_fit_mode(mode):
         return mode, None
     choice = choose_footprint(scene, views, features_dir, level, topk, cancel=cancel)
     return resolve_mode(mode, choice.footprint), choice
