@@ -14,6 +14,7 @@ from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, sharpe
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
     choose_footprint,
+    fit_stage,
     footprint_score,
     footprint_score_reference,
     probe_views,
@@ -174,23 +175,54 @@ def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, sour
 
 
 def test_a_culled_probe_view_scores_as_the_whole_scene_does(rooms):
-    """The probe culls as the view pass does (a view that sees few Gaussians renders that subset,
-    its ids and projection the subset's); the scores compare no ids, so they are the full render's."""
+    """The probe culls as the view pass does (a view that sees few Gaussians renders that subset);
+    its scores are those of the probe rendering every Gaussian."""
     from drsplat.registration.compute import prepare_geometry, renders_whole
     from drsplat.registration.culling import SpatialIndex
-    from drsplat.registration.fit import probe_render, probe_scores
-    from drsplat.registration.views import load_view_features
 
     data = rooms["geometry"]
-    geometry = prepare_geometry(load_ply(data / "scene.ply"))
-    index = SpatialIndex.build(geometry)
-    culled = 0
-    for cam in load_cameras(data):
-        culled += not renders_whole(index.visible(cam).size, geometry.num_gaussians)
-        masks, feats, _ = load_view_features(data / "features", cam, 1)
-        got = probe_scores(probe_render(geometry, index, cam, 40), masks, feats.shape[0])
-        assert got == probe_scores(rasterize_topk(geometry, cam, 40), masks, feats.shape[0])
-    assert culled >= 1
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    culled = fit_stage("fit", scene, cams, data / "features", 1, 40, cull=True, count=len(cams))
+    whole = fit_stage("fit", scene, cams, data / "features", 1, 40, cull=False, count=len(cams))
+    np.testing.assert_array_equal(culled.choice.paper, whole.choice.paper)
+    np.testing.assert_array_equal(culled.choice.sharp, whole.choice.sharp)
+    index = SpatialIndex.build(prepare_geometry(scene))
+    assert sum(not renders_whole(index.visible(cam).size, scene.num_gaussians) for cam in cams) >= 1
+    assert culled.index is not None and whole.index is None
+
+
+@pytest.mark.parametrize("mode", ["fit-vote-reject", "fit-check-vote-reject", "fit"])
+def test_the_probe_views_pairs_are_the_view_passs_own(rooms, mode):
+    """The pairs the fit stage keeps (render, hook, coalescing) are those the view pass computes for
+    the same view with the resolved mode, field for field, statistics included."""
+    from drsplat.registration.aggregate import Aggregator
+    from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+
+    data = rooms["geometry"]
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    stage = fit_stage(mode, scene, cams, data / "features", 1, 10, keep_pairs=True)
+    assert sorted(stage.pairs) == probe_views(len(cams)).tolist()
+    geometry = prepare_geometry(scene)
+    computer = ViewComputer(geometry, ViewJob(data / "features", 1, 10, hook=Aggregator(stage.mode, scene).hook))
+    for i, kept in stage.pairs.items():
+        view = computer.load_and_compute(cams[i])
+        for name in ("gaussians", "masks", "weights", "feats", "used"):
+            np.testing.assert_array_equal(getattr(kept, name), getattr(view, name))
+        assert kept.num_pairs == view.num_pairs and kept.name == view.name
+        assert (kept.stats is None) == (view.stats is None) == ("reject" not in mode)
+        if view.stats is not None:
+            for name in ("ids", "peak", "total", "front"):
+                np.testing.assert_array_equal(getattr(kept.stats, name), getattr(view.stats, name))
+
+
+def test_a_fit_registration_renders_each_view_once(rooms):
+    """Registering in this process with numba, the view pass takes the probe views' pairs from the
+    fit stage instead of computing those views again."""
+    data = rooms["render"]
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    result = register_features(scene, cams, data / "features", RegisterOptions(topk=10), show_progress=False)
+    computed = sum((w.first_view_seconds is not None) + len(w.later_view_seconds) for w in result.workers)
+    assert result.fit is not None and computed == len(cams) - len(result.fit.views) and result.num_views == len(cams)
 
 
 def test_a_cancelled_fit_stage_stops_before_its_first_probe_view(rooms):
@@ -204,13 +236,14 @@ def test_a_cancelled_fit_stage_stops_before_its_first_probe_view(rooms):
         choose_footprint(load_ply(data / "scene.ply"), load_cameras(data), data / "features", 1, 40, cancel=token)
 
 
+@pytest.mark.parametrize("mode", ["fit-vote-reject", "fit-check-vote-reject"])
 @pytest.mark.parametrize("source", ["render", "geometry"])
-def test_fit_mode_writes_its_resolved_modes_bytes(rooms, tmp_path, source):
+def test_fit_mode_writes_its_resolved_modes_bytes(rooms, tmp_path, source, mode):
+    """The probe views' pairs kept by the fit stage, in place of the view pass's, change no byte."""
     data = rooms[source]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    fit = register(scene, cams, data / "features", tmp_path / "fit.ply", RegisterOptions(topk=10, aggregate="fit-vote-reject"),
-                   show_progress=False)
-    resolved = "vote-reject" if source == "render" else "sharp-vote-reject"
+    fit = register(scene, cams, data / "features", tmp_path / "fit.ply", RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+    resolved = mode[len("fit-"):] if source == "render" else "sharp" + mode[len("fit"):]
     assert fit.aggregate == resolved and fit.fit is not None and fit.fit.footprint == ("paper" if source == "render" else "sharp")
     plain = register(scene, cams, data / "features", tmp_path / "plain.ply", RegisterOptions(topk=10, aggregate=resolved), show_progress=False)
     assert (tmp_path / "fit.ply").read_bytes() == (tmp_path / "plain.ply").read_bytes() and plain.fit is None

@@ -41,8 +41,9 @@ ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
 AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
 # oracle corruptions of the aggregate ablation: name -> (mislabelled-mask fraction, boundary jitter in
-# pixels); "own" is each preset's default (hard-noisy 10% + 2 px, hard-room 1 px, others clean)
-CORRUPTIONS = {"own": (None, None), "clean": (0.0, 0), "mislabel10": (0.1, 2), "mislabel20": (0.2, 0)}
+# pixels); "own" is each preset's default (hard-noisy 10% + 2 px, hard-room 1 px, others clean);
+# "jitter2" is "mislabel10" without its mislabels: the room that isolates what the mislabels cost
+CORRUPTIONS = {"own": (None, None), "clean": (0.0, 0), "mislabel10": (0.1, 2), "mislabel20": (0.2, 0), "jitter2": (0.0, 2)}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)

@@ -325,28 +325,36 @@ def _sharpening_kernel(conics, shift, out):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _sharp_weights_kernel(ids, weights, means2d, delta, log_floor, floor, parts, out):  # pragma: no cover - jitted
-    """out = the sharp weighting of each slot, over `parts` runs of rows in parallel: per row, first
-    the exponents q = -½ dᵀ Δ d (gathers; 0 for an empty slot), then w · max(sharp_exp(clamp(q,
-    log_floor, 0)), floor) over the row's slots in one branch-free loop (vectorised)."""
+    """out = the sharp weighting of each slot, over `parts` runs of rows in parallel: per pixel, first
+    the exponents q = -½ dᵀ Δ d of its slots up to the first empty one (gathers), then w ·
+    max(sharp_exp(clamp(q, log_floor, 0)), floor) over those slots in one branch-free loop
+    (vectorised); the slots from the first empty one on (the padding: every engine puts it last)
+    one by one, 0 where empty. The same bits as one formula per slot."""
     h, wd, k = ids.shape
     for part in numba.prange(parts):
-        q = np.empty((wd, k))  # one row's exponents, reused by the part's rows
+        q = np.empty(k)  # one pixel's exponents
         for y in range(part * h // parts, (part + 1) * h // parts):
             py = y + 0.5
             for x in range(wd):
                 px = x + 0.5
-                for s in range(k):
+                n = 0
+                while n < k and ids[y, x, n] >= 0:
+                    g = ids[y, x, n]
+                    dx = means2d[g, 0] - px
+                    dy = means2d[g, 1] - py
+                    q[n] = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
+                    n += 1
+                for s in range(n):
+                    out[y, x, s] = np.float64(weights[y, x, s]) * max(sharp_exp(min(max(q[s], log_floor), 0.0)), floor)
+                for s in range(n, k):
                     g = ids[y, x, s]
                     if g < 0:
-                        q[x, s] = 0.0
+                        out[y, x, s] = 0.0
                         continue
                     dx = means2d[g, 0] - px
                     dy = means2d[g, 1] - py
-                    q[x, s] = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
-            for x in range(wd):
-                for s in range(k):
-                    w = np.float64(weights[y, x, s]) if ids[y, x, s] >= 0 else 0.0
-                    out[y, x, s] = w * max(sharp_exp(min(max(q[x, s], log_floor), 0.0)), floor)
+                    qs = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
+                    out[y, x, s] = np.float64(weights[y, x, s]) * max(sharp_exp(min(max(qs, log_floor), 0.0)), floor)
 
 
 # ----------------------------------------------------------------------------- per-view explanation (EM)
@@ -862,17 +870,28 @@ class ViewHook:
         return self.reject
 
     def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> tuple[np.ndarray, ViewStats | None]:
-        """geometry: the scene's CPU geometry (means [N, 3] float64, covariances), needed when
-        `needs_projection` (the render's own projection, `out.projected`, is reused when it covers
-        every Gaussian). out: the view's RasterOutput (ids, weights [H, W, k], median_ids).
-        mask_ids: [H, W] the view's masks (-1 none), read by the explain weighting."""
-        stats = None
-        if self.reject:
-            if out.median_ids is None:
-                raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
-            stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
+        """(`weights`, `stats`) of one view: what a view pass accumulates and folds."""
+        stats = self.stats(camera, out)
+        return self.weights(geometry, camera, out, mask_ids), stats
+
+    def stats(self, camera, out) -> ViewStats | None:
+        """The view's floater statistics (`surface_stats`, from the paper's weights whatever the
+        weighting), or None without floater rejection. out: its RasterOutput, with median_ids."""
+        if not self.reject:
+            return None
+        if out.median_ids is None:
+            raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
+        stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
+        return stats
+
+    def weights(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> np.ndarray:
+        """[H, W, k] the weighting's per-slot weights (out.weights itself for "paper"; else this
+        hook's buffer, overwritten by its next call). geometry: the scene's CPU geometry (means
+        [N, 3] float64, covariances), needed when `needs_projection` (the render's own projection,
+        `out.projected`, is reused when it covers every Gaussian). out: the view's RasterOutput (ids,
+        weights [H, W, k]). mask_ids: [H, W] the view's masks (-1 none), read by the explain weighting."""
         if self.weighting == "paper":
-            return out.weights, stats
+            return out.weights
         if self.weighting == "explain":
             if mask_ids is None:
                 raise ValueError(f"--aggregate {self.mode} needs the view's mask ids")
@@ -880,7 +899,7 @@ class ViewHook:
             if self._seen is None or self._seen.shape[0] < n:
                 self._seen = np.full(max(n, 1), -1, np.int32)
             self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
-            return self._buffer, stats
+            return self._buffer
         means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
         if self.needs_projection:
             projected = getattr(out, "projected", None)
@@ -888,7 +907,17 @@ class ViewHook:
                 projected = project_gaussians(geometry, camera)
             means2d, conics = projected.means2d, projected.conics
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
-        return self._buffer, stats
+        return self._buffer
+
+
+def mode_hook(mode: str, rays: RayGeometry | None) -> ViewHook | None:
+    """The per-view hook of `mode`, or None when its views are summed as rendered (the paper's
+    weights, no floater rejection). rays: the scene's RayGeometry (`RayGeometry.from_scene`), read
+    by floater rejection only."""
+    stages = mode_stages(mode)
+    if stages.weighting == "paper" and not stages.reject:
+        return None
+    return ViewHook(mode, rays if stages.reject else None)
 
 
 def reject_rows(F: np.ndarray, W: np.ndarray, rejected: np.ndarray) -> int:
@@ -905,8 +934,9 @@ class Aggregator:
     """A mode's state in one registration: its per-view `hook` (None for "paper": the view's w is
     used as it is), the folded statistics (`add` per view, in view order) and `finish` on the sums."""
 
-    def __init__(self, mode: str, scene, stats_on_reducers: bool = False):
-        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`).
+    def __init__(self, mode: str, scene, stats_on_reducers: bool = False, rays: RayGeometry | None = None):
+        """scene: the GaussianScene being registered (rejection reads its shapes: `RayGeometry`;
+        rays: that RayGeometry when made already, by the fit stage).
         stats_on_reducers: the views' statistics are logged by the workers and folded per block by
         the reducers (drsplat.registration.reduce): nothing is folded here, `rejected()` is None
         and the reducers' counts come in through `num_rejected`."""
@@ -914,8 +944,9 @@ class Aggregator:
         stages = mode_stages(mode)
         self.reject, self.vote, self.solve, self.check = stages.reject, stages.vote, stages.solve, stages.check
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject and not stats_on_reducers else None
-        needs_hook = stages.weighting != "paper" or self.reject
-        self.hook = ViewHook(mode, RayGeometry.from_scene(scene) if self.reject else None) if needs_hook else None
+        if self.reject and rays is None:
+            rays = RayGeometry.from_scene(scene)
+        self.hook = mode_hook(mode, rays)
         self.num_rejected = 0
         self.views_folded = 0  # views whose statistics are in `support` (a checkpoint snapshots only a consistent state)
         self._rejected: np.ndarray | None = None

@@ -150,15 +150,21 @@ class ViewComputer:
             return self._compute_on_device(cam, mask_ids, feats, nonfinite)
         t0 = time.perf_counter()
         self._out = self._rasterize(cam)
-        t1 = time.perf_counter()
+        raster_seconds = time.perf_counter() - t0
         hook = self.job.hook
         weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids)
-        g, m, w, pairs = self._coalescer.coalesce(self._out.ids, weights, mask_ids, feats.shape[0])
-        used = used_masks(mask_ids)
-        view = ViewPairs(cam.name, feats, g, m, w, used, pairs, num_nonfinite=nonfinite, stats=stats)
-        if self.job.group_pairs:
-            view = view.grouped()
-        view.raster_seconds, view.coalesce_seconds = t1 - t0, time.perf_counter() - t1
+        view = self.pairs(cam, self._out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
+        return view.grouped() if self.job.group_pairs else view
+
+    def pairs(self, cam: Camera, ids: np.ndarray, weights: np.ndarray, stats, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int = 0,
+              raster_seconds: float = 0.0) -> ViewPairs:
+        """The ViewPairs of view `cam` from its top-k ids [H, W, k] (scene ids), the weights [H, W, k]
+        to accumulate and the hook's stats: its distinct (Gaussian, mask) pairs (not grouped; the
+        coalescing's seconds are counted from the call)."""
+        t0 = time.perf_counter()
+        g, m, w, pairs = self._coalescer.coalesce(ids, weights, mask_ids, feats.shape[0])
+        view = ViewPairs(cam.name, feats, g, m, w, used_masks(mask_ids), pairs, num_nonfinite=nonfinite, stats=stats)
+        view.raster_seconds, view.coalesce_seconds = raster_seconds, time.perf_counter() - t0
         return view
 
     def _compute_on_device(self, cam: Camera, mask_ids: np.ndarray, feats: np.ndarray, nonfinite: int, exact: bool = False) -> ViewPairs:
@@ -176,10 +182,17 @@ class ViewComputer:
         return ViewPairs(cam.name, feats, none, none, np.zeros(0, np.float32), used, 0, num_nonfinite=nonfinite,
                          raster_seconds=raster_seconds, coalesce_seconds=time.perf_counter() - t0 - raster_seconds, stats=stats, device=pairs)
 
+    @property
+    def index(self) -> SpatialIndex | None:
+        """The culling index this computer culls with (None when it renders every Gaussian)."""
+        return self._index
+
     def rasterize(self, cam: Camera):
         """The view's top-k RasterOutput (ids, weights [H, W, k], scene ids) with this computer's engine
-        and culling; no hook (the solve stage re-renders with it)."""
-        return self._rasterize(cam)
+        and culling; no hook (the fit and solve stages render with it). Its arrays are the previous
+        view's buffers, reused (fresh ones cost page faults), so the next call overwrites them."""
+        self._out = self._rasterize(cam)
+        return self._out
 
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling

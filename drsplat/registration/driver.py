@@ -25,7 +25,7 @@ import dataclasses
 import logging
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,9 +39,8 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
-from drsplat.raster import PreparedScene
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.fit import FitChoice, is_fit_mode, resolve_fit
+from drsplat.registration.fit import FitChoice, FitStage, fit_stage, is_fit_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
@@ -244,10 +243,9 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
-    # a fit mode's footprint is picked on its probe views before any view is summed, on the geometry the view pass then uses
-    geometry = prepare_geometry(run.scene) if is_fit_mode(run.options.aggregate) else None
-    mode, fit = resolve_fit(run.options.aggregate, geometry, run.views, run.features_dir, run.options.level, run.options.topk, cancel)
-    run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=mode))
+    probe = _fit_stage(run, cancel)
+    if probe is not None:
+        run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=probe.mode))
     scene, options = run.scene, run.options
     n = scene.num_gaussians
     if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
@@ -255,7 +253,7 @@ def run_registration(
     block = options.block_size or _plan_block(run)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
-    aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers)
+    aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers, rays=probe.rays if probe is not None else None)
     if aggregator.solve and block < n:
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
@@ -272,7 +270,7 @@ def run_registration(
     reducer_seconds = (0.0, 0.0)
     try:
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
-        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, geometry)
+        workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()
@@ -336,8 +334,21 @@ def run_registration(
         sums_on=sums_place(sink), pairs_on=options.device if device_pairs else "host",
         finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
-        fit=fit,
+        fit=probe.choice if probe is not None else None,
     )
+
+
+def _fit_stage(run: Run, cancel: CancelToken | None) -> FitStage | None:
+    """A fit mode's stage (drsplat.registration.fit), or None for other modes: the footprint picked on
+    its probe views before any view is summed, on the geometry the view pass then uses. When the
+    pass computes views as the probe does (numba, in this process) the probe views' pairs are kept
+    for it, so they are rendered once."""
+    options = run.options
+    if not is_fit_mode(options.aggregate):
+        return None
+    same_views = options.place == "local" and options.engine == "numba"
+    return fit_stage(options.aggregate, run.scene, run.views, run.features_dir, options.level, options.topk,
+                     geometry=prepare_geometry(run.scene), cull=options.cull, keep_pairs=same_views, cancel=cancel)
 
 
 def device_pairs_apply(options: RegisterOptions) -> bool:
@@ -411,12 +422,13 @@ def _why(exc: BaseException) -> str:
 
 
 def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: Sink, totals: ViewTotals, device_pairs: bool,
-               show_progress: bool, on_progress, cancel, geometry: PreparedScene | None = None) -> tuple[list[WorkerStats], dict[int, int]]:
+               show_progress: bool, on_progress, cancel, probe: FitStage | None = None) -> tuple[list[WorkerStats], dict[int, int]]:
     """Replay the checkpoint's views, then compute the others with the executor, in view order:
     fold the mode's statistics, log the view, add it to the sink. device_pairs: views keep their
-    pairs on the torch engine's device (copied to the host only to be logged). geometry: the scene's
-    `prepare_geometry`, when made already (the fit stage's); else made here. Returns the WorkerStats
-    of the processes that computed views and the Ray workers' peak RSS (pid -> bytes)."""
+    pairs on the torch engine's device (copied to the host only to be logged). probe: the fit
+    stage, whose geometry and culling index the executor takes and whose probe views' pairs
+    (`FitStage.pairs`) are used where they fall instead of computing those views again. Returns the
+    WorkerStats of the processes that computed views and the Ray workers' peak RSS (pid -> bytes)."""
 
     def consume(view: ViewPairs) -> None:
         totals.add(view)
@@ -442,9 +454,13 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
                   device_pairs=device_pairs, group_pairs=ckpt is not None, shard_dir=str(ckpt.shards_dir.resolve()) if shards else None,
                   log_params=ckpt.log.params if shards else None)
-    executor = open_executor(options.place, geometry if geometry is not None else prepare_geometry(run.scene), job, options.cluster)
-    stream = executor.view_pairs(run.views[totals.done :])
+    ready = {i: view for i, view in (probe.pairs if probe is not None else {}).items() if i >= totals.done}
+    geometry = probe.geometry if probe is not None else prepare_geometry(run.scene)
+    executor = open_executor(options.place, geometry, job, options.cluster, index=probe.index if probe is not None else None)
+    stream = executor.view_pairs([cam for i, cam in enumerate(run.views) if i >= totals.done and i not in ready])
     views = one_view_behind(stream) if device_pairs else stream  # a device view's sizes are read while the next one renders
+    if ready:
+        views = in_view_order(range(totals.done, total), ready, views, grouped=job.group_pairs)
     try:
         for view in progress(views, desc="register", total=total - totals.done, enabled=show_progress, unit="view"):
             c0 = time.process_time()
@@ -465,6 +481,17 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
         stream.close()
         executor.close()
     return list(executor.worker_stats.values()), dict(getattr(executor, "worker_peak_rss", {}))
+
+
+def in_view_order(indices: range, ready: dict[int, ViewPairs], computed: Iterator[ViewPairs], grouped: bool = False) -> Iterator[ViewPairs]:
+    """The views of `indices` in order: ready[i] where computed already (grouped by Gaussian chunk
+    when `grouped`, as the executor's are), else the next of `computed` (the other views, in order)."""
+    for i in indices:
+        view = ready.pop(i, None)
+        if view is None:
+            yield next(computed)
+        else:
+            yield view.grouped() if grouped else view
 
 
 def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:

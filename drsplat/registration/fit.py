@@ -20,13 +20,17 @@ paper's otherwise: "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject
 and everything downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
 
-Cost: P extra top-k renders (culled as the view pass culls, on the registration's geometry without
-its SH) and, per probe view, the sharp weights, two coalescings and two re-renders, O(H·W·k).
+Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
+geometry without its SH), the sharp weights, two coalescings and two re-renders, O(H·W·k). When
+the view pass computes views as the probe does (numba, in this process), the chosen footprint's
+pairs are kept (`FitStage.pairs`) and the pass uses them instead of rendering those views again,
+so the stage's own cost is the sharp weights, one coalescing and the re-renders.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -35,12 +39,14 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.raster import PreparedScene, rasterize_topk
-from drsplat.registration.aggregate import view_weights
+from drsplat.raster import PreparedScene
+from drsplat.registration.aggregate import RayGeometry, mode_hook, mode_stages
 from drsplat.registration.coalesce import Coalescer
-from drsplat.registration.compute import prepare_geometry, renders_whole
-from drsplat.registration.culling import SpatialIndex, subset_geometry
+from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+from drsplat.registration.culling import SpatialIndex
+from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features
+from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
@@ -120,13 +126,18 @@ def _labels_kernel(g, m, w, best, labels):  # pragma: no cover - jitted
             labels[i] = j
 
 
+def pairs_labels(gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, num_gaussians: int) -> np.ndarray:
+    """[N] int32 ℓ(g) from a view's coalesced pairs gaussians, masks [P] int32, weights [P] float32
+    (`Coalescer.coalesce`'s order): the mask of each Gaussian's heaviest pair (ties: the lower mask)."""
+    best, labels = np.zeros(num_gaussians, np.float32), np.full(num_gaussians, -1, np.int32)
+    _labels_kernel(gaussians, masks, weights, best, labels)
+    return labels
+
+
 def view_labels(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int, coalescer: Coalescer) -> np.ndarray:
     """`view_labels_reference` from the view's coalesced pairs (drsplat.registration.coalesce)."""
     g, m, w, _ = coalescer.coalesce(ids, weights, mask_ids, num_masks)
-    n = coalescer.num_gaussians
-    best, labels = np.zeros(n, np.float32), np.full(n, -1, np.int32)
-    _labels_kernel(g, m, w, best, labels)
-    return labels
+    return pairs_labels(g, m, w, coalescer.num_gaussians)
 
 
 def rerender_reference(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -196,7 +207,12 @@ def _rerender_counts_kernel(ids, weights, labels, mask_ids, num_masks, parts, in
 def footprint_score(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int, coalescer: Coalescer) -> float:
     """S_u of one view for the per-slot weights u = `weights` [H, W, k] (module docstring): the view's
     labelling re-rendered and compared with its masks mask_ids [H, W], mask by mask."""
-    labels = view_labels(ids, weights, mask_ids, num_masks, coalescer)
+    return rerender_score(ids, weights, view_labels(ids, weights, mask_ids, num_masks, coalescer), mask_ids, num_masks)
+
+
+def rerender_score(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> float:
+    """S_u of one view from its labelling ℓ = labels [N] (`view_labels`): r(p) re-rendered from
+    ids, weights [H, W, k], then the mean per-mask IoU against mask_ids [H, W]."""
     k = ids.shape[-1]
     parts = max(1, numba.get_num_threads())
     inter = np.zeros((parts, num_masks), np.int64)
@@ -220,50 +236,72 @@ def footprint_score_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np
 # ----------------------------------------------------------------------------- the probe
 
 
-def probe_render(geometry: PreparedScene, index: SpatialIndex, camera: Camera, topk: int):
-    """The view's top-k RasterOutput with the numba engine, culled as the view pass culls
-    (drsplat.registration.compute.renders_whole): ids and projection are those of the rendered
-    subset, which the scores do not mind (they never compare Gaussian ids)."""
-    visible = index.visible(camera)
-    part = geometry if renders_whole(visible.size, geometry.num_gaussians) else subset_geometry(geometry, visible)
-    return rasterize_topk(part, camera, topk)
+@dataclass
+class FitStage:
+    """What the fit stage hands the registration driver.
+
+    mode: the concrete mode (`resolve_mode`); choice: the decision. geometry: the scene's
+    `prepare_geometry`, which the view pass renders too. index: the culling index the probe built,
+    which the view pass culls with (None without culling). rays: the RayGeometry the
+    probe built for floater rejection (None when it built none). pairs: view index -> that probe
+    view's ViewPairs for the chosen footprint, computed as the view pass computes them (the same
+    render, hook and coalescing), so the pass does not render it again (empty unless asked for).
+    """
+
+    mode: str
+    choice: FitChoice
+    geometry: PreparedScene
+    index: SpatialIndex | None
+    rays: RayGeometry | None
+    pairs: dict[int, ViewPairs]
 
 
-def probe_scores(out, mask_ids: np.ndarray, num_masks: int) -> tuple[float, float]:
-    """(S_paper, S_sharp) of one rendered view (`probe_render`): each footprint's score."""
-    projected = out.projected
-    coalescer = Coalescer(projected.means2d.shape[0])
-    sharp = view_weights("sharp", out.ids, out.weights, projected.means2d, projected.conics)
-    return (footprint_score(out.ids, out.weights, mask_ids, num_masks, coalescer),
-            footprint_score(out.ids, sharp, mask_ids, num_masks, coalescer))
+def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, *,
+              geometry: PreparedScene | None = None, cull: bool = True, keep_pairs: bool = False, count: int = FIT_PROBES,
+              cancel: CancelToken | None = None) -> FitStage:
+    """The fit stage of `mode` (a fit mode; module docstring) on `count` probe views of `views`.
 
-
-def choose_footprint(scene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, count: int = FIT_PROBES,
-                     cancel: CancelToken | None = None) -> FitChoice:
-    """The fit stage's decision for a registration of `views` (module docstring); scene: a
-    GaussianScene or PreparedScene; cancel: checked before each probe view."""
-    geometry = scene if isinstance(scene, PreparedScene) else prepare_geometry(scene)
-    index = SpatialIndex.build(geometry)
-    picks = [views[i] for i in probe_views(len(views), count)]
-    paper, sharp = np.zeros(len(picks)), np.zeros(len(picks))
-    for t, cam in enumerate(picks):
+    Each probe view is rendered once, by a numba ViewComputer that culls (`cull`) and takes the
+    median as the view pass does, and coalesced under each footprint; a footprint's score is read
+    from its pairs (ℓ) and the render (r). keep_pairs: also compute the views' floater statistics
+    when the mode rejects, and keep the chosen footprint's ViewPairs for a view pass that computes
+    views the same way (numba, in this process). geometry: `prepare_geometry(scene)` when made
+    already. cancel: checked before each probe view.
+    """
+    geometry = geometry if geometry is not None else prepare_geometry(scene)
+    candidates = {footprint: resolve_mode(mode, footprint) for footprint in FOOTPRINTS}
+    rays = RayGeometry.from_scene(scene) if keep_pairs and mode_stages(candidates["sharp"]).reject else None
+    # the sharp candidate's hook gives the sharp weights, and renders with the median exactly when the view pass will
+    hook = mode_hook(candidates["sharp"] if keep_pairs else "sharp", rays)
+    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull))
+    picks = probe_views(len(views), count)
+    scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
+    kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
+    for t, i in enumerate(picks):
         if cancel is not None:
             cancel.raise_if_cancelled()
-        mask_ids, feats, _ = load_view_features(features_dir, cam, level)
-        paper[t], sharp[t] = probe_scores(probe_render(geometry, index, cam, topk), mask_ids, feats.shape[0])
-    choice = FitChoice("paper", [c.name for c in picks], paper, sharp)
+        cam = views[i]
+        mask_ids, feats, nonfinite = load_view_features(features_dir, cam, level)
+        t0 = time.perf_counter()
+        out = computer.rasterize(cam)
+        raster_seconds = time.perf_counter() - t0
+        stats = hook.stats(cam, out)
+        for footprint in FOOTPRINTS:
+            weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
+            view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
+            labels = pairs_labels(view.gaussians, view.masks, view.weights, geometry.num_gaussians)
+            scores[footprint][t] = rerender_score(out.ids, weights, labels, mask_ids, feats.shape[0])
+            if keep_pairs:
+                kept[footprint][int(i)] = view
+    choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"])
     choice.footprint = "sharp" if choice.margin > 0.0 else "paper"
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
              "sharp %.3f)", len(picks), "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
-             float(np.mean(paper)) if len(picks) else 0.0, float(np.mean(sharp)) if len(picks) else 0.0)
-    return choice
+             float(np.mean(choice.paper)) if len(picks) else 0.0, float(np.mean(choice.sharp)) if len(picks) else 0.0)
+    return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
 
 
-def resolve_fit(mode: str, scene, views: Sequence[Camera], features_dir: Path, level: int, topk: int,
-                cancel: CancelToken | None = None) -> tuple[str, FitChoice | None]:
-    """(the concrete mode, the fit stage's decision) for `mode`: a fit mode is decided on its probe
-    views (`choose_footprint`) and resolved (`resolve_mode`); any other mode is returned with None."""
-    if not is_fit_mode(mode):
-        return mode, None
-    choice = choose_footprint(scene, views, features_dir, level, topk, cancel=cancel)
-    return resolve_mode(mode, choice.footprint), choice
+def choose_footprint(scene: GaussianScene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, count: int = FIT_PROBES,
+                     cancel: CancelToken | None = None) -> FitChoice:
+    """The fit stage's decision for a registration of `views` (`fit_stage`'s choice, nothing kept)."""
+    return fit_stage("fit", scene, views, features_dir, level, topk, count=count, cancel=cancel).choice

@@ -159,7 +159,8 @@ class RayExecutor:
     worker_peak_rss: pid -> peak resident bytes.
     """
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None):
+    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None, index: SpatialIndex | None = None):
+        """index: the scene's culling index when built already (the fit stage's); else built here."""
         cluster = cluster or ClusterOptions()
         ray = import_ray()
         self._owns = connect(cluster.address)
@@ -179,7 +180,7 @@ class RayExecutor:
             self.views_per_task = max(1, int(cluster.views_per_task or VIEWS_PER_TASK))
             if gpus:  # Ray shows each actor its own GPU only, as device 0
                 job = dataclasses.replace(job, device="cuda")
-            culling = SpatialIndex.build(geometry) if job.cull else None  # built once, not by every worker
+            culling = (index or SpatialIndex.build(geometry)) if job.cull else None  # built once, not by every worker
             self._refs = [ray.put(geometry), ray.put(job), ray.put(culling)]
             actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=TASK_RETRIES, max_task_retries=TASK_RETRIES)(_ViewWorker)
             self._actors = [actor.remote() for _ in range(self.workers)]
