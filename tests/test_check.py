@@ -113,6 +113,37 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
     assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
 
 
+@pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
+def test_support_summed_in_parallel_parts_is_the_one_part_table(seed, hard):
+    """A view's support summed in 1, 2, 3 or 7 row-aligned parts (one scratch layer each), over two
+    blocks whose tables carry on: every (mask, cluster) once, the same exact sums and masses."""
+    from drsplat.registration.check import SupportScratch
+
+    rng = np.random.default_rng(seed)
+    n = 40
+    views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, hard)
+    record, clusters = _record(views, n)
+    tables = {}
+    for layers in (1, 2, 3, 7):
+        supports = [ViewSupport.empty(v.feats, c, clusters.count) for v, c in zip(record.views, clusters.per_view)]
+        scratch = SupportScratch(clusters.count, layers=layers)
+        for lo, hi in ((0, 17), (17, n)):
+            slot_c, slot_v = fold_block_votes(record.block_views(lo, hi), clusters.per_view, lo, hi, slots=8)
+            for view, c, sup in zip(record.block_views(lo, hi), clusters.per_view, supports):
+                add_view_support(view, lo, c, slot_c, slot_v, sup, scratch)
+        assert not scratch._values.any() and not scratch._touched.any()  # left as it came
+        for sup in supports:
+            keys = sup.entry_mask.astype(np.int64) * clusters.count + sup.entry_cluster
+            assert np.unique(keys).size == keys.size
+        tables[layers] = [(sup.rows(), sup.mass_fixed) for sup in supports]
+    for layers in (2, 3, 7):
+        for (rows, mass), (rows1, mass1) in zip(tables[layers], tables[1]):
+            np.testing.assert_array_equal(mass, mass1)
+            for got, want in zip(rows, rows1):
+                np.testing.assert_array_equal(got, want)
+    assert sum(rows[0][-1] for rows, _ in tables[1]) > 0
+
+
 def test_support_tables_hold_only_the_pairs_that_occur():
     """Many labels, few per mask: 40 views of 5 masks, each mask over 10 Gaussians of its own that
     one other view also sees under another label. About 200 clusters, so dense tables would hold

@@ -84,6 +84,7 @@ log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
+SUPPORT_EXTRA_SCRATCH = 64 << 20  # bytes of support tables a view may add to sum its parts in parallel (9 bytes a (mask, cluster))
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 
 
@@ -228,7 +229,7 @@ def _fixed(x):  # pragma: no cover - jitted
     return np.int64(x * SUPPORT_SCALE + 0.5)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
                     scratch, touched, mass):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
@@ -236,63 +237,97 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     the pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive.
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
-    the same in any order and any partition of the Gaussians: one block, blocks in any order, or
-    reducers' partial tables summed by the driver (`merge_partial_supports`).
+    the same in any order and any partition of the Gaussians: one block, blocks in any order,
+    reducers' partial tables summed by the driver (`merge_partial_supports`), or the row-aligned
+    parts of the view this kernel sums in parallel, one per scratch layer, then adds into layer 0.
 
     q arrives and leaves as entries (entry_mask, entry_cluster [E] int32, entry_value [E] int64:
-    the pairs (j, c) met so far); returns the new entries (the old ones first, in their order). It
-    is summed in scratch [M, K] int64 (zero) with touched [M, K] bool (False), both left as they
+    the pairs (j, c) met so far); returns the new entries (the old ones first; every (j, c) once,
+    in an order that depends on the parts: readers sort them, `ViewSupport.rows`). It is summed in
+    scratch [L, M, K] int64 (zero) with touched [L, M, K] bool (False), L parts, both left as they
     came. mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
     n = order.shape[0]
+    layers, num_masks = scratch.shape[0], scratch.shape[1]
     count = entry_mask.shape[0]
-    cap = min(scratch.shape[0] * scratch.shape[1], count + n * num_slots)  # every (j, c) at most once
-    met_j = np.empty(cap, np.int32)
-    met_c = np.empty(cap, np.int32)
+    cuts = _row_aligned_cuts(rows, order, layers)
+    room = np.empty(layers + 1, np.int64)  # each part's own stretch of the met lists: every (j, c) at most once
+    room[0] = count
+    for part in range(layers):
+        room[part + 1] = room[part] + min(scratch.shape[1] * scratch.shape[2], (cuts[part + 1] - cuts[part]) * num_slots)
+    met_j = np.empty(room[layers], np.int32)
+    met_c = np.empty(room[layers], np.int32)
+    met_n = np.zeros(layers, np.int64)
+    part_mass = np.zeros((layers, num_masks), np.int64)
     for e in range(count):
         j, c = entry_mask[e], entry_cluster[e]
-        scratch[j, c] = entry_value[e]
-        touched[j, c] = True
+        scratch[0, j, c] = entry_value[e]
+        touched[0, j, c] = True
         met_j[e] = j
         met_c[e] = c
-    found = np.empty(n, np.int32)
-    votes = np.empty(n)
-    own = np.zeros(num_slots)
-    start = 0
-    while start < n:
-        r = rows[order[start]]
-        end = _run_end(rows, order, start)
-        found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
-        for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
-            own[s] = 0.0
-            for d in range(found_n):
-                if slot_c[r, s] == found[d]:
-                    own[s] = votes[d]
-        for i in range(start, end):
-            p = order[i]
-            w = np.float64(weights[p])
-            j = masks[p]
-            mass[j] += _fixed(w)
-            for s in range(num_slots):
-                c = slot_c[r, s]
-                if c < 0:
-                    break
-                other = slot_v[r, s] - own[s]
-                if other > 0.0:
-                    if not touched[j, c]:
-                        touched[j, c] = True
-                        met_j[count] = j
-                        met_c[count] = c
-                        count += 1
-                    scratch[j, c] += _fixed(w * other)
-        start = end
-    out_value = np.empty(count, np.int64)
-    for e in range(count):
-        j, c = met_j[e], met_c[e]
-        out_value[e] = scratch[j, c]
-        scratch[j, c] = 0
-        touched[j, c] = False
-    return met_j[:count].copy(), met_c[:count].copy(), out_value
+    for part in numba.prange(layers):
+        lo, hi = cuts[part], cuts[part + 1]
+        found = np.empty(hi - lo, np.int32)
+        votes = np.empty(hi - lo)
+        own = np.zeros(num_slots)
+        at = room[part]
+        start = lo
+        while start < hi:
+            r = rows[order[start]]
+            end = _run_end(rows, order, start)
+            found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+            for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
+                own[s] = 0.0
+                for d in range(found_n):
+                    if slot_c[r, s] == found[d]:
+                        own[s] = votes[d]
+            for i in range(start, end):
+                p = order[i]
+                w = np.float64(weights[p])
+                j = masks[p]
+                part_mass[part, j] += _fixed(w)
+                for s in range(num_slots):
+                    c = slot_c[r, s]
+                    if c < 0:
+                        break
+                    other = slot_v[r, s] - own[s]
+                    if other > 0.0:
+                        if not touched[part, j, c]:
+                            touched[part, j, c] = True
+                            met_j[at] = j
+                            met_c[at] = c
+                            at += 1
+                        scratch[part, j, c] += _fixed(w * other)
+            start = end
+        met_n[part] = at - room[part]
+    for j in range(num_masks):
+        for part in range(layers):
+            mass[j] += part_mass[part, j]
+    out_j = np.empty(count + met_n.sum(), np.int32)
+    out_c = np.empty(out_j.shape[0], np.int32)
+    out_n = 0
+    for e in range(count + met_n[0]):  # layer 0: the old entries, then its new ones
+        out_j[out_n] = met_j[e]
+        out_c[out_n] = met_c[e]
+        out_n += 1
+    for part in range(1, layers):  # the other layers added into layer 0
+        for e in range(room[part], room[part] + met_n[part]):
+            j, c = met_j[e], met_c[e]
+            if not touched[0, j, c]:
+                touched[0, j, c] = True
+                out_j[out_n] = j
+                out_c[out_n] = c
+                out_n += 1
+            scratch[0, j, c] += scratch[part, j, c]
+            scratch[part, j, c] = 0
+            touched[part, j, c] = False
+    out_value = np.empty(out_n, np.int64)
+    for e in range(out_n):
+        j, c = out_j[e], out_c[e]
+        out_value[e] = scratch[0, j, c]
+        scratch[0, j, c] = 0
+        touched[0, j, c] = False
+    return out_j[:out_n].copy(), out_c[:out_n].copy(), out_value
 
 
 @numba.njit(cache=True)
@@ -464,19 +499,25 @@ class ViewSupport:
 
 
 class SupportScratch:
-    """The dense scratch `_support_kernel` sums one view in: [M, K] int64 zeros and bool flags,
-    sized for the largest view's M and reused (left zero by every call)."""
+    """The dense scratch `_support_kernel` sums one view in: [L, M, K] int64 zeros and bool flags,
+    one layer per part of the view summed in parallel, sized for the largest view's M and reused
+    (left zero by every call). L: one per numba thread, as long as the layers beyond the first
+    stay within SUPPORT_EXTRA_SCRATCH for the view (the sums do not depend on it); `layers` fixes L."""
 
-    def __init__(self, num_clusters: int):
+    def __init__(self, num_clusters: int, layers: int | None = None):
         self.num_clusters = num_clusters
+        self.layers = layers
         self._values = np.zeros(0, np.int64)
         self._touched = np.zeros(0, bool)
 
     def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray]:
-        size = num_masks * self.num_clusters
+        table = num_masks * self.num_clusters
+        layers = self.layers or int(max(1, min(numba.get_num_threads(), 1 + SUPPORT_EXTRA_SCRATCH // max(9 * table, 1))))
+        size = layers * table
         if size > self._values.shape[0]:
             self._values, self._touched = np.zeros(size, np.int64), np.zeros(size, bool)
-        return self._values[:size].reshape(num_masks, self.num_clusters), self._touched[:size].reshape(num_masks, self.num_clusters)
+        shape = (layers, num_masks, self.num_clusters)
+        return self._values[:size].reshape(shape), self._touched[:size].reshape(shape)
 
 
 def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
