@@ -223,3 +223,22 @@ def test_eval_ablate_topk_writes_table_and_plot(registered, tmp_path, capsys):
     # more Gaussians per pixel: fewer Gaussians left without weight
     assert doc["rows"][0][3] >= doc["rows"][1][3]
     assert (tmp_path / "ablation_topk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("change, index, words", [
+    (lambda names: names[:1] + names[:1] + names[2:], 1, "repeats the name"),
+    (lambda names: names[:1] + ["a\nb"] + names[2:], 1, "control character"),
+    (lambda names: names[:2] + [""] + names[3:], 2, "empty name"),
+], ids=["duplicate", "newline", "empty"])
+def test_eval_label_names_get_the_names_checks(registered, tmp_path, capsys, change, index, words):
+    """--label-names labels the printed tables and the JSON report: a repeated, blank or
+    control-character name is one error naming the file and the entry, as segment's --names is."""
+    r = registered
+    bad = tmp_path / "names.json"
+    bad.write_text(json.dumps(change(list(r["names"]))))
+    js = tmp_path / "iou.json"
+    argv = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"),
+            "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--label-names", str(bad), "--json", str(js)]
+    assert main(argv) == 1 and not js.exists()
+    err = capsys.readouterr().err
+    assert "names.json" in err and f"entry {index} " in err and words in err, err

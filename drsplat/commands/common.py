@@ -7,6 +7,7 @@ argparse prints the usage and the flag's name and exits 2 before any work starts
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 from collections.abc import Callable
@@ -259,3 +260,22 @@ def export_outputs(path, fmt: str) -> dict:
     from drsplat.lang import codebook_path_for
 
     return {"the export's codebook": codebook_path_for(path)} if path is not None and fmt == "drsplat" else {}
+
+
+def checked_names(path: Path, names: list) -> list[str]:
+    """The names as given, or one error naming the first entry that is not a non-empty string
+    without control characters, or that repeats an earlier name (the names label the printed
+    table and the coloured PLY's legend: a list, a blank or a twice-used name would mislabel it)."""
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        shown = json.dumps(name)[:60]
+        if not isinstance(name, str):
+            raise InputError(path, f"entry {i} is {shown}, not a string; expected a JSON list of label names")
+        if not name.strip():
+            raise InputError(path, f"entry {i} is an empty name ({shown})")
+        if any(ch < " " or ch == "\x7f" for ch in name):
+            raise InputError(path, f"entry {i} ({shown}) holds a control character (newline, tab, NUL...)")
+        if name in seen:
+            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[name]}")
+        seen[name] = i
+    return names

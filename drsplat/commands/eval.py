@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import float_range, guard_args, int_range, positive_float, threshold_value
+from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
 from drsplat.errors import DrsplatError, InputError
 
 log = logging.getLogger(__name__)
@@ -141,9 +141,9 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
         names = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(path, f"not a readable JSON list of names ({exc})") from None
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or not names:
-        raise InputError(path, "expected a non-empty JSON list of strings")
-    return names
+    if not isinstance(names, list) or not names:
+        raise InputError(path, "expected a non-empty JSON list of label names")
+    return checked_names(path, names)
 
 
 def load_gt_labels(path: Path, n: int, num_labels: int) -> np.ndarray:

@@ -13,6 +13,7 @@ from drsplat.commands.common import (
     add_clip_arguments,
     add_format_argument,
     add_lut_bits_argument,
+    checked_names,
     export_outputs,
     float_range,
     load_registered,
@@ -102,27 +103,6 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
             raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
         log.info("ignoring %s: it does not name the %d label rows", path, count)
     return [f"label_{i}" for i in range(count)]
-
-
-def checked_names(path: Path, names: list) -> list[str]:
-    """The names as given, or one error naming the first entry that is not a non-empty string
-    without control characters, or that repeats an earlier name (the names label the printed
-    table and the coloured PLY's legend: a list, a blank or a twice-used name would mislabel it)."""
-    import json
-
-    seen: dict[str, int] = {}
-    for i, name in enumerate(names):
-        shown = json.dumps(name)[:60]
-        if not isinstance(name, str):
-            raise InputError(path, f"entry {i} is {shown}, not a string; expected a JSON list of label names")
-        if not name.strip():
-            raise InputError(path, f"entry {i} is an empty name ({shown})")
-        if any(ch < " " or ch == "\x7f" for ch in name):
-            raise InputError(path, f"entry {i} ({shown}) holds a control character (newline, tab, NUL...)")
-        if name in seen:
-            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[name]}")
-        seen[name] = i
-    return names
 
 
 def default_names_path(embeddings: Path) -> Path:

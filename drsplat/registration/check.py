@@ -247,7 +247,6 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     scratch [L, M, K] int64 (zero) with touched [L, M, K] bool (False), L parts, both left as they
     came. mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
-    n = order.shape[0]
     layers, num_masks = scratch.shape[0], scratch.shape[1]
     count = entry_mask.shape[0]
     cuts = _row_aligned_cuts(rows, order, layers)
