@@ -25,6 +25,7 @@ from drsplat.registration.check import (
     fold_block_votes,
     judge_masks,
     like_threshold,
+    mask_drops,
     view_supports,
     view_votes_reference,
 )
@@ -101,16 +102,17 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
     ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, clusters.per_view)], n,
                           means, like)
     assert len(ref) == 7
-    for view, c, (r_mass, r_total, r_agree, r_own, r_alt) in zip(record.views, clusters.per_view, ref):
+    for view, c, (r_mass, r_total, r_agree, r_own, r_alt, r_core) in zip(record.views, clusters.per_view, ref):
         sup = ViewSupport.empty(view.feats, c, means.shape[0])
         add_view_support(view, 0, c, slot_c, slot_v, sup)
-        agree, total, own, alt = (np.zeros(c.shape[0]) for _ in range(4))
-        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
-        _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own, alt)
+        agree, total, own, alt, core = (np.zeros(c.shape[0]) for _ in range(5))
+        _agreement_kernel(*sup.rows()[:3], sup.mass, sup.units, means, agree, total)
+        _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own, alt, core)
         np.testing.assert_allclose(sup.mass, r_mass, rtol=1e-12)
-        for got, want in [(total, r_total), (agree, r_agree), (own, r_own), (alt, r_alt)]:
+        for got, want in [(total, r_total), (agree, r_agree), (own, r_own), (alt, r_alt), (core, r_core)]:
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
+    assert any(((r[5] > 0) & (r[5] < 1)).any() for r in ref)  # and masks partly on Gaussians whose other views say otherwise
 
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
@@ -144,6 +146,67 @@ def test_support_summed_in_parallel_parts_is_the_one_part_table(seed, hard):
     assert sum(rows[0][-1] for rows, _ in tables[1]) > 0
 
 
+def _floor_under_a_cube_mask(n_contaminated_views: int, with_wall: bool = False) -> list[ViewPairs]:
+    """100 floor Gaussians: views 1-4 see them under a floor mask; in `n_contaminated_views` of those
+    a cube mask also reaches 30 of them (a neighbour's label spread onto boundary Gaussians, as
+    jittered or blurred masks do); view 0 calls all of them "cube" (a mislabelled floor). With
+    `with_wall`, view 0 also holds a wall mask over 200 other Gaussians (that 4 more views see)."""
+    rng = np.random.default_rng(5)
+    floor, cube, wall = _unit(rng.normal(size=(3, D)))
+    g = np.arange(100, dtype=np.int32)
+    views = []
+    extra = (np.arange(100, 300, dtype=np.int32),) if with_wall else ()
+    feats0 = np.stack([cube, wall]) if with_wall else cube[None]
+    g0 = np.concatenate([g, *extra])
+    views.append(_view("v0", feats0, g0, np.r_[np.zeros(100, np.int32), np.ones(g0.size - 100, np.int32)], np.ones(g0.size)))
+    for v in range(1, 5):
+        if v <= n_contaminated_views:
+            views.append(_view(f"v{v}", np.stack([floor, cube]), np.r_[g, g[:30]], np.r_[np.zeros(100, np.int32), np.ones(30, np.int32)],
+                               np.r_[np.ones(100), np.full(30, 0.5)]))
+        else:
+            views.append(_view(f"v{v}", floor[None], g, np.zeros(100, np.int32), np.ones(100)))
+    for v in range(5, 9) if with_wall else ():
+        views.append(_view(f"v{v}", np.stack([wall, floor]), np.r_[extra[0], g[:5]], np.r_[np.zeros(200, np.int32), np.ones(5, np.int32)],
+                           np.ones(205)))
+    return views
+
+
+def test_a_large_mask_whose_label_only_leaks_onto_its_boundary_is_dropped():
+    """A mislabelled floor mask ("cube") whose label the other views give only to its boundary
+    Gaussians (the cube's mask spilling onto them in 2 of 4 views): own 0.15 of alt, over the
+    0.1 of the first rule, but no Gaussian's other views vote most for "cube" (core 0), and the
+    mask is its view's: dropped by the second rule. Without the leak (own 0) the first rule drops
+    it too; the floor and wall masks of the other views are kept. (Views of one mask each give
+    the scene no "like" cosine: the case without the leak needs the wall.)"""
+    for leaks, with_wall in ((2, False), (2, True), (0, True)):
+        views = _floor_under_a_cube_mask(leaks, with_wall)
+        verdicts, record = _judge(views, 300)
+        assert verdicts.like is not None
+        assert not verdicts.keep[0][0], (leaks, with_wall)
+        assert all(keep.all() for keep in verdicts.keep[1:]) and (not with_wall or verdicts.keep[0][1])
+    n, views = 300, _floor_under_a_cube_mask(2)
+    record, clusters = _record(views, n)
+    means = np.ascontiguousarray(clusters.means(), np.float32)
+    slot_c, slot_v = fold_block_votes(record.block_views(0, n), clusters.per_view, 0, n, slots=8)
+    sup = ViewSupport.empty(views[0].feats, clusters.per_view[0], means.shape[0])
+    add_view_support(record.views[0], 0, clusters.per_view[0], slot_c, slot_v, sup)
+    own, alt, core = np.zeros(1), np.zeros(1), np.zeros(1)
+    _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, 0.5, own, alt, core)
+    assert 0.1 < own[0] / alt[0] < 0.25 and core[0] == 0.0
+
+
+def test_the_second_rule_drops_large_masks_only():
+    """mask_drops: the first rule (own < 0.1 alt) whatever the size; the second (own < 0.25 alt, core
+    < 0.05) only for masks of at least 1 % of their view's mass, whose core share is a statistic
+    over many Gaussians: a small mask of a thin object whose other views mostly see the wall
+    behind it is kept."""
+    mass = np.array([1000.0, 5.0, 1000.0, 5.0, 1000.0, 0.0])
+    own = np.array([0.5, 0.5, 0.5, 0.3, 0.5, 0.0])
+    alt = np.array([4.0, 4.0, 4.0, 4.0, 0.5, 4.0])
+    core = np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(mask_drops(mass, own, alt, core), [True, False, False, True, False, False])
+
+
 def test_support_tables_hold_only_the_pairs_that_occur():
     """Many labels, few per mask: 40 views of 5 masks, each mask over 10 Gaussians of its own that
     one other view also sees under another label. About 200 clusters, so dense tables would hold
@@ -165,9 +228,9 @@ def test_support_tables_hold_only_the_pairs_that_occur():
     assert sum(s.num_entries for s in supports) == masks  # each mask meets one other cluster
     means = np.ascontiguousarray(clusters.means(), np.float32)
     ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, clusters.per_view)], n, means, 0.9)
-    for sup, (r_mass, r_total, r_agree, _, _) in zip(supports, ref):
+    for sup, (r_mass, r_total, r_agree, _, _, _) in zip(supports, ref):
         agree, total = np.zeros(sup.mass.shape[0]), np.zeros(sup.mass.shape[0])
-        _agreement_kernel(*sup.rows(), sup.mass, sup.units, means, agree, total)
+        _agreement_kernel(*sup.rows()[:3], sup.mass, sup.units, means, agree, total)
         np.testing.assert_allclose(total, r_total, rtol=1e-12)
         np.testing.assert_allclose(agree, r_agree, rtol=1e-6, atol=1e-9)
 

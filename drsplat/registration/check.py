@@ -37,6 +37,20 @@ Gaussians and drops whole masks:
    i.e. at least one view's worth of other evidence agrees on another label and the mask's own
    label has almost none there (two views' worth until 2026-11-27: one gave the same verdicts on
    every clean room and more dropped mislabels, docs/registration.md "Design choices, measured").
+   A large mask is also dropped when
+
+       alt_j ≥ CHECK_MIN_VIEWS,   mass_j ≥ CHECK_LARGE_MASK · Σ_k mass_k (its view's masks),
+       own_j < CHECK_WEAK_SUPPORT · alt_j   and   core_j < CHECK_CORE,
+
+       core_j = Σ_{c like j} r_jc / Σ_c r_jc,   r_jc = Σ_{i ∈ j: c_i* = c} w_ij
+
+   with c_i* the cluster Gaussian i's other views vote most for (`mask_drops`): its own label
+   reaches it only as a leak onto some of its Gaussians (a neighbour's mask spilling over its
+   boundary in other views, which gives a mislabelled mask a few tenths of a view of support), and
+   almost none of its Gaussians are seen as its label by the other views. Only for large masks:
+   core is a share over the mask's Gaussians, and a small object's mask whose other views mostly
+   see the wall behind it has the same low numbers (docs/registration.md, "Design choices,
+   measured").
    A small object seen clearly in one view (its Gaussians elsewhere faint or spilling into the
    background: weak, split votes, each view's vote scaled by T_iv / T₀) or a label that a minority
    of other views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view
@@ -52,7 +66,7 @@ block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
 32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
-sparse support table over all blocks (`ViewSupport`: 16 bytes per (mask, cluster) pair that occurs;
+sparse support table over all blocks (`ViewSupport`: 24 bytes per (mask, cluster) pair that occurs;
 M masks x K clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is
 summed). Every term of q[j, c]
 and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
@@ -84,8 +98,14 @@ log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
-SUPPORT_EXTRA_SCRATCH = 64 << 20  # bytes of support tables a view may add to sum its parts in parallel (9 bytes a (mask, cluster))
+SUPPORT_EXTRA_SCRATCH = 64 << 20  # bytes of support tables a view may add to sum its parts in parallel (17 bytes a (mask, cluster))
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
+# a large mask (this share of its view's mass or more) is also dropped when its own label's support is
+# below CHECK_WEAK_SUPPORT of the best other label's and under CHECK_CORE of its weight lies on Gaussians
+# whose other views vote most for its label (module docstring, step 2)
+CHECK_LARGE_MASK = 0.01
+CHECK_WEAK_SUPPORT = 0.25
+CHECK_CORE = 0.05
 
 
 @dataclass
@@ -121,8 +141,8 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
 
     views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none),
     embeddings [M, D]). means: [K, D] unit cluster means. like: the "like" cosine (None: own and alt
-    are 0). Returns per view (mass [M], total [M], agree [M], own [M], alt [M]) as `_agreement_kernel`
-    and `_own_alt_kernel` define them (agrees with `check_masks`' kernels whenever no Gaussian meets
+    are 0). Returns per view (mass [M], total [M], agree [M], own [M], alt [M], core [M]) as
+    `_agreement_kernel` and `_own_alt_kernel` define them (agrees with `check_masks`' kernels whenever no Gaussian meets
     more than CHECK_SLOTS clusters).
     """
     k = means.shape[0]
@@ -144,7 +164,14 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
         consensus = np.where(q > 0, q, 0.0) @ means
         norm = np.linalg.norm(consensus, axis=1)
         agree = np.where(has & (norm > 0), (consensus * units).sum(axis=1) / np.where(norm > 0, norm, 1.0), 0.0)
-        own, alt = np.zeros(num_masks), np.zeros(num_masks)
+        # the core table: each pair's weight on the cluster its Gaussian's other views vote most for
+        # (argmax: the lowest cluster id of equal maxima), where some other view votes
+        r = np.zeros((num_masks, k))
+        voted = other.max(axis=1) > 0 if k else np.zeros(g.shape[0], bool)
+        if k:
+            np.add.at(r, (m[voted], np.argmax(other, axis=1)[voted]), np.floor(w.astype(np.float64)[voted] * SUPPORT_SCALE + 0.5))
+        r /= SUPPORT_SCALE
+        own, alt, core = np.zeros(num_masks), np.zeros(num_masks), np.zeros(num_masks)
         for j in np.flatnonzero(has) if like is not None else ():
             present = q[j] > 0
             is_like = present & (means @ units[j] >= like)
@@ -153,7 +180,9 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
             if unlike.any():
                 best = int(np.flatnonzero(unlike)[np.argmax(q[j, unlike])])  # first of equal maxima
                 alt[j] = q[j, unlike & (means @ means[best] >= like)].sum() / mass[j]
-        out.append((mass, total, agree, own, alt))
+            if r[j].sum() > 0:
+                core[j] = r[j, means @ units[j] >= like].sum() / r[j].sum()
+        out.append((mass, total, agree, own, alt, core))
     return out
 
 
@@ -231,7 +260,7 @@ def _fixed(x):  # pragma: no cover - jitted
 
 @numba.njit(cache=True, parallel=True)
 def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
-                    scratch, touched, mass):  # pragma: no cover - jitted
+                    entry_core, scratch, core, touched, mass):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
     (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
     the pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive.
@@ -241,11 +270,16 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     reducers' partial tables summed by the driver (`merge_partial_supports`), or the row-aligned
     parts of the view this kernel sums in parallel, one per scratch layer, then adds into layer 0.
 
-    q arrives and leaves as entries (entry_mask, entry_cluster [E] int32, entry_value [E] int64:
-    the pairs (j, c) met so far); returns the new entries (the old ones first; every (j, c) once,
-    in an order that depends on the parts: readers sort them, `ViewSupport.rows`). It is summed in
-    scratch [L, M, K] int64 (zero) with touched [L, M, K] bool (False), L parts, both left as they
-    came. mass: [M] int64, fixed point too."""
+    Beside q, the core table: r[j, c] += w_ij for the pairs whose Gaussian's other views vote
+    most for c (c_i* = the slot cluster of largest V_ic − v_icv > 0, the lowest cluster id of equal
+    maxima; no term when no other view votes), whose share of mask j's like clusters is core_j
+    (`_own_alt_kernel`). Its entries are q's: c_i* has a positive term in q[j, c_i*].
+
+    q and r arrive and leave as entries (entry_mask, entry_cluster [E] int32, entry_value,
+    entry_core [E] int64: the pairs (j, c) met so far); returns the new entries (the old ones first;
+    every (j, c) once, in an order that depends on the parts: readers sort them, `ViewSupport.rows`).
+    They are summed in scratch and core [L, M, K] int64 (zero) with touched [L, M, K] bool (False), L
+    parts, all left as they came. mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
     layers, num_masks = scratch.shape[0], scratch.shape[1]
     count = entry_mask.shape[0]
@@ -261,6 +295,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     for e in range(count):
         j, c = entry_mask[e], entry_cluster[e]
         scratch[0, j, c] = entry_value[e]
+        core[0, j, c] = entry_core[e]
         touched[0, j, c] = True
         met_j[e] = j
         met_c[e] = c
@@ -275,11 +310,18 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
             r = rows[order[start]]
             end = _run_end(rows, order, start)
             found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+            win = -1  # the cluster the other views vote most for
+            win_votes = 0.0
             for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
                 own[s] = 0.0
                 for d in range(found_n):
                     if slot_c[r, s] == found[d]:
                         own[s] = votes[d]
+                c = slot_c[r, s]
+                if c >= 0:
+                    other = slot_v[r, s] - own[s]
+                    if other > win_votes or (other == win_votes and other > 0.0 and c < win):
+                        win, win_votes = c, other
             for i in range(start, end):
                 p = order[i]
                 w = np.float64(weights[p])
@@ -297,6 +339,8 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                             met_c[at] = c
                             at += 1
                         scratch[part, j, c] += _fixed(w * other)
+                if win >= 0:
+                    core[part, j, win] += _fixed(w)
             start = end
         met_n[part] = at - room[part]
     for j in range(num_masks):
@@ -318,15 +362,20 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                 out_c[out_n] = c
                 out_n += 1
             scratch[0, j, c] += scratch[part, j, c]
+            core[0, j, c] += core[part, j, c]
             scratch[part, j, c] = 0
+            core[part, j, c] = 0
             touched[part, j, c] = False
     out_value = np.empty(out_n, np.int64)
+    out_core = np.empty(out_n, np.int64)
     for e in range(out_n):
         j, c = out_j[e], out_c[e]
         out_value[e] = scratch[0, j, c]
+        out_core[e] = core[0, j, c]
         scratch[0, j, c] = 0
+        core[0, j, c] = 0
         touched[0, j, c] = False
-    return out_j[:out_n].copy(), out_c[:out_n].copy(), out_value
+    return out_j[:out_n].copy(), out_c[:out_n].copy(), out_value, out_core
 
 
 @numba.njit(cache=True)
@@ -364,29 +413,38 @@ def _agreement_kernel(starts, clusters, values, mass, units, means, agree, total
 
 
 @numba.njit(cache=True)
-def _own_alt_kernel(starts, clusters, values, mass, units, means, like, own, alt):  # pragma: no cover - jitted
+def _own_alt_kernel(starts, clusters, values, core_values, mass, units, means, like, own, alt, core):  # pragma: no cover - jitted
     """own[j] = Σ_{c like j} q[j, c] / mass[j], "like" μ_c · f̂_j ≥ `like`; alt[j] = Σ_{c in the group
     of c*} q[j, c] / mass[j], c* the unlike cluster of largest q (the first in cluster order of
-    equal ones) and its group the unlike clusters c with μ_c · μ_c* ≥ `like` (0 for masks without
-    pairs). Dotted only where q > 0. q as compressed rows (`_agreement_kernel`)."""
+    equal ones) and its group the unlike clusters c with μ_c · μ_c* ≥ `like`; core[j] = Σ_{c like j}
+    r[j, c] / Σ_c r[j, c], the share of the mask's weight on Gaussians whose other views vote most
+    for its own label (0 for masks without pairs or without such votes). Dotted only where q > 0
+    or r > 0. q and r (core_values) as compressed rows (`_agreement_kernel`)."""
     num_masks = mass.shape[0]
     dim = means.shape[1]
     sims = np.empty(values.shape[0])
     for j in range(num_masks):
         own[j] = 0.0
         alt[j] = 0.0
+        core[j] = 0.0
         if not mass[j] > 0.0:
             continue
         best = -1
+        core_all = 0.0
         for e in range(starts[j], starts[j + 1]):
             value = values[e]
-            if not value > 0.0:
+            if not (value > 0.0 or core_values[e] > 0.0):
                 continue
             c = clusters[e]
             sim = 0.0
             for d in range(dim):
                 sim += np.float64(means[c, d]) * units[j, d]
             sims[e] = sim
+            core_all += core_values[e]
+            if sim >= like:
+                core[j] += core_values[e]
+            if not value > 0.0:
+                continue
             if sim >= like:
                 own[j] += value
             elif best < 0 or value > values[best]:
@@ -403,6 +461,7 @@ def _own_alt_kernel(starts, clusters, values, mass, units, means, like, own, alt
                         alt[j] += values[e]
         own[j] /= mass[j]
         alt[j] /= mass[j]
+        core[j] = core[j] / core_all if core_all > 0.0 else 0.0
 
 
 class PairRecord:
@@ -453,6 +512,7 @@ class ViewSupport:
     entry_mask: np.ndarray
     entry_cluster: np.ndarray
     entry_fixed: np.ndarray
+    entry_core: np.ndarray
     num_clusters: int
     mass_fixed: np.ndarray
     units: np.ndarray
@@ -463,7 +523,7 @@ class ViewSupport:
         units = unit_rows(feats)
         units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
         none = np.zeros(0, np.int32)
-        return cls(none, none, np.zeros(0, np.int64), int(num_clusters), np.zeros(clusters.shape[0], np.int64), units)
+        return cls(none, none, np.zeros(0, np.int64), np.zeros(0, np.int64), int(num_clusters), np.zeros(clusters.shape[0], np.int64), units)
 
     @property
     def entry_value(self) -> np.ndarray:
@@ -481,14 +541,16 @@ class ViewSupport:
 
     @property
     def nbytes(self) -> int:
-        return 16 * self.num_entries
+        return 24 * self.num_entries
 
-    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """q as compressed rows: (starts [M + 1] int64, clusters [E] int32, values [E] float64), the
-        entries of mask j at starts[j] .. starts[j + 1] - 1 in increasing cluster order."""
+    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """q and the core table r as compressed rows: (starts [M + 1] int64, clusters [E] int32,
+        q values [E] float64, r values [E] float64), the entries of mask j at starts[j] ..
+        starts[j + 1] - 1 in increasing cluster order."""
         order = np.lexsort((self.entry_cluster, self.entry_mask))
         starts = np.searchsorted(self.entry_mask[order], np.arange(self.mass_fixed.shape[0] + 1), side="left").astype(np.int64)
-        return starts, np.ascontiguousarray(self.entry_cluster[order]), self.entry_fixed[order] / SUPPORT_SCALE
+        return (starts, np.ascontiguousarray(self.entry_cluster[order]), self.entry_fixed[order] / SUPPORT_SCALE,
+                self.entry_core[order] / SUPPORT_SCALE)
 
     def dense(self) -> np.ndarray:
         """q as a dense [M, K] table (tests)."""
@@ -498,7 +560,7 @@ class ViewSupport:
 
 
 class SupportScratch:
-    """The dense scratch `_support_kernel` sums one view in: [L, M, K] int64 zeros and bool flags,
+    """The dense scratch `_support_kernel` sums one view in: [L, M, K] int64 zeros (q, the core table) and bool flags,
     one layer per part of the view summed in parallel, sized for the largest view's M and reused
     (left zero by every call). L: one per numba thread, as long as the layers beyond the first
     stay within SUPPORT_EXTRA_SCRATCH for the view (the sums do not depend on it); `layers` fixes L."""
@@ -507,16 +569,18 @@ class SupportScratch:
         self.num_clusters = num_clusters
         self.layers = layers
         self._values = np.zeros(0, np.int64)
+        self._core = np.zeros(0, np.int64)
         self._touched = np.zeros(0, bool)
 
-    def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray]:
+    def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q's, the core table's and the flags' [L, M, K] layers for a view of `num_masks` masks."""
         table = num_masks * self.num_clusters
-        layers = self.layers or int(max(1, min(numba.get_num_threads(), 1 + SUPPORT_EXTRA_SCRATCH // max(9 * table, 1))))
+        layers = self.layers or int(max(1, min(numba.get_num_threads(), 1 + SUPPORT_EXTRA_SCRATCH // max(17 * table, 1))))
         size = layers * table
         if size > self._values.shape[0]:
-            self._values, self._touched = np.zeros(size, np.int64), np.zeros(size, bool)
+            self._values, self._core, self._touched = np.zeros(size, np.int64), np.zeros(size, np.int64), np.zeros(size, bool)
         shape = (layers, num_masks, self.num_clusters)
-        return self._values[:size].reshape(shape), self._touched[:size].reshape(shape)
+        return self._values[:size].reshape(shape), self._core[:size].reshape(shape), self._touched[:size].reshape(shape)
 
 
 def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
@@ -546,11 +610,11 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
         rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
         if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
             scratch = SupportScratch(support.num_clusters)
-        values, touched = scratch.take(support.mass_fixed.shape[0])
-        support.entry_mask, support.entry_cluster, support.entry_fixed = _support_kernel(
+        values, core, touched = scratch.take(support.mass_fixed.shape[0])
+        support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = _support_kernel(
             rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
             np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
-            support.entry_mask, support.entry_cluster, support.entry_fixed, values, touched, support.mass_fixed)
+            support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core, values, core, touched, support.mass_fixed)
 
 
 def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> None:
@@ -567,18 +631,19 @@ def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> No
 @dataclass
 class PartialSupport:
     """One view's support from one block of Gaussians (a reducer's part of `ViewSupport`): entries
-    (mask [E] int32, cluster [E] int32, fixed [E] int64) and mass_fixed [M] int64, in the kernel's
-    fixed point, so the parts of every block add up exactly (`merge_partial_supports`)."""
+    (mask [E] int32, cluster [E] int32, fixed and core [E] int64) and mass_fixed [M] int64, in the
+    kernel's fixed point, so the parts of every block add up exactly (`merge_partial_supports`)."""
 
     entry_mask: np.ndarray
     entry_cluster: np.ndarray
     entry_fixed: np.ndarray
+    entry_core: np.ndarray
     mass_fixed: np.ndarray
 
     @classmethod
     def empty(cls, num_masks: int) -> PartialSupport:
         none = np.zeros(0, np.int32)
-        return cls(none, none, np.zeros(0, np.int64), np.zeros(num_masks, np.int64))
+        return cls(none, none, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(num_masks, np.int64))
 
 
 def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], num_clusters: int, lo: int,
@@ -611,10 +676,12 @@ def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.nd
             masks = np.concatenate([p.entry_mask for p in parts])
             cluster = np.concatenate([p.entry_cluster for p in parts])
             fixed = np.concatenate([p.entry_fixed for p in parts])
+            core = np.concatenate([p.entry_core for p in parts])
             order = np.lexsort((cluster, masks))
             first = np.flatnonzero(np.r_[True, (np.diff(masks[order]) != 0) | (np.diff(cluster[order]) != 0)]) if order.size else order
             support.entry_mask, support.entry_cluster = masks[order][first], cluster[order][first]
             support.entry_fixed = np.add.reduceat(fixed[order], first) if order.size else fixed  # integer sums: exact
+            support.entry_core = np.add.reduceat(core[order], first) if order.size else core
         supports.append(support)
     return supports
 
@@ -684,6 +751,16 @@ def _log_supports(supports: list[ViewSupport], num_clusters: int) -> None:
              sum(s.num_entries for s in supports), format_size(sum(s.nbytes for s in supports)), format_size(8 * num_clusters * masks))
 
 
+def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
+               min_share: float = CHECK_SUPPORT) -> np.ndarray:
+    """[M] bool, the masks of one view the check drops (module docstring, step 2): judged (alt ≥
+    min_views) and own < min_share · alt, or large (mass ≥ CHECK_LARGE_MASK of the view's mass
+    over its masks), own < CHECK_WEAK_SUPPORT · alt and core < CHECK_CORE. mass, own, alt, core: [M]."""
+    judge = (mass > 0) & (alt >= min_views)
+    large = mass >= CHECK_LARGE_MASK * mass.sum()
+    return judge & ((own < min_share * alt) | (large & (own < CHECK_WEAK_SUPPORT * alt) & (core < CHECK_CORE)))
+
+
 def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
     agreements, units_with_pairs = [], []
@@ -691,17 +768,17 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
     masses = [sup.mass for sup in supports]
     for sup, q, mass in zip(supports, rows, masses):
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
-        _agreement_kernel(*q, mass, sup.units, means, agree, total)
+        _agreement_kernel(*q[:3], mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
     keep, dropped, judged, present = [], 0, 0, 0
-    for sup, q, mass in zip(supports, rows, masses):
-        own, alt = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
+    for sup, (starts, clusters, values, core_values), mass in zip(supports, rows, masses):
+        own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
-            _own_alt_kernel(*q, mass, sup.units, means, like, own, alt)
+            _own_alt_kernel(starts, clusters, values, core_values, mass, sup.units, means, like, own, alt, core)
+        drop = mask_drops(mass, own, alt, core, min_views, min_share)
         judge = (mass > 0) & (alt >= min_views)
-        drop = judge & (own < min_share * alt)
         keep.append(~drop)
         dropped += int(drop.sum())
         judged += int(judge.sum())
