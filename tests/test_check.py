@@ -184,6 +184,7 @@ def test_a_large_mask_whose_label_only_leaks_onto_its_boundary_is_dropped():
         assert verdicts.like is not None
         assert not verdicts.keep[0][0], (leaks, with_wall)
         assert all(keep.all() for keep in verdicts.keep[1:]) and (not with_wall or verdicts.keep[0][1])
+        assert (verdicts.dropped, verdicts.dropped_large) == (1, 1 if leaks else 0)  # what the log line reports
     n, views = 300, _floor_under_a_cube_mask(2)
     record, clusters = _record(views, n)
     means = np.ascontiguousarray(clusters.means(), np.float32)

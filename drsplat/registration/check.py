@@ -118,6 +118,7 @@ class MaskVerdicts:
     judged: int
     present: int
     like: float | None = None  # the scene's "like" cosine (`like_threshold`), None: too little to judge
+    dropped_large: int = 0  # of the dropped, those only the second rule (large masks) drops
 
 
 def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, num_rows: int, num_clusters: int,
@@ -772,7 +773,7 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
         units_with_pairs.append(sup.units[mass > 0])
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
-    keep, dropped, judged, present = [], 0, 0, 0
+    keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
     for sup, (starts, clusters, values, core_values), mass in zip(supports, rows, masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
@@ -781,9 +782,10 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
         judge = (mass > 0) & (alt >= min_views)
         keep.append(~drop)
         dropped += int(drop.sum())
+        dropped_large += int((drop & ~(judge & (own < min_share * alt))).sum())
         judged += int(judge.sum())
         present += int((mass > 0).sum())
-    return MaskVerdicts(keep, dropped, judged, present, like)
+    return MaskVerdicts(keep, dropped, judged, present, like, dropped_large)
 
 
 class KeptPairs:
@@ -924,8 +926,9 @@ class CheckSink:
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
                                         supports=supports)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
-            log.info("mask check: %d of %d masks dropped (%d had enough other views to judge; like cosine %s)",
-                     self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, like)
+            log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
+                     "the other views give only to their boundary; like cosine %s)",
+                     self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, self.verdicts.dropped_large, like)
             self._kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
         return self._kept
 
