@@ -205,7 +205,9 @@ def test_the_second_rule_drops_large_masks_only():
     own = np.array([0.5, 0.5, 0.5, 0.3, 0.5, 0.0])
     alt = np.array([4.0, 4.0, 4.0, 4.0, 0.5, 4.0])
     core = np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(mask_drops(mass, own, alt, core), [True, False, False, True, False, False])
+    drop, large_only = mask_drops(mass, own, alt, core)
+    np.testing.assert_array_equal(drop, [True, False, False, True, False, False])
+    np.testing.assert_array_equal(large_only, [True, False, False, False, False, False])  # mask 3 is the first rule's
 
 
 def test_support_tables_hold_only_the_pairs_that_occur():

@@ -753,13 +753,16 @@ def _log_supports(supports: list[ViewSupport], num_clusters: int) -> None:
 
 
 def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
-               min_share: float = CHECK_SUPPORT) -> np.ndarray:
-    """[M] bool, the masks of one view the check drops (module docstring, step 2): judged (alt ≥
-    min_views) and own < min_share · alt, or large (mass ≥ CHECK_LARGE_MASK of the view's mass
-    over its masks), own < CHECK_WEAK_SUPPORT · alt and core < CHECK_CORE. mass, own, alt, core: [M]."""
+               min_share: float = CHECK_SUPPORT) -> tuple[np.ndarray, np.ndarray]:
+    """([M] bool the masks of one view the check drops, [M] bool those only the second rule drops)
+    (module docstring, step 2): judged (alt ≥ min_views) and own < min_share · alt, or large (mass ≥
+    CHECK_LARGE_MASK of the view's mass over its masks), own < CHECK_WEAK_SUPPORT · alt and core <
+    CHECK_CORE. mass, own, alt, core: [M]."""
     judge = (mass > 0) & (alt >= min_views)
+    first = judge & (own < min_share * alt)
     large = mass >= CHECK_LARGE_MASK * mass.sum()
-    return judge & ((own < min_share * alt) | (large & (own < CHECK_WEAK_SUPPORT * alt) & (core < CHECK_CORE)))
+    second = judge & ~first & large & (own < CHECK_WEAK_SUPPORT * alt) & (core < CHECK_CORE)
+    return first | second, second
 
 
 def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
@@ -778,11 +781,11 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
             _own_alt_kernel(starts, clusters, values, core_values, mass, sup.units, means, like, own, alt, core)
-        drop = mask_drops(mass, own, alt, core, min_views, min_share)
+        drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share)
         judge = (mass > 0) & (alt >= min_views)
         keep.append(~drop)
         dropped += int(drop.sum())
-        dropped_large += int((drop & ~(judge & (own < min_share * alt))).sum())
+        dropped_large += int(large_only.sum())
         judged += int(judge.sum())
         present += int((mass > 0).sum())
     return MaskVerdicts(keep, dropped, judged, present, like, dropped_large)
