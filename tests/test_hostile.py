@@ -819,6 +819,55 @@ def test_feature_view_cases(tmp_path, world, capsys, name):
         assert "orbit_000_s.npy" in line and words in line, line
 
 
+def _last_view_with_other_dim(features: Path, stem: str, dim: int) -> str:
+    np.save(features / f"{stem}_f.npy", np.ones((3, dim + 1), np.float32))
+    return f"{stem}_f.npy: field 'shape': embeddings are {dim + 1}-D but orbit_000_f.npy has {dim}-D ones"
+
+
+def _last_view_transposed(features: Path, stem: str, dim: int) -> str:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.ascontiguousarray(np.swapaxes(seg, -1, -2)))
+    return f"{stem}_s.npy: field 'shape': mask map is {seg.shape[-2]}x{seg.shape[-1]}"
+
+
+def _last_view_without_the_level(features: Path, stem: str, dim: int) -> str:
+    seg = np.load(features / f"{stem}_s.npy")
+    np.save(features / f"{stem}_s.npy", np.ascontiguousarray(seg[:2]))  # levels 0 and 1 of the others' 4; the test asks for level 3
+    return f"{stem}_s.npy: field 'shape': level 3 requested but the file has 2 levels"
+
+
+def _last_view_of_strings(features: Path, stem: str, dim: int) -> str:
+    np.save(features / f"{stem}_f.npy", np.full((3, dim), "x"))
+    return f"{stem}_f.npy: field 'dtype': embeddings have dtype <U1, expected floats"
+
+
+@pytest.mark.parametrize("mutate", [_last_view_with_other_dim, _last_view_transposed, _last_view_without_the_level, _last_view_of_strings],
+                         ids=lambda f: f.__name__.removeprefix("_last_view_"))
+def test_a_bad_last_view_stops_registration_before_any_view_is_rendered(tmp_path, world, capsys, monkeypatch, mutate):
+    """Every view's headers are checked before the pass: a bad last view is one error naming its
+    file and field, and nothing was rendered (was: found when that view was read, after every
+    other view's work)."""
+    import shutil
+
+    from drsplat.registration.compute import ViewComputer
+
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    stems = sorted(p.name.removesuffix("_f.npy") for p in feats.glob("*_f.npy"))
+    words = mutate(feats, stems[-1], world["dim"])
+    rendered = []
+    for name in ("compute", "rasterize"):
+        original = getattr(ViewComputer, name)
+        monkeypatch.setattr(ViewComputer, name, lambda self, *a, _f=original, **k: rendered.append(1) or _f(self, *a, **k))
+    out = tmp_path / "r.ply"
+    level = ["--level", "3"] if "level" in words else []
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats, "--out", out,
+                         "--no-progress", *level], capsys)
+    assert code == 1 and not out.exists() and not rendered
+    (line,) = error_lines(err)
+    assert words in line, line
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_a_codebook_with_non_finite_centroids_is_refused(tmp_path, world, capsys, value):
     """Was: `pq info` reported nothing wrong, `register --codebook` accepted it and `query` blamed

@@ -53,7 +53,7 @@ from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts,
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import normalize_rows
-from drsplat.registration.views import ViewSelection, feature_dim, select_views
+from drsplat.registration.views import ViewSelection, check_feature_headers, select_views
 from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
@@ -197,11 +197,11 @@ class Run:
 
 
 def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: str | Path, options: RegisterOptions) -> Run:
-    """Check the options and pair the cameras with the feature files (nothing heavy is loaded)."""
+    """Check the options, pair the cameras with the feature files and check those files' headers (nothing heavy is loaded)."""
     options.check()
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
-    return Run(scene, selection, features_dir, feature_dim(features_dir, selection.views), options)
+    return Run(scene, selection, features_dir, check_feature_headers(features_dir, selection.views, options.level), options)
 
 
 def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
