@@ -566,17 +566,17 @@ def test_views_too_many_for_the_exact_sums_are_one_clear_error_before_any_work(m
     fixed_point_fits(7680 * 4320, 16000)  # 16,000 views of 8K images fit
     with pytest.raises(DrsplatError, match="range of its exact sums.*--aggregate vote-reject"):
         fixed_point_fits(7680 * 4320, 20000)
-    # through registration: the room's views claiming 2^19 x 2^19 pixels each, refused before any is rendered
+    # through registration: the room's 4:3 views claiming 2^20 x 3·2^18 pixels each, refused before any is rendered
     import drsplat.registration.compute as compute
 
     root, scene, cams = mislabelled_room
-    huge = [dataclasses.replace(cam, width=1 << 19, height=1 << 19) for cam in cams]
+    huge = [dataclasses.replace(cam, width=1 << 20, height=3 << 18) for cam in cams]
 
     def rendered(*args, **kwargs):
         raise AssertionError("a view was computed")
 
     monkeypatch.setattr(compute.ViewComputer, "compute", rendered)
-    with pytest.raises(DrsplatError, match=f"cannot judge {len(cams)} views of up to {(1 << 38):,} pixels"):
+    with pytest.raises(DrsplatError, match=f"cannot judge {len(cams)} views of up to {3 << 38:,} pixels"):
         register_features(scene, huge, root / "features", RegisterOptions(aggregate="check-vote-reject"), show_progress=False)
 
 

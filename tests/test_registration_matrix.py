@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
 
 from drsplat.cameras import load_cameras
@@ -94,14 +95,16 @@ def test_what_cannot_run_is_refused_up_front(room, tmp_path, options, message):
 @pytest.mark.parametrize("bad_view", [0, 3, 4])
 def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_path, bad_view, caplog):
     """A run that fails on its first view, or in the default mode's fit stage (views 0, 2, 3 and 5 of
-    6 are its probe views), leaves nothing behind; one that fails later keeps the log of the views
+    6 are its probe views), on a fault in a view's data that its headers do not show, leaves nothing behind; one that fails later keeps the log of the views
     done, says so in one warning, and the rerun (input fixed) resumes and writes the reference file."""
     scene, cams, features = room
     copy = tmp_path / "features"
     shutil.copytree(features, copy)
-    bad = copy / f"{cams[bad_view].name}_f.npy"
+    bad = copy / f"{cams[bad_view].name}_s.npy"
     good = bad.read_bytes()
-    bad.write_bytes(good[:200])  # truncated
+    ids = np.load(bad)
+    ids[..., 0, 0] = 10_000  # past the view's embeddings: only reading the view finds it (a truncated file fails before any view)
+    np.save(bad, ids)
     out = tmp_path / "out" / "reg.ply"
     with caplog.at_level("WARNING"), pytest.raises(InputError, match=bad.name):
         register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
