@@ -204,6 +204,12 @@ PRESETS: dict[str, Preset] = {
 
 
 MASK_SOURCES = ("render", "geometry")
+# the wrong labels of mislabelled oracle masks come from their own random stream, [seed, 3], so that
+# a mislabelled room has the masks, jitter and noise of the same room without mislabels (since
+# 2026-11-28; before, they came from the masks' stream and every later draw moved). Written to a
+# mislabelled dataset's manifest, which is how a cached dataset made before is told apart.
+WRONG_LABEL_STREAM = 3
+WRONG_LABELS = "own stream [seed, 3]"
 
 
 def _room_preset(name: str, num_gaussians: int, views: int, width: int, height: int, *, jitter: int = 0, mislabel: float = 0.0,
@@ -886,7 +892,7 @@ def jitter_boundaries(ids: np.ndarray, jitter: int, rng: np.random.Generator) ->
 
 
 def oracle_masks_and_embeddings(
-    inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator
+    inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator, label_rng: np.random.Generator | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """LangSplat-style feature pair for one view from its instance map.
 
@@ -894,7 +900,14 @@ def oracle_masks_and_embeddings(
     four levels (each level: one mask per visible instance, independently jittered), feats:
     [M, D] float32 unit embeddings, and mask_labels: [M] the label each embedding encodes
     (differs from the true label for mislabelled masks).
+
+    rng draws the jitter, the noise and, for every mask, whether it is mislabelled; label_rng
+    (None: rng) the wrong labels. With a label_rng of its own, rng's draws do not depend on the
+    mislabel fraction: a room's masks, jitter and noise are those of the same room without
+    mislabels, and its mislabelled embeddings are the only difference (what a mislabel costs is
+    then measured on the same masks).
     """
+    label_rng = rng if label_rng is None else label_rng
     o = syn.oracle
     dim = syn.label_vectors.shape[1]
     num_labels = len(syn.label_names)
@@ -907,7 +920,7 @@ def oracle_masks_and_embeddings(
         for instance in present:
             label = int(syn.instance_labels[instance])
             if num_labels > 1 and rng.random() < o.mislabel_fraction:
-                label = int(rng.choice([l for l in range(num_labels) if l != label]))
+                label = int(label_rng.choice([l for l in range(num_labels) if l != label]))
             seg[level][ids == instance] = len(feats)
             noise = rng.normal(0, o.noise / np.sqrt(dim), dim)
             feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
@@ -970,6 +983,7 @@ def write_dataset(
     for sub in ("images", "gt/masks", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 2])
+    label_rng = np.random.default_rng([seed, WRONG_LABEL_STREAM])
     mislabelled = total_masks = 0
     for cam in progress(syn.cameras, desc=f"synth {preset}", enabled=show_progress, unit="view"):
         if cancel is not None:
@@ -979,7 +993,7 @@ def write_dataset(
         with atomic_path(out / "images" / f"{cam.name}.png") as tmp:
             Image.fromarray(rgb8).save(tmp, format="PNG")
         save_npy_atomic(out / "gt" / "masks" / f"{cam.name}.npy", view.label_mask)
-        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng)
+        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng)
         true_labels = _true_mask_labels(seg, view.instance_mask, syn.instance_labels, len(feats))
         mislabelled += int(np.count_nonzero(mask_labels != true_labels))
         total_masks += len(feats)
@@ -1001,7 +1015,8 @@ def write_dataset(
             "dim": int(syn.label_vectors.shape[1]),
             # mask_source only when not the default, so that datasets of the "render" presets stay byte-identical
             "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter,
-                       **({"mask_source": mask_source} if mask_source != "render" else {})},
+                       **({"mask_source": mask_source} if mask_source != "render" else {}),
+                       **({"wrong_labels": WRONG_LABELS} if mislabel_fraction > 0 else {})},
             "counts": {"views": len(syn.cameras), "masks": total_masks, "mislabelled_masks": mislabelled},
         },
     )

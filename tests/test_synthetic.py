@@ -300,3 +300,39 @@ def test_noisy_preset_defaults_corrupt_the_masks():
     syn = make_synthetic("hard-noisy", 0)
     assert syn.oracle.mislabel_fraction == pytest.approx(0.1) and syn.oracle.jitter == 2
     assert make_synthetic("tiny", 0).oracle.mislabel_fraction == 0.0
+
+
+def test_a_mislabelled_room_is_the_same_room_with_only_its_wrong_embeddings_changed(tmp_path):
+    """What a mislabel costs is measured against the same room without mislabels: the same mask
+    maps (jitter included) and the same noise, only the mislabelled masks' label vectors differ
+    (was: the wrong labels' draws moved every later jitter and noise draw of the room)."""
+    clean = write_dataset(tmp_path / "clean", "hard-tiny", 0, mislabel_fraction=0.0, jitter=2, show_progress=False)
+    wrong = write_dataset(tmp_path / "wrong", "hard-tiny", 0, mislabel_fraction=0.3, jitter=2, show_progress=False)
+    changed = 0
+    for seg in sorted((clean / "features").glob("*_s.npy")):
+        np.testing.assert_array_equal(np.load(seg), np.load(wrong / "features" / seg.name))
+        a, b = (np.load(root / "features" / seg.name.replace("_s.npy", "_f.npy")) for root in (clean, wrong))
+        differ = (a != b).any(axis=1)
+        assert (np.abs(a - b)[differ].max(axis=1) > 0.05).all()  # another label vector, not rounding
+        changed += int(differ.sum())
+    manifest, clean_manifest = (json.loads((root / "features" / "manifest.json").read_text()) for root in (wrong, clean))
+    assert manifest["counts"]["masks"] == clean_manifest["counts"]["masks"]
+    assert 0.2 < changed / manifest["counts"]["masks"] < 0.4  # of a fraction 0.3
+    assert manifest["params"]["wrong_labels"] and "wrong_labels" not in clean_manifest["params"]
+
+
+def test_a_cached_mislabelled_dataset_from_before_the_label_stream_is_written_again(tmp_path):
+    from drsplat.eval.ablations import dataset
+
+    first = dataset(tmp_path, "tiny", 0, mislabel=0.2)
+    manifest_path = first.path / "features" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    del manifest["params"]["wrong_labels"]  # as a dataset written before 2026-11-28 has it
+    manifest_path.write_text(json.dumps(manifest))
+    feats = first.path / "features" / f"{first.cameras[0].name}_f.npy"
+    np.save(feats, np.zeros_like(np.load(feats)))
+    again = dataset(tmp_path, "tiny", 0, mislabel=0.2)
+    assert json.loads(manifest_path.read_text())["params"]["wrong_labels"] and np.load(feats).any()
+    clean = dataset(tmp_path, "tiny", 0)  # a room without mislabels is never stale
+    assert "wrong_labels" not in json.loads((clean.path / "features" / "manifest.json").read_text())["params"]
+    assert again.path == first.path

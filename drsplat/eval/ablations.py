@@ -33,7 +33,8 @@ from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, s
 from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
-from drsplat.synthetic import PRESETS, write_dataset
+from drsplat.features.format import read_manifest
+from drsplat.synthetic import PRESETS, WRONG_LABELS, write_dataset
 
 log = logging.getLogger(__name__)
 
@@ -92,10 +93,20 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
     jitter in pixels, None the preset's; drsplat.synthetic)."""
     path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else "")
                    + (f"-j{jitter}" if jitter is not None else ""))
-    if not (path / "scene.ply").exists():
+    if not (path / "scene.ply").exists() or (mislabel > 0 and _stale_wrong_labels(path)):
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
+
+
+def _stale_wrong_labels(path: Path) -> bool:
+    """True for a cached mislabelled dataset written before its wrong labels had a random stream of
+    their own (drsplat.synthetic.WRONG_LABEL_STREAM): its masks differ from the same room without
+    mislabels, so it is written again (logged)."""
+    stale = read_manifest(path / "features").get("params", {}).get("wrong_labels") != WRONG_LABELS
+    if stale:
+        log.info("%s: made before the mislabels had a random stream of their own; written again", path)
+    return stale
 
 
 def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper"):
