@@ -201,7 +201,8 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
     options.check()
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
-    return Run(scene, selection, features_dir, check_feature_headers(features_dir, selection.views, options.level), options)
+    dim = check_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
+    return Run(scene, selection, features_dir, dim, options)
 
 
 def resolve_codebook(codebook: str, dim: int) -> Codebook | str:

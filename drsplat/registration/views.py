@@ -66,7 +66,7 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     return sel
 
 
-def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: int) -> int:
+def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> int:
     """D of the embeddings, after every view's two headers are checked (nothing loaded).
 
     Before any view is rendered, so that a bad file stops a registration at once rather than hours
@@ -74,11 +74,15 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
     its H x W a uniform scale of the camera's (`same_aspect`); each `_f.npy` is (M, D) of numbers
     with the first view's D. `npy_header` has already held each shape against its file's size.
     What a header cannot tell (ids past M, non-finite values) is found when the view is read.
-    About 0.1 ms a view.
+    About 0.1 ms a view. missing_ok: a view whose file is not here is left to the process that
+    reads it (on Ray, a worker node: the driver need not hold every view's files), as long as one
+    view gives D.
     """
     dim, first = 0, None
     for cam in views:
         spath, fpath = seg_path(features_dir, cam.name), feat_path(features_dir, cam.name)
+        if missing_ok and not (spath.is_file() and fpath.is_file()):
+            continue
         s_shape, s_dtype, _ = npy_header(spath)
         if len(s_shape) not in (2, 3) or 0 in s_shape:
             raise InputError(spath, f"mask ids have shape {s_shape}, expected (L, H, W) or (H, W) with L, H, W > 0", field="shape")
@@ -99,6 +103,8 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
         elif f_shape[1] != dim:
             raise InputError(fpath, f"embeddings are {f_shape[1]}-D but {first.name} has {dim}-D ones: one registration reads one "
                                     "model's features (a folder mixing two CLIP models?)", field="shape")
+    if first is None and views:  # every view's files missing here
+        npy_header(feat_path(features_dir, views[0].name))  # the error naming the first view's file
     return dim
 
 
