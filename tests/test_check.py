@@ -242,8 +242,8 @@ def test_support_tables_hold_only_the_pairs_that_occur():
 def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard):
     """Blocks of 1, 7 and 13 Gaussians (a block with no pair at all among them) give one block's
     verdicts, like cosine and kept pairs bit for bit: each q[j, c] adds its terms in Gaussian order
-    whatever the plan. Both cases drop masks; the hard one (zero and 1e-30 weights, an empty view)
-    has Gaussians with no kept pair of positive weight, which keep all theirs."""
+    whatever the plan. Both cases drop masks (the hard one: zero and 1e-30 weights, an empty view),
+    and the kept pairs are exactly the pairs of the kept masks."""
     rng = np.random.default_rng(seed)
     labels = _unit(rng.normal(size=(4, D)))
     truth = np.arange(45) % 4  # Gaussian i is label i % 4; Gaussians 40-44 are never seen
@@ -267,9 +267,9 @@ def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard)
     assert one.dropped > 0 and one.like is not None
     clusters = _record(views, n)[1]
     supports = view_supports(record, clusters, n, n, slots=8)
-    one_kept = KeptPairs(record, one.keep, n, n)
-    assert not hard or not one_kept.any_kept[:40].all()  # the hard case: Gaussians with no kept pair of positive weight
-    whole = list(one_kept.block_views(0, n))
+    whole = list(KeptPairs(record, one.keep).block_views(0, n))
+    for full, view, keep in zip(whole, record.block_views(0, n), one.keep):
+        np.testing.assert_array_equal(full.gaussians, view.gaussians[keep[view.masks]])
     for block in (1, 7, 13):
         got, _ = _judge(views, n, block)
         for a, b in zip(view_supports(record, clusters, n, block, slots=8), supports):
@@ -278,7 +278,7 @@ def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard)
         assert got.like == one.like and (got.dropped, got.judged, got.present) == (one.dropped, one.judged, one.present)
         for a, b in zip(got.keep, one.keep):
             np.testing.assert_array_equal(a, b)
-        kept = KeptPairs(record, got.keep, n, block)
+        kept = KeptPairs(record, got.keep)
         for lo in range(0, n, block):  # each block's kept pairs are the one-block kept pairs of its Gaussians, in order
             for part, full in zip(kept.block_views(lo, lo + block), whole):
                 inside = (full.gaussians >= lo) & (full.gaussians < lo + block)
@@ -367,8 +367,8 @@ def _with_context(views: list[ViewPairs], context: np.ndarray, gaussian: int) ->
 def test_what_the_check_keeps():
     """Not judged: a Gaussian seen in one view only (no other evidence), a small object whose other
     views are faint (its Gaussians elsewhere weak: fewer than CHECK_MIN_VIEWS votes for another
-    label), a label that a minority of the other views share. And a Gaussian whose every pair is in
-    dropped masks keeps them (coverage unchanged). The like cosine is defined in every case."""
+    label), a label that a minority of the other views share. A Gaussian whose every pair is in
+    dropped masks keeps none (it is left unassigned). The like cosine is defined in every case."""
     rng = np.random.default_rng(1)
     a, b, c = _unit(rng.normal(size=(3, D)))
     # Gaussian 0: seen as B faintly (T = 0.1 < T₀) in 4 views, as A clearly in one: 4 x 0.2 = 0.8 votes for B < CHECK_MIN_VIEWS
@@ -382,15 +382,14 @@ def test_what_the_check_keeps():
     # one view only
     result, _ = _judge([_view("only", np.stack([a, b]), [0, 1], [0, 1], [1.0, 1.0])], 2)
     assert result.dropped == 0 and result.judged == 0 and result.present == 2
-    # Gaussian 20 is only under the dropped mask of view 4 (with Gaussians 0-4 that other views contradict): it keeps its pair
+    # Gaussian 20 is only under the dropped mask of view 4 (with Gaussians 0-4 that other views contradict): it keeps no pair
     _, _, views = _mislabel_scene(rng)
     views[4] = _view("v4", views[4].feats, list(range(5)) + [20], [0] * 6, [1.0] * 6)
     result, record = _judge(views, 21)
     assert not result.keep[4][0]
-    kept = KeptPairs(record, result.keep, 21, 21)
-    last = list(kept.block_views(0, 21))[4]
-    np.testing.assert_array_equal(last.gaussians, [20])
-    assert kept.present()[4][0] and not kept.any_kept[20]  # the dropped mask still has a pair: the vote still clusters it
+    kept = KeptPairs(record, result.keep, [view.present_masks() for view in views])
+    assert list(kept.block_views(0, 21))[4].gaussians.size == 0
+    assert not any(20 in view.gaussians for view in kept.block_views(0, 21)) and not kept.present()[4][0]
 
 
 def test_one_clear_view_is_enough_to_drop_a_mask_no_other_view_shares():
@@ -580,22 +579,24 @@ def test_views_too_many_for_the_exact_sums_are_one_clear_error_before_any_work(m
         register_features(scene, huge, root / "features", RegisterOptions(aggregate="check-vote-reject"), show_progress=False)
 
 
-def test_kept_masks_flagged_block_by_block_equal_the_whole_replay():
-    """What reducers flag (`block_present` of their blocks, ORed by the driver) is `present()`'s
-    flags, and the kept masks' clusters made from them are the same."""
+def test_the_kept_masks_clusters_are_those_the_vote_makes_of_the_kept_views():
+    """In blocks (and on Ray) the vote's clusters are made from the kept masks among each view's
+    present masks, with no replay; in one block the vote makes them from the kept views as they
+    arrive: the same clusters."""
     rng = np.random.default_rng(5)
     n = 40
     views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, True)
     record, clusters = _record(views, n)
     keep = [rng.random(c.shape[0]) < 0.6 for c in clusters.per_view]
-    whole = KeptPairs(record, keep, n, n)
-    want = whole.present()
-    for block in (1, 7, 13):
-        parts = [KeptPairs(record, keep, n, block).block_present(lo, min(n, lo + block)) for lo in range(0, n, block)]
-        got = [np.logical_or.reduce(flags) for flags in zip(*parts)]
-        for a, b in zip(got, want):
-            np.testing.assert_array_equal(a, b)
-        merged = whole.clusters(D, present=got)
-        assert merged.count == whole.clusters(D).count
-        np.testing.assert_array_equal(merged.means(), whole.clusters(D).means())
-    assert any(not f.all() for f in want) and any(f.any() for f in want)  # the case keeps some masks and drops others
+    kept = KeptPairs(record, keep, [view.present_masks() for view in views])
+    one_block = MaskClusters(D)
+    for view in kept.block_views(0, n):
+        one_block.add(view.feats, view.present_masks())
+    made = kept.clusters(D)
+    assert made.count == one_block.count
+    np.testing.assert_array_equal(made.means(), one_block.means())
+    for a, b in zip(made.per_view, one_block.per_view):
+        np.testing.assert_array_equal(a, b)
+    assert any(not k.all() for k in keep) and any(k.any() for k in keep)  # the case keeps some masks and drops others
+    with pytest.raises(RuntimeError, match="present masks"):
+        KeptPairs(record, keep).clusters(D)

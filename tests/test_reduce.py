@@ -117,9 +117,9 @@ def test_scene_codebook_from_the_reducers_sample_gives_the_local_bytes(cluster, 
 
 def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(cluster, tmp_path_factory, tmp_path, monkeypatch):
     """--aggregate check-vote-reject with --codebook scene on mislabelled masks: the reducers sum
-    their blocks' parts of the support tables and flag their blocks' kept masks, the driver adds
-    them, judges the masks and makes the kept masks' clusters (its own replays of the log are made
-    to fail here), the reducers sum the kept pairs, the codebook's sample included: the local run's
+    their blocks' parts of the support tables, the driver adds them, judges the masks and makes the
+    kept masks' clusters from the masks each view reported present (its own replays of the log are
+    made to fail here), the reducers sum the kept pairs, the codebook's sample included: the local run's
     bytes."""
     import drsplat.registration.check as check
 
@@ -133,7 +133,7 @@ def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(clu
         raise AssertionError("the driver replayed the log")
 
     monkeypatch.setattr(check, "view_supports", replayed_on_the_driver)  # the support tables
-    monkeypatch.setattr(check.KeptPairs, "_find", replayed_on_the_driver)  # the Gaussians with a kept pair, the kept masks' flags
+    monkeypatch.setattr(check.KeptPairs, "block_views", replayed_on_the_driver)  # the kept pairs (the reducers' processes read them)
     result = register(scene, cams, data / "features", on_ray, RegisterOptions(ray="auto", ray_workers=2, block_size=1024, **options),
                       show_progress=False)
     monkeypatch.undo()

@@ -56,8 +56,9 @@ Gaussians and drops whole masks:
    of other views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view
    mask check");
 3. the sums (and the vote stage after it) are made from the kept pairs in the same order. A
-   Gaussian all of whose pairs fell in dropped masks keeps them all, so which Gaussians are
-   assigned does not change.
+   Gaussian all of whose pairs fell in dropped masks has no label the other views do not
+   contradict, and is left unassigned (it kept them all until 2026-11-28: on the mislabelled
+   rooms that painted labels the room does not hold; docs/evaluation.md).
 
 Where the pairs come from: the pair log, which registration always keeps for a check mode (its
 checkpoint, the log of a plan in blocks, or a temporary one); a CheckSink made without a log keeps
@@ -74,7 +75,7 @@ q = 2³⁹, pixels x views), so the sums are the same integers in any order and 
 block, blocks, or on Ray the reducers' parts of their blocks added by the driver
 (`block_partial_supports`, `merge_partial_supports`; since 2026-11-27, sixth session: before, float64
 sums in Gaussian order, which only one process could make). The same verdicts, and the same output
-bytes, in every plan and place. Step 3 keeps one flag per Gaussian ([N] bool), found block by block.
+bytes, in every plan and place. Step 3 needs the verdicts and each view's [M] present-mask flags only.
 """
 
 from __future__ import annotations
@@ -793,69 +794,36 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
 
 class KeptPairs:
     """The pairs the check keeps, read block by block like a pair log (step 3): a view's pairs in
-    kept masks, and every pair of a Gaussian that would keep none (which Gaussians are assigned
-    does not change).
+    kept masks. A Gaussian all of whose pairs are in dropped masks keeps none and is left
+    unassigned: every label it was given is one the other views contradict (it kept them until
+    2026-11-28; docs/evaluation.md, "Gaussians whose every mask is dropped").
 
-    any_kept: [N] bool, the Gaussians with a kept pair of positive weight. A Gaussian's flag depends
-    on its own pairs only, so it is found block by block when a block is first read (one more
-    replay of that block): a reducer finds its own block's, and nobody replays every block for it.
+    present: per view [M] bool, the masks with a pair (`ViewPairs.present_masks`, the driver's
+    record of every view), which `clusters` needs; None where only pairs are read (a reducer).
     """
 
-    def __init__(self, source: PairSource, keep: list[np.ndarray], num_gaussians: int, block: int, cancel: CancelToken | None = None):
-        self.source, self.keep, self.num_gaussians, self.block, self.cancel = source, keep, num_gaussians, block, cancel
-        self._any_kept = np.zeros(num_gaussians, bool)
-        self._known = np.zeros(num_gaussians, bool)  # the Gaussians whose flag was found
-
-    @property
-    def any_kept(self) -> np.ndarray:
-        """[N] bool, every block's flags (found now for the blocks not read yet)."""
-        for lo, hi in _blocks(self.num_gaussians, self.block, self.cancel):
-            self._find(lo, hi)
-        return self._any_kept
-
-    def _find(self, lo: int, hi: int) -> None:
-        """The flags of Gaussians lo .. hi-1, by one replay of that range unless known."""
-        if self._known[lo:hi].all():
-            return
-        for view, k in zip(self.source.block_views(lo, hi), self.keep):
-            self._any_kept[view.gaussians[k[view.masks] & (view.weights > 0)]] = True
-        self._known[lo:hi] = True
-
-    def _kept(self, view: ViewPairs, keep: np.ndarray) -> np.ndarray:
-        """[P] bool: the pairs of `view` (mask verdicts `keep` [M]) that are summed (their Gaussians' flags found)."""
-        return keep[view.masks] | ~self._any_kept[view.gaussians]
+    def __init__(self, source: PairSource, keep: list[np.ndarray], present: list[np.ndarray] | None = None):
+        self.source, self.keep, self._present = source, keep, present
 
     def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]:
         """Every view in order with the kept pairs of Gaussians lo .. hi-1."""
-        self._find(lo, hi)
         for view, k in zip(self.source.block_views(lo, hi), self.keep):
-            kept = self._kept(view, k)
+            kept = k[view.masks]
             yield view if kept.all() else ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept],
                                                     view.used, view.num_pairs, view.num_nonfinite)
 
-    def block_present(self, lo: int, hi: int) -> list[np.ndarray]:
-        """Per view [M] bool: the masks with a kept pair of a Gaussian lo .. hi-1 (a reducer's part
-        of `present`; one replay of the range, two when its flags are not found yet)."""
-        self._find(lo, hi)
-        present = [np.zeros(k.shape[0], bool) for k in self.keep]
-        for view, k, flags in zip(self.source.block_views(lo, hi), self.keep, present):
-            flags[view.masks[self._kept(view, k)]] = True
-        return present
-
     def present(self) -> list[np.ndarray]:
-        """Per view [M] bool: the masks with a kept pair, every block's `block_present` ORed."""
-        present = [np.zeros(k.shape[0], bool) for k in self.keep]
-        for lo, hi in _blocks(self.num_gaussians, self.block, None):
-            for flags, part in zip(present, self.block_present(lo, hi)):
-                flags |= part
-        return present
+        """Per view [M] bool: the masks with a kept pair, the kept masks among those with a pair
+        (every pair of a kept mask is kept)."""
+        if self._present is None:
+            raise RuntimeError("KeptPairs made without the views' present masks cannot tell which kept masks have pairs")
+        return [k & p for k, p in zip(self.keep, self._present)]
 
-    def clusters(self, dim: int, present: list[np.ndarray] | None = None) -> MaskClusters:
+    def clusters(self, dim: int) -> MaskClusters:
         """The views' mask clusters made from the masks with kept pairs: what the vote stage makes
-        of the kept views when they are added to it one by one. present: the per-view flags when
-        found elsewhere (reducers' `block_present`, ORed), else `present()` here."""
+        of the kept views when they are added to it one by one."""
         clusters = MaskClusters(dim)
-        for view, flags in zip(self.source.block_views(0, 0), self.present() if present is None else present):
+        for view, flags in zip(self.source.block_views(0, 0), self.present()):
             clusters.add(view.feats, flags)
         return clusters
 
@@ -891,6 +859,7 @@ class CheckSink:
         self.record = PairRecord(num_gaussians) if plog is None else None
         self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
+        self.present: list[np.ndarray] = []  # per view [M] bool, the masks with a pair
         self.verdicts: MaskVerdicts | None = None
         self._inner = inner
         self._kept: KeptPairs | None = None
@@ -908,7 +877,9 @@ class CheckSink:
         return self._inner.place if self._inner is not None else "host"
 
     def add(self, view: ViewPairs) -> None:
-        self.clusters.add(view.feats, view.present_masks())
+        present = view.present_masks()
+        self.clusters.add(view.feats, present)
+        self.present.append(np.array(present, bool))
         if self.record is not None:
             self.record.add(view)
 
@@ -932,7 +903,7 @@ class CheckSink:
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, self.verdicts.dropped_large, like)
-            self._kept = KeptPairs(self._source, self.verdicts.keep, n, block, self.cancel)
+            self._kept = KeptPairs(self._source, self.verdicts.keep, self.present)
         return self._kept
 
     def _judged(self) -> Sink:

@@ -287,8 +287,8 @@ def run_registration(
             if check is not None:
                 kept = check.kept_pairs(partial_supports=lambda: pool.supports(reduce.job))
                 reduce.job = judged(reduce.job, kept.keep)
-                if aggregator.vote:  # the kept masks' clusters, from the reducers' flags of the masks left with pairs
-                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim, present=pool.present(reduce.job)))
+                if aggregator.vote:  # the clusters of the kept masks with pairs
+                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim))
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

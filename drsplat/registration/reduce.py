@@ -37,11 +37,10 @@ pairs:
 1. each reducer sums its block's part of the support tables (`support_block`, one task per block:
    the block's votes folded, then its pairs' support, in fixed point);
 2. the driver adds the parts (integers, exact in any order: the one-block tables) and judges;
-3. the job carries the verdicts (`keep`); for `-vote` each reducer also flags the masks left with
-   a kept pair in its block (`present_block`), and the driver ORs the flags and makes the kept
-   masks' clusters from them;
-4. each reducer sums its block's kept pairs (check.KeptPairs, which first finds its block's
-   Gaussians with a kept pair). The driver replays no pair.
+3. the job carries the verdicts (`keep`); for `-vote` the driver makes the kept masks' clusters
+   (a kept mask keeps every pair, so the masks left with pairs are the kept ones among the masks
+   each view reported present);
+4. each reducer sums its block's kept pairs (check.KeptPairs). The driver replays no pair.
 
 Shared storage: workers write their shards, reducers open the log and the shards and write their
 parts by path, beside the output (the checkpoint's folder). On a local (multi-node) cluster that is
@@ -102,10 +101,10 @@ class ReduceJob:
     space's id. parts_dir: where the parts are written (beside the output). reject: the mode rejects
     floaters and the views' statistics are in the log's shards: each reducer folds its block's.
     keep: a `check-` mode's verdicts, judged by the driver (per view [M] bool: the kept masks), so
-    that each reducer sums its block's kept pairs (drsplat.registration.check.KeptPairs, which
-    finds the block's Gaussians with a kept pair); None otherwise. check_clusters / check_slots:
-    before the verdicts, a `check-` mode's mask clusters (per view [M] int32, and K) and vote slots,
-    from which each reducer sums its block's part of the support tables (`support_block`).
+    that each reducer sums its block's kept pairs (drsplat.registration.check.KeptPairs); None
+    otherwise. check_clusters / check_slots: before the verdicts, a `check-` mode's mask clusters
+    (per view [M] int32, and K) and vote slots, from which each reducer sums its block's part of
+    the support tables (`support_block`).
     """
 
     log_path: str
@@ -188,7 +187,7 @@ def shard_errors(index: int, lo: int, hi: int):
 def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     """The driver's kind of sink over `plog` (VoteSink with the driver's clusters for -vote modes),
     summing only the pairs a `check-` mode keeps (the driver's verdicts: job.keep)."""
-    source = plog if job.keep is None else KeptPairs(plog, job.keep, job.num_gaussians, job.block)
+    source = plog if job.keep is None else KeptPairs(plog, job.keep)
     if job.clusters is not None:
         return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters)
     return LogSink(job.num_gaussians, job.dim, source, job.block)
@@ -261,20 +260,6 @@ def support_block(job: ReduceJob, index: int) -> list[PartialSupport]:
     with open_log(job, index) as plog, shard_errors(index, lo, hi):
         return block_partial_supports(plog.block_views(lo, hi), plog.block_views(lo, hi), job.check_clusters, job.check_num_clusters, lo, hi,
                                       job.check_slots)
-
-
-def present_block(job: ReduceJob, index: int) -> list[np.ndarray]:
-    """Block `index`'s part of a judged `check-` mode's kept-mask flags (per view [M] bool: the
-    masks with a kept pair of a Gaussian in the block, check.KeptPairs.block_present); the driver
-    ORs every block's and makes the `-vote` stage's clusters of the kept masks from them."""
-    lo, hi = job.bounds(index)
-    with open_log(job, index) as plog, shard_errors(index, lo, hi):
-        return KeptPairs(plog, job.keep, job.num_gaussians, job.block).block_present(lo, hi)
-
-
-def _present_task(job, index):
-    set_worker_threads()
-    return present_block(job, index)
 
 
 def _support_task(job, index):
@@ -410,14 +395,6 @@ class ReducePool:
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
         job_ref = ray.put(job)
         return self._run(job, lambda i: task.remote(job_ref, i))
-
-    def present(self, job: ReduceJob) -> list[np.ndarray]:
-        """Per view [M] bool: `present_block` of every block, one task each, ORed."""
-        ray = import_ray()
-        task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_present_task)
-        job_ref = ray.put(job)
-        parts = self._run(job, lambda i: task.remote(job_ref, i))
-        return [np.logical_or.reduce(flags) for flags in zip(*parts)] if parts else []
 
     def candidates(self, job: ReduceJob) -> np.ndarray:
         """[N] bool, `candidates_block` of every block, one task each."""
