@@ -1002,10 +1002,9 @@ class Aggregator:
             views += (37 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8
-        if stages.check:  # the check's slots per Gaussian of a block, its flag per Gaussian (drsplat.registration.check; the
-            # views' support tables, and its record of the pairs in one block without a checkpoint, grow with the views: not counted)
+        if stages.check:  # the check's slots per Gaussian of a block (drsplat.registration.check; the views' support tables
+            # and present-mask flags, and its record of the pairs in one block without a checkpoint, grow with the views: not counted)
             per_block += 12 * CHECK_SLOTS
-            kept += num_gaussians
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept, per_block
