@@ -26,6 +26,13 @@ unit vector and c is a component common to every image embedding (CLIP image emb
 all alike to some degree). The label's "text" vector is normalize(a_t·c_t + b_t·v_l) with a
 different common component c_t ⟂ c: text and image vectors differ (the modality gap), yet the
 text vector of l is closest to the image embeddings of l.
+
+Corruptions of the oracle (`OracleParams`): boundary jitter, mislabelled masks (another label's
+embedding), and under-segmentation (`merge_fraction`: an instance's mask swallowed by the
+neighbour it touches most, the union carrying the neighbour's label, as a segmenter that takes a
+cup and the table under it for one region does). Each draws from its own random stream, so a
+corrupted room has the masks, jitter and noise of the same room without that corruption wherever
+the corruption does not reach.
 """
 
 from __future__ import annotations
@@ -126,6 +133,7 @@ class OracleParams:
     text_b: float = 0.6
     mislabel_fraction: float = 0.0
     jitter: int = 0
+    merge_fraction: float = 0.0  # under-segmentation: share of instance masks swallowed by a neighbour's (`merged_instances`)
     min_mask_pixels: int = 4
     mask_source: str = "render"
 
@@ -210,6 +218,7 @@ MASK_SOURCES = ("render", "geometry")
 # mislabelled dataset's manifest, which is how a cached dataset made before is told apart.
 WRONG_LABEL_STREAM = 3
 WRONG_LABELS = "own stream [seed, 3]"
+MERGE_STREAM = 4  # which instance masks are merged into a neighbour's (`merged_instances`), [seed, 4]
 
 
 def _room_preset(name: str, num_gaussians: int, views: int, width: int, height: int, *, jitter: int = 0, mislabel: float = 0.0,
@@ -891,8 +900,36 @@ def jitter_boundaries(ids: np.ndarray, jitter: int, rng: np.random.Generator) ->
     return ids[np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)]
 
 
+def merged_instances(ids: np.ndarray, present: np.ndarray, fraction: float, rng: np.random.Generator) -> dict[int, int]:
+    """Under-segmentation of one mask level: {instance: the instance whose mask swallows it}.
+
+    ids: [H, W] instance per pixel (-1 none); present: the instances that get a mask. Each present
+    instance is, with probability `fraction` (one draw of rng each, in order), merged into the
+    present instance it shares the most 4-neighbour pixel edges with, unless it touches none or
+    that one is merged itself (a union is one level deep: absorbers keep their own mask).
+    """
+    if fraction <= 0 or present.size < 2:
+        return {}
+    chosen = [int(i) for i, u in zip(present, rng.random(present.size)) if u < fraction]
+    pairs = [np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()]), np.stack([ids[:-1].ravel(), ids[1:].ravel()])]
+    a, b = np.concatenate(pairs, axis=1)
+    ok = (a != b) & (a >= 0) & (b >= 0) & np.isin(a, present) & np.isin(b, present)
+    a, b = np.concatenate([a[ok], b[ok]]), np.concatenate([b[ok], a[ok]])  # both directions
+    merged: dict[int, int] = {}
+    for i in chosen:
+        if i in merged.values():  # it swallows another already: keeps its own mask
+            continue
+        touching = b[a == i]
+        touching = touching[~np.isin(touching, list(merged))]  # never into a mask merged away
+        if touching.size:
+            into, counts = np.unique(touching, return_counts=True)
+            merged[i] = int(into[np.argmax(counts)])
+    return merged
+
+
 def oracle_masks_and_embeddings(
-    inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator, label_rng: np.random.Generator | None = None
+    inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator, label_rng: np.random.Generator | None = None,
+    merge_rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """LangSplat-style feature pair for one view from its instance map.
 
@@ -908,6 +945,7 @@ def oracle_masks_and_embeddings(
     then measured on the same masks).
     """
     label_rng = rng if label_rng is None else label_rng
+    merge_rng = rng if merge_rng is None else merge_rng
     o = syn.oracle
     dim = syn.label_vectors.shape[1]
     num_labels = len(syn.label_names)
@@ -917,14 +955,21 @@ def oracle_masks_and_embeddings(
         ids = jitter_boundaries(inst, o.jitter, rng)
         present, counts = np.unique(ids[ids >= 0], return_counts=True)
         present = present[counts >= o.min_mask_pixels]
+        merged = merged_instances(ids, present, o.merge_fraction, merge_rng)
+        mask_of = {}
         for instance in present:
             label = int(syn.instance_labels[instance])
             if num_labels > 1 and rng.random() < o.mislabel_fraction:
                 label = int(label_rng.choice([l for l in range(num_labels) if l != label]))
+            noise = rng.normal(0, o.noise / np.sqrt(dim), dim)  # drawn for a merged instance too: the later masks' draws stay
+            if instance in merged:
+                continue
+            mask_of[instance] = len(feats)
             seg[level][ids == instance] = len(feats)
-            noise = rng.normal(0, o.noise / np.sqrt(dim), dim)
             feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
             mask_labels.append(label)
+        for instance, into in merged.items():
+            seg[level][ids == instance] = mask_of[into]
     feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
     return seg, feats_arr, np.array(mask_labels, np.int32)
 
@@ -957,13 +1002,14 @@ def write_dataset(
     noise: float = 0.15,
     jitter: int | None = None,
     mask_source: str | None = None,
+    merge_fraction: float = 0.0,
     show_progress: bool = True,
     cancel=None,
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
 
-    mislabel_fraction, jitter: oracle mask corruption; mask_source: "render" or "geometry"
-    (module docstring); None takes the preset's default.
+    mislabel_fraction, jitter, merge_fraction: oracle mask corruption; mask_source: "render" or
+    "geometry" (module docstring); None takes the preset's default.
 
     Every file is written atomically; the manifest and scene.ply come last, so an interrupted
     run leaves no scene.ply claiming a complete dataset.
@@ -977,13 +1023,16 @@ def write_dataset(
     mask_source = PRESETS[preset].mask_source if mask_source is None else mask_source
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
+    if not 0.0 <= merge_fraction <= 1.0:
+        raise ValueError("merge_fraction must be in [0, 1]")
     out = Path(out_dir)
-    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source)
+    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source, merge_fraction=merge_fraction)
     syn = make_synthetic(preset, seed, oracle=oracle)
     for sub in ("images", "gt/masks", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 2])
     label_rng = np.random.default_rng([seed, WRONG_LABEL_STREAM])
+    merge_rng = np.random.default_rng([seed, MERGE_STREAM])
     mislabelled = total_masks = 0
     for cam in progress(syn.cameras, desc=f"synth {preset}", enabled=show_progress, unit="view"):
         if cancel is not None:
@@ -993,7 +1042,7 @@ def write_dataset(
         with atomic_path(out / "images" / f"{cam.name}.png") as tmp:
             Image.fromarray(rgb8).save(tmp, format="PNG")
         save_npy_atomic(out / "gt" / "masks" / f"{cam.name}.npy", view.label_mask)
-        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng)
+        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng, merge_rng)
         true_labels = _true_mask_labels(seg, view.instance_mask, syn.instance_labels, len(feats))
         mislabelled += int(np.count_nonzero(mask_labels != true_labels))
         total_masks += len(feats)
@@ -1016,7 +1065,8 @@ def write_dataset(
             # mask_source only when not the default, so that datasets of the "render" presets stay byte-identical
             "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter,
                        **({"mask_source": mask_source} if mask_source != "render" else {}),
-                       **({"wrong_labels": WRONG_LABELS} if mislabel_fraction > 0 else {})},
+                       **({"wrong_labels": WRONG_LABELS} if mislabel_fraction > 0 else {}),
+                       **({"merge_fraction": merge_fraction} if merge_fraction > 0 else {})},
             "counts": {"views": len(syn.cameras), "masks": total_masks, "mislabelled_masks": mislabelled},
         },
     )

@@ -336,3 +336,46 @@ def test_a_cached_mislabelled_dataset_from_before_the_label_stream_is_written_ag
     clean = dataset(tmp_path, "tiny", 0)  # a room without mislabels is never stale
     assert "wrong_labels" not in json.loads((clean.path / "features" / "manifest.json").read_text())["params"]
     assert again.path == first.path
+
+
+def test_merged_instances_take_the_neighbour_touched_most_one_level_deep():
+    from drsplat.synthetic import merged_instances
+
+    ids = np.array([[0, 0, 0, 0, 1, 1],
+                    [0, 0, 0, 0, 1, 1],
+                    [2, 3, 3, 3, 3, 1],
+                    [2, 2, 3, 3, 3, -1]])
+    present = np.array([0, 1, 2, 3])
+
+    class Always:  # every instance is drawn for merging
+        @staticmethod
+        def random(n):
+            return np.zeros(n)
+
+    # 0 touches 3 on 3 edges, 1 on 2, 2 on 1: into 3; 1 touches 0 (merged away: not a target) and 3 on 2: into 3;
+    # 2 touches 3 on 3 edges: into 3; 3 swallows others already: it keeps its own mask
+    assert merged_instances(ids, present, 1.0, Always) == {0: 3, 1: 3, 2: 3}
+    # with 3 absent, 0 goes to 1 (2 edges against 2's 1), 1 swallows it and keeps its mask, 2 touches 0 only (merged away)
+    assert merged_instances(np.where(ids == 3, -1, ids), np.array([0, 1, 2]), 1.0, Always) == {0: 1}
+    assert merged_instances(ids, present, 0.0, Always) == {}
+    assert merged_instances(np.full((3, 3), 5), np.array([5]), 1.0, Always) == {}  # nothing to touch
+
+
+def test_an_under_segmented_room_is_the_clean_room_with_some_masks_joined(tmp_path):
+    """Every mask of a merge room is one or more whole masks of the clean room with one of their
+    embeddings (the absorber's); some are two or more: the rest of the room is unchanged."""
+    clean = write_dataset(tmp_path / "clean", "hard-tiny", 0, show_progress=False)
+    merged = write_dataset(tmp_path / "merged", "hard-tiny", 0, merge_fraction=0.3, show_progress=False)
+    unions = 0
+    for seg in sorted((clean / "features").glob("*_s.npy")):
+        a, b = np.load(seg)[1], np.load(merged / "features" / seg.name)[1]  # the level registration reads
+        fa, fb = (np.load(root / "features" / seg.name.replace("_s.npy", "_f.npy")) for root in (clean, merged))
+        offset_a, offset_b = a[a >= 0].min(), b[b >= 0].min()
+        for m in np.unique(b[b >= 0]):
+            parts = np.unique(a[b == m])
+            assert (parts >= 0).all() and np.isin(a, parts).sum() == (b == m).sum()  # whole clean masks, nothing else
+            assert any(np.array_equal(fb[m], fa[p]) for p in parts)
+            unions += parts.size > 1
+        assert offset_a >= 0 and offset_b >= 0
+    assert unions > 0
+    assert json.loads((merged / "features" / "manifest.json").read_text())["params"]["merge_fraction"] == 0.3
