@@ -389,6 +389,7 @@ def test_bad_flag_values_are_usage_errors(tmp_path, world, capsys):
         (["synth", tmp_path / "s", "--noise", "nan"], "--noise"),
         (["synth", tmp_path / "s", "--seed", "-1"], "--seed"),
         (["synth", tmp_path / "s", "--mislabel", "2"], "--mislabel"),
+        (["synth", tmp_path / "s", "--merge", "-0.1"], "--merge"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--m", "0"], "--m"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--max-train", "-1"], "--max-train"),
         (["features", "--source", ds, "--out", tmp_path / "f", "--batch-size", "0"], "--batch-size"),

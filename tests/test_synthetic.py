@@ -379,3 +379,14 @@ def test_an_under_segmented_room_is_the_clean_room_with_some_masks_joined(tmp_pa
         assert offset_a >= 0 and offset_b >= 0
     assert unions > 0
     assert json.loads((merged / "features" / "manifest.json").read_text())["params"]["merge_fraction"] == 0.3
+
+
+def test_synth_merge_flag_writes_an_under_segmented_dataset(tmp_path):
+    from drsplat.cli import main
+
+    assert main(["synth", str(tmp_path / "m"), "--preset", "tiny", "--merge", "0.5", "--no-progress"]) == 0
+    manifest = json.loads((tmp_path / "m" / "features" / "manifest.json").read_text())
+    assert manifest["params"]["merge_fraction"] == 0.5
+    clean = write_dataset(tmp_path / "c", "tiny", 0, show_progress=False)
+    masks = [json.loads((root / "features" / "manifest.json").read_text())["counts"]["masks"] for root in (clean, tmp_path / "m")]
+    assert masks[1] < masks[0]  # swallowed masks are gone

@@ -33,6 +33,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=nonneg_float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
     p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
                    help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
+    p.add_argument("--merge", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION",
+                   help="under-segmentation: fraction of instance masks swallowed by the neighbour they touch most, the union "
+                        "carrying the neighbour's embedding (default: 0)")
     p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
                    help="oracle masks from the rendered Gaussians' weighted vote (render) or ray-cast true silhouettes "
                         "(geometry) (default: the preset's, render except hard-silhouette)")
@@ -54,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
         if args.preset in CITY_PRESETS:
             write_city(tmp, args.preset, args.seed, show_progress=not args.no_progress, cancel=token)
         else:
-            write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise,
-                          jitter=args.jitter, mask_source=args.mask_source, show_progress=not args.no_progress, cancel=token)
+            write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise, jitter=args.jitter,
+                          mask_source=args.mask_source, merge_fraction=args.merge, show_progress=not args.no_progress, cancel=token)
         token.raise_if_cancelled()
     log.info("synthetic dataset written to %s", args.out_dir)
     return 0
