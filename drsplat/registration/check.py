@@ -815,8 +815,9 @@ class KeptPairs:
     def present(self) -> list[np.ndarray]:
         """Per view [M] bool: the masks with a kept pair, the kept masks among those with a pair
         (every pair of a kept mask is kept)."""
-        if self._present is None:
-            raise RuntimeError("KeptPairs made without the views' present masks cannot tell which kept masks have pairs")
+        if self._present is None or len(self._present) != len(self.keep):
+            raise RuntimeError(f"KeptPairs needs every view's present masks to tell which kept masks have pairs "
+                               f"({0 if self._present is None else len(self._present)} for {len(self.keep)} views)")
         return [k & p for k, p in zip(self.keep, self._present)]
 
     def clusters(self, dim: int) -> MaskClusters:
