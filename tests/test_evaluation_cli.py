@@ -242,3 +242,25 @@ def test_eval_label_names_get_the_names_checks(registered, tmp_path, capsys, cha
     assert main(argv) == 1 and not js.exists()
     err = capsys.readouterr().err
     assert "names.json" in err and f"entry {index} " in err and words in err, err
+
+
+def test_corruption_costs_compare_each_corruption_with_its_reference_room():
+    """mislabel10 against jitter2 (the same masks without the mislabels), the others against clean;
+    mean over presets and the worst one; nothing without a reference in the rows."""
+    from drsplat.eval.ablations import AGGREGATE_COLUMNS, AblationResult, corruption_costs
+
+    seg = AGGREGATE_COLUMNS.index("seg mIoU vol")
+
+    def row(name, mode, value):
+        r = [name, mode, 40] + [0.0] * (len(AGGREGATE_COLUMNS) - 3)
+        r[seg] = value
+        return r
+
+    values = {("a", "clean"): 0.9, ("a", "jitter2"): 0.8, ("a", "mislabel10"): 0.7, ("b", "clean"): 0.6, ("b", "jitter2"): 0.5,
+              ("b", "mislabel10"): 0.1}
+    rows = [row(f"{p} render {c}", m, v - (0.05 if m == "other" else 0.0)) for (p, c), v in values.items() for m in ("paper", "other")]
+    table = corruption_costs(AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows), 40)
+    lines = table.splitlines()
+    assert "render mislabel10 (vs jitter2)" in lines[2] and "render jitter2 (vs clean)" in lines[2]
+    assert lines[4].startswith("| paper | 0.250 (0.400 b) | 0.100 (0.100 a) |"), lines[4]
+    assert corruption_costs(AblationResult("aggregate", list(AGGREGATE_COLUMNS), [row("a render mislabel10", "paper", 0.5)]), 40) == ""

@@ -48,6 +48,8 @@ AGGREGATE_TOPK = (10, 40)
 # by the neighbour each touches most (drsplat.synthetic.merged_instances), the clean room otherwise
 CORRUPTIONS = {"own": (None, None, 0.0), "clean": (0.0, 0, 0.0), "mislabel10": (0.1, 2, 0.0), "mislabel20": (0.2, 0, 0.0), "jitter2": (0.0, 2, 0.0),
                "merge10": (0.0, 0, 0.1), "merge20": (0.0, 0, 0.2)}
+# the room each corruption is measured against: the same masks without that corruption
+CORRUPTION_REFERENCE = {"mislabel10": "jitter2", "mislabel20": "clean", "jitter2": "clean", "merge10": "clean", "merge20": "clean"}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)
@@ -347,6 +349,38 @@ def aggregate_summary(result: AblationResult, baseline: str = "paper", topk: int
     return "\n".join(lines)
 
 
+def corruption_costs(result: AblationResult, topk: int = DEFAULT_TOPK) -> str:
+    """Markdown table of what each corruption costs each mode: labelled seg mIoU vol of the room
+    without it (CORRUPTION_REFERENCE, same masks otherwise) minus the corrupted room's, mean over the
+    presets and the worst preset, per mask source; "" when the rows hold no corruption with its
+    reference (rows named "preset source corruption")."""
+    seg = result.columns.index("seg mIoU vol")
+    get = {}
+    for r in result.rows:
+        parts = r[0].split(" ")
+        if r[2] == topk and len(parts) == 3:
+            get[tuple(parts), r[1]] = r[seg]
+    names = list(dict.fromkeys(key for key, _ in get))  # in row order
+    presets = list(dict.fromkeys(p for p, _, _ in names))
+    sources = list(dict.fromkeys(s for _, s, _ in names))
+    pairs = [(src, c, ref) for src in sources for c, ref in CORRUPTION_REFERENCE.items()
+             if all((p, src, c) in names and (p, src, ref) in names for p in presets)]
+    if not pairs:
+        return ""
+    modes = list(dict.fromkeys(m for _, m in get))
+    lines = ["What each corruption costs (labelled seg mIoU vol of the same room without it, minus the corrupted room's; "
+             "mean over the presets, worst preset in brackets):", "",
+             "| mode | " + " | ".join(f"{src} {c} (vs {ref})" for src, c, ref in pairs) + " |", "|---|" + "---:|" * len(pairs)]
+    for mode in modes:
+        cells = []
+        for src, c, ref in pairs:
+            cost = np.array([get[(p, src, ref), mode] - get[(p, src, c), mode] for p in presets])
+            worst = int(np.argmax(cost))
+            cells.append(f"{cost.mean():.3f} ({cost[worst]:.3f} {presets[worst]})")
+        lines.append(f"| {mode} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     if len(a) < 2 or a.std() == 0 or b.std() == 0:
         return float("nan")
@@ -502,7 +536,8 @@ def run_ablate(args: argparse.Namespace) -> int:
         timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
         speed = time_aggregate_modes(timed, modes, k, args.repeats)
         result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
-        lines = [result.markdown(), "", aggregate_summary(result, topk=k), "",
+        costs = corruption_costs(result, topk=k)
+        lines = [result.markdown(), "", aggregate_summary(result, topk=k), "", *([costs, ""] if costs else []),
                  f"Time per view on {presets[-1]} (seed {seeds[0]}, {timed.scene.num_gaussians} Gaussians, "
                  f"{timed.cameras[0].width}x{timed.cameras[0].height}, top-k {k}), median of {args.repeats} interleaved runs:", "",
                  "| mode | ms/view | vs paper |", "|---|---:|---:|"]
