@@ -217,7 +217,7 @@ MASK_SOURCES = ("render", "geometry")
 # 2026-11-28; before, they came from the masks' stream and every later draw moved). Written to a
 # mislabelled dataset's manifest, which is how a cached dataset made before is told apart.
 WRONG_LABEL_STREAM = 3
-WRONG_LABELS = "own stream [seed, 3]"
+WRONG_LABELS = f"own stream [seed, {WRONG_LABEL_STREAM}]"
 MERGE_STREAM = 4  # which instance masks are merged into a neighbour's (`merged_instances`), [seed, 4]
 
 

@@ -172,7 +172,7 @@ def test_bool_mask_maps_are_refused(tmp_path):
     """Was: False read as mask 0, True as mask 1."""
     np.save(seg_path(tmp_path, "a"), np.ones((6, 8), bool))
     np.save(feat_path(tmp_path, "a"), np.ones((2, 3), np.float32))
-    with pytest.raises(InputError, match="a_s.npy: mask ids have dtype bool"):
+    with pytest.raises(InputError, match="a_s.npy: field 'dtype': mask ids have dtype bool, expected integers or floats"):
         read_features(tmp_path, "a")
 
 

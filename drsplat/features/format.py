@@ -85,10 +85,32 @@ def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
         for path, shape, dtype, offset in ((paths[0], s_shape, s_dtype, s_offset), (paths[1], f_shape, f_dtype, f_offset)):
             if path.stat().st_size != offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:  # trailing bytes: not ours
                 return False
+        check_seg_layout(paths[0], s_shape, s_dtype)
+        check_feat_layout(paths[1], f_shape, f_dtype)
     except (InputError, OSError):
         return False
-    kinds_ok = s_dtype.kind in "iuf" and f_dtype.kind in "fiu"
-    return kinds_ok and len(s_shape) in (2, 3) and len(f_shape) == 2 and f_shape[1] > 0
+    return True
+
+
+def check_seg_layout(path: Path, shape: tuple[int, ...], dtype: np.dtype, level: int | None = None) -> None:
+    """InputError (naming `path` and the field) unless a mask-id file's shape and dtype are the
+    format's: (L, H, W) or (H, W) with L, H, W > 0, integer or float ids (not bool), and, for a
+    `level`, level < L unless L = 1 (a single level serves every level)."""
+    if len(shape) not in (2, 3) or 0 in shape:
+        raise InputError(path, f"mask ids have shape {tuple(shape)}, expected (L, H, W) or (H, W) with L, H, W > 0", field="shape")
+    if dtype.kind not in "iuf":
+        raise InputError(path, f"mask ids have dtype {dtype}, expected integers or floats (-1 = no mask, else an embedding row)", field="dtype")
+    levels = shape[0] if len(shape) == 3 else 1
+    if level is not None and levels > 1 and not 0 <= level < levels:
+        raise InputError(path, f"level {level} requested but the file has {levels} levels (0..{levels - 1})", field="shape")
+
+
+def check_feat_layout(path: Path, shape: tuple[int, ...], dtype: np.dtype) -> None:
+    """InputError (naming `path` and the field) unless an embedding file is (M, D) numbers with D > 0."""
+    if len(shape) != 2 or shape[1] == 0:
+        raise InputError(path, f"embeddings have shape {tuple(shape)}, expected (M, D) with D > 0", field="shape")
+    if dtype.kind not in "iuf":
+        raise InputError(path, f"embeddings have dtype {dtype}, expected floats", field="dtype")
 
 
 def _load_npy(path: Path, what: str) -> np.ndarray:
@@ -104,12 +126,8 @@ def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
         if top > np.iinfo(np.int64).max:  # astype(int64) would wrap 2^64-1 to -1 ("no mask") silently
             raise InputError(path, f"mask id {top} ({seg.dtype}) is out of range: unsigned ids cannot mean -1 (no mask); "
                                    "store ids in a signed integer dtype with -1 for no mask")
-    if seg.dtype == np.bool_:  # a binary mask, not ids: False would become mask 0 and True mask 1
-        raise InputError(path, "mask ids have dtype bool, expected integers or floats (-1 = no mask, else an embedding row)")
-    if np.issubdtype(seg.dtype, np.integer):
+    if np.issubdtype(seg.dtype, np.integer):  # bool and other kinds are refused by check_seg_layout before
         return seg.astype(np.int64, copy=False)
-    if not np.issubdtype(seg.dtype, np.floating):
-        raise InputError(path, f"mask ids have dtype {seg.dtype}, expected integers or floats")
     bad = int(np.count_nonzero(~np.isfinite(seg)))
     if bad:
         raise InputError(path, f"{bad} mask ids are not finite (NaN/inf)")
@@ -157,18 +175,12 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     spath, fpath = seg_path(features_dir, stem), feat_path(features_dir, stem)
     seg = _load_npy(spath, "mask-id")
     feats = _load_npy(fpath, "embedding")
+    check_seg_layout(spath, seg.shape, seg.dtype, level)
+    check_feat_layout(fpath, feats.shape, feats.dtype)
     if seg.ndim == 2:
         seg = seg[None]
-    if seg.ndim != 3 or 0 in seg.shape:
-        raise InputError(spath, f"mask ids have shape {seg.shape}, expected (L, H, W) or (H, W) with L, H, W > 0")
-    if feats.ndim != 2 or feats.shape[1] == 0:
-        raise InputError(fpath, f"embeddings have shape {feats.shape}, expected (M, D) with D > 0")
-    if not (np.issubdtype(feats.dtype, np.floating) or np.issubdtype(feats.dtype, np.integer)):
-        raise InputError(fpath, f"embeddings have dtype {feats.dtype}, expected floats")
     if seg.shape[0] == 1:
         level = 0
-    if not 0 <= level < seg.shape[0]:
-        raise InputError(spath, f"level {level} requested but the file has {seg.shape[0]} levels (0..{seg.shape[0] - 1})")
     seg = _ids_as_int(seg, spath)
     if seg.size and seg.min() < -1:
         raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")

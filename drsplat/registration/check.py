@@ -798,8 +798,9 @@ class KeptPairs:
     unassigned: every label it was given is one the other views contradict (it kept them until
     2026-11-28; docs/evaluation.md, "Gaussians whose every mask is dropped").
 
-    present: per view [M] bool, the masks with a pair (`ViewPairs.present_masks`, the driver's
-    record of every view), which `clusters` needs; None where only pairs are read (a reducer).
+    present: per view [M] bool, the masks with a pair and an embedding (the clustered ones,
+    `MaskClusters.per_view` ≥ 0, the driver's record of every view), which `clusters` needs; None
+    where only pairs are read (a reducer).
     """
 
     def __init__(self, source: PairSource, keep: list[np.ndarray], present: list[np.ndarray] | None = None):
@@ -860,7 +861,6 @@ class CheckSink:
         self.record = PairRecord(num_gaussians) if plog is None else None
         self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
-        self.present: list[np.ndarray] = []  # per view [M] bool, the masks with a pair
         self.verdicts: MaskVerdicts | None = None
         self._inner = inner
         self._kept: KeptPairs | None = None
@@ -878,9 +878,7 @@ class CheckSink:
         return self._inner.place if self._inner is not None else "host"
 
     def add(self, view: ViewPairs) -> None:
-        present = view.present_masks()
-        self.clusters.add(view.feats, present)
-        self.present.append(np.array(present, bool))
+        self.clusters.add(view.feats, view.present_masks())
         if self.record is not None:
             self.record.add(view)
 
@@ -904,7 +902,7 @@ class CheckSink:
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, self.verdicts.dropped_large, like)
-            self._kept = KeptPairs(self._source, self.verdicts.keep, self.present)
+            self._kept = KeptPairs(self._source, self.verdicts.keep, [ids >= 0 for ids in self.clusters.per_view])
         return self._kept
 
     def _judged(self) -> Sink:

@@ -16,7 +16,8 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.features.format import feat_path, list_stems, read_features_report, resample_nearest, seg_path
+from drsplat.features.format import (check_feat_layout, check_seg_layout, feat_path, list_stems, read_features_report,
+                                     resample_nearest, seg_path)
 from drsplat.utils import npy_header
 
 log = logging.getLogger(__name__)
@@ -70,9 +71,9 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
     """D of the embeddings, after every view's two headers are checked (nothing loaded).
 
     Before any view is rendered, so that a bad file stops a registration at once rather than hours
-    into it: each `_s.npy` is (H, W) or (L, H, W) of integer or float ids with `level` < L (or L = 1),
-    its H x W a uniform scale of the camera's (`same_aspect`); each `_f.npy` is (M, D) of numbers
-    with the first view's D. `npy_header` has already held each shape against its file's size.
+    into it: each file's layout is the format's (`check_seg_layout`, `check_feat_layout`, the rules
+    the read path applies), the mask map's H x W a uniform scale of the camera's (`same_aspect`),
+    and every D the first view's. `npy_header` has already held each shape against its file's size.
     What a header cannot tell (ids past M, non-finite values) is found when the view is read.
     About 0.1 ms a view. missing_ok: a view whose file is not here is left to the process that
     reads it (on Ray, a worker node: the driver need not hold every view's files), as long as one
@@ -84,20 +85,10 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
         if missing_ok and not (spath.is_file() and fpath.is_file()):
             continue
         s_shape, s_dtype, _ = npy_header(spath)
-        if len(s_shape) not in (2, 3) or 0 in s_shape:
-            raise InputError(spath, f"mask ids have shape {s_shape}, expected (L, H, W) or (H, W) with L, H, W > 0", field="shape")
-        if s_dtype.kind not in "iuf":
-            raise InputError(spath, f"mask ids have dtype {s_dtype}, expected integers or floats (-1 = no mask, else an embedding row)",
-                             field="dtype")
-        levels = s_shape[0] if len(s_shape) == 3 else 1
-        if levels > 1 and not level < levels:
-            raise InputError(spath, f"level {level} requested but the file has {levels} levels (0..{levels - 1})", field="shape")
+        check_seg_layout(spath, s_shape, s_dtype, level)
         check_aspect(spath, s_shape[-1], s_shape[-2], cam)
         f_shape, f_dtype, _ = npy_header(fpath)
-        if len(f_shape) != 2 or f_shape[1] == 0:
-            raise InputError(fpath, f"embeddings have shape {f_shape}, expected (M, D) with D > 0", field="shape")
-        if f_dtype.kind not in "iuf":
-            raise InputError(fpath, f"embeddings have dtype {f_dtype}, expected floats", field="dtype")
+        check_feat_layout(fpath, f_shape, f_dtype)
         if first is None:
             dim, first = int(f_shape[1]), fpath
         elif f_shape[1] != dim:
