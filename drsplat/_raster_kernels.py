@@ -525,45 +525,45 @@ def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, ti
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def evicted_first(wbuf, sbuf, p, a, b) -> bool:
-    """Whether slot a of pixel p leaves the top k before slot b: lighter, or as heavy and later."""
-    return wbuf[p, a] < wbuf[p, b] or (wbuf[p, a] == wbuf[p, b] and sbuf[p, a] > sbuf[p, b])
+def lightest_slot(wbits, sbuf, p, k):
+    """The slot of pixel p's full buffer to evict first: the lightest, and among equal weights the
+    latest arrival (the one a stable sort by descending weight puts last).
+
+    wbits: the weight buffer's float64 bits read as int64 (`wbuf.view(np.int64)`). Weights are
+    positive (w = T·α, α ≥ 1/255), and the bits of positive floats order as the floats do, so the
+    minimum is an integer reduction, which numba vectorises (a float one it does not: NaN rules).
+    The slots holding it are then the bits of a 64-bit mask per 64 slots, usually a single bit.
+    """
+    m = wbits[p, 0]
+    for i in range(1, k):
+        v = wbits[p, i]
+        m = v if v < m else m
+    pos = -1
+    for base in range(0, k, 64):
+        ties = np.uint64(0)
+        for i in range(min(64, k - base)):
+            ties |= np.uint64(wbits[p, base + i] == m) << np.uint64(i)
+        while ties != 0:
+            i = base + np.int64(trailing_zeros(ties))
+            ties &= ties - np.uint64(1)
+            if pos < 0 or sbuf[p, i] > sbuf[p, pos]:
+                pos = i
+    return pos
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def sift_down(wbuf, sbuf, p, i, n) -> None:
-    """Restore the heap order below slot i of pixel p's first n slots (`evicted_first` at the root):
-    children that leave before the entry at i move up one level, and the entry drops into the hole."""
-    w = wbuf[p, i]
-    s = sbuf[p, i]
-    while True:
-        child = 2 * i + 1
-        if child >= n:
-            break
-        if child + 1 < n and evicted_first(wbuf, sbuf, p, child + 1, child):
-            child += 1
-        cw = wbuf[p, child]
-        if not (cw < w or (cw == w and sbuf[p, child] > s)):
-            break
-        wbuf[p, i] = cw
-        sbuf[p, i] = sbuf[p, child]
-        i = child
-    wbuf[p, i] = w
-    sbuf[p, i] = s
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def offer_topk(wbuf, sbuf, count, p, w, seq) -> None:
+def offer_topk(wbuf, wbits, sbuf, count, evict, p, w, seq) -> None:
     """Offer weight w, arrival number seq (increasing; the entry's place in its tile list), to pixel p's k best.
 
-    wbuf: [P, k] float64 weights, sbuf: [P, k] int32 arrival numbers, count: [P] slots used.
-    Until k entries are held a newcomer is appended; the k-th makes the buffer a min-heap whose
-    root is the entry to evict first (the lightest; among equal weights the latest, which a stable
-    sort by descending weight puts last). Then a newcomer replaces the root only if strictly
-    heavier (one of equal weight would sort after it) and sifts down: O(log k) per replacement,
-    no rescans. So the buffer always holds the first k entries of a stable sort of the
-    contributions so far by descending weight, in heap order (`write_ranked` sorts them).
-    The Gaussian id is not stored: it is the tile list's entry at seq.
+    wbuf: [P, k] float64 weights (wbits: the same memory as int64, `lightest_slot`), sbuf: [P, k]
+    int32 arrival numbers, count: [P] slots used, evict: [P] the slot to evict next (set once full).
+    Until k entries are held a newcomer is appended; the k-th finds the slot to evict first
+    (`lightest_slot`). Then a newcomer replaces that slot only if strictly heavier (one of equal
+    weight would sort after it), and the next one to evict is found by a vectorised rescan. So
+    the buffer always holds the first k entries of a stable sort of the contributions so far by
+    descending weight, unordered (`write_ranked` sorts them). The Gaussian id is not stored: it
+    is the tile list's entry at seq. (A min-heap did the same in O(log k) per replacement; the
+    rescan, k = 40, is faster: docs/raster.md.)
     """
     k = wbuf.shape[1]
     n = count[p]
@@ -572,12 +572,13 @@ def offer_topk(wbuf, sbuf, count, p, w, seq) -> None:
         sbuf[p, n] = seq
         count[p] = n + 1
         if n + 1 == k:
-            for i in range(k // 2 - 1, -1, -1):
-                sift_down(wbuf, sbuf, p, i, k)
-    elif w > wbuf[p, 0]:
-        wbuf[p, 0] = w
-        sbuf[p, 0] = seq
-        sift_down(wbuf, sbuf, p, 0, k)
+            evict[p] = lightest_slot(wbits, sbuf, p, k)
+    else:
+        pos = evict[p]
+        if w > wbuf[p, pos]:
+            wbuf[p, pos] = w
+            sbuf[p, pos] = seq
+            evict[p] = lightest_slot(wbits, sbuf, p, k)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -585,7 +586,7 @@ def write_ranked(wbuf, sbuf, n, p, tile_list, out_ids, out_weights, py, px, rank
     """Write pixel p's n entries to out_* at (py, px), -1 / 0 in the k - n slots after them.
 
     tile_list: the tile's Gaussian ids in arrival order (an entry's id is tile_list[seq]).
-    ranked=False writes the n entries as they lie in the buffer (heap order). ranked=True sorts
+    ranked=False writes the n entries as they lie in the buffer (no particular order). ranked=True sorts
     them first (insertion sort on (weight desc, arrival)), for the order every engine promises.
     """
     k = out_ids.shape[2]
@@ -645,11 +646,12 @@ def composite_topk(
       giving the bits of the lanes inside the α window; then the exp, transmittance and top-k of
       those lanes only (the window test, taken in the middle of the loop, mispredicted at every
       ellipse edge);
-    - a top-k buffer that is a heap once full (`offer_topk`: O(log k) per replacement), holding
-      (float64 weight, int32 place in the tile list): the id is read from the list at write time;
+    - a top-k buffer that, once full, knows the slot to evict next (`offer_topk`: a vectorised
+      rescan per replacement), holding (float64 weight, int32 place in the tile list): the id is
+      read from the list at write time;
     - the ellipse's row span only for boxes at least NARROW_BOX wide, no colour or depth work,
-      and, with ranked=False, no per-pixel sort: the k slots then hold the same entries in heap
-      order (`write_ranked`).
+      and, with ranked=False, no per-pixel sort: the k slots then hold the same entries in
+      arrival-and-replacement order (`write_ranked`).
     The tile lists may be bin_gaussians' or bin_gaussians_exact's.
     out_ids [H, W, k] int32, out_weights [H, W, k] float32, out_alpha [H, W], out_median [H, W]
     (only with_median) are all written.
@@ -661,6 +663,8 @@ def composite_topk(
         count = np.empty(n_px, np.int64)
         wbuf = np.empty((n_px, max(k, 1)), np.float64)
         sbuf = np.empty((n_px, max(k, 1)), np.int32)  # arrival numbers: places in the tile's list
+        wbits = wbuf.view(np.int64)
+        evict = np.empty(n_px, np.int64)
         med = np.empty(n_px, np.int32)
         active = np.empty(tile_size, np.uint64)
         power_of = np.empty(MAX_TILE_LANES, np.float64)
@@ -746,7 +750,7 @@ def composite_topk(
                             n_active -= 1
                             continue
                         if k > 0:
-                            offer_topk(wbuf, sbuf, count, pix, alpha * t_now, seq)
+                            offer_topk(wbuf, wbits, sbuf, count, evict, pix, alpha * t_now, seq)
                         if with_median and test_t <= MEDIAN_T < t_now:
                             med[pix] = g
                         trans[pix] = test_t

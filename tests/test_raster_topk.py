@@ -124,8 +124,8 @@ def test_registration_uses_the_topk_path_for_numba_only():
     assert raster.get_engine("reference").topk_fn() is raster.rasterize_reference
 
 
-@pytest.mark.parametrize("k", [1, 3, 8])
-def test_heap_buffer_keeps_the_first_k_of_a_stable_sort(k):
+@pytest.mark.parametrize("k", [1, 3, 8, 40, 64, 65, 130])
+def test_topk_buffer_keeps_the_first_k_of_a_stable_sort_with_ties(k):
     rng = np.random.default_rng(k)
     out_ids, out_w = np.empty((1, 1, k), np.int32), np.empty((1, 1, k), np.float32)
     for trial in range(300):
@@ -133,9 +133,9 @@ def test_heap_buffer_keeps_the_first_k_of_a_stable_sort(k):
         levels = rng.uniform(0.01, 1.0, size=int(rng.integers(1, 4)))
         w = rng.choice(levels, n) if trial % 2 else rng.uniform(0.0, 1.0, n)  # many exact ties / none
         wbuf, sbuf = np.empty((2, k)), np.empty((2, k), np.int32)
-        count = np.zeros(2, np.int64)
+        count, evict = np.zeros(2, np.int64), np.zeros(2, np.int64)
         for g, wg in enumerate(w):
-            kernels.offer_topk(wbuf, sbuf, count, 1, wg, g)
+            kernels.offer_topk(wbuf, wbuf.view(np.int64), sbuf, count, evict, 1, wg, g)
         best = np.argsort(-w, kind="stable")[:k]
         assert count[1] == best.size
         kernels.write_ranked(wbuf, sbuf, count[1], 1, np.arange(n, dtype=np.int32), out_ids, out_w, 0, 0, True)
