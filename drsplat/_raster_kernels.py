@@ -12,6 +12,7 @@ ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
 MEDIAN_T = 0.5  # the median Gaussian is the one that takes the transmittance T down to this
+T_STOP = float(np.nextafter(T_MIN, 0.0))  # test_t <= T_STOP exactly when test_t < T_MIN (composite_topk's one test)
 BLUR = 0.3
 EXTENT_SCALE = 1.001  # safety margins of the α ≥ 1/255 ellipse (it only limits the pixels visited)
 EXTENT_PAD = 1e-3
@@ -666,6 +667,7 @@ def composite_topk(
         wbits = wbuf.view(np.int64)
         evict = np.empty(n_px, np.int64)
         med = np.empty(n_px, np.int32)
+        next_t = np.empty(n_px, np.float64)  # the T at or below which the pixel's next event happens
         active = np.empty(tile_size, np.uint64)
         power_of = np.empty(MAX_TILE_LANES, np.float64)
         for slot in range(worker_starts[worker], worker_starts[worker + 1]):
@@ -680,6 +682,7 @@ def composite_topk(
                 trans[p] = 1.0
                 count[p] = 0
                 med[p] = -1
+                next_t[p] = MEDIAN_T if with_median else T_STOP
             n_active = tw * th
             for ly in range(th):
                 active[ly] = lane_span(0, tw - 1)
@@ -745,14 +748,18 @@ def composite_topk(
                         pix = row + lx
                         t_now = trans[pix]
                         test_t = t_now * (1.0 - alpha)
-                        if test_t < T_MIN:
-                            active[ly] &= ~(np.uint64(1) << np.uint64(lx))
-                            n_active -= 1
-                            continue
+                        # one test for both rare events: T falls below T_MIN (the pixel is done), or,
+                        # with the median, to MEDIAN_T or below for the first time (T only falls, so
+                        # t_now > MEDIAN_T until then); next_t then drops to T_STOP
+                        if test_t <= next_t[pix]:
+                            if test_t < T_MIN:
+                                active[ly] &= ~(np.uint64(1) << np.uint64(lx))
+                                n_active -= 1
+                                continue
+                            med[pix] = g
+                            next_t[pix] = T_STOP
                         if k > 0:
                             offer_topk(wbuf, wbits, sbuf, count, evict, pix, alpha * t_now, seq)
-                        if with_median and test_t <= MEDIAN_T < t_now:
-                            med[pix] = g
                         trans[pix] = test_t
                 if n_active == 0:
                     break
