@@ -86,6 +86,30 @@ def test_any_tile_size_up_to_64_gives_the_reference_lists(tile_size):
         np.testing.assert_array_equal(getattr(ranked, name), getattr(ref, name))
 
 
+@pytest.mark.parametrize("k", [65, 70])
+def test_buffers_over_64_slots_replace_their_lightest_entries_as_the_reference_does(k):
+    """k > 64: the slots of equal smallest weight span two 64-bit tie masks (`lightest_slot`).
+    Faint, wide, overlapping Gaussians give pixels more than k contributions, with ties."""
+    rng = np.random.default_rng(k)
+    scene = random_scene(rng, 900, log_scale=(-1.5, -0.5))
+    scene.opacity_logits[:] = rng.normal(-3.5, 0.5, scene.num_gaussians).astype(np.float32)  # faint: T stays high
+    scene.means[450:], scene.quats[450:], scene.log_scales[450:] = scene.means[:450], scene.quats[:450], scene.log_scales[:450]
+    scene.opacity_logits[450:] = scene.opacity_logits[:450]  # identical twins: exact ties
+    cam = look_at_camera([0.0, 0.0, -5.0], [0.0, 0.0, 0.0], 40, 30, fov_x_deg=50)
+    projected = project_gaussians(scene, cam)
+    wide = render_projected(projected, 4 * k)
+    assert ((wide.ids >= 0).sum(-1) > k).mean() > 0.3  # many pixels replace entries
+    ref = render_projected(projected, k, with_median=True)
+    for ranked in (True, False):
+        got = render_topk(projected, k, with_median=True, ranked=ranked)
+        for a, b in zip(_sorted_by_id(got.ids, got.weights), _sorted_by_id(ref.ids, ref.weights)):
+            np.testing.assert_array_equal(a, b)
+        if ranked:
+            np.testing.assert_array_equal(got.ids, ref.ids)
+        np.testing.assert_array_equal(got.alpha, ref.alpha)
+        np.testing.assert_array_equal(got.median_ids, ref.median_ids)
+
+
 def test_topk_path_refuses_tiles_wider_than_its_masks():
     case = random_case(6, topk=6)
     projected = project_gaussians(case.scene, case.camera, tile_size=65)
