@@ -782,10 +782,18 @@ def make_embedding_basis(num_labels: int, dim: int, rng: np.random.Generator):
     return q[0], q[1], q[2:]
 
 
-def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams | None = None) -> SyntheticScene:
-    """Build the scene, cameras and oracle vectors of a preset (nothing is rendered or written)."""
+MIN_WIDTH, MAX_WIDTH = 8, 4096  # the image widths a synthetic dataset may be rendered at
+
+
+def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams | None = None, width: int | None = None) -> SyntheticScene:
+    """Build the scene, cameras and oracle vectors of a preset (nothing is rendered or written).
+
+    width: render the views `width` pixels wide (the preset's cameras scaled, intrinsics and height
+    with them: the same poses, scene and oracle vectors); None keeps the preset's size."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
+    if width is not None and not MIN_WIDTH <= width <= MAX_WIDTH:
+        raise ValueError(f"width must be {MIN_WIDTH} to {MAX_WIDTH} pixels, got {width}")
     p = PRESETS[preset]
     oracle = oracle or OracleParams(jitter=p.jitter, mislabel_fraction=p.mislabel, mask_source=p.mask_source)
     if oracle.mask_source not in MASK_SOURCES:
@@ -797,6 +805,8 @@ def make_synthetic(preset: str = "tiny", seed: int = 0, *, oracle: OracleParams 
     else:
         scene, labels, instances, instance_labels, names, specs = _build_gaussians(p, rng)
         cameras = make_cameras(p, rng)
+    if width is not None:
+        cameras = [cam.scaled(width / cam.width) for cam in cameras]
     c, c_t, v = make_embedding_basis(len(names), p.dim, np.random.default_rng([seed, 1]))
     text = _normalize(oracle.text_a * c_t + oracle.text_b * v).astype(np.float32)
     return SyntheticScene(preset, seed, scene, cameras, labels, instances, instance_labels, names, v, c, c_t, text, oracle, list(specs))
@@ -1003,13 +1013,15 @@ def write_dataset(
     jitter: int | None = None,
     mask_source: str | None = None,
     merge_fraction: float = 0.0,
+    width: int | None = None,
     show_progress: bool = True,
     cancel=None,
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
 
     mislabel_fraction, jitter, merge_fraction: oracle mask corruption; mask_source: "render" or
-    "geometry" (module docstring); None takes the preset's default.
+    "geometry" (module docstring); None takes the preset's default. width: the views' width in
+    pixels (`make_synthetic`; None: the preset's).
 
     Every file is written atomically; the manifest and scene.ply come last, so an interrupted
     run leaves no scene.ply claiming a complete dataset.
@@ -1027,7 +1039,7 @@ def write_dataset(
         raise ValueError("merge_fraction must be in [0, 1]")
     out = Path(out_dir)
     oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source, merge_fraction=merge_fraction)
-    syn = make_synthetic(preset, seed, oracle=oracle)
+    syn = make_synthetic(preset, seed, oracle=oracle, width=width)
     for sub in ("images", "gt/masks", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 2])
@@ -1058,7 +1070,7 @@ def write_dataset(
             "format": "langsplat",
             "mask_generator": "oracle (drsplat.synthetic: one mask per visible object instance)",
             **manifest_clip_entry(ORACLE_MODEL_ID, None),
-            "synthetic": {"preset": preset, "seed": seed},
+            "synthetic": {"preset": preset, "seed": seed, **({"width": width} if width is not None else {})},
             "levels": list(LEVELS),
             "default_level": 1,
             "dim": int(syn.label_vectors.shape[1]),

@@ -225,6 +225,27 @@ def test_eval_ablate_topk_writes_table_and_plot(registered, tmp_path, capsys):
     assert (tmp_path / "ablation_topk.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
+def test_eval_ablate_resolution_reports_error_against_time(registered, tmp_path, capsys):
+    """Views at 1/r of their size: the table names each size, the first resolution is the speed-up's
+    unit, and halving the views changes what is registered (fewer pixels, resampled masks)."""
+    (tmp_path / "datasets").mkdir()
+    (tmp_path / "datasets" / "tiny-s0-m0-n0.15").symlink_to(registered["ds"], target_is_directory=True)  # the cache: no re-synthesis
+    assert main(["-q", "eval", "ablate", "resolution", "--values", "1,2", "--modes", "paper", "--out-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| resolution | mode | views | seg mIoU vol |" in out
+    doc = json.loads((tmp_path / "ablation_resolution.json").read_text())
+    cols = doc["columns"]
+    full, half = doc["rows"]
+    assert (full[0], full[2], half[0], half[2]) == (1, "128x96", 2, "64x48")
+    assert full[cols.index("speed-up")] == 1.0 and half[cols.index("ms/view")] > 0
+    assert 0.0 < half[cols.index("labelled coverage")] <= 1.0
+    assert half[3:7] != full[3:7]
+    assert (tmp_path / "ablation_resolution.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["-q", "eval", "ablate", "resolution", "--values", "0,2", "--out-dir", str(tmp_path)]) == 1
+    assert "resolution divisor" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("change, index, words", [
     (lambda names: names[:1] + names[:1] + names[2:], 1, "repeats the name"),
     (lambda names: names[:1] + ["a\nb"] + names[2:], 1, "control character"),

@@ -390,6 +390,8 @@ def test_bad_flag_values_are_usage_errors(tmp_path, world, capsys):
         (["synth", tmp_path / "s", "--seed", "-1"], "--seed"),
         (["synth", tmp_path / "s", "--mislabel", "2"], "--mislabel"),
         (["synth", tmp_path / "s", "--merge", "-0.1"], "--merge"),
+        (["synth", tmp_path / "s", "--width", "4"], "--width"),
+        (["synth", tmp_path / "s", "--preset", "city", "--width", "640"], "--width"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--m", "0"], "--m"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--max-train", "-1"], "--max-train"),
         (["features", "--source", ds, "--out", tmp_path / "f", "--batch-size", "0"], "--batch-size"),

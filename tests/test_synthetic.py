@@ -169,6 +169,33 @@ def test_mislabelling_and_jitter_options(tmp_path):
     assert wrong > 0
 
 
+def test_a_wider_dataset_is_the_same_room_seen_at_more_pixels(tmp_path):
+    """--width scales the preset's cameras (same poses, intrinsics with the size): images, masks and
+    feature maps at the new size, the same scene and text vectors, and the same instances seen."""
+    base, wide = make_synthetic("tiny", 3), make_synthetic("tiny", 3, width=256)
+    assert [c.width for c in wide.cameras] == [256] * len(base.cameras) and wide.cameras[0].height == 2 * base.cameras[0].height
+    for a, b in zip(base.cameras, wide.cameras):
+        np.testing.assert_array_equal(a.R, b.R)
+        np.testing.assert_array_equal(a.t, b.t)
+        assert b.fx == pytest.approx(2 * a.fx) and b.cx == pytest.approx(2 * a.cx)
+    np.testing.assert_array_equal(base.scene.means, wide.scene.means)
+    np.testing.assert_array_equal(base.text_vectors, wide.text_vectors)
+    out = write_dataset(tmp_path / "wide", "tiny", 3, width=256, show_progress=False)
+    cam = load_cameras(out)[0]
+    assert (cam.width, cam.height) == (256, 192)
+    assert Image.open(out / "images" / f"{cam.name}.png").size == (256, 192)
+    ids, _ = read_features(out / "features", cam.name, level=1)
+    assert ids.shape == (192, 256)
+    small = write_dataset(tmp_path / "base", "tiny", 3, show_progress=False)
+    gt_small = np.load(small / "gt" / "masks" / f"{cam.name}.npy")
+    gt_wide = np.load(out / "gt" / "masks" / f"{cam.name}.npy")
+    assert set(np.unique(gt_small)) == set(np.unique(gt_wide))  # the same objects in view
+    assert (gt_wide[::2, ::2] == gt_small).mean() > 0.9  # at the same places
+    assert read_manifest(out / "features")["synthetic"]["width"] == 256
+    with pytest.raises(ValueError, match="width must be"):
+        make_synthetic("tiny", 0, width=4)
+
+
 def test_jitter_moves_boundaries_only():
     ids = np.full((40, 40), -1, np.int32)
     ids[10:30, 10:30] = 3

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import float_range, int_range, nonneg_float, seed_int
+from drsplat.errors import UsageError
 
 log = logging.getLogger(__name__)
 
@@ -14,7 +15,7 @@ MAX_JITTER = 64  # pixels
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    from drsplat.synthetic import CITY_PRESETS, MASK_SOURCES, PRESETS
+    from drsplat.synthetic import CITY_PRESETS, MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS
 
     p = subparsers.add_parser(
         "synth",
@@ -39,6 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
                    help="oracle masks from the rendered Gaussians' weighted vote (render) or ray-cast true silhouettes "
                         "(geometry) (default: the preset's, render except hard-silhouette)")
+    p.add_argument("--width", type=int_range(MIN_WIDTH, MAX_WIDTH), default=None, metavar="PIXELS",
+                   help="render the views this many pixels wide: the preset's cameras scaled, same poses (default: the preset's, "
+                        "e.g. 320 for hard-room; not for city)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -52,13 +56,16 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.synthetic import CITY_PRESETS, write_city, write_dataset
     from drsplat.utils import CancelToken, atomic_folder, cancel_on_signals
 
+    if args.preset in CITY_PRESETS and args.width is not None:
+        raise UsageError("--width is for the room and table presets; city views are sized by the city preset")
     token = CancelToken()
     with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, is_synthetic_dataset) as tmp:
         if args.preset in CITY_PRESETS:
             write_city(tmp, args.preset, args.seed, show_progress=not args.no_progress, cancel=token)
         else:
             write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise, jitter=args.jitter,
-                          mask_source=args.mask_source, merge_fraction=args.merge, show_progress=not args.no_progress, cancel=token)
+                          mask_source=args.mask_source, merge_fraction=args.merge, width=args.width, show_progress=not args.no_progress,
+                          cancel=token)
         token.raise_if_cancelled()
     log.info("synthetic dataset written to %s", args.out_dir)
     return 0

@@ -7,6 +7,8 @@
     aggregate   aggregation modes (drsplat.registration.aggregate) x top-k on the hard room presets: seg / loc mIoU
                 (volume and count; labelled-only and with unlabelled Gaussians as false positives),
                 floaters kept, labelled coverage, time per view
+    resolution  the views registered at 1/r of their size (`register --resolution r`), r ∈ {1, 2, 4}: what it
+                costs in seg / loc mIoU and coverage against what it saves in time per view
 
 Every ablation prints a Markdown table, and writes `<out-dir>/ablation_<name>.png` (plot) and
 `<out-dir>/ablation_<name>.json` (the numbers). Synthetic datasets are cached in
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.utils import CancelToken, atomic_path
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
 from drsplat.cameras import load_cameras
 from drsplat.errors import DrsplatError
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
@@ -34,11 +36,12 @@ from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.features.format import read_manifest
-from drsplat.synthetic import PRESETS, WRONG_LABELS, write_dataset
+from drsplat.commands.common import int_range
+from drsplat.synthetic import MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, write_dataset
 
 log = logging.getLogger(__name__)
 
-ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate")
+ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate", "resolution")
 AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
 # oracle corruptions of the aggregate ablation: name -> (mislabelled-mask fraction, boundary jitter in
@@ -51,6 +54,7 @@ CORRUPTIONS = {"own": (None, None, 0.0), "clean": (0.0, 0, 0.0), "mislabel10": (
 # the room each corruption is measured against: the same masks without that corruption
 CORRUPTION_REFERENCE = {"mislabel10": "jitter2", "mislabel20": "clean", "jitter2": "clean", "merge10": "clean", "merge20": "clean"}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
+RESOLUTION_VALUES = (1, 2, 4)  # 3DGS's -r: the views' size divided by r
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)
 NOISE_VALUES = (0.15, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -92,16 +96,17 @@ class AblationResult:
 
 
 def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None,
-            jitter: int | None = None, merge: float = 0.0) -> Dataset:
+            jitter: int | None = None, merge: float = 0.0, width: int | None = None) -> Dataset:
     """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
     override the preset's oracle mask source, "render" or "geometry"; jitter: the masks' boundary
     jitter in pixels, None the preset's; merge: the share of instance masks merged into a
-    neighbour's; drsplat.synthetic)."""
+    neighbour's; width: the views' width in pixels, None the preset's; drsplat.synthetic)."""
     path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else "")
-                   + (f"-j{jitter}" if jitter is not None else "") + (f"-u{merge:g}" if merge > 0 else ""))
+                   + (f"-j{jitter}" if jitter is not None else "") + (f"-u{merge:g}" if merge > 0 else "")
+                   + (f"-w{width}" if width is not None else ""))
     if not (path / "scene.ply").exists() or (mislabel > 0 and _stale_wrong_labels(path)):
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter,
-                      merge_fraction=merge, show_progress=False)
+                      merge_fraction=merge, width=width, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
                    json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
 
@@ -116,8 +121,11 @@ def _stale_wrong_labels(path: Path) -> bool:
     return stale
 
 
-def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper"):
-    return register_features(ds.scene, ds.cameras, ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
+def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper", resolution: int = 1):
+    """Register `ds` (resolution r: its views at 1/r of their size, the feature maps resampled to them,
+    as `register --resolution r` does)."""
+    cameras = ds.cameras if resolution == 1 else [cam.scaled(1.0 / resolution) for cam in ds.cameras]
+    return register_features(ds.scene, cameras, ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
                              collect_embeddings=collect)
 
 
@@ -317,6 +325,48 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
     return AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows, notes)
 
 
+RESOLUTION_COLUMNS = ["resolution", "mode", "views", "seg mIoU vol", "seg mIoU vol +unl", "loc mIoU vol", "labelled coverage",
+                      "ms/view", "speed-up"]
+
+
+def ablate_resolution(root: Path, preset: str, seeds: list[int], values=RESOLUTION_VALUES, modes=("paper", DEFAULT_AGGREGATE),
+                      width: int | None = None, mask_source: str | None = None, cancel: CancelToken | None = None) -> AblationResult:
+    """What registering the views at 1/r of their size costs and saves (3DGS's -r; `register
+    --resolution r`). The feature maps stay full size and are resampled to the smaller views (nearest
+    neighbour, drsplat.registration.views), so only the rasterized pixels change: about r² fewer.
+
+    Per r and mode (RESOLUTION_COLUMNS): labelled seg mIoU vol, the same with unlabelled Gaussians as
+    false positives, loc mIoU vol and labelled coverage, mean over seeds; ms per view of the whole
+    registration, median over seeds; speed-up = the first r's ms per view / this r's, same mode.
+    width: the synthetic views' width before scaling (None: the preset's); mask_source: the oracle
+    masks' source (None: the preset's). With "render" masks the full-size masks follow the
+    full-size footprints, so smaller views also see masks sharper than their own footprints (what
+    "geometry" masks, true silhouettes, are at every size)."""
+    first = dataset(root, preset, seeds[0], mask_source=mask_source, width=width)
+    for mode in modes:  # warm-up: compiled kernels load once, not inside the timings
+        register(first, aggregate=mode)
+    rows, base = [], {}
+    for r in values:
+        for mode in modes:
+            per, ms = [], []
+            for seed in seeds:
+                _check(cancel)
+                ds = dataset(root, preset, seed, mask_source=mask_source, width=width)
+                m = aggregate_metrics(ds, register(ds, aggregate=mode, resolution=int(r)))
+                per.append([m[0], m[1], m[4], m[8]])
+                ms.append(m[9])
+            cam = first.cameras[0] if r == 1 else first.cameras[0].scaled(1.0 / r)
+            speed = float(np.median(ms))
+            base.setdefault(mode, speed)
+            rows.append([int(r), mode, f"{cam.width}x{cam.height}", *map(float, np.mean(per, axis=0)), speed, base[mode] / speed])
+            log.info("resolution %d %s: %s", r, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
+    notes = [f"preset {preset} at {first.cameras[0].width}x{first.cameras[0].height}, {len(first.cameras)} views, "
+             f"{mask_source or 'its own'} oracle masks; seeds {list(seeds)} "
+             "(mean; ms/view: median); feature maps at full size, resampled to the views; speed-up against the first resolution "
+             "of the same mode."]
+    return AblationResult("resolution", list(RESOLUTION_COLUMNS), rows, notes)
+
+
 def time_aggregate_modes(ds: Dataset, modes, topk: int = DEFAULT_TOPK, repeats: int = 5, cancel: CancelToken | None = None) -> dict[str, float]:
     """{mode: median ms per view} over `repeats` registrations of `ds`, modes interleaved within each
     repeat so that a busy machine slows every mode alike (the ablation's single-run ms/view is noisier)."""
@@ -404,6 +454,18 @@ def plot(result: AblationResult, path: Path) -> None:
 
     if result.name == "aggregate":
         fig = _plot_aggregate(result, plt)
+    elif result.name == "resolution":
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        cols = result.columns
+        for i, mode in enumerate(dict.fromkeys(r[1] for r in result.rows)):
+            rows = [r for r in result.rows if r[1] == mode]
+            for ax, metric in zip(axes, ("seg mIoU vol", "loc mIoU vol")):
+                xs, ys = [r[cols.index("ms/view")] for r in rows], [r[cols.index(metric)] for r in rows]
+                ax.plot(xs, ys, marker="o", color=f"C{i}", label=mode)
+                for r, x, y in zip(rows, xs, ys):
+                    ax.annotate(f"1/{r[0]} ({r[2]})", (x, y), fontsize=7, xytext=(4, 2), textcoords="offset points")
+                ax.set(xlabel="ms per view", ylabel=metric, title=f"speed against error: {metric}")
+        axes[0].legend(fontsize=7)
     elif result.name == "metrics":
         fig, axes = plt.subplots(2, 2, figsize=(9, 8))
         for r, task in enumerate(("loc", "seg")):
@@ -498,13 +560,15 @@ def add_ablate_parser(sub) -> None:
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
     p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
     p.add_argument("--mask-source", default=None, metavar="SRC[,SRC]",
-                   help="aggregate: oracle masks of every preset from the rendered Gaussians' vote (render) or ray-cast true silhouettes "
-                        "(geometry); a comma-separated list compares both (default: each preset's own)")
+                   help="aggregate, resolution: oracle masks of every preset from the rendered Gaussians' vote (render) or ray-cast true silhouettes "
+                        "(geometry); for aggregate a comma-separated list compares both (default: each preset's own)")
     p.add_argument("--corruptions", default="own", metavar="C[,C]",
                    help=f"aggregate: oracle corruptions to compare ({', '.join(CORRUPTIONS)}; default: each preset's own)")
     p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
-    p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k or PQ sub-vectors)")
+    p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k, PQ sub-vectors or resolution divisors)")
+    p.add_argument("--width", type=int_range(MIN_WIDTH, MAX_WIDTH), default=None, metavar="PIXELS",
+                   help="resolution: render the synthetic views this wide before dividing them (default: the preset's)")
     p.add_argument("--out-dir", type=Path, required=True, metavar="DIR", help="where the PNG, JSON and cached datasets go")
     p.set_defaults(func=run_ablate)
 
@@ -543,6 +607,15 @@ def run_ablate(args: argparse.Namespace) -> int:
                  "| mode | ms/view | vs paper |", "|---|---:|---:|"]
         lines += [f"| {mode} | {ms:.1f} | {ms / speed['paper']:.2f}x |" for mode, ms in speed.items()]
         print("\n".join(lines))  # noqa: T201 - the tables the user asked for
+    elif args.ablation == "resolution":
+        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else ("paper", DEFAULT_AGGREGATE)
+        bad = [m for m in modes if m not in AGGREGATE_MODES] + [str(v) for v in values or () if v < 1]
+        if bad:
+            raise DrsplatError(f"unknown mode or resolution divisor: {', '.join(bad)} (divisors are integers >= 1; modes: {', '.join(AGGREGATE_MODES)})")
+        source = args.mask_source
+        if source not in (None, "render", "geometry"):
+            raise DrsplatError(f"resolution takes one mask source, render or geometry, not {source!r}")
+        result = ablate_resolution(root, preset, seeds, values or RESOLUTION_VALUES, modes, width=args.width, mask_source=source)
     elif args.ablation == "topk":
         result = ablate_topk(root, preset, seeds, values or TOPK_VALUES)
     elif args.ablation == "pq":
