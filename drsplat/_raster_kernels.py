@@ -404,8 +404,8 @@ def project_points(
 
 
 # ----------------------------------------------------------------------------- the registration path
-# Ids and weights only (plus the median Gaussian when asked), exact opacity-aware tile sets, and a
-# top-k buffer kept sorted as contributions arrive. drsplat.raster.render_topk drives these; the
+# Ids and weights only (plus the median Gaussian when asked), exact opacity-aware tile sets, and an
+# unordered top-k buffer that knows its slot to evict. drsplat.raster.render_topk drives these; the
 # kernels above (composite_tiles, bin_gaussians) stay the reference they must agree with.
 
 ACCUTILE_PAD = 0.01  # pixels added around the α ≥ 1/255 ellipse's span of a tile row (rounding)
