@@ -849,15 +849,18 @@ def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]
     return inputs
 
 
+RESOLUTION_DIVISORS = (1, 2, 4, 8)  # 3DGS's -r values that divide the image size (any other positive value is a width)
+
+
 def resolution_scale(width: int, resolution: float) -> float:
     """Image scale factor from a 3DGS-style `-r` value.
 
-    -1: full size, capped at 1600 px wide (3DGS's rule); 1, 2, 4, 8: divide by it;
+    -1: full size, capped at 1600 px wide (3DGS's rule); RESOLUTION_DIVISORS: divide by it;
     any other positive value: the target width in pixels.
     """
     if resolution == -1:
         return min(1.0, 1600.0 / width)
-    if resolution in (1, 2, 4, 8):
+    if resolution in RESOLUTION_DIVISORS:
         return 1.0 / resolution
     if resolution > 0:
         return float(resolution) / width
@@ -876,6 +879,11 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
         log.warning("%s: %d frame(s) skipped because their image file is missing (%d cameras kept)", path, missing, len(cameras))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (" (every image file is missing)" if missing else ""))
+    return scale_cameras(cameras, resolution)
+
+
+def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
+    """The cameras at a 3DGS-style `-r` (`resolution_scale`; unscaled ones returned as they are)."""
     out = []
     for c in cameras:
         scale = resolution_scale(c.width, resolution)

@@ -242,8 +242,9 @@ def test_eval_ablate_resolution_reports_error_against_time(registered, tmp_path,
     assert 0.0 < half[cols.index("labelled coverage")] <= 1.0
     assert half[3:7] != full[3:7]
     assert (tmp_path / "ablation_resolution.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert main(["-q", "eval", "ablate", "resolution", "--values", "0,2", "--out-dir", str(tmp_path)]) == 1
-    assert "resolution divisor" in capsys.readouterr().err
+    for values in ("0,2", "3"):  # 3 would be a 3-pixel width to `register --resolution`, not a divisor
+        assert main(["-q", "eval", "ablate", "resolution", "--values", values, "--out-dir", str(tmp_path)]) == 1
+        assert "not a resolution divisor" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("change, index, words", [

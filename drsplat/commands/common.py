@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
 from drsplat.errors import DrsplatError, InputError
 from drsplat.memory import parse_size
@@ -113,7 +114,7 @@ def threshold_value(text: str) -> str:
 def resolution_value(text: str) -> float:
     """argparse type for 3DGS-style -r: -1, 1, 2, 4, 8 or a target width in pixels (finite, <= MAX_IMAGE_WIDTH)."""
     value = float(_number(text, float))
-    if value == -1 or value in (1, 2, 4, 8):
+    if value == -1 or value in RESOLUTION_DIVISORS:
         return value
     if not 0 < value <= MAX_IMAGE_WIDTH:
         raise argparse.ArgumentTypeError(f"{value:g}: expected -1 (full size, capped at 1600 px), 1, 2, 4, 8 or a width in 1..{MAX_IMAGE_WIDTH} pixels")

@@ -29,7 +29,7 @@ import numpy as np
 
 from drsplat.utils import CancelToken, atomic_path
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
-from drsplat.cameras import load_cameras
+from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
 from drsplat.errors import DrsplatError
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
 from drsplat.lang import build_field
@@ -37,7 +37,7 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.features.format import read_manifest
 from drsplat.commands.common import int_range
-from drsplat.synthetic import MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, write_dataset
+from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, write_dataset
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ CORRUPTIONS = {"own": (None, None, 0.0), "clean": (0.0, 0, 0.0), "mislabel10": (
 # the room each corruption is measured against: the same masks without that corruption
 CORRUPTION_REFERENCE = {"mislabel10": "jitter2", "mislabel20": "clean", "jitter2": "clean", "merge10": "clean", "merge20": "clean"}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
-RESOLUTION_VALUES = (1, 2, 4)  # 3DGS's -r: the views' size divided by r
+RESOLUTION_VALUES = (1, 2, 4)  # 3DGS's -r (drsplat.cameras.RESOLUTION_DIVISORS): the views' size divided by r
 PQ_VALUES = (32, 64, 128, 256)
 MISLABEL_VALUES = (0.0, 0.1, 0.2, 0.3, 0.5)
 NOISE_VALUES = (0.15, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -122,10 +122,9 @@ def _stale_wrong_labels(path: Path) -> bool:
 
 
 def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper", resolution: int = 1):
-    """Register `ds` (resolution r: its views at 1/r of their size, the feature maps resampled to them,
-    as `register --resolution r` does)."""
-    cameras = ds.cameras if resolution == 1 else [cam.scaled(1.0 / resolution) for cam in ds.cameras]
-    return register_features(ds.scene, cameras, ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
+    """Register `ds` (resolution r: its views at 1/r of their size, `scale_cameras`, the feature maps
+    resampled to them, as `register --resolution r` does)."""
+    return register_features(ds.scene, scale_cameras(ds.cameras, resolution), ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
                              collect_embeddings=collect)
 
 
@@ -355,7 +354,7 @@ def ablate_resolution(root: Path, preset: str, seeds: list[int], values=RESOLUTI
                 m = aggregate_metrics(ds, register(ds, aggregate=mode, resolution=int(r)))
                 per.append([m[0], m[1], m[4], m[8]])
                 ms.append(m[9])
-            cam = first.cameras[0] if r == 1 else first.cameras[0].scaled(1.0 / r)
+            cam = scale_cameras(first.cameras[:1], int(r))[0]
             speed = float(np.median(ms))
             base.setdefault(mode, speed)
             rows.append([int(r), mode, f"{cam.width}x{cam.height}", *map(float, np.mean(per, axis=0)), speed, base[mode] / speed])
@@ -573,6 +572,15 @@ def add_ablate_parser(sub) -> None:
     p.set_defaults(func=run_ablate)
 
 
+def _modes(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
+    """--modes as a tuple (`default` when not given); DrsplatError naming any unknown mode."""
+    modes = tuple(m.strip() for m in text.split(",") if m.strip()) if text else default
+    bad = [m for m in modes if m not in AGGREGATE_MODES]
+    if bad or not modes:
+        raise DrsplatError(f"unknown mode: {', '.join(bad) or '(none given)'} (modes: {', '.join(AGGREGATE_MODES)})")
+    return modes
+
+
 def run_ablate(args: argparse.Namespace) -> int:
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
@@ -583,18 +591,18 @@ def run_ablate(args: argparse.Namespace) -> int:
     preset = args.preset or "tiny"
     if args.ablation == "aggregate":
         presets = tuple(p.strip() for p in args.preset.split(",")) if args.preset else AGGREGATE_PRESETS
-        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else AGGREGATE_MODES
-        bad = [p for p in presets if p not in PRESETS] + [m for m in modes if m not in AGGREGATE_MODES]
+        bad = [p for p in presets if p not in PRESETS]
         if bad:
-            raise DrsplatError(f"unknown preset or mode: {', '.join(bad)} (presets: {', '.join(PRESETS)}; modes: {', '.join(AGGREGATE_MODES)})")
+            raise DrsplatError(f"unknown preset: {', '.join(bad)} (presets: {', '.join(PRESETS)})")
+        modes = _modes(args.modes, AGGREGATE_MODES)
         if "paper" not in modes:
             modes = ("paper",) + modes  # the baseline of the summary
         sources = tuple(s.strip() for s in args.mask_source.split(",")) if args.mask_source else (None,)
         corruptions = tuple(c.strip() for c in args.corruptions.split(",") if c.strip())
-        bad = [s for s in sources if s not in (None, "render", "geometry")] + [c for c in corruptions if c not in CORRUPTIONS]
+        bad = [s for s in sources if s is not None and s not in MASK_SOURCES] + [c for c in corruptions if c not in CORRUPTIONS]
         if bad or not corruptions:
             raise DrsplatError(f"unknown mask source or corruption: {', '.join(bad) or '(none given)'} "
-                               f"(mask sources: render, geometry; corruptions: {', '.join(CORRUPTIONS)})")
+                               f"(mask sources: {', '.join(MASK_SOURCES)}; corruptions: {', '.join(CORRUPTIONS)})")
         result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_sources=sources, corruptions=corruptions)
         k = max(values or AGGREGATE_TOPK)
         timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
@@ -608,13 +616,13 @@ def run_ablate(args: argparse.Namespace) -> int:
         lines += [f"| {mode} | {ms:.1f} | {ms / speed['paper']:.2f}x |" for mode, ms in speed.items()]
         print("\n".join(lines))  # noqa: T201 - the tables the user asked for
     elif args.ablation == "resolution":
-        modes = tuple(m.strip() for m in args.modes.split(",")) if args.modes else ("paper", DEFAULT_AGGREGATE)
-        bad = [m for m in modes if m not in AGGREGATE_MODES] + [str(v) for v in values or () if v < 1]
+        modes = _modes(args.modes, ("paper", DEFAULT_AGGREGATE))
+        bad = [str(v) for v in values or () if v not in RESOLUTION_DIVISORS]
         if bad:
-            raise DrsplatError(f"unknown mode or resolution divisor: {', '.join(bad)} (divisors are integers >= 1; modes: {', '.join(AGGREGATE_MODES)})")
+            raise DrsplatError(f"--values: {', '.join(bad)} is not a resolution divisor (3DGS's -r: {', '.join(map(str, RESOLUTION_DIVISORS))})")
         source = args.mask_source
-        if source not in (None, "render", "geometry"):
-            raise DrsplatError(f"resolution takes one mask source, render or geometry, not {source!r}")
+        if source is not None and source not in MASK_SOURCES:
+            raise DrsplatError(f"resolution takes one mask source ({', '.join(MASK_SOURCES)}), not {source!r}")
         result = ablate_resolution(root, preset, seeds, values or RESOLUTION_VALUES, modes, width=args.width, mask_source=source)
     elif args.ablation == "topk":
         result = ablate_topk(root, preset, seeds, values or TOPK_VALUES)
