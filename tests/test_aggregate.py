@@ -198,23 +198,49 @@ def test_folding_view_statistics_matches_the_numpy_fold_bit_for_bit(case):
 
 @pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1"])
 def test_surface_stats_kernel_agrees_with_reference(case):
+    """The one-pass kernel's statistics are the numpy reference's bit for bit (the sums are exact
+    fixed point, so their order does not matter), with its scratch clean for the next view."""
     rng = np.random.default_rng(zlib.crc32(repr(case).encode()))
     got, want = SurfaceSupport.zeros(40), SurfaceSupport.zeros(40)
     scratch = None
-    for _ in range(3):  # several views accumulate, the scratch buffers are reused
+    for view in range(3):  # several views accumulate, the scratch buffers are reused
         geometry, cam, ids, weights, median = _random_stats_inputs(rng, case, k=1 if case == "k1" else 12)
         stats, scratch = surface_stats(geometry, cam, ids, weights, median, scratch=scratch)
         ref = surface_stats_reference(geometry, cam, ids, weights, median)
-        assert sorted(stats.ids.tolist()) == ref.ids.tolist()  # each Gaussian seen once
+        for name in ("ids", "peak", "total", "front"):  # each Gaussian seen once, in id order
+            np.testing.assert_array_equal(getattr(stats, name), getattr(ref, name), err_msg=name)
         got.add(stats)
         want.add(ref)
-        assert not scratch.mark.any() and not scratch.view_total.any() and not scratch.view_peak.any()  # clean for the next view
-    for name, g in got.arrays().items():
-        np.testing.assert_allclose(g, want.arrays()[name], rtol=1e-9, atol=1e-12, err_msg=name)
-    assert (got.front <= got.total + 1e-12).all() and (got.peak <= got.total + 1e-12).all()
+        assert scratch.stamp == view + 1  # reused: one stamp a view
+    assert (got.front <= got.total).all() and (got.peak <= got.total + 1e-9).all()
     assert (got.views_front <= got.views_seen).all() and (got.views_seen <= 3).all()
     if case == "random":
         assert (got.front > 0).any() and (got.front < got.total).any() and (got.views_front > 0).any()
+
+
+@pytest.mark.parametrize("case", ["random", "hard"])
+def test_surface_stats_are_the_same_bits_in_any_number_of_parts(case):
+    """The pixel rows dealt to 1, 2, 3, 7 or 40 parts summed in parallel (more parts than rows
+    too): the same Gaussians in id order, the same peaks and sums bit for bit."""
+    rng = np.random.default_rng(5 if case == "random" else 6)
+    geometry, cam, ids, weights, median = _random_stats_inputs(rng, case, h=5, w=3, k=9)
+    one, _ = surface_stats(geometry, cam, ids, weights, median, parts=1)
+    assert one.ids.tolist() == sorted(set(ids[ids >= 0].tolist()))
+    for parts in (2, 3, 7, 40):
+        many, _ = surface_stats(geometry, cam, ids, weights, median, parts=parts)
+        for name in ("ids", "peak", "total", "front"):
+            np.testing.assert_array_equal(getattr(many, name), getattr(one, name), err_msg=f"{name}, {parts} parts")
+
+
+def test_fixed_point_weights_round_clip_and_zero_nan():
+    """A slot's w is added as round(w·2³²): the rasterizer's range (0, 1] to the nearest unit,
+    outside it clipped, NaN as nothing; and the sum of many weights is exact."""
+    from drsplat.registration.aggregate import STATS_SCALE, fixed_weights
+
+    w = np.array([0.0, 1.0, 0.5, 2.0 ** -33, 2.0 ** -32, 3.9e-7, 0.99, -0.25, 7.0, np.nan], np.float64)
+    np.testing.assert_array_equal(fixed_weights(w), [0, 1 << 32, 1 << 31, 1, 1, round(3.9e-7 * STATS_SCALE), round(0.99 * STATS_SCALE), 0, 1 << 32, 0])
+    many = np.full(1 << 20, np.float32(0.1))
+    assert fixed_weights(many).sum() == (1 << 20) * fixed_weights(np.float32(0.1)[None])[0]
 
 
 def test_in_front_flags_equal_the_reference_with_hostile_geometry():
@@ -230,7 +256,7 @@ def test_in_front_flags_equal_the_reference_with_hostile_geometry():
     geometry.means[20:26] += 30.0 * axis  # far behind every surface
     geometry.means[26:30] -= 3.5 * axis  # in front of it
     median[0] = ids[0, :, 0]
-    _, scratch = surface_stats(geometry, cam, ids, weights, median)
+    _, scratch = surface_stats(geometry, cam, ids, weights, median, keep_flags=True)
     depth = ray_depths_reference(geometry, cam, ids)
     surface = ray_depths_reference(geometry, cam, median[..., None])
     want = (depth < (1.0 - FRONT_TOLERANCE) * surface) & (ids >= 0)
@@ -271,7 +297,7 @@ def test_ray_depth_is_the_plane_of_a_flat_gaussian_and_the_projection_of_a_round
         support = SurfaceSupport.zeros(1)
         one = np.zeros((30, 40, 2), np.int32)
         one[..., 1] = -1
-        stats, scratch = surface_stats(geometry, cam, one, np.full((30, 40, 2), 0.1, np.float32), np.zeros((30, 40), np.int32))
+        stats, scratch = surface_stats(geometry, cam, one, np.full((30, 40, 2), 0.1, np.float32), np.zeros((30, 40), np.int32), keep_flags=True)
         support.add(stats)
         assert not scratch.flags[:, 0].any()  # a Gaussian is never in front of itself
         assert support.total[0] == pytest.approx(0.1 * 30 * 40) and support.views_seen[0] == 1 and np.isfinite(ref).all()

@@ -381,7 +381,7 @@ def test_device_floater_statistics_equal_numba(case, h, w, k, n):
     from drsplat.registration.device_sums import DeviceRays, front_flags_torch, view_stats_torch
 
     rays, cam, ids, weights, median = stats_view(3 + h, h, w, k, n, case)
-    want, scratch = surface_stats(rays, cam, ids, weights, median)
+    want, scratch = surface_stats(rays, cam, ids, weights, median, keep_flags=True)
     flags = front_flags_torch(DeviceRays.from_host(rays, torch.device("cpu")), cam, torch.from_numpy(ids), torch.from_numpy(median))
     np.testing.assert_array_equal(flags.numpy(), scratch.flags)
     if case == "random" and k > 1:

@@ -92,8 +92,12 @@ does. Faint Gaussians lying on a surface (D ≈ their depth) and thin opaque str
 their centre pixels) are kept. The view vote keeps surface Gaussians whose weight is dominated
 by one close-up view in which a box edge puts them in front of a neighbour's plane (what each of
 these choices changed on the hard rooms: docs/registration.md, "Design choices, measured").
-Memory: five [N] arrays for the statistics (32 bytes per Gaussian), per-view scratch (29 bytes)
-and the scene's means, Σ⁻¹ and reach (80 bytes, `RayGeometry`); nothing per (Gaussian, mask).
+A view's sums add each w in fixed point (int64 units of 2⁻³², STATS_SCALE; exact up to 2³¹ pixels of
+weight 1), so they are the same integers in any order: the view's pixels are cut into parts summed
+in parallel, on the host, and the torch engine's atomics on a GPU give the same bits.
+Memory: five [N] arrays for the statistics (32 bytes per Gaussian), per-view scratch (8 bytes, and
+28 per part of the view's pixels: `stats_parts`) and the scene's means, Σ⁻¹ and reach (80 bytes,
+`RayGeometry`); nothing per (Gaussian, mask).
 """
 
 from __future__ import annotations
@@ -679,13 +683,27 @@ class SurfaceSupport:
         return cls(*(np.array(arrays[f.name], dtype=np.int32 if f.name.startswith("views") else np.float64) for f in dataclasses.fields(cls)))
 
 
+STATS_SCALE = float(1 << 32)  # the per-view sums' fixed point: units of 2⁻³² in int64 (exact up to 2³¹ pixels of weight 1)
+STATS_SCRATCH_BYTES = 28  # per Gaussian per part of `surface_stats`: its peak, total, front and view stamps
+STATS_EXTRA_SCRATCH = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 1.4 GB each)
+
+
+def fixed_weights(weights: np.ndarray) -> np.ndarray:
+    """Each slot's w as the per-view sums add it: round(w · STATS_SCALE) in int64, w clipped to
+    [0, 1] (the rasterizer's w = T·α lies in it) and NaN as 0. [...] float32 or float64 -> int64."""
+    w = np.nan_to_num(np.clip(np.asarray(weights, np.float64), 0.0, 1.0), nan=0.0)
+    return np.floor(w * STATS_SCALE + 0.5).astype(np.int64)
+
+
 def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
                             tolerance: float = FRONT_TOLERANCE) -> ViewStats:
     """One view's rejection statistics (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] (raw w = T·α); median_ids: [H, W] the rasterizer's median Gaussian
     (-1 where the pixel's opacity never reaches ½: D(p) = +inf). A contribution is in front
-    when t*_i(p) < (1 - τ)·D(p), D(p) = t* of the median Gaussian at p.
+    when t*_i(p) < (1 - τ)·D(p), D(p) = t* of the median Gaussian at p. The sums add each w in
+    fixed point (`fixed_weights`), so they are the same integers in any order; the peak is the
+    largest w (NaN ignored).
     """
     k = ids.shape[-1]
     depth = ray_depths_reference(geometry, camera, ids).reshape(-1, k)
@@ -693,13 +711,14 @@ def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weig
     g = ids.reshape(-1, k)
     valid = g >= 0
     w = np.where(valid, weights.reshape(-1, k).astype(np.float64), 0.0)
+    fixed = np.where(valid, fixed_weights(w), 0)
     in_front = depth < (1.0 - tolerance) * surface
     seen, inverse = np.unique(g[valid], return_inverse=True)
-    peak, total, front = np.zeros(seen.size), np.zeros(seen.size), np.zeros(seen.size)
-    np.maximum.at(peak, inverse, w[valid])
-    np.add.at(total, inverse, w[valid])
-    np.add.at(front, inverse, (w * in_front)[valid])
-    return ViewStats(seen.astype(np.int32), peak, total, front)
+    peak, total, front = np.zeros(seen.size), np.zeros(seen.size, np.int64), np.zeros(seen.size, np.int64)
+    np.fmax.at(peak, inverse, w[valid])
+    np.add.at(total, inverse, fixed[valid])
+    np.add.at(front, inverse, np.where(in_front, fixed, 0)[valid])
+    return ViewStats(seen.astype(np.int32), peak, total / STATS_SCALE, front / STATS_SCALE)
 
 
 @numba.njit(inline="always")
@@ -718,117 +737,182 @@ def _ray_depth(g, dx, dy, dz, ox, oy, oz, means, prec, reach, r2x, r2y, r2z, tz)
     return min(max(t, zc - reach[g]), zc + reach[g])
 
 
-@numba.njit(parallel=True, cache=True)
-def _front_flags_kernel(ids, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, near, flags):  # pragma: no cover - jitted
-    """flags[p, s] = t*_{ids[p, s]}(p) < (1 - τ)·D(p) (D = +inf where median_ids[p] < 0), in parallel over pixels.
+@numba.njit(inline="always")
+def _fixed_weight(w, scale):  # pragma: no cover - jitted
+    """`fixed_weights` of one slot: round(clip(w, 0, 1) · scale), 0 for NaN."""
+    if not w > 0.0:
+        return np.int64(0)
+    return np.int64(math.floor(min(w, 1.0) * scale + 0.5))
 
-    near [N] float64 is scratch: each Gaussian's nearest clamp zc - reach, computed first (one
-    gather per slot instead of the mean's three and the reach)."""
+
+@numba.njit(parallel=True, cache=True)
+def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
+                          near, peak, total, front, seen, stamp, flags):  # pragma: no cover - jitted
+    """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
+    P = peak.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
+    scratch (rows interleaved: every part gets a share of the busy rows).
+
+    Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) (D = +inf where
+    median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
+    first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
+    never < the limit). Part t keeps peak[t, g] = max w, total[t, g] = Σ fixed w and front[t, g] =
+    Σ fixed w·[in front] (int64, `_fixed_weight`: exact in any order); seen[t, g] == stamp marks
+    the Gaussians it saw, whose first slot sets the three values instead of adding to them, so
+    nothing is cleared between views (stamp: a number no earlier view of these buffers used).
+    flags: [H·W, k] bool to receive the in-front test, or [0, k] for none.
+    """
     for g in numba.prange(near.shape[0]):
         near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
-    for p in numba.prange(n_pix):
-        rx = (p % width + 0.5 - cx) / fx
-        ry = (p // width + 0.5 - cy) / fy
-        dx = rot[0, 0] * rx + rot[1, 0] * ry + rot[2, 0]  # d = Rᵀ (rx, ry, 1)
-        dy = rot[0, 1] * rx + rot[1, 1] * ry + rot[2, 1]
-        dz = rot[0, 2] * rx + rot[1, 2] * ry + rot[2, 2]
-        m = median_ids[p]
-        limit = np.inf
-        if m >= 0:
-            limit = (1.0 - tolerance) * _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
-                                                   rot[2, 0], rot[2, 1], rot[2, 2], tz)
-        for s in range(k):
-            g = ids[p, s]
-            if g < 0:  # slots are sorted by weight, -1 padded at the end
-                for r in range(s, k):
-                    flags[p, r] = False
-                break
-            # t* is clamped to [zc - reach, zc + reach] (NaN stays NaN, and is not < limit): a Gaussian
-            # whose nearest clamp is behind the limit is not in front, without its Σ⁻¹ or a division
-            if near[g] >= limit:
-                flags[p, s] = False
-                continue
-            flags[p, s] = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
-                                     rot[2, 0], rot[2, 1], rot[2, 2], tz) < limit
+    height = n_pix // width if width > 0 else 0
+    parts = peak.shape[0]
+    keep_flags = flags.shape[0] == n_pix
+    for part in numba.prange(parts):
+        for y in range(part, height, parts):
+            for p in range(y * width, (y + 1) * width):
+                rx = (p % width + 0.5 - cx) / fx
+                ry = (p // width + 0.5 - cy) / fy
+                dx = rot[0, 0] * rx + rot[1, 0] * ry + rot[2, 0]  # d = Rᵀ (rx, ry, 1)
+                dy = rot[0, 1] * rx + rot[1, 1] * ry + rot[2, 1]
+                dz = rot[0, 2] * rx + rot[1, 2] * ry + rot[2, 2]
+                m = median_ids[p]
+                limit = np.inf
+                if m >= 0:
+                    limit = (1.0 - tolerance) * _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
+                                                           rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                for s in range(k):
+                    g = ids[p, s]
+                    if g < 0:  # slots are filled first, -1 padded at the end (every engine)
+                        if keep_flags:
+                            for r in range(s, k):
+                                flags[p, r] = False
+                        break
+                    in_front = False
+                    if near[g] < limit:
+                        in_front = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
+                                              rot[2, 0], rot[2, 1], rot[2, 2], tz) < limit
+                    if keep_flags:
+                        flags[p, s] = in_front
+                    w = np.float64(weights[p, s])
+                    fixed = _fixed_weight(w, scale)
+                    if seen[part, g] != stamp:
+                        seen[part, g] = stamp
+                        peak[part, g] = w if w > 0.0 else 0.0
+                        total[part, g] = fixed
+                        front[part, g] = fixed if in_front else 0
+                        continue
+                    # selects, not branches: the flags and the running maxima follow no pattern a branch predictor learns
+                    pk = peak[part, g]
+                    peak[part, g] = w if w > pk else pk
+                    total[part, g] += fixed
+                    front[part, g] += fixed if in_front else 0
 
 
-@numba.njit(cache=True)
-def _view_stats_kernel(ids, weights, flags, view_peak, view_total, view_front, touched, mark):  # pragma: no cover - jitted
-    """One view's per-Gaussian max w, Σ w and Σ w·flags over every slot (p, s), g = ids[p, s],
-    returned compacted as (ids [T], peak [T], total [T], front [T]) in first-seen order.
-
-    view_peak, view_total, view_front [N] float64 and mark [N] bool are scratch, zero / False on
-    entry and exit; touched [N] int32 lists the Gaussians seen. Serial: threads would race on the
-    sums, and splitting the Gaussians between threads makes each of them read every slot.
-    """
-    n_pix, k = ids.shape
-    n_touched = 0
-    for p in range(n_pix):
-        for s in range(k):
-            g = ids[p, s]
-            if g < 0:  # slots are sorted by weight, -1 padded at the end
-                break
-            w = np.float64(weights[p, s])
-            if not mark[g]:
-                mark[g] = True
-                touched[n_touched] = g
-                n_touched += 1
-            # selects, not branches: the flags and the running maxima follow no pattern a branch
-            # predictor learns (1.7x on flowers views); adding 0.0 leaves a sum's bits as they are
-            peak = view_peak[g]
-            view_peak[g] = w if w > peak else peak
-            view_total[g] += w
-            view_front[g] += w if flags[p, s] else 0.0
-    out_ids = touched[:n_touched].copy()
-    out_peak = np.empty(n_touched)
-    out_total = np.empty(n_touched)
-    out_front = np.empty(n_touched)
-    for j in range(n_touched):
-        g = touched[j]
-        out_peak[j] = view_peak[g]
-        out_total[j] = view_total[g]
-        out_front[j] = view_front[g]
-        view_peak[g] = 0.0
-        view_total[g] = 0.0
-        view_front[g] = 0.0
-        mark[g] = False
+@numba.njit(parallel=True, cache=True)
+def _merge_stats_kernel(seen, stamp, peak, total, front, scale, chunks):  # pragma: no cover - jitted
+    """The parts of `_surface_stats_kernel` as one view's (ids [T], peak [T], total [T], front [T]):
+    every Gaussian some part saw (seen[t, g] == stamp) in id order, its largest peak and the exact
+    sums of its parts as float64 (÷ scale). Two passes in parallel over `chunks` runs of ids:
+    count, then write at each run's offset."""
+    parts, n = seen.shape
+    found = np.zeros(chunks + 1, np.int64)
+    for c in numba.prange(chunks):
+        count = 0
+        for g in range(c * n // chunks, (c + 1) * n // chunks):
+            hit = False
+            for part in range(parts):
+                hit = hit or seen[part, g] == stamp
+            count += 1 if hit else 0
+        found[c + 1] = count
+    for c in range(chunks):
+        found[c + 1] += found[c]
+    out_ids = np.empty(found[chunks], np.int32)
+    out_peak = np.empty(found[chunks])
+    out_total = np.empty(found[chunks])
+    out_front = np.empty(found[chunks])
+    for c in numba.prange(chunks):
+        o = found[c]
+        for g in range(c * n // chunks, (c + 1) * n // chunks):
+            hit = False
+            pk = 0.0
+            t = np.int64(0)
+            f = np.int64(0)
+            for part in range(parts):
+                if seen[part, g] == stamp:
+                    hit = True
+                    v = peak[part, g]
+                    pk = v if v > pk else pk
+                    t += total[part, g]
+                    f += front[part, g]
+            if hit:
+                out_ids[o] = g
+                out_peak[o] = pk
+                out_total[o] = t / scale
+                out_front[o] = f / scale
+                o += 1
     return out_ids, out_peak, out_total, out_front
+
+
+def stats_parts(num_gaussians: int) -> int:
+    """Parts `surface_stats` cuts a view's pixels into: one per numba thread, as long as the extra
+    parts' scratch (STATS_SCRATCH_BYTES per Gaussian each) stays within STATS_EXTRA_SCRATCH. The
+    statistics do not depend on it."""
+    affordable = 1 + STATS_EXTRA_SCRATCH // max(STATS_SCRATCH_BYTES * num_gaussians, 1)
+    return int(max(1, min(numba.get_num_threads(), affordable)))
 
 
 @dataclass
 class StatsScratch:
-    """Reusable buffers of `surface_stats`: flags [H·W, k] bool, and [N] nearest clamps, view sums, list and marks."""
+    """Reusable buffers of `surface_stats`: per part [P, N] peak, total, front and view stamps
+    (`seen`), [N] nearest clamps, flags [H·W, k] bool (or [0, k] without) and the last view's stamp."""
 
-    flags: np.ndarray
     near: np.ndarray
-    view_peak: np.ndarray
-    view_total: np.ndarray
-    view_front: np.ndarray
-    touched: np.ndarray
-    mark: np.ndarray
+    peak: np.ndarray
+    total: np.ndarray
+    front: np.ndarray
+    seen: np.ndarray
+    flags: np.ndarray
+    stamp: int = 0
 
     @classmethod
-    def new(cls, num_pixels: int, k: int, n: int) -> StatsScratch:
-        return cls(np.empty((num_pixels, k), np.bool_), np.empty(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n, np.int32),
-                   np.zeros(n, np.bool_))
+    def new(cls, n: int, parts: int, k: int, flag_pixels: int = 0) -> StatsScratch:
+        return cls(np.empty(n), np.empty((parts, n)), np.empty((parts, n), np.int64), np.empty((parts, n), np.int64),
+                   np.zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
+
+    def fits(self, n: int, parts: int, k: int, flag_pixels: int) -> bool:
+        return self.peak.shape == (parts, n) and self.flags.shape == (flag_pixels, k)
+
+    def next_stamp(self) -> int:
+        """A stamp no earlier view of these buffers used (they start at 0: the first is 1)."""
+        if self.stamp >= np.iinfo(np.int32).max:
+            self.seen[:] = 0
+            self.stamp = 0
+        self.stamp += 1
+        return self.stamp
 
 
 def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
-                  tolerance: float = FRONT_TOLERANCE, scratch: StatsScratch | None = None) -> tuple[ViewStats, StatsScratch]:
-    """`surface_stats_reference` with numba kernels (the in-front test in parallel over pixels, the
-    sums serially). scratch: buffers of a previous call to reuse; returns (stats, the buffers used)."""
+                  tolerance: float = FRONT_TOLERANCE, scratch: StatsScratch | None = None, parts: int | None = None,
+                  keep_flags: bool = False) -> tuple[ViewStats, StatsScratch]:
+    """`surface_stats_reference` with numba kernels: the in-front test and the sums in one pass,
+    in parallel over `parts` sets of pixel rows (default `stats_parts`; the same statistics for
+    any), then their merge, Gaussians in id order. scratch: buffers of a previous call to reuse; keep_flags: also keep the
+    in-front test of every slot in scratch.flags [H·W, k]. Returns (stats, the buffers used)."""
     h, w, k = ids.shape
     ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
     n = geometry.reach.shape[0]
-    if scratch is None or scratch.flags.shape != ids2.shape or scratch.mark.shape[0] != n:
-        scratch = StatsScratch.new(ids2.shape[0], k, n)
+    parts = stats_parts(n) if parts is None else max(1, int(parts))
+    flag_pixels = ids2.shape[0] if keep_flags else 0
+    if scratch is None or not scratch.fits(n, parts, k, flag_pixels):
+        scratch = StatsScratch.new(n, parts, k, flag_pixels)
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    _front_flags_kernel(ids2, np.ascontiguousarray(median_ids.reshape(-1), np.int32), w, geometry.means, geometry.precisions, geometry.reach,
-                        np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]), float(camera.fx), float(camera.fy), float(camera.cx),
-                        float(camera.cy), float(tolerance), scratch.near, scratch.flags)
-    stats = ViewStats(*_view_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), scratch.flags, scratch.view_peak,
-                                          scratch.view_total, scratch.view_front, scratch.touched, scratch.mark))
+    stamp = scratch.next_stamp()
+    _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
+                          geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
+                          float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
+                          scratch.near, scratch.peak, scratch.total, scratch.front, scratch.seen, stamp, scratch.flags)
+    chunks = max(1, min(n, 8 * numba.get_num_threads()))
+    stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.peak, scratch.total, scratch.front, STATS_SCALE, chunks))
     return stats, scratch
 
 
@@ -999,7 +1083,7 @@ class Aggregator:
         kept = per_block = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
-            views += (37 + 80) * num_gaussians + pixels * topk + pixels * 4  # StatsScratch, RayGeometry, flags, median ids
+            views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + 80) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8
         if stages.check:  # the check's slots per Gaussian of a block (drsplat.registration.check; the views' support tables

@@ -58,7 +58,7 @@ from drsplat.raster_ops import host_array, host_tensor
 from drsplat.raster_torch import TorchScene, triton_available, project_gaussians_torch, rasterize_torch
 from drsplat._raster_kernels import BLUR
 from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
-                                            RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
+                                            STATS_SCALE, RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
@@ -624,7 +624,7 @@ def front_flags_torch(rays: DeviceRays, camera: Camera, ids: torch.Tensor, media
                       tolerance: float = FRONT_TOLERANCE) -> torch.Tensor:
     """[H·W, k] bool: slot (p, s) is in front of the pixel's surface, t*_{ids[p, s]}(p) < (1 - τ)·D(p)
     with D(p) the median Gaussian's t* (+inf where median_ids[p] < 0); False for empty slots.
-    `aggregate._front_flags_kernel` in torch. ids: [H, W, k], median_ids: [H, W]."""
+    `aggregate.surface_stats`' in-front test in torch. ids: [H, W, k], median_ids: [H, W]."""
     h, w, k = ids.shape
     dev = ids.device
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
@@ -670,25 +670,26 @@ class DeviceViewStats:
 
 
 def view_stats_torch(ids: torch.Tensor, weights: torch.Tensor, flags: torch.Tensor, num_gaussians: int) -> DeviceViewStats:
-    """A view's per-Gaussian max w, Σ w and Σ w·flags over its slots (`aggregate._view_stats_kernel`).
+    """A view's per-Gaussian max w, Σ w and Σ w·flags over its slots (`aggregate.surface_stats`).
 
     ids, weights: [H, W, k] (-1 empty; raw w = T·α); flags: [H·W, k] (`front_flags`). An
     empty slot adds w = 0 to a spread row (`spread_rows`; its maximum too, which changes no row:
-    they hold maxima of weights ≥ 0) and marks the spare row N touched. index_add on a CPU adds a
-    row's slots in pixel-then-slot order, as the kernel does, and an unflagged slot adds +0.0, so
-    the sums are the kernel's bits; on CUDA the atomics add in no fixed order."""
+    they hold maxima of weights ≥ 0) and marks the spare row N touched. The sums add each w in the
+    host's fixed point (`aggregate.fixed_weights`: int64, exact in any order), so index_add gives
+    the host kernel's bits on a CPU and with CUDA's atomics alike."""
     n = num_gaussians
     g = ids.reshape(-1).to(torch.int64)
     valid = g >= 0
     row = spread_rows(valid, g, n + 1)
     zero = torch.zeros((), dtype=torch.float64, device=g.device)
     w = torch.where(valid, weights.reshape(-1).to(torch.float64), zero)
-    f64 = {"dtype": torch.float64, "device": g.device}
-    peak = torch.zeros(n + 1, **f64).scatter_reduce_(0, row, w, "amax")
-    total = torch.zeros(n + 1, **f64).index_add_(0, row, w)
-    front = torch.zeros(n + 1, **f64).index_add_(0, row, torch.where(flags.reshape(-1), w, zero))
+    fixed = torch.floor(torch.nan_to_num(w.clamp(0.0, 1.0), nan=0.0) * STATS_SCALE + 0.5).to(torch.int64)
+    i64 = {"dtype": torch.int64, "device": g.device}
+    peak = torch.zeros(n + 1, dtype=torch.float64, device=g.device).scatter_reduce_(0, row, w, "amax")
+    total = torch.zeros(n + 1, **i64).index_add_(0, row, fixed)
+    front = torch.zeros(n + 1, **i64).index_add_(0, row, torch.where(flags.reshape(-1), fixed, torch.zeros_like(fixed)))
     touched = torch.zeros(n + 1, dtype=torch.bool, device=g.device).index_fill_(0, torch.where(valid, g, n), True)
-    return DeviceViewStats(peak[:n], total[:n], front[:n], touched[:n])
+    return DeviceViewStats(peak[:n], total[:n].to(torch.float64) / STATS_SCALE, front[:n].to(torch.float64) / STATS_SCALE, touched[:n])
 
 
 @torch.library.custom_op("drsplat::view_stats", mutates_args=(), device_types="cpu")
