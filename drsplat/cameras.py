@@ -458,6 +458,8 @@ def _json(path: Path):
         raise InputError(path, f"is not valid JSON (line {exc.lineno}: {exc.msg})") from None
     except RecursionError:
         raise InputError(path, "is JSON nested too deeply to be a camera file") from None
+    except ValueError as exc:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        raise InputError(path, f"has a number too long to read: {exc.args[0].split(':')[0]}") from None
 
 
 def _number(path: Path, record: dict, key: str, default: float | None = None, where: str = "") -> float:

@@ -1294,3 +1294,18 @@ def load_scene_rows(path: Path) -> int:
     from drsplat.scene import load_ply
 
     return load_ply(path).num_gaussians
+
+
+# ---------------------------------------------------------------------------------------------- round 4 (hostile sweep)
+
+
+@pytest.mark.parametrize("camera_file", ["transforms.json", "cameras.json"])
+def test_camera_json_with_a_number_too_long_to_convert_is_one_input_error(tmp_path, camera_file):
+    """A JSON integer of more digits than Python converts (4300) raised a bare ValueError (a traceback)."""
+    from drsplat.cameras import load_cameras
+    from drsplat.errors import InputError
+
+    (tmp_path / camera_file).write_text('{"w": ' + "9" * 5000 + ', "frames": []}' if camera_file == "transforms.json" else "[" + "9" * 5000 + "]")
+    with pytest.raises(InputError, match="number too long") as exc:
+        load_cameras(tmp_path, require_images=False)
+    assert camera_file in str(exc.value)
