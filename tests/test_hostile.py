@@ -1309,3 +1309,17 @@ def test_camera_json_with_a_number_too_long_to_convert_is_one_input_error(tmp_pa
     with pytest.raises(InputError, match="number too long") as exc:
         load_cameras(tmp_path, require_images=False)
     assert camera_file in str(exc.value)
+
+
+@pytest.mark.parametrize("text, words", [('{"dim": ' + "9" * 5000 + "}", "number too long"), ("[" * 100_000 + "]" * 100_000, "nested too deeply")],
+                         ids=["huge_int", "deep"])
+def test_features_manifest_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text, words):
+    """A features folder's manifest.json nested 100k deep or holding a 5000-digit integer raised a bare
+    RecursionError / ValueError (a traceback from `drsplat register` and `pq train`)."""
+    from drsplat.errors import InputError
+    from drsplat.features.format import read_manifest
+
+    (tmp_path / "manifest.json").write_text(text)
+    with pytest.raises(InputError, match=words) as exc:
+        read_manifest(tmp_path)
+    assert "manifest.json" in str(exc.value)

@@ -234,6 +234,10 @@ def read_manifest(features_dir: str | Path) -> dict[str, Any]:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(path, f"not valid JSON ({exc})") from exc
+    except RecursionError:
+        raise InputError(path, "not valid JSON (nested too deeply to be a manifest)") from None
+    except ValueError as exc:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        raise InputError(path, f"has a number too long to read: {exc.args[0].split(':')[0]}") from None
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object")
     return data
