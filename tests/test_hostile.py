@@ -1323,3 +1323,15 @@ def test_features_manifest_too_deep_or_with_a_huge_integer_is_one_input_error(tm
     with pytest.raises(InputError, match=words) as exc:
         read_manifest(tmp_path)
     assert "manifest.json" in str(exc.value)
+
+
+def test_segment_names_nested_too_deeply_is_one_input_error(tmp_path, capsys):
+    """segment --names holding JSON nested 100k deep raised a bare RecursionError (a traceback)."""
+    from drsplat.commands.segment import embedding_names
+    from drsplat.errors import InputError
+
+    names = tmp_path / "names.json"
+    names.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(InputError, match="nested too deeply") as exc:
+        embedding_names(tmp_path / "L.npy", names, 3)
+    assert "names.json" in str(exc.value)

@@ -97,6 +97,8 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
             names = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise InputError(path, f"is not a readable JSON list of names ({exc})") from None
+        except RecursionError:
+            raise InputError(path, "is not a readable JSON list of names (nested too deeply)") from None
         if isinstance(names, list) and len(names) == count:
             return checked_names(path, names)
         if explicit:
