@@ -1335,3 +1335,17 @@ def test_segment_names_nested_too_deeply_is_one_input_error(tmp_path, capsys):
     with pytest.raises(InputError, match="nested too deeply") as exc:
         embedding_names(tmp_path / "L.npy", names, 3)
     assert "names.json" in str(exc.value)
+
+
+@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, "[" + "9" * 5000 + "]"], ids=["deep", "huge_int"])
+def test_eval_label_names_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text):
+    """eval --label-names JSON nested 100k deep or holding a 5000-digit integer raised a bare
+    RecursionError / ValueError (a traceback from `drsplat eval iou` and `eval lerf`)."""
+    from drsplat.commands.eval import load_label_names
+    from drsplat.errors import InputError
+
+    names = tmp_path / "names.json"
+    names.write_text(text)
+    with pytest.raises(InputError, match="not a readable JSON list of names") as exc:
+        load_label_names(names)
+    assert "names.json" in str(exc.value)

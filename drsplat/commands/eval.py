@@ -139,7 +139,7 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
         return list(default)
     try:
         names = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
         raise InputError(path, f"not a readable JSON list of names ({exc})") from None
     if not isinstance(names, list) or not names:
         raise InputError(path, "expected a non-empty JSON list of label names")
