@@ -1349,3 +1349,18 @@ def test_eval_label_names_too_deep_or_with_a_huge_integer_is_one_input_error(tmp
     with pytest.raises(InputError, match="not a readable JSON list of names") as exc:
         load_label_names(names)
     assert "names.json" in str(exc.value)
+
+
+@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, '{"info": {"width": ' + "9" * 5000 + ', "height": 2}, "objects": []}'],
+                         ids=["deep", "huge_int"])
+def test_lerf_annotation_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text):
+    """A LERF-OVS frame_*.json nested 100k deep or holding a 5000-digit integer raised a bare
+    RecursionError / ValueError (a traceback from `drsplat eval lerf`)."""
+    from drsplat.errors import InputError
+    from drsplat.eval.datasets import load_lerf_view
+
+    frame = tmp_path / "frame_00001.json"
+    frame.write_text(text)
+    with pytest.raises(InputError, match="not a readable JSON annotation") as exc:
+        load_lerf_view(frame)
+    assert "frame_00001.json" in str(exc.value)

@@ -75,7 +75,7 @@ def load_lerf_view(path: str | Path) -> AnnotatedView:
     path = Path(path)
     try:
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
         raise InputError(path, f"not a readable JSON annotation ({exc})") from None
     info = data.get("info") if isinstance(data, dict) else None
     if not isinstance(info, dict):
