@@ -881,7 +881,22 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
         log.warning("%s: %d frame(s) skipped because their image file is missing (%d cameras kept)", path, missing, len(cameras))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (" (every image file is missing)" if missing else ""))
+    _check_unique_names(path, kind, cameras)
     return scale_cameras(cameras, resolution)
+
+
+NAME_FIELDS = {"colmap": "NAME", "transforms": "file_path", "cameras_json": "img_name"}
+
+
+def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:
+    """Refuse two cameras with the same image stem: the stem pairs a view with its feature files,
+    so both poses would take one view's masks (a duplicated frame, or a.png beside a.jpg)."""
+    first: dict[str, int] = {}
+    for i, camera in enumerate(cameras):
+        j = first.setdefault(camera.name, i)
+        if j != i:
+            raise InputError(path, f"cameras {j} and {i} both name the image stem {camera.name!r}; each view needs its own image "
+                             "(the stem pairs a view with its feature files)", field=NAME_FIELDS.get(kind, "name"))
 
 
 def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:

@@ -1364,3 +1364,32 @@ def test_lerf_annotation_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_
     with pytest.raises(InputError, match="not a readable JSON annotation") as exc:
         load_lerf_view(frame)
     assert "frame_00001.json" in str(exc.value)
+
+
+@pytest.mark.parametrize("kind", ["transforms", "colmap"])
+def test_two_cameras_of_one_image_are_one_input_error(tmp_path, kind):
+    """A transforms.json frame listed twice, or a COLMAP model with one NAME under two IMAGE_IDs, was
+    registered silently: both poses took the one view's masks. Now one error naming the field."""
+    from drsplat.cameras import load_cameras
+    from drsplat.errors import InputError
+
+    if kind == "transforms":
+        from PIL import Image
+
+        (tmp_path / "images").mkdir()
+        Image.new("RGB", (64, 48)).save(tmp_path / "images" / "v.png")
+        (tmp_path / "transforms.json").write_text(json.dumps({"frames": [_frame_doc(), _frame_doc(z=5.0)]}))
+        field = "file_path"
+    else:
+        (tmp_path / "sparse" / "0").mkdir(parents=True)
+        (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
+        (tmp_path / "sparse" / "0" / "images.txt").write_text("1 1 0 0 0 0 0 4 1 v.png\n\n2 1 0 0 0 0 0 5 1 v.png\n\n")
+        field = "NAME"
+    with pytest.raises(InputError, match=f"field '{field}': cameras 0 and 1 both name the image stem 'v'"):
+        load_cameras(tmp_path, require_images=False)
+
+
+def _frame_doc(z: float = 4.0) -> dict:
+    c2w = np.eye(4)
+    c2w[2, 3] = z
+    return {"file_path": "images/v.png", "transform_matrix": c2w.tolist(), "fl_x": 50.0, "w": 64, "h": 48}
