@@ -1393,3 +1393,14 @@ def _frame_doc(z: float = 4.0) -> dict:
     c2w = np.eye(4)
     c2w[2, 3] = z
     return {"file_path": "images/v.png", "transform_matrix": c2w.tolist(), "fl_x": 50.0, "w": 64, "h": 48}
+
+
+def test_pq_train_on_non_finite_embeddings_names_the_file(tmp_path, capsys):
+    """pq train on an all-NaN .npy said "input: only 0 embeddings", naming neither the file nor why."""
+    emb = tmp_path / "nan.npy"
+    np.save(emb, np.full((300, 16), np.nan, np.float32))
+    code, err = run_cli(["pq", "train", "--embeddings", emb, "--out", tmp_path / "cb.faiss", "--m", "4"], capsys)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert "nan.npy" in line and "only 0 usable embeddings (finite, nonzero rows)" in line, line
+    assert not (tmp_path / "cb.faiss").exists()

@@ -81,7 +81,10 @@ def run_train(args: argparse.Namespace) -> int:
     if x.shape[1] % args.m:
         raise InputError(None, f"--m {args.m} does not divide the embedding dimension {x.shape[1]}")
     if x.shape[0] < PQ_KSUB:
-        raise InputError(None, f"only {x.shape[0]} embeddings: a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
+        sources = [*args.embeddings, *args.features]
+        where = "" if len(sources) == 1 else " in " + ", ".join(str(p) for p in sources)
+        raise InputError(sources[0] if len(sources) == 1 else None, f"only {x.shape[0]} usable embeddings (finite, nonzero rows){where}: "
+                         f"a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
     if x.shape[0] > args.max_train:
         x = x[np.sort(np.random.default_rng(args.seed).choice(x.shape[0], args.max_train, replace=False))]
     log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
