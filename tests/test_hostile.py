@@ -1404,3 +1404,25 @@ def test_pq_train_on_non_finite_embeddings_names_the_file(tmp_path, capsys):
     (line,) = error_lines(err)
     assert "nan.npy" in line and "only 0 usable embeddings (finite, nonzero rows)" in line, line
     assert not (tmp_path / "cb.faiss").exists()
+
+
+def test_feature_rows_whose_norm_overflows_float32_are_counted_like_non_finite(tmp_path):
+    """A _f.npy row of finite values near 3e38 has a norm beyond float32: registration printed numpy's
+    "RuntimeWarning: overflow encountered in cast" from its vote stage. Now it is refused (or, with
+    drop_nonfinite, ignored with one warning) like a NaN row, naming the file."""
+    import warnings
+
+    from drsplat.errors import InputError
+    from drsplat.features.format import read_features, write_features
+
+    seg = np.zeros((1, 4, 4), np.int16)
+    seg[0, :2] = 1
+    feats = np.ones((2, 8), np.float32)
+    feats[1] = 3e38
+    write_features(tmp_path, "v", seg, feats)
+    with pytest.raises(InputError, match=r"v_f\.npy.*1 of 2 embeddings contain non-finite values \(NaN/inf\) or have a norm beyond float32"):
+        read_features(tmp_path, "v")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ids, f = read_features(tmp_path, "v", drop_nonfinite=True)
+    assert (ids[:2] == -1).all() and (ids[2:] == 0).all() and not f[1].any()

@@ -193,11 +193,13 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         raise InputError(spath, f"mask id {int(ids.max())} at level {level} is out of range: {fpath.name} has only {m} embeddings")
     feats = feats.astype(np.float32)
     row_ok = np.isfinite(feats).all(axis=1)
+    with np.errstate(invalid="ignore"):  # rows whose norm overflows float32 (values near 3e38): as unusable as inf
+        row_ok &= np.sqrt(np.square(feats, dtype=np.float64).sum(axis=1)) <= np.finfo(np.float32).max
     bad = int(m - np.count_nonzero(row_ok))
     if bad:
         if not drop_nonfinite:
-            raise InputError(fpath, f"{bad} of {m} embeddings contain non-finite values (NaN/inf)")
-        log.warning("%s: %d of %d embeddings contain non-finite values; their masks are ignored", fpath, bad, m)
+            raise InputError(fpath, f"{bad} of {m} embeddings contain non-finite values (NaN/inf) or have a norm beyond float32")
+        log.warning("%s: %d of %d embeddings contain non-finite values or have a norm beyond float32; their masks are ignored", fpath, bad, m)
         feats[~row_ok] = 0.0
         ids = np.where((ids >= 0) & ~row_ok[np.maximum(ids, 0)], -1, ids)
     return ids.astype(np.int32), feats, bad
