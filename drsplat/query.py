@@ -231,7 +231,7 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
     best_score = scores[np.arange(scores.shape[0]), best]
     labels = np.where(best < n_labels, best, -1).astype(np.int32)
-    labels[field.norms == 0] = -1
+    labels[~(np.isfinite(field.norms) & (field.norms > 0))] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)
     if min_score is not None:
         labels[best_score < min_score] = -1
     return Segmentation(labels=labels, scores=best_score.astype(np.float32))

@@ -1426,3 +1426,19 @@ def test_feature_rows_whose_norm_overflows_float32_are_counted_like_non_finite(t
         warnings.simplefilter("error")
         ids, f = read_features(tmp_path, "v", drop_nonfinite=True)
     assert (ids[:2] == -1).all() and (ids[2:] == 0).all() and not f[1].any()
+
+
+def test_segment_gives_non_finite_features_no_label(tmp_path):
+    """A registered PLY whose lang_<j> bits are float16 NaN/inf: read_field warns "they score 0", yet
+    segment gave every such Gaussian label 0 (argmax of all-zero scores). They are now -1, as unassigned."""
+    from drsplat.lang import LanguageField
+    from drsplat.lang.backends import ExactStorage
+    from drsplat.query import segment
+
+    feats = np.zeros((3, 4), np.float16)
+    feats[0] = [0, 1, 0, 0]
+    feats[1] = np.inf
+    feats[2] = np.nan
+    field = LanguageField(4, "test", np.ones(3, np.float32), ExactStorage(feats))
+    labels = segment(field, np.eye(4, dtype=np.float32)[[2, 1]]).labels
+    assert labels.tolist() == [1, -1, -1]
