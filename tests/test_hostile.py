@@ -1442,3 +1442,18 @@ def test_segment_gives_non_finite_features_no_label(tmp_path):
     field = LanguageField(4, "test", np.ones(3, np.float32), ExactStorage(feats))
     labels = segment(field, np.eye(4, dtype=np.float32)[[2, 1]]).labels
     assert labels.tolist() == [1, -1, -1]
+
+
+@pytest.mark.parametrize("text, words", [("{bad", "is not a readable JSON model config"), ("[" * 100_000 + "]" * 100_000, "is not a readable JSON model config"),
+                                         ('{"embed_dim": 8}', "has no vision_cfg, text_cfg")], ids=["bad_json", "deep", "no_cfg_keys"])
+def test_features_clip_config_that_is_not_a_model_config_is_one_input_error(tmp_path, capsys, text, words):
+    """features --clip-config with bad JSON raised open_clip's JSONDecodeError / RecursionError (a
+    traceback); a JSON without the model keys was skipped silently by open_clip."""
+    from drsplat.features.extract import ModelSpec, build_models
+    from drsplat.errors import InputError
+
+    config = tmp_path / "MyNet.json"
+    config.write_text(text)
+    with pytest.raises(InputError, match=words) as exc:
+        build_models(ModelSpec(masks="slic", clip_model="MyNet", clip_checkpoint=tmp_path / "w.pt", device="cpu", clip_config=config))
+    assert "MyNet.json" in str(exc.value)

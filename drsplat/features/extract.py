@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError
+from drsplat.errors import DrsplatError, InputError
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -270,11 +270,33 @@ class ModelSpec:
     nms: NmsParams = field(default_factory=NmsParams)
 
 
+def check_clip_config(path: Path) -> None:
+    """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
+    silently (not .json, not a model config); a folder of configs is left to open_clip."""
+    import json
+
+    path = Path(path)
+    if path.is_dir():
+        return
+    if not path.exists():
+        raise InputError(path, "does not exist (--clip-config)")
+    if path.suffix != ".json":
+        raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
+    try:
+        config = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
+        raise InputError(path, f"is not a readable JSON model config (--clip-config): {exc}") from None
+    missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
+    if missing:
+        raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])
+
+
 def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`."""
     if spec.clip_config is not None:
         import open_clip
 
+        check_clip_config(spec.clip_config)
         open_clip.add_model_config(spec.clip_config)
     encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
     sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
