@@ -1457,3 +1457,33 @@ def test_features_clip_config_that_is_not_a_model_config_is_one_input_error(tmp_
     with pytest.raises(InputError, match=words) as exc:
         build_models(ModelSpec(masks="slic", clip_model="MyNet", clip_checkpoint=tmp_path / "w.pt", device="cpu", clip_config=config))
     assert "MyNet.json" in str(exc.value)
+
+
+def test_segment_names_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    """segment --names naming a FIFO blocked forever in read_text (no writer)."""
+    from drsplat.commands.segment import embedding_names
+    from drsplat.errors import InputError
+
+    fifo = unblocked_fifo(tmp_path / "names.json", '["a", "b", "c"]')
+    with pytest.raises(InputError, match="names.json: is not a file"):
+        embedding_names(tmp_path / "L.npy", fifo, 3)
+
+
+def unblocked_fifo(path: Path, text: str, delay: float = 3.0) -> Path:
+    """A FIFO that a daemon thread feeds `text` after `delay` s, so code that (wrongly) reads it
+    returns instead of blocking the test run forever."""
+    import threading
+
+    os.mkfifo(path)
+
+    def feed():
+        time.sleep(delay)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError:  # no reader: the code under test never opened it
+            return
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+
+    threading.Thread(target=feed, daemon=True).start()
+    return path

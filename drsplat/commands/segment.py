@@ -92,6 +92,8 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
 
     explicit = names_path is not None
     path = names_path if explicit else default_names_path(embeddings)
+    if explicit and not path.is_file():  # a FIFO or device would block or never end
+        raise InputError(path, "file not found" if not path.exists() else "is not a file")
     if explicit or path.is_file():
         try:
             names = json.loads(path.read_text())
