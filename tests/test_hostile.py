@@ -1487,3 +1487,13 @@ def unblocked_fifo(path: Path, text: str, delay: float = 3.0) -> Path:
 
     threading.Thread(target=feed, daemon=True).start()
     return path
+
+
+def test_eval_label_names_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    """eval --label-names naming a FIFO blocked forever in read_text (no writer)."""
+    from drsplat.commands.eval import load_label_names
+    from drsplat.errors import InputError
+
+    fifo = unblocked_fifo(tmp_path / "names.json", '["a", "b"]')
+    with pytest.raises(InputError, match="names.json: is not a file"):
+        load_label_names(fifo)

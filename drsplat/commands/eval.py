@@ -137,6 +137,8 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
         if default is None:
             raise DrsplatError("label names are needed: pass --label-names NAMES.json")
         return list(default)
+    if not Path(path).is_file():  # a FIFO or device would block or never end
+        raise InputError(path, "file not found" if not Path(path).exists() else "is not a file")
     try:
         names = json.loads(Path(path).read_text())
     except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
