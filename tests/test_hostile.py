@@ -1497,3 +1497,13 @@ def test_eval_label_names_that_is_a_fifo_is_refused_without_blocking(tmp_path):
     fifo = unblocked_fifo(tmp_path / "names.json", '["a", "b"]')
     with pytest.raises(InputError, match="names.json: is not a file"):
         load_label_names(fifo)
+
+
+def test_lerf_annotation_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    """A frame_*.json FIFO in the --annotations folder blocked `eval lerf` forever (no writer)."""
+    from drsplat.errors import InputError
+    from drsplat.eval.datasets import load_lerf_annotations
+
+    unblocked_fifo(tmp_path / "frame_00001.json", '{"info": {"width": 2, "height": 2}, "objects": []}')
+    with pytest.raises(InputError, match="frame_00001.json: is not a file"):
+        load_lerf_annotations(tmp_path)

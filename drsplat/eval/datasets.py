@@ -73,6 +73,8 @@ def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
 def load_lerf_view(path: str | Path) -> AnnotatedView:
     """Read one LERF-OVS `frame_XXXXX.json` (LabelMe-style polygons) into masks per category."""
     path = Path(path)
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise InputError(path, "file not found" if not path.exists() else "is not a file")
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
