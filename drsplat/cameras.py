@@ -268,6 +268,8 @@ def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
 
 def _read_text(path: Path) -> str:
     """A text file as UTF-8; InputError naming the byte offset of the first bad byte (never its content)."""
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise InputError(path, "file not found" if not path.exists() else "is not a file")
     try:
         data = path.read_bytes()
     except OSError as exc:

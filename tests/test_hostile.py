@@ -1507,3 +1507,16 @@ def test_lerf_annotation_that_is_a_fifo_is_refused_without_blocking(tmp_path):
     unblocked_fifo(tmp_path / "frame_00001.json", '{"info": {"width": 2, "height": 2}, "objects": []}')
     with pytest.raises(InputError, match="frame_00001.json: is not a file"):
         load_lerf_annotations(tmp_path)
+
+
+def test_colmap_cameras_txt_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    """A sparse/0/cameras.txt FIFO blocked `register` forever in read_bytes (no writer)."""
+    from drsplat.cameras import load_cameras
+    from drsplat.errors import InputError
+
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "images.txt").write_text("1 1 0 0 0 0 0 4 1 v.png\n\n")
+    unblocked_fifo(sparse / "cameras.txt", "1 PINHOLE 64 48 50 50 32 24\n")
+    with pytest.raises(InputError, match="cameras.txt: is not a file"):
+        load_cameras(tmp_path, require_images=False)
