@@ -1520,3 +1520,13 @@ def test_colmap_cameras_txt_that_is_a_fifo_is_refused_without_blocking(tmp_path)
     unblocked_fifo(sparse / "cameras.txt", "1 PINHOLE 64 48 50 50 32 24\n")
     with pytest.raises(InputError, match="cameras.txt: is not a file"):
         load_cameras(tmp_path, require_images=False)
+
+
+def test_features_clip_config_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    """A --clip-config FIFO blocked `features` forever (the config check read it)."""
+    from drsplat.errors import InputError
+    from drsplat.features.extract import check_clip_config
+
+    fifo = unblocked_fifo(tmp_path / "MyNet.json", '{"embed_dim": 8, "vision_cfg": {}, "text_cfg": {}}')
+    with pytest.raises(InputError, match=r"MyNet.json: is not a file \(--clip-config\)"):
+        check_clip_config(fifo)

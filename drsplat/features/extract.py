@@ -278,8 +278,8 @@ def check_clip_config(path: Path) -> None:
     path = Path(path)
     if path.is_dir():
         return
-    if not path.exists():
-        raise InputError(path, "does not exist (--clip-config)")
+    if not path.is_file():  # missing, or a FIFO / device that would block
+        raise InputError(path, ("does not exist" if not path.exists() else "is not a file") + " (--clip-config)")
     if path.suffix != ".json":
         raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
     try:
