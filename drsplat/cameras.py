@@ -18,7 +18,7 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.scene import quat_to_rotmat
-from drsplat.utils import atomic_path
+from drsplat.utils import atomic_path, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -268,10 +268,8 @@ def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
 
 def _read_text(path: Path) -> str:
     """A text file as UTF-8; InputError naming the byte offset of the first bad byte (never its content)."""
-    if not path.is_file():  # a FIFO or device would block or never end
-        raise InputError(path, "file not found" if not path.exists() else "is not a file")
     try:
-        data = path.read_bytes()
+        data = regular_file(path).read_bytes()
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
     try:
@@ -451,17 +449,7 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
 
 
 def _json(path: Path):
-    import json
-
-    text = _read_text(path)
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"is not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    except RecursionError:
-        raise InputError(path, "is JSON nested too deeply to be a camera file") from None
-    except ValueError as exc:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
-        raise InputError(path, f"has a number too long to read: {exc.args[0].split(':')[0]}") from None
+    return read_json(path, "a camera file")
 
 
 def _number(path: Path, record: dict, key: str, default: float | None = None, where: str = "") -> float:
@@ -779,7 +767,7 @@ def _colmap_files(sparse: Path) -> list[Path]:
 def _find_transforms(src: Path) -> Path | None:
     if src.is_file():
         return src if src.suffix == ".json" and src.name != "cameras.json" else None
-    return next((src / n for n in ("transforms_train.json", "transforms.json") if (src / n).is_file()), None)
+    return next((src / n for n in ("transforms_train.json", "transforms.json") if (src / n).exists()), None)  # a FIFO or folder is found, then refused by name
 
 
 def _read_transforms(path: Path, require_images: bool) -> tuple[list[Camera], int]:
@@ -791,7 +779,7 @@ def _read_transforms(path: Path, require_images: bool) -> tuple[list[Camera], in
 def _find_cameras_json(src: Path) -> Path | None:
     if src.is_file():
         return src if src.name == "cameras.json" else None
-    return src / "cameras.json" if (src / "cameras.json").is_file() else None
+    return src / "cameras.json" if (src / "cameras.json").exists() else None
 
 
 def _read_cameras_json(path: Path, require_images: bool) -> tuple[list[Camera], int]:

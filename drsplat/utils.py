@@ -355,15 +355,46 @@ def read_npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
     return shape, dtype
 
 
+def regular_file(path: str | Path) -> Path:
+    """`path` as a Path if it is a regular file; else InputError "file not found" or "is not a file"
+    (a FIFO or device would block a read or never end, a folder cannot be read)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found" if not path.exists() else "is not a file")
+    return path
+
+
+def read_json(path: str | Path, what: str) -> object:
+    """The JSON document in `path`, a regular file of UTF-8 text, or one InputError naming the file
+    and why it is not `what` (e.g. "a camera file"): not a file, unreadable, not UTF-8 (the byte
+    offset, never the content), bad JSON (line and reason), nested too deeply for the parser, or a
+    number of more digits than Python converts (sys.get_int_max_str_digits)."""
+    import json
+
+    path = regular_file(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"is not UTF-8 text (bad byte at offset {exc.start}); expected {what}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"is not valid JSON (line {exc.lineno}: {exc.msg}); expected {what}") from None
+    except RecursionError:
+        raise InputError(path, f"is JSON nested too deeply to be {what}") from None
+    except ValueError:
+        raise InputError(path, f"has a number too long to read; expected {what}") from None
+
+
 def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
     """(shape, dtype, data offset) of an .npy file, read from its header only.
 
     Raises InputError for a file that is not an .npy array, an object/pickle dtype, or a shape
     whose data would need more bytes than the file holds (a header cannot make us allocate).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found" if not path.exists() else "is not a file")
+    path = regular_file(path)
     try:
         with open(path, "rb") as f:
             shape, dtype = read_npy_header(f)

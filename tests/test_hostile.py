@@ -556,12 +556,13 @@ def test_image_paths_leaving_the_dataset_warn_once_and_never_print_contents(tmp_
     outside = tmp_path / "outside"
     outside.mkdir()
     Image.new("RGB", (64, 48)).save(outside / "v.png")
+    Image.new("RGB", (64, 48)).save(outside / "w.png")
     secret = tmp_path / "secret.txt"
     secret.write_text("TOP-SECRET-CONTENT")
     ds = tmp_path / "ds"
     ds.mkdir()
     frames = [{"file_path": "../outside/v.png", "transform_matrix": np.eye(4).tolist(), "fl_x": 50.0, "w": 64, "h": 48},
-              {"file_path": str(outside / "v.png"), "transform_matrix": np.eye(4).tolist(), "fl_x": 50.0, "w": 64, "h": 48},
+              {"file_path": str(outside / "w.png"), "transform_matrix": np.eye(4).tolist(), "fl_x": 50.0, "w": 64, "h": 48},
               {"file_path": "../secret.txt", "transform_matrix": np.eye(4).tolist(), "fl_x": 50.0}]
     (ds / "transforms.json").write_text(json.dumps({"frames": frames[:2]}))
     with caplog.at_level("WARNING"):
@@ -1299,73 +1300,6 @@ def load_scene_rows(path: Path) -> int:
 # ---------------------------------------------------------------------------------------------- round 4 (hostile sweep)
 
 
-@pytest.mark.parametrize("camera_file", ["transforms.json", "cameras.json"])
-def test_camera_json_with_a_number_too_long_to_convert_is_one_input_error(tmp_path, camera_file):
-    """A JSON integer of more digits than Python converts (4300) raised a bare ValueError (a traceback)."""
-    from drsplat.cameras import load_cameras
-    from drsplat.errors import InputError
-
-    (tmp_path / camera_file).write_text('{"w": ' + "9" * 5000 + ', "frames": []}' if camera_file == "transforms.json" else "[" + "9" * 5000 + "]")
-    with pytest.raises(InputError, match="number too long") as exc:
-        load_cameras(tmp_path, require_images=False)
-    assert camera_file in str(exc.value)
-
-
-@pytest.mark.parametrize("text, words", [('{"dim": ' + "9" * 5000 + "}", "number too long"), ("[" * 100_000 + "]" * 100_000, "nested too deeply")],
-                         ids=["huge_int", "deep"])
-def test_features_manifest_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text, words):
-    """A features folder's manifest.json nested 100k deep or holding a 5000-digit integer raised a bare
-    RecursionError / ValueError (a traceback from `drsplat register` and `pq train`)."""
-    from drsplat.errors import InputError
-    from drsplat.features.format import read_manifest
-
-    (tmp_path / "manifest.json").write_text(text)
-    with pytest.raises(InputError, match=words) as exc:
-        read_manifest(tmp_path)
-    assert "manifest.json" in str(exc.value)
-
-
-def test_segment_names_nested_too_deeply_is_one_input_error(tmp_path, capsys):
-    """segment --names holding JSON nested 100k deep raised a bare RecursionError (a traceback)."""
-    from drsplat.commands.segment import embedding_names
-    from drsplat.errors import InputError
-
-    names = tmp_path / "names.json"
-    names.write_text("[" * 100_000 + "]" * 100_000)
-    with pytest.raises(InputError, match="nested too deeply") as exc:
-        embedding_names(tmp_path / "L.npy", names, 3)
-    assert "names.json" in str(exc.value)
-
-
-@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, "[" + "9" * 5000 + "]"], ids=["deep", "huge_int"])
-def test_eval_label_names_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text):
-    """eval --label-names JSON nested 100k deep or holding a 5000-digit integer raised a bare
-    RecursionError / ValueError (a traceback from `drsplat eval iou` and `eval lerf`)."""
-    from drsplat.commands.eval import load_label_names
-    from drsplat.errors import InputError
-
-    names = tmp_path / "names.json"
-    names.write_text(text)
-    with pytest.raises(InputError, match="not a readable JSON list of names") as exc:
-        load_label_names(names)
-    assert "names.json" in str(exc.value)
-
-
-@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, '{"info": {"width": ' + "9" * 5000 + ', "height": 2}, "objects": []}'],
-                         ids=["deep", "huge_int"])
-def test_lerf_annotation_too_deep_or_with_a_huge_integer_is_one_input_error(tmp_path, text):
-    """A LERF-OVS frame_*.json nested 100k deep or holding a 5000-digit integer raised a bare
-    RecursionError / ValueError (a traceback from `drsplat eval lerf`)."""
-    from drsplat.errors import InputError
-    from drsplat.eval.datasets import load_lerf_view
-
-    frame = tmp_path / "frame_00001.json"
-    frame.write_text(text)
-    with pytest.raises(InputError, match="not a readable JSON annotation") as exc:
-        load_lerf_view(frame)
-    assert "frame_00001.json" in str(exc.value)
-
-
 @pytest.mark.parametrize("kind", ["transforms", "colmap"])
 def test_two_cameras_of_one_image_are_one_input_error(tmp_path, kind):
     """A transforms.json frame listed twice, or a COLMAP model with one NAME under two IMAGE_IDs, was
@@ -1444,7 +1378,7 @@ def test_segment_gives_non_finite_features_no_label(tmp_path):
     assert labels.tolist() == [1, -1, -1]
 
 
-@pytest.mark.parametrize("text, words", [("{bad", "is not a readable JSON model config"), ("[" * 100_000 + "]" * 100_000, "is not a readable JSON model config"),
+@pytest.mark.parametrize("text, words", [("{bad", "is not valid JSON"), ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
                                          ('{"embed_dim": 8}', "has no vision_cfg, text_cfg")], ids=["bad_json", "deep", "no_cfg_keys"])
 def test_features_clip_config_that_is_not_a_model_config_is_one_input_error(tmp_path, capsys, text, words):
     """features --clip-config with bad JSON raised open_clip's JSONDecodeError / RecursionError (a
@@ -1457,16 +1391,6 @@ def test_features_clip_config_that_is_not_a_model_config_is_one_input_error(tmp_
     with pytest.raises(InputError, match=words) as exc:
         build_models(ModelSpec(masks="slic", clip_model="MyNet", clip_checkpoint=tmp_path / "w.pt", device="cpu", clip_config=config))
     assert "MyNet.json" in str(exc.value)
-
-
-def test_segment_names_that_is_a_fifo_is_refused_without_blocking(tmp_path):
-    """segment --names naming a FIFO blocked forever in read_text (no writer)."""
-    from drsplat.commands.segment import embedding_names
-    from drsplat.errors import InputError
-
-    fifo = unblocked_fifo(tmp_path / "names.json", '["a", "b", "c"]')
-    with pytest.raises(InputError, match="names.json: is not a file"):
-        embedding_names(tmp_path / "L.npy", fifo, 3)
 
 
 def unblocked_fifo(path: Path, text: str, delay: float = 3.0) -> Path:
@@ -1489,44 +1413,67 @@ def unblocked_fifo(path: Path, text: str, delay: float = 3.0) -> Path:
     return path
 
 
-def test_eval_label_names_that_is_a_fifo_is_refused_without_blocking(tmp_path):
-    """eval --label-names naming a FIFO blocked forever in read_text (no writer)."""
+def _json_readers(tmp_path: Path):
+    """(file name, the call that reads it) for every user-given JSON file: cameras (transforms.json,
+    3DGS cameras.json), the features manifest, segment --names, eval --label-names, a LERF-OVS
+    annotation and features --clip-config."""
+    from drsplat.cameras import load_cameras
     from drsplat.commands.eval import load_label_names
-    from drsplat.errors import InputError
-
-    fifo = unblocked_fifo(tmp_path / "names.json", '["a", "b"]')
-    with pytest.raises(InputError, match="names.json: is not a file"):
-        load_label_names(fifo)
-
-
-def test_lerf_annotation_that_is_a_fifo_is_refused_without_blocking(tmp_path):
-    """A frame_*.json FIFO in the --annotations folder blocked `eval lerf` forever (no writer)."""
-    from drsplat.errors import InputError
+    from drsplat.commands.segment import embedding_names
     from drsplat.eval.datasets import load_lerf_annotations
+    from drsplat.features.extract import check_clip_config
+    from drsplat.features.format import read_manifest
 
-    unblocked_fifo(tmp_path / "frame_00001.json", '{"info": {"width": 2, "height": 2}, "objects": []}')
-    with pytest.raises(InputError, match="frame_00001.json: is not a file"):
-        load_lerf_annotations(tmp_path)
+    return {
+        "transforms": ("transforms.json", lambda: load_cameras(tmp_path, require_images=False)),
+        "cameras_json": ("cameras.json", lambda: load_cameras(tmp_path, require_images=False)),
+        "manifest": ("manifest.json", lambda: read_manifest(tmp_path)),
+        "segment_names": ("names.json", lambda: embedding_names(tmp_path / "L.npy", tmp_path / "names.json", 3)),
+        "label_names": ("names.json", lambda: load_label_names(tmp_path / "names.json")),
+        "lerf": ("frame_00001.json", lambda: load_lerf_annotations(tmp_path)),
+        "clip_config": ("MyNet.json", lambda: check_clip_config(tmp_path / "MyNet.json")),
+    }
 
 
-def test_colmap_cameras_txt_that_is_a_fifo_is_refused_without_blocking(tmp_path):
-    """A sparse/0/cameras.txt FIFO blocked `register` forever in read_bytes (no writer)."""
+JSON_READERS = ["transforms", "cameras_json", "manifest", "segment_names", "label_names", "lerf", "clip_config"]
+HOSTILE_JSON = {"deep": ("[" * 100_000 + "]" * 100_000, "nested too deeply"), "huge_int": ("[" + "9" * 5000 + "]", "number too long"),
+                "latin1": (b'["caf\xe9"]', "not UTF-8 text"), "bad": ("{bad", "is not valid JSON")}
+
+
+@pytest.mark.parametrize("case", list(HOSTILE_JSON))
+@pytest.mark.parametrize("reader", JSON_READERS)
+def test_every_json_input_refuses_hostile_json_with_one_error_naming_it(tmp_path, reader, case):
+    """JSON nested 100k deep or holding a 5000-digit integer raised a bare RecursionError / ValueError
+    (a traceback) from most of these readers; now each gives one InputError that names the file and
+    what it expected (drsplat.utils.read_json)."""
+    from drsplat.errors import InputError
+
+    name, read = _json_readers(tmp_path)[reader]
+    text, words = HOSTILE_JSON[case]
+    (tmp_path / name).write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(InputError, match=words) as exc:
+        read()
+    msg = str(exc.value)
+    assert name in msg and ("expected " in msg or "nested too deeply to be " in msg), msg
+
+
+@pytest.mark.parametrize("reader", [*JSON_READERS, "colmap_text"])
+def test_every_json_or_text_input_that_is_a_fifo_is_refused_without_blocking(tmp_path, reader):
+    """A FIFO given where a JSON or COLMAP text file goes blocked its reader forever (no writer);
+    now it is "is not a file" (drsplat.utils.regular_file). The FIFO is fed after 3 s, so a reader
+    that still opens it fails the test instead of hanging the run."""
     from drsplat.cameras import load_cameras
     from drsplat.errors import InputError
 
-    sparse = tmp_path / "sparse" / "0"
-    sparse.mkdir(parents=True)
-    (sparse / "images.txt").write_text("1 1 0 0 0 0 0 4 1 v.png\n\n")
-    unblocked_fifo(sparse / "cameras.txt", "1 PINHOLE 64 48 50 50 32 24\n")
-    with pytest.raises(InputError, match="cameras.txt: is not a file"):
-        load_cameras(tmp_path, require_images=False)
-
-
-def test_features_clip_config_that_is_a_fifo_is_refused_without_blocking(tmp_path):
-    """A --clip-config FIFO blocked `features` forever (the config check read it)."""
-    from drsplat.errors import InputError
-    from drsplat.features.extract import check_clip_config
-
-    fifo = unblocked_fifo(tmp_path / "MyNet.json", '{"embed_dim": 8, "vision_cfg": {}, "text_cfg": {}}')
-    with pytest.raises(InputError, match=r"MyNet.json: is not a file \(--clip-config\)"):
-        check_clip_config(fifo)
+    if reader == "colmap_text":
+        sparse = tmp_path / "sparse" / "0"
+        sparse.mkdir(parents=True)
+        (sparse / "images.txt").write_text("1 1 0 0 0 0 0 4 1 v.png\n\n")
+        name, fifo = "cameras.txt", sparse / "cameras.txt"
+        read = lambda: load_cameras(tmp_path, require_images=False)  # noqa: E731
+    else:
+        name, read = _json_readers(tmp_path)[reader]
+        fifo = tmp_path / name
+    unblocked_fifo(fifo, "[]")
+    with pytest.raises(InputError, match=f"{name}: is not a file"):
+        read()

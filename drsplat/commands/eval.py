@@ -19,6 +19,7 @@ import numpy as np
 
 from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
 from drsplat.errors import DrsplatError, InputError
+from drsplat.utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -137,12 +138,7 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
         if default is None:
             raise DrsplatError("label names are needed: pass --label-names NAMES.json")
         return list(default)
-    if not Path(path).is_file():  # a FIFO or device would block or never end
-        raise InputError(path, "file not found" if not Path(path).exists() else "is not a file")
-    try:
-        names = json.loads(Path(path).read_text())
-    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
-        raise InputError(path, f"not a readable JSON list of names ({exc})") from None
+    names = read_json(path, "a JSON list of label names")
     if not isinstance(names, list) or not names:
         raise InputError(path, "expected a non-empty JSON list of label names")
     return checked_names(path, names)

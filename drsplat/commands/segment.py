@@ -23,6 +23,7 @@ from drsplat.commands.common import (
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
+from drsplat.utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -88,19 +89,10 @@ def label_phrases(text: str) -> list[str]:
 def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> list[str]:
     """Names of `count` label embeddings: NAMES.json (a JSON list) when given, else the dataset's
     gt/label_names.json beside the embeddings when it names exactly `count` labels, else label_i."""
-    import json
-
     explicit = names_path is not None
     path = names_path if explicit else default_names_path(embeddings)
-    if explicit and not path.is_file():  # a FIFO or device would block or never end
-        raise InputError(path, "file not found" if not path.exists() else "is not a file")
     if explicit or path.is_file():
-        try:
-            names = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise InputError(path, f"is not a readable JSON list of names ({exc})") from None
-        except RecursionError:
-            raise InputError(path, "is not a readable JSON list of names (nested too deeply)") from None
+        names = read_json(path, "a JSON list of names")
         if isinstance(names, list) and len(names) == count:
             return checked_names(path, names)
         if explicit:

@@ -33,7 +33,7 @@ import numpy as np
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.scene import check_element_sizes, read_ply_header
-from drsplat.utils import atomic_path, load_npy
+from drsplat.utils import atomic_path, load_npy, read_json
 
 log = logging.getLogger(__name__)
 
@@ -73,12 +73,7 @@ def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
 def load_lerf_view(path: str | Path) -> AnnotatedView:
     """Read one LERF-OVS `frame_XXXXX.json` (LabelMe-style polygons) into masks per category."""
     path = Path(path)
-    if not path.is_file():  # a FIFO or device would block or never end
-        raise InputError(path, "file not found" if not path.exists() else "is not a file")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
-        raise InputError(path, f"not a readable JSON annotation ({exc})") from None
+    data = read_json(path, "a LERF-OVS annotation")
     info = data.get("info") if isinstance(data, dict) else None
     if not isinstance(info, dict):
         raise InputError(path, "missing the 'info' object with width and height", field="info")

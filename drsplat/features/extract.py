@@ -27,7 +27,7 @@ from drsplat.features.modelid import (
     manifest_clip_entry,
     manifest_model_id,
 )
-from drsplat.utils import CancelToken, progress
+from drsplat.utils import CancelToken, progress, read_json
 import drsplat
 from drsplat.cameras import load_cameras, load_image
 from drsplat.features.clip import ClipEncoder
@@ -273,19 +273,12 @@ class ModelSpec:
 def check_clip_config(path: Path) -> None:
     """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
     silently (not .json, not a model config); a folder of configs is left to open_clip."""
-    import json
-
     path = Path(path)
     if path.is_dir():
         return
-    if not path.is_file():  # missing, or a FIFO / device that would block
-        raise InputError(path, ("does not exist" if not path.exists() else "is not a file") + " (--clip-config)")
     if path.suffix != ".json":
         raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
-    try:
-        config = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8 or a >4300-digit integer
-        raise InputError(path, f"is not a readable JSON model config (--clip-config): {exc}") from None
+    config = read_json(path, "an open_clip model config (--clip-config)")
     missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
     if missing:
         raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.utils import atomic_path, load_npy, npy_header, save_npy_atomic
+from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL
 
 log = logging.getLogger(__name__)
@@ -230,16 +230,9 @@ def write_manifest(features_dir: str | Path, manifest: dict[str, Any]) -> None:
 def read_manifest(features_dir: str | Path) -> dict[str, Any]:
     """The features folder's manifest, or {} when there is none (e.g. features made by LangSplat)."""
     path = Path(features_dir) / MANIFEST_NAME
-    if not path.is_file():
+    if not path.exists():
         return {}
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc})") from exc
-    except RecursionError:
-        raise InputError(path, "not valid JSON (nested too deeply to be a manifest)") from None
-    except ValueError as exc:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
-        raise InputError(path, f"has a number too long to read: {exc.args[0].split(':')[0]}") from None
+    data = read_json(path, "a features manifest")
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object")
     return data
