@@ -279,6 +279,8 @@ def read_ply_header(path: Path) -> PlyHeader:
     if not head.startswith(b"ply"):
         raise _fail(path, "is not a PLY file (it does not start with 'ply')")
     end = head.find(b"end_header")
+    if end < 0 and len(head) == MAX_HEADER_BYTES:
+        raise _fail(path, f"has no 'end_header' in its first {MAX_HEADER_BYTES:,} bytes: a header that long is not read (or this is not a PLY file)")
     if end < 0:
         raise _fail(path, "has no 'end_header' line: the header is truncated or this is not a PLY file")
     nl = head.find(b"\n", end)

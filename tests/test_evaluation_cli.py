@@ -75,6 +75,17 @@ def test_eval_iou_synthetic_shorthand(registered, capsys):
     assert "ground truth needed" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flags", [["--classes", "wall"], ["--radius", "2"], ["--classes", "wall", "--vote", "count"]])
+def test_eval_iou_pseudo_label_flags_without_a_cloud_are_usage_errors(registered, capsys, flags):
+    """--classes, --radius, --vote and --engine act on --gt-points only; with other ground truth they
+    were ignored without a word (an unknown class gave exit 0)."""
+    r = registered
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), *flags]) == 2
+    err = capsys.readouterr().err
+    named = [f for f in flags if f.startswith("--")]
+    assert all(f in err for f in named) and "--gt-points" in err and "Traceback" not in err
+
+
 def test_eval_iou_reports_label_count_mismatch(registered, capsys):
     r = registered
     code = main(["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), *query_args(r)])

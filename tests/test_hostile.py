@@ -1477,3 +1477,38 @@ def test_every_json_or_text_input_that_is_a_fifo_is_refused_without_blocking(tmp
     unblocked_fifo(fifo, "[]")
     with pytest.raises(InputError, match=f"{name}: is not a file"):
         read()
+
+
+def test_a_ply_header_longer_than_the_reader_takes_says_so(tmp_path):
+    """A header over MAX_HEADER_BYTES (1 MB of comments) was reported as having no end_header line."""
+    from drsplat.errors import InputError
+    from drsplat.scene import MAX_HEADER_BYTES, read_ply_header
+
+    path = tmp_path / "long.ply"
+    comment = b"comment " + b"x" * 1000 + b"\n"
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\n" + comment * (MAX_HEADER_BYTES // len(comment) + 1)
+                     + b"element vertex 0\nproperty float x\nend_header\n")
+    with pytest.raises(InputError, match="no 'end_header' in its first 1,048,576 bytes: a header that long is not read"):
+        read_ply_header(path)
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\n")
+    with pytest.raises(InputError, match="has no 'end_header' line: the header is truncated"):
+        read_ply_header(path)
+
+
+def test_registered_ply_with_two_disagreeing_field_comments_is_one_error(tmp_path, world, capsys):
+    """Two `drsplat.lang` header comments that disagree (a hand-merged header) were read as the first
+    one without a word; a repeated identical comment is still read."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(world["reg"])
+    (field,) = [c for c in scene.comments if c.startswith("drsplat.lang")]
+    for name, extra, want in (("twice.ply", field, 0), ("clash.ply", field.replace("clip=", "clip=Other-"), 1)):
+        ply = tmp_path / name
+        save_ply(dataclasses.replace(scene, comments=[*scene.comments, extra]), ply)
+        code, err = run_cli(["query", ply, "--embedding", world["q"], "--scores", tmp_path / f"{name}.npy"], capsys)
+        assert code == want, err
+        if want:
+            (line,) = error_lines(err)
+            assert name in line and "2 'drsplat.lang' header comments that disagree" in line, line

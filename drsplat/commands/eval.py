@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.utils import read_json
 
 log = logging.getLogger(__name__)
@@ -296,6 +296,11 @@ def run_iou(args: argparse.Namespace) -> int:
         args.original = args.original or ds / "scene.ply"
     elif args.gt_labels is None and args.gt_points is None:
         raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
+    if args.gt_points is None:  # the pseudo-label options act on a labelled cloud only: silently ignoring them would mislead
+        given = [flag for flag, value, default in (("--classes", args.classes, None), ("--radius", args.radius, 3.0), ("--vote", args.vote, "gaussian"),
+                                                   ("--engine", args.engine, "grid")) if value != default]
+        if given:
+            raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to pseudo-labels from --gt-points CLOUD.ply only")
     parse_taus(args.taus)
     guard_args(args, ("json",))
     scene, field, index = load_eval_scene(args)

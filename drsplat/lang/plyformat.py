@@ -196,6 +196,10 @@ def _parse_pairs(tokens: list[str]) -> dict[str, str]:
 def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str] | None:
     """The field's key=value metadata: the header comment, else the `lang_meta` column (a file
     whose comments a tool dropped); None for a scene without a language field."""
+    found = {tuple(sorted(_parse_pairs(c.split()[1:]).items())) for c in scene.comments if c.split()[:1] == [COMMENT_PREFIX]}
+    if len(found) > 1:  # which one the field was written with cannot be told
+        raise InputError(ply_path, f"has {len(found)} '{COMMENT_PREFIX}' header comments that disagree; keep the one the field was written with",
+                         field=f"comment {COMMENT_PREFIX}")
     meta = parse_field_comment(scene.comments)
     cells = meta_cells(scene.extra)
     if meta is not None or cells is None:
