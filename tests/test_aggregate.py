@@ -232,6 +232,20 @@ def test_surface_stats_are_the_same_bits_in_any_number_of_parts(case):
             np.testing.assert_array_equal(getattr(many, name), getattr(one, name), err_msg=f"{name}, {parts} parts")
 
 
+def test_surface_stats_scratch_outlives_its_stamps():
+    """The per-part layers are never cleared between views, only stamped: when the stamps run out
+    (int32) the layers are cleared once and counting starts again, with the same statistics."""
+    rng = np.random.default_rng(8)
+    geometry, cam, ids, weights, median = _random_stats_inputs(rng, "random")
+    want = surface_stats_reference(geometry, cam, ids, weights, median)
+    _, scratch = surface_stats(geometry, cam, ids, weights, median, parts=2)
+    scratch.stamp = np.iinfo(np.int32).max  # as after 2³¹ - 1 views
+    got, scratch = surface_stats(geometry, cam, ids, weights, median, scratch=scratch, parts=2)
+    assert scratch.stamp == 1
+    for name in ("ids", "peak", "total", "front"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
 def test_fixed_point_weights_round_clip_and_zero_nan():
     """A slot's w is added as round(w·2³²): the rasterizer's range (0, 1] to the nearest unit,
     outside it clipped, NaN as nothing; and the sum of many weights is exact."""
