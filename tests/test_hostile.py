@@ -294,6 +294,24 @@ def test_viewer_screenshot_and_export_refuse_the_scene(tmp_path, world, capsys):
     assert digest(world["reg"]) == before
 
 
+def test_viewer_screenshot_refuses_the_files_the_scene_and_dataset_brought(tmp_path, capsys):
+    """Was: `--screenshot` onto the registered PLY's codebook, the dataset's transforms.json, an
+    oracle file or a training image wrote a PNG over it, exit 0 (only command-line paths were checked)."""
+    import shutil
+
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    demo = shutil.copytree(demo_dir(), tmp_path / "demo")
+    image = sorted((demo / "images").iterdir())[0]
+    before = digest(demo)
+    for target in (demo / "registered.codebook.faiss", demo / "transforms.json", demo / "text_embeddings.npy", image):
+        assert viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(target), "--width", "32", "--height", "32"]) == 1
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and len(error_lines(err)) == 1 and "cannot write" in err and str(target) in err, err
+    assert digest(demo) == before
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

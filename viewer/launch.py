@@ -13,9 +13,9 @@ import os
 import sys
 from pathlib import Path
 
-from drsplat.cameras import load_cameras
+from drsplat.cameras import dataset_inputs, load_cameras
 from drsplat.cli import setup_logging
-from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int
+from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, protected_feature_folders
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
 from drsplat.features.weights import drsplat_cache_dir
@@ -25,7 +25,7 @@ from drsplat.synthetic import write_dataset
 from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
 from viewer.state import ViewerState
-from drsplat.utils import check_output_writable, describe_os_error
+from drsplat.utils import check_output_writable, describe_os_error, guard_outputs
 
 log = logging.getLogger("viewer")
 
@@ -127,9 +127,23 @@ def build_state(args: argparse.Namespace):
     return state
 
 
+def loaded_inputs(state) -> dict[str, Path | None]:
+    """The files the state read besides the command line's paths (guard_outputs inputs): the
+    language field's codebook, the dataset's camera files and images, its oracle label files."""
+    book = state.field.codebook if state.field is not None else None
+    inputs: dict[str, Path | None] = {"the scene's codebook": getattr(book, "path", None)}
+    if state.source_dir is not None:
+        inputs.update(dataset_inputs(state.source_dir, state.cameras))
+        inputs["--source's gt/label_names.json"] = state.source_dir / "gt" / "label_names.json"
+        inputs["--source's text_embeddings.npy"] = state.source_dir / "text_embeddings.npy"
+    return inputs
+
+
 def screenshot(args: argparse.Namespace, state) -> int:
     from viewer.app import render_screenshot  # moderngl, imgui and glfw: GL only when a window or an image is made
 
+    guard_outputs(loaded_inputs(state), {"--screenshot": args.screenshot},  # files found while loading (the demo's too)
+                  protected_feature_folders("--features", [state.features_dir]))
     if args.camera is not None:
         if not state.cameras:
             raise DrsplatError("--camera needs the training cameras: pass --source DATASET_DIR")
