@@ -312,6 +312,17 @@ def test_viewer_screenshot_refuses_the_files_the_scene_and_dataset_brought(tmp_p
     assert digest(demo) == before
 
 
+def test_viewer_unknown_demo_preset_is_a_usage_error(tmp_path, capsys):
+    """Was: `main.py --demo-preset bogus` ended in write_dataset's ValueError traceback."""
+    from viewer.launch import main as viewer_main
+
+    with pytest.raises(SystemExit) as exc:
+        viewer_main(["--demo-preset", "bogus", "--screenshot", str(tmp_path / "shot.png")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "--demo-preset" in err and "bogus" in err, err
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -21,7 +21,7 @@ from drsplat.errors import Cancelled, DrsplatError
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.scene import load_ply
-from drsplat.synthetic import write_dataset
+from drsplat.synthetic import PRESETS, write_dataset
 from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
 from viewer.state import ViewerState
@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("highlight", "heatmap", "selection", "hide_selection", "segmentation"), default="highlight", help="display mode of the screenshot")
     p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280)")
     p.add_argument("--height", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot height in pixels (default: the camera's, or 720)")
-    p.add_argument("--demo-preset", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--demo-preset", choices=tuple(PRESETS), default=None, help=argparse.SUPPRESS)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 
