@@ -327,6 +327,27 @@ def test_screenshot_command_writes_a_png_of_the_scene(demo, tmp_path, monkeypatc
     assert np.asarray(Image.open(out2)).shape == (64, 96, 3)
 
 
+@pytest.mark.parametrize("count", [1, 50])
+def test_home_view_of_one_gaussian_or_gaussians_at_one_point_shows_them(gl_context, tmp_path, count):
+    """Was: a black screenshot: the home radius (spread of the means) was 1e-3, so the eye sat
+    2.2e-3 from the Gaussians, inside them and in front of the renderer's near plane (0.01)."""
+    from PIL import Image
+
+    from drsplat.scene import GaussianScene, save_ply
+    from viewer.launch import main
+
+    scene = GaussianScene(means=np.full((count, 3), [0.4, -2.0, 1.0], np.float32), quats=np.tile(np.array([1, 0, 0, 0], np.float32), (count, 1)),
+                          log_scales=np.full((count, 3), np.log(0.1), np.float32), opacity_logits=np.full(count, 5.0, np.float32),
+                          sh=np.full((count, 1, 3), 1.5, np.float32))
+    ply, out = tmp_path / "point.ply", tmp_path / "shot.png"
+    save_ply(scene, ply)
+    assert main([str(ply), "--screenshot", str(out), "--width", "64", "--height", "48"]) == 0
+    image = np.asarray(Image.open(out), np.float64).sum(-1)
+    assert image.max() > 100 and image[0].max() == 0 and image[-1].max() == 0  # seen whole: lit in the middle, dark at the edges
+    ys, xs = np.nonzero(image > 0.5 * image.max())
+    assert abs(xs.mean() - 31.5) < 4 and abs(ys.mean() - 23.5) < 4
+
+
 def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     from viewer.launch import main
 

@@ -170,7 +170,8 @@ class ViewerApp:
         imgui.backends.opengl3_init("#version 330")
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
         means = state.scene.means if state.scene is not None else np.zeros((0, 3), np.float32)
-        self.view = ViewController.for_scene(means, state.cameras, fb_w, fb_h)
+        log_scales = state.scene.log_scales if state.scene is not None else None
+        self.view = ViewController.for_scene(means, state.cameras, fb_w, fb_h, log_scales)
         self.renderer: SplatRenderer | None = None
         self.blitter = Blitter(self.ctx)
         self._target: OffscreenTarget | None = None
@@ -241,7 +242,7 @@ class ViewerApp:
             if state.scene is not None:
                 self.renderer = SplatRenderer(self.ctx, state.scene)
                 fb_w, fb_h = glfw.get_framebuffer_size(self.window)
-                self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h)
+                self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h, state.scene.log_scales)
                 state.settings.view.up_axis = "auto"
             self._scene_version = state.scene_version
             self._budget_calibrated = False

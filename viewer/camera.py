@@ -68,11 +68,14 @@ class ViewController:
             self.home = (self.eye.copy(), self.target.copy(), self.up.copy())
 
     @classmethod
-    def for_scene(cls, means: np.ndarray, cameras: list[Camera] | None = None, width: int = 1280, height: int = 720) -> "ViewController":
+    def for_scene(cls, means: np.ndarray, cameras: list[Camera] | None = None, width: int = 1280, height: int = 720,
+                  log_scales: np.ndarray | None = None) -> "ViewController":
         """A home view: the first training camera's pose when there are cameras, else the scene from outside.
 
         means: [N, 3]. Without cameras, up is taken as +z if the scene is flatter along z, else -y
-        (the COLMAP habit), and the eye sits at 2.2 robust radii from the centre.
+        (the COLMAP habit), and the eye sits at 2.2 robust radii from the centre. log_scales [N, 3]:
+        the radius is at least 3 typical Gaussian sizes (one Gaussian, or all at one point, is seen
+        whole rather than from inside, in front of the near plane).
         """
         if cameras:
             view = cls(eye=np.zeros(3), target=np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]), width=width, height=height)
@@ -82,7 +85,7 @@ class ViewController:
             view.home = (view.eye.copy(), view.target.copy(), view.up.copy())
             return view
         center = _robust_center(means)
-        radius = _robust_radius(means, center)
+        radius = _robust_radius(means, center, log_scales)
         up = np.array([0.0, 0.0, 1.0])
         if means.shape[0] > 0:
             spread = np.percentile(means, 95, axis=0) - np.percentile(means, 5, axis=0)
@@ -248,11 +251,20 @@ def _robust_center(means: np.ndarray) -> np.ndarray:
     return np.median(means.astype(np.float64), axis=0)
 
 
-def _robust_radius(means: np.ndarray, center: np.ndarray) -> float:
+MIN_RADIUS = 0.01  # the renderer's near plane: a home eye at 2.2 radii stays in front of it
+
+
+def _robust_radius(means: np.ndarray, center: np.ndarray, log_scales: np.ndarray | None = None) -> float:
     if means.shape[0] == 0:
         return 1.0
     d = np.linalg.norm(means - center, axis=1)
-    return max(float(np.percentile(d, 90)), 1e-3)
+    radius = float(np.percentile(d, 90))
+    if log_scales is not None and len(log_scales):
+        largest = np.asarray(log_scales, np.float64).max(axis=1)
+        largest = largest[np.isfinite(largest)]
+        if largest.size:  # 3 sigma of the median Gaussian (exp capped: no float overflow)
+            radius = max(radius, 3.0 * float(np.exp(min(float(np.median(largest)), 80.0))))
+    return max(radius, MIN_RADIUS)
 
 
 def _mean_up(cameras: list[Camera]) -> np.ndarray:

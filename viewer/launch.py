@@ -151,7 +151,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
             raise DrsplatError(f"--camera {args.camera} is out of range: the dataset has {len(state.cameras)} cameras (0..{len(state.cameras) - 1})")
         camera = camera_for_size(state.cameras[args.camera], args.width, args.height)
     else:
-        view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720)
+        view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720, state.scene.log_scales)
         camera = view.camera()
     state.settings.query.negatives = args.negatives
     wants_query = bool(args.query or args.embedding or args.oracle)
