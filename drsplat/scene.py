@@ -84,8 +84,10 @@ class GaussianScene:
         return np.exp(self.log_scales)
 
     def opacities(self) -> np.ndarray:
-        """[N] activated opacities sigmoid(logit)."""
-        return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64))).astype(np.float32)
+        """[N] activated opacities sigmoid(logit); a logit below about -88.7 is 0 (its exp overflows
+        float32: inf, as intended, without numpy's overflow warning)."""
+        with np.errstate(over="ignore"):
+            return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64))).astype(np.float32)
 
     def unit_quats(self) -> np.ndarray:
         """[N, 4] normalised quaternions (w, x, y, z); zero quaternions map to identity."""

@@ -323,6 +323,22 @@ def test_viewer_unknown_demo_preset_is_a_usage_error(tmp_path, capsys):
     assert "Traceback" not in err and "--demo-preset" in err and "bogus" in err, err
 
 
+def test_opacity_logits_far_below_zero_are_transparent_without_a_numpy_warning(tmp_path):
+    """Was: `main.py` on a scene with opacity logits of -100 printed numpy's 'overflow encountered in
+    cast' RuntimeWarning (scene.opacities: exp(100) does not fit float32) in every screenshot."""
+    import warnings
+
+    from drsplat.scene import GaussianScene
+
+    scene = GaussianScene(means=np.zeros((3, 3), np.float32), quats=np.tile(np.array([1, 0, 0, 0], np.float32), (3, 1)),
+                          log_scales=np.zeros((3, 3), np.float32), opacity_logits=np.array([-100.0, -30.0, 2.0], np.float32),
+                          sh=np.zeros((3, 1, 3), np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        opacity = scene.opacities()
+    assert opacity[0] == 0 and 0 < opacity[1] < 1e-12 and abs(opacity[2] - 1 / (1 + np.exp(-2.0))) < 1e-6
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")
