@@ -339,6 +339,30 @@ def test_opacity_logits_far_below_zero_are_transparent_without_a_numpy_warning(t
     assert opacity[0] == 0 and 0 < opacity[1] < 1e-12 and abs(opacity[2] - 1 / (1 + np.exp(-2.0))) < 1e-6
 
 
+def test_viewer_screenshot_into_a_fifo_gives_its_reader_the_png(tmp_path, world, capsys):
+    """Was: `main.py --screenshot FIFO` failed with PIL's "File or stream is not seekable" (exit 1);
+    a FIFO output is written in place, as every other command's (its reader gets the PNG)."""
+    import threading
+
+    from viewer.launch import main as viewer_main
+
+    fifo = tmp_path / "pipe.png"
+    os.mkfifo(fifo)
+    got: list[bytes] = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()))
+    reader.start()
+    try:
+        code = viewer_main([str(world["reg"]), "--screenshot", str(fifo), "--width", "32", "--height", "24"])
+    finally:
+        if reader.is_alive():  # unblock the reader if nothing was written
+            with open(fifo, "wb"):
+                pass
+        reader.join(timeout=30)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert got and got[0].startswith(b"\x89PNG") and fifo.is_fifo()
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -90,12 +90,16 @@ def idle_timeout(animating: bool, events_pending: int, jobs_running: bool) -> fl
 
 
 def save_png(image: np.ndarray, path: str | Path) -> Path:
-    """Write [H, W, 3] uint8 as PNG, atomically."""
+    """Write [H, W, 3] uint8 as PNG, atomically (a FIFO or device: in place, atomic_path)."""
+    import io
+
     from PIL import Image
 
     path = Path(path)
+    png = io.BytesIO()  # encoded first: PIL seeks in the file it writes, which a FIFO cannot
+    Image.fromarray(image).save(png, format="PNG")
     with atomic_path(path) as tmp:
-        Image.fromarray(image).save(tmp, format="PNG")
+        tmp.write_bytes(png.getvalue())
     return path
 
 
