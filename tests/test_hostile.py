@@ -363,6 +363,31 @@ def test_viewer_screenshot_into_a_fifo_gives_its_reader_the_png(tmp_path, world,
     assert got and got[0].startswith(b"\x89PNG") and fifo.is_fifo()
 
 
+@pytest.mark.parametrize("names", ["deep", "number", "list_entry", "fifo"])
+def test_viewer_oracle_label_names_that_are_not_a_list_of_names_are_ignored_by_name(tmp_path, caplog, names):
+    """Was: gt/label_names.json nested 100,000 deep ended `main.py --source` with "maximum recursion
+    depth exceeded ..." (no file named), a JSON number with a TypeError traceback, a list entry was
+    shown as its str(), and a FIFO was passed over silently. Now: a warning naming the file, no oracle."""
+    import logging
+    import shutil
+
+    from viewer.demo import demo_dir
+    from viewer.state import ViewerState
+
+    demo = shutil.copytree(demo_dir(), tmp_path / "demo")
+    target = demo / "gt" / "label_names.json"
+    target.unlink()
+    if names == "fifo":
+        os.mkfifo(target)
+    else:
+        target.write_text({"deep": "[" * 100_000 + "]" * 100_000, "number": "5", "list_entry": '[["mug"], "ball"]'}[names])
+    state = ViewerState()
+    with caplog.at_level(logging.WARNING, logger="viewer"):
+        assert state.load_source(demo)
+    assert state.oracle is None and len(state.cameras) == 16
+    assert any("label_names.json" in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -11,7 +11,6 @@ input: they record a message (shown in the GUI) and return False.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import threading
 import traceback
@@ -22,6 +21,7 @@ import numpy as np
 
 from drsplat import query as dq
 from drsplat.cameras import Camera, load_cameras
+from drsplat.commands.common import checked_names
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
@@ -32,7 +32,7 @@ from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene, load_ply
-from drsplat.utils import guard_outputs, load_npy
+from drsplat.utils import guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
@@ -501,10 +501,13 @@ class ViewerState:
 def read_oracle_queries(source: Path) -> OracleQueries | None:
     """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
     names_path, emb_path = source / "gt" / "label_names.json", source / "text_embeddings.npy"
-    if not (names_path.is_file() and emb_path.is_file()):
+    if not (names_path.exists() and emb_path.exists()):  # a FIFO or folder there is refused by name below
         return None
     try:
-        names = json.loads(names_path.read_text())
+        names = read_json(names_path, "a JSON list of label names")  # not a file, bad or too deep JSON: one InputError
+        if not isinstance(names, list):
+            raise InputError(names_path, f"holds a JSON {type(names).__name__}; expected a JSON list of label names")
+        names = checked_names(names_path, names)  # strings, not blank, no control characters, none repeated
         emb = load_npy(emb_path, "embedding array")  # header checked against the file size
     except (OSError, ValueError, DrsplatError) as exc:
         log.warning("ignoring oracle queries of %s: %s", source, exc)
