@@ -388,6 +388,19 @@ def test_viewer_oracle_label_names_that_are_not_a_list_of_names_are_ignored_by_n
     assert any("label_names.json" in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
 
 
+def test_viewer_screenshot_segmentation_without_oracle_labels_says_what_it_needs(tmp_path, world, capsys):
+    """Was: `main.py REG.ply --screenshot OUT --mode segmentation` without --source said the GUI's
+    "type comma-separated labels to segment by", which the command line cannot do."""
+    from viewer.launch import main as viewer_main
+
+    out = tmp_path / "seg.png"
+    assert viewer_main([str(world["reg"]), "--screenshot", str(out), "--mode", "segmentation", "--width", "32", "--height", "24"]) == 1
+    err = capsys.readouterr().err
+    (line,) = error_lines(err)
+    assert "--mode segmentation" in line and "--source" in line and "Traceback" not in err, err
+    assert not out.exists()
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

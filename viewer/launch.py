@@ -171,8 +171,9 @@ def screenshot(args: argparse.Namespace, state) -> int:
     if not ok:
         raise StartupError(state.messages[-1].text)
     if args.mode == "segmentation":
-        if state.encoder is None and state.oracle is None:
-            state.start_text_encoder(background=False)
+        if state.oracle is None and state.field is not None:  # no label phrases on the command line: run_segmentation(None) needs the oracle
+            raise DrsplatError("--mode segmentation segments by the oracle labels of a synthetic dataset: pass --source DIR with "
+                               "gt/label_names.json and text_embeddings.npy (labels typed as phrases are segmented in the viewer window)")
         if not state.run_segmentation(None):
             raise StartupError(state.messages[-1].text)
     elif wants_query:
