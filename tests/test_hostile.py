@@ -401,6 +401,19 @@ def test_viewer_screenshot_segmentation_without_oracle_labels_says_what_it_needs
     assert not out.exists()
 
 
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_clip_checkpoint_that_is_a_folder_or_fifo_is_not_a_file(tmp_path, kind):
+    """Was: `main.py ... --query X --clip-checkpoint DIR` (or a FIFO) said the checkpoint "does not exist"."""
+    pytest.importorskip("open_clip")
+    from drsplat.errors import InputError
+    from drsplat.features.clip import ClipEncoder
+
+    path = tmp_path / "ckpt"
+    path.mkdir() if kind == "folder" else os.mkfifo(path)
+    with pytest.raises(InputError, match=r"ckpt: is not a file \(--clip-checkpoint\)"):
+        ClipEncoder("ViT-B-16", checkpoint=path, device="cpu")
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -58,8 +58,9 @@ class ClipEncoder:
         self.model_name = model
         if checkpoint is not None:
             checkpoint = Path(checkpoint)
-            if not checkpoint.is_file():
-                raise InputError(checkpoint, "CLIP checkpoint file does not exist (--clip-checkpoint)")
+            if not checkpoint.is_file():  # a folder, FIFO or device exists but is no checkpoint (a FIFO would block the read)
+                raise InputError(checkpoint, "is not a file (--clip-checkpoint): expected an open_clip checkpoint file" if checkpoint.exists()
+                                 else "CLIP checkpoint file does not exist (--clip-checkpoint)")
             self.pretrained = pretrained or f"file:{checkpoint.name}"
             weights = str(checkpoint)
         elif random_weights:
