@@ -414,6 +414,20 @@ def test_clip_checkpoint_that_is_a_folder_or_fifo_is_not_a_file(tmp_path, kind):
         ClipEncoder("ViT-B-16", checkpoint=path, device="cpu")
 
 
+@pytest.mark.parametrize("flag", ["--query", "--oracle"])
+def test_viewer_blank_query_is_a_usage_error(tmp_path, world, capsys, flag):
+    """Was: `main.py REG --screenshot OUT --query ""` (or --oracle " ") was ignored: exit 0, no query."""
+    from viewer.launch import main as viewer_main
+
+    out = tmp_path / "shot.png"
+    with pytest.raises(SystemExit) as exc:
+        viewer_main([str(world["reg"]), "--screenshot", str(out), flag, " "])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"{flag} is empty" in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -198,7 +198,11 @@ def interactive(state) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for flag in ("query", "oracle"):  # a blank one was ignored: a screenshot without the query asked for
+        if getattr(args, flag) is not None and not getattr(args, flag).strip():
+            parser.error(f"--{flag} is empty: give the {'phrase to search for' if flag == 'query' else 'label to query'}")
     setup_logging(args.verbose)
     try:
         guard_args(args, ("screenshot",))
