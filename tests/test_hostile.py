@@ -428,6 +428,24 @@ def test_viewer_blank_query_is_a_usage_error(tmp_path, world, capsys, flag):
     assert not out.exists()
 
 
+def test_viewer_splat_geometry_of_huge_scales_is_non_finite_without_numpy_warnings():
+    """Was: every screenshot of a scene with a scale of 1e30 (or a log scale of 1e30) printed numpy's
+    overflow / invalid-value RuntimeWarnings; the splats are dropped by the shader either way."""
+    pytest.importorskip("moderngl")
+    import warnings
+
+    from drsplat.scene import GaussianScene
+    from viewer.renderer import splat_geometry
+
+    log_scales = np.array([[np.log(1e30)] * 3, [1e30] * 3, [0.0] * 3], np.float32)
+    scene = GaussianScene(means=np.zeros((3, 3), np.float32), quats=np.array([[1, 0, 0, 0], [0.6, 0.8, 0, 0], [1, 0, 0, 0]], np.float32),
+                          log_scales=log_scales, opacity_logits=np.zeros(3, np.float32), sh=np.zeros((3, 1, 3), np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        geometry = splat_geometry(scene)
+    assert not np.isfinite(geometry[:2, 1:]).all(axis=(1, 2)).any() and np.isfinite(geometry[2]).all()
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -50,12 +50,15 @@ def splat_geometry(scene: GaussianScene) -> np.ndarray:
     geometry = np.zeros((n, 3, 4), np.float32)
     if n == 0:
         return geometry
-    cov = scene.covariances()
-    geometry[:, 0, :3] = scene.means
-    geometry[:, 0, 3] = scene.opacities()
-    geometry[:, 1] = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1]], axis=1)
-    geometry[:, 2, 0] = cov[:, 1, 2]
-    geometry[:, 2, 1] = cov[:, 2, 2]
+    # A scale past float32 (the load warns of it) or a Σ past float32 (scale ~1e19) is an inf/NaN Σ,
+    # which the projection shader drops: no numpy overflow warnings on the way.
+    with np.errstate(over="ignore", invalid="ignore"):
+        cov = scene.covariances()
+        geometry[:, 0, :3] = scene.means
+        geometry[:, 0, 3] = scene.opacities()
+        geometry[:, 1] = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1]], axis=1)
+        geometry[:, 2, 0] = cov[:, 1, 2]
+        geometry[:, 2, 1] = cov[:, 2, 2]
     return geometry
 
 
