@@ -446,6 +446,20 @@ def test_viewer_splat_geometry_of_huge_scales_is_non_finite_without_numpy_warnin
     assert not np.isfinite(geometry[:2, 1:]).all(axis=(1, 2)).any() and np.isfinite(geometry[2]).all()
 
 
+def test_viewer_home_view_of_means_near_float32_max_has_no_numpy_warning():
+    """Was: the home view of a scene with means near +-3e38 printed numpy's 'overflow encountered in
+    subtract' (the float32 spread of the means)."""
+    import warnings
+
+    from viewer.camera import ViewController
+
+    means = np.array([[-3e38, -3e38, 0.0], [3e38, 3e38, 1.0], [0.0, 0.0, 0.5]], np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        view = ViewController.for_scene(means, None, 64, 48)
+    np.testing.assert_allclose(view.up, [0.0, 0.0, 1.0])  # flat along z: z up
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

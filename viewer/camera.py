@@ -88,7 +88,8 @@ class ViewController:
         radius = _robust_radius(means, center, log_scales)
         up = np.array([0.0, 0.0, 1.0])
         if means.shape[0] > 0:
-            spread = np.percentile(means, 95, axis=0) - np.percentile(means, 5, axis=0)
+            wide = means.astype(np.float64)  # float32 means near 3e38 overflow the difference
+            spread = np.percentile(wide, 95, axis=0) - np.percentile(wide, 5, axis=0)
             up = np.array([0.0, 0.0, 1.0]) if spread[2] < 0.8 * max(spread[0], spread[1]) else np.array([0.0, -1.0, 0.0])
         side = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         offset = (np.cross(up, side) * 0.8 + side * 0.6 + up * 0.7)
