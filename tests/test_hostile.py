@@ -460,6 +460,21 @@ def test_viewer_home_view_of_means_near_float32_max_has_no_numpy_warning():
     np.testing.assert_allclose(view.up, [0.0, 0.0, 1.0])  # flat along z: z up
 
 
+def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, capsys):
+    """Was: a PLY whose 5 rows all hold NaN means said "holds no Gaussians (0 rows)"."""
+    from drsplat.scene import GaussianScene, save_ply
+    from viewer.launch import main as viewer_main
+
+    scene = GaussianScene(means=np.full((5, 3), np.nan, np.float32), quats=np.tile(np.array([1, 0, 0, 0], np.float32), (5, 1)),
+                          log_scales=np.zeros((5, 3), np.float32), opacity_logits=np.zeros(5, np.float32), sh=np.zeros((5, 1, 3), np.float32))
+    ply = tmp_path / "nan.ply"
+    save_ply(scene, ply)
+    assert viewer_main([str(ply), "--screenshot", str(tmp_path / "shot.png")]) == 1
+    err = capsys.readouterr().err
+    (line,) = error_lines(err)
+    assert "nan.ply" in line and "all 5 rows hold NaN or infinite values" in line and "Traceback" not in err, err
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

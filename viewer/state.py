@@ -31,7 +31,7 @@ from drsplat.lang import codebook_path_for, export_scene, read_field
 from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
-from drsplat.scene import GaussianScene, load_ply
+from drsplat.scene import GaussianScene, load_ply_report
 from drsplat.utils import guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
@@ -118,9 +118,11 @@ class ViewerState:
 
         try:
             path = Path(path)
-            scene = load_ply(path)
+            scene, report = load_ply_report(path)
             if scene.num_gaussians == 0:
-                raise InputError(path, "holds no Gaussians (0 rows): there is nothing to show; open another PLY")
+                why = ("holds no Gaussians (0 rows)" if report.rows_in_file == 0 else
+                       f"has no usable Gaussians: all {report.rows_in_file:,} rows hold NaN or infinite values and were dropped")
+                raise InputError(path, f"{why}: there is nothing to show; open another PLY")
             lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
