@@ -475,6 +475,35 @@ def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, capsys):
     assert "nan.ply" in line and "all 5 rows hold NaN or infinite values" in line and "Traceback" not in err, err
 
 
+def test_viewer_export_refuses_the_codebook_the_scene_comment_names(tmp_path):
+    """Was: a registered PLY renamed (its comment still names `registered.codebook.faiss`) exported
+    onto that codebook from the viewer replaced it (only `<stem>.codebook.faiss` was checked)."""
+    import shutil
+
+    from viewer.demo import demo_dir
+    from viewer.state import ViewerState
+
+    shutil.copy(demo_dir() / "registered.ply", tmp_path / "renamed.ply")
+    book = Path(shutil.copy(demo_dir() / "registered.codebook.faiss", tmp_path / "registered.codebook.faiss"))
+    before = digest(book)
+    state = ViewerState()
+    assert state.load_scene(tmp_path / "renamed.ply")
+    assert state.run_embedding_query(_demo_query(tmp_path))
+    state.set_threshold(-1.0)
+    for fmt in ("standard", "drsplat"):
+        assert state.export_selection(book, fmt) is None
+        assert "cannot write" in state.messages[-1].text and "codebook" in state.messages[-1].text
+    assert digest(book) == before
+
+
+def _demo_query(folder: Path) -> Path:
+    from viewer.demo import demo_dir
+
+    q = folder / "q.npy"
+    np.save(q, np.load(demo_dir() / "text_embeddings.npy")[0])
+    return q
+
+
 def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     out = tmp_path / "scores.npy"
     out.write_bytes(b"old")

@@ -436,7 +436,9 @@ class ViewerState:
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None
             scene_codebook = codebook_path_for(self.scene_path) if self.scene_path is not None else None
-            guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook}, {"the export": Path(path), "the export's codebook": codebook})
+            read_codebook = getattr(self.field.codebook, "path", None) if self.field is not None else None  # the one its comment names
+            guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook, "its language field's codebook": read_codebook},
+                          {"the export": Path(path), "the export's codebook": codebook})
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
