@@ -1722,3 +1722,25 @@ def test_registered_ply_with_two_disagreeing_field_comments_is_one_error(tmp_pat
         if want:
             (line,) = error_lines(err)
             assert name in line and "2 'drsplat.lang' header comments that disagree" in line, line
+
+
+@pytest.mark.parametrize("command", ["query", "segment"])
+def test_query_and_segment_refuse_to_write_over_the_codebook_the_ply_names(tmp_path, capsys, command):
+    """Was: `drsplat query RENAMED.ply --scores DIR/registered.codebook.faiss` (or segment --out)
+    replaced the codebook the renamed PLY's header names, exit 0: only `<stem>.codebook.faiss` was
+    guarded. The field's own codebook is guarded once the field is read."""
+    import shutil
+
+    from viewer.demo import demo_dir
+
+    shutil.copy(demo_dir() / "registered.ply", tmp_path / "renamed.ply")
+    book = Path(shutil.copy(demo_dir() / "registered.codebook.faiss", tmp_path / "registered.codebook.faiss"))
+    before = digest(book)
+    query = _demo_query(tmp_path)
+    argv = (["query", tmp_path / "renamed.ply", "--embedding", query, "--scores", book] if command == "query" else
+            ["segment", tmp_path / "renamed.ply", "--embeddings", query, "--out", book])
+    code, err = run_cli(argv, capsys)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert "registered.codebook.faiss" in line and "renamed.ply names" in line, line
+    assert digest(book) == before

@@ -255,6 +255,15 @@ def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
                         help=f"PLY written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
 
 
+def guard_field_codebook(registered: Path, field: LanguageField, outputs: dict) -> None:
+    """`drsplat.utils.guard_outputs` for the codebook a registered PLY's header names, known only
+    once the field is read: it need not be the `<stem>.codebook.faiss` beside the PLY (a renamed
+    PLY keeps naming its old codebook), and no output may be written over it."""
+    from drsplat.utils import guard_outputs
+
+    guard_outputs({f"the codebook {Path(registered).name} names": getattr(field.codebook, "path", None)}, outputs)
+
+
 def export_outputs(path, fmt: str) -> dict:
     """The files an export to `path` in format `fmt` writes besides the PLY itself (for
     guard_outputs): a drsplat PLY's codebook beside it."""

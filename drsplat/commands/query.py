@@ -13,6 +13,7 @@ from drsplat.commands.common import (
     add_clip_arguments,
     add_format_argument,
     export_outputs,
+    guard_field_codebook,
     add_lut_bits_argument,
     load_registered,
     nonneg_int,
@@ -91,8 +92,10 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered)}
-    guard_outputs(inputs, {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format)})
+    outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format)}
+    guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
+    guard_field_codebook(args.registered, field, outputs)
     queries, single, encoder = build_queries(args, field, encoder_factory)
     scores = compute_scores(args, field, queries, encoder, encoder_factory)
     best = scores.max(axis=1) if scores.shape[1] else np.zeros(len(field), np.float32)

@@ -15,6 +15,7 @@ from drsplat.commands.common import (
     add_lut_bits_argument,
     checked_names,
     export_outputs,
+    guard_field_codebook,
     float_range,
     load_registered,
     scoring_device,
@@ -136,8 +137,10 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
               "--names" if getattr(args, "names", None) is not None else "--names (by default gt/label_names.json)": names_input(args)}
     if args.labels is not None:
         label_phrases(args.labels)  # a usage error before any file is read
-    guard_outputs(inputs, {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)})
+    outputs = {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)}
+    guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
+    guard_field_codebook(args.registered, field, outputs)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
     seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,
                   device=scoring_device(args))
