@@ -388,6 +388,26 @@ def test_viewer_oracle_label_names_that_are_not_a_list_of_names_are_ignored_by_n
     assert any("label_names.json" in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
 
 
+def test_viewer_oracle_query_with_unreadable_label_names_says_so(tmp_path, capsys):
+    """Was: `main.py ... --source DEMO --oracle mug` with a bad gt/label_names.json warned about the
+    file, then said "--oracle needs a synthetic dataset", which DEMO is."""
+    import shutil
+
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    demo = shutil.copytree(demo_dir(), tmp_path / "demo")
+    (demo / "gt" / "label_names.json").write_text("[" * 100_000 + "]" * 100_000)
+    out = tmp_path / "o.png"
+    code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--oracle", "mug", "--screenshot", str(out),
+                        "--width", "32", "--height", "24"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err, err
+    (line,) = error_lines(err)
+    assert "could not be read" in line and "needs a synthetic dataset" not in line, line
+    assert "label_names.json" in err and not out.exists()
+
+
 def test_viewer_screenshot_segmentation_without_oracle_labels_says_what_it_needs(tmp_path, world, capsys):
     """Was: `main.py REG.ply --screenshot OUT --mode segmentation` without --source said the GUI's
     "type comma-separated labels to segment by", which the command line cannot do."""
@@ -494,6 +514,22 @@ def test_viewer_export_refuses_the_codebook_the_scene_comment_names(tmp_path):
         assert state.export_selection(book, fmt) is None
         assert "cannot write" in state.messages[-1].text and "codebook" in state.messages[-1].text
     assert digest(book) == before
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_viewer_export_to_a_full_disk_says_so_in_words(tmp_path):
+    """Was: the viewer's export to /dev/full showed "[Errno 28] No space left on device"; now the
+    message names the file and the cause as the CLI does (utils.describe_os_error)."""
+    from viewer.demo import demo_dir
+    from viewer.state import ViewerState
+
+    state = ViewerState()
+    assert state.load_scene(demo_dir() / "registered.ply")
+    assert state.run_embedding_query(_demo_query(tmp_path))
+    state.set_threshold(-1.0)
+    assert state.export_selection(Path("/dev/full"), "standard") is None
+    text = state.messages[-1].text
+    assert "/dev/full" in text and "the disk is full" in text and "Errno" not in text, text
 
 
 def _demo_query(folder: Path) -> Path:

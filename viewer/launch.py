@@ -164,6 +164,9 @@ def screenshot(args: argparse.Namespace, state) -> int:
         ok = state.run_embedding_query(args.embedding)
     elif args.oracle:
         if state.oracle is None:
+            src = state.source_dir
+            if src is not None and (src / "gt" / "label_names.json").exists() and (src / "text_embeddings.npy").exists():
+                raise DrsplatError(f"--oracle: the oracle labels of {src} could not be read (the warning above names the file and why)")
             raise DrsplatError("--oracle needs a synthetic dataset (--source with gt/label_names.json and text_embeddings.npy)")
         if args.oracle not in state.oracle.names:
             raise DrsplatError(f"--oracle {args.oracle!r} is not a label of this dataset; labels: {', '.join(state.oracle.names)}")

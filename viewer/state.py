@@ -32,7 +32,7 @@ from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene, load_ply_report
-from drsplat.utils import guard_outputs, load_npy, read_json
+from drsplat.utils import describe_os_error, guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
@@ -100,7 +100,9 @@ class ViewerState:
         self.messages.add("error", text)
 
     def _fail(self, exc: BaseException, what: str) -> bool:
-        if isinstance(exc, (DrsplatError, ValueError, OSError)):
+        if isinstance(exc, OSError):  # the cause in words ("the disk is full"), not "[Errno 28] ..."
+            self.error(f"{what}: {describe_os_error(exc)}")
+        elif isinstance(exc, (DrsplatError, ValueError)):
             self.error(f"{what}: {exc}")
         else:
             log.debug("%s", traceback.format_exc())
