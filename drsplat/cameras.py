@@ -23,6 +23,7 @@ from drsplat.utils import atomic_path, read_json, regular_file
 log = logging.getLogger(__name__)
 
 MAX_IMAGE_SIDE = 1 << 16  # pixels; larger "images" are corrupt metadata, and would size buffers
+MAX_TRANSLATION = 1e15  # |t| beyond this cannot place a camera near a float32 scene (projections overflow or lose all precision)
 # Intrinsics relative to the image side: a focal length of 1e-6 to 1e6 image widths (a field of
 # view from about 6e-5 degrees to within 3e-4 degrees of 180) and a principal point within 1e6
 # widths of the image hold every real lens with a wide margin; beyond, the projection maths overflows.
@@ -530,8 +531,12 @@ def validate_camera(camera: Camera, path: Path, where: str) -> None:
         raise InputError(path, f"{where} has a non-finite rotation", field="rotation")
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.linalg.det(R) > 0:
         raise InputError(path, f"{where} has a rotation that is not orthonormal with det +1 (all-zero or scaled matrix?)", field="rotation")
-    if not np.isfinite(np.asarray(camera.t, np.float64)).all():
+    t = np.asarray(camera.t, np.float64)
+    if not np.isfinite(t).all():
         raise InputError(path, f"{where} has a non-finite translation", field="translation")
+    if np.abs(t).max() > MAX_TRANSLATION:
+        raise InputError(path, f"{where} has a translation of {np.abs(t).max():.3g}, beyond any scene (more than {MAX_TRANSLATION:.0e}: a scale "
+                         "or units mix-up?); it would see no Gaussian", field="translation")
     validate_intrinsics(camera, path, where)
 
 
