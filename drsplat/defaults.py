@@ -21,3 +21,6 @@ VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
 SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsplat.registration.solve)
+# a synthetic (oracle) dataset's label files, relative to its folder (drsplat.synthetic.write_dataset writes them)
+ORACLE_LABEL_NAMES = "gt/label_names.json"  # JSON list of the label names
+ORACLE_TEXT_EMBEDDINGS = "text_embeddings.npy"  # [labels, D] the oracle "text" vectors, one per name

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera, load_cameras, look_at_camera, write_transforms_json
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.features.masks.base import LEVELS
 from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
 from drsplat.scene import SH_C0, GaussianScene, load_ply, save_ply
@@ -1060,8 +1061,8 @@ def write_dataset(
         total_masks += len(feats)
         write_features(out / "features", cam.name, seg, feats)
     save_npy_atomic(out / "gt" / "labels.npy", syn.labels.astype(np.int32))
-    save_npy_atomic(out / "text_embeddings.npy", syn.text_vectors.astype(np.float32))
-    with atomic_path(out / "gt" / "label_names.json") as tmp:
+    save_npy_atomic(out / ORACLE_TEXT_EMBEDDINGS, syn.text_vectors.astype(np.float32))
+    with atomic_path(out / ORACLE_LABEL_NAMES) as tmp:
         tmp.write_text(json.dumps(syn.label_names) + "\n")
     write_transforms_json(syn.cameras, out / "transforms.json")
     write_manifest(
@@ -1189,7 +1190,7 @@ def write_city(out_dir: str | Path, preset: str | CityPreset = "city", seed: int
     manifest["synthetic"] = {"preset": "city", "seed": seed, "room": city.room, "tiles": city.tiles, "views": city.views, "width": city.width}
     manifest.setdefault("counts", {})["views"] = len(cams)
     write_manifest(out / "features", manifest)
-    for name in ("text_embeddings.npy", "gt/label_names.json"):
+    for name in (ORACLE_TEXT_EMBEDDINGS, ORACLE_LABEL_NAMES):
         shutil.copyfile(room / name, out / name)
     save_npy_atomic(out / "gt" / "labels.npy", np.tile(np.load(room / "gt" / "labels.npy"), city.tiles))  # tile-major, as tile_city
     write_transforms_json(cams, out / "transforms.json")

@@ -23,6 +23,7 @@ import tempfile
 from pathlib import Path
 
 from drsplat.cameras import load_cameras
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.registration import RegisterOptions, register
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
@@ -32,7 +33,7 @@ log = logging.getLogger(__name__)
 
 DEMO_PRESET = "tiny"
 DEMO_SEED = 0
-DEMO_FILES = ("registered.ply", "registered.codebook.faiss", "transforms.json", "gt/label_names.json", "gt/labels.npy", "text_embeddings.npy")
+DEMO_FILES = ("registered.ply", "registered.codebook.faiss", "transforms.json", ORACLE_LABEL_NAMES, "gt/labels.npy", ORACLE_TEXT_EMBEDDINGS)
 
 
 def demo_dir() -> Path:

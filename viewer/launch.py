@@ -16,6 +16,7 @@ from pathlib import Path
 from drsplat.cameras import dataset_inputs, load_cameras
 from drsplat.cli import setup_logging
 from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, protected_feature_folders
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
 from drsplat.features.weights import drsplat_cache_dir
@@ -130,12 +131,10 @@ def build_state(args: argparse.Namespace):
 def loaded_inputs(state) -> dict[str, Path | None]:
     """The files the state read besides the command line's paths (guard_outputs inputs): the
     language field's codebook, the dataset's camera files and images, its oracle label files."""
-    book = state.field.codebook if state.field is not None else None
-    inputs: dict[str, Path | None] = {"the scene's codebook": getattr(book, "path", None)}
+    inputs: dict[str, Path | None] = {"the scene's codebook": state.field.codebook_path if state.field is not None else None}
     if state.source_dir is not None:
         inputs.update(dataset_inputs(state.source_dir, state.cameras))
-        inputs["--source's gt/label_names.json"] = state.source_dir / "gt" / "label_names.json"
-        inputs["--source's text_embeddings.npy"] = state.source_dir / "text_embeddings.npy"
+        inputs.update({f"--source's {name}": state.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
     return inputs
 
 
@@ -165,7 +164,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
     elif args.oracle:
         if state.oracle is None:
             src = state.source_dir
-            if src is not None and (src / "gt" / "label_names.json").exists() and (src / "text_embeddings.npy").exists():
+            if src is not None and (src / ORACLE_LABEL_NAMES).exists() and (src / ORACLE_TEXT_EMBEDDINGS).exists():
                 raise DrsplatError(f"--oracle: the oracle labels of {src} could not be read (the warning above names the file and why)")
             raise DrsplatError("--oracle needs a synthetic dataset (--source with gt/label_names.json and text_embeddings.npy)")
         if args.oracle not in state.oracle.names:

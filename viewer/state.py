@@ -22,7 +22,7 @@ import numpy as np
 from drsplat import query as dq
 from drsplat.cameras import Camera, load_cameras
 from drsplat.commands.common import checked_names
-from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
@@ -438,7 +438,7 @@ class ViewerState:
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None
             scene_codebook = codebook_path_for(self.scene_path) if self.scene_path is not None else None
-            read_codebook = getattr(self.field.codebook, "path", None) if self.field is not None else None  # the one its comment names
+            read_codebook = self.field.codebook_path if self.field is not None else None  # the one its comment names
             guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook, "its language field's codebook": read_codebook},
                           {"the export": Path(path), "the export's codebook": codebook})
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
@@ -506,7 +506,7 @@ class ViewerState:
 
 def read_oracle_queries(source: Path) -> OracleQueries | None:
     """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
-    names_path, emb_path = source / "gt" / "label_names.json", source / "text_embeddings.npy"
+    names_path, emb_path = source / ORACLE_LABEL_NAMES, source / ORACLE_TEXT_EMBEDDINGS
     if not (names_path.exists() and emb_path.exists()):  # a FIFO or folder there is refused by name below
         return None
     try:

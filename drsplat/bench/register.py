@@ -26,7 +26,7 @@ import numpy as np
 from drsplat.commands.common import int_range, positive_int
 from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list, view_size
 from drsplat.device import add_device_arguments, resolve_compute
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 
 STREAM_VIEWS = 8  # at least this many views timed back to back (the counted cameras repeated)
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
@@ -100,8 +100,8 @@ def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int
         scene = load_ply(data / "scene.ply")
         cameras = load_cameras(data)
         gt = np.load(data / "gt" / "labels.npy")
-        names = json.loads((data / "gt" / "label_names.json").read_text())
-        text = np.load(data / "text_embeddings.npy")
+        names = json.loads((data / ORACLE_LABEL_NAMES).read_text())
+        text = np.load(data / ORACLE_TEXT_EMBEDDINGS)
         d, _ = significance_weights(scene.log_scales, scene.opacity_logits)
         for k in topks:
             result, seconds, _, runs = _timed_register(scene, cameras, data / "features", k, repeats, aggregate=aggregate)

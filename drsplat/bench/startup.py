@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 from drsplat.bench.common import format_table, machine_line, positive_int
+from drsplat.defaults import ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError
 
 HEAVY = ("torch", "ray", "open_clip", "moderngl")
@@ -99,7 +100,7 @@ def prepare(work: Path, preset: str) -> Path:
     if main(["-q", "register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"),
              "--out", str(work / "reg.ply"), "--no-progress"]) != 0:
         raise DrsplatError("bench startup: could not register the synthetic scene")
-    emb = np.load(data / "text_embeddings.npy")
+    emb = np.load(data / ORACLE_TEXT_EMBEDDINGS)
     np.save(work / "q.npy", emb[0])
     np.save(work / "L.npy", emb)
     return data

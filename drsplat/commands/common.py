@@ -261,7 +261,7 @@ def guard_field_codebook(registered: Path, field: LanguageField, outputs: dict) 
     PLY keeps naming its old codebook), and no output may be written over it."""
     from drsplat.utils import guard_outputs
 
-    guard_outputs({f"the codebook {Path(registered).name} names": getattr(field.codebook, "path", None)}, outputs)
+    guard_outputs({f"the codebook {Path(registered).name} names": field.codebook_path}, outputs)
 
 
 def export_outputs(path, fmt: str) -> dict:

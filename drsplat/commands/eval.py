@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.utils import read_json
 
@@ -88,12 +89,21 @@ def _add_iou(sub) -> None:
     p.set_defaults(func=run_iou)
 
 
+PSEUDO_DEFAULTS = {"classes": None, "radius": 3.0, "vote": "gaussian", "engine": "grid"}  # the pseudo-label flags (`pseudo_flags_given`)
+
+
 def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("pseudo-labels from a labelled point cloud")
-    g.add_argument("--classes", default=None, metavar="A,B,...", help="keep only these label names (others become unlabelled)")
-    g.add_argument("--radius", type=positive_float, default=3.0, help="Mahalanobis radius r (points with D <= r^2 vote)")
-    g.add_argument("--vote", choices=("gaussian", "count"), default="gaussian", help="vote weight exp(-D/2) (default) or 1")
-    g.add_argument("--engine", choices=("grid", "kdtree"), default="grid", help="neighbour search: numba point grid (default) or scipy KD-trees")
+    d = PSEUDO_DEFAULTS
+    g.add_argument("--classes", default=d["classes"], metavar="A,B,...", help="keep only these label names (others become unlabelled)")
+    g.add_argument("--radius", type=positive_float, default=d["radius"], help="Mahalanobis radius r (points with D <= r^2 vote)")
+    g.add_argument("--vote", choices=("gaussian", "count"), default=d["vote"], help="vote weight exp(-D/2) (default) or 1")
+    g.add_argument("--engine", choices=("grid", "kdtree"), default=d["engine"], help="neighbour search: numba point grid (default) or scipy KD-trees")
+
+
+def pseudo_flags_given(args: argparse.Namespace) -> list[str]:
+    """The pseudo-label flags set to something other than their default, as "--name"."""
+    return [f"--{name}" for name, default in PSEUDO_DEFAULTS.items() if getattr(args, name) != default]
 
 
 def _add_scannet(sub) -> None:
@@ -291,14 +301,13 @@ def run_iou(args: argparse.Namespace) -> int:
     if args.synthetic is not None:
         ds = args.synthetic
         args.gt_labels = ds / "gt" / "labels.npy"
-        args.label_names = args.label_names or ds / "gt" / "label_names.json"
-        args.text_embeddings = args.text_embeddings or ds / "text_embeddings.npy"
+        args.label_names = args.label_names or ds / ORACLE_LABEL_NAMES
+        args.text_embeddings = args.text_embeddings or ds / ORACLE_TEXT_EMBEDDINGS
         args.original = args.original or ds / "scene.ply"
     elif args.gt_labels is None and args.gt_points is None:
         raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
     if args.gt_points is None:  # the pseudo-label options act on a labelled cloud only: silently ignoring them would mislead
-        given = [flag for flag, value, default in (("--classes", args.classes, None), ("--radius", args.radius, 3.0), ("--vote", args.vote, "gaussian"),
-                                                   ("--engine", args.engine, "grid")) if value != default]
+        given = pseudo_flags_given(args)
         if given:
             raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to pseudo-labels from --gt-points CLOUD.ply only")
     parse_taus(args.taus)

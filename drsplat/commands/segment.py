@@ -21,6 +21,7 @@ from drsplat.commands.common import (
     scoring_device,
     split_phrases,
 )
+from drsplat.defaults import ORACLE_LABEL_NAMES
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
@@ -104,7 +105,7 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
 
 def default_names_path(embeddings: Path) -> Path:
     """Where a synthetic dataset keeps the names of its label embeddings: gt/label_names.json beside them."""
-    return embeddings.parent / "gt" / "label_names.json"
+    return embeddings.parent / ORACLE_LABEL_NAMES
 
 
 def names_input(args: argparse.Namespace) -> Path | None:

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import float_range, int_range, nonneg_float, seed_int
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -49,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def is_synthetic_dataset(folder: Path) -> bool:
     """Whether `folder` holds an earlier `drsplat synth` output (safe to replace)."""
-    return (folder / "scene.ply").is_file() and (folder / "gt" / "label_names.json").is_file() and (folder / "text_embeddings.npy").is_file()
+    return (folder / "scene.ply").is_file() and (folder / ORACLE_LABEL_NAMES).is_file() and (folder / ORACLE_TEXT_EMBEDDINGS).is_file()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.utils import CancelToken, atomic_path
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
 from drsplat.errors import DrsplatError
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
@@ -108,7 +108,7 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter,
                       merge_fraction=merge, width=width, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
-                   json.loads((path / "gt" / "label_names.json").read_text()), np.load(path / "text_embeddings.npy"))
+                   json.loads((path / ORACLE_LABEL_NAMES).read_text()), np.load(path / ORACLE_TEXT_EMBEDDINGS))
 
 
 def _stale_wrong_labels(path: Path) -> bool:

@@ -67,6 +67,12 @@ class LanguageField:
         return getattr(self.storage, "codebook", None)
 
     @property
+    def codebook_path(self) -> Path | None:
+        """The codebook file this field was read with (a PQ field's; None for an exact one or a
+        codebook never saved): an input that no output may be written over."""
+        return getattr(self.codebook, "path", None)
+
+    @property
     def num_gaussians(self) -> int:
         return int(self.weights.shape[0])
 
