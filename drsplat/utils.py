@@ -365,15 +365,16 @@ def regular_file(path: str | Path) -> Path:
 
 
 def read_json(path: str | Path, what: str) -> object:
-    """The JSON document in `path`, a regular file of UTF-8 text, or one InputError naming the file
-    and why it is not `what` (e.g. "a camera file"): not a file, unreadable, not UTF-8 (the byte
-    offset, never the content), bad JSON (line and reason), nested too deeply for the parser, or a
-    number of more digits than Python converts (sys.get_int_max_str_digits)."""
+    """The JSON document in `path`, a regular file of UTF-8 text (a leading byte-order mark, which
+    Windows editors write, is skipped), or one InputError naming the file and why it is not `what`
+    (e.g. "a camera file"): not a file, unreadable, not UTF-8 (the byte offset, never the content),
+    bad JSON (line and reason), nested too deeply for the parser, or a number of more digits than
+    Python converts (sys.get_int_max_str_digits)."""
     import json
 
     path = regular_file(path)
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = path.read_bytes().decode("utf-8-sig")
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
     except UnicodeDecodeError as exc:

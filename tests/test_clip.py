@@ -118,6 +118,49 @@ def test_bad_checkpoints_are_clear_errors(tmp_path, tiny_clip):
         ClipEncoder("ViT-B-32", checkpoint=tiny_clip, device="cpu")
 
 
+class _Opaque:  # a pickled object that torch.load(weights_only=True) refuses
+    pass
+
+
+def _bad_checkpoint(tmp_path: Path, kind: str) -> Path:
+    import pickle
+    import zipfile
+
+    import torch
+
+    path = tmp_path / f"{kind}.pt"
+    if kind == "random_bytes":
+        path.write_bytes(np.random.default_rng(0).bytes(3000).replace(b"PK", b"pk").lstrip(b"\x80"))
+    elif kind == "zip_not_torch":
+        with zipfile.ZipFile(path, "w") as z:
+            z.writestr("a/data.pkl", b"garbage")
+    elif kind == "plain_pickle":
+        path.write_bytes(pickle.dumps({"a": 1}, protocol=2))
+    elif kind == "python_objects":
+        torch.save({"model": _Opaque()}, path)
+    elif kind == "wrong_tensors":
+        torch.save({"state_dict": {"x": torch.zeros(2)}}, path)
+    return path
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("random_bytes", "neither a torch.save checkpoint (a zip archive) nor a pickle"),
+    ("zip_not_torch", "a zip archive, but not a readable torch.save checkpoint"),
+    ("plain_pickle", "a pickle, but not of a checkpoint torch can read"),
+    ("python_objects", "holds Python objects besides tensors"),
+    ("wrong_tensors", "do not fit this architecture"),
+])
+def test_a_bad_clip_checkpoint_is_one_short_error_saying_what_the_file_is(tmp_path, kind, words):
+    """torch's messages ran into the error line: a paragraph on weights_only for any legacy-format
+    failure, 'Expected hasRecord("version")' for a zip. Now a few words on what the file is."""
+    path = _bad_checkpoint(tmp_path, kind)
+    with pytest.raises(InputError) as exc:
+        ClipEncoder(TINY_CLIP, checkpoint=path, device="cpu")
+    msg = str(exc.value)
+    assert f"{path}" in msg and f"not an open_clip checkpoint for {TINY_CLIP}: " in msg and words in msg, msg
+    assert "\n" not in msg and len(msg) < 200 + len(str(path)) and "weights_only` argument" not in msg, msg
+
+
 def _offline_env(monkeypatch, tmp_path):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))

@@ -237,6 +237,23 @@ def test_taus_topk_and_other_absurd_sizes_are_usage_errors(tmp_path, world, caps
 # ---------------------------------------------------------------------------------------------- 2. never overwrite an input
 
 
+def test_features_out_at_the_training_images_folder_is_refused_before_any_model_loads(world, capsys, monkeypatch):
+    """`features --out SOURCE/images` wrote its .npy pairs and manifest.json among the photographs
+    (after loading SAM and CLIP, minutes on a CPU); now one error before any model is built."""
+    import drsplat.features.extract as extract
+
+    def no_models(*args, **kwargs):
+        raise AssertionError("a model was loaded before the --out check")
+
+    monkeypatch.setattr(extract, "build_models", no_models)
+    images = world["ds"] / "images"
+    before = sorted(p.name for p in images.iterdir())
+    code, err = run_cli(["features", "--source", world["ds"], "--out", images, "--masks", "slic"], capsys)
+    assert code == 1, err
+    assert str(images) in err and "folder of the training images" in err, err
+    assert sorted(p.name for p in images.iterdir()) == before
+
+
 def overwrite_cases(world, tmp_path) -> list[tuple[list, list[Path]]]:
     ds, reg, q, L = world["ds"], world["reg"], world["q"], world["L"]
     scene = ds / "scene.ply"
@@ -464,6 +481,25 @@ def test_viewer_splat_geometry_of_huge_scales_is_non_finite_without_numpy_warnin
         warnings.simplefilter("error")
         geometry = splat_geometry(scene)
     assert not np.isfinite(geometry[:2, 1:]).all(axis=(1, 2)).any() and np.isfinite(geometry[2]).all()
+
+
+def test_viewer_says_how_many_splats_it_cannot_draw_for_a_covariance_beyond_float32(caplog):
+    """Was: a scale of 1e30 (log 69: the load sees nothing wrong, the CPU rasterizer draws it in
+    float64) rendered as nothing in the viewer, without a word. A log scale past float32 (1e30) is
+    the load's own warning and is not counted again."""
+    pytest.importorskip("moderngl")
+    from drsplat.scene import GaussianScene
+    from viewer.renderer import splat_geometry
+
+    log_scales = np.array([[np.log(1e30)] * 3, [1e30] * 3, [0.0] * 3, [np.log(1e18)] * 3], np.float32)
+    scene = GaussianScene(means=np.zeros((4, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (4, 1)), log_scales=log_scales,
+                          opacity_logits=np.zeros(4, np.float32), sh=np.zeros((4, 1, 3), np.float32))
+    with caplog.at_level("WARNING", logger="viewer.renderer"):
+        geometry = splat_geometry(scene)
+    assert np.isfinite(geometry[3]).all()
+    assert [r.getMessage() for r in caplog.records] == [
+        "1 of 4 Gaussians have a covariance beyond float32 (a scale above ~1e19: are raw scales stored where 3DGS stores their "
+        "logs?); the viewer does not draw them"]
 
 
 def test_viewer_home_view_of_means_near_float32_max_has_no_numpy_warning():
@@ -1701,6 +1737,23 @@ def test_every_json_input_refuses_hostile_json_with_one_error_naming_it(tmp_path
         read()
     msg = str(exc.value)
     assert name in msg and ("expected " in msg or "nested too deeply to be " in msg), msg
+
+
+def test_a_json_file_with_a_utf8_byte_order_mark_reads_as_without_it(tmp_path):
+    """Notepad and PowerShell write UTF-8 with a byte-order mark; json.loads refused it ("Unexpected
+    UTF-8 BOM"), so a hand-edited label list or transforms.json was "not valid JSON"."""
+    from drsplat.commands.eval import load_label_names
+    from drsplat.utils import read_json
+
+    doc = {"frames": [{"file_path": "a.png"}], "fl_x": 500.5}
+    plain, marked = tmp_path / "plain.json", tmp_path / "marked.json"
+    plain.write_text(json.dumps(doc), encoding="utf-8")
+    marked.write_text(json.dumps(doc), encoding="utf-8-sig")
+    assert marked.read_bytes()[:3] == b"\xef\xbb\xbf"
+    assert read_json(marked, "a test document") == read_json(plain, "a test document") == doc
+    names = tmp_path / "names.json"
+    names.write_text(json.dumps(["chair", "table"]), encoding="utf-8-sig")
+    assert list(load_label_names(names)) == ["chair", "table"]
 
 
 @pytest.mark.parametrize("reader", [*JSON_READERS, "colmap_text"])

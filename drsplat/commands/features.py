@@ -55,6 +55,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def refuse_image_folder(out: Path, cameras) -> None:
+    """OutputError when `out` is a folder holding the cameras' images: feature files and a manifest
+    among the photographs would mix outputs into an input folder (checked before any model loads)."""
+    target = out.resolve()
+    folders = {cam.image_path.resolve().parent for cam in cameras if cam.image_path is not None}
+    if target in folders:
+        raise OutputError(out, "--out is the folder of the training images; write the features to a folder of their own "
+                          "(e.g. SOURCE/language_features)")
+
+
 def run(args: argparse.Namespace) -> int:
     from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
 
@@ -62,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         raise OutputError(args.out, "--out must be a features folder, but a file has that name")
 
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
+    refuse_image_folder(args.out, cameras)
     spec = ModelSpec(
         masks=args.masks, clip_model=args.clip_model, pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
         sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,

@@ -28,6 +28,27 @@ OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)
 OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
 
 
+def checkpoint_problem(path: Path, exc: BaseException) -> str:
+    """Why torch / open_clip could not load the checkpoint `path`, in a few words (their own
+    messages run to paragraphs about torch.load's weights_only): `exc` is what loading raised."""
+    import zipfile
+
+    text = str(exc)
+    if any(word in text for word in ("size mismatch", "Missing key", "Unexpected key")):
+        return "its weights do not fit this architecture (missing, unexpected or mis-shaped tensors)"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1)
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as err:
+        return f"it cannot be read ({err.strerror or err})"
+    if not is_zip and head != b"\x80":
+        return "it is neither a torch.save checkpoint (a zip archive) nor a pickle"
+    if "Unsupported global" in text:
+        return "it holds Python objects besides tensors, which are not unpickled (torch.load weights_only)"
+    return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
+
+
 class ClipEncoder:
     """OpenCLIP model embedding images and text into one unit-normalised space.
 
@@ -76,8 +97,7 @@ class ClipEncoder:
         except Exception as exc:  # unpickling / zip / shape errors of many kinds: one clear line
             if weights is None:
                 raise
-            first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-            raise InputError(weights, f"not an open_clip checkpoint for {model} ({first_line})") from None
+            raise InputError(weights, f"not an open_clip checkpoint for {model}: {checkpoint_problem(Path(weights), exc)}") from None
         self.net = net.to(self.device, dtype=self.dtype).eval()
         with _quiet_open_clip():
             self.tokenizer = open_clip.get_tokenizer(model)
