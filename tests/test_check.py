@@ -20,6 +20,7 @@ from drsplat.registration.check import (
     ViewSupport,
     _agreement_kernel,
     _own_alt_kernel,
+    abstaining_pairs,
     add_view_support,
     check_reference,
     fold_block_votes,
@@ -390,6 +391,86 @@ def test_what_the_check_keeps():
     kept = KeptPairs(record, result.keep, [view.present_masks() for view in views])
     assert list(kept.block_views(0, 21))[4].gaussians.size == 0
     assert not any(20 in view.gaussians for view in kept.block_views(0, 21)) and not kept.present()[4][0]
+
+
+def _abstaining_reference(gaussians, weights, kept, share: float) -> np.ndarray:
+    """`abstaining_pairs` one Gaussian at a time, in exact rationals of the float32 weights."""
+    from fractions import Fraction
+
+    out = np.zeros(len(gaussians), bool)
+    for g in set(int(x) for x in gaussians):
+        mine = [i for i, x in enumerate(gaussians) if x == g]
+        total = sum(Fraction(float(weights[i])) for i in mine)
+        dropped = sum(Fraction(float(weights[i])) for i in mine if not kept[i])
+        if dropped > 0 and dropped >= Fraction(share) * total:
+            out[mine] = True
+    return out
+
+
+def test_a_view_abstains_on_the_gaussians_its_dropped_masks_mostly_covered():
+    """Gaussian 0: 0.6 of its weight in the view under a dropped mask, 0.4 under a kept one; 1: half
+    and half (at the threshold); 2: 0.3 dropped; 3: nothing dropped; 4: all dropped. The view gives
+    0 and 1 no pair (their kept pairs are spill), keeps 2's and 3's. Any order of the pairs and any
+    block offset give the same flags; random views agree with an exact-rational reference (weights
+    of float32 sums: 2⁻²⁴ rounding never reaches the threshold's side here)."""
+    g = np.array([0, 0, 1, 1, 2, 2, 3, 4], np.int32) + 100
+    w = np.array([0.6, 0.4, 0.5, 0.5, 0.3, 0.7, 1.0, 0.2], np.float32)
+    kept = np.array([False, True, False, True, False, True, True, False])
+    got = abstaining_pairs(g, w, kept, 100, 105, share=0.5)
+    assert got.tolist() == [True, True, True, True, False, False, False, True]
+    order = np.random.default_rng(0).permutation(g.size)
+    np.testing.assert_array_equal(abstaining_pairs(g[order], w[order], kept[order], 90, 110, share=0.5), got[order])
+    assert not abstaining_pairs(g, w, np.ones(g.size, bool), 100, 105).any()
+    assert abstaining_pairs(g[:0], w[:0], kept[:0], 0, 0).shape == (0,)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        n = int(rng.integers(1, 60))
+        g = rng.integers(0, 12, n).astype(np.int32)
+        w = (rng.integers(1, 64, n) / 16).astype(np.float32)  # exact in 2⁻²⁴ units
+        w[rng.random(n) < 0.1] = 0.0
+        kept = rng.random(n) < 0.6
+        for share in (0.25, 0.5, 0.75):
+            np.testing.assert_array_equal(abstaining_pairs(g, w, kept, 0, 12, share=share), _abstaining_reference(g, w, kept, share))
+
+
+def test_kept_pairs_with_abstaining_views_are_the_same_in_every_block_partition():
+    """Gaussians seen through two masks per view (their own and a neighbour's spill), mislabelled
+    masks dropped: a view abstains on the Gaussians its dropped masks mostly covered. Blocks of 1, 5
+    and 16 Gaussians keep exactly the one-block pairs; the yielded views' present masks are the kept
+    present ones (`KeptPairs.present`: what the blocks path clusters), not just those with pairs left."""
+    rng = np.random.default_rng(3)
+    labels = _unit(rng.normal(size=(4, D)))
+    n = 32
+    truth = np.arange(n) % 4
+    views = []
+    for v in range(8):
+        g = np.arange(n)
+        own = truth[g]
+        spill = (own + 1) % 4  # the neighbour's mask over each Gaussian's edge
+        feats = _unit(labels + rng.normal(scale=0.02, size=(4, D)))
+        if v % 2 == 0:
+            feats[v % 4] = labels[(v + 2) % 4]  # a label none of the mask's Gaussians has: dropped
+        views.append(_view(f"v{v}", feats, np.concatenate([g, g]), np.concatenate([own, spill]),
+                           np.concatenate([rng.uniform(0.5, 1.0, n), rng.uniform(0.05, 0.4, n)])))
+    verdicts, record = _judge(views, n)
+    assert verdicts.dropped > 0
+    present = [view.present_masks() for view in views]
+    kept = KeptPairs(record, verdicts.keep, present)
+    whole = list(kept.block_views(0, n))
+    abstained = 0
+    for full, view, keep, flags, wanted in zip(whole, views, verdicts.keep, present, kept.present()):
+        in_kept = keep[view.masks]
+        gone = _abstaining_reference(view.gaussians, view.weights, in_kept, 0.5)
+        abstained += int((in_kept & gone).sum())
+        np.testing.assert_array_equal(full.gaussians, view.gaussians[in_kept & ~gone])
+        np.testing.assert_array_equal(full.present_masks(), wanted)
+    assert abstained > 0
+    for block in (1, 5, 16):
+        for lo in range(0, n, block):
+            for part, full in zip(kept.block_views(lo, min(n, lo + block)), whole):
+                inside = (full.gaussians >= lo) & (full.gaussians < lo + block)
+                np.testing.assert_array_equal(part.gaussians, full.gaussians[inside])
+                np.testing.assert_array_equal(part.weights, full.weights[inside])
 
 
 def test_one_clear_view_is_enough_to_drop_a_mask_no_other_view_shares():

@@ -55,10 +55,19 @@ Gaussians and drops whole masks:
    background: weak, split votes, each view's vote scaled by T_iv / T₀) or a label that a minority
    of other views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view
    mask check");
-3. the sums (and the vote stage after it) are made from the kept pairs in the same order. A
-   Gaussian all of whose pairs fell in dropped masks has no label the other views do not
-   contradict, and is left unassigned (it kept them all until 2026-11-28: on the mislabelled
-   rooms that painted labels the room does not hold; docs/evaluation.md).
+3. the sums (and the vote stage after it) are made from the kept pairs in the same order, less
+   the views that abstain on a Gaussian: where the dropped masks of view v held at least
+   CHECK_ABSTAIN of Gaussian i's weight in v,
+
+       Σ_{j dropped} w_ijv ≥ CHECK_ABSTAIN · Σ_j w_ijv   (sums in fixed point, `abstaining_pairs`),
+
+   v gives i no pair at all. What is left of i in such a view is the spill of its neighbours'
+   masks (a thin object's jittered mask is mostly background pixels around it, and the background
+   mask covers its footprint's edges), which without the dropped mask outweighs i's own label
+   there: on a grazing-view room with 10 % mislabels, a cable's Gaussians went to the wall
+   (docs/evaluation.md, "Views that abstain"). A Gaussian all of whose pairs fell in dropped masks
+   has no label the other views do not contradict, and is left unassigned (it kept them all until
+   2026-11-28: on the mislabelled rooms that painted labels the room does not hold).
 
 Where the pairs come from: the pair log, which registration always keeps for a check mode (its
 checkpoint, the log of a plan in blocks, or a temporary one); a CheckSink made without a log keeps
@@ -107,6 +116,9 @@ CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share 
 CHECK_LARGE_MASK = 0.01
 CHECK_WEAK_SUPPORT = 0.25
 CHECK_CORE = 0.05
+# step 3: a view whose dropped masks hold at least this share of a Gaussian's weight in it gives the
+# Gaussian no pair at all (what is left of it there is its neighbours' masks spilling onto it)
+CHECK_ABSTAIN = 0.5
 
 
 @dataclass
@@ -792,6 +804,22 @@ def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, 
     return MaskVerdicts(keep, dropped, judged, present, like, dropped_large)
 
 
+def abstaining_pairs(gaussians: np.ndarray, weights: np.ndarray, kept: np.ndarray, lo: int, hi: int,
+                     share: float = CHECK_ABSTAIN) -> np.ndarray:
+    """[P] bool: the pairs of one view (gaussians [P] in lo .. hi-1, weights [P] float32, kept [P]
+    bool: in a kept mask) of Gaussians whose dropped pairs hold at least `share` of their weight in
+    the view (module docstring, step 3). The weights are summed as integers, round(w · 2²⁴) (exact
+    in float64 below 2⁵³, i.e. ~5e8 pixels of weight per Gaussian and view), so the verdict does not
+    depend on the pairs' order."""
+    if gaussians.size == 0 or kept.all():
+        return np.zeros(gaussians.shape[0], bool)
+    local = np.asarray(gaussians, np.int64) - lo
+    fixed = np.floor(np.clip(np.nan_to_num(np.asarray(weights, np.float64), nan=0.0), 0.0, None) * SUPPORT_SCALE + 0.5)
+    total = np.bincount(local, fixed, minlength=hi - lo)
+    dropped = np.bincount(local[~kept], fixed[~kept], minlength=hi - lo)
+    return ((dropped > 0) & (dropped >= share * total))[local]
+
+
 class KeptPairs:
     """The pairs the check keeps, read block by block like a pair log (step 3): a view's pairs in
     kept masks. A Gaussian all of whose pairs are in dropped masks keeps none and is left
@@ -807,11 +835,21 @@ class KeptPairs:
         self.source, self.keep, self._present = source, keep, present
 
     def block_views(self, lo: int, hi: int) -> Iterator[ViewPairs]:
-        """Every view in order with the kept pairs of Gaussians lo .. hi-1."""
-        for view, k in zip(self.source.block_views(lo, hi), self.keep):
+        """Every view in order with the kept pairs of Gaussians lo .. hi-1: those in kept masks, less
+        those of Gaussians the view abstains on (`abstaining_pairs`). A Gaussian's pairs of a view
+        all lie in one block, so every partition into blocks keeps the same pairs. With the views'
+        present masks known, a yielded view's `present` is its kept present masks whatever
+        pairs are left, as `present` says (the one-block path clusters from it, the blocks path from
+        `present`: the same clusters)."""
+        for v, (view, k) in enumerate(zip(self.source.block_views(lo, hi), self.keep)):
             kept = k[view.masks]
-            yield view if kept.all() else ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept],
-                                                    view.used, view.num_pairs, view.num_nonfinite)
+            if kept.all():
+                yield view
+                continue
+            kept &= ~abstaining_pairs(view.gaussians, view.weights, kept, lo, hi)
+            present = None if self._present is None or v >= len(self._present) else k & self._present[v]
+            yield ViewPairs(view.name, view.feats, view.gaussians[kept], view.masks[kept], view.weights[kept], view.used, view.num_pairs,
+                            view.num_nonfinite, present=present)
 
     def present(self) -> list[np.ndarray]:
         """Per view [M] bool: the masks with a kept pair, the kept masks among those with a pair
