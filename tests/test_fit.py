@@ -196,14 +196,15 @@ def test_the_probe_views_pairs_are_the_view_passs_own(rooms, mode):
     """The pairs the fit stage keeps (render, hook, coalescing) are those the view pass computes for
     the same view with the resolved mode, field for field, statistics included."""
     from drsplat.registration.aggregate import Aggregator
-    from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+    from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 
     data = rooms["geometry"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     stage = fit_stage(mode, scene, cams, data / "features", 1, 10, keep_pairs=True)
     assert sorted(stage.pairs) == probe_views(len(cams)).tolist()
     geometry = prepare_geometry(scene)
-    computer = ViewComputer(geometry, ViewJob(data / "features", 1, 10, hook=Aggregator(stage.mode, scene).hook))
+    job = ViewJob(data / "features", 1, 10, hook=Aggregator(stage.mode, scene).hook, by_gaussian=pairs_by_gaussian(stage.mode))
+    computer = ViewComputer(geometry, job)
     for i, kept in stage.pairs.items():
         view = computer.load_and_compute(cams[i])
         for name in ("gaussians", "masks", "weights", "feats", "used"):

@@ -133,6 +133,32 @@ def test_parallel_parts_give_the_serial_pairs_in_the_same_order(case):
     assert want[3] == rpairs
 
 
+@pytest.mark.parametrize("parts", [1, 3])
+def test_pairs_grouped_by_gaussian_are_the_same_pairs_with_each_gaussians_masks_in_order(parts):
+    """coalesce(by_gaussian=True): the mask-by-mask pairs stably sorted by Gaussian (numpy's stable
+    argsort), so every Gaussian keeps its masks in increasing order, the order its sums use: the
+    accumulated F and W are the same bits as from the mask-by-mask pairs."""
+    rng = np.random.default_rng(5)
+    n, m, k = 300, 40, 6
+    ids, weights, masks, feats = _random_view(rng, 23, 31, k, n, m)
+    coalescer = Coalescer(n, capacity=1, parts=parts)
+    g, mk, w, pairs = coalescer.coalesce(ids, weights, masks, m)
+    gg, gm, gw, gpairs = coalescer.coalesce(ids, weights, masks, m, by_gaussian=True)
+    order = np.argsort(g, kind="stable")
+    for a, b in ((gg, g[order]), (gm, mk[order]), (gw, w[order])):
+        np.testing.assert_array_equal(a, b)
+    assert gpairs == pairs and (np.diff(gg) >= 0).all()
+    same = np.flatnonzero(np.diff(gg) == 0)
+    assert same.size and (gm[same + 1] > gm[same]).all()  # a Gaussian's masks ascending
+    sums = []
+    for pg, pm, pw in ((g, mk, w), (gg, gm, gw)):
+        acc = Accumulator(n, feats.shape[1])
+        acc.add_pairs(pg, pm, pw, feats)
+        sums.append(acc.sums())
+    for a, b in zip(*sums):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_coalescer_parts_keep_their_extra_scratch_within_the_limit():
     """Parallel parts cost SCRATCH_BYTES per Gaussian each: one per thread on small scenes, as many
     as fit EXTRA_SCRATCH_LIMIT beyond the first on large ones (one part at 50M Gaussians)."""

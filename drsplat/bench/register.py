@@ -492,11 +492,11 @@ class _ViewCounter:
 
     def __init__(self, scene, features_dir: Path, topk: int, engine: str, device: str, on_device: bool, aggregate: str = "paper"):
         from drsplat.registration.aggregate import Aggregator
-        from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+        from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 
         self.scene, self.features_dir, self.engine, self.device, self.on_device = scene, features_dir, engine, device, on_device
         self.aggregator = Aggregator(aggregate, scene)
-        job = ViewJob(features_dir, 0, topk, engine, device, self.aggregator.hook, device_pairs=on_device)
+        job = ViewJob(features_dir, 0, topk, engine, device, self.aggregator.hook, device_pairs=on_device, by_gaussian=pairs_by_gaussian(aggregate))
         self.computer = ViewComputer(prepare_geometry(scene), job)
         self.sink = None
         self._pending = None  # the view computed last, handed to the sink once the next one is computed (as the driver does)

@@ -101,7 +101,8 @@ from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, _rows_order, space_saving_slot
+from drsplat.registration.coalesce import rows_order
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -247,7 +248,7 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
     """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
     cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
     cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
-    row (`_rows_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
+    row (`rows_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
     view are folded in parallel (vote._row_aligned_cuts): the same bits as one pass."""
     cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
     for part in numba.prange(VOTE_PARTS):
@@ -277,7 +278,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                     entry_core, scratch, core, touched, mass):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
     (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
-    the pairs sorted by row (`_rows_order`), so each Gaussian's pairs of the view are consecutive.
+    the pairs sorted by row (`rows_order`), so each Gaussian's pairs of the view are consecutive.
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
     the same in any order and any partition of the Gaussians: one block, blocks in any order,
@@ -392,17 +393,17 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     return out_j[:out_n].copy(), out_c[:out_n].copy(), out_value, out_core
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _agreement_kernel(starts, clusters, values, mass, units, means, agree, total):  # pragma: no cover - jitted
     """Per mask j: total[j] = Σ_c q[j, c] / mass[j] (the other views' votes, in views) and
     agree[j] = f̂_j · ĉ_j, ĉ_j = normalize(Σ_c q[j, c] μ_c) (the cosine between the mask's unit
     embedding and its Gaussians' consensus); 0 for masks without pairs or consensus. q as
     compressed rows (`ViewSupport.rows`: mask j's entries at starts[j] .. starts[j + 1] - 1, in
-    cluster order)."""
+    cluster order). Masks in parallel: each one's sums in the same order as alone."""
     num_masks = mass.shape[0]
     dim = means.shape[1]
-    consensus = np.empty(dim)
-    for j in range(num_masks):
+    for j in numba.prange(num_masks):
+        consensus = np.empty(dim)
         agree[j] = 0.0
         total[j] = 0.0
         if not mass[j] > 0.0:
@@ -426,18 +427,19 @@ def _agreement_kernel(starts, clusters, values, mass, units, means, agree, total
             agree[j] = dot / np.sqrt(norm)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _own_alt_kernel(starts, clusters, values, core_values, mass, units, means, like, own, alt, core):  # pragma: no cover - jitted
     """own[j] = Σ_{c like j} q[j, c] / mass[j], "like" μ_c · f̂_j ≥ `like`; alt[j] = Σ_{c in the group
     of c*} q[j, c] / mass[j], c* the unlike cluster of largest q (the first in cluster order of
     equal ones) and its group the unlike clusters c with μ_c · μ_c* ≥ `like`; core[j] = Σ_{c like j}
     r[j, c] / Σ_c r[j, c], the share of the mask's weight on Gaussians whose other views vote most
     for its own label (0 for masks without pairs or without such votes). Dotted only where q > 0
-    or r > 0. q and r (core_values) as compressed rows (`_agreement_kernel`)."""
+    or r > 0. q and r (core_values) as compressed rows (`_agreement_kernel`). Masks in parallel (each
+    writes its own entries of the similarity scratch): the same bits as one after the other."""
     num_masks = mass.shape[0]
     dim = means.shape[1]
     sims = np.empty(values.shape[0])
-    for j in range(num_masks):
+    for j in numba.prange(num_masks):
         own[j] = 0.0
         alt[j] = 0.0
         core[j] = 0.0
@@ -609,7 +611,7 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
         if view.gaussians.size:
             rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
             _fold_votes_kernel(rows, np.ascontiguousarray(clusters[view.masks], np.int32), np.ascontiguousarray(view.weights, np.float32),
-                               _rows_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
+                               rows_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
     return slot_c, slot_v
 
 
@@ -627,7 +629,7 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
         values, core, touched = scratch.take(support.mass_fixed.shape[0])
         support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = _support_kernel(
             rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-            np.ascontiguousarray(clusters[view.masks], np.int32), _rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
+            np.ascontiguousarray(clusters[view.masks], np.int32), rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
             support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core, values, core, touched, support.mass_fixed)
 
 

@@ -26,7 +26,7 @@ from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
 from drsplat.raster import PreparedScene, get_engine, prepare_scene
-from drsplat.registration.aggregate import ViewHook
+from drsplat.registration.aggregate import ViewHook, mode_stages
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
 from drsplat.registration.pairlog import ViewPairs
@@ -63,6 +63,8 @@ class ViewJob:
     shard_dir / log_params: the views are logged by the Ray workers that compute them, each into a
     shard of its own in this folder (drsplat.registration.pairlog.ShardWriter, with the log's
     parameters), and the driver gets pointers; None: the driver logs them.
+    by_gaussian: coalesce each view's pairs grouped by Gaussian (`Coalescer.coalesce`): what a mode
+    with a vote or check stage reads them as (`pairs_by_gaussian`); the sums do not change.
     """
 
     features_dir: Path
@@ -76,6 +78,14 @@ class ViewJob:
     group_pairs: bool = False
     shard_dir: str | None = None
     log_params: dict | None = None
+    by_gaussian: bool = False
+
+
+def pairs_by_gaussian(mode: str) -> bool:
+    """Whether `mode`'s views are best coalesced grouped by Gaussian (`ViewJob.by_gaussian`): its vote
+    and check stages read a view's pairs Gaussian by Gaussian, which otherwise costs them a sort each."""
+    stages = mode_stages(mode)
+    return stages.vote or stages.check
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -162,7 +172,7 @@ class ViewComputer:
         to accumulate and the hook's stats: its distinct (Gaussian, mask) pairs (not grouped; the
         coalescing's seconds are counted from the call)."""
         t0 = time.perf_counter()
-        g, m, w, pairs = self._coalescer.coalesce(ids, weights, mask_ids, feats.shape[0])
+        g, m, w, pairs = self._coalescer.coalesce(ids, weights, mask_ids, feats.shape[0], by_gaussian=self.job.by_gaussian)
         view = ViewPairs(cam.name, feats, g, m, w, used_masks(mask_ids), pairs, num_nonfinite=nonfinite, stats=stats)
         view.raster_seconds, view.coalesce_seconds = raster_seconds, time.perf_counter() - t0
         return view

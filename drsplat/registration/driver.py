@@ -43,7 +43,7 @@ from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FitChoice, FitStage, fit_stage, is_fit_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
-from drsplat.registration.compute import ViewJob, WorkerStats, prepare_geometry
+from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
@@ -454,7 +454,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     shards = ckpt is not None and ckpt.shards_dir is not None
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
                   device_pairs=device_pairs, group_pairs=ckpt is not None, shard_dir=str(ckpt.shards_dir.resolve()) if shards else None,
-                  log_params=ckpt.log.params if shards else None)
+                  log_params=ckpt.log.params if shards else None, by_gaussian=pairs_by_gaussian(options.aggregate))
     ready = {i: view for i, view in (probe.pairs if probe is not None else {}).items() if i >= totals.done}
     geometry = probe.geometry if probe is not None else prepare_geometry(run.scene)
     executor = open_executor(options.place, geometry, job, options.cluster, index=probe.index if probe is not None else None)

@@ -42,7 +42,7 @@ from drsplat.cameras import Camera
 from drsplat.raster import PreparedScene
 from drsplat.registration.aggregate import RayGeometry, mode_hook, mode_stages
 from drsplat.registration.coalesce import Coalescer
-from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features
@@ -273,7 +273,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     rays = RayGeometry.from_scene(scene) if keep_pairs and mode_stages(candidates["sharp"]).reject else None
     # the sharp candidate's hook gives the sharp weights, and renders with the median exactly when the view pass will
     hook = mode_hook(candidates["sharp"] if keep_pairs else "sharp", rays)
-    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull))
+    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull, by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
     picks = probe_views(len(views), count)
     scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}

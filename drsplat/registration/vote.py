@@ -52,6 +52,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import VOTE_SLOTS
+from drsplat.registration.coalesce import rows_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource
 from drsplat.registration.sums import Accumulator
@@ -175,30 +176,6 @@ class MaskClusters:
         return (sums / np.where(norm > 0, norm, 1.0)).astype(np.float32)
 
 
-@numba.njit(cache=True)
-def _rows_order(rows):  # pragma: no cover - jitted
-    """[P] int64: the pairs' indices stably sorted by row (rows [P] >= 0 int32), by two 16-bit radix
-    passes: O(P), whatever the number of rows. Its reference is numpy's stable argsort (tested);
-    numpy's own two-pass radix (argsort of uint16 digits) gave the same order 2-3 ms slower per
-    flowers view."""
-    n = rows.shape[0]
-    order = np.arange(n)
-    spare = np.empty(n, np.int64)
-    for shift in (0, 16):
-        counts = np.zeros(65537, np.int64)
-        for i in range(n):
-            counts[((rows[i] >> shift) & 0xFFFF) + 1] += 1
-        for d in range(65536):
-            counts[d + 1] += counts[d]
-        for i in range(n):
-            p = order[i]
-            d = (rows[p] >> shift) & 0xFFFF
-            spare[counts[d]] = p
-            counts[d] += 1
-        order, spare = spare, order
-    return order
-
-
 @numba.njit(cache=True, inline="always")
 def space_saving_slot(slot_c, slot_v, r, c):  # pragma: no cover - jitted
     """The slot of row r that cluster c goes to (space-saving): its own slot, else the first empty
@@ -253,7 +230,7 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
     """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
     weights [P] float32) into the vote slots (module docstring, step 2): slot_v the votes V_ic,
     slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what the trimmed mean removes).
-    order [P]: the pairs grouped by row, each row's pairs in their given order (`_rows_order`).
+    order [P]: the pairs grouped by row, each row's pairs in their given order (`rows_order`).
     total: [rows] float64 scratch, zero on entry and exit.
 
     A pair reads and writes its own row only, so the view is cut into VOTE_PARTS row-aligned parts
@@ -289,7 +266,7 @@ def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray,
     zeros (scratch, zero again on return), or None for new ones."""
     rows = np.ascontiguousarray(rows, np.int32)
     total = np.zeros(slot_c.shape[0]) if total is None else total
-    _vote_view_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32), _rows_order(rows),
+    _vote_view_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32), rows_order(rows),
                       float(presence), float(full_view), total, slot_c, slot_v, slot_s)
 
 
