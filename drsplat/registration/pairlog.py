@@ -71,7 +71,9 @@ class ViewPairs:
 
     feats: [M, D] float32 the view's mask embeddings (non-finite ones zeroed, their pixels dropped).
     gaussians: [P] int32, masks: [P] int32 (rows of feats), weights: [P] float32 w_ij, in the
-    order the coalescing kernel emits them (mask by mask), which fixes the summation order.
+    order the coalescing emits them (mask by mask, or grouped by Gaussian for a vote or check mode:
+    `ViewJob.by_gaussian`); each Gaussian's masks come in increasing order either way, which fixes
+    the summation order.
     used: [U] int32 masks that cover at least one pixel (for training a scene codebook).
     num_pairs: contributing (Gaussian, pixel) pairs; num_nonfinite: masks dropped.
     raster_seconds / coalesce_seconds: where the time went (not stored in the log).
