@@ -62,7 +62,8 @@ def splat_geometry(scene: GaussianScene) -> np.ndarray:
     # Σ finite in float64 but not in float32 (scales ~1e19 to 1.8e19·e^69, e.g. a raw scale of 1e30 stored
     # where 3DGS stores its log): the CPU rasterizer draws these splats, the shader cannot; the load's own
     # warning covers scales that overflow float32 themselves
-    lost = int((np.isfinite(cov).all(axis=(1, 2)) & ~np.isfinite(geometry[:, 1:]).all(axis=(1, 2))).sum())
+    beyond = ~np.isfinite(geometry[:, 1:]).all(axis=(1, 2))
+    lost = int(np.isfinite(cov[beyond]).all(axis=(1, 2)).sum()) if beyond.any() else 0
     if lost:
         log.warning("%d of %d Gaussians have a covariance beyond float32 (a scale above ~1e19: are raw scales stored where "
                     "3DGS stores their logs?); the viewer does not draw them", lost, n)

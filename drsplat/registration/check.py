@@ -149,6 +149,12 @@ def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.nda
     return np.where(s > 0, np.minimum(1.0, s / (t * presence)) * np.minimum(1.0, t / full_view), 0.0)
 
 
+def fixed_support(x: np.ndarray) -> np.ndarray:
+    """`_fixed` of each x ≥ 0 in numpy: round(x · SUPPORT_SCALE) as float64 (integers, exact below
+    2⁵³, so their sums are the same in any order)."""
+    return np.floor(np.asarray(x, np.float64) * SUPPORT_SCALE + 0.5)
+
+
 def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
                     means: np.ndarray, like: float | None = None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Obviously-correct reference of step 2 with unbounded slots (numpy, float64), every term and
@@ -169,9 +175,9 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
         num_masks = c.shape[0]
         q = np.zeros((num_masks, k))
         other = np.maximum(V - own_votes, 0.0)[g]  # the kernel adds the positive terms only
-        np.add.at(q, m, np.floor(w.astype(np.float64)[:, None] * other * SUPPORT_SCALE + 0.5))
+        np.add.at(q, m, fixed_support(w.astype(np.float64)[:, None] * other))
         q /= SUPPORT_SCALE
-        mass = np.bincount(m, np.floor(w.astype(np.float64) * SUPPORT_SCALE + 0.5), num_masks) / SUPPORT_SCALE
+        mass = np.bincount(m, fixed_support(w), num_masks) / SUPPORT_SCALE
         units = unit_rows(feats)
         units[c < 0] = 0.0
         has = mass > 0
@@ -184,7 +190,7 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
         r = np.zeros((num_masks, k))
         voted = other.max(axis=1) > 0 if k else np.zeros(g.shape[0], bool)
         if k:
-            np.add.at(r, (m[voted], np.argmax(other, axis=1)[voted]), np.floor(w.astype(np.float64)[voted] * SUPPORT_SCALE + 0.5))
+            np.add.at(r, (m[voted], np.argmax(other, axis=1)[voted]), fixed_support(w[voted]))
         r /= SUPPORT_SCALE
         own, alt, core = np.zeros(num_masks), np.zeros(num_masks), np.zeros(num_masks)
         for j in np.flatnonzero(has) if like is not None else ():
@@ -810,13 +816,13 @@ def abstaining_pairs(gaussians: np.ndarray, weights: np.ndarray, kept: np.ndarra
                      share: float = CHECK_ABSTAIN) -> np.ndarray:
     """[P] bool: the pairs of one view (gaussians [P] in lo .. hi-1, weights [P] float32, kept [P]
     bool: in a kept mask) of Gaussians whose dropped pairs hold at least `share` of their weight in
-    the view (module docstring, step 3). The weights are summed as integers, round(w · 2²⁴) (exact
+    the view (module docstring, step 3). The weights are summed as integers (`fixed_support`: exact
     in float64 below 2⁵³, i.e. ~5e8 pixels of weight per Gaussian and view), so the verdict does not
     depend on the pairs' order."""
     if gaussians.size == 0 or kept.all():
         return np.zeros(gaussians.shape[0], bool)
     local = np.asarray(gaussians, np.int64) - lo
-    fixed = np.floor(np.clip(np.nan_to_num(np.asarray(weights, np.float64), nan=0.0), 0.0, None) * SUPPORT_SCALE + 0.5)
+    fixed = fixed_support(weights)
     total = np.bincount(local, fixed, minlength=hi - lo)
     dropped = np.bincount(local[~kept], fixed[~kept], minlength=hi - lo)
     return ((dropped > 0) & (dropped >= share * total))[local]
