@@ -274,7 +274,7 @@ def _read_text(path: Path) -> str:
     except OSError as exc:
         raise InputError(path, f"cannot be read ({exc.strerror or exc})") from None
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # a byte-order mark (Notepad) is skipped
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         raise InputError(path, f"is not UTF-8 text (invalid byte at offset {exc.start}, line {line})") from None
@@ -517,10 +517,17 @@ class DatasetPaths:
 
 
 def check_image_name(path: Path, name: str, where: str, field: str) -> None:
-    """Refuse an image name with a NUL byte: no file system allows one (Python raises ValueError
-    on it), so it is a corrupt record, not a missing image."""
+    """Refuse an image name no file can have, a corrupt record rather than a missing image: a NUL
+    byte (Python raises ValueError on it), a lone UTF-16 surrogate (JSON's "\ud800" alone: no file
+    system name encodes it) or a name whose last part is empty, "." or ".." (a folder: "/", "images/")."""
     if "\x00" in name:
         raise InputError(path, f"{where} has an image name with a NUL byte (at character {name.index(chr(0))}); a file name cannot hold one", field=field)
+    bad = next((i for i, ch in enumerate(name) if "\ud800" <= ch <= "\udfff"), None)
+    if bad is not None:
+        raise InputError(path, f"{where} has an image name with a lone UTF-16 surrogate (at character {bad}), which no file name holds", field=field)
+    last = name.replace("\\", "/").rsplit("/", 1)[-1]  # a Windows-written name may use backslashes
+    if last in ("", ".", ".."):
+        raise InputError(path, f"{where} has the image name {name[:80]!r}, which names a folder, not an image file", field=field)
 
 
 def validate_camera(camera: Camera, path: Path, where: str) -> None:
@@ -895,11 +902,20 @@ def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:
 
 
 def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
-    """The cameras at a 3DGS-style `-r` (`resolution_scale`; unscaled ones returned as they are)."""
-    out = []
+    """The cameras at a 3DGS-style `-r` (`resolution_scale`; unscaled ones returned as they are).
+    A target width above a view's own is followed, as 3DGS does, with one warning: the image and its
+    masks hold no more detail than their own size, so the larger views only cost time and memory."""
+    out, upscaled = [], []
     for c in cameras:
         scale = resolution_scale(c.width, resolution)
         out.append(c.scaled(scale) if scale != 1.0 else c)
+        if scale > 1.0:
+            upscaled.append((c, out[-1], scale))
+    if upscaled:
+        c, big, scale = max(upscaled, key=lambda u: u[2])
+        log.warning("resolution %g upscales %d of %d views (the most: %dx%d to %dx%d, %.3gx); their images and masks hold no more "
+                    "detail than their own size, so the larger views only cost time and memory (-1 keeps their size)",
+                    resolution, len(upscaled), len(cameras), c.width, c.height, big.width, big.height, scale)
     return out
 
 

@@ -81,6 +81,10 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
         raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {arr.shape}")
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
+    with np.errstate(invalid="ignore"):
+        beyond = np.flatnonzero((np.abs(arr) > np.finfo(np.float32).max).any(axis=1)) if arr.dtype.itemsize > 4 else np.zeros(0, int)
+    if beyond.size:  # the float32 cast would make them inf (with numpy's overflow warning)
+        raise InputError(path, f"rows {beyond[:10].tolist()} hold values beyond float32's range (±3.4e38); embeddings are stored as float32")
     arr = arr.astype(np.float32)
     bad = ~np.isfinite(arr).all(axis=1) | (np.abs(np.nan_to_num(arr)).max(axis=1) == 0)
     if bad.any():
@@ -102,6 +106,8 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
     if arr.dtype == bool:
         if arr.shape[0] != n:
             raise InputError(path, f"boolean mask has {arr.shape[0]} entries, the scene has {n} Gaussians")
+        if not arr.any():
+            raise InputError(path, f"the boolean mask selects none of the {n} Gaussians")
         return np.flatnonzero(arr)
     if not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected integer Gaussian indices, got dtype {arr.dtype}")
@@ -110,6 +116,9 @@ def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:
     out = (arr < 0) | (arr >= n)
     if out.any():
         raise InputError(path, f"{int(out.sum())} indices fall outside 0..{n - 1} (e.g. {int(arr[out][0])})")
+    if n > 2 and arr.shape[0] == n and arr.min() >= 0 and arr.max() <= 1:  # a mask saved as 0/1 integers reads as ids 0 and 1
+        log.warning("%s: %d integer entries, one per Gaussian, all 0 or 1: read as the Gaussian ids 0 and 1; save a boolean mask "
+                    "(dtype bool) to select by mask", path, n)
     return arr.astype(np.int64)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -271,6 +272,9 @@ def _fail(path: Path, problem: str, field: str | None = None) -> InputError:
     return InputError(path, problem, field=field)
 
 
+_END_HEADER = re.compile(rb"(?m)^[ \t]*(end_header)[ \t]*\r?$")
+
+
 def read_ply_header(path: Path) -> PlyHeader:
     """Parse a PLY header. Raises InputError naming the file and the problem."""
     try:
@@ -280,7 +284,13 @@ def read_ply_header(path: Path) -> PlyHeader:
         raise _fail(path, f"cannot be read ({exc.strerror or exc})") from None
     if not head.startswith(b"ply"):
         raise _fail(path, "is not a PLY file (it does not start with 'ply')")
-    end = head.find(b"end_header")
+    # the header ends at the first line that is `end_header`, as plyfile reads it: not at those
+    # letters inside a comment ("data follows end_header"), which would shift every row
+    match = _END_HEADER.search(head)
+    end = match.start(1) if match is not None else -1
+    if end < 0 and re.search(rb"\rend_header\r", head) and b"\n" not in head[: head.find(b"end_header")]:
+        raise _fail(path, "ends its header lines with a carriage return alone (classic Mac OS line ends); a PLY header's "
+                          "lines end with LF (or CRLF)")
     if end < 0 and len(head) == MAX_HEADER_BYTES:
         raise _fail(path, f"has no 'end_header' in its first {MAX_HEADER_BYTES:,} bytes: a header that long is not read (or this is not a PLY file)")
     if end < 0:
@@ -421,6 +431,7 @@ def load_ply_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
     header, data = read_ply_elements(path)
     if "vertex" not in data:
         raise _fail(path, "has no 'vertex' element", field="vertex")
+    refuse_undeclared_row_bytes(path, header, path.stat().st_size)
     if "chunk" in data and "packed_position" in (data["vertex"].dtype.names or ()):
         raw, order = _decode_compressed(path, data), list(data["vertex"].dtype.names)
         layout = "compressed"
@@ -433,6 +444,23 @@ def load_ply_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
     if report.trailing_bytes:
         log.warning("%s: %s", path, report.trailing_note())
     return scene, report
+
+
+MIN_ROWS_FOR_ROW_CHECK = 64  # fewer rows divide stray trailing bytes evenly too often to read it as a row-size mismatch
+
+
+def refuse_undeclared_row_bytes(path: Path, header: PlyHeader, size: int) -> None:
+    """InputError when the bytes after a binary vertex element (its last element) are the same
+    number per row and not whole rows: each row holds that many bytes more than the header declares
+    (a property missing from the header), so every row after the first would be read shifted."""
+    last = header.elements[-1] if header.elements else None
+    if last is None or last.name != "vertex" or last.count < MIN_ROWS_FOR_ROW_CHECK:
+        return
+    extra, row = trailing_bytes(header, size), last.min_row_bytes(header.format)
+    if extra and row and extra % last.count == 0 and extra % row != 0:
+        raise _fail(path, f"holds {extra // last.count} bytes more per vertex row than its header declares ({last.count:,} rows of "
+                          f"{row} bytes, then {extra:,} bytes = {extra // last.count} x {last.count:,}): a property is missing from "
+                          "the header, and every row would be misread", field="vertex")
 
 
 def trailing_bytes(header: PlyHeader, size: int) -> int:

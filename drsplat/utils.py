@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import math
 import os
 import tempfile
 import threading
@@ -362,6 +363,24 @@ def regular_file(path: str | Path) -> Path:
     if not path.is_file():
         raise InputError(path, "file not found" if not path.exists() else "is not a file")
     return path
+
+
+def json_text(doc: object, indent: int | None = 2) -> str:
+    """`doc` as strict JSON: every non-finite float (NaN, ±inf; Python's or numpy's) written as null.
+    json.dumps alone writes NaN / Infinity, which JavaScript's JSON.parse and other strict parsers
+    reject; where a value is undefined the document's own fields (findings, counts) say why."""
+    import json
+
+    def strict(value):
+        if isinstance(value, dict):
+            return {k: strict(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [strict(v) for v in value]
+        if isinstance(value, (float, np.floating)):
+            return float(value) if math.isfinite(value) else None
+        return value
+
+    return json.dumps(strict(doc), indent=indent, allow_nan=False)
 
 
 def read_json(path: str | Path, what: str) -> object:

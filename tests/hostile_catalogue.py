@@ -65,6 +65,9 @@ PLY_CASES: dict[str, Callable[[Path], bytes]] = {
     "not_a_ply": lambda d: b"\x89PNG\r\n\x1a\n" + b"\0" * 64,
     "empty_file": lambda d: b"",
     "ascii_garbage_rows": lambda d: ply_bytes(vertex_header(2), b"1 2 3\nfoo bar\n" + b"0 " * 40, fmt="ascii"),
+    # rows of 18 floats under a header that lists 17: every row after the first would be read shifted
+    "property_missing_from_header": lambda d: ply_bytes(vertex_header(100), vertex_body(100, INRIA_PROPS + ["nz"])),
+    "cr_only_header": lambda d: ply_bytes(vertex_header(1), vertex_body(1)).replace(b"\n", b"\r", len(vertex_header(1)) + 3),
 }
 
 PLY_BOMBS = ("face_2e9_after_vertex", "face_2e9_before_vertex", "vertex_2e9", "vertex_1e15_ascii", "chunk_bomb_compressed")
@@ -150,6 +153,10 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
                              "field 'transform_matrix': frame 0 has \"1\" at row 0, column 0"),
     "bool_in_matrix": ({"frames": [_frame(transform_matrix=[[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]},
                        "frame 0 has true at row 0, column 0"),
+    # round 5: a lone surrogate raised UnicodeEncodeError, "/" raised ValueError (empty name), both as tracebacks
+    "surrogate_in_file_path": ({"frames": [_frame(file_path="images/\ud800x.png")]}, "field 'file_path': frame 0 has an image name with a lone UTF-16 surrogate"),
+    "file_path_root": ({"frames": [_frame(file_path="/")]}, "field 'file_path': frame 0 has the image name '/', which names a folder"),
+    "file_path_folder": ({"frames": [_frame(file_path="images/")]}, "names a folder"),
 }
 
 
@@ -284,6 +291,12 @@ def _mask_map_half_resolution(features: Path, stem: str, dim: int) -> None:
     np.save(features / f"{stem}_s.npy", np.ascontiguousarray(seg[..., ::2, ::2]))  # a uniform scale: resampled
 
 
+def _ids_as_uint8_with_255_for_none(features: Path, stem: str, dim: int) -> None:
+    seg = np.load(features / f"{stem}_s.npy").astype(np.int64)
+    seg[seg < 0] = 255  # "no mask" as an unsigned dtype cannot store it: the error named 511, a value not in the file
+    np.save(features / f"{stem}_s.npy", seg.astype(np.uint8))
+
+
 FEATURE_VIEW_CASES: dict[str, tuple[Callable[[Path, str, int], None], str | None]] = {
     # name: (mutates one view of a features folder, None = registers (exit 0) | words of the one error)
     "no_masks": (_view_without_masks, None),  # was: TypeError in the pair log (memoryview cast)
@@ -294,6 +307,7 @@ FEATURE_VIEW_CASES: dict[str, tuple[Callable[[Path, str, int], None], str | None
     "mask_map_half_resolution": (_mask_map_half_resolution, None),
     "mask_map_transposed": (_mask_map_transposed, "differ (a transposed or cropped map?)"),
     "mask_map_bool": (_mask_map_bool, "dtype bool"),
+    "uint8_255_for_no_mask": (_ids_as_uint8_with_255_for_none, "255 is the largest uint8: if it means 'no mask'"),
 }
 
 SPECIAL_OUTPUTS = ("/dev/full", "/dev/null", "fifo", "symlink", "rlimit_fsize", "injected_enospc")  # tests/test_hostile.py

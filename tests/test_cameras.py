@@ -306,6 +306,18 @@ def test_colmap_images_txt_keeps_every_record_despite_blank_lines(tmp_path, four
         np.testing.assert_allclose(a.t, b.t, atol=1e-12)
 
 
+def test_colmap_text_files_with_a_byte_order_mark_read_like_without(tmp_path, four_cameras):
+    """Notepad saves UTF-8 with a byte-order mark: cameras.txt was "a malformed camera line" and
+    images.txt "not an image line" (round 5). The mark is skipped, as in JSON files."""
+    cams, imgs = colmap_text_lines(four_cameras)
+    model = {"cameras.txt": "\ufeff" + cams, "images.txt": "\ufeff" + imgs}
+    loaded = load_cameras(_write_model(tmp_path / "m", model), require_images=False)
+    assert [c.name for c in loaded] == ["a", "b", "c", "d"]
+    for a, b in zip(four_cameras, loaded):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        assert (a.fx, a.width) == (b.fx, b.width)
+
+
 def test_colmap_images_txt_count_comment_that_disagrees_is_a_warning(tmp_path, four_cameras, caplog):
     """Round 3 C1: records read against the "# Number of images" comment COLMAP writes."""
     cams, imgs = colmap_text_lines(four_cameras)
@@ -340,3 +352,18 @@ def test_colmap_binary_model_reads_like_the_text_model(tmp_path, four_cameras):
     assert [c.name for c in loaded] == ["a", "b", "c", "d"]
     for a, b in zip(four_cameras, loaded):
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+
+
+def test_a_resolution_above_the_views_width_warns_once(tmp_path, four_cameras, caplog):
+    """`--resolution 16384` on 128-px views upscaled them 128x without a word (then ran out of memory)."""
+    from drsplat.cameras import scale_cameras
+
+    width = four_cameras[0].width
+    with caplog.at_level(logging.WARNING):
+        same = scale_cameras(four_cameras, width // 2)
+    assert not caplog.records and same[0].width == width // 2
+    with caplog.at_level(logging.WARNING):
+        big = scale_cameras(four_cameras, 4 * width)
+    (record,) = caplog.records
+    assert big[0].width == 4 * width and "upscales 4 of 4 views" in record.getMessage() and "4x" in record.getMessage()
+

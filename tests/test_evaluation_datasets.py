@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.abc
 import json
+import re
 import sys
 
 import numpy as np
@@ -106,6 +107,23 @@ def test_labelled_points_errors(tmp_path):
         find_scannet_labels(tmp_path / "scene_without_labels")
 
 
+@pytest.mark.parametrize("values, words", [([1.5, 2.0], "holds 1 values that are not whole numbers (vertex 0: 1.5)"),
+                                           ([2.0, float("nan")], "(vertex 1: nan)"), ([1.0, 3.0], None)])
+def test_labelled_points_with_float_labels(tmp_path, values, words):
+    """A label property declared float: 1.5 was read as class 1 (astype) without a word; whole
+    numbers stored as floats (a converter's output) still read."""
+    from plyfile import PlyData, PlyElement
+
+    rows = np.array([(0.0, 0.0, 0.0, v) for v in values], [("x", "f4"), ("y", "f4"), ("z", "f4"), ("label", "f4")])
+    path = tmp_path / "floats.ply"
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(path))
+    if words is None:
+        assert load_labelled_points(path).labels.tolist() == [0, 2]
+        return
+    with pytest.raises(InputError, match=re.escape(words)):
+        load_labelled_points(path)
+
+
 def test_scannet_cameras_from_poses(tmp_path):
     from PIL import Image
 
@@ -167,6 +185,9 @@ def test_labelled_points_from_an_open3d_cloud_and_a_labels_sidecar(tmp_path, suf
         load_labelled_points(path)
     np.save(labels_sidecar(path), raw[:-1])
     with pytest.raises(InputError, match="expected 50 integer labels"):
+        load_labelled_points(path)
+    np.save(labels_sidecar(path), np.concatenate([raw, raw[:1]]))  # more labels than points: open3d skipped a line it could not read?
+    with pytest.raises(InputError, match=f"open3d skips the lines of cloud{suffix} it cannot read"):
         load_labelled_points(path)
     np.save(labels_sidecar(path), raw)
     got, ref = load_labelled_points(path, classes=["wall", "chair"]), load_labelled_points(tmp_path / "ref.ply", classes=["wall", "chair"])

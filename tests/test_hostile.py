@@ -195,6 +195,28 @@ def test_bad_ply_files_give_one_clear_error(tmp_path, capsys, name):
     assert "\\xff" not in err and "PNG" not in err  # never echo the file's bytes
 
 
+def test_ply_header_ends_at_the_end_header_line_not_at_those_words_in_a_comment(tmp_path):
+    """A comment such as "data follows end_header" ended the header inside the comment: every row was
+    read shifted, and registration went on with 86 of 2,744 Gaussians (plyfile reads it right)."""
+    from drsplat.scene import load_ply
+
+    plain = tmp_path / "plain.ply"
+    plain.write_bytes(ply_bytes(vertex_header(3), vertex_body(3)))
+    commented = tmp_path / "commented.ply"
+    commented.write_bytes(ply_bytes(vertex_header(3) + ["comment exported by mytool (data follows end_header)"], vertex_body(3)))
+    a, b = load_ply(plain), load_ply(commented)
+    assert b.num_gaussians == 3 and np.array_equal(a.means, b.means) and np.array_equal(a.quats, b.quats)
+
+
+def test_ply_rows_longer_than_the_header_says_are_refused_by_name(tmp_path, capsys):
+    path = make_ply(tmp_path, "property_missing_from_header")
+    code, err = run_cli(["info", path], capsys)
+    assert code == 1 and "4 bytes more per vertex row" in err and "missing from the header" in err, err
+    junk = tmp_path / "junk.ply"  # whole extra rows (a count too small) stay a warning
+    junk.write_bytes(ply_bytes(vertex_header(100), vertex_body(102)))
+    assert run_cli(["info", junk], capsys)[0] == 0
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(counts=st.lists(st.integers(0, 2**40), min_size=1, max_size=3), lists=st.lists(st.booleans(), min_size=3, max_size=3),
        body=st.integers(0, 256), ascii_fmt=st.booleans())
@@ -584,6 +606,72 @@ def test_outputs_replace_earlier_outputs_atomically(tmp_path, world, capsys):
     assert not list(tmp_path.glob(".scores.npy.*"))
 
 
+def test_query_selecting_nothing_writes_no_ply(tmp_path, world, capsys):
+    """`query --out` with a threshold above every score wrote a PLY of no Gaussians, which `query`
+    and the viewer then refuse to open; now one error with the best score and no file."""
+    out = tmp_path / "sel.ply"
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--threshold", "1", "--out", out], capsys)
+    assert code == 1 and "no Gaussian scores >= 1.0000" in err and "lower --threshold" in err, err
+    assert not out.exists()
+    assert run_cli(["query", world["reg"], "--embedding", world["q"], "--threshold", "-1", "--out", out], capsys)[0] == 0
+    assert out.is_file()
+
+
+@pytest.mark.parametrize("flag", ["--negatives", "--negative-embeddings"])
+def test_query_negatives_without_relevancy_are_a_usage_error(world, capsys, flag):
+    """Negatives only enter LERF relevancy; with plain cosine they were dropped without a word."""
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], flag, "chair" if flag == "--negatives" else world["L"]], capsys)
+    assert code == 2 and f"{flag} applies to --relevancy only" in err, err
+
+
+def test_query_gaussian_selections_that_select_nothing_or_read_as_ids(tmp_path, world, capsys):
+    """An all-False mask said "none of the selected Gaussians has a language feature" (no file named);
+    a 0/1 mask saved as integers was read as the ids {0, 1} without a word."""
+    from drsplat.scene import load_ply
+
+    n = load_ply(world["reg"]).num_gaussians
+    none = tmp_path / "none.npy"
+    np.save(none, np.zeros(n, bool))
+    code, err = run_cli(["query", world["reg"], "--gaussians", none], capsys)
+    assert code == 1 and "none.npy: the boolean mask selects none of the" in err, err
+    ints = tmp_path / "ints.npy"
+    np.save(ints, (np.arange(n) % 3 == 0).astype(np.int64))
+    code, err = run_cli(["query", world["reg"], "--gaussians", ints], capsys)
+    assert code == 0 and "read as the Gaussian ids 0 and 1" in err, err
+
+
+def test_query_embedding_beyond_float32_is_named_without_numpy_warnings(tmp_path, world, capsys):
+    big = tmp_path / "big.npy"
+    q = np.load(world["q"]).astype(np.float64)
+    q[3] = 1e300
+    np.save(big, q)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "overflow encountered in cast" fails the test
+        code, err = run_cli(["query", world["reg"], "--embedding", big], capsys)
+    assert code == 1 and "beyond float32's range" in err, err
+
+
+def test_pq_train_m_that_does_not_divide_is_a_usage_error(tmp_path, world, capsys):
+    code, err = run_cli(["pq", "train", "--embeddings", world["L"], "--m", "7", "--out", tmp_path / "cb.faiss"], capsys)
+    assert code == 2 and "--m 7 does not divide the embedding dimension" in err and "input:" not in err, err
+
+
+def test_feature_entries_that_are_not_files_are_named(tmp_path, world, capsys):
+    """A `<stem>_s.npy` that is a folder was "no feature file" for its camera, as if absent."""
+    import shutil
+
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    victim = sorted(feats.glob("*_s.npy"))[0]
+    victim.unlink()
+    victim.mkdir()
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats, "--out", tmp_path / "r.ply",
+                         "--no-progress"], capsys)
+    assert code == 0 and f"are not regular files (a folder, a device, a broken link) and are skipped: {victim.name}" in err, err
+
+
 # ---------------------------------------------------------------------------------------------- 3. write failures
 
 
@@ -825,6 +913,21 @@ def test_synth_replaces_only_its_own_outputs(tmp_path, capsys):
     code, err = run_cli(["synth", keep, "--no-progress"], capsys)
     assert code == 1 and "not an earlier output" in err
     assert (keep / "thesis.tex").read_text() == "precious"
+
+
+def test_synth_over_its_own_dataset_keeps_what_the_user_added(tmp_path, capsys):
+    """The README registers into the synthetic folder (out/tiny/registered.ply): a second synth there
+    replaced the whole folder and deleted the registered PLY and anything else the user had put in it."""
+    out = tmp_path / "tiny"
+    assert run_cli(["synth", out, "--no-progress"], capsys)[0] == 0
+    (out / "registered.ply").write_bytes(b"mine")
+    code, err = run_cli(["synth", out, "--seed", "1", "--no-progress"], capsys)
+    assert code == 1 and "registered.ply" in err and "did not write" in err, err
+    assert (out / "registered.ply").read_bytes() == b"mine"
+    (out / "registered.ply").unlink()  # only synth's own files left: replaced as before
+    before = (out / "scene.ply").read_bytes()
+    assert run_cli(["synth", out, "--seed", "1", "--no-progress"], capsys)[0] == 0
+    assert (out / "scene.ply").read_bytes() != before
 
 
 # ---------------------------------------------------------------------------------------------- 6. paths
@@ -1081,9 +1184,21 @@ def test_info_findings(tmp_path, capsys, name):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a numpy RuntimeWarning (overflow in exp) fails the test
         code = main(["info", str(path), "--json"])
-    summary = json.loads(capsys.readouterr().out)
+    summary = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
     words = INFO_FINDING_CASES[name][1]
     assert code == 0 and any(words in f for f in summary["findings"]), summary["findings"]
+
+
+def test_info_json_is_strict_json_where_a_scale_is_infinite(tmp_path, capsys):
+    """A raw scale of 1e30 stored as a log scale: `info --json` printed "max": Infinity, which
+    JavaScript's JSON.parse rejects; now null, with the finding saying why."""
+    from tests.hostile_catalogue import _with
+
+    path = tmp_path / "inf_scale.ply"
+    path.write_bytes(_with(4, "scale_0", 2, 1e30))
+    assert main(["info", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
+    assert summary["scale"]["max"] is None and any("overflows float32" in f for f in summary["findings"])
 
 
 @pytest.mark.parametrize("name", sorted(FEATURE_VIEW_CASES))

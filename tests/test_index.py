@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -385,6 +387,22 @@ def test_read_field_errors_name_the_problem(tmp_path, data, books):
     (tmp_path / "junk.faiss").write_bytes(b"not faiss")
     with pytest.raises(InputError, match="not a faiss index"):
         load_codebook(tmp_path / "junk.faiss")
+
+
+@pytest.mark.parametrize("cut", [1, 4, 9])
+def test_codebook_cut_inside_its_last_fields_says_truncated(books, tmp_path, cut, caplog):
+    """IndexPQ ends with 9 bytes of fields after the codes: a copy missing some of them made faiss
+    throw its C++ text ("read error in ..."). Bytes appended after them are a warning."""
+    books[8].save(tmp_path / "cb.faiss")
+    whole = (tmp_path / "cb.faiss").read_bytes()
+    (tmp_path / "cut.faiss").write_bytes(whole[:-cut])
+    with pytest.raises(InputError, match=r"cut\.faiss: faiss file is truncated inside .* after the codes"):
+        load_codebook(tmp_path / "cut.faiss")
+    (tmp_path / "joined.faiss").write_bytes(whole + b"\0" * cut)
+    with caplog.at_level(logging.WARNING):
+        book = load_codebook(tmp_path / "joined.faiss")
+    assert f"{cut} bytes follow the codebook's last field" in caplog.text
+    np.testing.assert_array_equal(book.centroids, books[8].centroids)
 
 
 def test_codebook_dimension_mismatch_is_an_input_error(data, tmp_path):

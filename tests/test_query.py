@@ -247,7 +247,7 @@ def test_pq_train_cli(tmp_path, world, capsys):
     assert main(["pq", "train", "--embeddings", str(tmp_path / "a.npy"), "--features", str(feats), "--out", str(out), "--m", "16"]) == 0
     book = load_codebook(out)
     assert book.kind == "pq" and book.m == 16 and book.dim == DIM
-    assert main(["pq", "train", "--embeddings", str(tmp_path / "a.npy"), "--out", str(out), "--m", "7"]) == 1
+    assert main(["pq", "train", "--embeddings", str(tmp_path / "a.npy"), "--out", str(out), "--m", "7"]) == 2  # a usage error (round 5)
     assert "does not divide" in capsys.readouterr().err
     assert main(["pq", "info", str(out)]) == 0
     assert "M=16" in capsys.readouterr().out

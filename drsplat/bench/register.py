@@ -629,10 +629,10 @@ def counts_table(counts: dict) -> str:
 
 def write_json(path: Path, record: dict) -> None:
     """`record` as JSON at `path`, written atomically."""
-    from drsplat.utils import atomic_path
+    from drsplat.utils import atomic_path, json_text
 
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(record, indent=2) + "\n")
+        tmp.write_text(json_text(record) + "\n")
 
 
 def _check_outputs(args: argparse.Namespace, engine: str) -> None:

@@ -285,7 +285,11 @@ def checked_names(path: Path, names: list) -> list[str]:
             raise InputError(path, f"entry {i} is an empty name ({shown})")
         if any(ch < " " or ch == "\x7f" for ch in name):
             raise InputError(path, f"entry {i} ({shown}) holds a control character (newline, tab, NUL...)")
-        if name in seen:
-            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[name]}")
-        seen[name] = i
+        if any("\ud800" <= ch <= "\udfff" for ch in name):  # JSON's "\ud800" alone: no text, and no file or terminal takes it
+            raise InputError(path, f"entry {i} ({shown}) holds a lone UTF-16 surrogate, which is not a character")
+        key = name.strip()
+        if key in seen:
+            same = "" if name == names[seen[key]] else " (apart from spaces around it)"
+            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[key]}{same}")
+        seen[key] = i
     return names

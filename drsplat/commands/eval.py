@@ -20,7 +20,7 @@ import numpy as np
 from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
-from drsplat.utils import read_json
+from drsplat.utils import json_text, read_json
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +225,7 @@ def write_json(path: Path | None, doc: dict) -> None:
     from drsplat.utils import atomic_path
 
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+        tmp.write_text(json_text(doc) + "\n")
     log.info("wrote %s", path)
 
 

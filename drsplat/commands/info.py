@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.scene import GaussianScene, LoadReport, load_ply_report
+from drsplat.utils import json_text
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -28,6 +28,8 @@ def _stats(values: np.ndarray) -> dict[str, float]:
 def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
     """JSON-serialisable summary of a loaded scene and its load report."""
     lo, hi = scene.bounding_box()
+    with np.errstate(over="ignore"):  # a log scale past float64's exp is infinite, and said so in the findings
+        largest = np.exp(scene.log_scales.astype(np.float64)).max(axis=1) if scene.num_gaussians else np.zeros(0)
     summary = {
         "path": str(report.path),
         "layout": report.layout,
@@ -39,7 +41,7 @@ def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
         "bbox_max": [float(v) for v in hi],
         "opacity": _stats(scene.opacities()),
         # float64: a log scale above 88.7 overflows float32 (reported as a finding, without numpy's warning)
-        "scale": _stats(np.exp(scene.log_scales.astype(np.float64)).max(axis=1) if scene.num_gaussians else np.zeros(0)),
+        "scale": _stats(largest),
         "nonfinite_rows": report.nonfinite_rows,
         "dropped_rows": report.dropped_nan_rows + report.dropped_inf_rows,
         "clamped_opacity": report.clamped_opacity,
@@ -69,5 +71,5 @@ def format_summary(s: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     scene, report = load_ply_report(args.scene)
     summary = scene_summary(scene, report)
-    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    print(json_text(summary) if args.json else format_summary(summary))
     return 0

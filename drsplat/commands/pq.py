@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import MAX_COUNT, guard_args, int_range, positive_int, protected_feature_folders, seed_int
-from drsplat.errors import InputError
+from drsplat.errors import InputError, UsageError
 from drsplat.lang.codebook import PQ_KSUB
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,9 @@ def run_train(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), protected_folders=protected_feature_folders("--features", args.features))
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
-        raise InputError(None, f"--m {args.m} does not divide the embedding dimension {x.shape[1]}")
+        divisors = [m for m in range(1, x.shape[1] + 1) if x.shape[1] % m == 0 and m <= 256]
+        raise UsageError(f"--m {args.m} does not divide the embedding dimension {x.shape[1]}; choose a divisor of it, e.g. "
+                         f"{', '.join(map(str, divisors[-4:-1]))} or {divisors[-1]}")
     if x.shape[0] < PQ_KSUB:
         sources = [*args.embeddings, *args.features]
         where = "" if len(sources) == 1 else " in " + ", ".join(str(p) for p in sources)

@@ -21,6 +21,7 @@ from drsplat.commands.common import (
     split_phrases,
     threshold_value,
 )
+from drsplat.errors import DrsplatError, UsageError
 from drsplat.lang import LanguageField
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,9 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_scene
     from drsplat.utils import guard_outputs, save_npy_atomic
 
+    if not args.relevancy and (args.negatives or args.negative_embeddings is not None):
+        raise UsageError(f"{'--negatives' if args.negatives else '--negative-embeddings'} applies to --relevancy only "
+                         "(cosine scores have no negatives): add --relevancy or drop it")
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered)}
@@ -110,6 +114,9 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         mask = best >= threshold
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}")
         if args.out is not None:
+            if not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
+                raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best.max(initial=-np.inf)):.4f}): "
+                                   f"nothing written to {args.out}; lower --threshold")
             export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
             log.info("wrote %d selected Gaussians to %s (%s PLY)", int(mask.sum()), args.out, args.format)
             wrote = True

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.utils import CancelToken, atomic_path
+from drsplat.utils import CancelToken, atomic_path, json_text
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
 from drsplat.errors import DrsplatError
@@ -637,6 +637,6 @@ def run_ablate(args: argparse.Namespace) -> int:
     png = args.out_dir / f"ablation_{result.name}.png"
     plot(result, png)
     with atomic_path(args.out_dir / f"ablation_{result.name}.json") as tmp:
-        tmp.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+        tmp.write_text(json_text(result.to_dict()) + "\n")
     log.info("wrote %s and %s", png, png.with_suffix(".json"))
     return 0

@@ -220,7 +220,16 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
         if f not in names:
             raise InputError(path, "vertex property missing (a labelled cloud needs x, y, z and a label)", field=f)
     pts = np.stack([np.asarray(vertex[k], np.float64) for k in "xyz"], axis=1)
-    return pts, np.asarray(vertex[label_field]).astype(np.int64)
+    column = np.asarray(vertex[label_field])
+    if column.dtype.kind == "f":  # astype(int64) would turn 1.5 into class 1 and NaN into garbage, without a word
+        with np.errstate(invalid="ignore"):
+            bad = np.flatnonzero(~np.isfinite(column) | (column != np.round(column)))
+        if bad.size:
+            raise InputError(path, f"the {column.dtype} label property holds {bad.size} values that are not whole numbers (vertex "
+                                   f"{bad[0]}: {float(column[bad[0]])!r}); labels are integer class ids", field=label_field)
+    elif column.dtype.kind not in "iu":
+        raise InputError(path, f"the label property has type {column.dtype}; labels are integer class ids", field=label_field)
+    return pts, column.astype(np.int64)
 
 
 def labels_sidecar(path: str | Path) -> Path:
@@ -249,7 +258,10 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
 
     raw = load_npy(sidecar, "label array")
     if raw.ndim != 1 or raw.shape[0] != len(pts) or not np.issubdtype(raw.dtype, np.integer):
-        raise InputError(sidecar, f"expected {len(pts)} integer labels (one per point), got {raw.dtype} of shape {raw.shape}")
+        skipped = (f"; open3d skips the lines of {path.name} it cannot read, so check that file too"
+                   if raw.ndim == 1 and raw.shape[0] > len(pts) else "")
+        raise InputError(sidecar, f"expected {len(pts)} integer labels (one per point open3d read from {path.name}), got {raw.dtype} "
+                                  f"of shape {raw.shape}{skipped}")
     return pts, raw.astype(np.int64), sidecar.name
 
 

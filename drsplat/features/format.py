@@ -50,6 +50,12 @@ def list_stems(features_dir: str | Path) -> list[str]:
     return sorted(p.name[: -len(SEG_SUFFIX)] for p in features_dir.glob(f"*{SEG_SUFFIX}") if p.is_file())
 
 
+def irregular_feature_entries(features_dir: str | Path) -> list[str]:
+    """Names in `features_dir` shaped like a feature file (`*_s.npy`, `*_f.npy`) that are not regular
+    files (a folder, a device, a broken link): `list_stems` passes over them."""
+    return sorted(p.name for suffix in (SEG_SUFFIX, FEAT_SUFFIX) for p in Path(features_dir).glob(f"*{suffix}") if not p.is_file())
+
+
 def write_features(features_dir: str | Path, stem: str, seg: np.ndarray, feats: np.ndarray) -> None:
     """Write one image's feature pair atomically (embeddings first, then mask ids).
 
@@ -157,6 +163,18 @@ def level_offsets(seg: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
 
 
+def out_of_range_ids(top: int, offset: int, level: int, num_embeddings: int, feat_name: str, dtype: np.dtype) -> str:
+    """Why mask id `top` (after the level's `offset`, 0 when the levels' ids are already global) is
+    no row of the embeddings, naming the value stored in the file and, for the largest value of an
+    unsigned dtype, the likely cause: that value meant as "no mask", which has no -1."""
+    stored = top - offset
+    where = f"mask id {stored} at level {level}" + (f" ({top} once offset by the {offset} ids of the levels before it)" if offset else "")
+    hint = ""
+    if np.dtype(dtype).kind == "u" and stored == np.iinfo(dtype).max:
+        hint = f"; {stored} is the largest {np.dtype(dtype)}: if it means 'no mask', store the ids in a signed dtype with -1 there"
+    return f"{where} is out of range: {feat_name} has only {num_embeddings} embeddings{hint}"
+
+
 def read_features(features_dir: str | Path, stem: str, level: int = DEFAULT_LEVEL, *, drop_nonfinite: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Mask ids of one level and all embeddings of one image.
 
@@ -181,6 +199,7 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         seg = seg[None]
     if seg.shape[0] == 1:
         level = 0
+    raw_dtype = seg.dtype
     seg = _ids_as_int(seg, spath)
     if seg.size and seg.min() < -1:
         raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")
@@ -190,8 +209,9 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         ids = np.where(ids >= 0, ids + offset, -1)
     m = feats.shape[0]
     if ids.size and ids.max() >= m:
-        raise InputError(spath, f"mask id {int(ids.max())} at level {level} is out of range: {fpath.name} has only {m} embeddings")
-    feats = feats.astype(np.float32)
+        raise InputError(spath, out_of_range_ids(int(ids.max()), int(offset), level, m, fpath.name, raw_dtype))
+    with np.errstate(over="ignore", invalid="ignore"):  # float64 values past float32 become inf: counted below, without numpy's warning
+        feats = feats.astype(np.float32)
     row_ok = np.isfinite(feats).all(axis=1)
     with np.errstate(invalid="ignore"):  # rows whose norm overflows float32 (values near 3e38): as unusable as inf
         row_ok &= np.sqrt(np.square(feats, dtype=np.float64).sum(axis=1)) <= np.finfo(np.float32).max

@@ -225,6 +225,13 @@ def check_faiss_header(path: Path) -> None:
         d, ntotal = r.index_header("IndexPQ")
         m = r.product_quantizer(d)
         r.skip_array(1, "codes", expected=ntotal * m)
+        # IndexPQ's last fields (faiss index_read.cpp): a file cut inside them made faiss throw its C++ text
+        r.take("i", "the search type after the codes")
+        r.take("B", "encode_signs after the codes")
+        r.take("i", "polysemous_ht after the codes")
+        if r.pos < len(data):
+            log.warning("%s: %d bytes follow the codebook's last field and are ignored (two files joined, or a corrupt copy?)",
+                        path, len(data) - r.pos)
         return
     if code not in (b"IvPQ", b"IwPQ"):
         raise InputError(path, "is not a faiss index file drsplat reads (unknown index type code; drsplat reads IndexPQ and IndexIVFPQ codebooks)")

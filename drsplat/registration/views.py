@@ -16,8 +16,8 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import InputError
-from drsplat.features.format import (check_feat_layout, check_seg_layout, feat_path, list_stems, read_features_report,
-                                     resample_nearest, seg_path)
+from drsplat.features.format import (check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries, list_stems,
+                                     read_features_report, resample_nearest, seg_path)
 from drsplat.utils import npy_header
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,10 @@ def pair_views(cameras: Sequence[Camera], stems: Sequence[str]) -> ViewSelection
 def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection:
     """`pair_views` on the feature folder, with the warnings and the error when nothing matches."""
     stems = list_stems(features_dir)
+    irregular = irregular_feature_entries(features_dir)
+    if irregular:
+        log.warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
+                    "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
     sel = pair_views(cameras, stems)
