@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.scene import quat_to_rotmat
+from drsplat.scene import MAX_COORDINATE, quat_to_rotmat
 from drsplat.utils import atomic_path, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
 MAX_IMAGE_SIDE = 1 << 16  # pixels; larger "images" are corrupt metadata, and would size buffers
-MAX_TRANSLATION = 1e15  # |t| beyond this cannot place a camera near a float32 scene (projections overflow or lose all precision)
+MAX_TRANSLATION = MAX_COORDINATE  # |t| beyond this cannot place a camera near a float32 scene
 # Intrinsics relative to the image side: a focal length of 1e-6 to 1e6 image widths (a field of
 # view from about 6e-5 degrees to within 3e-4 degrees of 180) and a principal point within 1e6
 # widths of the image hold every real lens with a wide margin; beyond, the projection maths overflows.

@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 SH_C0 = 0.28209479177387814
 MAX_OPACITY_LOGIT = 30.0
 MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log scale is inf in float32
+MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 
 
@@ -235,6 +236,7 @@ class LoadReport:
     trailing_bytes: int = 0  # data after the last element: the header's counts may be smaller than the data
     row_bytes: int = 0  # bytes per vertex row (to say how many rows the trailing bytes could hold)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
+    far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
 
     @property
     def nonfinite_rows(self) -> int:
@@ -257,6 +259,9 @@ class LoadReport:
             notes.append("the file holds no Gaussians (its vertex element has 0 rows)")
         if self.trailing_bytes:
             notes.append(self.trailing_note())
+        if self.far_means:
+            notes.append(f"{self.far_means} Gaussians lie beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
+                         "see them (a units or export mix-up?), so registration leaves them unassigned")
         if self.overflowing_scales:
             notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "
                          "their scale overflows float32 (infinite)")
@@ -682,6 +687,7 @@ def _assemble_scene(path: Path, cols: dict, order: list[str], layout: str, comme
         quats = quats.copy()
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
     report.overflowing_scales = int((log_scales > MAX_LOG_SCALE).any(axis=1).sum())
+    report.far_means = int((np.abs(means) > MAX_COORDINATE).any(axis=1).sum())
     report.nonfinite_extra = sum(int((~np.isfinite(v)).sum()) for v in extra.values() if np.issubdtype(v.dtype, np.floating))
     for note in report.findings():
         log.warning("%s: %s", path, note)

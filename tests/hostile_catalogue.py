@@ -248,6 +248,7 @@ INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
     "overflowing_scale": (lambda: _with(4, "scale_1", 1, 100.0), "1 Gaussians have a log scale above 88.7"),
     "infinite_opacity": (lambda: _with(4, "opacity", 2, np.inf), "infinite opacity logits clamped"),
     "zero_quaternion": (lambda: _with(4, "rot_0", 0, 0.0), "zero quaternions replaced"),
+    "mean_beyond_any_camera": (lambda: _with(4, "y", 3, 3e38), "1 Gaussians lie beyond 1e+15 from the origin"),  # round 5: "findings none"
 }
 
 

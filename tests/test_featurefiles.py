@@ -76,6 +76,22 @@ def test_single_level_file_serves_any_level(tmp_path):
     np.testing.assert_array_equal(read_features(tmp_path, "c", level=1)[0], seg)
 
 
+def test_all_zero_embeddings_are_ignored_with_a_warning(tmp_path, caplog):
+    """An all-zero row (a placeholder) added its mask's weight to the Gaussians and no direction (round 5)."""
+    import logging
+
+    seg = np.zeros((1, 6, 8), np.int32)
+    seg[0, :, 4:] = 1
+    feats = np.eye(2, 5, dtype=np.float32)
+    feats[1] = 0.0
+    write_features(tmp_path, "z", seg, feats)
+    with caplog.at_level(logging.WARNING):
+        ids, got = read_features(tmp_path, "z", level=1)
+    assert "1 of 2 embeddings are all zero" in caplog.text
+    assert (ids[:, :4] == 0).all() and (ids[:, 4:] == -1).all()
+    np.testing.assert_array_equal(got, feats)
+
+
 def test_errors_name_file_and_problem(tmp_path):
     rng = np.random.default_rng(3)
     seg, feats = langsplat_like(rng)

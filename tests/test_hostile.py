@@ -672,6 +672,22 @@ def test_feature_entries_that_are_not_files_are_named(tmp_path, world, capsys):
     assert code == 0 and f"are not regular files (a folder, a device, a broken link) and are skipped: {victim.name}" in err, err
 
 
+def test_manifest_fields_of_the_wrong_kind_or_dimension_are_named(tmp_path, world, capsys):
+    """A manifest whose `clip` was 5 made the PLY record clip=unknown, and a wrong `dim` passed, both without a word."""
+    import shutil
+
+    feats = tmp_path / "features"
+    shutil.copytree(world["ds"] / "features", feats)
+    manifest = json.loads((feats / "manifest.json").read_text())
+    manifest.pop("clip_model_id", None)
+    (feats / "manifest.json").write_text(json.dumps({**manifest, "clip": 5, "dim": 256}))
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats, "--out", tmp_path / "r.ply",
+                         "--no-progress"], capsys)
+    assert code == 0, err
+    assert "field 'clip' is 5, not an object naming the CLIP model" in err
+    assert f"field 'dim' says 256-D embeddings, but the feature files hold {world['dim']}-D ones" in err
+
+
 # ---------------------------------------------------------------------------------------------- 3. write failures
 
 

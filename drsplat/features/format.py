@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
 MANIFEST_NAME = "manifest.json"
+# the manifest fields drsplat reads: (name, accepted JSON types, what it should be)
+MANIFEST_FIELDS = (("clip_model_id", str, "a CLIP model id"), ("clip", (dict, str), "an object naming the CLIP model"),
+                   ("dim", int, "the embedding dimension"))
 FEATURE_FILE_PATTERNS = (f"*{SEG_SUFFIX}", f"*{FEAT_SUFFIX}", MANIFEST_NAME)  # what an output must not be named inside a features folder
 
 
@@ -222,6 +225,10 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         log.warning("%s: %d of %d embeddings contain non-finite values or have a norm beyond float32; their masks are ignored", fpath, bad, m)
         feats[~row_ok] = 0.0
         ids = np.where((ids >= 0) & ~row_ok[np.maximum(ids, 0)], -1, ids)
+    zero = row_ok & ~(feats != 0).any(axis=1)
+    if zero.any():  # a placeholder, not an embedding: its pixels would add weight to their Gaussians and no direction
+        log.warning("%s: %d of %d embeddings are all zero (no direction to lift); their masks are ignored", fpath, int(zero.sum()), m)
+        ids = np.where((ids >= 0) & zero[np.maximum(ids, 0)], -1, ids)
     return ids.astype(np.int32), feats, bad
 
 
@@ -255,4 +262,16 @@ def read_manifest(features_dir: str | Path) -> dict[str, Any]:
     data = read_json(path, "a features manifest")
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object")
+    for field, kinds, meaning in MANIFEST_FIELDS:
+        if field in data and not isinstance(data[field], kinds):
+            log.warning("%s: field '%s' is %s, not %s; it is ignored", path, field, json.dumps(data[field])[:40], meaning)
     return data
+
+
+def check_manifest_dim(features_dir: str | Path, manifest: dict[str, Any], dim: int) -> None:
+    """Warn when the manifest's `dim` disagrees with the dimension of the feature files (`dim`):
+    the files are what registration reads, so the manifest describes other features."""
+    stated = manifest.get("dim")
+    if isinstance(stated, int) and not isinstance(stated, bool) and stated != dim:
+        log.warning("%s: field 'dim' says %d-D embeddings, but the feature files hold %d-D ones: the manifest describes other "
+                    "features (its CLIP model may be wrong too)", Path(features_dir) / MANIFEST_NAME, stated, dim)

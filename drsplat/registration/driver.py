@@ -34,7 +34,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
-from drsplat.features.format import feat_path, read_manifest
+from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
@@ -580,8 +580,9 @@ def register(
     """
     out = Path(out)
     run = prepare_run(scene, cameras, features_dir, options)
-    clip_model = manifest_model_id(read_manifest(run.features_dir))
-    target = PlyTarget(scene, out, clip_model)
+    manifest = read_manifest(run.features_dir)
+    check_manifest_dim(run.features_dir, manifest, run.dim)
+    target = PlyTarget(scene, out, manifest_model_id(manifest))
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
                               on_progress=on_progress, cancel=cancel)
