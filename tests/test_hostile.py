@@ -688,6 +688,19 @@ def test_manifest_fields_of_the_wrong_kind_or_dimension_are_named(tmp_path, worl
     assert f"field 'dim' says 256-D embeddings, but the feature files hold {world['dim']}-D ones" in err
 
 
+@pytest.mark.parametrize("command", ["query --scores", "query --out", "segment --out", "register --out"])
+def test_a_file_output_ending_in_a_slash_is_a_usage_error(tmp_path, world, capsys, command):
+    """`query --scores newdir/` wrote a file named newdir (pathlib drops the trailing slash)."""
+    name, flag = command.split()
+    target = f"{tmp_path / 'newdir'}/"
+    args = {"query": ["--embedding", world["q"], "--threshold", "0"], "segment": ["--embeddings", world["L"]],
+            "register": ["--source", world["ds"], "--features", world["ds"] / "features"]}[name]
+    scene = world["ds"] / "scene.ply" if name == "register" else world["reg"]
+    code, err = run_cli([name, scene, *args, flag, target], capsys)
+    assert code == 2 and "ends with a path separator, so it names a folder" in err, err
+    assert not (tmp_path / "newdir").exists()
+
+
 # ---------------------------------------------------------------------------------------------- 3. write failures
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from drsplat.cameras import dataset_inputs, load_cameras
 from drsplat.cli import setup_logging
-from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, protected_feature_folders
+from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, output_file, protected_feature_folders
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
@@ -49,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clip-checkpoint", type=Path, help="local open_clip checkpoint for text queries")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and registration started from the viewer run (default auto: cuda when present)")
     p.add_argument("--engine", choices=("numba", "torch"), default=None, help="registration engine (default: torch on cuda, numba on the CPU)")
-    p.add_argument("--screenshot", type=Path, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
+    p.add_argument("--screenshot", type=output_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
     p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
     q.add_argument("--query", metavar="TEXT", help="with --screenshot: highlight what matches TEXT (needs CLIP weights)")

@@ -98,6 +98,14 @@ nonneg_float = float_range(0.0, None)
 positive_float = float_range(0.0, None, lo_open=True)
 
 
+def output_file(text: str) -> Path:
+    """argparse type of a file to write: a path ending in a separator names a folder and is refused
+    (Path("newdir/") is Path("newdir"): the file would take the folder's name)."""
+    if text.endswith(("/", "\\")):
+        raise argparse.ArgumentTypeError(f"{text!r} ends with a path separator, so it names a folder; give a file name")
+    return Path(text)
+
+
 def threshold_value(text: str) -> str:
     """argparse type for --threshold: 'auto' or a finite number in [-1, 1] (cosine and relevancy range).
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import checked_names, float_range, guard_args, int_range, positive_float, threshold_value
+from drsplat.commands.common import checked_names, float_range, guard_args, int_range, output_file, positive_float, threshold_value
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.utils import json_text, read_json
@@ -67,7 +67,7 @@ def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--voxel-resolution", type=int_range(1, 2048), default=96, help="voxels along the longest side of the labelled region")
     t.add_argument("--voxel-empty", type=float_range(0.0, None), default=0.01, help="α-mass below which a voxel is empty")
     t.add_argument("--curve", action="store_true", help="print the whole localisation grid search")
-    t.add_argument("--json", type=Path, metavar="OUT.json", help="also write the full report (per label, curves) as JSON")
+    t.add_argument("--json", type=output_file, metavar="OUT.json", help="also write the full report (per label, curves) as JSON")
     t.add_argument("--original", type=Path, metavar="SCENE.ply",
                    help="the unregistered scene: evaluate on all its Gaussians (those pruned by registration score 0) "
                         "instead of only the registered ones; ground-truth labels then index the original scene")
@@ -121,7 +121,7 @@ def _add_pseudolabels(sub) -> None:
     p = sub.add_parser("pseudolabels", help="label every Gaussian from a labelled point cloud (Mahalanobis vote)")
     p.add_argument("scene", type=Path, metavar="SCENE.ply")
     p.add_argument("--points", type=Path, required=True, metavar="CLOUD", help="labelled cloud: PLY with x, y, z, label (ScanNet layout), or .pcd/.xyz/.pts with labels in CLOUD.labels.npy")
-    p.add_argument("--out", type=Path, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
+    p.add_argument("--out", type=output_file, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
     p.add_argument("--names-out", type=Path, metavar="NAMES.json", help="write the label names (index = label id)")
     p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
     _add_pseudo_arguments(p)
@@ -135,7 +135,7 @@ def _add_lerf(sub) -> None:
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
     p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
     p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=0.5, help="rendered occupancy above which a pixel is selected")
-    p.add_argument("--json", type=Path, metavar="OUT.json", help="also write per-view results as JSON")
+    p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
 

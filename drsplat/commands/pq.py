@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import MAX_COUNT, guard_args, int_range, positive_int, protected_feature_folders, seed_int
+from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders, seed_int
 from drsplat.errors import InputError, UsageError
 from drsplat.lang.codebook import PQ_KSUB
 
@@ -31,7 +31,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source = train.add_argument_group("embeddings (at least one)")
     source.add_argument("--embeddings", type=Path, nargs="+", default=[], metavar="A.npy", help="embedding arrays (n, D)")
     source.add_argument("--features", type=Path, nargs="+", default=[], metavar="DIR", help="LangSplat feature folders (<stem>_f.npy)")
-    train.add_argument("--out", type=Path, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
+    train.add_argument("--out", type=output_file, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
     train.add_argument("--m", type=positive_int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
     train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset)")
     train.add_argument("--seed", type=seed_int, default=0)

@@ -17,6 +17,7 @@ from drsplat.commands.common import (
     add_lut_bits_argument,
     load_registered,
     nonneg_int,
+    output_file,
     resolve_threshold,
     split_phrases,
     threshold_value,
@@ -47,8 +48,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--negatives", default="", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
-    parser.add_argument("--scores", type=Path, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
-    parser.add_argument("--out", type=Path, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
+    parser.add_argument("--scores", type=output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
+    parser.add_argument("--out", type=output_file, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
     add_format_argument(parser, "--out")
     parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
     add_clip_arguments(parser, scoring=True)

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import guard_args, nonneg_int, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
+from drsplat.commands.common import guard_args, nonneg_int, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals
@@ -45,7 +45,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="camera resolution as 3DGS's -r: 1, 2, 4, 8 divide, another number is a width in pixels; "
                    "default -1: full size, capped at 1600 px wide. Smaller views register faster and less exactly: 2 measured "
                    "1.7x faster per view and -0.04 seg mIoU (docs/evaluation.md, \"Resolution\"; `drsplat eval ablate resolution`)")
-    p.add_argument("--out", type=Path, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
+    p.add_argument("--out", type=output_file, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
                    "streamed in blocks through a pair log on disk, with the same output. Default: in memory if it fits the "
