@@ -409,7 +409,8 @@ def project_gaussians_reference(
 
     out = _empty_projected(n, camera, tile_size)
     out.opacities = prep.opacities
-    out.depths = depths.astype(np.float32)
+    with np.errstate(over="ignore"):  # a depth past float32 (a mean near 3e38) is inf there, as the kernel's cast makes it
+        out.depths = depths.astype(np.float32)
     out.num_nonfinite = prep.num_nonfinite + int(np.count_nonzero(~finite))
     out.num_behind = int(np.count_nonzero(usable & ~in_front))
     keep = idx[ok]

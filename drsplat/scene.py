@@ -91,11 +91,20 @@ class GaussianScene:
         with np.errstate(over="ignore"):
             return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64))).astype(np.float32)
 
+    def unit_quats64(self) -> np.ndarray:
+        """[N, 4] float64 normalised quaternions (w, x, y, z); zero quaternions map to identity.
+
+        Normalised in float64: a stored norm of 1e20 overflows float32's squares (all zeros came out,
+        so the identity) and one of 1e-22 underflows them (norms off by 1e-2). A non-finite
+        quaternion gives NaN rows, without numpy's warning (the load counts and drops such rows)."""
+        q = self.quats.astype(np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            norm = np.linalg.norm(q, axis=1, keepdims=True)
+            return np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+
     def unit_quats(self) -> np.ndarray:
-        """[N, 4] normalised quaternions (w, x, y, z); zero quaternions map to identity."""
-        norm = np.linalg.norm(self.quats, axis=1, keepdims=True)
-        q = np.where(norm > 0, self.quats / np.where(norm > 0, norm, 1.0), np.array([1, 0, 0, 0], np.float32))
-        return q.astype(np.float32)
+        """[N, 4] float32 `unit_quats64`."""
+        return self.unit_quats64().astype(np.float32)
 
     def rotations(self) -> np.ndarray:
         """[N, 3, 3] rotation matrices of the unit quaternions."""
@@ -110,19 +119,14 @@ class GaussianScene:
         small eigenvalues by ~1e-7 of the largest, and projections and Mahalanobis distances
         divide by them. A scale that overflows float32 gives an infinite Σ (counted as non-finite).
         """
-        q = self.quats.astype(np.float64)
-        norm = np.linalg.norm(q, axis=1, keepdims=True)
-        q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
-        m = quat_to_rotmat(q) * self.scales().astype(np.float64)[:, None, :]
+        m = quat_to_rotmat(self.unit_quats64()) * self.scales().astype(np.float64)[:, None, :]
         return m @ m.transpose(0, 2, 1)
 
     def precisions(self) -> np.ndarray:
         """[N, 3, 3] float64 Σ⁻¹ = R S⁻² Rᵀ, built from the scales rather than by inverting Σ (flat
         Gaussians, scales 1e-8 of their largest, make Σ singular in float64 but Σ⁻¹ is exact this
         way). Zero where a scale is 0, infinite or not finite (such Gaussians are not rendered)."""
-        q = self.quats.astype(np.float64)
-        norm = np.linalg.norm(q, axis=1, keepdims=True)
-        q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+        q = self.unit_quats64()
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
             inv_scale = np.exp(-self.log_scales.astype(np.float64))
             m = quat_to_rotmat(q) * inv_scale[:, None, :]

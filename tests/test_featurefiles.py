@@ -92,6 +92,21 @@ def test_all_zero_embeddings_are_ignored_with_a_warning(tmp_path, caplog):
     np.testing.assert_array_equal(got, feats)
 
 
+def test_tiny_embeddings_are_rescaled_to_unit_length_with_a_warning(tmp_path, caplog):
+    """Rows of norm 1e-41 summed in float32 fell into subnormals: directions off by up to 0.87 (1-cos)
+    and Gaussians left unassigned without a word (round 5's numerical probe)."""
+    import logging
+
+    rng = np.random.default_rng(5)
+    seg, feats = langsplat_like(rng, d=16)
+    unit = feats / np.linalg.norm(feats, axis=1, keepdims=True)
+    write_features(tmp_path, "t", seg, (unit * 1e-30).astype(np.float32))
+    with caplog.at_level(logging.WARNING):
+        _, got = read_features(tmp_path, "t", level=1)
+    assert f"{len(unit)} of {len(unit)} embeddings have a norm below 1e-20" in caplog.text
+    np.testing.assert_allclose(got, unit, atol=1e-6)
+
+
 def test_errors_name_file_and_problem(tmp_path):
     rng = np.random.default_rng(3)
     seg, feats = langsplat_like(rng)

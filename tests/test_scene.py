@@ -81,6 +81,29 @@ def test_compressed_decodes_to_uncompressed_within_quantisation():
     assert np.abs(ref.opacities() - comp.opacities()).max() <= 0.5 / 255 + 1e-6
 
 
+@pytest.mark.parametrize("norm", [1e20, 1e-22, 3e38, 1e-30])  # below ~1e-34 float32 itself holds fewer digits
+def test_quaternions_of_any_finite_norm_give_the_same_rotation(norm):
+    """unit_quats normalised in float32: a norm of 1e20 overflowed the squares (zeros, hence the
+    identity, with numpy's warning) and 1e-22 underflowed them (norm 1.0096). The rotation must not
+    depend on the stored norm, and must be the one covariances() uses."""
+    import warnings
+
+    q = np.array([[0.8, 0.2, -0.5, 0.26]], np.float64)
+    q /= np.linalg.norm(q)
+    n = 1
+    scene = GaussianScene(means=np.zeros((n, 3), np.float32), quats=(q * norm).astype(np.float32),
+                          log_scales=np.log(np.array([[0.1, 1.0, 3.0]], np.float32)), opacity_logits=np.zeros(n, np.float32),
+                          sh=np.zeros((n, 1, 3), np.float32))
+    unit = GaussianScene(**{**scene.__dict__, "quats": q.astype(np.float32)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(scene.unit_quats(), unit.unit_quats(), atol=2e-7)
+        np.testing.assert_allclose(scene.rotations(), unit.rotations(), atol=1e-6)
+        r = scene.rotations().astype(np.float64)[0]
+        sigma = r @ np.diag(scene.scales()[0].astype(np.float64) ** 2) @ r.T
+        np.testing.assert_allclose(sigma, scene.covariances()[0], rtol=1e-5, atol=1e-6)
+
+
 def test_infinite_opacity_is_clamped_and_reported():
     scene, report = load_ply_report(shared_path("ply", "guitar.ply"))
     assert report.clamped_opacity == 667

@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
 MANIFEST_NAME = "manifest.json"
+TINY_EMBEDDING_NORM = 1e-20  # below this, w·f products of float32 sums fall towards subnormals (about 1e-38)
 # the manifest fields drsplat reads: (name, accepted JSON types, what it should be)
 MANIFEST_FIELDS = (("clip_model_id", str, "a CLIP model id"), ("clip", (dict, str), "an object naming the CLIP model"),
                    ("dim", int, "the embedding dimension"))
@@ -217,7 +218,8 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         feats = feats.astype(np.float32)
     row_ok = np.isfinite(feats).all(axis=1)
     with np.errstate(invalid="ignore"):  # rows whose norm overflows float32 (values near 3e38): as unusable as inf
-        row_ok &= np.sqrt(np.square(feats, dtype=np.float64).sum(axis=1)) <= np.finfo(np.float32).max
+        norms = np.sqrt(np.square(feats, dtype=np.float64).sum(axis=1))
+        row_ok &= norms <= np.finfo(np.float32).max
     bad = int(m - np.count_nonzero(row_ok))
     if bad:
         if not drop_nonfinite:
@@ -229,6 +231,11 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     if zero.any():  # a placeholder, not an embedding: its pixels would add weight to their Gaussians and no direction
         log.warning("%s: %d of %d embeddings are all zero (no direction to lift); their masks are ignored", fpath, int(zero.sum()), m)
         ids = np.where((ids >= 0) & zero[np.maximum(ids, 0)], -1, ids)
+    tiny = row_ok & ~zero & (norms < TINY_EMBEDDING_NORM)
+    if tiny.any():  # float32 sums of w·f underflow into subnormals there: the lifted directions would be noise
+        log.warning("%s: %d of %d embeddings have a norm below %.0e (CLIP's are 1); rescaled to unit length, since only their "
+                    "direction is lifted", fpath, int(tiny.sum()), m, TINY_EMBEDDING_NORM)
+        feats[tiny] = (feats[tiny].astype(np.float64) / norms[tiny, None]).astype(np.float32)
     return ids.astype(np.int32), feats, bad
 
 
