@@ -592,15 +592,16 @@ def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.n
     p = geometry.precisions[g]  # [P, k, 6]
     d = dirs[:, None, :]
     v = geometry.means[g] - origin
-    pd = np.stack([p[..., 0] * d[..., 0] + p[..., 1] * d[..., 1] + p[..., 2] * d[..., 2],
-                   p[..., 1] * d[..., 0] + p[..., 3] * d[..., 1] + p[..., 4] * d[..., 2],
-                   p[..., 2] * d[..., 0] + p[..., 4] * d[..., 1] + p[..., 5] * d[..., 2]], axis=-1)
-    num = (pd * v).sum(-1)
-    den = (pd * d).sum(-1)
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     zc = geometry.means[g] @ rot[2] + trans[2]
     reach = geometry.reach[g]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # precisions of ±inf (hostile geometry) give inf - inf = NaN here, as in the kernel: no numpy warning for it
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        pd = np.stack([p[..., 0] * d[..., 0] + p[..., 1] * d[..., 1] + p[..., 2] * d[..., 2],
+                       p[..., 1] * d[..., 0] + p[..., 3] * d[..., 1] + p[..., 4] * d[..., 2],
+                       p[..., 2] * d[..., 0] + p[..., 4] * d[..., 1] + p[..., 5] * d[..., 2]], axis=-1)
+        num = (pd * v).sum(-1)
+        den = (pd * d).sum(-1)
         t = np.where(den > 0, np.clip(num / np.where(den > 0, den, 1.0), zc - reach, zc + reach), zc)
     return np.where(ids.reshape(-1, k) >= 0, t, np.inf).reshape(h, w, k)
 
