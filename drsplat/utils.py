@@ -258,7 +258,10 @@ def temp_beside(path: str | Path) -> Path:
         raise OutputError(shown, "is a directory")
     ensure_parent(target)
     sweep_stale_temps(target)
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(target), suffix=TEMP_SUFFIX, dir=target.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(target), suffix=TEMP_SUFFIX, dir=target.parent)
+    except OSError as exc:  # a read-only folder: name the output, not the temp file it never got
+        raise OSError(exc.errno, exc.strerror or str(exc), str(shown)) from exc
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
     return Path(tmp)

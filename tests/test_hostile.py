@@ -351,6 +351,18 @@ def test_viewer_screenshot_refuses_the_files_the_scene_and_dataset_brought(tmp_p
     assert digest(demo) == before
 
 
+def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_ignored(tmp_path, capsys):
+    """Was: `--threshold 0.5 --mode selection` with no query: the plain scene, no word, exit 0."""
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    demo = demo_dir()
+    code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "s.png"), "--width", "32", "--height", "32",
+                        "--threshold", "0.5", "--mode", "selection"])
+    err = capsys.readouterr().err
+    assert code == 0 and "--threshold and --mode selection apply to a query" in err, err
+
+
 def test_viewer_unknown_demo_preset_is_a_usage_error(tmp_path, capsys):
     """Was: `main.py --demo-preset bogus` ended in write_dataset's ValueError traceback."""
     from viewer.launch import main as viewer_main

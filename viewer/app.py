@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import math
 import os
 import shutil
 import sys
@@ -23,12 +24,12 @@ import glfw
 import moderngl
 
 from drsplat.cameras import Camera
-from drsplat.utils import atomic_path
+from drsplat.utils import atomic_path, describe_os_error
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
 from viewer.paths import default_layout_path
 from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
-from viewer.settings import FLY_SPEED_RANGE
+from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import ViewerState
 
 log = logging.getLogger(__name__)
@@ -165,11 +166,8 @@ class ViewerApp:
         io = imgui.get_io()
         io.config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value | imgui.ConfigFlags_.docking_enable.value
         self.layout_path = default_layout_path() if layout_path is USE_LAYOUT_DEFAULT else layout_path
-        if self.layout_path is None:
-            io.set_ini_filename(None)
-        else:
-            Path(self.layout_path).parent.mkdir(parents=True, exist_ok=True)
-            io.set_ini_filename(str(self.layout_path))
+        self.layout_path = usable_layout_path(self.layout_path)
+        io.set_ini_filename(None if self.layout_path is None else str(self.layout_path))
         imgui.backends.glfw_init_for_opengl(ctypes.cast(self.window, ctypes.c_void_p).value, True)
         imgui.backends.opengl3_init("#version 330")
         fb_w, fb_h = glfw.get_framebuffer_size(self.window)
@@ -379,7 +377,7 @@ class ViewerApp:
             self.view.resize(fb_w, fb_h)
         if self.renderer is not None and fb_w > 0 and fb_h > 0:
             moving = self.moving
-            scale = self.state.settings.view.render_scale * (self.moving_scale if moving else 1.0)
+            scale = clamped_render_scale(self.state.settings.view.render_scale) * (self.moving_scale if moving else 1.0)
             camera = camera_for_size(self.view.camera(), max(1, int(fb_w * scale)), max(1, int(fb_h * scale)))
             if self.renderer.update_order(camera):
                 self._drawn_key = None
@@ -563,10 +561,10 @@ class ViewerApp:
         """Open another PLY (Scene panel, file dialog, drop). The training cameras and oracle
         labels are kept when it lies in the same folder as the current scene (an export or a
         registration of it), else dropped."""
-        path = Path(str(path).strip())
-        if not str(path):
+        if not str(path).strip():  # Path("") is ".", which would then be "not a file"
             self.state.error("type the path of a PLY to open")
             return False
+        path = Path(str(path).strip())
         same_folder = self.state.scene_path is not None and path.resolve().parent == self.state.scene_path.resolve().parent
         if not self.state.load_scene(path):
             return False
@@ -607,9 +605,12 @@ class ViewerApp:
                 self.open_scene(chosen[0])
 
     def screenshot(self, path: str | Path) -> None:
-        """Save the splats of the current view (without the panels) as PNG."""
+        """Save the splats of the current view (without the panels) as PNG; never over a file the
+        viewer read (`ViewerState.guard_output`)."""
         if self.renderer is None:
             self.state.error("no scene to take a screenshot of")
+            return
+        if not self.state.guard_output(path, "the screenshot"):
             return
         try:
             image = render_offscreen(self.ctx, self.renderer, self.view.camera())
@@ -620,6 +621,27 @@ class ViewerApp:
             self.state.error(f"screenshot to {path} failed: {exc}")
             return
         self.state.info(f"screenshot {image.shape[1]}x{image.shape[0]} saved to {path}")
+
+
+def clamped_render_scale(value: float) -> float:
+    """The render scale within RENDER_SCALE_RANGE (1 when not a number): imgui's ctrl+click lets a
+    slider take any typed value, and NaN ended the frame loop (int(NaN)); 4 rendered 16x the pixels."""
+    lo, hi = RENDER_SCALE_RANGE
+    return min(max(float(value), lo), hi) if math.isfinite(value) else 1.0
+
+
+def usable_layout_path(path: str | Path | None) -> Path | None:
+    """`path` (the imgui layout file) once its folder exists, or None, with a warning, when the
+    folder cannot be made (a file in the way, a read-only parent): the layout is a convenience and
+    must not stop the viewer from starting."""
+    if path is None:
+        return None
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        log.warning("the panel layout will not be saved: %s (set DRSPLAT_CONFIG_DIR to a writable folder)", describe_os_error(exc))
+        return None
+    return Path(path)
 
 
 def keyboard_to_scene(want_text_input: bool) -> bool:

@@ -13,9 +13,9 @@ import os
 import sys
 from pathlib import Path
 
-from drsplat.cameras import dataset_inputs, load_cameras
+from drsplat.cameras import load_cameras
 from drsplat.cli import setup_logging
-from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, output_file, protected_feature_folders
+from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
@@ -128,21 +128,11 @@ def build_state(args: argparse.Namespace):
     return state
 
 
-def loaded_inputs(state) -> dict[str, Path | None]:
-    """The files the state read besides the command line's paths (guard_outputs inputs): the
-    language field's codebook, the dataset's camera files and images, its oracle label files."""
-    inputs: dict[str, Path | None] = {"the scene's codebook": state.field.codebook_path if state.field is not None else None}
-    if state.source_dir is not None:
-        inputs.update(dataset_inputs(state.source_dir, state.cameras))
-        inputs.update({f"--source's {name}": state.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
-    return inputs
-
-
 def screenshot(args: argparse.Namespace, state) -> int:
     from viewer.app import render_screenshot  # moderngl, imgui and glfw: GL only when a window or an image is made
 
-    guard_outputs(loaded_inputs(state), {"--screenshot": args.screenshot},  # files found while loading (the demo's too)
-                  protected_feature_folders("--features", [state.features_dir]))
+    inputs, folders = state.read_inputs()  # files found while loading (the demo's too)
+    guard_outputs(inputs, {"--screenshot": args.screenshot}, folders)
     if args.camera is not None:
         if not state.cameras:
             raise DrsplatError("--camera needs the training cameras: pass --source DATASET_DIR")
@@ -182,6 +172,9 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if args.threshold is not None:
             state.set_threshold(args.threshold)
         state.set_mode(args.mode)
+    elif args.threshold is not None or args.mode != "highlight":  # nothing to select or colour by: say so rather than ignore them
+        log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
+                    "own colours", args.mode)
     render_screenshot(state, camera, args.screenshot)
     log.info("wrote %s (%dx%d)", args.screenshot, camera.width, camera.height)
     return 0

@@ -28,6 +28,7 @@ class RegistrationJob:
     finished: bool = False
     reported: bool = False
     error: str | None = None
+    scene_version: int | None = None  # ViewerState.scene_version when it started: its output opens only over that scene
 
     @property
     def fraction(self) -> float:

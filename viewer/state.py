@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from drsplat import query as dq
-from drsplat.cameras import Camera, load_cameras
-from drsplat.commands.common import checked_names
+from drsplat.cameras import Camera, dataset_inputs, load_cameras
+from drsplat.commands.common import checked_names, protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
@@ -32,7 +32,7 @@ from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene, load_ply_report
-from drsplat.utils import describe_os_error, guard_outputs, load_npy, read_json
+from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
@@ -132,9 +132,17 @@ class ViewerState:
         return True
 
     def set_scene(self, scene: GaussianScene, lang=None, path: Path | None = None) -> None:
+        """Show `scene` with nothing of the previous one: no query, segmentation, display mode or
+        CLIP encoder (another scene's features may come from another model; `start_text_encoder`
+        loads this one's)."""
         self.scene, self.field, self.scene_path = scene, lang, path
         self.query = None
         self.segmentation = None
+        self.segment_names, self.segment_colors = [], np.zeros((0, 3), np.float32)
+        self.mode = "color"
+        with self._encoder_lock:
+            self.encoder = None
+        self.encoder_status = "no language field loaded"
         self._prepared = None
         self.scene_version += 1
         self.style_version += 1
@@ -185,12 +193,12 @@ class ViewerState:
             return
         self.encoder_status = "loading the CLIP text encoder..."
         if background:
-            threading.Thread(target=self._load_encoder, name="clip-loader", daemon=True).start()
+            threading.Thread(target=self._load_encoder, args=(self.scene_version,), name="clip-loader", daemon=True).start()
         else:
-            self._load_encoder()
+            self._load_encoder(self.scene_version)
 
-    def _load_encoder(self) -> None:
-
+    def _load_encoder(self, version: int) -> None:
+        """Load the encoder for the scene of `version`; dropped if another scene opened meanwhile."""
         model_id = self.field.clip_model if self.field is not None else ""
         name, _, pretrained = model_id.partition("/")
         if name in ("", "unknown"):
@@ -198,12 +206,17 @@ class ViewerState:
         try:
             encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.settings.device)
         except WeightsUnavailableError as exc:
-            self.encoder_status = f"Text queries are off: {exc}"
+            if version == self.scene_version:
+                self.encoder_status = f"Text queries are off: {exc}"
             return
         except Exception as exc:  # noqa: BLE001
-            self.encoder_status = f"Text queries are off: the CLIP encoder could not be loaded ({exc}); pass --clip-checkpoint PATH to a local open_clip checkpoint."
+            if version == self.scene_version:
+                self.encoder_status = (f"Text queries are off: the CLIP encoder could not be loaded ({exc}); pass --clip-checkpoint PATH "
+                                       "to a local open_clip checkpoint.")
             return
         with self._encoder_lock:
+            if version != self.scene_version:  # another scene opened while this one loaded: not its encoder
+                return
             self.encoder = encoder
         self.encoder_status = f"CLIP text encoder ready ({encoder.model_id})"
 
@@ -350,6 +363,9 @@ class ViewerState:
         if mode == "segmentation" and self.segmentation is None:
             self.error("run a segmentation first (labels field and 'segment' button in the Display panel)")
             return False
+        if mode not in ("color", "segmentation") and self.query is None:  # hide-selection with no query would export every splat
+            self.error(f"run a query first: '{DISPLAY_MODE_NAMES.get(mode, mode)}' shows its matches")
+            return False
         self.mode = mode
         self.style_version += 1
         return True
@@ -380,6 +396,7 @@ class ViewerState:
             return False
         try:
             if names:
+                names = checked_names(Path("the typed labels"), list(names))  # no repeats or blanks: each names one colour
                 if self.encoder is None:
                     self.error(self.encoder_status)
                     return False
@@ -410,6 +427,37 @@ class ViewerState:
         return splat_style(self.num_gaussians, self.mode, self.query.scores, self.selection, self.score_range(),
                            None if seg is None else seg.labels, self.segment_colors)
 
+    # ---------------------------------------------------------------- what must not be written over
+
+    def read_inputs(self) -> tuple[dict[str, Path | None], dict]:
+        """(guard_outputs inputs, protected folders): every file the viewer read: the PLY, the
+        codebooks beside it and named by its field, the dataset's camera files and images, its
+        oracle label files; and the features folder, whose feature files an output may not replace."""
+        inputs: dict[str, Path | None] = {
+            "PLY you opened": self.scene_path,
+            "codebook beside the PLY you opened": codebook_path_for(self.scene_path) if self.scene_path is not None else None,
+            "codebook the opened PLY's field names": self.field.codebook_path if self.field is not None else None,
+        }
+        if self.source_dir is not None:
+            try:
+                inputs.update(dataset_inputs(self.source_dir, self.cameras))
+            except DrsplatError:  # the dataset changed since it was read: its images are still guarded below
+                inputs.update({f"--source's image {c.image_path}": c.image_path for c in self.cameras if c.image_path is not None})
+            inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
+        return inputs, protected_feature_folders("--features", [self.features_dir])
+
+    def guard_output(self, path: str | Path, what: str) -> bool:
+        """False, with an error, when `path` is blank, a folder, or a file the viewer read (`read_inputs`)."""
+        if not str(path).strip():
+            self.error(f"type the path of {what}")
+            return False
+        try:
+            inputs, folders = self.read_inputs()
+            guard_outputs(inputs, {what: Path(path)}, folders)
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, f"{what} to {path} refused")
+        return True
+
     # ---------------------------------------------------------------- export
 
     def export_mask(self) -> np.ndarray:
@@ -435,12 +483,13 @@ class ViewerState:
         if count == 0:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
+        if not str(path).strip():
+            self.error("type the path of the PLY to export to")
+            return None
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None
-            scene_codebook = codebook_path_for(self.scene_path) if self.scene_path is not None else None
-            read_codebook = self.field.codebook_path if self.field is not None else None  # the one its comment names
-            guard_outputs({"the loaded scene": self.scene_path, "its codebook": scene_codebook, "its language field's codebook": read_codebook},
-                          {"the export": Path(path), "the export's codebook": codebook})
+            inputs, folders = self.read_inputs()
+            guard_outputs(inputs, {"the export": Path(path), "the export's codebook": codebook}, folders)
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
@@ -470,6 +519,12 @@ class ViewerState:
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
+        if not self.guard_output(output, "the registration's output"):  # never over the scene, its dataset or features
+            return False
+        try:
+            check_output_writable(Path(output))  # a read-only folder: now, not after registering every view
+        except Exception as exc:  # noqa: BLE001
+            return self._fail(exc, "cannot register")
 
         try:
             device = resolve_device(self.settings.device)
@@ -479,6 +534,7 @@ class ViewerState:
             return False
         options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=engine, device=device)
         self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
+        self.registration.scene_version = self.scene_version
         if not background:
             self.poll_registration()
         return True
@@ -495,6 +551,9 @@ class ViewerState:
         job.reported = True
         if job.error is not None:
             self.error(f"registration did not finish: {job.error}")
+            return True
+        if job.scene_version is not None and job.scene_version != self.scene_version:  # another scene was opened meanwhile: keep it
+            self.info(f"registration saved to {job.output}; another scene is open now, so it was not loaded (open it to query it)")
             return True
         self.info(f"registration saved to {job.output}")
         cameras, oracle = self.cameras, self.oracle

@@ -1,0 +1,168 @@
+"""The viewer's state across actions (no window): what a later action may not undo or overwrite.
+
+Found by a probe of the viewer on 2026-11-29 (docs/hostile.md, "The viewer, round 5"): the GUI's
+registration, export and screenshot wrote over the dataset's files and the opened PLY, a
+registration that finished loaded over a scene opened after it started, and a new scene kept the
+previous one's display mode and CLIP encoder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from drsplat.synthetic import write_dataset
+
+    return write_dataset(tmp_path_factory.mktemp("tiny"), "tiny", seed=2, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def registered(dataset, tmp_path_factory):
+    from drsplat.cameras import load_cameras
+    from drsplat.registration import register
+    from drsplat.scene import load_ply
+
+    out = tmp_path_factory.mktemp("reg") / "registered.ply"
+    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
+    return out
+
+
+@pytest.fixture
+def state(dataset, registered, tmp_path):
+    """A state on copies (a test that fails must not damage the module's files)."""
+    from viewer.state import ViewerState
+
+    ds = Path(shutil.copytree(dataset, tmp_path / "ds"))
+    reg = Path(shutil.copy(registered, tmp_path / "registered.ply"))
+    for book in registered.parent.glob("*.faiss"):  # an exact field has none; a PQ one its codebook beside the PLY
+        shutil.copy(book, tmp_path)
+    s = ViewerState()
+    assert s.load_scene(reg)
+    assert s.load_source(ds)
+    return s
+
+
+def digests(folder: Path) -> dict[Path, str]:
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_export_and_screenshot_never_write_over_what_the_viewer_read(state):
+    ds = state.source_dir
+    before = digests(ds) | digests(state.scene_path.parent)
+    assert state.run_oracle_query(0)
+    state.set_threshold(-1.0)  # every Gaussian selected: the export would go ahead
+    image = next((ds / "images").iterdir())
+    feature = next((ds / "features").glob("*_f.npy"))
+    for target in (ds / "transforms.json", ds / "text_embeddings.npy", ds / "gt" / "label_names.json", image, feature, state.scene_path,
+                   ds / "features" / "new_f.npy"):
+        assert state.export_selection(target, "standard") is None, target
+        assert "cannot write" in state.messages[-1].text, state.messages[-1].text
+        assert not state.guard_output(target, "the screenshot")
+    assert not state.guard_output("", "the screenshot") and "type the path of the screenshot" in state.messages[-1].text
+    assert digests(ds) | digests(state.scene_path.parent) == before
+
+
+def test_gui_registration_refuses_its_inputs_as_output(state, tmp_path):
+    ds = state.source_dir
+    before = digests(ds) | digests(state.scene_path.parent)
+    for target in (state.scene_path, ds / "transforms.json", next((ds / "images").iterdir())):
+        assert not state.start_registration(target, background=False), target
+        assert "same file as the input" in state.messages[-1].text, state.messages[-1].text
+    assert state.registration is None
+    assert digests(ds) | digests(state.scene_path.parent) == before
+
+
+def test_a_registration_that_ends_after_another_scene_opened_does_not_replace_it(state, tmp_path):
+    other = Path(shutil.copy(state.scene_path, tmp_path / "other.ply"))
+    for book in state.scene_path.parent.glob("registered.codebook.faiss"):
+        shutil.copy(book, tmp_path / "other.codebook.faiss")
+    assert state.start_registration(tmp_path / "out.ply", background=True)
+    assert state.load_scene(other)
+    assert state.run_oracle_query(1)
+    deadline = time.time() + 120
+    while not state.registration.finished and time.time() < deadline:
+        time.sleep(0.05)
+    assert state.registration.finished and state.registration.error is None, state.registration.error
+    assert state.poll_registration()
+    assert state.scene_path == other and state.query is not None  # the scene opened later stays, with its query
+    assert "another scene is open now" in state.messages[-1].text and (tmp_path / "out.ply").is_file()
+
+
+def test_a_new_scene_starts_without_the_last_ones_mode_segmentation_or_encoder(state):
+    assert state.run_oracle_query(0) and state.set_mode("hide_selection")
+    state.encoder = object()  # a CLIP encoder of the previous scene's model
+    assert state.load_scene(state.scene_path)
+    assert state.mode == "color" and state.query is None and state.encoder is None
+    assert state.segment_names == [] and state.segment_colors.shape == (0, 3)
+    assert state.export_selection(state.scene_path.with_name("all.ply"), "standard") is None  # nothing selected, nothing shown hidden
+    assert not state.set_mode("hide_selection") and "run a query first" in state.messages[-1].text
+    assert state.run_segmentation(None) and state.mode == "segmentation"
+    assert state.load_scene(state.scene_path) and state.mode == "color" and state.segmentation is None
+
+
+def test_an_encoder_that_loads_for_a_scene_no_longer_open_is_dropped(state, monkeypatch):
+    import viewer.state as vs
+
+    class FakeEncoder:
+        model_id = "ViT-B-16/laion2b_s34b_b88k"
+
+        def __init__(self, *args, **kwargs):
+            state.load_scene(state.scene_path)  # the user opens another scene while the weights load
+
+    monkeypatch.setattr(vs, "ClipEncoder", FakeEncoder)
+    state._load_encoder(state.scene_version)
+    assert state.encoder is None
+
+
+@pytest.mark.parametrize("names, words", [(["ball", "mug", "ball"], 'repeats the name "ball"'), (["ball", " "], "empty name")])
+def test_typed_segmentation_labels_are_checked_like_the_clis(state, names, words):
+    assert not state.run_segmentation(names)
+    assert words in state.messages[-1].text, state.messages[-1].text
+
+
+def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):
+    from viewer.app import usable_layout_path
+
+    blocker = tmp_path / "cfg"
+    blocker.write_text("a file where the config folder should be")
+    with caplog.at_level(logging.WARNING):
+        assert usable_layout_path(blocker / "imgui.ini") is None
+    assert "the panel layout will not be saved" in caplog.text
+    assert usable_layout_path(tmp_path / "new" / "imgui.ini") == tmp_path / "new" / "imgui.ini" and (tmp_path / "new").is_dir()
+    assert usable_layout_path(None) is None
+    np.testing.assert_equal(blocker.read_text(), "a file where the config folder should be")
+
+
+@pytest.mark.parametrize("value, expected", [(float("nan"), 1.0), (4.0, 1.0), (0.0, 0.25), (0.5, 0.5), (float("inf"), 1.0)])
+def test_render_scale_is_kept_in_its_range(value, expected):
+    """A typed render scale of NaN ended the frame loop (int(NaN)); 4 rendered 16x the window's pixels."""
+    from viewer.app import clamped_render_scale
+
+    assert clamped_render_scale(value) == expected
+
+
+def test_an_export_into_a_read_only_folder_names_the_export_not_its_temp_file(tmp_path, monkeypatch):
+    """The error named `.a.ply.<pid>.<random>.tmp`, a file the user never asked for."""
+    import errno
+    import tempfile
+
+    from drsplat.utils import atomic_path
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / ".a.ply.123.xyz.tmp"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(OSError) as info:
+        with atomic_path(tmp_path / "a.ply"):
+            pass
+    assert info.value.filename == str(tmp_path / "a.ply") and info.value.errno == errno.EACCES
+
