@@ -22,6 +22,21 @@ def shared_path(*parts: str) -> Path:
     return path
 
 
+def tiny_registered(root: Path, seed: int) -> tuple[Path, Path]:
+    """(dataset folder, registered PLY) of the `tiny` synthetic preset under `root`, registered
+    with the CLI's defaults: the viewer tests' scene."""
+    from drsplat.cameras import load_cameras
+    from drsplat.registration import register
+    from drsplat.scene import load_ply
+    from drsplat.synthetic import write_dataset
+
+    dataset = write_dataset(root / "tiny", "tiny", seed=seed, show_progress=False)
+    out = root / "reg" / "registered.ply"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
+    return dataset, out
+
+
 def import_needing_system_library(module: str, apt_package: str):
     """`module`, imported; when it is installed but cannot load (a system library it links
     against is missing), the test is skipped with the package that provides the library."""

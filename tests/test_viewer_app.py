@@ -7,25 +7,24 @@ import time
 import numpy as np
 import pytest
 
+from tests.conftest import tiny_registered
+
 pytestmark = pytest.mark.gl
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    from drsplat.synthetic import write_dataset
-
-    return write_dataset(tmp_path_factory.mktemp("tiny"), "tiny", seed=1, show_progress=False)
+def scene_files(tmp_path_factory):
+    return tiny_registered(tmp_path_factory.mktemp("viewer"), seed=1)
 
 
 @pytest.fixture(scope="module")
-def registered(dataset, tmp_path_factory):
-    from drsplat.cameras import load_cameras
-    from drsplat.scene import load_ply
-    from drsplat.registration import register
+def dataset(scene_files):
+    return scene_files[0]
 
-    out = tmp_path_factory.mktemp("reg") / "registered.ply"
-    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
-    return out
+
+@pytest.fixture(scope="module")
+def registered(scene_files):
+    return scene_files[1]
 
 
 @pytest.fixture(scope="module")

@@ -17,30 +17,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    from drsplat.synthetic import write_dataset
-
-    return write_dataset(tmp_path_factory.mktemp("tiny"), "tiny", seed=2, show_progress=False)
+from tests.conftest import tiny_registered
 
 
 @pytest.fixture(scope="module")
-def registered(dataset, tmp_path_factory):
-    from drsplat.cameras import load_cameras
-    from drsplat.registration import register
-    from drsplat.scene import load_ply
-
-    out = tmp_path_factory.mktemp("reg") / "registered.ply"
-    register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
-    return out
+def scene_files(tmp_path_factory):
+    return tiny_registered(tmp_path_factory.mktemp("viewer-state"), seed=2)
 
 
 @pytest.fixture
-def state(dataset, registered, tmp_path):
+def state(scene_files, tmp_path):
     """A state on copies (a test that fails must not damage the module's files)."""
     from viewer.state import ViewerState
 
+    dataset, registered = scene_files
     ds = Path(shutil.copytree(dataset, tmp_path / "ds"))
     reg = Path(shutil.copy(registered, tmp_path / "registered.ply"))
     for book in registered.parent.glob("*.faiss"):  # an exact field has none; a PQ one its codebook beside the PLY
