@@ -1056,7 +1056,9 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.nda
     """
     eye = np.asarray(eye, np.float64)
     z = np.asarray(target, np.float64) - eye
-    z /= max(np.linalg.norm(z), 1e-12)
+    length = np.linalg.norm(z)
+    # eye == target in float64 (a scene at 1e30, whose extent rounds away): look along +z rather than make NaNs
+    z = z / length if length > 0 and np.isfinite(length) else np.array([0.0, 0.0, 1.0])
     x = np.cross(z, np.asarray(up, np.float64))
     if np.linalg.norm(x) < 1e-9:  # up parallel to the view direction: pick any perpendicular
         x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])

@@ -109,6 +109,23 @@ def test_look_at_gives_an_opencv_camera_looking_at_the_target():
     assert uv[1, 1] < 40, "world up must appear above the centre (image y points down)"
 
 
+def test_home_view_of_a_scene_far_beyond_float_precision_is_a_finite_camera():
+    """Gaussians at 1e30 (a units mix-up) round their extent away: eye == target in float64 gave a
+    NaN rotation and numpy's warnings (a black frame)."""
+    import warnings
+
+    from drsplat.testing import gaussians
+    from viewer.camera import ViewController
+
+    scene = gaussians([[1e30, 1e30, 1e30], [1e30, 1e30, 1.0000001e30]], log_scale=[[-2.0, -2.0, -2.0]] * 2, opacity_logit=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        R, _ = look_at([1e30] * 3, [1e30] * 3, [0.0, -1.0, 0.0])
+        camera = ViewController.for_scene(scene.means, [], 64, 48, scene.log_scales).camera()
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.isfinite(camera.R).all() and np.isfinite(camera.t).all()
+
+
 def test_orbit_keeps_the_distance_and_fly_keeps_the_eye():
     view = ViewController(eye=np.array([0.0, -4.0, 1.0]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
     d = view.distance
