@@ -23,7 +23,6 @@ from drsplat.utils import atomic_path, read_json, regular_file
 log = logging.getLogger(__name__)
 
 MAX_IMAGE_SIDE = 1 << 16  # pixels; larger "images" are corrupt metadata, and would size buffers
-MAX_TRANSLATION = MAX_COORDINATE  # |t| beyond this cannot place a camera near a float32 scene
 # Intrinsics relative to the image side: a focal length of 1e-6 to 1e6 image widths (a field of
 # view from about 6e-5 degrees to within 3e-4 degrees of 180) and a principal point within 1e6
 # widths of the image hold every real lens with a wide margin; beyond, the projection maths overflows.
@@ -541,8 +540,8 @@ def validate_camera(camera: Camera, path: Path, where: str) -> None:
     t = np.asarray(camera.t, np.float64)
     if not np.isfinite(t).all():
         raise InputError(path, f"{where} has a non-finite translation", field="translation")
-    if np.abs(t).max() > MAX_TRANSLATION:
-        raise InputError(path, f"{where} has a translation of {np.abs(t).max():.3g}, beyond any scene (more than {MAX_TRANSLATION:.0e}: a scale "
+    if np.abs(t).max() > MAX_COORDINATE:
+        raise InputError(path, f"{where} has a translation of {np.abs(t).max():.3g}, beyond any scene (more than {MAX_COORDINATE:.0e}: a scale "
                          "or units mix-up?); it would see no Gaussian", field="translation")
     validate_intrinsics(camera, path, where)
 
@@ -847,8 +846,11 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
 def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]:
     """The files a dataset's cameras were read from and the images they name, as `guard_outputs`
     inputs (description -> path): an output must replace none of them."""
-    kind, found = detect_dataset(source)
-    inputs = {f"--source's camera file {path}": path for path in dataset_reader(kind).files(found)}
+    try:
+        kind, found = detect_dataset(source)
+        inputs = {f"--source's camera file {path}": path for path in dataset_reader(kind).files(found)}
+    except InputError:  # the camera file went away since it was read (a viewer session): its images are still inputs
+        inputs = {}
     inputs.update({f"--source's image {c.image_path}": c.image_path for c in cameras if c.image_path is not None})
     return inputs
 

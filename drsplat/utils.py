@@ -261,7 +261,7 @@ def temp_beside(path: str | Path) -> Path:
     try:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(target), suffix=TEMP_SUFFIX, dir=target.parent)
     except OSError as exc:  # a read-only folder: name the output, not the temp file it never got
-        raise OSError(exc.errno, exc.strerror or str(exc), str(shown)) from exc
+        raise naming_path(exc, shown, *([Path(exc.filename)] if exc.filename is not None else [])) from None
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
     return Path(tmp)

@@ -1994,7 +1994,8 @@ def test_query_and_segment_refuse_to_write_over_the_codebook_the_ply_names(tmp_p
 def test_a_camera_placed_beyond_any_scene_is_refused_by_name(tmp_path):
     """Was: a transforms.json frame at 1e300 loaded, and registration ended in "no Gaussian received
     a language feature" without naming the camera file."""
-    from drsplat.cameras import MAX_TRANSLATION, load_cameras
+    from drsplat.cameras import load_cameras
+    from drsplat.scene import MAX_COORDINATE
     from drsplat.errors import InputError
 
     from PIL import Image
@@ -2008,6 +2009,6 @@ def test_a_camera_placed_beyond_any_scene_is_refused_by_name(tmp_path):
     with pytest.raises(InputError, match="transforms.json: field 'translation': .*beyond any scene") as exc:
         load_cameras(tmp_path, require_images=False)
     assert "1e+300" in str(exc.value)
-    pose[:3, 3] = [0.0, MAX_TRANSLATION / 2, 0.0]  # far, but a number a float64 pipeline still handles: loaded
+    pose[:3, 3] = [0.0, MAX_COORDINATE / 2, 0.0]  # far, but a number a float64 pipeline still handles: loaded
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": [{"file_path": "b.png", "transform_matrix": pose.tolist()}]}))
     assert len(load_cameras(tmp_path, require_images=False)) == 1

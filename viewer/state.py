@@ -39,6 +39,7 @@ from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
+NO_FIELD_STATUS = "no language field loaded"  # the encoder status until a scene with a language field opens
 
 
 @dataclass
@@ -74,7 +75,7 @@ class ViewerState:
         self.settings = ViewerSettings()
         self.oracle: OracleQueries | None = None
         self.encoder = None
-        self.encoder_status = "no language field loaded"
+        self.encoder_status = NO_FIELD_STATUS
         self.query: QueryResult | None = None
         self.threshold = 0.5
         self.mode = "color"
@@ -142,7 +143,7 @@ class ViewerState:
         self.mode = "color"
         with self._encoder_lock:
             self.encoder = None
-        self.encoder_status = "no language field loaded"
+        self.encoder_status = NO_FIELD_STATUS
         self._prepared = None
         self.scene_version += 1
         self.style_version += 1
@@ -439,10 +440,7 @@ class ViewerState:
             "codebook the opened PLY's field names": self.field.codebook_path if self.field is not None else None,
         }
         if self.source_dir is not None:
-            try:
-                inputs.update(dataset_inputs(self.source_dir, self.cameras))
-            except DrsplatError:  # the dataset changed since it was read: its images are still guarded below
-                inputs.update({f"--source's image {c.image_path}": c.image_path for c in self.cameras if c.image_path is not None})
+            inputs.update(dataset_inputs(self.source_dir, self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
         return inputs, protected_feature_folders("--features", [self.features_dir])
 

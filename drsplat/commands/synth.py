@@ -14,7 +14,7 @@ log = logging.getLogger(__name__)
 
 MAX_JITTER = 64  # pixels
 # what `drsplat synth` writes at the top of its folder (every preset): anything else there is the user's
-SYNTH_ENTRIES = frozenset({"scene.ply", "transforms.json", ORACLE_TEXT_EMBEDDINGS, "features", "gt", "images"})
+SYNTH_ENTRIES = frozenset({"scene.ply", "transforms.json", ORACLE_TEXT_EMBEDDINGS, Path(ORACLE_LABEL_NAMES).parts[0], "features", "images"})
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -55,17 +55,18 @@ def is_synthetic_dataset(folder: Path) -> bool:
     return (folder / "scene.ply").is_file() and (folder / ORACLE_LABEL_NAMES).is_file() and (folder / ORACLE_TEXT_EMBEDDINGS).is_file()
 
 
-def refuse_foreign_entries(folder: Path) -> None:
-    """OutputError when an earlier synthetic dataset in `folder` also holds entries synth never writes
-    (a registered PLY, notes: the README's own steps put `registered.ply` there): replacing the folder
-    would delete them."""
-    if not (folder.is_dir() and is_synthetic_dataset(folder)):
-        return
+def replaceable_dataset(folder: Path) -> bool:
+    """`atomic_folder`'s test: whether `folder` holds an earlier synthetic dataset and nothing else.
+    OutputError naming the entries synth never writes when it also holds some (a registered PLY,
+    notes: the README's own steps put `registered.ply` there), which replacing it would delete."""
+    if not is_synthetic_dataset(folder):
+        return False
     foreign = sorted(p.name for p in folder.iterdir() if p.name not in SYNTH_ENTRIES)
     if foreign:
         shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
         raise OutputError(folder, f"it holds an earlier synthetic dataset and also {shown}, which synth did not write and would "
                                   "delete with the folder; move them out or choose another folder")
+    return True
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,9 +75,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.preset in CITY_PRESETS and args.width is not None:
         raise UsageError("--width is for the room and table presets; city views are sized by the city preset")
-    refuse_foreign_entries(args.out_dir)
     token = CancelToken()
-    with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, is_synthetic_dataset) as tmp:
+    with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, replaceable_dataset) as tmp:
         if args.preset in CITY_PRESETS:
             write_city(tmp, args.preset, args.seed, show_progress=not args.no_progress, cancel=token)
         else:

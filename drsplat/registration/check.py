@@ -150,9 +150,9 @@ def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.nda
 
 
 def fixed_support(x: np.ndarray) -> np.ndarray:
-    """`_fixed` of each x ≥ 0 in numpy: round(x · SUPPORT_SCALE) as float64 (integers, exact below
-    2⁵³, so their sums are the same in any order)."""
-    return np.floor(np.asarray(x, np.float64) * SUPPORT_SCALE + 0.5)
+    """`_fixed` of each x in numpy: round(x · SUPPORT_SCALE) as float64 (integers, exact below 2⁵³,
+    so their sums are the same in any order); a NaN or negative x counts 0."""
+    return np.floor(np.clip(np.nan_to_num(np.asarray(x, np.float64), nan=0.0), 0.0, None) * SUPPORT_SCALE + 0.5)
 
 
 def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
