@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -35,6 +36,18 @@ def tiny_registered(root: Path, seed: int) -> tuple[Path, Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     register(load_ply(dataset / "scene.ply"), load_cameras(dataset, require_images=False), dataset / "features", out, show_progress=False)
     return dataset, out
+
+
+def splat_transform_command() -> list[str]:
+    """PlayCanvas splat-transform (npm), a peer for scene files: $SPLAT_TRANSFORM (a path to its bin),
+    or on PATH; the test is skipped with a reason when neither is there."""
+    explicit = os.environ.get("SPLAT_TRANSFORM")
+    if explicit and Path(explicit).is_file():
+        return [explicit]
+    found = shutil.which("splat-transform")
+    if found is None:
+        pytest.skip("splat-transform is not installed (npm install @playcanvas/splat-transform; set SPLAT_TRANSFORM to its bin)")
+    return [found]
 
 
 def import_needing_system_library(module: str, apt_package: str):

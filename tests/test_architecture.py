@@ -34,7 +34,7 @@ def test_stages_import_only_earlier_stages():
 
     lang (the field's storage: codebooks, backends, scoring, the registered-PLY format) depends on the
     scene alone; registration encodes its output into it and query reads it."""
-    order = ["drsplat.scene", "drsplat.cameras", "drsplat.features", "drsplat.lang", "drsplat.registration", "drsplat.query"]
+    order = ["drsplat.scene", "drsplat.splat_formats", "drsplat.cameras", "drsplat.features", "drsplat.lang", "drsplat.registration", "drsplat.query"]
     for rank, stage in enumerate(order):
         path = ROOT / Path(*stage.split("."))
         files = list(path.rglob("*.py")) if path.is_dir() else [path.with_suffix(".py")]

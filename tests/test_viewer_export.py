@@ -5,7 +5,6 @@ viewer, and a PLY whose header comments were dropped by another tool (splat-tran
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -24,6 +23,7 @@ from drsplat.lang import (
     read_field,
 )
 from drsplat.scene import load_ply, save_ply
+from tests.conftest import splat_transform_command
 
 
 @pytest.fixture(scope="module")
@@ -185,20 +185,9 @@ def test_viewer_exports_both_formats(demo, query, tmp_path):
     assert registered.with_name("registered.codebook.faiss").is_file()
 
 
-def _splat_transform() -> list[str] | None:
-    """The splat-transform command: $SPLAT_TRANSFORM (a path to its bin), or on PATH."""
-    explicit = os.environ.get("SPLAT_TRANSFORM")
-    if explicit and Path(explicit).is_file():
-        return [explicit]
-    found = shutil.which("splat-transform")
-    return [found] if found else None
-
-
 def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
     """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
-    command = _splat_transform()
-    if command is None:
-        pytest.skip("splat-transform is not installed (npm install @playcanvas/splat-transform; set SPLAT_TRANSFORM to its bin)")
+    command = splat_transform_command()
     registered, _ = demo
     field = read_field(load_ply(registered), registered)
     src = tmp_path / "mug.ply"

@@ -24,6 +24,7 @@ import glfw
 import moderngl
 
 from drsplat.cameras import Camera
+from drsplat.splat_formats import SCENE_SUFFIXES
 from drsplat.utils import atomic_path, describe_os_error
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
@@ -586,15 +587,16 @@ class ViewerApp:
             return
         folder = str(self.state.scene_path.parent) if self.state.scene_path is not None else os.getcwd()
         try:
-            self._file_dialog = pfd.open_file("Open a 3DGS PLY", folder, ["PLY files", "*.ply", "All files", "*"])
+            patterns = " ".join(f"*{s}" for s in SCENE_SUFFIXES)
+            self._file_dialog = pfd.open_file("Open a 3DGS scene", folder, [f"3DGS scenes ({patterns})", patterns, "All files", "*"])
         except Exception as exc:  # noqa: BLE001 - no dialog helper (zenity/kdialog) on this machine
             self.state.error(f"no file dialog available ({exc}); type the path in the Scene panel or drop the file on the window")
 
     def _poll_file_inputs(self) -> None:
         dropped, self._dropped = self._dropped, []
-        plys = [p for p in dropped if p.lower().endswith(".ply")]
+        plys = [p for p in dropped if p.lower().endswith(SCENE_SUFFIXES)]
         if dropped and not plys:
-            self.state.error(f"dropped {len(dropped)} file(s), none a .ply: drop a 3DGS PLY to open it")
+            self.state.error(f"dropped {len(dropped)} file(s), none a .ply, .splat or .spz: drop a 3DGS scene to open it")
         if plys:
             self.open_scene(plys[0])
         dialog = self._file_dialog

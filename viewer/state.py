@@ -31,7 +31,8 @@ from drsplat.lang import codebook_path_for, export_scene, read_field
 from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
-from drsplat.scene import GaussianScene, load_ply_report
+from drsplat.scene import GaussianScene
+from drsplat.splat_formats import load_scene_report
 from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
@@ -121,7 +122,7 @@ class ViewerState:
 
         try:
             path = Path(path)
-            scene, report = load_ply_report(path)
+            scene, report = load_scene_report(path)
             if scene.num_gaussians == 0:
                 why = ("holds no Gaussians (0 rows)" if report.rows_in_file == 0 else
                        f"has no usable Gaussians: all {report.rows_in_file:,} rows hold NaN or infinite values and were dropped")
@@ -169,7 +170,7 @@ class ViewerState:
     def next_step(self) -> str:
         """What a person should do next, for the first screen (shown until a query runs)."""
         if self.scene is None:
-            return "Open a scene: type a PLY path in the Scene panel, or drop a .ply file on the window."
+            return "Open a scene: type a scene path (.ply, .splat, .spz) in the Scene panel, or drop the file on the window."
         if self.field is None:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")

@@ -247,12 +247,12 @@ def load_eval_scene(args: argparse.Namespace):
     """(scene to evaluate on, registered field, index of registered Gaussians in that scene or None)."""
     from drsplat.commands.common import load_registered
     from drsplat.eval.metrics import match_gaussians
-    from drsplat.scene import load_ply
+    from drsplat.splat_formats import load_scene
 
     scene, field = load_registered(args.registered)
     if args.original is None:
         return scene, field, None
-    original = load_ply(args.original)
+    original = load_scene(args.original)
     try:
         index = match_gaussians(original.means, scene.means)
     except ValueError as exc:
@@ -338,11 +338,11 @@ def run_scannet(args: argparse.Namespace) -> int:
 
 def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES
-    from drsplat.scene import load_ply
+    from drsplat.splat_formats import load_scene
     from drsplat.utils import atomic_path, save_npy_atomic
 
     guard_args(args, ("out", "names_out"))
-    scene = load_ply(args.scene)
+    scene = load_scene(args.scene)
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
     save_npy_atomic(args.out, labels.astype(np.int32))

@@ -1,4 +1,4 @@
-"""`drsplat info SCENE.ply [--json]`: what a scene holds and what validation found."""
+"""`drsplat info SCENE [--json]`: what a scene file (PLY, .splat, .spz) holds and what validation found."""
 
 from __future__ import annotations
 
@@ -7,14 +7,15 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.scene import GaussianScene, LoadReport, load_ply_report
+from drsplat.scene import GaussianScene, LoadReport
+from drsplat.splat_formats import load_scene_report
 from drsplat.utils import json_text
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("info", help="summarise a 3DGS PLY: count, SH degree, bounds, statistics, findings",
                               description="Summarise a 3DGS PLY (INRIA layout or SuperSplat compressed).")
-    p.add_argument("scene", type=Path, help="scene PLY")
+    p.add_argument("scene", type=Path, help="3DGS scene: PLY (INRIA or compressed), .splat or .spz")
     p.add_argument("--json", action="store_true", help="print machine-readable JSON instead of text")
     p.set_defaults(func=run)
 
@@ -69,7 +70,7 @@ def format_summary(s: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    scene, report = load_ply_report(args.scene)
+    scene, report = load_scene_report(args.scene)
     summary = scene_summary(scene, report)
     print(json_text(summary) if args.json else format_summary(summary))
     return 0

@@ -1,4 +1,4 @@
-"""`drsplat register SCENE.ply --source DATASET --features FEATURES --out REGISTERED.ply`."""
+"""`drsplat register SCENE --source DATASET --features FEATURES --out REGISTERED.ply` (SCENE: PLY, .splat or .spz)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "Writes an INRIA-layout PLY with the language field as extra properties (docs/registration.md). "
         "Ctrl-C stops at the end of the current view and keeps a checkpoint; the same command resumes.",
     )
-    p.add_argument("scene", type=Path, metavar="SCENE.ply", help="trained 3DGS scene (PLY)")
+    p.add_argument("scene", type=Path, metavar="SCENE", help="trained 3DGS scene (PLY, INRIA or compressed; .splat; .spz)")
     p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0) or transforms.json")
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
     p.add_argument("--level", type=nonneg_int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.lang import codebook_path_for
     from drsplat.registration import RegisterOptions, register
-    from drsplat.scene import load_ply
+    from drsplat.splat_formats import load_scene
 
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    scene = load_ply(args.scene)
+    scene = load_scene(args.scene)
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

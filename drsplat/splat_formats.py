@@ -1,0 +1,388 @@
+"""Scene files beyond PLY: the antimatter15 `.splat` and Niantic `.spz` (versions 1-4), read into a
+`GaussianScene`; `load_scene` picks the reader (`scene_format`: PLY and spz by their first bytes,
+`.splat`, which has no header, by its name).
+
+`.splat` (web viewers; no header): N records of 32 bytes, little-endian,
+
+    position  3 x float32       the mean
+    scale     3 x float32       exp(log scale), linear
+    rgba      4 x uint8         rgb = 255·(0.5 + SH_C0·f_dc), a = 255·σ(opacity logit)
+    rotation  4 x uint8         128 + 128·q̂, q̂ the unit quaternion (w, x, y, z)
+
+decoded as f_dc = (rgb/255 - 0.5) / SH_C0, q = (byte - 128) / 128 (the exact inverse of the reference
+converter's encoding; PlayCanvas splat-transform maps a byte b to b/127.5 - 1 instead, up to 1/128 apart
+per component before normalisation) and log scale = log(scale). No higher SH.
+
+`.spz` (Niantic; Scaniverse): versions 1-3 are one gzip stream holding a 16-byte header (magic "NGSP",
+version, N, SH degree, fractional bits, flags) and then, point by point within each, the blocks
+
+    positions  N x 3 x 24-bit signed fixed point (· 2^-fractional bits; v1: float16)
+    alphas     N x uint8        a = 255·σ(opacity logit)
+    colors     N x 3 x uint8    c = 255·(0.15·f_dc + 0.5)
+    scales     N x 3 x uint8    s = 16·(log scale + 10)
+    rotations  N x 3 x uint8 (v1-2: x, y, z of q̂ with w ≥ 0, 127.5·(1 + q)) or N x uint32 (v3+: the
+               largest component's index in 2 bits and the other three as sign + 9 bits of |q|/√½)
+    sh         N x ((d + 1)² - 1) x 3 x uint8, (v - 128) / 128, colour channel fastest
+
+and optional extension records ([u32 type][u32 length][payload]) after them. Version 4 keeps the same
+blocks as separate zstd streams after a plain 32-byte header (…, stream count, table-of-contents
+offset), extension records between the header and the table of contents. The data are stored in a
+right-up-back frame (or the frame an SPZ_ADOBE_coordinate_system extension names); PLY's is
+right-down-front, so y and z flip, as do the quaternion's x-y-z parts and the SH coefficients odd in
+them (the spz library's tables). Every size in a header is checked against the file before anything
+that size is allocated; the decompressed data are bounded by what the header declares.
+
+8-bit alphas of 0 and 255 are read as half a step inside (0.5/255 and 1 - 0.5/255): a file that stores
+a fully opaque or transparent splat holds no infinite logit (σ⁻¹ of 0.5/255 is below 3DGS's 1/255
+threshold, so such a splat stays invisible). SH degree 4 (spz only) is dropped to 3 with a warning.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import zlib
+from pathlib import Path
+
+import numpy as np
+import zstandard
+
+from drsplat.errors import InputError
+from drsplat.scene import GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits
+
+log = logging.getLogger(__name__)
+
+SPLAT_RECORD = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)), ("rotation", "u1", (4,))])
+NGSP_MAGIC = 0x5053474E  # "NGSP" little-endian
+GZIP_MAGIC = b"\x1f\x8b"
+SPZ_VERSIONS = (1, 2, 3, 4)
+SPZ_COLOR_SCALE = 0.15
+SPZ_MAX_SH_DEGREE = 4
+SCENE_MAX_SH_DEGREE = 3  # what GaussianScene (and 3DGS) holds
+SPZ_LEGACY_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("points", "<u4"), ("sh_degree", "u1"),
+                              ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
+SPZ_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("points", "<u4"), ("sh_degree", "u1"), ("fractional_bits", "u1"),
+                       ("flags", "u1"), ("streams", "u1"), ("toc_offset", "<u4"), ("reserved", "u1", (12,))])
+FLAG_ANTIALIASED = 0x1
+FLAG_EXTENSIONS = 0x2
+EXTENSION_COORDINATES = 0xADBE0003  # SPZ_ADOBE_coordinate_system: u32, the frame the data are stored in
+MAX_LEGACY_EXTENSION_BYTES = 1 << 20
+MAX_SPZ_RATIO = 1024  # data bytes per file byte a header may declare (the spz library's kMaxCompressionRatio)  # extension records a gzip .spz may hold after its blocks
+# the spz library's frames: 0 unspecified (= RUB), 1-8 axis flips of one another, 9-16 rotated by 90° about x
+SPZ_FRAMES = {1: "LDB", 2: "RDB", 3: "LUB", 4: "RUB", 5: "LDF", 6: "RDF", 7: "LUF", 8: "RUF"}
+DEFAULT_SPZ_FRAME = 4  # RUB
+SCENE_SUFFIXES = (".ply", ".splat", ".spz")  # the scene files load_scene reads
+
+
+def scene_format(path: Path) -> str:
+    """"ply", "splat" or "spz", from the first bytes ("ply", gzip or "NGSP"); a file with none of
+    them is "splat" when named *.splat (that format has no header) and "ply" otherwise, whose
+    reader then names what is wrong."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head[:3] == b"ply":
+        return "ply"
+    if head[:2] == GZIP_MAGIC or (len(head) == 4 and int.from_bytes(head, "little") == NGSP_MAGIC):
+        return "spz"
+    return "splat" if path.suffix.lower() == ".splat" else "ply"
+
+
+def load_scene_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
+    """Load a 3DGS scene file (PLY: INRIA or compressed, `.splat`, `.spz`) and report what was found and fixed."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "does not exist" if not path.exists() else "is not a file")
+    kind = scene_format(path)
+    if kind == "ply":
+        return load_ply_report(path)
+    cols, order, layout = splat_columns(path) if kind == "splat" else spz_columns(path)
+    return assemble_scene(path, cols, order, layout, [])
+
+
+def load_scene(path: str | Path) -> GaussianScene:
+    """`load_scene_report` without the report."""
+    return load_scene_report(path)[0]
+
+
+# ----------------------------------------------------------------------------- .splat
+
+
+def splat_columns(path: Path) -> tuple[dict, list[str], str]:
+    """Decode a `.splat` file (module docstring) into `assemble_scene`'s columns, its field names and layout name."""
+    size = path.stat().st_size
+    if size % SPLAT_RECORD.itemsize:
+        raise InputError(path, f"is {size:,} bytes, not a whole number of {SPLAT_RECORD.itemsize}-byte .splat records "
+                               f"({size // SPLAT_RECORD.itemsize:,} records and {size % SPLAT_RECORD.itemsize} bytes): truncated, "
+                               "or not a .splat file", field="size")
+    rec = np.fromfile(path, SPLAT_RECORD)
+    with np.errstate(divide="ignore", invalid="ignore"):  # scale ≤ 0: log is -inf / NaN, which assemble_scene counts
+        log_scales = np.log(rec["scale"].astype(np.float64)).astype(np.float32)
+    cols = {
+        "means": rec["position"].astype(np.float32),
+        "quats": (rec["rotation"].astype(np.float32) - 128.0) / 128.0,
+        "log_scales": log_scales,
+        "opacity_logits": opacity_logits(byte_alpha(rec["rgba"][:, 3])),
+        "sh": dc_from_rgb(rec["rgba"][:, :3].astype(np.float32) / 255.0)[:, None, :],
+        "extra": {},
+    }
+    return cols, list(SPLAT_RECORD.names), "splat"
+
+
+def byte_alpha(a: np.ndarray) -> np.ndarray:
+    """[N] uint8 alphas -> [N] float64 opacities a/255, 0 and 255 read half a step inside (module docstring)."""
+    return np.clip(np.asarray(a, np.float64), 0.5, 254.5) / 255.0
+
+
+# ----------------------------------------------------------------------------- .spz
+
+
+def sh_coefficients(degree: int) -> int:
+    """Higher-order SH coefficients per colour channel of a degree: (d + 1)² - 1."""
+    return (degree + 1) ** 2 - 1
+
+
+def spz_block_sizes(points: int, version: int, sh_degree: int) -> list[tuple[str, int]]:
+    """The data blocks of an spz file of `points` points, in file order, with their byte counts."""
+    return [("positions", points * (6 if version == 1 else 9)), ("alphas", points), ("colors", points * 3),
+            ("scales", points * 3), ("rotations", points * (4 if version >= 3 else 3)),
+            ("sh", points * sh_coefficients(sh_degree) * 3)]
+
+
+def spz_columns(path: Path) -> tuple[dict, list[str], str]:
+    """Decode an `.spz` file (module docstring) into `assemble_scene`'s columns, its block names and layout name."""
+    data = path.read_bytes()
+    if data[:2] == GZIP_MAGIC:
+        header, blocks, extensions = _read_legacy_spz(path, data)
+    else:
+        header, blocks, extensions = _read_ngsp_spz(path, data)
+    frame = _storage_frame(path, extensions)
+    version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
+    if header["flags"] & FLAG_ANTIALIASED:
+        log.warning("%s: was trained with anti-aliasing (mip-splatting's 2D filter); drsplat rasterizes it as plain 3DGS, "
+                    "so small splats weigh a little more than in its own renderer", path)
+    cols = _decode_spz_blocks(blocks, version, points, degree, int(header["fractional_bits"]))
+    _to_ply_frame(cols, frame)
+    if degree > SCENE_MAX_SH_DEGREE:
+        log.warning("%s: has SH degree %d; drsplat keeps degrees 0-%d (the rest only tints view-dependent colour)",
+                    path, degree, SCENE_MAX_SH_DEGREE)
+        cols["sh"] = cols["sh"][:, : (SCENE_MAX_SH_DEGREE + 1) ** 2]
+    return cols, [name for name, _ in spz_block_sizes(points, version, degree)], f"spz v{version}"
+
+
+def _check_spz_header(path: Path, version: int, degree: int) -> None:
+    if version not in SPZ_VERSIONS:
+        raise InputError(path, f"is spz version {version}; drsplat reads versions {SPZ_VERSIONS[0]}-{SPZ_VERSIONS[-1]}", field="version")
+    if degree > SPZ_MAX_SH_DEGREE:
+        raise InputError(path, f"declares SH degree {degree}; spz holds degrees 0-{SPZ_MAX_SH_DEGREE}", field="shDegree")
+
+
+def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], bytes]:
+    """Versions 1-3: (header, {block: bytes}, extension bytes) from the gzip stream, decompressing no
+    more than the header declares (plus MAX_LEGACY_EXTENSION_BYTES of extensions)."""
+    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    try:
+        head = inflater.decompress(data, SPZ_LEGACY_HEADER.itemsize)
+    except zlib.error as exc:
+        raise InputError(path, f"is not a readable gzip stream ({exc})", field="gzip") from None
+    if len(head) < SPZ_LEGACY_HEADER.itemsize:
+        raise InputError(path, f"holds {len(head)} bytes once decompressed, fewer than the {SPZ_LEGACY_HEADER.itemsize}-byte spz header", field="header")
+    header = np.frombuffer(head, SPZ_LEGACY_HEADER)[0]
+    if int(header["magic"]) != NGSP_MAGIC:
+        raise InputError(path, "is a gzip file without the spz header (magic 'NGSP'): not an .spz file", field="magic")
+    version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
+    _check_spz_header(path, version, degree)
+    sizes = spz_block_sizes(points, version, degree)
+    need = _check_ratio(path, sizes, len(data))
+    body = _inflate(path, inflater, need + MAX_LEGACY_EXTENSION_BYTES)
+    if len(body) < need:
+        raise InputError(path, f"is truncated: its header declares {points:,} points ({need:,} bytes of data) "
+                               f"but the stream holds {len(body):,}", field="numPoints")
+    blocks, at = {}, 0
+    for name, n in sizes:
+        blocks[name] = body[at: at + n]
+        at += n
+    extensions = body[at:]
+    if extensions and not header["flags"] & FLAG_EXTENSIONS:
+        log.warning("%s: %d bytes follow the %d points its header declares (and no extension flag): the point count may be "
+                    "smaller than the data, which is ignored", path, len(extensions), points)
+        extensions = b""
+    return header, blocks, extensions
+
+
+def _check_ratio(path: Path, sizes: list[tuple[str, int]], file_bytes: int) -> int:
+    """The data bytes a header declares, checked against the file's size before anything is
+    decompressed: no more than MAX_SPZ_RATIO times it (the spz library's own bound)."""
+    need = sum(n for _, n in sizes)
+    if need > MAX_SPZ_RATIO * file_bytes:
+        raise InputError(path, f"declares {need:,} bytes of point data in a {file_bytes:,}-byte file, more than {MAX_SPZ_RATIO}:1 "
+                               "compression gives: a damaged header", field="numPoints")
+    return need
+
+
+def _inflate(path: Path, inflater, limit: int) -> bytes:
+    """The rest of a gzip stream, at most `limit` bytes (InputError when it holds more, is damaged or ends early)."""
+    try:
+        body = inflater.decompress(inflater.unconsumed_tail, limit + 1)
+    except zlib.error as exc:
+        raise InputError(path, f"has a damaged gzip stream ({exc})", field="gzip") from None
+    if len(body) > limit:
+        raise InputError(path, f"decompresses to more than the {limit:,} bytes its header allows", field="gzip")
+    if not inflater.eof:
+        raise InputError(path, "is truncated: its gzip stream ends early", field="gzip")
+    if inflater.unused_data:
+        log.warning("%s: %d bytes after the end of its gzip stream ignored", path, len(inflater.unused_data))
+    return body
+
+
+def _unzstd(path: Path, name: str, packed: bytes, size: int) -> bytes:
+    """One zstd stream that must decompress to exactly `size` bytes (never more is decompressed)."""
+    out = bytearray()
+    try:
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(packed)) as reader:
+            while len(out) <= size:
+                chunk = reader.read(size + 1 - len(out))
+                if not chunk:
+                    break
+                out += chunk
+    except zstandard.ZstdError as exc:
+        raise InputError(path, f"has a damaged zstd stream for {name} ({exc})", field=name) from None
+    if len(out) != size:
+        raise InputError(path, f"decompresses {name} to {'more than ' if len(out) > size else ''}{len(out):,} bytes; "
+                               f"its table of contents says {size:,}", field=name)
+    return bytes(out)
+
+
+def _read_ngsp_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], bytes]:
+    """Version 4: (header, {block: bytes}, extension bytes) from the table of contents and zstd streams."""
+    if len(data) < SPZ_HEADER.itemsize:
+        raise InputError(path, f"is {len(data)} bytes, shorter than the {SPZ_HEADER.itemsize}-byte spz header", field="header")
+    header = np.frombuffer(data[: SPZ_HEADER.itemsize], SPZ_HEADER)[0]
+    version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
+    if version < 4:
+        raise InputError(path, f"has a plain 'NGSP' header of version {version}; versions 1-3 are gzip streams", field="version")
+    _check_spz_header(path, version, degree)
+    sizes = [(name, n) for name, n in spz_block_sizes(points, version, degree) if n > 0]
+    toc, count = int(header["toc_offset"]), int(header["streams"])
+    if count != len(sizes):
+        raise InputError(path, f"has {count} streams; {points:,} points of SH degree {degree} need {len(sizes)}", field="numStreams")
+    toc_end = toc + 16 * count
+    if toc < SPZ_HEADER.itemsize or toc_end > len(data):
+        raise InputError(path, f"puts its table of contents at bytes {toc:,}-{toc_end:,} of a {len(data):,}-byte file", field="tocByteOffset")
+    table = np.frombuffer(data[toc:toc_end], "<u8").reshape(count, 2)
+    if int(table[:, 0].sum()) != len(data) - toc_end:
+        raise InputError(path, f"lists {int(table[:, 0].sum()):,} bytes of streams but holds {len(data) - toc_end:,} after its table "
+                               "of contents: truncated or damaged", field="toc")
+    _check_ratio(path, sizes, len(data))
+    blocks, at = {}, toc_end
+    for (name, n), (packed, unpacked) in zip(sizes, table.tolist()):
+        if unpacked != n:
+            raise InputError(path, f"stores {unpacked:,} bytes of {name}; {points:,} points need {n:,}", field=name)
+        blocks[name] = _unzstd(path, name, data[at: at + packed], n)
+        at += packed
+    blocks.setdefault("sh", b"")
+    return header, blocks, data[SPZ_HEADER.itemsize:toc] if header["flags"] & FLAG_EXTENSIONS else b""
+
+
+def _storage_frame(path: Path, extensions: bytes) -> int:
+    """The frame the data are stored in (SPZ_FRAMES key): RUB unless a coordinate-system extension names
+    another; other extensions (camera limits, ...) are skipped. InputError for a damaged record or a
+    rotated frame (9-16), which drsplat does not convert."""
+    frame, at = DEFAULT_SPZ_FRAME, 0
+    while at < len(extensions):
+        if at + 8 > len(extensions):
+            raise InputError(path, f"ends inside an extension record header ({len(extensions) - at} of 8 bytes)", field="extensions")
+        kind, length = (int(v) for v in np.frombuffer(extensions[at: at + 8], "<u4"))
+        if at + 8 + length > len(extensions):
+            raise InputError(path, f"has an extension record (type 0x{kind:08X}) of {length:,} bytes past the end of its extensions", field="extensions")
+        if kind == EXTENSION_COORDINATES:
+            if length < 4:
+                raise InputError(path, f"has a coordinate-system extension of {length} bytes (expected 4)", field="extensions")
+            value = int(np.frombuffer(extensions[at + 8: at + 12], "<u4")[0])
+            if value not in SPZ_FRAMES and value != 0:
+                raise InputError(path, f"stores its data in spz coordinate system {value} (a rotated frame), which drsplat does not convert; "
+                                       "re-export it from the spz tools in RUB or RDF", field="SPZ_ADOBE_coordinate_system")
+            frame = value or DEFAULT_SPZ_FRAME
+        else:
+            log.info("%s: extension 0x%08X (%d bytes) skipped", path, kind, length)
+        at += 8 + length
+    return frame
+
+
+def _decode_spz_blocks(blocks: dict[str, bytes], version: int, points: int, degree: int, fractional_bits: int) -> dict:
+    """The blocks as `assemble_scene` columns in the file's own frame (quaternions w, x, y, z)."""
+    n = points
+    if version == 1:
+        means = np.frombuffer(blocks["positions"], "<f2").reshape(n, 3).astype(np.float32)
+    else:
+        b = np.frombuffer(blocks["positions"], np.uint8).reshape(n, 3, 3).astype(np.int32)
+        fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
+        fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+        means = (fixed.astype(np.float64) * 2.0 ** -fractional_bits).astype(np.float32)
+    alphas = np.frombuffer(blocks["alphas"], np.uint8)
+    colors = np.frombuffer(blocks["colors"], np.uint8).reshape(n, 3).astype(np.float32)
+    dc = (colors / np.float32(255.0) - np.float32(0.5)) / np.float32(SPZ_COLOR_SCALE)
+    log_scales = np.frombuffer(blocks["scales"], np.uint8).reshape(n, 3).astype(np.float32) / np.float32(16.0) - np.float32(10.0)
+    if version >= 3:
+        xyzw = _smallest_three(np.frombuffer(blocks["rotations"], "<u4"))
+    else:
+        xyz = np.frombuffer(blocks["rotations"], np.uint8).reshape(n, 3).astype(np.float32) / np.float32(127.5) - np.float32(1.0)
+        w = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - (xyz * xyz).sum(axis=1)))
+        xyzw = np.concatenate([xyz, w[:, None]], axis=1)
+    k = sh_coefficients(degree)
+    sh = np.empty((n, k + 1, 3), np.float32)
+    sh[:, 0] = dc
+    sh[:, 1:] = (np.frombuffer(blocks["sh"], np.uint8).reshape(n, k, 3).astype(np.float32) - np.float32(128.0)) / np.float32(128.0)
+    return {"means": means, "quats": xyzw[:, [3, 0, 1, 2]], "log_scales": log_scales, "opacity_logits": opacity_logits(byte_alpha(alphas)),
+            "sh": sh, "extra": {}}
+
+
+def _smallest_three(packed: np.ndarray) -> np.ndarray:
+    """[N] uint32 -> [N, 4] float32 (x, y, z, w): 2 bits name the largest component; the other three, from
+    the highest index down, are 10 bits each from the low end (sign bit, then 9 bits of |q| / √½)."""
+    comp = packed.astype(np.uint32).copy()
+    largest = (comp >> 30).astype(np.int64)
+    q = np.zeros((comp.shape[0], 4), np.float32)
+    squares = np.zeros(comp.shape[0], np.float32)
+    mask, half = np.uint32(511), np.float32(np.sqrt(0.5))
+    for i in range(3, -1, -1):
+        rows = largest != i
+        mag = (comp & mask).astype(np.float32)
+        negative = ((comp >> 9) & 1).astype(bool)
+        value = half * mag / np.float32(511.0)
+        value = np.where(negative, -value, value)
+        q[rows, i] = value[rows]
+        squares[rows] += value[rows] * value[rows]
+        comp = np.where(rows, comp >> 10, comp)
+    q[np.arange(q.shape[0]), largest] = np.sqrt(np.maximum(np.float32(0.0), np.float32(1.0) - squares))
+    return q
+
+
+def _frame_signs(frame: int) -> tuple[float, float, float]:
+    """(sx, sy, sz) that take a frame of SPZ_FRAMES to PLY's right-down-front: +1 where the axis agrees."""
+    name = SPZ_FRAMES[frame]
+    return (1.0 if name[0] == "R" else -1.0, 1.0 if name[1] == "D" else -1.0, 1.0 if name[2] == "F" else -1.0)
+
+
+def sh_flip_signs(x: float, y: float, z: float) -> np.ndarray:
+    """[15] signs of the degree 1-3 SH coefficients (3DGS order) when the axes are scaled by (x, y, z) ∈ {±1}³:
+    each real SH basis function is a polynomial of one parity in each axis (the spz library's table)."""
+    return np.array([y, z, x,  # degree 1: y, z, x
+                     x * y, y * z, 1.0, x * z, 1.0,  # degree 2: xy, yz, 3z²-1, xz, x²-y²
+                     y, x * y * z, y, z, x, z, x],  # degree 3
+                    np.float32)
+
+
+def _to_ply_frame(cols: dict, frame: int) -> None:
+    """Flip the columns in place from `frame` to PLY's right-down-front (an axis flip F: μ -> Fμ,
+    q's (x, y, z) -> (sy·sz·x, sx·sz·y, sx·sy·z), the SH by parity)."""
+    sx, sy, sz = _frame_signs(frame)
+    if (sx, sy, sz) == (1.0, 1.0, 1.0):
+        return
+    cols["means"] = cols["means"] * np.array([sx, sy, sz], np.float32)
+    cols["quats"] = cols["quats"] * np.array([1.0, sy * sz, sx * sz, sx * sy], np.float32)
+    k = cols["sh"].shape[1] - 1
+    if k:
+        signs = np.ones(k, np.float32)
+        table = sh_flip_signs(sx, sy, sz)
+        signs[: min(k, table.size)] = table[: min(k, table.size)]
+        cols["sh"][:, 1:] *= signs[None, :, None]

@@ -1,0 +1,299 @@
+"""`.splat` and `.spz` scene files (drsplat.splat_formats): peer-decoded fixtures, round trips through
+the formats' reference encoders (tests/splat_codecs.py), hostile files, and the commands that read scenes."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import logging
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cli import main
+from drsplat.errors import InputError
+from drsplat.scene import GaussianScene, load_ply, save_ply
+from drsplat.splat_formats import load_scene, load_scene_report, scene_format
+from tests.conftest import splat_transform_command
+from tests.splat_codecs import COORDINATE_EXTENSION, encode_splat, encode_spz, extension_record
+
+PEERS = Path(__file__).parent / "data" / "peers"
+
+
+def random_scene(n: int = 64, degree: int = 3, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    sh = rng.normal(scale=0.25, size=(n, (degree + 1) ** 2, 3)).astype(np.float32)
+    sh[:, 0] = rng.normal(scale=1.0, size=(n, 3))
+    return GaussianScene(means=rng.uniform(-4, 4, size=(n, 3)).astype(np.float32), quats=rng.normal(size=(n, 4)).astype(np.float32),
+                         log_scales=rng.uniform(-7, 1, size=(n, 3)).astype(np.float32),
+                         opacity_logits=rng.normal(scale=2.0, size=n).astype(np.float32), sh=sh)
+
+
+def rotations(quats: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] rotation matrices of (w, x, y, z) quaternions (sign-free, for comparing)."""
+    q = quats.astype(np.float64) / np.linalg.norm(quats, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
+
+
+def opacities(scene: GaussianScene) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-scene.opacity_logits.astype(np.float64)))
+
+
+def write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------- peers
+
+
+@pytest.mark.parametrize("name", ["peer_v3.spz", "peer_v4.spz"])
+def test_spz_decodes_as_the_spz_library_does(name):
+    """splat-transform 2.7.1 (the spz library's WASM, into PLY's frame) wrote and decoded these files:
+    every field the same float32 bits but the opacity: the library takes its logit in float32 (here
+    float64: within 1e-6), and reads 8-bit alphas 0 and 255 as ±inf (here half a step inside)."""
+    ours, report = load_scene_report(PEERS / name)
+    peer = load_ply(PEERS / "peer_spz_decoded.ply")
+    assert report.layout == f"spz v{name[6]}" and report.findings() == [] and ours.sh_degree == 3
+    for field in ("means", "quats", "log_scales", "sh"):
+        assert np.array_equal(getattr(ours, field), getattr(peer, field)), field
+    extreme = np.abs(peer.opacity_logits) == 30.0  # the peer's ±inf, clamped by load_ply
+    assert extreme.sum() == 8  # the 4 logits of ±9 and ±40 and 4 random ones beyond ±5.5
+    assert np.allclose(ours.opacity_logits[~extreme], peer.opacity_logits[~extreme], rtol=1e-6, atol=1e-6)
+    assert np.allclose(np.abs(ours.opacity_logits[extreme]), np.log(254.5 / 0.5), rtol=1e-6)
+    assert np.array_equal(np.sign(ours.opacity_logits[extreme]), np.sign(peer.opacity_logits[extreme]))
+
+
+def test_splat_decodes_as_splat_transform_does():
+    """The same .splat read by splat-transform 2.7.1: positions and scales equal, colours to float32
+    rounding, rotations within its other byte mapping (b/127.5 - 1 against (b - 128)/128), opacity
+    but for bytes 0 and 255."""
+    ours, report = load_scene_report(PEERS / "peer.splat")
+    peer = load_ply(PEERS / "peer_splat_decoded.ply")
+    assert report.layout == "splat" and ours.num_gaussians == 120 and ours.sh_degree == 0
+    assert np.array_equal(ours.means, peer.means)
+    assert np.array_equal(ours.log_scales, peer.log_scales)
+    assert np.allclose(ours.sh, peer.sh, rtol=0, atol=2e-6)
+    assert np.abs(rotations(ours.quats) - rotations(peer.quats)).max() < 0.03
+    a, b = opacities(ours), opacities(peer)
+    middle = (b > 1e-5) & (b < 1 - 1e-5)
+    assert middle.sum() >= 110 and np.allclose(a[middle], b[middle], rtol=1e-5)
+    assert np.all(np.abs(a[~middle] - b[~middle]) <= 0.5 / 255 + 1e-9)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_spz_written_by_splat_transform_now(tmp_path, version):
+    """With splat-transform on this machine (skipped otherwise): a fresh random scene through its spz
+    writer and reader, read by drsplat too."""
+    command = splat_transform_command()
+    src = tmp_path / "scene.ply"
+    save_ply(random_scene(200, seed=version), src)
+    spz, back = tmp_path / "scene.spz", tmp_path / "back.ply"
+    subprocess.run([*command, "-q", "-w", str(src), "--spz-version", str(version), str(spz)], check=True, timeout=120, capture_output=True)
+    subprocess.run([*command, "-q", "-w", str(spz), str(back)], check=True, timeout=120, capture_output=True)
+    ours, peer = load_scene(spz), load_ply(back)
+    for field in ("means", "quats", "log_scales", "sh"):
+        assert np.array_equal(getattr(ours, field), getattr(peer, field)), field
+
+
+# ---------------------------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("version", [1, 2, 3, 4])
+@pytest.mark.parametrize("frame", [4, 6, 7, 1])  # RUB (no extension), RDF, LUF, LDB: stored frames named by the extension
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_spz_round_trip_within_quantisation(tmp_path, version, frame, degree):
+    """encode (the spz library's packing, any stored frame) then read: each field back within its
+    quantisation step, in PLY's frame."""
+    scene = random_scene(degree=degree, seed=version * 10 + frame)
+    scene.means[:] = np.clip(scene.means, -4, 4)
+    scene.log_scales[:] = np.clip(scene.log_scales, -9.9, 5.9)
+    back = load_scene(write(tmp_path / "s.spz", encode_spz(scene, version, frame)))
+    assert back.num_gaussians == scene.num_gaussians and back.sh_degree == degree
+    pos_step = 2e-3 if version == 1 else 2.0 ** -12  # float16 or 12 fractional bits
+    assert np.abs(back.means - scene.means).max() <= pos_step
+    assert np.abs(back.log_scales - scene.log_scales).max() <= 1 / 32 + 1e-6
+    reach = 127.5 / (0.15 * 255)  # the colour bytes hold f_dc in ±3.33
+    assert np.abs(back.sh[:, 0] - np.clip(scene.sh[:, 0], -reach, reach)).max() <= 0.5 / (0.15 * 255) + 1e-5
+    if degree:
+        assert np.abs(back.sh[:, 1:] - np.clip(scene.sh[:, 1:], -1, 127 / 128)).max() <= 0.5 / 128 + 1e-6
+    assert np.abs(opacities(back) - np.clip(opacities(scene), 0.5 / 255, 254.5 / 255)).max() <= 0.5 / 255 + 1e-7
+    error = np.abs(rotations(back.quats) - rotations(scene.quats)).max(axis=(1, 2))
+    if version >= 3:
+        assert error.max() < 0.006
+    else:  # x, y, z in 8 bits and w = sqrt(1 - |xyz|²): a step of 1/127.5 moves a small w by ~1/(127.5 w)
+        w = np.abs(scene.quats[:, 0]) / np.linalg.norm(scene.quats, axis=1)
+        assert np.all(error < 0.012 + 0.02 / np.maximum(w, 0.02))
+
+
+def test_splat_round_trip_within_quantisation(tmp_path):
+    scene = random_scene(degree=0, seed=5)
+    back, report = load_scene_report(write(tmp_path / "s.splat", encode_splat(scene)))
+    assert report.layout == "splat" and report.findings() == []
+    assert np.array_equal(back.means, scene.means)
+    assert np.allclose(back.log_scales, scene.log_scales, atol=1e-6)
+    base = np.clip(0.5 + 0.28209479177387814 * scene.sh[:, 0], 0, 1)
+    assert np.abs((0.5 + 0.28209479177387814 * back.sh[:, 0]) - base).max() <= 1 / 255 + 1e-6  # convert.py truncates
+    assert np.abs(rotations(back.quats) - rotations(scene.quats)).max() < 0.05
+
+
+def test_scene_format_reads_the_first_bytes(tmp_path):
+    scene = random_scene(8, degree=0)
+    save_ply(scene, tmp_path / "a.ply")
+    cases = {"a.ply": "ply", "named.splat": "ply", "b.spz": "spz", "b.bin": "spz", "c.splat": "splat", "c.dat": "ply", "v4.data": "spz"}
+    (tmp_path / "named.splat").write_bytes((tmp_path / "a.ply").read_bytes())  # a PLY named .splat is still read as PLY
+    write(tmp_path / "b.spz", encode_spz(scene))
+    write(tmp_path / "b.bin", encode_spz(scene))
+    write(tmp_path / "c.splat", encode_splat(scene))
+    write(tmp_path / "c.dat", encode_splat(scene))
+    write(tmp_path / "v4.data", encode_spz(scene, 4))
+    assert {name: scene_format(tmp_path / name) for name in cases} == cases
+    assert load_scene(tmp_path / "named.splat").num_gaussians == 8
+
+
+# ---------------------------------------------------------------------------------------------- what the file says
+
+
+def test_spz_sh_degree_4_keeps_degree_3_with_a_warning(tmp_path, caplog):
+    scene = random_scene(16, degree=3)
+    data = gzip.decompress(encode_spz(scene))  # degree 3 blocks; rebuild with degree 4's 24 coefficients
+    header, body = data[:16], data[16:]
+    n = 16
+    sizes = [n * 9, n, n * 3, n * 3, n * 4]
+    fixed = body[: sum(sizes)]
+    sh3 = np.frombuffer(body[sum(sizes):], np.uint8).reshape(n, 15, 3)
+    sh4 = np.concatenate([sh3, np.full((n, 9, 3), 192, np.uint8)], axis=1)
+    raw = bytearray(header)
+    raw[12] = 4
+    path = write(tmp_path / "four.spz", gzip.compress(bytes(raw) + fixed + sh4.tobytes()))
+    with caplog.at_level(logging.WARNING):
+        back = load_scene(path)
+    assert back.sh_degree == 3 and np.allclose(back.sh, load_scene(write(tmp_path / "three.spz", encode_spz(scene))).sh)
+    assert "SH degree 4" in caplog.text
+
+
+def test_spz_antialiased_flag_and_unknown_extensions_are_said(tmp_path, caplog):
+    scene = random_scene(8)
+    other = extension_record(0xADBE0002, struct.pack("<fff", 0.0, 1.0, 2.0))  # camera limits: skipped
+    for version in (3, 4):
+        with caplog.at_level(logging.INFO):
+            back = load_scene(write(tmp_path / f"a{version}.spz", encode_spz(scene, version, antialiased=True, extensions=other)))
+        assert back.num_gaussians == 8
+        assert "anti-aliasing" in caplog.text and "0xADBE0002" in caplog.text
+        caplog.clear()
+
+
+def test_spz_frames_agree(tmp_path):
+    """The same scene stored in four frames reads back to the same Gaussians (up to the rounding each frame's signs leave)."""
+    scene = random_scene(32)
+    reads = [load_scene(write(tmp_path / f"f{f}.spz", encode_spz(scene, 3, f))) for f in (4, 6, 7, 2)]
+    for other in reads[1:]:
+        assert np.abs(other.means - reads[0].means).max() <= 2.0 ** -12
+        assert np.abs(other.sh - reads[0].sh).max() <= 1 / 128 + 1e-6
+        assert np.abs(rotations(other.quats) - rotations(reads[0].quats)).max() < 0.006
+
+
+# ---------------------------------------------------------------------------------------------- hostile files
+
+
+def spz_cases(scene: GaussianScene) -> dict[str, tuple[bytes, str]]:
+    """name -> (file bytes, a phrase the one error must hold)."""
+    v3, v4 = encode_spz(scene, 3), encode_spz(scene, 4)
+    body3 = gzip.decompress(v3)
+    toc = struct.unpack_from("<I", v4, 16)[0]
+
+    def header4(**changes):
+        fields = dict(zip(("magic", "version", "points", "degree", "bits", "flags", "streams", "toc"), struct.unpack_from("<IIIBBBBI", v4)))
+        fields.update(changes)
+        return struct.pack("<IIIBBBBI", *fields.values()) + v4[20:]
+
+    return {
+        "truncated gzip": (v3[: len(v3) // 2], "truncated"),
+        "gzip of something else": (gzip.compress(b"hello world, not a splat"), "without the spz header"),
+        "gzip shorter than a header": (gzip.compress(b"NGSP"), "fewer than the 16-byte"),
+        "version 9": (gzip.compress(body3[:4] + struct.pack("<I", 9) + body3[8:]), "version 9"),
+        "SH degree 7": (gzip.compress(body3[:12] + bytes([7]) + body3[13:]), "SH degree 7"),
+        "points beyond the data": (gzip.compress(body3[:8] + struct.pack("<I", 40) + body3[12:]), "truncated"),
+        "a billion points": (gzip.compress(body3[:8] + struct.pack("<I", 1_000_000_000) + body3[12:]), "damaged header"),
+        "damaged deflate": (v3[:20] + bytes(b ^ 0xFF for b in v3[20:40]) + v3[40:], "gzip"),
+        "v4 toc past the end": (header4(toc=10_000), "table of contents"),
+        "v4 toc inside the header": (header4(toc=8), "table of contents"),
+        "v4 stream count": (header4(streams=3), "streams"),
+        "v4 truncated": (v4[:-10], "truncated or damaged"),
+        "v4 a billion points": (header4(points=1_000_000_000), "damaged header"),
+        "v4 shorter than a header": (v4[:20], "shorter than the 32-byte"),
+        "v4 damaged stream": (v4[: toc + 16 * 6 + 4] + b"\x00" * 8 + v4[toc + 16 * 6 + 12:], "positions"),
+        "v4 with a version-3 number": (header4(version=3), "versions 1-3 are gzip"),
+        "extension record cut": (gzip.compress(body3[:14] + bytes([2]) + body3[15:] + struct.pack("<II", 0x1234, 99) + b"ab"), "past the end"),
+        "rotated frame": (encode_spz(scene, 3, extensions=extension_record(COORDINATE_EXTENSION, struct.pack("<I", 12))), "rotated frame"),
+    }
+
+
+@pytest.mark.parametrize("case", list(spz_cases(random_scene(16))))
+def test_hostile_spz_is_one_error_naming_the_file(tmp_path, case, capsys):
+    data, phrase = spz_cases(random_scene(16))[case]
+    path = write(tmp_path / "bad.spz", data)
+    with pytest.raises(InputError) as info:
+        load_scene(path)
+    assert str(path) in str(info.value) and phrase in str(info.value), str(info.value)
+    assert main(["info", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "bad.spz" in err
+
+
+def test_hostile_splat_files(tmp_path):
+    scene = random_scene(4, degree=0)
+    cut = write(tmp_path / "cut.splat", encode_splat(scene)[:-5])
+    with pytest.raises(InputError, match=r"not a whole number of 32-byte \.splat records \(3 records and 27 bytes\)"):
+        load_scene(cut)
+    empty = write(tmp_path / "empty.splat", b"")
+    scene0, report = load_scene_report(empty)
+    assert scene0.num_gaussians == 0 and any("no Gaussians" in f for f in report.findings())
+    raw = np.frombuffer(encode_splat(scene), np.uint8).copy().reshape(4, 32)
+    raw[0, 12:16] = np.frombuffer(np.float32(0.0).tobytes(), np.uint8)  # a zero scale: log is -inf
+    raw[1, 0:4] = np.frombuffer(np.float32(np.nan).tobytes(), np.uint8)
+    back, report = load_scene_report(write(tmp_path / "odd.splat", raw.tobytes()))
+    assert back.num_gaussians == 2 and report.dropped_nan_rows == 1 and report.dropped_inf_rows == 1
+
+
+def test_trailing_bytes_in_a_gzip_spz_are_warned(tmp_path, caplog):
+    scene = random_scene(8)
+    body = gzip.decompress(encode_spz(scene, 3))
+    with caplog.at_level(logging.WARNING):
+        back = load_scene(write(tmp_path / "t.spz", gzip.compress(body + b"\x00" * 40)))
+    assert back.num_gaussians == 8 and "40 bytes follow the 8 points" in caplog.text
+
+
+# ---------------------------------------------------------------------------------------------- commands
+
+
+def test_commands_read_splat_and_spz_scenes(tmp_path, capsys):
+    """info, register and the viewer's state take the scene as .splat or .spz: registering a .splat
+    gives the same bytes as registering the PLY of the Gaussians it decodes to."""
+    from drsplat.synthetic import write_dataset
+    from viewer.state import ViewerState
+
+    dataset = write_dataset(tmp_path / "tiny", "tiny", 0, show_progress=False)
+    scene = load_ply(dataset / "scene.ply")
+    splat = write(tmp_path / "scene.splat", encode_splat(scene))
+    spz = write(tmp_path / "scene.spz", encode_spz(scene, 4))
+    assert main(["info", str(spz), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "spz v4" and summary["num_gaussians"] == scene.num_gaussians and summary["findings"] == []
+    decoded = tmp_path / "decoded.ply"
+    save_ply(load_scene(splat), decoded)
+    outs = []
+    for src in (splat, decoded):
+        out_path = tmp_path / f"reg-{src.suffix[1:]}.ply"
+        assert main(["register", str(src), "--source", str(dataset), "--features", str(dataset / "features"), "--out", str(out_path),
+                     "--no-progress", "-q"]) == 0
+        outs.append(out_path.read_bytes())
+    assert outs[0] == outs[1]
+    state = ViewerState()
+    assert state.load_scene(spz) and state.scene.num_gaussians == scene.num_gaussians
