@@ -1,6 +1,6 @@
 """Scene files beyond PLY: the antimatter15 `.splat` and Niantic `.spz` (versions 1-4), read into a
-`GaussianScene`; `load_scene` picks the reader (`scene_format`: PLY and spz by their first bytes,
-`.splat`, which has no header, by its name).
+`GaussianScene`; `load_scene` picks the reader (`scene_format`: PLY by its first line, `.splat`, which
+has no header, by its name, spz by its first bytes).
 
 `.splat` (web viewers; no header): N records of 32 bytes, little-endian,
 
@@ -75,16 +75,18 @@ SCENE_SUFFIXES = (".ply", ".splat", ".spz")  # the scene files load_scene reads
 
 
 def scene_format(path: Path) -> str:
-    """"ply", "splat" or "spz", from the first bytes ("ply", gzip or "NGSP"); a file with none of
-    them is "splat" when named *.splat (that format has no header) and "ply" otherwise, whose
-    reader then names what is wrong."""
+    """"ply", "splat" or "spz": PLY by its first line ("ply"), then `.splat` by its name (the format
+    has no header, and a first float's bytes can be anything, gzip's magic included), then spz by its
+    first bytes (gzip or "NGSP"); anything else is "ply", whose reader then names what is wrong."""
     with open(path, "rb") as f:
         head = f.read(4)
-    if head[:3] == b"ply":
+    if head[:3] == b"ply" and head[3:4] in (b"\n", b"\r"):
         return "ply"
+    if path.suffix.lower() == ".splat":
+        return "splat"
     if head[:2] == GZIP_MAGIC or (len(head) == 4 and int.from_bytes(head, "little") == NGSP_MAGIC):
         return "spz"
-    return "splat" if path.suffix.lower() == ".splat" else "ply"
+    return "ply"
 
 
 def load_scene_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:

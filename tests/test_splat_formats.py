@@ -146,13 +146,17 @@ def test_splat_round_trip_within_quantisation(tmp_path):
 def test_scene_format_reads_the_first_bytes(tmp_path):
     scene = random_scene(8, degree=0)
     save_ply(scene, tmp_path / "a.ply")
-    cases = {"a.ply": "ply", "named.splat": "ply", "b.spz": "spz", "b.bin": "spz", "c.splat": "splat", "c.dat": "ply", "v4.data": "spz"}
+    cases = {"a.ply": "ply", "named.splat": "ply", "b.spz": "spz", "b.bin": "spz", "c.splat": "splat", "c.dat": "ply", "v4.data": "spz",
+             "gzip-like.splat": "splat"}
     (tmp_path / "named.splat").write_bytes((tmp_path / "a.ply").read_bytes())  # a PLY named .splat is still read as PLY
     write(tmp_path / "b.spz", encode_spz(scene))
     write(tmp_path / "b.bin", encode_spz(scene))
     write(tmp_path / "c.splat", encode_splat(scene))
     write(tmp_path / "c.dat", encode_splat(scene))
     write(tmp_path / "v4.data", encode_spz(scene, 4))
+    first = np.frombuffer(encode_splat(scene), np.uint8).copy()
+    first[:2] = (0x1F, 0x8B)  # a first x coordinate whose low bytes are gzip's magic (1 file in 65,536)
+    write(tmp_path / "gzip-like.splat", first.tobytes())
     assert {name: scene_format(tmp_path / name) for name in cases} == cases
     assert load_scene(tmp_path / "named.splat").num_gaussians == 8
 
