@@ -10,6 +10,7 @@ import dataclasses
 import logging
 import math
 import os
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -602,10 +603,10 @@ def w2c_opencv_to_c2w_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[Camera], int]:
+def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[Camera], list[str]]:
     """Cameras of a NeRF-synthetic or instant-ngp/nerfstudio transforms.json.
 
-    Returns (cameras, number of frames skipped because their image is missing). Per-frame
+    Returns (cameras, the image names of frames skipped because their image is missing). Per-frame
     intrinsics override the shared ones. OpenCV distortion (k1, k2, p1, p2) is kept on the
     camera and removed by `load_image`; fisheye models are refused. Every value is type- and
     range-checked (`validate_camera`); errors name the frame and the field.
@@ -620,7 +621,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     if camera_model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
         raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
     paths = DatasetPaths(path.parent, path)
-    cameras, missing = [], 0
+    cameras, missing = [], []
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
         if not isinstance(frame, dict):
@@ -631,7 +632,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         check_image_name(path, frame["file_path"], f"frame {i}", "file_path")
         image = paths.find(frame["file_path"])
         if image is None:
-            missing += 1
+            missing.append(frame["file_path"])
             continue
         c2w = _transform_matrix(path, frame, i)
         if "w" in rec and "h" in rec:
@@ -695,7 +696,7 @@ def _focal_from_angle(path: Path, rec: dict, key: str, side: int, where: str) ->
     return 0.5 * side / np.tan(0.5 * angle)
 
 
-def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], int]:
+def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], list[str]]:
     """Cameras of a 3DGS `cameras.json` (c2w rotation and position, OpenCV axes, centred principal point)."""
     records = _json(path)
     if not isinstance(records, list):
@@ -723,7 +724,7 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Ca
         width, height = _size(path, rec, "width", where), _size(path, rec, "height", where)
         image = paths.find(name) if paths is not None else None
         if paths is not None and image is None:
-            missing += 1
+            missing.append(name)
             continue
         R = rot.T
         camera = Camera(R=R, t=-R @ pos, fx=_number(path, rec, "fx", where=where), fy=_number(path, rec, "fy", where=where),
@@ -745,13 +746,13 @@ def _found_file(found: Path) -> list[Path]:
 class DatasetReader:
     """One camera format. find(source) -> the file or folder describing the cameras of a dataset
     folder (or of a file the user named directly), None if it is not this format;
-    read(found, require_images) -> (cameras, frames skipped for a missing image);
+    read(found, require_images) -> (cameras, the image names of frames skipped because no regular file has them);
     files(found) -> the files `read` reads besides the images (inputs no output may replace)."""
 
     kind: str
     description: str
     find: Callable[[Path], Path | None]
-    read: Callable[[Path, bool], tuple[list[Camera], int]]
+    read: Callable[[Path, bool], tuple[list[Camera], list[str]]]
     files: Callable[[Path], list[Path]] = _found_file
 
 
@@ -762,13 +763,14 @@ def _find_colmap(src: Path) -> Path | None:
     return None
 
 
-def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], int]:
+def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
     root = sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
     cameras = cameras_from_colmap(read_colmap_model(sparse), root / "images", sparse)
     if not require_images:
-        return cameras, 0
-    present = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]
-    return present, len(cameras) - len(present)
+        return cameras, []
+    found = [c.image_path is not None and c.image_path.is_file() for c in cameras]
+    missing = [c.image_path.name if c.image_path is not None else c.name for c, ok in zip(cameras, found) if not ok]
+    return [c for c, ok in zip(cameras, found) if ok], missing
 
 
 def _colmap_files(sparse: Path) -> list[Path]:
@@ -781,7 +783,7 @@ def _find_transforms(src: Path) -> Path | None:
     return next((src / n for n in ("transforms_train.json", "transforms.json") if (src / n).exists()), None)  # a FIFO or folder is found, then refused by name
 
 
-def _read_transforms(path: Path, require_images: bool) -> tuple[list[Camera], int]:
+def _read_transforms(path: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
     if path.name == "transforms_train.json" and (path.parent / "transforms_test.json").exists():
         log.info("using the training split %s (transforms_test.json is not used for registration)", path)
     return read_transforms_json(path, require_images)
@@ -793,7 +795,7 @@ def _find_cameras_json(src: Path) -> Path | None:
     return src / "cameras.json" if (src / "cameras.json").exists() else None
 
 
-def _read_cameras_json(path: Path, require_images: bool) -> tuple[list[Camera], int]:
+def _read_cameras_json(path: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
     images_dir = path.parent / "images"
     return read_3dgs_cameras_json(path, images_dir if images_dir.is_dir() else None)
 
@@ -802,8 +804,8 @@ def _find_scannet(src: Path) -> Path | None:
     return src if src.is_dir() and (src / "pose").is_dir() and (src / "intrinsic" / "intrinsic_color.txt").is_file() else None
 
 
-def _read_scannet(scene_dir: Path, require_images: bool) -> tuple[list[Camera], int]:
-    return load_scannet_cameras(scene_dir), 0
+def _read_scannet(scene_dir: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
+    return load_scannet_cameras(scene_dir), []
 
 
 def _scannet_files(scene_dir: Path) -> list[Path]:
@@ -882,7 +884,9 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     kind, path = detect_dataset(source)
     cameras, missing = dataset_reader(kind).read(path, require_images)
     if missing:
-        log.warning("%s: %d frame(s) skipped because their image file is missing (%d cameras kept)", path, missing, len(cameras))
+        shown = ", ".join(missing[:MISSING_SHOWN]) + (f" and {len(missing) - MISSING_SHOWN} more" if len(missing) > MISSING_SHOWN else "")
+        log.warning("%s: %d frame(s) skipped because their image is missing or not a regular file (%s; %d cameras kept)",
+                    path, len(missing), shown, len(cameras))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (" (every image file is missing)" if missing else ""))
     _check_unique_names(path, kind, cameras)
@@ -1028,24 +1032,81 @@ def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int
     return np.clip(np.rint(out), 0, 255).astype(np.uint8) if image.dtype == np.uint8 else out
 
 
+MISSING_SHOWN = 3  # image names a missing-images warning lists
+IMAGE_ASPECT_TOLERANCE = 0.02  # relative aspect difference between an image file and its camera still read as the same framing
+EXIF_ORIENTATION = 0x0112
+EXIF_ROTATED = (5, 6, 7, 8)  # orientations that swap width and height
+
+
 def load_image(camera: Camera) -> np.ndarray:
-    """[H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed."""
+    """[H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed.
+
+    The stored pixels are read as 3DGS and COLMAP read them (no EXIF rotation) and resized to the
+    camera's size; a file whose aspect ratio differs from the camera's by more than
+    IMAGE_ASPECT_TOLERANCE is an InputError (it would be stretched: a rotated or transposed
+    photo). 16-bit and float single-channel images are scaled to 8 bits (`rgb_pixels`)."""
     from PIL import Image
 
     if camera.image_path is None:
         raise InputError(None, f"camera {camera.name!r} has no image file")
+    path = camera.image_path
     try:
-        with Image.open(camera.image_path) as im:
-            im = im.convert("RGB")
-            file_size = im.size
-            if camera.distortion is None:
-                if im.size != (camera.width, camera.height):
-                    im = im.resize((camera.width, camera.height), Image.BICUBIC)
-                return np.asarray(im)
-            work = np.asarray(im)
+        with warnings.catch_warnings(record=True) as caught:  # Pillow's size warning becomes one log line naming the file
+            warnings.simplefilter("always", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                check_image_framing(path, im, camera)
+                rgb = rgb_pixels(path, im)
+        for w in caught:
+            log.warning("%s: %s", path, w.message)
+    except Image.DecompressionBombError as exc:
+        raise InputError(path, f"is not a readable image: {exc}") from None
     except OSError as exc:
-        raise InputError(camera.image_path, f"is not a readable image ({exc})") from None
-    return undistort_image(work, camera, file_size)
+        raise InputError(path, f"is not a readable image ({exc})") from None
+    file_size = (rgb.shape[1], rgb.shape[0])
+    if camera.distortion is not None:
+        return undistort_image(rgb, camera, file_size)
+    if file_size == (camera.width, camera.height):
+        return rgb
+    return np.asarray(Image.fromarray(rgb).resize((camera.width, camera.height), Image.BICUBIC))
+
+
+def check_image_framing(path: Path, im, camera: Camera) -> None:
+    """InputError when an image file's aspect ratio differs from its camera's (before decoding)."""
+    w, h = im.size
+    if w <= 0 or h <= 0:
+        raise InputError(path, f"is an image of {w}x{h} pixels")
+    if abs((w / h) / (camera.width / camera.height) - 1.0) <= IMAGE_ASPECT_TOLERANCE:
+        return
+    hint = ""
+    if im.getexif().get(EXIF_ORIENTATION) in EXIF_ROTATED:
+        hint = ("; its EXIF orientation says to rotate it, which 3DGS, COLMAP and drsplat do not do: store the pixels "
+                "upright (e.g. `mogrify -auto-orient`) and rebuild the cameras from those images")
+    raise InputError(path, f"is {w}x{h} but camera {camera.name!r} is {camera.width}x{camera.height}: the aspect ratios "
+                           f"{w / h:.4g} and {camera.width / camera.height:.4g} differ, so the image would be stretched "
+                           f"(a rotated, transposed or cropped image?){hint}", field="size")
+
+
+def rgb_pixels(path: Path, im) -> np.ndarray:
+    """[h, w, 3] uint8 of an open PIL image. 16-bit integer images (modes I;16*, and I holding
+    0..65535) are scaled by 255/65535, float images (mode F) holding 0..1 by 255; other integer or
+    float ranges are an InputError (Pillow's own conversion would clip them to white or black)."""
+
+    mode = im.mode
+    if mode.startswith("I;16") or mode in ("I", "F"):
+        raw = np.asarray(im)
+        values = raw.astype(np.float64)
+        if mode == "F":
+            if not np.all(np.isfinite(values)) or values.min() < 0.0 or values.max() > 1.0:
+                raise InputError(path, "holds float pixels outside 0..1 (mode F); save it as an 8- or 16-bit image", field="mode")
+            scaled = values * 255.0
+        else:
+            if values.min() < 0 or values.max() > 65535:
+                raise InputError(path, f"holds 32-bit integer pixels beyond 0..65535 (mode {mode}); save it as an 8- or 16-bit image",
+                                 field="mode")
+            scaled = values * (255.0 / 65535.0)
+        grey = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
+        return np.repeat(grey[..., None], 3, axis=2)
+    return np.asarray(im.convert("RGB") if mode != "RGB" else im)
 
 
 # ----------------------------------------------------------------------------- look-at cameras

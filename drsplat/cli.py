@@ -60,6 +60,10 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+INTERRUPTED_NOTE = ("no partial output file was left; what register and features had finished is kept, and the same command "
+                    "resumes from it")
+
+
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
@@ -73,10 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             result = args.func(args)
     except Cancelled as exc:
-        log.error("%s; no partial output was written", exc)
+        log.error("%s; %s", exc, INTERRUPTED_NOTE)
         return 1
     except KeyboardInterrupt:
-        log.error("interrupted; no partial output was written")
+        log.error("interrupted; %s", INTERRUPTED_NOTE)
         return 1
     except UsageError as exc:
         parser.print_usage(sys.stderr)

@@ -163,6 +163,128 @@ def test_refuses_to_mix_models_or_generators(fern3, weights, tmp_path):
         extract_features(cameras, out, felz, encoder, manifest=make_manifest(felz, encoder, nms, WIDTH, 1080), show_progress=False)
 
 
+def test_resume_refuses_other_resolution_mask_settings_or_source(fern3, weights, tmp_path):
+    """A folder's features were made with one resolution, mask parameters and dataset: a run that
+    differs in any of them would leave a mix under one manifest, so it stops before any image."""
+    out = tmp_path / "features"
+    cameras = feature_cameras(fern3, resolution=WIDTH)[:1]
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    slic = make_generator("slic")
+    base = make_manifest(slic, encoder, NmsParams(), WIDTH, 1080, {"source": str(fern3.resolve())})
+    extract_features(cameras, out, slic, encoder, manifest=base, show_progress=False)
+    changes = {
+        "resolution": make_manifest(slic, encoder, NmsParams(), 48, 1080, {"source": str(fern3.resolve())}),
+        "max_height": make_manifest(slic, encoder, NmsParams(), WIDTH, 720, {"source": str(fern3.resolve())}),
+        "postprocess": make_manifest(slic, encoder, NmsParams(iou_thr=0.5), WIDTH, 1080, {"source": str(fern3.resolve())}),
+        "source": make_manifest(slic, encoder, NmsParams(), WIDTH, 1080, {"source": str((tmp_path / "other").resolve())}),
+    }
+    for key, manifest in changes.items():
+        with pytest.raises(DrsplatError, match=f"holds features made with {key} .*use a new --out folder"):
+            extract_features(cameras, out, slic, encoder, manifest=manifest, show_progress=False)
+    report = extract_features(cameras, out, slic, encoder, manifest=dict(base), show_progress=False)  # the same settings resume
+    assert report.skipped == [cameras[0].name]
+
+
+def _one_camera_dataset(folder: Path, image, width: int = 64, height: int = 48, exif=None) -> Path:
+    """A transforms.json dataset of one look-at camera whose image file is `image` (a PIL image;
+    JPEG with `exif`, TIFF for float and 32-bit pixels, PNG otherwise)."""
+    from drsplat.cameras import look_at_camera
+
+    (folder / "images").mkdir(parents=True)
+    name = "view.jpg" if exif is not None else "view.tif" if image.mode in ("F", "I") else "view.png"
+    image.save(folder / "images" / name, **({"exif": exif} if exif is not None else {}))
+    cam = look_at_camera([0, 0, -3], [0, 0, 0], width, height, name="view")
+    import dataclasses
+
+    write_transforms_json([dataclasses.replace(cam, image_path=folder / "images" / name)], folder / "transforms.json")
+    return folder
+
+
+def test_load_image_scales_16_bit_and_float_grey_and_refuses_other_ranges(tmp_path):
+    """Pillow's convert("RGB") turns 16-bit grey into white and float grey into black: load_image
+    scales them, and refuses ranges it cannot read as brightness."""
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+    from drsplat.errors import InputError
+
+    ramp = np.tile(np.linspace(0, 65535, 64).astype(np.uint16), (48, 1))
+    cases = {
+        "i16": (Image.fromarray(ramp), np.rint(ramp / 257.0)),
+        "float": (Image.fromarray((ramp / 65535.0).astype(np.float32)), np.rint(ramp / 65535.0 * 255)),
+    }
+    for name, (image, expected) in cases.items():
+        cam = load_cameras(_one_camera_dataset(tmp_path / name, image))[0]
+        rgb = load_image(cam)
+        assert rgb.shape == (48, 64, 3) and np.array_equal(rgb[..., 0], expected.astype(np.uint8)), name
+        assert np.array_equal(rgb[..., 0], rgb[..., 2])
+    for name, image, words in (("hot", Image.fromarray((ramp / 30000.0).astype(np.float32)), "float pixels outside 0..1"),
+                               ("wide", Image.fromarray(ramp.astype(np.int32) * 4), "beyond 0..65535")):
+        cam = load_cameras(_one_camera_dataset(tmp_path / name, image))[0]
+        with pytest.raises(InputError, match=words) as info:
+            load_image(cam)
+        assert "view" in str(info.value)
+
+
+def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+    from drsplat.errors import InputError
+
+    upright = Image.fromarray(np.zeros((64, 48, 3), np.uint8))  # 48 x 64 for a 64 x 48 camera
+    cam = load_cameras(_one_camera_dataset(tmp_path / "t", upright))[0]
+    with pytest.raises(InputError, match=r"is 48x64 but camera 'view' is 64x48: the aspect ratios .* would be stretched"):
+        load_image(cam)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # what a phone writes for a portrait shot stored sideways
+    cam = load_cameras(_one_camera_dataset(tmp_path / "e", upright, exif=exif))[0]
+    with pytest.raises(InputError, match="EXIF orientation says to rotate it"):
+        load_image(cam)
+    same_aspect = Image.fromarray(np.full((96, 128, 3), 7, np.uint8))  # twice the camera's size: resized, as before
+    cam = load_cameras(_one_camera_dataset(tmp_path / "s", same_aspect))[0]
+    assert load_image(cam).shape == (48, 64, 3) and load_image(cam).max() == 7
+
+
+def test_load_image_of_a_decompression_bomb_is_one_error(tmp_path):
+    import struct
+    import zlib
+
+    from drsplat.cameras import load_image
+    from drsplat.errors import InputError
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    folder = _one_camera_dataset(tmp_path / "b", __import__("PIL.Image", fromlist=["Image"]).fromarray(np.zeros((48, 48, 3), np.uint8)),
+                                 width=48, height=48)
+    side = 30000  # 900 M pixels in a 429-byte file: Pillow refuses to decode it
+    bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0)) + \
+        chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    (folder / "images" / "view.png").write_bytes(bomb)
+    cam = load_cameras(folder, require_images=False)[0]
+    with pytest.raises(InputError, match="is not a readable image: Image size .* exceeds limit"):
+        load_image(cam)
+
+
+def test_missing_and_irregular_images_are_named(tmp_path, caplog):
+    """Frames whose image is missing, a folder or a FIFO are skipped with one warning naming them."""
+    import logging
+
+    from PIL import Image
+
+    folder = _one_camera_dataset(tmp_path / "m", Image.fromarray(np.zeros((48, 64, 3), np.uint8)))
+    meta = __import__("json").loads((folder / "transforms.json").read_text())
+    frame = meta["frames"][0]
+    meta["frames"] = [frame] + [{**frame, "file_path": f"images/{n}"} for n in ("gone.png", "dir.png", "fifo.png")]
+    (folder / "transforms.json").write_text(__import__("json").dumps(meta))
+    (folder / "images" / "dir.png").mkdir()
+    os.mkfifo(folder / "images" / "fifo.png")
+    with caplog.at_level(logging.WARNING):
+        assert len(load_cameras(folder)) == 1
+    assert "3 frame(s) skipped because their image is missing or not a regular file (images/gone.png, images/dir.png, images/fifo.png" in caplog.text
+
+
 def test_offline_cli_prints_one_sentence(fern3, tmp_path):
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "DRSPLAT_CACHE": str(tmp_path / "cache")}
     env.pop("HF_HUB_CACHE", None)

@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,
         sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size, clip_config=args.clip_config,
     )
-    extra = {"source": str(args.source), "sam_checkpoint": str(args.sam_checkpoint or "") if args.masks == "sam" else None}
+    extra = {"source": str(args.source.resolve()), "sam_checkpoint": str(Path(args.sam_checkpoint).resolve()) if args.masks == "sam" and args.sam_checkpoint else
+             ("" if args.masks == "sam" else None)}
     if args.ray is not None:
         from drsplat.features.ray import extract_features_ray
 

@@ -9,6 +9,7 @@ written atomically by drsplat.features.format. Valid existing pairs are skipped 
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -215,7 +216,33 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
             f"{features_dir} holds features made with mask generator {old.get('mask_generator')!r}, this run uses "
             f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks"
         )
+    for key, flag in RESUME_KEYS.items():
+        if key in old and old[key] != json.loads(json.dumps(manifest.get(key))):  # as stored: tuples are lists
+            raise DrsplatError(f"{features_dir} holds features made with {key} {old[key]!r}, this run's is {manifest.get(key)!r}: resuming "
+                               f"would mix the two in one folder; use a new --out folder or the same {flag}")
+    for key, flag in (("source", "--source"), ("sam_checkpoint", "--sam-checkpoint")):
+        check_same_path(features_dir, key, flag, old.get(key), manifest.get(key))
 
+
+RESUME_KEYS = {  # manifest entries that change every feature file: a run resuming into the folder must repeat them
+    "mask_parameters": "mask flags (--sam-points-per-side, --sam-crop-layers, ...)",
+    "postprocess": "mask post-processing",
+    "resolution": "--resolution",
+    "max_height": "--max-height",
+}
+
+
+def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, new: str | None) -> None:
+    """DrsplatError when a folder's features came from another dataset or SAM checkpoint (manifests
+    store them resolved); a warning where an older manifest stored a relative path that resolves
+    elsewhere from here."""
+    if not old or not new or Path(old).resolve() == Path(new).resolve():
+        return
+    if Path(old).is_absolute():
+        raise DrsplatError(f"{features_dir} holds features made with {key} {old}, this run's is {new}: resuming would mix the two "
+                           f"under the same names; use a new --out folder or the same {flag}")
+    log.warning("%s: its features were made with %s %r (a relative path), which is not %s from here: if that is another "
+                "one, use a new --out folder", features_dir, key, old, new)
 
 
 def todo_cameras(cameras: list, out: Path, report: FeatureReport) -> list:
