@@ -143,7 +143,8 @@ def test_lerf_protocol_single_gaussian_known_disc():
     rep = lerf_2d_report(scene, [cam], [view], {"blob": np.array([True]), "nothing": np.array([False])}, show_progress=False)
     ious = {row.category: row.iou for row in rep.rows}
     assert ious["blob"] > 0.95
-    assert ious["nothing"] == 1.0  # empty prediction of an empty mask
+    # an empty ground truth scores 1.0 against nothing selected: left out of the means instead
+    assert "nothing" not in ious and rep.skipped == [("frame_00001", "nothing")] and rep.miou == ious["blob"]
     half = cam.scaled(0.5)  # annotations at half resolution pair with the same camera
     view2 = AnnotatedView("frame_00001", 60, 60, {"blob": disc[::2, ::2]})
     assert lerf_2d_report(scene, [cam], [view2], {"blob": np.array([True])}, show_progress=False).rows[0].iou > 0.85
@@ -297,3 +298,189 @@ def test_corruption_costs_compare_each_corruption_with_its_reference_room():
     assert "render mislabel10 (vs jitter2)" in lines[2] and "render jitter2 (vs clean)" in lines[2]
     assert lines[4].startswith("| paper | 0.250 (0.400 b) | 0.100 (0.100 a) |"), lines[4]
     assert corruption_costs(AblationResult("aggregate", list(AGGREGATE_COLUMNS), [row("a render mislabel10", "paper", 0.5)]), 40) == ""
+
+
+# ---------------------------------------------------------------------------------------------- hostile inputs of eval
+
+
+def lerf_argv(r: dict, annotations: Path, *extra: str, source: Path | None = None) -> list[str]:
+    return ["eval", "lerf", str(r["ply"]), "--source", str(source or r["ds"]), "--annotations", str(annotations), *query_args(r), *extra]
+
+
+def edited_view(r: dict, folder: Path, edit, name: str = "orbit_000") -> Path:
+    """A one-view annotation folder: the stand-in's `name`.json changed by `edit(doc)`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = json.loads((r["labels"] / f"{name}.json").read_text())
+    edit(doc)
+    (folder / f"{name}.json").write_text(json.dumps(doc))
+    return folder
+
+
+def scannet_argv(r: dict, scene_dir: Path, *extra: str) -> list[str]:
+    return ["eval", "scannet", str(r["ply"]), "--scene-dir", str(scene_dir), "--original", str(r["ds"] / "scene.ply"),
+            "--label-names", str(r["ds"] / "gt" / "label_names.json"), "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), *extra]
+
+
+@pytest.mark.parametrize("flag", ["--save-labels", "--json"])
+def test_eval_scannet_refuses_to_write_over_the_labels_ply_in_scene_dir(registered, tmp_path, capsys, flag):
+    """--save-labels or --json naming the labels PLY found inside --scene-dir replaced the ground truth."""
+    import shutil
+
+    scan = tmp_path / "scene0000_00"
+    shutil.copytree(scannet_stand_in(registered), scan)
+    labels = scan / "scene0000_00_vh_clean_2.labels.ply"
+    before = labels.read_bytes()
+    assert main(scannet_argv(registered, scan, flag, str(labels))) == 1
+    err = capsys.readouterr().err
+    assert f"{flag} is the same file as the input --scene-dir's labels PLY" in err and "Traceback" not in err
+    assert labels.read_bytes() == before
+    # a second labels PLY beside it would make the folder ambiguous for the next run
+    assert main(scannet_argv(registered, scan, flag, str(scan / "copy_vh_clean_2.labels.ply"))) == 1
+    assert "lies in the --scene-dir folder" in capsys.readouterr().err
+    assert not (scan / "copy_vh_clean_2.labels.ply").exists()
+
+
+def test_eval_scannet_scene_dir_missing_or_with_two_labels_files(registered, tmp_path, capsys):
+    assert main(scannet_argv(registered, tmp_path / "nonexist")) == 1
+    assert "nonexist: does not exist" in capsys.readouterr().err
+    import shutil
+
+    scan = tmp_path / "scene0000_00"
+    shutil.copytree(scannet_stand_in(registered), scan)
+    shutil.copy(scan / "scene0000_00_vh_clean_2.labels.ply", scan / "old_vh_clean_2.labels.ply")
+    assert main(scannet_argv(registered, scan)) == 1
+    err = capsys.readouterr().err
+    assert "holds 2" in err and "old_vh_clean_2.labels.ply" in err and "scene0000_00_vh_clean_2.labels.ply" in err
+
+
+def test_eval_lerf_refuses_to_write_over_annotations_or_cameras(registered, tmp_path, capsys):
+    """--json over an annotation or the dataset's transforms.json replaced it; a new *.json in the
+    annotation folder broke every later run (it was read as an annotation)."""
+    import shutil
+
+    r = registered
+    labels = tmp_path / "labels"
+    shutil.copytree(r["labels"], labels)
+    ds = tmp_path / "ds"
+    (ds / "images").mkdir(parents=True)
+    shutil.copy(r["ds"] / "transforms.json", ds)
+    for image in (r["ds"] / "images").iterdir():
+        (ds / "images" / image.name).symlink_to(image)
+    cases = [(labels / "orbit_000.json", "is the same file as the input --annotations' file orbit_000.json"),
+             (ds / "transforms.json", "is the same file as the input --source's camera file"),
+             (labels / "report.json", "lies in the --annotations folder")]
+    for out, words in cases:
+        before = out.read_bytes() if out.exists() else None
+        assert main(lerf_argv(r, labels, "--json", str(out), source=ds)) == 1
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err
+        assert (out.read_bytes() if out.exists() else None) == before
+    assert main(lerf_argv(r, labels, "--json", str(tmp_path / "report.json"), source=ds)) == 0
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda d: d["info"].update(width=0, height=0), "field 'info.width': is 0"),
+    (lambda d: d["info"].update(width=128000, height=96000), "field 'info.width': is 128000 pixels; at most 16384"),
+    (lambda d: d["info"].update(width=-128, height=-96), "field 'info.width': is -128"),
+    (lambda d: d["info"].update(width=96, height=128), "field 'info.width': view orbit_000 is annotated at 96x128 but its camera is 128x96"),
+    (lambda d: d["objects"][0].update(segmentation=[[1, 2, 3], [4, 5, 6]]), "field 'objects[0].segmentation': expected a list of [x, y]"),
+], ids=["zero-size", "huge", "negative", "other-aspect", "triplets"])
+def test_eval_lerf_bad_annotation_is_one_error_naming_file_and_field(registered, tmp_path, capsys, edit, words):
+    """A 0x0 view scored IoU 1.000 for every category; 128000x96000 ate all memory; -128 was a
+    traceback; an aspect mismatch did not name the file; triplets were reshaped into pairs."""
+    folder = edited_view(registered, tmp_path / "labels", edit)
+    assert main(lerf_argv(registered, folder)) == 1
+    err = capsys.readouterr().err
+    assert f"orbit_000.json: {words}" in err and "Traceback" not in err, err
+    assert "pairs" not in capsys.readouterr().out
+
+
+def test_eval_lerf_leaves_degenerate_ground_truth_out_of_the_mean(registered, tmp_path, capsys):
+    """An object whose polygon lies outside the image scored 0 (or a perfect 1.000 when nothing was
+    selected); now its pair is warned about and left out, and the mean is that of the other pairs."""
+    r = registered
+    good = edited_view(r, tmp_path / "good", lambda d: None)
+    broken = edited_view(r, tmp_path / "broken", lambda d: d["objects"][0].update(segmentation=[[x + 10000, y] for x, y in d["objects"][0]["segmentation"]]))
+    category = json.loads((good / "orbit_000.json").read_text())["objects"][0]["category"]
+    assert main(lerf_argv(r, good, "--json", str(tmp_path / "good.json"))) == 0
+    capsys.readouterr()
+    assert main(lerf_argv(r, broken, "--json", str(tmp_path / "broken.json"))) == 0
+    err = capsys.readouterr().err
+    assert "broken/orbit_000.json: objects[0]" in err and repr(category) in err and "left out of the means" in err
+    good_doc, broken_doc = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("good", "broken"))
+    kept = [row for row in good_doc["rows"] if row["category"] != category]
+    assert broken_doc["rows"] == kept and broken_doc["skipped_pairs"] == [{"view": "orbit_000", "category": category}]
+    assert broken_doc["mIoU"] == pytest.approx(np.mean([row["iou"] for row in kept]))
+    # every pair degenerate and nothing selected: this was a perfect 1.000
+    shifted = edited_view(r, tmp_path / "shifted", lambda d: [o.update(segmentation=[[x + 10000, y] for x, y in o["segmentation"]]) for o in d["objects"]])
+    assert main(lerf_argv(r, shifted, "--threshold", "1")) == 1
+    assert "degenerate ground truth" in capsys.readouterr().err
+
+
+def test_eval_lerf_views_named_twice_or_annotating_nothing(registered, tmp_path, capsys):
+    r = registered
+    twice = edited_view(r, tmp_path / "twice", lambda d: None)
+    (twice / "orbit_000_copy.json").write_text((twice / "orbit_000.json").read_text())
+    assert main(lerf_argv(r, twice)) == 1
+    err = capsys.readouterr().err
+    assert "orbit_000_copy.json: field 'info.name': annotates view 'orbit_000', as orbit_000.json does" in err
+    assert "is named 'orbit_000_copy'; the view is matched to a camera by info.name ('orbit_000')" in err
+    empty = edited_view(r, tmp_path / "empty", lambda d: d.update(objects=[]))
+    assert main(lerf_argv(r, empty)) == 1
+    err = capsys.readouterr().err
+    assert "empty: the annotations hold no objects" in err and "matches a camera" not in err
+
+
+def test_eval_classes_given_twice_is_a_usage_error(registered, capsys):
+    """--classes mug,mug scored the second 'mug' with another label's embedding row."""
+    r = registered
+    cloud = scannet_stand_in(r) / "scene0000_00_vh_clean_2.labels.ply"
+    argv = ["eval", "iou", str(r["ply"]), "--gt-points", str(cloud), "--classes", "mug,mug", *query_args(r)]
+    with pytest.raises(SystemExit) as usage:  # argparse's usage error
+        main(argv)
+    assert usage.value.code == 2
+    assert "--classes: 'mug' is given twice" in capsys.readouterr().err
+
+
+def scene_with_nan_row(r: dict, path: Path) -> Path:
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(r["ds"] / "scene.ply"))
+    ply["vertex"].data["x"][100] = np.nan
+    ply.write(str(path))
+    return path
+
+
+def test_eval_refuses_scenes_whose_rows_would_shift(registered, tmp_path, capsys):
+    """A NaN row was dropped on loading: --original then refused the right labels with a wrong hint,
+    and `eval pseudolabels` wrote N-1 labels for an N-row file, shifted after the dropped row."""
+    r = registered
+    nan_scene = scene_with_nan_row(r, tmp_path / "scene_nan.ply")
+    argv = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(nan_scene), *query_args(r)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "scene_nan.ply: 1 rows have non-finite values and would be dropped" in err and "--original SCENE.ply" not in err
+    out = tmp_path / "pl.npy"
+    cloud = scannet_stand_in(r) / "scene0000_00_vh_clean_2.labels.ply"
+    assert main(["eval", "pseudolabels", str(nan_scene), "--points", str(cloud), "--out", str(out),
+                 "--label-names", str(r["ds"] / "gt" / "label_names.json")]) == 1
+    assert "scene_nan.ply: 1 rows have non-finite values" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("change, words", [(lambda p, l: (p + 1e6, l), "does not overlap the Gaussians'"),
+                                           (lambda p, l: (p, 0 * l), "no point of the cloud has a label")], ids=["far", "unlabelled"])
+def test_eval_pseudolabels_labelling_nothing_says_why(registered, tmp_path, capsys, change, words):
+    """A cloud in another frame, or one without labels, wrote all -1 labels with exit 0 and no word."""
+    from drsplat.eval.datasets import load_labelled_points
+
+    r = registered
+    names = r["ds"] / "gt" / "label_names.json"
+    cloud = load_labelled_points(scannet_stand_in(r) / "scene0000_00_vh_clean_2.labels.ply", r["names"])
+    points, labels = change(cloud.points, cloud.labels + 1)
+    write_labelled_points(tmp_path / "cloud.ply", points, labels)
+    out = tmp_path / "pl.npy"
+    assert main(["eval", "pseudolabels", str(r["ds"] / "scene.ply"), "--points", str(tmp_path / "cloud.ply"), "--out", str(out),
+                 "--label-names", str(names)]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING: " in err and "cloud.ply: the pseudo-labels label none of the" in err and words in err, err
+    assert (np.load(out) == -1).all()

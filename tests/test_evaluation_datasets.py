@@ -6,6 +6,7 @@ import importlib.abc
 import json
 import re
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -218,3 +219,123 @@ def test_without_libusb_open3d_tests_skip_and_the_reader_names_the_package(open3
     cloud.write_text("not read: open3d cannot load")
     with pytest.raises(DrsplatError, match=f"apt install {OPEN3D_SYSTEM_PACKAGE}"):
         load_labelled_points(cloud)
+
+
+def lerf_doc(width=40, height=30, name="frame_00001.jpg", objects=None) -> dict:
+    square = [[5, 5], [15, 5], [15, 15], [5, 15]]
+    return {"info": {"name": name, "width": width, "height": height},
+            "objects": [{"category": "box", "segmentation": square}] if objects is None else objects}
+
+
+def write_json(path, doc):
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("width, words", [(0, "is 0: an image is at least 1 pixel"), (-128, "is -128: an image is at least 1 pixel"),
+                                          (128.9, "is 128.9, not a whole number"), (True, "is true, not a number"),
+                                          ("40", 'is "40", not a number'), (1e30, "is 1e+30 pixels; at most 16384"),
+                                          (128000, "is 128000 pixels; at most 16384"), (10**400, "is 100000... (401 digits) pixels")],
+                         ids=["zero", "negative", "fraction", "boolean", "string", "1e30", "128000", "10**400"])
+def test_lerf_image_size_must_be_a_whole_positive_bounded_number(tmp_path, width, words):
+    """info.width 0 made 0x0 masks that scored IoU 1.0; -128 and 1e30 were tracebacks; 128000 x 96000
+    allocated gigabytes before failing; 128.9 was truncated and true read as 1. Each is now one error
+    naming the file and info.width, raised before any image is allocated."""
+    path = write_json(tmp_path / "frame_00001.json", lerf_doc(width=width, height=30))
+    with pytest.raises(InputError, match=re.escape(f"frame_00001.json: field 'info.width': {words}")):
+        load_lerf_view(path)
+
+
+def test_lerf_whole_float_size_is_accepted(tmp_path):
+    """40.0 is a whole number of pixels (a converter writing floats)."""
+    view = load_lerf_view(write_json(tmp_path / "frame_00001.json", lerf_doc(width=40.0, height=30)))
+    assert (view.width, view.height) == (40, 30) and view.masks["box"].shape == (30, 40)
+
+
+@pytest.mark.parametrize("segmentation", [[[1, 2, 3], [4, 5, 6]], [[1, 2], [[3, 4], [5, 6], [7, 8]]], [1, 2, 3, 4, 5, 6],
+                                          [[True, 2], [3, 4], [5, 6]], [["1", 2], [3, 4], [5, 6]], "1,2,3,4", [[]]],
+                         ids=["triplets", "mixed", "flat", "boolean", "string-number", "string", "empty-polygon-list"])
+def test_lerf_segmentation_of_another_shape_is_refused(tmp_path, segmentation):
+    """Triplets were reshaped into pairs ((1,2),(3,4),(5,6)) and mixed shapes flattened, silently."""
+    path = write_json(tmp_path / "frame_00001.json", lerf_doc(objects=[{"category": "box", "segmentation": [[1, 1], [9, 1], [9, 9]]},
+                                                                       {"category": "cup", "segmentation": segmentation}]))
+    with pytest.raises(InputError, match=re.escape("frame_00001.json: field 'objects[1].segmentation': expected a list of [x, y] points")):
+        load_lerf_view(path)
+
+
+def test_lerf_list_of_polygons_is_their_union(tmp_path):
+    """A COCO-style list of two same-length polygons was flattened into one path (a wrong mask)."""
+    a = [[2, 2], [10, 2], [10, 10], [2, 10]]
+    b = [[x + 20, y + 5] for x, y in a]
+    view = load_lerf_view(write_json(tmp_path / "frame_00001.json", lerf_doc(objects=[{"category": "box", "segmentation": [a, b]}])))
+    expect = polygon_mask(np.array(a), 30, 40) | polygon_mask(np.array(b), 30, 40)
+    np.testing.assert_array_equal(view.masks["box"], expect)
+    assert view.masks["box"].sum() == 2 * 81
+
+
+@pytest.mark.parametrize("polygon, why", [([[x + 1000, y] for x, y in [[2, 2], [10, 2], [10, 10]]], "lies wholly outside the 40x30 image"),
+                                          ([[2, 2], [10, 10]], "has fewer than 3 points")], ids=["outside", "two-points"])
+def test_lerf_object_without_pixels_is_warned_and_left_out(tmp_path, caplog, polygon, why):
+    """An object whose mask comes out empty was scored 0 against any selection and 1.0 against none;
+    now its (view, category) pair is warned about (file, object index, category) and skipped, even
+    when another object of the category is fine (the mask would lack part of the annotation)."""
+    good = [[2, 2], [10, 2], [10, 10], [2, 10]]
+    objects = [{"category": "box", "segmentation": good}, {"category": "cup", "segmentation": good},
+               {"category": "cup", "segmentation": polygon}]
+    path = write_json(tmp_path / "frame_00001.json", lerf_doc(objects=objects))
+    with caplog.at_level("WARNING"):
+        view = load_lerf_view(path)
+    assert list(view.masks) == ["box"] and list(view.skipped) == ["cup"]
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert "frame_00001.json" in message and "objects[2]" in message and "'cup'" in message and why in message
+
+
+def test_lerf_view_name_disagreeing_with_the_file_is_warned_and_duplicates_refused(tmp_path, caplog):
+    """Views are matched by info.name; a name that disagrees with the file's stem was used silently,
+    and two files naming one view were both scored (the view counted twice)."""
+    write_json(tmp_path / "frame_00001.json", lerf_doc())
+    write_json(tmp_path / "frame_00002.json", lerf_doc(name="frame_00003.jpg"))
+    with caplog.at_level("WARNING"):
+        views = load_lerf_annotations(tmp_path)
+    assert [v.name for v in views] == ["frame_00001", "frame_00003"]
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert "frame_00002.json" in message and "'frame_00003'" in message and "matched to a camera by info.name" in message
+    write_json(tmp_path / "frame_00001_copy.json", lerf_doc())
+    with pytest.raises(InputError, match=re.escape("frame_00001_copy.json: field 'info.name': annotates view 'frame_00001', "
+                                                   "as frame_00001.json does")):
+        load_lerf_annotations(tmp_path)
+
+
+@pytest.mark.parametrize("size, words", [((30, 40), "annotated at 30x40 but its camera is 40x30 (different aspect)"),
+                                         ((360, 270), "annotated at 360x270, more than 8 times its camera's 40x30")])
+def test_lerf_size_is_checked_against_the_camera_before_masks_are_drawn(tmp_path, monkeypatch, size, words):
+    """With camera sizes the annotation must keep the camera's aspect and be at most 8x its size; the
+    error names the JSON file (it said 'input: view ...') and comes before any mask is drawn."""
+    import drsplat.eval.datasets as datasets
+
+    write_json(tmp_path / "frame_00001.json", lerf_doc(width=size[0], height=size[1]))
+    monkeypatch.setattr(datasets, "polygon_mask", lambda *a: pytest.fail("a mask was drawn before the size check"))
+    with pytest.raises(InputError, match=re.escape(f"frame_00001.json: field 'info.width': view frame_00001 is {words}")):
+        load_lerf_annotations(tmp_path, {"frame_00001": (40, 30)})
+
+
+def test_camera_for_view_names_the_annotation_file():
+    from drsplat.cameras import look_at_camera
+    from drsplat.eval.datasets import AnnotatedView
+    from drsplat.eval.lerf import camera_for_view
+
+    cam = look_at_camera((0, 0, -5.0), (0, 0, 0), 40, 30, fov_x_deg=60.0)
+    view = AnnotatedView("v", 30, 40, {}, path=Path("label/v.json"))
+    with pytest.raises(InputError, match=re.escape("label/v.json: field 'info.width': view v is annotated at 30x40")):
+        camera_for_view({"v": cam}, view)
+
+
+def test_find_scannet_labels_says_missing_and_refuses_two(tmp_path):
+    """A missing folder said 'no *_vh_clean_2.labels.ply in this folder'; two labels files were
+    resolved to the first in sorted order without a word."""
+    with pytest.raises(InputError, match=re.escape("nonexist: does not exist")):
+        find_scannet_labels(tmp_path / "nonexist")
+    for name in ("scene0000_00_vh_clean_2.labels.ply", "scene0000_01_vh_clean_2.labels.ply"):
+        write_labelled_points(tmp_path / name, np.zeros((1, 3)), np.array([1]))
+    with pytest.raises(InputError, match="holds 2 .*scene0000_00_vh_clean_2.labels.ply, scene0000_01_vh_clean_2.labels.ply"):
+        find_scannet_labels(tmp_path)

@@ -95,10 +95,28 @@ PSEUDO_DEFAULTS = {"classes": None, "radius": 3.0, "vote": "gaussian", "engine":
 def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("pseudo-labels from a labelled point cloud")
     d = PSEUDO_DEFAULTS
-    g.add_argument("--classes", default=d["classes"], metavar="A,B,...", help="keep only these label names (others become unlabelled)")
+    g.add_argument("--classes", type=class_list, default=d["classes"], metavar="A,B,...",
+                   help="keep only these label names, each once (others become unlabelled)")
     g.add_argument("--radius", type=positive_float, default=d["radius"], help="Mahalanobis radius r (points with D <= r^2 vote)")
     g.add_argument("--vote", choices=("gaussian", "count"), default=d["vote"], help="vote weight exp(-D/2) (default) or 1")
     g.add_argument("--engine", choices=("grid", "kdtree"), default=d["engine"], help="neighbour search: numba point grid (default) or scipy KD-trees")
+
+
+def class_list(text: str) -> list[str]:
+    """argparse type for --classes: comma-separated label names, none blank or given twice (the k-th
+    name is the k-th query, so a repeat would score a label with another label's embedding row)."""
+    items = [c.strip() for c in text.split(",")]
+    seen: set[str] = set()
+    for k, name in enumerate(items):
+        if not name:
+            raise argparse.ArgumentTypeError(f"entry {k + 1} of {text!r} is empty")
+        if name in seen:
+            raise argparse.ArgumentTypeError(f"{name!r} is given twice")
+        seen.add(name)
+    return items
+
+
+class_list.__name__ = "class list"
 
 
 def pseudo_flags_given(args: argparse.Namespace) -> list[str]:
@@ -234,25 +252,66 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     from drsplat.eval.datasets import load_labelled_points
     from drsplat.eval.pseudolabels import pseudo_labels
 
-    classes = [c.strip() for c in args.classes.split(",")] if args.classes else None
-    pts = load_labelled_points(cloud, raw_names, classes)
+    pts = load_labelled_points(cloud, raw_names, args.classes)
     res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
                         show_progress=not getattr(args, "quiet", False))
     labelled = int(np.count_nonzero(res.labels >= 0))
     log.info("pseudo-labels: %d of %d Gaussians labelled from %d points (%d non-finite Gaussians)", labelled, len(res.labels), len(pts.points), res.nonfinite)
+    if labelled == 0:
+        log.warning("%s: the pseudo-labels label none of the %d Gaussians: %s", cloud, len(res.labels),
+                    why_nothing_labelled(scene.means, pts.points, pts.labels, res.nonfinite, args.radius))
     return res.labels.astype(np.int64), pts.names
+
+
+def why_nothing_labelled(means: np.ndarray, points: np.ndarray, labels: np.ndarray, nonfinite: int, radius: float) -> str:
+    """The likeliest reason a labelled cloud labelled no Gaussian, checked in this order: no Gaussian
+    with a finite mean, no point, no labelled point, disjoint bounding boxes of the labelled points
+    and the means (the cloud in another frame or unit), else points near but outside every radius."""
+    labelled = np.asarray(points)[np.asarray(labels) >= 0]
+    means = np.asarray(means, np.float64)
+    means = means[np.isfinite(means).all(axis=1)]
+    if len(means) == 0:
+        return "the scene holds no Gaussian" + (" with finite parameters" if nonfinite else "")
+    if len(points) == 0:
+        return "the cloud holds no point with finite coordinates (empty, or every point is NaN/inf)"
+    if len(labelled) == 0:
+        return "no point of the cloud has a label among the names kept (every raw label is 0, or outside --classes)"
+    lo_c, hi_c, lo_s, hi_s = labelled.min(axis=0), labelled.max(axis=0), means.min(axis=0), means.max(axis=0)
+    if (lo_c > hi_s).any() or (hi_c < lo_s).any():
+        return (f"the labelled points' bounding box {_box(lo_c, hi_c)} does not overlap the Gaussians' {_box(lo_s, hi_s)}: "
+                "is the cloud in the scene's coordinate frame (same axes and units)?")
+    return (f"no labelled point lies within the Mahalanobis radius {radius:g} of any Gaussian: is the cloud in the scene's "
+            "coordinate frame (same axes and units), or is --radius too small?")
+
+
+def _box(lo: np.ndarray, hi: np.ndarray) -> str:
+    """An axis-aligned box as "[x0..x1, y0..y1, z0..z1]"."""
+    return "[" + ", ".join(f"{a:.3g}..{b:.3g}" for a, b in zip(lo, hi)) + "]"
+
+
+def load_row_aligned_scene(path: Path, rows_of: str):
+    """A user scene (any splat format) whose Gaussians must be the file's rows: refused when loading
+    drops rows with non-finite values, since `rows_of` (labels, indices) follow the file's rows and
+    would shift by one after every dropped row."""
+    from drsplat.splat_formats import load_scene_report
+
+    scene, report = load_scene_report(path)
+    dropped = report.dropped_nan_rows + report.dropped_inf_rows
+    if dropped:
+        raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so {rows_of} could not follow "
+                               "the file's rows; repair or remove those rows first")
+    return scene
 
 
 def load_eval_scene(args: argparse.Namespace):
     """(scene to evaluate on, registered field, index of registered Gaussians in that scene or None)."""
     from drsplat.commands.common import load_registered
     from drsplat.eval.metrics import match_gaussians
-    from drsplat.splat_formats import load_scene
 
     scene, field = load_registered(args.registered)
     if args.original is None:
         return scene, field, None
-    original = load_scene(args.original)
+    original = load_row_aligned_scene(args.original, "ground-truth labels of the original scene")
     try:
         index = match_gaussians(original.means, scene.means)
     except ValueError as exc:
@@ -323,14 +382,18 @@ def run_iou(args: argparse.Namespace) -> int:
 
 
 def run_scannet(args: argparse.Namespace) -> int:
-    from drsplat.eval.datasets import NYU40_NAMES, find_scannet_labels
+    from drsplat.eval.datasets import NYU40_NAMES, SCANNET_LABELS_PATTERN, find_scannet_labels
     from drsplat.utils import save_npy_atomic
 
     parse_taus(args.taus)
-    guard_args(args, ("json", "save_labels"))
+    cloud = find_scannet_labels(args.scene_dir)
+    # the labels PLY is found inside --scene-dir, so guard_args does not know it; an output named
+    # like one beside it would make the folder ambiguous for the next run
+    folder = {"--scene-dir": (args.scene_dir, (SCANNET_LABELS_PATTERN,))} if args.scene_dir.is_dir() else None
+    guard_args(args, ("json", "save_labels"), extra_inputs={"--scene-dir's labels PLY": cloud}, protected_folders=folder)
     scene, field, index = load_eval_scene(args)
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
-    gt, names = pseudo_from_cloud(args, scene, find_scannet_labels(args.scene_dir), raw)
+    gt, names = pseudo_from_cloud(args, scene, cloud, raw)
     if args.save_labels is not None:
         save_npy_atomic(args.save_labels, gt.astype(np.int32))
     return _evaluate_and_print(args, scene, field, gt, names, index)
@@ -338,11 +401,10 @@ def run_scannet(args: argparse.Namespace) -> int:
 
 def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES
-    from drsplat.splat_formats import load_scene
     from drsplat.utils import atomic_path, save_npy_atomic
 
     guard_args(args, ("out", "names_out"))
-    scene = load_scene(args.scene)
+    scene = load_row_aligned_scene(args.scene, "the labels written (one per row)")
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
     save_npy_atomic(args.out, labels.astype(np.int32))
@@ -357,20 +419,26 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
 
 
 def run_lerf(args: argparse.Namespace) -> int:
-    from drsplat.cameras import load_cameras
+    from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.commands.common import load_registered
-    from drsplat.eval.datasets import load_lerf_annotations
+    from drsplat.eval.datasets import lerf_annotation_files, load_lerf_annotations
     from drsplat.eval.lerf import lerf_2d_report, select_queries
 
-    guard_args(args, ("json",))
+    cameras = load_cameras(args.source)
+    # the camera file and the annotations are found inside --source and --annotations; any *.json
+    # written into --annotations would be read as an annotation by the next run
+    inputs = {**dataset_inputs(args.source, cameras), **{f"--annotations' file {f.name}": f for f in lerf_annotation_files(args.annotations)}}
+    guard_args(args, ("json",), extra_inputs=inputs, protected_folders={"--annotations": (args.annotations, ("*.json",))})
+    views = load_lerf_annotations(args.annotations, {c.name: (c.width, c.height) for c in cameras})
+    if not any(v.masks or v.skipped for v in views):
+        raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "
+                                           "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
-    views = load_lerf_annotations(args.annotations)
-    categories = sorted({c for v in views for c in v.masks})
+    categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})
     names = load_label_names(args.label_names, categories)
     missing = [c for c in categories if c not in names]
     if missing:
         raise InputError(args.label_names, f"annotated categories {missing} have no entry (and so no query embedding)")
-    cameras = load_cameras(args.source)
     scores = label_scores(args, field, names)
     threshold = None
     if args.threshold is None and args.relevancy:
@@ -383,6 +451,9 @@ def run_lerf(args: argparse.Namespace) -> int:
     selected, taus = select_queries(scores, threshold)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     report = lerf_2d_report(scene, cameras, views, selections, args.alpha_threshold, show_progress=True)
+    if not report.rows and report.skipped:
+        raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
+                           "(see the warnings above): nothing to score")
     if not report.rows:
         raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
     print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "

@@ -10,8 +10,11 @@ LERF-OVS (LangSplat's release of LERF scenes with annotations; OpenGaussian uses
                         "objects": [{"category": "old camera", "bbox": [x1, y1, x2, y2],
                                      "segmentation": [[x, y], [x, y], ...]}, ...]}
 
-  An object may appear as several polygons (several entries with one category); they are
-  united. A view pairs with the training camera whose image stem equals the JSON stem.
+  `segmentation` is one polygon (a list of [x, y]) or a list of polygons (COCO style); an object
+  may also appear as several entries with one category. All polygons of a category are united.
+  A view is named by the stem of `info.name` (the JSON file's stem when `info.name` is absent; a
+  disagreement between the two is warned about) and pairs with the training camera whose image
+  stem equals that name. Two files naming the same view are refused.
 
 ScanNet (v2)::
 
@@ -25,7 +28,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 import numpy as np
@@ -47,16 +52,37 @@ NYU40_NAMES = (
 
 # ---------------------------------------------------------------------------------------------- LERF-OVS
 
+MAX_ANNOTATION_SIDE = 16384  # pixels per side of an annotated view (larger than any GPU texture); a bool mask is W·H bytes
+MAX_ANNOTATION_SCALE = 8.0  # an annotation at most 8x its camera's size (3DGS's -r goes to 8); rendering costs W·H
+ASPECT_TOLERANCE = 0.02  # relative disagreement of the x and y scale between an annotation and its camera
+
 
 @dataclass
 class AnnotatedView:
-    """One annotated view: name (image stem), size, and a boolean mask [H, W] per category."""
+    """One annotated view: name (image stem), size, and a boolean mask [H, W] per category.
+
+    path: the annotation file; skipped: category -> why its ground truth is degenerate (such a
+    (view, category) pair is left out of every mean, see `rasterise_lerf_document`).
+    """
 
     name: str
     width: int
     height: int
     masks: dict[str, np.ndarray]
     image_path: Path | None = None
+    path: Path | None = None
+    skipped: dict[str, str] = dataclass_field(default_factory=dict)
+
+
+@dataclass
+class LerfDocument:
+    """A parsed LERF-OVS annotation before rasterising: objects are (category, polygons [P, 2] (x, y))."""
+
+    path: Path
+    name: str
+    width: int
+    height: int
+    objects: list[tuple[str, list[np.ndarray]]]
 
 
 def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -70,45 +96,170 @@ def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.asarray(img, dtype=bool)
 
 
-def load_lerf_view(path: str | Path) -> AnnotatedView:
-    """Read one LERF-OVS `frame_XXXXX.json` (LabelMe-style polygons) into masks per category."""
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)  # JSON true is a Python int
+
+
+def _is_point(value: object) -> bool:
+    return isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)
+
+
+def _is_polygon(value: object) -> bool:
+    return isinstance(value, list) and all(_is_point(p) for p in value)
+
+
+def _polygon_array(path: Path, field: str, points: list) -> np.ndarray:
+    """[P, 2] float64 of a list of [x, y] points, refusing non-finite coordinates."""
+    try:
+        poly = np.array([[float(x), float(y)] for x, y in points], np.float64).reshape(-1, 2)
+    except OverflowError:  # a JSON integer beyond float range
+        poly = np.full((1, 2), np.inf)
+    if not np.isfinite(poly).all():
+        raise InputError(path, "polygon has non-finite coordinates", field=field)
+    return poly
+
+
+def parse_segmentation(path: Path, k: int, segmentation: object) -> list[np.ndarray]:
+    """The polygons of `objects[k].segmentation`: a list of [x, y] points is one polygon; a list of
+    such lists (COCO style) is several polygons whose union is the object. Anything else (triplets,
+    a flat list of numbers, mixed shapes, strings, booleans) is an InputError naming the field."""
+    field = f"objects[{k}].segmentation"
+    if _is_polygon(segmentation):
+        return [_polygon_array(path, field, segmentation)]
+    if isinstance(segmentation, list) and segmentation and all(_is_polygon(p) and p for p in segmentation):
+        return [_polygon_array(path, field, p) for p in segmentation]
+    shown = json.dumps(segmentation)
+    shown = shown if len(shown) <= 60 else shown[:57] + "..."
+    raise InputError(path, f"expected a list of [x, y] points (one polygon) or a list of such lists (several polygons, "
+                           f"united); got {shown}", field=field)
+
+
+def _image_side(path: Path, info: dict, key: str) -> int:
+    """info[key] as a whole number of pixels in 1..MAX_ANNOTATION_SIDE (128.0 is accepted, 128.9 and true are not)."""
+    field = f"info.{key}"
+    value = info.get(key)
+    if value is None:
+        raise InputError(path, f"missing: the annotated image's {key} in pixels", field=field)
+    if not _is_number(value):
+        raise InputError(path, f"is {json.dumps(value)[:40]}, not a number of pixels", field=field)
+    if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
+        raise InputError(path, f"is {value!r}, not a whole number of pixels", field=field)
+    shown = f"{value:.6g}" if isinstance(value, float) else (str(value) if abs(value) < 10**12 else f"{str(value)[:6]}... ({len(str(value))} digits)")
+    if value < 1:
+        raise InputError(path, f"is {shown}: an image is at least 1 pixel on each side", field=field)
+    if value > MAX_ANNOTATION_SIDE:
+        raise InputError(path, f"is {shown} pixels; at most {MAX_ANNOTATION_SIDE} are supported", field=field)
+    return int(value)
+
+
+def _view_name(path: Path, info: dict) -> str:
+    """The view's name: the stem of info.name, or the file's stem without one; a disagreement is warned."""
+    given = info.get("name")
+    if given is None:
+        return path.stem
+    if not isinstance(given, str) or not Path(given).stem:
+        raise InputError(path, f"is {json.dumps(given)[:40]}; expected the annotated image's file name", field="info.name")
+    name = Path(given).stem
+    if name != path.stem:
+        log.warning("%s: info.name %r names view %r but the file is named %r; the view is matched to a camera by info.name (%r)",
+                    path, given, name, path.stem, name)
+    return name
+
+
+def read_lerf_document(path: str | Path) -> LerfDocument:
+    """Parse one LERF-OVS `frame_XXXXX.json` and check its sizes, allocating no image."""
     path = Path(path)
     data = read_json(path, "a LERF-OVS annotation")
     info = data.get("info") if isinstance(data, dict) else None
     if not isinstance(info, dict):
         raise InputError(path, "missing the 'info' object with width and height", field="info")
-    try:
-        width, height = int(info["width"]), int(info["height"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(path, "info.width / info.height missing or not integers", field="info") from None
+    width, height = _image_side(path, info, "width"), _image_side(path, info, "height")
     objects = data.get("objects")
     if not isinstance(objects, list):
         raise InputError(path, "missing the 'objects' list", field="objects")
-    masks: dict[str, np.ndarray] = {}
+    parsed = []
     for k, obj in enumerate(objects):
-        try:
-            category = str(obj["category"])
-            poly = np.asarray(obj["segmentation"], np.float64).reshape(-1, 2)
-        except (KeyError, TypeError, ValueError):
-            raise InputError(path, "object without a category or with a malformed polygon", field=f"objects[{k}]") from None
-        if not np.isfinite(poly).all():
-            raise InputError(path, "polygon has non-finite coordinates", field=f"objects[{k}].segmentation")
-        m = polygon_mask(poly, height, width)
-        masks[category] = masks[category] | m if category in masks else m
-    stem = Path(str(info.get("name", path.stem))).stem or path.stem
-    image = path.with_suffix(".jpg")
-    return AnnotatedView(stem, width, height, masks, image if image.exists() else None)
+        if not isinstance(obj, dict) or "category" not in obj or "segmentation" not in obj:
+            raise InputError(path, "object without a category or a segmentation", field=f"objects[{k}]")
+        parsed.append((str(obj["category"]), parse_segmentation(path, k, obj["segmentation"])))
+    return LerfDocument(path, _view_name(path, info), width, height, parsed)
 
 
-def load_lerf_annotations(label_dir: str | Path) -> list[AnnotatedView]:
-    """All annotated views of one LERF-OVS scene (`label/<scene>/frame_*.json`), sorted by name."""
+def check_annotation_size(path: Path | None, name: str, width: int, height: int, camera_width: int, camera_height: int) -> tuple[float, float]:
+    """(sx, sy) = annotation size / camera size. The aspect must agree within ASPECT_TOLERANCE
+    (|sx − sy| ≤ 2% of the larger) and the annotation may be at most MAX_ANNOTATION_SCALE times the
+    camera's size (rendering happens at the annotation's size); InputError naming `path` otherwise."""
+    sx, sy = width / camera_width, height / camera_height
+    if abs(sx - sy) > ASPECT_TOLERANCE * max(sx, sy):
+        raise InputError(path, f"view {name} is annotated at {width}x{height} but its camera is {camera_width}x{camera_height} "
+                               "(different aspect)", field="info.width")
+    if max(sx, sy) > MAX_ANNOTATION_SCALE:
+        raise InputError(path, f"view {name} is annotated at {width}x{height}, more than {MAX_ANNOTATION_SCALE:g} times its "
+                               f"camera's {camera_width}x{camera_height}", field="info.width")
+    return sx, sy
+
+
+def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
+    """Masks per category: the union of the category's polygons.
+
+    Degenerate ground truth: a polygon that paints no pixel (fewer than 3 points, or wholly outside
+    the image) means the category's mask lacks part of what was annotated, so its IoU would be wrong
+    either way (0 against any selection, or 1.0 when nothing is selected and the whole mask is
+    empty). Such a (view, category) pair is warned about (file, object index, category) and moved to
+    `skipped`, which every mean leaves out.
+    """
+    masks: dict[str, np.ndarray] = {}
+    skipped: dict[str, str] = {}
+    for k, (category, polygons) in enumerate(doc.objects):
+        for j, poly in enumerate(polygons):
+            m = polygon_mask(poly, doc.height, doc.width)
+            if not m.any():
+                which = f"objects[{k}]" if len(polygons) == 1 else f"objects[{k}] polygon {j}"
+                why = "has fewer than 3 points" if len(poly) < 3 else f"lies wholly outside the {doc.width}x{doc.height} image"
+                log.warning("%s: %s (category %r) %s and covers no pixel; the (view %s, %r) pair is left out of the means",
+                            doc.path, which, category, why, doc.name, category)
+                skipped.setdefault(category, f"{which} {why}")
+            masks[category] = masks[category] | m if category in masks else m
+    for category in skipped:
+        masks.pop(category, None)
+    image = doc.path.with_suffix(".jpg")
+    return AnnotatedView(doc.name, doc.width, doc.height, masks, image if image.exists() else None, doc.path, skipped)
+
+
+def load_lerf_view(path: str | Path) -> AnnotatedView:
+    """Read one LERF-OVS `frame_XXXXX.json` (LabelMe-style polygons) into masks per category
+    (`read_lerf_document`, then `rasterise_lerf_document`)."""
+    return rasterise_lerf_document(read_lerf_document(path))
+
+
+def lerf_annotation_files(label_dir: str | Path) -> list[Path]:
+    """The annotation files of one LERF-OVS scene folder: every `*.json` in it, sorted."""
     label_dir = Path(label_dir)
     if not label_dir.is_dir():
         raise InputError(label_dir, "annotation folder not found (expected lerf_ovs/label/<scene>/ with frame_*.json)")
     files = sorted(label_dir.glob("*.json"))
     if not files:
         raise InputError(label_dir, "no *.json annotations in this folder (expected frame_XXXXX.json, LabelMe-style)")
-    return [load_lerf_view(f) for f in files]
+    return files
+
+
+def load_lerf_annotations(label_dir: str | Path, camera_sizes: dict[str, tuple[int, int]] | None = None) -> list[AnnotatedView]:
+    """All annotated views of one LERF-OVS scene (`label/<scene>/frame_*.json`), sorted by file name.
+
+    Every file is parsed and checked before any mask is drawn: two files naming one view are refused,
+    and with camera_sizes (view name -> camera (width, height)) a view's size must fit its camera
+    (`check_annotation_size`), so a lying size allocates nothing.
+    """
+    docs = [read_lerf_document(f) for f in lerf_annotation_files(label_dir)]
+    first: dict[str, Path] = {}
+    for doc in docs:
+        if doc.name in first:
+            raise InputError(doc.path, f"annotates view {doc.name!r}, as {first[doc.name].name} does; each view may be annotated "
+                                       "once (its pairs would be counted twice)", field="info.name")
+        first[doc.name] = doc.path
+        if camera_sizes is not None and doc.name in camera_sizes:
+            check_annotation_size(doc.path, doc.name, doc.width, doc.height, *camera_sizes[doc.name])
+    return [rasterise_lerf_document(doc) for doc in docs]
 
 
 def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.5, min_pixels: int = 4) -> list[np.ndarray]:
@@ -167,6 +318,7 @@ class LabelledPoints:
     names: list[str]
 
 
+SCANNET_LABELS_PATTERN = "*_vh_clean_2.labels.ply"  # the labelled mesh of a ScanNet scene folder
 POINT_CLOUD_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")  # read through open3d
 
 
@@ -282,11 +434,19 @@ def write_labelled_points(path: str | Path, points: np.ndarray, raw_labels: np.n
 
 
 def find_scannet_labels(scene_dir: str | Path) -> Path:
-    """The `*_vh_clean_2.labels.ply` of a ScanNet scene folder (or the file itself)."""
+    """The `*_vh_clean_2.labels.ply` of a ScanNet scene folder (or the file itself).
+
+    A folder must hold exactly one: with two, which is the scene's ground truth is a guess.
+    """
     scene_dir = Path(scene_dir)
     if scene_dir.is_file():
         return scene_dir
-    found = sorted(scene_dir.glob("*_vh_clean_2.labels.ply"))
+    if not scene_dir.is_dir():
+        raise InputError(scene_dir, "does not exist" if not scene_dir.exists() else "is neither a folder nor a file")
+    found = sorted(scene_dir.glob(SCANNET_LABELS_PATTERN))
     if not found:
-        raise InputError(scene_dir, "no *_vh_clean_2.labels.ply in this ScanNet scene folder")
+        raise InputError(scene_dir, f"no {SCANNET_LABELS_PATTERN} in this ScanNet scene folder")
+    if len(found) > 1:
+        raise InputError(scene_dir, f"holds {len(found)} {SCANNET_LABELS_PATTERN} files ({', '.join(f.name for f in found)}); "
+                                    "pass the one to use as --scene-dir")
     return found[0]

@@ -4,7 +4,8 @@ For every annotated view and every category annotated in it: select the Gaussian
 the category's text query, render the occupancy (accumulated opacity 1 − T) of the selection
 alone from the view's camera, binarise it at `alpha_threshold`, and compare with the ground-truth
 mask. mIoU is the mean IoU over all (view, category) pairs; mAcc@0.25 is the share of pairs whose
-IoU exceeds 0.25.
+IoU exceeds 0.25. A pair whose ground-truth mask is degenerate (empty, or missing a polygon that
+covers no pixel) is left out of both: its IoU would be 0 against any selection and 1.0 against none.
 """
 
 from __future__ import annotations
@@ -16,8 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.eval.datasets import AnnotatedView
-from drsplat.errors import InputError
+from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
 from drsplat.query import otsu_threshold
 from drsplat.raster import prepare_scene, rasterize
@@ -35,11 +35,13 @@ class SelectionRow:
 
 @dataclass
 class Lerf2DReport:
-    """rows: one per (view, category); missing_views: views with no matching camera."""
+    """rows: one per scored (view, category); missing_views: views with no matching camera;
+    skipped: (view, category) pairs left out for degenerate ground truth (not in any mean)."""
 
     rows: list[SelectionRow]
     alpha_threshold: float
     missing_views: list[str] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
 
     @property
     def miou(self) -> float:
@@ -57,31 +59,34 @@ class Lerf2DReport:
     def to_dict(self) -> dict:
         return {"mIoU": self.miou, "mAcc@0.25": self.acc_at(0.25), "alpha_threshold": self.alpha_threshold,
                 "per_category": self.per_category(), "missing_views": self.missing_views,
+                "skipped_pairs": [{"view": v, "category": c} for v, c in self.skipped],
                 "rows": [{"view": r.view, "category": r.category, "iou": r.iou, "selected": r.selected} for r in self.rows]}
 
     def format(self) -> str:
         lines = [f"{'category':<24} {'mIoU':>6}"]
         lines += [f"{c:<24} {v:6.3f}" for c, v in self.per_category().items()]
         lines.append(f"{'ALL (' + str(len(self.rows)) + ' pairs)':<24} {self.miou:6.3f}   mAcc@0.25 {self.acc_at(0.25):.3f}")
+        if self.skipped:
+            lines.append(f"({len(self.skipped)} (view, category) pairs with degenerate ground truth left out)")
         return "\n".join(lines)
 
 
 def mask_iou(pred: np.ndarray, gt: np.ndarray) -> float:
-    """|pred ∧ gt| / |pred ∨ gt| of two boolean images (1.0 when both are empty)."""
+    """|pred ∧ gt| / |pred ∨ gt| of two boolean images (1.0 when both are empty; `lerf_2d_report`
+    never scores an empty ground truth)."""
     union = np.count_nonzero(pred | gt)
     return float(np.count_nonzero(pred & gt) / union) if union else 1.0
 
 
 def camera_for_view(cameras: dict[str, Camera], view: AnnotatedView) -> Camera | None:
-    """The camera named like the view, resized to the annotation's resolution (aspect must agree)."""
+    """The camera named like the view, resized to the annotation's resolution (aspect must agree
+    within 2%, `check_annotation_size`; the error names the annotation file)."""
     cam = cameras.get(view.name)
     if cam is None:
         return None
     if (cam.width, cam.height) == (view.width, view.height):
         return cam
-    sx, sy = view.width / cam.width, view.height / cam.height
-    if abs(sx - sy) > 0.02 * max(sx, sy):
-        raise InputError(None, f"view {view.name} is annotated at {view.width}x{view.height} but its camera is {cam.width}x{cam.height} (different aspect)")
+    sx, _ = check_annotation_size(view.path, view.name, view.width, view.height, cam.width, cam.height)
     scaled = cam.scaled(sx)
     if (scaled.width, scaled.height) != (view.width, view.height):
         scaled = dataclasses.replace(scaled, width=view.width, height=view.height)
@@ -108,13 +113,16 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
     scene: GaussianScene (N Gaussians); cameras: the scene's cameras, matched to views by name;
     views: annotated views; selections: category -> [N] bool selected Gaussians.
     Categories without a selection are reported and skipped; views without a camera are listed
-    in `missing_views`.
+    in `missing_views`. Degenerate ground truth is in no mean: the categories of `view.skipped` and
+    any empty ground-truth mask become `skipped` pairs (an empty mask would score 1.0 against an
+    empty selection and 0 against any other), with a warning for the latter.
     """
     by_name = {c.name: c for c in cameras}
     prepared = prepare_scene(scene)
     rows: list[SelectionRow] = []
     missing: list[str] = []
     unselected: set[str] = set()
+    skipped: list[tuple[str, str]] = []
     jobs = [(v, c) for v in views for c in v.masks]
     done = 0
     for view in progress(views, "LERF-OVS views", enabled=show_progress, unit="view"):
@@ -123,12 +131,19 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
             missing.append(view.name)
             done += len(view.masks)
             continue
+        skipped += [(view.name, c) for c in view.skipped]
         for category, gt in view.masks.items():
             if cancel is not None:
                 cancel.raise_if_cancelled()
             sel = selections.get(category)
             if sel is None:
                 unselected.add(category)
+                continue
+            if not gt.any():
+                log.warning("%s: view %s, category %r: the ground-truth mask is empty; left out of the means",
+                            view.path or "annotation", view.name, category)
+                skipped.append((view.name, category))
+                done += 1
                 continue
             sel = np.asarray(sel, bool)
             if sel.any():
@@ -144,4 +159,4 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
         log.warning("%d annotated views have no camera of the same name: %s", len(missing), ", ".join(missing[:5]))
     if unselected:
         log.warning("no selection for categories %s; skipped", sorted(unselected))
-    return Lerf2DReport(rows, alpha_threshold, missing)
+    return Lerf2DReport(rows, alpha_threshold, missing, skipped)
