@@ -916,7 +916,7 @@ def test_sigterm_cancels_synth_and_leaves_nothing(tmp_path):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 1, err
-    assert "Traceback" not in err and "no partial output" in err
+    assert "Traceback" not in err and "no partial output file was left" in err and "the same command resumes" in err
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
