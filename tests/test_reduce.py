@@ -523,3 +523,41 @@ def test_a_worker_that_cannot_write_its_shard_names_its_node(tmp_path, monkeypat
         assert result.views == [] and isinstance(result.error, DrsplatError)
         assert f"worker on node {socket.gethostname()} cannot write its shard of the log in {blocked}" in str(result.error)
         assert "storage every Ray node shares at the same path" in str(result.error)
+
+
+def test_a_damaged_shard_record_is_cut_back_on_resume(tmp_path, caplog):
+    """A flipped byte inside a shard record's payload (its length intact): a resume used to keep the
+    view and feed the reducers the damaged weights (a changed output, exit 0). The record's checksum
+    is now checked, and the log cut back to the views before it."""
+    from drsplat.cameras import Camera
+    from drsplat.registration.aggregate import Aggregator
+    from drsplat.registration.checkpoint import Checkpoint
+
+    n, dim = 1000, 4
+    rng = np.random.default_rng(8)
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    cams = [Camera(np.eye(3), np.zeros(3), 8.0, 8.0, 4.0, 4.0, 8, 8, name=f"v{i}") for i in range(4)]
+    params = {"shards": True, "test": "crc"}
+    path = tmp_path / "reg.log"
+
+    def checkpoint() -> Checkpoint:
+        return Checkpoint(path, params, cams, Aggregator("vote-reject", scene, stats_on_reducers=True))
+
+    ckpt = checkpoint()
+    writer = ShardWriter(ckpt.shards_dir, params)
+    for cam in cams:
+        ckpt.append(writer.write(_view_with_stats(rng, cam.name, n, dim)))
+    writer.sync()
+    writer.close()
+    pointer = ckpt.log.records[2].meta["shard"]
+    ckpt.close()
+    shard = tmp_path / writer.file
+    with open(shard, "r+b") as f:
+        f.seek(pointer["offset"] + 7)
+        byte = f.read(1)
+        f.seek(pointer["offset"] + 7)
+        f.write(bytes([byte[0] ^ 0x40]))
+    again = checkpoint()
+    assert again.resumed == 2 and "view v2 needs a record of" in caplog.text and "checksum does not match" in caplog.text
+    again.close()

@@ -115,3 +115,106 @@ def test_a_killed_run_reruns_to_the_same_bytes(tiny, uninterrupted, tmp_path):
     assert not out.exists() and log.exists()
     assert main(_args(tiny, out)) == 0
     assert out.read_bytes() == uninterrupted and not log.exists()
+
+
+# ---------------------------------------------------------------------------------------------- round 6: what a resume trusts
+
+
+def _stopped_after_five_views(dataset: Path, out: Path, monkeypatch, *extra: str) -> None:
+    """A registration that stops (a full disk) after logging five views, keeping its checkpoint."""
+    with monkeypatch.context() as m:
+        _fill_disk_in(PairLog, "_file", "__init__", 5 * 8 + 1, m)
+        assert main(_args(dataset, out, *extra)) == 1
+
+
+def _copy(tiny: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(tiny, tmp_path / "ds", symlinks=True))
+
+
+def test_features_edited_between_runs_restart_the_checkpoint(tiny, tmp_path, monkeypatch, capsys):
+    """The log holds the logged views' masks and embeddings: features regenerated or edited in the
+    same folder between the stop and the rerun must not be mixed with them (the rerun equals a fresh
+    run on the new features; it resumed with the old ones before)."""
+    import numpy as np
+
+    ds = _copy(tiny, tmp_path)
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(ds, out, monkeypatch)
+    feats = ds / "features" / "orbit_000_f.npy"
+    np.save(feats, np.load(feats)[::-1].copy())  # one logged view's embeddings, rows reversed
+    capsys.readouterr()
+    assert main(_args(ds, out)) == 0
+    err = capsys.readouterr().err
+    assert "the feature files of view orbit_000 changed since it was logged; resuming from the 0 views before it" in err
+    fresh = tmp_path / "fresh" / "reg.ply"
+    assert main(_args(ds, fresh)) == 0
+    assert out.read_bytes() == fresh.read_bytes()
+
+
+def test_a_scene_edited_without_changing_its_size_restarts_the_checkpoint(tiny, tmp_path, monkeypatch, capsys):
+    """Floaters removed by zeroing their opacity keep N: the scene digest covers every Gaussian."""
+
+    from drsplat.scene import load_ply, save_ply
+
+    ds = _copy(tiny, tmp_path)
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(ds, out, monkeypatch)
+    scene = load_ply(ds / "scene.ply")
+    scene.opacity_logits[1::7] = -20.0  # not on the old digest's sampled rows alone
+    (ds / "scene.ply").unlink()
+    save_ply(scene, ds / "scene.ply")
+    capsys.readouterr()
+    assert main(_args(ds, out)) == 0
+    assert "(the scene's Gaussians changed); starting over" in capsys.readouterr().err
+    fresh = tmp_path / "fresh" / "reg.ply"
+    assert main(_args(ds, fresh)) == 0
+    assert out.read_bytes() == fresh.read_bytes()
+
+
+def test_a_second_registration_into_the_same_output_is_refused_at_once(tiny, tmp_path, capsys):
+    """Two runs writing one output shared its checkpoint: the second rewrote the log under the first
+    (a mixed field written over a good one, false errors, tracebacks). Now it fails before any work."""
+    from drsplat.registration.checkpoint import RunLock, lock_path_for
+
+    out = tmp_path / "reg.ply"
+    holder = RunLock.acquire(lock_path_for(checkpoint_path_for(out)), "reg.ply")  # a run in progress (flock: per open file)
+    try:
+        assert main(_args(tiny, out)) == 1
+        err = capsys.readouterr().err
+        assert "another registration is writing reg.ply" in err and "Traceback" not in err
+        assert not out.exists() and not checkpoint_path_for(out).exists()
+    finally:
+        holder.release()
+    assert main(_args(tiny, out)) == 0 and sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
+
+
+def test_a_restart_names_what_changed_and_leaves_no_stale_statistics(tiny, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(tiny, out, monkeypatch)  # the default mode: a statistics snapshot may be beside the log
+    capsys.readouterr()
+    assert main(_args(tiny, out, "--aggregate", "paper", "--topk", "20")) == 0
+    assert "(--aggregate, --topk changed); starting over" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
+
+
+def test_output_names_up_to_the_file_system_limit_register(tiny, tmp_path):
+    """A 250-byte output name: the checkpoint, its snapshot and lock used to add their suffixes to it
+    and pass 255 bytes ('file name is too long', naming a file the user never asked for)."""
+    out = tmp_path / ("a" * 246 + ".ply")
+    assert main(_args(tiny, out)) == 0 and out.is_file() and sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+def test_a_checkpoint_path_that_is_a_link_or_folder_is_refused_and_its_target_kept(tiny, tmp_path, capsys):
+    out = tmp_path / "reg.ply"
+    precious = tmp_path / "notes.txt"
+    precious.write_text("mine")
+    checkpoint_path_for(out).symlink_to(precious)
+    assert main(_args(tiny, out)) == 1
+    assert "is where drsplat keeps this registration's checkpoint, but it is a symbolic link" in capsys.readouterr().err
+    assert precious.read_text() == "mine" and not out.exists()
+    checkpoint_path_for(out).unlink()
+    checkpoint_path_for(out).mkdir()
+    assert main(_args(tiny, out)) == 1
+    assert "but it is a folder" in capsys.readouterr().err

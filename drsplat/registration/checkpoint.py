@@ -7,12 +7,20 @@ CHECKPOINT_EVERY views (`.register.log.aggregate.npz`); a resume cuts the log ba
 the snapshot covers. A run whose blocks reducers finish (Ray) has its view workers log the views
 into shards (`.register.log.shards/`, drsplat.registration.pairlog.ShardWriter) and keeps only a
 pointer per view in the log; the statistics are then in the shards, and a resume keeps the views
-whose shard records are all there. A checkpoint is resumed only when the scene, the views (names, intrinsics,
-poses, order), the feature folder, top-k, level and mode are the same (`checkpoint_params`).
+whose shard records are all there, checksums included. A checkpoint is resumed only when the scene
+(every Gaussian's geometry and opacity), the views (names, intrinsics, poses, order), the feature
+folder, top-k, level and mode are the same (`checkpoint_params`; a restart names what changed), and
+a logged view only while its feature files have the size and modification time they had when it
+was logged (`feature_stamp`: features regenerated or edited in place cut the log back to the views
+before the first changed one). One registration
+at a time holds a checkpoint: `RunLock` (an flock on `.<out>.register.lock`) refuses a second one
+writing the same output.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import fcntl
 import hashlib
 import logging
 import os
@@ -25,11 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError
+from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, pointed_record, shard_file, shards_folder
+from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, work_folder
+from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, temp_stem, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +51,7 @@ def checkpoint_path_for(out: str | Path) -> Path:
     """The hidden resumable checkpoint (pair log) of a registration that writes `out` (beside it; in the
     temp folder for a device or FIFO output, `drsplat.utils.work_folder`)."""
     out = Path(out)
-    return work_folder(out) / f".{out.name}.register.log"
+    return work_folder(out) / f".{temp_stem(out)}.register.log"  # temp_stem: a long name leaves room for the suffixes
 
 
 def aggregate_stats_path(checkpoint: Path) -> Path:
@@ -49,13 +59,36 @@ def aggregate_stats_path(checkpoint: Path) -> Path:
     return checkpoint.with_name(checkpoint.name + ".aggregate.npz")
 
 
+def lock_path_for(checkpoint: Path) -> Path:
+    """The lock file beside a checkpoint (`RunLock`)."""
+    return checkpoint.with_name(checkpoint.name.removesuffix(".log") + ".lock")
+
+
 def _scene_digest(scene: GaussianScene) -> str:
+    """sha1 of every Gaussian's mean, scales, opacity and rotation (what registration reads; ~1 GB/s,
+    so a 50M-Gaussian scene's 2.8 GB take a few seconds against hours of registration)."""
     h = hashlib.sha1()
     h.update(str(scene.num_gaussians).encode())
-    step = max(1, scene.num_gaussians // 4096)
     for arr in (scene.means, scene.log_scales, scene.opacity_logits, scene.quats):
-        h.update(np.ascontiguousarray(arr[::step]).tobytes())
+        h.update(memoryview(np.ascontiguousarray(arr)).cast("B"))
     return h.hexdigest()
+
+
+def _file_stamp(path: Path) -> bytes:
+    """A file's name, size and modification time (or that it is absent): what a rewrite changes."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return f"{path.name}|absent\n".encode()
+    return f"{path.name}|{st.st_size}|{st.st_mtime_ns}\n".encode()
+
+
+def feature_stamp(features_dir: Path, name: str) -> str:
+    """The stamps (`_file_stamp`) of view `name`'s feature pair: a view is resumed from the log only
+    while its files are as they were when it was logged (a file the driver does not hold, on Ray,
+    is absent both times)."""
+    pair = (featurefiles.seg_path(features_dir, name), featurefiles.feat_path(features_dir, name))
+    return hashlib.sha1(b"".join(_file_stamp(p) for p in pair)).hexdigest()[:16]
 
 
 def _views_digest(cameras: Sequence[Camera]) -> str:
@@ -83,6 +116,58 @@ def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_
     }
 
 
+class RunLock:
+    """An exclusive flock on `path` while one registration works on a checkpoint: a second run
+    aiming at the same output fails at once instead of rewriting the log under the first. The file
+    is removed on release; a run that dies releases the lock with its process (the file stays, and
+    the next run takes it)."""
+
+    def __init__(self, path: Path, fd: int):
+        self.path, self._fd = path, fd
+
+    @classmethod
+    def acquire(cls, path: Path, what: str) -> "RunLock":
+        """DrsplatError naming `what` when another process holds the lock."""
+        refuse_odd_entry(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise DrsplatError(f"another registration is writing {what} (it holds {path}); wait for it to end, or write "
+                                   "another output") from None
+            try:  # the holder we waited for may have removed the file: then lock the new one
+                if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                    return cls(path, fd)
+            except FileNotFoundError:
+                pass
+            os.close(fd)
+
+    def release(self) -> None:
+        if self._fd < 0:
+            return
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:  # a Checkpoint dropped without close(): its process must not keep the lock
+        if getattr(self, "_fd", -1) >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+def refuse_odd_entry(path: Path) -> None:
+    """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO or device: writing
+    there would follow the link (over a user's file), fail, or block."""
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        kind = "a symbolic link" if path.is_symlink() else "a folder" if path.is_dir() else "not a regular file"
+        raise DrsplatError(f"{path} is where drsplat keeps this registration's checkpoint, but it is {kind}; move it away and rerun")
+
+
 class Checkpoint:
     """The pair log at `path` (resumed when it matches `params` and its views are a prefix of
     `views`) and the statistics snapshot of `aggregator`'s mode beside it.
@@ -94,24 +179,36 @@ class Checkpoint:
     """
 
     def __init__(self, path: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator, temporary: bool = False,
-                 every: int = CHECKPOINT_EVERY):
+                 every: int = CHECKPOINT_EVERY, features_dir: Path | None = None):
         self.path = Path(path)
         self.temporary = temporary
         self.every = max(1, int(every))
         self.total = len(views)
         self.shards_dir = shards_folder(self.path) if params.get("shards") else None
-        self.log = PairLog.open(self.path, params)
-        names = [r.name for r in self.log.records]
-        if names != [c.name for c in views[: len(names)]]:
-            log.warning("%s does not match the order of the views; starting over", self.path)
-            self.log.delete()
+        self.features_dir = None if features_dir is None else Path(features_dir)
+        self._lock = None if temporary else RunLock.acquire(lock_path_for(self.path), self.path.name[1:].removesuffix(".register.log"))
+        try:
+            for entry in (self.path, aggregate_stats_path(self.path)):
+                refuse_odd_entry(entry)
             self.log = PairLog.open(self.path, params)
-        self.aggregator = aggregator
-        self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
-        if self.stats_path is not None:
-            self._resume_stats()
-        if self.shards_dir is not None:
-            self._resume_shards()
+            names = [r.name for r in self.log.records]
+            if names != [c.name for c in views[: len(names)]]:
+                log.warning("%s does not match the order of the views; starting over", self.path)
+                self.log.delete()
+                self.log = PairLog.open(self.path, params)
+            self._check_feature_stamps()
+            if not self.log.records:  # a fresh log: an earlier run's snapshot or shards would only mislead
+                aggregate_stats_path(self.path).unlink(missing_ok=True)
+                shutil.rmtree(shards_folder(self.path), ignore_errors=True)
+            self.aggregator = aggregator
+            self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
+            if self.stats_path is not None:
+                self._resume_stats()
+            if self.shards_dir is not None:
+                self._resume_shards()
+        except BaseException:
+            self._release()
+            raise
         self.resumed = len(self.log.records)
 
     @classmethod
@@ -129,10 +226,13 @@ class Checkpoint:
 
     @property
     def nbytes(self) -> int:
-        """The log's bytes and its shards'."""
-        size = os.path.getsize(self.path)
-        if self.shards_dir is not None and self.shards_dir.is_dir():
-            size += sum(p.stat().st_size for p in self.shards_dir.iterdir() if p.is_file())
+        """The log's bytes and its shards' (what is there: a figure for the report, never an error)."""
+        try:
+            size = os.path.getsize(self.path)
+            if self.shards_dir is not None and self.shards_dir.is_dir():
+                size += sum(p.stat().st_size for p in self.shards_dir.iterdir() if p.is_file())
+        except OSError:
+            return 0
         return size
 
     def replay(self):
@@ -140,8 +240,11 @@ class Checkpoint:
         return iter(self.log)
 
     def append(self, view: ViewPairs) -> None:
-        """Log one newly computed view (fsync'd every `self.every` views). Called before the view's
-        statistics are folded, so a failed append leaves them covering exactly the logged views."""
+        """Log one newly computed view (fsync'd every `self.every` views), with its feature files'
+        stamp. Called before the view's statistics are folded, so a failed append leaves them
+        covering exactly the logged views."""
+        if self.features_dir is not None:
+            view = dataclasses.replace(view, stamp=feature_stamp(self.features_dir, view.name))
         done = self.done + 1
         try:
             self.log.append(view, sync=done % self.every == 0 and not self.temporary)
@@ -159,15 +262,28 @@ class Checkpoint:
             np.savez(f, views=np.int64(views), **self.aggregator.state())
 
     def close(self) -> None:
-        self.log.close()
+        """Close the log and release the run's lock (a later Checkpoint at this path may open it)."""
+        try:
+            self.log.close()
+        finally:
+            self._release()
 
     def remove(self) -> None:
-        """Delete the log, its shards and the statistics snapshot (the output is safe, or the run is abandoned)."""
-        self.log.delete()
-        if self.stats_path is not None:
-            self.stats_path.unlink(missing_ok=True)
-        if self.shards_dir is not None:
-            shutil.rmtree(self.shards_dir, ignore_errors=True)
+        """Delete the log, its shards and the statistics snapshot (the output is safe, or the run is
+        abandoned), and release the run's lock."""
+        try:
+            self.log.delete()
+            if self.stats_path is not None:
+                self.stats_path.unlink(missing_ok=True)
+            if self.shards_dir is not None:
+                shutil.rmtree(self.shards_dir, ignore_errors=True)
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def describe(self) -> str:
         """'PATH (N of M views, S)': what a stopped run leaves behind."""
@@ -178,17 +294,34 @@ class Checkpoint:
     def leave(self, why: str) -> None:
         """A run ended early (`why`): keep a log that holds views, with one message saying what it is;
         remove a temporary one or one that holds nothing."""
-        self.close()
+        try:
+            self.log.close()
+        except OSError as exc:  # a full disk fails the buffered tail's flush too: the rerun cuts that record off
+            log.debug("the checkpoint's last record was not flushed (%s)", exc)
         if self.temporary or self.done == 0:
             self.remove()
             return
-        if self.stats_path is not None and self.aggregator.views_folded == self.done:
-            try:  # the statistics cover exactly the logged views: the rerun resumes from all of them
-                self._snapshot(self.done)
-            except OSError as exc:  # a full disk: the last periodic snapshot still stands
-                log.debug("no statistics snapshot at the stop (%s)", exc)
-        log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
-                    why, self.describe())
+        try:
+            if self.stats_path is not None and self.aggregator.views_folded == self.done:
+                try:  # the statistics cover exactly the logged views: the rerun resumes from all of them
+                    self._snapshot(self.done)
+                except OSError as exc:  # a full disk: the last periodic snapshot still stands
+                    log.debug("no statistics snapshot at the stop (%s)", exc)
+            log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
+                        why, self.describe())
+        finally:
+            self._release()
+
+    def _check_feature_stamps(self) -> None:
+        """Cut the log back to the views before the first whose feature files changed since it was logged."""
+        if self.features_dir is None:
+            return
+        for i, record in enumerate(self.log.records):
+            if record.meta.get("stamp") != feature_stamp(self.features_dir, record.name):
+                log.warning("%s: the feature files of view %s changed since it was logged; resuming from the %d views before it",
+                            self.path, record.name, i)
+                self.log.truncate(i)
+                return
 
     # ------------------------------------------------------------------ the workers' shards
 
@@ -220,8 +353,12 @@ class Checkpoint:
             return
         try:
             views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
+        except FileNotFoundError:  # stopped before the first snapshot: the normal case of an early kill
+            log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
+                     len(self.log.records), self.every)
+            views, arrays = 0, {}
         except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
-            log.warning("%s is missing or unreadable (%s); the aggregation statistics restart with the views", self.stats_path, exc)
+            log.warning("%s is unreadable (%s); the aggregation statistics restart with the views", self.stats_path, exc)
             views, arrays = 0, {}
         if views > len(self.log.records):  # the log was cut shorter than the snapshot: start over
             views, arrays = 0, {}
@@ -250,9 +387,11 @@ def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str 
     if f is None:
         return f"needs {path}, which is missing or unreadable"
     try:
-        pointed_record(path, ref, f)
+        record = pointed_record(path, ref, f)
     except ShardError as exc:
         return f"needs a record of {path}, but {exc.reason}"
+    if not payload_checksum_ok(f, record):
+        return f"needs a record of {path} whose checksum does not match (the shard was damaged)"
     return None
 
 

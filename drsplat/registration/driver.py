@@ -260,16 +260,17 @@ def run_registration(
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
-        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every)
+        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir)
     elif block < n or aggregator.check:  # blocks replay a log; so does a check, rather than keep every view's pairs in memory
         ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
     else:
         ckpt = None
-    totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool))
-    pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
+    pool: ReducePool | None = None
     reduce: BlockReduce | None = None
     reducer_seconds = (0.0, 0.0)
-    try:
+    try:  # from here on the checkpoint is left (kept or removed) whatever happens: it holds the run's lock
+        totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool))
+        pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums

@@ -87,6 +87,7 @@ class ViewPairs:
     shard: where a worker logged this view's pairs and statistics (`ShardWriter`: the shard file
     relative to the log's folder, the record's offsets and meta), or None; with a shard the host
     pairs are empty and `present` is set.
+    stamp: what the view's feature files were when it was logged (drsplat.registration.checkpoint), or None.
     """
 
     name: str
@@ -104,6 +105,7 @@ class ViewPairs:
     chunk_starts: np.ndarray | None = None
     present: np.ndarray | None = None
     shard: dict | None = None
+    stamp: str | None = None
 
     @property
     def num_distinct(self) -> int:
@@ -190,6 +192,8 @@ def _encode(view: ViewPairs, with_stats: bool = False) -> tuple[bytes, list[np.n
     if view.shard is not None:
         meta["shard"] = view.shard
         meta["present"] = np.flatnonzero(view.present_masks()).tolist()
+    if view.stamp is not None:
+        meta["stamp"] = view.stamp
     arrays = [
         np.ascontiguousarray(view.feats, "<f4"), np.ascontiguousarray(view.gaussians, "<i4"),
         np.ascontiguousarray(view.masks, "<i4"), np.ascontiguousarray(view.weights, "<f4"), np.ascontiguousarray(view.used, "<i4"),
@@ -542,17 +546,61 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
                 log.warning("%s has a damaged header (truncated checkpoint); starting from scratch", path)
                 return None
             saved = json.loads(body)
-            if saved != json.loads(json.dumps(params, sort_keys=True)):
-                log.warning("%s was made with other parameters or inputs; starting over", path)
+            wanted = json.loads(json.dumps(params, sort_keys=True))
+            if saved != wanted:
+                log.warning("%s was made with other parameters or inputs (%s); starting over", path, changed_params(saved, wanted))
                 return None
             records, end = _scan(f, size)
             if end < size:
-                log.warning("%s: the last view's record is incomplete (the run was killed while writing it); it is redone", path)
+                log.warning("%s: %s; resuming from the %d views before it", path,
+                            "the last view's record is incomplete (the run was killed while writing it)" if _is_torn_tail(f, end, size)
+                            else f"record {len(records) + 1} is damaged (its checksum or length does not match)", len(records))
                 f.truncate(end)
             return records
     except (OSError, ValueError, json.JSONDecodeError) as exc:
         log.warning("%s is not a readable checkpoint (%s); starting from scratch", path, exc)
         return None
+
+
+PARAM_MEANINGS = {  # checkpoint_params' keys, as a restart names them
+    "scene": "the scene's Gaussians", "num_gaussians": "the scene's size", "views": "the views (names, intrinsics, poses, order)",
+    "features_dir": "the feature folder", "topk": "--topk", "level": "--level",
+    "aggregate": "--aggregate", "shards": "Ray in blocks (--ray with --memory-budget)", "version": "the checkpoint format",
+}
+
+
+def changed_params(saved: dict, wanted: dict) -> str:
+    """What differs between a log's parameters and this run's, in words ("--topk, the feature files")."""
+    keys = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
+    return ", ".join(PARAM_MEANINGS.get(k, k) for k in keys) + " changed"
+
+
+def _is_torn_tail(f, end: int, size: int) -> bool:
+    """Whether the bytes after the last valid record are one record cut short (a killed write), not a
+    damaged record with more after it."""
+    f.seek(end)
+    head = f.read(20)
+    if len(head) < 20 or head[:4] != TAG:
+        return len(head) < 20
+    (a,), (b,) = _U64.unpack(head[4:12]), _U64.unpack(head[12:20])
+    return end + 20 + a + b + 4 > size
+
+
+def payload_checksum_ok(f, record: LogRecord) -> bool:
+    """Whether record's stored crc32 matches its meta and payload as they are in the file `f`
+    (binary; record from `pointed_record`, whose sizes were checked against the file)."""
+    meta_bytes = json.dumps(record.meta).encode()
+    size = payload_size(record.meta)
+    f.seek(record.offset)
+    crc, remaining = zlib.crc32(meta_bytes), size
+    while remaining:
+        chunk = f.read(min(remaining, 1 << 24))
+        if not chunk:
+            return False
+        crc = zlib.crc32(chunk, crc)
+        remaining -= len(chunk)
+    stored = f.read(4)
+    return len(stored) == 4 and _U32.unpack(stored)[0] == crc
 
 
 def _scan(f, size: int) -> tuple[list[LogRecord], int]:
