@@ -7,6 +7,7 @@ arrays are allocated in small pages here (`small_page_zeros`).
 
 from __future__ import annotations
 
+import math
 import mmap
 import re
 import resource
@@ -19,21 +20,31 @@ _UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "m": 1e6, "mb": 1e6, "g": 1e9, "gb
 
 
 def parse_size(text: str) -> int:
-    """'8GB', '8 GiB', '512MB', '1e9' -> bytes (GB = 10^9, GiB = 2^30)."""
-    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
+    """'8GB', '8 GiB', '512MB', '1e9', '1E9' -> bytes (GB = 10^9, GiB = 2^30); at least one byte."""
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
     if not match or match.group(2).lower() not in _UNITS:
         raise ValueError(f"{text!r} is not a size (examples: 8GB, 512MB, 16GiB)")
     value = float(match.group(1)) * _UNITS[match.group(2).lower()]
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{text!r} is not a positive size")
+    if not np.isfinite(value):
+        raise ValueError(f"{text!r} is larger than any memory")
+    if value < 1:
+        raise ValueError(f"{text!r} is less than one byte")
     return int(value)
 
 
-def format_size(n: float) -> str:
-    """Bytes as '1.3 GB' (from 1 GB up), '512 MB' (from 1 MB up) or '34 kB'."""
+def format_size(n: float, up: bool = False) -> str:
+    """Bytes as '1.3 GB' (from 1 GB up), '512 MB' (from 1 MB up), '34 kB' (from 1 kB up) or '512 bytes';
+    up: rounded up at that precision (a minimum a user can type back)."""
+    if up:
+        step = 1e8 if n >= 1e9 else 1e6 if n >= 1e6 else 1e3 if n >= 1e3 else 1
+        n = math.ceil(n / step) * step
     if n >= 1e9:
         return f"{n / 1e9:.1f} GB"
-    return f"{n / 1e6:.0f} MB" if n >= 1e6 else f"{n / 1e3:.0f} kB"
+    if n >= 1e6:
+        return f"{n / 1e6:.0f} MB"
+    if n >= 1e3:
+        return f"{n / 1e3:.0f} kB"
+    return "1 byte" if n == 1 else f"{n:.0f} bytes"
 
 
 def _proc_bytes(path: str, key: str) -> int:

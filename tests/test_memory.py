@@ -63,3 +63,30 @@ def test_zeroing_in_parallel_equals_fill_in_place(shape, dtype):
     np.testing.assert_array_equal(a, want)
     with pytest.raises(ValueError, match="C-contiguous"):
         zero_in_parallel(np.ones((4, 6))[:, ::2])
+
+
+def test_the_smallest_budget_a_refusal_names_is_accepted():
+    """A refused --memory-budget named a minimum that was itself refused (635 MB asked for, 620 MB
+    working, 600 MB refused above the printed peak): the figure is now block_for's own threshold,
+    rounded up, so typing it back registers in blocks."""
+    from drsplat.errors import DrsplatError
+    from drsplat.memory import format_size, parse_size
+    from drsplat.registration.plan import BLOCK_ALIGN, MemoryPlan, choose_block
+
+    plan = MemoryPlan(num_gaussians=8_289, dim=512, base=180_000_000, views=485_000_000, sum_bytes=2_600, write_bytes=3_000, pair_buffer=100_663_296)
+    minimum = plan.minimum_budget()
+    assert plan.block_for(minimum) >= BLOCK_ALIGN and plan.block_for(minimum - 1) == 0
+    with pytest.raises(DrsplatError) as info:
+        choose_block(plan, minimum - 1)
+    named = str(info.value).split("give at least ")[1].split(" (")[0]
+    assert choose_block(plan, parse_size(named.replace(" ", ""))) >= BLOCK_ALIGN
+    assert format_size(1) == "1 byte" and format_size(512) == "512 bytes" and format_size(1_234_567, up=True) == "2 MB"
+
+
+@pytest.mark.parametrize("text, words", [("0.5", "less than one byte"), ("1e400", "larger than any memory"), ("abc", "is not a size")])
+def test_memory_budget_sizes_that_are_not_budgets(text, words):
+    from drsplat.memory import parse_size
+
+    with pytest.raises(ValueError, match=words):
+        parse_size(text)
+    assert parse_size("1E9") == parse_size("1e9") == 10**9

@@ -218,3 +218,9 @@ def test_a_checkpoint_path_that_is_a_link_or_folder_is_refused_and_its_target_ke
     checkpoint_path_for(out).mkdir()
     assert main(_args(tiny, out)) == 1
     assert "but it is a folder" in capsys.readouterr().err
+
+
+def test_ray_workers_without_ray_is_said(tiny, uninterrupted, tmp_path, capsys):
+    out = tmp_path / "reg.ply"
+    assert main(_args(tiny, out, "--ray-workers", "3")) == 0
+    assert "--ray-workers 3 applies to a run on Ray (--ray)" in capsys.readouterr().err and out.read_bytes() == uninterrupted

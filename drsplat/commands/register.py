@@ -66,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.splat_formats import load_scene
 
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
+    if args.ray_workers is not None and args.ray is None:
+        log.warning("--ray-workers %d applies to a run on Ray (--ray); without it the views are computed here", args.ray_workers)
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
                               memory_budget=args.memory_budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
                               aggregate=args.aggregate)

@@ -71,6 +71,11 @@ class MemoryPlan:
     def in_memory(self) -> int:
         return self.peak(self.num_gaussians)
 
+    def minimum_budget(self) -> int:
+        """The smallest budget `block_for` gives a block (of BLOCK_ALIGN Gaussians) under."""
+        blocks = self.base + OVERHEAD + self.pair_buffer + min(self.num_gaussians, WRITE_CHUNK) * self.write_bytes + BLOCK_ALIGN * self.sum_bytes
+        return max(self.views, blocks)
+
     def block_for(self, budget: int) -> int:
         """The largest aligned block that fits `budget` (0 when even the view pass does not)."""
         if self.views > budget:
@@ -120,9 +125,8 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
         return n
     block = plan.block_for(budget)
     if block <= 0:
-        need = plan.views + plan.pair_buffer + BLOCK_ALIGN * plan.sum_bytes + min(n, WRITE_CHUNK) * plan.write_bytes
-        raise DrsplatError(
-            f"--memory-budget {format_size(budget)} is too small for this scene: the view pass alone (scene, geometry, "
-            f"one view) needs about {format_size(plan.views)}; give at least {format_size(need)}"
-        )
+        why = (f"the view pass alone (scene, geometry, one view) needs about {format_size(plan.views)}" if plan.views > budget else
+               f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}")
+        raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene: {why}; give at least "
+                           f"{format_size(plan.minimum_budget(), up=True)} (an estimate, on the safe side)")
     return block
