@@ -66,8 +66,8 @@ SPZ_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("points", "<u4"), 
 FLAG_ANTIALIASED = 0x1
 FLAG_EXTENSIONS = 0x2
 EXTENSION_COORDINATES = 0xADBE0003  # SPZ_ADOBE_coordinate_system: u32, the frame the data are stored in
-MAX_LEGACY_EXTENSION_BYTES = 1 << 20
-MAX_SPZ_RATIO = 1024  # data bytes per file byte a header may declare (the spz library's kMaxCompressionRatio)  # extension records a gzip .spz may hold after its blocks
+MAX_LEGACY_EXTENSION_BYTES = 1 << 20  # extension records a gzip .spz may hold after its blocks
+MAX_SPZ_RATIO = 1024  # data bytes per file byte a header may declare (the spz library's kMaxCompressionRatio)
 # the spz library's frames: 0 unspecified (= RUB), 1-8 axis flips of one another, 9-16 rotated by 90° about x
 SPZ_FRAMES = {1: "LDB", 2: "RDB", 3: "LUB", 4: "RUB", 5: "LDF", 6: "RDF", 7: "LUF", 8: "RUF"}
 DEFAULT_SPZ_FRAME = 4  # RUB
@@ -77,14 +77,15 @@ SCENE_SUFFIXES = (".ply", ".splat", ".spz")  # the scene files load_scene reads
 def scene_format(path: Path) -> str:
     """"ply", "splat" or "spz": PLY by its first line ("ply"), then `.splat` by its name (the format
     has no header, and a first float's bytes can be anything, gzip's magic included), then spz by its
-    first bytes (gzip or "NGSP"); anything else is "ply", whose reader then names what is wrong."""
+    first bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then names what is
+    wrong."""
     with open(path, "rb") as f:
         head = f.read(4)
     if head[:3] == b"ply" and head[3:4] in (b"\n", b"\r"):
         return "ply"
     if path.suffix.lower() == ".splat":
         return "splat"
-    if head[:2] == GZIP_MAGIC or (len(head) == 4 and int.from_bytes(head, "little") == NGSP_MAGIC):
+    if head[:2] == GZIP_MAGIC or (len(head) == 4 and int.from_bytes(head, "little") == NGSP_MAGIC) or path.suffix.lower() == ".spz":
         return "spz"
     return "ply"
 
@@ -256,6 +257,9 @@ def _unzstd(path: Path, name: str, packed: bytes, size: int) -> bytes:
 
 def _read_ngsp_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], bytes]:
     """Version 4: (header, {block: bytes}, extension bytes) from the table of contents and zstd streams."""
+    if data[:4] != NGSP_MAGIC.to_bytes(4, "little"):
+        raise InputError(path, "is not an .spz file: it starts neither with gzip's bytes (versions 1-3) nor with 'NGSP' (version 4)",
+                         field="magic")
     if len(data) < SPZ_HEADER.itemsize:
         raise InputError(path, f"is {len(data)} bytes, shorter than the {SPZ_HEADER.itemsize}-byte spz header", field="header")
     header = np.frombuffer(data[: SPZ_HEADER.itemsize], SPZ_HEADER)[0]

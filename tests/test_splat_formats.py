@@ -251,6 +251,12 @@ def test_hostile_spz_is_one_error_naming_the_file(tmp_path, case, capsys):
     assert "Traceback" not in err and "bad.spz" in err
 
 
+def test_a_file_named_spz_that_is_not_one_says_so(tmp_path):
+    for name, data in (("empty.spz", b""), ("text.spz", b"hello, not a splat at all, nor a ply")):
+        with pytest.raises(InputError, match="is not an .spz file: it starts neither with gzip's bytes"):
+            load_scene(write(tmp_path / name, data))
+
+
 def test_hostile_splat_files(tmp_path):
     scene = random_scene(4, degree=0)
     cut = write(tmp_path / "cut.splat", encode_splat(scene)[:-5])
