@@ -185,6 +185,29 @@ def test_resume_refuses_other_resolution_mask_settings_or_source(fern3, weights,
     assert report.skipped == [cameras[0].name]
 
 
+def test_an_image_edited_after_its_features_were_made_is_redone(tmp_path, weights):
+    """A pair was kept on a rerun whatever happened to its image since: a photo fixed (or replaced)
+    in place kept its stale masks and embeddings. The manifest records each pair's image stamp."""
+    import shutil
+
+    from PIL import Image
+
+    src = tmp_path / "ds"
+    shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
+    out = tmp_path / "features"
+    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    assert main(args) == 0
+    before = mtimes(out)
+    assert main(args) == 0 and mtimes(out) == before  # nothing changed: nothing redone
+    image = src / "images" / "view.png"
+    Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3))).save(image)
+    assert main(args) == 0
+    assert mtimes(out) != before  # redone from the edited image
+    after = mtimes(out)
+    assert main(args) == 0 and mtimes(out) == after
+
+
 def _one_camera_dataset(folder: Path, image, width: int = 64, height: int = 48, exif=None) -> Path:
     """A transforms.json dataset of one look-at camera whose image file is `image` (a PIL image;
     JPEG with `exif`, TIFF for float and 32-bit pixels, PNG otherwise)."""

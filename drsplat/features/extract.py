@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -245,8 +246,34 @@ def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, ne
                 "one, use a new --out folder", features_dir, key, old, new)
 
 
-def todo_cameras(cameras: list, out: Path, report: FeatureReport) -> list:
-    """The cameras whose feature pair is missing or incomplete in `out` (complete ones go to report.skipped)."""
+IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`image_stamp`)
+
+
+def image_stamp(cam) -> str | None:
+    """'size:mtime_ns' of a camera's image file (None without one): what an edit in place changes."""
+    try:
+        st = os.stat(cam.image_path)
+    except (OSError, TypeError):
+        return None
+    return f"{st.st_size}:{st.st_mtime_ns}"
+
+
+def recorded_stamps(out: Path) -> dict[str, str]:
+    """The image stamps an earlier run recorded in `out`'s manifest ({} for none or a foreign manifest)."""
+    stamps = featurefiles.read_manifest(out).get(IMAGE_STAMPS) if out.is_dir() else None
+    return {k: v for k, v in stamps.items() if isinstance(v, str)} if isinstance(stamps, dict) else {}
+
+
+def stamps_after(recorded: dict[str, str], cameras: list, report: FeatureReport) -> dict[str, str]:
+    """The stamps a run leaves: the earlier ones, with this run's pairs (written or kept) at their images' stamps."""
+    done = set(report.written) | set(report.skipped)
+    return {**recorded, **{c.name: stamp for c in cameras if c.name in done and (stamp := image_stamp(c)) is not None}}
+
+
+def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: dict[str, str] | None = None) -> list:
+    """The cameras whose feature pair is missing, incomplete, or older than an edit of its image
+    (its recorded stamp, `stamps`, differs from the image's now) in `out`; complete ones go to
+    report.skipped."""
     todo, seen = [], set()
     for cam in cameras:
         stem = cam.name
@@ -254,6 +281,11 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport) -> list:
             continue
         seen.add(stem)
         if featurefiles.is_valid_pair(out, stem):
+            if stamps and stem in stamps and stamps[stem] != image_stamp(cam):
+                log.warning("%s: the image of %s changed since its features were made; recomputing them", out, stem)
+                report.redone.append(stem)
+                todo.append(cam)
+                continue
             report.skipped.append(stem)
             continue
         if featurefiles.seg_path(out, stem).exists() or featurefiles.feat_path(out, stem).exists():
@@ -338,19 +370,21 @@ def extract_features(
 ) -> FeatureReport:
     """Write `<stem>_s.npy` / `<stem>_f.npy` for every camera's image into `out_dir`.
 
-    Images whose pair already exists and is complete (featurefiles.is_valid_pair) are skipped;
-    truncated or half-written pairs are redone. Every file is written atomically, so an
+    Images whose pair already exists and is complete (featurefiles.is_valid_pair) are skipped,
+    unless the image was edited since (its size or modification time differs from the stamp the
+    manifest recorded when the pair was made); truncated or half-written pairs are redone. Every file is written atomically, so an
     interrupted run (Ctrl-C, cancel) leaves only complete pairs. `manifest` (make_manifest) is
     checked against an existing one (same CLIP model and mask generator) and written first.
     """
     out = Path(out_dir)
     report = FeatureReport()
+    stamps = recorded_stamps(out)
     if manifest is not None:
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
-        featurefiles.write_manifest(out, manifest)
+        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps})  # carried over: an interrupted run keeps them
     out.mkdir(parents=True, exist_ok=True)
-    todo = {c.name for c in todo_cameras(cameras, out, report)}
+    todo = {c.name for c in todo_cameras(cameras, out, report, stamps)}
     bar = progress(cameras, desc="features", total=len(cameras), enabled=show_progress, unit="img")
     for i, cam in enumerate(bar):
         if cancel is not None:
@@ -364,5 +398,6 @@ def extract_features(
         if on_progress is not None:
             on_progress(i + 1, len(cameras))
     if manifest is not None:
-        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped)})
+        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped),
+                                          IMAGE_STAMPS: stamps_after(stamps, cameras, report)})
     return report

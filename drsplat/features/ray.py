@@ -23,12 +23,15 @@ from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_thread
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
+    IMAGE_STAMPS,
     FeatureReport,
     build_models,
     check_manifest_compatible,
     extract_image,
     make_manifest,
     record_result,
+    recorded_stamps,
+    stamps_after,
     todo_cameras,
 )
 from drsplat.utils import CancelToken, progress
@@ -118,11 +121,12 @@ def extract_features_ray(
         log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
         _check_started(actors)
         manifest = ray.get(actors[0].manifest.remote(resolution, max_height, manifest_extra))
+        stamps = recorded_stamps(out)
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
-        featurefiles.write_manifest(out, manifest)
+        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps})
         report = FeatureReport()
-        todo = todo_cameras(cameras, out, report)
+        todo = todo_cameras(cameras, out, report, stamps)
         pool = ActorPool(actors)
         for cam in todo:
             pool.submit(lambda a, c: a.extract.remote(c.name, load_image(c)), cam)
@@ -144,7 +148,8 @@ def extract_features_ray(
             finished += 1
             if on_progress is not None:
                 on_progress(finished, len(cameras))
-        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped)})
+        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped),
+                                          IMAGE_STAMPS: stamps_after(stamps, cameras, report)})
         report.workers = count
         return report
     finally:
