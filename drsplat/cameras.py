@@ -1033,7 +1033,29 @@ def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int
 
 
 MISSING_SHOWN = 3  # image names a missing-images warning lists
-IMAGE_ASPECT_TOLERANCE = 0.02  # relative aspect difference between an image file and its camera still read as the same framing
+ASPECT_TOLERANCE = 0.01  # relative; beyond the rounding of a downscaled size (mask maps resampled to their camera)
+FRAMING_TOLERANCE = 0.02  # relative; an image file or annotation still of its camera's framing (read at its own size)
+
+
+def same_aspect(w: int, h: int, width: int, height: int, tolerance: float = ASPECT_TOLERANCE) -> bool:
+    """True if a w x h map is the width x height image uniformly scaled.
+
+    Within `tolerance`, or within one pixel of rounding per side of either size: a small map
+    downscaled from an odd size (e.g. 25x18 from 101x75), or a small render of a large map, is off
+    by more than 1% through rounding alone.
+    """
+    if abs((w / h) / (width / height) - 1.0) <= tolerance:
+        return True
+    return _rounds_to(w, h, width, height) or _rounds_to(width, height, w, h)
+
+
+def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
+    """True if one scale s gives w and h within a pixel: |w - s·width| <= 1 and |h - s·height| <= 1."""
+    lo_x, hi_x = (w - 1) / width, (w + 1) / width
+    lo_y, hi_y = (h - 1) / height, (h + 1) / height
+    return max(lo_x, lo_y) <= min(hi_x, hi_y)
+
+
 EXIF_ORIENTATION = 0x0112
 EXIF_ROTATED = (5, 6, 7, 8)  # orientations that swap width and height
 
@@ -1043,7 +1065,7 @@ def load_image(camera: Camera) -> np.ndarray:
 
     The stored pixels are read as 3DGS and COLMAP read them (no EXIF rotation) and resized to the
     camera's size; a file whose aspect ratio differs from the camera's by more than
-    IMAGE_ASPECT_TOLERANCE is an InputError (it would be stretched: a rotated or transposed
+    FRAMING_TOLERANCE (`same_aspect`) is an InputError (it would be stretched: a rotated or transposed
     photo). 16-bit and float single-channel images are scaled to 8 bits (`rgb_pixels`)."""
     from PIL import Image
 
@@ -1075,7 +1097,7 @@ def check_image_framing(path: Path, im, camera: Camera) -> None:
     w, h = im.size
     if w <= 0 or h <= 0:
         raise InputError(path, f"is an image of {w}x{h} pixels")
-    if abs((w / h) / (camera.width / camera.height) - 1.0) <= IMAGE_ASPECT_TOLERANCE:
+    if same_aspect(w, h, camera.width, camera.height, FRAMING_TOLERANCE):
         return
     hint = ""
     if im.getexif().get(EXIF_ORIENTATION) in EXIF_ROTATED:

@@ -48,7 +48,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError
-from drsplat.scene import GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits
+from drsplat.scene import SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,6 @@ GZIP_MAGIC = b"\x1f\x8b"
 SPZ_VERSIONS = (1, 2, 3, 4)
 SPZ_COLOR_SCALE = 0.15
 SPZ_MAX_SH_DEGREE = 4
-SCENE_MAX_SH_DEGREE = 3  # what GaussianScene (and 3DGS) holds
 SPZ_LEGACY_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("points", "<u4"), ("sh_degree", "u1"),
                               ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
 SPZ_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("points", "<u4"), ("sh_degree", "u1"), ("fractional_bits", "u1"),
@@ -165,10 +164,10 @@ def spz_columns(path: Path) -> tuple[dict, list[str], str]:
                     "so small splats weigh a little more than in its own renderer", path)
     cols = _decode_spz_blocks(blocks, version, points, degree, int(header["fractional_bits"]))
     _to_ply_frame(cols, frame)
-    if degree > SCENE_MAX_SH_DEGREE:
+    if degree > max(SH_REST_COUNTS):  # the degrees a GaussianScene (and 3DGS) holds
         log.warning("%s: has SH degree %d; drsplat keeps degrees 0-%d (the rest only tints view-dependent colour)",
-                    path, degree, SCENE_MAX_SH_DEGREE)
-        cols["sh"] = cols["sh"][:, : (SCENE_MAX_SH_DEGREE + 1) ** 2]
+                    path, degree, max(SH_REST_COUNTS))
+        cols["sh"] = cols["sh"][:, : (max(SH_REST_COUNTS) + 1) ** 2]
     return cols, [name for name, _ in spz_block_sizes(points, version, degree)], f"spz v{version}"
 
 

@@ -198,6 +198,18 @@ def is_special_file(path: Path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+def file_stamp(path: str | Path | None) -> str | None:
+    """'size:mtime_ns' of a file (None when it cannot be stat'ed): what rewriting or editing it in
+    place changes; a cheap stand-in for its contents when deciding whether earlier work is stale."""
+    if path is None:
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return f"{st.st_size}:{st.st_mtime_ns}"
+
+
 def work_folder(path: str | Path) -> Path:
     """Where the temp and checkpoint files of an output `path` go: beside its (resolved) target, or the
     system temp folder when it is a device or FIFO (never /dev)."""

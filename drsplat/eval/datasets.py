@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.scene import check_element_sizes, read_ply_header
@@ -54,7 +55,6 @@ NYU40_NAMES = (
 
 MAX_ANNOTATION_SIDE = 16384  # pixels per side of an annotated view (larger than any GPU texture); a bool mask is W·H bytes
 MAX_ANNOTATION_SCALE = 8.0  # an annotation at most 8x its camera's size (3DGS's -r goes to 8); rendering costs W·H
-ASPECT_TOLERANCE = 0.02  # relative disagreement of the x and y scale between an annotation and its camera
 
 
 @dataclass
@@ -167,7 +167,7 @@ def _view_name(path: Path, info: dict) -> str:
 
 
 def read_lerf_document(path: str | Path) -> LerfDocument:
-    """Parse one LERF-OVS `frame_XXXXX.json` and check its sizes, allocating no image."""
+    """Parse one LERF-OVS `frame_<n>.json` and check its sizes, allocating no image."""
     path = Path(path)
     data = read_json(path, "a LERF-OVS annotation")
     info = data.get("info") if isinstance(data, dict) else None
@@ -186,11 +186,11 @@ def read_lerf_document(path: str | Path) -> LerfDocument:
 
 
 def check_annotation_size(path: Path | None, name: str, width: int, height: int, camera_width: int, camera_height: int) -> tuple[float, float]:
-    """(sx, sy) = annotation size / camera size. The aspect must agree within ASPECT_TOLERANCE
-    (|sx − sy| ≤ 2% of the larger) and the annotation may be at most MAX_ANNOTATION_SCALE times the
+    """(sx, sy) = annotation size / camera size. The aspect must agree (`cameras.same_aspect`
+    within FRAMING_TOLERANCE, as a training image must) and the annotation may be at most MAX_ANNOTATION_SCALE times the
     camera's size (rendering happens at the annotation's size); InputError naming `path` otherwise."""
     sx, sy = width / camera_width, height / camera_height
-    if abs(sx - sy) > ASPECT_TOLERANCE * max(sx, sy):
+    if not same_aspect(width, height, camera_width, camera_height, FRAMING_TOLERANCE):
         raise InputError(path, f"view {name} is annotated at {width}x{height} but its camera is {camera_width}x{camera_height} "
                                "(different aspect)", field="info.width")
     if max(sx, sy) > MAX_ANNOTATION_SCALE:
@@ -227,7 +227,7 @@ def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
 
 
 def load_lerf_view(path: str | Path) -> AnnotatedView:
-    """Read one LERF-OVS `frame_XXXXX.json` (LabelMe-style polygons) into masks per category
+    """Read one LERF-OVS `frame_<n>.json` (LabelMe-style polygons) into masks per category
     (`read_lerf_document`, then `rasterise_lerf_document`)."""
     return rasterise_lerf_document(read_lerf_document(path))
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -29,7 +28,7 @@ from drsplat.features.modelid import (
     manifest_clip_entry,
     manifest_model_id,
 )
-from drsplat.utils import CancelToken, progress, read_json
+from drsplat.utils import CancelToken, progress, read_json, file_stamp
 import drsplat
 from drsplat.cameras import load_cameras, load_image
 from drsplat.features.clip import ClipEncoder
@@ -246,16 +245,7 @@ def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, ne
                 "one, use a new --out folder", features_dir, key, old, new)
 
 
-IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`image_stamp`)
-
-
-def image_stamp(cam) -> str | None:
-    """'size:mtime_ns' of a camera's image file (None without one): what an edit in place changes."""
-    try:
-        st = os.stat(cam.image_path)
-    except (OSError, TypeError):
-        return None
-    return f"{st.st_size}:{st.st_mtime_ns}"
+IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`utils.file_stamp`)
 
 
 def recorded_stamps(out: Path) -> dict[str, str]:
@@ -267,12 +257,12 @@ def recorded_stamps(out: Path) -> dict[str, str]:
 def stamps_after(recorded: dict[str, str], cameras: list, report: FeatureReport) -> dict[str, str]:
     """The stamps a run leaves: the earlier ones, with this run's pairs (written or kept) at their images' stamps."""
     done = set(report.written) | set(report.skipped)
-    return {**recorded, **{c.name: stamp for c in cameras if c.name in done and (stamp := image_stamp(c)) is not None}}
+    return {**recorded, **{c.name: stamp for c in cameras if c.name in done and (stamp := file_stamp(c.image_path)) is not None}}
 
 
 def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: dict[str, str] | None = None) -> list:
     """The cameras whose feature pair is missing, incomplete, or older than an edit of its image
-    (its recorded stamp, `stamps`, differs from the image's now) in `out`; complete ones go to
+    (its recorded `utils.file_stamp`, `stamps`, differs from the image's now) in `out`; complete ones go to
     report.skipped."""
     todo, seen = [], set()
     for cam in cameras:
@@ -281,7 +271,7 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: dict[s
             continue
         seen.add(stem)
         if featurefiles.is_valid_pair(out, stem):
-            if stamps and stem in stamps and stamps[stem] != image_stamp(cam):
+            if stamps and stem in stamps and stamps[stem] != file_stamp(cam.image_path):
                 log.warning("%s: the image of %s changed since its features were made; recomputing them", out, stem)
                 report.redone.append(stem)
                 todo.append(cam)

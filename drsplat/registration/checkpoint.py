@@ -39,7 +39,7 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import TEMP_SUFFIX, atomic_path, read_npy_header, temp_prefix, temp_stem, work_folder
+from drsplat.utils import TEMP_SUFFIX, atomic_path, file_stamp, read_npy_header, temp_prefix, temp_stem, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -74,21 +74,12 @@ def _scene_digest(scene: GaussianScene) -> str:
     return h.hexdigest()
 
 
-def _file_stamp(path: Path) -> bytes:
-    """A file's name, size and modification time (or that it is absent): what a rewrite changes."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return f"{path.name}|absent\n".encode()
-    return f"{path.name}|{st.st_size}|{st.st_mtime_ns}\n".encode()
-
-
 def feature_stamp(features_dir: Path, name: str) -> str:
-    """The stamps (`_file_stamp`) of view `name`'s feature pair: a view is resumed from the log only
-    while its files are as they were when it was logged (a file the driver does not hold, on Ray,
-    is absent both times)."""
+    """The stamps (`utils.file_stamp`) of view `name`'s feature pair: a view is resumed from the log
+    only while its files are as they were when it was logged (a file the driver does not hold, on
+    Ray, is absent both times)."""
     pair = (featurefiles.seg_path(features_dir, name), featurefiles.feat_path(features_dir, name))
-    return hashlib.sha1(b"".join(_file_stamp(p) for p in pair)).hexdigest()[:16]
+    return hashlib.sha1("|".join(f"{p.name}={file_stamp(p)}" for p in pair).encode()).hexdigest()[:16]
 
 
 def _views_digest(cameras: Sequence[Camera]) -> str:
@@ -348,8 +339,7 @@ class Checkpoint:
 
     def _resume_stats(self) -> None:
         """Load the statistics snapshot and cut the log back to the views it covers (or start over)."""
-        if not self.log.records:
-            self.stats_path.unlink(missing_ok=True)
+        if not self.log.records:  # a fresh log: __init__ removed any earlier snapshot
             return
         try:
             views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())

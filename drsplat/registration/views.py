@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera
+from drsplat.cameras import Camera, same_aspect
 from drsplat.errors import InputError
 from drsplat.features.format import (check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries, list_stems,
                                      read_features_report, resample_nearest, seg_path)
@@ -121,28 +121,6 @@ def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.
     h, w = mask_ids.shape
     check_aspect(seg_path(features_dir, cam.name), w, h, cam)
     return resample_nearest(mask_ids, cam.width, cam.height), feats, nonfinite
-
-
-ASPECT_TOLERANCE = 0.01  # relative; beyond the rounding of a downscaled size
-
-
-def same_aspect(w: int, h: int, width: int, height: int) -> bool:
-    """True if a w x h map is the width x height image uniformly scaled.
-
-    Within ASPECT_TOLERANCE, or within one pixel of rounding per side of either size: a small map
-    downscaled from an odd size (e.g. 25x18 from 101x75), or a small render of a large map, is off
-    by more than 1% through rounding alone.
-    """
-    if abs((w / h) / (width / height) - 1.0) <= ASPECT_TOLERANCE:
-        return True
-    return _rounds_to(w, h, width, height) or _rounds_to(width, height, w, h)
-
-
-def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
-    """True if one scale s gives w and h within a pixel: |w - s·width| <= 1 and |h - s·height| <= 1."""
-    lo_x, hi_x = (w - 1) / width, (w + 1) / width
-    lo_y, hi_y = (h - 1) / height, (h + 1) / height
-    return max(lo_x, lo_y) <= min(hi_x, hi_y)
 
 
 def used_masks(mask_ids: np.ndarray) -> np.ndarray:
