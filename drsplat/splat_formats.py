@@ -47,8 +47,10 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from drsplat.errors import InputError
-from drsplat.scene import SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits
+from drsplat.errors import InputError, OutputError
+from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits,
+                           save_ply)
+from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -284,7 +286,8 @@ def _read_ngsp_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], 
             raise InputError(path, f"stores {unpacked:,} bytes of {name}; {points:,} points need {n:,}", field=name)
         blocks[name] = _unzstd(path, name, data[at: at + packed], n)
         at += packed
-    blocks.setdefault("sh", b"")
+    for name, _ in spz_block_sizes(points, version, degree):  # empty blocks (no points, or SH degree 0) have no stream
+        blocks.setdefault(name, b"")
     return header, blocks, data[SPZ_HEADER.itemsize:toc] if header["flags"] & FLAG_EXTENSIONS else b""
 
 
@@ -391,3 +394,217 @@ def _to_ply_frame(cols: dict, frame: int) -> None:
         table = sh_flip_signs(sx, sy, sz)
         signs[: min(k, table.size)] = table[: min(k, table.size)]
         cols["sh"][:, 1:] *= signs[None, :, None]
+
+
+# ----------------------------------------------------------------------------- writing
+
+SPZ_WRITE_VERSIONS = (3, 4)
+SPZ_WRITE_VERSION = 3  # gzip: every spz reader takes it; version 4 (zstd, 2025) only the current library and its ports
+SPZ_FRACTIONAL_BITS = 12  # the spz library's: ~0.24 mm steps for positions within ±2048 units
+SPZ_MAX_FIXED = (1 << 23) - 1  # the largest magnitude a 24-bit signed position holds
+SPZ_SH1_BITS, SPZ_SH_REST_BITS = 5, 4  # the spz library's default quantisation of SH degree 1 and of degrees 2-3
+SPZ_ZSTD_LEVEL = 12  # the spz library's
+SQRT_HALF32 = np.float32(0.707106781186547524401)
+WRITTEN_SUFFIXES = {".splat": "splat", ".spz": "spz"}  # any other name is written as a PLY
+
+
+def written_format(path: str | Path) -> str:
+    """"splat", "spz" or "ply": the file type `save_scene` writes to `path`, by its suffix."""
+    return WRITTEN_SUFFIXES.get(Path(path).suffix.lower(), "ply")
+
+
+def save_scene(scene: GaussianScene, path: str | Path, spz_version: int = SPZ_WRITE_VERSION) -> str:
+    """Write `scene` atomically as the file type its name asks for (`written_format`): `.splat`
+    (`save_splat`), `.spz` (`save_spz`) or else an INRIA PLY (`save_ply`, lossless, extra properties
+    and comments kept). Returns the type written."""
+    kind = written_format(path)
+    if kind == "splat":
+        save_splat(scene, path)
+    elif kind == "spz":
+        save_spz(scene, path, spz_version)
+    else:
+        save_ply(scene, path)
+    return kind
+
+
+def save_splat(scene: GaussianScene, path: str | Path) -> None:
+    """Write `scene` as a `.splat` (module docstring), in the scene's order, atomically. Each byte is
+    the nearest to what the reader decodes (antimatter15's converter truncates); colours beyond
+    [0, 1], the only values the format cannot hold, are clipped and counted in a warning, and the
+    view-dependent SH (degree ≥ 1) is dropped with a note."""
+    path = Path(path)
+    _refuse_nonfinite(scene, path, "splat")
+    if scene.sh_degree:
+        log.info("%s: .splat holds the base colour only: SH degrees 1-%d are dropped", path, scene.sh_degree)
+    records, clipped = splat_records(scene)
+    _warn_clipped(path, "splat", clipped)
+    _write_bytes(path, records.tobytes())
+
+
+def splat_records(scene: GaussianScene) -> tuple[np.ndarray, dict[str, int]]:
+    """[N] SPLAT_RECORD of a (finite) scene and the count of clipped values per field:
+
+        scale = exp(log s)                   (float32; beyond float32's range: its largest, counted)
+        rgba  = round(255·(½ + SH_C0·f_dc)), round(255·σ(opacity logit))
+        rot   = round(128 + 128·q̂) ∈ [0, 255]  (q̂ = (w, x, y, z) / |q|; a component of 1 stores 255)
+    """
+    n = scene.num_gaussians
+    out = np.zeros(n, SPLAT_RECORD)
+    out["position"] = scene.means
+    with np.errstate(over="ignore"):
+        scale = np.exp(scene.log_scales.astype(np.float64))
+    big = scale > np.finfo(np.float32).max
+    out["scale"] = np.where(big, np.finfo(np.float32).max, scale)
+    rgb, clipped_rgb = _bytes_of(255.0 * (0.5 + SH_C0 * scene.sh[:, 0].astype(np.float64)))
+    alpha, _ = _bytes_of(255.0 * scene.opacities().astype(np.float64))
+    out["rgba"][:, :3], out["rgba"][:, 3] = rgb, alpha
+    out["rotation"], _ = _bytes_of(128.0 + 128.0 * scene.unit_quats64())
+    return out, {"colour": clipped_rgb, "scale": int(big.sum())}
+
+
+def save_spz(scene: GaussianScene, path: str | Path, version: int = SPZ_WRITE_VERSION) -> None:
+    """Write `scene` as an `.spz` of `version` (3: gzip, 4: zstd streams), atomically: the spz library's
+    packGaussians (its float32 arithmetic, rounding half away from zero, SH degree 1 in 5 bits and
+    2-3 in 4), stored right-up-back. Two things differ: positions beyond ±2048 units get fewer
+    fractional bits (the header records them; the library wraps them around), and values the bytes
+    cannot hold (colours, log scales outside [-10, 5.94], SH outside [-1, 1)) are counted in a warning
+    when clipped."""
+    path = Path(path)
+    if version not in SPZ_WRITE_VERSIONS:
+        raise ValueError(f"spz version {version} cannot be written; drsplat writes versions {SPZ_WRITE_VERSIONS}")
+    _refuse_nonfinite(scene, path, "spz")
+    data, fractional_bits, clipped = spz_file_bytes(scene, version, path)
+    if fractional_bits < SPZ_FRACTIONAL_BITS:
+        log.info("%s: positions reach %.4g units, beyond the ±2048 that .spz holds at 1/4096 steps: stored with %d fractional bits "
+                 "(steps of %.3g)", path, float(np.abs(scene.means).max()), fractional_bits, 2.0 ** -fractional_bits)
+    _warn_clipped(path, "spz", clipped)
+    _write_bytes(path, data)
+
+
+def spz_file_bytes(scene: GaussianScene, version: int = SPZ_WRITE_VERSION, path: Path | None = None) -> tuple[bytes, int, dict[str, int]]:
+    """The bytes of an spz file of a (finite) scene, its positions' fractional bits and the count of
+    clipped values per field (`save_spz`). path: named by the error when positions do not fit."""
+    fractional_bits = spz_fractional_bits(scene.means, path)
+    blocks, clipped = spz_blocks_of(scene, version, fractional_bits)
+    n, degree = scene.num_gaussians, scene.sh_degree
+    if version < 4:
+        header = np.zeros(1, SPZ_LEGACY_HEADER)
+        header[["magic", "version", "points", "sh_degree", "fractional_bits"]] = (NGSP_MAGIC, version, n, degree, fractional_bits)
+        packer = zlib.compressobj(6, zlib.DEFLATED, 16 + zlib.MAX_WBITS, 9)  # the library's deflateInit2 (gzip wrapper)
+        payload = header.tobytes() + b"".join(blocks)
+        return packer.compress(payload) + packer.flush(), fractional_bits, clipped
+    compressor = zstandard.ZstdCompressor(level=SPZ_ZSTD_LEVEL)
+    streams = [(compressor.compress(b), len(b)) for b in blocks if b]  # empty blocks (SH of degree 0) have no stream
+    header = np.zeros(1, SPZ_HEADER)
+    header[["magic", "version", "points", "sh_degree", "fractional_bits", "streams", "toc_offset"]] = (
+        NGSP_MAGIC, version, n, degree, fractional_bits, len(streams), SPZ_HEADER.itemsize)
+    toc = np.array([(len(c), u) for c, u in streams], "<u8").reshape(-1, 2)
+    return header.tobytes() + toc.tobytes() + b"".join(c for c, _ in streams), fractional_bits, clipped
+
+
+def spz_fractional_bits(means: np.ndarray, path: Path | None = None) -> int:
+    """The most fractional bits (≤ SPZ_FRACTIONAL_BITS) at which every coordinate of means [N, 3]
+    fits a 24-bit signed fixed-point number; OutputError when none does."""
+    reach = float(np.abs(means.astype(np.float64)).max()) if means.size else 0.0
+    for bits in range(SPZ_FRACTIONAL_BITS, -1, -1):
+        if np.floor(reach * 2.0 ** bits + 0.5) <= SPZ_MAX_FIXED:
+            return bits
+    raise OutputError(path, f"positions reach {reach:.4g} units; .spz stores 24-bit fixed point (at most ±{SPZ_MAX_FIXED:,}): "
+                            "write a .ply, or move the scene nearer the origin")
+
+
+def spz_blocks_of(scene: GaussianScene, version: int, fractional_bits: int) -> tuple[list[bytes], dict[str, int]]:
+    """positions, alphas, colors, scales, rotations, sh of a scene (packGaussians, stored right-up-back)
+    and the count of clipped values per field. The arithmetic is the library's float32:
+
+        position  round(x·2^f) in 24 bits            alpha  round(255·σ(logit))
+        color     round(f_dc·38.25 + 127.5)          scale  round((log s + 10)·16)
+        rotation  smallest three (`pack_smallest_three`)
+        sh        round(v·128) + 128, to the centre of its 2^(8 - bits) bucket
+    """
+    sx, sy, sz = _frame_signs(DEFAULT_SPZ_FRAME)
+    f32 = np.float32
+    means = scene.means.astype(f32) * np.array([sx, sy, sz], f32)
+    fixed = _round_half_away(means * f32(2.0 ** fractional_bits)).astype(np.int64) & 0xFFFFFF
+    positions = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], axis=-1).astype(np.uint8)
+    with np.errstate(over="ignore"):  # exp(-logit) of a logit below -88.7 is inf in float32: σ = 0, as intended
+        sigmoid = f32(1.0) / (f32(1.0) + np.exp(-scene.opacity_logits.astype(f32)))
+    alphas, _ = _bytes_of(sigmoid * f32(255.0))
+    colors, clipped_colors = _bytes_of(scene.sh[:, 0].astype(f32) * f32(SPZ_COLOR_SCALE * 255.0) + f32(0.5 * 255.0))
+    scales, clipped_scales = _bytes_of((scene.log_scales.astype(f32) + f32(10.0)) * f32(16.0))
+    xyzw = scene.unit_quats64()[:, [1, 2, 3, 0]].astype(f32) * np.array([sy * sz, sx * sz, sx * sy, 1.0], f32)
+    rotations = pack_smallest_three(xyzw)
+    sh, clipped_sh = _sh_bytes(scene, (sx, sy, sz))
+    blocks = [positions.tobytes(), alphas.tobytes(), colors.tobytes(), scales.tobytes(), rotations.tobytes(), sh.tobytes()]
+    return blocks, {"colour": clipped_colors, "scale": clipped_scales, "SH": clipped_sh}
+
+
+def pack_smallest_three(xyzw: np.ndarray) -> np.ndarray:
+    """[N, 4] float32 unit quaternions (x, y, z, w) -> [N] '<u4' (the spz library's
+    packQuaternionSmallestThree): the index of the largest |component| (the first of equal ones) in
+    the top 2 bits, then the other three in index order, 10 bits each: the sign relative to the
+    largest's, then trunc(511·|q_i|/√½ + ½) in 9 bits (float32)."""
+    n = xyzw.shape[0]
+    largest = np.argmax(np.abs(xyzw), axis=1)
+    negate = xyzw[np.arange(n), largest] < 0
+    comp = largest.astype(np.uint32)
+    for i in range(4):
+        other = largest != i
+        q = xyzw[:, i]
+        sign = ((q < 0) ^ negate).astype(np.uint32)
+        mag = (np.float32(511.0) * (np.abs(q) / SQRT_HALF32) + np.float32(0.5)).astype(np.uint32)
+        comp = np.where(other, (comp << np.uint32(10)) | (sign << np.uint32(9)) | mag, comp)
+    return comp.astype("<u4")
+
+
+def _sh_bytes(scene: GaussianScene, signs: tuple[float, float, float]) -> tuple[np.ndarray, int]:
+    """[N, K, 3] uint8 of the SH beyond the base colour (flipped to the stored frame by parity) and
+    how many were clipped: quantizeSH of the spz library, degree 1 in SPZ_SH1_BITS, the rest in
+    SPZ_SH_REST_BITS."""
+    rest = scene.sh[:, 1:].astype(np.float32)
+    k = rest.shape[1]
+    if k == 0:
+        return np.zeros((scene.num_gaussians, 0, 3), np.uint8), 0
+    rest = rest * sh_flip_signs(*signs)[:k][None, :, None]
+    q = _round_half_away(rest * np.float32(128.0)).astype(np.int64) + 128
+    clipped = int(((q < 0) | (q > 255)).sum())  # outside [-1, 127/128]; the top bucket's centre 256 -> 255 is the format's own
+    bucket = np.where(np.arange(k) < 3, 1 << (8 - SPZ_SH1_BITS), 1 << (8 - SPZ_SH_REST_BITS))[None, :, None]
+    q = (q + bucket // 2) // bucket * bucket
+    return np.clip(q, 0, 255).astype(np.uint8), clipped
+
+
+def _round_half_away(x: np.ndarray) -> np.ndarray:
+    """C's round() of float32 values (half away from zero), exactly: in float64, where x + ½ is exact."""
+    x = np.asarray(x, np.float64)
+    return np.copysign(np.floor(np.abs(x) + 0.5), x)
+
+
+def _bytes_of(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """The spz library's toUint8 (round half away, clamp to [0, 255]) and how many values were clamped."""
+    r = _round_half_away(x)
+    clipped = int(((r < 0) | (r > 255)).sum())
+    return np.clip(r, 0, 255).astype(np.uint8), clipped
+
+
+def _refuse_nonfinite(scene: GaussianScene, path: Path, kind: str) -> None:
+    """OutputError naming how many Gaussians hold a NaN or infinite value, field by field: the bytes
+    of a .splat or .spz hold none (a loaded scene has none: its reader drops such rows)."""
+    fields = {"means": scene.means, "rotations": scene.quats, "scales": scene.log_scales, "opacities": scene.opacity_logits[:, None],
+              "colours and SH": scene.sh.reshape(scene.num_gaussians, scene.sh.shape[1] * 3)}
+    counts = {name: int((~np.isfinite(v)).any(axis=1).sum()) for name, v in fields.items()}
+    bad = {name: c for name, c in counts.items() if c}
+    if bad:
+        raise OutputError(path, f"{', '.join(f'{c:,} Gaussians have non-finite {name}' for name, c in bad.items())}; "
+                                f".{kind} stores bytes and fixed point, which hold no NaN or infinity: write a .ply")
+
+
+def _warn_clipped(path: Path, kind: str, clipped: dict[str, int]) -> None:
+    counts = {name: c for name, c in clipped.items() if c}
+    if counts:
+        log.warning("%s: %s clipped to what .%s holds", path, ", ".join(f"{c:,} {name} values" for name, c in counts.items()), kind)
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)

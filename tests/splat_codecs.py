@@ -60,17 +60,21 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
 
 
 def pack_smallest_three(q_xyzw: np.ndarray) -> np.ndarray:
-    """The spz library's packQuaternionSmallestThree, per row."""
+    """The spz library's packQuaternionSmallestThree, per row of unit quaternions, in its float32
+    arithmetic (the largest |component| by a strict > scan, so the first of equal ones)."""
     out = np.empty(q_xyzw.shape[0], np.uint32)
-    for row, q in enumerate(q_xyzw):
-        q = q / np.linalg.norm(q)
-        largest = int(np.argmax(np.abs(q)))
+    half = np.float32(0.707106781186547524401)
+    for row, q in enumerate(np.asarray(q_xyzw, np.float32)):
+        largest = 0
+        for i in range(1, 4):
+            if abs(q[i]) > abs(q[largest]):
+                largest = i
         negate = q[largest] < 0
         comp = largest
         for i in range(4):
             if i != largest:
                 negbit = int((q[i] < 0) ^ negate)
-                mag = int(511 * (abs(q[i]) / np.sqrt(0.5)) + 0.5)
+                mag = int(np.float32(511.0) * (np.abs(q[i]) / half) + np.float32(0.5))
                 comp = (comp << 10) | (negbit << 9) | mag
         out[row] = comp
     return out

@@ -12,13 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zstandard
 
 from drsplat.cli import main
-from drsplat.errors import InputError
-from drsplat.scene import GaussianScene, load_ply, save_ply
-from drsplat.splat_formats import load_scene, load_scene_report, scene_format
+from drsplat.errors import InputError, OutputError
+from drsplat.scene import SH_C0, GaussianScene, load_ply, save_ply
+from drsplat.splat_formats import load_scene, load_scene_report, pack_smallest_three, save_scene, save_spz, scene_format, spz_file_bytes
 from tests.conftest import splat_transform_command
 from tests.splat_codecs import COORDINATE_EXTENSION, encode_splat, encode_spz, extension_record
+from tests.splat_codecs import pack_smallest_three as codec_pack_smallest_three
 
 PEERS = Path(__file__).parent / "data" / "peers"
 
@@ -159,6 +161,174 @@ def test_scene_format_reads_the_first_bytes(tmp_path):
     write(tmp_path / "gzip-like.splat", first.tobytes())
     assert {name: scene_format(tmp_path / name) for name in cases} == cases
     assert load_scene(tmp_path / "named.splat").num_gaussians == 8
+
+
+# ---------------------------------------------------------------------------------------------- writing
+
+
+def spz_payload(data: bytes) -> tuple[bytes, list[bytes]]:
+    """(header, [decompressed block streams]) of a gzip or zstd spz file (the header without the v4 table of contents)."""
+    if data[:2] == b"\x1f\x8b":
+        raw = gzip.decompress(data)
+        return raw[:16], [raw[16:]]
+    streams, toc = data[15], struct.unpack_from("<I", data, 16)[0]
+    sizes = np.frombuffer(data, "<u8", count=2 * streams, offset=toc).reshape(-1, 2)
+    offset, out = toc + 16 * streams, []
+    for compressed, _ in sizes:
+        out.append(zstandard.ZstdDecompressor().decompress(data[offset:offset + int(compressed)]))
+        offset += int(compressed)
+    return data[:32], out
+
+
+def alphas_of(data: bytes, points: int) -> np.ndarray:
+    """The alpha bytes of a gzip spz (they follow 16 header bytes and 9 position bytes per point)."""
+    raw = gzip.decompress(data)
+    return np.frombuffer(raw, np.uint8, count=points, offset=16 + 9 * points)
+
+
+@pytest.mark.parametrize("name", ["peer_v3.spz", "peer_v4.spz"])
+def test_spz_writer_writes_the_spz_librarys_bytes(name):
+    """The spz library (splat-transform 2.7.1's WASM build) wrote these files; read and written again by
+    drsplat, every block comes back byte for byte (the header too), but for the 8 alphas the library
+    stored as 0 and 255, which the reader takes half a step inside: they come back within one step."""
+    peer = (PEERS / name).read_bytes()
+    scene = load_scene(PEERS / name)
+    ours, bits, clipped = spz_file_bytes(scene, int(name[6]))
+    assert bits == 12 and clipped["colour"] == 0 and clipped["scale"] == 0
+    (peer_header, peer_blocks), (our_header, our_blocks) = spz_payload(peer), spz_payload(ours)
+    assert our_header == peer_header
+    if name == "peer_v3.spz":
+        a, b = alphas_of(peer, 120), alphas_of(ours, 120)
+        extreme = (a == 0) | (a == 255)
+        assert extreme.sum() == 8 and np.array_equal(a[~extreme], b[~extreme]) and np.abs(a.astype(int) - b).max() <= 1
+        start, stop = 9 * 120, 10 * 120  # the alpha block, after the positions
+        assert peer_blocks[0][:start] == our_blocks[0][:start] and peer_blocks[0][stop:] == our_blocks[0][stop:]
+    else:
+        assert len(our_blocks) == len(peer_blocks) == 6
+        for i, (p, o) in enumerate(zip(peer_blocks, our_blocks)):
+            if i != 1:  # alphas: as above
+                assert p == o, f"block {i}"
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_spz_and_splat_writers_agree_with_splat_transform_now(tmp_path, degree):
+    """With splat-transform on this machine (skipped otherwise): a fresh random scene packed by the
+    spz library and by drsplat holds the same blocks (alphas: the libraries' float32 exp may differ
+    by an ulp, so at most 0.2% of them one step apart), and splat-transform reads drsplat's .spz
+    (versions 3 and 4) and .splat to the values drsplat reads."""
+    command = splat_transform_command()
+    scene = random_scene(3000, degree=degree, seed=40 + degree)
+    save_ply(scene, tmp_path / "in.ply")
+    subprocess.run([*command, "-q", "-w", str(tmp_path / "in.ply"), "--spz-version", "3", str(tmp_path / "lib.spz")],
+                   check=True, timeout=120, capture_output=True)
+    lib = (tmp_path / "lib.spz").read_bytes()
+    ours = spz_file_bytes(scene, 3)[0]
+    a, b = alphas_of(lib, 3000), alphas_of(ours, 3000)
+    assert np.abs(a.astype(int) - b).max() <= 1 and np.count_nonzero(a != b) <= 6
+    raw_lib, raw_ours = gzip.decompress(lib), gzip.decompress(ours)
+    cut = 16 + 9 * 3000
+    assert raw_lib[:cut] == raw_ours[:cut] and raw_lib[cut + 3000:] == raw_ours[cut + 3000:]
+    for name in ("v3.spz", "v4.spz", "ours.splat"):
+        path = tmp_path / name
+        save_scene(scene, path, spz_version=int(name[1]) if name.endswith(".spz") else 3)
+        subprocess.run([*command, "-q", "-w", str(path), str(tmp_path / "back.ply")], check=True, timeout=120, capture_output=True)
+        peer, mine = load_ply(tmp_path / "back.ply"), load_scene(path)
+        assert np.array_equal(peer.means, mine.means) and np.array_equal(peer.log_scales, mine.log_scales), name
+        assert np.allclose(peer.sh, mine.sh, rtol=0, atol=2e-6), name
+        assert np.abs(rotations(peer.quats) - rotations(mine.quats)).max() < (0.03 if name.endswith(".splat") else 1e-6), name
+
+
+@pytest.mark.parametrize("kind", ["v3.spz", "v4.spz", "s.splat", "S.SPZ"])
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_written_scenes_read_back_within_their_steps(tmp_path, kind, degree):
+    """save_scene by the name, then load_scene: the same Gaussians in the same order, each field within
+    its format's step; .splat keeps the base colour only."""
+    scene = random_scene(300, degree=degree, seed=degree)
+    scene.sh[:, 0] = np.clip(scene.sh[:, 0], -1.7, 1.7)  # inside what both formats' colour bytes hold
+    scene.sh[:, 1:] = np.clip(scene.sh[:, 1:], -0.99, 0.99)
+    path = tmp_path / kind
+    written = save_scene(scene, path, spz_version=4 if kind.startswith("v4") else 3)
+    assert written == ("splat" if kind.endswith(".splat") else "spz") == scene_format(path)
+    back = load_scene(path)
+    assert back.num_gaussians == scene.num_gaussians
+    assert np.abs(opacities(back) - np.clip(opacities(scene), 0.5 / 255, 254.5 / 255)).max() <= 0.5 / 255 + 1e-6
+    if written == "splat":
+        assert back.sh_degree == 0 and np.array_equal(back.means, scene.means)
+        assert np.allclose(back.log_scales, scene.log_scales, atol=1e-6)
+        assert np.abs(back.sh[:, 0] - scene.sh[:, 0]).max() <= 0.5 / 255 / SH_C0 + 1e-6
+        assert np.abs(rotations(back.quats) - rotations(scene.quats)).max() < 0.03
+        return
+    assert back.sh_degree == degree
+    assert np.abs(back.means - scene.means).max() <= 2.0 ** -13 + 1e-6
+    assert np.abs(back.log_scales - scene.log_scales).max() <= 1 / 32 + 1e-6
+    assert np.abs(back.sh[:, 0] - scene.sh[:, 0]).max() <= 0.5 / (0.15 * 255) + 1e-5
+    if degree:  # degree 1 in 5 bits (buckets of 8/128), the rest in 4 (16/128): half a bucket, and the 8-bit rounding
+        step = np.where(np.arange(back.sh.shape[1] - 1) < 3, 4 / 128, 8 / 128)[None, :, None]
+        assert np.all(np.abs(back.sh[:, 1:] - scene.sh[:, 1:]) <= step + 0.5 / 128 + 1e-6)
+    assert np.abs(rotations(back.quats) - rotations(scene.quats)).max() < 0.006
+
+
+def test_pack_smallest_three_matches_the_reference_loop():
+    """The vectorised packing against tests/splat_codecs' per-row loop (the library's code) on random
+    and hard quaternions: identity, a negative largest component, equal largest components (the first
+    wins), components of exactly √½, tiny ones, each axis."""
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(4000, 4))
+    h = np.sqrt(0.5)
+    hard = np.array([[0, 0, 0, 1], [0, 0, 0, -1], [1, 0, 0, 0], [0, -1, 0, 0], [h, h, 0, 0], [-h, h, 0, 0], [0, h, -h, 0],
+                     [0.5, 0.5, 0.5, 0.5], [-0.5, 0.5, -0.5, 0.5], [1e-30, 0, 0, 1], [1, 1e-8, -1e-8, 1e-8], [0, 0, h, -h]])
+    q = np.concatenate([q, hard, rng.normal(size=(500, 4)) * (rng.random((500, 4)) < 0.5)])
+    q = q[np.linalg.norm(q, axis=1) > 0]
+    unit = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    assert np.array_equal(pack_smallest_three(unit), codec_pack_smallest_three(unit))
+
+
+def test_far_positions_get_fewer_fractional_bits_and_too_far_is_refused(tmp_path, caplog):
+    """The library writes 12 fractional bits and wraps a coordinate beyond ±2048 around; drsplat stores
+    such a scene with as many bits as fit (the header says how many) and refuses one beyond 24 bits."""
+    scene = random_scene(50, degree=0)
+    scene.means[0] = (1e5, -3e4, 7.0)
+    with caplog.at_level(logging.INFO, logger="drsplat.splat_formats"):
+        save_spz(scene, tmp_path / "far.spz")
+    assert "6 fractional bits" in caplog.text
+    assert gzip.decompress((tmp_path / "far.spz").read_bytes())[13] == 6
+    assert np.abs(load_scene(tmp_path / "far.spz").means - scene.means).max() <= 2.0 ** -7 + 1e-3
+    scene.means[0, 0] = 2e7
+    with pytest.raises(OutputError, match=r"too\.spz.*24-bit fixed point"):
+        save_spz(scene, tmp_path / "too.spz")
+    assert not (tmp_path / "too.spz").exists()
+
+
+def test_non_finite_values_are_refused_and_clipping_is_counted(tmp_path, caplog):
+    scene = random_scene(40, degree=1)
+    scene.means[3, 1] = np.nan
+    scene.log_scales[5:7, 0] = np.inf
+    for name in ("bad.spz", "bad.splat"):
+        with pytest.raises(OutputError, match=r"bad\.s.*1 Gaussians have non-finite means, 2 Gaussians have non-finite scales.*\.ply"):
+            save_scene(scene, tmp_path / name)
+        assert not (tmp_path / name).exists()
+    scene = random_scene(40, degree=1)
+    scene.sh[:4, 0, 0] = 9.0  # beyond both formats' colour bytes
+    scene.log_scales[0] = (-12.0, 0.0, 7.0)  # beyond .spz's [-10, 5.94]
+    with caplog.at_level(logging.WARNING, logger="drsplat.splat_formats"):
+        save_scene(scene, tmp_path / "bright.spz")
+        save_scene(scene, tmp_path / "bright.splat")
+    assert "bright.spz: 4 colour values, 2 scale values clipped to what .spz holds" in caplog.text
+    assert "bright.splat: " in caplog.text and "colour values clipped to what .splat holds" in caplog.text
+
+
+@pytest.mark.parametrize("name", ["e.spz", "e4.spz", "e.splat", "e.ply"])
+def test_a_written_scene_of_no_gaussians_reads_back_empty_with_a_finding(tmp_path, name):
+    """A version-4 spz of no points has no streams at all (empty blocks have none); its reader used to
+    fail there with a KeyError. Every file type reads back as no Gaussians, with the same finding."""
+    save_scene(random_scene(3).subset(np.zeros(3, bool)), tmp_path / name, spz_version=4 if name == "e4.spz" else 3)
+    back, report = load_scene_report(tmp_path / name)
+    assert back.num_gaussians == 0 and any("holds no Gaussians" in note for note in report.findings())
+
+
+def test_writing_spz_versions_other_than_3_and_4_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="version 2 cannot be written"):
+        save_spz(random_scene(4), tmp_path / "x.spz", version=2)
 
 
 # ---------------------------------------------------------------------------------------------- what the file says

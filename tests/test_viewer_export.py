@@ -185,6 +185,47 @@ def test_viewer_exports_both_formats(demo, query, tmp_path):
     assert registered.with_name("registered.codebook.faiss").is_file()
 
 
+def test_cli_exports_splat_and_spz_by_the_name(demo, query, tmp_path, capsys):
+    """`query --out` and `segment --ply` write .splat / .spz when the name ends so (the selection, in
+    its order); a drsplat export named .spz is a usage error before anything is read or written."""
+    from drsplat.cli import main
+    from drsplat.splat_formats import load_scene, scene_format
+
+    registered, folder = demo
+    q = tmp_path / "q.npy"
+    np.save(q, query)
+    assert main(["query", str(registered), "--embedding", str(q), "--out", str(tmp_path / "mug.ply")]) == 0
+    count = int(capsys.readouterr().out.split()[0])
+    reference = load_ply(tmp_path / "mug.ply")
+    for name in ("mug.spz", "mug.splat"):
+        assert main(["query", str(registered), "--embedding", str(q), "--out", str(tmp_path / name)]) == 0
+        capsys.readouterr()
+        back = load_scene(tmp_path / name)
+        assert scene_format(tmp_path / name) == name.split(".")[1] and back.num_gaussians == count
+        assert np.abs(back.means - reference.means).max() <= (0 if name.endswith(".splat") else 2.0 ** -13)
+    assert main(["query", str(registered), "--embedding", str(q), "--out", str(tmp_path / "f.spz"), "--format", "drsplat"]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "f.spz" in err and "drsplat export is a PLY" in err and not (tmp_path / "f.spz").exists()
+    assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--out", str(tmp_path / "l.npy"),
+                 "--ply", str(tmp_path / "seg.spz")]) == 0
+    assert load_scene(tmp_path / "seg.spz").num_gaussians == load_ply(registered).num_gaussians
+
+
+def test_viewer_exports_spz_and_refuses_a_drsplat_spz(demo, tmp_path):
+    from drsplat.splat_formats import load_scene
+    from viewer.state import ViewerState
+
+    registered, folder = demo
+    state = ViewerState()
+    assert state.load_scene(registered) and state.load_source(folder)
+    assert state.run_oracle_query(state.oracle.names.index("mug"))
+    n = state.export_selection(tmp_path / "mug.spz", "standard")
+    assert n == int(state.selection.sum()) > 0 and load_scene(tmp_path / "mug.spz").num_gaussians == n
+    assert "(.spz)" in state.messages[-1].text
+    assert state.export_selection(tmp_path / "f.spz", "drsplat") is None
+    assert "drsplat export is a PLY" in state.messages[-1].text and not (tmp_path / "f.spz").exists()
+
+
 def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
     """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
     command = splat_transform_command()

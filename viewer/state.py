@@ -27,7 +27,7 @@ from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
-from drsplat.lang import codebook_path_for, export_scene, read_field
+from drsplat.lang import codebook_path_for, export_kind, export_scene, read_field
 from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
@@ -465,8 +465,9 @@ class ViewerState:
 
     def export_selection(self, path: str | Path | None = None, fmt: str | None = None) -> int | None:
         """Write the selected Gaussians (`export_mask`) with drsplat.lang.export_scene: `standard`
-        (INRIA layout only, for other tools) or `drsplat` (with the field, its codebook copied
-        beside; `drsplat query` reads it); the path and format default to the export settings.
+        (for other tools: an INRIA PLY, or .splat / .spz by the path's suffix) or `drsplat` (a PLY
+        with the field, its codebook copied beside; `drsplat query` reads it); the path and format
+        default to the export settings.
         Returns the number written, or None (with a message)."""
 
         path = self.settings.export.path if path is None else path
@@ -483,7 +484,7 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         if not str(path).strip():
-            self.error("type the path of the PLY to export to")
+            self.error("type the path of the file to export to (.ply, .splat or .spz)")
             return None
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None
@@ -493,7 +494,7 @@ class ViewerState:
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
             return None
-        self.info(f"exported {count:,} Gaussians to {path} ({'standard 3DGS' if fmt == 'standard' else 'drsplat'} PLY)")
+        self.info(f"exported {count:,} Gaussians to {path} ({export_kind(path, fmt)})")
         return count
 
     # ---------------------------------------------------------------- registration

@@ -17,7 +17,7 @@ import numpy as np
 
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size
 from drsplat.lang import LanguageField, read_field
 from drsplat.scene import GaussianScene
@@ -260,7 +260,7 @@ def add_format_argument(parser: argparse.ArgumentParser, flag: str) -> None:
     from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
 
     parser.add_argument("--format", choices=EXPORT_FORMATS, default="standard",
-                        help=f"PLY written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
+                        help=f"file written by {flag}: " + "; ".join(f"'{k}' {v}" for k, v in EXPORT_FORMAT_HELP.items()) + " (default: standard)")
 
 
 def guard_field_codebook(registered: Path, field: LanguageField, outputs: dict) -> None:
@@ -272,12 +272,18 @@ def guard_field_codebook(registered: Path, field: LanguageField, outputs: dict) 
     guard_outputs({f"the codebook {Path(registered).name} names": field.codebook_path}, outputs)
 
 
-def export_outputs(path, fmt: str) -> dict:
-    """The files an export to `path` in format `fmt` writes besides the PLY itself (for
-    guard_outputs): a drsplat PLY's codebook beside it."""
-    from drsplat.lang import codebook_path_for
+def export_outputs(path, fmt: str, flag: str) -> dict:
+    """The files an export to `path` (given by `flag`) in format `fmt` writes besides the file itself
+    (for guard_outputs): a drsplat PLY's codebook beside it. UsageError when the name and the format
+    disagree (a drsplat export named .spz), before any work."""
+    from drsplat.lang import codebook_path_for, export_problem
 
-    return {"the export's codebook": codebook_path_for(path)} if path is not None and fmt == "drsplat" else {}
+    if path is None:
+        return {}
+    problem = export_problem(path, fmt)
+    if problem is not None:
+        raise UsageError(f"{flag}: {problem}")
+    return {"the export's codebook": codebook_path_for(path)} if fmt == "drsplat" else {}
 
 
 def checked_names(path: Path, names: list) -> list[str]:

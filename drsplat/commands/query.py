@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
     parser.add_argument("--scores", type=output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
-    parser.add_argument("--out", type=output_file, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY (see --format)")
+    parser.add_argument("--out", type=output_file, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY, or .splat / .spz by the name (see --format)")
     add_format_argument(parser, "--out")
     parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
     add_clip_arguments(parser, scoring=True)
@@ -88,7 +88,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.lang import codebook_path_for, export_scene
+    from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     if not args.relevancy and (args.negatives or args.negative_embeddings is not None):
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered)}
-    outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format)}
+    outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format, "--out")}
     guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
                 raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best.max(initial=-np.inf)):.4f}): "
                                    f"nothing written to {args.out}; lower --threshold")
             export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
-            log.info("wrote %d selected Gaussians to %s (%s PLY)", int(mask.sum()), args.out, args.format)
+            log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
             wrote = True
     if not wrote:
         print_top(best, args.top, "relevancy" if args.relevancy else "cosine")

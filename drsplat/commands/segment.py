@@ -57,7 +57,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--min-score", type=float_range(-1.0, 1.0), default=None, help="Gaussians whose best cosine is below this get -1")
     add_lut_bits_argument(parser)
     parser.add_argument("--out", type=output_file, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
-    parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label (see --format)")
+    parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label: a PLY, or .splat / .spz by the name (see --format)")
     add_format_argument(parser, "--ply")
     add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
@@ -130,7 +130,7 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.lang import codebook_path_for, export_scene
+    from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.query import label_colors, segment
     from drsplat.utils import guard_outputs, save_npy_atomic
 
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
               "--names" if getattr(args, "names", None) is not None else "--names (by default gt/label_names.json)": names_input(args)}
     if args.labels is not None:
         label_phrases(args.labels)  # a usage error before any file is read
-    outputs = {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format)}
+    outputs = {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format, "--ply")}
     guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
     if args.ply is not None:
         export_scene(coloured_scene(scene, seg.labels, label_colors(len(names))), field, args.ply, args.format)
-        log.info("wrote the label-coloured scene to %s (%s PLY)", args.ply, args.format)
+        log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
     print(f"{'label':<24} {'gaussians':>10}")
     for i, name in enumerate(names):

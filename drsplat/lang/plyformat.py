@@ -37,6 +37,7 @@ from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene, check_integer_column, save_ply
+from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path
 
 log = logging.getLogger(__name__)
@@ -328,7 +329,7 @@ def check_stored_type(ply_path: Path, name: str, column: np.ndarray) -> None:
 
 EXPORT_FORMATS = ("standard", "drsplat")
 EXPORT_FORMAT_HELP = {
-    "standard": "standard 3DGS PLY (INRIA layout only, for other tools)",
+    "standard": "standard 3DGS scene for other tools: a PLY in the INRIA layout, or a .splat or .spz file when the name ends so",
     "drsplat": "drsplat PLY (with the language field, its codebook copied beside it; `drsplat query` reads it)",
 }
 
@@ -338,18 +339,42 @@ def standard_scene(scene: GaussianScene) -> GaussianScene:
     return dataclasses.replace(strip_field(scene), extra={})
 
 
-def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | Path, fmt: str = "standard") -> GaussianScene:
-    """Write `scene` (with `field`, the same rows) to `path` as a standard or a drsplat PLY.
-
-    standard: `standard_scene(scene)`, which every 3DGS tool opens. drsplat: the scene with the
-    field attached (`attach_field`: metadata comment + `lang_meta` column, codebook written
-    beside `path`), so that `read_field` on the written file gives the field back. Returns the
-    scene written.
-    """
+def export_problem(path: str | Path, fmt: str) -> str | None:
+    """Why `path` cannot take an export in format `fmt`, or None: a drsplat export is a PLY (the
+    field lives in its vertex properties), so it refuses a .splat or .spz name."""
     if fmt not in EXPORT_FORMATS:
-        raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}")
+        return f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}"
+    kind = written_format(path)
+    if fmt == "drsplat" and kind != "ply":
+        return (f"{Path(path).name}: a drsplat export is a PLY (the language field lives in its vertex properties); "
+                f"name it .ply, or export a standard .{kind}")
+    return None
+
+
+def export_kind(path: str | Path, fmt: str) -> str:
+    """What an export to `path` in format `fmt` writes, in words: "drsplat PLY", "standard 3DGS PLY", ".splat" or ".spz"."""
+    kind = written_format(path)
+    return "drsplat PLY" if fmt == "drsplat" else ("standard 3DGS PLY" if kind == "ply" else f".{kind}")
+
+
+def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | Path, fmt: str = "standard") -> GaussianScene:
+    """Write `scene` (with `field`, the same rows) to `path` in a standard or the drsplat format.
+
+    standard: `standard_scene(scene)`, which every 3DGS tool opens, as the file type the name asks
+    for (drsplat.splat_formats.save_scene: `.splat`, `.spz`, else PLY). drsplat: a PLY of the scene
+    with the field attached (`attach_field`: metadata comment + `lang_meta` column, codebook written
+    beside `path`), so that `read_field` on the written file gives the field back. Returns the
+    scene written (before any .splat / .spz quantisation).
+    """
+    problem = export_problem(path, fmt)
+    if problem is not None:
+        raise ValueError(problem)
     if fmt == "drsplat" and field is None:
         raise ValueError("a drsplat PLY needs a language field; this scene has none (use the standard format)")
-    out = standard_scene(scene) if fmt == "standard" else attach_field(scene, field, path)
+    if fmt == "standard":
+        out = standard_scene(scene)
+        save_scene(out, path)
+        return out
+    out = attach_field(scene, field, path)
     save_ply(out, path)
     return out
