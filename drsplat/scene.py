@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.utils import atomic_path
+from drsplat.utils import write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -811,7 +811,4 @@ def save_ply(scene: GaussianScene, path: str | Path) -> None:
     """
     vertices = scene_to_vertices(scene)
     header = ply_header(vertices.dtype, scene.comments, scene.num_gaussians)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(header)
-            f.write(vertices.tobytes())
+    write_bytes_atomic(path, header, vertices.tobytes())

@@ -1,6 +1,7 @@
 """Scene files beyond PLY: the antimatter15 `.splat` and Niantic `.spz` (versions 1-4), read into a
 `GaussianScene`; `load_scene` picks the reader (`scene_format`: PLY by its first line, `.splat`, which
-has no header, by its name, spz by its first bytes).
+has no header, by its name, spz by its first bytes). `save_scene` writes a scene as the file type its
+name asks for (`.splat`; `.spz` versions 3 and 4, the spz library's packing; else PLY).
 
 `.splat` (web viewers; no header): N records of 32 bytes, little-endian,
 
@@ -50,7 +51,7 @@ import zstandard
 from drsplat.errors import InputError, OutputError
 from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits,
                            save_ply)
-from drsplat.utils import atomic_path
+from drsplat.utils import write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -438,7 +439,7 @@ def save_splat(scene: GaussianScene, path: str | Path) -> None:
         log.info("%s: .splat holds the base colour only: SH degrees 1-%d are dropped", path, scene.sh_degree)
     records, clipped = splat_records(scene)
     _warn_clipped(path, "splat", clipped)
-    _write_bytes(path, records.tobytes())
+    write_bytes_atomic(path, records.tobytes())
 
 
 def splat_records(scene: GaussianScene) -> tuple[np.ndarray, dict[str, int]]:
@@ -478,7 +479,7 @@ def save_spz(scene: GaussianScene, path: str | Path, version: int = SPZ_WRITE_VE
         log.info("%s: positions reach %.4g units, beyond the ±2048 that .spz holds at 1/4096 steps: stored with %d fractional bits "
                  "(steps of %.3g)", path, float(np.abs(scene.means).max()), fractional_bits, 2.0 ** -fractional_bits)
     _warn_clipped(path, "spz", clipped)
-    _write_bytes(path, data)
+    write_bytes_atomic(path, data)
 
 
 def spz_file_bytes(scene: GaussianScene, version: int = SPZ_WRITE_VERSION, path: Path | None = None) -> tuple[bytes, int, dict[str, int]]:
@@ -603,8 +604,3 @@ def _warn_clipped(path: Path, kind: str, clipped: dict[str, int]) -> None:
     if counts:
         log.warning("%s: %s clipped to what .%s holds", path, ", ".join(f"{c:,} {name} values" for name, c in counts.items()), kind)
 
-
-def _write_bytes(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)

@@ -302,6 +302,15 @@ def _current_umask() -> int:
     return mask
 
 
+def write_bytes_atomic(path: str | Path, *parts: bytes) -> None:
+    """Write the byte strings one after the other to `path` through `atomic_path` (temp + rename;
+    a device or FIFO in place)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            for part in parts:
+                f.write(part)
+
+
 def save_npy_atomic(path: str | Path, array: np.ndarray) -> None:
     """np.save through a temp file + rename (np.save would append .npy to a temp name)."""
     with atomic_path(path) as tmp:
