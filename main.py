@@ -2,7 +2,11 @@
 
 import sys
 
-from viewer.launch import main
+try:
+    from viewer.launch import main
+except KeyboardInterrupt:  # Ctrl-C while Python imports the viewer: before anything was opened or written
+    sys.stderr.write("drsplat viewer: interrupted while starting; nothing was done\n")
+    raise SystemExit(1) from None
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -70,7 +70,11 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports every command's module: the slow part of start-up
+    except KeyboardInterrupt:
+        sys.stderr.write("drsplat: interrupted while starting; nothing was done\n")
+        return 1
     args = parser.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
     try:

@@ -920,6 +920,37 @@ def test_sigterm_cancels_synth_and_leaves_nothing(tmp_path):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register", "viewer.launch"])
+def test_ctrl_c_while_python_imports_is_one_line(where):
+    """Ctrl-C before any command runs (Python still importing the command line, a command's module or
+    the viewer): one line and exit 1, no traceback. The interrupt is raised by the import of `where`
+    in a child process (an import hook: as deterministic as a real Ctrl-C is not)."""
+    hook = textwrap.dedent(f"""
+        import builtins, importlib, runpy, sys
+        real_import, real_import_module = builtins.__import__, importlib.import_module
+        def fire(name):
+            if name == {where!r}:
+                raise KeyboardInterrupt
+        def hooked_import(name, *args, **kwargs):
+            fire(name)
+            return real_import(name, *args, **kwargs)
+        def hooked_import_module(name, *args, **kwargs):
+            fire(name)
+            return real_import_module(name, *args, **kwargs)
+        builtins.__import__, importlib.import_module = hooked_import, hooked_import_module
+        if {where!r} == "viewer.launch":
+            sys.argv = ["main.py", "--help"]
+            runpy.run_path({str(ROOT / "main.py")!r}, run_name="__main__")
+        else:
+            sys.argv = ["drsplat", "info", "--help"]
+            runpy.run_module("drsplat", run_name="__main__")
+    """)
+    proc = subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and "interrupted while starting; nothing was done" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
 def test_second_interrupt_aborts_at_once():
     from drsplat.utils import CancelToken, cancel_on_signals
 
