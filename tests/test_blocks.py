@@ -360,6 +360,21 @@ def test_cli_memory_budget_errors(tiny, tmp_path):
     assert not (tmp_path / "o.ply").exists()
 
 
+def test_a_budget_too_small_is_refused_before_the_fit_stage_renders(tiny, tmp_path, monkeypatch, capsys):
+    """The default (fit) mode used to render its probe views first and refuse the budget after; now
+    the budget is checked against both modes the probe may pick before any view is rendered."""
+    from drsplat.cli import main
+    from drsplat.registration import driver
+
+    def no_probe(*args, **kwargs):
+        raise AssertionError("the fit stage ran before the budget was refused")
+
+    monkeypatch.setattr(driver, "fit_stage", no_probe)
+    base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
+    assert main(base + ["--memory-budget", "1KB"]) == 1
+    assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
+
+
 @pytest.mark.parametrize("n", [30, 300])
 def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
     """lang_meta row i holds byte i mod L of the comment: blocks are numbered as in the whole

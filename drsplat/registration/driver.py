@@ -40,7 +40,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.fit import FitChoice, FitStage, fit_stage, is_fit_mode
+from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
@@ -244,6 +244,7 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
     if probe is not None:
         run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=probe.mode))
@@ -403,6 +404,24 @@ def one_block_sink(num_gaussians: int, dim: int, vote: bool, device: str | None 
             return (DeviceVoteSink if vote else DeviceSink)(num_gaussians, dim, device)
         log.info("the sums of %s Gaussians do not fit the free memory of %s: summing on the host", f"{num_gaussians:,}", device)
     return VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
+
+
+def _check_memory_before_probe(run: Run) -> None:
+    """A fit mode's memory (the budget, or what is free) checked before its probe views are rendered:
+    the DrsplatError of `choose_block` when neither mode the probe may pick fits, so that a budget
+    too small is refused at once rather than after the probe. The block is chosen after the probe."""
+    options = run.options
+    if options.block_size or not is_fit_mode(options.aggregate):
+        return
+    refusals = []
+    for footprint in FOOTPRINTS:
+        plan = estimate_memory(run.scene, run.views, run.dim, options.topk, aggregate=resolve_mode(options.aggregate, footprint))
+        try:
+            choose_block(plan, options.memory_budget)
+            return
+        except DrsplatError as exc:
+            refusals.append(exc)
+    raise refusals[0]
 
 
 def _plan_block(run: Run) -> int:
