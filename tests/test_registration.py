@@ -425,6 +425,28 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
     assert out.is_file() and not list(tmp_path.glob(".*"))
 
 
+def test_cli_ctrl_c_after_the_last_view_says_the_output_was_finished(tiny, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the registered PLY is being written (after the last view and the sums) lets the
+    write complete; the command used to exit 0 right after saying it would stop after the current view."""
+    import os
+    import signal
+
+    from drsplat.cli import main
+    from drsplat.registration.output import PlyTarget
+
+    original = PlyTarget.close
+
+    def ctrl_c_then_close(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        return original(self)
+
+    monkeypatch.setattr(PlyTarget, "close", ctrl_c_then_close)
+    out = tmp_path / "out.ply"
+    args = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out), "--no-progress"]
+    assert main(args) == 0 and out.is_file()
+    assert "the interrupt came after the last view; the output was finished and written to" in capsys.readouterr().err
+
+
 def test_clip_model_id_comes_from_the_manifest():
     from drsplat.features.modelid import manifest_model_id as clip_model_name
 

@@ -85,4 +85,6 @@ def run(args: argparse.Namespace) -> int:
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
+    if token.cancelled:  # the interrupt came while the output was being finished: it was completed, not left half done
+        log.warning("the interrupt came after the last view; the output was finished and written to %s", args.out)
     return 0
