@@ -62,9 +62,11 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     """The paper's self-referencing query: normalize(mean of the unit features of Gaussians `ids`): [D].
 
     ids: [n] Gaussian indices. PQ fields use the reconstructions of those Gaussians.
-    Unassigned Gaussians (zero norm) are ignored.
+    Gaussians without a feature (`LanguageField.assigned`: a PQ row's codes decode to a vector even
+    then) are ignored.
     """
     ids = np.asarray(ids).reshape(-1)
+    ids = ids[field.assigned()[ids]] if ids.size else ids
     feats = unit_rows(field.reconstruct(ids)) if ids.size else np.zeros((0, field.dim), np.float32)
     feats = feats[np.linalg.norm(feats, axis=1) > 0]
     if feats.shape[0] == 0:
@@ -194,9 +196,12 @@ def negative_embeddings(encoder: TextEncoder | None, field: LanguageField, user_
 # Thresholds and segmentation
 
 
-def select(scores: np.ndarray, threshold: float) -> np.ndarray:
-    """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected)."""
-    return np.asarray(scores) >= threshold
+def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = None) -> np.ndarray:
+    """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected), among the Gaussians
+    `assigned` [N] bool (`LanguageField.assigned`) when given: one without a feature scores 0 as a
+    cosine and ½ as a relevancy, which a threshold at or below it would otherwise select."""
+    picked = np.asarray(scores) >= threshold
+    return picked if assigned is None else picked & assigned
 
 
 def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
@@ -240,7 +245,7 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
     best_score = scores[np.arange(scores.shape[0]), best]
     labels = np.where(best < n_labels, best, -1).astype(np.int32)
-    labels[~(np.isfinite(field.norms) & (field.norms > 0))] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)
+    labels[~field.assigned()] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)
     if min_score is not None:
         labels[best_score < min_score] = -1
     return Segmentation(labels=labels, scores=best_score.astype(np.float32))

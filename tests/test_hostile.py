@@ -1151,7 +1151,7 @@ def test_injected_enospc_at_the_write_of_query_out(tmp_path, world, capsys, monk
     """OSError(ENOSPC) raised by the PLY writer itself (no file name on it): the error names --out."""
     import builtins
 
-    import drsplat.scene as scene_module
+    import drsplat.utils as writer_module  # save_ply writes through utils.write_bytes_atomic
 
     class FullDisk:
         """A file whose writes fail as on a full disk after the first 100 bytes."""
@@ -1175,7 +1175,7 @@ def test_injected_enospc_at_the_write_of_query_out(tmp_path, world, capsys, monk
         f = builtins.open(file, mode, *a, **k)
         return FullDisk(f) if "w" in mode else f
 
-    monkeypatch.setattr(scene_module, "open", fake_open, raising=False)
+    monkeypatch.setattr(writer_module, "open", fake_open, raising=False)
     out = tmp_path / "sel.ply"
     code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--out", out, "--threshold", "0.0"], capsys)
     monkeypatch.undo()

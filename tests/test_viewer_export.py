@@ -226,6 +226,74 @@ def test_viewer_exports_spz_and_refuses_a_drsplat_spz(demo, tmp_path):
     assert "drsplat export is a PLY" in state.messages[-1].text and not (tmp_path / "f.spz").exists()
 
 
+@pytest.fixture
+def demo_copy(demo, tmp_path):
+    """The demo's registered PLY and codebook copied, with the ids of its unassigned Gaussians."""
+    registered, folder = demo
+    shutil.copy(registered, tmp_path / "reg.ply")
+    shutil.copy(registered.with_name("registered.codebook.faiss"), tmp_path / "reg.codebook.faiss")
+    scene = load_ply(tmp_path / "reg.ply")
+    scene.comments = [c.replace("registered.codebook.faiss", "reg.codebook.faiss") for c in scene.comments]
+    save_ply(scene, tmp_path / "reg.ply")
+    unassigned = np.flatnonzero(scene.extra["lang_norm"] == 0)
+    assert read_field(scene, tmp_path / "reg.ply").kind == "pq" and 0 < unassigned.size < scene.num_gaussians
+    return tmp_path / "reg.ply", unassigned
+
+
+def test_query_never_selects_ranks_or_averages_gaussians_without_a_feature(demo_copy, query, tmp_path, capsys):
+    """A PQ row's codes decode to some vector even when the Gaussian is unassigned (norm 0), and such a
+    Gaussian scores 0 as a cosine and exactly ½ as a relevancy: `--gaussians` of unassigned ids made a
+    query of them, and the default relevancy threshold (0.5) exported them, exit 0."""
+    from drsplat.cli import main
+
+    reg, unassigned = demo_copy
+    np.save(tmp_path / "u.npy", unassigned)
+    assert main(["query", str(reg), "--gaussians", str(tmp_path / "u.npy"), "--top", "3"]) == 1
+    assert "none of the selected Gaussians has a language feature" in capsys.readouterr().err
+    q, neg = tmp_path / "q.npy", tmp_path / "neg.npy"
+    np.save(q, query)
+    np.save(neg, -query[None])
+    assert main(["query", str(reg), "--embedding", str(q), "--relevancy", "--negative-embeddings", str(neg), "--scores",
+                 str(tmp_path / "rel.npy"), "--out", str(tmp_path / "sel.ply")]) == 0
+    printed = capsys.readouterr().out
+    rel = np.load(tmp_path / "rel.npy")
+    assert np.all(rel[unassigned] == 0.5)
+    picked = np.count_nonzero(rel >= 0.5) - unassigned.size
+    assert load_ply(tmp_path / "sel.ply").num_gaussians == picked and f"{unassigned.size} Gaussians without a language feature left out" in printed
+    assert main(["query", str(reg), "--embedding", str(q), "--threshold", "-1", "--top", "5"]) == 0
+    assert f"{load_ply(reg).num_gaussians - unassigned.size} of" in capsys.readouterr().out
+
+
+def test_query_of_a_field_with_no_feature_at_all_is_one_error(demo_copy, query, tmp_path, capsys):
+    """Every Gaussian unassigned: the automatic threshold was 0 and every Gaussian was written, exit 0."""
+    from drsplat.cli import main
+
+    reg, _ = demo_copy
+    scene = load_ply(reg)
+    scene.extra["lang_norm"][:] = 0
+    scene.extra["lang_weight"][:] = 0
+    save_ply(scene, reg)
+    np.save(tmp_path / "q.npy", query)
+    for extra in (["--out", str(tmp_path / "sel.ply")], ["--top", "3"]):
+        assert main(["query", str(reg), "--embedding", str(tmp_path / "q.npy"), *extra]) == 1
+        assert "none of its 2,763 Gaussians has a language feature" in capsys.readouterr().err
+    assert not (tmp_path / "sel.ply").exists()
+
+
+def test_viewer_selection_leaves_gaussians_without_a_feature_out(demo, tmp_path):
+    from viewer.state import ViewerState
+
+    registered, folder = demo
+    state = ViewerState()
+    assert state.load_scene(registered) and state.load_source(folder)
+    assert state.run_oracle_query(state.oracle.names.index("mug"))
+    unassigned = ~state.field.assigned()
+    assert unassigned.any()
+    state.set_threshold(float(state.query.scores.min()) - 1.0)
+    assert state.selection.sum() == (~unassigned).sum() and not state.selection[unassigned].any()
+    assert state.export_selection(tmp_path / "all.ply", "standard") == int((~unassigned).sum())
+
+
 def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
     """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
     command = splat_transform_command()

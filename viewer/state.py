@@ -52,6 +52,7 @@ class QueryResult:
     scores: np.ndarray
     metric: str  # "relevancy" | "cosine"
     picked: np.ndarray | None = None  # Gaussian ids a click query started from
+    assigned: np.ndarray | None = None  # [N] bool the Gaussians with a feature (LanguageField.assigned): only they are selected
 
 
 @dataclass
@@ -252,8 +253,10 @@ class ViewerState:
 
     def _set_query(self, result: QueryResult) -> None:
 
+        if result.assigned is None and self.field is not None:
+            result.assigned = self.field.assigned()
         self.query = result
-        self.threshold = float(otsu_threshold(result.scores))
+        self.threshold = float(otsu_threshold(result.scores if result.assigned is None else result.scores[result.assigned]))
         if self.mode in ("color", "segmentation"):
             self.mode = "highlight"
         self.style_version += 1
@@ -374,11 +377,11 @@ class ViewerState:
 
     @property
     def selection(self) -> np.ndarray:
-        """[N] bool Gaussians at or above the threshold (drsplat.query.select); empty without a query."""
+        """[N] bool Gaussians with a feature at or above the threshold (drsplat.query.select); empty without a query."""
 
         if self.query is None:
             return np.zeros(self.num_gaussians, bool)
-        return select(self.query.scores, self.threshold)
+        return select(self.query.scores, self.threshold, self.query.assigned)
 
     def score_range(self) -> tuple[float, float]:
         if self.query is None:

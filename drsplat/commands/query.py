@@ -89,6 +89,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_kind, export_scene
+    from drsplat.query import select
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     if not args.relevancy and (args.negatives or args.negative_embeddings is not None):
@@ -110,24 +111,32 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         save_npy_atomic(args.scores, written)
         log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
         wrote = True
+    assigned = field.assigned()
+    if (args.out is not None or args.threshold is not None or not wrote) and not assigned.any():
+        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned): "
+                           "there is nothing to select or rank")
+    unassigned = len(field) - int(assigned.sum())
     if args.out is not None or args.threshold is not None:
-        threshold = resolve_threshold(args.threshold, best, args.relevancy)
-        mask = best >= threshold
-        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}")
+        threshold = resolve_threshold(args.threshold, best[assigned], args.relevancy)
+        mask = select(best, threshold, assigned)
+        left_out = f" ({unassigned:,} Gaussians without a language feature left out)" if unassigned else ""
+        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}")
         if args.out is not None:
             if not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
-                raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best.max(initial=-np.inf)):.4f}): "
+                raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
                                    f"nothing written to {args.out}; lower --threshold")
             export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
             log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
             wrote = True
     if not wrote:
-        print_top(best, args.top, "relevancy" if args.relevancy else "cosine")
+        print_top(best, assigned, args.top, "relevancy" if args.relevancy else "cosine")
     return 0
 
 
-def print_top(best: np.ndarray, top: int, what: str) -> None:
-    order = np.argsort(-best, kind="stable")[: max(top, 0)]
+def print_top(best: np.ndarray, assigned: np.ndarray, top: int, what: str) -> None:
+    """The `top` best-scoring Gaussians with a language feature (assigned [N] bool), best first."""
+    ids = np.flatnonzero(assigned)
+    order = ids[np.argsort(-best[ids], kind="stable")[: max(top, 0)]]
     print(f"{'gaussian':>10}  {what:>9}")
     for i in order:
         print(f"{int(i):>10}  {best[i]:>9.4f}")

@@ -50,6 +50,14 @@ class LanguageField:
     def norms(self) -> np.ndarray:
         return self.storage.norms
 
+    def assigned(self) -> np.ndarray:
+        """[N] bool: the Gaussians with a language feature (a finite, positive stored norm). The
+        others (unassigned, or a row whose stored values were found damaged and zeroed) score 0 and
+        are never selected, labelled or averaged into a query; a PQ row's codes decode to some
+        vector whatever its norm, so this, not a reconstruction, says which rows hold a feature."""
+        norms = self.norms
+        return np.isfinite(norms) & (norms > 0)
+
     @property
     def features(self) -> np.ndarray | None:
         return getattr(self.storage, "features", None)
