@@ -294,6 +294,29 @@ def test_viewer_selection_leaves_gaussians_without_a_feature_out(demo, tmp_path)
     assert state.export_selection(tmp_path / "all.ply", "standard") == int((~unassigned).sum())
 
 
+def test_lut_bits_8_where_it_cannot_apply_scores_exactly_with_a_warning(demo, query, tmp_path, capsys):
+    """8-bit tables are a CPU kernel for at most 257 sub-vectors: with the torch engine (the default on
+    a CUDA machine), an exact field or a codebook of M = 512 it was a ValueError traceback."""
+    import argparse
+    import types
+
+    from drsplat.cli import main
+    from drsplat.commands.common import lut_bits_for
+
+    registered, _ = demo
+    np.save(tmp_path / "q.npy", query)
+    base = ["query", str(registered), "--embedding", str(tmp_path / "q.npy")]
+    assert main(base + ["--scores", str(tmp_path / "exact.npy"), "--engine", "torch", "--device", "cpu"]) == 0
+    assert main(base + ["--scores", str(tmp_path / "torch8.npy"), "--lut-bits", "8", "--engine", "torch", "--device", "cpu"]) == 0
+    assert "--lut-bits 8: the torch engine scores with float32 tables" in capsys.readouterr().err
+    np.testing.assert_array_equal(np.load(tmp_path / "torch8.npy"), np.load(tmp_path / "exact.npy"))
+    args = argparse.Namespace(lut_bits=8)
+    wide = types.SimpleNamespace(codebook=types.SimpleNamespace(m=512))
+    assert lut_bits_for(args, wide, None) == 32 and "codebook has 512" in capsys.readouterr().err
+    assert lut_bits_for(args, types.SimpleNamespace(codebook=None), None) == 32 and "exact features" in capsys.readouterr().err
+    assert lut_bits_for(args, types.SimpleNamespace(codebook=types.SimpleNamespace(m=128)), None) == 8
+
+
 def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
     """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
     command = splat_transform_command()

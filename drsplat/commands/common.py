@@ -155,6 +155,25 @@ def scoring_device(args: argparse.Namespace) -> str | None:
     return device if engine == "torch" else None
 
 
+def lut_bits_for(args: argparse.Namespace, field: LanguageField, device: str | None) -> int:
+    """The tables to score with: --lut-bits, except that 8-bit tables (a CPU kernel for PQ codes of
+    at most Q8_MAX_M sub-vectors) fall back to the exact float32 ones, with a warning saying why,
+    on the torch engine, on an exact field (which has no tables) and on a codebook of more sub-vectors."""
+    from drsplat.lang.lut import Q8_MAX_M
+
+    bits = getattr(args, "lut_bits", 32)
+    if bits == 32:
+        return 32
+    codebook = field.codebook
+    why = ("the torch engine scores with float32 tables (8-bit tables are a CPU kernel)" if device is not None else
+           "this field stores exact features, which are scored without tables" if codebook is None else
+           f"8-bit tables need at most {Q8_MAX_M} sub-vectors and this field's codebook has {codebook.m}" if codebook.m > Q8_MAX_M else None)
+    if why is None:
+        return bits
+    log.warning("--lut-bits 8: %s; scoring with exact float32 tables", why)
+    return 32
+
+
 def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lut-bits", type=int, choices=(32, 8), default=32,
                         help="PQ look-up tables: 32 exact float32 (default), 8 faster 8-bit tables (see `drsplat bench query` for the error)")

@@ -76,8 +76,8 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     """[N, K] cosine, or relevancy with --relevancy."""
     from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy
 
-    lut_bits = getattr(args, "lut_bits", 32)
     device = common.scoring_device(args)
+    lut_bits = common.lut_bits_for(args, field, device)
     if not args.relevancy:
         return cosine(field, queries, lut_bits=lut_bits, device=device)
     user = split_phrases(args.negatives)

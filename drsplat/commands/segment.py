@@ -18,6 +18,7 @@ from drsplat.commands.common import (
     guard_field_codebook,
     float_range,
     load_registered,
+    lut_bits_for,
     output_file,
     scoring_device,
     split_phrases,
@@ -144,8 +145,9 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
-    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=args.lut_bits,
-                  device=scoring_device(args))
+    device = scoring_device(args)
+    seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=lut_bits_for(args, field, device),
+                  device=device)
     save_npy_atomic(args.out, seg.labels)
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
     if args.ply is not None:
