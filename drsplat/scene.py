@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.utils import write_bytes_atomic
+from drsplat.utils import hidden_character, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -317,6 +317,9 @@ def read_ply_header(path: Path) -> PlyHeader:
         if not words:
             continue
         key = words[0]
+        hidden = hidden_character(raw.replace("\t", " ")) if key in ("element", "property") else None
+        if hidden is not None:  # names are printed (info, errors): an ESC or NUL there would reach the terminal raw
+            raise _fail(path, f"header line {lineno} ({key}) holds {hidden}; PLY element and property names are printable ASCII words")
         if key == "format":
             if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
                 raise _fail(path, f"has an unknown format line (header line {lineno}); expected ascii, binary_little_endian or binary_big_endian")

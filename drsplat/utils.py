@@ -9,6 +9,7 @@ import math
 import os
 import tempfile
 import threading
+import unicodedata
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -387,6 +388,18 @@ def regular_file(path: str | Path) -> Path:
     if not path.is_file():
         raise InputError(path, "file not found" if not path.exists() else "is not a file")
     return path
+
+
+def hidden_character(text: str) -> str | None:
+    """A description of the first character of `text` that a terminal would not show as itself
+    (a control character such as a newline, ESC or NUL; a format character such as U+202E, which
+    reverses the text after it; a lone surrogate), or None when there is none."""
+    for ch in text:
+        category = unicodedata.category(ch)
+        if category in ("Cc", "Cf", "Cs"):
+            kind = {"Cc": "control", "Cf": "format", "Cs": "lone surrogate"}[category]
+            return f"a {kind} character (U+{ord(ch):04X})"
+    return None
 
 
 def json_text(doc: object, indent: int | None = 2) -> str:

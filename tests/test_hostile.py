@@ -1375,8 +1375,10 @@ def test_a_codebook_with_non_finite_centroids_is_refused(tmp_path, world, capsys
     (["  "], 0, "empty name"),
     (["ok", "a\nb"], 1, "control character"),
     (["ok", "a\u0000b"], 1, "control character"),
+    (["ok", "mug\u202egub"], 1, "a format character (U+202E)"),
+    (["ok", "a\u0085b"], 1, "a control character (U+0085)"),
     (["ok", "dup", "dup"], 2, "repeats the name \"dup\" of entry 1"),
-], ids=["list", "number", "null", "empty", "blank", "newline", "nul", "duplicate"])
+], ids=["list", "number", "null", "empty", "blank", "newline", "nul", "right_to_left_override", "c1_control", "duplicate"])
 def test_segment_names_must_be_distinct_non_empty_strings(tmp_path, world, capsys, entries, index, words):
     """Was: `[["x"], ...]`, empty and repeated names accepted; newlines and NULs printed raw in the table."""
     count = np.load(world["L"]).shape[0]

@@ -317,6 +317,37 @@ def test_lut_bits_8_where_it_cannot_apply_scores_exactly_with_a_warning(demo, qu
     assert lut_bits_for(args, types.SimpleNamespace(codebook=types.SimpleNamespace(m=128)), None) == 8
 
 
+@pytest.mark.parametrize("entry", ["codebook=x%0AERROR:%20forged%20line%0A", "codebook=%1B[2J%1B[31mred", "clip=bad%0Amodel/x",
+                                   "codebook=reg.codebook.faiss%00", "clip=a%E2%80%AEb"])
+def test_hidden_characters_in_the_field_metadata_are_one_error(demo_copy, query, tmp_path, capsys, entry):
+    """The header's URL-quoted values reached the terminal raw: a %0A forged an extra 'ERROR:' line,
+    %1B sent escape codes, U+202E reversed the text after it."""
+    from drsplat.cli import main
+
+    reg, _ = demo_copy
+    scene = load_ply(reg)
+    key = entry.split("=")[0]
+    (i,) = [j for j, c in enumerate(scene.comments) if c.startswith("drsplat.lang ")]
+    words = [w for w in scene.comments[i].split() if not w.startswith(key + "=")]
+    scene.comments[i] = " ".join(words + [entry])
+    save_ply(scene, reg)
+    np.save(tmp_path / "q.npy", query)
+    assert main(["query", str(reg), "--embedding", str(tmp_path / "q.npy")]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "\x1b" not in err and "\u202e" not in err
+    assert "reg.ply" in err and "holds a" in err and "(the file was altered)" in err
+
+
+def test_a_ply_property_name_with_a_control_character_is_one_error(tmp_path, capsys):
+    from drsplat.cli import main
+
+    path = tmp_path / "esc.ply"
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\x1b[2J\nend_header\n")
+    assert main(["info", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "header line 4 (property) holds a control character (U+001B)" in err
+
+
 def test_field_survives_a_real_splat_transform_round_trip(demo, query, tmp_path):
     """PlayCanvas splat-transform (npm) ply -> ply, plain and Morton-reordered: the field is read back."""
     command = splat_transform_command()

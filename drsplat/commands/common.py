@@ -21,6 +21,7 @@ from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size
 from drsplat.lang import LanguageField, read_field
 from drsplat.scene import GaussianScene
+from drsplat.utils import hidden_character
 
 log = logging.getLogger(__name__)
 
@@ -307,7 +308,7 @@ def export_outputs(path, fmt: str, flag: str) -> dict:
 
 def checked_names(path: Path, names: list) -> list[str]:
     """The names as given, or one error naming the first entry that is not a non-empty string
-    without control characters, or that repeats an earlier name (the names label the printed
+    without hidden characters (`utils.hidden_character`), or that repeats an earlier name (the names label the printed
     table and the coloured PLY's legend: a list, a blank or a twice-used name would mislabel it)."""
     seen: dict[str, int] = {}
     for i, name in enumerate(names):
@@ -316,10 +317,9 @@ def checked_names(path: Path, names: list) -> list[str]:
             raise InputError(path, f"entry {i} is {shown}, not a string; expected a JSON list of label names")
         if not name.strip():
             raise InputError(path, f"entry {i} is an empty name ({shown})")
-        if any(ch < " " or ch == "\x7f" for ch in name):
-            raise InputError(path, f"entry {i} ({shown}) holds a control character (newline, tab, NUL...)")
-        if any("\ud800" <= ch <= "\udfff" for ch in name):  # JSON's "\ud800" alone: no text, and no file or terminal takes it
-            raise InputError(path, f"entry {i} ({shown}) holds a lone UTF-16 surrogate, which is not a character")
+        hidden = hidden_character(name)  # a newline, ESC, U+202E or JSON's lone "\ud800" would garble the table and the legend
+        if hidden is not None:
+            raise InputError(path, f"entry {i} ({shown}) holds {hidden}, which a terminal would not show as itself")
         key = name.strip()
         if key in seen:
             same = "" if name == names[seen[key]] else " (apart from spaces around it)"

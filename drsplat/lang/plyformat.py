@@ -38,7 +38,7 @@ from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path
+from drsplat.utils import atomic_path, hidden_character
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +226,11 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if meta is None:
         return None
     where = "comment drsplat.lang" if parse_field_comment(scene.comments) is not None else META_PROPERTY  # what the error names
+    for key, value in meta.items():  # URL-quoted values could carry a newline or ESC into every message that names them
+        hidden = hidden_character(key + value)
+        if hidden is not None:
+            raise InputError(ply_path, f"the metadata entry {quote(key)}={quote(value)} holds {hidden}; a header written by drsplat "
+                                       "has none (the file was altered)", field=where)
     kind = meta.get("kind")
     if kind not in BACKENDS:
         raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field=where)
