@@ -445,7 +445,7 @@ def save_splat(scene: GaussianScene, path: str | Path) -> None:
 def splat_records(scene: GaussianScene) -> tuple[np.ndarray, dict[str, int]]:
     """[N] SPLAT_RECORD of a (finite) scene and the count of clipped values per field:
 
-        scale = exp(log s)                   (float32; beyond float32's range: its largest, counted)
+        scale = exp(log s)                   (float32; beyond float32's normal range: its largest or smallest, counted)
         rgba  = round(255·(½ + SH_C0·f_dc)), round(255·σ(opacity logit))
         rot   = round(128 + 128·q̂) ∈ [0, 255]  (q̂ = (w, x, y, z) / |q|; a component of 1 stores 255)
     """
@@ -454,13 +454,14 @@ def splat_records(scene: GaussianScene) -> tuple[np.ndarray, dict[str, int]]:
     out["position"] = scene.means
     with np.errstate(over="ignore"):
         scale = np.exp(scene.log_scales.astype(np.float64))
-    big = scale > np.finfo(np.float32).max
-    out["scale"] = np.where(big, np.finfo(np.float32).max, scale)
+    limits = np.finfo(np.float32)
+    outside = (scale > limits.max) | (scale < limits.smallest_normal)  # a scale that rounds to 0 reads back as log 0 = -inf
+    out["scale"] = np.clip(scale, limits.smallest_normal, limits.max)
     rgb, clipped_rgb = _bytes_of(255.0 * (0.5 + SH_C0 * scene.sh[:, 0].astype(np.float64)))
     alpha, _ = _bytes_of(255.0 * scene.opacities().astype(np.float64))
     out["rgba"][:, :3], out["rgba"][:, 3] = rgb, alpha
     out["rotation"], _ = _bytes_of(128.0 + 128.0 * scene.unit_quats64())
-    return out, {"colour": clipped_rgb, "scale": int(big.sum())}
+    return out, {"colour": clipped_rgb, "scale": int(outside.sum())}
 
 
 def save_spz(scene: GaussianScene, path: str | Path, version: int = SPZ_WRITE_VERSION) -> None:

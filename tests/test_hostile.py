@@ -1582,6 +1582,24 @@ def test_flipped_pq_code_bytes_are_detected_and_score_zero(tmp_path, capsys):
     assert np.count_nonzero(scores[rows] == 0) == caught
 
 
+def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
+    """Was: lang_norm set to -1 made a row silently unassigned (a norm of 3 was warned about)."""
+    import shutil
+
+    from drsplat.scene import load_ply, save_ply
+    from viewer.demo import demo_dir
+
+    registered = demo_dir() / "registered.ply"
+    scene = load_ply(registered)
+    scene.extra["lang_norm"][:100] = -1.0
+    damaged = tmp_path / "registered.ply"
+    save_ply(scene, damaged)
+    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
+    np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
+    assert code == 0 and "100 of 2763 Gaussians have PQ codes that do not reproduce their stored norm" in err
+
+
 def test_register_into_a_device_writes_in_place_and_keeps_nothing_in_dev(tmp_path, world, capsys):
     """`register --out /dev/full`: one error naming the device; its temp body and checkpoint go to the temp
     folder, never into /dev (as root they used to be created there)."""

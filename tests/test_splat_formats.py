@@ -315,6 +315,13 @@ def test_non_finite_values_are_refused_and_clipping_is_counted(tmp_path, caplog)
         save_scene(scene, tmp_path / "bright.splat")
     assert "bright.spz: 4 colour values, 2 scale values clipped to what .spz holds" in caplog.text
     assert "bright.splat: " in caplog.text and "colour values clipped to what .splat holds" in caplog.text
+    scene.log_scales[1] = (-120.0, 100.0, 0.0)  # exp() underflows / overflows float32: a 0 scale read back as log 0 = -inf
+    save_scene(scene, tmp_path / "tiny.splat")
+    (line,) = [line for line in caplog.text.splitlines() if "tiny.splat: " in line]
+    assert "2 scale values clipped to what .splat holds" in line
+    back = load_scene(tmp_path / "tiny.splat")
+    assert back.num_gaussians == 40 and np.all(np.isfinite(back.log_scales))
+    assert np.allclose(back.log_scales[1], (np.log(np.finfo(np.float32).smallest_normal), np.log(np.finfo(np.float32).max), 0.0), atol=1e-5)
 
 
 @pytest.mark.parametrize("name", ["e.spz", "e4.spz", "e.splat", "e.ply"])

@@ -154,7 +154,7 @@ class PQStorage:
         vectors are concatenated), M table look-ups per row; ivfpq: the rows are decoded in chunks
         (the coarse centroid adds cross terms). A flipped code byte is caught unless the two
         centroids of that sub-quantiser have norms within `rtol` (rare: measured in the tests).
-        Unassigned rows (norm 0) are not checked.
+        Unassigned rows (norm 0) are not checked; a negative norm, which no encoder writes, counts as altered.
         """
         n = self.codes.shape[0]
         recomputed = np.zeros(n, np.float64)
@@ -167,7 +167,7 @@ class PQStorage:
                 recomputed[start:stop] = np.linalg.norm(self.codebook.decode(self.codes[start:stop], self.list_ids[start:stop]).astype(np.float64), axis=1)
         stored = self.norms.astype(np.float64)
         with np.errstate(invalid="ignore"):
-            return (stored > 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))
+            return (stored != 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))
 
     def scores(self, q: np.ndarray, lut_bits: int = 32) -> np.ndarray:
         """On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) the codes are scored in a blocked copy,
