@@ -1582,6 +1582,28 @@ def test_flipped_pq_code_bytes_are_detected_and_score_zero(tmp_path, capsys):
     assert np.count_nonzero(scores[rows] == 0) == caught
 
 
+@pytest.mark.parametrize("which", ["exact", "pq"])
+def test_feature_columns_beyond_the_declared_size_are_refused(tmp_path, world, capsys, which):
+    """Was: lang_<dim> (or lang_code_<M>) was refused but lang_600 (lang_code_200) silently ignored."""
+    import shutil
+
+    from drsplat.scene import load_ply, save_ply
+    from viewer.demo import demo_dir
+
+    source = world["reg"] if which == "exact" else demo_dir() / "registered.ply"
+    scene = load_ply(source)
+    name = "lang_600" if which == "exact" else "lang_code_200"
+    scene.extra[name] = np.zeros(scene.num_gaussians, np.uint16 if which == "exact" else np.uint8)  # float16 bits, as lang_<j> stores them
+    damaged = tmp_path / "registered.ply"
+    save_ply(scene, damaged)
+    if which == "pq":
+        shutil.copyfile(source.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
+    code, err = run_cli(["query", damaged, "--embedding", world["q"] if which == "exact" else demo_dir() / "text_embeddings.npy", "--top", "1"], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "registered.ply" in line, line
+    assert ("up to lang_600" in line) if which == "exact" else ("field 'lang_code_200'" in line and "M=128" in line), line
+
+
 def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
     """Was: lang_norm set to -1 made a row silently unassigned (a norm of 3 was warned about)."""
     import shutil

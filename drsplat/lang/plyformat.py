@@ -241,9 +241,10 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if not 1 <= dim <= MAX_DIM:
         raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field=where)
     clip_model = meta.get("clip", "unknown")
-    if not needs_codebook(kind) and f"lang_{dim}" in scene.extra:
-        raise InputError(ply_path, f"declares dim={dim} but has {_feature_columns(scene)} feature columns lang_<j>, "
-                         f"so the metadata does not describe this file's features", field=where)
+    beyond = [j for j in _numbered_columns(scene, "lang_") if j >= dim]
+    if not needs_codebook(kind) and beyond:
+        raise InputError(ply_path, f"declares dim={dim} but has {len(_numbered_columns(scene, 'lang_'))} feature columns lang_<j> "
+                         f"(up to lang_{max(beyond)}), so the metadata does not describe this file's features", field=where)
     weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
     book = None
     if needs_codebook(kind):
@@ -252,8 +253,10 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
-        if f"lang_code_{book.m}" in scene.extra:
-            raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m}", field=f"lang_code_{book.m}")
+        extra_codes = [j for j in _numbered_columns(scene, "lang_code_") if j >= book.m]
+        if extra_codes:
+            raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m} (lang_code_0 .. lang_code_{book.m - 1})",
+                             field=f"lang_code_{min(extra_codes)}")
     try:
         storage = BACKENDS[kind].from_columns(lambda name: _extra(scene, ply_path, name), scene.num_gaussians, dim, book)
     except InputError as exc:
@@ -267,9 +270,9 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     return LanguageField(dim, clip_model, weights, storage)
 
 
-def _feature_columns(scene: GaussianScene) -> int:
-    """How many exact-feature properties (`lang_<j>`) a scene has."""
-    return sum(1 for name in scene.extra if name.startswith("lang_") and name[len("lang_"):].isdigit())
+def _numbered_columns(scene: GaussianScene, prefix: str) -> list[int]:
+    """The numbers j of a scene's properties named `<prefix><j>` (lang_<j> features, lang_code_<j> codes)."""
+    return [int(name[len(prefix):]) for name in scene.extra if name.startswith(prefix) and name[len(prefix):].isdigit()]
 
 
 def _without_altered_codes(storage, ply_path: Path):
