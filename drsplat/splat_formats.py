@@ -165,8 +165,9 @@ def spz_columns(path: Path) -> tuple[dict, list[str], str]:
     if header["flags"] & FLAG_ANTIALIASED:
         log.warning("%s: was trained with anti-aliasing (mip-splatting's 2D filter); drsplat rasterizes it as plain 3DGS, "
                     "so small splats weigh a little more than in its own renderer", path)
-    cols = _decode_spz_blocks(blocks, version, points, degree, int(header["fractional_bits"]))
-    _to_ply_frame(cols, frame)
+    with np.errstate(invalid="ignore", over="ignore"):  # a float16 NaN or inf (version 1) flips without numpy's warning: the load counts it
+        cols = _decode_spz_blocks(blocks, version, points, degree, int(header["fractional_bits"]))
+        _to_ply_frame(cols, frame)
     if degree > max(SH_REST_COUNTS):  # the degrees a GaussianScene (and 3DGS) holds
         log.warning("%s: has SH degree %d; drsplat keeps degrees 0-%d (the rest only tints view-dependent colour)",
                     path, degree, max(SH_REST_COUNTS))

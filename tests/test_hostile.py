@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import textwrap
@@ -1602,6 +1603,35 @@ def test_feature_columns_beyond_the_declared_size_are_refused(tmp_path, world, c
     (line,) = error_lines(err)
     assert code == 1 and "registered.ply" in line, line
     assert ("up to lang_600" in line) if which == "exact" else ("field 'lang_code_200'" in line and "M=128" in line), line
+
+
+def test_small_probe_findings_of_round_7(tmp_path, world, capsys):
+    """A header's codebook that is a folder was "codebook file not found" (naming no PLY); `pq train`
+    with no inputs exited 1 as a file error; `synth --noise 1e30` wrote all-zero embeddings, exit 0;
+    a version-1 spz holding a float16 NaN printed numpy's raw RuntimeWarning."""
+    import warnings
+    import zlib
+
+    from drsplat.scene import load_ply, save_ply
+    from drsplat.splat_formats import load_scene_report
+    from viewer.demo import demo_dir
+
+    scene = load_ply(demo_dir() / "registered.ply")
+    (tmp_path / "registered.codebook.faiss").mkdir()
+    save_ply(scene, tmp_path / "registered.ply")
+    code, err = run_cli(["query", tmp_path / "registered.ply", "--embedding", demo_dir() / "text_embeddings.npy", "--top", "1"], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "is not a regular file (a folder)" in line and "the codebook registered.ply's header names" in line, line
+    assert run_cli(["pq", "train", "--out", tmp_path / "x.faiss"], capsys)[0] == 2
+    assert run_cli(["synth", tmp_path / "syn", "--noise", "1e30"], capsys)[0] == 2 and not (tmp_path / "syn").exists()
+    header = struct.pack("<IIIBBBB", 0x5053474E, 1, 2, 0, 0, 0, 0)
+    body = header + np.array([[0x7C01, 0, 0], [0, 0, 0]], "<u2").tobytes() + bytes([200, 200]) + bytes(6 * [128]) + bytes(6 * [100]) + bytes(6 * [128])
+    packer = zlib.compressobj(6, zlib.DEFLATED, 31)
+    (tmp_path / "nan.spz").write_bytes(packer.compress(body) + packer.flush())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back, report = load_scene_report(tmp_path / "nan.spz")
+    assert back.num_gaussians == 1 and report.dropped_nan_rows == 1
 
 
 def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):

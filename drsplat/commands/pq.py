@@ -56,7 +56,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
             raise InputError(folder, f"no *{FEAT_SUFFIX} embedding files in this folder")
         files.extend(found)
     if not files:
-        raise InputError(None, "no embeddings given: use --embeddings A.npy or --features DIR")
+        raise UsageError("no embeddings given: use --embeddings A.npy or --features DIR")
     parts, dim = [], None
     for path in files:
         arr = load_npy(path, "embedding array")

@@ -6,11 +6,13 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import float_range, int_range, nonneg_float, seed_int
+from drsplat.commands.common import float_range, int_range, seed_int
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import OutputError, UsageError
 
 log = logging.getLogger(__name__)
+
+MAX_NOISE = 1000.0  # far past noise that hides the label (norm 1); 1e30 overflowed float32 into all-zero embeddings
 
 MAX_JITTER = 64  # pixels
 # what `drsplat synth` writes at the top of its folder (every preset): anything else there is the user's
@@ -34,7 +36,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=seed_int, default=0, help="random seed, 0..2^32-1 (default: 0)")
     p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
                    help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
-    p.add_argument("--noise", type=nonneg_float, default=0.15, help="norm of the random part of each mask embedding (default: 0.15)")
+    p.add_argument("--noise", type=float_range(0.0, MAX_NOISE), default=0.15,
+                   help=f"norm of the random part of each mask embedding, at most {MAX_NOISE:g} (default: 0.15; the label part's norm is 1)")
     p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
                    help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
     p.add_argument("--merge", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION",

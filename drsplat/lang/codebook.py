@@ -278,7 +278,8 @@ def load_codebook(path: str | Path) -> Codebook:
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "codebook file not found")
+        raise InputError(path, "codebook file not found" if not path.exists() else
+                         f"is not a regular file ({'a folder' if path.is_dir() else 'a FIFO, device or socket'}); a codebook is a faiss index file")
     check_faiss_header(path)
     try:
         index = faiss.read_index(str(path))

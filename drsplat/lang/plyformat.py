@@ -250,7 +250,10 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if needs_codebook(kind):
         if "codebook" not in meta:
             raise InputError(ply_path, "a quantised language field names no codebook file", field=where)
-        book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
+        try:
+            book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
+        except InputError as exc:  # say whose codebook it is: the file named is not one the user typed
+            raise InputError(exc.path, f"{exc.problem} (the codebook {ply_path.name}'s header names)", field=exc.field) from None
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
         extra_codes = [j for j in _numbered_columns(scene, "lang_code_") if j >= book.m]
