@@ -1650,6 +1650,10 @@ def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
     np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
     code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
     assert code == 0 and "100 of 2763 Gaussians have PQ codes that do not reproduce their stored norm" in err
+    scene.extra["lang_norm"][:100] = 0.0  # was: read as unassigned without a word, though their weight says they were registered
+    save_ply(scene, damaged)
+    code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
+    assert code == 0 and "100 Gaussians have a registration weight (lang_weight > 0) but no language feature" in err
 
 
 def test_register_into_a_device_writes_in_place_and_keeps_nothing_in_dev(tmp_path, world, capsys):

@@ -266,10 +266,14 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         if exc.path is not None:
             raise
         raise InputError(ply_path, exc.problem, field=exc.field) from None
+    orphans = int(np.count_nonzero((weights > 0) & (storage.norms == 0)))
     storage = _without_altered_codes(storage, ply_path)
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
+    if orphans:  # registration zeroes the weight of every row it leaves without a feature (normalize_rows)
+        log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
+                    "they are unassigned", ply_path, orphans)
     return LanguageField(dim, clip_model, weights, storage)
 
 
