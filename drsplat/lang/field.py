@@ -13,6 +13,7 @@ import numpy as np
 from drsplat.errors import InputError
 from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, unit_rows
 from drsplat.lang.backends import BACKENDS, ExactStorage, Storage
+from drsplat.lang.lut import has_feature
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +56,7 @@ class LanguageField:
         others (unassigned, or a row whose stored values were found damaged and zeroed) score 0 and
         are never selected, labelled or averaged into a query; a PQ row's codes decode to some
         vector whatever its norm, so this, not a reconstruction, says which rows hold a feature."""
-        norms = self.norms
-        return np.isfinite(norms) & (norms > 0)
+        return has_feature(self.norms)
 
     @property
     def features(self) -> np.ndarray | None:

@@ -198,10 +198,17 @@ def code_table_sums_reference(codes: np.ndarray, table: np.ndarray) -> np.ndarra
     return out
 
 
+def has_feature(norms: np.ndarray) -> np.ndarray:
+    """[N] bool: the rows whose stored norm [N] is finite and positive, the rows that hold a feature
+    (the others, unassigned or found damaged, score 0 and are never selected)."""
+    norms = np.asarray(norms)
+    return np.isfinite(norms) & (norms > 0)
+
+
 def inverse_norms(norms: np.ndarray) -> np.ndarray:
     """1/|r| with 0 for zero (or non-finite) norms: [N] float32."""
     norms = np.asarray(norms, np.float32)
-    ok = np.isfinite(norms) & (norms > 0)
+    ok = has_feature(norms)
     return np.where(ok, 1.0 / np.where(ok, norms, 1.0), 0.0).astype(np.float32)
 
 
