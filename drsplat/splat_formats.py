@@ -74,22 +74,44 @@ MAX_SPZ_RATIO = 1024  # data bytes per file byte a header may declare (the spz l
 SPZ_FRAMES = {1: "LDB", 2: "RDB", 3: "LUB", 4: "RUB", 5: "LDF", 6: "RDF", 7: "LUF", 8: "RUF"}
 DEFAULT_SPZ_FRAME = 4  # RUB
 SCENE_SUFFIXES = (".ply", ".splat", ".spz")  # the scene files load_scene reads
+SNIFF_BYTES = 4096  # what scene_format reads of a file: enough of a gzip stream to inflate an spz header
 
 
 def scene_format(path: Path) -> str:
     """"ply", "splat" or "spz": PLY by its first line ("ply"), then `.splat` by its name (the format
-    has no header, and a first float's bytes can be anything, gzip's magic included), then spz by its
-    first bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then names what is
-    wrong."""
+    has no header, and a first float's bytes can be anything, gzip's magic included) unless its first
+    bytes are an spz header (`_holds_spz_header`: an spz renamed, read as spz with a warning), then
+    spz by its first bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then
+    names what is wrong."""
     with open(path, "rb") as f:
-        head = f.read(4)
+        head = f.read(SNIFF_BYTES)
     if head[:3] == b"ply" and head[3:4] in (b"\n", b"\r"):
         return "ply"
     if path.suffix.lower() == ".splat":
-        return "splat"
-    if head[:2] == GZIP_MAGIC or (len(head) == 4 and int.from_bytes(head, "little") == NGSP_MAGIC) or path.suffix.lower() == ".spz":
+        if not _holds_spz_header(head):
+            return "splat"
+        log.warning("%s: is named .splat but holds an .spz file (its first bytes are an spz header); read as .spz", path)
+        return "spz"
+    if head[:2] == GZIP_MAGIC or (len(head) >= 4 and int.from_bytes(head[:4], "little") == NGSP_MAGIC) or path.suffix.lower() == ".spz":
         return "spz"
     return "ply"
+
+
+def _holds_spz_header(head: bytes) -> bool:
+    """Whether the first bytes of a file are an spz header: "NGSP" and a known version, plainly
+    (version 4) or as the start of a gzip stream (1-3). The first record of a `.splat` could start
+    with gzip's two bytes by chance, but not with a stream that inflates to such a header."""
+    def is_header(data: bytes) -> bool:
+        return len(data) >= 8 and int.from_bytes(data[:4], "little") == NGSP_MAGIC and int.from_bytes(data[4:8], "little") in SPZ_VERSIONS
+
+    if is_header(head):
+        return True
+    if head[:2] != GZIP_MAGIC:
+        return False
+    try:
+        return is_header(zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, 8))
+    except zlib.error:
+        return False
 
 
 def load_scene_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
@@ -388,7 +410,7 @@ def _to_ply_frame(cols: dict, frame: int) -> None:
     sx, sy, sz = _frame_signs(frame)
     if (sx, sy, sz) == (1.0, 1.0, 1.0):
         return
-    cols["means"] = cols["means"] * np.array([sx, sy, sz], np.float32)
+    cols["means"] = cols["means"] * np.array([sx, sy, sz], np.float32) + np.float32(0.0)  # + 0: a flipped 0 is 0, not -0
     cols["quats"] = cols["quats"] * np.array([1.0, sy * sz, sx * sz, sx * sy], np.float32)
     k = cols["sh"].shape[1] - 1
     if k:
@@ -427,6 +449,19 @@ def save_scene(scene: GaussianScene, path: str | Path, spz_version: int = SPZ_WR
     else:
         save_ply(scene, path)
     return kind
+
+
+def check_writable(scene: GaussianScene, path: str | Path) -> None:
+    """OutputError now for what `save_scene` would refuse later (non-finite values in a .splat or
+    .spz, positions beyond .spz's 24 bits), so that a command checks its export before it writes its
+    other outputs."""
+    path = Path(path)
+    kind = written_format(path)
+    if kind == "ply":
+        return
+    _refuse_nonfinite(scene, path, kind)
+    if kind == "spz":
+        spz_fractional_bits(scene.means, path)
 
 
 def save_splat(scene: GaussianScene, path: str | Path) -> None:

@@ -37,6 +37,23 @@ def query_args(r: dict) -> list[str]:
     return ["--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--label-names", str(r["ds"] / "gt" / "label_names.json")]
 
 
+def test_eval_original_that_does_not_match_suggests_the_quantised_copy(registered, tmp_path, capsys):
+    """A registered PLY made from a .spz copy has positions on 1/4096 steps, which the match against
+    the full-precision PLY (1e-5 of the extent) refuses on scenes under ~12 units: the error says to
+    pass the copy the registration read."""
+    from drsplat.scene import load_ply, save_ply
+
+    r = registered
+    moved = load_ply(r["ds"] / "scene.ply")
+    moved.means[:] += 1e-3 * np.ptp(moved.means, axis=0).max()
+    save_ply(moved, tmp_path / "moved.ply")
+    argv = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(tmp_path / "moved.ply"),
+            *query_args(r)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "moved.ply: is not the scene" in err and "pass that copy as --original" in err
+
+
 def test_eval_iou_matches_the_library(registered, capsys):
     from drsplat.cameras import load_cameras
     from drsplat.eval.metrics import evaluate_scene
@@ -482,5 +499,5 @@ def test_eval_pseudolabels_labelling_nothing_says_why(registered, tmp_path, caps
     assert main(["eval", "pseudolabels", str(r["ds"] / "scene.ply"), "--points", str(tmp_path / "cloud.ply"), "--out", str(out),
                  "--label-names", str(names)]) == 0
     err = capsys.readouterr().err
-    assert "WARNING: " in err and "cloud.ply: the pseudo-labels label none of the" in err and words in err, err
+    assert "WARNING: " in err and "the pseudo-labels from " in err and "cloud.ply label none of the scene's" in err and words in err, err
     assert (np.load(out) == -1).all()

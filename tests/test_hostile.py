@@ -1634,6 +1634,60 @@ def test_small_probe_findings_of_round_7(tmp_path, world, capsys):
     assert back.num_gaussians == 1 and report.dropped_nan_rows == 1
 
 
+def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
+    """What a probe of scene files across commands found: registering an empty scene was a memoryview
+    traceback; `register --out x.spz` wrote a PLY under that name; an .spz renamed .splat loaded as
+    garbage records; `query` on an .spz said only "is not a PLY file"; `segment --ply far.spz` and
+    `query --scores ... --out far.spz` left their other output written when the export was refused;
+    `register --out SCENE` named the scene "--scene"; `info` on an empty scene printed zeros as statistics."""
+    from drsplat.scene import load_ply, save_ply
+    from drsplat.splat_formats import load_scene_report, save_scene
+    from viewer.state import ViewerState
+
+    ds = world["ds"]
+    scene = load_ply(ds / "scene.ply")
+    base = ["--source", ds, "--features", ds / "features", "--no-progress"]
+    save_ply(scene.subset(np.zeros(scene.num_gaussians, bool)), tmp_path / "empty.ply")
+    code, err = run_cli(["register", tmp_path / "empty.ply", *base, "--out", tmp_path / "r.ply"], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "empty.ply: holds no Gaussians: there is nothing to register" in line, line
+    code, err = run_cli(["register", ds / "scene.ply", *base, "--out", tmp_path / "r.spz"], capsys)
+    assert code == 2 and "--out r.spz: a registered scene is a PLY" in err and not (tmp_path / "r.spz").exists()
+    code, err = run_cli(["register", ds / "scene.ply", *base, "--out", ds / "scene.ply"], capsys)
+    assert code == 1 and "the input SCENE" in err and "--scene" not in err, err
+    state = ViewerState()
+    assert state.load_scene(ds / "scene.ply") and state.load_source(ds)
+    assert not state.start_registration(tmp_path / "v.splat") and "a registered scene is a PLY" in state.messages[-1].text
+
+    for version in (3, 4):
+        save_scene(scene, tmp_path / f"v{version}.spz", spz_version=version)
+        renamed = tmp_path / f"v{version}.splat"
+        (tmp_path / f"v{version}.spz").rename(renamed)
+        back, report = load_scene_report(renamed)
+        assert report.layout == f"spz v{version}" and back.num_gaussians == scene.num_gaussians
+    assert "is named .splat but holds an .spz file" in capsys.readouterr().err
+
+    code, err = run_cli(["query", tmp_path / "v3.splat", "--embedding", world["q"]], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "is a .spz scene, not a registered one" in line and "run drsplat register on it first" in line, line
+
+    reg = load_ply(world["reg"])
+    reg.means[0, 0] = 9e6  # beyond what .spz's 24-bit positions hold
+    far = tmp_path / "far.ply"
+    save_ply(reg, far)
+    code, err = run_cli(["segment", far, "--embeddings", world["L"], "--out", tmp_path / "labels.npy", "--ply", tmp_path / "seg.spz"], capsys)
+    assert code == 1 and "24-bit fixed point" in err and not (tmp_path / "labels.npy").exists() and not (tmp_path / "seg.spz").exists()
+    code, err = run_cli(["query", far, "--embedding", world["q"], "--threshold", "-1", "--scores", tmp_path / "s.npy", "--out", tmp_path / "sel.spz"], capsys)
+    assert code == 1 and "24-bit fixed point" in err and not (tmp_path / "s.npy").exists() and not (tmp_path / "sel.spz").exists()
+
+    from drsplat.commands.info import format_summary, scene_summary
+
+    summary = scene_summary(*load_scene_report(tmp_path / "empty.ply"))
+    printed = format_summary(summary)
+    assert "opacity        min -  median -  max -" in printed and "bbox min       -" in printed
+    assert summary["bbox_min"] is None and summary["opacity"]["median"] is None
+
+
 def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
     """Was: lang_norm set to -1 made a row silently unassigned (a norm of 3 was warned about)."""
     import shutil

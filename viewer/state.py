@@ -27,12 +27,12 @@ from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
-from drsplat.lang import codebook_path_for, export_kind, export_scene, read_field
+from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, export_kind, export_scene, read_field
 from drsplat.query import load_query_embeddings, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
-from drsplat.splat_formats import load_scene_report
+from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, load_npy, read_json
 from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
@@ -521,6 +521,9 @@ class ViewerState:
             return False
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
+            return False
+        if written_format(output) != "ply":
+            self.error(f"{Path(output).name}: {REGISTERED_IS_PLY}")
             return False
         if not self.guard_output(output, "the registration's output"):  # never over the scene, its dataset or features
             return False

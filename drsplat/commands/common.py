@@ -19,8 +19,9 @@ from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size
-from drsplat.lang import LanguageField, read_field
+from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
+from drsplat.splat_formats import scene_format
 from drsplat.utils import hidden_character
 
 log = logging.getLogger(__name__)
@@ -181,9 +182,13 @@ def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
-    """Load a registered PLY and its language field (InputError if it has none or rows were dropped)."""
+    """Load a registered PLY and its language field (InputError if it has none or rows were dropped,
+    or if the file is a .splat / .spz scene, which cannot hold a field)."""
     from drsplat.scene import load_ply_report
 
+    kind = scene_format(Path(path)) if Path(path).is_file() else "ply"
+    if kind != "ply":
+        raise InputError(path, f"is a .{kind} scene, not a registered one: {REGISTERED_IS_PLY.split(';')[0]}; run drsplat register on it first")
     scene, report = load_ply_report(path)
     if scene.num_gaussians == 0:
         raise InputError(path, "holds no Gaussians (0 rows): there is nothing to query or segment")
@@ -241,14 +246,17 @@ def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) ->
     return threshold
 
 
+POSITIONAL_NAMES = {"scene": "SCENE", "registered": "REGISTERED.ply", "codebook": "CODEBOOK", "out_dir": "OUT_DIR"}  # the commands' positional arguments
+
+
 def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs: dict[str, Path | None] | None = None,
                extra_outputs: dict[str, Path | None] | None = None, protected_folders: dict[str, tuple[Path | None, tuple[str, ...]]] | None = None) -> None:
     """`drsplat.utils.guard_outputs` over a parsed command line: every Path-valued argument that is
     not one of `outputs` (attribute names) is an input. Raises OutputError before any work starts."""
     from drsplat.utils import guard_outputs
 
-    def flag(name: str) -> str:
-        return "--" + name.replace("_", "-")
+    def flag(name: str) -> str:  # a positional argument is named as its usage line shows it
+        return POSITIONAL_NAMES.get(name, "--" + name.replace("_", "-"))
 
     inputs: dict[str, Path | None] = {}
     for name, value in vars(args).items():

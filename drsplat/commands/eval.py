@@ -258,7 +258,7 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     labelled = int(np.count_nonzero(res.labels >= 0))
     log.info("pseudo-labels: %d of %d Gaussians labelled from %d points (%d non-finite Gaussians)", labelled, len(res.labels), len(pts.points), res.nonfinite)
     if labelled == 0:
-        log.warning("%s: the pseudo-labels label none of the %d Gaussians: %s", cloud, len(res.labels),
+        log.warning("the pseudo-labels from %s label none of the scene's %d Gaussians: %s", cloud, len(res.labels),
                     why_nothing_labelled(scene.means, pts.points, pts.labels, res.nonfinite, args.radius))
     return res.labels.astype(np.int64), pts.names
 
@@ -315,7 +315,9 @@ def load_eval_scene(args: argparse.Namespace):
     try:
         index = match_gaussians(original.means, scene.means)
     except ValueError as exc:
-        raise InputError(args.original, f"is not the scene {args.registered.name} was registered from: {exc}") from None
+        raise InputError(args.original, f"is not the scene {args.registered.name} was registered from: {exc}; if it was registered "
+                                        "from a .spz or .splat copy of this scene, pass that copy as --original (.spz stores "
+                                        "positions in steps of 1/4096)") from None
     log.info("evaluating on the %d Gaussians of %s (%d registered)", original.num_gaussians, args.original, scene.num_gaussians)
     return original, field, index
 

@@ -13,16 +13,16 @@ from drsplat.utils import json_text
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("info", help="summarise a 3DGS PLY: count, SH degree, bounds, statistics, findings",
-                              description="Summarise a 3DGS PLY (INRIA layout or SuperSplat compressed).")
+    p = subparsers.add_parser("info", help="summarise a 3DGS scene file: count, SH degree, bounds, statistics, findings",
+                              description="Summarise a 3DGS scene file: PLY (INRIA layout or SuperSplat compressed), .splat or .spz.")
     p.add_argument("scene", type=Path, help="3DGS scene: PLY (INRIA or compressed), .splat or .spz")
     p.add_argument("--json", action="store_true", help="print machine-readable JSON instead of text")
     p.set_defaults(func=run)
 
 
-def _stats(values: np.ndarray) -> dict[str, float]:
-    if values.size == 0:
-        return {"min": 0.0, "median": 0.0, "max": 0.0}
+def _stats(values: np.ndarray) -> dict[str, float | None]:
+    if values.size == 0:  # no Gaussians: no statistics (null in JSON, "-" in text), not zeros that look measured
+        return {"min": None, "median": None, "max": None}
     return {"min": float(values.min()), "median": float(np.median(values)), "max": float(values.max())}
 
 
@@ -38,8 +38,8 @@ def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
         "rows_in_file": report.rows_in_file,
         "sh_degree": scene.sh_degree,
         "has_normals": report.has_normals,
-        "bbox_min": [float(v) for v in lo],
-        "bbox_max": [float(v) for v in hi],
+        "bbox_min": [float(v) for v in lo] if scene.num_gaussians else None,
+        "bbox_max": [float(v) for v in hi] if scene.num_gaussians else None,
         "opacity": _stats(scene.opacities()),
         # float64: a log scale above 88.7 overflows float32 (reported as a finding, without numpy's warning)
         "scale": _stats(largest),
@@ -54,15 +54,26 @@ def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
     return summary
 
 
+def _number(value: float | None, spec: str) -> str:
+    """A statistic as text: '-' where the scene has none (no Gaussians)."""
+    return "-" if value is None else format(value + 0.0, spec)  # + 0.0: a -0 (a flipped axis of a .spz) prints as 0
+
+
 def format_summary(s: dict) -> str:
+    def stats(d: dict) -> str:
+        return "  ".join(f"{key} {_number(d[key], '.3g')}" for key in ("min", "median", "max"))
+
+    def box(values: list[float] | None) -> str:
+        return "-" if values is None else " ".join(_number(v, ".4g") for v in values)
+
     lines = [
         f"{s['path']} ({s['layout']} layout)",
         f"  gaussians      {s['num_gaussians']:,} (rows in file {s['rows_in_file']:,})",
         f"  SH degree      {s['sh_degree']}",
-        f"  bbox min       {' '.join(f'{v:.4g}' for v in s['bbox_min'])}",
-        f"  bbox max       {' '.join(f'{v:.4g}' for v in s['bbox_max'])}",
-        f"  opacity        min {s['opacity']['min']:.3g}  median {s['opacity']['median']:.3g}  max {s['opacity']['max']:.3g}",
-        f"  largest scale  min {s['scale']['min']:.3g}  median {s['scale']['median']:.3g}  max {s['scale']['max']:.3g}",
+        f"  bbox min       {box(s['bbox_min'])}",
+        f"  bbox max       {box(s['bbox_max'])}",
+        f"  opacity        {stats(s['opacity'])}",
+        f"  largest scale  {stats(s['scale'])}",
         f"  extra props    {', '.join(s['extra_properties'][:8]) + (' …' if len(s['extra_properties']) > 8 else '') or '-'}",
         f"  findings       {'; '.join(s['findings']) or 'none'}",
     ]

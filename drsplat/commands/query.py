@@ -90,6 +90,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.query import select
+    from drsplat.splat_formats import check_writable
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     if not args.relevancy and (args.negatives or args.negative_embeddings is not None):
@@ -105,30 +106,31 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     queries, single, encoder = build_queries(args, field, encoder_factory)
     scores = compute_scores(args, field, queries, encoder, encoder_factory)
     best = scores.max(axis=1) if scores.shape[1] else np.zeros(len(field), np.float32)
-    wrote = False
+    assigned = field.assigned()
+    selecting = args.out is not None or args.threshold is not None
+    if (selecting or args.scores is None) and not assigned.any():  # scores alone are still written: every one is 0
+        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned): "
+                           "there is nothing to select or rank")
+    mask = None
+    if selecting:  # the selection and its export are settled before any output is written: a refused export leaves none
+        threshold = resolve_threshold(args.threshold, best[assigned], args.relevancy)
+        mask = select(best, threshold, assigned)
+        unassigned = len(field) - int(assigned.sum())
+        left_out = f" ({unassigned:,} Gaussians without a language feature left out)" if unassigned else ""
+        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}")
+        if args.out is not None and not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
+            raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
+                               f"nothing written to {args.out}; lower --threshold")
+        if args.out is not None:
+            check_writable(scene.subset(mask), args.out)
     if args.scores is not None:
         written = scores[:, 0].copy() if single else scores
         save_npy_atomic(args.scores, written)
         log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
-        wrote = True
-    assigned = field.assigned()
-    if (args.out is not None or args.threshold is not None or not wrote) and not assigned.any():
-        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned): "
-                           "there is nothing to select or rank")
-    unassigned = len(field) - int(assigned.sum())
-    if args.out is not None or args.threshold is not None:
-        threshold = resolve_threshold(args.threshold, best[assigned], args.relevancy)
-        mask = select(best, threshold, assigned)
-        left_out = f" ({unassigned:,} Gaussians without a language feature left out)" if unassigned else ""
-        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}")
-        if args.out is not None:
-            if not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
-                raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
-                                   f"nothing written to {args.out}; lower --threshold")
-            export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
-            log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
-            wrote = True
-    if not wrote:
+    if args.out is not None:
+        export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
+        log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
+    if args.out is None and args.scores is None:
         print_top(best, assigned, args.top, "relevancy" if args.relevancy else "cosine")
     return 0
 

@@ -61,10 +61,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
-    from drsplat.lang import codebook_path_for
+    from drsplat.errors import InputError, UsageError
+    from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for
     from drsplat.registration import RegisterOptions, register
-    from drsplat.splat_formats import load_scene
+    from drsplat.splat_formats import load_scene, written_format
 
+    if written_format(args.out) != "ply":
+        raise UsageError(f"--out {args.out.name}: {REGISTERED_IS_PLY}")
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     if args.ray_workers is not None and args.ray is None:
         log.warning("--ray-workers %d applies to a run on Ray (--ray); without it the views are computed here", args.ray_workers)
@@ -82,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
     scene = load_scene(args.scene)
+    if scene.num_gaussians == 0:
+        raise InputError(args.scene, "holds no Gaussians: there is nothing to register")
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

@@ -133,6 +133,7 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.query import label_colors, segment
+    from drsplat.splat_formats import check_writable
     from drsplat.utils import guard_outputs, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
@@ -148,10 +149,13 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     device = scoring_device(args)
     seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=lut_bits_for(args, field, device),
                   device=device)
+    coloured = coloured_scene(scene, seg.labels, label_colors(len(names))) if args.ply is not None else None
+    if coloured is not None:
+        check_writable(coloured, args.ply)  # before LABELS.npy is written: a refused export leaves no half of the outputs
     save_npy_atomic(args.out, seg.labels)
     log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
-    if args.ply is not None:
-        export_scene(coloured_scene(scene, seg.labels, label_colors(len(names))), field, args.ply, args.format)
+    if coloured is not None:
+        export_scene(coloured, field, args.ply, args.format)
         log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
     print(f"{'label':<24} {'gaussians':>10}")

@@ -354,6 +354,10 @@ def standard_scene(scene: GaussianScene) -> GaussianScene:
     return dataclasses.replace(strip_field(scene), extra={})
 
 
+REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in the PLY's vertex properties, which .splat and "
+                     ".spz files do not have; name it .ply")
+
+
 def export_problem(path: str | Path, fmt: str) -> str | None:
     """Why `path` cannot take an export in format `fmt`, or None: a drsplat export is a PLY (the
     field lives in its vertex properties), so it refuses a .splat or .spz name."""

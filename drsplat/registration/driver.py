@@ -199,6 +199,8 @@ class Run:
 def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: str | Path, options: RegisterOptions) -> Run:
     """Check the options, pair the cameras with the feature files and check those files' headers (nothing heavy is loaded)."""
     options.check()
+    if scene.num_gaussians == 0:
+        raise DrsplatError("the scene holds no Gaussians: there is nothing to register")
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
     dim = check_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
