@@ -111,7 +111,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     if (selecting or args.scores is None) and not assigned.any():  # scores alone are still written: every one is 0
         raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned): "
                            "there is nothing to select or rank")
-    mask = None
+    mask = chosen = None
     if selecting:  # the selection and its export are settled before any output is written: a refused export leaves none
         threshold = resolve_threshold(args.threshold, best[assigned], args.relevancy)
         mask = select(best, threshold, assigned)
@@ -122,13 +122,14 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
             raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
                                f"nothing written to {args.out}; lower --threshold")
         if args.out is not None:
-            check_writable(scene.subset(mask), args.out)
+            chosen = scene.subset(mask)
+            check_writable(chosen, args.out)
     if args.scores is not None:
         written = scores[:, 0].copy() if single else scores
         save_npy_atomic(args.scores, written)
         log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
     if args.out is not None:
-        export_scene(scene.subset(mask), field.subset(mask), args.out, args.format)
+        export_scene(chosen, field.subset(mask), args.out, args.format)
         log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
     if args.out is None and args.scores is None:
         print_top(best, assigned, args.top, "relevancy" if args.relevancy else "cosine")
