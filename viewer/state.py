@@ -523,7 +523,7 @@ class ViewerState:
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
         if written_format(output) != "ply":
-            self.error(f"{Path(output).name}: {REGISTERED_IS_PLY}")
+            self.error(f"{Path(output).name}: {REGISTERED_IS_PLY}; name it .ply")
             return False
         if not self.guard_output(output, "the registration's output"):  # never over the scene, its dataset or features
             return False

@@ -188,7 +188,7 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
 
     kind = scene_format(Path(path)) if Path(path).is_file() else "ply"
     if kind != "ply":
-        raise InputError(path, f"is a .{kind} scene, not a registered one: {REGISTERED_IS_PLY.split(';')[0]}; run drsplat register on it first")
+        raise InputError(path, f"is a .{kind} scene, not a registered one: {REGISTERED_IS_PLY}; run drsplat register on it first")
     scene, report = load_ply_report(path)
     if scene.num_gaussians == 0:
         raise InputError(path, "holds no Gaussians (0 rows): there is nothing to query or segment")

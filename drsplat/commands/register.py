@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.splat_formats import load_scene, written_format
 
     if written_format(args.out) != "ply":
-        raise UsageError(f"--out {args.out.name}: {REGISTERED_IS_PLY}")
+        raise UsageError(f"--out {args.out.name}: {REGISTERED_IS_PLY}; name it .ply")
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     if args.ray_workers is not None and args.ray is None:
         log.warning("--ray-workers %d applies to a run on Ray (--ray); without it the views are computed here", args.ray_workers)

@@ -355,7 +355,7 @@ def standard_scene(scene: GaussianScene) -> GaussianScene:
 
 
 REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in the PLY's vertex properties, which .splat and "
-                     ".spz files do not have; name it .ply")
+                     ".spz files do not have")
 
 
 def export_problem(path: str | Path, fmt: str) -> str | None:
