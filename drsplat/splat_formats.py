@@ -49,8 +49,8 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, dc_from_rgb, load_ply_report, opacity_logits,
-                           save_ply)
+from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, compressed_ply_bytes, dc_from_rgb,
+                           load_ply_report, opacity_logits, save_ply)
 from drsplat.utils import write_bytes_atomic
 
 log = logging.getLogger(__name__)
@@ -430,30 +430,47 @@ SPZ_SH1_BITS, SPZ_SH_REST_BITS = 5, 4  # the spz library's default quantisation 
 SPZ_ZSTD_LEVEL = 12  # the spz library's
 SQRT_HALF32 = np.float32(0.707106781186547524401)
 WRITTEN_SUFFIXES = {".splat": "splat", ".spz": "spz"}  # any other name is written as a PLY
+COMPRESSED_PLY_SUFFIX = ".compressed.ply"  # PlayCanvas's name for its compressed PLY
 
 
 def written_format(path: str | Path) -> str:
-    """"splat", "spz" or "ply": the file type `save_scene` writes to `path`, by its suffix."""
+    """"splat", "spz", "compressed.ply" or "ply": the file type `save_scene` writes to `path`, by its name."""
+    name = Path(path).name.lower()
+    if name.endswith(COMPRESSED_PLY_SUFFIX) and len(name) > len(COMPRESSED_PLY_SUFFIX):
+        return "compressed.ply"
     return WRITTEN_SUFFIXES.get(Path(path).suffix.lower(), "ply")
 
 
 def save_scene(scene: GaussianScene, path: str | Path, spz_version: int = SPZ_WRITE_VERSION) -> str:
     """Write `scene` atomically as the file type its name asks for (`written_format`): `.splat`
-    (`save_splat`), `.spz` (`save_spz`) or else an INRIA PLY (`save_ply`, lossless, extra properties
-    and comments kept). Returns the type written."""
+    (`save_splat`), `.spz` (`save_spz`), `.compressed.ply` (`save_compressed_ply`) or else an INRIA
+    PLY (`save_ply`, lossless, extra properties and comments kept). Returns the type written."""
     kind = written_format(path)
     if kind == "splat":
         save_splat(scene, path)
     elif kind == "spz":
         save_spz(scene, path, spz_version)
+    elif kind == "compressed.ply":
+        save_compressed_ply(scene, path)
     else:
         save_ply(scene, path)
     return kind
 
 
+def save_compressed_ply(scene: GaussianScene, path: str | Path) -> None:
+    """Write `scene` as a PlayCanvas/SuperSplat compressed PLY (`scene.compressed_ply_bytes`: what
+    splat-transform writes, byte for byte but the header's comment), atomically; SH values beyond
+    ±4 are clipped and counted in a warning, non-finite values refuse the write."""
+    path = Path(path)
+    _refuse_nonfinite(scene, path, "compressed.ply")
+    data, clipped = compressed_ply_bytes(scene)
+    _warn_clipped(path, "compressed.ply", {"SH": clipped})
+    write_bytes_atomic(path, data)
+
+
 def check_writable(scene: GaussianScene, path: str | Path) -> None:
-    """OutputError now for what `save_scene` would refuse later (non-finite values in a .splat or
-    .spz, positions beyond .spz's 24 bits), so that a command checks its export before it writes its
+    """OutputError now for what `save_scene` would refuse later (non-finite values in a .splat, .spz or
+    compressed PLY, positions beyond .spz's 24 bits), so that a command checks its export before it writes its
     other outputs."""
     path = Path(path)
     kind = written_format(path)
@@ -626,14 +643,14 @@ def _bytes_of(x: np.ndarray) -> tuple[np.ndarray, int]:
 
 def _refuse_nonfinite(scene: GaussianScene, path: Path, kind: str) -> None:
     """OutputError naming how many Gaussians hold a NaN or infinite value, field by field: the bytes
-    of a .splat or .spz hold none (a loaded scene has none: its reader drops such rows)."""
+    of a .splat, .spz or compressed PLY hold none (a loaded scene has none: its reader drops such rows)."""
     fields = {"means": scene.means, "rotations": scene.quats, "scales": scene.log_scales, "opacities": scene.opacity_logits[:, None],
               "colours and SH": scene.sh.reshape(scene.num_gaussians, scene.sh.shape[1] * 3)}
     counts = {name: int((~np.isfinite(v)).any(axis=1).sum()) for name, v in fields.items()}
     bad = {name: c for name, c in counts.items() if c}
     if bad:
         raise OutputError(path, f"{', '.join(f'{c:,} Gaussians have non-finite {name}' for name, c in bad.items())}; "
-                                f".{kind} stores bytes and fixed point, which hold no NaN or infinity: write a .ply")
+                                f".{kind} stores quantised values, which hold no NaN or infinity: write a plain .ply")
 
 
 def _warn_clipped(path: Path, kind: str, clipped: dict[str, int]) -> None:

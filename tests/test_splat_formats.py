@@ -16,8 +16,9 @@ import zstandard
 
 from drsplat.cli import main
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import SH_C0, GaussianScene, load_ply, save_ply
-from drsplat.splat_formats import load_scene, load_scene_report, pack_smallest_three, save_scene, save_spz, scene_format, spz_file_bytes
+from drsplat.scene import SH_C0, GaussianScene, compressed_ply_bytes, load_ply, morton_order, save_ply
+from drsplat.splat_formats import (load_scene, load_scene_report, pack_smallest_three, save_scene, save_spz, scene_format, spz_file_bytes,
+                                   written_format)
 from tests.conftest import splat_transform_command
 from tests.splat_codecs import COORDINATE_EXTENSION, encode_splat, encode_spz, extension_record
 from tests.splat_codecs import pack_smallest_three as codec_pack_smallest_three
@@ -322,6 +323,60 @@ def test_non_finite_values_are_refused_and_clipping_is_counted(tmp_path, caplog)
     back = load_scene(tmp_path / "tiny.splat")
     assert back.num_gaussians == 40 and np.all(np.isfinite(back.log_scales))
     assert np.allclose(back.log_scales[1], (np.log(np.finfo(np.float32).smallest_normal), np.log(np.finfo(np.float32).max), 0.0), atol=1e-5)
+
+
+def lattice_scene(n: int = 700, degree: int = 1) -> GaussianScene:
+    """A scene made with integer arithmetic only (the same float32 bits on every machine): a spread of
+    Gaussians, a third of them packed within 1e-5 units (Morton runs longer than 256 are ordered again),
+    rotations with negative and tied largest components, log scales down to -25 (past the ±20 that a
+    compressed PLY's ranges are clamped to), colours past what bytes hold."""
+    i = np.arange(n, dtype=np.int64)
+    means = np.stack([((i * 37) % 101) / 101.0 * 4.0 - 2.0, ((i * 53) % 97) / 97.0 * 3.0, ((i * 71) % 89) / 89.0 - 0.5], axis=1)
+    means[: n // 3] = 0.5 + np.stack([(i[: n // 3] % 7), (i[: n // 3] % 5), (i[: n // 3] % 3)], axis=1) * 1e-6
+    quats = np.stack([((i * 13) % 17) - 8, ((i * 19) % 23) - 11, ((i * 29) % 31) - 15, ((i * 7) % 11) - 5], axis=1) / 8.0
+    quats[::50] = (0.5, -0.5, 0.5, -0.5)
+    log_scales = np.stack([-7.0 + ((i * 29) % 41) / 41.0 * 8.0, -6.0 + ((i * 31) % 43) / 43.0 * 7.0, -25.0 + ((i * 3) % 47)], axis=1)
+    logits = (((i * 11) % 23) - 11) / 2.0
+    k = (degree + 1) ** 2
+    sh = np.stack([(((i * (5 + j)) % (13 + 2 * j)) - (6 + j)) / (4.0 if j == 0 else 16.0) for j in range(k)], axis=1)
+    sh = np.repeat(sh[:, :, None], 3, axis=2) * np.array([1.0, -0.5, 0.25])
+    return GaussianScene(means=means.astype(np.float32), quats=quats.astype(np.float32), log_scales=log_scales.astype(np.float32),
+                         opacity_logits=logits.astype(np.float32), sh=sh.astype(np.float32))
+
+
+def after_header_comment(data: bytes) -> bytes:
+    """A PLY's bytes without its comment lines (the writer's name)."""
+    head, _, body = data.partition(b"end_header\n")
+    return b"\n".join(line for line in head.split(b"\n") if not line.startswith(b"comment ")) + b"end_header\n" + body
+
+
+def test_compressed_ply_writer_writes_splat_transforms_bytes(tmp_path):
+    """PlayCanvas splat-transform 2.7.1 wrote peer.compressed.ply from lattice_scene(); drsplat's writer
+    gives the same bytes but the header's comment (its Morton order, chunk ranges and packing), and
+    the file reads back, in Morton order, within the chunks' steps."""
+    scene = lattice_scene()
+    peer = (PEERS / "peer.compressed.ply").read_bytes()
+    assert after_header_comment(compressed_ply_bytes(scene)[0]) == after_header_comment(peer)
+    path = tmp_path / "mine.COMPRESSED.PLY"
+    assert save_scene(scene, path) == "compressed.ply" == written_format(path)
+    back, report = load_scene_report(path)
+    assert report.layout == load_scene_report(PEERS / "peer.compressed.ply")[1].layout and back.num_gaussians == 700
+    ordered = scene.subset(morton_order(scene.means))  # the file holds the splats in Morton order
+    assert np.abs(back.means - ordered.means).max() <= 4.0 / 2047 and np.abs(back.sh[:, 1:] - ordered.sh[:, 1:]).max() <= 8 / 256
+    assert written_format(tmp_path / "compressed.ply") == "ply", "a file named only .compressed.ply is a plain PLY"
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_compressed_ply_writer_agrees_with_splat_transform_now(tmp_path, degree):
+    """With splat-transform on this machine (skipped otherwise): random scenes with a tight cluster, the
+    same bytes but the header's comment."""
+    command = splat_transform_command()
+    scene = random_scene(2000, degree=degree, seed=60 + degree)
+    scene.means[:700] = scene.means[:700] * 1e-6 + 0.5
+    save_ply(scene, tmp_path / "in.ply")
+    subprocess.run([*command, "-q", "-w", str(tmp_path / "in.ply"), str(tmp_path / "lib.compressed.ply")], check=True, timeout=120, capture_output=True)
+    ours = compressed_ply_bytes(load_ply(tmp_path / "in.ply"))[0]
+    assert after_header_comment(ours) == after_header_comment((tmp_path / "lib.compressed.ply").read_bytes())
 
 
 @pytest.mark.parametrize("name", ["e.spz", "e4.spz", "e.splat", "e.ply"])

@@ -28,7 +28,7 @@ from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
 ERROR_COLOR = imgui.ImVec4(1.0, 0.45, 0.4, 1.0)
 NOTE_COLOR = imgui.ImVec4(0.95, 0.8, 0.4, 1.0)
 CODEBOOK_NAMES = ["none (exact fp16)", "scene (PQ trained here)", "faiss file"]
-EXPORT_NAMES = ["standard (.ply, .splat, .spz)", "drsplat PLY (+ field)"]
+EXPORT_NAMES = ["standard (.ply, .compressed.ply, .splat, .spz)", "drsplat PLY (+ field)"]
 MAIN_WINDOW = "drsplat"
 PANEL_WIDTH = 400
 STATUS_HEIGHT = 26

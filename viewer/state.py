@@ -468,7 +468,7 @@ class ViewerState:
 
     def export_selection(self, path: str | Path | None = None, fmt: str | None = None) -> int | None:
         """Write the selected Gaussians (`export_mask`) with drsplat.lang.export_scene: `standard`
-        (for other tools: an INRIA PLY, or .splat / .spz by the path's suffix) or `drsplat` (a PLY
+        (for other tools: an INRIA PLY, or .splat / .spz / .compressed.ply by the path's name) or `drsplat` (a PLY
         with the field, its codebook copied beside; `drsplat query` reads it); the path and format
         default to the export settings.
         Returns the number written, or None (with a message)."""
@@ -487,7 +487,7 @@ class ViewerState:
             self.error("the selection is empty: run a query and lower the threshold")
             return None
         if not str(path).strip():
-            self.error("type the path of the file to export to (.ply, .splat or .spz)")
+            self.error("type the path of the file to export to (.ply, .compressed.ply, .splat or .spz)")
             return None
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None

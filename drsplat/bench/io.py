@@ -1,5 +1,5 @@
 """`drsplat bench io`: scene file load/save speed against a bare plyfile read of the same PLY, and
-for each file type drsplat writes (PLY, `.splat`, `.spz` v3 and v4) its size, write and read time
+for each file type drsplat writes (PLY, compressed PLY, `.splat`, `.spz` v3 and v4) its size, write and read time
 and what its quantisation costs: the PSNR of renders of the written file against the PLY's."""
 
 from __future__ import annotations
@@ -18,11 +18,12 @@ from drsplat.scene import GaussianScene, load_ply, save_ply
 from drsplat.splat_formats import load_scene, save_scene
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
-WRITTEN_FILES = (("PLY", "scene.ply", 3), (".splat", "scene.splat", 3), (".spz v3 (gzip)", "scene.spz", 3), (".spz v4 (zstd)", "v4.spz", 4))
+WRITTEN_FILES = (("PLY", "scene.ply", 3), ("compressed PLY", "scene.compressed.ply", 3), (".splat", "scene.splat", 3),
+                 (".spz v3 (gzip)", "scene.spz", 3), (".spz v4 (zstd)", "v4.spz", 4))
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("io", help="scene file load/save time, size and render error per file type (PLY, .splat, .spz)")
+    p = subparsers.add_parser("io", help="scene file load/save time, size and render error per file type (PLY, compressed PLY, .splat, .spz)")
     p.add_argument("scene", nargs="?", type=Path, default=DEFAULT_SCENE, help="PLY to time (default: ../shared/data/ply/flowers.ply)")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats (median reported)")
     p.add_argument("--views", type=nonneg_int, default=4,

@@ -344,7 +344,7 @@ def check_stored_type(ply_path: Path, name: str, column: np.ndarray) -> None:
 
 EXPORT_FORMATS = ("standard", "drsplat")
 EXPORT_FORMAT_HELP = {
-    "standard": "standard 3DGS scene for other tools: a PLY in the INRIA layout, or a .splat or .spz file when the name ends so",
+    "standard": "standard 3DGS scene for other tools: a PLY in the INRIA layout, or a .splat, .spz or .compressed.ply file when the name ends so",
     "drsplat": "drsplat PLY (with the language field, its codebook copied beside it; `drsplat query` reads it)",
 }
 
@@ -360,7 +360,7 @@ REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in t
 
 def export_problem(path: str | Path, fmt: str) -> str | None:
     """Why `path` cannot take an export in format `fmt`, or None: a drsplat export is a PLY (the
-    field lives in its vertex properties), so it refuses a .splat or .spz name."""
+    field lives in its vertex properties), so it refuses a .splat, .spz or .compressed.ply name."""
     if fmt not in EXPORT_FORMATS:
         return f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}"
     kind = written_format(path)
@@ -383,7 +383,7 @@ def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | 
     for (drsplat.splat_formats.save_scene: `.splat`, `.spz`, else PLY). drsplat: a PLY of the scene
     with the field attached (`attach_field`: metadata comment + `lang_meta` column, codebook written
     beside `path`), so that `read_field` on the written file gives the field back. Returns the
-    scene written (before any .splat / .spz quantisation).
+    scene written (before any .splat / .spz / compressed-PLY quantisation).
     """
     problem = export_problem(path, fmt)
     if problem is not None:
