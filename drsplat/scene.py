@@ -884,7 +884,8 @@ def _pack_rotations(quats: np.ndarray) -> np.ndarray:
     as unorm10 of q·√½ + ½ (the inverse of `_unpack_smallest_three`)."""
     q = np.asarray(quats, np.float64)
     length = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3])
-    q = np.where(length[:, None] > 0, q * (1.0 / np.where(length > 0, length, 1.0))[:, None], np.array([0.0, 0.0, 0.0, 1.0]))
+    # a zero quaternion is the identity (rot_0 is w; splat-transform's Quat would make rot_3 = 1, a half turn about z)
+    q = np.where(length[:, None] > 0, q * (1.0 / np.where(length > 0, length, 1.0))[:, None], np.array([1.0, 0.0, 0.0, 0.0]))
     largest = np.argmax(np.abs(q), axis=1)
     q = np.where((q[np.arange(q.shape[0]), largest] < 0)[:, None], -q, q)
     packed = largest.astype(np.uint32)

@@ -364,6 +364,9 @@ def test_compressed_ply_writer_writes_splat_transforms_bytes(tmp_path):
     ordered = scene.subset(morton_order(scene.means))  # the file holds the splats in Morton order
     assert np.abs(back.means - ordered.means).max() <= 4.0 / 2047 and np.abs(back.sh[:, 1:] - ordered.sh[:, 1:]).max() <= 8 / 256
     assert written_format(tmp_path / "compressed.ply") == "ply", "a file named only .compressed.ply is a plain PLY"
+    scene.quats[:5] = 0.0  # the identity, as the loaders read a zero quaternion
+    save_scene(scene, path)
+    assert np.allclose(np.abs(load_scene(path).unit_quats()[np.isin(morton_order(scene.means), np.arange(5))]), [1, 0, 0, 0], atol=2e-3)
 
 
 @pytest.mark.parametrize("degree", [0, 3])
