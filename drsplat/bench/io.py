@@ -14,8 +14,8 @@ from drsplat.bench.common import format_table, machine_line, median_seconds
 from drsplat.commands.common import nonneg_int
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize
-from drsplat.scene import GaussianScene, load_ply, save_ply
-from drsplat.splat_formats import load_scene, save_scene
+from drsplat.scene import GaussianScene, load_ply, morton_order, save_ply
+from drsplat.splat_formats import load_scene, save_scene, written_format
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 WRITTEN_FILES = (("PLY", "scene.ply", 3), ("compressed PLY", "scene.compressed.ply", 3), (".splat", "scene.splat", 3),
@@ -64,7 +64,8 @@ def file_type_table(scene: GaussianScene, folder: Path, views: int, repeats: int
         ply_mb = mb if ply_mb is None else ply_mb
         t_read = median_seconds(lambda: load_scene(path), repeats)
         back = load_scene(path)
-        error = float(np.abs(back.means.astype(np.float64) - scene.means).max())
+        order = morton_order(scene.means) if written_format(path) == "compressed.ply" else slice(None)  # which stores them in Morton order
+        error = float(np.abs(back.means.astype(np.float64) - scene.means[order]).max())
         quality = float(np.median([psnr(a, b) for a, b in zip(renders(back, cameras), reference)])) if views else float("nan")
         rows.append([name, mb, mb / ply_mb, t_write * 1e3, t_read * 1e3, error, quality])
     return format_table(["file", "MB", "size / PLY", "write ms", "read ms", "max |Δ position|", f"PSNR dB vs PLY (median of {views} views)"], rows)
