@@ -30,6 +30,7 @@ MAX_OPACITY_LOGIT = 30.0
 MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log scale is inf in float32
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
+COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
 
 
 @dataclass
@@ -583,7 +584,7 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
     """
     vertex, chunk = data["vertex"], data["chunk"]
     n = len(vertex)
-    for name in ("packed_position", "packed_rotation", "packed_scale", "packed_color"):
+    for name in COMPRESSED_VERTEX_PROPERTIES:
         if name not in vertex.dtype.names:
             raise _fail(path, "is a compressed PLY missing a packed vertex property", field=name)
         check_integer_column(path, name, vertex[name], "uint", "packed bit fields", bit_pattern=True)
@@ -822,17 +823,19 @@ def save_ply(scene: GaussianScene, path: str | Path) -> None:
 COMPRESSED_CHUNK = 256  # splats per chunk of the PlayCanvas compressed PLY
 COMPRESSED_CHUNK_PROPERTIES = ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z", "min_scale_x", "min_scale_y", "min_scale_z",
                                "max_scale_x", "max_scale_y", "max_scale_z", "min_r", "min_g", "min_b", "max_r", "max_g", "max_b")
-COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
 COMPRESSED_SCALE_LIMIT = 20.0  # the chunks' log-scale ranges are clamped to ±this (PlayCanvas's writer)
 MORTON_BUCKET = 256  # a run of equal 30-bit Morton codes longer than this is ordered again within its own box
 
 
-def _part_1_by_2(v: np.ndarray) -> np.ndarray:
-    """The 10 low bits of v spread to every third bit (a 3-D Morton code's one axis), uint32."""
-    v = v.astype(np.uint32) & np.uint32(0x3FF)
-    for shift, mask in ((16, 0xFF0000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
-        v = (v ^ (v << np.uint32(shift))) & np.uint32(mask)
-    return v
+def morton_interleave(cells: np.ndarray, bits: int) -> np.ndarray:
+    """[N] uint64 Morton (Z-order) codes of integer cells [N, 3] of `bits` bits per axis: bit b of
+    axis a goes to bit 3b + a (x lowest)."""
+    cells = np.asarray(cells).astype(np.uint64)
+    code = np.zeros(cells.shape[0], np.uint64)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return code
 
 
 def morton_order(means: np.ndarray) -> np.ndarray:
@@ -851,8 +854,7 @@ def morton_order(means: np.ndarray) -> np.ndarray:
         if not np.isfinite(span).all() or not span.any():
             continue
         scale = np.where(span > 0, 1024.0 / np.where(span > 0, span, 1.0), 0.0)
-        steps = np.floor(np.minimum(1023.0, (p - lo) * scale))
-        code = (_part_1_by_2(steps[:, 2]) << np.uint32(2)) + (_part_1_by_2(steps[:, 1]) << np.uint32(1)) + _part_1_by_2(steps[:, 0])
+        code = morton_interleave(np.floor(np.minimum(1023.0, (p - lo) * scale)), 10)
         sort = np.argsort(code, kind="stable")
         order[start:stop] = part[sort]
         code = code[sort]

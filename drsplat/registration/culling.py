@@ -42,6 +42,7 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene
+from drsplat.scene import morton_interleave
 
 DEFAULT_BLOCK = 1024
 PIXEL_MARGIN = 2.0  # extra pixels on every image side against float rounding in the projection
@@ -53,12 +54,7 @@ def morton_codes(points: np.ndarray, bits: int = 21) -> np.ndarray:
     their bounding box: interleaving the bits keeps near points near in the code's order."""
     lo, hi = points.min(axis=0), points.max(axis=0)
     scale = (2**bits - 1) / np.maximum(hi - lo, 1e-30)
-    cells = np.clip(((points - lo) * scale).astype(np.uint64), 0, 2**bits - 1)
-    code = np.zeros(points.shape[0], np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return code
+    return morton_interleave(np.clip(((points - lo) * scale).astype(np.uint64), 0, 2**bits - 1), bits)
 
 
 @dataclass(frozen=True)
