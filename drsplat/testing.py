@@ -8,7 +8,7 @@ and on every `hard_cases()` entry, and `assert_physical` holds on its output.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -67,6 +67,17 @@ def random_case(seed: int, n: int = 400, sh_degree: int = 0, topk: int = 8) -> R
     scene = random_scene(rng, n, sh_degree)
     cam = look_at_camera(rng.normal(size=3) * 0.5 + [0, 0, -4], [0, 0, 0], 48, 34, fov_x_deg=55, cx=20.3, cy=19.1)
     return RasterCase(f"random-{seed}", scene, cam, topk, dict(with_rgb=True, with_depth=True, with_median=True, background=(0.2, 0.5, 0.9)))
+
+
+def windowed(case: RasterCase, x0: int, y0: int, width: int, height: int) -> RasterCase:
+    """The case seen through pixels x0 .. x0 + width, y0 .. y0 + height of its image: the same rays
+    (the principal point moved by the window's corner) on fewer pixels and tiles. Its render is the
+    full image's under the window where the corner is on the 16-px tile grid (3DGS's tile lists
+    drop a Gaussian's α ≥ 1/255 fringe past 3σ tile by tile) and no Gaussian's direction lies past
+    the window's EWA clamp (1.3x its field of view)."""
+    cam = case.camera
+    window = replace(cam, cx=cam.cx - x0, cy=cam.cy - y0, width=width, height=height)
+    return replace(case, name=f"{case.name}-window", camera=window)
 
 
 def stacked_case(count: int = 10_000) -> RasterCase:

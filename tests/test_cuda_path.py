@@ -27,11 +27,12 @@ MODES = ["core-reject", "explain-vote-reject", "check-vote-reject"]
 
 
 def small_world(folder: Path):
-    """A 300-Gaussian blob, 3 orbiting 24x16 views and random mask features written to `folder`."""
+    """A 150-Gaussian blob, 3 orbiting 16x16 views (one tile each: the interpreter's time grows with
+    the tiles and their lists) and random mask features written to `folder`."""
     from drsplat.bench.register import blob_scene, orbit_cameras, random_mask_features
 
-    scene = blob_scene(300, seed=3)
-    cameras = orbit_cameras(scene.means, 3, 24, 16)
+    scene = blob_scene(150, seed=3)
+    cameras = orbit_cameras(scene.means, 3, 16, 16)
     random_mask_features(folder, cameras, np.random.default_rng(1))
     return scene, cameras
 

@@ -288,17 +288,44 @@ def test_ray_features_equal_local_and_skip_done_images(cluster, tiny, tmp_path):
     assert not list(remote.glob(".*"))  # no temp or half files
 
 
-# The torch engine on Ray runs one mode of each kind of stage: its per-mode agreement with numba is
-# the local matrix's (tests/test_registration_matrix.py), and every mode runs on Ray with numba here.
-TORCH_ON_RAY_MODES = ("paper", "centre", "explain-reject", "vote-reject", "solve-vote-reject")
+# The numba engine runs on Ray the modes that between them take every branch the Ray path has: the
+# per-view weightings that read only the top-k lists (paper), the projection (centre, sharp), the
+# masks (explain) and the fit stage's probe (fit); the vote's slots and clusters, floater rejection,
+# the check's support tables and kept pairs, with and without a vote, and the one-block solve. The
+# torch engine runs those whose per-view work on its device differs (the driver's and reducers' work
+# does not depend on the engine). Every mode's agreement with the reference, engine by engine and
+# plan by plan, is the local matrix's (tests/test_registration_matrix.py): a mode's weighting is the
+# same function on a Ray worker.
+NUMBA_ON_RAY_MODES = ("paper", "centre", "sharp-vote", "explain-reject", "vote-reject", "check-reject", "fit-check-vote-reject",
+                      "solve-vote-reject")
+TORCH_ON_RAY_MODES = ("centre", "explain-reject", "vote-reject", "solve-vote-reject")
+
+
+def _branches(mode: str) -> set[tuple[str, object]]:
+    """The branches of the Ray path a mode takes: its weighting's inputs and each stage on or off."""
+    from drsplat.registration.aggregate import MASK_WEIGHTINGS, PROJECTED_WEIGHTINGS, mode_stages
+
+    stages = mode_stages(mode)
+    inputs = ("fit probe" if stages.weighting == "fit" else "masks" if stages.weighting in MASK_WEIGHTINGS
+              else "projection" if stages.weighting in PROJECTED_WEIGHTINGS else "top-k lists")
+    stage_flags = {("vote", stages.vote), ("reject", stages.reject), ("check", stages.check), ("solve", stages.solve)}
+    return {("weights from", inputs), ("check with vote", stages.check and stages.vote)} | stage_flags
+
+
+def test_the_modes_run_on_ray_take_every_branch_a_mode_can():
+    """A mode added later with a new stage or a new kind of weighting must join NUMBA_ON_RAY_MODES."""
+    from drsplat.defaults import AGGREGATE_MODES
+
+    every = set().union(*map(_branches, AGGREGATE_MODES))
+    assert set().union(*map(_branches, NUMBA_ON_RAY_MODES)) == every
+    assert ("check with vote", True) in every and ("weights from", "fit probe") in every
 
 
 @pytest.mark.parametrize("engine", ["numba", "torch"])
 def test_every_mode_on_ray_writes_the_local_file(cluster, tmp_path_factory, engine):
     """The Ray place of the engine x place x mode matrix (tests/test_registration_matrix.py covers the
-    local place): every --aggregate mode (numba; TORCH_ON_RAY_MODES with torch), computed by tasks with
-    `engine`, in Gaussian blocks, writes the bytes of the local numba one-block run."""
-    from drsplat.defaults import AGGREGATE_MODES
+    local place): the modes of NUMBA_ON_RAY_MODES / TORCH_ON_RAY_MODES, computed by tasks with
+    `engine`, in Gaussian blocks, write the bytes of the local numba one-block run."""
     from drsplat.registration.aggregate import mode_stages
 
     data = tmp_path_factory.getbasetemp() / "matrix-hard-mislabelled"
@@ -306,7 +333,7 @@ def test_every_mode_on_ray_writes_the_local_file(cluster, tmp_path_factory, engi
         write_dataset(data, "hard-tiny", 0, mislabel_fraction=0.2, show_progress=False)
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)[:4]
     tmp_path = tmp_path_factory.mktemp(f"modes-{engine}")
-    for mode in AGGREGATE_MODES if engine == "numba" else TORCH_ON_RAY_MODES:
+    for mode in NUMBA_ON_RAY_MODES if engine == "numba" else TORCH_ON_RAY_MODES:
         local, on_ray = data / "local" / mode / "reg.ply", tmp_path / mode / "reg.ply"
         if not local.exists():  # the local reference, shared by both engines' runs
             register(scene, cams, data / "features", local, RegisterOptions(topk=10, aggregate=mode), show_progress=False)

@@ -20,7 +20,7 @@ import torch  # noqa: E402
 from drsplat.raster import rasterize  # noqa: E402
 from drsplat.registration.aggregate import FRONT_TOLERANCE, RayGeometry  # noqa: E402
 from drsplat.registration.device_sums import DeviceRays, front_flags_torch  # noqa: E402
-from drsplat.testing import random_case  # noqa: E402
+from drsplat.testing import random_case, windowed  # noqa: E402
 from tests.interpreted import compiled_ptx, interpreted_outputs  # noqa: E402
 
 
@@ -28,7 +28,7 @@ def _inputs(name: str):
     """(rays, camera, ids [H, W, k] int32, median ids [H, W] int32) of a named case."""
     seed, topk = {"random-k8": (0, 8), "random-k1": (1, 1), "random-k40": (2, 40), "hostile": (3, 8), "no-median": (4, 8),
                   "all-empty": (5, 4)}[name]
-    case = random_case(seed, n=300, topk=topk)
+    case = windowed(random_case(seed, n=300, topk=topk), 12, 8, 24, 20)  # the interpreter runs a program per 2 pixels
     out = rasterize(case.scene, case.camera, case.topk, with_median=True, engine="numba")
     geometry = RayGeometry.from_scene(case.scene)
     ids, median = out.ids.copy(), out.median_ids.copy()

@@ -29,7 +29,9 @@ from drsplat.testing import (
     front_camera,
     gaussians,
     hard_cases,
+    random_case,
     random_scene,
+    windowed,
 )
 from tests.conftest import shared_path
 
@@ -158,6 +160,28 @@ def test_ten_thousand_stacked_gaussians_stop_at_transmittance_floor():
     assert (a.weights[7, 10, n:] == 0).all()
     np.testing.assert_array_equal(a.ids[7, 10, :n], np.arange(n))  # equal depth: id order
     assert a.alpha[7, 10] == pytest.approx(1 - 0.5**n, abs=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_a_window_of_the_image_renders_that_part_of_the_image(seed):
+    """drsplat.testing.windowed (the interpreter tests' smaller cases) sees the same rays: a window
+    on the tile grid renders the full image's top-k lists, weights and alpha under it, for the
+    Gaussians whose direction the EWA Jacobian does not clamp (3DGS clamps at 1.3x the field of
+    view: the window's is smaller)."""
+    case = random_case(seed, n=600, topk=6)
+    part = windowed(case, 16, 16, 27, 18)
+    pc = case.scene.means @ case.camera.R.T + case.camera.t
+    x_pos, x_neg, y_pos, y_neg = raster.clamp_limits(part.camera)
+    tx, ty = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    unclamped = (pc[:, 2] > 0) & (tx < x_pos) & (-tx < x_neg) & (ty < y_pos) & (-ty < y_neg)
+    case.scene = part.scene = case.scene.subset(np.flatnonzero(unclamped))
+    full = rasterize(case.scene, case.camera, case.topk, with_median=True)
+    win = rasterize(part.scene, part.camera, part.topk, with_median=True)
+    assert win.ids.shape == (18, 27, 6) and (win.ids[..., -1] >= 0).any()
+    np.testing.assert_array_equal(win.ids, full.ids[16:34, 16:43])
+    np.testing.assert_allclose(win.weights, full.weights[16:34, 16:43], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(win.alpha, full.alpha[16:34, 16:43], rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(win.median_ids, full.median_ids[16:34, 16:43])
 
 
 def test_single_opaque_gaussian_peaks_at_its_projected_pixel():
