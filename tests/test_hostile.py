@@ -1653,6 +1653,8 @@ def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
     assert code == 1 and "empty.ply: holds no Gaussians: there is nothing to register" in line, line
     code, err = run_cli(["register", ds / "scene.ply", *base, "--out", tmp_path / "r.spz"], capsys)
     assert code == 2 and "--out r.spz: a registered scene is a PLY" in err and not (tmp_path / "r.spz").exists()
+    code, err = run_cli(["register", ds / "scene.ply", *base, "--out", tmp_path / "r.compressed.ply"], capsys)
+    assert code == 2 and "compressed PLY files (PlayCanvas's packed format) do not have" in err, err
     code, err = run_cli(["register", ds / "scene.ply", *base, "--out", ds / "scene.ply"], capsys)
     assert code == 1 and "the input SCENE" in err and "--scene" not in err, err
     state = ViewerState()

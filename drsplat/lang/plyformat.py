@@ -354,8 +354,8 @@ def standard_scene(scene: GaussianScene) -> GaussianScene:
     return dataclasses.replace(strip_field(scene), extra={})
 
 
-REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in the PLY's vertex properties, which .splat and "
-                     ".spz files do not have")
+REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in the PLY's vertex properties, which .splat, "
+                     ".spz and compressed PLY files (PlayCanvas's packed format) do not have")
 
 
 def export_problem(path: str | Path, fmt: str) -> str | None:
