@@ -150,9 +150,10 @@ def _bad_checkpoint(tmp_path: Path, kind: str) -> Path:
     ("python_objects", "holds Python objects besides tensors"),
     ("wrong_tensors", "do not fit this architecture"),
 ])
-def test_a_bad_clip_checkpoint_is_one_short_error_saying_what_the_file_is(tmp_path, kind, words):
+def test_a_bad_clip_checkpoint_is_one_short_error_saying_what_the_file_is(tmp_path, tiny_clip, kind, words):
     """torch's messages ran into the error line: a paragraph on weights_only for any legacy-format
-    failure, 'Expected hasRecord("version")' for a zip. Now a few words on what the file is."""
+    failure, 'Expected hasRecord("version")' for a zip. Now a few words on what the file is.
+    (tiny_clip registers the architecture with open_clip: run alone, the test failed without it.)"""
     path = _bad_checkpoint(tmp_path, kind)
     with pytest.raises(InputError) as exc:
         ClipEncoder(TINY_CLIP, checkpoint=path, device="cpu")

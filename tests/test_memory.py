@@ -90,3 +90,34 @@ def test_memory_budget_sizes_that_are_not_budgets(text, words):
     with pytest.raises(ValueError, match=words):
         parse_size(text)
     assert parse_size("1E9") == parse_size("1e9") == 10**9
+
+
+@pytest.fixture(scope="module")
+def tiny_room(tmp_path_factory) -> Path:
+    from drsplat.synthetic import write_dataset
+
+    return write_dataset(tmp_path_factory.mktemp("tiny") / "data", "tiny", 0, show_progress=False)
+
+
+@pytest.mark.parametrize("mode", ["paper", "fit-check-vote-reject"])
+def test_the_budget_a_refusal_names_registers_in_a_new_process(tiny_room, tmp_path, mode):
+    """Typed back into a new `drsplat register`, the minimum a refusal named was refused in turn: by a
+    MB (the process's memory differs from run to run), or, in a fit mode, after the probe views
+    (the probe's kernels and geometry were not in the figure named before it). A fit mode's
+    refusal comes before its probe."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+
+    def register(budget: str) -> subprocess.CompletedProcess:
+        argv = ["register", str(tiny_room / "scene.ply"), "--source", str(tiny_room), "--features", str(tiny_room / "features"),
+                "--out", str(tmp_path / "reg.ply"), "--no-progress", "--aggregate", mode, "--memory-budget", budget]
+        return subprocess.run([sys.executable, "-m", "drsplat", *argv], capture_output=True, text=True, cwd=root, timeout=300)
+
+    refused = register("1MB")
+    assert refused.returncode == 1 and "fit:" not in refused.stderr, refused.stderr
+    named = re.search(r"give at least ([0-9.]+ [kMG]B)", refused.stderr).group(1)
+    accepted = register(named.replace(" ", ""))
+    assert accepted.returncode == 0, accepted.stderr
+    assert (tmp_path / "reg.ply").is_file()

@@ -38,9 +38,9 @@ from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
-from drsplat.memory import format_size
+from drsplat.memory import current_rss, format_size
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, resolve_mode
+from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
@@ -246,7 +246,7 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
-    _check_memory_before_probe(run)
+    memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
     if probe is not None:
         run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=probe.mode))
@@ -254,7 +254,7 @@ def run_registration(
     n = scene.num_gaussians
     if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
         fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views), options.aggregate)
-    block = options.block_size or _plan_block(run)
+    block = options.block_size or _plan_block(run, memory_base)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers, rays=probe.rays if probe is not None else None)
@@ -408,26 +408,36 @@ def one_block_sink(num_gaussians: int, dim: int, vote: bool, device: str | None 
     return VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
 
 
-def _check_memory_before_probe(run: Run) -> None:
+def _check_memory_before_probe(run: Run) -> int | None:
     """A fit mode's memory (the budget, or what is free) checked before its probe views are rendered:
-    the DrsplatError of `choose_block` when neither mode the probe may pick fits, so that a budget
-    too small is refused at once rather than after the probe. The block is chosen after the probe."""
+    the DrsplatError of `choose_block` when a mode the probe may pick does not fit, so that a budget
+    too small is refused at once rather than after the probe, and the minimum it names works for
+    whichever footprint the probe picks. Returns the resident memory the plan starts from (this
+    process's now plus what the probe adds, `probe_memory`), which `_plan_block` keeps after the
+    probe; None for other modes (the plan measures it then)."""
     options = run.options
     if options.block_size or not is_fit_mode(options.aggregate):
-        return
+        return None
+    base = current_rss() + probe_memory(run.scene.num_gaussians)
     refusals = []
     for footprint in FOOTPRINTS:
-        plan = estimate_memory(run.scene, run.views, run.dim, options.topk, aggregate=resolve_mode(options.aggregate, footprint))
+        plan = estimate_memory(run.scene, run.views, run.dim, options.topk, base=base, aggregate=resolve_mode(options.aggregate, footprint))
         try:
             choose_block(plan, options.memory_budget)
-            return
         except DrsplatError as exc:
-            refusals.append(exc)
-    raise refusals[0]
+            refusals.append((plan.minimum_budget(), plan.in_memory, exc))
+    if refusals:
+        raise max(refusals, key=lambda refusal: refusal[:2])[2]
+    return base
 
 
-def _plan_block(run: Run) -> int:
-    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, aggregate=run.options.aggregate)
+def _plan_block(run: Run, base: int | None = None) -> int:
+    """The block to register with (`choose_block`). base: the resident memory the plan starts from,
+    as checked before a fit mode's probe (the larger of it and the process's now is used, so that a
+    budget accepted then is accepted now unless the probe held more than was allowed for)."""
+    if base is not None:
+        base = max(base, current_rss())
+    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate)
     block = choose_block(plan, run.options.memory_budget)
     if block < run.scene.num_gaussians:
         log.info("estimated peak memory: %s in one block, %s in blocks of %s Gaussians", format_size(plan.in_memory),

@@ -38,6 +38,9 @@ OUTPUT_COPIES = 10  # bytes per Gaussian per embedding value while a chunk of ro
 WRITE_CHUNK = 1 << 15  # Gaussians encoded and written at a time
 BLOCK_ALIGN = 1024  # block sizes are multiples of this
 OVERHEAD = 256 << 20  # interpreter, numba, faiss, buffers not counted above
+# The process's resident memory, which the estimate starts from, differs by a few MB from run to
+# run: the minimum a refusal names has this much room, so that typing it back is accepted.
+NAMED_MINIMUM_ROOM = 16 << 20
 
 
 @dataclass
@@ -128,5 +131,5 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
         why = (f"the view pass alone (scene, geometry, one view) needs about {format_size(plan.views)}" if plan.views > budget else
                f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}")
         raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene: {why}; give at least "
-                           f"{format_size(plan.minimum_budget(), up=True)} (an estimate, on the safe side)")
+                           f"{format_size(plan.minimum_budget() + NAMED_MINIMUM_ROOM, up=True)} (an estimate, on the safe side)")
     return block
