@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import importlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numba
@@ -146,6 +146,25 @@ class Projected:
     @property
     def tile_grid(self) -> tuple[int, int]:
         return tile_grid(self.width, self.height, self.tile_size)
+
+
+def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
+    """The share of Gaussians that no view renders because their mean is nearer than NEAR to every
+    camera it lies in front of: 0 < z < NEAR in some view and z < NEAR in all (the camera-space
+    depth z = (R·μ + t)_z; the projection culls z < NEAR), estimated on every ⌈N / sample⌉-th
+    Gaussian. A scene in other units than its cameras, or scaled down, has most of them there.
+
+    means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians).
+    """
+    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    if len(means) == 0 or not cameras:
+        return 0.0
+    rendered, near = np.zeros(len(means), bool), np.zeros(len(means), bool)
+    for cam in cameras:
+        z = means @ np.asarray(cam.R, np.float64)[2] + float(cam.t[2])
+        rendered |= z >= NEAR
+        near |= (z > 0) & (z < NEAR)
+    return float(np.mean(near & ~rendered))
 
 
 def prepare_scene(scene: GaussianScene | PreparedScene) -> PreparedScene:

@@ -530,10 +530,28 @@ def save_spz(scene: GaussianScene, path: str | Path, version: int = SPZ_WRITE_VE
     _refuse_nonfinite(scene, path, "spz")
     data, fractional_bits, clipped = spz_file_bytes(scene, version, path)
     if fractional_bits < SPZ_FRACTIONAL_BITS:
-        log.info("%s: positions reach %.4g units, beyond the ±2048 that .spz holds at 1/4096 steps: stored with %d fractional bits "
-                 "(steps of %.3g)", path, float(np.abs(scene.means).max()), fractional_bits, 2.0 ** -fractional_bits)
+        _say_coarse_positions(scene, path, fractional_bits)
     _warn_clipped(path, "spz", clipped)
     write_bytes_atomic(path, data)
+
+
+COARSE_STEP_SHARE = 0.1  # positions rounded by more than this share of the median Gaussian's size: a warning, not a note
+
+
+def _say_coarse_positions(scene: GaussianScene, path: Path, fractional_bits: int) -> None:
+    """The note that positions beyond ±2048 units are stored in coarser steps: a warning when the
+    rounding (half a step) exceeds COARSE_STEP_SHARE of the median Gaussian's largest scale (a
+    georeferenced scene 1e6 units out: steps of 1/8 against Gaussians of 0.1 lose their detail)."""
+    step = 2.0 ** -fractional_bits
+    with np.errstate(over="ignore"):
+        size = float(np.median(np.exp(scene.log_scales.astype(np.float64)).max(axis=1)))
+    text = (f"{path}: positions reach {float(np.abs(scene.means).max()):.4g} units, beyond the ±2048 that .spz holds at 1/4096 "
+            f"steps: stored with {fractional_bits} fractional bits (steps of {step:.3g})")
+    if step / 2 > COARSE_STEP_SHARE * size:
+        log.warning("%s, which moves a Gaussian by up to %.2g of the median Gaussian's size (%.3g); move the scene near the origin, "
+                    "or export .ply or .compressed.ply, to keep its detail", text, step / 2 / size, size)
+    else:
+        log.info("%s", text)
 
 
 def spz_file_bytes(scene: GaussianScene, version: int = SPZ_WRITE_VERSION, path: Path | None = None) -> tuple[bytes, int, dict[str, int]]:

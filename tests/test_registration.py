@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import logging
 import tracemalloc
 from pathlib import Path
@@ -478,3 +479,34 @@ def test_used_masks_equal_the_sorted_unique_ids(case, dtype):
     got = used_masks(image)
     want = np.unique(image[image >= 0]).astype(np.int32)
     assert got.dtype == np.int32 and np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0])
+def test_a_scene_nearer_to_its_cameras_than_the_near_plane_is_said(tiny, tmp_path, caplog, scale):
+    """The room and its cameras scaled by 1e-3 (a scene in kilometres): the near plane (0.01 scene
+    units) culls nearly every Gaussian, and the warning said only that 4 of 2,763 got a feature."""
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    scene = dataclasses.replace(scene, means=scene.means * scale, log_scales=scene.log_scales + np.log(scale))
+    cams = [dataclasses.replace(cam, t=cam.t * scale) for cam in cams]
+    with caplog.at_level(logging.WARNING):
+        result = register(scene, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    if scale == 1.0:
+        assert result.num_assigned > 0.9 * scene.num_gaussians and "got a language feature" not in caplog.text
+    else:
+        assert result.num_assigned < 0.01 * scene.num_gaussians
+        assert re.search(r"only \d+ of 2763 Gaussians .*; 99% of the Gaussians are nearer to every camera than the near plane "
+                         r"\(0\.01 scene units\), which culls them: are the scene and its cameras in the same units\?", caplog.text), caplog.text
+
+
+def test_the_share_within_the_near_plane_counts_gaussians_no_view_renders():
+    from drsplat.raster import NEAR, share_within_near_plane
+    from drsplat.testing import front_camera
+
+    cam = front_camera(24, 18, z=-4.0)  # at z = -4, looking along +z
+    means = np.array([[0, 0, -4 + NEAR / 2], [0, 0, -4 + 2 * NEAR], [0, 0, -5.0], [0.1, 0, -4 + NEAR / 4]])
+    assert share_within_near_plane(means, [cam]) == 0.5  # the first and last: in front, nearer than NEAR; one rendered; one behind
+    far = front_camera(24, 18, z=-10.0)
+    assert share_within_near_plane(means, [cam, far]) == 0.0  # the far camera renders them all
+    assert share_within_near_plane(np.zeros((0, 3)), [cam]) == 0.0 and share_within_near_plane(means, []) == 0.0

@@ -217,6 +217,24 @@ def test_info_cli_json_keys():
     assert len(info["bbox_min"]) == 3 and info["bbox_max"][1] == pytest.approx(0.0861, abs=1e-3)
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_info_shows_the_box_of_a_scene_far_from_the_origin(tmp_path, offset):
+    """A georeferenced scene 1e6 units out printed "bbox min 1e+06 1e+06 1e+06" and the same max:
+    the corners now get the digits their 20-unit size needs, and the size has a line of its own."""
+    from drsplat.commands.info import format_summary, scene_summary
+
+    scene = random_scene(200, 0)
+    scene.means[:] = scene.means / np.abs(scene.means).max() * 10 + offset  # a 20-unit box
+    save_ply(scene, tmp_path / "s.ply")
+    loaded, report = load_ply_report(tmp_path / "s.ply")
+    text = format_summary(scene_summary(loaded, report))
+    lo, hi = loaded.bounding_box()
+    rows = {line.split("  ", 2)[1]: line.split()[2:] for line in text.splitlines() if line.startswith("  bbox")}
+    for name, corner in (("bbox min", lo), ("bbox max", hi)):
+        np.testing.assert_allclose([float(v) for v in rows[name]], corner, atol=10 * 1e-3)  # to a thousandth of the size
+    np.testing.assert_allclose([float(v) for v in rows["bbox size"]], hi - lo, rtol=1e-3)
+
+
 def test_info_cli_bad_file_exit_code(tmp_path):
     bad = tmp_path / "x.ply"
     bad.write_text("nope")

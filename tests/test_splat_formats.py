@@ -289,9 +289,16 @@ def test_far_positions_get_fewer_fractional_bits_and_too_far_is_refused(tmp_path
     such a scene with as many bits as fit (the header says how many) and refuses one beyond 24 bits."""
     scene = random_scene(50, degree=0)
     scene.means[0] = (1e5, -3e4, 7.0)
+    scene.log_scales[:] = np.log(0.5)
     with caplog.at_level(logging.INFO, logger="drsplat.splat_formats"):
         save_spz(scene, tmp_path / "far.spz")
-    assert "6 fractional bits" in caplog.text
+    assert "6 fractional bits" in caplog.text and all(r.levelno == logging.INFO for r in caplog.records), caplog.text
+    caplog.clear()
+    scene.log_scales[:] = np.log(0.05)  # rounded by up to 1/128: 16% of the Gaussians' size
+    with caplog.at_level(logging.INFO, logger="drsplat.splat_formats"):
+        save_spz(scene, tmp_path / "far-and-small.spz")
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING and "moves a Gaussian by up to 0.16 of the median Gaussian's size (0.05)" in record.getMessage()
     assert gzip.decompress((tmp_path / "far.spz").read_bytes())[13] == 6
     assert np.abs(load_scene(tmp_path / "far.spz").means - scene.means).max() <= 2.0 ** -7 + 1e-3
     scene.means[0, 0] = 2e7

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import numpy as np
@@ -59,19 +60,37 @@ def _number(value: float | None, spec: str) -> str:
     return "-" if value is None else format(value + 0.0, spec)  # + 0.0: a -0 (a flipped axis of a .spz) prints as 0
 
 
+def _box_digits(lo: list[float] | None, hi: list[float] | None) -> int:
+    """Significant digits that show the box's corners 4 digits into its size: a scene far from the
+    origin (georeferenced, 1e6 units away) spans a few units that '.4g' would print as one value."""
+    if lo is None:
+        return 4
+    finite = [(a, b) for a, b in zip(lo, hi) if math.isfinite(a) and math.isfinite(b)]
+    far = max((max(abs(a), abs(b)) for a, b in finite), default=0.0)
+    size = max((b - a for a, b in finite), default=0.0)
+    if far == 0.0 or size <= 0.0:
+        return 4
+    return int(min(12, 4 + max(0, math.ceil(math.log10(far / size)))))
+
+
 def format_summary(s: dict) -> str:
     def stats(d: dict) -> str:
         return "  ".join(f"{key} {_number(d[key], '.3g')}" for key in ("min", "median", "max"))
 
-    def box(values: list[float] | None) -> str:
-        return "-" if values is None else " ".join(_number(v, ".4g") for v in values)
+    lo, hi = s["bbox_min"], s["bbox_max"]
+    size = None if lo is None else [b - a for a, b in zip(lo, hi)]
+    digits = _box_digits(lo, hi)
+
+    def box(values: list[float] | None, spec: str = f".{digits}g") -> str:
+        return "-" if values is None else " ".join(_number(v, spec) for v in values)
 
     lines = [
         f"{s['path']} ({s['layout']} layout)",
         f"  gaussians      {s['num_gaussians']:,} (rows in file {s['rows_in_file']:,})",
         f"  SH degree      {s['sh_degree']}",
-        f"  bbox min       {box(s['bbox_min'])}",
-        f"  bbox max       {box(s['bbox_max'])}",
+        f"  bbox min       {box(lo)}",
+        f"  bbox max       {box(hi)}",
+        f"  bbox size      {box(size, '.4g')}",
         f"  opacity        {stats(s['opacity'])}",
         f"  largest scale  {stats(s['scale'])}",
         f"  extra props    {', '.join(s['extra_properties'][:8]) + (' …' if len(s['extra_properties']) > 8 else '') or '-'}",

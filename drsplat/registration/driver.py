@@ -39,6 +39,7 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size
+from drsplat.raster import NEAR, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
@@ -621,27 +622,32 @@ def register(
     log.info("%s: %d Gaussians (%d unassigned, %s), %s field, %d views in %d block(s), %.1f s", out, result.num_written,
              n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind, result.num_views,
              result.num_blocks, result.seconds)
-    warn_if_mostly_unassigned(result, cameras)
+    warn_if_mostly_unassigned(result, scene, cameras)
     return result
 
 
 LOW_ASSIGNED_FRACTION = 0.5  # below this share of Gaussians with a feature, a run is most likely misconfigured
 
 
-def warn_if_mostly_unassigned(result: RegistrationResult, cameras) -> None:
+def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras) -> None:
     """One warning when fewer than LOW_ASSIGNED_FRACTION of the Gaussians got a feature, with the likely cause.
 
     A trained scene seen by its own training views assigns most Gaussians; a small share means tiny
-    views (`--resolution 0.001` rendered 1-pixel views), cameras that miss the scene, or masks that
-    cover little. The run still succeeds: the user decides.
+    views (`--resolution 0.001` rendered 1-pixel views), a scene nearer to its cameras than the
+    near plane (in other units, or scaled down), cameras that miss the scene, or masks that cover
+    little. The run still succeeds: the user decides.
     """
     total = int(result.weights.shape[0])
     if total == 0 or result.num_assigned >= LOW_ASSIGNED_FRACTION * total:
         return
     sizes = sorted({(c.width, c.height) for c in cameras})
-    small = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if sizes and min(sizes)[0] < 64 else ""
+    why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if sizes and min(sizes)[0] < 64 else ""
+    near = share_within_near_plane(scene.means, cameras)
+    if near >= 0.1:
+        why += (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), which "
+                "culls them: are the scene and its cameras in the same units?")
     log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
-                result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned, small)
+                result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned, why)
 
 
 def n_unassigned(result: RegistrationResult) -> int:
