@@ -72,9 +72,10 @@ def random_case(seed: int, n: int = 400, sh_degree: int = 0, topk: int = 8) -> R
 def windowed(case: RasterCase, x0: int, y0: int, width: int, height: int) -> RasterCase:
     """The case seen through pixels x0 .. x0 + width, y0 .. y0 + height of its image: the same rays
     (the principal point moved by the window's corner) on fewer pixels and tiles. Its render is the
-    full image's under the window where the corner is on the 16-px tile grid (3DGS's tile lists
-    drop a Gaussian's α ≥ 1/255 fringe past 3σ tile by tile) and no Gaussian's direction lies past
-    the window's EWA clamp (1.3x its field of view)."""
+    full image's under the window where the corner is on the 16-px tile grid (3DGS's tile
+    rectangles cut some footprints at tile borders: off the grid, pixels near those borders can
+    differ slightly) and no Gaussian's direction lies past the window's EWA clamp (1.3x its field
+    of view)."""
     cam = case.camera
     window = replace(cam, cx=cam.cx - x0, cy=cam.cy - y0, width=width, height=height)
     return replace(case, name=f"{case.name}-window", camera=window)
