@@ -129,6 +129,25 @@ def test_otsu_threshold_splits_two_modes():
     assert np.sum(s >= t) == 300
 
 
+@pytest.mark.parametrize("scores", [[0.42], [0.42] * 5, [0.42, 0.0, np.nan, 0.42]], ids=["one", "all-equal", "equal-among-unscored"])
+def test_auto_threshold_on_scores_of_one_value_says_it_selects_them_all(scores, caplog):
+    """A field with one assigned Gaussian (or Gaussians of one score) gave Otsu nothing to split: all
+    were selected with only an INFO line; now a warning says so and how to choose."""
+    import logging
+
+    from drsplat.commands.common import resolve_threshold
+
+    with caplog.at_level(logging.INFO, logger="drsplat.commands.common"):
+        threshold = resolve_threshold("auto", np.array(scores), relevancy=False)
+    assert threshold == pytest.approx(0.42)
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING and "nothing to split; all of them are selected" in record.getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drsplat.commands.common"):
+        resolve_threshold("auto", np.array([0.2, 0.21, 0.7, 0.71]), relevancy=False)
+    assert [r.levelno for r in caplog.records] == [logging.INFO]
+
+
 def test_embedding_and_id_files_are_validated(tmp_path):
     np.save(tmp_path / "q.npy", np.ones(DIM + 1, np.float32))
     with pytest.raises(InputError, match=r"q.npy.*expected shape \(64,\)"):

@@ -235,7 +235,13 @@ def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) ->
         value = str(DEFAULT_RELEVANCY_THRESHOLD) if relevancy else "auto"
     if value == "auto":
         threshold = otsu_threshold(scores)
-        log.info("automatic (Otsu) threshold: %.4f", threshold)
+        scored = np.asarray(scores, np.float64)
+        scored = scored[np.isfinite(scored) & (scored != 0)]
+        if 0 < scored.size and scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
+            log.warning("--threshold auto: every one of the %s scored Gaussians scores %.4f, so there is nothing to split; "
+                        "all of them are selected (give --threshold a number to choose)", f"{scored.size:,}", threshold)
+        else:
+            log.info("automatic (Otsu) threshold: %.4f", threshold)
         return threshold
     try:
         threshold = float(value)
