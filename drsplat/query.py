@@ -204,10 +204,16 @@ def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = N
     return picked if assigned is None else picked & assigned
 
 
-def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
-    """Threshold maximising the between-class variance of the finite, nonzero scores (Otsu)."""
+def otsu_scores(scores: np.ndarray) -> np.ndarray:
+    """The scores Otsu splits: the finite, nonzero ones (an unassigned Gaussian scores 0), float64."""
     s = np.asarray(scores, np.float64)
-    s = s[np.isfinite(s) & (s != 0)]
+    return s[np.isfinite(s) & (s != 0)]
+
+
+def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
+    """Threshold maximising the between-class variance of `otsu_scores` (Otsu); with one value
+    among them (nothing to split), that value, which selects them all."""
+    s = otsu_scores(scores)
     if s.size == 0 or s.min() == s.max():
         return float(s.max()) if s.size else 0.0
     hist, edges = np.histogram(s, bins=bins)

@@ -150,8 +150,8 @@ class Projected:
 
 def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
     """The share of Gaussians that no view renders because their mean is nearer than NEAR to every
-    camera it lies in front of: 0 < z < NEAR in some view and z < NEAR in all (the camera-space
-    depth z = (R·μ + t)_z; the projection culls z < NEAR), estimated on every ⌈N / sample⌉-th
+    camera it lies in front of: 0 < z < NEAR in some view and z < NEAR in all (z the camera-space
+    depth, `Camera.world_to_camera`; the projection culls z < NEAR), estimated on every ⌈N / sample⌉-th
     Gaussian. A scene in other units than its cameras, or scaled down, has most of them there.
 
     means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians).
@@ -161,7 +161,7 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
         return 0.0
     rendered, near = np.zeros(len(means), bool), np.zeros(len(means), bool)
     for cam in cameras:
-        z = means @ np.asarray(cam.R, np.float64)[2] + float(cam.t[2])
+        z = cam.world_to_camera(means)[:, 2]
         rendered |= z >= NEAR
         near |= (z > 0) & (z < NEAR)
     return float(np.mean(near & ~rendered))

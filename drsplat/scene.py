@@ -86,6 +86,12 @@ class GaussianScene:
         """[N, 3] activated scales exp(log_scales)."""
         return np.exp(self.log_scales)
 
+    def largest_scales(self) -> np.ndarray:
+        """[N] float64 max over axes of exp(log_scales): each Gaussian's size (inf where a log scale
+        is past float64's exp, without numpy's overflow warning)."""
+        with np.errstate(over="ignore"):
+            return np.exp(self.log_scales.astype(np.float64)).max(axis=1) if self.num_gaussians else np.zeros(0)
+
     def opacities(self) -> np.ndarray:
         """[N] activated opacities sigmoid(logit); a logit below about -88.7 is 0 (its exp overflows
         float32: inf, as intended, without numpy's overflow warning)."""

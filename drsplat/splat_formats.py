@@ -543,8 +543,7 @@ def _say_coarse_positions(scene: GaussianScene, path: Path, fractional_bits: int
     rounding (half a step) exceeds COARSE_STEP_SHARE of the median Gaussian's largest scale (a
     georeferenced scene 1e6 units out: steps of 1/8 against Gaussians of 0.1 lose their detail)."""
     step = 2.0 ** -fractional_bits
-    with np.errstate(over="ignore"):
-        size = float(np.median(np.exp(scene.log_scales.astype(np.float64)).max(axis=1)))
+    size = float(np.median(scene.largest_scales()))
     text = (f"{path}: positions reach {float(np.abs(scene.means).max()):.4g} units, beyond the ±2048 that .spz holds at 1/4096 "
             f"steps: stored with {fractional_bits} fractional bits (steps of {step:.3g})")
     if step / 2 > COARSE_STEP_SHARE * size:

@@ -229,14 +229,13 @@ def split_phrases(text: str) -> list[str]:
 
 def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:
     """The selection threshold: a number, or 'auto' (Otsu); None = 0.5 for relevancy, 'auto' for cosine."""
-    from drsplat.query import otsu_threshold
+    from drsplat.query import otsu_scores, otsu_threshold
 
     if value is None:
         value = str(DEFAULT_RELEVANCY_THRESHOLD) if relevancy else "auto"
     if value == "auto":
         threshold = otsu_threshold(scores)
-        scored = np.asarray(scores, np.float64)
-        scored = scored[np.isfinite(scored) & (scored != 0)]
+        scored = otsu_scores(scores)
         if 0 < scored.size and scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
             log.warning("--threshold auto: every one of the %s scored Gaussians scores %.4f, so there is nothing to split; "
                         "all of them are selected (give --threshold a number to choose)", f"{scored.size:,}", threshold)

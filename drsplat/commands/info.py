@@ -30,8 +30,7 @@ def _stats(values: np.ndarray) -> dict[str, float | None]:
 def scene_summary(scene: GaussianScene, report: LoadReport) -> dict:
     """JSON-serialisable summary of a loaded scene and its load report."""
     lo, hi = scene.bounding_box()
-    with np.errstate(over="ignore"):  # a log scale past float64's exp is infinite, and said so in the findings
-        largest = np.exp(scene.log_scales.astype(np.float64)).max(axis=1) if scene.num_gaussians else np.zeros(0)
+    largest = scene.largest_scales()  # a log scale past float64's exp is infinite, and said so in the findings
     summary = {
         "path": str(report.path),
         "layout": report.layout,
