@@ -20,17 +20,22 @@ VALID, BEHIND, NONFINITE, CULLED = 0, 1, 2, 3
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_tiles: int, n_chunks: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_tiles: int, n_chunks: int = 1, t_lo: int = 0,
+                  t_hi: int = -1, rects_in_order: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile lists of Gaussian ids in the order given (front to back).
 
     order: [M] int64 Gaussian ids sorted by depth. tile_rects: [N, 4] int32 (tx0, ty0, tx1, ty1),
     end-exclusive. Returns offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32; tile t owns
-    ids[offsets[t]:offsets[t + 1]].
+    ids[offsets[t]:offsets[t + 1]]. Only tiles t_lo <= t < t_hi (row-major; t_hi -1: n_tiles) get
+    entries, the others empty lists: a band of the view (`band_row_span`). rects_in_order: tile_rects
+    is [M, 4], row i the rectangle of Gaussian order[i] (gathered once for a view binned in many
+    bands, which then reads it in sequence instead of gathering it again per band).
 
     Parallel over n_chunks contiguous chunks of `order`: each chunk counts its entries per tile, an
     exclusive prefix sum over (tile, chunk) gives every chunk its own start in every tile, and
     the chunks fill their slots; so each tile's list keeps the order of `order`.
     """
+    t_hi = n_tiles if t_hi < 0 else t_hi
     m = order.shape[0]
     n_chunks = max(1, min(m, n_chunks))
     step = -(-m // n_chunks) if m > 0 else 1
@@ -38,8 +43,10 @@ def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_t
     for c in prange(n_chunks):
         for i in range(c * step, min(m, (c + 1) * step)):
             g = order[i]
-            for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-                for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+            r = i if rects_in_order else g
+            for ty in range(max(tile_rects[r, 1], t_lo // n_tiles_x), min(tile_rects[r, 3], (t_hi - 1) // n_tiles_x + 1)):
+                tx0, tx1 = band_row_span(ty, tile_rects[r, 0], tile_rects[r, 2], t_lo, t_hi, n_tiles_x)
+                for tx in range(tx0, tx1):
                     counts[c, ty * n_tiles_x + tx] += 1
     offsets = np.zeros(n_tiles + 1, np.int64)
     total = 0
@@ -55,12 +62,60 @@ def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_t
         fill = counts[c]
         for i in range(c * step, min(m, (c + 1) * step)):
             g = order[i]
-            for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-                for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
+            r = i if rects_in_order else g
+            for ty in range(max(tile_rects[r, 1], t_lo // n_tiles_x), min(tile_rects[r, 3], (t_hi - 1) // n_tiles_x + 1)):
+                tx0, tx1 = band_row_span(ty, tile_rects[r, 0], tile_rects[r, 2], t_lo, t_hi, n_tiles_x)
+                for tx in range(tx0, tx1):
                     t = ty * n_tiles_x + tx
                     ids[fill[t]] = g
                     fill[t] += 1
     return offsets, ids
+
+
+@njit(cache=True, inline="always")
+def band_row_span(ty, tx0, tx1, t_lo, t_hi, n_tiles_x):
+    """[tx0, tx1) of tile row ty cut to the band of row-major tiles t_lo <= t < t_hi (the band's first
+    and last rows may be partial)."""
+    if ty == t_lo // n_tiles_x:
+        tx0 = max(tx0, t_lo - ty * n_tiles_x)
+    if ty == (t_hi - 1) // n_tiles_x:
+        tx1 = min(tx1, t_hi - ty * n_tiles_x)
+    return tx0, tx1
+
+
+@njit(parallel=True, cache=True)
+def tile_entry_total(tile_rects: np.ndarray) -> int:
+    """Σ of the getRect rectangles' tiles: the entries of a view's whole tile lists, in parallel
+    (tile_rects: [N, 4] int32, empty rectangles count 0)."""
+    total = 0
+    for g in prange(tile_rects.shape[0]):
+        total += max(tile_rects[g, 2] - tile_rects[g, 0], 0) * max(tile_rects[g, 3] - tile_rects[g, 1], 0)
+    return total
+
+
+@njit(cache=True)
+def tile_entry_counts(tile_rects: np.ndarray, n_tiles_x: int, n_tiles_y: int) -> np.ndarray:
+    """[n_tiles] int64: how many Gaussians' getRect rectangles hold each tile (the lengths of
+    `bin_gaussians`' lists), from a 2-D difference array: O(N + tiles), no list built.
+    tile_rects: [N, 4] int32 (tx0, ty0, tx1, ty1), end-exclusive, empty for invalid Gaussians."""
+    diff = np.zeros((n_tiles_y + 1, n_tiles_x + 1), np.int64)
+    for g in range(tile_rects.shape[0]):
+        x0, y0, x1, y1 = tile_rects[g, 0], tile_rects[g, 1], tile_rects[g, 2], tile_rects[g, 3]
+        if x1 <= x0 or y1 <= y0:
+            continue
+        diff[y0, x0] += 1
+        diff[y0, x1] -= 1
+        diff[y1, x0] -= 1
+        diff[y1, x1] += 1
+    counts = np.empty(n_tiles_y * n_tiles_x, np.int64)
+    above = np.zeros(n_tiles_x + 1, np.int64)
+    for ty in range(n_tiles_y):
+        run = np.int64(0)
+        for tx in range(n_tiles_x):
+            run += diff[ty, tx]
+            above[tx] += run
+            counts[ty * n_tiles_x + tx] = above[tx]
+    return counts
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -478,7 +533,8 @@ def row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, tile_size, height, n_tiles_x, n_tiles, n_chunks=1):
+def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, tile_size, height, n_tiles_x, n_tiles, n_chunks=1, t_lo=0,
+                        t_hi=-1):
     """`bin_gaussians` restricted to the tiles the α ≥ 1/255 ellipse meets (Speedy-Splat's SnugBox
     and AccuTile).
 
@@ -487,8 +543,10 @@ def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, ti
     two tiles wide and tall, its ellipse dᵀ Σ'⁻¹ d ≤ qlimits does too (`row_tiles`). Both hold
     every pixel where α ≥ 1/255, so every tile dropped is one where the Gaussian contributes
     nothing: compositing gives the same result with fewer tile visits. Same outputs and order as
-    bin_gaussians: offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32, front to back per tile.
+    bin_gaussians: offsets [n_tiles + 1] int64 and ids [offsets[-1]] int32, front to back per tile,
+    entries only in the band of tiles t_lo <= t < t_hi (t_hi -1: n_tiles).
     """
+    t_hi = n_tiles if t_hi < 0 else t_hi
     m = order.shape[0]
     n_chunks = max(1, min(m, n_chunks))
     step = -(-m // n_chunks) if m > 0 else 1
@@ -497,8 +555,9 @@ def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, ti
         for i in range(c * step, min(m, (c + 1) * step)):
             g = order[i]
             rect = snug_rect(g, tile_rects, means2d, extents, tile_size)
-            for ty in range(rect[1], rect[3]):
+            for ty in range(max(rect[1], t_lo // n_tiles_x), min(rect[3], (t_hi - 1) // n_tiles_x + 1)):
                 tx0, tx1 = row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height)
+                tx0, tx1 = band_row_span(ty, tx0, tx1, t_lo, t_hi, n_tiles_x)
                 for tx in range(tx0, tx1):
                     counts[c, ty * n_tiles_x + tx] += 1
     offsets = np.zeros(n_tiles + 1, np.int64)
@@ -516,8 +575,9 @@ def bin_gaussians_exact(order, tile_rects, means2d, conics, extents, qlimits, ti
         for i in range(c * step, min(m, (c + 1) * step)):
             g = order[i]
             rect = snug_rect(g, tile_rects, means2d, extents, tile_size)
-            for ty in range(rect[1], rect[3]):
+            for ty in range(max(rect[1], t_lo // n_tiles_x), min(rect[3], (t_hi - 1) // n_tiles_x + 1)):
                 tx0, tx1 = row_tiles(g, ty, rect, means2d, conics, qlimits, tile_size, height)
+                tx0, tx1 = band_row_span(ty, tx0, tx1, t_lo, t_hi, n_tiles_x)
                 for tx in range(tx0, tx1):
                     t = ty * n_tiles_x + tx
                     ids[fill[t]] = g

@@ -39,6 +39,12 @@ TILE_SIZE = 16
 NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
 TILE_CHUNKS_PER_WORKER = 8  # runs of neighbouring tiles per compositing thread (`balance_tiles`)
+# A view's tile lists hold at most this many entries per Gaussian (with a floor for small scenes):
+# a view that needs more (close-ups, views far larger than 640x480) is binned and composited in
+# bands of tiles (`tile_bands`), so its lists stay within what drsplat.registration.plan counts.
+TILE_ENTRIES_PER_GAUSSIAN = 8
+MIN_TILE_ENTRIES = 1 << 22
+TILE_ENTRY_BYTES = 4  # one int32 id
 BLUR = kernels.BLUR
 ALPHA_MIN = kernels.ALPHA_MIN
 ALPHA_MAX = kernels.ALPHA_MAX
@@ -81,6 +87,7 @@ class RasterOutput:
     num_nonfinite: int = 0
     median_ids: np.ndarray | None = None
     projected: Projected | None = None  # the view's projection (rasterize_topk), its arrays reused by a later call with out=
+    tile_entries: int = 0  # entries of the view's tile lists, over all its bands (numba engine)
 
 
 @dataclass
@@ -516,20 +523,28 @@ def render_projected(
     with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     out: RasterOutput | None = None,
+    max_tile_entries: int | None = None,
 ) -> RasterOutput:
     """Bin projected Gaussians into tiles and composite them with the numba kernel.
 
     Lower-level entry of `rasterize` for callers that project once (or mask) themselves.
     out: a previous RasterOutput whose arrays are overwritten when their shapes match (saves
     allocating ~100 MB per 640x480 view at k = 40 when rendering many views); the returned
-    RasterOutput then shares them.
+    RasterOutput then shares them. max_tile_entries: the most entries one band's tile lists may
+    hold (default `tile_list_cap`); the output does not depend on it.
     """
     _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
-    offsets, tile_ids = bin_tiles(projected)
-    return composite_projected(projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
-                               background=background, out=out)
+    entries, bands = 0, tile_bands(projected, max_tile_entries)
+    order, rects = _band_inputs(projected, bands, exact=False)
+    for band in bands:
+        offsets, tile_ids = bin_tiles(projected, tiles=band, order=order, rects_in_order=rects)
+        out = composite_projected(projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
+                                  background=background, out=out, tiles=band)
+        entries += tile_ids.shape[0]
+    out.tile_entries = entries
+    return out
 
 
 def composite_projected(
@@ -543,8 +558,10 @@ def composite_projected(
     with_median: bool = False,
     background=(0.0, 0.0, 0.0),
     out: RasterOutput | None = None,
+    tiles: tuple[int, int] | None = None,
 ) -> RasterOutput:
-    """The compositing half of `render_projected`, on tile lists from `bin_tiles` (kernels.composite_tiles)."""
+    """The compositing half of `render_projected`, on tile lists from `bin_tiles` (kernels.composite_tiles).
+    tiles: (t_lo, t_hi), composite only those row-major tiles (a band's); the other pixels of `out` are left as they are."""
     bg = _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
@@ -557,7 +574,7 @@ def composite_projected(
     alpha = _buffer(None if out is None else out.alpha, (h, w), np.float32)
     median = _buffer(None if out is None else out.median_ids, (h, w) if with_median else (0, 0), np.int32)
     colors = projected.colors if with_rgb else np.zeros((0, 3), np.float32)
-    tile_order, worker_starts = balance_tiles(np.diff(offsets), numba.get_num_threads())
+    tile_order, worker_starts = _band_schedule(offsets, tiles)
     kernels.composite_tiles(
         tile_order, worker_starts, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
         projected.qlimits, projected.depths, colors, w, h, projected.tile_size, n_tiles_x, with_rgb, with_depth, with_median, bg,
@@ -574,20 +591,82 @@ def composite_projected(
     )
 
 
-def bin_tiles(projected: Projected, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def bin_tiles(projected: Projected, exact: bool = False, tiles: tuple[int, int] | None = None,
+              order: np.ndarray | None = None, rects_in_order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile lists of Gaussian ids, front to back: offsets [n_tiles + 1] int64, ids [offsets[-1]] int32.
 
     exact=False: every tile of each Gaussian's getRect rectangle (3DGS's rule, `render_projected`).
     exact=True: only those of its tiles that the α ≥ 1/255 ellipse meets (`bin_gaussians_exact`,
     Speedy-Splat's AccuTile); compositing then gives the same result, with fewer tile visits.
+    tiles: (t_lo, t_hi), lists for those row-major tiles only (a band, `tile_bands`), the others empty.
+    order: the view's `depth_order`, when the caller bins several bands (computed here when None);
+    rects_in_order: projected.tile_rects[order], likewise (getRect tiles only).
     """
     n_tiles_x, n_tiles_y = projected.tile_grid
-    order = depth_order(projected)
+    n_tiles = n_tiles_x * n_tiles_y
+    t_lo, t_hi = (0, n_tiles) if tiles is None else tiles
+    order = depth_order(projected) if order is None else order
     n_chunks = BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
     if not exact:
-        return kernels.bin_gaussians(order, projected.tile_rects, n_tiles_x, n_tiles_x * n_tiles_y, n_chunks)
+        if rects_in_order is not None:
+            return kernels.bin_gaussians(order, rects_in_order, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi, True)
+        return kernels.bin_gaussians(order, projected.tile_rects, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi)
     return kernels.bin_gaussians_exact(order, projected.tile_rects, projected.means2d, projected.conics, projected.extents, projected.qlimits,
-                                       projected.tile_size, projected.height, n_tiles_x, n_tiles_x * n_tiles_y, n_chunks)
+                                       projected.tile_size, projected.height, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi)
+
+
+def tile_list_cap(num_gaussians: int) -> int:
+    """The most entries one band's tile lists hold for a scene of `num_gaussians` Gaussians:
+    TILE_ENTRIES_PER_GAUSSIAN per Gaussian, at least MIN_TILE_ENTRIES."""
+    return max(MIN_TILE_ENTRIES, TILE_ENTRIES_PER_GAUSSIAN * int(num_gaussians))
+
+
+def tile_bands(projected: Projected, max_entries: int | None = None) -> list[tuple[int, int]]:
+    """The view's tiles cut into bands whose lists each hold at most `max_entries` entries
+    (default `tile_list_cap` of the projection's Gaussians): [(t_lo, t_hi)], contiguous runs of
+    row-major tiles covering every tile, cut greedily; one band (0, n_tiles) when the whole view fits.
+
+    The lengths come from the getRect rectangles (`kernels.tile_entry_counts`, O(N), no list built);
+    AccuTile's exact lists are no longer. A single tile whose list is longer than max_entries makes
+    a band of its own (it cannot be cut: a tile's Gaussians blend in one depth order); with the
+    default cap that never happens, since a tile holds each Gaussian at most once.
+    """
+    n_tiles_x, n_tiles_y = projected.tile_grid
+    n_tiles = n_tiles_x * n_tiles_y
+    cap = tile_list_cap(projected.means2d.shape[0]) if max_entries is None else int(max_entries)
+    if cap < 1:
+        raise ValueError(f"max_entries must be at least 1, got {cap}")
+    if n_tiles == 0 or kernels.tile_entry_total(projected.tile_rects) <= cap:
+        return [(0, n_tiles)]
+    counts = kernels.tile_entry_counts(projected.tile_rects, n_tiles_x, n_tiles_y)
+    bands, start, held = [], 0, 0
+    for t, c in enumerate(counts.tolist()):
+        if t > start and held + c > cap:
+            bands.append((start, t))
+            start, held = t, 0
+        held += c
+    bands.append((start, n_tiles))
+    return bands
+
+
+def _band_inputs(projected: Projected, bands: list[tuple[int, int]], exact: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The view's depth order, made once for all its bands, and for several getRect bands its
+    rectangles gathered in that order (each band then reads them in sequence: gathering them again
+    per band made binning a many-band view ~2x slower)."""
+    order = depth_order(projected)
+    if len(bands) == 1 or exact:
+        return order, None
+    return order, np.ascontiguousarray(projected.tile_rects[order])
+
+
+def _band_schedule(offsets: np.ndarray, tiles: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:
+    """`balance_tiles` over the tiles of a band (all tiles when None): (tile_order, worker_starts)."""
+    lengths = np.diff(offsets)
+    if tiles is None:
+        return balance_tiles(lengths, numba.get_num_threads())
+    t_lo, t_hi = tiles
+    order, starts = balance_tiles(lengths[t_lo:t_hi], numba.get_num_threads())
+    return order + t_lo, starts
 
 
 def composite_topk(
@@ -599,6 +678,7 @@ def composite_topk(
     with_median: bool = False,
     ranked: bool = True,
     out: RasterOutput | None = None,
+    tiles: tuple[int, int] | None = None,
 ) -> RasterOutput:
     """Composite binned tiles (`bin_tiles`) keeping only ids, weights, alpha and (with_median) the median.
 
@@ -607,7 +687,8 @@ def composite_topk(
     median bit for bit. ranked=False: each pixel's slots hold the same (id, weight) entries, in no
     particular order (the -1 / 0 padding still last); what registration needs, since it sums
     a pixel's entries per (Gaussian, mask) whatever their order, and it skips a sort per pixel.
-    out: buffers to reuse, as in `render_projected`.
+    out: buffers to reuse, as in `render_projected`. tiles: (t_lo, t_hi), composite only those
+    row-major tiles (a band's, `tile_bands`); the other pixels of `out` are left as they are.
     """
     _check_args(topk, (0.0, 0.0, 0.0))
     if projected.tile_size > kernels.MAX_TILE_LANES:
@@ -618,7 +699,7 @@ def composite_topk(
     weights = _buffer(None if out is None else out.weights, (h, w, topk), np.float32)
     alpha = _buffer(None if out is None else out.alpha, (h, w), np.float32)
     median = _buffer(None if out is None else out.median_ids, (h, w) if with_median else (0, 0), np.int32)
-    tile_order, worker_starts = balance_tiles(np.diff(offsets), numba.get_num_threads())
+    tile_order, worker_starts = _band_schedule(offsets, tiles)
     kernels.composite_topk(
         tile_order, worker_starts, offsets, tile_ids, projected.means2d, projected.conics, projected.opacities, projected.extents,
         projected.qlimits, w, h, projected.tile_size, projected.tile_grid[0], with_median, ranked, ids, weights, alpha, median,
@@ -635,11 +716,19 @@ def render_topk(
     ranked: bool = True,
     exact_tiles: bool = False,
     out: RasterOutput | None = None,
+    max_tile_entries: int | None = None,
 ) -> RasterOutput:
     """`render_projected` for callers that need only the top-k ids and weights (registration):
-    `bin_tiles(exact=exact_tiles)` then `composite_topk` (see there for `ranked`)."""
-    offsets, tile_ids = bin_tiles(projected, exact=exact_tiles)
-    return composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked, out=out)
+    `bin_tiles(exact=exact_tiles)` then `composite_topk` (see there for `ranked`), band by band
+    (`tile_bands`; max_tile_entries as in `render_projected`)."""
+    entries, bands = 0, tile_bands(projected, max_tile_entries)
+    order, rects = _band_inputs(projected, bands, exact=exact_tiles)
+    for band in bands:
+        offsets, tile_ids = bin_tiles(projected, exact=exact_tiles, tiles=band, order=order, rects_in_order=rects)
+        out = composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked, out=out, tiles=band)
+        entries += tile_ids.shape[0]
+    out.tile_entries = entries
+    return out
 
 
 def rasterize_topk(

@@ -86,10 +86,9 @@ def render_topk(means: torch.Tensor, covariances: torch.Tensor, opacities: torch
     """See the module docstring. This body is the CPU kernel (numba); drsplat.raster_torch registers the CUDA one."""
     prep = host_scene(means, covariances, opacities, usable)
     projected = raster.project_gaussians(prep, camera_from_values(camera, width, height), near, tile_size=tile_size)
-    offsets, tile_ids = raster.bin_tiles(projected)
-    out = raster.composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked)
+    out = raster.render_topk(projected, topk, with_median=with_median, ranked=ranked)
     median = out.median_ids if with_median else np.zeros((0, 0), np.int32)
-    counts = [int(offsets[-1]), projected.num_nonfinite - prep.num_nonfinite, projected.num_behind]  # the kernel's own non-finite count
+    counts = [out.tile_entries, projected.num_nonfinite - prep.num_nonfinite, projected.num_behind]  # the kernel's own non-finite count
     return tuple(host_tensor(a) for a in (out.ids, out.weights, out.alpha, median, *(np.array(c, np.int64) for c in counts)))
 
 

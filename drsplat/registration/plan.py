@@ -2,7 +2,8 @@
 are computed) or many (sums per block, replayed from the pair log), chosen for a budget.
 
 A registration holds the scene, its prepared geometry (~101 B per Gaussian) and one view in flight
-(projection ~160 B per Gaussian, its top-k buffers and pairs) while views are computed, and the
+(projection ~128 B per Gaussian, tile lists of at most `drsplat.raster.tile_list_cap` entries, its
+top-k buffers and pairs) while views are computed, and the
 sums F [B, D] float32 + W [B] of a block of B Gaussians. With one block (B = N) the sums are kept
 as the views arrive; with several, views' pairs go to the pair log and each block replays it
 (drsplat.registration.sink). Rows are encoded and written in chunks of at most WRITE_CHUNK
@@ -26,12 +27,13 @@ from drsplat.cameras import Camera
 from drsplat.defaults import DEFAULT_AGGREGATE
 from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
+from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
 from drsplat.scene import GaussianScene
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
-PROJECTION_BYTES = 160  # one view's Projected arrays, depth order keys and tile lists, per Gaussian
+PROJECTION_BYTES = 128  # one view's Projected arrays and depth order keys, per Gaussian (its tile lists: `tile_list_bytes`)
 PAIR_BYTES = 12  # one distinct (Gaussian, mask, weight) pair
 SUM_BYTES = 16  # per Gaussian of a block besides F's 4·D: W, the accumulator's counting sort
 OUTPUT_COPIES = 10  # bytes per Gaussian per embedding value while a chunk of rows is encoded and written
@@ -88,6 +90,12 @@ class MemoryPlan:
         return int(min(max(block, 0), -(-self.num_gaussians // BLOCK_ALIGN) * BLOCK_ALIGN))
 
 
+def tile_list_bytes(num_gaussians: int) -> int:
+    """The most a view's tile lists hold at once: views that need more are composited in bands
+    (drsplat.raster.tile_bands), so a close-up or a view far larger than 640x480 stays within it."""
+    return tile_list_cap(num_gaussians) * TILE_ENTRY_BYTES
+
+
 def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, topk: int, base: int | None = None,
                     aggregate: str = DEFAULT_AGGREGATE) -> MemoryPlan:
     """Estimate the peak memory of registering `views` onto `scene` with `dim`-D embeddings
@@ -97,7 +105,8 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     pixels = max((c.width * c.height for c in views), default=0)
     mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
     base = (current_rss() if base is None else base) + mode_kept
-    view = n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + pixels * topk * (8 + 2 * PAIR_BYTES) + mode_views - mode_kept
+    view = (n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + tile_list_bytes(n) + pixels * topk * (8 + 2 * PAIR_BYTES)
+            + mode_views - mode_kept)
     views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
     row_bytes = scene.sh.shape[1] * 12 + 64
     return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + mode_block, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
