@@ -343,6 +343,23 @@ def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
         choose_block(plan, None, available=12 * 10**9)
 
 
+def test_a_budget_below_the_in_memory_peak_streams_even_when_blocks_of_the_whole_scene_fit(inputs):
+    """In memory the sums are held while the views run (peak: both); in blocks, one after the other.
+    A budget between the two used to get one block, i.e. the in-memory run it does not fit."""
+    scene, cams = inputs
+
+    class Big:
+        num_gaussians = 1_000_000
+        sh = np.zeros((1, 1, 3))
+
+    plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
+    budget = (plan.peak(plan.num_gaussians - 1) + plan.in_memory) // 2
+    assert plan.peak(plan.num_gaussians - 1) <= budget < plan.in_memory
+    assert plan.block_for(budget) >= plan.num_gaussians  # blocks as large as the scene fit the budget
+    block = choose_block(plan, budget)
+    assert block == (plan.num_gaussians - 1) // 1024 * 1024 and plan.peak(block) <= budget
+
+
 def test_plan_keeps_small_scenes_in_memory(inputs):
     scene, cams = inputs
     plan = estimate_memory(scene, cams, 512, 40)
@@ -456,3 +473,30 @@ def test_one_block_of_sums_is_alive_at_a_time(tiny, inputs, tmp_path, monkeypatc
     run_registration(prepare_run(scene, cams, tiny / "features", options), watcher, checkpoint=tmp_path / "log", show_progress=False)
     assert len(watcher.refs) == -(-scene.num_gaussians // 1024) > 1
     assert alive_when_summing and max(alive_when_summing) == 0, alive_when_summing
+
+
+def test_a_scene_codebook_keeps_a_bounded_share_of_the_masks_the_same_in_every_plan(tiny, inputs, tmp_path, monkeypatch):
+    """Every used mask's embedding was kept for `--codebook scene` (40 views x 4,000 masks: 1.1 GB over
+    the plan), though faiss trains on 65,536 at most; now every k-th used mask in view order, at most
+    SCENE_TRAIN_MAX, chosen the same way in one block and in blocks (same file, same codebook)."""
+    from drsplat.registration import driver
+    from drsplat.registration.views import read_feature_headers
+
+    scene, cams = inputs
+    total = read_feature_headers(tiny / "features", cams, 1).total_masks
+    cap = max(1, total // 3)
+    monkeypatch.setattr(driver, "SCENE_TRAIN_MAX", cap)
+    seen = []
+    training_set = driver.scene_training_set
+
+    def spy(masks, sample, dim):
+        seen.append(masks.shape[0])
+        return training_set(masks, sample, dim)
+
+    monkeypatch.setattr(driver, "scene_training_set", spy)
+    a, b = tmp_path / "one" / "reg.ply", tmp_path / "blocks" / "reg.ply"
+    register(scene, cams, tiny / "features", a, RegisterOptions(codebook="scene"), show_progress=False)
+    register(scene, cams, tiny / "features", b, RegisterOptions(codebook="scene", block_size=1024), show_progress=False)
+    assert seen[0] == seen[1] and 0 < seen[0] <= cap < total
+    assert a.read_bytes() == b.read_bytes()
+    assert (a.parent / "reg.codebook.faiss").read_bytes() == (b.parent / "reg.codebook.faiss").read_bytes()

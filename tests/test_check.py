@@ -26,6 +26,7 @@ from drsplat.registration.check import (
     fold_block_votes,
     judge_masks,
     like_threshold,
+    stream_median,
     mask_drops,
     view_supports,
     view_votes_reference,
@@ -294,6 +295,49 @@ def test_like_threshold_is_halfway_between_agreement_and_difference():
     assert like_threshold(np.array([0.9, 1.0, 0.8]), views) == pytest.approx(0.5 * (0.9 + 0.5 * np.sqrt(0.5)))
     assert like_threshold(np.zeros(0), views) is None
     assert like_threshold(np.array([1.0]), [np.stack([a]), np.stack([b, np.zeros(3)])]) is None
+
+
+def _like_dense(agreements, view_units):
+    """like_threshold as it was: every view's M x M cosines held, then one median."""
+    between = []
+    for units in view_units:
+        units = units[np.linalg.norm(units, axis=1) > 0]
+        if units.shape[0] > 1:
+            between.append((units @ units.T)[np.triu_indices(units.shape[0], 1)])
+    return 0.5 * (float(np.median(agreements)) + float(np.median(np.concatenate(between))))
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 300, 1 << 22])
+def test_like_threshold_holds_a_bounded_number_of_cosines_and_gives_the_dense_median(chunk):
+    """The cosines between two masks of a view (8 M per view of 4,000 masks; every view's used to be
+    held and concatenated) are streamed in pieces of about `chunk`: the threshold is the dense
+    computation's, for views of 0-60 masks, repeated embeddings (ties) and zero rows."""
+    rng = np.random.default_rng(11)
+    views = []
+    for m in (0, 1, 2, 37, 60, 5):
+        u = rng.normal(size=(m, 8))
+        if m > 4:
+            u[1:4] = u[0]  # identical masks: cosine 1 ties
+            u[4] = 0.0
+        views.append(u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300))
+    agreements = rng.random(9)
+    assert like_threshold(agreements, views, chunk=chunk) == pytest.approx(_like_dense(agreements, views), abs=1e-15)
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 40, 10**6])
+@pytest.mark.parametrize("kind", ["normal", "constant", "three-values", "adjacent-floats", "huge"])
+def test_stream_median_is_numpys_median(kind, chunk):
+    rng = np.random.default_rng(len(kind) + chunk)
+    pieces = []
+    for m in rng.integers(0, 300, 4):
+        pieces.append({"normal": rng.normal(size=m), "constant": np.full(m, 0.25),
+                       "three-values": rng.choice([-1.0, 0.0, 2.0], m),
+                       "adjacent-floats": rng.choice([0.1, np.nextafter(0.1, 1.0), np.nextafter(0.1, 0.0)], m),
+                       "huge": np.concatenate([rng.normal(size=m), [1e300, -1e300]])}[kind])
+    pieces.append(np.array([0.5]))
+    for bins in (2, 4096):
+        assert stream_median(lambda: iter(pieces), chunk, bins) == np.median(np.concatenate(pieces))
+    assert np.isnan(stream_median(lambda: iter(pieces + [np.array([np.nan])]), chunk))
 
 
 def test_view_votes_are_one_per_view_and_cluster():

@@ -110,6 +110,7 @@ log = logging.getLogger(__name__)
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
 SUPPORT_EXTRA_SCRATCH = 64 << 20  # bytes of support tables a view may add to sum its parts in parallel (17 bytes a (mask, cluster))
+LIKE_CHUNK = 1 << 22  # cosines between two masks of a view that `like_threshold` holds at a time (32 MB)
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 # a large mask (this share of its view's mass or more) is also dropped when its own label's support is
 # below CHECK_WEAK_SUPPORT of the best other label's and under CHECK_CORE of its weight lies on Gaussians
@@ -708,20 +709,78 @@ def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.nd
     return supports
 
 
-def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray]) -> float | None:
+def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray], chunk: int = LIKE_CHUNK) -> float | None:
     """The scene's "like" cosine, halfway between what a mask's consensus usually is and what two
     different things are: ½ (median agreement of the judged masks + median cosine between two
     masks of one view, which show different instances). None when either is missing (then nothing
-    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks with pairs."""
-    between = []
-    for units in view_units:
-        units = units[np.linalg.norm(units, axis=1) > 0]
-        if units.shape[0] > 1:
-            cos = units @ units.T
-            between.append(cos[np.triu_indices(units.shape[0], 1)])
-    if agreements.size == 0 or not between:
+    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks with pairs.
+
+    The cosines between two masks of one view are Σ_v M_v(M_v - 1)/2 values (4,000 masks: 8 M per
+    view); their median is found exactly without holding them (`stream_median`), about `chunk` at a time."""
+    units = [u[np.linalg.norm(u, axis=1) > 0] for u in view_units]
+    if agreements.size == 0 or not any(u.shape[0] > 1 for u in units):
         return None
-    return 0.5 * (float(np.median(agreements)) + float(np.median(np.concatenate(between))))
+    between = stream_median(lambda: _pair_cosines(units, chunk), chunk)
+    return 0.5 * (float(np.median(agreements)) + between)
+
+
+def _pair_cosines(view_units: list[np.ndarray], chunk: int) -> Iterator[np.ndarray]:
+    """Each view's cosines u_i · u_j (i < j) between its unit rows [M, D], in pieces of rows of the
+    upper triangle holding about `chunk` values (at least one row)."""
+    for units in view_units:
+        m = units.shape[0]
+        rows = max(1, chunk // max(m, 1))
+        for i0 in range(0, m - 1, rows):
+            i1 = min(m - 1, i0 + rows)
+            cos = units[i0:i1] @ units[i0 + 1 :].T  # row r: cosines with masks i0 + 1 ..; keep j > i0 + r
+            yield cos[np.arange(i0 + 1, m)[None, :] > np.arange(i0, i1)[:, None]]
+
+
+def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_CHUNK, bins: int = 4096) -> float:
+    """np.median of the concatenation of `pieces()` (a fresh iterator of float64 arrays on each
+    call, at least one value in all), holding about `chunk` values at most besides one piece.
+
+    Exact, in a few passes: the values are counted into `bins` equal bins between their extremes,
+    the range narrowed to the bin holding the wanted rank, and so on until the values left in the
+    range fit `chunk`; those are gathered and the rank picked (np.partition). The middle ranks'
+    values are averaged as np.median does; NaN anywhere gives NaN, as there."""
+    n, low, high = 0, np.inf, -np.inf
+    for piece in pieces():
+        if np.isnan(piece).any():
+            return float("nan")
+        n += piece.size
+        if piece.size:
+            low, high = min(low, float(piece.min())), max(high, float(piece.max()))
+    a = _value_at_rank(pieces, (n - 1) // 2, low, high, chunk, bins)
+    b = a if n % 2 else _value_at_rank(pieces, n // 2, low, high, chunk, bins)
+    return float(np.mean([a, b]))
+
+
+def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: float, high: float, chunk: int, bins: int) -> float:
+    """The value of 0-based `rank` among the values of `pieces()` (none NaN, all within [low, high])."""
+
+    def within(v: np.ndarray) -> np.ndarray:
+        return v[(v >= low) & (v <= high)]
+
+    while True:
+        inside = sum(within(p).size for p in pieces())
+        if inside <= chunk:
+            return float(np.partition(np.concatenate([within(p) for p in pieces()]), rank)[rank])
+        edges = np.linspace(low, high, bins + 1)
+        counts = np.zeros(bins, np.int64)
+        for p in pieces():
+            counts += np.bincount(np.clip(np.searchsorted(edges, within(p), side="right") - 1, 0, bins - 1), minlength=bins)
+        ends = np.cumsum(counts)
+        b = int(np.searchsorted(ends, rank, side="right"))
+        rank -= int(ends[b] - counts[b])
+        narrowed = (float(edges[b]), float(np.nextafter(edges[b + 1], -np.inf)) if b + 1 < bins else high)  # bin b: [e_b, e_b+1)
+        if narrowed == (low, high):  # a range a few floats wide holding more than `chunk` values: count them by value
+            values = np.unique(np.concatenate([np.unique(within(p)) for p in pieces()]))
+            counts = np.zeros(values.size, np.int64)
+            for p in pieces():
+                counts += np.bincount(np.searchsorted(values, within(p)), minlength=values.size)
+            return float(values[int(np.searchsorted(np.cumsum(counts), rank, side="right"))])
+        low, high = narrowed
 
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,

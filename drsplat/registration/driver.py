@@ -37,11 +37,12 @@ from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
+from drsplat.lang.codebook import PQ_KSUB
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size
 from drsplat.raster import NEAR, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, resolve_mode
+from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
@@ -54,7 +55,7 @@ from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts,
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import normalize_rows
-from drsplat.registration.views import ViewSelection, check_feature_headers, select_views
+from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views
 from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
@@ -62,6 +63,9 @@ from drsplat.utils import CancelToken, describe_os_error, progress
 log = logging.getLogger(__name__)
 
 SCENE_CODEBOOK_M = 128  # sub-vectors of a scene codebook (the paper's general codebook has 128 x 8 bits)
+# Mask embeddings a scene codebook trains on at most: faiss's k-means takes at most 256 points per
+# centroid, 256 x 256 of them, so more are never used; a run with more masks keeps every k-th one.
+SCENE_TRAIN_MAX = 256 * PQ_KSUB
 
 
 @dataclass
@@ -163,6 +167,8 @@ class ViewTotals:
     driver_view_cpu_seconds: float = 0.0  # this process's CPU on computed views' results: log, fold, sums
     embeddings: list[np.ndarray] = field(default_factory=list)
     positive: np.ndarray | None = None  # [N] bool: some pair gave the Gaussian weight > 0 (None: the reducers know)
+    stride: int = 1  # every stride-th used mask's embedding is collected, counted over the views in order
+    used_seen: int = 0
 
     def add(self, view: ViewPairs) -> None:
         if view.feats.shape[1] != self.dim:
@@ -176,7 +182,11 @@ class ViewTotals:
         if self.positive is not None:
             self.positive[view.gaussians[view.weights > 0]] = True
         if self.collect:
-            self.embeddings.append(np.array(view.feats[view.used]))
+            used = view.used
+            if self.stride > 1:  # which masks are kept depends on their place in the run only, not on the plan
+                used = used[(self.used_seen + np.arange(used.shape[0])) % self.stride == 0]
+            self.used_seen += view.used.shape[0]
+            self.embeddings.append(np.array(view.feats[used]))
 
     def mask_embeddings(self) -> np.ndarray | None:
         return np.concatenate(self.embeddings) if self.embeddings else None
@@ -189,8 +199,12 @@ class Run:
     scene: GaussianScene
     selection: ViewSelection
     features_dir: Path
-    dim: int
+    headers: FeatureHeaders
     options: RegisterOptions
+
+    @property
+    def dim(self) -> int:
+        return self.headers.dim
 
     @property
     def views(self) -> list[Camera]:
@@ -204,8 +218,8 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
         raise DrsplatError("the scene holds no Gaussians: there is nothing to register")
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
-    dim = check_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
-    return Run(scene, selection, features_dir, dim, options)
+    headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
+    return Run(scene, selection, features_dir, headers, options)
 
 
 def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
@@ -273,7 +287,8 @@ def run_registration(
     reduce: BlockReduce | None = None
     reducer_seconds = (0.0, 0.0)
     try:  # from here on the checkpoint is left (kept or removed) whatever happens: it holds the run's lock
-        totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool))
+        totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool),
+                            stride=1 if collect_embeddings else -(-run.headers.total_masks // SCENE_TRAIN_MAX))
         pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
@@ -419,17 +434,27 @@ def _check_memory_before_probe(run: Run) -> int | None:
     options = run.options
     if options.block_size or not is_fit_mode(options.aggregate):
         return None
-    base = current_rss() + probe_memory(run.scene.num_gaussians)
+    rss = current_rss()
+    base = rss + probe_memory(run.scene.num_gaussians)
+    if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
+        pixels = max((cam.width * cam.height for cam in run.views), default=0)
+        raise _refusal_for_footprints(run, rss + probe_memory_bound(run.scene.num_gaussians, pixels, options.topk,
+                                                                     run.headers.max_masks * run.dim * 4))
+    return base
+
+
+def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
+    """`choose_block`'s refusal of the mode either footprint makes from a fit mode, starting from `base`
+    (the one naming the larger budget), or None when both fit."""
     refusals = []
     for footprint in FOOTPRINTS:
-        plan = estimate_memory(run.scene, run.views, run.dim, options.topk, base=base, aggregate=resolve_mode(options.aggregate, footprint))
+        plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base,
+                               aggregate=resolve_mode(run.options.aggregate, footprint))
         try:
-            choose_block(plan, options.memory_budget)
+            choose_block(plan, run.options.memory_budget)
         except DrsplatError as exc:
             refusals.append((plan.minimum_budget(), plan.in_memory, exc))
-    if refusals:
-        raise max(refusals, key=lambda refusal: refusal[:2])[2]
-    return base
+    return max(refusals, key=lambda refusal: refusal[:2])[2] if refusals else None
 
 
 def _plan_block(run: Run, base: int | None = None) -> int:

@@ -61,9 +61,25 @@ PROBE_LOAD_BYTES = 96 << 20
 PROBE_HELD_BYTES = 512
 
 
+PROBE_PAIR_BYTES = 12  # a probe view's kept (Gaussian, mask, weight) pair
+PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
+
+
 def probe_memory(num_gaussians: int) -> int:
-    """Bytes the fit stage's probe adds to the process's resident memory (an estimate, on the safe side)."""
+    """Bytes the fit stage's probe adds to the process's resident memory (an estimate, on the safe side
+    where a view's masks are few next to its pixels, as they are from a segmenter)."""
     return PROBE_LOAD_BYTES + PROBE_HELD_BYTES * num_gaussians
+
+
+def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0) -> int:
+    """`probe_memory` with each probe view's kept pairs and statistics at their most: a pair per top-k
+    slot of every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs) and
+    statistics for every Gaussian they name. What a refusal's named budget is made from, so that the
+    budget typed back is not refused once the probe has run. pixels: the largest view's;
+    embedding_bytes: the largest view's mask embeddings (M·D·4), which its kept pairs hold too."""
+    slots = pixels * topk
+    held = slots * PROBE_PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
+    return probe_memory(num_gaussians) + FIT_PROBES * held
 
 
 @dataclass

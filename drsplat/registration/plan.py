@@ -141,4 +141,6 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
                f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}")
         raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene: {why}; give at least "
                            f"{format_size(plan.minimum_budget() + NAMED_MINIMUM_ROOM, up=True)} (an estimate, on the safe side)")
+    if block >= n:  # blocks as large as the scene fit, but not the sums held while the views run: stream the largest blocks below N
+        block = (n - 1) // BLOCK_ALIGN * BLOCK_ALIGN or n
     return block

@@ -58,6 +58,7 @@ log = logging.getLogger(__name__)
 
 SOLVE_LAMBDA = 0.1  # λ: pull toward the paper's mean, per unit of the Gaussian's weight T_g
 SOLVE_ITERATIONS = 10  # conjugate-gradient iterations (docs/evaluation.md, "Render-consistent solve")
+SOLVE_SCRATCH_BYTES = 64 << 20  # the gathered cluster means of one chunk of changed rows (`solved_features`)
 
 
 @dataclass
@@ -351,15 +352,18 @@ def solve_coefficients(render: Callable[[], Iterable[SolveView]], n: int, lam: f
     return SolveResult(slot_c, prior, x, total, done, residuals, (before, after))
 
 
-def solved_features(F: np.ndarray, result: SolveResult, means: np.ndarray) -> int:
+def solved_features(F: np.ndarray, result: SolveResult, means: np.ndarray, scratch_bytes: int = SOLVE_SCRATCH_BYTES) -> int:
     """F [n, D] ← F + T Σ_s (max(x_s, 0) − x̄_s) μ_{c_s} in place (module docstring); means [K, D]
-    the clusters' unit means. Returns how many Gaussians changed."""
+    the clusters' unit means. Returns how many Gaussians changed. The changed rows are updated in
+    chunks whose gathered means ([chunk, S, D], float32 then float64: 12 B a value) stay within
+    scratch_bytes; each row's sum is the same whatever the chunk (tested)."""
     kept = np.where(result.slot_c >= 0, np.maximum(result.x, 0.0), 0.0)
     delta = (kept - np.where(result.slot_c >= 0, result.prior, 0.0)) * result.total[:, None]
     delta[kept.sum(axis=1) <= 0] = 0.0  # nothing positive left: keep the paper's sums (the rest would be rounding noise's direction)
     changed = np.flatnonzero(np.any(delta != 0.0, axis=1))
-    for start in range(0, changed.size, 1 << 16):  # bounded scratch: [chunk, S, D]
-        rows = changed[start:start + (1 << 16)]
+    chunk = max(1, int(scratch_bytes) // (12 * max(result.slot_c.shape[1], 1) * max(means.shape[1], 1)))
+    for start in range(0, changed.size, chunk):
+        rows = changed[start:start + chunk]
         c = np.maximum(result.slot_c[rows], 0)
         F[rows] += np.einsum("rs,rsd->rd", delta[rows], means[c].astype(np.float64)).astype(F.dtype)
     return int(changed.size)

@@ -71,8 +71,23 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     return sel
 
 
+@dataclass
+class FeatureHeaders:
+    """What the views' feature-file headers say: dim, D of the embeddings; max_masks, the most masks
+    (rows of embeddings) one view has; total_masks, their sum over the views read."""
+
+    dim: int
+    max_masks: int
+    total_masks: int
+
+
 def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> int:
-    """D of the embeddings, after every view's two headers are checked (nothing loaded).
+    """D of the embeddings (`read_feature_headers`)."""
+    return read_feature_headers(features_dir, views, level, missing_ok).dim
+
+
+def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> FeatureHeaders:
+    """The views' FeatureHeaders, after every view's two headers are checked (nothing loaded).
 
     Before any view is rendered, so that a bad file stops a registration at once rather than hours
     into it: each file's layout is the format's (`check_seg_layout`, `check_feat_layout`, the rules
@@ -83,7 +98,7 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
     reads it (on Ray, a worker node: the driver need not hold every view's files), as long as one
     view gives D.
     """
-    dim, first = 0, None
+    dim, first, max_masks, total_masks = 0, None, 0, 0
     for cam in views:
         spath, fpath = seg_path(features_dir, cam.name), feat_path(features_dir, cam.name)
         if missing_ok and not (spath.is_file() and fpath.is_file()):
@@ -93,6 +108,7 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
         check_aspect(spath, s_shape[-1], s_shape[-2], cam)
         f_shape, f_dtype, _ = npy_header(fpath)
         check_feat_layout(fpath, f_shape, f_dtype)
+        max_masks, total_masks = max(max_masks, int(f_shape[0])), total_masks + int(f_shape[0])
         if first is None:
             dim, first = int(f_shape[1]), fpath
         elif f_shape[1] != dim:
@@ -100,7 +116,7 @@ def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: in
                                     "model's features (a folder mixing two CLIP models?)", field="shape")
     if first is None and views:  # every view's files missing here
         npy_header(feat_path(features_dir, views[0].name))  # the error naming the first view's file
-    return dim
+    return FeatureHeaders(dim, max_masks, total_masks)
 
 
 def check_aspect(path: Path, w: int, h: int, cam: Camera) -> None:
