@@ -288,7 +288,7 @@ def run_registration(
     reducer_seconds = (0.0, 0.0)
     try:  # from here on the checkpoint is left (kept or removed) whatever happens: it holds the run's lock
         totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool),
-                            stride=1 if collect_embeddings else -(-run.headers.total_masks // SCENE_TRAIN_MAX))
+                            stride=1 if collect_embeddings else max(1, -(-run.headers.total_masks // SCENE_TRAIN_MAX)))
         pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)

@@ -59,8 +59,6 @@ FOOTPRINTS = ("paper", "sharp")
 # probe views' freed projections. Measured +73 MB (2,763 Gaussians), +100 MB (27,354), +187 MB (294,608).
 PROBE_LOAD_BYTES = 96 << 20
 PROBE_HELD_BYTES = 512
-
-
 PROBE_PAIR_BYTES = 12  # a probe view's kept (Gaussian, mask, weight) pair
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
 
