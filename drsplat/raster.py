@@ -536,15 +536,9 @@ def render_projected(
     _check_args(topk, background)
     if with_rgb and projected.colors is None:
         raise ValueError("with_rgb needs Projected.colors (project_gaussians(..., with_colors=True))")
-    entries, bands = 0, tile_bands(projected, max_tile_entries)
-    order, rects = _band_inputs(projected, bands, exact=False)
-    for band in bands:
-        offsets, tile_ids = bin_tiles(projected, tiles=band, order=order, rects_in_order=rects)
-        out = composite_projected(projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median,
-                                  background=background, out=out, tiles=band)
-        entries += tile_ids.shape[0]
-    out.tile_entries = entries
-    return out
+    return _composite_in_bands(projected, max_tile_entries, False, out, lambda offsets, tile_ids, band, out: composite_projected(
+        projected, offsets, tile_ids, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background,
+        out=out, tiles=band))
 
 
 def composite_projected(
@@ -649,6 +643,21 @@ def tile_bands(projected: Projected, max_entries: int | None = None) -> list[tup
     return bands
 
 
+def _composite_in_bands(projected: Projected, max_tile_entries: int | None, exact: bool, out: RasterOutput | None,
+                        composite: Callable[[np.ndarray, np.ndarray, tuple[int, int], RasterOutput | None], RasterOutput]) -> RasterOutput:
+    """Bin and composite the view band by band (`tile_bands`): composite(offsets, tile_ids, band, out)
+    fills the band's pixels of `out` (made by the first band when None) and returns it; the result
+    says how many list entries all the bands held."""
+    entries, bands = 0, tile_bands(projected, max_tile_entries)
+    order, rects = _band_inputs(projected, bands, exact)
+    for band in bands:
+        offsets, tile_ids = bin_tiles(projected, exact=exact, tiles=band, order=order, rects_in_order=rects)
+        out = composite(offsets, tile_ids, band, out)
+        entries += tile_ids.shape[0]
+    out.tile_entries = entries
+    return out
+
+
 def _band_inputs(projected: Projected, bands: list[tuple[int, int]], exact: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """The view's depth order, made once for all its bands, and for several getRect bands its
     rectangles gathered in that order (each band then reads them in sequence: gathering them again
@@ -721,14 +730,8 @@ def render_topk(
     """`render_projected` for callers that need only the top-k ids and weights (registration):
     `bin_tiles(exact=exact_tiles)` then `composite_topk` (see there for `ranked`), band by band
     (`tile_bands`; max_tile_entries as in `render_projected`)."""
-    entries, bands = 0, tile_bands(projected, max_tile_entries)
-    order, rects = _band_inputs(projected, bands, exact=exact_tiles)
-    for band in bands:
-        offsets, tile_ids = bin_tiles(projected, exact=exact_tiles, tiles=band, order=order, rects_in_order=rects)
-        out = composite_topk(projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked, out=out, tiles=band)
-        entries += tile_ids.shape[0]
-    out.tile_entries = entries
-    return out
+    return _composite_in_bands(projected, max_tile_entries, exact_tiles, out, lambda offsets, tile_ids, band, out: composite_topk(
+        projected, offsets, tile_ids, topk, with_median=with_median, ranked=ranked, out=out, tiles=band))
 
 
 def rasterize_topk(

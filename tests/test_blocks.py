@@ -353,10 +353,14 @@ def test_a_budget_below_the_in_memory_peak_streams_even_when_blocks_of_the_whole
         sh = np.zeros((1, 1, 3))
 
     plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
-    budget = (plan.peak(plan.num_gaussians - 1) + plan.in_memory) // 2
-    assert plan.peak(plan.num_gaussians - 1) <= budget < plan.in_memory
-    assert plan.block_for(budget) >= plan.num_gaussians  # blocks as large as the scene fit the budget
+    from drsplat.registration.plan import OVERHEAD, WRITE_CHUNK
+
+    whole = -(-plan.num_gaussians // 1024) * 1024  # an aligned block holding every Gaussian, summed after the views
+    blocks_peak = max(plan.views, plan.base + OVERHEAD + whole * plan.sum_bytes + plan.pair_buffer + WRITE_CHUNK * plan.write_bytes)
+    budget = (blocks_peak + plan.in_memory) // 2
+    assert blocks_peak <= budget < plan.in_memory
     block = choose_block(plan, budget)
+    assert plan.block_for(budget) == block
     assert block == (plan.num_gaussians - 1) // 1024 * 1024 and plan.peak(block) <= budget
 
 

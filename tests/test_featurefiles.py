@@ -218,20 +218,21 @@ def test_manifest_round_trip_and_errors(tmp_path):
 
 
 def test_feature_headers_are_checked_up_front_and_missing_files_left_to_their_reader_on_ray(tmp_path):
-    """check_feature_headers gives D; a missing view file is an error here, and with missing_ok (on
+    """read_feature_headers gives D and the mask counts; a missing view file is an error here, and with missing_ok (on
     Ray, where a worker reads it) skipped, unless no view is left to give D."""
-    from drsplat.registration.views import check_feature_headers
+    from drsplat.registration.views import read_feature_headers
 
     rng = np.random.default_rng(8)
     cams = [Camera(R=np.eye(3), t=np.zeros(3), fx=60.0, fy=60.0, cx=20.0, cy=15.0, width=40, height=30, name=f"v{i}") for i in range(3)]
     for cam in cams:
         write_features(tmp_path, cam.name, rng.integers(-1, 4, size=(4, 15, 20)), rng.normal(size=(4, 7)).astype(np.float32))
-    assert check_feature_headers(tmp_path, cams, 1) == 7
+    headers = read_feature_headers(tmp_path, cams, 1)
+    assert (headers.dim, headers.max_masks, headers.total_masks) == (7, 4, 12)
     with pytest.raises(InputError, match="v0_s.npy: field 'shape': level 4 requested but the file has 4 levels"):
-        check_feature_headers(tmp_path, cams, 4)
+        read_feature_headers(tmp_path, cams, 4)
     feat_path(tmp_path, "v0").unlink()
     with pytest.raises(InputError, match="v0_f.npy: file not found"):
-        check_feature_headers(tmp_path, cams, 1)
-    assert check_feature_headers(tmp_path, cams, 1, missing_ok=True) == 7
+        read_feature_headers(tmp_path, cams, 1)
+    assert read_feature_headers(tmp_path, cams, 1, missing_ok=True).dim == 7
     with pytest.raises(InputError, match="v0_f.npy: file not found"):
-        check_feature_headers(tmp_path, cams[:1], 1, missing_ok=True)
+        read_feature_headers(tmp_path, cams[:1], 1, missing_ok=True)

@@ -16,6 +16,8 @@ log = logging.getLogger(__name__)
 
 PQ_BITS = 8
 PQ_KSUB = 1 << PQ_BITS
+PQ_POINTS_PER_CENTROID = 256  # faiss's k-means samples at most this many training points per centroid
+PQ_TRAIN_MAX = PQ_POINTS_PER_CENTROID * PQ_KSUB  # so a sub-quantiser never trains on more points than this
 
 
 def _faiss():
@@ -304,7 +306,7 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
         raise InputError(None, f"training a PQ codebook needs at least {PQ_KSUB} embeddings, got {n}")
     index = faiss.IndexPQ(d, m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
     index.pq.cp.seed = seed
-    index.pq.cp.max_points_per_centroid = 256
+    index.pq.cp.max_points_per_centroid = PQ_POINTS_PER_CENTROID
     index.pq.cp.min_points_per_centroid = 1  # small scene sets are fine; faiss would warn per sub-quantiser
     # Each sub-quantiser's k-means is too small to share between threads: OpenMP barriers made
     # training 8x slower on a busy 2-core machine, one thread is as fast on an idle one.

@@ -37,7 +37,7 @@ from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
-from drsplat.lang.codebook import PQ_KSUB
+from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size
 from drsplat.raster import NEAR, share_within_near_plane
@@ -63,9 +63,9 @@ from drsplat.utils import CancelToken, describe_os_error, progress
 log = logging.getLogger(__name__)
 
 SCENE_CODEBOOK_M = 128  # sub-vectors of a scene codebook (the paper's general codebook has 128 x 8 bits)
-# Mask embeddings a scene codebook trains on at most: faiss's k-means takes at most 256 points per
-# centroid, 256 x 256 of them, so more are never used; a run with more masks keeps every k-th one.
-SCENE_TRAIN_MAX = 256 * PQ_KSUB
+# Mask embeddings a scene codebook trains on at most: faiss's k-means would never use more, so a
+# run with more masks keeps every k-th one.
+SCENE_TRAIN_MAX = PQ_TRAIN_MAX
 
 
 @dataclass

@@ -45,6 +45,7 @@ from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
+from drsplat.registration.plan import PAIR_BYTES
 from drsplat.registration.views import load_view_features
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
@@ -59,7 +60,6 @@ FOOTPRINTS = ("paper", "sharp")
 # probe views' freed projections. Measured +73 MB (2,763 Gaussians), +100 MB (27,354), +187 MB (294,608).
 PROBE_LOAD_BYTES = 96 << 20
 PROBE_HELD_BYTES = 512
-PROBE_PAIR_BYTES = 12  # a probe view's kept (Gaussian, mask, weight) pair
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
 
 
@@ -76,7 +76,7 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
     budget typed back is not refused once the probe has run. pixels: the largest view's;
     embedding_bytes: the largest view's mask embeddings (M·D·4), which its kept pairs hold too."""
     slots = pixels * topk
-    held = slots * PROBE_PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
+    held = slots * PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
     return probe_memory(num_gaussians) + FIT_PROBES * held
 
 

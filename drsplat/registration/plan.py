@@ -82,12 +82,17 @@ class MemoryPlan:
         return max(self.views, blocks)
 
     def block_for(self, budget: int) -> int:
-        """The largest aligned block that fits `budget` (0 when even the view pass does not)."""
+        """The largest aligned block that fits `budget` (0 when even the view pass does not). A block
+        as large as the scene is the in-memory run, which holds the sums while the views run: when
+        that does not fit, the largest aligned block below N (N itself when N <= BLOCK_ALIGN)."""
         if self.views > budget:
             return 0
-        room = budget - self.base - OVERHEAD - self.pair_buffer - min(self.num_gaussians, WRITE_CHUNK) * self.write_bytes
-        block = room // self.sum_bytes // BLOCK_ALIGN * BLOCK_ALIGN
-        return int(min(max(block, 0), -(-self.num_gaussians // BLOCK_ALIGN) * BLOCK_ALIGN))
+        n = self.num_gaussians
+        room = budget - self.base - OVERHEAD - self.pair_buffer - min(n, WRITE_CHUNK) * self.write_bytes
+        block = int(min(max(room // self.sum_bytes // BLOCK_ALIGN * BLOCK_ALIGN, 0), -(-n // BLOCK_ALIGN) * BLOCK_ALIGN))
+        if block >= n and self.in_memory > budget:
+            block = (n - 1) // BLOCK_ALIGN * BLOCK_ALIGN or n
+        return block
 
 
 def tile_list_bytes(num_gaussians: int) -> int:
@@ -141,6 +146,4 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
                f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}")
         raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene: {why}; give at least "
                            f"{format_size(plan.minimum_budget() + NAMED_MINIMUM_ROOM, up=True)} (an estimate, on the safe side)")
-    if block >= n:  # blocks as large as the scene fit, but not the sums held while the views run: stream the largest blocks below N
-        block = (n - 1) // BLOCK_ALIGN * BLOCK_ALIGN or n
     return block

@@ -81,11 +81,6 @@ class FeatureHeaders:
     total_masks: int
 
 
-def check_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> int:
-    """D of the embeddings (`read_feature_headers`)."""
-    return read_feature_headers(features_dir, views, level, missing_ok).dim
-
-
 def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> FeatureHeaders:
     """The views' FeatureHeaders, after every view's two headers are checked (nothing loaded).
 
