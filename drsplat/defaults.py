@@ -20,6 +20,8 @@ ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENG
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
+SUPPORT_SCRATCH_BYTES = 64 << 20  # one layer of the check's dense support scratch: a view's masks are summed in runs that keep it within this
+SUPPORT_EXTRA_SCRATCH = 64 << 20  # the further layers that let the check sum a view's parts in parallel (the memory plan counts both)
 SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsplat.registration.solve)
 # a synthetic (oracle) dataset's label files, relative to its folder (drsplat.synthetic.write_dataset writes them)
 ORACLE_LABEL_NAMES = "gt/label_names.json"  # JSON list of the label names

@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from drsplat import _raster_kernels as kernels
+from drsplat._scene_kernels import finite_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
@@ -87,6 +88,9 @@ class RasterOutput:
     num_nonfinite: int = 0
     median_ids: np.ndarray | None = None
     projected: Projected | None = None  # the view's projection (rasterize_topk), its arrays reused by a later call with out=
+    # the scene ids of projected's rows when the renderer was handed a subset of the scene (registration's
+    # culling, which remaps ids and median_ids to scene ids but not the projection); None: row i is Gaussian i
+    projected_ids: np.ndarray | None = None
     tile_entries: int = 0  # entries of the view's tile lists, over all its bands (numba engine)
 
 
@@ -174,24 +178,25 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
     return float(np.mean(near & ~rendered))
 
 
-def prepare_scene(scene: GaussianScene | PreparedScene) -> PreparedScene:
-    """The view-independent arrays of `scene`; non-finite Gaussians are flagged and counted."""
+def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
+    """The view-independent arrays of `scene`; non-finite Gaussians are flagged and counted.
+
+    A Gaussian is finite when its mean, quaternion, log scales, opacity logit, SH coefficients and
+    covariance are. with_sh=False: the SH are still checked, not copied (sh becomes [N, 0, 3]:
+    a registration renders no colour).
+    """
     if isinstance(scene, PreparedScene):
         return scene
-    with np.errstate(over="ignore", invalid="ignore"):
-        finite = (
-            np.isfinite(scene.means).all(axis=1)
-            & np.isfinite(scene.quats).all(axis=1)
-            & np.isfinite(scene.log_scales).all(axis=1)
-            & np.isfinite(scene.opacity_logits)
-            & np.isfinite(scene.sh).all(axis=(1, 2))
-        )
-        cov = scene.covariances().astype(np.float64)
-    finite &= np.isfinite(cov).all(axis=(1, 2))
+    n = scene.num_gaussians
+    finite = np.ones(n, bool)
+    for rows in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits.reshape(n, 1), scene.sh.reshape(n, 3 * scene.sh.shape[1])):
+        finite_rows_kernel(np.ascontiguousarray(rows), finite)
+    cov = scene.covariances()
+    finite_rows_kernel(cov.reshape(n, 9), finite)
     cov[~finite] = 0.0
     means = np.where(finite[:, None], scene.means, 0.0).astype(np.float64)
     opacities = np.where(finite, scene.opacities(), 0.0).astype(np.float32)
-    sh = np.where(finite[:, None, None], scene.sh, 0.0).astype(np.float32)
+    sh = np.where(finite[:, None, None], scene.sh, 0.0).astype(np.float32) if with_sh else np.zeros((n, 0, 3), np.float32)
     prepared = PreparedScene(means=means, covariances=cov, opacities=opacities, sh=sh, finite=finite)
     if prepared.num_nonfinite:
         log.warning("%d of %d Gaussians have non-finite attributes and are not rendered", prepared.num_nonfinite, prepared.num_gaussians)

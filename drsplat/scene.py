@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat._scene_kernels import packed_frames_kernel, scaled_frames_kernel, unit_quats64_kernel
 from drsplat.errors import InputError
 from drsplat.utils import hidden_character, write_bytes_atomic
 
@@ -102,8 +103,15 @@ class GaussianScene:
         """[N, 4] float64 normalised quaternions (w, x, y, z); zero quaternions map to identity.
 
         Normalised in float64: a stored norm of 1e20 overflows float32's squares (all zeros came out,
-        so the identity) and one of 1e-22 underflows them (norms off by 1e-2). A non-finite
-        quaternion gives NaN rows, without numpy's warning (the load counts and drops such rows)."""
+        so the identity) and one of 1e-22 underflows them (norms off by 1e-2). A NaN quaternion gives
+        the identity and an infinite one NaN rows, without numpy's warning (the load counts and drops
+        such rows). A numba kernel; `unit_quats64_reference` is the numpy form, the same bits."""
+        out = np.empty((self.num_gaussians, 4), np.float64)
+        unit_quats64_kernel(np.ascontiguousarray(self.quats, np.float32), out)
+        return out
+
+    def unit_quats64_reference(self) -> np.ndarray:
+        """`unit_quats64` in numpy."""
         q = self.quats.astype(np.float64)
         with np.errstate(over="ignore", invalid="ignore"):
             norm = np.linalg.norm(q, axis=1, keepdims=True)
@@ -125,15 +133,44 @@ class GaussianScene:
         (1e-4 .. 1e2): a float32 R (orthonormal only to ~1e-7) or a float32 product perturbs the
         small eigenvalues by ~1e-7 of the largest, and projections and Mahalanobis distances
         divide by them. A scale that overflows float32 gives an infinite Σ (counted as non-finite).
+        A numba kernel (`_scene_kernels.scaled_frames_kernel`, every entry summed in one fixed
+        order, so the same bits on every CPU); `covariances_reference` is the numpy form, which
+        agrees to rounding (numpy's 3x3 products go through BLAS, whose last bit depends on the CPU).
         """
-        m = quat_to_rotmat(self.unit_quats64()) * self.scales().astype(np.float64)[:, None, :]
-        return m @ m.transpose(0, 2, 1)
+        out = np.empty((self.num_gaussians, 3, 3), np.float64)
+        with np.errstate(over="ignore"):
+            scales = self.scales().astype(np.float64)
+        scaled_frames_kernel(self.unit_quats64(), scales, False, out)
+        return out
+
+    def covariances_reference(self) -> np.ndarray:
+        """`covariances` in numpy."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            m = quat_to_rotmat(self.unit_quats64_reference()) * self.scales().astype(np.float64)[:, None, :]
+            return m @ m.transpose(0, 2, 1)
 
     def precisions(self) -> np.ndarray:
         """[N, 3, 3] float64 Σ⁻¹ = R S⁻² Rᵀ, built from the scales rather than by inverting Σ (flat
         Gaussians, scales 1e-8 of their largest, make Σ singular in float64 but Σ⁻¹ is exact this
-        way). Zero where a scale is 0, infinite or not finite (such Gaussians are not rendered)."""
-        q = self.unit_quats64()
+        way). Zero where a scale is 0, infinite or not finite (such Gaussians are not rendered).
+        The kernel of `covariances`; `precisions_reference` is the numpy form."""
+        out = np.empty((self.num_gaussians, 3, 3), np.float64)
+        scaled_frames_kernel(self.unit_quats64(), self._inverse_scales(), True, out)
+        return out
+
+    def packed_precisions(self, out: np.ndarray | None = None) -> np.ndarray:
+        """`precisions` as [N, 6] float64 rows (xx, xy, xz, yy, yz, zz), written into `out` when given."""
+        out = np.empty((self.num_gaussians, 6), np.float64) if out is None else out
+        packed_frames_kernel(self.unit_quats64(), self._inverse_scales(), True, out)
+        return out
+
+    def _inverse_scales(self) -> np.ndarray:
+        with np.errstate(over="ignore"):
+            return np.exp(-self.log_scales.astype(np.float64))
+
+    def precisions_reference(self) -> np.ndarray:
+        """`precisions` in numpy."""
+        q = self.unit_quats64_reference()
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
             inv_scale = np.exp(-self.log_scales.astype(np.float64))
             m = quat_to_rotmat(q) * inv_scale[:, None, :]

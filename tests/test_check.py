@@ -119,33 +119,39 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
 def test_support_summed_in_parallel_parts_is_the_one_part_table(seed, hard):
-    """A view's support summed in 1, 2, 3 or 7 row-aligned parts (one scratch layer each), over two
-    blocks whose tables carry on: every (mask, cluster) once, the same exact sums and masses."""
-    from drsplat.registration.check import SupportScratch
+    """A view's support summed in 1, 2, 3 or 7 row-aligned parts (one scratch layer each), and in
+    runs of 1, 2 or 3 of the view's masks (a scratch layer too small for the view's [M, K] table),
+    over two blocks whose tables carry on: every (mask, cluster) once, the same exact sums and masses."""
+    from drsplat.registration.check import SUPPORT_ENTRY_BYTES, SupportScratch
 
     rng = np.random.default_rng(seed)
     n = 40
     views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, hard)
     record, clusters = _record(views, n)
     tables = {}
-    for layers in (1, 2, 3, 7):
+    configs = [(1, None), (2, None), (3, None), (7, None), (1, 1), (2, 2), (3, 3)]  # (layers, masks a run holds: None all)
+    for layers, run in configs:
         supports = [ViewSupport.empty(v.feats, c, clusters.count) for v, c in zip(record.views, clusters.per_view)]
-        scratch = SupportScratch(clusters.count, layers=layers)
+        scratch = SupportScratch(clusters.count, layers=layers) if run is None else \
+            SupportScratch(clusters.count, layers=layers, run_bytes=run * SUPPORT_ENTRY_BYTES * clusters.count)
+        assert scratch.masks_per_run(10) == (10 if run is None else run)
         for lo, hi in ((0, 17), (17, n)):
             slot_c, slot_v = fold_block_votes(record.block_views(lo, hi), clusters.per_view, lo, hi, slots=8)
             for view, c, sup in zip(record.block_views(lo, hi), clusters.per_view, supports):
                 add_view_support(view, lo, c, slot_c, slot_v, sup, scratch)
         assert not scratch._values.any() and not scratch._touched.any()  # left as it came
+        if run is not None:  # a layer of the scratch held `run` masks, never the view's M
+            assert scratch._values.size <= layers * run * clusters.count < layers * max(c.shape[0] for c in clusters.per_view) * clusters.count
         for sup in supports:
             keys = sup.entry_mask.astype(np.int64) * clusters.count + sup.entry_cluster
             assert np.unique(keys).size == keys.size
-        tables[layers] = [(sup.rows(), sup.mass_fixed) for sup in supports]
-    for layers in (2, 3, 7):
-        for (rows, mass), (rows1, mass1) in zip(tables[layers], tables[1]):
+        tables[layers, run] = [(sup.rows(), sup.mass_fixed) for sup in supports]
+    for config in configs[1:]:
+        for (rows, mass), (rows1, mass1) in zip(tables[config], tables[1, None]):
             np.testing.assert_array_equal(mass, mass1)
             for got, want in zip(rows, rows1):
                 np.testing.assert_array_equal(got, want)
-    assert sum(rows[0][-1] for rows, _ in tables[1]) > 0
+    assert sum(rows[0][-1] for rows, _ in tables[1, None]) > 0
 
 
 def _floor_under_a_cube_mask(n_contaminated_views: int, with_wall: bool = False) -> list[ViewPairs]:
@@ -725,3 +731,21 @@ def test_the_kept_masks_clusters_are_those_the_vote_makes_of_the_kept_views():
     assert any(not k.all() for k in keep) and any(k.any() for k in keep)  # the case keeps some masks and drops others
     with pytest.raises(RuntimeError, match="present masks"):
         KeptPairs(record, keep).clusters(D)
+
+
+def test_the_memory_plan_counts_the_checks_bounded_support_scratch():
+    """Every check mode's plan holds the support scratch's bound (one layer of runs of masks plus the
+    parallel layers); a mode without the check holds none of it. The bound holds whatever a view's
+    masks: 4,000 masks against 16,000 clusters (1.1 GB dense) are summed in runs of 246."""
+    from drsplat.defaults import SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
+    from drsplat.registration.aggregate import Aggregator
+    from drsplat.registration.check import SUPPORT_ENTRY_BYTES, SupportScratch
+
+    bound = SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
+    for mode in ("check-vote-reject", "fit-check-vote-reject", "check-reject"):
+        without = mode.replace("check-", "")
+        kept = Aggregator.memory_bytes(mode, 50_000, 320 * 240, 40)[1] - Aggregator.memory_bytes(without, 50_000, 320 * 240, 40)[1]
+        assert kept == bound, mode
+    run = SupportScratch(16_000).masks_per_run(4_000)
+    assert run == SUPPORT_SCRATCH_BYTES // (SUPPORT_ENTRY_BYTES * 16_000) == 246
+    assert run * 16_000 * SUPPORT_ENTRY_BYTES <= SUPPORT_SCRATCH_BYTES

@@ -12,6 +12,7 @@ import pytest
 from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions, register
+from drsplat.registration.aggregate import mode_hook
 from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
 from drsplat.registration.culling import (SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes, remap_ids,
                                          remap_ids_reference)
@@ -71,12 +72,17 @@ def test_city_views_see_a_small_part_and_render_the_same(city):
     assert np.mean(seen) < 0.5, seen
 
 
-def test_view_computer_pairs_equal_with_and_without_culling(city):
+@pytest.mark.parametrize("weighting", [None, "sharp", "anchor"])
+def test_view_computer_pairs_equal_with_and_without_culling(city, weighting):
+    """The same pairs, bit for bit, whether a view renders its culled subset or the whole scene; a
+    weighting that reads the projection (sharp, anchor) reads the culled render's own, by scene id,
+    instead of projecting the whole scene again."""
     scene, cams = city
     geometry = prepare_geometry(scene)
     rng = np.random.default_rng(3)
-    culled = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=True))
-    full = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=False))
+    hooks = [mode_hook(weighting, None) if weighting else None for _ in range(2)]
+    culled = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=True, hook=hooks[0]))
+    full = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=False, hook=hooks[1]))
     n = geometry.num_gaussians
     overview = dataclasses.replace(cams[0], t=np.asarray(cams[0].t) + np.array([0.0, 0.0, 60.0]), name="overview")  # the whole city in view
     projected = []
@@ -91,6 +97,8 @@ def test_view_computer_pairs_equal_with_and_without_culling(city):
         assert a.num_pairs == b.num_pairs > 0
     assert max(projected[:4]) < 0.35 * n  # room views render their culled subset
     assert projected[4] == n and culled._index.visible(overview).size > 0.35 * n  # most of the city in view: rendered whole
+    if weighting:  # the culled views' projections were scattered by scene id, never the scene projected again
+        assert hooks[0]._means2d is not None and hooks[1]._means2d is None
 
 
 def test_registered_field_bytes_equal_with_and_without_culling(tiny, tmp_path):

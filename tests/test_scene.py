@@ -284,6 +284,59 @@ def test_covariances_are_float64_and_match_a_float64_reference():
         np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(cov[i])), eig, rtol=1e-9, atol=1e-12 * eig.max())
 
 
+def _hostile_frames_scene() -> GaussianScene:
+    """Random rows plus the hard ones: quaternions of norm 0, 1e-30, 3e38, NaN and ±inf components;
+    scales 0 (log -inf), float32's overflow, 1e-8 of the largest (flat), equal (round)."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    quats = rng.standard_normal((n, 4)).astype(np.float32)
+    log_scales = rng.uniform(-12, 5, (n, 3)).astype(np.float32)
+    quats[0] = 0.0
+    quats[1] *= np.float32(1e-30) / np.linalg.norm(quats[1])
+    quats[2] *= np.float32(3e38) / np.abs(quats[2]).max()
+    quats[3, 1] = np.nan
+    quats[4, 2] = np.inf
+    quats[5, 0] = -np.inf
+    log_scales[6, 0] = -np.inf
+    log_scales[7, 1] = 100.0  # exp overflows float32 and gives an infinite Σ
+    log_scales[8] = [0.0, 0.0, np.log(1e-8)]
+    log_scales[9] = [-3.0, -3.0, -3.0]
+    log_scales[10, 2] = np.nan
+    return GaussianScene(np.zeros((n, 3), np.float32), quats, log_scales, np.zeros(n, np.float32), np.zeros((n, 1, 3), np.float32))
+
+
+def _agree_to_rounding(got: np.ndarray, ref: np.ndarray) -> None:
+    """Equal where either is not finite; elsewhere within 4e-16 of the row's largest entry (numpy's
+    3x3 products go through BLAS, whose summation order, and so whose last bit, depends on the CPU)."""
+    got, ref = got.reshape(len(got), -1), ref.reshape(len(ref), -1)
+    finite = np.isfinite(got) & np.isfinite(ref)
+    np.testing.assert_array_equal(np.where(finite, 0.0, got), np.where(finite, 0.0, ref))
+    scale = np.abs(np.where(finite, ref, 0.0)).max(axis=1, keepdims=True)
+    assert (np.abs(np.where(finite, got, 0.0) - np.where(finite, ref, 0.0)) <= 4e-16 * scale).all()
+
+
+def test_frame_kernels_agree_with_their_numpy_references():
+    """unit_quats64 is numpy's bits; covariances and precisions agree with numpy to rounding, NaN and
+    inf where numpy has them, zero precision rows where numpy zeroes them; packed_precisions are
+    precisions' (xx, xy, xz, yy, yz, zz) bit for bit."""
+    import warnings
+
+    scene = _hostile_frames_scene()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the kernels raise no numpy warning on the hostile rows
+        unit, cov, prec, packed = scene.unit_quats64(), scene.covariances(), scene.precisions(), scene.packed_precisions()
+    np.testing.assert_array_equal(unit, scene.unit_quats64_reference())
+    _agree_to_rounding(cov, scene.covariances_reference())
+    _agree_to_rounding(prec, scene.precisions_reference())
+    assert not np.isfinite(cov[7]).all() and np.isfinite(prec[7]).all()  # an overflowing scale: Σ infinite, Σ⁻¹ finite
+    assert (prec[6] == 0).all() and (prec[10] == 0).all()  # a zero or NaN scale: Σ⁻¹ zeroed, as numpy's
+    finite = np.isfinite(cov).all(axis=(1, 2))
+    assert (cov[finite] == cov[finite].transpose(0, 2, 1)).all() and (prec == prec.transpose(0, 2, 1)).all()
+    np.testing.assert_array_equal(packed, prec.reshape(-1, 9)[:, [0, 1, 2, 4, 5, 8]])
+    # a flat Gaussian (scales 1, 1, 1e-8) keeps its 1e16 eigenvalue in Σ⁻¹
+    np.testing.assert_allclose(np.linalg.eigvalsh(prec[8])[-1], 1e16, rtol=1e-6)
+
+
 def test_compressed_sh_codes_decode_like_splat_transform():
     """PlayCanvas splat-transform's decoder: t = 0 for code 0, 1 for 255, (v + 0.5)/256 otherwise; value = (t - 0.5)·8.
 

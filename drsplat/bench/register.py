@@ -207,8 +207,9 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
 
     Both paths run on every view, interleaved (reference first), so machine load hits both alike;
     medians over the views. reference: `render_projected` (getRect tiles, the colour/depth
-    kernel, sorted slots) and `normalize_rows_reference`; top-k: what registration runs
-    (`render_topk`: the ids-and-weights kernel, unordered slots) and `normalize_rows`. The exact
+    kernel, sorted slots), `normalize_rows_reference` and the scene's Σ and Σ⁻¹ in numpy
+    (`covariances_reference`, `precisions_reference`); top-k: what registration runs (`render_topk`:
+    the ids-and-weights kernel, unordered slots), `normalize_rows` and the Σ, Σ⁻¹ kernels. The exact
     tile sets (`bin_tiles(exact=True)`) are timed as a third binning. Stages shared by both
     (projection, depth sort, binning, coalescing, summing) are the same code: one median over
     both paths' samples. The
@@ -273,13 +274,19 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
         differ = np.any((a[0] != b[0]) | (a[1] != b[1]), axis=-1)
         changed_pixels += int(differ.sum())
         changed_views += int(differ.any())
+    scene.covariances(), scene.packed_precisions()  # compile / warm up, not counted
+    frames = {"reference": timed("reference", "Σ and Σ⁻¹ from quaternions (per run / views)",
+                                 lambda: (scene.covariances_reference(), scene.precisions_reference())),
+              "top-k": timed("top-k", "Σ and Σ⁻¹ from quaternions (per run / views)", lambda: (scene.covariances(), scene.precisions()))}
+    frames_gap = max(_largest_relative_gap(frames["top-k"][i], frames["reference"][i]) for i in (0, 1))
+    del frames  # four [N, 3, 3] float64 arrays
     F, W = timed("top-k", "sum pairs (per run / views)", acc.sums)  # flushes every buffered pair, as registration does when its buffer fills
     F2, W2 = F.copy(), W.copy()
     timed("reference", "normalize (per run / views)", lambda: normalize_rows_reference(F2, W2))
     timed("top-k", "normalize (per run / views)", lambda: normalize_rows(F, W))
     n = len(cameras)
-    stages = ["project", "depth sort", "bin (getRect tiles)", "composite", "coalesce", "buffer pairs", "sum pairs (per run / views)",
-              "normalize (per run / views)"]
+    stages = ["Σ and Σ⁻¹ from quaternions (per run / views)", "project", "depth sort", "bin (getRect tiles)", "composite", "coalesce",
+              "buffer pairs", "sum pairs (per run / views)", "normalize (per run / views)"]
     rows, totals = [], {"reference": 0.0, "top-k": 0.0}
     shared = ("project", "depth sort", "bin (getRect tiles)", "coalesce", "buffer pairs", "sum pairs (per run / views)")
     for stage in stages:
@@ -305,8 +312,18 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
             f"tile-list entries per view: getRect {statistics.median(entries['top-k']) / 1e6:.2f} M, exact α ≥ 1/255 tiles "
             f"{statistics.median(entries['exact']) / 1e6:.2f} M (binning them: {exact_ms:.1f} ms/view, not used)\n"
             f"top-k lists that differ from the reference (as sets of (id, weight)): {changed_pixels} pixels in {changed_views} of {n} views "
-            f"(both float64; a float32 compositor is not implemented)")
+            f"(both float64; a float32 compositor is not implemented)\n"
+            f"Σ and Σ⁻¹: numpy (3x3 products through BLAS) vs the numba kernels, largest difference {frames_gap:.1e} of a matrix's "
+            f"largest entry (the default mode makes both once per run, `paper` Σ only)")
     return head + "\n" + format_table(["stage", "reference ms/view", "top-k ms/view", "speed-up"], rows) + "\n" + foot
+
+
+def _largest_relative_gap(got: np.ndarray, ref: np.ndarray) -> float:
+    """max |got - ref| / max |ref| per matrix over the matrices [N, 3, 3] both hold finite."""
+    got, ref = got.reshape(len(got), -1), ref.reshape(len(ref), -1)
+    ok = np.isfinite(got).all(axis=1) & np.isfinite(ref).all(axis=1)
+    scale = np.maximum(np.abs(ref[ok]).max(axis=1), np.finfo(np.float64).tiny)
+    return float((np.abs(got[ok] - ref[ok]).max(axis=1) / scale).max()) if ok.any() else 0.0
 
 
 def kernels_bin(projected, order, n_tiles_x: int, n_tiles_y: int, chunks: int):

@@ -110,7 +110,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, VOTE_SLOT_BYTES
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
@@ -553,16 +553,15 @@ class RayGeometry:
 
     @classmethod
     def from_scene(cls, scene, chunk: int = 1 << 20) -> RayGeometry:
-        """From a GaussianScene (built from quaternions and scales: exact for flat Gaussians), `chunk`
-        Gaussians at a time, so Σ⁻¹'s [chunk, 3, 3] float64 temporaries (~250 bytes per Gaussian:
-        12 GB at 50M in one go) stay ~250 MB; every row is the same as in one go."""
+        """From a GaussianScene (Σ⁻¹ built from quaternions and scales, `GaussianScene.packed_precisions`:
+        exact for flat Gaussians), `chunk` Gaussians at a time, so the float64 temporaries (~100 bytes
+        per Gaussian: 5 GB at 50M in one go) stay ~100 MB; every row is the same as in one go."""
         n = scene.num_gaussians
         out = cls(np.empty((n, 3)), np.empty((n, 6)), np.empty(n))
         for start in range(0, n, chunk):
             part = scene.subset(slice(start, start + chunk))
             stop = start + part.num_gaussians
-            prec = part.precisions()
-            out.precisions[start:stop] = np.stack([prec[:, 0, 0], prec[:, 0, 1], prec[:, 0, 2], prec[:, 1, 1], prec[:, 1, 2], prec[:, 2, 2]], 1)
+            part.packed_precisions(out=out.precisions[start:stop])
             with np.errstate(over="ignore", invalid="ignore"):
                 reach = 3.0 * np.exp(part.log_scales.astype(np.float64)).max(axis=1)
             means = np.asarray(part.means, np.float64)
@@ -934,6 +933,8 @@ class ViewHook:
     _buffer: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _scratch: StatsScratch | None = dataclasses.field(default=None, repr=False, compare=False)
     _seen: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    _means2d: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    _conics: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.weighting, self.reject = split_mode(self.mode)
@@ -985,14 +986,28 @@ class ViewHook:
                 self._seen = np.full(max(n, 1), -1, np.int32)
             self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
             return self._buffer
-        means2d, conics = np.zeros((0, 2)), np.zeros((0, 3))
-        if self.needs_projection:
-            projected = getattr(out, "projected", None)
-            if projected is None or projected.means2d.shape[0] != geometry.num_gaussians:  # a culled render projected a subset
-                projected = project_gaussians(geometry, camera)
-            means2d, conics = projected.means2d, projected.conics
+        means2d, conics = self._projection(geometry, camera, out) if self.needs_projection else (np.zeros((0, 2)), np.zeros((0, 3)))
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer
+
+    def _projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray]:
+        """(means2d [N, 2], conics [N, 3]) float64 by scene id, right for every Gaussian out.ids names:
+        the render's own projection when it covers the scene; scattered into this hook's buffers when
+        it covers a culled subset (out.projected_ids: its rows' scene ids; a Gaussian's projection
+        does not depend on the others, so these are the same bits); projected here otherwise."""
+        projected = getattr(out, "projected", None)
+        n = geometry.num_gaussians
+        if projected is not None and projected.means2d.shape[0] == n and getattr(out, "projected_ids", None) is None:
+            return projected.means2d, projected.conics
+        rows = getattr(out, "projected_ids", None)
+        if projected is None or rows is None or rows.shape[0] != projected.means2d.shape[0]:
+            projected = project_gaussians(geometry, camera)
+            return projected.means2d, projected.conics
+        if self._means2d is None or self._means2d.shape[0] != n:
+            self._means2d, self._conics = np.zeros((n, 2)), np.zeros((n, 3))
+        self._means2d[rows] = projected.means2d
+        self._conics[rows] = projected.conics
+        return self._means2d, self._conics
 
 
 def mode_hook(mode: str, rays: RayGeometry | None) -> ViewHook | None:
@@ -1087,9 +1102,11 @@ class Aggregator:
             views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + 80) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8
-        if stages.check:  # the check's slots per Gaussian of a block (drsplat.registration.check; the views' support tables
-            # and present-mask flags, and its record of the pairs in one block without a checkpoint, grow with the views: not counted)
+        if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
+            # (drsplat.registration.check; the views' support tables and present-mask flags, and its record of the pairs in one
+            # block without a checkpoint, grow with the views: not counted)
             per_block += 12 * CHECK_SLOTS
+            kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept, per_block

@@ -96,7 +96,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import CHECK_SLOTS
+from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
 from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
@@ -109,7 +109,7 @@ log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
 SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
-SUPPORT_EXTRA_SCRATCH = 64 << 20  # bytes of support tables a view may add to sum its parts in parallel (17 bytes a (mask, cluster))
+SUPPORT_ENTRY_BYTES = 17  # a (mask, cluster) of the dense scratch: q and the core table int64, a flag
 LIKE_CHUNK = 1 << 22  # cosines between two masks of a view that `like_threshold` holds at a time (32 MB)
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 # a large mask (this share of its view's mass or more) is also dropped when its own label's support is
@@ -282,7 +282,7 @@ def _fixed(x):  # pragma: no cover - jitted
 
 @numba.njit(cache=True, parallel=True)
 def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
-                    entry_core, scratch, core, touched, mass):  # pragma: no cover - jitted
+                    entry_core, scratch, core, touched, mass, j_lo):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
     (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
     the pairs sorted by row (`rows_order`), so each Gaussian's pairs of the view are consecutive.
@@ -300,8 +300,11 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     q and r arrive and leave as entries (entry_mask, entry_cluster [E] int32, entry_value,
     entry_core [E] int64: the pairs (j, c) met so far); returns the new entries (the old ones first;
     every (j, c) once, in an order that depends on the parts: readers sort them, `ViewSupport.rows`).
-    They are summed in scratch and core [L, M, K] int64 (zero) with touched [L, M, K] bool (False), L
-    parts, all left as they came. mass: [M] int64, fixed point too."""
+    They are summed in scratch and core [L, M', K] int64 (zero) with touched [L, M', K] bool (False), L
+    parts, all left as they came: the masks j_lo .. j_lo + M' - 1 only (the entries passed in are
+    theirs; the other masks' pairs still count in their Gaussians' own votes but add nothing), so
+    a view of many masks is summed a run of masks at a time in bounded scratch
+    (`add_view_support`). mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
     layers, num_masks = scratch.shape[0], scratch.shape[1]
     count = entry_mask.shape[0]
@@ -315,7 +318,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
     met_n = np.zeros(layers, np.int64)
     part_mass = np.zeros((layers, num_masks), np.int64)
     for e in range(count):
-        j, c = entry_mask[e], entry_cluster[e]
+        j, c = entry_mask[e] - j_lo, entry_cluster[e]
         scratch[0, j, c] = entry_value[e]
         core[0, j, c] = entry_core[e]
         touched[0, j, c] = True
@@ -347,7 +350,9 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
             for i in range(start, end):
                 p = order[i]
                 w = np.float64(weights[p])
-                j = masks[p]
+                j = masks[p] - j_lo
+                if j < 0 or j >= num_masks:
+                    continue
                 part_mass[part, j] += _fixed(w)
                 for s in range(num_slots):
                     c = slot_c[r, s]
@@ -367,7 +372,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
         met_n[part] = at - room[part]
     for j in range(num_masks):
         for part in range(layers):
-            mass[j] += part_mass[part, j]
+            mass[j_lo + j] += part_mass[part, j]
     out_j = np.empty(count + met_n.sum(), np.int32)
     out_c = np.empty(out_j.shape[0], np.int32)
     out_n = 0
@@ -397,7 +402,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
         scratch[0, j, c] = 0
         core[0, j, c] = 0
         touched[0, j, c] = False
-    return out_j[:out_n].copy(), out_c[:out_n].copy(), out_value, out_core
+    return out_j[:out_n] + np.int32(j_lo), out_c[:out_n].copy(), out_value, out_core
 
 
 @numba.njit(cache=True, parallel=True)
@@ -583,22 +588,31 @@ class ViewSupport:
 
 
 class SupportScratch:
-    """The dense scratch `_support_kernel` sums one view in: [L, M, K] int64 zeros (q, the core table) and bool flags,
-    one layer per part of the view summed in parallel, sized for the largest view's M and reused
-    (left zero by every call). L: one per numba thread, as long as the layers beyond the first
-    stay within SUPPORT_EXTRA_SCRATCH for the view (the sums do not depend on it); `layers` fixes L."""
+    """The dense scratch `_support_kernel` sums one view in: [L, M', K] int64 zeros (q, the core
+    table) and bool flags for a run of M' of the view's masks, one layer per part of the view
+    summed in parallel, sized for the largest run and reused (left zero by every call). A run
+    holds as many masks as keep one layer within SUPPORT_SCRATCH_BYTES (at least one), so a view
+    of thousands of masks against thousands of clusters is summed in runs instead of one
+    [M, K] table (4,000 masks x 16,000 clusters: 1.1 GB a layer). L: one per numba thread, as long
+    as the layers beyond the first stay within SUPPORT_EXTRA_SCRATCH (the sums do not depend on
+    it); `layers` fixes L, `run_bytes` the bound of a layer."""
 
-    def __init__(self, num_clusters: int, layers: int | None = None):
+    def __init__(self, num_clusters: int, layers: int | None = None, run_bytes: int = SUPPORT_SCRATCH_BYTES):
         self.num_clusters = num_clusters
         self.layers = layers
+        self.run_bytes = run_bytes
         self._values = np.zeros(0, np.int64)
         self._core = np.zeros(0, np.int64)
         self._touched = np.zeros(0, bool)
 
+    def masks_per_run(self, num_masks: int) -> int:
+        """How many of a view's `num_masks` masks one call sums (all of them when a layer fits)."""
+        return int(max(1, min(num_masks, self.run_bytes // max(SUPPORT_ENTRY_BYTES * self.num_clusters, 1))))
+
     def take(self, num_masks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """q's, the core table's and the flags' [L, M, K] layers for a view of `num_masks` masks."""
+        """q's, the core table's and the flags' [L, M', K] layers for a run of `num_masks` masks."""
         table = num_masks * self.num_clusters
-        layers = self.layers or int(max(1, min(numba.get_num_threads(), 1 + SUPPORT_EXTRA_SCRATCH // max(17 * table, 1))))
+        layers = self.layers or int(max(1, min(numba.get_num_threads(), 1 + SUPPORT_EXTRA_SCRATCH // max(SUPPORT_ENTRY_BYTES * table, 1))))
         size = layers * table
         if size > self._values.shape[0]:
             self._values, self._core, self._touched = np.zeros(size, np.int64), np.zeros(size, np.int64), np.zeros(size, bool)
@@ -629,15 +643,23 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     Gaussians' slots folded over all views; scratch: reused between calls (None: a new one). The
     terms of q[j, c] are added in Gaussian order, so blocks taken in increasing `lo` give one
     block's bits."""
-    if view.gaussians.size:
-        rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
-        if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
-            scratch = SupportScratch(support.num_clusters)
-        values, core, touched = scratch.take(support.mass_fixed.shape[0])
-        support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = _support_kernel(
-            rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-            np.ascontiguousarray(clusters[view.masks], np.int32), rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW,
-            support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core, values, core, touched, support.mass_fixed)
+    if not view.gaussians.size:
+        return
+    rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
+    if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
+        scratch = SupportScratch(support.num_clusters)
+    pairs = (rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
+             np.ascontiguousarray(clusters[view.masks], np.int32), rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW)
+    num_masks = support.mass_fixed.shape[0]
+    step = scratch.masks_per_run(num_masks)  # ≥ 1; a view with pairs has masks
+    entries = (support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core)
+    runs = []
+    for j_lo in range(0, num_masks, step):
+        j_hi = min(num_masks, j_lo + step)
+        inside = entries if step >= num_masks else tuple(e[(entries[0] >= j_lo) & (entries[0] < j_hi)] for e in entries)
+        runs.append(_support_kernel(*pairs, *inside, *scratch.take(j_hi - j_lo), support.mass_fixed, j_lo))
+    support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = (
+        runs[0] if len(runs) == 1 else tuple(np.concatenate(column) for column in zip(*runs)))
 
 
 def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> None:

@@ -25,7 +25,7 @@ from drsplat.errors import UsageError
 from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
-from drsplat.raster import PreparedScene, get_engine, prepare_scene
+from drsplat.raster import PreparedScene, RasterOutput, get_engine, prepare_scene
 from drsplat.registration.aggregate import ViewHook, mode_stages
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
@@ -99,9 +99,9 @@ def check_engine(engine: str, device: str) -> None:
 def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScene:
     """`raster.prepare_scene` without the SH coefficients (registration renders no colour).
 
-    Prepared chunk by chunk, so the float64 copies of the SH never exist at once: ~101 bytes per
-    Gaussian (means and covariances float64, opacity, finite flag). Gaussians with non-finite SH
-    are still flagged non-finite, exactly as prepare_scene does.
+    Prepared chunk by chunk: ~101 bytes per Gaussian (means and covariances float64, opacity,
+    finite flag), the SH checked but never copied. Gaussians with non-finite SH are still flagged
+    non-finite, exactly as prepare_scene does.
     """
     n = scene.num_gaussians
     means = np.empty((n, 3), np.float64)
@@ -109,7 +109,7 @@ def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScen
     opacities = np.empty(n, np.float32)
     finite = np.empty(n, bool)
     for start in range(0, n, chunk):
-        part = prepare_scene(scene.subset(slice(start, start + chunk)))
+        part = prepare_scene(scene.subset(slice(start, start + chunk)), with_sh=False)
         stop = start + part.num_gaussians
         means[start:stop], covs[start:stop] = part.means, part.covariances
         opacities[start:stop], finite[start:stop] = part.opacities, part.finite
@@ -212,21 +212,30 @@ class ViewComputer:
 
         if self._index is None:
             self.projected += self._prepared.num_gaussians if isinstance(self._prepared, PreparedScene) else 0
-            return render(self._prepared)
+            return _whole(render(self._prepared))
         ids = self._index.visible(cam)
         if renders_whole(ids.size, self._prepared.num_gaussians):
             self.projected += self._prepared.num_gaussians
-            return render(self._prepared)
+            return _whole(render(self._prepared))
         self.projected += int(ids.size)
         out = render(subset_geometry(self._prepared, ids))
         remap_ids(out.ids, ids)
         if out.median_ids is not None:
             remap_ids(out.median_ids, ids)
+        if isinstance(out, RasterOutput):
+            out.projected_ids = ids
         return out
 
     def load_and_compute(self, cam: Camera) -> ViewPairs:
         """`compute` with the view's features read from the job's feature folder."""
         return self.compute(cam, *load_view_features(self.job.features_dir, cam, self.job.level))
+
+
+def _whole(out):
+    """out, its projection (if any) marked as the whole scene's: a buffer reused from a culled view keeps no stale subset ids."""
+    if isinstance(out, RasterOutput):
+        out.projected_ids = None
+    return out
 
 
 @dataclass

@@ -295,36 +295,52 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
     return F
 
 
+@numba.njit(fastmath=True, cache=True)
+def _unit_cosine(means, a, b):  # pragma: no cover - jitted
+    """means[a] · means[b] in float32 (fastmath: the sum over D vectorises; not inlined at numba's
+    level, so the flags stay on these instructions only)."""
+    s = np.float32(0.0)
+    for d in range(means.shape[1]):
+        s += means[a, d] * means[b, d]
+    return s
+
+
 @numba.njit(parallel=True, cache=True)
-def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority):  # pragma: no cover - jitted
-    """`trimmed_features_reference`, one Gaussian per thread at a time (rows are independent)."""
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts):  # pragma: no cover - jitted
+    """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
+    run with one float64 row buffer: per Gaussian, first the slots to trim (bits of a uint64; slots
+    ≤ 64), then, when there are any, F_i ← float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots
+    subtracted in slot order, each over the row in one contiguous (vectorised) loop."""
     b, num_slots = slot_c.shape
     dim = F.shape[1]
-    for i in numba.prange(b):
-        if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
-            continue
-        best = 0
-        for s in range(1, num_slots):
-            if slot_c[i, s] >= 0 and slot_v[i, s] > slot_v[i, best]:
-                best = s
-        win = slot_c[i, best]
-        v_win = slot_v[i, best]
+    for part in numba.prange(parts):
         row = np.empty(dim)
-        for d in range(dim):
-            row[d] = F[i, d]
-        changed = False
-        for s in range(num_slots):
-            c = slot_c[i, s]
-            if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
+        for i in range(part * b // parts, (part + 1) * b // parts):
+            if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
                 continue
-            sim = np.float32(0.0)
+            best = 0
+            for s in range(1, num_slots):
+                if slot_c[i, s] >= 0 and slot_v[i, s] > slot_v[i, best]:
+                    best = s
+            win = slot_c[i, best]
+            v_win = slot_v[i, best]
+            trim = np.uint64(0)
+            for s in range(num_slots):
+                c = slot_c[i, s]
+                if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
+                    continue
+                if _unit_cosine(means, c, win) < threshold:
+                    trim |= np.uint64(1) << np.uint64(s)
+            if trim == 0:
+                continue
             for d in range(dim):
-                sim += means[c, d] * means[win, d]
-            if sim < threshold:
-                changed = True
-                for d in range(dim):
-                    row[d] -= slot_s[i, s] * np.float64(means[c, d])
-        if changed:
+                row[d] = F[i, d]
+            for s in range(num_slots):
+                if (trim >> np.uint64(s)) & np.uint64(1):
+                    c = slot_c[i, s]
+                    w = slot_s[i, s]
+                    for d in range(dim):
+                        row[d] -= w * np.float64(means[c, d])
             for d in range(dim):
                 F[i, d] = row[d]
 
@@ -337,7 +353,10 @@ def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot
     float64 votes / paper weights, means: [K, D] unit μ_c float32. Returns F."""
     if F.shape[0] == 0 or means.shape[0] == 0:
         return F
-    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority))
+    if slot_c.shape[1] > 64:
+        raise ValueError(f"trimmed_features takes at most 64 slots per Gaussian, not {slot_c.shape[1]}")
+    parts = max(1, min(F.shape[0], 8 * numba.get_num_threads()))
+    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority), parts)
     return F
 
 
