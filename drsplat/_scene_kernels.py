@@ -19,7 +19,7 @@ import numpy as np
 def unit_quats64_kernel(q, out):  # pragma: no cover - jitted
     """out[i] = q[i] / ‖q[i]‖ in float64, (1, 0, 0, 0) where ‖q[i]‖ is not > 0 (zero or NaN).
 
-    q: [N, 4] float32 (w, x, y, z); out: [N, 4] float64. The norm is √(((w² + x²) + y²) + z²),
+    q: [N, 4] float32 (or float64) (w, x, y, z); out: [N, 4] float64. The norm is √(((w² + x²) + y²) + z²),
     the order numpy's row reduction adds in, so the rows are numpy's bits.
     """
     for i in numba.prange(q.shape[0]):

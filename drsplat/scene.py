@@ -107,7 +107,7 @@ class GaussianScene:
         the identity and an infinite one NaN rows, without numpy's warning (the load counts and drops
         such rows). A numba kernel; `unit_quats64_reference` is the numpy form, the same bits."""
         out = np.empty((self.num_gaussians, 4), np.float64)
-        unit_quats64_kernel(np.ascontiguousarray(self.quats, np.float32), out)
+        unit_quats64_kernel(np.ascontiguousarray(self.quats), out)
         return out
 
     def unit_quats64_reference(self) -> np.ndarray:

@@ -326,6 +326,8 @@ def test_frame_kernels_agree_with_their_numpy_references():
         warnings.simplefilter("error")  # the kernels raise no numpy warning on the hostile rows
         unit, cov, prec, packed = scene.unit_quats64(), scene.covariances(), scene.precisions(), scene.packed_precisions()
     np.testing.assert_array_equal(unit, scene.unit_quats64_reference())
+    wide = dataclasses.replace(scene, quats=scene.quats.astype(np.float64) * (1 + 1e-12))  # float64 quaternions keep their digits
+    np.testing.assert_array_equal(wide.unit_quats64(), wide.unit_quats64_reference())
     _agree_to_rounding(cov, scene.covariances_reference())
     _agree_to_rounding(prec, scene.precisions_reference())
     assert not np.isfinite(cov[7]).all() and np.isfinite(prec[7]).all()  # an overflowing scale: Σ infinite, Σ⁻¹ finite

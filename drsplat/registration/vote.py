@@ -65,15 +65,21 @@ PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on 
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 
 
+@numba.njit(fastmath=True, cache=True)
+def _row_dot(a, i, b, j):  # pragma: no cover - jitted
+    """a[i] · b[j] in float32 (fastmath: the sum over D vectorises; not inlined at numba's level, so
+    the flags stay on these instructions only): the one dot product of the vote's kernels."""
+    s = np.float32(0.0)
+    for d in range(a.shape[1]):
+        s += a[i, d] * b[j, d]
+    return s
+
+
 @numba.njit(fastmath=True, cache=True, inline="always")
 def _dot_row(feats, rows, c, out):  # pragma: no cover - jitted
-    """out[:, c] = feats · rows[c] (float32; fastmath lets the sum over D vectorise): the loop both kernels run."""
-    m, d = feats.shape
-    for j in range(m):
-        s = np.float32(0.0)
-        for k in range(d):
-            s += feats[j, k] * rows[c, k]
-        out[j, c] = s
+    """out[:, c] = feats · rows[c] (float32): the loop both kernels run."""
+    for j in range(feats.shape[0]):
+        out[j, c] = _row_dot(feats, j, rows, c)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -295,16 +301,6 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
     return F
 
 
-@numba.njit(fastmath=True, cache=True)
-def _unit_cosine(means, a, b):  # pragma: no cover - jitted
-    """means[a] · means[b] in float32 (fastmath: the sum over D vectorises; not inlined at numba's
-    level, so the flags stay on these instructions only)."""
-    s = np.float32(0.0)
-    for d in range(means.shape[1]):
-        s += means[a, d] * means[b, d]
-    return s
-
-
 @numba.njit(parallel=True, cache=True)
 def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts):  # pragma: no cover - jitted
     """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
@@ -329,7 +325,7 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts): 
                 c = slot_c[i, s]
                 if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
                     continue
-                if _unit_cosine(means, c, win) < threshold:
+                if _row_dot(means, c, means, win) < threshold:
                     trim |= np.uint64(1) << np.uint64(s)
             if trim == 0:
                 continue
