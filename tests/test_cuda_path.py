@@ -80,3 +80,45 @@ def test_registration_through_the_cuda_kernels_equals_numba(cuda_path, mode):
     assert str(got["pairs_on"]) == str(got["sums_on"]) == "cpu" and int(got["pairs"]) == want.num_pairs > 0
     np.testing.assert_array_equal(got["weights"], want.weights)
     np.testing.assert_array_equal(got["features"], want.features)
+
+
+# ----------------------------------------------------------------------------- on a real GPU
+
+needs_cuda = pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the CUDA kernels in the interpreter above)")
+
+
+@pytest.fixture(scope="module")
+def rooms(tmp_path_factory) -> dict:
+    """hard-tiny with 20 % mislabelled masks, its masks rendered from the Gaussians (the fit stage picks
+    the paper's footprint) and ray-cast from the geometry (it picks `sharp`), 6 views each."""
+    from drsplat.cameras import load_cameras
+    from drsplat.scene import load_ply
+    from drsplat.synthetic import write_dataset
+
+    found = {}
+    for source in ("render", "geometry"):
+        data = write_dataset(tmp_path_factory.mktemp(source) / "hard", "hard-tiny", 0, mislabel_fraction=0.2, mask_source=source,
+                             show_progress=False)
+        found[source] = (load_ply(data / "scene.ply"), load_cameras(data)[:6], data / "features")
+    return found
+
+
+@needs_cuda
+@pytest.mark.parametrize("source", ["render", "geometry"])
+@pytest.mark.parametrize("mode", __import__("drsplat.defaults", fromlist=["AGGREGATE_MODES"]).AGGREGATE_MODES)
+def test_registration_on_cuda_agrees_with_numba(rooms, source, mode):
+    """Every mode on the GPU: the same decisions as numba (the fit stage's footprint, the Gaussians
+    assigned and rejected), the features and weights to float32 rounding (CUDA's atomics add in no
+    fixed order)."""
+    scene, cameras, features = rooms[source]
+    want = register_features(scene, cameras, features, RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+    got = register_features(scene, cameras, features, RegisterOptions(topk=10, aggregate=mode, engine="torch", device="cuda"),
+                            show_progress=False)
+    assert got.aggregate == want.aggregate and got.num_pairs == want.num_pairs
+    assert got.pairs_on.startswith("cuda") and got.sums_on.startswith("cuda")
+    assigned, expected = got.weights > 0, want.weights > 0
+    assert np.array_equal(assigned, expected), f"{int((assigned != expected).sum())} Gaussians assigned differently"
+    np.testing.assert_allclose(got.weights, want.weights, rtol=1e-5, atol=1e-7)
+    worst = float(np.abs(got.features - want.features).max())
+    assert worst <= 1e-4, f"features differ by up to {worst:.3g}"
+

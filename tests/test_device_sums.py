@@ -398,6 +398,57 @@ def test_device_floater_statistics_equal_numba(case, h, w, k, n):
     np.testing.assert_allclose(got.front.numpy()[reference.ids], reference.front, rtol=1e-12)
 
 
+@pytest.mark.parametrize("case,h,w,k,n", STATS_CASES, ids=[f"{c[0]} {c[1]}x{c[2]} k={c[3]}" for c in STATS_CASES])
+def test_the_peak_over_copies_of_its_table_is_the_same_bits(case, h, w, k, n):
+    """The per-Gaussian max taken over R copies of its table (spread by pixel, as on CUDA) is the
+    one-table max bit for bit, for every R."""
+    from drsplat.registration.device_sums import DeviceRays, front_flags_torch, view_stats_torch
+
+    rays, cam, ids, weights, median = stats_view(3 + h, h, w, k, n, case)
+    flags = front_flags_torch(DeviceRays.from_host(rays, torch.device("cpu")), cam, torch.from_numpy(ids), torch.from_numpy(median))
+    want = view_stats_torch(torch.from_numpy(ids), torch.from_numpy(weights), flags, n, replicas=1)
+    for replicas in (2, 3, 16, 64):
+        got = view_stats_torch(torch.from_numpy(ids), torch.from_numpy(weights), flags, n, replicas=replicas)
+        for name in ("peak", "total", "front", "touched"):
+            assert getattr(got, name).numpy().tobytes() == getattr(want, name).numpy().tobytes(), (replicas, name)
+
+
+def test_scatter_max_over_copies_on_hard_rows():
+    """One row hit by every entry, rows never hit, zeros, ties, a value past float32, NaN: R copies
+    give the one-table maxima for every R (NaN where a row holds one)."""
+    from drsplat.registration.device_sums import scatter_max
+
+    rng = np.random.default_rng(11)
+    rows = np.concatenate([np.zeros(500, np.int64), rng.integers(2, 9, 300)])  # row 1 and rows 9.. never hit
+    values = np.concatenate([rng.uniform(0, 1, 500), rng.choice([0.0, 0.5, 0.5, 1e300], 300)])
+    values[700] = np.nan
+    lanes = np.arange(rows.size, dtype=np.int64) // 3
+    want = scatter_max(torch.from_numpy(rows), torch.from_numpy(values), 12)
+    expected = np.zeros(12)
+    for r in range(12):
+        hit = values[rows == r]
+        expected[r] = np.max(hit) if hit.size and not np.isnan(hit).any() else (np.nan if hit.size else 0.0)
+    np.testing.assert_array_equal(want.numpy(), expected)
+    for replicas in (2, 5, 32):
+        got = scatter_max(torch.from_numpy(rows), torch.from_numpy(values), 12, torch.from_numpy(lanes), replicas)
+        assert got.numpy().tobytes() == want.numpy().tobytes(), replicas
+
+
+def test_the_peak_table_copies_stay_within_their_bytes():
+    """As many copies as PEAK_REPLICAS on CUDA while the table fits PEAK_TABLE_BYTES, fewer for larger
+    scenes, never fewer than one; one on a CPU."""
+    from drsplat.registration.device_sums import PEAK_REPLICAS, PEAK_TABLE_BYTES, peak_replicas
+
+    cuda = torch.device("cuda")
+    assert peak_replicas(1000, cuda) == PEAK_REPLICAS and peak_replicas(1000, torch.device("cpu")) == 1
+    assert peak_replicas(0, cuda) == PEAK_REPLICAS
+    for rows in (542_105, 5_000_000, 20_000_000, 50_000_000, 10**9):
+        replicas = peak_replicas(rows, cuda)
+        assert replicas == 1 or 8 * replicas * rows <= PEAK_TABLE_BYTES, rows  # within the bytes
+        assert replicas == PEAK_REPLICAS or 16 * replicas * rows > PEAK_TABLE_BYTES, rows  # and no fewer copies than fit
+    assert peak_replicas(50_000_000, cuda) == 1 and 1 < peak_replicas(5_000_000, cuda) < PEAK_REPLICAS
+
+
 def test_device_support_folds_to_the_host_bits():
     """Views folded on the device, after a host snapshot of earlier ones (a resume), give the host
     fold's arrays bit for bit, and the same rejected mask."""
