@@ -499,6 +499,23 @@ def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
     assert vote.in_memory - rej.in_memory >= 160 * scene.num_gaussians
 
 
+def test_memory_plan_counts_the_mask_clusters_of_each_stage_that_keeps_them(hard_tiny):
+    """The vote, check and solve stages each keep a MaskClusters of the views' masks until the sums
+    are finished: the plan counts one bound (every mask its own cluster) per stage, before and
+    after the views, and nothing for `paper`."""
+    from drsplat.registration.vote import cluster_bytes
+
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    masks = {"total_masks": 24_000, "max_masks": 3_000}
+    bound = cluster_bytes(24_000, 3_000, 1024)
+    for mode, stages in (("paper", 0), ("vote-reject", 1), ("check-reject", 1), ("solve", 1), ("check-vote-reject", 2)):
+        without = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode)
+        with_masks = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode, **masks)
+        assert with_masks.views - without.views == with_masks.base - without.base == stages * bound, mode
+        assert with_masks.in_memory - without.in_memory == stages * bound, mode
+    assert bound > 24_000 * 1024 * 12  # leaders and sums of 24,000 clusters at 1024-D
+
+
 def test_view_hook_survives_pickling(hard_tiny):
     """The hook travels to Ray workers: a pickled copy gives the same weights and statistics."""
     import pickle

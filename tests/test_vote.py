@@ -87,6 +87,73 @@ def test_mask_clusters_group_noisy_masks_of_a_label():
         assert float(means[cluster] @ labels[label]) > 0.99
 
 
+def _cluster_views(rng, views: int, masks: int, labels: int, noise: float, dim: int = D):
+    """Views of masks drawn around `labels` label embeddings (noise per entry), some zero, some absent."""
+    centres = _labels(rng, labels) if labels else None
+    out = []
+    for _ in range(views):
+        if centres is None:
+            feats = rng.normal(size=(masks, dim)).astype(np.float32)
+        else:
+            feats = (centres[rng.integers(0, labels, masks)] + rng.normal(scale=noise, size=(masks, dim))).astype(np.float32)
+        feats[rng.random(masks) < 0.05] = 0.0  # dropped for non-finite values
+        feats[rng.random(masks) < 0.05] *= np.float32(1e18)  # huge but finite: the cosine is scale-free
+        out.append((feats, rng.random(masks) < 0.9))
+    return out
+
+
+@pytest.mark.parametrize("labels,noise", [(0, 0.0), (6, 0.02), (40, 0.05)], ids=["distinct", "few labels", "many labels"])
+def test_mask_clusters_equal_the_reference_and_do_not_depend_on_their_blocks(labels, noise):
+    """MaskClusters against the float64 reference (every cosine far from the threshold here), and
+    the same ids and means bit for bit with blocks of 1, 2, 5 and 4,096 leaders (the cosines met
+    one block at a time, a block's rows never copied)."""
+    from drsplat.registration.vote import cluster_masks_reference
+
+    rng = np.random.default_rng(labels)
+    views = _cluster_views(rng, 6, 40, labels, noise)
+    ref_ids, ref_means = cluster_masks_reference(views)
+    runs = {}
+    for block in (1, 2, 5, 4096):
+        clusters = MaskClusters(D, block=block)
+        ids = [clusters.add(feats, present) for feats, present in views]
+        runs[block] = (ids, clusters.means())
+        assert clusters.count == ref_means.shape[0]
+        for got, want in zip(ids, ref_ids):
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_allclose(runs[block][1], ref_means, atol=1e-6)
+    for block, (ids, means) in runs.items():
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(ids, runs[4096][0])) and means.tobytes() == runs[4096][1].tobytes(), block
+    if labels == 0:
+        assert ref_means.shape[0] > 150  # every present, nonzero mask its own cluster: many blocks
+
+
+def test_mask_clusters_keep_the_first_of_equal_leaders_across_blocks():
+    """Two identical leaders in different blocks: a mask like both joins the first, as np.argmax
+    over all leaders would."""
+    rng = np.random.default_rng(4)
+    a, b = _labels(rng, 2)
+    clusters = MaskClusters(D, threshold=0.9, block=1)
+    clusters.add(np.stack([a, b]))  # view 1: clusters 0 and 1, one per block
+    clusters.add(np.stack([a]))  # joins 0
+    clusters._found(a.copy())  # a second leader equal to cluster 0's, in a third block
+    ids = clusters.add(np.stack([a, b]))
+    assert ids.tolist() == [0, 1]
+
+
+def test_cluster_bytes_bound_what_the_clusters_hold():
+    """The plan's bound holds the leaders, sums and ids of every mask its own cluster, and grows with the masks and D."""
+    from drsplat.registration.vote import cluster_bytes
+
+    rng = np.random.default_rng(7)
+    views = _cluster_views(rng, 5, 60, 0, 0.0)
+    clusters = MaskClusters(D, block=64)
+    for feats, present in views:
+        clusters.add(feats, present)
+    held = sum(a.nbytes for a in clusters._leaders + clusters._sums) + sum(i.nbytes for i in clusters.per_view)
+    assert held <= cluster_bytes(300, 60, D, block=64)
+    assert cluster_bytes(600, 60, D) > cluster_bytes(300, 60, D) and cluster_bytes(300, 60, 2 * D) > cluster_bytes(300, 60, D)
+
+
 def test_masks_that_reach_no_gaussian_neither_found_nor_move_clusters():
     """A view's masks that cover no Gaussian (an empty segment, a mask off the scene) must leave the
     clusters, and so the field, as if the view had no such masks."""

@@ -449,7 +449,8 @@ def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
     refusals = []
     for footprint in FOOTPRINTS:
         plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base,
-                               aggregate=resolve_mode(run.options.aggregate, footprint))
+                               aggregate=resolve_mode(run.options.aggregate, footprint), total_masks=run.headers.total_masks,
+                               max_masks=run.headers.max_masks)
         try:
             choose_block(plan, run.options.memory_budget)
         except DrsplatError as exc:
@@ -463,7 +464,8 @@ def _plan_block(run: Run, base: int | None = None) -> int:
     budget accepted then is accepted now unless the probe held more than was allowed for)."""
     if base is not None:
         base = max(base, current_rss())
-    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate)
+    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate,
+                           total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
     block = choose_block(plan, run.options.memory_budget)
     if block < run.scene.num_gaussians:
         log.info("estimated peak memory: %s in one block, %s in blocks of %s Gaussians", format_size(plan.in_memory),

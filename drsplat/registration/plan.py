@@ -8,6 +8,9 @@ sums F [B, D] float32 + W [B] of a block of B Gaussians. With one block (B = N) 
 as the views arrive; with several, views' pairs go to the pair log and each block replays it
 (drsplat.registration.sink). Rows are encoded and written in chunks of at most WRITE_CHUNK
 Gaussians either way, so the output costs ~10·D bytes per Gaussian of one chunk, not of the scene.
+The vote, check and solve stages each keep the views' mask clusters until the sums are finished,
+counted from the feature headers' mask counts as if every mask were its own cluster
+(drsplat.registration.vote.cluster_bytes).
 Rasterizing a view with only a block's Gaussians would drop the occluders of other blocks and
 change T·α, so views are always rendered whole, exactly once.
 
@@ -28,8 +31,9 @@ from drsplat.defaults import DEFAULT_AGGREGATE
 from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
 from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
-from drsplat.registration.aggregate import Aggregator
+from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
+from drsplat.registration.vote import cluster_bytes
 from drsplat.scene import GaussianScene
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
@@ -102,13 +106,18 @@ def tile_list_bytes(num_gaussians: int) -> int:
 
 
 def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, topk: int, base: int | None = None,
-                    aggregate: str = DEFAULT_AGGREGATE) -> MemoryPlan:
+                    aggregate: str = DEFAULT_AGGREGATE, total_masks: int = 0, max_masks: int = 0) -> MemoryPlan:
     """Estimate the peak memory of registering `views` onto `scene` with `dim`-D embeddings
     (and the statistics of aggregation mode `aggregate`, kept until the sums are finished).
-    base: bytes already held (default: this process's resident memory now)."""
+    base: bytes already held (default: this process's resident memory now). total_masks,
+    max_masks: the views' masks in all and in one view (drsplat.registration.views.FeatureHeaders;
+    0: the mask clusters of the vote, check and solve stages are not counted)."""
     n = scene.num_gaussians
     pixels = max((c.width * c.height for c in views), default=0)
     mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
+    stages = mode_stages(aggregate)  # the vote, check and solve stages each keep the views' mask clusters until the sums are finished
+    clusters = (stages.vote + stages.check + stages.solve) * cluster_bytes(total_masks, max_masks, dim) if total_masks else 0
+    mode_views, mode_kept = mode_views + clusters, mode_kept + clusters
     base = (current_rss() if base is None else base) + mode_kept
     view = (n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + tile_list_bytes(n) + pixels * topk * (8 + 2 * PAIR_BYTES)
             + mode_views - mode_kept)

@@ -38,7 +38,9 @@ keeps the paper's sums and trims them:
    so coverage and floater rejection do not change.
 
 Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
-scratch), K·D·12 bytes for K clusters and 4 bytes per mask for the views' cluster ids. Under a
+scratch), K·D·12 bytes for K clusters in blocks that are never copied, a view's [M, CLUSTER_BLOCK]
+cosines at most, and 4 bytes per mask for the views' cluster ids; the memory plan counts every
+mask as its own cluster (`cluster_bytes`). Under a
 memory budget the slots are summed block by block from the pair log with the block's F
 (`VoteSink` with a log), pair by pair in the same order as in memory, so the bits do not depend
 on the plan or the place (tests/test_registration_matrix.py).
@@ -46,6 +48,7 @@ on the plan or the place (tests/test_registration_matrix.py).
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterator
 
 import numba
@@ -62,6 +65,8 @@ MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its vote
 FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
 PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
 PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on one core) runs on the calling thread
+CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most, and per block of a view's cosines with them
+FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 
 
@@ -121,21 +126,49 @@ def dot_rows(feats: np.ndarray, rows: np.ndarray, parallel: bool | None = None) 
 class MaskClusters:
     """Leader clustering of the views' mask embeddings, in view order (module docstring).
 
-    leaders: [K, D] float32 unit embeddings of each cluster's first mask; sums: [K, D] float64
-    Σ of the member embeddings; per_view: the [M] int32 cluster of each mask of every view added
-    (-1 for a zero embedding: a mask dropped for non-finite values).
+    The K clusters are kept in blocks of rows that are never copied (FIRST_CLUSTER_BLOCK rows, then
+    twice as many per block up to CLUSTER_BLOCK): leaders, the [rows, D] float32 unit embedding of
+    each cluster's first mask; sums, [rows, D] float64 Σ of the member embeddings. per_view: the
+    [M] int32 cluster of each mask of every view added (-1 for a zero embedding: a mask dropped for
+    non-finite values). A view's masks meet the leaders one block at a time, so a view of M masks
+    holds an [M, CLUSTER_BLOCK] float32 scratch at most, whatever K (`cluster_bytes`).
     """
 
-    def __init__(self, dim: int, threshold: float = CLUSTER_COSINE):
-        self.dim, self.threshold = dim, float(threshold)
-        self._leaders = np.zeros((64, dim), np.float32)
-        self._sums = np.zeros((64, dim), np.float64)
+    def __init__(self, dim: int, threshold: float = CLUSTER_COSINE, block: int = CLUSTER_BLOCK):
+        self.dim, self.threshold, self.block = dim, float(threshold), max(1, int(block))
+        self._leaders: list[np.ndarray] = []
+        self._sums: list[np.ndarray] = []
+        self._starts: list[int] = []  # the first cluster of each block
         self.count = 0
         self.per_view: list[np.ndarray] = []
 
     @property
     def leaders(self) -> np.ndarray:
-        return self._leaders[: self.count]
+        """[K, D] float32 (a copy of the blocks)."""
+        return np.concatenate([rows for _, rows in self._leader_rows(0, self.count)]) if self.count else np.zeros((0, self.dim), np.float32)
+
+    def _leader_rows(self, lo: int, hi: int) -> Iterator[tuple[int, np.ndarray]]:
+        """(first cluster, leaders [rows, D]) of clusters lo .. hi-1, block by block (views, no copies)."""
+        for start, leaders in zip(self._starts, self._leaders):
+            a, b = max(lo, start), min(hi, start + leaders.shape[0])
+            if a < b:
+                yield a, leaders[a - start : b - start]
+
+    def _best_leaders(self, feats: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """(best [M] int64, value [M] float32): per row of feats [M, D], the first of the largest
+        `dot_rows` values over the leaders lo .. hi-1 (-1 and -inf when there are none), as
+        np.argmax over the whole [M, hi - lo] row would give (a NaN counts as the largest, the first
+        one kept), computed one block of leaders at a time."""
+        m = feats.shape[0]
+        best, value = np.full(m, -1, np.int64), np.full(m, -np.inf, np.float32)
+        rows = np.arange(m)
+        for start, leaders in self._leader_rows(lo, hi):
+            cos = dot_rows(feats, leaders)
+            arg = np.argmax(cos, axis=1)
+            top = cos[rows, arg]
+            better = (top > value) | (np.isnan(top) & ~np.isnan(value))
+            best[better], value[better] = start + arg[better], top[better]
+        return best, value
 
     def add(self, feats: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
         """Assign one view's masks feats [M, D] (in order) and remember the ids; returns them [M] int32.
@@ -146,40 +179,92 @@ class MaskClusters:
         feats = np.asarray(feats, np.float32)
         norms = np.linalg.norm(feats.astype(np.float64), axis=1)
         ids = np.full(feats.shape[0], -1, np.int32)
-        cos = dot_rows(feats, self.leaders)
+        known = self.count  # clusters before this view: every mask meets them at once
+        best, value = self._best_leaders(feats, 0, known)
         for j in range(feats.shape[0]):
             if not norms[j] > 0 or (present is not None and not present[j]):
                 continue
             unit = feats[j] / np.float32(norms[j])
-            best = int(np.argmax(cos[j])) if cos.shape[1] else -1
-            if best >= 0 and cos[j, best] / norms[j] >= self.threshold:
-                ids[j] = best
+            if best[j] >= 0 and value[j] / norms[j] >= self.threshold:
+                ids[j] = best[j]
             else:
-                if self.count > cos.shape[1]:  # leaders founded by this view's earlier masks
-                    new = dot_rows(unit[None, :], self._leaders[cos.shape[1] : self.count])[0]
-                    k = int(np.argmax(new))
-                    if new[k] >= self.threshold:
-                        ids[j] = cos.shape[1] + k
+                if self.count > known:  # leaders founded by this view's earlier masks
+                    new, cos = self._best_leaders(unit[None, :], known, self.count)
+                    if cos[0] >= self.threshold:
+                        ids[j] = new[0]
                 if ids[j] < 0:
                     ids[j] = self._found(unit)
-            self._sums[ids[j]] += feats[j]
+            b, r = self._locate(int(ids[j]))
+            self._sums[b][r] += feats[j]
         self.per_view.append(ids)
         return ids
 
+    def _locate(self, cluster: int) -> tuple[int, int]:
+        """(block, row) of a cluster."""
+        b = bisect.bisect_right(self._starts, cluster) - 1
+        return b, cluster - self._starts[b]
+
     def _found(self, unit: np.ndarray) -> int:
-        if self.count == self._leaders.shape[0]:
-            grow = self._leaders.shape[0]
-            self._leaders = np.concatenate([self._leaders, np.zeros((grow, self.dim), np.float32)])
-            self._sums = np.concatenate([self._sums, np.zeros((grow, self.dim), np.float64)])
-        self._leaders[self.count] = unit
+        if not self._leaders or self.count == self._starts[-1] + self._leaders[-1].shape[0]:
+            rows = min(self.block, FIRST_CLUSTER_BLOCK << len(self._leaders))
+            self._starts.append(self.count)
+            self._leaders.append(np.zeros((rows, self.dim), np.float32))
+            self._sums.append(np.zeros((rows, self.dim), np.float64))
+        self._leaders[-1][self.count - self._starts[-1]] = unit
         self.count += 1
         return self.count - 1
 
     def means(self) -> np.ndarray:
-        """[K, D] float32 unit cluster means μ_c = normalize(Σ_{j ∈ c} f_j)."""
-        sums = self._sums[: self.count]
-        norm = np.linalg.norm(sums, axis=1, keepdims=True)
-        return (sums / np.where(norm > 0, norm, 1.0)).astype(np.float32)
+        """[K, D] float32 unit cluster means μ_c = normalize(Σ_{j ∈ c} f_j), block by block."""
+        out = np.empty((self.count, self.dim), np.float32)
+        for start, sums in zip(self._starts, self._sums):
+            rows = sums[: max(0, min(sums.shape[0], self.count - start))]
+            norm = np.linalg.norm(rows, axis=1, keepdims=True)
+            out[start : start + rows.shape[0]] = rows / np.where(norm > 0, norm, 1.0)
+        return out
+
+
+def cluster_masks_reference(views: list[tuple[np.ndarray, np.ndarray | None]], threshold: float = CLUSTER_COSINE) -> tuple[list[np.ndarray], np.ndarray]:
+    """Plain-numpy reference of MaskClusters over `views` [(feats [M, D], present [M] bool or None)],
+    in float64: per view, in mask order, a mask joins the cluster of the most similar leader of the
+    earlier views if that cosine is ≥ threshold, else the most similar leader founded by this view's
+    earlier masks if ≥ threshold, else founds a cluster (its unit embedding the leader); a zero or
+    absent mask gets -1. Returns (per view the [M] cluster ids, means [K, D] = normalize(Σ f_j)).
+    MaskClusters computes the cosines in float32, so the two agree except on cosines within
+    float32 rounding of the threshold."""
+    leaders: list[np.ndarray] = []
+    sums: list[np.ndarray] = []
+    per_view = []
+    for feats, present in views:
+        rows = np.asarray(feats, np.float64)
+        known = len(leaders)
+        ids = np.full(rows.shape[0], -1, np.int32)
+        for j, row in enumerate(rows):
+            norm = np.linalg.norm(row)
+            if not norm > 0 or (present is not None and not present[j]):
+                continue
+            unit = row / norm
+            before = [float(unit @ leader) for leader in leaders[:known]]
+            mine = [float(unit @ leader) for leader in leaders[known:]]
+            if before and max(before) >= threshold:
+                ids[j] = int(np.argmax(before))
+            elif mine and max(mine) >= threshold:
+                ids[j] = known + int(np.argmax(mine))
+            else:
+                leaders.append(unit)
+                sums.append(np.zeros_like(unit))
+                ids[j] = len(leaders) - 1
+            sums[ids[j]] += row
+        per_view.append(ids)
+    means = np.array([total / max(np.linalg.norm(total), 1e-300) for total in sums]).reshape(len(sums), rows.shape[1] if views else 0)
+    return per_view, means
+
+
+def cluster_bytes(total_masks: int, max_masks: int, dim: int, block: int = CLUSTER_BLOCK) -> int:
+    """The most one MaskClusters holds for views of `total_masks` masks in all, `max_masks` in one:
+    every mask its own cluster (12·D bytes each: leader and sum), a partly filled block, a view's
+    [M, block] cosine scratch and 5 bytes per mask (its cluster id, the views' present flags)."""
+    return (total_masks + block) * dim * 12 + max_masks * (block * 4 + dim * 8) + 5 * total_masks
 
 
 @numba.njit(cache=True, inline="always")
