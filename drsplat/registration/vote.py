@@ -142,11 +142,6 @@ class MaskClusters:
         self.count = 0
         self.per_view: list[np.ndarray] = []
 
-    @property
-    def leaders(self) -> np.ndarray:
-        """[K, D] float32 (a copy of the blocks)."""
-        return np.concatenate([rows for _, rows in self._leader_rows(0, self.count)]) if self.count else np.zeros((0, self.dim), np.float32)
-
     def _leader_rows(self, lo: int, hi: int) -> Iterator[tuple[int, np.ndarray]]:
         """(first cluster, leaders [rows, D]) of clusters lo .. hi-1, block by block (views, no copies)."""
         for start, leaders in zip(self._starts, self._leaders):
