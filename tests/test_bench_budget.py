@@ -40,3 +40,15 @@ def test_a_refused_budget_is_run_again_at_the_budget_it_names(tmp_path):
     assert refused.code != 0 and refused.named is not None and refused.named > parse_size("100MB")
     assert refused.verdict.startswith("refused")
     assert named.budget == refused.named and named.code == 0 and 0 < named.peak <= named.budget and named.verdict == "held"
+
+
+def test_the_peak_is_the_childs_own_not_the_parents(tmp_path):
+    """Linux carries a forking parent's resident size over exec into the child's ru_maxrss: the
+    bench reads the child's own high-water mark, so a large parent does not inflate it."""
+    from drsplat.memory import current_rss
+
+    ballast = np.ones(60_000_000)  # 480 MB held by this process while the child runs
+    assert current_rss() > 450 << 20
+    (run,) = run_case("tiny", BudgetCase(**TINY, budget="1GB"), tmp_path)
+    assert run.code == 0 and 0 < run.peak < 400 << 20, run
+    del ballast

@@ -339,8 +339,29 @@ def test_plan_streams_a_5m_scene_in_8gb_and_refuses_what_cannot_fit(inputs):
     assert choose_block(plan, 64 * 10**9) == 5_000_000  # fits: one block
     with pytest.raises(DrsplatError, match="too small for this scene"):
         choose_block(plan, 10**9)
-    with pytest.raises(DrsplatError, match=r"needs about .* GB.*--memory-budget \d+GB"):
+    with pytest.raises(DrsplatError, match=r"needs about .* GB.*--memory-budget [0-9.]+GB") as hinted:
         choose_block(plan, None, available=12 * 10**9)
+    hint = parse_size(str(hinted.value).split("--memory-budget ")[1].split()[0])
+    assert choose_block(plan, hint) > 0 and hint <= 0.8 * (12 * 10**9 + 10**10)  # the hint is accepted as typed
+
+
+def test_the_hint_without_a_budget_is_never_below_the_smallest_budget(inputs):
+    """Rounding the suggested budget down to 0.1 GB must not fall below what the plan accepts (probe
+    round 11: 1.85 GB free, minimum 1.1 GB, hint "1GB", refused when typed back)."""
+    from drsplat.registration.plan import NAMED_MINIMUM_ROOM, budget_hint
+
+    scene, cams = inputs
+
+    class Big:
+        num_gaussians = 1_000_000
+        sh = np.zeros((1, 1, 3))
+
+    plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
+    low = plan.minimum_budget() + NAMED_MINIMUM_ROOM
+    for fits in (low, low + 1, low + 10**8 - 1, low + 3 * 10**8, 10 * low):
+        hint = budget_hint(plan, fits)
+        assert " " not in hint and choose_block(plan, parse_size(hint)) > 0, (fits, hint)
+        assert parse_size(hint) <= max(fits, -(-low // 10**8) * 10**8)
 
 
 def test_a_budget_below_the_in_memory_peak_streams_even_when_blocks_of_the_whole_scene_fit(inputs):
@@ -362,6 +383,30 @@ def test_a_budget_below_the_in_memory_peak_streams_even_when_blocks_of_the_whole
     block = choose_block(plan, budget)
     assert plan.block_for(budget) == block
     assert block == (plan.num_gaussians - 1) // 1024 * 1024 and plan.peak(block) <= budget
+
+
+def test_a_solve_mode_is_refused_below_its_in_memory_peak_naming_that_peak(inputs):
+    """The solve stage needs every Gaussian in one block: a budget that would give blocks is refused
+    up front, naming a budget for the one block (a refusal used to name the blocks' minimum, which
+    the run then refused as blocks: probe round 11); that budget gives one block."""
+    from drsplat.memory import parse_size as size
+
+    scene, cams = inputs
+
+    class Big:
+        num_gaussians = 1_000_000
+        sh = np.zeros((1, 1, 3))
+
+    plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20, aggregate="solve")
+    budget = plan.in_memory - 1
+    assert 0 < choose_block(plan, budget) < plan.num_gaussians  # a mode that streams would get blocks
+    with pytest.raises(DrsplatError, match=r"solves over all Gaussians in one block.*give at least ([0-9.]+ [MG]B)") as refused:
+        choose_block(plan, budget, whole=True)
+    named = size(str(refused.value).split("give at least ")[1].split(" (")[0])
+    assert named >= plan.in_memory and choose_block(plan, named, whole=True) == plan.num_gaussians
+    with pytest.raises(DrsplatError, match="solves over all Gaussians in one block .* does not fit the .* available"):
+        choose_block(plan, None, available=plan.in_memory // 2, whole=True)
+    assert choose_block(plan, None, available=2 * plan.in_memory, whole=True) == plan.num_gaussians
 
 
 def test_plan_keeps_small_scenes_in_memory(inputs):

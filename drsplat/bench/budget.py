@@ -4,7 +4,7 @@ Each case writes a dataset (a blob scene of `drsplat.bench.register.blob_scene`,
 a grid of masks per view with random or shared-label unit embeddings: random ones make every mask
 its own cluster, the worst case for the vote and check stages) and runs `drsplat register` on it
 in a fresh process under the case's budget. A run that refuses the budget names the one it needs;
-that one is then run too. Peak RSS is the child's own (`os.wait4`'s ru_maxrss), the whole command.
+that one is then run too. Peak RSS is the child's own (its VmHWM), the whole command.
 The cases are the memory probe's (docs/hostile.md, "Round 10"); `tiny` is the tests' smoke case.
 """
 
@@ -125,9 +125,31 @@ class BudgetRun:
         return "held" if self.peak <= self.budget else "OVER"
 
 
+# The child reports its own peak: VmHWM, the high-water mark of the memory map that exec gave it.
+# ru_maxrss (getrusage, wait4) would not do: Linux carries the forking parent's resident size over
+# exec into it, so a child of a 1.2 GB test process "peaked" at 1.2 GB whatever it did.
+CHILD = """
+import sys
+from drsplat.cli import main
+try:
+    code = main(sys.argv[1:])
+except SystemExit as stop:
+    code = stop.code
+finally:
+    try:
+        hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM:")]
+    except OSError:
+        hwm = []
+    sys.stderr.write("\\nBUDGET-PEAK %d\\n" % (int(hwm[0].split()[1]) * 1024 if hwm else -1))
+sys.exit(code)
+"""
+PEAK_LINE = re.compile(r"BUDGET-PEAK (-?[0-9]+)")
+
+
 def register_under(data: Path, out: Path, mode: str, budget: int) -> tuple[int, str, int, float]:
-    """(exit code, stderr, peak RSS bytes, seconds) of `drsplat register` on `data` in a fresh process."""
-    argv = [sys.executable, "-m", "drsplat", "-q", "register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"),
+    """(exit code, stderr, peak RSS bytes, seconds) of `drsplat register` on `data` in a fresh
+    process (the peak: its VmHWM; where the system has none, wait4's ru_maxrss)."""
+    argv = [sys.executable, "-c", CHILD, "-q", "register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"),
             "--out", str(out), "--no-progress", "--aggregate", mode, "--memory-budget", str(budget)]
     with tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()
@@ -137,7 +159,9 @@ def register_under(data: Path, out: Path, mode: str, budget: int) -> tuple[int, 
         proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
         err.seek(0)
         text = err.read().decode(errors="replace")
-    return proc.returncode, text, int(usage.ru_maxrss) * 1024, seconds
+    found = PEAK_LINE.findall(text)
+    peak = int(found[-1]) if found and int(found[-1]) > 0 else int(usage.ru_maxrss) * 1024
+    return proc.returncode, text, peak, seconds
 
 
 def run_case(name: str, case: BudgetCase, work: Path) -> list[BudgetRun]:

@@ -90,7 +90,7 @@ bytes, in every plan and place. Step 3 needs the verdicts and each view's [M] pr
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numba
@@ -731,22 +731,33 @@ def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.nd
     return supports
 
 
-def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray], chunk: int = LIKE_CHUNK) -> float | None:
+def check_units_bytes(total_masks: int, max_masks: int, dim: int) -> int:
+    """What the check holds besides its support tables and its clusters (memory plan): every view's
+    [M, D] float64 unit embeddings (`ViewSupport.units`, 8·D bytes a mask), the clusters' means
+    while judging ([K, D] float32, K ≤ the masks), one view's [M, D] float64 temporaries (two at
+    most: a norm, the like cosine's gathered rows) and the like cosines' pieces (LIKE_CHUNK values)."""
+    return total_masks * dim * 12 + 2 * max_masks * dim * 8 + 8 * LIKE_CHUNK
+
+
+def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray], chunk: int = LIKE_CHUNK,
+                   rows: list[np.ndarray] | None = None) -> float | None:
     """The scene's "like" cosine, halfway between what a mask's consensus usually is and what two
     different things are: ½ (median agreement of the judged masks + median cosine between two
     masks of one view, which show different instances). None when either is missing (then nothing
-    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks with pairs.
+    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks;
+    rows: per view [M] bool, the masks to take (None: all); zero rows are never taken.
 
     The cosines between two masks of one view are Σ_v M_v(M_v - 1)/2 values (4,000 masks: 8 M per
-    view); their median is found exactly without holding them (`stream_median`), about `chunk` at a time."""
-    units = [u[np.linalg.norm(u, axis=1) > 0] for u in view_units]
-    if agreements.size == 0 or not any(u.shape[0] > 1 for u in units):
+    view); their median is found exactly without holding them (`stream_median`), about `chunk` at a
+    time, and the views' taken rows are gathered one view at a time, not all at once."""
+    taken = [(np.linalg.norm(u, axis=1) > 0) & (True if r is None else r) for u, r in zip(view_units, rows or [None] * len(view_units))]
+    if agreements.size == 0 or not any(t.sum() > 1 for t in taken):
         return None
-    between = stream_median(lambda: _pair_cosines(units, chunk), chunk)
+    between = stream_median(lambda: _pair_cosines((u[t] for u, t in zip(view_units, taken)), chunk), chunk)
     return 0.5 * (float(np.median(agreements)) + between)
 
 
-def _pair_cosines(view_units: list[np.ndarray], chunk: int) -> Iterator[np.ndarray]:
+def _pair_cosines(view_units: Iterable[np.ndarray], chunk: int) -> Iterator[np.ndarray]:
     """Each view's cosines u_i · u_j (i < j) between its unit rows [M, D], in pieces of rows of the
     upper triangle holding about `chunk` values (at least one row)."""
     for units in view_units:
@@ -869,15 +880,14 @@ def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndar
 
 def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
-    agreements, units_with_pairs = [], []
+    agreements = []
     rows = [sup.rows() for sup in supports]  # each view's entries sorted once, read by both kernels
     masses = [sup.mass for sup in supports]
     for sup, q, mass in zip(supports, rows, masses):
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         _agreement_kernel(*q[:3], mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
-        units_with_pairs.append(sup.units[mass > 0])
-    like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units_with_pairs)
+    like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), [sup.units for sup in supports], rows=[m > 0 for m in masses])
     keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
     for sup, (starts, clusters, values, core_values), mass in zip(supports, rows, masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])

@@ -40,7 +40,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size
-from drsplat.raster import NEAR, share_within_near_plane
+from drsplat.raster import NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
@@ -261,6 +261,8 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    if run.options.place != "ray":  # this process renders: its engine loaded before the plan reads its RSS (torch: ~0.4 GB, probe round 11)
+        get_engine(run.options.engine).topk_fn()
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
     if probe is not None:
@@ -466,7 +468,7 @@ def _plan_block(run: Run, base: int | None = None) -> int:
         base = max(base, current_rss())
     plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate,
                            total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
-    block = choose_block(plan, run.options.memory_budget)
+    block = choose_block(plan, run.options.memory_budget, whole=mode_stages(run.options.aggregate).solve)
     if block < run.scene.num_gaussians:
         log.info("estimated peak memory: %s in one block, %s in blocks of %s Gaussians", format_size(plan.in_memory),
                  format_size(plan.peak(block)), f"{block:,}")

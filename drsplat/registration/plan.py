@@ -10,7 +10,8 @@ as the views arrive; with several, views' pairs go to the pair log and each bloc
 Gaussians either way, so the output costs ~10·D bytes per Gaussian of one chunk, not of the scene.
 The vote, check and solve stages each keep the views' mask clusters until the sums are finished,
 counted from the feature headers' mask counts as if every mask were its own cluster
-(drsplat.registration.vote.cluster_bytes).
+(drsplat.registration.vote.cluster_bytes), and the check its views' unit embeddings
+(drsplat.registration.check.check_units_bytes).
 Rasterizing a view with only a block's Gaussians would drop the occluders of other blocks and
 change T·α, so views are always rendered whole, exactly once.
 
@@ -32,6 +33,7 @@ from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
 from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
 from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.check import check_units_bytes
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
 from drsplat.registration.vote import cluster_bytes
 from drsplat.scene import GaussianScene
@@ -117,6 +119,7 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
     stages = mode_stages(aggregate)  # the vote, check and solve stages each keep the views' mask clusters until the sums are finished
     clusters = (stages.vote + stages.check + stages.solve) * cluster_bytes(total_masks, max_masks, dim) if total_masks else 0
+    clusters += check_units_bytes(total_masks, max_masks, dim) if stages.check and total_masks else 0  # and the check's unit embeddings
     mode_views, mode_kept = mode_views + clusters, mode_kept + clusters
     base = (current_rss() if base is None else base) + mode_kept
     view = (n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + tile_list_bytes(n) + pixels * topk * (8 + 2 * PAIR_BYTES)
@@ -127,20 +130,47 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
                       pair_buffer=(1 << 23) * PAIR_BYTES)
 
 
-def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = None) -> int:
+def budget_hint(plan: MemoryPlan, fits: int) -> str:
+    """A --memory-budget to suggest, as typed ("1.2GB", "800MB"): `fits` rounded down to 0.1 GB (1 MB
+    below 1 GB), or the plan's smallest budget rounded up when that rounding would fall below it."""
+    step = 10**8 if fits >= 10**9 else 10**6
+    low = plan.minimum_budget() + NAMED_MINIMUM_ROOM
+    value = fits // step * step
+    if value < low:
+        value = -(-low // step) * step
+    return f"{value / 1e9:.1f}GB" if value >= 10**9 else f"{value // 10**6}MB"
+
+
+def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = None, whole: bool = False) -> int:
     """The block size to register with: N (one block, in memory) or fewer Gaussians per block.
 
     budget None: one block when the estimate fits the memory available now, otherwise a
     DrsplatError with the figure and the --memory-budget that fits. With a budget: one block
     when it fits the budget, else the largest blocks that do; an error when even one view does not.
+    whole: the mode needs every Gaussian in one block (the solve stage): a budget or memory
+    below the in-memory peak is refused, naming that peak rather than a budget for blocks.
     """
     n = plan.num_gaussians
+    if whole:
+        limit = budget if budget is not None else (available_memory() if available is None else available) + current_rss()
+        if budget is None and limit == 0:  # nothing known about the machine's memory
+            return n
+        if plan.in_memory > (limit if budget is not None else 0.9 * limit):
+            need = f"it needs about {format_size(plan.in_memory)}"
+            if budget is None:
+                raise DrsplatError(f"this scene with a mode that solves over all Gaussians in one block in memory (blocks cannot be used) "
+                                   f"does not fit the {format_size(limit)} available: {need}; free memory or use a mode without the solve stage")
+            raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene with a mode that solves over all "
+                               f"Gaussians in one block in memory (blocks cannot be used): {need}; give at least "
+                               f"{format_size(plan.in_memory + NAMED_MINIMUM_ROOM, up=True)} (an estimate, on the safe side), "
+                               "or use a mode without the solve stage")
+        return n
     if budget is None:
         free = (available_memory() if available is None else available) + current_rss()
         if free == 0 or plan.in_memory <= 0.9 * free:
             return n
         fits = int(0.8 * free)
-        hint = (f"rerun with --memory-budget {fits / 1e9:.0f}GB to register Gaussians in blocks (same result)"
+        hint = (f"rerun with --memory-budget {budget_hint(plan, fits)} to register Gaussians in blocks (same result)"
                 if plan.block_for(fits) > 0 else
                 f"even in blocks, one view needs about {format_size(plan.views)}; use a machine with more memory or fewer, smaller views")
         raise DrsplatError(
