@@ -1104,7 +1104,7 @@ class Aggregator:
             per_block += VOTE_SLOT_BYTES + 8
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
             # (drsplat.registration.check; the views' support tables, and its record of the pairs in one block without a
-            # checkpoint, grow with the views: not counted; its mask clusters are counted by the plan, `plan.estimate_memory`)
+            # checkpoint, grow with the views: not counted; its mask clusters and unit embeddings are counted by the plan, `plan.estimate_memory`)
             per_block += 12 * CHECK_SLOTS
             kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)

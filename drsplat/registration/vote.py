@@ -257,9 +257,11 @@ def cluster_masks_reference(views: list[tuple[np.ndarray, np.ndarray | None]], t
 
 def cluster_bytes(total_masks: int, max_masks: int, dim: int, block: int = CLUSTER_BLOCK) -> int:
     """The most one MaskClusters holds for views of `total_masks` masks in all, `max_masks` in one:
-    every mask its own cluster (12·D bytes each: leader and sum), a partly filled block, a view's
-    [M, block] cosine scratch and 5 bytes per mask (its cluster id, the views' present flags)."""
-    return (total_masks + block) * dim * 12 + max_masks * (block * 4 + dim * 8) + 5 * total_masks
+    every mask its own cluster (12·D bytes each: leader and sum), a partly filled block (its rows
+    at most min(K, block)), a view's [M, min(K, block)] cosine scratch and its float64 copy for the
+    norms, and 5 bytes per mask (its cluster id, the views' present flags)."""
+    rows = min(total_masks, block)
+    return (total_masks + rows) * dim * 12 + max_masks * (rows * 4 + dim * 8) + 5 * total_masks
 
 
 @numba.njit(cache=True, inline="always")
