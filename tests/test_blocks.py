@@ -409,6 +409,27 @@ def test_a_solve_mode_is_refused_below_its_in_memory_peak_naming_that_peak(input
     assert choose_block(plan, None, available=2 * plan.in_memory, whole=True) == plan.num_gaussians
 
 
+def test_refusals_say_which_term_the_budget_they_name_is_for():
+    """A refusal's reason names the term behind the budget it names (probe round 11: "the view pass
+    alone needs about 852 MB; give at least 1.1 GB", the 1.1 GB being the blocks' minimum; and
+    without a budget "even in blocks, one view needs ..." where the process's own memory, not the
+    view, ruled blocks out)."""
+    gb = 10**9
+    plan = MemoryPlan(1_000_000, 512, base=int(0.9 * gb), views=int(0.5 * gb), sum_bytes=4_200, write_bytes=5_000, pair_buffer=100 << 20)
+    assert plan.minimum_budget() > plan.views
+    with pytest.raises(DrsplatError, match=r"the view pass alone .* needs about 500 MB, and the smallest blocks .* need about 1\.\d GB; "
+                                           r"give at least 1\.\d GB") as refused:
+        choose_block(plan, int(0.4 * gb))
+    named = parse_size(str(refused.value).split("give at least ")[1].split(" (")[0])
+    assert choose_block(plan, named) > 0
+    heavy = MemoryPlan(1_000_000, 512, base=50 * gb, views=1 * gb, sum_bytes=4_200, write_bytes=5_000, pair_buffer=100 << 20)
+    with pytest.raises(DrsplatError, match=r"even in blocks, the smallest blocks with this process's own memory need about 5\d\.\d GB"):
+        choose_block(heavy, None, available=10 * gb)
+    wide = MemoryPlan(1_000_000, 512, base=0, views=20 * gb, sum_bytes=4_200, write_bytes=5_000, pair_buffer=100 << 20)
+    with pytest.raises(DrsplatError, match=r"even in blocks, one view needs about 20\.0 GB"):
+        choose_block(wide, None, available=10 * gb)
+
+
 def test_plan_keeps_small_scenes_in_memory(inputs):
     scene, cams = inputs
     plan = estimate_memory(scene, cams, 512, 40)

@@ -170,9 +170,13 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
         if free == 0 or plan.in_memory <= 0.9 * free:
             return n
         fits = int(0.8 * free)
-        hint = (f"rerun with --memory-budget {budget_hint(plan, fits)} to register Gaussians in blocks (same result)"
-                if plan.block_for(fits) > 0 else
-                f"even in blocks, one view needs about {format_size(plan.views)}; use a machine with more memory or fewer, smaller views")
+        if plan.block_for(fits) > 0:
+            hint = f"rerun with --memory-budget {budget_hint(plan, fits)} to register Gaussians in blocks (same result)"
+        elif plan.views > fits:
+            hint = f"even in blocks, one view needs about {format_size(plan.views)}; use a machine with more memory or fewer, smaller views"
+        else:  # the view fits; the process's own memory with the smallest blocks does not
+            hint = (f"even in blocks, the smallest blocks with this process's own memory need about {format_size(plan.minimum_budget())}; "
+                    "use a machine with more memory")
         raise DrsplatError(
             f"registering {n:,} Gaussians with {plan.dim}-D features in memory needs about "
             f"{format_size(plan.in_memory)}, but only {format_size(free)} is available: {hint}"
@@ -181,8 +185,11 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
         return n
     block = plan.block_for(budget)
     if block <= 0:
-        why = (f"the view pass alone (scene, geometry, one view) needs about {format_size(plan.views)}" if plan.views > budget else
-               f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}")
+        blocks = f"the smallest blocks ({BLOCK_ALIGN:,} Gaussians) with the process's own memory need about {format_size(plan.minimum_budget())}"
+        why = blocks
+        if plan.views > budget:  # the named budget is the larger of the two terms: say both when the blocks' is larger
+            why = f"the view pass alone (scene, geometry, one view) needs about {format_size(plan.views)}"
+            why += f", and {blocks}" if plan.minimum_budget() > plan.views else ""
         raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene: {why}; give at least "
                            f"{format_size(plan.minimum_budget() + NAMED_MINIMUM_ROOM, up=True)} (an estimate, on the safe side)")
     return block
