@@ -19,6 +19,9 @@ import pytest
 
 pytest.importorskip("triton")
 
+import torch  # noqa: E402
+
+from drsplat.defaults import AGGREGATE_MODES  # noqa: E402
 from drsplat.registration import RegisterOptions, register_features  # noqa: E402
 from tests.interpreted import interpreted_outputs  # noqa: E402
 
@@ -84,7 +87,7 @@ def test_registration_through_the_cuda_kernels_equals_numba(cuda_path, mode):
 
 # ----------------------------------------------------------------------------- on a real GPU
 
-needs_cuda = pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the CUDA kernels in the interpreter above)")
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU runs the CUDA kernels in the interpreter above)")
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +108,7 @@ def rooms(tmp_path_factory) -> dict:
 
 @needs_cuda
 @pytest.mark.parametrize("source", ["render", "geometry"])
-@pytest.mark.parametrize("mode", __import__("drsplat.defaults", fromlist=["AGGREGATE_MODES"]).AGGREGATE_MODES)
+@pytest.mark.parametrize("mode", AGGREGATE_MODES)
 def test_registration_on_cuda_agrees_with_numba(rooms, source, mode):
     """Every mode on the GPU: the same decisions as numba (the fit stage's footprint, the Gaussians
     assigned and rejected), the features and weights to float32 rounding (CUDA's atomics add in no

@@ -125,22 +125,18 @@ class BudgetRun:
         return "held" if self.peak <= self.budget else "OVER"
 
 
-# The child reports its own peak: VmHWM, the high-water mark of the memory map that exec gave it.
-# ru_maxrss (getrusage, wait4) would not do: Linux carries the forking parent's resident size over
-# exec into it, so a child of a 1.2 GB test process "peaked" at 1.2 GB whatever it did.
+# The child reports its own peak (`memory.peak_rss`: VmHWM; wait4's ru_maxrss would include the
+# bench's own size, which Linux carries over exec into a forked child).
 CHILD = """
 import sys
 from drsplat.cli import main
+from drsplat.memory import peak_rss
 try:
     code = main(sys.argv[1:])
 except SystemExit as stop:
     code = stop.code
 finally:
-    try:
-        hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM:")]
-    except OSError:
-        hwm = []
-    sys.stderr.write("\\nBUDGET-PEAK %d\\n" % (int(hwm[0].split()[1]) * 1024 if hwm else -1))
+    sys.stderr.write("\\nBUDGET-PEAK %d\\n" % peak_rss())
 sys.exit(code)
 """
 PEAK_LINE = re.compile(r"BUDGET-PEAK (-?[0-9]+)")
@@ -148,7 +144,7 @@ PEAK_LINE = re.compile(r"BUDGET-PEAK (-?[0-9]+)")
 
 def register_under(data: Path, out: Path, mode: str, budget: int) -> tuple[int, str, int, float]:
     """(exit code, stderr, peak RSS bytes, seconds) of `drsplat register` on `data` in a fresh
-    process (the peak: its VmHWM; where the system has none, wait4's ru_maxrss)."""
+    process (the peak: its own `memory.peak_rss`; wait4's ru_maxrss if it died before saying)."""
     argv = [sys.executable, "-c", CHILD, "-q", "register", str(data / "scene.ply"), "--source", str(data), "--features", str(data / "features"),
             "--out", str(out), "--no-progress", "--aggregate", mode, "--memory-budget", str(budget)]
     with tempfile.TemporaryFile() as err:

@@ -3,7 +3,7 @@
 The city (drsplat.synthetic.tile_city) is copies of the `small` room on a grid, built in memory
 in each run (not written: 5M Gaussians), with low-resolution views whose feature files link to
 the room's oracle features. Every configuration runs in its own process so that peak RSS is
-that run's: `ru_maxrss` of the driver and, for Ray, of each worker process (reported by its
+that run's: `memory.peak_rss` (VmHWM) of the driver and, for Ray, of each worker process (reported by its
 tasks). Agreement: the SHA-256 of the registered PLY against the local in-memory run's.
 
 Parts: `replay` (block replays of a pair log: chunked reads vs whole records), `compare` (a small city: local in memory with and without frustum culling, local

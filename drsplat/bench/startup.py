@@ -26,7 +26,7 @@ from drsplat.errors import DrsplatError
 HEAVY = ("torch", "ray", "open_clip", "moderngl")
 
 CHILD = """
-import json, resource, sys, time
+import json, sys, time
 t0 = time.perf_counter()
 if sys.argv[1] == "torch-first":
     import torch  # noqa: F401  (the row that shows what importing torch for --device auto cost)
@@ -41,16 +41,8 @@ with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.St
         code = exc.code
 t2 = time.perf_counter()
 heavy = [m for m in {heavy!r} if m in sys.modules]
-def peak_mb():
-    # VmHWM: this image's peak; ru_maxrss would carry the forking parent's peak across exec
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps({{"code": code, "import_s": t1 - t0, "run_s": t2 - t1, "peak_mb": peak_mb(), "heavy": heavy}}))
+from drsplat.memory import peak_rss  # this image's peak (VmHWM), not the forking parent's
+print(json.dumps({{"code": code, "import_s": t1 - t0, "run_s": t2 - t1, "peak_mb": peak_rss() / 2**20, "heavy": heavy}}))
 """
 
 
