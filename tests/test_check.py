@@ -294,6 +294,39 @@ def test_judged_in_blocks_the_verdicts_and_kept_pairs_are_one_blocks(seed, hard)
                 np.testing.assert_array_equal(part.weights, full.weights[inside])
 
 
+@pytest.mark.parametrize("block", [7, 47])
+@pytest.mark.parametrize("cap", [0, 24 * 30])
+def test_support_tables_spilled_to_disk_give_the_same_tables_and_verdicts(tmp_path, block, cap):
+    """Support tables held under a cap of nothing (every block's parts spilled) or of 30 entries:
+    every view's table, mass and verdict are the uncapped ones', and the spill files are gone after
+    the judging."""
+    rng = np.random.default_rng(2)
+    n = 47
+    views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 9, True)
+    views[3] = _view("mislabelled", _unit(np.roll(views[3].feats, 1, axis=0)), views[3].gaussians, views[3].masks, views[3].weights)
+    record, clusters = _record(views, n)
+    whole = view_supports(record, clusters, n, n, slots=8, cap=1 << 30)
+    assert whole.tables.spilled_bytes == 0
+    capped = view_supports(record, clusters, n, block, slots=8, cap=cap, folder=tmp_path)
+    assert capped.tables.spilled_bytes > 0 and list(tmp_path.iterdir())
+    assert len(capped) == len(whole) == len(views)
+    for a, b in zip(capped, whole):
+        np.testing.assert_array_equal(a.dense(), b.dense())
+        np.testing.assert_array_equal(a.mass_fixed, b.mass_fixed)
+        assert a.num_entries == b.num_entries
+        for x, y in zip(a.rows(), b.rows()):
+            np.testing.assert_array_equal(x, y)
+    capped.close()
+    assert list(tmp_path.iterdir()) == []
+    one = judge_masks(record, clusters, n, n, slots=8)
+    assert one.dropped > 0  # something to agree on
+    got = judge_masks(record, clusters, n, block, slots=8, cap=cap, folder=tmp_path)
+    assert got.like == one.like and (got.dropped, got.judged, got.present) == (one.dropped, one.judged, one.present)
+    for a, b in zip(got.keep, one.keep):
+        np.testing.assert_array_equal(a, b)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_like_threshold_is_halfway_between_agreement_and_difference():
     """½ (median agreement + median cosine between two masks of one view); None without either."""
     a, b, c = np.eye(3)
@@ -608,6 +641,25 @@ def test_check_in_blocks_and_on_the_torch_engine_gives_the_one_block_features(mi
     np.testing.assert_array_equal(torch.features, one.features)
     # on Ray the driver judges the masks from the log and reducers sum the kept pairs (tests/test_distributed.py)
     assert wants_reducers("ray", True, 500, scene.num_gaussians, True) and not wants_reducers("ray", True, 500, scene.num_gaussians, False)
+
+
+def test_a_registration_whose_support_tables_spill_writes_the_same_file(mislabelled_room, tmp_path, monkeypatch):
+    """The default mode with the check's tables capped at nothing (every part spilled beside the
+    pair log, then read back): the in-memory run's bytes, and nothing left in the output's folder
+    but the output (and its codebook)."""
+    import drsplat.registration.check as check
+    from drsplat.registration import register
+
+    root, scene, cams = mislabelled_room
+    options = RegisterOptions(topk=10, codebook="scene")
+    register(scene, cams[:6], root / "features", tmp_path / "mem" / "reg.ply", options, show_progress=False)
+    monkeypatch.setattr(check, "SUPPORT_TABLE_BYTES", 0)
+    spilled = []
+    monkeypatch.setattr(check.SupportTables, "_spill", lambda self, spill=check.SupportTables._spill: spilled.append(1) or spill(self))
+    register(scene, cams[:6], root / "features", tmp_path / "disk" / "reg.ply", options, show_progress=False)
+    assert spilled
+    assert (tmp_path / "disk" / "reg.ply").read_bytes() == (tmp_path / "mem" / "reg.ply").read_bytes()
+    assert sorted(p.name for p in (tmp_path / "disk").iterdir()) == sorted(p.name for p in (tmp_path / "mem").iterdir())
 
 
 def test_a_check_without_a_checkpoint_replays_a_temporary_log(mislabelled_room, tmp_path, monkeypatch):

@@ -50,8 +50,9 @@ class BudgetCase:
 CASES = {
     "vote-clusters": BudgetCase(20_000, 8, 3_000, 1024, "vote-reject", "1GB", note="the vote's mask clusters (24,000 of 1024-D)"),
     "check-scratch": BudgetCase(50_000, 4, 4_000, 512, "fit-check-vote-reject", "1GB", note="the check's support scratch (4,000 masks a view)"),
-    "check-tables": BudgetCase(20_000, 300, 20, 512, "fit-check-vote-reject", "1GB",
-                               note="the check's support tables over many views (not counted by the plan)"),
+    "check-tables": BudgetCase(20_000, 300, 20, 512, "fit-check-vote-reject", "1GB", note="the check's support tables over many views"),
+    "check-spill": BudgetCase(20_000, 1_500, 20, 512, "fit-check-vote-reject", "1GB",
+                              note="the check's support tables over 1,500 views: past SUPPORT_TABLE_BYTES they spill to disk"),
     "shared-labels": BudgetCase(20_000, 8, 3_000, 1024, "fit-check-vote-reject", "2GB", labels=50, note="3,000 masks of 50 labels a view"),
     "paper-control": BudgetCase(20_000, 8, 3_000, 1024, "paper", "1GB", note="the vote-clusters input, paper's mean"),
     "tiny": BudgetCase(2_000, 2, 40, 64, "vote-reject", "1GB", width=64, height=48, note="smoke case"),

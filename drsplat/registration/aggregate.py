@@ -1103,8 +1103,8 @@ class Aggregator:
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
-            # (drsplat.registration.check; the views' support tables, and its record of the pairs in one block without a
-            # checkpoint, grow with the views: not counted; its mask clusters and unit embeddings are counted by the plan, `plan.estimate_memory`)
+            # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
+            # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)
             per_block += 12 * CHECK_SLOTS
             kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)

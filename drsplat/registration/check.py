@@ -75,10 +75,12 @@ the views' distinct pairs (PAIR_BYTES = 12 per pair) in memory (PairRecord). Ste
 block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
-32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view keeps a
-sparse support table over all blocks (`ViewSupport`: 24 bytes per (mask, cluster) pair that occurs;
-M masks x K clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is
-summed). Every term of q[j, c]
+32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view has a
+sparse support table (`ViewSupport`: 24 bytes per (mask, cluster) pair that occurs; M masks x K
+clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is summed), summed a
+block at a time into parts that `SupportTables` (drsplat.registration.supports) holds in memory up
+to SUPPORT_TABLE_BYTES and spills to disk beyond, merged when a view is read (`Supports`; twice:
+the like cosine's pass, then the verdicts'; all of them held until 2026-11-30). Every term of q[j, c]
 and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
 q = 2³⁹, pixels x views), so the sums are the same integers in any order and any partition: one
 block, blocks, or on Ray the reducers' parts of their blocks added by the driver
@@ -90,18 +92,20 @@ bytes, in every plan and place. Step 3 needs the verdicts and each view's [M] pr
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numba
 import numpy as np
 
-from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
+from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, SUPPORT_TABLE_BYTES
 from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat.registration.coalesce import rows_order
+from drsplat.registration.supports import ENTRY, SupportTables
 from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot
 from drsplat.utils import CancelToken, progress
 
@@ -544,6 +548,7 @@ class ViewSupport:
     num_clusters: int
     mass_fixed: np.ndarray
     units: np.ndarray
+    is_sorted: bool = False  # entries in (mask, cluster) order already (SupportTables' merged tables)
 
     @classmethod
     def empty(cls, feats: np.ndarray, clusters: np.ndarray, num_clusters: int) -> ViewSupport:
@@ -575,10 +580,13 @@ class ViewSupport:
         """q and the core table r as compressed rows: (starts [M + 1] int64, clusters [E] int32,
         q values [E] float64, r values [E] float64), the entries of mask j at starts[j] ..
         starts[j + 1] - 1 in increasing cluster order."""
-        order = np.lexsort((self.entry_cluster, self.entry_mask))
-        starts = np.searchsorted(self.entry_mask[order], np.arange(self.mass_fixed.shape[0] + 1), side="left").astype(np.int64)
-        return (starts, np.ascontiguousarray(self.entry_cluster[order]), self.entry_fixed[order] / SUPPORT_SCALE,
-                self.entry_core[order] / SUPPORT_SCALE)
+        if self.is_sorted:
+            mask, cluster, fixed, core = self.entry_mask, self.entry_cluster, self.entry_fixed, self.entry_core
+        else:
+            order = np.lexsort((self.entry_cluster, self.entry_mask))
+            mask, cluster, fixed, core = self.entry_mask[order], self.entry_cluster[order], self.entry_fixed[order], self.entry_core[order]
+        starts = np.searchsorted(mask, np.arange(self.mass_fixed.shape[0] + 1), side="left").astype(np.int64)
+        return starts, np.ascontiguousarray(cluster), fixed / SUPPORT_SCALE, core / SUPPORT_SCALE
 
     def dense(self) -> np.ndarray:
         """q as a dense [M, K] table (tests)."""
@@ -707,28 +715,55 @@ def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[View
     return parts
 
 
-def merge_partial_supports(blocks: list[list[PartialSupport]], feats: list[np.ndarray], per_view: list[np.ndarray],
-                           num_clusters: int) -> list[ViewSupport]:
-    """Every view's ViewSupport from the blocks' parts (`block_partial_supports`, blocks x views):
+def merge_partial_supports(blocks: Iterable[list[PartialSupport]], feats: list[np.ndarray], per_view: list[np.ndarray],
+                           num_clusters: int, cap: int | None = None, folder: str | Path | None = None) -> Supports:
+    """Every view's support from the blocks' parts (`block_partial_supports`, blocks x views):
     the entries of each (mask, cluster) and the masses added as integers, exact in any order, so
-    the same numbers as `view_supports` in one block. feats: each view's [M, D] embeddings."""
-    supports = []
-    for v, (f, clusters) in enumerate(zip(feats, per_view)):
-        support = ViewSupport.empty(f, clusters, num_clusters)
-        parts = [block[v] for block in blocks]
-        if parts:
-            support.mass_fixed = np.sum([p.mass_fixed for p in parts], axis=0, dtype=np.int64).reshape(clusters.shape[0])
-            masks = np.concatenate([p.entry_mask for p in parts])
-            cluster = np.concatenate([p.entry_cluster for p in parts])
-            fixed = np.concatenate([p.entry_fixed for p in parts])
-            core = np.concatenate([p.entry_core for p in parts])
-            order = np.lexsort((cluster, masks))
-            first = np.flatnonzero(np.r_[True, (np.diff(masks[order]) != 0) | (np.diff(cluster[order]) != 0)]) if order.size else order
-            support.entry_mask, support.entry_cluster = masks[order][first], cluster[order][first]
-            support.entry_fixed = np.add.reduceat(fixed[order], first) if order.size else fixed  # integer sums: exact
-            support.entry_core = np.add.reduceat(core[order], first) if order.size else core
-        supports.append(support)
+    the same numbers as `view_supports` in one block. feats: each view's [M, D] embeddings. cap,
+    folder: the tables' memory cap and where they spill (SupportTables)."""
+    supports = Supports.empty(feats, per_view, num_clusters, cap, folder)
+    for block in blocks:
+        supports.add_block(block)
     return supports
+
+
+class Supports(Sequence):
+    """Every view's ViewSupport (`supports[v]`, merged when read), their parts held by SupportTables
+    under a memory cap and spilled beyond it; the masses [M] int64 and unit embeddings [M, D] of
+    each view kept in memory. `close` removes the spill files."""
+
+    def __init__(self, tables: SupportTables, mass_fixed: list[np.ndarray], units: list[np.ndarray], num_clusters: int):
+        self.tables, self.mass_fixed, self.units, self.num_clusters = tables, mass_fixed, units, num_clusters
+
+    @classmethod
+    def empty(cls, feats: list[np.ndarray], per_view: list[np.ndarray], num_clusters: int, cap: int | None = None,
+              folder: str | Path | None = None) -> Supports:
+        """Zero sums for every view's masks: feats [M, D] and clusters [M] of each view. cap: the
+        tables' bytes held in memory (None: SUPPORT_TABLE_BYTES, what the memory plan counts)."""
+        views = [ViewSupport.empty(f, c, num_clusters) for f, c in zip(feats, per_view)]
+        return cls(SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, folder), [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
+
+    def add(self, view: int, part: PartialSupport) -> None:
+        """Part of view `view`'s sums (one block's, or a reducer's)."""
+        self.mass_fixed[view] += part.mass_fixed
+        self.tables.add(view, (part.entry_mask, part.entry_cluster, part.entry_fixed, part.entry_core))
+
+    def add_block(self, parts: list[PartialSupport]) -> None:
+        """One block's parts, one per view."""
+        for view, part in enumerate(parts):
+            self.add(view, part)
+
+    def __len__(self) -> int:
+        return len(self.units)
+
+    def __getitem__(self, view: int) -> ViewSupport:
+        if not -len(self) <= view < len(self):
+            raise IndexError(view)
+        view %= len(self)
+        return ViewSupport(*self.tables.view(view), self.num_clusters, self.mass_fixed[view], self.units[view], is_sorted=True)
+
+    def close(self) -> None:
+        self.tables.close()
 
 
 def check_units_bytes(total_masks: int, max_masks: int, dim: int) -> int:
@@ -818,14 +853,19 @@ def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: f
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
                 min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT, cancel: CancelToken | None = None,
-                show_progress: bool = False, supports: list[ViewSupport] | None = None) -> MaskVerdicts:
+                show_progress: bool = False, supports: Supports | None = None, cap: int | None = None,
+                folder: str | Path | None = None) -> MaskVerdicts:
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
-    support (`view_supports`) in blocks of `block` Gaussians, or from `supports` when they were
-    summed elsewhere (reducers' parts, `merge_partial_supports`: the same numbers)."""
+    support (`view_supports`, its tables under `cap` bytes, spilled to `folder` beyond) in blocks of
+    `block` Gaussians, or from `supports` when they were summed elsewhere (reducers' parts,
+    `merge_partial_supports`: the same numbers). The tables' spill files are removed after."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
     if supports is None:
-        supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress)
-    return _verdicts(supports, means, min_views, min_share)
+        supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, folder)
+    try:
+        return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes)
+    finally:
+        supports.close()
 
 
 def _blocks(num_gaussians: int, block: int, cancel: CancelToken | None, show_progress: bool = False) -> Iterator[tuple[int, int]]:
@@ -838,31 +878,33 @@ def _blocks(num_gaussians: int, block: int, cancel: CancelToken | None, show_pro
 
 
 def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
-                  cancel: CancelToken | None = None, show_progress: bool = False) -> list[ViewSupport]:
+                  cancel: CancelToken | None = None, show_progress: bool = False, cap: int | None = None,
+                  folder: str | Path | None = None) -> Supports:
     """Every view's support: per block of `block` Gaussians, one replay of `source` folds the block's
-    votes into slots (`fold_block_votes`, [block, S]) and a second adds its pairs' support to every
-    view's sparse table (`add_view_support`). The tables live over all blocks, taken in increasing
-    order, so every plan gives the same bits.
+    votes into slots (`fold_block_votes`, [block, S]) and a second sums its pairs' support per view
+    (`add_view_support`), a part that SupportTables keeps under `cap` bytes (spilled to `folder`
+    beyond). The parts' sums are integers, so every plan gives the same bits.
 
     clusters: the views' mask clusters (MaskClusters of every view, in order). cancel: checked
     before each block (Cancelled); show_progress: a bar over the blocks.
     """
     k = clusters.count
-    supports = [ViewSupport.empty(view.feats, c, k) for view, c in zip(source.block_views(0, 0), clusters.per_view)]
+    supports = Supports.empty([view.feats for view in source.block_views(0, 0)], clusters.per_view, k, cap, folder)
     scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
-        for view, c, support in zip(source.block_views(lo, hi), clusters.per_view, supports):
-            add_view_support(view, lo, c, slot_c, slot_v, support, scratch)
+        for v, (view, c) in enumerate(zip(source.block_views(lo, hi), clusters.per_view)):
+            part = PartialSupport.empty(c.shape[0])
+            add_view_support(view, lo, c, slot_c, slot_v, part, scratch)
+            supports.add(v, part)
         del slot_c, slot_v  # the next block's slots replace them
-    _log_supports(supports, k)
     return supports
 
 
-def _log_supports(supports: list[ViewSupport], num_clusters: int) -> None:
-    masks = sum(s.mass_fixed.shape[0] for s in supports)
-    log.info("mask check: %d masks x %d clusters, %d support entries (%s; dense tables would take %s)", masks, num_clusters,
-             sum(s.num_entries for s in supports), format_size(sum(s.nbytes for s in supports)), format_size(8 * num_clusters * masks))
+def _log_supports(masks: int, num_clusters: int, entries: int, spilled: int) -> None:
+    spill = f", {format_size(spilled)} of parts spilled to disk" if spilled else ""
+    log.info("mask check: %d masks x %d clusters, %d support entries (%s%s; dense tables would take %s)", masks, num_clusters, entries,
+             format_size(ENTRY.itemsize * entries), spill, format_size(8 * num_clusters * masks))
 
 
 def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
@@ -878,21 +920,27 @@ def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndar
     return first | second, second
 
 
-def _verdicts(supports: list[ViewSupport], means: np.ndarray, min_views: float, min_share: float) -> MaskVerdicts:
-    """Step 2's decision from every view's support: the like cosine, then own / alt per mask."""
-    agreements = []
-    rows = [sup.rows() for sup in supports]  # each view's entries sorted once, read by both kernels
-    masses = [sup.mass for sup in supports]
-    for sup, q, mass in zip(supports, rows, masses):
+def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: float, min_share: float, spilled: int = 0) -> MaskVerdicts:
+    """Step 2's decision from every view's support: the like cosine, then own / alt per mask. Two
+    passes over the views, one view's table at a time (Supports merges it when read). spilled:
+    bytes of the tables' parts spilled to disk (logged)."""
+    agreements, masses, units, entries = [], [], [], 0
+    for sup in supports:
+        mass = sup.mass
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
-        _agreement_kernel(*q[:3], mass, sup.units, means, agree, total)
+        _agreement_kernel(*sup.rows()[:3], mass, sup.units, means, agree, total)
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
-    like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), [sup.units for sup in supports], rows=[m > 0 for m in masses])
+        masses.append(mass)
+        units.append(sup.units)
+        entries += sup.num_entries
+    _log_supports(sum(m.shape[0] for m in masses), means.shape[0], entries, spilled)
+    like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units, rows=[m > 0 for m in masses])
     keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
-    for sup, (starts, clusters, values, core_values), mass in zip(supports, rows, masses):
+    for v, mass in enumerate(masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
-            _own_alt_kernel(starts, clusters, values, core_values, mass, sup.units, means, like, own, alt, core)
+            sup = supports[v]
+            _own_alt_kernel(*sup.rows(), mass, sup.units, means, like, own, alt, core)
         drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share)
         judge = (mass > 0) & (alt >= min_views)
         keep.append(~drop)
@@ -996,6 +1044,7 @@ class CheckSink:
         if plog is None and self.block < num_gaussians:
             raise ValueError("a check in blocks replays the pair log: plog is needed")
         self.record = PairRecord(num_gaussians) if plog is None else None
+        self.spill_folder = None if plog is None else plog.path.parent  # the support tables spill beside the log (SupportTables)
         self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
@@ -1019,11 +1068,12 @@ class CheckSink:
         if self.record is not None:
             self.record.add(view)
 
-    def kept_pairs(self, partial_supports: Callable[[], list[list[PartialSupport]]] | None = None) -> KeptPairs:
+    def kept_pairs(self, partial_supports: Callable[[Callable[[list[PartialSupport]], None]], None] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are
         made of, here or by reducers (drsplat.registration.reduce, given the verdicts `keep`).
-        partial_supports: the blocks' parts of the support tables, summed elsewhere (reducers, one
-        block each: drsplat.registration.reduce.ReducePool.supports); None: summed here by replays."""
+        partial_supports(add): hands each block's parts of the support tables (one per view),
+        summed elsewhere, to `add` (reducers, one block each, in any order:
+        drsplat.registration.reduce.ReducePool.supports); None: summed here by replays."""
         if self._kept is None:
             if self._summed:
                 raise RuntimeError("the kept pairs of a check in one block are summed already")
@@ -1031,10 +1081,10 @@ class CheckSink:
             supports = None
             if partial_supports is not None:
                 feats = [view.feats for view in self._source.block_views(0, 0)]
-                supports = merge_partial_supports(partial_supports(), feats, self.clusters.per_view, self.clusters.count)
-                _log_supports(supports, self.clusters.count)
+                supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, folder=self.spill_folder)
+                partial_supports(supports.add_block)
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
-                                        supports=supports)
+                                        supports=supports, folder=self.spill_folder)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",

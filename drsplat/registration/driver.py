@@ -307,7 +307,7 @@ def run_registration(
                                                 None if check is not None else getattr(sink, "clusters", None), target.out,
                                                 target.clip_model, reject=aggregator.reject, check=check))
             if check is not None:
-                kept = check.kept_pairs(partial_supports=lambda: pool.supports(reduce.job))
+                kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
                 if aggregator.vote:  # the clusters of the kept masks with pairs
                     reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim))

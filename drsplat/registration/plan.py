@@ -11,7 +11,8 @@ Gaussians either way, so the output costs ~10·D bytes per Gaussian of one chunk
 The vote, check and solve stages each keep the views' mask clusters until the sums are finished,
 counted from the feature headers' mask counts as if every mask were its own cluster
 (drsplat.registration.vote.cluster_bytes), and the check its views' unit embeddings
-(drsplat.registration.check.check_units_bytes).
+(drsplat.registration.check.check_units_bytes) and its support tables, held up to
+SUPPORT_TABLE_BYTES and spilled to disk beyond (drsplat.registration.supports.table_bytes).
 Rasterizing a view with only a block's Gaussians would drop the occluders of other blocks and
 change T·α, so views are always rendered whole, exactly once.
 
@@ -28,13 +29,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from drsplat.cameras import Camera
-from drsplat.defaults import DEFAULT_AGGREGATE
+from drsplat.defaults import DEFAULT_AGGREGATE, SUPPORT_TABLE_BYTES
 from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
 from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.check import check_units_bytes
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
+from drsplat.registration.supports import table_bytes
 from drsplat.registration.vote import cluster_bytes
 from drsplat.scene import GaussianScene
 
@@ -119,7 +121,8 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
     stages = mode_stages(aggregate)  # the vote, check and solve stages each keep the views' mask clusters until the sums are finished
     clusters = (stages.vote + stages.check + stages.solve) * cluster_bytes(total_masks, max_masks, dim) if total_masks else 0
-    clusters += check_units_bytes(total_masks, max_masks, dim) if stages.check and total_masks else 0  # and the check's unit embeddings
+    if stages.check and total_masks:  # and the check's unit embeddings and support tables
+        clusters += check_units_bytes(total_masks, max_masks, dim) + table_bytes(total_masks, max_masks, SUPPORT_TABLE_BYTES)
     mode_views, mode_kept = mode_views + clusters, mode_kept + clusters
     base = (current_rss() if base is None else base) + mode_kept
     view = (n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + tile_list_bytes(n) + pixels * topk * (8 + 2 * PAIR_BYTES)

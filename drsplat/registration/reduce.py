@@ -63,6 +63,7 @@ import shutil
 import socket
 import tempfile
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -388,13 +389,14 @@ class ReducePool:
             return np.zeros((0, job.dim), np.float32), np.zeros(0, np.float32)
         return np.concatenate([F for F, _ in parts]), np.concatenate([W for _, W in parts])
 
-    def supports(self, job: ReduceJob) -> list[list[PartialSupport]]:
-        """`support_block` of every block, one task each: blocks x views of a `check-` mode's
-        partial support tables (check.merge_partial_supports adds them)."""
+    def supports(self, job: ReduceJob, add: Callable[[list[PartialSupport]], None]) -> None:
+        """`support_block` of every block, one task each: each block's parts of a `check-` mode's
+        support tables (one per view) handed to `add` as it arrives, in any order (check.Supports
+        adds them as integers), so the driver never holds every block's parts at once."""
         ray = import_ray()
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
         job_ref = ray.put(job)
-        return self._run(job, lambda i: task.remote(job_ref, i))
+        self._run(job, lambda i: task.remote(job_ref, i), take=lambda _, parts: add(parts))
 
     def candidates(self, job: ReduceJob) -> np.ndarray:
         """[N] bool, `candidates_block` of every block, one task each."""
@@ -403,8 +405,10 @@ class ReducePool:
         job_ref = ray.put(job)
         return np.concatenate(self._run(job, lambda i: task.remote(job_ref, i)))
 
-    def _run(self, job: ReduceJob, submit, count: int | None = None, names: list[int] | None = None) -> list:
-        """submit(i) for i < count (default: every block), `workers` in flight; results in order."""
+    def _run(self, job: ReduceJob, submit, count: int | None = None, names: list[int] | None = None,
+             take: Callable[[int, object], None] | None = None) -> list:
+        """submit(i) for i < count (default: every block), `workers` in flight; results in order, or
+        each handed to take(i, result) as it arrives and not kept (the list is then of None)."""
         ray = import_ray()
         count = job.num_blocks if count is None else count
         names = names or list(range(count))
@@ -421,7 +425,10 @@ class ReducePool:
                     self.cancel.raise_if_cancelled()
                 for ref in ready:
                     i = pending.pop(ref)
-                    results[i] = _get(ref, job, names[i])
+                    if take is None:
+                        results[i] = _get(ref, job, names[i])
+                    else:
+                        take(i, _get(ref, job, names[i]))
         finally:
             for ref in pending:
                 ray.cancel(ref, force=True)
