@@ -307,7 +307,7 @@ def test_support_tables_spilled_to_disk_give_the_same_tables_and_verdicts(tmp_pa
     record, clusters = _record(views, n)
     whole = view_supports(record, clusters, n, n, slots=8, cap=1 << 30)
     assert whole.tables.spilled_bytes == 0
-    capped = view_supports(record, clusters, n, block, slots=8, cap=cap, folder=tmp_path)
+    capped = view_supports(record, clusters, n, block, slots=8, cap=cap, beside=tmp_path / "reg.ply")
     assert capped.tables.spilled_bytes > 0 and list(tmp_path.iterdir())
     assert len(capped) == len(whole) == len(views)
     for a, b in zip(capped, whole):
@@ -320,7 +320,7 @@ def test_support_tables_spilled_to_disk_give_the_same_tables_and_verdicts(tmp_pa
     assert list(tmp_path.iterdir()) == []
     one = judge_masks(record, clusters, n, n, slots=8)
     assert one.dropped > 0  # something to agree on
-    got = judge_masks(record, clusters, n, block, slots=8, cap=cap, folder=tmp_path)
+    got = judge_masks(record, clusters, n, block, slots=8, cap=cap, beside=tmp_path / "reg.ply")
     assert got.like == one.like and (got.dropped, got.judged, got.present) == (one.dropped, one.judged, one.present)
     for a, b in zip(got.keep, one.keep):
         np.testing.assert_array_equal(a, b)

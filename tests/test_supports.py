@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from drsplat.registration.supports import ENTRY, SupportTables, merge_entries, no_entries, table_bytes
+from drsplat.utils import TEMP_SUFFIX, sweep_stale_temps, temp_prefix
 
 
 def _merge_reference(parts) -> dict[tuple[int, int], tuple[int, int]]:
@@ -62,16 +63,21 @@ def test_merged_parts_are_the_reference_sums_sorted_once(seed, hard):
 @pytest.mark.parametrize("seed,hard", [(0, False), (3, True)])
 def test_every_cap_gives_each_view_the_same_table(tmp_path, cap, seed, hard):
     """Parts of 5 views added in turn under caps from nothing (every part spilled) to all in memory:
-    each view's table the reference sums; the spill files are under the folder given and removed by close."""
+    each view's table the reference sums; the spill files are beside the output given, in a folder
+    named as the output's temp files (which a later run sweeps when a killed one leaves it), and
+    removed by close."""
     rng = np.random.default_rng(seed)
     views = [_random_parts(rng, 6, 8, 11, hard) for _ in range(5)]
-    tables = SupportTables(5, cap, tmp_path)
+    tables = SupportTables(5, cap, tmp_path / "reg.ply")
     for step in range(6):
         for v in range(5):
             tables.add(v, views[v][step])
         assert tables.held_bytes <= cap
     spilled = sum(24 * p[0].size for parts in views for p in parts) > cap
     assert (tables.spilled_bytes > 0) == spilled and bool(list(tmp_path.iterdir())) == spilled
+    if spilled:
+        (folder,) = tmp_path.iterdir()
+        assert folder.name.startswith(temp_prefix(tmp_path / "reg.ply")) and folder.name.endswith(TEMP_SUFFIX)
     for _ in range(2):  # read twice, as the judging does
         for v in range(5):
             got = tables.view(v)
@@ -81,7 +87,7 @@ def test_every_cap_gives_each_view_the_same_table(tmp_path, cap, seed, hard):
 
 
 def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
-    tables = SupportTables(2, 0, tmp_path)
+    tables = SupportTables(2, 0, tmp_path / "reg.ply")
     tables.add(0, (np.array([0, 1], np.int32), np.array([2, 3], np.int32), np.array([5, 6]), np.array([7, 8])))
     (spill,) = list(next(tmp_path.iterdir()).iterdir())
     spill.write_bytes(spill.read_bytes()[: ENTRY.itemsize])
@@ -95,3 +101,19 @@ def test_the_plan_counts_the_cap_and_one_views_merge():
     assert table_bytes(10, 5, cap) == 24 * 100 + 56 * 50  # few masks: every mask x every cluster, no more
     assert table_bytes(30_000, 20, cap) == cap + 56 * 20 * 30_000  # many views: the cap, and one view's merge
     assert table_bytes(30_000, 4_000, cap) == 2 * cap
+
+
+def test_a_spill_folder_left_by_a_killed_run_is_swept_by_the_next_write_of_the_output(tmp_path):
+    """The spill folder carries the output's temp name with its writer's pid: once that process is
+    gone, `sweep_stale_temps` (run before every atomic write of the output) removes it."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "reg.ply"
+    code = ("import sys, numpy as np; from drsplat.registration.supports import SupportTables; "
+            "t = SupportTables(1, 0, sys.argv[1]); t.add(0, (np.zeros(1, np.int32), np.zeros(1, np.int32), np.ones(1, np.int64), np.ones(1, np.int64))); "
+            "import os; os._exit(0)")  # exits without clean-up, as a killed run would
+    subprocess.run([sys.executable, "-c", code, str(out)], check=True, timeout=120)
+    (left,) = tmp_path.iterdir()
+    assert left.is_dir() and any(left.iterdir())
+    assert sweep_stale_temps(out) == 1 and list(tmp_path.iterdir()) == []

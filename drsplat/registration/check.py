@@ -716,12 +716,12 @@ def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[View
 
 
 def merge_partial_supports(blocks: Iterable[list[PartialSupport]], feats: list[np.ndarray], per_view: list[np.ndarray],
-                           num_clusters: int, cap: int | None = None, folder: str | Path | None = None) -> Supports:
+                           num_clusters: int, cap: int | None = None, beside: str | Path | None = None) -> Supports:
     """Every view's support from the blocks' parts (`block_partial_supports`, blocks x views):
     the entries of each (mask, cluster) and the masses added as integers, exact in any order, so
     the same numbers as `view_supports` in one block. feats: each view's [M, D] embeddings. cap,
-    folder: the tables' memory cap and where they spill (SupportTables)."""
-    supports = Supports.empty(feats, per_view, num_clusters, cap, folder)
+    beside: the tables' memory cap and the output their spill folder is named after (SupportTables)."""
+    supports = Supports.empty(feats, per_view, num_clusters, cap, beside)
     for block in blocks:
         supports.add_block(block)
     return supports
@@ -737,11 +737,11 @@ class Supports(Sequence):
 
     @classmethod
     def empty(cls, feats: list[np.ndarray], per_view: list[np.ndarray], num_clusters: int, cap: int | None = None,
-              folder: str | Path | None = None) -> Supports:
+              beside: str | Path | None = None) -> Supports:
         """Zero sums for every view's masks: feats [M, D] and clusters [M] of each view. cap: the
         tables' bytes held in memory (None: SUPPORT_TABLE_BYTES, what the memory plan counts)."""
         views = [ViewSupport.empty(f, c, num_clusters) for f, c in zip(feats, per_view)]
-        return cls(SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, folder), [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
+        return cls(SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside), [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
 
     def add(self, view: int, part: PartialSupport) -> None:
         """Part of view `view`'s sums (one block's, or a reducer's)."""
@@ -854,14 +854,14 @@ def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: f
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
                 min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT, cancel: CancelToken | None = None,
                 show_progress: bool = False, supports: Supports | None = None, cap: int | None = None,
-                folder: str | Path | None = None) -> MaskVerdicts:
+                beside: str | Path | None = None) -> MaskVerdicts:
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
-    support (`view_supports`, its tables under `cap` bytes, spilled to `folder` beyond) in blocks of
+    support (`view_supports`, its tables under `cap` bytes, spilled beside `beside` beyond) in blocks of
     `block` Gaussians, or from `supports` when they were summed elsewhere (reducers' parts,
     `merge_partial_supports`: the same numbers). The tables' spill files are removed after."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
     if supports is None:
-        supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, folder)
+        supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, beside)
     try:
         return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes)
     finally:
@@ -879,17 +879,17 @@ def _blocks(num_gaussians: int, block: int, cancel: CancelToken | None, show_pro
 
 def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
                   cancel: CancelToken | None = None, show_progress: bool = False, cap: int | None = None,
-                  folder: str | Path | None = None) -> Supports:
+                  beside: str | Path | None = None) -> Supports:
     """Every view's support: per block of `block` Gaussians, one replay of `source` folds the block's
     votes into slots (`fold_block_votes`, [block, S]) and a second sums its pairs' support per view
-    (`add_view_support`), a part that SupportTables keeps under `cap` bytes (spilled to `folder`
-    beyond). The parts' sums are integers, so every plan gives the same bits.
+    (`add_view_support`), a part that SupportTables keeps under `cap` bytes (spilled beyond, in a
+    temporary folder named after the output `beside`). The parts' sums are integers, so every plan gives the same bits.
 
     clusters: the views' mask clusters (MaskClusters of every view, in order). cancel: checked
     before each block (Cancelled); show_progress: a bar over the blocks.
     """
     k = clusters.count
-    supports = Supports.empty([view.feats for view in source.block_views(0, 0)], clusters.per_view, k, cap, folder)
+    supports = Supports.empty([view.feats for view in source.block_views(0, 0)], clusters.per_view, k, cap, beside)
     scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
@@ -1029,11 +1029,14 @@ class CheckSink:
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
-                 inner: Sink | None = None, slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False):
+                 inner: Sink | None = None, slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False,
+                 spill_beside: Path | None = None):
         """block: Gaussians per block (None: one block). inner: in one block, the mode's own sink of
         all N Gaussians, made by the caller before the views as without the check (the kept views are
         added to it); in blocks None, the kept pairs are replayed into a VoteSink / LogSink. cancel:
-        checked before each block of the judging (Cancelled); show_progress: a bar over its blocks."""
+        checked before each block of the judging (Cancelled); show_progress: a bar over its blocks.
+        spill_beside: the output the support tables' spill folder is named after (SupportTables;
+        None: the system's temp folder)."""
         self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
         self.cancel, self.show_progress = cancel, show_progress
         self.block = num_gaussians if block is None else int(block)
@@ -1044,7 +1047,7 @@ class CheckSink:
         if plog is None and self.block < num_gaussians:
             raise ValueError("a check in blocks replays the pair log: plog is needed")
         self.record = PairRecord(num_gaussians) if plog is None else None
-        self.spill_folder = None if plog is None else plog.path.parent  # the support tables spill beside the log (SupportTables)
+        self.spill_beside = spill_beside
         self._source: PairSource | None = plog if plog is not None else self.record
         self.clusters = MaskClusters(dim)
         self.verdicts: MaskVerdicts | None = None
@@ -1081,10 +1084,10 @@ class CheckSink:
             supports = None
             if partial_supports is not None:
                 feats = [view.feats for view in self._source.block_views(0, 0)]
-                supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, folder=self.spill_folder)
+                supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, beside=self.spill_beside)
                 partial_supports(supports.add_block)
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
-                                        supports=supports, folder=self.spill_folder)
+                                        supports=supports, beside=self.spill_beside)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",

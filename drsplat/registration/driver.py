@@ -292,7 +292,7 @@ def run_registration(
         totals = ViewTotals(run.dim, run.features_dir, collect_embeddings or options.codebook == "scene", positive=None if reducers else np.zeros(n, bool),
                             stride=1 if collect_embeddings else max(1, -(-run.headers.total_masks // SCENE_TRAIN_MAX)))
         pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
-        sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress)
+        sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress, out)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
@@ -386,14 +386,14 @@ def device_pairs_apply(options: RegisterOptions) -> bool:
 
 
 def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block: int, cancel: CancelToken | None = None,
-               show_progress: bool = False) -> tuple[Sink, bool]:
+               show_progress: bool = False, out: Path | None = None) -> tuple[Sink, bool]:
     """The sink of the plan and whether views keep their pairs on the device.
 
     One block with device pairs: a DeviceSink, or a DeviceVoteSink for a `-vote` mode (F, W and the
     vote slots on the device; on CUDA when they fit its free memory, else the host MemorySink /
     VoteSink). Blocks: the pairs are logged and each block replays the log on the host (LogSink,
     VoteSink), whatever the engine. A `check-` mode: CheckSink, in one block or many (`cancel` and
-    `show_progress` for its judging of the masks).
+    `show_progress` for its judging of the masks; its support tables spill beside `out`, if any).
     """
     n, dim = run.scene.num_gaussians, run.dim
     on_device = device_pairs_apply(run.options)
@@ -403,7 +403,7 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
             log.info("coalescing on %s; the mask check judges on the host and sums the kept pairs on %s (torch engine, --aggregate %s)",
                      run.options.device, "the host" if inner is None or inner.place == "host" else run.options.device, run.options.aggregate)
         return CheckSink(n, dim, aggregator.vote, ckpt.log, block, inner, cancel=cancel,
-                         show_progress=show_progress), on_device
+                         show_progress=show_progress, spill_beside=out), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.memory import format_size
-from drsplat.utils import TEMP_SUFFIX
+from drsplat.utils import TEMP_SUFFIX, temp_prefix, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +70,13 @@ def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
 
 class SupportTables:
     """Every view's support entries, added in parts (`add`), held in memory up to `cap` bytes and
-    spilled beyond it to files in a temporary folder under `folder` (None: the system's), removed by
-    `close` (or when the object is collected). `view(v)` gives view v's merged table (`merge_entries`)."""
+    spilled beyond it to files in a temporary folder, removed by `close` (or when the object is
+    collected). The folder is named after the output `beside` and lies in its work folder
+    (`.<stem>.<pid>.<random>.tmp`, which a later run writing the same output sweeps if this one is
+    killed); None: in the system's temp folder. `view(v)` gives view v's merged table (`merge_entries`)."""
 
-    def __init__(self, num_views: int, cap: int, folder: str | Path | None = None):
-        self.num_views, self.cap, self.folder = num_views, int(cap), folder
+    def __init__(self, num_views: int, cap: int, beside: str | Path | None = None):
+        self.num_views, self.cap, self.beside = num_views, int(cap), beside
         self._held: list[list[Entries]] = [[] for _ in range(num_views)]
         self._held_bytes = 0
         self._merged: set[int] = set()  # views whose one part held is their merged table
@@ -119,8 +121,11 @@ class SupportTables:
     def _spill(self) -> None:
         """Every view's held parts, merged, appended to a new spill file; memory held drops to nothing."""
         if self._tmp is None:
-            folder = None if self.folder is None else os.fspath(self.folder)
-            self._tmp = tempfile.TemporaryDirectory(prefix="drsplat-check-", suffix=TEMP_SUFFIX, dir=folder)
+            if self.beside is None:
+                prefix, folder = "drsplat-check-", None
+            else:
+                prefix, folder = temp_prefix(Path(self.beside)), os.fspath(work_folder(self.beside))
+            self._tmp = tempfile.TemporaryDirectory(prefix=prefix, suffix=TEMP_SUFFIX, dir=folder)
         path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
         offsets = np.zeros(self.num_views + 1, np.int64)
         with open(path, "wb") as f:
