@@ -541,6 +541,12 @@ def guard_outputs(
 
 def describe_os_error(exc: OSError) -> str:
     """One sentence for an OSError (usually on an output): the path and the cause in words."""
+    where = exc.filename if exc.filename is not None else "an output or input file"
+    return f"{where}: {os_error_cause(exc)}"
+
+
+def os_error_cause(exc: OSError) -> str:
+    """An OSError's cause in words ("the disk is full (no space left on the device)")."""
     import errno
 
     causes = {
@@ -559,8 +565,7 @@ def describe_os_error(exc: OSError) -> str:
     cause = causes.get(exc.errno or -1) or exc.strerror or str(exc) or f"{exc.__class__.__name__} (the system gave no cause)"
     if exc.errno is None and "written" in cause:  # numpy's tofile after a short write: the OS error itself is lost
         cause = f"the write stopped short ({cause}): the disk is full or a file-size limit was reached"
-    where = exc.filename if exc.filename is not None else "an output or input file"
-    return f"{where}: {cause}"
+    return cause
 
 
 # ----------------------------------------------------------------------------- signals

@@ -55,6 +55,12 @@ class _FullDisk:
     def __getattr__(self, name):
         return getattr(self._file, name)
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._file.close()
+
 
 def _fill_disk_in(cls, attribute: str, opener: str, calls: int, monkeypatch) -> None:
     """Make the file `attribute` that `cls.opener` opens fail like a full disk from its `calls`-th write."""
@@ -94,6 +100,30 @@ def test_disk_full_while_logging_views_names_the_log(tiny, uninterrupted, tmp_pa
     assert main(_args(tiny, out)) == 0
     assert "5 of 16 views already registered" in capsys.readouterr().err
     assert out.read_bytes() == uninterrupted
+
+
+def test_disk_full_while_the_check_spills_its_tables_names_the_spill_and_the_rerun_resumes(tiny, uninterrupted, tmp_path, monkeypatch, capsys):
+    """The default mode's check with its support tables capped at nothing, on a full disk: one error
+    naming the spill file and what to do, no spill folder left, the checkpoint kept; the rerun
+    (space freed) resumes to the uninterrupted bytes."""
+    import builtins
+
+    import drsplat.registration.check as check
+    import drsplat.registration.supports as supports
+
+    out = tmp_path / "reg.ply"
+    monkeypatch.setattr(check, "SUPPORT_TABLE_BYTES", 0)
+    monkeypatch.setattr(supports, "open", lambda path, mode="r", *a, **k: _FullDisk(builtins.open(path, mode, *a, **k), 2) if "w" in mode
+                        else builtins.open(path, mode, *a, **k), raising=False)
+    assert main(_args(tiny, out)) == 1
+    err = capsys.readouterr().err
+    assert "support-0.bin: the mask check could not spill its support tables to disk (the disk is full" in err and "free space there" in err
+    assert "Traceback" not in err and f"kept the registration checkpoint {checkpoint_path_for(out)}" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([checkpoint_path_for(out).name, aggregate_stats_path(checkpoint_path_for(out)).name])
+    monkeypatch.undo()
+    assert main(_args(tiny, out)) == 0
+    assert "16 of 16 views already registered" in capsys.readouterr().err
+    assert out.read_bytes() == uninterrupted and sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
 
 
 def test_a_killed_run_reruns_to_the_same_bytes(tiny, uninterrupted, tmp_path):

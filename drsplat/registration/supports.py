@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
-from drsplat.utils import TEMP_SUFFIX, temp_prefix, work_folder
+from drsplat.utils import TEMP_SUFFIX, os_error_cause, temp_prefix, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -128,14 +129,19 @@ class SupportTables:
             self._tmp = tempfile.TemporaryDirectory(prefix=prefix, suffix=TEMP_SUFFIX, dir=folder)
         path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
         offsets = np.zeros(self.num_views + 1, np.int64)
-        with open(path, "wb") as f:
-            for v in range(self.num_views):
-                mask, cluster, fixed, core = merge_entries(self._held[v])
-                rec = np.empty(mask.shape[0], ENTRY)
-                rec["mask"], rec["cluster"], rec["fixed"], rec["core"] = mask, cluster, fixed, core
-                rec.tofile(f)
-                offsets[v + 1] = offsets[v] + rec.shape[0]
-                self._held[v] = []
+        try:
+            with open(path, "wb") as f:
+                for v in range(self.num_views):
+                    mask, cluster, fixed, core = merge_entries(self._held[v])
+                    rec = np.empty(mask.shape[0], ENTRY)
+                    rec["mask"], rec["cluster"], rec["fixed"], rec["core"] = mask, cluster, fixed, core
+                    f.write(rec.view(np.uint8))
+                    offsets[v + 1] = offsets[v] + rec.shape[0]
+                    self._held[v] = []
+        except OSError as exc:
+            self.close()
+            raise DrsplatError(f"{path}: the mask check could not spill its support tables to disk ({os_error_cause(exc)}); "
+                               f"it holds {format_size(self.cap)} of them in memory and writes the rest beside the output: free space there") from None
         self._merged.clear()
         self._spills.append((path, offsets))
         self.spilled_bytes += int(offsets[-1]) * ENTRY.itemsize
