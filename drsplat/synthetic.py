@@ -28,9 +28,13 @@ different common component c_t ⟂ c: text and image vectors differ (the modalit
 text vector of l is closest to the image embeddings of l.
 
 Corruptions of the oracle (`OracleParams`): boundary jitter, mislabelled masks (another label's
-embedding), and under-segmentation (`merge_fraction`: an instance's mask swallowed by the
+embedding), under-segmentation (`merge_fraction`: an instance's mask swallowed by the
 neighbour it touches most, the union carrying the neighbour's label, as a segmenter that takes a
-cup and the table under it for one region does). Each draws from its own random stream, so a
+cup and the table under it for one region does) and over-segmentation (`split_fraction`: an
+instance's mask cut in two across its long axis, each half embedded as a part of its object,
+normalize(a·c + b·(PART_SHARE·v_l + √(1 − PART_SHARE²)·p) + noise) with p a random unit direction
+of its own, as a segmenter that returns a chair's back and its seat, whose crops CLIP sees as
+parts, does). Each draws from its own random stream, so a
 corrupted room has the masks, jitter and noise of the same room without that corruption wherever
 the corruption does not reach.
 """
@@ -135,6 +139,7 @@ class OracleParams:
     mislabel_fraction: float = 0.0
     jitter: int = 0
     merge_fraction: float = 0.0  # under-segmentation: share of instance masks swallowed by a neighbour's (`merged_instances`)
+    split_fraction: float = 0.0  # over-segmentation: share of instance masks cut in two parts (`split_instances`)
     min_mask_pixels: int = 4
     mask_source: str = "render"
 
@@ -220,6 +225,8 @@ MASK_SOURCES = ("render", "geometry")
 WRONG_LABEL_STREAM = 3
 WRONG_LABELS = f"own stream [seed, {WRONG_LABEL_STREAM}]"
 MERGE_STREAM = 4  # which instance masks are merged into a neighbour's (`merged_instances`), [seed, 4]
+SPLIT_STREAM = 5  # which instance masks are cut in two, and the parts' directions and noise (`split_instances`), [seed, 5]
+PART_SHARE = 0.7  # cosine between a part's label direction and its object's (module docstring)
 
 
 def _room_preset(name: str, num_gaussians: int, views: int, width: int, height: int, *, jitter: int = 0, mislabel: float = 0.0,
@@ -938,9 +945,36 @@ def merged_instances(ids: np.ndarray, present: np.ndarray, fraction: float, rng:
     return merged
 
 
+def split_instances(ids: np.ndarray, present: np.ndarray, fraction: float, rng: np.random.Generator, min_pixels: int) -> dict[int, np.ndarray]:
+    """Over-segmentation of one mask level: {instance: [H, W] bool, the pixels of its second part}.
+
+    ids: [H, W] instance per pixel (-1 none); present: the instances that may be cut. Each is, with
+    probability `fraction` (one draw of rng each, in order), cut by the line through its pixels'
+    centroid across their principal (long) axis: the pixels on the positive side form the second
+    part. An instance whose parts would not both hold `min_pixels` pixels stays whole.
+    """
+    if fraction <= 0 or present.size == 0:
+        return {}
+    parts: dict[int, np.ndarray] = {}
+    for instance, u in zip(present, rng.random(present.size)):
+        if u >= fraction:
+            continue
+        inside = ids == instance
+        ys, xs = np.nonzero(inside)
+        coords = np.stack([xs, ys], axis=1).astype(np.float64)
+        centred = coords - coords.mean(axis=0)
+        axis = np.linalg.eigh(centred.T @ centred)[1][:, -1]  # the long axis: largest eigenvalue
+        second = centred @ axis > 0
+        if min_pixels <= second.sum() <= second.size - min_pixels:
+            part = np.zeros_like(inside)
+            part[ys[second], xs[second]] = True
+            parts[int(instance)] = part
+    return parts
+
+
 def oracle_masks_and_embeddings(
     inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator, label_rng: np.random.Generator | None = None,
-    merge_rng: np.random.Generator | None = None,
+    merge_rng: np.random.Generator | None = None, split_rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """LangSplat-style feature pair for one view from its instance map.
 
@@ -957,6 +991,7 @@ def oracle_masks_and_embeddings(
     """
     label_rng = rng if label_rng is None else label_rng
     merge_rng = rng if merge_rng is None else merge_rng
+    split_rng = rng if split_rng is None else split_rng
     o = syn.oracle
     dim = syn.label_vectors.shape[1]
     num_labels = len(syn.label_names)
@@ -967,6 +1002,8 @@ def oracle_masks_and_embeddings(
         present, counts = np.unique(ids[ids >= 0], return_counts=True)
         present = present[counts >= o.min_mask_pixels]
         merged = merged_instances(ids, present, o.merge_fraction, merge_rng)
+        whole = present[~np.isin(present, list(merged) + list(merged.values()))]  # a union is never cut
+        split = split_instances(ids, whole, o.split_fraction, split_rng, o.min_mask_pixels)
         mask_of = {}
         for instance in present:
             label = int(syn.instance_labels[instance])
@@ -977,8 +1014,16 @@ def oracle_masks_and_embeddings(
                 continue
             mask_of[instance] = len(feats)
             seg[level][ids == instance] = len(feats)
-            feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
-            mask_labels.append(label)
+            if instance not in split:
+                feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
+                mask_labels.append(label)
+                continue
+            seg[level][split[instance]] = len(feats) + 1
+            for part_noise in (noise, split_rng.normal(0, o.noise / np.sqrt(dim), dim)):  # the second part's noise from the split stream
+                direction = split_rng.normal(size=dim)
+                part = PART_SHARE * syn.label_vectors[label] + np.sqrt(1 - PART_SHARE**2) * direction / np.linalg.norm(direction)
+                feats.append(o.a * syn.common_vector + o.b * part + part_noise)
+                mask_labels.append(label)
         for instance, into in merged.items():
             seg[level][ids == instance] = mask_of[into]
     feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
@@ -1014,13 +1059,14 @@ def write_dataset(
     jitter: int | None = None,
     mask_source: str | None = None,
     merge_fraction: float = 0.0,
+    split_fraction: float = 0.0,
     width: int | None = None,
     show_progress: bool = True,
     cancel=None,
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
 
-    mislabel_fraction, jitter, merge_fraction: oracle mask corruption; mask_source: "render" or
+    mislabel_fraction, jitter, merge_fraction, split_fraction: oracle mask corruption; mask_source: "render" or
     "geometry" (module docstring); None takes the preset's default. width: the views' width in
     pixels (`make_synthetic`; None: the preset's).
 
@@ -1036,16 +1082,19 @@ def write_dataset(
     mask_source = PRESETS[preset].mask_source if mask_source is None else mask_source
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
-    if not 0.0 <= merge_fraction <= 1.0:
-        raise ValueError("merge_fraction must be in [0, 1]")
+    for name, value in (("merge_fraction", merge_fraction), ("split_fraction", split_fraction)):
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1]")
     out = Path(out_dir)
-    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source, merge_fraction=merge_fraction)
+    oracle = OracleParams(noise=noise, mislabel_fraction=mislabel_fraction, jitter=jitter, mask_source=mask_source, merge_fraction=merge_fraction,
+                          split_fraction=split_fraction)
     syn = make_synthetic(preset, seed, oracle=oracle, width=width)
     for sub in ("images", "gt/masks", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 2])
     label_rng = np.random.default_rng([seed, WRONG_LABEL_STREAM])
     merge_rng = np.random.default_rng([seed, MERGE_STREAM])
+    split_rng = np.random.default_rng([seed, SPLIT_STREAM])
     mislabelled = total_masks = 0
     for cam in progress(syn.cameras, desc=f"synth {preset}", enabled=show_progress, unit="view"):
         if cancel is not None:
@@ -1055,7 +1104,7 @@ def write_dataset(
         with atomic_path(out / "images" / f"{cam.name}.png") as tmp:
             Image.fromarray(rgb8).save(tmp, format="PNG")
         save_npy_atomic(out / "gt" / "masks" / f"{cam.name}.npy", view.label_mask)
-        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng, merge_rng)
+        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng, merge_rng, split_rng)
         true_labels = _true_mask_labels(seg, view.instance_mask, syn.instance_labels, len(feats))
         mislabelled += int(np.count_nonzero(mask_labels != true_labels))
         total_masks += len(feats)
@@ -1079,7 +1128,8 @@ def write_dataset(
             "params": {"a": oracle.a, "b": oracle.b, "noise": noise, "mislabel_fraction": mislabel_fraction, "jitter": jitter,
                        **({"mask_source": mask_source} if mask_source != "render" else {}),
                        **({"wrong_labels": WRONG_LABELS} if mislabel_fraction > 0 else {}),
-                       **({"merge_fraction": merge_fraction} if merge_fraction > 0 else {})},
+                       **({"merge_fraction": merge_fraction} if merge_fraction > 0 else {}),
+                       **({"split_fraction": split_fraction, "part_share": PART_SHARE} if split_fraction > 0 else {})},
             "counts": {"views": len(syn.cameras), "masks": total_masks, "mislabelled_masks": mislabelled},
         },
     )

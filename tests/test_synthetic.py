@@ -406,6 +406,38 @@ def test_an_under_segmented_room_is_the_clean_room_with_some_masks_joined(tmp_pa
     assert json.loads((merged / "features" / "manifest.json").read_text())["params"]["merge_fraction"] == 0.3
 
 
+def test_an_over_segmented_room_is_the_clean_room_with_some_masks_cut_in_two(tmp_path):
+    """Every mask of a split room lies inside one clean mask; a clean mask is either the same pixels
+    with the same embedding, or two masks that tile it, each with an embedding of its own whose
+    label part is PART_SHARE of its object's: the rest of the room is unchanged."""
+    from drsplat.synthetic import PART_SHARE, make_synthetic
+
+    clean = write_dataset(tmp_path / "clean", "hard-tiny", 0, show_progress=False)
+    split = write_dataset(tmp_path / "split", "hard-tiny", 0, split_fraction=0.3, show_progress=False)
+    syn = make_synthetic("hard-tiny", 0)
+    o = syn.oracle
+    cuts = 0
+    for seg in sorted((clean / "features").glob("*_s.npy")):
+        a, b = np.load(seg)[1], np.load(split / "features" / seg.name)[1]  # the level registration reads
+        fa, fb = (np.load(root / "features" / seg.name.replace("_s.npy", "_f.npy")) for root in (clean, split))
+        assert np.array_equal(a >= 0, b >= 0)
+        for m in np.unique(a[a >= 0]):
+            parts = np.unique(b[a == m])
+            assert np.isin(b, parts).sum() == (a == m).sum()  # the parts cover the clean mask, nothing else
+            if parts.size == 1:
+                np.testing.assert_array_equal(fb[parts[0]], fa[m])
+                continue
+            assert parts.size == 2 and parts[1] == parts[0] + 1
+            cuts += 1
+            for part in parts:  # the label part of the embedding: PART_SHARE of the object's direction (noise 0.15 blurs it)
+                label = np.argmax(syn.label_vectors @ fa[m])
+                raw = fb[part] * np.linalg.norm(o.a * syn.common_vector + o.b * syn.label_vectors[label]) - o.a * syn.common_vector
+                assert abs(float(syn.label_vectors[label] @ raw) / o.b - PART_SHARE) < 0.15  # a whole mask: ~1.0
+    assert cuts > 0
+    params = json.loads((split / "features" / "manifest.json").read_text())["params"]
+    assert params["split_fraction"] == 0.3 and params["part_share"] == PART_SHARE
+
+
 def test_synth_merge_flag_writes_an_under_segmented_dataset(tmp_path):
     from drsplat.cli import main
 
@@ -415,3 +447,17 @@ def test_synth_merge_flag_writes_an_under_segmented_dataset(tmp_path):
     clean = write_dataset(tmp_path / "c", "tiny", 0, show_progress=False)
     masks = [json.loads((root / "features" / "manifest.json").read_text())["counts"]["masks"] for root in (clean, tmp_path / "m")]
     assert masks[1] < masks[0]  # swallowed masks are gone
+
+
+def test_synth_split_flag_writes_an_over_segmented_dataset(tmp_path):
+    from drsplat.cli import main
+
+    assert main(["synth", str(tmp_path / "p"), "--preset", "tiny", "--split", "0.5", "--no-progress"]) == 0
+    manifest = json.loads((tmp_path / "p" / "features" / "manifest.json").read_text())
+    assert manifest["params"]["split_fraction"] == 0.5
+    clean = write_dataset(tmp_path / "c", "tiny", 0, show_progress=False)
+    masks = [json.loads((root / "features" / "manifest.json").read_text())["counts"]["masks"] for root in (clean, tmp_path / "p")]
+    assert masks[1] > masks[0]  # cut masks are two
+    with pytest.raises(SystemExit) as usage:  # argparse's usage error
+        main(["synth", str(tmp_path / "bad"), "--preset", "tiny", "--split", "1.5", "--no-progress"])
+    assert usage.value.code == 2 and not (tmp_path / "bad").exists()

@@ -43,6 +43,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--merge", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION",
                    help="under-segmentation: fraction of instance masks swallowed by the neighbour they touch most, the union "
                         "carrying the neighbour's embedding (default: 0)")
+    p.add_argument("--split", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION",
+                   help="over-segmentation: fraction of instance masks cut in two across their long axis, each half embedded "
+                        "as a part of its object (default: 0)")
     p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
                    help="oracle masks from the rendered Gaussians' weighted vote (render) or ray-cast true silhouettes "
                         "(geometry) (default: the preset's, render except hard-silhouette)")
@@ -84,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             write_city(tmp, args.preset, args.seed, show_progress=not args.no_progress, cancel=token)
         else:
             write_dataset(tmp, args.preset, args.seed, mislabel_fraction=args.mislabel, noise=args.noise, jitter=args.jitter,
-                          mask_source=args.mask_source, merge_fraction=args.merge, width=args.width, show_progress=not args.no_progress,
+                          mask_source=args.mask_source, merge_fraction=args.merge, split_fraction=args.split, width=args.width, show_progress=not args.no_progress,
                           cancel=token)
         token.raise_if_cancelled()
     log.info("synthetic dataset written to %s", args.out_dir)

@@ -45,14 +45,18 @@ ABLATIONS = ("topk", "pq", "robustness", "metrics", "aggregate", "resolution")
 AGGREGATE_PRESETS = ("hard-silhouette", "hard-thin", "hard-small", "hard-grazing", "hard-lowres", "hard-noisy", "hard-room")
 AGGREGATE_TOPK = (10, 40)
 # oracle corruptions of the aggregate ablation: name -> (mislabelled-mask fraction, boundary jitter in
-# pixels, merged-mask fraction); "own" is each preset's default (hard-noisy 10% + 2 px, hard-room 1 px,
-# others clean); "jitter2" is "mislabel10" without its mislabels: the room that isolates what the
-# mislabels cost; "merge10" / "merge20": under-segmentation, a share of the instance masks swallowed
-# by the neighbour each touches most (drsplat.synthetic.merged_instances), the clean room otherwise
-CORRUPTIONS = {"own": (None, None, 0.0), "clean": (0.0, 0, 0.0), "mislabel10": (0.1, 2, 0.0), "mislabel20": (0.2, 0, 0.0), "jitter2": (0.0, 2, 0.0),
-               "merge10": (0.0, 0, 0.1), "merge20": (0.0, 0, 0.2)}
+# pixels, merged-mask fraction, split-mask fraction); "own" is each preset's default (hard-noisy 10% +
+# 2 px, hard-room 1 px, others clean); "jitter2" is "mislabel10" without its mislabels: the room that
+# isolates what the mislabels cost; "merge10" / "merge20": under-segmentation, a share of the instance
+# masks swallowed by the neighbour each touches most (drsplat.synthetic.merged_instances); "split10" /
+# "split20": over-segmentation, a share cut in two parts embedded as parts of their object
+# (drsplat.synthetic.split_instances); the clean room otherwise
+CORRUPTIONS = {"own": (None, None, 0.0, 0.0), "clean": (0.0, 0, 0.0, 0.0), "mislabel10": (0.1, 2, 0.0, 0.0), "mislabel20": (0.2, 0, 0.0, 0.0),
+               "jitter2": (0.0, 2, 0.0, 0.0), "merge10": (0.0, 0, 0.1, 0.0), "merge20": (0.0, 0, 0.2, 0.0), "split10": (0.0, 0, 0.0, 0.1),
+               "split20": (0.0, 0, 0.0, 0.2)}
 # the room each corruption is measured against: the same masks without that corruption
-CORRUPTION_REFERENCE = {"mislabel10": "jitter2", "mislabel20": "clean", "jitter2": "clean", "merge10": "clean", "merge20": "clean"}
+CORRUPTION_REFERENCE = {"mislabel10": "jitter2", "mislabel20": "clean", "jitter2": "clean", "merge10": "clean", "merge20": "clean",
+                        "split10": "clean", "split20": "clean"}
 TOPK_VALUES = (1, 5, 10, 20, 40, 64)
 RESOLUTION_VALUES = (1, 2, 4)  # 3DGS's -r (drsplat.cameras.RESOLUTION_DIVISORS): the views' size divided by r
 PQ_VALUES = (32, 64, 128, 256)
@@ -96,17 +100,18 @@ class AblationResult:
 
 
 def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None,
-            jitter: int | None = None, merge: float = 0.0, width: int | None = None) -> Dataset:
+            jitter: int | None = None, merge: float = 0.0, width: int | None = None, split: float = 0.0) -> Dataset:
     """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
     override the preset's oracle mask source, "render" or "geometry"; jitter: the masks' boundary
     jitter in pixels, None the preset's; merge: the share of instance masks merged into a
-    neighbour's; width: the views' width in pixels, None the preset's; drsplat.synthetic)."""
+    neighbour's; split: the share cut in two parts; width: the views' width in pixels, None the
+    preset's; drsplat.synthetic)."""
     path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else "")
                    + (f"-j{jitter}" if jitter is not None else "") + (f"-u{merge:g}" if merge > 0 else "")
-                   + (f"-w{width}" if width is not None else ""))
+                   + (f"-p{split:g}" if split > 0 else "") + (f"-w{width}" if width is not None else ""))
     if not (path / "scene.ply").exists() or (mislabel > 0 and _stale_wrong_labels(path)):
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter,
-                      merge_fraction=merge, width=width, show_progress=False)
+                      merge_fraction=merge, split_fraction=split, width=width, show_progress=False)
     return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
                    json.loads((path / ORACLE_LABEL_NAMES).read_text()), np.load(path / ORACLE_TEXT_EMBEDDINGS))
 
@@ -282,9 +287,9 @@ def aggregate_metrics(ds: Dataset, result) -> list[float]:
 
 
 def _corrupted(root: Path, preset: str, seed: int, mask_source: str | None, corruption: str) -> Dataset:
-    mislabel, jitter, merge = CORRUPTIONS[corruption]
+    mislabel, jitter, merge, split = CORRUPTIONS[corruption]
     return dataset(root, preset, seed, PRESETS[preset].mislabel if mislabel is None else mislabel, mask_source=mask_source, jitter=jitter,
-                   merge=merge)
+                   merge=merge, split=split)
 
 
 def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (0,), modes=None, topks=AGGREGATE_TOPK,

@@ -741,7 +741,8 @@ class Supports(Sequence):
         """Zero sums for every view's masks: feats [M, D] and clusters [M] of each view. cap: the
         tables' bytes held in memory (None: SUPPORT_TABLE_BYTES, what the memory plan counts)."""
         views = [ViewSupport.empty(f, c, num_clusters) for f, c in zip(feats, per_view)]
-        return cls(SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside), [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
+        tables = SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside)
+        return cls(tables, [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
 
     def add(self, view: int, part: PartialSupport) -> None:
         """Part of view `view`'s sums (one block's, or a reducer's)."""
