@@ -120,7 +120,7 @@ def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(clu
     their blocks' parts of the support tables, the driver adds them, judges the masks and makes the
     kept masks' clusters from the masks each view reported present (its own replays of the log are
     made to fail here), the reducers sum the kept pairs, the codebook's sample included: the local run's
-    bytes."""
+    bytes, with the driver's support tables spilled to disk (capped at nothing) as well."""
     import drsplat.registration.check as check
 
     data = write_dataset(tmp_path_factory.mktemp("mislabelled") / "data", "tiny", 0, mislabel_fraction=0.3, show_progress=False)
@@ -133,6 +133,7 @@ def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(clu
         raise AssertionError("the driver replayed the log")
 
     monkeypatch.setattr(check, "view_supports", replayed_on_the_driver)  # the support tables
+    monkeypatch.setattr(check, "SUPPORT_TABLE_BYTES", 0)  # the reducers' parts, added as they arrive, spill on the driver
     monkeypatch.setattr(check.KeptPairs, "block_views", replayed_on_the_driver)  # the kept pairs (the reducers' processes read them)
     result = register(scene, cams, data / "features", on_ray, RegisterOptions(ray="auto", ray_workers=2, block_size=1024, **options),
                       show_progress=False)
