@@ -502,17 +502,22 @@ def test_memory_plan_counts_the_rejection_statistics(hard_tiny):
 def test_memory_plan_counts_the_mask_clusters_of_each_stage_that_keeps_them(hard_tiny):
     """The vote, check and solve stages each keep a MaskClusters of the views' masks until the sums
     are finished: the plan counts one bound (every mask its own cluster) per stage, and the check
-    its views' unit embeddings, before and after the views, and nothing for `paper`."""
+    its views' unit embeddings and its support tables (the cap held and one view's merge), before
+    and after the views, and nothing for `paper`."""
+    from drsplat.defaults import SUPPORT_TABLE_BYTES
     from drsplat.registration.check import check_units_bytes
+    from drsplat.registration.supports import table_bytes
     from drsplat.registration.vote import cluster_bytes
 
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
     masks = {"total_masks": 24_000, "max_masks": 3_000}
-    bound, units = cluster_bytes(24_000, 3_000, 1024), check_units_bytes(24_000, 3_000, 1024)
+    bound = cluster_bytes(24_000, 3_000, 1024)
+    units = check_units_bytes(24_000, 3_000, 1024) + table_bytes(24_000, 3_000, SUPPORT_TABLE_BYTES)
+    assert table_bytes(24_000, 3_000, SUPPORT_TABLE_BYTES) == 2 * SUPPORT_TABLE_BYTES  # 24,000 masks: both terms at the cap
     for mode, stages, check in (("paper", 0, 0), ("vote-reject", 1, 0), ("check-reject", 1, 1), ("solve", 1, 0), ("check-vote-reject", 2, 1)):
         without = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode)
         with_masks = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode, **masks)
-        extra = stages * bound + check * units  # the check also keeps every view's unit embeddings
+        extra = stages * bound + check * units  # the check also keeps every view's unit embeddings and support tables
         assert with_masks.views - without.views == with_masks.base - without.base == extra, mode
         assert with_masks.in_memory - without.in_memory == extra, mode
     assert units >= 24_000 * 1024 * 8  # float64 unit rows of every mask

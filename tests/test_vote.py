@@ -282,6 +282,36 @@ def test_trim_kernel_agrees_with_reference(case):
         assert (np.abs(got - F).max(axis=1) > 1e-3).sum() > 10
 
 
+def test_an_object_cut_into_parts_outvotes_the_background_it_spills_onto():
+    """Gaussian 0 lies on an object that three views segmented whole or in parts, each part's
+    embedding (0.8 of the object's direction) its own cluster with one view's vote, and on the
+    wall its footprint spills onto in four views (one cluster, four votes). Compared one cluster at
+    a time the wall won and every object cluster was trimmed as a minority; as groups of like
+    clusters (θ below the parts' cosine: the check's like cosine) the object's group is not a
+    minority and nothing is trimmed: the paper's sums. With θ = 0.9 (the parts unlike one another)
+    the object is trimmed as before."""
+    rng = np.random.default_rng(7)
+    obj, wall = _labels(rng, 2)
+    parts = [_unit(0.8 * obj + 0.6 * _unit(rng.normal(size=D))) for _ in range(2)]
+    feats = [obj, parts[0], parts[1]]
+    cos = [float(a @ b) for a, b in ((obj, parts[0]), (obj, parts[1]), (parts[0], parts[1]))]
+    assert max(cos) < 0.9 and min(cos) > 0.5 > float(obj @ wall)  # unlike at 0.9, like at 0.5
+    theta = 0.5
+
+    def register(trim: float) -> np.ndarray:
+        sink = VoteSink(1, D, trim=trim)
+        for v in range(4):
+            view_feats = np.stack([wall] + ([feats[v]] if v < 3 else []))
+            masks, weights = ([0, 1], [0.4, 0.6]) if v < 3 else ([0], [0.4])
+            sink.add(_view(f"v{v}", view_feats, [0] * len(masks), masks, weights))
+        (block,) = list(sink.blocks())
+        return block.F[0].astype(np.float64)
+
+    paper = 4 * 0.4 * wall + 0.6 * (obj + parts[0] + parts[1])
+    np.testing.assert_allclose(register(theta), paper, atol=1e-5)
+    np.testing.assert_allclose(register(0.9), 4 * 0.4 * wall, atol=1e-5)  # the one-cluster rule: the object trimmed
+
+
 def test_a_mislabelled_close_up_view_is_outvoted():
     """Four views see Gaussian 0 in a mask of label A with weight 1; one close-up view sees it in a
     mislabelled mask (label B) with weight 5. The paper's mean leans to B; the vote keeps A (and

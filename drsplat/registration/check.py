@@ -106,7 +106,7 @@ from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat.registration.coalesce import rows_order
 from drsplat.registration.supports import ENTRY, SupportTables
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot
+from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot, trim_cosine
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -1100,12 +1100,15 @@ class CheckSink:
         """The sink of the kept pairs, the masks judged first."""
         if not self._summed:
             n, kept = self.num_gaussians, self.kept_pairs()
+            trim = trim_cosine(self.verdicts.like)  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
+                if self.vote:
+                    self._inner.trim = trim
                 self.record = self._source = self._kept = None  # the sums hold what the record did
             else:
-                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim)) if self.vote
+                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim), trim=trim) if self.vote
                                else LogSink(n, self.dim, kept, self.block))
             self._summed = True
         return self._inner

@@ -56,7 +56,7 @@ from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import normalize_rows
 from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views
-from drsplat.registration.vote import VoteSink
+from drsplat.registration.vote import VoteSink, trim_cosine
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
 
@@ -309,8 +309,8 @@ def run_registration(
             if check is not None:
                 kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
-                if aggregator.vote:  # the clusters of the kept masks with pairs
-                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim))
+                if aggregator.vote:  # the clusters of the kept masks with pairs, trimmed by the check's like cosine
+                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=trim_cosine(check.verdicts.like))
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))

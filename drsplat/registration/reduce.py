@@ -82,7 +82,7 @@ from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import LogSink
 from drsplat.registration.sums import normalize_rows
-from drsplat.registration.vote import MaskClusters, VoteSink
+from drsplat.registration.vote import CLUSTER_COSINE, MaskClusters, VoteSink
 from drsplat.scene import GaussianScene, ply_header
 from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, work_folder
 
@@ -105,7 +105,8 @@ class ReduceJob:
     that each reducer sums its block's kept pairs (drsplat.registration.check.KeptPairs); None
     otherwise. check_clusters / check_slots: before the verdicts, a `check-` mode's mask clusters
     (per view [M] int32, and K) and vote slots, from which each reducer sums its block's part of
-    the support tables (`support_block`).
+    the support tables (`support_block`). trim: the vote's θ (drsplat.registration.vote.trim_cosine:
+    after a check, from its like cosine).
     """
 
     log_path: str
@@ -124,6 +125,7 @@ class ReduceJob:
     check_clusters: list[np.ndarray] | None = None
     check_num_clusters: int = 0
     check_slots: int = 0
+    trim: float = CLUSTER_COSINE
 
     @property
     def num_blocks(self) -> int:
@@ -190,7 +192,7 @@ def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     summing only the pairs a `check-` mode keeps (the driver's verdicts: job.keep)."""
     source = plog if job.keep is None else KeptPairs(plog, job.keep)
     if job.clusters is not None:
-        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters)
+        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters, trim=job.trim)
     return LogSink(job.num_gaussians, job.dim, source, job.block)
 
 

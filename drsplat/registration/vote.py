@@ -24,8 +24,9 @@ keeps the paper's sums and trims them:
    cluster S_ic = Σ_views Σ_{j ∈ c} w_ij; both kept in VOTE_SLOTS slots per Gaussian with the
    space-saving rule (a new cluster replaces the smallest slot and inherits its counts, so a
    cluster voted by more than 1/VOTE_SLOTS of the views is never lost);
-3. the winner c* = argmax_c V_ic; a cluster c is trimmed when it is not like the winner
-   (μ_c·μ_c* < CLUSTER_COSINE) and is a minority of the views, V_ic < MINORITY·V_ic*:
+3. the votes of each cluster's group, G_ic = Σ_{c' like c} V_ic' (c' like c: μ_c·μ_c' ≥ θ, c
+   itself included); the winner c* = argmax_c G_ic; a cluster c is trimmed when it is not like
+   the winner (μ_c·μ_c* < θ) and its group is a minority of the views, G_ic < MINORITY·G_ic*:
 
        F_i = Σ_j w_ij f_j − Σ_{c trimmed} S_ic μ_c
 
@@ -36,6 +37,17 @@ keeps the paper's sums and trims them:
    embedding, not at the Gaussian's own masks' (an approximation: exact when a cluster's masks
    agree, off by their spread within CLUSTER_COSINE otherwise). W_i = Σ w_ij stays the paper's,
    so coverage and floater rejection do not change.
+
+   θ (`trim_cosine`) is CLUSTER_COSINE, or after the cross-view check (a `check-...-vote` mode,
+   the default) the lower of that and the check's like cosine, which the scene decides
+   (drsplat.registration.check: halfway between how well a mask agrees with its Gaussians' other
+   views and how alike two masks of one view are). Masks of one object that a segmenter cut into
+   parts are embedded as parts, farther than CLUSTER_COSINE from the whole object's crops and from
+   each other yet nearer than two different objects: each part is a cluster of its own with one
+   view's vote. Compared one cluster at a time (until 2026-11-30), the object's votes were spread
+   over its parts, the background its footprint spills onto won with one cluster, and the object's
+   own clusters were trimmed as minorities (docs/evaluation.md, "Over-segmented masks"). When no
+   two clusters of a Gaussian are alike, G = V and the rule is the one-cluster rule it was.
 
 Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
 scratch), K·D·12 bytes for K clusters in blocks that are never copied, a view's [M, CLUSTER_BLOCK]
@@ -361,23 +373,28 @@ def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray,
 def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
                      threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
     """Numpy reference of `trimmed_features`: in place on the paper's sums F [B, D] float32,
-    F_i -= Σ_{c trimmed} S_ic μ_c (module docstring, step 3); rows with one voted cluster are left
-    bit for bit as they are.
+    F_i -= Σ_{c trimmed} S_ic μ_c (module docstring, step 3: group votes G, the winner's group, the
+    minorities unlike it); rows with one voted cluster are left bit for bit as they are.
 
     slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S] float64 votes / paper weights,
     means: [K, D] unit μ_c. Returns F.
     """
-    b = slot_c.shape[0]
-    mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if slot_c.shape[1] > 1 else np.zeros(0, np.int64)
+    b, num_slots = slot_c.shape
+    mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if num_slots > 1 else np.zeros(0, np.int64)
     if mixed.size == 0 or means.shape[0] == 0 or b == 0:
         return F
     c, v, w = slot_c[mixed], slot_v[mixed], slot_s[mixed]
-    votes = np.where(c >= 0, v, -np.inf)
-    win = c[np.arange(mixed.size), np.argmax(votes, axis=1)]  # first of equal maxima
+    ok = c >= 0
     cw = np.maximum(c, 0)
-    sim = np.einsum("bsd,bd->bs", means[cw], means[win])
-    v_win = np.max(votes, axis=1, keepdims=True)
-    drop = (c >= 0) & (sim < threshold) & (c != win[:, None]) & (v < minority * v_win)
+    sim = np.einsum("bsd,btd->bst", means[cw], means[cw])  # float32, as the kernel's dot products
+    like = (sim >= threshold) & ok[:, :, None] & ok[:, None, :]
+    group = np.where(ok, v, 0.0)
+    for t in range(num_slots):  # G_s = V_s, then + V_t of each other like slot t in slot order: the kernel's order
+        group = group + np.where(like[:, :, t] & (np.arange(num_slots) != t)[None, :], v[:, t : t + 1], 0.0)
+    group = np.where(ok, group, -np.inf)
+    best = np.argmax(group, axis=1)  # first of equal maxima
+    rows = np.arange(mixed.size)
+    drop = ok & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
     coef = np.where(drop, w, 0.0)
     F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
     return F
@@ -386,28 +403,47 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
 @numba.njit(parallel=True, cache=True)
 def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts):  # pragma: no cover - jitted
     """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
-    run with one float64 row buffer: per Gaussian, first the slots to trim (bits of a uint64; slots
-    ≤ 64), then, when there are any, F_i ← float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots
-    subtracted in slot order, each over the row in one contiguous (vectorised) loop."""
+    run with one float64 row buffer and an [S, S] cosine table: per Gaussian, the cosines between its
+    slots' clusters and the group votes G_s (V_s, then + V_t of every like slot t in slot order),
+    the slots to trim (bits of a uint64; slots ≤ 64), then, when there are any, F_i ←
+    float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots subtracted in slot order, each over the row
+    in one contiguous (vectorised) loop."""
     b, num_slots = slot_c.shape
     dim = F.shape[1]
     for part in numba.prange(parts):
         row = np.empty(dim)
+        sim = np.empty((num_slots, num_slots), np.float32)
+        group = np.empty(num_slots)
         for i in range(part * b // parts, (part + 1) * b // parts):
             if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
                 continue
-            best = 0
-            for s in range(1, num_slots):
-                if slot_c[i, s] >= 0 and slot_v[i, s] > slot_v[i, best]:
+            for s in range(num_slots):
+                group[s] = slot_v[i, s]
+            for s in range(num_slots):
+                if slot_c[i, s] < 0:
+                    continue
+                for t in range(s + 1, num_slots):
+                    if slot_c[i, t] < 0:
+                        continue
+                    d = _row_dot(means, slot_c[i, s], means, slot_c[i, t])
+                    sim[s, t] = d
+                    sim[t, s] = d
+            for s in range(num_slots):  # each other like slot's votes in slot order (the reference's order)
+                if slot_c[i, s] < 0:
+                    continue
+                for t in range(num_slots):
+                    if t != s and slot_c[i, t] >= 0 and sim[s, t] >= threshold:
+                        group[s] += slot_v[i, t]
+            best = -1
+            for s in range(num_slots):
+                if slot_c[i, s] >= 0 and (best < 0 or group[s] > group[best]):
                     best = s
-            win = slot_c[i, best]
-            v_win = slot_v[i, best]
+            g_win = group[best]
             trim = np.uint64(0)
             for s in range(num_slots):
-                c = slot_c[i, s]
-                if c < 0 or c == win or not slot_v[i, s] < minority * v_win:
+                if slot_c[i, s] < 0 or s == best or not group[s] < minority * g_win:
                     continue
-                if _row_dot(means, c, means, win) < threshold:
+                if sim[s, best] < threshold:
                     trim |= np.uint64(1) << np.uint64(s)
             if trim == 0:
                 continue
@@ -462,11 +498,20 @@ def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
         np.add.at(V, (g[ok], c[ok]), v)
         np.add.at(S, (g[ok], c[ok]), w[ok])
     for i in np.flatnonzero((V > 0).sum(axis=1) > 1):
-        win = int(np.argmax(V[i]))
-        drop = (V[i] > 0) & (means @ means[win] < threshold) & (V[i] < minority * V[i, win])
+        voted = np.flatnonzero(V[i] > 0)
+        like = means[voted] @ means[voted].T >= threshold
+        group = like.astype(np.float64) @ V[i, voted]  # G_c: the votes of every voted cluster like c, itself included
+        win = int(np.argmax(group))
+        drop = (means[voted] @ means[voted[win]] < threshold) & (group < minority * group[win])
         drop[win] = False
-        F[i] -= S[i, drop] @ means[drop]
+        F[i] -= S[i, voted[drop]] @ means[voted[drop]]
     return F
+
+
+def trim_cosine(like: float | None) -> float:
+    """θ of step 3 (module docstring): CLUSTER_COSINE, or the cross-view check's like cosine when
+    there is one and it is lower (a cluster that is like the winner is never trimmed)."""
+    return CLUSTER_COSINE if like is None else float(min(CLUSTER_COSINE, like))
 
 
 class VoteSink:
@@ -481,9 +526,12 @@ class VoteSink:
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairSource | None = None, block: int | None = None,
-                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None):
+                 slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None,
+                 trim: float = CLUSTER_COSINE):
         """clusters: the views' clusters made already (a reducer replaying a block of a finished view
-        pass gets the driver's); None: made by `add`."""
+        pass gets the driver's); None: made by `add`. trim: θ of step 3 (`trim_cosine`; a check
+        sets it once it has judged the masks, before the sums are finished)."""
+        self.trim = float(trim)
         self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
         self.clusters = MaskClusters(dim) if clusters is None else clusters
         self._log = plog
@@ -514,7 +562,7 @@ class VoteSink:
     def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
         acc, slot_c, slot_v, slot_s, _ = state
         F, W = acc.sums()
-        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means()), W
+        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means(), self.trim), W
 
     def blocks(self) -> Iterator[Block]:
         if self._state is not None:
@@ -539,7 +587,7 @@ class VoteSink:
         if self._state is not None:
             acc, slot_c, slot_v, slot_s, _ = self._state
             F, W = acc.sums()
-            return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means()), W[ids].copy()
+            return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means(), self.trim), W[ids].copy()
         row = np.full(self.num_gaussians, -1, np.int32)
         row[ids] = np.arange(ids.shape[0], dtype=np.int32)
         state = self._empty(ids.shape[0])
