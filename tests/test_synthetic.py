@@ -438,26 +438,18 @@ def test_an_over_segmented_room_is_the_clean_room_with_some_masks_cut_in_two(tmp
     assert params["split_fraction"] == 0.3 and params["part_share"] == PART_SHARE
 
 
-def test_synth_merge_flag_writes_an_under_segmented_dataset(tmp_path):
+@pytest.mark.parametrize("flag,param,fewer", [("--merge", "merge_fraction", True), ("--split", "split_fraction", False)])
+def test_synth_merge_and_split_flags_write_under_and_over_segmented_datasets(tmp_path, flag, param, fewer):
+    """--merge: swallowed masks are gone (fewer masks); --split: cut masks are two (more); a
+    fraction past 1 is a usage error that writes nothing."""
     from drsplat.cli import main
 
-    assert main(["synth", str(tmp_path / "m"), "--preset", "tiny", "--merge", "0.5", "--no-progress"]) == 0
+    assert main(["synth", str(tmp_path / "m"), "--preset", "tiny", flag, "0.5", "--no-progress"]) == 0
     manifest = json.loads((tmp_path / "m" / "features" / "manifest.json").read_text())
-    assert manifest["params"]["merge_fraction"] == 0.5
+    assert manifest["params"][param] == 0.5
     clean = write_dataset(tmp_path / "c", "tiny", 0, show_progress=False)
     masks = [json.loads((root / "features" / "manifest.json").read_text())["counts"]["masks"] for root in (clean, tmp_path / "m")]
-    assert masks[1] < masks[0]  # swallowed masks are gone
-
-
-def test_synth_split_flag_writes_an_over_segmented_dataset(tmp_path):
-    from drsplat.cli import main
-
-    assert main(["synth", str(tmp_path / "p"), "--preset", "tiny", "--split", "0.5", "--no-progress"]) == 0
-    manifest = json.loads((tmp_path / "p" / "features" / "manifest.json").read_text())
-    assert manifest["params"]["split_fraction"] == 0.5
-    clean = write_dataset(tmp_path / "c", "tiny", 0, show_progress=False)
-    masks = [json.loads((root / "features" / "manifest.json").read_text())["counts"]["masks"] for root in (clean, tmp_path / "p")]
-    assert masks[1] > masks[0]  # cut masks are two
+    assert (masks[1] < masks[0]) if fewer else (masks[1] > masks[0])
     with pytest.raises(SystemExit) as usage:  # argparse's usage error
-        main(["synth", str(tmp_path / "bad"), "--preset", "tiny", "--split", "1.5", "--no-progress"])
+        main(["synth", str(tmp_path / "bad"), "--preset", "tiny", flag, "1.5", "--no-progress"])
     assert usage.value.code == 2 and not (tmp_path / "bad").exists()
