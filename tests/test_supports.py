@@ -117,3 +117,20 @@ def test_a_spill_folder_left_by_a_killed_run_is_swept_by_the_next_write_of_the_o
     (left,) = tmp_path.iterdir()
     assert left.is_dir() and any(left.iterdir())
     assert sweep_stale_temps(out) == 1 and list(tmp_path.iterdir()) == []
+
+
+def test_a_folder_the_spill_cannot_be_made_in_is_one_error_naming_it(tmp_path, monkeypatch):
+    """Probe round 12: a read-only output folder made the spill folder's mkdtemp raise a bare
+    PermissionError from deep in tempfile; now one error naming the folder and what to do."""
+    import errno
+
+    import drsplat.registration.supports as supports
+    from drsplat.errors import DrsplatError
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(supports.tempfile, "TemporaryDirectory", refuse)
+    tables = SupportTables(1, 0, tmp_path / "reg.ply")
+    with pytest.raises(DrsplatError, match=rf"^{tmp_path}: the mask check could not spill .*permission denied.*let it write in {tmp_path}$"):
+        tables.add(0, (np.array([0], np.int32), np.array([1], np.int32), np.array([5]), np.array([7])))

@@ -17,6 +17,7 @@ their sums exact (the kernel's fixed point). The memory plan counts the cap and 
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import tempfile
@@ -121,15 +122,16 @@ class SupportTables:
 
     def _spill(self) -> None:
         """Every view's held parts, merged, appended to a new spill file; memory held drops to nothing."""
-        if self._tmp is None:
-            if self.beside is None:
-                prefix, folder = "drsplat-check-", None
-            else:
-                prefix, folder = temp_prefix(Path(self.beside)), os.fspath(work_folder(self.beside))
-            self._tmp = tempfile.TemporaryDirectory(prefix=prefix, suffix=TEMP_SUFFIX, dir=folder)
-        path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
+        if self.beside is None:
+            prefix, folder = "drsplat-check-", Path(tempfile.gettempdir())
+        else:
+            prefix, folder = temp_prefix(Path(self.beside)), work_folder(self.beside)
+        path = folder
         offsets = np.zeros(self.num_views + 1, np.int64)
         try:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryDirectory(prefix=prefix, suffix=TEMP_SUFFIX, dir=os.fspath(folder))
+            path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
             with open(path, "wb") as f:
                 for v in range(self.num_views):
                     mask, cluster, fixed, core = merge_entries(self._held[v])
@@ -140,8 +142,10 @@ class SupportTables:
                     self._held[v] = []
         except OSError as exc:
             self.close()
-            raise DrsplatError(f"{path}: the mask check could not spill its support tables to disk ({os_error_cause(exc)}); "
-                               f"it holds {format_size(self.cap)} of them in memory and writes the rest beside the output: free space there") from None
+            full = exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+            raise DrsplatError(f"{path}: the mask check could not spill its support tables to disk ({os_error_cause(exc)}); it holds "
+                               f"{format_size(self.cap)} of them in memory and writes the rest beside the output: "
+                               + ("free space there" if full else f"let it write in {folder}")) from None
         self._merged.clear()
         self._spills.append((path, offsets))
         self.spilled_bytes += int(offsets[-1]) * ENTRY.itemsize
