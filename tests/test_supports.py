@@ -134,3 +134,31 @@ def test_a_folder_the_spill_cannot_be_made_in_is_one_error_naming_it(tmp_path, m
     tables = SupportTables(1, 0, tmp_path / "reg.ply")
     with pytest.raises(DrsplatError, match=rf"^{tmp_path}: the mask check could not spill .*permission denied.*let it write in {tmp_path}$"):
         tables.add(0, (np.array([0], np.int32), np.array([1], np.int32), np.array([5]), np.array([7])))
+
+
+def test_spill_folders_of_symlinked_and_fifo_outputs_are_swept_after_a_kill(tmp_path):
+    """Probe round 12: a symlinked output's spill folder was named after the link but made in the
+    target's folder, and a FIFO output's went to the temp folder, where no later write of the output
+    looks: a killed run's 257-268 MB stayed. Now it is named after where the output lands, and the
+    next spill for the same output sweeps the folder it spills in."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; from drsplat.registration.supports import SupportTables; "
+            "t = SupportTables(1, 0, sys.argv[1]); t.add(0, (np.zeros(1, np.int32), np.zeros(1, np.int32), np.ones(1, np.int64), np.ones(1, np.int64))); "
+            "import os; os._exit(0)")  # exits without clean-up, as a killed run would
+    real, links = tmp_path / "real", tmp_path / "links"
+    real.mkdir()
+    links.mkdir()
+    (links / "link.ply").symlink_to(real / "target.ply")
+    subprocess.run([sys.executable, "-c", code, str(links / "link.ply")], check=True, timeout=120)
+    (left,) = real.iterdir()
+    assert left.name.startswith(".target.ply.") and list(links.iterdir()) == [links / "link.ply"]
+    assert sweep_stale_temps(real / "target.ply") == 1  # what writing the output sweeps
+
+    subprocess.run([sys.executable, "-c", code, str(links / "link.ply")], check=True, timeout=120)
+    tables = SupportTables(1, 0, links / "link.ply")  # the next run's spill sweeps the killed one's
+    tables.add(0, (np.zeros(1, np.int32), np.zeros(1, np.int32), np.ones(1, np.int64), np.ones(1, np.int64)))
+    assert len(list(real.iterdir())) == 1
+    tables.close()
+    assert list(real.iterdir()) == []

@@ -28,7 +28,7 @@ import numpy as np
 
 from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
-from drsplat.utils import TEMP_SUFFIX, os_error_cause, temp_prefix, work_folder
+from drsplat.utils import TEMP_SUFFIX, os_error_cause, output_target, sweep_stale_temps, temp_prefix, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -73,9 +73,9 @@ def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
 class SupportTables:
     """Every view's support entries, added in parts (`add`), held in memory up to `cap` bytes and
     spilled beyond it to files in a temporary folder, removed by `close` (or when the object is
-    collected). The folder is named after the output `beside` and lies in its work folder
-    (`.<stem>.<pid>.<random>.tmp`, which a later run writing the same output sweeps if this one is
-    killed); None: in the system's temp folder. `view(v)` gives view v's merged table (`merge_entries`)."""
+    collected). The folder is named after where the output `beside` lands (a symlink's target) and
+    lies in its work folder (`.<stem>.<pid>.<random>.tmp`: a later run writing the same output, or
+    spilling for it, sweeps it if this one is killed); None: in the system's temp folder. `view(v)` gives view v's merged table (`merge_entries`)."""
 
     def __init__(self, num_views: int, cap: int, beside: str | Path | None = None):
         self.num_views, self.cap, self.beside = num_views, int(cap), beside
@@ -124,8 +124,12 @@ class SupportTables:
         """Every view's held parts, merged, appended to a new spill file; memory held drops to nothing."""
         if self.beside is None:
             prefix, folder = "drsplat-check-", Path(tempfile.gettempdir())
-        else:
-            prefix, folder = temp_prefix(Path(self.beside)), work_folder(self.beside)
+        else:  # named after where the output lands (a symlink's target), in its work folder (the temp folder for a FIFO)
+            folder = work_folder(self.beside)
+            named = folder / output_target(self.beside).name
+            prefix = temp_prefix(named)
+            if self._tmp is None:
+                sweep_stale_temps(named)  # a killed run's spill folder, also where no write of the output would look (a FIFO's)
         path = folder
         offsets = np.zeros(self.num_views + 1, np.int64)
         try:
