@@ -64,15 +64,16 @@ def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
         pid_text = tmp.name[len(stem) + 2 :].split(".", 1)[0]
         if not pid_text.isdigit() or _pid_alive(int(pid_text)):
             continue
+        folder = tmp.is_dir() and not tmp.is_symlink()
         try:
-            if tmp.is_dir() and not tmp.is_symlink():
+            if folder:
                 shutil.rmtree(tmp)
             else:
                 tmp.unlink()
         except OSError:
             continue
         removed += 1
-        log.info("removed a stale temporary %s of an interrupted run: %s", "folder" if suffix != TEMP_SUFFIX else "file", tmp)
+        log.info("removed a stale temporary %s of an interrupted run: %s", "folder" if folder else "file", tmp)
     return removed
 
 

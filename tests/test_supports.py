@@ -116,7 +116,19 @@ def test_a_spill_folder_left_by_a_killed_run_is_swept_by_the_next_write_of_the_o
     subprocess.run([sys.executable, "-c", code, str(out)], check=True, timeout=120)
     (left,) = tmp_path.iterdir()
     assert left.is_dir() and any(left.iterdir())
-    assert sweep_stale_temps(out) == 1 and list(tmp_path.iterdir()) == []
+    import logging
+
+    logger, records = logging.getLogger("drsplat"), []  # drsplat.utils logs as "drsplat"
+    handler, level = logging.Handler(), logger.level
+    handler.emit = records.append
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        assert sweep_stale_temps(out) == 1 and list(tmp_path.iterdir()) == []
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    assert [r.getMessage() for r in records] == [f"removed a stale temporary folder of an interrupted run: {left}"]  # was logged as a "file"
 
 
 def test_a_folder_the_spill_cannot_be_made_in_is_one_error_naming_it(tmp_path, monkeypatch):
