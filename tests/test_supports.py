@@ -91,7 +91,9 @@ def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
     tables.add(0, (np.array([0, 1], np.int32), np.array([2, 3], np.int32), np.array([5, 6]), np.array([7, 8])))
     (spill,) = list(next(tmp_path.iterdir()).iterdir())
     spill.write_bytes(spill.read_bytes()[: ENTRY.itemsize])
-    with pytest.raises(OSError, match=f"{spill}: the check's spilled support table of view 0 is cut short"):
+    from drsplat.errors import DrsplatError
+
+    with pytest.raises(DrsplatError, match=f"{spill}: the check's spilled support table of view 0 is cut short"):
         tables.view(0)
     tables.close()
 

@@ -75,7 +75,8 @@ class SupportTables:
     spilled beyond it to files in a temporary folder, removed by `close` (or when the object is
     collected). The folder is named after where the output `beside` lands (a symlink's target) and
     lies in its work folder (`.<stem>.<pid>.<random>.tmp`: a later run writing the same output, or
-    spilling for it, sweeps it if this one is killed); None: in the system's temp folder. `view(v)` gives view v's merged table (`merge_entries`)."""
+    spilling for it, sweeps it if this one is killed); None: in the system's temp folder.
+    `view(v)` gives view v's merged table (`merge_entries`)."""
 
     def __init__(self, num_views: int, cap: int, beside: str | Path | None = None):
         self.num_views, self.cap, self.beside = num_views, int(cap), beside
@@ -107,7 +108,8 @@ class SupportTables:
                     f.seek(int(offsets[view]) * ENTRY.itemsize)
                     rec = np.fromfile(f, ENTRY, count)
                 if rec.shape[0] != count:
-                    raise OSError(f"{path}: the check's spilled support table of view {view} is cut short")
+                    raise DrsplatError(f"{path}: the check's spilled support table of view {view} is cut short (its file was changed "
+                                       "while the registration ran)")
                 parts.append((rec["mask"], rec["cluster"], rec["fixed"], rec["core"]))
         merged = merge_entries(parts)
         if not self._spills and merged[0].size:  # read twice by the judging: keep it merged (never more entries than its parts)
