@@ -733,10 +733,10 @@ def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_r
 @pytest.mark.parametrize("block", [1, 7, 13, 40])
 def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, block):
     """What reducers compute (each block's support alone, `block_partial_supports`), added by the
-    driver (`merge_partial_supports`), in any order of the blocks: the one-block tables exactly
+    driver (`Supports.add_block`), in any order of the blocks: the one-block tables exactly
     (the fixed-point sums are integers), so the verdicts and the output bytes do not depend on
     where the blocks fall or who sums them."""
-    from drsplat.registration.check import block_partial_supports, merge_partial_supports, view_supports
+    from drsplat.registration.check import Supports, block_partial_supports, view_supports
 
     rng = np.random.default_rng(seed)
     n = 40
@@ -747,7 +747,9 @@ def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, bloc
                                     clusters.count, lo, min(n, lo + block)) for lo in range(0, n, block)]
     feats = [v.feats for v in record.views]
     for blocks in (parts, parts[::-1]):
-        merged = merge_partial_supports(blocks, feats, clusters.per_view, clusters.count)
+        merged = Supports.empty(feats, clusters.per_view, clusters.count)
+        for block_parts in blocks:
+            merged.add_block(block_parts)
         assert len(merged) == len(whole)
         for a, b in zip(merged, whole):
             np.testing.assert_array_equal(a.dense(), b.dense())

@@ -84,7 +84,7 @@ the like cosine's pass, then the verdicts'; all of them held until 2026-11-30). 
 and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
 q = 2³⁹, pixels x views), so the sums are the same integers in any order and any partition: one
 block, blocks, or on Ray the reducers' parts of their blocks added by the driver
-(`block_partial_supports`, `merge_partial_supports`; since 2026-11-27, sixth session: before, float64
+(`block_partial_supports`, `Supports.add_block`; since 2026-11-27, sixth session: before, float64
 sums in Gaussian order, which only one process could make). The same verdicts, and the same output
 bytes, in every plan and place. Step 3 needs the verdicts and each view's [M] present-mask flags only.
 """
@@ -293,7 +293,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
     the same in any order and any partition of the Gaussians: one block, blocks in any order,
-    reducers' partial tables summed by the driver (`merge_partial_supports`), or the row-aligned
+    reducers' partial tables summed by the driver (`Supports.add_block`), or the row-aligned
     parts of the view this kernel sums in parallel, one per scratch layer, then adds into layer 0.
 
     Beside q, the core table: r[j, c] += w_ij for the pairs whose Gaussian's other views vote
@@ -572,10 +572,6 @@ class ViewSupport:
     def num_entries(self) -> int:
         return int(self.entry_value.shape[0])
 
-    @property
-    def nbytes(self) -> int:
-        return 24 * self.num_entries
-
     def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """q and the core table r as compressed rows: (starts [M + 1] int64, clusters [E] int32,
         q values [E] float64, r values [E] float64), the entries of mask j at starts[j] ..
@@ -685,7 +681,7 @@ def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> No
 class PartialSupport:
     """One view's support from one block of Gaussians (a reducer's part of `ViewSupport`): entries
     (mask [E] int32, cluster [E] int32, fixed and core [E] int64) and mass_fixed [M] int64, in the
-    kernel's fixed point, so the parts of every block add up exactly (`merge_partial_supports`)."""
+    kernel's fixed point, so the parts of every block add up exactly (`Supports.add_block`)."""
 
     entry_mask: np.ndarray
     entry_cluster: np.ndarray
@@ -715,18 +711,6 @@ def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[View
     return parts
 
 
-def merge_partial_supports(blocks: Iterable[list[PartialSupport]], feats: list[np.ndarray], per_view: list[np.ndarray],
-                           num_clusters: int, cap: int | None = None, beside: str | Path | None = None) -> Supports:
-    """Every view's support from the blocks' parts (`block_partial_supports`, blocks x views):
-    the entries of each (mask, cluster) and the masses added as integers, exact in any order, so
-    the same numbers as `view_supports` in one block. feats: each view's [M, D] embeddings. cap,
-    beside: the tables' memory cap and the output their spill folder is named after (SupportTables)."""
-    supports = Supports.empty(feats, per_view, num_clusters, cap, beside)
-    for block in blocks:
-        supports.add_block(block)
-    return supports
-
-
 class Supports(Sequence):
     """Every view's ViewSupport (`supports[v]`, merged when read), their parts held by SupportTables
     under a memory cap and spilled beyond it; the masses [M] int64 and unit embeddings [M, D] of
@@ -750,7 +734,9 @@ class Supports(Sequence):
         self.tables.add(view, (part.entry_mask, part.entry_cluster, part.entry_fixed, part.entry_core))
 
     def add_block(self, parts: list[PartialSupport]) -> None:
-        """One block's parts, one per view."""
+        """One block's parts, one per view (`block_partial_supports`; a reducer's): the entries of
+        each (mask, cluster) and the masses add as integers, exact in any order of the blocks, so
+        the same numbers as `view_supports` in one block."""
         for view, part in enumerate(parts):
             self.add(view, part)
 
@@ -859,7 +845,7 @@ def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, 
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
     support (`view_supports`, its tables under `cap` bytes, spilled beside `beside` beyond) in blocks of
     `block` Gaussians, or from `supports` when they were summed elsewhere (reducers' parts,
-    `merge_partial_supports`: the same numbers). The tables' spill files are removed after."""
+    `Supports.add_block`: the same numbers). The tables' spill files are removed after."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
     if supports is None:
         supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, beside)
