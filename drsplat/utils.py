@@ -571,11 +571,21 @@ def os_error_cause(exc: OSError) -> str:
 
 # ----------------------------------------------------------------------------- signals
 
+ABORT_GRACE_SECONDS = 2.0  # after a second Ctrl-C, how long the main thread has to raise and clean up itself
+
+
 @contextlib.contextmanager
 def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Iterator[None]:
     """Ctrl-C or SIGTERM cancels cleanly (the worker checks `token`); a second Ctrl-C aborts at once.
 
-    Outside the main thread signal handlers cannot be installed and this does nothing.
+    Python runs a signal's handler only between bytecodes of the main thread, and a numba kernel
+    holds that thread for as long as it runs (seconds on a large view), coalescing the signals that
+    arrive meanwhile into one call: the second Ctrl-C would be lost. So the signals are also written
+    to a wakeup pipe that a watchdog thread reads (`signal.set_wakeup_fd`): at the second one it
+    gives the main thread ABORT_GRACE_SECONDS to raise KeyboardInterrupt and clean up, then ends
+    the process with exit code 1 (temp files left beside an output are swept by the next run that
+    writes it; a checkpoint stays resumable, as after a kill). Outside the main thread signal
+    handlers cannot be installed and this does nothing.
     """
     import signal
 
@@ -591,10 +601,43 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
         log.warning("%s: stopping after %s (Ctrl-C again to abort at once)", name, what)
         token.cancel()
 
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    done = threading.Event()
+    watchdog = threading.Thread(target=_abort_on_second_signal, args=(read_end, {int(sig) for sig in previous}, done),
+                                name="drsplat-abort-watchdog", daemon=True)
+    previous_wakeup = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
     for sig in previous:
         signal.signal(sig, handler)
+    watchdog.start()
     try:
         yield
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+        signal.set_wakeup_fd(previous_wakeup)
+        done.set()
+        os.close(write_end)  # the watchdog reads end-of-file and returns
+        watchdog.join()
+        os.close(read_end)
+
+
+def _abort_on_second_signal(read_end: int, signals: set[int], done: threading.Event) -> None:
+    """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup
+    pipe and, at the second, ends the process unless the context is left within the grace time."""
+    count = 0
+    while not done.is_set():
+        try:
+            data = os.read(read_end, 64)
+        except OSError:
+            return
+        if not data:
+            return
+        count += sum(1 for byte in data if byte in signals)
+        if count >= 2:
+            if done.wait(ABORT_GRACE_SECONDS):
+                return
+            log.error("aborted at once by a second Ctrl-C (a kernel was running); a checkpoint is kept and the same command "
+                      "resumes from it, and temp files left beside the output are removed by the next run that writes it")
+            logging.shutdown()
+            os._exit(1)

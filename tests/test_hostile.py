@@ -964,6 +964,65 @@ def test_second_interrupt_aborts_at_once():
     assert signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, signal.default_int_handler) or callable(signal.getsignal(signal.SIGTERM))
 
 
+def test_second_interrupt_aborts_a_running_numba_kernel():
+    """Python runs signal handlers only between bytecodes: while a numba kernel holds the main thread,
+    two Ctrl-Cs arrive as one handler call and the second was lost (the run went on for the kernel's
+    whole length). The watchdog ends the process instead."""
+    script = textwrap.dedent("""
+        import os, signal, threading, time
+        import numba, numpy as np
+        from drsplat.utils import CancelToken, cancel_on_signals
+
+        @numba.njit(parallel=True)
+        def spin(n):
+            out = np.zeros(2)
+            for t in numba.prange(2):
+                x = 0.0
+                for i in range(n):
+                    x += np.sin(i * 1e-9)
+                out[t] = x
+            return out.sum()
+
+        spin(10)
+        def press_twice():
+            time.sleep(0.5); os.kill(os.getpid(), signal.SIGINT); time.sleep(0.3); os.kill(os.getpid(), signal.SIGINT)
+        threading.Thread(target=press_twice, daemon=True).start()
+        with cancel_on_signals(CancelToken(), "the current view"):
+            spin(10 ** 12)  # hours
+        print("the kernel ran to its end")
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 1, proc.stderr
+    assert "the kernel ran to its end" not in proc.stdout
+    assert "aborted at once by a second Ctrl-C" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_one_interrupt_during_a_kernel_only_cancels():
+    script = textwrap.dedent("""
+        import os, signal, time
+        import numba, numpy as np
+        from drsplat.utils import CancelToken, cancel_on_signals
+
+        @numba.njit
+        def spin(n):
+            x = 0.0
+            for i in range(n):
+                x += np.sin(i * 1e-9)
+            return x
+
+        spin(10)
+        token = CancelToken()
+        with cancel_on_signals(token, "the current view"):
+            os.kill(os.getpid(), signal.SIGINT)
+            spin(30_000_000)
+            time.sleep(3)  # past the watchdog's grace: one signal must not end the process
+        print("cancelled:", token.cancelled)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert "cancelled: True" in proc.stdout and "aborted" not in proc.stderr
+
+
 def test_stale_temp_files_of_dead_runs_are_swept(tmp_path, world, capsys):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout.strip()
     stale = tmp_path / f".scores.npy.{dead}.abcd.tmp"
