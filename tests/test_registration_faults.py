@@ -220,6 +220,28 @@ def test_a_second_registration_into_the_same_output_is_refused_at_once(tiny, tmp
     assert main(_args(tiny, out)) == 0 and sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
 
 
+def test_an_output_folder_that_takes_no_file_is_one_error_naming_the_folder(tiny, tmp_path, monkeypatch, capsys):
+    """Probe round 12: a read-only output folder was refused naming the lock file the run tried to make
+    (`.reg.ply.register.lock: permission denied`), which the user never asked for. Now the folder."""
+    from drsplat.registration import checkpoint
+
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    real_open = os.open
+
+    def refuse_in_folder(path, *args, **kwargs):
+        if Path(path).parent == folder:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(checkpoint.os, "open", refuse_in_folder)
+    assert main(_args(tiny, folder / "reg.ply")) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert f"cannot write {folder}: the folder takes no new file (permission denied)" in err and "another folder" in err
+    assert ".lock" not in err and list(folder.iterdir()) == []
+
+
 def test_a_restart_names_what_changed_and_leaves_no_stale_statistics(tiny, tmp_path, monkeypatch, capsys):
     out = tmp_path / "reg.ply"
     _stopped_after_five_views(tiny, out, monkeypatch)  # the default mode: a statistics snapshot may be beside the log

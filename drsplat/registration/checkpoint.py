@@ -33,13 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.errors import DrsplatError
+from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import TEMP_SUFFIX, atomic_path, file_stamp, read_npy_header, temp_prefix, temp_stem, work_folder
+from drsplat.utils import TEMP_SUFFIX, atomic_path, file_stamp, os_error_cause, read_npy_header, temp_prefix, temp_stem, work_folder
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,13 @@ def aggregate_stats_path(checkpoint: Path) -> Path:
 def lock_path_for(checkpoint: Path) -> Path:
     """The lock file beside a checkpoint (`RunLock`)."""
     return checkpoint.with_name(checkpoint.name.removesuffix(".log") + ".lock")
+
+
+def lock_run(checkpoint: Path) -> RunLock:
+    """The run's lock beside the pair log `checkpoint` (`RunLock`): taken before any work, so that a
+    second run into the same output, or an output folder that takes no file, is refused at once.
+    Checkpoint(lock=...) takes it over."""
+    return RunLock.acquire(lock_path_for(checkpoint), checkpoint.name[1:].removesuffix(".register.log"))
 
 
 def _scene_digest(scene: GaussianScene) -> str:
@@ -120,9 +127,15 @@ class RunLock:
     def acquire(cls, path: Path, what: str) -> "RunLock":
         """DrsplatError naming `what` when another process holds the lock."""
         refuse_odd_entry(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            problem = "the folder cannot be made"
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                problem = "the folder takes no new file"
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise OutputError(path.parent, f"{problem} ({os_error_cause(exc)}), and a registration keeps its checkpoint and "
+                                  f"lock there, beside {what}; write the output to another folder") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -166,18 +179,18 @@ class Checkpoint:
     temporary: the log only backs a run in blocks that is not resumable: it is removed whatever
     happens. every: views between fsyncs and statistics snapshots. `resumed`: views replayed from the log (their statistics are already in the snapshot).
     shards: the views are logged by the workers (`shards_dir`, made empty for a fresh log) and the
-    log holds pointers (params has "shards").
+    log holds pointers (params has "shards"). lock: the run's lock when taken already (`lock_run`).
     """
 
     def __init__(self, path: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator, temporary: bool = False,
-                 every: int = CHECKPOINT_EVERY, features_dir: Path | None = None):
+                 every: int = CHECKPOINT_EVERY, features_dir: Path | None = None, lock: "RunLock | None" = None):
         self.path = Path(path)
         self.temporary = temporary
         self.every = max(1, int(every))
         self.total = len(views)
         self.shards_dir = shards_folder(self.path) if params.get("shards") else None
         self.features_dir = None if features_dir is None else Path(features_dir)
-        self._lock = None if temporary else RunLock.acquire(lock_path_for(self.path), self.path.name[1:].removesuffix(".register.log"))
+        self._lock = None if temporary else lock if lock is not None else lock_run(self.path)
         try:
             for entry in (self.path, aggregate_stats_path(self.path)):
                 refuse_odd_entry(entry)

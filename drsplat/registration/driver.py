@@ -44,7 +44,7 @@ from drsplat.raster import NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
-from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, checkpoint_params, checkpoint_path_for
+from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, RunLock, checkpoint_params, checkpoint_path_for, lock_run
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import RegisterOptions
@@ -261,6 +261,19 @@ def run_registration(
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
+    lock = lock_run(checkpoint) if checkpoint is not None else None  # a second run, or a folder that takes no file: refused before any work
+    try:
+        return _register_locked(run, target, codebook, lock, t_start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, out=out,
+                                collect_embeddings=collect_embeddings, show_progress=show_progress, on_progress=on_progress, cancel=cancel)
+    finally:
+        if lock is not None:  # released by the checkpoint that took it over; here only when the run stopped before making it
+            lock.release()
+
+
+def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t_start: float, *, checkpoint: Path | None,
+                     checkpoint_every: int, out: Path | None, collect_embeddings: bool, show_progress: bool,
+                     on_progress: Callable[[int, int], None] | None, cancel: CancelToken | None) -> RegistrationResult:
+    """`run_registration` once the run's lock is held (`lock`, None without a checkpoint)."""
     if run.options.place != "ray":  # this process renders: its engine loaded before the plan reads its RSS (torch: ~0.4 GB, probe round 11)
         get_engine(run.options.engine).topk_fn()
     memory_base = _check_memory_before_probe(run)
@@ -280,7 +293,7 @@ def run_registration(
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
-        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir)
+        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir, lock=lock)
     elif block < n or aggregator.check:  # blocks replay a log; so does a check, rather than keep every view's pairs in memory
         ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
     else:
