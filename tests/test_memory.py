@@ -121,3 +121,23 @@ def test_the_budget_a_refusal_names_registers_in_a_new_process(tiny_room, tmp_pa
     accepted = register(named.replace(" ", ""))
     assert accepted.returncode == 0, accepted.stderr
     assert (tmp_path / "reg.ply").is_file()
+
+
+def test_trim_heap_gives_freed_memory_back_so_the_plan_does_not_count_it():
+    """Probe round 12: after a fit stage's probe views, 200 of the process's 539 MB were arrays it had
+    freed and the allocator kept; the plan read them as memory in use and refused the budget its own
+    refusal had just named. `_plan_block` trims the heap before it reads the process's memory."""
+    import platform
+
+    from drsplat.memory import current_rss, trim_heap
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("malloc_trim is glibc's; elsewhere trim_heap does nothing")
+    before = current_rss()
+    chunks = [bytearray(b"\1" * (64 << 10)) for _ in range(1600)]  # 100 MB of heap chunks, below mmap's threshold
+    last = chunks[-1]  # held: the heap's top cannot shrink past it, so free() alone gives nothing back
+    del chunks[:-1]
+    held = current_rss()
+    trim_heap()
+    assert held - before > 80 << 20 and held - current_rss() > 80 << 20, (before, held, current_rss())
+    assert last[0] == 1

@@ -39,7 +39,7 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
-from drsplat.memory import current_rss, format_size
+from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
@@ -478,6 +478,7 @@ def _plan_block(run: Run, base: int | None = None) -> int:
     as checked before a fit mode's probe (the larger of it and the process's now is used, so that a
     budget accepted then is accepted now unless the probe held more than was allowed for)."""
     if base is not None:
+        trim_heap()  # the probe's freed arrays are not memory in use
         base = max(base, current_rss())
     plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate,
                            total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
