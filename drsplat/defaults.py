@@ -22,6 +22,7 @@ VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), 
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
 SUPPORT_SCRATCH_BYTES = 64 << 20  # one layer of the check's dense support scratch: a view's masks are summed in runs that keep it within this
 SUPPORT_TABLE_BYTES = 256 << 20  # the check's support tables held in memory; their parts past it spill to disk (registration.supports)
+SUPPORT_READ_BYTES = 32 << 20  # a view's support table larger than this is judged in runs of its masks of at most this (registration.supports)
 SUPPORT_EXTRA_SCRATCH = 64 << 20  # the further layers that let the check sum a view's parts in parallel (the memory plan counts both)
 SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsplat.registration.solve)
 # a synthetic (oracle) dataset's label files, relative to its folder (drsplat.synthetic.write_dataset writes them)

@@ -327,6 +327,49 @@ def test_support_tables_spilled_to_disk_give_the_same_tables_and_verdicts(tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("read_bytes", [24, 24 * 5, 24 * 40])
+def test_views_judged_in_runs_of_their_masks_give_the_same_verdicts(tmp_path, read_bytes):
+    """A view's table past `Supports.read_bytes` is judged a run of masks at a time (one view's own
+    table past the memory cap was merged whole, probe round 12): the like cosine, every mask's own /
+    alt / core and so every verdict are those of the view read whole."""
+    from drsplat.registration import check
+
+    rng = np.random.default_rng(2)
+    n = 47
+    views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 9, True)
+    views[3] = _view("mislabelled", _unit(np.roll(views[3].feats, 1, axis=0)), views[3].gaussians, views[3].masks, views[3].weights)
+    record, clusters = _record(views, n)
+    means = np.ascontiguousarray(clusters.means(), np.float32)
+    numbers = {}
+    kernel = check._own_alt_kernel
+
+    def spy(starts, cl, values, core_values, mass, units, means_, like, own, alt, core):
+        kernel(starts, cl, values, core_values, mass, units, means_, like, own, alt, core)
+        numbers.setdefault(key, []).append((own.copy(), alt.copy(), core.copy()))
+
+    results = {}
+    for key, read in (("whole", 1 << 30), ("runs", read_bytes)):
+        supports = view_supports(record, clusters, n, 13, slots=8, cap=24 * 30, beside=tmp_path / "reg.ply")
+        supports.read_bytes = read
+        runs = [len(list(supports.runs(v))) for v in range(len(supports))]
+        assert (max(runs) > 1) == (key == "runs")
+        check._own_alt_kernel = spy
+        try:
+            results[key] = check._verdicts(supports, means, check.CHECK_MIN_VIEWS, check.CHECK_SUPPORT)
+        finally:
+            check._own_alt_kernel = kernel
+            supports.close()
+    whole, runs = results["whole"], results["runs"]
+    assert whole.dropped > 0 and runs.like == whole.like
+    assert (runs.dropped, runs.judged, runs.present) == (whole.dropped, whole.judged, whole.present)
+    for a, b in zip(runs.keep, whole.keep):
+        np.testing.assert_array_equal(a, b)
+    joined = [np.concatenate(parts) for parts in zip(*numbers["runs"])]
+    for a, b in zip(joined, [np.concatenate(parts) for parts in zip(*numbers["whole"])]):
+        np.testing.assert_array_equal(a, b)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_like_threshold_is_halfway_between_agreement_and_difference():
     """½ (median agreement + median cosine between two masks of one view); None without either."""
     a, b, c = np.eye(3)
@@ -679,6 +722,19 @@ def test_a_registration_whose_support_tables_spill_writes_the_same_file(mislabel
     assert spilled
     assert (tmp_path / "disk" / "reg.ply").read_bytes() == (tmp_path / "mem" / "reg.ply").read_bytes()
     assert sorted(p.name for p in (tmp_path / "disk").iterdir()) == sorted(p.name for p in (tmp_path / "mem").iterdir())
+    # every view's table judged in runs of a few masks (each view's own table past the read limit)
+    monkeypatch.setattr(check, "SUPPORT_READ_BYTES", 24 * 50)
+    runs = []
+    monkeypatch.setattr(check.Supports, "runs", lambda self, view, real=check.Supports.runs: _counted(real(self, view), runs))
+    register(scene, cams[:6], root / "features", tmp_path / "runs" / "reg.ply", options, show_progress=False)
+    assert len(runs) > 2 * 6  # more runs than views, read twice
+    assert (tmp_path / "runs" / "reg.ply").read_bytes() == (tmp_path / "mem" / "reg.ply").read_bytes()
+
+
+def _counted(items, seen: list):
+    for item in items:
+        seen.append(item[0])
+        yield item
 
 
 def test_a_check_without_a_checkpoint_replays_a_temporary_log(mislabelled_room, tmp_path, monkeypatch):

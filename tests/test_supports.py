@@ -86,6 +86,42 @@ def test_every_cap_gives_each_view_the_same_table(tmp_path, cap, seed, hard):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("max_entries", [1, 3, 17, 60, 10_000])
+@pytest.mark.parametrize("cap", [0, 24 * 40, 1 << 30])
+@pytest.mark.parametrize("seed,hard", [(0, False), (3, True)])
+def test_a_view_read_in_runs_of_its_masks_is_its_table(tmp_path, max_entries, cap, seed, hard):
+    """Probe round 12: one view's own table past the memory cap was merged whole (~3x its size). Read in
+    runs of masks, each within max_entries (a mask with more entries alone), the runs tile the masks
+    in order and are the view's merged table; parts still held are spilled first, and a table within
+    max_entries is read whole without spilling. Masks without entries and views without any too."""
+    rng = np.random.default_rng(seed)
+    masks = 8
+    views = [_random_parts(rng, 6, masks, 11, hard) for _ in range(4)]
+    views[2] = [tuple(a[:0] for a in part) for part in views[2]]  # a view without entries
+    tables = SupportTables(4, cap, tmp_path / "reg.ply")
+    for step in range(6):
+        for v in range(4):
+            tables.add(v, views[v][step])
+    for v in range(4):
+        whole = tables.view(v)
+        size = whole[0].shape[0]
+        spilled_before = tables.spilled_bytes
+        ranges = list(tables.view_ranges(v, masks, max_entries))
+        assert ranges[0][0] == 0 and ranges[-1][1] == masks and all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
+        for lo, hi, run in ranges:
+            assert hi > lo and np.all((run[0] >= lo) & (run[0] < hi))
+            assert run[0].shape[0] <= max_entries or hi == lo + 1
+        joined = tuple(np.concatenate([run[i] for _, _, run in ranges]) for i in range(4))
+        for a, b in zip(joined, whole):
+            np.testing.assert_array_equal(a, b)
+        if size <= max_entries:
+            assert len(ranges) == 1 and tables.spilled_bytes == spilled_before
+        else:
+            assert tables.spilled_bytes > 0  # read from the sorted spill files (the view's held parts spilled first)
+    tables.close()
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
     tables = SupportTables(2, 0, tmp_path / "reg.ply")
     tables.add(0, (np.array([0, 1], np.int32), np.array([2, 3], np.int32), np.array([5, 6]), np.array([7, 8])))

@@ -99,7 +99,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, SUPPORT_TABLE_BYTES
+from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_READ_BYTES, SUPPORT_SCRATCH_BYTES, SUPPORT_TABLE_BYTES
 from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
@@ -641,12 +641,15 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
 
 
 def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray,
-                     support: ViewSupport | PartialSupport, scratch: SupportScratch | None = None) -> None:
+                     support: ViewSupport | PartialSupport, scratch: SupportScratch | None = None,
+                     emit: Callable[[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], None] | None = None) -> None:
     """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support's q
     and mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
     Gaussians' slots folded over all views; scratch: reused between calls (None: a new one). The
     terms of q[j, c] are added in Gaussian order, so blocks taken in increasing `lo` give one
-    block's bits."""
+    block's bits. emit: receives each run of masks' entries (mask, cluster, fixed, core) as it is
+    summed, instead of support keeping them (support, empty of entries, then gets the masses only):
+    a view whose table is larger than memory allows is never held whole (`view_supports`)."""
     if not view.gaussians.size:
         return
     rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
@@ -661,7 +664,13 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     for j_lo in range(0, num_masks, step):
         j_hi = min(num_masks, j_lo + step)
         inside = entries if step >= num_masks else tuple(e[(entries[0] >= j_lo) & (entries[0] < j_hi)] for e in entries)
-        runs.append(_support_kernel(*pairs, *inside, *scratch.take(j_hi - j_lo), support.mass_fixed, j_lo))
+        run = _support_kernel(*pairs, *inside, *scratch.take(j_hi - j_lo), support.mass_fixed, j_lo)
+        if emit is not None:
+            emit(run)
+        else:
+            runs.append(run)
+    if emit is not None:
+        return
     support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = (
         runs[0] if len(runs) == 1 else tuple(np.concatenate(column) for column in zip(*runs)))
 
@@ -716,8 +725,11 @@ class Supports(Sequence):
     under a memory cap and spilled beyond it; the masses [M] int64 and unit embeddings [M, D] of
     each view kept in memory. `close` removes the spill files."""
 
-    def __init__(self, tables: SupportTables, mass_fixed: list[np.ndarray], units: list[np.ndarray], num_clusters: int):
+    def __init__(self, tables: SupportTables, mass_fixed: list[np.ndarray], units: list[np.ndarray], num_clusters: int,
+                 read_bytes: int | None = None):
         self.tables, self.mass_fixed, self.units, self.num_clusters = tables, mass_fixed, units, num_clusters
+        # a view's table larger than this is judged in runs of its masks (`runs`)
+        self.read_bytes = SUPPORT_READ_BYTES if read_bytes is None else read_bytes
 
     @classmethod
     def empty(cls, feats: list[np.ndarray], per_view: list[np.ndarray], num_clusters: int, cap: int | None = None,
@@ -748,6 +760,14 @@ class Supports(Sequence):
             raise IndexError(view)
         view %= len(self)
         return ViewSupport(*self.tables.view(view), self.num_clusters, self.mass_fixed[view], self.units[view], is_sorted=True)
+
+    def runs(self, view: int) -> Iterator[tuple[int, ViewSupport]]:
+        """View `view`'s support in runs of its masks: (lo, the ViewSupport of masks lo .. lo + m - 1,
+        numbered from 0), each table within `read_bytes` (`SupportTables.view_ranges`; one run when the
+        whole table is). Every mask's entries and sums are those of `supports[view]`."""
+        mass, units = self.mass_fixed[view], self.units[view]
+        for lo, hi, (mask, cluster, fixed, core) in self.tables.view_ranges(view, mass.shape[0], max(1, self.read_bytes // ENTRY.itemsize)):
+            yield lo, ViewSupport(mask - np.int32(lo), cluster, fixed, core, self.num_clusters, mass[lo:hi], units[lo:hi], is_sorted=True)
 
     def close(self) -> None:
         self.tables.close()
@@ -882,8 +902,8 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
         for v, (view, c) in enumerate(zip(source.block_views(lo, hi), clusters.per_view)):
             part = PartialSupport.empty(c.shape[0])
-            add_view_support(view, lo, c, slot_c, slot_v, part, scratch)
-            supports.add(v, part)
+            add_view_support(view, lo, c, slot_c, slot_v, part, scratch, emit=lambda run, v=v: supports.tables.add(v, run))
+            supports.add(v, part)  # its masses
         del slot_c, slot_v  # the next block's slots replace them
     return supports
 
@@ -907,27 +927,46 @@ def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndar
     return first | second, second
 
 
+def _mass_and_units(supports: Sequence[ViewSupport], view: int) -> tuple[np.ndarray, np.ndarray]:
+    """View `view`'s masses [M] float64 and unit embeddings [M, D], without reading its table."""
+    if isinstance(supports, Supports):
+        return supports.mass_fixed[view] / SUPPORT_SCALE, supports.units[view]
+    return supports[view].mass, supports[view].units
+
+
+def _support_runs(supports: Sequence[ViewSupport], view: int) -> Iterator[tuple[int, ViewSupport]]:
+    """View `view`'s support as (first mask, ViewSupport) runs of its masks (`Supports.runs`), or whole."""
+    if isinstance(supports, Supports):
+        yield from supports.runs(view)
+    else:
+        yield 0, supports[view]
+
+
 def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: float, min_share: float, spilled: int = 0) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask. Two
-    passes over the views, one view's table at a time (Supports merges it when read). spilled:
+    passes over the views, one view's table at a time (Supports merges it when read; a table past
+    its `read_bytes` a run of masks at a time, each mask's numbers the same). spilled:
     bytes of the tables' parts spilled to disk (logged)."""
     agreements, masses, units, entries = [], [], [], 0
-    for sup in supports:
-        mass = sup.mass
+    for v in range(len(supports)):
+        mass, unit = _mass_and_units(supports, v)
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
-        _agreement_kernel(*sup.rows()[:3], mass, sup.units, means, agree, total)
-        agreements.append(agree[(total >= min_views) & (np.linalg.norm(sup.units, axis=1) > 0)])
+        for lo, sup in _support_runs(supports, v):
+            hi = lo + sup.mass_fixed.shape[0]
+            _agreement_kernel(*sup.rows()[:3], sup.mass, sup.units, means, agree[lo:hi], total[lo:hi])
+            entries += sup.num_entries
+        agreements.append(agree[(total >= min_views) & (np.linalg.norm(unit, axis=1) > 0)])
         masses.append(mass)
-        units.append(sup.units)
-        entries += sup.num_entries
+        units.append(unit)
     _log_supports(sum(m.shape[0] for m in masses), means.shape[0], entries, spilled)
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units, rows=[m > 0 for m in masses])
     keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
     for v, mass in enumerate(masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
-            sup = supports[v]
-            _own_alt_kernel(*sup.rows(), mass, sup.units, means, like, own, alt, core)
+            for lo, sup in _support_runs(supports, v):
+                hi = lo + sup.mass_fixed.shape[0]
+                _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own[lo:hi], alt[lo:hi], core[lo:hi])
         drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share)
         judge = (mass > 0) & (alt >= min_views)
         keep.append(~drop)
