@@ -126,18 +126,25 @@ def test_the_budget_a_refusal_names_registers_in_a_new_process(tiny_room, tmp_pa
 def test_trim_heap_gives_freed_memory_back_so_the_plan_does_not_count_it():
     """Probe round 12: after a fit stage's probe views, 200 of the process's 539 MB were arrays it had
     freed and the allocator kept; the plan read them as memory in use and refused the budget its own
-    refusal had just named. `_plan_block` trims the heap before it reads the process's memory."""
+    refusal had just named. `_plan_block` trims the heap before it reads the process's memory. (In a
+    fresh interpreter: in the test process, earlier tests' freed heap would take the allocations.)"""
     import platform
-
-    from drsplat.memory import current_rss, trim_heap
+    import subprocess
+    import sys
 
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("malloc_trim is glibc's; elsewhere trim_heap does nothing")
-    before = current_rss()
-    chunks = [bytearray(b"\1" * (64 << 10)) for _ in range(1600)]  # 100 MB of heap chunks, below mmap's threshold
-    last = chunks[-1]  # held: the heap's top cannot shrink past it, so free() alone gives nothing back
-    del chunks[:-1]
-    held = current_rss()
-    trim_heap()
-    assert held - before > 80 << 20 and held - current_rss() > 80 << 20, (before, held, current_rss())
-    assert last[0] == 1
+    script = (
+        "from drsplat.memory import current_rss, trim_heap\n"
+        "before = current_rss()\n"
+        "chunks = [bytearray(b'\\1' * (64 << 10)) for _ in range(1600)]  # 100 MB of heap chunks, below mmap's threshold\n"
+        "last = chunks[-1]  # held: the heap's top cannot shrink past it, so free() alone gives nothing back\n"
+        "del chunks[:-1]\n"
+        "held = current_rss()\n"
+        "trim_heap()\n"
+        "print(before, held, current_rss(), last[0])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    before, held, trimmed, first = map(int, out.stdout.split())
+    assert held - before > 80 << 20 and held - trimmed > 80 << 20 and first == 1, (before, held, trimmed)
