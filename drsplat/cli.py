@@ -60,8 +60,7 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-INTERRUPTED_NOTE = ("no partial output file was left; what register and features had finished is kept, and the same command "
-                    "resumes from it")
+INTERRUPTED_NOTE = "no partial output file was left"  # a command that resumes says more (`commands.common.RESUMABLE_NOTE`)
 
 
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
@@ -81,10 +80,10 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             result = args.func(args)
     except Cancelled as exc:
-        log.error("%s; %s", exc, INTERRUPTED_NOTE)
+        log.error("%s; %s", exc, getattr(args, "interrupted_note", INTERRUPTED_NOTE))
         return 1
     except KeyboardInterrupt:
-        log.error("interrupted; %s", INTERRUPTED_NOTE)
+        log.error("interrupted; %s", getattr(args, "interrupted_note", INTERRUPTED_NOTE))
         return 1
     except UsageError as exc:
         parser.print_usage(sys.stderr)

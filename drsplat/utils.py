@@ -9,6 +9,7 @@ import math
 import os
 import tempfile
 import threading
+import time
 import unicodedata
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -578,14 +579,18 @@ ABORT_GRACE_SECONDS = 2.0  # after a second Ctrl-C, how long the main thread has
 def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Iterator[None]:
     """Ctrl-C or SIGTERM cancels cleanly (the worker checks `token`); a second Ctrl-C aborts at once.
 
-    Python runs a signal's handler only between bytecodes of the main thread, and a numba kernel
-    holds that thread for as long as it runs (seconds on a large view), coalescing the signals that
-    arrive meanwhile into one call: the second Ctrl-C would be lost. So the signals are also written
-    to a wakeup pipe that a watchdog thread reads (`signal.set_wakeup_fd`): at the second one it
-    gives the main thread ABORT_GRACE_SECONDS to raise KeyboardInterrupt and clean up, then ends
-    the process with exit code 1 (temp files left beside an output are swept by the next run that
-    writes it; a checkpoint stays resumable, as after a kill). Outside the main thread signal
-    handlers cannot be installed and this does nothing.
+    The second raises KeyboardInterrupt in the main thread, whose clean-up keeps what a resumable
+    job has done; signals after it are ignored by the handler, so that clean-up is not cut short
+    (a third Ctrl-C ends the process: below). Python runs a signal's handler only between bytecodes
+    of the main thread, and coalesces the signals that arrive meanwhile into one call: while a
+    numba kernel holds that thread (seconds on a large view) the second Ctrl-C would be lost, and
+    two that arrive together give one call. So the signals are also written to a wakeup pipe that
+    a watchdog thread reads (`signal.set_wakeup_fd`): at the second it asks the main thread for
+    the handler once more (`_thread.interrupt_main`: two coalesced signals then raise), and if the
+    main thread has not raised within ABORT_GRACE_SECONDS (a kernel still runs) it ends the
+    process with exit code 1, as it does at a third signal. Temp files left beside an output are
+    swept by the next run that writes it; a checkpoint stays as of its last snapshot, as after a
+    kill. Outside the main thread signal handlers cannot be installed and this does nothing.
     """
     import signal
 
@@ -593,9 +598,13 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    raised = threading.Event()  # the main thread raised KeyboardInterrupt: it is cleaning up
 
     def handler(signum, frame):
+        if raised.is_set():
+            return
         if token.cancelled:
+            raised.set()
             raise KeyboardInterrupt
         name = "Ctrl-C" if signum == signal.SIGINT else "SIGTERM"
         log.warning("%s: stopping after %s (Ctrl-C again to abort at once)", name, what)
@@ -604,7 +613,7 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
     read_end, write_end = os.pipe()
     os.set_blocking(write_end, False)
     done = threading.Event()
-    watchdog = threading.Thread(target=_abort_on_second_signal, args=(read_end, {int(sig) for sig in previous}, done),
+    watchdog = threading.Thread(target=_abort_on_repeated_signals, args=(read_end, {int(sig) for sig in previous}, raised, done),
                                 name="drsplat-abort-watchdog", daemon=True)
     previous_wakeup = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
     for sig in previous:
@@ -613,18 +622,23 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
     try:
         yield
     finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-        signal.set_wakeup_fd(previous_wakeup)
         done.set()
-        os.close(write_end)  # the watchdog reads end-of-file and returns
-        watchdog.join()
-        os.close(read_end)
+        try:
+            signal.set_wakeup_fd(previous_wakeup)
+            os.close(write_end)  # the watchdog reads end-of-file and returns
+            watchdog.join()
+        finally:  # after the watchdog's last interrupt_main was handled here, not by the handlers restored
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+            os.close(read_end)
 
 
-def _abort_on_second_signal(read_end: int, signals: set[int], done: threading.Event) -> None:
-    """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup
-    pipe and, at the second, ends the process unless the context is left within the grace time."""
+def _abort_on_repeated_signals(read_end: int, signals: set[int], raised: threading.Event, done: threading.Event) -> None:
+    """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup pipe.
+    At the second it makes the main thread run the handler again and waits ABORT_GRACE_SECONDS for
+    it to raise; the process ends if it has not (a kernel holds the main thread), or at a third."""
+    import _thread
+
     count = 0
     while not done.is_set():
         try:
@@ -633,11 +647,16 @@ def _abort_on_second_signal(read_end: int, signals: set[int], done: threading.Ev
             return
         if not data:
             return
-        count += sum(1 for byte in data if byte in signals)
-        if count >= 2:
-            if done.wait(ABORT_GRACE_SECONDS):
-                return
-            log.error("aborted at once by a second Ctrl-C (a kernel was running); a checkpoint is kept and the same command "
-                      "resumes from it, and temp files left beside the output are removed by the next run that writes it")
+        before, count = count, count + sum(1 for byte in data if byte in signals)
+        if before < 2 <= count and not raised.is_set():
+            _thread.interrupt_main()  # two signals coalesced into one handler call: the main thread raises now
+            deadline = time.monotonic() + ABORT_GRACE_SECONDS
+            while not (raised.is_set() or done.is_set()) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if raised.is_set() or done.is_set():
+                continue
+        if count >= 2 and not done.is_set() and (count >= 3 or not raised.is_set()):
+            log.error("aborted at once by a repeated Ctrl-C; a checkpoint beside the output stays as of its last snapshot and the "
+                      "same command resumes from it, and temp files left beside the output are removed by the next run that writes it")
             logging.shutdown()
             os._exit(1)

@@ -242,6 +242,65 @@ def test_an_output_folder_that_takes_no_file_is_one_error_naming_the_folder(tiny
     assert ".lock" not in err and list(folder.iterdir()) == []
 
 
+def test_a_run_into_a_symlink_and_one_into_its_target_share_one_lock(tiny, tmp_path, capsys):
+    """Probe round 13: the lock was named after the link, so a run into `link.ply -> out/reg.ply` and
+    one into `out/reg.ply` took two locks and both wrote the same file."""
+    from drsplat.registration.checkpoint import RunLock, lock_path_for
+
+    (tmp_path / "out").mkdir()
+    (tmp_path / "links").mkdir()
+    target = tmp_path / "out" / "reg.ply"
+    link = tmp_path / "links" / "link.ply"
+    link.symlink_to(target)
+    assert checkpoint_path_for(link) == checkpoint_path_for(target)
+    holder = RunLock.acquire(lock_path_for(checkpoint_path_for(target)), "reg.ply")
+    try:
+        assert main(_args(tiny, link)) == 1
+        assert "another registration is writing reg.ply" in capsys.readouterr().err
+    finally:
+        holder.release()
+    assert main(_args(tiny, link)) == 0 and link.is_symlink() and target.is_file()
+
+
+@pytest.mark.parametrize("fault", ["create", "remove"])
+def test_a_folder_that_keeps_or_refuses_files_is_refused_before_any_work(tiny, tmp_path, monkeypatch, capsys, fault):
+    """Probe round 13: a folder that takes no new file but holds a killed run's lock file (chattr +i)
+    let the lock open and failed after the fit stage, naming the lock; an append-only folder
+    (chattr +a) ran the whole registration and then failed to rename the output into place, again
+    naming the lock. Both are now refused when the lock is taken, naming the folder."""
+    from drsplat.registration import checkpoint
+
+    folder = tmp_path / "odd"
+    folder.mkdir()
+    lock = checkpoint.lock_path_for(checkpoint_path_for(folder / "reg.ply"))
+    lock.touch()  # a killed run's
+    real_open, real_unlink = os.open, os.unlink
+
+    def open_(path, flags, *args, **kwargs):
+        if fault == "create" and Path(path).parent == folder and not Path(path).exists():
+            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    def unlink(path, *args, **kwargs):
+        if fault == "remove" and Path(path).parent == folder:
+            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(path))
+        return real_unlink(path, *args, **kwargs)
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the fit stage ran before the folder was checked")
+
+    monkeypatch.setattr(checkpoint.os, "open", open_)
+    monkeypatch.setattr(checkpoint.os, "unlink", unlink)
+    import drsplat.registration.driver as driver
+
+    monkeypatch.setattr(driver, "_fit_stage", no_fit)
+    assert main(_args(tiny, folder / "reg.ply")) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    words = "the folder takes no new file" if fault == "create" else "files made in the folder cannot be removed or renamed"
+    assert f"cannot write {folder}: {words}" in err and "operation not permitted" in err and "another folder" in err
+
+
 def test_a_restart_names_what_changed_and_leaves_no_stale_statistics(tiny, tmp_path, monkeypatch, capsys):
     out = tmp_path / "reg.ply"
     _stopped_after_five_views(tiny, out, monkeypatch)  # the default mode: a statistics snapshot may be beside the log

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import int_range, nonneg_int, resolution_value
+from drsplat.commands.common import RESUMABLE_NOTE, int_range, nonneg_int, resolution_value
 from drsplat.errors import OutputError
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
@@ -52,7 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "running cluster (host:port or 'auto'), or no value to start a local one. With --device cuda each worker "
                    "requests one GPU. Same files, resumable")
     p.add_argument("--ray-workers", type=int_range(1, 4096), default=None, metavar="N", help="Ray workers (default: the cluster's CPUs)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, interrupted_note=RESUMABLE_NOTE)
 
 
 def refuse_image_folder(out: Path, cameras) -> None:

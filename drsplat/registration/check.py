@@ -870,7 +870,7 @@ def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, 
     if supports is None:
         supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, beside)
     try:
-        return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes)
+        return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes, cancel)
     finally:
         supports.close()
 
@@ -942,16 +942,20 @@ def _support_runs(supports: Sequence[ViewSupport], view: int) -> Iterator[tuple[
         yield 0, supports[view]
 
 
-def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: float, min_share: float, spilled: int = 0) -> MaskVerdicts:
+def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: float, min_share: float, spilled: int = 0,
+              cancel: CancelToken | None = None) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask. Two
     passes over the views, one view's table at a time (Supports merges it when read; a table past
-    its `read_bytes` a run of masks at a time, each mask's numbers the same). spilled:
+    its `read_bytes` a run of masks at a time, each mask's numbers the same; `cancel` checked before
+    each run: a Ctrl-C after the last view waited for the whole judging, probe round 13). spilled:
     bytes of the tables' parts spilled to disk (logged)."""
     agreements, masses, units, entries = [], [], [], 0
     for v in range(len(supports)):
         mass, unit = _mass_and_units(supports, v)
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         for lo, sup in _support_runs(supports, v):
+            if cancel is not None:
+                cancel.raise_if_cancelled()
             hi = lo + sup.mass_fixed.shape[0]
             _agreement_kernel(*sup.rows()[:3], sup.mass, sup.units, means, agree[lo:hi], total[lo:hi])
             entries += sup.num_entries
@@ -965,6 +969,8 @@ def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: flo
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
             for lo, sup in _support_runs(supports, v):
+                if cancel is not None:
+                    cancel.raise_if_cancelled()
                 hi = lo + sup.mass_fixed.shape[0]
                 _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own[lo:hi], alt[lo:hi], core[lo:hi])
         drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share)

@@ -39,7 +39,8 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import TEMP_SUFFIX, atomic_path, file_stamp, os_error_cause, read_npy_header, temp_prefix, temp_stem, work_folder
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, os_error_cause, output_target, read_npy_header, temp_prefix, temp_stem,
+                           work_folder)
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +50,10 @@ CHECKPOINT_EVERY = 10  # views between fsyncs of the log and snapshots of a mode
 
 def checkpoint_path_for(out: str | Path) -> Path:
     """The hidden resumable checkpoint (pair log) of a registration that writes `out` (beside it; in the
-    temp folder for a device or FIFO output, `drsplat.utils.work_folder`)."""
-    out = Path(out)
-    return work_folder(out) / f".{temp_stem(out)}.register.log"  # temp_stem: a long name leaves room for the suffixes
+    temp folder for a device or FIFO output, `drsplat.utils.work_folder`), named after where `out`
+    lands: a symlink's target, so that a run into the link and one into the file share one lock
+    (named after the link, both ran and wrote the same file; probe round 13)."""
+    return work_folder(out) / f".{temp_stem(output_target(out))}.register.log"  # temp_stem: a long name leaves room for the suffixes
 
 
 def aggregate_stats_path(checkpoint: Path) -> Path:
@@ -125,13 +127,14 @@ class RunLock:
 
     @classmethod
     def acquire(cls, path: Path, what: str) -> "RunLock":
-        """DrsplatError naming `what` when another process holds the lock."""
+        """DrsplatError naming `what` when another process holds the lock; OutputError naming the
+        folder when it cannot hold the run's files (`_check_folder`)."""
         refuse_odd_entry(path)
         while True:
             problem = "the folder cannot be made"
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                problem = "the folder takes no new file"
+                problem = f"its file {path.name} cannot be opened for writing" if path.exists() else "the folder takes no new file"
                 fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
             except OSError as exc:
                 raise OutputError(path.parent, f"{problem} ({os_error_cause(exc)}), and a registration keeps its checkpoint and "
@@ -144,16 +147,43 @@ class RunLock:
                                    "another output") from None
             try:  # the holder we waited for may have removed the file: then lock the new one
                 if os.stat(path).st_ino == os.fstat(fd).st_ino:
-                    return cls(path, fd)
+                    lock = cls(path, fd)
+                    break
             except FileNotFoundError:
                 pass
             os.close(fd)
+        try:
+            lock._check_folder(what)
+        except BaseException:
+            lock.release()
+            raise
+        return lock
+
+    def _check_folder(self, what: str) -> None:
+        """OutputError unless the lock's folder takes a new file and lets it be removed: a lock file
+        left by a killed run opens in a folder that takes no new file (`chattr +i`), and an
+        append-only folder (`chattr +a`) takes files but never lets the output's temp file be renamed
+        into place; either way the run failed only after its work (probe round 13)."""
+        probe = self.path.with_name(self.path.name + ".probe")
+        problem = "the folder takes no new file"
+        try:
+            os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644))
+            problem = "files made in the folder cannot be removed or renamed, as in an append-only folder"
+            os.unlink(probe)
+        except OSError as exc:
+            raise OutputError(self.path.parent, f"{problem} ({os_error_cause(exc)}), and a registration keeps its checkpoint and "
+                              f"lock there and renames its output into place, beside {what}; write the output to another "
+                              "folder") from None
 
     def release(self) -> None:
+        """Unlock and remove the lock file (a lock file that cannot be removed stays: the next run takes
+        it; the error that ended the run, if any, is the one worth reporting)."""
         if self._fd < 0:
             return
         try:
             self.path.unlink(missing_ok=True)
+        except OSError as exc:
+            log.debug("%s was not removed (%s)", self.path, os_error_cause(exc))
         finally:
             os.close(self._fd)
             self._fd = -1
