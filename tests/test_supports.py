@@ -55,6 +55,10 @@ def test_merged_parts_are_the_reference_sums_sorted_once(seed, hard):
     assert [a.dtype for a in merged] == [np.int32, np.int32, np.int64, np.int64]
     for a, b in zip(merge_entries(parts[::-1]), merged):  # any order of the parts: the same arrays
         np.testing.assert_array_equal(a, b)
+    taken = list(parts)
+    for a, b in zip(merge_entries(taken, consume=True), merged):  # consumed: the list emptied, the same arrays
+        np.testing.assert_array_equal(a, b)
+    assert taken == [] and len(parts) == 12
     assert all(a.size == 0 for a in merge_entries([]))
     assert all(a.size == 0 for a in merge_entries([no_entries(), no_entries()]))
 
