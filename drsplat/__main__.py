@@ -1,9 +1,9 @@
 import sys
 
 try:
-    from drsplat.cli import main
+    from drsplat.cli import entry
 except KeyboardInterrupt:  # Ctrl-C while Python imports the command line: before any command ran
     sys.stderr.write("drsplat: interrupted while starting; nothing was done\n")
     raise SystemExit(1) from None
 
-raise SystemExit(main())
+entry()

@@ -108,6 +108,18 @@ def main(argv: list[str] | None = None) -> int:
     return int(result or 0)
 
 
+def entry() -> None:
+    """The `drsplat` command (console script and `python -m drsplat`): `main`, then its exit code.
+    Ctrl-C or SIGTERM while the interpreter then shuts down (0.1-0.8 s) is ignored: the command's
+    work is done, and such a signal killed the process with status 130 / 143 and no message, after
+    a successful run too (probe round 14)."""
+    code = main()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    sys.exit(code)
+
+
 @contextlib.contextmanager
 def sigterm_as_interrupt():
     """SIGTERM raises KeyboardInterrupt like Ctrl-C, so atomic writes clean up their temp files.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import logging
 import math
@@ -181,6 +182,11 @@ def output_target(path: str | Path) -> Path:
     """Where writing `path` lands: a symlink's resolved target (the link itself stays), else `path`."""
     path = Path(path)
     if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:  # dangling is fine (the target is made); a loop would be replaced by a file (probe round 14)
+            if exc.errno == errno.ELOOP:
+                raise OutputError(path, "it is a loop of symbolic links (or a chain too long to follow)") from None
         return Path(os.path.realpath(path))
     return path
 
@@ -572,25 +578,24 @@ def os_error_cause(exc: OSError) -> str:
 
 # ----------------------------------------------------------------------------- signals
 
-ABORT_GRACE_SECONDS = 2.0  # after a second Ctrl-C, how long the main thread has to raise and clean up itself
+ABORT_GRACE_SECONDS = 2.0  # after a second Ctrl-C, how long the cancelled job has to end by itself
 
 
 @contextlib.contextmanager
 def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Iterator[None]:
-    """Ctrl-C or SIGTERM cancels cleanly (the worker checks `token`); a second Ctrl-C aborts at once.
+    """Ctrl-C or SIGTERM cancels cleanly (the worker checks `token`); a second one aborts.
 
-    The second raises KeyboardInterrupt in the main thread, whose clean-up keeps what a resumable
-    job has done; signals after it are ignored by the handler, so that clean-up is not cut short
-    (a third Ctrl-C ends the process: below). Python runs a signal's handler only between bytecodes
-    of the main thread, and coalesces the signals that arrive meanwhile into one call: while a
-    numba kernel holds that thread (seconds on a large view) the second Ctrl-C would be lost, and
-    two that arrive together give one call. So the signals are also written to a wakeup pipe that
-    a watchdog thread reads (`signal.set_wakeup_fd`): at the second it asks the main thread for
-    the handler once more (`_thread.interrupt_main`: two coalesced signals then raise), and if the
-    main thread has not raised within ABORT_GRACE_SECONDS (a kernel still runs) it ends the
-    process with exit code 1, as it does at a third signal. Temp files left beside an output are
-    swept by the next run that writes it; a checkpoint stays as of its last snapshot, as after a
-    kill. Outside the main thread signal handlers cannot be installed and this does nothing.
+    The handler never raises: Python runs it between any two bytecodes of the main thread,
+    numba's own dispatch code included, where a KeyboardInterrupt became a chain of SystemError
+    tracebacks (probe round 14). The first signal cancels, and the job stops at its next check
+    (the view, the block, the check's run of masks) keeping what it finished. Python coalesces the
+    signals that arrive while a kernel holds the main thread into one handler call, so the signals
+    are also written to a wakeup pipe that a watchdog thread reads (`signal.set_wakeup_fd`): from
+    the second on, it gives the cancelled job ABORT_GRACE_SECONDS to end by itself and then ends
+    the process with exit code 1 and one line (a third ends it at once). Temp files left beside an
+    output are swept by the next run that writes it; a checkpoint stays as of its last snapshot,
+    as after a kill. Outside the main thread signal handlers cannot be installed and this does
+    nothing.
     """
     import signal
 
@@ -598,22 +603,18 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    raised = threading.Event()  # the main thread raised KeyboardInterrupt: it is cleaning up
 
     def handler(signum, frame):
-        if raised.is_set():
-            return
         if token.cancelled:
-            raised.set()
-            raise KeyboardInterrupt
+            return  # the watchdog counts it
         name = "Ctrl-C" if signum == signal.SIGINT else "SIGTERM"
-        log.warning("%s: stopping after %s (Ctrl-C again to abort at once)", name, what)
+        log.warning("%s: stopping after %s (Ctrl-C again to abort)", name, what)
         token.cancel()
 
     read_end, write_end = os.pipe()
     os.set_blocking(write_end, False)
     done = threading.Event()
-    watchdog = threading.Thread(target=_abort_on_repeated_signals, args=(read_end, {int(sig) for sig in previous}, raised, done),
+    watchdog = threading.Thread(target=_abort_on_repeated_signals, args=(read_end, {int(sig) for sig in previous}, done),
                                 name="drsplat-abort-watchdog", daemon=True)
     previous_wakeup = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
     for sig in previous:
@@ -623,23 +624,20 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
         yield
     finally:
         done.set()
-        try:
-            signal.set_wakeup_fd(previous_wakeup)
-            os.close(write_end)  # the watchdog reads end-of-file and returns
-            watchdog.join()
-        finally:  # after the watchdog's last interrupt_main was handled here, not by the handlers restored
-            for sig, old in previous.items():
-                signal.signal(sig, old)
-            os.close(read_end)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+        signal.set_wakeup_fd(previous_wakeup)
+        os.close(write_end)  # the watchdog reads end-of-file and returns
+        watchdog.join()
+        os.close(read_end)
 
 
-def _abort_on_repeated_signals(read_end: int, signals: set[int], raised: threading.Event, done: threading.Event) -> None:
-    """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup pipe.
-    At the second it makes the main thread run the handler again and waits ABORT_GRACE_SECONDS for
-    it to raise; the process ends if it has not (a kernel holds the main thread), or at a third."""
-    import _thread
-
+def _abort_on_repeated_signals(read_end: int, signals: set[int], done: threading.Event) -> None:
+    """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup pipe;
+    from the second, ends the process unless the job ends within ABORT_GRACE_SECONDS (at once from
+    the third)."""
     count = 0
+    deadline = None
     while not done.is_set():
         try:
             data = os.read(read_end, 64)
@@ -647,16 +645,27 @@ def _abort_on_repeated_signals(read_end: int, signals: set[int], raised: threadi
             return
         if not data:
             return
-        before, count = count, count + sum(1 for byte in data if byte in signals)
-        if before < 2 <= count and not raised.is_set():
-            _thread.interrupt_main()  # two signals coalesced into one handler call: the main thread raises now
+        count += sum(1 for byte in data if byte in signals)
+        if count < 2:
+            continue
+        if deadline is None:
             deadline = time.monotonic() + ABORT_GRACE_SECONDS
-            while not (raised.is_set() or done.is_set()) and time.monotonic() < deadline:
-                time.sleep(0.01)
-            if raised.is_set() or done.is_set():
-                continue
-        if count >= 2 and not done.is_set() and (count >= 3 or not raised.is_set()):
-            log.error("aborted at once by a repeated Ctrl-C; a checkpoint beside the output stays as of its last snapshot and the "
-                      "same command resumes from it, and temp files left beside the output are removed by the next run that writes it")
-            logging.shutdown()
-            os._exit(1)
+        if count == 2:
+            threading.Thread(target=_abort_after, args=(deadline, done), name="drsplat-abort-timer", daemon=True).start()
+            continue
+        _abort(done)
+
+
+def _abort_after(deadline: float, done: threading.Event) -> None:
+    if not done.wait(max(0.0, deadline - time.monotonic())):
+        _abort(done)
+
+
+def _abort(done: threading.Event) -> None:
+    """End the process now (a repeated Ctrl-C), unless the job ended meanwhile."""
+    if done.is_set():
+        return
+    log.error("aborted by a repeated Ctrl-C; a checkpoint beside the output stays as of its last snapshot and the same command "
+              "resumes from it, and temp files left beside the output are removed by the next run that writes it")
+    logging.shutdown()
+    os._exit(1)

@@ -953,16 +953,32 @@ def test_ctrl_c_while_python_imports_is_one_line(where):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
-def test_second_interrupt_aborts_at_once():
+def test_interrupts_never_raise_inside_the_job_and_a_job_that_ends_in_time_is_not_aborted():
+    """Probe round 14: the second Ctrl-C raised KeyboardInterrupt wherever the main thread was, numba's
+    dispatch code included (a chain of SystemError tracebacks). The handler now only cancels; a job
+    that ends within the grace time after the second signal is left to end (here, in this process:
+    an abort would end the test run)."""
+    import numba
+
     from drsplat.utils import CancelToken, cancel_on_signals
 
+    @numba.njit
+    def total(n):
+        x = 0.0
+        for i in range(n):
+            x += i
+        return x
+
+    previous = signal.getsignal(signal.SIGTERM)
     token = CancelToken()
-    with pytest.raises(KeyboardInterrupt), cancel_on_signals(token):
+    with cancel_on_signals(token):
         os.kill(os.getpid(), signal.SIGTERM)
         assert token.cancelled
         os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(1)
-    assert signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, signal.default_int_handler) or callable(signal.getsignal(signal.SIGTERM))
+        for _ in range(50):  # numba calls and bytecodes while both signals are handled: nothing raises
+            assert total(1000) == 499500.0
+            time.sleep(0.01)
+    assert signal.getsignal(signal.SIGTERM) is previous
 
 
 def test_second_interrupt_aborts_a_running_numba_kernel():
@@ -995,13 +1011,13 @@ def test_second_interrupt_aborts_a_running_numba_kernel():
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 1, proc.stderr
     assert "the kernel ran to its end" not in proc.stdout
-    assert "aborted at once by a repeated Ctrl-C" in proc.stderr and "Traceback" not in proc.stderr
+    assert "aborted by a repeated Ctrl-C" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_two_interrupts_during_a_short_kernel_raise_in_the_main_thread_not_abort():
-    """Probe round 13: two Ctrl-Cs that arrived during a short kernel reached one handler call (which
-    only cancels), and the watchdog then ended the process although the main thread was free, so
-    the clean-up that keeps a resumable job's state never ran. Now the main thread raises."""
+def test_two_interrupts_during_a_short_kernel_let_the_cancelled_job_end_by_itself():
+    """Probe round 13: two Ctrl-Cs that arrived during a short kernel reached one handler call, and
+    the watchdog then ended the process although the job was stopping by itself, before it had kept
+    its state. The job now has the grace time to end (it checks its token after the kernel)."""
     script = textwrap.dedent("""
         import os, signal, threading, time
         import numba
@@ -1019,44 +1035,38 @@ def test_two_interrupts_during_a_short_kernel_raise_in_the_main_thread_not_abort
             time.sleep(0.2); os.kill(os.getpid(), signal.SIGINT); time.sleep(0.1); os.kill(os.getpid(), signal.SIGINT)
         token = CancelToken()
         threading.Thread(target=press_twice, daemon=True).start()
-        try:
-            with cancel_on_signals(token, "the current view"):
-                spin(2_000_000_000)  # about a second: both signals arrive inside it
-                for _ in range(500):
-                    time.sleep(0.01)
-            print("ran to the end")
-        except KeyboardInterrupt:
-            print("cleaned up after KeyboardInterrupt, cancelled:", token.cancelled)
+        with cancel_on_signals(token, "the current view"):
+            spin(2_000_000_000)  # about a second: both signals arrive inside it
+            for _ in range(500):
+                if token.cancelled:
+                    print("stopped by itself", flush=True)
+                    break
+                time.sleep(0.01)
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
-    assert "cleaned up after KeyboardInterrupt, cancelled: True" in proc.stdout and "aborted" not in proc.stderr
+    assert "stopped by itself" in proc.stdout and "aborted" not in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_a_third_interrupt_during_the_clean_up_ends_the_process_without_a_traceback():
-    """Probe round 13: a third Ctrl-C during the clean-up after the second raised again inside it (an
-    `Exception ignored in RunLock.__del__` traceback, or a death by SIGINT). Now the handler lets the
-    clean-up run, and a third Ctrl-C ends the process at once, with one line."""
+def test_a_third_interrupt_ends_the_process_without_a_traceback():
+    """Probe round 13: a third Ctrl-C during the clean-up raised again inside it (an `Exception ignored
+    in RunLock.__del__` traceback, or a death by SIGINT). Now the handler never raises, and the third
+    signal ends the process with one line."""
     script = textwrap.dedent("""
         import os, signal, time
         from drsplat.utils import CancelToken, cancel_on_signals
 
         with cancel_on_signals(CancelToken(), "the current view"):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.2)
-            try:
+            for _ in range(3):
                 os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(5)
-            finally:
-                print("cleaning up", flush=True)
-                os.kill(os.getpid(), signal.SIGINT)  # during the clean-up: not raised there, the process ends
-                time.sleep(60)
-                print("the clean-up ran to its end", flush=True)
+                time.sleep(0.05)
+            time.sleep(60)
+            print("ran on", flush=True)
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 1, proc.stderr
-    assert proc.stdout.split() == ["cleaning", "up"]
-    assert "aborted at once by a repeated Ctrl-C" in proc.stderr and "Traceback" not in proc.stderr
+    assert "ran on" not in proc.stdout
+    assert "aborted by a repeated Ctrl-C" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 2  # the first Ctrl-C's warning, the abort
 
 

@@ -301,6 +301,30 @@ def test_a_folder_that_keeps_or_refuses_files_is_refused_before_any_work(tiny, t
     assert f"cannot write {folder}: {words}" in err and "operation not permitted" in err and "another folder" in err
 
 
+def test_fifo_outputs_of_one_name_in_two_folders_get_their_own_checkpoints(tmp_path):
+    """Probe round 14: a FIFO's (or device's) checkpoint and lock lie in the temp folder, named after
+    the FIFO alone: two runs into `a/out.ply` and `b/out.ply` refused each other, and one threw the
+    other's interrupted checkpoint away. The name now carries a digest of the path."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    os.mkfifo(tmp_path / "a" / "out.ply")
+    os.mkfifo(tmp_path / "b" / "out.ply")
+    a, b = checkpoint_path_for(tmp_path / "a" / "out.ply"), checkpoint_path_for(tmp_path / "b" / "out.ply")
+    assert a != b and a.parent == b.parent and a.name.startswith(".out.ply.") and a.name.endswith(".register.log")
+    assert checkpoint_path_for(tmp_path / "a" / "out.ply") == a  # the same FIFO resumes from its own
+    assert checkpoint_path_for(tmp_path / "a" / "reg.ply") == tmp_path / "a" / ".reg.ply.register.log"  # a file's: beside it, as before
+
+
+def test_a_loop_of_symbolic_links_as_the_output_is_refused_and_kept(tiny, tmp_path, capsys):
+    """Probe round 14: `x.ply -> y.ply -> x.ply` as --out was replaced by a regular file."""
+    (tmp_path / "x.ply").symlink_to(tmp_path / "y.ply")
+    (tmp_path / "y.ply").symlink_to(tmp_path / "x.ply")
+    assert main(_args(tiny, tmp_path / "x.ply")) == 1
+    err = capsys.readouterr().err
+    assert "loop of symbolic links" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "x.ply").is_symlink() and (tmp_path / "y.ply").is_symlink()
+
+
 def test_a_restart_names_what_changed_and_leaves_no_stale_statistics(tiny, tmp_path, monkeypatch, capsys):
     out = tmp_path / "reg.ply"
     _stopped_after_five_views(tiny, out, monkeypatch)  # the default mode: a statistics snapshot may be beside the log

@@ -52,8 +52,13 @@ def checkpoint_path_for(out: str | Path) -> Path:
     """The hidden resumable checkpoint (pair log) of a registration that writes `out` (beside it; in the
     temp folder for a device or FIFO output, `drsplat.utils.work_folder`), named after where `out`
     lands: a symlink's target, so that a run into the link and one into the file share one lock
-    (named after the link, both ran and wrote the same file; probe round 13)."""
-    return work_folder(out) / f".{temp_stem(output_target(out))}.register.log"  # temp_stem: a long name leaves room for the suffixes
+    (named after the link, both ran and wrote the same file; probe round 13); a device's or FIFO's
+    with a digest of its path too (two FIFOs named out.ply in two folders shared one; round 14)."""
+    target, folder = output_target(out), work_folder(out)
+    name = target.name
+    if folder != target.parent:  # a device or FIFO: in the temp folder, where outputs of one name from many folders meet
+        name = f"{name}.{hashlib.sha1(os.fsencode(os.path.abspath(target))).hexdigest()[:10]}"
+    return folder / f".{temp_stem(Path(name))}.register.log"  # temp_stem: a long name leaves room for the suffixes
 
 
 def aggregate_stats_path(checkpoint: Path) -> Path:

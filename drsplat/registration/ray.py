@@ -232,7 +232,12 @@ class RayExecutor:
                 if result.error is not None:
                     raise result.error
         finally:
-            queued.clear()  # the calls still queued end with the actors (close)
+            for ref in queued:  # a stop: cancelled, the calls still queued end quietly (killed with the actors, Ray
+                try:            # logged "Task _ViewWorker.compute failed ... will be retried" for each)
+                    ray.cancel(ref)
+                except Exception as exc:  # noqa: BLE001 - a call that just finished, or a Ray without actor-task cancel
+                    log.debug("a queued view call was not cancelled (%s)", exc)
+            queued.clear()
 
     def _collect(self, ref) -> _CallResult:
         result = _get(ref)
