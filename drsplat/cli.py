@@ -18,7 +18,7 @@ import sys
 import threading
 
 from drsplat import __version__
-from drsplat.errors import Cancelled, DrsplatError, UsageError
+from drsplat.errors import INTERRUPTED_NOTE, Cancelled, DrsplatError, UsageError
 from drsplat.utils import describe_os_error
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
@@ -58,9 +58,6 @@ class _StderrHandler(logging.StreamHandler):
     @stream.setter
     def stream(self, value) -> None:
         pass
-
-
-INTERRUPTED_NOTE = "no partial output file was left"  # a command that resumes says more (`commands.common.RESUMABLE_NOTE`)
 
 
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:

@@ -33,6 +33,12 @@ class Cancelled(DrsplatError):
     """A long job was cancelled by the user (Ctrl-C or a cancel button)."""
 
 
+# what the command line adds to a Cancelled or an interrupt (drsplat.cli); a command that resumes
+# (`register`, `features`) sets RESUMABLE_NOTE as its parser's `interrupted_note`
+INTERRUPTED_NOTE = "no partial output file was left"
+RESUMABLE_NOTE = f"{INTERRUPTED_NOTE}; what was finished is kept, and the same command resumes from it"
+
+
 class OutputError(DrsplatError):
     """An output cannot be written (it is an input, a directory, on a full or read-only disk...)."""
 

@@ -635,10 +635,15 @@ def cancel_on_signals(token: CancelToken, what: str = "the current step") -> Ite
 def _abort_on_repeated_signals(read_end: int, signals: set[int], done: threading.Event) -> None:
     """The watchdog of `cancel_on_signals`: counts the cancelling signals written to the wakeup pipe;
     from the second, ends the process unless the job ends within ABORT_GRACE_SECONDS (at once from
-    the third)."""
-    count = 0
-    deadline = None
-    while not done.is_set():
+    the third). The pipe's end-of-file (the context left) ends the watch."""
+    import select
+
+    count, deadline = 0, None
+    while True:
+        wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+        if not select.select([read_end], [], [], wait)[0]:  # the grace time passed
+            _abort(done)
+            return
         try:
             data = os.read(read_end, 64)
         except OSError:
@@ -646,19 +651,11 @@ def _abort_on_repeated_signals(read_end: int, signals: set[int], done: threading
         if not data:
             return
         count += sum(1 for byte in data if byte in signals)
-        if count < 2:
-            continue
-        if deadline is None:
+        if count >= 3:
+            _abort(done)
+            return
+        if count == 2 and deadline is None:
             deadline = time.monotonic() + ABORT_GRACE_SECONDS
-        if count == 2:
-            threading.Thread(target=_abort_after, args=(deadline, done), name="drsplat-abort-timer", daemon=True).start()
-            continue
-        _abort(done)
-
-
-def _abort_after(deadline: float, done: threading.Event) -> None:
-    if not done.wait(max(0.0, deadline - time.monotonic())):
-        _abort(done)
 
 
 def _abort(done: threading.Event) -> None:

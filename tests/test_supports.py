@@ -126,6 +126,23 @@ def test_a_view_read_in_runs_of_its_masks_is_its_table(tmp_path, max_entries, ca
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_spill_file_out_of_order_is_one_error_naming_it(tmp_path):
+    """A view read in runs trusts the spill files' sort order to find each run's entries; a file
+    rewritten in another order (here reversed) gave runs holding other masks' entries, silently.
+    Now the one error of a changed spill file."""
+    from drsplat.errors import DrsplatError
+
+    rng = np.random.default_rng(0)
+    tables = SupportTables(1, 0, tmp_path / "reg.ply")
+    for part in _random_parts(rng, 6, 8, 11, False):
+        tables.add(0, part)
+    for spill in next(tmp_path.iterdir()).iterdir():
+        np.fromfile(spill, ENTRY)[::-1].copy().tofile(spill)
+    with pytest.raises(DrsplatError, match=r"reg\.ply\.\d+\.\w+\.tmp/support-\d+\.bin: the check's spilled support table of view 0 was changed while the registration ran \(cut short or reordered\)"):
+        list(tables.view_ranges(0, 8, 5))
+    tables.close()
+
+
 def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
     tables = SupportTables(2, 0, tmp_path / "reg.ply")
     tables.add(0, (np.array([0, 1], np.int32), np.array([2, 3], np.int32), np.array([5, 6]), np.array([7, 8])))
@@ -133,7 +150,7 @@ def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
     spill.write_bytes(spill.read_bytes()[: ENTRY.itemsize])
     from drsplat.errors import DrsplatError
 
-    with pytest.raises(DrsplatError, match=f"{spill}: the check's spilled support table of view 0 is cut short"):
+    with pytest.raises(DrsplatError, match=f"{spill}: the check's spilled support table of view 0 was changed while the registration ran \\(cut short or reordered\\)"):
         tables.view(0)
     tables.close()
 

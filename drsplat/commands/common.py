@@ -30,10 +30,6 @@ DEFAULT_RELEVANCY_THRESHOLD = 0.5
 MAX_IMAGE_WIDTH = 16384  # --resolution as a width, viewer windows (larger than any GPU texture)
 MAX_COUNT = 10**9  # generic upper bound for "how many" flags (--top, --max-train...)
 
-# what an interrupted `register` or `features` says (its parser's `interrupted_note`; the other
-# commands keep nothing to resume: drsplat.cli.INTERRUPTED_NOTE)
-RESUMABLE_NOTE = "no partial output file was left; what was finished is kept, and the same command resumes from it"
-
 
 # ---------------------------------------------------------------------------------------------
 # Validators (argparse type=)

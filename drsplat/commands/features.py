@@ -6,8 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import RESUMABLE_NOTE, int_range, nonneg_int, resolution_value
-from drsplat.errors import OutputError
+from drsplat.commands.common import int_range, nonneg_int, resolution_value
+from drsplat.errors import RESUMABLE_NOTE, OutputError
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 from drsplat.features.weights import SAM_URLS

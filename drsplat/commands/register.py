@@ -6,9 +6,10 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import RESUMABLE_NOTE, guard_args, nonneg_int, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
+from drsplat.commands.common import guard_args, nonneg_int, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
+from drsplat.errors import RESUMABLE_NOTE
 from drsplat.utils import CancelToken, cancel_on_signals
 
 log = logging.getLogger(__name__)

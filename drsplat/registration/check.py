@@ -927,22 +927,7 @@ def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndar
     return first | second, second
 
 
-def _mass_and_units(supports: Sequence[ViewSupport], view: int) -> tuple[np.ndarray, np.ndarray]:
-    """View `view`'s masses [M] float64 and unit embeddings [M, D], without reading its table."""
-    if isinstance(supports, Supports):
-        return supports.mass_fixed[view] / SUPPORT_SCALE, supports.units[view]
-    return supports[view].mass, supports[view].units
-
-
-def _support_runs(supports: Sequence[ViewSupport], view: int) -> Iterator[tuple[int, ViewSupport]]:
-    """View `view`'s support as (first mask, ViewSupport) runs of its masks (`Supports.runs`), or whole."""
-    if isinstance(supports, Supports):
-        yield from supports.runs(view)
-    else:
-        yield 0, supports[view]
-
-
-def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: float, min_share: float, spilled: int = 0,
+def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share: float, spilled: int = 0,
               cancel: CancelToken | None = None) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask. Two
     passes over the views, one view's table at a time (Supports merges it when read; a table past
@@ -951,9 +936,9 @@ def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: flo
     bytes of the tables' parts spilled to disk (logged)."""
     agreements, masses, units, entries = [], [], [], 0
     for v in range(len(supports)):
-        mass, unit = _mass_and_units(supports, v)
+        mass, unit = supports.mass_fixed[v] / SUPPORT_SCALE, supports.units[v]  # no table read (ViewSupport.mass)
         agree, total = np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
-        for lo, sup in _support_runs(supports, v):
+        for lo, sup in supports.runs(v):
             if cancel is not None:
                 cancel.raise_if_cancelled()
             hi = lo + sup.mass_fixed.shape[0]
@@ -968,7 +953,7 @@ def _verdicts(supports: Sequence[ViewSupport], means: np.ndarray, min_views: flo
     for v, mass in enumerate(masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
         if like is not None:
-            for lo, sup in _support_runs(supports, v):
+            for lo, sup in supports.runs(v):
                 if cancel is not None:
                     cancel.raise_if_cancelled()
                 hi = lo + sup.mass_fixed.shape[0]

@@ -39,8 +39,8 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, os_error_cause, output_target, read_npy_header, temp_prefix, temp_stem,
-                           work_folder)
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, os_error_cause, output_target, read_npy_header, temp_prefix,
+                           temp_stem, work_folder)
 
 log = logging.getLogger(__name__)
 
@@ -54,11 +54,11 @@ def checkpoint_path_for(out: str | Path) -> Path:
     lands: a symlink's target, so that a run into the link and one into the file share one lock
     (named after the link, both ran and wrote the same file; probe round 13); a device's or FIFO's
     with a digest of its path too (two FIFOs named out.ply in two folders shared one; round 14)."""
-    target, folder = output_target(out), work_folder(out)
+    target = output_target(out)
     name = target.name
-    if folder != target.parent:  # a device or FIFO: in the temp folder, where outputs of one name from many folders meet
+    if is_special_file(target):  # in the temp folder, where outputs of one name from many folders meet
         name = f"{name}.{hashlib.sha1(os.fsencode(os.path.abspath(target))).hexdigest()[:10]}"
-    return folder / f".{temp_stem(Path(name))}.register.log"  # temp_stem: a long name leaves room for the suffixes
+    return work_folder(out) / f".{temp_stem(Path(name))}.register.log"  # temp_stem: a long name leaves room for the suffixes
 
 
 def aggregate_stats_path(checkpoint: Path) -> Path:

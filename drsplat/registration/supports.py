@@ -82,41 +82,51 @@ def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
     return held + merge
 
 
+def _changed(file, what: str) -> DrsplatError:
+    """The one error of a spill file that is not what was written (cut short, or out of order)."""
+    return DrsplatError(f"{file.name}: the check's spilled support table{what} was changed while the registration ran (cut "
+                        "short or reordered)")
+
+
+def _read_entries(file, start: int, count: int, what: str) -> np.ndarray:
+    """[count] ENTRY records from entry `start` of an open spill file; `_changed` when it holds fewer,
+    or when the count, from positions read in it, is negative."""
+    if count < 0:
+        raise _changed(file, what)
+    file.seek(start * ENTRY.itemsize)
+    rec = np.fromfile(file, ENTRY, count)
+    if rec.shape[0] != count:
+        raise _changed(file, what)
+    return rec
+
+
 class _SortedRun:
     """One view's merged table in a spill file (`count` entries from entry `start`, sorted by mask),
     read in pieces: `position(m)`, the first entry of a mask ≥ m (a binary search that reads one
-    mask field per step, remembered), and `read(a, b)`, entries a .. b-1."""
+    record per step, remembered), and `read(a, b)`, entries a .. b-1."""
 
-    def __init__(self, file, start: int, count: int):
-        self.file, self.start, self.count = file, start, count
+    def __init__(self, file, start: int, count: int, view: int):
+        self.file, self.start, self.count, self.what = file, start, count, f" of view {view}"
         self._positions: dict[int, int] = {}
-
-    def _mask_at(self, i: int) -> int:
-        self.file.seek((self.start + i) * ENTRY.itemsize)
-        data = self.file.read(4)
-        if len(data) != 4:
-            raise DrsplatError(f"{self.file.name}: the check's spilled support table is cut short (its file was changed while the "
-                               "registration ran)")
-        return int(np.frombuffer(data, "<i4")[0])
 
     def position(self, mask: int) -> int:
         if mask not in self._positions:
             a, b = 0, self.count
             while a < b:
                 mid = (a + b) // 2
-                if self._mask_at(mid) < mask:
+                if int(_read_entries(self.file, self.start + mid, 1, self.what)["mask"][0]) < mask:
                     a = mid + 1
                 else:
                     b = mid
             self._positions[mask] = a
         return self._positions[mask]
 
-    def read(self, a: int, b: int) -> Entries:
-        self.file.seek((self.start + a) * ENTRY.itemsize)
-        rec = np.fromfile(self.file, ENTRY, b - a)
-        if rec.shape[0] != b - a:
-            raise DrsplatError(f"{self.file.name}: the check's spilled support table is cut short (its file was changed while the "
-                               "registration ran)")
+    def read(self, a: int, b: int, masks: tuple[int, int] | None = None) -> Entries:
+        """Entries a .. b-1; masks: the (lo, hi) their masks must lie in (else the file is not the
+        sorted table written: `_changed`)."""
+        rec = _read_entries(self.file, self.start + a, b - a, self.what)
+        if masks is not None and rec.shape[0] and not (rec["mask"].min() >= masks[0] and rec["mask"].max() < masks[1]):
+            raise _changed(self.file, self.what)
         return rec["mask"].copy(), rec["cluster"].copy(), rec["fixed"].copy(), rec["core"].copy()
 
 
@@ -176,12 +186,7 @@ class SupportTables:
             count = int(offsets[view + 1] - offsets[view])
             if count:
                 with open(path, "rb") as f:
-                    f.seek(int(offsets[view]) * ENTRY.itemsize)
-                    rec = np.fromfile(f, ENTRY, count)
-                if rec.shape[0] != count:
-                    raise DrsplatError(f"{path}: the check's spilled support table of view {view} is cut short (its file was changed "
-                                       "while the registration ran)")
-                parts.append((rec["mask"], rec["cluster"], rec["fixed"], rec["core"]))
+                    parts.append(_SortedRun(f, int(offsets[view]), count, view).read(0, count))
         merged = merge_entries(parts)
         if not self._spills and merged[0].size:  # read twice by the judging: keep it merged (never more entries than its parts)
             self._held[view] = [merged]
@@ -208,11 +213,11 @@ class SupportTables:
         files = [(open(path, "rb"), int(offsets[view]), int(offsets[view + 1] - offsets[view]))
                  for path, offsets in self._spills if offsets[view + 1] > offsets[view]]
         try:
-            runs = [_SortedRun(*file) for file in files]
+            runs = [_SortedRun(*file, view) for file in files]
             lo = 0
             while lo < num_masks:
                 hi = _largest_end(runs, lo, num_masks, max_entries)
-                parts = [run.read(run.position(lo), run.position(hi)) for run in runs]
+                parts = [run.read(run.position(lo), run.position(hi), (lo, hi)) for run in runs]
                 yield lo, hi, merge_entries(parts)
                 lo = hi
         finally:
