@@ -787,31 +787,69 @@ def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_r
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
 @pytest.mark.parametrize("block", [1, 7, 13, 40])
-def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, block):
-    """What reducers compute (each block's support alone, `block_partial_supports`), added by the
-    driver (`Supports.add_block`), in any order of the blocks: the one-block tables exactly
-    (the fixed-point sums are integers), so the verdicts and the output bytes do not depend on
-    where the blocks fall or who sums them."""
-    from drsplat.registration.check import Supports, block_partial_supports, view_supports
+def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, block, tmp_path):
+    """What reducers compute (each block's support alone, written to a file a run of masks at a
+    time: `write_block_supports`), added by the driver (`Supports.add_file`), in any order of the
+    blocks, read in or read where it lies (a cap of 0 bytes): the one-block tables exactly (the
+    fixed-point sums are integers), so the verdicts and the output bytes do not depend on where
+    the blocks fall or who sums them. The driver removes every file once judged."""
+    from drsplat.registration.check import Supports, view_supports, write_block_supports
 
     rng = np.random.default_rng(seed)
     n = 40
     views = _random_views(rng, n, _unit(rng.normal(size=(4, D))), 7, hard)
     record, clusters = _record(views, n)
     whole = view_supports(record, clusters, n, n)
-    parts = [block_partial_supports(record.block_views(lo, min(n, lo + block)), record.block_views(lo, min(n, lo + block)), clusters.per_view,
-                                    clusters.count, lo, min(n, lo + block)) for lo in range(0, n, block)]
     feats = [v.feats for v in record.views]
-    for blocks in (parts, parts[::-1]):
-        merged = Supports.empty(feats, clusters.per_view, clusters.count)
-        for block_parts in blocks:
-            merged.add_block(block_parts)
-        assert len(merged) == len(whole)
-        for a, b in zip(merged, whole):
-            np.testing.assert_array_equal(a.dense(), b.dense())
-            np.testing.assert_array_equal(a.mass_fixed, b.mass_fixed)
-            assert a.num_entries == b.num_entries
-            np.testing.assert_array_equal(a.units, b.units)
+    for order in (1, -1):
+        for cap in (None, 0):
+            folder = tmp_path / f"{order}-{cap}"
+            folder.mkdir()
+            files = [write_block_supports(folder / f"block{lo}.support", record.block_views(lo, min(n, lo + block)),
+                                          record.block_views(lo, min(n, lo + block)), clusters.per_view, clusters.count, lo, min(n, lo + block))
+                     for lo in range(0, n, block)]
+            merged = Supports.empty(feats, clusters.per_view, clusters.count, cap=cap)
+            for part in files[::order]:
+                merged.add_file(part)
+            assert len(merged) == len(whole)
+            for a, b in zip(merged, whole):
+                np.testing.assert_array_equal(a.dense(), b.dense())
+                np.testing.assert_array_equal(a.mass_fixed, b.mass_fixed)
+                assert a.num_entries == b.num_entries
+                np.testing.assert_array_equal(a.units, b.units)
+            if cap == 0:  # read where they lie, in runs of a mask or so (one entry's bytes): the same rows
+                merged.read_bytes = 24
+                for v, b in enumerate(whole):
+                    runs = [run.dense() for _, run in merged.runs(v)]
+                    np.testing.assert_array_equal(np.vstack(runs) if runs else b.dense(), b.dense())
+            merged.close()
+            assert not list(folder.iterdir())
+
+
+def test_a_table_file_is_written_a_run_at_a_time_in_view_order(tmp_path):
+    """`TableWriter`: runs of one view's masks appended in order, views skipped hold nothing, the
+    offsets say where each view's sorted entries lie; a view written after a later one is refused."""
+    from drsplat.registration.supports import ENTRY, TableWriter
+
+    def run(masks, clusters, values):
+        m = np.asarray(masks, np.int32)
+        return m, np.asarray(clusters, np.int32), np.asarray(values, np.int64), 2 * np.asarray(values, np.int64)
+
+    path = tmp_path / "t.support"
+    with open(path, "wb") as f:
+        writer = TableWriter(f, 5)
+        writer.add(1, run([1, 0, 1], [3, 2, 3], [5, 6, 7]))  # unsorted, (1, 3) twice: merged
+        writer.add(1, run([4], [0], [1]))
+        writer.add(3, run([0], [9], [2]))
+        with pytest.raises(ValueError, match="view 2 after view 3"):
+            writer.add(2, run([0], [0], [1]))
+        offsets = writer.close()
+    np.testing.assert_array_equal(offsets, [0, 0, 3, 3, 4, 4])
+    rec = np.fromfile(path, ENTRY)
+    np.testing.assert_array_equal(rec["mask"], [0, 1, 4, 0])
+    np.testing.assert_array_equal(rec["cluster"], [2, 3, 0, 9])
+    np.testing.assert_array_equal(rec["fixed"], [6, 12, 1, 2])
+    np.testing.assert_array_equal(rec["core"], [12, 24, 2, 4])
 
 
 def test_views_too_many_for_the_exact_sums_are_one_clear_error_before_any_work(mislabelled_room, monkeypatch):

@@ -133,7 +133,7 @@ def test_a_check_mode_judged_from_the_reducers_support_gives_the_local_bytes(clu
         raise AssertionError("the driver replayed the log")
 
     monkeypatch.setattr(check, "view_supports", replayed_on_the_driver)  # the support tables
-    monkeypatch.setattr(check, "SUPPORT_TABLE_BYTES", 0)  # the reducers' parts, added as they arrive, spill on the driver
+    monkeypatch.setattr(check, "SUPPORT_TABLE_BYTES", 0)  # the reducers' files are read where they lie, not read in
     monkeypatch.setattr(check.KeptPairs, "block_views", replayed_on_the_driver)  # the kept pairs (the reducers' processes read them)
     result = register(scene, cams, data / "features", on_ray, RegisterOptions(ray="auto", ray_workers=2, block_size=1024, **options),
                       show_progress=False)

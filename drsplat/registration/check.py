@@ -84,7 +84,7 @@ the like cosine's pass, then the verdicts'; all of them held until 2026-11-30). 
 and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
 q = 2³⁹, pixels x views), so the sums are the same integers in any order and any partition: one
 block, blocks, or on Ray the reducers' parts of their blocks added by the driver
-(`block_partial_supports`, `Supports.add_block`; since 2026-11-27, sixth session: before, float64
+(`write_block_supports`, `Supports.add_file`; since 2026-11-27, sixth session: before, float64
 sums in Gaussian order, which only one process could make). The same verdicts, and the same output
 bytes, in every plan and place. Step 3 needs the verdicts and each view's [M] present-mask flags only.
 """
@@ -105,7 +105,7 @@ from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat.registration.coalesce import rows_order
-from drsplat.registration.supports import ENTRY, SupportTables
+from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
 from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot, trim_cosine
 from drsplat.utils import CancelToken, progress
 
@@ -293,7 +293,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
     the same in any order and any partition of the Gaussians: one block, blocks in any order,
-    reducers' partial tables summed by the driver (`Supports.add_block`), or the row-aligned
+    reducers' partial tables summed by the driver (`Supports.add_file`), or the row-aligned
     parts of the view this kernel sums in parallel, one per scratch layer, then adds into layer 0.
 
     Beside q, the core table: r[j, c] += w_ij for the pairs whose Gaussian's other views vote
@@ -688,9 +688,10 @@ def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> No
 
 @dataclass
 class PartialSupport:
-    """One view's support from one block of Gaussians (a reducer's part of `ViewSupport`): entries
-    (mask [E] int32, cluster [E] int32, fixed and core [E] int64) and mass_fixed [M] int64, in the
-    kernel's fixed point, so the parts of every block add up exactly (`Supports.add_block`)."""
+    """One view's support from one block of Gaussians, as `add_view_support` sums it: entries (mask
+    [E] int32, cluster [E] int32, fixed and core [E] int64; none when its runs are handed on as they
+    are summed) and mass_fixed [M] int64, in the kernel's fixed point, so the parts of every block
+    add up exactly (`block_supports`)."""
 
     entry_mask: np.ndarray
     entry_cluster: np.ndarray
@@ -704,20 +705,44 @@ class PartialSupport:
         return cls(none, none, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(num_masks, np.int64))
 
 
-def block_partial_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], num_clusters: int, lo: int,
-                           hi: int, slots: int = CHECK_SLOTS) -> list[PartialSupport]:
+def block_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int, slots: int,
+                   scratch: SupportScratch, emit: Callable[[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], None]) -> list[np.ndarray]:
     """Steps 1 and 2 for Gaussians lo .. hi-1 alone: their votes folded over `views` (every view in
     order, with those Gaussians' pairs), then each view's support from those Gaussians' pairs
-    (`pair_views`: a second replay of the same views). per_view: each view's [M] mask clusters.
-    What a reducer computes for its block; the driver adds the blocks' parts."""
+    (`pair_views`: a second replay of the same views), handed to emit(v, entries) a run of view v's
+    masks at a time (views in order, a view's runs in increasing masks: `add_view_support`), so that
+    no view's part is held whole. per_view: each view's [M] mask clusters. Returns each view's
+    masses [M] int64 from these Gaussians."""
     slot_c, slot_v = fold_block_votes(views, per_view, lo, hi, slots)
-    scratch = SupportScratch(num_clusters)
-    parts = []
-    for view, clusters in zip(pair_views, per_view):
+    masses = []
+    for v, (view, clusters) in enumerate(zip(pair_views, per_view)):
         part = PartialSupport.empty(clusters.shape[0])
-        add_view_support(view, lo, clusters, slot_c, slot_v, part, scratch)
-        parts.append(part)
-    return parts
+        add_view_support(view, lo, clusters, slot_c, slot_v, part, scratch, emit=lambda run, v=v: emit(v, run))
+        masses.append(part.mass_fixed)
+    return masses
+
+
+@dataclass
+class SupportFile:
+    """One block's part of every view's support table, written by a reducer (`write_block_supports`):
+    path, offsets [V + 1] (each view's first entry in it, the spill files' format) and the views'
+    masses [M] int64 from the block's Gaussians."""
+
+    path: str
+    offsets: np.ndarray
+    mass_fixed: list[np.ndarray]
+
+
+def write_block_supports(path: Path, views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray],
+                         num_clusters: int, lo: int, hi: int, slots: int = CHECK_SLOTS) -> SupportFile:
+    """`block_supports` written to `path` a run of masks at a time (`TableWriter`), so that a reducer
+    holds one run of a view's table, never the block's part of every view (the driver adopts the
+    file: `Supports.add_file`). A retried task rewrites the file from the start."""
+    with open(path, "wb") as f:
+        writer = TableWriter(f, len(per_view))
+        masses = block_supports(views, pair_views, per_view, lo, hi, slots, SupportScratch(num_clusters), writer.add)
+        offsets = writer.close()
+    return SupportFile(str(path), offsets, masses)
 
 
 class Supports(Sequence):
@@ -740,17 +765,12 @@ class Supports(Sequence):
         tables = SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside)
         return cls(tables, [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
 
-    def add(self, view: int, part: PartialSupport) -> None:
-        """Part of view `view`'s sums (one block's, or a reducer's)."""
-        self.mass_fixed[view] += part.mass_fixed
-        self.tables.add(view, (part.entry_mask, part.entry_cluster, part.entry_fixed, part.entry_core))
-
-    def add_block(self, parts: list[PartialSupport]) -> None:
-        """One block's parts, one per view (`block_partial_supports`; a reducer's): the entries of
-        each (mask, cluster) and the masses add as integers, exact in any order of the blocks, so
-        the same numbers as `view_supports` in one block."""
-        for view, part in enumerate(parts):
-            self.add(view, part)
+    def add_file(self, part: SupportFile) -> None:
+        """One block's parts written to a file by a reducer (`write_block_supports`): its masses added,
+        the file adopted by the tables (`SupportTables.adopt`: read in, or read from where it is)."""
+        for view, mass in enumerate(part.mass_fixed):
+            self.mass_fixed[view] += mass
+        self.tables.adopt(Path(part.path), part.offsets)
 
     def __len__(self) -> int:
         return len(self.units)
@@ -865,7 +885,7 @@ def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, 
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
     support (`view_supports`, its tables under `cap` bytes, spilled beside `beside` beyond) in blocks of
     `block` Gaussians, or from `supports` when they were summed elsewhere (reducers' parts,
-    `Supports.add_block`: the same numbers). The tables' spill files are removed after."""
+    `Supports.add_file`: the same numbers). The tables' spill files are removed after."""
     means = np.ascontiguousarray(clusters.means(), np.float32)
     if supports is None:
         supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, beside)
@@ -900,11 +920,10 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
     scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
         slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
-        for v, (view, c) in enumerate(zip(source.block_views(lo, hi), clusters.per_view)):
-            part = PartialSupport.empty(c.shape[0])
-            add_view_support(view, lo, c, slot_c, slot_v, part, scratch, emit=lambda run, v=v: supports.tables.add(v, run))
-            supports.add(v, part)  # its masses
-        del slot_c, slot_v  # the next block's slots replace them
+        masses = block_supports(source.block_views(lo, hi), source.block_views(lo, hi), clusters.per_view, lo, hi, slots, scratch,
+                                supports.tables.add)
+        for v, mass in enumerate(masses):
+            supports.mass_fixed[v] += mass
     return supports
 
 
@@ -1088,11 +1107,11 @@ class CheckSink:
         if self.record is not None:
             self.record.add(view)
 
-    def kept_pairs(self, partial_supports: Callable[[Callable[[list[PartialSupport]], None]], None] | None = None) -> KeptPairs:
+    def kept_pairs(self, partial_supports: Callable[[Callable[[SupportFile], None]], None] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are
         made of, here or by reducers (drsplat.registration.reduce, given the verdicts `keep`).
-        partial_supports(add): hands each block's parts of the support tables (one per view),
-        summed elsewhere, to `add` (reducers, one block each, in any order:
+        partial_supports(add): hands each block's part of the support tables, summed elsewhere and
+        written to a file, to `add` (reducers, one block each, in any order:
         drsplat.registration.reduce.ReducePool.supports); None: summed here by replays."""
         if self._kept is None:
             if self._summed:
@@ -1102,7 +1121,7 @@ class CheckSink:
             if partial_supports is not None:
                 feats = [view.feats for view in self._source.block_views(0, 0)]
                 supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, beside=self.spill_beside)
-                partial_supports(supports.add_block)
+                partial_supports(supports.add_file)
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
                                         supports=supports, beside=self.spill_beside)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"

@@ -35,8 +35,10 @@ clusters (made on the driver in view order from the pointers' embeddings) go to 
 `check-` mode's masks are judged before any block is summed, since the verdicts need every block's
 pairs:
 1. each reducer sums its block's part of the support tables (`support_block`, one task per block:
-   the block's votes folded, then its pairs' support, in fixed point);
-2. the driver adds the parts (integers, exact in any order: the one-block tables) and judges;
+   the block's votes folded, then its pairs' support, in fixed point) into a file in the parts
+   folder, a run of a view's masks at a time;
+2. the driver adds the parts (integers, exact in any order: the one-block tables), reading a
+   file in when it fits its tables' memory cap and from where it lies otherwise, and judges;
 3. the job carries the verdicts (`keep`); for `-vote` the driver makes the kept masks' clusters
    (a kept mask keeps every pair, so the masks left with pairs are the kept ones among the masks
    each view reported present);
@@ -76,7 +78,7 @@ from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
 from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
-from drsplat.registration.check import CheckSink, KeptPairs, PartialSupport, block_partial_supports
+from drsplat.registration.check import CheckSink, KeptPairs, SupportFile, write_block_supports
 from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
@@ -137,6 +139,10 @@ class ReduceJob:
 
     def part_path(self, index: int) -> Path:
         return Path(self.parts_dir) / f"block{index:06d}.part"
+
+    def support_path(self, index: int) -> Path:
+        """Where block `index`'s part of a `check-` mode's support tables is written."""
+        return Path(self.parts_dir) / f"block{index:06d}.support"
 
 
 @dataclass
@@ -255,14 +261,19 @@ def sample_block(job: ReduceJob, index: int, ids: np.ndarray) -> tuple[np.ndarra
         return block_sink(job, plog).sample(ids)
 
 
-def support_block(job: ReduceJob, index: int) -> list[PartialSupport]:
-    """Block `index`'s part of a `check-` mode's support tables, per view (check.block_partial_supports:
-    the block's votes folded, then its pairs' support, two replays of the block): the driver adds
-    every block's parts, exactly, and judges the masks from the sums."""
+def support_block(job: ReduceJob, index: int) -> SupportFile:
+    """Block `index`'s part of a `check-` mode's support tables, every view's, written to a file in
+    the parts folder (check.write_block_supports: the block's votes folded, then its pairs' support,
+    two replays of the block, written a run of masks at a time): the driver adopts every block's
+    file, adds the parts exactly, and judges the masks from the sums."""
     lo, hi = job.bounds(index)
+    path = job.support_path(index)
     with open_log(job, index) as plog, shard_errors(index, lo, hi):
-        return block_partial_supports(plog.block_views(lo, hi), plog.block_views(lo, hi), job.check_clusters, job.check_num_clusters, lo, hi,
-                                      job.check_slots)
+        try:
+            return write_block_supports(path, plog.block_views(lo, hi), plog.block_views(lo, hi), job.check_clusters, job.check_num_clusters, lo,
+                                        hi, job.check_slots)
+        except OSError as exc:
+            raise DrsplatError(f"the reducer of block {index} could not write its support tables {path} ({exc.strerror or exc})") from None
 
 
 def _support_task(job, index):
@@ -391,10 +402,11 @@ class ReducePool:
             return np.zeros((0, job.dim), np.float32), np.zeros(0, np.float32)
         return np.concatenate([F for F, _ in parts]), np.concatenate([W for _, W in parts])
 
-    def supports(self, job: ReduceJob, add: Callable[[list[PartialSupport]], None]) -> None:
-        """`support_block` of every block, one task each: each block's parts of a `check-` mode's
-        support tables (one per view) handed to `add` as it arrives, in any order (check.Supports
-        adds them as integers), so the driver never holds every block's parts at once."""
+    def supports(self, job: ReduceJob, add: Callable[[SupportFile], None]) -> None:
+        """`support_block` of every block, one task each: each block's file of a `check-` mode's
+        support tables handed to `add` as it arrives, in any order (check.Supports adds them as
+        integers, reading them in or from where they are), so that neither the reducers nor the
+        driver hold every view's part of a block at once."""
         ray = import_ray()
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
         job_ref = ray.put(job)

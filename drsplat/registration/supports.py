@@ -82,6 +82,40 @@ def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
     return held + merge
 
 
+def write_entries(f, entries: Entries) -> int:
+    """A table's entries (merged: sorted by (mask, cluster), each once) appended to the open file f as
+    ENTRY records, the spill files' format. Returns how many."""
+    mask, cluster, fixed, core = entries
+    rec = np.empty(mask.shape[0], ENTRY)
+    rec["mask"], rec["cluster"], rec["fixed"], rec["core"] = mask, cluster, fixed, core
+    f.write(rec.view(np.uint8))
+    return int(rec.shape[0])
+
+
+class TableWriter:
+    """Tables written to one file in the spill files' format, view after view, each a run of its
+    masks at a time (`add`: runs of one view in increasing masks, views in increasing order), so
+    that the writer holds one run, never a view's table nor every view's (a Ray reducer's part of
+    the tables: drsplat.registration.reduce). `offsets` [V + 1]: each view's first entry."""
+
+    def __init__(self, f, num_views: int):
+        self.f = f
+        self.offsets = np.zeros(num_views + 1, np.int64)
+        self._view = 0
+
+    def add(self, view: int, entries: Entries) -> None:
+        if view < self._view:
+            raise ValueError(f"view {view} after view {self._view}: a table file is written in view order")
+        self.offsets[self._view + 1 : view + 2] = self.offsets[self._view + 1]
+        self._view = view
+        self.offsets[view + 1] += write_entries(self.f, merge_entries([entries]))
+
+    def close(self) -> np.ndarray:
+        """The offsets once every view is written (the views after the last one added hold nothing)."""
+        self.offsets[self._view + 1 :] = self.offsets[self._view + 1]
+        return self.offsets
+
+
 def _changed(file, what: str) -> DrsplatError:
     """The one error of a spill file that is not what was written (cut short, or out of order)."""
     return DrsplatError(f"{file.name}: the check's spilled support table{what} was changed while the registration ran (cut "
@@ -165,6 +199,7 @@ class SupportTables:
         self._held_bytes = 0
         self._merged: set[int] = set()  # views whose one part held is their merged table
         self._spills: list[tuple[Path, np.ndarray]] = []  # (file, [V + 1] entry offsets of each view in it)
+        self._adopted: list[Path] = []  # spill files written elsewhere (`adopt`), removed by `close` too
         self._tmp: tempfile.TemporaryDirectory | None = None
         self.spilled_bytes = 0
 
@@ -176,6 +211,25 @@ class SupportTables:
             self._held_bytes += ENTRY.itemsize * entries[0].size
             if self._held_bytes > self.cap:
                 self._spill()
+
+    def adopt(self, path: Path, offsets: np.ndarray) -> None:
+        """Parts of every view written elsewhere in the spill files' format (`TableWriter`: a Ray
+        reducer's block), offsets [V + 1]: read into memory when they fit beside what is held
+        (the file is then removed), else read from the file as a spill file of this object's own
+        (removed by `close`). The same tables either way."""
+        total = int(offsets[-1])
+        if self._held_bytes + ENTRY.itemsize * total <= self.cap:
+            with open(path, "rb") as f:
+                for v in range(self.num_views):
+                    count = int(offsets[v + 1] - offsets[v])
+                    if count:
+                        self.add(v, _SortedRun(f, int(offsets[v]), count, v).read(0, count))
+            path.unlink()
+            return
+        self._merged.clear()  # a view's merged table held no longer covers the new file's part
+        self._adopted.append(path)
+        self._spills.append((path, np.asarray(offsets, np.int64)))
+        self.spilled_bytes += ENTRY.itemsize * total
 
     def view(self, view: int) -> Entries:
         """View `view`'s table: its parts held and spilled, merged."""
@@ -246,13 +300,7 @@ class SupportTables:
             path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
             with open(path, "wb") as f:
                 for v in range(self.num_views):
-                    mask, cluster, fixed, core = merge_entries(self._held[v], consume=True)  # the view's parts freed as merged
-                    rec = np.empty(mask.shape[0], ENTRY)
-                    rec["mask"], rec["cluster"], rec["fixed"], rec["core"] = mask, cluster, fixed, core
-                    del mask, cluster, fixed, core
-                    f.write(rec.view(np.uint8))
-                    offsets[v + 1] = offsets[v] + rec.shape[0]
-                    del rec
+                    offsets[v + 1] = offsets[v] + write_entries(f, merge_entries(self._held[v], consume=True))  # the view's parts freed as merged
         except OSError as exc:
             self.close()
             full = exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
@@ -270,4 +318,7 @@ class SupportTables:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+        for path in self._adopted:
+            path.unlink(missing_ok=True)
+        self._adopted = []
         self._spills = []
