@@ -65,6 +65,13 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
 
 
+def interrupted_note(args: argparse.Namespace) -> str:
+    """What an interrupted command's last line adds: its parser's `interrupted_note`, a text or a
+    function of the arguments (what the stopped run kept), else INTERRUPTED_NOTE."""
+    note = getattr(args, "interrupted_note", INTERRUPTED_NOTE)
+    return note(args) if callable(note) else note
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports every command's module: the slow part of start-up
@@ -77,10 +84,10 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             result = args.func(args)
     except Cancelled as exc:
-        log.error("%s; %s", exc, getattr(args, "interrupted_note", INTERRUPTED_NOTE))
+        log.error("%s; %s", exc, interrupted_note(args))
         return 1
     except KeyboardInterrupt:
-        log.error("interrupted; %s", getattr(args, "interrupted_note", INTERRUPTED_NOTE))
+        log.error("interrupted; %s", interrupted_note(args))
         return 1
     except UsageError as exc:
         parser.print_usage(sys.stderr)

@@ -33,8 +33,9 @@ class Cancelled(DrsplatError):
     """A long job was cancelled by the user (Ctrl-C or a cancel button)."""
 
 
-# what the command line adds to a Cancelled or an interrupt (drsplat.cli); a command that resumes
-# (`register`, `features`) sets RESUMABLE_NOTE as its parser's `interrupted_note`
+# what the command line adds to a Cancelled or an interrupt (drsplat.cli); `features` adds
+# RESUMABLE_NOTE when its output folder holds finished images (its parser's `interrupted_note`);
+# `register` says itself whether it kept a checkpoint to resume from (Checkpoint.leave)
 INTERRUPTED_NOTE = "no partial output file was left"
 RESUMABLE_NOTE = f"{INTERRUPTED_NOTE}; what was finished is kept, and the same command resumes from it"
 

@@ -922,6 +922,62 @@ def test_sigterm_cancels_synth_and_leaves_nothing(tmp_path):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+def test_bench_inputs_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    """A docs audit (2026-11-30): `bench register --real MISSING.ply` measured nothing and exited 0;
+    `bench query --device cuda` without a GPU trained three codebooks (~40 s) before saying so,
+    and `query --device cuda` read the PLY first. Now each is one error at once, exit 1. A "|" in a
+    bench table's header or cell is escaped, so the Markdown table keeps its columns."""
+    import drsplat.device as device
+    from drsplat.bench.common import format_table
+
+    missing = tmp_path / "missing.ply"
+    assert main(["bench", "register", "--skip-synthetic", "--real", str(missing), "--views", "1", "--repeats", "1"]) == 1
+    assert f"{missing}: no such scene file (--real)" in capsys.readouterr().err
+    monkeypatch.setattr(device, "cuda_available", lambda: False)
+    import drsplat.bench.query as bench_query
+
+    monkeypatch.setattr(bench_query, "train_books", lambda *a, **k: pytest.fail("codebooks trained before the device was checked"))
+    assert main(["bench", "query", "--sizes", "1k", "--device", "cuda"]) == 1
+    assert "no CUDA GPU is available" in capsys.readouterr().err
+    assert main(["query", str(missing), "--embedding", str(tmp_path / "q.npy"), "--device", "cuda"]) == 1
+    assert "no CUDA GPU is available" in capsys.readouterr().err
+    table = format_table(["backend", "max |Δ|"], [["pq", "a|b"]]).splitlines()
+    assert all(len(line.replace("\\|", "").split("|")) == 4 for line in table), table
+
+
+def test_an_interrupt_says_it_resumes_only_where_something_was_kept(tmp_path, monkeypatch, capsys):
+    """`features` stopped before any image was finished says so and no more (it said the same
+    command resumes: docs audit, 2026-11-30); with a finished pair in its folder it says it resumes.
+    `register` stopped before any view says nothing about resuming (its checkpoint, when it keeps
+    one, says so itself: Checkpoint.leave)."""
+    import argparse
+
+    from drsplat.cli import interrupted_note
+    from drsplat.commands import features as features_cmd
+
+    args = argparse.Namespace(out=tmp_path / "feats", interrupted_note=features_cmd.interrupted_note)
+    assert interrupted_note(args).endswith("no image was finished") and "resumes" not in interrupted_note(args)
+    args.out.mkdir()
+    (args.out / "frame_0001_f.npy").write_bytes(b"")
+    assert "the same command resumes from it" in interrupted_note(args)
+
+    import drsplat.registration.driver as driver
+    from drsplat.errors import Cancelled
+
+    def cancelled(*a, **k):
+        raise Cancelled("cancelled before the first view")
+
+    monkeypatch.setattr(driver, "_fit_stage", cancelled)
+    root = tmp_path / "room"
+    assert main(["synth", str(root), "--preset", "tiny", "--no-progress"]) == 0
+    capsys.readouterr()
+    code = main(["register", str(root / "scene.ply"), "--source", str(root), "--features", str(root / "features"), "--out",
+                 str(tmp_path / "r.ply"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and "cancelled before the first view; no partial output file was left" in err and "resumes" not in err, err
+    assert not (tmp_path / "r.ply").exists()
+
+
 @pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register", "viewer.launch"])
 def test_ctrl_c_while_python_imports_is_one_line(where):
     """Ctrl-C before any command runs (Python still importing the command line, a command's module or

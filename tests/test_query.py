@@ -232,6 +232,15 @@ def test_query_cli_errors(tmp_path, registered, capsys):
     assert main(["query", str(oracle), "--text", "chair"]) == 1
     assert "--embedding" in capsys.readouterr().err
     assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--relevancy"]) == 1
+    capsys.readouterr()
+    # relevancy on oracle features needs negatives no text encoder can give: the flag that does (it said "use --embedding")
+    assert main(["query", str(oracle), "--embedding", str(tmp_path / "q.npy"), "--relevancy"]) == 1
+    err = capsys.readouterr().err
+    assert "--negative-embeddings N.npy" in err and "instead of text" not in err, err
+    np.save(tmp_path / "neg.npy", np.eye(2, DIM, dtype=np.float32)[::-1].copy())
+    assert main(["query", str(oracle), "--embedding", str(tmp_path / "q.npy"), "--relevancy", "--negative-embeddings",
+                 str(tmp_path / "neg.npy"), "--scores", str(tmp_path / "rel.npy")]) == 0
+    assert np.load(tmp_path / "rel.npy").shape == (4,)
 
 
 def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkeypatch, capsys):

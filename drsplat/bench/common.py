@@ -35,12 +35,14 @@ def machine_line() -> str:
 
 
 def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A plain Markdown table (pastes into the README as is)."""
+    """A plain Markdown table (pastes into the README as is: a "|" inside a header or cell, as in
+    "max |Δ|", is written "\\|", which a Markdown table shows as "|")."""
     def cell(v: object) -> str:
         if isinstance(v, float):
             return f"{v:.4g}"
-        return str(v)
+        return str(v).replace("|", "\\|")
 
+    headers = [cell(h) for h in headers]
     body = [[cell(v) for v in row] for row in rows]
     widths = [max(len(h), *(len(r[i]) for r in body)) if body else len(h) for i, h in enumerate(headers)]
     line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731

@@ -82,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not cuda_available():  # before the scene is read
         raise DrsplatError("drsplat bench kernel times the fused Triton kernels, which run on a CUDA GPU only, and none is available")
-    if not args.real.exists():
-        raise UsageError(f"--real {args.real}: no such file")
+    if not args.real.is_file():
+        raise DrsplatError(f"{args.real}: no such scene file (--real)")
     from drsplat import raster_triton
     from drsplat.raster import rasterize
     from drsplat.raster_torch import bin_gaussians_torch, prepare_scene_torch, project_gaussians_fused

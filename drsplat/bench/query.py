@@ -335,6 +335,10 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(set(backends) - set(BACKENDS))
     if unknown:
         raise InputError(None, f"unknown backends {unknown}; choose from {', '.join(BACKENDS)}")
+    if args.device is not None:  # "--device cuda" without a GPU refused before the codebooks are trained
+        from drsplat.device import resolve_device
+
+        resolve_device(args.device)
     model = EmbeddingModel.create(args.dim, args.labels, args.seed)
     books = train_books(args, model, backends)
     rows: list[Row] = []

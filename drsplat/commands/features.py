@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import int_range, nonneg_int, resolution_value
-from drsplat.errors import RESUMABLE_NOTE, OutputError
+from drsplat.errors import INTERRUPTED_NOTE, RESUMABLE_NOTE, OutputError
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 from drsplat.features.weights import SAM_URLS
@@ -52,7 +52,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "running cluster (host:port or 'auto'), or no value to start a local one. With --device cuda each worker "
                    "requests one GPU. Same files, resumable")
     p.add_argument("--ray-workers", type=int_range(1, 4096), default=None, metavar="N", help="Ray workers (default: the cluster's CPUs)")
-    p.set_defaults(func=run, interrupted_note=RESUMABLE_NOTE)
+    p.set_defaults(func=run, interrupted_note=interrupted_note)
+
+
+def interrupted_note(args: argparse.Namespace) -> str:
+    """What an interrupted run's last line adds: that the same command resumes, when the output
+    folder holds finished images (pairs are written atomically: only whole ones are there)."""
+    from drsplat.features.format import FEAT_SUFFIX
+
+    kept = args.out.is_dir() and any(args.out.glob(f"*{FEAT_SUFFIX}"))
+    return RESUMABLE_NOTE if kept else f"{INTERRUPTED_NOTE}; no image was finished"
 
 
 def refuse_image_folder(out: Path, cameras) -> None:

@@ -83,6 +83,12 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     user = split_phrases(args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and (extra is None or user):
+        from drsplat.features.modelid import is_oracle
+
+        if is_oracle(field.clip_model):  # no text encoder can embed the negatives of this embedding space
+            raise DrsplatError(f"--relevancy needs negatives in the field's embedding space: {'--negatives phrases need' if user else 'the canonical negatives need'} "
+                               "a CLIP text encoder, and this scene's features are synthetic oracle embeddings; pass --negative-embeddings "
+                               "N.npy (rows of the synthetic dataset's text_embeddings.npy)" + (" instead of --negatives" if user else ""))
         encoder = (encoder_factory or common.load_encoder)(args, field)
     return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits, device=device)
 
@@ -101,6 +107,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
               "the registered PLY's codebook": codebook_path_for(args.registered)}
     outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format, "--out")}
     guard_outputs(inputs, outputs)
+    common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
     queries, single, encoder = build_queries(args, field, encoder_factory)

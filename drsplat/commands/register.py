@@ -9,7 +9,6 @@ from pathlib import Path
 from drsplat.commands.common import guard_args, nonneg_int, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
-from drsplat.errors import RESUMABLE_NOTE
 from drsplat.utils import CancelToken, cancel_on_signals
 
 log = logging.getLogger(__name__)
@@ -57,7 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ray-workers", type=positive_int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_arguments(p)
-    p.set_defaults(func=run, interrupted_note=RESUMABLE_NOTE)
+    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("out_dir", type=Path, help="output folder (created; an earlier synthetic dataset there is replaced)")
     p.add_argument("--preset", default="tiny", choices=sorted(PRESETS) + sorted(CITY_PRESETS),
                    help="scene: tiny, small, demo (a table), a hard room hard-* (docs/registration.md), or city (16 small rooms on a grid, "
-                        "96 views that each see about one room: the scale path of `drsplat bench scale`; no images) (default: tiny)")
+                        "96 views that each see about one room: the scale path of `drsplat bench scale`) (default: tiny)")
     p.add_argument("--seed", type=seed_int, default=0, help="random seed, 0..2^32-1 (default: 0)")
     p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
                    help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")

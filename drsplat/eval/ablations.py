@@ -320,10 +320,12 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
                             per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
                         rows.append([name, mode, int(k), *map(float, np.mean(per, axis=0))])
                         log.info("%s k=%d %s: %s", name, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
-    notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); oracle masks: "
-             f"{mask_source + ' (every preset)' if mask_source else 'each preset own (geometry for hard-silhouette, render otherwise)'}; "
-             "each preset's default oracle corruption "
-             "(hard-noisy: 10% mislabelled masks, 2 px jitter; hard-room: 1 px jitter). vol = volume-aware, count = OpenGaussian's; "
+    own_source = "each preset's own (geometry for hard-silhouette, render otherwise)"
+    masks = ", ".join(f"{s} (every preset)" if s else own_source for s in sources)
+    own_corruption = "each preset's default oracle corruption (hard-noisy: 10% mislabelled masks, 2 px jitter; hard-room: 1 px jitter)"
+    kinds = ", ".join(own_corruption if c == "own" else c for c in corruptions)
+    notes = [f"presets {', '.join(presets)}; seeds {list(seeds)} (mean); oracle masks: {masks}; corruptions: {kinds}. "
+             "vol = volume-aware, count = OpenGaussian's; "
              "+unl = unlabelled Gaussians that stay assigned count as false positives; lab = labelled Gaussians only; "
              "ms/view = whole registration time / views."]
     return AblationResult("aggregate", list(AGGREGATE_COLUMNS), rows, notes)

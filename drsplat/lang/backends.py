@@ -15,7 +15,7 @@ q·r_i / |r_i|. A backend class provides:
     scores_reference(q) -> [N, K]                         decode-then-cosine in float64, for tests
     reconstruct(index) -> [n, D] float32
     take(index) -> storage                                the subset of Gaussians `index` selects
-    bytes_per_gaussian() -> int                           stored bytes per Gaussian (norm included)
+    bytes_per_gaussian() -> int                           stored bytes per Gaussian (a stored norm included)
     columns() -> {PLY property: [N] array}; from_columns(get, n, dim, codebook) -> storage
 
 Adding a backend is one class here plus one line in BACKENDS (drsplat.lang.plyformat and
@@ -95,7 +95,7 @@ class ExactStorage:
         return ExactStorage(self.features[index], None if self.known_norms is None else self.known_norms[index])
 
     def bytes_per_gaussian(self) -> int:
-        return 2 * self.features.shape[1] + 4
+        return 2 * self.features.shape[1]  # lang_0 .. lang_{D-1}: the norm is computed on load, not stored
 
     def columns(self) -> dict[str, np.ndarray]:
         """`lang_0 .. lang_{D-1}`: IEEE float16 bit patterns as ushort (PLY has no half type)."""

@@ -1121,7 +1121,11 @@ class CheckSink:
             if partial_supports is not None:
                 feats = [view.feats for view in self._source.block_views(0, 0)]
                 supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, beside=self.spill_beside)
-                partial_supports(supports.add_file)
+                try:
+                    partial_supports(supports.add_file)
+                except BaseException:  # a reducer failed or the run was cancelled: the files adopted so far go too
+                    supports.close()
+                    raise
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
                                         supports=supports, beside=self.spill_beside)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
