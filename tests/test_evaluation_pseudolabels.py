@@ -116,3 +116,40 @@ def test_radius_batches_bound_the_overfetch():
     assert all(len(b) <= 2 for b in batches)
     for b in batches:
         assert radii[b].max() / radii[b].min() < 2**0.5
+
+
+@pytest.mark.parametrize("ratio", [1e-6, 1e-8, 1e-9])
+def test_flat_gaussians_measure_distances_in_their_own_frame(ratio):
+    """A rotated Gaussian of scales ratio : 1 : 1 and points at 1.5, 2.9 and 3.1 σ along a long axis:
+    D = 2.25, 8.41, 9.61, so only the first two are within r = 3 and the first one's label wins. The
+    expanded quadratic form with Σ⁻¹'s entries (~1/ratio²) put them at 3 / 8 / 8 at 1e-8 (the third
+    counted) and at 0 / 0 / 0 at 1e-9, where the grid engine then gave another label (a numerical
+    probe, 2026-11-30); both engines now whiten, as the reference does."""
+    axis, angle = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0), 0.7
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    scales = np.array([[ratio, 1.0, 1.0]])
+    pts = np.array([1.5, 2.9, 3.1])[:, None] * rot[:, 1][None]
+    labels = np.array([1, 2, 2])
+    gaussians = (np.zeros((1, 3)), rot[None], scales)
+    np.testing.assert_allclose(mahalanobis_sq(pts, np.zeros((3, 3)), np.repeat(rot[None], 3, 0), np.repeat(scales, 3, 0)), [2.25, 8.41, 9.61], rtol=1e-6)
+    for engine in ("grid", "kdtree"):
+        got = pseudo_labels(gaussians, pts, labels, engine=engine, show_progress=False)
+        assert got.labels.tolist() == [1] and got.num_points.tolist() == [2], engine
+    assert pseudo_labels_reference(gaussians, pts, labels).tolist() == [1]
+
+
+@pytest.mark.parametrize("scale", [1e200, 1e308, 1e-160, 1e-300])
+def test_scales_at_the_ends_of_float64_label_like_the_reference(scale):
+    """One Gaussian of scale 1e200 made the grid engine read out of bounds (a segmentation fault:
+    0 · inf = NaN in its box, then NaN cast to a cell index); 1e-160 overflowed Σ⁻¹, so a point
+    exactly on the centre was not counted. Both engines give the reference's label: a huge Gaussian
+    holds every point (a tie of equal votes: the smaller label), a tiny one the point on its centre."""
+    gaussians = (np.zeros((1, 3)), np.eye(3)[None], np.full((1, 3), scale))
+    pts, labels = np.array([[0.0, 0.0, 0.0], [1e150, 0.0, 0.0]]), np.array([3, 4])
+    want = pseudo_labels_reference(gaussians, pts, labels)
+    assert want.tolist() == [3]
+    for engine in ("grid", "kdtree"):
+        with np.errstate(invalid="raise"):  # no NaN made on the way (the old cell indices)
+            got = pseudo_labels(gaussians, pts, labels, engine=engine, show_progress=False)
+        assert got.labels.tolist() == want.tolist() and got.num_points.tolist() == [2 if scale > 1 else 1], engine
