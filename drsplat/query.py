@@ -48,11 +48,26 @@ def check_clip_models(field_model: str | None, query_model: str | None, what: st
 # Queries
 
 
+def query_rows(x: np.ndarray, what: str = "query") -> np.ndarray:
+    """Query-like embeddings as unit rows [K, D] float32; DrsplatError naming the first row that is
+    not finite or is zero (`unit_rows` would make it a zero row, whose scores look like an
+    unassigned Gaussian's, or a negative that never wins: a numerical probe, 2026-11-30)."""
+    x = np.atleast_2d(np.asarray(x))
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(x).all(axis=1)
+        zero = finite & ~(np.abs(x) > 0).any(axis=1)
+    for bad, why in ((~finite, "holds non-finite values"), (zero, "is all zeros")):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise DrsplatError(f"{what} {i} {why}: it has no direction to score by" + (f" ({int(bad.sum())} such rows)" if bad.sum() > 1 else ""))
+    return unit_rows(x)
+
+
 def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageField | None = None) -> np.ndarray:
     """Unit text embeddings [K, D] of phrases, after checking the encoder matches the field's model."""
     if field is not None:
         check_clip_models(field.clip_model, getattr(encoder, "model_id", None))
-    emb = unit_rows(encoder.encode_text(list(phrases)))
+    emb = query_rows(encoder.encode_text(list(phrases)), "the text encoder's embedding of phrase")
     if field is not None and emb.shape[1] != field.dim:
         raise DrsplatError(f"the text encoder gives {emb.shape[1]}-D embeddings but the field holds {field.dim}-D features")
     return emb
@@ -137,7 +152,7 @@ def cosine(field: LanguageField, queries: np.ndarray, lut_bits: int = 32, device
 
     lut_bits: 32 exact look-up tables, 8 the faster 8-bit tables (PQ fields; see LanguageField.scores).
     """
-    return field.scores(queries, lut_bits=lut_bits, device=device)
+    return field.scores(query_rows(queries), lut_bits=lut_bits, device=device)
 
 
 def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:
@@ -170,8 +185,8 @@ def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, 
     negatives are the canonical phrases' embeddings ("object", "things", "stuff", "texture"),
     optionally followed by user negatives. One LUT pass scores queries and negatives together.
     """
-    q = unit_rows(queries)
-    neg = unit_rows(negatives)
+    q = query_rows(queries)
+    neg = query_rows(negatives, "negative") if len(negatives) else unit_rows(np.zeros((0, q.shape[1]), np.float32))
     if neg.shape[0] == 0:
         raise DrsplatError("relevancy needs at least one negative embedding")
     scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits, device=device)
@@ -186,7 +201,7 @@ def negative_embeddings(encoder: TextEncoder | None, field: LanguageField, user_
     elif user_phrases:
         raise DrsplatError("negative phrases need a CLIP text encoder")
     if extra is not None:
-        parts.append(unit_rows(extra))
+        parts.append(query_rows(extra, "negative embedding"))
     if not parts:
         raise DrsplatError("relevancy needs negatives: a CLIP text encoder for the canonical phrases, or negative embeddings")
     return np.concatenate(parts)
@@ -212,20 +227,35 @@ def otsu_scores(scores: np.ndarray) -> np.ndarray:
 
 def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
     """Threshold maximising the between-class variance of `otsu_scores` (Otsu); with one value
-    among them (nothing to split), that value, which selects them all."""
+    among them (nothing to split), that value, which selects them all.
+
+    The classes are the scores' distinct values when there are at most `bins` of them (exact,
+    however close: scores one float64 ulp apart made np.histogram refuse), else a histogram of
+    `bins` bins. The threshold returned is the lowest score of the upper class, a value the scores
+    hold, so `scores >= threshold` selects that class in the scores' own dtype (a float64 bin edge
+    between two float32 scores one ulp apart rounded onto the lower one, which was then selected
+    too: a numerical probe, 2026-11-30)."""
     s = otsu_scores(scores)
     if s.size == 0 or s.min() == s.max():
         return float(s.max()) if s.size else 0.0
-    hist, edges = np.histogram(s, bins=bins)
+    values, counts = np.unique(s, return_counts=True)
+    if values.size <= bins:
+        centers, hist = values, counts
+    else:
+        hist, edges = np.histogram(s, bins=bins)
+        centers = 0.5 * (edges[:-1] + edges[1:])
     p = hist / hist.sum()
-    centers = 0.5 * (edges[:-1] + edges[1:])
     w0 = np.cumsum(p)
     mu = np.cumsum(p * centers)
     w1 = 1 - w0
     with np.errstate(divide="ignore", invalid="ignore"):
         between = (mu[-1] * w0 - mu) ** 2 / (w0 * w1)
     between = np.nan_to_num(between, nan=-1.0, posinf=-1.0)
-    return float(edges[int(np.argmax(between)) + 1])
+    split = int(np.argmax(between))  # the lower class is bins 0 .. split
+    if values.size <= bins:
+        return float(values[split + 1])
+    upper = s[s >= edges[split + 1]]
+    return float(upper.min()) if upper.size else float(edges[split + 1])
 
 
 @dataclass
@@ -244,9 +274,9 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     background: [D] or [B, D] embeddings of background phrases; Gaussians they win get -1.
     min_score: Gaussians whose best cosine is below it get -1. Unassigned Gaussians get -1.
     """
-    labels_emb = unit_rows(label_embeddings)
+    labels_emb = query_rows(label_embeddings, "label embedding")
     n_labels = labels_emb.shape[0]
-    queries = labels_emb if background is None else np.concatenate([labels_emb, unit_rows(background)])
+    queries = labels_emb if background is None else np.concatenate([labels_emb, query_rows(background, "background embedding")])
     scores = field.scores(queries, lut_bits=lut_bits, device=device)
     best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
     best_score = scores[np.arange(scores.shape[0]), best]

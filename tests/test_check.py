@@ -843,6 +843,8 @@ def test_a_table_file_is_written_a_run_at_a_time_in_view_order(tmp_path):
         writer.add(3, run([0], [9], [2]))
         with pytest.raises(ValueError, match="view 2 after view 3"):
             writer.add(2, run([0], [0], [1]))
+        with pytest.raises(ValueError, match="from mask 0, after its mask 0"):  # a view's runs in increasing masks
+            writer.add(3, run([0], [1], [1]))
         offsets = writer.close()
     np.testing.assert_array_equal(offsets, [0, 0, 3, 3, 4, 4])
     rec = np.fromfile(path, ENTRY)

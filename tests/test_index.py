@@ -184,13 +184,52 @@ def test_quantize_luts_error_bound():
     rng = np.random.default_rng(4)
     luts = np.stack([rng.normal(size=(16, 256)), rng.normal(size=(16, 256)) * 1e6, np.full((16, 256), -2.0)]).astype(np.float32)
     luts[0, 3] += 5.0  # one sub-table with a much larger range sets the scale
-    q, scale, offset = quantize_luts(luts)
-    assert q.dtype == np.uint8 and scale.shape == offset.shape == (3,)
+    q, scale, offset, exact = quantize_luts(luts)
+    assert q.dtype == np.uint8 and scale.shape == offset.shape == (3,) and not exact.any()
     lo = luts.astype(np.float64).min(axis=2)
     approx = lo[:, :, None] + scale[:, None, None].astype(np.float64) * q
     assert np.all(np.abs(approx - luts) <= scale[:, None, None] * 0.5 * (1 + 1e-5) + 1e-6 * np.abs(luts))
     np.testing.assert_allclose(offset, lo.sum(axis=1), rtol=1e-6)
     assert np.all(q[2] == 0) and offset[2] == -32.0, "a constant table is represented exactly"
+
+
+def test_an_outlying_sub_table_stays_float32_and_the_rest_get_a_finer_scale():
+    """One sub-table 12-18x wider than the others (a CLIP text embedding's outlier component) set
+    the one 8-bit scale; it is now kept in float32 (`exact`, q = 0, out of the offset) and the scale
+    comes from the others, so every quantised entry is within their scale / 2 and a sum of the
+    kept float table and the 8-bit ones is the float sum within M·scale/2."""
+    rng = np.random.default_rng(7)
+    luts = rng.normal(size=(2, 32, 256))
+    luts[0, 5] *= 15.0  # query 0: one wide table; query 1: none
+    q, scale, offset, exact = quantize_luts(luts)
+    assert exact[0].tolist() == [m == 5 for m in range(32)] and not exact[1].any()
+    assert np.all(q[0, 5] == 0)
+    spans = luts.max(axis=2) - luts.min(axis=2)
+    np.testing.assert_allclose(scale[0], np.delete(spans[0], 5).max() / 255, rtol=1e-6)
+    lo = luts.min(axis=2)
+    approx = np.where(exact[:, :, None], luts, lo[:, :, None] + scale[:, None, None].astype(np.float64) * q)
+    assert np.all(np.abs(approx - luts) <= scale[:, None, None] * 0.5 * (1 + 1e-5))
+    np.testing.assert_allclose(offset, np.where(exact, 0.0, lo).sum(axis=1), rtol=1e-6)
+
+
+@pytest.mark.parametrize("use_simd", [True, False])
+def test_8bit_scores_of_a_query_with_an_outlying_component_follow_the_float_tables(data, books, use_simd):
+    """A unit query with one component of 0.7 (as CLIP text embeddings have): the 8-bit scores
+    equal the reference's (the same kept float table) and stay within the float32 tables' scores
+    by the bound of the finer scale."""
+    x, w, _, _ = data
+    field = build_field(x, w, books[16], clip_model="oracle")
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(3, x.shape[1])) * 0.05
+    q[:, 3] = 0.7
+    qn = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    _, scale, _, exact = quantize_luts(field.codebook.luts(qn))
+    assert exact.any(axis=1).all(), "the component's sub-table is kept in float32"
+    got = lut_scores_blocked(field.codebook, blocked_codes(field.codes), len(x), None, field.norms, qn, 8, use_simd)
+    np.testing.assert_allclose(got, lut_scores_q8_reference(field.codebook, field.codes, None, field.norms, qn), atol=TOL, rtol=0)
+    f32 = lut_scores(field.codebook, field.codes, None, field.norms, qn)
+    bound = 16 * scale[None, :] / 2 / np.where(field.norms > 0, field.norms, 1)[:, None]
+    assert np.all(np.abs(got - f32) <= bound + TOL)
 
 
 BLOCKED_PATHS = [(32, True), (32, False), (8, True), (8, False)]
@@ -211,7 +250,7 @@ def test_blocked_lut_scores_agree_with_references(data, books, m, bits, use_simd
         np.testing.assert_allclose(got, lut_scores(field.codebook, field.codes, None, field.norms, qn), atol=TOL, rtol=0)
     else:
         np.testing.assert_allclose(got, lut_scores_q8_reference(field.codebook, field.codes, None, field.norms, qn), atol=TOL, rtol=0)
-        _, scale, _ = quantize_luts(field.codebook.luts(qn))
+        _, scale, _, _ = quantize_luts(field.codebook.luts(qn))
         bound = m * scale[None, :] / 2 / np.where(field.norms > 0, field.norms, 1)[:, None]
         assert np.all(np.abs(got - exact) <= bound + TOL)
         assert np.abs(got - exact).mean() < 0.5 * bound.mean(), "rounding errors should partly cancel"

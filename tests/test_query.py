@@ -125,8 +125,22 @@ def test_otsu_threshold_splits_two_modes():
     rng = np.random.default_rng(0)
     s = np.concatenate([rng.normal(0.2, 0.03, 5000), rng.normal(0.7, 0.03, 300)])
     t = otsu_threshold(s)
-    assert 0.28 < t < 0.6
+    assert t == s[5000:].min()  # the lowest score of the upper mode: a value the scores hold
     assert np.sum(s >= t) == 300
+
+
+def test_otsu_splits_scores_one_ulp_apart():
+    """Two groups of float32 scores one ulp apart: the threshold selects the upper one in float32
+    (a float64 bin edge between them rounded onto the lower score, selecting both); float64 scores
+    one ulp apart made np.histogram refuse (a numerical probe, 2026-11-30)."""
+    from drsplat.query import select
+
+    low = np.float32(0.2)
+    high = np.nextafter(low, np.float32(1))
+    s = np.r_[np.full(900, low), np.full(100, high)].astype(np.float32)
+    assert select(s, otsu_threshold(s)).sum() == 100
+    d = np.array([0.2, 0.2, np.nextafter(0.2, 1.0)])
+    assert otsu_threshold(d) == d[2] and select(d, otsu_threshold(d)).sum() == 1
 
 
 @pytest.mark.parametrize("scores", [[0.42], [0.42] * 5, [0.42, 0.0, np.nan, 0.42]], ids=["one", "all-equal", "equal-among-unscored"])
@@ -344,3 +358,64 @@ def test_exact_norms_are_computed_only_when_scored(tmp_path):
     np.testing.assert_array_equal(read_field(load_ply(path), path).scores(q), field.scores(q))
     half = storage.take(np.arange(0, n, 2))
     np.testing.assert_array_equal(half.norms, storage.norms[::2])
+
+
+def test_query_functions_refuse_rows_with_no_direction():
+    """A NaN or all-zero query, negative, label or text embedding was made a zero row: cosine gave
+    0 everywhere (as for unassigned Gaussians), relevancy plausible values, segment gave the NaN
+    label wherever the others scored below 0 (a numerical probe, 2026-11-30). Now one error naming
+    the row."""
+    from drsplat.lang import unit_rows
+    from drsplat.query import cosine, relevancy, segment, text_embeddings
+
+    rng = np.random.default_rng(5)
+    feats = unit_rows(rng.normal(size=(6, 8)))
+    field = build_field(feats, np.ones(6, np.float32))
+    nan, zero = np.full(8, np.nan, np.float32), np.zeros(8, np.float32)
+    with pytest.raises(DrsplatError, match="query 0 holds non-finite values"):
+        cosine(field, nan)
+    with pytest.raises(DrsplatError, match="query 1 is all zeros"):
+        cosine(field, np.vstack([feats[0], zero]))
+    with pytest.raises(DrsplatError, match="query 0 holds non-finite"):
+        relevancy(field, nan, feats[1:2])
+    with pytest.raises(DrsplatError, match="negative 1 holds non-finite"):
+        relevancy(field, feats[0], np.vstack([feats[1], nan]))
+    with pytest.raises(DrsplatError, match="label embedding 1 holds non-finite"):
+        segment(field, np.vstack([feats[0], nan]))
+    with pytest.raises(DrsplatError, match="background embedding 0 is all zeros"):
+        segment(field, feats[:2], background=zero)
+
+    class Encoder:
+        model_id = "unknown"
+
+        def encode_text(self, phrases):
+            return np.vstack([feats[0], nan])
+
+    with pytest.raises(DrsplatError, match="the text encoder's embedding of phrase 1 holds non-finite"):
+        text_embeddings(Encoder(), ["chair", "table"], field)
+    # finite rows of any scale are still directions
+    np.testing.assert_allclose(cosine(field, 1e30 * feats[0]), cosine(field, feats[0]), atol=1e-6)
+
+
+@pytest.mark.parametrize("codebook", ["none", "pq"])
+def test_every_backend_stores_the_same_rows_as_features(codebook):
+    """Rows with weight that are zero or not finite are unassigned by every backend (a PQ code of a
+    zero row decoded to some vector, cosine 0.051), and rows of any finite scale (1e-8, 1e-40, 1e5)
+    keep their direction in every backend (float16 underflowed 1e-8 to zero: a numerical probe,
+    2026-11-30); unit rows are stored as given."""
+    from drsplat.lang import unit_rows
+
+    rng = np.random.default_rng(2)
+    base = unit_rows(rng.normal(size=(300, 16)))
+    rows = base.copy()
+    rows[1], rows[2] = 0.0, np.nan
+    rows[3], rows[4], rows[5] = base[3] * 1e-8, base[4] * 1e-40, base[5] * 1e5
+    book = train_codebook(base, m=4) if codebook == "pq" else "none"
+    field = build_field(rows, np.ones(len(rows), np.float32), book, clip_model="oracle-test")
+    assigned = field.assigned()
+    assert not assigned[1] and not assigned[2] and assigned[[0, 3, 4, 5]].all()
+    assert field.weights[1] == field.weights[2] == 0
+    scores = field.scores(base[[0, 3, 4, 5]])  # each row scored against its own direction
+    assert np.all(np.diag(scores[[0, 3, 4, 5]]) > (0.999 if codebook == "none" else 0.5))
+    if codebook == "none":  # unit rows stored as given
+        np.testing.assert_array_equal(field.storage.features[0], base[0].astype(np.float16))

@@ -138,7 +138,7 @@ def test_a_spill_file_out_of_order_is_one_error_naming_it(tmp_path):
         tables.add(0, part)
     for spill in next(tmp_path.iterdir()).iterdir():
         np.fromfile(spill, ENTRY)[::-1].copy().tofile(spill)
-    with pytest.raises(DrsplatError, match=r"reg\.ply\.\d+\.\w+\.tmp/support-\d+\.bin: the check's spilled support table of view 0 was changed while the registration ran \(cut short or reordered\)"):
+    with pytest.raises(DrsplatError, match=r"reg\.ply\.\d+\.\w+\.tmp/support-\d+\.bin: the check's support table file of view 0 was changed while the registration ran \(cut short, reordered or overwritten\)"):
         list(tables.view_ranges(0, 8, 5))
     tables.close()
 
@@ -150,7 +150,7 @@ def test_a_spill_file_cut_short_is_one_error_naming_it(tmp_path):
     spill.write_bytes(spill.read_bytes()[: ENTRY.itemsize])
     from drsplat.errors import DrsplatError
 
-    with pytest.raises(DrsplatError, match=f"{spill}: the check's spilled support table of view 0 was changed while the registration ran \\(cut short or reordered\\)"):
+    with pytest.raises(DrsplatError, match=f"{spill}: the check's support table file of view 0 was changed while the registration ran \\(cut short, reordered or overwritten\\)"):
         tables.view(0)
     tables.close()
 
@@ -233,3 +233,77 @@ def test_spill_folders_of_symlinked_and_fifo_outputs_are_swept_after_a_kill(tmp_
     assert len(list(real.iterdir())) == 1
     tables.close()
     assert list(real.iterdir()) == []
+
+
+def _written_file(tmp_path, rng):
+    """A table file of 3 views as a Ray reducer writes it (`TableWriter`), its offsets and CRC-32."""
+    from drsplat.registration.supports import TableWriter, merge_entries
+
+    path = tmp_path / "block000000.support"
+    with open(path, "wb") as f:
+        writer = TableWriter(f, 3)
+        for v in (0, 2):
+            whole = merge_entries(_random_parts(rng, 2, 8, 11, False))
+            for lo, hi in ((0, 3), (3, 8)):  # in two runs of masks, as a reducer writes a large view
+                writer.add(v, tuple(column[(whole[0] >= lo) & (whole[0] < hi)] for column in whole))
+        offsets = writer.close()
+    return path, offsets, writer.crc32
+
+
+@pytest.mark.parametrize("change", ["sums", "reversed", "cluster past the table", "mask past the view", "bytes appended", "removed"])
+@pytest.mark.parametrize("cap", [0, 1 << 30])
+def test_a_reducers_table_file_changed_before_it_is_read_is_one_error_naming_it(tmp_path, change, cap):
+    """A Ray reducer's file altered between its write and the driver's read (a probe, 2026-11-30:
+    changed sums, reversed records or an id past a view's masks gave other bytes with exit 0; a
+    cluster id past the table crashed the judging's kernel; a removed file was "the parent
+    directory does not exist"): one error naming the file, whether the file is read in (a large
+    cap) or read where it lies (cap 0)."""
+    from drsplat.errors import DrsplatError
+
+    rng = np.random.default_rng(3)
+    path, offsets, crc = _written_file(tmp_path, rng)
+    rec = np.fromfile(path, ENTRY)
+    if change == "sums":
+        rec["fixed"][1] += 1
+    elif change == "reversed":
+        rec = rec[::-1].copy()
+    elif change == "cluster past the table":
+        rec["cluster"][0] = 1_000_000
+    elif change == "mask past the view":
+        rec["mask"][-1] = 1_000_000
+    if change == "bytes appended":
+        path.write_bytes(path.read_bytes() + b"\0" * ENTRY.itemsize)
+    elif change == "removed":
+        path.unlink()
+    else:
+        rec.tofile(path)
+    words = "was removed while the registration ran" if change == "removed" else "was changed while the registration ran"
+    for checked in (crc, None):  # the CRC-32 catches any change; without it, the size and the ids and their order do (not sums)
+        if checked is None and change == "sums":
+            continue
+        tables = SupportTables(3, cap, tmp_path / "reg.ply", mask_counts=[8, 8, 8], num_clusters=11)
+        with pytest.raises(DrsplatError, match=f"{path.name}.*{words}"):
+            tables.adopt(path, offsets, checked)
+            for v in range(3):
+                tables.view(v)
+        tables.close()
+
+
+def test_a_reducers_table_file_read_unchanged_gives_its_tables(tmp_path):
+    """The same file, unchanged, adopted read in and read where it lies: the tables written."""
+    from drsplat.registration.supports import merge_entries
+
+    for cap in (0, 1 << 30):
+        rng = np.random.default_rng(3)
+        path, offsets, crc = _written_file(tmp_path, rng)
+        rng = np.random.default_rng(3)
+        want = {v: merge_entries(_random_parts(rng, 2, 8, 11, False)) for v in (0, 2)}
+        tables = SupportTables(3, cap, tmp_path / "reg.ply", mask_counts=[8, 8, 8], num_clusters=11)
+        tables.adopt(path, offsets, crc)
+        assert path.exists() == (cap == 0)
+        for v in (0, 2):
+            for a, b in zip(tables.view(v), want[v]):
+                np.testing.assert_array_equal(a, b)
+        assert tables.view(1)[0].size == 0
+        tables.close()
+        assert not path.exists()

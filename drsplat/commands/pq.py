@@ -80,8 +80,9 @@ def run_train(args: argparse.Namespace) -> int:
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
         divisors = [m for m in range(1, x.shape[1] + 1) if x.shape[1] % m == 0 and m <= 256]
-        raise UsageError(f"--m {args.m} does not divide the embedding dimension {x.shape[1]}; choose a divisor of it, e.g. "
-                         f"{', '.join(map(str, divisors[-4:-1]))} or {divisors[-1]}")
+        shown = divisors[-4:]
+        listed = f"{', '.join(map(str, shown[:-1]))} or {shown[-1]}" if len(shown) > 1 else str(shown[0])
+        raise UsageError(f"--m {args.m} does not divide the embedding dimension {x.shape[1]}; choose a divisor of it, e.g. {listed}")
     if x.shape[0] < PQ_KSUB:
         sources = [*args.embeddings, *args.features]
         where = "" if len(sources) == 1 else " in " + ", ".join(str(p) for p in sources)

@@ -44,6 +44,7 @@ from drsplat.lang.lut import (
 
 EXACT_CHUNK = 32768
 ENCODE_CHUNK = 65536
+UNIT_TOLERANCE = 1e-3  # |norm - 1| beyond which an exact row is normalised before its float16 cast
 
 ColumnGetter = Callable[[str], np.ndarray]  # PLY property name -> [N] array (raises InputError when missing)
 
@@ -74,7 +75,19 @@ class ExactStorage:
 
     @classmethod
     def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None) -> "ExactStorage":
-        f16 = np.asarray(features).astype(np.float16)
+        """Float16 rows (0 where not assigned); a row whose norm is not ~1 is normalised first (unit
+        rows, as registration writes, are stored as given), so no direction underflows to zero or
+        overflows in float16 (a row of 1e-8 did, while a PQ field kept it)."""
+        f = np.asarray(features, np.float32)
+        with np.errstate(invalid="ignore", over="ignore"):
+            peak = np.abs(f).max(axis=1) if f.shape[1] else np.zeros(f.shape[0], np.float32)
+            ok = np.isfinite(peak) & (peak > 0) & np.isfinite(f).all(axis=1)
+            norm = peak * np.linalg.norm(f / np.where(ok, peak, 1)[:, None], axis=1)  # no underflow for rows of 1e-40
+        off = ok & (np.abs(norm - 1.0) > UNIT_TOLERANCE)
+        if off.any():
+            f = f.copy()
+            f[off] = unit_rows(f[off])
+        f16 = f.astype(np.float16)
         f16[~assigned] = 0
         return cls(f16)
 

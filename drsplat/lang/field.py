@@ -160,8 +160,14 @@ def build_field(
     if features.ndim != 2 or features.shape[0] != weights.shape[0]:
         raise ValueError(f"features {features.shape} and weights {weights.shape} disagree")
     n, dim = features.shape
+    exact = isinstance(codebook, str) and codebook == "none"
     assigned = weights > 0
-    if isinstance(codebook, str) and codebook == "none":
+    lost = assigned & ~_has_direction(np.asarray(features, np.float32))
+    if lost.any():  # every backend leaves them unassigned (a PQ code of a zero row decodes to some vector)
+        log.warning("%d of %d Gaussians with weight have a feature that is zero or not finite: left unassigned", int(lost.sum()), n)
+        assigned &= ~lost
+        weights = np.where(lost, np.float32(0), weights)
+    if exact:
         return LanguageField(dim, clip_model, weights, ExactStorage.encode(features, assigned))
     if isinstance(codebook, Codebook):
         book = codebook
@@ -172,6 +178,12 @@ def build_field(
     if book.dim != dim:
         raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
     return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book))
+
+
+def _has_direction(rows: np.ndarray) -> np.ndarray:
+    """[N] bool: rows that are finite and not all zero (in their own dtype)."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(rows).all(axis=1) & (rows != 0).any(axis=1)
 
 
 def scene_sample_ids(candidates: np.ndarray, seed: int = 0) -> np.ndarray:

@@ -725,12 +725,13 @@ def block_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], 
 @dataclass
 class SupportFile:
     """One block's part of every view's support table, written by a reducer (`write_block_supports`):
-    path, offsets [V + 1] (each view's first entry in it, the spill files' format) and the views'
-    masses [M] int64 from the block's Gaussians."""
+    path, offsets [V + 1] (each view's first entry in it, the spill files' format), the views'
+    masses [M] int64 from the block's Gaussians and the file's CRC-32 (checked when adopted)."""
 
     path: str
     offsets: np.ndarray
     mass_fixed: list[np.ndarray]
+    crc32: int
 
 
 def write_block_supports(path: Path, views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray],
@@ -742,7 +743,7 @@ def write_block_supports(path: Path, views: Iterator[ViewPairs], pair_views: Ite
         writer = TableWriter(f, len(per_view))
         masses = block_supports(views, pair_views, per_view, lo, hi, slots, SupportScratch(num_clusters), writer.add)
         offsets = writer.close()
-    return SupportFile(str(path), offsets, masses)
+    return SupportFile(str(path), offsets, masses, writer.crc32)
 
 
 class Supports(Sequence):
@@ -762,7 +763,7 @@ class Supports(Sequence):
         """Zero sums for every view's masks: feats [M, D] and clusters [M] of each view. cap: the
         tables' bytes held in memory (None: SUPPORT_TABLE_BYTES, what the memory plan counts)."""
         views = [ViewSupport.empty(f, c, num_clusters) for f, c in zip(feats, per_view)]
-        tables = SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside)
+        tables = SupportTables(len(views), SUPPORT_TABLE_BYTES if cap is None else cap, beside, [c.shape[0] for c in per_view], num_clusters)
         return cls(tables, [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
 
     def add_file(self, part: SupportFile) -> None:
@@ -770,7 +771,7 @@ class Supports(Sequence):
         the file adopted by the tables (`SupportTables.adopt`: read in, or read from where it is)."""
         for view, mass in enumerate(part.mass_fixed):
             self.mass_fixed[view] += mass
-        self.tables.adopt(Path(part.path), part.offsets)
+        self.tables.adopt(Path(part.path), part.offsets, part.crc32)
 
     def __len__(self) -> int:
         return len(self.units)

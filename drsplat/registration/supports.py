@@ -22,6 +22,7 @@ import errno
 import logging
 import os
 import tempfile
+import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -36,6 +37,7 @@ log = logging.getLogger(__name__)
 ENTRY = np.dtype([("mask", "<i4"), ("cluster", "<i4"), ("fixed", "<i8"), ("core", "<i8")])  # 24 bytes
 MERGE_BYTES = 2 * ENTRY.itemsize + 8  # a view's merge: its parts concatenated, the merged table and the sort order, per entry
 
+READ_PIECE = 16 << 20  # bytes of a table file read at a time to check its CRC-32
 Entries = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # mask [E] int32, cluster [E] int32, fixed [E] int64, core [E] int64
 
 
@@ -82,33 +84,45 @@ def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
     return held + merge
 
 
-def write_entries(f, entries: Entries) -> int:
+def write_entries(f, entries: Entries) -> np.ndarray:
     """A table's entries (merged: sorted by (mask, cluster), each once) appended to the open file f as
-    ENTRY records, the spill files' format. Returns how many."""
+    ENTRY records, the spill files' format. Returns the records written."""
     mask, cluster, fixed, core = entries
     rec = np.empty(mask.shape[0], ENTRY)
     rec["mask"], rec["cluster"], rec["fixed"], rec["core"] = mask, cluster, fixed, core
     f.write(rec.view(np.uint8))
-    return int(rec.shape[0])
+    return rec
 
 
 class TableWriter:
     """Tables written to one file in the spill files' format, view after view, each a run of its
     masks at a time (`add`: runs of one view in increasing masks, views in increasing order), so
     that the writer holds one run, never a view's table nor every view's (a Ray reducer's part of
-    the tables: drsplat.registration.reduce). `offsets` [V + 1]: each view's first entry."""
+    the tables: drsplat.registration.reduce). `offsets` [V + 1]: each view's first entry; `crc32`:
+    the CRC-32 of the bytes written, which the reader checks (`SupportTables.adopt`)."""
 
     def __init__(self, f, num_views: int):
         self.f = f
         self.offsets = np.zeros(num_views + 1, np.int64)
+        self.crc32 = 0
         self._view = 0
+        self._last_mask = -1  # the last mask written of the current view
 
     def add(self, view: int, entries: Entries) -> None:
         if view < self._view:
             raise ValueError(f"view {view} after view {self._view}: a table file is written in view order")
+        if view > self._view:
+            self._last_mask = -1
+        if entries[0].size and int(entries[0].min()) <= self._last_mask:
+            raise ValueError(f"a run of view {view}'s masks from mask {int(entries[0].min())}, after its mask {self._last_mask}: "
+                             "a view's runs are written in increasing masks")
         self.offsets[self._view + 1 : view + 2] = self.offsets[self._view + 1]
         self._view = view
-        self.offsets[view + 1] += write_entries(self.f, merge_entries([entries]))
+        rec = write_entries(self.f, merge_entries([entries]))
+        if rec.shape[0]:
+            self._last_mask = int(rec["mask"][-1])
+        self.crc32 = zlib.crc32(rec.view(np.uint8), self.crc32)
+        self.offsets[view + 1] += rec.shape[0]
 
     def close(self) -> np.ndarray:
         """The offsets once every view is written (the views after the last one added hold nothing)."""
@@ -117,9 +131,33 @@ class TableWriter:
 
 
 def _changed(file, what: str) -> DrsplatError:
-    """The one error of a spill file that is not what was written (cut short, or out of order)."""
-    return DrsplatError(f"{file.name}: the check's spilled support table{what} was changed while the registration ran (cut "
-                        "short or reordered)")
+    """The one error of a table file (a spill, or a Ray reducer's part) that is not what was written."""
+    return DrsplatError(f"{file.name}: the check's support table file{what} was changed while the registration ran (cut "
+                        "short, reordered or overwritten)")
+
+
+def _open_table(path: Path):
+    """A table file opened for reading; one error naming it when it is gone."""
+    try:
+        return open(path, "rb")
+    except FileNotFoundError:
+        raise DrsplatError(f"{path}: the check's support table file was removed while the registration ran") from None
+
+
+def _check_file(path: Path, offsets: np.ndarray, crc32: int | None) -> None:
+    """`_changed` unless the file at `path` holds offsets[-1] records exactly (and, given crc32, bytes
+    of that CRC-32: read once in pieces of READ_PIECE bytes)."""
+    with _open_table(path) as f:
+        size = os.fstat(f.fileno()).st_size
+        if size != int(offsets[-1]) * ENTRY.itemsize:
+            raise _changed(f, f" (it holds {size:,} bytes, its writer wrote {int(offsets[-1]) * ENTRY.itemsize:,})")
+        if crc32 is None:
+            return
+        crc = 0
+        while piece := f.read(READ_PIECE):
+            crc = zlib.crc32(piece, crc)
+        if crc != crc32:
+            raise _changed(f, " (its CRC-32 is not its writer's)")
 
 
 def _read_entries(file, start: int, count: int, what: str) -> np.ndarray:
@@ -137,10 +175,13 @@ def _read_entries(file, start: int, count: int, what: str) -> np.ndarray:
 class _SortedRun:
     """One view's merged table in a spill file (`count` entries from entry `start`, sorted by mask),
     read in pieces: `position(m)`, the first entry of a mask ≥ m (a binary search that reads one
-    record per step, remembered), and `read(a, b)`, entries a .. b-1."""
+    record per step, remembered), and `read(a, b)`, entries a .. b-1. limits: (the view's masks, the
+    clusters) that every entry read must lie under, its (mask, cluster) pairs increasing (else
+    `_changed`: an id past a table would be read out of bounds by the judging's kernels)."""
 
-    def __init__(self, file, start: int, count: int, view: int):
+    def __init__(self, file, start: int, count: int, view: int, limits: tuple[int, int] | None = None):
         self.file, self.start, self.count, self.what = file, start, count, f" of view {view}"
+        self.limits = limits
         self._positions: dict[int, int] = {}
 
     def position(self, mask: int) -> int:
@@ -161,7 +202,14 @@ class _SortedRun:
         rec = _read_entries(self.file, self.start + a, b - a, self.what)
         if masks is not None and rec.shape[0] and not (rec["mask"].min() >= masks[0] and rec["mask"].max() < masks[1]):
             raise _changed(self.file, self.what)
-        return rec["mask"].copy(), rec["cluster"].copy(), rec["fixed"].copy(), rec["core"].copy()
+        mask, cluster = rec["mask"].copy(), rec["cluster"].copy()
+        if self.limits is not None and mask.size:
+            num_masks, num_clusters = self.limits
+            key = mask.astype(np.int64) * max(num_clusters, 1) + cluster
+            if not (mask.min() >= 0 and mask.max() < num_masks and cluster.min() >= 0 and cluster.max() < num_clusters
+                    and np.all(key[1:] > key[:-1])):
+                raise _changed(self.file, self.what)
+        return mask, cluster, rec["fixed"].copy(), rec["core"].copy()
 
 
 def _largest_end(runs: Sequence[_SortedRun], lo: int, num_masks: int, max_entries: int) -> int:
@@ -193,8 +241,11 @@ class SupportTables:
     spilling for it, sweeps it if this one is killed); None: in the system's temp folder.
     `view(v)` gives view v's merged table (`merge_entries`)."""
 
-    def __init__(self, num_views: int, cap: int, beside: str | Path | None = None):
+    def __init__(self, num_views: int, cap: int, beside: str | Path | None = None, mask_counts: Sequence[int] | None = None,
+                 num_clusters: int | None = None):
         self.num_views, self.cap, self.beside = num_views, int(cap), beside
+        # each view's masks and the clusters, that the entries read from files must lie under (None: unchecked)
+        self._limits = None if mask_counts is None or num_clusters is None else [(int(m), int(num_clusters)) for m in mask_counts]
         self._held: list[list[Entries]] = [[] for _ in range(num_views)]
         self._held_bytes = 0
         self._merged: set[int] = set()  # views whose one part held is their merged table
@@ -212,18 +263,20 @@ class SupportTables:
             if self._held_bytes > self.cap:
                 self._spill()
 
-    def adopt(self, path: Path, offsets: np.ndarray) -> None:
+    def adopt(self, path: Path, offsets: np.ndarray, crc32: int | None = None) -> None:
         """Parts of every view written elsewhere in the spill files' format (`TableWriter`: a Ray
-        reducer's block), offsets [V + 1]: read into memory when they fit beside what is held
-        (the file is then removed), else read from the file as a spill file of this object's own
-        (removed by `close`). The same tables either way."""
+        reducer's block), offsets [V + 1]: its size (and, given, its CRC-32) checked first
+        (`_check_file`), then read into memory when they fit beside what is held (the file is then
+        removed), else read from the file as a spill file of this object's own (removed by
+        `close`). The same tables either way."""
+        _check_file(path, offsets, crc32)
         total = int(offsets[-1])
         if self._held_bytes + ENTRY.itemsize * total <= self.cap:
-            with open(path, "rb") as f:
+            with _open_table(path) as f:
                 for v in range(self.num_views):
                     count = int(offsets[v + 1] - offsets[v])
                     if count:
-                        self.add(v, _SortedRun(f, int(offsets[v]), count, v).read(0, count))
+                        self.add(v, self._run(f, int(offsets[v]), count, v).read(0, count))
             path.unlink()
             return
         self._merged.clear()  # a view's merged table held no longer covers the new file's part
@@ -239,8 +292,8 @@ class SupportTables:
         for path, offsets in self._spills:
             count = int(offsets[view + 1] - offsets[view])
             if count:
-                with open(path, "rb") as f:
-                    parts.append(_SortedRun(f, int(offsets[view]), count, view).read(0, count))
+                with _open_table(path) as f:
+                    parts.append(self._run(f, int(offsets[view]), count, view).read(0, count))
         merged = merge_entries(parts)
         if not self._spills and merged[0].size:  # read twice by the judging: keep it merged (never more entries than its parts)
             self._held[view] = [merged]
@@ -264,10 +317,10 @@ class SupportTables:
             return
         if held:
             self._spill()
-        files = [(open(path, "rb"), int(offsets[view]), int(offsets[view + 1] - offsets[view]))
+        files = [(_open_table(path), int(offsets[view]), int(offsets[view + 1] - offsets[view]))
                  for path, offsets in self._spills if offsets[view + 1] > offsets[view]]
         try:
-            runs = [_SortedRun(*file, view) for file in files]
+            runs = [self._run(*file, view) for file in files]
             lo = 0
             while lo < num_masks:
                 hi = _largest_end(runs, lo, num_masks, max_entries)
@@ -277,6 +330,9 @@ class SupportTables:
         finally:
             for file, _, _ in files:
                 file.close()
+
+    def _run(self, file, start: int, count: int, view: int) -> _SortedRun:
+        return _SortedRun(file, start, count, view, None if self._limits is None else self._limits[view])
 
     @property
     def held_bytes(self) -> int:
@@ -300,7 +356,7 @@ class SupportTables:
             path = Path(self._tmp.name) / f"support-{len(self._spills)}.bin"
             with open(path, "wb") as f:
                 for v in range(self.num_views):
-                    offsets[v + 1] = offsets[v] + write_entries(f, merge_entries(self._held[v], consume=True))  # the view's parts freed as merged
+                    offsets[v + 1] = offsets[v] + write_entries(f, merge_entries(self._held[v], consume=True)).shape[0]  # the view's parts freed as merged
         except OSError as exc:
             self.close()
             full = exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
