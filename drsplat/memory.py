@@ -59,8 +59,72 @@ def _proc_bytes(path: str, key: str) -> int:
 
 
 def available_memory() -> int:
-    """MemAvailable of /proc/meminfo in bytes (0 when unknown)."""
-    return _proc_bytes("/proc/meminfo", "MemAvailable")
+    """MemAvailable of /proc/meminfo in bytes, or less where this process's memory cgroup (a
+    container's limit) leaves less (`cgroup_room`); 0 when unknown. /proc/meminfo shows the host's
+    memory inside a container, so a plan made from it alone is killed at the container's limit."""
+    free = _proc_bytes("/proc/meminfo", "MemAvailable")
+    room = cgroup_room()
+    return free if room is None else min(free, room) if free else room
+
+
+def cgroup_room(proc_cgroup: str | Path = "/proc/self/cgroup", fs_root: str | Path = "/sys/fs/cgroup") -> int | None:
+    """Bytes this process's memory cgroup still allows: its limit less what it uses, page cache that
+    can be dropped (inactive files) not counted as used; None without a limit or cgroup.
+
+    cgroup v2 (a line "0::PATH" of /proc/self/cgroup): memory.max, memory.current, memory.stat's
+    inactive_file; v1 (a line "N:...memory...:PATH"): memory.limit_in_bytes, memory.usage_in_bytes,
+    memory.stat's total_inactive_file. PATH is looked up under fs_root, then fs_root itself (a
+    container sees its own cgroup at the mount's root)."""
+    try:
+        lines = Path(proc_cgroup).read_text().splitlines()
+    except OSError:
+        return None
+    root = Path(fs_root)
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        if parts[0] == "0" and parts[1] == "":
+            candidates, files = [root / parts[2].lstrip("/"), root], ("memory.max", "memory.current", "inactive_file")
+        elif "memory" in parts[1].split(","):
+            candidates = [root / "memory" / parts[2].lstrip("/"), root / "memory"]
+            files = ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+        else:
+            continue
+        for folder in candidates:
+            room = _cgroup_room_in(folder, *files)
+            if room is not None:
+                return room
+    return None
+
+
+NO_LIMIT = 1 << 60  # cgroup v1 writes "no limit" as a number near 2^63
+
+
+def _cgroup_room_in(folder: Path, limit_file: str, usage_file: str, inactive_key: str) -> int | None:
+    try:
+        limit_text = (folder / limit_file).read_text().strip()
+        usage = int((folder / usage_file).read_text().strip())
+    except (OSError, ValueError):
+        return None
+    if limit_text == "max":
+        return None
+    try:
+        limit = int(limit_text)
+    except ValueError:
+        return None
+    if limit >= NO_LIMIT:
+        return None
+    inactive = 0
+    try:
+        for line in (folder / "memory.stat").read_text().splitlines():
+            key, _, value = line.partition(" ")
+            if key == inactive_key:
+                inactive = int(value)
+                break
+    except (OSError, ValueError):
+        pass
+    return max(0, limit - max(0, usage - inactive))
 
 
 def current_rss() -> int:

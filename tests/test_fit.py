@@ -293,6 +293,7 @@ def test_the_probe_holds_no_more_than_its_bound_when_every_pixel_pair_is_its_own
     pixels = max(c.width * c.height for c in cams)
     masks = max(load_view_features(tmp_path, c, 1)[1].shape[0] for c in cams)
     assert masks > 500 and stage.pairs
-    bound = probe_memory_bound(scene.num_gaussians, pixels, topk, masks * 32 * 4) - probe_memory(scene.num_gaussians)
+    bound = probe_memory_bound(scene.num_gaussians, pixels, topk, masks * 32 * 4, masks) - probe_memory(scene.num_gaussians)
     assert held <= bound, (held, bound)
+    assert bound <= probe_memory_bound(scene.num_gaussians, pixels, topk, masks * 32 * 4) - probe_memory(scene.num_gaussians)
     assert held > bound / 20  # not a vacuous bound: it is of the order of what these views keep

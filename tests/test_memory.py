@@ -148,3 +148,46 @@ def test_trim_heap_gives_freed_memory_back_so_the_plan_does_not_count_it():
     assert out.returncode == 0, out.stderr
     before, held, trimmed, first = map(int, out.stdout.split())
     assert held - before > 80 << 20 and held - trimmed > 80 << 20 and first == 1, (before, held, trimmed)
+
+
+def test_a_views_pairs_are_counted_at_most_every_gaussian_in_every_mask():
+    """A 1920x1080 view at k = 40 has 83 M top-k slots, but 20,000 Gaussians in 102 masks give at most
+    2 M distinct pairs: the plan counted a pair per slot and put a default registration that peaked
+    at 1.2 GB at 8 GB, refusing it on a 4 GB machine (a probe on real photos, 2026-11-30)."""
+    from drsplat.bench.register import blob_scene, orbit_cameras
+    from drsplat.registration.plan import PAIR_BYTES, estimate_memory, view_pairs_bound
+
+    assert view_pairs_bound(20_000, 1920 * 1080, 40, 102) == 20_000 * 102
+    assert view_pairs_bound(20_000, 64 * 48, 40, 102) == 64 * 48 * 40  # few pixels: the slots bound it
+    assert view_pairs_bound(20_000, 1920 * 1080, 40) == 1920 * 1080 * 40  # masks not known
+    scene = blob_scene(20_000, seed=0)
+    cams = orbit_cameras(scene.means, 1, 1920, 1080)
+    known = estimate_memory(scene, cams, 512, 40, base=0, aggregate="paper", total_masks=102, max_masks=102)
+    unknown = estimate_memory(scene, cams, 512, 40, base=0, aggregate="paper")
+    assert unknown.views - known.views == 2 * PAIR_BYTES * (1920 * 1080 * 40 - 20_000 * 102)
+
+
+@pytest.mark.parametrize("version", ["v2", "v1"])
+def test_a_containers_memory_limit_bounds_the_memory_available(tmp_path, version):
+    """Inside a container /proc/meminfo shows the host's memory: a plan made from it alone is killed
+    at the container's limit (a probe, 2026-11-30). The memory cgroup's limit less what it uses (its
+    inactive page cache not counted) bounds it; no limit ("max", or v1's huge number) leaves it."""
+    from drsplat.memory import cgroup_room
+
+    proc = tmp_path / "cgroup"
+    if version == "v2":
+        proc.write_text("0::/box\n")
+        folder = tmp_path / "fs" / "box"
+        names = ("memory.max", "memory.current", "inactive_file")
+    else:
+        proc.write_text("9:cpu:/\n4:memory:/box\n")
+        folder = tmp_path / "fs" / "memory" / "box"
+        names = ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+    folder.mkdir(parents=True)
+    (folder / names[0]).write_text(f"{4 << 30}\n")
+    (folder / names[1]).write_text(f"{3 << 30}\n")
+    (folder / "memory.stat").write_text(f"anon 123\n{names[2]} {1 << 30}\n")
+    assert cgroup_room(proc, tmp_path / "fs") == (4 << 30) - (2 << 30)
+    (folder / names[0]).write_text("max\n" if version == "v2" else f"{(1 << 63) - 4096}\n")
+    assert cgroup_room(proc, tmp_path / "fs") is None
+    assert cgroup_room(tmp_path / "missing", tmp_path / "fs") is None

@@ -26,6 +26,8 @@ from drsplat.query import unit_rows
 log = logging.getLogger(__name__)
 
 DEFAULT_OFFICIAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "drsplat" / "pq_index.faiss"
+TEXT_NEGATIVES = "text_negative.npy"  # beside the official codebook: real CLIP text embeddings (`text_query_table`)
+TEXT_TABLE_N = 100_000  # random unit features scored in `text_query_table`
 BACKENDS = ("float32", "float16", "pq32", "pq64", "pq128", "pq256", "official", "faiss")
 GEN_CHUNK = 250_000
 SPEARMAN_SAMPLE = 200_000
@@ -280,6 +282,37 @@ def _norms16(f16: np.ndarray) -> np.ndarray:
     return out
 
 
+def text_query_table(book: Codebook, negatives: Path, n: int, seed: int, repeats: int) -> str:
+    """8-bit tables against float32 ones for real CLIP text embeddings (the official codebook's
+    canonical negatives, one component of 0.6-0.75) over n random unit features: one scale for
+    every sub-table (faiss fast-scan's) and the wide sub-tables kept in float32 (the default,
+    `quantize_luts`). Per query: ms (median of `repeats`), mean |Δcos| against the exact cosines,
+    mean |Δ| against the float32 tables, IoU of the top 1 % against the float32 tables'."""
+    from drsplat.lang import build_field
+
+    rng = np.random.default_rng(seed)
+    feats = unit_rows(rng.normal(size=(n, book.dim)).astype(np.float32))
+    field = build_field(feats, np.ones(n, np.float32), codebook=book)
+    store = field.storage
+    blocked = blocked_codes(store.codes)
+    queries = unit_rows(np.load(negatives).astype(np.float32))
+    exact = feats @ queries.T
+    runs = {"float32 tables": dict(lut_bits=32), "8-bit, one scale": dict(lut_bits=8, exact_span=np.inf), "8-bit, wide tables float32": dict(lut_bits=8)}
+    scores, times = {}, {}
+    for name, kw in runs.items():
+        call = lambda kw=kw: lut_scores_blocked(book, blocked, n, store.list_ids, store.norms, queries, **kw)  # noqa: E731
+        scores[name], times[name] = call(), median_seconds(call, repeats) / len(queries)
+    top = np.quantile(scores["float32 tables"], 0.99, axis=0)
+    rows = []
+    for name, got in scores.items():
+        picked, ref = got >= top, scores["float32 tables"] >= top
+        iou = float(np.mean([(picked[:, k] & ref[:, k]).sum() / max((picked[:, k] | ref[:, k]).sum(), 1) for k in range(len(queries))]))
+        rows.append([name, 1e3 * times[name], float(np.abs(got - exact).mean()), float(np.abs(got - scores["float32 tables"]).mean()), iou])
+    head = (f"8-bit tables on CLIP text queries ({negatives.name}, {len(queries)} rows) over {n:,} random unit features, "
+            f"{book.kind} M={book.m}; per query, mean over the queries; IoU of each query's top 1 % against the float32 tables'")
+    return head + "\n" + format_table(["tables", "ms/query", "mean |Δcos| vs exact", "mean |Δ| vs float32 tables", "top-1 % IoU vs float32"], rows)
+
+
 def train_books(args: argparse.Namespace, model: EmbeddingModel, backends: list[str]) -> dict[str, Codebook]:
     books: dict[str, Codebook] = {}
     train, _ = model.images(args.train, 10_000_019)  # a separate draw: a general codebook never sees the scene
@@ -356,6 +389,9 @@ def run(args: argparse.Namespace) -> int:
     if args.device_rows:
         print("torch scorer against the numba kernels (one query; speed-up = numba ms / torch ms; max |Δ| over all queries)")
         print(format_table(["backend", "N", "device", "numba ms", "torch ms", "speed-up", "max |Δ|"], args.device_rows))
+    negatives = args.official.parent / TEXT_NEGATIVES
+    if "official" in books and negatives.is_file():
+        print(text_query_table(books["official"], negatives, TEXT_TABLE_N, args.seed, args.repeats))
     print(machine_line())
     plot(rows, args.plot)
     print(f"plot: {args.plot}")

@@ -239,7 +239,7 @@ def blocked_codes(codes: np.ndarray) -> np.ndarray:
     return out
 
 
-def quantize_luts(luts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def quantize_luts(luts: np.ndarray, exact_span: float = Q8_EXACT_SPAN) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """8-bit tables as faiss fast-scan makes them, but for outlying sub-tables:
     luts [K, M, 256] -> (q [K, M, 256] uint8, scale [K], offset [K], exact [K, M] bool).
 
@@ -249,8 +249,8 @@ def quantize_luts(luts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     Σ_{m exact} LUT[k, m, code_m], offset[k] = Σ_{m not exact} lo[k, m]. Each quantised entry is
     off by at most scale/2, a sum by at most M·scale/2.
 
-    exact: the sub-tables kept in float32 (q = 0 there), those whose span passes Q8_EXACT_SPAN times
-    the median span (at most Q8_EXACT_MAX, widest first). A CLIP text embedding has one component
+    exact: the sub-tables kept in float32 (q = 0 there), those whose span passes `exact_span` times
+    the median span (at most Q8_EXACT_MAX, widest first; inf: none, faiss's one scale). A CLIP text embedding has one component
     of 0.6-0.75, which makes one sub-table 12-18x wider than the median: with it in the one scale,
     8-bit scores of the official codebook were 8e-5 to 3e-4 off the float32 tables' on average and
     selected 0.88-0.94 of their top 1 % (a numerical probe, 2026-11-30).
@@ -262,7 +262,7 @@ def quantize_luts(luts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     if spans.shape[1] > 1:
         median = np.median(spans, axis=1, keepdims=True)
         widest = np.argsort(-spans, axis=1, kind="stable")[:, :Q8_EXACT_MAX]
-        outlying = np.take_along_axis(spans, widest, axis=1) > Q8_EXACT_SPAN * median
+        outlying = np.take_along_axis(spans, widest, axis=1) > exact_span * median
         np.put_along_axis(exact, widest, outlying, axis=1)
     span = np.where(exact, 0.0, spans).max(axis=1)
     scale = np.where(span > 0, span / 255.0, 1.0)
@@ -531,9 +531,11 @@ def lut_scores_blocked(
     queries: np.ndarray,
     lut_bits: int = 32,
     use_simd: bool = True,
+    exact_span: float = Q8_EXACT_SPAN,
 ) -> np.ndarray:
     """`lut_scores` on blocked codes, with float32 tables (lut_bits=32, exact up to float32 rounding)
-    or 8-bit tables (lut_bits=8, `quantize_luts`: an approximation, off by at most M·scale/2 / |r_i|).
+    or 8-bit tables (lut_bits=8, `quantize_luts` with `exact_span`: an approximation, off by at most
+    M·scale/2 / |r_i|).
 
     blocked: [ceil(N/64), M, 64] from `blocked_codes`; n: N; list_ids: [N] int32 or None;
     norms: [N]; queries: [K, D] unit rows. Returns [N, K] float32.
@@ -543,7 +545,7 @@ def lut_scores_blocked(
     queries = np.atleast_2d(np.asarray(queries, np.float32))
     luts = codebook.luts(queries)
     if lut_bits == 8:
-        tables, scale, offset, exact = quantize_luts(luts)
+        tables, scale, offset, exact = quantize_luts(luts, exact_span)
     else:
         tables, scale, offset = luts, np.ones(len(queries), np.float32), np.zeros(len(queries), np.float32)
         exact = np.zeros(luts.shape[:2], bool)

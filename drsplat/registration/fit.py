@@ -45,7 +45,7 @@ from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.plan import PAIR_BYTES
+from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
 from drsplat.registration.views import load_view_features
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
@@ -69,14 +69,15 @@ def probe_memory(num_gaussians: int) -> int:
     return PROBE_LOAD_BYTES + PROBE_HELD_BYTES * num_gaussians
 
 
-def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0) -> int:
+def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0, max_masks: int = 0) -> int:
     """`probe_memory` with each probe view's kept pairs and statistics at their most: a pair per top-k
-    slot of every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs) and
-    statistics for every Gaussian they name. What a refusal's named budget is made from, so that the
-    budget typed back is not refused once the probe has run. pixels: the largest view's;
-    embedding_bytes: the largest view's mask embeddings (M·D·4), which its kept pairs hold too."""
+    slot of every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but
+    no more than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every
+    Gaussian they name. What a refusal's named budget is made from, so that the budget typed back is
+    not refused once the probe has run. pixels: the largest view's; embedding_bytes: the largest
+    view's mask embeddings (M·D·4), which its kept pairs hold too; max_masks: its masks (0: not known)."""
     slots = pixels * topk
-    held = slots * PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
+    held = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
     return probe_memory(num_gaussians) + FIT_PROBES * held
 
 
