@@ -7,6 +7,7 @@ world-to-camera x_cam = R · x_world + t.
 from __future__ import annotations
 
 import dataclasses
+import glob
 import logging
 import math
 import os
@@ -875,6 +876,21 @@ def resolution_scale(width: int, resolution: float) -> float:
     raise ValueError(f"resolution must be -1, 1, 2, 4, 8 or a target width, got {resolution}")
 
 
+def _missing_hint(source: Path, missing: str) -> str:
+    """Where the first missing image was looked for, and a file of its stem with another suffix
+    beside it (images saved as .jpg where the cameras name .png)."""
+    folder = source if source.is_dir() else source.parent
+    candidates = [Path(missing)] if Path(missing).is_absolute() else [folder / "images" / missing, folder / missing]  # COLMAP names them in images/
+    wanted = next((c for c in candidates if c.parent.is_dir()), candidates[-1])
+    others = sorted(p.name for p in wanted.parent.glob(f"{glob.escape(wanted.stem)}.*") if p.is_file()) if wanted.parent.is_dir() else []
+    hint = f"e.g. {wanted}"
+    if others:
+        hint += f"; {', '.join(others[:3])} in that folder has its name but another extension: the cameras name '{wanted.suffix}' files"
+    elif not wanted.parent.is_dir():
+        hint += f"; the folder {wanted.parent} does not exist"
+    return hint
+
+
 def load_cameras(source: str | Path, resolution: float = -1, require_images: bool = True) -> list[Camera]:
     """Training cameras of a dataset (any of `DATASET_READERS`), OpenCV convention.
 
@@ -888,8 +904,12 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
         log.warning("%s: %d frame(s) skipped because their image is missing or not a regular file (%s; %d cameras kept)",
                     path, len(missing), shown, len(cameras))
     if not cameras:
-        raise InputError(path, "yields no usable camera" + (" (every image file is missing)" if missing else ""))
+        raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(Path(source), missing[0])})" if missing else ""))
     _check_unique_names(path, kind, cameras)
+    distorted = sum(c.distortion is not None for c in cameras)
+    if distorted:
+        log.info("%s: %d of %d cameras have lens distortion (k1, k2, p1, p2); their images are undistorted to the pinhole cameras "
+                 "as they are read", path, distorted, len(cameras))
     return scale_cameras(cameras, resolution)
 
 

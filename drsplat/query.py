@@ -92,10 +92,11 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
 def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     """Read Q.npy, (D,) or (K, D), as unit rows [K, D] (InputError for bad shape or values)."""
     arr = _load_npy(path)
+    shape = arr.shape  # as stored, for the message
     if arr.ndim == 1:
         arr = arr[None]
     if arr.ndim != 2 or arr.shape[1] != dim or arr.shape[0] == 0:
-        raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {arr.shape}")
+        raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {shape}")
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
     with np.errstate(invalid="ignore"):

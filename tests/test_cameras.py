@@ -367,3 +367,21 @@ def test_a_resolution_above_the_views_width_warns_once(tmp_path, four_cameras, c
     (record,) = caplog.records
     assert big[0].width == 4 * width and "upscales 4 of 4 views" in record.getMessage() and "4x" in record.getMessage()
 
+
+
+def test_cameras_whose_images_all_have_another_extension_say_where_they_looked(tmp_path):
+    """Images re-saved as .jpg where the camera file names .png: "yields no usable camera (every image
+    file is missing)" named neither the folder searched nor the files of the same names that are
+    there (a probe on real photos, 2026-11-30)."""
+    from PIL import Image
+
+    from drsplat.cameras import load_cameras
+
+    frames = [{"file_path": f"images/r_{i}.png", "transform_matrix": np.eye(4).tolist()} for i in range(2)]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "w": 8, "h": 6, "frames": frames}))
+    (tmp_path / "images").mkdir()
+    for i in range(2):
+        Image.new("RGB", (8, 6)).save(tmp_path / "images" / f"r_{i}.jpg")
+    with pytest.raises(InputError, match=r"every image file is missing: e\.g\. .*images/r_0\.png; r_0\.jpg in that folder has its name but "
+                                         r"another extension: the cameras name '\.png' files"):
+        load_cameras(tmp_path)

@@ -224,3 +224,43 @@ def test_unknown_tag_names_the_known_ones():
 def test_file_label_asks_for_the_checkpoint():
     with pytest.raises(WeightsUnavailableError, match=r"made with a local checkpoint \(tiny_clip.pt\) of ViT-B-16; pass --clip-checkpoint PATH"):
         ClipEncoder("ViT-B-16", pretrained="file:tiny_clip.pt", device="cpu")
+
+
+def test_text_queries_read_the_model_config_features_read(tmp_path):
+    """Features made with `features --clip-config` (an architecture open_clip does not ship) could
+    not be queried by text: `query`, `segment` and the viewer had no --clip-config, and the error
+    did not name it (a probe on real photos, 2026-11-30). In a fresh process, as a user runs it."""
+    import subprocess
+    import sys
+
+    import open_clip
+
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+
+    name = "TinyCLIP-cfgtest"
+    cfg = tmp_path / f"{name}.json"
+    cfg.write_text(json.dumps(TINY_CFG))
+    open_clip.add_model_config(cfg)  # this process only: the commands below run in new ones
+    torch.manual_seed(0)
+    ckpt = tmp_path / "w.pt"
+    torch.save(open_clip.create_model(name).state_dict(), ckpt)
+    feats = np.eye(4, 32, dtype=np.float32)
+    field = build_field(feats, np.ones(4, np.float32), "none", clip_model=f"{name}/file:w.pt")
+    reg = tmp_path / "reg.ply"
+    save_ply(attach_field(tiny_scene(4), field, reg), reg)
+    root = Path(__file__).resolve().parents[1]
+
+    def drsplat(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "drsplat", *argv], capture_output=True, text=True, cwd=root, timeout=300)
+
+    refused = drsplat("query", str(reg), "--text", "a chair", "--clip-checkpoint", str(ckpt))
+    assert refused.returncode == 1 and "--clip-config CONFIG.json" in refused.stderr, refused.stderr
+    scored = drsplat("query", str(reg), "--text", "a chair", "--clip-checkpoint", str(ckpt), "--clip-config", str(cfg), "--scores",
+                     str(tmp_path / "s.npy"))
+    assert scored.returncode == 0, scored.stderr
+    assert np.load(tmp_path / "s.npy").shape == (4,)
+    labelled = drsplat("segment", str(reg), "--labels", "chair,table", "--clip-checkpoint", str(ckpt), "--clip-config", str(cfg), "--out",
+                       str(tmp_path / "l.npy"))
+    assert labelled.returncode == 0, labelled.stderr

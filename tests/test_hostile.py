@@ -2213,7 +2213,7 @@ def _json_readers(tmp_path: Path):
     from drsplat.commands.eval import load_label_names
     from drsplat.commands.segment import embedding_names
     from drsplat.eval.datasets import load_lerf_annotations
-    from drsplat.features.extract import check_clip_config
+    from drsplat.features.clip import check_clip_config
     from drsplat.features.format import read_manifest
 
     return {

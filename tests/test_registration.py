@@ -308,6 +308,15 @@ def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
     renamed = [dataclasses.replace(c, name=f"other_{c.name}") for c in cams]
     with pytest.raises(InputError, match="no feature file matches a camera image stem"):
         register_features(load_ply(tiny / "scene.ply"), renamed, feats, RegisterOptions(), show_progress=False)
+    # a half pair (its _f.npy deleted, or an _f.npy alone) is skipped and said, as a missing one: it stopped the run
+    # with "..._f.npy: file not found" (a probe on real photos, 2026-11-30)
+    (feats / f"{cams[0].name}_f.npy").unlink()
+    np.save(feats / f"{cams[5].name}_f.npy", np.ones((1, 512), np.float32))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        result = register_features(load_ply(tiny / "scene.ply"), cams, feats, RegisterOptions(), show_progress=False)
+    assert result.num_views == 3 and len(result.missing_features) == 13
+    assert "2 feature pairs in" in caplog.text and "are incomplete" in caplog.text and cams[0].name in caplog.text
 
 
 def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):

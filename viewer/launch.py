@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", type=Path, help="dataset directory with the training cameras (COLMAP, transforms.json or cameras.json)")
     p.add_argument("--features", type=Path, help="feature directory for registering from the GUI (default SOURCE/features)")
     p.add_argument("--clip-checkpoint", type=Path, help="local open_clip checkpoint for text queries")
+    p.add_argument("--clip-config", type=Path, metavar="JSON", help="open_clip model config, for an architecture open_clip does not ship")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and registration started from the viewer run (default auto: cuda when present)")
     p.add_argument("--engine", choices=("numba", "torch"), default=None, help="registration engine (default: torch on cuda, numba on the CPU)")
     p.add_argument("--screenshot", type=output_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
@@ -112,6 +113,7 @@ def build_state(args: argparse.Namespace):
 
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
+    state.clip_config = args.clip_config
     if args.device != "auto":  # an explicit device is checked now (cuda absent: one line from main); auto waits for first use
         resolve_engine(args.engine, resolve_device(args.device))
     state.settings.device, state.settings.engine = args.device, args.engine

@@ -25,7 +25,7 @@ from drsplat.commands.common import checked_names, protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
-from drsplat.features.clip import ClipEncoder  # imports open_clip/torch only when an encoder is built
+from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, export_kind, export_scene, read_field
 from drsplat.query import load_query_embeddings, otsu_threshold, select
@@ -74,6 +74,7 @@ class ViewerState:
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
+        self.clip_config: Path | None = None  # an open_clip model config for an architecture it does not ship
         self.settings = ViewerSettings()
         self.oracle: OracleQueries | None = None
         self.encoder = None
@@ -207,6 +208,7 @@ class ViewerState:
         if name in ("", "unknown"):
             name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
         try:
+            use_clip_config(self.clip_config)
             encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.settings.device)
         except WeightsUnavailableError as exc:
             if version == self.scene_version:

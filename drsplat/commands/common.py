@@ -141,6 +141,8 @@ def add_clip_arguments(parser: argparse.ArgumentParser, scoring: bool = False) -
     group.add_argument("--clip-checkpoint", type=Path, metavar="PATH", help="local OpenCLIP weights file")
     group.add_argument("--clip-model", default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
     group.add_argument("--pretrained", default=None, help="pretrained tag (default: the one recorded in the PLY)")
+    group.add_argument("--clip-config", type=Path, default=None, metavar="JSON",
+                       help="open_clip model config file, for an architecture open_clip does not ship (the one `features --clip-config` read)")
     if scoring:
         from drsplat.device import add_device_arguments
 
@@ -203,7 +205,7 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
 
 def load_encoder(args: argparse.Namespace, field: LanguageField):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id."""
-    from drsplat.features.clip import ClipEncoder
+    from drsplat.features.clip import ClipEncoder, use_clip_config
     from drsplat.features.modelid import DEFAULT_MODEL
     from drsplat.features.modelid import is_oracle
 
@@ -215,6 +217,7 @@ def load_encoder(args: argparse.Namespace, field: LanguageField):
     model, pretrained = DEFAULT_MODEL, None
     if "/" in field.clip_model:
         model, pretrained = field.clip_model.split("/", 1)
+    use_clip_config(getattr(args, "clip_config", None))
     return ClipEncoder(
         model=args.clip_model or model,
         pretrained=args.pretrained or pretrained,

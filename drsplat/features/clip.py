@@ -21,6 +21,7 @@ from drsplat.device import resolve_device
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
+from drsplat.utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,8 @@ class ClipEncoder:
         import torch
 
         if model not in open_clip.list_models():
-            raise DrsplatError(f"unknown OpenCLIP model '{model}' (see open_clip.list_models())")
+            raise DrsplatError(f"unknown OpenCLIP model '{model}' (see open_clip.list_models()); an architecture open_clip does not ship "
+                               "needs its model config: --clip-config CONFIG.json")
         self.device = resolve_device(device)
         self.dtype = torch.float16 if self.device == "cuda" else torch.float32
         self.batch_size = int(batch_size)
@@ -168,3 +170,28 @@ class ClipEncoder:
     def canonical_embeddings(self) -> np.ndarray:
         """[4, D] embeddings of the relevancy score's canonical phrases (CANONICAL_PHRASES)."""
         return self.encode_text(CANONICAL_PHRASES)
+
+
+def check_clip_config(path: Path) -> None:
+    """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
+    silently (not .json, not a model config); a folder of configs is left to open_clip."""
+    path = Path(path)
+    if path.is_dir():
+        return
+    if path.suffix != ".json":
+        raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
+    config = read_json(path, "an open_clip model config (--clip-config)")
+    missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
+    if missing:
+        raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])
+
+
+def use_clip_config(path: Path | None) -> None:
+    """Make the architecture of an open_clip model config (--clip-config: JSON, or a folder of
+    them) known to open_clip, after `check_clip_config`; nothing for None."""
+    if path is None:
+        return
+    import open_clip
+
+    check_clip_config(path)
+    open_clip.add_model_config(path)

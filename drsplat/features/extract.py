@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -28,10 +28,10 @@ from drsplat.features.modelid import (
     manifest_clip_entry,
     manifest_model_id,
 )
-from drsplat.utils import CancelToken, progress, read_json, file_stamp
+from drsplat.utils import CancelToken, progress, file_stamp
 import drsplat
 from drsplat.cameras import load_cameras, load_image
-from drsplat.features.clip import ClipEncoder
+from drsplat.features.clip import ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
 log = logging.getLogger(__name__)
@@ -319,27 +319,9 @@ class ModelSpec:
     nms: NmsParams = field(default_factory=NmsParams)
 
 
-def check_clip_config(path: Path) -> None:
-    """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
-    silently (not .json, not a model config); a folder of configs is left to open_clip."""
-    path = Path(path)
-    if path.is_dir():
-        return
-    if path.suffix != ".json":
-        raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
-    config = read_json(path, "an open_clip model config (--clip-config)")
-    missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
-    if missing:
-        raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])
-
-
 def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`."""
-    if spec.clip_config is not None:
-        import open_clip
-
-        check_clip_config(spec.clip_config)
-        open_clip.add_model_config(spec.clip_config)
+    use_clip_config(spec.clip_config)
     encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
     sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
     generator = make_generator(spec.masks, spec.sam_checkpoint, spec.sam_model, encoder.device, sam_params)

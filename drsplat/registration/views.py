@@ -16,8 +16,8 @@ import numpy as np
 
 from drsplat.cameras import Camera, same_aspect
 from drsplat.errors import InputError
-from drsplat.features.format import (check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries, list_stems,
-                                     read_features_report, resample_nearest, seg_path)
+from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
+                                     list_stems, read_features_report, resample_nearest, seg_path)
 from drsplat.utils import npy_header
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,12 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     if irregular:
         log.warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
                     "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
+    halves = sorted(set(stems) ^ {p.name[: -len(FEAT_SUFFIX)] for p in features_dir.glob(f"*{FEAT_SUFFIX}") if p.is_file()})
+    if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
+        log.warning("%d feature pairs in %s are incomplete (a %s without its %s, or the reverse) and their cameras are skipped "
+                    "(e.g. %s); rerun `drsplat features` to complete them", len(halves), features_dir, SEG_SUFFIX, FEAT_SUFFIX,
+                    ", ".join(halves[:3]))
+        stems = [stem for stem in stems if stem not in set(halves)]
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
     sel = pair_views(cameras, stems)
