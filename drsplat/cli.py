@@ -40,11 +40,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_verbosity(sub: argparse.ArgumentParser) -> None:
-    """-v / -q after the subcommand too (`drsplat register ... -q`); SUPPRESS keeps the global flag's value."""
+    """-v / -q after the subcommand too (`drsplat register ... -q`), and after a nested one (`drsplat
+    pq train ... -q`, `eval iou`, `bench ...`); SUPPRESS keeps the global flag's value."""
     group = sub.add_argument_group("logging")
     for flags, dest, text in ((("-v", "--verbose"), "verbose", "debug logging"), (("-q", "--quiet"), "quiet", "warnings and errors only")):
         if not any(f in sub._option_string_actions for f in flags):
             group.add_argument(*flags, dest=dest, action="store_true", default=argparse.SUPPRESS, help=text)
+    for action in sub._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for nested in action.choices.values():
+                _add_verbosity(nested)
 
 
 class _StderrHandler(logging.StreamHandler):

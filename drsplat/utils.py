@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import hashlib
 import logging
 import math
 import os
+import socket
 import tempfile
 import threading
 import time
@@ -43,15 +45,33 @@ def temp_stem(path: Path) -> str:
 
 
 def temp_prefix(path: Path) -> str:
-    """Prefix of the temp files `atomic_path` makes for `path`: `.<stem>.<pid>.` (`temp_stem`; pid finds stale ones)."""
-    return f".{temp_stem(path)}.{os.getpid()}."
+    """Prefix of the temp files `atomic_path` makes for `path`: `.<stem>.<pid>@<host>.` (`temp_stem`;
+    the pid and `host_tag` find stale ones)."""
+    return f".{temp_stem(path)}.{os.getpid()}@{host_tag()}."
+
+
+@functools.lru_cache(maxsize=1)
+def host_tag() -> str:
+    """8 hex digits naming this machine, boot and process namespace: a pid means a process only
+    there. A temp file of a run on another host or container sharing the folder is never taken for
+    a dead run's (it was: a second `synth` removed a live run's folder, a concurrency probe of
+    2026-11-30)."""
+    parts = [socket.gethostname()]
+    for source in ("/proc/sys/kernel/random/boot_id", "/proc/self/ns/pid"):
+        try:
+            parts.append(os.readlink(source) if source.endswith("/pid") else Path(source).read_text().strip())
+        except OSError:
+            parts.append("")
+    return hashlib.sha1("|".join(parts).encode()).hexdigest()[:8]
 
 
 def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
     """Delete temp files (or folders) of `path` left by writers that are no longer running; returns how many.
 
-    Temp files are named `.<stem>.<pid>.<random><suffix>` (`temp_stem`); one whose pid is not a live process was
-    left by a killed run (SIGKILL, power loss) and nothing else will ever remove it.
+    Temp files are named `.<stem>.<pid>@<host>.<random><suffix>` (`temp_prefix`); one of this host
+    (`host_tag`; a name without one is an older drsplat's, taken for this host's) whose pid is not a
+    live process was left by a killed run (SIGKILL, power loss) and nothing else will ever remove
+    it. Another host's are left alone: whether its process lives cannot be told from here.
     """
     import shutil
 
@@ -63,8 +83,8 @@ def sweep_stale_temps(path: str | Path, suffix: str = TEMP_SUFFIX) -> int:
     except OSError:
         return 0
     for tmp in candidates:
-        pid_text = tmp.name[len(stem) + 2 :].split(".", 1)[0]
-        if not pid_text.isdigit() or _pid_alive(int(pid_text)):
+        pid_text, _, host = tmp.name[len(stem) + 2 :].split(".", 1)[0].partition("@")
+        if not pid_text.isdigit() or (host and host != host_tag()) or _pid_alive(int(pid_text)):
             continue
         folder = tmp.is_dir() and not tmp.is_symlink()
         try:
@@ -166,6 +186,11 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
     try:
         yield tmp
         old = None
+        # checked again: what the folder holds may have changed while the output was built (another
+        # command wrote into it, a user saved a file there), and the old folder is deleted below
+        if path.exists() and (not path.is_dir() or (any(path.iterdir()) and not replaceable(path))):
+            raise OutputError(path, "changed while this command ran: it is no longer empty or an earlier output of this command "
+                                    "(another command wrote into it?); nothing was replaced, choose a new folder or rerun")
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
             os.rmdir(old)

@@ -183,6 +183,14 @@ def test_resume_refuses_other_resolution_mask_settings_or_source(fern3, weights,
             extract_features(cameras, out, slic, encoder, manifest=manifest, show_progress=False)
     report = extract_features(cameras, out, slic, encoder, manifest=dict(base), show_progress=False)  # the same settings resume
     assert report.skipped == [cameras[0].name]
+    # other weights in a file of the same name (every download is open_clip_pytorch_model.bin): the manifest
+    # recorded the name alone and the two were mixed (a probe, 2026-11-30)
+    other = make_tiny_clip(tmp_path / "elsewhere", seed=1)
+    assert other.name == weights["clip"].name and other.read_bytes() != weights["clip"].read_bytes()
+    retrained = ClipEncoder(TINY_CLIP, checkpoint=other, device="cpu")
+    manifest = make_manifest(slic, retrained, NmsParams(), WIDTH, 1080, {"source": str(fern3.resolve())})
+    with pytest.raises(DrsplatError, match="holds features made with clip_weights .*a --clip-checkpoint file of the same name"):
+        extract_features(cameras, out, slic, retrained, manifest=manifest, show_progress=False)
 
 
 def test_an_image_edited_after_its_features_were_made_is_redone(tmp_path, weights):

@@ -1162,9 +1162,15 @@ def test_stale_temp_files_of_dead_runs_are_swept(tmp_path, world, capsys):
     stale_dir.mkdir()
     assert run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / "scores.npy"], capsys)[0] == 0
     assert not stale.exists() and live.exists()
-    from drsplat.utils import PARTIAL_SUFFIX, sweep_stale_temps
+    from drsplat.utils import PARTIAL_SUFFIX, host_tag, sweep_stale_temps
 
     assert sweep_stale_temps(tmp_path / "synth", PARTIAL_SUFFIX) == 1 and not stale_dir.exists()
+    # names of this version carry the host (machine, boot, pid namespace): another host's are left alone, whatever its pid
+    ours = tmp_path / f".synth.{dead}@{host_tag()}.x.partial"
+    theirs = tmp_path / f".synth.{dead}@{'0' * 8 if host_tag() != '0' * 8 else '1' * 8}.y.partial"
+    ours.mkdir()
+    theirs.mkdir()
+    assert sweep_stale_temps(tmp_path / "synth", PARTIAL_SUFFIX) == 1 and not ours.exists() and theirs.exists()
 
 
 def test_synth_replaces_only_its_own_outputs(tmp_path, capsys):
@@ -1189,6 +1195,27 @@ def test_synth_over_its_own_dataset_keeps_what_the_user_added(tmp_path, capsys):
     before = (out / "scene.ply").read_bytes()
     assert run_cli(["synth", out, "--seed", "1", "--no-progress"], capsys)[0] == 0
     assert (out / "scene.ply").read_bytes() != before
+
+
+def test_synth_keeps_a_file_written_into_its_folder_while_it_ran(tmp_path, capsys, monkeypatch):
+    """A registered PLY (or a user's notes) saved into the dataset folder while a second synth built
+    its replacement was deleted with the old folder: the folder was checked only at the start (a
+    concurrency probe, 2026-11-30). It is checked again before the swap."""
+    import drsplat.synthetic as synthetic
+
+    out = tmp_path / "tiny"
+    assert run_cli(["synth", out, "--no-progress"], capsys)[0] == 0
+    write = synthetic.write_dataset
+
+    def and_a_user_saves_a_file(*args, **kwargs):
+        (out / "my_notes.txt").write_text("precious")
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(synthetic, "write_dataset", and_a_user_saves_a_file)
+    code, err = run_cli(["synth", out, "--seed", "1", "--no-progress"], capsys)
+    assert code == 1 and "my_notes.txt" in err and "did not write" in err, err
+    assert (out / "my_notes.txt").read_text() == "precious" and (out / "scene.ply").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]  # no temp folder left
 
 
 # ---------------------------------------------------------------------------------------------- 6. paths
@@ -2366,3 +2393,17 @@ def test_a_camera_placed_beyond_any_scene_is_refused_by_name(tmp_path):
     pose[:3, 3] = [0.0, MAX_COORDINATE / 2, 0.0]  # far, but a number a float64 pipeline still handles: loaded
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": [{"file_path": "b.png", "transform_matrix": pose.tolist()}]}))
     assert len(load_cameras(tmp_path, require_images=False)) == 1
+
+
+def test_verbosity_flags_follow_nested_subcommands_too():
+    """`drsplat pq train ... -q` was "unrecognized arguments: -q" (a probe, 2026-11-30): -v / -q are
+    taken after every command, nested ones included, and keep the global flag's value otherwise."""
+    from drsplat.cli import build_parser
+
+    parser = build_parser()
+    for argv in (["pq", "train", "--embeddings", "e.npy", "--out", "c.faiss", "-q"], ["eval", "iou", "r.ply", "-q"],
+                 ["bench", "startup", "-q"], ["register", "s.ply", "--source", "d", "--features", "f", "--out", "o.ply", "-q"]):
+        args, unknown = parser.parse_known_args(argv)
+        assert args.quiet is True and not unknown, argv
+    assert parser.parse_known_args(["-q", "pq", "train", "--embeddings", "e.npy", "--out", "c.faiss"])[0].quiet is True
+    assert parser.parse_known_args(["pq", "train", "--embeddings", "e.npy", "--out", "c.faiss"])[0].quiet is False

@@ -522,3 +522,28 @@ def test_8bit_scores_of_real_clip_text_queries_follow_the_float_tables(official)
     for k in range(len(queries)):
         a, b = kept[:, k] >= top[k], f32[:, k] >= top[k]
         assert (a & b).sum() / (a | b).sum() > 0.95
+
+
+def test_a_codebook_replaced_after_registration_is_refused_and_one_replaced_during_it_is_not_copied(data, tmp_path):
+    """The codebook beside a registered PLY is written from the codebook in memory, not copied from
+    the --codebook file (replaced by a `pq train` while `register` ran, the copy did not decode the
+    codes: exit 0, every score off), and the PLY records its CRC-32: a codebook replaced later (a
+    registration into `a.PLY` beside `a.ply`, or one that failed after writing its codebook) is one
+    error naming it, not wrong scores (a probe, 2026-11-30)."""
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply, save_ply
+
+    x, w, _, _ = data
+    source = tmp_path / "general.faiss"
+    train_codebook(x, m=8, seed=0).save(source)
+    book = load_codebook(source)
+    field = build_field(x, w, book, clip_model="oracle")
+    want = field.scores(x[:3])
+    train_codebook(x, m=8, seed=1).save(source)  # replaced while the registration runs
+    ply = tmp_path / "a.ply"
+    save_ply(attach_field(tiny_scene(len(x)), field, ply), ply)
+    got = read_field(load_ply(ply), ply)
+    np.testing.assert_allclose(got.scores(x[:3]), want, atol=1e-6)
+    codebook_path_for(ply).write_bytes(source.read_bytes())  # replaced after it
+    with pytest.raises(InputError, match=r"a\.codebook\.faiss: is not the codebook a\.ply was registered with \(its CRC-32 is [0-9a-f]{8}"):
+        read_field(load_ply(ply), ply)

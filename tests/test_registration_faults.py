@@ -359,3 +359,38 @@ def test_ray_workers_without_ray_is_said(tiny, uninterrupted, tmp_path, capsys):
     out = tmp_path / "reg.ply"
     assert main(_args(tiny, out, "--ray-workers", "3")) == 0
     assert "--ray-workers 3 applies to a run on Ray (--ray)" in capsys.readouterr().err and out.read_bytes() == uninterrupted
+
+
+def test_features_rewritten_while_the_registration_reads_them_are_one_error_and_the_rerun_resumes(tiny, uninterrupted, tmp_path,
+                                                                                                     monkeypatch, capsys):
+    """Another `drsplat features` rewriting the folder while `register` read it gave a field mixing
+    two sets of features, exit 0 (a concurrency probe, 2026-11-30). The views' stamps are taken
+    before any is read and checked after the last: one error, nothing written, and the rerun (the
+    files now final) resumes the views whose files did not change and gives the bytes of a run on
+    the final files."""
+    import shutil
+
+    import drsplat.registration.compute as compute
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny, data)
+    feats = sorted((data / "features").glob("*_f.npy"))
+    read = compute.load_view_features
+    calls = []
+
+    def and_features_rewrite_a_file(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 6:  # a later view's file rewritten (same content, new mtime) after five views were read
+            st = os.stat(feats[-1])
+            os.utime(feats[-1], ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        return read(*args, **kwargs)
+
+    monkeypatch.setattr(compute, "load_view_features", and_features_rewrite_a_file)
+    out = tmp_path / "reg.ply"
+    assert main(_args(data, out)) == 1
+    err = capsys.readouterr().err
+    assert "changed while the registration read them" in err and feats[-1].name[: -len("_f.npy")] in err, err
+    assert not out.exists() and checkpoint_path_for(out).exists()
+    monkeypatch.setattr(compute, "load_view_features", read)
+    assert main(_args(data, out)) == 0
+    assert out.read_bytes() == uninterrupted and not checkpoint_path_for(out).exists()

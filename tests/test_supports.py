@@ -138,7 +138,7 @@ def test_a_spill_file_out_of_order_is_one_error_naming_it(tmp_path):
         tables.add(0, part)
     for spill in next(tmp_path.iterdir()).iterdir():
         np.fromfile(spill, ENTRY)[::-1].copy().tofile(spill)
-    with pytest.raises(DrsplatError, match=r"reg\.ply\.\d+\.\w+\.tmp/support-\d+\.bin: the check's support table file of view 0 was changed while the registration ran \(cut short, reordered or overwritten\)"):
+    with pytest.raises(DrsplatError, match=r"reg\.ply\.\d+@[0-9a-f]{8}\.\w+\.tmp/support-\d+\.bin: the check's support table file of view 0 was changed while the registration ran \(cut short, reordered or overwritten\)"):
         list(tables.view_ranges(0, 8, 5))
     tables.close()
 

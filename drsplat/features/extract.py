@@ -9,6 +9,7 @@ written atomically by drsplat.features.format. Valid existing pairs are skipped 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
@@ -196,10 +197,24 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
         "crop_size": int(encoder.image_size),
         "resolution": resolution,
         "max_height": max_height,
+        "clip_weights": weights_digest(encoder.checkpoint),
         "versions": versions(),
     }
     manifest.update(extra or {})
     return manifest
+
+
+def weights_digest(path: str | Path | None) -> str | None:
+    """'size:sha1' of a CLIP weights file (None without one): two files of one name (every download
+    is `open_clip_pytorch_model.bin`) are told apart by their contents, so that features of two
+    weights are not mixed in one folder (`RESUME_KEYS`). About a second for ViT-B-16's 600 MB."""
+    if path is None or not Path(path).is_file():
+        return None
+    digest = hashlib.sha1()
+    with open(path, "rb") as f:
+        while piece := f.read(1 << 24):
+            digest.update(piece)
+    return f"{Path(path).stat().st_size}:{digest.hexdigest()}"
 
 
 def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
@@ -229,6 +244,7 @@ RESUME_KEYS = {  # manifest entries that change every feature file: a run resumi
     "postprocess": "mask post-processing",
     "resolution": "--resolution",
     "max_height": "--max-height",
+    "clip_weights": "CLIP weights (a --clip-checkpoint file of the same name but other contents)",
 }
 
 

@@ -48,6 +48,20 @@ class Codebook:
     index: object
     path: Path | None = None
     owner: object = dataclasses.field(default=None, repr=False)  # keeps faiss's owning wrapper alive
+    _bytes: bytes | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    def file_bytes(self) -> bytes:
+        """The faiss file of this codebook as it is in memory (serialised once, then kept): what a
+        registration writes beside its PLY, never a copy of the file it was read from, which may
+        have been replaced since (a probe, 2026-11-30). For a file written by faiss, its bytes."""
+        if self._bytes is None:
+            self._bytes = bytes(_faiss().serialize_index(self.index))
+        return self._bytes
+
+    def __getstate__(self) -> dict:  # a Ray task gets the index, not its serialised copy too
+        state = dict(self.__dict__)
+        state["_bytes"] = None
+        return state
 
     @property
     def dsub(self) -> int:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import shutil
+import zlib
 from pathlib import Path
 from urllib.parse import quote, unquote
 
@@ -57,11 +57,14 @@ def codebook_path_for(ply_path: str | Path) -> Path:
     return ply_path.with_name(f"{ply_path.stem}.codebook.faiss")
 
 
-def field_comment(field: LanguageField, codebook_name: str | None) -> str:
-    """`drsplat.lang kind=<kind> dim=<D> clip=<model> [codebook=<file>]` (values URL-quoted)."""
+def field_comment(field: LanguageField, codebook_name: str | None, codebook_crc: int | None = None) -> str:
+    """`drsplat.lang kind=<kind> dim=<D> clip=<model> [codebook=<file> codebook_crc=<CRC-32, 8 hex>]`
+    (values URL-quoted)."""
     parts = [COMMENT_PREFIX, f"kind={field.kind}", f"dim={field.dim}", f"clip={quote(field.clip_model, safe='/:-_.+')}"]
     if codebook_name:
         parts.append(f"codebook={quote(codebook_name, safe='/:-_.+')}")
+        if codebook_crc is not None:
+            parts.append(f"codebook_crc={codebook_crc:08x}")
     return " ".join(parts)
 
 
@@ -152,17 +155,17 @@ def strip_field(scene: GaussianScene) -> GaussianScene:
     )
 
 
-def write_codebook_beside(codebook, ply_path: str | Path) -> Path:
-    """Write `codebook` (a Codebook) beside `ply_path` as `<stem>.codebook.faiss` (copied from its
-    file, saved when it has none; nothing when it is that file already); returns that path."""
+def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
+    """Write `codebook` (a Codebook) beside `ply_path` as `<stem>.codebook.faiss`, from memory
+    (`Codebook.file_bytes`), unless that file holds those bytes already; returns (that path, the
+    CRC-32 of the bytes), which the field comment records (`field_comment`) and `read_field` checks."""
     target = codebook_path_for(ply_path)
-    source = codebook.path
-    if source is not None and source.is_file() and source.resolve() != target.resolve():
+    data = codebook.file_bytes()
+    crc = zlib.crc32(data)
+    if not (target.is_file() and target.stat().st_size == len(data) and zlib.crc32(target.read_bytes()) == crc):
         with atomic_path(target) as tmp:
-            shutil.copyfile(source, tmp)
-    elif source is None or source.resolve() != target.resolve():
-        codebook.save(target)
-    return target
+            tmp.write_bytes(data)
+    return target, crc
 
 
 def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Path) -> GaussianScene:
@@ -174,8 +177,8 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     if field.num_gaussians != scene.num_gaussians:
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
     base = strip_field(scene)
-    name = write_codebook_beside(field.codebook, ply_path).name if needs_codebook(field.kind) else None
-    comment = field_comment(field, name)
+    name, crc = write_codebook_beside(field.codebook, ply_path) if needs_codebook(field.kind) else (None, None)
+    comment = field_comment(field, name.name if name is not None else None, crc)
     extra = dict(base.extra)
     extra.update(field_extras(field, comment[len(COMMENT_PREFIX):].strip()))
     return dataclasses.replace(base, extra=extra, comments=base.comments + [comment])
@@ -256,6 +259,7 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
             raise InputError(exc.path, f"{exc.problem} (the codebook {ply_path.name}'s header names)", field=exc.field) from None
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
+        _check_codebook_crc(book.path, meta.get("codebook_crc"), ply_path, where)
         extra_codes = [j for j in _numbered_columns(scene, "lang_code_") if j >= book.m]
         if extra_codes:
             raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m} (lang_code_0 .. lang_code_{book.m - 1})",
@@ -275,6 +279,25 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
                     "they are unassigned", ply_path, orphans)
     return LanguageField(dim, clip_model, weights, storage)
+
+
+def _check_codebook_crc(path: Path, recorded: str | None, ply_path: Path, where: str) -> None:
+    """InputError unless the codebook file's CRC-32 is the one the PLY's field records (files written
+    before 2026-11-30 record none: not checked). A later registration into a file of the same stem
+    (`a.PLY` beside `a.ply`), one that failed after writing its codebook, or a `pq train` over the
+    codebook while `register` ran left codes that this codebook decodes into other vectors, scored
+    without a word (a probe, 2026-11-30)."""
+    if recorded is None:
+        return
+    try:
+        expected = int(recorded, 16)
+    except ValueError:
+        raise InputError(ply_path, f"codebook_crc={recorded!r} is not a CRC-32 (8 hex digits)", field=where) from None
+    actual = zlib.crc32(path.read_bytes())
+    if actual != expected:
+        raise InputError(path, f"is not the codebook {ply_path.name} was registered with (its CRC-32 is {actual:08x}, the PLY records "
+                               f"{expected:08x}): it was replaced after that registration (by another registration into a file of the "
+                               f"same name stem, or a new `pq train`); register {ply_path.name} again, or restore its codebook")
 
 
 def _numbered_columns(scene: GaussianScene, prefix: str) -> list[int]:

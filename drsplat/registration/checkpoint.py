@@ -96,6 +96,16 @@ def feature_stamp(features_dir: Path, name: str) -> str:
     return hashlib.sha1("|".join(f"{p.name}={file_stamp(p)}" for p in pair).encode()).hexdigest()[:16]
 
 
+def feature_stamps(features_dir: Path, views: Sequence[Camera]) -> dict[str, str]:
+    """Every view's `feature_stamp`, taken before a registration reads any view."""
+    return {cam.name: feature_stamp(features_dir, cam.name) for cam in views}
+
+
+def changed_features(features_dir: Path, stamps: dict[str, str]) -> list[str]:
+    """The views whose feature files are not as `stamps` (`feature_stamps`) found them."""
+    return [name for name, stamp in stamps.items() if feature_stamp(features_dir, name) != stamp]
+
+
 def _views_digest(cameras: Sequence[Camera]) -> str:
     h = hashlib.sha1()
     for c in cameras:
@@ -218,8 +228,12 @@ class Checkpoint:
     """
 
     def __init__(self, path: Path, params: dict, views: Sequence[Camera], aggregator: Aggregator, temporary: bool = False,
-                 every: int = CHECKPOINT_EVERY, features_dir: Path | None = None, lock: "RunLock | None" = None):
+                 every: int = CHECKPOINT_EVERY, features_dir: Path | None = None, lock: "RunLock | None" = None,
+                 stamps: dict[str, str] | None = None):
         self.path = Path(path)
+        # each view's feature stamp taken before the run read anything (`feature_stamps`): what a view is logged with, so that
+        # files changed between their read and the view's logging are not taken for the files the view was computed from
+        self.stamps = stamps or {}
         self.temporary = temporary
         self.every = max(1, int(every))
         self.total = len(views)
@@ -283,7 +297,7 @@ class Checkpoint:
         stamp. Called before the view's statistics are folded, so a failed append leaves them
         covering exactly the logged views."""
         if self.features_dir is not None:
-            view = dataclasses.replace(view, stamp=feature_stamp(self.features_dir, view.name))
+            view = dataclasses.replace(view, stamp=self.stamps.get(view.name) or feature_stamp(self.features_dir, view.name))
         done = self.done + 1
         try:
             self.log.append(view, sync=done % self.every == 0 and not self.temporary)

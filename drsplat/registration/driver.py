@@ -44,7 +44,8 @@ from drsplat.raster import NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
-from drsplat.registration.checkpoint import CHECKPOINT_EVERY, Checkpoint, RunLock, checkpoint_params, checkpoint_path_for, lock_run
+from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
+                                             feature_stamps, lock_run)
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import RegisterOptions
@@ -276,6 +277,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     """`run_registration` once the run's lock is held (`lock`, None without a checkpoint)."""
     if run.options.place != "ray":  # this process renders: its engine loaded before the plan reads its RSS (torch: ~0.4 GB, probe round 11)
         get_engine(run.options.engine).topk_fn()
+    stamps = feature_stamps(run.features_dir, run.views)  # before any view is read: a file changed during the run is caught
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
     if probe is not None:
@@ -293,7 +295,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
     if checkpoint is not None:
-        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir, lock=lock)
+        ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir, lock=lock,
+                          stamps=stamps)
     elif block < n or aggregator.check:  # blocks replay a log; so does a check, rather than keep every view's pairs in memory
         ckpt = Checkpoint.temporary_beside(out or Path(tempfile.gettempdir()) / "drsplat-registration", params, run.views, aggregator)
     else:
@@ -307,6 +310,11 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress, out)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
+        changed = changed_features(run.features_dir, stamps)
+        if changed:  # some views were read before the change, some maybe after: the sums mix two sets of features
+            raise DrsplatError(f"{run.features_dir}: the feature files of {len(changed)} view(s) changed while the registration read them "
+                               f"(e.g. {', '.join(changed[:3])}; another `drsplat features` writing there?); nothing was written: rerun "
+                               "when they are final (views whose files did not change are resumed from the checkpoint)")
         if sink.place != "host":  # the views' pairs stayed on the device: which Gaussians got weight is in the sums
             totals.positive |= sink.positive()
         view_seconds, finish_cpu0 = time.perf_counter() - t_start, time.process_time()

@@ -491,7 +491,7 @@ def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
     first chunk of a single write writes it), and named there, so no reducer writes it again."""
     if isinstance(codebook, str):
         return codebook
-    return dataclasses.replace(codebook, path=write_codebook_beside(codebook, out))
+    return dataclasses.replace(codebook, path=write_codebook_beside(codebook, out)[0])
 
 
 class BlockReduce:
