@@ -2,8 +2,10 @@
 
 A registered PLY is an INRIA-layout PLY plus:
 
-- the header comment `drsplat.lang kind=<exact|pq|ivfpq> dim=<D> clip=<model> [codebook=<file>]`
-  (values URL-quoted), the field's metadata;
+- the header comment `drsplat.lang kind=<exact|pq|ivfpq> dim=<D> clip=<model> [codebook=<file>
+  codebook_crc=<8 hex>]` (values URL-quoted), the field's metadata; codebook_crc is the CRC-32 of
+  the codebook file written beside the PLY, checked on load (files written before 2026-11-30 have
+  none);
 - the same metadata as a vertex property, `lang_meta` (ushort), for tools that keep vertex
   properties but drop header comments (PlayCanvas splat-transform does): with b the metadata's
   UTF-8 bytes (the comment without its prefix, L = len(b) <= 255), row i holds
