@@ -28,3 +28,4 @@ SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsp
 # a synthetic (oracle) dataset's label files, relative to its folder (drsplat.synthetic.write_dataset writes them)
 ORACLE_LABEL_NAMES = "gt/label_names.json"  # JSON list of the label names
 ORACLE_TEXT_EMBEDDINGS = "text_embeddings.npy"  # [labels, D] the oracle "text" vectors, one per name
+LERF_ALPHA_THRESHOLD = 0.7  # `eval lerf`: OpenGaussian's render_lerf_by_text.py keeps pixels whose silhouette passes 0.7 (0.5 until 2026-11-30)

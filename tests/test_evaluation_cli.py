@@ -152,20 +152,41 @@ def test_lerf_protocol_single_gaussian_known_disc():
     s = 0.4
     scene = GaussianScene(np.zeros((1, 3), np.float32), np.array([[1.0, 0, 0, 0]], np.float32), np.full((1, 3), np.log(s), np.float32),
                           np.array([20.0], np.float32), np.zeros((1, 1, 3), np.float32))
-    # alpha = exp(-r²/2σ²) > 0.5 inside r = σ·sqrt(2 ln 2), σ in pixels ≈ fx·s/z
+    # alpha = exp(-r²/2σ²) > t (the default 0.7, OpenGaussian's) inside r = σ·sqrt(2 ln(1/t)), σ in pixels ≈ fx·s/z
+    from drsplat.defaults import LERF_ALPHA_THRESHOLD
+
+    assert LERF_ALPHA_THRESHOLD == 0.7
     sigma = np.sqrt((cam.fx * s / 5.0) ** 2 + 0.3)
     yy, xx = np.mgrid[0:120, 0:120] + 0.5
-    disc = (xx - cam.cx) ** 2 + (yy - cam.cy) ** 2 <= (sigma * np.sqrt(2 * np.log(2))) ** 2
+    disc = (xx - cam.cx) ** 2 + (yy - cam.cy) ** 2 <= (sigma * np.sqrt(2 * np.log(1 / LERF_ALPHA_THRESHOLD))) ** 2
     view = AnnotatedView("frame_00001", 120, 120, {"blob": disc, "nothing": np.zeros((120, 120), bool)})
     rep = lerf_2d_report(scene, [cam], [view], {"blob": np.array([True]), "nothing": np.array([False])}, show_progress=False)
     ious = {row.category: row.iou for row in rep.rows}
     assert ious["blob"] > 0.95
     # an empty ground truth scores 1.0 against nothing selected: left out of the means instead
     assert "nothing" not in ious and rep.skipped == [("frame_00001", "nothing")] and rep.miou == ious["blob"]
+    # the threshold given is the one used: the 0.5 disc is larger
+    disc5 = (xx - cam.cx) ** 2 + (yy - cam.cy) ** 2 <= (sigma * np.sqrt(2 * np.log(2))) ** 2
     half = cam.scaled(0.5)  # annotations at half resolution pair with the same camera
-    view2 = AnnotatedView("frame_00001", 60, 60, {"blob": disc[::2, ::2]})
-    assert lerf_2d_report(scene, [cam], [view2], {"blob": np.array([True])}, show_progress=False).rows[0].iou > 0.85
+    view2 = AnnotatedView("frame_00001", 60, 60, {"blob": disc5[::2, ::2]})
+    assert lerf_2d_report(scene, [cam], [view2], {"blob": np.array([True])}, 0.5, show_progress=False).rows[0].iou > 0.85
     assert half.width == 60
+    view5 = AnnotatedView("frame_00001", 120, 120, {"blob": disc5})
+    assert lerf_2d_report(scene, [cam], [view5], {"blob": np.array([True])}, 0.5, show_progress=False).rows[0].iou > 0.95
+    assert lerf_2d_report(scene, [cam], [view5], {"blob": np.array([True])}, show_progress=False).rows[0].iou < 0.8
+
+
+def test_lerf_selections_leave_out_gaussians_without_a_feature():
+    """A Gaussian without a language feature scores cosine 0 against the query and every negative:
+    a relevancy of ½, which τ = 0.5 selected in `eval lerf` (Dr. Splat's render_activation.py gives
+    it activation 0; a cross-check against the official code, 2026-11-30)."""
+    from drsplat.eval.lerf import select_queries
+
+    scores = np.array([[0.9, 0.5], [0.5, 0.5], [0.2, 0.7]], np.float32)
+    assigned = np.array([True, False, True])
+    selected, _ = select_queries(scores, 0.5, assigned)
+    assert selected.tolist() == [[True, True], [False, False], [False, True]]
+    assert select_queries(scores, 0.5)[0][1].tolist() == [True, True]  # without the field's mask: the old rule
 
 
 def scannet_stand_in(r: dict) -> Path:
@@ -501,3 +522,15 @@ def test_eval_pseudolabels_labelling_nothing_says_why(registered, tmp_path, caps
     err = capsys.readouterr().err
     assert "WARNING: " in err and "the pseudo-labels from " in err and "cloud.ply label none of the scene's" in err and words in err, err
     assert (np.load(out) == -1).all()
+
+
+def test_float32_scores_meet_a_grid_threshold_in_float32():
+    """A float32 score equal to a grid value (float32(0.3)) is not above τ = 0.3 in the official
+    code's float32 comparison; compared in float64 it was (3 of 4 Gaussians selected instead of 1;
+    a cross-check, 2026-11-30)."""
+    from drsplat.eval.metrics import localisation_report
+
+    scores = np.array([[0.3], [0.3], [0.3], [0.9]], np.float32)
+    gt = np.array([-1, -1, -1, 0])  # label 0 is only the 0.9 Gaussian
+    rep = localisation_report(scores, gt, np.ones(4), ["a"], taus=np.array([0.3]))
+    assert rep.miou == pytest.approx(1.0)  # at τ = 0.3 only the 0.9 Gaussian is selected: IoU 1

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import checked_names, float_range, guard_args, int_range, output_file, positive_float, threshold_value
-from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.utils import json_text, read_json
 
@@ -152,7 +152,8 @@ def _add_lerf(sub) -> None:
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
     p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
-    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=0.5, help="rendered occupancy above which a pixel is selected")
+    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=LERF_ALPHA_THRESHOLD,
+                   help=f"rendered occupancy above which a pixel is selected (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
@@ -450,7 +451,7 @@ def run_lerf(args: argparse.Namespace) -> int:
             threshold = float(args.threshold)
         except ValueError:
             raise DrsplatError(f"--threshold must be a number or 'auto', got {args.threshold!r}") from None
-    selected, taus = select_queries(scores, threshold)
+    selected, taus = select_queries(scores, threshold, field.assigned())
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     report = lerf_2d_report(scene, cameras, views, selections, args.alpha_threshold, show_progress=True)
     if not report.rows and report.skipped:

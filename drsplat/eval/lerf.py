@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.defaults import LERF_ALPHA_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
 from drsplat.query import otsu_threshold
@@ -93,20 +94,25 @@ def camera_for_view(cameras: dict[str, Camera], view: AnnotatedView) -> Camera |
     return scaled
 
 
-def select_queries(scores: np.ndarray, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def select_queries(scores: np.ndarray, threshold: float | None = None, assigned: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """[N, L] scores -> ([N, L] bool selections s_il ≥ τ_l, [L] thresholds τ_l).
 
     threshold: one absolute τ for every query, or None for Otsu's threshold per query (the
-    `drsplat query --threshold auto` rule). Non-finite scores are never selected.
+    `drsplat query --threshold auto` rule). Non-finite scores are never selected, nor Gaussians
+    outside `assigned` [N] bool (`LanguageField.assigned`): one without a feature scores cosine 0
+    against the query and every negative, a relevancy of ½, which τ = 0.5 selected (Dr. Splat's
+    render_activation.py gives them activation 0; a cross-check, 2026-11-30).
     """
     s = np.asarray(scores, np.float64)
     s = np.where(np.isfinite(s), s, -np.inf)
+    if assigned is not None:
+        s = np.where(np.asarray(assigned, bool)[:, None], s, -np.inf)
     taus = np.array([threshold if threshold is not None else otsu_threshold(s[:, l]) for l in range(s.shape[1])], np.float64)
     return s >= taus[None, :], taus
 
 
 def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], selections: dict[str, np.ndarray],
-                   alpha_threshold: float = 0.5, show_progress: bool = True, on_progress=None,
+                   alpha_threshold: float = LERF_ALPHA_THRESHOLD, show_progress: bool = True, on_progress=None,
                    cancel: CancelToken | None = None) -> Lerf2DReport:
     """Evaluate selections against LERF-OVS masks.
 
@@ -148,7 +154,7 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
             sel = np.asarray(sel, bool)
             if sel.any():
                 alpha = rasterize(prepared, cam, topk=1, mask=sel).alpha
-                pred = alpha > alpha_threshold
+                pred = alpha > np.float32(alpha_threshold)  # compared in float32, as the official code's tensors
             else:
                 pred = np.zeros((view.height, view.width), bool)
             rows.append(SelectionRow(view.name, category, mask_iou(pred, gt), int(sel.sum())))

@@ -220,11 +220,15 @@ def localisation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.n
     weights: [N]; taus: [T] grid (default 0, 0.01, …, 1). The report keeps the curve mIoU(τ) and the
     per-label IoU at the best τ. Labels without ground truth are excluded from the means.
     """
+    single = np.asarray(scores).dtype == np.float32
     s, nonfinite = _clean_scores(scores)
     num_labels = s.shape[1]
     taus = np.asarray(DEFAULT_TAU_GRID if taus is None else taus, dtype=np.float64)
+    # float32 scores meet τ in float32, as the official code's tensors do: a score of float32(0.3) is not > 0.3 there, and
+    # was here (the float64 0.3 lies below it; a cross-check, 2026-11-30)
+    compared = taus.astype(np.float32).astype(np.float64) if single else taus
     gt = np.asarray(gt_labels, np.int64)
-    curves = np.stack([threshold_iou_curve(s[:, l], gt == l, weights, taus) for l in range(num_labels)], axis=1)
+    curves = np.stack([threshold_iou_curve(s[:, l], gt == l, weights, compared) for l in range(num_labels)], axis=1)
     present = np.array([(gt == l).any() and float(np.asarray(weights)[gt == l].sum()) > 0 for l in range(num_labels)])
     curves[:, ~present] = np.nan
     with np.errstate(invalid="ignore"):
