@@ -113,22 +113,31 @@ def test_ray_registration_resumes_after_the_driver_stops(cluster, tiny, tmp_path
     np.testing.assert_array_equal(resumed.features, local.features)
 
 
-def test_ray_workers_read_their_features_and_a_missing_file_fails_where_the_local_run_does(cluster, tiny, tmp_path, caplog):
+def test_ray_workers_read_their_features_and_a_missing_file_fails_where_the_local_run_does(cluster, tiny, tmp_path, caplog, monkeypatch):
     """The workers read the feature files (the driver ships cameras): a file missing on a worker is
     one error naming the file and the node and saying every node needs the folder at the same path;
     the views before it are logged as a local run logs them (here view 3, the second of a call), and
     the rerun with the file back resumes from them and writes the local file."""
     import shutil
 
+    import drsplat.registration.driver as driver
+
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)[:8]
     features = tmp_path / "features"
     shutil.copytree(tiny / "features", features)
     missing = features / f"{cams[3].name}_f.npy"
     kept = missing.read_bytes()
-    missing.unlink()  # its _s.npy stays: the driver pairs the view, the worker finds no embeddings
+    read_headers = driver.read_feature_headers
+
+    def then_gone_from_the_worker(*args, **kwargs):  # the driver saw the pair; the worker's node does not have the file
+        headers = read_headers(*args, **kwargs)
+        missing.unlink(missing_ok=True)
+        return headers
+
     out, reference = tmp_path / "out" / "reg.ply", tmp_path / "local.ply"
     # not the default's fit stage: it reads its probe views (1, 3, 5, 7 of 8) on the driver first
     register(scene, cams, tiny / "features", reference, RegisterOptions(aggregate="check-vote-reject"), show_progress=False)
+    monkeypatch.setattr(driver, "read_feature_headers", then_gone_from_the_worker)
     options = RegisterOptions(ray="auto", ray_workers=2, block_size=1024, aggregate="check-vote-reject")
     with caplog.at_level("WARNING"), pytest.raises(DrsplatError) as failed:
         register(scene, cams, features, out, options, show_progress=False)
@@ -136,6 +145,7 @@ def test_ray_workers_read_their_features_and_a_missing_file_fails_where_the_loca
     assert message.startswith(f"{missing}: embedding file is missing on the Ray worker node ")
     assert f"every node needs {features} at the same path" in message
     assert f"(3 of {len(cams)} views" in caplog.text and not out.exists()
+    monkeypatch.setattr(driver, "read_feature_headers", read_headers)
     missing.write_bytes(kept)
     resumed = register(scene, cams, features, out, options, show_progress=False)
     assert resumed.resumed_views == 3
