@@ -83,6 +83,31 @@ def test_render_matches_the_cpu_rasterizer(state, gl_context, index):
     assert image.std() > 0.05, "the image is flat: nothing was drawn"
 
 
+def test_a_scene_in_map_coordinates_renders_as_the_cpu_rasterizer_does(state, gl_context):
+    """The demo moved to UTM-like coordinates (5e5, 4e6, 100) with its camera: float32 positions on
+    the GPU and in the sort have steps of 0.25-0.5 units there, and splats snapped to a grid and were
+    sorted out of order (mean difference 0.060 from the CPU render; a viewer probe, 2026-11-30). The
+    GPU now works relative to the scene's centre (`render_origin`)."""
+    from drsplat.raster import rasterize
+    from viewer.app import render_screenshot
+    from viewer.renderer import render_origin
+    from viewer.state import ViewerState
+
+    shift = np.array([5e5, 4e6, 100.0])
+    camera = _camera(state, 0)
+    far = dataclasses.replace(state.scene, means=(np.asarray(state.scene.means, np.float64) + shift).astype(np.float32))
+    far_camera = dataclasses.replace(camera, t=np.asarray(camera.t, np.float64) - np.asarray(camera.R, np.float64) @ shift)
+    np.testing.assert_allclose(render_origin(far.means), shift, rtol=0, atol=20)
+    assert not render_origin(state.scene.means).any()  # a scene about the origin is drawn from its own coordinates
+    moved = ViewerState()
+    moved.set_scene(far)
+    image = render_screenshot(moved, far_camera, ctx=gl_context).astype(np.float32) / 255
+    reference = rasterize(far, far_camera, topk=1, with_rgb=True).rgb
+    diff = np.abs(image - reference)
+    assert diff.mean() < 0.01 and np.percentile(diff, 99) < 0.05, (diff.mean(), np.percentile(diff, 99))
+    assert image.std() > 0.05
+
+
 def test_one_gaussian_lands_where_the_camera_projects_it(gl_context):
     """Pixel convention: a small Gaussian's blob is centred on Camera.project (pixel centres at +0.5)."""
     from drsplat.scene import GaussianScene
@@ -325,6 +350,20 @@ def test_screenshot_command_writes_a_png_of_the_scene(demo, tmp_path, monkeypatc
     assert main(["--screenshot", str(out2), "--width", "96", "--height", "64", "--oracle", "mug"]) == 0
     assert not (tmp_path / "cache").exists(), "the shipped demo needs no generation"
     assert np.asarray(Image.open(out2)).shape == (64, 96, 3)
+
+
+def test_a_screenshot_threshold_that_selects_nothing_is_said(demo, tmp_path, capsys):
+    """`--mode selection --threshold 1` wrote an all-black PNG, exit 0, while the log gave the count
+    at the query's own threshold (a viewer probe, 2026-11-30): the count at --threshold is logged,
+    and a selection of nothing is a warning."""
+    from viewer.launch import main
+
+    registered, dataset = demo
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(tmp_path / "s.png"), "--width", "64",
+                 "--oracle", "mug", "--mode", "selection", "--threshold", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "--threshold 1: 0 Gaussians selected" in err
+    assert "no Gaussian scores >= 1.0000: the screenshot shows nothing" in err
 
 
 @pytest.mark.parametrize("count", [1, 50])

@@ -8,6 +8,7 @@ previous one's display mode and CLIP encoder.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import shutil
@@ -59,6 +60,22 @@ def test_export_and_screenshot_never_write_over_what_the_viewer_read(state):
         assert not state.guard_output(target, "the screenshot")
     assert not state.guard_output("", "the screenshot") and "type the path of the screenshot" in state.messages[-1].text
     assert digests(ds) | digests(state.scene_path.parent) == before
+
+
+def test_an_export_over_the_output_of_the_registration_running_is_refused(state, tmp_path):
+    """An export to the file a running registration writes was accepted ("exported 78 Gaussians")
+    and then replaced when the registration ended (a viewer probe, 2026-11-30)."""
+    from viewer.registration import RegistrationJob
+
+    assert state.run_oracle_query(0)
+    state.set_threshold(-1.0)
+    out = tmp_path / "race" / "out.ply"
+    state.registration = RegistrationJob(out)  # running: not finished
+    assert state.export_selection(out, "standard") is None
+    assert "cannot write" in state.messages[-1].text and "registration running" in state.messages[-1].text, state.messages[-1].text
+    assert not out.exists()
+    state.registration.finished = True  # once it has ended, the file is the user's to replace
+    assert state.export_selection(out, "standard") is not None and out.exists()
 
 
 def test_gui_registration_refuses_its_inputs_as_output(state, tmp_path):
@@ -156,3 +173,30 @@ def test_an_export_into_a_read_only_folder_names_the_export_not_its_temp_file(tm
             pass
     assert info.value.filename == str(tmp_path / "a.ply") and info.value.errno == errno.EACCES
 
+
+
+def test_what_a_load_warns_of_is_shown_and_a_field_with_nothing_assigned_is_said(tmp_path):
+    """A load's warnings (rows dropped for NaN, codes that no longer match their codebook) reached
+    only the terminal, and a query of a field with no assigned Gaussian said "0 Gaussians at
+    threshold 0.000" where `drsplat query` refuses it (a viewer probe, 2026-11-30)."""
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+    from viewer.state import ViewerState
+
+    scene = tiny_scene(6)
+    field = build_field(np.eye(6, 8, dtype=np.float32), np.zeros(6, np.float32), "none", clip_model="oracle")
+    path = tmp_path / "unassigned.ply"
+    save_ply(attach_field(scene, field, path), path)
+    s = ViewerState()
+    assert s.load_scene(path)
+    np.save(tmp_path / "q.npy", np.eye(1, 8, dtype=np.float32)[0])
+    assert not s.run_embedding_query(tmp_path / "q.npy")
+    assert "none of this scene's 6 Gaussians has a language feature" in s.messages[-1].text
+    broken = tmp_path / "nan.ply"
+    means = np.asarray(scene.means, np.float32).copy()
+    means[2] = np.nan
+    save_ply(dataclasses.replace(scene, means=means), broken)
+    s = ViewerState()
+    assert s.load_scene(broken)
+    assert any(m.level == "warning" and "NaN" in m.text for m in s.messages), [m.text for m in s.messages]

@@ -173,7 +173,11 @@ def screenshot(args: argparse.Namespace, state) -> int:
     elif wants_query:
         if args.threshold is not None:
             state.set_threshold(args.threshold)
+            state.info(f"--threshold {args.threshold:g}: {int(state.selection.sum()):,} Gaussians selected")
         state.set_mode(args.mode)
+        if args.mode in ("selection", "highlight") and not state.selection.any():  # the picture would show no match: say why
+            log.warning("no Gaussian scores >= %.4f: the screenshot shows %s; lower --threshold", state.threshold,
+                        "nothing (an empty image)" if args.mode == "selection" else "no highlight")
     elif args.threshold is not None or args.mode != "highlight":  # nothing to select or colour by: say so rather than ignore them
         log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
                     "own colours", args.mode)

@@ -29,5 +29,32 @@ class MessageLog(list):
         self.append(message)
         return message
 
+    def record(self, level: str, text: str) -> Message:
+        """Add a message that was logged already (a library warning, `LibraryWarnings`): shown, not logged again."""
+        message = Message(level, text)
+        self.append(message)
+        return message
+
     def latest(self) -> Message | None:
         return self[-1] if self else None
+
+
+class LibraryWarnings(logging.Handler):
+    """The drsplat library's warnings (logger "drsplat") added to a MessageLog while installed (`with`):
+    what a load finds (codes that no longer match their codebook, a field with no assigned Gaussian,
+    rows dropped for NaN) reached only the terminal, and the GUI then said "0 Gaussians" with no
+    reason (a viewer probe, 2026-11-30)."""
+
+    def __init__(self, messages: MessageLog):
+        super().__init__(logging.WARNING)
+        self.messages = messages
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.record("error" if record.levelno >= logging.ERROR else "warning", record.getMessage())
+
+    def __enter__(self) -> "LibraryWarnings":
+        logging.getLogger("drsplat").addHandler(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        logging.getLogger("drsplat").removeHandler(self)

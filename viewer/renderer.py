@@ -41,10 +41,29 @@ class FrameTimes:
     drawn: int = 0
 
 
-def splat_geometry(scene: GaussianScene) -> np.ndarray:
-    """Per-splat shader input: [N, 3, 4] float32 rows (mean, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, 0, 0).
+FAR_FACTOR = 100.0  # a scene whose box centre lies farther from the origin than this many box sizes is drawn about its centre
 
-    Σ = R S Sᵀ Rᵀ is the world covariance (GaussianScene.covariances), opacity = sigmoid(logit).
+
+def render_origin(means: np.ndarray) -> np.ndarray:
+    """[3] float64: the point the GPU's float32 positions are taken relative to, the centre of the
+    finite means' box when it lies farther than FAR_FACTOR box sizes from the world origin (the
+    origin itself otherwise, so that a scene near it is drawn from its own coordinates). A scene
+    in map coordinates (UTM: 5e5, 4e6) has float32 steps of 0.25-0.5 units there: splats snapped
+    to a grid and sorted out of order (a viewer probe, 2026-11-30)."""
+    finite = np.asarray(means, np.float64)
+    finite = finite[np.isfinite(finite).all(axis=1)] if finite.size else finite
+    if finite.shape[0] == 0:
+        return np.zeros(3)
+    lo, hi = finite.min(axis=0), finite.max(axis=0)
+    centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    return centre if np.linalg.norm(centre) > FAR_FACTOR * max(size, 1e-6) else np.zeros(3)
+
+
+def splat_geometry(scene: GaussianScene, origin: np.ndarray | None = None) -> np.ndarray:
+    """Per-splat shader input: [N, 3, 4] float32 rows (mean − origin, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, 0, 0).
+
+    Σ = R S Sᵀ Rᵀ is the world covariance (GaussianScene.covariances), opacity = sigmoid(logit);
+    origin: [3] `render_origin` (None: the world origin), subtracted in float64.
     """
     n = scene.num_gaussians
     geometry = np.zeros((n, 3, 4), np.float32)
@@ -54,7 +73,7 @@ def splat_geometry(scene: GaussianScene) -> np.ndarray:
     # which the projection shader drops: no numpy overflow warnings on the way.
     with np.errstate(over="ignore", invalid="ignore"):
         cov = scene.covariances()
-        geometry[:, 0, :3] = scene.means
+        geometry[:, 0, :3] = np.asarray(scene.means, np.float64) - (0.0 if origin is None else np.asarray(origin, np.float64))
         geometry[:, 0, 3] = scene.opacities()
         geometry[:, 1] = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1]], axis=1)
         geometry[:, 2, 0] = cov[:, 1, 2]
@@ -117,11 +136,12 @@ class SplatRenderer:
         self.times = FrameTimes()
         self.rank = np.random.default_rng(seed).permutation(self.num).astype(np.uint32)
         self.moving_budget = min(self.num, moving_budget)
-        self.sorter = BackgroundSorter(scene.means, self.rank)
+        self.origin = render_origin(scene.means)  # float32 positions on the GPU and in the sort are taken relative to it
+        self.sorter = BackgroundSorter(np.asarray(scene.means, np.float64) - self.origin, self.rank)
         self._result: SortResult | None = None
         self._sub_key: tuple[int, int] | None = None
         self.coeffs = scene.sh.shape[1]
-        self._geometry = self._buffer(splat_geometry(scene))
+        self._geometry = self._buffer(splat_geometry(scene, self.origin))
         self._harmonics = self._buffer(np.ascontiguousarray(scene.sh, np.float32))
         self._style = self._buffer(np.zeros((self.num, 4), np.float32))
         self._projected = ctx.buffer(reserve=max(16, self.num * 48))
@@ -261,8 +281,9 @@ class SplatRenderer:
         cs = self._project
         R = np.asarray(camera.R, np.float64)
         cs["rotation"].write(np.ascontiguousarray(R.T, np.float32).tobytes())
-        cs["translation"].value = tuple(float(v) for v in camera.t)
-        cs["cam_pos"].value = tuple(float(v) for v in camera.center)
+        # positions are relative to self.origin: R (x − o) + (t + R o) = R x + t, the sum taken in float64
+        cs["translation"].value = tuple(float(v) for v in np.asarray(camera.t, np.float64) + R @ self.origin)
+        cs["cam_pos"].value = tuple(float(v) for v in np.asarray(camera.center, np.float64) - self.origin)
         cs["focal"].value = (float(camera.fx), float(camera.fy))
         cs["principal"].value = (float(camera.cx), float(camera.cy))
         cs["viewport"].value = (float(camera.width), float(camera.height))

@@ -34,7 +34,7 @@ from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, load_npy, read_json
-from viewer.messages import Message, MessageLog  # noqa: F401 - Message re-exported
+from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
@@ -124,12 +124,13 @@ class ViewerState:
 
         try:
             path = Path(path)
-            scene, report = load_scene_report(path)
-            if scene.num_gaussians == 0:
-                why = ("holds no Gaussians (0 rows)" if report.rows_in_file == 0 else
-                       f"has no usable Gaussians: all {report.rows_in_file:,} rows hold NaN or infinite values and were dropped")
-                raise InputError(path, f"{why}: there is nothing to show; open another PLY")
-            lang = read_field(scene, path)
+            with LibraryWarnings(self.messages):  # what the load warns of is shown, not only logged
+                scene, report = load_scene_report(path)
+                if scene.num_gaussians == 0:
+                    why = ("holds no Gaussians (0 rows)" if report.rows_in_file == 0 else
+                           f"has no usable Gaussians: all {report.rows_in_file:,} rows hold NaN or infinite values and were dropped")
+                    raise InputError(path, f"{why}: there is nothing to show; open another PLY")
+                lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
         self.set_scene(scene, lang, path)
@@ -237,6 +238,10 @@ class ViewerState:
             return False
         if self.field is None:
             self.error("this scene has no language field; register it first (Registration panel)")
+            return False
+        if not self.field.assigned().any():  # as `drsplat query` refuses it: no threshold can select anything
+            self.error(f"none of this scene's {len(self.field):,} Gaussians has a language feature (all unassigned, or their codes "
+                       "do not match their codebook: see the warnings above); there is nothing to search")
             return False
         return True
 
@@ -448,6 +453,9 @@ class ViewerState:
         if self.source_dir is not None:
             inputs.update(dataset_inputs(self.source_dir, self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
+        if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
+            inputs["output of the registration running"] = self.registration.output
+            inputs["codebook of the registration running"] = codebook_path_for(self.registration.output)
         return inputs, protected_feature_folders("--features", [self.features_dir])
 
     def guard_output(self, path: str | Path, what: str) -> bool:
