@@ -227,6 +227,16 @@ def test_eval_scannet_stand_in_and_pseudolabels(registered, capsys):
                  "--label-names", str(names_json), "--out", str(out), "--names-out", str(r["root"] / "pl.json")]) == 0
     np.testing.assert_array_equal(np.load(out), pseudo)
     assert json.loads((r["root"] / "pl.json").read_text()) == r["names"]
+    # OpenGaussian's ground truth drops Gaussians of opacity below 0.1 (scripts/eval_scannet.py): --min-opacity does the same
+    from drsplat.scene import load_ply
+
+    opacity = load_ply(r["ds"] / "scene.ply").opacities()
+    faint = out.with_name("pl_faint.npy")
+    assert main(["eval", "pseudolabels", str(r["ds"] / "scene.ply"), "--points", str(scan / "scene0000_00_vh_clean_2.labels.ply"),
+                 "--label-names", str(names_json), "--out", str(faint), "--min-opacity", "0.5"]) == 0
+    dropped = np.load(faint)
+    assert (opacity < 0.5).any() and np.all(dropped[opacity < 0.5] == -1)
+    np.testing.assert_array_equal(dropped[opacity >= 0.5], pseudo[opacity >= 0.5])
 
 
 def test_eval_iou_from_points_with_class_subset(registered, capsys):

@@ -89,7 +89,7 @@ def _add_iou(sub) -> None:
     p.set_defaults(func=run_iou)
 
 
-PSEUDO_DEFAULTS = {"classes": None, "radius": 3.0, "vote": "gaussian", "engine": "grid"}  # the pseudo-label flags (`pseudo_flags_given`)
+PSEUDO_DEFAULTS = {"classes": None, "radius": 3.0, "vote": "gaussian", "engine": "grid", "min_opacity": 0.0}  # the pseudo-label flags (`pseudo_flags_given`)
 
 
 def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
@@ -100,6 +100,9 @@ def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--radius", type=positive_float, default=d["radius"], help="Mahalanobis radius r (points with D <= r^2 vote)")
     g.add_argument("--vote", choices=("gaussian", "count"), default=d["vote"], help="vote weight exp(-D/2) (default) or 1")
     g.add_argument("--engine", choices=("grid", "kdtree"), default=d["engine"], help="neighbour search: numba point grid (default) or scipy KD-trees")
+    g.add_argument("--min-opacity", type=float_range(0.0, 1.0), default=d["min_opacity"], metavar="P",
+                   help="Gaussians of opacity below P get no pseudo-label, as OpenGaussian's ScanNet evaluation drops them at 0.1 "
+                        "(default 0: every Gaussian is labelled; the volume-aware IoU weighs them by their opacity instead)")
 
 
 def class_list(text: str) -> list[str]:
@@ -121,7 +124,7 @@ class_list.__name__ = "class list"
 
 def pseudo_flags_given(args: argparse.Namespace) -> list[str]:
     """The pseudo-label flags set to something other than their default, as "--name"."""
-    return [f"--{name}" for name, default in PSEUDO_DEFAULTS.items() if getattr(args, name) != default]
+    return [f"--{name.replace('_', '-')}" for name, default in PSEUDO_DEFAULTS.items() if getattr(args, name) != default]
 
 
 def _add_scannet(sub) -> None:
@@ -256,6 +259,10 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     pts = load_labelled_points(cloud, raw_names, args.classes)
     res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
                         show_progress=not getattr(args, "quiet", False))
+    if args.min_opacity > 0:  # OpenGaussian's scripts/eval_scannet.py drops Gaussians of sigmoid(opacity) < 0.1 from its ground truth
+        faint = ~(scene.opacities() >= args.min_opacity)
+        res.labels[faint] = -1
+        log.info("pseudo-labels: %d Gaussians of opacity below %g left unlabelled (--min-opacity)", int(faint.sum()), args.min_opacity)
     labelled = int(np.count_nonzero(res.labels >= 0))
     log.info("pseudo-labels: %d of %d Gaussians labelled from %d points (%d non-finite Gaussians)", labelled, len(res.labels), len(pts.points), res.nonfinite)
     if labelled == 0:
