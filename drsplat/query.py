@@ -20,7 +20,7 @@ import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
-from drsplat.lang import LanguageField, unit_rows
+from drsplat.lang import LanguageField, has_direction, unit_rows
 from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
@@ -53,10 +53,8 @@ def query_rows(x: np.ndarray, what: str = "query") -> np.ndarray:
     not finite or is zero (`unit_rows` would make it a zero row, whose scores look like an
     unassigned Gaussian's, or a negative that never wins: a numerical probe, 2026-11-30)."""
     x = np.atleast_2d(np.asarray(x))
-    with np.errstate(invalid="ignore", over="ignore"):
-        finite = np.isfinite(x).all(axis=1)
-        zero = finite & ~(np.abs(x) > 0).any(axis=1)
-    for bad, why in ((~finite, "holds non-finite values"), (zero, "is all zeros")):
+    finite = np.isfinite(x).all(axis=1)
+    for bad, why in ((~finite, "holds non-finite values"), (finite & ~has_direction(x), "is all zeros")):
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise DrsplatError(f"{what} {i} {why}: it has no direction to score by" + (f" ({int(bad.sum())} such rows)" if bad.sum() > 1 else ""))
@@ -104,7 +102,7 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if beyond.size:  # the float32 cast would make them inf (with numpy's overflow warning)
         raise InputError(path, f"rows {beyond[:10].tolist()} hold values beyond float32's range (±3.4e38); embeddings are stored as float32")
     arr = arr.astype(np.float32)
-    bad = ~np.isfinite(arr).all(axis=1) | (np.abs(np.nan_to_num(arr)).max(axis=1) == 0)
+    bad = ~has_direction(arr)
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
     norms = np.linalg.norm(arr.astype(np.float64), axis=1)
@@ -186,10 +184,9 @@ def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, 
     negatives are the canonical phrases' embeddings ("object", "things", "stuff", "texture"),
     optionally followed by user negatives. One LUT pass scores queries and negatives together.
     """
-    q = query_rows(queries)
-    neg = query_rows(negatives, "negative") if len(negatives) else unit_rows(np.zeros((0, q.shape[1]), np.float32))
-    if neg.shape[0] == 0:
+    if len(negatives) == 0:
         raise DrsplatError("relevancy needs at least one negative embedding")
+    q, neg = query_rows(queries), query_rows(negatives, "negative")
     scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits, device=device)
     return relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
 

@@ -56,12 +56,14 @@ def host_tag() -> str:
     there. A temp file of a run on another host or container sharing the folder is never taken for
     a dead run's (it was: a second `synth` removed a live run's folder, a concurrency probe of
     2026-11-30)."""
-    parts = [socket.gethostname()]
-    for source in ("/proc/sys/kernel/random/boot_id", "/proc/self/ns/pid"):
+    def read(how: Callable[[], str]) -> str:
         try:
-            parts.append(os.readlink(source) if source.endswith("/pid") else Path(source).read_text().strip())
-        except OSError:
-            parts.append("")
+            return how()
+        except OSError:  # not Linux: the host name alone
+            return ""
+
+    parts = (socket.gethostname(), read(lambda: Path("/proc/sys/kernel/random/boot_id").read_text().strip()),
+             read(lambda: os.readlink("/proc/self/ns/pid")))
     return hashlib.sha1("|".join(parts).encode()).hexdigest()[:8]
 
 

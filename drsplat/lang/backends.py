@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import Codebook, unit_rows
+from drsplat.lang.codebook import Codebook, has_direction, unit_rows
 from drsplat.lang.lut import (
     BLOCKED_MIN_M,
     blocked_codes,
@@ -79,9 +79,9 @@ class ExactStorage:
         rows, as registration writes, are stored as given), so no direction underflows to zero or
         overflows in float16 (a row of 1e-8 did, while a PQ field kept it)."""
         f = np.asarray(features, np.float32)
+        ok = has_direction(f)
         with np.errstate(invalid="ignore", over="ignore"):
             peak = np.abs(f).max(axis=1) if f.shape[1] else np.zeros(f.shape[0], np.float32)
-            ok = np.isfinite(peak) & (peak > 0) & np.isfinite(f).all(axis=1)
             norm = peak * np.linalg.norm(f / np.where(ok, peak, 1)[:, None], axis=1)  # no underflow for rows of 1e-40
         off = ok & (np.abs(norm - 1.0) > UNIT_TOLERANCE)
         if off.any():

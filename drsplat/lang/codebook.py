@@ -49,6 +49,9 @@ class Codebook:
     path: Path | None = None
     owner: object = dataclasses.field(default=None, repr=False)  # keeps faiss's owning wrapper alive
     _bytes: bytes | None = dataclasses.field(default=None, repr=False, compare=False)
+    # files this codebook was written to or found in (`plyformat.write_codebook_beside`), with their
+    # stamps then: a registration writes its PLY in chunks, and each would read the file back
+    written: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def file_bytes(self) -> bytes:
         """The faiss file of this codebook as it is in memory (serialised once, then kept): what a
@@ -60,7 +63,7 @@ class Codebook:
 
     def __getstate__(self) -> dict:  # a Ray task gets the index, not its serialised copy too
         state = dict(self.__dict__)
-        state["_bytes"] = None
+        state["_bytes"], state["written"] = None, {}
         return state
 
     @property
@@ -332,8 +335,16 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
         faiss.omp_set_num_threads(previous)
     return codebook_from_index(index)
 
+def has_direction(x: np.ndarray) -> np.ndarray:
+    """[K] bool: the rows of x [K, D] (or one [D] row) that are finite and not all zero, the rows
+    `unit_rows` normalises (the others it makes zero rows)."""
+    x = np.atleast_2d(np.asarray(x))
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
+
+
 def unit_rows(x: np.ndarray) -> np.ndarray:
-    """Rows divided by their L2 norm: [K, D] float32; zero and non-finite rows become zero.
+    """Rows divided by their L2 norm: [K, D] float32; rows without a direction (`has_direction`) become zero.
 
     Each row is first divided by its largest magnitude (y = x / max|x|, then y / ||y||), so a
     huge finite row (1e30) normalises correctly instead of overflowing the norm to inf.
@@ -341,7 +352,7 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     x = np.atleast_2d(np.asarray(x, np.float32))
     with np.errstate(invalid="ignore", over="ignore"):
         scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
-        ok = np.isfinite(scale) & (scale > 0) & np.isfinite(x).all(axis=1, keepdims=True)
+        ok = has_direction(x)[:, None]
         y = np.where(ok, x / np.where(ok, scale, 1), 0)
         norm = np.linalg.norm(y, axis=1, keepdims=True)
         return np.where(ok, y / np.where(ok, norm, 1), 0).astype(np.float32)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, unit_rows
+from drsplat.lang.codebook import PQ_KSUB, Codebook, has_direction, load_codebook, train_codebook, unit_rows
 from drsplat.lang.backends import BACKENDS, ExactStorage, Storage
 from drsplat.lang.lut import has_feature
 
@@ -162,7 +162,7 @@ def build_field(
     n, dim = features.shape
     exact = isinstance(codebook, str) and codebook == "none"
     assigned = weights > 0
-    lost = assigned & ~_has_direction(np.asarray(features, np.float32))
+    lost = assigned & ~has_direction(np.asarray(features, np.float32))
     if lost.any():  # every backend leaves them unassigned (a PQ code of a zero row decodes to some vector)
         log.warning("%d of %d Gaussians with weight have a feature that is zero or not finite: left unassigned", int(lost.sum()), n)
         assigned &= ~lost
@@ -178,12 +178,6 @@ def build_field(
     if book.dim != dim:
         raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
     return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book))
-
-
-def _has_direction(rows: np.ndarray) -> np.ndarray:
-    """[N] bool: rows that are finite and not all zero (in their own dtype)."""
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(rows).all(axis=1) & (rows != 0).any(axis=1)
 
 
 def scene_sample_ids(candidates: np.ndarray, seed: int = 0) -> np.ndarray:

@@ -40,7 +40,7 @@ from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, hidden_character
+from drsplat.utils import atomic_path, file_stamp, hidden_character
 
 log = logging.getLogger(__name__)
 
@@ -164,9 +164,13 @@ def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
     target = codebook_path_for(ply_path)
     data = codebook.file_bytes()
     crc = zlib.crc32(data)
+    stamp = file_stamp(target)
+    if stamp is not None and codebook.written.get(target) == stamp:  # this call's earlier chunks wrote it, and it is unchanged
+        return target, crc
     if not (target.is_file() and target.stat().st_size == len(data) and zlib.crc32(target.read_bytes()) == crc):
         with atomic_path(target) as tmp:
             tmp.write_bytes(data)
+    codebook.written[target] = file_stamp(target)
     return target, crc
 
 

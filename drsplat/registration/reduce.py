@@ -410,7 +410,12 @@ class ReducePool:
         ray = import_ray()
         task = ray.remote(num_cpus=1, max_retries=TASK_RETRIES)(_support_task)
         job_ref = ray.put(job)
-        self._run(job, lambda i: task.remote(job_ref, i), take=lambda _, parts: add(parts))
+        def take(index: int, part: SupportFile) -> None:
+            if Path(part.path) != job.support_path(index):  # the driver reads and then removes it: only the file the job names
+                raise DrsplatError(f"the reducer of block {index} returned the support file {part.path}, not {job.support_path(index)}")
+            add(part)
+
+        self._run(job, lambda i: task.remote(job_ref, i), take=take)
 
     def candidates(self, job: ReduceJob) -> np.ndarray:
         """[N] bool, `candidates_block` of every block, one task each."""
