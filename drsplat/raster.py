@@ -599,7 +599,7 @@ def bin_tiles(projected: Projected, exact: bool = False, tiles: tuple[int, int] 
     Speedy-Splat's AccuTile); compositing then gives the same result, with fewer tile visits.
     tiles: (t_lo, t_hi), lists for those row-major tiles only (a band, `tile_bands`), the others empty.
     order: the view's `depth_order`, when the caller bins several bands (computed here when None);
-    rects_in_order: projected.tile_rects[order], likewise (getRect tiles only).
+    rects_in_order: projected.tile_rects[order], likewise (getRect tiles only; gathered here when None).
     """
     n_tiles_x, n_tiles_y = projected.tile_grid
     n_tiles = n_tiles_x * n_tiles_y
@@ -607,9 +607,8 @@ def bin_tiles(projected: Projected, exact: bool = False, tiles: tuple[int, int] 
     order = depth_order(projected) if order is None else order
     n_chunks = BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
     if not exact:
-        if rects_in_order is not None:
-            return kernels.bin_gaussians(order, rects_in_order, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi, True)
-        return kernels.bin_gaussians(order, projected.tile_rects, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi)
+        rects = kernels.rects_in_depth_order(order, projected.tile_rects) if rects_in_order is None else rects_in_order
+        return kernels.bin_gaussians(order, rects, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi, True)
     return kernels.bin_gaussians_exact(order, projected.tile_rects, projected.means2d, projected.conics, projected.extents, projected.qlimits,
                                        projected.tile_size, projected.height, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi)
 
@@ -664,13 +663,12 @@ def _composite_in_bands(projected: Projected, max_tile_entries: int | None, exac
 
 
 def _band_inputs(projected: Projected, bands: list[tuple[int, int]], exact: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """The view's depth order, made once for all its bands, and for several getRect bands its
-    rectangles gathered in that order (each band then reads them in sequence: gathering them again
-    per band made binning a many-band view ~2x slower)."""
+    """The view's depth order and, for getRect tiles, its rectangles gathered in that order, made
+    once for all its bands (each band then reads them in sequence: `kernels.rects_in_depth_order`)."""
     order = depth_order(projected)
-    if len(bands) == 1 or exact:
+    if exact:
         return order, None
-    return order, np.ascontiguousarray(projected.tile_rects[order])
+    return order, kernels.rects_in_depth_order(order, projected.tile_rects)
 
 
 def _band_schedule(offsets: np.ndarray, tiles: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:

@@ -114,21 +114,22 @@ def _holds_spz_header(head: bytes) -> bool:
         return False
 
 
-def load_scene_report(path: str | Path) -> tuple[GaussianScene, LoadReport]:
-    """Load a 3DGS scene file (PLY: INRIA or compressed, `.splat`, `.spz`) and report what was found and fixed."""
+def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[GaussianScene, LoadReport]:
+    """Load a 3DGS scene file (PLY: INRIA or compressed, `.splat`, `.spz`) and report what was found and
+    fixed. purpose: as in `load_ply_report` (an empty file is then one error naming it)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "does not exist" if not path.exists() else "is not a file")
     kind = scene_format(path)
     if kind == "ply":
-        return load_ply_report(path)
+        return load_ply_report(path, purpose)
     cols, order, layout = splat_columns(path) if kind == "splat" else spz_columns(path)
-    return assemble_scene(path, cols, order, layout, [])
+    return assemble_scene(path, cols, order, layout, [], purpose)
 
 
-def load_scene(path: str | Path) -> GaussianScene:
+def load_scene(path: str | Path, purpose: str | None = None) -> GaussianScene:
     """`load_scene_report` without the report."""
-    return load_scene_report(path)[0]
+    return load_scene_report(path, purpose)[0]
 
 
 # ----------------------------------------------------------------------------- .splat

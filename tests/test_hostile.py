@@ -566,6 +566,27 @@ def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, capsys):
     assert "nan.ply" in line and "all 5 rows hold NaN or infinite values" in line and "Traceback" not in err, err
 
 
+def test_an_empty_scene_is_refused_in_one_line_by_the_viewer_and_query(tmp_path, capsys):
+    """Was: an empty PLY at the viewer's start-up (or given to `drsplat query`) printed the load's
+    warning "the file holds no Gaussians", then the refusal saying the same."""
+    from drsplat.scene import GaussianScene, save_ply
+    from viewer.launch import main as viewer_main
+
+    empty = GaussianScene(means=np.zeros((0, 3), np.float32), quats=np.zeros((0, 4), np.float32), log_scales=np.zeros((0, 3), np.float32),
+                          opacity_logits=np.zeros(0, np.float32), sh=np.zeros((0, 1, 3), np.float32))
+    ply = tmp_path / "empty.ply"
+    save_ply(empty, ply)
+    assert viewer_main([str(ply), "--screenshot", str(tmp_path / "shot.png")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("holds no Gaussians") == 1 and "nothing to show" in err and "WARNING" not in err, err
+    np.save(tmp_path / "q.npy", np.ones(4, np.float32))
+    code, err = run_cli(["query", ply, "--embedding", tmp_path / "q.npy"], capsys)
+    assert code == 1 and err.count("holds no Gaussians") == 1 and "nothing to query" in err and "WARNING" not in err, err
+    from drsplat.scene import load_ply_report
+    _, report = load_ply_report(ply)  # without a purpose: loaded, the finding reported (drsplat info)
+    assert any("holds no Gaussians" in note for note in report.findings())
+
+
 def test_viewer_export_refuses_the_codebook_the_scene_comment_names(tmp_path):
     """Was: a registered PLY renamed (its comment still names `registered.codebook.faiss`) exported
     onto that codebook from the viewer replaced it (only `<stem>.codebook.faiss` was checked)."""
@@ -1868,7 +1889,8 @@ def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
     save_ply(scene.subset(np.zeros(scene.num_gaussians, bool)), tmp_path / "empty.ply")
     code, err = run_cli(["register", tmp_path / "empty.ply", *base, "--out", tmp_path / "r.ply"], capsys)
     (line,) = error_lines(err)
-    assert code == 1 and "empty.ply: holds no Gaussians: there is nothing to register" in line, line
+    assert code == 1 and "empty.ply: holds no Gaussians (0 rows): there is nothing to register" in line, line
+    assert err.count("holds no Gaussians") == 1, err  # said once: not also as the load's warning
     code, err = run_cli(["register", ds / "scene.ply", *base, "--out", tmp_path / "r.spz"], capsys)
     assert code == 2 and "--out r.spz: a registered scene is a PLY" in err and not (tmp_path / "r.spz").exists()
     code, err = run_cli(["register", ds / "scene.ply", *base, "--out", tmp_path / "r.compressed.ply"], capsys)

@@ -352,6 +352,29 @@ def test_screenshot_command_writes_a_png_of_the_scene(demo, tmp_path, monkeypatc
     assert np.asarray(Image.open(out2)).shape == (64, 96, 3)
 
 
+def test_a_screenshot_is_written_in_the_format_its_name_says(demo, tmp_path, capsys):
+    """Was: `--screenshot shot.jpg` wrote PNG data under a .jpg name (a viewer probe, 2026-11-30).
+    Now the suffix picks the format, and one no format matches is refused before anything renders."""
+    from PIL import Image
+
+    from viewer.launch import main
+
+    registered, dataset = demo
+    png = None
+    for name, fmt in (("s.png", "PNG"), ("s.JPG", "JPEG"), ("s.webp", "WEBP"), ("s.tif", "TIFF")):
+        out = tmp_path / name
+        assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--camera", "1", "--width", "64"]) == 0
+        with Image.open(out) as image:
+            assert image.format == fmt and image.size == (64, 48), (name, image.format)
+            pixels = np.asarray(image.convert("RGB"), np.float64)
+        png = pixels if png is None else png
+        assert np.abs(pixels - png).mean() < 3.0, name  # the same picture (JPEG and WebP: lossy)
+    with pytest.raises(SystemExit) as exc:
+        main([str(registered), "--screenshot", str(tmp_path / "s.gif")])
+    assert exc.value.code == 2 and "cannot write a .gif image" in capsys.readouterr().err
+    assert not (tmp_path / "s.gif").exists()
+
+
 def test_a_screenshot_threshold_that_selects_nothing_is_said(demo, tmp_path, capsys):
     """`--mode selection --threshold 1` wrote an all-black PNG, exit 0, while the log gave the count
     at the query's own threshold (a viewer probe, 2026-11-30): the count at --threshold is logged,

@@ -28,7 +28,7 @@ from drsplat.splat_formats import SCENE_SUFFIXES
 from drsplat.utils import atomic_path, describe_os_error
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
-from viewer.paths import default_layout_path
+from viewer.paths import default_layout_path, image_format
 from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import ViewerState
@@ -91,23 +91,25 @@ def idle_timeout(animating: bool, events_pending: int, jobs_running: bool) -> fl
     return JOB_WAIT_SECONDS if jobs_running else IDLE_WAIT_SECONDS
 
 
-def save_png(image: np.ndarray, path: str | Path) -> Path:
-    """Write [H, W, 3] uint8 as PNG, atomically (a FIFO or device: in place, atomic_path)."""
+def save_image(image: np.ndarray, path: str | Path) -> Path:
+    """Write [H, W, 3] uint8 in the format its name says (`image_format`: PNG, JPEG or WebP at quality 95,
+    BMP or TIFF; PNG without a suffix), atomically (a FIFO or device: in place, atomic_path)."""
     import io
 
     from PIL import Image
 
     path = Path(path)
-    png = io.BytesIO()  # encoded first: PIL seeks in the file it writes, which a FIFO cannot
-    Image.fromarray(image).save(png, format="PNG")
+    fmt = image_format(path)
+    data = io.BytesIO()  # encoded first: PIL seeks in the file it writes, which a FIFO cannot
+    Image.fromarray(image).save(data, format=fmt, **({"quality": 95} if fmt in ("JPEG", "WEBP") else {}))
     with atomic_path(path) as tmp:
-        tmp.write_bytes(png.getvalue())
+        tmp.write_bytes(data.getvalue())
     return path
 
 
 def render_screenshot(state: ViewerState, camera: Camera, path: str | Path | None = None, ctx: moderngl.Context | None = None) -> np.ndarray:
     """Render one frame of the state's scene and style from `camera` on an EGL standalone context
-    (no window, no X server); save it as PNG when `path` is given. Returns [H, W, 3] uint8."""
+    (no window, no X server); save it when `path` is given (`save_image`). Returns [H, W, 3] uint8."""
     own = ctx is None
     ctx = ctx or create_offscreen_context()
     renderer = SplatRenderer(ctx, state.scene)
@@ -119,7 +121,7 @@ def render_screenshot(state: ViewerState, camera: Camera, path: str | Path | Non
         if own:
             ctx.release()
     if path is not None:
-        save_png(image, path)
+        save_image(image, path)
     return image
 
 
@@ -607,7 +609,7 @@ class ViewerApp:
                 self.open_scene(chosen[0])
 
     def screenshot(self, path: str | Path) -> None:
-        """Save the splats of the current view (without the panels) as PNG; never over a file the
+        """Save the splats of the current view (without the panels) as an image (`save_image`); never over a file the
         viewer read (`ViewerState.guard_output`)."""
         if self.renderer is None:
             self.state.error("no scene to take a screenshot of")
@@ -616,7 +618,7 @@ class ViewerApp:
             return
         try:
             image = render_offscreen(self.ctx, self.renderer, self.view.camera())
-            save_png(image, path)
+            save_image(image, path)
             self._drawn_key = None
             self._still = None
         except Exception as exc:  # noqa: BLE001 - reported in the GUI

@@ -191,7 +191,7 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
 def run(args: argparse.Namespace) -> int:
     from drsplat.errors import DrsplatError
     from drsplat.scene import load_ply
-    from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_png  # moderngl, imgui and glfw: GL only when a window or an image is made
+    from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_image  # moderngl, imgui and glfw: GL only when a window or an image is made
     from viewer.renderer import create_offscreen_context
 
     names = [s.strip() for s in args.sizes.split(",") if s.strip()]
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
           f"(moving splats = the budget it settled on; median of the last {SETTLED_FRAMES}); errors = mean |difference| in 8-bit levels "
           "against the exact-order full frame; still = a GUI frame while the camera is still (the last image is reused, not re-rendered)")
     if args.screenshot is not None and shot is not None:
-        save_png(shot, args.screenshot)
+        save_image(shot, args.screenshot)
         print(f"screenshot: {args.screenshot}")
     ctx.release()
     return 0

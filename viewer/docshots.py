@@ -41,7 +41,7 @@ def settle(app, seconds: float = 20.0) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from viewer.app import ViewerApp, save_png  # moderngl, imgui and glfw: GL only when a window or an image is made
+    from viewer.app import ViewerApp, save_image  # moderngl, imgui and glfw: GL only when a window or an image is made
 
     parser = argparse.ArgumentParser(prog="python -m viewer.docshots", description=__doc__.splitlines()[0])
     parser.add_argument("out_dir", type=Path)
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             va.next_still_chunk = chunk_rule
         for name, image in shots.items():
-            save_png(image, args.out_dir / name)
+            save_image(image, args.out_dir / name)
             log.warning("wrote %s", args.out_dir / name)
     finally:
         app.close()

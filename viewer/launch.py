@@ -25,6 +25,7 @@ from drsplat.scene import load_ply
 from drsplat.synthetic import PRESETS, write_dataset
 from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
+from viewer.paths import image_format
 from viewer.state import ViewerState
 from drsplat.utils import check_output_writable, describe_os_error, guard_outputs
 
@@ -35,6 +36,16 @@ DEMO_PRESET = "demo"  # the preset generated when the shipped demo (assets/demo)
 
 class StartupError(DrsplatError):
     """A start-up failure whose message was already logged (printed once, not twice)."""
+
+
+def screenshot_file(text: str) -> Path:
+    """argparse type of --screenshot: a file (`output_file`) whose suffix names a format `image_format` writes."""
+    path = output_file(text)
+    try:
+        image_format(path)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return path
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,7 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clip-config", type=Path, metavar="JSON", help="open_clip model config, for an architecture open_clip does not ship")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and registration started from the viewer run (default auto: cuda when present)")
     p.add_argument("--engine", choices=("numba", "torch"), default=None, help="registration engine (default: torch on cuda, numba on the CPU)")
-    p.add_argument("--screenshot", type=output_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit")
+    p.add_argument("--screenshot", type=screenshot_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit "
+                   "(.jpg, .webp, .bmp and .tif write those formats)")
     p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
     q.add_argument("--query", metavar="TEXT", help="with --screenshot: highlight what matches TEXT (needs CLIP weights)")

@@ -12,6 +12,19 @@ import os
 from pathlib import Path
 
 LAYOUT_FILE = "imgui.ini"
+IMAGE_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".webp": "WEBP", ".bmp": "BMP", ".tif": "TIFF", ".tiff": "TIFF"}
+
+
+def image_format(path: str | Path) -> str:
+    """The PIL format a screenshot named `path` is written in, from its suffix (any case); PNG for a
+    name without one (a FIFO, a device). An unknown suffix is a ValueError naming the known ones:
+    the file would otherwise hold data its name does not say."""
+    suffix = Path(path).suffix.lower()
+    if not suffix:
+        return "PNG"
+    if suffix not in IMAGE_FORMATS:
+        raise ValueError(f"{path}: cannot write a {suffix} image; name it .png, .jpg, .webp, .bmp or .tif")
+    return IMAGE_FORMATS[suffix]
 
 
 def user_config_dir() -> Path:

@@ -84,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    scene = load_scene(args.scene)
-    if scene.num_gaussians == 0:
+    scene = load_scene(args.scene, purpose="register")
+    if scene.num_gaussians == 0:  # every row dropped as non-finite (the load said how many)
         raise InputError(args.scene, "holds no Gaussians: there is nothing to register")
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
