@@ -920,7 +920,6 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
     supports = Supports.empty([view.feats for view in source.block_views(0, 0)], clusters.per_view, k, cap, beside)
     scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
-        slot_c, slot_v = fold_block_votes(source.block_views(lo, hi), clusters.per_view, lo, hi, slots)
         masses = block_supports(source.block_views(lo, hi), source.block_views(lo, hi), clusters.per_view, lo, hi, slots, scratch,
                                 supports.tables.add)
         for v, mass in enumerate(masses):
