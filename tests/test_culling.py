@@ -13,9 +13,9 @@ from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.aggregate import mode_hook
-from drsplat.registration.compute import ViewComputer, ViewJob, prepare_geometry
+from drsplat.registration.compute import renders_whole, ViewComputer, ViewJob, prepare_geometry
 from drsplat.registration.culling import (SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes, remap_ids,
-                                         remap_ids_reference)
+                                         remap_ids_reference, subset_geometry, subset_geometry_reference)
 from drsplat.scene import load_ply
 from drsplat.synthetic import tile_city, write_dataset
 
@@ -96,7 +96,8 @@ def test_view_computer_pairs_equal_with_and_without_culling(city, weighting):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{cam.name} {field}")
         assert a.num_pairs == b.num_pairs > 0
     assert max(projected[:4]) < 0.35 * n  # room views render their culled subset
-    assert projected[4] == n and culled._index.visible(overview).size > 0.35 * n  # most of the city in view: rendered whole
+    slots = overview.width * overview.height * 5
+    assert projected[4] == n and renders_whole(culled._index.visible(overview).size, n, slots)  # most of the city in view: rendered whole
     if weighting:  # the culled views' projections were scattered by scene id, never the scene projected again
         assert hooks[0]._means2d is not None and hooks[1]._means2d is None
 
@@ -191,6 +192,46 @@ def test_remap_kernel_matches_the_numpy_remap(case):
     assert remap_ids(got, ids) is got
     np.testing.assert_array_equal(got, want)
     assert got.dtype == np.int32
+
+
+def test_a_view_culls_only_where_the_subset_costs_less_than_the_whole_scene():
+    """The cost rule: a flowers-sized scene at 640 x 480 x 40 culls a view that sees 30 % and renders
+    one that sees 60 % whole; a 27k-Gaussian room at 320 x 240 x 40 never culls (remapping the
+    view's ids costs more than projecting the room), at k = 5 it does; nothing in view culls
+    whenever culling can pay at all."""
+    from drsplat.registration.compute import culling_pays
+
+    flowers, slots = 542_104, 640 * 480 * 40
+    assert culling_pays(flowers, slots)
+    assert not renders_whole(int(0.30 * flowers), flowers, slots) and renders_whole(int(0.60 * flowers), flowers, slots)
+    room = 27_354
+    assert not culling_pays(room, 320 * 240 * 40) and renders_whole(0, room, 320 * 240 * 40)
+    assert culling_pays(room, 320 * 240 * 5) and not renders_whole(int(0.3 * room), room, 320 * 240 * 5)
+    assert all(culling_pays(n, s) == (not renders_whole(0, n, s)) for n in (1, 1000, 10**7) for s in (0, 10**4, 10**8))
+
+
+@pytest.mark.parametrize("case", ["random", "none", "all", "repeated", "sh", "non_contiguous"])
+def test_subset_gather_matches_numpy_indexing(case):
+    """The parallel gather of a culled view's Gaussians equals numpy's fancy indexing, array by array
+    and bit for bit (NaN rows and non-finite flags included): random ids, none, all, repeated ids, SH
+    of degree 2, and a scene whose arrays are views (the numpy path)."""
+    from drsplat.raster import PreparedScene
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    sh = rng.normal(size=(n, 9 if case == "sh" else 0, 3)).astype(np.float32)
+    means = rng.normal(size=(n, 3))
+    means[::97] = np.nan
+    cov = rng.normal(size=(n, 3, 3))
+    geometry = PreparedScene(means=means, covariances=cov, opacities=rng.random(n, dtype=np.float32), sh=sh, finite=np.isfinite(means).all(1))
+    if case == "non_contiguous":
+        geometry = PreparedScene(means=np.asfortranarray(means), covariances=cov, opacities=geometry.opacities, sh=sh, finite=geometry.finite)
+    ids = {"random": np.sort(rng.choice(n, 700, replace=False)), "none": np.zeros(0, np.int64), "all": np.arange(n),
+           "repeated": rng.integers(0, n, 900)}.get(case, np.sort(rng.choice(n, 1200, replace=False))).astype(np.int64)
+    got, want = subset_geometry(geometry, ids), subset_geometry_reference(geometry, ids)
+    for name in ("means", "covariances", "opacities", "sh", "finite"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
 
 
 @pytest.mark.parametrize("block_size", [1, 64, 4096])

@@ -182,12 +182,13 @@ def test_a_culled_probe_view_scores_as_the_whole_scene_does(rooms):
 
     data = rooms["geometry"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    culled = fit_stage("fit", scene, cams, data / "features", 1, 40, cull=True, count=len(cams))
-    whole = fit_stage("fit", scene, cams, data / "features", 1, 40, cull=False, count=len(cams))
+    topk = 5  # few slots a view: culling pays in this room (at 40 remapping a view's ids costs more than projecting the room)
+    culled = fit_stage("fit", scene, cams, data / "features", 1, topk, cull=True, count=len(cams))
+    whole = fit_stage("fit", scene, cams, data / "features", 1, topk, cull=False, count=len(cams))
     np.testing.assert_array_equal(culled.choice.paper, whole.choice.paper)
     np.testing.assert_array_equal(culled.choice.sharp, whole.choice.sharp)
     index = SpatialIndex.build(prepare_geometry(scene))
-    assert sum(not renders_whole(index.visible(cam).size, scene.num_gaussians) for cam in cams) >= 1
+    assert sum(not renders_whole(index.visible(cam).size, scene.num_gaussians, cam.width * cam.height * topk) for cam in cams) >= 1
     assert culled.index is not None and whole.index is None
 
 

@@ -135,7 +135,7 @@ def run_config(config: dict) -> dict:
         "coalesce": reg.coalesce_seconds, "accumulate": reg.accumulate_seconds,
         "pairs": reg.num_pairs, "distinct": reg.num_distinct_pairs, "streamed": reg.num_blocks > 1, "peak_rss": peak_rss(),
         "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size, "driver_cpu": driver_cpu, "cull": cull,
-        "projected_per_view": _projected_per_view(scene, cameras) if cull else float(scene.num_gaussians),
+        "projected_per_view": _projected_per_view(scene, cameras, options.topk) if cull else float(scene.num_gaussians),
         "reduce": {"reducers": reg.reducers, "tail_wall_s": round(reg.seconds - reg.view_seconds, 3), "tail_driver_cpu_s": round(reg.finish_cpu_seconds, 3)},
         "first_view": max(w.first_view_seconds for w in reg.workers if w.first_view_seconds is not None),
         "later_view": statistics.median(later) if later else None,
@@ -173,16 +173,20 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def _projected_per_view(scene, cameras) -> float:
-    """Mean Gaussians a culled view projects: the same index, test and whole-scene rule the
-    registration's views use (`ViewComputer`)."""
-    from drsplat.registration.compute import prepare_geometry, renders_whole
+def _projected_per_view(scene, cameras, topk: int) -> float:
+    """Mean Gaussians a culled view projects: the same index, test and cost rule the registration's
+    views use (`ViewComputer`)."""
+    from drsplat.registration.compute import culling_pays, prepare_geometry, renders_whole
     from drsplat.registration.culling import SpatialIndex
 
     n = scene.num_gaussians
     index = SpatialIndex.build(prepare_geometry(scene))
-    sizes = [index.visible(cam).size for cam in cameras]
-    return float(sum(n if renders_whole(size, n) else size for size in sizes) / max(len(cameras), 1))
+    projected = []
+    for cam in cameras:
+        slots = cam.width * cam.height * topk
+        size = index.visible(cam).size if culling_pays(n, slots) else n
+        projected.append(n if renders_whole(size, n, slots) else size)
+    return float(sum(projected) / max(len(cameras), 1))
 
 
 # ----------------------------------------------------------------------------- the bench (parent process)

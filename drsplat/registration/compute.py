@@ -34,17 +34,30 @@ from drsplat.registration.views import load_view_features, used_masks
 from drsplat.scene import GaussianScene
 
 CPU_ONLY_ENGINES = ("numba",)
-# Above this share of the scene in view, a view renders every Gaussian instead of the culled subset
-# (the same top-k lists: culling is exact). The subset costs a gather (~60 ns per visible Gaussian)
-# and a remap of the view's ids; projecting a Gaussian costs ~35 ns (flowers, 640 x 480, 2 threads:
-# 82 % in view, subset + projection 44 ms vs projecting all 19 ms), so the subset pays below ~35 %.
-FULL_RENDER_FRACTION = 0.35
+# What the two ways of rendering a view cost beyond what they share (x86_64, 2 threads, measured
+# 2026-11-30 on flowers and hard-room, docs/registration.md "Frustum culling"): projecting a Gaussian
+# (in view or not), gathering and projecting a visible one (`subset_geometry`), and mapping one
+# [H, W, k] slot of the culled render back to scene ids (`remap_ids`). Only the ratios matter.
+PROJECT_NS = 15.0
+SUBSET_NS = 25.0
+REMAP_NS = 0.2
 
 
-def renders_whole(visible: int, num_gaussians: int) -> bool:
-    """Whether a culled view with `visible` Gaussians in view renders all `num_gaussians` instead
-    (gathering most of the scene costs more than projecting the rest: FULL_RENDER_FRACTION)."""
-    return visible > FULL_RENDER_FRACTION * num_gaussians
+def renders_whole(visible: int, num_gaussians: int, slots: int = 0) -> bool:
+    """Whether a view with `visible` of `num_gaussians` Gaussians in view (the culling index's test)
+    renders them all instead of the culled subset: when gathering and projecting the visible ones
+    and remapping the render's `slots` (H·W·k) ids would cost at least projecting every Gaussian,
+    SUBSET_NS·V + REMAP_NS·slots ≥ PROJECT_NS·N. The top-k lists are the same either way (culling
+    is exact); a flowers view (N = 542k, 640 x 480 x 40 slots) culls below ~42 % in view, a 27k
+    room of 320 x 240 views never (its remap alone costs more than projecting the room)."""
+    return SUBSET_NS * visible + REMAP_NS * slots >= PROJECT_NS * num_gaussians
+
+
+def culling_pays(num_gaussians: int, slots: int) -> bool:
+    """Whether a view of `slots` (H·W·k) slots could render a culled subset of a scene of
+    `num_gaussians` at all (`renders_whole` with nothing in view is False); when not, the view
+    skips the culling index's test."""
+    return not renders_whole(0, num_gaussians, slots)
 
 
 @dataclass(frozen=True)
@@ -206,15 +219,16 @@ class ViewComputer:
 
     def _rasterize(self, cam: Camera):
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling
-        and they are at most FULL_RENDER_FRACTION of the scene."""
+        and that costs less than rendering every one (`renders_whole`)."""
         def render(prepared):
             return self._render(prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
 
-        if self._index is None:
+        slots = cam.width * cam.height * self.job.topk
+        if self._index is None or not culling_pays(self._prepared.num_gaussians, slots):
             self.projected += self._prepared.num_gaussians if isinstance(self._prepared, PreparedScene) else 0
             return _whole(render(self._prepared))
         ids = self._index.visible(cam)
-        if renders_whole(ids.size, self._prepared.num_gaussians):
+        if renders_whole(ids.size, self._prepared.num_gaussians, slots):
             self.projected += self._prepared.num_gaussians
             return _whole(render(self._prepared))
         self.projected += int(ids.size)

@@ -230,8 +230,37 @@ def largest_eigenvalues_reference(covariances: np.ndarray, ids: np.ndarray) -> n
     return np.linalg.eigvalsh(covariances[ids])[:, -1]
 
 
+@numba.njit(parallel=True, cache=True)
+def _gather_rows_kernel(src, ids, out):  # pragma: no cover - jitted
+    """out[i] = src[ids[i]] for [N, C] src, in parallel over the rows."""
+    for i in numba.prange(ids.shape[0]):
+        g = ids[i]
+        for c in range(src.shape[1]):
+            out[i, c] = src[g, c]
+
+
+def gather_rows(a: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """a[ids] for a C-contiguous [N, ...] array and [V] ids in range, by `_gather_rows_kernel`
+    (numpy's fancy indexing of rows took ~50 ns a row here: flowers' 35 % subset 9.4 ms against 1.6)."""
+    flat = a.reshape(a.shape[0], -1)
+    out = np.empty((ids.shape[0], flat.shape[1]), a.dtype)
+    if out.size:
+        _gather_rows_kernel(flat, np.ascontiguousarray(ids, np.int64), out)
+    return out.reshape((ids.shape[0],) + a.shape[1:])
+
+
 def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
-    """The Gaussians `ids` [V] of `geometry` (Gaussian i of the result is ids[i] of the scene)."""
+    """The Gaussians `ids` [V] of `geometry` (Gaussian i of the result is ids[i] of the scene), gathered
+    in parallel (`gather_rows`; `subset_geometry_reference` is the numpy form, the same arrays)."""
+    rows = (geometry.means, geometry.covariances, geometry.opacities, geometry.sh, geometry.finite)
+    if not all(a.flags.c_contiguous for a in rows):
+        return subset_geometry_reference(geometry, ids)
+    means, covariances, opacities, sh, finite = (gather_rows(a, ids) for a in rows)
+    return PreparedScene(means=means, covariances=covariances, opacities=opacities, sh=sh, finite=finite)
+
+
+def subset_geometry_reference(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
+    """`subset_geometry` by numpy's fancy indexing."""
     return PreparedScene(means=geometry.means[ids], covariances=geometry.covariances[ids], opacities=geometry.opacities[ids],
                          sh=geometry.sh[ids], finite=geometry.finite[ids])
 
