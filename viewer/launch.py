@@ -38,14 +38,13 @@ class StartupError(DrsplatError):
     """A start-up failure whose message was already logged (printed once, not twice)."""
 
 
-def screenshot_file(text: str) -> Path:
-    """argparse type of --screenshot: a file (`output_file`) whose suffix names a format `image_format` writes."""
-    path = output_file(text)
+def screenshot_format(path: Path) -> str:
+    """The image format --screenshot writes (`image_format`), or a DrsplatError naming the suffix
+    no format matches (before anything is loaded or rendered)."""
     try:
-        image_format(path)
+        return image_format(path)
     except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return path
+        raise DrsplatError(str(exc)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clip-config", type=Path, metavar="JSON", help="open_clip model config, for an architecture open_clip does not ship")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and registration started from the viewer run (default auto: cuda when present)")
     p.add_argument("--engine", choices=("numba", "torch"), default=None, help="registration engine (default: torch on cuda, numba on the CPU)")
-    p.add_argument("--screenshot", type=screenshot_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit "
+    p.add_argument("--screenshot", type=output_file, metavar="OUT.png", help="render one frame offscreen (EGL, no window) to OUT.png and exit "
                    "(.jpg, .webp, .bmp and .tif write those formats)")
     p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
@@ -221,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         guard_args(args, ("screenshot",))
         if args.screenshot is not None:  # before loading, registering or rendering: an unwritable folder is the first thing to say
             check_output_writable(args.screenshot)
+            screenshot_format(args.screenshot)
         if args.screenshot is None and not display_available(os.environ.get("DRSPLAT_VIEWER_PLATFORM")):
             from viewer.app import no_display_message  # moderngl, imgui and glfw: GL only when a window or an image is made
 
