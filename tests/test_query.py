@@ -397,6 +397,53 @@ def test_query_functions_refuse_rows_with_no_direction():
     np.testing.assert_allclose(cosine(field, 1e30 * feats[0]), cosine(field, feats[0]), atol=1e-6)
 
 
+@pytest.mark.parametrize("dim", [1, 2, 7, 16, 512, 768])
+def test_unit_check_kernel_flags_the_rows_numpy_flags(dim):
+    """The exact backend's check of which rows are unit (`unit_check`, a parallel kernel) flags the
+    same rows as its numpy form: unit rows, rows off by 2e-3 either way, scales 1e-40 to 1e30, zero,
+    NaN and infinite rows, and a row of float32's largest values."""
+    from drsplat.lang.backends import unit_check, unit_check_reference
+    from drsplat.lang import unit_rows
+
+    rng = np.random.default_rng(dim)
+    base = unit_rows(rng.normal(size=(40, dim)))
+    rows = np.concatenate([base, base[:6] * np.float32(1.002), base[:6] * np.float32(0.998),
+                           base[:6] * np.array([1e-40, 1e-20, 1e-8, 1e5, 1e20, 1e30], np.float32)[:, None],
+                           np.zeros((1, dim), np.float32), np.full((1, dim), np.float32(3.4e38))]).astype(np.float32)
+    bad = rows[:3].copy()
+    bad[0, 0], bad[1, -1], bad[2, 0] = np.nan, np.inf, -np.inf
+    rows = np.concatenate([rows, bad])
+    ok, off = unit_check(rows)
+    want_ok, want_off = unit_check_reference(rows)
+    np.testing.assert_array_equal(ok, want_ok)
+    np.testing.assert_array_equal(off, want_off)
+    assert not off[:40].any() and off[40:58].all() and ok[:-5].all() and ok[-4] and not ok[-5] and not ok[-3:].any()
+
+
+def test_float16_rows_are_numpys_bits_at_every_edge():
+    """The exact backend's float32 -> float16 kernel gives numpy's bits (an exhaustive run over all
+    2³² patterns agreed once; here the edges): every exponent with the significands around a
+    rounding tie, odd and even, the subnormal and overflow boundaries (65504, 65519.99, 65520), signed
+    zeros, infinities, NaNs with payloads, and a million random patterns; unkept rows are zero."""
+    from drsplat.lang.backends import float16_rows, float16_rows_reference
+
+    rng = np.random.default_rng(16)
+    exps = np.arange(256, dtype=np.uint32) << np.uint32(23)
+    sigs = np.array([0, 1, 0x0FFF, 0x1000, 0x1001, 0x1FFF, 0x2000, 0x2FFF, 0x3000, 0x3001, 0x7FF, 0x800, 0x7FFFFF, 0x7FE000,
+                     0x7FF000, 0x400000, 0x401000, 0x403000], np.uint32)
+    edges = (exps[:, None] | sigs[None, :]).reshape(-1)
+    edges = np.concatenate([edges, edges | np.uint32(0x80000000)])
+    specials = np.array([65504.0, 65519.99, 65520.0, 6.1e-5, 5.96e-8, 2.98e-8, 2.99e-8, 1e-8, -0.0, 0.0], np.float32).view(np.uint32)
+    bits = np.concatenate([edges, specials, rng.integers(0, 2**32, 1_000_000, dtype=np.uint64).astype(np.uint32)])
+    pad = (-bits.size) % 64
+    rows = np.concatenate([bits, np.zeros(pad, np.uint32)]).view(np.float32).reshape(-1, 64)
+    keep = rng.random(rows.shape[0]) > 0.05
+    got, want = float16_rows(rows, keep), float16_rows_reference(rows, keep)
+    assert got.dtype == np.float16 and got.shape == rows.shape
+    np.testing.assert_array_equal(got.view(np.uint16), want.view(np.uint16))
+    assert not got[~keep].view(np.uint16).any()
+
+
 @pytest.mark.parametrize("codebook", ["none", "pq"])
 def test_every_backend_stores_the_same_rows_as_features(codebook):
     """Rows with weight that are zero or not finite are unassigned by every backend (a PQ code of a
