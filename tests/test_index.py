@@ -305,6 +305,20 @@ def test_codebook_decode_matches_faiss(books, data):
     np.testing.assert_allclose(book.decode(codes), book.index.sa_decode(codes), atol=1e-6)
 
 
+def test_reconstruction_norms_kernel_equals_decoding(books, data):
+    """The PQ backend's norms, summed from the codes without decoding (`reconstruction_norms`), are
+    the decoded rows' norms: random and hard codes (all 0, all 255) of every test codebook, and no
+    rows (the ivfpq case, coarse lists included: `test_official_codebook_norms_without_decoding`)."""
+    from drsplat.lang.backends import reconstruction_norms, reconstruction_norms_reference
+
+    rng = np.random.default_rng(4)
+    for book in books.values():
+        codes = rng.integers(0, 256, (300, book.m)).astype(np.uint8)
+        codes[0], codes[1] = 0, 255
+        np.testing.assert_allclose(reconstruction_norms(book, codes, None), reconstruction_norms_reference(book, codes, None), rtol=1e-6)
+        assert reconstruction_norms(book, codes[:0], None).shape == (0,)
+
+
 def test_exact_field_is_float16_cosine(data):
     x, w, _, _ = data
     field = build_field(x, w, "none", clip_model="oracle")
@@ -460,6 +474,17 @@ def test_codebook_dimension_mismatch_is_an_input_error(data, tmp_path):
 @pytest.fixture(scope="module")
 def official() -> Codebook:
     return load_codebook(shared_path("drsplat", "pq_index.faiss"))
+
+
+def test_official_codebook_norms_without_decoding(official):
+    """`reconstruction_norms` on the official IndexIVFPQ (coarse list + residual codes) equals
+    decoding the rows and taking their norms."""
+    from drsplat.lang.backends import reconstruction_norms, reconstruction_norms_reference
+
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, 256, (500, official.m)).astype(np.uint8)
+    ids = rng.integers(0, official.nlist, 500).astype(np.int32)
+    np.testing.assert_allclose(reconstruction_norms(official, codes, ids), reconstruction_norms_reference(official, codes, ids), rtol=1e-6)
 
 
 def test_official_codebook_is_ivfpq_128x8(official):

@@ -158,6 +158,40 @@ def float16_rows_reference(f: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return f16
 
 
+@numba.njit(parallel=True, cache=True)
+def _reconstruction_norms_kernel(codes, list_ids, centroids, coarse, out):  # pragma: no cover - jitted
+    """out[i] = ‖r_i‖ of r_i = [coarse[list_ids[i]] +] concat_m centroids[m, codes[i, m]], each entry
+    of r_i the float32 sum `Codebook.decode` makes, the squares summed in float64; in parallel."""
+    m, dsub = centroids.shape[0], centroids.shape[2]
+    has_coarse = coarse.shape[0] > 0
+    for i in numba.prange(codes.shape[0]):
+        s = 0.0
+        for j in range(m):
+            c = codes[i, j]
+            for d in range(dsub):
+                v = centroids[j, c, d]
+                if has_coarse:
+                    v = v + coarse[list_ids[i], j * dsub + d]
+                s += np.float64(v) * np.float64(v)
+        out[i] = math.sqrt(s)
+
+
+def reconstruction_norms(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
+    """[n] float32 ‖decode(codes)‖ of codes [n, M] (and list ids [n] for ivfpq) without decoding them
+    (`_reconstruction_norms_kernel`; `reconstruction_norms_reference` decodes, within 1e-6)."""
+    out = np.empty(codes.shape[0], np.float32)
+    if out.size:
+        coarse = np.zeros((0, 0), np.float32) if codebook.coarse is None else np.ascontiguousarray(codebook.coarse, np.float32)
+        ids = np.zeros(0, np.int32) if list_ids is None else np.ascontiguousarray(list_ids, np.int32)
+        _reconstruction_norms_kernel(np.ascontiguousarray(codes, np.uint8), ids, np.ascontiguousarray(codebook.centroids, np.float32), coarse, out)
+    return out
+
+
+def reconstruction_norms_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
+    """`reconstruction_norms` by decoding (float64 norms)."""
+    return np.linalg.norm(codebook.decode(codes, list_ids).astype(np.float64), axis=1).astype(np.float32)
+
+
 @dataclass
 class ExactStorage:
     """features: [N, D] float16; norms: [N] float32 (0 = unassigned), computed from the features when
@@ -246,12 +280,19 @@ class PQStorage:
         norms = np.zeros(n, np.float32)
         for start in range(0, n, ENCODE_CHUNK):
             stop = min(n, start + ENCODE_CHUNK)
-            c, ids = codebook.encode(unit_rows(np.asarray(features[start:stop], np.float32)))
-            codes[start:stop] = c
+            x = np.asarray(features[start:stop], np.float32)
+            ok, off = unit_check(x)
+            rows = np.flatnonzero(np.asarray(assigned[start:stop], bool) & ok)  # unassigned rows keep code 0, list 0, norm 0
+            if not rows.size:
+                continue
+            x = x[rows]
+            if off[rows].any():  # as the exact backend: rows within UNIT_TOLERANCE of unit are encoded as given
+                x[off[rows]] = unit_rows(x[off[rows]])
+            c, ids = codebook.encode(x)
+            codes[start + rows] = c
             if list_ids is not None:
-                list_ids[start:stop] = ids
-            norms[start:stop] = np.linalg.norm(codebook.decode(c, ids), axis=1)
-        norms[~assigned] = 0
+                list_ids[start + rows] = ids
+            norms[start + rows] = reconstruction_norms(codebook, c, ids)
         return cls(codes, list_ids, norms, codebook)
 
     def norm_mismatches(self, rtol: float = NORM_RTOL) -> np.ndarray:
