@@ -176,10 +176,11 @@ def _reconstruction_norms_kernel(codes, list_ids, centroids, coarse, out):  # pr
         out[i] = math.sqrt(s)
 
 
-def reconstruction_norms(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
-    """[n] float32 ‖decode(codes)‖ of codes [n, M] (and list ids [n] for ivfpq) without decoding them
-    (`_reconstruction_norms_kernel`; `reconstruction_norms_reference` decodes, within 1e-6)."""
-    out = np.empty(codes.shape[0], np.float32)
+def reconstruction_norms(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None, dtype=np.float32) -> np.ndarray:
+    """[n] ‖decode(codes)‖ of codes [n, M] (and list ids [n] for ivfpq) without decoding them
+    (`_reconstruction_norms_kernel`; `reconstruction_norms_reference` decodes, within 1e-6), as
+    `dtype` (float32 to store; float64 to check stored norms, `norm_mismatches`)."""
+    out = np.empty(codes.shape[0], dtype)
     if out.size:
         coarse = np.zeros((0, 0), np.float32) if codebook.coarse is None else np.ascontiguousarray(codebook.coarse, np.float32)
         ids = np.zeros(0, np.int32) if list_ids is None else np.ascontiguousarray(list_ids, np.int32)
@@ -300,7 +301,7 @@ class PQStorage:
 
         The stored norm is |r_i| of the reconstruction r_i = decode(codes_i) (`encode`), so it is a
         checksum of the codes that costs no extra bytes. pq: |r_i|² = Σ_m |c_{m, code_im}|² (sub-
-        vectors are concatenated), M table look-ups per row; ivfpq: the rows are decoded in chunks
+        vectors are concatenated), M table look-ups per row; ivfpq: `reconstruction_norms` from the codes
         (the coarse centroid adds cross terms). A flipped code byte is caught unless the two
         centroids of that sub-quantiser have norms within `rtol` (rare: measured in the tests).
         Unassigned rows (norm 0) are not checked; a negative norm, which no encoder writes, counts as altered.
@@ -311,9 +312,7 @@ class PQStorage:
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
             recomputed = np.sqrt(code_table_sums(self.codes, table))
         else:
-            for start in range(0, n, ENCODE_CHUNK):
-                stop = min(n, start + ENCODE_CHUNK)
-                recomputed[start:stop] = np.linalg.norm(self.codebook.decode(self.codes[start:stop], self.list_ids[start:stop]).astype(np.float64), axis=1)
+            recomputed = reconstruction_norms(self.codebook, self.codes, self.list_ids, np.float64)
         stored = self.norms.astype(np.float64)
         with np.errstate(invalid="ignore"):
             return (stored != 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))
