@@ -98,3 +98,23 @@ def finite_rows_kernel(a, out):  # pragma: no cover - jitted
         for j in range(a.shape[1]):
             ok = ok and math.isfinite(a[i, j])
         out[i] = ok
+
+
+@numba.njit(parallel=True, cache=True)
+def _transpose_kernel(src, out):  # pragma: no cover - jitted
+    """out [B, A] = src [A, B] transposed (src of any strides: a run of a PLY record's fields), in
+    parallel over blocks of 64 rows of src, whose B entries stay in cache while out's rows are written."""
+    rows, cols = src.shape
+    for b in numba.prange((rows + 63) // 64):
+        for j in range(cols):
+            for i in range(b * 64, min(rows, b * 64 + 64)):
+                out[j, i] = src[i, j]
+
+
+def transpose_copy(src: np.ndarray) -> np.ndarray:
+    """A C-contiguous copy of src.T for src [A, B] of any strides (`_transpose_kernel`; numpy's
+    `np.ascontiguousarray(src.T)` is the reference: the same array)."""
+    out = np.empty((src.shape[1], src.shape[0]), src.dtype)
+    if out.size:
+        _transpose_kernel(src, out)
+    return out

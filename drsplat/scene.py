@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat._scene_kernels import packed_frames_kernel, scaled_frames_kernel, unit_quats64_kernel
+from drsplat._scene_kernels import packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError
 from drsplat.utils import hidden_character, write_bytes_atomic
 
@@ -598,8 +598,39 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     if degree > 0:
         sh[:, 1:, :] = coeffs[:, 3:].reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
     cols["sh"] = sh
-    cols["extra"] = {name: np.ascontiguousarray(vertex[name]) for name in names if name not in CORE_PROPERTIES and not name.startswith("f_rest_")}
+    cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and not name.startswith("f_rest_")])
     return cols
+
+
+EXTRA_RUN = 8  # at least this many fields of one type side by side in a record are copied as one block
+
+
+def extra_columns(vertex: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
+    """{name: [N] contiguous copy} of the structured array's fields `names`, in that order.
+
+    A run of EXTRA_RUN or more native-order fields of one type that lie side by side in the
+    record (a language field's lang_0 .. lang_511, or its codes) is viewed as one strided [N, L]
+    array and copied transposed in one pass (`transpose_copy`): each field copied alone reads every
+    record once per field (0.89 s for flowers' 512 float16 columns, 0.32 s as one block). The
+    run's columns are then the rows of one [L, N] array, which `lang.backends.stack_columns`
+    transposes back without stacking them again.
+    """
+    fields = vertex.dtype.fields or {}
+    out: dict[str, np.ndarray] = {}
+    i = 0
+    while i < len(names):
+        dtype, offset = fields[names[i]][:2]
+        j = i + 1
+        while j < len(names) and fields[names[j]][0] == dtype and fields[names[j]][1] == offset + (j - i) * dtype.itemsize:
+            j += 1
+        if j - i >= EXTRA_RUN and dtype.isnative and len(vertex):
+            run = np.lib.stride_tricks.as_strided(vertex[names[i]], shape=(len(vertex), j - i), strides=(vertex.strides[0], dtype.itemsize))
+            block = transpose_copy(run)
+            out.update({names[k]: block[k - i] for k in range(i, j)})
+        else:
+            out.update({names[k]: np.ascontiguousarray(vertex[names[k]]) for k in range(i, j)})
+        i = j
+    return out
 
 
 def _column_reader(vertex: np.ndarray):

@@ -305,6 +305,24 @@ def test_codebook_decode_matches_faiss(books, data):
     np.testing.assert_allclose(book.decode(codes), book.index.sa_decode(codes), atol=1e-6)
 
 
+@pytest.mark.parametrize("n,width", [(0, 3), (1, 1), (63, 5), (64, 128), (1000, 130), (4097, 7)])
+def test_stack_columns_equals_the_column_by_column_copy(n, width):
+    """A field's PLY columns stacked into [N, width] (`stack_columns`, stacked then transposed by a
+    blocked kernel) are the column-by-column copy, for row counts around its 64-row blocks, uint8
+    codes from wider integer columns and float16 bits."""
+    from drsplat.lang.backends import stack_columns, stack_columns_reference
+
+    rng = np.random.default_rng(n + width)
+    for dtype, source in ((np.uint8, np.int32), (np.uint16, np.uint16)):
+        cols = [rng.integers(0, 256 if dtype == np.uint8 else 65536, n).astype(source) for _ in range(width)]
+        block = np.empty((width + 2, n), source)  # the loader's layout: the columns as rows of one array
+        block[1:-1] = cols
+        for given in (cols, list(block[1:-1]), list(block[1:-1])[::-1]):
+            got = stack_columns(given, dtype, n, width)
+            assert got.dtype == dtype and got.shape == (n, width)
+            np.testing.assert_array_equal(got, stack_columns_reference(given, dtype, n, width))
+
+
 def test_reconstruction_norms_kernel_equals_decoding(books, data):
     """The PQ backend's norms, summed from the codes without decoding (`reconstruction_norms`), are
     the decoded rows' norms: random and hard codes (all 0, all 255) of every test codebook, and no

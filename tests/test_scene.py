@@ -403,3 +403,25 @@ def test_vertices_from_column_views_equal_those_from_separate_columns(case):
     assert got.tobytes() == want.tobytes()
     for name in order[:2]:
         np.testing.assert_array_equal(got[f"lang_{name}"], bits[:, name])
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_extra_columns_copy_runs_of_fields_as_blocks(order):
+    """A PLY record's extra fields become [N] columns equal to numpy's field copies, whether they
+    lie in runs side by side (copied as one block: 10 uint16, 9 float32), alone, in a run broken by
+    another type, or in big-endian order (copied one by one)."""
+    from drsplat.scene import extra_columns
+
+    names = [f"lang_{j}" for j in range(10)] + ["w"] + [f"c_{j}" for j in range(9)] + ["a", "b", "u8"]
+    types = ["u2"] * 10 + ["f4"] + ["f4"] * 9 + ["i4", "f4", "u1"]
+    dtype = np.dtype([(name, order + t if t != "u1" else t) for name, t in zip(names, types)])
+    rng = np.random.default_rng(1)
+    vertex = np.zeros(1001, dtype)
+    for name in names:
+        vertex[name] = rng.integers(0, 200, len(vertex))
+    for n in (1001, 1, 0):
+        got = extra_columns(vertex[:n], names)
+        assert list(got) == names
+        for name in names:
+            assert got[name].flags.c_contiguous and got[name].dtype == dtype[name]
+            np.testing.assert_array_equal(got[name], vertex[:n][name])

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from drsplat._scene_kernels import transpose_copy
 from drsplat.errors import InputError
 from drsplat.lang.codebook import Codebook, has_direction, unit_rows
 from drsplat.lang.lut import (
@@ -382,7 +383,37 @@ def needs_codebook(kind: str) -> bool:
 
 
 def stack_columns(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
-    """Per-property columns [N] -> one [N, width] array of `dtype`."""
+    """Per-property columns [N] -> one [N, width] array of `dtype`, transposed in one pass
+    (`transpose_copy`) from the rows of one [width, N] array: the block the PLY loader made when
+    the columns lie side by side in the file (`scene.extra_columns`), else the columns stacked.
+    Writing each column into the [N, width] array straight took 1.35 s for the 512 float16 columns
+    of flowers' exact field. `stack_columns_reference` is that column-by-column form."""
+    if n == 0 or width == 0:
+        return np.empty((n, width), dtype)
+    rows = _rows_of_one_block(cols, n)
+    if rows is None:
+        rows = np.stack([np.asarray(col) for col in cols])
+    return transpose_copy(rows.astype(dtype, copy=False))
+
+
+def _rows_of_one_block(cols: list[np.ndarray], n: int) -> np.ndarray | None:
+    """The [len(cols), N] slice of one C-contiguous 2-D array whose consecutive rows the columns
+    [N] are (in order), or None."""
+    base = cols[0].base
+    if not (isinstance(base, np.ndarray) and base.ndim == 2 and base.flags.c_contiguous and base.shape[1] == n):
+        return None
+    origin, step = base.__array_interface__["data"][0], base.strides[0]
+    first, rest = divmod(cols[0].__array_interface__["data"][0] - origin, step)
+    if rest or first < 0 or first + len(cols) > base.shape[0]:
+        return None
+    for j, col in enumerate(cols):
+        if col.base is not base or col.shape != (n,) or col.__array_interface__["data"][0] != origin + (first + j) * step:
+            return None
+    return base[first:first + len(cols)]
+
+
+def stack_columns_reference(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
+    """`stack_columns` one column at a time."""
     out = np.empty((n, width), dtype)
     for j, col in enumerate(cols):
         out[:, j] = col.astype(dtype, copy=False)
