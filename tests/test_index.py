@@ -323,6 +323,34 @@ def test_stack_columns_equals_the_column_by_column_copy(n, width):
             np.testing.assert_array_equal(got, stack_columns_reference(given, dtype, n, width))
 
 
+@pytest.mark.parametrize("dim", [1, 2, 7, 8, 9, 16, 17, 127, 128, 129, 130, 256, 257, 300, 512, 513, 768, 1024, 1100])
+def test_float16_row_norms_are_numpys_bits(dim):
+    """An exact field's norms (`chunked_row_norms`: float16 rows, numpy's pairwise order) are
+    np.linalg.norm's float32 bits, for lengths around its 8-wide accumulators and 128-long blocks,
+    rows of 1e-3 to 100, zero rows, the largest and smallest halves, infinities and NaN."""
+    from drsplat.lang.backends import chunked_row_norms, chunked_row_norms_reference
+
+    rng = np.random.default_rng(dim)
+    x = (rng.normal(size=(700, dim)) * rng.choice([1e-3, 1.0, 100.0], size=(700, 1))).astype(np.float16)
+    x[0] = 0
+    x[1, 0] = np.float16(6e-8)
+    x[2] = np.float16(65504)
+    x[3, -1], x[4, 0] = np.inf, np.nan
+    got, want = chunked_row_norms(x), chunked_row_norms_reference(x)
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
+def test_half_to_float_bits_for_every_half():
+    """The kernel's float16 -> float32 conversion equals numpy's cast for all 65,536 halves (a row of
+    each, whose norm is then the value's magnitude)."""
+    from drsplat.lang.backends import chunked_row_norms, chunked_row_norms_reference
+
+    halves = np.arange(65536, dtype=np.uint16).view(np.float16).reshape(-1, 1)
+    with np.errstate(invalid="ignore"):  # numpy squares the NaNs
+        want = chunked_row_norms_reference(halves)
+    np.testing.assert_array_equal(chunked_row_norms(halves).view(np.uint32), want.view(np.uint32))
+
+
 def test_reconstruction_norms_kernel_equals_decoding(books, data):
     """The PQ backend's norms, summed from the codes without decoding (`reconstruction_norms`), are
     the decoded rows' norms: random and hard codes (all 0, all 255) of every test codebook, and no

@@ -53,11 +53,129 @@ ColumnGetter = Callable[[str], np.ndarray]  # PLY property name -> [N] array (ra
 
 
 def chunked_row_norms(x: np.ndarray, chunk: int = EXACT_CHUNK) -> np.ndarray:
-    """|x_i| of [N, D] rows in float32, chunk by chunk (no [N, D] float32 copy of a float16 array): [N]."""
+    """|x_i| of [N, D] rows in float32: [N]. Float16 rows by `_half_norms_kernel` (numpy's bits, 6x
+    faster: flowers' 493k x 512 field 0.48 -> 0.08 s, the norms every load of an exact field makes),
+    others by `chunked_row_norms_reference`."""
+    if x.dtype != np.float16 or x.ndim != 2 or x.shape[0] == 0 or x.shape[1] == 0:
+        return chunked_row_norms_reference(x, chunk)
+    leaves, order = pairwise_plan(x.shape[1])
+    norms = np.empty(x.shape[0], np.float32)
+    _half_norms_kernel(np.ascontiguousarray(x).view(np.uint16), leaves, order, norms)
+    return norms
+
+
+def chunked_row_norms_reference(x: np.ndarray, chunk: int = EXACT_CHUNK) -> np.ndarray:
+    """`chunked_row_norms` by numpy, chunk by chunk (no [N, D] float32 copy of a float16 array)."""
     norms = np.empty(x.shape[0], np.float32)
     for start in range(0, x.shape[0], chunk):
         norms[start : start + chunk] = np.linalg.norm(np.asarray(x[start : start + chunk], np.float32), axis=1)
     return norms
+
+
+PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: runs at most this long are summed with 8 accumulators
+
+
+def pairwise_plan(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The order in which numpy's pairwise summation adds n contiguous float32 values (what
+    `np.add.reduce` and so `np.linalg.norm` do along a contiguous axis): the leaf runs [(start,
+    length)] it sums directly (`_leaf_sum`), and a postfix program over them (leaf index, or -1:
+    add the top two partial sums), from its recursion n -> (n2, n - n2), n2 = n/2 rounded down to a
+    multiple of 8. tests/test_index.py checks the bits against numpy for many lengths."""
+    leaves: list[tuple[int, int]] = []
+    program: list[int] = []
+    stack = [(0, n, False)]
+    while stack:  # the recursion's post-order, without recursion
+        start, length, expanded = stack.pop()
+        if length <= PAIRWISE_BLOCK:
+            program.append(len(leaves))
+            leaves.append((start, length))
+        elif expanded:
+            program.append(-1)
+        else:
+            half = length // 2
+            half -= half % 8
+            stack += [(start, length, True), (start + half, length - half, False), (start, half, False)]
+    return np.array(leaves, np.int64).reshape(-1, 2), np.array(program, np.int64)
+
+
+@numba.njit(inline="always")
+def _leaf_sum(a, start, n):  # pragma: no cover - jitted
+    """numpy's sum of the float32 run a[start:start+n], n ≤ PAIRWISE_BLOCK: below 8 one by one;
+    else 8 accumulators over the multiple-of-8 part, combined ((0+1)+(2+3))+((4+5)+(6+7)), then the rest."""
+    if n < 8:
+        total = np.float32(0.0)
+        for i in range(n):
+            total += a[start + i]
+        return total
+    r0, r1, r2, r3 = a[start], a[start + 1], a[start + 2], a[start + 3]
+    r4, r5, r6, r7 = a[start + 4], a[start + 5], a[start + 6], a[start + 7]
+    i = 8
+    while i < n - n % 8:
+        r0 += a[start + i]
+        r1 += a[start + i + 1]
+        r2 += a[start + i + 2]
+        r3 += a[start + i + 3]
+        r4 += a[start + i + 4]
+        r5 += a[start + i + 5]
+        r6 += a[start + i + 6]
+        r7 += a[start + i + 7]
+        i += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        total += a[start + i]
+        i += 1
+    return total
+
+
+@numba.njit(inline="always")
+def _float_bits_of_half(h):  # pragma: no cover - jitted
+    """The float32 bits of the float16 whose bits are h: exact (every half is a float32), subnormals
+    normalised, inf and NaN kept (the same as numpy's cast for all 65,536 halves: tested)."""
+    h = np.uint32(h)
+    sign = (h & np.uint32(0x8000)) << np.uint32(16)
+    exp = h & np.uint32(0x7C00)
+    sig = h & np.uint32(0x03FF)
+    if exp == np.uint32(0x7C00):
+        return sign | np.uint32(0x7F800000) | (sig << np.uint32(13))
+    if exp != 0:
+        return sign | (((exp >> np.uint32(10)) + np.uint32(112)) << np.uint32(23)) | (sig << np.uint32(13))
+    if sig == 0:
+        return sign
+    e = np.uint32(113)
+    while (sig & np.uint32(0x0400)) == 0:
+        sig <<= np.uint32(1)
+        e -= np.uint32(1)
+    return sign | (e << np.uint32(23)) | ((sig & np.uint32(0x03FF)) << np.uint32(13))
+
+
+@numba.njit(parallel=True, cache=True)
+def _half_norms_kernel(bits, leaves, program, out):  # pragma: no cover - jitted
+    """out[i] = ‖row i‖ of float16 rows (bits [N, D] uint16) as np.linalg.norm computes it in float32:
+    the squares in float32, summed in numpy's pairwise order (`pairwise_plan`), then the sqrt; in
+    parallel over runs of 256 rows."""
+    n, d = bits.shape
+    for run in numba.prange((n + 255) // 256):
+        words = np.empty(d, np.uint32)
+        values = words.view(np.float32)
+        squares = np.empty(d, np.float32)
+        sums = np.empty(leaves.shape[0], np.float32)
+        stack = np.empty(program.shape[0] + 1, np.float32)
+        for i in range(run * 256, min(n, run * 256 + 256)):
+            for j in range(d):
+                words[j] = _float_bits_of_half(bits[i, j])
+            for j in range(d):
+                squares[j] = values[j] * values[j]
+            for leaf in range(leaves.shape[0]):
+                sums[leaf] = _leaf_sum(squares, leaves[leaf, 0], leaves[leaf, 1])
+            top = 0
+            for step in program:
+                if step >= 0:
+                    stack[top] = sums[step]
+                    top += 1
+                else:
+                    stack[top - 2] = stack[top - 2] + stack[top - 1]
+                    top -= 1
+            out[i] = np.sqrt(stack[0])
 
 
 @numba.njit(parallel=True, cache=True)
