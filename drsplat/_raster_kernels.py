@@ -72,21 +72,6 @@ def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_t
     return offsets, ids
 
 
-@njit(parallel=True, cache=True)
-def rects_in_depth_order(order: np.ndarray, tile_rects: np.ndarray) -> np.ndarray:
-    """[M, 4] int32: row i = tile_rects[order[i]], gathered in parallel. `bin_gaussians` then reads
-    the rectangles in sequence: reading them through `order` (a random gather, twice) made binning
-    a flowers view ~2.7x slower, and numpy's fancy indexing of the [N, 4] array costs ~50x this."""
-    out = np.empty((order.shape[0], 4), np.int32)
-    for i in prange(order.shape[0]):
-        g = order[i]
-        out[i, 0] = tile_rects[g, 0]
-        out[i, 1] = tile_rects[g, 1]
-        out[i, 2] = tile_rects[g, 2]
-        out[i, 3] = tile_rects[g, 3]
-    return out
-
-
 @njit(cache=True, inline="always")
 def band_row_span(ty, tx0, tx1, t_lo, t_hi, n_tiles_x):
     """[tx0, tx1) of tile row ty cut to the band of row-major tiles t_lo <= t < t_hi (the band's first

@@ -118,3 +118,24 @@ def transpose_copy(src: np.ndarray) -> np.ndarray:
     if out.size:
         _transpose_kernel(src, out)
     return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _gather_rows_kernel(src, ids, out):  # pragma: no cover - jitted
+    """out[i] = src[ids[i]] for [N, C] src, in parallel over the rows."""
+    for i in numba.prange(ids.shape[0]):
+        g = ids[i]
+        for c in range(src.shape[1]):
+            out[i, c] = src[g, c]
+
+
+def gather_rows(a: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """a[ids] for a C-contiguous [N, ...] array (no float16: numba has no such type) and [V] ids in
+    range, in parallel (`_gather_rows_kernel`). numpy's fancy indexing of short rows took ~50 ns a
+    row here: a culled flowers view's 35 % subset 9.4 ms against 1.6, a view's [N, 4] tile
+    rectangles in depth order ~12 ms against 0.24."""
+    flat = a.reshape(a.shape[0], int(np.prod(a.shape[1:], dtype=np.int64)))  # -1 fails on 0 rows
+    out = np.empty((ids.shape[0], flat.shape[1]), a.dtype)
+    if out.size:
+        _gather_rows_kernel(flat, np.ascontiguousarray(ids, np.int64), out)
+    return out.reshape((ids.shape[0],) + a.shape[1:])

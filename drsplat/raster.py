@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 from drsplat import _raster_kernels as kernels
-from drsplat._scene_kernels import finite_rows_kernel
+from drsplat._scene_kernels import finite_rows_kernel, gather_rows
 from drsplat.cameras import Camera
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
@@ -607,7 +607,7 @@ def bin_tiles(projected: Projected, exact: bool = False, tiles: tuple[int, int] 
     order = depth_order(projected) if order is None else order
     n_chunks = BIN_CHUNKS_PER_THREAD * numba.get_num_threads()
     if not exact:
-        rects = kernels.rects_in_depth_order(order, projected.tile_rects) if rects_in_order is None else rects_in_order
+        rects = gather_rows(projected.tile_rects, order) if rects_in_order is None else rects_in_order
         return kernels.bin_gaussians(order, rects, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi, True)
     return kernels.bin_gaussians_exact(order, projected.tile_rects, projected.means2d, projected.conics, projected.extents, projected.qlimits,
                                        projected.tile_size, projected.height, n_tiles_x, n_tiles, n_chunks, t_lo, t_hi)
@@ -664,11 +664,11 @@ def _composite_in_bands(projected: Projected, max_tile_entries: int | None, exac
 
 def _band_inputs(projected: Projected, bands: list[tuple[int, int]], exact: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """The view's depth order and, for getRect tiles, its rectangles gathered in that order, made
-    once for all its bands (each band then reads them in sequence: `kernels.rects_in_depth_order`)."""
+    once for all its bands (each band then reads them in sequence; `gather_rows`, in parallel)."""
     order = depth_order(projected)
     if exact:
         return order, None
-    return order, kernels.rects_in_depth_order(order, projected.tile_rects)
+    return order, gather_rows(projected.tile_rects, order)
 
 
 def _band_schedule(offsets: np.ndarray, tiles: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:

@@ -341,14 +341,21 @@ def test_float16_row_norms_are_numpys_bits(dim):
 
 
 def test_half_to_float_bits_for_every_half():
-    """The kernel's float16 -> float32 conversion equals numpy's cast for all 65,536 halves (a row of
-    each, whose norm is then the value's magnitude)."""
-    from drsplat.lang.backends import chunked_row_norms, chunked_row_norms_reference
+    """The norms kernel's float16 -> float32 conversion gives numpy's cast bits for all 65,536 halves
+    (signs, subnormals, infinities and NaN payloads included)."""
+    import numba
 
-    halves = np.arange(65536, dtype=np.uint16).view(np.float16).reshape(-1, 1)
-    with np.errstate(invalid="ignore"):  # numpy squares the NaNs
-        want = chunked_row_norms_reference(halves)
-    np.testing.assert_array_equal(chunked_row_norms(halves).view(np.uint32), want.view(np.uint32))
+    from drsplat.lang.backends import _float_bits_of_half
+
+    @numba.njit
+    def convert(bits, out):
+        for i in range(bits.shape[0]):
+            out[i] = _float_bits_of_half(bits[i])
+
+    halves = np.arange(65536, dtype=np.uint16)
+    got = np.empty(65536, np.uint32)
+    convert(halves, got)
+    np.testing.assert_array_equal(got, halves.view(np.float16).astype(np.float32).view(np.uint32))
 
 
 def test_reconstruction_norms_kernel_equals_decoding(books, data):

@@ -402,7 +402,7 @@ def test_unit_check_kernel_flags_the_rows_numpy_flags(dim):
     """The exact backend's check of which rows are unit (`unit_check`, a parallel kernel) flags the
     same rows as its numpy form: unit rows, rows off by 2e-3 either way, scales 1e-40 to 1e30, zero,
     NaN and infinite rows, and a row of float32's largest values."""
-    from drsplat.lang.backends import unit_check, unit_check_reference
+    from drsplat.lang.codebook import unit_check, unit_check_reference
     from drsplat.lang import unit_rows
 
     rng = np.random.default_rng(dim)

@@ -33,7 +33,7 @@ import numpy as np
 
 from drsplat._scene_kernels import transpose_copy
 from drsplat.errors import InputError
-from drsplat.lang.codebook import Codebook, has_direction, unit_rows
+from drsplat.lang.codebook import Codebook, unit_check, unit_rows
 from drsplat.lang.lut import (
     BLOCKED_MIN_M,
     blocked_codes,
@@ -47,7 +47,6 @@ from drsplat.lang.lut import (
 
 EXACT_CHUNK = 32768
 ENCODE_CHUNK = 65536
-UNIT_TOLERANCE = 1e-3  # |norm - 1| beyond which an exact row is normalised before its float16 cast
 
 ColumnGetter = Callable[[str], np.ndarray]  # PLY property name -> [N] array (raises InputError when missing)
 
@@ -176,46 +175,6 @@ def _half_norms_kernel(bits, leaves, program, out):  # pragma: no cover - jitted
                     stack[top - 2] = stack[top - 2] + stack[top - 1]
                     top -= 1
             out[i] = np.sqrt(stack[0])
-
-
-@numba.njit(parallel=True, cache=True)
-def _unit_check_kernel(f, tol, ok, off):  # pragma: no cover - jitted
-    """Per row of f [N, D] float32, in parallel, one pass: ok = finite and not all zero
-    (`has_direction`); off = ok and |‖f‖ - 1| > tol. The squares are summed in float64, whose range
-    holds the square of every finite float32 (3.4e38² and 1e-45²): no scaling needed against
-    overflow or underflow."""
-    for i in numba.prange(f.shape[0]):
-        finite = True
-        nonzero = False
-        s = 0.0
-        for j in range(f.shape[1]):
-            v = np.float64(f[i, j])
-            finite = finite and math.isfinite(v)
-            nonzero = nonzero or v != 0.0
-            s += v * v
-        ok[i] = finite and nonzero
-        off[i] = ok[i] and abs(math.sqrt(s) - 1.0) > tol
-
-
-def unit_check(f: np.ndarray, tol: float = UNIT_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
-    """([N] ok, [N] off) of rows f [N, D] float32: rows with a direction (`has_direction`), and those
-    of them whose norm is not within tol of 1 (`_unit_check_kernel`; `unit_check_reference` is the
-    numpy form: the same flags but for norms within float32 rounding of 1 ± tol)."""
-    f = np.ascontiguousarray(f, np.float32)
-    ok, off = np.empty(f.shape[0], bool), np.empty(f.shape[0], bool)
-    if f.shape[0]:
-        _unit_check_kernel(f, float(tol), ok, off)
-    return ok, off
-
-
-def unit_check_reference(f: np.ndarray, tol: float = UNIT_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
-    """`unit_check` in numpy (float32 norms of the rows scaled by their peak)."""
-    f = np.asarray(f, np.float32)
-    ok = has_direction(f)
-    with np.errstate(invalid="ignore", over="ignore"):
-        peak = np.abs(f).max(axis=1) if f.shape[1] else np.zeros(f.shape[0], np.float32)
-        norm = peak * np.linalg.norm(f / np.where(ok, peak, 1)[:, None], axis=1)  # no underflow for rows of 1e-40
-    return ok, ok & (np.abs(norm - 1.0) > tol)
 
 
 @numba.njit(inline="always")
@@ -406,7 +365,7 @@ class PQStorage:
             if not rows.size:
                 continue
             x = x[rows]
-            if off[rows].any():  # as the exact backend: rows within UNIT_TOLERANCE of unit are encoded as given
+            if off[rows].any():  # as the exact backend: rows within codebook.UNIT_TOLERANCE of unit are encoded as given
                 x[off[rows]] = unit_rows(x[off[rows]])
             c, ids = codebook.encode(x)
             codes[start + rows] = c

@@ -7,6 +7,9 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import math
+
+import numba
 import numpy as np
 
 from drsplat.errors import InputError
@@ -341,6 +344,49 @@ def has_direction(x: np.ndarray) -> np.ndarray:
     x = np.atleast_2d(np.asarray(x))
     with np.errstate(invalid="ignore"):
         return np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
+
+
+UNIT_TOLERANCE = 1e-3  # |norm - 1| beyond which a stored row is normalised first (`unit_check`)
+
+
+@numba.njit(parallel=True, cache=True)
+def _unit_check_kernel(f, tol, ok, off):  # pragma: no cover - jitted
+    """Per row of f [N, D] float32, in parallel, one pass: ok = finite and not all zero
+    (`has_direction`); off = ok and |‖f‖ - 1| > tol. The squares are summed in float64, whose range
+    holds the square of every finite float32 (3.4e38² and 1e-45²): no scaling needed against
+    overflow or underflow."""
+    for i in numba.prange(f.shape[0]):
+        finite = True
+        nonzero = False
+        s = 0.0
+        for j in range(f.shape[1]):
+            v = np.float64(f[i, j])
+            finite = finite and math.isfinite(v)
+            nonzero = nonzero or v != 0.0
+            s += v * v
+        ok[i] = finite and nonzero
+        off[i] = ok[i] and abs(math.sqrt(s) - 1.0) > tol
+
+
+def unit_check(f: np.ndarray, tol: float = UNIT_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """([N] ok, [N] off) of rows f [N, D] float32: rows with a direction (`has_direction`), and those
+    of them whose norm is not within tol of 1 (`_unit_check_kernel`; `unit_check_reference` is the
+    numpy form: the same flags but for norms within float32 rounding of 1 ± tol)."""
+    f = np.ascontiguousarray(f, np.float32)
+    ok, off = np.empty(f.shape[0], bool), np.empty(f.shape[0], bool)
+    if f.shape[0]:
+        _unit_check_kernel(f, float(tol), ok, off)
+    return ok, off
+
+
+def unit_check_reference(f: np.ndarray, tol: float = UNIT_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """`unit_check` in numpy (float32 norms of the rows scaled by their peak)."""
+    f = np.asarray(f, np.float32)
+    ok = has_direction(f)
+    with np.errstate(invalid="ignore", over="ignore"):
+        peak = np.abs(f).max(axis=1) if f.shape[1] else np.zeros(f.shape[0], np.float32)
+        norm = peak * np.linalg.norm(f / np.where(ok, peak, 1)[:, None], axis=1)  # no underflow for rows of 1e-40
+    return ok, ok & (np.abs(norm - 1.0) > tol)
 
 
 def unit_rows(x: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import PQ_KSUB, Codebook, has_direction, load_codebook, train_codebook, unit_rows
+from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, unit_check, unit_rows
 from drsplat.lang.backends import BACKENDS, ExactStorage, Storage
 from drsplat.lang.lut import has_feature
 
@@ -162,7 +162,7 @@ def build_field(
     n, dim = features.shape
     exact = isinstance(codebook, str) and codebook == "none"
     assigned = weights > 0
-    lost = assigned & ~has_direction(np.asarray(features, np.float32))
+    lost = assigned & ~unit_check(features)[0]  # rows without a direction (`has_direction`), in one parallel pass
     if lost.any():  # every backend leaves them unassigned (a PQ code of a zero row decodes to some vector)
         log.warning("%d of %d Gaussians with weight have a feature that is zero or not finite: left unassigned", int(lost.sum()), n)
         assigned &= ~lost

@@ -43,7 +43,7 @@ SUBSET_NS = 25.0
 REMAP_NS = 0.2
 
 
-def renders_whole(visible: int, num_gaussians: int, slots: int = 0) -> bool:
+def renders_whole(visible: int, num_gaussians: int, slots: int) -> bool:
     """Whether a view with `visible` of `num_gaussians` Gaussians in view (the culling index's test)
     renders them all instead of the culled subset: when gathering and projecting the visible ones
     and remapping the render's `slots` (H·W·k) ids would cost at least projecting every Gaussian,

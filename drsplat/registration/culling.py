@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from drsplat._scene_kernels import gather_rows
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene
 from drsplat.scene import morton_interleave
@@ -228,25 +229,6 @@ def largest_eigenvalues(covariances: np.ndarray, ids: np.ndarray, chunk: int = 1
 def largest_eigenvalues_reference(covariances: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """[len(ids)] float64 λ_max of covariances[ids] by LAPACK (numpy.linalg.eigvalsh), unpadded."""
     return np.linalg.eigvalsh(covariances[ids])[:, -1]
-
-
-@numba.njit(parallel=True, cache=True)
-def _gather_rows_kernel(src, ids, out):  # pragma: no cover - jitted
-    """out[i] = src[ids[i]] for [N, C] src, in parallel over the rows."""
-    for i in numba.prange(ids.shape[0]):
-        g = ids[i]
-        for c in range(src.shape[1]):
-            out[i, c] = src[g, c]
-
-
-def gather_rows(a: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """a[ids] for a C-contiguous [N, ...] array and [V] ids in range, by `_gather_rows_kernel`
-    (numpy's fancy indexing of rows took ~50 ns a row here: flowers' 35 % subset 9.4 ms against 1.6)."""
-    flat = a.reshape(a.shape[0], -1)
-    out = np.empty((ids.shape[0], flat.shape[1]), a.dtype)
-    if out.size:
-        _gather_rows_kernel(flat, np.ascontiguousarray(ids, np.int64), out)
-    return out.reshape((ids.shape[0],) + a.shape[1:])
 
 
 def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
