@@ -40,7 +40,8 @@ class Camera:
     fx, fy, cx, cy: intrinsics in pixels of a (width x height) image.
     image_path: the training image, if any. name: the image file stem (pairs with feature files).
     distortion: [4] OpenCV (k1, k2, p1, p2) of the image *file*, or None. The intrinsics always
-    describe the undistorted pinhole image that `load_image` returns.
+    describe the undistorted pinhole image that `load_image` returns. unscaled_size: (width, height)
+    the camera file gave, when this camera is that one `scaled` (e.g. by --resolution), else None.
     """
 
     R: np.ndarray
@@ -54,6 +55,7 @@ class Camera:
     image_path: Path | None = None
     name: str = ""
     distortion: np.ndarray | None = None
+    unscaled_size: tuple[int, int] | None = None
 
     @property
     def K(self) -> np.ndarray:
@@ -106,7 +108,15 @@ class Camera:
         width = max(1, int(round(self.width * factor)))
         height = max(1, int(round(self.height * factor)))
         sx, sy = width / self.width, height / self.height
-        return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height)
+        return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height,
+                                   unscaled_size=self.unscaled_size or (self.width, self.height))
+
+    def size_text(self) -> str:
+        """'WxH' as the camera file gives it, with this camera's own size after it when scaled."""
+        own = f"{self.width}x{self.height}"
+        if self.unscaled_size is None or tuple(self.unscaled_size) == (self.width, self.height):
+            return own
+        return f"{self.unscaled_size[0]}x{self.unscaled_size[1]} ({own} at the resolution chosen)"
 
 
 # COLMAP camera models: id -> (name, number of parameters)
@@ -1123,7 +1133,7 @@ def check_image_framing(path: Path, im, camera: Camera) -> None:
     if im.getexif().get(EXIF_ORIENTATION) in EXIF_ROTATED:
         hint = ("; its EXIF orientation says to rotate it, which 3DGS, COLMAP and drsplat do not do: store the pixels "
                 "upright (e.g. `mogrify -auto-orient`) and rebuild the cameras from those images")
-    raise InputError(path, f"is {w}x{h} but camera {camera.name!r} is {camera.width}x{camera.height}: the aspect ratios "
+    raise InputError(path, f"is {w}x{h} but camera {camera.name!r} is {camera.size_text()}: the aspect ratios "
                            f"{w / h:.4g} and {camera.width / camera.height:.4g} differ, so the image would be stretched "
                            f"(a rotated, transposed or cropped image?){hint}", field="size")
 

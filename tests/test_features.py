@@ -260,7 +260,7 @@ def test_load_image_scales_16_bit_and_float_grey_and_refuses_other_ranges(tmp_pa
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):
     from PIL import Image
 
-    from drsplat.cameras import load_image
+    from drsplat.cameras import load_image, scale_cameras
     from drsplat.errors import InputError
 
     upright = Image.fromarray(np.zeros((64, 48, 3), np.uint8))  # 48 x 64 for a 64 x 48 camera
@@ -272,6 +272,9 @@ def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(t
     cam = load_cameras(_one_camera_dataset(tmp_path / "e", upright, exif=exif))[0]
     with pytest.raises(InputError, match="EXIF orientation says to rotate it"):
         load_image(cam)
+    # at --resolution 4 the refusal still quotes the size the camera file gives, then the scaled one
+    with pytest.raises(InputError, match=r"camera 'view' is 64x48 \(16x12 at the resolution chosen\): the aspect ratios 0\.75 and 1\.333"):
+        load_image(scale_cameras([cam], 4)[0])
     same_aspect = Image.fromarray(np.full((96, 128, 3), 7, np.uint8))  # twice the camera's size: resized, as before
     cam = load_cameras(_one_camera_dataset(tmp_path / "s", same_aspect))[0]
     assert load_image(cam).shape == (48, 64, 3) and load_image(cam).max() == 7

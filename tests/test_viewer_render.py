@@ -108,6 +108,33 @@ def test_a_scene_in_map_coordinates_renders_as_the_cpu_rasterizer_does(state, gl
     assert image.std() > 0.05
 
 
+@pytest.mark.parametrize("log_scale", [16.0, 20.0, 30.0])
+def test_a_huge_splat_fills_the_view_evenly_as_the_cpu_rasterizer_draws_it(gl_context, log_scale):
+    """A splat of log-scale 16 or more (radii of millions of pixels) drew straight-edged blocks: its
+    σ-coordinates were interpolated across a triangle millions of times the screen; from ~19 on it
+    vanished (its squared screen covariance passed float32's range: length() gave inf). The
+    projection now works in units of the largest entry, and such a splat is drawn on a triangle
+    covering the viewport (a viewer probe, round 20)."""
+    from drsplat.cameras import Camera
+    from drsplat.raster import rasterize
+    from drsplat.scene import GaussianScene
+    from viewer.camera import look_at
+    from viewer.renderer import SplatRenderer, render_offscreen
+
+    R, t = look_at(np.array([0.3, -4.0, 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    camera = Camera(R=R, t=t, fx=120, fy=110, cx=80, cy=48, width=160, height=96)
+    quats = np.array([[1, 0, 0, 0], [0.9, 0.3, 0.2, 0.1]], np.float32)
+    scene = GaussianScene(means=np.array([[0.4, 0.2, -0.3], [0.0, 3.0, 0.0]], np.float32), quats=quats / np.linalg.norm(quats, axis=1, keepdims=True),
+                          log_scales=np.array([[np.log(0.3)] * 3, [log_scale, log_scale - 1.0, log_scale - 3.0]], np.float32),
+                          opacity_logits=np.array([3.0, -1.0], np.float32), sh=np.array([[[1.5, 0.2, 0.2]], [[0.1, 0.1, 1.2]]], np.float32))
+    renderer = SplatRenderer(gl_context, scene)
+    image = render_offscreen(gl_context, renderer, camera).astype(np.float32) / 255
+    reference = rasterize(scene, camera, topk=1, with_rgb=True).rgb
+    diff = np.abs(image - reference)
+    assert diff.mean() < 0.01 and np.percentile(diff, 99) < 0.05, (diff.mean(), np.percentile(diff, 99))
+    assert reference[0, 0, 2] > 0.1 and abs(image[0, 0, 2] - reference[0, 0, 2]) < 0.02  # the huge splat's blue reaches the corners
+
+
 def test_one_gaussian_lands_where_the_camera_projects_it(gl_context):
     """Pixel convention: a small Gaussian's blob is centred on Camera.project (pixel centres at +0.5)."""
     from drsplat.scene import GaussianScene

@@ -74,11 +74,15 @@ void main() {
     mat3 T = J * rotation;
     mat3 cov2 = thin_cov * (T * cov3 * transpose(T));
     float a = cov2[0][0] + 0.3, b = cov2[0][1], c = cov2[1][1] + 0.3;
-    float mid = 0.5 * (a + c);
-    float radius = length(vec2(0.5 * (a - c), b));
-    float l1 = mid + radius, l2 = mid - radius;
-    if (l2 <= 0.0) return;
-    vec2 dir = abs(b) > 1e-12 ? normalize(vec2(b, l1 - a)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
+    // the eigen-decomposition in units of the largest entry: squared, the entries of a splat of
+    // log-scale ~19 (1e20 px²) pass float32's range, and length() and normalize() gave inf and 0
+    float s = max(max(abs(a), abs(c)), abs(b));
+    float an = a / s, bn = b / s, cn = c / s;
+    float mid = 0.5 * (an + cn);
+    float radius = length(vec2(0.5 * (an - cn), bn));
+    float l1 = s * (mid + radius), l2 = s * (mid - radius);
+    if (!(l2 > 0.0) || isinf(l1)) return;
+    vec2 dir = abs(bn) > 1e-12 ? normalize(vec2(bn, mid + radius - an)) : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
     vec2 uv = focal * p.xy * iz + principal;
     // alpha = o exp(-d²/2) >= 1/255 only within d <= sqrt(2 ln(255 o)) standard deviations
     float reach = min(3.0, sqrt(2.0 * log(max(255.0 * g0.w, 1.0))));
