@@ -60,9 +60,11 @@ def _record(views: list[ViewPairs], n: int) -> tuple[PairRecord, MaskClusters]:
 
 
 def _judge(views: list[ViewPairs], n: int, block: int | None = None) -> tuple[MaskVerdicts, PairRecord]:
-    """The verdicts on `views` (8 slots per Gaussian), judged in blocks of `block` Gaussians (None: one)."""
+    """The verdicts on `views` (8 slots per Gaussian), judged in blocks of `block` Gaussians (None: one).
+    These views hold a few pairs of weight ~1 per mask, so masses of every size are judged here
+    (min_mass 0); the size rule has tests of its own."""
     record, clusters = _record(views, n)
-    return judge_masks(record, clusters, n, block or n, slots=8), record
+    return judge_masks(record, clusters, n, block or n, slots=8, min_mass=0.0), record
 
 
 def _random_views(rng, n: int, labels: np.ndarray, num_views: int, hard: bool) -> list[ViewPairs]:
@@ -209,13 +211,26 @@ def test_the_second_rule_drops_large_masks_only():
     < 0.05) only for masks of at least 1 % of their view's mass, whose core share is a statistic
     over many Gaussians: a small mask of a thin object whose other views mostly see the wall
     behind it is kept."""
-    mass = np.array([1000.0, 5.0, 1000.0, 5.0, 1000.0, 0.0])
+    mass = np.array([1000.0, 20.0, 1000.0, 20.0, 1000.0, 0.0])
     own = np.array([0.5, 0.5, 0.5, 0.3, 0.5, 0.0])
     alt = np.array([4.0, 4.0, 4.0, 4.0, 0.5, 4.0])
     core = np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
     drop, large_only = mask_drops(mass, own, alt, core)
     np.testing.assert_array_equal(drop, [True, False, False, True, False, False])
     np.testing.assert_array_equal(large_only, [True, False, False, False, False, False])  # mask 3 is the first rule's
+
+
+def test_a_mask_of_a_few_pixels_is_not_judged():
+    """A mask holding under CHECK_MIN_MASS pixels of weight keeps its pairs whatever the other views
+    say: an object that small in one view is a speck or absent in the others, where its Gaussians
+    lie inside their surroundings' masks (the tests' hard-tiny room, seed 2: two correct 5 and 6 px
+    "ball" masks were dropped, 0.848 against `paper`'s 0.892). At the limit it is judged again."""
+    from drsplat.registration.check import CHECK_MIN_MASS
+
+    mass = np.array([5.0, 6.0, CHECK_MIN_MASS - 0.01, CHECK_MIN_MASS, 1000.0])
+    own, alt, core = np.zeros(5), np.full(5, 1.7), np.zeros(5)
+    drop, _ = mask_drops(mass, own, alt, core)
+    np.testing.assert_array_equal(drop, [False, False, False, True, True])
 
 
 def test_support_tables_hold_only_the_pairs_that_occur():
@@ -618,7 +633,7 @@ def test_one_clear_view_is_enough_to_drop_a_mask_no_other_view_shares():
 
 def _judge_with(views: list[ViewPairs], n: int, min_views: float) -> tuple[MaskVerdicts, PairRecord]:
     record, clusters = _record(views, n)
-    return judge_masks(record, clusters, n, n, slots=8, min_views=min_views), record
+    return judge_masks(record, clusters, n, n, slots=8, min_views=min_views, min_mass=0.0), record
 
 
 def test_a_label_split_by_noise_is_still_one_label():
@@ -633,7 +648,7 @@ def test_a_label_split_by_noise_is_still_one_label():
     views.append(_view("wrong", np.stack([b, c]), np.arange(6), [0] * 5 + [1], np.ones(6)))
     record, clusters = _record(views, 6)
     assert clusters.count >= 6  # A split into several clusters
-    result = judge_masks(record, clusters, 6, 6, slots=8)
+    result = judge_masks(record, clusters, 6, 6, slots=8, min_mass=0.0)
     assert not result.keep[4][0] and result.dropped == 1
 
 
@@ -918,3 +933,20 @@ def test_the_memory_plan_counts_the_checks_bounded_support_scratch():
     run = SupportScratch(16_000).masks_per_run(4_000)
     assert run == SUPPORT_SCRATCH_BYTES // (SUPPORT_ENTRY_BYTES * 16_000) == 246
     assert run * 16_000 * SUPPORT_ENTRY_BYTES <= SUPPORT_SCRATCH_BYTES
+
+
+def test_the_default_does_not_lose_to_paper_where_a_small_object_is_masked_in_one_view_only(tmp_path):
+    """hard-tiny seed 2, clean render masks: a ball masked in one view (5 and 6 px masks: too small
+    to be masked in the others, where its Gaussians lie inside floor masks). The check dropped both
+    correct masks (own 0, alt 1.69 views), and the default labelled the room 0.848 against `paper`'s
+    0.892 (measured). Masks under CHECK_MIN_MASS pixels of weight are not judged: 0.892."""
+    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
+
+    root = write_dataset(tmp_path / "tiny2", "hard-tiny", 2, show_progress=False)
+    scene, cams = load_ply(root / "scene.ply"), load_cameras(root)
+    ds = Dataset(root, scene, cams, np.load(root / "gt" / "labels.npy").astype(np.int64),
+                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
+    seg = AGGREGATE_COLUMNS.index("seg mIoU vol") - 3
+    paper, default = (aggregate_metrics(ds, register_features(scene, cams, root / "features", RegisterOptions(aggregate=mode), show_progress=False))[seg]
+                      for mode in ("paper", "fit-check-vote-reject"))
+    assert default >= paper - 0.005, (default, paper)

@@ -32,14 +32,19 @@ Gaussians and drops whole masks:
    c* the unlike cluster with the largest q: alt is the support of the best other label, its
    clusters that split by noise summed back together. Mask j is dropped when
 
-       alt_j ≥ CHECK_MIN_VIEWS   and   own_j < CHECK_SUPPORT · alt_j
+       mass_j ≥ CHECK_MIN_MASS,   alt_j ≥ CHECK_MIN_VIEWS   and   own_j < CHECK_SUPPORT · alt_j
 
    i.e. at least one view's worth of other evidence agrees on another label and the mask's own
    label has almost none there (two views' worth until 2026-11-27: one gave the same verdicts on
    every clean room and more dropped mislabels, docs/registration.md "Design choices, measured").
+   A mask of fewer than CHECK_MIN_MASS pixels of weight is not judged (since 2026-11-30): an object
+   that small in one view is a speck or absent in the others, where its Gaussians lie inside the
+   masks around them, so what the other views say against it is spill. Of the masks the check
+   dropped over 126 rooms of the aggregate grid, 276 of the 307 correct ones held under 16 pixels of
+   weight, and 146 of the 1,650 mislabelled ones (docs/evaluation.md, "Masks too small to judge").
    A large mask is also dropped when
 
-       alt_j ≥ CHECK_MIN_VIEWS,   mass_j ≥ CHECK_LARGE_MASK · Σ_k mass_k (its view's masks),
+       judged,   mass_j ≥ CHECK_LARGE_MASK · Σ_k mass_k (its view's masks),
        own_j < CHECK_WEAK_SUPPORT · alt_j   and   core_j < CHECK_CORE,
 
        core_j = Σ_{c like j} r_jc / Σ_c r_jc,   r_jc = Σ_{i ∈ j: c_i* = c} w_ij
@@ -112,6 +117,10 @@ from drsplat.utils import CancelToken, progress
 log = logging.getLogger(__name__)
 
 CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views hold at least this many views' votes for one label
+# ... and only when it holds at least this many pixels of weight (mass): an object that small in one view
+# is a speck or absent in the others, where its Gaussians lie inside their surroundings' masks, so the
+# other views' "evidence" against its mask is spill (module docstring, step 2)
+CHECK_MIN_MASS = 16.0
 SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
 SUPPORT_ENTRY_BYTES = 17  # a (mask, cluster) of the dense scratch: q and the core table int64, a flag
 LIKE_CHUNK = 1 << 22  # cosines between two masks of a view that `like_threshold` holds at a time (32 MB)
@@ -882,7 +891,7 @@ def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: f
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
                 min_views: float = CHECK_MIN_VIEWS, min_share: float = CHECK_SUPPORT, cancel: CancelToken | None = None,
                 show_progress: bool = False, supports: Supports | None = None, cap: int | None = None,
-                beside: str | Path | None = None) -> MaskVerdicts:
+                beside: str | Path | None = None, min_mass: float = CHECK_MIN_MASS) -> MaskVerdicts:
     """Steps 1 and 2 (module docstring): the verdict on every mask of `source`'s views, from their
     support (`view_supports`, its tables under `cap` bytes, spilled beside `beside` beyond) in blocks of
     `block` Gaussians, or from `supports` when they were summed elsewhere (reducers' parts,
@@ -891,7 +900,7 @@ def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, 
     if supports is None:
         supports = view_supports(source, clusters, num_gaussians, block, slots, cancel, show_progress, cap, beside)
     try:
-        return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes, cancel)
+        return _verdicts(supports, means, min_views, min_share, supports.tables.spilled_bytes, cancel, min_mass)
     finally:
         supports.close()
 
@@ -933,13 +942,19 @@ def _log_supports(masks: int, num_clusters: int, entries: int, spilled: int) -> 
              format_size(ENTRY.itemsize * entries), spill, format_size(8 * num_clusters * masks))
 
 
+def judged_masks(mass: np.ndarray, alt: np.ndarray, min_views: float = CHECK_MIN_VIEWS, min_mass: float = CHECK_MIN_MASS) -> np.ndarray:
+    """[M] bool: the masks of one view the check judges: some weight and at least min_mass pixels of
+    it (mass [M]), and at least min_views of other views' votes for one other label (alt [M])."""
+    return (mass > 0) & (mass >= min_mass) & (alt >= min_views)
+
+
 def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndarray, min_views: float = CHECK_MIN_VIEWS,
-               min_share: float = CHECK_SUPPORT) -> tuple[np.ndarray, np.ndarray]:
+               min_share: float = CHECK_SUPPORT, min_mass: float = CHECK_MIN_MASS) -> tuple[np.ndarray, np.ndarray]:
     """([M] bool the masks of one view the check drops, [M] bool those only the second rule drops)
-    (module docstring, step 2): judged (alt ≥ min_views) and own < min_share · alt, or large (mass ≥
+    (module docstring, step 2): judged (`judged_masks`) and own < min_share · alt, or large (mass ≥
     CHECK_LARGE_MASK of the view's mass over its masks), own < CHECK_WEAK_SUPPORT · alt and core <
     CHECK_CORE. mass, own, alt, core: [M]."""
-    judge = (mass > 0) & (alt >= min_views)
+    judge = judged_masks(mass, alt, min_views, min_mass)
     first = judge & (own < min_share * alt)
     large = mass >= CHECK_LARGE_MASK * mass.sum()
     second = judge & ~first & large & (own < CHECK_WEAK_SUPPORT * alt) & (core < CHECK_CORE)
@@ -947,7 +962,7 @@ def mask_drops(mass: np.ndarray, own: np.ndarray, alt: np.ndarray, core: np.ndar
 
 
 def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share: float, spilled: int = 0,
-              cancel: CancelToken | None = None) -> MaskVerdicts:
+              cancel: CancelToken | None = None, min_mass: float = CHECK_MIN_MASS) -> MaskVerdicts:
     """Step 2's decision from every view's support: the like cosine, then own / alt per mask. Two
     passes over the views, one view's table at a time (Supports merges it when read; a table past
     its `read_bytes` a run of masks at a time, each mask's numbers the same; `cancel` checked before
@@ -977,8 +992,8 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
                     cancel.raise_if_cancelled()
                 hi = lo + sup.mass_fixed.shape[0]
                 _own_alt_kernel(*sup.rows(), sup.mass, sup.units, means, like, own[lo:hi], alt[lo:hi], core[lo:hi])
-        drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share)
-        judge = (mass > 0) & (alt >= min_views)
+        drop, large_only = mask_drops(mass, own, alt, core, min_views, min_share, min_mass)
+        judge = judged_masks(mass, alt, min_views, min_mass)
         keep.append(~drop)
         dropped += int(drop.sum())
         dropped_large += int(large_only.sum())
@@ -1129,9 +1144,9 @@ class CheckSink:
             self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
                                         supports=supports, beside=self.spill_beside)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
-            log.info("mask check: %d of %d masks dropped (%d had enough other views to judge, %d dropped as large masks whose label "
+            log.info("mask check: %d of %d masks dropped (%d judged: of %g pixels of weight or more, with enough other views; %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",
-                     self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, self.verdicts.dropped_large, like)
+                     self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, CHECK_MIN_MASS, self.verdicts.dropped_large, like)
             self._kept = KeptPairs(self._source, self.verdicts.keep, [ids >= 0 for ids in self.clusters.per_view])
         return self._kept
 
