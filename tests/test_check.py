@@ -680,22 +680,28 @@ def test_check_beats_the_vote_on_mislabelled_masks(mislabelled_room):
     assert checked[col["floaters kept"]] < 0.1 and checked[col["labelled coverage"]] >= 0.99
 
 
+def _paper_and_default_seg(root) -> tuple[float, float]:
+    """Labelled seg mIoU vol of the synthetic room at `root` registered with `paper` and with the default."""
+    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
+
+    scene, cams = load_ply(root / "scene.ply"), load_cameras(root)
+    ds = Dataset(root, scene, cams, np.load(root / "gt" / "labels.npy").astype(np.int64),
+                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
+    seg = AGGREGATE_COLUMNS.index("seg mIoU vol") - 3
+    return tuple(aggregate_metrics(ds, register_features(scene, cams, root / "features", RegisterOptions(aggregate=mode), show_progress=False))[seg]
+                 for mode in ("paper", "fit-check-vote-reject"))
+
+
 def test_the_default_does_not_lose_to_paper_on_an_over_segmented_room(tmp_path):
     """hard-tiny seed 0 with 30 % of the instance masks cut in two parts, each embedded as a part
     (drsplat.synthetic.split_instances). Measured: labelled seg mIoU vol `paper` 0.879, the default
     0.838 while the vote compared clusters one at a time at θ = 0.9, 0.879 with groups of like
     clusters at the check's like cosine (drsplat.registration.vote, step 3)."""
-    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
     from drsplat.registration.vote import CLUSTER_COSINE, trim_cosine
 
     assert trim_cosine(None) == CLUSTER_COSINE and trim_cosine(0.75) == 0.75 and trim_cosine(0.95) == CLUSTER_COSINE
     root = write_dataset(tmp_path / "split", "hard-tiny", 0, split_fraction=0.3, show_progress=False)
-    scene, cams = load_ply(root / "scene.ply"), load_cameras(root)
-    ds = Dataset(root, scene, cams, np.load(root / "gt" / "labels.npy").astype(np.int64),
-                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
-    seg = AGGREGATE_COLUMNS.index("seg mIoU vol") - 3
-    paper, default = (aggregate_metrics(ds, register_features(scene, cams, root / "features", RegisterOptions(aggregate=mode), show_progress=False))[seg]
-                      for mode in ("paper", "fit-check-vote-reject"))
+    paper, default = _paper_and_default_seg(root)
     assert default >= paper - 0.005, (default, paper)
 
 
@@ -940,13 +946,6 @@ def test_the_default_does_not_lose_to_paper_where_a_small_object_is_masked_in_on
     to be masked in the others, where its Gaussians lie inside floor masks). The check dropped both
     correct masks (own 0, alt 1.69 views), and the default labelled the room 0.848 against `paper`'s
     0.892 (measured). Masks under CHECK_MIN_MASS pixels of weight are not judged: 0.892."""
-    from drsplat.eval.ablations import AGGREGATE_COLUMNS, Dataset, aggregate_metrics
-
     root = write_dataset(tmp_path / "tiny2", "hard-tiny", 2, show_progress=False)
-    scene, cams = load_ply(root / "scene.ply"), load_cameras(root)
-    ds = Dataset(root, scene, cams, np.load(root / "gt" / "labels.npy").astype(np.int64),
-                 json.loads((root / "gt" / "label_names.json").read_text()), np.load(root / "text_embeddings.npy"))
-    seg = AGGREGATE_COLUMNS.index("seg mIoU vol") - 3
-    paper, default = (aggregate_metrics(ds, register_features(scene, cams, root / "features", RegisterOptions(aggregate=mode), show_progress=False))[seg]
-                      for mode in ("paper", "fit-check-vote-reject"))
+    paper, default = _paper_and_default_seg(root)
     assert default >= paper - 0.005, (default, paper)
