@@ -755,8 +755,8 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
     """A GaussianScene from decoded columns, with the non-finite policy of the module docstring applied
     and reported: cols holds means [N, 3], quats [N, 4] (w, x, y, z), log_scales [N, 3],
     opacity_logits [N], sh [N, K, 3] and extra {name: [N]}; order: the file's property names.
-    purpose: with 0 rows, an InputError "nothing to <purpose>" instead of the finding's warning
-    (a caller that refuses an empty scene would otherwise say it twice)."""
+    purpose: with 0 rows, or every row dropped as non-finite, an InputError "nothing to <purpose>"
+    instead of the finding's warning (a caller that refuses an empty scene would otherwise say it twice)."""
     means, quats, log_scales, logits, sh = cols["means"], cols["quats"], cols["log_scales"], cols["opacity_logits"], cols["sh"]
     extra = cols["extra"]
     n = means.shape[0]
@@ -774,6 +774,8 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
             inf_non_opacity[suspect] |= np.isinf(a[suspect]).any(axis=1)
     drop_inf = inf_non_opacity & ~has_nan
     keep = ~(has_nan | drop_inf)
+    if purpose and not keep.any():
+        raise InputError(path, f"has no usable Gaussians: all {n:,} rows hold NaN or infinite values and were dropped: there is nothing to {purpose}")
     report = LoadReport(path=path, layout=layout, rows_in_file=n, sh_degree=int(round(np.sqrt(sh.shape[1]))) - 1,
                         has_normals="nx" in order, property_order=order,
                         dropped_nan_rows=int(has_nan.sum()), dropped_inf_rows=int(drop_inf.sum()))

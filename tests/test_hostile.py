@@ -551,8 +551,9 @@ def test_viewer_home_view_of_means_near_float32_max_has_no_numpy_warning():
     np.testing.assert_allclose(view.up, [0.0, 0.0, 1.0])  # flat along z: z up
 
 
-def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, capsys):
-    """Was: a PLY whose 5 rows all hold NaN means said "holds no Gaussians (0 rows)"."""
+def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, world, capsys):
+    """Was: a PLY whose 5 rows all hold NaN means said "holds no Gaussians (0 rows)"; `query` and
+    `register` printed the load's warning of 5 dropped rows, then their refusal. One line each now."""
     from drsplat.scene import GaussianScene, save_ply
     from viewer.launch import main as viewer_main
 
@@ -564,6 +565,13 @@ def test_viewer_scene_whose_every_row_is_dropped_says_so(tmp_path, capsys):
     err = capsys.readouterr().err
     (line,) = error_lines(err)
     assert "nan.ply" in line and "all 5 rows hold NaN or infinite values" in line and "Traceback" not in err, err
+    assert "WARNING" not in err, err
+    np.save(tmp_path / "q.npy", np.ones(4, np.float32))
+    code, err = run_cli(["query", ply, "--embedding", tmp_path / "q.npy"], capsys)
+    assert code == 1 and "all 5 rows hold NaN or infinite values" in err and "nothing to query" in err and "WARNING" not in err, err
+    ds = world["ds"]
+    code, err = run_cli(["register", ply, "--source", ds, "--features", ds / "features", "--no-progress", "--out", tmp_path / "out.ply"], capsys)
+    assert code == 1 and "all 5 rows hold NaN or infinite values" in err and "nothing to register" in err and "WARNING" not in err, err
 
 
 def test_an_empty_scene_is_refused_in_one_line_by_the_viewer_and_query(tmp_path, capsys):

@@ -321,6 +321,10 @@ def test_stack_columns_equals_the_column_by_column_copy(n, width):
             got = stack_columns(given, dtype, n, width)
             assert got.dtype == dtype and got.shape == (n, width)
             np.testing.assert_array_equal(got, stack_columns_reference(given, dtype, n, width))
+    m = max(n, 2)
+    square = np.arange(m * m, dtype=np.int32).reshape(m, m).copy()  # its first column starts where row 0 does
+    for given in ([square[:, 0]], [square[:, 0], square[:, 1]], [square[0].view(np.uint32)]):
+        np.testing.assert_array_equal(stack_columns(given, np.int64, m, len(given)), stack_columns_reference(given, np.int64, m, len(given)))
 
 
 @pytest.mark.parametrize("dim", [1, 2, 7, 8, 9, 16, 17, 127, 128, 129, 130, 256, 257, 300, 512, 513, 768, 1024, 1100])
@@ -625,3 +629,25 @@ def test_a_codebook_replaced_after_registration_is_refused_and_one_replaced_duri
     codebook_path_for(ply).write_bytes(source.read_bytes())  # replaced after it
     with pytest.raises(InputError, match=r"a\.codebook\.faiss: is not the codebook a\.ply was registered with \(its CRC-32 is [0-9a-f]{8}"):
         read_field(load_ply(ply), ply)
+
+
+def test_backends_store_the_same_rows_with_the_callers_unit_check(books, data):
+    """`build_field` hands its `unit_check` to the backend (one pass over the features, not two): the
+    stored rows are those the backend makes checking the features itself, rows off unit length,
+    zero and non-finite rows included."""
+    from drsplat.lang.backends import ExactStorage, PQStorage
+    from drsplat.lang.codebook import unit_check
+
+    x = data[0][:300].copy()
+    x[5:10] *= 3.0  # off unit length: normalised first
+    x[10] = np.nan
+    assigned = np.ones(len(x), bool)
+    assigned[:5] = False
+    ok, _ = unit_check(x)
+    assigned &= ok  # what build_field hands on
+    mine, given = ExactStorage.encode(x, assigned), ExactStorage.encode(x, assigned, checked=unit_check(x))
+    np.testing.assert_array_equal(mine.features.view(np.uint16), given.features.view(np.uint16))
+    mine, given = PQStorage.encode(x, assigned, books[16]), PQStorage.encode(x, assigned, books[16], checked=unit_check(x))
+    np.testing.assert_array_equal(mine.codes, given.codes)
+    np.testing.assert_array_equal(mine.norms, given.norms)
+    assert (mine.norms[5:10] > 0).all() and mine.norms[10] == 0

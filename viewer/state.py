@@ -125,10 +125,7 @@ class ViewerState:
         try:
             path = Path(path)
             with LibraryWarnings(self.messages):  # what the load warns of is shown, not only logged
-                scene, report = load_scene_report(path, purpose="show; open another PLY")
-                if scene.num_gaussians == 0:
-                    raise InputError(path, f"has no usable Gaussians: all {report.rows_in_file:,} rows hold NaN or infinite values and "
-                                           "were dropped: there is nothing to show; open another PLY")
+                scene, _ = load_scene_report(path, purpose="show; open another PLY")  # refuses a file with no usable row
                 lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")

@@ -191,9 +191,7 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
     kind = scene_format(Path(path)) if Path(path).is_file() else "ply"
     if kind != "ply":
         raise InputError(path, f"is a .{kind} scene, not a registered one: {REGISTERED_IS_PLY}; run drsplat register on it first")
-    scene, report = load_ply_report(path, purpose="query or segment")
-    if scene.num_gaussians == 0:  # every row dropped as non-finite
-        raise InputError(path, "holds no usable Gaussians: every row has non-finite values: there is nothing to query or segment")
+    scene, report = load_ply_report(path, purpose="query or segment")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:
         raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so scores could not follow the file order")

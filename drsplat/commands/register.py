@@ -61,7 +61,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
-    from drsplat.errors import InputError, UsageError
+    from drsplat.errors import UsageError
     from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene, written_format
@@ -84,9 +84,7 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    scene = load_scene(args.scene, purpose="register")
-    if scene.num_gaussians == 0:  # every row dropped as non-finite (the load said how many)
-        raise InputError(args.scene, "holds no Gaussians: there is nothing to register")
+    scene = load_scene(args.scene, purpose="register")  # refuses a file with no usable row
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

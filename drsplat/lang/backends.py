@@ -288,12 +288,14 @@ class ExactStorage:
         return self.known_norms
 
     @classmethod
-    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None) -> "ExactStorage":
+    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None,
+               checked: tuple[np.ndarray, np.ndarray] | None = None) -> "ExactStorage":
         """Float16 rows (0 where not assigned); a row whose norm is not ~1 is normalised first (unit
         rows, as registration writes, are stored as given), so no direction underflows to zero or
-        overflows in float16 (a row of 1e-8 did, while a PQ field kept it)."""
+        overflows in float16 (a row of 1e-8 did, while a PQ field kept it). checked: `unit_check`
+        of the features when the caller made it (`build_field`), else made here."""
         f = np.asarray(features, np.float32)
-        _, off = unit_check(f)
+        _, off = unit_check(f) if checked is None else checked
         if off.any():
             f = f.copy()
             f[off] = unit_rows(f[off])
@@ -349,8 +351,10 @@ class PQStorage:
         return self.codebook.kind
 
     @classmethod
-    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None) -> "PQStorage":
-        """Encode [N, D] features in chunks; norms are the reconstruction norms |r_i| (0 where not assigned)."""
+    def encode(cls, features: np.ndarray, assigned: np.ndarray, codebook: Codebook | None = None,
+               checked: tuple[np.ndarray, np.ndarray] | None = None) -> "PQStorage":
+        """Encode [N, D] features in chunks; norms are the reconstruction norms |r_i| (0 where not
+        assigned). checked: `unit_check` of the features when the caller made it, else made per chunk."""
         if codebook is None:
             raise ValueError("a PQ field needs a codebook")
         n = features.shape[0]
@@ -360,7 +364,7 @@ class PQStorage:
         for start in range(0, n, ENCODE_CHUNK):
             stop = min(n, start + ENCODE_CHUNK)
             x = np.asarray(features[start:stop], np.float32)
-            ok, off = unit_check(x)
+            ok, off = unit_check(x) if checked is None else (checked[0][start:stop], checked[1][start:stop])
             rows = np.flatnonzero(np.asarray(assigned[start:stop], bool) & ok)  # unassigned rows keep code 0, list 0, norm 0
             if not rows.size:
                 continue
@@ -483,8 +487,9 @@ def _rows_of_one_block(cols: list[np.ndarray], n: int) -> np.ndarray | None:
     first, rest = divmod(cols[0].__array_interface__["data"][0] - origin, step)
     if rest or first < 0 or first + len(cols) > base.shape[0]:
         return None
-    for j, col in enumerate(cols):
-        if col.base is not base or col.shape != (n,) or col.__array_interface__["data"][0] != origin + (first + j) * step:
+    for j, col in enumerate(cols):  # each a whole row of base, of its dtype, in order (not a column that starts where a row does)
+        if (col.base is not base or col.shape != (n,) or col.dtype != base.dtype or col.strides != base.strides[1:]
+                or col.__array_interface__["data"][0] != origin + (first + j) * step):
             return None
     return base[first:first + len(cols)]
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
-
-import math
 
 import numba
 import numpy as np
@@ -337,6 +336,7 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     finally:
         faiss.omp_set_num_threads(previous)
     return codebook_from_index(index)
+
 
 def has_direction(x: np.ndarray) -> np.ndarray:
     """[K] bool: the rows of x [K, D] (or one [D] row) that are finite and not all zero, the rows

@@ -162,13 +162,14 @@ def build_field(
     n, dim = features.shape
     exact = isinstance(codebook, str) and codebook == "none"
     assigned = weights > 0
-    lost = assigned & ~unit_check(features)[0]  # rows without a direction (`has_direction`), in one parallel pass
+    checked = unit_check(features)  # (rows with a direction, those not of unit length): one parallel pass the backends reuse
+    lost = assigned & ~checked[0]
     if lost.any():  # every backend leaves them unassigned (a PQ code of a zero row decodes to some vector)
         log.warning("%d of %d Gaussians with weight have a feature that is zero or not finite: left unassigned", int(lost.sum()), n)
         assigned &= ~lost
         weights = np.where(lost, np.float32(0), weights)
     if exact:
-        return LanguageField(dim, clip_model, weights, ExactStorage.encode(features, assigned))
+        return LanguageField(dim, clip_model, weights, ExactStorage.encode(features, assigned, checked=checked))
     if isinstance(codebook, Codebook):
         book = codebook
     elif isinstance(codebook, str) and codebook == "scene":
@@ -177,7 +178,7 @@ def build_field(
         book = load_codebook(codebook)
     if book.dim != dim:
         raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
-    return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book))
+    return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book, checked=checked))
 
 
 def scene_sample_ids(candidates: np.ndarray, seed: int = 0) -> np.ndarray:
