@@ -833,6 +833,9 @@ def test_blocks_partial_supports_add_up_to_the_one_block_tables(seed, hard, bloc
             for part in files[::order]:
                 merged.add_file(part)
             assert len(merged) == len(whole)
+            for got, want, view in zip(merged.pair_counts, whole.pair_counts, record.views):  # step 4's pair counts: every pair with weight once
+                np.testing.assert_array_equal(got, want)
+                np.testing.assert_array_equal(want, np.bincount(view.masks[view.weights > 0], minlength=want.shape[0]))
             for a, b in zip(merged, whole):
                 np.testing.assert_array_equal(a.dense(), b.dense())
                 np.testing.assert_array_equal(a.mass_fixed, b.mass_fixed)

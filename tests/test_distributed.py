@@ -307,7 +307,7 @@ def test_ray_features_equal_local_and_skip_done_images(cluster, tiny, tmp_path):
 # plan by plan, is the local matrix's (tests/test_registration_matrix.py): a mode's weighting is the
 # same function on a Ray worker.
 NUMBA_ON_RAY_MODES = ("paper", "centre", "sharp-vote", "explain-reject", "vote-reject", "check-reject", "fit-check-vote-reject",
-                      "solve-vote-reject")
+                      "sharp-check-vote-reject", "solve-vote-reject")
 TORCH_ON_RAY_MODES = ("centre", "explain-reject", "vote-reject", "solve-vote-reject")
 
 
@@ -318,7 +318,8 @@ def _branches(mode: str) -> set[tuple[str, object]]:
     stages = mode_stages(mode)
     inputs = ("fit probe" if stages.weighting == "fit" else "masks" if stages.weighting in MASK_WEIGHTINGS
               else "projection" if stages.weighting in PROJECTED_WEIGHTINGS else "top-k lists")
-    stage_flags = {("vote", stages.vote), ("reject", stages.reject), ("check", stages.check), ("solve", stages.solve)}
+    stage_flags = {("vote", stages.vote), ("reject", stages.reject), ("check", stages.check), ("solve", stages.solve),
+                   ("vote by specificity", stages.specific)}
     return {("weights from", inputs), ("check with vote", stages.check and stages.vote)} | stage_flags
 
 

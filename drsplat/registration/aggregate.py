@@ -110,7 +110,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES, VOTE_SLOTS
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
@@ -144,6 +144,13 @@ class Stages:
     reject: bool
     solve: bool = False  # the render-consistent solve on the sums (weighting "paper" in the views)
     check: bool = False  # masks dropped by the cross-view check before the sums (drsplat.registration.check)
+
+    @property
+    def specific(self) -> bool:
+        """Whether the vote also trims by specificity (drsplat.registration.vote, step 4): on sharp
+        footprints (masks that follow true silhouettes), after the cross-view check, whose supports
+        give the masks' mean pair weights."""
+        return self.weighting == "sharp" and self.check and self.vote
 
 
 def mode_stages(mode: str) -> Stages:
@@ -1042,7 +1049,7 @@ class Aggregator:
         and the reducers' counts come in through `num_rejected`."""
         self.mode = mode
         stages = mode_stages(mode)
-        self.reject, self.vote, self.solve, self.check = stages.reject, stages.vote, stages.solve, stages.check
+        self.reject, self.vote, self.solve, self.check, self.specific = stages.reject, stages.vote, stages.solve, stages.check, stages.specific
         self.support = SurfaceSupport.zeros(scene.num_gaussians) if self.reject and not stats_on_reducers else None
         if self.reject and rays is None:
             rays = RayGeometry.from_scene(scene)
@@ -1101,7 +1108,7 @@ class Aggregator:
             kept = 32 * num_gaussians
             views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + 80) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
-            per_block += VOTE_SLOT_BYTES + 8
+            per_block += VOTE_SLOT_BYTES + 8 + (8 * VOTE_SLOTS if stages.specific else 0)  # step 4's specificities
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
             # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)

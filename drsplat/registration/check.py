@@ -111,7 +111,8 @@ from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat.registration.coalesce import rows_order
 from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
-from drsplat.registration.vote import FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, VoteSink, _row_aligned_cuts, space_saving_slot, trim_cosine
+from drsplat.registration.vote import (FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
+                                       trim_cosine)
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -147,6 +148,7 @@ class MaskVerdicts:
     present: int
     like: float | None = None  # the scene's "like" cosine (`like_threshold`), None: too little to judge
     dropped_large: int = 0  # of the dropped, those only the second rule (large masks) drops
+    pair_means: list[np.ndarray] | None = None  # per view [M] float64: each mask's mean pair weight w̄_j (0: no pair), step 4 of the vote
 
 
 def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, num_rows: int, num_clusters: int,
@@ -715,32 +717,37 @@ class PartialSupport:
 
 
 def block_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int, slots: int,
-                   scratch: SupportScratch, emit: Callable[[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], None]) -> list[np.ndarray]:
+                   scratch: SupportScratch, emit: Callable[[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], None],
+                   ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Steps 1 and 2 for Gaussians lo .. hi-1 alone: their votes folded over `views` (every view in
     order, with those Gaussians' pairs), then each view's support from those Gaussians' pairs
     (`pair_views`: a second replay of the same views), handed to emit(v, entries) a run of view v's
     masks at a time (views in order, a view's runs in increasing masks: `add_view_support`), so that
     no view's part is held whole. per_view: each view's [M] mask clusters. Returns each view's
-    masses [M] int64 from these Gaussians."""
+    masses [M] int64 and pair counts [M] int64 (the Gaussians with a pair in each mask) from these
+    Gaussians."""
     slot_c, slot_v = fold_block_votes(views, per_view, lo, hi, slots)
-    masses = []
+    masses, counts = [], []
     for v, (view, clusters) in enumerate(zip(pair_views, per_view)):
         part = PartialSupport.empty(clusters.shape[0])
         add_view_support(view, lo, clusters, slot_c, slot_v, part, scratch, emit=lambda run, v=v: emit(v, run))
         masses.append(part.mass_fixed)
-    return masses
+        counts.append(np.bincount(view.masks[view.weights > 0], minlength=clusters.shape[0])[: clusters.shape[0]].astype(np.int64))
+    return masses, counts
 
 
 @dataclass
 class SupportFile:
     """One block's part of every view's support table, written by a reducer (`write_block_supports`):
     path, offsets [V + 1] (each view's first entry in it, the spill files' format), the views'
-    masses [M] int64 from the block's Gaussians and the file's CRC-32 (checked when adopted)."""
+    masses and pair counts [M] int64 from the block's Gaussians and the file's CRC-32 (checked when
+    adopted)."""
 
     path: str
     offsets: np.ndarray
     mass_fixed: list[np.ndarray]
     crc32: int
+    pair_counts: list[np.ndarray]
 
 
 def write_block_supports(path: Path, views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], per_view: list[np.ndarray],
@@ -750,19 +757,20 @@ def write_block_supports(path: Path, views: Iterator[ViewPairs], pair_views: Ite
     file: `Supports.add_file`). A retried task rewrites the file from the start."""
     with open(path, "wb") as f:
         writer = TableWriter(f, len(per_view))
-        masses = block_supports(views, pair_views, per_view, lo, hi, slots, SupportScratch(num_clusters), writer.add)
+        masses, counts = block_supports(views, pair_views, per_view, lo, hi, slots, SupportScratch(num_clusters), writer.add)
         offsets = writer.close()
-    return SupportFile(str(path), offsets, masses, writer.crc32)
+    return SupportFile(str(path), offsets, masses, writer.crc32, counts)
 
 
 class Supports(Sequence):
     """Every view's ViewSupport (`supports[v]`, merged when read), their parts held by SupportTables
-    under a memory cap and spilled beyond it; the masses [M] int64 and unit embeddings [M, D] of
-    each view kept in memory. `close` removes the spill files."""
+    under a memory cap and spilled beyond it; the masses and pair counts [M] int64 and unit
+    embeddings [M, D] of each view kept in memory. `close` removes the spill files."""
 
     def __init__(self, tables: SupportTables, mass_fixed: list[np.ndarray], units: list[np.ndarray], num_clusters: int,
                  read_bytes: int | None = None):
         self.tables, self.mass_fixed, self.units, self.num_clusters = tables, mass_fixed, units, num_clusters
+        self.pair_counts = [np.zeros(m.shape[0], np.int64) for m in mass_fixed]
         # a view's table larger than this is judged in runs of its masks (`runs`)
         self.read_bytes = SUPPORT_READ_BYTES if read_bytes is None else read_bytes
 
@@ -776,10 +784,12 @@ class Supports(Sequence):
         return cls(tables, [v.mass_fixed for v in views], [v.units for v in views], num_clusters)
 
     def add_file(self, part: SupportFile) -> None:
-        """One block's parts written to a file by a reducer (`write_block_supports`): its masses added,
-        the file adopted by the tables (`SupportTables.adopt`: read in, or read from where it is)."""
-        for view, mass in enumerate(part.mass_fixed):
+        """One block's parts written to a file by a reducer (`write_block_supports`): its masses and
+        pair counts added, the file adopted by the tables (`SupportTables.adopt`: read in, or read
+        from where it is)."""
+        for view, (mass, count) in enumerate(zip(part.mass_fixed, part.pair_counts)):
             self.mass_fixed[view] += mass
+            self.pair_counts[view] += count
         self.tables.adopt(Path(part.path), part.offsets, part.crc32)
 
     def __len__(self) -> int:
@@ -929,10 +939,11 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
     supports = Supports.empty([view.feats for view in source.block_views(0, 0)], clusters.per_view, k, cap, beside)
     scratch = SupportScratch(k)
     for lo, hi in _blocks(num_gaussians, block, cancel, show_progress):
-        masses = block_supports(source.block_views(lo, hi), source.block_views(lo, hi), clusters.per_view, lo, hi, slots, scratch,
-                                supports.tables.add)
-        for v, mass in enumerate(masses):
+        masses, counts = block_supports(source.block_views(lo, hi), source.block_views(lo, hi), clusters.per_view, lo, hi, slots, scratch,
+                                        supports.tables.add)
+        for v, (mass, count) in enumerate(zip(masses, counts)):
             supports.mass_fixed[v] += mass
+            supports.pair_counts[v] += count
     return supports
 
 
@@ -999,7 +1010,14 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
         dropped_large += int(large_only.sum())
         judged += int(judge.sum())
         present += int((mass > 0).sum())
-    return MaskVerdicts(keep, dropped, judged, present, like, dropped_large)
+    return MaskVerdicts(keep, dropped, judged, present, like, dropped_large, pair_means(masses, supports.pair_counts))
+
+
+def pair_means(masses: list[np.ndarray], counts: list[np.ndarray]) -> list[np.ndarray]:
+    """Per view [M] float64 w̄_j = mass_j / #pairs_j, each mask's mean pair weight over its view
+    (0 where it has no pair): step 4 of the vote (drsplat.registration.vote). masses: [M] float64
+    pixels of weight, counts: [M] int64 pairs with weight, from the supports (exact integers)."""
+    return [np.where(c > 0, m / np.maximum(c, 1), 0.0) for m, c in zip(masses, counts)]
 
 
 def abstaining_pairs(gaussians: np.ndarray, weights: np.ndarray, kept: np.ndarray, lo: int, hi: int,
@@ -1081,14 +1099,16 @@ class CheckSink:
 
     def __init__(self, num_gaussians: int, dim: int, vote: bool, plog: PairLog | None = None, block: int | None = None,
                  inner: Sink | None = None, slots: int = CHECK_SLOTS, cancel: CancelToken | None = None, show_progress: bool = False,
-                 spill_beside: Path | None = None):
+                 spill_beside: Path | None = None, specific: bool = False):
         """block: Gaussians per block (None: one block). inner: in one block, the mode's own sink of
         all N Gaussians, made by the caller before the views as without the check (the kept views are
         added to it); in blocks None, the kept pairs are replayed into a VoteSink / LogSink. cancel:
         checked before each block of the judging (Cancelled); show_progress: a bar over its blocks.
         spill_beside: the output the support tables' spill folder is named after (SupportTables;
-        None: the system's temp folder)."""
+        None: the system's temp folder). specific: the vote also trims by specificity (its step 4,
+        `Stages.specific`), from the kept pairs and the masks' mean pair weights judged here."""
         self.num_gaussians, self.dim, self.vote, self.slots = num_gaussians, dim, vote, int(slots)
+        self.specific = bool(specific) and vote
         self.cancel, self.show_progress = cancel, show_progress
         self.block = num_gaussians if block is None else int(block)
         if self.block < 1 and num_gaussians:
@@ -1155,17 +1175,27 @@ class CheckSink:
         if not self._summed:
             n, kept = self.num_gaussians, self.kept_pairs()
             trim = trim_cosine(self.verdicts.like)  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
+            specific = self.specificity()
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
                 if self.vote:
-                    self._inner.trim = trim
-                self.record = self._source = self._kept = None  # the sums hold what the record did
+                    self._inner.trim, self._inner.specific = trim, specific
+                # the sums hold what the record did (step 4 of the vote replays it once more)
+                self.record = self._source = self._kept = None
             else:
-                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim), trim=trim) if self.vote
-                               else LogSink(n, self.dim, kept, self.block))
+                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim), trim=trim, specific=specific)
+                               if self.vote else LogSink(n, self.dim, kept, self.block))
             self._summed = True
         return self._inner
+
+    def specificity(self) -> Specificity | None:
+        """Step 4 of the vote (`Specificity`: the kept pairs and the masks' mean pair weights) when
+        this check's vote trims by specificity, once the masks are judged; None otherwise."""
+        if not self.specific:
+            return None
+        kept = self.kept_pairs()
+        return Specificity(kept, self.verdicts.pair_means)
 
     def blocks(self) -> Iterator[Block]:
         yield from self._judged().blocks()

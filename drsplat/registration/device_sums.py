@@ -64,7 +64,8 @@ from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block
 from drsplat.registration.sums import add_pairs_in_place
-from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, fold_view_votes, trimmed_features
+from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, sample_rows, slot_specificity,
+                                      trimmed_features)
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
@@ -1073,6 +1074,7 @@ class DeviceVoteSink:
         self.device, self.place = self._sums.device, self._sums.place
         self.presence, self.full_view = float(presence), float(full_view)
         self.trim = CLUSTER_COSINE  # θ of the trim (VoteSink.trim; a check sets it once it has judged the masks)
+        self.specific: Specificity | None = None  # the vote's step 4 (VoteSink.specific; set with trim)
         self.clusters = MaskClusters(dim)
         rows = (num_gaussians, int(slots))
         self.slot_c = torch.full(rows, -1, dtype=torch.int32, device=self.device)
@@ -1120,7 +1122,14 @@ class DeviceVoteSink:
         # a fresh host array except the whole of F on a CPU, which is then trimmed in place (as VoteSink's
         # blocks do): a copy of F there (1.1 GB on flowers) cost 2 s of page faults
         F = to_host(F)
-        return trimmed_features(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters.means(), self.trim), W.cpu().numpy().copy()
+        c = c.cpu().numpy()
+        slot_p = None
+        if self.specific is not None:  # step 4's specificities, replayed on the host as VoteSink does
+            n = self.slot_c.shape[0]
+            row, lo, hi = (None, 0, n) if index is None else sample_rows(index.cpu().numpy(), n)
+            slot_p = slot_specificity(self.specific.views(self.clusters.per_view, lo, hi, row), c)
+        return (trimmed_features(F, c, v.cpu().numpy(), s.cpu().numpy(), self.clusters.means(), self.trim, slot_p=slot_p),
+                W.cpu().numpy().copy())
 
     def blocks(self) -> Iterator[Block]:
         """The trimmed sums as one block, handed over once (on a CPU F is trimmed in place)."""

@@ -331,7 +331,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                 kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
                 if aggregator.vote:  # the clusters of the kept masks with pairs, trimmed by the check's like cosine
-                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=trim_cosine(check.verdicts.like))
+                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=trim_cosine(check.verdicts.like),
+                                                     pair_means=check.verdicts.pair_means if check.specific else None)
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
@@ -424,7 +425,7 @@ def _open_sink(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, block:
             log.info("coalescing on %s; the mask check judges on the host and sums the kept pairs on %s (torch engine, --aggregate %s)",
                      run.options.device, "the host" if inner is None or inner.place == "host" else run.options.device, run.options.aggregate)
         return CheckSink(n, dim, aggregator.vote, ckpt.log, block, inner, cancel=cancel,
-                         show_progress=show_progress, spill_beside=out), on_device
+                         show_progress=show_progress, spill_beside=out, specific=aggregator.specific), on_device
     if block < n:
         return (VoteSink(n, dim, ckpt.log, block) if aggregator.vote else LogSink(n, dim, ckpt.log, block)), on_device
     sink = one_block_sink(n, dim, aggregator.vote, run.options.device if on_device else None)

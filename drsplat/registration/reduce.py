@@ -84,7 +84,7 @@ from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import LogSink
 from drsplat.registration.sums import normalize_rows
-from drsplat.registration.vote import CLUSTER_COSINE, MaskClusters, VoteSink
+from drsplat.registration.vote import CLUSTER_COSINE, MaskClusters, Specificity, VoteSink
 from drsplat.scene import GaussianScene, ply_header
 from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, work_folder
 
@@ -108,7 +108,8 @@ class ReduceJob:
     otherwise. check_clusters / check_slots: before the verdicts, a `check-` mode's mask clusters
     (per view [M] int32, and K) and vote slots, from which each reducer sums its block's part of
     the support tables (`support_block`). trim: the vote's θ (drsplat.registration.vote.trim_cosine:
-    after a check, from its like cosine).
+    after a check, from its like cosine). pair_means: with the vote's step 4 (specificity), each
+    view's [M] mean pair weights from the driver's judging (MaskVerdicts.pair_means); None otherwise.
     """
 
     log_path: str
@@ -128,6 +129,7 @@ class ReduceJob:
     check_num_clusters: int = 0
     check_slots: int = 0
     trim: float = CLUSTER_COSINE
+    pair_means: list[np.ndarray] | None = None
 
     @property
     def num_blocks(self) -> int:
@@ -198,7 +200,8 @@ def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     summing only the pairs a `check-` mode keeps (the driver's verdicts: job.keep)."""
     source = plog if job.keep is None else KeptPairs(plog, job.keep)
     if job.clusters is not None:
-        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters, trim=job.trim)
+        specific = None if job.pair_means is None else Specificity(source, job.pair_means)
+        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters, trim=job.trim, specific=specific)
     return LogSink(job.num_gaussians, job.dim, source, job.block)
 
 

@@ -49,19 +49,40 @@ keeps the paper's sums and trims them:
    own clusters were trimmed as minorities (docs/evaluation.md, "Over-segmented masks"). When no
    two clusters of a Gaussian are alike, G = V and the rule is the one-cluster rule it was.
 
+4. with sharp footprints (`Stages.specific`: masks that follow the objects' true silhouettes, the
+   fit stage's choice) after the cross-view check, also by specificity. A thin or small object's
+   Gaussian is an ordinary member of its own small mask and a sliver of the wall its footprint
+   spills onto, while the votes of step 3 count both masks alike, and the wall's views, more of
+   them, may win. Per Gaussian and cluster, how much of a member of the cluster's masks it is:
+
+       P_ic = Σ_views Σ_{j ∈ view, cluster(j) = c} min(1, w_ij / w̄_j),   w̄_j = (Σ_i' w_i'j) / #{i' : w_i'j > 0}
+
+   (1 per view for a Gaussian holding at least the mask's mean pair weight; capped, because a wall
+   Gaussian behind a thin object holds more than the object's small Gaussians wherever a jittered
+   object mask spills onto it, and uncapped it took the object's label: −0.06 to −0.11 loc mIoU
+   vol on jittered rooms. w̄_j, mask j's mean pair weight over its whole view, comes from the
+   check's supports, so every place and plan has the same numbers; P is summed by a replay of the
+   kept pairs once the slots are final, `slot_specificity`). When some cluster left by step 3 is
+   unlike the winner, the groups' P_g (summed over like clusters as G is) name the most specific
+   one, and every cluster left that is unlike it and SPECIFIC times less specific is trimmed too.
+   On footprint masks (the paper's weights) a footprint's spill is part of every view's masks and
+   this would trim a Gaussian's own label, so it runs only where the fit stage finds the masks
+   follow the sharp footprints (docs/evaluation.md, "Specificity").
+
 Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
-scratch), K·D·12 bytes for K clusters in blocks that are never copied, a view's [M, CLUSTER_BLOCK]
-cosines at most, and 4 bytes per mask for the views' cluster ids; the memory plan counts every
-mask as its own cluster (`cluster_bytes`). Under a
-memory budget the slots are summed block by block from the pair log with the block's F
-(`VoteSink` with a log), pair by pair in the same order as in memory, so the bits do not depend
-on the plan or the place (tests/test_registration_matrix.py).
+scratch; step 4: VOTE_SLOTS·8 more while a block is trimmed), K·D·12 bytes for K clusters in
+blocks that are never copied, a view's [M, CLUSTER_BLOCK] cosines at most, and 4 bytes per mask
+for the views' cluster ids; the memory plan counts every mask as its own cluster
+(`cluster_bytes`). Under a memory budget the slots are summed block by block from the pair log
+with the block's F (`VoteSink` with a log), pair by pair in the same order as in memory, so the
+bits do not depend on the plan or the place (tests/test_registration_matrix.py).
 """
 
 from __future__ import annotations
 
 import bisect
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -80,6 +101,7 @@ PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on 
 CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most, and per block of a view's cosines with them
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
+SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
 @numba.njit(fastmath=True, cache=True)
@@ -371,13 +393,16 @@ def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray,
 
 
 def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
-                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY, slot_p: np.ndarray | None = None,
+                     specific: float = SPECIFIC) -> np.ndarray:
     """Numpy reference of `trimmed_features`: in place on the paper's sums F [B, D] float32,
     F_i -= Σ_{c trimmed} S_ic μ_c (module docstring, step 3: group votes G, the winner's group, the
-    minorities unlike it); rows with one voted cluster are left bit for bit as they are.
+    minorities unlike it; step 4 with slot_p: the groups far less specific than the most specific
+    one, row by row in Python); rows with one voted cluster are left bit for bit as they are.
 
-    slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S] float64 votes / paper weights,
-    means: [K, D] unit μ_c. Returns F.
+    slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s / slot_p: [B, S] float64 votes /
+    paper weights / specificities (`slot_specificity`; None: no step 4), means: [K, D] unit μ_c.
+    Returns F.
     """
     b, num_slots = slot_c.shape
     mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if num_slots > 1 else np.zeros(0, np.int64)
@@ -395,25 +420,85 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
     best = np.argmax(group, axis=1)  # first of equal maxima
     rows = np.arange(mixed.size)
     drop = ok & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
+    if slot_p is not None:
+        for b_row in range(mixed.size):
+            drop[b_row] |= _less_specific_reference(ok[b_row], drop[b_row], sim[b_row], int(best[b_row]), slot_p[mixed[b_row]], threshold, specific)
     coef = np.where(drop, w, 0.0)
     F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
     return F
 
 
+def _less_specific_reference(ok: np.ndarray, trimmed: np.ndarray, sim: np.ndarray, best: int, spec: np.ndarray, threshold: float,
+                             specific: float) -> np.ndarray:
+    """Step 4 for one Gaussian (module docstring), plain Python: [S] bool, the slots it trims beyond
+    step 3's `trimmed`. ok: [S] occupied slots; sim: [S, S] the clusters' cosines; best: the vote's
+    winner; spec: [S] P_ic of each slot."""
+    num_slots = ok.shape[0]
+    alive = [s for s in range(num_slots) if ok[s] and not trimmed[s]]
+    out = np.zeros(num_slots, bool)
+    if not any(s != best and sim[s, best] < threshold for s in alive):
+        return out
+    group = list(spec)
+    for s in range(num_slots):  # + each other like slot's in slot order, as G
+        for t in range(num_slots):
+            if t != s and ok[t] and sim[s, t] >= threshold:
+                group[s] += spec[t]
+    top = alive[0]
+    for s in alive:
+        if group[s] > group[top]:
+            top = s
+    for s in alive:
+        out[s] = s != top and sim[s, top] < threshold and group[s] * specific < group[top]
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _less_specific(slot_c, slot_p, i, sim, best, trim, threshold, specific, spec):  # pragma: no cover - jitted
+    """Step 4 of row i (`_less_specific_reference`): the bits of the alive slots (occupied, not in
+    `trim`) unlike the most specific alive group and `specific` times less specific than it, when
+    some alive slot is unlike the winner `best`; spec: [S] float64 scratch."""
+    num_slots = slot_c.shape[1]
+    unlike = False
+    for s in range(num_slots):
+        if slot_c[i, s] >= 0 and not (trim >> np.uint64(s)) & np.uint64(1) and s != best and sim[s, best] < threshold:
+            unlike = True
+    if not unlike:
+        return np.uint64(0)
+    top = -1
+    for s in range(num_slots):
+        if slot_c[i, s] < 0:
+            continue
+        spec[s] = slot_p[i, s]
+        for t in range(num_slots):
+            if t != s and slot_c[i, t] >= 0 and sim[s, t] >= threshold:
+                spec[s] += slot_p[i, t]
+        if not (trim >> np.uint64(s)) & np.uint64(1) and (top < 0 or spec[s] > spec[top]):
+            top = s
+    out = np.uint64(0)
+    for s in range(num_slots):
+        if slot_c[i, s] >= 0 and not (trim >> np.uint64(s)) & np.uint64(1) and s != top and sim[s, top] < threshold \
+                and spec[s] * specific < spec[top]:
+            out |= np.uint64(1) << np.uint64(s)
+    return out
+
+
 @numba.njit(parallel=True, cache=True)
-def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts):  # pragma: no cover - jitted
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, slot_p, specific):  # pragma: no cover - jitted
     """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
     run with one float64 row buffer and an [S, S] cosine table: per Gaussian, the cosines between its
     slots' clusters and the group votes G_s (V_s, then + V_t of every like slot t in slot order),
-    the slots to trim (bits of a uint64; slots ≤ 64), then, when there are any, F_i ←
-    float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots subtracted in slot order, each over the row
-    in one contiguous (vectorised) loop."""
+    the slots to trim (bits of a uint64; slots ≤ 64), with slot_p [B, S] (not [0, S]) also those of
+    step 4 (the specificities' groups, as G's, then the most specific alive slot), then, when there
+    are any, F_i ← float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots subtracted in slot order,
+    each over the row in one contiguous (vectorised) loop."""
     b, num_slots = slot_c.shape
     dim = F.shape[1]
+    with_p = slot_p.shape[0] == b
     for part in numba.prange(parts):
         row = np.empty(dim)
         sim = np.empty((num_slots, num_slots), np.float32)
         group = np.empty(num_slots)
+        spec = np.empty(num_slots)
         for i in range(part * b // parts, (part + 1) * b // parts):
             if num_slots < 2 or slot_c[i, 1] < 0:  # slots fill in order: one cluster at most
                 continue
@@ -445,6 +530,8 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts): 
                     continue
                 if sim[s, best] < threshold:
                     trim |= np.uint64(1) << np.uint64(s)
+            if with_p:
+                trim |= _less_specific(slot_c, slot_p, i, sim, best, trim, threshold, specific, spec)
             if trim == 0:
                 continue
             for d in range(dim):
@@ -460,18 +547,70 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts): 
 
 
 def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
-                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY) -> np.ndarray:
+                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY, slot_p: np.ndarray | None = None,
+                     specific: float = SPECIFIC) -> np.ndarray:
     """In place on the paper's sums F [B, D] float32: F_i -= Σ_{c trimmed} S_ic μ_c (module
-    docstring, step 3; numba, one Gaussian per thread); rows with one voted cluster are left bit
-    for bit as they are. slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_s: [B, S]
-    float64 votes / paper weights, means: [K, D] unit μ_c float32. Returns F."""
+    docstring, steps 3 and, with slot_p, 4; numba, one Gaussian per thread); rows with one voted
+    cluster are left bit for bit as they are. slot_c: [B, S] int32 clusters (-1 empty), slot_v /
+    slot_s / slot_p: [B, S] float64 votes / paper weights / specificities (`slot_specificity`;
+    None: step 3 only), means: [K, D] unit μ_c float32. Returns F."""
     if F.shape[0] == 0 or means.shape[0] == 0:
         return F
     if slot_c.shape[1] > 64:
         raise ValueError(f"trimmed_features takes at most 64 slots per Gaussian, not {slot_c.shape[1]}")
     parts = max(1, min(F.shape[0], 8 * numba.get_num_threads()))
-    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority), parts)
+    slot_p = np.zeros((0, slot_c.shape[1])) if slot_p is None else np.ascontiguousarray(slot_p, np.float64)
+    _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority), parts,
+                 slot_p, float(specific))
     return F
+
+
+def slot_specificity_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], slot_c: np.ndarray) -> np.ndarray:
+    """Plain-Python reference of `slot_specificity`: [B, S] float64 P of each slot's cluster,
+    P_ic = Σ_views Σ_{pairs (i, j), cluster(j) = c} min(1, w_ij / w̄_j) (module docstring, step 4), the
+    pairs added one after another in view and pair order. views: per view (rows [P] of slot_c,
+    clusters [P] (-1 none), weights [P] float32, means [P] float64: w̄_j of each pair's mask)."""
+    slot_p = np.zeros(slot_c.shape)
+    for rows, clusters, weights, means in views:
+        for r, c, w, m in zip(rows.tolist(), clusters.tolist(), np.asarray(weights, np.float64).tolist(), means.tolist()):
+            if c < 0 or not w > 0.0 or not m > 0.0:
+                continue
+            for s in range(slot_c.shape[1]):
+                if slot_c[r, s] == c:
+                    slot_p[r, s] += min(1.0, w / m)
+                    break
+    return slot_p
+
+
+@numba.njit(cache=True, parallel=True)
+def _specificity_kernel(rows, clusters, weights, means, order, slot_c, slot_p):  # pragma: no cover - jitted
+    """Add one view's pairs to slot_p (`slot_specificity_reference`): rows, clusters [P] int32, weights
+    [P] float32, means [P] float64 (w̄_j of each pair's mask), order: the pairs grouped by row
+    (`rows_order`), cut into VOTE_PARTS row-aligned parts added in parallel, each row's pairs in order."""
+    cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
+    for part in numba.prange(VOTE_PARTS):
+        for i in range(cuts[part], cuts[part + 1]):
+            p = order[i]
+            r, c, w, m = rows[p], clusters[p], np.float64(weights[p]), means[p]
+            if c < 0 or not w > 0.0 or not m > 0.0:
+                continue
+            for s in range(slot_c.shape[1]):
+                if slot_c[r, s] == c:
+                    slot_p[r, s] += min(1.0, w / m)
+                    break
+
+
+def slot_specificity(views: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], slot_c: np.ndarray) -> np.ndarray:
+    """[B, S] float64 P_ic of each slot's cluster (module docstring, step 4) from one replay of the
+    views' pairs, each view (rows [P] of slot_c, clusters [P] int32 (-1 none), weights [P] float32,
+    means [P] float64: the mean pair weight w̄_j of each pair's mask over its whole view); numba."""
+    slot_p = np.zeros(slot_c.shape)
+    for rows, clusters, weights, means in views:
+        if rows.size:
+            rows = np.ascontiguousarray(rows, np.int32)
+            _specificity_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32),
+                                np.ascontiguousarray(means, np.float64), rows_order(rows), slot_c, slot_p)
+    return slot_p
 
 
 def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int, means: np.ndarray,
@@ -514,6 +653,39 @@ def trim_cosine(like: float | None) -> float:
     return CLUSTER_COSINE if like is None else float(min(CLUSTER_COSINE, like))
 
 
+@dataclass
+class Specificity:
+    """What step 4 of the vote replays (module docstring): `source`, the views' pairs the sums were
+    made of, read block by block (the check's KeptPairs), and pair_means, per view [M] float64 each
+    mask's mean pair weight w̄_j over the whole view (the check's supports: the same numbers in every
+    place and plan; 0 where a mask has no pair)."""
+
+    source: PairSource
+    pair_means: list[np.ndarray]
+
+    def views(self, per_view: list[np.ndarray], lo: int, hi: int, row: np.ndarray | None = None,
+              ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Every view's pairs of Gaussians lo .. hi-1 for `slot_specificity`: (rows, clusters,
+        weights, w̄ of each pair's mask), rows = gaussians - lo, or row[gaussians] keeping those ≥ 0
+        when row [N] int32 is given. per_view: each view's [M] mask clusters."""
+        for index, view in enumerate(self.source.block_views(lo, hi)):
+            g, m, w = view.gaussians, view.masks, view.weights
+            if row is None:
+                rows = g - np.int32(lo)
+            else:
+                keep = row[g] >= 0
+                rows, m, w = row[g[keep]], m[keep], w[keep]
+            yield rows, per_view[index][m], w, self.pair_means[index][m]
+
+
+def sample_rows(ids: np.ndarray, num_gaussians: int) -> tuple[np.ndarray, int, int]:
+    """(row [N] int32: each sampled Gaussian's row, -1 elsewhere; lo, hi: the span of the views'
+    blocks that holds them) of a sample `ids` [S] (sorted, distinct)."""
+    row = np.full(num_gaussians, -1, np.int32)
+    row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+    return row, *((int(ids[0]), int(ids[-1]) + 1) if ids.size else (0, 0))
+
+
 class VoteSink:
     """A sink (drsplat.registration.sink) whose blocks hold the paper's sums trimmed by the vote.
 
@@ -521,17 +693,21 @@ class VoteSink:
     while the views arrive; with one (a plan of several blocks), each block replays the log keeping
     its Gaussians' pairs into both. Either way `add` assigns the view's masks to clusters (every
     view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
+    With `specific` (a Specificity) step 4 trims too: a second replay of the block's pairs gives its
+    slots' specificities once the slots are final.
     """
 
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairSource | None = None, block: int | None = None,
                  slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None,
-                 trim: float = CLUSTER_COSINE):
+                 trim: float = CLUSTER_COSINE, specific: Specificity | None = None):
         """clusters: the views' clusters made already (a reducer replaying a block of a finished view
         pass gets the driver's); None: made by `add`. trim: θ of step 3 (`trim_cosine`; a check
-        sets it once it has judged the masks, before the sums are finished)."""
+        sets it once it has judged the masks, before the sums are finished); specific: step 4's
+        replay (None: no step 4; a check sets it with `trim`)."""
         self.trim = float(trim)
+        self.specific = specific
         self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
         self.clusters = MaskClusters(dim) if clusters is None else clusters
         self._log = plog
@@ -559,14 +735,20 @@ class VoteSink:
         acc.add_pairs(rows, masks, weights, feats)
         fold_view_votes(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, slot_c, slot_v, slot_s, total)
 
-    def _finish(self, state) -> tuple[np.ndarray, np.ndarray]:
+    def _finish(self, state, lo: int, hi: int, row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The trimmed sums of the state's rows: Gaussians lo .. hi-1, or those `row` [N] maps to rows."""
         acc, slot_c, slot_v, slot_s, _ = state
         F, W = acc.sums()
-        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means(), self.trim), W
+        return self._trimmed(F, slot_c, slot_v, slot_s, lo, hi, row), W
+
+    def _trimmed(self, F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, lo: int, hi: int,
+                 row: np.ndarray | None = None) -> np.ndarray:
+        slot_p = None if self.specific is None else slot_specificity(self.specific.views(self.clusters.per_view, lo, hi, row), slot_c)
+        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means(), self.trim, slot_p=slot_p)
 
     def blocks(self) -> Iterator[Block]:
         if self._state is not None:
-            F, W = self._finish(self._state)
+            F, W = self._finish(self._state, 0, self.num_gaussians)
             yield Block(0, self.num_gaussians, F, W)
             return
         for lo in range(0, self.num_gaussians, self.block):
@@ -580,19 +762,18 @@ class VoteSink:
         for index, view in enumerate(self._log.block_views(lo, hi)):  # only the chunks of [lo, hi) are read
             if view.gaussians.size:
                 self._fold(state, view.gaussians - np.int32(lo), view.masks, self.clusters.per_view[index], view.weights, view.feats)
-        return Block(lo, hi, *self._finish(state))
+        return Block(lo, hi, *self._finish(state, lo, hi))
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
+        row, lo, hi = sample_rows(ids, self.num_gaussians)
         if self._state is not None:
             acc, slot_c, slot_v, slot_s, _ = self._state
             F, W = acc.sums()
-            return trimmed_features(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], self.clusters.means(), self.trim), W[ids].copy()
-        row = np.full(self.num_gaussians, -1, np.int32)
-        row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+            return self._trimmed(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], lo, hi, row), W[ids].copy()
         state = self._empty(ids.shape[0])
-        for index, view in enumerate(self._log.block_views(int(ids[0]), int(ids[-1]) + 1) if ids.size else ()):
+        for index, view in enumerate(self._log.block_views(lo, hi) if ids.size else ()):
             keep = row[view.gaussians] >= 0
             if keep.any():
                 self._fold(state, row[view.gaussians[keep]], view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
-        return self._finish(state)
+        return self._finish(state, lo, hi, row)
