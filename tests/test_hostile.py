@@ -401,15 +401,18 @@ def test_viewer_screenshot_into_a_fifo_gives_its_reader_the_png(tmp_path, world,
     fifo = tmp_path / "pipe.png"
     os.mkfifo(fifo)
     got: list[bytes] = []
-    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()))
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()), daemon=True)
     reader.start()
     try:
         code = viewer_main([str(world["reg"]), "--screenshot", str(fifo), "--width", "32", "--height", "24"])
     finally:
-        if reader.is_alive():  # unblock the reader if nothing was written
-            with open(fifo, "wb"):
-                pass
         reader.join(timeout=30)
+        if reader.is_alive():  # nothing was written: unblock the reader's open (non-blocking, so a reader that has just gone cannot hang us)
+            try:
+                os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            except OSError:
+                pass
+            reader.join(timeout=30)
     err = capsys.readouterr().err
     assert code == 0, err
     assert got and got[0].startswith(b"\x89PNG") and fifo.is_fifo()
@@ -1368,7 +1371,7 @@ def test_outputs_that_are_devices_fifos_or_symlinks(tmp_path, world, capsys):
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
     got = []
-    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()))
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()), daemon=True)
     reader.start()
     code = run_cli([*base, "--scores", fifo], capsys)[0]
     reader.join(timeout=30)
