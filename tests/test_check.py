@@ -778,17 +778,20 @@ def test_a_check_without_a_checkpoint_replays_a_temporary_log(mislabelled_room, 
 
 
 @pytest.mark.parametrize("block", [None, 700])
-def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path, block):
+@pytest.mark.parametrize("mode", ["check-vote-reject", "sharp-check-vote-reject"])
+def test_cancelled_check_registration_resumes_to_the_same_features(mislabelled_room, tmp_path, block, mode):
     """The record (one block) or the log (blocks), and the clusters, are rebuilt from the replayed
     views in order, so a resumed run of a check mode writes what an uninterrupted one-block run
-    does (and drops masks: the case is not vacuous)."""
+    does (and drops masks: the case is not vacuous); with sharp footprints the vote's specificity,
+    replayed from the same pairs, too."""
     from drsplat.errors import Cancelled
     from drsplat.utils import CancelToken
 
     root, scene, cams = mislabelled_room
-    full = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="check-vote-reject"), show_progress=False)
-    options = RegisterOptions(topk=10, aggregate="check-vote-reject", block_size=block)
-    paper_vote = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
+    full = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+    options = RegisterOptions(topk=10, aggregate=mode, block_size=block)
+    paper_vote = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate=mode.replace("check-", "")),
+                                   show_progress=False)
     assert not np.array_equal(full.features, paper_vote.features)
     token = CancelToken()
 
