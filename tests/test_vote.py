@@ -530,3 +530,44 @@ def test_the_default_keeps_small_objects_labels_on_silhouette_masks(tmp_path):
     metrics = aggregate_metrics(ds, result)
     seg, loc = (metrics[AGGREGATE_COLUMNS.index(name) - 3] for name in ("seg mIoU vol", "loc mIoU vol"))
     assert seg > 0.72 and loc > 0.76, (seg, loc)
+
+
+def test_specificity_gives_the_same_rows_in_one_block_in_blocks_and_in_a_sample():
+    """Step 4 replays the pairs of the rows it trims: the whole scene in one block, each block of a
+    log, or a sample of rows (what a scene codebook is trained on) give every row the same bits."""
+    from drsplat.registration.vote import Specificity
+
+    rng = np.random.default_rng(9)
+    n, labels = 60, _labels(rng, 5)
+    views = []
+    for v in range(6):
+        masks = rng.integers(0, 4, 300)
+        feats = _unit(labels[rng.choice(5, 4, replace=False)] + 0.05 * rng.normal(size=(4, D)))
+        views.append(_view(f"v{v}", feats, rng.integers(0, n, 300), masks, rng.uniform(0.01, 1.0, 300)))
+    views = [_view(v.name, v.feats, *_coalesced(v)) for v in views]
+    source = PairRecordLike(views)
+    means = [np.bincount(v.masks, v.weights.astype(np.float64), 4) / np.maximum(np.bincount(v.masks, minlength=4), 1) for v in views]
+
+    whole = VoteSink(n, D, specific=Specificity(source, means))
+    for view in views:
+        whole.add(view)
+    clusters = whole.clusters
+    ids = np.array([0, 5, 19, 29, 59])  # rows 19 and 29 are trimmed by step 4
+    sampled = whole.sample(ids)  # before the blocks, as the registration trains a scene codebook: the blocks trim F in place
+    (block,) = list(whole.blocks())
+    plain = VoteSink(n, D)
+    for view in views:
+        plain.add(view)
+    (unspecific,) = list(plain.blocks())
+    np.testing.assert_array_equal(np.flatnonzero(np.abs(block.F - unspecific.F).max(axis=1) > 1e-4), [19, 29])  # step 4's rows
+    logged = VoteSink(n, D, source, 17, clusters=clusters, specific=Specificity(source, means))
+    np.testing.assert_array_equal(np.concatenate([b.F for b in logged.blocks()]), block.F)
+    for F, W in (sampled, logged.sample(ids)):
+        np.testing.assert_array_equal(F, block.F[ids])
+        np.testing.assert_array_equal(W, block.W[ids])
+
+
+def _coalesced(view: ViewPairs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A view's pairs made distinct (Gaussian, mask), their weights summed: what the coalescer gives."""
+    keys, inverse = np.unique(view.gaussians.astype(np.int64) * 1000 + view.masks, return_inverse=True)
+    return (keys // 1000).astype(np.int32), (keys % 1000).astype(np.int32), np.bincount(inverse, view.weights.astype(np.float64)).astype(np.float32)
