@@ -553,7 +553,7 @@ def test_specificity_gives_the_same_rows_in_one_block_in_blocks_and_in_a_sample(
         whole.add(view)
     clusters = whole.clusters
     ids = np.array([0, 5, 19, 29, 59])  # rows 19 and 29 are trimmed by step 4
-    sampled = whole.sample(ids)  # before the blocks, as the registration trains a scene codebook: the blocks trim F in place
+    sampled = whole.sample(ids)  # before the blocks, as the registration trains a scene codebook, and after them below
     (block,) = list(whole.blocks())
     plain = VoteSink(n, D)
     for view in views:
@@ -562,7 +562,9 @@ def test_specificity_gives_the_same_rows_in_one_block_in_blocks_and_in_a_sample(
     np.testing.assert_array_equal(np.flatnonzero(np.abs(block.F - unspecific.F).max(axis=1) > 1e-4), [19, 29])  # step 4's rows
     logged = VoteSink(n, D, source, 17, clusters=clusters, specific=Specificity(source, means))
     np.testing.assert_array_equal(np.concatenate([b.F for b in logged.blocks()]), block.F)
-    for F, W in (sampled, logged.sample(ids)):
+    (again,) = list(whole.blocks())  # F was trimmed in place once: asked again, the same sums, not trimmed twice
+    np.testing.assert_array_equal(again.F, block.F)
+    for F, W in (sampled, logged.sample(ids), whole.sample(ids)):
         np.testing.assert_array_equal(F, block.F[ids])
         np.testing.assert_array_equal(W, block.W[ids])
 

@@ -1081,6 +1081,7 @@ class DeviceVoteSink:
         self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self._unfolded: VoteRounds | None = None  # the last view's rounds, folded when the next view arrives
+        self._trimmed_sums: tuple[np.ndarray, np.ndarray] | None = None  # (F, W) once trimmed (on a CPU in place: trimmed once)
         # the vote op folds a view without reading the device on a CPU (numba) and on CUDA with Triton;
         # otherwise its rounds are laid out now and folded a view late
         self.lagged = not (self.device.type == "cpu" or triton_available())
@@ -1132,10 +1133,15 @@ class DeviceVoteSink:
                 W.cpu().numpy().copy())
 
     def blocks(self) -> Iterator[Block]:
-        """The trimmed sums as one block, handed over once (on a CPU F is trimmed in place)."""
-        F, W = self._trimmed(None)
+        """The trimmed sums as one block (on a CPU F is trimmed in place, so once: a second call gets the same sums)."""
+        if self._trimmed_sums is None:
+            self._trimmed_sums = self._trimmed(None)
+        F, W = self._trimmed_sums
         yield Block(0, F.shape[0], F, W)
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S], trimmed (host copies)."""
+        if self._trimmed_sums is not None:
+            F, W = self._trimmed_sums
+            return F[ids], W[ids].copy()
         return self._trimmed(to_device(np.array(ids, np.int64), self.device))

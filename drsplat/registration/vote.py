@@ -715,6 +715,7 @@ class VoteSink:
         if self.block < 1:
             raise ValueError("block must be >= 1")
         self._state = None if plog is not None else self._empty(num_gaussians)
+        self._trimmed_sums: tuple[np.ndarray, np.ndarray] | None = None  # in one block: (F, W) once trimmed, in place
 
     def _empty(self, rows: int):
         return (Accumulator(rows, self.dim), np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)),
@@ -748,8 +749,9 @@ class VoteSink:
 
     def blocks(self) -> Iterator[Block]:
         if self._state is not None:
-            F, W = self._finish(self._state, 0, self.num_gaussians)
-            yield Block(0, self.num_gaussians, F, W)
+            if self._trimmed_sums is None:  # F is trimmed in place: once, whoever asks again gets the same sums
+                self._trimmed_sums = self._finish(self._state, 0, self.num_gaussians)
+            yield Block(0, self.num_gaussians, *self._trimmed_sums)
             return
         for lo in range(0, self.num_gaussians, self.block):
             # as LogSink.blocks: nothing here holds a block across the yield
@@ -767,6 +769,9 @@ class VoteSink:
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
         row, lo, hi = sample_rows(ids, self.num_gaussians)
+        if self._trimmed_sums is not None:
+            F, W = self._trimmed_sums
+            return F[ids], W[ids].copy()
         if self._state is not None:
             acc, slot_c, slot_v, slot_s, _ = self._state
             F, W = acc.sums()
