@@ -208,10 +208,13 @@ def test_a_large_mask_whose_label_only_leaks_onto_its_boundary_is_dropped():
 
 def test_the_second_rule_drops_large_masks_only():
     """mask_drops: the first rule (own < 0.1 alt) whatever the size; the second (own < 0.25 alt, core
-    < 0.05) only for masks of at least 1 % of their view's mass, whose core share is a statistic
-    over many Gaussians: a small mask of a thin object whose other views mostly see the wall
-    behind it is kept."""
-    mass = np.array([1000.0, 20.0, 1000.0, 20.0, 1000.0, 0.0])
+    < 0.05) only for masks of at least CHECK_LARGE_MASK (0.5 %) of their view's mass, whose core
+    share is a statistic over many Gaussians: a small mask of a thin object whose other views mostly
+    see the wall behind it is kept."""
+    from drsplat.registration.check import CHECK_LARGE_MASK
+
+    mass = np.array([5000.0, 20.0, 5000.0, 20.0, 5000.0, 0.0])
+    assert mass[1] < CHECK_LARGE_MASK * mass.sum() < mass[0]
     own = np.array([0.5, 0.5, 0.5, 0.3, 0.5, 0.0])
     alt = np.array([4.0, 4.0, 4.0, 4.0, 0.5, 4.0])
     core = np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
