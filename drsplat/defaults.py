@@ -19,6 +19,7 @@ AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)
+SPECIFICITY_SLOT_BYTES = 8 * VOTE_SLOTS  # per Gaussian of a block the vote trims by specificity: each slot's P (float64)
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
 SUPPORT_SCRATCH_BYTES = 64 << 20  # one layer of the check's dense support scratch: a view's masks are summed in runs that keep it within this
 SUPPORT_TABLE_BYTES = 256 << 20  # the check's support tables held in memory; their parts past it spill to disk (registration.supports)

@@ -110,7 +110,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES, VOTE_SLOTS
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
@@ -1108,7 +1108,7 @@ class Aggregator:
             kept = 32 * num_gaussians
             views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + 80) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
-            per_block += VOTE_SLOT_BYTES + 8 + (8 * VOTE_SLOTS if stages.specific else 0)  # step 4's specificities
+            per_block += VOTE_SLOT_BYTES + 8 + (SPECIFICITY_SLOT_BYTES if stages.specific else 0)  # step 4's specificities
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
             # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)

@@ -1175,7 +1175,7 @@ class CheckSink:
         if not self._summed:
             n, kept = self.num_gaussians, self.kept_pairs()
             trim = trim_cosine(self.verdicts.like)  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
-            specific = self.specificity()
+            specific = Specificity(kept, self.verdicts.pair_means) if self.specific else None  # the vote's step 4
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
@@ -1188,14 +1188,6 @@ class CheckSink:
                                if self.vote else LogSink(n, self.dim, kept, self.block))
             self._summed = True
         return self._inner
-
-    def specificity(self) -> Specificity | None:
-        """Step 4 of the vote (`Specificity`: the kept pairs and the masks' mean pair weights) when
-        this check's vote trims by specificity, once the masks are judged; None otherwise."""
-        if not self.specific:
-            return None
-        kept = self.kept_pairs()
-        return Specificity(kept, self.verdicts.pair_means)
 
     def blocks(self) -> Iterator[Block]:
         yield from self._judged().blocks()

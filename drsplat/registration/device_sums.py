@@ -62,9 +62,9 @@ from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR,
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.sink import Block
+from drsplat.registration.sink import Block, sample_rows
 from drsplat.registration.sums import add_pairs_in_place
-from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, sample_rows, slot_specificity,
+from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, slot_specificity,
                                       trimmed_features)
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer

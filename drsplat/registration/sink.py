@@ -56,6 +56,14 @@ class Sink(Protocol):
 
 
 
+def sample_rows(ids: np.ndarray, num_gaussians: int) -> tuple[np.ndarray, int, int]:
+    """(row [N] int32: each sampled Gaussian's row, -1 elsewhere; lo, hi: the span of the views'
+    blocks that holds them) of a sample `ids` [S] (sorted, distinct): what a sink's `sample` replays."""
+    row = np.full(num_gaussians, -1, np.int32)
+    row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+    return row, *((int(ids[0]), int(ids[-1]) + 1) if ids.size else (0, 0))
+
+
 def sums_place(sink: Sink) -> str:
     """Where `sink` keeps its sums: its `place`, or its `sums_on` where the two differ (the cross-view
     check takes the views' pairs on the host and, in one block, sums the kept ones on the torch
@@ -120,10 +128,9 @@ class LogSink:
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct), from one replay."""
-        row = np.full(self.num_gaussians, -1, np.int32)
-        row[ids] = np.arange(ids.shape[0], dtype=np.int32)
+        row, lo, hi = sample_rows(ids, self.num_gaussians)
         acc = Accumulator(ids.shape[0], self.dim)
-        for view in self._log.block_views(int(ids[0]), int(ids[-1]) + 1) if ids.size else ():
+        for view in self._log.block_views(lo, hi) if ids.size else ():
             keep = row[view.gaussians] >= 0
             if keep.any():
                 acc.add_pairs(row[view.gaussians[keep]], view.masks[keep], view.weights[keep], view.feats)

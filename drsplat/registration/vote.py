@@ -90,7 +90,7 @@ import numpy as np
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import rows_order
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.sink import Block, PairSource
+from drsplat.registration.sink import Block, PairSource, sample_rows
 from drsplat.registration.sums import Accumulator
 
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
@@ -676,14 +676,6 @@ class Specificity:
                 keep = row[g] >= 0
                 rows, m, w = row[g[keep]], m[keep], w[keep]
             yield rows, per_view[index][m], w, self.pair_means[index][m]
-
-
-def sample_rows(ids: np.ndarray, num_gaussians: int) -> tuple[np.ndarray, int, int]:
-    """(row [N] int32: each sampled Gaussian's row, -1 elsewhere; lo, hi: the span of the views'
-    blocks that holds them) of a sample `ids` [S] (sorted, distinct)."""
-    row = np.full(num_gaussians, -1, np.int32)
-    row[ids] = np.arange(ids.shape[0], dtype=np.int32)
-    return row, *((int(ids[0]), int(ids[-1]) + 1) if ids.size else (0, 0))
 
 
 class VoteSink:
