@@ -7,7 +7,7 @@ low-opacity floaters, a few huge background Gaussians, a small object hidden beh
 and thin objects. Cameras orbit the scene and some stand inside it.
 
 Ground truth per view comes from one of two sources (`OracleParams.mask_source`, a preset's
-`mask_source`):
+`mask_source`; a third, "segmenter", takes the masks themselves from a segmenter, below):
 
     render    the same rasterizer the registration uses: a pixel belongs to the object instance
               with the largest summed contribution w = T·α among the pixel's top-k Gaussians (the
@@ -19,6 +19,14 @@ Ground truth per view comes from one of two sources (`OracleParams.mask_source`,
               Mask boundaries are the true silhouettes, as a SAM mask of a real photo follows the
               image's edges, and a Gaussian straddling a silhouette spreads part of its footprint
               over the neighbour's mask (the `hard-silhouette` preset).
+    segmenter geometry's instances as ground truth, but the masks are not the instances: a
+              segmenter's regions of the rendered view (Felzenszwalb superpixels at LangSplat's four
+              levels, drsplat.features.masks.superpixel), each embedded as the oracle embeds the
+              instance covering most of it (`segmenter_masks_and_embeddings`). Its errors are a
+              real segmenter's, not a corruption model's: regions follow colour edges, so textured
+              walls come in many pieces, a small object is often part of the region around it
+              and a region straddling two objects carries one label. What the oracle's
+              corruptions model one at a time (jitter, merges, splits) it makes together.
 
 Oracle features stand in for SAM + CLIP: one mask per visible object instance, and for the
 mask of label l the embedding normalize(a·c + b·v_l + noise), where v_l is the label's fixed
@@ -51,6 +59,7 @@ import numpy as np
 from drsplat.cameras import Camera, load_cameras, look_at_camera, write_transforms_json
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.features.masks.base import LEVELS
+from drsplat.features.masks.superpixel import FelzenszwalbGenerator
 from drsplat.features.modelid import ORACLE_MODEL_ID, manifest_clip_entry
 from drsplat.scene import SH_C0, GaussianScene, load_ply, save_ply
 from drsplat.features.format import write_features, write_manifest
@@ -127,8 +136,9 @@ class Preset:
 class OracleParams:
     """Oracle embedding model: image embedding normalize(a·c + b·v_l + noise·n/√D).
 
-    mask_source: "render" (weighted vote of the rendered Gaussians) or "geometry" (ray-cast true
-    silhouettes); see the module docstring.
+    mask_source: "render" (weighted vote of the rendered Gaussians), "geometry" (ray-cast true
+    silhouettes) or "segmenter" (superpixels of the rendered view over geometry's instances); see
+    the module docstring.
     """
 
     a: float = 1.0
@@ -217,7 +227,7 @@ PRESETS: dict[str, Preset] = {
 }
 
 
-MASK_SOURCES = ("render", "geometry")
+MASK_SOURCES = ("render", "geometry", "segmenter")
 # the wrong labels of mislabelled oracle masks come from their own random stream, [seed, 3], so that
 # a mislabelled room has the masks, jitter and noise of the same room without mislabels (since
 # 2026-11-28; before, they came from the masks' stream and every later draw moved). Written to a
@@ -1037,11 +1047,49 @@ class RenderedView:
     instance_mask: np.ndarray  # [H, W] int32
 
 
+SEGMENTER_MASKS = "felzenszwalb superpixels of the rendered view, each with the oracle embedding of the instance covering most of it"
+
+
+def segmenter_masks_and_embeddings(rgb: np.ndarray, inst: np.ndarray, syn: SyntheticScene, rng: np.random.Generator,
+                                   label_rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A segmenter's masks of one view with oracle embeddings ("segmenter" masks, module docstring).
+
+    rgb: [H, W, 3] uint8 the rendered view; inst: [H, W] int32 the ray-cast instance per pixel (-1
+    none). The masks are `FelzenszwalbGenerator`'s regions at the four levels (its default
+    parameters; ids cumulative across levels, as `oracle_masks_and_embeddings`'). A region's
+    label is that of the instance covering most of its pixels (pixels of no instance not
+    counted; a region over none gets no mask, its pixels -1), its embedding normalize(a·c + b·v_l +
+    noise), and with probability mislabel_fraction another label's, drawn as for oracle masks
+    (rng: whether, and the noise; label_rng, None for rng: which label). Returns seg [4, H, W]
+    int32, feats [M, D] float32 unit rows, mask_labels [M] int32 (the label each embedding encodes).
+    """
+    label_rng = rng if label_rng is None else label_rng
+    o = syn.oracle
+    dim = syn.label_vectors.shape[1]
+    num_labels = len(syn.label_names)
+    seg = np.full((len(LEVELS),) + inst.shape, -1, np.int32)
+    feats, mask_labels = [], []
+    for level, masks in enumerate(FelzenszwalbGenerator().generate(rgb)):
+        for region in masks.masks:
+            under = inst[region]
+            under = under[under >= 0]
+            if under.size == 0:
+                continue
+            label = int(syn.instance_labels[np.bincount(under).argmax()])
+            if num_labels > 1 and rng.random() < o.mislabel_fraction:
+                label = int(label_rng.choice([l for l in range(num_labels) if l != label]))
+            seg[level][region] = len(feats)
+            feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + rng.normal(0, o.noise / np.sqrt(dim), dim))
+            mask_labels.append(label)
+    feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
+    return seg, feats_arr, np.array(mask_labels, np.int32)
+
+
 def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
     """RGB and ground-truth masks of one view: one rasterizer pass, and the instance map from it
-    ("render" masks) or from ray casting the objects ("geometry" masks)."""
+    ("render" masks) or from ray casting the objects ("geometry" and "segmenter" masks)."""
     out = rasterize(syn.scene, camera, topk=topk, with_rgb=True, background=np.array([1.0, 1.0, 1.0], np.float32))
-    if syn.oracle.mask_source == "geometry":
+    if syn.oracle.mask_source in ("geometry", "segmenter"):
         inst = ray_cast_instances(syn.instance_specs, camera)
     else:
         inst = instance_map(out.ids, out.weights, syn.instances, len(syn.instance_labels))
@@ -1066,8 +1114,10 @@ def write_dataset(
 ) -> Path:
     """Render a synthetic dataset into `out_dir` (layout in docs/ARCHITECTURE.md) and return it.
 
-    mislabel_fraction, jitter, merge_fraction, split_fraction: oracle mask corruption; mask_source: "render" or
-    "geometry" (module docstring); None takes the preset's default. width: the views' width in
+    mislabel_fraction, jitter, merge_fraction, split_fraction: oracle mask corruption; mask_source: "render",
+    "geometry" or "segmenter" (module docstring; segmenter masks take mislabels, but jitter, merges and
+    splits are the oracle's models of a segmenter's errors, so a preset's jitter is not applied to
+    them and a nonzero one given is refused); None takes the preset's default. width: the views' width in
     pixels (`make_synthetic`; None: the preset's).
 
     Every file is written atomically; the manifest and scene.ply come last, so an interrupted
@@ -1078,8 +1128,11 @@ def write_dataset(
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}' (choose from {', '.join(PRESETS)})")
     mislabel_fraction = PRESETS[preset].mislabel if mislabel_fraction is None else mislabel_fraction
-    jitter = PRESETS[preset].jitter if jitter is None else jitter
     mask_source = PRESETS[preset].mask_source if mask_source is None else mask_source
+    jitter = (0 if mask_source == "segmenter" else PRESETS[preset].jitter) if jitter is None else jitter
+    if mask_source == "segmenter" and (jitter or merge_fraction or split_fraction):
+        raise ValueError("jitter, merges and splits corrupt the oracle's instance masks; segmenter masks have a segmenter's own "
+                         f"errors (got jitter {jitter}, merge {merge_fraction:g}, split {split_fraction:g})")
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
     for name, value in (("merge_fraction", merge_fraction), ("split_fraction", split_fraction)):
@@ -1104,7 +1157,10 @@ def write_dataset(
         with atomic_path(out / "images" / f"{cam.name}.png") as tmp:
             Image.fromarray(rgb8).save(tmp, format="PNG")
         save_npy_atomic(out / "gt" / "masks" / f"{cam.name}.npy", view.label_mask)
-        seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng, merge_rng, split_rng)
+        if mask_source == "segmenter":
+            seg, feats, mask_labels = segmenter_masks_and_embeddings(rgb8, view.instance_mask, syn, rng, label_rng)
+        else:
+            seg, feats, mask_labels = oracle_masks_and_embeddings(view.instance_mask, syn, rng, label_rng, merge_rng, split_rng)
         true_labels = _true_mask_labels(seg, view.instance_mask, syn.instance_labels, len(feats))
         mislabelled += int(np.count_nonzero(mask_labels != true_labels))
         total_masks += len(feats)
@@ -1118,7 +1174,7 @@ def write_dataset(
         out / "features",
         {
             "format": "langsplat",
-            "mask_generator": "oracle (drsplat.synthetic: one mask per visible object instance)",
+            "mask_generator": (SEGMENTER_MASKS if mask_source == "segmenter" else "oracle (drsplat.synthetic: one mask per visible object instance)"),
             **manifest_clip_entry(ORACLE_MODEL_ID, None),
             "synthetic": {"preset": preset, "seed": seed, **({"width": width} if width is not None else {})},
             "levels": list(LEVELS),

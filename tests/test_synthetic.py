@@ -15,10 +15,14 @@ from drsplat.scene import load_ply, quat_to_rotmat
 from drsplat.synthetic import (
     OBJECTS,
     PRESETS,
+    SEGMENTER_MASKS,
+    OracleParams,
     instance_map,
     jitter_boundaries,
     make_synthetic,
+    render_view,
     rotmat_to_quat,
+    segmenter_masks_and_embeddings,
     write_dataset,
 )
 
@@ -453,3 +457,56 @@ def test_synth_merge_and_split_flags_write_under_and_over_segmented_datasets(tmp
     with pytest.raises(SystemExit) as usage:  # argparse's usage error
         main(["synth", str(tmp_path / "bad"), "--preset", "tiny", flag, "1.5", "--no-progress"])
     assert usage.value.code == 2 and not (tmp_path / "bad").exists()
+
+
+def _segmenter_view(mislabel: float = 0.0):
+    syn = make_synthetic("hard-tiny", 0, oracle=OracleParams(mask_source="segmenter", mislabel_fraction=mislabel))
+    view = render_view(syn, syn.cameras[0])
+    rgb8 = (np.clip(view.rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return syn, view, rgb8
+
+
+def test_segmenter_masks_are_superpixels_labelled_by_the_instance_under_most_of_them():
+    """Each region of a level carries the label of the instance covering most of its pixels and
+    an embedding nearest that label's vector; the regions are not the instances (some straddle
+    two, some instance is cut into several); mask ids run across the four levels."""
+    syn, view, rgb8 = _segmenter_view()
+    inst = view.instance_mask
+    seg, feats, labels = segmenter_masks_and_embeddings(rgb8, inst, syn, np.random.default_rng(0))
+    assert seg.shape == (4,) + inst.shape and feats.shape == (labels.size, syn.label_vectors.shape[1])
+    assert np.allclose(np.linalg.norm(feats, axis=1), 1.0, atol=1e-5)
+    assert np.array_equal(np.argmax(feats @ syn.label_vectors.T, axis=1), labels)  # noise 0.15 never moves the nearest label
+    straddling = split = 0
+    for level in seg:
+        for m in np.unique(level[level >= 0]):
+            under = inst[level == m]
+            under = under[under >= 0]
+            assert labels[m] == syn.instance_labels[np.bincount(under).argmax()]
+            straddling += np.unique(under).size > 1
+        for i in np.unique(inst[inst >= 0]):
+            split += np.unique(level[inst == i]).size > 1
+    assert straddling > 0 and split > 0
+    assert np.unique(seg[seg >= 0]).size == labels.size  # ids run across the four levels, each used
+
+
+def test_segmenter_masks_take_mislabels_and_refuse_the_oracles_corruptions(tmp_path):
+    """With every mask mislabelled no embedding carries its region's label; jitter, merges and
+    splits, the oracle's models of a segmenter's errors, are refused (a preset's own jitter is
+    not applied), by write_dataset and by `drsplat synth` (a usage error that writes nothing)."""
+    from drsplat.cli import main
+
+    syn, view, rgb8 = _segmenter_view()
+    clean = segmenter_masks_and_embeddings(rgb8, view.instance_mask, syn, np.random.default_rng(0))[2]
+    wrong = segmenter_masks_and_embeddings(rgb8, view.instance_mask, make_synthetic("hard-tiny", 0, oracle=OracleParams(
+        mask_source="segmenter", mislabel_fraction=1.0)), np.random.default_rng(0))[2]
+    assert clean.size == wrong.size > 0 and not np.any(clean == wrong)
+    for kwargs in ({"jitter": 2}, {"merge_fraction": 0.1}, {"split_fraction": 0.1}):
+        with pytest.raises(ValueError, match="segmenter"):
+            write_dataset(tmp_path / "x", "hard-tiny", 0, mask_source="segmenter", show_progress=False, **kwargs)
+    assert main(["synth", str(tmp_path / "bad"), "--preset", "hard-tiny", "--mask-source", "segmenter", "--jitter", "1", "--no-progress"]) == 2
+    assert not (tmp_path / "bad").exists()
+    out = write_dataset(tmp_path / "room", "hard-room", 0, mask_source="segmenter", width=160, show_progress=False)  # hard-room's own jitter is 1 px
+    manifest = json.loads((out / "features" / "manifest.json").read_text())
+    assert manifest["mask_generator"] == SEGMENTER_MASKS
+    assert manifest["params"]["mask_source"] == "segmenter" and manifest["params"]["jitter"] == 0
+    assert manifest["counts"]["mislabelled_masks"] == 0 and manifest["counts"]["masks"] > 0

@@ -47,8 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="over-segmentation: fraction of instance masks cut in two across their long axis, each half embedded "
                         "as a part of its object (default: 0)")
     p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
-                   help="oracle masks from the rendered Gaussians' weighted vote (render) or ray-cast true silhouettes "
-                        "(geometry) (default: the preset's, render except hard-silhouette)")
+                   help="oracle masks from the rendered Gaussians' weighted vote (render), ray-cast true silhouettes "
+                        "(geometry), or a segmenter's superpixels of each rendered view labelled by the instance under most "
+                        "of them (segmenter; no --jitter, --merge or --split) (default: the preset's, render except hard-silhouette)")
     p.add_argument("--width", type=int_range(MIN_WIDTH, MAX_WIDTH), default=None, metavar="PIXELS",
                    help="render the views this many pixels wide: the preset's cameras scaled, same poses (default: the preset's, "
                         "e.g. 320 for hard-room; not for city)")
@@ -81,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.preset in CITY_PRESETS and args.width is not None:
         raise UsageError("--width is for the room and table presets; city views are sized by the city preset")
+    if args.mask_source == "segmenter" and (args.jitter or args.merge or args.split):
+        raise UsageError("--jitter, --merge and --split corrupt the oracle's instance masks; --mask-source segmenter makes a "
+                         "segmenter's masks, which have errors of their own: leave them out")
     token = CancelToken()
     with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, replaceable_dataset) as tmp:
         if args.preset in CITY_PRESETS:

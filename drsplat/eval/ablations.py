@@ -102,7 +102,7 @@ class AblationResult:
 def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: float = DEFAULT_NOISE, mask_source: str | None = None,
             jitter: int | None = None, merge: float = 0.0, width: int | None = None, split: float = 0.0) -> Dataset:
     """Write (once) and load a synthetic dataset with the given oracle corruption (mask_source:
-    override the preset's oracle mask source, "render" or "geometry"; jitter: the masks' boundary
+    override the preset's oracle mask source, "render", "geometry" or "segmenter"; jitter: the masks' boundary
     jitter in pixels, None the preset's; merge: the share of instance masks merged into a
     neighbour's; split: the share cut in two parts; width: the views' width in pixels, None the
     preset's; drsplat.synthetic)."""
@@ -566,8 +566,9 @@ def add_ablate_parser(sub) -> None:
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
     p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
     p.add_argument("--mask-source", default=None, metavar="SRC[,SRC]",
-                   help="aggregate, resolution: oracle masks of every preset from the rendered Gaussians' vote (render) or ray-cast true silhouettes "
-                        "(geometry); for aggregate a comma-separated list compares both (default: each preset's own)")
+                   help="aggregate, resolution: oracle masks of every preset from the rendered Gaussians' vote (render), ray-cast true silhouettes "
+                        "(geometry) or a segmenter's superpixels (segmenter: with corruptions without jitter, e.g. clean or "
+                        "mislabel20); for aggregate a comma-separated list compares them (default: each preset's own)")
     p.add_argument("--corruptions", default="own", metavar="C[,C]",
                    help=f"aggregate: oracle corruptions to compare ({', '.join(CORRUPTIONS)}; default: each preset's own)")
     p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
