@@ -1004,7 +1004,6 @@ def oracle_masks_and_embeddings(
     split_rng = rng if split_rng is None else split_rng
     o = syn.oracle
     dim = syn.label_vectors.shape[1]
-    num_labels = len(syn.label_names)
     seg = np.full((len(LEVELS),) + inst.shape, -1, np.int32)
     feats, mask_labels = [], []
     for level in range(len(LEVELS)):
@@ -1016,28 +1015,50 @@ def oracle_masks_and_embeddings(
         split = split_instances(ids, whole, o.split_fraction, split_rng, o.min_mask_pixels)
         mask_of = {}
         for instance in present:
-            label = int(syn.instance_labels[instance])
-            if num_labels > 1 and rng.random() < o.mislabel_fraction:
-                label = int(label_rng.choice([l for l in range(num_labels) if l != label]))
-            noise = rng.normal(0, o.noise / np.sqrt(dim), dim)  # drawn for a merged instance too: the later masks' draws stay
+            label = _drawn_label(int(syn.instance_labels[instance]), syn, rng, label_rng)
+            noise = _embedding_noise(syn, rng)  # drawn for a merged instance too: the later masks' draws stay
             if instance in merged:
                 continue
             mask_of[instance] = len(feats)
             seg[level][ids == instance] = len(feats)
             if instance not in split:
-                feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + noise)
+                feats.append(_image_embedding(syn, syn.label_vectors[label], noise))
                 mask_labels.append(label)
                 continue
             seg[level][split[instance]] = len(feats) + 1
-            for part_noise in (noise, split_rng.normal(0, o.noise / np.sqrt(dim), dim)):  # the second part's noise from the split stream
+            for part_noise in (noise, _embedding_noise(syn, split_rng)):  # the second part's noise from the split stream
                 direction = split_rng.normal(size=dim)
                 part = PART_SHARE * syn.label_vectors[label] + np.sqrt(1 - PART_SHARE**2) * direction / np.linalg.norm(direction)
-                feats.append(o.a * syn.common_vector + o.b * part + part_noise)
+                feats.append(_image_embedding(syn, part, part_noise))
                 mask_labels.append(label)
         for instance, into in merged.items():
             seg[level][ids == instance] = mask_of[into]
-    feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
-    return seg, feats_arr, np.array(mask_labels, np.int32)
+    return seg, _unit_embeddings(feats, dim), np.array(mask_labels, np.int32)
+
+
+def _drawn_label(label: int, syn: SyntheticScene, rng: np.random.Generator, label_rng: np.random.Generator) -> int:
+    """The label a mask's embedding encodes: its true `label`, or with probability
+    oracle.mislabel_fraction another one (rng draws whether, label_rng which)."""
+    num_labels = len(syn.label_names)
+    if num_labels > 1 and rng.random() < syn.oracle.mislabel_fraction:
+        return int(label_rng.choice([l for l in range(num_labels) if l != label]))
+    return label
+
+
+def _embedding_noise(syn: SyntheticScene, rng: np.random.Generator) -> np.ndarray:
+    """[D] one mask's embedding noise: normal, oracle.noise/√D per component."""
+    dim = syn.label_vectors.shape[1]
+    return rng.normal(0, syn.oracle.noise / np.sqrt(dim), dim)
+
+
+def _image_embedding(syn: SyntheticScene, direction: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """[D] a·c + b·direction + noise, before normalisation (direction: a label's vector, or a part's)."""
+    return syn.oracle.a * syn.common_vector + syn.oracle.b * direction + noise
+
+
+def _unit_embeddings(feats: list[np.ndarray], dim: int) -> np.ndarray:
+    """[M, D] float32 a view's mask embeddings, each normalised."""
+    return _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
 
 
 @dataclass
@@ -1064,9 +1085,6 @@ def segmenter_masks_and_embeddings(rgb: np.ndarray, inst: np.ndarray, syn: Synth
     int32, feats [M, D] float32 unit rows, mask_labels [M] int32 (the label each embedding encodes).
     """
     label_rng = rng if label_rng is None else label_rng
-    o = syn.oracle
-    dim = syn.label_vectors.shape[1]
-    num_labels = len(syn.label_names)
     seg = np.full((len(LEVELS),) + inst.shape, -1, np.int32)
     feats, mask_labels = [], []
     for level, masks in enumerate(FelzenszwalbGenerator().generate(rgb)):
@@ -1075,14 +1093,11 @@ def segmenter_masks_and_embeddings(rgb: np.ndarray, inst: np.ndarray, syn: Synth
             under = under[under >= 0]
             if under.size == 0:
                 continue
-            label = int(syn.instance_labels[np.bincount(under).argmax()])
-            if num_labels > 1 and rng.random() < o.mislabel_fraction:
-                label = int(label_rng.choice([l for l in range(num_labels) if l != label]))
+            label = _drawn_label(int(syn.instance_labels[np.bincount(under).argmax()]), syn, rng, label_rng)
             seg[level][region] = len(feats)
-            feats.append(o.a * syn.common_vector + o.b * syn.label_vectors[label] + rng.normal(0, o.noise / np.sqrt(dim), dim))
+            feats.append(_image_embedding(syn, syn.label_vectors[label], _embedding_noise(syn, rng)))
             mask_labels.append(label)
-    feats_arr = _normalize(np.array(feats, np.float32).reshape(-1, dim)).astype(np.float32)
-    return seg, feats_arr, np.array(mask_labels, np.int32)
+    return seg, _unit_embeddings(feats, syn.label_vectors.shape[1]), np.array(mask_labels, np.int32)
 
 
 def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
