@@ -582,13 +582,19 @@ def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):
     corrupted dataset (the mislabelled one differs from the clean one); unknown names are refused."""
     from drsplat.eval.ablations import ablate_aggregate
 
-    result = ablate_aggregate(tmp_path, ("hard-tiny",), [0], ("paper", "vote-reject"), (10,), mask_sources=("render", "geometry"),
+    sources = ("render", "geometry", "segmenter")
+    result = ablate_aggregate(tmp_path, ("hard-tiny",), [0], ("paper", "vote-reject"), (10,), mask_sources=sources,
                               corruptions=("clean", "mislabel20"))
     names = [r[0] for r in result.rows]
-    assert names == [f"hard-tiny {s} {c}" for s in ("render", "geometry") for c in ("clean", "mislabel20") for _ in range(2)]
+    assert names == [f"hard-tiny {s} {c}" for s in sources for c in ("clean", "mislabel20") for _ in range(2)]
     seg = {(r[0], r[1]): r[3] for r in result.rows}
     assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny render mislabel20", "paper"] + 0.05
     assert seg["hard-tiny render clean", "paper"] > seg["hard-tiny geometry clean", "paper"]
+    assert seg["hard-tiny geometry clean", "paper"] > seg["hard-tiny segmenter clean", "paper"]  # superpixels miss what instances hold
     bad = subprocess.run([sys.executable, "-m", "drsplat", "eval", "ablate", "aggregate", "--corruptions", "bogus", "--out-dir", str(tmp_path / "x")],
                          capture_output=True, text=True, check=False)
     assert bad.returncode != 0 and "bogus" in bad.stderr and "mislabel10" in bad.stderr
+    jittered = subprocess.run([sys.executable, "-m", "drsplat", "eval", "ablate", "aggregate", "--mask-source", "segmenter", "--corruptions",
+                               "clean,mislabel10", "--out-dir", str(tmp_path / "y")], capture_output=True, text=True, check=False)
+    assert jittered.returncode == 1 and "mislabel10" in jittered.stderr and "Traceback" not in jittered.stderr
+    assert not (tmp_path / "y" / "datasets").exists()

@@ -611,6 +611,10 @@ def run_ablate(args: argparse.Namespace) -> int:
         if bad or not corruptions:
             raise DrsplatError(f"unknown mask source or corruption: {', '.join(bad) or '(none given)'} "
                                f"(mask sources: {', '.join(MASK_SOURCES)}; corruptions: {', '.join(CORRUPTIONS)})")
+        oracle_only = [c for c in corruptions if CORRUPTIONS[c][1] or CORRUPTIONS[c][2] or CORRUPTIONS[c][3]]
+        if "segmenter" in sources and oracle_only:
+            raise DrsplatError(f"--mask-source segmenter takes corruptions without jitter, merges or splits (the oracle's models of a "
+                               f"segmenter's errors), not {', '.join(oracle_only)}; e.g. clean, mislabel20")
         result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_sources=sources, corruptions=corruptions)
         k = max(values or AGGREGATE_TOPK)
         timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
