@@ -1100,6 +1100,17 @@ def segmenter_masks_and_embeddings(rgb: np.ndarray, inst: np.ndarray, syn: Synth
     return seg, _unit_embeddings(feats, syn.label_vectors.shape[1]), np.array(mask_labels, np.int32)
 
 
+def segmenter_corruption_error(mask_source: str | None, jitter: int | None, merge: float, split: float) -> str | None:
+    """Why segmenter masks refuse these corruptions (None: they do not, or the masks are the
+    oracle's): jitter, merges and splits are the oracle's models of a segmenter's errors, which
+    segmenter masks have of their own. The one rule `write_dataset`, `drsplat synth` and `eval
+    ablate` apply."""
+    if mask_source != "segmenter" or not (jitter or merge or split):
+        return None
+    return ("jitter, merges and splits corrupt the oracle's instance masks; segmenter masks have a segmenter's own errors "
+            f"(got jitter {jitter or 0}, merge {merge:g}, split {split:g})")
+
+
 def render_view(syn: SyntheticScene, camera: Camera, topk: int = 16) -> RenderedView:
     """RGB and ground-truth masks of one view: one rasterizer pass, and the instance map from it
     ("render" masks) or from ray casting the objects ("geometry" and "segmenter" masks)."""
@@ -1145,9 +1156,9 @@ def write_dataset(
     mislabel_fraction = PRESETS[preset].mislabel if mislabel_fraction is None else mislabel_fraction
     mask_source = PRESETS[preset].mask_source if mask_source is None else mask_source
     jitter = (0 if mask_source == "segmenter" else PRESETS[preset].jitter) if jitter is None else jitter
-    if mask_source == "segmenter" and (jitter or merge_fraction or split_fraction):
-        raise ValueError("jitter, merges and splits corrupt the oracle's instance masks; segmenter masks have a segmenter's own "
-                         f"errors (got jitter {jitter}, merge {merge_fraction:g}, split {split_fraction:g})")
+    refused = segmenter_corruption_error(mask_source, jitter, merge_fraction, split_fraction)
+    if refused:
+        raise ValueError(refused)
     if not 0.0 <= mislabel_fraction <= 1.0:
         raise ValueError("mislabel_fraction must be in [0, 1]")
     for name, value in (("merge_fraction", merge_fraction), ("split_fraction", split_fraction)):

@@ -77,14 +77,14 @@ def replaceable_dataset(folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.synthetic import CITY_PRESETS, write_city, write_dataset
+    from drsplat.synthetic import CITY_PRESETS, segmenter_corruption_error, write_city, write_dataset
     from drsplat.utils import CancelToken, atomic_folder, cancel_on_signals
 
     if args.preset in CITY_PRESETS and args.width is not None:
         raise UsageError("--width is for the room and table presets; city views are sized by the city preset")
-    if args.mask_source == "segmenter" and (args.jitter or args.merge or args.split):
-        raise UsageError("--jitter, --merge and --split corrupt the oracle's instance masks; --mask-source segmenter makes a "
-                         "segmenter's masks, which have errors of their own: leave them out")
+    refused = segmenter_corruption_error(args.mask_source, args.jitter, args.merge, args.split)
+    if refused:
+        raise UsageError(f"--mask-source segmenter takes no --jitter, --merge or --split: {refused}")
     token = CancelToken()
     with cancel_on_signals(token, "the current view"), atomic_folder(args.out_dir, replaceable_dataset) as tmp:
         if args.preset in CITY_PRESETS:

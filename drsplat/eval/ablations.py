@@ -37,7 +37,7 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.features.format import read_manifest
 from drsplat.commands.common import int_range
-from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, write_dataset
+from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, segmenter_corruption_error, write_dataset
 
 log = logging.getLogger(__name__)
 
@@ -611,10 +611,10 @@ def run_ablate(args: argparse.Namespace) -> int:
         if bad or not corruptions:
             raise DrsplatError(f"unknown mask source or corruption: {', '.join(bad) or '(none given)'} "
                                f"(mask sources: {', '.join(MASK_SOURCES)}; corruptions: {', '.join(CORRUPTIONS)})")
-        oracle_only = [c for c in corruptions if CORRUPTIONS[c][1] or CORRUPTIONS[c][2] or CORRUPTIONS[c][3]]
-        if "segmenter" in sources and oracle_only:
+        refused = [c for c in corruptions if segmenter_corruption_error("segmenter", *CORRUPTIONS[c][1:])] if "segmenter" in sources else []
+        if refused:
             raise DrsplatError(f"--mask-source segmenter takes corruptions without jitter, merges or splits (the oracle's models of a "
-                               f"segmenter's errors), not {', '.join(oracle_only)}; e.g. clean, mislabel20")
+                               f"segmenter's errors), not {', '.join(refused)}; e.g. clean, mislabel20")
         result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_sources=sources, corruptions=corruptions)
         k = max(values or AGGREGATE_TOPK)
         timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
