@@ -851,6 +851,77 @@ def test_bad_flag_values_are_usage_errors(tmp_path, world, capsys):
     assert not (tmp_path / "s").exists() and not (tmp_path / "f").exists()
 
 
+def test_phrase_lists_are_checked_entry_by_entry(tmp_path, world, capsys):
+    """Round 21: `--labels a,,b` dropped the empty entry, `--labels mug,mug` printed a second "mug" row
+    that never won a Gaussian, a newline in a label forged a line of the printed table, `--negatives ""`
+    counted as no flag at all and `--text ""` ranked the Gaussians against CLIP's empty string. Each is
+    now one usage error naming the flag and the entry, before any file is read."""
+    reg, q, out = world["reg"], world["q"], tmp_path / "l.npy"
+    cases = [
+        (["segment", reg, "--labels", "mug,,ball", "--out", out], "--labels", "entry 2 of 3 is empty"),
+        (["segment", reg, "--labels", "mug,ball,", "--out", out], "--labels", "entry 3 of 3 is empty"),
+        (["segment", reg, "--labels", "mug, mug", "--out", out], "--labels", "entry 2 repeats the phrase 'mug' of entry 1"),
+        (["segment", reg, "--labels", "mug,a\nERROR: forged", "--out", out], "--labels", "control character (U+000A)"),
+        (["segment", reg, "--labels", "mug,\u202eball", "--out", out], "--labels", "format character (U+202E)"),
+        (["query", reg, "--embedding", q, "--relevancy", "--negatives", ""], "--negatives", "gives no phrases"),
+        (["query", reg, "--embedding", q, "--relevancy", "--negatives", "a,,b"], "--negatives", "entry 2 of 3 is empty"),
+        (["query", reg, "--embedding", q, "--negatives", ""], "--negatives", "--relevancy only"),
+        (["query", reg, "--text", ""], "--text", "is blank"),
+        (["query", reg, "--text", "chair", "--text", "   "], "--text", "is blank"),
+        (["query", reg, "--text", "a\x1b[2Jchair"], "--text", "control character (U+001B)"),
+    ]
+    for argv, flag, problem in cases:
+        code, err = run_cli(argv, capsys)
+        (line,) = error_lines(err)
+        assert code == 2 and flag in line and problem in line, (argv, err)
+        assert "forged" not in err.replace(line, ""), err  # the forged text is only ever inside the quoted entry
+    assert not out.exists()
+
+
+def test_a_field_without_any_feature_is_refused_by_segment_and_query_scores(tmp_path, world, capsys):
+    """Round 21: on a registered PLY whose every feature is NaN (or unassigned) `segment` wrote all -1
+    labels and `query --scores` all-zero scores, exit 0, after a warning; `query --top/--out` refused
+    the same file. Each now refuses it (exit 1), naming the file, and writes nothing."""
+    bad = _with_lang_columns(world, tmp_path / "allnan.ply", lambda v: np.full_like(v, 0x7E00))  # float16 NaN bits
+    for argv, written in ((["segment", bad, "--embeddings", world["L"], "--out", tmp_path / "l.npy"], tmp_path / "l.npy"),
+                          (["query", bad, "--embedding", world["q"], "--scores", tmp_path / "s.npy"], tmp_path / "s.npy")):
+        code, err = run_cli(argv, capsys)
+        (line,) = error_lines(err)
+        assert code == 1 and "allnan.ply" in line and "none of its" in line and "has a language feature" in line, err
+        assert not written.exists()
+
+
+def test_segment_warns_of_labels_that_can_never_win(tmp_path, world, capsys):
+    """Round 21: two identical label rows gave the second label 0 Gaussians without a word, and a
+    --min-score above every score labelled every Gaussian -1 without one."""
+    emb = np.load(world["L"])
+    np.save(tmp_path / "dup.npy", emb[[3, 3, 2]])
+    code, err = run_cli(["segment", world["reg"], "--embeddings", tmp_path / "dup.npy", "--out", tmp_path / "l.npy"], capsys)
+    assert code == 0 and "label 'label_1' has the same embedding as 'label_0'" in err, err
+    assert (np.load(tmp_path / "l.npy") == 1).sum() == 0
+    code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "m.npy", "--min-score", "1"], capsys)
+    assert code == 0 and "no Gaussian's best score reaches --min-score 1" in err and "every label is -1" in err, err
+    assert (np.load(tmp_path / "m.npy") == -1).all()
+
+
+def test_pq_train_inputs_given_twice_or_beyond_float32(tmp_path, world, capsys):
+    """Round 21: the same --embeddings file given twice doubled the training set; float64 values beyond
+    float32's range leaked numpy's overflow warning and were then skipped as non-finite; --features
+    given a file said the folder does not exist."""
+    big = tmp_path / "big.npy"
+    np.save(big, np.random.default_rng(0).normal(size=(300, 8)) * 1e300)
+    out = tmp_path / "c.faiss"
+    code, err = run_cli(["pq", "train", "--embeddings", world["L"], world["L"], "--out", out, "--m", "4"], capsys)
+    assert code == 2 and "is given twice" in err, err
+    code, err = run_cli(["pq", "train", "--embeddings", big, "--out", out, "--m", "4"], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "big.npy" in line and "300 of 300 rows hold values beyond float32's range" in line and "RuntimeWarning" not in err, err
+    code, err = run_cli(["pq", "train", "--features", world["q"], "--out", out, "--m", "4"], capsys)
+    (line,) = error_lines(err)
+    assert code == 1 and "q.npy" in line and "is not a folder" in line, err
+    assert not out.exists()
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 

@@ -224,8 +224,38 @@ def load_encoder(args: argparse.Namespace, field: LanguageField):
     )
 
 
-def split_phrases(text: str) -> list[str]:
-    return [p.strip() for p in text.split(",") if p.strip()]
+def checked_phrases(flag: str, text: str) -> list[str]:
+    """The comma-separated phrases of `flag` (`--labels`, `--negatives`), stripped, or one UsageError
+    naming the first entry that is empty (`a,,b`, a trailing comma), holds a character a terminal
+    would not show as itself (`utils.hidden_character`) or repeats an earlier one, and when there is
+    none at all (`""`, `","`). The phrases label a printed table (a newline in one forges a line of
+    it) and are embedded one by one: a dropped or doubled entry would shift or waste a row."""
+    entries = text.split(",")
+    phrases = [entry.strip() for entry in entries]
+    if not any(phrases):
+        raise UsageError(f"{flag} {text!r} gives no phrases; expected comma-separated phrases such as 'chair,table'")
+    seen: dict[str, int] = {}
+    for i, phrase in enumerate(phrases):
+        if not phrase:
+            raise UsageError(f"{flag} {text[:60]!r}: entry {i + 1} of {len(entries)} is empty (two commas in a row, or one at an end)")
+        hidden = hidden_character(phrase)
+        if hidden is not None:
+            raise UsageError(f"{flag}: entry {i + 1} ({phrase[:40]!r}) holds {hidden}, which a terminal would not show as itself")
+        if phrase in seen:
+            raise UsageError(f"{flag}: entry {i + 1} repeats the phrase {phrase[:40]!r} of entry {seen[phrase] + 1}")
+        seen[phrase] = i
+    return phrases
+
+
+def checked_text_query(phrase: str) -> str:
+    """A `--text` phrase as given, or one UsageError when it is blank (CLIP would embed the empty
+    string, and the ranking would mean nothing) or holds a hidden character (`utils.hidden_character`)."""
+    if not phrase.strip():
+        raise UsageError(f"--text {phrase!r} is blank; give the phrase to search for, e.g. --text 'a red chair'")
+    hidden = hidden_character(phrase)
+    if hidden is not None:
+        raise UsageError(f"--text {phrase[:40]!r} holds {hidden}, which a terminal would not show as itself")
+    return phrase
 
 
 def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:

@@ -48,9 +48,14 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
     from drsplat.utils import load_npy
 
     files = list(arrays)
+    given = [*arrays, *folders]
+    for i, path in enumerate(given):
+        for earlier in given[:i]:
+            if path.resolve() == earlier.resolve():  # its rows would count twice in the training set
+                raise UsageError(f"{path} is given twice (as {earlier}); each embedding file or folder may be given once")
     for folder in folders:
         if not folder.is_dir():
-            raise InputError(folder, "features folder does not exist")
+            raise InputError(folder, "features folder does not exist" if not folder.exists() else "is not a folder (--features takes a folder of *_f.npy files; a .npy file goes to --embeddings)")
         found = sorted(folder.glob(f"*{FEAT_SUFFIX}"))
         if not found:
             raise InputError(folder, f"no *{FEAT_SUFFIX} embedding files in this folder")
@@ -65,12 +70,25 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
         if dim is not None and arr.shape[1] != dim:
             raise InputError(path, f"embeddings are {arr.shape[1]}-D but earlier files are {dim}-D")
         dim = arr.shape[1]
-        parts.append(arr.astype(np.float32))
+        parts.append(float32_rows(path, arr))
     x = np.concatenate(parts)
     ok = np.isfinite(x).all(axis=1) & (np.abs(x).sum(axis=1) > 0)
     if not ok.all():
         log.warning("skipping %d of %d embeddings that are zero or non-finite", int((~ok).sum()), len(x))
     return x[ok]
+
+
+def float32_rows(path: Path, arr: np.ndarray) -> np.ndarray:
+    """arr [n, D] as float32, or InputError naming the rows whose finite values lie beyond float32's
+    range (a cast would make them inf, and they would be skipped as if the file held non-finite values)."""
+    if arr.dtype.itemsize > 4 or arr.dtype.kind in "iu":
+        wide = arr.astype(np.float64)
+        big = (np.isfinite(wide) & (np.abs(wide) > np.finfo(np.float32).max)).any(axis=1)  # inf and NaN are skipped rows, counted later
+        if big.any():
+            rows = np.flatnonzero(big)
+            raise InputError(path, f"{rows.size} of {arr.shape[0]} rows hold values beyond float32's range (±3.4e38), e.g. row {int(rows[0])}; "
+                             "embeddings are stored as float32")
+    return arr.astype(np.float32)
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -19,7 +19,8 @@ from drsplat.commands.common import (
     nonneg_int,
     output_file,
     resolve_threshold,
-    split_phrases,
+    checked_phrases,
+    checked_text_query,
     threshold_value,
 )
 from drsplat.errors import DrsplatError, UsageError
@@ -45,7 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--gaussians", type=Path, metavar="IDS.npy", help="Gaussian indices (or a boolean mask): query = mean of their features")
     parser.add_argument("--relevancy", action="store_true", help="LERF relevancy against canonical negatives instead of cosine")
     add_lut_bits_argument(parser)
-    parser.add_argument("--negatives", default="", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")
+    parser.add_argument("--negatives", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
     parser.add_argument("--scores", type=output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
@@ -80,7 +81,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     lut_bits = common.lut_bits_for(args, field, device)
     if not args.relevancy:
         return cosine(field, queries, lut_bits=lut_bits, device=device)
-    user = split_phrases(args.negatives)
+    user = [] if args.negatives is None else checked_phrases("--negatives", args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and (extra is None or user):
         from drsplat.features.modelid import is_oracle
@@ -99,9 +100,13 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.splat_formats import check_writable
     from drsplat.utils import guard_outputs, save_npy_atomic
 
-    if not args.relevancy and (args.negatives or args.negative_embeddings is not None):
-        raise UsageError(f"{'--negatives' if args.negatives else '--negative-embeddings'} applies to --relevancy only "
+    if not args.relevancy and (args.negatives is not None or args.negative_embeddings is not None):
+        raise UsageError(f"{'--negatives' if args.negatives is not None else '--negative-embeddings'} applies to --relevancy only "
                          "(cosine scores have no negatives): add --relevancy or drop it")
+    for phrase in args.text or ():
+        checked_text_query(phrase)
+    if args.negatives is not None:
+        checked_phrases("--negatives", args.negatives)  # a usage error before any file is read
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered)}
@@ -110,14 +115,14 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
+    assigned = field.assigned()
+    if not assigned.any():  # every score would be 0 (--scores wrote them until 2026-11-30): nothing to score, select or rank
+        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned or "
+                           "non-finite): there is nothing to score, select or rank")
     queries, single, encoder = build_queries(args, field, encoder_factory)
     scores = compute_scores(args, field, queries, encoder, encoder_factory)
     best = scores.max(axis=1) if scores.shape[1] else np.zeros(len(field), np.float32)
-    assigned = field.assigned()
     selecting = args.out is not None or args.threshold is not None
-    if (selecting or args.scores is None) and not assigned.any():  # scores alone are still written: every one is 0
-        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned): "
-                           "there is nothing to select or rank")
     mask = chosen = None
     if selecting:  # the selection and its export are settled before any output is written: a refused export leaves none
         threshold = resolve_threshold(args.threshold, best[assigned], args.relevancy)

@@ -21,10 +21,10 @@ from drsplat.commands.common import (
     lut_bits_for,
     output_file,
     scoring_device,
-    split_phrases,
+    checked_phrases,
 )
 from drsplat.defaults import ORACLE_LABEL_NAMES
-from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.utils import read_json
@@ -83,11 +83,18 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
 
 
 def label_phrases(text: str) -> list[str]:
-    """The --labels phrases; none (`""`, `","`, `" , "`) is a usage error, as a missing value is."""
-    names = split_phrases(text)
-    if not names:
-        raise UsageError(f"--labels {text!r} gives no label phrases; expected comma-separated phrases such as 'chair,table'")
-    return names
+    """The --labels phrases (`checked_phrases`): none, an empty entry, a hidden character or a repeated phrase is a usage error."""
+    return checked_phrases("--labels", text)
+
+
+def warn_repeated_rows(embeddings: np.ndarray, names: list[str]) -> None:
+    """A warning naming each label whose embedding row [D] equals an earlier label's: argmax gives the
+    first of equal scores, so the later label would never win a Gaussian."""
+    _, first, inverse = np.unique(embeddings, axis=0, return_index=True, return_inverse=True)
+    for i, group in enumerate(inverse.reshape(-1)):
+        if first[group] != i:
+            log.warning("label %r has the same embedding as %r: argmax gives every such Gaussian to %r, so %r gets none",
+                        names[i], names[first[group]], names[first[group]], names[i])
 
 
 def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> list[str]:
@@ -145,10 +152,18 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
+    assigned = field.assigned()
+    if not assigned.any():  # every label would be -1 (written so until 2026-11-30): nothing to segment
+        raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned or "
+                           "non-finite): there is nothing to segment")
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
+    warn_repeated_rows(labels_emb, names)
     device = scoring_device(args)
     seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=lut_bits_for(args, field, device),
                   device=device)
+    if args.min_score is not None and not (seg.labels >= 0).any():
+        log.warning("no Gaussian's best score reaches --min-score %g (the best is %.4f): every label is -1", args.min_score,
+                    float(seg.scores[assigned].max()))
     coloured = coloured_scene(scene, seg.labels, label_colors(len(names))) if args.ply is not None else None
     if coloured is not None:
         check_writable(coloured, args.ply)  # before LABELS.npy is written: a refused export leaves no half of the outputs
