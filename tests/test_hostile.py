@@ -922,6 +922,27 @@ def test_pq_train_inputs_given_twice_or_beyond_float32(tmp_path, world, capsys):
     assert not out.exists()
 
 
+def test_info_describes_the_language_field(tmp_path, world, capsys):
+    """Round 21: `info` on a registered PLY said nothing of its language field, so a field that every
+    query refuses (all features NaN, an unknown kind) read "findings none". It now gives the field's
+    kind, size and counts, and what would make query refuse it as findings, still exit 0."""
+    code = main(["info", str(world["reg"]), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    field = summary["language_field"]
+    assert code == 0 and field["kind"] == "exact" and field["dim"] == world["dim"] and field["nonfinite"] == 0
+    assert field["assigned"] + field["unassigned"] == summary["num_gaussians"] and field["assigned"] > 0
+    bad = _with_lang_columns(world, tmp_path / "allnan.ply", lambda v: np.full_like(v, 0x7E00))
+    code, out = main(["info", str(bad)]), capsys.readouterr().out
+    assert code == 0 and "0 assigned" in out and f"{summary['num_gaussians']:,} Gaussians have non-finite language features" in out, out
+    assert "query and segment refuse this file" in out
+    kind = tmp_path / "kind.ply"
+    kind.write_bytes(world["reg"].read_bytes().replace(b"kind=exact", b"kind=bogus", 1))
+    code, out = main(["info", str(kind)]), capsys.readouterr().out
+    assert code == 0 and "language field: unknown language field kind 'bogus'" in out, out
+    code, out = main(["info", str(world["ds"] / "scene.ply"), "--json"]), capsys.readouterr().out
+    assert code == 0 and json.loads(out)["language_field"] is None
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 

@@ -93,13 +93,59 @@ def format_summary(s: dict) -> str:
         f"  opacity        {stats(s['opacity'])}",
         f"  largest scale  {stats(s['scale'])}",
         f"  extra props    {', '.join(s['extra_properties'][:8]) + (' …' if len(s['extra_properties']) > 8 else '') or '-'}",
+        *format_field(s.get("language_field")),
         f"  findings       {'; '.join(s['findings']) or 'none'}",
     ]
     return "\n".join(lines)
 
 
+def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[str]]:
+    """(the language field's summary, findings) of a registered PLY; (None, []) for a scene without
+    one. A field that `query` would refuse is a finding naming why, not an error: info describes
+    the file as it is. Counts: Gaussians with a feature, without one (unassigned), and with a
+    non-finite one (they score 0)."""
+    import logging
+
+    from drsplat.errors import InputError
+    from drsplat.lang import read_field
+
+    if not any(c.startswith("drsplat.lang") for c in scene.comments):
+        return None, []
+    logger = logging.getLogger("drsplat.lang")
+    level = logger.level
+    logger.setLevel(logging.ERROR)  # its non-finite count is reported below, as a finding
+    try:
+        field = read_field(scene, path)
+    except InputError as exc:
+        return None, [f"language field: {exc.problem}"]
+    finally:
+        logger.setLevel(level)
+    if field is None:
+        return None, []
+    nonfinite = int(np.count_nonzero(~np.isfinite(field.norms)))
+    assigned = int(np.count_nonzero(field.assigned()))
+    summary = {"kind": field.kind, "dim": field.dim, "clip_model": field.clip_model, "bytes_per_gaussian": field.bytes_per_gaussian(),
+               "codebook": None if field.codebook_path is None else str(field.codebook_path), "assigned": assigned,
+               "unassigned": field.num_gaussians - assigned, "nonfinite": nonfinite}
+    findings = [f"{nonfinite:,} Gaussians have non-finite language features (they score 0)"] if nonfinite else []
+    if not assigned:
+        findings.append("no Gaussian has a language feature: query and segment refuse this file")
+    return summary, findings
+
+
+def format_field(f: dict | None) -> list[str]:
+    if f is None:
+        return []
+    book = f" (codebook {f['codebook']})" if f["codebook"] else ""
+    return [f"  language       {f['kind']}{book}, {f['dim']}-D, {f['clip_model']}, {f['bytes_per_gaussian']} bytes a Gaussian",
+            f"  features       {f['assigned']:,} assigned, {f['unassigned']:,} without one"]
+
+
 def run(args: argparse.Namespace) -> int:
     scene, report = load_scene_report(args.scene)
     summary = scene_summary(scene, report)
+    field, findings = field_summary(scene, args.scene)
+    summary["language_field"] = field
+    summary["findings"] = summary["findings"] + findings
     print(json_text(summary) if args.json else format_summary(summary))
     return 0
