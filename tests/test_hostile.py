@@ -943,6 +943,21 @@ def test_info_describes_the_language_field(tmp_path, world, capsys):
     assert code == 0 and json.loads(out)["language_field"] is None
 
 
+def test_a_negative_registration_weight_is_warned_about(tmp_path, world, capsys):
+    """Round 21: lang_weight < 0 (which registration never writes) was read without a word."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(world["reg"])
+    extra = dict(scene.extra)
+    extra["lang_weight"] = extra["lang_weight"].copy()
+    extra["lang_weight"][:7] = -1.0
+    save_ply(dataclasses.replace(scene, extra=extra), tmp_path / "neg.ply")
+    code, err = run_cli(["query", tmp_path / "neg.ply", "--embedding", world["q"], "--top", "1"], capsys)
+    assert code == 0 and "neg.ply: 7 Gaussians have a negative registration weight (lang_weight < 0)" in err, err
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 

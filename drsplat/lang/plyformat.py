@@ -281,6 +281,10 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
         log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
+    negative = int(np.count_nonzero(weights < 0))
+    if negative:  # a weight is a sum of w = T·α ≥ 0; nothing reads its sign, but the file is not as registration wrote it
+        log.warning("%s: %d Gaussians have a negative registration weight (lang_weight < 0), which registration never writes: "
+                    "the file was altered", ply_path, negative)
     if orphans:  # registration zeroes the weight of every row it leaves without a feature (normalize_rows)
         log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
                     "they are unassigned", ply_path, orphans)
