@@ -596,5 +596,5 @@ def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):
     assert bad.returncode != 0 and "bogus" in bad.stderr and "mislabel10" in bad.stderr
     jittered = subprocess.run([sys.executable, "-m", "drsplat", "eval", "ablate", "aggregate", "--mask-source", "segmenter", "--corruptions",
                                "clean,mislabel10", "--out-dir", str(tmp_path / "y")], capture_output=True, text=True, check=False)
-    assert jittered.returncode == 1 and "mislabel10" in jittered.stderr and "Traceback" not in jittered.stderr
+    assert jittered.returncode == 2 and "mislabel10" in jittered.stderr and "Traceback" not in jittered.stderr
     assert not (tmp_path / "y" / "datasets").exists()

@@ -17,14 +17,19 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import checked_names, float_range, guard_args, int_range, output_file, positive_float, threshold_value
+from drsplat.commands.common import (checked_names, float_range, guard_args, guard_field_codebook, int_range, output_file,
+                                     threshold_value)
 from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
-from drsplat.utils import json_text, read_json
+from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text, read_json
 
 log = logging.getLogger(__name__)
 
 WEIGHTINGS = ("volume", "count", "voxel")
+# the Mahalanobis radius of a vote: a point at r = 40 weighs exp(-800) = 0 in float64, so a larger radius
+# adds no Gaussian vote, only neighbour-search work (every point near every Gaussian at 1e308)
+MAX_RADIUS = 40.0
+MIN_TAU_STEP = 1e-6  # the grid is printed and compared rounded to 6 decimals: a finer step would repeat thresholds
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -97,7 +102,8 @@ def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     d = PSEUDO_DEFAULTS
     g.add_argument("--classes", type=class_list, default=d["classes"], metavar="A,B,...",
                    help="keep only these label names, each once (others become unlabelled)")
-    g.add_argument("--radius", type=positive_float, default=d["radius"], help="Mahalanobis radius r (points with D <= r^2 vote)")
+    g.add_argument("--radius", type=float_range(0.0, MAX_RADIUS, lo_open=True), default=d["radius"],
+                   help=f"Mahalanobis radius r (points with D <= r^2 vote), at most {MAX_RADIUS:g}")
     g.add_argument("--vote", choices=("gaussian", "count"), default=d["vote"], help="vote weight exp(-D/2) (default) or 1")
     g.add_argument("--engine", choices=("grid", "kdtree"), default=d["engine"], help="neighbour search: numba point grid (default) or scipy KD-trees")
     g.add_argument("--min-opacity", type=float_range(0.0, 1.0), default=d["min_opacity"], metavar="P",
@@ -131,7 +137,7 @@ def _add_scannet(sub) -> None:
     p = sub.add_parser("scannet", help="3D IoU on a ScanNet scene: pseudo ground truth from *_vh_clean_2.labels.ply (NYU40)")
     p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
     p.add_argument("--scene-dir", type=Path, required=True, metavar="DIR", help="ScanNet scene folder (or the labels.ply itself)")
-    p.add_argument("--save-labels", type=Path, metavar="OUT.npy", help="also save the pseudo-labels")
+    p.add_argument("--save-labels", type=output_file, metavar="OUT.npy", help="also save the pseudo-labels")
     _add_pseudo_arguments(p)
     _add_query_arguments(p, "JSON list of the raw label names 1..K (default: the 40 NYU40 classes)")
     _add_task_arguments(p)
@@ -143,7 +149,7 @@ def _add_pseudolabels(sub) -> None:
     p.add_argument("scene", type=Path, metavar="SCENE.ply")
     p.add_argument("--points", type=Path, required=True, metavar="CLOUD", help="labelled cloud: PLY with x, y, z, label (ScanNet layout), or .pcd/.xyz/.pts with labels in CLOUD.labels.npy")
     p.add_argument("--out", type=output_file, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
-    p.add_argument("--names-out", type=Path, metavar="NAMES.json", help="write the label names (index = label id)")
+    p.add_argument("--names-out", type=output_file, metavar="NAMES.json", help="write the label names (index = label id)")
     p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
     _add_pseudo_arguments(p)
     p.set_defaults(func=run_pseudolabels)
@@ -176,12 +182,16 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
     return checked_names(path, names)
 
 
-def load_gt_labels(path: Path, n: int, num_labels: int) -> np.ndarray:
+def load_gt_labels(path: Path, n: int, num_labels: int, original: Path | None = None) -> np.ndarray:
+    """(n,) int64 labels, -1..num_labels-1; `original`: the --original scene given, whose size the hint names."""
     from drsplat.query import _load_npy
 
     arr = _load_npy(path)
     if arr.ndim != 1 or arr.shape[0] != n:
-        hint = " (labels of the unregistered scene? pass it with --original SCENE.ply)" if arr.ndim == 1 and arr.shape[0] > n else ""
+        hint = ""
+        if arr.ndim == 1 and arr.shape[0] > n:
+            hint = (" (labels of the unregistered scene? pass that scene with --original SCENE.ply)" if original is None else
+                    f" (--original {original.name} has {n} Gaussians: are these the labels of another scene?)")
         raise InputError(path, f"expected ({n},) labels, one per Gaussian, got shape {arr.shape}{hint}")
     if not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected integer labels, got dtype {arr.dtype}")
@@ -216,9 +226,8 @@ MAX_TAUS = 10_001  # localisation thresholds searched; each costs one pass over 
 
 
 def parse_taus(text: str) -> np.ndarray:
-    """START:STOP:STEP -> the inclusive grid; at most MAX_TAUS finite values (UsageError otherwise)."""
-    from drsplat.errors import UsageError
-
+    """START:STOP:STEP -> the inclusive grid; at most MAX_TAUS finite values, STEP at least MIN_TAU_STEP
+    (the thresholds are rounded to 6 decimals: a finer step would repeat them) (UsageError otherwise)."""
     try:
         start, stop, step = (float(x) for x in text.split(":"))
     except ValueError:
@@ -227,18 +236,106 @@ def parse_taus(text: str) -> np.ndarray:
         raise UsageError(f"--taus {text!r}: START, STOP and STEP must be finite numbers")
     if step <= 0 or stop < start:
         raise UsageError(f"--taus {text!r}: need STEP > 0 and STOP >= START")
-    count = np.floor((stop - start) / step + 0.5) + 1
-    if count > MAX_TAUS:
+    if step < MIN_TAU_STEP:
+        raise UsageError(f"--taus {text!r}: STEP {step:g} is below {MIN_TAU_STEP:g}; thresholds are compared to 6 decimals")
+    with np.errstate(over="ignore", invalid="ignore"):
+        count = np.floor((stop - start) / step + 0.5) + 1
+    if not np.isfinite(count) or count > MAX_TAUS:
         raise UsageError(f"--taus {text!r} is a grid of {count:.3g} thresholds; at most {MAX_TAUS} (use a larger STEP)")
-    return np.round(np.arange(start, stop + 0.5 * step, step), 6)
+    with np.errstate(over="ignore", invalid="ignore"):
+        grid = np.round(np.arange(start, stop + 0.5 * step, step), 6)
+    if not np.isfinite(grid).all():  # STOP + STEP/2 beyond float range
+        raise UsageError(f"--taus {text!r}: the grid reaches beyond the range of floating-point numbers")
+    return grid
 
 
-def parse_weightings(text: str) -> tuple[str, ...]:
+def parse_weightings(text: str | tuple[str, ...]) -> tuple[str, ...]:
+    """--weighting as a tuple of WEIGHTINGS (a tuple passes through: the command parsed it up front)."""
+    if isinstance(text, tuple):
+        return text
     items = tuple(w.strip() for w in text.split(",") if w.strip())
     unknown = [w for w in items if w not in WEIGHTINGS]
     if unknown or not items:
-        raise DrsplatError(f"--weighting: unknown {unknown or text!r}; choose from {', '.join(WEIGHTINGS)}")
-    return items
+        raise DrsplatError(f"--weighting: unknown {', '.join(unknown) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
+    return tuple(dict.fromkeys(items))
+
+
+def check_metric_flags(args: argparse.Namespace) -> None:
+    """--taus and --weighting checked before any file is read (the grid and the list are parsed once here)."""
+    parse_taus(args.taus)
+    args.weighting = parse_weightings(args.weighting)
+
+
+def cloud_inputs(flag: str, cloud: Path | None) -> dict[str, Path]:
+    """The file a labelled cloud's raw labels are read from when it is not the cloud itself: the
+    `<cloud>.labels.npy` beside a .xyz/.pcd/.pts cloud (an input that guard_args cannot see)."""
+    from drsplat.eval.datasets import POINT_CLOUD_SUFFIXES, labels_sidecar
+
+    if cloud is None or cloud.suffix.lower() not in POINT_CLOUD_SUFFIXES:
+        return {}
+    return {f"{flag}'s labels file": labels_sidecar(cloud)}
+
+
+MAX_FOLDER_FILES = 100_000  # files of a dataset folder guarded one by one; beyond that the folder is too large to list up front
+
+
+def folder_files(flag: str, folder: Path | None) -> dict[str, Path]:
+    """Every regular file under `folder` (recursively) as an input named after `flag`: a dataset's
+    files are found by name at read time (cameras, features, manifest, ground truth, images), so an
+    output over any of them would damage the dataset for this run or the next."""
+    if folder is None or not folder.is_dir():
+        return {}
+    files: dict[str, Path] = {}
+    possessive = "'" if flag.endswith("s") else "'s"
+    for f in folder.rglob("*"):
+        if f.is_file():
+            files[f"{flag}{possessive} file {f.relative_to(folder)}"] = f
+            if len(files) >= MAX_FOLDER_FILES:
+                break
+    return files
+
+
+def check_folder(flag: str, folder: Path) -> None:
+    """InputError unless `folder` is a folder: said before anything inside it is looked for."""
+    if not folder.is_dir():
+        raise InputError(folder, f"{flag}: " + ("does not exist" if not folder.exists() else "is not a folder"))
+
+
+def probe_outputs(*paths: Path | None) -> None:
+    """OutputError now, not after the work, for an output that could not be written (`check_output_writable`)."""
+    for path in paths:
+        if path is not None:
+            check_output_writable(path)
+
+
+def assigned_rows(path: Path, field) -> np.ndarray:
+    """[N] bool: the Gaussians that hold a language feature (`LanguageField.assigned`, a finite positive
+    norm; registration weights do not say this). InputError when there is none: every score would be 0
+    and every IoU 0 by construction, which reads like a result."""
+    assigned = np.asarray(field.assigned(), bool)
+    if not assigned.any():
+        raise InputError(path, f"none of its {assigned.size} Gaussians holds a language feature (every stored norm is 0 or "
+                               "non-finite): nothing to evaluate; register the scene again")
+    if not assigned.all():
+        log.info("%s: %d of %d Gaussians hold a language feature; the others are never selected", path, int(assigned.sum()), assigned.size)
+    return assigned
+
+
+def check_defined(reports, names: list[str]) -> None:
+    """Every label queried has ground truth, so an undefined (NaN) IoU means the weighting could not
+    measure it (a voxel IoU with no occupied voxel): warn naming the labels left out of the mean,
+    and refuse a report that measured none (its mIoU would be NaN, exit 0)."""
+    for r in reports:
+        dropped = [names[i] for i in np.flatnonzero(~r.valid)]
+        if not dropped:
+            continue
+        what = f"{r.task} IoU ({r.weighting})"
+        if len(dropped) == len(names):
+            hint = " (is --voxel-empty above every voxel's mass, or --voxel-resolution too coarse?)" if r.weighting == "voxel" else ""
+            raise DrsplatError(f"{what}: no label's IoU is defined{hint}; nothing to average")
+        shown = ", ".join(dropped[:10]) + (f" and {len(dropped) - 10} more" if len(dropped) > 10 else "")
+        log.warning("%s: averaged over %d of %d labels; undefined for %s (left out of the mean)", what, len(names) - len(dropped),
+                    len(names), shown)
 
 
 def write_json(path: Path | None, doc: dict) -> None:
@@ -251,14 +348,29 @@ def write_json(path: Path | None, doc: dict) -> None:
     log.info("wrote %s", path)
 
 
+def check_classes(args: argparse.Namespace, raw_names: list[str]) -> None:
+    """UsageError naming --classes and where the names came from when a class is not one of them."""
+    unknown = [c for c in args.classes or () if c not in raw_names]
+    if unknown:
+        source = args.label_names if args.label_names is not None else "NYU40 (the default; pass --label-names for others)"
+        raise UsageError(f"--classes: {', '.join(map(repr, unknown))} {'is' if len(unknown) == 1 else 'are'} not among the label names of {source}")
+
+
 def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: list[str]):
-    """(labels [N], names) of a scene from a labelled cloud, with the --classes/--radius/--vote options."""
+    """(labels [N], names) of a scene from a labelled cloud, with the --classes/--radius/--vote options.
+    Ctrl-C stops the vote at its next chunk (`cancel_on_signals`): the grid engine's kernel holds the
+    main thread for minutes on a large scene."""
     from drsplat.eval.datasets import load_labelled_points
     from drsplat.eval.pseudolabels import pseudo_labels
 
+    check_classes(args, raw_names)
     pts = load_labelled_points(cloud, raw_names, args.classes)
-    res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
-                        show_progress=not getattr(args, "quiet", False))
+    token = CancelToken()
+    with cancel_on_signals(token, "the current chunk of Gaussians"):
+        res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
+                            show_progress=not getattr(args, "quiet", False), cancel=token)
+        token.raise_if_cancelled()
+    faint = np.zeros(len(res.labels), bool)
     if args.min_opacity > 0:  # OpenGaussian's scripts/eval_scannet.py drops Gaussians of sigmoid(opacity) < 0.1 from its ground truth
         faint = ~(scene.opacities() >= args.min_opacity)
         res.labels[faint] = -1
@@ -266,8 +378,9 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     labelled = int(np.count_nonzero(res.labels >= 0))
     log.info("pseudo-labels: %d of %d Gaussians labelled from %d points (%d non-finite Gaussians)", labelled, len(res.labels), len(pts.points), res.nonfinite)
     if labelled == 0:
-        log.warning("the pseudo-labels from %s label none of the scene's %d Gaussians: %s", cloud, len(res.labels),
-                    why_nothing_labelled(scene.means, pts.points, pts.labels, res.nonfinite, args.radius))
+        why = (f"every Gaussian's opacity is below --min-opacity {args.min_opacity:g}" if args.min_opacity > 0 and faint.all() else
+               why_nothing_labelled(scene.means, pts.points, pts.labels, res.nonfinite, args.radius))
+        log.warning("the pseudo-labels from %s label none of the scene's %d Gaussians: %s", cloud, len(res.labels), why)
     return res.labels.astype(np.int64), pts.names
 
 
@@ -342,15 +455,16 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     remap = np.full(len(names) + 1, -1, np.int64)
     remap[keep] = np.arange(len(keep))
     gt_sub = np.where(gt >= 0, remap[np.maximum(gt, 0)], -1)
+    assigned = assigned_rows(args.registered, field)
     scores = label_scores(args, field, sub_names) if args.text_embeddings is None else label_scores(args, field, names)[:, keep]
-    assigned = np.asarray(field.weights) > 0
     if index is not None:
         scores = expand_scores(scores, index, scene.num_gaussians)
-        assigned = np.zeros(scene.num_gaussians, bool)
-        assigned[index] = np.asarray(field.weights) > 0
+        registered, assigned = assigned, np.zeros(scene.num_gaussians, bool)
+        assigned[index] = registered
     tasks = ("loc", "seg") if args.task == "both" else (args.task,)
     reports = evaluate_scene(scene, scores, gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
                              args.voxel_resolution, args.voxel_empty, assigned=assigned)
+    check_defined(reports, sub_names)
     print(f"{args.registered.name}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
           f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}")
     print(format_reports(reports))
@@ -367,24 +481,29 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
 def run_iou(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES
 
-    if args.synthetic is not None:
-        ds = args.synthetic
-        args.gt_labels = ds / "gt" / "labels.npy"
-        args.label_names = args.label_names or ds / ORACLE_LABEL_NAMES
-        args.text_embeddings = args.text_embeddings or ds / ORACLE_TEXT_EMBEDDINGS
-        args.original = args.original or ds / "scene.ply"
-    elif args.gt_labels is None and args.gt_points is None:
-        raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
     if args.gt_points is None:  # the pseudo-label options act on a labelled cloud only: silently ignoring them would mislead
         given = pseudo_flags_given(args)
         if given:
             raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to pseudo-labels from --gt-points CLOUD.ply only")
-    parse_taus(args.taus)
-    guard_args(args, ("json",))
+    check_metric_flags(args)
+    if args.synthetic is None and args.gt_labels is None and args.gt_points is None:
+        raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
+    dataset_files: dict[str, Path] = {}
+    if args.synthetic is not None:
+        ds = args.synthetic
+        check_folder("--synthetic", ds)
+        dataset_files = folder_files("--synthetic", ds)  # an output over any file of the dataset would damage it
+        args.gt_labels = ds / "gt" / "labels.npy"
+        args.label_names = args.label_names or ds / ORACLE_LABEL_NAMES
+        args.text_embeddings = args.text_embeddings or ds / ORACLE_TEXT_EMBEDDINGS
+        args.original = args.original or ds / "scene.ply"
+    guard_args(args, ("json",), extra_inputs={**dataset_files, **cloud_inputs("--gt-points", args.gt_points)})
+    probe_outputs(args.json)
     scene, field, index = load_eval_scene(args)
+    guard_field_codebook(args.registered, field, {"--json": args.json})
     if args.gt_labels is not None:
         names = load_label_names(args.label_names)
-        gt = load_gt_labels(args.gt_labels, scene.num_gaussians, len(names))
+        gt = load_gt_labels(args.gt_labels, scene.num_gaussians, len(names), args.original)
     else:
         raw = load_label_names(args.label_names, list(NYU40_NAMES))
         gt, names = pseudo_from_cloud(args, scene, args.gt_points, raw)
@@ -395,13 +514,16 @@ def run_scannet(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES, SCANNET_LABELS_PATTERN, find_scannet_labels
     from drsplat.utils import save_npy_atomic
 
-    parse_taus(args.taus)
+    check_metric_flags(args)
     cloud = find_scannet_labels(args.scene_dir)
     # the labels PLY is found inside --scene-dir, so guard_args does not know it; an output named
     # like one beside it would make the folder ambiguous for the next run
     folder = {"--scene-dir": (args.scene_dir, (SCANNET_LABELS_PATTERN,))} if args.scene_dir.is_dir() else None
-    guard_args(args, ("json", "save_labels"), extra_inputs={"--scene-dir's labels PLY": cloud}, protected_folders=folder)
+    guard_args(args, ("json", "save_labels"), extra_inputs={"--scene-dir's labels PLY": cloud, **cloud_inputs("--scene-dir", cloud)},
+               protected_folders=folder)
+    probe_outputs(args.json, args.save_labels)
     scene, field, index = load_eval_scene(args)
+    guard_field_codebook(args.registered, field, {"--json": args.json, "--save-labels": args.save_labels})
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     gt, names = pseudo_from_cloud(args, scene, cloud, raw)
     if args.save_labels is not None:
@@ -413,7 +535,8 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import NYU40_NAMES
     from drsplat.utils import atomic_path, save_npy_atomic
 
-    guard_args(args, ("out", "names_out"))
+    guard_args(args, ("out", "names_out"), extra_inputs=cloud_inputs("--points", args.points))
+    probe_outputs(args.out, args.names_out)
     scene = load_row_aligned_scene(args.scene, "the labels written (one per row)")
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
@@ -437,13 +560,17 @@ def run_lerf(args: argparse.Namespace) -> int:
     cameras = load_cameras(args.source)
     # the camera file and the annotations are found inside --source and --annotations; any *.json
     # written into --annotations would be read as an annotation by the next run
-    inputs = {**dataset_inputs(args.source, cameras), **{f"--annotations' file {f.name}": f for f in lerf_annotation_files(args.annotations)}}
+    lerf_annotation_files(args.annotations)  # a missing folder or one without annotations, said before anything else
+    inputs = {**dataset_inputs(args.source, cameras), **folder_files("--annotations", args.annotations)}
     guard_args(args, ("json",), extra_inputs=inputs, protected_folders={"--annotations": (args.annotations, ("*.json",))})
+    probe_outputs(args.json)
     views = load_lerf_annotations(args.annotations, {c.name: (c.width, c.height) for c in cameras})
     if not any(v.masks or v.skipped for v in views):
         raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
+    guard_field_codebook(args.registered, field, {"--json": args.json})
+    assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})
     names = load_label_names(args.label_names, categories)
     missing = [c for c in categories if c not in names]
@@ -458,7 +585,7 @@ def run_lerf(args: argparse.Namespace) -> int:
             threshold = float(args.threshold)
         except ValueError:
             raise DrsplatError(f"--threshold must be a number or 'auto', got {args.threshold!r}") from None
-    selected, taus = select_queries(scores, threshold, field.assigned())
+    selected, taus = select_queries(scores, threshold, assigned)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     report = lerf_2d_report(scene, cameras, views, selections, args.alpha_threshold, show_progress=True)
     if not report.rows and report.skipped:

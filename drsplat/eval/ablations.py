@@ -19,7 +19,6 @@ volume-aware weighting unless said otherwise; localisation uses the grid-searche
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,16 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.utils import CancelToken, atomic_path, json_text
+from drsplat.utils import CancelToken, atomic_path, cancel_on_signals, check_output_writable, json_text
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
-from drsplat.errors import DrsplatError
+from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
 from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.features.format import read_manifest
-from drsplat.commands.common import int_range
+from drsplat.commands.common import int_range, seed_int
+from drsplat.defaults import MAX_TOPK
 from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, segmenter_corruption_error, write_dataset
 
 log = logging.getLogger(__name__)
@@ -109,11 +109,35 @@ def dataset(root: Path, preset: str, seed: int, mislabel: float = 0.0, noise: fl
     path = root / (f"{preset}-s{seed}-m{mislabel:g}-n{noise:g}" + (f"-{mask_source}" if mask_source else "")
                    + (f"-j{jitter}" if jitter is not None else "") + (f"-u{merge:g}" if merge > 0 else "")
                    + (f"-p{split:g}" if split > 0 else "") + (f"-w{width}" if width is not None else ""))
-    if not (path / "scene.ply").exists() or (mislabel > 0 and _stale_wrong_labels(path)):
+    def write() -> None:
         write_dataset(path, preset, seed, mislabel_fraction=mislabel, noise=noise, mask_source=mask_source, jitter=jitter,
                       merge_fraction=merge, split_fraction=split, width=width, show_progress=False)
-    return Dataset(path, load_ply(path / "scene.ply"), load_cameras(path), np.load(path / "gt" / "labels.npy").astype(np.int64),
-                   json.loads((path / ORACLE_LABEL_NAMES).read_text()), np.load(path / ORACLE_TEXT_EMBEDDINGS))
+
+    if not (path / "scene.ply").exists() or (mislabel > 0 and _stale_wrong_labels(path)):
+        write()
+        return load_cached(path, PRESETS[preset].dim)
+    try:
+        return load_cached(path, PRESETS[preset].dim)
+    except DrsplatError as exc:  # a damaged cache is ours to rebuild; one that fails again is reported by the second load
+        log.warning("cached dataset %s fails a check (%s); written again", path, exc)
+        write()
+        return load_cached(path, PRESETS[preset].dim)
+
+
+def load_cached(path: Path, dim: int) -> Dataset:
+    """A cached synthetic dataset read through the checked loaders of `drsplat eval iou` (labels in range
+    and one per Gaussian, names, finite unit text embeddings of `dim` columns, one per name), so a
+    damaged cache raises one InputError naming the file instead of changing the numbers silently."""
+    from drsplat.commands.eval import load_gt_labels, load_label_names
+    from drsplat.query import load_query_embeddings
+
+    scene = load_ply(path / "scene.ply")
+    names = load_label_names(path / ORACLE_LABEL_NAMES)
+    text = load_query_embeddings(path / ORACLE_TEXT_EMBEDDINGS, dim)
+    if text.shape[0] != len(names):
+        raise InputError(path / ORACLE_TEXT_EMBEDDINGS, f"{text.shape[0]} embeddings for the {len(names)} label names of {ORACLE_LABEL_NAMES}")
+    gt = load_gt_labels(path / "gt" / "labels.npy", scene.num_gaussians, len(names))
+    return Dataset(path, scene, load_cameras(path), gt, names, text)
 
 
 def _stale_wrong_labels(path: Path) -> bool:
@@ -558,20 +582,29 @@ def _plot_aggregate(result: AblationResult, plt):
 # ---------------------------------------------------------------------------------------------- CLI
 
 
+MAX_REPEATS = 1000  # aggregate's interleaved timing runs: each repeat registers the scene once per mode
+# the flags each ablation reads besides --preset, --seeds and --out-dir; any other one given is a usage
+# error (silently ignoring it would report numbers for settings the user did not ask for)
+ABLATION_FLAGS = {"topk": ("values",), "pq": ("values",), "robustness": (), "metrics": (),
+                  "aggregate": ("modes", "mask_source", "corruptions", "repeats", "values"),
+                  "resolution": ("modes", "mask_source", "width", "values")}
+
+
 def add_ablate_parser(sub) -> None:
     p = sub.add_parser("ablate", help="reproduce the paper's ablations on synthetic scenes (tables + PNG plots)",
                        description=__doc__.split("\n\n")[0] + "; see docs/evaluation.md.")
     p.add_argument("ablation", choices=ABLATIONS)
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
-    p.add_argument("--modes", default=None, metavar="M,M", help="aggregate: the aggregation modes to compare (default: all)")
+    p.add_argument("--modes", default=None, metavar="M,M", help="aggregate, resolution: the aggregation modes to compare (default: all)")
     p.add_argument("--mask-source", default=None, metavar="SRC[,SRC]",
                    help="aggregate, resolution: oracle masks of every preset from the rendered Gaussians' vote (render), ray-cast true silhouettes "
                         "(geometry) or a segmenter's superpixels (segmenter: with corruptions without jitter, e.g. clean or "
                         "mislabel20); for aggregate a comma-separated list compares them (default: each preset's own)")
-    p.add_argument("--corruptions", default="own", metavar="C[,C]",
+    p.add_argument("--corruptions", default=None, metavar="C[,C]",
                    help=f"aggregate: oracle corruptions to compare ({', '.join(CORRUPTIONS)}; default: each preset's own)")
-    p.add_argument("--repeats", type=int, default=5, help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
+    p.add_argument("--repeats", type=int_range(1, MAX_REPEATS), default=None,
+                   help="aggregate: interleaved timing runs per mode on the last preset (default: 5)")
     p.add_argument("--seeds", default="0", metavar="S,S", help="comma-separated scene seeds (results are averaged)")
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k, PQ sub-vectors or resolution divisors)")
     p.add_argument("--width", type=int_range(MIN_WIDTH, MAX_WIDTH), default=None, metavar="PIXELS",
@@ -580,75 +613,177 @@ def add_ablate_parser(sub) -> None:
     p.set_defaults(func=run_ablate)
 
 
+def _list(flag: str, text: str) -> list[str]:
+    """The comma-separated entries of `flag`, stripped; UsageError for an empty one or none at all."""
+    items = [t.strip() for t in text.split(",")]
+    if not any(items):
+        raise UsageError(f"{flag} {text!r} gives no value; expected a comma-separated list")
+    if not all(items):
+        raise UsageError(f"{flag} {text!r}: an entry is empty (two commas in a row, or one at an end)")
+    return items
+
+
+def _int_list(flag: str, text: str, parse, error: type[DrsplatError] = UsageError) -> list[int]:
+    """`_list` of integers through an argparse validator (`int_range`), each once; `error` naming the flag."""
+    values = []
+    for item in _list(flag, text):
+        try:
+            values.append(parse(item))
+        except argparse.ArgumentTypeError as exc:
+            raise error(f"{flag}: {exc}") from None
+    repeated = sorted({v for v in values if values.count(v) > 1})
+    if repeated:
+        raise error(f"{flag}: {', '.join(map(str, repeated))} given twice")
+    return values
+
+
 def _modes(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
-    """--modes as a tuple (`default` when not given); DrsplatError naming any unknown mode."""
-    modes = tuple(m.strip() for m in text.split(",") if m.strip()) if text else default
+    """--modes as a tuple (`default` when not given); UsageError naming any unknown mode."""
+    modes = tuple(_list("--modes", text)) if text is not None else default
     bad = [m for m in modes if m not in AGGREGATE_MODES]
-    if bad or not modes:
-        raise DrsplatError(f"unknown mode: {', '.join(bad) or '(none given)'} (modes: {', '.join(AGGREGATE_MODES)})")
+    if bad:
+        raise UsageError(f"--modes: unknown mode {', '.join(bad)} (modes: {', '.join(AGGREGATE_MODES)})")
     return modes
 
 
-def run_ablate(args: argparse.Namespace) -> int:
-    try:
-        seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-        values = None if args.values is None else [int(v) for v in args.values.split(",") if v.strip()]
-    except ValueError:
-        raise DrsplatError("--seeds and --values take comma-separated integers") from None
-    root = args.out_dir / "datasets"
-    preset = args.preset or "tiny"
+def _presets(text: str | None, several: bool) -> tuple[str, ...]:
+    presets = tuple(_list("--preset", text)) if text is not None else (AGGREGATE_PRESETS if several else ("tiny",))
+    bad = [p for p in presets if p not in PRESETS]
+    if bad:
+        raise UsageError(f"--preset: unknown preset {', '.join(bad)} (presets: {', '.join(PRESETS)})")
+    if not several and len(presets) > 1:
+        raise UsageError(f"--preset {text!r}: this ablation takes one preset (only aggregate compares several)")
+    return presets
+
+
+@dataclass
+class AblateSettings:
+    """run_ablate's flags, every one checked before any work."""
+
+    presets: tuple[str, ...]
+    seeds: list[int]
+    values: list[int] | None
+    modes: tuple[str, ...] = ()
+    sources: tuple[str | None, ...] = (None,)
+    corruptions: tuple[str, ...] = ("own",)
+    repeats: int = 5
+
+
+def ablate_settings(args: argparse.Namespace) -> AblateSettings:
+    """Every flag of `eval ablate` checked up front (UsageError, exit 2): flags the ablation does not
+    read, seeds, presets, swept values, modes, mask sources, corruptions."""
+    given = {"modes": args.modes, "mask_source": args.mask_source, "corruptions": args.corruptions, "repeats": args.repeats,
+             "values": args.values, "width": args.width}
+    unused = [f"--{k.replace('_', '-')}" for k, v in given.items() if v is not None and k not in ABLATION_FLAGS[args.ablation]]
+    if unused:
+        raise UsageError(f"{', '.join(unused)} {'does' if len(unused) == 1 else 'do'} not apply to the {args.ablation} ablation")
+    several = args.ablation == "aggregate"
+    presets = _presets(args.preset, several)
+    seeds = _int_list("--seeds", args.seeds, seed_int)
+    # a bad resolution divisor stays exit 1 as tests/test_evaluation_cli.py pins it (every other bad flag exits 2)
+    error = DrsplatError if args.ablation == "resolution" else UsageError
+    values = None if args.values is None else _int_list("--values", args.values, _value_parser(args.ablation, presets), error)
+    settings = AblateSettings(presets, seeds, values)
     if args.ablation == "aggregate":
-        presets = tuple(p.strip() for p in args.preset.split(",")) if args.preset else AGGREGATE_PRESETS
-        bad = [p for p in presets if p not in PRESETS]
-        if bad:
-            raise DrsplatError(f"unknown preset: {', '.join(bad)} (presets: {', '.join(PRESETS)})")
         modes = _modes(args.modes, AGGREGATE_MODES)
-        if "paper" not in modes:
-            modes = ("paper",) + modes  # the baseline of the summary
-        sources = tuple(s.strip() for s in args.mask_source.split(",")) if args.mask_source else (None,)
-        corruptions = tuple(c.strip() for c in args.corruptions.split(",") if c.strip())
-        bad = [s for s in sources if s is not None and s not in MASK_SOURCES] + [c for c in corruptions if c not in CORRUPTIONS]
-        if bad or not corruptions:
-            raise DrsplatError(f"unknown mask source or corruption: {', '.join(bad) or '(none given)'} "
-                               f"(mask sources: {', '.join(MASK_SOURCES)}; corruptions: {', '.join(CORRUPTIONS)})")
-        refused = [c for c in corruptions if segmenter_corruption_error("segmenter", *CORRUPTIONS[c][1:])] if "segmenter" in sources else []
+        settings.modes = modes if "paper" in modes else ("paper",) + modes  # the baseline of the summary
+        settings.sources = tuple(_list("--mask-source", args.mask_source)) if args.mask_source is not None else (None,)
+        settings.corruptions = tuple(_list("--corruptions", args.corruptions)) if args.corruptions is not None else ("own",)
+        bad = [s for s in settings.sources if s is not None and s not in MASK_SOURCES]
+        if bad:
+            raise UsageError(f"--mask-source: unknown {', '.join(bad)} (mask sources: {', '.join(MASK_SOURCES)})")
+        bad = [c for c in settings.corruptions if c not in CORRUPTIONS]
+        if bad:
+            raise UsageError(f"--corruptions: unknown {', '.join(bad)} (corruptions: {', '.join(CORRUPTIONS)})")
+        refused = ([c for c in settings.corruptions if segmenter_corruption_error("segmenter", *CORRUPTIONS[c][1:])]
+                   if "segmenter" in settings.sources else [])
         if refused:
-            raise DrsplatError(f"--mask-source segmenter takes corruptions without jitter, merges or splits (the oracle's models of a "
-                               f"segmenter's errors), not {', '.join(refused)}; e.g. clean, mislabel20")
-        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, mask_sources=sources, corruptions=corruptions)
+            raise UsageError(f"--mask-source segmenter takes corruptions without jitter, merges or splits (the oracle's models of a "
+                             f"segmenter's errors), not {', '.join(refused)}; e.g. clean, mislabel20")
+        settings.repeats = 5 if args.repeats is None else args.repeats
+    elif args.ablation == "resolution":
+        settings.modes = _modes(args.modes, ("paper", DEFAULT_AGGREGATE))
+        if args.mask_source is not None and args.mask_source not in MASK_SOURCES:
+            raise UsageError(f"--mask-source: resolution takes one mask source ({', '.join(MASK_SOURCES)}), not {args.mask_source!r}")
+        settings.sources = (args.mask_source,)
+    return settings
+
+
+def _value_parser(ablation: str, presets: tuple[str, ...]):
+    """The argparse-style validator of one --values entry of `ablation`."""
+    if ablation == "resolution":
+        def divisor(text: str) -> int:
+            value = int_range()(text)
+            if value not in RESOLUTION_DIVISORS:
+                raise argparse.ArgumentTypeError(f"{value} is not a resolution divisor (3DGS's -r: {', '.join(map(str, RESOLUTION_DIVISORS))})")
+            return value
+        return divisor
+    if ablation == "pq":
+        dim = PRESETS[presets[0]].dim
+
+        def sub_vectors(text: str) -> int:
+            value = int_range(1, dim)(text)
+            if dim % value:
+                raise argparse.ArgumentTypeError(f"{value} sub-vectors do not divide the {dim}-D embeddings of preset {presets[0]}")
+            return value
+        return sub_vectors
+    return int_range(1, MAX_TOPK)
+
+
+def ablation_outputs(out_dir: Path, name: str) -> tuple[Path, Path]:
+    """(PNG, JSON) an ablation writes, probed before the work (`check_output_writable`): a folder in
+    their place or a read-only OUT_DIR would otherwise be found after minutes of registrations."""
+    png, doc = out_dir / f"ablation_{name}.png", out_dir / f"ablation_{name}.json"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out-dir {out_dir}: is a file, not a folder")
+    for path in (png, doc):
+        check_output_writable(path)
+    return png, doc
+
+
+def run_ablate(args: argparse.Namespace) -> int:
+    settings = ablate_settings(args)
+    png, doc = ablation_outputs(args.out_dir, args.ablation)
+    token = CancelToken()
+    with cancel_on_signals(token, "the current registration"):
+        result = _run(args, settings, token)
+    plot(result, png)
+    with atomic_path(doc) as tmp:
+        tmp.write_text(json_text(result.to_dict()) + "\n")
+    log.info("wrote %s and %s", png, doc)
+    return 0
+
+
+def _run(args: argparse.Namespace, st: AblateSettings, cancel: CancelToken) -> AblationResult:
+    """The ablation asked for, its table printed; Cancelled at the next check after Ctrl-C."""
+    root = args.out_dir / "datasets"
+    preset, seeds, values = st.presets[0], st.seeds, st.values
+    if args.ablation == "aggregate":
+        presets, modes, sources, corruptions = st.presets, st.modes, st.sources, st.corruptions
+        result = ablate_aggregate(root, presets, seeds, modes, values or AGGREGATE_TOPK, cancel=cancel, mask_sources=sources,
+                                  corruptions=corruptions)
         k = max(values or AGGREGATE_TOPK)
         timed = _corrupted(root, presets[-1], seeds[0], sources[0], corruptions[0])
-        speed = time_aggregate_modes(timed, modes, k, args.repeats)
-        result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": args.repeats, "ms_per_view": speed}
+        speed = time_aggregate_modes(timed, modes, k, st.repeats, cancel=cancel)
+        result.extra["timing"] = {"preset": presets[-1], "seed": seeds[0], "topk": k, "repeats": st.repeats, "ms_per_view": speed}
         costs = corruption_costs(result, topk=k)
         lines = [result.markdown(), "", aggregate_summary(result, topk=k), "", *([costs, ""] if costs else []),
                  f"Time per view on {presets[-1]} (seed {seeds[0]}, {timed.scene.num_gaussians} Gaussians, "
-                 f"{timed.cameras[0].width}x{timed.cameras[0].height}, top-k {k}), median of {args.repeats} interleaved runs:", "",
+                 f"{timed.cameras[0].width}x{timed.cameras[0].height}, top-k {k}), median of {st.repeats} interleaved runs:", "",
                  "| mode | ms/view | vs paper |", "|---|---:|---:|"]
         lines += [f"| {mode} | {ms:.1f} | {ms / speed['paper']:.2f}x |" for mode, ms in speed.items()]
         print("\n".join(lines))  # noqa: T201 - the tables the user asked for
-    elif args.ablation == "resolution":
-        modes = _modes(args.modes, ("paper", DEFAULT_AGGREGATE))
-        bad = [str(v) for v in values or () if v not in RESOLUTION_DIVISORS]
-        if bad:
-            raise DrsplatError(f"--values: {', '.join(bad)} is not a resolution divisor (3DGS's -r: {', '.join(map(str, RESOLUTION_DIVISORS))})")
-        source = args.mask_source
-        if source is not None and source not in MASK_SOURCES:
-            raise DrsplatError(f"resolution takes one mask source ({', '.join(MASK_SOURCES)}), not {source!r}")
-        result = ablate_resolution(root, preset, seeds, values or RESOLUTION_VALUES, modes, width=args.width, mask_source=source)
+        return result
+    if args.ablation == "resolution":
+        result = ablate_resolution(root, preset, seeds, values or RESOLUTION_VALUES, st.modes, width=args.width, mask_source=st.sources[0],
+                                   cancel=cancel)
     elif args.ablation == "topk":
-        result = ablate_topk(root, preset, seeds, values or TOPK_VALUES)
+        result = ablate_topk(root, preset, seeds, values or TOPK_VALUES, cancel=cancel)
     elif args.ablation == "pq":
-        result = ablate_pq(root, preset, seeds, values or PQ_VALUES)
+        result = ablate_pq(root, preset, seeds, values or PQ_VALUES, cancel=cancel)
     elif args.ablation == "robustness":
-        result = ablate_robustness(root, preset, seeds)
+        result = ablate_robustness(root, preset, seeds, cancel=cancel)
     else:
-        result = ablate_metrics(root, preset, seeds)
-    if args.ablation != "aggregate":
-        print(result.markdown())  # noqa: T201 - the table the user asked for
-    png = args.out_dir / f"ablation_{result.name}.png"
-    plot(result, png)
-    with atomic_path(args.out_dir / f"ablation_{result.name}.json") as tmp:
-        tmp.write_text(json_text(result.to_dict()) + "\n")
-    log.info("wrote %s and %s", png, png.with_suffix(".json"))
-    return 0
+        result = ablate_metrics(root, preset, seeds, cancel=cancel)
+    print(result.markdown())  # noqa: T201 - the table the user asked for
+    return result

@@ -39,7 +39,7 @@ from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.scene import check_element_sizes, read_ply_header
-from drsplat.utils import atomic_path, load_npy, read_json
+from drsplat.utils import atomic_path, load_npy, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -166,6 +166,15 @@ def _view_name(path: Path, info: dict) -> str:
     return name
 
 
+def _category(path: Path, k: int, value: object) -> str:
+    """objects[k].category as given, or one InputError: str() would turn null, 5 or a list into a
+    category of its own ("None"), and a blank one names nothing a query could embed."""
+    if isinstance(value, str) and value.strip():
+        return value
+    kind = ("null" if value is None else "an empty string" if isinstance(value, str) else json.dumps(value)[:40])
+    raise InputError(path, f"is {kind}, not a non-empty string", field=f"objects[{k}].category")
+
+
 def read_lerf_document(path: str | Path) -> LerfDocument:
     """Parse one LERF-OVS `frame_<n>.json` and check its sizes, allocating no image."""
     path = Path(path)
@@ -181,7 +190,7 @@ def read_lerf_document(path: str | Path) -> LerfDocument:
     for k, obj in enumerate(objects):
         if not isinstance(obj, dict) or "category" not in obj or "segmentation" not in obj:
             raise InputError(path, "object without a category or a segmentation", field=f"objects[{k}]")
-        parsed.append((str(obj["category"]), parse_segmentation(path, k, obj["segmentation"])))
+        parsed.append((_category(path, k, obj["category"]), parse_segmentation(path, k, obj["segmentation"])))
     return LerfDocument(path, _view_name(path, info), width, height, parsed)
 
 
@@ -331,7 +340,7 @@ def load_labelled_points(path: str | Path, raw_names: tuple[str, ...] | list[str
     r = 0 is unannotated. With `classes`, only those names are kept (in that order) and every other point
     becomes −1, e.g. the subsets of NYU40 classes used in published ScanNet tables.
     """
-    path = Path(path)
+    path = regular_file(path)  # a FIFO or device would block the read forever
     if path.suffix.lower() in POINT_CLOUD_SUFFIXES:
         pts, raw, where = _read_open3d_cloud(path)
     else:
@@ -359,14 +368,16 @@ def load_labelled_points(path: str | Path, raw_names: tuple[str, ...] | list[str
 
 def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.ndarray]:
     """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
-    from plyfile import PlyData, PlyHeaderParseError
+    from plyfile import PlyData, PlyElementParseError, PlyParseError
 
     check_element_sizes(path, read_ply_header(path), path.stat().st_size)  # no allocation from a lying header
     try:
         ply = PlyData.read(str(path))
         vertex = ply["vertex"]
-    except (OSError, KeyError, PlyHeaderParseError, ValueError) as exc:
-        raise InputError(path, f"not a readable PLY point cloud with a vertex element ({exc})") from None
+    except PlyElementParseError as exc:  # a malformed row of an ASCII PLY, a value its property type cannot hold
+        raise InputError(path, f"{_where_in_ply(exc)}{exc.message}", field=exc.prop.name if exc.prop else None) from None
+    except (OSError, KeyError, PlyParseError, ValueError, OverflowError) as exc:
+        raise InputError(path, f"not a readable PLY point cloud with a vertex element ({str(exc)[:200]})") from None
     names = vertex.data.dtype.names
     for f in ("x", "y", "z", label_field):
         if f not in names:
@@ -384,6 +395,12 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
     return pts, column.astype(np.int64)
 
 
+def _where_in_ply(exc) -> str:
+    """'element 'vertex' row 12: ' of a plyfile parse error, as far as it says."""
+    parts = ([f"element {exc.element.name!r}"] if exc.element is not None else []) + ([f"row {exc.row}"] if exc.row is not None else [])
+    return " ".join(parts) + ": " if parts else ""
+
+
 def labels_sidecar(path: str | Path) -> Path:
     """Where the raw labels of a point cloud without a label property live: `<file>.labels.npy`."""
     path = Path(path)
@@ -398,13 +415,14 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
         raise DrsplatError(f"reading {path.suffix} point clouds needs open3d, which failed to import ({exc}); "
                            "on Debian/Ubuntu run `apt install libusb-1.0-0`, or convert the cloud to a labelled PLY") from None
 
-    if not path.is_file():
-        raise InputError(path, "point cloud file does not exist")
+    regular_file(path)
     cloud = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(cloud.points, np.float64)
     if pts.size == 0:
         raise InputError(path, "open3d read no points from this file (empty, or not a point cloud of its suffix's format)")
     sidecar = labels_sidecar(path)
+    if sidecar.exists() and not sidecar.is_file():
+        raise InputError(sidecar, "is not a file (a folder, FIFO or device); a cloud's raw labels are an .npy array beside it")
     if not sidecar.is_file():
         raise InputError(sidecar, f"missing: a {path.suffix} cloud has no label property, so its raw labels must be in this file ([P] integers)")
 

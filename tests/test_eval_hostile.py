@@ -1,0 +1,193 @@
+"""`drsplat eval` on hostile inputs: outputs over inputs, bad flags, damaged files, each one clear error."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from drsplat.cli import main
+
+
+@pytest.fixture(scope="module")
+def pq(tmp_path_factory) -> dict:
+    """A tiny synthetic dataset and its registration with a scene PQ codebook beside the PLY."""
+    from drsplat.synthetic import write_dataset
+
+    root = tmp_path_factory.mktemp("hostile")
+    ds = write_dataset(root / "ds", "tiny", 0, show_progress=False)
+    ply = root / "pq.ply"
+    assert main(["-q", "register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features"), "--out", str(ply),
+                 "--keep-unassigned", "--codebook", "scene", "--no-progress"]) == 0
+    return {"root": root, "ds": ds, "ply": ply, "codebook": root / "pq.codebook.faiss"}
+
+
+def labels_args(r: dict) -> list[str]:
+    ds = r["ds"]
+    return ["--gt-labels", str(ds / "gt" / "labels.npy"), "--label-names", str(ds / "gt" / "label_names.json"),
+            "--text-embeddings", str(ds / "text_embeddings.npy")]
+
+
+def refused_unchanged(argv: list[str], target: Path, words: str, capsys) -> None:
+    before = target.read_bytes()
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err, err
+    assert target.read_bytes() == before
+
+
+def test_json_over_the_codebook_the_ply_names_is_refused(pq, capsys):
+    refused_unchanged(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--json", str(pq["codebook"])], pq["codebook"],
+                      "the codebook pq.ply names", capsys)
+
+
+@pytest.mark.parametrize("name", ["transforms.json", "features/manifest.json", "gt/synthetic.json"])
+def test_json_over_a_file_of_the_synthetic_dataset_is_refused(pq, name, capsys):
+    target = pq["ds"] / name
+    refused_unchanged(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--json", str(target)], target, "--synthetic's file", capsys)
+
+
+def test_synthetic_that_is_a_file_says_not_a_folder(pq, capsys):
+    assert main(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ply"])]) == 1
+    assert "pq.ply: --synthetic: is not a folder" in capsys.readouterr().err
+
+
+@pytest.fixture()
+def xyz(pq, tmp_path) -> Path:
+    from drsplat.scene import load_ply
+
+    cloud = tmp_path / "c.xyz"
+    np.savetxt(cloud, load_ply(pq["ds"] / "scene.ply").means[:50])
+    np.save(tmp_path / "c.xyz.labels.npy", np.ones(50, np.int64))
+    return cloud
+
+
+def test_outputs_over_a_clouds_labels_file_are_refused(pq, xyz, capsys):
+    sidecar = xyz.with_name("c.xyz.labels.npy")
+    refused_unchanged(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(xyz), "--out", str(sidecar)], sidecar,
+                      "--points's labels file", capsys)
+    refused_unchanged(["eval", "iou", str(pq["ply"]), "--gt-points", str(xyz), "--json", str(sidecar)], sidecar, "--gt-points's labels file", capsys)
+
+
+def test_no_assigned_gaussian_is_an_error_naming_the_file():
+    from drsplat.commands.eval import assigned_rows
+    from drsplat.errors import InputError
+
+    with pytest.raises(InputError, match="empty.ply: none of its 3 Gaussians holds a language feature"):
+        assigned_rows(Path("empty.ply"), SimpleNamespace(assigned=lambda: np.zeros(3, bool)))
+
+
+def test_voxel_iou_with_no_defined_label_is_an_error(pq, capsys):
+    argv = ["eval", "iou", str(pq["ply"]), *labels_args(pq), "--original", str(pq["ds"] / "scene.ply"), "--weighting", "voxel",
+            "--voxel-empty", "1e308", "--task", "loc", "--voxel-resolution", "8"]
+    assert main(argv) == 1
+    assert "no label's IoU is defined" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+@pytest.mark.parametrize("name", ["p.labels.ply", "p.xyz"])
+def test_a_fifo_cloud_is_not_a_file(pq, tmp_path, name, capsys):
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    assert main(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(fifo), "--out", str(tmp_path / "o.npy")]) == 1
+    assert f"{name}: is not a file" in capsys.readouterr().err
+
+
+HEADER = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nproperty ushort label\nend_header\n"
+
+
+@pytest.mark.parametrize("rows, words", [("0 0 0 1\n1 1 1 70000\n", "70000"), ("0 0 0 1\n1 1 abc 2\n", "row 1")])
+def test_malformed_ascii_cloud_names_the_file(pq, tmp_path, rows, words, capsys):
+    cloud = tmp_path / "bad.labels.ply"
+    cloud.write_text(HEADER + rows)
+    assert main(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(cloud), "--out", str(tmp_path / "o.npy")]) == 1
+    err = capsys.readouterr().err
+    assert "bad.labels.ply" in err and words in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("category, words", [(None, "is null"), (5, "is 5"), ("", "an empty string"), (["a"], '["a"]')])
+def test_lerf_category_must_be_a_string(tmp_path, category, words):
+    import json
+
+    from drsplat.errors import InputError
+    from drsplat.eval.datasets import read_lerf_document
+
+    doc = tmp_path / "frame.json"
+    doc.write_text(json.dumps({"info": {"width": 8, "height": 8}, "objects": [{"category": category, "segmentation": [[0, 0], [4, 0], [4, 4]]}]}))
+    with pytest.raises(InputError, match=r"field 'objects\[0\].category'") as exc:
+        read_lerf_document(doc)
+    assert words in str(exc.value)
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["topk", "--seeds", ""], "--seeds"), (["topk", "--seeds", ","], "--seeds"), (["topk", "--seeds", "-1"], "--seeds"),
+    (["topk", "--seeds", "0.5"], "--seeds"), (["topk", "--preset", "nosuch"], "--preset"), (["topk", "--preset", "tiny,small"], "--preset"),
+    (["pq", "--values", "0"], "--values"), (["pq", "--values", "-1"], "--values"), (["pq", "--values", "7"], "--values"),
+    (["aggregate", "--modes", "bogus"], "--modes"), (["aggregate", "--corruptions", "x"], "--corruptions"),
+    (["aggregate", "--mask-source", "x"], "--mask-source"), (["aggregate", "--preset", "nosuch"], "--preset"),
+    (["topk", "--modes", "paper"], "--modes"), (["topk", "--mask-source", "render"], "--mask-source"),
+    (["topk", "--width", "64"], "--width"), (["metrics", "--values", "1"], "--values"), (["pq", "--corruptions", "clean"], "--corruptions"),
+])
+def test_ablate_bad_flags_exit_2_before_any_work(tmp_path, flags, words, capsys):
+    assert main(["eval", "ablate", *flags, "--out-dir", str(tmp_path / "ab")]) == 2
+    assert words in capsys.readouterr().err
+    assert not (tmp_path / "ab").exists()
+
+
+@pytest.mark.parametrize("repeats", ["0", "-2", "100000"])
+def test_ablate_repeats_is_bounded(tmp_path, repeats):
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "ablate", "aggregate", "--repeats", repeats, "--out-dir", str(tmp_path)])
+    assert exc.value.code == 2
+
+
+def test_ablate_output_that_is_a_folder_is_found_first(tmp_path, capsys):
+    (tmp_path / "ablation_topk.json").mkdir()
+    assert main(["eval", "ablate", "topk", "--out-dir", str(tmp_path)]) == 1
+    assert "ablation_topk.json" in capsys.readouterr().err
+    assert not (tmp_path / "datasets").exists()
+
+
+@pytest.mark.parametrize("taus", ["1e-7:2e-7:1e-8", "0:1e308:1e304"])
+def test_taus_too_fine_or_too_large_is_a_usage_error(pq, taus, capsys):
+    assert main(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--taus", taus]) == 2
+    assert "--taus" in capsys.readouterr().err
+
+
+def test_pseudolabel_radius_is_bounded(pq, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", "x.ply", "--out", str(tmp_path / "o.npy"), "--radius", "1e308"])
+    assert exc.value.code == 2
+
+
+def test_output_flags_refuse_a_folder_name(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "scannet", "r.ply", "--scene-dir", str(tmp_path), "--save-labels", "out/"])
+    assert exc.value.code == 2
+
+
+def test_classes_unknown_names_the_flag_and_the_names_file(pq, xyz, tmp_path, capsys):
+    names = pq["ds"] / "gt" / "label_names.json"
+    argv = ["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(xyz), "--out", str(tmp_path / "o.npy"),
+            "--label-names", str(names), "--classes", "no such class"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--classes" in err and "label_names.json" in err
+
+
+def test_damaged_cached_ablation_dataset_is_rebuilt(tmp_path, caplog):
+    from drsplat.eval.ablations import dataset
+    from drsplat.defaults import ORACLE_TEXT_EMBEDDINGS
+
+    first = dataset(tmp_path, "tiny", 0)
+    text = np.load(first.path / ORACLE_TEXT_EMBEDDINGS)
+    text[1] = np.nan
+    np.save(first.path / ORACLE_TEXT_EMBEDDINGS, text)
+    with caplog.at_level(logging.WARNING):
+        again = dataset(tmp_path, "tiny", 0)
+    assert "written again" in caplog.text and ORACLE_TEXT_EMBEDDINGS in caplog.text
+    assert np.isfinite(again.text).all() and np.allclose(again.text, first.text)
