@@ -838,6 +838,7 @@ def test_bad_flag_values_are_usage_errors(tmp_path, world, capsys):
         (["synth", tmp_path / "s", "--preset", "city", "--width", "640"], "--width"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--m", "0"], "--m"),
         (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--max-train", "-1"], "--max-train"),
+        (["pq", "train", "--embeddings", q, "--out", tmp_path / "c.faiss", "--seed", str(2**31)], "--seed"),  # was an OverflowError in faiss
         (["features", "--source", ds, "--out", tmp_path / "f", "--batch-size", "0"], "--batch-size"),
         (["features", "--source", ds, "--out", tmp_path / "f", "--resolution", "inf"], "--resolution"),
         (["segment", reg, "--embeddings", q, "--out", tmp_path / "l.npy", "--min-score", "nan"], "--min-score"),

@@ -27,14 +27,33 @@ MOVING_FRAMES = 8  # moving frames the budget adapts over
 SETTLED_FRAMES = 3  # of which the last ones are reported
 
 
+def screenshot_file(text: str) -> Path:
+    """argparse type of --screenshot: a file name (`output_file`) whose suffix names an image format
+    (`viewer.paths.image_format`), refused before any frame is drawn."""
+    from drsplat.commands.common import output_file
+    from viewer.paths import image_format
+
+    path = output_file(text)
+    try:
+        image_format(path)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return path
+
+
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    from drsplat.bench.common import choice_list
+    from drsplat.commands.common import MAX_IMAGE_WIDTH, int_range, positive_int
+
+    side = int_range(1, MAX_IMAGE_WIDTH)
     p = subparsers.add_parser("viewer", help="viewer frame time (sort, upload, draw) on the EGL OpenGL renderer")
-    p.add_argument("--sizes", default="100k,542k,1M", help="comma-separated scene sizes among 100k, 542k, 1M")
-    p.add_argument("--ply", type=Path, default=FLOWERS, help="the real scene for 542k (and the source of the others)")
-    p.add_argument("--width", type=int, default=1280)
-    p.add_argument("--height", type=int, default=720)
-    p.add_argument("--repeats", type=int, default=5, help="frames per measurement (median reported)")
-    p.add_argument("--screenshot", type=Path, help="also save the 542k (or first) frame to this PNG")
+    p.add_argument("--sizes", type=choice_list(SIZES, "size"), default="100k,542k,1M", help="comma-separated scene sizes among 100k, 542k, 1M")
+    p.add_argument("--ply", type=Path, default=None,
+                   help="the real scene for 542k (and the source of the others) (default: ../shared/data/ply/flowers.ply, random Gaussians when absent)")
+    p.add_argument("--width", type=side, default=1280, help=f"frame width, 1..{MAX_IMAGE_WIDTH} (default: 1280)")
+    p.add_argument("--height", type=side, default=720, help=f"frame height, 1..{MAX_IMAGE_WIDTH} (default: 720)")
+    p.add_argument("--repeats", type=positive_int, default=5, help="frames per measurement (median reported)")
+    p.add_argument("--screenshot", type=screenshot_file, help="also save the 542k (or first) frame to this PNG")
     p.add_argument("--progressive", action="store_true",
                    help="instead: the GUI's still frame drawn whole vs progressively (the window on GLFW's null platform)")
     p.set_defaults(func=run)
@@ -89,26 +108,29 @@ def random_scene(n: int, seed: int = 0) -> GaussianScene:
     )
 
 
-def bench_scene(name: str, base: GaussianScene | None, seed: int = 0) -> tuple[GaussianScene | None, str]:
-    """The scene of size `name` and where it comes from; (None, "") for 542k without flowers.ply."""
+def bench_scene(name: str, base: GaussianScene | None, seed: int = 0, stem: str = "flowers") -> tuple[GaussianScene | None, str]:
+    """The scene of size `name` and where it comes from; (None, "") for 542k without flowers.ply.
+    A size larger than `base` (the scene file `stem`) is drawn from jittered copies of it: two of flowers.ply for 1M."""
     n = SIZES[name]
     if base is None:
         return (None, "") if name == "542k" else (random_scene(n, seed), "random")
     rng = np.random.default_rng(seed)
     if name == "542k":
-        return base, "flowers.ply"
+        return base, f"{stem}.ply"
     if n <= base.num_gaussians:
-        return base.subset(np.sort(rng.choice(base.num_gaussians, n, replace=False))), "flowers subset"
-    copy = base.subset(np.arange(base.num_gaussians))
-    copy.means = copy.means + rng.normal(scale=0.01, size=copy.means.shape).astype(np.float32)
-    both = GaussianScene(
-        means=np.concatenate([base.means, copy.means]),
-        quats=np.concatenate([base.quats, copy.quats]),
-        log_scales=np.concatenate([base.log_scales, copy.log_scales]),
-        opacity_logits=np.concatenate([base.opacity_logits, copy.opacity_logits]),
-        sh=np.concatenate([base.sh, copy.sh]),
+        return base.subset(np.sort(rng.choice(base.num_gaussians, n, replace=False))), f"{stem} subset"
+    copies = -(-n // base.num_gaussians)  # enough copies to draw n distinct Gaussians from (a small scene needs many)
+    jitter = rng.normal(scale=0.01, size=((copies - 1) * base.num_gaussians, 3)).astype(np.float32)
+    means = np.tile(base.means, (copies, 1))
+    means[base.num_gaussians :] += jitter  # every copy after the first moved by ~1 cm
+    many = GaussianScene(
+        means=means,
+        quats=np.tile(base.quats, (copies, 1)),
+        log_scales=np.tile(base.log_scales, (copies, 1)),
+        opacity_logits=np.tile(base.opacity_logits, copies),
+        sh=np.tile(base.sh, (copies, 1, 1)),
     )
-    return both.subset(np.sort(rng.choice(both.num_gaussians, n, replace=False))), "flowers x2, jittered"
+    return many.subset(np.sort(rng.choice(many.num_gaussians, n, replace=False))), f"{stem} x{copies}, jittered"
 
 
 def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
@@ -188,17 +210,26 @@ def measure(ctx, scene: GaussianScene, width: int, height: int, repeats: int):
         renderer.release()
 
 
-def run(args: argparse.Namespace) -> int:
-    from drsplat.errors import DrsplatError
+def base_scene(args: argparse.Namespace) -> GaussianScene | None:
+    """The scene the sizes are drawn from, read before any work: a --ply the user gave must be a file of
+    Gaussians (one error otherwise); the default flowers.ply is skipped (random Gaussians) when absent.
+    Sets args.ply to the file read (the default resolved), for the lines that name it."""
+    from drsplat.bench.common import guard_bench_outputs, scene_file
     from drsplat.scene import load_ply
+
+    given = args.ply is not None
+    args.ply = scene_file(args.ply, "--ply") if given else FLOWERS
+    # the default scene is an input too: it is resolved here, after the command line's own guard
+    guard_bench_outputs({"--ply" if given else "--ply (its default)": args.ply}, {"--screenshot": args.screenshot})
+    return load_ply(args.ply, purpose="benchmark") if args.ply.is_file() else None
+
+
+def run(args: argparse.Namespace) -> int:
     from viewer.app import MOVING_FRAME_SECONDS, MOVING_SCALE, save_image  # moderngl, imgui and glfw: GL only when a window or an image is made
     from viewer.renderer import create_offscreen_context
 
-    names = [s.strip() for s in args.sizes.split(",") if s.strip()]
-    unknown = [s for s in names if s not in SIZES]
-    if unknown:
-        raise DrsplatError(f"--sizes: unknown size(s) {', '.join(unknown)}; choose among {', '.join(SIZES)}")
-    base = load_ply(args.ply) if args.ply is not None and Path(args.ply).is_file() else None
+    names = args.sizes
+    base = base_scene(args)
     if args.progressive:
         return run_progressive(args, names, base)
     ctx = create_offscreen_context()
@@ -207,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
           f"{'moving splats':>13} {'moving':>6} {'fps moving':>10} {'sort err':>8} {'moving err':>10} {'still':>6}")
     shot = None
     for name in names:
-        scene, origin = bench_scene(name, base)
+        scene, origin = bench_scene(name, base, stem=args.ply.stem)
         if scene is None:
             print(f"{name:>9} skipped: {args.ply} is absent")
             continue
@@ -241,7 +272,7 @@ def run_progressive(args: argparse.Namespace, names: list[str], base: GaussianSc
     print(f"{'splats':>9} {'scene':<22} {'whole':>7} {'GUI frames':>10} {'median frame':>12} {'longest frame':>13} {'complete':>8}")
     app = ViewerApp(ViewerState(), args.width, args.height, platform="null", layout_path=None)  # one window: GLFW cannot re-detect a context after glfwTerminate
     for name in names:
-        scene, origin = bench_scene(name, base)
+        scene, origin = bench_scene(name, base, stem=args.ply.stem)
         if scene is None:
             print(f"{name:>9} skipped: {args.ply} is absent")
             continue

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line
-from drsplat.errors import UsageError
+from drsplat.bench.common import choice_list, format_table, guard_bench_outputs, machine_line
+from drsplat.commands.common import output_file
 from drsplat.memory import parse_size
 from drsplat.utils import write_bytes_atomic
 
@@ -66,8 +66,8 @@ NAMED_BUDGET = re.compile(r"give at least ([0-9.]+ ?[kMGT]?B)")
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("budget", help="peak RSS of `register --memory-budget` on inputs that stress one memory term (subprocesses)")
-    p.add_argument("--cases", default=",".join(DEFAULT_CASES), help=f"comma-separated cases from {', '.join(CASES)}")
-    p.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
+    p.add_argument("--cases", type=choice_list(CASES, "budget case"), default=",".join(DEFAULT_CASES), help=f"comma-separated cases from {', '.join(CASES)}")
+    p.add_argument("--json", type=output_file, default=None, help="also write the rows as JSON")
     p.set_defaults(func=run)
 
 
@@ -186,10 +186,8 @@ def budget_rows(runs: list[BudgetRun]) -> list[list]:
 
 
 def run(args: argparse.Namespace) -> int:
-    names = [n.strip() for n in args.cases.split(",") if n.strip()]
-    unknown = [n for n in names if n not in CASES]
-    if unknown or not names:
-        raise UsageError(f"unknown budget case(s) {', '.join(unknown) or '(none given)'}; choose from {', '.join(CASES)}")
+    names = args.cases
+    guard_bench_outputs({}, {"--json": args.json})  # an unwritable --json found now, not after the cases' minutes
     runs: list[BudgetRun] = []
     with tempfile.TemporaryDirectory(prefix="drsplat-bench-budget-") as tmp:
         for name in names:

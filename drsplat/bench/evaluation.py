@@ -15,15 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, median_seconds
+from drsplat.bench.common import MAX_BENCH_GAUSSIANS, count_upto, format_table, gaussian_count, machine_line, median_seconds
+from drsplat.commands.common import positive_int
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("eval", help="evaluation kernels (pseudo-labels, voxel IoU, threshold search) vs their references")
     p.add_argument("--scene", type=Path, default=None, help="a 3DGS PLY to label (default: random Gaussians)")
-    p.add_argument("--gaussians", type=int, default=200_000, help="random Gaussians when no --scene")
-    p.add_argument("--points", type=int, default=1_000_000, help="labelled points (sampled around the Gaussians)")
-    p.add_argument("--repeats", type=int, default=3, help="timed repeats (median reported)")
+    p.add_argument("--gaussians", type=gaussian_count, default=200_000, help="random Gaussians when no --scene (e.g. 200k, at most 100M)")
+    p.add_argument("--points", type=count_upto(MAX_BENCH_GAUSSIANS, "point count"), default=1_000_000,
+                   help="labelled points, sampled around the Gaussians (e.g. 1M, at most 100M)")
+    p.add_argument("--repeats", type=positive_int, default=3, help="timed repeats (median reported)")
     p.set_defaults(func=run)
 
 
@@ -53,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scene is not None:
         from drsplat.scene import load_ply
 
-        scene = load_ply(args.scene)
+        scene = load_ply(args.scene, purpose="benchmark")  # a file of no Gaussians: one error, not numpy's
         g = (scene.means.astype(np.float64), scene.rotations().astype(np.float64), scene.scales().astype(np.float64))
     else:
         g = random_gaussians(args.gaussians, rng)

@@ -16,24 +16,33 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line
+from drsplat.bench.common import choice_list, format_table, int_list, machine_line
+from drsplat.commands.common import int_range, positive_int, resolution_value
 from drsplat.errors import InputError
 
 DEFAULT_SOURCE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "fern"
+GENERATORS = ("sam", "felzenszwalb", "slic")
+MAX_MASKS = 1000  # masks per NMS timing: k full-image masks and their float64 ellipse tests (12 MB each at 1440x1080) are in memory at once
+MAX_POINTS_PER_SIDE = 256  # SAM prompt grid (LangSplat 32): 65,536 prompts per crop
+MAX_CROP_LAYERS = 4  # SAM crop layers (LangSplat 1): 4^layers crops at the last
+mask_count = int_range(1, MAX_MASKS)
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("features", help="seconds per image for masks, post-processing, cropping and CLIP, per mask generator (CPU)")
     p.add_argument("--source", type=Path, default=DEFAULT_SOURCE, help="dataset (default ../shared/data/fern)")
-    p.add_argument("--images", type=int, default=2, help="images timed per generator (median reported)")
-    p.add_argument("--generators", default="sam,felzenszwalb,slic", help="comma-separated mask generators")
+    p.add_argument("--images", type=positive_int, default=2, help="images timed per generator (median reported)")
+    p.add_argument("--generators", type=choice_list(GENERATORS, "mask generator"), default=",".join(GENERATORS),
+                   help=f"comma-separated mask generators among {', '.join(GENERATORS)} (default: all)")
     p.add_argument("--sam-model", choices=("vit_b", "vit_l", "vit_h"), default="vit_b", help="SAM size (random weights)")
-    p.add_argument("--sam-points-per-side", type=int, default=32, help="SAM prompt grid (LangSplat 32)")
-    p.add_argument("--sam-crop-layers", type=int, default=1, help="SAM crop layers (LangSplat 1)")
-    p.add_argument("--sam-images", type=int, default=1, help="images timed for SAM (slow on a CPU)")
-    p.add_argument("--resolution", type=float, default=-1, help="image scale as `drsplat features --resolution`")
-    p.add_argument("--nms-masks", default="50,100,200", help="mask counts for the post-processing table")
-    p.add_argument("--loop-masks", type=int, default=40, help="mask count at which LangSplat's double loop is timed")
+    p.add_argument("--sam-points-per-side", type=int_range(1, MAX_POINTS_PER_SIDE), default=32,
+                   help=f"SAM prompt grid, 1..{MAX_POINTS_PER_SIDE} (LangSplat 32)")
+    p.add_argument("--sam-crop-layers", type=int_range(0, MAX_CROP_LAYERS), default=1, help=f"SAM crop layers, 0..{MAX_CROP_LAYERS} (LangSplat 1)")
+    p.add_argument("--sam-images", type=positive_int, default=1, help="images timed for SAM (slow on a CPU)")
+    p.add_argument("--resolution", type=resolution_value, default=-1, help="image scale as `drsplat features --resolution`")
+    p.add_argument("--nms-masks", type=int_list(mask_count), default="50,100,200",
+                   help=f"mask counts for the post-processing table, each 1..{MAX_MASKS} (default: 50,100,200)")
+    p.add_argument("--loop-masks", type=mask_count, default=40, help=f"mask count at which LangSplat's double loop is timed, 1..{MAX_MASKS} (default: 40)")
     p.set_defaults(func=run)
 
 
@@ -55,7 +64,7 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
     from drsplat.features.masks.superpixel import FelzenszwalbGenerator, SlicGenerator
 
     rows, crop_per_mask, clip_per_mask = [], [], []
-    for name in [g.strip() for g in args.generators.split(",") if g.strip()]:
+    for name in args.generators:
         if name == "sam":
             torch.manual_seed(0)
             sam = build_sam(SAM_ARCHITECTURES[args.sam_model])
@@ -64,10 +73,8 @@ def _stage_rows(args, cameras, encoder) -> tuple[list[list[object]], list[float]
             n_images = args.sam_images
         elif name == "felzenszwalb":
             generator, label, n_images = FelzenszwalbGenerator(), "felzenszwalb", args.images
-        elif name == "slic":
+        else:  # slic (--generators' type admits only GENERATORS)
             generator, label, n_images = SlicGenerator(), "slic", args.images
-        else:
-            raise InputError(None, f"unknown generator '{name}'", field="--generators")
         _warm_up(generator, name)
         times, counts = [], []
         for cam in cameras[:n_images]:
@@ -117,7 +124,7 @@ def _nms_rows(args) -> list[list[object]]:
 
     rng = np.random.default_rng(0)
     rows = []
-    counts = [int(k) for k in args.nms_masks.split(",") if k.strip()]
+    counts = args.nms_masks
     for height, width in ((378, 504), (1080, 1440)):
         loop_masks = _overlapping_masks(args.loop_masks, height, width, rng)
         scores = rng.uniform(0.6, 1.0, args.loop_masks)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line, view_size
+from drsplat.bench.common import format_table, machine_line, scene_file, view_size
 from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
 from drsplat.commands.common import positive_int
 from drsplat.defaults import DEFAULT_TOPK
@@ -82,15 +82,14 @@ def run(args: argparse.Namespace) -> int:
 
     if not cuda_available():  # before the scene is read
         raise DrsplatError("drsplat bench kernel times the fused Triton kernels, which run on a CUDA GPU only, and none is available")
-    if not args.real.is_file():
-        raise DrsplatError(f"{args.real}: no such scene file (--real)")
+    scene_file(args.real, "--real")
     from drsplat import raster_triton
     from drsplat.raster import rasterize
     from drsplat.raster_torch import bin_gaussians_torch, prepare_scene_torch, project_gaussians_fused
     from drsplat.registration.compute import prepare_geometry
     from drsplat.scene import load_ply
 
-    scene = load_ply(args.real)
+    scene = load_ply(args.real, purpose="benchmark")
     cameras = orbit_cameras(scene.means, args.views, width, height)
     geometry = prepare_geometry(scene)
     prepared = prepare_scene_torch(geometry, "cuda")

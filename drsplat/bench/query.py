@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import positive_int
-from drsplat.bench.common import count_arg, count_list, format_table, machine_line, median_seconds, peak_rss_mb
-from drsplat.errors import InputError
-from drsplat.lang import Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores, lut_scores_blocked, train_codebook
+from drsplat.commands.common import int_range, output_file, positive_int
+from drsplat.bench.common import choice_list, count_arg, count_list, format_table, guard_bench_outputs, machine_line, median_seconds, peak_rss_mb
+from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.lang import (PQ_KSUB, Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, has_direction, load_codebook, lut_scores,
+                          lut_scores_blocked, train_codebook)
 from drsplat.query import unit_rows
 
 log = logging.getLogger(__name__)
@@ -29,6 +30,10 @@ DEFAULT_OFFICIAL = Path(__file__).resolve().parents[2].parent / "shared" / "data
 TEXT_NEGATIVES = "text_negative.npy"  # beside the official codebook: real CLIP text embeddings (`text_query_table`)
 TEXT_TABLE_N = 100_000  # random unit features scored in `text_query_table`
 BACKENDS = ("float32", "float16", "pq32", "pq64", "pq128", "pq256", "official", "faiss")
+FAISS_SEARCHED = ("pq128", "official")  # the codebooks whose codes `faiss` searches with faiss's own index
+MAX_DIM = 8192  # embedding width (CLIP's are 512-1024)
+MAX_LABELS = 100_000  # classes of the synthetic embeddings (each with its directions in memory)
+FAISS_SEED_MAX = 2**31 - 1  # the codebooks' k-means seed is a C int in faiss (commands.common.seed_int's 2^32 - 1 overflows it)
 GEN_CHUNK = 250_000
 SPEARMAN_SAMPLE = 200_000
 BATCH = 16
@@ -39,17 +44,20 @@ GAUSSIAN_NOISE = 0.2
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("query", help="ms/query and error against exact for every language-field backend")
     p.add_argument("--sizes", type=count_list, default="100k,1M", help="comma-separated Gaussian counts, e.g. 100k,1M,5M (default 100k,1M)")
-    p.add_argument("--backends", default=",".join(BACKENDS), help=f"subset of {','.join(BACKENDS)}")
-    p.add_argument("--dim", type=int, default=512)
-    p.add_argument("--labels", type=int, default=40, help="object classes in the synthetic embeddings")
-    p.add_argument("--queries", type=int, default=8, help="text queries whose errors are averaged")
-    p.add_argument("--train", type=int, default=5_000, help="embeddings used to train the general PQ codebooks")
+    p.add_argument("--backends", type=choice_list(BACKENDS, "backend"), default=",".join(BACKENDS), help=f"subset of {','.join(BACKENDS)}")
+    p.add_argument("--dim", type=int_range(1, MAX_DIM), default=512, help=f"embedding width, 1..{MAX_DIM} (default: 512)")
+    p.add_argument("--labels", type=int_range(2, MAX_LABELS), default=40,
+                   help=f"object classes in the synthetic embeddings, 2..{MAX_LABELS:,} (a query's class against the rest; default: 40)")
+    p.add_argument("--queries", type=positive_int, default=8, help="text queries whose errors are averaged, one class each: at most --labels (default: 8)")
+    p.add_argument("--train", type=positive_int, default=5_000, help=f"embeddings used to train the general PQ codebooks, at least {PQ_KSUB} (default: 5000)")
     p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "drsplat-bench-query", help="trained codebooks are kept here for reuse")
-    p.add_argument("--official", type=Path, default=DEFAULT_OFFICIAL, help="official Dr. Splat IVFPQ codebook (skipped when absent)")
+    p.add_argument("--official", type=Path, default=None,
+                   help="official Dr. Splat IVFPQ codebook, with text_negative.npy beside it (default: ../shared/data/drsplat/pq_index.faiss, "
+                        "skipped when absent)")
     p.add_argument("--max-float32", type=count_arg, default="2M", help="skip the float32 baseline above this N (it needs 2 KB per Gaussian)")
     p.add_argument("--repeats", type=positive_int, default=5, help="timed repeats (median); fewer are used above 1M")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--plot", type=Path, default=Path("bench_query.png"), help="PNG of speed against error")
+    p.add_argument("--seed", type=int_range(0, FAISS_SEED_MAX), default=0, help="random seed, 0..2^31-1 (default: 0)")
+    p.add_argument("--plot", type=output_file, default=Path("bench_query.png"), help="PNG of speed against error")
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                    help="also time the torch scorer on this device against the numba kernels (ratio and max |Δ| per backend)")
     p.set_defaults(func=run)
@@ -282,7 +290,7 @@ def _norms16(f16: np.ndarray) -> np.ndarray:
     return out
 
 
-def text_query_table(book: Codebook, negatives: Path, n: int, seed: int, repeats: int) -> str:
+def text_query_table(book: Codebook, negatives: np.ndarray, name: str, n: int, seed: int, repeats: int) -> str:
     """8-bit tables against float32 ones for real CLIP text embeddings (the official codebook's
     canonical negatives, one component of 0.6-0.75) over n random unit features: one scale for
     every sub-table (faiss fast-scan's) and the wide sub-tables kept in float32 (the default,
@@ -295,7 +303,7 @@ def text_query_table(book: Codebook, negatives: Path, n: int, seed: int, repeats
     field = build_field(feats, np.ones(n, np.float32), codebook=book)
     store = field.storage
     blocked = blocked_codes(store.codes)
-    queries = unit_rows(np.load(negatives).astype(np.float32))
+    queries = unit_rows(negatives)
     exact = feats @ queries.T
     runs = {"float32 tables": dict(lut_bits=32), "8-bit, one scale": dict(lut_bits=8, exact_span=np.inf), "8-bit, wide tables float32": dict(lut_bits=8)}
     scores, times = {}, {}
@@ -308,31 +316,127 @@ def text_query_table(book: Codebook, negatives: Path, n: int, seed: int, repeats
         picked, ref = got >= top, scores["float32 tables"] >= top
         iou = float(np.mean([(picked[:, k] & ref[:, k]).sum() / max((picked[:, k] | ref[:, k]).sum(), 1) for k in range(len(queries))]))
         rows.append([name, 1e3 * times[name], float(np.abs(got - exact).mean()), float(np.abs(got - scores["float32 tables"]).mean()), iou])
-    head = (f"8-bit tables on CLIP text queries ({negatives.name}, {len(queries)} rows) over {n:,} random unit features, "
+    head = (f"8-bit tables on CLIP text queries ({name}, {len(queries)} rows) over {n:,} random unit features, "
             f"{book.kind} M={book.m}; per query, mean over the queries; IoU of each query's top 1 % against the float32 tables'")
     return head + "\n" + format_table(["tables", "ms/query", "mean |Δcos| vs exact", "mean |Δ| vs float32 tables", "top-1 % IoU vs float32"], rows)
 
 
+def cached_codebook_path(args: argparse.Namespace, backend: str) -> Path:
+    """Where the general PQ codebook of `backend` ('pq64') for these flags is kept between runs."""
+    return args.cache_dir / f"v2_pq{int(backend[2:])}_d{args.dim}_l{args.labels}_n{args.train}_s{args.seed}.faiss"
+
+
+def cached_codebook(path: Path, dim: int, m: int) -> Codebook | None:
+    """The cached codebook at `path`, or None when there is none or it cannot serve (unreadable,
+    truncated by a killed run, another shape): it is then trained again and replaced, so that one
+    bad file in the cache is not fatal to every later run."""
+    if not path.is_file():
+        return None
+    try:
+        book = load_codebook(path)
+    except DrsplatError as exc:
+        log.warning("cached codebook %s; training it again, and replacing it", exc)  # the error names the file
+        return None
+    if (book.kind, book.dim, book.m) != ("pq", dim, m):
+        log.warning("cached codebook %s is a %s of %d-D, M=%d, not PQ %d-D M=%d; training it again", path, book.kind, book.dim, book.m, dim, m)
+        return None
+    return book
+
+
 def train_books(args: argparse.Namespace, model: EmbeddingModel, backends: list[str]) -> dict[str, Codebook]:
+    """The general PQ codebooks of `backends` (from the cache, else trained and cached)."""
     books: dict[str, Codebook] = {}
-    train, _ = model.images(args.train, 10_000_019)  # a separate draw: a general codebook never sees the scene
+    train = None
     for name in backends:
         if name.startswith("pq"):
             m = int(name[2:])
-            cached = args.cache_dir / f"v2_pq{m}_d{args.dim}_l{args.labels}_n{args.train}_s{args.seed}.faiss"
-            if cached.is_file():
-                books[name] = load_codebook(cached)
+            cached = cached_codebook_path(args, name)
+            books[name] = cached_codebook(cached, args.dim, m)
+            if books[name] is not None:
                 continue
+            if train is None:
+                train, _ = model.images(args.train, 10_000_019)  # a separate draw: a general codebook never sees the scene
             t0 = time.perf_counter()
             books[name] = train_codebook(train, m=m, seed=args.seed)
             print(f"trained PQ M={m} on {len(train):,} embeddings in {time.perf_counter() - t0:.1f} s")
             books[name].save(cached)
-    if "official" in backends:
-        if args.official.is_file() and args.dim == 512:
-            books["official"] = load_codebook(args.official)
-        else:
-            print(f"official codebook skipped ({args.official} absent or --dim is not 512)")
     return books
+
+
+def official_path(args: argparse.Namespace) -> Path:
+    return DEFAULT_OFFICIAL if args.official is None else args.official
+
+
+def official_codebook(args: argparse.Namespace) -> Codebook | None:
+    """The official codebook, read and checked before any work: None (with a line saying why) when the
+    default one is absent or of another width than --dim; one error naming the file when a given
+    --official is absent, unreadable or of another width."""
+    path, given = official_path(args), args.official is not None
+    if not path.is_file():
+        if given:
+            raise InputError(path, "does not exist (--official)" if not path.exists() else "is not a file (--official); give a faiss codebook file")
+        print(f"official codebook skipped ({path} absent)")
+        return None
+    book = load_codebook(path)
+    if book.dim != args.dim:
+        if given:
+            raise InputError(path, f"is a {book.dim}-D codebook but --dim is {args.dim} (--official); pass --dim {book.dim} or leave 'official' "
+                                   "out of --backends")
+        print(f"official codebook skipped ({path} is {book.dim}-D, --dim is {args.dim})")
+        return None
+    return book
+
+
+def text_negatives(path: Path, dim: int) -> np.ndarray | None:
+    """The CLIP text embeddings [K, dim] of `path` (float32), None when there is no such file.
+    One error naming the file when it is not a readable 2-D numeric array of `dim` columns; rows
+    with a non-finite value or of zero length are counted and left out, with a warning (all of them: an error)."""
+    from drsplat.utils import load_npy
+
+    if not path.is_file():
+        return None
+    rows = load_npy(path, "array of text embeddings")
+    if rows.ndim != 2 or rows.shape[1] != dim or rows.dtype.kind not in "fiu":
+        raise InputError(path, f"is a {rows.dtype} array of shape {rows.shape}; expected [K, {dim}] numbers, one text embedding per row, "
+                               "as wide as the codebook beside it")
+    with np.errstate(over="ignore", invalid="ignore"):
+        rows = rows.astype(np.float32)
+        usable = has_direction(rows)
+    if not usable.any():
+        raise InputError(path, f"none of its {len(rows)} rows is usable: each holds NaN or infinite values or is all zeros")
+    if not usable.all():
+        log.warning("%s: %d of its %d rows hold NaN or infinite values or are all zeros; left out of the 8-bit table", path, int((~usable).sum()), len(rows))
+    return rows[usable]
+
+
+def check_flags(args: argparse.Namespace, backends: list[str]) -> None:
+    """Flags that are wrong together, refused before any work (exit 2)."""
+    if args.queries > args.labels:
+        raise UsageError(f"--queries {args.queries} is more than --labels {args.labels}: each query asks for a different class")
+    pq = [b for b in backends if b.startswith("pq")]
+    uneven = [b for b in pq if args.dim % int(b[2:])]
+    if uneven:
+        raise UsageError(f"--dim {args.dim} cannot be split into the sub-vectors of {', '.join(uneven)} (--backends): "
+                         f"M must divide the dimension (e.g. --dim 512)")
+    if pq and args.train < PQ_KSUB:
+        raise UsageError(f"--train {args.train}: training a PQ codebook ({', '.join(pq)}) needs at least {PQ_KSUB} embeddings")
+    if "faiss" in backends and not any(b in backends for b in FAISS_SEARCHED):
+        raise UsageError(f"--backends faiss times faiss's own search over the codes of {' or '.join(FAISS_SEARCHED)}: add one of them")
+
+
+def check_outputs(args: argparse.Namespace, backends: list[str]) -> None:
+    """The plot may not replace a file the run reads that its command line does not name: a cached
+    codebook, or the text embeddings beside the official codebook (and every output must be writable)."""
+    inputs: dict[str, Path | None] = {f"--cache-dir's {b} codebook": cached_codebook_path(args, b) for b in backends if b.startswith("pq")}
+    if "official" in backends:
+        inputs["--official"] = official_path(args)
+        inputs[f"--official's {TEXT_NEGATIVES}"] = official_path(args).parent / TEXT_NEGATIVES
+    guard_bench_outputs(inputs, {"--plot": args.plot})
+    from drsplat.utils import check_output_writable
+
+    for path in inputs.values():  # a codebook to train is cached: an unwritable --cache-dir is found now, not after the training
+        if path.suffix == ".faiss" and path.parent == args.cache_dir and not path.is_file():
+            check_output_writable(path)
 
 
 def plot(rows: list[Row], path: Path) -> None:
@@ -342,18 +446,25 @@ def plot(rows: list[Row], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
-    for n in sorted({r.n for r in rows}):
-        sub = [r for r in rows if r.n == n and "faiss" not in r.backend and "float32" not in r.backend]
+    plotted = [r for r in rows if "faiss" not in r.backend and "float32" not in r.backend]  # the rows measured against float32
+    for n in sorted({r.n for r in plotted}):
+        sub = [r for r in plotted if r.n == n]
         ax1.scatter([r.ms_query for r in sub], [max(r.mean_abs_err, 1e-5) for r in sub], label=f"N={n:,}")
         ax2.scatter([r.bytes_per_gaussian for r in sub], [r.iou for r in sub], label=f"N={n:,}")
         for r in sub:
             ax1.annotate(r.backend.replace(" (LUT)", ""), (r.ms_query, max(r.mean_abs_err, 1e-5)), fontsize=7)
             ax2.annotate(r.backend.replace(" (LUT)", ""), (r.bytes_per_gaussian, r.iou), fontsize=7)
-    ax1.set(xscale="log", yscale="log", xlabel="ms per query", ylabel="mean |Δcos| vs float32", title="speed vs error")
-    ax2.set(xscale="log", xlabel="bytes per Gaussian", ylabel="selection IoU vs float32", title="memory vs selection fidelity")
+    ax1.set(xlabel="ms per query", ylabel="mean |Δcos| vs float32", title="speed vs error")
+    ax2.set(xlabel="bytes per Gaussian", ylabel="selection IoU vs float32", title="memory vs selection fidelity")
+    if plotted:  # a log axis of no positive value cannot be drawn (--backends float32 alone: nothing is compared)
+        ax1.set(xscale="log", yscale="log")
+        ax2.set(xscale="log")
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        if plotted:
+            ax.legend()
+        else:
+            ax.text(0.5, 0.5, "no backend measured against float32", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     from drsplat.utils import atomic_path
 
@@ -363,21 +474,26 @@ def plot(rows: list[Row], path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    sizes = args.sizes
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-    unknown = sorted(set(backends) - set(BACKENDS))
-    if unknown:
-        raise InputError(None, f"unknown backends {unknown}; choose from {', '.join(BACKENDS)}")
+    sizes, backends = args.sizes, args.backends
+    check_flags(args, backends)
+    check_outputs(args, backends)
     if args.device is not None:  # "--device cuda" without a GPU refused before the codebooks are trained
         from drsplat.device import resolve_device
 
         resolve_device(args.device)
+    official = official_codebook(args) if "official" in backends else None
+    negatives = text_negatives(official_path(args).parent / TEXT_NEGATIVES, official.dim) if official is not None else None
     model = EmbeddingModel.create(args.dim, args.labels, args.seed)
     books = train_books(args, model, backends)
+    if official is not None:
+        books["official"] = official
     rows: list[Row] = []
     args.device_rows = []
     for n in sizes:
         rows.extend(bench_size(args, n, model, books, backends))
+    if not rows:
+        raise DrsplatError(f"nothing was measured: --backends {','.join(backends)} left no backend to time "
+                           f"(float32 is skipped above --max-float32 {args.max_float32:,}, the default official codebook when it is absent)")
     print(f"one cosine query over N Gaussians (D={args.dim}); K=16 batch column is per query; errors vs float32 cosine over {args.queries} text queries")
     print(
         format_table(
@@ -389,9 +505,8 @@ def run(args: argparse.Namespace) -> int:
     if args.device_rows:
         print("torch scorer against the numba kernels (one query; speed-up = numba ms / torch ms; max |Δ| over all queries)")
         print(format_table(["backend", "N", "device", "numba ms", "torch ms", "speed-up", "max |Δ|"], args.device_rows))
-    negatives = args.official.parent / TEXT_NEGATIVES
-    if "official" in books and negatives.is_file():
-        print(text_query_table(books["official"], negatives, TEXT_TABLE_N, args.seed, args.repeats))
+    if negatives is not None:
+        print(text_query_table(official, negatives, TEXT_NEGATIVES, TEXT_TABLE_N, args.seed, args.repeats))
     print(machine_line())
     plot(rows, args.plot)
     print(f"plot: {args.plot}")

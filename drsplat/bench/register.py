@@ -4,7 +4,8 @@ Two tables:
 1. a synthetic scene with exact ground truth, registered with top-k in {1, 5, 10, 20, 40} (the
    paper's ablation): ms per view, ms per 1M contributing (Gaussian, pixel) pairs, and the
    volume-weighted segmentation / localisation mIoU;
-2. a real scene (default ../shared/data/ply/flowers.ply, 542k Gaussians) seen by orbiting
+2. a real scene (default ../shared/data/ply/flowers.ply, 542k Gaussians; or the random blob of
+   --gaussians N, on every engine) seen by orbiting
    640x480 views with synthetic masks and 512-D embeddings: first the per-stage ms per view of
    the reference compositor next to the registration's top-k one (`stage_table`), then the
    whole registration: time per view split into rasterization and accumulation, ms per 1M
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
 import tempfile
 import time
@@ -23,41 +25,48 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import int_range, positive_int
-from drsplat.bench.common import format_table, machine_line, count_arg, peak_rss_mb, positive_int_list, view_size
+from drsplat.commands.common import nonneg_int, output_file, positive_int, topk_int, unit_fraction
+from drsplat.bench.common import format_table, gaussian_count, guard_bench_outputs, int_list, machine_line, peak_rss_mb, scene_file, view_size
 from drsplat.device import add_device_arguments, resolve_compute
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, MAX_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.errors import UsageError
+
+log = logging.getLogger(__name__)
 
 STREAM_VIEWS = 8  # at least this many views timed back to back (the counted cameras repeated)
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    from drsplat.synthetic import PRESETS
+
     p = subparsers.add_parser("register", help="registration ms/view, ms per 1M pairs, RSS; mIoU against top-k")
-    p.add_argument("--preset", default="small", help="synthetic preset for the accuracy table (default: small)")
-    p.add_argument("--topks", type=positive_int_list, default="1,5,10,20,40", help="comma-separated top-k values (default: 1,5,10,20,40)")
-    p.add_argument("--mislabel", type=float, default=0.0, help="fraction of mislabelled synthetic masks (default: 0)")
+    p.add_argument("--preset", default="small", choices=sorted(PRESETS), help="synthetic preset for the accuracy table (default: small)")
+    p.add_argument("--topks", type=int_list(topk_int), default="1,5,10,20,40",
+                   help=f"comma-separated top-k values, each 1..{MAX_TOPK} (default: 1,5,10,20,40)")
+    p.add_argument("--mislabel", type=unit_fraction, default=0.0, help="fraction of mislabelled synthetic masks, 0..1 (default: 0)")
     p.add_argument("--repeats", type=positive_int, default=3, help="timed repeats per row, median reported (default: 3)")
     p.add_argument("--real", type=Path, default=None,
                    help="real scene for the speed table (default: ../shared/data/ply/flowers.ply, the table skipped when it is absent)")
     p.add_argument("--views", type=positive_int, default=50, help="orbiting views on the real scene (default: 50)")
     p.add_argument("--size", type=view_size, default="640x480", help="real-scene view size WxH (default: 640x480)")
-    p.add_argument("--real-topk", type=int, default=DEFAULT_TOPK, help=f"top-k on the real scene (default: {DEFAULT_TOPK})")
+    p.add_argument("--real-topk", type=topk_int, default=DEFAULT_TOPK, help=f"top-k on the real scene, 1..{MAX_TOPK} (default: {DEFAULT_TOPK})")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
     p.add_argument("--skip-stages", action="store_true", help="no per-stage split (reference vs top-k compositor) on the real scene")
-    p.add_argument("--gaussians", type=count_arg, default=None, metavar="N",
-                   help="speed table on a random scene of N Gaussians built in memory (e.g. 500k) instead of --real")
-    p.add_argument("--agree-views", type=int, default=3, help="views rasterized by both engines for the agreement columns (default: 3)")
-    p.add_argument("--count-views", type=int, default=2,
-                   help="views whose torch ops and host syncs are counted, after one warm-up view (default: 2)")
-    p.add_argument("--profile-views", type=int_range(0), default=0, metavar="N",
+    p.add_argument("--gaussians", type=gaussian_count, default=None, metavar="N",
+                   help="speed table on a random scene of N Gaussians built in memory (e.g. 500k, at most 100M) instead of --real")
+    p.add_argument("--agree-views", type=nonneg_int, default=3,
+                   help="views rasterized by both engines for the agreement columns (default: 3; 0: not compared)")
+    p.add_argument("--count-views", type=positive_int, default=2,
+                   help="views whose torch ops and host syncs are counted, after one warm-up view: at most --views minus 1 (default: 2)")
+    p.add_argument("--profile-views", type=nonneg_int, default=0, metavar="N",
                    help="torch engine: N more views under torch's profiler, and a table of where their time went, by device "
                         "time on CUDA (default: 0, none)")
-    p.add_argument("--trace", type=Path, default=None, metavar="FILE",
+    p.add_argument("--trace", type=output_file, default=None, metavar="FILE",
                    help="with --profile-views: also write the profiled views' chrome trace to FILE (gzipped for a .gz name; "
                         "open it in Perfetto or chrome://tracing)")
-    p.add_argument("--json", type=Path, default=None, metavar="FILE",
+    p.add_argument("--json", type=output_file, default=None, metavar="FILE",
                    help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help=f"aggregation mode of every timed registration (default: {DEFAULT_AGGREGATE}; 'paper' is Dr. Splat's)")
@@ -129,10 +138,15 @@ def orbit_cameras(means: np.ndarray, count: int, width: int, height: int):
 
     lo, hi = np.percentile(means, [5, 95], axis=0)
     inner = means[np.all((means >= lo) & (means <= hi), axis=1)]
+    if len(inner) < 3:  # a scene of a few Gaussians: the 5-95 % box of each axis may hold none of them
+        inner = means
     centre = np.median(inner, axis=0)
-    _, _, vt = np.linalg.svd(inner[:: max(1, len(inner) // 20000)] - centre, full_matrices=False)
+    # full_matrices: three axes even from fewer than three points (the ones they do not span are any completion)
+    _, _, vt = np.linalg.svd(inner[:: max(1, len(inner) // 20000)] - centre, full_matrices=True)
     a, b, up = vt[0], vt[1], vt[2]
     radius = 0.6 * np.linalg.norm(hi - lo)
+    if not radius > 0:  # every Gaussian at one point: no extent to scale the orbit by
+        radius = 1.0
     cams = []
     for i in range(count):
         ang = 2 * np.pi * i / count
@@ -170,10 +184,8 @@ def random_mask_features(features_dir: Path, cameras, rng: np.random.Generator, 
         write_features(features_dir, cam.name, ids, feats)
 
 
-def real_table(path: Path, views: int, width: int, height: int, topk: int, repeats: int, aggregate: str = DEFAULT_AGGREGATE) -> str:
-    from drsplat.scene import load_ply
-
-    scene = load_ply(path)
+def real_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, aggregate: str = DEFAULT_AGGREGATE) -> str:
+    """The whole registration of `scene` (called `name`) seen by orbiting views: time per view by stage, ms per 1M pairs."""
     cameras = orbit_cameras(scene.means, views, width, height)
     with tempfile.TemporaryDirectory() as tmp:
         features_dir = Path(tmp)
@@ -191,7 +203,7 @@ def real_table(path: Path, views: int, width: int, height: int, topk: int, repea
         ["  sums only, CPU time of all threads", 1e3 * acc_cpu, 1e3 * acc_cpu / views, 1e3 * acc_cpu / mpairs],
         ["total CPU time, all threads", 1e3 * cpu_seconds, 1e3 * cpu_seconds / views, 1e3 * cpu_seconds / mpairs],
     ]
-    head = (f"{path.name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, "
+    head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, "
             f"512-D random-mask features; {mpairs:.1f} M contributing pairs, {result.num_distinct_pairs / 1e6:.2f} M distinct "
             f"(Gaussian, mask) pairs, {result.num_assigned:,} Gaussians assigned; --aggregate {aggregate}; median of {repeats}")
     return head + "\n" + format_table(["stage", "ms (wall)", "ms/view", "ms/1M pairs"], rows)
@@ -203,7 +215,7 @@ def _canonical_lists(ids: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, 
     return np.take_along_axis(ids, order, -1), np.take_along_axis(weights, order, -1)
 
 
-def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim: int = 512) -> str:
+def stage_table(scene, scene_name: str, views: int, width: int, height: int, topk: int, dim: int = 512) -> str:
     """Per-stage ms per view of one registration view, the reference compositor next to the top-k one.
 
     Both paths run on every view, interleaved (reference first), so machine load hits both alike;
@@ -222,9 +234,7 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
     from drsplat.registration.coalesce import Coalescer
     from drsplat.registration.compute import prepare_geometry
     from drsplat.registration.sums import Accumulator, normalize_rows, normalize_rows_reference
-    from drsplat.scene import load_ply
 
-    scene = load_ply(path)
     geometry = prepare_geometry(scene)
     cameras = orbit_cameras(scene.means, views, width, height)
     rng = np.random.default_rng(0)
@@ -305,7 +315,7 @@ def stage_table(path: Path, views: int, width: int, height: int, topk: int, dim:
     rows.append(["total per view", totals["reference"], totals["top-k"], totals["reference"] / totals["top-k"]])
     exact_ms = 1e3 * statistics.median(times[("top-k", "bin (exact tiles, not used)")])
     ratios = [a / b for a, b in zip(times[("reference", "composite")], times[("top-k", "composite")])]
-    head = (f"{path.name}: per-stage ms per view (median of {n} views {width}x{height}, top-{topk}, {numba.get_num_threads()} threads), "
+    head = (f"{scene_name}: per-stage ms per view (median of {n} views {width}x{height}, top-{topk}, {numba.get_num_threads()} threads), "
             f"reference compositor vs the registration's top-k compositor, interleaved per view")
     foot = (f"composite speed-up, median of the {n} per-view ratios (each pair run back to back): {statistics.median(ratios):.2f} "
             f"(range {min(ratios):.2f}-{max(ratios):.2f}); CPU seconds of all threads, median per view: "
@@ -377,10 +387,12 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
         raster, acc = stage(runs, "raster_seconds"), stage(runs, "accumulate_seconds")
         rows.append([label, 1e3 * total / views, 1e3 * raster / views, 1e3 * acc / views, base_s / total,
                      stage(base_runs, "raster_seconds") / raster if raster else float("nan")])
+    agreed = min(agree_views, views)
+    agreement = (f"Agreement on {agreed} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of top-k slots" if agreed else
+                 "Agreement of the rasterizers: not compared (--agree-views 0)")  # a 0 there would read as "they agree"
     head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, 512-D random masks, "
             f"--aggregate {aggregate}; "
-            f"median of {repeats}. Agreement on {min(agree_views, views)} views: max |Δw| {wdiff:.2e}, id mismatch {mismatch:.2e} of "
-            f"top-k slots; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
+            f"median of {repeats}. {agreement}; features max |Δ| {feat_diff:.2e}, assigned {base.num_assigned:,} vs {other.num_assigned:,}")
     table = format_table(["engine", "ms/view", "raster ms/view", "accumulate ms/view", "speed-up (total)", "speed-up (raster)"], rows)
     return head + "\n" + table + "\n\n" + counts_table(counts) + (f"\n\n{profile}" if profile else ""), counts
 
@@ -664,25 +676,49 @@ def write_json(path: Path, record: dict) -> None:
 
 
 def _check_outputs(args: argparse.Namespace, engine: str) -> None:
-    """--json and --trace record the torch engine's views: refused up front (before any table) where none are measured."""
-    from drsplat.errors import UsageError
-
+    """--json, --trace and --profile-views record the torch engine's views: refused up front (before any table) where none are measured."""
     if args.json is not None and (engine == "numba" or args.skip_real):
         raise UsageError("--json records the torch engine's per-view figures: add --engine torch (and leave out --skip-real)")
     if args.trace is not None and (engine == "numba" or args.skip_real or args.profile_views == 0):
         raise UsageError("--trace keeps the trace of the torch engine's profiled views: add --engine torch and --profile-views N")
+    if args.profile_views and (engine == "numba" or args.skip_real):
+        raise UsageError("--profile-views profiles the torch engine's views: add --engine torch (and leave out --skip-real)")
+
+
+def _views_after_warmup(args: argparse.Namespace, engine: str) -> tuple[int, int]:
+    """(--count-views, --profile-views) as the torch engine's table can honour them: both take the
+    views after one warm-up view, so at most --views - 1 (fewer are used, with a warning)."""
+    if engine == "numba" or args.skip_real:
+        return args.count_views, args.profile_views
+    after = args.views - 1
+    if after < 1:
+        raise UsageError(f"--views {args.views}: the torch engine's per-view counts take the views after one warm-up view; give --views 2 or more")
+    kept = []
+    for flag, wanted in (("--count-views", args.count_views), ("--profile-views", args.profile_views)):
+        if wanted > after:
+            log.warning("%s %d: only %d of the %d --views come after the warm-up view; using %d", flag, wanted, after, args.views, after)
+        kept.append(min(wanted, after))
+    return kept[0], kept[1]
 
 
 def _real_scene(args: argparse.Namespace) -> Path:
-    """The real scene: --real, refused before any table when it is absent (exit 1), or the default
+    """The real scene: --real, refused before any table when it is not a file (exit 1), or the default
     flowers.ply, whose table is skipped with a line when it is absent (a machine without the data)."""
     if args.real is None:
         return DEFAULT_REAL
-    if not args.real.is_file():
-        from drsplat.errors import DrsplatError
+    return scene_file(args.real, "--real")
 
-        raise DrsplatError(f"{args.real}: no such scene file (--real)")
-    return args.real
+
+def _speed_scene(args: argparse.Namespace):
+    """(scene, name) of the speed tables: the blob of --gaussians, else the real scene; (None, why) when
+    the default real scene is absent. Read before any table, so that an empty scene is found at once."""
+    if args.gaussians:
+        return blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
+    if args.real == DEFAULT_REAL and not DEFAULT_REAL.is_file():
+        return None, f"{args.real} is absent"
+    from drsplat.scene import load_ply
+
+    return load_ply(args.real, purpose="benchmark"), args.real.name
 
 
 def run(args: argparse.Namespace) -> int:
@@ -690,38 +726,33 @@ def run(args: argparse.Namespace) -> int:
     width, height = args.size
     device, engine = resolve_compute(args)
     _check_outputs(args, engine)
-    if not args.skip_real and not args.gaussians:
-        args.real = _real_scene(args)
-    elif args.real is None:
-        args.real = DEFAULT_REAL
+    args.real = _real_scene(args) if not args.skip_real and not args.gaussians else (args.real or DEFAULT_REAL)
+    count_views, profile_views = _views_after_warmup(args, engine)
+    # the default scene too: it is resolved here, after the command line's own guard
+    real_flag = "--real" if args.real != DEFAULT_REAL else "--real (its default)"
+    guard_bench_outputs({real_flag: args.real}, {"--json": args.json, "--trace": args.trace})
+    scene, name = _speed_scene(args) if not args.skip_real else (None, "")
     if not args.skip_synthetic:
         print(synthetic_table(args.preset, topks, args.mislabel, args.repeats, args.aggregate))
         print()
     if engine != "numba" and not args.skip_real:
-        if args.gaussians:
-            scene, name = blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
-        elif args.real.exists():
-            from drsplat.scene import load_ply
-
-            scene, name = load_ply(args.real), args.real.name
+        if scene is None:
+            print(f"skipped the engine table: {name} (pass --real SCENE.ply or --gaussians N)")
         else:
-            print(f"skipped the engine table: {args.real} is absent (pass --real SCENE.ply or --gaussians N)")
-            scene = None
-        if scene is not None:
             text, counts = engine_table(scene, name, args.views, width, height, args.real_topk, args.repeats, engine, device,
-                                        args.agree_views, args.count_views, args.aggregate, args.profile_views, args.trace)
+                                        args.agree_views, count_views, args.aggregate, profile_views, args.trace)
             print(text)
             if args.json is not None:
                 write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
                 print(f"wrote {args.json}")
     elif not args.skip_real:
-        if args.real.exists():
-            if not args.skip_stages:
-                print(stage_table(args.real, args.views, width, height, args.real_topk))
-                print()
-            print(real_table(args.real, args.views, width, height, args.real_topk, args.repeats, args.aggregate))
+        if scene is None:
+            print(f"skipped the real-scene table: {name} (pass --real SCENE.ply or --gaussians N)")
         else:
-            print(f"skipped the real-scene table: {args.real} is absent (pass --real SCENE.ply)")
+            if not args.skip_stages:
+                print(stage_table(scene, name, args.views, width, height, args.real_topk))
+                print()
+            print(real_table(scene, name, args.views, width, height, args.real_topk, args.repeats, args.aggregate))
     print(f"peak RSS {peak_rss_mb():.0f} MB")
     print(machine_line())
     return 0

@@ -29,42 +29,57 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from drsplat.bench.common import format_table, machine_line
-from drsplat.commands.common import positive_int
+from drsplat.bench.common import format_table, guard_bench_outputs, machine_line, positive_int_list
+from drsplat.commands.common import MAX_IMAGE_WIDTH, int_range, nonneg_float, output_file, positive_float, positive_int, size_value
+from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size, peak_rss
 
 log = logging.getLogger(__name__)
 
 ROOM_PRESET = "small"
+ROOM_FILES = ("scene.ply", "transforms.json")  # what the runs read of --room besides its features folder
+
+
+def budget_text(text: str) -> str:
+    """argparse type of --budget: a size ('8GB'), checked now and kept as written (it is printed and passed to the child runs)."""
+    size_value(text)
+    return text.strip()
+
+
+budget_text.__name__ = "size"
+
+
+class ChildRunFailed(DrsplatError):
+    """A configuration's own process failed; the message is its last error line."""
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("scale", help="city-scale registration: local vs streamed vs Ray, peak RSS, projection to GPU nodes")
     p.add_argument("--part", choices=("all", "compare", "rss", "big", "replay"), default="all")
     p.add_argument("--room", type=Path, default=None, help="a written `small` synthetic dataset (default: written to a temp folder)")
-    p.add_argument("--width", type=int, default=64, help="view width in pixels (height follows the room's 4:3)")
-    p.add_argument("--compare-tiles", type=int, default=16, help="rooms in the comparison city (~18.4k Gaussians each)")
-    p.add_argument("--compare-views", type=int, default=96)
-    p.add_argument("--workers", default="1,2", help="Ray worker counts to compare")
-    p.add_argument("--rss-tiles", default="55,272", help="cities for peak RSS vs N (55 ~ 1M, 272 ~ 5M, 1087 ~ 20M Gaussians)")
-    p.add_argument("--rss-views", type=int, default=20)
-    p.add_argument("--big-tiles", type=int, default=272, help="the done-means city: 272 rooms = 5.0M Gaussians")
-    p.add_argument("--big-views", type=int, default=544)
-    p.add_argument("--budget", default="8GB", help="memory budget of the streamed runs")
-    p.add_argument("--model-images", type=int, default=10_000)
-    p.add_argument("--model-gaussians", type=float, default=50e6)
-    p.add_argument("--model-pixels", type=float, default=1.0e6, help="pixels per image of the projected city")
-    p.add_argument("--pixel-cost-us", type=float, default=0.68, help="rasterizer cost per pixel per view (flowers, docs/raster.md)")
-    p.add_argument("--pairs-per-mp", type=float, default=1.0e6, help="distinct pairs per megapixel of a view (flowers: 306k at 640x480)")
-    p.add_argument("--gpu-speedup", type=float, default=40.0,
+    p.add_argument("--width", type=int_range(1, MAX_IMAGE_WIDTH), default=64, help="view width in pixels (height follows the room's 4:3)")
+    p.add_argument("--compare-tiles", type=positive_int, default=16, help="rooms in the comparison city (~18.4k Gaussians each)")
+    p.add_argument("--compare-views", type=positive_int, default=96)
+    p.add_argument("--workers", type=positive_int_list, default="1,2", help="Ray worker counts to compare")
+    p.add_argument("--rss-tiles", type=positive_int_list, default="55,272", help="cities for peak RSS vs N (55 ~ 1M, 272 ~ 5M, 1087 ~ 20M Gaussians)")
+    p.add_argument("--rss-views", type=positive_int, default=20)
+    p.add_argument("--big-tiles", type=positive_int, default=272, help="the done-means city: 272 rooms = 5.0M Gaussians")
+    p.add_argument("--big-views", type=positive_int, default=544)
+    p.add_argument("--budget", type=budget_text, default="8GB", help="memory budget of the streamed runs")
+    p.add_argument("--model-images", type=positive_int, default=10_000)
+    p.add_argument("--model-gaussians", type=positive_float, default=50e6)
+    p.add_argument("--model-pixels", type=positive_float, default=1.0e6, help="pixels per image of the projected city")
+    p.add_argument("--pixel-cost-us", type=nonneg_float, default=0.68, help="rasterizer cost per pixel per view (flowers, docs/raster.md)")
+    p.add_argument("--pairs-per-mp", type=positive_float, default=1.0e6, help="distinct pairs per megapixel of a view (flowers: 306k at 640x480)")
+    p.add_argument("--gpu-speedup", type=positive_float, default=40.0,
                    help="assumed speed-up of one GPU node over this machine's per-view rasterization (an assumption, stated in the table)")
     p.add_argument("--replay-gaussians", type=positive_int, default=2_000_000, help="replay part: Gaussians of the synthetic pair log")
     p.add_argument("--replay-views", type=positive_int, default=60)
     p.add_argument("--replay-pairs", type=positive_int, default=300_000, help="replay part: distinct pairs per view")
     p.add_argument("--replay-blocks", type=positive_int, default=4)
-    p.add_argument("--nodes", default="1,8,64")
+    p.add_argument("--nodes", type=positive_int_list, default="1,8,64", help="GPU node counts of the projection")
     p.add_argument("--reducers-per-node", type=positive_int, default=1, help="reducer tasks per node in the projection (each holds one block)")
-    p.add_argument("--json", type=Path, default=None, help="also write the compare runs as JSON records to this file")
+    p.add_argument("--json", type=output_file, default=None, help="also write the compare runs as JSON records to this file (--part compare or all)")
     p.set_defaults(func=run)
 
 
@@ -137,7 +152,8 @@ def run_config(config: dict) -> dict:
         "worker_rss": workers, "sha": digest.hexdigest(), "ply_bytes": size, "driver_cpu": driver_cpu, "cull": cull,
         "projected_per_view": _projected_per_view(scene, cameras, options.topk) if cull else float(scene.num_gaussians),
         "reduce": {"reducers": reg.reducers, "tail_wall_s": round(reg.seconds - reg.view_seconds, 3), "tail_driver_cpu_s": round(reg.finish_cpu_seconds, 3)},
-        "first_view": max(w.first_view_seconds for w in reg.workers if w.first_view_seconds is not None),
+        # a local run has no workers: no first view of one (None, shown as '-')
+        "first_view": max((w.first_view_seconds for w in reg.workers if w.first_view_seconds is not None), default=None),
         "later_view": statistics.median(later) if later else None,
         "kernels_compiled": sum(w.kernels_compiled for w in reg.workers), "kernels_cached": sum(w.kernels_cached for w in reg.workers),
         "views_wall": views_done[0], "views_driver_cpu": views_done[1], "first_view_driver_cpu": first_done[0] if first_done else 0.0,
@@ -202,8 +218,15 @@ def _child(config: dict) -> dict:
         env["NUMBA_CACHE_DIR"] = config["numba_cache"]
     proc = subprocess.run([sys.executable, "-m", "drsplat.bench.scale", json.dumps(config)], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise RuntimeError(f"bench run {config.get('label')} failed:\n{proc.stderr[-3000:]}")
+        log.debug("bench run %s failed:\n%s", config.get("label"), proc.stderr[-3000:])
+        raise ChildRunFailed(f"bench run '{config.get('label')}' failed: {_last_error(proc.stderr)}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _last_error(stderr: str) -> str:
+    """The last line of a child's stderr (its exception), without the exception's class name."""
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    return lines[-1].split("Error: ", 1)[-1].strip()[:300] if lines else "no message (killed?)"
 
 
 def _mb(n: float) -> str:
@@ -224,32 +247,55 @@ def _prepare(args, work: Path, tiles: int, views: int, tag: str) -> dict:
     return {"room": str(room), "tiles": tiles, "views": views, "width": args.width, "features": str(feats), "out": str(work / f"{tag}.ply")}
 
 
+def check_flags_and_files(args: argparse.Namespace) -> None:
+    """Before any work: --json only where the compare part writes it, a given --room a written dataset,
+    and --json over none of the room's files the runs read (nor named like a feature file in its features folder)."""
+    from drsplat.commands.common import protected_feature_folders
+
+    if args.json is not None and args.part not in ("all", "compare"):
+        raise UsageError(f"--json records the compare part's runs, and --part {args.part} has none: use --part compare or all")
+    room = args.room
+    inputs: dict[str, Path | None] = {}
+    protected = {}
+    if room is not None:
+        missing = [name for name in (*ROOM_FILES, "features") if not (room / name).exists()]
+        if missing:
+            raise InputError(room, f"is not a written synthetic dataset (--room): it has no {', '.join(missing)}; "
+                                   f"make one with drsplat synth DIR --preset {ROOM_PRESET}")
+        inputs = {f"--room's {name}": room / name for name in ROOM_FILES}
+        protected = protected_feature_folders("--room's features", [room / "features"])
+    guard_bench_outputs(inputs, {"--json": args.json}, protected)
+
+
 def run(args: argparse.Namespace) -> int:
     from drsplat.synthetic import write_dataset
 
+    check_flags_and_files(args)
     with tempfile.TemporaryDirectory(prefix="drsplat-scale-") as tmp:
         work = Path(tmp)
         if args.room is None:
             args.room = write_dataset(work / "room", ROOM_PRESET, 0, show_progress=False)
         print(machine_line() + " (shared with other jobs; absolute times are noisy)")
-        compare = None
+        compare, empty = None, []
         if args.part in ("all", "compare"):
             compare = _compare(args, work)
-        if args.part in ("all", "rss"):
-            _rss(args, work)
+        if args.part in ("all", "rss") and not _rss(args, work):
+            empty.append("rss")
         if args.part in ("all", "big"):
             _big(args, work)
         if args.part in ("all", "replay"):
             _replay(args, work)
         if compare:
             _projection(args, compare)
+    if empty:  # the table says why each run stopped; a part of no measurement is not a result
+        raise DrsplatError(f"--part {', '.join(empty)} measured nothing: every run stopped (see the table above)")
     return 0
 
 
 def _compare(args, work: Path) -> list[dict]:
     base = _prepare(args, work, args.compare_tiles, args.compare_views, "compare")
     configs = [("local, in memory", {}), ("local, in memory, no culling", {"cull": False}), ("local, streamed (4 blocks)", {"block": -(-args.compare_tiles * 18413 // 4 // 1024) * 1024})]
-    counts = list(map(int, args.workers.split(",")))
+    counts = args.workers
     configs += [(f"Ray, {w} node{'s' if w > 1 else ''} x 1 worker", {"nodes": w, "workers": w}) for w in counts]
     configs.append((f"Ray, {counts[-1]} nodes, empty kernel cache", {"nodes": counts[-1], "workers": counts[-1], "numba_cache": str(work / "numba-cold")}))
     configs += _reduce_configs(args, configs[2][1]["block"])
@@ -270,7 +316,7 @@ def _compare(args, work: Path) -> list[dict]:
         later = f"{r['later_view']:.3f}" if r["later_view"] is not None else "-"
         rows.append([label, f"{r['gaussians']:,}", r["views"], f"{r['projected_per_view']:,.0f}", f"{r['wall']:.1f}", f"{r['raster']:.1f}",
                      f"{r['driver_cpu']:.1f}", f"{100 * r['driver_cpu'] / r['wall']:.0f}%",
-                     f"{r['views_wall']:.1f}", f"{100 * r['views_driver_cpu'] / r['views_wall']:.0f}%", f"{r['first_view']:.2f}", later,
+                     f"{r['views_wall']:.1f}", f"{100 * r['views_driver_cpu'] / r['views_wall']:.0f}%", _seconds(r["first_view"], 2), later,
                      f"{r['kernels_compiled']}/{r['kernels_cached']}", _mb(r["peak_rss"]), per_worker, verdict])
     print(f"\nCity of {args.compare_tiles} rooms, {args.compare_views} views at {args.width} px, top-40, every Gaussian written (--keep-unassigned);"
           " Ray nodes are one-CPU nodes on this machine, started per run:")
@@ -285,9 +331,14 @@ def _compare(args, work: Path) -> list[dict]:
     return results
 
 
+def _seconds(value: float | None, digits: int) -> str:
+    """A table cell of seconds: '-' where there is none (a local run's first view on a worker)."""
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
 def _reduce_configs(args, block: int) -> list[tuple[str, dict]]:
     """Ray in 4 blocks, most workers: the blocks finished by the driver, then by reducer tasks (the partitioned reduce)."""
-    workers = max(map(int, args.workers.split(",")))
+    workers = max(args.workers)
     ray = {"nodes": workers, "workers": workers, "block": block}
     return [(f"Ray, {workers} workers, 4 blocks, driver finishes", {**ray, "reducers": False}),
             (f"Ray, {workers} workers, 4 blocks, reducers", {**ray, "reducers": True})]
@@ -326,7 +377,7 @@ def write_records(path: Path, results: list[dict]) -> None:
             "label": r["label"], "place": place, "nodes": r.get("nodes") or 1, "workers": r.get("workers", 1), "cull": r["cull"],
             "wall_s": round(r["wall"], 3), "driver_busy_s": round(r["driver_cpu"], 3), "raster_s": round(r["raster"], 3), "sha256": r["sha"],
             "gaussians": r["gaussians"], "views": r["views"], "projected_per_view": r["projected_per_view"], "driver_peak_rss": r["peak_rss"],
-            "worker_peak_rss": r["worker_rss"], "first_view_s": round(r["first_view"], 4),
+            "worker_peak_rss": r["worker_rss"], "first_view_s": None if r["first_view"] is None else round(r["first_view"], 4),
             "later_view_s": None if r["later_view"] is None else round(r["later_view"], 4), "kernels_compiled": r["kernels_compiled"],
             "kernels_cached": r["kernels_cached"], "numba_cache": "empty" if r.get("numba_cache") else "warm",
             "view_pass_s": round(r["views_wall"], 3), "view_pass_driver_busy_s": round(r["views_driver_cpu"], 3),
@@ -339,16 +390,17 @@ def write_records(path: Path, results: list[dict]) -> None:
 
 
 def _rss(args, work: Path) -> list[dict]:
+    """Peak RSS vs N: each city streamed under --budget and in memory; a run that stops (in memory
+    past what fits) is a row saying why. Returns the runs that finished."""
     rows, results = [], []
     budget = parse_size(args.budget)
-    for tiles in map(int, args.rss_tiles.split(",")):
+    for tiles in args.rss_tiles:
         base = _prepare(args, work, tiles, args.rss_views, f"rss{tiles}")
         for label, extra in (("streamed", {"budget": args.budget}), ("in memory", {})):
             try:
                 r = _child({**base, **extra, "label": label})
-            except RuntimeError as exc:
-                last = [line for line in str(exc).splitlines() if line.strip()][-1].split("Error: ", 1)[-1]
-                rows.append([f"{tiles * 18413 / 1e6:.1f} M", label, "-", "-", "-", "stops: " + last[:100]])
+            except ChildRunFailed as exc:
+                rows.append([f"{tiles * 18413 / 1e6:.1f} M", label, "-", "-", "-", "stops: " + str(exc).split(" failed: ", 1)[-1][:100]])
                 continue
             results.append(r)
             rows.append([f"{r['gaussians'] / 1e6:.2f} M", label + (" (blocks)" if r["streamed"] else " (fits: in memory)" if extra else ""), _mb(r["peak_rss"]),
@@ -484,7 +536,7 @@ def _projection(args, results: list[dict]) -> None:
     pairs = args.model_images * args.pairs_per_mp * args.model_pixels / 1e6
     view_cost = (a * args.model_gaussians + b * args.model_pixels) / args.gpu_speedup + log_per_pair * pairs / args.model_images
     rows, walls = [], {}
-    for nodes in map(int, args.nodes.split(",")):
+    for nodes in args.nodes:
         views_s = args.model_images * view_cost / nodes
         log_s = args.model_images * driver_per_view
         reduce_s = (pairs * replay_per_pair + args.model_gaussians * reducer_per_gaussian) / (nodes * args.reducers_per_node)

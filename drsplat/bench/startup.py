@@ -47,9 +47,12 @@ print(json.dumps({{"code": code, "import_s": t1 - t0, "run_s": t2 - t1, "peak_mb
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
+    from drsplat.synthetic import CITY_PRESETS, PRESETS
+
     p = subparsers.add_parser("startup", help="import time and peak memory of each main command with default flags (subprocesses)")
     p.add_argument("--repeats", type=positive_int, default=3, help="runs per command (medians reported)")
-    p.add_argument("--preset", default="tiny", help="synthetic scene the commands run on (made once in a temp folder)")
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS) + sorted(CITY_PRESETS),  # `drsplat synth --preset`'s choices
+                   help="synthetic scene the commands run on (made once in a temp folder; default: tiny)")
     p.set_defaults(func=run)
 
 

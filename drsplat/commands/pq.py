@@ -8,11 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders, seed_int
+from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders
 from drsplat.errors import InputError, UsageError
 from drsplat.lang.codebook import PQ_KSUB
 
 log = logging.getLogger(__name__)
+
+FAISS_MAX_SEED = 2**31 - 1  # faiss's k-means seed is a C int: a larger one was an OverflowError traceback
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -34,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--out", type=output_file, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
     train.add_argument("--m", type=positive_int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
     train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset)")
-    train.add_argument("--seed", type=seed_int, default=0)
+    train.add_argument("--seed", type=int_range(0, FAISS_MAX_SEED), default=0, help=f"k-means seed, 0..{FAISS_MAX_SEED} (faiss takes a C int)")
     train.set_defaults(func=run_train)
 
     info = actions.add_parser("info", help="print what a codebook file contains")

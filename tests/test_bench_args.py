@@ -1,0 +1,431 @@
+"""Bad input to `drsplat bench ...`: one error line naming the flag or file, never a traceback;
+exit 2 for a bad flag (before any work), exit 1 for bad data; no bench writes over a file it
+reads (the ones its command line does not name too: a default scene, a cached codebook, the
+negatives beside --official, a --room's files); an unwritable output is found before the work."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drsplat.cli import main
+
+
+def run_cli(argv: list, capsys) -> tuple[int, str, str]:
+    """(exit code, stderr, stdout) of `drsplat argv`; argparse's SystemExit becomes its code."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err, captured.err
+    return code, captured.err, captured.out
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("ERROR") or ": error:" in line]
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@pytest.fixture(autouse=True)
+def in_tmp(tmp_path, monkeypatch):
+    """Each test in its own folder: a default output (bench_query.png) and its writability probe land there."""
+    monkeypatch.chdir(tmp_path)
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Every bench's first piece of real work fails the test: a refusal must come before it."""
+    import drsplat.bench.budget as budget
+    import drsplat.bench.query as query
+    import drsplat.bench.register as register
+    import drsplat.bench.scale as scale
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the bench started its work before refusing its input")
+
+    monkeypatch.setattr(query.EmbeddingModel, "create", classmethod(forbidden))
+    monkeypatch.setattr(query, "train_books", forbidden)
+    monkeypatch.setattr(register, "synthetic_table", forbidden)
+    monkeypatch.setattr(register, "blob_scene", forbidden)
+    monkeypatch.setattr(budget, "run_case", forbidden)
+    for part in ("_compare", "_rss", "_big", "_replay"):
+        monkeypatch.setattr(scale, part, forbidden)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> dict[int, Path]:
+    """PLY files of 0, 1 and 2 Gaussians."""
+    from drsplat.scene import save_ply
+    from drsplat.testing import gaussians
+
+    folder = tmp_path_factory.mktemp("scenes")
+    scene = gaussians(np.random.default_rng(0).normal(size=(2, 3)), log_scale=-1.5, opacity_logit=5.0)  # large enough to cover pixels
+    out = {}
+    for n in (0, 1, 2):
+        out[n] = folder / f"g{n}.ply"
+        save_ply(scene.subset(slice(0, n)), out[n])
+    return out
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory) -> Path:
+    """A written `tiny` synthetic dataset (scene.ply, transforms.json, features/)."""
+    from drsplat.synthetic import write_dataset
+
+    return write_dataset(tmp_path_factory.mktemp("room") / "tiny", "tiny", 0, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def codebook64(tmp_path_factory) -> Path:
+    """A 64-D PQ codebook (M=8) alone in its folder, as an --official would be."""
+    from drsplat.lang import train_codebook
+
+    path = tmp_path_factory.mktemp("official") / "pq.faiss"
+    train_codebook(np.random.default_rng(0).normal(size=(300, 64)).astype(np.float32), m=8).save(path)
+    return path
+
+
+# ----------------------------------------------------------------------------- flags refused by argparse (exit 2)
+
+BAD_FLAGS = [
+    # --repeats 0 ran StatisticsError tracebacks; inf / 1e400 in a count an OverflowError
+    (["io", "--repeats", "0"], "--repeats"), (["eval", "--repeats", "-1"], "--repeats"),
+    (["query", "--repeats", "0"], "--repeats"), (["register", "--repeats", "0"], "--repeats"),
+    (["query", "--sizes", "inf"], "--sizes"), (["query", "--sizes", "1e400"], "--sizes"), (["query", "--sizes", "nan"], "--sizes"),
+    (["query", "--max-float32", "inf"], "--max-float32"),
+    (["register", "--gaussians", "inf"], "--gaussians"), (["register", "--gaussians", "1e12"], "--gaussians"),
+    (["eval", "--gaussians", "0"], "--gaussians"), (["eval", "--gaussians", "-5"], "--gaussians"),
+    (["eval", "--points", "0"], "--points"), (["eval", "--points", "-1"], "--points"),
+    # register: ValueError tracebacks from the synthetic dataset, slices of negative views
+    (["register", "--mislabel", "nan"], "--mislabel"), (["register", "--mislabel", "2"], "--mislabel"), (["register", "--mislabel", "-1"], "--mislabel"),
+    (["register", "--preset", "bogus"], "--preset"), (["register", "--real-topk", "0"], "--real-topk"), (["register", "--topks", "5,2000"], "--topks"),
+    (["register", "--agree-views", "-1"], "--agree-views"), (["register", "--count-views", "-1"], "--count-views"),
+    (["register", "--count-views", "0"], "--count-views"), (["register", "--size", "100000x10"], "--size"),
+    # features: slices and NaN rows; an unknown generator was found after CLIP was built
+    (["features", "--images", "-3"], "--images"), (["features", "--images", "0"], "--images"), (["features", "--sam-images", "0"], "--sam-images"),
+    (["features", "--nms-masks", "abc"], "--nms-masks"), (["features", "--nms-masks", "50,0"], "--nms-masks"),
+    (["features", "--loop-masks", "-1"], "--loop-masks"), (["features", "--resolution", "0"], "--resolution"),
+    (["features", "--resolution", "nan"], "--resolution"), (["features", "--sam-points-per-side", "0"], "--sam-points-per-side"),
+    (["features", "--sam-crop-layers", "-1"], "--sam-crop-layers"), (["features", "--generators", "bogus"], "--generators"),
+    # query
+    (["query", "--dim", "0"], "--dim"), (["query", "--dim", "-3"], "--dim"), (["query", "--labels", "0"], "--labels"),
+    (["query", "--labels", "1"], "--labels"), (["query", "--queries", "0"], "--queries"), (["query", "--queries", "-2"], "--queries"),
+    (["query", "--seed", "-1"], "--seed"), (["query", "--backends", ","], "--backends"), (["query", "--backends", "float32,bogus"], "--backends"),
+    # scale
+    (["scale", "--workers", "abc"], "--workers"), (["scale", "--workers", "0"], "--workers"), (["scale", "--workers", "-1"], "--workers"),
+    (["scale", "--budget", "abc"], "--budget"), (["scale", "--rss-tiles", "abc"], "--rss-tiles"), (["scale", "--rss-tiles", "0"], "--rss-tiles"),
+    (["scale", "--big-tiles", "-1"], "--big-tiles"), (["scale", "--gpu-speedup", "0"], "--gpu-speedup"),
+    (["scale", "--model-images", "0"], "--model-images"), (["scale", "--nodes", "abc"], "--nodes"), (["scale", "--width", "0"], "--width"),
+    # startup showed `drsplat synth`'s usage; budget found an unknown case in its run
+    (["startup", "--preset", "bogus"], "bench startup: error: argument --preset"), (["budget", "--cases", "bogus"], "--cases"),
+    # an output ending in "/" names a folder: the file would have taken its name
+    (["register", "--engine", "torch", "--device", "cpu", "--json", "out/"], "--json"),
+    (["register", "--engine", "torch", "--device", "cpu", "--profile-views", "1", "--trace", "out/"], "--trace"), (["budget", "--json", "out/"], "--json"),
+    (["query", "--plot", "out/"], "--plot"), (["scale", "--json", "out/"], "--json"),
+]
+
+
+@pytest.mark.parametrize("argv, words", BAD_FLAGS, ids=[" ".join(a) for a, _ in BAD_FLAGS])
+def test_a_bad_bench_flag_is_a_usage_error_naming_it(argv, words, capsys, no_work):
+    code, err, out = run_cli(["bench", *argv], capsys)
+    assert code == 2 and words in err, err
+    assert len(error_lines(err)) == 1 and not out
+
+
+def test_count_flags_read_suffixes_and_refuse_what_is_not_a_finite_count():
+    from drsplat.bench.common import count_arg, count_list, gaussian_count, parse_count
+
+    assert count_list("100k,1.5M, 42") == [100_000, 1_500_000, 42] and count_arg("2M") == 2_000_000
+    for text in ("inf", "-inf", "nan", "1e400", "1e400k"):
+        with pytest.raises(ValueError):
+            parse_count(text)
+        with pytest.raises(argparse.ArgumentTypeError, match="finite"):
+            count_list(text)
+    with pytest.raises(argparse.ArgumentTypeError, match="at most"):
+        gaussian_count("1e12")
+
+
+FLAGS_WRONG_TOGETHER = [
+    (["query", "--queries", "50", "--labels", "40"], "--queries 50 is more than --labels 40"),
+    (["query", "--dim", "100", "--backends", "pq32"], "--dim 100"),
+    (["query", "--train", "100", "--backends", "pq32"], "--train 100"),
+    (["query", "--backends", "faiss"], "--backends faiss"),
+    (["register", "--skip-synthetic", "--gaussians", "100", "--engine", "numba", "--device", "cpu", "--profile-views", "3"], "--profile-views"),
+    (["register", "--skip-synthetic", "--gaussians", "100", "--engine", "torch", "--device", "cpu", "--views", "1"], "--views 1"),
+    (["scale", "--part", "rss", "--json", "x.json"], "--json"),
+]
+
+
+@pytest.mark.parametrize("argv, words", FLAGS_WRONG_TOGETHER, ids=[" ".join(a) for a, _ in FLAGS_WRONG_TOGETHER])
+def test_flags_wrong_together_are_usage_errors_before_any_work(argv, words, capsys, no_work, tmp_path):
+    code, err, _ = run_cli(["bench", *argv], capsys)
+    assert code == 2 and words in err, err
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+# ----------------------------------------------------------------------------- no output over an input (exit 1, input unchanged)
+
+
+def test_query_plot_may_not_replace_a_cached_codebook_or_the_negatives(tmp_path, capsys, no_work, codebook64):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    cached = cache / "v2_pq32_d512_l40_n5000_s0.faiss"  # what --backends pq32 reads with the other flags' defaults
+    cached.write_bytes(b"a codebook trained by an earlier run")
+    before = digest(cached)
+    code, err, _ = run_cli(["bench", "query", "--backends", "pq32", "--cache-dir", cache, "--plot", cached], capsys)
+    assert code == 1 and "cannot write" in err and "--cache-dir's pq32 codebook" in err, err
+    assert digest(cached) == before
+
+    negatives = codebook64.parent / "text_negative.npy"
+    np.save(negatives, np.ones((2, 64), np.float32))
+    before = digest(negatives)
+    code, err, _ = run_cli(["bench", "query", "--backends", "official", "--dim", "64", "--official", codebook64, "--plot", negatives], capsys)
+    assert code == 1 and "cannot write" in err and "text_negative.npy" in err, err
+    assert digest(negatives) == before
+    negatives.unlink()
+
+
+def test_register_outputs_may_not_replace_the_default_real_scene(tmp_path, capsys, no_work, monkeypatch):
+    """The default --real is resolved in the bench, after the command line's own guard: it is guarded there."""
+    import drsplat.bench.register as register
+
+    default = tmp_path / "flowers.ply"
+    default.write_bytes(b"ply\nthe default real scene")
+    monkeypatch.setattr(register, "DEFAULT_REAL", default)
+    before = digest(default)
+    torch = ["bench", "register", "--skip-synthetic", "--engine", "torch", "--device", "cpu"]
+    for argv in (torch + ["--json", default], torch + ["--profile-views", "1", "--trace", default]):
+        code, err, _ = run_cli(argv, capsys)
+        assert code == 1 and "cannot write" in err and "--real (its default)" in err, err
+        assert digest(default) == before
+
+
+def test_scale_json_may_not_replace_a_file_of_the_room(tmp_path, capsys, no_work):
+    room = tmp_path / "room"
+    (room / "features").mkdir(parents=True)
+    for name in ("scene.ply", "transforms.json", "features/manifest.json"):
+        (room / name).write_text(name)
+    for target, words in (("scene.ply", "--room's scene.ply"), ("transforms.json", "--room's transforms.json"),
+                          ("features/manifest.json", "features folder"), ("features/view_000_f.npy", "features folder")):
+        code, err, _ = run_cli(["bench", "scale", "--room", room, "--part", "compare", "--json", room / target], capsys)
+        assert code == 1 and "cannot write" in err and words in err, (target, err)
+    assert all((room / name).read_text() == name for name in ("scene.ply", "transforms.json", "features/manifest.json"))
+    code, err, _ = run_cli(["bench", "scale", "--room", tmp_path / "nothing", "--part", "rss"], capsys)
+    assert code == 1 and "is not a written synthetic dataset" in err, err
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc, a folder that accepts no new file")
+@pytest.mark.parametrize("argv", [
+    ["register", "--skip-synthetic", "--gaussians", "100", "--engine", "torch", "--device", "cpu", "--json", "/proc/self/x.json"],
+    ["budget", "--cases", "tiny", "--json", "/proc/self/x.json"],
+    ["query", "--sizes", "1k", "--backends", "float16", "--plot", "/proc/self/x.png"],
+    ["scale", "--part", "compare", "--json", "/proc/self/x.json"],
+], ids=["register", "budget", "query", "scale"])
+def test_an_unwritable_output_is_found_before_the_work(argv, capsys, no_work):
+    code, err, out = run_cli(["bench", *argv], capsys)
+    assert code == 1 and "cannot write /proc/self/x." in err, err
+    assert len(error_lines(err)) == 1 and "|" not in out
+
+
+def test_a_real_scene_that_is_no_file_says_so(tmp_path, capsys, no_work):
+    folder = tmp_path / "emptyd"
+    folder.mkdir()
+    argv = ["bench", "register", "--skip-synthetic", "--engine", "numba", "--device", "cpu", "--real"]
+    code, err, _ = run_cli(argv + [folder], capsys)
+    assert code == 1 and f"{folder}: is not a file but a folder (--real)" in err, err
+    code, err, _ = run_cli(argv + [tmp_path / "missing.ply"], capsys)
+    assert code == 1 and "no such scene file (--real)" in err, err
+    if hasattr(os, "mkfifo"):
+        fifo = tmp_path / "fifo.ply"
+        os.mkfifo(fifo)
+        code, err, _ = run_cli(argv + [fifo], capsys)
+        assert code == 1 and "is not a file but a FIFO" in err, err
+
+
+# ----------------------------------------------------------------------------- scenes of few Gaussians
+
+
+@pytest.mark.parametrize("argv", [
+    ["io", "{ply}", "--views", "1", "--repeats", "1"],
+    ["eval", "--scene", "{ply}", "--points", "10", "--repeats", "1"],
+    ["register", "--skip-synthetic", "--engine", "numba", "--device", "cpu", "--real", "{ply}", "--views", "2", "--size", "32x24"],
+    ["register", "--skip-synthetic", "--engine", "torch", "--device", "cpu", "--real", "{ply}", "--views", "2", "--size", "32x24"],
+], ids=["io", "eval", "register-numba", "register-torch"])
+def test_a_scene_of_no_gaussians_is_one_error_naming_it(argv, scenes, capsys, monkeypatch):
+    import drsplat.bench.register as register
+
+    monkeypatch.setattr(register, "synthetic_table", lambda *a, **k: pytest.fail("the scene was read after the synthetic table"))
+    code, err, _ = run_cli(["bench", *(str(scenes[0]) if a == "{ply}" else a for a in argv)], capsys)
+    assert code == 1 and f"{scenes[0]}: holds no Gaussians" in err, err
+    assert len(error_lines(err)) == 1
+
+
+def test_orbit_cameras_see_scenes_of_one_two_or_three_gaussians():
+    """orbit_cameras' SVD needed three points inside the 5-95 % box, and a nonzero extent (IndexError, NaN poses)."""
+    from drsplat.bench.register import orbit_cameras
+
+    rng = np.random.default_rng(0)
+    for means in (rng.normal(size=(1, 3)), rng.normal(size=(2, 3)), rng.normal(size=(3, 3)), np.zeros((4, 3))):
+        cams = orbit_cameras(means, 3, 32, 24)
+        assert len(cams) == 3
+        assert all(np.isfinite(c.R).all() and np.isfinite(c.t).all() for c in cams)
+    big = rng.normal(size=(500, 3))  # a scene with a 5-95 % box to take its axes from: unchanged
+    assert np.isfinite(orbit_cameras(big, 2, 32, 24)[0].R).all()
+
+
+def test_benches_run_on_scenes_of_one_and_two_gaussians(scenes, capsys):
+    code, err, out = run_cli(["bench", "io", scenes[2], "--views", "1", "--repeats", "1"], capsys)
+    assert code == 0 and "2 Gaussians" in out, err
+    code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--skip-stages", "--engine", "numba", "--device", "cpu", "--real", scenes[1],
+                              "--views", "2", "--size", "32x24", "--repeats", "1"], capsys)
+    assert code == 0 and "1 Gaussians, 2 orbiting views" in out, err
+
+
+# ----------------------------------------------------------------------------- bench register
+
+
+def test_register_gaussians_is_the_scene_of_the_numba_tables_too(capsys):
+    """--gaussians N was ignored on the numba engine, which timed flowers.ply instead."""
+    code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--gaussians", "300", "--engine", "numba", "--device", "cpu",
+                              "--views", "2", "--size", "32x24", "--repeats", "1"], capsys)
+    assert code == 0, err
+    assert "random blob scene 300: per-stage ms per view" in out and "random blob scene 300: 300 Gaussians" in out
+    assert "flowers" not in out
+
+
+def test_register_says_when_the_engines_were_not_compared_and_clamps_the_counted_views(capsys):
+    code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--gaussians", "300", "--engine", "torch", "--device", "cpu",
+                              "--views", "2", "--size", "32x24", "--repeats", "1", "--agree-views", "0", "--count-views", "5"], capsys)
+    assert code == 0, err
+    assert "not compared (--agree-views 0)" in out and "max |Δw|" not in out
+    assert "--count-views 5: only 1 of the 2 --views come after the warm-up view; using 1" in err
+    assert "median of 1 views after a warm-up" in out and "median of 0 views" not in out
+
+
+# ----------------------------------------------------------------------------- bench query
+
+
+def test_query_with_float32_alone_draws_its_plot(tmp_path, capsys):
+    """The plot's log axes had no positive value to draw: a ValueError after all the work."""
+    plot = tmp_path / "q.png"
+    code, err, out = run_cli(["bench", "query", "--sizes", "1k", "--backends", "float32", "--repeats", "1", "--plot", plot], capsys)
+    assert code == 0 and plot.stat().st_size > 0, err
+    assert "float32 matmul" in out
+
+
+def test_a_corrupt_cached_codebook_is_trained_again(tmp_path, capsys):
+    from drsplat.lang import load_codebook
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    cached = cache / "v2_pq32_d64_l5_n300_s0.faiss"
+    cached.write_bytes(b"\x00" * 100)  # a run killed while writing it (or a disk error)
+    argv = ["bench", "query", "--sizes", "1k", "--backends", "pq32", "--dim", "64", "--labels", "5", "--queries", "2", "--train", "300",
+            "--cache-dir", cache, "--repeats", "1", "--plot", tmp_path / "q.png"]
+    code, err, out = run_cli(argv, capsys)
+    assert code == 0, err
+    assert str(cached) in err and "training it again" in err and "trained PQ M=32" in out
+    assert load_codebook(cached).m == 32  # replaced: the next run reads it
+    code, err, out = run_cli(argv, capsys)
+    assert code == 0 and "trained" not in out and "training it again" not in err
+
+
+def test_official_codebook_of_another_width_is_one_error_naming_it(codebook64, capsys, no_work):
+    code, err, _ = run_cli(["bench", "query", "--sizes", "1k", "--backends", "float16,official", "--official", codebook64], capsys)
+    assert code == 1 and f"{codebook64}: is a 64-D codebook but --dim is 512" in err, err
+    code, err, _ = run_cli(["bench", "query", "--sizes", "1k", "--backends", "official", "--official", codebook64.parent / "absent.faiss"], capsys)
+    assert code == 1 and "absent.faiss: does not exist (--official)" in err, err
+
+
+@pytest.mark.parametrize("content, words", [
+    (b"not an npy file", "is not a readable .npy"),
+    (np.ones((3, 32), np.float32), "expected [K, 64]"),
+    (np.ones(64, np.float32), "expected [K, 64]"),
+    (np.full((2, 64), np.nan, np.float32), "none of its 2 rows is usable"),
+], ids=["garbage", "wrong-width", "one-dimensional", "all-nan"])
+def test_bad_negatives_beside_the_official_codebook_are_one_error_before_the_work(content, words, codebook64, capsys, no_work):
+    negatives = codebook64.parent / "text_negative.npy"
+    if isinstance(content, bytes):
+        negatives.write_bytes(content)
+    else:
+        np.save(negatives, content)
+    try:
+        code, err, _ = run_cli(["bench", "query", "--sizes", "1k", "--backends", "official", "--dim", "64", "--official", codebook64], capsys)
+    finally:
+        negatives.unlink()
+    assert code == 1 and f"{negatives}: " in err and words in err, err
+
+
+def test_negatives_rows_with_nan_are_counted_and_left_out(tmp_path, caplog):
+    from drsplat.bench.query import text_negatives
+
+    rows = np.random.default_rng(0).normal(size=(5, 8)).astype(np.float32)
+    rows[1, 3], rows[4] = np.nan, 0.0
+    np.save(tmp_path / "n.npy", rows)
+    kept = text_negatives(tmp_path / "n.npy", 8)
+    assert np.array_equal(kept, rows[[0, 2, 3]])
+    assert "2 of its 5 rows hold NaN or infinite values or are all zeros" in caplog.text
+    assert text_negatives(tmp_path / "absent.npy", 8) is None
+
+
+# ----------------------------------------------------------------------------- bench scale
+
+
+def test_scale_run_of_a_local_configuration_has_no_worker_first_view(room, tmp_path):
+    """`run_config` took max() over no workers (a local run): --part rss printed 'stops: max() arg is an
+    empty sequence' rows and exited 0, --part big a traceback."""
+    from drsplat.bench.scale import _prepare, run_config, write_records
+
+    config = _prepare(argparse.Namespace(room=room, width=16), tmp_path, 1, 2, "t")
+    result = run_config(config)
+    assert result["first_view"] is None and result["views"] == 2 and result["gaussians"] > 0
+    write_records(tmp_path / "r.json", [{**result, "label": "local"}])
+    assert '"first_view_s": null' in (tmp_path / "r.json").read_text()
+
+
+def test_a_scale_part_that_measured_nothing_exits_1(room, capsys, monkeypatch):
+    import drsplat.bench.scale as scale
+
+    def fails(config):
+        raise scale.ChildRunFailed(f"bench run '{config['label']}' failed: out of memory")
+
+    monkeypatch.setattr(scale, "_child", fails)
+    code, err, out = run_cli(["bench", "scale", "--room", room, "--part", "rss", "--rss-tiles", "1", "--rss-views", "2", "--width", "16"], capsys)
+    assert code == 1 and "--part rss measured nothing" in err, err
+    assert "stops: out of memory" in out
+    code, err, out = run_cli(["bench", "scale", "--room", room, "--part", "big", "--big-tiles", "1", "--big-views", "2", "--width", "16"], capsys)
+    assert code == 1 and error_lines(err) == ["ERROR: bench run 'big' failed: out of memory"], err
+
+
+def test_scale_keeps_the_budget_as_written():
+    from drsplat.bench.scale import budget_text
+
+    assert budget_text(" 8GB") == "8GB"
+    with pytest.raises(argparse.ArgumentTypeError):
+        budget_text("lots")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_viewer_bench_refuses_a_typed_scene_that_is_missing_or_a_folder(tmp_path, capsys):
+    """Round 21: `bench viewer --ply` that does not exist (or is a folder) silently benchmarked a
+    random scene instead; only the default scene may be skipped when it is absent."""
+    for ply, problem in ((tmp_path / "missing.ply", "no such scene file"), (tmp_path, "is not a file but a folder")):
+        code, err, _ = run_cli(["bench", "viewer", "--ply", ply, "--sizes", "100k", "--width", "64", "--height", "48", "--repeats", "1"], capsys)
+        (line,) = error_lines(err)
+        assert code == 1 and problem in line and "--ply" in line, err
+    for flag, value in (("--width", "0"), ("--height", "100000"), ("--repeats", "0"), ("--sizes", "5"), ("--screenshot", str(tmp_path / "shots") + os.sep)):
+        code, err, _ = run_cli(["bench", "viewer", flag, value], capsys)
+        assert code == 2 and flag in err, (flag, err)
