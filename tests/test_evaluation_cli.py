@@ -88,7 +88,7 @@ def test_eval_iou_synthetic_shorthand(registered, capsys):
     assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--task", "loc", "--weighting", "volume"]) == 0
     out = capsys.readouterr().out
     assert "loc   volume" in out and "<- best" in out
-    assert main(["eval", "iou", str(r["ply"]), *query_args(r)]) == 1
+    assert main(["eval", "iou", str(r["ply"]), *query_args(r)]) == 2  # a missing flag: a usage error
     assert "ground truth needed" in capsys.readouterr().err
 
 
@@ -263,7 +263,7 @@ def test_eval_cli_rejects_bad_options(registered, capsys):
     base = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"), *query_args(r)]
     assert main(base + ["--taus", "1:0:0.1"]) == 2  # a usage error, as argparse would give
     assert "--taus" in capsys.readouterr().err
-    assert main(base + ["--weighting", "volume,mass"]) == 1
+    assert main(base + ["--weighting", "volume,mass"]) == 2
     assert "mass" in capsys.readouterr().err
     bad = r["root"] / "bad_labels.npy"
     np.save(bad, np.full(np.load(r["ds"] / "gt" / "labels.npy").shape, 99))
@@ -303,7 +303,7 @@ def test_eval_ablate_resolution_reports_error_against_time(registered, tmp_path,
     assert half[3:7] != full[3:7]
     assert (tmp_path / "ablation_resolution.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for values in ("0,2", "3"):  # 3 would be a 3-pixel width to `register --resolution`, not a divisor
-        assert main(["-q", "eval", "ablate", "resolution", "--values", values, "--out-dir", str(tmp_path)]) == 1
+        assert main(["-q", "eval", "ablate", "resolution", "--values", values, "--out-dir", str(tmp_path)]) == 2
         assert "not a resolution divisor" in capsys.readouterr().err
 
 

@@ -256,7 +256,7 @@ def parse_weightings(text: str | tuple[str, ...]) -> tuple[str, ...]:
     items = tuple(w.strip() for w in text.split(",") if w.strip())
     unknown = [w for w in items if w not in WEIGHTINGS]
     if unknown or not items:
-        raise DrsplatError(f"--weighting: unknown {', '.join(unknown) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
+        raise UsageError(f"--weighting: unknown {', '.join(unknown) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
     return tuple(dict.fromkeys(items))
 
 
@@ -487,7 +487,7 @@ def run_iou(args: argparse.Namespace) -> int:
             raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to pseudo-labels from --gt-points CLOUD.ply only")
     check_metric_flags(args)
     if args.synthetic is None and args.gt_labels is None and args.gt_points is None:
-        raise DrsplatError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
+        raise UsageError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
     dataset_files: dict[str, Path] = {}
     if args.synthetic is not None:
         ds = args.synthetic

@@ -150,11 +150,12 @@ def _stale_wrong_labels(path: Path) -> bool:
     return stale
 
 
-def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper", resolution: int = 1):
+def register(ds: Dataset, topk: int = DEFAULT_TOPK, collect: bool = False, aggregate: str = "paper", resolution: int = 1,
+             cancel: CancelToken | None = None):
     """Register `ds` (resolution r: its views at 1/r of their size, `scale_cameras`, the feature maps
-    resampled to them, as `register --resolution r` does)."""
+    resampled to them, as `register --resolution r` does); cancel: stops it between views."""
     return register_features(ds.scene, scale_cameras(ds.cameras, resolution), ds.path / "features", RegisterOptions(topk=topk, aggregate=aggregate), show_progress=False,
-                             collect_embeddings=collect)
+                             collect_embeddings=collect, cancel=cancel)
 
 
 def evaluate(ds: Dataset, scores: np.ndarray, assigned: np.ndarray, weightings=("volume",), voxel_resolution: int = 64) -> dict:
@@ -177,14 +178,14 @@ def _check(cancel: CancelToken | None) -> None:
 
 
 def ablate_topk(root: Path, preset: str, seeds: list[int], values=TOPK_VALUES, cancel: CancelToken | None = None) -> AblationResult:
-    register(dataset(root, preset, seeds[0]), int(values[0]))  # warm-up: compiled kernels load once, not inside the timings
+    register(dataset(root, preset, seeds[0]), int(values[0]), cancel=cancel)  # warm-up: compiled kernels load once, not inside the timings
     rows = []
     for k in values:
         per = []
         for seed in seeds:
             _check(cancel)
             ds = dataset(root, preset, seed)
-            res = register(ds, k)
+            res = register(ds, k, cancel=cancel)
             scores, _ = exact_scores(ds, res)
             reps = evaluate(ds, scores, res.weights > 0)
             per.append((reps["loc", "volume"].miou, reps["seg", "volume"].miou, 1.0 - res.num_assigned / ds.scene.num_gaussians, res.seconds))
@@ -200,7 +201,7 @@ def ablate_pq(root: Path, preset: str, seeds: list[int], values=PQ_VALUES, repea
     for seed in seeds:
         _check(cancel)
         ds = dataset(root, preset, seed)
-        res = register(ds, 40, collect=True)
+        res = register(ds, 40, collect=True, cancel=cancel)
         for m in (None,) + tuple(values):
             _check(cancel)
             if m is not None and ds.text.shape[1] % m:
@@ -237,7 +238,7 @@ def ablate_robustness(root: Path, preset: str, seeds: list[int], mislabels=MISLA
         for seed in seeds:
             _check(cancel)
             ds = dataset(root, preset, seed, mis, noise)
-            res = register(ds, 40)
+            res = register(ds, 40, cancel=cancel)
             scores, _ = exact_scores(ds, res)
             reps = evaluate(ds, scores, res.weights > 0, ("volume", "count"))
             per.append((reps["loc", "volume"].miou, reps["seg", "volume"].miou, reps["loc", "count"].miou, reps["seg", "count"].miou))
@@ -259,7 +260,7 @@ def ablate_metrics(root: Path, preset: str, seeds: list[int], cancel: CancelToke
         for name, mis, noise, k in settings:
             _check(cancel)
             ds = dataset(root, preset, seed, mis, noise)
-            res = register(ds, k)
+            res = register(ds, k, cancel=cancel)
             scores, _ = exact_scores(ds, res)
             reps = evaluate(ds, scores, res.weights > 0, ("volume", "count", "voxel"), voxel_resolution)
             for task in ("loc", "seg"):
@@ -329,7 +330,7 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
     first = _corrupted(root, presets[0], seeds[0], sources[0], corruptions[0])
     for k in topks:  # warm-up: compiled kernels load once, not inside the timings
         for mode in modes:
-            register(first, int(k), aggregate=mode)
+            register(first, int(k), aggregate=mode, cancel=cancel)
     rows = []
     for preset in presets:
         for source in sources:
@@ -341,7 +342,7 @@ def ablate_aggregate(root: Path, presets=AGGREGATE_PRESETS, seeds: list[int] = (
                         for seed in seeds:
                             _check(cancel)
                             ds = _corrupted(root, preset, seed, source, corruption)
-                            per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode)))
+                            per.append(aggregate_metrics(ds, register(ds, int(k), aggregate=mode, cancel=cancel)))
                         rows.append([name, mode, int(k), *map(float, np.mean(per, axis=0))])
                         log.info("%s k=%d %s: %s", name, k, mode, " ".join(f"{v:.3f}" for v in rows[-1][3:]))
     own_source = "each preset's own (geometry for hard-silhouette, render otherwise)"
@@ -374,7 +375,7 @@ def ablate_resolution(root: Path, preset: str, seeds: list[int], values=RESOLUTI
     "geometry" masks, true silhouettes, are at every size)."""
     first = dataset(root, preset, seeds[0], mask_source=mask_source, width=width)
     for mode in modes:  # warm-up: compiled kernels load once, not inside the timings
-        register(first, aggregate=mode)
+        register(first, aggregate=mode, cancel=cancel)
     rows, base = [], {}
     for r in values:
         for mode in modes:
@@ -382,7 +383,7 @@ def ablate_resolution(root: Path, preset: str, seeds: list[int], values=RESOLUTI
             for seed in seeds:
                 _check(cancel)
                 ds = dataset(root, preset, seed, mask_source=mask_source, width=width)
-                m = aggregate_metrics(ds, register(ds, aggregate=mode, resolution=int(r)))
+                m = aggregate_metrics(ds, register(ds, aggregate=mode, resolution=int(r), cancel=cancel))
                 per.append([m[0], m[1], m[4], m[8]])
                 ms.append(m[9])
             cam = scale_cameras(first.cameras[:1], int(r))[0]
@@ -404,7 +405,7 @@ def time_aggregate_modes(ds: Dataset, modes, topk: int = DEFAULT_TOPK, repeats: 
     for _ in range(repeats):
         for mode in modes:
             _check(cancel)
-            res = register(ds, topk, aggregate=mode)
+            res = register(ds, topk, aggregate=mode, cancel=cancel)
             times[mode].append(1e3 * res.seconds / max(res.num_views, 1))
     return {m: float(np.median(t)) for m, t in times.items()}
 
@@ -623,17 +624,17 @@ def _list(flag: str, text: str) -> list[str]:
     return items
 
 
-def _int_list(flag: str, text: str, parse, error: type[DrsplatError] = UsageError) -> list[int]:
-    """`_list` of integers through an argparse validator (`int_range`), each once; `error` naming the flag."""
+def _int_list(flag: str, text: str, parse) -> list[int]:
+    """`_list` of integers through an argparse validator (`int_range`), each once; UsageError naming the flag."""
     values = []
     for item in _list(flag, text):
         try:
             values.append(parse(item))
         except argparse.ArgumentTypeError as exc:
-            raise error(f"{flag}: {exc}") from None
+            raise UsageError(f"{flag}: {exc}") from None
     repeated = sorted({v for v in values if values.count(v) > 1})
     if repeated:
-        raise error(f"{flag}: {', '.join(map(str, repeated))} given twice")
+        raise UsageError(f"{flag}: {', '.join(map(str, repeated))} given twice")
     return values
 
 
@@ -680,9 +681,7 @@ def ablate_settings(args: argparse.Namespace) -> AblateSettings:
     several = args.ablation == "aggregate"
     presets = _presets(args.preset, several)
     seeds = _int_list("--seeds", args.seeds, seed_int)
-    # a bad resolution divisor stays exit 1 as tests/test_evaluation_cli.py pins it (every other bad flag exits 2)
-    error = DrsplatError if args.ablation == "resolution" else UsageError
-    values = None if args.values is None else _int_list("--values", args.values, _value_parser(args.ablation, presets), error)
+    values = None if args.values is None else _int_list("--values", args.values, _value_parser(args.ablation, presets))
     settings = AblateSettings(presets, seeds, values)
     if args.ablation == "aggregate":
         modes = _modes(args.modes, AGGREGATE_MODES)
