@@ -17,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import (checked_names, float_range, guard_args, guard_field_codebook, int_range, output_file,
+from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, output_file,
                                      threshold_value)
 from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
-from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text, read_json
+from drsplat.eval.datasets import load_gt_labels, load_label_names
+from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text
 
 log = logging.getLogger(__name__)
 
@@ -169,36 +170,6 @@ def _add_lerf(sub) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def load_label_names(path: Path | None, default: list[str] | None = None) -> list[str]:
-    if path is None:
-        if default is None:
-            raise DrsplatError("label names are needed: pass --label-names NAMES.json")
-        return list(default)
-    names = read_json(path, "a JSON list of label names")
-    if not isinstance(names, list) or not names:
-        raise InputError(path, "expected a non-empty JSON list of label names")
-    return checked_names(path, names)
-
-
-def load_gt_labels(path: Path, n: int, num_labels: int, original: Path | None = None) -> np.ndarray:
-    """(n,) int64 labels, -1..num_labels-1; `original`: the --original scene given, whose size the hint names."""
-    from drsplat.query import _load_npy
-
-    arr = _load_npy(path)
-    if arr.ndim != 1 or arr.shape[0] != n:
-        hint = ""
-        if arr.ndim == 1 and arr.shape[0] > n:
-            hint = (" (labels of the unregistered scene? pass that scene with --original SCENE.ply)" if original is None else
-                    f" (--original {original.name} has {n} Gaussians: are these the labels of another scene?)")
-        raise InputError(path, f"expected ({n},) labels, one per Gaussian, got shape {arr.shape}{hint}")
-    if not np.issubdtype(arr.dtype, np.integer):
-        raise InputError(path, f"expected integer labels, got dtype {arr.dtype}")
-    bad = (arr < -1) | (arr >= num_labels)
-    if bad.any():
-        raise InputError(path, f"{int(bad.sum())} labels fall outside -1..{num_labels - 1} (the label names list has {num_labels})")
-    return arr.astype(np.int64)
 
 
 def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarray:

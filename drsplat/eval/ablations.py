@@ -30,6 +30,7 @@ from drsplat.utils import CancelToken, atomic_path, cancel_on_signals, check_out
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
 from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
 from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
@@ -128,8 +129,7 @@ def load_cached(path: Path, dim: int) -> Dataset:
     """A cached synthetic dataset read through the checked loaders of `drsplat eval iou` (labels in range
     and one per Gaussian, names, finite unit text embeddings of `dim` columns, one per name), so a
     damaged cache raises one InputError naming the file instead of changing the numbers silently."""
-    from drsplat.commands.eval import load_gt_labels, load_label_names
-    from drsplat.query import load_query_embeddings
+    from drsplat.query import load_query_embeddings  # here: the same checks as `eval iou --text-embeddings`, without query's stack at import
 
     scene = load_ply(path / "scene.ply")
     names = load_label_names(path / ORACLE_LABEL_NAMES)

@@ -39,6 +39,7 @@ from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.scene import check_element_sizes, read_ply_header
+from drsplat.commands.common import checked_names
 from drsplat.utils import atomic_path, load_npy, read_json, regular_file
 
 log = logging.getLogger(__name__)
@@ -468,3 +469,35 @@ def find_scannet_labels(scene_dir: str | Path) -> Path:
         raise InputError(scene_dir, f"holds {len(found)} {SCANNET_LABELS_PATTERN} files ({', '.join(f.name for f in found)}); "
                                     "pass the one to use as --scene-dir")
     return found[0]
+
+
+def load_label_names(path: Path | None, default: list[str] | None = None) -> list[str]:
+    """The label names of a JSON list at `path` (`checked_names`: non-empty strings, no hidden
+    characters, none twice), or `default` when no path is given (an error when there is none)."""
+    if path is None:
+        if default is None:
+            raise DrsplatError("label names are needed: pass --label-names NAMES.json")
+        return list(default)
+    names = read_json(path, "a JSON list of label names")
+    if not isinstance(names, list) or not names:
+        raise InputError(path, "expected a non-empty JSON list of label names")
+    return checked_names(path, names)
+
+
+def load_gt_labels(path: Path, n: int, num_labels: int, original: Path | None = None) -> np.ndarray:
+    """(n,) int64 labels, -1..num_labels-1; `original`: the --original scene given, whose size the hint names."""
+    from drsplat.query import _load_npy  # here: query loads the language-field stack, which evaluating ground truth alone does not need
+
+    arr = _load_npy(path)
+    if arr.ndim != 1 or arr.shape[0] != n:
+        hint = ""
+        if arr.ndim == 1 and arr.shape[0] > n:
+            hint = (" (labels of the unregistered scene? pass that scene with --original SCENE.ply)" if original is None else
+                    f" (--original {original.name} has {n} Gaussians: are these the labels of another scene?)")
+        raise InputError(path, f"expected ({n},) labels, one per Gaussian, got shape {arr.shape}{hint}")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise InputError(path, f"expected integer labels, got dtype {arr.dtype}")
+    bad = (arr < -1) | (arr >= num_labels)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum())} labels fall outside -1..{num_labels - 1} (the label names list has {num_labels})")
+    return arr.astype(np.int64)
