@@ -339,3 +339,34 @@ def test_find_scannet_labels_says_missing_and_refuses_two(tmp_path):
         write_labelled_points(tmp_path / name, np.zeros((1, 3)), np.array([1]))
     with pytest.raises(InputError, match="holds 2 .*scene0000_00_vh_clean_2.labels.ply, scene0000_01_vh_clean_2.labels.ply"):
         find_scannet_labels(tmp_path)
+
+
+@pytest.mark.parametrize("far", [1e3, 1e9, 1e12, 1e300])
+def test_a_polygon_with_a_far_vertex_is_filled_as_its_shape_says(far):
+    """Round 21: PIL fills in integer coordinates, and a triangle with a vertex at 1e12 px painted 5,054
+    of the 9,323 pixels inside it. A far polygon is clipped to a box just beyond the frame first
+    (Sutherland–Hodgman), which keeps every pixel inside the frame: the fill then differs from an
+    exact point-in-polygon test only on the boundary rows and columns the outline paints."""
+    from matplotlib.path import Path as MplPath
+
+    from drsplat.eval.datasets import clip_polygon, polygon_mask
+
+    poly = np.array([[10.0, 10.0], [far, 50.0], [10.0, 90.0]])
+    ys, xs = np.mgrid[0:96, 0:128]
+    exact = MplPath(poly).contains_points(np.c_[xs.ravel(), ys.ravel()]).reshape(96, 128)
+    painted = polygon_mask(poly, 96, 128)
+    assert exact.sum() > 8800 and (painted != exact).sum() <= 2 * 128, (painted.sum(), exact.sum())
+    assert np.array_equal(painted & ~exact, painted & ~exact & boundary_band(exact))  # extra pixels only next to the edge
+    inside = np.array([[20.0, 20.0], [60.0, 25.0], [30.0, 70.0]])
+    assert np.array_equal(clip_polygon(inside, -2, -2, 130, 98), inside)  # a polygon within the box is kept as it is
+    assert clip_polygon(np.array([[500.0, 500.0], [600.0, 500.0], [550.0, 600.0]]), -2, -2, 130, 98).shape == (0, 2)
+
+
+def boundary_band(mask: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the pixels within one pixel (8-neighbourhood) of the mask's edge, inside or out."""
+    padded = np.pad(mask, 1, mode="edge")
+    near = np.zeros_like(mask)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= padded[1 + dy : 1 + dy + mask.shape[0], 1 + dx : 1 + dx + mask.shape[1]] != mask
+    return near

@@ -86,12 +86,46 @@ class LerfDocument:
     objects: list[tuple[str, list[np.ndarray]]]
 
 
+FAR_POLYGON = 4.0  # a vertex farther than this many image sides outside the frame is clipped before the fill (`clip_polygon`)
+
+
+def clip_polygon(points: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float) -> np.ndarray:
+    """[Q, 2] the polygon points [P, 2] clipped to the box x_lo..x_hi, y_lo..y_hi (Sutherland–Hodgman,
+    one box side at a time): inside the box it is the same region; a vertex far outside becomes the
+    points where its edges cross the box."""
+    poly = np.asarray(points, np.float64).reshape(-1, 2)
+    for axis, bound, keep_below in ((0, x_lo, False), (0, x_hi, True), (1, y_lo, False), (1, y_hi, True)):
+        if poly.shape[0] == 0:
+            break
+        inside = poly[:, axis] <= bound if keep_below else poly[:, axis] >= bound
+        out = []
+        for i in range(poly.shape[0]):
+            a, b = poly[i - 1], poly[i]
+            if inside[i] != inside[i - 1]:  # the edge a -> b crosses the bound: keep the crossing
+                t = (bound - a[axis]) / (b[axis] - a[axis])
+                cross = a + t * (b - a)
+                cross[axis] = bound
+                out.append(cross)
+            if inside[i]:
+                out.append(b)
+        poly = np.array(out, np.float64).reshape(-1, 2)
+    return poly
+
+
 def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[H, W] bool: pixels inside the polygon ([P, 2] (x, y) pixel coordinates), as a fill rule would paint."""
+    """[H, W] bool: pixels inside the polygon ([P, 2] (x, y) pixel coordinates), as a fill rule would paint.
+
+    A polygon with a vertex more than FAR_POLYGON image sides outside the frame is first clipped to a
+    box 2 px beyond it (`clip_polygon`: the same pixels inside the frame): PIL fills in integer
+    coordinates, and a vertex at 1e12 px painted about half the pixels it should (a probe, 2026-11-30)."""
     from PIL import Image, ImageDraw
 
     img = Image.new("L", (width, height), 0)
-    pts = [(float(x), float(y)) for x, y in np.asarray(points, np.float64).reshape(-1, 2)]
+    poly = np.asarray(points, np.float64).reshape(-1, 2)
+    reach = FAR_POLYGON * max(width, height)
+    if poly.size and (np.abs(poly) > reach + max(width, height)).any():
+        poly = clip_polygon(poly, -2.0, -2.0, width + 2.0, height + 2.0)
+    pts = [(float(x), float(y)) for x, y in poly]
     if len(pts) >= 3:
         ImageDraw.Draw(img).polygon(pts, fill=1, outline=1)
     return np.asarray(img, dtype=bool)
