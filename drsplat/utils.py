@@ -10,6 +10,7 @@ import logging
 import math
 import os
 import socket
+import stat
 import tempfile
 import threading
 import time
@@ -225,8 +226,6 @@ def is_special_file(path: Path) -> bool:
     (run as root, `--out /dev/null` would replace /dev/null for the whole system; a FIFO's reader
     would never get the data).
     """
-    import stat
-
     try:
         mode = os.stat(path).st_mode
     except OSError:
@@ -264,6 +263,36 @@ def naming_path(exc: OSError, path: Path, *temps: Path) -> OSError:
         renamed.__cause__ = exc
         return renamed
     return exc
+
+
+def _file_identity(path: Path) -> tuple[int, int] | None:
+    """(inode, mtime in ns) of a regular file, None for a missing path or one that is no regular file."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (st.st_ino, st.st_mtime_ns) if stat.S_ISREG(st.st_mode) else None
+
+
+@contextlib.contextmanager
+def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
+    """A command's outputs written as one set: when the block fails after writing some of them, the
+    regular files among `paths` that it wrote (new ones, and replaced ones: another inode or mtime
+    than on entry) are removed, so a failed command leaves none of the set instead of half of it
+    (LABELS.npy beside a missing coloured PLY). Each file is still written atomically on its own;
+    a device or FIFO output is left as it is."""
+    given = [Path(p) for p in paths if p is not None]
+    before = {p: _file_identity(p) for p in given}
+    try:
+        yield
+    except BaseException:
+        for p in given:
+            now = _file_identity(p)
+            if now is not None and now != before[p]:
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    log.info("removed %s: the other outputs of this command were not written", p)
+        raise
 
 
 @contextlib.contextmanager

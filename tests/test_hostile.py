@@ -959,6 +959,36 @@ def test_a_negative_registration_weight_is_warned_about(tmp_path, world, capsys)
     assert code == 0 and "neg.ply: 7 Gaussians have a negative registration weight (lang_weight < 0)" in err, err
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_a_failed_second_output_takes_the_first_with_it(tmp_path, world, capsys):
+    """Round 21: `segment --out L.npy --ply /dev/full` failed (exit 1) after writing L.npy, leaving half
+    of its outputs; the outputs are now one set (`utils.outputs_together`). A device among them is
+    never removed."""
+    labels = tmp_path / "l.npy"
+    code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--out", labels, "--ply", "/dev/full"], capsys)
+    assert code == 1 and "/dev/full" in error_lines(err)[0] and not labels.exists(), err
+    scores = tmp_path / "s.npy"
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", scores, "--out", "/dev/full", "--threshold", "-1"], capsys)
+    assert code == 1 and not scores.exists(), err
+    assert Path("/dev/full").is_char_device()
+
+
+def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    kept, rewritten, new = tmp_path / "kept.npy", tmp_path / "rewritten.npy", tmp_path / "new.npy"
+    np.save(kept, np.zeros(3))
+    np.save(rewritten, np.zeros(3))
+    with pytest.raises(RuntimeError), outputs_together([kept, rewritten, new, None, Path(os.devnull)]):
+        save_npy_atomic(rewritten, np.ones(3))
+        save_npy_atomic(new, np.ones(3))
+        raise RuntimeError("the third output failed")
+    assert kept.exists() and not rewritten.exists() and not new.exists() and Path(os.devnull).exists()
+    with outputs_together([new]):  # a block that succeeds keeps what it wrote
+        save_npy_atomic(new, np.ones(3))
+    assert new.exists()
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 

@@ -22,7 +22,7 @@ from drsplat.commands.common import (float_range, guard_args, guard_field_codebo
 from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.eval.datasets import load_gt_labels, load_label_names
-from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text
+from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text, outputs_together
 
 log = logging.getLogger(__name__)
 
@@ -497,9 +497,10 @@ def run_scannet(args: argparse.Namespace) -> int:
     guard_field_codebook(args.registered, field, {"--json": args.json, "--save-labels": args.save_labels})
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     gt, names = pseudo_from_cloud(args, scene, cloud, raw)
-    if args.save_labels is not None:
-        save_npy_atomic(args.save_labels, gt.astype(np.int32))
-    return _evaluate_and_print(args, scene, field, gt, names, index)
+    with outputs_together([args.save_labels, args.json]):  # labels without the evaluation they were saved for would be half a run
+        if args.save_labels is not None:
+            save_npy_atomic(args.save_labels, gt.astype(np.int32))
+        return _evaluate_and_print(args, scene, field, gt, names, index)
 
 
 def run_pseudolabels(args: argparse.Namespace) -> int:
@@ -511,10 +512,11 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     scene = load_row_aligned_scene(args.scene, "the labels written (one per row)")
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
-    save_npy_atomic(args.out, labels.astype(np.int32))
-    if args.names_out is not None:
-        with atomic_path(args.names_out) as tmp:
-            tmp.write_text(json.dumps(names) + "\n")
+    with outputs_together([args.out, args.names_out]):
+        save_npy_atomic(args.out, labels.astype(np.int32))
+        if args.names_out is not None:
+            with atomic_path(args.names_out) as tmp:
+                tmp.write_text(json.dumps(names) + "\n")
     counts = np.bincount(labels[labels >= 0], minlength=len(names))
     print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {args.out}")
     for k in np.flatnonzero(counts):

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.query import select
     from drsplat.splat_formats import check_writable
-    from drsplat.utils import guard_outputs, save_npy_atomic
+    from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
 
     if not args.relevancy and (args.negatives is not None or args.negative_embeddings is not None):
         raise UsageError(f"{'--negatives' if args.negatives is not None else '--negative-embeddings'} applies to --relevancy only "
@@ -136,13 +136,14 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         if args.out is not None:
             chosen = scene.subset(mask)
             check_writable(chosen, args.out)
-    if args.scores is not None:
-        written = scores[:, 0].copy() if single else scores
-        save_npy_atomic(args.scores, written)
-        log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
-    if args.out is not None:
-        export_scene(chosen, field.subset(mask), args.out, args.format)
-        log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
+    with outputs_together(outputs.values()):  # a failed export (a full disk) takes SCORES.npy with it
+        if args.scores is not None:
+            written = scores[:, 0].copy() if single else scores
+            save_npy_atomic(args.scores, written)
+            log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
+        if args.out is not None:
+            export_scene(chosen, field.subset(mask), args.out, args.format)
+            log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
     if args.out is None and args.scores is None:
         print_top(best, assigned, args.top, "relevancy" if args.relevancy else "cosine")
     return 0

@@ -141,7 +141,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import codebook_path_for, export_kind, export_scene
     from drsplat.query import label_colors, segment
     from drsplat.splat_formats import check_writable
-    from drsplat.utils import guard_outputs, save_npy_atomic
+    from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": codebook_path_for(args.registered),
@@ -167,11 +167,12 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     coloured = coloured_scene(scene, seg.labels, label_colors(len(names))) if args.ply is not None else None
     if coloured is not None:
         check_writable(coloured, args.ply)  # before LABELS.npy is written: a refused export leaves no half of the outputs
-    save_npy_atomic(args.out, seg.labels)
-    log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
-    if coloured is not None:
-        export_scene(coloured, field, args.ply, args.format)
-        log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
+    with outputs_together(outputs.values()):  # a failed export (a full disk) takes LABELS.npy with it
+        save_npy_atomic(args.out, seg.labels)
+        log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
+        if coloured is not None:
+            export_scene(coloured, field, args.ply, args.format)
+            log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
     print(f"{'label':<24} {'gaussians':>10}")
     for i, name in enumerate(names):
