@@ -457,11 +457,22 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
     return header, data
 
 
-def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
+def read_plyfile(path: Path):
+    """`plyfile.PlyData.read(path)` without plyfile's own warnings (numpy's "loadtxt: input contained
+    no data" for an ASCII element of no rows): the caller checks what was read and says what is wrong
+    in its own words, once."""
+    import warnings
+
     from plyfile import PlyData
 
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return PlyData.read(str(path))
+
+
+def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
     try:
-        ply = PlyData.read(str(path))
+        ply = read_plyfile(path)
     except Exception as exc:  # plyfile raises many types for malformed ASCII
         raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__})") from None
     out = {}

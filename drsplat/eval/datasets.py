@@ -38,7 +38,7 @@ import numpy as np
 from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
-from drsplat.scene import check_element_sizes, read_ply_header
+from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile
 from drsplat.commands.common import checked_names
 from drsplat.utils import atomic_path, load_npy, read_json, regular_file
 
@@ -403,11 +403,11 @@ def load_labelled_points(path: str | Path, raw_names: tuple[str, ...] | list[str
 
 def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.ndarray]:
     """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
-    from plyfile import PlyData, PlyElementParseError, PlyParseError
+    from plyfile import PlyElementParseError, PlyParseError
 
     check_element_sizes(path, read_ply_header(path), path.stat().st_size)  # no allocation from a lying header
     try:
-        ply = PlyData.read(str(path))
+        ply = read_plyfile(path)
         vertex = ply["vertex"]
     except PlyElementParseError as exc:  # a malformed row of an ASCII PLY, a value its property type cannot hold
         raise InputError(path, f"{_where_in_ply(exc)}{exc.message}", field=exc.prop.name if exc.prop else None) from None
