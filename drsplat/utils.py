@@ -572,12 +572,15 @@ def guard_outputs(
     inputs: dict[str, str | Path | None],
     outputs: dict[str, str | Path | None],
     protected_folders: dict[str, tuple[str | Path | None, tuple[str, ...]]] | None = None,
+    protected_trees: dict[str, str | Path | None] | None = None,
 ) -> None:
     """Refuse to run when an output would replace an input, another output or a protected file.
 
     inputs / outputs: flag name -> path (None = not given). Paths are compared resolved (symlinks
     followed) and by inode (hard links). protected_folders: flag -> (folder, glob patterns): an
     output inside that folder matching a pattern (e.g. `*_f.npy` in a features folder) is refused.
+    protected_trees: flag -> folder: an output that is an existing file anywhere below that folder
+    (a dataset whose files are found by name at read time) is refused, without listing the folder.
     An output that is an existing directory is refused too. Raises OutputError naming both flags.
     """
     given_in = {k: Path(v) for k, v in inputs.items() if v is not None}
@@ -592,6 +595,12 @@ def guard_outputs(
         for in_flag, inp in given_in.items():
             if _same_file(out, inp):
                 raise OutputError(out, f"{flag} is the same file as the input {in_flag}; writing it would destroy the input. Choose another output path")
+        for tree_flag, tree in (protected_trees or {}).items():
+            if tree is not None and out.is_file() and _resolved(out).is_relative_to(_resolved(Path(tree))):
+                possessive = "'" if tree_flag.endswith("s") else "'s"
+                inside = _resolved(out).relative_to(_resolved(Path(tree)))
+                raise OutputError(out, f"{flag} is the same file as the input {tree_flag}{possessive} file {inside}; writing it would destroy "
+                                       "the input. Choose another output path")
         key = _resolved(out)
         if key in seen:
             raise OutputError(out, f"{flag} and {seen[key]} name the same file")

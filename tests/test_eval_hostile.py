@@ -191,3 +191,16 @@ def test_damaged_cached_ablation_dataset_is_rebuilt(tmp_path, caplog):
         again = dataset(tmp_path, "tiny", 0)
     assert "written again" in caplog.text and ORACLE_TEXT_EMBEDDINGS in caplog.text
     assert np.isfinite(again.text).all() and np.allclose(again.text, first.text)
+
+
+def test_a_synthetic_folder_is_guarded_without_walking_it(tmp_path, capsys):
+    """Review of round 21: the guard listed every file below --synthetic, so `--synthetic /` walked the
+    whole file system and failed on /proc ("permission denied") instead of saying what is missing.
+    An output over one of the dataset's files is refused by where it lies, without a walk."""
+    from drsplat.cli import main
+
+    reg = tmp_path / "reg.ply"
+    reg.write_bytes(b"ply\n")
+    code = main(["eval", "iou", str(reg), "--synthetic", "/", "--json", str(tmp_path / "report.json")])
+    err = capsys.readouterr().err
+    assert code == 1 and "/proc" not in err and "Traceback" not in err, err

@@ -286,7 +286,8 @@ POSITIONAL_NAMES = {"scene": "SCENE", "registered": "REGISTERED.ply", "codebook"
 
 
 def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs: dict[str, Path | None] | None = None,
-               extra_outputs: dict[str, Path | None] | None = None, protected_folders: dict[str, tuple[Path | None, tuple[str, ...]]] | None = None) -> None:
+               extra_outputs: dict[str, Path | None] | None = None, protected_folders: dict[str, tuple[Path | None, tuple[str, ...]]] | None = None,
+               protected_trees: dict[str, Path | None] | None = None) -> None:
     """`drsplat.utils.guard_outputs` over a parsed command line: every Path-valued argument that is
     not one of `outputs` (attribute names) is an input. Raises OutputError before any work starts."""
     from drsplat.utils import guard_outputs
@@ -305,7 +306,7 @@ def guard_args(args: argparse.Namespace, outputs: tuple[str, ...], extra_inputs:
     inputs.update(extra_inputs or {})
     written = {flag(name): getattr(args, name, None) for name in outputs}
     written.update(extra_outputs or {})
-    guard_outputs(inputs, written, protected_folders)
+    guard_outputs(inputs, written, protected_folders, protected_trees)
 
 
 def protected_feature_folders(flag: str, folders: list[Path | None]) -> dict[str, tuple[Path | None, tuple[str, ...]]]:

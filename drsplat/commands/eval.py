@@ -247,25 +247,6 @@ def cloud_inputs(flag: str, cloud: Path | None) -> dict[str, Path]:
     return {f"{flag}'s labels file": labels_sidecar(cloud)}
 
 
-MAX_FOLDER_FILES = 100_000  # files of a dataset folder guarded one by one; beyond that the folder is too large to list up front
-
-
-def folder_files(flag: str, folder: Path | None) -> dict[str, Path]:
-    """Every regular file under `folder` (recursively) as an input named after `flag`: a dataset's
-    files are found by name at read time (cameras, features, manifest, ground truth, images), so an
-    output over any of them would damage the dataset for this run or the next."""
-    if folder is None or not folder.is_dir():
-        return {}
-    files: dict[str, Path] = {}
-    possessive = "'" if flag.endswith("s") else "'s"
-    for f in folder.rglob("*"):
-        if f.is_file():
-            files[f"{flag}{possessive} file {f.relative_to(folder)}"] = f
-            if len(files) >= MAX_FOLDER_FILES:
-                break
-    return files
-
-
 def check_folder(flag: str, folder: Path) -> None:
     """InputError unless `folder` is a folder: said before anything inside it is looked for."""
     if not folder.is_dir():
@@ -459,16 +440,15 @@ def run_iou(args: argparse.Namespace) -> int:
     check_metric_flags(args)
     if args.synthetic is None and args.gt_labels is None and args.gt_points is None:
         raise UsageError("ground truth needed: --gt-labels LABELS.npy, --gt-points CLOUD.ply or --synthetic DATASET")
-    dataset_files: dict[str, Path] = {}
     if args.synthetic is not None:
         ds = args.synthetic
         check_folder("--synthetic", ds)
-        dataset_files = folder_files("--synthetic", ds)  # an output over any file of the dataset would damage it
         args.gt_labels = ds / "gt" / "labels.npy"
         args.label_names = args.label_names or ds / ORACLE_LABEL_NAMES
         args.text_embeddings = args.text_embeddings or ds / ORACLE_TEXT_EMBEDDINGS
         args.original = args.original or ds / "scene.ply"
-    guard_args(args, ("json",), extra_inputs={**dataset_files, **cloud_inputs("--gt-points", args.gt_points)})
+    guard_args(args, ("json",), extra_inputs=cloud_inputs("--gt-points", args.gt_points),
+               protected_trees={"--synthetic": args.synthetic})  # an output over any file of the dataset would damage it
     probe_outputs(args.json)
     scene, field, index = load_eval_scene(args)
     guard_field_codebook(args.registered, field, {"--json": args.json})
@@ -534,8 +514,8 @@ def run_lerf(args: argparse.Namespace) -> int:
     # the camera file and the annotations are found inside --source and --annotations; any *.json
     # written into --annotations would be read as an annotation by the next run
     lerf_annotation_files(args.annotations)  # a missing folder or one without annotations, said before anything else
-    inputs = {**dataset_inputs(args.source, cameras), **folder_files("--annotations", args.annotations)}
-    guard_args(args, ("json",), extra_inputs=inputs, protected_folders={"--annotations": (args.annotations, ("*.json",))})
+    guard_args(args, ("json",), extra_inputs=dataset_inputs(args.source, cameras), protected_folders={"--annotations": (args.annotations, ("*.json",))},
+               protected_trees={"--annotations": args.annotations})
     probe_outputs(args.json)
     views = load_lerf_annotations(args.annotations, {c.name: (c.width, c.height) for c in cameras})
     if not any(v.masks or v.skipped for v in views):
