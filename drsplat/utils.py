@@ -140,6 +140,13 @@ def ensure_parent(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
 
 
+def check_outputs_writable(*paths: str | Path | None) -> None:
+    """`check_output_writable` for each output given (None: not given), before any work."""
+    for path in paths:
+        if path is not None:
+            check_output_writable(path)
+
+
 def check_output_writable(path: str | Path) -> None:
     """OutputError now, before long work, when `path` could not be written later.
 

@@ -186,9 +186,7 @@ def guard_bench_outputs(inputs: dict[str, Path | None], outputs: dict[str, Path 
     """Before any work: no output over an input the bench reads (`utils.guard_outputs`: also the inputs
     the command line does not name, such as a default scene or a cache file), and every output
     writable (`utils.check_output_writable`), so that neither is found only after minutes of work."""
-    from drsplat.utils import check_output_writable, guard_outputs
+    from drsplat.utils import check_outputs_writable, guard_outputs
 
     guard_outputs(inputs, outputs, protected_folders)
-    for path in outputs.values():
-        if path is not None:
-            check_output_writable(path)
+    check_outputs_writable(*outputs.values())

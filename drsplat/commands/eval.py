@@ -22,7 +22,7 @@ from drsplat.commands.common import (float_range, guard_args, guard_field_codebo
 from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.eval.datasets import load_gt_labels, load_label_names
-from drsplat.utils import CancelToken, cancel_on_signals, check_output_writable, json_text, outputs_together
+from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable, json_text, outputs_together
 
 log = logging.getLogger(__name__)
 
@@ -253,13 +253,6 @@ def check_folder(flag: str, folder: Path) -> None:
         raise InputError(folder, f"{flag}: " + ("does not exist" if not folder.exists() else "is not a folder"))
 
 
-def probe_outputs(*paths: Path | None) -> None:
-    """OutputError now, not after the work, for an output that could not be written (`check_output_writable`)."""
-    for path in paths:
-        if path is not None:
-            check_output_writable(path)
-
-
 def assigned_rows(path: Path, field) -> np.ndarray:
     """[N] bool: the Gaussians that hold a language feature (`LanguageField.assigned`, a finite positive
     norm; registration weights do not say this). InputError when there is none: every score would be 0
@@ -449,7 +442,7 @@ def run_iou(args: argparse.Namespace) -> int:
         args.original = args.original or ds / "scene.ply"
     guard_args(args, ("json",), extra_inputs=cloud_inputs("--gt-points", args.gt_points),
                protected_trees={"--synthetic": args.synthetic})  # an output over any file of the dataset would damage it
-    probe_outputs(args.json)
+    check_outputs_writable(args.json)
     scene, field, index = load_eval_scene(args)
     guard_field_codebook(args.registered, field, {"--json": args.json})
     if args.gt_labels is not None:
@@ -472,7 +465,7 @@ def run_scannet(args: argparse.Namespace) -> int:
     folder = {"--scene-dir": (args.scene_dir, (SCANNET_LABELS_PATTERN,))} if args.scene_dir.is_dir() else None
     guard_args(args, ("json", "save_labels"), extra_inputs={"--scene-dir's labels PLY": cloud, **cloud_inputs("--scene-dir", cloud)},
                protected_folders=folder)
-    probe_outputs(args.json, args.save_labels)
+    check_outputs_writable(args.json, args.save_labels)
     scene, field, index = load_eval_scene(args)
     guard_field_codebook(args.registered, field, {"--json": args.json, "--save-labels": args.save_labels})
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
@@ -488,7 +481,7 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.utils import atomic_path, save_npy_atomic
 
     guard_args(args, ("out", "names_out"), extra_inputs=cloud_inputs("--points", args.points))
-    probe_outputs(args.out, args.names_out)
+    check_outputs_writable(args.out, args.names_out)
     scene = load_row_aligned_scene(args.scene, "the labels written (one per row)")
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     labels, names = pseudo_from_cloud(args, scene, args.points, raw)
@@ -516,7 +509,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     lerf_annotation_files(args.annotations)  # a missing folder or one without annotations, said before anything else
     guard_args(args, ("json",), extra_inputs=dataset_inputs(args.source, cameras), protected_folders={"--annotations": (args.annotations, ("*.json",))},
                protected_trees={"--annotations": args.annotations})
-    probe_outputs(args.json)
+    check_outputs_writable(args.json)
     views = load_lerf_annotations(args.annotations, {c.name: (c.width, c.height) for c in cameras})
     if not any(v.masks or v.skipped for v in views):
         raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.utils import CancelToken, atomic_path, cancel_on_signals, check_output_writable, json_text
+from drsplat.utils import CancelToken, atomic_path, cancel_on_signals, check_outputs_writable, json_text
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
 from drsplat.errors import DrsplatError, InputError, UsageError
@@ -735,8 +735,7 @@ def ablation_outputs(out_dir: Path, name: str) -> tuple[Path, Path]:
     png, doc = out_dir / f"ablation_{name}.png", out_dir / f"ablation_{name}.json"
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out-dir {out_dir}: is a file, not a folder")
-    for path in (png, doc):
-        check_output_writable(path)
+    check_outputs_writable(png, doc)
     return png, doc
 
 
