@@ -226,24 +226,22 @@ def load_encoder(args: argparse.Namespace, field: LanguageField):
 
 def checked_phrases(flag: str, text: str) -> list[str]:
     """The comma-separated phrases of `flag` (`--labels`, `--negatives`), stripped, or one UsageError
-    naming the first entry that is empty (`a,,b`, a trailing comma), holds a character a terminal
-    would not show as itself (`utils.hidden_character`) or repeats an earlier one, and when there is
-    none at all (`""`, `","`). The phrases label a printed table (a newline in one forges a line of
-    it) and are embedded one by one: a dropped or doubled entry would shift or waste a row."""
+    naming the first entry that `name_problem` finds (empty: `a,,b`, a trailing comma; a hidden
+    character; a repeat), and when there is none at all (`""`, `","`). The phrases label a printed
+    table (a newline in one forges a line of it) and are embedded one by one: a dropped or doubled
+    entry would shift or waste a row."""
     entries = text.split(",")
     phrases = [entry.strip() for entry in entries]
     if not any(phrases):
         raise UsageError(f"{flag} {text!r} gives no phrases; expected comma-separated phrases such as 'chair,table'")
-    seen: dict[str, int] = {}
-    for i, phrase in enumerate(phrases):
-        if not phrase:
+    problem = name_problem(phrases)
+    if problem is not None:
+        i, kind, detail = problem
+        if kind == "empty":
             raise UsageError(f"{flag} {text[:60]!r}: entry {i + 1} of {len(entries)} is empty (two commas in a row, or one at an end)")
-        hidden = hidden_character(phrase)
-        if hidden is not None:
-            raise UsageError(f"{flag}: entry {i + 1} ({phrase[:40]!r}) holds {hidden}, which a terminal would not show as itself")
-        if phrase in seen:
-            raise UsageError(f"{flag}: entry {i + 1} repeats the phrase {phrase[:40]!r} of entry {seen[phrase] + 1}")
-        seen[phrase] = i
+        if kind == "hidden":
+            raise UsageError(f"{flag}: entry {i + 1} ({phrases[i][:40]!r}) holds {detail}, which a terminal would not show as itself")
+        raise UsageError(f"{flag}: entry {i + 1} repeats the phrase {phrases[i][:40]!r} of entry {detail + 1}")
     return phrases
 
 
@@ -351,23 +349,41 @@ def export_outputs(path, fmt: str, flag: str) -> dict:
     return {"the export's codebook": codebook_path_for(path)} if fmt == "drsplat" else {}
 
 
-def checked_names(path: Path, names: list) -> list[str]:
-    """The names as given, or one error naming the first entry that is not a non-empty string
-    without hidden characters (`utils.hidden_character`), or that repeats an earlier name (the names label the printed
-    table and the coloured PLY's legend: a list, a blank or a twice-used name would mislabel it)."""
+def name_problem(names: list[str]) -> tuple[int, str, object] | None:
+    """The first entry of a list of label names that may not label a table or a legend: (index,
+    "empty", None) for a blank one, (index, "hidden", description) for one holding a character a
+    terminal would not show as itself (`utils.hidden_character`: a newline, ESC, U+202E, a lone
+    surrogate), (index, "repeat", earlier index) for one equal to an earlier one apart from spaces
+    around it; None when every entry may. The one rule of `checked_names` and `checked_phrases`."""
     seen: dict[str, int] = {}
     for i, name in enumerate(names):
-        shown = json.dumps(name)[:60]
-        if not isinstance(name, str):
-            raise InputError(path, f"entry {i} is {shown}, not a string; expected a JSON list of label names")
         if not name.strip():
-            raise InputError(path, f"entry {i} is an empty name ({shown})")
-        hidden = hidden_character(name)  # a newline, ESC, U+202E or JSON's lone "\ud800" would garble the table and the legend
+            return i, "empty", None
+        hidden = hidden_character(name)
         if hidden is not None:
-            raise InputError(path, f"entry {i} ({shown}) holds {hidden}, which a terminal would not show as itself")
+            return i, "hidden", hidden
         key = name.strip()
         if key in seen:
-            same = "" if name == names[seen[key]] else " (apart from spaces around it)"
-            raise InputError(path, f"entry {i} repeats the name {shown} of entry {seen[key]}{same}")
+            return i, "repeat", seen[key]
         seen[key] = i
+    return None
+
+
+def checked_names(path: Path, names: list) -> list[str]:
+    """The names as given, or one error naming the first entry that is not a string or that
+    `name_problem` refuses (the names label the printed table and the coloured PLY's legend: a list,
+    a blank or a twice-used name would mislabel it)."""
+    for i, name in enumerate(names):
+        if not isinstance(name, str):
+            raise InputError(path, f"entry {i} is {json.dumps(name)[:60]}, not a string; expected a JSON list of label names")
+    problem = name_problem(names)
+    if problem is not None:
+        i, kind, detail = problem
+        shown = json.dumps(names[i])[:60]
+        if kind == "empty":
+            raise InputError(path, f"entry {i} is an empty name ({shown})")
+        if kind == "hidden":
+            raise InputError(path, f"entry {i} ({shown}) holds {detail}, which a terminal would not show as itself")
+        same = "" if names[i] == names[detail] else " (apart from spaces around it)"
+        raise InputError(path, f"entry {i} repeats the name {shown} of entry {detail}{same}")
     return names
