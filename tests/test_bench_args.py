@@ -163,6 +163,11 @@ FLAGS_WRONG_TOGETHER = [
     (["register", "--skip-synthetic", "--gaussians", "100", "--engine", "numba", "--device", "cpu", "--profile-views", "3"], "--profile-views"),
     (["register", "--skip-synthetic", "--gaussians", "100", "--engine", "torch", "--device", "cpu", "--views", "1"], "--views 1"),
     (["scale", "--part", "rss", "--json", "x.json"], "--json"),
+    (["register", "--against", "paper", "--engine", "torch", "--device", "cpu"], "--against times two aggregation modes on the numba engine"),
+    (["register", "--aggregate", "paper", "--against", "paper"], "--against paper names the mode --aggregate times already"),
+    (["register", "--skip-synthetic", "--mask-source", "geometry"], "--mask-source sets the synthetic table's masks"),
+    (["register", "--against", "nosuch"], "--against"),
+    (["register", "--mask-source", "nosuch"], "--mask-source"),
 ]
 
 
@@ -310,6 +315,42 @@ def test_register_says_when_the_engines_were_not_compared_and_clamps_the_counted
     assert "not compared (--agree-views 0)" in out and "max |Δw|" not in out
     assert "--count-views 5: only 1 of the 2 --views come after the warm-up view; using 1" in err
     assert "median of 1 views after a warm-up" in out and "median of 0 views" not in out
+
+
+def test_register_against_times_both_modes_alternating_and_prints_each_repeats_ratio(capsys, monkeypatch):
+    """--against: the two modes in one run, in the order A B, B A, A B, ...; the ratio is the median of
+    the per-repeat ratios of back-to-back runs, not a ratio of two medians."""
+    import drsplat.bench.register as register
+
+    order, walls = [], iter([3.0, 2.0, 1.0, 2.0, 6.0, 2.0])  # A B | B A | A B: A's walls 3, 2, 6, B's 2, 1, 2
+    real_one_run = register._one_run
+
+    def one_run(scene, cameras, features_dir, options):
+        result, _, cpu = real_one_run(scene, cameras, features_dir, options)
+        order.append(options.aggregate)
+        return result, next(walls), cpu
+
+    monkeypatch.setattr(register, "_one_run", one_run)
+    code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--skip-stages", "--gaussians", "300", "--views", "2", "--size", "32x24",
+                              "--repeats", "3", "--aggregate", "vote-reject", "--against", "paper"], capsys)
+    assert code == 0, err
+    assert order == ["vote-reject", "paper", "paper", "vote-reject", "vote-reject", "paper"]
+    assert "--aggregate vote-reject; median of 3" in out and "--aggregate paper; median of 3" in out
+    # the ratios 1.5, 2.0, 3.0 (the second repeat ran paper first); their median, not 11 / 5 (the totals) nor 3 / 2 (the medians)
+    assert "time per view, --aggregate vote-reject / paper: 2.00x (median of the 3 repeats' ratios" in out
+    assert "1.50, 2.00, 3.00" in out
+
+
+def test_register_synthetic_table_with_against_and_a_mask_source(capsys):
+    code, err, out = run_cli(["bench", "register", "--skip-real", "--preset", "tiny", "--topks", "5", "--repeats", "2",
+                              "--against", "paper", "--mask-source", "geometry"], capsys)
+    assert code == 0, err
+    head, columns, _, row = out.splitlines()[:4]
+    assert "geometry masks" in head and "--against paper, alternating" in head
+    cells = [c.strip() for c in columns.strip("|").split("|")]
+    assert cells[-2:] == ["ms/view (paper)", "time ratio (median)"]
+    values = [c.strip() for c in row.strip("|").split("|")]
+    assert float(values[-2]) > 0 and 0 < float(values[-1]) < 100
 
 
 # ----------------------------------------------------------------------------- bench query

@@ -10,6 +10,10 @@ Two tables:
    the reference compositor next to the registration's top-k one (`stage_table`), then the
    whole registration: time per view split into rasterization and accumulation, ms per 1M
    pairs, peak RSS.
+
+With --against MODE both tables also time MODE in the same run, the two modes alternating repeat
+by repeat (A B, B A, ...), and give the median of the repeats' time ratios: the ratio the default's
+time bound is stated in (`--against paper`), measured in one run rather than from two.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / 
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
-    from drsplat.synthetic import PRESETS
+    from drsplat.synthetic import MASK_SOURCES, PRESETS
 
     p = subparsers.add_parser("register", help="registration ms/view, ms per 1M pairs, RSS; mIoU against top-k")
     p.add_argument("--preset", default="small", choices=sorted(PRESETS), help="synthetic preset for the accuracy table (default: small)")
@@ -70,35 +74,98 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
                    help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help=f"aggregation mode of every timed registration (default: {DEFAULT_AGGREGATE}; 'paper' is Dr. Splat's)")
+    p.add_argument("--against", choices=AGGREGATE_MODES, default=None, metavar="MODE",
+                   help="also time MODE (e.g. paper) in the same run, the two modes alternating repeat by repeat, and print "
+                        "the time ratio --aggregate / MODE of each repeat and their median (the synthetic and real tables)")
+    p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
+                   help="the synthetic table's masks: the rendered footprints, the true silhouettes or a segmenter's regions "
+                        "(`drsplat synth --mask-source`; default: the preset's)")
     add_device_arguments(p)
     p.set_defaults(func=run)
 
 
-def _timed_register(scene, cameras, features_dir, topk: int, repeats: int, engine: str = "numba", device: str = "cpu",
-                    aggregate: str = DEFAULT_AGGREGATE):
-    """(last result, median wall seconds, median CPU seconds of all threads, all results)."""
-    import logging
+def _options(topk: int, engine: str, device: str, aggregate: str):
+    from drsplat.registration import RegisterOptions
 
-    from drsplat.registration import RegisterOptions, register_features
+    return RegisterOptions(topk=topk, engine=engine, device=device, aggregate=aggregate)
 
-    options = RegisterOptions(topk=topk, engine=engine, device=device, aggregate=aggregate)
+
+def _warm_up(scene, cameras, features_dir, options) -> None:
+    """One registration of the first view: numba compiles, the caches fill."""
+    from drsplat.registration import register_features
+
     logger = logging.getLogger("drsplat.registration")
     level = logger.level
     logger.setLevel(logging.ERROR)  # the warm-up on one view would warn about the other views
     try:
-        register_features(scene, cameras[:1], features_dir, options, show_progress=False)  # compile / warm up
+        register_features(scene, cameras[:1], features_dir, options, show_progress=False)
     finally:
         logger.setLevel(level)
-    results, walls, cpus = [], [], []
-    for _ in range(max(1, repeats)):
-        t0, c0 = time.perf_counter(), time.process_time()
-        results.append(register_features(scene, cameras, features_dir, options, show_progress=False))
-        walls.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - c0)
-    return results[-1], statistics.median(walls), statistics.median(cpus), results
 
 
-def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int, aggregate: str = DEFAULT_AGGREGATE) -> str:
+def _one_run(scene, cameras, features_dir, options) -> tuple:
+    """(result, wall seconds, CPU seconds of all threads) of one whole registration."""
+    from drsplat.registration import register_features
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = register_features(scene, cameras, features_dir, options, show_progress=False)
+    return result, time.perf_counter() - t0, time.process_time() - c0
+
+
+@dataclass
+class Timed:
+    """One mode's repeats: the last result, median wall and CPU seconds, every result and wall time."""
+
+    result: object
+    seconds: float
+    cpu_seconds: float
+    runs: list
+    walls: list[float]
+
+    @classmethod
+    def of(cls, runs: list[tuple]) -> Timed:
+        results, walls, cpus = (list(column) for column in zip(*runs))
+        return cls(results[-1], statistics.median(walls), statistics.median(cpus), results, walls)
+
+
+def timed_register(scene, cameras, features_dir, topk: int, repeats: int, engine: str = "numba", device: str = "cpu",
+                   aggregate: str = DEFAULT_AGGREGATE) -> Timed:
+    """One mode's registration, warmed up, then timed `repeats` times."""
+    options = _options(topk, engine, device, aggregate)
+    _warm_up(scene, cameras, features_dir, options)
+    return Timed.of([_one_run(scene, cameras, features_dir, options) for _ in range(max(1, repeats))])
+
+
+def timed_pair(scene, cameras, features_dir, topk: int, repeats: int, modes: tuple[str, str]) -> tuple[Timed, Timed]:
+    """Both modes timed in one run, alternating: repeat r runs modes[0] then modes[1] when r is even,
+    the other way round when odd, so that a drift of the machine (another job, the page cache) falls
+    on both alike (`ratios`)."""
+    options = [_options(topk, "numba", "cpu", mode) for mode in modes]
+    for o in options:
+        _warm_up(scene, cameras, features_dir, o)
+    runs: tuple[list, list] = ([], [])
+    for r in range(max(1, repeats)):
+        for m in ((0, 1) if r % 2 == 0 else (1, 0)):
+            runs[m].append(_one_run(scene, cameras, features_dir, options[m]))
+    return Timed.of(runs[0]), Timed.of(runs[1])
+
+
+def ratios(first: Timed, second: Timed) -> list[float]:
+    """Per repeat, first's wall time / second's (the two runs of one repeat ran back to back)."""
+    return [a / b for a, b in zip(first.walls, second.walls)]
+
+
+def ratio_line(mode: str, against: str, values: list[float]) -> str:
+    """'MODE / AGAINST: 1.47x (median of the n repeats' ratios: 1.45, 1.47, 1.52)'."""
+    listed = ", ".join(f"{v:.2f}" for v in values)
+    return f"time per view, --aggregate {mode} / {against}: {statistics.median(values):.2f}x (median of the {len(values)} repeats' ratios, each of two runs back to back: {listed})"
+
+
+def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int, aggregate: str = DEFAULT_AGGREGATE,
+                    against: str | None = None, mask_source: str | None = None) -> str:
+    """The preset's room (seed 0) registered at each top-k: speed next to mIoU. With `against`, that
+    mode is timed in the same run, alternating (`timed_pair`), in two more columns: its ms per view and
+    the median of the repeats' time ratios."""
     from drsplat.cameras import load_cameras
     from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
     from drsplat.scene import load_ply
@@ -106,7 +173,7 @@ def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        data = write_dataset(Path(tmp) / preset, preset, 0, mislabel_fraction=mislabel, show_progress=False)
+        data = write_dataset(Path(tmp) / preset, preset, 0, mislabel_fraction=mislabel, mask_source=mask_source, show_progress=False)
         scene = load_ply(data / "scene.ply")
         cameras = load_cameras(data)
         gt = np.load(data / "gt" / "labels.npy")
@@ -114,21 +181,31 @@ def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int
         text = np.load(data / ORACLE_TEXT_EMBEDDINGS)
         d, _ = significance_weights(scene.log_scales, scene.opacity_logits)
         for k in topks:
-            result, seconds, _, runs = _timed_register(scene, cameras, data / "features", k, repeats, aggregate=aggregate)
+            if against is None:
+                timed, other = timed_register(scene, cameras, data / "features", k, repeats, aggregate=aggregate), None
+            else:
+                timed, other = timed_pair(scene, cameras, data / "features", k, repeats, (aggregate, against))
+            result, seconds, runs = timed.result, timed.seconds, timed.runs
             acc_s = statistics.median(r.accumulate_seconds for r in runs)
             scores = result.features @ text.T
             seg = segmentation_report(scores, gt, d, names)
             loc = localisation_report(scores, gt, d, names)
-            rows.append([
+            row = [
                 k, 1e3 * seconds / result.num_views, result.num_pairs / 1e6, 1e3 * seconds / (result.num_pairs / 1e6),
                 1e3 * acc_s / (result.num_pairs / 1e6), result.num_assigned, float(np.nanmean(seg.iou)), float(np.nanmean(loc.iou)), loc.threshold,
-            ])
+            ]
+            if other is not None:
+                row += [1e3 * other.seconds / other.result.num_views, statistics.median(ratios(timed, other))]
+            rows.append(row)
+    source = "" if mask_source is None else f", {mask_source} masks"
     head = (f"synthetic '{preset}': {scene.num_gaussians:,} Gaussians, {len(cameras)} views "
-            f"{cameras[0].width}x{cameras[0].height}, {text.shape[1]}-D, mislabelled masks {mislabel:.0%}; --aggregate {aggregate}; median of {repeats}")
-    table = format_table(
-        ["top-k", "ms/view", "M pairs", "ms/1M pairs (total)", "ms/1M pairs (accumulate)", "assigned", "seg mIoU", "loc mIoU", "loc τ"], rows
-    )
-    return head + "\n" + table
+            f"{cameras[0].width}x{cameras[0].height}, {text.shape[1]}-D{source}, mislabelled masks {mislabel:.0%}; --aggregate {aggregate}; "
+            f"median of {repeats}")
+    columns = ["top-k", "ms/view", "M pairs", "ms/1M pairs (total)", "ms/1M pairs (accumulate)", "assigned", "seg mIoU", "loc mIoU", "loc τ"]
+    if against is not None:
+        head += f"; --against {against}, alternating"
+        columns += [f"ms/view ({against})", "time ratio (median)"]
+    return head + "\n" + format_table(columns, rows)
 
 
 def orbit_cameras(means: np.ndarray, count: int, width: int, height: int):
@@ -184,13 +261,28 @@ def random_mask_features(features_dir: Path, cameras, rng: np.random.Generator, 
         write_features(features_dir, cam.name, ids, feats)
 
 
-def real_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, aggregate: str = DEFAULT_AGGREGATE) -> str:
-    """The whole registration of `scene` (called `name`) seen by orbiting views: time per view by stage, ms per 1M pairs."""
+def real_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, aggregate: str = DEFAULT_AGGREGATE,
+               against: str | None = None) -> str:
+    """The whole registration of `scene` (called `name`) seen by orbiting views: time per view by stage, ms per 1M pairs.
+    With `against`, that mode is timed in the same run, alternating (`timed_pair`): its table, then the ratio line."""
     cameras = orbit_cameras(scene.means, views, width, height)
     with tempfile.TemporaryDirectory() as tmp:
         features_dir = Path(tmp)
         random_mask_features(features_dir, cameras, np.random.default_rng(0))
-        result, seconds, cpu_seconds, runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
+        if against is None:
+            timed, other = timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate), None
+        else:
+            timed, other = timed_pair(scene, cameras, features_dir, topk, repeats, (aggregate, against))
+    text = _stage_rows(scene, name, width, height, topk, repeats, aggregate, timed)
+    if other is None:
+        return text
+    return "\n".join([text, "", _stage_rows(scene, name, width, height, topk, repeats, against, other), "",
+                      ratio_line(aggregate, against, ratios(timed, other))])
+
+
+def _stage_rows(scene, name: str, width: int, height: int, topk: int, repeats: int, aggregate: str, timed: Timed) -> str:
+    """`real_table`'s table of one mode's timed registrations."""
+    runs, result, seconds, cpu_seconds = timed.runs, timed.result, timed.seconds, timed.cpu_seconds
     raster_s = statistics.median(r.raster_seconds for r in runs)
     acc_s = statistics.median(r.accumulate_seconds for r in runs)
     acc_cpu = statistics.median(r.accumulate_cpu_seconds for r in runs)
@@ -365,8 +457,10 @@ def engine_table(scene, name: str, views: int, width: int, height: int, topk: in
     with tempfile.TemporaryDirectory() as tmp:
         features_dir = Path(tmp)
         random_mask_features(features_dir, cameras, np.random.default_rng(0))
-        base, base_s, _, base_runs = _timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
-        other, other_s, _, other_runs = _timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
+        first = timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate)
+        second = timed_register(scene, cameras, features_dir, topk, repeats, engine, device, aggregate=aggregate)
+        base, base_s, base_runs = first.result, first.seconds, first.runs
+        other, other_s, other_runs = second.result, second.seconds, second.runs
         per_view = base.aggregate  # a fit mode's views run the mode its fit stage resolved to
         counts = per_view_counts(scene, cameras[: count_views + 1], features_dir, topk, engine, device, per_view)
         profile = profile_table(scene, cameras[: profile_views + 1], features_dir, topk, device, per_view, trace=trace) if profile_views > 0 else ""
@@ -683,6 +777,12 @@ def _check_outputs(args: argparse.Namespace, engine: str) -> None:
         raise UsageError("--trace keeps the trace of the torch engine's profiled views: add --engine torch and --profile-views N")
     if args.profile_views and (engine == "numba" or args.skip_real):
         raise UsageError("--profile-views profiles the torch engine's views: add --engine torch (and leave out --skip-real)")
+    if args.against is not None and engine != "numba":
+        raise UsageError(f"--against times two aggregation modes on the numba engine; --engine {engine} compares engines instead: leave one out")
+    if args.against is not None and args.against == args.aggregate:
+        raise UsageError(f"--against {args.against} names the mode --aggregate times already: give another mode (e.g. --against paper)")
+    if args.mask_source is not None and args.skip_synthetic:
+        raise UsageError("--mask-source sets the synthetic table's masks, which --skip-synthetic leaves out: leave one out")
 
 
 def _views_after_warmup(args: argparse.Namespace, engine: str) -> tuple[int, int]:
@@ -733,7 +833,7 @@ def run(args: argparse.Namespace) -> int:
     guard_bench_outputs({real_flag: args.real}, {"--json": args.json, "--trace": args.trace})
     scene, name = _speed_scene(args) if not args.skip_real else (None, "")
     if not args.skip_synthetic:
-        print(synthetic_table(args.preset, topks, args.mislabel, args.repeats, args.aggregate))
+        print(synthetic_table(args.preset, topks, args.mislabel, args.repeats, args.aggregate, args.against, args.mask_source))
         print()
     if engine != "numba" and not args.skip_real:
         if scene is None:
@@ -752,7 +852,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.skip_stages:
                 print(stage_table(scene, name, args.views, width, height, args.real_topk))
                 print()
-            print(real_table(scene, name, args.views, width, height, args.real_topk, args.repeats, args.aggregate))
+            print(real_table(scene, name, args.views, width, height, args.real_topk, args.repeats, args.aggregate, args.against))
     print(f"peak RSS {peak_rss_mb():.0f} MB")
     print(machine_line())
     return 0
