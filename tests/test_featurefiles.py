@@ -29,8 +29,8 @@ def langsplat_like(rng: np.random.Generator, h: int = 6, w: int = 8, counts=(3, 
         local.flat[:count] = np.arange(count)  # every mask appears
         seg[level] = np.where(local >= 0, local + offset, -1)
         offset += count
-    feats = rng.normal(size=(offset, d)).astype(np.float32)
-    return seg, feats
+    feats = rng.normal(size=(offset, d))
+    return seg, (feats / np.linalg.norm(feats, axis=1, keepdims=True)).astype(np.float32)  # CLIP's unit embeddings
 
 
 def test_round_trip_and_levels_index_the_concatenated_array(tmp_path):
@@ -103,7 +103,30 @@ def test_tiny_embeddings_are_rescaled_to_unit_length_with_a_warning(tmp_path, ca
     write_features(tmp_path, "t", seg, (unit * 1e-30).astype(np.float32))
     with caplog.at_level(logging.WARNING):
         _, got = read_features(tmp_path, "t", level=1)
-    assert f"{len(unit)} of {len(unit)} embeddings have a norm below 1e-20" in caplog.text
+    assert f"{len(unit)} of {len(unit)} embeddings are not of unit length (norms 1e-30 to 1e-30" in caplog.text
+    np.testing.assert_allclose(got, unit, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 30.0, 3e35])
+def test_embeddings_of_another_length_are_rescaled_and_unit_ones_kept_bit_for_bit(tmp_path, caplog, scale):
+    """Round 22: the vote trims a Gaussian's sums by S·μ, μ a unit cluster mean, so mask embeddings of
+    norm 0.5 (or raw CLIP features, norm ~10) over-trimmed: `vote-reject` turned features up to 85°
+    (cosine 0.08 with the unit run's). Only directions are lifted: any norm off 1 by more than 1e-3 is
+    rescaled when read (with one warning); unit rows, float16 ones included, come back as written
+    (UNIT_TOLERANCE, 1e-3)."""
+    import logging
+
+    rng = np.random.default_rng(7)
+    seg, unit = langsplat_like(rng, d=16)
+    write_features(tmp_path, "unit", seg, unit)
+    write_features(tmp_path, "half", seg, unit.astype(np.float16))
+    write_features(tmp_path, "scaled", seg, (unit.astype(np.float64) * scale).astype(np.float32))
+    with caplog.at_level(logging.WARNING):
+        assert np.array_equal(read_features(tmp_path, "unit", level=1)[1], unit)
+        assert np.array_equal(read_features(tmp_path, "half", level=1)[1], unit.astype(np.float16).astype(np.float32))
+        assert "unit length" not in caplog.text
+        _, got = read_features(tmp_path, "scaled", level=1)
+    assert f"{len(unit)} of {len(unit)} embeddings are not of unit length" in caplog.text
     np.testing.assert_allclose(got, unit, atol=1e-6)
 
 
@@ -180,6 +203,21 @@ def test_resample_nearest_matches_scaled_intrinsics():
     up = resample_nearest(src, 128, 96)
     np.testing.assert_array_equal(up[::2, ::2], src)
     np.testing.assert_array_equal(resample_nearest(up, 64, 48), src)
+
+
+def test_resample_nearest_takes_the_pixel_after_an_edge_a_centre_falls_on():
+    """Round 22: (x + 0.5) * (W / width) in float64 fell one column short where the centre lies
+    exactly on a source edge: 2 -> 49 columns, x = 24 ((24.5) * 2 / 49 = 1 exactly) took column 0."""
+    from fractions import Fraction
+
+    from drsplat.features.format import source_pixels
+
+    src = np.arange(2, dtype=np.int32)[None, :].repeat(3, 0)
+    assert resample_nearest(src, 49, 3)[0, 24] == 1
+    assert source_pixels(195, 100)[58] == 30
+    for size, source in ((49, 2), (195, 100), (1300, 700), (700, 1300), (37, 1), (1, 37), (97, 89)):
+        exact = [int(Fraction(2 * x + 1, 2) * source // size) for x in range(size)]  # ⌊(x + ½)·W/width⌋ in exact rationals
+        assert source_pixels(size, source).tolist() == [min(e, source - 1) for e in exact], (size, source)
 
 
 def test_mask_maps_of_another_aspect_ratio_are_refused_not_stretched(tmp_path):

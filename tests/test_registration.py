@@ -519,3 +519,31 @@ def test_the_share_within_the_near_plane_counts_gaussians_no_view_renders():
     far = front_camera(24, 18, z=-10.0)
     assert share_within_near_plane(means, [cam, far]) == 0.0  # the far camera renders them all
     assert share_within_near_plane(np.zeros((0, 3)), [cam]) == 0.0 and share_within_near_plane(means, []) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["paper", "vote-reject", "fit-check-vote-reject"])
+@pytest.mark.parametrize("scales", ["uniform 3e35", "per mask 0.3-30"])
+def test_mask_embeddings_of_any_length_register_as_their_unit_directions(tiny, tmp_path, mode, scales):
+    """Round 22: mask embeddings scaled by 3e35 (finite, accepted) made sums whose norm passed
+    float32's range, and normalising by that norm in float32 (inf) zeroed features whose weights
+    stayed; embeddings of other lengths (raw CLIP features, norm ~10) moved the vote's trim, which
+    counts a cluster at its unit mean (vote-reject: cosine down to 0.08 with norm 0.5). The reader
+    now rescales them: every mode gives the unit run's features and assignments."""
+    from drsplat.features.format import write_features
+
+    scaled = tmp_path / "scaled"
+    scaled.mkdir()
+    cams = load_cameras(tiny)
+    rng = np.random.default_rng(3)
+    for c in cams:
+        seg, f = np.load(tiny / "features" / f"{c.name}_s.npy"), np.load(tiny / "features" / f"{c.name}_f.npy")
+        factor = 3e35 if scales.startswith("uniform") else np.exp(rng.uniform(np.log(0.3), np.log(30.0), (f.shape[0], 1)))
+        write_features(scaled, c.name, seg, (f.astype(np.float64) * factor).astype(np.float32))
+    scene, options = load_ply(tiny / "scene.ply"), RegisterOptions(topk=10, aggregate=mode)
+    ref = register_features(scene, cams, tiny / "features", options, show_progress=False)
+    got = register_features(scene, cams, scaled, options, show_progress=False)
+    assigned = ref.weights > 0
+    assert np.array_equal(got.weights > 0, assigned) and assigned.sum() > 1000
+    np.testing.assert_allclose(got.weights, ref.weights, rtol=1e-5)
+    cos = np.einsum("nd,nd->n", got.features[assigned].astype(np.float64), ref.features[assigned].astype(np.float64))
+    assert cos.min() > 1 - 1e-5

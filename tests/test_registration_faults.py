@@ -394,3 +394,37 @@ def test_features_rewritten_while_the_registration_reads_them_are_one_error_and_
     monkeypatch.setattr(compute, "load_view_features", read)
     assert main(_args(data, out)) == 0
     assert out.read_bytes() == uninterrupted and not checkpoint_path_for(out).exists()
+
+
+def test_cameras_that_moved_by_an_ulp_do_not_resume_the_old_log(tiny, tmp_path):
+    """Round 22: the log's header printed the intrinsics to 6 digits and rounded the poses to 9
+    decimals, so cameras 3.5e-7 apart resumed each other's views and the result was neither run's.
+    Any change of a camera's bits starts over; the same cameras still resume."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from drsplat.cameras import load_cameras
+    from drsplat.registration import RegisterOptions, register_features
+    from drsplat.registration.checkpoint import _views_digest
+    from drsplat.scene import load_ply
+    from drsplat.utils import Cancelled, CancelToken
+
+    scene, cams, features = load_ply(tiny / "scene.ply"), load_cameras(tiny), tiny / "features"
+    assert _views_digest(cams) == _views_digest(load_cameras(tiny))
+    for field in ("fx", "fy", "cx", "cy"):
+        moved = [replace(cams[0], **{field: np.nextafter(getattr(cams[0], field), np.inf)}), *cams[1:]]
+        assert _views_digest(moved) != _views_digest(cams), field
+    turned = np.array(cams[0].R, np.float64)
+    turned[0, 0] = np.nextafter(turned[0, 0], np.inf)
+    assert _views_digest([replace(cams[0], R=turned), *cams[1:]]) != _views_digest(cams)
+
+    new = [replace(c, fx=c.fx * (1 + 3e-7), cx=c.cx * (1 + 3e-7)) for c in cams]
+    options, log_path, token = RegisterOptions(topk=10, aggregate="paper"), tmp_path / "run.log", CancelToken()
+    with pytest.raises(Cancelled):
+        register_features(scene, cams, features, options, checkpoint=log_path, cancel=token, show_progress=False,
+                          on_progress=lambda done, total: token.cancel() if done == 5 else None)
+    resumed = register_features(scene, new, features, options, checkpoint=log_path, show_progress=False)
+    fresh = register_features(scene, new, features, options, show_progress=False)
+    assert resumed.resumed_views == 0
+    assert np.array_equal(resumed.weights, fresh.weights) and np.array_equal(resumed.features, fresh.features)

@@ -24,14 +24,13 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
-from drsplat.defaults import DEFAULT_LEVEL
+from drsplat.defaults import DEFAULT_LEVEL, UNIT_TOLERANCE
 
 log = logging.getLogger(__name__)
 
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
 MANIFEST_NAME = "manifest.json"
-TINY_EMBEDDING_NORM = 1e-20  # below this, w·f products of float32 sums fall towards subnormals (about 1e-38)
 # the manifest fields drsplat reads: (name, accepted JSON types, what it should be)
 MANIFEST_FIELDS = (("clip_model_id", str, "a CLIP model id"), ("clip", (dict, str), "an object naming the CLIP model"),
                    ("dim", int, "the embedding dimension"))
@@ -231,11 +230,13 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     if zero.any():  # a placeholder, not an embedding: its pixels would add weight to their Gaussians and no direction
         log.warning("%s: %d of %d embeddings are all zero (no direction to lift); their masks are ignored", fpath, int(zero.sum()), m)
         ids = np.where((ids >= 0) & zero[np.maximum(ids, 0)], -1, ids)
-    tiny = row_ok & ~zero & (norms < TINY_EMBEDDING_NORM)
-    if tiny.any():  # float32 sums of w·f underflow into subnormals there: the lifted directions would be noise
-        log.warning("%s: %d of %d embeddings have a norm below %.0e (CLIP's are 1); rescaled to unit length, since only their "
-                    "direction is lifted", fpath, int(tiny.sum()), m, TINY_EMBEDDING_NORM)
-        feats[tiny] = (feats[tiny].astype(np.float64) / norms[tiny, None]).astype(np.float32)
+    # registration lifts directions: a mask's length would weigh it in the paper's mean, the vote trims
+    # by unit cluster means, and tiny lengths sum into float32 subnormals
+    off = row_ok & ~zero & (np.abs(norms - 1.0) > UNIT_TOLERANCE)
+    if off.any():
+        log.warning("%s: %d of %d embeddings are not of unit length (norms %.3g to %.3g; CLIP's are 1); rescaled to unit length, "
+                    "since only their direction is lifted", fpath, int(off.sum()), m, norms[off].min(), norms[off].max())
+        feats[off] = (feats[off].astype(np.float64) / norms[off, None]).astype(np.float32)
     return ids.astype(np.int32), feats, bad
 
 
@@ -244,14 +245,20 @@ def resample_nearest(mask_ids: np.ndarray, width: int, height: int) -> np.ndarra
 
     mask_ids: [H, W]. Returns [height, width]. Pixel centres map onto each other as intrinsics
     scale (Camera.scaled): destination pixel x samples source column
-    floor((x + 0.5) · W / width), and the same for rows.
+    floor((x + 0.5) · W / width), and the same for rows: in integers, ((2x + 1) · W) // (2 · width),
+    so a centre that falls exactly on a source pixel's edge takes the pixel after it (in float64,
+    (x + 0.5) · (W / width) fell one short for ~2 % of the size pairs, e.g. x = 24 of 49 from 2).
     """
     h, w = mask_ids.shape
     if (h, w) == (height, width):
         return mask_ids
-    cols = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(np.int64), w - 1)
-    rows = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(np.int64), h - 1)
-    return mask_ids[rows[:, None], cols[None, :]]
+    return mask_ids[source_pixels(height, h)[:, None], source_pixels(width, w)[None, :]]
+
+
+def source_pixels(size: int, source_size: int) -> np.ndarray:
+    """[size] int64: the source pixel under each destination pixel centre, ⌊(x + ½)·source_size / size⌋."""
+    x = np.arange(size, dtype=np.int64)
+    return np.minimum(((2 * x + 1) * source_size) // (2 * size), source_size - 1)
 
 
 def write_manifest(features_dir: str | Path, manifest: dict[str, Any]) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from drsplat.defaults import UNIT_TOLERANCE
 from drsplat.errors import InputError
 from drsplat.utils import atomic_path
 
@@ -346,7 +347,6 @@ def has_direction(x: np.ndarray) -> np.ndarray:
         return np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
 
 
-UNIT_TOLERANCE = 1e-3  # |norm - 1| beyond which a stored row is normalised first (`unit_check`)
 
 
 @numba.njit(parallel=True, cache=True)

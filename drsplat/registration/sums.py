@@ -196,8 +196,12 @@ def _normalize_rows_kernel(F, W):  # pragma: no cover - jitted
             bad[i] = 1
         if finite and w > 0 and norm > 0:
             scale = np.float32(norm)
-            for d in range(dim):
-                f[d] /= scale
+            if np.isfinite(scale):
+                for d in range(dim):
+                    f[d] /= scale
+            else:  # |F_i| past float32's range (finite entries, large sums): divided in float64, not zeroed by inf
+                for d in range(dim):
+                    f[d] = np.float32(np.float64(f[d]) / norm)
         else:
             for d in range(dim):
                 f[d] = 0.0
@@ -210,7 +214,8 @@ def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, int]:
     (and their W_i -> 0). F: [N, D] float32, W: [N] float32.
 
     |F_i| is summed in float64 and rounded to float32 before the division, as in
-    `normalize_rows_reference`; one pass over F in parallel (the reference makes several
+    `normalize_rows_reference` (a norm beyond float32's range divides in float64: the float32 norm
+    is inf, and dividing by it zeroed a row that kept its weight, round 22); one pass over F in parallel (the reference makes several
     passes and a float64 copy of each chunk). The float64 sums may round differently in the last
     bit, so a row can differ from the reference's by one float32 ulp where its norm lies on a
     float32 rounding boundary. Returns (F, count of rows dropped for non-finite values).
@@ -235,7 +240,12 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -
         finite = np.isfinite(norm) & np.isfinite(w)
         bad_total += int(np.count_nonzero(~finite & (w != 0)))
         ok = finite & (w > 0) & (norm > 0)
-        f[ok] /= norm[ok, None].astype(np.float32)
+        with np.errstate(over="ignore"):
+            scale = norm.astype(np.float32)
+        big = ok & ~np.isfinite(scale)  # |F_i| past float32's range: divided in float64
+        f[big] = (f[big].astype(np.float64) / norm[big, None]).astype(np.float32)
+        usual = ok & ~big
+        f[usual] /= scale[usual, None]
         f[~ok] = 0.0
         w[~ok] = 0.0
     return F, bad_total
