@@ -317,12 +317,12 @@ def test_register_says_when_the_engines_were_not_compared_and_clamps_the_counted
     assert "median of 1 views after a warm-up" in out and "median of 0 views" not in out
 
 
-def test_register_against_times_both_modes_alternating_and_prints_each_repeats_ratio(capsys, monkeypatch):
-    """--against: the two modes in one run, in the order A B, B A, A B, ...; the ratio is the median of
-    the per-repeat ratios of back-to-back runs, not a ratio of two medians."""
+def test_register_against_times_both_modes_in_abba_blocks(capsys, monkeypatch):
+    """--against: the two modes in one run, in the order A B, B A, A B, B A; each ABBA block's ratio
+    sums both positions, so whatever the first run of a pair pays cancels."""
     import drsplat.bench.register as register
 
-    order, walls = [], iter([3.0, 2.0, 1.0, 2.0, 6.0, 2.0])  # A B | B A | A B: A's walls 3, 2, 6, B's 2, 1, 2
+    order, walls = [], iter([3.0, 2.0, 1.0, 2.0, 6.0, 2.0, 3.0, 4.0])  # A B | B A | A B | B A: A's 3, 2, 6, 4; B's 2, 1, 2, 3
     real_one_run = register._one_run
 
     def one_run(scene, cameras, features_dir, options):
@@ -332,13 +332,33 @@ def test_register_against_times_both_modes_alternating_and_prints_each_repeats_r
 
     monkeypatch.setattr(register, "_one_run", one_run)
     code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--skip-stages", "--gaussians", "300", "--views", "2", "--size", "32x24",
-                              "--repeats", "3", "--aggregate", "vote-reject", "--against", "paper"], capsys)
+                              "--repeats", "4", "--aggregate", "vote-reject", "--against", "paper"], capsys)
     assert code == 0, err
-    assert order == ["vote-reject", "paper", "paper", "vote-reject", "vote-reject", "paper"]
-    assert "--aggregate vote-reject; median of 3" in out and "--aggregate paper; median of 3" in out
-    # the ratios 1.5, 2.0, 3.0 (the second repeat ran paper first); their median, not 11 / 5 (the totals) nor 3 / 2 (the medians)
-    assert "time per view, --aggregate vote-reject / paper: 2.00x (median of the 3 repeats' ratios" in out
-    assert "1.50, 2.00, 3.00" in out
+    assert order == ["vote-reject", "paper", "paper", "vote-reject", "vote-reject", "paper", "paper", "vote-reject"]
+    assert "--aggregate vote-reject; median of 4" in out and "--aggregate paper; median of 4" in out
+    # blocks (3 + 2) / (2 + 1) = 1.67 and (6 + 4) / (2 + 3) = 2.00: their median, not a ratio of single runs or of medians
+    assert "time per view, --aggregate vote-reject / paper: 1.83x (median of the 2 ABBA blocks' ratios" in out
+    assert "1.67, 2.00" in out
+
+
+@pytest.mark.parametrize("repeats", [1, 2, 3])
+def test_timed_pair_keeps_the_field_of_each_modes_newest_run_only(repeats):
+    """Ten results of flowers held 1.1 GB each (11 GB) and slowed the runs being timed; each mode's
+    newest keeps its field (the synthetic table scores it), whichever mode ran last."""
+    from drsplat.bench.register import blob_scene, orbit_cameras, random_mask_features, timed_pair
+
+    scene = blob_scene(200)
+    cameras = orbit_cameras(scene.means, 2, 32, 24)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        random_mask_features(Path(tmp), cameras, np.random.default_rng(0), dim=8)
+        first, second = timed_pair(scene, cameras, Path(tmp), 10, repeats, ("vote-reject", "paper"))
+    for timed in (first, second):
+        assert len(timed.runs) == len(timed.walls) == repeats
+        assert timed.result is timed.runs[-1] and timed.result.features is not None and timed.result.features.shape == (200, 8)
+        assert all(r.features is None and r.weights.size == 0 for r in timed.runs[:-1])
+        assert all(r.num_views == 2 for r in timed.runs)
 
 
 def test_register_synthetic_table_with_against_and_a_mask_source(capsys):

@@ -114,7 +114,9 @@ def _one_run(scene, cameras, features_dir, options) -> tuple:
 
 @dataclass
 class Timed:
-    """One mode's repeats: the last result, median wall and CPU seconds, every result and wall time."""
+    """One mode's repeats: the last result, median wall and CPU seconds, and each run's timings
+    (`runs`: results whose per-Gaussian arrays were let go, so that repeats do not hold an [N, D]
+    field each: ten 1.1 GB fields of flowers slowed the runs they were measuring)."""
 
     result: object
     seconds: float
@@ -128,37 +130,64 @@ class Timed:
         return cls(results[-1], statistics.median(walls), statistics.median(cpus), results, walls)
 
 
+def _released(result):
+    """`result` without its [N, D] features and [N] weights (the timings and counts stay)."""
+    from dataclasses import replace
+
+    return replace(result, features=None, weights=np.zeros(0, np.float32))
+
+
+def _repeats(scene, cameras, features_dir, options_in_order) -> list[tuple]:
+    """`_one_run` of each options in turn; a result loses its field when the next run of the same
+    options starts, so each options' newest result keeps it."""
+    runs, newest = [], {}
+    for options in options_in_order:
+        if id(options) in newest:
+            i = newest[id(options)]
+            result, wall, cpu = runs[i]
+            runs[i] = (_released(result), wall, cpu)
+        newest[id(options)] = len(runs)
+        runs.append(_one_run(scene, cameras, features_dir, options))
+    return runs
+
+
 def timed_register(scene, cameras, features_dir, topk: int, repeats: int, engine: str = "numba", device: str = "cpu",
                    aggregate: str = DEFAULT_AGGREGATE) -> Timed:
     """One mode's registration, warmed up, then timed `repeats` times."""
     options = _options(topk, engine, device, aggregate)
     _warm_up(scene, cameras, features_dir, options)
-    return Timed.of([_one_run(scene, cameras, features_dir, options) for _ in range(max(1, repeats))])
+    return Timed.of(_repeats(scene, cameras, features_dir, [options] * max(1, repeats)))
 
 
 def timed_pair(scene, cameras, features_dir, topk: int, repeats: int, modes: tuple[str, str]) -> tuple[Timed, Timed]:
     """Both modes timed in one run, alternating: repeat r runs modes[0] then modes[1] when r is even,
-    the other way round when odd, so that a drift of the machine (another job, the page cache) falls
-    on both alike (`ratios`)."""
+    the other way round when odd (A B, B A, A B, ...), so that a drift of the machine and whatever
+    the first run of a pair pays for the other's leftovers fall on both alike (`ratios`)."""
     options = [_options(topk, "numba", "cpu", mode) for mode in modes]
     for o in options:
         _warm_up(scene, cameras, features_dir, o)
-    runs: tuple[list, list] = ([], [])
-    for r in range(max(1, repeats)):
-        for m in ((0, 1) if r % 2 == 0 else (1, 0)):
-            runs[m].append(_one_run(scene, cameras, features_dir, options[m]))
-    return Timed.of(runs[0]), Timed.of(runs[1])
+    order = [m for r in range(max(1, repeats)) for m in ((0, 1) if r % 2 == 0 else (1, 0))]
+    runs = _repeats(scene, cameras, features_dir, [options[m] for m in order])
+    mine = ([run for run, m in zip(runs, order) if m == 0], [run for run, m in zip(runs, order) if m == 1])
+    return Timed.of(mine[0]), Timed.of(mine[1])
 
 
 def ratios(first: Timed, second: Timed) -> list[float]:
-    """Per repeat, first's wall time / second's (the two runs of one repeat ran back to back)."""
-    return [a / b for a, b in zip(first.walls, second.walls)]
+    """first's time over second's per ABBA block: repeats 2i (first ran first) and 2i + 1 (second ran
+    first) summed, (a_2i + a_2i+1) / (b_2i + b_2i+1), so that running first or second in a pair
+    cancels out (on hard-room, ~0.6 s a run, it moved single repeats' ratios by 10 %); a last odd
+    repeat is left out. One repeat: its own ratio."""
+    a, b = first.walls, second.walls
+    if len(a) < 2:
+        return [a[0] / b[0]]
+    return [(a[i] + a[i + 1]) / (b[i] + b[i + 1]) for i in range(0, len(a) - 1, 2)]
 
 
 def ratio_line(mode: str, against: str, values: list[float]) -> str:
-    """'MODE / AGAINST: 1.47x (median of the n repeats' ratios: 1.45, 1.47, 1.52)'."""
+    """'time per view, --aggregate MODE / AGAINST: 1.47x (median of the n ABBA blocks' ratios: 1.45, 1.47, 1.52)'."""
     listed = ", ".join(f"{v:.2f}" for v in values)
-    return f"time per view, --aggregate {mode} / {against}: {statistics.median(values):.2f}x (median of the {len(values)} repeats' ratios, each of two runs back to back: {listed})"
+    return (f"time per view, --aggregate {mode} / {against}: {statistics.median(values):.2f}x (median of the {len(values)} ABBA blocks' "
+            f"ratios, each of two repeats with the modes' order swapped: {listed})")
 
 
 def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int, aggregate: str = DEFAULT_AGGREGATE,
