@@ -12,8 +12,9 @@ Two tables:
    pairs, peak RSS.
 
 With --against MODE both tables also time MODE in the same run, the two modes alternating repeat
-by repeat (A B, B A, ...), and give the median of the repeats' time ratios: the ratio the default's
-time bound is stated in (`--against paper`), measured in one run rather than from two.
+by repeat (A B, B A, ...), and give the median of the time ratios of the ABBA blocks (`ratios`): the
+ratio the default's time bound is stated in (`--against paper`), measured in one run rather than
+from two.
 """
 
 from __future__ import annotations
@@ -75,8 +76,9 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help=f"aggregation mode of every timed registration (default: {DEFAULT_AGGREGATE}; 'paper' is Dr. Splat's)")
     p.add_argument("--against", choices=AGGREGATE_MODES, default=None, metavar="MODE",
-                   help="also time MODE (e.g. paper) in the same run, the two modes alternating repeat by repeat, and print "
-                        "the time ratio --aggregate / MODE of each repeat and their median (the synthetic and real tables)")
+                   help="also time MODE (e.g. paper) in the same run, the two modes alternating repeat by repeat (A B, B A, ...), "
+                        "and print the time ratio --aggregate / MODE of each ABBA block of two repeats and their median (the "
+                        "synthetic and real tables; give an even --repeats)")
     p.add_argument("--mask-source", choices=MASK_SOURCES, default=None,
                    help="the synthetic table's masks: the rendered footprints, the true silhouettes or a segmenter's regions "
                         "(`drsplat synth --mask-source`; default: the preset's)")
@@ -194,7 +196,7 @@ def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int
                     against: str | None = None, mask_source: str | None = None) -> str:
     """The preset's room (seed 0) registered at each top-k: speed next to mIoU. With `against`, that
     mode is timed in the same run, alternating (`timed_pair`), in two more columns: its ms per view and
-    the median of the repeats' time ratios."""
+    the median of the ABBA blocks' time ratios (`ratios`)."""
     from drsplat.cameras import load_cameras
     from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
     from drsplat.scene import load_ply

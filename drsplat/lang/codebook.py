@@ -347,8 +347,6 @@ def has_direction(x: np.ndarray) -> np.ndarray:
         return np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
 
 
-
-
 @numba.njit(parallel=True, cache=True)
 def _unit_check_kernel(f, tol, ok, off):  # pragma: no cover - jitted
     """Per row of f [N, D] float32, in parallel, one pass: ok = finite and not all zero
