@@ -1,7 +1,9 @@
 """Gaussian scenes: the `GaussianScene` record and PLY input/output.
 
 Reads the INRIA 3DGS layout by property name (any order, with or without normals, SH degree
-0-3) and the SuperSplat/PlayCanvas compressed PLY. Writes exactly the INRIA layout.
+0-3) and the SuperSplat/PlayCanvas compressed PLY. Writes exactly the INRIA layout. A Mip-Splatting
+PLY's 3D smoothing filter (its `filter_3D` property) is fused into the scales and opacities as its
+renderer applies it (`fuse_3d_filter`), and the property dropped.
 
 Non-finite policy (reported through `LoadReport`, never silent):
 - rows with NaN in any attribute are dropped;
@@ -29,6 +31,7 @@ log = logging.getLogger(__name__)
 SH_C0 = 0.28209479177387814
 MAX_OPACITY_LOGIT = 30.0
 MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log scale is inf in float32
+MIP_FILTER = "filter_3D"  # Mip-Splatting's per-Gaussian 3D smoothing filter, a vertex property of its PLYs
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
@@ -609,8 +612,33 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     if degree > 0:
         sh[:, 1:, :] = coeffs[:, 3:].reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
     cols["sh"] = sh
-    cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and not name.startswith("f_rest_")])
+    if MIP_FILTER in names:
+        cols["log_scales"], cols["opacity_logits"] = fuse_3d_filter(cols["log_scales"], cols["opacity_logits"], columns([MIP_FILTER])[:, 0])
+        log.info("%s: Mip-Splatting's 3D filter (%s) fused into the scales and opacities of %s Gaussians, as its renderer applies it",
+                 path, MIP_FILTER, f"{n:,}")
+    cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
+                                           and not name.startswith("f_rest_")])
     return cols
+
+
+def fuse_3d_filter(log_scales: np.ndarray, opacity_logits: np.ndarray, filter_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mip-Splatting's 3D smoothing filter, per Gaussian of standard deviation f (its `filter_3D`),
+    fused into the Gaussian as its renderer applies it (Yu et al., CVPR 2024; `save_fused_ply`):
+
+        s'_k = sqrt(s_k² + f²)                              the scales, convolved with N(0, f² I)
+        α'   = α · sqrt(Π_k s_k² / Π_k s'_k²)               the opacity, so the integral stays
+
+    log_scales: [N, 3], opacity_logits: [N], filter_3d: [N] -> (log s' [N, 3], logit α' [N]) float32.
+    In float64 and in logs: log s' = log s + ½·log1p((f / s)²), so a tiny filter leaves a large
+    Gaussian's bits, and log α' = log α + Σ_k (log s_k - log s'_k). A non-finite f gives a non-finite
+    row, which the loader drops and counts as it does any."""
+    s = np.asarray(log_scales, np.float64)
+    f = np.asarray(filter_3d, np.float64)[:, None]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        fused = s + 0.5 * np.log1p(np.square(f * np.exp(-s)))
+        log_alpha = -np.logaddexp(0.0, -np.asarray(opacity_logits, np.float64)) + (s - fused).sum(axis=1)
+        logits = log_alpha - np.log(-np.expm1(log_alpha))  # logit(α') = log α' - log(1 - α')
+    return fused.astype(np.float32), logits.astype(np.float32)
 
 
 EXTRA_RUN = 8  # at least this many fields of one type side by side in a record are copied as one block

@@ -425,3 +425,38 @@ def test_extra_columns_copy_runs_of_fields_as_blocks(order):
         for name in names:
             assert got[name].flags.c_contiguous and got[name].dtype == dtype[name]
             np.testing.assert_array_equal(got[name], vertex[:n][name])
+
+
+def test_a_mip_splatting_ply_has_its_3d_filter_fused_as_its_renderer_applies_it(tmp_path, caplog):
+    """Mip-Splatting's PLYs store a per-Gaussian 3D smoothing filter (`filter_3D`, after rot_3) that its
+    renderer applies to every Gaussian (get_scaling_with_3D_filter, get_opacity_with_3D_filter): read as
+    a plain extra property, its Gaussians were rendered too small and too opaque. Now fused on load, the
+    property dropped, so a saved scene is not filtered twice when read again."""
+    import logging
+
+    from drsplat.scene import GaussianScene, load_ply, save_ply
+
+    rng = np.random.default_rng(8)
+    n = 500
+    scene = GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=rng.normal(size=(n, 4)).astype(np.float32),
+                          log_scales=rng.uniform(-7, -1, (n, 3)).astype(np.float32), opacity_logits=rng.uniform(-4, 9, n).astype(np.float32),
+                          sh=rng.normal(size=(n, 1, 3)).astype(np.float32))
+    f = rng.uniform(0.0, 0.01, n).astype(np.float32)
+    f[:5] = 0.0
+    mip = dataclasses.replace(scene, extra={"filter_3D": f, "keep_me": np.arange(n, dtype=np.float32)})
+    save_ply(mip, tmp_path / "mip.ply")
+    with caplog.at_level(logging.INFO):
+        got = load_ply(tmp_path / "mip.ply")
+    assert "3D filter (filter_3D) fused into the scales and opacities of 500 Gaussians" in caplog.text
+    assert list(got.extra) == ["keep_me"]
+    # Mip-Splatting's own formulas, in float64
+    s = np.exp(scene.log_scales.astype(np.float64))
+    fused = np.sqrt(s**2 + f.astype(np.float64)[:, None] ** 2)
+    alpha = np.sqrt(np.prod(s**2, axis=1) / np.prod(fused**2, axis=1)) / (1 + np.exp(-scene.opacity_logits.astype(np.float64)))
+    np.testing.assert_allclose(got.log_scales, np.log(fused), atol=1e-6)
+    np.testing.assert_allclose(got.opacity_logits, np.log(alpha / (1 - alpha)), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(got.log_scales[:5], scene.log_scales[:5])  # a zero filter leaves the scales
+    save_ply(got, tmp_path / "fused.ply")
+    again = load_ply(tmp_path / "fused.ply")
+    np.testing.assert_array_equal(again.log_scales, got.log_scales)
+    np.testing.assert_array_equal(again.opacity_logits, got.opacity_logits)
