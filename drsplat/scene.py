@@ -3,7 +3,8 @@
 Reads the INRIA 3DGS layout by property name (any order, with or without normals, SH degree
 0-3) and the SuperSplat/PlayCanvas compressed PLY. Writes exactly the INRIA layout. A Mip-Splatting
 PLY's 3D smoothing filter (its `filter_3D` property) is fused into the scales and opacities as its
-renderer applies it (`fuse_3d_filter`), and the property dropped.
+renderer applies it (`fuse_3d_filter`), and the property dropped. A 2DGS PLY (two scales per
+Gaussian: flat surfels) is read as flat 3D Gaussians (`surfel_scales`).
 
 Non-finite policy (reported through `LoadReport`, never silent):
 - rows with NaN in any attribute are dropped;
@@ -32,6 +33,7 @@ SH_C0 = 0.28209479177387814
 MAX_OPACITY_LOGIT = 30.0
 MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log scale is inf in float32
 MIP_FILTER = "filter_3D"  # Mip-Splatting's per-Gaussian 3D smoothing filter, a vertex property of its PLYs
+SURFEL_THICKNESS = 1e-3  # a 2DGS surfel's thickness along its normal, relative to its smaller scale (`surfel_scales`)
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
@@ -595,16 +597,22 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     if missing:
         raise _fail(path, f"numbers its {n_rest} f_rest_* properties wrongly: {missing[0]} is missing (expected f_rest_0..f_rest_{n_rest - 1})", field=missing[0])
     n = len(vertex)
-    for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(3)), *(f"f_dc_{i}" for i in range(3))):
+    surfels = "scale_2" not in names and {"scale_0", "scale_1"} <= set(names)  # 2DGS: two scales, a flat disk
+    for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(2 if surfels else 3)),
+                 *(f"f_dc_{i}" for i in range(3))):
         _require(path, vertex, name)
     columns = _column_reader(vertex)
     k = (degree + 1) ** 2
     cols = {
         "means": columns(["x", "y", "z"]),
         "quats": columns([f"rot_{i}" for i in range(4)]),
-        "log_scales": columns([f"scale_{i}" for i in range(3)]),
+        "log_scales": surfel_scales(columns(["scale_0", "scale_1"])) if surfels else columns([f"scale_{i}" for i in range(3)]),
         "opacity_logits": columns(["opacity"])[:, 0].copy(),
     }
+    if surfels:
+        log.info("%s: %s 2D Gaussian surfels (2DGS: scale_0 and scale_1, no scale_2) read as flat 3D Gaussians %g times as thick as "
+                 "their smaller scale; drsplat rasterizes them by 3DGS's projection, not 2DGS's ray-splat intersection", path, f"{n:,}",
+                 SURFEL_THICKNESS)
     sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
     coeffs = columns(sh_names)
     sh = np.empty((n, k, 3), np.float32)
@@ -619,6 +627,16 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
                                            and not name.startswith("f_rest_")])
     return cols
+
+
+def surfel_scales(log_scales_2d: np.ndarray) -> np.ndarray:
+    """[N, 3] float32 log scales of 2DGS surfels given [N, 2] (s_u, s_v along the rotation's first two
+    axes; the third is the normal): log s_w = min(log s_u, log s_v) + log SURFEL_THICKNESS, a disk
+    of relative thickness SURFEL_THICKNESS, so Σ = R diag(s_u², s_v², s_w²) Rᵀ stays well conditioned
+    (at most 1e6 between its eigenvalues) in any units. 2DGS's own loader reads scales[:, :2] of a
+    file with three, so a scene saved back (the INRIA layout) is the same surfels to it."""
+    s = np.asarray(log_scales_2d, np.float32)
+    return np.concatenate([s, (np.minimum(s[:, 0], s[:, 1]) + np.float32(np.log(SURFEL_THICKNESS)))[:, None]], axis=1)
 
 
 def fuse_3d_filter(log_scales: np.ndarray, opacity_logits: np.ndarray, filter_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

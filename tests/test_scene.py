@@ -460,3 +460,41 @@ def test_a_mip_splatting_ply_has_its_3d_filter_fused_as_its_renderer_applies_it(
     again = load_ply(tmp_path / "fused.ply")
     np.testing.assert_array_equal(again.log_scales, got.log_scales)
     np.testing.assert_array_equal(again.opacity_logits, got.opacity_logits)
+
+
+def test_a_2dgs_ply_of_surfels_reads_as_flat_gaussians(tmp_path, caplog):
+    """2DGS writes two scales per Gaussian (a disk in the plane of its rotation's first two axes) and
+    no scale_2: the file was refused as a 3DGS file missing scale_2. Read as flat 3D Gaussians, a
+    surfel seen face-on renders as the disk it is and edge-on as a line; saved back in the INRIA
+    layout it reads as the same Gaussians."""
+    import logging
+
+    from plyfile import PlyData, PlyElement
+
+    from drsplat.cameras import look_at_camera
+    from drsplat.raster import rasterize
+    from drsplat.scene import SURFEL_THICKNESS, load_ply, save_ply
+
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"]
+    rows = np.zeros(2, dtype=[(k, "<f4") for k in names])
+    rows["x"] = [0.0, 3.0]
+    rows["opacity"] = 2.0
+    rows["scale_0"], rows["scale_1"] = np.log(0.2), np.log(0.1)
+    rows["rot_0"] = 1.0  # identity: each disk lies in the x-y plane, its normal along z
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(tmp_path / "surfels.ply"))
+    with caplog.at_level(logging.INFO):
+        scene = load_ply(tmp_path / "surfels.ply")
+    assert "2 2D Gaussian surfels (2DGS" in caplog.text
+    np.testing.assert_array_equal(scene.log_scales[:, :2], np.log(np.array([[0.2, 0.1]] * 2, np.float32)))
+    np.testing.assert_allclose(scene.log_scales[:, 2], np.log(0.1 * SURFEL_THICKNESS), rtol=1e-6)
+    save_ply(scene, tmp_path / "saved.ply")
+    again = load_ply(tmp_path / "saved.ply")
+    np.testing.assert_array_equal(again.log_scales, scene.log_scales)
+    face_on = rasterize(scene.subset(slice(0, 1)), look_at_camera((0, 0, 4), (0, 0, 0), 64, 64, up=(0, 1, 0)), 4)
+    edge_on = rasterize(scene.subset(slice(0, 1)), look_at_camera((0, 4, 0), (0, 0, 0), 64, 64, up=(0, 0, 1)), 4)
+    thick = dataclasses.replace(scene, log_scales=np.array([[np.log(0.2), np.log(0.1), np.log(0.2)]] * 2, np.float32))
+    thick_face_on = rasterize(thick.subset(slice(0, 1)), look_at_camera((0, 0, 4), (0, 0, 0), 64, 64, up=(0, 1, 0)), 4)
+    assert face_on.alpha.sum() > 20  # the disk covers pixels: as a 3D Gaussian of its two scales does, seen along its third axis
+    np.testing.assert_allclose(face_on.alpha, thick_face_on.alpha, atol=0.02)
+    rows_covered = lambda out: int(np.any(out.alpha > 0.05, axis=1).sum())  # noqa: E731
+    assert rows_covered(face_on) >= 7 and rows_covered(edge_on) <= 3  # edge-on, a line as wide as 3DGS's 0.3 px² dilation
