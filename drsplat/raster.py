@@ -178,6 +178,23 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
     return float(np.mean(near & ~rendered))
 
 
+def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
+    """The share of Gaussians whose mean some view sees: z ≥ NEAR and its projection inside the image
+    (0 ≤ u < W, 0 ≤ v < H), estimated on every ⌈N / sample⌉-th Gaussian. A trained scene's training
+    views see most of it; a scene in another frame than its cameras (a trainer's normalised world)
+    has few seen, or none.
+
+    means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians)."""
+    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    if len(means) == 0 or not cameras:
+        return 0.0
+    seen = np.zeros(len(means), bool)
+    for cam in cameras:
+        uv, z = cam.project(means)
+        seen |= (z >= NEAR) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    return float(np.mean(seen))
+
+
 def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
     """The view-independent arrays of `scene`; non-finite Gaussians are flagged and counted.
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from drsplat.cameras import load_cameras
-from drsplat.errors import Cancelled, InputError
+from drsplat.errors import Cancelled, DrsplatError, InputError
 from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
 from drsplat.features.format import read_features, write_features
 from drsplat.registration import RegisterOptions, register_features
@@ -547,3 +547,28 @@ def test_mask_embeddings_of_any_length_register_as_their_unit_directions(tiny, t
     np.testing.assert_allclose(got.weights, ref.weights, rtol=1e-5)
     cos = np.einsum("nd,nd->n", got.features[assigned].astype(np.float64), ref.features[assigned].astype(np.float64))
     assert cos.min() > 1 - 1e-5
+
+
+def test_a_scene_in_another_frame_than_its_cameras_is_said(tiny, tmp_path, caplog):
+    """A splatfacto or gsplat export lies in the trainer's normalised world (rotated, recentred,
+    scaled), while the dataset's cameras are in the capture's: the warning said only how few
+    Gaussians got a feature. It now says how few any view sees, and where such frames come from."""
+    from scipy.spatial.transform import Rotation
+
+    from drsplat.raster import share_in_some_view
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    assert share_in_some_view(scene.means, cams) > 0.9
+    rot = Rotation.from_euler("xyz", [40, -25, 70], degrees=True).as_matrix().astype(np.float32)
+    hint = (r"only \d+% of the Gaussians' centres lie inside any view: the scene may be in another frame than its cameras "
+            r"\(nerfstudio's splatfacto exports in its dataparser frame")
+    partly = dataclasses.replace(scene, means=(scene.means @ rot.T) * 0.2 + np.float32(2.0), log_scales=scene.log_scales + np.log(0.2))
+    assert 0.1 < share_in_some_view(partly.means, cams) < 0.5
+    with caplog.at_level(logging.WARNING):
+        result = register(partly, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert 0 < result.num_assigned < 0.5 * scene.num_gaussians
+    assert re.search(hint, caplog.text) and "near plane" not in caplog.text, caplog.text
+    away = dataclasses.replace(partly, means=partly.means + np.float32(4.0))  # no view sees any: the error says it too
+    with pytest.raises(DrsplatError, match=hint):
+        register(away, cams, tiny / "features", tmp_path / "reg2.ply", RegisterOptions(aggregate="paper"), show_progress=False)

@@ -40,7 +40,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import NEAR, get_engine, share_within_near_plane
+from drsplat.raster import NEAR, get_engine, share_in_some_view, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
@@ -233,11 +233,23 @@ def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
     return book
 
 
-def nothing_assigned(num_views: int, features_dir: Path, out: Path | None) -> str:
-    """The error when registration gave no Gaussian a feature (nothing is written)."""
+def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "") -> str:
+    """The error when registration gave no Gaussian a feature (nothing is written); hint: `frame_hint`'s."""
     written = f"; nothing was written to {out}" if out is not None else ""
     return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
-            f"or every mask of {features_dir} is empty or invalid{written}")
+            f"or every mask of {features_dir} is empty or invalid{hint}{written}")
+
+
+def frame_hint(means: np.ndarray, cameras) -> str:
+    """'; only k% of the Gaussians' centres lie inside any view: ...' when fewer than LOW_SEEN_FRACTION
+    of them do (`raster.share_in_some_view`), with where a scene in another frame than its cameras
+    comes from; "" otherwise."""
+    seen = share_in_some_view(means, cameras)
+    if seen >= LOW_SEEN_FRACTION:
+        return ""
+    return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
+            "cameras (nerfstudio's splatfacto exports in its dataparser frame, see its dataparser_transforms.json; gsplat's "
+            "simple_trainer normalises the world unless normalize_world_space is off): give the cameras of the scene's frame")
 
 
 def run_registration(
@@ -335,7 +347,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                                                      pair_means=check.verdicts.pair_means if check.specific else None)
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
@@ -343,7 +355,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
             written = target.close()
         else:
             weights, nonfinite, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
@@ -630,7 +642,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out))
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
     written = assemble_parts(Path(reduce.job.out), parts)
     return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))
@@ -679,6 +691,7 @@ def register(
 
 
 LOW_ASSIGNED_FRACTION = 0.5  # below this share of Gaussians with a feature, a run is most likely misconfigured
+LOW_SEEN_FRACTION = 0.5  # ... and below this share of them inside some view, most likely in another frame than its cameras
 
 
 def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras) -> None:
@@ -698,6 +711,8 @@ def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, 
     if near >= 0.1:
         why += (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), which "
                 "culls them: are the scene and its cameras in the same units?")
+    else:
+        why += frame_hint(scene.means, cameras)
     log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
                 result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned, why)
 
