@@ -343,7 +343,7 @@ def test_register_against_times_both_modes_in_abba_blocks(capsys, monkeypatch):
 
 @pytest.mark.parametrize("repeats", [1, 2, 3])
 def test_timed_pair_keeps_the_field_of_each_modes_newest_run_only(repeats):
-    """Ten results of flowers held 1.1 GB each (11 GB) and slowed the runs being timed; each mode's
+    """Ten results of flowers held 1.1 GB each (11 GB) in the process being timed; each mode's
     newest keeps its field (the synthetic table scores it), whichever mode ran last."""
     from drsplat.bench.register import blob_scene, orbit_cameras, random_mask_features, timed_pair
 

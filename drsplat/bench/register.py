@@ -118,7 +118,7 @@ def _one_run(scene, cameras, features_dir, options) -> tuple:
 class Timed:
     """One mode's repeats: the last result, median wall and CPU seconds, and each run's timings
     (`runs`: results whose per-Gaussian arrays were let go, so that repeats do not hold an [N, D]
-    field each: ten 1.1 GB fields of flowers slowed the runs they were measuring)."""
+    field each: ten 1.1 GB fields of flowers, 11 GB, in the process whose runs are timed)."""
 
     result: object
     seconds: float
