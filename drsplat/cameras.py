@@ -865,6 +865,9 @@ def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]
     except InputError:  # the camera file went away since it was read (a viewer session): its images are still inputs
         inputs = {}
     inputs.update({f"--source's image {c.image_path}": c.image_path for c in cameras if c.image_path is not None})
+    frame = Path(source) if Path(source).is_dir() else Path(source).parent
+    if (frame / DATAPARSER_TRANSFORMS).is_file():
+        inputs[f"--source's {DATAPARSER_TRANSFORMS}"] = frame / DATAPARSER_TRANSFORMS
     return inputs
 
 
@@ -920,7 +923,46 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     if distorted:
         log.info("%s: %d of %d cameras have lens distortion (k1, k2, p1, p2); their images are undistorted to the pinhole cameras "
                  "as they are read", path, distorted, len(cameras))
+    frame = Path(source) if Path(source).is_dir() else Path(source).parent
+    if (frame / DATAPARSER_TRANSFORMS).is_file():
+        rotation, translation, scale = read_dataparser_transform(frame / DATAPARSER_TRANSFORMS)
+        cameras = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
+        log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g), where a "
+                 "splatfacto export lies", frame / DATAPARSER_TRANSFORMS, len(cameras), scale)
     return scale_cameras(cameras, resolution)
+
+
+DATAPARSER_TRANSFORMS = "dataparser_transforms.json"  # nerfstudio's: the similarity from its dataset's frame to the one it trains in
+
+
+def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R [3, 3], t [3], s) of nerfstudio's dataparser_transforms.json, {"transform": [3 or 4 rows of 4],
+    "scale": s}: a dataset point x lies at s·(R x + t) in the frame it trains in (orientation,
+    centring, then the scale; ns-train writes it beside its config.yml). InputError naming the field
+    when it is not that: R must be a rotation (orthonormal within 1e-4, determinant +1), s > 0."""
+    data = read_json(path, "nerfstudio dataparser transform")
+    if not isinstance(data, dict):
+        raise InputError(path, "is not a JSON object with 'transform' and 'scale'")
+    rows = data.get("transform")
+    if not (isinstance(rows, list) and len(rows) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in rows)):
+        raise InputError(path, "is not 3 (or 4) rows of 4 numbers", field="transform")
+    values = np.array([[_number(path, {"v": v}, "v", where=f" in 'transform' row {i}") for v in r] for i, r in enumerate(rows)])
+    if len(rows) == 4 and not np.allclose(values[3], (0.0, 0.0, 0.0, 1.0)):
+        raise InputError(path, "has a fourth row that is not 0 0 0 1", field="transform")
+    rotation, translation = values[:3, :3], values[:3, 3]
+    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0):
+        raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field="transform")
+    scale = _number(path, data, "scale", 1.0)
+    if not scale > 0:
+        raise InputError(path, f"has scale {scale:g}; it must be above 0", field="scale")
+    return rotation, translation, scale
+
+
+def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarray, scale: float) -> Camera:
+    """`camera` in the frame x' = s·(R x + t): world-to-camera R_c R_Rᵀ, s·(t_c − R_c Rᵀ t), so that
+    camera coordinates are s times the old ones and every point projects to the same pixel."""
+    r = np.asarray(camera.R, np.float64) @ rotation.T
+    return dataclasses.replace(camera, R=r, t=scale * (np.asarray(camera.t, np.float64) - r @ translation))
 
 
 NAME_FIELDS = {"colmap": "NAME", "transforms": "file_path", "cameras_json": "img_name"}

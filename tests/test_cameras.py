@@ -385,3 +385,80 @@ def test_cameras_whose_images_all_have_another_extension_say_where_they_looked(t
     with pytest.raises(InputError, match=r"every image file is missing: e\.g\. .*images/r_0\.png; r_0\.jpg in that folder has its name but "
                                          r"another extension: the cameras name '\.png' files"):
         load_cameras(tmp_path)
+
+
+def _similarity(seed: int = 3):
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_euler("zyx", [50.0, -20.0, 110.0], degrees=True)
+    return rot, rot.as_matrix(), np.array([0.4, -1.3, 2.2]), 0.37
+
+
+def test_a_camera_in_the_trained_frame_sees_every_point_at_the_same_pixel():
+    from drsplat.cameras import in_trained_frame, look_at_camera
+
+    _, rotation, translation, scale = _similarity()
+    cam = look_at_camera((3.0, 1.0, -4.0), (0.0, 0.2, 0.0), 64, 48)
+    moved = in_trained_frame(cam, rotation, translation, scale)
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    uv, z = cam.project(points)
+    uv2, z2 = moved.project(scale * (points @ rotation.T + translation))
+    np.testing.assert_allclose(uv2, uv, atol=1e-9)
+    np.testing.assert_allclose(z2, scale * z, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(moved.R) @ np.asarray(moved.R).T, np.eye(3), atol=1e-12)
+
+
+def test_a_splatfacto_scene_registers_with_its_datasets_cameras_and_dataparser_transforms(tmp_path, caplog):
+    """nerfstudio trains (and ns-export writes a splatfacto PLY) in the frame x' = s·(R x + t) of its
+    dataparser_transforms.json, not in its dataset's frame. Copied beside the dataset's cameras, the
+    file moves them into that frame: the transformed scene registers as the original one did."""
+    import dataclasses
+    import shutil
+
+    from drsplat.registration import RegisterOptions, register_features
+    from drsplat.scene import load_ply
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    rot, rotation, translation, scale = _similarity()
+    quats = scene.quats[:, [1, 2, 3, 0]].astype(np.float64)  # (w, x, y, z) -> scipy's (x, y, z, w)
+    from scipy.spatial.transform import Rotation
+
+    turned = (rot * Rotation.from_quat(quats)).as_quat()[:, [3, 0, 1, 2]]
+    trained = dataclasses.replace(scene, means=(scale * (scene.means.astype(np.float64) @ rotation.T + translation)).astype(np.float32),
+                                  quats=turned.astype(np.float32), log_scales=scene.log_scales + np.float32(np.log(scale)))
+    moved = tmp_path / "moved"
+    shutil.copytree(data, moved)
+    (moved / "dataparser_transforms.json").write_text(json.dumps(
+        {"transform": np.c_[rotation, translation].tolist(), "scale": scale}))
+    with caplog.at_level(logging.INFO):
+        moved_cams = load_cameras(moved)
+    assert "cameras moved into the frame nerfstudio trained in" in caplog.text
+    options = RegisterOptions(topk=10, aggregate="paper")
+    ref = register_features(scene, cams, data / "features", options, show_progress=False)
+    got = register_features(trained, moved_cams, moved / "features", options, show_progress=False)
+    assigned = ref.weights > 0
+    assert abs(int((got.weights > 0).sum()) - int(assigned.sum())) <= 3
+    rel = np.abs(got.weights[assigned] - ref.weights[assigned]) / ref.weights[assigned]
+    assert np.mean(rel < 1e-3) > 0.995 and rel.max() < 0.05  # the float32 rounding of the moved scene moves a few depth ties
+    cos = np.einsum("nd,nd->n", got.features[assigned].astype(np.float64), ref.features[assigned].astype(np.float64))
+    assert np.quantile(cos, 0.01) > 0.999
+
+
+@pytest.mark.parametrize("content, words", [
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0]], "scale": 1}, "'transform': is not 3 (or 4) rows of 4 numbers"),
+    ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "is not a rotation"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0]], "scale": 1}, "is not a rotation"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 0}, "'scale': has scale 0"),
+    ({"transform": [[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "non-numeric value in 'transform' row 0"),
+    ([1, 2], "is not a JSON object"),
+])
+def test_a_bad_dataparser_transforms_file_is_one_error_naming_it(tmp_path, content, words):
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    (data / "dataparser_transforms.json").write_text(json.dumps(content))
+    with pytest.raises(InputError, match="dataparser_transforms.json") as info:
+        load_cameras(data)
+    assert words in str(info.value)

@@ -248,8 +248,9 @@ def frame_hint(means: np.ndarray, cameras) -> str:
     if seen >= LOW_SEEN_FRACTION:
         return ""
     return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
-            "cameras (nerfstudio's splatfacto exports in its dataparser frame, see its dataparser_transforms.json; gsplat's "
-            "simple_trainer normalises the world unless normalize_world_space is off): give the cameras of the scene's frame")
+            "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
+            "dataset's cameras and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
+            "is off): give the cameras of the scene's frame")
 
 
 def run_registration(
