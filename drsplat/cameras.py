@@ -865,9 +865,9 @@ def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]
     except InputError:  # the camera file went away since it was read (a viewer session): its images are still inputs
         inputs = {}
     inputs.update({f"--source's image {c.image_path}": c.image_path for c in cameras if c.image_path is not None})
-    frame = Path(source) if Path(source).is_dir() else Path(source).parent
-    if (frame / DATAPARSER_TRANSFORMS).is_file():
-        inputs[f"--source's {DATAPARSER_TRANSFORMS}"] = frame / DATAPARSER_TRANSFORMS
+    transform = dataparser_transforms_path(source)
+    if transform is not None:
+        inputs[f"--source's {DATAPARSER_TRANSFORMS}"] = transform
     return inputs
 
 
@@ -923,16 +923,23 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     if distorted:
         log.info("%s: %d of %d cameras have lens distortion (k1, k2, p1, p2); their images are undistorted to the pinhole cameras "
                  "as they are read", path, distorted, len(cameras))
-    frame = Path(source) if Path(source).is_dir() else Path(source).parent
-    if (frame / DATAPARSER_TRANSFORMS).is_file():
-        rotation, translation, scale = read_dataparser_transform(frame / DATAPARSER_TRANSFORMS)
+    transform = dataparser_transforms_path(source)
+    if transform is not None:
+        rotation, translation, scale = read_dataparser_transform(transform)
         cameras = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
         log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g), where a "
-                 "splatfacto export lies", frame / DATAPARSER_TRANSFORMS, len(cameras), scale)
+                 "splatfacto export lies", transform, len(cameras), scale)
     return scale_cameras(cameras, resolution)
 
 
 DATAPARSER_TRANSFORMS = "dataparser_transforms.json"  # nerfstudio's: the similarity from its dataset's frame to the one it trains in
+
+
+def dataparser_transforms_path(source: str | Path) -> Path | None:
+    """The DATAPARSER_TRANSFORMS file in the dataset folder `source` (or beside its camera file), if any."""
+    source = Path(source)
+    path = (source if source.is_dir() else source.parent) / DATAPARSER_TRANSFORMS
+    return path if path.is_file() else None
 
 
 def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float]:

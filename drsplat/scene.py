@@ -632,8 +632,8 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
 def surfel_scales(log_scales_2d: np.ndarray) -> np.ndarray:
     """[N, 3] float32 log scales of 2DGS surfels given [N, 2] (s_u, s_v along the rotation's first two
     axes; the third is the normal): log s_w = min(log s_u, log s_v) + log SURFEL_THICKNESS, a disk
-    of relative thickness SURFEL_THICKNESS, so Σ = R diag(s_u², s_v², s_w²) Rᵀ stays well conditioned
-    (at most 1e6 between its eigenvalues) in any units. 2DGS's own loader reads scales[:, :2] of a
+    of relative thickness SURFEL_THICKNESS, so Σ = R diag(s_u², s_v², s_w²) Rᵀ is as well conditioned
+    as the surfel itself allows (1e6 between its smaller in-plane eigenvalue and the normal's) in any units. 2DGS's own loader reads scales[:, :2] of a
     file with three, so a scene saved back (the INRIA layout) is the same surfels to it."""
     s = np.asarray(log_scales_2d, np.float32)
     return np.concatenate([s, (np.minimum(s[:, 0], s[:, 1]) + np.float32(np.log(SURFEL_THICKNESS)))[:, None]], axis=1)
