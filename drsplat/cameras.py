@@ -953,13 +953,13 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     rows = data.get("transform")
     if not (isinstance(rows, list) and len(rows) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in rows)):
         raise InputError(path, "is not 3 (or 4) rows of 4 numbers", field="transform")
-    values = np.array([[_number(path, {"v": v}, "v", where=f" in 'transform' row {i}") for v in r] for i, r in enumerate(rows)])
+    values = np.array([[_number(path, {"transform": v}, "transform", where=f" in row {i}") for v in r] for i, r in enumerate(rows)])
     if len(rows) == 4 and not np.allclose(values[3], (0.0, 0.0, 0.0, 1.0)):
         raise InputError(path, "has a fourth row that is not 0 0 0 1", field="transform")
     rotation, translation = values[:3, :3], values[:3, 3]
     if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0):
         raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field="transform")
-    scale = _number(path, data, "scale", 1.0)
+    scale = _number(path, data, "scale")
     if not scale > 0:
         raise InputError(path, f"has scale {scale:g}; it must be above 0", field="scale")
     return rotation, translation, scale

@@ -451,7 +451,10 @@ def test_a_splatfacto_scene_registers_with_its_datasets_cameras_and_dataparser_t
     ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "is not a rotation"),
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0]], "scale": 1}, "is not a rotation"),
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 0}, "'scale': has scale 0"),
-    ({"transform": [[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "non-numeric value in 'transform' row 0"),
+    ({"transform": [[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "'transform': has a non-numeric value in row 0"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e400]], "scale": 1}, "'transform': has a non-finite value in row 2"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 2]], "scale": 1}, "fourth row that is not 0 0 0 1"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}, "'scale': is missing"),
     ([1, 2], "is not a JSON object"),
 ])
 def test_a_bad_dataparser_transforms_file_is_one_error_naming_it(tmp_path, content, words):
