@@ -6,6 +6,7 @@ import contextlib
 import errno
 import functools
 import hashlib
+import json
 import logging
 import math
 import os
@@ -473,11 +474,50 @@ def hidden_character(text: str) -> str | None:
     return None
 
 
+def name_problem(names: list[str]) -> tuple[int, str, object] | None:
+    """The first entry of a list of label names that may not label a table or a legend: (index,
+    "empty", None) for a blank one, (index, "hidden", description) for one holding a character a
+    terminal would not show as itself (`hidden_character`: a newline, ESC, U+202E, a lone
+    surrogate), (index, "repeat", earlier index) for one equal to an earlier one apart from spaces
+    around it; None when every entry may. The one rule of `checked_names` and `checked_phrases`."""
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if not name.strip():
+            return i, "empty", None
+        hidden = hidden_character(name)
+        if hidden is not None:
+            return i, "hidden", hidden
+        key = name.strip()
+        if key in seen:
+            return i, "repeat", seen[key]
+        seen[key] = i
+    return None
+
+
+def checked_names(path: Path, names: list) -> list[str]:
+    """The names as given, or one error naming the first entry that is not a string or that
+    `name_problem` refuses (the names label the printed table and the coloured PLY's legend: a list,
+    a blank or a twice-used name would mislabel it)."""
+    for i, name in enumerate(names):
+        if not isinstance(name, str):
+            raise InputError(path, f"entry {i} is {json.dumps(name)[:60]}, not a string; expected a JSON list of label names")
+    problem = name_problem(names)
+    if problem is not None:
+        i, kind, detail = problem
+        shown = json.dumps(names[i])[:60]
+        if kind == "empty":
+            raise InputError(path, f"entry {i} is an empty name ({shown})")
+        if kind == "hidden":
+            raise InputError(path, f"entry {i} ({shown}) holds {detail}, which a terminal would not show as itself")
+        same = "" if names[i] == names[detail] else " (apart from spaces around it)"
+        raise InputError(path, f"entry {i} repeats the name {shown} of entry {detail}{same}")
+    return names
+
+
 def json_text(doc: object, indent: int | None = 2) -> str:
     """`doc` as strict JSON: every non-finite float (NaN, ±inf; Python's or numpy's) written as null.
     json.dumps alone writes NaN / Infinity, which JavaScript's JSON.parse and other strict parsers
     reject; where a value is undefined the document's own fields (findings, counts) say why."""
-    import json
 
     def strict(value):
         if isinstance(value, dict):
@@ -497,8 +537,6 @@ def read_json(path: str | Path, what: str) -> object:
     (e.g. "a camera file"): not a file, unreadable, not UTF-8 (the byte offset, never the content),
     bad JSON (line and reason), nested too deeply for the parser, or a number of more digits than
     Python converts (sys.get_int_max_str_digits)."""
-    import json
-
     path = regular_file(path)
     try:
         text = path.read_bytes().decode("utf-8-sig")

@@ -21,7 +21,7 @@ import numpy as np
 
 from drsplat import query as dq
 from drsplat.cameras import Camera, dataset_inputs, load_cameras
-from drsplat.commands.common import checked_names, protected_feature_folders
+from drsplat.commands.common import protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
@@ -33,7 +33,7 @@ from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
-from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, load_npy, read_json
+from drsplat.utils import check_output_writable, checked_names, describe_os_error, guard_outputs, load_npy, read_json
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings

@@ -7,7 +7,6 @@ argparse prints the usage and the flag's name and exits 2 before any work starts
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 from collections.abc import Callable
@@ -22,7 +21,7 @@ from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import scene_format
-from drsplat.utils import hidden_character
+from drsplat.utils import hidden_character, name_problem
 
 log = logging.getLogger(__name__)
 
@@ -347,43 +346,3 @@ def export_outputs(path, fmt: str, flag: str) -> dict:
     if problem is not None:
         raise UsageError(f"{flag}: {problem}")
     return {"the export's codebook": codebook_path_for(path)} if fmt == "drsplat" else {}
-
-
-def name_problem(names: list[str]) -> tuple[int, str, object] | None:
-    """The first entry of a list of label names that may not label a table or a legend: (index,
-    "empty", None) for a blank one, (index, "hidden", description) for one holding a character a
-    terminal would not show as itself (`utils.hidden_character`: a newline, ESC, U+202E, a lone
-    surrogate), (index, "repeat", earlier index) for one equal to an earlier one apart from spaces
-    around it; None when every entry may. The one rule of `checked_names` and `checked_phrases`."""
-    seen: dict[str, int] = {}
-    for i, name in enumerate(names):
-        if not name.strip():
-            return i, "empty", None
-        hidden = hidden_character(name)
-        if hidden is not None:
-            return i, "hidden", hidden
-        key = name.strip()
-        if key in seen:
-            return i, "repeat", seen[key]
-        seen[key] = i
-    return None
-
-
-def checked_names(path: Path, names: list) -> list[str]:
-    """The names as given, or one error naming the first entry that is not a string or that
-    `name_problem` refuses (the names label the printed table and the coloured PLY's legend: a list,
-    a blank or a twice-used name would mislabel it)."""
-    for i, name in enumerate(names):
-        if not isinstance(name, str):
-            raise InputError(path, f"entry {i} is {json.dumps(name)[:60]}, not a string; expected a JSON list of label names")
-    problem = name_problem(names)
-    if problem is not None:
-        i, kind, detail = problem
-        shown = json.dumps(names[i])[:60]
-        if kind == "empty":
-            raise InputError(path, f"entry {i} is an empty name ({shown})")
-        if kind == "hidden":
-            raise InputError(path, f"entry {i} ({shown}) holds {detail}, which a terminal would not show as itself")
-        same = "" if names[i] == names[detail] else " (apart from spaces around it)"
-        raise InputError(path, f"entry {i} repeats the name {shown} of entry {detail}{same}")
-    return names

@@ -13,7 +13,6 @@ from drsplat.commands.common import (
     add_clip_arguments,
     add_format_argument,
     add_lut_bits_argument,
-    checked_names,
     export_outputs,
     guard_field_codebook,
     float_range,
@@ -27,7 +26,7 @@ from drsplat.defaults import ORACLE_LABEL_NAMES
 from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
-from drsplat.utils import read_json
+from drsplat.utils import checked_names, read_json
 
 log = logging.getLogger(__name__)
 

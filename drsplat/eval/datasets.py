@@ -39,8 +39,7 @@ from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile
-from drsplat.commands.common import checked_names
-from drsplat.utils import atomic_path, load_npy, read_json, regular_file
+from drsplat.utils import atomic_path, checked_names, load_npy, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
