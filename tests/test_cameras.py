@@ -173,6 +173,44 @@ def test_truncated_colmap_binary(tmp_path):
         load_cameras(tmp_path)
 
 
+def _points3d_bin(records: list[tuple[int, tuple[float, float, float], int]], declared: int | None = None) -> bytes:
+    """A points3D.bin of (id, xyz, track length) records (colour, error and track filled in)."""
+    import struct
+
+    out = struct.pack("<Q", len(records) if declared is None else declared)
+    for pid, xyz, track in records:
+        out += struct.pack("<Q3d3BdQ", pid, *xyz, 10, 20, 30, 0.25, track) + np.arange(2 * track, dtype="<i4").tobytes()
+    return out
+
+
+def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_bytes(tmp_path):
+    """points3D.bin is read by finding each record's start from the track lengths, then gathering the
+    positions at once: ids and positions as written, tracks of any length skipped; a file cut inside a
+    record's head or its track, or with bytes after the declared records, is one InputError."""
+    from drsplat.cameras import read_colmap_points_bin
+
+    records = [(7, (1.5, -2.0, 3.25), 0), (3, (1e30, -0.0, 5e-300), 5), (1 << 40, (0.1, 0.2, 0.3), 1)]
+    path = tmp_path / "points3D.bin"
+    data = _points3d_bin(records)
+    path.write_bytes(data)
+    points = read_colmap_points_bin(path)
+    assert list(points) == [7, 3, 1 << 40]
+    for pid, xyz, _ in records:
+        assert points[pid].tolist() == list(xyz)
+    fern = read_colmap_points_bin(shared_path("fern", "sparse", "0") / "points3D.bin")  # and a real one, against its text twin
+    from drsplat.cameras import read_colmap_points_txt
+
+    text = read_colmap_points_txt(shared_path("fern", "sparse", "0_txt") / "points3D.txt")
+    assert sorted(fern) == sorted(text) and all(np.allclose(fern[k], text[k], rtol=1e-6) for k in text)
+    for cut in (8 + 20, len(data) - 4):  # inside the first record's head; inside the last track
+        path.write_bytes(data[:cut])
+        with pytest.raises(InputError, match="points3D.bin: is truncated"):
+            read_colmap_points_bin(path)
+    path.write_bytes(_points3d_bin(records, declared=2))
+    with pytest.raises(InputError, match="declares 2 points but"):
+        read_colmap_points_bin(path)
+
+
 def test_3dgs_cameras_json(tmp_path):
     cameras = load_cameras(shared_path("fern"))[:3]
     records = [{"id": i, "img_name": c.name, "width": c.width, "height": c.height, "position": c.center.tolist(),

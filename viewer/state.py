@@ -25,6 +25,7 @@ from drsplat.commands.common import protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.frames import cameras_in_scene_frame
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, export_kind, export_scene, read_field
@@ -156,7 +157,11 @@ class ViewerState:
 
         try:
             source = Path(source)
-            self.cameras = load_cameras(source, require_images=False)
+            with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
+                cameras = load_cameras(source, require_images=False)
+                if self.scene is not None:
+                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=self.scene_path.name if self.scene_path else "the scene")
+            self.cameras = cameras
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")
         self.source_dir = source

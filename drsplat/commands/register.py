@@ -62,6 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError
+    from drsplat.frames import cameras_in_scene_frame
     from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene, written_format
@@ -85,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
     scene = load_scene(args.scene, purpose="register")  # refuses a file with no usable row
+    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene))  # gsplat trains in a world of its own
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)

@@ -36,11 +36,12 @@ from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id
+from drsplat.frames import frame_hint
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import NEAR, get_engine, share_in_some_view, share_within_near_plane
+from drsplat.raster import NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
@@ -238,19 +239,6 @@ def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint:
     written = f"; nothing was written to {out}" if out is not None else ""
     return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
-
-
-def frame_hint(means: np.ndarray, cameras) -> str:
-    """'; only k% of the Gaussians' centres lie inside any view: ...' when fewer than LOW_SEEN_FRACTION
-    of them do (`raster.share_in_some_view`), with where a scene in another frame than its cameras
-    comes from; "" otherwise."""
-    seen = share_in_some_view(means, cameras)
-    if seen >= LOW_SEEN_FRACTION:
-        return ""
-    return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
-            "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
-            "dataset's cameras and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
-            "is off): give the cameras of the scene's frame")
 
 
 def run_registration(
@@ -692,7 +680,6 @@ def register(
 
 
 LOW_ASSIGNED_FRACTION = 0.5  # below this share of Gaussians with a feature, a run is most likely misconfigured
-LOW_SEEN_FRACTION = 0.5  # ... and below this share of them inside some view, most likely in another frame than its cameras
 
 
 def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras) -> None:

@@ -1,0 +1,237 @@
+"""A scene and its cameras in one frame.
+
+Some trainers move the world before they train, and write the scene in the moved frame while the
+dataset's cameras stay where the capture put them. Registration then renders every view of a scene
+it cannot see. Two such moves are undone:
+
+- nerfstudio's splatfacto writes its move to `dataparser_transforms.json`;
+  `drsplat.cameras.load_cameras` reads it when it lies beside the cameras.
+- gsplat's `simple_trainer` (`normalize_world_space`, on by default) writes its move nowhere, but
+  the move is a function of the COLMAP model alone, so it is computed here again
+  (`gsplat_normalizations`), and the cameras are moved when the scene fits them only there
+  (`cameras_in_scene_frame`).
+
+gsplat's normalisation of cameras with rotations R_v (camera to world, OpenCV axes) and centres
+c_v, and sparse points p_k (float32), as a similarity x' = T x:
+
+1. Up and scale (T₁). u = normalize(mean_v R_v·(0, −1, 0)), the cameras' mean up direction. A
+   rotation A takes u to (0, −1, 0) (Rodrigues about u × (0, −1, 0); a reflection of x when u is
+   exactly (0, 1, 0)). With the cameras' forward axes f_v = A R_v·(0, 0, 1) and centres
+   a_v = A c_v, each optical axis's closest point to the origin is a_v − (f_v·a_v) f_v; the
+   translation is d = −(their per-coordinate median), and the scale s = 1 / median_v |a_v + d|.
+   T₁ = s·[A | d].
+2. Principal axes (T₂), of the moved points q_k = T₁ p_k: the eigenvectors of their covariance,
+   largest eigenvalue first (so z is the flattest direction), the first negated when their
+   determinant is negative, as the rows of a rotation B about their per-coordinate median m:
+   T₂ = [B | −B m].
+3. Upside down (T₃, gsplat releases since its "upside-down fix"): when the median z of T₂ q_k is
+   above their mean z, T₃ = diag(1, −1, −1) turns the world over.
+
+Releases differ in step 3, so the candidates are T₂T₁ and, where step 3 applies, T₃T₂T₁. Which
+frame the scene is in is read from the sparse points, since a 3DGS scene grows from them (gsplat
+seeds its Gaussians there): in its own frame they lie on its Gaussians. A candidate is taken when
+the median distance from the points it moves to the nearest Gaussian centre is FRAME_FIT_GAIN times
+smaller than from the points as given, and at most FRAME_FIT_MAX of the scene's size (any move that
+shrinks a model lying far from the scene brings its points nearer). The share of the scene the views see is no such test: a
+scene near the origin and a few units across is still mostly in view after gsplat's move, and then
+registers wrong (tiny, seed 1: over half of its centres inside some view as given). A model without
+sparse points is left as it is (gsplat's parser cannot have read it).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from drsplat.cameras import Camera, dataparser_transforms_path, dataset_reader, detect_dataset, in_trained_frame, read_colmap_model
+from drsplat.errors import InputError
+from drsplat.raster import share_in_some_view
+
+log = logging.getLogger(__name__)
+
+FRAME_SAMPLE = 20_000  # sparse points the frame decision measures (and 10x as many Gaussian centres it measures them against)
+FRAME_FIT_GAIN = 4.0  # a move is taken when the sparse points lie this many times nearer the scene there than as given
+FRAME_FIT_MAX = 0.05  # ... and on the scene there: their median distance to it at most this share of its size (any move that shrinks a far model nears it)
+LOW_SEEN_FRACTION = 0.5  # below this share of the Gaussians' centres inside some view, a scene is most likely in another frame than its cameras (`frame_hint`)
+CAMERA_UP = np.array([0.0, -1.0, 0.0])  # OpenCV camera axes: y points down
+CAMERA_FORWARD = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class FrameMove:
+    """A similarity x' = s·(R x + t) from the cameras' frame to a trainer's. name: which trainer's
+    move it is, in words; matrix: [4, 4] the same move as a matrix, [s·R | s·t]."""
+
+    name: str
+    matrix: np.ndarray
+
+    @property
+    def scale(self) -> float:
+        """s, the length of the 3x3 part's rows (R may be a reflection: gsplat's T₁ for cameras whose up is +y)."""
+        return float(np.linalg.norm(self.matrix[0, :3]))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return self.matrix[:3, :3] / self.scale
+
+    @property
+    def translation(self) -> np.ndarray:
+        return self.matrix[:3, 3] / self.scale
+
+    def cameras(self, cameras: Sequence[Camera]) -> list[Camera]:
+        """`cameras` moved into the trainer's frame (`cameras.in_trained_frame`)."""
+        rotation, translation, scale = self.rotation, self.translation, self.scale
+        return [in_trained_frame(c, rotation, translation, scale) for c in cameras]
+
+
+def up_and_scale(camtoworlds: np.ndarray) -> np.ndarray:
+    """T₁ [4, 4] of gsplat's normalisation (module docstring, step 1). camtoworlds: [V, 4, 4] OpenCV."""
+    rot, centres = camtoworlds[:, :3, :3], camtoworlds[:, :3, 3]
+    up = (rot @ CAMERA_UP).mean(axis=0)
+    up /= np.linalg.norm(up)
+    cos = float(up @ CAMERA_UP)
+    k = np.cross(up, CAMERA_UP)
+    skew = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    align = np.eye(3) + skew + skew @ skew / (1.0 + cos) if cos > -1.0 else np.diag([-1.0, 1.0, 1.0])
+    forward = (align @ rot) @ CAMERA_FORWARD
+    moved = centres @ align.T
+    closest = moved - np.sum(forward * moved, axis=-1, keepdims=True) * forward
+    shift = -np.median(closest, axis=0)
+    scale = 1.0 / np.median(np.linalg.norm(moved + shift, axis=-1))
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = scale * align, scale * shift
+    return out
+
+
+def principal_axes(points: np.ndarray) -> np.ndarray:
+    """T₂ [4, 4] of gsplat's normalisation (module docstring, step 2). points: [P, 3], P ≥ 2."""
+    centre = np.median(points, axis=0)
+    values, vectors = np.linalg.eigh(np.cov(points - centre, rowvar=False))
+    vectors = vectors[:, np.argsort(values)[::-1]]
+    if np.linalg.det(vectors) < 0:
+        vectors[:, 0] *= -1.0
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = vectors.T, -vectors.T @ centre
+    return out
+
+
+def move_points(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[P, 3] float64: matrix [4, 4] applied to points [P, 3]."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def gsplat_normalizations(camtoworlds: np.ndarray, points: np.ndarray) -> list[FrameMove]:
+    """The frames gsplat's simple_trainer may have trained in, for its COLMAP model: camtoworlds [V, 4, 4]
+    (every image of the model, OpenCV), points [P, 3] its sparse points (P ≥ 3; gsplat's Parser
+    always has them: they also seed its Gaussians)."""
+    first = up_and_scale(np.asarray(camtoworlds, np.float64))
+    moved = move_points(first, np.asarray(points, np.float32))  # gsplat holds the points in float32
+    second = principal_axes(moved) @ first
+    found = [FrameMove("gsplat's normalised world", second)]
+    heights = move_points(second, np.asarray(points, np.float32))[:, 2]
+    if np.median(heights) > np.mean(heights):
+        found.append(FrameMove("gsplat's normalised world, turned upright", np.diag([1.0, -1.0, -1.0, 1.0]) @ second))
+    return found
+
+
+@dataclass
+class ColmapEvidence:
+    """What a COLMAP dataset tells of the frame it was trained in: camtoworlds [V, 4, 4] (every image
+    of the model, OpenCV) and points [P, 3] its sparse points (P ≥ 3)."""
+
+    camtoworlds: np.ndarray
+    points: np.ndarray
+
+    def moves(self) -> list[FrameMove]:
+        return gsplat_normalizations(self.camtoworlds, self.points)
+
+
+def colmap_evidence(source: str | Path) -> ColmapEvidence | None:
+    """The ColmapEvidence of dataset `source`; None for another camera format, a model without images
+    or without 3 sparse points (gsplat cannot have trained on it), or cameras nerfstudio's dataparser
+    transform moved already."""
+    try:
+        kind, found = detect_dataset(source)
+    except InputError:
+        return None
+    if kind != "colmap" or dataparser_transforms_path(source) is not None:
+        return None
+    cameras, _ = dataset_reader(kind).read(found, False)
+    if not cameras:
+        return None
+    points = read_colmap_model(found).points
+    if len(points) < 3:
+        return None
+    return ColmapEvidence(np.stack([np.linalg.inv(c.viewmat) for c in cameras]), np.array(list(points.values()), np.float64))
+
+
+def point_misfit(tree: cKDTree, spread: float, points: np.ndarray) -> float:
+    """median_k |p_k − nearest Gaussian centre| / spread: how far the sparse points points [P, 3] lie
+    from the scene, in units of its size (a 3DGS scene grows from its sparse points, so in its own
+    frame they lie on it: about the spacing of its Gaussians)."""
+    distances, _ = tree.query(points, k=1, workers=-1)
+    return float(np.median(distances) / spread)
+
+
+def scene_tree(means: np.ndarray) -> tuple[cKDTree, float] | None:
+    """(a k-d tree of up to FRAME_SAMPLE·10 of the finite centres means [N, 3], their spread: the median
+    distance from their median), or None without finite centres or with no spread."""
+    finite = np.asarray(means, np.float64)
+    finite = finite[np.isfinite(finite).all(axis=1)]
+    finite = finite[:: max(1, -(-len(finite) // (10 * FRAME_SAMPLE)))]
+    if len(finite) < 2:
+        return None
+    spread = float(np.median(np.linalg.norm(finite - np.median(finite, axis=0), axis=1)))
+    return (cKDTree(finite), spread) if spread > 0 else None
+
+
+def best_move(means: np.ndarray, evidence: ColmapEvidence) -> tuple[FrameMove, str] | None:
+    """The move of evidence.moves() the scene of centres means [N, 3] was trained in, with why, or
+    None for the cameras' own frame: the move under which the sparse points lie on the scene (within
+    FRAME_FIT_MAX of its size) and FRAME_FIT_GAIN times nearer it than as given (`point_misfit`)."""
+    fitted = scene_tree(means)
+    if fitted is None:
+        return None
+    tree, spread = fitted
+    points = evidence.points[:: max(1, -(-len(evidence.points) // FRAME_SAMPLE))]
+    given = point_misfit(tree, spread, points)
+    moves = evidence.moves()
+    misfits = [point_misfit(tree, spread, move_points(m.matrix, points)) for m in moves]
+    k = int(np.argmin(misfits))
+    if not (misfits[k] * FRAME_FIT_GAIN < given and misfits[k] <= FRAME_FIT_MAX):
+        return None
+    return moves[k], f"the COLMAP model's sparse points lie {given:.3g} scene sizes from its Gaussians as given and {misfits[k]:.3g} there"
+
+
+def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str | Path, what: str = "the scene") -> list[Camera]:
+    """`cameras` (from dataset `source`) moved into the frame gsplat's simple_trainer trained the scene
+    of centres means [N, 3] in, when `best_move` finds it did, with one warning that names the move
+    (`what`: the scene, as the warning calls it); else `cameras` themselves."""
+    evidence = colmap_evidence(source)
+    found = best_move(means, evidence) if evidence is not None and len(means) else None
+    if found is None:
+        return cameras
+    move, why = found
+    log.warning("%s is in %s, not in the frame of the cameras of %s (%s; gsplat's simple_trainer trains there unless "
+                "normalize_world_space is off): the %d cameras are moved there (scale %.6g)", what, move.name, source, why,
+                len(cameras), move.scale)
+    return move.cameras(cameras)
+
+
+def frame_hint(means: np.ndarray, cameras: Sequence[Camera]) -> str:
+    """'; only k% of the Gaussians' centres lie inside any view: ...' when fewer than LOW_SEEN_FRACTION
+    of them do (`raster.share_in_some_view`), with where a scene in another frame than its cameras
+    comes from; "" otherwise (the registration's warnings and errors end with it)."""
+    seen = share_in_some_view(means, cameras)
+    if seen >= LOW_SEEN_FRACTION:
+        return ""
+    return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
+            "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
+            "dataset's cameras and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
+            "is off: `drsplat register` moves a COLMAP dataset's cameras there itself, from the model's images and sparse points, "
+            "which must be those gsplat was trained on): give the cameras of the scene's frame")

@@ -1,0 +1,252 @@
+"""drsplat.frames: a scene trained in gsplat's normalised world registers with the COLMAP cameras it was trained from."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+
+import numpy as np
+import pytest
+
+from drsplat.cameras import load_cameras, look_at
+from drsplat.cli import main
+from drsplat.commands.common import load_registered
+from drsplat.frames import FrameMove, cameras_in_scene_frame, gsplat_normalizations, move_points, principal_axes, up_and_scale
+from drsplat.raster import share_in_some_view
+from drsplat.scene import load_ply, quat_to_rotmat, save_ply
+from drsplat.synthetic import rotmat_to_quat
+from tests.test_cameras import colmap_text_lines
+
+# Four cameras on a tilted ring looking at (1, 2, 0.5), and eight sparse points. GSPLAT_* are what
+# gsplat's COLMAP Parser (examples/datasets/colmap.py with normalize.py, 2026-11 main) computes for
+# them as its `transform`, recorded with gsplat's own code (not in this repository).
+RING_EYES = np.array([[4.0, 2.0, 3.0], [1.0, 6.0, 2.5], [-2.0, 2.0, 2.0], [1.0, -2.0, 3.5]])
+RING_TARGET = np.array([1.0, 2.0, 0.5])
+POINTS = np.array([[0, 0, 0], [2, 0, 0.1], [2, 4, 0.2], [0, 4, 0], [1, 2, 1.5], [0.5, 1, 0.3], [1.5, 3, 0.1], [1, 2, 0]], np.float32)
+GSPLAT_T = np.array([
+    [1.6383788245446330e-02, 2.2234812741027629e-01, 2.0129119274074411e-04, -4.5547174845554594e-01],
+    [-2.2171823151993914e-01, 1.6352543758162068e-02, -1.6756459130150708e-02, 1.9957406866752048e-01],
+    [-1.6725910817393240e-02, 1.0311876906237178e-03, 2.2232035299888239e-01, -1.4939263122659856e-02],
+    [0.0, 0.0, 0.0, 1.0]])
+ABOVE = np.array([[1, 2, 3.0], [0.5, 2.5, 2.5]], np.float32)  # two more points high above: gsplat turns the world upright
+GSPLAT_T_UPRIGHT = np.array([
+    [0.011201638165518576, 0.22095053125799152, 0.027614214410199293, -0.4532272629475999],
+    [0.023940029956502764, 0.02629383518292021, -0.2200969513540056, -0.03392596920238925],
+    [-0.22137876381072083, 0.014023400673769773, -0.02240415063001421, 0.20510857455565723],
+    [0.0, 0.0, 0.0, 1.0]])
+BELOW = -ABOVE * np.array([-1, -1, 1], np.float32)  # the same two points below: it does not
+GSPLAT_T_BELOW = np.array([
+    [0.0021333279201419474, 0.20044695303407764, -0.0975890707487871, -0.41209317306820575],
+    [0.02874290890976221, 0.09653175059155673, 0.19890355731712525, -0.23601106351266304],
+    [0.22108019562516812, -0.014484438040742504, -0.024918004640292465, -0.17014406458222575],
+    [0.0, 0.0, 0.0, 1.0]])
+
+
+def ring_camtoworlds() -> np.ndarray:
+    out = []
+    for eye in RING_EYES:
+        r, t = look_at(eye, RING_TARGET, np.array([0.0, 0.0, -1.0]))
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r, t
+        out.append(np.linalg.inv(m))
+    return np.stack(out)
+
+
+def test_the_moves_are_gsplats_own_to_rounding():
+    """The candidates equal what gsplat's Parser computes (recorded from its code): without the
+    upright fix when the points' median height is below their mean, and both moves when above."""
+    c2w = ring_camtoworlds()
+    plain = gsplat_normalizations(c2w, POINTS)
+    assert [m.name for m in plain] == ["gsplat's normalised world"]
+    np.testing.assert_allclose(plain[0].matrix, GSPLAT_T, rtol=0, atol=1e-14)
+    above = gsplat_normalizations(c2w, np.concatenate([POINTS, ABOVE]))
+    assert len(above) == 2
+    np.testing.assert_allclose(above[1].matrix, GSPLAT_T_UPRIGHT, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(above[1].matrix, np.diag([1.0, -1.0, -1.0, 1.0]) @ above[0].matrix, rtol=0, atol=1e-15)
+    below = gsplat_normalizations(c2w, np.concatenate([POINTS, BELOW]))
+    assert len(below) == 1
+    np.testing.assert_allclose(below[0].matrix, GSPLAT_T_BELOW, rtol=0, atol=1e-14)
+    assert np.allclose(principal_axes(move_points(up_and_scale(c2w), POINTS)) @ up_and_scale(c2w), plain[0].matrix, rtol=0, atol=1e-15)
+
+
+def test_up_and_scale_levels_the_cameras_and_sets_their_median_distance_to_one():
+    """Step 1's own promise, on random cameras: the cameras' mean up direction becomes (0, -1, 0), the
+    median of their optical axes' points nearest the old origin the new origin, and the median
+    distance of their centres from it 1."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        v = int(rng.integers(3, 30))
+        q = rng.normal(size=(v, 4))
+        c2w = np.tile(np.eye(4), (v, 1, 1))
+        c2w[:, :3, :3] = quat_to_rotmat(q / np.linalg.norm(q, axis=1, keepdims=True))
+        c2w[:, :3, 3] = rng.normal(size=(v, 3)) * rng.uniform(0.01, 100.0)
+        move = FrameMove("t", up_and_scale(c2w))
+        moved = move.matrix @ c2w
+        up = (moved[:, :3, :3] / move.scale) @ np.array([0.0, -1.0, 0.0])
+        mean_up = up.mean(axis=0)
+        np.testing.assert_allclose(mean_up / np.linalg.norm(mean_up), [0.0, -1.0, 0.0], atol=1e-9)
+        forward, centres = c2w[:, :3, :3] @ np.array([0.0, 0.0, 1.0]), c2w[:, :3, 3]
+        closest = centres - np.sum(forward * centres, axis=1, keepdims=True) * forward  # each optical axis's point nearest the old origin
+        np.testing.assert_allclose(np.median(closest @ move.matrix[:3, :3].T + move.matrix[:3, 3], axis=0), 0.0, atol=1e-9)
+        assert np.median(np.linalg.norm(moved[:, :3, 3], axis=1)) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_cameras_whose_up_is_plus_y_take_gsplats_mirror_and_still_see_the_same_pixels():
+    """gsplat's step 1 for cameras whose mean up is exactly +y is a mirror of x (its code's fallback).
+    The move keeps a positive scale and every point at its pixel (a mirrored camera sees the
+    mirrored world as the camera saw the world)."""
+    c2w = np.tile(np.diag([1.0, -1.0, -1.0, 1.0]), (3, 1, 1))  # cameras upside down: their up, -y in the camera, is +y
+    c2w[:, :3, 3] = [[0.0, 0.0, 4.0], [1.0, 0.0, 5.0], [0.0, 1.0, 3.0]]
+    move = FrameMove("t", up_and_scale(c2w))
+    assert move.scale > 0 and np.linalg.det(move.rotation) == pytest.approx(-1.0)
+    cams = [dataclasses.replace(_camera(np.linalg.inv(m)), name=str(i)) for i, m in enumerate(c2w)]
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    for before, after in zip(cams, move.cameras(cams)):
+        uv0, z0 = before.project(points)
+        uv1, z1 = after.project(points @ move.matrix[:3, :3].T + move.matrix[:3, 3])
+        np.testing.assert_allclose(uv1, uv0, atol=1e-9)
+        np.testing.assert_allclose(z1, move.scale * z0, rtol=1e-12)
+
+
+def _camera(w2c: np.ndarray):
+    from drsplat.cameras import Camera
+
+    return Camera(R=w2c[:3, :3], t=w2c[:3, 3], fx=60.0, fy=60.0, cx=40.0, cy=30.0, width=80, height=60)
+
+
+def _colmap_dataset(root, cameras, points: np.ndarray):
+    """A COLMAP text model of `cameras` (one PINHOLE camera each) and sparse `points`, images absent."""
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    named = [dataclasses.replace(c, image_path=root / "images" / f"{c.name}.png") for c in cameras]
+    cams_txt, imgs_txt = colmap_text_lines(named)
+    (sparse / "cameras.txt").write_text(cams_txt)
+    (sparse / "images.txt").write_text(imgs_txt)
+    (sparse / "points3D.txt").write_text("".join(f"{k + 1} {x!r} {y!r} {z!r} 128 128 128 0.5\n" for k, (x, y, z) in enumerate(points.tolist())))
+    return root
+
+
+def _moved_scene(scene, move: FrameMove):
+    """`scene` in the frame x' = move(x): means, orientations and sizes (colour left as it is)."""
+    rot = quat_to_rotmat(scene.quats.astype(np.float64))
+    quats = rotmat_to_quat(move.rotation[None] @ rot).astype(np.float32)
+    means = (scene.means.astype(np.float64) @ move.matrix[:3, :3].T + move.matrix[:3, 3]).astype(np.float32)
+    return dataclasses.replace(scene, means=means, quats=quats, log_scales=(scene.log_scales + np.float32(np.log(move.scale))).astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def tiny_in_gsplats_world(tmp_path_factory):
+    """(COLMAP dataset folder, original scene.ply, the scene in gsplat's world, its features, the move)."""
+    root = tmp_path_factory.mktemp("gsplat")
+    assert main(["synth", str(root / "data"), "--preset", "tiny", "--seed", "1", "--no-progress", "-q"]) == 0
+    scene = load_ply(root / "data" / "scene.ply")
+    cams = load_cameras(root / "data")
+    rng = np.random.default_rng(7)  # the sparse points a COLMAP run would hold: near some of the Gaussians, not on them
+    points = (scene.means[::5] + rng.normal(scale=0.02, size=scene.means[::5].shape)).astype(np.float32)
+    source = _colmap_dataset(root / "colmap", cams, points)
+    c2w = np.stack([np.linalg.inv(c.viewmat) for c in load_cameras(source, require_images=False)])
+    move = gsplat_normalizations(c2w, points)[-1]
+    save_ply(_moved_scene(scene, move), root / "gsplat.ply")
+    return source, root / "data" / "scene.ply", root / "gsplat.ply", root / "data" / "features", move
+
+
+def test_a_scene_in_gsplats_world_gets_its_cameras_moved_there(tiny_in_gsplats_world, caplog):
+    """A scene saved by gsplat's simple_trainer lies in its normalised world. The COLMAP cameras still
+    see much of it there (the room is near the origin and a few units across), so the views' share
+    cannot tell; the sparse points can. The cameras are moved into that world, with one warning,
+    and every Gaussian then lands on the pixel it had before, at depth s·z."""
+    source, original, moved_path, _, move = tiny_in_gsplats_world
+    scene, moved = load_ply(original), load_ply(moved_path)
+    cams = load_cameras(source, require_images=False)
+    assert share_in_some_view(moved.means, cams) > 0.5  # the share test would keep the wrong frame
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        out = cameras_in_scene_frame(moved.means, cams, source, what="gsplat.ply")
+    assert len(caplog.records) == 1 and "gsplat.ply is in gsplat's normalised world" in caplog.text and "sparse points" in caplog.text
+    for before, after in zip(cams, out):
+        uv0, z0 = before.project(scene.means)
+        uv1, z1 = after.project(moved.means)
+        inside = (z0 > 0.1) & (np.abs(uv0[:, 0] - before.cx) < before.width) & (np.abs(uv0[:, 1] - before.cy) < before.height)
+        assert inside.sum() > 100
+        np.testing.assert_allclose(uv1[inside], uv0[inside], atol=2e-3)  # float32 means, moved and rounded again
+        np.testing.assert_allclose(z1, move.scale * z0, rtol=1e-5, atol=1e-6)
+
+
+def test_a_model_without_sparse_points_moves_nothing(tiny_in_gsplats_world, tmp_path, caplog):
+    """gsplat's parser normalises with the sparse points (and seeds its Gaussians from them), so a
+    model without points3D was not its input: nothing is guessed."""
+    source, _, moved_path, _, _ = tiny_in_gsplats_world
+    bare = tmp_path / "bare"
+    shutil.copytree(source, bare)
+    (bare / "sparse" / "0" / "points3D.txt").unlink()
+    cams = load_cameras(bare, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert cameras_in_scene_frame(load_ply(moved_path).means, cams, bare) is cams
+    assert not caplog.records
+
+
+def test_a_scene_that_fits_its_cameras_is_left_alone(tiny_in_gsplats_world, caplog):
+    source, original, _, _, _ = tiny_in_gsplats_world
+    cams = load_cameras(source, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert cameras_in_scene_frame(load_ply(original).means, cams, source) is cams
+    assert not caplog.records
+
+
+def test_without_a_colmap_model_nothing_is_guessed(tiny_in_gsplats_world, tmp_path, caplog):
+    """A transforms.json dataset holds no sparse points and gsplat's COLMAP parser never read it:
+    a scene outside its views keeps the cameras as given (the registration's hint then speaks)."""
+    _, original, moved_path, _, _ = tiny_in_gsplats_world
+    data = original.parent
+    cams = load_cameras(data, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert cameras_in_scene_frame(load_ply(moved_path).means, cams, data) is cams
+    assert not caplog.records
+
+
+def test_a_model_whose_points_are_not_the_trainers_moves_nothing(tiny_in_gsplats_world, tmp_path):
+    """Sparse points of another reconstruction: gsplat's move of them brings them nearer the scene
+    (it shrinks them from 50 units away to the unit ball), but not onto it: the cameras stay as given
+    rather than be moved somewhere wrong."""
+    source, _, moved_path, _, _ = tiny_in_gsplats_world
+    other = tmp_path / "other"
+    shutil.copytree(source, other)
+    rng = np.random.default_rng(0)
+    (other / "sparse" / "0" / "points3D.txt").write_text(
+        "".join(f"{k + 1} {x!r} {y!r} {z!r} 1 1 1 0.5\n" for k, (x, y, z) in enumerate((rng.normal(size=(40, 3)) * [30.0, 0.1, 5.0] + 50.0).tolist())))
+    cams = load_cameras(other, require_images=False)
+    assert cameras_in_scene_frame(load_ply(moved_path).means, cams, other) is cams
+
+
+def test_drsplat_register_of_a_gsplat_scene_gives_the_features_of_the_scene_in_its_own_frame(tiny_in_gsplats_world, tmp_path):
+    """End to end: `drsplat register` on the scene in gsplat's world with the COLMAP dataset gives
+    every Gaussian the feature the same scene gets in the cameras' own frame (the same Gaussians
+    assigned; the moved float32 geometry changes weights by rounding only). Before, it assigned
+    nothing and stopped with the frame hint."""
+    source, original, moved_path, features, _ = tiny_in_gsplats_world
+    outs = {}
+    for name, scene in (("own", original), ("gsplat", moved_path)):
+        outs[name] = tmp_path / f"{name}.ply"
+        assert main(["register", str(scene), "--source", str(source), "--features", str(features), "--out", str(outs[name]),
+                     "--codebook", "none", "--aggregate", "paper", "--keep-unassigned", "--no-progress", "-q"]) == 0
+    (_, own), (_, moved) = load_registered(outs["own"]), load_registered(outs["gsplat"])
+    a, b = own.storage.features.astype(np.float64), moved.storage.features.astype(np.float64)
+    assigned = np.linalg.norm(a, axis=1) > 0
+    assert assigned.mean() > 0.5
+    assert np.array_equal(assigned, np.linalg.norm(b, axis=1) > 0)
+    cos = np.sum(a[assigned] * b[assigned], axis=1) / (np.linalg.norm(a[assigned], axis=1) * np.linalg.norm(b[assigned], axis=1))
+    assert cos.min() > 0.999
+
+
+def test_the_viewer_moves_the_training_cameras_into_the_scenes_frame_and_says_so(tiny_in_gsplats_world):
+    """The viewer's training cameras (home view, frusta, snapping, its registration) are those of the
+    scene's frame, with the move shown as a warning on screen."""
+    from viewer.state import ViewerState
+
+    source, _, moved_path, _, move = tiny_in_gsplats_world
+    state = ViewerState()
+    assert state.load_scene(moved_path) and state.load_source(source)
+    given = load_cameras(source, require_images=False)
+    for before, after in zip(given, state.cameras):
+        np.testing.assert_allclose(after.R, before.R @ move.rotation.T, atol=1e-9)
+    assert any(m.level == "warning" and "gsplat's normalised world" in m.text for m in state.messages)
