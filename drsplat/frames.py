@@ -128,15 +128,19 @@ def move_points(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
 def gsplat_normalizations(camtoworlds: np.ndarray, points: np.ndarray) -> list[FrameMove]:
     """The frames gsplat's simple_trainer may have trained in, for its COLMAP model: camtoworlds [V, 4, 4]
     (every image of the model, OpenCV), points [P, 3] its sparse points (P ≥ 3; gsplat's Parser
-    always has them: they also seed its Gaussians)."""
-    first = up_and_scale(np.asarray(camtoworlds, np.float64))
-    moved = move_points(first, np.asarray(points, np.float32))  # gsplat holds the points in float32
-    second = principal_axes(moved) @ first
-    found = [FrameMove("gsplat's normalised world", second)]
-    heights = move_points(second, np.asarray(points, np.float32))[:, 2]
-    if np.median(heights) > np.mean(heights):
-        found.append(FrameMove("gsplat's normalised world, turned upright", np.diag([1.0, -1.0, -1.0, 1.0]) @ second))
-    return found
+    always has them: they also seed its Gaussians). Moves that are not finite (a non-finite point, or
+    cameras all at one place looking one way: gsplat's own training would be NaN there too) are left out."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        first = up_and_scale(np.asarray(camtoworlds, np.float64))
+        moved = move_points(first, np.asarray(points, np.float32))  # gsplat holds the points in float32
+        if not (np.isfinite(first).all() and np.isfinite(moved).all()):
+            return []
+        second = principal_axes(moved) @ first
+        found = [FrameMove("gsplat's normalised world", second)]
+        heights = move_points(second, np.asarray(points, np.float32))[:, 2]
+        if np.median(heights) > np.mean(heights):
+            found.append(FrameMove("gsplat's normalised world, turned upright", np.diag([1.0, -1.0, -1.0, 1.0]) @ second))
+    return [m for m in found if np.isfinite(m.matrix).all() and m.scale > 0]
 
 
 @dataclass
@@ -201,6 +205,8 @@ def best_move(means: np.ndarray, evidence: ColmapEvidence) -> tuple[FrameMove, s
     points = evidence.points[:: max(1, -(-len(evidence.points) // FRAME_SAMPLE))]
     given = point_misfit(tree, spread, points)
     moves = evidence.moves()
+    if not moves:
+        return None
     misfits = [point_misfit(tree, spread, move_points(m.matrix, points)) for m in moves]
     k = int(np.argmin(misfits))
     if not (misfits[k] * FRAME_FIT_GAIN < given and misfits[k] <= FRAME_FIT_MAX):

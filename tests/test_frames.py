@@ -250,3 +250,17 @@ def test_the_viewer_moves_the_training_cameras_into_the_scenes_frame_and_says_so
     for before, after in zip(given, state.cameras):
         np.testing.assert_allclose(after.R, before.R @ move.rotation.T, atol=1e-9)
     assert any(m.level == "warning" and "gsplat's normalised world" in m.text for m in state.messages)
+
+
+def test_models_gsplat_cannot_normalise_give_no_move():
+    """A non-finite sparse point, or cameras all at one place looking one way, make gsplat's normalisation NaN or
+    infinite (its own training would be NaN there): no candidate, so nothing is moved, and no warning."""
+    c2w = ring_camtoworlds()
+    bad = POINTS.copy()
+    bad[3, 1] = np.nan
+    assert gsplat_normalizations(c2w, bad) == []
+    huge = POINTS.astype(np.float64)
+    huge[0, 0] = 1e39  # past float32, where gsplat holds the points
+    assert gsplat_normalizations(c2w, huge) == []
+    same_place = np.tile(np.eye(4), (4, 1, 1))  # every camera at the origin, on its own axis: no distance to scale by
+    assert gsplat_normalizations(same_place, POINTS) == []
