@@ -754,25 +754,28 @@ def _fixed_weight(w, scale):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
-                          near, peak, total, front, seen, stamp, flags):  # pragma: no cover - jitted
+                          near, sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
     """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
-    P = peak.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
+    P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
 
     Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) (D = +inf where
     median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
     first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
-    never < the limit). Part t keeps peak[t, g] = max w, total[t, g] = Σ fixed w and front[t, g] =
-    Σ fixed w·[in front] (int64, `_fixed_weight`: exact in any order); seen[t, g] == stamp marks
-    the Gaussians it saw, whose first slot sets the three values instead of adding to them, so
-    nothing is cleared between views (stamp: a number no earlier view of these buffers used).
+    never < the limit). Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
+    same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
+    Σ fixed w·[in front] (`_fixed_weight`: exact in any order); seen[t, g] == stamp marks the
+    Gaussians it saw, whose first slot sets the three values instead of adding to them, so nothing
+    is cleared between views (stamp: a number no earlier view of these buffers used). One record,
+    not three arrays: a slot touches two cache lines instead of four, and three arrays whose
+    addresses fall on the same cache sets cannot evict one another (docs/registration.md).
     flags: [H·W, k] bool to receive the in-front test, or [0, k] for none.
     """
     for g in numba.prange(near.shape[0]):
         near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
     height = n_pix // width if width > 0 else 0
-    parts = peak.shape[0]
+    parts = sums.shape[0]
     keep_flags = flags.shape[0] == n_pix
     for part in numba.prange(parts):
         for y in range(part, height, parts):
@@ -804,20 +807,20 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                     fixed = _fixed_weight(w, scale)
                     if seen[part, g] != stamp:
                         seen[part, g] = stamp
-                        peak[part, g] = w if w > 0.0 else 0.0
-                        total[part, g] = fixed
-                        front[part, g] = fixed if in_front else 0
+                        peaks[part, g, 0] = w if w > 0.0 else 0.0
+                        sums[part, g, 1] = fixed
+                        sums[part, g, 2] = fixed if in_front else 0
                         continue
                     # selects, not branches: the flags and the running maxima follow no pattern a branch predictor learns
-                    pk = peak[part, g]
-                    peak[part, g] = w if w > pk else pk
-                    total[part, g] += fixed
-                    front[part, g] += fixed if in_front else 0
+                    pk = peaks[part, g, 0]
+                    peaks[part, g, 0] = w if w > pk else pk
+                    sums[part, g, 1] += fixed
+                    sums[part, g, 2] += fixed if in_front else 0
 
 
 @numba.njit(parallel=True, cache=True)
-def _merge_stats_kernel(seen, stamp, peak, total, front, scale, chunks):  # pragma: no cover - jitted
-    """The parts of `_surface_stats_kernel` as one view's (ids [T], peak [T], total [T], front [T]):
+def _merge_stats_kernel(seen, stamp, sums, peaks, scale, chunks):  # pragma: no cover - jitted
+    """The parts of `_surface_stats_kernel` (its records sums / peaks) as one view's (ids [T], peak [T], total [T], front [T]):
     every Gaussian some part saw (seen[t, g] == stamp) in id order, its largest peak and the exact
     sums of its parts as float64 (÷ scale). Two passes in parallel over `chunks` runs of ids:
     count, then write at each run's offset."""
@@ -847,10 +850,10 @@ def _merge_stats_kernel(seen, stamp, peak, total, front, scale, chunks):  # prag
             for part in range(parts):
                 if seen[part, g] == stamp:
                     hit = True
-                    v = peak[part, g]
+                    v = peaks[part, g, 0]
                     pk = v if v > pk else pk
-                    t += total[part, g]
-                    f += front[part, g]
+                    t += sums[part, g, 1]
+                    f += sums[part, g, 2]
             if hit:
                 out_ids[o] = g
                 out_peak[o] = pk
@@ -870,24 +873,27 @@ def stats_parts(num_gaussians: int) -> int:
 
 @dataclass
 class StatsScratch:
-    """Reusable buffers of `surface_stats`: per part [P, N] peak, total, front and view stamps
-    (`seen`), [N] nearest clamps, flags [H·W, k] bool (or [0, k] without) and the last view's stamp."""
+    """Reusable buffers of `surface_stats`: per part [P, N, 3] records (peak as float64 bits, total,
+    front), view stamps [P, N] (`seen`), [N] nearest clamps, flags [H·W, k] bool (or [0, k] without)
+    and the last view's stamp."""
 
     near: np.ndarray
-    peak: np.ndarray
-    total: np.ndarray
-    front: np.ndarray
+    sums: np.ndarray
     seen: np.ndarray
     flags: np.ndarray
     stamp: int = 0
 
     @classmethod
     def new(cls, n: int, parts: int, k: int, flag_pixels: int = 0) -> StatsScratch:
-        return cls(np.empty(n), np.empty((parts, n)), np.empty((parts, n), np.int64), np.empty((parts, n), np.int64),
-                   np.zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
+        return cls(np.empty(n), np.empty((parts, n, 3), np.int64), np.zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
+
+    @property
+    def peaks(self) -> np.ndarray:
+        """The records as float64 (the same memory): [..., 0] is each part's peak."""
+        return self.sums.view(np.float64)
 
     def fits(self, n: int, parts: int, k: int, flag_pixels: int) -> bool:
-        return self.peak.shape == (parts, n) and self.flags.shape == (flag_pixels, k)
+        return self.seen.shape == (parts, n) and self.flags.shape == (flag_pixels, k)
 
     def next_stamp(self) -> int:
         """A stamp no earlier view of these buffers used (they start at 0: the first is 1)."""
@@ -917,9 +923,9 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
                           geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
                           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
-                          scratch.near, scratch.peak, scratch.total, scratch.front, scratch.seen, stamp, scratch.flags)
+                          scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
     chunks = max(1, min(n, 8 * numba.get_num_threads()))
-    stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.peak, scratch.total, scratch.front, STATS_SCALE, chunks))
+    stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, chunks))
     return stats, scratch
 
 
