@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import Camera, dataparser_transforms_path, dataset_reader, detect_dataset, in_trained_frame, read_colmap_model
+from drsplat.cameras import Camera, dataparser_transforms_path, detect_dataset, in_trained_frame, qvec_to_rotmat, read_colmap_model
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
 
@@ -165,13 +165,13 @@ def colmap_evidence(source: str | Path) -> ColmapEvidence | None:
         return None
     if kind != "colmap" or dataparser_transforms_path(source) is not None:
         return None
-    cameras, _ = dataset_reader(kind).read(found, False)
-    if not cameras:
+    model = read_colmap_model(found)
+    if not model.images or len(model.points) < 3:
         return None
-    points = read_colmap_model(found).points
-    if len(points) < 3:
-        return None
-    return ColmapEvidence(np.stack([np.linalg.inv(c.viewmat) for c in cameras]), np.array(list(points.values()), np.float64))
+    worldtocams = np.tile(np.eye(4), (len(model.images), 1, 1))
+    for m, image in zip(worldtocams, model.images.values()):
+        m[:3, :3], m[:3, 3] = qvec_to_rotmat(np.asarray(image.qvec, np.float64)), image.tvec
+    return ColmapEvidence(np.linalg.inv(worldtocams), np.array(list(model.points.values()), np.float64))
 
 
 def point_misfit(tree: cKDTree, spread: float, points: np.ndarray) -> float:
