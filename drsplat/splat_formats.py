@@ -36,6 +36,14 @@ that size is allocated; the decompressed data are bounded by what the header dec
 8-bit alphas of 0 and 255 are read as half a step inside (0.5/255 and 1 - 0.5/255): a file that stores
 a fully opaque or transparent splat holds no infinite logit (σ⁻¹ of 0.5/255 is below 3DGS's 1/255
 threshold, so such a splat stays invisible). SH degree 4 (spz only) is dropped to 3 with a warning.
+
+Trainer checkpoints (`.pt`, `.ckpt`, `.pth`; a torch zip archive, read with `weights_only`, so a
+file can hold tensors and plain values but no code): gsplat's simple_trainer saves
+{"step", "splats": {means, scales, quats, opacities, sh0 [N, 1, 3], shN [N, K-1, 3]}} (or colors
+[N, 3] and features for its appearance model) and writes no PLY unless `save_ply` is on;
+nerfstudio's splatfacto saves {"pipeline": {"_model.gauss_params.means", ... features_dc [N, 3],
+features_rest [N, K-1, 3], opacities [N, 1]}}. Both store log scales, (w, x, y, z) quaternions and
+opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`).
 """
 
 from __future__ import annotations
@@ -73,20 +81,27 @@ MAX_SPZ_RATIO = 1024  # data bytes per file byte a header may declare (the spz l
 # the spz library's frames: 0 unspecified (= RUB), 1-8 axis flips of one another, 9-16 rotated by 90° about x
 SPZ_FRAMES = {1: "LDB", 2: "RDB", 3: "LUB", 4: "RUB", 5: "LDF", 6: "RDF", 7: "LUF", 8: "RUF"}
 DEFAULT_SPZ_FRAME = 4  # RUB
-SCENE_SUFFIXES = (".ply", ".splat", ".spz")  # the scene files load_scene reads
+SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".pt", ".ckpt", ".pth")  # the scene files load_scene reads
+CHECKPOINT_SUFFIXES = (".pt", ".ckpt", ".pth")  # trainer checkpoints (module docstring)
+ZIP_MAGIC = b"PK\x03\x04"  # torch.save's archive
 SNIFF_BYTES = 4096  # what scene_format reads of a file: enough of a gzip stream to inflate an spz header
 
 
 def scene_format(path: Path) -> str:
-    """"ply", "splat" or "spz": PLY by its first line ("ply"), then `.splat` by its name (the format
-    has no header, and a first float's bytes can be anything, gzip's magic included) unless its first
-    bytes are an spz header (`_holds_spz_header`: an spz renamed, read as spz with a warning), then
-    spz by its first bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then
-    names what is wrong."""
+    """"ply", "splat", "spz" or "checkpoint": PLY by its first line ("ply"), a trainer checkpoint by
+    its name and a zip archive's first bytes, then `.splat` by its name (the format has no header, and
+    a first float's bytes can be anything, gzip's magic included) unless its first bytes are an spz
+    header (`_holds_spz_header`: an spz renamed, read as spz with a warning), then spz by its first
+    bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then names what is wrong."""
     with open(path, "rb") as f:
         head = f.read(SNIFF_BYTES)
     if head[:3] == b"ply" and head[3:4] in (b"\n", b"\r"):
         return "ply"
+    if path.suffix.lower() in CHECKPOINT_SUFFIXES:
+        if head[:4] != ZIP_MAGIC:
+            raise InputError(path, "is not a torch checkpoint archive (torch.save's zip; a file saved with "
+                                   "_use_new_zipfile_serialization=False, or another file named like one)")
+        return "checkpoint"
     if path.suffix.lower() == ".splat":
         if not _holds_spz_header(head):
             return "splat"
@@ -115,7 +130,7 @@ def _holds_spz_header(head: bytes) -> bool:
 
 
 def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[GaussianScene, LoadReport]:
-    """Load a 3DGS scene file (PLY: INRIA or compressed, `.splat`, `.spz`) and report what was found and
+    """Load a 3DGS scene file (PLY: INRIA or compressed, `.splat`, `.spz`, a gsplat or nerfstudio checkpoint) and report what was found and
     fixed. purpose: as in `load_ply_report` (an empty file is then one error naming it)."""
     path = Path(path)
     if not path.is_file():
@@ -123,13 +138,99 @@ def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[Gau
     kind = scene_format(path)
     if kind == "ply":
         return load_ply_report(path, purpose)
-    cols, order, layout = splat_columns(path) if kind == "splat" else spz_columns(path)
+    cols, order, layout = {"splat": splat_columns, "spz": spz_columns, "checkpoint": checkpoint_columns}[kind](path)
     return assemble_scene(path, cols, order, layout, [], purpose)
 
 
 def load_scene(path: str | Path, purpose: str | None = None) -> GaussianScene:
     """`load_scene_report` without the report."""
     return load_scene_report(path, purpose)[0]
+
+
+# ----------------------------------------------------------------------------- trainer checkpoints
+
+NERFSTUDIO_PREFIX = "_model.gauss_params."
+CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names for means, scales, quats, opacities, DC, rest of the SH)
+    "gsplat checkpoint": ("splats", ("means", "scales", "quats", "opacities", "sh0", "shN")),
+    "nerfstudio checkpoint": ("pipeline", tuple(NERFSTUDIO_PREFIX + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
+}
+
+
+def _load_checkpoint(path: Path) -> dict:
+    """torch.load of a checkpoint on the CPU with weights_only (tensors and plain values, no code),
+    memory-mapped; InputError naming the file for anything torch cannot read so."""
+    import pickle
+
+    import torch
+
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except pickle.UnpicklingError as exc:
+        raise InputError(path, f"holds Python objects beyond tensors, which are not read (torch.load's weights_only: {str(exc).splitlines()[0]})") from None
+    except (RuntimeError, ValueError, EOFError, OSError) as exc:
+        raise InputError(path, f"cannot be read as a torch checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, f"holds a {type(data).__name__}, not a checkpoint's dictionary")
+    return data
+
+
+def _checkpoint_tensor(path: Path, where: dict, key: str, dims: int, width: int | None = None):
+    """where[key] as float32 numpy, checked: a tensor of `dims` dimensions, last of size `width` (None: any)."""
+    import torch
+
+    value = where.get(key)
+    if value is None:
+        raise InputError(path, "has no such entry (a checkpoint of a trainer or version drsplat does not know?)", field=key)
+    if not isinstance(value, torch.Tensor) or not value.is_floating_point():
+        raise InputError(path, f"is a {type(value).__name__}{' of ' + str(value.dtype) if isinstance(value, torch.Tensor) else ''}, "
+                               "not a floating-point tensor", field=key)
+    if value.dim() != dims or (width is not None and value.shape[-1] != width):
+        expected = ["N"] + ["?"] * (dims - 1)
+        if width is not None:
+            expected[-1] = str(width)
+        raise InputError(path, f"has shape {list(value.shape)}, expected [{', '.join(expected)}]", field=key)
+    return value.detach().to(torch.float32).numpy()
+
+
+def checkpoint_columns(path: Path) -> tuple[dict, list[str], str]:
+    """A gsplat or nerfstudio checkpoint (module docstring) as `assemble_scene`'s columns, its field
+    names and layout name. Every field is checked: present, a floating-point tensor of the right
+    shape, one row per Gaussian; the SH coefficients a whole degree (1, 4, 9 or 16 of them)."""
+    data = _load_checkpoint(path)
+    layout = next((name for name, (group, fields) in CHECKPOINT_LAYOUTS.items()
+                   if isinstance(data.get(group), dict) and fields[0] in data[group]), None)
+    if layout is None:
+        raise InputError(path, f"holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's 'pipeline' with "
+                               f"'{NERFSTUDIO_PREFIX}means' (its entries: {', '.join(sorted(map(str, data))[:8]) or 'none'})")
+    group, (k_means, k_scales, k_quats, k_opacities, k_dc, k_rest) = CHECKPOINT_LAYOUTS[layout]
+    where = data[group]
+    gsplat = layout == "gsplat checkpoint"
+    read = {k_means: _checkpoint_tensor(path, where, k_means, 2, 3), k_scales: _checkpoint_tensor(path, where, k_scales, 2, 3),
+            k_quats: _checkpoint_tensor(path, where, k_quats, 2, 4)}
+    read[k_opacities] = (_checkpoint_tensor(path, where, k_opacities, 1) if gsplat else _checkpoint_tensor(path, where, k_opacities, 2, 1))
+    if gsplat and k_dc not in where and "colors" in where:  # its appearance model: a base colour per Gaussian, no SH
+        read["colors"] = _checkpoint_tensor(path, where, "colors", 2, 3)
+        log.warning("%s: a gsplat checkpoint of its appearance model (colors, features): read with each Gaussian's base colour "
+                    "sigmoid(colors) as SH degree 0; the view-dependent part is not read", path)
+    else:
+        read[k_dc] = _checkpoint_tensor(path, where, k_dc, 3, 3) if gsplat else _checkpoint_tensor(path, where, k_dc, 2, 3)[:, None, :]
+        if read[k_dc].shape[1] != 1:
+            raise InputError(path, f"has shape {list(read[k_dc].shape)}, expected [N, 1, 3]: one DC coefficient per colour", field=k_dc)
+        read[k_rest] = _checkpoint_tensor(path, where, k_rest, 3, 3) if k_rest in where else np.zeros((len(read[k_means]), 0, 3), np.float32)
+        if read[k_rest].shape[1] + 1 not in (1, 4, 9, 16):
+            raise InputError(path, f"has {read[k_rest].shape[1]} higher SH coefficients per colour; a whole degree has 0, 3, 8 or 15", field=k_rest)
+    n = len(read[k_means])
+    for key, column in read.items():
+        if len(column) != n:
+            raise InputError(path, f"has {len(column):,} rows but {k_means} has {n:,}: one row per Gaussian", field=key)
+    if "colors" in read:
+        with np.errstate(over="ignore"):  # a colour logit below -709: its sigmoid is 0, as it should be
+            sh = dc_from_rgb(1.0 / (1.0 + np.exp(-read["colors"].astype(np.float64))))[:, None, :].astype(np.float32)
+    else:
+        sh = np.concatenate([read[k_dc], read[k_rest]], axis=1)
+    cols = {"means": read[k_means], "log_scales": read[k_scales], "quats": read[k_quats], "opacity_logits": read[k_opacities].reshape(-1),
+            "sh": sh, "extra": {}}
+    return cols, list(read), layout
 
 
 # ----------------------------------------------------------------------------- .splat

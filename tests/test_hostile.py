@@ -2060,7 +2060,7 @@ def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
 
     code, err = run_cli(["query", tmp_path / "v3.splat", "--embedding", world["q"]], capsys)
     (line,) = error_lines(err)
-    assert code == 1 and "is a .spz scene, not a registered one" in line and "run drsplat register on it first" in line, line
+    assert code == 1 and "is a .spz scene, not a registered scene" in line and "run drsplat register on it first" in line, line
 
     reg = load_ply(world["reg"])
     reg.means[0, 0] = 9e6  # beyond what .spz's 24-bit positions hold

@@ -189,7 +189,8 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
 
     kind = scene_format(Path(path)) if Path(path).is_file() else "ply"
     if kind != "ply":
-        raise InputError(path, f"is a .{kind} scene, not a registered one: {REGISTERED_IS_PLY}; run drsplat register on it first")
+        what = "a trainer checkpoint" if kind == "checkpoint" else f"a .{kind} scene"
+        raise InputError(path, f"is {what}, not a registered scene: {REGISTERED_IS_PLY}; run drsplat register on it first")
     scene, report = load_ply_report(path, purpose="query or segment")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:

@@ -1,0 +1,158 @@
+"""Trainer checkpoints as scenes: gsplat's simple_trainer `.pt` (which writes no PLY unless asked)
+and nerfstudio's splatfacto `.ckpt`, read with torch.load's weights_only."""
+
+from __future__ import annotations
+
+import logging
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from drsplat.cli import main
+from drsplat.errors import InputError
+from drsplat.scene import GaussianScene, dc_from_rgb, save_ply
+from drsplat.splat_formats import load_scene, load_scene_report
+
+
+def random_scene(n: int = 50, degree: int = 3, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    return GaussianScene(means=rng.normal(size=(n, 3)).astype(np.float32), quats=rng.normal(size=(n, 4)).astype(np.float32),
+                         log_scales=rng.normal(-3, 1, size=(n, 3)).astype(np.float32), opacity_logits=rng.normal(size=n).astype(np.float32),
+                         sh=rng.normal(size=(n, k, 3)).astype(np.float32), extra={}, comments=[])
+
+
+def gsplat_checkpoint(scene: GaussianScene) -> dict:
+    """What gsplat's simple_trainer saves (`{"step", "splats": state_dict}`, plus optimizer state)."""
+    t = torch.from_numpy
+    splats = {"means": t(scene.means), "scales": t(scene.log_scales), "quats": t(scene.quats), "opacities": t(scene.opacity_logits),
+              "sh0": t(scene.sh[:, :1].copy()), "shN": t(scene.sh[:, 1:].copy())}
+    return {"step": 29999, "splats": splats, "optimizers": {"means": {"state": {}, "param_groups": [{"lr": 1.6e-4, "eps": 1e-15}]}}}
+
+
+def nerfstudio_checkpoint(scene: GaussianScene) -> dict:
+    """What nerfstudio's splatfacto saves: the pipeline's state dict, Gaussians under _model.gauss_params."""
+    t, p = torch.from_numpy, "_model.gauss_params."
+    pipeline = {p + "means": t(scene.means), p + "scales": t(scene.log_scales), p + "quats": t(scene.quats),
+                p + "opacities": t(scene.opacity_logits[:, None].copy()), p + "features_dc": t(scene.sh[:, 0].copy()),
+                p + "features_rest": t(scene.sh[:, 1:].copy()), "_model.camera_optimizer.pose_adjustment": torch.zeros(3, 6)}
+    return {"step": 29999, "pipeline": pipeline, "optimizers": {}, "scalers": {}}
+
+
+@pytest.mark.parametrize("make, name, layout", [(gsplat_checkpoint, "ckpt_29999_rank0.pt", "gsplat checkpoint"),
+                                                (nerfstudio_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint")])
+@pytest.mark.parametrize("degree", [0, 3])
+def test_a_trainer_checkpoint_reads_as_the_scene_it_holds(tmp_path, make, name, layout, degree):
+    """Every attribute comes back bit for bit, and the scene writes the same PLY bytes as the scene
+    itself: what gsplat's export_splats or ns-export would have written."""
+    scene = random_scene(degree=degree)
+    torch.save(make(scene), tmp_path / name)
+    loaded, report = load_scene_report(tmp_path / name)
+    assert report.layout == layout and report.sh_degree == degree
+    for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(loaded, field), getattr(scene, field)), field
+    save_ply(scene, tmp_path / "a.ply")
+    save_ply(loaded, tmp_path / "b.ply")
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+def test_half_precision_and_non_finite_rows_follow_the_ply_rules(tmp_path):
+    """A bfloat16 / float16 checkpoint is widened to float32; a row with NaN is dropped and counted,
+    as a PLY's would be."""
+    scene = random_scene()
+    ckpt = gsplat_checkpoint(scene)
+    ckpt["splats"]["means"] = ckpt["splats"]["means"].to(torch.bfloat16)
+    ckpt["splats"]["sh0"] = ckpt["splats"]["sh0"].half()
+    ckpt["splats"]["scales"][7, 1] = float("nan")
+    torch.save(ckpt, tmp_path / "c.pt")
+    loaded, report = load_scene_report(tmp_path / "c.pt")
+    assert report.dropped_nan_rows == 1 and loaded.num_gaussians == 49
+    keep = np.arange(50) != 7
+    assert np.array_equal(loaded.means, torch.from_numpy(scene.means).to(torch.bfloat16).float().numpy()[keep])
+    assert np.array_equal(loaded.sh[:, 0], torch.from_numpy(scene.sh[:, 0]).half().float().numpy()[keep])
+
+
+def test_gsplats_appearance_model_reads_its_base_colour(tmp_path, caplog):
+    """With app_opt gsplat keeps colors (logits) and features instead of SH: the base colour
+    sigmoid(colors) becomes the DC term, with one warning that the view-dependent part is not read."""
+    scene = random_scene(degree=0)
+    ckpt = gsplat_checkpoint(scene)
+    del ckpt["splats"]["sh0"], ckpt["splats"]["shN"]
+    colors = np.random.default_rng(1).normal(size=(50, 3)).astype(np.float32)
+    ckpt["splats"]["colors"], ckpt["splats"]["features"] = torch.from_numpy(colors), torch.zeros(50, 32)
+    torch.save(ckpt, tmp_path / "app.pt")
+    with caplog.at_level(logging.WARNING, logger="drsplat.splat_formats"):
+        loaded = load_scene(tmp_path / "app.pt")
+    assert "appearance model" in caplog.text
+    np.testing.assert_allclose(loaded.sh[:, 0], dc_from_rgb(1 / (1 + np.exp(-colors.astype(np.float64)))), rtol=1e-6)
+
+
+class NotATensor:  # a class only a full unpickler would build: weights_only refuses it
+    pass
+
+
+def _bad(case: str, tmp_path):
+    scene = random_scene()
+    ckpt = gsplat_checkpoint(scene)
+    s = ckpt["splats"]
+    if case == "code":
+        ckpt["hook"] = NotATensor()
+    elif case == "missing":
+        del s["quats"]
+    elif case == "shape":
+        s["means"] = s["means"][:, :2].clone()
+    elif case == "rows":
+        s["scales"] = s["scales"][:40].clone()
+    elif case == "degree":
+        s["shN"] = s["shN"][:, :5].clone()
+    elif case == "integer":
+        s["opacities"] = torch.zeros(50, dtype=torch.int64)
+    elif case == "other":
+        ckpt = {"state_dict": {"weight": torch.zeros(3)}}
+    path = tmp_path / f"{case}.pt"
+    torch.save(ckpt, path)
+    return path
+
+
+@pytest.mark.parametrize("case, words", [
+    ("code", "holds Python objects beyond tensors"),
+    ("missing", r"field 'quats': has no such entry"),
+    ("shape", r"field 'means': has shape \[50, 2\], expected \[N, 3\]"),
+    ("rows", r"field 'scales': has 40 rows but means has 50"),
+    ("degree", r"field 'shN': has 5 higher SH coefficients"),
+    ("integer", r"field 'opacities': is a Tensor of torch.int64, not a floating-point tensor"),
+    ("other", "holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's"),
+])
+def test_a_bad_checkpoint_is_one_error_naming_the_file_and_field(tmp_path, case, words):
+    path = _bad(case, tmp_path)
+    with pytest.raises(InputError, match=words) as err:
+        load_scene(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_file_named_like_a_checkpoint_that_is_not_one(tmp_path):
+    """Not a zip archive (a legacy pickle, text): one error naming it; nothing is unpickled."""
+    legacy = tmp_path / "legacy.pt"
+    legacy.write_bytes(pickle.dumps({"splats": {}}))
+    with pytest.raises(InputError, match="not a torch checkpoint archive"):
+        load_scene(legacy)
+    cut = tmp_path / "cut.pt"
+    torch.save(gsplat_checkpoint(random_scene()), cut)
+    cut.write_bytes(cut.read_bytes()[:600])
+    with pytest.raises(InputError, match="cannot be read as a torch checkpoint"):
+        load_scene(cut)
+
+
+def test_drsplat_info_reads_a_gsplat_checkpoint(tmp_path, capsys):
+    torch.save(gsplat_checkpoint(random_scene(n=20, degree=1)), tmp_path / "ckpt_6999_rank0.pt")
+    assert main(["info", str(tmp_path / "ckpt_6999_rank0.pt")]) == 0
+    out = capsys.readouterr().out
+    assert "20" in out and "gsplat checkpoint" in out
+
+
+def test_a_checkpoint_given_where_a_registered_scene_is_needed_is_named_as_one(tmp_path, capsys):
+    torch.save(gsplat_checkpoint(random_scene(n=20)), tmp_path / "ckpt.pt")
+    assert main(["query", str(tmp_path / "ckpt.pt"), "--text", "a chair"]) == 1
+    assert "is a trainer checkpoint, not a registered scene" in capsys.readouterr().err
