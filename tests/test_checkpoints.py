@@ -156,3 +156,13 @@ def test_a_checkpoint_given_where_a_registered_scene_is_needed_is_named_as_one(t
     torch.save(gsplat_checkpoint(random_scene(n=20)), tmp_path / "ckpt.pt")
     assert main(["query", str(tmp_path / "ckpt.pt"), "--text", "a chair"]) == 1
     assert "is a trainer checkpoint, not a registered scene" in capsys.readouterr().err
+
+
+def test_an_empty_checkpoint_says_there_is_nothing_to_register(tmp_path):
+    torch.save(gsplat_checkpoint(random_scene(n=0)), tmp_path / "empty.pt")
+    with pytest.raises(InputError, match="holds no Gaussians"):
+        load_scene_report(tmp_path / "empty.pt", purpose="register")
+    for name in ("a_folder.pt", "another.ckpt"):
+        (tmp_path / name).mkdir()
+        with pytest.raises(InputError, match="is not a file"):
+            load_scene(tmp_path / name)

@@ -264,3 +264,17 @@ def test_models_gsplat_cannot_normalise_give_no_move():
     assert gsplat_normalizations(c2w, huge) == []
     same_place = np.tile(np.eye(4), (4, 1, 1))  # every camera at the origin, on its own axis: no distance to scale by
     assert gsplat_normalizations(same_place, POINTS) == []
+
+
+def test_degenerate_scenes_and_models_move_nothing(tiny_in_gsplats_world, tmp_path):
+    """A scene whose Gaussians all sit at one point (no size to measure against), one of non-finite
+    centres only: no move; a model whose sparse points all coincide: finite cameras, moved or not."""
+    source, _, moved_path, _, _ = tiny_in_gsplats_world
+    cams = load_cameras(source, require_images=False)
+    assert cameras_in_scene_frame(np.zeros((100, 3), np.float32), cams, source) is cams
+    assert cameras_in_scene_frame(np.full((100, 3), np.nan, np.float32), cams, source) is cams
+    same = tmp_path / "same"
+    shutil.copytree(source, same)
+    (same / "sparse" / "0" / "points3D.txt").write_text("".join(f"{k} 1.0 2.0 3.0 1 1 1 0.5\n" for k in range(1, 20)))
+    out = cameras_in_scene_frame(load_ply(moved_path).means, load_cameras(same, require_images=False), same)
+    assert len(out) == len(cams) and all(np.isfinite(c.R).all() and np.isfinite(c.t).all() for c in out)
