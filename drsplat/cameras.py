@@ -293,7 +293,13 @@ def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
     raw = np.frombuffer(buf, np.uint8)
     ids = raw[at + np.arange(8)].copy().view("<u8").reshape(-1)
     xyz = raw[at + 8 + np.arange(24)].copy().view("<f8").reshape(-1, 3)
-    return dict(zip(ids.tolist(), xyz))
+    points = dict(zip(ids.tolist(), xyz))
+    if len(points) < len(ids):  # name the first record whose id an earlier one has
+        seen: dict[int, int] = {}
+        for k, pid in enumerate(ids.tolist()):
+            _unique_id(path, seen, pid, "POINT3D_ID", f"point record {k}")
+            seen[pid] = k
+    return points
 
 
 def _read_text(path: Path) -> str:
@@ -418,9 +424,11 @@ def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
     for i, line in enumerate(_data_lines(path), start=1):
         w = line.split()
         try:
-            points[int(w[0])] = np.array([float(w[1]), float(w[2]), float(w[3])])
+            pid, xyz = int(w[0]), np.array([float(w[1]), float(w[2]), float(w[3])])
         except (IndexError, ValueError):
             raise _parse_fail(path, i, "point") from None
+        _unique_id(path, points, pid, "POINT3D_ID", f"point line {i}")
+        points[pid] = xyz
     return points
 
 

@@ -32,7 +32,10 @@ frame the scene is in is read from the sparse points, since a 3DGS scene grows f
 seeds its Gaussians there): in its own frame they lie on its Gaussians. A candidate is taken when
 the median distance from the points it moves to the nearest Gaussian centre is FRAME_FIT_GAIN times
 smaller than from the points as given, and at most FRAME_FIT_MAX of the scene's size (any move that
-shrinks a model lying far from the scene brings its points nearer). The share of the scene the views see is no such test: a
+shrinks a model lying far from the scene brings its points nearer), and the Gaussians' median
+distance to the nearest moved point at most FRAME_COVER_MAX of it (points of another model, heaped
+by the move onto one part of the scene: 3 points, or points 1e8 away that float32 rounds onto a
+few spots, were taken before, round 23). The share of the scene the views see is no such test: a
 scene near the origin and a few units across is still mostly in view after gsplat's move, and then
 registers wrong (tiny, seed 1: over half of its centres inside some view as given). A model without
 sparse points is left as it is (gsplat's parser cannot have read it).
@@ -57,6 +60,7 @@ log = logging.getLogger(__name__)
 FRAME_SAMPLE = 20_000  # sparse points the frame decision measures (and 10x as many Gaussian centres it measures them against)
 FRAME_FIT_GAIN = 4.0  # a move is taken when the sparse points lie this many times nearer the scene there than as given
 FRAME_FIT_MAX = 0.05  # ... and on the scene there: their median distance to it at most this share of its size (any move that shrinks a far model nears it)
+FRAME_COVER_MAX = 0.1  # ... and the scene on them: the Gaussians' median distance to the nearest point at most this share (points heaped on a part of it)
 LOW_SEEN_FRACTION = 0.5  # below this share of the Gaussians' centres inside some view, a scene is most likely in another frame than its cameras (`frame_hint`)
 CAMERA_UP = np.array([0.0, -1.0, 0.0])  # OpenCV camera axes: y points down
 CAMERA_FORWARD = np.array([0.0, 0.0, 1.0])
@@ -175,43 +179,48 @@ def colmap_evidence(source: str | Path) -> ColmapEvidence | None:
 
 
 def point_misfit(tree: cKDTree, spread: float, points: np.ndarray) -> float:
-    """median_k |p_k − nearest Gaussian centre| / spread: how far the sparse points points [P, 3] lie
-    from the scene, in units of its size (a 3DGS scene grows from its sparse points, so in its own
-    frame they lie on it: about the spacing of its Gaussians)."""
+    """median_k |p_k − nearest point of the tree| / spread: how far points [P, 3] lie from the tree's
+    points, in units of the scene's size. Sparse points against the scene's centres: a 3DGS scene
+    grows from its sparse points, so in its own frame they lie on it, about the spacing of its
+    Gaussians apart; the centres against the points: how well the points cover the scene."""
     distances, _ = tree.query(points, k=1, workers=-1)
     return float(np.median(distances) / spread)
 
 
-def scene_tree(means: np.ndarray) -> tuple[cKDTree, float] | None:
-    """(a k-d tree of up to FRAME_SAMPLE·10 of the finite centres means [N, 3], their spread: the median
-    distance from their median), or None without finite centres or with no spread."""
+def scene_sample(means: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """(up to FRAME_SAMPLE·10 of the finite centres means [N, 3], their spread: the median distance from
+    their median), or None without two finite centres or with no spread."""
     finite = np.asarray(means, np.float64)
     finite = finite[np.isfinite(finite).all(axis=1)]
     finite = finite[:: max(1, -(-len(finite) // (10 * FRAME_SAMPLE)))]
     if len(finite) < 2:
         return None
     spread = float(np.median(np.linalg.norm(finite - np.median(finite, axis=0), axis=1)))
-    return (cKDTree(finite), spread) if spread > 0 else None
+    return (finite, spread) if spread > 0 else None
 
 
 def best_move(means: np.ndarray, evidence: ColmapEvidence) -> tuple[FrameMove, str] | None:
     """The move of evidence.moves() the scene of centres means [N, 3] was trained in, with why, or
-    None for the cameras' own frame: the move under which the sparse points lie on the scene (within
-    FRAME_FIT_MAX of its size) and FRAME_FIT_GAIN times nearer it than as given (`point_misfit`)."""
-    fitted = scene_tree(means)
-    if fitted is None:
+    None for the cameras' own frame: the move under which the sparse points lie on the scene and the
+    scene on them, each within its bar of the scene's size (FRAME_FIT_MAX, FRAME_COVER_MAX), and the
+    points FRAME_FIT_GAIN times nearer it than as given (`point_misfit` both ways)."""
+    moves = evidence.moves()  # none when gsplat could not have normalised this model (a non-finite point)
+    sample = scene_sample(means) if moves else None
+    if sample is None:
         return None
-    tree, spread = fitted
+    centres, spread = sample
+    tree = cKDTree(centres)
     points = evidence.points[:: max(1, -(-len(evidence.points) // FRAME_SAMPLE))]
     given = point_misfit(tree, spread, points)
-    moves = evidence.moves()
-    if not moves:
-        return None
     misfits = [point_misfit(tree, spread, move_points(m.matrix, points)) for m in moves]
     k = int(np.argmin(misfits))
     if not (misfits[k] * FRAME_FIT_GAIN < given and misfits[k] <= FRAME_FIT_MAX):
         return None
-    return moves[k], f"the COLMAP model's sparse points lie {given:.3g} scene sizes from its Gaussians as given and {misfits[k]:.3g} there"
+    cover = point_misfit(cKDTree(move_points(moves[k].matrix, points)), spread, centres[:: max(1, -(-len(centres) // FRAME_SAMPLE))])
+    if not cover <= FRAME_COVER_MAX:  # points of another model that the move heaps onto one part of the scene
+        return None
+    return moves[k], (f"the COLMAP model's sparse points lie {given:.3g} scene sizes from its Gaussians as given and {misfits[k]:.3g} "
+                      f"there, where its Gaussians lie {cover:.3g} from them")
 
 
 def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str | Path, what: str = "the scene") -> list[Camera]:

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 import zlib
 from pathlib import Path
 
@@ -157,39 +158,66 @@ CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names fo
 
 
 def _load_checkpoint(path: Path) -> dict:
-    """torch.load of a checkpoint on the CPU with weights_only (tensors and plain values, no code),
-    memory-mapped; InputError naming the file for anything torch cannot read so."""
+    """torch.load of a checkpoint on the CPU with weights_only (tensors and plain values, no code);
+    InputError naming the file for anything torch cannot read so. Not memory-mapped: mapped, torch
+    checks no record's size, and an archive with a short or compressed record read its neighbours'
+    bytes as values (round 23); read whole, it refuses them."""
     import pickle
 
     import torch
 
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        raise InputError(path, f"holds Python objects beyond tensors, which are not read (torch.load's weights_only: {str(exc).splitlines()[0]})") from None
-    except (RuntimeError, ValueError, EOFError, OSError) as exc:
-        raise InputError(path, f"cannot be read as a torch checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+        raise InputError(path, f"holds something other than tensors and plain values, which is not read ({_refusal(exc)})") from None
+    except Exception as exc:  # noqa: BLE001 - torch's reader of an untrusted archive raises many kinds (KeyError, IndexError, AssertionError, ...)
+        raise InputError(path, f"cannot be read as a torch checkpoint ({type(exc).__name__}: {_first_line(exc) or 'no detail'})") from None
     if not isinstance(data, dict):
         raise InputError(path, f"holds a {type(data).__name__}, not a checkpoint's dictionary")
     return data
 
 
+def _first_line(exc: BaseException) -> str:
+    """The exception's first non-empty line, without terminal colour codes."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+    return next((line.strip() for line in text.splitlines() if line.strip()), "")
+
+
+def _refusal(exc: BaseException) -> str:
+    """What weights_only refused, from torch's message: 'a reference to module.name' when it names the
+    global, else its first line that is not advice to turn the check off."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+    found = re.search(r"GLOBAL ([\w.]+)", text)
+    if found:
+        return f"a reference to {found.group(1)}"
+    advice = ("Weights only load failed", "Check the documentation", "Please file an issue", "(1)", "(2)")
+    lines = [line.strip().removeprefix("WeightsUnpickler error:").strip() for line in text.splitlines()]
+    return next((line for line in lines if line and not line.startswith(advice)), "weights_only refused it")
+
+
 def _checkpoint_tensor(path: Path, where: dict, key: str, dims: int, width: int | None = None):
-    """where[key] as float32 numpy, checked: a tensor of `dims` dimensions, last of size `width` (None: any)."""
+    """where[key] as float32 numpy, checked: a dense CPU tensor of floats, of `dims` dimensions, last of size
+    `width` (None: any), whose storage holds every element (a tensor expanded over one row, a few bytes on
+    disk, could declare a billion rows)."""
     import torch
 
-    value = where.get(key)
-    if value is None:
+    if key not in where:
         raise InputError(path, "has no such entry (a checkpoint of a trainer or version drsplat does not know?)", field=key)
+    value = where[key]
     if not isinstance(value, torch.Tensor) or not value.is_floating_point():
         raise InputError(path, f"is a {type(value).__name__}{' of ' + str(value.dtype) if isinstance(value, torch.Tensor) else ''}, "
                                "not a floating-point tensor", field=key)
+    if value.layout != torch.strided or value.device.type != "cpu":
+        raise InputError(path, f"is a {value.layout} tensor on {value.device.type}, not a dense one with its values", field=key)
     if value.dim() != dims or (width is not None and value.shape[-1] != width):
         expected = ["N"] + ["?"] * (dims - 1)
         if width is not None:
             expected[-1] = str(width)
         raise InputError(path, f"has shape {list(value.shape)}, expected [{', '.join(expected)}]", field=key)
-    return value.detach().to(torch.float32).numpy()
+    if value.untyped_storage().nbytes() < value.numel() * value.element_size():
+        raise InputError(path, f"declares {value.numel():,} values but stores {value.untyped_storage().nbytes():,} bytes "
+                               "(a tensor expanded over shared memory, not one value per element)", field=key)
+    return value.detach().resolve_conj().resolve_neg().to(torch.float32).contiguous().numpy()
 
 
 def checkpoint_columns(path: Path) -> tuple[dict, list[str], str]:

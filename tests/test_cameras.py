@@ -209,6 +209,13 @@ def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_byt
     path.write_bytes(_points3d_bin(records, declared=2))
     with pytest.raises(InputError, match="declares 2 points but"):
         read_colmap_points_bin(path)
+    path.write_bytes(_points3d_bin([*records, (3, (9.0, 9.0, 9.0), 2)]))  # round 23: the last of two records kept silently
+    with pytest.raises(InputError, match=r"field 'POINT3D_ID': point record 3 repeats POINT3D_ID 3 of an earlier record"):
+        read_colmap_points_bin(path)
+    text = tmp_path / "points3D.txt"
+    text.write_text("1 0 0 0 1 1 1 0.5\n2 1 1 1 1 1 1 0.5\n1 2 2 2 1 1 1 0.5\n")
+    with pytest.raises(InputError, match=r"field 'POINT3D_ID': point line 3 repeats POINT3D_ID 1"):
+        read_colmap_points_txt(text)
 
 
 def test_3dgs_cameras_json(tmp_path):
