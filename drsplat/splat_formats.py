@@ -159,22 +159,63 @@ CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names fo
 
 def _load_checkpoint(path: Path) -> dict:
     """torch.load of a checkpoint on the CPU with weights_only (tensors and plain values, no code);
-    InputError naming the file for anything torch cannot read so. Not memory-mapped: mapped, torch
-    checks no record's size, and an archive with a short or compressed record read its neighbours'
-    bytes as values (round 23); read whole, it refuses them."""
+    InputError naming the file for anything torch cannot read so. Memory-mapped first, so a
+    checkpoint that also holds its optimiser's state (three times the Gaussians' bytes) is not read
+    whole. Mapped, torch checks no record's size: an archive with a short or compressed record read
+    its neighbours' bytes as values (round 23). So unless its records are intact
+    (`_records_intact`), it is read again whole, which checks every record and inflates compressed ones."""
+    data = _torch_load(path, mmap=True)
+    if not _records_intact(path, data):
+        del data
+        data = _torch_load(path, mmap=False)
+    if not isinstance(data, dict):
+        raise InputError(path, f"holds a {type(data).__name__}, not a checkpoint's dictionary")
+    return data
+
+
+def _torch_load(path: Path, mmap: bool):
     import pickle
 
     import torch
 
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:
         raise InputError(path, f"holds something other than tensors and plain values, which is not read ({_refusal(exc)})") from None
     except Exception as exc:  # noqa: BLE001 - torch's reader of an untrusted archive raises many kinds (KeyError, IndexError, AssertionError, ...)
         raise InputError(path, f"cannot be read as a torch checkpoint ({type(exc).__name__}: {_first_line(exc) or 'no detail'})") from None
-    if not isinstance(data, dict):
-        raise InputError(path, f"holds a {type(data).__name__}, not a checkpoint's dictionary")
-    return data
+
+
+def _records_intact(path: Path, data) -> bool:
+    """Whether the archive's tensor records (`<archive>/data/<key>`) are stored uncompressed and have
+    exactly the sizes of the storages the loaded object holds (each storage is one record; empty
+    ones aside), so a mapped read took every value from its own record."""
+    import zipfile
+
+    import torch
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            records = [i for i in archive.infolist() if re.fullmatch(r"[^/]+/data/\d+", i.filename)]
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return False
+    if any(i.compress_type != zipfile.ZIP_STORED for i in records):
+        return False
+    storages: dict[int, int] = {}
+    stack = [data]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+        elif isinstance(item, torch.Tensor):
+            if item.layout != torch.strided or item.device.type != "cpu":
+                return False
+            storage = item.untyped_storage()
+            if storage.nbytes():
+                storages[storage.data_ptr()] = storage.nbytes()
+    return sorted(storages.values()) == sorted(i.file_size for i in records if i.file_size)
 
 
 def _first_line(exc: BaseException) -> str:

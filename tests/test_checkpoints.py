@@ -228,3 +228,24 @@ def test_sparse_meta_none_and_negative_views(tmp_path):
     ckpt["splats"]["means"] = torch._neg_view(-ckpt["splats"]["means"])
     torch.save(ckpt, tmp_path / "neg.pt")
     assert np.array_equal(load_scene(tmp_path / "neg.pt").means, scene.means)
+
+
+def test_intact_archives_are_read_mapped_and_a_compressed_one_whole(tmp_path):
+    """What torch.save writes has its records stored and sized as its storages, so it is read
+    memory-mapped (a checkpoint with its optimiser's state is not read whole); an archive rewritten
+    with compressed records, which the mapped read took as raw values, is read whole and right."""
+    import zipfile
+
+    from drsplat.splat_formats import _records_intact
+
+    scene = random_scene()
+    for name, ckpt in (("g.pt", gsplat_checkpoint(scene)), ("n.ckpt", nerfstudio_checkpoint(scene))):
+        torch.save(ckpt, tmp_path / name)
+        assert _records_intact(tmp_path / name, torch.load(tmp_path / name, weights_only=True, mmap=True))
+    with zipfile.ZipFile(tmp_path / "g.pt") as z:
+        members = {i.filename: z.read(i.filename) for i in z.infolist()}
+    with zipfile.ZipFile(tmp_path / "deflated.pt", "w", zipfile.ZIP_DEFLATED) as z:
+        for member, content in members.items():
+            z.writestr(member, content)
+    assert not _records_intact(tmp_path / "deflated.pt", torch.load(tmp_path / "deflated.pt", weights_only=True, mmap=True))
+    assert np.array_equal(load_scene(tmp_path / "deflated.pt").means, scene.means)
