@@ -163,7 +163,9 @@ def _load_checkpoint(path: Path) -> dict:
     checkpoint that also holds its optimiser's state (three times the Gaussians' bytes) is not read
     whole. Mapped, torch checks no record's size: an archive with a short or compressed record read
     its neighbours' bytes as values (round 23). So unless its records are intact
-    (`_records_intact`), it is read again whole, which checks every record and inflates compressed ones."""
+    (`_records_intact`), it is read again whole, which checks every record and inflates compressed ones.
+    Every record's CRC-32 is checked first (`_check_crcs`)."""
+    _check_crcs(path)
     data = _torch_load(path, mmap=True)
     if not _records_intact(path, data):
         del data
@@ -171,6 +173,25 @@ def _load_checkpoint(path: Path) -> dict:
     if not isinstance(data, dict):
         raise InputError(path, f"holds a {type(data).__name__}, not a checkpoint's dictionary")
     return data
+
+
+def _check_crcs(path: Path) -> None:
+    """InputError when a record of the archive fails its CRC-32 (torch reads records without checking
+    them: a flipped byte in a tensor's record loaded as a wrong value, round 23). One streamed read of
+    the file; an archive zipfile cannot open is left to torch.load to name."""
+    import zipfile
+
+    try:
+        archive = zipfile.ZipFile(path)
+    except Exception:  # noqa: BLE001 - a directory zipfile cannot read (damaged, an unknown version): torch.load says what is wrong
+        return
+    with archive:
+        try:
+            bad = archive.testzip()
+        except Exception as exc:  # noqa: BLE001 - a record's own header damaged (its name, its method, its length)
+            raise InputError(path, f"has a damaged record header ({type(exc).__name__}): the archive is damaged (a copy cut or altered in transfer?)") from None
+    if bad is not None:
+        raise InputError(path, f"its record {bad} fails its CRC-32 check: the archive is damaged (a copy cut or altered in transfer?)")
 
 
 def _torch_load(path: Path, mmap: bool):
@@ -197,7 +218,7 @@ def _records_intact(path: Path, data) -> bool:
     try:
         with zipfile.ZipFile(path) as archive:
             records = [i for i in archive.infolist() if re.fullmatch(r"[^/]+/data/\d+", i.filename)]
-    except (zipfile.BadZipFile, OSError, ValueError):
+    except Exception:  # noqa: BLE001 - a damaged archive (zipfile raises BadZipFile, NotImplementedError for a version, ...) is read whole, which says what is wrong
         return False
     if any(i.compress_type != zipfile.ZIP_STORED for i in records):
         return False

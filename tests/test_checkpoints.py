@@ -249,3 +249,26 @@ def test_intact_archives_are_read_mapped_and_a_compressed_one_whole(tmp_path):
             z.writestr(member, content)
     assert not _records_intact(tmp_path / "deflated.pt", torch.load(tmp_path / "deflated.pt", weights_only=True, mmap=True))
     assert np.array_equal(load_scene(tmp_path / "deflated.pt").means, scene.means)
+
+
+def test_a_flipped_byte_is_caught_by_the_records_crc(tmp_path):
+    """Round 23: torch reads records without their CRC-32, so one flipped byte in a tensor's record
+    (a copy damaged in transfer) loaded as a wrong value with exit 0. Every record's CRC is checked
+    first; a damaged record header (its name) is named as such too."""
+    import zipfile
+
+    torch.save(gsplat_checkpoint(random_scene()), tmp_path / "c.pt")
+    data = bytearray((tmp_path / "c.pt").read_bytes())
+    with zipfile.ZipFile(tmp_path / "c.pt") as z:
+        record = next(i for i in z.infolist() if i.filename.endswith("data/0"))
+    start = record.header_offset + 30 + len(record.filename.encode()) + int.from_bytes(data[record.header_offset + 28:record.header_offset + 30], "little")
+    flipped = bytearray(data)
+    flipped[start + 5] ^= 0x40
+    (tmp_path / "flipped.pt").write_bytes(bytes(flipped))
+    with pytest.raises(InputError, match=r"its record \S+/data/0 fails its CRC-32 check"):
+        load_scene(tmp_path / "flipped.pt")
+    renamed = bytearray(data)
+    renamed[record.header_offset + 31] = 0x82  # not UTF-8: the local header's name cannot be read
+    (tmp_path / "renamed.pt").write_bytes(bytes(renamed))
+    with pytest.raises(InputError, match="has a damaged record header"):
+        load_scene(tmp_path / "renamed.pt")
