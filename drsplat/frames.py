@@ -5,7 +5,8 @@ dataset's cameras stay where the capture put them. Registration then renders eve
 it cannot see. Two such moves are undone:
 
 - nerfstudio's splatfacto writes its move to `dataparser_transforms.json`;
-  `drsplat.cameras.load_cameras` reads it when it lies beside the cameras.
+  `drsplat.cameras.load_cameras` reads it when it lies beside the cameras, and
+  `cameras_in_scene_frame` finds it in the run folder of a splatfacto checkpoint given as the scene.
 - gsplat's `simple_trainer` (`normalize_world_space`, on by default) writes its move nowhere, but
   the move is a function of the COLMAP model alone, so it is computed here again
   (`gsplat_normalizations`), and the cameras are moved when the scene fits them only there
@@ -51,7 +52,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import Camera, dataparser_transforms_path, detect_dataset, in_trained_frame, qvec_to_rotmat, read_colmap_model
+from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transforms_path, detect_dataset, in_trained_frame, qvec_to_rotmat,
+                             read_colmap_model, read_dataparser_transform)
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
 
@@ -223,10 +225,30 @@ def best_move(means: np.ndarray, evidence: ColmapEvidence) -> tuple[FrameMove, s
                       f"there, where its Gaussians lie {cover:.3g} from them")
 
 
-def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str | Path, what: str = "the scene") -> list[Camera]:
-    """`cameras` (from dataset `source`) moved into the frame gsplat's simple_trainer trained the scene
-    of centres means [N, 3] in, when `best_move` finds it did, with one warning that names the move
-    (`what`: the scene, as the warning calls it); else `cameras` themselves."""
+def run_dataparser_transform(scene_path: str | Path) -> Path | None:
+    """The dataparser_transforms.json of the nerfstudio run a checkpoint belongs to, if it is there:
+    ns-train saves outputs/<experiment>/<method>/<timestamp>/ with config.yml and that file beside
+    nerfstudio_models/step-<step>.ckpt, so it lies two folders above the checkpoint."""
+    path = Path(scene_path)
+    if path.suffix.lower() != ".ckpt":
+        return None
+    found = path.parent.parent / DATAPARSER_TRANSFORMS
+    return found if found.is_file() else None
+
+
+def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str | Path, what: str = "the scene",
+                           scene_path: str | Path | None = None) -> list[Camera]:
+    """`cameras` (from dataset `source`) in the frame their scene was trained in, with one warning
+    that names the move (`what`: the scene, as the warning calls it); else `cameras` themselves:
+    - a nerfstudio checkpoint (scene_path) whose run folder holds dataparser_transforms.json, when no
+      such file lies beside the cameras (`cameras.load_cameras` applies that one): its move;
+    - else gsplat's normalised world, when `best_move` finds the scene of centres means [N, 3] in it."""
+    run = run_dataparser_transform(scene_path) if scene_path is not None and dataparser_transforms_path(source) is None else None
+    if run is not None:
+        rotation, translation, scale = read_dataparser_transform(run)
+        log.warning("%s was trained by nerfstudio in the frame of its run's %s: the %d cameras of %s are moved there (scale %.6g)",
+                    what, run, len(cameras), source, scale)
+        return [in_trained_frame(c, rotation, translation, scale) for c in cameras]
     evidence = colmap_evidence(source)
     found = best_move(means, evidence) if evidence is not None and len(means) else None
     if found is None:

@@ -314,3 +314,41 @@ def test_odd_sparse_points_never_move_the_cameras(tiny_seed0, tmp_path, case):
     odd = _colmap_dataset(tmp_path / "odd", cams, points)
     given = load_cameras(odd, require_images=False)
     assert cameras_in_scene_frame(scene.means, given, odd) is given
+
+
+def test_a_splatfacto_checkpoint_registers_in_its_runs_frame(tmp_path, capsys):
+    """ns-train saves the checkpoint at <run>/nerfstudio_models/step-*.ckpt and the dataparser move
+    at <run>/dataparser_transforms.json. Given the checkpoint as the scene and the dataset as it is
+    (no transform file beside its cameras), `drsplat register` finds the run's file, moves the
+    cameras into nerfstudio's frame with one warning, and gives the features of the scene in the
+    dataset's own frame."""
+    import json
+
+    import torch
+
+    from tests.test_cameras import _similarity
+    from tests.test_checkpoints import nerfstudio_checkpoint
+
+    assert main(["synth", str(tmp_path / "data"), "--preset", "tiny", "--seed", "0", "--no-progress", "-q"]) == 0
+    scene = load_ply(tmp_path / "data" / "scene.ply")
+    _, rotation, translation, scale = _similarity()
+    move = FrameMove("nerfstudio", np.vstack([np.c_[scale * rotation, scale * translation], [0.0, 0.0, 0.0, 1.0]]))
+    run = tmp_path / "outputs" / "room" / "splatfacto" / "2026-11-30_120000"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    (run / "dataparser_transforms.json").write_text(json.dumps({"transform": np.c_[rotation, translation].tolist(), "scale": scale}))
+    ckpt = run / "nerfstudio_models" / "step-000029999.ckpt"
+    torch.save(nerfstudio_checkpoint(_moved_scene(scene, move)), ckpt)
+    outs = {}
+    for name, path in (("own", tmp_path / "data" / "scene.ply"), ("splatfacto", ckpt)):
+        outs[name] = tmp_path / f"{name}.ply"
+        assert main(["register", str(path), "--source", str(tmp_path / "data"), "--features", str(tmp_path / "data" / "features"),
+                     "--out", str(outs[name]), "--codebook", "none", "--aggregate", "paper", "--keep-unassigned", "--no-progress", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("trained by nerfstudio in the frame of its run's") == 1 and "2026-11-30_120000/dataparser_transforms.json" in err
+    (_, own), (_, moved) = load_registered(outs["own"]), load_registered(outs["splatfacto"])
+    a, b = own.storage.features.astype(np.float64), moved.storage.features.astype(np.float64)
+    assigned = np.linalg.norm(a, axis=1) > 0
+    assert assigned.mean() > 0.5 and abs(int(assigned.sum()) - int((np.linalg.norm(b, axis=1) > 0).sum())) <= 3
+    both = assigned & (np.linalg.norm(b, axis=1) > 0)
+    cos = np.sum(a[both] * b[both], axis=1) / (np.linalg.norm(a[both], axis=1) * np.linalg.norm(b[both], axis=1))
+    assert np.quantile(cos, 0.01) > 0.999

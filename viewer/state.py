@@ -160,7 +160,8 @@ class ViewerState:
             with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
                 cameras = load_cameras(source, require_images=False)
                 if self.scene is not None:
-                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=self.scene_path.name if self.scene_path else "the scene")
+                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=self.scene_path.name if self.scene_path else "the scene",
+                                                     scene_path=self.scene_path)
             self.cameras = cameras
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")

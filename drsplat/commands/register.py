@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
     scene = load_scene(args.scene, purpose="register")  # refuses a file with no usable row
-    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene))  # gsplat trains in a world of its own
+    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene)  # trainers' own worlds
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
