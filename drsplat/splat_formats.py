@@ -282,10 +282,47 @@ def _checkpoint_tensor(path: Path, where: dict, key: str, dims: int, width: int 
     return value.detach().resolve_conj().resolve_neg().to(torch.float32).contiguous().numpy()
 
 
+RANK_SHARE = re.compile(r"(ckpt_\d+)_rank(\d+)(\.pt)", re.IGNORECASE)  # gsplat's name for one GPU's checkpoint
+
+
+def rank_shares(path: Path) -> list[Path]:
+    """The checkpoints of every GPU of the gsplat run `path` (ckpt_<step>_rank<r>.pt) is one of, in rank
+    order: a run on W GPUs gives each a disjoint share of the Gaussians (its points [r::W]) and saves
+    one file per rank, which gsplat's own viewer concatenates. [path] for any other file. InputError
+    when a rank between 0 and the highest found is missing (a copy that left one behind)."""
+    match = RANK_SHARE.fullmatch(path.name)
+    if match is None:
+        return [path]
+    prefix, _, suffix = match.groups()
+    found = {int(m.group(2)): sibling for sibling in path.parent.iterdir()
+             if (m := RANK_SHARE.fullmatch(sibling.name)) and m.group(1) == prefix and sibling.is_file()}
+    missing = sorted(set(range(max(found) + 1)) - set(found))
+    if missing:
+        raise InputError(path, f"is one of the per-GPU shares of a gsplat run, but the share of rank {missing[0]} "
+                               f"({prefix}_rank{missing[0]}{suffix}) is not beside it: every rank's file is needed for the whole scene")
+    return [found[r] for r in sorted(found)]
+
+
 def checkpoint_columns(path: Path) -> tuple[dict, list[str], str]:
     """A gsplat or nerfstudio checkpoint (module docstring) as `assemble_scene`'s columns, its field
-    names and layout name. Every field is checked: present, a floating-point tensor of the right
-    shape, one row per Gaussian; the SH coefficients a whole degree (1, 4, 9 or 16 of them)."""
+    names and layout name; a gsplat run's per-GPU shares (`rank_shares`) read and joined in rank
+    order. Every field is checked: present, a floating-point tensor of the right shape, one row per
+    Gaussian; the SH coefficients a whole degree (1, 4, 9 or 16 of them), the same in every share."""
+    shares = rank_shares(path)
+    if len(shares) == 1:
+        return _checkpoint_file_columns(path)
+    parts = [_checkpoint_file_columns(share) for share in shares]
+    for share, (cols, _, _) in zip(shares, parts):
+        if cols["sh"].shape[1:] != parts[0][0]["sh"].shape[1:]:
+            raise InputError(share, f"has SH of {cols['sh'].shape[1]} coefficients per colour, but {shares[0].name} has {parts[0][0]['sh'].shape[1]}")
+    joined = {key: np.concatenate([cols[key] for cols, _, _ in parts]) for key in ("means", "log_scales", "quats", "opacity_logits", "sh")}
+    log.info("%s: the Gaussians of the %d per-GPU shares of its gsplat run (%s), joined in rank order", path, len(shares),
+             ", ".join(f"{len(cols['means']):,}" for cols, _, _ in parts))
+    return {**joined, "extra": {}}, parts[0][1], f"{parts[0][2]} ({len(shares)} ranks)"
+
+
+def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
+    """`checkpoint_columns` of one file."""
     data = _load_checkpoint(path)
     layout = next((name for name, (group, fields) in CHECKPOINT_LAYOUTS.items()
                    if isinstance(data.get(group), dict) and fields[0] in data[group]), None)

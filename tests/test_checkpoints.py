@@ -272,3 +272,26 @@ def test_a_flipped_byte_is_caught_by_the_records_crc(tmp_path):
     (tmp_path / "renamed.pt").write_bytes(bytes(renamed))
     with pytest.raises(InputError, match="has a damaged record header"):
         load_scene(tmp_path / "renamed.pt")
+
+
+def test_a_gsplat_run_on_several_gpus_is_read_whole_from_its_rank_shares(tmp_path, caplog):
+    """gsplat on W GPUs gives rank r the Gaussians [r::W] and saves ckpt_<step>_rank<r>.pt each; any
+    one of them given as the scene reads every rank's share, joined in rank order (as gsplat's own
+    viewer joins them). A missing rank is one error naming it; other steps' files are not mixed in."""
+    scene = random_scene(n=30, degree=2)
+    shares = [np.arange(30)[r::3] for r in range(3)]
+    for r, rows in enumerate(shares):
+        part = GaussianScene(means=scene.means[rows], quats=scene.quats[rows], log_scales=scene.log_scales[rows],
+                             opacity_logits=scene.opacity_logits[rows], sh=scene.sh[rows], extra={}, comments=[])
+        torch.save(gsplat_checkpoint(part), tmp_path / f"ckpt_29999_rank{r}.pt")
+    torch.save(gsplat_checkpoint(random_scene(n=7)), tmp_path / "ckpt_6999_rank0.pt")  # another step of the run
+    order = np.concatenate(shares)
+    with caplog.at_level(logging.INFO, logger="drsplat.splat_formats"):
+        loaded, report = load_scene_report(tmp_path / "ckpt_29999_rank1.pt")
+    assert report.layout == "gsplat checkpoint (3 ranks)" and "3 per-GPU shares" in caplog.text
+    for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(loaded, field), getattr(scene, field)[order]), field
+    assert load_scene(tmp_path / "ckpt_6999_rank0.pt").num_gaussians == 7
+    (tmp_path / "ckpt_29999_rank1.pt").unlink()
+    with pytest.raises(InputError, match=r"the share of rank 1 \(ckpt_29999_rank1.pt\) is not beside it"):
+        load_scene(tmp_path / "ckpt_29999_rank2.pt")
