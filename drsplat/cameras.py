@@ -270,8 +270,8 @@ POINT_TRACK_BYTES = 8  # per track element: image id i4, point2D index i4
 
 def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
     """point3D id -> [3] float64 xyz of a points3D.bin. One pass finds where each record starts (its
-    track length sets the next), then the ids and positions are gathered at once: a model of a
-    million points reads in about a second instead of six (one read per field)."""
+    track length sets the next), then the ids and positions are gathered at once: 300,000 points
+    (tracks of 4) read in 0.20 s instead of 1.71 s with one read per field (2026-11-30, AMD EPYC)."""
     r = _Reader(path)
     declared = r.one("<u8")
     buf, pos, size = r.buf, r.pos, len(r.buf)

@@ -85,6 +85,7 @@ DEFAULT_SPZ_FRAME = 4  # RUB
 SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".pt", ".ckpt", ".pth")  # the scene files load_scene reads
 CHECKPOINT_SUFFIXES = (".pt", ".ckpt", ".pth")  # trainer checkpoints (module docstring)
 ZIP_MAGIC = b"PK\x03\x04"  # torch.save's archive
+MAX_CHECKPOINT_INFLATION = 64  # record bytes per file byte a checkpoint may declare (torch.save stores them: ~1:1)
 SNIFF_BYTES = 4096  # what scene_format reads of a file: enough of a gzip stream to inflate an spz header
 
 
@@ -159,15 +160,15 @@ CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names fo
 
 def _load_checkpoint(path: Path) -> dict:
     """torch.load of a checkpoint on the CPU with weights_only (tensors and plain values, no code);
-    InputError naming the file for anything torch cannot read so. Memory-mapped first, so a
-    checkpoint that also holds its optimiser's state (three times the Gaussians' bytes) is not read
-    whole. Mapped, torch checks no record's size: an archive with a short or compressed record read
-    its neighbours' bytes as values (round 23). So unless its records are intact
-    (`_records_intact`), it is read again whole, which checks every record and inflates compressed ones.
-    Every record's CRC-32 is checked first (`_check_crcs`)."""
-    _check_crcs(path)
+    InputError naming the file for anything torch cannot read so. The archive is checked first
+    (`_archive_records`: CRCs, the bytes its records inflate to). Memory-mapped then, so a checkpoint
+    that also holds its optimiser's state (three times the Gaussians' bytes) is not read whole.
+    Mapped, torch checks no record's size: an archive with a short or compressed record read its
+    neighbours' bytes as values (round 23). So unless its records are intact (`_records_intact`),
+    it is read again whole, which checks every record and inflates compressed ones."""
+    records = _archive_records(path)
     data = _torch_load(path, mmap=True)
-    if not _records_intact(path, data):
+    if records is None or not _records_intact(records, data):
         del data
         data = _torch_load(path, mmap=False)
     if not isinstance(data, dict):
@@ -175,23 +176,32 @@ def _load_checkpoint(path: Path) -> dict:
     return data
 
 
-def _check_crcs(path: Path) -> None:
-    """InputError when a record of the archive fails its CRC-32 (torch reads records without checking
-    them: a flipped byte in a tensor's record loaded as a wrong value, round 23). One streamed read of
-    the file; an archive zipfile cannot open is left to torch.load to name."""
+def _archive_records(path: Path) -> list | None:
+    """The archive's tensor records (`<archive>/data/<key>` ZipInfos), after one pass that checks it:
+    InputError when its records would inflate to more than MAX_CHECKPOINT_INFLATION times the file
+    (torch.save stores them; a deflated record of zeros declares ~1000x its bytes, all allocated by a
+    whole read), when a record header is damaged, or when a record fails its CRC-32 (torch reads
+    records without checking them: a flipped byte loaded as a wrong value, round 23). None when
+    zipfile cannot read the archive's directory (damaged, an unknown version): torch.load names it."""
     import zipfile
 
     try:
         archive = zipfile.ZipFile(path)
-    except Exception:  # noqa: BLE001 - a directory zipfile cannot read (damaged, an unknown version): torch.load says what is wrong
-        return
+    except Exception:  # noqa: BLE001 - not a directory zipfile reads: torch.load then says what is wrong with the file
+        return None
     with archive:
+        infos = archive.infolist()
+        inflated, size = sum(i.file_size for i in infos), path.stat().st_size
+        if inflated > MAX_CHECKPOINT_INFLATION * max(size, 1):
+            raise InputError(path, f"declares {inflated:,} bytes of records in a {size:,}-byte file, more than {MAX_CHECKPOINT_INFLATION}:1 "
+                                   "(torch.save stores its records uncompressed): not read")
         try:
             bad = archive.testzip()
         except Exception as exc:  # noqa: BLE001 - a record's own header damaged (its name, its method, its length)
             raise InputError(path, f"has a damaged record header ({type(exc).__name__}): the archive is damaged (a copy cut or altered in transfer?)") from None
     if bad is not None:
         raise InputError(path, f"its record {bad} fails its CRC-32 check: the archive is damaged (a copy cut or altered in transfer?)")
+    return [i for i in infos if re.fullmatch(r"[^/]+/data/\d+", i.filename)]
 
 
 def _torch_load(path: Path, mmap: bool):
@@ -207,19 +217,14 @@ def _torch_load(path: Path, mmap: bool):
         raise InputError(path, f"cannot be read as a torch checkpoint ({type(exc).__name__}: {_first_line(exc) or 'no detail'})") from None
 
 
-def _records_intact(path: Path, data) -> bool:
-    """Whether the archive's tensor records (`<archive>/data/<key>`) are stored uncompressed and have
-    exactly the sizes of the storages the loaded object holds (each storage is one record; empty
-    ones aside), so a mapped read took every value from its own record."""
+def _records_intact(records: list, data) -> bool:
+    """Whether the tensor records (`_archive_records`) are stored uncompressed and have exactly the
+    sizes of the storages the loaded object holds (each storage is one record; empty ones aside),
+    so a mapped read took every value from its own record."""
     import zipfile
 
     import torch
 
-    try:
-        with zipfile.ZipFile(path) as archive:
-            records = [i for i in archive.infolist() if re.fullmatch(r"[^/]+/data/\d+", i.filename)]
-    except Exception:  # noqa: BLE001 - a damaged archive (zipfile raises BadZipFile, NotImplementedError for a version, ...) is read whole, which says what is wrong
-        return False
     if any(i.compress_type != zipfile.ZIP_STORED for i in records):
         return False
     storages: dict[int, int] = {}
@@ -239,16 +244,20 @@ def _records_intact(path: Path, data) -> bool:
     return sorted(storages.values()) == sorted(i.file_size for i in records if i.file_size)
 
 
+def _plain_text(exc: BaseException) -> str:
+    """The exception's message without terminal colour codes (torch bolds its advice)."""
+    return re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+
+
 def _first_line(exc: BaseException) -> str:
     """The exception's first non-empty line, without terminal colour codes."""
-    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
-    return next((line.strip() for line in text.splitlines() if line.strip()), "")
+    return next((line.strip() for line in _plain_text(exc).splitlines() if line.strip()), "")
 
 
 def _refusal(exc: BaseException) -> str:
     """What weights_only refused, from torch's message: 'a reference to module.name' when it names the
     global, else its first line that is not advice to turn the check off."""
-    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+    text = _plain_text(exc)
     found = re.search(r"GLOBAL ([\w.]+)", text)
     if found:
         return f"a reference to {found.group(1)}"
@@ -296,11 +305,12 @@ def rank_shares(path: Path) -> list[Path]:
     prefix, _, suffix = match.groups()
     found = {int(m.group(2)): sibling for sibling in path.parent.iterdir()
              if (m := RANK_SHARE.fullmatch(sibling.name)) and m.group(1) == prefix and sibling.is_file()}
-    missing = sorted(set(range(max(found) + 1)) - set(found))
-    if missing:
-        raise InputError(path, f"is one of the per-GPU shares of a gsplat run, but the share of rank {missing[0]} "
-                               f"({prefix}_rank{missing[0]}{suffix}) is not beside it: every rank's file is needed for the whole scene")
-    return [found[r] for r in sorted(found)]
+    ranks = sorted(found)
+    gap = next((i for i, r in enumerate(ranks) if r != i), None)  # the first rank missing; no range up to the highest (a name can say rank 10^11)
+    if gap is not None:
+        raise InputError(path, f"is one of the per-GPU shares of a gsplat run, but the share of rank {gap} "
+                               f"({prefix}_rank{gap}{suffix}) is not beside it: every rank's file is needed for the whole scene")
+    return [found[r] for r in ranks]
 
 
 def checkpoint_columns(path: Path) -> tuple[dict, list[str], str]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import pickle
+import re
 
 import numpy as np
 import pytest
@@ -149,7 +150,7 @@ def test_drsplat_info_reads_a_gsplat_checkpoint(tmp_path, capsys):
     torch.save(gsplat_checkpoint(random_scene(n=20, degree=1)), tmp_path / "ckpt_6999_rank0.pt")
     assert main(["info", str(tmp_path / "ckpt_6999_rank0.pt")]) == 0
     out = capsys.readouterr().out
-    assert "20" in out and "gsplat checkpoint" in out
+    assert "(gsplat checkpoint layout)" in out and re.search(r"gaussians\s+20 \(rows in file 20\)", out) and re.search(r"SH degree\s+1\b", out)
 
 
 def test_a_checkpoint_given_where_a_registered_scene_is_needed_is_named_as_one(tmp_path, capsys):
@@ -236,18 +237,18 @@ def test_intact_archives_are_read_mapped_and_a_compressed_one_whole(tmp_path):
     with compressed records, which the mapped read took as raw values, is read whole and right."""
     import zipfile
 
-    from drsplat.splat_formats import _records_intact
+    from drsplat.splat_formats import _archive_records, _records_intact
 
     scene = random_scene()
     for name, ckpt in (("g.pt", gsplat_checkpoint(scene)), ("n.ckpt", nerfstudio_checkpoint(scene))):
         torch.save(ckpt, tmp_path / name)
-        assert _records_intact(tmp_path / name, torch.load(tmp_path / name, weights_only=True, mmap=True))
+        assert _records_intact(_archive_records(tmp_path / name), torch.load(tmp_path / name, weights_only=True, mmap=True))
     with zipfile.ZipFile(tmp_path / "g.pt") as z:
         members = {i.filename: z.read(i.filename) for i in z.infolist()}
     with zipfile.ZipFile(tmp_path / "deflated.pt", "w", zipfile.ZIP_DEFLATED) as z:
         for member, content in members.items():
             z.writestr(member, content)
-    assert not _records_intact(tmp_path / "deflated.pt", torch.load(tmp_path / "deflated.pt", weights_only=True, mmap=True))
+    assert not _records_intact(_archive_records(tmp_path / "deflated.pt"), torch.load(tmp_path / "deflated.pt", weights_only=True, mmap=True))
     assert np.array_equal(load_scene(tmp_path / "deflated.pt").means, scene.means)
 
 
@@ -295,3 +296,36 @@ def test_a_gsplat_run_on_several_gpus_is_read_whole_from_its_rank_shares(tmp_pat
     (tmp_path / "ckpt_29999_rank1.pt").unlink()
     with pytest.raises(InputError, match=r"the share of rank 1 \(ckpt_29999_rank1.pt\) is not beside it"):
         load_scene(tmp_path / "ckpt_29999_rank2.pt")
+
+
+def test_a_deflated_record_of_zeros_cannot_ask_for_what_the_file_does_not_hold(tmp_path):
+    """Review of round 23: a whole read inflates compressed records, and deflate packs zeros ~1000:1,
+    so a 30 KB file could have torch allocate 32 MB (a 1 GB file, 1 TB). Records that would inflate
+    past MAX_CHECKPOINT_INFLATION times the file are refused before torch reads any."""
+    import zipfile
+
+    from drsplat.splat_formats import MAX_CHECKPOINT_INFLATION
+
+    ckpt = gsplat_checkpoint(random_scene(n=1))
+    ckpt["splats"]["padding"] = torch.zeros(8_000_000)
+    torch.save(ckpt, tmp_path / "plain.pt")
+    with zipfile.ZipFile(tmp_path / "plain.pt") as z:
+        members = {i.filename: z.read(i.filename) for i in z.infolist()}
+    with zipfile.ZipFile(tmp_path / "bomb.pt", "w", zipfile.ZIP_DEFLATED) as z:
+        for member, content in members.items():
+            z.writestr(member, content)
+    size = (tmp_path / "bomb.pt").stat().st_size
+    assert 32_000_000 > MAX_CHECKPOINT_INFLATION * size
+    with pytest.raises(InputError, match=rf"declares [\d,]+ bytes of records in a {size:,}-byte file, more than {MAX_CHECKPOINT_INFLATION}:1"):
+        load_scene(tmp_path / "bomb.pt")
+    assert load_scene(tmp_path / "plain.pt").num_gaussians == 1  # stored, the same content reads
+
+
+def test_a_rank_number_in_a_file_name_sizes_nothing(tmp_path):
+    """Review of round 23: the missing ranks were found as range(highest + 1) minus those present, so
+    a file named rank 99999999999 beside rank 0 asked for a set of 1e11 numbers (out of memory).
+    The first gap is named instead."""
+    torch.save(gsplat_checkpoint(random_scene(n=5)), tmp_path / "ckpt_1_rank0.pt")
+    (tmp_path / "ckpt_1_rank99999999999.pt").write_bytes((tmp_path / "ckpt_1_rank0.pt").read_bytes())
+    with pytest.raises(InputError, match=r"the share of rank 1 \(ckpt_1_rank1.pt\) is not beside it"):
+        load_scene(tmp_path / "ckpt_1_rank0.pt")
