@@ -110,7 +110,7 @@ def test_sharp_factor_is_the_unfiltered_gaussian():
 
 
 def test_sharp_exp_is_exp_on_its_range_and_the_torch_one_is_the_same_bits():
-    """The kernel's branch-free exp (Taylor in q/16, four squarings) against np.exp on its whole
+    """The kernel's branch-free exp (Taylor in q/32, five squarings) against np.exp on its whole
     range, its ends and a denormal; the torch engine's copy gives the same bits."""
     import numba
     import torch
@@ -121,7 +121,7 @@ def test_sharp_exp_is_exp_on_its_range_and_the_torch_one_is_the_same_bits():
     q = np.concatenate([np.linspace(SHARP_LOG_FLOOR, 0.0, 100_001), [0.0, -0.0, -5e-324, -1e-300, SHARP_LOG_FLOOR, -1e-9]])
     evaluate = numba.njit(lambda v: np.array([sharp_exp(x) for x in v]))
     got = evaluate(q)
-    assert np.max(np.abs(got / np.exp(q) - 1)) < 1e-13
+    assert np.max(np.abs(got / np.exp(q) - 1)) < 1e-10
     assert got[-6] == 1.0 and got[-5] == 1.0
     np.testing.assert_array_equal(sharp_exp_torch(torch.from_numpy(q)).numpy(), got)
 

@@ -57,7 +57,7 @@ from drsplat import raster_ops, raster_torch
 from drsplat.raster_ops import host_array, host_tensor
 from drsplat.raster_torch import TorchScene, triton_available, project_gaussians_torch, rasterize_torch
 from drsplat._raster_kernels import BLUR
-from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
+from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_SQUARINGS, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
                                             STATS_SCALE, RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
@@ -472,12 +472,13 @@ def _sharp_exponent(dx: torch.Tensor, dy: torch.Tensor, a: torch.Tensor, b: torc
 
 def sharp_exp_torch(q: torch.Tensor) -> torch.Tensor:
     """exp(q) for SHARP_LOG_FLOOR ≤ q ≤ 0 in the operations of the numba kernel's
-    `aggregate.sharp_exp` (Horner over SHARP_EXP_TERMS in q/16, four squarings): the same bits."""
-    t = q * 0.0625
+    `aggregate.sharp_exp` (Horner over SHARP_EXP_TERMS in q / 2^SHARP_EXP_SQUARINGS, then as many
+    squarings): the same bits."""
+    t = q * (1.0 / (1 << SHARP_EXP_SQUARINGS))
     p = torch.zeros_like(q)
     for c in SHARP_EXP_TERMS:
         p = p * t + c
-    for _ in range(4):
+    for _ in range(SHARP_EXP_SQUARINGS):
         p = p * p
     return p
 
