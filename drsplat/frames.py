@@ -40,11 +40,23 @@ few spots, were taken before, round 23). The share of the scene the views see is
 scene near the origin and a few units across is still mostly in view after gsplat's move, and then
 registers wrong (tiny, seed 1: over half of its centres inside some view as given). A model without
 sparse points is left as it is (gsplat's parser cannot have read it).
+
+gsplat's `pose_opt` also refines each training camera while it trains (CameraOptModule): row r of
+its checkpoint's `pose_adjust.embeds.weight` [T, 9] = (dx, d6) turns camera-to-world C into
+
+    C·[R_d | dx],   R_d = rotation_6d_to_matrix(d6 + (1, 0, 0, 0, 1, 0))
+
+in the frame it trained in, where r counts its training images: the model's images in name order,
+less every `test_every`-th (position i with i mod test_every = 0, held out for evaluation; 8 unless
+the run's cfg.yml says otherwise). The scene fits the refined cameras, so `cameras_in_scene_frame`
+refines them too (`with_pose_refinements`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +68,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transform
                              read_colmap_model, read_dataparser_transform)
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
+from drsplat.splat_formats import checkpoint_pose_deltas
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +79,11 @@ FRAME_COVER_MAX = 0.1  # ... and the scene on them: the Gaussians' median distan
 LOW_SEEN_FRACTION = 0.5  # below this share of the Gaussians' centres inside some view, a scene is most likely in another frame than its cameras (`frame_hint`)
 CAMERA_UP = np.array([0.0, -1.0, 0.0])  # OpenCV camera axes: y points down
 CAMERA_FORWARD = np.array([0.0, 0.0, 1.0])
+GSPLAT_TEST_EVERY = 8  # gsplat's default: every 8th image (in name order) is held out of training
+GSPLAT_CONFIG = "cfg.yml"  # simple_trainer's dump of its settings, in its result_dir (its checkpoints: result_dir/ckpts/)
+UNREADABLE = "(unreadable)"  # `gsplat_run_settings`' key for a cfg.yml it could not read (no YAML key has this form)
+GSPLAT_CONFIG_BYTES = 1 << 20  # what is read of it (gsplat's is a few kB; test_every sits among its first lines)
+IDENTITY_6D = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])  # the 6-D form of no rotation
 
 
 @dataclass(frozen=True)
@@ -242,7 +260,8 @@ def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str
     that names the move (`what`: the scene, as the warning calls it); else `cameras` themselves:
     - a nerfstudio checkpoint (scene_path) whose run folder holds dataparser_transforms.json, when no
       such file lies beside the cameras (`cameras.load_cameras` applies that one): its move;
-    - else gsplat's normalised world, when `best_move` finds the scene of centres means [N, 3] in it."""
+    - else gsplat's normalised world, when `best_move` finds the scene of centres means [N, 3] in it;
+    - then, for a gsplat checkpoint trained with pose_opt, its camera refinements (`with_pose_refinements`)."""
     run = run_dataparser_transform(scene_path) if scene_path is not None and dataparser_transforms_path(source) is None else None
     if run is not None:
         rotation, translation, scale = read_dataparser_transform(run)
@@ -251,13 +270,134 @@ def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str
         return [in_trained_frame(c, rotation, translation, scale) for c in cameras]
     evidence = colmap_evidence(source)
     found = best_move(means, evidence) if evidence is not None and len(means) else None
-    if found is None:
+    if found is not None:
+        move, why = found
+        log.warning("%s is in %s, not in the frame of the cameras of %s (%s; gsplat's simple_trainer trains there unless "
+                    "normalize_world_space is off): the %d cameras are moved there (scale %.6g)", what, move.name, source, why,
+                    len(cameras), move.scale)
+        cameras = move.cameras(cameras)
+    return with_pose_refinements(cameras, source, scene_path, what) if scene_path is not None else cameras
+
+
+def rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] the rotations of 6-D representations d6 [..., 6] (Zhou et al. 2019; gsplat's
+    examples/utils.py): Gram-Schmidt on a₁ = d6[:3], a₂ = d6[3:],
+
+        b₁ = a₁ / |a₁|,   b₂ = normalize(a₂ − (b₁·a₂) b₁),   b₃ = b₁ × b₂,
+
+    the rows of the matrix (normalize divides by max(|x|, 1e-12), as torch's F.normalize)."""
+    def normalize(x: np.ndarray) -> np.ndarray:
+        return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = normalize(a1)
+    b2 = normalize(a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1)
+    return np.stack([b1, b2, np.cross(b1, b2)], axis=-2)
+
+
+def pose_refined(camera: Camera, delta: np.ndarray) -> Camera:
+    """`camera` refined by delta [9] = (dx [3], d6 [6]), one row of gsplat's CameraOptModule: its
+    camera-to-world C becomes C·[R_d | dx], R_d = rotation_6d_to_matrix(d6 + IDENTITY_6D), so
+    world-to-camera R' = R_dᵀ R and t' = R_dᵀ (t − dx) (the centre moves by dx along the camera's axes)."""
+    turn = rotation_6d_to_matrix(np.asarray(delta[3:], np.float64) + IDENTITY_6D)
+    r, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    return dataclasses.replace(camera, R=turn.T @ r, t=turn.T @ (t - np.asarray(delta[:3], np.float64)))
+
+
+def training_names(names: Sequence[str], test_every: int) -> list[str]:
+    """gsplat's training images in order (its Dataset "train" split): `names` (the COLMAP model's image
+    names) sorted, less those at positions i with i mod test_every = 0."""
+    ordered = sorted(names)
+    return [name for i, name in enumerate(ordered) if i % test_every != 0]
+
+
+def gsplat_run_settings(scene_path: str | Path) -> tuple[dict[str, str], Path | None]:
+    """The top-level `key: value` lines of the cfg.yml of the gsplat run checkpoint `scene_path`
+    belongs to (result_dir/ckpts/ckpt_<step>_rank<r>.pt: two folders up) and its path; ({}, None)
+    without one; {UNREADABLE: why} when it cannot be read. Read as lines, not as YAML: gsplat dumps
+    its strategy objects with Python tags."""
+    found = Path(scene_path).parent.parent / GSPLAT_CONFIG
+    if not found.is_file():
+        return {}, None
+    try:
+        with open(found, "rb") as f:
+            text = f.read(GSPLAT_CONFIG_BYTES).decode("utf-8", errors="replace")
+    except OSError as exc:
+        return {UNREADABLE: exc.strerror or type(exc).__name__}, found
+    return {m.group(1): m.group(2).strip() for m in re.finditer(r"^([A-Za-z_]\w*):[ \t]*([^\n]*)$", text, re.MULTILINE)}, found
+
+
+def _test_every(settings: dict[str, str], config: Path | None) -> tuple[int | None, str]:
+    """(the run's test_every, where it came from); None with why when cfg.yml gives no usable one."""
+    if config is None:
+        return GSPLAT_TEST_EVERY, f"gsplat's default test_every {GSPLAT_TEST_EVERY} (no {GSPLAT_CONFIG} two folders above the checkpoint)"
+    if UNREADABLE in settings:
+        return None, f"{config} cannot be read ({settings[UNREADABLE]})"
+    value = settings.get("test_every", str(GSPLAT_TEST_EVERY))
+    if not re.fullmatch(r"\d{1,9}", value) or int(value) < 1:
+        return None, f"{config} gives test_every {value!r}, not a positive whole number"
+    return int(value), f"test_every {int(value)} from {config}"
+
+
+def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path: str | Path, what: str = "the scene") -> list[Camera]:
+    """`cameras` (dataset `source`, in the frame the scene trained in) refined as the gsplat checkpoint
+    `scene_path` refined them while training (`pose_opt`; module docstring), with one warning that
+    says so; `cameras` themselves when it holds no refinements. The refinements are left out, with a
+    warning that says why, when they cannot be matched to the cameras: a source that is no COLMAP
+    model, a count that is not the model's training images', a run that perturbed its cameras
+    (`pose_noise`: the perturbation is not saved). A camera whose row is not finite, or whose 6-D
+    offset gives no rotation, keeps its pose (counted in the warning)."""
+    deltas = checkpoint_pose_deltas(scene_path)
+    if deltas is None:
         return cameras
-    move, why = found
-    log.warning("%s is in %s, not in the frame of the cameras of %s (%s; gsplat's simple_trainer trains there unless "
-                "normalize_world_space is off): the %d cameras are moved there (scale %.6g)", what, move.name, source, why,
-                len(cameras), move.scale)
-    return move.cameras(cameras)
+    settings, config = gsplat_run_settings(scene_path)
+    test_every, told = _test_every(settings, config)
+    names = _colmap_image_names(source)
+    skip = f"{what} holds {len(deltas):,} camera refinements (gsplat's pose_opt), not applied"
+    if test_every is None:
+        log.warning("%s: %s", skip, told)
+        return cameras
+    if names is None:
+        log.warning("%s: gsplat numbers them by a COLMAP model's images, and %s is none", skip, source)
+        return cameras
+    noise = settings.get("pose_noise", "0")
+    if not re.fullmatch(r"0+(\.0*)?|0?\.0+", noise):
+        log.warning("%s: the run perturbed its cameras (pose_noise %s in %s), and the perturbation is not saved", skip, noise, config)
+        return cameras
+    train = training_names(names, test_every)
+    if len(train) != len(deltas):
+        log.warning("%s: the COLMAP model of %s has %d training images (%d images, every %d-th held out: %s)", skip, source, len(train),
+                    len(names), test_every, told)
+        return cameras
+    row_of = {Path(name).stem: r for r, name in enumerate(train)}
+    with np.errstate(invalid="ignore", over="ignore"):
+        turns = rotation_6d_to_matrix(deltas[:, 3:] + IDENTITY_6D)
+        usable = np.isfinite(deltas).all(axis=1) & (np.abs(np.linalg.det(turns) - 1.0) < 1e-6)  # a 6-D offset of -identity has no rotation
+    out, refined, shifts = [], 0, []
+    for camera in cameras:
+        r = row_of.get(camera.name)
+        if r is None or not usable[r]:
+            out.append(camera)
+            continue
+        out.append(pose_refined(camera, deltas[r]))
+        refined += 1
+        shifts.append(float(np.linalg.norm(deltas[r, :3])))
+    bad = int(np.count_nonzero(~usable))
+    log.warning("%s was trained with refined camera poses (gsplat's pose_opt): %d of the %d cameras of %s take its refinements "
+                "(%s; largest shift %.3g scene units)%s", what, refined, len(cameras), source, told, max(shifts, default=0.0),
+                f"; {bad} refinements not finite or of no rotation, not applied" if bad else "")
+    return out
+
+
+def _colmap_image_names(source: str | Path) -> list[str] | None:
+    """The image names of dataset `source`'s COLMAP model, or None for another camera format."""
+    try:
+        kind, found = detect_dataset(source)
+    except InputError:
+        return None
+    if kind != "colmap":
+        return None
+    return [image.name for image in read_colmap_model(found).images.values()]
 
 
 def frame_hint(means: np.ndarray, cameras: Sequence[Camera]) -> str:

@@ -43,7 +43,9 @@ file can hold tensors and plain values but no code): gsplat's simple_trainer sav
 [N, 3] and features for its appearance model) and writes no PLY unless `save_ply` is on;
 nerfstudio's splatfacto saves {"pipeline": {"_model.gauss_params.means", ... features_dc [N, 3],
 features_rest [N, K-1, 3], opacities [N, 1]}}. Both store log scales, (w, x, y, z) quaternions and
-opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`).
+opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`). A gsplat run with
+`pose_opt` also saves its camera refinements ({"pose_adjust": {"embeds.weight" [T, 9]}}:
+`checkpoint_pose_deltas`, which drsplat.frames applies to the training cameras).
 """
 
 from __future__ import annotations
@@ -369,6 +371,26 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
             "sh": sh, "extra": {}}
     return cols, list(read), layout
 
+
+
+POSE_ADJUST = ("pose_adjust", "embeds.weight")  # where gsplat's simple_trainer (pose_opt) keeps its camera refinements
+
+
+def checkpoint_pose_deltas(path: str | Path) -> np.ndarray | None:
+    """[T, 9] float64: the camera refinements a gsplat checkpoint saved with `pose_opt` holds (its
+    CameraOptModule's `pose_adjust` state, `embeds.weight`: per training image a shift dx [3] and a
+    6-D rotation offset [6]; drsplat.frames applies them), or None for any other file (a PLY, a
+    nerfstudio checkpoint, gsplat's without pose_opt). The rows are as stored: non-finite ones are
+    the caller's to count. InputError naming the file and field for an entry of another shape."""
+    path = Path(path)
+    if path.suffix.lower() not in CHECKPOINT_SUFFIXES or not path.is_file():
+        return None
+    data = _load_checkpoint(path)
+    group, key = POSE_ADJUST
+    if not isinstance(data.get("splats"), dict) or not isinstance(data.get(group), dict):
+        return None
+    named = {f"{group}.{k}": v for k, v in data[group].items()}
+    return _checkpoint_tensor(path, named, f"{group}.{key}", 2, 9).astype(np.float64)
 
 # ----------------------------------------------------------------------------- .splat
 

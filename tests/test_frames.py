@@ -12,6 +12,7 @@ import pytest
 from drsplat.cameras import load_cameras, look_at
 from drsplat.cli import main
 from drsplat.commands.common import load_registered
+from drsplat.errors import InputError
 from drsplat.frames import FrameMove, cameras_in_scene_frame, gsplat_normalizations, move_points, principal_axes, up_and_scale
 from drsplat.raster import share_in_some_view
 from drsplat.scene import load_ply, quat_to_rotmat, save_ply
@@ -352,3 +353,186 @@ def test_a_splatfacto_checkpoint_registers_in_its_runs_frame(tmp_path, capsys):
     both = assigned & (np.linalg.norm(b, axis=1) > 0)
     cos = np.sum(a[both] * b[both], axis=1) / (np.linalg.norm(a[both], axis=1) * np.linalg.norm(b[both], axis=1))
     assert np.quantile(cos, 0.01) > 0.999
+
+
+# ----------------------------------------------------------------------------- gsplat's pose_opt refinements
+
+
+def _gsplat_camera_opt(camtoworlds, deltas):
+    """gsplat's CameraOptModule.forward (examples/utils.py, with its rotation_6d_to_matrix), in torch
+    float64: camtoworlds [V, 4, 4] · [R(d6 + identity) | dx]. The reference of `pose_refined`."""
+    import torch
+    import torch.nn.functional as F
+
+    pose = torch.from_numpy(deltas)
+    dx, drot = pose[..., :3], pose[..., 3:] + torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    a1, a2 = drot[..., :3], drot[..., 3:]
+    b1 = F.normalize(a1, dim=-1)
+    b2 = F.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
+    rot = torch.stack((b1, b2, torch.cross(b1, b2, dim=-1)), dim=-2)
+    transform = torch.eye(4, dtype=torch.float64).repeat(len(deltas), 1, 1)
+    transform[:, :3, :3], transform[:, :3, 3] = rot, dx
+    return torch.matmul(torch.from_numpy(camtoworlds), transform).numpy()
+
+
+def test_a_pose_refinement_is_gsplats_own():
+    """`pose_refined` turns a camera as gsplat's CameraOptModule turns its camera-to-world, on random
+    refinements from tiny to large (a 6-D offset of norm ~1 is a large turn) and one of zeros."""
+    from drsplat.frames import pose_refined
+
+    rng = np.random.default_rng(3)
+    c2w = ring_camtoworlds()
+    deltas = rng.normal(size=(4, 9)) * np.array([[1e-4], [0.01], [0.3], [1.0]])
+    want = _gsplat_camera_opt(c2w, deltas)
+    for m, delta, expected in zip(c2w, deltas, want):
+        got = pose_refined(_camera(np.linalg.inv(m)), delta)
+        np.testing.assert_allclose(np.linalg.inv(got.viewmat), expected, atol=1e-12)
+    same = pose_refined(_camera(np.linalg.inv(c2w[0])), np.zeros(9))
+    np.testing.assert_allclose(same.viewmat, np.linalg.inv(c2w[0]), atol=1e-15)
+
+
+def _gsplat_run(root, scene, deltas, settings: str | None = "test_every: 3\npose_opt: true\nstrategy: !!python/object:gsplat.DefaultStrategy\n  refine_every: 100\n"):
+    """A gsplat result_dir under root holding ckpts/ckpt_6999_rank0.pt (the scene, and pose_adjust with
+    `deltas` when given) and cfg.yml with `settings` (none when None); returns the checkpoint."""
+    import torch
+
+    from tests.test_checkpoints import gsplat_checkpoint
+
+    (root / "ckpts").mkdir(parents=True)
+    data = gsplat_checkpoint(scene)
+    if deltas is not None:
+        data["pose_adjust"] = {"embeds.weight": torch.from_numpy(np.asarray(deltas, np.float32)), "identity": torch.tensor([1.0, 0, 0, 0, 1, 0])}
+    if settings is not None:
+        (root / "cfg.yml").write_text(settings)
+    torch.save(data, root / "ckpts" / "ckpt_6999_rank0.pt")
+    return root / "ckpts" / "ckpt_6999_rank0.pt"
+
+
+@pytest.fixture(scope="module")
+def refined_run(tmp_path_factory):
+    """(the tiny room, its cameras as gsplat refined them (what the scene fits), a COLMAP model of the
+    cameras before refinement, the refinements by training row, the model's training names): every
+    3rd image (in name order) held out, as the run's cfg.yml says."""
+    from drsplat.frames import rotation_6d_to_matrix, training_names
+
+    root = tmp_path_factory.mktemp("refined")
+    assert main(["synth", str(root / "data"), "--preset", "tiny", "--seed", "1", "--no-progress", "-q"]) == 0
+    scene = load_ply(root / "data" / "scene.ply")
+    truth = load_cameras(root / "data")
+    train = training_names([f"{c.name}.png" for c in truth], 3)
+    rng = np.random.default_rng(11)
+    deltas = np.concatenate([rng.normal(scale=0.04, size=(len(train), 3)), rng.normal(scale=0.04, size=(len(train), 6))], axis=1)
+    deltas = deltas.astype(np.float32).astype(np.float64)  # what the checkpoint holds
+    row = {name[: -len(".png")]: r for r, name in enumerate(train)}
+    given = []  # the model's cameras: those that refined by their row give the truth
+    for c in truth:
+        if c.name not in row:
+            given.append(c)
+            continue
+        turn = rotation_6d_to_matrix(deltas[row[c.name], 3:] + np.array([1.0, 0, 0, 0, 1, 0]))  # R' = Rdᵀ R, t' = Rdᵀ (t - dx) undone
+        given.append(dataclasses.replace(c, R=turn @ np.asarray(c.R, np.float64), t=turn @ np.asarray(c.t, np.float64) + deltas[row[c.name], :3]))
+    rng2 = np.random.default_rng(7)
+    points = (scene.means[::5] + rng2.normal(scale=0.02, size=scene.means[::5].shape)).astype(np.float32)
+    source = _colmap_dataset(root / "colmap", given, points)
+    return root, scene, truth, source, deltas, train
+
+
+def test_a_gsplat_run_with_pose_opt_gets_its_refined_cameras(refined_run, tmp_path, caplog):
+    """A gsplat checkpoint saved with pose_opt holds a refinement per training image, in the order of
+    its trainset (the model's images by name, less every test_every-th, read from the run's cfg.yml).
+    The cameras come out as gsplat refined them, the held-out ones as the model gives them, with
+    one warning; a PLY of the same scene, or a checkpoint without pose_adjust, leaves them as given."""
+    root, scene, truth, source, deltas, train = refined_run
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas)
+    given = load_cameras(source, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+    assert len(caplog.records) == 1 and "refined camera poses (gsplat's pose_opt)" in caplog.text
+    assert f"{len(train)} of the {len(given)} cameras" in caplog.text and "test_every 3 from" in caplog.text
+    held = 0
+    by_name = {c.name: c for c in truth}
+    for got, model in zip(out, given):
+        want = by_name[model.name]  # to the model's round trip through quaternions; the refinements are ~0.04
+        np.testing.assert_allclose(got.R, want.R, atol=1e-6)
+        np.testing.assert_allclose(got.t, want.t, atol=1e-6)
+        held += f"{model.name}.png" not in train
+        assert (got is model) == (f"{model.name}.png" not in train)
+    assert held == len(given) - len(train) > 0
+    plain = _gsplat_run(tmp_path / "plain", scene, None)
+    assert cameras_in_scene_frame(scene.means, given, source, scene_path=plain) is given
+    assert cameras_in_scene_frame(scene.means, given, source, scene_path=root / "data" / "scene.ply") is given
+
+
+def test_drsplat_register_of_a_pose_opt_checkpoint_registers_with_its_refined_cameras(refined_run, tmp_path, capsys):
+    """End to end: the checkpoint registered with the model of unrefined cameras gives the features
+    of the scene registered with the cameras it was trained with; the model's cameras as given
+    register it elsewhere (the test fails without the refinements)."""
+    root, scene, truth, source, deltas, _ = refined_run
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas)
+    outs = {}
+    for name, path, src in (("truth", root / "data" / "scene.ply", root / "data"), ("ckpt", ckpt, source), ("unrefined", root / "data" / "scene.ply", source)):
+        outs[name] = tmp_path / f"{name}.ply"
+        assert main(["register", str(path), "--source", str(src), "--features", str(root / "data" / "features"), "--out", str(outs[name]),
+                     "--codebook", "none", "--aggregate", "paper", "--keep-unassigned", "--no-progress", "-q"]) == 0
+    assert capsys.readouterr().err.count("refined camera poses") == 1
+    feats = {name: load_registered(path)[1].storage.features.astype(np.float64) for name, path in outs.items()}
+
+    def agreement(a, b):
+        both = (np.linalg.norm(a, axis=1) > 0) & (np.linalg.norm(b, axis=1) > 0)
+        return np.sum(a[both] * b[both], axis=1) / (np.linalg.norm(a[both], axis=1) * np.linalg.norm(b[both], axis=1))
+
+    assert np.quantile(agreement(feats["truth"], feats["ckpt"]), 0.01) > 0.999
+    assert np.quantile(agreement(feats["truth"], feats["unrefined"]), 0.01) < 0.99
+
+
+@pytest.mark.parametrize("case,words", [
+    ("count", "has 12 training images"),
+    ("noise", "perturbed its cameras (pose_noise 0.01"),
+    ("test_every", "gives test_every '0'"),
+    ("transforms", "is none"),
+])
+def test_refinements_that_cannot_be_matched_are_left_out_with_a_warning(refined_run, tmp_path, caplog, case, words):
+    """Refinements applied to the wrong cameras would misplace every view: when their count is not the
+    model's training images' (another test_every, another model), the run perturbed its cameras
+    (pose_noise, not saved), cfg.yml's test_every is unusable, or the source is no COLMAP model,
+    the cameras are left as given, with one warning that says why."""
+    root, scene, truth, source, deltas, train = refined_run
+    settings = {"count": "test_every: 8\n", "noise": "test_every: 3\npose_noise: 0.01\n", "test_every": "test_every: 0\n",
+                "transforms": "test_every: 3\n"}[case]
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas, settings)
+    src = root / "data" if case == "transforms" else source
+    given = load_cameras(src, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert cameras_in_scene_frame(scene.means, given, src, what="ckpt", scene_path=ckpt) is given
+    assert len(caplog.records) == 1 and f"ckpt holds {len(deltas)} camera refinements (gsplat's pose_opt), not applied" in caplog.text
+    assert words.replace("12", str(sum(1 for i in range(len(given)) if i % 8))) in caplog.text
+
+
+def test_unusable_refinements_are_counted_and_the_rest_applied(refined_run, tmp_path, caplog):
+    """A NaN row, or one whose 6-D offset cancels the identity (no rotation: gsplat's own would be a
+    matrix of zeros), leaves its camera as the model gives it (counted in the warning); the others
+    are refined."""
+    root, scene, truth, source, deltas, train = refined_run
+    bad = deltas.copy()
+    bad[1, 4] = np.nan
+    bad[2, 3:] = -np.array([1.0, 0, 0, 0, 1, 0])  # a 6-D form of nothing: no rotation
+    ckpt = _gsplat_run(tmp_path / "run", scene, bad, settings="test_every: 3\n")
+    given = load_cameras(source, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+    assert "2 refinements not finite or of no rotation, not applied" in caplog.text and f"{len(train) - 2} of the {len(given)} cameras" in caplog.text
+    stems = {train[1][: -len(".png")], train[2][: -len(".png")]}
+    by_name = {c.name: c for c in truth}
+    for got, model in zip(out, given):
+        want = by_name[model.name]
+        if model.name in stems:
+            assert got is model and np.isfinite(got.R).all()
+        elif f"{model.name}.png" in train:
+            np.testing.assert_allclose(got.R, want.R, atol=1e-6)
+
+
+def test_a_pose_adjust_entry_of_another_shape_is_one_error_naming_it(refined_run, tmp_path):
+    root, scene, _, source, deltas, _ = refined_run
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas[:, :6])
+    with pytest.raises(InputError, match=r"field 'pose_adjust.embeds.weight'.*expected \[N, 9\]"):
+        cameras_in_scene_frame(scene.means, load_cameras(source, require_images=False), source, scene_path=ckpt)
