@@ -536,3 +536,20 @@ def test_a_pose_adjust_entry_of_another_shape_is_one_error_naming_it(refined_run
     ckpt = _gsplat_run(tmp_path / "run", scene, deltas[:, :6])
     with pytest.raises(InputError, match=r"field 'pose_adjust.embeds.weight'.*expected \[N, 9\]"):
         cameras_in_scene_frame(scene.means, load_cameras(source, require_images=False), source, scene_path=ckpt)
+
+
+def test_refinements_apply_in_gsplats_normalised_world(tiny_in_gsplats_world, tmp_path):
+    """gsplat refines its cameras after it normalises the world, so the refinement (its shift in
+    the normalised world's units) applies to the cameras moved there: C' = (T·C)·[R_d | dx]."""
+    from drsplat.frames import pose_refined, training_names
+
+    source, _, moved_path, _, move = tiny_in_gsplats_world
+    given = load_cameras(source, require_images=False)
+    train = training_names([f"{c.name}.png" for c in given], 8)
+    deltas = np.random.default_rng(5).normal(scale=0.03, size=(len(train), 9)).astype(np.float32).astype(np.float64)
+    ckpt = _gsplat_run(tmp_path / "run", load_ply(moved_path), deltas, settings=None)  # no cfg.yml: gsplat's default test_every 8
+    out = cameras_in_scene_frame(load_ply(moved_path).means, given, source, scene_path=ckpt)
+    row = {name[: -len(".png")]: r for r, name in enumerate(train)}
+    for got, moved in zip(out, move.cameras(given)):
+        want = pose_refined(moved, deltas[row[moved.name]]) if moved.name in row else moved
+        np.testing.assert_allclose(got.viewmat, want.viewmat, atol=1e-12)
