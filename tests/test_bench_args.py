@@ -490,3 +490,30 @@ def test_viewer_bench_refuses_a_typed_scene_that_is_missing_or_a_folder(tmp_path
     for flag, value in (("--width", "0"), ("--height", "100000"), ("--repeats", "0"), ("--sizes", "5"), ("--screenshot", str(tmp_path / "shots") + os.sep)):
         code, err, _ = run_cli(["bench", "viewer", flag, value], capsys)
         assert code == 2 and flag in err, (flag, err)
+
+
+def test_region_masks_follow_the_scene_from_view_to_view(tmp_path):
+    """`--real-masks regions`: a view's pixel is in the mask of its heaviest Gaussian's region, and a
+    region's masks in different views carry alike embeddings (cosine > 0.95 at noise 0.15), while
+    different regions' are far apart; pixels no Gaussian covers are in no mask."""
+    from drsplat.bench.register import blob_scene, orbit_cameras, region_mask_features
+    from drsplat.features.format import read_features
+    from drsplat.raster import rasterize_topk
+
+    scene = blob_scene(3000, seed=2)
+    cameras = orbit_cameras(scene.means, 3, 48, 36)
+    region_mask_features(tmp_path, cameras, scene, np.random.default_rng(0), regions=6, dim=64)
+    for cam in cameras:
+        ids, feats = read_features(tmp_path, cam.name)
+        top = rasterize_topk(scene, cam, 1).ids[..., 0]
+        assert ((ids >= 0) == (top >= 0)).all() and len(feats) >= 2
+        assert np.array_equal(np.unique(ids[ids >= 0]), np.arange(len(feats)))  # every mask has pixels
+        np.testing.assert_allclose(np.linalg.norm(feats, axis=1), 1.0, rtol=1e-5)
+    # across views, the masks' embeddings fall into tight groups, one per region, far from one another
+    allf = np.concatenate([read_features(tmp_path, c.name)[1] for c in cameras])
+    cos = allf @ allf.T
+    close = cos > 0.95
+    assert (np.diag(close)).all()
+    groups = {tuple(np.flatnonzero(row)) for row in close}
+    assert 2 <= len(groups) <= 6 and sum(len(g) for g in groups) == len(allf)  # a partition: each mask in one region's group
+    assert cos[~close].max() < 0.6

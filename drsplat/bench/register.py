@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 STREAM_VIEWS = 8  # at least this many views timed back to back (the counted cameras repeated)
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
+REAL_MASKS = {"voronoi": "random-mask features (every mask its own label)", "regions": "scene-region mask features"}  # --real-masks
+REAL_REGIONS = 64  # 3D regions of `region_mask_features`
+REGION_NOISE = 0.15  # the random part of a region mask's embedding (drsplat synth's default --noise)
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
@@ -56,6 +59,10 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--views", type=positive_int, default=50, help="orbiting views on the real scene (default: 50)")
     p.add_argument("--size", type=view_size, default="640x480", help="real-scene view size WxH (default: 640x480)")
     p.add_argument("--real-topk", type=topk_int, default=DEFAULT_TOPK, help=f"top-k on the real scene, 1..{MAX_TOPK} (default: {DEFAULT_TOPK})")
+    p.add_argument("--real-masks", choices=sorted(REAL_MASKS), default="voronoi",
+                   help="the real-scene table's masks: random Voronoi cells with a random embedding each, no two alike (voronoi: "
+                        "the mask check's and the vote's costliest case), or the scene's 3D regions as each view sees them, a region's "
+                        "masks alike from view to view as a segmenter's on a real capture (regions) (default: voronoi)")
     p.add_argument("--skip-synthetic", action="store_true", help="only the real-scene table")
     p.add_argument("--skip-real", action="store_true", help="only the synthetic table")
     p.add_argument("--skip-stages", action="store_true", help="no per-stage split (reference vs top-k compositor) on the real scene")
@@ -292,26 +299,69 @@ def random_mask_features(features_dir: Path, cameras, rng: np.random.Generator, 
         write_features(features_dir, cam.name, ids, feats)
 
 
+def region_mask_features(features_dir: Path, cameras, scene, rng: np.random.Generator, regions: int = REAL_REGIONS,
+                         noise: float = REGION_NOISE, dim: int = 512) -> None:
+    """Masks that follow the scene, as a segmenter and CLIP give them on a real capture: the Gaussians
+    cut into `regions` 3D regions (each the Gaussians nearest one of `regions` centres drawn among
+    them), a view's pixel labelled by the region of its heaviest Gaussian (a top-1 render), one mask
+    per region in view, embedded as the region's unit vector plus `noise` times a random unit vector,
+    normalised (`drsplat synth`'s oracle rule). So a region's masks agree from view to view, unlike
+    `random_mask_features`, where every mask is a label of its own (the mask check's and the vote's
+    most expensive case: as many clusters as masks)."""
+    from scipy.spatial import cKDTree
+
+    from drsplat.features.format import write_features
+    from drsplat.raster import prepare_scene, rasterize_topk
+
+    means = np.asarray(scene.means, np.float64)
+    finite = np.flatnonzero(np.isfinite(means).all(axis=1))
+    centres = means[rng.choice(finite, size=min(regions, finite.size), replace=False)]
+    region = np.full(len(means), -1, np.int64)
+    region[finite] = cKDTree(centres).query(means[finite], workers=-1)[1]
+    labels = rng.normal(size=(len(centres), dim))
+    labels /= np.linalg.norm(labels, axis=1, keepdims=True)
+    prepared = prepare_scene(scene, with_sh=False)
+    for cam in cameras:
+        top = rasterize_topk(prepared, cam, 1).ids[..., 0]
+        seen = np.where(top >= 0, region[np.maximum(top, 0)], -1)
+        present, ids = np.unique(seen, return_inverse=True)
+        ids = ids.reshape(seen.shape).astype(np.int32) - int(present[0] < 0)  # -1 stays where no Gaussian is
+        present = present[present >= 0]
+        jitter = rng.normal(size=(len(present), dim))
+        feats = labels[present] + noise * jitter / np.linalg.norm(jitter, axis=1, keepdims=True)
+        feats /= np.linalg.norm(feats, axis=1, keepdims=True)
+        write_features(features_dir, cam.name, ids, feats.astype(np.float32))
+
+
+def write_real_masks(kind: str, features_dir: Path, cameras, scene) -> None:
+    """The real-scene table's mask features (REAL_MASKS): "voronoi" (`random_mask_features`) or "regions" (`region_mask_features`)."""
+    if kind == "regions":
+        region_mask_features(features_dir, cameras, scene, np.random.default_rng(0))
+    else:
+        random_mask_features(features_dir, cameras, np.random.default_rng(0))
+
+
 def real_table(scene, name: str, views: int, width: int, height: int, topk: int, repeats: int, aggregate: str = DEFAULT_AGGREGATE,
-               against: str | None = None) -> str:
+               against: str | None = None, masks: str = "voronoi") -> str:
     """The whole registration of `scene` (called `name`) seen by orbiting views: time per view by stage, ms per 1M pairs.
-    With `against`, that mode is timed in the same run, alternating (`timed_pair`): its table, then the ratio line."""
+    With `against`, that mode is timed in the same run, alternating (`timed_pair`): its table, then the ratio line.
+    masks: the views' mask features (`write_real_masks`)."""
     cameras = orbit_cameras(scene.means, views, width, height)
     with tempfile.TemporaryDirectory() as tmp:
         features_dir = Path(tmp)
-        random_mask_features(features_dir, cameras, np.random.default_rng(0))
+        write_real_masks(masks, features_dir, cameras, scene)
         if against is None:
             timed, other = timed_register(scene, cameras, features_dir, topk, repeats, aggregate=aggregate), None
         else:
             timed, other = timed_pair(scene, cameras, features_dir, topk, repeats, (aggregate, against))
-    text = _stage_rows(scene, name, width, height, topk, repeats, aggregate, timed)
+    text = _stage_rows(scene, name, width, height, topk, repeats, aggregate, timed, masks)
     if other is None:
         return text
-    return "\n".join([text, "", _stage_rows(scene, name, width, height, topk, repeats, against, other), "",
+    return "\n".join([text, "", _stage_rows(scene, name, width, height, topk, repeats, against, other, masks), "",
                       ratio_line(aggregate, against, ratios(timed, other))])
 
 
-def _stage_rows(scene, name: str, width: int, height: int, topk: int, repeats: int, aggregate: str, timed: Timed) -> str:
+def _stage_rows(scene, name: str, width: int, height: int, topk: int, repeats: int, aggregate: str, timed: Timed, masks: str = "voronoi") -> str:
     """`real_table`'s table of one mode's timed registrations."""
     runs, result, seconds, cpu_seconds = timed.runs, timed.result, timed.seconds, timed.cpu_seconds
     raster_s = statistics.median(r.raster_seconds for r in runs)
@@ -327,7 +377,7 @@ def _stage_rows(scene, name: str, width: int, height: int, topk: int, repeats: i
         ["total CPU time, all threads", 1e3 * cpu_seconds, 1e3 * cpu_seconds / views, 1e3 * cpu_seconds / mpairs],
     ]
     head = (f"{name}: {scene.num_gaussians:,} Gaussians, {views} orbiting views {width}x{height}, top-{topk}, "
-            f"512-D random-mask features; {mpairs:.1f} M contributing pairs, {result.num_distinct_pairs / 1e6:.2f} M distinct "
+            f"512-D {REAL_MASKS[masks]}; {mpairs:.1f} M contributing pairs, {result.num_distinct_pairs / 1e6:.2f} M distinct "
             f"(Gaussian, mask) pairs, {result.num_assigned:,} Gaussians assigned; --aggregate {aggregate}; median of {repeats}")
     return head + "\n" + format_table(["stage", "ms (wall)", "ms/view", "ms/1M pairs"], rows)
 
@@ -883,7 +933,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.skip_stages:
                 print(stage_table(scene, name, args.views, width, height, args.real_topk))
                 print()
-            print(real_table(scene, name, args.views, width, height, args.real_topk, args.repeats, args.aggregate, args.against))
+            print(real_table(scene, name, args.views, width, height, args.real_topk, args.repeats, args.aggregate, args.against, args.real_masks))
     print(f"peak RSS {peak_rss_mb():.0f} MB")
     print(machine_line())
     return 0
