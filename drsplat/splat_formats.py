@@ -373,6 +373,7 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
 
 
 
+GSPLAT_CHECKPOINT_SUFFIXES = (".pt", ".pth")  # what a gsplat checkpoint may be called (nerfstudio's are .ckpt)
 POSE_ADJUST = ("pose_adjust", "embeds.weight")  # where gsplat's simple_trainer (pose_opt) keeps its camera refinements
 
 
@@ -383,7 +384,7 @@ def checkpoint_pose_deltas(path: str | Path) -> np.ndarray | None:
     nerfstudio checkpoint, gsplat's without pose_opt). The rows are as stored: non-finite ones are
     the caller's to count. InputError naming the file and field for an entry of another shape."""
     path = Path(path)
-    if path.suffix.lower() not in CHECKPOINT_SUFFIXES or not path.is_file():
+    if path.suffix.lower() not in GSPLAT_CHECKPOINT_SUFFIXES or not path.is_file():  # not read again to find nothing
         return None
     data = _load_checkpoint(path)
     group, key = POSE_ADJUST
