@@ -247,7 +247,7 @@ def run_dataparser_transform(scene_path: str | Path) -> Path | None:
     """The dataparser_transforms.json of the nerfstudio run a checkpoint belongs to, if it is there:
     ns-train saves outputs/<experiment>/<method>/<timestamp>/ with config.yml and that file beside
     nerfstudio_models/step-<step>.ckpt, so it lies two folders above the checkpoint."""
-    path = Path(scene_path)
+    path = Path(scene_path).absolute()  # "step-1.ckpt" given from inside nerfstudio_models: its run folder is not "."'s parent
     if path.suffix.lower() != ".ckpt":
         return None
     found = path.parent.parent / DATAPARSER_TRANSFORMS
@@ -316,15 +316,18 @@ def gsplat_run_settings(scene_path: str | Path) -> tuple[dict[str, str], Path | 
     belongs to (result_dir/ckpts/ckpt_<step>_rank<r>.pt: two folders up) and its path; ({}, None)
     without one; {UNREADABLE: why} when it cannot be read. Read as lines, not as YAML: gsplat dumps
     its strategy objects with Python tags."""
-    found = Path(scene_path).parent.parent / GSPLAT_CONFIG
+    found = Path(scene_path).absolute().parent.parent / GSPLAT_CONFIG  # absolute: "ckpt.pt" given from inside ckpts/
     if not found.is_file():
         return {}, None
     try:
         with open(found, "rb") as f:
-            text = f.read(GSPLAT_CONFIG_BYTES).decode("utf-8", errors="replace")
+            raw = f.read(GSPLAT_CONFIG_BYTES)
     except OSError as exc:
         return {UNREADABLE: exc.strerror or type(exc).__name__}, found
-    return {m.group(1): m.group(2).strip() for m in re.finditer(r"^([A-Za-z_]\w*):[ \t]*([^\n]*)$", text, re.MULTILINE)}, found
+    encoding = "utf-16" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"  # a BOM: an editor's (or PowerShell's) copy
+    text = raw.decode(encoding, errors="replace")
+    lines = re.split(r"\r\n|\r|\n", text)
+    return {m.group(1): m.group(2).strip() for line in lines if (m := re.fullmatch(r"([A-Za-z_]\w*):[ \t]*(.*)", line))}, found
 
 
 def _test_every(settings: dict[str, str], config: Path | None) -> tuple[int | None, str]:
@@ -333,7 +336,9 @@ def _test_every(settings: dict[str, str], config: Path | None) -> tuple[int | No
         return GSPLAT_TEST_EVERY, f"gsplat's default test_every {GSPLAT_TEST_EVERY} (no {GSPLAT_CONFIG} two folders above the checkpoint)"
     if UNREADABLE in settings:
         return None, f"{config} cannot be read ({settings[UNREADABLE]})"
-    value = settings.get("test_every", str(GSPLAT_TEST_EVERY))
+    if "test_every" not in settings:  # gsplat dumps every setting: a file without it is not (all of) its cfg.yml
+        return None, f"{config} gives no test_every (not gsplat's settings, or cut short)"
+    value = settings["test_every"]
     if not re.fullmatch(r"\d{1,9}", value) or int(value) < 1:
         return None, f"{config} gives test_every {value!r}, not a positive whole number"
     return int(value), f"test_every {int(value)} from {config}"
@@ -343,36 +348,27 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
     """`cameras` (dataset `source`, in the frame the scene trained in) refined as the gsplat checkpoint
     `scene_path` refined them while training (`pose_opt`; module docstring), with one warning that
     says so; `cameras` themselves when it holds no refinements. The refinements are left out, with a
-    warning that says why, when they cannot be matched to the cameras: a source that is no COLMAP
-    model, a count that is not the model's training images', a run that perturbed its cameras
-    (`pose_noise`: the perturbation is not saved). A camera whose row is not finite, or whose 6-D
-    offset gives no rotation, keeps its pose (counted in the warning)."""
+    warning that says why, when they cannot be matched to the cameras (`_unmatched`). A camera whose
+    row is not finite, whose 6-D offset gives no rotation, or whose shift is longer than the whole
+    rig's reach (no refinement of a trained pose moves it so far) keeps its pose (counted in the warning)."""
     deltas = checkpoint_pose_deltas(scene_path)
     if deltas is None:
         return cameras
     settings, config = gsplat_run_settings(scene_path)
     test_every, told = _test_every(settings, config)
     names = _colmap_image_names(source)
-    skip = f"{what} holds {len(deltas):,} camera refinements (gsplat's pose_opt), not applied"
-    if test_every is None:
-        log.warning("%s: %s", skip, told)
-        return cameras
-    if names is None:
-        log.warning("%s: gsplat numbers them by a COLMAP model's images, and %s is none", skip, source)
-        return cameras
-    noise = settings.get("pose_noise", "0")
-    if not re.fullmatch(r"0+(\.0*)?|0?\.0+", noise):
-        log.warning("%s: the run perturbed its cameras (pose_noise %s in %s), and the perturbation is not saved", skip, noise, config)
+    why = _unmatched(deltas, settings, config, test_every, told, names, source)
+    if why:
+        log.warning("%s holds %s camera refinements (gsplat's pose_opt), not applied: %s", what, f"{len(deltas):,}", why)
         return cameras
     train = training_names(names, test_every)
-    if len(train) != len(deltas):
-        log.warning("%s: the COLMAP model of %s has %d training images (%d images, every %d-th held out: %s)", skip, source, len(train),
-                    len(names), test_every, told)
-        return cameras
     row_of = {Path(name).stem: r for r, name in enumerate(train)}
+    centres = np.array([np.asarray(c.center, np.float64) for c in cameras]) if cameras else np.zeros((0, 3))
+    reach = float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) if len(centres) > 1 else np.inf
     with np.errstate(invalid="ignore", over="ignore"):
         turns = rotation_6d_to_matrix(deltas[:, 3:] + IDENTITY_6D)
-        usable = np.isfinite(deltas).all(axis=1) & (np.abs(np.linalg.det(turns) - 1.0) < 1e-6)  # a 6-D offset of -identity has no rotation
+        usable = (np.isfinite(deltas).all(axis=1) & (np.abs(np.linalg.det(turns) - 1.0) < 1e-6)  # a 6-D offset of -identity has no rotation
+                  & ~(np.linalg.norm(deltas[:, :3], axis=1) > (reach if reach > 0 else np.inf)))
     out, refined, shifts = [], 0, []
     for camera in cameras:
         r = row_of.get(camera.name)
@@ -385,8 +381,37 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
     bad = int(np.count_nonzero(~usable))
     log.warning("%s was trained with refined camera poses (gsplat's pose_opt): %d of the %d cameras of %s take its refinements "
                 "(%s; largest shift %.3g scene units)%s", what, refined, len(cameras), source, told, max(shifts, default=0.0),
-                f"; {bad} refinements not finite or of no rotation, not applied" if bad else "")
+                f"; {bad} refinements not finite, of no rotation or shifting a camera beyond the rig's reach ({reach:.3g}), not applied"
+                if bad else "")
     return out
+
+
+def _unmatched(deltas: np.ndarray, settings: dict[str, str], config: Path | None, test_every: int | None, told: str,
+               names: list[str] | None, source: str | Path) -> str:
+    """Why refinements deltas [T, 9] cannot be matched to the cameras of `source` (its COLMAP model's
+    image names, None for another format), or "": cfg.yml's test_every unusable (`told` why), a run
+    its cfg.yml says did not refine poses or read no COLMAP model, one that perturbed its cameras
+    (pose_noise > 0: the perturbation is not saved), or a count that is not the model's training images'."""
+    if test_every is None:
+        return told
+    if settings.get("pose_opt", "true").lower() in ("false", "no", "off"):
+        return f"{config} says pose_opt: {settings['pose_opt']} (a checkpoint of another run?)"
+    if settings.get("data_type", "colmap").strip("'\"") != "colmap":
+        return f"{config} says data_type: {settings['data_type']}, and only a COLMAP dataset's training order is known"
+    if names is None:
+        return f"gsplat numbers them by a COLMAP model's images, and {source} is none"
+    noise = settings.get("pose_noise", "0")
+    try:
+        perturbed = not float(noise) <= 0.0  # gsplat perturbs when pose_noise > 0; NaN or unreadable: assume it did
+    except ValueError:
+        perturbed = True
+    if perturbed:
+        return f"the run perturbed its cameras (pose_noise {noise} in {config}), and the perturbation is not saved"
+    train = training_names(names, test_every)
+    if len(train) != len(deltas):
+        return (f"the COLMAP model of {source} has {len(train)} training images ({len(names)} images, every {test_every}-th held out: "
+                f"{told})")
+    return ""
 
 
 def _colmap_image_names(source: str | Path) -> list[str] | None:

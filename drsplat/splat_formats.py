@@ -388,8 +388,11 @@ def checkpoint_pose_deltas(path: str | Path) -> np.ndarray | None:
         return None
     data = _load_checkpoint(path)
     group, key = POSE_ADJUST
-    if not isinstance(data.get("splats"), dict) or not isinstance(data.get(group), dict):
+    if not isinstance(data.get("splats"), dict) or group not in data:
         return None
+    if not isinstance(data[group], dict):
+        raise InputError(path, f"is a {type(data[group]).__name__}, not the state of gsplat's CameraOptModule (a dictionary holding {key})",
+                         field=group)
     named = {f"{group}.{k}": v for k, v in data[group].items()}
     return _checkpoint_tensor(path, named, f"{group}.{key}", 2, 9).astype(np.float64)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -490,15 +491,20 @@ def test_drsplat_register_of_a_pose_opt_checkpoint_registers_with_its_refined_ca
     ("noise", "perturbed its cameras (pose_noise 0.01"),
     ("test_every", "gives test_every '0'"),
     ("transforms", "is none"),
+    ("no key", "gives no test_every"),
+    ("pose_opt off", "says pose_opt: false"),
+    ("ncore", "says data_type: ncore"),
 ])
 def test_refinements_that_cannot_be_matched_are_left_out_with_a_warning(refined_run, tmp_path, caplog, case, words):
     """Refinements applied to the wrong cameras would misplace every view: when their count is not the
     model's training images' (another test_every, another model), the run perturbed its cameras
-    (pose_noise, not saved), cfg.yml's test_every is unusable, or the source is no COLMAP model,
-    the cameras are left as given, with one warning that says why."""
+    (pose_noise, not saved), cfg.yml's test_every is unusable or absent (round 24: 8 was taken and
+    said to be the file's), cfg.yml says the run did not refine poses or read no COLMAP model, or the
+    source is no COLMAP model, the cameras are left as given, with one warning that says why."""
     root, scene, truth, source, deltas, train = refined_run
     settings = {"count": "test_every: 8\n", "noise": "test_every: 3\npose_noise: 0.01\n", "test_every": "test_every: 0\n",
-                "transforms": "test_every: 3\n"}[case]
+                "transforms": "test_every: 3\n", "no key": "pose_opt: true\n", "pose_opt off": "test_every: 3\npose_opt: false\n",
+                "ncore": "test_every: 3\ndata_type: ncore\n"}[case]
     ckpt = _gsplat_run(tmp_path / "run", scene, deltas, settings)
     src = root / "data" if case == "transforms" else source
     given = load_cameras(src, require_images=False)
@@ -509,19 +515,21 @@ def test_refinements_that_cannot_be_matched_are_left_out_with_a_warning(refined_
 
 
 def test_unusable_refinements_are_counted_and_the_rest_applied(refined_run, tmp_path, caplog):
-    """A NaN row, or one whose 6-D offset cancels the identity (no rotation: gsplat's own would be a
-    matrix of zeros), leaves its camera as the model gives it (counted in the warning); the others
-    are refined."""
+    """A NaN row, one whose 6-D offset cancels the identity (no rotation: gsplat's own would be a
+    matrix of zeros), or one shifting its camera 1e30 (round 24: applied, and the view saw nothing)
+    leaves its camera as the model gives it (counted in the warning); the others are refined."""
     root, scene, truth, source, deltas, train = refined_run
     bad = deltas.copy()
     bad[1, 4] = np.nan
     bad[2, 3:] = -np.array([1.0, 0, 0, 0, 1, 0])  # a 6-D form of nothing: no rotation
+    bad[3, 0] = 1e30  # finite, but no refinement of a trained pose moves a camera past the whole rig
     ckpt = _gsplat_run(tmp_path / "run", scene, bad, settings="test_every: 3\n")
     given = load_cameras(source, require_images=False)
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
         out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
-    assert "2 refinements not finite or of no rotation, not applied" in caplog.text and f"{len(train) - 2} of the {len(given)} cameras" in caplog.text
-    stems = {train[1][: -len(".png")], train[2][: -len(".png")]}
+    assert "3 refinements not finite, of no rotation or shifting a camera beyond the rig's reach" in caplog.text
+    assert f"{len(train) - 3} of the {len(given)} cameras" in caplog.text
+    stems = {name[: -len(".png")] for name in train[1:4]}
     by_name = {c.name: c for c in truth}
     for got, model in zip(out, given):
         want = by_name[model.name]
@@ -553,3 +561,67 @@ def test_refinements_apply_in_gsplats_normalised_world(tiny_in_gsplats_world, tm
     for got, moved in zip(out, move.cameras(given)):
         want = pose_refined(moved, deltas[row[moved.name]]) if moved.name in row else moved
         np.testing.assert_allclose(got.viewmat, want.viewmat, atol=1e-12)
+
+
+@pytest.mark.parametrize("form", ["utf-8 BOM", "utf-16", "CR", "relative path"])
+def test_the_runs_settings_are_read_in_any_form_and_from_inside_ckpts(refined_run, tmp_path, caplog, monkeypatch, form):
+    """Round 24: a cfg.yml behind a BOM (UTF-8 or UTF-16, as PowerShell writes it) or with CR line ends
+    read as no test_every (and 8 was taken, the refinements given to the wrong cameras where 8 gave
+    the same count); the checkpoint named from inside its ckpts/ folder looked for ./cfg.yml."""
+    root, scene, truth, source, deltas, train = refined_run
+    text = "strategy: x\ntest_every: 3\npose_opt: true\n"
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas, settings=None)
+    data = {"utf-8 BOM": b"\xef\xbb\xbf" + text.replace("strategy: x\n", "").encode(), "utf-16": text.encode("utf-16"),
+            "CR": text.replace("\n", "\r").encode(), "relative path": text.encode()}[form]
+    (tmp_path / "run" / "cfg.yml").write_bytes(data)
+    if form == "relative path":
+        (ckpt.parent / "cfg.yml").write_text("test_every: 8\n")  # a stray one where "." would look
+        monkeypatch.chdir(ckpt.parent)
+        ckpt = Path(ckpt.name)
+    given = load_cameras(source, require_images=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+    assert "test_every 3 from" in caplog.text and f"{len(train)} of the {len(given)} cameras" in caplog.text
+    by_name = {c.name: c for c in truth}
+    for got in out:
+        np.testing.assert_allclose(got.R, by_name[got.name].R, atol=1e-6)
+
+
+def test_a_pose_adjust_that_is_not_a_dictionary_is_one_error_naming_it(refined_run, tmp_path):
+    """Round 24: a pose_adjust entry of another kind (a tensor) was read as none, without a word."""
+    import torch
+
+    from tests.test_checkpoints import gsplat_checkpoint
+
+    _, scene, _, source, deltas, _ = refined_run
+    (tmp_path / "ckpts").mkdir()
+    torch.save({**gsplat_checkpoint(scene), "pose_adjust": torch.from_numpy(deltas)}, tmp_path / "ckpts" / "ckpt_1_rank0.pt")
+    with pytest.raises(InputError, match=r"field 'pose_adjust'.*not the state of gsplat's CameraOptModule"):
+        cameras_in_scene_frame(scene.means, load_cameras(source, require_images=False), source, scene_path=tmp_path / "ckpts" / "ckpt_1_rank0.pt")
+
+
+def test_the_viewer_opening_another_checkpoint_of_the_run_takes_its_refinements(refined_run, tmp_path):
+    """Round 24: the viewer keeps the training cameras when the next scene lies in the same folder,
+    and kept them as the first scene's frame and refinements made them: the next checkpoint of the
+    run registered with the earlier one's refinements, or a checkpoint opened after a PLY with none."""
+    import types
+
+    import torch
+
+    from tests.test_checkpoints import gsplat_checkpoint
+    from viewer.app import ViewerApp
+    from viewer.state import ViewerState
+
+    root, scene, truth, source, deltas, train = refined_run
+    first = _gsplat_run(tmp_path / "run", scene, deltas)
+    later = first.with_name("ckpt_29999_rank0.pt")
+    torch.save({**gsplat_checkpoint(scene), "pose_adjust": {"embeds.weight": torch.zeros(len(train), 9)}}, later)
+    state = ViewerState()
+    assert state.load_scene(first) and state.load_source(source)
+    by_name = {c.name: c for c in truth}
+    assert all(np.allclose(c.R, by_name[c.name].R, atol=1e-6) for c in state.cameras)
+    assert ViewerApp.open_scene(types.SimpleNamespace(state=state), later)
+    given = {c.name: c for c in load_cameras(source, require_images=False)}
+    for c in state.cameras:  # zero refinements: the model's own cameras
+        np.testing.assert_allclose(c.R, given[c.name].R, atol=1e-9)
+    assert state.source_dir == source

@@ -563,7 +563,8 @@ class ViewerApp:
     def open_scene(self, path: str | Path) -> bool:
         """Open another PLY (Scene panel, file dialog, drop). The training cameras and oracle
         labels are kept when it lies in the same folder as the current scene (an export or a
-        registration of it), else dropped."""
+        registration of it), else dropped; kept, they are read again for the new scene, whose frame
+        and trainer's camera refinements (drsplat.frames) may not be the old one's."""
         if not str(path).strip():  # Path("") is ".", which would then be "not a file"
             self.state.error("type the path of a PLY to open")
             return False
@@ -572,6 +573,8 @@ class ViewerApp:
         if not self.state.load_scene(path):
             return False
         if not same_folder:
+            self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
+        elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir):
             self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
         self.state.start_text_encoder()
         self.state.settings.reset_paths(self.state.scene_path)
