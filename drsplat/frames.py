@@ -68,7 +68,6 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transform
                              read_colmap_model, read_dataparser_transform)
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
-from drsplat.splat_formats import checkpoint_pose_deltas
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +83,7 @@ GSPLAT_CONFIG = "cfg.yml"  # simple_trainer's dump of its settings, in its resul
 UNREADABLE = "(unreadable)"  # `gsplat_run_settings`' key for a cfg.yml it could not read (no YAML key has this form)
 GSPLAT_CONFIG_BYTES = 1 << 20  # what is read of it (gsplat's is a few kB; test_every sits among its first lines)
 IDENTITY_6D = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])  # the 6-D form of no rotation
+REFINED_COMMENT = "drsplat cameras refined by the gsplat pose_opt of "  # + the checkpoint: a registered PLY's header (`refinement_comment`)
 
 
 @dataclass(frozen=True)
@@ -255,13 +255,14 @@ def run_dataparser_transform(scene_path: str | Path) -> Path | None:
 
 
 def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str | Path, what: str = "the scene",
-                           scene_path: str | Path | None = None) -> list[Camera]:
+                           scene_path: str | Path | None = None, refinements: np.ndarray | None = None) -> list[Camera]:
     """`cameras` (from dataset `source`) in the frame their scene was trained in, with one warning
     that names the move (`what`: the scene, as the warning calls it); else `cameras` themselves:
     - a nerfstudio checkpoint (scene_path) whose run folder holds dataparser_transforms.json, when no
       such file lies beside the cameras (`cameras.load_cameras` applies that one): its move;
     - else gsplat's normalised world, when `best_move` finds the scene of centres means [N, 3] in it;
-    - then, for a gsplat checkpoint trained with pose_opt, its camera refinements (`with_pose_refinements`)."""
+    - then, for a gsplat checkpoint trained with pose_opt, its camera refinements (`with_pose_refinements`;
+      refinements: its load report's `camera_refinements`, read with the scene)."""
     run = run_dataparser_transform(scene_path) if scene_path is not None and dataparser_transforms_path(source) is None else None
     if run is not None:
         rotation, translation, scale = read_dataparser_transform(run)
@@ -276,7 +277,7 @@ def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str
                     "normalize_world_space is off): the %d cameras are moved there (scale %.6g)", what, move.name, source, why,
                     len(cameras), move.scale)
         cameras = move.cameras(cameras)
-    return with_pose_refinements(cameras, source, scene_path, what) if scene_path is not None else cameras
+    return with_pose_refinements(cameras, source, scene_path, refinements, what) if scene_path is not None else cameras
 
 
 def rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
@@ -344,14 +345,15 @@ def _test_every(settings: dict[str, str], config: Path | None) -> tuple[int | No
     return int(value), f"test_every {int(value)} from {config}"
 
 
-def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path: str | Path, what: str = "the scene") -> list[Camera]:
+def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path: str | Path, deltas: np.ndarray | None,
+                          what: str = "the scene") -> list[Camera]:
     """`cameras` (dataset `source`, in the frame the scene trained in) refined as the gsplat checkpoint
-    `scene_path` refined them while training (`pose_opt`; module docstring), with one warning that
-    says so; `cameras` themselves when it holds no refinements. The refinements are left out, with a
+    `scene_path` refined them while training (`pose_opt`; module docstring): deltas [T, 9] its
+    refinements as its load report holds them (`LoadReport.camera_refinements`), None without. One
+    warning says so; `cameras` themselves when there are none. The refinements are left out, with a
     warning that says why, when they cannot be matched to the cameras (`_unmatched`). A camera whose
     row is not finite, whose 6-D offset gives no rotation, or whose shift is longer than the whole
     rig's reach (no refinement of a trained pose moves it so far) keeps its pose (counted in the warning)."""
-    deltas = checkpoint_pose_deltas(scene_path)
     if deltas is None:
         return cameras
     settings, config = gsplat_run_settings(scene_path)
@@ -384,6 +386,19 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
                 f"; {bad} refinements not finite, of no rotation or shifting a camera beyond the rig's reach ({reach:.3g}), not applied"
                 if bad else "")
     return out
+
+
+def refinement_comment(scene_path: str | Path) -> str:
+    """The PLY header comment a registration writes when its cameras took the refinements of the
+    gsplat checkpoint `scene_path`, so that evaluating the registered scene takes them too (`refined_by`)."""
+    return f"{REFINED_COMMENT}{Path(scene_path).absolute()}"
+
+
+def refined_by(comments: Sequence[str]) -> Path | None:
+    """The checkpoint whose camera refinements a registered scene was registered with (its
+    `refinement_comment`), or None."""
+    found = next((c for c in comments if c.startswith(REFINED_COMMENT)), None)
+    return Path(found[len(REFINED_COMMENT):]) if found is not None else None
 
 
 def _unmatched(deltas: np.ndarray, settings: dict[str, str], config: Path | None, test_every: int | None, told: str,

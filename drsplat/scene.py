@@ -290,6 +290,7 @@ class LoadReport:
     row_bytes: int = 0  # bytes per vertex row (to say how many rows the trailing bytes could hold)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
+    camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
     @property
     def nonfinite_rows(self) -> int:
@@ -835,7 +836,8 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
         raise InputError(path, f"has no usable Gaussians: all {n:,} rows hold NaN or infinite values and were dropped: there is nothing to {purpose}")
     report = LoadReport(path=path, layout=layout, rows_in_file=n, sh_degree=int(round(np.sqrt(sh.shape[1]))) - 1,
                         has_normals="nx" in order, property_order=order,
-                        dropped_nan_rows=int(has_nan.sum()), dropped_inf_rows=int(drop_inf.sum()))
+                        dropped_nan_rows=int(has_nan.sum()), dropped_inf_rows=int(drop_inf.sum()),
+                        camera_refinements=cols.get("camera_refinements"))
     if not keep.all():
         means, quats, log_scales, logits, sh = means[keep], quats[keep], log_scales[keep], logits[keep], sh[keep]
         extra = {k: v[keep] for k, v in extra.items()}

@@ -44,8 +44,8 @@ file can hold tensors and plain values but no code): gsplat's simple_trainer sav
 nerfstudio's splatfacto saves {"pipeline": {"_model.gauss_params.means", ... features_dc [N, 3],
 features_rest [N, K-1, 3], opacities [N, 1]}}. Both store log scales, (w, x, y, z) quaternions and
 opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`). A gsplat run with
-`pose_opt` also saves its camera refinements ({"pose_adjust": {"embeds.weight" [T, 9]}}:
-`checkpoint_pose_deltas`, which drsplat.frames applies to the training cameras).
+`pose_opt` also saves its camera refinements ({"pose_adjust": {"embeds.weight" [T, 9]}}), read into
+the load report (`LoadReport.camera_refinements`), which drsplat.frames applies to the training cameras.
 """
 
 from __future__ import annotations
@@ -330,7 +330,8 @@ def checkpoint_columns(path: Path) -> tuple[dict, list[str], str]:
     joined = {key: np.concatenate([cols[key] for cols, _, _ in parts]) for key in ("means", "log_scales", "quats", "opacity_logits", "sh")}
     log.info("%s: the Gaussians of the %d per-GPU shares of its gsplat run (%s), joined in rank order", path, len(shares),
              ", ".join(f"{len(cols['means']):,}" for cols, _, _ in parts))
-    return {**joined, "extra": {}}, parts[0][1], f"{parts[0][2]} ({len(shares)} ranks)"
+    given = next(cols for share, (cols, _, _) in zip(shares, parts) if share.name == path.name)  # its pose_adjust: the ranks hold one each
+    return {**joined, "extra": {}, "camera_refinements": given["camera_refinements"]}, parts[0][1], f"{parts[0][2]} ({len(shares)} ranks)"
 
 
 def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
@@ -368,27 +369,22 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
     else:
         sh = np.concatenate([read[k_dc], read[k_rest]], axis=1)
     cols = {"means": read[k_means], "log_scales": read[k_scales], "quats": read[k_quats], "opacity_logits": read[k_opacities].reshape(-1),
-            "sh": sh, "extra": {}}
+            "sh": sh, "extra": {}, "camera_refinements": _pose_deltas(path, data) if gsplat else None}
     return cols, list(read), layout
 
 
 
-GSPLAT_CHECKPOINT_SUFFIXES = (".pt", ".pth")  # what a gsplat checkpoint may be called (nerfstudio's are .ckpt)
 POSE_ADJUST = ("pose_adjust", "embeds.weight")  # where gsplat's simple_trainer (pose_opt) keeps its camera refinements
 
 
-def checkpoint_pose_deltas(path: str | Path) -> np.ndarray | None:
-    """[T, 9] float64: the camera refinements a gsplat checkpoint saved with `pose_opt` holds (its
-    CameraOptModule's `pose_adjust` state, `embeds.weight`: per training image a shift dx [3] and a
-    6-D rotation offset [6]; drsplat.frames applies them), or None for any other file (a PLY, a
-    nerfstudio checkpoint, gsplat's without pose_opt). The rows are as stored: non-finite ones are
-    the caller's to count. InputError naming the file and field for an entry of another shape."""
-    path = Path(path)
-    if path.suffix.lower() not in GSPLAT_CHECKPOINT_SUFFIXES or not path.is_file():  # not read again to find nothing
-        return None
-    data = _load_checkpoint(path)
+def _pose_deltas(path: Path, data: dict) -> np.ndarray | None:
+    """[T, 9] float64: the camera refinements a gsplat checkpoint `data` (read from `path`) saved with
+    `pose_opt` holds (its CameraOptModule's `pose_adjust` state, `embeds.weight`: per training image
+    a shift dx [3] and a 6-D rotation offset [6]; drsplat.frames applies them), or None without
+    them. The rows are as stored: non-finite ones are the caller's to count. InputError naming the
+    file and field for an entry of another kind or shape."""
     group, key = POSE_ADJUST
-    if not isinstance(data.get("splats"), dict) or group not in data:
+    if group not in data:
         return None
     if not isinstance(data[group], dict):
         raise InputError(path, f"is a {type(data[group]).__name__}, not the state of gsplat's CameraOptModule (a dictionary holding {key})",

@@ -392,6 +392,15 @@ def test_a_pose_refinement_is_gsplats_own():
     np.testing.assert_allclose(same.viewmat, np.linalg.inv(c2w[0]), atol=1e-15)
 
 
+def _in_frame_of(scene_path, cameras, source, what: str = "the scene"):
+    """`cameras_in_scene_frame` as `drsplat register` and the viewer call it: the scene file loaded
+    (its centres and its load report's camera refinements) and named."""
+    from drsplat.splat_formats import load_scene_report
+
+    scene, report = load_scene_report(scene_path)
+    return cameras_in_scene_frame(scene.means, cameras, source, what=what, scene_path=scene_path, refinements=report.camera_refinements)
+
+
 def _gsplat_run(root, scene, deltas, settings: str | None = "test_every: 3\npose_opt: true\nstrategy: !!python/object:gsplat.DefaultStrategy\n  refine_every: 100\n"):
     """A gsplat result_dir under root holding ckpts/ckpt_6999_rank0.pt (the scene, and pose_adjust with
     `deltas` when given) and cfg.yml with `settings` (none when None); returns the checkpoint."""
@@ -447,7 +456,7 @@ def test_a_gsplat_run_with_pose_opt_gets_its_refined_cameras(refined_run, tmp_pa
     ckpt = _gsplat_run(tmp_path / "run", scene, deltas)
     given = load_cameras(source, require_images=False)
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
-        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+        out = _in_frame_of(ckpt, given, source, what="ckpt")
     assert len(caplog.records) == 1 and "refined camera poses (gsplat's pose_opt)" in caplog.text
     assert f"{len(train)} of the {len(given)} cameras" in caplog.text and "test_every 3 from" in caplog.text
     held = 0
@@ -460,8 +469,8 @@ def test_a_gsplat_run_with_pose_opt_gets_its_refined_cameras(refined_run, tmp_pa
         assert (got is model) == (f"{model.name}.png" not in train)
     assert held == len(given) - len(train) > 0
     plain = _gsplat_run(tmp_path / "plain", scene, None)
-    assert cameras_in_scene_frame(scene.means, given, source, scene_path=plain) is given
-    assert cameras_in_scene_frame(scene.means, given, source, scene_path=root / "data" / "scene.ply") is given
+    assert _in_frame_of(plain, given, source) is given
+    assert _in_frame_of(root / "data" / "scene.ply", given, source) is given
 
 
 def test_drsplat_register_of_a_pose_opt_checkpoint_registers_with_its_refined_cameras(refined_run, tmp_path, capsys):
@@ -509,7 +518,7 @@ def test_refinements_that_cannot_be_matched_are_left_out_with_a_warning(refined_
     src = root / "data" if case == "transforms" else source
     given = load_cameras(src, require_images=False)
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
-        assert cameras_in_scene_frame(scene.means, given, src, what="ckpt", scene_path=ckpt) is given
+        assert _in_frame_of(ckpt, given, src, what="ckpt") is given
     assert len(caplog.records) == 1 and f"ckpt holds {len(deltas)} camera refinements (gsplat's pose_opt), not applied" in caplog.text
     assert words.replace("12", str(sum(1 for i in range(len(given)) if i % 8))) in caplog.text
 
@@ -526,7 +535,7 @@ def test_unusable_refinements_are_counted_and_the_rest_applied(refined_run, tmp_
     ckpt = _gsplat_run(tmp_path / "run", scene, bad, settings="test_every: 3\n")
     given = load_cameras(source, require_images=False)
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
-        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+        out = _in_frame_of(ckpt, given, source, what="ckpt")
     assert "3 refinements not finite, of no rotation or shifting a camera beyond the rig's reach" in caplog.text
     assert f"{len(train) - 3} of the {len(given)} cameras" in caplog.text
     stems = {name[: -len(".png")] for name in train[1:4]}
@@ -543,7 +552,7 @@ def test_a_pose_adjust_entry_of_another_shape_is_one_error_naming_it(refined_run
     root, scene, _, source, deltas, _ = refined_run
     ckpt = _gsplat_run(tmp_path / "run", scene, deltas[:, :6])
     with pytest.raises(InputError, match=r"field 'pose_adjust.embeds.weight'.*expected \[N, 9\]"):
-        cameras_in_scene_frame(scene.means, load_cameras(source, require_images=False), source, scene_path=ckpt)
+        _in_frame_of(ckpt, load_cameras(source, require_images=False), source)
 
 
 def test_refinements_apply_in_gsplats_normalised_world(tiny_in_gsplats_world, tmp_path):
@@ -556,7 +565,7 @@ def test_refinements_apply_in_gsplats_normalised_world(tiny_in_gsplats_world, tm
     train = training_names([f"{c.name}.png" for c in given], 8)
     deltas = np.random.default_rng(5).normal(scale=0.03, size=(len(train), 9)).astype(np.float32).astype(np.float64)
     ckpt = _gsplat_run(tmp_path / "run", load_ply(moved_path), deltas, settings=None)  # no cfg.yml: gsplat's default test_every 8
-    out = cameras_in_scene_frame(load_ply(moved_path).means, given, source, scene_path=ckpt)
+    out = _in_frame_of(ckpt, given, source)
     row = {name[: -len(".png")]: r for r, name in enumerate(train)}
     for got, moved in zip(out, move.cameras(given)):
         want = pose_refined(moved, deltas[row[moved.name]]) if moved.name in row else moved
@@ -580,7 +589,7 @@ def test_the_runs_settings_are_read_in_any_form_and_from_inside_ckpts(refined_ru
         ckpt = Path(ckpt.name)
     given = load_cameras(source, require_images=False)
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
-        out = cameras_in_scene_frame(scene.means, given, source, what="ckpt", scene_path=ckpt)
+        out = _in_frame_of(ckpt, given, source, what="ckpt")
     assert "test_every 3 from" in caplog.text and f"{len(train)} of the {len(given)} cameras" in caplog.text
     by_name = {c.name: c for c in truth}
     for got in out:
@@ -597,7 +606,7 @@ def test_a_pose_adjust_that_is_not_a_dictionary_is_one_error_naming_it(refined_r
     (tmp_path / "ckpts").mkdir()
     torch.save({**gsplat_checkpoint(scene), "pose_adjust": torch.from_numpy(deltas)}, tmp_path / "ckpts" / "ckpt_1_rank0.pt")
     with pytest.raises(InputError, match=r"field 'pose_adjust'.*not the state of gsplat's CameraOptModule"):
-        cameras_in_scene_frame(scene.means, load_cameras(source, require_images=False), source, scene_path=tmp_path / "ckpts" / "ckpt_1_rank0.pt")
+        _in_frame_of(tmp_path / "ckpts" / "ckpt_1_rank0.pt", load_cameras(source, require_images=False), source)
 
 
 def test_the_viewer_opening_another_checkpoint_of_the_run_takes_its_refinements(refined_run, tmp_path):
@@ -625,3 +634,46 @@ def test_the_viewer_opening_another_checkpoint_of_the_run_takes_its_refinements(
     for c in state.cameras:  # zero refinements: the model's own cameras
         np.testing.assert_allclose(c.R, given[c.name].R, atol=1e-9)
     assert state.source_dir == source
+
+
+def test_register_reads_a_pose_opt_checkpoint_once(refined_run, tmp_path, monkeypatch):
+    """Round 24: the refinements were read by a second torch.load (and CRC scan) of the whole
+    checkpoint; they now come with the scene's load report."""
+    from drsplat import splat_formats
+
+    root, scene, _, source, deltas, _ = refined_run
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas)
+    calls = []
+    real = splat_formats._load_checkpoint
+    monkeypatch.setattr(splat_formats, "_load_checkpoint", lambda path: calls.append(path) or real(path))
+    assert main(["register", str(ckpt), "--source", str(source), "--features", str(root / "data" / "features"), "--out", str(tmp_path / "o.ply"),
+                 "--codebook", "none", "--aggregate", "paper", "--no-progress", "-q"]) == 0
+    assert calls == [ckpt]
+
+
+def test_eval_lerf_takes_the_cameras_the_registration_took(refined_run, tmp_path, capsys):
+    """Round 24: `eval lerf` of a pose_opt checkpoint's registered scene rendered its views from the
+    model's cameras, unrefined. The registration now names the checkpoint in the registered PLY's
+    header, and the evaluation refines its cameras from it again (or says it cannot)."""
+    from drsplat.commands.eval import trained_cameras
+
+    root, scene, truth, source, deltas, _ = refined_run
+    ckpt = _gsplat_run(tmp_path / "run", scene, deltas)
+    out = tmp_path / "registered.ply"
+    assert main(["register", str(ckpt), "--source", str(source), "--features", str(root / "data" / "features"), "--out", str(out),
+                 "--codebook", "none", "--aggregate", "paper", "--no-progress", "-q"]) == 0
+    registered, _ = load_registered(out)
+    given = load_cameras(source, require_images=False)
+    cams = cameras_in_scene_frame(registered.means, given, source, what=str(out), **trained_cameras(registered, out))
+    by_name = {c.name: c for c in truth}
+    for got in cams:
+        np.testing.assert_allclose(got.R, by_name[got.name].R, atol=1e-6)
+    plain = tmp_path / "plain.ply"
+    assert main(["register", str(root / "data" / "scene.ply"), "--source", str(source), "--features", str(root / "data" / "features"),
+                 "--out", str(plain), "--codebook", "none", "--aggregate", "paper", "--no-progress", "-q"]) == 0
+    assert trained_cameras(load_registered(plain)[0], plain) == {}
+    shutil.move(tmp_path / "run", tmp_path / "moved")
+    capsys.readouterr()
+    assert trained_cameras(registered, out) == {}
+    err = capsys.readouterr().err
+    assert "registered with the camera refinements of" in err and "which is not there" in err

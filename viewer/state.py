@@ -70,6 +70,7 @@ class ViewerState:
     def __init__(self) -> None:
         self.scene: GaussianScene | None = None
         self.scene_path: Path | None = None
+        self.scene_refinements: np.ndarray | None = None  # the open scene's trainer's camera refinements (drsplat.frames)
         self.field = None  # drsplat.lang.LanguageField | None
         self.cameras: list[Camera] = []
         self.source_dir: Path | None = None
@@ -126,18 +127,19 @@ class ViewerState:
         try:
             path = Path(path)
             with LibraryWarnings(self.messages):  # what the load warns of is shown, not only logged
-                scene, _ = load_scene_report(path, purpose="show; open another PLY")  # refuses a file with no usable row
+                scene, report = load_scene_report(path, purpose="show; open another PLY")  # refuses a file with no usable row
                 lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
-        self.set_scene(scene, lang, path)
+        self.set_scene(scene, lang, path, report.camera_refinements)
         return True
 
-    def set_scene(self, scene: GaussianScene, lang=None, path: Path | None = None) -> None:
+    def set_scene(self, scene: GaussianScene, lang=None, path: Path | None = None, refinements: np.ndarray | None = None) -> None:
         """Show `scene` with nothing of the previous one: no query, segmentation, display mode or
         CLIP encoder (another scene's features may come from another model; `start_text_encoder`
-        loads this one's)."""
-        self.scene, self.field, self.scene_path = scene, lang, path
+        loads this one's). refinements: its trainer's camera refinements (`LoadReport.camera_refinements`),
+        which the training cameras read next take (`load_source`)."""
+        self.scene, self.field, self.scene_path, self.scene_refinements = scene, lang, path, refinements
         self.query = None
         self.segmentation = None
         self.segment_names, self.segment_colors = [], np.zeros((0, 3), np.float32)
@@ -161,7 +163,7 @@ class ViewerState:
                 cameras = load_cameras(source, require_images=False)
                 if self.scene is not None:
                     cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=self.scene_path.name if self.scene_path else "the scene",
-                                                     scene_path=self.scene_path)
+                                                     scene_path=self.scene_path, refinements=self.scene_refinements)
             self.cameras = cameras
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")

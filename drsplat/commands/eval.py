@@ -497,6 +497,24 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     return 0
 
 
+def trained_cameras(scene, registered: Path) -> dict:
+    """`cameras_in_scene_frame`'s scene_path and refinements for a registered scene whose
+    registration took a gsplat checkpoint's camera refinements (`frames.refined_by` its header):
+    that checkpoint's, read again; {} for any other scene, or, with a warning, when the checkpoint
+    is no longer there."""
+    from drsplat.frames import refined_by
+    from drsplat.splat_formats import load_scene_report
+
+    checkpoint = refined_by(scene.comments)
+    if checkpoint is None:
+        return {}
+    if not checkpoint.is_file():
+        log.warning("%s was registered with the camera refinements of %s (gsplat's pose_opt), which is not there: evaluated with the "
+                    "dataset's cameras as they are", registered, checkpoint)
+        return {}
+    return {"scene_path": checkpoint, "refinements": load_scene_report(checkpoint)[1].camera_refinements}
+
+
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.commands.common import load_registered
@@ -516,7 +534,7 @@ def run_lerf(args: argparse.Namespace) -> int:
         raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
-    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.registered))
+    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.registered), **trained_cameras(scene, args.registered))
     guard_field_codebook(args.registered, field, {"--json": args.json})
     assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})

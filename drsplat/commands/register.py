@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -62,10 +63,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError
-    from drsplat.frames import cameras_in_scene_frame
+    from drsplat.frames import cameras_in_scene_frame, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for
     from drsplat.registration import RegisterOptions, register
-    from drsplat.splat_formats import load_scene, written_format
+    from drsplat.splat_formats import load_scene_report, written_format
 
     if written_format(args.out) != "ply":
         raise UsageError(f"--out {args.out.name}: {REGISTERED_IS_PLY}; name it .ply")
@@ -85,8 +86,11 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    scene = load_scene(args.scene, purpose="register")  # refuses a file with no usable row
-    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene)  # trainers' own worlds
+    scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
+    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
+                                     refinements=report.camera_refinements)  # trainers' own worlds and cameras
+    if report.camera_refinements is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
+        scene = dataclasses.replace(scene, comments=[*scene.comments, refinement_comment(args.scene)])
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
