@@ -388,10 +388,12 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
     return out
 
 
-def refinement_comment(scene_path: str | Path) -> str:
-    """The PLY header comment a registration writes when its cameras took the refinements of the
-    gsplat checkpoint `scene_path`, so that evaluating the registered scene takes them too (`refined_by`)."""
-    return f"{REFINED_COMMENT}{Path(scene_path).absolute()}"
+def refinement_comment(scene_path: str | Path) -> str | None:
+    """The PLY header comment a registration writes when its scene, the gsplat checkpoint `scene_path`,
+    holds camera refinements, so that evaluating the registered scene decides on them as the
+    registration did (`refined_by`); None for a path a header line cannot hold (a line break in it)."""
+    text = f"{REFINED_COMMENT}{Path(scene_path).absolute()}"
+    return None if "\n" in text or "\r" in text else text
 
 
 def refined_by(comments: Sequence[str]) -> Path | None:

@@ -89,8 +89,9 @@ def run(args: argparse.Namespace) -> int:
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
                                      refinements=report.camera_refinements)  # trainers' own worlds and cameras
-    if report.camera_refinements is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
-        scene = dataclasses.replace(scene, comments=[*scene.comments, refinement_comment(args.scene)])
+    comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
+    if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
+        scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
