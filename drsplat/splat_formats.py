@@ -373,7 +373,6 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
     return cols, list(read), layout
 
 
-
 POSE_ADJUST = ("pose_adjust", "embeds.weight")  # where gsplat's simple_trainer (pose_opt) keeps its camera refinements
 
 
@@ -391,6 +390,20 @@ def _pose_deltas(path: Path, data: dict) -> np.ndarray | None:
                          field=group)
     named = {f"{group}.{k}": v for k, v in data[group].items()}
     return _checkpoint_tensor(path, named, f"{group}.{key}", 2, 9).astype(np.float64)
+
+
+def checkpoint_refinements(path: str | Path) -> np.ndarray | None:
+    """The camera refinements of the gsplat checkpoint `path` (`_pose_deltas`) without its Gaussians:
+    what `eval lerf` needs of the checkpoint a registered scene names (`frames.refined_by`).
+    InputError for a file that is no gsplat checkpoint."""
+    path = Path(path)
+    if path.suffix.lower() not in CHECKPOINT_SUFFIXES:
+        raise InputError(path, f"is not a trainer checkpoint (no {', '.join(CHECKPOINT_SUFFIXES)} name)")
+    data = _load_checkpoint(path)
+    if not isinstance(data.get("splats"), dict):
+        raise InputError(path, "holds no gsplat checkpoint's 'splats'")
+    return _pose_deltas(path, data)
+
 
 # ----------------------------------------------------------------------------- .splat
 

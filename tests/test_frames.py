@@ -676,4 +676,33 @@ def test_eval_lerf_takes_the_cameras_the_registration_took(refined_run, tmp_path
     capsys.readouterr()
     assert trained_cameras(registered, out) == {}
     err = capsys.readouterr().err
-    assert "registered with the camera refinements of" in err and "which is not there" in err
+    assert "registered with the camera refinements of the gsplat checkpoint its header names, which cannot be read" in err
+    assert "is not a file here" in err
+
+
+@pytest.mark.parametrize("named", ["a PLY", "a damaged .pt", "no splats"])
+def test_a_registered_header_naming_another_file_leaves_the_cameras_as_they_are(tmp_path, capsys, named):
+    """Review: the checkpoint a registered PLY's header names is the file's word, not the user's. A
+    header naming some other PLY was read as a whole scene (and /etc/passwd stopped `eval lerf` with
+    "not a PLY file"); now only its refinements are read, from a gsplat checkpoint, and anything
+    else is a warning, the dataset's cameras used as they are."""
+    import types
+
+    import torch
+
+    from drsplat.commands.eval import trained_cameras
+    from drsplat.frames import REFINED_COMMENT
+    from tests.test_checkpoints import random_scene
+
+    target = {"a PLY": tmp_path / "other.ply", "a damaged .pt": tmp_path / "bad.pt", "no splats": tmp_path / "plain.pt"}[named]
+    if named == "a PLY":
+        save_ply(random_scene(20), target)
+    elif named == "a damaged .pt":
+        target.write_bytes(b"PK\x03\x04 not an archive")
+    else:
+        torch.save({"step": 1}, target)
+    capsys.readouterr()
+    assert trained_cameras(types.SimpleNamespace(comments=[REFINED_COMMENT + str(target)]), tmp_path / "r.ply") == {}
+    err = capsys.readouterr().err
+    assert "which cannot be read" in err and str(target) in err
+

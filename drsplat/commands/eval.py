@@ -500,19 +500,25 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
 def trained_cameras(scene, registered: Path) -> dict:
     """`cameras_in_scene_frame`'s scene_path and refinements for a registered scene whose
     registration took a gsplat checkpoint's camera refinements (`frames.refined_by` its header):
-    that checkpoint's, read again; {} for any other scene, or, with a warning, when the checkpoint
-    is no longer there."""
+    that checkpoint's refinements alone, read again (`splat_formats.checkpoint_refinements`); {} for
+    any other scene, or, with a warning, when the file its header names is not there or is no
+    readable gsplat checkpoint (a header is the registered file's word, not the user's)."""
+    from drsplat.errors import InputError
     from drsplat.frames import refined_by
-    from drsplat.splat_formats import load_scene_report
+    from drsplat.splat_formats import checkpoint_refinements
 
     checkpoint = refined_by(scene.comments)
     if checkpoint is None:
         return {}
-    if not checkpoint.is_file():
-        log.warning("%s was registered with the camera refinements of %s (gsplat's pose_opt), which is not there: evaluated with the "
-                    "dataset's cameras as they are", registered, checkpoint)
+    try:
+        if not checkpoint.is_file():
+            raise InputError(checkpoint, "is not a file here")
+        refinements = checkpoint_refinements(checkpoint)
+    except InputError as exc:
+        log.warning("%s was registered with the camera refinements of the gsplat checkpoint its header names, which cannot be read (%s): "
+                    "evaluated with the dataset's cameras as they are", registered, exc)
         return {}
-    return {"scene_path": checkpoint, "refinements": load_scene_report(checkpoint)[1].camera_refinements}
+    return {"scene_path": checkpoint, "refinements": refinements}
 
 
 def run_lerf(args: argparse.Namespace) -> int:
