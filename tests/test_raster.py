@@ -433,6 +433,51 @@ def test_depth_order_is_a_stable_argsort_of_depths():
         projected.depths = depths
         idx = np.flatnonzero(projected.valid)
         np.testing.assert_array_equal(depth_order(projected), idx[np.argsort(depths[idx], kind="stable")])
+        np.testing.assert_array_equal(raster.depth_order_reference(projected), idx[np.argsort(depths[idx], kind="stable")])
+
+
+def _depth_projected(depths: np.ndarray, valid: np.ndarray) -> Projected:
+    projected = Projected(*(None,) * 4, opacities=None, valid=valid, tile_rects=None, extents=None,
+                          qlimits=None, colors=None, width=1, height=1)  # fmt: skip
+    projected.depths = depths
+    return projected
+
+
+@pytest.mark.parametrize("case", ["normal", "one-depth", "few-depths", "wide-range", "negative-and-nan", "close-range"])
+def test_radix_depth_order_equals_the_reference_sort(case):
+    """The radix sort's three passes (some skipped when every key shares a digit) give numpy's order exactly."""
+    rng = np.random.default_rng(len(case))
+    n = 20_000
+    depths = {
+        "normal": rng.normal(3.0, 1.0, n),
+        "one-depth": np.full(n, 2.5),
+        "few-depths": rng.choice([0.5, 1.0, 1.0 + 2**-20, 7.0], n),
+        "wide-range": 10.0 ** rng.uniform(-30, 30, n) * rng.choice([-1.0, 1.0], n),
+        "negative-and-nan": np.where(rng.random(n) < 0.01, np.nan, rng.normal(0.0, 1e-3, n)),
+        "close-range": 5.0 + rng.integers(0, 64, n) * 2.0**-21,  # keys differ in the low digit only
+    }[case].astype(np.float32)
+    depths[:7] = [0.0, -0.0, np.inf, -np.inf, 3e38, 1e-45, -1e-45]
+    projected = _depth_projected(depths, rng.random(n) < 0.9)
+    np.testing.assert_array_equal(depth_order(projected), raster.depth_order_reference(projected))
+
+
+@pytest.mark.parametrize("n_chunks", [1, 2, 3, 64, 5000])
+def test_radix_pass_is_stable_for_any_chunking(n_chunks):
+    rng = np.random.default_rng(n_chunks)
+    keys = rng.integers(0, 2**32, 3000, dtype=np.uint64).astype(np.uint32)
+    keys[::3] = keys[1]  # many exact ties
+    ids = np.arange(keys.size, dtype=np.int64)
+    out_keys, out_ids = np.empty_like(keys), np.empty_like(ids)
+    for shift in (0, 11, 22):
+        assert kernels.radix_pass(keys, ids, out_keys, out_ids, shift, n_chunks)
+        digit = (keys >> np.uint32(shift)) & np.uint32(kernels.RADIX_MASK)
+        order = np.argsort(digit, kind="stable")
+        np.testing.assert_array_equal(out_keys, keys[order])
+        np.testing.assert_array_equal(out_ids, ids[order])
+    same = np.full(10, 77 << 11, np.uint32)
+    before = out_keys[:10].copy()
+    assert not kernels.radix_pass(same, ids[:10], out_keys[:10], out_ids[:10], 11, n_chunks)
+    np.testing.assert_array_equal(out_keys[:10], before)  # a skipped pass writes nothing
 
 
 @pytest.mark.parametrize("n_chunks", [1, 3, 64])
