@@ -72,10 +72,6 @@ def bin_gaussians(order: np.ndarray, tile_rects: np.ndarray, n_tiles_x: int, n_t
     return offsets, ids
 
 
-RADIX_BITS = 11  # three passes cover a 32-bit key; 2,048 counters per chunk stay in L1
-RADIX_MASK = (1 << RADIX_BITS) - 1
-
-
 @njit(parallel=True, cache=True)
 def depth_keys(idx: np.ndarray, depth_bits: np.ndarray) -> np.ndarray:
     """[M] uint32 keys that order as the float32 depths of Gaussians idx do.
@@ -91,45 +87,6 @@ def depth_keys(idx: np.ndarray, depth_bits: np.ndarray) -> np.ndarray:
             b = np.uint32(0)
         keys[i] = ~b if b >> np.uint32(31) else b | np.uint32(0x80000000)
     return keys
-
-
-@njit(parallel=True, cache=True)
-def radix_pass(keys, ids, out_keys, out_ids, shift, n_chunks) -> bool:
-    """One stable counting-sort pass of (keys, ids) by the RADIX_BITS digit of keys at `shift`.
-
-    keys: [M] uint32, ids: [M] int64; out_*: [M], written. The M entries are cut into n_chunks
-    contiguous chunks; a chunk's entries of digit d go, in order, after every entry of a smaller
-    digit and after the earlier chunks' entries of digit d, so the pass is stable whatever
-    n_chunks is. Returns False, writing nothing, when every key has the same digit there (the
-    pass would only copy).
-    """
-    m = keys.shape[0]
-    n_chunks = max(1, min(n_chunks, m))
-    step = (m + n_chunks - 1) // n_chunks
-    counts = np.zeros((n_chunks, RADIX_MASK + 1), np.int64)
-    sh = np.uint32(shift)
-    for c in prange(n_chunks):
-        for i in range(c * step, min(m, (c + 1) * step)):
-            counts[c, (keys[i] >> sh) & np.uint32(RADIX_MASK)] += 1
-    total = 0
-    for d in range(RADIX_MASK + 1):
-        in_digit = 0
-        for c in range(n_chunks):
-            in_digit += counts[c, d]
-        if in_digit == m:
-            return False
-        for c in range(n_chunks):
-            start = total
-            total += counts[c, d]
-            counts[c, d] = start
-    for c in prange(n_chunks):
-        for i in range(c * step, min(m, (c + 1) * step)):
-            d = (keys[i] >> sh) & np.uint32(RADIX_MASK)
-            slot = counts[c, d]
-            out_keys[slot] = keys[i]
-            out_ids[slot] = ids[i]
-            counts[c, d] = slot + 1
-    return True
 
 
 @njit(cache=True, inline="always")

@@ -30,6 +30,7 @@ import numpy as np
 
 from drsplat import _raster_kernels as kernels
 from drsplat._scene_kernels import finite_rows_kernel, gather_rows
+from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
@@ -39,7 +40,6 @@ log = logging.getLogger(__name__)
 TILE_SIZE = 16
 NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
-RADIX_CHUNKS_PER_THREAD = 1  # chunks of the depth sort's passes: each has its own 2,048 counters
 TILE_CHUNKS_PER_WORKER = 8  # runs of neighbouring tiles per compositing thread (`balance_tiles`)
 # A view's tile lists hold at most this many entries per Gaussian (with a floor for small scenes):
 # a view that needs more (close-ups, views far larger than 640x480) is binned and composited in
@@ -479,20 +479,15 @@ def depth_order(projected: Projected) -> np.ndarray:
     """[M] int64 ids of the valid Gaussians, front to back (stable: ties keep id order).
 
     The float32 depths are mapped to uint32 keys that order as the floats do (`kernels.depth_keys`)
-    and sorted with their ids by a least-significant-digit radix sort: three stable passes of 11
-    bits (`kernels.radix_pass`, in parallel over chunks; a pass whose digit is the same for every
-    key is skipped). The ids start in increasing order and every pass is stable, so ties keep it:
-    the result is exactly `depth_order_reference`'s, without a comparison sort (numpy's sort of
-    440k keys took 2 ms on one CPU of these machines and 21 ms on another).
+    and sorted with their ids by a least-significant-digit radix sort (`_sort_kernels.sort_by_key`:
+    three stable passes of 11 bits, in parallel over chunks; a digit every key shares is skipped).
+    The ids start in increasing order and every pass is stable, so ties keep it: the result is
+    exactly `depth_order_reference`'s, without a comparison sort (numpy's sort of 440k keys took
+    2 ms on one CPU of these machines and 21 ms on another).
     """
     idx = np.flatnonzero(projected.valid)
     keys = kernels.depth_keys(idx, np.asarray(projected.depths, np.float32).view(np.uint32))
-    ids, spare_keys, spare_ids = idx.astype(np.int64), np.empty_like(keys), np.empty(idx.size, np.int64)
-    n_chunks = RADIX_CHUNKS_PER_THREAD * numba.get_num_threads()
-    for shift in range(0, 32, kernels.RADIX_BITS):
-        if kernels.radix_pass(keys, ids, spare_keys, spare_ids, shift, n_chunks):
-            keys, spare_keys, ids, spare_ids = spare_keys, keys, spare_ids, ids
-    return ids
+    return sort_by_key(keys, idx.astype(np.int64))
 
 
 def depth_order_reference(projected: Projected) -> np.ndarray:

@@ -260,7 +260,7 @@ def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence, device):
     than slots (space-saving replacements), pairs without a cluster, zero weights, and presence 0
     (votes = weights). Bit for bit on CUDA too: a round writes each slot once, with no atomics."""
     from drsplat.registration.device_sums import vote_view_torch
-    from drsplat.registration.coalesce import rows_order
+    from drsplat._sort_kernels import stable_order
     from drsplat.registration.vote import FULL_VIEW, _vote_view_kernel, vote_view_reference
 
     n, rng = 25, np.random.default_rng(slots)
@@ -276,7 +276,7 @@ def test_vote_slots_fold_on_the_device_as_the_kernel(slots, presence, device):
         weights = rng.uniform(0, 1, p).astype(np.float32)
         weights[rng.random(p) < 0.1] = 0.0
         vote_view_reference(rows, clusters, weights, presence, FULL_VIEW, *host)
-        _vote_view_kernel(rows, clusters, weights, rows_order(rows), presence, FULL_VIEW, scratch, *by_row)
+        _vote_view_kernel(rows, clusters, weights, stable_order(rows), presence, FULL_VIEW, scratch, *by_row)
         vote_view_torch(torch.from_numpy(rows.astype(np.int64)).to(device), torch.from_numpy(clusters.astype(np.int64)).to(device),
                         torch.from_numpy(weights).to(device), presence, FULL_VIEW, *dev)
     for want, got, walked in zip(host, dev, by_row):

@@ -461,25 +461,6 @@ def test_radix_depth_order_equals_the_reference_sort(case):
     np.testing.assert_array_equal(depth_order(projected), raster.depth_order_reference(projected))
 
 
-@pytest.mark.parametrize("n_chunks", [1, 2, 3, 64, 5000])
-def test_radix_pass_is_stable_for_any_chunking(n_chunks):
-    rng = np.random.default_rng(n_chunks)
-    keys = rng.integers(0, 2**32, 3000, dtype=np.uint64).astype(np.uint32)
-    keys[::3] = keys[1]  # many exact ties
-    ids = np.arange(keys.size, dtype=np.int64)
-    out_keys, out_ids = np.empty_like(keys), np.empty_like(ids)
-    for shift in (0, 11, 22):
-        assert kernels.radix_pass(keys, ids, out_keys, out_ids, shift, n_chunks)
-        digit = (keys >> np.uint32(shift)) & np.uint32(kernels.RADIX_MASK)
-        order = np.argsort(digit, kind="stable")
-        np.testing.assert_array_equal(out_keys, keys[order])
-        np.testing.assert_array_equal(out_ids, ids[order])
-    same = np.full(10, 77 << 11, np.uint32)
-    before = out_keys[:10].copy()
-    assert not kernels.radix_pass(same, ids[:10], out_keys[:10], out_ids[:10], 11, n_chunks)
-    np.testing.assert_array_equal(out_keys[:10], before)  # a skipped pass writes nothing
-
-
 @pytest.mark.parametrize("n_chunks", [1, 3, 64])
 def test_parallel_binning_keeps_depth_order_in_every_tile(n_chunks):
     rng = np.random.default_rng(n_chunks)

@@ -221,7 +221,7 @@ def _fold_cases():
 def test_parallel_vote_fold_equals_the_reference_bit_for_bit(case, presence):
     """The fold cut into row-aligned parts run in parallel gives the plain loop's slots bit for bit,
     folded over three views into the same slots (full slots: the space-saving rule's evictions)."""
-    from drsplat.registration.coalesce import rows_order
+    from drsplat._sort_kernels import stable_order
     from drsplat.registration.vote import FULL_VIEW, _vote_view_kernel, vote_view_reference
 
     _, rows, clusters, weights, n, slots = case
@@ -230,7 +230,7 @@ def test_parallel_vote_fold_equals_the_reference_bit_for_bit(case, presence):
     total = np.zeros(n)
     for shift in range(3):
         c = np.where(clusters >= 0, (clusters + shift) % (clusters.max() + 1), -1).astype(np.int32)
-        order = rows_order(rows)
+        order = stable_order(rows)
         _vote_view_kernel(rows, c, weights, order, presence, FULL_VIEW, total, *got)
         vote_view_reference(rows[order], c[order], weights[order], presence, FULL_VIEW, *want)
         assert not total.any(), "the scratch is left zero"
@@ -238,24 +238,6 @@ def test_parallel_vote_fold_equals_the_reference_bit_for_bit(case, presence):
         np.testing.assert_array_equal(g, w)
     if rows.size > 10:
         assert (got[0] >= 0).all(axis=1).any(), "some row's slots should fill"
-
-
-@pytest.mark.parametrize("high", [1, 2, 255, 256, 2047, 2048, 2049, 70_000, 2**22, 2**22 + 1, 2**31 - 1])
-def test_rows_order_is_a_stable_sort_by_row(high):
-    """The vote's pair order (`rows_order`, LSD radix passes of at most RADIX_BITS bits) is numpy's
-    stable argsort: largest rows on either side of a digit count's boundary (2¹¹, 2²², 2³¹ - 1:
-    one, two, three passes), many repeats, one row, none."""
-    from drsplat.registration.coalesce import rows_order
-
-    rng = np.random.default_rng(high % 97)
-    for size in (0, 1, 7, 5000):
-        rows = rng.integers(0, high, size).astype(np.int32)
-        if size > 2:
-            rows[: size // 3] = rows[0]  # repeats
-            rows[-1] = high - 1  # the largest row decides the passes
-        np.testing.assert_array_equal(rows_order(rows), np.argsort(rows, kind="stable"))
-        ordered = np.sort(rows)  # already grouped: the scan's early answer
-        np.testing.assert_array_equal(rows_order(ordered), np.arange(size))
 
 
 @pytest.mark.parametrize("case", ["random", "ties", "one_cluster", "empty"])

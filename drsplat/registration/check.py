@@ -109,7 +109,7 @@ from drsplat.errors import DrsplatError
 from drsplat.memory import format_size
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
-from drsplat.registration.coalesce import rows_order
+from drsplat._sort_kernels import stable_order
 from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
 from drsplat.registration.vote import (FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
                                        trim_cosine)
@@ -270,7 +270,7 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
     """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
     cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
     cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
-    row (`rows_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
+    row (`stable_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
     view are folded in parallel (vote._row_aligned_cuts): the same bits as one pass."""
     cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
     for part in numba.prange(VOTE_PARTS):
@@ -300,7 +300,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                     entry_core, scratch, core, touched, mass, j_lo):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
     (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
-    the pairs sorted by row (`rows_order`), so each Gaussian's pairs of the view are consecutive.
+    the pairs sorted by row (`stable_order`), so each Gaussian's pairs of the view are consecutive.
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
     the same in any order and any partition of the Gaussians: one block, blocks in any order,
@@ -647,7 +647,7 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
         if view.gaussians.size:
             rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
             _fold_votes_kernel(rows, np.ascontiguousarray(clusters[view.masks], np.int32), np.ascontiguousarray(view.weights, np.float32),
-                               rows_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
+                               stable_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
     return slot_c, slot_v
 
 
@@ -667,7 +667,7 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
         scratch = SupportScratch(support.num_clusters)
     pairs = (rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-             np.ascontiguousarray(clusters[view.masks], np.int32), rows_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW)
+             np.ascontiguousarray(clusters[view.masks], np.int32), stable_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW)
     num_masks = support.mass_fixed.shape[0]
     step = scratch.masks_per_run(num_masks)  # ≥ 1; a view with pairs has masks
     entries = (support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core)

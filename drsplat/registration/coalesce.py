@@ -18,6 +18,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from drsplat._sort_kernels import stable_order
+
 
 @numba.njit(cache=True)
 def _bucket_pixels(mask_ids, num_masks):  # pragma: no cover - jitted
@@ -89,50 +91,6 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
         part_next[t] = m
         part_filled[t] = filled
         part_pairs[t] += pairs
-
-
-RADIX_BITS = 11  # widest digit of `rows_order`: 2,048 buckets (their write positions stay in cache; 2¹⁶ did not)
-
-
-@numba.njit(cache=True)
-def rows_order(rows):  # pragma: no cover - jitted
-    """[P] int64: the pairs' indices stably sorted by row (rows [P] >= 0 int32), by LSD radix passes:
-    as few as digits of at most RADIX_BITS bits need to cover the largest row, the bits split evenly
-    between them (flowers' 542k rows: two 10-bit passes; a 27k-row room: two 8-bit ones). O(P) per
-    pass. Its reference is numpy's stable argsort (tested). Two fixed 16-bit passes took 1.9-2.6x
-    longer: 65,536 buckets scatter to as many places, and a second pass ran for rows below 2¹⁶ too.
-    Rows already in order (a view's pairs grouped by Gaussian) cost one scan."""
-    n = rows.shape[0]
-    order = np.arange(n)
-    top = 0
-    ascending = True
-    for i in range(n):
-        top = max(top, rows[i])
-        ascending = ascending and (i == 0 or rows[i - 1] <= rows[i])
-    if ascending:  # pairs grouped by Gaussian already (`Coalescer.coalesce(by_gaussian=True)`)
-        return order
-    bits = 1
-    while bits < 31 and (1 << bits) <= top:
-        bits += 1
-    passes = (bits + RADIX_BITS - 1) // RADIX_BITS
-    width = (bits + passes - 1) // passes
-    mask = (1 << width) - 1
-    spare = np.empty(n, np.int64)
-    counts = np.empty((1 << width) + 1, np.int64)
-    for q in range(passes if n > 1 else 0):
-        shift = q * width
-        counts[:] = 0
-        for i in range(n):
-            counts[((rows[i] >> shift) & mask) + 1] += 1
-        for d in range(1 << width):
-            counts[d + 1] += counts[d]
-        for i in range(n):
-            p = order[i]
-            d = (rows[p] >> shift) & mask
-            spare[counts[d]] = p
-            counts[d] += 1
-        order, spare = spare, order
-    return order
 
 
 @numba.njit(cache=True, parallel=True)
@@ -210,7 +168,7 @@ class Coalescer:
 
         Returns (gaussians [P] int32, masks [P] int32, weights [P] float32, contributing pairs):
         w_ij = Σ_{p ∈ mask j} w_i(p), mask by mask, Gaussians in first-seen order (arrays are copies).
-        by_gaussian: then stably grouped by Gaussian (`rows_order`): each Gaussian's masks stay in
+        by_gaussian: then stably grouped by Gaussian (`stable_order`): each Gaussian's masks stay in
         increasing order, the only order a per-Gaussian sum depends on, and the vote and check
         kernels, which read a view's pairs Gaussian by Gaussian, skip their own sorts (three per view).
         """
@@ -234,7 +192,7 @@ class Coalescer:
         m = np.concatenate([self._m[t, r] for t, r in enumerate(rows)])
         w = np.concatenate([self._w[t, r] for t, r in enumerate(rows)])
         if by_gaussian:
-            order = rows_order(g)
+            order = stable_order(g)
             g, m, w = g[order], m[order], w[order]
         return g, m, w, int(pairs.sum())
 

@@ -88,7 +88,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import VOTE_SLOTS
-from drsplat.registration.coalesce import rows_order
+from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
 from drsplat.registration.sums import Accumulator
@@ -352,7 +352,7 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
     """Fold one view's pairs (rows [P] of the Gaussians in slot_c / slot_v / slot_s, clusters [P],
     weights [P] float32) into the vote slots (module docstring, step 2): slot_v the votes V_ic,
     slot_s the paper's weight S_ic = Σ w_ij of the slot's cluster (what the trimmed mean removes).
-    order [P]: the pairs grouped by row, each row's pairs in their given order (`rows_order`).
+    order [P]: the pairs grouped by row, each row's pairs in their given order (`stable_order`).
     total: [rows] float64 scratch, zero on entry and exit.
 
     A pair reads and writes its own row only, so the view is cut into VOTE_PARTS row-aligned parts
@@ -388,7 +388,7 @@ def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray,
     zeros (scratch, zero again on return), or None for new ones."""
     rows = np.ascontiguousarray(rows, np.int32)
     total = np.zeros(slot_c.shape[0]) if total is None else total
-    _vote_view_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32), rows_order(rows),
+    _vote_view_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32), stable_order(rows),
                       float(presence), float(full_view), total, slot_c, slot_v, slot_s)
 
 
@@ -586,7 +586,7 @@ def slot_specificity_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndar
 def _specificity_kernel(rows, clusters, weights, means, order, slot_c, slot_p):  # pragma: no cover - jitted
     """Add one view's pairs to slot_p (`slot_specificity_reference`): rows, clusters [P] int32, weights
     [P] float32, means [P] float64 (w̄_j of each pair's mask), order: the pairs grouped by row
-    (`rows_order`), cut into VOTE_PARTS row-aligned parts added in parallel, each row's pairs in order."""
+    (`stable_order`), cut into VOTE_PARTS row-aligned parts added in parallel, each row's pairs in order."""
     cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
     for part in numba.prange(VOTE_PARTS):
         for i in range(cuts[part], cuts[part + 1]):
@@ -609,7 +609,7 @@ def slot_specificity(views: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, n
         if rows.size:
             rows = np.ascontiguousarray(rows, np.int32)
             _specificity_kernel(rows, np.ascontiguousarray(clusters, np.int32), np.ascontiguousarray(weights, np.float32),
-                                np.ascontiguousarray(means, np.float64), rows_order(rows), slot_c, slot_p)
+                                np.ascontiguousarray(means, np.float64), stable_order(rows), slot_c, slot_p)
     return slot_p
 
 
