@@ -30,6 +30,7 @@ SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsp
 ORACLE_LABEL_NAMES = "gt/label_names.json"  # JSON list of the label names
 ORACLE_TEXT_EMBEDDINGS = "text_embeddings.npy"  # [labels, D] the oracle "text" vectors, one per name
 LERF_ALPHA_THRESHOLD = 0.7  # `eval lerf`: OpenGaussian's render_lerf_by_text.py keeps pixels whose silhouette passes 0.7 (0.5 until 2026-11-30)
+LANGSPLAT_MASK_THRESHOLD = 0.4  # `eval lerf --protocol langsplat`: LangSplat's evaluate_iou_loc.py --mask_thresh
 # |norm - 1| of an embedding past which it is rescaled to unit length: mask embeddings when read for
 # registration (drsplat.features.format), stored rows before encoding (drsplat.lang.codebook.unit_check).
 # CLIP's and LangSplat's are 1 to float precision, a float16 file's within ~1e-4: kept bit for bit.

@@ -122,6 +122,31 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     assert doc["mIoU"] > 0.5 and doc["mAcc@0.25"] > 0.6
 
 
+def test_eval_lerf_langsplat_protocol(registered, tmp_path, capsys):
+    """LangSplat's relevancy-map protocol: the oracle's queries find their objects; the same queries
+    shifted by one label do not; the per-pair JSON holds the IoUs the means are made of."""
+    r = registered
+    rng = np.random.default_rng(0)
+    negatives = rng.normal(size=(4, 512))
+    np.save(tmp_path / "neg.npy", (negatives / np.linalg.norm(negatives, axis=1, keepdims=True)).astype(np.float32))
+    np.save(tmp_path / "wrong.npy", np.roll(np.load(r["ds"] / "text_embeddings.npy"), 1, axis=0))
+    base = ["eval", "lerf", str(r["ply"]), "--source", str(r["ds"]), "--annotations", str(r["labels"]), "--label-names",
+            str(r["ds"] / "gt" / "label_names.json"), "--negative-embeddings", str(tmp_path / "neg.npy"), "--protocol", "langsplat"]
+    js = tmp_path / "ls.json"
+    assert main([*base, "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--json", str(js)]) == 0
+    assert "localization accuracy" in capsys.readouterr().out
+    doc = json.loads(js.read_text())
+    assert doc["protocol"] == "langsplat" and len(doc["rows"]) >= 8
+    assert doc["mIoU"] == pytest.approx(np.mean([row["iou"] for row in doc["rows"]]))
+    assert doc["mIoU"] > 0.5 and doc["localization_accuracy"] > 0.5
+    wrong = tmp_path / "wrong.json"
+    assert main([*base, "--text-embeddings", str(tmp_path / "wrong.npy"), "--json", str(wrong)]) == 0
+    bad = json.loads(wrong.read_text())
+    assert bad["mIoU"] < 0.2 and bad["localization_accuracy"] < 0.3
+    assert main([*base, "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--threshold", "0.5"]) == 2
+    assert "--mask-threshold" in capsys.readouterr().err
+
+
 def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
     from drsplat.cameras import load_cameras
     from drsplat.eval.datasets import load_lerf_annotations

@@ -66,6 +66,29 @@ def test_mask_to_polygons_one_per_component():
     assert all(p.shape[1] == 2 for p in polys)
 
 
+@pytest.mark.parametrize("bbox,words", [([1, 2, 3], "four numbers"), ([1, 2, "3", 4], "four numbers"), ([1, 2, 3, True], "four numbers"),
+                                        ([1, 2, 3, 1e400], "non-finite"), ([1, 2, 3, 10**400], "non-finite")])
+def test_lerf_box_must_be_four_finite_numbers(tmp_path, bbox, words):
+    path = tmp_path / "frame_00001.json"
+    obj = {"category": "x", "segmentation": [[1, 1], [5, 1], [5, 5]]}
+    path.write_text(json.dumps({"info": {"width": 8, "height": 8}, "objects": [obj, {**obj, "bbox": bbox}]}).replace("Infinity", "1e400"))
+    with pytest.raises(InputError, match=rf"frame_00001.json: field 'objects\[1\].bbox'.*{words}"):
+        load_lerf_view(path)
+
+
+def test_lerf_boxes_per_category_from_bbox_or_the_polygons_extent(tmp_path):
+    """Localisation (LangSplat's protocol) reads each object's box; an object without one gets its
+    polygons' extent; a skipped category keeps no box."""
+    path = tmp_path / "frame_00001.json"
+    objects = [{"category": "a", "bbox": [10, 12, 2, 3], "segmentation": [[2, 3], [10, 3], [10, 12]]},
+               {"category": "a", "segmentation": [[[20, 20], [25, 21], [22, 28]], [[1, 30], [3, 30], [2, 31]]]},
+               {"category": "gone", "bbox": [0, 0, 1, 1], "segmentation": [[1, 1], [2, 2]]}]
+    path.write_text(json.dumps({"info": {"width": 40, "height": 40}, "objects": objects}))
+    view = load_lerf_view(path)
+    np.testing.assert_array_equal(view.boxes["a"], [[10, 12, 2, 3], [1, 20, 25, 31]])
+    assert "gone" in view.skipped and "gone" not in view.boxes
+
+
 def test_lerf_bad_annotation_names_file_and_field(tmp_path):
     bad = tmp_path / "frame_00001.json"
     bad.write_text(json.dumps({"objects": []}))

@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, output_file,
                                      threshold_value)
-from drsplat.defaults import LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable, json_text, outputs_together
@@ -165,6 +165,14 @@ def _add_lerf(sub) -> None:
     p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=LERF_ALPHA_THRESHOLD,
                    help=f"rendered occupancy above which a pixel is selected (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
+    p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
+                   help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
+                        "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
+                        "so it needs negatives; --threshold and --alpha-threshold do not apply)")
+    p.add_argument("--mask-threshold", type=float_range(0.0, 1.0), default=LANGSPLAT_MASK_THRESHOLD,
+                   help=f"--protocol langsplat: threshold of the rescaled relevancy map (default: {LANGSPLAT_MASK_THRESHOLD}, LangSplat's)")
+    p.add_argument("--topk", type=int_range(1, 1024), default=DEFAULT_TOPK,
+                   help=f"--protocol langsplat: Gaussians blended per pixel for its feature (default: {DEFAULT_TOPK})")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
 
@@ -172,10 +180,11 @@ def _add_lerf(sub) -> None:
 # ---------------------------------------------------------------------------------------------- helpers
 
 
-def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarray:
-    """[N, L] scores of every Gaussian for every label: cosine, or relevancy with --relevancy."""
+def label_embeddings(args: argparse.Namespace, field, names: list[str], negatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """([L, D] the labels' query embeddings, [C, D] the relevancy's negatives or None): from
+    --text-embeddings / --negative-embeddings, else through the CLIP text encoder."""
     from drsplat.commands.common import load_encoder
-    from drsplat.query import cosine, load_query_embeddings, negative_embeddings, relevancy, text_embeddings
+    from drsplat.query import load_query_embeddings, negative_embeddings, text_embeddings
 
     encoder = None
     if args.text_embeddings is not None:
@@ -185,12 +194,20 @@ def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarra
     else:
         encoder = load_encoder(args, field)
         queries = text_embeddings(encoder, names, field)
-    if not args.relevancy:
-        return cosine(field, queries)
+    if not negatives:
+        return queries, None
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and extra is None:
         encoder = load_encoder(args, field)
-    return relevancy(field, queries, negative_embeddings(encoder, field, [], extra))
+    return queries, negative_embeddings(encoder, field, [], extra)
+
+
+def label_scores(args: argparse.Namespace, field, names: list[str]) -> np.ndarray:
+    """[N, L] scores of every Gaussian for every label: cosine, or relevancy with --relevancy."""
+    from drsplat.query import cosine, relevancy
+
+    queries, negatives = label_embeddings(args, field, names, args.relevancy)
+    return cosine(field, queries) if negatives is None else relevancy(field, queries, negatives)
 
 
 MAX_TAUS = 10_001  # localisation thresholds searched; each costs one pass over the scores
@@ -548,6 +565,8 @@ def run_lerf(args: argparse.Namespace) -> int:
     missing = [c for c in categories if c not in names]
     if missing:
         raise InputError(args.label_names, f"annotated categories {missing} have no entry (and so no query embedding)")
+    if args.protocol == "langsplat":
+        return _run_lerf_langsplat(args, scene, field, cameras, views, names, categories)
     scores = label_scores(args, field, names)
     threshold = None
     if args.threshold is None and args.relevancy:
@@ -571,4 +590,25 @@ def run_lerf(args: argparse.Namespace) -> int:
     doc = report.to_dict()
     doc["thresholds"] = {n: float(t) for n, t in zip(names, taus)}
     write_json(args.json, doc)
+    return 0
+
+
+def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, names: list[str], categories: list[str]) -> int:
+    """`eval lerf --protocol langsplat`: LangSplat's relevancy-map protocol (drsplat.eval.langsplat)."""
+    from drsplat.eval.langsplat import langsplat_report
+
+    if args.threshold is not None:
+        raise UsageError("--threshold selects Gaussians (OpenGaussian's protocol); --protocol langsplat thresholds the "
+                         "relevancy map with --mask-threshold")
+    queries, negatives = label_embeddings(args, field, names, negatives=True)
+    by_name = {n: queries[k] for k, n in enumerate(names) if n in categories}
+    report = langsplat_report(scene, field, cameras, views, by_name, negatives, args.topk, args.mask_threshold, show_progress=True)
+    if not report.rows and report.skipped:
+        raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
+                           "(see the warnings above): nothing to score")
+    if not report.rows:
+        raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
+    print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
+    print(report.format())
+    write_json(args.json, report.to_dict())
     return 0

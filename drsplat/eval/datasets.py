@@ -72,17 +72,19 @@ class AnnotatedView:
     image_path: Path | None = None
     path: Path | None = None
     skipped: dict[str, str] = dataclass_field(default_factory=dict)
+    boxes: dict[str, np.ndarray] = dataclass_field(default_factory=dict)  # category -> [B, 4] (x1, y1, x2, y2), one per object
 
 
 @dataclass
 class LerfDocument:
-    """A parsed LERF-OVS annotation before rasterising: objects are (category, polygons [P, 2] (x, y))."""
+    """A parsed LERF-OVS annotation before rasterising: objects are (category, polygons [P, 2] (x, y),
+    its box [4] (x1, y1, x2, y2) or None where the object gives no 'bbox')."""
 
     path: Path
     name: str
     width: int
     height: int
-    objects: list[tuple[str, list[np.ndarray]]]
+    objects: list[tuple[str, list[np.ndarray], np.ndarray | None]]
 
 
 FAR_POLYGON = 4.0  # a vertex farther than this many image sides outside the frame is clipped before the fill (`clip_polygon`)
@@ -209,6 +211,22 @@ def _category(path: Path, k: int, value: object) -> str:
     raise InputError(path, f"is {kind}, not a non-empty string", field=f"objects[{k}].category")
 
 
+def _box(path: Path, k: int, value: object) -> np.ndarray | None:
+    """objects[k].bbox as [4] float64 (x1, y1, x2, y2), None when absent; anything but four finite
+    numbers is an InputError naming the field."""
+    if value is None:
+        return None
+    if not (isinstance(value, list) and len(value) == 4 and all(_is_number(v) for v in value)):
+        raise InputError(path, "is not a list of four numbers [x1, y1, x2, y2]", field=f"objects[{k}].bbox")
+    try:
+        box = np.array([float(v) for v in value], np.float64)
+    except OverflowError:  # a JSON integer beyond float range
+        box = np.full(4, np.inf)
+    if not np.isfinite(box).all():
+        raise InputError(path, "has non-finite coordinates", field=f"objects[{k}].bbox")
+    return box
+
+
 def read_lerf_document(path: str | Path) -> LerfDocument:
     """Parse one LERF-OVS `frame_<n>.json` and check its sizes, allocating no image."""
     path = Path(path)
@@ -224,7 +242,7 @@ def read_lerf_document(path: str | Path) -> LerfDocument:
     for k, obj in enumerate(objects):
         if not isinstance(obj, dict) or "category" not in obj or "segmentation" not in obj:
             raise InputError(path, "object without a category or a segmentation", field=f"objects[{k}]")
-        parsed.append((_category(path, k, obj["category"]), parse_segmentation(path, k, obj["segmentation"])))
+        parsed.append((_category(path, k, obj["category"]), parse_segmentation(path, k, obj["segmentation"]), _box(path, k, obj.get("bbox"))))
     return LerfDocument(path, _view_name(path, info), width, height, parsed)
 
 
@@ -253,7 +271,13 @@ def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
     """
     masks: dict[str, np.ndarray] = {}
     skipped: dict[str, str] = {}
-    for k, (category, polygons) in enumerate(doc.objects):
+    boxes: dict[str, list[np.ndarray]] = {}
+    for k, (category, polygons, box) in enumerate(doc.objects):
+        if box is None and any(len(p) for p in polygons):  # no 'bbox': the extent of its polygons
+            points = np.concatenate([p for p in polygons if len(p)])
+            box = np.concatenate([points.min(axis=0), points.max(axis=0)])
+        if box is not None:
+            boxes.setdefault(category, []).append(box)
         for j, poly in enumerate(polygons):
             m = polygon_mask(poly, doc.height, doc.width)
             if not m.any():
@@ -266,7 +290,8 @@ def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
     for category in skipped:
         masks.pop(category, None)
     image = doc.path.with_suffix(".jpg")
-    return AnnotatedView(doc.name, doc.width, doc.height, masks, image if image.exists() else None, doc.path, skipped)
+    return AnnotatedView(doc.name, doc.width, doc.height, masks, image if image.exists() else None, doc.path, skipped,
+                         {c: np.stack(b) for c, b in boxes.items() if c in masks})
 
 
 def load_lerf_view(path: str | Path) -> AnnotatedView:

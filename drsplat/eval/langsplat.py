@@ -1,0 +1,288 @@
+"""LangSplat's 2D protocol on LERF-OVS (its eval/evaluate_iou_loc.py, d70edb8), on a registered scene.
+
+Where OpenGaussian's protocol (`drsplat.eval.lerf`) renders the Gaussians a query selects, LangSplat's
+scores a rendered feature map. For each annotated view:
+
+1. The language feature of pixel p is the blend of its Gaussians' features, F(p) = Σ_s w_s f_{g_s}
+   over its top-k contributions (w = T·α, the registration's rasterizer), normalised. Gaussians
+   without a feature add nothing (they still take their weight from those behind them).
+2. The relevancy map of a query t against the canonical negatives c_j (LERF's):
+   R(p) = min_j σ(10·(cos(F(p), t) − cos(F(p), c_j)))  (`drsplat.query.relevancy_from_scores`).
+3. Segmentation: V = ½(B(R) + R), B the mean over a 30 x 30 box (`box_filter`: cv2.filter2D's
+   window and border); V is scaled to [−1, 1] by its own minimum and maximum,
+   M = clip(2(V − min V)/(max(V − min V) + 1e-9) − 1, 0, 1) > 0.4, and M goes through LangSplat's
+   majority filter (`majority_filter`). The pair's IoU is |M ∧ G| / |M ∨ G| with G the annotated
+   mask.
+4. Localisation: the pair is a hit when a pixel where B(R) reaches its maximum lies inside one of
+   the category's annotated boxes (bounds included; x is the column, y the row).
+
+mIoU is the mean IoU over (view, category) pairs, localisation accuracy the share of hits. LangSplat
+keeps three feature levels and takes, per query, the level whose V peaks highest; a registered
+scene holds one level, so there is no choice to make. LangSplat renders its features with every
+Gaussian; here the blend is over each pixel's k heaviest, and `coverage` reports what share of the
+pixel's weight (its α) they hold.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from drsplat.cameras import Camera
+from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD
+from drsplat.eval.datasets import AnnotatedView
+from drsplat.eval.lerf import camera_for_view, mask_iou
+from drsplat.query import relevancy_from_scores
+from drsplat.raster import prepare_scene, rasterize_topk
+from drsplat.utils import CancelToken, progress
+
+log = logging.getLogger(__name__)
+
+BOX_SIZE = 30  # LangSplat's `scale`: the side of the mean filter
+MAJORITY_REACH = 3  # LangSplat's `smooth`: a 7 x 7 window (truncated at the far edges, as there)
+NORM_EPS = 1e-9
+
+
+def _reflect_101(index: np.ndarray, size: int) -> np.ndarray:
+    """cv2's BORDER_REFLECT_101 (gfedcb|abcdefgh|gfedcba) of integer positions on an axis of `size`."""
+    if size == 1:
+        return np.zeros_like(index)
+    period = 2 * (size - 1)
+    i = np.mod(index, period)
+    return np.where(i < size, i, period - i)
+
+
+def box_filter(image: np.ndarray, size: int = BOX_SIZE) -> np.ndarray:
+    """[H, W] -> [H, W] float64: cv2.filter2D(image, -1, ones((size, size)) / size²), the default
+    anchor (size // 2) and border (BORDER_REFLECT_101):
+
+        out[y, x] = Σ_{a, b = -size//2}^{size - 1 - size//2} image[r(y + a), r(x + b)] / size²,
+
+    r reflecting without repeating the edge pixel. Summed in float64 through a summed-area table of
+    the padded image (cv2 sums float32 maps in float32, so the two agree to float32 rounding)."""
+    img = np.asarray(image, np.float64)
+    h, w = img.shape
+    before, after = size // 2, size - 1 - size // 2
+    rows = _reflect_101(np.arange(-before, h + after), h)
+    cols = _reflect_101(np.arange(-before, w + after), w)
+    padded = img[rows][:, cols]
+    table = np.zeros((padded.shape[0] + 1, padded.shape[1] + 1))
+    table[1:, 1:] = padded.cumsum(0).cumsum(1)
+    window = table[size:, size:] - table[:-size, size:] - table[size:, :-size] + table[:-size, :-size]
+    return window / (size * size)
+
+
+def majority_filter(mask: np.ndarray, reach: int = MAJORITY_REACH) -> np.ndarray:
+    """[H, W] bool: LangSplat's `smooth`. Pixel (i, j) becomes the majority value of the window rows
+    max(0, i − reach) .. min(i + reach + 1, H − 1) − 1 and columns likewise (its upper bound H − 1,
+    not H, leaves the last row and column out of every window, as there); a tie gives False
+    (`argmax(bincount)` takes the smaller value). An empty window (H or W of 1), where LangSplat's
+    code fails, gives False."""
+    m = np.asarray(mask, bool)
+    h, w = m.shape
+    table = np.zeros((h + 1, w + 1), np.int64)
+    table[1:, 1:] = m.astype(np.int64).cumsum(0).cumsum(1)
+    r0 = np.maximum(np.arange(h) - reach, 0)
+    r1 = np.minimum(np.arange(h) + reach + 1, h - 1)
+    c0 = np.maximum(np.arange(w) - reach, 0)
+    c1 = np.minimum(np.arange(w) + reach + 1, w - 1)
+    r1, c1 = np.maximum(r1, r0), np.maximum(c1, c0)
+    ones = table[r1][:, c1] - table[r0][:, c1] - table[r1][:, c0] + table[r0][:, c0]
+    size = (r1 - r0)[:, None] * (c1 - c0)[None, :]
+    return 2 * ones > size
+
+
+def langsplat_mask(relevancy_map: np.ndarray, threshold: float = LANGSPLAT_MASK_THRESHOLD) -> np.ndarray:
+    """[H, W] relevancy -> [H, W] bool predicted mask (step 3 of the module docstring)."""
+    r = np.asarray(relevancy_map, np.float64)
+    valid = 0.5 * (box_filter(r) + r)
+    shifted = valid - valid.min()
+    scaled = np.clip(2.0 * shifted / (shifted.max() + NORM_EPS) - 1.0, 0.0, 1.0)
+    return majority_filter(scaled > threshold)
+
+
+def peak_in_boxes(relevancy_map: np.ndarray, boxes: np.ndarray) -> bool:
+    """Whether a pixel where the box-filtered relevancy peaks lies in one of boxes [B, 4] (x1, y1,
+    x2, y2 in pixels, either corner order; bounds included) (step 4)."""
+    smooth = box_filter(relevancy_map)
+    ys, xs = np.nonzero(smooth == smooth.max())
+    for x1, y1, x2, y2 in np.asarray(boxes, np.float64).reshape(-1, 4):
+        inside = (xs >= min(x1, x2)) & (xs <= max(x1, x2)) & (ys >= min(y1, y2)) & (ys <= max(y1, y2))
+        if inside.any():
+            return True
+    return False
+
+
+@numba.njit(parallel=True, cache=True)
+def _blend_cosines_kernel(local, weights, feats, embeddings, out):  # pragma: no cover - jitted
+    """out[e, p] = cos(Σ_s weights[p, s] feats[local[p, s]], embeddings[e]); 0 for a pixel whose blend
+    is zero. local [P, k] int32 (-1: empty slot), weights [P, k] float32, feats [U, D] float32,
+    embeddings [E, D] float32 (unit rows), out [E, P] float32. The blend and the dots in float64."""
+    n_pix, k = local.shape
+    dim = feats.shape[1]
+    for p in numba.prange(n_pix):
+        acc = np.zeros(dim)
+        for s in range(k):
+            u = local[p, s]
+            if u < 0:
+                continue
+            w = np.float64(weights[p, s])
+            for d in range(dim):
+                acc[d] += w * feats[u, d]
+        norm = np.sqrt(np.sum(acc * acc))
+        for e in range(embeddings.shape[0]):
+            if norm > 0.0:
+                dot = 0.0
+                for d in range(dim):
+                    dot += acc[d] * embeddings[e, d]
+                out[e, p] = dot / norm
+            else:
+                out[e, p] = 0.0
+
+
+def blend_cosines(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
+    """[E, H, W] float32 cosines of each pixel's blended feature with each embedding (steps 1-2).
+
+    ids, weights: [H, W, k] top-k lists (-1 / 0 padding); features: [U, D] the features of the
+    Gaussians ids names, row u for the u-th smallest id present (`np.unique` order), zero rows for
+    Gaussians without one; embeddings: [E, D] unit rows."""
+    h, w, k = ids.shape
+    flat = ids.reshape(-1, k)
+    present = np.unique(flat[flat >= 0])
+    local = np.where(flat >= 0, np.searchsorted(present, np.maximum(flat, 0)), -1).astype(np.int32)
+    out = np.empty((embeddings.shape[0], h * w), np.float32)
+    _blend_cosines_kernel(local, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(features, np.float32),
+                          np.ascontiguousarray(embeddings, np.float32), out)
+    return out.reshape(-1, h, w)
+
+
+def blend_cosines_reference(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
+    """Reference of `blend_cosines` (numpy, float64)."""
+    h, w, k = ids.shape
+    flat = ids.reshape(-1, k)
+    present = np.unique(flat[flat >= 0])
+    local = np.searchsorted(present, np.maximum(flat, 0))
+    wts = np.where(flat >= 0, weights.reshape(-1, k).astype(np.float64), 0.0)
+    feats = np.asarray(features, np.float64)
+    blend = np.einsum("pk,pkd->pd", wts, feats[local] if feats.shape[0] else np.zeros((*local.shape, feats.shape[1])))
+    norm = np.linalg.norm(blend, axis=1, keepdims=True)
+    unit = np.divide(blend, norm, out=np.zeros_like(blend), where=norm > 0)
+    return (unit @ np.asarray(embeddings, np.float64).T).T.reshape(-1, h, w).astype(np.float32)
+
+
+@dataclass
+class LangSplatRow:
+    """One (view, category) pair: its IoU, whether the relevancy peak fell in a box, and the share
+    of the pixels' weight (α) inside the top-k blend over the view."""
+
+    view: str
+    category: str
+    iou: float
+    hit: bool
+    coverage: float
+
+
+@dataclass
+class LangSplatReport:
+    rows: list[LangSplatRow]
+    topk: int
+    mask_threshold: float
+    missing_views: list[str] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+    @property
+    def miou(self) -> float:
+        return float(np.mean([r.iou for r in self.rows])) if self.rows else float("nan")
+
+    @property
+    def localization(self) -> float:
+        return float(np.mean([r.hit for r in self.rows])) if self.rows else float("nan")
+
+    def per_category(self) -> dict[str, tuple[float, float]]:
+        """category -> (mean IoU, localisation accuracy) over its views."""
+        names = sorted({r.category for r in self.rows})
+        return {n: (float(np.mean([r.iou for r in self.rows if r.category == n])), float(np.mean([r.hit for r in self.rows if r.category == n])))
+                for n in names}
+
+    def to_dict(self) -> dict:
+        return {"protocol": "langsplat", "mIoU": self.miou, "localization_accuracy": self.localization, "topk": self.topk,
+                "mask_threshold": self.mask_threshold, "rows": [r.__dict__ for r in self.rows], "missing_views": self.missing_views,
+                "skipped": [list(s) for s in self.skipped],
+                "per_category": {n: {"IoU": i, "localization": a} for n, (i, a) in self.per_category().items()}}
+
+    def format(self) -> str:
+        lines = [f"LangSplat protocol: mIoU {self.miou:.4f}  localization accuracy {self.localization:.4f}  "
+                 f"({len(self.rows)} pairs, mask threshold {self.mask_threshold:g}, top-{self.topk} blend)"]
+        for name, (iou, acc) in self.per_category().items():
+            lines.append(f"  {name:24s} IoU {iou:.4f}  loc {acc:.2f}")
+        coverage = [r.coverage for r in self.rows]
+        if coverage:
+            lines.append(f"  the top-{self.topk} blend holds {100 * min(coverage):.2f}-{100 * max(coverage):.2f} % of the views' rendered weight")
+        return "\n".join(lines)
+
+
+def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, embeddings: np.ndarray, topk: int) -> tuple[np.ndarray, float]:
+    """([E, H, W] cosines of the view's blended features with `embeddings`, the share of the pixels'
+    α the top-k slots hold). assigned: [N] bool `field.assigned()`: the others blend as zeros."""
+    out = rasterize_topk(prepared, camera, topk)
+    flat = out.ids.reshape(-1)
+    present = np.unique(flat[flat >= 0])
+    feats = field.reconstruct(present).astype(np.float32) if present.size else np.zeros((0, field.dim), np.float32)
+    feats[~assigned[present]] = 0.0
+    held = float(np.where(out.ids >= 0, out.weights, 0.0).sum(dtype=np.float64))
+    rendered = float(out.alpha.sum(dtype=np.float64))
+    return blend_cosines(out.ids, out.weights, feats, embeddings), (held / rendered if rendered > 0 else 1.0)
+
+
+def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedView], queries: dict[str, np.ndarray], negatives: np.ndarray,
+                     topk: int = DEFAULT_TOPK, mask_threshold: float = LANGSPLAT_MASK_THRESHOLD, show_progress: bool = True,
+                     cancel: CancelToken | None = None) -> LangSplatReport:
+    """Evaluate a registered field with LangSplat's 2D protocol (module docstring).
+
+    scene: the registered GaussianScene; field: its LanguageField; cameras: matched to views by name
+    (`lerf.camera_for_view`); queries: category -> [D] unit text embedding; negatives: [C, D]
+    canonical (+ user) negative embeddings. Pairs of categories without a query are skipped with a
+    warning; degenerate ground truth is left out as in `lerf.lerf_2d_report`.
+    """
+    by_name = {c.name: c for c in cameras}
+    prepared = prepare_scene(scene)
+    assigned = np.asarray(field.assigned(), bool)
+    rows: list[LangSplatRow] = []
+    missing: list[str] = []
+    skipped: list[tuple[str, str]] = []
+    unqueried: set[str] = set()
+    for view in progress(views, "LERF-OVS views", enabled=show_progress, unit="view"):
+        cam = camera_for_view(by_name, view)
+        if cam is None:
+            missing.append(view.name)
+            continue
+        skipped += [(view.name, c) for c in view.skipped]
+        names = [c for c in view.masks if c in queries]
+        unqueried |= {c for c in view.masks if c not in queries}
+        if not names:
+            continue
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        embeddings = np.stack([queries[c] for c in names] + list(negatives)).astype(np.float32)
+        cosines, coverage = view_feature_blend(prepared, cam, field, assigned, embeddings, topk)
+        pos = cosines[: len(names)].reshape(len(names), -1).T
+        neg = cosines[len(names):].reshape(len(negatives), -1).T
+        relevancy = relevancy_from_scores(pos, neg).T.reshape(len(names), view.height, view.width)
+        for q, category in enumerate(names):
+            gt = view.masks[category]
+            if not gt.any():
+                log.warning("%s: view %s, category %r: the ground-truth mask is empty; left out of the means",
+                            view.path or "annotation", view.name, category)
+                skipped.append((view.name, category))
+                continue
+            pred = langsplat_mask(relevancy[q], mask_threshold)
+            hit = peak_in_boxes(relevancy[q], view.boxes.get(category, np.zeros((0, 4))))
+            rows.append(LangSplatRow(view.name, category, mask_iou(pred, gt), bool(hit), coverage))
+    if missing:
+        log.warning("%d annotated views have no camera of the same name: %s", len(missing), ", ".join(missing[:5]))
+    if unqueried:
+        log.warning("no query for categories %s; skipped", sorted(unqueried))
+    return LangSplatReport(rows, topk, mask_threshold, missing, skipped)
