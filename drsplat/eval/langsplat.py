@@ -117,30 +117,32 @@ def peak_in_boxes(relevancy_map: np.ndarray, boxes: np.ndarray) -> bool:
 
 
 @numba.njit(parallel=True, cache=True)
-def _blend_cosines_kernel(local, weights, feats, embeddings, out):  # pragma: no cover - jitted
-    """out[e, p] = cos(Σ_s weights[p, s] feats[local[p, s]], embeddings[e]); 0 for a pixel whose blend
-    is zero. local [P, k] int32 (-1: empty slot), weights [P, k] float32, feats [U, D] float32,
-    embeddings [E, D] float32 (unit rows), out [E, P] float32. The blend and the dots in float64."""
+def _blend_kernel(local, weights, feats, out, norms):  # pragma: no cover - jitted
+    """out[p] = Σ_s weights[p, s] feats[local[p, s]] summed in float64, stored float32, and norms[p]
+    = its float64 norm. local [P, k] int32 (-1: empty slot), weights [P, k] float32, feats [U, D]
+    float32, out [P, D] float32, norms [P] float64."""
     n_pix, k = local.shape
     dim = feats.shape[1]
-    for p in numba.prange(n_pix):
-        acc = np.zeros(dim)
-        for s in range(k):
-            u = local[p, s]
-            if u < 0:
-                continue
-            w = np.float64(weights[p, s])
+    chunk = 256
+    for c in numba.prange((n_pix + chunk - 1) // chunk):
+        acc = np.empty(dim)  # one per run of pixels: an allocation per pixel cost more than its blend
+        sq = np.empty(8)  # eight running sums of squares (lanes d mod 8): one is a serial chain of adds
+        for p in range(c * chunk, min(n_pix, (c + 1) * chunk)):
+            acc[:] = 0.0
+            for s in range(k):
+                u = local[p, s]
+                if u >= 0:
+                    w = np.float64(weights[p, s])
+                    for d in range(dim):
+                        acc[d] += w * feats[u, d]
+            sq[:] = 0.0
             for d in range(dim):
-                acc[d] += w * feats[u, d]
-        norm = np.sqrt(np.sum(acc * acc))
-        for e in range(embeddings.shape[0]):
-            if norm > 0.0:
-                dot = 0.0
-                for d in range(dim):
-                    dot += acc[d] * embeddings[e, d]
-                out[e, p] = dot / norm
-            else:
-                out[e, p] = 0.0
+                out[p, d] = acc[d]
+                sq[d % 8] += acc[d] * acc[d]
+            norms[p] = np.sqrt(((sq[0] + sq[4]) + (sq[1] + sq[5])) + ((sq[2] + sq[6]) + (sq[3] + sq[7])))
+
+
+BLEND_BLOCK = 1 << 15  # pixels blended at a time: their [P, D] float32 features (64 MB at D = 512)
 
 
 def blend_cosines(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
@@ -148,15 +150,42 @@ def blend_cosines(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, em
 
     ids, weights: [H, W, k] top-k lists (-1 / 0 padding); features: [U, D] the features of the
     Gaussians ids names, row u for the u-th smallest id present (`np.unique` order), zero rows for
-    Gaussians without one; embeddings: [E, D] unit rows."""
+    Gaussians without one; embeddings: [E, D] unit rows. A block of pixels at a time: the blend
+    (`_blend_kernel`), then its norms and its product with the embeddings (BLAS); 0 where a pixel's
+    blend is zero."""
     h, w, k = ids.shape
-    flat = ids.reshape(-1, k)
-    present = np.unique(flat[flat >= 0])
-    local = np.where(flat >= 0, np.searchsorted(present, np.maximum(flat, 0)), -1).astype(np.int32)
-    out = np.empty((embeddings.shape[0], h * w), np.float32)
-    _blend_cosines_kernel(local, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(features, np.float32),
-                          np.ascontiguousarray(embeddings, np.float32), out)
+    local = local_ids(ids.reshape(-1, k))
+    wts = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
+    feats = np.ascontiguousarray(features, np.float32)
+    emb_t = np.ascontiguousarray(np.asarray(embeddings, np.float32).T)
+    out = np.empty((emb_t.shape[1], h * w), np.float32)
+    block = np.empty((min(BLEND_BLOCK, h * w), feats.shape[1]), np.float32)
+    norms = np.empty(block.shape[0])
+    for lo in range(0, h * w, BLEND_BLOCK):
+        hi = min(lo + BLEND_BLOCK, h * w)
+        blend, norm = block[: hi - lo], norms[: hi - lo]
+        _blend_kernel(local[lo:hi], wts[lo:hi], feats, blend, norm)
+        dots = (blend @ emb_t).astype(np.float64).T
+        out[:, lo:hi] = np.divide(dots, norm, out=np.zeros_like(dots), where=norm > 0)
     return out.reshape(-1, h, w)
+
+
+def present_ids(ids: np.ndarray) -> np.ndarray:
+    """The distinct ids >= 0 of ids (any shape), increasing: `np.unique(ids[ids >= 0])` by a mark per id."""
+    valid = ids[ids >= 0]
+    if valid.size == 0:
+        return np.zeros(0, np.int64)
+    marks = np.zeros(int(valid.max()) + 1, bool)
+    marks[valid] = True
+    return np.flatnonzero(marks)
+
+
+def local_ids(ids: np.ndarray) -> np.ndarray:
+    """ids (any shape, -1 empty) as int32 rows of `present_ids(ids)` (-1 stays -1)."""
+    present = present_ids(ids)
+    lookup = np.full(int(present[-1]) + 2 if present.size else 1, -1, np.int32)
+    lookup[present] = np.arange(present.size, dtype=np.int32)
+    return lookup[np.where(ids >= 0, ids, -1)]
 
 
 def blend_cosines_reference(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
@@ -228,8 +257,7 @@ def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, em
     """([E, H, W] cosines of the view's blended features with `embeddings`, the share of the pixels'
     α the top-k slots hold). assigned: [N] bool `field.assigned()`: the others blend as zeros."""
     out = rasterize_topk(prepared, camera, topk)
-    flat = out.ids.reshape(-1)
-    present = np.unique(flat[flat >= 0])
+    present = present_ids(out.ids)
     feats = field.reconstruct(present).astype(np.float32) if present.size else np.zeros((0, field.dim), np.float32)
     feats[~assigned[present]] = 0.0
     held = float(np.where(out.ids >= 0, out.weights, 0.0).sum(dtype=np.float64))
