@@ -35,7 +35,7 @@ from drsplat.cameras import Camera
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView
 from drsplat.eval.lerf import camera_for_view, mask_iou
-from drsplat.query import relevancy_from_scores
+from drsplat.query import query_rows, relevancy_from_scores
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.utils import CancelToken, progress
 
@@ -271,8 +271,8 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
     """Evaluate a registered field with LangSplat's 2D protocol (module docstring).
 
     scene: the registered GaussianScene; field: its LanguageField; cameras: matched to views by name
-    (`lerf.camera_for_view`); queries: category -> [D] unit text embedding; negatives: [C, D]
-    canonical (+ user) negative embeddings. Pairs of categories without a query are skipped with a
+    (`lerf.camera_for_view`); queries: category -> [D] text embedding; negatives: [C, D] canonical
+    (+ user) negative embeddings (both normalised here). Pairs of categories without a query are skipped with a
     warning; degenerate ground truth is left out as in `lerf.lerf_2d_report`.
     """
     by_name = {c.name: c for c in cameras}
@@ -294,7 +294,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
             continue
         if cancel is not None:
             cancel.raise_if_cancelled()
-        embeddings = np.stack([queries[c] for c in names] + list(negatives)).astype(np.float32)
+        embeddings = query_rows(np.stack([queries[c] for c in names] + list(negatives)))  # unit rows: the cosines' other side
         cosines, coverage = view_feature_blend(prepared, cam, field, assigned, embeddings, topk)
         pos = cosines[: len(names)].reshape(len(names), -1).T
         neg = cosines[len(names):].reshape(len(negatives), -1).T
