@@ -144,7 +144,10 @@ def test_eval_lerf_langsplat_protocol(registered, tmp_path, capsys):
     bad = json.loads(wrong.read_text())
     assert bad["mIoU"] < 0.2 and bad["localization_accuracy"] < 0.3
     assert main([*base, "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--threshold", "0.5"]) == 2
-    assert "--mask-threshold" in capsys.readouterr().err
+    assert "--threshold belongs to --protocol opengaussian" in capsys.readouterr().err
+    opengaussian = [a for a in base if a not in ("--protocol", "langsplat")]
+    assert main([*opengaussian, "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--topk", "10", "--mask-threshold", "0.3"]) == 2
+    assert "--mask-threshold, --topk belong to --protocol langsplat" in capsys.readouterr().err
 
 
 def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):

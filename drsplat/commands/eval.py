@@ -162,16 +162,16 @@ def _add_lerf(sub) -> None:
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
     p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
-    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=LERF_ALPHA_THRESHOLD,
+    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=None,
                    help=f"rendered occupancy above which a pixel is selected (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
                    help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
                         "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
                         "so it needs negatives; --threshold and --alpha-threshold do not apply)")
-    p.add_argument("--mask-threshold", type=float_range(0.0, 1.0), default=LANGSPLAT_MASK_THRESHOLD,
+    p.add_argument("--mask-threshold", type=float_range(0.0, 1.0), default=None,
                    help=f"--protocol langsplat: threshold of the rescaled relevancy map (default: {LANGSPLAT_MASK_THRESHOLD}, LangSplat's)")
-    p.add_argument("--topk", type=int_range(1, 1024), default=DEFAULT_TOPK,
+    p.add_argument("--topk", type=int_range(1, 1024), default=None,
                    help=f"--protocol langsplat: Gaussians blended per pixel for its feature (default: {DEFAULT_TOPK})")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
@@ -545,6 +545,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.eval.datasets import lerf_annotation_files, load_lerf_annotations
     from drsplat.eval.lerf import lerf_2d_report, select_queries
 
+    check_protocol_flags(args)
     cameras = load_cameras(args.source)
     # the camera file and the annotations are found inside --source and --annotations; any *.json
     # written into --annotations would be read as an annotation by the next run
@@ -578,7 +579,8 @@ def run_lerf(args: argparse.Namespace) -> int:
             raise DrsplatError(f"--threshold must be a number or 'auto', got {args.threshold!r}") from None
     selected, taus = select_queries(scores, threshold, assigned)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
-    report = lerf_2d_report(scene, cameras, views, selections, args.alpha_threshold, show_progress=True)
+    alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
+    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=True)
     if not report.rows and report.skipped:
         raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
                            "(see the warnings above): nothing to score")
@@ -593,16 +595,29 @@ def run_lerf(args: argparse.Namespace) -> int:
     return 0
 
 
+PROTOCOL_FLAGS = {"opengaussian": (("threshold", "--threshold"), ("alpha_threshold", "--alpha-threshold")),
+                  "langsplat": (("mask_threshold", "--mask-threshold"), ("topk", "--topk"))}
+
+
+def check_protocol_flags(args: argparse.Namespace) -> None:
+    """UsageError for a flag of the other `eval lerf` protocol (it would be ignored without a word)."""
+    for protocol, flags in PROTOCOL_FLAGS.items():
+        given = [flag for name, flag in flags if getattr(args, name) is not None]
+        if given and protocol != args.protocol:
+            raise UsageError(f"{', '.join(given)} belong{'s' if len(given) == 1 else ''} to --protocol {protocol}, not "
+                             f"{args.protocol} (OpenGaussian's protocol thresholds the Gaussians' scores and their rendered "
+                             "occupancy; LangSplat's the relevancy map of the rendered features)")
+
+
 def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, names: list[str], categories: list[str]) -> int:
     """`eval lerf --protocol langsplat`: LangSplat's relevancy-map protocol (drsplat.eval.langsplat)."""
     from drsplat.eval.langsplat import langsplat_report
 
-    if args.threshold is not None:
-        raise UsageError("--threshold selects Gaussians (OpenGaussian's protocol); --protocol langsplat thresholds the "
-                         "relevancy map with --mask-threshold")
     queries, negatives = label_embeddings(args, field, names, negatives=True)
     by_name = {n: queries[k] for k, n in enumerate(names) if n in categories}
-    report = langsplat_report(scene, field, cameras, views, by_name, negatives, args.topk, args.mask_threshold, show_progress=True)
+    topk = DEFAULT_TOPK if args.topk is None else args.topk
+    mask_threshold = LANGSPLAT_MASK_THRESHOLD if args.mask_threshold is None else args.mask_threshold
+    report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=True)
     if not report.rows and report.skipped:
         raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
                            "(see the warnings above): nothing to score")
