@@ -106,16 +106,29 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     if ray.is_initialized():
         return False
     kwargs = {"runtime_env": _runtime_env(address), "logging_level": logging.WARNING, "log_to_driver": False}
-    if local:
-        kwargs.update(include_dashboard=False, num_cpus=num_cpus, object_store_memory=object_store_memory)
+    if local:  # "local": a new instance even where `ray start` runs one (ray.init() alone would join it)
+        kwargs.update(address="local", include_dashboard=False, num_cpus=num_cpus, object_store_memory=object_store_memory)
     else:
         kwargs["address"] = address
     try:
         with _process_state_kept():
             ray.init(**kwargs)
     except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}") from None
+        hint = "" if local or address == "auto" else auth_hint()
+        raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}{hint}") from None
     return True
+
+
+def auth_hint() -> str:
+    """What to try when an explicit cluster address refuses this process: Ray (2.59 on) starts
+    clusters with token authentication, and a driver given a HOST:PORT sends its token only when
+    RAY_AUTH_MODE=token is set (`auto` learns it from the cluster's session on this machine)."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() == "token":
+        return ("; RAY_AUTH_MODE=token is set, so check the token (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token "
+                "must hold the head's: `ray get-auth-token` there)")
+    return ("; if the cluster uses Ray's token authentication (the default for `ray start` since Ray 2.59), run with "
+            "RAY_AUTH_MODE=token and the head's token (`ray get-auth-token` there) in ~/.ray/auth_token or RAY_AUTH_TOKEN, "
+            "or use --ray auto on a node of the cluster")
 
 
 @contextmanager

@@ -252,6 +252,39 @@ def test_joining_ray_leaves_print_the_sigterm_handler_and_the_environment_alone(
     assert threads() >= 1
 
 
+def test_no_address_starts_a_new_local_instance_beside_a_running_cluster(cluster, monkeypatch):
+    """`--ray` with no address is a local instance of its own (the README's "a local Ray instance"),
+    not the cluster a `ray start` left on the machine, which ray.init() alone joins (RAY_ADDRESS, or
+    the session file): its workers run elsewhere, with another working folder."""
+    from drsplat.cluster import connect
+
+    monkeypatch.setenv("RAY_ADDRESS", cluster.address)
+    ray_sets = {k: os.environ.get(k) for k in ("RAY_AUTH_MODE", "RAY_USAGE_STATS_ENABLED")}  # a local ray.init writes these
+    ray.shutdown()
+    try:
+        assert connect(None, num_cpus=1)
+        assert ray.get_runtime_context().gcs_address != cluster.address
+    finally:
+        ray.shutdown()
+        for key, value in ray_sets.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        monkeypatch.delenv("RAY_ADDRESS")
+        connect(cluster.address)  # the module's cluster, joined again for the tests after this one
+    assert ray.get_runtime_context().gcs_address == cluster.address
+
+
+def test_an_address_that_refuses_the_driver_names_ray_token_authentication(monkeypatch):
+    from drsplat.cluster import auth_hint
+
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    assert "RAY_AUTH_MODE=token" in auth_hint() and "ray get-auth-token" in auth_hint()
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")
+    assert "check the token" in auth_hint()
+
+
 def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
     from drsplat.cli import main
     from drsplat.cluster import connect
