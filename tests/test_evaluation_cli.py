@@ -150,6 +150,18 @@ def test_eval_lerf_langsplat_protocol(registered, tmp_path, capsys):
     assert "--mask-threshold, --topk belong to --protocol langsplat" in capsys.readouterr().err
 
 
+def test_eval_on_an_oracle_scene_without_embeddings_names_the_eval_flags(registered, capsys):
+    """The oracle's error named query's --embedding, which eval has not."""
+    r = registered
+    base = ["eval", "lerf", str(r["ply"]), "--source", str(r["ds"]), "--annotations", str(r["labels"]),
+            "--label-names", str(r["ds"] / "gt" / "label_names.json")]
+    assert main(base) == 1
+    err = capsys.readouterr().err
+    assert "pass --text-embeddings" in err and "--embedding " not in err
+    assert main([*base, "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--protocol", "langsplat"]) == 1
+    assert "pass --negative-embeddings" in capsys.readouterr().err
+
+
 def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
     from drsplat.cameras import load_cameras
     from drsplat.eval.datasets import load_lerf_annotations

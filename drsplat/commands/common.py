@@ -201,17 +201,18 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
     return scene, field
 
 
-def load_encoder(args: argparse.Namespace, field: LanguageField):
-    """The CLIP text encoder for a field: architecture and tag default to the field's model id."""
+ORACLE_TEXT_FLAG = "--text-embeddings (rows of the synthetic dataset's text_embeddings.npy)"
+
+
+def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = ORACLE_TEXT_FLAG):
+    """The CLIP text encoder for a field: architecture and tag default to the field's model id.
+    instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
     from drsplat.features.clip import ClipEncoder, use_clip_config
     from drsplat.features.modelid import DEFAULT_MODEL
     from drsplat.features.modelid import is_oracle
 
     if is_oracle(field.clip_model):
-        raise DrsplatError(
-            "this scene's features are synthetic oracle embeddings, not CLIP: query it with --embedding "
-            "(rows of the synthetic dataset's text_embeddings.npy) instead of text"
-        )
+        raise DrsplatError(f"this scene's features are synthetic oracle embeddings, not CLIP: pass {instead} instead of text")
     model, pretrained = DEFAULT_MODEL, None
     if "/" in field.clip_model:
         model, pretrained = field.clip_model.split("/", 1)

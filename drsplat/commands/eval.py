@@ -198,7 +198,8 @@ def label_embeddings(args: argparse.Namespace, field, names: list[str], negative
         return queries, None
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and extra is None:
-        encoder = load_encoder(args, field)
+        encoder = load_encoder(args, field, "--negative-embeddings ((C, D) rows standing for the canonical phrases, which "
+                                            "relevancy needs)")
     return queries, negative_embeddings(encoder, field, [], extra)
 
 
