@@ -215,7 +215,7 @@ def test_query_cli_click_text_and_relevancy(tmp_path, registered, world, monkeyp
     from drsplat.commands import common as common_cmd
 
     _, _, lab, dirs = world
-    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field, **_: FakeEncoder(dirs))
     ids = np.flatnonzero(lab == 4)[:3]
     np.save(tmp_path / "ids.npy", ids)
     assert main(["query", str(registered["pq"]), "--gaussians", str(tmp_path / "ids.npy"), "--scores", str(tmp_path / "c.npy")]) == 0
@@ -244,7 +244,9 @@ def test_query_cli_errors(tmp_path, registered, capsys):
     oracle = tmp_path / "oracle.ply"
     save_ply(attach_field(tiny_scene(4), field, oracle), oracle)
     assert main(["query", str(oracle), "--text", "chair"]) == 1
-    assert "--embedding" in capsys.readouterr().err
+    assert "pass --embedding (" in capsys.readouterr().err
+    assert main(["segment", str(oracle), "--labels", "chair,table", "--out", str(tmp_path / "s.npy")]) == 1
+    assert "pass --embeddings (" in capsys.readouterr().err  # segment's flag, not query's
     assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--relevancy"]) == 1
     capsys.readouterr()
     # relevancy on oracle features needs negatives no text encoder can give: the flag that does (it said "use --embedding")
@@ -271,7 +273,7 @@ def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkey
     same = got == got[10]
     np.testing.assert_allclose(rgb[same], np.broadcast_to(rgb[10], rgb[same].shape), atol=1e-5)
     assert not np.allclose(rgb[got == 0][0], rgb[got == 1][0])
-    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field: FakeEncoder(dirs))
+    monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field, **_: FakeEncoder(dirs))
     assert main(["segment", str(registered["pq"]), "--labels", "lbl0,lbl1,lbl2,lbl3", "--out", str(tmp_path / "t.npy")]) == 0
     t = np.load(tmp_path / "t.npy")
     assert np.mean(t[4:][lab[4:] < 4] == lab[4:][lab[4:] < 4]) > 0.97

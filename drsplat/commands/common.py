@@ -201,10 +201,12 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
     return scene, field
 
 
-ORACLE_TEXT_FLAG = "--text-embeddings (rows of the synthetic dataset's text_embeddings.npy)"
+def oracle_flag(flag: str) -> str:
+    """What an oracle scene's error tells to pass instead of text: the command's embedding flag."""
+    return f"{flag} (rows of the synthetic dataset's text_embeddings.npy)"
 
 
-def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = ORACLE_TEXT_FLAG):
+def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = oracle_flag("--embedding")):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id.
     instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
     from drsplat.features.clip import ClipEncoder, use_clip_config

@@ -183,7 +183,7 @@ def _add_lerf(sub) -> None:
 def label_embeddings(args: argparse.Namespace, field, names: list[str], negatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """([L, D] the labels' query embeddings, [C, D] the relevancy's negatives or None): from
     --text-embeddings / --negative-embeddings, else through the CLIP text encoder."""
-    from drsplat.commands.common import load_encoder
+    from drsplat.commands.common import load_encoder, oracle_flag
     from drsplat.query import load_query_embeddings, negative_embeddings, text_embeddings
 
     encoder = None
@@ -192,7 +192,7 @@ def label_embeddings(args: argparse.Namespace, field, names: list[str], negative
         if queries.shape[0] != len(names):
             raise InputError(args.text_embeddings, f"{queries.shape[0]} embeddings for {len(names)} label names")
     else:
-        encoder = load_encoder(args, field)
+        encoder = load_encoder(args, field, oracle_flag("--text-embeddings"))
         queries = text_embeddings(encoder, names, field)
     if not negatives:
         return queries, None

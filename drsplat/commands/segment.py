@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,7 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
 
     if args.labels is not None:
         names = label_phrases(args.labels)
-        encoder = (encoder_factory or common.load_encoder)(args, field)
+        encoder = (encoder_factory or partial(common.load_encoder, instead=common.oracle_flag("--embeddings")))(args, field)
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
         emb = load_query_embeddings(args.embeddings, field.dim)
