@@ -487,3 +487,30 @@ def test_no_display_is_reported_before_anything_is_generated(monkeypatch, capsys
     assert viewer.launch.main([]) == 1
     err = capsys.readouterr().err
     assert "no display" in err and "--screenshot" in err and err.count("ERROR") == 1
+
+
+def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
+    """README: SIGTERM behaves like Ctrl-C. The viewer had no handler: exit 143 and no word."""
+    import os
+    import signal
+
+    import viewer.launch
+
+    def build_state(args):
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives while the scene loads
+        time.sleep(5)  # the handler interrupts this
+        pytest.fail("SIGTERM did not stop the viewer")
+
+    monkeypatch.setenv("DRSPLAT_VIEWER_PLATFORM", "egl")  # a display is there: the scene would load
+    monkeypatch.setattr(viewer.launch, "display_available", lambda platform: True)
+    monkeypatch.setattr(viewer.launch, "build_state", build_state)
+    def unhandled(signum, frame):  # what runs if the viewer sets no handler of its own
+        raise AssertionError("the viewer left SIGTERM to the process's handler")
+
+    before = signal.signal(signal.SIGTERM, unhandled)
+    try:
+        assert viewer.launch.main([]) == 1
+        assert signal.getsignal(signal.SIGTERM) is unhandled
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert "interrupted; no partial output was written" in capsys.readouterr().err
