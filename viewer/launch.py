@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="main.py",
         description="drsplat viewer: look at a (registered) 3DGS scene and search it by language. "
-        "Without SCENE it opens a demo scene generated on first run.",
+        "Without SCENE it opens the pre-registered demo scene shipped in assets/demo.",
     )
     p.add_argument("scene", nargs="?", type=Path, help="a 3DGS scene (PLY, .splat or .spz); a registered PLY (drsplat register) opens ready to query")
     p.add_argument("--source", type=Path, help="dataset directory with the training cameras (COLMAP, transforms.json or cameras.json)")
@@ -76,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("highlight", "heatmap", "selection", "hide_selection", "segmentation"), default="highlight", help="display mode of the screenshot")
     p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280)")
     p.add_argument("--height", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot height in pixels (default: the camera's, or 720)")
-    p.add_argument("--demo-preset", choices=tuple(PRESETS), default=None, help=argparse.SUPPRESS)
+    p.add_argument("--demo-preset", choices=tuple(PRESETS), default=None, metavar="PRESET",
+                   help="without SCENE: generate and register this synthetic preset (drsplat synth) into the cache on first "
+                        "run, instead of the shipped demo")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 

@@ -198,7 +198,7 @@ class ViewerState:
             return
         model = self.field.clip_model or "unknown"
         if is_oracle(model):
-            self.encoder_status = "Text queries are off because this scene's features are synthetic oracle vectors (use the oracle labels below); for a real scene pass --clip-checkpoint PATH to a local open_clip checkpoint."
+            self.encoder_status = "Text queries are off because this scene's features are synthetic oracle vectors (query their labels: the oracle buttons below, or --oracle LABEL with --screenshot); for a real scene pass --clip-checkpoint PATH to a local open_clip checkpoint."
             return
         self.encoder_status = "loading the CLIP text encoder..."
         if background:

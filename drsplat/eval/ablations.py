@@ -597,7 +597,8 @@ def add_ablate_parser(sub) -> None:
     p.add_argument("ablation", choices=ABLATIONS)
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
-    p.add_argument("--modes", default=None, metavar="M,M", help="aggregate, resolution: the aggregation modes to compare (default: all)")
+    p.add_argument("--modes", default=None, metavar="M,M", help="aggregate, resolution: the aggregation modes to compare (default: all of them for aggregate; paper "
+                        "and the default mode for resolution)")
     p.add_argument("--mask-source", default=None, metavar="SRC[,SRC]",
                    help="aggregate, resolution: oracle masks of every preset from the rendered Gaussians' vote (render), ray-cast true silhouettes "
                         "(geometry) or a segmenter's superpixels (segmenter: with corruptions without jitter, e.g. clean or "
