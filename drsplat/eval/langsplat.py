@@ -216,6 +216,8 @@ class LangSplatRow:
 
 @dataclass
 class LangSplatReport:
+    """rows: one per scored (view, category); missing_views and skipped as in `lerf.Lerf2DReport`."""
+
     rows: list[LangSplatRow]
     topk: int
     mask_threshold: float
@@ -239,7 +241,7 @@ class LangSplatReport:
     def to_dict(self) -> dict:
         return {"protocol": "langsplat", "mIoU": self.miou, "localization_accuracy": self.localization, "topk": self.topk,
                 "mask_threshold": self.mask_threshold, "rows": [r.__dict__ for r in self.rows], "missing_views": self.missing_views,
-                "skipped": [list(s) for s in self.skipped],
+                "skipped_pairs": [{"view": v, "category": c} for v, c in self.skipped],
                 "per_category": {n: {"IoU": i, "localization": a} for n, (i, a) in self.per_category().items()}}
 
     def format(self) -> str:
@@ -250,6 +252,8 @@ class LangSplatReport:
         coverage = [r.coverage for r in self.rows]
         if coverage:
             lines.append(f"  the top-{self.topk} blend holds {100 * min(coverage):.2f}-{100 * max(coverage):.2f} % of the views' rendered weight")
+        if self.skipped:
+            lines.append(f"  ({len(self.skipped)} (view, category) pairs with degenerate ground truth left out)")
         return "\n".join(lines)
 
 
