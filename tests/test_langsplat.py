@@ -102,3 +102,18 @@ def test_langsplat_mask_finds_a_bright_disc_and_the_peak_its_box():
     assert ls.peak_in_boxes(rel, np.array([[125, 85, 75, 35]]))  # corners in either order
     assert not ls.peak_in_boxes(rel, np.array([[0, 0, 40, 40], [130, 90, 159, 119]]))
     assert not ls.peak_in_boxes(rel, np.zeros((0, 4)))
+
+
+def test_a_view_too_large_for_memory_is_one_error_naming_it(monkeypatch):
+    """An annotation may be 8x its camera's size; its top-k lists are refused before any allocation."""
+    from pathlib import Path
+
+    from drsplat.errors import DrsplatError
+    from drsplat.eval.datasets import AnnotatedView
+
+    view = AnnotatedView("frame_00001", 8000, 6000, {}, path=Path("label/frame_00001.json"))
+    assert ls.view_bytes(8000, 6000, 40, 12) > 20e9
+    monkeypatch.setattr(ls, "available_memory", lambda: 4 << 30)
+    with pytest.raises(DrsplatError, match=r"frame_00001.json: view frame_00001 is annotated at 8000x6000.*--topk"):
+        ls.check_view_memory(view, 40, 12)
+    ls.check_view_memory(AnnotatedView("v", 986, 728, {}), 40, 12)  # a LERF-OVS view fits

@@ -34,7 +34,9 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView
+from drsplat.errors import DrsplatError
 from drsplat.eval.lerf import camera_for_view, mask_iou
+from drsplat.memory import available_memory, format_size
 from drsplat.query import query_rows, relevancy_from_scores
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.utils import CancelToken, progress
@@ -269,6 +271,22 @@ def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, em
     return blend_cosines(out.ids, out.weights, feats, embeddings), (held / rendered if rendered > 0 else 1.0)
 
 
+def view_bytes(width: int, height: int, topk: int, embeddings: int) -> int:
+    """Memory one view of the protocol needs at most: the top-k lists (ids, weights and their local
+    ids: 12 bytes a slot), the cosines and the maps (float32 and float64, ~8·E + 64 bytes a pixel)."""
+    return width * height * (12 * topk + 8 * embeddings + 64)
+
+
+def check_view_memory(view: AnnotatedView, topk: int, embeddings: int) -> None:
+    """DrsplatError naming the view before it is rendered when its lists would not fit in memory (an
+    annotation may be up to 8x its camera's size: 8000x6000 pixels at k = 40 is 23 GB)."""
+    need, free = view_bytes(view.width, view.height, topk, embeddings), available_memory()
+    if need > free:
+        raise DrsplatError(f"{view.path or view.name}: view {view.name} is annotated at {view.width}x{view.height}; its top-{topk} "
+                           f"feature blend needs {format_size(need, up=True)} and {format_size(free)} is free: pass a smaller --topk "
+                           "or annotations at the camera's size")
+
+
 def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedView], queries: dict[str, np.ndarray], negatives: np.ndarray,
                      topk: int = DEFAULT_TOPK, mask_threshold: float = LANGSPLAT_MASK_THRESHOLD, show_progress: bool = True,
                      cancel: CancelToken | None = None) -> LangSplatReport:
@@ -298,6 +316,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
             continue
         if cancel is not None:
             cancel.raise_if_cancelled()
+        check_view_memory(view, topk, len(names) + len(negatives))
         embeddings = query_rows(np.stack([queries[c] for c in names] + list(negatives)))  # unit rows: the cosines' other side
         cosines, coverage = view_feature_blend(prepared, cam, field, assigned, embeddings, topk)
         pos = cosines[: len(names)].reshape(len(names), -1).T
