@@ -359,11 +359,11 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
     settings, config = gsplat_run_settings(scene_path)
     test_every, told = _test_every(settings, config)
     names = _colmap_image_names(source)
-    why = _unmatched(deltas, settings, config, test_every, told, names, source)
+    train = training_names(names, test_every) if names is not None and test_every is not None else None
+    why = _unmatched(deltas, settings, config, test_every, told, names, train, source)
     if why:
         log.warning("%s holds %s camera refinements (gsplat's pose_opt), not applied: %s", what, f"{len(deltas):,}", why)
         return cameras
-    train = training_names(names, test_every)
     row_of = {Path(name).stem: r for r, name in enumerate(train)}
     centres = np.array([np.asarray(c.center, np.float64) for c in cameras]) if cameras else np.zeros((0, 3))
     reach = float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) if len(centres) > 1 else np.inf
@@ -404,9 +404,9 @@ def refined_by(comments: Sequence[str]) -> Path | None:
 
 
 def _unmatched(deltas: np.ndarray, settings: dict[str, str], config: Path | None, test_every: int | None, told: str,
-               names: list[str] | None, source: str | Path) -> str:
+               names: list[str] | None, train: list[str] | None, source: str | Path) -> str:
     """Why refinements deltas [T, 9] cannot be matched to the cameras of `source` (its COLMAP model's
-    image names, None for another format), or "": cfg.yml's test_every unusable (`told` why), a run
+    image names, None for another format; train: `training_names` of them), or "": cfg.yml's test_every unusable (`told` why), a run
     its cfg.yml says did not refine poses or read no COLMAP model, one that perturbed its cameras
     (pose_noise > 0: the perturbation is not saved), or a count that is not the model's training images'."""
     if test_every is None:
@@ -424,7 +424,6 @@ def _unmatched(deltas: np.ndarray, settings: dict[str, str], config: Path | None
         perturbed = True
     if perturbed:
         return f"the run perturbed its cameras (pose_noise {noise} in {config}), and the perturbation is not saved"
-    train = training_names(names, test_every)
     if len(train) != len(deltas):
         return (f"the COLMAP model of {source} has {len(train)} training images ({len(names)} images, every {test_every}-th held out: "
                 f"{told})")

@@ -42,7 +42,6 @@ STREAM_VIEWS = 8  # at least this many views timed back to back (the counted cam
 DEFAULT_REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ply" / "flowers.ply"
 REAL_MASKS = {"voronoi": "random-mask features (every mask its own label)", "regions": "scene-region mask features"}  # --real-masks
 REAL_REGIONS = 64  # 3D regions of `region_mask_features`
-REGION_NOISE = 0.15  # the random part of a region mask's embedding (drsplat synth's default --noise)
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
@@ -300,19 +299,22 @@ def random_mask_features(features_dir: Path, cameras, rng: np.random.Generator, 
 
 
 def region_mask_features(features_dir: Path, cameras, scene, rng: np.random.Generator, regions: int = REAL_REGIONS,
-                         noise: float = REGION_NOISE, dim: int = 512) -> None:
+                         noise: float | None = None, dim: int = 512) -> None:
     """Masks that follow the scene, as a segmenter and CLIP give them on a real capture: the Gaussians
     cut into `regions` 3D regions (each the Gaussians nearest one of `regions` centres drawn among
     them), a view's pixel labelled by the region of its heaviest Gaussian (a top-1 render), one mask
-    per region in view, embedded as the region's unit vector plus `noise` times a random unit vector,
-    normalised (`drsplat synth`'s oracle rule). So a region's masks agree from view to view, unlike
+    per region in view, embedded as the region's unit vector plus a random part of length `noise`
+    (default: the length of `drsplat synth`'s mask noise, `OracleParams.noise`), normalised. So a
+    region's masks agree from view to view, unlike
     `random_mask_features`, where every mask is a label of its own (the mask check's and the vote's
     most expensive case: as many clusters as masks)."""
     from scipy.spatial import cKDTree
 
     from drsplat.features.format import write_features
     from drsplat.raster import prepare_scene, rasterize_topk
+    from drsplat.synthetic import OracleParams
 
+    noise = OracleParams().noise if noise is None else noise
     means = np.asarray(scene.means, np.float64)
     finite = np.flatnonzero(np.isfinite(means).all(axis=1))
     centres = means[rng.choice(finite, size=min(regions, finite.size), replace=False)]

@@ -568,7 +568,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     if missing:
         raise InputError(args.label_names, f"annotated categories {missing} have no entry (and so no query embedding)")
     if args.protocol == "langsplat":
-        return _run_lerf_langsplat(args, scene, field, cameras, views, names, categories)
+        return _run_lerf_langsplat(args, scene, field, cameras, views, names, categories, assigned)
     scores = label_scores(args, field, names)
     threshold = None
     if args.threshold is None and args.relevancy:
@@ -582,11 +582,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
     report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=True)
-    if not report.rows and report.skipped:
-        raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
-                           "(see the warnings above): nothing to score")
-    if not report.rows:
-        raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
+    require_scored_pairs(args, report)
     print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
           f"thresholds {'per-query Otsu' if threshold is None else threshold}")
     print(report.format())
@@ -610,20 +606,30 @@ def check_protocol_flags(args: argparse.Namespace) -> None:
                              "occupancy; LangSplat's the relevancy map of the rendered features)")
 
 
-def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, names: list[str], categories: list[str]) -> int:
-    """`eval lerf --protocol langsplat`: LangSplat's relevancy-map protocol (drsplat.eval.langsplat)."""
+def require_scored_pairs(args: argparse.Namespace, report) -> None:
+    """DrsplatError when an `eval lerf` report (either protocol) scored no (view, category) pair, saying why."""
+    if not report.rows and report.skipped:
+        raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
+                           "(see the warnings above): nothing to score")
+    if not report.rows:
+        raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
+
+
+def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, names: list[str], categories: list[str],
+                        assigned: np.ndarray) -> int:
+    """`eval lerf --protocol langsplat`: LangSplat's relevancy-map protocol (drsplat.eval.langsplat).
+    Ctrl-C stops it at the next view (a view takes seconds at LERF-OVS's size)."""
     from drsplat.eval.langsplat import langsplat_report
 
     queries, negatives = label_embeddings(args, field, names, negatives=True)
     by_name = {n: queries[k] for k, n in enumerate(names) if n in categories}
     topk = DEFAULT_TOPK if args.topk is None else args.topk
     mask_threshold = LANGSPLAT_MASK_THRESHOLD if args.mask_threshold is None else args.mask_threshold
-    report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=True)
-    if not report.rows and report.skipped:
-        raise DrsplatError(f"every (view, category) pair of {args.annotations} that matches a camera has degenerate ground truth "
-                           "(see the warnings above): nothing to score")
-    if not report.rows:
-        raise DrsplatError(f"no annotated view of {args.annotations} matches a camera of {args.source} by image name")
+    token = CancelToken()
+    with cancel_on_signals(token, "the current view"):
+        report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=True,
+                                  cancel=token, assigned=assigned)
+    require_scored_pairs(args, report)
     print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
     print(report.format())
     write_json(args.json, report.to_dict())

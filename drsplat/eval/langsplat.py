@@ -152,24 +152,30 @@ def blend_cosines(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, em
 
     ids, weights: [H, W, k] top-k lists (-1 / 0 padding); features: [U, D] the features of the
     Gaussians ids names, row u for the u-th smallest id present (`np.unique` order), zero rows for
-    Gaussians without one; embeddings: [E, D] unit rows. A block of pixels at a time: the blend
+    Gaussians without one; embeddings: [E, D] unit rows (`blend_local_cosines`)."""
+    h, w, k = ids.shape
+    return blend_local_cosines(local_ids(ids.reshape(-1, k))[1], weights, features, embeddings).reshape(-1, h, w)
+
+
+def blend_local_cosines(local: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
+    """[E, P] float32 `blend_cosines` of pixels whose slots are rows of `features` already: local
+    [P, k] int32 (-1 empty, `local_ids`), weights [P, k]. A block of pixels at a time: the blend
     (`_blend_kernel`), then its norms and its product with the embeddings (BLAS); 0 where a pixel's
     blend is zero."""
-    h, w, k = ids.shape
-    local = local_ids(ids.reshape(-1, k))
+    n_pix, k = local.shape
     wts = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
     feats = np.ascontiguousarray(features, np.float32)
     emb_t = np.ascontiguousarray(np.asarray(embeddings, np.float32).T)
-    out = np.empty((emb_t.shape[1], h * w), np.float32)
-    block = np.empty((min(BLEND_BLOCK, h * w), feats.shape[1]), np.float32)
+    out = np.empty((emb_t.shape[1], n_pix), np.float32)
+    block = np.empty((min(BLEND_BLOCK, n_pix), feats.shape[1]), np.float32)
     norms = np.empty(block.shape[0])
-    for lo in range(0, h * w, BLEND_BLOCK):
-        hi = min(lo + BLEND_BLOCK, h * w)
+    for lo in range(0, n_pix, BLEND_BLOCK):
+        hi = min(lo + BLEND_BLOCK, n_pix)
         blend, norm = block[: hi - lo], norms[: hi - lo]
         _blend_kernel(local[lo:hi], wts[lo:hi], feats, blend, norm)
         dots = (blend @ emb_t).astype(np.float64).T
         out[:, lo:hi] = np.divide(dots, norm, out=np.zeros_like(dots), where=norm > 0)
-    return out.reshape(-1, h, w)
+    return out
 
 
 def present_ids(ids: np.ndarray) -> np.ndarray:
@@ -182,12 +188,12 @@ def present_ids(ids: np.ndarray) -> np.ndarray:
     return np.flatnonzero(marks)
 
 
-def local_ids(ids: np.ndarray) -> np.ndarray:
-    """ids (any shape, -1 empty) as int32 rows of `present_ids(ids)` (-1 stays -1)."""
+def local_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(`present_ids(ids)`, ids (any shape, -1 empty) as int32 rows of it, -1 staying -1)."""
     present = present_ids(ids)
     lookup = np.full(int(present[-1]) + 2 if present.size else 1, -1, np.int32)
     lookup[present] = np.arange(present.size, dtype=np.int32)
-    return lookup[np.where(ids >= 0, ids, -1)]
+    return present, lookup[np.where(ids >= 0, ids, -1)]
 
 
 def blend_cosines_reference(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
@@ -263,12 +269,14 @@ def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, em
     """([E, H, W] cosines of the view's blended features with `embeddings`, the share of the pixels'
     α the top-k slots hold). assigned: [N] bool `field.assigned()`: the others blend as zeros."""
     out = rasterize_topk(prepared, camera, topk)
-    present = present_ids(out.ids)
+    h, w, k = out.ids.shape
+    present, local = local_ids(out.ids.reshape(-1, k))  # numbered once: the features are fetched, then blended, by it
     feats = field.reconstruct(present).astype(np.float32) if present.size else np.zeros((0, field.dim), np.float32)
     feats[~assigned[present]] = 0.0
     held = float(np.where(out.ids >= 0, out.weights, 0.0).sum(dtype=np.float64))
     rendered = float(out.alpha.sum(dtype=np.float64))
-    return blend_cosines(out.ids, out.weights, feats, embeddings), (held / rendered if rendered > 0 else 1.0)
+    cosines = blend_local_cosines(local, out.weights, feats, embeddings).reshape(-1, h, w)
+    return cosines, (held / rendered if rendered > 0 else 1.0)
 
 
 def view_bytes(width: int, height: int, topk: int, embeddings: int) -> int:
@@ -289,17 +297,18 @@ def check_view_memory(view: AnnotatedView, topk: int, embeddings: int) -> None:
 
 def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedView], queries: dict[str, np.ndarray], negatives: np.ndarray,
                      topk: int = DEFAULT_TOPK, mask_threshold: float = LANGSPLAT_MASK_THRESHOLD, show_progress: bool = True,
-                     cancel: CancelToken | None = None) -> LangSplatReport:
+                     cancel: CancelToken | None = None, assigned: np.ndarray | None = None) -> LangSplatReport:
     """Evaluate a registered field with LangSplat's 2D protocol (module docstring).
 
     scene: the registered GaussianScene; field: its LanguageField; cameras: matched to views by name
     (`lerf.camera_for_view`); queries: category -> [D] text embedding; negatives: [C, D] canonical
-    (+ user) negative embeddings (both normalised here). Pairs of categories without a query are skipped with a
-    warning; degenerate ground truth is left out as in `lerf.lerf_2d_report`.
+    (+ user) negative embeddings (both normalised here); assigned: [N] bool `field.assigned()` when the
+    caller has it. Pairs of categories without a query are skipped with a warning; degenerate ground
+    truth is left out as in `lerf.lerf_2d_report`.
     """
     by_name = {c.name: c for c in cameras}
     prepared = prepare_scene(scene)
-    assigned = np.asarray(field.assigned(), bool)
+    assigned = np.asarray(field.assigned() if assigned is None else assigned, bool)
     rows: list[LangSplatRow] = []
     missing: list[str] = []
     skipped: list[tuple[str, str]] = []
