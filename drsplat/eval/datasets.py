@@ -144,14 +144,15 @@ def _is_polygon(value: object) -> bool:
     return isinstance(value, list) and all(_is_point(p) for p in value)
 
 
-def _polygon_array(path: Path, field: str, points: list) -> np.ndarray:
-    """[P, 2] float64 of a list of [x, y] points, refusing non-finite coordinates."""
+def _polygon_array(path: Path, field: str, points: list, what: str = "polygon") -> np.ndarray:
+    """[P, 2] float64 of a list of [x, y] points, refusing non-finite coordinates (the error names
+    `what` they are: a polygon, or a box's two corners)."""
     try:
         poly = np.array([[float(x), float(y)] for x, y in points], np.float64).reshape(-1, 2)
     except OverflowError:  # a JSON integer beyond float range
         poly = np.full((1, 2), np.inf)
     if not np.isfinite(poly).all():
-        raise InputError(path, "polygon has non-finite coordinates", field=field)
+        raise InputError(path, f"{what} has non-finite coordinates", field=field)
     return poly
 
 
@@ -218,13 +219,7 @@ def _box(path: Path, k: int, value: object) -> np.ndarray | None:
         return None
     if not (isinstance(value, list) and len(value) == 4 and all(_is_number(v) for v in value)):
         raise InputError(path, "is not a list of four numbers [x1, y1, x2, y2]", field=f"objects[{k}].bbox")
-    try:
-        box = np.array([float(v) for v in value], np.float64)
-    except OverflowError:  # a JSON integer beyond float range
-        box = np.full(4, np.inf)
-    if not np.isfinite(box).all():
-        raise InputError(path, "has non-finite coordinates", field=f"objects[{k}].bbox")
-    return box
+    return _polygon_array(path, f"objects[{k}].bbox", [value[:2], value[2:]], "box").reshape(4)
 
 
 def read_lerf_document(path: str | Path) -> LerfDocument:
