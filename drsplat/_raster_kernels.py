@@ -8,6 +8,8 @@ import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
+from drsplat._prefetch import prefetch_row
+
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -485,6 +487,7 @@ MAX_TILE_LANES = 64  # composite_topk keeps a tile row's pixels as the bits of o
 LANE_BLOCK = 16  # composite_topk evaluates a tile row's powers in blocks of this many lanes (MAX_TILE_LANES is a multiple)
 BLOCK_BITS = np.uint64((1 << LANE_BLOCK) - 1)
 NARROW_BOX = 10.0  # boxes narrower than this (pixels) are visited row by row whole: cheaper than the ellipse's span (-6% measured)
+PREFETCH_ENTRIES = 8  # composite_topk asks for the rows of the Gaussian this many tile entries ahead (4: 0.90x, 8: 0.85x, 16: 0.91x)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -667,7 +670,6 @@ def write_ranked(wbuf, sbuf, n, p, tile_list, out_ids, out_weights, py, px, rank
     ranked=False writes the n entries as they lie in the buffer (no particular order). ranked=True sorts
     them first (insertion sort on (weight desc, arrival)), for the order every engine promises.
     """
-    k = out_ids.shape[2]
     for i in range(1, n if ranked else 0):
         w = wbuf[p, i]
         s = sbuf[p, i]
@@ -678,12 +680,15 @@ def write_ranked(wbuf, sbuf, n, p, tile_list, out_ids, out_weights, py, px, rank
             pos -= 1
         wbuf[p, pos] = w
         sbuf[p, pos] = s
+    ids_row = out_ids[py, px]
+    weights_row = out_weights[py, px]
     for m in range(n):
-        out_ids[py, px, m] = tile_list[sbuf[p, m]]
-        out_weights[py, px, m] = wbuf[p, m]
-    for m in range(n, k):
-        out_ids[py, px, m] = -1
-        out_weights[py, px, m] = 0.0
+        ids_row[m] = tile_list[sbuf[p, m]]
+        weights_row[m] = wbuf[p, m]
+    # slices, not out_*[py, px, m] for m in range(n, k): numba cannot prove such an m non-negative,
+    # and the wrap-around it then allows made the padding a loop of scatters
+    ids_row[n:] = -1
+    weights_row[n:] = 0.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -764,7 +769,15 @@ def composite_topk(
             for ly in range(th):
                 active[ly] = lane_span(0, tw - 1)
             first = offsets[t]
-            for j in range(first, offsets[t + 1]):
+            last = offsets[t + 1]
+            for j in range(first, last):
+                if j + PREFETCH_ENTRIES < last:
+                    ahead = tile_ids[j + PREFETCH_ENTRIES]
+                    prefetch_row(means2d, ahead)
+                    prefetch_row(extents, ahead)
+                    prefetch_row(conics, ahead)
+                    prefetch_row(qlimits, ahead)
+                    prefetch_row(opacities, ahead)
                 g = tile_ids[j]
                 u = means2d[g, 0]
                 v = means2d[g, 1]
@@ -808,10 +821,13 @@ def composite_topk(
                         if (lanes >> np.uint64(base)) & BLOCK_BITS == 0:
                             continue
                         block = np.uint64(0)
+                        # indexed by the loop's own lane, the stores are contiguous; power_of[base + lane]
+                        # (an index numba cannot prove non-negative) compiled to two 8-lane scatters
+                        block_powers = power_of[base:base + LANE_BLOCK]
                         for lane in range(LANE_BLOCK):  # a constant trip count: numba vectorises it
                             dx = u - (x0 + base + lane + 0.5)
                             power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                            power_of[base + lane] = power
+                            block_powers[lane] = power
                             block |= np.uint64(not (power > 0.0 or power < power_min)) << np.uint64(lane)
                         inside |= block << np.uint64(base)
                     inside &= lanes
@@ -840,7 +856,7 @@ def composite_topk(
                         trans[pix] = test_t
                 if n_active == 0:
                     break
-            tile_list = tile_ids[first:offsets[t + 1]]
+            tile_list = tile_ids[first:last]
             for ly in range(th):
                 py = y0 + ly
                 for lx in range(tw):
