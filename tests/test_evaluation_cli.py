@@ -150,6 +150,32 @@ def test_eval_lerf_langsplat_protocol(registered, tmp_path, capsys):
     assert "--mask-threshold, --topk belong to --protocol langsplat" in capsys.readouterr().err
 
 
+def test_eval_lerf_langsplat_interrupted_during_its_last_view_exits_cancelled(registered, tmp_path, capsys, monkeypatch):
+    """Round 25: a Ctrl-C while the last view was scored (the token is only read before each view)
+    logged "stopping after the current view", then printed the whole report, wrote --json and
+    exited 0. It ends as an interrupt does anywhere else: exit 1, "cancelled", no JSON."""
+    from drsplat.eval import langsplat
+
+    r = registered
+    real = langsplat.langsplat_report
+
+    def interrupted_in_the_last_view(*args, cancel=None, **kwargs):
+        report = real(*args, cancel=cancel, **kwargs)
+        cancel.cancel()  # what the Ctrl-C handler does
+        return report
+
+    monkeypatch.setattr(langsplat, "langsplat_report", interrupted_in_the_last_view)
+    rng = np.random.default_rng(0)
+    negatives = rng.normal(size=(4, 512))
+    np.save(tmp_path / "neg.npy", (negatives / np.linalg.norm(negatives, axis=1, keepdims=True)).astype(np.float32))
+    js = tmp_path / "ls.json"
+    assert main(["eval", "lerf", str(r["ply"]), "--source", str(r["ds"]), "--annotations", str(r["labels"]), *query_args(r),
+                 "--negative-embeddings", str(tmp_path / "neg.npy"), "--protocol", "langsplat", "--json", str(js)]) == 1
+    captured = capsys.readouterr()
+    assert "cancelled" in captured.err and "localization accuracy" not in captured.out
+    assert not js.exists()
+
+
 def test_eval_on_an_oracle_scene_without_embeddings_names_the_eval_flags(registered, capsys):
     """The oracle's error named query's --embedding, which eval has not."""
     r = registered

@@ -629,6 +629,7 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
     with cancel_on_signals(token, "the current view"):
         report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=True,
                                   cancel=token, assigned=assigned)
+        token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
     print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
     print(report.format())
