@@ -79,7 +79,10 @@ def interrupted_note(args: argparse.Namespace) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     try:
-        parser = build_parser()  # imports every command's module: the slow part of start-up
+        # imports every command's module: the slow part of start-up (seconds on a busy machine), where
+        # SIGTERM killed the process by the signal with no message (probe round 26)
+        with sigterm_as_interrupt():
+            parser = build_parser()
     except KeyboardInterrupt:
         sys.stderr.write("drsplat: interrupted while starting; nothing was done\n")
         return 1

@@ -1179,6 +1179,34 @@ def test_ctrl_c_while_python_imports_is_one_line(where):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register"])
+def test_sigterm_while_python_imports_is_one_line(where):
+    """Probe round 26: SIGTERM while `python -m drsplat` imported the command line or built its parser
+    (every command's module: 1-4 s on a busy machine) killed the process by the signal (status -15,
+    no message, after a kill-and-resume fuzzer's SIGTERMs at 0.4-3.8 s). Now as Ctrl-C there: one
+    line, exit 1. The signal is sent by the import of `where`, in a child process."""
+    hook = textwrap.dedent(f"""
+        import builtins, importlib, os, runpy, signal, sys
+        real_import, real_import_module = builtins.__import__, importlib.import_module
+        def fire(name):
+            if name == {where!r}:
+                os.kill(os.getpid(), signal.SIGTERM)
+        def hooked_import(name, *args, **kwargs):
+            fire(name)
+            return real_import(name, *args, **kwargs)
+        def hooked_import_module(name, *args, **kwargs):
+            fire(name)
+            return real_import_module(name, *args, **kwargs)
+        builtins.__import__, importlib.import_module = hooked_import, hooked_import_module
+        sys.argv = ["drsplat", "info", "--help"]
+        runpy.run_module("drsplat", run_name="__main__")
+    """)
+    proc = subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 1, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "interrupted while starting; nothing was done" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
 def test_interrupts_never_raise_inside_the_job_and_a_job_that_ends_in_time_is_not_aborted():
     """Probe round 14: the second Ctrl-C raised KeyboardInterrupt wherever the main thread was, numba's
     dispatch code included (a chain of SystemError tracebacks). The handler now only cancels; a job
