@@ -1148,17 +1148,16 @@ def test_an_interrupt_says_it_resumes_only_where_something_was_kept(tmp_path, mo
     assert not (tmp_path / "r.ply").exists()
 
 
-@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register", "viewer.launch"])
-def test_ctrl_c_while_python_imports_is_one_line(where):
-    """Ctrl-C before any command runs (Python still importing the command line, a command's module or
-    the viewer): one line and exit 1, no traceback. The interrupt is raised by the import of `where`
-    in a child process (an import hook: as deterministic as a real Ctrl-C is not)."""
+def _interrupted_at_import(where: str, interrupt: str) -> subprocess.CompletedProcess:
+    """Run `drsplat info --help` (or main.py --help for "viewer.launch") in a child process whose
+    import of module `where` first runs the statement `interrupt` (an import hook: as deterministic as
+    a real signal is not)."""
     hook = textwrap.dedent(f"""
-        import builtins, importlib, runpy, sys
+        import builtins, importlib, os, runpy, signal, sys
         real_import, real_import_module = builtins.__import__, importlib.import_module
         def fire(name):
             if name == {where!r}:
-                raise KeyboardInterrupt
+                {interrupt}
         def hooked_import(name, *args, **kwargs):
             fire(name)
             return real_import(name, *args, **kwargs)
@@ -1173,10 +1172,20 @@ def test_ctrl_c_while_python_imports_is_one_line(where):
             sys.argv = ["drsplat", "info", "--help"]
             runpy.run_module("drsplat", run_name="__main__")
     """)
-    proc = subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 1, proc.stderr
+    return subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+def _assert_one_line_start_up_interrupt(proc: subprocess.CompletedProcess) -> None:
+    assert proc.returncode == 1, (proc.returncode, proc.stderr)
     assert "Traceback" not in proc.stderr and "interrupted while starting; nothing was done" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register", "viewer.launch"])
+def test_ctrl_c_while_python_imports_is_one_line(where):
+    """Ctrl-C before any command runs (Python still importing the command line, a command's module or
+    the viewer): one line and exit 1, no traceback."""
+    _assert_one_line_start_up_interrupt(_interrupted_at_import(where, "raise KeyboardInterrupt"))
 
 
 @pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register"])
@@ -1184,27 +1193,8 @@ def test_sigterm_while_python_imports_is_one_line(where):
     """Probe round 26: SIGTERM while `python -m drsplat` imported the command line or built its parser
     (every command's module: 1-4 s on a busy machine) killed the process by the signal (status -15,
     no message, after a kill-and-resume fuzzer's SIGTERMs at 0.4-3.8 s). Now as Ctrl-C there: one
-    line, exit 1. The signal is sent by the import of `where`, in a child process."""
-    hook = textwrap.dedent(f"""
-        import builtins, importlib, os, runpy, signal, sys
-        real_import, real_import_module = builtins.__import__, importlib.import_module
-        def fire(name):
-            if name == {where!r}:
-                os.kill(os.getpid(), signal.SIGTERM)
-        def hooked_import(name, *args, **kwargs):
-            fire(name)
-            return real_import(name, *args, **kwargs)
-        def hooked_import_module(name, *args, **kwargs):
-            fire(name)
-            return real_import_module(name, *args, **kwargs)
-        builtins.__import__, importlib.import_module = hooked_import, hooked_import_module
-        sys.argv = ["drsplat", "info", "--help"]
-        runpy.run_module("drsplat", run_name="__main__")
-    """)
-    proc = subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 1, (proc.returncode, proc.stderr)
-    assert "Traceback" not in proc.stderr and "interrupted while starting; nothing was done" in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    line, exit 1."""
+    _assert_one_line_start_up_interrupt(_interrupted_at_import(where, "os.kill(os.getpid(), signal.SIGTERM)"))
 
 
 def test_interrupts_never_raise_inside_the_job_and_a_job_that_ends_in_time_is_not_aborted():
