@@ -334,6 +334,26 @@ def test_a_restart_names_what_changed_and_leaves_no_stale_statistics(tiny, tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
 
 
+def test_a_log_begun_on_a_gpu_is_not_resumed_on_the_cpu_but_the_cpu_engines_share_theirs(tiny):
+    """Probe round 26: the engine was no checkpoint parameter, so a log the torch engine began on CUDA
+    (float32 rounding away from the CPU's) was resumed by numba without a word, into a field equal to
+    neither run's. The CPU engines log the same bits, so they still resume each other's logs."""
+    from drsplat.cameras import load_cameras
+    from drsplat.registration.checkpoint import checkpoint_params
+    from drsplat.registration.pairlog import changed_params
+    from drsplat.scene import load_ply
+
+    scene, cameras = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+
+    def params(engine, device):
+        return checkpoint_params(scene, cameras, tiny / "features", 40, 1, "paper", engine=engine, device=device)
+
+    assert params("numba", "cpu") == params("torch", "cpu")
+    assert params("torch", "cuda") == params("torch", "cuda:1")
+    gpu, cpu = params("torch", "cuda"), params("numba", "cpu")
+    assert gpu != cpu and changed_params(gpu, cpu).startswith("the engine (--engine / --device")
+
+
 def test_output_names_up_to_the_file_system_limit_register(tiny, tmp_path):
     """A 250-byte output name: the checkpoint, its snapshot and lock used to add their suffixes to it
     and pass 255 bytes ('file name is too long', naming a file the user never asked for)."""

@@ -9,7 +9,8 @@ into shards (`.register.log.shards/`, drsplat.registration.pairlog.ShardWriter) 
 pointer per view in the log; the statistics are then in the shards, and a resume keeps the views
 whose shard records are all there, checksums included. A checkpoint is resumed only when the scene
 (every Gaussian's geometry and opacity), the views (names, intrinsics, poses, order), the feature
-folder, top-k, level and mode are the same (`checkpoint_params`; a restart names what changed), and
+folder, top-k, level and mode are the same, and on a GPU the engine (`checkpoint_params`; a restart
+names what changed), and
 a logged view only while its feature files have the size and modification time they had when it
 was logged (`feature_stamp`: features regenerated or edited in place cut the log back to the views
 before the first changed one). One registration
@@ -119,10 +120,16 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
 
 
 def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str,
-                      shards: bool = False) -> dict:
+                      shards: bool = False, engine: str = "numba", device: str = "cpu") -> dict:
     """What a checkpoint (pair log) must match to be resumed. shards: the views are logged by the
-    workers into shards (a log of pointers resumes only as one)."""
+    workers into shards (a log of pointers resumes only as one). engine, device: the rasterizer;
+    only a GPU's is recorded, since the CPU engines log the same bits (numba = torch on a CPU) and
+    the torch engine on CUDA agrees with them to float32 rounding only: a log it began resumed on
+    the CPU (or the reverse) would give a field equal to neither run's."""
     extra = {"shards": True} if shards else {}
+    kind = device.split(":")[0]  # which GPU of a kind does not matter
+    if kind != "cpu":
+        extra["engine"] = f"{engine} on {kind}"
     return {**extra,
         "aggregate": aggregate,
         "version": CHECKPOINT_VERSION,

@@ -294,7 +294,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     if aggregator.solve and block < n:
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
-    params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers)
+    params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers,
+                               engine=options.engine, device=options.device)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir, lock=lock,
                           stamps=stamps)
