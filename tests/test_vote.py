@@ -264,6 +264,29 @@ def test_trim_kernel_agrees_with_reference(case):
         assert (np.abs(got - F).max(axis=1) > 1e-3).sum() > 10
 
 
+def test_trim_with_its_table_of_cluster_cosines_is_bit_for_bit_the_trim_without(monkeypatch):
+    """The trim keeps each pair of clusters' cosine in a [K, K] table (TRIM_COSINE_TABLE_BYTES); many
+    Gaussians sharing few clusters, and clusters at the vote's threshold, trim the same bits with it
+    and without it (budget 0: no table), steps 3 and 4, and as the reference does."""
+    import drsplat.registration.vote as vote
+
+    rng = np.random.default_rng(11)
+    b, slots, k = 2_000, 6, 12
+    means = _labels(rng, k)
+    means[1] = _unit(means[0] + 0.35 * rng.normal(size=D))  # cosines near the threshold
+    slot_c = np.full((b, slots), -1, np.int32)
+    for i, f in enumerate(rng.integers(0, slots + 1, b)):
+        slot_c[i, :f] = rng.choice(k, f, replace=False)
+    slot_v, slot_s, slot_p = (np.where(slot_c >= 0, rng.uniform(0, 5, (b, slots)), 0.0) for _ in range(3))
+    F = rng.normal(size=(b, D)).astype(np.float32)
+    tabled = trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, slot_p=slot_p)
+    monkeypatch.setattr(vote, "TRIM_COSINE_TABLE_BYTES", 0)
+    direct = trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, slot_p=slot_p)
+    np.testing.assert_array_equal(tabled, direct)
+    np.testing.assert_allclose(tabled, trimmed_features_reference(F.copy(), slot_c, slot_v, slot_s, means, slot_p=slot_p), rtol=1e-5, atol=1e-5)
+    assert (np.abs(tabled - F).max(axis=1) > 1e-3).sum() > 100  # the trim did trim
+
+
 @pytest.mark.parametrize("case", ["random", "ties", "one_cluster", "all_alike", "zeros"])
 def test_trim_kernel_with_specificity_trims_what_the_reference_trims(case):
     """Step 4 (specificity) in the kernel and in the plain-Python reference trim the same slots: the

@@ -101,6 +101,7 @@ PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on 
 CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most, and per block of a view's cosines with them
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
+TRIM_COSINE_TABLE_BYTES = 64 << 20  # the trim keeps its clusters' cosines in a [K, K] table up to K = 4,096
 SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
@@ -483,17 +484,20 @@ def _less_specific(slot_c, slot_p, i, sim, best, trim, threshold, specific, spec
 
 
 @numba.njit(parallel=True, cache=True)
-def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, slot_p, specific):  # pragma: no cover - jitted
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, slot_p, specific, cosines):  # pragma: no cover - jitted
     """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
     run with one float64 row buffer and an [S, S] cosine table: per Gaussian, the cosines between its
     slots' clusters and the group votes G_s (V_s, then + V_t of every like slot t in slot order),
     the slots to trim (bits of a uint64; slots ≤ 64), with slot_p [B, S] (not [0, S]) also those of
     step 4 (the specificities' groups, as G's, then the most specific alive slot), then, when there
     are any, F_i ← float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots subtracted in slot order,
-    each over the row in one contiguous (vectorised) loop."""
+    each over the row in one contiguous (vectorised) loop. cosines: [K, K] float32 all NaN, a table
+    shared by the parts that keeps each pair of clusters' cosine once computed (the same call, so the
+    same bits; two parts may write one entry, with the same value), or [0, 0] for none."""
     b, num_slots = slot_c.shape
     dim = F.shape[1]
     with_p = slot_p.shape[0] == b
+    tabled = cosines.shape[0] == means.shape[0]
     for part in numba.prange(parts):
         row = np.empty(dim)
         sim = np.empty((num_slots, num_slots), np.float32)
@@ -510,7 +514,13 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, s
                 for t in range(s + 1, num_slots):
                     if slot_c[i, t] < 0:
                         continue
-                    d = _row_dot(means, slot_c[i, s], means, slot_c[i, t])
+                    cs, ct = slot_c[i, s], slot_c[i, t]
+                    d = cosines[cs, ct] if tabled else np.float32(np.nan)
+                    if d != d:  # not in the table (or no table): the products commute, so (cs, ct) and (ct, cs) are one value
+                        d = _row_dot(means, cs, means, ct)
+                        if tabled:
+                            cosines[cs, ct] = d
+                            cosines[ct, cs] = d
                     sim[s, t] = d
                     sim[t, s] = d
             for s in range(num_slots):  # each other like slot's votes in slot order (the reference's order)
@@ -560,8 +570,12 @@ def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot
         raise ValueError(f"trimmed_features takes at most 64 slots per Gaussian, not {slot_c.shape[1]}")
     parts = max(1, min(F.shape[0], 8 * numba.get_num_threads()))
     slot_p = np.zeros((0, slot_c.shape[1])) if slot_p is None else np.ascontiguousarray(slot_p, np.float64)
+    k = means.shape[0]
+    # the Gaussians' slots meet the same pairs of clusters again and again (flowers: 1,083 clusters, 0.96 s of
+    # 512-float dot products a registration); a table of them when it is small enough
+    cosines = np.full((k, k) if k * k * 4 <= TRIM_COSINE_TABLE_BYTES else (0, 0), np.nan, np.float32)
     _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority), parts,
-                 slot_p, float(specific))
+                 slot_p, float(specific), cosines)
     return F
 
 
