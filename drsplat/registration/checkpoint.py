@@ -10,8 +10,7 @@ pointer per view in the log; the statistics are then in the shards, and a resume
 whose shard records are all there, checksums included. A checkpoint is resumed only when the scene
 (every Gaussian's geometry and opacity), the views (names, intrinsics, poses, order), the feature
 folder, top-k, level and mode are the same, and on a GPU the engine (`checkpoint_params`; a restart
-names what changed), and
-a logged view only while its feature files have the size and modification time they had when it
+names what changed), and a logged view only while its feature files have the size and modification time they had when it
 was logged (`feature_stamp`: features regenerated or edited in place cut the log back to the views
 before the first changed one). One registration
 at a time holds a checkpoint: `RunLock` (an flock on `.<out>.register.lock`) refuses a second one
