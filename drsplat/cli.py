@@ -134,18 +134,15 @@ def entry() -> None:
 
 @contextlib.contextmanager
 def sigterm_as_interrupt():
-    """SIGTERM raises KeyboardInterrupt like Ctrl-C, so atomic writes clean up their temp files.
+    """SIGTERM raises KeyboardInterrupt like Ctrl-C, so atomic writes clean up their temp files (the
+    command line's and the viewer's one way of it; the previous handler is put back after).
 
     Commands with a cancellable long job replace this with `drsplat.utils.cancel_on_signals`.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, handler)
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         yield
     finally:

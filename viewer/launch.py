@@ -10,15 +10,11 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from drsplat.cameras import load_cameras
-from drsplat.cli import setup_logging
+from drsplat.cli import setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
@@ -222,23 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, flag) is not None and not getattr(args, flag).strip():
             parser.error(f"--{flag} is empty: give the {'phrase to search for' if flag == 'query' else 'label to query'}")
     setup_logging(args.verbose)
-    with sigterm_as_ctrl_c():
+    with sigterm_as_interrupt():  # SIGTERM closes the window as Ctrl-C does: one line, exit 1 (not a silent 143)
         return _run(args)
-
-
-@contextmanager
-def sigterm_as_ctrl_c() -> Iterator[None]:
-    """SIGTERM stops the viewer as Ctrl-C does (KeyboardInterrupt: the window closed, one line, exit
-    1) instead of ending it silently with 143; the previous handler is put back after. Outside the
-    main thread no handler can be set, and this does nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _run(args: argparse.Namespace) -> int:
