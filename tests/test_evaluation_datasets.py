@@ -30,11 +30,6 @@ from tests.conftest import import_needing_system_library
 OPEN3D_SYSTEM_PACKAGE = "libusb-1.0-0"  # open3d links against libusb-1.0.so.0
 
 
-def test_polygon_mask_fills_boundary_pixels_like_fillpoly():
-    m = polygon_mask(np.array([[2, 2], [6, 2], [6, 6], [2, 6]]), 10, 10)
-    assert m.sum() == 25 and m[2:7, 2:7].all()
-
-
 def disk(h, w, cy, cx, r):
     yy, xx = np.mgrid[0:h, 0:w]
     return (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r

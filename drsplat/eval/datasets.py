@@ -38,6 +38,7 @@ import numpy as np
 from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
+from drsplat.eval.polyfill import fill_polygon, truncate_vertices
 from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile
 from drsplat.utils import atomic_path, checked_names, load_npy, read_json, regular_file
 
@@ -87,7 +88,7 @@ class LerfDocument:
     objects: list[tuple[str, list[np.ndarray], np.ndarray | None]]
 
 
-FAR_POLYGON = 4.0  # a vertex farther than this many image sides outside the frame is clipped before the fill (`clip_polygon`)
+FAR_VERTEX = 1 << 20  # px: a polygon with a vertex farther outside the frame is clipped before the fill (`clip_polygon`)
 
 
 def clip_polygon(points: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float) -> np.ndarray:
@@ -114,22 +115,19 @@ def clip_polygon(points: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi
 
 
 def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[H, W] bool: pixels inside the polygon ([P, 2] (x, y) pixel coordinates), as a fill rule would paint.
+    """[H, W] bool: the pixels LangSplat's `polygon_to_mask` paints for the polygon ([P, 2] float (x, y)
+    pixel coordinates): the vertices truncated toward zero as its int32 cast does, then OpenCV's
+    fill, outline included (`drsplat.eval.polyfill.fill_polygon`, the same pixels as cv2.fillPoly).
 
-    A polygon with a vertex more than FAR_POLYGON image sides outside the frame is first clipped to a
-    box 2 px beyond it (`clip_polygon`: the same pixels inside the frame): PIL fills in integer
-    coordinates, and a vertex at 1e12 px painted about half the pixels it should (a probe, 2026-11-30)."""
-    from PIL import Image, ImageDraw
-
-    img = Image.new("L", (width, height), 0)
+    A polygon with a vertex more than FAR_VERTEX px outside the frame is first clipped to a box 2 px
+    beyond it (`clip_polygon`: the same region inside the frame), so the fixed-point arithmetic stays
+    within int64; LangSplat's int32 cast has no meaningful value there either."""
     poly = np.asarray(points, np.float64).reshape(-1, 2)
-    reach = FAR_POLYGON * max(width, height)
-    if poly.size and (np.abs(poly) > reach + max(width, height)).any():
+    if poly.size and (np.abs(poly) > FAR_VERTEX + max(width, height)).any():
         poly = clip_polygon(poly, -2.0, -2.0, width + 2.0, height + 2.0)
-    pts = [(float(x), float(y)) for x, y in poly]
-    if len(pts) >= 3:
-        ImageDraw.Draw(img).polygon(pts, fill=1, outline=1)
-    return np.asarray(img, dtype=bool)
+    if poly.shape[0] < 3:  # a degenerate polygon: the caller leaves its (view, category) pair out
+        return np.zeros((height, width), np.bool_)
+    return fill_polygon(truncate_vertices(poly), height, width)
 
 
 def _is_number(value: object) -> bool:
@@ -339,10 +337,22 @@ def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.5, min_pixels: int =
         if not contours:
             continue
         outer = max(contours, key=len)
-        outer = measure.approximate_polygon(outer, tolerance) - 1.0  # undo the padding
-        # contour coordinates run through pixel centres; +0.5 moves them to PIL's pixel-corner grid
-        polys.append(np.stack([outer[:, 1] + 0.5, outer[:, 0] + 0.5], axis=1))
+        outer = measure.approximate_polygon(outer, tolerance)
+        polys.append(_inside_pixel_centres(comp, outer) - 1.0)  # - 1: undo the padding
     return polys
+
+
+def _inside_pixel_centres(mask: np.ndarray, contour: np.ndarray) -> np.ndarray:
+    """[P, 2] (x, y): each vertex of a level-½ contour of `mask` ([P, 2] (row, col), one coordinate
+    half-way between two pixel centres) moved to the centre of the one of the two pixels inside the
+    mask, so that LangSplat's fill (vertices truncated, the outline painted through them) paints
+    the mask's own boundary pixels."""
+    rows, cols = contour[:, 0], contour[:, 1]
+    lo_r, lo_c = np.floor(rows).astype(np.int64), np.floor(cols).astype(np.int64)
+    hi_r, hi_c = np.ceil(rows).astype(np.int64), np.ceil(cols).astype(np.int64)
+    r = np.where(mask[lo_r, lo_c], lo_r, hi_r)
+    c = np.where(mask[lo_r, lo_c], lo_c, hi_c)
+    return np.stack([c, r], axis=1).astype(np.float64)
 
 
 def write_lerf_view(out_dir: str | Path, name: str, masks: dict[str, np.ndarray], image: np.ndarray | None = None) -> Path:
