@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from drsplat.eval.datasets import mask_to_polygons, polygon_mask
-from drsplat.eval.polyfill import fill_polygon, line_pixels, line_pixels_reference, scanline_spans, truncate_vertices
+from drsplat.eval.polyfill import (
+    fill_polygon,
+    line_pixels,
+    line_pixels_reference,
+    lines_pixels,
+    outline_pixels,
+    scanline_spans,
+    truncate_vertices,
+)
 
 FIXTURE = Path(__file__).parent / "data" / "cv2_fillpoly.npz"  # written by tests/data/make_cv2_fillpoly.py with cv2 5.0.0
 
@@ -64,6 +72,8 @@ def test_closed_form_lines_match_the_step_by_step_walk():
     ends += [(tuple(int(c) for c in rng.integers(0, 50, 2)), tuple(int(c) for c in rng.integers(0, 50, 2))) for _ in range(3000)]
     for a, b in ends:
         assert np.array_equal(line_pixels(a, b), line_pixels_reference(a, b)), (a, b)
+    together = lines_pixels(np.array([[*a, *b] for a, b in ends]))  # many lines in one call: the same pixels, line after line
+    assert np.array_equal(together, np.concatenate([line_pixels_reference(a, b) for a, b in ends]))
     # 8-connected: each step moves one pixel along the major axis
     px = line_pixels((3, 40), (47, 2))
     assert len(px) == 45 and (np.abs(np.diff(px, axis=0)).max(axis=1) == 1).all()
@@ -77,6 +87,17 @@ def test_rows_in_bands_give_the_same_spans(cap):
         whole = np.concatenate([np.stack(s, 1) for s in scanline_spans(v, 90, 110)] or [np.zeros((0, 3), np.int64)])
         banded = np.concatenate([np.stack(s, 1) for s in scanline_spans(v, 90, 110, max_entries=cap)] or [np.zeros((0, 3), np.int64)])
         assert np.array_equal(whole[np.lexsort(whole.T[::-1])], banded[np.lexsort(banded.T[::-1])])
+
+
+@pytest.mark.parametrize("cap", [1, 50])
+def test_outline_in_runs_of_edges_gives_the_same_pixels(cap):
+    rng = np.random.default_rng(cap)
+    for _ in range(20):
+        v = rng.integers(-40, 140, (int(rng.integers(1, 25)), 2))
+        whole = np.concatenate(list(outline_pixels(v, 90, 110)) or [np.zeros((0, 2), np.int64)])
+        runs = np.concatenate(list(outline_pixels(v, 90, 110, max_pixels=cap)) or [np.zeros((0, 2), np.int64)])
+        assert np.array_equal(whole, runs)
+        assert ((whole >= 0) & (whole < [110, 90])).all()  # clipped to the image
 
 
 def test_float_vertices_are_truncated_toward_zero_as_langsplat_casts_them():

@@ -10,13 +10,18 @@ drew, stored in tests/data, when it is not).
 OpenCV's rule for one polygon with integer vertices v_0 .. v_{P-1} on an H x W image:
 
 1. Outline: every edge v_{i-1} -> v_i (v_{-1} = v_{P-1}) is drawn as an 8-connected Bresenham
-   line (`line_pixels`), after clipping it to the image (`clip_segment`, Cohen-Sutherland in
+   line (`lines_pixels`), after clipping it to the image (`clip_segment`, Cohen-Sutherland in
    integers, divisions truncated toward zero as C's).
 2. Interior: each non-horizontal edge covers the rows y0 <= y < y1 (its lower end excluded) with
-   the fixed-point x = x0·2¹⁶ + (y - y0)·dx, dx = trunc((x1 - x0)·2¹⁶ / (y1 - y0)). On every row
+   the fixed-point x = x0·2¹⁶ + (y - y0)·dx, dx = trunc((x1 - x0)·2¹⁶ / (y1 - y0)); an edge with
+   an end outside the image takes x0 and dx from its clipped part (`polygon_edges`). On every row
    the covering edges are sorted by x and paired (even-odd); a pair paints
    ceil(x_left / 2¹⁶) .. floor(x_right / 2¹⁶) (`scanline_spans`). Fewer than two such edges fill
    nothing, nor does a polygon whose extent misses the image.
+
+Both steps are whole-array numpy (no loop per pixel or per row; a Python loop only over the edges
+that leave the image), in runs of edges and bands of rows of at most SPAN_ENTRIES pixels or
+crossings, so a hostile polygon of 10⁵ vertices costs seconds and ~100 MB, not a mask per edge.
 
 Integer vertices: LangSplat casts the float annotations with numpy's int32 cast (truncation
 toward zero), which `truncate_vertices` repeats.
@@ -79,26 +84,19 @@ def clip_segment(p1: tuple[int, int], p2: tuple[int, int], width: int, height: i
     return (c1 | c2) == 0, (x1, y1), (x2, y2)
 
 
-def _line_frame(p1: tuple[int, int], p2: tuple[int, int]) -> tuple[int, int, int, int, int, bool, int, int]:
-    """The Bresenham walk of p1 -> p2 drawn left to right: (x, y) start, dx >= dy >= 0 the major and
-    minor lengths, the major axis' step along y (±1) and whether y is the major axis."""
-    (x1, y1), (x2, y2) = p1, p2
-    if x2 < x1:  # drawn left to right: the ends swap
-        (x1, y1), (x2, y2) = (x2, y2), (x1, y1)
-    dx, dy = x2 - x1, y2 - y1
+def line_pixels_reference(p1: tuple[int, int], p2: tuple[int, int]) -> np.ndarray:
+    """[dx + 1, 2] the (x, y) pixels of OpenCV's 8-connected line p1 -> p2 (already inside the
+    image), one step at a time: err = dx - 2·dy; each step moves along the major axis, and along the
+    minor one too when err < 0 (before the step); err += -2·dy (+ 2·dx when it moved)."""
+    (x, y), end = p1, p2
+    if end[0] < x:  # drawn left to right: the ends swap
+        (x, y), end = end, (x, y)
+    dx, dy = end[0] - x, end[1] - y
     step_y = -1 if dy < 0 else 1
     dy = abs(dy)
     vertical = dy > dx
     if vertical:
         dx, dy = dy, dx
-    return x1, y1, dx, dy, step_y, vertical, x2, y2
-
-
-def line_pixels_reference(p1: tuple[int, int], p2: tuple[int, int]) -> np.ndarray:
-    """[dx + 1, 2] the (x, y) pixels of OpenCV's 8-connected line p1 -> p2 (already inside the
-    image), one step at a time: err = dx - 2·dy; each step moves along the major axis, and along the
-    minor one too when err < 0 (before the step); err += -2·dy (+ 2·dx when it moved)."""
-    x, y, dx, dy, step_y, vertical, _, _ = _line_frame(p1, p2)
     err = dx - 2 * dy
     out = []
     for _ in range(dx + 1):
@@ -115,15 +113,46 @@ def line_pixels_reference(p1: tuple[int, int], p2: tuple[int, int]) -> np.ndarra
 
 
 def line_pixels(p1: tuple[int, int], p2: tuple[int, int]) -> np.ndarray:
-    """`line_pixels_reference` in closed form: after i steps the walk has moved m_i =
-    floor((2·dy·i + dx - 1) / (2·dx)) times along the minor axis (the count of steps whose err was
-    negative), so all dx + 1 pixels come from one arange. [dx + 1, 2] int64 (x, y)."""
-    x, y, dx, dy, step_y, vertical, _, _ = _line_frame(p1, p2)
-    i = np.arange(dx + 1, dtype=np.int64)
-    minor = (2 * dy * i + dx - 1) // (2 * dx) if dx > 0 else np.zeros(1, np.int64)
-    if vertical:
-        return np.stack([x + minor, y + step_y * i], axis=1)
-    return np.stack([x + i, y + step_y * minor], axis=1)
+    """`line_pixels_reference` in closed form (`lines_pixels` of one line). [dx + 1, 2] int64 (x, y)."""
+    return lines_pixels(np.array([[p1[0], p1[1], p2[0], p2[1]]], np.int64))
+
+
+def lines_pixels(segments: np.ndarray) -> np.ndarray:
+    """The pixels of many OpenCV lines at once: segments [L, 4] int64 (x1, y1, x2, y2), each already
+    inside the image -> [Q, 2] int64 (x, y), line after line. After i steps a walk has moved
+    m_i = floor((2·dy·i + dx - 1) / (2·dx)) times along its minor axis (the count of steps whose err
+    was negative in `line_pixels_reference`), so every pixel comes from one arange."""
+    seg = np.asarray(segments, np.int64).reshape(-1, 4)
+    swap = seg[:, 2] < seg[:, 0]  # drawn left to right: the ends swap
+    x = np.where(swap, seg[:, 2], seg[:, 0])
+    y = np.where(swap, seg[:, 3], seg[:, 1])
+    run = np.abs(seg[:, 2] - seg[:, 0])
+    rise = np.where(swap, seg[:, 1] - seg[:, 3], seg[:, 3] - seg[:, 1])
+    step_y = np.where(rise < 0, -1, 1)
+    rise = np.abs(rise)
+    vertical = rise > run
+    major, minor_len = np.maximum(run, rise), np.minimum(run, rise)
+    counts = major + 1
+    line = np.repeat(np.arange(seg.shape[0]), counts)
+    i = np.arange(line.size, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
+    big = np.maximum(major[line], 1)
+    minor = np.where(major[line] > 0, (2 * minor_len[line] * i + big - 1) // (2 * big), 0)
+    vert = vertical[line]
+    px = x[line] + np.where(vert, minor, i)
+    py = y[line] + step_y[line] * np.where(vert, i, minor)
+    return np.stack([px, py], axis=1)
+
+
+def _outside(segments: np.ndarray, height: int, width: int) -> np.ndarray:
+    """[L] bool: the segments [L, 4] (x1, y1, x2, y2) with an end outside the image (OpenCV clips those)."""
+    xs, ys = segments[:, 0::2], segments[:, 1::2]
+    return ((xs < 0) | (xs >= width) | (ys < 0) | (ys >= height)).any(axis=1)
+
+
+def polygon_segments(vertices: np.ndarray) -> np.ndarray:
+    """[P, 4] int64 the closed polygon's edges (x1, y1, x2, y2), edge i running v_{i-1} -> v_i."""
+    v = np.asarray(vertices, np.int64).reshape(-1, 2)
+    return np.concatenate([np.roll(v, 1, axis=0), v], axis=1)
 
 
 def polygon_edges(vertices: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -132,24 +161,22 @@ def polygon_edges(vertices: np.ndarray, height: int, width: int) -> tuple[np.nda
     the image takes its slope from the part `clip_segment` leaves (x of both clipped ends, and their
     rows unless the clipped part is level), extended back to row y0; dx is truncated toward zero.
     vertices: [P, 2] int64 (x, y). Returns four [E] int64."""
-    out = []
-    for (xa, ya), (xb, yb) in zip(np.roll(vertices, 1, axis=0).tolist(), vertices.tolist()):  # v_{i-1} -> v_i
-        ca, cb = (xa, ya), (xb, yb)
-        if not (0 <= xa < width and 0 <= xb < width and 0 <= ya < height and 0 <= yb < height):
-            _, ca, cb = clip_segment((xa, ya), (xb, yb), width, height)
-            if ca[1] == cb[1]:
-                ca, cb = (ca[0], ya), (cb[0], yb)
-        if ya == yb:
-            continue
-        xa_c, xb_c = ca[0] << XY_SHIFT, cb[0] << XY_SHIFT
-        q = abs(xb_c - xa_c) // abs(cb[1] - ca[1])
-        dx = -q if (xb_c - xa_c < 0) != (cb[1] - ca[1] < 0) else q
-        if ya < yb:
-            out.append((ya, yb, xa_c + (ya - ca[1]) * dx, dx))
-        else:
-            out.append((yb, ya, xb_c + (yb - cb[1]) * dx, dx))
-    edges = np.array(out, np.int64).reshape(-1, 4)
-    return edges[:, 0], edges[:, 1], edges[:, 2], edges[:, 3]
+    seg = polygon_segments(vertices)
+    seg = seg[seg[:, 1] != seg[:, 3]]
+    clipped = seg.copy()  # the ends the slope is taken from
+    for e in np.flatnonzero(_outside(seg, height, width)):
+        xa, ya, xb, yb = seg[e].tolist()
+        _, ca, cb = clip_segment((xa, ya), (xb, yb), width, height)
+        clipped[e] = (ca[0], ca[1], cb[0], cb[1]) if ca[1] != cb[1] else (ca[0], ya, cb[0], yb)
+    xa_c, xb_c = clipped[:, 0] << XY_SHIFT, clipped[:, 2] << XY_SHIFT
+    num, den = xb_c - xa_c, clipped[:, 3] - clipped[:, 1]
+    dx = np.abs(num) // np.abs(den)
+    dx = np.where((num < 0) != (den < 0), -dx, dx)  # C's division, toward zero
+    down = seg[:, 1] < seg[:, 3]
+    y0 = np.where(down, seg[:, 1], seg[:, 3])
+    y1 = np.where(down, seg[:, 3], seg[:, 1])
+    x0 = np.where(down, xa_c + (seg[:, 1] - clipped[:, 1]) * dx, xb_c + (seg[:, 3] - clipped[:, 3]) * dx)
+    return y0, y1, x0, dx
 
 
 SPAN_ENTRIES = 1 << 22  # (edge, row) crossings made at once: a band of rows at a time beyond it (~100 MB of int64 arrays)
@@ -196,6 +223,28 @@ def scanline_spans(vertices: np.ndarray, height: int, width: int, max_entries: i
         lo = hi
 
 
+def outline_pixels(vertices: np.ndarray, height: int, width: int, max_pixels: int = SPAN_ENTRIES):
+    """The polygon's edges as OpenCV draws them, each clipped to the image (`clip_segment`) first;
+    yields [Q, 2] int64 (x, y) pixels for runs of edges holding at most about `max_pixels` pixels
+    (one edge is never split). vertices: [P, 2] int64 (x, y)."""
+    seg = polygon_segments(vertices)
+    keep = np.ones(seg.shape[0], np.bool_)
+    for e in np.flatnonzero(_outside(seg, height, width)):
+        inside, a, b = clip_segment(tuple(seg[e, :2].tolist()), tuple(seg[e, 2:].tolist()), width, height)
+        keep[e] = inside
+        seg[e] = (a[0], a[1], b[0], b[1])
+    seg = seg[keep]
+    if seg.shape[0] == 0:
+        return
+    cumulative = np.cumsum(np.maximum(np.abs(seg[:, 2] - seg[:, 0]), np.abs(seg[:, 3] - seg[:, 1])) + 1)
+    lo = 0
+    while lo < seg.shape[0]:
+        done = cumulative[lo - 1] if lo > 0 else 0
+        hi = max(lo + 1, int(np.searchsorted(cumulative, done + max_pixels, side="right")))
+        yield lines_pixels(seg[lo:hi])
+        lo = hi
+
+
 def fill_polygon(vertices: np.ndarray, height: int, width: int) -> np.ndarray:
     """[H, W] bool: the pixels ``cv2.fillPoly(mask, [vertices], 1)`` paints (8-connected, shift 0).
 
@@ -207,11 +256,8 @@ def fill_polygon(vertices: np.ndarray, height: int, width: int) -> np.ndarray:
     mask = np.zeros((height, width), np.bool_)
     if v.shape[0] == 0 or height <= 0 or width <= 0:
         return mask
-    for a, b in zip(np.roll(v, 1, axis=0).tolist(), v.tolist()):
-        inside, a_in, b_in = clip_segment(a, b, width, height)
-        if inside:
-            px = line_pixels(a_in, b_in)
-            mask[px[:, 1], px[:, 0]] = True
+    for px in outline_pixels(v, height, width):
+        mask[px[:, 1], px[:, 0]] = True
     marks = np.zeros((height, width + 1), np.int32)  # +1 at a span's start, -1 past its end
     for rows, first, last in scanline_spans(v, height, width):
         np.add.at(marks, (rows, first), 1)
