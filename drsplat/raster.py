@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 TILE_SIZE = 16
 NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
-TILE_CHUNKS_PER_WORKER = 8  # runs of neighbouring tiles per compositing thread (`balance_tiles`)
+TILE_CHUNKS_PER_WORKER = 16  # runs of neighbouring tiles per compositing thread (`balance_tiles`; 8 left 4-6 % imbalance on flowers)
 # A view's tile lists hold at most this many entries per Gaussian (with a floor for small scenes):
 # a view that needs more (close-ups, views far larger than 640x480) is binned and composited in
 # bands of tiles (`tile_bands`), so its lists stay within what drsplat.registration.plan counts.
