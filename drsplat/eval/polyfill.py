@@ -200,10 +200,23 @@ def _band_spans(y0: np.ndarray, y1: np.ndarray, x0: np.ndarray, dx: np.ndarray, 
     return row[keep], first[keep], last[keep]
 
 
+def _runs(cumulative: np.ndarray, cap: int, longest: int | None = None):
+    """Consecutive runs [lo, hi) of items whose sizes add up (cumulative [n], their running sum) to
+    at most about `cap` each (an item is never split) and, with `longest`, of at most that many items."""
+    lo, n = 0, cumulative.shape[0]
+    while lo < n:
+        done = cumulative[lo - 1] if lo > 0 else 0
+        hi = max(lo + 1, int(np.searchsorted(cumulative, done + cap, side="right")))
+        hi = min(hi, n, lo + longest) if longest else min(hi, n)
+        yield lo, hi
+        lo = hi
+
+
 def scanline_spans(vertices: np.ndarray, height: int, width: int, max_entries: int = SPAN_ENTRIES):
     """The interior of OpenCV's fill as row spans, in bands of rows holding at most about
-    `max_entries` edge crossings (one row's crossings are never split): yields (rows [S], first
-    and last columns [S], inclusive, clipped to the image). vertices: [P, 2] int64 (x, y)."""
+    `max_entries` edge crossings (one row's crossings are never split) and `max_entries` pixels:
+    yields (the band's first and end row, rows [S], first and last columns [S], inclusive, clipped
+    to the image). vertices: [P, 2] int64 (x, y)."""
     y0, y1, x0, dx = polygon_edges(vertices, height, width)
     if y0.size < 2:
         return
@@ -214,13 +227,8 @@ def scanline_spans(vertices: np.ndarray, height: int, width: int, max_entries: i
     per_row = np.zeros(height + 1, np.int64)  # crossings per image row (rows above the image are never painted)
     np.add.at(per_row, np.clip(y0, 0, height), 1)
     np.add.at(per_row, np.clip(y1, 0, height), -1)
-    cumulative = np.cumsum(np.cumsum(per_row)[:height])
-    lo = 0
-    while lo < height:
-        done = cumulative[lo - 1] if lo > 0 else 0
-        hi = max(lo + 1, int(np.searchsorted(cumulative, done + max_entries, side="right")))
-        yield _band_spans(y0, y1, x0, dx, lo, min(hi, height), width)
-        lo = hi
+    for lo, hi in _runs(np.cumsum(np.cumsum(per_row)[:height]), max_entries, max(1, max_entries // (width + 1))):
+        yield (lo, hi, *_band_spans(y0, y1, x0, dx, lo, hi, width))
 
 
 def outline_pixels(vertices: np.ndarray, height: int, width: int, max_pixels: int = SPAN_ENTRIES):
@@ -234,33 +242,28 @@ def outline_pixels(vertices: np.ndarray, height: int, width: int, max_pixels: in
         keep[e] = inside
         seg[e] = (a[0], a[1], b[0], b[1])
     seg = seg[keep]
-    if seg.shape[0] == 0:
-        return
-    cumulative = np.cumsum(np.maximum(np.abs(seg[:, 2] - seg[:, 0]), np.abs(seg[:, 3] - seg[:, 1])) + 1)
-    lo = 0
-    while lo < seg.shape[0]:
-        done = cumulative[lo - 1] if lo > 0 else 0
-        hi = max(lo + 1, int(np.searchsorted(cumulative, done + max_pixels, side="right")))
+    lengths = np.maximum(np.abs(seg[:, 2] - seg[:, 0]), np.abs(seg[:, 3] - seg[:, 1])) + 1
+    for lo, hi in _runs(np.cumsum(lengths), max_pixels):
         yield lines_pixels(seg[lo:hi])
-        lo = hi
 
 
-def fill_polygon(vertices: np.ndarray, height: int, width: int) -> np.ndarray:
+def fill_polygon(vertices: np.ndarray, height: int, width: int, max_entries: int = SPAN_ENTRIES) -> np.ndarray:
     """[H, W] bool: the pixels ``cv2.fillPoly(mask, [vertices], 1)`` paints (8-connected, shift 0).
 
     vertices: [P, 2] integer (x, y) pixel coordinates (`truncate_vertices` for float annotations),
     at most ~2²⁰ px outside the image (the fixed-point rows stay within int64); the math is in the
-    module docstring. P = 0 paints nothing; P = 1 or 2 paints the outline only.
+    module docstring. P = 0 paints nothing; P = 1 or 2 paints the outline only. max_entries: the
+    most pixels, crossings or marks handled at once (memory, not the result, depends on it).
     """
     v = np.asarray(vertices, np.int64).reshape(-1, 2)
     mask = np.zeros((height, width), np.bool_)
     if v.shape[0] == 0 or height <= 0 or width <= 0:
         return mask
-    for px in outline_pixels(v, height, width):
+    for px in outline_pixels(v, height, width, max_entries):
         mask[px[:, 1], px[:, 0]] = True
-    marks = np.zeros((height, width + 1), np.int32)  # +1 at a span's start, -1 past its end
-    for rows, first, last in scanline_spans(v, height, width):
-        np.add.at(marks, (rows, first), 1)
-        np.add.at(marks, (rows, last + 1), -1)
-    mask |= np.cumsum(marks, axis=1)[:, :width] > 0
+    for lo, hi, rows, first, last in scanline_spans(v, height, width, max_entries):
+        marks = np.zeros((hi - lo, width + 1), np.int32)  # +1 at a span's start, -1 past its end
+        np.add.at(marks, (rows - lo, first), 1)
+        np.add.at(marks, (rows - lo, last + 1), -1)
+        mask[lo:hi] |= np.cumsum(marks, axis=1, dtype=np.int32)[:, :width] > 0
     return mask
