@@ -4,8 +4,8 @@ LangSplat's evaluation code turns each LERF-OVS polygon into its ground-truth ma
 ``cv2.fillPoly(mask, [np.asarray(points, np.int32)], 1)``; OpenGaussian and the later LangSplat
 derivatives copy it. A mask drawn by another fill rule moves every boundary pixel and so every IoU
 (PIL's fill agreed with it at IoU 0.974-0.996; docs/evaluation.md). This module paints the same
-pixels as OpenCV (tests/test_polyfill.py compares with cv2 when it is installed, and with masks it
-drew, stored in tests/data, when it is not).
+pixels as OpenCV (tests/test_polyfill.py compares with masks cv2 drew, stored in tests/data, and
+with cv2 itself when it is installed).
 
 OpenCV's rule for one polygon with integer vertices v_0 .. v_{P-1} on an H x W image:
 
