@@ -19,6 +19,7 @@ from drsplat.registration.check import (
     PairRecord,
     ViewSupport,
     _agreement_kernel,
+    _dots,
     _own_alt_kernel,
     abstaining_pairs,
     add_view_support,
@@ -117,6 +118,23 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
     assert any((r[4] > 0).any() for r in ref) and any((r[3] > 0).any() for r in ref)  # the case exercises both
     assert any(((r[5] > 0) & (r[5] < 1)).any() for r in ref)  # and masks partly on Gaussians whose other views say otherwise
+
+
+@pytest.mark.parametrize("n", [0, 1, 3, 4, 5, 8, 11])
+def test_cosines_four_at_a_time_have_the_bits_of_one_at_a_time(n):
+    """`_dots` interleaves four dot products; each must still be summed in d order, as the reference
+    check's one-at-a-time sum (the mask check compares them with a threshold, so a last bit counts)."""
+    rng = np.random.default_rng(n)
+    means = rng.normal(size=(13, 37)).astype(np.float32) * np.float32(1e3) ** rng.integers(-1, 2, size=(13, 1))
+    vec = rng.normal(size=37) * 10.0 ** rng.integers(-8, 8, size=37)  # magnitudes that make the order matter
+    rows = rng.integers(0, 13, size=n)
+    out = np.full(n, np.nan)
+    _dots(means, rows, n, vec, out)
+    for k in range(n):
+        s = 0.0
+        for d in range(37):
+            s += float(np.float64(means[rows[k], d]) * vec[d])
+        assert out[k] == s
 
 
 @pytest.mark.parametrize("seed,hard", [(0, False), (2, True)])
