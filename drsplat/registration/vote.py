@@ -211,6 +211,7 @@ class MaskClusters:
         ids = np.full(feats.shape[0], -1, np.int32)
         known = self.count  # clusters before this view: every mask meets them at once
         best, value = self._best_leaders(feats, 0, known)
+        founded = np.empty((0, self.dim), np.float32)  # this view's new leaders, in order (clusters known, known + 1, ...)
         for j in range(feats.shape[0]):
             if not norms[j] > 0 or (present is not None and not present[j]):
                 continue
@@ -218,12 +219,16 @@ class MaskClusters:
             if best[j] >= 0 and value[j] / norms[j] >= self.threshold:
                 ids[j] = best[j]
             else:
-                if self.count > known:  # leaders founded by this view's earlier masks
-                    new, cos = self._best_leaders(unit[None, :], known, self.count)
-                    if cos[0] >= self.threshold:
-                        ids[j] = new[0]
+                if self.count > known:  # the first of the most similar leaders this view founded (np.argmax: a NaN counts as largest)
+                    cos = dot_rows(unit[None, :], founded[: self.count - known])[0]
+                    top = int(np.argmax(cos))
+                    if cos[top] >= self.threshold:
+                        ids[j] = known + top
                 if ids[j] < 0:
                     ids[j] = self._found(unit)
+                    if founded.shape[0] < self.count - known:  # room for twice as many, as a list would grow
+                        founded = np.concatenate([founded, np.empty((max(8, founded.shape[0]), self.dim), np.float32)])
+                    founded[self.count - known - 1] = unit
             b, r = self._locate(int(ids[j]))
             self._sums[b][r] += feats[j]
         self.per_view.append(ids)
