@@ -35,6 +35,14 @@ TEMP_SUFFIX = ".tmp"
 TEMP_NAME_BYTES = 200  # longest output name kept whole in its temp names: '.', '.<pid>.<random>.partial' take up to 26 of 255 bytes
 
 
+def concat_ranges(starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """[Σ sizes] int64: the ranges starts[i] .. starts[i] + sizes[i] - 1 one after another, without
+    a Python loop (starts, sizes: [G] integers, sizes ≥ 0)."""
+    sizes = np.asarray(sizes, np.int64)
+    offsets = np.asarray(starts, np.int64) - (np.cumsum(sizes) - sizes)  # each range's start less the items before it
+    return np.arange(int(sizes.sum()), dtype=np.int64) + np.repeat(offsets, sizes)
+
+
 def temp_stem(path: Path) -> str:
     """The part of `path`'s temp names that stands for its name: the name, or for a name too long
     to fit a temp name in a file system's 255 bytes, its start and a hash of all of it (still unique)."""

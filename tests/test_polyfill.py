@@ -14,6 +14,7 @@ from drsplat.eval.polyfill import (
     fill_polygon,
     line_pixels,
     line_pixels_reference,
+    clipped_segments,
     lines_pixels,
     outline_pixels,
     scanline_spans,
@@ -90,8 +91,8 @@ def test_rows_in_bands_give_the_same_spans(cap):
     rng = np.random.default_rng(cap)
     for _ in range(40):
         v = rng.integers(-30, 130, (int(rng.integers(3, 30)), 2))
-        whole = np.concatenate([np.stack(s[2:], 1) for s in scanline_spans(v, 90, 110)] or [np.zeros((0, 3), np.int64)])
-        banded = np.concatenate([np.stack(s[2:], 1) for s in scanline_spans(v, 90, 110, max_entries=cap)] or [np.zeros((0, 3), np.int64)])
+        whole = np.concatenate([np.stack(s[2:], 1) for s in scanline_spans(clipped_segments(v, 90, 110), 90, 110)] or [np.zeros((0, 3), np.int64)])
+        banded = np.concatenate([np.stack(s[2:], 1) for s in scanline_spans(clipped_segments(v, 90, 110), 90, 110, max_entries=cap)] or [np.zeros((0, 3), np.int64)])
         assert np.array_equal(whole[np.lexsort(whole.T[::-1])], banded[np.lexsort(banded.T[::-1])])
 
 
@@ -100,8 +101,8 @@ def test_outline_in_runs_of_edges_gives_the_same_pixels(cap):
     rng = np.random.default_rng(cap)
     for _ in range(20):
         v = rng.integers(-40, 140, (int(rng.integers(1, 25)), 2))
-        whole = np.concatenate(list(outline_pixels(v, 90, 110)) or [np.zeros((0, 2), np.int64)])
-        runs = np.concatenate(list(outline_pixels(v, 90, 110, max_pixels=cap)) or [np.zeros((0, 2), np.int64)])
+        whole = np.concatenate(list(outline_pixels(clipped_segments(v, 90, 110))) or [np.zeros((0, 2), np.int64)])
+        runs = np.concatenate(list(outline_pixels(clipped_segments(v, 90, 110), max_pixels=cap)) or [np.zeros((0, 2), np.int64)])
         assert np.array_equal(whole, runs)
         assert ((whole >= 0) & (whole < [110, 90])).all()  # clipped to the image
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drsplat.errors import OutputError
-from drsplat.utils import atomic_path, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic, temp_beside
+from drsplat.utils import atomic_path, concat_ranges, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic, temp_beside
 
 
 def test_host_reachable_on_loopback():
@@ -66,3 +66,13 @@ def test_a_temp_beside_an_output_is_committed_through_a_link(tmp_path):
     tmp.write_bytes(b"new")
     replace_with_temp(tmp, link)
     assert link.is_symlink() and real.read_bytes() == b"new" and not tmp.exists()
+
+
+def test_concat_ranges_lists_each_range_in_turn():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        sizes = rng.integers(0, 5, rng.integers(0, 8))
+        starts = rng.integers(-20, 20, sizes.size)
+        expected = [v for s, n in zip(starts, sizes) for v in range(s, s + n)]
+        got = concat_ranges(starts, sizes)
+        assert got.dtype == np.int64 and got.tolist() == expected

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drsplat.utils import concat_ranges
+
 XY_SHIFT = 16  # OpenCV's fixed point for the edges' x (16 fractional bits)
 XY_ONE = 1 << XY_SHIFT
 
@@ -39,6 +41,15 @@ def truncate_vertices(points: np.ndarray) -> np.ndarray:
     """[P, 2] float (x, y) -> [P, 2] int64, truncated toward zero like numpy's int32 cast
     (``np.asarray(points, np.int32)``, LangSplat's `polygon_to_mask`) for values within int32."""
     return np.trunc(np.asarray(points, np.float64).reshape(-1, 2)).astype(np.int64)
+
+
+def trunc_div(num, den):
+    """C's integer division, rounded toward zero (Python's // rounds down): Python ints or int64
+    arrays; den != 0."""
+    q = abs(num) // abs(den)
+    if isinstance(q, np.ndarray):
+        return np.where((num < 0) != (den < 0), -q, q)
+    return -q if (num < 0) != (den < 0) else q
 
 
 def clip_segment(p1: tuple[int, int], p2: tuple[int, int], width: int, height: int) -> tuple[bool, tuple[int, int], tuple[int, int]]:
@@ -54,31 +65,27 @@ def clip_segment(p1: tuple[int, int], p2: tuple[int, int], width: int, height: i
     def code(x: int, y: int) -> int:
         return (x < 0) + (x > right) * 2 + (y < 0) * 4 + (y > bottom) * 8
 
-    def div(n: int, d: int) -> int:
-        q = abs(n) // abs(d)
-        return -q if (n < 0) != (d < 0) else q
-
     c1, c2 = code(x1, y1), code(x2, y2)
     if (c1 & c2) == 0 and (c1 | c2) != 0:
         if c1 & 12:
             a = 0 if c1 < 8 else bottom
-            x1 += div((a - y1) * (x2 - x1), y2 - y1)
+            x1 += trunc_div((a - y1) * (x2 - x1), y2 - y1)
             y1 = a
             c1 = (x1 < 0) + (x1 > right) * 2
         if c2 & 12:
             a = 0 if c2 < 8 else bottom
-            x2 += div((a - y2) * (x2 - x1), y2 - y1)
+            x2 += trunc_div((a - y2) * (x2 - x1), y2 - y1)
             y2 = a
             c2 = (x2 < 0) + (x2 > right) * 2
         if (c1 & c2) == 0 and (c1 | c2) != 0:
             if c1:
                 a = 0 if c1 == 1 else right
-                y1 += div((a - x1) * (y2 - y1), x2 - x1)
+                y1 += trunc_div((a - x1) * (y2 - y1), x2 - x1)
                 x1 = a
                 c1 = 0
             if c2:
                 a = 0 if c2 == 1 else right
-                y2 += div((a - x2) * (y2 - y1), x2 - x1)
+                y2 += trunc_div((a - x2) * (y2 - y1), x2 - x1)
                 x2 = a
                 c2 = 0
     return (c1 | c2) == 0, (x1, y1), (x2, y2)
@@ -134,7 +141,7 @@ def lines_pixels(segments: np.ndarray) -> np.ndarray:
     major, minor_len = np.maximum(run, rise), np.minimum(run, rise)
     counts = major + 1
     line = np.repeat(np.arange(seg.shape[0]), counts)
-    i = np.arange(line.size, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
+    i = concat_ranges(np.zeros_like(counts), counts)
     big = np.maximum(major[line], 1)
     minor = np.where(major[line] > 0, (2 * minor_len[line] * i + big - 1) // (2 * big), 0)
     vert = vertical[line]
@@ -143,39 +150,44 @@ def lines_pixels(segments: np.ndarray) -> np.ndarray:
     return np.stack([px, py], axis=1)
 
 
-def _outside(segments: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[L] bool: the segments [L, 4] (x1, y1, x2, y2) with an end outside the image (OpenCV clips those)."""
-    xs, ys = segments[:, 0::2], segments[:, 1::2]
-    return ((xs < 0) | (xs >= width) | (ys < 0) | (ys >= height)).any(axis=1)
-
-
 def polygon_segments(vertices: np.ndarray) -> np.ndarray:
     """[P, 4] int64 the closed polygon's edges (x1, y1, x2, y2), edge i running v_{i-1} -> v_i."""
     v = np.asarray(vertices, np.int64).reshape(-1, 2)
     return np.concatenate([np.roll(v, 1, axis=0), v], axis=1)
 
 
-def polygon_edges(vertices: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def clipped_segments(vertices: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The polygon's edges (`polygon_segments` [P, 4]), their ends after `clip_segment` [P, 4] (the
+    edges within the image as they are) and [P] bool whether a part of each is inside: what both
+    the outline and the interior of OpenCV's fill take from the clipping, made once."""
+    seg = polygon_segments(vertices)
+    ends = seg.copy()
+    inside = np.ones(seg.shape[0], np.bool_)
+    xs, ys = seg[:, 0::2], seg[:, 1::2]
+    for e in np.flatnonzero(((xs < 0) | (xs >= width) | (ys < 0) | (ys >= height)).any(axis=1)):
+        xa, ya, xb, yb = seg[e].tolist()
+        inside[e], a, b = clip_segment((xa, ya), (xb, yb), width, height)
+        ends[e] = (*a, *b)
+    return seg, ends, inside
+
+
+def polygon_edges(segments: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The non-horizontal edges of the closed polygon as OpenCV's CollectPolyEdges keeps them: rows
     y0 < y1 (the vertices' own), the fixed-point x at y0 and dx per row. An edge with an end outside
     the image takes its slope from the part `clip_segment` leaves (x of both clipped ends, and their
     rows unless the clipped part is level), extended back to row y0; dx is truncated toward zero.
-    vertices: [P, 2] int64 (x, y). Returns four [E] int64."""
-    seg = polygon_segments(vertices)
-    seg = seg[seg[:, 1] != seg[:, 3]]
-    clipped = seg.copy()  # the ends the slope is taken from
-    for e in np.flatnonzero(_outside(seg, height, width)):
-        xa, ya, xb, yb = seg[e].tolist()
-        _, ca, cb = clip_segment((xa, ya), (xb, yb), width, height)
-        clipped[e] = (ca[0], ca[1], cb[0], cb[1]) if ca[1] != cb[1] else (ca[0], ya, cb[0], yb)
-    xa_c, xb_c = clipped[:, 0] << XY_SHIFT, clipped[:, 2] << XY_SHIFT
-    num, den = xb_c - xa_c, clipped[:, 3] - clipped[:, 1]
-    dx = np.abs(num) // np.abs(den)
-    dx = np.where((num < 0) != (den < 0), -dx, dx)  # C's division, toward zero
+    segments: `clipped_segments`. Returns four [E] int64."""
+    seg, ends, _ = segments
+    sloped = seg[:, 1] != seg[:, 3]
+    seg, ends = seg[sloped], ends[sloped].copy()
+    level = ends[:, 1] == ends[:, 3]  # clipped to a level part: OpenCV keeps the vertices' rows
+    ends[level, 1], ends[level, 3] = seg[level, 1], seg[level, 3]
+    xa_c, xb_c = ends[:, 0] << XY_SHIFT, ends[:, 2] << XY_SHIFT
+    dx = trunc_div(xb_c - xa_c, ends[:, 3] - ends[:, 1])
     down = seg[:, 1] < seg[:, 3]
     y0 = np.where(down, seg[:, 1], seg[:, 3])
     y1 = np.where(down, seg[:, 3], seg[:, 1])
-    x0 = np.where(down, xa_c + (seg[:, 1] - clipped[:, 1]) * dx, xb_c + (seg[:, 3] - clipped[:, 3]) * dx)
+    x0 = np.where(down, xa_c + (seg[:, 1] - ends[:, 1]) * dx, xb_c + (seg[:, 3] - ends[:, 3]) * dx)
     return y0, y1, x0, dx
 
 
@@ -188,7 +200,7 @@ def _band_spans(y0: np.ndarray, y1: np.ndarray, x0: np.ndarray, dx: np.ndarray, 
     first_row = np.clip(y0, lo, hi)
     counts = np.clip(y1, lo, hi) - first_row
     edge = np.repeat(np.arange(y0.size), counts)
-    row = first_row[edge] + (np.arange(edge.size) - np.repeat(np.cumsum(counts) - counts, counts))
+    row = concat_ranges(first_row, counts)
     x = x0[edge] + (row - y0[edge]) * dx[edge]
     order = np.lexsort((x, row))
     row, x = row[order], x[order]
@@ -212,12 +224,12 @@ def _runs(cumulative: np.ndarray, cap: int, longest: int | None = None):
         lo = hi
 
 
-def scanline_spans(vertices: np.ndarray, height: int, width: int, max_entries: int = SPAN_ENTRIES):
+def scanline_spans(segments: tuple[np.ndarray, np.ndarray, np.ndarray], height: int, width: int, max_entries: int = SPAN_ENTRIES):
     """The interior of OpenCV's fill as row spans, in bands of rows holding at most about
     `max_entries` edge crossings (one row's crossings are never split) and `max_entries` pixels:
     yields (the band's first and end row, rows [S], first and last columns [S], inclusive, clipped
-    to the image). vertices: [P, 2] int64 (x, y)."""
-    y0, y1, x0, dx = polygon_edges(vertices, height, width)
+    to the image). segments: `clipped_segments`."""
+    y0, y1, x0, dx = polygon_edges(segments)
     if y0.size < 2:
         return
     x_end = x0 + (y1 - y0) * dx
@@ -231,20 +243,15 @@ def scanline_spans(vertices: np.ndarray, height: int, width: int, max_entries: i
         yield (lo, hi, *_band_spans(y0, y1, x0, dx, lo, hi, width))
 
 
-def outline_pixels(vertices: np.ndarray, height: int, width: int, max_pixels: int = SPAN_ENTRIES):
-    """The polygon's edges as OpenCV draws them, each clipped to the image (`clip_segment`) first;
+def outline_pixels(segments: tuple[np.ndarray, np.ndarray, np.ndarray], max_pixels: int = SPAN_ENTRIES):
+    """The polygon's edges as OpenCV draws them, each clipped to the image (`clipped_segments`);
     yields [Q, 2] int64 (x, y) pixels for runs of edges holding at most about `max_pixels` pixels
-    (one edge is never split). vertices: [P, 2] int64 (x, y)."""
-    seg = polygon_segments(vertices)
-    keep = np.ones(seg.shape[0], np.bool_)
-    for e in np.flatnonzero(_outside(seg, height, width)):
-        inside, a, b = clip_segment(tuple(seg[e, :2].tolist()), tuple(seg[e, 2:].tolist()), width, height)
-        keep[e] = inside
-        seg[e] = (a[0], a[1], b[0], b[1])
-    seg = seg[keep]
-    lengths = np.maximum(np.abs(seg[:, 2] - seg[:, 0]), np.abs(seg[:, 3] - seg[:, 1])) + 1
+    (one edge is never split)."""
+    _, ends, inside = segments
+    ends = ends[inside]
+    lengths = np.maximum(np.abs(ends[:, 2] - ends[:, 0]), np.abs(ends[:, 3] - ends[:, 1])) + 1
     for lo, hi in _runs(np.cumsum(lengths), max_pixels):
-        yield lines_pixels(seg[lo:hi])
+        yield lines_pixels(ends[lo:hi])
 
 
 def fill_polygon(vertices: np.ndarray, height: int, width: int, max_entries: int = SPAN_ENTRIES) -> np.ndarray:
@@ -259,9 +266,10 @@ def fill_polygon(vertices: np.ndarray, height: int, width: int, max_entries: int
     mask = np.zeros((height, width), np.bool_)
     if v.shape[0] == 0 or height <= 0 or width <= 0:
         return mask
-    for px in outline_pixels(v, height, width, max_entries):
+    segments = clipped_segments(v, height, width)
+    for px in outline_pixels(segments, max_entries):
         mask[px[:, 1], px[:, 0]] = True
-    for lo, hi, rows, first, last in scanline_spans(v, height, width, max_entries):
+    for lo, hi, rows, first, last in scanline_spans(segments, height, width, max_entries):
         marks = np.zeros((hi - lo, width + 1), np.int32)  # +1 at a span's start, -1 past its end
         np.add.at(marks, (rows - lo, first), 1)
         np.add.at(marks, (rows - lo, last + 1), -1)

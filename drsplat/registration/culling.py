@@ -44,6 +44,7 @@ from drsplat._scene_kernels import gather_rows
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene
 from drsplat.scene import morton_interleave
+from drsplat.utils import concat_ranges
 
 DEFAULT_BLOCK = 1024
 PIXEL_MARGIN = 2.0  # extra pixels on every image side against float rounding in the projection
@@ -138,7 +139,7 @@ class SpatialIndex:
         blocks = np.flatnonzero(self.visible_blocks(camera, near, tile_size))
         sizes = self.starts[blocks + 1] - self.starts[blocks]
         # positions in `order` of the visible blocks' Gaussians (cost follows them, not M)
-        keep = np.arange(int(sizes.sum())) + np.repeat(self.starts[blocks] - np.cumsum(sizes) + sizes, sizes)
+        keep = concat_ranges(self.starts[blocks], sizes)
         cand, lam = self.order[keep], self.lam[keep]
         px, py, pz = (row[keep] for row in self.points)
         rot, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)

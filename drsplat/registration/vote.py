@@ -211,7 +211,7 @@ class MaskClusters:
         ids = np.full(feats.shape[0], -1, np.int32)
         known = self.count  # clusters before this view: every mask meets them at once
         best, value = self._best_leaders(feats, 0, known)
-        founded = np.empty((0, self.dim), np.float32)  # this view's new leaders, in order (clusters known, known + 1, ...)
+        founded = np.empty((feats.shape[0], self.dim), np.float32)  # this view's new leaders, in order (clusters known, known + 1, ...)
         for j in range(feats.shape[0]):
             if not norms[j] > 0 or (present is not None and not present[j]):
                 continue
@@ -226,8 +226,6 @@ class MaskClusters:
                         ids[j] = known + top
                 if ids[j] < 0:
                     ids[j] = self._found(unit)
-                    if founded.shape[0] < self.count - known:  # room for twice as many, as a list would grow
-                        founded = np.concatenate([founded, np.empty((max(8, founded.shape[0]), self.dim), np.float32)])
                     founded[self.count - known - 1] = unit
             b, r = self._locate(int(ids[j]))
             self._sums[b][r] += feats[j]
