@@ -91,12 +91,13 @@ def packed_frames_kernel(q, s, zero_nonfinite, out):  # pragma: no cover - jitte
 
 
 @numba.njit(parallel=True, cache=True)
-def finite_rows_kernel(a, out):  # pragma: no cover - jitted
-    """out[i] &= every entry of row a[i] is finite. a: [N, C] (any float type); out: [N] bool."""
+def bounded_rows_kernel(a, limit, out):  # pragma: no cover - jitted
+    """out[i] &= |a[i, j]| ≤ limit for every j (NaN never is; limit = the float64 maximum: every entry
+    finite). a: [N, C] (any float type); out: [N] bool."""
     for i in numba.prange(a.shape[0]):
         ok = out[i]
         for j in range(a.shape[1]):
-            ok = ok and math.isfinite(a[i, j])
+            ok = ok and abs(np.float64(a[i, j])) <= limit
         out[i] = ok
 
 

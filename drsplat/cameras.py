@@ -178,10 +178,38 @@ class ColmapModel:
         return ids, xyz
 
 
-def qvec_to_rotmat(qvec: np.ndarray) -> np.ndarray:
-    """[4] (w, x, y, z) -> [3, 3] rotation (normalised first)."""
+def unit_quaternion(qvec: np.ndarray) -> np.ndarray | None:
+    """q / |q| of a [4] quaternion, computed as s / |s| with s = q · 2⁻ᵉ, 2ᵉ⁻¹ <= max|qᵢ| < 2ᵉ;
+    None when a component is not finite or all four are zero (no direction to normalise).
+
+    |q|² overflows float64 once a component passes about 1.3e154 (q / inf was then the zero
+    quaternion, so the identity rotation) and underflows to 0 below about 1e-162; s has its largest
+    component in [0.5, 1), so neither happens. The scale is a power of two, hence exact: a quaternion
+    whose squares stay in range gives the same bits as q / |q|."""
     q = np.asarray(qvec, dtype=np.float64)
-    return quat_to_rotmat((q / np.linalg.norm(q))[None])[0]
+    if q.shape != (4,) or not np.isfinite(q).all():
+        return None
+    largest = float(np.abs(q).max())
+    if largest == 0.0:
+        return None
+    s = np.ldexp(q, -math.frexp(largest)[1])
+    return s / np.linalg.norm(s)
+
+
+def qvec_to_rotmat(qvec: np.ndarray) -> np.ndarray:
+    """[4] (w, x, y, z) -> [3, 3] rotation of q / |q| (`unit_quaternion`, at any finite scale).
+
+    A quaternion that is no rotation (a non-finite component, or all zeros) gives an all-NaN matrix,
+    which `validate_camera` refuses; `colmap_rotation` names the image instead."""
+    unit = unit_quaternion(qvec)
+    if unit is None:
+        return np.full((3, 3), np.nan)
+    return quat_to_rotmat(unit[None])[0]
+
+
+def plain_numbers(values) -> str:
+    """Numbers as a user wrote them ("1e+300 0 inf"), never numpy's reprs ("np.float64(1e+300)")."""
+    return " ".join(f"{float(v):g}" for v in np.ravel(values))
 
 
 class _Reader:
@@ -215,11 +243,19 @@ class _Reader:
             raise InputError(self.path, f"declares {count} {records} but {left} bytes follow the last of them "
                              "(the count may be smaller than the records present, or the file has trailing data)", field=field)
 
-    def cstring(self) -> str:
+    def cstring(self, where: str, field: str) -> str:
+        """The NUL-terminated UTF-8 string at the read position. Invalid UTF-8 is an InputError
+        naming `where` (the record) and the byte offset, as `_read_text` refuses it in the text
+        model: decoded with replacement characters, the name matched no image and the camera was
+        skipped as missing."""
         end = self.buf.find(b"\x00", self.pos)
         if end < 0:
             raise InputError(self.path, f"is truncated inside an image name at byte {self.pos}")
-        text = self.buf[self.pos:end].decode("utf-8", errors="replace")
+        try:
+            text = self.buf[self.pos:end].decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise InputError(self.path, f"{where} has a name that is not UTF-8 text (invalid byte at offset {self.pos + exc.start})",
+                             field=field) from None
         self.pos = end + 1
         return text
 
@@ -255,7 +291,7 @@ def read_colmap_images_bin(path: Path) -> dict[int, ColmapImage]:
         _unique_id(path, images, image_id, "IMAGE_ID", f"image record {k}")
         qvec, tvec = r.take("<f8", 4).copy(), r.take("<f8", 3).copy()
         camera_id = r.one("<u4")
-        name = r.cstring()
+        name = r.cstring(f"image {image_id}", "NAME")
         num = r.one("<u8")
         obs = r.take([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], num)  # type: ignore[arg-type]
         xys = np.stack([obs["x"], obs["y"]], axis=1) if num else np.zeros((0, 2))
@@ -432,14 +468,19 @@ def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
     return points
 
 
+def _has_model(sparse_dir: Path, ext: str) -> bool:
+    """Whether `sparse_dir` holds a COLMAP model in `ext` (".bin" or ".txt"): its cameras and images files."""
+    return (sparse_dir / f"cameras{ext}").exists() and (sparse_dir / f"images{ext}").exists()
+
+
 def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
-    """Read a COLMAP sparse model folder (binary `*.bin` preferred, else text `*.txt`)."""
+    """Read a COLMAP sparse model folder (binary `*.bin` preferred, as COLMAP does, else text `*.txt`)."""
     d = Path(sparse_dir)
-    if (d / "cameras.bin").exists() and (d / "images.bin").exists():
+    if _has_model(d, ".bin"):
         ext = ".bin"
         cams, imgs = read_colmap_cameras_bin(d / "cameras.bin"), read_colmap_images_bin(d / "images.bin")
         points = read_colmap_points_bin(d / "points3D.bin") if (d / "points3D.bin").exists() else {}
-    elif (d / "cameras.txt").exists() and (d / "images.txt").exists():
+    elif _has_model(d, ".txt"):
         ext = ".txt"
         cams, imgs = read_colmap_cameras_txt(d / "cameras.txt"), read_colmap_images_txt(d / "images.txt")
         points = read_colmap_points_txt(d / "points3D.txt") if (d / "points3D.txt").exists() else {}
@@ -465,6 +506,19 @@ def colmap_intrinsics(cam: ColmapCamera, source: Path) -> tuple[float, float, fl
     raise InputError(source, f"camera {cam.camera_id} uses the distorted model {cam.model}; {UNDISTORT_HINT}", field="MODEL")
 
 
+def colmap_rotation(path: Path, where: str, qvec: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation of an image's QW QX QY QZ, normalised at any finite scale (`qvec_to_rotmat`).
+
+    InputError naming `where` (the image) when a component is not finite or all four are zero: such a
+    quaternion has no direction, so no rotation to give (an inf once passed the old norm check and
+    became the identity)."""
+    q = np.asarray(qvec, np.float64)
+    if unit_quaternion(q) is None:
+        problem = "a component that is not finite" if not np.isfinite(q).all() else "all components zero, which is no rotation"
+        raise InputError(path, f"{where} has the rotation quaternion {plain_numbers(q)}, with {problem}", field="QW QX QY QZ")
+    return qvec_to_rotmat(q)
+
+
 def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> list[Camera]:
     """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`)."""
     out = []
@@ -475,10 +529,7 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
         where = f"image {img.image_id} ({img.name!r})"
         images_file = model.images_path or source
         check_image_name(images_file, img.name, where, "NAME")
-        q = np.asarray(img.qvec, np.float64)
-        if not np.isfinite(q).all() or not np.linalg.norm(q) > 0:
-            raise InputError(images_file, f"{where} has a zero or non-finite rotation quaternion", field="QW QX QY QZ")
-        camera = Camera(R=qvec_to_rotmat(q), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
+        camera = Camera(R=colmap_rotation(images_file, where, img.qvec), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
                         width=cam.width, height=cam.height, image_path=paths.image(img.name), name=Path(img.name).stem)
         validate_intrinsics(camera, model.cameras_path or source, f"camera {cam.camera_id} (used by {where})")
         validate_camera(camera, images_file, where)
@@ -570,11 +621,7 @@ def check_image_name(path: Path, name: str, where: str, field: str) -> None:
 def validate_camera(camera: Camera, path: Path, where: str) -> None:
     """Refuse a camera whose values cannot be a real camera: non-finite or non-rotation R, non-finite t,
     or intrinsics that `validate_intrinsics` refuses."""
-    R = np.asarray(camera.R, np.float64)
-    if R.shape != (3, 3) or not np.isfinite(R).all():
-        raise InputError(path, f"{where} has a non-finite rotation", field="rotation")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.linalg.det(R) > 0:
-        raise InputError(path, f"{where} has a rotation that is not orthonormal with det +1 (all-zero or scaled matrix?)", field="rotation")
+    check_rotation(path, where, camera.R, "rotation")
     t = np.asarray(camera.t, np.float64)
     if not np.isfinite(t).all():
         raise InputError(path, f"{where} has a non-finite translation", field="translation")
@@ -582,6 +629,40 @@ def validate_camera(camera: Camera, path: Path, where: str) -> None:
         raise InputError(path, f"{where} has a translation of {np.abs(t).max():.3g}, beyond any scene (more than {MAX_COORDINATE:.0e}: a scale "
                          "or units mix-up?); it would see no Gaussian", field="translation")
     validate_intrinsics(camera, path, where)
+
+
+ROTATION_TOLERANCE = 1e-3  # of R Rᵀ against I: a rotation written with 4 decimals (or in float32) passes
+
+
+def is_rotation(R: np.ndarray, atol: float = ROTATION_TOLERANCE) -> bool:
+    """Whether a finite [3, 3] R is a rotation: R Rᵀ = I within `atol` and det R > 0.
+
+    An entry beyond 1 + atol fails before R Rᵀ is formed: its row's squared norm then exceeds
+    1 + 2·atol, so the product would fail anyway (for atol above allclose's rtol, 1e-5), and for
+    entries past about 1e154 it overflows (numpy's warning on stderr before the error)."""
+    R = np.asarray(R, np.float64)
+    if not np.abs(R).max() <= 1.0 + atol:
+        return False
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=atol) and np.linalg.det(R) > 0)
+
+
+def check_rotation(path: Path, where: str, R: np.ndarray, field: str) -> None:
+    """InputError naming `where` and `field` unless R is a finite [3, 3] rotation (`is_rotation`)."""
+    R = np.asarray(R, np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all():
+        raise InputError(path, f"{where} has a non-finite rotation", field=field)
+    if not is_rotation(R):
+        raise InputError(path, f"{where} has a rotation that is not orthonormal with det +1 (all-zero or scaled matrix?)", field=field)
+
+
+def check_centre(path: Path, where: str, centre: np.ndarray, field: str) -> None:
+    """InputError when a camera-to-world position lies beyond MAX_COORDINATE, before t = -R c is
+    formed from it: near 1e308 that product overflows (numpy's warning, then a "non-finite
+    translation" the file does not hold); any such camera is refused by `validate_camera` anyway."""
+    largest = float(np.abs(centre).max())
+    if largest > MAX_COORDINATE:
+        raise InputError(path, f"{where} has a camera position of {largest:.3g}, beyond any scene (more than {MAX_COORDINATE:.0e}: a scale "
+                         "or units mix-up?); it would see no Gaussian", field=field)
 
 
 def validate_intrinsics(camera: Camera, path: Path, where: str) -> None:
@@ -594,7 +675,7 @@ def validate_intrinsics(camera: Camera, path: Path, where: str) -> None:
     for name, side in (("fx", "width"), ("fy", "height")):
         value = getattr(camera, name)
         if not (np.isfinite(value) and value > 0):
-            raise InputError(path, f"{where} has focal length {name}={value!r}; it must be a positive number", field=name)
+            raise InputError(path, f"{where} has focal length {name}={plain_numbers(value)}; it must be a positive number", field=name)
         _check_intrinsic(path, where, name, value, side, getattr(camera, side), MIN_FOCAL_RATIO)
     for name, side in (("cx", "width"), ("cy", "height")):
         value = getattr(camera, name)
@@ -691,6 +772,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             raise InputError(path, f"has k3/k4 distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field="k3")
         if np.allclose(c2w[:3, :3], 0):
             raise InputError(path, f"frame {i} has an all-zero rotation in its transform_matrix", field="transform_matrix")
+        check_rotation(path, f"frame {i}", c2w[:3, :3], "rotation")  # the OpenGL flip keeps a rotation a rotation
+        check_centre(path, f"frame {i}", c2w[:3, 3], "translation")  # the field validate_camera names for it
         R, t = c2w_opengl_to_w2c_opencv(c2w)
         camera = Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, image_path=image,
                         name=image.stem, distortion=dist if np.any(dist != 0) else None)
@@ -725,12 +808,23 @@ def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
     return c2w
 
 
+# rad; a narrower field of view has a focal length beyond MAX_INTRINSIC_RATIO image sides
+MIN_FIELD_OF_VIEW = 2.0 * math.atan(0.5 / MAX_INTRINSIC_RATIO)
+
+
 def _focal_from_angle(path: Path, rec: dict, key: str, side: int, where: str) -> float:
-    """f = side / (2 tan(angle / 2)) for a field-of-view angle in (0, pi) radians."""
+    """f = side / (2 tan(angle / 2)) for a field-of-view angle in [MIN_FIELD_OF_VIEW, pi) radians.
+
+    The angle itself is refused below MIN_FIELD_OF_VIEW: that f would be refused by
+    `validate_intrinsics` under a name the file does not use (fx), and for angles near 1e-308 the
+    division overflows (numpy's warning, then "fx=inf")."""
     angle = _number(path, rec, key, where=where)
     if not 0 < angle < np.pi:
         raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must lie in (0, pi)", field=key)
-    return 0.5 * side / np.tan(0.5 * angle)
+    if angle < MIN_FIELD_OF_VIEW:
+        raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must be at least {MIN_FIELD_OF_VIEW:.3g} rad (a narrower "
+                         f"one means a focal length of more than {MAX_INTRINSIC_RATIO:g} image sides, which no lens has)", field=key)
+    return float(0.5 * side / math.tan(0.5 * angle))
 
 
 def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], list[str]]:
@@ -763,6 +857,8 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Ca
         if paths is not None and image is None:
             missing.append(name)
             continue
+        check_rotation(path, f"camera {i}", rot, "rotation")
+        check_centre(path, f"camera {i}", pos, "position")
         R = rot.T
         camera = Camera(R=R, t=-R @ pos, fx=_number(path, rec, "fx", where=where), fy=_number(path, rec, "fy", where=where),
                         cx=width / 2, cy=height / 2, width=width, height=height, image_path=image, name=Path(name).stem)
@@ -802,6 +898,12 @@ def _find_colmap(src: Path) -> Path | None:
 
 def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
     root = sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
+    # warned here, once per load, not in read_colmap_model, which other steps read again; the two are
+    # not compared (points3D alone may be large): a text model edited by hand beside the binary one
+    # it came from was ignored without a word
+    if _has_model(sparse, ".bin") and _has_model(sparse, ".txt"):
+        log.warning("%s holds both a binary (cameras.bin, images.bin) and a text (cameras.txt, images.txt) COLMAP model; the binary "
+                    "one is used, as COLMAP does, and the text one is ignored (remove the one that is not meant)", sparse)
     cameras = cameras_from_colmap(read_colmap_model(sparse), root / "images", sparse)
     if not require_images:
         return cameras, []
@@ -983,7 +1085,7 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     if len(rows) == 4 and not np.allclose(values[3], (0.0, 0.0, 0.0, 1.0)):
         raise InputError(path, "has a fourth row that is not 0 0 0 1", field="transform")
     rotation, translation = values[:3, :3], values[:3, 3]
-    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0):
+    if not is_rotation(rotation, atol=1e-4):
         raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field="transform")
     scale = _number(path, data, "scale")
     if not scale > 0:
@@ -1054,6 +1156,8 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
             if image is None:
                 raise InputError(scene_dir / "color", f"no colour image for frame {pose_path.stem} (needed for the image size)")
             size = _image_size(image)
+        check_rotation(pose_path, f"frame {pose_path.stem}", c2w[:3, :3], "rotation")  # checked before -Rᵀ c: near 1e308 it overflows
+        check_centre(pose_path, f"frame {pose_path.stem}", c2w[:3, 3], "translation")
         R = c2w[:3, :3].T
         t = -R @ c2w[:3, 3]
         camera = Camera(R=R, t=t, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=size[0], height=size[1],

@@ -29,10 +29,10 @@ import numba
 import numpy as np
 
 from drsplat import _raster_kernels as kernels
-from drsplat._scene_kernels import finite_rows_kernel, gather_rows
+from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
-from drsplat.scene import SH_C0, GaussianScene
+from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
 
 log = logging.getLogger(__name__)
@@ -197,27 +197,33 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
 
 
 def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
-    """The view-independent arrays of `scene`; non-finite Gaussians are flagged and counted.
+    """The view-independent arrays of `scene`; unusable Gaussians are flagged (`finite`) and counted.
 
-    A Gaussian is finite when its mean, quaternion, log scales, opacity logit, SH coefficients and
-    covariance are. with_sh=False: the SH are still checked, not copied (sh becomes [N, 0, 3]:
-    a registration renders no colour).
+    A Gaussian is usable when its mean, quaternion, log scales, opacity logit, SH coefficients and
+    covariance are finite, its mean lies within MAX_COORDINATE of the origin on every axis (no
+    camera is farther out, and a camera z past float32's range would be an infinite depth) and its
+    SH coefficients within MAX_SH_COEFFICIENT (a colour past float32's range would be infinite).
+    with_sh=False: the SH are still checked, not copied (sh becomes [N, 0, 3]: a registration
+    renders no colour).
     """
     if isinstance(scene, PreparedScene):
         return scene
     n = scene.num_gaussians
     finite = np.ones(n, bool)
-    for rows in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits.reshape(n, 1), scene.sh.reshape(n, 3 * scene.sh.shape[1])):
-        finite_rows_kernel(np.ascontiguousarray(rows), finite)
+    everything = float(np.finfo(np.float64).max)
+    for rows, limit in ((scene.means, MAX_COORDINATE), (scene.quats, everything), (scene.log_scales, everything),
+                        (scene.opacity_logits.reshape(n, 1), everything), (scene.sh.reshape(n, 3 * scene.sh.shape[1]), MAX_SH_COEFFICIENT)):
+        bounded_rows_kernel(np.ascontiguousarray(rows), limit, finite)
     cov = scene.covariances()
-    finite_rows_kernel(cov.reshape(n, 9), finite)
+    bounded_rows_kernel(cov.reshape(n, 9), everything, finite)
     cov[~finite] = 0.0
     means = np.where(finite[:, None], scene.means, 0.0).astype(np.float64)
     opacities = np.where(finite, scene.opacities(), 0.0).astype(np.float32)
     sh = np.where(finite[:, None, None], scene.sh, 0.0).astype(np.float32) if with_sh else np.zeros((n, 0, 3), np.float32)
     prepared = PreparedScene(means=means, covariances=cov, opacities=opacities, sh=sh, finite=finite)
     if prepared.num_nonfinite:
-        log.warning("%d of %d Gaussians have non-finite attributes and are not rendered", prepared.num_nonfinite, prepared.num_gaussians)
+        log.warning("%d of %d Gaussians have non-finite attributes (or a mean beyond %.0e, or an SH coefficient beyond %.0e) and are "
+                    "not rendered", prepared.num_nonfinite, prepared.num_gaussians, MAX_COORDINATE, MAX_SH_COEFFICIENT)
     return prepared
 
 

@@ -35,6 +35,9 @@ MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log
 MIP_FILTER = "filter_3D"  # Mip-Splatting's per-Gaussian 3D smoothing filter, a vertex property of its PLYs
 SURFEL_THICKNESS = 1e-3  # a 2DGS surfel's thickness along its normal, relative to its smaller scale (`surfel_scales`)
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
+MAX_SH_COEFFICIENT = 1e30  # |SH coefficient| beyond this: a colour (16 terms, |basis| < 1.1) could pass float32's range
+HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
+EXTENT_SAMPLE = 1 << 20  # means sampled (evenly spaced rows) for the scene's extent
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
 
@@ -290,6 +293,10 @@ class LoadReport:
     row_bytes: int = 0  # bytes per vertex row (to say how many rows the trailing bytes could hold)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
+    large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
+    huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
+    scene_extent: float = 0.0  # the diagonal of the 1-99 % box of the means (`scene_extent`)
+    beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
     @property
@@ -303,6 +310,8 @@ class LoadReport:
             notes.append(f"{self.dropped_nan_rows} rows with NaN values dropped")
         if self.dropped_inf_rows:
             notes.append(f"{self.dropped_inf_rows} rows with infinite position, scale, rotation or colour dropped")
+        if self.beyond_float32:
+            notes.append(f"{self.beyond_float32} rows hold double-precision values beyond float32's range (+-3.4e38), read as infinite")
         if self.clamped_opacity:
             notes.append(f"{self.clamped_opacity} infinite opacity logits clamped to +-{MAX_OPACITY_LOGIT:g}")
         if self.zero_quaternions:
@@ -315,7 +324,14 @@ class LoadReport:
             notes.append(self.trailing_note())
         if self.far_means:
             notes.append(f"{self.far_means} Gaussians lie beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
-                         "see them (a units or export mix-up?), so registration leaves them unassigned")
+                         "see them (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
+        if self.large_sh:
+            notes.append(f"{self.large_sh} Gaussians have an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
+                         "overflow float32, so they are not rendered and registration leaves them unassigned")
+        if self.huge_scales:
+            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the 1-99 % box of the "
+                         f"means, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
+                         "of what lies behind it (a training blow-up or a units mix-up?)")
         if self.overflowing_scales:
             notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "
                          "their scale overflows float32 (infinite)")
@@ -476,11 +492,16 @@ def read_plyfile(path: Path):
         return PlyData.read(str(path))
 
 
+def _clipped(text: str, limit: int) -> str:
+    """`text` cut to `limit` characters (a message quoting a file's bytes stays readable)."""
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
     try:
         ply = read_plyfile(path)
     except Exception as exc:  # plyfile raises many types for malformed ASCII
-        raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__})") from None
+        raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__}: {_clipped(str(exc), 200)})") from None
     out = {}
     for element in ply.elements:
         if any(p.__class__.__name__ == "PlyListProperty" for p in element.properties):
@@ -582,10 +603,23 @@ def check_integer_column(path: Path, name: str, column: np.ndarray, storage: str
                     f"number in {low}..{high}: casting it to {storage} would misread it; {expected}", field=name)
 
 
-def _require(path: Path, vertex: np.ndarray, name: str) -> np.ndarray:
+def _require(path: Path, vertex: np.ndarray, name: str) -> None:
     if name not in vertex.dtype.names:
         raise _fail(path, "is missing a required vertex property of the 3DGS layout", field=name)
-    return vertex[name].astype(np.float32)
+
+
+def rows_beyond_float32(vertex: np.ndarray, names: list[str]) -> int:
+    """Rows of `vertex` whose wider-than-float32 columns `names` hold a finite value beyond float32's
+    range (the cast to float32 reads it as infinite)."""
+    beyond = np.zeros(len(vertex), bool)
+    limit = float(np.finfo(np.float32).max)
+    for name in names:
+        column = vertex[name]
+        if column.dtype.kind == "f" and column.dtype.itemsize > 4:
+            values = np.asarray(column, np.float64)
+            with np.errstate(invalid="ignore"):
+                beyond |= np.isfinite(values) & (np.abs(values) > limit)
+    return int(np.count_nonzero(beyond))
 
 
 def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]:
@@ -627,7 +661,30 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
                  path, MIP_FILTER, f"{n:,}")
     cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
                                            and not name.startswith("f_rest_")])
+    cols["beyond_float32"] = rows_beyond_float32(vertex, [name for name in names if name in CORE_PROPERTIES or name.startswith("f_rest_")])
     return cols
+
+
+def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
+    """The diagonal of the box between the 1st and 99th percentiles of the finite means [N, 3] (at
+    most `sample` evenly spaced rows), 0 without any: the scene's size, blind to a few far outliers."""
+    step = max(1, -(-means.shape[0] // sample))
+    rows = np.asarray(means[::step], np.float64)
+    rows = rows[np.isfinite(rows).all(axis=1)]
+    if rows.shape[0] == 0:
+        return 0.0
+    low, high = np.percentile(rows, [1.0, 99.0], axis=0)
+    return float(np.linalg.norm(high - low))
+
+
+def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:
+    """Gaussians [N, 3] log scales whose largest scale is over HUGE_SCALE_RATIO x `extent` (none when
+    the extent is 0: a single point or an empty scene has no size to compare with)."""
+    if extent <= 0.0 or log_scales.shape[0] == 0:
+        return 0
+    limit = np.log(HUGE_SCALE_RATIO * extent)
+    with np.errstate(invalid="ignore"):
+        return int(np.count_nonzero(np.max(np.asarray(log_scales, np.float64), axis=1) > limit))
 
 
 def surfel_scales(log_scales_2d: np.ndarray) -> np.ndarray:
@@ -698,7 +755,12 @@ def _column_reader(vertex: np.ndarray):
         matrix = np.ascontiguousarray(vertex).view("<f4").reshape(len(vertex), len(names))
         index = {n: i for i, n in enumerate(names)}
         return lambda wanted: matrix[:, [index[w] for w in wanted]].astype(np.float32)
-    return lambda wanted: np.stack([vertex[w].astype(np.float32) for w in wanted], axis=1)
+
+    def gather(wanted: list[str]) -> np.ndarray:
+        with np.errstate(over="ignore"):  # a double beyond float32 becomes inf, counted by `rows_beyond_float32`
+            return np.stack([vertex[w].astype(np.float32) for w in wanted], axis=1)
+
+    return gather
 
 
 def _unorm(values: np.ndarray, shift: int, bits: int) -> np.ndarray:
@@ -852,6 +914,10 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
     report.overflowing_scales = int((log_scales > MAX_LOG_SCALE).any(axis=1).sum())
     report.far_means = int((np.abs(means) > MAX_COORDINATE).any(axis=1).sum())
+    report.large_sh = int((np.abs(sh.reshape(sh.shape[0], -1)) > MAX_SH_COEFFICIENT).any(axis=1).sum()) if sh.size else 0
+    report.scene_extent = scene_extent(means)
+    report.huge_scales = count_huge_scales(log_scales, report.scene_extent)
+    report.beyond_float32 = int(cols.get("beyond_float32", 0))
     report.nonfinite_extra = sum(int((~np.isfinite(v)).sum()) for v in extra.values() if np.issubdtype(v.dtype, np.floating))
     for note in report.findings():
         log.warning("%s: %s", path, note)

@@ -471,11 +471,15 @@ def spz_columns(path: Path) -> tuple[dict, list[str], str]:
     return cols, [name for name, _ in spz_block_sizes(points, version, degree)], f"spz v{version}"
 
 
-def _check_spz_header(path: Path, version: int, degree: int) -> None:
+def _check_spz_header(path: Path, version: int, degree: int, fractional_bits: int) -> None:
     if version not in SPZ_VERSIONS:
         raise InputError(path, f"is spz version {version}; drsplat reads versions {SPZ_VERSIONS[0]}-{SPZ_VERSIONS[-1]}", field="version")
     if degree > SPZ_MAX_SH_DEGREE:
         raise InputError(path, f"declares SH degree {degree}; spz holds degrees 0-{SPZ_MAX_SH_DEGREE}", field="shDegree")
+    if version > 1 and fractional_bits > SPZ_MAX_FRACTIONAL_BITS:
+        raise InputError(path, f"declares {fractional_bits} fractional bits for its 24-bit positions; the spz library scales by "
+                               f"1 << fractionalBits in a 32-bit int, so at most {SPZ_MAX_FRACTIONAL_BITS} mean anything (it writes "
+                               f"{SPZ_FRACTIONAL_BITS})", field="fractionalBits")
 
 
 def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], bytes]:
@@ -492,7 +496,7 @@ def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes]
     if int(header["magic"]) != NGSP_MAGIC:
         raise InputError(path, "is a gzip file without the spz header (magic 'NGSP'): not an .spz file", field="magic")
     version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
-    _check_spz_header(path, version, degree)
+    _check_spz_header(path, version, degree, int(header["fractional_bits"]))
     sizes = spz_block_sizes(points, version, degree)
     need = _check_ratio(path, sizes, len(data))
     body = _inflate(path, inflater, need + MAX_LEGACY_EXTENSION_BYTES)
@@ -565,7 +569,7 @@ def _read_ngsp_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], 
     version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
     if version < 4:
         raise InputError(path, f"has a plain 'NGSP' header of version {version}; versions 1-3 are gzip streams", field="version")
-    _check_spz_header(path, version, degree)
+    _check_spz_header(path, version, degree, int(header["fractional_bits"]))
     sizes = [(name, n) for name, n in spz_block_sizes(points, version, degree) if n > 0]
     toc, count = int(header["toc_offset"]), int(header["streams"])
     if count != len(sizes):
@@ -699,6 +703,7 @@ def _to_ply_frame(cols: dict, frame: int) -> None:
 SPZ_WRITE_VERSIONS = (3, 4)
 SPZ_WRITE_VERSION = 3  # gzip: every spz reader takes it; version 4 (zstd, 2025) only the current library and its ports
 SPZ_FRACTIONAL_BITS = 12  # the spz library's: ~0.24 mm steps for positions within ±2048 units
+SPZ_MAX_FRACTIONAL_BITS = 30  # the most whose scale 1 << bits a 32-bit int holds (the library's arithmetic)
 SPZ_MAX_FIXED = (1 << 23) - 1  # the largest magnitude a 24-bit signed position holds
 SPZ_SH1_BITS, SPZ_SH_REST_BITS = 5, 4  # the spz library's default quantisation of SH degree 1 and of degrees 2-3
 SPZ_ZSTD_LEVEL = 12  # the spz library's

@@ -91,7 +91,7 @@ def stacked_case(count: int = 10_000) -> RasterCase:
 
 def hard_cases() -> list[RasterCase]:
     """The scenes that broke rasterizers before: empty, all behind, camera inside a Gaussian,
-    extreme scales (1e-8 to e^60), opacity 0 / saturated, stacked Gaussians at the T floor, off-centre non-square."""
+    extreme scales (1e-8 to e^60, rotated needles), opacity 0 / saturated, stacked Gaussians at the T floor, off-centre non-square."""
     rng = np.random.default_rng(7)
     cases = [RasterCase("empty", gaussians(np.zeros((0, 3))), front_camera(24, 18), 5, dict(with_rgb=True, with_depth=True, with_median=True, background=(1.0, 0.0, 0.5)))]
     behind = random_scene(rng, 200)
@@ -109,6 +109,10 @@ def hard_cases() -> list[RasterCase]:
     extreme.opacity_logits[40:50] = -3.0
     extreme.log_scales[50:52] = 60.0  # enormous: a screen radius and α ≥ 1/255 box past 2^63 pixels (int64 overflow once dropped them)
     extreme.opacity_logits[50:52] = -2.0
+    # rotated needles, 3e5 times longer than wide, across the view: the screen conic is the inverse of a
+    # nearly singular Σ', whose determinant loses ~1e-16·L² of itself (L: the screen length in pixels)
+    extreme.log_scales[52:60] = np.log([30.0, 1e-4, 1e-4])
+    extreme.opacity_logits[52:60] = 2.0
     cases.append(RasterCase("extreme-scales", extreme, front_camera(40, 30, cx=23.0, cy=11.0), 16, dict(with_rgb=True, with_depth=True, with_median=True)))
     opacity = random_scene(np.random.default_rng(13), 200)
     opacity.opacity_logits[:50] = -30.0

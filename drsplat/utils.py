@@ -175,11 +175,20 @@ def check_output_writable(path: str | Path) -> None:
     try:
         fd, probe = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=folder)
     except OSError as exc:
-        raise OutputError(path, f"the folder {folder} does not accept new files ({(exc.strerror or str(exc)).lower()})") from None
+        raise OutputError(path, refused_new_file(folder, exc)) from None
     os.close(fd)
     os.unlink(probe)
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputError(path, "exists and is not writable (permission denied)")
+
+
+def refused_new_file(folder: Path, exc: OSError) -> str:
+    """Why the existing `folder` did not take a new file, from the OSError of creating one. ENOENT
+    there is no missing folder: it is a file system that creates no files on request (/proc, /sys),
+    so the cause is said in those words, not as "the parent directory does not exist"."""
+    if exc.errno == errno.ENOENT:
+        return f"the folder {folder} does not accept new files: its file system creates none on request (a virtual one, such as /proc or /sys)"
+    return f"the folder {folder} does not accept new files ({os_error_cause(exc)})"
 
 
 @contextlib.contextmanager
@@ -354,6 +363,8 @@ def temp_beside(path: str | Path) -> Path:
     try:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(target), suffix=TEMP_SUFFIX, dir=target.parent)
     except OSError as exc:  # a read-only folder: name the output, not the temp file it never got
+        if exc.errno == errno.ENOENT and target.parent.is_dir():  # the folder is there: its file system makes no files
+            raise OutputError(shown, refused_new_file(target.parent, exc)) from None
         raise naming_path(exc, shown, *([Path(exc.filename)] if exc.filename is not None else [])) from None
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
@@ -683,15 +694,25 @@ def os_error_cause(exc: OSError) -> str:
         errno.EPERM: "operation not permitted",
         errno.EISDIR: "the path is a directory",
         errno.ENOTDIR: "a parent of the path is not a directory",
-        errno.ENOENT: "the parent directory does not exist",
         errno.ENAMETOOLONG: "the file name is too long",
         errno.EFBIG: "file too large (for this file system or the process's file-size limit)",
         errno.ENXIO: "no reader or device behind this special file",
     }
+    if exc.errno == errno.ENOENT:
+        return missing_cause(exc)
     cause = causes.get(exc.errno or -1) or exc.strerror or str(exc) or f"{exc.__class__.__name__} (the system gave no cause)"
     if exc.errno is None and "written" in cause:  # numpy's tofile after a short write: the OS error itself is lost
         cause = f"the write stopped short ({cause}): the disk is full or a file-size limit was reached"
     return cause
+
+
+def missing_cause(exc: OSError) -> str:
+    """ENOENT's cause in words: "the parent directory does not exist" only when it does not (an
+    existing folder on /proc or /sys refuses new files with ENOENT too; see `refused_new_file`)."""
+    name = exc.filename
+    if isinstance(name, (str, bytes)) and Path(os.fsdecode(name)).parent.is_dir():
+        return f"no such file or directory, though its folder {Path(os.fsdecode(name)).parent} exists"
+    return "the parent directory does not exist"
 
 
 # ----------------------------------------------------------------------------- signals

@@ -241,6 +241,22 @@ def _with(count: int, prop: str, row: int, value: float) -> bytes:
     return ply_bytes(vertex_header(count), rows.tobytes())
 
 
+def _spread_with_one_huge(count: int = 200, log_scale: float = 5.0) -> bytes:
+    """`count` small Gaussians along x in [0, 1] and one whose scale is e^log_scale (148 for 5: 100x the scene)."""
+    rows = _inria_rows(count)
+    rows[:, INRIA_PROPS.index("x")] = np.linspace(0.0, 1.0, count)
+    rows[:, [INRIA_PROPS.index(f"scale_{i}") for i in range(3)]] = -5.0
+    rows[7, INRIA_PROPS.index("scale_0")] = log_scale
+    return ply_bytes(vertex_header(count), rows.tobytes())
+
+
+def _doubles_with(count: int, prop: str, row: int, value: float) -> bytes:
+    """The `_with` scene written with double properties (a tool that widened every column)."""
+    rows = _inria_rows(count).astype("<f8")
+    rows[row, INRIA_PROPS.index(prop)] = value
+    return ply_bytes(vertex_header(count, ptype="double"), rows.tobytes())
+
+
 INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
     # name: (PLY bytes, words `drsplat info` must list among its findings) -- was "findings none" for the first three
     "count_smaller_than_data": (lambda: ply_bytes(vertex_header(3), vertex_body(10)), "vertex count (3) may be smaller than the data"),
@@ -249,6 +265,11 @@ INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
     "infinite_opacity": (lambda: _with(4, "opacity", 2, np.inf), "infinite opacity logits clamped"),
     "zero_quaternion": (lambda: _with(4, "rot_0", 0, 0.0), "zero quaternions replaced"),
     "mean_beyond_any_camera": (lambda: _with(4, "y", 3, 3e38), "1 Gaussians lie beyond 1e+15 from the origin"),  # round 5: "findings none"
+    # 2026-12-01 probes: "findings none" and a render of inf colours; "findings none" and a registration wrecked by 10 Gaussians;
+    # numpy's "overflow encountered in cast" twice and a finite double called infinite
+    "sh_beyond_float32_colour": (lambda: _with(4, "f_dc_1", 2, 3e38), "1 Gaussians have an SH coefficient beyond 1e+30"),
+    "huge_gaussian": (_spread_with_one_huge, "1 Gaussians are over 10x as large as the scene"),
+    "double_beyond_float32": (lambda: _doubles_with(4, "x", 1, 1e300), "1 rows hold double-precision values beyond float32's range"),
 }
 
 

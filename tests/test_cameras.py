@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import warnings
 
 import numpy as np
 import pytest
@@ -517,3 +518,197 @@ def test_a_bad_dataparser_transforms_file_is_one_error_naming_it(tmp_path, conte
     with pytest.raises(InputError, match="dataparser_transforms.json") as info:
         load_cameras(data)
     assert words in str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------- probe fuzz1: camera readers
+
+QUATERNION = np.array([0.7, -0.2, 0.5, 0.4]) / np.linalg.norm([0.7, -0.2, 0.5, 0.4])  # (w, x, y, z), a turn about no axis
+
+
+def _one_image_model(root, qvec, fmt: str, name: bytes = b"a.png"):
+    """A COLMAP model of one PINHOLE 64x48 camera and one image `name` with quaternion `qvec`, as text or binary."""
+    import struct
+
+    if fmt == "txt":
+        images = f"1 {' '.join(repr(float(v)) for v in qvec)} 0.0 0.0 4.0 1 {name.decode()}\n\n"
+        return _write_model(root, {"cameras.txt": "1 PINHOLE 64 48 50 50 32 24\n", "images.txt": images})
+    cameras = struct.pack("<QiiQQ4d", 1, 1, 1, 64, 48, 50.0, 50.0, 32.0, 24.0)
+    images = struct.pack("<QI4d3dI", 1, 1, *qvec, 0.0, 0.0, 4.0, 1) + name + b"\0" + struct.pack("<Q", 0)
+    return _write_model(root, {"cameras.bin": cameras, "images.bin": images})
+
+
+@pytest.mark.parametrize("fmt", ["txt", "bin"])
+@pytest.mark.parametrize("scale", [1e300, 2.0**600, 1e-310])
+def test_a_colmap_quaternion_at_any_finite_scale_gives_its_rotation(tmp_path, fmt, scale):
+    """Probe fuzz1 finding 1: a quaternion x 1e300 squared to inf in |q|, q/inf = 0 became the identity
+    (a wrong pose, exit 0, numpy's overflow warning); one of subnormal components (1e-310) squared to
+    0 and was refused as zero. Now q is scaled by a power of two before its norm: the rotation COLMAP
+    means, with no warning; an exact power-of-two scale changes no bit."""
+    from scipy.spatial.transform import Rotation
+
+    from drsplat.cameras import qvec_to_rotmat
+
+    root = _one_image_model(tmp_path / "m", QUATERNION * scale, fmt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        (camera,) = load_cameras(root, require_images=False)
+    expected = Rotation.from_quat(QUATERNION[[1, 2, 3, 0]]).as_matrix()
+    np.testing.assert_allclose(camera.R, expected, atol=1e-12)
+    assert not np.allclose(camera.R, np.eye(3), atol=0.1)
+    if scale == 2.0**600:
+        assert np.array_equal(camera.R, qvec_to_rotmat(QUATERNION))
+
+
+@pytest.mark.parametrize("fmt", ["txt", "bin"])
+@pytest.mark.parametrize("qvec, shown, problem", [
+    ((np.inf, 0.0, 0.0, 1e300), "inf 0 0 1e+300", "a component that is not finite"),
+    ((0.0, np.nan, 0.0, 0.0), "0 nan 0 0", "a component that is not finite"),
+    ((0.0, 0.0, 0.0, 0.0), "0 0 0 0", "all components zero, which is no rotation"),
+])
+def test_a_colmap_quaternion_that_is_no_rotation_is_one_error_naming_the_image(tmp_path, fmt, qvec, shown, problem):
+    """A quaternion with a non-finite component, or all zeros, has no rotation: one error naming the
+    images file, the image, the field and the values as written (it said only "zero or non-finite");
+    `qvec_to_rotmat` itself (also read by frames.py) gives NaN there without numpy's warning."""
+    from drsplat.cameras import qvec_to_rotmat
+
+    root = _one_image_model(tmp_path / "m", qvec, fmt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError) as info:
+            load_cameras(root, require_images=False)
+        assert np.isnan(qvec_to_rotmat(np.array(qvec))).all()
+    assert str(info.value) == (f"{root / 'sparse' / '0' / f'images.{fmt}'}: field 'QW QX QY QZ': image 1 ('a.png') has the rotation "
+                               f"quaternion {shown}, with {problem}")
+
+
+def _transforms_dataset(root, **meta):
+    """A transforms.json folder with one 64x48 image, the frame's keys and matrix from `meta`."""
+    from PIL import Image
+
+    (root / "images").mkdir(parents=True)
+    Image.new("RGB", (64, 48)).save(root / "images" / "v.png")
+    frame = {"file_path": "images/v.png", "transform_matrix": meta.pop("matrix", np.eye(4).tolist()), "w": 64, "h": 48}
+    frame.update(meta.pop("frame", {}))
+    (root / "transforms.json").write_text(json.dumps({**meta, "frames": [frame]}))
+    return root
+
+
+def _scannet_scene(root, pose: np.ndarray):
+    """A ScanNet export of one 64x48 frame with camera-to-world `pose`."""
+    from PIL import Image
+
+    for sub in ("pose", "intrinsic", "color"):
+        (root / sub).mkdir(parents=True)
+    np.savetxt(root / "intrinsic" / "intrinsic_color.txt", np.array([[50, 0, 32, 0], [0, 50, 24, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]))
+    np.savetxt(root / "pose" / "0.txt", pose)
+    Image.new("RGB", (64, 48)).save(root / "color" / "0.jpg")
+    return root
+
+
+def _turned(scale: float = 1.0, centre=(0.0, 0.0, 4.0)) -> list[list[float]]:
+    """A 4x4 camera-to-world matrix turned 45 degrees about z, its 3x3 part times `scale`."""
+    m = np.eye(4)
+    m[:2, :2] = np.sqrt(0.5) * np.array([[1.0, -1.0], [1.0, 1.0]])
+    m[:3, :3] *= scale
+    m[:3, 3] = centre
+    return m.tolist()
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("transforms_rotation_1e300", r"transforms\.json: field 'rotation': frame 0 has a rotation that is not orthonormal"),
+    ("transforms_rotation_1e308", r"transforms\.json: field 'rotation': frame 0 has a rotation that is not orthonormal"),
+    ("transforms_centre_1e308", r"transforms\.json: field 'translation': frame 0 has a camera position of 1\.5e\+308, beyond any scene"),
+    ("cameras_json_rotation_1e300", r"cameras\.json: field 'rotation': camera 0 has a rotation that is not orthonormal"),
+    ("cameras_json_position_1e308", r"cameras\.json: field 'position': camera 0 has a camera position of 1\.5e\+308, beyond any scene"),
+    ("scannet_rotation_1e308", r"pose/0\.txt: field 'rotation': frame 0 has a rotation that is not orthonormal"),
+])
+def test_huge_rotations_and_positions_in_camera_files_are_refused_without_numpy_warnings(tmp_path, case, expected):
+    """Probe fuzz1 finding 4: a transform_matrix rotation x 1e300 printed numpy's "overflow encountered
+    in matmul" before its (right) error; near 1e308, or with a camera position near it, -R c overflowed
+    to a "non-finite translation" the file does not hold. The same in cameras.json and ScanNet poses.
+    Now one error naming the file and field."""
+    if case.startswith("scannet"):
+        source = _scannet_scene(tmp_path / "scene0000_00", np.array(_turned(1e308)))
+    elif case.startswith("transforms"):
+        matrix = _turned(1e308 if case.endswith("1e308") and "rotation" in case else 1e300 if "rotation" in case else 1.0,
+                         (1.5e308, 1.5e308, 0.0) if "centre" in case else (0.0, 0.0, 4.0))
+        source = _transforms_dataset(tmp_path / "t", matrix=matrix, frame={"fl_x": 50.0})
+    else:
+        c2w = np.array(_turned(1e300 if "rotation" in case else 1.0))
+        position = [1.5e308, 1.5e308, 0.0] if "position" in case else [0.0, 0.0, 4.0]
+        (tmp_path / "cameras.json").write_text(json.dumps([{"id": 0, "img_name": "v", "width": 64, "height": 48, "fx": 50, "fy": 50,
+                                                            "rotation": c2w[:3, :3].tolist(), "position": position}]))
+        source = tmp_path / "cameras.json"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError, match=expected):
+            load_cameras(source, require_images=False)
+
+
+def test_a_dataparser_rotation_with_huge_entries_is_refused_without_numpy_warnings(tmp_path):
+    """The same rule for nerfstudio's dataparser_transforms.json: R Rᵀ of entries near 1e300 overflowed."""
+    from drsplat.cameras import read_dataparser_transform
+
+    path = tmp_path / "dataparser_transforms.json"
+    path.write_text(json.dumps({"transform": [row[:4] for row in _turned(1e300)[:3]], "scale": 1.0}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError, match=r"dataparser_transforms\.json: field 'transform': has a 3x3 part that is not a rotation"):
+            read_dataparser_transform(path)
+
+
+@pytest.mark.parametrize("angle, shown", [(1e-320, "9.99989e-321"), (1e-7, "1e-07")])
+def test_a_field_of_view_too_narrow_for_any_lens_names_camera_angle_x(tmp_path, angle, shown):
+    """Probe fuzz1 finding 4: camera_angle_x 1e-320 printed numpy's "overflow encountered in scalar
+    divide", then "fx=np.float64(inf)" (a field the file does not have, in a numpy repr); 1e-7 named
+    fx too. Now one error naming camera_angle_x and the angle as a plain number."""
+    source = _transforms_dataset(tmp_path / "t", camera_angle_x=angle)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError) as info:
+            load_cameras(source, require_images=False)
+    message = str(info.value)
+    assert message.startswith(f"{source / 'transforms.json'}: field 'camera_angle_x': has a field of view of {shown} rad in frame 0; "
+                              "it must be at least 1e-06 rad")
+    assert "np." not in message and "inf" not in message
+
+
+def test_a_field_of_view_at_the_narrowest_allowed_is_a_valid_camera(tmp_path):
+    """The narrowest field of view accepted gives a focal length within the intrinsics' range (of a
+    square image: fy = fx is bounded by the height too)."""
+    from drsplat.cameras import MAX_INTRINSIC_RATIO, MIN_FIELD_OF_VIEW
+
+    source = _transforms_dataset(tmp_path / "t", camera_angle_x=MIN_FIELD_OF_VIEW * (1 + 1e-9), frame={"h": 64})
+    (camera,) = load_cameras(source, require_images=False)
+    assert camera.fx == pytest.approx(MAX_INTRINSIC_RATIO * 64, rel=1e-6) and type(camera.fx) is float
+
+
+def test_an_images_bin_name_that_is_not_utf8_is_refused_like_the_text_models(tmp_path):
+    """Probe fuzz1 finding 10: images.bin names were decoded with replacement characters ("orbit_\\ufffd\\ufffd0"),
+    so the camera was skipped as missing, where images.txt refuses the same bytes. Now both refuse,
+    naming the file, the image and the byte."""
+    root = _one_image_model(tmp_path / "m", QUATERNION, "bin", name=b"orbit_\xff\xfe0.png")
+    with pytest.raises(InputError, match=r"images\.bin: field 'NAME': image 1 has a name that is not UTF-8 text \(invalid byte at offset 78\)"):
+        load_cameras(root, require_images=False)
+    text = _write_model(tmp_path / "t", {"cameras.txt": "1 PINHOLE 64 48 50 50 32 24\n", "images.txt": b"1 1 0 0 0 0 0 4 1 orbit_\xff\xfe0.png\n\n"})
+    with pytest.raises(InputError, match=r"images\.txt: is not UTF-8 text"):
+        load_cameras(text, require_images=False)
+
+
+def test_a_folder_with_both_a_binary_and_a_text_model_says_which_it_used(tmp_path, caplog):
+    """Probe fuzz1 finding 10: with cameras/images .bin and .txt side by side (the text one edited to
+    another focal length), the binary one was used without a word. It still is, as COLMAP does,
+    with one warning naming the folder and the model ignored; one model alone gives no warning."""
+    root = _one_image_model(tmp_path / "m", QUATERNION, "bin")
+    sparse = root / "sparse" / "0"
+    with caplog.at_level(logging.WARNING):
+        (alone,) = load_cameras(root, require_images=False)
+    assert not caplog.records
+    (sparse / "cameras.txt").write_text("1 PINHOLE 64 48 70 70 32 24\n")
+    (sparse / "images.txt").write_text(f"1 {' '.join(map(repr, QUATERNION.tolist()))} 0 0 4 1 a.png\n\n")
+    with caplog.at_level(logging.WARNING):
+        (both,) = load_cameras(root, require_images=False)
+    (record,) = caplog.records
+    assert both.fx == alone.fx == 50.0
+    assert record.getMessage().startswith(f"{sparse} holds both a binary (cameras.bin, images.bin) and a text (cameras.txt, images.txt) "
+                                          "COLMAP model; the binary one is used, as COLMAP does, and the text one is ignored")

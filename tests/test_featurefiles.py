@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
+import warnings
+
 import numpy as np
 import pytest
 
 from drsplat.cameras import Camera
-from drsplat.errors import InputError
+from drsplat.errors import InputError, OutputError
 from drsplat.features.format import (
     feat_path,
     is_valid_pair,
@@ -274,3 +277,74 @@ def test_feature_headers_are_checked_up_front_and_missing_files_left_to_their_re
     assert read_feature_headers(tmp_path, cams, 1, missing_ok=True).dim == 7
     with pytest.raises(InputError, match="v0_f.npy: file not found"):
         read_feature_headers(tmp_path, cams[:1], 1, missing_ok=True)
+
+
+@pytest.mark.parametrize("field", ["clip_model_id", "clip.model", "clip.pretrained", "clip"])
+def test_a_manifest_clip_model_with_a_control_character_is_refused_naming_the_field(tmp_path, field):
+    """Was: register copied `clip_model_id` = "x<ESC>[2J<LF>ERROR: forged" into the registered PLY's
+    header (exit 0), and query then refused that PLY as altered. Now reading the manifest refuses
+    it, naming manifest.json and the field, in one line that carries no control character itself."""
+    manifest = {"mask_generator": "oracle", "clip_model_id": "ViT-B-16/laion2b_s34b_b88k",
+                "clip": {"model": "ViT-B-16", "pretrained": "laion2b_s34b_b88k"}}
+    write_manifest(tmp_path, manifest)
+    assert read_manifest(tmp_path) == manifest
+    forged = "x\u001b[2J\nERROR: forged"
+    if field == "clip":
+        manifest["clip"] = forged
+    elif "." in field:
+        manifest["clip"][field.split(".")[1]] = forged
+    else:
+        manifest[field] = forged
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError) as caught:
+        read_manifest(tmp_path)
+    message = str(caught.value)
+    assert f"manifest.json: field '{field}'" in message and "control character (U+001B)" in message
+    assert "\x1b" not in message and "\n" not in message
+    elsewhere = tmp_path / "other"  # `features --clip-checkpoint W --pretrained TAG` takes any TAG: its writer refuses it too
+    with pytest.raises(OutputError, match=rf"cannot write .*manifest\.json: field '{field}': .* holds a control character \(U\+001B\)"):
+        write_manifest(elsewhere, manifest)
+    assert not elsewhere.exists()
+
+
+def test_float_mask_ids_beyond_int64_name_the_stored_value_without_a_numpy_warning(tmp_path):
+    """Was: 1e300 ids gave numpy's 'invalid value encountered in cast' and then 'mask ids must be >= -1,
+    found -9223372036854775808', a value the file does not hold. Now one error with the real value."""
+    rng = np.random.default_rng(9)
+    seg, feats = langsplat_like(rng)
+    np.save(feat_path(tmp_path, "o"), feats)
+    huge = seg.astype(np.float64)
+    huge[1, :2, :5] = 1e300
+    np.save(seg_path(tmp_path, "o"), huge)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"o_s\.npy: 10 mask ids are beyond any embedding row \(largest 1e\+300\)"):
+            read_features(tmp_path, "o", level=1)
+        huge[1, :2, :5] = -1e300
+        np.save(seg_path(tmp_path, "o"), huge)
+        with pytest.raises(InputError, match=r"o_s\.npy: mask ids must be >= -1, found -1e\+300"):
+            read_features(tmp_path, "o", level=1)
+        half = seg.astype(np.float16)
+        half[0, 0, 0] = np.finfo(np.float16).max  # whole, but no row: the usual message, without an overflow warning on the way
+        np.save(seg_path(tmp_path, "o"), half)
+        with pytest.raises(InputError, match=r"o_s\.npy: mask id 65504 at level 0 is out of range"):
+            read_features(tmp_path, "o", level=0)
+        np.save(seg_path(tmp_path, "o"), seg.astype(np.float64))
+        np.testing.assert_array_equal(read_features(tmp_path, "o", level=1)[0], seg[1])
+
+
+def test_huge_ids_of_overlapping_levels_are_refused_not_wrapped_into_valid_rows(tmp_path):
+    """Was: with a level-0 id of 2^63 - 1, the int64 offset of the next (restarting) level wrapped,
+    and its ids 2^62 + 5 and 0 came back as rows 5 and 0 (exit 0, wrong masks). Now one error naming
+    the stored id and the offset."""
+    seg = np.full((2, 4, 4), -1, np.int64)
+    seg[0, 0, 0] = 2**63 - 1
+    seg[1, 0, 0] = 2**62 + 5
+    seg[1, 1, 1] = 0
+    np.save(seg_path(tmp_path, "w"), seg)
+    np.save(feat_path(tmp_path, "w"), np.eye(8, 4, dtype=np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=rf"w_s\.npy: mask id {2**62 + 5} at level 1 \({2**62 + 5 + 2**63} once offset by the "
+                                             rf"{2**63} ids of the levels before it\) is out of range"):
+            read_features(tmp_path, "w", level=1)

@@ -2596,3 +2596,16 @@ def test_verbosity_flags_follow_nested_subcommands_too():
         assert args.quiet is True and not unknown, argv
     assert parser.parse_known_args(["-q", "pq", "train", "--embeddings", "e.npy", "--out", "c.faiss"])[0].quiet is True
     assert parser.parse_known_args(["pq", "train", "--embeddings", "e.npy", "--out", "c.faiss"])[0].quiet is False
+
+
+def test_an_out_name_its_codebook_header_cannot_carry_is_refused_before_registering(world, tmp_path, capsys):
+    """Was (a probe, 2026-12-01): with a codebook, `--out` named with a control character registered
+    every view and only then failed to write the header naming 'a\\x1bb.codebook.faiss'. Now a usage
+    error before any work, naming the header field; without a codebook the name is not in the header."""
+    ds = world["ds"]
+    out = tmp_path / "a\x1bb.ply"
+    code = main(["register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features"), "--codebook", "scene",
+                 "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "field 'codebook'" in err and "U+001B" in err and "fit:" not in err, err
+    assert not out.exists() and not list(tmp_path.iterdir())

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from drsplat.errors import InputError
+from drsplat.errors import InputError, OutputError
 from drsplat.lang import (
     Codebook,
     Q8_BLOCK,
@@ -651,3 +651,59 @@ def test_backends_store_the_same_rows_with_the_callers_unit_check(books, data):
     np.testing.assert_array_equal(mine.codes, given.codes)
     np.testing.assert_array_equal(mine.norms, given.norms)
     assert (mine.norms[5:10] > 0).all() and mine.norms[10] == 0
+
+
+def _with_comment(scene: GaussianScene, comment: str) -> GaussianScene:
+    """The scene with its drsplat.lang comment replaced by `comment` (a hand-edited header)."""
+    kept = [c for c in scene.comments if not c.startswith("drsplat.lang")]
+    return GaussianScene(**{**scene.__dict__, "comments": kept + [comment]})
+
+
+def test_header_dim_takes_ascii_digits_only_and_an_error_echoes_a_capped_value(tmp_path, data):
+    """Was: dim=５１２ (full-width digits, percent-encoded) was read as 512, since int() takes any
+    Unicode digit, and a 5,000-digit dim was echoed whole in the error."""
+    x, w, _, dirs = data
+    ply = tmp_path / "reg.ply"
+    scene = attach_field(tiny_scene(len(x)), build_field(x, w, "none"), ply)
+    comment = scene.comments[-1]
+    assert " dim=64 " in comment
+    np.testing.assert_array_equal(read_field(scene, ply).scores(dirs), build_field(x, w, "none").scores(dirs))
+    with pytest.raises(InputError, match=r"reg\.ply: field 'comment drsplat\.lang': dim='６４' is not an integer \(ASCII digits\)"):
+        read_field(_with_comment(scene, comment.replace("dim=64", "dim=%EF%BC%96%EF%BC%94")), ply)
+    with pytest.raises(InputError) as caught:
+        read_field(_with_comment(scene, comment.replace("dim=64", "dim=" + "9" * 5000)), ply)
+    assert "(5,000 characters) is not a feature dimension" in str(caught.value) and len(str(caught.value)) < 300
+    for bad in ("-64", "0", "+64", "6 4"):
+        with pytest.raises(InputError, match="field 'comment drsplat.lang': dim="):
+            read_field(_with_comment(scene, comment.replace("dim=64", f"dim={bad}".replace(" ", "%20"))), ply)
+
+
+def test_header_codebook_crc_is_exactly_8_hex_digits(tmp_path, data, books):
+    """Was: codebook_crc=-0x0 was taken as a CRC (int(x, 16) takes a sign, a 0x prefix, spaces and
+    underscores) and reported as "the PLY records 00000000"."""
+    import re
+
+    x, w, _, dirs = data
+    ply = tmp_path / "reg.ply"
+    scene = attach_field(tiny_scene(len(x)), build_field(x, w, books[8]), ply)
+    comment = scene.comments[-1]
+    crc = re.search(r"codebook_crc=([0-9a-f]{8})", comment).group(1)
+    upper = read_field(_with_comment(scene, comment.replace(crc, crc.upper())), ply)
+    np.testing.assert_array_equal(upper.scores(dirs), read_field(scene, ply).scores(dirs))
+    for bad in ("-0x0", "0x" + crc[2:], "%20" + crc[1:], crc[:4] + "_" + crc[5:], crc + "0", "0x0"):
+        with pytest.raises(InputError, match=r"reg\.ply: field 'comment drsplat\.lang': codebook_crc='.*' is not a CRC-32 \(8 hex digits\)"):
+            read_field(_with_comment(scene, comment.replace(f"codebook_crc={crc}", f"codebook_crc={bad}")), ply)
+
+
+@pytest.mark.parametrize("clip_model, name, field", [("x\x1b[2J\nERROR: forged", "reg.ply", "clip"),
+                                                     ("ViT-B-16/laion2b_s34b_b88k", "re\u202eg.ply", "codebook")])
+def test_the_writer_refuses_header_text_its_reader_would_refuse(tmp_path, data, books, clip_model, name, field):
+    """Was: a CLIP model id holding ESC or a newline (from a hand-edited manifest) or an output name
+    holding U+202E went into the header comment, percent-escaped; every reader then refused the
+    written PLY as altered. Now the writer refuses first, naming the field, and writes nothing."""
+    x, w, _, _ = data
+    ply = tmp_path / name
+    field_obj = build_field(x, w, books[8], clip_model=clip_model)
+    with pytest.raises(OutputError, match=rf"cannot write .*: field '{field}' of the 'drsplat\.lang' header comment: .* holds a "):
+        attach_field(tiny_scene(len(x)), field_obj, ply)
+    assert list(tmp_path.iterdir()) == []  # not even the codebook beside it

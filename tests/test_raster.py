@@ -262,6 +262,32 @@ def test_nonfinite_gaussians_are_dropped_and_counted():
     np.testing.assert_allclose(out.rgb, clean.rgb, atol=1e-6)
 
 
+def test_colours_and_depths_beyond_float32_are_not_rendered_and_are_counted():
+    """Was (a numerical probe, 2026-12-01): SH coefficients of 3e38 (finite) gave inf colours, NaN
+    across whole tiles on the torch path, and a mean at 3.4e38 an inf depth, counted nowhere. Now a
+    Gaussian with an SH coefficient beyond 1e30 or a mean beyond 1e15 is not rendered by any engine,
+    is counted, and the rest render as without it."""
+    from drsplat.raster_torch import rasterize as rasterize_torch
+    from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT
+
+    rng = np.random.default_rng(31)
+    scene = random_scene(rng, 120, sh_degree=3)
+    bad = scene.subset(np.arange(120))
+    bad.sh[0, 5, 1] = 3e38
+    bad.sh[1, 0, 0] = -2 * MAX_SH_COEFFICIENT
+    bad.means[2] = bad.means[2] * 0 + (0.0, 0.0, 3.3e38)  # straight ahead: its camera z passes float32's range
+    bad.means[3, 0] = 2 * MAX_COORDINATE
+    bad.sh[4, 1, 2] = MAX_SH_COEFFICIENT / 2  # within the bound: rendered (a colour of ~1e29, finite)
+    cam = front_camera(32, 24)
+    clean = rasterize(scene.subset(np.arange(4, 120)), cam, 8, with_rgb=True, with_depth=True)
+    for render in (rasterize, rasterize_reference, rasterize_torch):
+        out = render(bad, cam, 8, with_rgb=True, with_depth=True)
+        assert out.num_nonfinite == 4, render
+        assert np.isfinite(out.rgb).all() and np.isfinite(out.depth).all(), render
+        np.testing.assert_array_equal(out.ids, np.where(clean.ids >= 0, clean.ids + 4, -1))
+        np.testing.assert_allclose(out.weights, clean.weights, rtol=1e-6, atol=1e-7)
+
+
 def test_projection_kernel_matches_reference():
     rng = np.random.default_rng(29)
     scene = random_scene(rng, 500, spread=3.0, log_scale=(-9.0, 4.0))

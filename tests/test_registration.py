@@ -213,6 +213,35 @@ def test_normalize_rows_zeroes_unassigned_and_nonfinite():
     assert bad == 1
 
 
+def test_sums_that_cancel_leave_their_gaussians_unassigned_and_say_why(tiny, tmp_path, caplog):
+    """Was (a numerical probe, 2026-12-01): every view given twice, the copy's embeddings negated, so
+    every Σ w f is 0; the float32 sums left ~1e-7 of the weight, which normalize_rows scaled to unit
+    rows of noise (|cos| 0.06 with the true features), all 'assigned'. Now such rows are dropped and
+    counted; with the copies of half the views negated, the rest keep the clean run's features."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    features = tmp_path / "features"
+    features.mkdir()
+    doubled, half = [], []
+    for i, cam in enumerate(cams):
+        ids, feats = read_features(tiny / "features", cam.name)
+        write_features(features, cam.name, ids, feats)
+        write_features(features, cam.name + "_neg", ids, -feats)
+        doubled += [cam, dataclasses.replace(cam, name=cam.name + "_neg")]
+        half += [cam] + ([dataclasses.replace(cam, name=cam.name + "_neg")] if i % 2 else [])
+    options = RegisterOptions(topk=10, aggregate="paper")
+    with pytest.raises(DrsplatError, match=r"no Gaussian kept a language feature from 32 views: \d+ Gaussians got feature sums that are "
+                                           r"non-finite or cancel out"):
+        register_features(scene, doubled, features, options, show_progress=False)
+    clean = register_features(scene, cams, tiny / "features", options, show_progress=False)
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        mixed = register_features(scene, half, features, options, show_progress=False)
+    assert mixed.num_nonfinite_features > 0 and "cancel out" in caplog.text
+    kept = mixed.weights > 0
+    assert kept.sum() >= 0.5 * (clean.weights > 0).sum()  # Gaussians seen in the views not negated keep a feature
+    cos = np.einsum("nd,nd->n", mixed.features[kept], clean.features[kept])
+    assert np.median(cos) > 0.9
+
+
 def _scores(tiny: Path, result):
     text = np.load(tiny / "text_embeddings.npy")
     return result.features @ text.T

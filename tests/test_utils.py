@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import socket
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drsplat.errors import OutputError
-from drsplat.utils import atomic_path, concat_ranges, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic, temp_beside
+from drsplat.utils import (atomic_path, concat_ranges, describe_os_error, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic,
+                           temp_beside)
 
 
 def test_host_reachable_on_loopback():
@@ -76,3 +79,27 @@ def test_concat_ranges_lists_each_range_in_turn():
         expected = [v for s, n in zip(starts, sizes) for v in range(s, s + n)]
         got = concat_ranges(starts, sizes)
         assert got.dtype == np.int64 and got.tolist() == expected
+
+
+@pytest.mark.skipif(not Path("/proc/version").is_file(), reason="needs Linux's /proc")
+def test_an_output_in_proc_names_its_file_system_not_a_missing_folder():
+    """Was: `query --scores /proc/version` said "/proc/version: the parent directory does not exist"
+    (/proc refuses new files with ENOENT). Now the cause is the file system (run as root), or
+    permission (as another user); never a missing folder."""
+    before = Path("/proc/version").read_bytes()
+    with pytest.raises((OutputError, OSError)) as caught:
+        save_npy_atomic(Path("/proc/version"), np.zeros(3, np.float32))
+    message = str(caught.value) if isinstance(caught.value, OutputError) else describe_os_error(caught.value)
+    assert "/proc" in message and "does not exist" not in message, message
+    if isinstance(caught.value, OutputError):
+        assert "the folder /proc does not accept new files: its file system creates none on request" in message
+    assert Path("/proc/version").read_bytes() == before
+
+
+def test_a_missing_file_says_its_folder_is_missing_only_when_it_is(tmp_path):
+    """describe_os_error on ENOENT (what the CLI prints for an OSError): "the parent directory does
+    not exist" only when it does not."""
+    inside = OSError(errno.ENOENT, "No such file or directory", str(tmp_path / "gone.npy"))
+    assert describe_os_error(inside) == f"{tmp_path / 'gone.npy'}: no such file or directory, though its folder {tmp_path} exists"
+    deeper = OSError(errno.ENOENT, "No such file or directory", str(tmp_path / "no" / "gone.npy"))
+    assert describe_os_error(deeper).endswith(": the parent directory does not exist")

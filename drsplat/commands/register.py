@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import logging
 from pathlib import Path
 
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError
     from drsplat.frames import cameras_in_scene_frame, refinement_comment
-    from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for
+    from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, header_text_problem
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene_report, written_format
 
@@ -81,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
     written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
         written_codebook = None  # the codebook already sits where the registered PLY names it
+    named = codebook_path_for(args.out).name if args.codebook != "none" else None
+    problem = header_text_problem("", named)  # said now, not after the whole registration (the manifest's CLIP id is checked as it is read)
+    if problem is not None:
+        raise UsageError(f"--out {json.dumps(str(args.out))[:80]}: {problem}")
     # the cameras come first: the files they were read from and the images they name are inputs too
     cameras = load_cameras(args.source, resolution=args.resolution, require_images=False)
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},

@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from drsplat.errors import InputError
-from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
+from drsplat.errors import InputError, OutputError
+from drsplat.features.modelid import model_id_sources
+from drsplat.utils import atomic_path, hidden_character, load_npy, npy_header, read_json, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL, UNIT_TOLERANCE
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,7 @@ MANIFEST_NAME = "manifest.json"
 # the manifest fields drsplat reads: (name, accepted JSON types, what it should be)
 MANIFEST_FIELDS = (("clip_model_id", str, "a CLIP model id"), ("clip", (dict, str), "an object naming the CLIP model"),
                    ("dim", int, "the embedding dimension"))
+INT64_LIMIT = 2.0**63  # the first float mask id that int64 cannot hold
 FEATURE_FILE_PATTERNS = (f"*{SEG_SUFFIX}", f"*{FEAT_SUFFIX}", MANIFEST_NAME)  # what an output must not be named inside a features folder
 
 
@@ -129,7 +131,8 @@ def _load_npy(path: Path, what: str) -> np.ndarray:
 
 
 def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
-    """Mask ids of any int/float dtype as int64; non-integer or non-finite floats are errors."""
+    """Mask ids of any int/float dtype as int64; non-integer or non-finite floats, and floats outside
+    [-1, 2^63) (`check_float_id_range`), are errors."""
     if np.issubdtype(seg.dtype, np.unsignedinteger) and seg.size and seg.dtype.itemsize >= 8:
         top = int(seg.max())
         if top > np.iinfo(np.int64).max:  # astype(int64) would wrap 2^64-1 to -1 ("no mask") silently
@@ -144,26 +147,40 @@ def _ids_as_int(seg: np.ndarray, path: Path) -> np.ndarray:
     off = int(np.count_nonzero(np.abs(ids - seg) > 1e-3))
     if off:
         raise InputError(path, f"{off} mask ids are not whole numbers")
+    check_float_id_range(ids, path)
     return ids.astype(np.int64)
 
 
-def level_offsets(seg: np.ndarray) -> np.ndarray:
+def check_float_id_range(ids: np.ndarray, path: Path) -> None:
+    """InputError, naming the value the file holds, unless whole-number float ids lie in
+    [-1, 2^63): below -1 no id means anything, and at 2^63 or more it is no row of any embedding
+    file. Checked before the cast to int64, which would turn such values into -2^63 with a
+    RuntimeWarning and report a value the file does not hold."""
+    if ids.size == 0:
+        return
+    low, top = float(ids.min()), float(ids.max())
+    if low < -1:
+        raise InputError(path, f"mask ids must be >= -1, found {low:g}")
+    if top >= INT64_LIMIT:  # only float32 and wider get here: float16 would overflow converting 2^63 (a warning)
+        beyond = int(np.count_nonzero(ids >= INT64_LIMIT))
+        raise InputError(path, f"{beyond} mask ids are beyond any embedding row (largest {top:g})")
+
+
+def level_offsets(seg: np.ndarray) -> list[int]:
     """[L] offsets to add to each level's non-negative ids to make them global.
 
     seg: [L, H, W] int64. Zeros when the levels are already cumulative (LangSplat's form: the id
-    ranges of the levels do not overlap); otherwise Σ (max id + 1) of the previous levels.
+    ranges of the levels do not overlap); otherwise Σ (max id + 1) of the previous levels. Python
+    ints: a hostile id near 2^63 made the int64 sums wrap, and the wrapped ids then named valid rows.
     """
-    lo = np.array([lvl[lvl >= 0].min() if (lvl >= 0).any() else -1 for lvl in seg])
-    hi = np.array([lvl.max() for lvl in seg])
-    present = lo >= 0
-    overlapping = False
-    for j in range(1, len(seg)):
-        if present[j] and any(present[i] and lo[j] <= hi[i] for i in range(j)):
-            overlapping = True
+    lo = [int(lvl[lvl >= 0].min()) if (lvl >= 0).any() else -1 for lvl in seg]
+    hi = [int(lvl.max()) for lvl in seg]
+    present = [low >= 0 for low in lo]
+    overlapping = any(present[j] and any(present[i] and lo[j] <= hi[i] for i in range(j)) for j in range(1, len(seg)))
     if not overlapping:
-        return np.zeros(len(seg), np.int64)
-    counts = np.where(present, hi + 1, 0)
-    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        return [0] * len(seg)
+    counts = [top + 1 if here else 0 for top, here in zip(hi, present)]
+    return [sum(counts[:j]) for j in range(len(seg))]
 
 
 def out_of_range_ids(top: int, offset: int, level: int, num_embeddings: int, feat_name: str, dtype: np.dtype) -> str:
@@ -208,11 +225,12 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
         raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")
     ids = seg[level]
     offset = level_offsets(seg)[level]
+    m = feats.shape[0]
+    stored_top = int(ids.max())
+    if stored_top >= 0 and stored_top + offset >= m:  # compared in Python ints, before any int64 sum could wrap
+        raise InputError(spath, out_of_range_ids(stored_top + offset, offset, level, m, fpath.name, raw_dtype))
     if offset:
         ids = np.where(ids >= 0, ids + offset, -1)
-    m = feats.shape[0]
-    if ids.size and ids.max() >= m:
-        raise InputError(spath, out_of_range_ids(int(ids.max()), int(offset), level, m, fpath.name, raw_dtype))
     with np.errstate(over="ignore", invalid="ignore"):  # float64 values past float32 become inf: counted below, without numpy's warning
         feats = feats.astype(np.float32)
     row_ok = np.isfinite(feats).all(axis=1)
@@ -262,8 +280,13 @@ def source_pixels(size: int, source_size: int) -> np.ndarray:
 
 
 def write_manifest(features_dir: str | Path, manifest: dict[str, Any]) -> None:
-    """Write `manifest.json` atomically (mask generator, CLIP model/pretrained, versions, params)."""
+    """Write `manifest.json` atomically (mask generator, CLIP model/pretrained, versions, params);
+    OutputError, before anything is written, for a CLIP model text `read_manifest` would refuse
+    (`model_id_text_problem`; `--pretrained` is free text with --clip-checkpoint)."""
     path = Path(features_dir) / MANIFEST_NAME
+    problem = model_id_text_problem(manifest)
+    if problem is not None:
+        raise OutputError(path, f"field '{problem[0]}': {problem[1]}")
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
 
@@ -279,7 +302,23 @@ def read_manifest(features_dir: str | Path) -> dict[str, Any]:
     for field, kinds, meaning in MANIFEST_FIELDS:
         if field in data and not isinstance(data[field], kinds):
             log.warning("%s: field '%s' is %s, not %s; it is ignored", path, field, json.dumps(data[field])[:40], meaning)
+    problem = model_id_text_problem(data)
+    if problem is not None:
+        raise InputError(path, problem[1], field=problem[0])
     return data
+
+
+def model_id_text_problem(manifest: dict[str, Any]) -> tuple[str, str] | None:
+    """(field, why) for the first string the CLIP model id is made of (`model_id_sources`) that holds
+    a character a terminal would not show as itself (`hidden_character`: a newline, ESC, U+202E), or
+    None. Registration copies the id into the registered PLY's header, whose reader refuses such a
+    character as a sign of tampering: the manifest's reader and writer refuse it first."""
+    for field, text in model_id_sources(manifest):
+        hidden = hidden_character(text)
+        if hidden is not None:  # json.dumps escapes it, so the message itself stays one plain line
+            return field, (f"{json.dumps(text)[:60]} holds {hidden}, which a terminal would not show as itself; a CLIP model is named "
+                           "in printable text (e.g. \"ViT-B-16/laion2b_s34b_b88k\"), and a registered PLY could not carry this name in its header")
+    return None
 
 
 def check_manifest_dim(features_dir: str | Path, manifest: dict[str, Any], dim: int) -> None:

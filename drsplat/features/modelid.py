@@ -55,6 +55,19 @@ def manifest_model_id(manifest: dict) -> str:
     return UNKNOWN_MODEL
 
 
+def model_id_sources(manifest: dict) -> list[tuple[str, str]]:
+    """(field, text) of every manifest string `manifest_model_id` may build the id from: `clip_model_id`,
+    `clip` (a string), `clip.model` and `clip.pretrained`, with the field named as an error names it.
+    All of them are checked, not only the one in use: they are recorded together and always consistent."""
+    sources = [("clip_model_id", manifest.get("clip_model_id"))]
+    clip = manifest.get("clip")
+    if isinstance(clip, dict):
+        sources += [("clip.model", clip.get("model")), ("clip.pretrained", clip.get("pretrained"))]
+    else:
+        sources.append(("clip", clip))
+    return [(field, text) for field, text in sources if isinstance(text, str)]
+
+
 def check_compatible(a: str | None, b: str | None, what_a: str = "the features", what_b: str = "the text encoder") -> None:
     """Raise DrsplatError unless two CLIP model ids can name the same embedding space.
 

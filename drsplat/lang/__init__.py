@@ -51,6 +51,7 @@ from drsplat.lang.plyformat import (
     field_comment,
     field_extras,
     field_metadata,
+    header_text_problem,
     is_lang_property,
     parse_field_comment,
     read_field,
@@ -61,7 +62,7 @@ from drsplat.lang.plyformat import (
 __all__ = [
     "BACKENDS", "COMMENT_PREFIX", "EXPORT_FORMATS", "EXPORT_FORMAT_HELP", "META_PROPERTY", "REGISTERED_IS_PLY", "decode_meta_column", "encode_meta_column", "encode_meta_columns", "is_meta_column", "export_kind", "export_problem", "export_scene", "field_metadata", "standard_scene", "ExactStorage", "KINDS", "PQStorage", "PQ_BITS", "PQ_KSUB", "Q8_BLOCK", "Codebook", "LanguageField", "attach_field",
     "blocked_codes", "build_field", "codebook_from_index", "codebook_path_for", "f32_sums",
-    "field_comment", "field_extras", "half_scores", "has_direction", "inverse_norms", "is_lang_property", "load_codebook",
+    "field_comment", "field_extras", "half_scores", "header_text_problem", "has_direction", "inverse_norms", "is_lang_property", "load_codebook",
     "lut_scores", "lut_scores_blocked", "lut_scores_q8_reference", "lut_scores_reference", "parse_field_comment",
     "q8_sums", "quantize_luts", "read_field", "simd_available", "strip_field", "train_codebook", "unit_rows",
 ]

@@ -26,15 +26,17 @@ else `lang_meta`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
+import re
 import zlib
 from pathlib import Path
 from urllib.parse import quote, unquote
 
 import numpy as np
 
-from drsplat.errors import InputError
+from drsplat.errors import InputError, OutputError
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
@@ -47,6 +49,10 @@ log = logging.getLogger(__name__)
 COMMENT_PREFIX = "drsplat.lang"
 META_PROPERTY = "lang_meta"
 META_MAX_BYTES = 255
+SHOWN_CHARS = 40  # how much of a header value an error echoes: a hostile header can hold megabytes
+DIM_TEXT = re.compile(r"-?[0-9]+")  # not \d or int() alone, which take any Unicode digit ("５１２")
+DIM_MAX_CHARS = 12  # a longer dim= is far beyond MAX_DIM, and int() refuses more than 4,300 digits
+CRC_TEXT = re.compile(r"[0-9a-fA-F]{8}")  # not int(x, 16) alone, which takes "-0x0", " 1" and "dead_beef"
 
 
 # --------------------------------------------------------------------------------------------
@@ -59,9 +65,27 @@ def codebook_path_for(ply_path: str | Path) -> Path:
     return ply_path.with_name(f"{ply_path.stem}.codebook.faiss")
 
 
+def header_text_problem(clip_model: str, codebook_name: str | None) -> str | None:
+    """Why the field's text could not be written into a registered PLY's header, or None.
+
+    The rule is the reader's (`read_field`): no metadata value may hold a character a terminal would
+    not show as itself (`hidden_character`: a newline, ESC, U+202E, a lone surrogate), since such a
+    value could forge lines in every message that names it. The writer refuses what its reader would:
+    a file written anyway would be refused by every command as altered."""
+    for key, what, value in (("clip", "the CLIP model id", clip_model), ("codebook", "the codebook's file name", codebook_name)):
+        hidden = hidden_character(value) if value is not None else None
+        if hidden is not None:
+            return (f"field '{key}' of the '{COMMENT_PREFIX}' header comment: {what} {json.dumps(value)[:60]} holds {hidden}, "
+                    "which a registered PLY's header cannot carry (its readers would refuse the file)")
+    return None
+
+
 def field_comment(field: LanguageField, codebook_name: str | None, codebook_crc: int | None = None) -> str:
     """`drsplat.lang kind=<kind> dim=<D> clip=<model> [codebook=<file> codebook_crc=<CRC-32, 8 hex>]`
-    (values URL-quoted)."""
+    (values URL-quoted). ValueError for text the reader would refuse (`header_text_problem`)."""
+    problem = header_text_problem(field.clip_model, codebook_name)
+    if problem is not None:
+        raise ValueError(problem)
     parts = [COMMENT_PREFIX, f"kind={field.kind}", f"dim={field.dim}", f"clip={quote(field.clip_model, safe='/:-_.+')}"]
     if codebook_name:
         parts.append(f"codebook={quote(codebook_name, safe='/:-_.+')}")
@@ -88,8 +112,14 @@ def meta_column_name(j: int) -> str:
     return META_PROPERTY if j == 0 else f"{META_PROPERTY}_{j}"
 
 
+def _is_ascii_number(text: str) -> bool:
+    """Whether `text` is a non-empty run of ASCII digits: str.isdigit alone takes '²' and '５', which
+    int() then refuses or reads as another number."""
+    return text.isascii() and text.isdigit()
+
+
 def is_meta_column(name: str) -> bool:
-    return name == META_PROPERTY or (name.startswith(META_PROPERTY + "_") and name[len(META_PROPERTY) + 1 :].isdigit())
+    return name == META_PROPERTY or (name.startswith(META_PROPERTY + "_") and _is_ascii_number(name[len(META_PROPERTY) + 1 :]))
 
 
 def encode_meta_columns(text: str, n: int) -> dict[str, np.ndarray]:
@@ -182,6 +212,10 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     """
     if field.num_gaussians != scene.num_gaussians:
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
+    codebook_name = codebook_path_for(ply_path).name if needs_codebook(field.kind) else None
+    problem = header_text_problem(field.clip_model, codebook_name)
+    if problem is not None:  # before the codebook is written beside it: a refused output leaves nothing
+        raise OutputError(ply_path, problem)
     base = strip_field(scene)
     name, crc = write_codebook_beside(field.codebook, ply_path) if needs_codebook(field.kind) else (None, None)
     comment = field_comment(field, name.name if name is not None else None, crc)
@@ -238,17 +272,12 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     for key, value in meta.items():  # URL-quoted values could carry a newline or ESC into every message that names them
         hidden = hidden_character(key + value)
         if hidden is not None:
-            raise InputError(ply_path, f"the metadata entry {quote(key)}={quote(value)} holds {hidden}; a header written by drsplat "
-                                       "has none (the file was altered)", field=where)
+            raise InputError(ply_path, f"the metadata entry {_cut(quote(key))}={_cut(quote(value))} holds {hidden}; a header written "
+                                       "by drsplat has none (the file was altered)", field=where)
     kind = meta.get("kind")
     if kind not in BACKENDS:
-        raise InputError(ply_path, f"unknown language field kind {kind!r}; expected one of {', '.join(BACKENDS)}", field=where)
-    try:
-        dim = int(meta.get("dim", ""))
-    except ValueError:
-        raise InputError(ply_path, f"dim={meta.get('dim')!r} is not an integer", field=where) from None
-    if not 1 <= dim <= MAX_DIM:
-        raise InputError(ply_path, f"dim={dim} is not a feature dimension (expected 1..{MAX_DIM})", field=where)
+        raise InputError(ply_path, f"unknown language field kind {_shown(kind)}; expected one of {', '.join(BACKENDS)}", field=where)
+    dim = _metadata_dim(meta.get("dim", ""), ply_path, where)
     clip_model = meta.get("clip", "unknown")
     beyond = [j for j in _numbered_columns(scene, "lang_") if j >= dim]
     if not needs_codebook(kind) and beyond:
@@ -291,6 +320,30 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     return LanguageField(dim, clip_model, weights, storage)
 
 
+def _cut(text: str) -> str:
+    """`text` as an error echoes a header value: cut after SHOWN_CHARS characters, the length said."""
+    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text):,} characters)"
+
+
+def _shown(value: str | None) -> str:
+    """A header value as an error echoes it: its repr, cut after SHOWN_CHARS characters (the
+    length said), so a value of megabytes cannot flood the terminal."""
+    if value is None or len(value) <= SHOWN_CHARS:
+        return repr(value)
+    return f"{value[:SHOWN_CHARS]!r}... ({len(value):,} characters)"
+
+
+def _metadata_dim(text: str, ply_path: Path, where: str) -> int:
+    """The `dim=` value: a whole number in ASCII digits (what the writer writes), within 1..MAX_DIM;
+    else InputError naming the field. int() alone took full-width digits ("５１２" as 512) and a
+    5,000-digit value was echoed whole."""
+    if DIM_TEXT.fullmatch(text) is None:
+        raise InputError(ply_path, f"dim={_shown(text)} is not an integer (ASCII digits)", field=where)
+    if len(text) > DIM_MAX_CHARS or not 1 <= int(text) <= MAX_DIM:
+        raise InputError(ply_path, f"dim={_shown(text)} is not a feature dimension (expected 1..{MAX_DIM})", field=where)
+    return int(text)
+
+
 def _check_codebook_crc(path: Path, recorded: str | None, ply_path: Path, where: str) -> None:
     """InputError unless the codebook file's CRC-32 is the one the PLY's field records (files written
     before 2026-11-30 record none: not checked). A later registration into a file of the same stem
@@ -299,10 +352,9 @@ def _check_codebook_crc(path: Path, recorded: str | None, ply_path: Path, where:
     without a word (a probe, 2026-11-30)."""
     if recorded is None:
         return
-    try:
-        expected = int(recorded, 16)
-    except ValueError:
-        raise InputError(ply_path, f"codebook_crc={recorded!r} is not a CRC-32 (8 hex digits)", field=where) from None
+    if CRC_TEXT.fullmatch(recorded) is None:  # the writer writes exactly 8 hex digits (`field_comment`)
+        raise InputError(ply_path, f"codebook_crc={_shown(recorded)} is not a CRC-32 (8 hex digits)", field=where)
+    expected = int(recorded, 16)
     actual = zlib.crc32(path.read_bytes())
     if actual != expected:
         raise InputError(path, f"is not the codebook {ply_path.name} was registered with (its CRC-32 is {actual:08x}, the PLY records "
@@ -312,7 +364,7 @@ def _check_codebook_crc(path: Path, recorded: str | None, ply_path: Path, where:
 
 def _numbered_columns(scene: GaussianScene, prefix: str) -> list[int]:
     """The numbers j of a scene's properties named `<prefix><j>` (lang_<j> features, lang_code_<j> codes)."""
-    return [int(name[len(prefix):]) for name in scene.extra if name.startswith(prefix) and name[len(prefix):].isdigit()]
+    return [int(name[len(prefix):]) for name in scene.extra if name.startswith(prefix) and _is_ascii_number(name[len(prefix):])]
 
 
 def _without_altered_codes(storage, ply_path: Path):
@@ -353,7 +405,7 @@ def integer_storage(name: str) -> tuple[str, str, bool] | None:
     """(PLY type, meaning, holds bit patterns) of a language property stored as integers, None for
     the float ones (lang_weight, lang_norm): what `check_integer_column` checks it against."""
     suffix = name[len("lang_"):]
-    if suffix.isdigit():
+    if _is_ascii_number(suffix):
         return "ushort", "float16 bit patterns", True
     if is_meta_column(name):
         return "ushort", "metadata position << 8 | byte", True

@@ -56,7 +56,7 @@ from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, wants_reducers
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
-from drsplat.registration.sums import normalize_rows
+from drsplat.registration.sums import CANCEL_RATIO, normalize_rows
 from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views
 from drsplat.registration.vote import VoteSink, trim_cosine
 from drsplat.scene import GaussianScene
@@ -84,7 +84,7 @@ class RegistrationResult:
     contributing (Gaussian, pixel) pairs; num_distinct_pairs: (Gaussian, mask) pairs summed.
     missing_features: camera names without a feature file; unmatched_features: feature stems
     without a camera. num_nonfinite_masks: masks dropped for non-finite embeddings;
-    num_nonfinite_features: Gaussians left unassigned for non-finite sums. mask_embeddings:
+    num_nonfinite_features: Gaussians left unassigned for non-finite or cancelled sums (`normalize_rows`). mask_embeddings:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
@@ -234,11 +234,20 @@ def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
     return book
 
 
-def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "") -> str:
-    """The error when registration gave no Gaussian a feature (nothing is written); hint: `frame_hint`'s."""
+def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: int = 0) -> str:
+    """The error when registration gave no Gaussian a feature (nothing is written); hint: `frame_hint`'s;
+    unusable: Gaussians whose sums were dropped by `normalize_rows` (then the likely cause)."""
     written = f"; nothing was written to {out}" if out is not None else ""
+    if unusable:
+        return f"no Gaussian kept a language feature from {num_views} views: {unusable_sums(unusable)}{written}"
     return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
+
+
+def unusable_sums(count: int) -> str:
+    """What `normalize_rows` dropped, in words."""
+    return (f"{count} Gaussians got feature sums that are non-finite or cancel out (|Σ w f| ≤ {CANCEL_RATIO:g} Σ w: their masks' "
+            "embeddings point opposite ways) and are left unassigned")
 
 
 def run_registration(
@@ -345,7 +354,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views), nonfinite))
             written = target.close()
         else:
             weights, nonfinite, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
@@ -367,7 +376,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         ckpt.remove()
     aggregator.log_rejected()
     if nonfinite:
-        log.warning("%d Gaussians got non-finite feature sums and are left unassigned", nonfinite)
+        log.warning("%s", unusable_sums(nonfinite))
     return RegistrationResult(
         features=getattr(target, "features", None), weights=weights, num_views=totals.done, num_pairs=totals.num_pairs,
         num_distinct_pairs=totals.num_distinct, seconds=time.perf_counter() - t_start, view_seconds=view_seconds,
@@ -632,7 +641,8 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views),
+                                            sum(p.nonfinite for p in parts)))
     written = assemble_parts(Path(reduce.job.out), parts)
     return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))

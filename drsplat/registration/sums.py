@@ -21,6 +21,7 @@ import numpy as np
 from drsplat.memory import small_page_zeros
 
 MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
+CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
 
 
 @numba.njit(parallel=True, cache=True)
@@ -179,8 +180,8 @@ def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, wei
 
 
 @numba.njit(parallel=True, cache=True)
-def _normalize_rows_kernel(F, W):  # pragma: no cover - jitted
-    """`normalize_rows` row by row in parallel; returns the count of rows dropped for non-finite values."""
+def _normalize_rows_kernel(F, W, cancel_ratio):  # pragma: no cover - jitted
+    """`normalize_rows` row by row in parallel; returns the count of rows dropped for non-finite or cancelled sums."""
     n, dim = F.shape
     bad = np.zeros(n, np.int64)
     whole = dim - dim % 8
@@ -208,7 +209,9 @@ def _normalize_rows_kernel(F, W):  # pragma: no cover - jitted
         finite = np.isfinite(norm) and np.isfinite(w)
         if not finite and w != 0:
             bad[i] = 1
-        if finite and w > 0 and norm > 0:
+        if finite and w > 0 and not norm > cancel_ratio * w:
+            bad[i] = 1
+        if finite and w > 0 and norm > cancel_ratio * w:
             scale = np.float32(norm)
             if np.isfinite(scale):
                 for d in range(dim):
@@ -224,36 +227,41 @@ def _normalize_rows_kernel(F, W):  # pragma: no cover - jitted
 
 
 def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, int]:
-    """In place: F_i <- F_i / |F_i| where W_i > 0 and F_i is finite and non-zero; other rows -> 0
-    (and their W_i -> 0). F: [N, D] float32, W: [N] float32.
+    """In place: F_i <- F_i / |F_i| where W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other
+    rows -> 0 (and their W_i -> 0). F: [N, D] float32 sums Σ_j w_ij f_j of unit embeddings, W: [N]
+    float32 their weights Σ_j w_ij, so |F_i| ≤ W_i. A sum under CANCEL_RATIO of its weight has
+    cancelled (its masks' embeddings point opposite ways): what is left is float32 rounding, whose
+    direction means nothing, so the Gaussian is left unassigned instead of given it.
 
     |F_i| is summed in float64 and rounded to float32 before the division, as in
     `normalize_rows_reference` (a norm beyond float32's range divides in float64: the float32 norm
     is inf, and dividing by it zeroed a row that kept its weight, round 22); one pass over F in parallel (the reference makes several
     passes and a float64 copy of each chunk). The float64 sums may round differently in the last
     bit, so a row can differ from the reference's by one float32 ulp where its norm lies on a
-    float32 rounding boundary. Returns (F, count of rows dropped for non-finite values).
+    float32 rounding boundary. Returns (F, count of rows with weight dropped for non-finite or
+    cancelled sums).
     """
     if F.shape[0] == 0:
         return F, 0
     if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32):
         return normalize_rows_reference(F, W)
-    return F, int(_normalize_rows_kernel(F, W))
+    return F, int(_normalize_rows_kernel(F, W, CANCEL_RATIO))
 
 
 def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, int]:
     """Reference of `normalize_rows` (numpy, chunk by chunk): in place F_i <- F_i / |F_i| where
-    W_i > 0 and F_i is finite and non-zero; other rows -> 0 (and their W_i -> 0).
+    W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other rows -> 0 (and their W_i -> 0).
 
-    Returns (F, count of rows dropped for non-finite values).
+    Returns (F, count of rows with weight dropped for non-finite or cancelled sums).
     """
     bad_total = 0
     for start in range(0, F.shape[0], chunk):
         f, w = F[start : start + chunk], W[start : start + chunk]
         norm = np.sqrt(np.einsum("nd,nd->n", f, f, dtype=np.float64))
         finite = np.isfinite(norm) & np.isfinite(w)
-        bad_total += int(np.count_nonzero(~finite & (w != 0)))
-        ok = finite & (w > 0) & (norm > 0)
+        cancelled = finite & (w > 0) & ~(norm > CANCEL_RATIO * w.astype(np.float64))
+        bad_total += int(np.count_nonzero(~finite & (w != 0))) + int(np.count_nonzero(cancelled))
+        ok = finite & (w > 0) & ~cancelled
         with np.errstate(over="ignore"):
             scale = norm.astype(np.float32)
         big = ok & ~np.isfinite(scale)  # |F_i| past float32's range: divided in float64
