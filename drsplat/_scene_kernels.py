@@ -91,13 +91,14 @@ def packed_frames_kernel(q, s, zero_nonfinite, out):  # pragma: no cover - jitte
 
 
 @numba.njit(parallel=True, cache=True)
-def bounded_rows_kernel(a, limit, out):  # pragma: no cover - jitted
-    """out[i] &= |a[i, j]| ≤ limit for every j (NaN never is; limit = the float64 maximum: every entry
-    finite). a: [N, C] (any float type); out: [N] bool."""
+def bounded_rows_kernel(a, limit, signed, out):  # pragma: no cover - jitted
+    """out[i] &= |a[i, j]| ≤ limit (signed: a[i, j] ≤ limit) for every j; NaN never is, and with
+    limit = the float64 maximum the test is "every entry finite". a: [N, C] (any float type); out: [N] bool."""
     for i in numba.prange(a.shape[0]):
         ok = out[i]
         for j in range(a.shape[1]):
-            ok = ok and abs(np.float64(a[i, j])) <= limit
+            v = np.float64(a[i, j])
+            ok = ok and (v if signed else abs(v)) <= limit
         out[i] = ok
 
 

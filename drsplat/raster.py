@@ -213,9 +213,9 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     everything = float(np.finfo(np.float64).max)
     for rows, limit in ((scene.means, MAX_COORDINATE), (scene.quats, everything), (scene.log_scales, everything),
                         (scene.opacity_logits.reshape(n, 1), everything), (scene.sh.reshape(n, 3 * scene.sh.shape[1]), MAX_SH_COEFFICIENT)):
-        bounded_rows_kernel(np.ascontiguousarray(rows), limit, finite)
+        bounded_rows_kernel(np.ascontiguousarray(rows), limit, False, finite)
     cov = scene.covariances()
-    bounded_rows_kernel(cov.reshape(n, 9), everything, finite)
+    bounded_rows_kernel(cov.reshape(n, 9), everything, False, finite)
     cov[~finite] = 0.0
     means = np.where(finite[:, None], scene.means, 0.0).astype(np.float64)
     opacities = np.where(finite, scene.opacities(), 0.0).astype(np.float32)

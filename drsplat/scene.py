@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat._scene_kernels import packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
+from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError
 from drsplat.utils import hidden_character, write_bytes_atomic
 
@@ -37,7 +37,6 @@ SURFEL_THICKNESS = 1e-3  # a 2DGS surfel's thickness along its normal, relative 
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 MAX_SH_COEFFICIENT = 1e30  # |SH coefficient| beyond this: a colour (16 terms, |basis| < 1.1) could pass float32's range
 HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
-EXTENT_SAMPLE = 1 << 20  # means sampled (evenly spaced rows) for the scene's extent
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
 
@@ -295,7 +294,7 @@ class LoadReport:
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
-    scene_extent: float = 0.0  # the diagonal of the 1-99 % box of the means (`scene_extent`)
+    scene_extent: float = 0.0  # the diagonal of the box of the means (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
@@ -329,7 +328,7 @@ class LoadReport:
             notes.append(f"{self.large_sh} Gaussians have an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
         if self.huge_scales:
-            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the 1-99 % box of the "
+            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of its "
                          f"means, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
                          "of what lies behind it (a training blow-up or a units mix-up?)")
         if self.overflowing_scales:
@@ -665,16 +664,19 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     return cols
 
 
-def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
-    """The diagonal of the box between the 1st and 99th percentiles of the finite means [N, 3] (at
-    most `sample` evenly spaced rows), 0 without any: the scene's size, blind to a few far outliers."""
-    step = max(1, -(-means.shape[0] // sample))
-    rows = np.asarray(means[::step], np.float64)
-    rows = rows[np.isfinite(rows).all(axis=1)]
-    if rows.shape[0] == 0:
-        return 0.0
-    low, high = np.percentile(rows, [1.0, 99.0], axis=0)
-    return float(np.linalg.norm(high - low))
+def scene_extent(means: np.ndarray, chunk: int = 1 << 20) -> float:
+    """The diagonal of the bounding box of the means [N, 3] that are finite and within MAX_COORDINATE
+    (0 without any), read `chunk` rows at a time (no N-sized temporaries). The whole box, not a
+    percentile one: a sky dome of large, far Gaussians is part of an unbounded capture's size, so it
+    widens the box instead of standing out against it."""
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    for start in range(0, means.shape[0], chunk):
+        rows = means[start:start + chunk]
+        with np.errstate(invalid="ignore"):
+            rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
+        if rows.shape[0]:
+            low, high = np.minimum(low, rows.min(axis=0)), np.maximum(high, rows.max(axis=0))
+    return float(np.linalg.norm(high - low)) if np.isfinite(low).all() else 0.0
 
 
 def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:
@@ -682,9 +684,17 @@ def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:
     the extent is 0: a single point or an empty scene has no size to compare with)."""
     if extent <= 0.0 or log_scales.shape[0] == 0:
         return 0
-    limit = np.log(HUGE_SCALE_RATIO * extent)
-    with np.errstate(invalid="ignore"):
-        return int(np.count_nonzero(np.max(np.asarray(log_scales, np.float64), axis=1) > limit))
+    return count_rows_beyond(log_scales, float(np.log(HUGE_SCALE_RATIO * extent)), signed=True)
+
+
+def count_rows_beyond(rows: np.ndarray, limit: float, signed: bool = False) -> int:
+    """Rows of [N, C] (finite) with an entry beyond `limit`: |x| > limit, or x > limit when `signed`;
+    one parallel pass, no [N, C] temporaries (an SH array of 50 M Gaussians is 9.6 GB)."""
+    if rows.shape[0] == 0 or rows.shape[1] == 0:
+        return 0
+    within = np.ones(rows.shape[0], bool)
+    bounded_rows_kernel(np.ascontiguousarray(rows), limit, signed, within)
+    return int(rows.shape[0] - np.count_nonzero(within))
 
 
 def surfel_scales(log_scales_2d: np.ndarray) -> np.ndarray:
@@ -914,7 +924,7 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
     report.overflowing_scales = int((log_scales > MAX_LOG_SCALE).any(axis=1).sum())
     report.far_means = int((np.abs(means) > MAX_COORDINATE).any(axis=1).sum())
-    report.large_sh = int((np.abs(sh.reshape(sh.shape[0], -1)) > MAX_SH_COEFFICIENT).any(axis=1).sum()) if sh.size else 0
+    report.large_sh = count_rows_beyond(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT)
     report.scene_extent = scene_extent(means)
     report.huge_scales = count_huge_scales(log_scales, report.scene_extent)
     report.beyond_float32 = int(cols.get("beyond_float32", 0))

@@ -498,3 +498,30 @@ def test_a_2dgs_ply_of_surfels_reads_as_flat_gaussians(tmp_path, caplog):
     np.testing.assert_allclose(face_on.alpha, thick_face_on.alpha, atol=0.02)
     rows_covered = lambda out: int(np.any(out.alpha > 0.05, axis=1).sum())  # noqa: E731
     assert rows_covered(face_on) >= 7 and rows_covered(edge_on) <= 3  # edge-on, a line as wide as 3DGS's 0.3 px² dilation
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("signed", [False, True])
+def test_bounded_rows_kernel_matches_numpy(dtype, signed):
+    """The rows test behind prepare_scene's usable flag and the load's counts (`count_rows_beyond`),
+    against numpy on random rows with NaN, ±inf, values at, just past and far past the limit."""
+    from drsplat._scene_kernels import bounded_rows_kernel
+    from drsplat.scene import count_rows_beyond
+
+    rng = np.random.default_rng(3)
+    limit = 1e3
+    a = (rng.normal(size=(500, 7)) * 400).astype(dtype)
+    a[::17, 2] = np.nan
+    a[::19, 4] = np.inf
+    a[::23, 1] = -np.inf
+    a[::29, 0] = dtype(limit)
+    a[::31, 6] = np.nextafter(dtype(limit), dtype(np.inf))
+    a[::37, 3] = -1e30 if dtype == np.float64 else -3e38
+    within = np.ones(500, bool)
+    within[::41] = False  # out is and-ed into, never reset
+    expected = within & ((a <= limit) if signed else (np.abs(a) <= limit)).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        bounded_rows_kernel(a, limit, signed, within)
+    np.testing.assert_array_equal(within, expected)
+    assert count_rows_beyond(a, limit, signed) == int(np.count_nonzero(~((a <= limit) if signed else (np.abs(a) <= limit)).all(axis=1)))
+    assert count_rows_beyond(a[:0], limit) == 0
