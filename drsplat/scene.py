@@ -25,7 +25,7 @@ import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError
-from drsplat.utils import hidden_character, write_bytes_atomic
+from drsplat.utils import clipped, hidden_character, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -491,16 +491,11 @@ def read_plyfile(path: Path):
         return PlyData.read(str(path))
 
 
-def _clipped(text: str, limit: int) -> str:
-    """`text` cut to `limit` characters (a message quoting a file's bytes stays readable)."""
-    return text if len(text) <= limit else text[:limit] + "..."
-
-
 def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
     try:
         ply = read_plyfile(path)
     except Exception as exc:  # plyfile raises many types for malformed ASCII
-        raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__}: {_clipped(str(exc), 200)})") from None
+        raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__}: {clipped(str(exc), 200)})") from None
     out = {}
     for element in ply.elements:
         if any(p.__class__.__name__ == "PlyListProperty" for p in element.properties):

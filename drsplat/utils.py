@@ -481,6 +481,12 @@ def regular_file(path: str | Path) -> Path:
     return path
 
 
+def clipped(text: str, limit: int) -> str:
+    """`text` as a message quotes it: cut after `limit` characters, its length said, so a hostile
+    value of megabytes cannot flood the terminal."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
+
+
 def hidden_character(text: str) -> str | None:
     """A description of the first character of `text` that a terminal would not show as itself
     (a control character such as a newline, ESC or NUL; a format character such as U+202E, which

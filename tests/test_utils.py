@@ -103,3 +103,10 @@ def test_a_missing_file_says_its_folder_is_missing_only_when_it_is(tmp_path):
     assert describe_os_error(inside) == f"{tmp_path / 'gone.npy'}: no such file or directory, though its folder {tmp_path} exists"
     deeper = OSError(errno.ENOENT, "No such file or directory", str(tmp_path / "no" / "gone.npy"))
     assert describe_os_error(deeper).endswith(": the parent directory does not exist")
+
+
+def test_clipped_quotes_a_long_value_by_its_start_and_length():
+    from drsplat.utils import clipped
+
+    assert clipped("abc", 3) == "abc"
+    assert clipped("9" * 5000, 4) == "9999... (5,000 characters)"

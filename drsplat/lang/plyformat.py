@@ -42,7 +42,7 @@ from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, file_stamp, hidden_character
+from drsplat.utils import atomic_path, clipped, file_stamp, hidden_character
 
 log = logging.getLogger(__name__)
 
@@ -272,7 +272,7 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     for key, value in meta.items():  # URL-quoted values could carry a newline or ESC into every message that names them
         hidden = hidden_character(key + value)
         if hidden is not None:
-            raise InputError(ply_path, f"the metadata entry {_cut(quote(key))}={_cut(quote(value))} holds {hidden}; a header written "
+            raise InputError(ply_path, f"the metadata entry {clipped(quote(key), SHOWN_CHARS)}={clipped(quote(value), SHOWN_CHARS)} holds {hidden}; a header written "
                                        "by drsplat has none (the file was altered)", field=where)
     kind = meta.get("kind")
     if kind not in BACKENDS:
@@ -318,11 +318,6 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
                     "they are unassigned", ply_path, orphans)
     return LanguageField(dim, clip_model, weights, storage)
-
-
-def _cut(text: str) -> str:
-    """`text` as an error echoes a header value: cut after SHOWN_CHARS characters, the length said."""
-    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text):,} characters)"
 
 
 def _shown(value: str | None) -> str:
