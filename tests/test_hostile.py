@@ -2609,3 +2609,17 @@ def test_an_out_name_its_codebook_header_cannot_carry_is_refused_before_register
     err = capsys.readouterr().err
     assert code == 2 and "field 'codebook'" in err and "U+001B" in err and "fit:" not in err, err
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_register_out_named_as_another_kind_of_file_is_refused(world, tmp_path, capsys):
+    """Was (a probe, 2026-12-01): `--out DS/text_embeddings.npy` (a file of the dataset that
+    registration does not read) was overwritten by a PLY, exit 0. A name with another data type's
+    suffix is a usage error now; one that is an input keeps the input guard's message."""
+    ds = world["ds"]
+    before = digest(ds / "text_embeddings.npy")
+    for out in (ds / "text_embeddings.npy", tmp_path / "reg.json"):
+        code = main(["register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features"), "--out", str(out),
+                     "--no-progress"])
+        err = capsys.readouterr().err
+        assert code == 2 and f"--out {out.name}: a {out.suffix} name is another kind of file" in err and "name it .ply" in err, err
+    assert digest(ds / "text_embeddings.npy") == before and not (tmp_path / "reg.json").exists()

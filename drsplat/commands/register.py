@@ -61,6 +61,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".txt", ".bin", ".faiss", ".png", ".jpg", ".jpeg", ".csv", ".yml", ".yaml", ".pt", ".pth",
+                       ".ckpt"}  # names of what a dataset or a features folder holds: a PLY written under one is a mix-up
+
+
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError
@@ -91,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
+    if args.out.suffix.lower() in OTHER_DATA_SUFFIXES:  # after the input guard, whose message names the input it would hit
+        raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
+                         "images or a codebook), and a registered scene is a PLY: name it .ply")
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
                                      refinements=report.camera_refinements)  # trainers' own worlds and cameras
