@@ -12,7 +12,9 @@ import logging
 import math
 import os
 import struct
+import unicodedata
 import warnings
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -607,12 +609,18 @@ class DatasetPaths:
 def check_image_name(path: Path, name: str, where: str, field: str) -> None:
     """Refuse an image name no file can have, a corrupt record rather than a missing image: a NUL
     byte (Python raises ValueError on it), a lone UTF-16 surrogate (JSON's "\ud800" alone: no file
-    system name encodes it) or a name whose last part is empty, "." or ".." (a folder: "/", "images/")."""
+    system name encodes it), a control character (a newline, ESC: a file may have one, but it would
+    reach every message and feature file named after the image) or a name whose last part is
+    empty, "." or ".." (a folder: "/", "images/")."""
     if "\x00" in name:
         raise InputError(path, f"{where} has an image name with a NUL byte (at character {name.index(chr(0))}); a file name cannot hold one", field=field)
     bad = next((i for i, ch in enumerate(name) if "\ud800" <= ch <= "\udfff"), None)
     if bad is not None:
         raise InputError(path, f"{where} has an image name with a lone UTF-16 surrogate (at character {bad}), which no file name holds", field=field)
+    control = next((i for i, ch in enumerate(name) if unicodedata.category(ch) == "Cc"), None)
+    if control is not None:  # a newline or ESC in a name would reach every message and output file name that names it
+        raise InputError(path, f"{where} has an image name with a control character (U+{ord(name[control]):04X} at character {control}); "
+                               "rename the image without it", field=field)
     last = name.replace("\\", "/").rsplit("/", 1)[-1]  # a Windows-written name may use backslashes
     if last in ("", ".", ".."):
         raise InputError(path, f"{where} has the image name {name[:80]!r}, which names a folder, not an image file", field=field)
@@ -1269,6 +1277,9 @@ EXIF_ORIENTATION = 0x0112
 EXIF_ROTATED = (5, 6, 7, 8)  # orientations that swap width and height
 
 
+PILLOW_DECODE_ERRORS = (ValueError, SyntaxError, IndexError, EOFError, struct.error, zlib.error)  # malformed PNG chunks, among others
+
+
 def load_image(camera: Camera) -> np.ndarray:
     """[H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed.
 
@@ -1291,14 +1302,29 @@ def load_image(camera: Camera) -> np.ndarray:
             log.warning("%s: %s", path, w.message)
     except Image.DecompressionBombError as exc:
         raise InputError(path, f"is not a readable image: {exc}") from None
-    except OSError as exc:
-        raise InputError(path, f"is not a readable image ({exc})") from None
+    except (OSError, *PILLOW_DECODE_ERRORS) as exc:  # Pillow reports malformed chunks with these too, not only OSError
+        raise InputError(path, f"is not a readable image ({exc.__class__.__name__}: {exc})") from None
     file_size = (rgb.shape[1], rgb.shape[0])
     if camera.distortion is not None:
         return undistort_image(rgb, camera, file_size)
     if file_size == (camera.width, camera.height):
         return rgb
     return np.asarray(Image.fromarray(rgb).resize((camera.width, camera.height), Image.BICUBIC))
+
+
+def image_file_size(path: Path | None) -> tuple[int, int]:
+    """(width, height) an image file's header declares (nothing decoded), (0, 0) when it cannot be read."""
+    from PIL import Image
+
+    if path is None:
+        return 0, 0
+    try:
+        with warnings.catch_warnings():  # load_image has said what there is to say about a file this large
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                return im.size
+    except (OSError, Image.DecompressionBombError, *PILLOW_DECODE_ERRORS):
+        return 0, 0
 
 
 def check_image_framing(path: Path, im, camera: Camera) -> None:

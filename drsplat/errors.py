@@ -2,7 +2,29 @@
 
 from __future__ import annotations
 
+import json
+import unicodedata
 from pathlib import Path
+
+
+def hidden_character(text: str) -> str | None:
+    """A description of the first character of `text` that a terminal would not show as itself
+    (a control character such as a newline, ESC or NUL; a format character such as U+202E, which
+    reverses the text after it; a lone surrogate), or None when there is none."""
+    for ch in text:
+        category = unicodedata.category(ch)
+        if category in ("Cc", "Cf", "Cs"):
+            kind = {"Cc": "control", "Cf": "format", "Cs": "lone surrogate"}[category]
+            return f"a {kind} character (U+{ord(ch):04X})"
+    return None
+
+
+def shown_path(path: str | Path) -> str:
+    """A path as a message prints it: as it is, or JSON-escaped and quoted when it holds a character
+    a terminal would not show as itself (`hidden_character`), so a file named with ESC or a newline
+    cannot clear the screen or forge a line of output."""
+    text = str(path)
+    return json.dumps(text) if hidden_character(text) is not None else text
 
 
 class DrsplatError(Exception):
@@ -16,7 +38,7 @@ class InputError(DrsplatError):
         self.path = None if path is None else Path(path)
         self.field = field
         self.problem = problem
-        where = f"{self.path}" if self.path is not None else "input"
+        where = shown_path(self.path) if self.path is not None else "input"
         if field:
             where += f": field '{field}'"
         super().__init__(f"{where}: {problem}")
@@ -46,7 +68,7 @@ class OutputError(DrsplatError):
     def __init__(self, path: str | Path | None, problem: str):
         self.path = None if path is None else Path(path)
         self.problem = problem
-        super().__init__(f"cannot write {self.path if self.path is not None else 'the output'}: {problem}")
+        super().__init__(f"cannot write {shown_path(self.path) if self.path is not None else 'the output'}: {problem}")
 
     def __reduce__(self):  # rebuilt from its parts when pickled, as InputError
         return type(self), (self.path, self.problem)

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
-from drsplat.errors import InputError
-from drsplat.utils import clipped, hidden_character, write_bytes_atomic
+from drsplat.errors import InputError, hidden_character
+from drsplat.utils import clipped, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 

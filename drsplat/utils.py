@@ -15,14 +15,13 @@ import stat
 import tempfile
 import threading
 import time
-import unicodedata
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
-from drsplat.errors import Cancelled, InputError, OutputError
+from drsplat.errors import Cancelled, InputError, OutputError, hidden_character
 
 log = logging.getLogger("drsplat")
 
@@ -485,18 +484,6 @@ def clipped(text: str, limit: int) -> str:
     """`text` as a message quotes it: cut after `limit` characters, its length said, so a hostile
     value of megabytes cannot flood the terminal."""
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
-
-
-def hidden_character(text: str) -> str | None:
-    """A description of the first character of `text` that a terminal would not show as itself
-    (a control character such as a newline, ESC or NUL; a format character such as U+202E, which
-    reverses the text after it; a lone surrogate), or None when there is none."""
-    for ch in text:
-        category = unicodedata.category(ch)
-        if category in ("Cc", "Cf", "Cs"):
-            kind = {"Cc": "control", "Cf": "format", "Cs": "lone surrogate"}[category]
-            return f"a {kind} character (U+{ord(ch):04X})"
-    return None
 
 
 def name_problem(names: list[str]) -> tuple[int, str, object] | None:

@@ -216,6 +216,65 @@ def test_an_image_edited_after_its_features_were_made_is_redone(tmp_path, weight
     assert main(args) == 0 and mtimes(out) == after
 
 
+def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
+    """Was (a probe, 2026-12-01): the stamps were written when a run finished, so the pairs of a run
+    stopped by an unreadable image (or Ctrl-C, or a kill) had none; the next run kept them as complete
+    and stamped them with the images as they were then, so an image re-exported in between kept its
+    stale features for good. Now each pair's stamp goes to a journal as the pair is written, folded
+    into the manifest when a run finishes."""
+    from PIL import Image
+
+    from drsplat.cameras import look_at_camera
+    from drsplat.features.extract import STAMP_JOURNAL
+
+    src = tmp_path / "ds"
+    (src / "images").mkdir(parents=True)
+    flat = Image.fromarray(np.full((48, 64, 3), 40, np.uint8))
+    flat.save(src / "images" / "a.png")
+    (src / "images" / "b.png").write_bytes(b"not a png")  # the run stops here, after a's pair
+    import dataclasses
+
+    cams = [dataclasses.replace(look_at_camera([0, 0, -3], [0, 0, 0], 64, 48, name=n), image_path=src / "images" / f"{n}.png") for n in "ab"]
+    write_transforms_json(cams, src / "transforms.json")
+    out = tmp_path / "features"
+    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    assert main(args) == 1 and featurefiles.is_valid_pair(out, "a") and (out / STAMP_JOURNAL).exists()
+    first = np.load(featurefiles.feat_path(out, "a"))
+    gradient = Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3)))
+    gradient.save(src / "images" / "a.png")  # re-exported while fixing b
+    flat.save(src / "images" / "b.png")
+    assert main(args) == 0
+    redone = np.load(featurefiles.feat_path(out, "a"))
+    assert redone.shape != first.shape or not np.array_equal(redone, first)  # made from the edited image
+    assert not (out / STAMP_JOURNAL).exists() and set(featurefiles.read_manifest(out)["image_stamps"]) == {"a", "b"}
+    before = mtimes(out)
+    assert main(args) == 0 and mtimes(out) == before  # and then kept
+
+
+def test_a_pair_written_just_before_a_kill_is_made_again(tmp_path, weights):
+    """A pair whose stamp never reached the journal (a kill between the two writes) in a folder that
+    records stamps is made again rather than trusted."""
+    import shutil
+
+    from PIL import Image
+
+    from drsplat.features.extract import STAMP_JOURNAL
+
+    src = tmp_path / "ds"
+    shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
+    out = tmp_path / "features"
+    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    assert main(args) == 0
+    manifest = featurefiles.read_manifest(out)
+    featurefiles.write_manifest(out, {**manifest, "image_stamps": {}})  # as a killed run leaves it: the pair, no stamp
+    (out / STAMP_JOURNAL).write_text('{"stem": "vi')  # and a torn journal line
+    before = mtimes(out)
+    assert main(args) == 0 and mtimes(out) != before
+    assert featurefiles.read_manifest(out)["image_stamps"].keys() == {"view"}
+
+
 def _one_camera_dataset(folder: Path, image, width: int = 64, height: int = 48, exif=None) -> Path:
     """A transforms.json dataset of one look-at camera whose image file is `image` (a PIL image;
     JPEG with `exif`, TIFF for float and 32-bit pixels, PNG otherwise)."""
@@ -482,3 +541,68 @@ def test_ray_features_on_cuda_start_one_actor_per_usable_gpu_and_never_hang(fern
     assert "features on 2 Ray actor(s) (one per GPU)" in caplog.text
     assert "4 feature workers asked for, but the cluster fits 2 (one per GPU)" in caplog.text
     assert not (tmp_path / "out").exists()
+
+
+def test_a_png_with_a_malformed_chunk_is_one_error_naming_the_file(tmp_path):
+    """Was (a probe, 2026-12-01): Pillow reports some malformed PNG chunks with ValueError or
+    SyntaxError, not OSError, and `features` ended in a traceback (a third of 1,500 chunk-level
+    mutations)."""
+    from PIL import Image
+
+    from drsplat.cameras import load_cameras, load_image
+    from drsplat.errors import InputError
+
+    src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(np.full((48, 64, 3), 90, np.uint8)))
+    path = src / "images" / "view.png"
+    data = bytearray(path.read_bytes())
+    data[11] = 4  # IHDR's length 13 -> 4: "Truncated IHDR chunk"
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"view\.png: is not a readable image \(ValueError: Truncated IHDR chunk\)"):
+        load_image(load_cameras(src)[0])
+
+
+def test_an_image_name_with_a_control_character_is_refused_and_paths_print_escaped(tmp_path):
+    """Was (a probe, 2026-12-01): an image named with ESC or a newline was accepted, became feature
+    file names, and its error line printed the raw bytes (escape codes ran; a newline forged a line)."""
+    import json
+
+    from drsplat.cameras import load_cameras
+    from drsplat.errors import InputError
+
+    (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": [
+        {"file_path": "a\u001b[2Jb.png", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(InputError, match=r"frame 0 has an image name with a control character \(U\+001B at character 1\)"):
+        load_cameras(tmp_path, require_images=False)
+    message = str(InputError(tmp_path / "x\nERROR: forged.png", "is not a readable image"))
+    assert "\n" not in message and '"' in message and "\\nERROR: forged.png" in message
+
+
+def test_features_says_which_images_gave_nothing_useful(tmp_path, weights, capsys):
+    """Was (a probe, 2026-12-01): a blank image, an image with no mask and a 16x12 file for a 64x48
+    camera all ended in exit 0 without a word. Now one warning each at the end, naming the images."""
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(np.full((12, 16, 3), 200, np.uint8)))
+    out = tmp_path / "features"
+    args = ["features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "1 image(s) are one flat colour (view)" in err, err
+    assert "1 image file(s) are over 1.5x narrower than their cameras and were upsampled (the most: view, 16x12 to 64x48, 4x)" in err
+
+
+def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weights, capsys):
+    """Was (a probe, 2026-12-01): an --out folder holding another tool's manifest.json was refused as
+    holding "features made with mask generator None"."""
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(np.full((48, 64, 3), 90, np.uint8)))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text('{"my": "own dataset manifest"}')
+    args = ["features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    assert main(args) == 1
+    assert "manifest.json is not a drsplat features manifest" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]

@@ -1643,12 +1643,16 @@ def test_bench_list_flags_are_usage_errors_before_any_work(capsys, argv, words):
 
 
 def test_resolution_that_leaves_most_gaussians_unassigned_warns(tmp_path, world, capsys):
-    """Was: `register --resolution 0.001` wrote 364 of 2,763 Gaussians without a word."""
+    """Was: `register --resolution 0.001` wrote 364 of 2,763 Gaussians without a word. (A width below
+    1 pixel is a usage error since 2026-12-01; 3 pixels is the same case.)"""
     code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
-                         "--out", tmp_path / "r.ply", "--no-progress", "--resolution", "0.001"], capsys)
+                         "--out", tmp_path / "r.ply", "--no-progress", "--resolution", "3"], capsys)
     assert code == 0
     (warning,) = [line for line in err.splitlines() if line.startswith("WARNING") and "got nothing" in line]
-    assert "1x1 px" in warning and "--resolution" in warning
+    assert "3x2 px" in warning and "--resolution" in warning
+    code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
+                         "--out", tmp_path / "r.ply", "--no-progress", "--resolution", "0.5"], capsys)
+    assert code == 2 and "0.5: expected -1" in err
     code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", world["ds"] / "features",
                          "--out", tmp_path / "ok.ply", "--no-progress"], capsys)
     assert code == 0 and "got nothing" not in err  # a normal run stays quiet

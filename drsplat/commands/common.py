@@ -16,12 +16,12 @@ import numpy as np
 
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
-from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import scene_format
-from drsplat.utils import hidden_character, name_problem
+from drsplat.utils import name_problem
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ def resolution_value(text: str) -> float:
     value = float(_number(text, float))
     if value == -1 or value in RESOLUTION_DIVISORS:
         return value
-    if not 0 < value <= MAX_IMAGE_WIDTH:
+    if not 1 <= value <= MAX_IMAGE_WIDTH:  # a width: 0.5 or 1e-300 would make images of no pixels
         raise argparse.ArgumentTypeError(f"{value:g}: expected -1 (full size, capped at 1600 px), 1, 2, 4, 8 or a width in 1..{MAX_IMAGE_WIDTH} pixels")
     return value
 
@@ -250,7 +250,7 @@ def checked_phrases(flag: str, text: str) -> list[str]:
 
 def checked_text_query(phrase: str) -> str:
     """A `--text` phrase as given, or one UsageError when it is blank (CLIP would embed the empty
-    string, and the ranking would mean nothing) or holds a hidden character (`utils.hidden_character`)."""
+    string, and the ranking would mean nothing) or holds a hidden character (`errors.hidden_character`)."""
     if not phrase.strip():
         raise UsageError(f"--text {phrase!r} is blank; give the phrase to search for, e.g. --text 'a red chair'")
     hidden = hidden_character(phrase)

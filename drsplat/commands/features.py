@@ -111,4 +111,6 @@ def run(args: argparse.Namespace) -> int:
                  per.masks / n, per.postprocess / n, per.crop / n, per.clip / n, per.total / n)
     if report.nonfinite_embeddings:
         log.warning("%d non-finite embeddings were dropped", report.nonfinite_embeddings)
+    for note in report.notes():
+        log.warning("%s", note)
     return 0

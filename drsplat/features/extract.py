@@ -31,7 +31,7 @@ from drsplat.features.modelid import (
 )
 from drsplat.utils import CancelToken, progress, file_stamp
 import drsplat
-from drsplat.cameras import load_cameras, load_image
+from drsplat.cameras import image_file_size, load_cameras, load_image
 from drsplat.features.clip import ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
@@ -70,6 +70,44 @@ class FeatureReport:
     nonfinite_embeddings: int = 0
     times: StageTimes = field(default_factory=StageTimes)
     workers: int = 0
+    without_masks: list[str] = field(default_factory=list)  # written with no mask at all: registration gets nothing from them
+    flat: list[str] = field(default_factory=list)  # images of one colour (blank exports, a fully transparent PNG's RGB)
+    upsampled: list[tuple[str, str, float]] = field(default_factory=list)  # (stem, "file WxH to camera WxH", factor) past UPSAMPLE_NOTE
+
+    def notes(self) -> list[str]:
+        """What a user should hear about the images written: those that gave no mask, those of one colour."""
+        out = []
+        if self.without_masks:
+            out.append(f"{len(self.without_masks)} image(s) gave no mask at all ({listed(self.without_masks)}): registration gets nothing "
+                       "from them (too few pixels at this --resolution / --max-height, or a blank image?)")
+        if self.flat:
+            out.append(f"{len(self.flat)} image(s) are one flat colour ({listed(self.flat)}): their masks and embeddings describe "
+                       "nothing of the scene (a blank export, or a transparent image whose colour channels are empty?)")
+        if self.upsampled:
+            stem, sizes, factor = max(self.upsampled, key=lambda u: u[2])
+            out.append(f"{len(self.upsampled)} image file(s) are over {UPSAMPLE_NOTE:g}x narrower than their cameras and were upsampled "
+                       f"(the most: {stem}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
+                       "(thumbnails, a lower-resolution export, or a --resolution above the images' own?)")
+        return out
+
+
+def listed(names: list[str], first: int = 3) -> str:
+    """The first few names of a list, and how many more."""
+    more = f" and {len(names) - first} more" if len(names) > first else ""
+    return ", ".join(names[:first]) + more
+
+
+UPSAMPLE_NOTE = 1.5  # an image file this many times narrower than its camera is counted as upsampled
+
+
+def note_image(report: FeatureReport, cam, rgb: np.ndarray) -> None:
+    """Count in `report` an image of one flat colour (every pixel of rgb [H, W, 3], the image at its
+    camera's size, the same) and an image file over UPSAMPLE_NOTE times narrower than its camera."""
+    if rgb.size and (rgb == rgb.reshape(-1, rgb.shape[-1])[0]).all():
+        report.flat.append(cam.name)
+    width, height = image_file_size(cam.image_path)
+    if width and cam.width > UPSAMPLE_NOTE * width:
+        report.upsampled.append((cam.name, f"{width}x{height} to {cam.width}x{cam.height}", cam.width / width))
 
 
 def square_pad_box(y0: int, y1: int, x0: int, x1: int) -> tuple[int, int]:
@@ -224,6 +262,9 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         if features_dir.is_dir() and featurefiles.list_stems(features_dir):
             raise DrsplatError(f"{features_dir} already holds feature files without a manifest.json; use a new --out folder so features of different origins are not mixed")
         return
+    if "mask_generator" not in old and IMAGE_STAMPS not in old and "clip_model_id" not in old and "clip" not in old:
+        raise DrsplatError(f"{features_dir / featurefiles.MANIFEST_NAME} is not a drsplat features manifest (it names no mask "
+                           "generator or CLIP model): another tool's file; use a new --out folder")
     old_clip = manifest_model_id(old)
     check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
     if old.get("mask_generator") != manifest["mask_generator"]:
@@ -262,24 +303,70 @@ def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, ne
 
 
 IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`utils.file_stamp`)
+STAMP_JOURNAL = ".image_stamps.jsonl"  # a run's stamps, a line per pair as it is written; folded into the manifest at the end
 
 
-def recorded_stamps(out: Path) -> dict[str, str]:
-    """The image stamps an earlier run recorded in `out`'s manifest ({} for none or a foreign manifest)."""
-    stamps = featurefiles.read_manifest(out).get(IMAGE_STAMPS) if out.is_dir() else None
-    return {k: v for k, v in stamps.items() if isinstance(v, str)} if isinstance(stamps, dict) else {}
+@dataclass
+class ImageStamps:
+    """Each pair's image as it was when its pair was made (`utils.file_stamp`), so that a later run
+    redoes the pairs of edited images. known: stem -> stamp, from the manifest and from the journal
+    an unfinished run left beside it (a line per pair as it was written: a run stopped by Ctrl-C, a
+    kill or an unreadable image recorded nothing before, and its pairs then passed for those of the
+    images as they are now); tracked: whether the folder records stamps at all (a folder drsplat
+    made does, from its first manifest on; LangSplat's own do not)."""
+
+    out: Path
+    known: dict[str, str]
+    tracked: bool
+
+    @classmethod
+    def read(cls, out: Path) -> ImageStamps:
+        manifest = featurefiles.read_manifest(out) if out.is_dir() else {}
+        recorded = manifest.get(IMAGE_STAMPS)
+        known = {k: v for k, v in recorded.items() if isinstance(v, str)} if isinstance(recorded, dict) else {}
+        return cls(out, {**known, **read_journal(out / STAMP_JOURNAL)}, isinstance(recorded, dict))
+
+    def add(self, stem: str, stamp: str | None) -> None:
+        """Record that `stem`'s pair was just written from its image as it was at `stamp` (taken when
+        the image was read), in the journal first: a run stopped after this pair keeps the record."""
+        if stamp is None:
+            return
+        self.known[stem] = stamp
+        if not self.tracked:  # no manifest will hold them (a library call without one, on a folder that records none)
+            return
+        with open(self.out / STAMP_JOURNAL, "a", encoding="utf-8") as f:
+            f.write(json.dumps({"stem": stem, "stamp": stamp}) + "\n")
+
+    def finish(self, manifest: dict, images: int) -> None:
+        """The manifest written with every known stamp, then the journal it now holds removed."""
+        featurefiles.write_manifest(self.out, {**manifest, "images": images, IMAGE_STAMPS: self.known})
+        (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
 
 
-def stamps_after(recorded: dict[str, str], cameras: list, report: FeatureReport) -> dict[str, str]:
-    """The stamps a run leaves: the earlier ones, with this run's pairs (written or kept) at their images' stamps."""
-    done = set(report.written) | set(report.skipped)
-    return {**recorded, **{c.name: stamp for c in cameras if c.name in done and (stamp := file_stamp(c.image_path)) is not None}}
+def read_journal(path: Path) -> dict[str, str]:
+    """stem -> stamp of a stamp journal ({} without one); a line that is not a whole record (the last
+    one of a run killed while writing it) is skipped: its pair has no stamp and is made again."""
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return {}
+    out = {}
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(entry, dict) and isinstance(entry.get("stem"), str) and isinstance(entry.get("stamp"), str):
+            out[entry["stem"]] = entry["stamp"]
+    return out
 
 
-def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: dict[str, str] | None = None) -> list:
+def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageStamps | None = None) -> list:
     """The cameras whose feature pair is missing, incomplete, or older than an edit of its image
-    (its recorded `utils.file_stamp`, `stamps`, differs from the image's now) in `out`; complete ones go to
-    report.skipped."""
+    (its recorded stamp differs from the image's now) in `out`; complete ones go to report.skipped.
+    In a folder that records stamps, a complete pair without one is made again: its image's state
+    when it was made is unknown (a pair written just before a run was killed). A skipped pair of a
+    folder that records none is stamped with its image as it is now (LangSplat's folders)."""
     todo, seen = [], set()
     for cam in cameras:
         stem = cam.name
@@ -287,12 +374,20 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: dict[s
             continue
         seen.add(stem)
         if featurefiles.is_valid_pair(out, stem):
-            if stamps and stem in stamps and stamps[stem] != file_stamp(cam.image_path):
+            recorded = stamps.known.get(stem) if stamps is not None else None
+            if recorded is not None and recorded != file_stamp(cam.image_path):
                 log.warning("%s: the image of %s changed since its features were made; recomputing them", out, stem)
-                report.redone.append(stem)
-                todo.append(cam)
+            elif recorded is None and stamps is not None and stamps.tracked:
+                log.warning("%s: the features of %s were written by a run that stopped before recording their image; recomputing them",
+                            out, stem)
+            else:
+                report.skipped.append(stem)
+                now = file_stamp(cam.image_path) if recorded is None and stamps is not None else None
+                if now is not None:
+                    stamps.known[stem] = now
                 continue
-            report.skipped.append(stem)
+            report.redone.append(stem)
+            todo.append(cam)
             continue
         if featurefiles.seg_path(out, stem).exists() or featurefiles.feat_path(out, stem).exists():
             log.warning("%s: incomplete or invalid feature files for %s; recomputing them", out, stem)
@@ -311,6 +406,8 @@ def record_result(out: Path, stem: str, seg: np.ndarray, feats: np.ndarray, time
         seg[np.isin(seg, np.flatnonzero(bad_rows))] = -1
     featurefiles.write_features(out, stem, seg, feats)
     report.written.append(stem)
+    if sum(counts) == 0:
+        report.without_masks.append(stem)
     report.times.add(times)
     report.masks_per_level = [a + b for a, b in zip(report.masks_per_level, counts)]
     log.debug("%s: %s masks, %.2f s (masks %.2f, post %.2f, crop %.2f, clip %.2f)", stem, counts, times.total, times.masks, times.postprocess, times.crop, times.clip)
@@ -366,11 +463,12 @@ def extract_features(
     """
     out = Path(out_dir)
     report = FeatureReport()
-    stamps = recorded_stamps(out)
+    stamps = ImageStamps.read(out)
     if manifest is not None:
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
-        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps})  # carried over: an interrupted run keeps them
+        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps.known})  # carried over: an interrupted run keeps them
+        stamps.tracked = True
     out.mkdir(parents=True, exist_ok=True)
     todo = {c.name for c in todo_cameras(cameras, out, report, stamps)}
     bar = progress(cameras, desc="features", total=len(cameras), enabled=show_progress, unit="img")
@@ -379,13 +477,16 @@ def extract_features(
             cancel.raise_if_cancelled()
         if cam.name in todo:
             todo.discard(cam.name)
-            seg, feats, times, counts = extract_image(load_image(cam), generator, encoder, nms)
+            stamp = file_stamp(cam.image_path)  # the image as it is read, not as it may be by the end of the run
+            rgb = load_image(cam)
+            note_image(report, cam, rgb)
+            seg, feats, times, counts = extract_image(rgb, generator, encoder, nms)
             record_result(out, cam.name, seg, feats, times, counts, report)
+            stamps.add(cam.name, stamp)
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(masks=sum(counts), sec=f"{times.total:.2f}")
         if on_progress is not None:
             on_progress(i + 1, len(cameras))
     if manifest is not None:
-        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped),
-                                          IMAGE_STAMPS: stamps_after(stamps, cameras, report)})
+        stamps.finish(manifest, len(report.written) + len(report.skipped))
     return report

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from drsplat.errors import InputError, OutputError
+from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.features.modelid import model_id_sources
-from drsplat.utils import atomic_path, hidden_character, load_npy, npy_header, read_json, save_npy_atomic
+from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL, UNIT_TOLERANCE
 
 log = logging.getLogger(__name__)

@@ -25,16 +25,16 @@ from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
     IMAGE_STAMPS,
     FeatureReport,
+    ImageStamps,
     build_models,
     check_manifest_compatible,
     extract_image,
     make_manifest,
+    note_image,
     record_result,
-    recorded_stamps,
-    stamps_after,
     todo_cameras,
 )
-from drsplat.utils import CancelToken, progress
+from drsplat.utils import CancelToken, file_stamp, progress
 
 log = logging.getLogger(__name__)
 
@@ -121,15 +121,24 @@ def extract_features_ray(
         log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
         _check_started(actors)
         manifest = ray.get(actors[0].manifest.remote(resolution, max_height, manifest_extra))
-        stamps = recorded_stamps(out)
+        stamps = ImageStamps.read(out)
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
-        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps})
+        featurefiles.write_manifest(out, {**manifest, IMAGE_STAMPS: stamps.known})
+        stamps.tracked = True
         report = FeatureReport()
         todo = todo_cameras(cameras, out, report, stamps)
         pool = ActorPool(actors)
+        read_at: dict[str, str | None] = {}  # each image as it was read, not as it may be when its pair comes back
+
+        def submit(a, c):
+            read_at[c.name] = file_stamp(c.image_path)
+            rgb = load_image(c)
+            note_image(report, c, rgb)
+            return a.extract.remote(c.name, rgb)
+
         for cam in todo:
-            pool.submit(lambda a, c: a.extract.remote(c.name, load_image(c)), cam)
+            pool.submit(submit, cam)
         finished = len(report.skipped)
         if on_progress is not None:
             on_progress(finished, len(cameras))
@@ -145,11 +154,11 @@ def extract_features_ray(
             except ray.exceptions.RayError as exc:
                 raise DrsplatError(f"a Ray feature worker failed after {TASK_RETRIES} retries: {exc}") from None
             record_result(out, stem, seg, feats, times, counts, report)
+            stamps.add(stem, read_at.get(stem))
             finished += 1
             if on_progress is not None:
                 on_progress(finished, len(cameras))
-        featurefiles.write_manifest(out, {**manifest, "images": len(report.written) + len(report.skipped),
-                                          IMAGE_STAMPS: stamps_after(stamps, cameras, report)})
+        stamps.finish(manifest, len(report.written) + len(report.skipped))
         report.workers = count
         return report
     finally:

@@ -36,13 +36,13 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from drsplat.errors import InputError, OutputError
+from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.scene import GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, clipped, file_stamp, hidden_character
+from drsplat.utils import atomic_path, clipped, file_stamp
 
 log = logging.getLogger(__name__)
 
