@@ -203,8 +203,7 @@ def test_an_image_edited_after_its_features_were_made_is_redone(tmp_path, weight
     src = tmp_path / "ds"
     shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
     out = tmp_path / "features"
-    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
-            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    args = slic_features_argv(src, out, weights, quiet=True)
     assert main(args) == 0
     before = mtimes(out)
     assert main(args) == 0 and mtimes(out) == before  # nothing changed: nothing redone
@@ -237,8 +236,7 @@ def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
     cams = [dataclasses.replace(look_at_camera([0, 0, -3], [0, 0, 0], 64, 48, name=n), image_path=src / "images" / f"{n}.png") for n in "ab"]
     write_transforms_json(cams, src / "transforms.json")
     out = tmp_path / "features"
-    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
-            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    args = slic_features_argv(src, out, weights, quiet=True)
     assert main(args) == 1 and featurefiles.is_valid_pair(out, "a") and (out / STAMP_JOURNAL).exists()
     first = np.load(featurefiles.feat_path(out, "a"))
     gradient = Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3)))
@@ -264,8 +262,7 @@ def test_a_pair_written_just_before_a_kill_is_made_again(tmp_path, weights):
     src = tmp_path / "ds"
     shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
     out = tmp_path / "features"
-    args = ["-q", "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
-            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    args = slic_features_argv(src, out, weights, quiet=True)
     assert main(args) == 0
     manifest = featurefiles.read_manifest(out)
     featurefiles.write_manifest(out, {**manifest, "image_stamps": {}})  # as a killed run leaves it: the pair, no stamp
@@ -273,6 +270,12 @@ def test_a_pair_written_just_before_a_kill_is_made_again(tmp_path, weights):
     before = mtimes(out)
     assert main(args) == 0 and mtimes(out) != before
     assert featurefiles.read_manifest(out)["image_stamps"].keys() == {"view"}
+
+
+def slic_features_argv(src: Path, out: Path, weights: dict[str, Path], quiet: bool = False) -> list[str]:
+    """`drsplat features` of dataset `src` into `out` with SLIC masks and the tiny random-weight CLIP on the CPU."""
+    return [*(["-q"] if quiet else []), "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
 
 
 def _one_camera_dataset(folder: Path, image, width: int = 64, height: int = 48, exif=None) -> Path:
@@ -584,8 +587,7 @@ def test_features_says_which_images_gave_nothing_useful(tmp_path, weights, capsy
 
     src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(np.full((12, 16, 3), 200, np.uint8)))
     out = tmp_path / "features"
-    args = ["features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
-            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    args = slic_features_argv(src, out, weights)
     assert main(args) == 0
     err = capsys.readouterr().err
     assert "1 image(s) are one flat colour (view)" in err, err
@@ -601,8 +603,7 @@ def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weig
     out = tmp_path / "out"
     out.mkdir()
     (out / "manifest.json").write_text('{"my": "own dataset manifest"}')
-    args = ["features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
-            "--clip-checkpoint", str(weights["clip"]), "--device", "cpu"]
+    args = slic_features_argv(src, out, weights)
     assert main(args) == 1
     assert "manifest.json is not a drsplat features manifest" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
