@@ -1281,7 +1281,13 @@ PILLOW_DECODE_ERRORS = (ValueError, SyntaxError, IndexError, EOFError, struct.er
 
 
 def load_image(camera: Camera) -> np.ndarray:
-    """[H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed.
+    """[H, W, 3] uint8 RGB training image at the camera's resolution (`load_image_sized`'s image)."""
+    return load_image_sized(camera)[0]
+
+
+def load_image_sized(camera: Camera) -> tuple[np.ndarray, tuple[int, int]]:
+    """([H, W, 3] uint8 RGB training image at the camera's resolution, undistorted if needed;
+    (width, height) of the file as stored, before any resize).
 
     The stored pixels are read as 3DGS and COLMAP read them (no EXIF rotation) and resized to the
     camera's size; a file whose aspect ratio differs from the camera's by more than
@@ -1306,25 +1312,10 @@ def load_image(camera: Camera) -> np.ndarray:
         raise InputError(path, f"is not a readable image ({exc.__class__.__name__}: {exc})") from None
     file_size = (rgb.shape[1], rgb.shape[0])
     if camera.distortion is not None:
-        return undistort_image(rgb, camera, file_size)
+        return undistort_image(rgb, camera, file_size), file_size
     if file_size == (camera.width, camera.height):
-        return rgb
-    return np.asarray(Image.fromarray(rgb).resize((camera.width, camera.height), Image.BICUBIC))
-
-
-def image_file_size(path: Path | None) -> tuple[int, int]:
-    """(width, height) an image file's header declares (nothing decoded), (0, 0) when it cannot be read."""
-    from PIL import Image
-
-    if path is None:
-        return 0, 0
-    try:
-        with warnings.catch_warnings():  # load_image has said what there is to say about a file this large
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as im:
-                return im.size
-    except (OSError, Image.DecompressionBombError, *PILLOW_DECODE_ERRORS):
-        return 0, 0
+        return rgb, file_size
+    return np.asarray(Image.fromarray(rgb).resize((camera.width, camera.height), Image.BICUBIC)), file_size
 
 
 def check_image_framing(path: Path, im, camera: Camera) -> None:

@@ -31,7 +31,7 @@ from drsplat.features.modelid import (
 )
 from drsplat.utils import CancelToken, progress, file_stamp
 import drsplat
-from drsplat.cameras import image_file_size, load_cameras, load_image
+from drsplat.cameras import load_cameras, load_image_sized
 from drsplat.features.clip import ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
@@ -100,12 +100,13 @@ def listed(names: list[str], first: int = 3) -> str:
 UPSAMPLE_NOTE = 1.5  # an image file this many times narrower than its camera is counted as upsampled
 
 
-def note_image(report: FeatureReport, cam, rgb: np.ndarray) -> None:
+def note_image(report: FeatureReport, cam, rgb: np.ndarray, file_size: tuple[int, int]) -> None:
     """Count in `report` an image of one flat colour (every pixel of rgb [H, W, 3], the image at its
-    camera's size, the same) and an image file over UPSAMPLE_NOTE times narrower than its camera."""
+    camera's size, the same) and an image file (file_size: its stored width, height) over
+    UPSAMPLE_NOTE times narrower than its camera."""
     if rgb.size and (rgb == rgb.reshape(-1, rgb.shape[-1])[0]).all():
         report.flat.append(cam.name)
-    width, height = image_file_size(cam.image_path)
+    width, height = file_size
     if width and cam.width > UPSAMPLE_NOTE * width:
         report.upsampled.append((cam.name, f"{width}x{height} to {cam.width}x{cam.height}", cam.width / width))
 
@@ -478,8 +479,8 @@ def extract_features(
         if cam.name in todo:
             todo.discard(cam.name)
             stamp = file_stamp(cam.image_path)  # the image as it is read, not as it may be by the end of the run
-            rgb = load_image(cam)
-            note_image(report, cam, rgb)
+            rgb, file_size = load_image_sized(cam)
+            note_image(report, cam, rgb, file_size)
             seg, feats, times, counts = extract_image(rgb, generator, encoder, nms)
             record_result(out, cam.name, seg, feats, times, counts, report)
             stamps.add(cam.name, stamp)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import load_image
+from drsplat.cameras import load_image_sized
 from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_threads, worker_slots
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
@@ -133,8 +133,8 @@ def extract_features_ray(
 
         def submit(a, c):
             read_at[c.name] = file_stamp(c.image_path)
-            rgb = load_image(c)
-            note_image(report, c, rgb)
+            rgb, file_size = load_image_sized(c)
+            note_image(report, c, rgb, file_size)
             return a.extract.remote(c.name, rgb)
 
         for cam in todo:
