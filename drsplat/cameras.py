@@ -214,6 +214,14 @@ def plain_numbers(values) -> str:
     return " ".join(f"{float(v):g}" for v in np.ravel(values))
 
 
+FieldNames = dict[str, str]  # a Camera attribute ("translation" for t, "rotation" for R) -> the field of the file that gave it
+
+
+def file_field(names: FieldNames | None, attribute: str) -> str:
+    """The field of the camera file that gave `attribute` (a reader's `names`), the attribute's own name by default."""
+    return (names or {}).get(attribute, attribute)
+
+
 class _Reader:
     """Bounds-checked little-endian reader for COLMAP binary files."""
 
@@ -470,9 +478,35 @@ def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
     return points
 
 
+COLMAP_FILES = ("cameras", "images", "points3D")  # a model's files, each .bin or .txt; points3D is optional
+COLMAP_FORMATS = {".bin": "binary", ".txt": "text"}
+
+
 def _has_model(sparse_dir: Path, ext: str) -> bool:
     """Whether `sparse_dir` holds a COLMAP model in `ext` (".bin" or ".txt"): its cameras and images files."""
     return (sparse_dir / f"cameras{ext}").exists() and (sparse_dir / f"images{ext}").exists()
+
+
+def _model_files(sparse_dir: Path, ext: str) -> list[str]:
+    """The names of the COLMAP files in `ext` that `sparse_dir` holds (cameras, images, points3D order)."""
+    return [f"{name}{ext}" for name in COLMAP_FILES if (sparse_dir / f"{name}{ext}").exists()]
+
+
+def _no_model(sparse_dir: Path) -> str:
+    """Why `sparse_dir` holds no COLMAP model, naming what is there and what is missing: cameras of one
+    format beside images of the other (a model is all binary or all text), or one of the two alone
+    (both were "is not a COLMAP sparse model")."""
+    found = {stem: [f"{stem}{ext}" for ext in COLMAP_FORMATS if (sparse_dir / f"{stem}{ext}").exists()] for stem in COLMAP_FILES[:2]}
+    cameras, images = found["cameras"], found["images"]
+    if cameras and images:  # no format complete: the cameras of one, the images of the other
+        return (f"has {cameras[0]} and {images[0]}, but a COLMAP model is all binary (cameras.bin, images.bin) or all text "
+                "(cameras.txt, images.txt): write the missing file in the other's format (`colmap model_converter` converts "
+                "a whole model) and remove the stray one")
+    if cameras or images:
+        have, other = (cameras, "images") if cameras else (images, "cameras")
+        missing = " or ".join(other + Path(name).suffix for name in have)
+        return f"has {' and '.join(have)} but no {missing}: a COLMAP model needs both (the cameras' intrinsics and the images' poses)"
+    return "is not a COLMAP sparse model (no cameras.bin/images.bin or cameras.txt/images.txt)"
 
 
 def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
@@ -487,7 +521,7 @@ def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
         cams, imgs = read_colmap_cameras_txt(d / "cameras.txt"), read_colmap_images_txt(d / "images.txt")
         points = read_colmap_points_txt(d / "points3D.txt") if (d / "points3D.txt").exists() else {}
     else:
-        raise InputError(d, "is not a COLMAP sparse model (no cameras.bin/images.bin or cameras.txt/images.txt)")
+        raise InputError(d, _no_model(d))
     for img in imgs.values():
         if img.camera_id not in cams:
             raise InputError(d / f"images{ext}", f"image {img.name!r} refers to camera {img.camera_id}, which the model does not have", field="CAMERA_ID")
@@ -521,6 +555,9 @@ def colmap_rotation(path: Path, where: str, qvec: np.ndarray) -> np.ndarray:
     return qvec_to_rotmat(q)
 
 
+COLMAP_IMAGE_FIELDS: FieldNames = {"rotation": "QW QX QY QZ", "translation": "TX TY TZ"}  # images.txt's header names them so
+
+
 def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> list[Camera]:
     """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`)."""
     out = []
@@ -534,7 +571,7 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
         camera = Camera(R=colmap_rotation(images_file, where, img.qvec), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
                         width=cam.width, height=cam.height, image_path=paths.image(img.name), name=Path(img.name).stem)
         validate_intrinsics(camera, model.cameras_path or source, f"camera {cam.camera_id} (used by {where})")
-        validate_camera(camera, images_file, where)
+        validate_camera(camera, images_file, where, COLMAP_IMAGE_FIELDS)
         out.append(camera)
     return out
 
@@ -626,17 +663,18 @@ def check_image_name(path: Path, name: str, where: str, field: str) -> None:
         raise InputError(path, f"{where} has the image name {name[:80]!r}, which names a folder, not an image file", field=field)
 
 
-def validate_camera(camera: Camera, path: Path, where: str) -> None:
+def validate_camera(camera: Camera, path: Path, where: str, names: FieldNames | None = None) -> None:
     """Refuse a camera whose values cannot be a real camera: non-finite or non-rotation R, non-finite t,
-    or intrinsics that `validate_intrinsics` refuses."""
-    check_rotation(path, where, camera.R, "rotation")
+    or intrinsics that `validate_intrinsics` refuses. Errors name the field as the file has it (`names`)."""
+    check_rotation(path, where, camera.R, file_field(names, "rotation"))
     t = np.asarray(camera.t, np.float64)
+    field = file_field(names, "translation")
     if not np.isfinite(t).all():
-        raise InputError(path, f"{where} has a non-finite translation", field="translation")
+        raise InputError(path, f"{where} has a non-finite translation", field=field)
     if np.abs(t).max() > MAX_COORDINATE:
         raise InputError(path, f"{where} has a translation of {np.abs(t).max():.3g}, beyond any scene (more than {MAX_COORDINATE:.0e}: a scale "
-                         "or units mix-up?); it would see no Gaussian", field="translation")
-    validate_intrinsics(camera, path, where)
+                         "or units mix-up?); it would see no Gaussian", field=field)
+    validate_intrinsics(camera, path, where, names)
 
 
 ROTATION_TOLERANCE = 1e-3  # of R Rᵀ against I: a rotation written with 4 decimals (or in float32) passes
@@ -666,30 +704,35 @@ def check_rotation(path: Path, where: str, R: np.ndarray, field: str) -> None:
 def check_centre(path: Path, where: str, centre: np.ndarray, field: str) -> None:
     """InputError when a camera-to-world position lies beyond MAX_COORDINATE, before t = -R c is
     formed from it: near 1e308 that product overflows (numpy's warning, then a "non-finite
-    translation" the file does not hold); any such camera is refused by `validate_camera` anyway."""
+    translation" the file does not hold); any such camera is refused by `validate_camera` anyway. A
+    non-finite position is refused here too, under `field` (as a translation it was named "translation")."""
+    if not np.isfinite(centre).all():
+        raise InputError(path, f"{where} has the camera position {plain_numbers(centre)}, which is not finite", field=field)
     largest = float(np.abs(centre).max())
     if largest > MAX_COORDINATE:
         raise InputError(path, f"{where} has a camera position of {largest:.3g}, beyond any scene (more than {MAX_COORDINATE:.0e}: a scale "
                          "or units mix-up?); it would see no Gaussian", field=field)
 
 
-def validate_intrinsics(camera: Camera, path: Path, where: str) -> None:
+def validate_intrinsics(camera: Camera, path: Path, where: str, names: FieldNames | None = None) -> None:
     """Refuse image sides outside 1..MAX_IMAGE_SIDE, focal lengths that are not positive and finite,
-    non-finite principal points, and intrinsics implausibly far from the image size (`_check_intrinsic`)."""
+    non-finite principal points, and intrinsics implausibly far from the image size (`_check_intrinsic`).
+    Errors name each value by the file's field for it (`names`: transforms.json's fx is fl_x)."""
     for name in ("width", "height"):
         value = getattr(camera, name)
         if not 1 <= value <= MAX_IMAGE_SIDE:
-            raise InputError(path, f"{where} has {name}={value}; it must be in 1..{MAX_IMAGE_SIDE}", field=name)
+            label = file_field(names, name)
+            raise InputError(path, f"{where} has {label}={value}; it must be in 1..{MAX_IMAGE_SIDE}", field=label)
     for name, side in (("fx", "width"), ("fy", "height")):
-        value = getattr(camera, name)
+        value, label = getattr(camera, name), file_field(names, name)
         if not (np.isfinite(value) and value > 0):
-            raise InputError(path, f"{where} has focal length {name}={plain_numbers(value)}; it must be a positive number", field=name)
-        _check_intrinsic(path, where, name, value, side, getattr(camera, side), MIN_FOCAL_RATIO)
+            raise InputError(path, f"{where} has focal length {label}={plain_numbers(value)}; it must be a positive number", field=label)
+        _check_intrinsic(path, where, label, value, side, getattr(camera, side), MIN_FOCAL_RATIO)
     for name, side in (("cx", "width"), ("cy", "height")):
-        value = getattr(camera, name)
+        value, label = getattr(camera, name), file_field(names, name)
         if not np.isfinite(value):
-            raise InputError(path, f"{where} has a non-finite principal point", field=name)
-        _check_intrinsic(path, where, name, value, side, getattr(camera, side), -MAX_INTRINSIC_RATIO)
+            raise InputError(path, f"{where} has a non-finite principal point", field=label)
+        _check_intrinsic(path, where, label, value, side, getattr(camera, side), -MAX_INTRINSIC_RATIO)
 
 
 def _check_intrinsic(path: Path, where: str, name: str, value: float, side_name: str, side: int, low_ratio: float) -> None:
@@ -729,12 +772,16 @@ def w2c_opencv_to_c2w_opengl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return c2w
 
 
+TRANSFORMS_POSE_FIELDS: FieldNames = {"rotation": "transform_matrix", "translation": "transform_matrix"}  # its pose is one field
+DISTORTION_FIELDS = ("k1", "k2", "p1", "p2")  # OpenCV's radial-tangential model, as transforms.json and Camera.distortion hold it
+
+
 def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[Camera], list[str]]:
     """Cameras of a NeRF-synthetic or instant-ngp/nerfstudio transforms.json.
 
     Returns (cameras, the image names of frames skipped because their image is missing). Per-frame
     intrinsics override the shared ones. OpenCV distortion (k1, k2, p1, p2) is kept on the
-    camera and removed by `load_image`; fisheye models are refused. Every value is type- and
+    camera and removed by `load_image` (within `check_distortion`'s bound); fisheye models are refused. Every value is type- and
     range-checked (`validate_camera`); errors name the frame and the field.
     """
     meta = _json(path)
@@ -765,29 +812,42 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
         else:
             width, height = _image_size(image)
-        if "fl_x" in rec:
-            fx = _number(path, rec, "fl_x", where=where)
-            fy = _number(path, rec, "fl_y", fx, where=where)
-        elif "camera_angle_x" in rec:
-            fx = _focal_from_angle(path, rec, "camera_angle_x", width, where)
-            fy = _focal_from_angle(path, rec, "camera_angle_y", height, where) if "camera_angle_y" in rec else fx
-        else:
-            raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")
+        fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where)
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
-        dist = np.array([_number(path, rec, k, 0.0, where=where) for k in ("k1", "k2", "p1", "p2")])
+        dist = np.array([_number(path, rec, k, 0.0, where=where) for k in DISTORTION_FIELDS])
         if any(_number(path, rec, k, 0.0, where=where) != 0 for k in ("k3", "k4")):
             raise InputError(path, f"has k3/k4 distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field="k3")
         if np.allclose(c2w[:3, :3], 0):
             raise InputError(path, f"frame {i} has an all-zero rotation in its transform_matrix", field="transform_matrix")
-        check_rotation(path, f"frame {i}", c2w[:3, :3], "rotation")  # the OpenGL flip keeps a rotation a rotation
-        check_centre(path, f"frame {i}", c2w[:3, 3], "translation")  # the field validate_camera names for it
+        check_rotation(path, f"frame {i}", c2w[:3, :3], "transform_matrix")  # the OpenGL flip keeps a rotation a rotation
+        check_centre(path, f"frame {i}", c2w[:3, 3], "transform_matrix")
         R, t = c2w_opengl_to_w2c_opencv(c2w)
         camera = Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, image_path=image,
                         name=image.stem, distortion=dist if np.any(dist != 0) else None)
-        validate_camera(camera, path, f"frame {i}")
+        validate_camera(camera, path, f"frame {i}", {**TRANSFORMS_POSE_FIELDS, **focal_fields})
+        check_distortion(path, camera, where)
         cameras.append(camera)
     return cameras, missing
+
+
+def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:
+    """(fx, fy, the fields they came from) of a transforms.json frame `rec` (its own keys over the
+    file's): fl_x and fl_y (fy = fl_x without fl_y), else the fields of view camera_angle_x and
+    camera_angle_y (fy = fx without camera_angle_y, so that angle must give a focal length the
+    height allows too: `_focal_from_angle`). Errors about them name these fields, never fx or fy."""
+    if "fl_x" in rec:
+        fx = _number(path, rec, "fl_x", where=where)
+        fy = _number(path, rec, "fl_y", fx, where=where)
+        return fx, fy, {"fx": "fl_x", "fy": "fl_y" if "fl_y" in rec else "fl_x"}
+    if "camera_angle_x" in rec:
+        if "camera_angle_y" in rec:
+            fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where)
+            fy = _focal_from_angle(path, rec, "camera_angle_y", ("height", height), where)
+            return fx, fy, {"fx": "camera_angle_x", "fy": "camera_angle_y"}
+        fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where, also=("height", height))
+        return fx, fx, {"fx": "camera_angle_x", "fy": "camera_angle_x"}
+    raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")
 
 
 def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
@@ -820,19 +880,31 @@ def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
 MIN_FIELD_OF_VIEW = 2.0 * math.atan(0.5 / MAX_INTRINSIC_RATIO)
 
 
-def _focal_from_angle(path: Path, rec: dict, key: str, side: int, where: str) -> float:
-    """f = side / (2 tan(angle / 2)) for a field-of-view angle in [MIN_FIELD_OF_VIEW, pi) radians.
+def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], where: str, also: tuple[str, int] | None = None) -> float:
+    """f = s / (2 tan(angle / 2)) of a field-of-view angle across the image side `side` (name, s
+    pixels), for an angle in [MIN_FIELD_OF_VIEW, pi) radians whose f `validate_intrinsics` accepts
+    for that side and for the side `also`, whose focal length it is too (fy = fx without camera_angle_y).
 
-    The angle itself is refused below MIN_FIELD_OF_VIEW: that f would be refused by
-    `validate_intrinsics` under a name the file does not use (fx), and for angles near 1e-308 the
-    division overflows (numpy's warning, then "fx=inf")."""
+    InputError naming `key` otherwise. An angle below MIN_FIELD_OF_VIEW is refused before f is formed:
+    for angles near 1e-308 the division overflows (numpy's warning, then "fx=inf"). Near pi, f nears 0
+    (3.14159265 rad gives 1.1e-7 pixels): no pinhole lens; both ends were refused as fx or fy, fields
+    the file does not have."""
     angle = _number(path, rec, key, where=where)
     if not 0 < angle < np.pi:
         raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must lie in (0, pi)", field=key)
     if angle < MIN_FIELD_OF_VIEW:
         raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must be at least {MIN_FIELD_OF_VIEW:.3g} rad (a narrower "
                          f"one means a focal length of more than {MAX_INTRINSIC_RATIO:g} image sides, which no lens has)", field=key)
-    return float(0.5 * side / math.tan(0.5 * angle))
+    focal = float(0.5 * side[1] / math.tan(0.5 * angle))
+    for name, size in (side, also) if also is not None else (side,):
+        low, high = MIN_FOCAL_RATIO * size, MAX_INTRINSIC_RATIO * size  # `_check_intrinsic`'s bounds, so it never names fx for this angle
+        if not low <= focal <= high:
+            shared = f" (used for the {name} too: the file has no camera_angle_y)" if name != side[0] else ""
+            widest, narrowest = (2.0 * math.atan(0.5 * side[1] / f) for f in (low, high))
+            raise InputError(path, f"has a field of view of {angle:.9g} rad{where}, a focal length of {focal:g} pixels{shared} for an image "
+                             f"{size} pixels in {name}; it must lie in [{low:g}, {high:g}] ({MIN_FOCAL_RATIO:g} to {MAX_INTRINSIC_RATIO:g} "
+                             f"times the {name}), so the angle in [{narrowest:.9g}, {widest:.9g}] rad", field=key)
+    return focal
 
 
 def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], list[str]]:
@@ -912,12 +984,30 @@ def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list
     if _has_model(sparse, ".bin") and _has_model(sparse, ".txt"):
         log.warning("%s holds both a binary (cameras.bin, images.bin) and a text (cameras.txt, images.txt) COLMAP model; the binary "
                     "one is used, as COLMAP does, and the text one is ignored (remove the one that is not meant)", sparse)
+    else:
+        _warn_stray_files(sparse)
     cameras = cameras_from_colmap(read_colmap_model(sparse), root / "images", sparse)
     if not require_images:
         return cameras, []
     found = [c.image_path is not None and c.image_path.is_file() for c in cameras]
     missing = [c.image_path.name if c.image_path is not None else c.name for c, ok in zip(cameras, found) if not ok]
     return [c for c, ok in zip(cameras, found) if ok], missing
+
+
+def _warn_stray_files(sparse: Path) -> None:
+    """Warn when files of the other format lie beside the one complete model of `sparse` (cameras.bin
+    beside a text model): they are ignored, as a lone cameras.bin was without a word."""
+    used = next((ext for ext in COLMAP_FORMATS if _has_model(sparse, ext)), None)
+    if used is None:
+        return
+    other = next(ext for ext in COLMAP_FORMATS if ext != used)
+    stray = _model_files(sparse, other)
+    if not stray:
+        return
+    missing = [f"{name}{other}" for name in COLMAP_FILES[:2] if f"{name}{other}" not in stray]
+    log.warning("%s has %s but no %s: the %s model (cameras%s, images%s) is used and %s ignored (a COLMAP model is all binary or "
+                "all text: remove the stray files, or complete their model)", sparse, ", ".join(stray), ", ".join(missing),
+                COLMAP_FORMATS[used], used, used, "it is" if len(stray) == 1 else "they are")
 
 
 def _colmap_files(sparse: Path) -> list[Path]:
@@ -1061,8 +1151,7 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
                  "as they are read", path, distorted, len(cameras))
     transform = dataparser_transforms_path(source)
     if transform is not None:
-        rotation, translation, scale = read_dataparser_transform(transform)
-        cameras = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
+        cameras, scale = cameras_in_trained_frame(transform, cameras)
         log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g), where a "
                  "splatfacto export lies", transform, len(cameras), scale)
     return scale_cameras(cameras, resolution)
@@ -1078,11 +1167,20 @@ def dataparser_transforms_path(source: str | Path) -> Path | None:
     return path if path.is_file() else None
 
 
+# nerfstudio's scale is its scale_factor (1 by default) over the largest centred camera coordinate, which puts the cameras in
+# [-1, 1]: for cameras within MAX_COORDINATE of the origin (and not all within 1/MAX_COORDINATE of their centre) it lies in
+# [1/MAX_COORDINATE, MAX_COORDINATE]. Beyond, a dataset unit would move beyond any scene (1e300 put every camera at 1e300,
+# where registration projected the whole scene onto one pixel) or shrink below any (1e-300 put every camera on the origin).
+DATAPARSER_SCALES = (1.0 / MAX_COORDINATE, MAX_COORDINATE)
+
+
 def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
     """(R [3, 3], t [3], s) of nerfstudio's dataparser_transforms.json, {"transform": [3 or 4 rows of 4],
     "scale": s}: a dataset point x lies at s·(R x + t) in the frame it trains in (orientation,
     centring, then the scale; ns-train writes it beside its config.yml). InputError naming the field
-    when it is not that: R must be a rotation (orthonormal within 1e-4, determinant +1), s > 0."""
+    when it is not that: R must be a rotation (orthonormal within 1e-4, determinant +1: nerfstudio's
+    auto_orient_and_center_poses writes one), t a centring within MAX_COORDINATE (its entries, as a
+    camera's), s within DATAPARSER_SCALES."""
     data = read_json(path, "nerfstudio dataparser transform")
     if not isinstance(data, dict):
         raise InputError(path, "is not a JSON object with 'transform' and 'scale'")
@@ -1095,9 +1193,16 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     rotation, translation = values[:3, :3], values[:3, 3]
     if not is_rotation(rotation, atol=1e-4):
         raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field="transform")
+    if np.abs(translation).max() > MAX_COORDINATE:
+        raise InputError(path, f"has the translation {plain_numbers(translation)} in its last column, beyond any scene (more than "
+                         f"{MAX_COORDINATE:g}: nerfstudio centres the cameras, which lie within it)", field="transform")
     scale = _number(path, data, "scale")
     if not scale > 0:
-        raise InputError(path, f"has scale {scale:g}; it must be above 0", field="scale")
+        raise InputError(path, f"has scale {plain_numbers(scale)}; it must be above 0", field="scale")
+    low, high = DATAPARSER_SCALES
+    if not low <= scale <= high:
+        raise InputError(path, f"has scale {plain_numbers(scale)}; it must lie in [{low:g}, {high:g}] (nerfstudio's scale puts the cameras "
+                         "within 1 of the origin; this one would move them beyond any scene, or onto one point)", field="scale")
     return rotation, translation, scale
 
 
@@ -1106,6 +1211,33 @@ def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarr
     camera coordinates are s times the old ones and every point projects to the same pixel."""
     r = np.asarray(camera.R, np.float64) @ rotation.T
     return dataclasses.replace(camera, R=r, t=scale * (np.asarray(camera.t, np.float64) - r @ translation))
+
+
+def cameras_in_trained_frame(path: Path, cameras: list[Camera]) -> tuple[list[Camera], float]:
+    """(`cameras` moved into the frame of the dataparser_transforms.json `path`, its scale): every one
+    `in_trained_frame`, then held to the bound of the camera files (`check_trained_camera`)."""
+    rotation, translation, scale = read_dataparser_transform(path)
+    moved = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
+    for camera, there in zip(cameras, moved):
+        check_trained_camera(path, camera, there, rotation @ camera.ray_origin() + translation, scale)
+    return moved, scale
+
+
+def check_trained_camera(path: Path, camera: Camera, moved: Camera, unscaled: np.ndarray, scale: float) -> None:
+    """InputError naming the dataparser file `path` when it moves `camera` (to `moved`: its centre
+    s·`unscaled`, unscaled = R c + t) beyond MAX_COORDINATE, the bound `check_centre` and
+    `validate_camera` hold camera files to: under field 'transform' when R c + t lies beyond it, else
+    under 'scale'. The file's own bounds (`read_dataparser_transform`) keep every product finite."""
+    largest = max(float(np.abs(moved.t).max()), float(np.abs(moved.ray_origin()).max()))
+    if largest <= MAX_COORDINATE:
+        return
+    before = float(np.abs(unscaled).max())
+    if before > MAX_COORDINATE:
+        field, how = "transform", f"its rotation and translation move it to {before:.3g}"
+    else:
+        field, how = "scale", f"scale {plain_numbers(scale)} times {before:.3g}"
+    raise InputError(path, f"moves camera {camera.name!r} to a position of {largest:.3g} ({how}), beyond any scene (more than "
+                     f"{MAX_COORDINATE:.0e}: the transform of another dataset?); it would see no Gaussian", field=field)
 
 
 NAME_FIELDS = {"colmap": "NAME", "transforms": "file_path", "cameras_json": "img_name"}
@@ -1227,6 +1359,50 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
+# The lens model moves a point of the image by k1 r² + k2 r⁴ times its distance from the principal point (r: that distance
+# over the focal length), plus the tangential terms. A real lens moves its corners by a fraction of that distance (fox's
+# phone: 0.075 by `lens_shifts`' bound), a wide-angle one by about the distance itself (r near 1.7 at the corners of a
+# 120-degree view, where a strong barrel k1 of -0.3 gives k1 r² = -0.9). A hundred times sends all but the middle of the
+# image beyond the file (the edge colour everywhere else: an image of "one flat colour"); far beyond, the undistortion
+# overflows (numpy's warnings, then NaN pixels). The bound keeps every wide lens, with a wide margin.
+MAX_LENS_SHIFT = 100.0
+
+
+def lens_shifts(camera: Camera) -> dict[str, float]:
+    """Each distortion coefficient's bound on how far it moves a point of the image, relative to the
+    point's distance from the principal point, at the image corner farthest from it (where r, and so
+    every term, is largest): |k1| r², |k2| r⁴, 3 |p1| r, 3 |p2| r (a tangential term is at most 3 |p| r²).
+
+    Their sum bounds the shift of every point of the image. r is finite (`validate_intrinsics` bounds
+    it by 1e12); a coefficient near 1e308 gives inf, beyond any bound, and never NaN."""
+    u = np.abs(np.array([0.0, camera.width]) - camera.cx).max() / camera.fx
+    v = np.abs(np.array([0.0, camera.height]) - camera.cy).max() / camera.fy
+    r = np.float64(np.hypot(u, v))
+    with np.errstate(over="ignore"):
+        terms = np.abs(np.asarray(camera.distortion, np.float64)) * np.array([r * r, r**4, 3.0 * r, 3.0 * r])
+    return dict(zip(DISTORTION_FIELDS, terms.tolist()))
+
+
+def check_distortion(path: Path, camera: Camera, where: str) -> None:
+    """InputError naming the distortion coefficient that moves the image most (`lens_shifts`) when
+    together they move a point by more than MAX_LENS_SHIFT times its distance from the principal
+    point: no lens does, and the undistortion would sample nothing but the file's edge or overflow.
+    Under the bound `undistort_image` stays finite, with no numpy warning."""
+    if camera.distortion is None:
+        return
+    shifts = lens_shifts(camera)
+    if sum(shifts.values()) <= MAX_LENS_SHIFT:
+        return
+    name = max(shifts, key=lambda k: shifts[k])
+    value = camera.distortion[DISTORTION_FIELDS.index(name)]
+    total = sum(shifts.values())
+    times = f"up to {total:.3g} times" if math.isfinite(total) else f"more than {np.finfo(np.float64).max:.3g} times"
+    raise InputError(path, f"has the lens distortion {name}={plain_numbers(value)}{where}: with it the lens model (k1, k2, p1, p2) moves "
+                     f"the image's farthest corner {times} its distance from the principal point, where a real lens moves it by a "
+                     f"fraction of that (at most {MAX_LENS_SHIFT:g} times is accepted); the undistorted image would show little but the "
+                     "edge of the image file", field=name)
+
+
 def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int]) -> np.ndarray:
     """Resample a distorted image file onto the camera's pinhole grid (bilinear).
 
@@ -1241,8 +1417,10 @@ def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int
     u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     xy = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], axis=-1)
     d = distort_normalized(xy, camera.distortion)
-    src_u = (d[..., 0] * camera.fx + camera.cx) * sx - 0.5
-    src_v = (d[..., 1] * camera.fy + camera.cy) * sy - 0.5
+    # clipped to a pixel beyond the edges, which samples the edge pixel as farther points do: past about
+    # 1e18 map_coordinates' integer index wraps (another pixel, no warning)
+    src_u = np.clip((d[..., 0] * camera.fx + camera.cx) * sx - 0.5, -1.0, image.shape[1])
+    src_v = np.clip((d[..., 1] * camera.fy + camera.cy) * sy - 0.5, -1.0, image.shape[0])
     out = np.empty((camera.height, camera.width, image.shape[2]), dtype=np.float32)
     for c in range(image.shape[2]):
         out[..., c] = map_coordinates(image[..., c].astype(np.float32), [src_v, src_u], order=1, mode="nearest")

@@ -18,7 +18,7 @@ import sys
 import threading
 
 from drsplat import __version__
-from drsplat.errors import INTERRUPTED_NOTE, Cancelled, DrsplatError, UsageError
+from drsplat.errors import INTERRUPTED_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
 from drsplat.utils import describe_os_error
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
@@ -54,7 +54,8 @@ def _add_verbosity(sub: argparse.ArgumentParser) -> None:
 
 class _StderrHandler(logging.StreamHandler):
     """Writes to whatever `sys.stderr` is when a record is emitted, not the stream of the first call (a
-    caller that swapped stderr, such as a test capture, never leaves the log pointing at a closed stream)."""
+    caller that swapped stderr, such as a test capture, never leaves the log pointing at a closed stream),
+    with the characters a terminal would not show as itself escaped (`errors.escape_hidden`)."""
 
     @property
     def stream(self):
@@ -63,6 +64,9 @@ class _StderrHandler(logging.StreamHandler):
     @stream.setter
     def stream(self, value) -> None:
         pass
+
+    def format(self, record: logging.LogRecord) -> str:
+        return escape_hidden(super().format(record))  # names from files (image stems, paths) reach many messages
 
 
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:

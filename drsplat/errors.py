@@ -7,16 +7,29 @@ import unicodedata
 from pathlib import Path
 
 
+HIDDEN_CATEGORIES = {"Cc": "control", "Cf": "format", "Cs": "lone surrogate", "Zl": "line separator", "Zp": "paragraph separator"}
+
+
 def hidden_character(text: str) -> str | None:
     """A description of the first character of `text` that a terminal would not show as itself
     (a control character such as a newline, ESC or NUL; a format character such as U+202E, which
-    reverses the text after it; a lone surrogate), or None when there is none."""
+    reverses the text after it; a lone surrogate; the line and paragraph separators U+2028 / U+2029,
+    which log viewers break lines at), or None when there is none."""
     for ch in text:
         category = unicodedata.category(ch)
-        if category in ("Cc", "Cf", "Cs"):
-            kind = {"Cc": "control", "Cf": "format", "Cs": "lone surrogate"}[category]
+        if category in HIDDEN_CATEGORIES:
+            kind = HIDDEN_CATEGORIES[category]
             return f"a {kind} character (U+{ord(ch):04X})"
     return None
+
+
+def escape_hidden(text: str, keep: str = "\n\t") -> str:
+    """`text` with every character `hidden_character` would name, but those in `keep`, written as a
+    \\uXXXX escape: a log line that quotes an image or file name then shows it as it is spelled
+    instead of letting U+202E reverse, or ESC rewrite, the rest of the line."""
+    if hidden_character(text) is None:  # the usual case: one scan, no copy
+        return text
+    return "".join(ch if ch in keep or unicodedata.category(ch) not in HIDDEN_CATEGORIES else f"\\u{ord(ch):04x}" for ch in text)
 
 
 def shown_path(path: str | Path) -> str:

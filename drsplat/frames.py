@@ -64,8 +64,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transforms_path, detect_dataset, in_trained_frame, qvec_to_rotmat,
-                             read_colmap_model, read_dataparser_transform)
+from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, cameras_in_trained_frame, dataparser_transforms_path, detect_dataset,
+                             in_trained_frame, qvec_to_rotmat, read_colmap_model)
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
 
@@ -265,10 +265,10 @@ def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str
       refinements: its load report's `camera_refinements`, read with the scene)."""
     run = run_dataparser_transform(scene_path) if scene_path is not None and dataparser_transforms_path(source) is None else None
     if run is not None:
-        rotation, translation, scale = read_dataparser_transform(run)
+        moved, scale = cameras_in_trained_frame(run, cameras)  # held to the camera files' bounds, as the file beside them is
         log.warning("%s was trained by nerfstudio in the frame of its run's %s: the %d cameras of %s are moved there (scale %.6g)",
                     what, run, len(cameras), source, scale)
-        return [in_trained_frame(c, rotation, translation, scale) for c in cameras]
+        return moved
     evidence = colmap_evidence(source)
     found = best_move(means, evidence) if evidence is not None and len(means) else None
     if found is not None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,9 @@ MIP_FILTER = "filter_3D"  # Mip-Splatting's per-Gaussian 3D smoothing filter, a 
 SURFEL_THICKNESS = 1e-3  # a 2DGS surfel's thickness along its normal, relative to its smaller scale (`surfel_scales`)
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
 MAX_SH_COEFFICIENT = 1e30  # |SH coefficient| beyond this: a colour (16 terms, |basis| < 1.1) could pass float32's range
+EXTENT_OUTLIERS = 1e-3  # the share of the means on each side of each axis that `scene_extent` leaves out
+EXTENT_SAMPLE = 1 << 20  # at most this many means make `scene_extent` (every k-th one)
+EXTENT_TRIM_FROM = 100  # `scene_extent` of fewer means is their whole box
 HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
@@ -238,6 +242,7 @@ PLY_TYPES = {
 }
 NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
 MAX_HEADER_BYTES = 1 << 20
+UNREAD_PROPERTIES = {"nx", "ny", "nz"}  # of the INRIA layout, never read (3DGS writes them as zeros)
 CORE_PROPERTIES = {"x", "y", "z", "nx", "ny", "nz", "opacity"} | {f"scale_{i}" for i in range(3)} | {f"rot_{i}" for i in range(4)} | {f"f_dc_{i}" for i in range(3)}
 
 
@@ -294,7 +299,7 @@ class LoadReport:
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
-    scene_extent: float = 0.0  # the diagonal of the box of the means (`scene_extent`)
+    scene_extent: float = 0.0  # the diagonal of the box of 99.8 % of the means on each axis (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
@@ -328,8 +333,8 @@ class LoadReport:
             notes.append(f"{self.large_sh} Gaussians have an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
         if self.huge_scales:
-            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of its "
-                         f"means, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
+            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of "
+                         f"99.8 % of its means on each axis, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
                          "of what lies behind it (a training blow-up or a units mix-up?)")
         if self.overflowing_scales:
             notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "
@@ -655,23 +660,30 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
                  path, MIP_FILTER, f"{n:,}")
     cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
                                            and not name.startswith("f_rest_")])
-    cols["beyond_float32"] = rows_beyond_float32(vertex, [name for name in names if name in CORE_PROPERTIES or name.startswith("f_rest_")])
+    read = [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES) or name.startswith("f_rest_")]
+    cols["beyond_float32"] = rows_beyond_float32(vertex, read)  # normals are never read: a huge nx changes nothing
     return cols
 
 
-def scene_extent(means: np.ndarray, chunk: int = 1 << 20) -> float:
-    """The diagonal of the bounding box of the means [N, 3] that are finite and within MAX_COORDINATE
-    (0 without any), read `chunk` rows at a time (no N-sized temporaries). The whole box, not a
-    percentile one: a sky dome of large, far Gaussians is part of an unbounded capture's size, so it
-    widens the box instead of standing out against it."""
-    low, high = np.full(3, np.inf), np.full(3, -np.inf)
-    for start in range(0, means.shape[0], chunk):
-        rows = means[start:start + chunk]
-        with np.errstate(invalid="ignore"):
-            rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
-        if rows.shape[0]:
-            low, high = np.minimum(low, rows.min(axis=0)), np.maximum(high, rows.max(axis=0))
-    return float(np.linalg.norm(high - low)) if np.isfinite(low).all() else 0.0
+def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
+    """The diagonal of the box that holds all but the ⌈EXTENT_OUTLIERS·n⌉ outermost of the n means
+    [N, 3] on each side of each axis (the means finite and within MAX_COORDINATE; 0 without any; the
+    whole box under EXTENT_TRIM_FROM means), taken from every k-th mean, at most `sample` of them (no
+    N-sized temporaries).
+
+    Not a tighter box: a sky dome of large, far Gaussians (a tenth of an unbounded capture) is part
+    of its size, so it widens the box instead of standing out against it. Not the whole box either:
+    one stray mean 1e14 away made every Gaussian small beside it (a probe, 2026-12-01)."""
+    step = max(1, -(-means.shape[0] // max(sample, 1)))
+    rows = np.asarray(means[::step], np.float64)
+    with np.errstate(invalid="ignore"):
+        rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
+    n = rows.shape[0]
+    if not n:
+        return 0.0
+    k = math.ceil(EXTENT_OUTLIERS * n) if n >= EXTENT_TRIM_FROM else 0  # a few dozen means are all the scene there is
+    ranked = np.partition(rows, [k, n - 1 - k], axis=0)
+    return float(np.linalg.norm(ranked[n - 1 - k] - ranked[k]))
 
 
 def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:

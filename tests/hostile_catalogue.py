@@ -128,8 +128,8 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "width_zero": ({"frames": [_frame(w=0)]}, "'w'"),
     "fractional_height": ({"frames": [_frame(h=47.5)]}, "'h'"),
     "nan_focal": ({"frames": [_frame(fl_x=float("nan"))]}, "fl_x"),
-    "negative_focal": ({"frames": [_frame(fl_x=-50.0)]}, "fx"),
-    "zero_focal": ({"frames": [_frame(fl_x=0.0)]}, "fx"),
+    "negative_focal": ({"frames": [_frame(fl_x=-50.0)]}, "fl_x"),
+    "zero_focal": ({"frames": [_frame(fl_x=0.0)]}, "fl_x"),
     "huge_width": ({"frames": [_frame(w=10**9)]}, "'w'"),
     "all_zero_matrix": ({"frames": [_frame(transform_matrix=np.zeros((4, 4)).tolist())]}, "transform_matrix"),
     "scaled_rotation": ({"frames": [_frame(transform_matrix=np.diag([3.0, 3.0, 3.0, 1.0]).tolist())]}, "rotation"),  # eye(4) * 3 is now a bottom-row error
@@ -140,8 +140,8 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "angle_out_of_range": ({"camera_angle_x": 4.0, "frames": [{k: v for k, v in _frame().items() if k != "fl_x"}]}, "camera_angle_x"),
     "deep_nesting": (None, "JSON"),  # written as text below
     # round 3: finite but absurd intrinsics overflowed the culling bound; a NUL byte in a name raised ValueError
-    "focal_1e300": ({"frames": [_frame(fl_x=1e300)]}, "field 'fx': frame 0 has fx=1e+300"),
-    "focal_1e-300": ({"frames": [_frame(fl_x=1e-300)]}, "field 'fx': frame 0 has fx=1e-300"),
+    "focal_1e300": ({"frames": [_frame(fl_x=1e300)]}, "field 'fl_x': frame 0 has fl_x=1e+300"),
+    "focal_1e-300": ({"frames": [_frame(fl_x=1e-300)]}, "field 'fl_x': frame 0 has fl_x=1e-300"),
     "cx_1e300": ({"frames": [_frame(cx=1e300)]}, "field 'cx': frame 0 has cx=1e+300"),
     "nul_in_file_path": ({"frames": [_frame(file_path="images/v\x00.png")]}, "field 'file_path': frame 0 has an image name with a NUL byte"),
     # round 3 (C6): the bottom row was never read; a string "1" was parsed as a number
@@ -241,12 +241,15 @@ def _with(count: int, prop: str, row: int, value: float) -> bytes:
     return ply_bytes(vertex_header(count), rows.tobytes())
 
 
-def _spread_with_one_huge(count: int = 200, log_scale: float = 5.0) -> bytes:
-    """`count` small Gaussians along x in [0, 1] and one whose scale is e^log_scale (148 for 5: 100x the scene)."""
+def _spread_with_one_huge(count: int = 200, log_scale: float = 5.0, far: float | None = None) -> bytes:
+    """`count` small Gaussians along x in [0, 1] and one whose scale is e^log_scale (148 for 5: 100x the scene);
+    with `far`, one more mean (another Gaussian's) that far out on y."""
     rows = _inria_rows(count)
     rows[:, INRIA_PROPS.index("x")] = np.linspace(0.0, 1.0, count)
     rows[:, [INRIA_PROPS.index(f"scale_{i}") for i in range(3)]] = -5.0
     rows[7, INRIA_PROPS.index("scale_0")] = log_scale
+    if far is not None:
+        rows[11, INRIA_PROPS.index("y")] = far
     return ply_bytes(vertex_header(count), rows.tobytes())
 
 
@@ -269,6 +272,9 @@ INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
     # numpy's "overflow encountered in cast" twice and a finite double called infinite
     "sh_beyond_float32_colour": (lambda: _with(4, "f_dc_1", 2, 3e38), "1 Gaussians have an SH coefficient beyond 1e+30"),
     "huge_gaussian": (_spread_with_one_huge, "1 Gaussians are over 10x as large as the scene"),
+    # was (a probe, 2026-12-01): one stray mean 1e14 away made the box so large that nothing was huge beside it
+    "huge_gaussian_beside_a_stray_mean": (lambda: _spread_with_one_huge(log_scale=30.0, far=1e14),
+                                          "1 Gaussians are over 10x as large as the scene"),
     "double_beyond_float32": (lambda: _doubles_with(4, "x", 1, 1e300), "1 rows hold double-precision values beyond float32's range"),
 }
 

@@ -615,9 +615,9 @@ def _turned(scale: float = 1.0, centre=(0.0, 0.0, 4.0)) -> list[list[float]]:
 
 
 @pytest.mark.parametrize("case, expected", [
-    ("transforms_rotation_1e300", r"transforms\.json: field 'rotation': frame 0 has a rotation that is not orthonormal"),
-    ("transforms_rotation_1e308", r"transforms\.json: field 'rotation': frame 0 has a rotation that is not orthonormal"),
-    ("transforms_centre_1e308", r"transforms\.json: field 'translation': frame 0 has a camera position of 1\.5e\+308, beyond any scene"),
+    ("transforms_rotation_1e300", r"transforms\.json: field 'transform_matrix': frame 0 has a rotation that is not orthonormal"),
+    ("transforms_rotation_1e308", r"transforms\.json: field 'transform_matrix': frame 0 has a rotation that is not orthonormal"),
+    ("transforms_centre_1e308", r"transforms\.json: field 'transform_matrix': frame 0 has a camera position of 1\.5e\+308, beyond any scene"),
     ("cameras_json_rotation_1e300", r"cameras\.json: field 'rotation': camera 0 has a rotation that is not orthonormal"),
     ("cameras_json_position_1e308", r"cameras\.json: field 'position': camera 0 has a camera position of 1\.5e\+308, beyond any scene"),
     ("scannet_rotation_1e308", r"pose/0\.txt: field 'rotation': frame 0 has a rotation that is not orthonormal"),
@@ -712,3 +712,206 @@ def test_a_folder_with_both_a_binary_and_a_text_model_says_which_it_used(tmp_pat
     assert both.fx == alone.fx == 50.0
     assert record.getMessage().startswith(f"{sparse} holds both a binary (cameras.bin, images.bin) and a text (cameras.txt, images.txt) "
                                           "COLMAP model; the binary one is used, as COLMAP does, and the text one is ignored")
+
+
+# ---------------------------------------------------------------------------------------------- probe: camera readers, a second pass
+
+
+def _dataparser(folder, transform=None, scale: float = 1.0):
+    """A dataparser_transforms.json in `folder`: the identity rotation with `transform`'s last column, and `scale`."""
+    matrix = np.c_[np.eye(3), np.zeros(3) if transform is None else transform]
+    (folder / "dataparser_transforms.json").write_text(json.dumps({"transform": matrix.tolist(), "scale": scale}))
+
+
+@pytest.mark.parametrize("translation, scale, centre, expected", [
+    (None, 1e300, 4.0, r"field 'scale': has scale 1e\+300; it must lie in \[1e-15, 1e\+15\]"),
+    (None, 1e-300, 4.0, r"field 'scale': has scale 1e-300; it must lie in \[1e-15, 1e\+15\]"),
+    ((0.0, 1e300, 0.0), 1.0, 4.0, r"field 'transform': has the translation 0 1e\+300 0 in its last column, beyond any scene"),
+    ((0.0, 1e16, 0.0), 1.0, 4.0, r"field 'transform': has the translation 0 1e\+16 0 in its last column, beyond any scene"),
+    (None, 1e15, 4.0, r"field 'scale': moves camera 'v' to a position of 4e\+15 \(scale 1e\+15 times 4\), beyond any scene"),
+    ((0.0, 0.0, 6e14), 1.0, 5e14, r"field 'transform': moves camera 'v' to a position of 1\.1e\+15 \(its rotation and translation move "
+                                   r"it to 1\.1e\+15\), beyond any scene"),
+])
+def test_a_dataparser_transform_that_moves_cameras_beyond_any_scene_is_refused(tmp_path, translation, scale, centre, expected):
+    """Probe 2 finding 1: a dataparser_transforms.json with scale 1e300, or a translation of 1e300 or
+    1e16, moved the cameras to 1e300, beyond the bound the camera files are held to, and registration
+    projected the whole scene onto one pixel (exit 0, wrong labels). Now its numbers are bounded and
+    every moved camera is checked: one error naming the dataparser file and the field."""
+    matrix = np.eye(4)
+    matrix[2, 3] = centre
+    source = _transforms_dataset(tmp_path / "t", matrix=matrix.tolist(), frame={"fl_x": 50.0})
+    _dataparser(source, translation, scale)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError, match=f"^{source / 'dataparser_transforms.json'}: {expected}"):
+            load_cameras(source, require_images=False)
+
+
+def test_a_dataparser_transform_within_the_bounds_moves_cameras_as_before(tmp_path):
+    """A file at the edge of the bounds (scale 1e15 on a camera within 1 of its centre) still moves
+    the cameras, to the same bits as `in_trained_frame` gives."""
+    from drsplat.cameras import in_trained_frame
+
+    matrix = np.eye(4)
+    matrix[2, 3] = 0.75
+    source = _transforms_dataset(tmp_path / "t", matrix=matrix.tolist(), frame={"fl_x": 50.0})
+    (given,) = load_cameras(source, require_images=False)
+    _dataparser(source, (0.0, 0.0, 0.2), 1e15)
+    (moved,) = load_cameras(source, require_images=False)
+    expected = in_trained_frame(given, np.eye(3), np.array([0.0, 0.0, 0.2]), 1e15)
+    assert np.array_equal(moved.R, expected.R) and np.array_equal(moved.t, expected.t)
+    assert np.abs(moved.center).max() == pytest.approx(0.95e15)
+
+
+def test_a_nerfstudio_runs_dataparser_transform_is_held_to_the_same_bounds(tmp_path):
+    """The dataparser_transforms.json of the run a checkpoint comes from (`frames.cameras_in_scene_frame`)
+    moved the cameras without the checks too."""
+    from drsplat.frames import cameras_in_scene_frame
+
+    source = _transforms_dataset(tmp_path / "t", frame={"fl_x": 50.0})
+    cameras = load_cameras(source, require_images=False)
+    run = tmp_path / "outputs" / "t" / "splatfacto" / "2026"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    (run / "nerfstudio_models" / "step-000029999.ckpt").write_bytes(b"")
+    _dataparser(run, scale=1e300)
+    with pytest.raises(InputError, match=r"dataparser_transforms\.json: field 'scale': has scale 1e\+300"):
+        cameras_in_scene_frame(np.zeros((0, 3)), cameras, source, scene_path=run / "nerfstudio_models" / "step-000029999.ckpt")
+
+
+@pytest.mark.parametrize("coefficients, field, shown", [
+    ({"p1": 1e308}, "p1", "1e+308"),
+    ({"k1": 1e300}, "k1", "1e+300"),
+    ({"k1": 0.1, "k2": 1e150}, "k2", "1e+150"),
+    ({"k1": -1e3}, "k1", "-1000"),
+])
+def test_lens_distortion_beyond_any_lens_is_one_error_naming_the_coefficient(tmp_path, coefficients, field, shown):
+    """Probe 2 finding 2: "p1": 1e308 printed numpy's overflow and cast warnings, then features of a
+    blank image (exit 0); "k1": 1e300 gave a blank image and a misleading "one flat colour" warning.
+    Now a lens model that moves the image's corner beyond MAX_LENS_SHIFT times its distance from the
+    principal point is one error naming the coefficient that moves it most, and its value."""
+    source = _transforms_dataset(tmp_path / "t", fl_x=50.0, frame=coefficients)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError) as info:
+            load_cameras(source)
+    assert str(info.value).startswith(f"{source / 'transforms.json'}: field '{field}': has the lens distortion {field}={shown} in frame 0: ")
+    assert "at most 100 times is accepted" in str(info.value)
+
+
+@pytest.mark.parametrize("coefficients", [
+    {"k1": 49.0, "k2": 50.0},  # together just under the bound (64x48, fl_x 40: the corners at r = 1)
+    {"p1": 16.0, "p2": -16.0},  # 3 (16 + 16) r
+    {"k1": -0.3, "k2": 0.1, "p1": 0.001, "p2": -0.001},  # a wide-angle barrel lens
+])
+def test_lens_distortion_within_the_bound_undistorts_without_numpy_warnings(tmp_path, coefficients):
+    """Every coefficient the check accepts undistorts to finite pixels with no numpy warning, and a
+    wide-angle lens is accepted."""
+    from drsplat.cameras import MAX_LENS_SHIFT, lens_shifts
+
+    source = _transforms_dataset(tmp_path / "t", fl_x=40.0, frame=coefficients)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        (camera,) = load_cameras(source)
+        image = load_image(camera)
+    assert sum(lens_shifts(camera).values()) <= MAX_LENS_SHIFT and image.shape == (48, 64, 3)
+
+
+def test_undistortion_keeps_its_pixels_where_the_lens_samples_beyond_the_file(tmp_path):
+    """The source coordinates are clipped to a pixel beyond the file's edges (map_coordinates' index
+    wraps past about 1e18): the undistorted image of a pincushion lens whose corners sample beyond the
+    file has the same bits as sampling without the clip."""
+    from PIL import Image
+    from scipy.ndimage import map_coordinates
+
+    dist = np.array([0.4, 0.2, 0.01, -0.02])
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=60.0, fy=60.0, cx=64.0, cy=48.0, width=128, height=96,
+                 image_path=tmp_path / "d.png", name="d", distortion=dist)
+    pixels = np.random.default_rng(1).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(cam.image_path)
+    u, v = np.meshgrid(np.arange(128) + 0.5, np.arange(96) + 0.5)
+    src = distort_normalized(np.stack([(u - 64.0) / 60.0, (v - 48.0) / 60.0], -1), dist) * 60.0 + [64.0, 48.0] - 0.5
+    assert (src < -1).any() and (src[..., 0] > 128).any()
+    unclipped = np.stack([map_coordinates(pixels[..., c].astype(np.float32), [src[..., 1], src[..., 0]], order=1, mode="nearest")
+                          for c in range(3)], -1)
+    assert np.array_equal(load_image(cam), np.clip(np.rint(unclipped), 0, 255).astype(np.uint8))
+
+
+@pytest.mark.parametrize("meta, field, words", [
+    ({"camera_angle_x": 1e-6, "frame": {"h": 96, "w": 128}}, "camera_angle_x",
+     "has a field of view of 1e-06 rad in frame 0, a focal length of 1.28e+08 pixels (used for the height too: the file has no "
+     "camera_angle_y) for an image 96 pixels in height"),
+    ({"camera_angle_x": 3.14159265}, "camera_angle_x", "has a field of view of 3.14159265 rad in frame 0, a focal length of 1.14873e-07 pixels for an image 128 pixels in width"),
+    ({"camera_angle_x": 0.8, "camera_angle_y": 3.1415926}, "camera_angle_y", "has a field of view of 3.1415926 rad in frame 0"),
+    ({"fl_x": 1e-300}, "fl_x", "frame 0 has fl_x=1e-300 for an image 128 pixels in width"),
+    ({"fl_x": 1.28e8, "frame": {"h": 96}}, "fl_x", "frame 0 has fl_x=1.28e+08 for an image 96 pixels in height"),
+    ({"fl_x": 100.0, "fl_y": -3.0}, "fl_y", "frame 0 has focal length fl_y=-3; it must be a positive number"),
+])
+def test_focal_errors_name_the_field_the_transforms_json_has(tmp_path, meta, field, words):
+    """Probe 2 finding 3: errors about focal lengths named fx or fy, fields a transforms.json does not
+    have: camera_angle_x 1e-6 on a 128x96 image was "field 'fy'" (fy = fx without camera_angle_y),
+    3.14159265 rad "field 'fx': ... fx=1.14873e-07" (no check at the wide end), fl_x 1e-300 "field
+    'fx'". Now each names the field the file gives the focal length in."""
+    frame = {"w": 128, "h": 96, **meta.pop("frame", {})}
+    source = _transforms_dataset(tmp_path / "t", frame=frame, **meta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(InputError) as info:
+            load_cameras(source, require_images=False)
+    assert str(info.value).startswith(f"{source / 'transforms.json'}: field '{field}': {words}")
+
+
+def test_a_field_of_view_near_pi_still_gives_its_focal_length(tmp_path):
+    """A wide field of view within the intrinsics' range loads with the focal length it always gave."""
+    source = _transforms_dataset(tmp_path / "t", camera_angle_x=3.1, frame={"h": 64})
+    (camera,) = load_cameras(source, require_images=False)
+    assert camera.fx == camera.fy == 0.5 * 64 / np.tan(0.5 * 3.1)
+
+
+def test_a_camera_position_that_is_not_a_number_names_the_field_position(tmp_path):
+    """Probe 2 finding 3: a NaN position in a 3DGS cameras.json was refused as "field 'translation'"."""
+    (tmp_path / "cameras.json").write_text(json.dumps([{"id": 0, "img_name": "v", "width": 64, "height": 48, "fx": 50, "fy": 50,
+                                                        "rotation": np.eye(3).tolist(), "position": [0.0, float("nan"), 4.0]}]))
+    with pytest.raises(InputError, match=r"cameras\.json: field 'position': camera 0 has the camera position 0 nan 4, which is not finite"):
+        load_cameras(tmp_path / "cameras.json", require_images=False)
+
+
+def test_a_colmap_translation_that_is_not_finite_names_tx_ty_tz(tmp_path):
+    """The same rule for COLMAP: its images file calls the translation TX TY TZ (as the rotation QW QX QY QZ)."""
+    root = _write_model(tmp_path / "m", {"cameras.txt": "1 PINHOLE 64 48 50 50 32 24\n", "images.txt": "1 1 0 0 0 0 inf 4 1 a.png\n\n"})
+    with pytest.raises(InputError, match=r"images\.txt: field 'TX TY TZ': image 1 \('a\.png'\) has a non-finite translation"):
+        load_cameras(root, require_images=False)
+
+
+def test_a_stray_binary_file_beside_a_text_model_is_named_in_a_warning(tmp_path, caplog):
+    """Probe 2 finding 4: a lone cameras.bin beside a complete text model was ignored without a word.
+    The text model is still used, with one warning naming the stray file and the one it lacks."""
+    binary = _one_image_model(tmp_path / "b", QUATERNION, "bin") / "sparse" / "0"
+    root = _one_image_model(tmp_path / "m", QUATERNION, "txt")
+    sparse = root / "sparse" / "0"
+    (sparse / "cameras.bin").write_bytes((binary / "cameras.bin").read_bytes())
+    with caplog.at_level(logging.WARNING):
+        (camera,) = load_cameras(root, require_images=False)
+    (record,) = caplog.records
+    assert camera.fx == 50.0
+    assert record.getMessage() == (f"{sparse} has cameras.bin but no images.bin: the text model (cameras.txt, images.txt) is used and it is "
+                                   "ignored (a COLMAP model is all binary or all text: remove the stray files, or complete their model)")
+
+
+@pytest.mark.parametrize("files, words", [
+    (("cameras.bin", "images.txt"), "has cameras.bin and images.txt, but a COLMAP model is all binary (cameras.bin, images.bin) or all text"),
+    (("cameras.txt", "images.bin"), "has cameras.txt and images.bin, but a COLMAP model is all binary"),
+    (("cameras.bin", "points3D.txt"), "has cameras.bin but no images.bin: a COLMAP model needs both"),
+    (("cameras.bin", "cameras.txt"), "has cameras.bin and cameras.txt but no images.bin or images.txt: a COLMAP model needs both"),
+])
+def test_a_colmap_folder_of_mixed_or_partial_files_says_what_is_there_and_what_is_missing(tmp_path, files, words):
+    """Probe 2 finding 4: cameras.bin beside images.txt (and no complete model) was "is not a COLMAP
+    sparse model". Now the error names the files there and what is missing."""
+    models = {fmt: _one_image_model(tmp_path / fmt, QUATERNION, fmt) / "sparse" / "0" for fmt in ("bin", "txt")}
+    (tmp_path / "txt" / "sparse" / "0" / "points3D.txt").write_text("1 0 0 0 1 1 1 0.5\n")
+    sparse = tmp_path / "m" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    for name in files:
+        (sparse / name).write_bytes((models[name.rsplit(".", 1)[1]] / name).read_bytes())
+    with pytest.raises(InputError) as info:
+        load_cameras(tmp_path / "m", require_images=False)
+    assert str(info.value).startswith(f"{sparse}: {words}")

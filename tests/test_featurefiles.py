@@ -307,6 +307,30 @@ def test_a_manifest_clip_model_with_a_control_character_is_refused_naming_the_fi
     assert not elsewhere.exists()
 
 
+@pytest.mark.parametrize("forged, words", [("oracle\u2028ERROR: forged", "line separator character (U+2028)"),
+                                           ("oracle\u2029x", "paragraph separator character (U+2029)"),
+                                           ("V" * 100_000, "100,000 characters long")])
+def test_a_manifest_clip_model_a_log_would_split_or_that_is_huge_is_refused(tmp_path, forged, words):
+    """Was (a second probe, 2026-12-01): U+2028 in `clip_model_id` reached the registered PLY's header
+    and `info`'s output raw (log viewers break the line there: a forged second line), and a
+    100,000-character id was accepted and printed whole. Now both are refused by the manifest's reader."""
+    (tmp_path / "manifest.json").write_text(json.dumps({"mask_generator": "oracle", "clip_model_id": forged}))
+    with pytest.raises(InputError) as caught:
+        read_manifest(tmp_path)
+    message = str(caught.value)
+    assert "field 'clip_model_id'" in message and words in message and len(message) < 600, message
+    assert "\u2028" not in message and "\u2029" not in message
+
+
+def test_a_manifest_that_is_a_link_to_nothing_is_an_error_not_no_manifest(tmp_path):
+    """Was: a dangling manifest.json link passed for "no manifest" (exit 0, the CLIP model then
+    'unknown'); a link to nothing says so now."""
+    (tmp_path / "manifest.json").symlink_to(tmp_path / "gone.json")
+    with pytest.raises(InputError, match=r"manifest\.json: is a symbolic link to nothing"):
+        read_manifest(tmp_path)
+    assert read_manifest(tmp_path / "none") == {}
+
+
 def test_float_mask_ids_beyond_int64_name_the_stored_value_without_a_numpy_warning(tmp_path):
     """Was: 1e300 ids gave numpy's 'invalid value encountered in cast' and then 'mask ids must be >= -1,
     found -9223372036854775808', a value the file does not hold. Now one error with the real value."""
@@ -328,6 +352,11 @@ def test_float_mask_ids_beyond_int64_name_the_stored_value_without_a_numpy_warni
         half[0, 0, 0] = np.finfo(np.float16).max  # whole, but no row: the usual message, without an overflow warning on the way
         np.save(seg_path(tmp_path, "o"), half)
         with pytest.raises(InputError, match=r"o_s\.npy: mask id 65504 at level 0 is out of range"):
+            read_features(tmp_path, "o", level=0)
+        wide = seg.astype(np.longdouble)  # a second probe: 2^63 - 1 held exactly, which float() rounds up to 2^63
+        wide[0, 0, 0] = np.longdouble(2) ** 63 - 1
+        np.save(seg_path(tmp_path, "o"), wide)
+        with pytest.raises(InputError, match=r"o_s\.npy: mask id 9223372036854775807 at level 0 is out of range"):
             read_features(tmp_path, "o", level=0)
         np.save(seg_path(tmp_path, "o"), seg.astype(np.float64))
         np.testing.assert_array_equal(read_features(tmp_path, "o", level=1)[0], seg[1])

@@ -272,6 +272,38 @@ def test_a_pair_written_just_before_a_kill_is_made_again(tmp_path, weights):
     assert featurefiles.read_manifest(out)["image_stamps"].keys() == {"view"}
 
 
+@pytest.mark.parametrize("kind", ["link to an input", "folder", "fifo"])
+def test_a_stamp_journal_that_is_no_plain_file_is_refused_before_any_work(tmp_path, weights, capsys, kind):
+    """Was (a probe, 2026-12-01): the journal was opened for appending through a symbolic link, so
+    `<out>/.image_stamps.jsonl -> ../ds/transforms.json` appended a line per pair to the dataset's
+    own transforms.json (exit 0; the next run could not read it); as a FIFO it blocked the run, as a
+    link to /dev/zero it read until memory ran out, and as a folder it failed after the first pair.
+    Now anything but a plain file is refused before any pair is made, and the input is untouched."""
+    import shutil
+
+    from PIL import Image
+
+    from drsplat.features.extract import STAMP_JOURNAL
+
+    src = tmp_path / "ds"
+    shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
+    out = tmp_path / "features"
+    out.mkdir()
+    journal = out / STAMP_JOURNAL
+    before = (src / "transforms.json").read_bytes()
+    if kind == "link to an input":
+        journal.symlink_to(src / "transforms.json")
+    elif kind == "folder":
+        journal.mkdir()
+    else:
+        os.mkfifo(journal)
+    assert main(slic_features_argv(src, out, weights, quiet=True)) == 1
+    err = capsys.readouterr().err
+    assert "journal of an unfinished features run" in err and STAMP_JOURNAL in err, err
+    assert (src / "transforms.json").read_bytes() == before
+    assert not featurefiles.seg_path(out, "view").exists()
+
+
 def slic_features_argv(src: Path, out: Path, weights: dict[str, Path], quiet: bool = False) -> list[str]:
     """`drsplat features` of dataset `src` into `out` with SLIC masks and the tiny random-weight CLIP on the CPU."""
     return [*(["-q"] if quiet else []), "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,

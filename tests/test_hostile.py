@@ -1672,6 +1672,19 @@ def test_info_findings(tmp_path, capsys, name):
     assert code == 0 and any(words in f for f in summary["findings"]), summary["findings"]
 
 
+def test_a_huge_double_normal_is_no_finding(tmp_path, capsys):
+    """Was (a second probe, 2026-12-01): a double-precision nx of 1e300 was reported as a row "read as
+    infinite", though no command reads normals and the row is kept; it is no finding now, while the
+    same value in x still is."""
+    from tests.hostile_catalogue import _doubles_with
+
+    path = tmp_path / "nx.ply"
+    path.write_bytes(_doubles_with(4, "nx", 1, 1e300))
+    assert main(["info", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert not any("beyond float32" in f for f in summary["findings"]), summary["findings"]
+
+
 def test_info_json_is_strict_json_where_a_scale_is_infinite(tmp_path, capsys):
     """A raw scale of 1e30 stored as a log scale: `info --json` printed "max": Infinity, which
     JavaScript's JSON.parse rejects; now null, with the finding saying why."""
@@ -2580,7 +2593,7 @@ def test_a_camera_placed_beyond_any_scene_is_refused_by_name(tmp_path):
     pose[:3, 3] = [0.0, 1e300, 0.0]
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": [
         {"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}, {"file_path": "b.png", "transform_matrix": pose.tolist()}]}))
-    with pytest.raises(InputError, match="transforms.json: field 'translation': .*beyond any scene") as exc:
+    with pytest.raises(InputError, match="transforms.json: field 'transform_matrix': .*beyond any scene") as exc:
         load_cameras(tmp_path, require_images=False)
     assert "1e+300" in str(exc.value)
     pose[:3, 3] = [0.0, MAX_COORDINATE / 2, 0.0]  # far, but a number a float64 pipeline still handles: loaded
@@ -2621,9 +2634,12 @@ def test_register_out_named_as_another_kind_of_file_is_refused(world, tmp_path, 
     suffix is a usage error now; one that is an input keeps the input guard's message."""
     ds = world["ds"]
     before = digest(ds / "text_embeddings.npy")
-    for out in (ds / "text_embeddings.npy", tmp_path / "reg.json"):
+    # a second probe: images in formats the dataset may hold (.webp, .TIF), the features' stamp journal and a COLMAP database
+    extra = [ds / "images" / "extra.webp", tmp_path / "photo.TIF", tmp_path / "run.jsonl", tmp_path / "colmap.db"]
+    for out in (ds / "text_embeddings.npy", tmp_path / "reg.json", *extra):
         code = main(["register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features"), "--out", str(out),
                      "--no-progress"])
         err = capsys.readouterr().err
         assert code == 2 and f"--out {out.name}: a {out.suffix} name is another kind of file" in err and "name it .ply" in err, err
     assert digest(ds / "text_embeddings.npy") == before and not (tmp_path / "reg.json").exists()
+    assert not any(p.exists() for p in extra)

@@ -191,6 +191,8 @@ def test_normalize_rows_matches_its_reference():
     F[20:30] = 0.0  # a sum that cancelled exactly: dropped and counted
     F[55:60] = F[55:60] / np.linalg.norm(F[55:60], axis=1, keepdims=True) * (W[55:60, None] * 0.99e-4)  # cancelled to rounding
     F[60:65] = F[60:65] / np.linalg.norm(F[60:65], axis=1, keepdims=True) * (W[60:65, None] * 1.01e-4)  # kept
+    F[65:70] = F[65:70] / np.linalg.norm(F[65:70], axis=1, keepdims=True) * (W[65:70, None] * 0.049)  # kept, counted weak
+    F[70:74] = F[70:74] / np.linalg.norm(F[70:74], axis=1, keepdims=True) * (W[70:74, None] * 0.051)  # kept, not weak
     F[30:35, 3] = np.nan
     F[35:40, 0] = np.inf
     W[40:45] = np.nan
@@ -200,7 +202,8 @@ def test_normalize_rows_matches_its_reference():
     b, wb = F.copy(), W.copy()
     _, bad_a = normalize_rows(a, wa)
     _, bad_b = normalize_rows_reference(b, wb)
-    assert bad_a == bad_b == 30
+    assert bad_a == bad_b
+    assert bad_a.dropped == 30 and bad_a.weak == 10  # rows 60-69: the five kept at 1.01e-4 of their weight and the five at 0.049
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(wa, wb)
     ok = wa > 0

@@ -18,6 +18,7 @@ from drsplat.eval.metrics import localisation_report, segmentation_report, signi
 from drsplat.features.format import read_features, write_features
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.coalesce import EXTRA_SCRATCH_LIMIT, SCRATCH_BYTES, Coalescer, coalesce_parts, coalesce_reference, split_masks
+from drsplat.defaults import DEFAULT_AGGREGATE
 from drsplat.registration.sums import Accumulator, accumulate_view_reference, normalize_rows
 from drsplat.registration.views import pair_views
 from drsplat.scene import load_ply
@@ -207,10 +208,10 @@ def test_accumulator_memory_is_n_times_d_not_n_times_m():
 def test_normalize_rows_zeroes_unassigned_and_nonfinite():
     F = np.array([[3, 4], [0, 0], [np.nan, 1], [1, 0]], np.float32)
     W = np.array([2, 0, 1, 0], np.float32)
-    F, bad = normalize_rows(F, W)
+    F, fates = normalize_rows(F, W)
     np.testing.assert_allclose(F, [[0.6, 0.8], [0, 0], [0, 0], [0, 0]])
     np.testing.assert_array_equal(W, [2, 0, 0, 0])
-    assert bad == 1
+    assert fates.dropped == 1 and fates.weak == 0
 
 
 def test_sums_that_cancel_leave_their_gaussians_unassigned_and_say_why(tiny, tmp_path, caplog):
@@ -240,6 +241,35 @@ def test_sums_that_cancel_leave_their_gaussians_unassigned_and_say_why(tiny, tmp
     assert kept.sum() >= 0.5 * (clean.weights > 0).sum()  # Gaussians seen in the views not negated keep a feature
     cos = np.einsum("nd,nd->n", mixed.features[kept], clean.features[kept])
     assert np.median(cos) > 0.9
+
+
+@pytest.mark.parametrize("aggregate", ["paper", DEFAULT_AGGREGATE])
+def test_sums_that_nearly_cancel_are_counted_and_said(tiny, tmp_path, caplog, aggregate):
+    """Was (a second probe, 2026-12-01): every view given twice, the copy's embeddings -(f + 1e-3 r)
+    renormalised, so |Σ w f| ≈ 5e-4 Σ w: five times CANCEL_RATIO, so every Gaussian was assigned a
+    direction of noise (cos 0.001 with the clean run's) without a word. Such sums are kept (a rule
+    that drops them would have to know the embedding model) but counted, and the run says so; the
+    clean run counts none."""
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    features = tmp_path / "features"
+    features.mkdir()
+    rng = np.random.default_rng(3)
+    doubled = []
+    for cam in cams:
+        ids, feats = read_features(tiny / "features", cam.name)
+        twin = -(feats + 1e-3 * rng.normal(size=feats.shape).astype(np.float32))
+        write_features(features, cam.name, ids, feats)
+        write_features(features, cam.name + "_neg", ids, twin / np.linalg.norm(twin, axis=1, keepdims=True))
+        doubled += [cam, dataclasses.replace(cam, name=cam.name + "_neg")]
+    options = RegisterOptions(topk=10, aggregate=aggregate)
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        clean = register_features(scene, cams, tiny / "features", options, show_progress=False)
+    assert clean.num_weak_features == 0 and "a guess" not in caplog.text
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        result = register_features(scene, doubled, features, options, show_progress=False)
+    assigned = int(np.count_nonzero(result.weights > 0))
+    assert result.num_weak_features >= 0.9 * assigned > 0, (result.num_weak_features, assigned)
+    assert f"{result.num_weak_features} Gaussians got feature sums under 0.05 of their weight" in caplog.text
 
 
 def _scores(tiny: Path, result):

@@ -110,3 +110,27 @@ def test_clipped_quotes_a_long_value_by_its_start_and_length():
 
     assert clipped("abc", 3) == "abc"
     assert clipped("9" * 5000, 4) == "9999... (5,000 characters)"
+
+
+def test_log_lines_show_hidden_characters_escaped(capsys):
+    """Was (a probe, 2026-12-01): an image named `evil<U+202E>gnp.exe.png` was accepted (a file may
+    be named so) and every warning that named it printed the override raw, so a terminal showed the
+    rest of the line reversed; U+2028 split lines in log viewers. The CLI's log handler escapes
+    them now (ESC too), keeping newlines and tabs, and plain text unchanged."""
+    import logging
+
+    from drsplat.cli import _StderrHandler
+    from drsplat.errors import escape_hidden
+
+    assert escape_hidden("view_001: 3 masks\n\tok") == "view_001: 3 masks\n\tok"
+    assert escape_hidden("evil\u202egnp.exe \x1b[2J \u2028x") == "evil\\u202egnp.exe \\u001b[2J \\u2028x"
+    logger = logging.getLogger("drsplat.test_escape")
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+    logger.addHandler(handler)
+    try:
+        logger.warning("%s: one flat colour", "evil\u202egnp.exe")
+    finally:
+        logger.removeHandler(handler)
+    err = capsys.readouterr().err
+    assert err == "WARNING: evil\\u202egnp.exe: one flat colour\n", err

@@ -10,7 +10,7 @@ import numpy as np
 
 from drsplat.scene import GaussianScene, LoadReport
 from drsplat.splat_formats import load_scene_report
-from drsplat.utils import json_text
+from drsplat.utils import clipped, json_text
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -133,11 +133,15 @@ def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[s
     return summary, findings
 
 
+SHOWN_MODEL_CHARS = 120  # the CLIP model id as `info` prints it, at most
+
+
 def format_field(f: dict | None) -> list[str]:
     if f is None:
         return []
     book = f" (codebook {f['codebook']})" if f["codebook"] else ""
-    return [f"  language       {f['kind']}{book}, {f['dim']}-D, {f['clip_model']}, {f['bytes_per_gaussian']} bytes a Gaussian",
+    model = clipped(f["clip_model"], SHOWN_MODEL_CHARS)  # a hand-made header's id could be megabytes
+    return [f"  language       {f['kind']}{book}, {f['dim']}-D, {model}, {f['bytes_per_gaussian']} bytes a Gaussian",
             f"  features       {f['assigned']:,} assigned, {f['unassigned']:,} without one"]
 
 

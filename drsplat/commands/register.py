@@ -61,8 +61,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".txt", ".bin", ".faiss", ".png", ".jpg", ".jpeg", ".csv", ".yml", ".yaml", ".pt", ".pth",
-                       ".ckpt"}  # names of what a dataset or a features folder holds: a PLY written under one is a mix-up
+OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".jsonl", ".txt", ".bin", ".db", ".faiss", ".csv", ".yml", ".yaml", ".pt", ".pth",
+                       ".ckpt"}  # names of what a dataset or a features folder holds (and its images): a PLY written under one is a mix-up
+
+
+def other_data_suffix(path: Path) -> bool:
+    """Whether `path` is named as another kind of data than a PLY (OTHER_DATA_SUFFIXES or an image's, in any case)."""
+    from drsplat.cameras import IMAGE_SUFFIXES
+
+    suffix = path.suffix.lower()
+    return suffix in OTHER_DATA_SUFFIXES or suffix in {s.lower() for s in IMAGE_SUFFIXES}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -95,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    if args.out.suffix.lower() in OTHER_DATA_SUFFIXES:  # after the input guard, whose message names the input it would hit
+    if other_data_suffix(args.out):  # after the input guard, whose message names the input it would hit
         raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
                          "images or a codebook), and a registered scene is a PLY: name it .ply")
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row

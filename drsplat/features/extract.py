@@ -12,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
+import stat
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError
+from drsplat.errors import DrsplatError, InputError, shown_path
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -86,15 +88,16 @@ class FeatureReport:
         if self.upsampled:
             stem, sizes, factor = max(self.upsampled, key=lambda u: u[2])
             out.append(f"{len(self.upsampled)} image file(s) are over {UPSAMPLE_NOTE:g}x narrower than their cameras and were upsampled "
-                       f"(the most: {stem}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
+                       f"(the most: {shown_path(stem)}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
                        "(thumbnails, a lower-resolution export, or a --resolution above the images' own?)")
         return out
 
 
 def listed(names: list[str], first: int = 3) -> str:
-    """The first few names of a list, and how many more."""
+    """The first few names of a list, and how many more; a name holding a character a terminal would
+    not show as itself (U+202E, which reverses what follows) JSON-escaped (`shown_path`)."""
     more = f" and {len(names) - first} more" if len(names) > first else ""
-    return ", ".join(names[:first]) + more
+    return ", ".join(shown_path(n) for n in names[:first]) + more
 
 
 UPSAMPLE_NOTE = 1.5  # an image file this many times narrower than its camera is counted as upsampled
@@ -304,7 +307,7 @@ def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, ne
 
 
 IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`utils.file_stamp`)
-STAMP_JOURNAL = ".image_stamps.jsonl"  # a run's stamps, a line per pair as it is written; folded into the manifest at the end
+STAMP_JOURNAL = featurefiles.STAMP_JOURNAL  # a run's stamps, a line per pair as it is written; folded into the manifest at the end
 
 
 @dataclass
@@ -323,6 +326,7 @@ class ImageStamps:
     @classmethod
     def read(cls, out: Path) -> ImageStamps:
         manifest = featurefiles.read_manifest(out) if out.is_dir() else {}
+        check_journal(out / STAMP_JOURNAL)
         recorded = manifest.get(IMAGE_STAMPS)
         known = {k: v for k, v in recorded.items() if isinstance(v, str)} if isinstance(recorded, dict) else {}
         return cls(out, {**known, **read_journal(out / STAMP_JOURNAL)}, isinstance(recorded, dict))
@@ -335,13 +339,31 @@ class ImageStamps:
         self.known[stem] = stamp
         if not self.tracked:  # no manifest will hold them (a library call without one, on a folder that records none)
             return
-        with open(self.out / STAMP_JOURNAL, "a", encoding="utf-8") as f:
+        # O_NOFOLLOW: a journal replaced by a link since `read` must not append to the file it leads to
+        fd = os.open(self.out / STAMP_JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        with os.fdopen(fd, "a", encoding="utf-8") as f:
             f.write(json.dumps({"stem": stem, "stamp": stamp}) + "\n")
 
     def finish(self, manifest: dict, images: int) -> None:
         """The manifest written with every known stamp, then the journal it now holds removed."""
         featurefiles.write_manifest(self.out, {**manifest, "images": images, IMAGE_STAMPS: self.known})
         (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
+
+
+def check_journal(path: Path) -> None:
+    """InputError unless the stamp journal is absent or a regular file: the run appends to it, and a
+    symbolic link would make it append to whatever file the link names (an input of the dataset),
+    a FIFO would block the run and a device could be read without end."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise InputError(path, f"the journal of an unfinished features run cannot be read ({exc.strerror})") from None
+    if not stat.S_ISREG(mode):
+        kind = "a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+        raise InputError(path, f"the journal of an unfinished features run (a record per pair written) is {kind}; features "
+                               "writes it as a plain file in the --out folder: remove it (its pairs are then made again)")
 
 
 def read_journal(path: Path) -> dict[str, str]:

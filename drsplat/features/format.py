@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +33,13 @@ log = logging.getLogger(__name__)
 SEG_SUFFIX = "_s.npy"
 FEAT_SUFFIX = "_f.npy"
 MANIFEST_NAME = "manifest.json"
+STAMP_JOURNAL = ".image_stamps.jsonl"  # `features`' journal of a run's image stamps (drsplat.features.extract.ImageStamps)
+MAX_MODEL_ID_CHARS = 256  # the longest CLIP model id a manifest may give (open_clip's names are under 60 characters)
 # the manifest fields drsplat reads: (name, accepted JSON types, what it should be)
 MANIFEST_FIELDS = (("clip_model_id", str, "a CLIP model id"), ("clip", (dict, str), "an object naming the CLIP model"),
                    ("dim", int, "the embedding dimension"))
 INT64_LIMIT = 2.0**63  # the first float mask id that int64 cannot hold
-FEATURE_FILE_PATTERNS = (f"*{SEG_SUFFIX}", f"*{FEAT_SUFFIX}", MANIFEST_NAME)  # what an output must not be named inside a features folder
+FEATURE_FILE_PATTERNS = (f"*{SEG_SUFFIX}", f"*{FEAT_SUFFIX}", MANIFEST_NAME, STAMP_JOURNAL)  # what an output must not be named inside a features folder
 
 
 def seg_path(features_dir: str | Path, stem: str) -> Path:
@@ -158,12 +161,16 @@ def check_float_id_range(ids: np.ndarray, path: Path) -> None:
     RuntimeWarning and report a value the file does not hold."""
     if ids.size == 0:
         return
-    low, top = float(ids.min()), float(ids.max())
+    low = float(ids.min())
     if low < -1:
         raise InputError(path, f"mask ids must be >= -1, found {low:g}")
-    if top >= INT64_LIMIT:  # only float32 and wider get here: float16 would overflow converting 2^63 (a warning)
-        beyond = int(np.count_nonzero(ids >= INT64_LIMIT))
-        raise InputError(path, f"{beyond} mask ids are beyond any embedding row (largest {top:g})")
+    # compared in long double, which holds every float16-64 value and 2^63 exactly: float(2^63 - 1) of a
+    # long-double file rounds up to 2^63, and the count, taken in the file's precision, then found none
+    limit = np.longdouble(INT64_LIMIT)
+    top = np.longdouble(ids.max())
+    if top >= limit:
+        beyond = int(np.count_nonzero(ids >= limit))
+        raise InputError(path, f"{beyond} mask ids are beyond any embedding row (largest {float(top):g})")
 
 
 def level_offsets(seg: np.ndarray) -> list[int]:
@@ -294,8 +301,10 @@ def write_manifest(features_dir: str | Path, manifest: dict[str, Any]) -> None:
 def read_manifest(features_dir: str | Path) -> dict[str, Any]:
     """The features folder's manifest, or {} when there is none (e.g. features made by LangSplat)."""
     path = Path(features_dir) / MANIFEST_NAME
-    if not path.exists():
+    if not os.path.lexists(path):
         return {}
+    if not path.exists():  # a symlink to nothing (or a loop): not "no manifest", whose model id would then be unknown
+        raise InputError(path, "is a symbolic link to nothing (or a loop of links); point it at the features' manifest, or remove it")
     data = read_json(path, "a features manifest")
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object")
@@ -310,10 +319,13 @@ def read_manifest(features_dir: str | Path) -> dict[str, Any]:
 
 def model_id_text_problem(manifest: dict[str, Any]) -> tuple[str, str] | None:
     """(field, why) for the first string the CLIP model id is made of (`model_id_sources`) that holds
-    a character a terminal would not show as itself (`hidden_character`: a newline, ESC, U+202E), or
-    None. Registration copies the id into the registered PLY's header, whose reader refuses such a
+    a character a terminal would not show as itself (`hidden_character`: a newline, ESC, U+202E) or
+    is longer than MAX_MODEL_ID_CHARS, or None. Registration copies the id into the registered PLY's header, whose reader refuses such a
     character as a sign of tampering: the manifest's reader and writer refuse it first."""
     for field, text in model_id_sources(manifest):
+        if len(text) > MAX_MODEL_ID_CHARS:
+            return field, (f"{json.dumps(text[:40])[:-1]}...\" is {len(text):,} characters long; a CLIP model name is at most "
+                           f"{MAX_MODEL_ID_CHARS} (e.g. \"ViT-B-16/laion2b_s34b_b88k\"), and every registered PLY's header would carry it")
         hidden = hidden_character(text)
         if hidden is not None:  # json.dumps escapes it, so the message itself stays one plain line
             return field, (f"{json.dumps(text)[:60]} holds {hidden}, which a terminal would not show as itself; a CLIP model is named "

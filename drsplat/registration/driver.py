@@ -56,7 +56,7 @@ from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, wants_reducers
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
-from drsplat.registration.sums import CANCEL_RATIO, normalize_rows
+from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
 from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views
 from drsplat.registration.vote import VoteSink, trim_cosine
 from drsplat.scene import GaussianScene
@@ -84,7 +84,8 @@ class RegistrationResult:
     contributing (Gaussian, pixel) pairs; num_distinct_pairs: (Gaussian, mask) pairs summed.
     missing_features: camera names without a feature file; unmatched_features: feature stems
     without a camera. num_nonfinite_masks: masks dropped for non-finite embeddings;
-    num_nonfinite_features: Gaussians left unassigned for non-finite or cancelled sums (`normalize_rows`). mask_embeddings:
+    num_nonfinite_features: Gaussians left unassigned for non-finite or cancelled sums (`normalize_rows`);
+    num_weak_features: Gaussians kept whose sums are under WEAK_RESULTANT of their weight (`RowFates`). mask_embeddings:
     [M, D] the masks' embeddings (a scene codebook's training set; only when asked for).
     num_rejected: Gaussians the aggregation mode left unassigned. block_size / num_blocks: the
     memory plan. log_bytes: size of the pair log (0 without one). worker_peak_rss: pid -> peak
@@ -121,6 +122,7 @@ class RegistrationResult:
     unmatched_features: list[str] = field(default_factory=list)
     num_nonfinite_masks: int = 0
     num_nonfinite_features: int = 0
+    num_weak_features: int = 0
     mask_embeddings: np.ndarray | None = None
     aggregate: str = ""
     num_rejected: int = 0
@@ -244,6 +246,13 @@ def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint:
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
 
 
+def weak_sums(count: int) -> str:
+    """`RowFates.weak` in words."""
+    return (f"{count} Gaussians got feature sums under {WEAK_RESULTANT:g} of their weight (|Σ w f| < {WEAK_RESULTANT:g} Σ w): the "
+            "embeddings of the masks they lie in point many or opposite ways, so their features are a guess (CLIP's crops "
+            "of one capture never disagree that much: were some feature files made with another model, or negated?)")
+
+
 def unusable_sums(count: int) -> str:
     """What `normalize_rows` dropped, in words."""
     return (f"{count} Gaussians got feature sums that are non-finite or cancel out (|Σ w f| ≤ {CANCEL_RATIO:g} Σ w: their masks' "
@@ -352,12 +361,12 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         if reduce is None:
             # the kept rows as far as known now (the header's room; drsplat.registration.output.PlyTarget)
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
-            weights, nonfinite, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
+            weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views), nonfinite))
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views), fates.dropped))
             written = target.close()
         else:
-            weights, nonfinite, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
+            weights, fates, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
             reducer_seconds = (task_seconds, sum_seconds)
     except BaseException as exc:
         target.abort()
@@ -375,8 +384,10 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     if ckpt is not None:
         ckpt.remove()
     aggregator.log_rejected()
-    if nonfinite:
-        log.warning("%s", unusable_sums(nonfinite))
+    if fates.dropped:
+        log.warning("%s", unusable_sums(fates.dropped))
+    if fates.weak:
+        log.warning("%s", weak_sums(fates.weak))
     return RegistrationResult(
         features=getattr(target, "features", None), weights=weights, num_views=totals.done, num_pairs=totals.num_pairs,
         num_distinct_pairs=totals.num_distinct, seconds=time.perf_counter() - t_start, view_seconds=view_seconds,
@@ -384,7 +395,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         accumulate_seconds=totals.coalesce_seconds + totals.sum_seconds + sum_seconds, accumulate_cpu_seconds=totals.sum_cpu_seconds + sum_cpu,
         resumed_views=ckpt.resumed if ckpt is not None else 0, topk=options.topk, level=options.level,
         missing_features=run.selection.missing, unmatched_features=run.selection.unmatched, num_nonfinite_masks=totals.num_nonfinite_masks,
-        num_nonfinite_features=nonfinite, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
+        num_nonfinite_features=fates.dropped, num_weak_features=fates.weak, mask_embeddings=totals.mask_embeddings() if collect_embeddings else None, aggregate=options.aggregate,
         num_rejected=aggregator.num_rejected, block_size=min(block, n), num_blocks=blocks, log_bytes=log_bytes, path=out, num_written=written,
         field_kind="exact" if isinstance(codebook, str) else codebook.kind, worker_peak_rss=worker_rss, workers=workers,
         sums_on=sums_place(sink), pairs_on=options.device if device_pairs else "host",
@@ -608,10 +619,11 @@ def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray
 
 def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target, show_progress: bool, cancel):
     """Per block: the mode's step on the sums, normalise, prune, hand to the target.
-    Returns (weights [N], Gaussians dropped for non-finite sums, blocks, seconds summing, CPU seconds summing)."""
+    Returns (weights [N], RowFates of the normalisation, blocks, seconds summing, CPU seconds summing)."""
     n = run.scene.num_gaussians
     weights = np.zeros(n, np.float32)
-    nonfinite = blocks = 0
+    fates = RowFates()
+    blocks = 0
     sum_seconds = sum_cpu = 0.0
     count = sink.num_blocks
     stream = sink.blocks()
@@ -626,14 +638,14 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         if aggregator.solve:  # the solve stage (one block: refused up front otherwise), before floater rejection
             _solve_block(run, block)
         aggregator.finish(block.F, block.W, block.lo)
-        _, bad = normalize_rows(block.F, block.W)
-        nonfinite += bad
+        _, block_fates = normalize_rows(block.F, block.W)
+        fates += block_fates
         weights[block.lo : block.hi] = block.W
         keep = np.ones(block.hi - block.lo, bool) if run.options.keep_unassigned else block.W > 0
         target.add(block, keep)
         blocks += 1
         del block, keep  # the next block's sums must not be allocated while this one's are alive (the plan counts one)
-    return weights, nonfinite, blocks, sum_seconds, sum_cpu
+    return weights, fates, blocks, sum_seconds, sum_cpu
 
 
 def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebook, totals: ViewTotals, out: Path | None):
@@ -642,9 +654,9 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
         raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views),
-                                            sum(p.nonfinite for p in parts)))
+                                            sum(p.fates.dropped for p in parts)))
     written = assemble_parts(Path(reduce.job.out), parts)
-    return (weights, sum(p.nonfinite for p in parts), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
+    return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))
 
 

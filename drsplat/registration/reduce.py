@@ -83,7 +83,7 @@ from drsplat.registration.output import _meta_period, _widen_meta_if_short, enco
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import LogSink
-from drsplat.registration.sums import normalize_rows
+from drsplat.registration.sums import RowFates, normalize_rows
 from drsplat.registration.vote import CLUSTER_COSINE, MaskClusters, Specificity, VoteSink
 from drsplat.scene import GaussianScene, ply_header
 from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, work_folder
@@ -150,8 +150,8 @@ class ReduceJob:
 @dataclass
 class PartResult:
     """One reducer's block: rows kept and written to `path`; header: (vertex dtype, comments) of its
-    first chunk; weights [hi - lo] float32 W after finishing (0 = unassigned); nonfinite / rejected:
-    Gaussians dropped for non-finite sums / by the mode; sum_seconds / sum_cpu_seconds: the replay;
+    first chunk; weights [hi - lo] float32 W after finishing (0 = unassigned); fates: what the
+    normalisation dropped or found weak (`RowFates`); rejected: Gaussians dropped by the mode; sum_seconds / sum_cpu_seconds: the replay;
     seconds: the whole task; pid / peak_rss: the worker."""
 
     index: int
@@ -160,7 +160,7 @@ class PartResult:
     rows: int
     header: tuple
     weights: np.ndarray
-    nonfinite: int
+    fates: RowFates
     rejected: int
     path: str
     sum_seconds: float
@@ -217,7 +217,7 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
         rejected = block_support(plog, lo, hi).rejected() if job.reject else None
     sum_seconds, sum_cpu = time.perf_counter() - t0, time.process_time() - c0
     dropped = reject_rows(block.F, block.W, rejected) if rejected is not None else 0
-    _, nonfinite = normalize_rows(block.F, block.W)
+    _, fates = normalize_rows(block.F, block.W)
     keep = np.ones(hi - lo, bool) if job.keep_unassigned else block.W > 0
     path = job.part_path(index)
     rows, header = 0, None
@@ -229,7 +229,7 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
                 rows += int(vertices.shape[0])
     except OSError as exc:
         raise DrsplatError(f"the reducer of block {index} could not write its part {path} ({exc.strerror or exc})") from None
-    return PartResult(index, lo, hi, rows, header, np.array(block.W), int(nonfinite), dropped, str(path), sum_seconds, sum_cpu,
+    return PartResult(index, lo, hi, rows, header, np.array(block.W), fates, dropped, str(path), sum_seconds, sum_cpu,
                       time.perf_counter() - t0, os.getpid(), peak_rss())
 
 

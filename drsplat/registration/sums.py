@@ -15,6 +15,8 @@ order give the same bits. Memory: N·D + the buffer, never Gaussians x masks.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
@@ -22,6 +24,22 @@ from drsplat.memory import small_page_zeros
 
 MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
 CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
+WEAK_RESULTANT = 0.05  # |Σ w f| < this · Σ w: kept, but counted as a guess (`RowFates.weak`); CLIP's crops embed far closer than that
+
+
+@dataclass(frozen=True)
+class RowFates:
+    """What `normalize_rows` did with the rows it did not simply normalise. dropped: rows left
+    unassigned (non-finite or cancelled sums); weak: rows kept whose sum is under WEAK_RESULTANT of
+    its weight, |Σ w f| < 0.05 Σ w: the masks' embeddings point so many ways (or opposite ways) that
+    the direction is decided by a small remainder of them. With CLIP's embeddings, whose pairwise
+    cosines are well above 0, no sum comes near that; 400 equally weighted random unit vectors do."""
+
+    dropped: int = 0
+    weak: int = 0
+
+    def __add__(self, other: RowFates) -> RowFates:
+        return RowFates(self.dropped + other.dropped, self.weak + other.weak)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -180,10 +198,12 @@ def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, wei
 
 
 @numba.njit(parallel=True, cache=True)
-def _normalize_rows_kernel(F, W, cancel_ratio):  # pragma: no cover - jitted
-    """`normalize_rows` row by row in parallel; returns the count of rows dropped for non-finite or cancelled sums."""
+def _normalize_rows_kernel(F, W, cancel_ratio, weak_ratio):  # pragma: no cover - jitted
+    """`normalize_rows` row by row in parallel; returns the counts of rows dropped for non-finite or
+    cancelled sums and of rows kept under weak_ratio of their weight."""
     n, dim = F.shape
     bad = np.zeros(n, np.int64)
+    weak = np.zeros(n, np.int64)
     whole = dim - dim % 8
     for i in numba.prange(n):
         f = F[i]
@@ -212,6 +232,8 @@ def _normalize_rows_kernel(F, W, cancel_ratio):  # pragma: no cover - jitted
         if finite and w > 0 and not norm > cancel_ratio * w:
             bad[i] = 1
         if finite and w > 0 and norm > cancel_ratio * w:
+            if norm < weak_ratio * w:
+                weak[i] = 1
             scale = np.float32(norm)
             if np.isfinite(scale):
                 for d in range(dim):
@@ -223,10 +245,10 @@ def _normalize_rows_kernel(F, W, cancel_ratio):  # pragma: no cover - jitted
             for d in range(dim):
                 f[d] = 0.0
             W[i] = 0.0
-    return bad.sum()
+    return bad.sum(), weak.sum()
 
 
-def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, int]:
+def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, RowFates]:
     """In place: F_i <- F_i / |F_i| where W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other
     rows -> 0 (and their W_i -> 0). F: [N, D] float32 sums Σ_j w_ij f_j of unit embeddings, W: [N]
     float32 their weights Σ_j w_ij, so |F_i| ≤ W_i. A sum under CANCEL_RATIO of its weight has
@@ -238,23 +260,24 @@ def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, int]:
     is inf, and dividing by it zeroed a row that kept its weight, round 22); one pass over F in parallel (the reference makes several
     passes and a float64 copy of each chunk). The float64 sums may round differently in the last
     bit, so a row can differ from the reference's by one float32 ulp where its norm lies on a
-    float32 rounding boundary. Returns (F, count of rows with weight dropped for non-finite or
-    cancelled sums).
+    float32 rounding boundary. Returns (F, RowFates: the rows with weight dropped for non-finite or
+    cancelled sums, and the rows kept whose |F_i| < WEAK_RESULTANT·W_i).
     """
     if F.shape[0] == 0:
-        return F, 0
+        return F, RowFates()
     if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32):
         return normalize_rows_reference(F, W)
-    return F, int(_normalize_rows_kernel(F, W, CANCEL_RATIO))
+    dropped, weak = _normalize_rows_kernel(F, W, CANCEL_RATIO, WEAK_RESULTANT)
+    return F, RowFates(int(dropped), int(weak))
 
 
-def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, int]:
+def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, RowFates]:
     """Reference of `normalize_rows` (numpy, chunk by chunk): in place F_i <- F_i / |F_i| where
     W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other rows -> 0 (and their W_i -> 0).
 
-    Returns (F, count of rows with weight dropped for non-finite or cancelled sums).
+    Returns (F, RowFates).
     """
-    bad_total = 0
+    bad_total = weak_total = 0
     for start in range(0, F.shape[0], chunk):
         f, w = F[start : start + chunk], W[start : start + chunk]
         norm = np.sqrt(np.einsum("nd,nd->n", f, f, dtype=np.float64))
@@ -262,6 +285,7 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -
         cancelled = finite & (w > 0) & ~(norm > CANCEL_RATIO * w.astype(np.float64))
         bad_total += int(np.count_nonzero(~finite & (w != 0))) + int(np.count_nonzero(cancelled))
         ok = finite & (w > 0) & ~cancelled
+        weak_total += int(np.count_nonzero(ok & (norm < WEAK_RESULTANT * w.astype(np.float64))))
         with np.errstate(over="ignore"):
             scale = norm.astype(np.float32)
         big = ok & ~np.isfinite(scale)  # |F_i| past float32's range: divided in float64
@@ -270,4 +294,4 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -
         f[usual] /= scale[usual, None]
         f[~ok] = 0.0
         w[~ok] = 0.0
-    return F, bad_total
+    return F, RowFates(bad_total, weak_total)
