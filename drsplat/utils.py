@@ -350,7 +350,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 def temp_beside(path: str | Path) -> Path:
     """A new empty temp file beside the regular-file output `path` (a symlink's resolved target),
-    with normal permissions, to be renamed over it by `replace_with_temp` (`atomic_path` does
+    with the permissions of the file it replaces (`replaced_mode`), to be renamed over it by `replace_with_temp` (`atomic_path` does
     both). Stale temps of killed writers are swept first; OutputError when `path` is a folder or
     one of its ancestors a file."""
     shown = Path(path)
@@ -366,8 +366,18 @@ def temp_beside(path: str | Path) -> Path:
             raise OutputError(shown, refused_new_file(target.parent, exc)) from None
         raise naming_path(exc, shown, *([Path(exc.filename)] if exc.filename is not None else [])) from None
     os.close(fd)
-    os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the file normal permissions
+    os.chmod(tmp, replaced_mode(target))  # mkstemp makes 0600
     return Path(tmp)
+
+
+def replaced_mode(target: Path) -> int:
+    """The permissions a new output at `target` gets: those of the regular file it replaces (a file a
+    user made private with chmod 600 stays private), else a new file's (0666 less the umask)."""
+    try:
+        st = os.stat(target)
+    except OSError:
+        return 0o666 & ~_current_umask()
+    return stat.S_IMODE(st.st_mode) if stat.S_ISREG(st.st_mode) else 0o666 & ~_current_umask()
 
 
 def replace_with_temp(tmp: Path, path: str | Path) -> None:

@@ -158,6 +158,27 @@ def rooms(tmp_path_factory):
     return {src: write_dataset(root / src, "hard-tiny", 0, mask_source=src, show_progress=False) for src in ("render", "geometry")}
 
 
+def test_a_probe_view_without_masks_is_scored_as_empty_not_a_crash(rooms, tmp_path):
+    """Was (a probe, 2026-12-01): the default mode raised IndexError when one of the fit stage's probe
+    views had a feature file with no masks (a segmenter that found nothing there): its mask map was
+    indexed into the view's empty embedding groups. That view now scores 0 under both footprints, and
+    the registration runs as the other modes do."""
+    import shutil
+
+    from drsplat.features.format import read_features, write_features
+
+    data = tmp_path / "room"
+    shutil.copytree(rooms["geometry"], data)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    empty = cams[int(probe_views(len(cams))[0])].name
+    ids, feats = read_features(data / "features", empty)
+    write_features(data / "features", empty, np.full_like(ids, -1), np.zeros((0, feats.shape[1]), np.float32))
+    choice = choose_footprint(scene, cams, data / "features", 1, 40)
+    assert choice.paper[0] == choice.sharp[0] == 0.0 and choice.footprint == "sharp"  # the other probes still decide
+    result = register_features(scene, cams, data / "features", RegisterOptions(topk=10), show_progress=False)
+    assert result.fit is not None and np.count_nonzero(result.weights > 0) > 0
+
+
 @pytest.mark.parametrize("source,footprint", [("render", "paper"), ("geometry", "sharp")])
 def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, source, footprint):
     data = rooms[source]

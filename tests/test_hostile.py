@@ -2628,6 +2628,27 @@ def test_an_out_name_its_codebook_header_cannot_carry_is_refused_before_register
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+def test_keep_unassigned_says_when_dropped_rows_break_the_row_correspondence(world, tmp_path, capsys):
+    """Was (a probe, 2026-12-01): `--keep-unassigned` promises the registered PLY the scene file's rows,
+    but rows with NaN values are dropped on loading, so row i of the two files differed without a word
+    beyond the loader's count. Now the run says what the option cannot keep; a clean scene stays quiet."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(world["ds"] / "scene.ply")
+    means = scene.means.copy()
+    means[[5, 9]] = np.nan
+    broken = tmp_path / "scene.ply"
+    save_ply(dataclasses.replace(scene, means=means), broken)
+    argv = ["register", "--source", str(world["ds"]), "--features", str(world["ds"] / "features"), "--no-progress", "--keep-unassigned"]
+    code, err = run_cli([argv[0], broken, *argv[1:], "--out", tmp_path / "r.ply"], capsys)
+    n = scene.num_gaussians
+    assert code == 0 and f"--keep-unassigned: 2 of the {n} rows of {broken} were dropped" in err and f"has {n - 2} rows" in err, err
+    code, err = run_cli([argv[0], world["ds"] / "scene.ply", *argv[1:], "--out", tmp_path / "ok.ply"], capsys)
+    assert code == 0 and "--keep-unassigned:" not in err
+
+
 def test_register_out_named_as_another_kind_of_file_is_refused(world, tmp_path, capsys):
     """Was (a probe, 2026-12-01): `--out DS/text_embeddings.npy` (a file of the dataset that
     registration does not read) was overwritten by a PLY, exit 0. A name with another data type's

@@ -163,6 +163,29 @@ def test_solve_modes_register_and_are_refused_in_blocks(hard_tiny, tmp_path):
         register_features(scene, cams, features, RegisterOptions(topk=10, aggregate="solve-vote-reject", block_size=100), show_progress=False)
 
 
+def test_a_solve_run_stops_when_cancelled_during_its_passes(hard_tiny):
+    """Was (a probe, 2026-12-01): Ctrl-C or SIGTERM during the solve stage, most of a `solve` run's
+    time, printed "stopping after the current view" and then ran every pass to the end (181 s) and
+    wrote the output. The solve's passes check the token before each view now."""
+    import sys
+
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    class CancelledInTheSolve(CancelToken):
+        """Cancelled the first time the solve stage asks (the view pass before it is left to finish)."""
+
+        def raise_if_cancelled(self) -> None:
+            if sys._getframe(1).f_globals.get("__name__") == "drsplat.registration.solve":
+                self.cancel()
+            super().raise_if_cancelled()
+
+    scene, cams, features = hard_tiny
+    with pytest.raises(Cancelled):
+        register_features(scene, cams, features, RegisterOptions(topk=10, aggregate="solve"), show_progress=False,
+                          cancel=CancelledInTheSolve())
+
+
 def test_solved_features_move_the_slot_part_and_keep_gaussians_with_nothing_positive():
     means = np.eye(3, dtype=np.float32)  # three clusters, unit means
     slot_c = np.array([[0, 1], [0, 1], [2, -1]], np.int32)

@@ -134,3 +134,23 @@ def test_log_lines_show_hidden_characters_escaped(capsys):
         logger.removeHandler(handler)
     err = capsys.readouterr().err
     assert err == "WARNING: evil\\u202egnp.exe: one flat colour\n", err
+
+
+def test_a_replaced_output_keeps_the_permissions_of_the_file_it_replaces(tmp_path):
+    """Was (a probe, 2026-12-01): `register --out out.ply` over a file made private with chmod 600
+    wrote a new one readable by all (0644). An output now keeps the mode of the file it replaces;
+    a new one gets 0666 less the umask."""
+    import stat
+
+    from drsplat.utils import _current_umask
+
+    private = tmp_path / "out.ply"
+    private.write_bytes(b"old")
+    private.chmod(0o600)
+    with atomic_path(private) as tmp:
+        tmp.write_bytes(b"new")
+    assert private.read_bytes() == b"new" and stat.S_IMODE(private.stat().st_mode) == 0o600
+    fresh = tmp_path / "fresh.ply"
+    with atomic_path(fresh) as tmp:
+        tmp.write_bytes(b"new")
+    assert stat.S_IMODE(fresh.stat().st_mode) == 0o666 & ~_current_umask()

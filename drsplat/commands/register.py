@@ -107,6 +107,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
                          "images or a codebook), and a registered scene is a PLY: name it .ply")
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
+    dropped = report.dropped_nan_rows + report.dropped_inf_rows
+    if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file
+        log.warning("--keep-unassigned: %d of the %d rows of %s were dropped on loading (non-finite values), so the registered "
+                    "PLY has %d rows and its row i is not always the file's row i; drop those rows from the scene file first "
+                    "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
                                      refinements=report.camera_refinements)  # trainers' own worlds and cameras
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None

@@ -636,7 +636,7 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         sum_seconds += time.perf_counter() - t0
         sum_cpu += time.process_time() - c0
         if aggregator.solve:  # the solve stage (one block: refused up front otherwise), before floater rejection
-            _solve_block(run, block)
+            _solve_block(run, block, cancel)
         aggregator.finish(block.F, block.W, block.lo)
         _, block_fates = normalize_rows(block.F, block.W)
         fates += block_fates
@@ -660,12 +660,12 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
             written, sum(p.seconds for p in parts))
 
 
-def _solve_block(run: Run, block) -> None:
+def _solve_block(run: Run, block, cancel) -> None:
     """The render-consistent solve on the whole scene's sums (drsplat.registration.solve), re-rendering
-    the views with the registration's engine in this process."""
+    the views with the registration's engine in this process; cancel: checked before each view it renders."""
     options = run.options
     solve_registration(prepare_geometry(run.scene), run.views, run.features_dir, options.level, options.topk, options.engine, options.device,
-                       block.F)
+                       block.F, cancel=cancel)
 
 
 def register(

@@ -320,12 +320,12 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         raster_seconds = time.perf_counter() - t0
         stats = hook.stats(cam, out)
         same = same_embedding(feats)
+        groups = mask_groups(mask_ids, same)
         for footprint in FOOTPRINTS:
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
-            scores[footprint][t] = rerender_score(out.ids, weights, labels, np.where(mask_ids >= 0, same[np.maximum(mask_ids, 0)], -1),
-                                                  feats.shape[0])
+            scores[footprint][t] = rerender_score(out.ids, weights, labels, groups, feats.shape[0])
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
     choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"])
@@ -346,6 +346,14 @@ def same_embedding(feats: np.ndarray) -> np.ndarray:
     _, first, inverse = np.unique(np.ascontiguousarray(feats).view(np.dtype((np.void, feats.dtype.itemsize * feats.shape[1]))),
                                   return_index=True, return_inverse=True)
     return first[inverse.reshape(-1)].astype(np.int32)
+
+
+def mask_groups(mask_ids: np.ndarray, same: np.ndarray) -> np.ndarray:
+    """[H, W] int32: each pixel's mask replaced by its group (`same_embedding`), -1 where it has none;
+    all -1 for a view without masks (whose `same` is empty: a view a segmenter found nothing in)."""
+    if same.shape[0] == 0:
+        return np.full(mask_ids.shape, -1, np.int32)
+    return np.where(mask_ids >= 0, same[np.maximum(mask_ids, 0)], -1).astype(np.int32)
 
 
 def grouped_pairs(gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, same: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

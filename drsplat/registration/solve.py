@@ -53,6 +53,7 @@ from drsplat.defaults import SOLVE_SLOTS
 from drsplat.registration.compute import ViewComputer, ViewJob
 from drsplat.registration.views import load_view_features
 from drsplat.registration.vote import MaskClusters
+from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
 
@@ -373,10 +374,12 @@ def solved_features(F: np.ndarray, result: SolveResult, means: np.ndarray, scrat
 
 
 def solve_registration(geometry, cameras, features_dir, level: int, topk: int, engine: str, device: str,
-                       F: np.ndarray, lam: float = SOLVE_LAMBDA, iterations: int = SOLVE_ITERATIONS) -> SolveResult:
+                       F: np.ndarray, lam: float = SOLVE_LAMBDA, iterations: int = SOLVE_ITERATIONS,
+                       cancel: CancelToken | None = None) -> SolveResult:
     """The solve stage on a whole scene's sums F [N, D] (in place): clusters the views' masks,
     re-renders the views with the registration's engine on every pass (drsplat.registration.compute.
-    ViewComputer) and moves F toward the solved mixtures. geometry: the scene's PreparedScene."""
+    ViewComputer) and moves F toward the solved mixtures. geometry: the scene's PreparedScene.
+    cancel: checked before each view of each pass (the passes are most of a `solve` run's time)."""
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device))
     clusters = MaskClusters(F.shape[1])
     for cam in cameras:
@@ -390,6 +393,8 @@ def solve_registration(geometry, cameras, features_dir, level: int, topk: int, e
         # each pass reads the view's masks again rather than keeping [views, H·W] labels in memory
         # (one view's labels is what the memory plan counts; the read costs far less than the render)
         for cam, cluster_of_mask in zip(cameras, clusters.per_view):
+            if cancel is not None:
+                cancel.raise_if_cancelled()
             flat = load_view_features(features_dir, cam, level)[0].reshape(-1)
             labels = np.where(flat >= 0, cluster_of_mask[np.maximum(flat, 0)] if cluster_of_mask.size else -1, -1).astype(np.int32)
             out = computer.rasterize(cam)
