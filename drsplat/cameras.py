@@ -484,7 +484,7 @@ COLMAP_FORMATS = {".bin": "binary", ".txt": "text"}
 
 def _has_model(sparse_dir: Path, ext: str) -> bool:
     """Whether `sparse_dir` holds a COLMAP model in `ext` (".bin" or ".txt"): its cameras and images files."""
-    return (sparse_dir / f"cameras{ext}").exists() and (sparse_dir / f"images{ext}").exists()
+    return all((sparse_dir / f"{name}{ext}").exists() for name in COLMAP_FILES[:2])
 
 
 def _model_files(sparse_dir: Path, ext: str) -> list[str]:
@@ -735,10 +735,15 @@ def validate_intrinsics(camera: Camera, path: Path, where: str, names: FieldName
         _check_intrinsic(path, where, label, value, side, getattr(camera, side), -MAX_INTRINSIC_RATIO)
 
 
+def intrinsic_bounds(side: int, low_ratio: float) -> tuple[float, float]:
+    """[low_ratio·side, MAX_INTRINSIC_RATIO·side]: the pixels an intrinsic across an image side of `side` pixels may take."""
+    return low_ratio * side, MAX_INTRINSIC_RATIO * side
+
+
 def _check_intrinsic(path: Path, where: str, name: str, value: float, side_name: str, side: int, low_ratio: float) -> None:
     """Refuse an intrinsic (pixels) outside [low_ratio·side, MAX_INTRINSIC_RATIO·side]: no lens is
     that far from its image, and the culling bound (squares of fx, cx/fx) would overflow float."""
-    low, high = low_ratio * side, MAX_INTRINSIC_RATIO * side
+    low, high = intrinsic_bounds(side, low_ratio)
     if not low <= value <= high:
         raise InputError(path, f"{where} has {name}={value:g} for an image {side} pixels in {side_name}; it must lie in "
                          f"[{low:g}, {high:g}] ({low_ratio:g} to {MAX_INTRINSIC_RATIO:g} times the {side_name})", field=name)
@@ -897,7 +902,7 @@ def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], wh
                          f"one means a focal length of more than {MAX_INTRINSIC_RATIO:g} image sides, which no lens has)", field=key)
     focal = float(0.5 * side[1] / math.tan(0.5 * angle))
     for name, size in (side, also) if also is not None else (side,):
-        low, high = MIN_FOCAL_RATIO * size, MAX_INTRINSIC_RATIO * size  # `_check_intrinsic`'s bounds, so it never names fx for this angle
+        low, high = intrinsic_bounds(size, MIN_FOCAL_RATIO)  # `_check_intrinsic`'s, so it never names fx for this angle
         if not low <= focal <= high:
             shared = f" (used for the {name} too: the file has no camera_angle_y)" if name != side[0] else ""
             widest, narrowest = (2.0 * math.atan(0.5 * side[1] / f) for f in (low, high))
@@ -1011,7 +1016,7 @@ def _warn_stray_files(sparse: Path) -> None:
 
 
 def _colmap_files(sparse: Path) -> list[Path]:
-    return [sparse / f"{name}{ext}" for name in ("cameras", "images", "points3D") for ext in (".bin", ".txt") if (sparse / f"{name}{ext}").is_file()]
+    return [sparse / f"{name}{ext}" for name in COLMAP_FILES for ext in COLMAP_FORMATS if (sparse / f"{name}{ext}").is_file()]
 
 
 def _find_transforms(src: Path) -> Path | None:

@@ -23,13 +23,14 @@ def hidden_character(text: str) -> str | None:
     return None
 
 
-def escape_hidden(text: str, keep: str = "\n\t") -> str:
-    """`text` with every character `hidden_character` would name, but those in `keep`, written as a
-    \\uXXXX escape: a log line that quotes an image or file name then shows it as it is spelled
-    instead of letting U+202E reverse, or ESC rewrite, the rest of the line."""
+def escape_hidden(text: str) -> str:
+    """`text` with every character `hidden_character` would name but newline and tab written as a
+    backslash-u escape of its code point (U+202E as the six characters \\u202e): a log line that
+    quotes an image or file name then shows it as it is spelled instead of letting U+202E reverse,
+    or ESC rewrite, the rest of the line."""
     if hidden_character(text) is None:  # the usual case: one scan, no copy
         return text
-    return "".join(ch if ch in keep or unicodedata.category(ch) not in HIDDEN_CATEGORIES else f"\\u{ord(ch):04x}" for ch in text)
+    return "".join(ch if ch in "\n\t" or unicodedata.category(ch) not in HIDDEN_CATEGORIES else f"\\u{ord(ch):04x}" for ch in text)
 
 
 def shown_path(path: str | Path) -> str:

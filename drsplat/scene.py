@@ -299,7 +299,7 @@ class LoadReport:
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
-    scene_extent: float = 0.0  # the diagonal of the box of 99.8 % of the means on each axis (`scene_extent`)
+    scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
@@ -334,7 +334,7 @@ class LoadReport:
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
         if self.huge_scales:
             notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of "
-                         f"99.8 % of its means on each axis, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
+                         f"{100 * (1 - 2 * EXTENT_OUTLIERS):g} % of its means on each axis, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
                          "of what lies behind it (a training blow-up or a units mix-up?)")
         if self.overflowing_scales:
             notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "

@@ -370,6 +370,20 @@ def temp_beside(path: str | Path) -> Path:
     return Path(tmp)
 
 
+def odd_entry_kind(path: Path) -> str | None:
+    """What `path` is when it is neither absent nor a regular file ("a symbolic link", "a folder",
+    "not a regular file": a FIFO, a device), else None. For the files drsplat keeps for itself
+    (checkpoints, journals): writing through a link lands on whatever file it names, a FIFO blocks,
+    a device reads without end. Read with lstat, so a link is never followed."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return "a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+
+
 def replaced_mode(target: Path) -> int:
     """The permissions a new output at `target` gets: those of the regular file it replaces (a file a
     user made private with chmod 600 stays private), else a new file's (0666 less the umask)."""

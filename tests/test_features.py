@@ -304,6 +304,20 @@ def test_a_stamp_journal_that_is_no_plain_file_is_refused_before_any_work(tmp_pa
     assert not featurefiles.seg_path(out, "view").exists()
 
 
+def test_a_journal_line_without_end_is_skipped_a_piece_at_a_time(tmp_path):
+    """A journal is read a line at a time: a line far longer than any record (a hostile or corrupt
+    file) is skipped, the records around it kept, a torn last line dropped."""
+    import json
+
+    from drsplat.features.extract import JOURNAL_LINE_CHARS, read_journal
+
+    path = tmp_path / "journal.jsonl"
+    path.write_text(json.dumps({"stem": "a", "stamp": "1:2"}) + "\n" + "x" * (3 * JOURNAL_LINE_CHARS + 5) + "\n"
+                    + json.dumps({"stem": "b", "stamp": "3:4"}) + "\n" + '{"stem": "c", "sta')
+    assert read_journal(path) == {"a": "1:2", "b": "3:4"}
+    assert read_journal(tmp_path / "none.jsonl") == {}
+
+
 def slic_features_argv(src: Path, out: Path, weights: dict[str, Path], quiet: bool = False) -> list[str]:
     """`drsplat features` of dataset `src` into `out` with SLIC masks and the tiny random-weight CLIP on the CPU."""
     return [*(["-q"] if quiet else []), "features", "--source", str(src), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,

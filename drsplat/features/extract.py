@@ -13,7 +13,6 @@ import hashlib
 import json
 import logging
 import os
-import stat
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError, InputError, shown_path
+from drsplat.errors import DrsplatError, InputError
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -31,7 +30,7 @@ from drsplat.features.modelid import (
     manifest_clip_entry,
     manifest_model_id,
 )
-from drsplat.utils import CancelToken, progress, file_stamp
+from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
 import drsplat
 from drsplat.cameras import load_cameras, load_image_sized
 from drsplat.features.clip import ClipEncoder, use_clip_config
@@ -88,16 +87,15 @@ class FeatureReport:
         if self.upsampled:
             stem, sizes, factor = max(self.upsampled, key=lambda u: u[2])
             out.append(f"{len(self.upsampled)} image file(s) are over {UPSAMPLE_NOTE:g}x narrower than their cameras and were upsampled "
-                       f"(the most: {shown_path(stem)}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
+                       f"(the most: {stem}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
                        "(thumbnails, a lower-resolution export, or a --resolution above the images' own?)")
         return out
 
 
 def listed(names: list[str], first: int = 3) -> str:
-    """The first few names of a list, and how many more; a name holding a character a terminal would
-    not show as itself (U+202E, which reverses what follows) JSON-escaped (`shown_path`)."""
+    """The first few names of a list, and how many more (the CLI's log escapes hidden characters in them)."""
     more = f" and {len(names) - first} more" if len(names) > first else ""
-    return ", ".join(shown_path(n) for n in names[:first]) + more
+    return ", ".join(names[:first]) + more
 
 
 UPSAMPLE_NOTE = 1.5  # an image file this many times narrower than its camera is counted as upsampled
@@ -355,32 +353,38 @@ def check_journal(path: Path) -> None:
     symbolic link would make it append to whatever file the link names (an input of the dataset),
     a FIFO would block the run and a device could be read without end."""
     try:
-        mode = os.lstat(path).st_mode
-    except FileNotFoundError:
-        return
+        kind = odd_entry_kind(path)
     except OSError as exc:
         raise InputError(path, f"the journal of an unfinished features run cannot be read ({exc.strerror})") from None
-    if not stat.S_ISREG(mode):
-        kind = "a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else "not a regular file"
+    if kind is not None:
         raise InputError(path, f"the journal of an unfinished features run (a record per pair written) is {kind}; features "
                                "writes it as a plain file in the --out folder: remove it (its pairs are then made again)")
 
 
+JOURNAL_LINE_CHARS = 1 << 16  # a journal record is a stem and a stamp: a longer line is no record (read in pieces, skipped)
+
+
 def read_journal(path: Path) -> dict[str, str]:
     """stem -> stamp of a stamp journal ({} without one); a line that is not a whole record (the last
-    one of a run killed while writing it) is skipped: its pair has no stamp and is made again."""
+    one of a run killed while writing it, or one longer than JOURNAL_LINE_CHARS) is skipped: its pair
+    has no stamp and is made again. Read a line at a time, so a journal of gigabytes, or one line
+    without end, costs no more memory than a record."""
+    out: dict[str, str] = {}
     try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        with open(path, encoding="utf-8", errors="replace") as f:
+            while line := f.readline(JOURNAL_LINE_CHARS):
+                if not line.endswith("\n") and len(line) == JOURNAL_LINE_CHARS:  # an overlong line: skip the rest of it
+                    while (rest := f.readline(JOURNAL_LINE_CHARS)) and not rest.endswith("\n"):
+                        pass
+                    continue
+                try:
+                    entry = json.loads(line)
+                except ValueError:
+                    continue
+                if isinstance(entry, dict) and isinstance(entry.get("stem"), str) and isinstance(entry.get("stamp"), str):
+                    out[entry["stem"]] = entry["stamp"]
     except OSError:
         return {}
-    out = {}
-    for line in lines:
-        try:
-            entry = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(entry, dict) and isinstance(entry.get("stem"), str) and isinstance(entry.get("stamp"), str):
-            out[entry["stem"]] = entry["stamp"]
     return out
 
 

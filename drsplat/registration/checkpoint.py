@@ -39,7 +39,7 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
 from drsplat.scene import GaussianScene
-from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, os_error_cause, output_target, read_npy_header, temp_prefix,
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
                            temp_stem, work_folder)
 
 log = logging.getLogger(__name__)
@@ -222,8 +222,8 @@ class RunLock:
 def refuse_odd_entry(path: Path) -> None:
     """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO or device: writing
     there would follow the link (over a user's file), fail, or block."""
-    if path.is_symlink() or (path.exists() and not path.is_file()):
-        kind = "a symbolic link" if path.is_symlink() else "a folder" if path.is_dir() else "not a regular file"
+    kind = odd_entry_kind(path)
+    if kind is not None:
         raise DrsplatError(f"{path} is where drsplat keeps this registration's checkpoint, but it is {kind}; move it away and rerun")
 
 
