@@ -15,7 +15,8 @@ AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core
                    "check", "check-reject", "check-vote", "check-vote-reject",
                    "sharp", "sharp-reject", "sharp-vote", "sharp-vote-reject",
                    "fit", "fit-reject", "fit-vote", "fit-vote-reject",
-                   "sharp-check-vote-reject", "fit-check-vote-reject")  # drsplat.registration.aggregate implements them
+                   "sharp-check-vote-reject", "fit-check-vote-reject",
+                   "explain-vote", "sharp-check-vote", "fit-check-vote")  # drsplat.registration.aggregate implements them; every "-reject" mode has its mode without the rejection
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)

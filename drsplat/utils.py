@@ -257,15 +257,22 @@ def is_special_file(path: Path) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
-def file_stamp(path: str | Path | None) -> str | None:
+def file_stamp(path: str | Path | None, *, in_place: bool = False) -> str | None:
     """'size:mtime_ns' of a file (None when it cannot be stat'ed): what rewriting or editing it in
-    place changes; a cheap stand-in for its contents when deciding whether earlier work is stale."""
+    place changes; a cheap stand-in for its contents when deciding whether earlier work is stale.
+
+    in_place: also its inode and status-change time, 'size:mtime_ns:ino:ctime_ns'. A rewrite that
+    keeps the size and puts the old modification time back (`cp -p`, `rsync -a`, `touch -r`) still
+    changes these, since no call can set ctime; so does a copy of the folder, so only state that
+    never leaves its place (a registration's checkpoint beside its output) should use them."""
     if path is None:
         return None
     try:
         st = os.stat(path)
     except OSError:
         return None
+    if in_place:
+        return f"{st.st_size}:{st.st_mtime_ns}:{st.st_ino}:{st.st_ctime_ns}"
     return f"{st.st_size}:{st.st_mtime_ns}"
 
 

@@ -3,6 +3,7 @@ the recommended mode against the paper's on a tiny hard room."""
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 
 import json
@@ -353,6 +354,19 @@ def test_mode_names():
     assert split_mode("core-reject") == ("core", True) and set(MODES) >= set(WEIGHTINGS)
     with pytest.raises(ValueError, match="unknown aggregation mode"):
         split_mode("median")
+
+
+def test_every_rejecting_mode_has_its_mode_without_the_rejection():
+    """Floater rejection also drops a semi-transparent object (glass); the log and the error for a
+    scene with no opaque surface name the same mode without it, which must exist and differ in
+    nothing else (the default's, fit-check-vote, did not until round 29)."""
+    from drsplat.registration.aggregate import mode_stages, without_rejection
+
+    for mode in MODES:
+        other = without_rejection(mode)
+        assert other in MODES and not mode_stages(other).reject
+        assert dataclasses.replace(mode_stages(mode), reject=False) == mode_stages(other), mode
+    assert without_rejection("fit-check-vote-reject") == "fit-check-vote" and without_rejection("reject") == "paper"
 
 
 def test_rejection_on_a_rendered_wall():

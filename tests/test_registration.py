@@ -568,6 +568,38 @@ def test_a_scene_nearer_to_its_cameras_than_the_near_plane_is_said(tiny, tmp_pat
                          r"\(0\.01 scene units\), which culls them: are the scene and its cameras in the same units\?", caplog.text), caplog.text
 
 
+def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_path):
+    """Round 29: scaled by 1e-4 no Gaussian is rendered, and the error named cameras that miss the
+    scene or a scene in another frame (86 % of the centres project inside the views); the near
+    plane was said only by the warning of runs that assign a few."""
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    scene = dataclasses.replace(scene, means=scene.means * 1e-4, log_scales=scene.log_scales + np.log(1e-4))
+    cams = [dataclasses.replace(cam, t=cam.t * 1e-4) for cam in cams]
+    with pytest.raises(DrsplatError, match=r"no Gaussian received a language feature .*; 100% of the Gaussians are nearer to every "
+                                           r"camera than the near plane \(0\.01 scene units\)") as err:
+        register(scene, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert "another frame" not in str(err.value)
+
+
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "vote-reject"])
+def test_a_scene_with_no_opaque_surface_says_floater_rejection_dropped_it(tiny, tmp_path, mode):
+    """Round 29: every Gaussian at opacity 0.006 (nothing reaches ½ of a pixel's weight, so every one
+    is faint and in front of the views' surface): the default rejected them all and the error blamed
+    the cameras or the masks. It now names the rejection and the mode without it, which registers."""
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    faint = dataclasses.replace(scene, opacity_logits=np.full_like(scene.opacity_logits, np.log(0.006 / 0.994)))
+    with pytest.raises(DrsplatError, match=rf"floater rejection \(--aggregate {mode}\) left all \d+ Gaussians that the masks "
+                                           rf"gave weight unassigned.*--aggregate {mode[:-len('-reject')]} registers without the rejection"):
+        register(faint, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(topk=10, aggregate=mode), show_progress=False)
+    kept = register(faint, cams, tiny / "features", tmp_path / "kept.ply", RegisterOptions(topk=10, aggregate=mode[:-len("-reject")]),
+                    show_progress=False)
+    assert kept.num_assigned > 0.9 * scene.num_gaussians
+
+
 def test_the_share_within_the_near_plane_counts_gaussians_no_view_renders():
     from drsplat.raster import NEAR, share_within_near_plane
     from drsplat.testing import front_camera

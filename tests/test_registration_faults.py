@@ -183,6 +183,30 @@ def test_features_edited_between_runs_restart_the_checkpoint(tiny, tmp_path, mon
     assert out.read_bytes() == fresh.read_bytes()
 
 
+def test_features_rewritten_with_their_old_size_and_mtime_restart_the_checkpoint(tiny, tmp_path, monkeypatch, capsys):
+    """`cp -p` / `rsync -a` of edited features puts the old modification time back, and rows reversed
+    keep the size: the stamp was size:mtime only, so the resume mixed the old views' logged masks
+    with the new files (round 28). The status-change time, which no call can set back, tells them apart."""
+    import os
+
+    import numpy as np
+
+    ds = _copy(tiny, tmp_path)
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(ds, out, monkeypatch)
+    feats = ds / "features" / "orbit_001_f.npy"
+    before = feats.stat()
+    np.save(feats, np.load(feats)[::-1].copy())
+    os.utime(feats, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert (feats.stat().st_size, feats.stat().st_mtime_ns) == (before.st_size, before.st_mtime_ns)
+    capsys.readouterr()
+    assert main(_args(ds, out)) == 0
+    assert "the feature files of view orbit_001 changed since it was logged; resuming from the 1 views before it" in capsys.readouterr().err
+    fresh = tmp_path / "fresh" / "reg.ply"
+    assert main(_args(ds, fresh)) == 0
+    assert out.read_bytes() == fresh.read_bytes()
+
+
 def test_a_scene_edited_without_changing_its_size_restarts_the_checkpoint(tiny, tmp_path, monkeypatch, capsys):
     """Floaters removed by zeroing their opacity keep N: the scene digest covers every Gaussian."""
 

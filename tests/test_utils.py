@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drsplat.errors import OutputError
-from drsplat.utils import (atomic_path, concat_ranges, describe_os_error, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic,
+from drsplat.utils import (atomic_path, concat_ranges, file_stamp, describe_os_error, guard_outputs, host_reachable, replace_with_temp, save_npy_atomic,
                            temp_beside)
 
 
@@ -154,3 +154,20 @@ def test_a_replaced_output_keeps_the_permissions_of_the_file_it_replaces(tmp_pat
     with atomic_path(fresh) as tmp:
         tmp.write_bytes(b"new")
     assert stat.S_IMODE(fresh.stat().st_mode) == 0o666 & ~_current_umask()
+
+
+def test_an_in_place_stamp_sees_a_rewrite_that_restores_size_and_mtime(tmp_path):
+    """`cp -p` puts the size and modification time back; the plain stamp (what `features` keeps
+    across copies of a dataset) then matches, the in-place one (a registration's checkpoint) does not."""
+    import os
+    import time
+
+    f = tmp_path / "x.npy"
+    f.write_bytes(b"abcd")
+    before, before_in_place, st = file_stamp(f), file_stamp(f, in_place=True), f.stat()
+    time.sleep(0.05)  # past a coarse clock's tick (kernels before 6.13 stamp ctime per jiffy)
+    f.write_bytes(b"dcba")
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert file_stamp(f) == before
+    assert file_stamp(f, in_place=True) != before_in_place
+    assert file_stamp(tmp_path / "missing", in_place=True) is None

@@ -46,7 +46,7 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                     solve); the Gaussian's total weight in the view is kept
     vote            w, then the mean trimmed of clusters of masks that a minority of views vote
                     for (drsplat.registration.vote: mislabelled masks outvoted)
-    explain-reject, vote-reject, explain-vote-reject   the stages in that order
+    explain-reject, explain-vote, vote-reject, explain-vote-reject   the stages in that order
     solve           w, then the render-consistent solve on the sums (drsplat.registration.solve:
                     features that re-render the views' masks best, Tikhonov toward the paper's
                     mean, conjugate gradients; one block in memory only)
@@ -56,6 +56,9 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                     one block in memory only)
     check-reject, check-vote, check-vote-reject   the check, then the vote and / or rejection
     sharp-check-vote-reject, fit-check-vote-reject   the check on the sharp / the fit stage's weights
+    sharp-check-vote, fit-check-vote   the same without floater rejection, which also drops Gaussians of
+                    a semi-transparent object (glass) that never reach ½ of a pixel's weight: the
+                    default's counterpart for scenes that hold such objects
 
 A mode's name lists its stages, "[WEIGHTING][-check][-vote][-reject]" (`mode_stages`); WEIGHTING
 "solve" means the paper's w in the views and the solve stage on the sums; "check" alone, the
@@ -169,6 +172,14 @@ def mode_stages(mode: str) -> Stages:
     check = bool(parts) and parts[-1] == "check"
     parts = parts[:-1] if check else parts
     return Stages(parts[0] if parts else "paper", vote, reject, check=check)
+
+
+def without_rejection(mode: str) -> str:
+    """`mode` without its floater rejection: "fit-check-vote-reject" -> "fit-check-vote", "reject" ->
+    "paper"; a mode that rejects nothing is returned as it is."""
+    if not mode_stages(mode).reject:
+        return mode
+    return mode[: -len("-reject")] if mode != "reject" else "paper"
 
 
 def split_mode(mode: str) -> tuple[str, bool]:
@@ -1100,9 +1111,13 @@ class Aggregator:
             self._rejected = self.support.rejected()
         return self._rejected
 
-    def log_rejected(self) -> None:
+    def log_rejected(self, asked: str | None = None) -> None:
+        """One line: how many Gaussians the rejection dropped, and the mode without it (of `asked`, the
+        mode as the user named it, when a fit mode resolved to this one)."""
         if self.reject:
-            log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface)", self.mode, self.num_rejected)
+            log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface; a semi-transparent object "
+                     "such as glass, under %g of every pixel's weight, goes with them: --aggregate %s keeps it)", self.mode,
+                     self.num_rejected, PEAK_MIN, without_rejection(asked or self.mode))
 
     @staticmethod
     def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int) -> tuple[int, int, int]:

@@ -10,8 +10,8 @@ pointer per view in the log; the statistics are then in the shards, and a resume
 whose shard records are all there, checksums included. A checkpoint is resumed only when the scene
 (every Gaussian's geometry and opacity), the views (names, intrinsics, poses, order), the feature
 folder, top-k, level and mode are the same, and on a GPU the engine (`checkpoint_params`; a restart
-names what changed), and a logged view only while its feature files have the size and modification time they had when it
-was logged (`feature_stamp`: features regenerated or edited in place cut the log back to the views
+names what changed), and a logged view only while its feature files have the size, modification and status-change
+times and inode they had when it was logged (`feature_stamp`: features regenerated or edited in place cut the log back to the views
 before the first changed one). One registration
 at a time holds a checkpoint: `RunLock` (an flock on `.<out>.register.lock`) refuses a second one
 writing the same output.
@@ -89,11 +89,12 @@ def _scene_digest(scene: GaussianScene) -> str:
 
 
 def feature_stamp(features_dir: Path, name: str) -> str:
-    """The stamps (`utils.file_stamp`) of view `name`'s feature pair: a view is resumed from the log
-    only while its files are as they were when it was logged (a file the driver does not hold, on
-    Ray, is absent both times)."""
+    """The stamps (`utils.file_stamp`, in place) of view `name`'s feature pair: a view is resumed from
+    the log only while its files are as they were when it was logged (a file the driver does not
+    hold, on Ray, is absent both times). The status-change time counts too: a file rewritten at its
+    old size with its old modification time put back (`cp -p`) is a changed file."""
     pair = (featurefiles.seg_path(features_dir, name), featurefiles.feat_path(features_dir, name))
-    return hashlib.sha1("|".join(f"{p.name}={file_stamp(p)}" for p in pair).encode()).hexdigest()[:16]
+    return hashlib.sha1("|".join(f"{p.name}={file_stamp(p, in_place=True)}" for p in pair).encode()).hexdigest()[:16]
 
 
 def feature_stamps(features_dir: Path, views: Sequence[Camera]) -> dict[str, str]:

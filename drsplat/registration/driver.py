@@ -42,7 +42,7 @@ from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import NEAR, get_engine, share_within_near_plane
-from drsplat.registration.aggregate import Aggregator, mode_stages
+from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_rejection
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
@@ -236,12 +236,19 @@ def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
     return book
 
 
-def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: int = 0) -> str:
-    """The error when registration gave no Gaussian a feature (nothing is written); hint: `frame_hint`'s;
-    unusable: Gaussians whose sums were dropped by `normalize_rows` (then the likely cause)."""
+def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: int = 0,
+                     rejected: int = 0, mode: str = "") -> str:
+    """The error when registration gave no Gaussian a feature (nothing is written); hint: `unassigned_hint`'s;
+    unusable: Gaussians whose sums were dropped by `normalize_rows`, rejected: Gaussians with weight
+    that `mode`'s floater rejection dropped (either is then the likely cause)."""
     written = f"; nothing was written to {out}" if out is not None else ""
     if unusable:
         return f"no Gaussian kept a language feature from {num_views} views: {unusable_sums(unusable)}{written}"
+    if rejected:
+        return (f"no Gaussian kept a language feature from {num_views} views: floater rejection (--aggregate {mode}) left all "
+                f"{rejected} Gaussians that the masks gave weight unassigned, since each stays under {PEAK_MIN:g} of every pixel's "
+                "weight and lies mostly in front of the surface the views see: a scene without an opaque surface (or with "
+                f"opacities far below a trained scene's); --aggregate {without_rejection(mode)} registers without the rejection{written}")
     return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
 
@@ -299,6 +306,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     stamps = feature_stamps(run.features_dir, run.views)  # before any view is read: a file changed during the run is caught
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
+    asked = run.options.aggregate  # the mode as the user named it (a fit mode resolves to a concrete one here)
     if probe is not None:
         run = dataclasses.replace(run, options=dataclasses.replace(run.options, aggregate=probe.mode))
     scene, options = run.scene, run.options
@@ -355,7 +363,10 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                                                      pair_means=check.verdicts.pair_means if check.specific else None)
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views)))
+            dropped = aggregator.rejected()
+            rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
+                                                rejected=rejected, mode=asked))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
@@ -363,10 +374,11 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views), fates.dropped))
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views), fates.dropped,
+                                                    aggregator.num_rejected, asked))
             written = target.close()
         else:
-            weights, fates, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out)
+            weights, fates, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out, asked)
             reducer_seconds = (task_seconds, sum_seconds)
     except BaseException as exc:
         target.abort()
@@ -383,7 +395,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     log_bytes = ckpt.nbytes if ckpt is not None else 0
     if ckpt is not None:
         ckpt.remove()
-    aggregator.log_rejected()
+    aggregator.log_rejected(asked)
     if fates.dropped:
         log.warning("%s", unusable_sums(fates.dropped))
     if fates.weak:
@@ -648,13 +660,14 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
     return weights, fates, blocks, sum_seconds, sum_cpu
 
 
-def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebook, totals: ViewTotals, out: Path | None):
-    """The blocks finished by reducer tasks, then the parts assembled into `out` (drsplat.registration.reduce).
+def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebook, totals: ViewTotals, out: Path | None, asked: str):
+    """The blocks finished by reducer tasks, then the parts assembled into `out` (drsplat.registration.reduce); asked: the
+    mode as the user named it (for the error when nothing is assigned).
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, frame_hint(run.scene.means, run.views),
-                                            sum(p.fates.dropped for p in parts)))
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
+                                            sum(p.fates.dropped for p in parts), sum(p.rejected for p in parts), asked))
     written = assemble_parts(Path(reduce.job.out), parts)
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))
@@ -716,16 +729,22 @@ def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, 
     total = int(result.weights.shape[0])
     if total == 0 or result.num_assigned >= LOW_ASSIGNED_FRACTION * total:
         return
+    log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
+                result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned,
+                unassigned_hint(scene, cameras))
+
+
+def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
+    """'; <the likely cause>' of a registration that assigned few or no Gaussians, "" when none shows:
+    views under 64 px wide, Gaussians nearer to every camera than the near plane (a scene in other
+    units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame."""
     sizes = sorted({(c.width, c.height) for c in cameras})
     why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if sizes and min(sizes)[0] < 64 else ""
     near = share_within_near_plane(scene.means, cameras)
     if near >= 0.1:
-        why += (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), which "
-                "culls them: are the scene and its cameras in the same units?")
-    else:
-        why += frame_hint(scene.means, cameras)
-    log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
-                result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned, why)
+        return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
+                      "which culls them: are the scene and its cameras in the same units?")
+    return why + frame_hint(scene.means, cameras)
 
 
 def n_unassigned(result: RegistrationResult) -> int:
