@@ -15,6 +15,7 @@ import stat
 import tempfile
 import threading
 import time
+import unicodedata
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -276,6 +277,12 @@ def file_stamp(path: str | Path | None, *, in_place: bool = False) -> str | None
     return f"{st.st_size}:{st.st_mtime_ns}"
 
 
+def names_a_folder(path: str | Path) -> bool:
+    """Whether a typed output path ends in a path separator: pathlib drops it (Path("newdir/") is
+    Path("newdir")), so a file written there would take the folder's name."""
+    return str(path).endswith(("/", "\\"))
+
+
 def work_folder(path: str | Path) -> Path:
     """Where the temp and checkpoint files of an output `path` go: beside its (resolved) target, or the
     system temp folder when it is a device or FIFO (never /dev)."""
@@ -507,8 +514,21 @@ def regular_file(path: str | Path) -> Path:
     (a FIFO or device would block a read or never end, a folder cannot be read)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "file not found" if not path.exists() else "is not a file")
+        raise InputError(path, "is not a file" if path.exists() else _unreachable(path))
     return path
+
+
+def _unreachable(path: Path) -> str:
+    """Why a path that does not resolve to anything is not there: a link loop, a link whose target is
+    missing (it exists, so "file not found" would puzzle), or no such file."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "is a loop of symbolic links (too many levels to resolve)"
+    if path.is_symlink():
+        return f"is a symbolic link to {os.readlink(path)}, which does not exist"
+    return "file not found"
 
 
 def clipped(text: str, limit: int) -> str:
@@ -522,7 +542,7 @@ def name_problem(names: list[str]) -> tuple[int, str, object] | None:
     "empty", None) for a blank one, (index, "hidden", description) for one holding a character a
     terminal would not show as itself (`hidden_character`: a newline, ESC, U+202E, a lone
     surrogate), (index, "repeat", earlier index) for one equal to an earlier one apart from spaces
-    around it; None when every entry may. The one rule of `checked_names` and `checked_phrases`."""
+    around it or in how its accents are encoded (Unicode NFC); None when every entry may. The one rule of `checked_names` and `checked_phrases`."""
     seen: dict[str, int] = {}
     for i, name in enumerate(names):
         if not name.strip():
@@ -530,7 +550,7 @@ def name_problem(names: list[str]) -> tuple[int, str, object] | None:
         hidden = hidden_character(name)
         if hidden is not None:
             return i, "hidden", hidden
-        key = name.strip()
+        key = unicodedata.normalize("NFC", name.strip())  # "café" composed or as "cafe" + U+0301: one name to the eye
         if key in seen:
             return i, "repeat", seen[key]
         seen[key] = i
@@ -552,7 +572,7 @@ def checked_names(path: Path, names: list) -> list[str]:
             raise InputError(path, f"entry {i} is an empty name ({shown})")
         if kind == "hidden":
             raise InputError(path, f"entry {i} ({shown}) holds {detail}, which a terminal would not show as itself")
-        same = "" if names[i] == names[detail] else " (apart from spaces around it)"
+        same = "" if names[i] == names[detail] else " (apart from spaces around it or how its accents are encoded)"
         raise InputError(path, f"entry {i} repeats the name {shown} of entry {detail}{same}")
     return names
 

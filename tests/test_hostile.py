@@ -939,7 +939,7 @@ def test_info_describes_the_language_field(tmp_path, world, capsys):
     kind = tmp_path / "kind.ply"
     kind.write_bytes(world["reg"].read_bytes().replace(b"kind=exact", b"kind=bogus", 1))
     code, out = main(["info", str(kind)]), capsys.readouterr().out
-    assert code == 0 and "language field: unknown language field kind 'bogus'" in out, out
+    assert code == 0 and "language field: field 'comment drsplat.lang': unknown language field kind 'bogus'" in out, out
     code, out = main(["info", str(world["ds"] / "scene.ply"), "--json"]), capsys.readouterr().out
     assert code == 0 and json.loads(out)["language_field"] is None
 
@@ -2664,3 +2664,158 @@ def test_register_out_named_as_another_kind_of_file_is_refused(world, tmp_path, 
         assert code == 2 and f"--out {out.name}: a {out.suffix} name is another kind of file" in err and "name it .ply" in err, err
     assert digest(ds / "text_embeddings.npy") == before and not (tmp_path / "reg.json").exists()
     assert not any(p.exists() for p in extra)
+
+
+# ---------------------------------------------------------------------------------------------- round 29a: registered PLYs, codebooks, info, the viewer
+
+
+def _scaled_index(scale: float, dim: int = 8, m: int = 2):
+    """A faiss IndexPQ trained on 400 random unit rows [400, dim], its centroids then scaled by
+    `scale` (a codebook of subnormal or huge centroids, as a corrupt or hand-made file holds)."""
+    import faiss
+
+    rng = np.random.default_rng(0)
+    index = faiss.IndexPQ(dim, m, 8, faiss.METRIC_INNER_PRODUCT)
+    index.pq.cp.min_points_per_centroid = 1
+    index.train(np.ascontiguousarray(rng.standard_normal((400, dim)), np.float32))
+    centroids = faiss.vector_to_array(index.pq.centroids) * np.float32(scale)
+    faiss.copy_array_to_vector(np.ascontiguousarray(centroids, np.float32), index.pq.centroids)
+    return index
+
+
+def _scaled_codebook(scale: float, dim: int = 8, m: int = 2):
+    """`_scaled_index` as a drsplat Codebook."""
+    from drsplat.lang import codebook_from_index
+
+    return codebook_from_index(_scaled_index(scale, dim, m))
+
+
+def _registered_with(path: Path, book, n: int = 40, dim: int = 8) -> Path:
+    """A registered PLY of n Gaussians (unit features, all assigned) stored with the Codebook `book`."""
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+
+    rng = np.random.default_rng(1)
+    field = build_field(rng.standard_normal((n, dim)).astype(np.float32), np.ones(n, np.float32), book, clip_model="oracle")
+    save_ply(attach_field(tiny_scene(n), field, path), path)
+    return path
+
+
+def test_a_codebook_of_subnormal_centroids_scores_no_row_infinite(tmp_path, capsys):
+    """Round 29a: a codebook whose centroids are subnormal (1e-41) gave stored norms below float32's
+    smallest normal number; 1/norm overflowed, so every row scored inf: `query` selected them all at
+    an 'auto' threshold of 0.0000 and wrote inf to --scores, without a word (`info`: findings none).
+    Such rows now hold no feature (`lut.MIN_NORM`), counted in a warning; query refuses the field."""
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply
+
+    ply = _registered_with(tmp_path / "tiny.ply", _scaled_codebook(1e-41))
+    np.save(tmp_path / "q.npy", np.ones(8, np.float32))
+    field = read_field(load_ply(ply), ply)
+    scores = field.scores(np.ones(8, np.float32))
+    assert np.isfinite(scores).all() and not field.assigned().any()
+    code, err = run_cli(["query", ply, "--embedding", tmp_path / "q.npy", "--scores", tmp_path / "s.npy"], capsys)
+    assert code == 1 and "40 Gaussians have a language feature of norm below 1.18e-38" in err, err
+    assert "none of its 40 Gaussians has a language feature" in error_lines(err)[0] and not (tmp_path / "s.npy").exists()
+    code, out = main(["info", str(ply)]), capsys.readouterr().out
+    assert code == 0 and "norm below 1.18e-38" in out and "query and segment refuse this file" in out, out
+    normal = read_field(load_ply(_registered_with(tmp_path / "ok.ply", _scaled_codebook(1e-30))), tmp_path / "ok.ply")
+    assert normal.assigned().all()  # tiny but normal norms still score, as the decoded reference does
+    np.testing.assert_allclose(normal.scores(np.ones(8)), normal.scores_reference(np.ones(8)), atol=1e-6)
+
+
+def test_a_codebook_whose_reconstructions_pass_float32_is_refused(tmp_path, capsys):
+    """Round 29a: a codebook of centroids ~3e37 was accepted: registration stored every norm as inf
+    (each Gaussian then scored 0, the field refused as holding no feature), and `pq info` described
+    it without a word. The largest reconstruction's norm is now bounded when a codebook is read."""
+    import faiss
+
+    from drsplat.errors import InputError
+
+    with pytest.raises(InputError, match="reconstruct vectors of norm up to .*beyond float32's range"):
+        _scaled_codebook(8e37)  # every centroid value finite (at most ~3e38); the largest reconstruction ~4.4e38
+    faiss.write_index(_scaled_index(8e37), str(tmp_path / "huge.faiss"))
+    code, err = run_cli(["pq", "info", tmp_path / "huge.faiss"], capsys)
+    assert code == 1 and "huge.faiss: field 'pq centroids': its centroids reconstruct vectors of norm up to" in error_lines(err)[0], err
+    faiss.write_index(_scaled_index(1e30), str(tmp_path / "large.faiss"))  # large but within range: read
+    assert run_cli(["pq", "info", tmp_path / "large.faiss"], capsys)[0] == 0
+
+
+def _with_field_comment(world, path: Path, edit) -> Path:
+    """world's registered PLY with its `drsplat.lang` header comment passed through `edit`."""
+    data = world["reg"].read_bytes()
+    start = data.index(b"comment drsplat.lang")
+    end = data.index(b"\n", start)
+    path.write_bytes(data[:start] + edit(data[start:end]) + data[end:])
+    return path
+
+
+@pytest.mark.parametrize("extra, refused", [(b" kind=pq", True), (b" clip=other/model", True), (b" dim=%s", False)])
+def test_a_field_comment_giving_a_key_twice_is_one_error_naming_it(tmp_path, world, capsys, extra, refused):
+    """Round 29a: the `drsplat.lang` comment was parsed into a dict, so a key given twice took its
+    last value: `kind=exact ... kind=pq` failed on a codebook the file never named, and a second
+    `clip=` replaced the model id without a word. Two different values are now one error naming the
+    key; the same value twice is read."""
+    ply = _with_field_comment(world, tmp_path / "twice.ply", lambda line: line + extra.replace(b"%s", str(world["dim"]).encode()))
+    code, err = run_cli(["query", ply, "--embedding", world["q"], "--top", "1"], capsys)
+    key = extra.split(b"=")[0].strip().decode()
+    if refused:
+        assert code == 1 and f"gives the metadata entry {key} twice" in error_lines(err)[0], err
+    else:
+        assert code == 0, err
+
+
+def test_a_double_lang_norm_beyond_float32_is_counted_without_a_numpy_warning(tmp_path, capsys):
+    """Round 29a: a `lang_norm` declared double (a tool that widened every property) holding 1e300
+    printed numpy's "overflow encountered in cast", then "non-finite language features" for values
+    the file holds as finite. The float columns are cast without the warning and counted by name."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    ply = _registered_with(tmp_path / "r.ply", _scaled_codebook(1.0))
+    scene = load_ply(ply)
+    extra = dict(scene.extra)
+    extra["lang_norm"] = extra["lang_norm"].astype(np.float64)
+    extra["lang_norm"][:3] = 1e300
+    save_ply(dataclasses.replace(scene, extra=extra), ply)
+    np.save(tmp_path / "q.npy", np.ones(8, np.float32))
+    code, err = run_cli(["query", ply, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
+    assert code == 0 and "RuntimeWarning" not in err, err
+    assert "3 values of lang_norm (declared double) lie beyond float32's range" in err, err
+
+
+def test_info_lists_what_reading_the_field_warns_of_and_reads_a_field_without_its_comment(tmp_path, world, capsys):
+    """Round 29a: `info` silenced the field's warnings, so 100 flipped PQ code bytes (query: "94 of
+    2763 Gaussians have PQ codes that do not reproduce their stored norm") read "findings none"; a
+    file whose comment a tool dropped (the field in its `lang_meta` column, which query reads) had no
+    language section; and an error finding left out the field it names."""
+    import dataclasses
+
+    from drsplat.scene import load_ply, save_ply
+
+    ply = _registered_with(tmp_path / "r.ply", _scaled_codebook(1.0), n=300)
+    scene = load_ply(ply)
+    extra = dict(scene.extra)
+    extra["lang_norm"] = extra["lang_norm"] * np.float32(1.5)  # every stored norm now disagrees with its codes
+    save_ply(dataclasses.replace(scene, extra=extra), tmp_path / "altered.ply")
+    code, out = main(["info", str(tmp_path / "altered.ply")]), capsys.readouterr().out
+    assert code == 0 and "language field: 300 of 300 Gaussians have PQ codes that do not reproduce their stored norm" in out, out
+    save_ply(dataclasses.replace(scene, comments=[]), tmp_path / "nocomment.ply")
+    code, out = main(["info", str(tmp_path / "nocomment.ply"), "--json"]), capsys.readouterr().out
+    assert code == 0 and json.loads(out)["language_field"]["assigned"] == 300, out
+    missing = tmp_path / "missing.ply"
+    save_ply(dataclasses.replace(scene, extra={k: v for k, v in scene.extra.items() if k != "lang_norm"}), missing)
+    code, out = main(["info", str(missing)]), capsys.readouterr().out
+    assert code == 0 and "language field: field 'lang_norm': missing vertex property" in out, out
+
+
+def test_segment_table_cuts_a_huge_label_name(tmp_path, world, capsys):
+    """Round 29a: a names file holding a 100,000-character name printed it whole in the table."""
+    names = ["x" * 100_000] + [f"l{i}" for i in range(1, np.load(world["L"]).shape[0])]
+    (tmp_path / "names.json").write_text(json.dumps(names))
+    code = main(["segment", str(world["reg"]), "--embeddings", str(world["L"]), "--names", str(tmp_path / "names.json"),
+                 "--out", str(tmp_path / "l.npy")])
+    out = capsys.readouterr().out
+    assert code == 0 and "(100,000 characters)" in out and max(len(line) for line in out.splitlines()) < 200, out

@@ -171,3 +171,31 @@ def test_an_in_place_stamp_sees_a_rewrite_that_restores_size_and_mtime(tmp_path)
     assert file_stamp(f) == before
     assert file_stamp(f, in_place=True) != before_in_place
     assert file_stamp(tmp_path / "missing", in_place=True) is None
+
+
+def test_an_input_link_loop_or_dangling_link_says_so(tmp_path):
+    """A loop of links and a link to a missing file were both "file not found" (round 29a), though
+    `ls` lists them: the error now says which."""
+    from drsplat.errors import InputError
+    from drsplat.utils import load_npy
+
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    (tmp_path / "d").symlink_to(tmp_path / "gone.npy")
+    with pytest.raises(InputError, match="a: is a loop of symbolic links"):
+        load_npy(tmp_path / "a")
+    with pytest.raises(InputError, match=r"d: is a symbolic link to .*gone\.npy, which does not exist"):
+        load_npy(tmp_path / "d")
+    with pytest.raises(InputError, match="x.npy: file not found"):
+        load_npy(tmp_path / "x.npy")
+
+
+def test_label_names_that_differ_only_in_how_accents_are_encoded_are_one_name(tmp_path):
+    """"café" composed (U+00E9) and as "cafe" + U+0301 print alike: the segment table showed two
+    identical rows (round 29a). They are the same name, refused as a repeat."""
+    from drsplat.errors import InputError
+    from drsplat.utils import checked_names
+
+    with pytest.raises(InputError, match=r"entry 1 repeats the name .* of entry 0 \(apart from spaces around it or how its accents"):
+        checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe\u0301"])
+    assert checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe"]) == ["caf\u00e9", "cafe"]

@@ -200,3 +200,41 @@ def test_what_a_load_warns_of_is_shown_and_a_field_with_nothing_assigned_is_said
     s = ViewerState()
     assert s.load_scene(broken)
     assert any(m.level == "warning" and "NaN" in m.text for m in s.messages), [m.text for m in s.messages]
+
+
+def test_a_threshold_that_is_not_a_number_is_refused_and_the_last_kept(state):
+    """Round 29a: imgui's ctrl+click lets the threshold slider take a typed "nan", which selected
+    nothing while the slider showed "nan" (and "inf" the same); the threshold is kept instead."""
+    assert state.run_oracle_query(0)
+    before, selected = state.threshold, int(state.selection.sum())
+    for value in (float("nan"), float("inf"), -float("inf")):
+        assert not state.set_threshold(value)
+        assert state.threshold == before and int(state.selection.sum()) == selected
+        assert state.messages[-1].level == "error" and "must be a finite number" in state.messages[-1].text
+    assert state.set_threshold(-1.0) and state.selection.sum() == state.field.assigned().sum()
+
+
+def test_an_export_or_screenshot_path_ending_in_a_separator_is_refused(state, tmp_path):
+    """Round 29a: the export path `sel/` wrote a file named `sel` (pathlib drops the separator),
+    which the CLI refuses for its outputs (`output_file`); the viewer's export, screenshot and
+    registration paths now refuse it too."""
+    assert state.run_oracle_query(0) and state.set_threshold(-1.0)
+    for typed in (f"{tmp_path}/sel/", f"{tmp_path}/sel\\"):
+        assert state.export_selection(typed) is None
+        assert "ends with a separator" in state.messages[-1].text, state.messages[-1].text
+        assert not state.guard_output(typed, "the screenshot")
+    assert not (tmp_path / "sel").exists() and not (tmp_path / "sel\\").exists()
+    assert state.export_selection(tmp_path / "sel.ply") == int(state.selection.sum())
+
+
+def test_an_embedding_file_of_several_rows_says_the_viewer_queries_by_the_first(state, tmp_path):
+    """Round 29a: a Q.npy of K rows (which `drsplat query` scores one by one) was queried by its
+    first row without a word."""
+    emb = state.oracle.embeddings
+    np.save(tmp_path / "k.npy", emb[:3])
+    assert state.run_embedding_query(tmp_path / "k.npy")
+    assert any(m.level == "warning" and "holds 3 embeddings; the viewer queries by the first" in m.text for m in state.messages)
+    np.save(tmp_path / "one.npy", emb[0])
+    count = len(state.messages)
+    assert state.run_embedding_query(tmp_path / "one.npy")
+    assert not any("embeddings; the viewer" in m.text for m in state.messages[count:])

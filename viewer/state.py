@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 import traceback
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
-from drsplat.utils import check_output_writable, checked_names, describe_os_error, guard_outputs, load_npy, read_json
+from drsplat.utils import check_output_writable, checked_names, describe_os_error, guard_outputs, load_npy, names_a_folder, read_json
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
@@ -316,6 +317,8 @@ class ViewerState:
             scores, metric = self._score(emb[0])
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"embedding query {path} failed")
+        if emb.shape[0] > 1:  # `drsplat query` scores every row; the viewer shows one query, and said nothing of the rest
+            self.warning(f"{Path(path).name} holds {emb.shape[0]} embeddings; the viewer queries by the first (row 0) and ignores the rest")
         self._set_query(QueryResult(Path(path).name, "embedding", scores, metric))
         return True
 
@@ -368,9 +371,15 @@ class ViewerState:
         self.mode = "color"
         self.style_version += 1
 
-    def set_threshold(self, value: float) -> None:
+    def set_threshold(self, value: float) -> bool:
+        """Select at `value`; a value that is not a number (imgui's ctrl+click takes "nan" typed into
+        the slider, which selected nothing while the slider showed "nan") is refused, the threshold kept."""
+        if not math.isfinite(float(value)):
+            self.error(f"the threshold must be a finite number, not {value}; kept {self.threshold:.3f}")
+            return False
         self.threshold = float(value)
         self.style_version += 1
+        return True
 
     def set_mode(self, mode: str) -> bool:
         if mode not in DISPLAY_MODES:
@@ -463,9 +472,13 @@ class ViewerState:
         return inputs, protected_feature_folders("--features", [self.features_dir])
 
     def guard_output(self, path: str | Path, what: str) -> bool:
-        """False, with an error, when `path` is blank, a folder, or a file the viewer read (`read_inputs`)."""
+        """False, with an error, when `path` is blank, names a folder (ends in a separator, or is
+        one), or is a file the viewer read (`read_inputs`)."""
         if not str(path).strip():
             self.error(f"type the path of {what}")
+            return False
+        if names_a_folder(path):
+            self.error(f"{what} to {path} refused: the path ends with a separator, so it names a folder; give a file name")
             return False
         try:
             inputs, folders = self.read_inputs()
@@ -502,6 +515,9 @@ class ViewerState:
             return None
         if not str(path).strip():
             self.error("type the path of the file to export to (.ply, .compressed.ply, .splat or .spz)")
+            return None
+        if names_a_folder(path):  # Path("sel/") is Path("sel"): the export took the folder's name, as the CLI's --out once did
+            self.error(f"export to {path} refused: the path ends with a separator, so it names a folder; give a file name")
             return None
         try:
             codebook = codebook_path_for(path) if fmt == "drsplat" else None

@@ -21,7 +21,7 @@ from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import scene_format
-from drsplat.utils import name_problem
+from drsplat.utils import name_problem, names_a_folder
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ positive_float = float_range(0.0, None, lo_open=True)
 def output_file(text: str) -> Path:
     """argparse type of a file to write: a path ending in a separator names a folder and is refused
     (Path("newdir/") is Path("newdir"): the file would take the folder's name)."""
-    if text.endswith(("/", "\\")):
+    if names_a_folder(text):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a path separator, so it names a folder; give a file name")
     return Path(text)
 

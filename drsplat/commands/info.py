@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 
@@ -101,25 +102,20 @@ def format_summary(s: dict) -> str:
 
 def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[str]]:
     """(the language field's summary, findings) of a registered PLY; (None, []) for a scene without
-    one. A field that `query` would refuse is a finding naming why, not an error: info describes
-    the file as it is. Counts: Gaussians with a feature, without one (unassigned), and with a
+    one (no `drsplat.lang` comment and no `lang_meta` column: a file whose comments a tool dropped
+    is still read by its column, as query reads it). A field that `query` would refuse is a finding
+    naming the field and why, not an error: info describes the file as it is. What reading the field
+    warns of (altered codes, norms too small to score, negative weights) is a finding too, in the
+    loader's words. Counts: Gaussians with a feature, without one (unassigned), and with a
     non-finite one (they score 0)."""
-    import logging
-
     from drsplat.errors import InputError
     from drsplat.lang import read_field
 
-    if not any(c.startswith("drsplat.lang") for c in scene.comments):
-        return None, []
-    logger = logging.getLogger("drsplat.lang")
-    level = logger.level
-    logger.setLevel(logging.ERROR)  # its non-finite count is reported below, as a finding
     try:
-        field = read_field(scene, path)
+        with LoggedFindings("drsplat.lang") as warned:
+            field = read_field(scene, path)
     except InputError as exc:
-        return None, [f"language field: {exc.problem}"]
-    finally:
-        logger.setLevel(level)
+        return None, [f"language field: {'' if exc.field is None else f'field {exc.field!r}: '}{exc.problem}"]
     if field is None:
         return None, []
     nonfinite = int(np.count_nonzero(~np.isfinite(field.norms)))
@@ -127,10 +123,38 @@ def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[s
     summary = {"kind": field.kind, "dim": field.dim, "clip_model": field.clip_model, "bytes_per_gaussian": field.bytes_per_gaussian(),
                "codebook": None if field.codebook_path is None else str(field.codebook_path), "assigned": assigned,
                "unassigned": field.num_gaussians - assigned, "nonfinite": nonfinite}
-    findings = [f"{nonfinite:,} Gaussians have non-finite language features (they score 0)"] if nonfinite else []
+    findings = [f"language field: {text}" for text in warned.texts]
     if not assigned:
         findings.append("no Gaussian has a language feature: query and segment refuse this file")
     return summary, findings
+
+
+class LoggedFindings(logging.Handler):
+    """Collects, as text without the file's name, what a logger (and its children) warns of inside
+    the `with` block, instead of printing it: `info` lists it with the findings (it set the logger to
+    ERROR before, and altered PQ codes, which query warns of, were in neither: a probe, round 29a)."""
+
+    def __init__(self, name: str):
+        super().__init__(logging.WARNING)
+        self.logger = logging.getLogger(name)
+        self.texts: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        prefix = f"{record.args[0]}: " if isinstance(record.args, tuple) and record.args else ""
+        self.texts.append(text[len(prefix):] if prefix and text.startswith(prefix) else text)
+
+    def __enter__(self) -> "LoggedFindings":
+        self.saved = (self.logger.propagate, self.logger.level)
+        self.logger.addHandler(self)
+        self.logger.propagate = False
+        self.logger.setLevel(logging.WARNING)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.logger.removeHandler(self)
+        self.logger.propagate, level = self.saved[0], self.saved[1]
+        self.logger.setLevel(level)
 
 
 SHOWN_MODEL_CHARS = 120  # the CLIP model id as `info` prints it, at most

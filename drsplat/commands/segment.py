@@ -27,11 +27,12 @@ from drsplat.defaults import ORACLE_LABEL_NAMES
 from drsplat.errors import DrsplatError, InputError
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
-from drsplat.utils import checked_names, read_json
+from drsplat.utils import checked_names, clipped, read_json
 
 log = logging.getLogger(__name__)
 
 BACKGROUND_GREY = 0.35
+SHOWN_NAME_CHARS = 60  # of a label name in the printed table
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -175,7 +176,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
             log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
     print(f"{'label':<24} {'gaussians':>10}")
-    for i, name in enumerate(names):
-        print(f"{name:<24} {int(counts[i + 1]):>10}")
+    for i, name in enumerate(names):  # a name is cut as an error quotes it: a names file can hold one of megabytes
+        print(f"{clipped(name, SHOWN_NAME_CHARS):<24} {int(counts[i + 1]):>10}")
     print(f"{'(none / background)':<24} {int(counts[0]):>10}")
     return 0

@@ -39,6 +39,7 @@ from drsplat.lang.lut import (
     blocked_codes,
     code_table_sums,
     half_scores,
+    has_feature,
     lut_scores,
     lut_scores_blocked,
     lut_scores_reference,
@@ -414,7 +415,7 @@ class PQStorage:
 
     def scores_reference(self, q: np.ndarray) -> np.ndarray:
         scores = lut_scores_reference(self.codebook, self.codes, self.list_ids, self.norms, q)
-        return np.where(self.norms[:, None] > 0, scores, 0.0).astype(np.float32)
+        return np.where(has_feature(self.norms)[:, None], scores, 0.0).astype(np.float32)
 
     def reconstruct(self, index: np.ndarray | slice) -> np.ndarray:
         return self.codebook.decode(self.codes[index], None if self.list_ids is None else self.list_ids[index])

@@ -146,6 +146,7 @@ def codebook_from_index(index: object, path: Path | None = None) -> Codebook:
     _check_finite(centroids, "pq centroids", path)
     if coarse is not None:
         _check_finite(coarse, "coarse centroids", path)
+    _check_reconstruction_range(centroids, coarse, path)
     return Codebook(kind=kind, dim=int(index.d), m=int(pq.M), centroids=centroids, coarse=coarse, index=index, path=path, owner=owner)
 
 
@@ -289,6 +290,27 @@ def _check_finite(values: np.ndarray, what: str, path: Path | None) -> None:
     bad = int(np.count_nonzero(~np.isfinite(values)))
     if bad:
         raise InputError(path, f"{bad} of the {values.size} {what} values are not finite (NaN/inf): the codebook is corrupt", field=what)
+
+
+def largest_reconstruction_norm(centroids: np.ndarray, coarse: np.ndarray | None) -> float:
+    """A bound on ‖r‖ of every reconstruction r = [c_list +] concat_m C[m, code_m] (float64):
+    sqrt(Σ_m max_c ‖C[m, c]‖²), plus the largest coarse centroid's norm. centroids [M, 256, dsub]."""
+    sub = np.square(centroids.astype(np.float64)).sum(axis=2).max(axis=1)  # [M]
+    bound = float(np.sqrt(sub.sum()))
+    if coarse is not None and coarse.size:
+        bound += float(np.linalg.norm(coarse.astype(np.float64), axis=1).max())
+    return bound
+
+
+def _check_reconstruction_range(centroids: np.ndarray, coarse: np.ndarray | None, path: Path | None) -> None:
+    """Refuse centroids so large that a reconstruction's norm can pass float32's range: its stored
+    norm (lang_norm, float32) would be inf and the row would score 0 (a codebook of 3e37 centroids
+    registered every Gaussian with an infinite norm without a word: a probe, round 29a). A codebook of
+    unit CLIP embeddings reconstructs norms near 1."""
+    bound = largest_reconstruction_norm(centroids, coarse)
+    if bound > float(np.finfo(np.float32).max):
+        raise InputError(path, f"its centroids reconstruct vectors of norm up to {bound:.3g}, beyond float32's range (+-3.4e38), in which "
+                               "a registered PLY stores them: the codebook is corrupt (CLIP codebooks reconstruct norms near 1)", field="pq centroids")
 
 
 def load_codebook(path: str | Path) -> Codebook:

@@ -22,12 +22,17 @@ log = logging.getLogger(__name__)
 
 LUT_BLOCK = 1024
 FAST = {"reassoc", "nsz", "arcp", "contract"}  # fastmath without nnan/ninf: non-finite norms are tested
+# The smallest stored norm a row is scored by: float32's smallest normal number. Below it 1/norm
+# overflows float32 (a codebook of subnormal centroids scored every row inf, selected and written
+# to --scores without a word: a probe, round 29a), so such a row is read as holding no feature.
+MIN_NORM = np.float32(np.finfo(np.float32).tiny)
 
 
 @numba.njit(cache=True)
 def _inverse_norm(norm):  # pragma: no cover - jitted
-    """1/norm, 0 for zero, negative or non-finite norms (`inverse_norms` for one value)."""
-    if norm > 0 and norm < np.inf:
+    """1/norm, 0 for norms that are not finite or below MIN_NORM (zero, negative, subnormal):
+    `inverse_norms` for one value."""
+    if norm >= MIN_NORM and norm < np.inf:
         return np.float32(1.0) / norm
     return np.float32(0.0)
 
@@ -199,14 +204,22 @@ def code_table_sums_reference(codes: np.ndarray, table: np.ndarray) -> np.ndarra
 
 
 def has_feature(norms: np.ndarray) -> np.ndarray:
-    """[N] bool: the rows whose stored norm [N] is finite and positive, the rows that hold a feature
-    (the others, unassigned or found damaged, score 0 and are never selected)."""
+    """[N] bool: the rows whose stored norm [N] is finite and at least MIN_NORM, the rows that hold
+    a feature (the others, unassigned, found damaged or too small to score in float32, score 0 and
+    are never selected)."""
     norms = np.asarray(norms)
-    return np.isfinite(norms) & (norms > 0)
+    return np.isfinite(norms) & (norms >= MIN_NORM)
+
+
+def subnormal_norms(norms: np.ndarray) -> np.ndarray:
+    """[N] bool: the rows with a positive stored norm below MIN_NORM, which `has_feature` leaves out
+    (their reciprocal overflows float32): a codebook of subnormal centroids, or an altered file."""
+    norms = np.asarray(norms)
+    return (norms > 0) & (norms < MIN_NORM)
 
 
 def inverse_norms(norms: np.ndarray) -> np.ndarray:
-    """1/|r| with 0 for zero (or non-finite) norms: [N] float32."""
+    """1/|r| with 0 for the norms `has_feature` refuses (zero, subnormal, non-finite): [N] float32."""
     norms = np.asarray(norms, np.float32)
     ok = has_feature(norms)
     return np.where(ok, 1.0 / np.where(ok, norms, 1.0), 0.0).astype(np.float32)
@@ -279,7 +292,7 @@ def _exact_tables_kernel(blocked, columns, tables, n, norms, out, k):  # pragma:
         for t in range(min(Q8_BLOCK, n - b * Q8_BLOCK)):
             i = b * Q8_BLOCK + t
             r = norms[i]
-            if not (r > 0.0 and r < np.inf):
+            if not (r >= MIN_NORM and r < np.inf):
                 continue
             total = 0.0  # in a register: the block's few rows of codes stay in cache across its 64 Gaussians
             for j in range(columns.shape[0]):

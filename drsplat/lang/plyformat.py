@@ -40,7 +40,8 @@ from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
-from drsplat.scene import GaussianScene, check_integer_column, save_ply
+from drsplat.lang.lut import MIN_NORM, subnormal_norms
+from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path, clipped, file_stamp
 
@@ -237,6 +238,18 @@ def _parse_pairs(tokens: list[str]) -> dict[str, str]:
     return {k: unquote(v) for k, _, v in (t.partition("=") for t in tokens)}
 
 
+def repeated_key(tokens: list[str]) -> tuple[str, str, str] | None:
+    """(key, first value, other value) of the first key that the `key=value` tokens give twice with
+    different values, or None. The writer writes each key once: `_parse_pairs` alone kept the last
+    (a hand-edited `kind=pq ... kind=exact` was read as exact and refused for a missing lang_0)."""
+    seen: dict[str, str] = {}
+    for key, _, value in (t.partition("=") for t in tokens):
+        if key in seen and seen[key] != value:
+            return key, seen[key], value
+        seen.setdefault(key, value)
+    return None
+
+
 def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str] | None:
     """The field's key=value metadata: the header comment, else the `lang_meta` column (a file
     whose comments a tool dropped); None for a scene without a language field."""
@@ -244,6 +257,13 @@ def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str]
     if len(found) > 1:  # which one the field was written with cannot be told
         raise InputError(ply_path, f"has {len(found)} '{COMMENT_PREFIX}' header comments that disagree; keep the one the field was written with",
                          field=f"comment {COMMENT_PREFIX}")
+    for comment in scene.comments:
+        tokens = comment.split()
+        repeated = repeated_key(tokens[1:]) if tokens[:1] == [COMMENT_PREFIX] else None
+        if repeated is not None:
+            key, first, other = (clipped(quote(unquote(text)), SHOWN_CHARS) for text in repeated)
+            raise InputError(ply_path, f"gives the metadata entry {key} twice, as {key}={first} and {key}={other}; a header "
+                                       "written by drsplat gives each once (the file was altered)", field=f"comment {COMMENT_PREFIX}")
     meta = parse_field_comment(scene.comments)
     cells = meta_cells(scene.extra)
     if meta is not None or cells is None:
@@ -283,7 +303,7 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if not needs_codebook(kind) and beyond:
         raise InputError(ply_path, f"declares dim={dim} but has {len(_numbered_columns(scene, 'lang_'))} feature columns lang_<j> "
                          f"(up to lang_{max(beyond)}), so the metadata does not describe this file's features", field=where)
-    weights = _extra(scene, ply_path, "lang_weight").astype(np.float32)
+    weights = _extra(scene, ply_path, "lang_weight")
     book = None
     if needs_codebook(kind):
         if "codebook" not in meta:
@@ -309,7 +329,11 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     storage = _without_altered_codes(storage, ply_path)
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
-        log.warning("%s: %d Gaussians have non-finite language features; they score 0", ply_path, nonfinite)
+        log.warning("%s: %s Gaussians have non-finite language features; they score 0", ply_path, f"{nonfinite:,}")
+    tiny = int(np.count_nonzero(subnormal_norms(storage.norms)))
+    if tiny:  # 1/norm overflows float32: every such row scored inf, was selected and written to --scores
+        log.warning("%s: %s Gaussians have a language feature of norm below %.3g (lang_norm: float32's smallest normal number), "
+                    "too small to score in float32 (a codebook of subnormal centroids?); they score 0", ply_path, f"{tiny:,}", MIN_NORM)
     negative = int(np.count_nonzero(weights < 0))
     if negative:  # a weight is a sum of w = T·α ≥ 0; nothing reads its sign, but the file is not as registration wrote it
         log.warning("%s: %d Gaussians have a negative registration weight (lang_weight < 0), which registration never writes: "
@@ -388,12 +412,30 @@ def codebook_named_by(ply_path: Path, name: str) -> Path:
 
 
 def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
-    """A language-field property, its declared type checked (`check_stored_type`)."""
+    """A language-field property, its declared type checked (`check_stored_type`); the float ones
+    (lang_weight, lang_norm) as float32 (`float32_column`)."""
     if name not in scene.extra:
         raise InputError(ply_path, "missing vertex property of the language field", field=name)
     column = np.asarray(scene.extra[name])
     check_stored_type(ply_path, name, column)
-    return column
+    return column if integer_storage(name) is not None else float32_column(ply_path, name, column)
+
+
+def float32_column(ply_path: Path, name: str, column: np.ndarray) -> np.ndarray:
+    """[N] float32 of a float property (declared double by a tool that widened it): values beyond
+    float32's range are read as infinite, counted in one warning naming the property, without
+    numpy's "overflow encountered in cast" (a double lang_norm of 1e300 printed it, then the
+    non-finite count blamed values the file does not hold: a probe, round 29a)."""
+    if column.dtype == np.float32:
+        return column
+    with np.errstate(over="ignore", invalid="ignore"):
+        wide = column.astype(np.float64)
+        beyond = int(np.count_nonzero(np.isfinite(wide) & (np.abs(wide) > np.finfo(np.float32).max)))
+        out = wide.astype(np.float32)
+    if beyond:
+        log.warning("%s: %d values of %s (declared %s) lie beyond float32's range (+-3.4e38) and are read as infinite",
+                    ply_path, beyond, name, NUMPY_TO_PLY.get(f"{column.dtype.kind}{column.dtype.itemsize}", str(column.dtype)))
+    return out
 
 
 def integer_storage(name: str) -> tuple[str, str, bool] | None:
