@@ -112,6 +112,21 @@ def test_lut_kernel_edge_shapes(books):
         np.testing.assert_allclose(got, lut_scores_reference(book, codes, None, norms, q), atol=TOL, rtol=0)
 
 
+def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
+    """256 copies of 3 embeddings trained without a word into 256 centroids a sub-vector (round 29a):
+    a codebook of those 3 directions only. Counted and said; a varied set says nothing."""
+    import logging
+
+    x, _, _ = clip_like(600, 32, labels=4, seed=1)
+    with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
+        train_codebook(np.repeat(x[:3], 100, axis=0), m=8)
+    assert "only 3 of the 300 training embeddings are distinct" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
+        train_codebook(x, m=8)
+    assert "distinct" not in caplog.text
+
+
 def test_lut_kernel_for_m_not_multiple_of_4():
     x, _, dirs = clip_like(600, 30, labels=4, seed=7)
     book = train_codebook(x, m=6)

@@ -346,6 +346,10 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
         raise InputError(None, f"M={m} sub-vectors do not divide the embedding dimension {d}")
     if n < PQ_KSUB:
         raise InputError(None, f"training a PQ codebook needs at least {PQ_KSUB} embeddings, got {n}")
+    distinct = distinct_rows(x)
+    if distinct < PQ_KSUB:  # k-means then spreads its centroids over copies: a codebook of this set only
+        log.warning("only %d of the %d training embeddings are distinct (a PQ sub-quantiser has %d centroids): the codebook "
+                    "reconstructs these %d directions and little else; train it on many images' masks", distinct, n, PQ_KSUB, distinct)
     index = faiss.IndexPQ(d, m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
     index.pq.cp.seed = seed
     index.pq.cp.max_points_per_centroid = PQ_POINTS_PER_CENTROID
@@ -359,6 +363,13 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     finally:
         faiss.omp_set_num_threads(previous)
     return codebook_from_index(index)
+
+
+def distinct_rows(x: np.ndarray) -> int:
+    """How many distinct rows x [n, D] holds, counted by a random projection of each row (float64):
+    rows that differ project apart but for a chance of ~1e-16 per pair, and no [n, D] sort is made."""
+    keys = np.asarray(x, np.float64) @ np.random.default_rng(0).standard_normal(x.shape[1])
+    return int(np.unique(keys).size)
 
 
 def has_direction(x: np.ndarray) -> np.ndarray:
