@@ -112,7 +112,7 @@ from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
 from drsplat.registration.vote import (FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
-                                       trim_cosine)
+                                       NO_TRIM, trim_cosine)
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -132,6 +132,13 @@ CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share 
 CHECK_LARGE_MASK = 0.005  # 1 % until 2026-11-30 (docs/evaluation.md, "The second rule at 0.5 %")
 CHECK_WEAK_SUPPORT = 0.25
 CHECK_CORE = 0.05
+# the check judges nothing when the masks with pairs form more clusters than this share of their
+# number: almost no mask then reaches the clustering's cosine with a mask of another view, and own /
+# alt compare a mask with single noisy masks instead of pooled views (a probe's room with CLIP-like
+# correlated labels, round 29: 158 masks, 158 clusters, 48 dropped, accuracy 0.529 against the
+# paper's 0.956). A label split by noise while others group is still judged (its clusters summed back
+# by the like cosine): docs/registration.md, "Cross-view mask check"
+CHECK_MAX_CLUSTER_SHARE = 0.9
 # step 3: a view whose dropped masks hold at least this share of a Gaussian's weight in it gives the
 # Gaussian no pair at all (what is left of it there is its neighbours' masks spilling onto it)
 CHECK_ABSTAIN = 0.5
@@ -149,6 +156,15 @@ class MaskVerdicts:
     like: float | None = None  # the scene's "like" cosine (`like_threshold`), None: too little to judge
     dropped_large: int = 0  # of the dropped, those only the second rule (large masks) drops
     pair_means: list[np.ndarray] | None = None  # per view [M] float64: each mask's mean pair weight w̄_j (0: no pair), step 4 of the vote
+    grouped: bool = True  # the masks grouped into clusters across views (`masks_group`); else nothing was judged
+
+    @property
+    def trim(self) -> float:
+        """θ of the vote after the check: `vote.trim_cosine` of the like cosine, or NO_TRIM where the
+        masks did not group, since the vote pools views by the same clusters (one mask each: with θ
+        at the like cosine it trimmed by single noisy masks, with θ at 0.9 it kept one mask of
+        every Gaussian whose masks were cut into parts anew in each view; round 29)."""
+        return trim_cosine(self.like) if self.grouped else NO_TRIM
 
 
 def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, num_rows: int, num_clusters: int,
@@ -990,6 +1006,17 @@ def _log_supports(masks: int, num_clusters: int, entries: int, spilled: int) -> 
              format_size(ENTRY.itemsize * entries), spill, format_size(8 * num_clusters * masks))
 
 
+def masks_group(present: int, num_clusters: int) -> bool:
+    """Whether the views' `present` masks with pairs group into few enough clusters for the check to
+    pool views (at most CHECK_MAX_CLUSTER_SHARE of them); else one line says why nothing is judged."""
+    if num_clusters <= CHECK_MAX_CLUSTER_SHARE * present:
+        return True
+    log.info("mask check: skipped, since the %d masks with pairs form %d clusters (more than %g of them): one object's masks in "
+             "different views are not alike enough to group, so no mask can be judged by the other views, and the vote trims nothing",
+             present, num_clusters, CHECK_MAX_CLUSTER_SHARE)
+    return False
+
+
 def judged_masks(mass: np.ndarray, alt: np.ndarray, min_views: float = CHECK_MIN_VIEWS, min_mass: float = CHECK_MIN_MASS) -> np.ndarray:
     """[M] bool: the masks of one view the check judges: some weight and at least min_mass pixels of
     it (mass [M]), and at least min_views of other views' votes for one other label (alt [M])."""
@@ -1031,10 +1058,12 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
         units.append(unit)
     _log_supports(sum(m.shape[0] for m in masses), means.shape[0], entries, spilled)
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units, rows=[m > 0 for m in masses])
+    grouped = masks_group(sum(int((m > 0).sum()) for m in masses), means.shape[0])
+    judging = like is not None and grouped
     keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
     for v, mass in enumerate(masses):
         own, alt, core = np.zeros(mass.shape[0]), np.zeros(mass.shape[0]), np.zeros(mass.shape[0])
-        if like is not None:
+        if judging:
             for lo, sup in supports.runs(v):
                 if cancel is not None:
                     cancel.raise_if_cancelled()
@@ -1047,7 +1076,7 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
         dropped_large += int(large_only.sum())
         judged += int(judge.sum())
         present += int((mass > 0).sum())
-    return MaskVerdicts(keep, dropped, judged, present, like, dropped_large, pair_means(masses, supports.pair_counts))
+    return MaskVerdicts(keep, dropped, judged, present, like, dropped_large, pair_means(masses, supports.pair_counts), grouped)
 
 
 def pair_means(masses: list[np.ndarray], counts: list[np.ndarray]) -> list[np.ndarray]:
@@ -1211,7 +1240,7 @@ class CheckSink:
         """The sink of the kept pairs, the masks judged first."""
         if not self._summed:
             n, kept = self.num_gaussians, self.kept_pairs()
-            trim = trim_cosine(self.verdicts.like)  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
+            trim = self.verdicts.trim  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
             specific = Specificity(kept, self.verdicts.pair_means) if self.specific else None  # the vote's step 4
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 for view in kept.block_views(0, n):

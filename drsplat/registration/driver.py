@@ -58,7 +58,7 @@ from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
 from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views
-from drsplat.registration.vote import VoteSink, trim_cosine
+from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
 
@@ -359,7 +359,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                 kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
                 if aggregator.vote:  # the clusters of the kept masks with pairs, trimmed by the check's like cosine
-                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=trim_cosine(check.verdicts.like),
+                    reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=check.verdicts.trim,
                                                      pair_means=check.verdicts.pair_means if check.specific else None)
             candidates = reduce.candidates() if codebook == "scene" else None
         if candidates is not None and not candidates.any():

@@ -664,6 +664,9 @@ def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     return F
 
 
+NO_TRIM = -2.0  # a θ below any cosine, so every cluster is like every other: step 3 trims nothing, nor does step 4 (no cluster is unlike the winner)
+
+
 def trim_cosine(like: float | None) -> float:
     """θ of step 3 (module docstring): CLUSTER_COSINE, or the cross-view check's like cosine when
     there is one and it is lower (a cluster that is like the winner is never trimmed)."""
