@@ -59,7 +59,10 @@ Gaussians and drops whole masks:
    A small object seen clearly in one view (its Gaussians elsewhere faint or spilling into the
    background: weak, split votes, each view's vote scaled by T_iv / T₀) or a label that a minority
    of other views share (own ≥ CHECK_SUPPORT · alt) is kept (docs/registration.md, "Cross-view
-   mask check");
+   mask check").
+   Where the masks form more clusters than CHECK_MAX_CLUSTER_SHARE of their number (`masks_group`),
+   one object's masks in different views did not group, so the votes of step 1 are single views and
+   nothing is judged; the vote after the check then trims nothing either (`MaskVerdicts.trim`);
 3. the sums (and the vote stage after it) are made from the kept pairs in the same order, less
    the views that abstain on a Gaussian: where the dropped masks of view v held at least
    CHECK_ABSTAIN of Gaussian i's weight in v,

@@ -39,7 +39,8 @@ keeps the paper's sums and trims them:
    so coverage and floater rejection do not change.
 
    θ (`trim_cosine`) is CLUSTER_COSINE, or after the cross-view check (a `check-...-vote` mode,
-   the default) the lower of that and the check's like cosine, which the scene decides
+   the default) NO_TRIM where the masks did not group across views (nothing to pool), else the
+   lower of that and the check's like cosine, which the scene decides
    (drsplat.registration.check: halfway between how well a mask agrees with its Gaussians' other
    views and how alike two masks of one view are). Masks of one object that a segmenter cut into
    parts are embedded as parts, farther than CLUSTER_COSINE from the whole object's crops and from
