@@ -663,3 +663,22 @@ def test_a_scene_in_another_frame_than_its_cameras_is_said(tiny, tmp_path, caplo
     away = dataclasses.replace(partly, means=partly.means + np.float32(4.0))  # no view sees any: the error says it too
     with pytest.raises(DrsplatError, match=hint):
         register(away, cams, tiny / "features", tmp_path / "reg2.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+
+
+def test_a_mask_level_that_is_empty_in_every_view_is_named(tiny, tmp_path):
+    """Round 29: LangSplat files whose level 3 is all -1 (levels 0-2 hold masks), registered with
+    --level 3, failed with "every mask ... is empty or invalid", not naming the level."""
+    from drsplat.features.format import write_features
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    feats = tmp_path / "features"
+    feats.mkdir()
+    for c in cams:
+        seg = np.load(tiny / "features" / f"{c.name}_s.npy")
+        seg[3] = -1
+        write_features(feats, c.name, seg, np.load(tiny / "features" / f"{c.name}_f.npy"))
+    with pytest.raises(DrsplatError, match=r"; level 3 of every view's mask map holds no mask \(-1 everywhere\), while level\(s\) "
+                                           r"0, 1, 2 hold some: choose one with --level"):
+        register(scene, cams, feats, tmp_path / "reg.ply", RegisterOptions(aggregate="paper", level=3), show_progress=False)
+    assert register(scene, cams, feats, tmp_path / "reg1.ply", RegisterOptions(aggregate="paper", level=1), show_progress=False).num_assigned > 0

@@ -34,7 +34,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
-from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
+from drsplat.features.format import check_manifest_dim, feat_path, read_manifest, seg_path
 from drsplat.features.modelid import manifest_model_id
 from drsplat.frames import frame_hint
 from drsplat.lang import Codebook, load_codebook, train_codebook
@@ -253,6 +253,27 @@ def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint:
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
 
 
+def empty_level_hint(features_dir: Path, views: Sequence[Camera], level: int) -> str:
+    """'; level L of every view's mask map holds no mask ...' when the mask maps hold masks at other
+    levels only (a LangSplat file whose --level is empty), "" otherwise or when a file cannot be read.
+    Read on the error path only: it stops at the first view with a mask at `level`."""
+    others: set[int] = set()
+    try:
+        for cam in views:
+            seg = np.load(seg_path(features_dir, cam.name), mmap_mode="r", allow_pickle=False)
+            if seg.ndim != 3 or seg.shape[0] <= level:
+                return ""
+            if (np.asarray(seg[level]) >= 0).any():
+                return ""
+            others.update(i for i in range(seg.shape[0]) if i != level and (np.asarray(seg[i]) >= 0).any())
+    except (OSError, ValueError):
+        return ""
+    if not others:
+        return ""
+    return (f"; level {level} of every view's mask map holds no mask (-1 everywhere), while level(s) "
+            f"{', '.join(map(str, sorted(others)))} hold some: choose one with --level")
+
+
 def weak_sums(count: int) -> str:
     """`RowFates.weak` in words."""
     return (f"{count} Gaussians got feature sums under {WEAK_RESULTANT:g} of their weight (|Σ w f| < {WEAK_RESULTANT:g} Σ w): the "
@@ -365,8 +386,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         if candidates is not None and not candidates.any():
             dropped = aggregator.rejected()
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
-                                                rejected=rejected, mode=asked))
+            hint = empty_level_hint(run.features_dir, run.views, options.level) or unassigned_hint(run.scene, run.views)
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, hint, rejected=rejected, mode=asked))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
@@ -374,8 +395,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views), fates.dropped,
-                                                    aggregator.num_rejected, asked))
+                hint = empty_level_hint(run.features_dir, run.views, options.level) or unassigned_hint(run.scene, run.views)
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, hint, fates.dropped, aggregator.num_rejected, asked))
             written = target.close()
         else:
             weights, fates, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out, asked)
