@@ -18,6 +18,7 @@ import sys
 import threading
 
 from drsplat import __version__
+from drsplat.commands.common import ArgumentParser
 from drsplat.errors import INTERRUPTED_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
 from drsplat.utils import describe_os_error
 
@@ -27,7 +28,7 @@ log = logging.getLogger("drsplat")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="drsplat", description="Language search for 3D Gaussian Splatting scenes (Dr. Splat).")
+    parser = ArgumentParser(prog="drsplat", description="Language search for 3D Gaussian Splatting scenes (Dr. Splat).")
     parser.add_argument("--version", action="version", version=f"drsplat {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")

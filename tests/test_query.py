@@ -468,3 +468,22 @@ def test_every_backend_stores_the_same_rows_as_features(codebook):
     assert np.all(np.diag(scores[[0, 3, 4, 5]]) > (0.999 if codebook == "none" else 0.5))
     if codebook == "none":  # unit rows stored as given
         np.testing.assert_array_equal(field.storage.features[0], base[0].astype(np.float16))
+
+
+@pytest.mark.parametrize("value, expected", [("-1e-3", -1e-3), ("-.5e-1", -0.05), ("-0.25", -0.25), ("-1", -1.0)])
+def test_a_negative_threshold_in_any_float_spelling_is_read_as_the_value(value, expected):
+    from drsplat.cli import build_parser
+    from viewer.launch import build_parser as viewer_parser
+
+    args = build_parser().parse_args(["query", "r.ply", "--embedding", "q.npy", "--threshold", value])
+    assert float(args.threshold) == expected
+    assert viewer_parser().parse_args(["s.ply", "--threshold", value]).threshold == expected
+
+
+@pytest.mark.parametrize("value", ["-inf", "-Infinity", "-nan"])
+def test_a_negative_infinite_threshold_is_refused_as_not_finite_not_as_a_missing_value(value, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["query", "r.ply", "--embedding", "q.npy", "--threshold", value])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert "finite" in err and "expected one argument" not in err

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from drsplat.cameras import load_cameras
 from drsplat.cli import setup_logging, sigterm_as_interrupt
-from drsplat.commands.common import MAX_IMAGE_WIDTH, float_range, guard_args, int_range, nonneg_int, output_file
+from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError
@@ -48,7 +48,7 @@ def screenshot_format(path: Path) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="main.py",
         description="drsplat viewer: look at a (registered) 3DGS scene and search it by language. "
         "Without SCENE it opens the pre-registered demo scene shipped in assets/demo.",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -55,6 +56,21 @@ def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], i
 
     parse.__name__ = "integer"
     return parse
+
+
+# what argparse reads as a negative number rather than an option: any float literal with a leading
+# minus, as float() reads it (argparse's own pattern takes -1 and -.5 but not -1e-3 or -inf)
+NEGATIVE_NUMBER = re.compile(r"^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf(?:inity)?|nan)$", re.IGNORECASE)
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser that takes `--threshold -1e-3` and `--threshold -inf` as a value (which the
+    option's type then judges) instead of "expected one argument"; its subcommands' parsers are of
+    this class too (add_subparsers makes parsers of the parent's class)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_NUMBER
 
 
 def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:
