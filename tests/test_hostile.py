@@ -2819,3 +2819,18 @@ def test_segment_table_cuts_a_huge_label_name(tmp_path, world, capsys):
                  "--out", str(tmp_path / "l.npy")])
     out = capsys.readouterr().out
     assert code == 0 and "(100,000 characters)" in out and max(len(line) for line in out.splitlines()) < 200, out
+
+
+@pytest.mark.parametrize("text, level", [("s", 1), ("default", 0), ("M", 2), (" l ", 3), ("2", 2)])
+def test_register_level_takes_langsplats_level_names_as_its_help_cites(text, level):
+    from drsplat.cli import build_parser
+
+    args = build_parser().parse_args(["register", "s.ply", "--source", "d", "--features", "f", "--out", "o.ply", "--level", text])
+    assert args.level == level
+
+
+def test_an_unknown_level_name_is_a_usage_error_listing_the_names(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["register", "s.ply", "--source", "d", "--features", "f", "--out", "o.ply", "--level", "xl"])
+    assert exit_.value.code == 2
+    assert "default, s, m, l" in capsys.readouterr().err

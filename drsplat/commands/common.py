@@ -17,6 +17,7 @@ import numpy as np
 
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
+from drsplat.features.masks.base import LEVELS
 from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
@@ -108,6 +109,18 @@ def size_value(text: str) -> int:
 
 size_value.__name__ = "size"
 nonneg_int = int_range(0, MAX_COUNT)
+
+
+def mask_level(text: str) -> int:
+    """argparse type of --level: a level index (0 or more) or LangSplat's name of it, "default", "s",
+    "m" or "l" (`features.masks.base.LEVELS`, in file order), which the help cites."""
+    name = text.strip().lower()
+    if name in LEVELS:
+        return LEVELS.index(name)
+    try:
+        return nonneg_int(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc}; or one of LangSplat's level names {', '.join(LEVELS)}") from None
 seed_int = int_range(0, 2**32 - 1)  # numpy and faiss seeds are unsigned 32-bit
 topk_int = int_range(1, MAX_TOPK)
 unit_fraction = float_range(0.0, 1.0)

@@ -8,7 +8,7 @@ import json
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import guard_args, nonneg_int, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
+from drsplat.commands.common import guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals
@@ -28,7 +28,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, metavar="SCENE", help="trained 3DGS scene (PLY, INRIA or compressed; .splat; .spz)")
     p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0) or transforms.json")
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
-    p.add_argument("--level", type=nonneg_int, default=DEFAULT_LEVEL, help=f"mask level of the feature files (default: {DEFAULT_LEVEL}, LangSplat's 's')")
+    p.add_argument("--level", type=mask_level, default=DEFAULT_LEVEL, help=f"mask level of the feature files: an index or LangSplat's name, default, s, m or l (default: {DEFAULT_LEVEL}, 's')")
     p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
