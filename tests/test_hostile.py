@@ -2136,6 +2136,28 @@ def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
     assert code == 0 and "100 Gaussians have a registration weight (lang_weight > 0) but no language feature" in err
 
 
+def test_a_nan_or_inf_pq_norm_is_said_to_be_non_finite_not_altered_codes(tmp_path, capsys):
+    """Was: lang_norm NaN was reported as "PQ codes that do not reproduce their stored norm"."""
+    import shutil
+
+    from drsplat.scene import load_ply, save_ply
+    from viewer.demo import demo_dir
+
+    registered = demo_dir() / "registered.ply"
+    scene = load_ply(registered)
+    scene.extra["lang_norm"][:7] = np.nan
+    scene.extra["lang_norm"][7:10] = np.inf
+    damaged = tmp_path / "registered.ply"
+    save_ply(scene, damaged)
+    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
+    np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--scores", tmp_path / "s.npy"], capsys)
+    assert code == 0 and "10 Gaussians have non-finite language features; they score 0" in err
+    assert "do not reproduce" not in err
+    scores = np.load(tmp_path / "s.npy")
+    assert np.isfinite(scores).all() and (scores[:10] == 0).all()
+
+
 def test_register_into_a_device_writes_in_place_and_keeps_nothing_in_dev(tmp_path, world, capsys):
     """`register --out /dev/full`: one error naming the device; its temp body and checkpoint go to the temp
     folder, never into /dev (as root they used to be created there)."""

@@ -390,7 +390,7 @@ def _without_altered_codes(storage, ply_path: Path):
     """PQ storage whose rows with altered codes (`PQStorage.norm_mismatches`) score 0, with one warning."""
     if not hasattr(storage, "norm_mismatches"):
         return storage  # exact float16 features carry no redundancy to check
-    bad = storage.norm_mismatches()
+    bad = storage.norm_mismatches() & np.isfinite(storage.norms)  # a NaN or inf norm: the caller counts it as non-finite
     if not bad.any():
         return storage
     log.warning("%s: %d of %d Gaussians have PQ codes that do not reproduce their stored norm (lang_norm): the file was "
