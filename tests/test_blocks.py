@@ -179,6 +179,45 @@ def test_damaged_record_checksum_is_detected(tiny, inputs, tmp_path):
     assert resumed.resumed_views == 2
 
 
+def _rewrite_record_meta(path: Path, index: int, edit) -> None:
+    """Replace record `index`'s meta of the pair log `path` by edit(meta), with a checksum that matches
+    (a log edited by hand or by another tool: the checksum cannot tell)."""
+    import json
+    import struct
+    import zlib
+
+    data = path.read_bytes()
+    pos = 16 + struct.unpack("<Q", data[8:16])[0] + 4
+    for _ in range(index):
+        a, b = struct.unpack("<QQ", data[pos + 4 : pos + 20])
+        pos += 20 + a + b + 4
+    a, b = struct.unpack("<QQ", data[pos + 4 : pos + 20])
+    meta, payload = json.loads(data[pos + 20 : pos + 20 + a]), data[pos + 20 + a : pos + 20 + a + b]
+    meta_bytes = json.dumps(edit(meta)).encode()
+    record = b"VIEW" + struct.pack("<QQ", len(meta_bytes), b) + meta_bytes + payload
+    path.write_bytes(data[:pos] + record + struct.pack("<I", zlib.crc32(payload, zlib.crc32(meta_bytes))) + data[pos + 20 + a + b + 4 :])
+
+
+@pytest.mark.parametrize("edit", [lambda m: {k: v for k, v in m.items() if k != "name"}, lambda m: {**m, "pairs": "many"},
+                                  lambda m: {**m, "present": [10**6]}, lambda m: {**m, "stamp": [1]}, lambda m: [m]],
+                         ids=["no_name", "pairs_a_string", "present_beyond_the_masks", "stamp_a_list", "meta_a_list"])
+def test_a_record_whose_meta_is_not_a_records_is_damaged_though_its_checksum_matches(tiny, inputs, tmp_path, caplog, edit):
+    """Round 30: a record whose checksum matches but whose meta `_encode` never writes (no name, a
+    count that is a string, present masks beyond its embeddings) raised KeyError, ValueError or
+    IndexError from inside the resume, and the kept checkpoint failed every rerun the same way. It is
+    a damaged record: the log resumes from the views before it, to the same features."""
+    scene, cams = inputs
+    full = register_features(scene, cams, tiny / "features", LOG_ONLY, show_progress=False)
+    ckpt = tmp_path / "run.log"
+    _cancelled_log(tiny, inputs, ckpt, 4)
+    _rewrite_record_meta(ckpt, 2, edit)
+    with caplog.at_level(logging.WARNING):
+        resumed = register_features(scene, cams, tiny / "features", LOG_ONLY, checkpoint=ckpt, show_progress=False)
+    assert "record 3 is damaged (its checksum, length or meta does not match)" in caplog.text and resumed.resumed_views == 2
+    np.testing.assert_array_equal(resumed.features, full.features)
+    np.testing.assert_array_equal(resumed.weights, full.weights)
+
+
 @pytest.mark.parametrize("content", ["truncated_zip", "empty", "junk"])
 def test_old_or_truncated_checkpoints_restart_from_scratch(tiny, inputs, tmp_path, caplog, content):
     """An old .npz checkpoint cut short (BadZipFile) no longer blocks every later run."""

@@ -235,6 +235,30 @@ def _decode(meta: dict, payload: memoryview | bytes) -> ViewPairs:
                      present=present, shard=meta.get("shard"))
 
 
+def meta_problem(meta) -> str | None:
+    """Why a log record's meta (JSON read back from disk) cannot be a record `_encode` wrote, or None:
+    a dict whose name is a string, whose counts and pair numbers are non-negative integers, whose
+    stamp is a string and whose present masks are rows of its embeddings. A record that passes its
+    checksum but not this (a log edited by hand or by another tool) is damaged like one that fails
+    it: replaying it raised KeyError or IndexError from deep inside the resume (round 30), and a
+    kept checkpoint then failed every rerun the same way."""
+    if not isinstance(meta, dict):
+        return "its meta is not a JSON object"
+    if not isinstance(meta.get("name"), str):
+        return "it names no view"
+    keys = _SIZE_KEYS + ("pairs", "nonfinite") + (("T", "S") if "T" in meta else ())
+    if not all(type(meta.get(k)) is int and 0 <= meta[k] < 1 << 62 for k in keys):
+        return "its counts are not non-negative integers"
+    if "stamp" in meta and not isinstance(meta["stamp"], str):
+        return "its feature stamp is not a string"
+    present = meta.get("present", [])
+    if not (isinstance(present, list) and all(type(i) is int and 0 <= i < meta["M"] for i in present)):
+        return "its present masks are not rows of its embeddings"
+    if "shard" in meta and not isinstance(meta["shard"], dict):
+        return "its shard pointer is not a JSON object"
+    return None
+
+
 def _pairs_section_size(meta: dict) -> int:
     """Bytes of a record's payload before its optional statistics section (embeddings, pairs, used
     masks, chunk starts)."""
@@ -554,7 +578,7 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
             if end < size:
                 log.warning("%s: %s; resuming from the %d views before it", path,
                             "the last view's record is incomplete (the run was killed while writing it)" if _is_torn_tail(f, end, size)
-                            else f"record {len(records) + 1} is damaged (its checksum or length does not match)", len(records))
+                            else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", len(records))
                 f.truncate(end)
             return records
     except (OSError, ValueError, json.JSONDecodeError) as exc:
@@ -605,7 +629,7 @@ def payload_checksum_ok(f, record: LogRecord) -> bool:
 
 
 def _scan(f, size: int) -> tuple[list[LogRecord], int]:
-    """Records with valid length and checksum from the current position; (records, end of the last)."""
+    """Records with valid length, checksum and meta (`meta_problem`) from the current position; (records, end of the last)."""
     records: list[LogRecord] = []
     end = f.tell()
     while True:
@@ -625,7 +649,7 @@ def _scan(f, size: int) -> tuple[list[LogRecord], int]:
         stored = f.read(4)
         try:
             meta = json.loads(meta_bytes)
-            ok = _U32.unpack(stored)[0] == crc and payload_size(meta) == b
+            ok = _U32.unpack(stored)[0] == crc and meta_problem(meta) is None and payload_size(meta) == b
         except (ValueError, KeyError, TypeError, struct.error):
             ok = False
         if not ok:
