@@ -1001,3 +1001,25 @@ def test_the_check_judges_nothing_when_one_objects_masks_do_not_group(tmp_path, 
     np.testing.assert_array_equal(checked.features, rejected.features)
     voted = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate="vote-reject"), show_progress=False)
     assert not np.array_equal(voted.features, rejected.features)  # the vote alone (θ = 0.9) does trim these masks
+
+
+def test_one_view_alone_is_said_to_have_no_other_view_not_masks_that_do_not_group(caplog):
+    """Round 30: with one view, each label is one mask and one cluster, so the masks "form more
+    clusters than 0.9 of them"; the line blamed the masks' likeness across views ("one object's masks
+    in different views are not alike enough to group") where there is no other view. It now says so;
+    two views of the same masks group and are judged."""
+    import logging
+
+    rng = np.random.default_rng(0)
+    feats = _unit(rng.normal(size=(4, D)))
+    gaussians = np.arange(40)
+    one = _view("v0", feats, gaussians, gaussians % 4, np.full(40, 30.0))
+    with caplog.at_level(logging.INFO, logger="drsplat.registration.check"):
+        verdicts, _ = _judge([one], 40)
+    assert not verdicts.grouped
+    assert "only 1 view holds masks with pairs: no other view can judge its 4 masks" in caplog.text, caplog.text
+    assert "not alike enough to group" not in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drsplat.registration.check"):
+        verdicts, _ = _judge([one, dataclasses.replace(one, name="v1")], 40)
+    assert verdicts.grouped and "skipped" not in caplog.text

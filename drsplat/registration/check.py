@@ -1009,11 +1009,17 @@ def _log_supports(masks: int, num_clusters: int, entries: int, spilled: int) -> 
              format_size(ENTRY.itemsize * entries), spill, format_size(8 * num_clusters * masks))
 
 
-def masks_group(present: int, num_clusters: int) -> bool:
+def masks_group(present: int, num_clusters: int, views: int = 2) -> bool:
     """Whether the views' `present` masks with pairs group into few enough clusters for the check to
-    pool views (at most CHECK_MAX_CLUSTER_SHARE of them); else one line says why nothing is judged."""
+    pool views (at most CHECK_MAX_CLUSTER_SHARE of them); else one line says why nothing is judged.
+    views: how many views hold masks with pairs; with one, its masks are apart by design (one mask a
+    label), so the line says there is no other view rather than blaming the masks' likeness."""
     if num_clusters <= CHECK_MAX_CLUSTER_SHARE * present:
         return True
+    if views < 2:
+        log.info("mask check: skipped, since only %d view holds masks with pairs: no other view can judge its %d masks, and the "
+                 "vote trims nothing", views, present)
+        return False
     log.info("mask check: skipped, since the %d masks with pairs form %d clusters (more than %g of them): one object's masks in "
              "different views are not alike enough to group, so no mask can be judged by the other views, and the vote trims nothing",
              present, num_clusters, CHECK_MAX_CLUSTER_SHARE)
@@ -1061,7 +1067,7 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
         units.append(unit)
     _log_supports(sum(m.shape[0] for m in masses), means.shape[0], entries, spilled)
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units, rows=[m > 0 for m in masses])
-    grouped = masks_group(sum(int((m > 0).sum()) for m in masses), means.shape[0])
+    grouped = masks_group(sum(int((m > 0).sum()) for m in masses), means.shape[0], sum(bool((m > 0).any()) for m in masses))
     judging = like is not None and grouped
     keep, dropped, judged, present, dropped_large = [], 0, 0, 0, 0
     for v, mass in enumerate(masses):
