@@ -583,6 +583,20 @@ def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_pat
     assert "another frame" not in str(err.value)
 
 
+def test_a_scene_too_faint_for_any_pixel_is_said_in_the_error(tiny, tmp_path):
+    """Round 30: every opacity 0 (logits of -30, or -inf clamped there): the rasterizer skips α < 1/255
+    at every pixel, so no Gaussian gets weight, and the error said the cameras do not see the scene or
+    the masks are empty. It now gives the share of Gaussians under 1/255 and asks whether the file
+    stores opacity as a logit."""
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    scene = dataclasses.replace(scene, opacity_logits=np.full_like(scene.opacity_logits, -30.0))
+    with pytest.raises(DrsplatError, match=r"no Gaussian received a language feature .*; 100% of the Gaussians have an opacity under "
+                                           r"1/255, which the rasterizer skips at every pixel \(is the file's opacity a logit"):
+        register(scene, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+
+
 @pytest.mark.parametrize("mode", ["fit-check-vote-reject", "vote-reject"])
 def test_a_scene_with_no_opaque_surface_says_floater_rejection_dropped_it(tiny, tmp_path, mode):
     """Round 29: every Gaussian at opacity 0.006 (nothing reaches ½ of a pixel's weight, so every one

@@ -41,7 +41,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import NEAR, get_engine, share_within_near_plane
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_rejection
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
 from drsplat.registration.check import CheckSink, fixed_point_fits
@@ -757,10 +757,14 @@ def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, 
 
 def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     """'; <the likely cause>' of a registration that assigned few or no Gaussians, "" when none shows:
-    views under 64 px wide, Gaussians nearer to every camera than the near plane (a scene in other
+    views under 64 px wide, Gaussians too faint for any pixel (opacity < 1/255), Gaussians nearer to every camera than the near plane (a scene in other
     units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame."""
     sizes = sorted({(c.width, c.height) for c in cameras})
     why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if sizes and min(sizes)[0] < 64 else ""
+    faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
+    if faint >= 0.1:  # every pixel skips them (α < 1/255, as 3DGS's rasterizer does): seen or not, they get no weight
+        why += (f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel "
+                "(is the file's opacity a logit, as the INRIA layout stores it?)")
     near = share_within_near_plane(scene.means, cameras)
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
