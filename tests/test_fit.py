@@ -14,12 +14,16 @@ from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, sharpe
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
     choose_footprint,
+    FitChoice,
     fit_stage,
     footprint_score,
+    held_out_score,
     footprint_score_reference,
     probe_views,
     rerender_reference,
+    mask_iou_score,
     resolve_mode,
+    translate_labels,
     view_labels,
     view_labels_reference,
 )
@@ -87,6 +91,58 @@ def test_masks_drawn_from_the_footprints_score_high():
     # the view's own labelling may differ from the truth on a Gaussian, but it re-renders the masks it came from
     np.testing.assert_array_equal(rerender_reference(ids, weights, labels)[masks >= 0] >= 0, True)
     assert footprint_score(ids, weights, masks, m, Coalescer(n)) > 0.9
+
+
+def _translate_reference(labels, feats_from, feats_to, groups_to):
+    """translate_labels mask by mask: each label's row against every present mask's, by hand."""
+    present = sorted(set(groups_to[groups_to >= 0].tolist()))
+    out = np.full(labels.shape, -1, np.int32)
+    if not present:
+        return out
+    for g, j in enumerate(labels):
+        if j < 0:
+            continue
+        a = feats_from[j] / (np.linalg.norm(feats_from[j]) or 1.0)
+        cos = [float(a @ (feats_to[b] / (np.linalg.norm(feats_to[b]) or 1.0))) for b in present]
+        out[g] = present[int(np.argmax(cos))]  # the first of equal cosines: the lower mask
+    return out
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_reference(case):
+    """H_u: view a's labelling, its masks mapped to view b's most alike ones (b's masks are a's,
+    shuffled, plus one of its own; one a-mask has a zero row), re-rendered in b and scored against
+    b's masks, equals the numpy reference; a labelling that is b's own truth scores as S_u does."""
+    rng = np.random.default_rng(10 + CASES.index(case))
+    n, m, d = 30, 5, 16
+    ids, weights, masks_b = _view(rng, 13, 10, 6, n, m, case)
+    feats_b = rng.normal(size=(m, d))
+    order = rng.permutation(m)
+    feats_a = np.concatenate([feats_b[order] + 0.01 * rng.normal(size=(m, d)), np.zeros((1, d))])  # a's mask i is b's order[i]
+    labels_a = rng.integers(-1, m + 1, n).astype(np.int32)
+    translated = translate_labels(labels_a, feats_a, feats_b, masks_b)
+    np.testing.assert_array_equal(translated, _translate_reference(labels_a, feats_a, feats_b, masks_b))
+    present = set(masks_b[masks_b >= 0].tolist())
+    alike = np.array([order[j] if 0 <= j < m and order[j] in present else -2 for j in labels_a])
+    np.testing.assert_array_equal(translated[alike >= 0], alike[alike >= 0])
+    score = held_out_score(ids, weights, labels_a, feats_a, masks_b, feats_b)
+    assert score == pytest.approx(mask_iou_score(masks_b, rerender_reference(ids, weights, translated)), abs=1e-12)
+    if not present:
+        assert (translated == -1).all() and score == 0.0
+
+
+def test_the_fit_takes_the_sharp_footprint_when_either_score_says_so():
+    """The decision: sharp when the view's own re-render (S) or another probe view's labels (H) fit the
+    masks better with the sharp weights; the paper's footprint only when neither does."""
+    def choice(s_margin, h_margin):
+        return FitChoice("paper", ["a", "b"], np.array([0.5, 0.5]), np.array([0.5, 0.5]) + s_margin,
+                         np.array([0.3]), np.array([0.3 + h_margin]))
+
+    assert choice(-0.02, +0.01).decide() == "sharp" and choice(+0.01, -0.02).decide() == "sharp"
+    assert choice(-0.02, -0.01).decide() == "paper" and choice(0.0, 0.0).decide() == "paper"
+    assert choice(-0.02, +0.01).held_margin == pytest.approx(0.01)
+    one_view = FitChoice("paper", ["a"], np.array([0.5]), np.array([0.4]))
+    assert one_view.held_margin == 0.0 and one_view.decide() == "paper"
 
 
 def test_sharp_factor_is_the_unfiltered_gaussian():
@@ -186,6 +242,8 @@ def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, sour
     choice = choose_footprint(scene, cams, data / "features", 1, 40)
     assert choice.footprint == footprint and len(choice.views) == 4
     assert (choice.margin > 0.02) if footprint == "sharp" else (choice.margin < -0.05)
+    assert len(choice.held_paper) == len(choice.held_sharp) == 6  # every pair of the 4 probe views
+    assert (choice.held_margin > 0.0) if footprint == "sharp" else (choice.held_margin < 0.0)  # the held-out score agrees here
     # the probe's scores are the views' own: recomputed from a fresh render, the same numbers
     cam = next(c for c in cams if c.name == choice.views[0])
     from drsplat.registration.views import load_view_features

@@ -36,6 +36,7 @@ map's resolution gave +0.035, but a probe render of 4x the pixels is not in the 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -92,17 +93,30 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
 @dataclass
 class FitChoice:
     """The fit stage's decision: footprint "paper" or "sharp"; views: the probe views' names;
-    paper, sharp: [P] their scores S_u (module docstring)."""
+    paper, sharp: [P] their scores S_u; held_paper, held_sharp: [P(P-1)/2] their held-out scores H_u,
+    one per pair of probe views (module docstring)."""
 
     footprint: str
     views: list[str]
     paper: np.ndarray
     sharp: np.ndarray
+    held_paper: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    held_sharp: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     @property
     def margin(self) -> float:
         """mean(S_sharp - S_paper) over the probe views (0 without any)."""
         return float(np.mean(self.sharp - self.paper)) if len(self.views) else 0.0
+
+    @property
+    def held_margin(self) -> float:
+        """mean(H_sharp - H_paper) over the pairs of probe views (0 without any)."""
+        return float(np.mean(self.held_sharp - self.held_paper)) if len(self.held_paper) else 0.0
+
+    def decide(self) -> str:
+        """"sharp" when either score says the masks follow the sharp footprints (margin > 0 or
+        held_margin > 0), else "paper" (module docstring)."""
+        return "sharp" if self.margin > 0.0 or self.held_margin > 0.0 else "paper"
 
 
 def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
@@ -262,6 +276,76 @@ def rerender_score(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray, mas
     return float(np.mean(i / (area_m[present] + r - i)))
 
 
+def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.ndarray, groups_to: np.ndarray) -> np.ndarray:
+    """[N] int32: one view's labelling ℓ (labels [N], mask ids of feats_from [M_a, D], -1 none) in
+    another view's masks: mask j goes to the mask g of groups_to [H, W] (that view's grouped mask map,
+    feats_to [M_b, D]) whose embedding is most alike,
+
+        τ(j) = argmax_{g present in groups_to} cos(f_a[j], f_b[g])      (ties: the lower g)
+
+    so the labelling can be re-rendered in that view and scored against its masks. -1 stays -1; all
+    -1 when that view holds no mask. A zero row has cosine 0 with every mask."""
+    trans = mask_translation(unit_rows64(feats_from), unit_rows64(feats_to), present_masks(groups_to, feats_to.shape[0]))
+    return np.where(labels >= 0, trans[np.maximum(labels, 0)], -1).astype(np.int32)
+
+
+def present_masks(groups: np.ndarray, num_masks: int) -> np.ndarray:
+    """[G] int32 ascending: the masks (groups) of a grouped mask map groups [H, W] that hold a pixel."""
+    return np.flatnonzero(np.bincount(groups[groups >= 0].ravel(), minlength=num_masks)).astype(np.int32)
+
+
+def mask_translation(units_from: np.ndarray, units_to: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """[M_a + 1] int32 τ of `translate_labels` from unit rows (`unit_rows64`) [M_a, D] and [M_b, D] and
+    the other view's present masks [G]; entry M_a (and all of τ when G = 0) is -1."""
+    trans = np.full(units_from.shape[0] + 1, -1, np.int32)
+    if present.size and units_from.shape[0]:
+        trans[:-1] = present[np.argmax(units_from @ units_to[present].T, axis=1)]
+    return trans
+
+
+def unit_rows64(feats: np.ndarray) -> np.ndarray:
+    """[M, D] float64 rows of unit length; zero (and non-finite) rows as zeros."""
+    x = np.nan_to_num(np.asarray(feats, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    norms = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.divide(x, norms, out=np.zeros_like(x), where=norms > 0)
+
+
+def held_out_score(ids: np.ndarray, weights: np.ndarray, labels_from: np.ndarray, feats_from: np.ndarray, groups: np.ndarray,
+                   feats: np.ndarray) -> float:
+    """H_u of one pair of probe views: the labelling of an earlier probe view (labels_from [N],
+    feats_from [M_a, D]) translated into this view's masks (`translate_labels`), re-rendered with
+    this view's weights u (ids, weights [H, W, k]) and scored against its grouped masks groups [H, W]
+    (feats [M_b, D]) as S_u is (`rerender_score`). The fit stage computes the same from its kept
+    sparse labellings (`HeldOut`)."""
+    return rerender_score(ids, weights, translate_labels(labels_from, feats_from, feats, groups), groups, feats.shape[0])
+
+
+@dataclass
+class HeldOut:
+    """The probe views' labellings kept for the held-out scores, sparse (a probe view labels the
+    Gaussians it sees: ids [S] int32 and their masks [S] int32) with their masks' unit rows [M, D];
+    scratch: one dense [N] labelling, -1 between uses."""
+
+    scratch: np.ndarray
+    earlier: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
+
+    def scores(self, ids: np.ndarray, weights: np.ndarray, groups: np.ndarray, units: np.ndarray) -> list[float]:
+        """H_u of this view (ids, weights [H, W, k], grouped masks [H, W], their unit rows [M, D]) against
+        every earlier probe view's labelling (`held_out_score`)."""
+        present = present_masks(groups, units.shape[0])
+        out = []
+        for seen, masks, units_from in self.earlier:
+            self.scratch[seen] = mask_translation(units_from, units, present)[masks]
+            out.append(rerender_score(ids, weights, self.scratch, groups, units.shape[0]))
+            self.scratch[seen] = -1
+        return out
+
+    def keep(self, labels: np.ndarray, units: np.ndarray) -> None:
+        """Keep this view's labelling [N] (-1 none) for the later probe views."""
+        seen = np.flatnonzero(labels >= 0).astype(np.int32)
+        self.earlier.append((seen, labels[seen], units))
+
+
 def footprint_score_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int) -> float:
     """`footprint_score` in numpy."""
     return mask_iou_score(mask_ids, rerender_reference(ids, weights, view_labels_reference(ids, weights, mask_ids, num_gaussians)))
@@ -310,6 +394,9 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull, by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
     picks = probe_views(len(views), count)
     scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
+    held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
+    scratch = np.full(geometry.num_gaussians, -1, np.int32)  # one dense labelling, shared: used one pair at a time
+    kept_labels = {footprint: HeldOut(scratch) for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     for t, i in enumerate(picks):
         if cancel is not None:
@@ -321,18 +408,24 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         stats = hook.stats(cam, out)
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
+        units = unit_rows64(feats)
         for footprint in FOOTPRINTS:
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
             scores[footprint][t] = rerender_score(out.ids, weights, labels, groups, feats.shape[0])
+            held[footprint] += kept_labels[footprint].scores(out.ids, weights, groups, units)
+            kept_labels[footprint].keep(labels, units)
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
-    choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"])
-    choice.footprint = "sharp" if choice.margin > 0.0 else "paper"
+    choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"], np.array(held["paper"]), np.array(held["sharp"]))
+    choice.footprint = choice.decide()
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
-             "sharp %.3f)", len(picks), "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
-             float(np.mean(choice.paper)) if len(picks) else 0.0, float(np.mean(choice.sharp)) if len(picks) else 0.0)
+             "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(picks),
+             "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
+             float(np.mean(choice.paper)) if len(picks) else 0.0, float(np.mean(choice.sharp)) if len(picks) else 0.0,
+             float(np.mean(choice.held_paper)) if len(choice.held_paper) else 0.0,
+             float(np.mean(choice.held_sharp)) if len(choice.held_sharp) else 0.0)
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
 
 
