@@ -110,6 +110,25 @@ def test_tiny_embeddings_are_rescaled_to_unit_length_with_a_warning(tmp_path, ca
     np.testing.assert_allclose(got, unit, atol=1e-6)
 
 
+def test_embeddings_below_float32s_smallest_normal_are_ignored_not_rescaled(tmp_path, caplog):
+    """Round 30: a row of norm 1e-44 is a few subnormal bits; rescaled, its direction kept cosine 0.61.
+    Rows under float32's smallest normal are ignored as all-zero ones are; 1e-37 is still rescaled."""
+    import logging
+
+    rng = np.random.default_rng(8)
+    seg, feats = langsplat_like(rng, d=16)
+    unit = feats / np.linalg.norm(feats, axis=1, keepdims=True)
+    rows = (unit * 1e-37).astype(np.float32)
+    rows[3] = (unit[3] * 1e-44).astype(np.float32)  # level 1's first mask
+    write_features(tmp_path, "s", seg, rows)
+    with caplog.at_level(logging.WARNING):
+        ids, got = read_features(tmp_path, "s", level=1)
+    assert f"1 of {len(unit)} embeddings have a norm below 1.18e-38" in caplog.text
+    assert (ids[seg[1] == 3] == -1).all() and (ids[seg[1] == 4] == 4).all()
+    others = np.arange(len(unit)) != 3
+    np.testing.assert_allclose(got[others], unit[others], atol=1e-5)
+
+
 @pytest.mark.parametrize("scale", [0.5, 2.0, 30.0, 3e35])
 def test_embeddings_of_another_length_are_rescaled_and_unit_ones_kept_bit_for_bit(tmp_path, caplog, scale):
     """Round 22: the vote trims a Gaussian's sums by S·μ, μ a unit cluster mean, so mask embeddings of

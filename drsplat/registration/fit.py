@@ -15,14 +15,26 @@ the other wins (docs/evaluation.md, "The fit stage"). The fit stage asks the dat
 
 with m(p) the view's mask ids (-1 none; masks with the very same embedding are one label,
 `same_embedding`); ties go to the lower mask id, a Gaussian with no weight on
-any mask takes no label, a pixel with no labelled weight renders none. The registration then runs
-with the sharp weights when the probe views' mean of S_sharp - S_paper is above zero, and with the
-paper's otherwise: "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`),
-and everything downstream (places, blocks, the pair log's header) sees that mode. The probe renders
+any mask takes no label, a pixel with no labelled weight renders none. S_u asks whether a view's own
+labelling re-renders its masks; it can prefer the filtered footprint although the sharp one labels
+the Gaussians better (an independent generator's exact silhouettes, docs/evaluation.md, "The fit
+stage's held-out score"). So each labelling is also scored on the later probe views, whose masks
+did not make it: for probe views a < b,
+
+    τ(j)      = argmax_{g in b's masks} cos(f_a(j), f_b(g))        a's mask j as b's most alike mask
+    H_u(a, b) = S of b with ℓ_u of view a mapped through τ, re-rendered with b's weights u
+
+(`translate_labels`, `held_out_score`; the labellings are kept sparse, `HeldOut`). The registration
+then runs with the sharp weights when the probe views' mean of S_sharp - S_paper or the pairs' mean
+of H_sharp - H_paper is above zero, and with the paper's otherwise (`FitChoice.decide`):
+"fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`), and everything
+downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
 
 Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
-geometry without its SH), the sharp weights, two coalescings and two re-renders, O(H·W·k). When
+geometry without its SH), the sharp weights, two coalescings and two re-renders, O(H·W·k), plus
+two held-out re-renders per earlier probe view (12 for 4 probe views: +23-27 ms per registration on
+a 320x240 room, measured). When
 the view pass computes views as the probe does (numba, in this process), the chosen footprint's
 pairs are kept (`FitStage.pairs`) and the pass uses them instead of rendering those views again,
 so the stage's own cost is the sharp weights, one coalescing and the re-renders.
