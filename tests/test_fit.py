@@ -14,6 +14,7 @@ from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, sharpe
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
     choose_footprint,
+    HELD_OUT_MIN_MARGIN,
     FitChoice,
     fit_stage,
     footprint_score,
@@ -132,14 +133,16 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
 
 
 def test_the_fit_takes_the_sharp_footprint_when_either_score_says_so():
-    """The decision: sharp when the view's own re-render (S) or another probe view's labels (H) fit the
-    masks better with the sharp weights; the paper's footprint only when neither does."""
+    """The decision: sharp when the view's own re-render (S) or, by more than its noise, another probe
+    view's labels (H) fit the masks better with the sharp weights; the paper's footprint otherwise."""
     def choice(s_margin, h_margin):
         return FitChoice("paper", ["a", "b"], np.array([0.5, 0.5]), np.array([0.5, 0.5]) + s_margin,
                          np.array([0.3]), np.array([0.3 + h_margin]))
 
     assert choice(-0.02, +0.01).decide() == "sharp" and choice(+0.01, -0.02).decide() == "sharp"
     assert choice(-0.02, -0.01).decide() == "paper" and choice(0.0, 0.0).decide() == "paper"
+    # a held-out margin within the noise it showed on masks drawn from the footprints does not decide
+    assert choice(-0.02, HELD_OUT_MIN_MARGIN / 2).decide() == "paper" and choice(-0.02, 2 * HELD_OUT_MIN_MARGIN).decide() == "sharp"
     assert choice(-0.02, +0.01).held_margin == pytest.approx(0.01)
     one_view = FitChoice("paper", ["a"], np.array([0.5]), np.array([0.4]))
     assert one_view.held_margin == 0.0 and one_view.decide() == "paper"
