@@ -62,6 +62,8 @@ def test_topk_path_gives_the_reference_kernels_lists_bit_for_bit(case):
         for a, b in zip(_sorted_by_id(loose.ids, loose.weights), _sorted_by_id(ref.ids, ref.weights)):
             np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(loose.alpha, ref.alpha)
+        # unordered slots keep their -1 padding after the filled ones (the fit's re-render stops at the first -1)
+        assert not ((loose.ids[..., 1:] >= 0) & (loose.ids[..., :-1] < 0)).any()
 
 
 @pytest.mark.parametrize("case", [random_case(3, topk=8), _near_threshold_case()], ids=lambda c: c.name)
