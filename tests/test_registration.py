@@ -597,6 +597,19 @@ def test_a_scene_too_faint_for_any_pixel_is_said_in_the_error(tiny, tmp_path):
         register(scene, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
 
 
+def test_views_of_a_few_pixels_are_named_without_the_frame_hint(tiny):
+    """Round 30: 1x1-pixel views hold almost no Gaussian centre, so the hint said both that the views are
+    1x1 px and that the scene may be in another frame; only the first is the cause."""
+    from drsplat.registration.driver import unassigned_hint
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
+    one_pixel = [dataclasses.replace(c, width=1, height=1) for c in cams]
+    hint = unassigned_hint(scene, one_pixel)
+    assert "the views are only 1x1 px (check --resolution)" in hint and "another frame" not in hint
+    far = dataclasses.replace(scene, means=scene.means + np.float32(1e4))  # full-size views: the frame hint still speaks
+    assert "another frame" in unassigned_hint(far, cams)
+
+
 @pytest.mark.parametrize("mode", ["fit-check-vote-reject", "vote-reject"])
 def test_a_scene_with_no_opaque_surface_says_floater_rejection_dropped_it(tiny, tmp_path, mode):
     """Round 29: every Gaussian at opacity 0.006 (nothing reaches ½ of a pixel's weight, so every one

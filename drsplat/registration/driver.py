@@ -769,6 +769,8 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
                       "which culls them: are the scene and its cameras in the same units?")
+    if sizes and min(sizes)[0] < 64:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
+        return why
     return why + frame_hint(scene.means, cameras)
 
 
