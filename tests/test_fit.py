@@ -11,14 +11,15 @@ from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, sharpening, view_weights, view_weights_reference
+from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
     choose_footprint,
     HELD_OUT_MIN_MARGIN,
     FitChoice,
+    HeldOut,
     fit_stage,
     footprint_score,
-    held_out_score,
     footprint_score_reference,
     probe_views,
     rerender_reference,
@@ -113,7 +114,8 @@ def _translate_reference(labels, feats_from, feats_to, groups_to):
 def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_reference(case):
     """H_u: view a's labelling, its masks mapped to view b's most alike ones (b's masks are a's,
     shuffled, plus one of its own; one a-mask has a zero row), re-rendered in b and scored against
-    b's masks, equals the numpy reference; a labelling that is b's own truth scores as S_u does."""
+    b's masks: the fit stage's sparse path (`HeldOut`) equals the numpy reference, and the translation
+    equals one made mask by mask."""
     rng = np.random.default_rng(10 + CASES.index(case))
     n, m, d = 30, 5, 16
     ids, weights, masks_b = _view(rng, 13, 10, 6, n, m, case)
@@ -126,8 +128,11 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
     present = set(masks_b[masks_b >= 0].tolist())
     alike = np.array([order[j] if 0 <= j < m and order[j] in present else -2 for j in labels_a])
     np.testing.assert_array_equal(translated[alike >= 0], alike[alike >= 0])
-    score = held_out_score(ids, weights, labels_a, feats_a, masks_b, feats_b)
+    held = HeldOut(np.full(n, -1, np.int32))
+    held.keep(labels_a, unit_rows(feats_a))
+    (score,) = held.scores(ids, weights, masks_b, unit_rows(feats_b))
     assert score == pytest.approx(mask_iou_score(masks_b, rerender_reference(ids, weights, translated)), abs=1e-12)
+    assert (held.scratch == -1).all()  # the shared dense labelling is left empty for the next pair
     if not present:
         assert (translated == -1).all() and score == 0.0
 

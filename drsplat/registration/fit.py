@@ -24,7 +24,7 @@ did not make it: for probe views a < b,
     τ(j)      = argmax_{g in b's masks} cos(f_a(j), f_b(g))        a's mask j as b's most alike mask
     H_u(a, b) = S of b with ℓ_u of view a mapped through τ, re-rendered with b's weights u
 
-(`translate_labels`, `held_out_score`; the labellings are kept sparse, `HeldOut`). The registration
+(`translate_labels`; the labellings are kept sparse, `HeldOut`). The registration
 then runs with the sharp weights when the probe views' mean of S_sharp - S_paper is above zero or the
 pairs' mean of H_sharp - H_paper is above HELD_OUT_MIN_MARGIN (H's margins on masks drawn from the
 footprints stay within ±0.003 of zero), and with the paper's otherwise (`FitChoice.decide`):
@@ -62,6 +62,7 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.raster import PreparedScene
 from drsplat.registration.aggregate import RayGeometry, mode_hook, mode_stages
+from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.culling import SpatialIndex
@@ -306,7 +307,7 @@ def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.nd
 
     so the labelling can be re-rendered in that view and scored against its masks. -1 stays -1; all
     -1 when that view holds no mask. A zero row has cosine 0 with every mask."""
-    trans = mask_translation(unit_rows64(feats_from), unit_rows64(feats_to), present_masks(groups_to, feats_to.shape[0]))
+    trans = mask_translation(unit_rows(feats_from), unit_rows(feats_to), present_masks(groups_to, feats_to.shape[0]))
     return np.where(labels >= 0, trans[np.maximum(labels, 0)], -1).astype(np.int32)
 
 
@@ -316,29 +317,12 @@ def present_masks(groups: np.ndarray, num_masks: int) -> np.ndarray:
 
 
 def mask_translation(units_from: np.ndarray, units_to: np.ndarray, present: np.ndarray) -> np.ndarray:
-    """[M_a + 1] int32 τ of `translate_labels` from unit rows (`unit_rows64`) [M_a, D] and [M_b, D] and
+    """[M_a + 1] int32 τ of `translate_labels` from unit rows (`check.unit_rows`) [M_a, D] and [M_b, D] and
     the other view's present masks [G]; entry M_a (and all of τ when G = 0) is -1."""
     trans = np.full(units_from.shape[0] + 1, -1, np.int32)
     if present.size and units_from.shape[0]:
         trans[:-1] = present[np.argmax(units_from @ units_to[present].T, axis=1)]
     return trans
-
-
-def unit_rows64(feats: np.ndarray) -> np.ndarray:
-    """[M, D] float64 rows of unit length; zero (and non-finite) rows as zeros."""
-    x = np.nan_to_num(np.asarray(feats, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    norms = np.linalg.norm(x, axis=1, keepdims=True)
-    return np.divide(x, norms, out=np.zeros_like(x), where=norms > 0)
-
-
-def held_out_score(ids: np.ndarray, weights: np.ndarray, labels_from: np.ndarray, feats_from: np.ndarray, groups: np.ndarray,
-                   feats: np.ndarray) -> float:
-    """H_u of one pair of probe views: the labelling of an earlier probe view (labels_from [N],
-    feats_from [M_a, D]) translated into this view's masks (`translate_labels`), re-rendered with
-    this view's weights u (ids, weights [H, W, k]) and scored against its grouped masks groups [H, W]
-    (feats [M_b, D]) as S_u is (`rerender_score`). The fit stage computes the same from its kept
-    sparse labellings (`HeldOut`)."""
-    return rerender_score(ids, weights, translate_labels(labels_from, feats_from, feats, groups), groups, feats.shape[0])
 
 
 @dataclass
@@ -352,7 +336,8 @@ class HeldOut:
 
     def scores(self, ids: np.ndarray, weights: np.ndarray, groups: np.ndarray, units: np.ndarray) -> list[float]:
         """H_u of this view (ids, weights [H, W, k], grouped masks [H, W], their unit rows [M, D]) against
-        every earlier probe view's labelling (`held_out_score`)."""
+        every earlier probe view's labelling: `translate_labels` into this view's masks, then
+        `rerender_score`, with the translation table made once per pair and the labelling sparse."""
         present = present_masks(groups, units.shape[0])
         out = []
         for seen, masks, units_from in self.earlier:
@@ -429,7 +414,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         stats = hook.stats(cam, out)
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
-        units = unit_rows64(feats)
+        units = unit_rows(feats)
         for footprint in FOOTPRINTS:
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
