@@ -274,6 +274,12 @@ def empty_level_hint(features_dir: Path, views: Sequence[Camera], level: int) ->
             f"{', '.join(map(str, sorted(others)))} hold some: choose one with --level")
 
 
+def failure_hint(run: Run, level: int) -> str:
+    """'; <the likely cause>' of a registration that assigned nothing: an empty mask level
+    (`empty_level_hint`), else what `unassigned_hint` finds in the scene and cameras."""
+    return empty_level_hint(run.features_dir, run.views, level) or unassigned_hint(run.scene, run.views)
+
+
 def weak_sums(count: int) -> str:
     """`RowFates.weak` in words."""
     return (f"{count} Gaussians got feature sums under {WEAK_RESULTANT:g} of their weight (|Σ w f| < {WEAK_RESULTANT:g} Σ w): the "
@@ -386,8 +392,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         if candidates is not None and not candidates.any():
             dropped = aggregator.rejected()
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
-            hint = empty_level_hint(run.features_dir, run.views, options.level) or unassigned_hint(run.scene, run.views)
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, hint, rejected=rejected, mode=asked))
+            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
@@ -395,8 +400,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                hint = empty_level_hint(run.features_dir, run.views, options.level) or unassigned_hint(run.scene, run.views)
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, hint, fates.dropped, aggregator.num_rejected, asked))
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), fates.dropped,
+                                                    aggregator.num_rejected, asked))
             written = target.close()
         else:
             weights, fates, blocks, sum_seconds, sum_cpu, written, task_seconds = _reduce_blocks(reduce, run, aggregator, codebook, totals, out, asked)
@@ -760,7 +765,8 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     views under 64 px wide, Gaussians too faint for any pixel (opacity < 1/255), Gaussians nearer to every camera than the near plane (a scene in other
     units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame."""
     sizes = sorted({(c.width, c.height) for c in cameras})
-    why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if sizes and min(sizes)[0] < 64 else ""
+    small = bool(sizes) and sizes[0][0] < 64
+    why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if small else ""
     faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
     if faint >= 0.1:  # every pixel skips them (α < 1/255, as 3DGS's rasterizer does): seen or not, they get no weight
         why += (f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel "
@@ -769,7 +775,7 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
                       "which culls them: are the scene and its cameras in the same units?")
-    if sizes and min(sizes)[0] < 64:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
+    if small:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
         return why
     return why + frame_hint(scene.means, cameras)
 
