@@ -124,6 +124,10 @@ def test_embeddings_below_float32s_smallest_normal_are_ignored_not_rescaled(tmp_
     with caplog.at_level(logging.WARNING):
         ids, got = read_features(tmp_path, "s", level=1)
     assert f"1 of {len(unit)} embeddings have a norm below 1.18e-38" in caplog.text
+    from drsplat.defaults import MIN_NORM
+    from drsplat.lang.lut import MIN_NORM as SCORED_MIN_NORM
+
+    assert MIN_NORM == SCORED_MIN_NORM == np.finfo(np.float32).tiny  # the bar the features and the queries share
     assert (ids[seg[1] == 3] == -1).all() and (ids[seg[1] == 4] == 4).all()
     others = np.arange(len(unit)) != 3
     np.testing.assert_allclose(got[others], unit[others], atol=1e-5)

@@ -26,7 +26,7 @@ import numpy as np
 from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.features.modelid import model_id_sources
 from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
-from drsplat.defaults import DEFAULT_LEVEL, UNIT_TOLERANCE
+from drsplat.defaults import DEFAULT_LEVEL, MIN_NORM, UNIT_TOLERANCE
 
 log = logging.getLogger(__name__)
 
@@ -255,11 +255,10 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     if zero.any():  # a placeholder, not an embedding: its pixels would add weight to their Gaussians and no direction
         log.warning("%s: %d of %d embeddings are all zero (no direction to lift); their masks are ignored", fpath, int(zero.sum()), m)
         ids = np.where((ids >= 0) & zero[np.maximum(ids, 0)], -1, ids)
-    tiny = row_ok & ~zero & (norms < np.finfo(np.float32).tiny)
+    tiny = row_ok & ~zero & (norms < MIN_NORM)
     if tiny.any():  # subnormal entries keep few bits: rescaled, a row of 1e-44 kept cosine 0.61 to its direction (round 30)
         log.warning("%s: %d of %d embeddings have a norm below %.3g (float32's smallest normal number; the smallest %.3g), too "
-                    "small to hold a direction; their masks are ignored", fpath, int(tiny.sum()), m, np.finfo(np.float32).tiny,
-                    norms[tiny].min())
+                    "small to hold a direction; their masks are ignored", fpath, int(tiny.sum()), m, MIN_NORM, norms[tiny].min())
         ids = np.where((ids >= 0) & tiny[np.maximum(ids, 0)], -1, ids)
         zero |= tiny
     # registration lifts directions: a mask's length would weigh it in the paper's mean, the vote trims

@@ -10,6 +10,7 @@ import logging
 import numba
 import numpy as np
 
+from drsplat import defaults
 from drsplat.lang.codebook import PQ_KSUB, Codebook
 
 log = logging.getLogger(__name__)
@@ -25,7 +26,7 @@ FAST = {"reassoc", "nsz", "arcp", "contract"}  # fastmath without nnan/ninf: non
 # The smallest stored norm a row is scored by: float32's smallest normal number. Below it 1/norm
 # overflows float32 (a codebook of subnormal centroids scored every row inf, selected and written
 # to --scores without a word: a probe, round 29a), so such a row is read as holding no feature.
-MIN_NORM = np.float32(np.finfo(np.float32).tiny)
+MIN_NORM = np.float32(defaults.MIN_NORM)
 
 
 @numba.njit(cache=True)
