@@ -109,6 +109,11 @@ def size_value(text: str) -> int:
 
 size_value.__name__ = "size"
 nonneg_int = int_range(0, MAX_COUNT)
+seed_int = int_range(0, 2**32 - 1)  # numpy and faiss seeds are unsigned 32-bit
+topk_int = int_range(1, MAX_TOPK)
+unit_fraction = float_range(0.0, 1.0)
+nonneg_float = float_range(0.0, None)
+positive_float = float_range(0.0, None, lo_open=True)
 
 
 def mask_level(text: str) -> int:
@@ -121,11 +126,6 @@ def mask_level(text: str) -> int:
         return nonneg_int(text)
     except argparse.ArgumentTypeError as exc:
         raise argparse.ArgumentTypeError(f"{exc}; or one of LangSplat's level names {', '.join(LEVELS)}") from None
-seed_int = int_range(0, 2**32 - 1)  # numpy and faiss seeds are unsigned 32-bit
-topk_int = int_range(1, MAX_TOPK)
-unit_fraction = float_range(0.0, 1.0)
-nonneg_float = float_range(0.0, None)
-positive_float = float_range(0.0, None, lo_open=True)
 
 
 def output_file(text: str) -> Path:
