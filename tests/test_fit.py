@@ -137,6 +137,40 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
         assert (translated == -1).all() and score == 0.0
 
 
+def test_the_held_out_translation_makes_its_cosines_a_block_of_rows_at_a_time(monkeypatch):
+    """Was (a probe, round 31): `mask_translation` made every mask's cosine to every present mask of
+    the other view at once, [M_a, G] float64: views of 640x480 one-pixel masks asked numpy for 703 GiB
+    (MemoryError out of the fit stage), and 128x96 ones held 1.2 GB where the rest of the probe held
+    0.3. Now TRANSLATION_BLOCK_BYTES of rows at a time, the same translation (blocks that do not
+    divide the rows, and the last entry still -1), and the peak allocation within one block."""
+    import tracemalloc
+
+    from drsplat.registration import fit
+
+    rng = np.random.default_rng(3)
+    m, d = 23, 8
+    feats_a, feats_b = rng.normal(size=(m, d)), rng.normal(size=(m, d))
+    groups_b = rng.integers(-1, m, size=(6, 7)).astype(np.int32)
+    labels = rng.integers(-1, m, 40).astype(np.int32)
+    g = fit.present_masks(groups_b, m).size
+    monkeypatch.setattr(fit, "TRANSLATION_BLOCK_BYTES", 8 * g * 5)  # 5 rows a block: 4 blocks and one of 3
+    np.testing.assert_array_equal(translate_labels(labels, feats_a, feats_b, groups_b), _translate_reference(labels, feats_a, feats_b, groups_b))
+    assert fit.mask_translation(unit_rows(feats_a), unit_rows(feats_b), fit.present_masks(groups_b, m))[-1] == -1
+    monkeypatch.undo()
+
+    many = 6000  # all at once: 6000 x 6000 float64 = 288 MB
+    units = unit_rows(rng.normal(size=(many, 4)))
+    present = np.arange(many, dtype=np.int32)
+    tracemalloc.start()
+    try:
+        trans = fit.mask_translation(units, units, present)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < fit.TRANSLATION_BLOCK_BYTES + 8 * many * 16, peak
+    assert (trans[:-1] == present).all()  # each mask is its own most alike
+
+
 def test_the_fit_takes_the_sharp_footprint_when_either_score_says_so():
     """The decision: sharp when the view's own re-render (S) or, by more than its noise, another probe
     view's labels (H) fit the masks better with the sharp weights; the paper's footprint otherwise."""

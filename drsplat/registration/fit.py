@@ -82,6 +82,7 @@ FOOTPRINTS = ("paper", "sharp")
 # +0.0009, and the sharp footprint there cost up to 0.105 (docs/evaluation.md, "The fit stage's
 # held-out score"); on an independent generator's silhouettes it was +0.0024 to +0.020 where S chose wrong
 HELD_OUT_MIN_MARGIN = 0.002
+TRANSLATION_BLOCK_BYTES = 1 << 26  # the held-out score's cosines [rows, G] float64 made at once (`mask_translation`)
 # What the process holds after the probe beyond what it held before (the memory plan is checked
 # before the probe and made after it, from one figure): the kernels and libraries its first views
 # load, and per Gaussian the geometry, rays and culling index the view pass takes over plus the
@@ -318,10 +319,17 @@ def present_masks(groups: np.ndarray, num_masks: int) -> np.ndarray:
 
 def mask_translation(units_from: np.ndarray, units_to: np.ndarray, present: np.ndarray) -> np.ndarray:
     """[M_a + 1] int32 τ of `translate_labels` from unit rows (`check.unit_rows`) [M_a, D] and [M_b, D] and
-    the other view's present masks [G]; entry M_a (and all of τ when G = 0) is -1."""
+    the other view's present masks [G]; entry M_a (and all of τ when G = 0) is -1. The cosines are
+    made TRANSLATION_BLOCK_BYTES of rows at a time: at once, [M_a, G] float64 asked 703 GiB of views
+    of 640x480 one-pixel masks (a probe, round 31); one block up to ~2,900 masks a view."""
     trans = np.full(units_from.shape[0] + 1, -1, np.int32)
     if present.size and units_from.shape[0]:
-        trans[:-1] = present[np.argmax(units_from @ units_to[present].T, axis=1)]
+        to = units_to[present].T
+        rows = max(1, TRANSLATION_BLOCK_BYTES // (8 * present.size))
+        m = units_from.shape[0]
+        for start in range(0, m, rows):
+            stop = min(start + rows, m)
+            trans[start:stop] = present[np.argmax(units_from[start:stop] @ to, axis=1)]
     return trans
 
 
