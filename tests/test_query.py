@@ -470,7 +470,8 @@ def test_every_backend_stores_the_same_rows_as_features(codebook):
         np.testing.assert_array_equal(field.storage.features[0], base[0].astype(np.float16))
 
 
-@pytest.mark.parametrize("value, expected", [("-1e-3", -1e-3), ("-.5e-1", -0.05), ("-0.25", -0.25), ("-1", -1.0)])
+@pytest.mark.parametrize("value, expected", [("-1e-3", -1e-3), ("-.5e-1", -0.05), ("-0.25", -0.25), ("-1", -1.0),
+                                             ("-0_0.25", -0.25), ("-0.000_5", -5e-4), ("-1_0e-1_0", -1e-9)])  # grouped as 1_000 is read
 def test_a_negative_threshold_in_any_float_spelling_is_read_as_the_value(value, expected):
     from drsplat.cli import build_parser
     from viewer.launch import build_parser as viewer_parser

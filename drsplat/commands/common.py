@@ -60,8 +60,10 @@ def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], i
 
 
 # what argparse reads as a negative number rather than an option: any float literal with a leading
-# minus, as float() reads it (argparse's own pattern takes -1 and -.5 but not -1e-3 or -inf)
-NEGATIVE_NUMBER = re.compile(r"^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf(?:inity)?|nan)$", re.IGNORECASE)
+# minus, as float() reads it (argparse's own pattern takes -1 and -.5 but not -1e-3 or -inf), digits
+# grouped by underscores included (-1_000, as 1_000 is read)
+_DIGITS = r"\d(?:_?\d)*"
+NEGATIVE_NUMBER = re.compile(rf"^-(?:(?:{_DIGITS}\.?(?:{_DIGITS})?|\.{_DIGITS})(?:[eE][-+]?{_DIGITS})?|inf(?:inity)?|nan)$", re.IGNORECASE)
 
 
 class ArgumentParser(argparse.ArgumentParser):
