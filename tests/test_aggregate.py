@@ -24,6 +24,7 @@ from drsplat.registration.aggregate import (
     explain_weights,
     explain_weights_reference,
     footprint_area,
+    in_front_reference,
     ray_depths_reference,
     split_mode,
     surface_stats,
@@ -247,6 +248,34 @@ def test_surface_stats_scratch_outlives_its_stamps():
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
 
+def test_a_gaussian_within_its_own_extent_of_the_surface_is_not_in_front():
+    """Haze that touches the surface it hangs over is not a floater: a contribution is in front only
+    when its t* lies a share τ of the depth before the surface D *and* more than κ = 1 of its own
+    largest scales (reach / 3) before it. Round Gaussians of scale 0.3 on the camera's axis, the
+    surface at depth 10: at 9.0 (0.1 D, 3.3 scales before it) in front; at 9.4 (0.06 D, but 2 scales)
+    in front; at 9.6 (0.04 D) not; a wide one of scale 1.0 at 9.4 (0.6 of its scale) not, though it
+    is 6 % of the depth before the surface. Kernel and reference agree; NaN is never in front."""
+    cam = look_at_camera(np.zeros(3), np.array([0.0, 0.0, 1.0]), 3, 3, 30.0)
+    axis = np.asarray(cam.R, np.float64)[2]
+    origin = cam.ray_origin()
+    depths = np.array([10.0, 9.0, 9.4, 9.6, 9.4])
+    scales = np.array([0.3, 0.3, 0.3, 0.3, 1.0])
+    means = origin + depths[:, None] * axis
+    precisions = np.zeros((5, 6))
+    precisions[:, [0, 3, 5]] = (1.0 / scales**2)[:, None]  # round: Σ⁻¹ = I / s²
+    geometry = RayGeometry(means, precisions, 3.0 * scales)
+    ids = np.full((3, 3, 5), -1, np.int32)
+    ids[1, 1] = [0, 1, 2, 3, 4]
+    median = np.full((3, 3), -1, np.int32)
+    median[1, 1] = 0
+    weights = np.where(ids >= 0, 0.1, 0.0).astype(np.float32)
+    _, scratch = surface_stats(geometry, cam, ids, weights, median, keep_flags=True)
+    np.testing.assert_array_equal(scratch.flags.reshape(ids.shape)[1, 1], [False, True, True, False, False])
+    depth = ray_depths_reference(geometry, cam, ids)[1, 1]
+    np.testing.assert_array_equal(in_front_reference(depth, np.float64(depth[0]), geometry.reach), [False, True, True, False, False])
+    assert not in_front_reference(np.array([np.nan, 1.0]), np.float64(np.nan), np.array([0.0, np.nan])).any()
+
+
 def test_fixed_point_weights_round_clip_and_zero_nan():
     """A slot's w is added as round(w·2³²): the rasterizer's range (0, 1] to the nearest unit,
     outside it clipped, NaN as nothing; and the sum of many weights is exact."""
@@ -274,9 +303,11 @@ def test_in_front_flags_equal_the_reference_with_hostile_geometry():
     _, scratch = surface_stats(geometry, cam, ids, weights, median, keep_flags=True)
     depth = ray_depths_reference(geometry, cam, ids)
     surface = ray_depths_reference(geometry, cam, median[..., None])
-    want = (depth < (1.0 - FRONT_TOLERANCE) * surface) & (ids >= 0)
+    want = in_front_reference(depth, surface, geometry.reach[np.maximum(ids, 0)]) & (ids >= 0)
     got = scratch.flags.reshape(ids.shape)
     np.testing.assert_array_equal(got, want)
+    by_depth_alone = (depth < (1.0 - FRONT_TOLERANCE) * surface) & (ids >= 0)
+    assert (by_depth_alone & ~want).any()  # the κ·s term decides some slots here
     seen = ids[ids >= 0]
     assert np.isin(np.arange(12, 17), seen).any() and np.isin(np.arange(20, 26), seen).any()
     assert got.any() and not got.all()

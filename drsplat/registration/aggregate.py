@@ -81,7 +81,14 @@ For a flat Gaussian that is the plane it lies in, so a large floor or wall Gauss
 grazing angle is not "in front" of its own surface over the far half of its footprint. In every view, pixel p's surface depth D(p) = t* of the pixel's median Gaussian, the
 one whose contribution takes the transmittance T from above ½ to ≤ ½ (the rasterizer returns it:
 `rasterize(..., with_median=True)`; D = +∞ where the opacity never reaches ½). A contribution of
-Gaussian i at p is *in front* when t*_i(p) < (1 - τ)·D(p), τ = 0.05. Over all views Gaussian i
+Gaussian i at p is *in front* when
+
+    t*_i(p) < (1 - τ)·D(p)  and  t*_i(p) < D(p) - κ·s_i,   τ = 0.05, κ = 1,
+
+s_i its largest scale (reach_i / 3): in front of the surface by a share of its depth and by more
+than its own extent, so haze that touches the surface it hangs over is not a floater (real splats,
+docs/hostile.md "Round 31b": biker's clean rooms -0.005 -> -0.002 against `paper`, the hard rooms'
+floaters kept unchanged). Over all views Gaussian i
 collects its peak weight P_i = max_p w_i(p), its total weight A_i = Σ_p w_i(p), its in-front
 weight B_i = Σ_p w_i(p)·[in front], the number of views that see it V_i and the number of those
 in which more than half of its weight is in front, F_i. It is rejected (left unassigned, W_i = 0)
@@ -131,6 +138,8 @@ SHARP_LOG_FLOOR = float(np.log(SHARP_FLOOR))  # below this exponent the factor i
 SHARP_EXP_SQUARINGS = 5
 SHARP_EXP_TERMS = tuple(1.0 / math.factorial(n) for n in range(9, -1, -1))
 FRONT_TOLERANCE = 0.05  # τ: relative depth margin of "in front of the surface"
+FRONT_SCALES = 1.0  # κ: "in front" also by more than this many of the Gaussian's largest scale
+FRONT_REACH_SHARE = FRONT_SCALES / 3.0  # κ·s_i = FRONT_REACH_SHARE·reach_i (RayGeometry.reach = 3·largest scale)
 PEAK_MIN = 0.5  # a Gaussian with P_i ≥ this is never rejected
 FRONT_MAX = 0.5  # rejected when more than this share of its weight is in front of the surface
 
@@ -718,13 +727,26 @@ def fixed_weights(weights: np.ndarray) -> np.ndarray:
     return np.floor(w * STATS_SCALE + 0.5).astype(np.int64)
 
 
+def in_front_reference(depth: np.ndarray, surface: np.ndarray, reach: np.ndarray, tolerance: float = FRONT_TOLERANCE) -> np.ndarray:
+    """[...] bool: t* = depth in front of the pixel's surface D = surface (broadcast; +inf: none), by a
+    share τ = tolerance of D and by more than κ·s = FRONT_REACH_SHARE·reach (reach: the Gaussian's
+    3·largest scale):
+
+        t* < (1 - τ)·D  and  t* < D - κ·s
+
+    Two comparisons, not a min of the limits, so a NaN anywhere is "not in front" in every engine."""
+    with np.errstate(invalid="ignore"):
+        return (depth < (1.0 - tolerance) * surface) & (depth < surface - FRONT_REACH_SHARE * reach)
+
+
 def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
                             tolerance: float = FRONT_TOLERANCE) -> ViewStats:
     """One view's rejection statistics (numpy reference; math in the module docstring).
 
     ids, weights: [H, W, k] (raw w = T·α); median_ids: [H, W] the rasterizer's median Gaussian
     (-1 where the pixel's opacity never reaches ½: D(p) = +inf). A contribution is in front
-    when t*_i(p) < (1 - τ)·D(p), D(p) = t* of the median Gaussian at p. The sums add each w in
+    when t*_i(p) < (1 - τ)·D(p) and t*_i(p) < D(p) - κ·s_i (`in_front_reference`), D(p) = t* of
+    the median Gaussian at p. The sums add each w in
     fixed point (`fixed_weights`), so they are the same integers in any order; the peak is the
     largest w (NaN ignored).
     """
@@ -735,7 +757,7 @@ def surface_stats_reference(geometry: RayGeometry, camera, ids: np.ndarray, weig
     valid = g >= 0
     w = np.where(valid, weights.reshape(-1, k).astype(np.float64), 0.0)
     fixed = np.where(valid, fixed_weights(w), 0)
-    in_front = depth < (1.0 - tolerance) * surface
+    in_front = in_front_reference(depth, surface, geometry.reach[np.maximum(g, 0)], tolerance)
     seen, inverse = np.unique(g[valid], return_inverse=True)
     peak, total, front = np.zeros(seen.size), np.zeros(seen.size, np.int64), np.zeros(seen.size, np.int64)
     np.fmax.at(peak, inverse, w[valid])
@@ -775,8 +797,8 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
     P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
 
-    Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) (D = +inf where
-    median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
+    Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) and t*_g(p) < D(p) -
+    κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
     first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
     never < the limit). Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
     same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
@@ -802,10 +824,10 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                 dy = rot[0, 1] * rx + rot[1, 1] * ry + rot[2, 1]
                 dz = rot[0, 2] * rx + rot[1, 2] * ry + rot[2, 2]
                 m = median_ids[p]
-                limit = np.inf
+                surface = np.inf
                 if m >= 0:
-                    limit = (1.0 - tolerance) * _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
-                                                           rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                    surface = _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                limit = (1.0 - tolerance) * surface
                 for s in range(k):
                     g = ids[p, s]
                     if g < 0:  # slots are filled first, -1 padded at the end (every engine)
@@ -815,8 +837,8 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                         break
                     in_front = False
                     if near[g] < limit:
-                        in_front = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach,
-                                              rot[2, 0], rot[2, 1], rot[2, 2], tz) < limit
+                        t = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                        in_front = t < limit and t < surface - FRONT_REACH_SHARE * reach[g]
                     if keep_flags:
                         flags[p, s] = in_front
                     w = np.float64(weights[p, s])

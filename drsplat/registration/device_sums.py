@@ -57,7 +57,7 @@ from drsplat import raster_ops, raster_torch
 from drsplat.raster_ops import host_array, host_tensor
 from drsplat.raster_torch import TorchScene, triton_available, project_gaussians_torch, rasterize_torch
 from drsplat._raster_kernels import BLUR
-from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_SQUARINGS, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
+from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR, SHARP_EXP_SQUARINGS, SHARP_EXP_TERMS, SHARP_FLOOR, SHARP_LOG_FLOOR, EXPLAIN_ITERATIONS, FRONT_MAX, FRONT_REACH_SHARE, FRONT_TOLERANCE, PROJECTED_WEIGHTINGS, WEIGHTINGS,
                                             STATS_SCALE, RayGeometry, SurfaceSupport, explain_weights, surface_stats, view_weights)
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
@@ -624,8 +624,9 @@ def ray_depths_torch(rays: DeviceRays, g: torch.Tensor, dx, dy, dz, origin: np.n
 
 def front_flags_torch(rays: DeviceRays, camera: Camera, ids: torch.Tensor, median_ids: torch.Tensor,
                       tolerance: float = FRONT_TOLERANCE) -> torch.Tensor:
-    """[H·W, k] bool: slot (p, s) is in front of the pixel's surface, t*_{ids[p, s]}(p) < (1 - τ)·D(p)
-    with D(p) the median Gaussian's t* (+inf where median_ids[p] < 0); False for empty slots.
+    """[H·W, k] bool: slot (p, s) is in front of the pixel's surface, t*_{ids[p, s]}(p) < (1 - τ)·D(p) and
+    t* < D(p) - κ·s (`aggregate.in_front_reference`), D(p) the median Gaussian's t* (+inf where
+    median_ids[p] < 0); False for empty slots.
     `aggregate.surface_stats`' in-front test in torch. ids: [H, W, k], median_ids: [H, W]."""
     h, w, k = ids.shape
     dev = ids.device
@@ -640,9 +641,11 @@ def front_flags_torch(rays: DeviceRays, camera: Camera, ids: torch.Tensor, media
     g = ids.reshape(-1, k).to(torch.int64)
     med = median_ids.reshape(-1, 1).to(torch.int64)
     surface = ray_depths_torch(rays, med.clamp(min=0), dx, dy, dz, origin, rot, tz)
-    limit = torch.where(med >= 0, (1.0 - tolerance) * surface, torch.inf)
+    surface = torch.where(med >= 0, surface, torch.inf)
+    limit = (1.0 - tolerance) * surface
     depth = ray_depths_torch(rays, g.clamp(min=0), dx, dy, dz, origin, rot, tz)
-    return (g >= 0) & (depth < limit)
+    beyond = surface - FRONT_REACH_SHARE * rays.reach[g.clamp(min=0)]
+    return (g >= 0) & (depth < limit) & (depth < beyond)
 
 
 def front_flags(rays: DeviceRays, camera: Camera, ids: torch.Tensor, median_ids: torch.Tensor, tolerance: float = FRONT_TOLERANCE) -> torch.Tensor:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from drsplat.cameras import Camera
+from drsplat.registration.aggregate import FRONT_REACH_SHARE
 from drsplat.raster_triton import kernel_ptx, require_cuda, strict_launch, triton_kernel
 
 try:  # triton comes with torch's CUDA builds
@@ -57,13 +58,15 @@ def _ray_depth_source(g, live, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_
 def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, camera_ptr, flags_ptr, n_pixels, width, k,
                         BLOCK: tl.constexpr, KP: tl.constexpr):  # fmt: skip
     """Program b: pixels b·BLOCK .. +BLOCK. flags [P, k] int8 = slot (p, s) holds a Gaussian whose
-    t* on the pixel's ray is < (1 - τ)·D(p), D the median Gaussian's t* (+inf without one)."""
+    t* on the pixel's ray is < (1 - τ)·D(p) and < D(p) - κ·s (`aggregate.in_front_reference`), D the
+    median Gaussian's t* (+inf without one)."""
     r00, r01, r02 = tl.load(camera_ptr), tl.load(camera_ptr + 1), tl.load(camera_ptr + 2)
     r10, r11, r12 = tl.load(camera_ptr + 3), tl.load(camera_ptr + 4), tl.load(camera_ptr + 5)
     r20, r21, r22 = tl.load(camera_ptr + 6), tl.load(camera_ptr + 7), tl.load(camera_ptr + 8)
     ox, oy, oz, tz = tl.load(camera_ptr + 9), tl.load(camera_ptr + 10), tl.load(camera_ptr + 11), tl.load(camera_ptr + 12)
     fx, fy, cx, cy = tl.load(camera_ptr + 13), tl.load(camera_ptr + 14), tl.load(camera_ptr + 15), tl.load(camera_ptr + 16)
     keep = tl.load(camera_ptr + 17)  # 1 - τ
+    share = tl.load(camera_ptr + 18)  # κ / 3 (aggregate.FRONT_REACH_SHARE)
     pix = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     live = pix < n_pixels
     rx = ((pix % width).to(tl.float64) + 0.5 - cx) / fx
@@ -74,7 +77,8 @@ def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, cam
     med = tl.load(median_ptr + pix, mask=live, other=-1).to(tl.int64)
     has = med >= 0
     surface = _ray_depth(tl.maximum(med, 0), has, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr, reach_ptr)
-    limit = tl.where(has, keep * surface, float("inf"))
+    surface = tl.where(has, surface, float("inf"))
+    limit = keep * surface
     slots = tl.arange(0, KP)
     at = pix[:, None] * k + slots[None, :]
     inside = live[:, None] & (slots < k)[None, :]
@@ -82,7 +86,8 @@ def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, cam
     some = g >= 0
     depth = _ray_depth(tl.maximum(g, 0), some, dx[:, None], dy[:, None], dz[:, None], ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr,
                        reach_ptr)  # fmt: skip
-    tl.store(flags_ptr + at, (some & (depth < limit[:, None])).to(tl.int8), mask=inside)
+    beyond = surface[:, None] - share * tl.load(reach_ptr + tl.maximum(g, 0), mask=some, other=0.0)
+    tl.store(flags_ptr + at, (some & (depth < limit[:, None]) & (depth < beyond)).to(tl.int8), mask=inside)
 
 
 if triton is not None:  # a kernel's helper is itself a Triton function
@@ -98,7 +103,8 @@ def front_flags_triton(means: torch.Tensor, precisions: torch.Tensor, reach: tor
     dev = ids.device
     require_cuda(dev, "the fused in-front kernel")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    values = [*rot.reshape(-1), *camera.ray_origin(), trans[2], camera.fx, camera.fy, camera.cx, camera.cy, 1.0 - tolerance]
+    values = [*rot.reshape(-1), *camera.ray_origin(), trans[2], camera.fx, camera.fy, camera.cx, camera.cy, 1.0 - tolerance,
+              FRONT_REACH_SHARE]
     params = torch.tensor([float(v) for v in values], dtype=torch.float64)
     params = params.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else params
     flags = torch.empty((h * w, k), dtype=torch.int8, device=dev)
