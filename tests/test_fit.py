@@ -115,13 +115,14 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
     """H_u: view a's labelling, its masks mapped to view b's most alike ones (b's masks are a's,
     shuffled, plus one of its own; one a-mask has a zero row), re-rendered in b and scored against
     b's masks: the fit stage's sparse path (`HeldOut`) equals the numpy reference, and the translation
-    equals one made mask by mask."""
+    equals one made mask by mask. What it keeps of a view is at most its labelling and its float32
+    embeddings (what the memory plan counts), not float64 unit rows."""
     rng = np.random.default_rng(10 + CASES.index(case))
     n, m, d = 30, 5, 16
     ids, weights, masks_b = _view(rng, 13, 10, 6, n, m, case)
-    feats_b = rng.normal(size=(m, d))
+    feats_b = rng.normal(size=(m, d)).astype(np.float32)
     order = rng.permutation(m)
-    feats_a = np.concatenate([feats_b[order] + 0.01 * rng.normal(size=(m, d)), np.zeros((1, d))])  # a's mask i is b's order[i]
+    feats_a = np.concatenate([feats_b[order] + 0.01 * rng.normal(size=(m, d)), np.zeros((1, d))]).astype(np.float32)  # a's mask i is b's order[i]
     labels_a = rng.integers(-1, m + 1, n).astype(np.int32)
     translated = translate_labels(labels_a, feats_a, feats_b, masks_b)
     np.testing.assert_array_equal(translated, _translate_reference(labels_a, feats_a, feats_b, masks_b))
@@ -129,7 +130,8 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
     alike = np.array([order[j] if 0 <= j < m and order[j] in present else -2 for j in labels_a])
     np.testing.assert_array_equal(translated[alike >= 0], alike[alike >= 0])
     held = HeldOut(np.full(n, -1, np.int32))
-    held.keep(labels_a, unit_rows(feats_a))
+    held.keep(labels_a, feats_a)
+    assert sum(a.nbytes for a in held.earlier[0]) <= 2 * labels_a.nbytes + feats_a.nbytes
     (score,) = held.scores(ids, weights, masks_b, unit_rows(feats_b))
     assert score == pytest.approx(mask_iou_score(masks_b, rerender_reference(ids, weights, translated)), abs=1e-12)
     assert (held.scratch == -1).all()  # the shared dense labelling is left empty for the next pair

@@ -307,7 +307,8 @@ def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.nd
         τ(j) = argmax_{g present in groups_to} cos(f_a[j], f_b[g])      (ties: the lower g)
 
     so the labelling can be re-rendered in that view and scored against its masks. -1 stays -1; all
-    -1 when that view holds no mask. A zero row has cosine 0 with every mask."""
+    -1 when that view holds no mask. A zero row has cosine 0 with every mask. The dense form, the
+    reference of the fit stage's sparse `HeldOut`."""
     trans = mask_translation(unit_rows(feats_from), unit_rows(feats_to), present_masks(groups_to, feats_to.shape[0]))
     return np.where(labels >= 0, trans[np.maximum(labels, 0)], -1).astype(np.int32)
 
@@ -336,8 +337,9 @@ def mask_translation(units_from: np.ndarray, units_to: np.ndarray, present: np.n
 @dataclass
 class HeldOut:
     """The probe views' labellings kept for the held-out scores, sparse (a probe view labels the
-    Gaussians it sees: ids [S] int32 and their masks [S] int32) with their masks' unit rows [M, D];
-    scratch: one dense [N] labelling, -1 between uses."""
+    Gaussians it sees: ids [S] int32 and their masks [S] int32) with their masks' embeddings [M, D] as
+    read (float32: what `probe_memory_bound` counts per probe view; their float64 unit rows, twice
+    that, are made per pair); scratch: one dense [N] labelling, -1 between uses."""
 
     scratch: np.ndarray
     earlier: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
@@ -348,16 +350,16 @@ class HeldOut:
         `rerender_score`, with the translation table made once per pair and the labelling sparse."""
         present = present_masks(groups, units.shape[0])
         out = []
-        for seen, masks, units_from in self.earlier:
-            self.scratch[seen] = mask_translation(units_from, units, present)[masks]
+        for seen, masks, feats_from in self.earlier:
+            self.scratch[seen] = mask_translation(unit_rows(feats_from), units, present)[masks]
             out.append(rerender_score(ids, weights, self.scratch, groups, units.shape[0]))
             self.scratch[seen] = -1
         return out
 
-    def keep(self, labels: np.ndarray, units: np.ndarray) -> None:
-        """Keep this view's labelling [N] (-1 none) for the later probe views."""
+    def keep(self, labels: np.ndarray, feats: np.ndarray) -> None:
+        """Keep this view's labelling [N] (-1 none) and its mask embeddings [M, D] for the later probe views."""
         seen = np.flatnonzero(labels >= 0).astype(np.int32)
-        self.earlier.append((seen, labels[seen], units))
+        self.earlier.append((seen, labels[seen], feats))
 
 
 def footprint_score_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_gaussians: int) -> float:
@@ -429,7 +431,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
             scores[footprint][t] = rerender_score(out.ids, weights, labels, groups, feats.shape[0])
             held[footprint] += kept_labels[footprint].scores(out.ids, weights, groups, units)
-            kept_labels[footprint].keep(labels, units)
+            kept_labels[footprint].keep(labels, feats)
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
     choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"], np.array(held["paper"]), np.array(held["sharp"]))
