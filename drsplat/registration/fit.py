@@ -126,17 +126,22 @@ class FitChoice:
     @property
     def margin(self) -> float:
         """mean(S_sharp - S_paper) over the probe views (0 without any)."""
-        return float(np.mean(self.sharp - self.paper)) if len(self.views) else 0.0
+        return mean_or_zero(self.sharp - self.paper)
 
     @property
     def held_margin(self) -> float:
         """mean(H_sharp - H_paper) over the pairs of probe views (0 without any)."""
-        return float(np.mean(self.held_sharp - self.held_paper)) if len(self.held_paper) else 0.0
+        return mean_or_zero(self.held_sharp - self.held_paper)
 
     def decide(self) -> str:
         """"sharp" when either score says the masks follow the sharp footprints (margin > 0 or
         held_margin > HELD_OUT_MIN_MARGIN), else "paper" (module docstring)."""
         return "sharp" if self.margin > 0.0 or self.held_margin > HELD_OUT_MIN_MARGIN else "paper"
+
+
+def mean_or_zero(values: np.ndarray) -> float:
+    """The mean of a fit score's values [P], 0 when there are none (no probe view, or no pair of them)."""
+    return float(np.mean(values)) if len(values) else 0.0
 
 
 def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
@@ -439,9 +444,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
              "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(picks),
              "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
-             float(np.mean(choice.paper)) if len(picks) else 0.0, float(np.mean(choice.sharp)) if len(picks) else 0.0,
-             float(np.mean(choice.held_paper)) if len(choice.held_paper) else 0.0,
-             float(np.mean(choice.held_sharp)) if len(choice.held_sharp) else 0.0)
+             mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
 
 
