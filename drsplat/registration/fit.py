@@ -35,7 +35,7 @@ on the CPU with the numba engine whatever the run's engine, so every engine and 
 Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
 geometry without its SH), the sharp weights, two coalescings and two re-renders, O(H·W·k), plus
 two held-out re-renders per earlier probe view (12 for 4 probe views: +23-27 ms per registration on
-a 320x240 room, ~0.34 s on flowers at 640x480, measured). When
+a 320x240 room, measured; ~0.34 s on flowers at 640x480, 12 of 20 re-renders of 563 ms under cProfile). When
 the view pass computes views as the probe does (numba, in this process), the chosen footprint's
 pairs are kept (`FitStage.pairs`) and the pass uses them instead of rendering those views again,
 so the stage's own cost is the sharp weights, one coalescing and the re-renders.
