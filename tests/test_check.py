@@ -1003,6 +1003,30 @@ def test_the_check_judges_nothing_when_one_objects_masks_do_not_group(tmp_path, 
     assert not np.array_equal(voted.features, rejected.features)  # the vote alone (θ = 0.9) does trim these masks
 
 
+@pytest.mark.parametrize("weighting", ["", "sharp-"])
+def test_masks_that_cannot_group_are_not_replayed_for_supports_nor_folded_into_vote_slots(tmp_path, monkeypatch, weighting):
+    """Where the clustered masks already form more than 0.9 clusters each, the masks with weight (a
+    subset) cannot group either: the check keeps every mask and the vote trims nothing (NO_TRIM,
+    step 4 included). So the support tables are not made (two replays of every view's pairs: ~45 ms
+    a view on random flowers masks) and no vote slot is folded, and the features are still
+    `reject`'s (or `sharp-reject`'s) bit for bit."""
+    from drsplat.registration import check, vote
+
+    root = write_dataset(tmp_path / "noisy", "hard-tiny", 0, noise=1.0, show_progress=False)
+    scene, cams = load_ply(root / "scene.ply"), load_cameras(root)
+    rejected = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate=f"{weighting}reject"), show_progress=False)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("replayed although the masks cannot group")
+
+    monkeypatch.setattr(check, "view_supports", refused)
+    monkeypatch.setattr(vote, "fold_view_votes", refused)
+    checked = register_features(scene, cams, root / "features", RegisterOptions(topk=10, aggregate=f"{weighting}check-vote-reject"),
+                                show_progress=False)
+    np.testing.assert_array_equal(checked.weights, rejected.weights)
+    np.testing.assert_array_equal(checked.features, rejected.features)
+
+
 def test_one_view_alone_is_said_to_have_no_other_view_not_masks_that_do_not_group(caplog):
     """Round 30: with one view, each label is one mask and one cluster, so the masks "form more
     clusters than 0.9 of them"; the line blamed the masks' likeness across views ("one object's masks

@@ -62,7 +62,10 @@ Gaussians and drops whole masks:
    mask check").
    Where the masks form more clusters than CHECK_MAX_CLUSTER_SHARE of their number (`masks_group`),
    one object's masks in different views did not group, so the votes of step 1 are single views and
-   nothing is judged; the vote after the check then trims nothing either (`MaskVerdicts.trim`);
+   nothing is judged; the vote after the check then trims nothing either (`MaskVerdicts.trim`).
+   When the masks with a pair (a superset of those with weight) already form that many clusters,
+   neither steps 1-2 nor the vote's slots are computed at all (`CheckSink._ungrouped_verdicts`,
+   `VoteSink.trims`): the same sums, without three replays of every view's pairs;
 3. the sums (and the vote stage after it) are made from the kept pairs in the same order, less
    the views that abstain on a Gaussian: where the dropped masks of view v held at least
    CHECK_ABSTAIN of Gaussian i's weight in v,
@@ -1226,18 +1229,9 @@ class CheckSink:
         if self._kept is None:
             if self._summed:
                 raise RuntimeError("the kept pairs of a check in one block are summed already")
-            n, block = self.num_gaussians, max(self.block, 1)
-            supports = None
-            if partial_supports is not None:
-                feats = [view.feats for view in self._source.block_views(0, 0)]
-                supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, beside=self.spill_beside)
-                try:
-                    partial_supports(supports.add_file)
-                except BaseException:  # a reducer failed or the run was cancelled: the files adopted so far go too
-                    supports.close()
-                    raise
-            self.verdicts = judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
-                                        supports=supports, beside=self.spill_beside)
+            self.verdicts = self._ungrouped_verdicts()
+            if self.verdicts is None:
+                self.verdicts = self._judge(partial_supports)
             like = "none" if self.verdicts.like is None else f"{self.verdicts.like:.3f}"
             log.info("mask check: %d of %d masks dropped (%d judged: of %g pixels of weight or more, with enough other views; %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",
@@ -1245,17 +1239,47 @@ class CheckSink:
             self._kept = KeptPairs(self._source, self.verdicts.keep, [ids >= 0 for ids in self.clusters.per_view])
         return self._kept
 
+    def _ungrouped_verdicts(self) -> MaskVerdicts | None:
+        """The verdicts without a support table, when the views' clustered masks (those with a pair
+        and an embedding) already form too many clusters to group (`masks_group`): the masks with
+        weight are among them, so the judging would find them ungrouped too and keep every mask,
+        and the vote would trim nothing (NO_TRIM; nor step 4). Nothing is replayed: on random masks
+        of a flowers view, no two alike, the supports' two replays were ~45 ms a view. None where
+        the masks may group (then `_judge`). `present` counts the clustered masks here."""
+        per_view = self.clusters.per_view
+        clustered = sum(int((ids >= 0).sum()) for ids in per_view)
+        views = sum(bool((ids >= 0).any()) for ids in per_view)
+        if clustered == 0 or masks_group(clustered, self.clusters.count, views):
+            return None
+        return MaskVerdicts([np.ones(ids.shape[0], np.bool_) for ids in per_view], 0, 0, clustered, grouped=False)
+
+    def _judge(self, partial_supports: Callable[[Callable[[SupportFile], None]], None] | None) -> MaskVerdicts:
+        """`judge_masks` on the supports summed here by replays, or handed in by `partial_supports`."""
+        n, block = self.num_gaussians, max(self.block, 1)
+        supports = None
+        if partial_supports is not None:
+            feats = [view.feats for view in self._source.block_views(0, 0)]
+            supports = Supports.empty(feats, self.clusters.per_view, self.clusters.count, beside=self.spill_beside)
+            try:
+                partial_supports(supports.add_file)
+            except BaseException:  # a reducer failed or the run was cancelled: the files adopted so far go too
+                supports.close()
+                raise
+        return judge_masks(self._source, self.clusters, n, block, self.slots, cancel=self.cancel, show_progress=self.show_progress,
+                           supports=supports, beside=self.spill_beside)
+
     def _judged(self) -> Sink:
         """The sink of the kept pairs, the masks judged first."""
         if not self._summed:
             n, kept = self.num_gaussians, self.kept_pairs()
             trim = self.verdicts.trim  # the vote trims what is unlike by the scene's own measure (vote.trim_cosine)
-            specific = Specificity(kept, self.verdicts.pair_means) if self.specific else None  # the vote's step 4
+            # the vote's step 4 (none where the masks did not group: at NO_TRIM it trims nothing, and there are no pair means)
+            specific = Specificity(kept, self.verdicts.pair_means) if self.specific and self.verdicts.grouped else None
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
+                if self.vote:  # before the views: at NO_TRIM the vote folds no slots (VoteSink.trims)
+                    self._inner.trim, self._inner.specific = trim, specific
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
-                if self.vote:
-                    self._inner.trim, self._inner.specific = trim, specific
                 # the sums hold what the record did (step 4 of the vote replays it once more)
                 self.record = self._source = self._kept = None
             else:

@@ -747,7 +747,15 @@ class VoteSink:
         acc, slot_c, slot_v, slot_s, total = state
         rows = np.ascontiguousarray(rows, np.int32)
         acc.add_pairs(rows, masks, weights, feats)
-        fold_view_votes(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, slot_c, slot_v, slot_s, total)
+        if self.trims:
+            fold_view_votes(rows, cluster_of_mask[masks], weights, self.presence, self.full_view, slot_c, slot_v, slot_s, total)
+
+    @property
+    def trims(self) -> bool:
+        """Whether the vote can trim anything: not at θ = NO_TRIM (a check whose masks did not group),
+        where neither step 3 nor step 4 trims a slot, so the slots are not folded and the sums are
+        the paper's as they are."""
+        return self.trim != NO_TRIM
 
     def _finish(self, state, lo: int, hi: int, row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The trimmed sums of the state's rows: Gaussians lo .. hi-1, or those `row` [N] maps to rows."""
@@ -757,6 +765,8 @@ class VoteSink:
 
     def _trimmed(self, F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, lo: int, hi: int,
                  row: np.ndarray | None = None) -> np.ndarray:
+        if not self.trims:
+            return F
         slot_p = None if self.specific is None else slot_specificity(self.specific.views(self.clusters.per_view, lo, hi, row), slot_c)
         return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means(), self.trim, slot_p=slot_p)
 
