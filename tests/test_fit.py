@@ -297,6 +297,39 @@ def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, sour
     assert footprint_score_reference(out.ids, out.weights, masks, scene.num_gaussians) == pytest.approx(choice.paper[0], abs=1e-9)
 
 
+def test_a_probe_view_of_another_embedding_size_is_named_not_a_numpy_error(rooms, tmp_path):
+    """Round 31 (not mended then): `fit_stage` called directly on probe views whose embeddings differ in
+    length raised numpy's matmul error from the held-out score. It now names the later view's file and
+    both sizes (`register` refuses such a folder before the probe)."""
+    import shutil
+
+    from drsplat.errors import InputError
+    from drsplat.features.format import read_features, write_features
+
+    data = tmp_path / "room"
+    shutil.copytree(rooms["geometry"], data)
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    picks = probe_views(len(cams))
+    first, later = cams[int(picks[0])].name, cams[int(picks[1])].name
+    ids, feats = read_features(data / "features", later)
+    write_features(data / "features", later, ids, np.concatenate([feats, feats[:, :3]], axis=1))
+    with pytest.raises(InputError) as err:
+        fit_stage("fit", scene, cams, data / "features", 1, 10)
+    message = str(err.value)
+    assert f"{later}_f.npy" in message and f"{feats.shape[1] + 3}-D" in message and f"{first}'s are {feats.shape[1]}-D" in message, message
+
+
+def test_same_embedding_reads_negative_zero_as_zero():
+    """Round 31 (not mended then): rows equal as numbers but for the sign of a zero were compared by
+    their bytes and made two labels; -0.0 is now read as 0.0. A NaN row stays its own label."""
+    from drsplat.registration.fit import same_embedding
+
+    feats = np.array([[0.0, 1.0], [-0.0, 1.0], [0.5, -0.0], [0.5, 0.0], [np.nan, 1.0]], np.float32)
+    assert same_embedding(feats).tolist() == [0, 0, 2, 2, 4]
+    assert same_embedding(feats.astype(np.float64)).tolist() == [0, 0, 2, 2, 4]
+    assert same_embedding(feats.astype(np.float16)).tolist() == [0, 0, 2, 2, 4]
+
+
 def test_a_culled_probe_view_scores_as_the_whole_scene_does(rooms):
     """The probe culls as the view pass does (a view that sees few Gaussians renders that subset);
     its scores are those of the probe rendering every Gaussian."""

@@ -68,7 +68,8 @@ from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussia
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
-from drsplat.features.format import read_features_report, resample_nearest, seg_path
+from drsplat.errors import InputError
+from drsplat.features.format import feat_path, read_features_report, resample_nearest, seg_path
 from drsplat.registration.views import check_aspect
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
@@ -423,6 +424,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         if cancel is not None:
             cancel.raise_if_cancelled()
         cam, mask_ids, feats, nonfinite = probe_view(features_dir, views[i], level)
+        _check_dims(features_dir, views[picks[0]].name, cam.name, kept_labels["paper"], feats)
         t0 = time.perf_counter()
         out = computer.rasterize(cam)
         raster_seconds = time.perf_counter() - t0
@@ -448,14 +450,25 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
 
 
+def _check_dims(features_dir: Path, first: str, name: str, earlier: HeldOut, feats: np.ndarray) -> None:
+    """InputError naming view `name`'s embedding file when its rows are not as long as the earlier
+    probe views' (view `first`'s): a held-out score compares them (`register` refuses such a folder
+    before the probe; this guards a direct call)."""
+    if earlier.earlier and earlier.earlier[0][2].shape[1] != feats.shape[1]:
+        raise InputError(feat_path(features_dir, name), f"embeddings are {feats.shape[1]}-D but probe view {first}'s are "
+                         f"{earlier.earlier[0][2].shape[1]}-D")
+
+
 def same_embedding(feats: np.ndarray) -> np.ndarray:
     """[M] int32: each mask's id, or the lowest id of a mask with the very same embedding row. The fit
     scores labels, and one label's mask cut into pieces (or painted per instance from one text
     embedding) is one label: scored piece by piece, the pieces' boundaries, which follow no object,
-    moved the margin of a hard-tiny room from +0.029 to -0.006 (round 22)."""
+    moved the margin of a hard-tiny room from +0.029 to -0.006 (round 22). Rows are compared by
+    their bits with -0.0 read as 0.0 (equal numbers; a NaN row is its own label)."""
     if feats.shape[0] == 0:
         return np.zeros(0, np.int32)
-    _, first, inverse = np.unique(np.ascontiguousarray(feats).view(np.dtype((np.void, feats.dtype.itemsize * feats.shape[1]))),
+    feats = np.ascontiguousarray(feats) + np.zeros((), np.asarray(feats).dtype)  # -0.0 + 0.0 = 0.0: one bit pattern per number
+    _, first, inverse = np.unique(feats.view(np.dtype((np.void, feats.dtype.itemsize * feats.shape[1]))),
                                   return_index=True, return_inverse=True)
     return first[inverse.reshape(-1)].astype(np.int32)
 
