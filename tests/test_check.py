@@ -1027,6 +1027,27 @@ def test_masks_that_cannot_group_are_not_replayed_for_supports_nor_folded_into_v
     np.testing.assert_array_equal(checked.features, rejected.features)
 
 
+def test_masks_with_pairs_but_no_embedding_count_before_the_support_tables_are_skipped():
+    """The check skips its support tables only when the masks the judging counts (those with weight,
+    whatever their embedding) cannot group. A zero embedding row has pairs but no cluster: ten views
+    of one mask each, no two alike (10 clusters), and two zero-row masks with pairs each, are 30
+    masks with weight, which group (10 <= 0.9 x 30), so the masks are judged as before; counting
+    only the 10 clustered masks skipped them (a probe of this session's own change)."""
+    rng = np.random.default_rng(3)
+    labels = _unit(rng.normal(size=(10, D)))
+    views = []
+    for v in range(10):
+        feats = np.concatenate([labels[v:v + 1], np.zeros((2, D), np.float32)])
+        views.append(_view(f"v{v}", feats, np.arange(9), [0, 0, 0, 1, 1, 1, 2, 2, 2], np.ones(9)))
+    judged, _ = _judge(views, 9)
+    assert judged.grouped and judged.present == 30
+    sink = CheckSink(9, D, False, inner=MemorySink(9, D))
+    for view in views:
+        sink.add(view)
+    sink.kept_pairs()
+    assert sink.verdicts.grouped and sink.verdicts.present == 30
+
+
 def test_one_view_alone_is_said_to_have_no_other_view_not_masks_that_do_not_group(caplog):
     """Round 30: with one view, each label is one mask and one cluster, so the masks "form more
     clusters than 0.9 of them"; the line blamed the masks' likeness across views ("one object's masks

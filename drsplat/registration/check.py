@@ -1203,6 +1203,8 @@ class CheckSink:
         self._inner = inner
         self._kept: KeptPairs | None = None
         self._summed = False
+        self._with_pairs = 0  # masks with a pair, over the views added (`_ungrouped_verdicts`)
+        self._views_with_pairs = 0
 
     @property
     def num_blocks(self) -> int:
@@ -1216,7 +1218,10 @@ class CheckSink:
         return self._inner.place if self._inner is not None else "host"
 
     def add(self, view: ViewPairs) -> None:
-        self.clusters.add(view.feats, view.present_masks())
+        present = view.present_masks()
+        self.clusters.add(view.feats, present)
+        self._with_pairs += int(np.count_nonzero(present))
+        self._views_with_pairs += bool(present.any())
         if self.record is not None:
             self.record.add(view)
 
@@ -1240,18 +1245,16 @@ class CheckSink:
         return self._kept
 
     def _ungrouped_verdicts(self) -> MaskVerdicts | None:
-        """The verdicts without a support table, when the views' clustered masks (those with a pair
-        and an embedding) already form too many clusters to group (`masks_group`): the masks with
-        weight are among them, so the judging would find them ungrouped too and keep every mask,
-        and the vote would trim nothing (NO_TRIM; nor step 4). Nothing is replayed: on random masks
-        of a flowers view, no two alike, the supports' two replays were ~45 ms a view. None where
-        the masks may group (then `_judge`). `present` counts the clustered masks here."""
-        per_view = self.clusters.per_view
-        clustered = sum(int((ids >= 0).sum()) for ids in per_view)
-        views = sum(bool((ids >= 0).any()) for ids in per_view)
-        if clustered == 0 or masks_group(clustered, self.clusters.count, views):
+        """The verdicts without a support table, when the clusters are already too many for the masks
+        with a pair to group (`masks_group`): the judging counts the masks with weight, which are
+        among those (with an embedding or not: a zero row has pairs but no cluster), so it would find
+        them ungrouped too and keep every mask, and the vote would trim nothing (NO_TRIM; nor step
+        4). Nothing is replayed: on random masks of a flowers view, no two alike, the supports' two
+        replays were ~45 ms a view. None where the masks may group (then `_judge`). `present` counts
+        the masks with a pair here."""
+        if self._with_pairs == 0 or masks_group(self._with_pairs, self.clusters.count, self._views_with_pairs):
             return None
-        return MaskVerdicts([np.ones(ids.shape[0], np.bool_) for ids in per_view], 0, 0, clustered, grouped=False)
+        return MaskVerdicts([np.ones(ids.shape[0], np.bool_) for ids in self.clusters.per_view], 0, 0, self._with_pairs, grouped=False)
 
     def _judge(self, partial_supports: Callable[[Callable[[SupportFile], None]], None] | None) -> MaskVerdicts:
         """`judge_masks` on the supports summed here by replays, or handed in by `partial_supports`."""
