@@ -1032,7 +1032,8 @@ def test_masks_with_pairs_but_no_embedding_count_before_the_support_tables_are_s
     whatever their embedding) cannot group. A zero embedding row has pairs but no cluster: ten views
     of one mask each, no two alike (10 clusters), and two zero-row masks with pairs each, are 30
     masks with weight, which group (10 <= 0.9 x 30), so the masks are judged as before; counting
-    only the 10 clustered masks skipped them (a probe of this session's own change)."""
+    only the 10 clustered masks skipped them. (Registration's feature reader gives a zero row's
+    pixels no mask, so such views reach the sink only when handed to it directly.)"""
     rng = np.random.default_rng(3)
     labels = _unit(rng.normal(size=(10, D)))
     views = []

@@ -328,6 +328,7 @@ def test_same_embedding_reads_negative_zero_as_zero():
     assert same_embedding(feats).tolist() == [0, 0, 2, 2, 4]
     assert same_embedding(feats.astype(np.float64)).tolist() == [0, 0, 2, 2, 4]
     assert same_embedding(feats.astype(np.float16)).tolist() == [0, 0, 2, 2, 4]
+    assert same_embedding(np.zeros((3, 0), np.float32)).tolist() == [0, 0, 0]  # 0-wide rows: one (empty) embedding
 
 
 def test_a_culled_probe_view_scores_as_the_whole_scene_does(rooms):

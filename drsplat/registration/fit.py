@@ -465,8 +465,8 @@ def same_embedding(feats: np.ndarray) -> np.ndarray:
     embedding) is one label: scored piece by piece, the pieces' boundaries, which follow no object,
     moved the margin of a hard-tiny room from +0.029 to -0.006 (round 22). Rows are compared by
     their bits with -0.0 read as 0.0 (equal numbers; a NaN row is its own label)."""
-    if feats.shape[0] == 0:
-        return np.zeros(0, np.int32)
+    if feats.shape[0] == 0 or feats.shape[1] == 0:  # 0-wide rows are all the same (empty) embedding
+        return np.zeros(feats.shape[0], np.int32)
     feats = np.ascontiguousarray(feats) + np.zeros((), np.asarray(feats).dtype)  # -0.0 + 0.0 = 0.0: one bit pattern per number
     _, first, inverse = np.unique(feats.view(np.dtype((np.void, feats.dtype.itemsize * feats.shape[1]))),
                                   return_index=True, return_inverse=True)
