@@ -299,8 +299,9 @@ def test_the_fit_stage_picks_the_footprint_the_masks_were_drawn_from(rooms, sour
 
 def test_a_probe_view_of_another_embedding_size_is_named_not_a_numpy_error(rooms, tmp_path):
     """Round 31 (not mended then): `fit_stage` called directly on probe views whose embeddings differ in
-    length raised numpy's matmul error from the held-out score. It now names the later view's file and
-    both sizes (`register` refuses such a folder before the probe)."""
+    length raised numpy's matmul error from the held-out score. It now checks the probe views' headers
+    as `register` checks every view's before the probe (`read_feature_headers`): one InputError naming
+    the later view's file, the first's and both sizes."""
     import shutil
 
     from drsplat.errors import InputError
@@ -316,7 +317,7 @@ def test_a_probe_view_of_another_embedding_size_is_named_not_a_numpy_error(rooms
     with pytest.raises(InputError) as err:
         fit_stage("fit", scene, cams, data / "features", 1, 10)
     message = str(err.value)
-    assert f"{later}_f.npy" in message and f"{feats.shape[1] + 3}-D" in message and f"{first}'s are {feats.shape[1]}-D" in message, message
+    assert f"{later}_f.npy" in message and f"{feats.shape[1] + 3}-D" in message and f"{first}_f.npy has {feats.shape[1]}-D" in message, message
 
 
 def test_same_embedding_reads_negative_zero_as_zero():

@@ -68,9 +68,8 @@ from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussia
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
-from drsplat.errors import InputError
-from drsplat.features.format import feat_path, read_features_report, resample_nearest, seg_path
-from drsplat.registration.views import check_aspect
+from drsplat.features.format import read_features_report, resample_nearest, seg_path
+from drsplat.registration.views import check_aspect, read_feature_headers
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
 
@@ -415,6 +414,9 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     hook = mode_hook(candidates["sharp"] if keep_pairs else "sharp", rays)
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull, by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
     picks = probe_views(len(views), count)
+    # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
+    # layout the format's: `register` checked every view's headers already; this guards a direct call
+    read_feature_headers(features_dir, [views[i] for i in picks], level)
     scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
     held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     scratch = np.full(geometry.num_gaussians, -1, np.int32)  # one dense labelling, shared: used one pair at a time
@@ -424,7 +426,6 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         if cancel is not None:
             cancel.raise_if_cancelled()
         cam, mask_ids, feats, nonfinite = probe_view(features_dir, views[i], level)
-        _check_dims(features_dir, views[picks[0]].name, cam.name, kept_labels["paper"], feats)
         t0 = time.perf_counter()
         out = computer.rasterize(cam)
         raster_seconds = time.perf_counter() - t0
@@ -448,15 +449,6 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
              "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
              mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
-
-
-def _check_dims(features_dir: Path, first: str, name: str, earlier: HeldOut, feats: np.ndarray) -> None:
-    """InputError naming view `name`'s embedding file when its rows are not as long as the earlier
-    probe views' (view `first`'s): a held-out score compares them (`register` refuses such a folder
-    before the probe; this guards a direct call)."""
-    if earlier.earlier and earlier.earlier[0][2].shape[1] != feats.shape[1]:
-        raise InputError(feat_path(features_dir, name), f"embeddings are {feats.shape[1]}-D but probe view {first}'s are "
-                         f"{earlier.earlier[0][2].shape[1]}-D")
 
 
 def same_embedding(feats: np.ndarray) -> np.ndarray:
