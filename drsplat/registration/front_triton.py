@@ -29,12 +29,13 @@ BLOCK = 2  # pixels per program (x the k slots rounded up to a power of two): 62
 
 
 def _ray_depth_source(g, live, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr, reach_ptr):
-    """t* of Gaussians g on the rays o + t·d (`aggregate._ray_depth`; math in
+    """(t*, reach) of Gaussians g on the rays o + t·d (`aggregate._ray_depth`; math in
     `aggregate.ray_depths_reference`), in `ray_depths_torch`'s order of operations:
 
         pd = Σ⁻¹ d, zc = (R m)_z + t_z, den = dᵀ pd, t = pdᵀ (m - o) / den,
         t* = clamp(t, zc - reach, zc + reach) where den > 0, else zc (NaN stays NaN)
-    """
+
+    reach is returned for the in-front test's second limit, so a slot's ten values are each read once."""
     p0 = tl.load(prec_ptr + 6 * g, mask=live, other=0.0)
     p1 = tl.load(prec_ptr + 6 * g + 1, mask=live, other=0.0)
     p2 = tl.load(prec_ptr + 6 * g + 2, mask=live, other=0.0)
@@ -52,7 +53,7 @@ def _ray_depth_source(g, live, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_
     t = (pdx * (mx - ox) + pdy * (my - oy) + pdz * (mz - oz)) / den
     reach = tl.load(reach_ptr + g, mask=live, other=0.0)
     nearest = tl.maximum(t, zc - reach, propagate_nan=tl.PropagateNan.ALL)
-    return tl.where(den > 0.0, tl.minimum(nearest, zc + reach, propagate_nan=tl.PropagateNan.ALL), zc)
+    return tl.where(den > 0.0, tl.minimum(nearest, zc + reach, propagate_nan=tl.PropagateNan.ALL), zc), reach
 
 
 def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, camera_ptr, flags_ptr, n_pixels, width, k,
@@ -76,7 +77,7 @@ def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, cam
     dz = r02 * rx + r12 * ry + r22
     med = tl.load(median_ptr + pix, mask=live, other=-1).to(tl.int64)
     has = med >= 0
-    surface = _ray_depth(tl.maximum(med, 0), has, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr, reach_ptr)
+    surface, _ = _ray_depth(tl.maximum(med, 0), has, dx, dy, dz, ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr, reach_ptr)
     surface = tl.where(has, surface, float("inf"))
     limit = keep * surface
     slots = tl.arange(0, KP)
@@ -84,9 +85,9 @@ def _front_flags_source(ids_ptr, median_ptr, means_ptr, prec_ptr, reach_ptr, cam
     inside = live[:, None] & (slots < k)[None, :]
     g = tl.load(ids_ptr + at, mask=inside, other=-1).to(tl.int64)
     some = g >= 0
-    depth = _ray_depth(tl.maximum(g, 0), some, dx[:, None], dy[:, None], dz[:, None], ox, oy, oz, r20, r21, r22, tz, means_ptr, prec_ptr,
-                       reach_ptr)  # fmt: skip
-    beyond = surface[:, None] - share * tl.load(reach_ptr + tl.maximum(g, 0), mask=some, other=0.0)
+    depth, reach = _ray_depth(tl.maximum(g, 0), some, dx[:, None], dy[:, None], dz[:, None], ox, oy, oz, r20, r21, r22, tz, means_ptr,
+                              prec_ptr, reach_ptr)  # fmt: skip
+    beyond = surface[:, None] - share * reach
     tl.store(flags_ptr + at, (some & (depth < limit[:, None]) & (depth < beyond)).to(tl.int8), mask=inside)
 
 
