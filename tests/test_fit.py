@@ -23,6 +23,7 @@ from drsplat.registration.fit import (
     footprint_score_reference,
     probe_views,
     rerender_reference,
+    rerender_scores,
     mask_iou_score,
     resolve_mode,
     translate_labels,
@@ -80,6 +81,22 @@ def test_labels_and_score_kernels_equal_their_references(case):
         assert set(labels[labels >= 0]) == {0}
 
 
+@pytest.mark.parametrize("case", CASES)
+def test_labellings_rerendered_in_one_pass_score_as_each_alone(case):
+    """rerender_scores of L labellings (one row per Gaussian) equals the numpy reference labelling by
+    labelling: labels missing (-1) on a third of the Gaussians, labels past the view's masks (which may
+    win a pixel and then count for no mask), one labelling with no label at all, and ties."""
+    rng = np.random.default_rng(20 + CASES.index(case))
+    n, m = 30, 5
+    ids, weights, masks = _view(rng, 13, 10, 6, n, m, case)
+    labellings = np.stack([rng.integers(-1, m, n), np.where(rng.random(n) < 0.33, -1, rng.integers(0, m, n)),
+                           rng.integers(-1, m + 3, n), np.full(n, -1), rng.integers(0, 2, n)], 1).astype(np.int32)
+    got = rerender_scores(ids, weights, labellings, masks, m)
+    want = [mask_iou_score(masks, rerender_reference(ids, weights, labellings[:, col])) for col in range(labellings.shape[1])]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    assert got[3] == 0.0  # nothing labelled re-renders no mask
+
+
 def test_masks_drawn_from_the_footprints_score_high():
     """Masks drawn as the weighted vote of made-up Gaussian labels: the view's own labelling
     re-renders them closely (0.964 on this view; random slots, so not exactly)."""
@@ -129,12 +146,15 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
     present = set(masks_b[masks_b >= 0].tolist())
     alike = np.array([order[j] if 0 <= j < m and order[j] in present else -2 for j in labels_a])
     np.testing.assert_array_equal(translated[alike >= 0], alike[alike >= 0])
-    held = HeldOut(np.full(n, -1, np.int32))
+    held = HeldOut()
     held.keep(labels_a, feats_a)
     assert sum(a.nbytes for a in held.earlier[0]) <= 2 * labels_a.nbytes + feats_a.nbytes
-    (score,) = held.scores(ids, weights, masks_b, unit_rows(feats_b))
+    labels_b = view_labels(ids, weights, masks_b, m, Coalescer(n))
+    both = held.labellings(labels_b, masks_b, unit_rows(feats_b))
+    np.testing.assert_array_equal(both, np.stack([labels_b, translated], 1))
+    own, score = rerender_scores(ids, weights, both, masks_b, m)  # b's own S and H(a, b) in one pass
     assert score == pytest.approx(mask_iou_score(masks_b, rerender_reference(ids, weights, translated)), abs=1e-12)
-    assert (held.scratch == -1).all()  # the shared dense labelling is left empty for the next pair
+    assert own == pytest.approx(footprint_score_reference(ids, weights, masks_b, n), abs=1e-12)
     if not present:
         assert (translated == -1).all() and score == 0.0
 

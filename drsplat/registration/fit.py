@@ -33,9 +33,11 @@ downstream (places, blocks, the pair log's header) sees that mode. The probe ren
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
 
 Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
-geometry without its SH), the sharp weights, two coalescings and two re-renders, O(H·W·k), plus
-two held-out re-renders per earlier probe view (12 for 4 probe views: +23-27 ms per registration on
-a 320x240 room, measured; ~0.34 s on flowers at 640x480, 12 of 20 re-renders of 563 ms under cProfile). When
+geometry without its SH), the sharp weights, two coalescings and two re-render passes, O(H·W·k):
+each pass re-renders the view's own labelling and every earlier probe view's translated one
+(`rerender_scores`: 8 passes over the slots for 4 probe views, where one labelling a pass took 20).
+Measured on flowers at 640x480 (region masks, 2 threads, alternated): the stage 2.68-2.74 -> 2.33-2.36 s;
+on a 320x240 room 0.18-0.19 s either way. When
 the view pass computes views as the probe does (numba, in this process), the chosen footprint's
 pairs are kept (`FitStage.pairs`) and the pass uses them instead of rendering those views again,
 so the stage's own cost is the sharp weights, one coalescing and the re-renders.
@@ -238,45 +240,56 @@ def mask_iou_score(mask_ids: np.ndarray, rendered: np.ndarray) -> float:
 
 
 @numba.njit(parallel=True, cache=True)
-def _rerender_counts_kernel(ids, weights, labels, mask_ids, num_masks, parts, inter, area_r):  # pragma: no cover - jitted
-    """Per part t of the pixels: inter[t, j] = #{p : r(p) = m(p) = j}, area_r[t, j] = #{p : r(p) = j}
-    (r: the re-render of `rerender_reference`; the pixel's label sums in slot order, float64). A
+def _rerender_counts_kernel(ids, weights, labels, mask_ids, num_masks, num_labels, parts, inter, area_r):  # pragma: no cover - jitted
+    """Per part t of the pixels and labelling l (labels [N, L], one row per Gaussian): inter[t, l, j] =
+    #{p : r_l(p) = m(p) = j}, area_r[t, l, j] = #{p : r_l(p) = j} (r_l: the re-render of
+    `rerender_reference` under labelling l; a label's sum over the pixel's slots in slot order,
+    float64). Each label's sum sits at its own place of a [L, num_labels] table, marked by the pixel
+    that touched it last, and the pixel's touched labels are listed in first-touch order for the
+    argmax: no search of the labels seen so far, whose compares followed no pattern a branch
+    predictor learns (per part 16 bytes per label and labelling: 39 MB for 4 labellings of a view of
+    307,200 one-pixel masks). The L labellings of one view are re-rendered in one pass over its slots. A
     pixel's slots are read up to its first -1: every engine writes the -1 padding last, ranked or not
-    (a pixel of a registration view fills ~half of its 40 slots: -20 % of the kernel's time)."""
+    (a pixel of a registration view fills ~half of its 40 slots)."""
     n_pix, k = ids.shape
+    count = labels.shape[1]
     for t in numba.prange(parts):
-        lab = np.empty(k, np.int32)
-        acc = np.empty(k)
+        sums = np.zeros((count, num_labels))
+        touched_by = np.full((count, num_labels), -1, np.int64)
+        touched = np.empty((count, k), np.int32)
+        used = np.zeros(count, np.int64)
         for p in range(t * n_pix // parts, (t + 1) * n_pix // parts):
-            used = 0
+            used[:] = 0
             for s in range(k):
                 g = ids[p, s]
                 if g < 0:
                     break
-                j = labels[g]
-                if j < 0:
-                    continue
                 u = np.float64(weights[p, s])
-                found = False
-                for e in range(used):
-                    if lab[e] == j:
-                        acc[e] += u
-                        found = True
-                        break
-                if not found:
-                    lab[used] = j
-                    acc[used] = u
-                    used += 1
-            r = -1
-            top = 0.0
-            for e in range(used):
-                if acc[e] > top or (acc[e] == top and top > 0.0 and lab[e] < r):
-                    top = acc[e]
-                    r = lab[e]
-            if 0 <= r < num_masks:
-                area_r[t, r] += 1
-                if mask_ids[p] == r:
-                    inter[t, r] += 1
+                for l in range(count):
+                    j = labels[g, l]
+                    if j < 0:
+                        continue
+                    if touched_by[l, j] != p:
+                        touched_by[l, j] = p
+                        sums[l, j] = u
+                        touched[l, used[l]] = j
+                        used[l] += 1
+                    else:
+                        sums[l, j] += u
+            m = mask_ids[p]
+            for l in range(count):
+                r = -1
+                top = 0.0
+                for e in range(used[l]):
+                    j = touched[l, e]
+                    a = sums[l, j]
+                    if a > top or (a == top and top > 0.0 and j < r):
+                        top = a
+                        r = j
+                if 0 <= r < num_masks:
+                    area_r[t, l, r] += 1
+                    if m == r:
+                        inter[t, l, r] += 1
 
 
 def footprint_score(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_masks: int, coalescer: Coalescer) -> float:
@@ -286,22 +299,31 @@ def footprint_score(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, 
 
 
 def rerender_score(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> float:
-    """S_u of one view from its labelling ℓ = labels [N] (`view_labels`): r(p) re-rendered from
+    """S_u of one view from its labelling ℓ = labels [N] (`view_labels`; `rerender_scores` of one labelling)."""
+    return float(rerender_scores(ids, weights, labels[:, None], mask_ids, num_masks)[0])
+
+
+def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray, mask_ids: np.ndarray, num_masks: int) -> np.ndarray:
+    """[L] float64: S of each labelling of labellings [N, L] int32 (-1: no label), re-rendered from
     ids, weights [H, W, k] (each pixel's -1 padding after its filled slots, as the rasterizers write
-    them), then the mean per-mask IoU against mask_ids [H, W]."""
+    them), then the mean per-mask IoU against mask_ids [H, W] (0 where no mask holds a pixel): what
+    `rerender_score` gives each, in one pass over the view's slots."""
     k = ids.shape[-1]
+    count = labellings.shape[1]
     parts = max(1, numba.get_num_threads())
-    inter = np.zeros((parts, num_masks), np.int64)
-    area_r = np.zeros((parts, num_masks), np.int64)
+    inter = np.zeros((parts, count, num_masks), np.int64)
+    area_r = np.zeros((parts, count, num_masks), np.int64)
     masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
+    labellings = np.ascontiguousarray(labellings, np.int32)
+    num_labels = max(num_masks, int(labellings.max()) + 1 if labellings.size else 0, 1)  # a label's sum has a place even past the masks
     _rerender_counts_kernel(np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32),
-                            labels, masks, num_masks, parts, inter, area_r)
+                            labellings, masks, num_masks, num_labels, parts, inter, area_r)
     area_m = np.bincount(masks[masks >= 0], minlength=num_masks)[:num_masks]
     present = area_m > 0
     if not present.any():
-        return 0.0
-    i, r = inter.sum(0)[present], area_r.sum(0)[present]
-    return float(np.mean(i / (area_m[present] + r - i)))
+        return np.zeros(count)
+    i, r = inter.sum(0)[:, present], area_r.sum(0)[:, present]
+    return np.array([np.mean(i[l] / (area_m[present] + r[l] - i[l])) for l in range(count)])  # each a 1-D mean: one labelling's bits
 
 
 def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.ndarray, groups_to: np.ndarray) -> np.ndarray:
@@ -344,21 +366,20 @@ class HeldOut:
     """The probe views' labellings kept for the held-out scores, sparse (a probe view labels the
     Gaussians it sees: ids [S] int32 and their masks [S] int32) with their masks' embeddings [M, D] as
     read (float32: what `probe_memory_bound` counts per probe view; their float64 unit rows, twice
-    that, are made per pair); scratch: one dense [N] labelling, -1 between uses."""
+    that, are made per pair)."""
 
-    scratch: np.ndarray
     earlier: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
 
-    def scores(self, ids: np.ndarray, weights: np.ndarray, groups: np.ndarray, units: np.ndarray) -> list[float]:
-        """H_u of this view (ids, weights [H, W, k], grouped masks [H, W], their unit rows [M, D]) against
-        every earlier probe view's labelling: `translate_labels` into this view's masks, then
-        `rerender_score`, with the translation table made once per pair and the labelling sparse."""
+    def labellings(self, labels: np.ndarray, groups: np.ndarray, units: np.ndarray) -> np.ndarray:
+        """[N, 1 + E] int32: this view's own labelling labels [N] and each of the E earlier probe views'
+        translated into this view's grouped masks groups [H, W] (their unit rows units [M, D];
+        `translate_labels`, the table made once per pair), -1 where none: what `rerender_scores`
+        re-renders in one pass for S_u and the view's H_u."""
         present = present_masks(groups, units.shape[0])
-        out = []
-        for seen, masks, feats_from in self.earlier:
-            self.scratch[seen] = mask_translation(unit_rows(feats_from), units, present)[masks]
-            out.append(rerender_score(ids, weights, self.scratch, groups, units.shape[0]))
-            self.scratch[seen] = -1
+        out = np.full((labels.shape[0], 1 + len(self.earlier)), -1, np.int32)
+        out[:, 0] = labels
+        for column, (seen, masks, feats_from) in enumerate(self.earlier, 1):
+            out[seen, column] = mask_translation(unit_rows(feats_from), units, present)[masks]
         return out
 
     def keep(self, labels: np.ndarray, feats: np.ndarray) -> None:
@@ -419,8 +440,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     read_feature_headers(features_dir, [views[i] for i in picks], level)
     scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
     held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
-    scratch = np.full(geometry.num_gaussians, -1, np.int32)  # one dense labelling, shared: used one pair at a time
-    kept_labels = {footprint: HeldOut(scratch) for footprint in FOOTPRINTS}
+    kept_labels = {footprint: HeldOut() for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     for t, i in enumerate(picks):
         if cancel is not None:
@@ -437,8 +457,9 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
-            scores[footprint][t] = rerender_score(out.ids, weights, labels, groups, feats.shape[0])
-            held[footprint] += kept_labels[footprint].scores(out.ids, weights, groups, units)
+            s_and_h = rerender_scores(out.ids, weights, kept_labels[footprint].labellings(labels, groups, units), groups, feats.shape[0])
+            scores[footprint][t] = s_and_h[0]
+            held[footprint] += s_and_h[1:].tolist()
             kept_labels[footprint].keep(labels, feats)
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
