@@ -97,6 +97,23 @@ def test_labellings_rerendered_in_one_pass_score_as_each_alone(case):
     assert got[3] == 0.0  # nothing labelled re-renders no mask
 
 
+def test_labels_far_past_the_masks_still_win_pixels_without_a_table_of_their_size():
+    """A label no mask holds wins a pixel it outweighs there (and counts for no mask), whatever its
+    value: 2³⁰ asked a [L, 2³⁰ + 1] float64 table per part (16 GiB, a probe), int64 labels past 2³¹
+    wrapped on the int32 cast, and a label below -2³¹ wrapped into a mask. Scored as the numpy
+    reference scores the same labellings with those labels renumbered just past the masks."""
+    rng = np.random.default_rng(7)
+    n, m = 30, 5
+    ids, weights, masks = _view(rng, 13, 10, 6, n, m, "blocks")
+    small = rng.integers(-1, m + 3, (n, 3))
+    huge = np.where(small >= m, small + np.array([2**30 - m, 2**40, 2**62]), small).astype(np.int64)
+    huge[small == -1] = np.array([-1, -(2**40), -(2**33)])[np.nonzero(small == -1)[1]]
+    got = rerender_scores(ids, weights, huge, masks, m)
+    want = [mask_iou_score(masks, rerender_reference(ids, weights, small[:, col])) for col in range(3)]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    assert (small >= m).any(axis=0).all() and min(want) < 1.0  # each column has labels past the masks, and they cost pixels
+
+
 def test_masks_drawn_from_the_footprints_score_high():
     """Masks drawn as the weighted vote of made-up Gaussian labels: the view's own labelling
     re-renders them closely (0.964 on this view; random slots, so not exactly)."""

@@ -314,8 +314,7 @@ def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray
     inter = np.zeros((parts, count, num_masks), np.int64)
     area_r = np.zeros((parts, count, num_masks), np.int64)
     masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
-    labellings = np.ascontiguousarray(labellings, np.int32)
-    num_labels = max(num_masks, int(labellings.max()) + 1 if labellings.size else 0, 1)  # a label's sum has a place even past the masks
+    labellings, num_labels = compact_labels(labellings, num_masks)
     _rerender_counts_kernel(np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32),
                             labellings, masks, num_masks, num_labels, parts, inter, area_r)
     area_m = np.bincount(masks[masks >= 0], minlength=num_masks)[:num_masks]
@@ -324,6 +323,25 @@ def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray
         return np.zeros(count)
     i, r = inter.sum(0)[:, present], area_r.sum(0)[:, present]
     return np.array([np.mean(i[l] / (area_m[present] + r[l] - i[l])) for l in range(count)])  # each a 1-D mean: one labelling's bits
+
+
+def compact_labels(labellings: np.ndarray, num_masks: int) -> tuple[np.ndarray, int]:
+    """(labellings [N, L] as int32, the labels' count): labels < 0 become -1 (no label); labels of no
+    mask (≥ num_masks) can win a pixel's argmax but count for no mask, so only their being distinct
+    and above every mask matters: they are renumbered num_masks, num_masks + 1, ... in their order,
+    and the re-render's label table stays as small as the labels in use (a label of 2³⁰ asked a
+    [L, 2³⁰] table per part, a probe)."""
+    labellings = np.asarray(labellings)
+    if labellings.size == 0:
+        return np.ascontiguousarray(labellings, np.int32), max(num_masks, 1)
+    labellings = np.where(labellings < 0, -1, labellings)
+    past = labellings >= num_masks
+    if past.any():
+        _, rank = np.unique(labellings[past], return_inverse=True)
+        labellings = np.where(past, -1, labellings)
+        labellings[past] = num_masks + rank.reshape(-1)
+    out = np.ascontiguousarray(labellings, np.int32)
+    return out, max(num_masks, int(out.max()) + 1, 1)
 
 
 def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.ndarray, groups_to: np.ndarray) -> np.ndarray:
