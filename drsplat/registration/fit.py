@@ -334,6 +334,8 @@ def compact_labels(labellings: np.ndarray, num_masks: int) -> tuple[np.ndarray, 
     labellings = np.asarray(labellings)
     if labellings.size == 0:
         return np.ascontiguousarray(labellings, np.int32), max(num_masks, 1)
+    if labellings.dtype == np.int32 and labellings.min() >= -1 and labellings.max() < num_masks:  # the fit's own labellings
+        return np.ascontiguousarray(labellings), max(num_masks, 1)
     labellings = np.where(labellings < 0, -1, labellings)
     past = labellings >= num_masks
     if past.any():
