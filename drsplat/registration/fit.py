@@ -79,6 +79,11 @@ log = logging.getLogger(__name__)
 
 FIT_PROBES = 4  # probe views of the fit stage (evenly spaced; all views when there are fewer)
 FOOTPRINTS = ("paper", "sharp")
+# the re-render's per-part tables: per label and labelling its float64 sum and int32 mark, and per
+# mask its int32 counts (`rerender_scores`; 64 MB: a 2-million-mask view re-renders one labelling a
+# pass in one part, ~40 MB, where a table per labelling and thread asked 160 MB per thread)
+RERENDER_LABEL_BYTES = 20
+RERENDER_TABLE_BYTES = 1 << 26
 # H_sharp - H_paper that takes the sharp footprint where S does not: over 126 rooms of footprint masks
 # (7 presets x clean, jittered, 10 / 20 % mislabels, merged, split; seeds 0-2) H's margin reached
 # +0.0009, and the sharp footprint there cost up to 0.105 (docs/evaluation.md, "The fit stage's
@@ -247,15 +252,15 @@ def _rerender_counts_kernel(ids, weights, labels, mask_ids, num_masks, num_label
     float64). Each label's sum sits at its own place of a [L, num_labels] table, marked by the pixel
     that touched it last, and the pixel's touched labels are listed in first-touch order for the
     argmax: no search of the labels seen so far, whose compares followed no pattern a branch
-    predictor learns (per part 16 bytes per label and labelling: 39 MB for 4 labellings of a view of
-    307,200 one-pixel masks). The L labellings of one view are re-rendered in one pass over its slots. A
+    predictor learns (per part RERENDER_LABEL_BYTES per label and labelling, with the counts). The L
+    labellings of one view are re-rendered in one pass over its slots. A
     pixel's slots are read up to its first -1: every engine writes the -1 padding last, ranked or not
     (a pixel of a registration view fills ~half of its 40 slots)."""
     n_pix, k = ids.shape
     count = labels.shape[1]
     for t in numba.prange(parts):
         sums = np.zeros((count, num_labels))
-        touched_by = np.full((count, num_labels), -1, np.int64)
+        touched_by = np.full((count, num_labels), -1, np.int32)  # a pixel index: views hold < 2³¹ pixels
         touched = np.empty((count, k), np.int32)
         used = np.zeros(count, np.int64)
         for p in range(t * n_pix // parts, (t + 1) * n_pix // parts):
@@ -307,22 +312,32 @@ def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray
     """[L] float64: S of each labelling of labellings [N, L] int32 (-1: no label), re-rendered from
     ids, weights [H, W, k] (each pixel's -1 padding after its filled slots, as the rasterizers write
     them), then the mean per-mask IoU against mask_ids [H, W] (0 where no mask holds a pixel): what
-    `rerender_score` gives each, in one pass over the view's slots."""
+    `rerender_score` gives each, in one pass over the view's slots. The kernel's per-part tables
+    (RERENDER_LABEL_BYTES per label and labelling) are held to RERENDER_TABLE_BYTES by re-rendering
+    fewer labellings a pass, then in fewer parts, as views of hundreds of thousands of masks need."""
     k = ids.shape[-1]
     count = labellings.shape[1]
-    parts = max(1, numba.get_num_threads())
-    inter = np.zeros((parts, count, num_masks), np.int64)
-    area_r = np.zeros((parts, count, num_masks), np.int64)
     masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
     labellings, num_labels = compact_labels(labellings, num_masks)
-    _rerender_counts_kernel(np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32),
-                            labellings, masks, num_masks, num_labels, parts, inter, area_r)
+    ids2, w2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32)
+    threads = max(1, numba.get_num_threads())
+    per_labelling = RERENDER_LABEL_BYTES * num_labels
+    group = max(1, min(count, RERENDER_TABLE_BYTES // (per_labelling * threads)))
+    parts = max(1, min(threads, RERENDER_TABLE_BYTES // (per_labelling * group)))
     area_m = np.bincount(masks[masks >= 0], minlength=num_masks)[:num_masks]
     present = area_m > 0
     if not present.any():
         return np.zeros(count)
-    i, r = inter.sum(0)[:, present], area_r.sum(0)[:, present]
-    return np.array([np.mean(i[l] / (area_m[present] + r[l] - i[l])) for l in range(count)])  # each a 1-D mean: one labelling's bits
+    scores = np.empty(count)
+    for start in range(0, count, group):
+        stop = min(count, start + group)
+        inter = np.zeros((parts, stop - start, num_masks), np.int32)  # a part's pixels: < 2³¹
+        area_r = np.zeros((parts, stop - start, num_masks), np.int32)
+        _rerender_counts_kernel(ids2, w2, np.ascontiguousarray(labellings[:, start:stop]), masks, num_masks, num_labels, parts, inter, area_r)
+        i, r = inter.sum(0, dtype=np.int64)[:, present], area_r.sum(0, dtype=np.int64)[:, present]
+        for l in range(stop - start):  # each a 1-D mean: one labelling's bits
+            scores[start + l] = np.mean(i[l] / (area_m[present] + r[l] - i[l]))
+    return scores
 
 
 def compact_labels(labellings: np.ndarray, num_masks: int) -> tuple[np.ndarray, int]:
