@@ -1250,8 +1250,7 @@ class CheckSink:
         among those (with an embedding or not: a zero row has pairs but no cluster), so it would find
         them ungrouped too and keep every mask, and the vote would trim nothing (NO_TRIM; nor step
         4). Nothing is replayed: on random masks of a flowers view, no two alike, the supports' two
-        replays were ~45 ms a view. None where the masks may group (then `_judge`). `present` counts
-        the masks with a pair here."""
+        replays were ~45 ms a view. None where the masks may group (then `_judge`)."""
         if self._with_pairs == 0 or masks_group(self._with_pairs, self.clusters.count, self._views_with_pairs):
             return None
         return MaskVerdicts([np.ones(ids.shape[0], np.bool_) for ids in self.clusters.per_view], 0, 0, self._with_pairs, grouped=False)

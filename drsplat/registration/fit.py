@@ -344,18 +344,17 @@ def compact_labels(labellings: np.ndarray, num_masks: int) -> tuple[np.ndarray, 
     """(labellings [N, L] as int32, the labels' count): labels < 0 become -1 (no label); labels of no
     mask (≥ num_masks) can win a pixel's argmax but count for no mask, so only their being distinct
     and above every mask matters: they are renumbered num_masks, num_masks + 1, ... in their order,
-    and the re-render's label table stays as small as the labels in use (a label of 2³⁰ asked a
-    [L, 2³⁰] table per part, a probe)."""
+    so the re-render's label table holds the masks and the distinct labels past them, whatever their
+    values (a label of 2³⁰ asked a [L, 2³⁰] table per part, a probe)."""
     labellings = np.asarray(labellings)
     if labellings.size == 0:
         return np.ascontiguousarray(labellings, np.int32), max(num_masks, 1)
     if labellings.dtype == np.int32 and labellings.min() >= -1 and labellings.max() < num_masks:  # the fit's own labellings
         return np.ascontiguousarray(labellings), max(num_masks, 1)
-    labellings = np.where(labellings < 0, -1, labellings)
+    labellings = np.where(labellings < 0, -1, labellings).astype(np.int64)  # a new array, wide enough for the new numbers
     past = labellings >= num_masks
     if past.any():
         _, rank = np.unique(labellings[past], return_inverse=True)
-        labellings = np.where(past, -1, labellings)
         labellings[past] = num_masks + rank.reshape(-1)
     out = np.ascontiguousarray(labellings, np.int32)
     return out, max(num_masks, int(out.max()) + 1, 1)
