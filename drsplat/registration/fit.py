@@ -110,11 +110,14 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
     slot of every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but
     no more than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every
     Gaussian they name. What a refusal's named budget is made from, so that the budget typed back is
-    not refused once the probe has run. pixels: the largest view's; embedding_bytes: the largest
-    view's mask embeddings (M·D·4), which its kept pairs hold too; max_masks: its masks (0: not known)."""
+    not refused once the probe has run, plus the re-render's tables of one probe view scored while the
+    others' pairs are held (`rerender_table_bytes`: its own and the earlier views' labellings, labels
+    below its masks). pixels: the largest view's; embedding_bytes: the largest view's mask embeddings
+    (M·D·4), which its kept pairs hold too; max_masks: its masks (0: not known, then one per pixel)."""
     slots = pixels * topk
     held = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
-    return probe_memory(num_gaussians) + FIT_PROBES * held
+    tables = rerender_table_bytes(FIT_PROBES, max_masks if max_masks > 0 else pixels, max(1, numba.get_num_threads()))
+    return probe_memory(num_gaussians) + FIT_PROBES * held + tables
 
 
 @dataclass
@@ -320,10 +323,7 @@ def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray
     masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
     labellings, num_labels = compact_labels(labellings, num_masks)
     ids2, w2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32), np.ascontiguousarray(weights.reshape(-1, k), np.float32)
-    threads = max(1, numba.get_num_threads())
-    per_labelling = RERENDER_LABEL_BYTES * num_labels
-    group = max(1, min(count, RERENDER_TABLE_BYTES // (per_labelling * threads)))
-    parts = max(1, min(threads, RERENDER_TABLE_BYTES // (per_labelling * group)))
+    group, parts = rerender_plan(count, num_labels, max(1, numba.get_num_threads()))
     area_m = np.bincount(masks[masks >= 0], minlength=num_masks)[:num_masks]
     present = area_m > 0
     if not present.any():
@@ -338,6 +338,25 @@ def rerender_scores(ids: np.ndarray, weights: np.ndarray, labellings: np.ndarray
         for l in range(stop - start):  # each a 1-D mean: one labelling's bits
             scores[start + l] = np.mean(i[l] / (area_m[present] + r[l] - i[l]))
     return scores
+
+
+def rerender_plan(count: int, num_labels: int, threads: int) -> tuple[int, int]:
+    """(labellings re-rendered a pass, parts of the pixels) of `rerender_scores` for `count` labellings
+    of `num_labels` labels on `threads` threads: as many of both as keep the per-part tables
+    (RERENDER_LABEL_BYTES per label and labelling) within RERENDER_TABLE_BYTES, the labellings first;
+    one labelling in one part at the least."""
+    per_labelling = RERENDER_LABEL_BYTES * max(1, num_labels)
+    group = max(1, min(count, RERENDER_TABLE_BYTES // (per_labelling * threads)))
+    parts = max(1, min(threads, RERENDER_TABLE_BYTES // (per_labelling * group)))
+    return group, parts
+
+
+def rerender_table_bytes(count: int, num_labels: int, threads: int) -> int:
+    """Bytes of the tables `rerender_scores` holds at once for `count` labellings of `num_labels`
+    labels (`rerender_plan`): at most RERENDER_TABLE_BYTES, or one labelling's table in one part
+    where that alone is larger."""
+    group, parts = rerender_plan(count, num_labels, threads)
+    return RERENDER_LABEL_BYTES * max(1, num_labels) * group * parts
 
 
 def compact_labels(labellings: np.ndarray, num_masks: int) -> tuple[np.ndarray, int]:
