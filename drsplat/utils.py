@@ -334,20 +334,22 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, cancel: CancelToken | None = None) -> Iterator[Path]:
     """Yield a temporary path next to `path`; rename it over `path` only if the block succeeds.
 
     Readers never see a half-written file, and an interrupted job leaves the old file intact.
     Temp files of earlier killed runs writing the same path are swept first (`sweep_stale_temps`).
     A symlinked `path` is written (atomically) at its resolved target, so the link stays a link;
-    an existing device or FIFO (`is_special_file`) is yielded itself and written in place.
+    an existing device or FIFO (`is_special_file`) is yielded itself and written in place, a FIFO
+    once a process reads it (`fifo_reader`, which checks `cancel` while it waits).
     An OSError in the block that names no file (a full disk) is re-raised naming `path`.
     """
     shown = Path(path)
     target = output_target(shown)
     if is_special_file(target):
         try:
-            yield target
+            with fifo_reader(target, shown, cancel):
+                yield target
         except OSError as exc:
             raise naming_path(exc, shown) from None
         return
@@ -360,6 +362,46 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+FIFO_POLL_SECONDS = 0.1  # how often a FIFO output with no reader yet is tried again (and the cancel token read)
+
+
+@contextlib.contextmanager
+def fifo_reader(path: Path, shown: Path | None = None, cancel: CancelToken | None = None) -> Iterator[None]:
+    """Wait until some process has the FIFO `path` open to read, then hold a write end of it open
+    while the block writes (nothing for any other path). shown: the name to log (default `path`).
+
+    Opening a FIFO to write blocks until a reader opens it, inside a system call that the signal
+    handler of `cancel_on_signals` does not end (it only cancels, and Python retries the call): a
+    registration that had finished its work with no reader waited for a second Ctrl-C. The open is
+    tried without blocking instead (ENXIO: no reader yet), every FIFO_POLL_SECONDS, with `cancel`
+    read in between (Cancelled; a registration keeps its checkpoint). The write end held open keeps
+    the reader from seeing end-of-file before the block opens its own."""
+    try:
+        if not stat.S_ISFIFO(os.stat(path).st_mode):
+            yield
+            return
+    except OSError:
+        yield
+        return
+    fd, said = None, False
+    while fd is None:
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError as exc:
+            if exc.errno != errno.ENXIO:
+                raise
+            if cancel is not None:
+                cancel.raise_if_cancelled()
+            if not said:
+                log.info("waiting for a process to read the FIFO %s", shown or path)
+                said = True
+            time.sleep(FIFO_POLL_SECONDS)
+    try:
+        yield
+    finally:
+        os.close(fd)
 
 
 def temp_beside(path: str | Path) -> Path:

@@ -8,6 +8,9 @@ view is registered.
 from __future__ import annotations
 
 import logging
+import os
+import threading
+import time
 import zipfile
 from pathlib import Path
 
@@ -120,6 +123,47 @@ def test_streaming_resumes_after_cancel_and_equals_in_memory(tiny, inputs, in_me
     assert result.resumed_views == 6 and seen[0] == 6
     assert out.read_bytes() == in_memory[False]
     assert not checkpoint_path_for(out).exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_output_with_no_reader_waits_cancellably_and_a_reader_gets_the_file(tiny, inputs, in_memory, tmp_path, caplog):
+    """Was (round 27): `register --out FIFO` with no reader blocked in the FIFO's open once its work
+    was done, and one Ctrl-C (which only cancels) did not end it. Now it waits for a reader while
+    reading the cancel token: cancelled there, it keeps its checkpoint, and the rerun's reader gets
+    the bytes of a regular-file run."""
+    scene, cams = inputs
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    token = CancelToken()
+    raised: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            register(scene, cams, tiny / "features", fifo, RegisterOptions(), show_progress=False, cancel=token)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test's thread
+            raised.append(exc)
+
+    with caplog.at_level(logging.INFO, logger="drsplat"):
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        deadline = time.monotonic() + 120
+        while worker.is_alive() and time.monotonic() < deadline and not any("FIFO" in r.getMessage() for r in caplog.records):
+            time.sleep(0.05)  # the work done, the output waits for its reader
+        token.cancel()
+        worker.join(timeout=30)
+        if worker.is_alive():  # blocked in the FIFO's open: a reader that opens and goes releases it, and the test fails
+            os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))
+            worker.join(timeout=30)
+    assert raised and isinstance(raised[0], Cancelled), raised
+    assert any("waiting for a process to read the FIFO" in r.getMessage() and str(fifo) in r.getMessage() for r in caplog.records)
+    assert fifo.is_fifo() and checkpoint_path_for(fifo).is_file()
+    got: list[bytes] = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    result = register(scene, cams, tiny / "features", fifo, RegisterOptions(), show_progress=False)
+    reader.join(timeout=60)
+    assert result.resumed_views == len(cams) and got == [in_memory[False]]
+    assert fifo.is_fifo() and not checkpoint_path_for(fifo).exists()
 
 
 def test_scene_codebook_in_blocks_writes_the_same_bytes_as_one_block(tiny, inputs, tmp_path):

@@ -730,7 +730,7 @@ def register(
     run = prepare_run(scene, cameras, features_dir, options)
     manifest = read_manifest(run.features_dir)
     check_manifest_dim(run.features_dir, manifest, run.dim)
-    target = PlyTarget(scene, out, manifest_model_id(manifest))
+    target = PlyTarget(scene, out, manifest_model_id(manifest), cancel)
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
                               on_progress=on_progress, cancel=cancel)

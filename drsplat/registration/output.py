@@ -29,7 +29,7 @@ from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
 from drsplat.scene import GaussianScene, ply_header, scene_to_vertices
 from drsplat.errors import DrsplatError
-from drsplat.utils import (TEMP_SUFFIX, atomic_path, is_special_file, output_target, replace_with_temp, temp_beside, temp_prefix,
+from drsplat.utils import (TEMP_SUFFIX, CancelToken, atomic_path, is_special_file, output_target, replace_with_temp, temp_beside, temp_prefix,
                            work_folder)
 
 
@@ -89,8 +89,9 @@ class PlyTarget:
     is widened) header + body are copied into `out` (`atomic_path`).
     """
 
-    def __init__(self, scene: GaussianScene, out: Path, clip_model: str):
+    def __init__(self, scene: GaussianScene, out: Path, clip_model: str, cancel: CancelToken | None = None):
         self.scene, self.out, self.clip_model = scene, Path(out), clip_model
+        self.cancel = cancel  # read while a FIFO output waits for its reader (`atomic_path`)
         self.written = 0
         self._codebook: Codebook | str = "none"
         self._header: tuple | None = None
@@ -136,7 +137,7 @@ class PlyTarget:
                     f.write(header)
                 replace_with_temp(self._body_path, self.out)
             else:
-                with atomic_path(self.out) as tmp:
+                with atomic_path(self.out, self.cancel) as tmp:
                     with open(tmp, "wb") as f, open(self._body_path, "rb") as src:
                         f.write(header)
                         src.seek(offset)
