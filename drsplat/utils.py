@@ -379,10 +379,10 @@ def fifo_reader(path: Path, shown: Path | None = None, cancel: CancelToken | Non
     read in between (Cancelled; a registration keeps its checkpoint). The write end held open keeps
     the reader from seeing end-of-file before the block opens its own."""
     try:
-        if not stat.S_ISFIFO(os.stat(path).st_mode):
-            yield
-            return
+        is_fifo = stat.S_ISFIFO(os.stat(path).st_mode)
     except OSError:
+        is_fifo = False
+    if not is_fifo:
         yield
         return
     fd, said = None, False
