@@ -76,8 +76,8 @@ and both lose (docs/registration.md, "Centre and anchor weightings"; how c = ANC
 
 Floater rejection (`SurfaceSupport`). Depths are taken where the pixel's ray meets a Gaussian,
 not at its mean: t*_i(p) = dᵀ Σ_i⁻¹ (μ_i - o) / dᵀ Σ_i⁻¹ d, the point of largest density along the
-ray o + t·d (camera z = t), clamped to the mean's depth ± 3 max scale (`ray_depths_reference`).
-For a flat Gaussian that is the plane it lies in, so a large floor or wall Gaussian seen at a
+ray o + t·d (camera z = t), clamped to the mean's depth ± 3 max scale (`ray_depths_reference`;
+the mean's depth itself where dᵀ Σ_i⁻¹ d is not positive or not a number). For a flat Gaussian that is the plane it lies in, so a large floor or wall Gaussian seen at a
 grazing angle is not "in front" of its own surface over the far half of its footprint. In every view, pixel p's surface depth D(p) = t* of the pixel's median Gaussian, the
 one whose contribution takes the transmittance T from above ½ to ≤ ½ (the rasterizer returns it:
 `rasterize(..., with_median=True)`; D = +∞ where the opacity never reaches ½). A contribution of

@@ -22,8 +22,10 @@ keeps the paper's sums and trims them:
    Gaussian is faint, far or mostly hidden, T_iv < T₀, votes in proportion, since a small object
    seen from afar has no mask of its own there and lands in its surroundings' mask), together with the paper's weight of the
    cluster S_ic = Σ_views Σ_{j ∈ c} w_ij; both kept in VOTE_SLOTS slots per Gaussian with the
-   space-saving rule (a new cluster replaces the smallest slot and inherits its counts, so a
-   cluster voted by more than 1/VOTE_SLOTS of the views is never lost);
+   space-saving rule (the pairs taken in (Gaussian, mask) order, a new cluster replaces the slot
+   with the fewest votes, the first of those on a tie, and inherits its votes and its weight S, so
+   a cluster voted by more than 1/VOTE_SLOTS of the views is never lost, and a trimmed slot can
+   carry an evicted cluster's weight);
 3. the votes of each cluster's group, G_ic = Σ_{c' like c} V_ic' (c' like c: μ_c·μ_c' ≥ θ, c
    itself included); the winner c* = argmax_c G_ic; a cluster c is trimmed when it is not like
    the winner (μ_c·μ_c* < θ) and its group is a minority of the views, G_ic < MINORITY·G_ic*:
@@ -35,8 +37,15 @@ keeps the paper's sums and trims them:
    labels (both are present in every view), exactly as the paper has it. A Gaussian with one
    cluster keeps the paper's sums bit for bit. The trimmed part is counted at the cluster's mean
    embedding, not at the Gaussian's own masks' (an approximation: exact when a cluster's masks
-   agree, off by their spread within CLUSTER_COSINE otherwise). W_i = Σ w_ij stays the paper's,
-   so coverage and floater rejection do not change.
+   agree; otherwise F_i keeps S_ic (f̄_ic − μ_c), f̄_ic its own masks' weighted mean in cluster c,
+   which is small against the kept sums only while the trimmed weight is not much larger than the
+   kept one, and a heavy close-up view trimmed against several far ones is where it is larger:
+   docs/registration.md, "Robust votes across views"). W_i = Σ w_ij stays the paper's, so coverage
+   and floater rejection do not change.
+
+   After the cross-view check the clusters are made again from the masks the check kept
+   (`check.KeptPairs.clusters`) and the pairs are the kept masks' less those of views that abstain
+   on a Gaussian (drsplat.registration.check, step 3).
 
    θ (`trim_cosine`) is CLUSTER_COSINE, or after the cross-view check (a `check-...-vote` mode,
    the default) NO_TRIM where the masks did not group across views (nothing to pool), else the
