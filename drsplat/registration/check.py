@@ -20,12 +20,16 @@ Gaussians and drops whole masks:
    views. Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
    (one object's crops from different views can be farther apart than the clustering's 0.9):
 
-       like = ½ (median_j f̂_j·ĉ_j + median cos(f_j, f_k) over two masks j ≠ k of one view)
+       like = min(CLUSTER_COSINE, ½ (median_j f̂_j·ĉ_j + median cos(f_j, f_k) over two masks j ≠ k of one view))
 
    ĉ_j = normalize(Σ_c q_jc μ_c) the consensus of mask j's Gaussians (`_agreement_kernel`; the
    median over masks with at least CHECK_MIN_VIEWS of other votes): halfway between how well a
    mask usually agrees with its Gaussians' other views and how alike two different instances of
-   a view are (`like_threshold`). Then (`_own_alt_kernel`)
+   a view are (`like_threshold`), but never above the clustering's cosine: masks that close are
+   one cluster, and where most masks of a view share a label (a shelf of books) the median of two
+   masks' cosines is that label's, and the halfway point rose above some masks' cosine to their
+   own cluster, whose support then counted against them (round 35: 4-6 of 24 correct masks
+   dropped). Then (`_own_alt_kernel`)
 
        own_j = Σ_{c: μ_c·f̂_j ≥ like} q_jc,   alt_j = Σ_{c unlike, μ_c·μ_c* ≥ like} q_jc
 
@@ -117,7 +121,7 @@ from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
-from drsplat.registration.vote import (FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
+from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
                                        NO_TRIM, trim_cosine)
 from drsplat.utils import CancelToken, progress
 
@@ -189,8 +193,11 @@ def view_votes_reference(rows: np.ndarray, clusters: np.ndarray, weights: np.nda
 
 def fixed_support(x: np.ndarray) -> np.ndarray:
     """`_fixed` of each x in numpy: round(x · SUPPORT_SCALE) as float64 (integers, exact below 2⁵³,
-    so their sums are the same in any order); a NaN or negative x counts 0."""
-    return np.floor(np.clip(np.nan_to_num(np.asarray(x, np.float64), nan=0.0), 0.0, None) * SUPPORT_SCALE + 0.5)
+    so their sums are the same in any order); a NaN, infinite or negative x counts 0."""
+    x = np.asarray(x, np.float64)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(x) & (x > 0.0)
+    return np.where(ok, np.floor(np.where(ok, x, 0.0) * SUPPORT_SCALE + 0.5), 0.0)
 
 
 def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_gaussians: int,
@@ -201,8 +208,8 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     views: per view (gaussians [P], masks [P], weights [P], cluster of each mask [M] (-1 none),
     embeddings [M, D]). means: [K, D] unit cluster means. like: the "like" cosine (None: own and alt
     are 0). Returns per view (mass [M], total [M], agree [M], own [M], alt [M], core [M]) as
-    `_agreement_kernel` and `_own_alt_kernel` define them (agrees with `check_masks`' kernels whenever no Gaussian meets
-    more than CHECK_SLOTS clusters).
+    `_agreement_kernel` and `_own_alt_kernel` define them (agrees with the kernels of `judge_masks` whenever no Gaussian
+    meets more than CHECK_SLOTS clusters).
     """
     k = means.shape[0]
     means = means.astype(np.float64)
@@ -313,7 +320,11 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
 
 @numba.njit(cache=True, inline="always")
 def _fixed(x):  # pragma: no cover - jitted
-    """x ≥ 0 in units of 2⁻²⁴ (SUPPORT_SCALE), rounded to the nearest."""
+    """x ≥ 0 in units of 2⁻²⁴ (SUPPORT_SCALE), rounded to the nearest; a NaN, infinite or negative x
+    is 0, as in `fixed_support` (it cast to int64's smallest value, a mask's mass went negative and
+    the mask unjudged; round 35). Registration's weights are finite and ≥ 0."""
+    if not (x > 0.0 and x < np.inf):
+        return np.int64(0)
     return np.int64(x * SUPPORT_SCALE + 0.5)
 
 
@@ -884,8 +895,9 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray], chunk: 
                    rows: list[np.ndarray] | None = None) -> float | None:
     """The scene's "like" cosine, halfway between what a mask's consensus usually is and what two
     different things are: ½ (median agreement of the judged masks + median cosine between two
-    masks of one view, which show different instances). None when either is missing (then nothing
-    is dropped). agreements: [J]; view_units: per view [M, D] the unit embeddings of its masks;
+    masks of one view, which show different instances), at most CLUSTER_COSINE (the module
+    docstring). None when either is missing (then nothing is dropped). agreements: [J]; view_units:
+    per view [M, D] the unit embeddings of its masks;
     rows: per view [M] bool, the masks to take (None: all); zero rows are never taken.
 
     The cosines between two masks of one view are Σ_v M_v(M_v - 1)/2 values (4,000 masks: 8 M per
@@ -895,7 +907,7 @@ def like_threshold(agreements: np.ndarray, view_units: list[np.ndarray], chunk: 
     if agreements.size == 0 or not any(t.sum() > 1 for t in taken):
         return None
     between = stream_median(lambda: _pair_cosines((u[t] for u, t in zip(view_units, taken)), chunk), chunk)
-    return 0.5 * (float(np.median(agreements)) + between)
+    return min(CLUSTER_COSINE, 0.5 * (float(np.median(agreements)) + between))
 
 
 def _pair_cosines(view_units: Iterable[np.ndarray], chunk: int) -> Iterator[np.ndarray]:
@@ -1218,6 +1230,14 @@ class CheckSink:
         return self._inner.place if self._inner is not None else "host"
 
     def add(self, view: ViewPairs) -> None:
+        """Cluster the view's masks and keep its pairs (ValueError when a pair weight is NaN, infinite or
+        negative: registration gives none, and the supports' fixed point has no value for them)."""
+        if view.weights.size:
+            with np.errstate(invalid="ignore"):
+                bad = int(view.weights.size - np.count_nonzero(np.isfinite(view.weights) & (view.weights >= 0)))
+            if bad:
+                raise ValueError(f"view {view.name!r}: {bad} of its {view.weights.size} pair weights are NaN, infinite or negative; "
+                                 "the check takes finite weights >= 0 (w = T·alpha summed per mask)")
         present = view.present_masks()
         self.clusters.add(view.feats, present)
         self._with_pairs += int(np.count_nonzero(present))
