@@ -26,8 +26,9 @@ did not make it: for probe views a < b,
 
 (`translate_labels`; the labellings are kept sparse, `HeldOut`). The registration
 then runs with the sharp weights when the probe views' mean of S_sharp - S_paper is above zero or the
-pairs' mean of H_sharp - H_paper is above HELD_OUT_MIN_MARGIN (H's margins on masks drawn from the
-footprints stay within ±0.003 of zero), and with the paper's otherwise (`FitChoice.decide`):
+pairs' mean of H_sharp - H_paper is above HELD_OUT_MIN_MARGIN (on masks drawn from the footprints
+H's margin stayed at or below +0.0009 over 126 rooms, though it goes far below zero, to -0.10; round
+36 measured -0.078 on a merged room), and with the paper's otherwise (`FitChoice.decide`):
 "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`), and everything
 downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
@@ -225,7 +226,9 @@ def view_labels(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, num_
 
 def rerender_reference(ids: np.ndarray, weights: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """[H, W] int32 r(p) = argmax_j Σ_s u_s(p)·[ℓ(g_s) = j] (ties: the lower j; -1 where no slot
-    has a labelled Gaussian with weight > 0). numpy reference of the re-render in `footprint_score`."""
+    has a labelled Gaussian with weight > 0). numpy reference of the re-render in `footprint_score`.
+    It reads every slot; the kernel (`rerender_scores`) stops at a pixel's first -1, as every engine
+    pads after the filled slots, so a -1 between filled slots (no render gives one) scores apart."""
     lab = np.where(ids >= 0, labels[np.maximum(ids, 0)], -1)
     u = np.where(lab >= 0, weights.astype(np.float64), 0.0)
     top = int(labels.max()) + 1 if labels.size else 0
@@ -530,7 +533,8 @@ def same_embedding(feats: np.ndarray) -> np.ndarray:
     scores labels, and one label's mask cut into pieces (or painted per instance from one text
     embedding) is one label: scored piece by piece, the pieces' boundaries, which follow no object,
     moved the margin of a hard-tiny room from +0.029 to -0.006 (round 22). Rows are compared by
-    their bits with -0.0 read as 0.0 (equal numbers; a NaN row is its own label)."""
+    their bits with -0.0 read as 0.0 (equal numbers), so NaN rows of the same bits are one label too
+    (the feature reader zeroes non-finite rows and gives their masks no pixels before the fit)."""
     if feats.shape[0] == 0 or feats.shape[1] == 0:  # 0-wide rows are all the same (empty) embedding
         return np.zeros(feats.shape[0], np.int32)
     feats = np.ascontiguousarray(feats) + np.zeros((), np.asarray(feats).dtype)  # -0.0 + 0.0 = 0.0: one bit pattern per number
