@@ -12,6 +12,7 @@ with a warning; "oracle" (synthetic scenes) is a space of its own and only match
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -218,7 +219,9 @@ def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = N
 
 
 def otsu_scores(scores: np.ndarray) -> np.ndarray:
-    """The scores Otsu splits: the finite, nonzero ones (an unassigned Gaussian scores 0), float64."""
+    """The scores Otsu splits: the finite, nonzero ones, float64. An unassigned Gaussian's cosine is 0
+    and drops out; its relevancy is 0.5 and does not, so pass relevancies of the assigned rows only
+    (as `drsplat query` and the viewer do)."""
     s = np.asarray(scores, np.float64)
     return s[np.isfinite(s) & (s != 0)]
 
@@ -270,8 +273,11 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     """Label every Gaussian with argmax_l cos(e_l, f_i) over labels [L, D].
 
     background: [D] or [B, D] embeddings of background phrases; Gaussians they win get -1.
-    min_score: Gaussians whose best cosine is below it get -1. Unassigned Gaussians get -1.
+    min_score: Gaussians whose best cosine is below it get -1 (a finite number: ValueError for NaN,
+    which would cut nothing, and ±inf). Unassigned Gaussians get -1.
     """
+    if min_score is not None and not math.isfinite(min_score):
+        raise ValueError(f"min_score must be a finite cosine, got {min_score!r}")
     labels_emb = query_rows(label_embeddings, "label embedding")
     n_labels = labels_emb.shape[0]
     queries = labels_emb if background is None else np.concatenate([labels_emb, query_rows(background, "background embedding")])

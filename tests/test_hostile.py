@@ -2136,6 +2136,29 @@ def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
     assert code == 0 and "100 Gaussians have a registration weight (lang_weight > 0) but no language feature" in err
 
 
+def test_a_feature_with_a_zero_registration_weight_is_assigned_by_its_feature_and_said(tmp_path, capsys):
+    """Round 37: lang_weight set to 0 on 200 registered rows left them assigned and scored without a
+    word, while the docs said weight 0 is unassigned. The stored feature decides (as for a weight
+    without a feature, above); the disagreement is one warning, and the rows still score."""
+    import shutil
+
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply, save_ply
+    from viewer.demo import demo_dir
+
+    registered = demo_dir() / "registered.ply"
+    scene = load_ply(registered)
+    assigned = np.flatnonzero(scene.extra["lang_weight"] > 0)[:200]
+    scene.extra["lang_weight"][assigned] = 0.0
+    altered = tmp_path / "registered.ply"
+    save_ply(scene, altered)
+    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
+    np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    code, err = run_cli(["query", altered, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
+    assert code == 0 and "200 Gaussians have a language feature but a registration weight of 0 or less" in err
+    assert read_field(load_ply(altered), altered).assigned()[assigned].all()
+
+
 def test_a_nan_or_inf_pq_norm_is_said_to_be_non_finite_not_altered_codes(tmp_path, capsys):
     """Was: lang_norm NaN was reported as "PQ codes that do not reproduce their stored norm"."""
     import shutil

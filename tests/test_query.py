@@ -488,3 +488,51 @@ def test_a_negative_infinite_threshold_is_refused_as_not_finite_not_as_a_missing
     err = capsys.readouterr().err
     assert exit_.value.code == 2
     assert "finite" in err and "expected one argument" not in err
+
+
+def test_a_query_row_is_normalised_to_the_same_bits_wherever_it_sits_in_its_batch():
+    """Round 37: numpy's float32 norm of a row depended on the array's layout (a Fortran-ordered batch
+    sums each row in another order), so a query normalised alone and as the third of three (an
+    embedding file saved from a transposed array) differed in all 512 components; its scores
+    then depended on the other queries of the call, and `segment` split Gaussians tied between
+    equal label and background rows by that noise. The norm is summed in float64 now."""
+    from drsplat.lang import unit_rows
+
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(9, 512)).astype(np.float32)
+    alone = unit_rows(rows[:1])[0]
+    for k in range(1, 9):
+        for batch in (np.vstack([rows[1:k + 1], rows[:1]]), np.vstack([rows[:1], rows[1:k + 1]])):
+            got = unit_rows(np.asfortranarray(batch))  # as a text embedding file saved from a transposed array loads
+            assert np.array_equal(got[(batch == rows[0]).all(axis=1)][0].view(np.int32), alone.view(np.int32)), k
+    np.testing.assert_allclose(np.linalg.norm(unit_rows(rows).astype(np.float64), axis=1), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["noise", "zeros", "one value", "real"])
+def test_an_automatic_threshold_says_when_the_scores_have_nothing_to_split(case, caplog):
+    """Round 37: a query orthogonal to every feature scores float32 rounding (~1e-8), and Otsu split
+    that noise without a word, selecting 170 of 269 Gaussians; all-zero scores selected every
+    assigned Gaussian with 'threshold 0.0000'. Each now gets a warning; real scores do not."""
+    import logging
+
+    from drsplat.commands.common import resolve_threshold
+
+    rng = np.random.default_rng(0)
+    scores = {"noise": rng.normal(scale=1e-8, size=300), "zeros": np.zeros(300), "one value": np.full(300, 0.25),
+              "real": np.concatenate([rng.normal(0.1, 0.02, 250), rng.normal(0.3, 0.02, 50)])}[case].astype(np.float32)
+    with caplog.at_level(logging.INFO):
+        resolve_threshold("auto", scores, relevancy=False)
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    expected = {"noise": "rounding noise", "zeros": "no Gaussian scores anything but 0", "one value": "nothing to split", "real": None}[case]
+    assert (warned == []) if expected is None else (len(warned) == 1 and expected in warned[0]), warned
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_segment_refuses_a_min_score_that_is_not_a_finite_cosine(bad):
+    """Round 37: segment(min_score=nan) cut nothing without a word (every comparison with NaN is false),
+    where the CLI refuses `--min-score nan`."""
+    from drsplat.query import segment
+
+    field = build_field(np.eye(4, dtype=np.float32)[[0, 1, 2]], np.ones(3, np.float32), "none")
+    with pytest.raises(ValueError, match="min_score must be a finite cosine"):
+        segment(field, np.eye(4, dtype=np.float32)[:2], min_score=bad)

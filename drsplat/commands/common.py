@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 DEFAULT_RELEVANCY_THRESHOLD = 0.5
 MAX_IMAGE_WIDTH = 16384  # --resolution as a width, viewer windows (larger than any GPU texture)
 MAX_COUNT = 10**9  # generic upper bound for "how many" flags (--top, --max-train...)
+NOISE_SPREAD = 1e-5  # scores spanning less than this are float32 rounding of one value (a query unlike every feature: ~1e-8)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,9 +300,15 @@ def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) ->
     if value == "auto":
         threshold = otsu_threshold(scores)
         scored = otsu_scores(scores)
-        if 0 < scored.size and scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
+        if scored.size == 0:
+            log.warning("--threshold auto: no Gaussian scores anything but 0, so there is nothing to split; every assigned Gaussian "
+                        "scores %.4f and is selected (give --threshold a number to choose)", threshold)
+        elif scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
             log.warning("--threshold auto: every one of the %s scored Gaussians scores %.4f, so there is nothing to split; "
                         "all of them are selected (give --threshold a number to choose)", f"{scored.size:,}", threshold)
+        elif scored.max() - scored.min() < NOISE_SPREAD:  # a query orthogonal to every feature: float32 rounding, ~1e-8
+            log.warning("--threshold auto: the %s scored Gaussians' scores span only %.2g, so the split (%.4g) is rounding noise, "
+                        "not a match (give --threshold a number to choose)", f"{scored.size:,}", scored.max() - scored.min(), threshold)
         else:
             log.info("automatic (Otsu) threshold: %.4f", threshold)
         return threshold

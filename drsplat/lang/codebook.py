@@ -424,12 +424,18 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     """Rows divided by their L2 norm: [K, D] float32; rows without a direction (`has_direction`) become zero.
 
     Each row is first divided by its largest magnitude (y = x / max|x|, then y / ||y||), so a
-    huge finite row (1e30) normalises correctly instead of overflowing the norm to inf.
+    huge finite row (1e30) normalises correctly instead of overflowing the norm to inf. ||y|| is
+    summed in float64 and rounded once: numpy's float32 norm of a row took other bits in another
+    layout (a Fortran-ordered batch, as an embedding file saved from a transposed array loads, sums
+    each row in another order: a query alone and as the third of three differed in all 512
+    components, and `segment` split Gaussians tied between equal label and background rows by that
+    noise; round 37); a float64 sum's order moves its float32 rounding only at a boundary.
     """
     x = np.atleast_2d(np.asarray(x, np.float32))
     with np.errstate(invalid="ignore", over="ignore"):
         scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
         ok = has_direction(x)[:, None]
-        y = np.where(ok, x / np.where(ok, scale, 1), 0)
-        norm = np.linalg.norm(y, axis=1, keepdims=True)
+        y = np.where(ok, x / np.where(ok, scale, 1), 0).astype(np.float32)
+        y64 = y.astype(np.float64)
+        norm = np.sqrt(np.einsum("ij,ij->i", y64, y64))[:, None].astype(np.float32)
         return np.where(ok, y / np.where(ok, norm, 1), 0).astype(np.float32)

@@ -31,7 +31,7 @@ class LanguageField:
     """Per-Gaussian language features of a registered scene, in one storage backend (drsplat.lang.backends).
 
     dim: D, the embedding size. clip_model: the id of the embedding space (drsplat.features.modelid).
-    weights: [N] float32 total registration weight Σ_j w_ij (0 = unassigned).
+    weights: [N] float32 total registration weight Σ_j w_ij (0 where unassigned; `assigned` reads the stored norms).
     storage: an ExactStorage (features [N, D] float16) or a PQStorage (codes [N, M] uint8, list ids, codebook),
     both with norms [N] float32 of what they store (0 = unassigned).
     """

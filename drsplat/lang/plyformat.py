@@ -40,7 +40,7 @@ from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
-from drsplat.lang.lut import MIN_NORM, subnormal_norms
+from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
 from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path, clipped, file_stamp
@@ -327,6 +327,7 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
         raise InputError(ply_path, exc.problem, field=exc.field) from None
     orphans = int(np.count_nonzero((weights > 0) & (storage.norms == 0)))
     storage = _without_altered_codes(storage, ply_path)
+    weightless = int(np.count_nonzero(~(weights > 0) & has_feature(storage.norms)))
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
         log.warning("%s: %s Gaussians have non-finite language features; they score 0", ply_path, f"{nonfinite:,}")
@@ -341,6 +342,9 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if orphans:  # registration zeroes the weight of every row it leaves without a feature (normalize_rows)
         log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
                     "they are unassigned", ply_path, orphans)
+    if weightless:  # the stored feature decides, as for the orphans above; registration writes weight 0 with norm 0 only
+        log.warning("%s: %d Gaussians have a language feature but a registration weight of 0 or less (lang_weight): the file was "
+                    "altered; the feature decides, so they are assigned and scored", ply_path, weightless)
     return LanguageField(dim, clip_model, weights, storage)
 
 
