@@ -2114,8 +2114,9 @@ def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
     assert summary["bbox_min"] is None and summary["opacity"]["median"] is None
 
 
-def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
-    """Was: lang_norm set to -1 made a row silently unassigned (a norm of 3 was warned about)."""
+def _altered_demo_field(tmp_path, edit) -> tuple[Path, object]:
+    """The demo's registered PLY with `edit(scene)` applied, saved in tmp_path beside its codebook, and
+    a query embedding q.npy there: (the altered PLY, the edited scene)."""
     import shutil
 
     from drsplat.scene import load_ply, save_ply
@@ -2123,11 +2124,19 @@ def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
 
     registered = demo_dir() / "registered.ply"
     scene = load_ply(registered)
-    scene.extra["lang_norm"][:100] = -1.0
-    damaged = tmp_path / "registered.ply"
-    save_ply(scene, damaged)
+    edit(scene)
+    altered = tmp_path / "registered.ply"
+    save_ply(scene, altered)
     shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
     np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    return altered, scene
+
+
+def test_a_negative_pq_norm_is_an_altered_row(tmp_path, capsys):
+    """Was: lang_norm set to -1 made a row silently unassigned (a norm of 3 was warned about)."""
+    from drsplat.scene import save_ply
+
+    damaged, scene = _altered_demo_field(tmp_path, lambda scene: scene.extra["lang_norm"].__setitem__(slice(0, 100), -1.0))
     code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
     assert code == 0 and "100 of 2763 Gaussians have PQ codes that do not reproduce their stored norm" in err
     scene.extra["lang_norm"][:100] = 0.0  # was: read as unassigned without a word, though their weight says they were registered
@@ -2140,40 +2149,29 @@ def test_a_feature_with_a_zero_registration_weight_is_assigned_by_its_feature_an
     """Round 37: lang_weight set to 0 on 200 registered rows left them assigned and scored without a
     word, while the docs said weight 0 is unassigned. The stored feature decides (as for a weight
     without a feature, above); the disagreement is one warning, and the rows still score."""
-    import shutil
-
     from drsplat.lang import read_field
-    from drsplat.scene import load_ply, save_ply
-    from viewer.demo import demo_dir
+    from drsplat.scene import load_ply
 
-    registered = demo_dir() / "registered.ply"
-    scene = load_ply(registered)
-    assigned = np.flatnonzero(scene.extra["lang_weight"] > 0)[:200]
-    scene.extra["lang_weight"][assigned] = 0.0
-    altered = tmp_path / "registered.ply"
-    save_ply(scene, altered)
-    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
-    np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    assigned = []
+
+    def zero_weights(scene) -> None:
+        assigned.extend(np.flatnonzero(scene.extra["lang_weight"] > 0)[:200])
+        scene.extra["lang_weight"][assigned] = 0.0
+
+    altered, _ = _altered_demo_field(tmp_path, zero_weights)
     code, err = run_cli(["query", altered, "--embedding", tmp_path / "q.npy", "--top", "1"], capsys)
     assert code == 0 and "200 Gaussians have a language feature but a registration weight of 0 or less" in err
-    assert read_field(load_ply(altered), altered).assigned()[assigned].all()
+    assert len(assigned) == 200 and read_field(load_ply(altered), altered).assigned()[assigned].all()
 
 
 def test_a_nan_or_inf_pq_norm_is_said_to_be_non_finite_not_altered_codes(tmp_path, capsys):
     """Was: lang_norm NaN was reported as "PQ codes that do not reproduce their stored norm"."""
-    import shutil
 
-    from drsplat.scene import load_ply, save_ply
-    from viewer.demo import demo_dir
+    def non_finite(scene) -> None:
+        scene.extra["lang_norm"][:7] = np.nan
+        scene.extra["lang_norm"][7:10] = np.inf
 
-    registered = demo_dir() / "registered.ply"
-    scene = load_ply(registered)
-    scene.extra["lang_norm"][:7] = np.nan
-    scene.extra["lang_norm"][7:10] = np.inf
-    damaged = tmp_path / "registered.ply"
-    save_ply(scene, damaged)
-    shutil.copyfile(registered.with_name("registered.codebook.faiss"), tmp_path / "registered.codebook.faiss")
-    np.save(tmp_path / "q.npy", np.load(demo_dir() / "text_embeddings.npy")[3])
+    damaged, _ = _altered_demo_field(tmp_path, non_finite)
     code, err = run_cli(["query", damaged, "--embedding", tmp_path / "q.npy", "--scores", tmp_path / "s.npy"], capsys)
     assert code == 0 and "10 Gaussians have non-finite language features; they score 0" in err
     assert "do not reproduce" not in err
