@@ -109,8 +109,11 @@ def main(argv: list[str] | None = None) -> int:
     except DrsplatError as exc:
         log.error("%s", exc)
         return 1
-    except BrokenPipeError:
-        _silence_stdout()
+    except BrokenPipeError as exc:
+        if exc.filename is not None:  # an output file's reader went (a FIFO): the output is not written
+            log.error("%s", describe_os_error(exc))
+            return 1
+        _silence_stdout()  # stdout's reader went (`drsplat ... | head`): nothing is wrong
         return 0
     except MemoryError:
         log.error("out of memory: the input is larger than this machine can hold (see the command's --help for options that use less)")

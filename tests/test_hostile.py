@@ -2179,6 +2179,35 @@ def test_a_nan_or_inf_pq_norm_is_said_to_be_non_finite_not_altered_codes(tmp_pat
     assert np.isfinite(scores).all() and (scores[:10] == 0).all()
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_register_into_a_fifo_whose_reader_goes_early_fails_naming_it(tmp_path, world, capsys):
+    """Found reviewing the FIFO wait (2026-12-02): `register --out FIFO` whose reader read 100 bytes
+    and went exited 0, since the command line took every broken pipe for its own stdout's (as
+    `drsplat ... | head` is); the output was never whole. A broken pipe that names a file is that
+    output failing: one error naming it, exit 1, the checkpoint kept for a rerun."""
+    import threading
+
+    from drsplat.registration.checkpoint import checkpoint_path_for
+
+    fifo = tmp_path / "out.ply"
+    os.mkfifo(fifo)
+
+    def read_a_little() -> None:
+        with open(fifo, "rb") as f:
+            f.read(100)
+
+    reader = threading.Thread(target=read_a_little, daemon=True)
+    reader.start()
+    ds = world["ds"]
+    code, err = run_cli(["register", ds / "scene.ply", "--source", ds, "--features", ds / "features", "--out", fifo, "--no-progress"], capsys)
+    reader.join(timeout=30)
+    assert code == 1, err
+    (line,) = error_lines(err)
+    assert str(fifo) in line and "broken pipe" in line.lower(), line
+    assert fifo.is_fifo() and checkpoint_path_for(fifo).is_file()
+    checkpoint_path_for(fifo).unlink()
+
+
 def test_register_into_a_device_writes_in_place_and_keeps_nothing_in_dev(tmp_path, world, capsys):
     """`register --out /dev/full`: one error naming the device; its temp body and checkpoint go to the temp
     folder, never into /dev (as root they used to be created there)."""
