@@ -435,7 +435,7 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", over="ignore"):
         scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
         ok = has_direction(x)[:, None]
-        y = np.where(ok, x / np.where(ok, scale, 1), 0).astype(np.float32)
+        y = np.where(ok, x / np.where(ok, scale, 1), 0)
         y64 = y.astype(np.float64)
         norm = np.sqrt(np.einsum("ij,ij->i", y64, y64))[:, None].astype(np.float32)
         return np.where(ok, y / np.where(ok, norm, 1), 0).astype(np.float32)

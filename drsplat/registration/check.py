@@ -1232,9 +1232,10 @@ class CheckSink:
     def add(self, view: ViewPairs) -> None:
         """Cluster the view's masks and keep its pairs (ValueError when a pair weight is NaN, infinite or
         negative: registration gives none, and the supports' fixed point has no value for them)."""
-        if view.weights.size:
+        w = view.weights
+        if w.size and not (w.min() >= 0 and np.isfinite(w.max())):  # two reductions a view (NaN fails the first); counted only when bad
             with np.errstate(invalid="ignore"):
-                bad = int(view.weights.size - np.count_nonzero(np.isfinite(view.weights) & (view.weights >= 0)))
+                bad = int(w.size - np.count_nonzero(np.isfinite(w) & (w >= 0)))
             if bad:
                 raise ValueError(f"view {view.name!r}: {bad} of its {view.weights.size} pair weights are NaN, infinite or negative; "
                                  "the check takes finite weights >= 0 (w = T·alpha summed per mask)")
