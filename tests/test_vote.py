@@ -451,6 +451,120 @@ def test_a_mislabelled_close_up_view_is_outvoted():
     assert block.W[0] == pytest.approx(9.0)
 
 
+def _record_views(rng, n: int, labels: np.ndarray, views: int, pairs: int, noise: float):
+    """`views` random views of distinct (Gaussian, mask) pairs over `labels`' noisy masks, with
+    zero weights and zero embeddings among them, as a PairRecord (a replayable source)."""
+    from drsplat.registration.check import PairRecord
+
+    record = PairRecord(n)
+    for v in range(views):
+        feats = _unit(labels + rng.normal(scale=noise, size=labels.shape))
+        feats[-1] = 0.0  # a mask without an embedding: no cluster
+        g = rng.integers(0, n, pairs).astype(np.int32)
+        m = np.where(rng.random(pairs) < 0.8, g % labels.shape[0], rng.integers(0, labels.shape[0], pairs)).astype(np.int32)  # mostly its own label
+        keep = np.unique(g * labels.shape[0] + m, return_index=True)[1]
+        g, m = g[np.sort(keep)], m[np.sort(keep)]
+        w = rng.uniform(0, 2, g.size).astype(np.float32)
+        w[rng.random(g.size) < 0.05] = 0.0
+        record.add(_view(f"v{v}", feats, g, m, w))
+    return record
+
+
+@pytest.mark.parametrize("case", ["random", "full_slots", "specificity", "nothing_trimmed"])
+def test_exact_trim_equals_its_reference_bit_for_bit(case, monkeypatch):
+    """The exact trim (a replay subtracting the pairs of the clusters a Gaussian trims) and its
+    plain-Python reference give the same bits: on random views with zero weights and masks without
+    a cluster, on rows whose slots overflow (evicted clusters are kept), with step 4's
+    specificities, and where nothing is trimmed, whatever its buffer's size (flushes of 7 pairs or
+    of 3 embeddings, a view cut across flushes). Rows that trim nothing keep the paper's sums bit
+    for bit; a trimmed row equals the paper's sum of its kept pairs alone, to float32 rounding."""
+    import drsplat.registration.vote as vote
+    from drsplat.registration.vote import (exact_trimmed_features, exact_trimmed_features_reference, fold_view_votes, trimmed_slots,
+                                           trimmed_slots_reference, untrimmed_replay)
+    from drsplat.registration.sums import add_pairs_in_place
+
+    rng = np.random.default_rng(zlib.crc32(case.encode()))
+    n, k = 300, 7
+    labels = _labels(rng, k)
+    record = _record_views(rng, n, labels, 6, 900, 0.02 if case != "nothing_trimmed" else 0.0)
+    if case == "nothing_trimmed":  # every Gaussian in one label's masks only
+        for view in record.views:
+            view.masks[:] = (view.gaussians % 2).astype(np.int32)
+    slots = 2 if case == "full_slots" else 8
+    clusters = MaskClusters(D)
+    F, W = np.zeros((n, D), np.float32), np.zeros(n, np.float32)
+    slot_c, slot_v, slot_s = np.full((n, slots), -1, np.int32), np.zeros((n, slots)), np.zeros((n, slots))
+    for view in record.views:
+        ids = clusters.add(view.feats, view.present_masks())
+        add_pairs_in_place(F, W, view.gaussians, view.masks, view.weights, view.feats)
+        fold_view_votes(view.gaussians, ids[view.masks], view.weights, 0.1, 0.5, slot_c, slot_v, slot_s)
+    slot_p = rng.uniform(0, 3, slot_c.shape) * (slot_c >= 0) if case == "specificity" else None
+    means = clusters.means()
+    bits = trimmed_slots(slot_c, slot_v, slot_s, means, slot_p=slot_p)
+    drop = trimmed_slots_reference(slot_c, slot_v, means, slot_p=slot_p)
+    np.testing.assert_array_equal(bits, (drop * (np.uint64(1) << np.arange(slots, dtype=np.uint64))).sum(axis=1, dtype=np.uint64))
+    got = exact_trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, untrimmed_replay(record, clusters.per_view, 0, n), slot_p=slot_p)
+    views = [(v.gaussians, clusters.per_view[i][v.masks], v.masks, v.weights, v.feats) for i, v in enumerate(record.views)]
+    want = exact_trimmed_features_reference(F.copy(), slot_c, slot_v, means, views, slot_p=slot_p)
+    np.testing.assert_array_equal(got, want)
+    monkeypatch.setattr(vote, "TRIM_BUFFER_PAIRS", 7)
+    monkeypatch.setattr(vote, "TRIM_BUFFER_ROWS", 3)
+    small = exact_trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, untrimmed_replay(record, clusters.per_view, 0, n), slot_p=slot_p)
+    np.testing.assert_array_equal(small, want)
+    trimmed = drop.any(axis=1)
+    np.testing.assert_array_equal(got[~trimmed], F[~trimmed])
+    if case == "nothing_trimmed":
+        assert not trimmed.any()
+        return
+    assert trimmed.sum() > 5
+    kept = np.zeros_like(F)  # the paper's sums of the kept pairs alone
+    for i, view in enumerate(record.views):
+        c = clusters.per_view[i][view.masks]
+        out = np.array([c[p] >= 0 and bool((drop[g] & (slot_c[g] == c[p])).any()) for p, g in enumerate(view.gaussians)], bool)
+        add_pairs_in_place(kept, np.zeros(n, np.float32), view.gaussians[~out], view.masks[~out], view.weights[~out], view.feats)
+    np.testing.assert_allclose(got[trimmed], kept[trimmed], rtol=0, atol=2e-5)  # sums of ~20 pairs of weight ≤ 2
+    if case == "full_slots":
+        assert (slot_c >= 0).all(axis=1).sum() > 50
+
+
+def test_an_exact_trim_leaves_a_heavy_close_up_view_out_entirely():
+    """Round 34's case: Gaussian 0 is labelled A by three far views and B1 by a close-up view 11x
+    heavier than they are together, whose cluster also holds another view's B2 (cosine 0.91 to B1).
+    The vote trims B's cluster either way; counted at the cluster's mean, what is left
+    (20·(B1 - μ_B)) outweighs A and the feature is like neither, while the exact trim, after a
+    check (the kept pairs replayed), leaves A's sum as if the close-up had not been there (to
+    float32 rounding), the same bits in one block and in blocks."""
+    from drsplat.registration.check import PairRecord
+
+    rng = np.random.default_rng(34)
+    a, b1, noise = _labels(rng, 3)
+    b2 = _unit(0.91 * b1 + np.sqrt(1 - 0.91**2) * _unit(noise - (noise @ b1) * b1))
+    assert float(b1 @ b2) == pytest.approx(0.91, abs=1e-6)
+    views = [_view(f"far{v}", a[None], [0, 1], [0, 0], [0.6, 0.6]) for v in range(3)]
+    views += [_view("close", b1[None], [0], [0], [20.0]), _view("other", np.stack([b2, a]), [1, 2], [0, 1], [0.7, 0.7])]
+    record = PairRecord(3)
+    for view in views:
+        record.add(view)
+    far = MemorySink(3, D)
+    for view in views[:3]:
+        far.add(view)
+    (want,) = list(far.blocks())
+    features = {}
+    for name, exact in [("mean", None), ("exact", record)]:
+        sink = VoteSink(3, D, exact=exact)
+        for view in views:
+            sink.add(view)
+        (block,) = list(sink.blocks())
+        features[name] = block.F[0] / np.linalg.norm(block.F[0])
+        if exact is not None:
+            np.testing.assert_allclose(block.F[0], want.F[0], rtol=0, atol=1e-5)
+            assert block.W[0] == pytest.approx(21.8)  # W stays the paper's (coverage, rejection)
+            in_blocks = VoteSink(3, D, record, block=1, clusters=sink.clusters, exact=record)
+            np.testing.assert_array_equal(np.concatenate([blk.F for blk in in_blocks.blocks()]), block.F)
+    assert float(features["exact"] @ a) > 0.9999
+    assert float(features["mean"] @ a) < 0.7 and float(features["mean"] @ b1) < 0.7
+
+
 def test_full_slots_keep_the_majority_cluster():
     """With 2 slots and 4 clusters met in turn, the cluster holding most of the votes survives (space-saving)."""
     rng = np.random.default_rng(4)

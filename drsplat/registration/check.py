@@ -1300,13 +1300,14 @@ class CheckSink:
             specific = Specificity(kept, self.verdicts.pair_means) if self.specific and self.verdicts.grouped else None
             if self.block >= n:  # one block: the kept views fed in order to the caller's sink
                 if self.vote:  # before the views: at NO_TRIM the vote folds no slots (VoteSink.trims)
-                    self._inner.trim, self._inner.specific = trim, specific
+                    # the exact trim replays the kept pairs (the record) once more, as step 4 does
+                    self._inner.trim, self._inner.specific, self._inner.exact = trim, specific, kept
                 for view in kept.block_views(0, n):
                     self._inner.add(view)
-                # the sums hold what the record did (step 4 of the vote replays it once more)
+                # the sums hold what the record did (the vote's step 4 and exact trim replay it once more)
                 self.record = self._source = self._kept = None
             else:
-                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim), trim=trim, specific=specific)
+                self._inner = (VoteSink(n, self.dim, kept, self.block, clusters=kept.clusters(self.dim), trim=trim, specific=specific, exact=kept)
                                if self.vote else LogSink(n, self.dim, kept, self.block))
             self._summed = True
         return self._inner

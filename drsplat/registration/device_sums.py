@@ -62,10 +62,9 @@ from drsplat.registration.aggregate import (ANCHOR_GAIN, ELLIPSE_D2, SHARP_BLUR,
 from drsplat.defaults import VOTE_SLOTS
 from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.sink import Block, sample_rows
+from drsplat.registration.sink import Block, PairSource, sample_rows
 from drsplat.registration.sums import add_pairs_in_place
-from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, slot_specificity,
-                                      trimmed_features)
+from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, trim_sums
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
@@ -1067,7 +1066,8 @@ class DeviceVoteSink:
     (`fold_vote_rounds`), whose rounds the device finished long ago, so reading their number does
     not wait. The views' mask clusters are made on the host (a view's embeddings, in view order).
     `blocks` folds the last view, copies F, W and the slots to the host once and trims there
-    (`trimmed_features`), so the result is the host VoteSink's bits on a CPU.
+    (`vote.trim_sums`, exactly by a replay of the pairs after a check), so the result is the host
+    VoteSink's bits on a CPU.
     """
 
     num_blocks = 1
@@ -1079,6 +1079,7 @@ class DeviceVoteSink:
         self.presence, self.full_view = float(presence), float(full_view)
         self.trim = CLUSTER_COSINE  # θ of the trim (VoteSink.trim; a check sets it once it has judged the masks)
         self.specific: Specificity | None = None  # the vote's step 4 (VoteSink.specific; set with trim)
+        self.exact: PairSource | None = None  # the pairs replayed for exact trims (VoteSink.exact; set with trim)
         self.clusters = MaskClusters(dim)
         rows = (num_gaussians, int(slots))
         self.slot_c = torch.full(rows, -1, dtype=torch.int32, device=self.device)
@@ -1127,19 +1128,17 @@ class DeviceVoteSink:
         # a fresh host array except the whole of F on a CPU, which is then trimmed in place (as VoteSink's
         # blocks do): a copy of F there (1.1 GB on flowers) cost 2 s of page faults
         F = to_host(F)
-        c = c.cpu().numpy()
-        slot_p = None
-        if self.specific is not None:  # step 4's specificities, replayed on the host as VoteSink does
-            n = self.slot_c.shape[0]
-            row, lo, hi = (None, 0, n) if index is None else sample_rows(index.cpu().numpy(), n)
-            slot_p = slot_specificity(self.specific.views(self.clusters.per_view, lo, hi, row), c)
-        return (trimmed_features(F, c, v.cpu().numpy(), s.cpu().numpy(), self.clusters.means(), self.trim, slot_p=slot_p),
+        n = self.slot_c.shape[0]
+        row, lo, hi = (None, 0, n) if index is None else sample_rows(index.cpu().numpy(), n)
+        # step 4's specificities and the exact trim's sums are replayed on the host, as VoteSink does
+        return (trim_sums(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters, self.trim, self.specific, self.exact, lo, hi, row),
                 W.cpu().numpy().copy())
 
     def blocks(self) -> Iterator[Block]:
         """The trimmed sums as one block (on a CPU F is trimmed in place, so once: a second call gets the same sums)."""
         if self._trimmed_sums is None:
             self._trimmed_sums = self._trimmed(None)
+            self.specific = self.exact = None  # their replays are done: the pairs they hold (a check's record) can go
         F, W = self._trimmed_sums
         yield Block(0, F.shape[0], F, W)
 

@@ -201,7 +201,8 @@ def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
     source = plog if job.keep is None else KeptPairs(plog, job.keep)
     if job.clusters is not None:
         specific = None if job.pair_means is None else Specificity(source, job.pair_means)
-        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters, trim=job.trim, specific=specific)
+        exact = None if job.keep is None else source  # after a check the vote trims exactly, as the driver's sink does
+        return VoteSink(job.num_gaussians, job.dim, source, job.block, clusters=job.clusters, trim=job.trim, specific=specific, exact=exact)
     return LogSink(job.num_gaussians, job.dim, source, job.block)
 
 

@@ -30,18 +30,24 @@ keeps the paper's sums and trims them:
    itself included); the winner c* = argmax_c G_ic; a cluster c is trimmed when it is not like
    the winner (μ_c·μ_c* < θ) and its group is a minority of the views, G_ic < MINORITY·G_ic*:
 
-       F_i = Σ_j w_ij f_j − Σ_{c trimmed} S_ic μ_c
+       F_i = Σ_j w_ij f_j − Σ_{j : cluster(j) trimmed} w_ij f_j   (exact: after the cross-view check)
+       F_i = Σ_j w_ij f_j − Σ_{c trimmed} S_ic μ_c                 (at the clusters' means: without it)
 
    A mislabelled mask is one view's (V small against the views that agree) and is trimmed; a
    silhouette Gaussian whose footprint spills onto the background in every view keeps both
    labels (both are present in every view), exactly as the paper has it. A Gaussian with one
-   cluster keeps the paper's sums bit for bit. The trimmed part is counted at the cluster's mean
-   embedding, not at the Gaussian's own masks' (an approximation: exact when a cluster's masks
-   agree; otherwise F_i keeps S_ic (f̄_ic − μ_c), f̄_ic its own masks' weighted mean in cluster c,
-   which is small against the kept sums only while the trimmed weight is not much larger than the
-   kept one, and a heavy close-up view trimmed against several far ones is where it is larger:
-   docs/registration.md, "Robust votes across views"). W_i = Σ w_ij stays the paper's, so coverage
-   and floater rejection do not change.
+   cluster keeps the paper's sums bit for bit. After the check (a `check-...-vote` mode, the
+   default) the check's kept pairs are at hand in every plan and place, and a Gaussian that trims
+   a cluster loses that cluster's own pairs (`exact_trimmed_features`: one more replay, read only
+   when some Gaussian trims, each trimmed pair subtracted in float32 in the order it was added;
+   an evicted cluster's pairs, which no slot names, are kept). Without the
+   check (`vote`, `vote-reject`, ...: no record of the pairs in one block) the trimmed part is
+   counted at the cluster's mean embedding, not at the Gaussian's own masks': exact when a
+   cluster's masks agree; otherwise F_i keeps S_ic (f̄_ic − μ_c), f̄_ic its own masks' weighted
+   mean in cluster c, which is small against the kept sums only while the trimmed weight is not
+   much larger than the kept one, and a heavy close-up view trimmed against several far ones is
+   where it is larger (docs/registration.md, "Robust votes across views"). W_i = Σ w_ij stays the
+   paper's, so coverage and floater rejection do not change.
 
    After the cross-view check the clusters are made again from the masks the check kept
    (`check.KeptPairs.clusters`) and the pairs are the kept masks' less those of views that abstain
@@ -101,7 +107,7 @@ from drsplat.defaults import VOTE_SLOTS
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
-from drsplat.registration.sums import Accumulator
+from drsplat.registration.sums import Accumulator, add_pairs_in_place
 
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
@@ -112,6 +118,8 @@ CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 TRIM_COSINE_TABLE_BYTES = 64 << 20  # the trim keeps its clusters' cosines in a [K, K] table up to K = 4,096
+TRIM_BUFFER_PAIRS = 1 << 21  # trimmed pairs the exact trim buffers before subtracting them (24 MB)
+TRIM_BUFFER_ROWS = 1 << 13  # mask embeddings it buffers with them (16 MB at D = 512)
 SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
@@ -418,11 +426,26 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
     paper weights / specificities (`slot_specificity`; None: no step 4), means: [K, D] unit μ_c.
     Returns F.
     """
+    drop = trimmed_slots_reference(slot_c, slot_v, means, threshold, minority, slot_p, specific)
+    mixed = np.flatnonzero(drop.any(axis=1))
+    if mixed.size == 0:
+        return F
+    coef = np.where(drop[mixed], slot_s[mixed], 0.0)
+    F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[np.maximum(slot_c[mixed], 0)])).astype(np.float32)
+    return F
+
+
+def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.ndarray, threshold: float = CLUSTER_COSINE,
+                            minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC) -> np.ndarray:
+    """Numpy reference of the vote's decisions (module docstring, steps 3 and, with slot_p, 4): [B, S]
+    bool, the slots each Gaussian trims. slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_p:
+    [B, S] float64 votes / specificities, means: [K, D] unit μ_c."""
     b, num_slots = slot_c.shape
+    out = np.zeros((b, num_slots), np.bool_)
     mixed = np.flatnonzero((slot_c[:, 1:] >= 0).any(axis=1)) if num_slots > 1 else np.zeros(0, np.int64)
     if mixed.size == 0 or means.shape[0] == 0 or b == 0:
-        return F
-    c, v, w = slot_c[mixed], slot_v[mixed], slot_s[mixed]
+        return out
+    c, v = slot_c[mixed], slot_v[mixed]
     ok = c >= 0
     cw = np.maximum(c, 0)
     sim = np.einsum("bsd,btd->bst", means[cw], means[cw])  # float32, as the kernel's dot products
@@ -437,8 +460,24 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
     if slot_p is not None:
         for b_row in range(mixed.size):
             drop[b_row] |= _less_specific_reference(ok[b_row], drop[b_row], sim[b_row], int(best[b_row]), slot_p[mixed[b_row]], threshold, specific)
-    coef = np.where(drop, w, 0.0)
-    F[mixed] = (F[mixed].astype(np.float64) - np.einsum("bs,bsd->bd", coef, means[cw])).astype(np.float32)
+    out[mixed] = drop
+    return out
+
+
+def exact_trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, means: np.ndarray,
+                                     views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                                     threshold: float = CLUSTER_COSINE, minority: float = MINORITY, slot_p: np.ndarray | None = None,
+                                     specific: float = SPECIFIC) -> np.ndarray:
+    """Plain-Python reference of `exact_trimmed_features`: in place on the paper's sums F [B, D]
+    float32, every pair whose cluster sits in a slot its row trims (`trimmed_slots_reference`)
+    subtracted, one after another in view and pair order, in float32 as the sums add them
+    (drsplat.registration.sums). views: per view (rows [P] of F, clusters [P] (-1 none), masks [P]
+    rows of feats, weights [P] float32, feats [M, D] float32). Returns F."""
+    drop = trimmed_slots_reference(slot_c, slot_v, means, threshold, minority, slot_p, specific)
+    for rows, clusters, masks, weights, feats in views:
+        for r, c, m, w in zip(rows.tolist(), clusters.tolist(), masks.tolist(), np.asarray(weights, np.float32)):
+            if c >= 0 and bool((drop[r] & (slot_c[r] == c)).any()):
+                F[r] -= w * np.asarray(feats[m], np.float32)
     return F
 
 
@@ -497,7 +536,7 @@ def _less_specific(slot_c, slot_p, i, sim, best, trim, threshold, specific, spec
 
 
 @numba.njit(parallel=True, cache=True)
-def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, slot_p, specific, cosines):  # pragma: no cover - jitted
+def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, slot_p, specific, cosines, bits):  # pragma: no cover - jitted
     """`trimmed_features_reference` over `parts` runs of rows in parallel (rows are independent), each
     run with one float64 row buffer and an [S, S] cosine table: per Gaussian, the cosines between its
     slots' clusters and the group votes G_s (V_s, then + V_t of every like slot t in slot order),
@@ -506,11 +545,14 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, s
     are any, F_i ← float32(float64(F_i) − Σ_s S_s μ_{c_s}), the slots subtracted in slot order,
     each over the row in one contiguous (vectorised) loop. cosines: [K, K] float32 all NaN, a table
     shared by the parts that keeps each pair of clusters' cosine once computed (the same call, so the
-    same bits; two parts may write one entry, with the same value), or [0, 0] for none."""
+    same bits; two parts may write one entry, with the same value), or [0, 0] for none. bits: [B]
+    uint64, where each row's trimmed slots are written instead of subtracted (F is then not read:
+    the exact trim, `exact_trimmed_features`), or [0] to subtract them."""
     b, num_slots = slot_c.shape
     dim = F.shape[1]
     with_p = slot_p.shape[0] == b
     tabled = cosines.shape[0] == means.shape[0]
+    decide_only = bits.shape[0] == b
     for part in numba.prange(parts):
         row = np.empty(dim)
         sim = np.empty((num_slots, num_slots), np.float32)
@@ -555,6 +597,9 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, s
                     trim |= np.uint64(1) << np.uint64(s)
             if with_p:
                 trim |= _less_specific(slot_c, slot_p, i, sim, best, trim, threshold, specific, spec)
+            if decide_only:
+                bits[i] = trim
+                continue
             if trim == 0:
                 continue
             for d in range(dim):
@@ -579,17 +624,129 @@ def trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot
     None: step 3 only), means: [K, D] unit μ_c float32. Returns F."""
     if F.shape[0] == 0 or means.shape[0] == 0:
         return F
+    _run_trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific, np.zeros(0, np.uint64))
+    return F
+
+
+def _run_trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific, bits) -> None:
     if slot_c.shape[1] > 64:
-        raise ValueError(f"trimmed_features takes at most 64 slots per Gaussian, not {slot_c.shape[1]}")
-    parts = max(1, min(F.shape[0], 8 * numba.get_num_threads()))
+        raise ValueError(f"the vote's trim takes at most 64 slots per Gaussian, not {slot_c.shape[1]}")
+    parts = max(1, min(slot_c.shape[0], 8 * numba.get_num_threads()))
     slot_p = np.zeros((0, slot_c.shape[1])) if slot_p is None else np.ascontiguousarray(slot_p, np.float64)
     k = means.shape[0]
     # the Gaussians' slots meet the same pairs of clusters again and again (flowers: 1,083 clusters, 0.28 s of
     # 512-float dot products a registration, 0.12 s with the table); a table of them when it is small enough
     cosines = np.full((k, k) if k * k * 4 <= TRIM_COSINE_TABLE_BYTES else (0, 0), np.nan, np.float32)
     _trim_kernel(F, slot_c, slot_v, slot_s, np.ascontiguousarray(means, np.float32), np.float32(threshold), float(minority), parts,
-                 slot_p, float(specific), cosines)
+                 slot_p, float(specific), cosines, bits)
+
+
+def trimmed_slots(slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray, threshold: float = CLUSTER_COSINE,
+                  minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC) -> np.ndarray:
+    """[B] uint64, bit s set where Gaussian b trims slot s (module docstring, steps 3 and, with slot_p,
+    4; `_trim_kernel` deciding only; reference `trimmed_slots_reference`). Arguments as
+    `trimmed_features`."""
+    bits = np.zeros(slot_c.shape[0], np.uint64)
+    if slot_c.shape[0] and means.shape[0]:
+        _run_trim_kernel(np.zeros((slot_c.shape[0], 0), np.float32), slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific, bits)
+    return bits
+
+
+@numba.njit(cache=True, parallel=True)
+def _trimmed_pairs_kernel(rows, clusters, slot_c, bits, out):  # pragma: no cover - jitted
+    """out[p] = whether pair p's cluster sits in a slot its row trims (bits [B] uint64); rows,
+    clusters [P] int32 (-1: no cluster, never trimmed)."""
+    num_slots = slot_c.shape[1]
+    for p in numba.prange(rows.shape[0]):
+        r, c = rows[p], clusters[p]
+        trim = bits[r]
+        hit = False
+        if trim != 0 and c >= 0:
+            for s in range(num_slots):
+                if slot_c[r, s] == c:
+                    hit = (trim >> np.uint64(s)) & np.uint64(1) != 0
+                    break
+        out[p] = hit
+
+
+def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
+                           views: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], threshold: float = CLUSTER_COSINE,
+                           minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC) -> np.ndarray:
+    """In place on the paper's sums F [B, D] float32: every Gaussian that trims a cluster (steps 3 and,
+    with slot_p, 4, decided as `trimmed_features` decides) loses that cluster's own pairs,
+
+        F_i = Σ_j w_ij f_j − Σ_{j : cluster(j) trimmed by i} w_ij f_j,
+
+    by one replay of the pairs F was made of (module docstring, step 3: what `trimmed_features`
+    approximates by S_ic μ_c), each trimmed pair subtracted in float32 as the sums added it, in
+    the same order (so the same bits in every plan and place; the kept sum to float32 rounding of
+    the whole). Only the trimmed pairs cost D operations, and rows that trim nothing keep their
+    bits. An evicted cluster's pairs, which no slot names, stay. views: the replay, per view (rows
+    [P] of F, clusters [P] int32 (-1 none), masks [P] rows of feats, weights [P] float32, feats
+    [M, D] float32), read only when some row trims. Reference: `exact_trimmed_features_reference`.
+    Returns F."""
+    bits = trimmed_slots(slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific)
+    if not bits.any():
+        return F
+    out = _TrimmedPairs(F)
+    for rows, clusters, masks, weights, feats in views:
+        if rows.size:
+            rows = np.ascontiguousarray(rows, np.int32)
+            hit = np.empty(rows.shape[0], np.bool_)
+            _trimmed_pairs_kernel(rows, np.ascontiguousarray(clusters, np.int32), slot_c, bits, hit)
+            at = np.flatnonzero(hit)
+            if at.size:
+                out.add(rows[at], np.asarray(masks)[at], np.asarray(weights, np.float32)[at], feats)
+    out.flush()
     return F
+
+
+class _TrimmedPairs:
+    """The trimmed pairs of several views buffered (at most TRIM_BUFFER_PAIRS pairs and
+    TRIM_BUFFER_ROWS embeddings), then subtracted from F grouped by row by the sums' own flush
+    (`sums.add_pairs_in_place`) with the weights negated (f + (−w)·x is f − w·x to the bit): each row of F is read and
+    written once per flush instead of once per view, and a row's pairs go in their order, so the
+    bits do not depend on where flushes fall."""
+
+    def __init__(self, F: np.ndarray):
+        self.F = F
+        self._scratch_w = np.zeros(F.shape[0], np.float32)  # the flush kernel's W: not the sums' (the trim leaves W as it is)
+        self._g = np.empty(TRIM_BUFFER_PAIRS, np.int32)
+        self._row = np.empty(TRIM_BUFFER_PAIRS, np.int32)
+        self._w = np.empty(TRIM_BUFFER_PAIRS, np.float32)
+        self._filled = 0
+        self._feats: list[np.ndarray] = []
+        self._num_feats = 0
+
+    def add(self, rows: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
+        """One view's trimmed pairs (rows, masks [P] of its feats [M, D], weights [P] float32)."""
+        if self._filled and self._num_feats + feats.shape[0] > TRIM_BUFFER_ROWS:
+            self.flush()
+        self._feats.append(np.asarray(feats, np.float32))
+        self._num_feats += feats.shape[0]
+        offset = self._num_feats - feats.shape[0]
+        start = 0
+        while start < rows.shape[0]:
+            if self._filled == TRIM_BUFFER_PAIRS:
+                self.flush(keep_last=True)  # this view's embeddings become rows 0..
+                offset = 0
+            take = min(TRIM_BUFFER_PAIRS - self._filled, rows.shape[0] - start)
+            dst = slice(self._filled, self._filled + take)
+            self._g[dst] = rows[start : start + take]
+            self._row[dst] = masks[start : start + take] + offset
+            self._w[dst] = -weights[start : start + take]
+            self._filled += take
+            start += take
+
+    def flush(self, keep_last: bool = False) -> None:
+        """Subtract the buffered pairs; keep the last view's embeddings (rows 0..) when it still has pairs to come."""
+        if self._filled:
+            feats = np.concatenate(self._feats) if len(self._feats) > 1 else self._feats[0]
+            n = self._filled
+            add_pairs_in_place(self.F, self._scratch_w, self._g[:n], self._row[:n], self._w[:n], feats)
+        self._filled = 0
+        self._feats = self._feats[-1:] if keep_last and self._feats else []
+        self._num_feats = sum(f.shape[0] for f in self._feats)
 
 
 def slot_specificity_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], slot_c: np.ndarray) -> np.ndarray:
@@ -674,6 +831,21 @@ def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     return F
 
 
+def trim_sums(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, clusters: MaskClusters, trim: float,
+              specific: Specificity | None, exact: PairSource | None, lo: int, hi: int, row: np.ndarray | None = None) -> np.ndarray:
+    """The vote's trim of the sums F [B, D] of Gaussians lo .. hi-1 (or of `row` [N], a sample), in
+    place, as a VoteSink or its device form has them: nothing at θ = NO_TRIM; step 4 when `specific`
+    (its replay); exact (`exact_trimmed_features`, a replay of `exact`) or at the clusters' means
+    (`trimmed_features`). slot_*: [B, S] the slots; clusters: the views' mask clusters."""
+    if trim == NO_TRIM:
+        return F
+    slot_p = None if specific is None else slot_specificity(specific.views(clusters.per_view, lo, hi, row), slot_c)
+    if exact is None:
+        return trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), trim, slot_p=slot_p)
+    return exact_trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), untrimmed_replay(exact, clusters.per_view, lo, hi, row), trim,
+                                  slot_p=slot_p)
+
+
 NO_TRIM = -2.0  # a θ below any cosine, so every cluster is like every other: step 3 trims nothing, nor does step 4 (no cluster is unlike the winner)
 
 
@@ -698,14 +870,32 @@ class Specificity:
         """Every view's pairs of Gaussians lo .. hi-1 for `slot_specificity`: (rows, clusters,
         weights, w̄ of each pair's mask), rows = gaussians - lo, or row[gaussians] keeping those ≥ 0
         when row [N] int32 is given. per_view: each view's [M] mask clusters."""
-        for index, view in enumerate(self.source.block_views(lo, hi)):
-            g, m, w = view.gaussians, view.masks, view.weights
-            if row is None:
-                rows = g - np.int32(lo)
-            else:
-                keep = row[g] >= 0
-                rows, m, w = row[g[keep]], m[keep], w[keep]
+        for index, rows, m, w, _ in block_pairs(self.source, lo, hi, row):
             yield rows, per_view[index][m], w, self.pair_means[index][m]
+
+
+def block_pairs(source: PairSource, lo: int, hi: int, row: np.ndarray | None = None,
+                ) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Every view's pairs of Gaussians lo .. hi-1 in `source`, in order: (view index, rows, masks,
+    weights, feats), rows = gaussians - lo, or row[gaussians] keeping those ≥ 0 when row [N] int32
+    is given (a sample's rows)."""
+    for index, view in enumerate(source.block_views(lo, hi)):
+        g, m, w = view.gaussians, view.masks, view.weights
+        if row is None:
+            rows = g - np.int32(lo)
+        else:
+            keep = row[g] >= 0
+            rows, m, w = row[g[keep]], m[keep], w[keep]
+        yield index, rows, m, w, view.feats
+
+
+def untrimmed_replay(source: PairSource, per_view: list[np.ndarray], lo: int, hi: int, row: np.ndarray | None = None,
+                     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The replay `exact_trimmed_features` reads: every view's pairs of Gaussians lo .. hi-1 (or of
+    `row`, as `block_pairs`) as (rows, clusters, masks, weights, feats); per_view: each view's [M]
+    mask clusters."""
+    for index, rows, m, w, feats in block_pairs(source, lo, hi, row):
+        yield rows, per_view[index][m], m, w, feats
 
 
 class VoteSink:
@@ -716,20 +906,24 @@ class VoteSink:
     its Gaussians' pairs into both. Either way `add` assigns the view's masks to clusters (every
     view, replayed ones included, in order), and a Gaussian's pairs reach its row in the same order.
     With `specific` (a Specificity) step 4 trims too: a second replay of the block's pairs gives its
-    slots' specificities once the slots are final.
+    slots' specificities once the slots are final. With `exact` (the pairs the sums are made of: a
+    cross-view check's kept pairs) the trimmed clusters' own pairs are subtracted
+    (`exact_trimmed_features`), else the trim is counted at the clusters' means (`trimmed_features`).
     """
 
     place = "host"
 
     def __init__(self, num_gaussians: int, dim: int, plog: PairSource | None = None, block: int | None = None,
                  slots: int = VOTE_SLOTS, presence: float = PRESENCE, full_view: float = FULL_VIEW, clusters: MaskClusters | None = None,
-                 trim: float = CLUSTER_COSINE, specific: Specificity | None = None):
+                 trim: float = CLUSTER_COSINE, specific: Specificity | None = None, exact: PairSource | None = None):
         """clusters: the views' clusters made already (a reducer replaying a block of a finished view
         pass gets the driver's); None: made by `add`. trim: θ of step 3 (`trim_cosine`; a check
         sets it once it has judged the masks, before the sums are finished); specific: step 4's
-        replay (None: no step 4; a check sets it with `trim`)."""
+        replay (None: no step 4; a check sets it with `trim`); exact: the pairs the sums are made
+        of, replayed for exact trims (None: trims at the clusters' means; a check sets it with `trim`)."""
         self.trim = float(trim)
         self.specific = specific
+        self.exact = exact
         self.num_gaussians, self.dim, self.slots, self.presence, self.full_view = num_gaussians, dim, int(slots), float(presence), float(full_view)
         self.clusters = MaskClusters(dim) if clusters is None else clusters
         self._log = plog
@@ -774,15 +968,13 @@ class VoteSink:
 
     def _trimmed(self, F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, lo: int, hi: int,
                  row: np.ndarray | None = None) -> np.ndarray:
-        if not self.trims:
-            return F
-        slot_p = None if self.specific is None else slot_specificity(self.specific.views(self.clusters.per_view, lo, hi, row), slot_c)
-        return trimmed_features(F, slot_c, slot_v, slot_s, self.clusters.means(), self.trim, slot_p=slot_p)
+        return trim_sums(F, slot_c, slot_v, slot_s, self.clusters, self.trim, self.specific, self.exact, lo, hi, row)
 
     def blocks(self) -> Iterator[Block]:
         if self._state is not None:
             if self._trimmed_sums is None:  # F is trimmed in place: once, whoever asks again gets the same sums
                 self._trimmed_sums = self._finish(self._state, 0, self.num_gaussians)
+                self.specific = self.exact = None  # their replays are done: the pairs they hold (a check's record) can go
             yield Block(0, self.num_gaussians, *self._trimmed_sums)
             return
         for lo in range(0, self.num_gaussians, self.block):
