@@ -508,7 +508,7 @@ def test_exact_trim_equals_its_reference_bit_for_bit(case, monkeypatch):
     want = exact_trimmed_features_reference(F.copy(), slot_c, slot_v, means, views, slot_p=slot_p)
     np.testing.assert_array_equal(got, want)
     monkeypatch.setattr(vote, "TRIM_BUFFER_PAIRS", 7)
-    monkeypatch.setattr(vote, "TRIM_BUFFER_ROWS", 3)
+    monkeypatch.setattr(vote, "TRIM_BUFFER_FEAT_BYTES", 3 * D * 4)
     small = exact_trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, untrimmed_replay(record, clusters.per_view, 0, n), slot_p=slot_p)
     np.testing.assert_array_equal(small, want)
     trimmed = drop.any(axis=1)

@@ -120,7 +120,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES
+from drsplat.defaults import (AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_BUFFER_BYTES, EXACT_TRIM_SLOT_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES,
+                              SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES)
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
@@ -1162,6 +1163,9 @@ class Aggregator:
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)
             per_block += 12 * CHECK_SLOTS
             kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
+            if stages.vote:  # after the check the vote trims exactly (drsplat.registration.vote.exact_trimmed_features)
+                per_block += EXACT_TRIM_SLOT_BYTES
+                kept += EXACT_TRIM_BUFFER_BYTES
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept, per_block

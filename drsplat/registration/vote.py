@@ -118,8 +118,8 @@ CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 TRIM_COSINE_TABLE_BYTES = 64 << 20  # the trim keeps its clusters' cosines in a [K, K] table up to K = 4,096
-TRIM_BUFFER_PAIRS = 1 << 21  # trimmed pairs the exact trim buffers before subtracting them (24 MB)
-TRIM_BUFFER_ROWS = 1 << 13  # mask embeddings it buffers with them (16 MB at D = 512)
+TRIM_BUFFER_PAIRS = 1 << 21  # trimmed pairs the exact trim buffers before subtracting them (24 MB; defaults.EXACT_TRIM_BUFFER_BYTES)
+TRIM_BUFFER_FEAT_BYTES = 16 << 20  # the mask embeddings it buffers with them (more only when one view's alone are more)
 SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
@@ -703,7 +703,7 @@ def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray
 
 class _TrimmedPairs:
     """The trimmed pairs of several views buffered (at most TRIM_BUFFER_PAIRS pairs and
-    TRIM_BUFFER_ROWS embeddings), then subtracted from F grouped by row by the sums' own flush
+    TRIM_BUFFER_FEAT_BYTES of embeddings), then subtracted from F grouped by row by the sums' own flush
     (`sums.add_pairs_in_place`) with the weights negated (f + (−w)·x is f − w·x to the bit): each row of F is read and
     written once per flush instead of once per view, and a row's pairs go in their order, so the
     bits do not depend on where flushes fall."""
@@ -720,7 +720,7 @@ class _TrimmedPairs:
 
     def add(self, rows: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
         """One view's trimmed pairs (rows, masks [P] of its feats [M, D], weights [P] float32)."""
-        if self._filled and self._num_feats + feats.shape[0] > TRIM_BUFFER_ROWS:
+        if self._filled and (self._num_feats + feats.shape[0]) * feats.shape[1] * 4 > TRIM_BUFFER_FEAT_BYTES:
             self.flush()
         self._feats.append(np.asarray(feats, np.float32))
         self._num_feats += feats.shape[0]
