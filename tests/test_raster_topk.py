@@ -212,3 +212,28 @@ def test_normalize_rows_matches_its_reference():
     np.testing.assert_allclose(np.linalg.norm(a[ok].astype(np.float64), axis=1), 1.0, rtol=1e-6)
     assert ok[50:55].all() and np.allclose(a[50:55], 1 / np.sqrt(37), rtol=1e-6)
     assert not ok[20:30].any() and not ok[55:60].any() and ok[60:65].all()
+
+
+def test_normalize_rows_judges_a_trimmed_sum_against_the_weight_it_still_holds():
+    """Block.kept (the weight an exactly trimmed sum still holds) is what a norm is judged against:
+    a row holding 1.8 of weight 20,001.8 after the vote removed a close-up view (|F| = 1.8) is kept
+    and not counted weak, while judged against W it would be dropped as cancelled; the same row
+    without `kept` is; a row whose kept sum did cancel is still dropped; kernel and reference agree,
+    and NaN in kept drops the row as a non-finite weight does."""
+    rng = np.random.default_rng(5)
+    F = rng.normal(size=(6, 16)).astype(np.float32)
+    F /= np.linalg.norm(F, axis=1, keepdims=True)
+    W = np.full(6, 20001.8, np.float32)
+    kept = np.full(6, 1.8, np.float32)
+    F[:4] *= 1.8  # the far views' clean sums
+    F[4] *= 1e-5  # a kept sum that cancelled
+    kept[5] = np.nan
+    for kernel in (normalize_rows, normalize_rows_reference):
+        f, w = F.copy(), W.copy()
+        _, fates = kernel(f, w, kept=kept)
+        assert (w[:4] > 0).all() and w[4] == 0 and w[5] == 0
+        assert fates.dropped == 2 and fates.weak == 0
+        np.testing.assert_allclose(f[:4], F[:4] / 1.8, rtol=1e-6)
+        f, w = F.copy(), W.copy()
+        _, fates = kernel(f, w)
+        assert fates.dropped == 6 and not (w > 0).any()  # against W every one looks cancelled

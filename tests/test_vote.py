@@ -527,21 +527,25 @@ def test_exact_trim_equals_its_reference_bit_for_bit(case, monkeypatch):
         assert (slot_c >= 0).all(axis=1).sum() > 50
 
 
-def test_an_exact_trim_leaves_a_heavy_close_up_view_out_entirely():
-    """Round 34's case: Gaussian 0 is labelled A by three far views and B1 by a close-up view 11x
-    heavier than they are together, whose cluster also holds another view's B2 (cosine 0.91 to B1).
-    The vote trims B's cluster either way; counted at the cluster's mean, what is left
-    (20·(B1 - μ_B)) outweighs A and the feature is like neither, while the exact trim, after a
-    check (the kept pairs replayed), leaves A's sum as if the close-up had not been there (to
-    float32 rounding), the same bits in one block and in blocks."""
+@pytest.mark.parametrize("close_up", [20.0, 20_000.0])
+def test_an_exact_trim_leaves_a_heavy_close_up_view_out_entirely(close_up):
+    """Round 34's case: Gaussian 0 is labelled A by three far views (weight 0.6 each) and B1 by a
+    close-up view 11x or 11,000x heavier than they are together, whose cluster also holds another
+    view's B2 (cosine 0.91 to B1). The vote trims B's cluster either way; counted at the cluster's
+    mean, what is left (w·(B1 - μ_B)) outweighs A and the feature is like neither, while the exact
+    trim, after a check (the kept pairs replayed), leaves A's sum as if the close-up had not been
+    there (to float32 rounding), the same bits in one block and in blocks. Its block says the
+    weight F still holds (1.8), and normalising against that keeps the Gaussian, which against W
+    (the close-up's weight included) would be dropped as a cancelled sum at 20,000."""
     from drsplat.registration.check import PairRecord
+    from drsplat.registration.sums import normalize_rows
 
     rng = np.random.default_rng(34)
     a, b1, noise = _labels(rng, 3)
     b2 = _unit(0.91 * b1 + np.sqrt(1 - 0.91**2) * _unit(noise - (noise @ b1) * b1))
     assert float(b1 @ b2) == pytest.approx(0.91, abs=1e-6)
     views = [_view(f"far{v}", a[None], [0, 1], [0, 0], [0.6, 0.6]) for v in range(3)]
-    views += [_view("close", b1[None], [0], [0], [20.0]), _view("other", np.stack([b2, a]), [1, 2], [0, 1], [0.7, 0.7])]
+    views += [_view("close", b1[None], [0], [0], [close_up]), _view("other", np.stack([b2, a]), [1, 2], [0, 1], [0.7, 0.7])]
     record = PairRecord(3)
     for view in views:
         record.add(view)
@@ -556,11 +560,22 @@ def test_an_exact_trim_leaves_a_heavy_close_up_view_out_entirely():
             sink.add(view)
         (block,) = list(sink.blocks())
         features[name] = block.F[0] / np.linalg.norm(block.F[0])
-        if exact is not None:
-            np.testing.assert_allclose(block.F[0], want.F[0], rtol=0, atol=1e-5)
-            assert block.W[0] == pytest.approx(21.8)  # W stays the paper's (coverage, rejection)
-            in_blocks = VoteSink(3, D, record, block=1, clusters=sink.clusters, exact=record)
-            np.testing.assert_array_equal(np.concatenate([blk.F for blk in in_blocks.blocks()]), block.F)
+        if exact is None:
+            assert block.kept is None
+            continue
+        np.testing.assert_allclose(block.F[0], want.F[0], rtol=0, atol=1e-6 * close_up)
+        assert block.W[0] == pytest.approx(1.8 + close_up)  # W stays the paper's (coverage, rejection)
+        assert block.kept[0] == pytest.approx(1.8, abs=1e-6 * close_up) and block.kept[2] == block.W[2]  # 2 trims nothing
+        in_blocks = VoteSink(3, D, record, block=1, clusters=sink.clusters, exact=record)
+        parts = list(in_blocks.blocks())
+        np.testing.assert_array_equal(np.concatenate([blk.F for blk in parts]), block.F)
+        np.testing.assert_array_equal(np.concatenate([blk.kept for blk in parts]), block.kept)
+        F, W = block.F.copy(), block.W.copy()
+        normalize_rows(F, W, block.kept)
+        assert W[0] > 0 and float(F[0] @ a) > 0.9999
+        F, W = block.F.copy(), block.W.copy()
+        normalize_rows(F, W)
+        assert (W[0] > 0) == (close_up < 10_000)
     assert float(features["exact"] @ a) > 0.9999
     assert float(features["mean"] @ a) < 0.7 and float(features["mean"] @ b1) < 0.7
 

@@ -64,7 +64,7 @@ from drsplat.registration.coalesce import Coalescer, sort_within_masks
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
 from drsplat.registration.sums import add_pairs_in_place
-from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, trim_sums
+from drsplat.registration.vote import CLUSTER_COSINE, FULL_VIEW, PRESENCE, MaskClusters, Specificity, fold_view_votes, kept_weights, trim_sums
 
 PAIR_CHUNK = 1 << 15  # pairs per F update: a [PAIR_CHUNK, D] product (64 MB at D = 512), like the host accumulator's pair buffer
 DEVICE_HEADROOM = 1.25  # free device memory wanted per byte of the sums (the chunk products, the allocator's slack)
@@ -1086,7 +1086,7 @@ class DeviceVoteSink:
         self.slot_v = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self.slot_s = torch.zeros(rows, dtype=torch.float64, device=self.device)
         self._unfolded: VoteRounds | None = None  # the last view's rounds, folded when the next view arrives
-        self._trimmed_sums: tuple[np.ndarray, np.ndarray] | None = None  # (F, W) once trimmed (on a CPU in place: trimmed once)
+        self._trimmed_sums: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # (F, W, kept) once trimmed (on a CPU in place: trimmed once)
         # the vote op folds a view without reading the device on a CPU (numba) and on CUDA with Triton;
         # otherwise its rounds are laid out now and folded a view late
         self.lagged = not (self.device.type == "cpu" or triton_available())
@@ -1119,7 +1119,7 @@ class DeviceVoteSink:
     def positive(self) -> np.ndarray:
         return self._sums.positive()
 
-    def _trimmed(self, index: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray]:
+    def _trimmed(self, index: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         self._fold()
         F, W = self._sums.F, self._sums.W
         c, v, s = self.slot_c, self.slot_v, self.slot_s
@@ -1131,20 +1131,21 @@ class DeviceVoteSink:
         n = self.slot_c.shape[0]
         row, lo, hi = (None, 0, n) if index is None else sample_rows(index.cpu().numpy(), n)
         # step 4's specificities and the exact trim's sums are replayed on the host, as VoteSink does
-        return (trim_sums(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters, self.trim, self.specific, self.exact, lo, hi, row),
-                W.cpu().numpy().copy())
+        F, removed = trim_sums(F, c.cpu().numpy(), v.cpu().numpy(), s.cpu().numpy(), self.clusters, self.trim, self.specific, self.exact, lo, hi, row)
+        W = W.cpu().numpy().copy()
+        return F, W, kept_weights(W, removed)
 
     def blocks(self) -> Iterator[Block]:
         """The trimmed sums as one block (on a CPU F is trimmed in place, so once: a second call gets the same sums)."""
         if self._trimmed_sums is None:
             self._trimmed_sums = self._trimmed(None)
             self.specific = self.exact = None  # their replays are done: the pairs they hold (a check's record) can go
-        F, W = self._trimmed_sums
-        yield Block(0, F.shape[0], F, W)
+        F, W, kept = self._trimmed_sums
+        yield Block(0, F.shape[0], F, W, kept)
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S], trimmed (host copies)."""
         if self._trimmed_sums is not None:
-            F, W = self._trimmed_sums
+            F, W, _ = self._trimmed_sums
             return F[ids], W[ids].copy()
-        return self._trimmed(to_device(np.array(ids, np.int64), self.device))
+        return self._trimmed(to_device(np.array(ids, np.int64), self.device))[:2]

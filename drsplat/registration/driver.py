@@ -676,7 +676,7 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
         if aggregator.solve:  # the solve stage (one block: refused up front otherwise), before floater rejection
             _solve_block(run, block, cancel)
         aggregator.finish(block.F, block.W, block.lo)
-        _, block_fates = normalize_rows(block.F, block.W)
+        _, block_fates = normalize_rows(block.F, block.W, block.kept)
         fates += block_fates
         weights[block.lo : block.hi] = block.W
         keep = np.ones(block.hi - block.lo, bool) if run.options.keep_unassigned else block.W > 0

@@ -218,7 +218,7 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
         rejected = block_support(plog, lo, hi).rejected() if job.reject else None
     sum_seconds, sum_cpu = time.perf_counter() - t0, time.process_time() - c0
     dropped = reject_rows(block.F, block.W, rejected) if rejected is not None else 0
-    _, fates = normalize_rows(block.F, block.W)
+    _, fates = normalize_rows(block.F, block.W, block.kept)
     keep = np.ones(hi - lo, bool) if job.keep_unassigned else block.W > 0
     path = job.part_path(index)
     rows, header = 0, None

@@ -23,12 +23,16 @@ from drsplat.registration.sums import Accumulator
 
 @dataclass
 class Block:
-    """The sums of Gaussians lo .. hi-1: F [hi - lo, D] = Σ w_ij f_j and W [hi - lo] = Σ w_ij (float32)."""
+    """The sums of Gaussians lo .. hi-1: F [hi - lo, D] = Σ w_ij f_j and W [hi - lo] = Σ w_ij (float32).
+    kept: [hi - lo] float32, the weight of the pairs F still holds where the vote removed some
+    exactly (W less the trimmed pairs'; what F's norm is judged against, `sums.normalize_rows`),
+    None where F holds all of W."""
 
     lo: int
     hi: int
     F: np.ndarray
     W: np.ndarray
+    kept: np.ndarray | None = None
 
 
 class PairSource(Protocol):

@@ -198,9 +198,10 @@ def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, wei
 
 
 @numba.njit(parallel=True, cache=True)
-def _normalize_rows_kernel(F, W, cancel_ratio, weak_ratio):  # pragma: no cover - jitted
-    """`normalize_rows` row by row in parallel; returns the counts of rows dropped for non-finite or
-    cancelled sums and of rows kept under weak_ratio of their weight."""
+def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cover - jitted
+    """`normalize_rows` row by row in parallel, each norm judged against R (W, or the kept weight);
+    returns the counts of rows dropped for non-finite or cancelled sums and of rows kept under
+    weak_ratio of their weight."""
     n, dim = F.shape
     bad = np.zeros(n, np.int64)
     weak = np.zeros(n, np.int64)
@@ -226,13 +227,14 @@ def _normalize_rows_kernel(F, W, cancel_ratio, weak_ratio):  # pragma: no cover 
             total += x * x
         norm = np.sqrt(total)
         w = W[i]
-        finite = np.isfinite(norm) and np.isfinite(w)
+        r = R[i]
+        finite = np.isfinite(norm) and np.isfinite(w) and np.isfinite(r)
         if not finite and w != 0:
             bad[i] = 1
-        if finite and w > 0 and not norm > cancel_ratio * w:
+        if finite and w > 0 and not norm > cancel_ratio * r:
             bad[i] = 1
-        if finite and w > 0 and norm > cancel_ratio * w:
-            if norm < weak_ratio * w:
+        if finite and w > 0 and norm > cancel_ratio * r:
+            if norm < weak_ratio * r:
                 weak[i] = 1
             scale = np.float32(norm)
             if np.isfinite(scale):
@@ -248,12 +250,16 @@ def _normalize_rows_kernel(F, W, cancel_ratio, weak_ratio):  # pragma: no cover 
     return bad.sum(), weak.sum()
 
 
-def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, RowFates]:
-    """In place: F_i <- F_i / |F_i| where W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other
+def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None) -> tuple[np.ndarray, RowFates]:
+    """In place: F_i <- F_i / |F_i| where W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·K_i; other
     rows -> 0 (and their W_i -> 0). F: [N, D] float32 sums Σ_j w_ij f_j of unit embeddings, W: [N]
-    float32 their weights Σ_j w_ij, so |F_i| ≤ W_i. A sum under CANCEL_RATIO of its weight has
-    cancelled (its masks' embeddings point opposite ways): what is left is float32 rounding, whose
-    direction means nothing, so the Gaussian is left unassigned instead of given it.
+    float32 their weights Σ_j w_ij, so |F_i| ≤ W_i; K = kept ([N] float32, the weight of the pairs F
+    still holds after an exact vote trim: Block.kept) or W when None. A sum under CANCEL_RATIO of its
+    weight has cancelled (its masks' embeddings point opposite ways): what is left is float32
+    rounding, whose direction means nothing, so the Gaussian is left unassigned instead of given it.
+    A sum the vote trimmed is judged against what it still holds: a wall Gaussian whose heavy
+    close-up view was trimmed keeps its few far views' clean sum, which W (the close-up's weight
+    included) would call cancelled.
 
     |F_i| is summed in float64 and rounded to float32 before the division, as in
     `normalize_rows_reference` (a norm beyond float32's range divides in float64: the float32 norm
@@ -265,27 +271,29 @@ def normalize_rows(F: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, RowFates]:
     """
     if F.shape[0] == 0:
         return F, RowFates()
-    if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32):
-        return normalize_rows_reference(F, W)
-    dropped, weak = _normalize_rows_kernel(F, W, CANCEL_RATIO, WEAK_RESULTANT)
+    if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32 and (kept is None or kept.dtype == np.float32)):
+        return normalize_rows_reference(F, W, kept=kept)
+    dropped, weak = _normalize_rows_kernel(F, W, W if kept is None else np.ascontiguousarray(kept), CANCEL_RATIO, WEAK_RESULTANT)
     return F, RowFates(int(dropped), int(weak))
 
 
-def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, RowFates]:
+def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536, kept: np.ndarray | None = None) -> tuple[np.ndarray, RowFates]:
     """Reference of `normalize_rows` (numpy, chunk by chunk): in place F_i <- F_i / |F_i| where
-    W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·W_i; other rows -> 0 (and their W_i -> 0).
+    W_i > 0, F_i is finite and |F_i| > CANCEL_RATIO·K_i (K: kept, or W when None); other rows -> 0
+    (and their W_i -> 0).
 
     Returns (F, RowFates).
     """
     bad_total = weak_total = 0
     for start in range(0, F.shape[0], chunk):
         f, w = F[start : start + chunk], W[start : start + chunk]
+        k = (w if kept is None else kept[start : start + chunk]).astype(np.float64)
         norm = np.sqrt(np.einsum("nd,nd->n", f, f, dtype=np.float64))
-        finite = np.isfinite(norm) & np.isfinite(w)
-        cancelled = finite & (w > 0) & ~(norm > CANCEL_RATIO * w.astype(np.float64))
+        finite = np.isfinite(norm) & np.isfinite(w) & np.isfinite(k)
+        cancelled = finite & (w > 0) & ~(norm > CANCEL_RATIO * k)
         bad_total += int(np.count_nonzero(~finite & (w != 0))) + int(np.count_nonzero(cancelled))
         ok = finite & (w > 0) & ~cancelled
-        weak_total += int(np.count_nonzero(ok & (norm < WEAK_RESULTANT * w.astype(np.float64))))
+        weak_total += int(np.count_nonzero(ok & (norm < WEAK_RESULTANT * k)))
         with np.errstate(over="ignore"):
             scale = norm.astype(np.float32)
         big = ok & ~np.isfinite(scale)  # |F_i| past float32's range: divided in float64

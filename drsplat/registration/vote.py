@@ -47,7 +47,8 @@ keeps the paper's sums and trims them:
    mean in cluster c, which is small against the kept sums only while the trimmed weight is not
    much larger than the kept one, and a heavy close-up view trimmed against several far ones is
    where it is larger (docs/registration.md, "Robust votes across views"). W_i = Σ w_ij stays the
-   paper's, so coverage and floater rejection do not change.
+   paper's, so coverage and floater rejection do not change; an exact trim's block also carries
+   the weight F_i still holds (Block.kept), which the normalisation judges |F_i| against.
 
    After the cross-view check the clusters are made again from the masks the check kept
    (`check.KeptPairs.clusters`) and the pairs are the kept masks' less those of views that abstain
@@ -86,7 +87,8 @@ keeps the paper's sums and trims them:
    follow the sharp footprints (docs/evaluation.md, "Specificity").
 
 Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
-scratch; step 4: VOTE_SLOTS·8 more while a block is trimmed), K·D·12 bytes for K clusters in
+scratch; step 4: VOTE_SLOTS·8 more while a block is trimmed; the exact trim: 12 more and a buffer
+of at most 2²¹ pairs and 2 x 16 MB of embeddings, defaults.EXACT_TRIM_*), K·D·12 bytes for K clusters in
 blocks that are never copied, a view's [M, CLUSTER_BLOCK] cosines at most, and 4 bytes per mask
 for the views' cluster ids; the memory plan counts every mask as its own cluster
 (`cluster_bytes`). Under a memory budget the slots are summed block by block from the pair log
@@ -671,7 +673,8 @@ def _trimmed_pairs_kernel(rows, clusters, slot_c, bits, out):  # pragma: no cove
 
 def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
                            views: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], threshold: float = CLUSTER_COSINE,
-                           minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC) -> np.ndarray:
+                           minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC,
+                           removed: np.ndarray | None = None) -> np.ndarray:
     """In place on the paper's sums F [B, D] float32: every Gaussian that trims a cluster (steps 3 and,
     with slot_p, 4, decided as `trimmed_features` decides) loses that cluster's own pairs,
 
@@ -683,12 +686,13 @@ def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray
     the whole). Only the trimmed pairs cost D operations, and rows that trim nothing keep their
     bits. An evicted cluster's pairs, which no slot names, stay. views: the replay, per view (rows
     [P] of F, clusters [P] int32 (-1 none), masks [P] rows of feats, weights [P] float32, feats
-    [M, D] float32), read only when some row trims. Reference: `exact_trimmed_features_reference`.
-    Returns F."""
+    [M, D] float32), read only when some row trims. removed: [B] float32 zeros, or None: gets −Σ w_ij
+    of each row's trimmed pairs, added in the same order (so W + removed is the weight F still
+    holds). Reference: `exact_trimmed_features_reference`. Returns F."""
     bits = trimmed_slots(slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific)
     if not bits.any():
         return F
-    out = _TrimmedPairs(F)
+    out = _TrimmedPairs(F, removed)
     for rows, clusters, masks, weights, feats in views:
         if rows.size:
             rows = np.ascontiguousarray(rows, np.int32)
@@ -708,9 +712,10 @@ class _TrimmedPairs:
     written once per flush instead of once per view, and a row's pairs go in their order, so the
     bits do not depend on where flushes fall."""
 
-    def __init__(self, F: np.ndarray):
+    def __init__(self, F: np.ndarray, removed: np.ndarray | None = None):
         self.F = F
-        self._scratch_w = np.zeros(F.shape[0], np.float32)  # the flush kernel's W: not the sums' (the trim leaves W as it is)
+        # the flush's W: −Σ w of each row's trimmed pairs (not the sums' W, which the trim leaves as it is)
+        self._removed = np.zeros(F.shape[0], np.float32) if removed is None else removed
         self._g = np.empty(TRIM_BUFFER_PAIRS, np.int32)
         self._row = np.empty(TRIM_BUFFER_PAIRS, np.int32)
         self._w = np.empty(TRIM_BUFFER_PAIRS, np.float32)
@@ -743,7 +748,7 @@ class _TrimmedPairs:
         if self._filled:
             feats = np.concatenate(self._feats) if len(self._feats) > 1 else self._feats[0]
             n = self._filled
-            add_pairs_in_place(self.F, self._scratch_w, self._g[:n], self._row[:n], self._w[:n], feats)
+            add_pairs_in_place(self.F, self._removed, self._g[:n], self._row[:n], self._w[:n], feats)
         self._filled = 0
         self._feats = self._feats[-1:] if keep_last and self._feats else []
         self._num_feats = sum(f.shape[0] for f in self._feats)
@@ -832,18 +837,28 @@ def vote_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
 
 
 def trim_sums(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, clusters: MaskClusters, trim: float,
-              specific: Specificity | None, exact: PairSource | None, lo: int, hi: int, row: np.ndarray | None = None) -> np.ndarray:
+              specific: Specificity | None, exact: PairSource | None, lo: int, hi: int, row: np.ndarray | None = None,
+              ) -> tuple[np.ndarray, np.ndarray | None]:
     """The vote's trim of the sums F [B, D] of Gaussians lo .. hi-1 (or of `row` [N], a sample), in
     place, as a VoteSink or its device form has them: nothing at θ = NO_TRIM; step 4 when `specific`
     (its replay); exact (`exact_trimmed_features`, a replay of `exact`) or at the clusters' means
-    (`trimmed_features`). slot_*: [B, S] the slots; clusters: the views' mask clusters."""
+    (`trimmed_features`). slot_*: [B, S] the slots; clusters: the views' mask clusters. Returns (F,
+    removed: [B] float32 −Σ w of each row's trimmed pairs for an exact trim, else None)."""
     if trim == NO_TRIM:
-        return F
+        return F, None
     slot_p = None if specific is None else slot_specificity(specific.views(clusters.per_view, lo, hi, row), slot_c)
     if exact is None:
-        return trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), trim, slot_p=slot_p)
-    return exact_trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), untrimmed_replay(exact, clusters.per_view, lo, hi, row), trim,
-                                  slot_p=slot_p)
+        return trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), trim, slot_p=slot_p), None
+    removed = np.zeros(F.shape[0], np.float32)
+    exact_trimmed_features(F, slot_c, slot_v, slot_s, clusters.means(), untrimmed_replay(exact, clusters.per_view, lo, hi, row), trim,
+                           slot_p=slot_p, removed=removed)
+    return F, removed
+
+
+def kept_weights(W: np.ndarray, removed: np.ndarray | None) -> np.ndarray | None:
+    """[B] float32 W + removed, the weight of the pairs an exactly trimmed F still holds (Block.kept),
+    or None when nothing was removed exactly."""
+    return None if removed is None else W + removed
 
 
 NO_TRIM = -2.0  # a θ below any cosine, so every cluster is like every other: step 3 trims nothing, nor does step 4 (no cluster is unlike the winner)
@@ -931,7 +946,7 @@ class VoteSink:
         if self.block < 1:
             raise ValueError("block must be >= 1")
         self._state = None if plog is not None else self._empty(num_gaussians)
-        self._trimmed_sums: tuple[np.ndarray, np.ndarray] | None = None  # in one block: (F, W) once trimmed, in place
+        self._trimmed_sums: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # in one block: (F, W, kept) once trimmed, in place
 
     def _empty(self, rows: int):
         return (Accumulator(rows, self.dim), np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)),
@@ -960,14 +975,15 @@ class VoteSink:
         the paper's as they are."""
         return self.trim != NO_TRIM
 
-    def _finish(self, state, lo: int, hi: int, row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The trimmed sums of the state's rows: Gaussians lo .. hi-1, or those `row` [N] maps to rows."""
+    def _finish(self, state, lo: int, hi: int, row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The trimmed sums of the state's rows, (F, W, kept: Block.kept): Gaussians lo .. hi-1, or those `row` [N] maps to rows."""
         acc, slot_c, slot_v, slot_s, _ = state
         F, W = acc.sums()
-        return self._trimmed(F, slot_c, slot_v, slot_s, lo, hi, row), W
+        F, removed = self._trimmed(F, slot_c, slot_v, slot_s, lo, hi, row)
+        return F, W, kept_weights(W, removed)
 
     def _trimmed(self, F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, lo: int, hi: int,
-                 row: np.ndarray | None = None) -> np.ndarray:
+                 row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         return trim_sums(F, slot_c, slot_v, slot_s, self.clusters, self.trim, self.specific, self.exact, lo, hi, row)
 
     def blocks(self) -> Iterator[Block]:
@@ -994,15 +1010,15 @@ class VoteSink:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
         row, lo, hi = sample_rows(ids, self.num_gaussians)
         if self._trimmed_sums is not None:
-            F, W = self._trimmed_sums
+            F, W, _ = self._trimmed_sums
             return F[ids], W[ids].copy()
         if self._state is not None:
             acc, slot_c, slot_v, slot_s, _ = self._state
             F, W = acc.sums()
-            return self._trimmed(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], lo, hi, row), W[ids].copy()
+            return self._trimmed(F[ids], slot_c[ids], slot_v[ids], slot_s[ids], lo, hi, row)[0], W[ids].copy()
         state = self._empty(ids.shape[0])
         for index, view in enumerate(self._log.block_views(lo, hi) if ids.size else ()):
             keep = row[view.gaussians] >= 0
             if keep.any():
                 self._fold(state, row[view.gaussians[keep]], view.masks[keep], self.clusters.per_view[index], view.weights[keep], view.feats)
-        return self._finish(state, lo, hi, row)
+        return self._finish(state, lo, hi, row)[:2]
