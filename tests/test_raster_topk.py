@@ -237,3 +237,5 @@ def test_normalize_rows_judges_a_trimmed_sum_against_the_weight_it_still_holds()
         f, w = F.copy(), W.copy()
         _, fates = kernel(f, w)
         assert fates.dropped == 6 and not (w > 0).any()  # against W every one looks cancelled
+    with pytest.raises(ValueError, match="kept has shape"):
+        normalize_rows(F.copy(), W.copy(), kept=kept[:5])

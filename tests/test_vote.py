@@ -475,8 +475,8 @@ def test_exact_trim_equals_its_reference_bit_for_bit(case, monkeypatch):
     """The exact trim (a replay subtracting the pairs of the clusters a Gaussian trims) and its
     plain-Python reference give the same bits: on random views with zero weights and masks without
     a cluster, on rows whose slots overflow (evicted clusters are kept), with step 4's
-    specificities, and where nothing is trimmed, whatever its buffer's size (flushes of 7 pairs or
-    of 3 embeddings, a view cut across flushes). Rows that trim nothing keep the paper's sums bit
+    specificities, and where nothing is trimmed, whatever its buffer's size (a flush before every
+    view when it holds 3 embeddings at most). Rows that trim nothing keep the paper's sums bit
     for bit; a trimmed row equals the paper's sum of its kept pairs alone, to float32 rounding."""
     import drsplat.registration.vote as vote
     from drsplat.registration.vote import (exact_trimmed_features, exact_trimmed_features_reference, fold_view_votes, trimmed_slots,
@@ -507,7 +507,6 @@ def test_exact_trim_equals_its_reference_bit_for_bit(case, monkeypatch):
     views = [(v.gaussians, clusters.per_view[i][v.masks], v.masks, v.weights, v.feats) for i, v in enumerate(record.views)]
     want = exact_trimmed_features_reference(F.copy(), slot_c, slot_v, means, views, slot_p=slot_p)
     np.testing.assert_array_equal(got, want)
-    monkeypatch.setattr(vote, "TRIM_BUFFER_PAIRS", 7)
     monkeypatch.setattr(vote, "TRIM_BUFFER_FEAT_BYTES", 3 * D * 4)
     small = exact_trimmed_features(F.copy(), slot_c, slot_v, slot_s, means, untrimmed_replay(record, clusters.per_view, 0, n), slot_p=slot_p)
     np.testing.assert_array_equal(small, want)

@@ -22,7 +22,7 @@ import numpy as np
 
 from drsplat.memory import small_page_zeros
 
-MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (32 MB at D = 512)
+MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (128 MB at D = 512)
 CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
 WEAK_RESULTANT = 0.05  # |Σ w f| < this · Σ w: kept, but counted as a guess (`RowFates.weak`); CLIP's crops embed far closer than that
 
@@ -107,13 +107,20 @@ class Accumulator:
 
     Views' distinct (Gaussian, mask) pairs and the embeddings of their masks are buffered; a flush
     folds the buffer into F grouped by Gaussian, so memory is N·D + the buffer (`pair_capacity`
-    pairs, at least N), never Gaussians x masks.
+    pairs, at least N, and about `max_rows` embeddings), never Gaussians x masks. sums: (F [N, D],
+    W [N]) float32 to add into in place instead of new zeros (the vote's exact trim subtracts its
+    trimmed pairs from a block's sums, weights negated).
     """
 
-    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23):
-        self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
-        zero_in_parallel(self.F)  # touch every page now, not inside the first flush
-        self.W = np.zeros(num_gaussians, np.float32)
+    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23, max_rows: int = MAX_BUFFERED_ROWS,
+                 sums: tuple[np.ndarray, np.ndarray] | None = None):
+        if sums is None:
+            self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
+            zero_in_parallel(self.F)  # touch every page now, not inside the first flush
+            self.W = np.zeros(num_gaussians, np.float32)
+        else:
+            self.F, self.W = sums
+        self._max_rows = int(max_rows)
         capacity = max(pair_capacity, num_gaussians, 1)
         self._pair_g = np.zeros(capacity, np.int32)
         self._pair_row = np.zeros(capacity, np.int32)
@@ -134,7 +141,7 @@ class Accumulator:
         same bits wherever they were computed.
         """
         num_masks = feats.shape[0]
-        if self._num_rows > MAX_BUFFERED_ROWS:  # bound the embedding buffer of sparse views too
+        if self._num_rows > self._max_rows:  # bound the embedding buffer of sparse views too
             self.flush()
         offset = self._push_rows(np.asarray(feats, np.float32))
         start, total = 0, gaussians.shape[0]
@@ -269,6 +276,8 @@ def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None)
     float32 rounding boundary. Returns (F, RowFates: the rows with weight dropped for non-finite or
     cancelled sums, and the rows kept whose |F_i| < WEAK_RESULTANT·W_i).
     """
+    if kept is not None and kept.shape != W.shape:  # the kernel reads kept[i] for every row, unchecked
+        raise ValueError(f"normalize_rows: kept has shape {kept.shape}, W {W.shape}: one weight per row of F")
     if F.shape[0] == 0:
         return F, RowFates()
     if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32 and (kept is None or kept.dtype == np.float32)):

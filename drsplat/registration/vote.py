@@ -87,8 +87,8 @@ keeps the paper's sums and trims them:
    follow the sharp footprints (docs/evaluation.md, "Specificity").
 
 Memory: the paper's F [N, D] plus VOTE_SLOTS·20 + 8 bytes per Gaussian (slots, a view-total
-scratch; step 4: VOTE_SLOTS·8 more while a block is trimmed; the exact trim: 12 more and a buffer
-of at most 2²¹ pairs and 2 x 16 MB of embeddings, defaults.EXACT_TRIM_*), K·D·12 bytes for K clusters in
+scratch; step 4: VOTE_SLOTS·8 more while a block is trimmed; the exact trim: 24 more and a sums
+buffer (`sums.Accumulator` into F) of max(2²¹, N) pairs and 2 x 16 MB of embeddings at most, defaults.EXACT_TRIM_*), K·D·12 bytes for K clusters in
 blocks that are never copied, a view's [M, CLUSTER_BLOCK] cosines at most, and 4 bytes per mask
 for the views' cluster ids; the memory plan counts every mask as its own cluster
 (`cluster_bytes`). Under a memory budget the slots are summed block by block from the pair log
@@ -109,7 +109,7 @@ from drsplat.defaults import VOTE_SLOTS
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
-from drsplat.registration.sums import Accumulator, add_pairs_in_place
+from drsplat.registration.sums import Accumulator
 
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
@@ -120,8 +120,8 @@ CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
 TRIM_COSINE_TABLE_BYTES = 64 << 20  # the trim keeps its clusters' cosines in a [K, K] table up to K = 4,096
-TRIM_BUFFER_PAIRS = 1 << 21  # trimmed pairs the exact trim buffers before subtracting them (24 MB; defaults.EXACT_TRIM_BUFFER_BYTES)
-TRIM_BUFFER_FEAT_BYTES = 16 << 20  # the mask embeddings it buffers with them (more only when one view's alone are more)
+TRIM_BUFFER_PAIRS = 1 << 21  # trimmed pairs the exact trim buffers before subtracting them (24 MB, at least one per Gaussian; defaults.EXACT_TRIM_*)
+TRIM_BUFFER_FEAT_BYTES = 16 << 20  # the mask embeddings it buffers with them (twice that as its buffer grows; more only for one view's alone)
 SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
@@ -692,7 +692,11 @@ def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray
     bits = trimmed_slots(slot_c, slot_v, slot_s, means, threshold, minority, slot_p, specific)
     if not bits.any():
         return F
-    out = _TrimmedPairs(F, removed)
+    # the trimmed pairs of several views buffered, then subtracted by the sums' own flush with the weights
+    # negated (f + (−w)·x is f − w·x to the bit): each row of F is read and written once per flush, not once
+    # per view, and a row's pairs go in their order, so the bits do not depend on where flushes fall
+    removed = np.zeros(F.shape[0], np.float32) if removed is None else removed
+    out = Accumulator(F.shape[0], F.shape[1], TRIM_BUFFER_PAIRS, max(1, TRIM_BUFFER_FEAT_BYTES // (4 * max(F.shape[1], 1))), sums=(F, removed))
     for rows, clusters, masks, weights, feats in views:
         if rows.size:
             rows = np.ascontiguousarray(rows, np.int32)
@@ -700,58 +704,9 @@ def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray
             _trimmed_pairs_kernel(rows, np.ascontiguousarray(clusters, np.int32), slot_c, bits, hit)
             at = np.flatnonzero(hit)
             if at.size:
-                out.add(rows[at], np.asarray(masks)[at], np.asarray(weights, np.float32)[at], feats)
+                out.add_pairs(rows[at], np.asarray(masks, np.int32)[at], -np.asarray(weights, np.float32)[at], feats)
     out.flush()
     return F
-
-
-class _TrimmedPairs:
-    """The trimmed pairs of several views buffered (at most TRIM_BUFFER_PAIRS pairs and
-    TRIM_BUFFER_FEAT_BYTES of embeddings), then subtracted from F grouped by row by the sums' own flush
-    (`sums.add_pairs_in_place`) with the weights negated (f + (−w)·x is f − w·x to the bit): each row of F is read and
-    written once per flush instead of once per view, and a row's pairs go in their order, so the
-    bits do not depend on where flushes fall."""
-
-    def __init__(self, F: np.ndarray, removed: np.ndarray | None = None):
-        self.F = F
-        # the flush's W: −Σ w of each row's trimmed pairs (not the sums' W, which the trim leaves as it is)
-        self._removed = np.zeros(F.shape[0], np.float32) if removed is None else removed
-        self._g = np.empty(TRIM_BUFFER_PAIRS, np.int32)
-        self._row = np.empty(TRIM_BUFFER_PAIRS, np.int32)
-        self._w = np.empty(TRIM_BUFFER_PAIRS, np.float32)
-        self._filled = 0
-        self._feats: list[np.ndarray] = []
-        self._num_feats = 0
-
-    def add(self, rows: np.ndarray, masks: np.ndarray, weights: np.ndarray, feats: np.ndarray) -> None:
-        """One view's trimmed pairs (rows, masks [P] of its feats [M, D], weights [P] float32)."""
-        if self._filled and (self._num_feats + feats.shape[0]) * feats.shape[1] * 4 > TRIM_BUFFER_FEAT_BYTES:
-            self.flush()
-        self._feats.append(np.asarray(feats, np.float32))
-        self._num_feats += feats.shape[0]
-        offset = self._num_feats - feats.shape[0]
-        start = 0
-        while start < rows.shape[0]:
-            if self._filled == TRIM_BUFFER_PAIRS:
-                self.flush(keep_last=True)  # this view's embeddings become rows 0..
-                offset = 0
-            take = min(TRIM_BUFFER_PAIRS - self._filled, rows.shape[0] - start)
-            dst = slice(self._filled, self._filled + take)
-            self._g[dst] = rows[start : start + take]
-            self._row[dst] = masks[start : start + take] + offset
-            self._w[dst] = -weights[start : start + take]
-            self._filled += take
-            start += take
-
-    def flush(self, keep_last: bool = False) -> None:
-        """Subtract the buffered pairs; keep the last view's embeddings (rows 0..) when it still has pairs to come."""
-        if self._filled:
-            feats = np.concatenate(self._feats) if len(self._feats) > 1 else self._feats[0]
-            n = self._filled
-            add_pairs_in_place(self.F, self._removed, self._g[:n], self._row[:n], self._w[:n], feats)
-        self._filled = 0
-        self._feats = self._feats[-1:] if keep_last and self._feats else []
-        self._num_feats = sum(f.shape[0] for f in self._feats)
 
 
 def slot_specificity_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], slot_c: np.ndarray) -> np.ndarray:
