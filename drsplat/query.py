@@ -21,7 +21,7 @@ import numpy as np
 
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
-from drsplat.lang import LanguageField, has_direction, unit_rows
+from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows
 from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
@@ -54,11 +54,9 @@ def query_rows(x: np.ndarray, what: str = "query") -> np.ndarray:
     not finite or is zero (`unit_rows` would make it a zero row, whose scores look like an
     unassigned Gaussian's, or a negative that never wins: a numerical probe, 2026-11-30)."""
     x = np.atleast_2d(np.asarray(x))
-    finite = np.isfinite(x).all(axis=1)
-    for bad, why in ((~finite, "holds non-finite values"), (finite & ~has_direction(x), "is all zeros")):
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise DrsplatError(f"{what} {i} {why}: it has no direction to score by" + (f" ({int(bad.sum())} such rows)" if bad.sum() > 1 else ""))
+    problem = undirected_rows_problem(x, what)
+    if problem is not None:
+        raise DrsplatError(problem)
     return unit_rows(x)
 
 

@@ -510,6 +510,23 @@ def test_pair_weights_that_are_not_finite_or_negative_are_refused_naming_the_vie
         sink.add(_view("v0", feats, np.arange(6), np.arange(6) % 2, weights))
 
 
+def test_pair_weights_past_the_exact_sums_range_are_refused_naming_the_view():
+    """Round 35 left it as found: pair weights over ~5.5e11 (2^39) wrapped the supports' int64 fixed
+    point when `CheckSink` was called directly (registration bounds pixels x views first). The sink
+    bounds (the most pair weight of one view) x (views) as `fixed_point_fits` bounds pixels x views:
+    views of 2e11 each pass at the third, a single view of 1e12 at once."""
+    rng = np.random.default_rng(0)
+    feats = _unit(rng.normal(size=(2, D)))
+    sink = CheckSink(6, D, vote=False, inner=MemorySink(6, D))
+    sink.add(_view("v0", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
+    sink.add(_view("v1", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
+    with pytest.raises(ValueError, match=r"view 'v2': 3 views of up to 2e\+11 pair weight each pass the range of the check's exact sums"):
+        sink.add(_view("v2", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
+    alone = CheckSink(6, D, vote=False, inner=MemorySink(6, D))
+    with pytest.raises(ValueError, match=r"view 'big': 1 view of up to 1e\+12 pair weight"):
+        alone.add(_view("big", feats, np.arange(6), np.arange(6) % 2, np.full(6, 1e12 / 6)))
+
+
 @pytest.mark.parametrize("mislabel", [False, True])
 def test_masks_of_one_label_are_kept_though_a_view_holds_several(mislabel):
     """Round 35: the like cosine is halfway between the masks' agreement with their Gaussians' other

@@ -320,10 +320,12 @@ def rooms(tmp_path_factory):
     return {src: write_dataset(root / src, "hard-tiny", 0, mask_source=src, show_progress=False) for src in ("render", "geometry")}
 
 
-def test_a_probe_view_without_masks_is_scored_as_empty_not_a_crash(rooms, tmp_path):
+def test_a_probe_view_without_masks_is_left_out_of_the_scores_not_a_crash(rooms, tmp_path):
     """Was (a probe, 2026-12-01): the default mode raised IndexError when one of the fit stage's probe
     views had a feature file with no masks (a segmenter that found nothing there): its mask map was
-    indexed into the view's empty embedding groups. That view now scores 0 under both footprints, and
+    indexed into the view's empty embedding groups. Then (round 36) that view scored 0 under both
+    footprints, and its zeros, in S and in three of H's six pairs, pulled both margins toward 0 (the
+    paper's footprint). Now it is left out: the other views' scores are the room's own, S and H, and
     the registration runs as the other modes do."""
     import shutil
 
@@ -335,8 +337,14 @@ def test_a_probe_view_without_masks_is_scored_as_empty_not_a_crash(rooms, tmp_pa
     empty = cams[int(probe_views(len(cams))[0])].name
     ids, feats = read_features(data / "features", empty)
     write_features(data / "features", empty, np.full_like(ids, -1), np.zeros((0, feats.shape[1]), np.float32))
+    whole = choose_footprint(scene, cams, rooms["geometry"] / "features", 1, 40)
     choice = choose_footprint(scene, cams, data / "features", 1, 40)
-    assert choice.paper[0] == choice.sharp[0] == 0.0 and choice.footprint == "sharp"  # the other probes still decide
+    assert empty not in choice.views and choice.views == whole.views[1:] and choice.footprint == "sharp"
+    np.testing.assert_array_equal(choice.paper, whole.paper[1:])
+    np.testing.assert_array_equal(choice.sharp, whole.sharp[1:])
+    # H's pairs in order (1, 0), (2, 0), (2, 1), (3, 0), (3, 1), (3, 2): those without view 0
+    np.testing.assert_array_equal(choice.held_paper, whole.held_paper[[2, 4, 5]])
+    np.testing.assert_array_equal(choice.held_sharp, whole.held_sharp[[2, 4, 5]])
     result = register_features(scene, cams, data / "features", RegisterOptions(topk=10), show_progress=False)
     assert result.fit is not None and np.count_nonzero(result.weights > 0) > 0
 

@@ -536,3 +536,24 @@ def test_segment_refuses_a_min_score_that_is_not_a_finite_cosine(bad):
     field = build_field(np.eye(4, dtype=np.float32)[[0, 1, 2]], np.ones(3, np.float32), "none")
     with pytest.raises(ValueError, match="min_score must be a finite cosine"):
         segment(field, np.eye(4, dtype=np.float32)[:2], min_score=bad)
+
+
+@pytest.mark.parametrize("bad", [0.0, np.nan, np.inf])
+def test_a_field_refuses_a_query_row_without_a_direction_naming_it(bad):
+    """Round 37 left it as found: `LanguageField.scores` made a zero or NaN query row a zero row,
+    whose column scored 0 for every Gaussian, as if none were assigned (the refusals were in
+    `cosine`, `relevancy` and `segment` only). The field refuses it, naming the row, as they do."""
+    from drsplat.lang import build_field, unit_rows
+
+    rng = np.random.default_rng(0)
+    field = build_field(unit_rows(rng.normal(size=(50, 16))), np.ones(50))
+    queries = rng.normal(size=(3, 16)).astype(np.float32)
+    good = field.scores(queries)
+    assert good.shape == (50, 3) and np.abs(good).max() > 0.1
+    queries[1] = 0.0 if bad == 0.0 else rng.normal(size=16)
+    if bad != 0.0:
+        queries[1, 5] = bad
+    why = "is all zeros" if bad == 0.0 else "holds non-finite values"
+    for score in (field.scores, field.scores_reference):
+        with pytest.raises(ValueError, match=f"query 1 {why}: it has no direction to score by"):
+            score(queries)

@@ -380,6 +380,20 @@ def has_direction(x: np.ndarray) -> np.ndarray:
         return np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
 
 
+def undirected_rows_problem(x: np.ndarray, what: str = "query") -> str | None:
+    """Why rows of x [K, D] cannot be queried, naming the first such row (non-finite rows before
+    all-zero ones, and how many there are), or None when every row `has_direction`: `unit_rows`
+    would make such a row a zero row, whose scores look like an unassigned Gaussian's."""
+    x = np.atleast_2d(np.asarray(x))
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(x).all(axis=1)
+    for bad, why in ((~finite, "holds non-finite values"), (finite & ~has_direction(x), "is all zeros")):
+        if bad.any():
+            count = int(bad.sum())
+            return f"{what} {int(np.flatnonzero(bad)[0])} {why}: it has no direction to score by" + (f" ({count} such rows)" if count > 1 else "")
+    return None
+
+
 @numba.njit(parallel=True, cache=True)
 def _unit_check_kernel(f, tol, ok, off):  # pragma: no cover - jitted
     """Per row of f [N, D] float32, in parallel, one pass: ok = finite and not all zero

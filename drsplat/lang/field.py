@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, unit_check, unit_rows
+from drsplat.lang.codebook import PQ_KSUB, Codebook, load_codebook, train_codebook, undirected_rows_problem, unit_check, unit_rows
 from drsplat.lang.backends import BACKENDS, ExactStorage, Storage
 from drsplat.lang.lut import has_feature
 
@@ -136,6 +136,9 @@ class LanguageField:
         q = np.atleast_2d(np.asarray(queries, np.float32))
         if q.ndim != 2 or q.shape[1] != self.dim:
             raise ValueError(f"queries have shape {np.shape(queries)}; this field holds {self.dim}-D features")
+        problem = undirected_rows_problem(q)
+        if problem is not None:  # as a zero row it would score 0 everywhere, like an unassigned Gaussian (round 37)
+            raise ValueError(problem)
         return q
 
 

@@ -1217,6 +1217,8 @@ class CheckSink:
         self._summed = False
         self._with_pairs = 0  # masks with a pair, over the views added (`_ungrouped_verdicts`)
         self._views_with_pairs = 0
+        self._largest_view_weight = 0.0  # the most pair weight one view added (`_check_range`)
+        self._views_added = 0
 
     @property
     def num_blocks(self) -> int:
@@ -1239,12 +1241,28 @@ class CheckSink:
             if bad:
                 raise ValueError(f"view {view.name!r}: {bad} of its {view.weights.size} pair weights are NaN, infinite or negative; "
                                  "the check takes finite weights >= 0 (w = T·alpha summed per mask)")
+        self._check_range(view)
         present = view.present_masks()
         self.clusters.add(view.feats, present)
         self._with_pairs += int(np.count_nonzero(present))
         self._views_with_pairs += bool(present.any())
         if self.record is not None:
             self.record.add(view)
+
+    def _check_range(self, view: ViewPairs) -> None:
+        """ValueError, naming the view, once the views added could take a support sum past its fixed
+        point's range: q[j, c] ≤ mass_j · views and a mask's mass is at most its view's pair weight,
+        so (the most pair weight of one view) x (views) must stay under 2⁶³ units of 2⁻²⁴, as
+        `fixed_point_fits` asks of pixels x views before a registration (whose weights sum to ≤ 1 a
+        pixel). Only a caller's own pair weights can pass it (round 35: over ~5.5e11 they wrapped)."""
+        total = float(view.weights.sum(dtype=np.float64)) if view.weights.size else 0.0
+        self._largest_view_weight = max(self._largest_view_weight, total)
+        self._views_added += 1
+        if not self._largest_view_weight * self._views_added < 2.0**63 / SUPPORT_SCALE:
+            views = f"{self._views_added:,} view{'s' if self._views_added != 1 else ''}"
+            raise ValueError(f"view {view.name!r}: {views} of up to {self._largest_view_weight:.4g} pair weight each pass "
+                             f"the range of the check's exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); registration's weights sum to at most "
+                             "1 a pixel")
 
     def kept_pairs(self, partial_supports: Callable[[Callable[[SupportFile], None]], None] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are

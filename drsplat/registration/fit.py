@@ -28,7 +28,8 @@ did not make it: for probe views a < b,
 then runs with the sharp weights when the probe views' mean of S_sharp - S_paper is above zero or the
 pairs' mean of H_sharp - H_paper is above HELD_OUT_MIN_MARGIN (on masks drawn from the footprints
 H's margin stayed at or below +0.0009 over 126 rooms, though it goes far below zero, to -0.10; round
-36 measured -0.078 on a merged room), and with the paper's otherwise (`FitChoice.decide`):
+36 measured -0.078 on a merged room), and with the paper's otherwise (`FitChoice.decide`); a probe
+view with no mask over a Gaussian it sees is left out of both means (`scores_footprints`):
 "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`), and everything
 downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
@@ -123,9 +124,10 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
 
 @dataclass
 class FitChoice:
-    """The fit stage's decision: footprint "paper" or "sharp"; views: the probe views' names;
-    paper, sharp: [P] their scores S_u; held_paper, held_sharp: [P(P-1)/2] their held-out scores H_u,
-    one per pair of probe views (module docstring)."""
+    """The fit stage's decision: footprint "paper" or "sharp"; views: the names of the probe views
+    scored (those with a mask over a Gaussian they see, `scores_footprints`); paper, sharp: [P] their
+    scores S_u; held_paper, held_sharp: [P(P-1)/2] their held-out scores H_u, one per pair of them
+    (module docstring)."""
 
     footprint: str
     views: list[str]
@@ -153,6 +155,16 @@ class FitChoice:
 def mean_or_zero(values: np.ndarray) -> float:
     """The mean of a fit score's values [P], 0 when there are none (no probe view, or no pair of them)."""
     return float(np.mean(values)) if len(values) else 0.0
+
+
+def scores_footprints(ids: np.ndarray, weights: np.ndarray, groups: np.ndarray) -> bool:
+    """Whether a probe view can score the footprints: some slot of weight > 0 lies in a pixel of a
+    mask (ids, weights [H, W, k]; groups [H, W] its grouped masks, -1 none). A view without (no mask
+    file's masks, or masks only over pixels it renders nothing in) would score 0 under both, and its
+    zeros, in S and in H's pairs, would pull both margins toward 0 (the paper's footprint; round 36).
+    The sharp weights are w·max(·, SHARP_FLOOR) > 0 exactly where w > 0, so one test serves both."""
+    masked = groups >= 0
+    return bool(masked.any() and np.any((ids[masked] >= 0) & (weights[masked] > 0)))
 
 
 def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
@@ -494,11 +506,12 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
     # layout the format's: `register` checked every view's headers already; this guards a direct call
     read_feature_headers(features_dir, [views[i] for i in picks], level)
-    scores = {footprint: np.zeros(len(picks)) for footprint in FOOTPRINTS}
+    scores: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     kept_labels = {footprint: HeldOut() for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
-    for t, i in enumerate(picks):
+    names: list[str] = []  # the probe views scored
+    for i in picks:
         if cancel is not None:
             cancel.raise_if_cancelled()
         cam, mask_ids, feats, nonfinite = probe_view(features_dir, views[i], level)
@@ -509,20 +522,27 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
+        scored = scores_footprints(out.ids, out.weights, groups)
+        if scored:
+            names.append(views[i].name)
         for footprint in FOOTPRINTS:
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
-            labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
-            s_and_h = rerender_scores(out.ids, weights, kept_labels[footprint].labellings(labels, groups, units), groups, feats.shape[0])
-            scores[footprint][t] = s_and_h[0]
-            held[footprint] += s_and_h[1:].tolist()
-            kept_labels[footprint].keep(labels, feats)
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
-    choice = FitChoice("paper", [views[i].name for i in picks], scores["paper"], scores["sharp"], np.array(held["paper"]), np.array(held["sharp"]))
+            if not scored:
+                continue
+            labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
+            s_and_h = rerender_scores(out.ids, weights, kept_labels[footprint].labellings(labels, groups, units), groups, feats.shape[0])
+            scores[footprint].append(float(s_and_h[0]))
+            held[footprint] += s_and_h[1:].tolist()
+            kept_labels[footprint].keep(labels, feats)
+    choice = FitChoice("paper", names, np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]), np.array(held["sharp"]))
     choice.footprint = choice.decide()
+    if len(names) < len(picks):
+        log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
-             "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(picks),
+             "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(names),
              "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
              mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
