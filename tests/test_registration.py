@@ -350,6 +350,29 @@ def test_checkpoint_with_other_parameters_is_not_resumed(tiny, tmp_path, caplog)
     assert result.resumed_views == 0 and "other parameters" in caplog.text
 
 
+def test_features_still_being_written_are_said_to_be_unfinished(tiny, tmp_path, caplog):
+    """Round 18 left it as found: `register` on a folder that `features` is still writing (or that a
+    stopped run left) warned only that views had no feature file. Such a folder holds `features`'
+    journal of image stamps, folded into the manifest when the run finishes: register says so."""
+    from drsplat.features.format import STAMP_JOURNAL
+
+    feats = tmp_path / "features"
+    feats.mkdir()
+    cams = load_cameras(tiny)
+    for cam in cams[:4]:
+        write_features(feats, cam.name, *read_features(tiny / "features", cam.name, level=1))
+    scene = load_ply(tiny / "scene.ply")
+    with caplog.at_level(logging.WARNING):
+        register_features(scene, cams, feats, RegisterOptions(topk=5), show_progress=False)
+    assert "has not finished" not in caplog.text
+    (feats / STAMP_JOURNAL).write_text('{"view_000": "1:2"}\n')
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        result = register_features(scene, cams, feats, RegisterOptions(topk=5), show_progress=False)
+    assert result.num_views == 4
+    assert f"holds the journal of a `drsplat features` run that has not finished ({STAMP_JOURNAL})" in caplog.text
+
+
 def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
     feats = tmp_path / "features"
     feats.mkdir()

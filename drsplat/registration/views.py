@@ -16,7 +16,7 @@ import numpy as np
 
 from drsplat.cameras import Camera, same_aspect
 from drsplat.errors import InputError
-from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
+from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
 from drsplat.utils import npy_header
 
@@ -63,6 +63,9 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     if sel.missing:
         log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)", len(sel.missing), len(cameras), features_dir,
                     ", ".join(sel.missing[:3]))
+    if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
+        log.warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
+                    "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
     if sel.unmatched:
         log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
     duplicates = len(sel.views) - len({c.name for c in sel.views})
