@@ -83,7 +83,10 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     feats = feats[np.linalg.norm(feats, axis=1) > 0]
     if feats.shape[0] == 0:
         raise DrsplatError("none of the selected Gaussians has a language feature (all unassigned)")
-    return unit_rows(feats.mean(axis=0))[0]
+    mean = feats.mean(axis=0)
+    if not has_direction(mean)[0]:  # opposite features cancel: a zero query would be refused by the field
+        raise DrsplatError(f"the features of the {feats.shape[0]} selected Gaussians cancel out: their mean has no direction to query by")
+    return unit_rows(mean)[0]
 
 
 def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:

@@ -108,6 +108,19 @@ def test_click_query_is_the_mean_feature(world, fields):
         click_query(fields["exact"], np.array([0, 1]))
 
 
+def test_click_query_on_features_that_cancel_is_one_error_not_a_zero_query():
+    """Two selected Gaussians of opposite features have a mean of no direction; the field refuses a
+    zero query (round 38), so the click says why in the words a user reads."""
+    from drsplat.lang import build_field
+
+    f = np.zeros((3, 8), np.float32)
+    f[0, 0], f[1, 0], f[2, 1] = 1.0, -1.0, 1.0
+    field = build_field(f, np.ones(3), "none", clip_model="oracle")
+    with pytest.raises(DrsplatError, match="the features of the 2 selected Gaussians cancel out"):
+        click_query(field, np.array([0, 1]))
+    np.testing.assert_array_equal(click_query(field, np.array([0, 2])), np.array([1, 1, 0, 0, 0, 0, 0, 0], np.float32) / np.float32(np.sqrt(2)))
+
+
 def test_clip_model_mismatch_is_refused(world, fields):
     check_clip_models("ViT-B-16/laion2b_s34b_b88k", "ViT-B-16/laion2b_s34b_b88k")
     check_clip_models("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -50,7 +50,8 @@ def test_torch_scores_equal_cpu_kernels(data, codebook):
 def test_device_copy_is_made_once(data):
     x, w = data
     field = build_field(x, w, "none", clip_model="oracle")
-    field.scores(x[:2], device="cpu")
+    queries = x[np.linalg.norm(x, axis=1) > 0]  # assigned rows: a zero query is refused
+    field.scores(queries[:2], device="cpu")
     first = field._on_device
-    field.scores(x[2:4], device="cpu")
-    assert field._on_device is first and isinstance(field.scores_torch(x[:2], "cpu"), torch.Tensor)
+    field.scores(queries[2:4], device="cpu")
+    assert field._on_device is first and isinstance(field.scores_torch(queries[:2], "cpu"), torch.Tensor)
