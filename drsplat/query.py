@@ -53,7 +53,8 @@ def query_rows(x: np.ndarray, what: str = "query") -> np.ndarray:
     """Query-like embeddings as unit rows [K, D] float32; DrsplatError naming the first row that is
     not finite or is zero (`unit_rows` would make it a zero row, whose scores look like an
     unassigned Gaussian's, or a negative that never wins: a numerical probe, 2026-11-30)."""
-    x = np.atleast_2d(np.asarray(x))
+    with np.errstate(over="ignore"):  # judged as `unit_rows` reads them: in float32 1e-50 is 0 and 1e39 is inf
+        x = np.atleast_2d(np.asarray(x, np.float32))
     problem = undirected_rows_problem(x, what)
     if problem is not None:
         raise DrsplatError(problem)

@@ -513,18 +513,44 @@ def test_pair_weights_that_are_not_finite_or_negative_are_refused_naming_the_vie
 def test_pair_weights_past_the_exact_sums_range_are_refused_naming_the_view():
     """Round 35 left it as found: pair weights over ~5.5e11 (2^39) wrapped the supports' int64 fixed
     point when `CheckSink` was called directly (registration bounds pixels x views first). The sink
-    bounds (the most pair weight of one view) x (views) as `fixed_point_fits` bounds pixels x views:
-    views of 2e11 each pass at the third, a single view of 1e12 at once."""
+    bounds (the most pair weight of one view) x (views) x VIEW_VOTES (a slot's count is at most the
+    votes cast into its Gaussian's slots, 10 a view) as `fixed_point_fits` bounds pixels x views:
+    views of 2e10 each pass at the third, a single view of 1e12 at once; a view refused is not
+    counted, so a caller that goes on is judged on the views it kept."""
     rng = np.random.default_rng(0)
     feats = _unit(rng.normal(size=(2, D)))
     sink = CheckSink(6, D, vote=False, inner=MemorySink(6, D))
-    sink.add(_view("v0", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
-    sink.add(_view("v1", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
-    with pytest.raises(ValueError, match=r"view 'v2': 3 views of up to 2e\+11 pair weight each pass the range of the check's exact sums"):
-        sink.add(_view("v2", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e11 / 6)))
+    sink.add(_view("v0", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e10 / 6)))
+    sink.add(_view("v1", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e10 / 6)))
+    with pytest.raises(ValueError, match=r"view 'v2': 3 views of up to 2e\+10 pair weight each, x 10 votes, pass the range of the check's exact sums"):
+        sink.add(_view("v2", feats, np.arange(6), np.arange(6) % 2, np.full(6, 2e10 / 6)))
+    going_on = CheckSink(6, D, vote=False, inner=MemorySink(6, D))
+    for name, weight in (("u0", 1e10), ("u1", 1e10)):
+        going_on.add(_view(name, feats, np.arange(6), np.arange(6) % 2, np.full(6, weight / 6)))
+    with pytest.raises(ValueError, match=r"view 'u2': 3 views of up to 1e\+11"):
+        going_on.add(_view("u2", feats, np.arange(6), np.arange(6) % 2, np.full(6, 1e11 / 6)))
+    going_on.add(_view("u3", feats, np.arange(6), np.arange(6) % 2, np.ones(6)))  # 3 x 1e10 x 10: the refused view left nothing behind
     alone = CheckSink(6, D, vote=False, inner=MemorySink(6, D))
     with pytest.raises(ValueError, match=r"view 'big': 1 view of up to 1e\+12 pair weight"):
         alone.add(_view("big", feats, np.arange(6), np.arange(6) % 2, np.full(6, 1e12 / 6)))
+
+
+def test_a_slot_can_hold_every_vote_its_gaussian_was_given():
+    """Why the exact sums' bound counts VIEW_VOTES (10) votes a view and not one: space-saving hands an
+    evicted slot's count to the cluster that takes it, so one view's ten clusters, each at the
+    presence share, can all pass through the same slot, whose count then holds all ten votes."""
+    from drsplat.registration.check import VIEW_VOTES
+    from drsplat.registration.vote import PRESENCE, space_saving_slot
+
+    slots = 16
+    slot_c = np.arange(slots, dtype=np.int32)[None].copy()
+    slot_v = np.full((1, slots), 100.0)
+    slot_v[0, 5] = 0.0
+    for c in range(100, 100 + int(round(1 / PRESENCE))):  # ten new clusters, one vote each
+        hit = space_saving_slot(slot_c, slot_v, 0, c)
+        slot_c[0, hit] = c
+        slot_v[0, hit] += 1.0
+    assert slot_c[0, 5] == 109 and slot_v[0, 5] == VIEW_VOTES == 10.0
 
 
 @pytest.mark.parametrize("mislabel", [False, True])
@@ -961,16 +987,17 @@ def test_a_table_file_is_written_a_run_at_a_time_in_view_order(tmp_path):
 
 
 def test_views_too_many_for_the_exact_sums_are_one_clear_error_before_any_work(mislabelled_room, monkeypatch):
-    """The support's fixed point holds q < 2³⁹: runs whose views x pixels could pass it are refused
+    """The support's fixed point holds q < 2³⁹: runs whose views x pixels x 10 votes could pass it are refused
     in one sentence naming the problem and a way out, before any view is rendered, instead of sums
     that wrap around."""
     from drsplat.errors import DrsplatError
     from drsplat.registration import RegisterOptions, register_features
     from drsplat.registration.check import fixed_point_fits
 
-    fixed_point_fits(7680 * 4320, 16000)  # 16,000 views of 8K images fit
+    fixed_point_fits(7680 * 4320, 1650)  # 1,650 views of 8K images fit (10 votes a view a slot could hold)
+    fixed_point_fits(1920 * 1080, 26500)
     with pytest.raises(DrsplatError, match="range of its exact sums.*--aggregate vote-reject"):
-        fixed_point_fits(7680 * 4320, 20000)
+        fixed_point_fits(7680 * 4320, 1700)
     # through registration: the room's 4:3 views claiming 2^20 x 3·2^18 pixels each, refused before any is rendered
     import drsplat.registration.compute as compute
 

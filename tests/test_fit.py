@@ -339,7 +339,7 @@ def test_a_probe_view_without_masks_is_left_out_of_the_scores_not_a_crash(rooms,
     write_features(data / "features", empty, np.full_like(ids, -1), np.zeros((0, feats.shape[1]), np.float32))
     whole = choose_footprint(scene, cams, rooms["geometry"] / "features", 1, 40)
     choice = choose_footprint(scene, cams, data / "features", 1, 40)
-    assert empty not in choice.views and choice.views == whole.views[1:] and choice.footprint == "sharp"
+    assert choice.views == whole.views and empty not in choice.scored and choice.scored == whole.views[1:] and choice.footprint == "sharp"
     np.testing.assert_array_equal(choice.paper, whole.paper[1:])
     np.testing.assert_array_equal(choice.sharp, whole.sharp[1:])
     # H's pairs in order (1, 0), (2, 0), (2, 1), (3, 0), (3, 1), (3, 2): those without view 0

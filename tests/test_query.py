@@ -570,3 +570,17 @@ def test_a_field_refuses_a_query_row_without_a_direction_naming_it(bad):
     for score in (field.scores, field.scores_reference):
         with pytest.raises(ValueError, match=f"query 1 {why}: it has no direction to score by"):
             score(queries)
+
+
+@pytest.mark.parametrize("value,why", [(1e-50, "is all zeros"), (1e39, "holds non-finite values")])
+def test_query_rows_judges_a_row_as_the_float32_it_becomes(value, why):
+    """Review of round 38: `query_rows` judged rows in their own dtype, then `unit_rows` read them as
+    float32, so a float64 row of 1e-50 (0 in float32) or 1e39 (inf) passed it and reached the
+    field as a zero or infinite row, refused there with the field's ValueError about "query 0"
+    whatever the row was. It judges the float32 row, naming it as the caller's."""
+    from drsplat.query import query_rows
+
+    rows = np.ones((2, 8))
+    rows[1] = value
+    with pytest.raises(DrsplatError, match=f"label embedding 1 {why}: it has no direction to score by"):
+        query_rows(rows, "label embedding")

@@ -347,6 +347,13 @@ class ImageStamps:
         featurefiles.write_manifest(self.out, {**manifest, "images": images, IMAGE_STAMPS: self.known})
         (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
 
+    def fold(self) -> None:
+        """The folder's manifest as it is, with every known stamp, then the journal it now holds
+        removed: a run given no manifest of its own finishes as `finish` does (the journal left behind
+        would read as an unfinished run's, `registration.views.select_views`)."""
+        featurefiles.write_manifest(self.out, {**featurefiles.read_manifest(self.out), IMAGE_STAMPS: self.known})
+        (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
+
 
 def check_journal(path: Path) -> None:
     """InputError unless the stamp journal is absent or a regular file: the run appends to it, and a
@@ -516,4 +523,6 @@ def extract_features(
             on_progress(i + 1, len(cameras))
     if manifest is not None:
         stamps.finish(manifest, len(report.written) + len(report.skipped))
+    elif stamps.tracked:  # a call without a manifest on a folder that records stamps: its journal goes into the folder's own
+        stamps.fold()
     return report

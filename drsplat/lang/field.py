@@ -116,6 +116,7 @@ class LanguageField:
 
         if lut_bits != 32:
             raise ValueError("8-bit tables are a CPU (AVX-512) kernel; the torch scorer uses float32 tables (lut_bits=32)")
+        queries = self._check_queries(queries)
         if self._on_device is None or str(self._on_device.device) != str(torch_scoring.torch.device(device)):
             self._on_device = torch_scoring.to_device(self, device)
         return torch_scoring.field_scores_torch(self, np.asarray(queries, np.float32), self._on_device)

@@ -97,7 +97,7 @@ block at a time into parts that `SupportTables` (drsplat.registration.supports) 
 to SUPPORT_TABLE_BYTES and spills to disk beyond, merged when a view is read (`Supports`; twice:
 the like cosine's pass, then the verdicts'; all of them held until 2026-11-30). Every term of q[j, c]
 and of a mask's mass is added in fixed point (int64 units of 2⁻²⁴, SUPPORT_SCALE; exact up to
-q = 2³⁹, pixels x views), so the sums are the same integers in any order and any partition: one
+q = 2³⁹, pixels x views x VIEW_VOTES), so the sums are the same integers in any order and any partition: one
 block, blocks, or on Ray the reducers' parts of their blocks added by the driver
 (`write_block_supports`, `Supports.add_file`; since 2026-11-27, sixth session: before, float64
 sums in Gaussian order, which only one process could make). The same verdicts, and the same output
@@ -132,7 +132,8 @@ CHECK_MIN_VIEWS = 1.0  # a mask is judged only where its Gaussians' other views 
 # is a speck or absent in the others, where its Gaussians lie inside their surroundings' masks, so the
 # other views' "evidence" against its mask is spill (module docstring, step 2)
 CHECK_MIN_MASS = 16.0
-SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views)
+SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²⁴ in int64, exact up to q = 2³⁹ (pixels x views x VIEW_VOTES)
+VIEW_VOTES = 1.0 / PRESENCE  # the most votes one view casts for a Gaussian (its presence votes add up to at most 1/ρ): the most one slot can gain
 SUPPORT_ENTRY_BYTES = 17  # a (mask, cluster) of the dense scratch: q and the core table int64, a flag
 LIKE_CHUNK = 1 << 22  # cosines between two masks of a view that `like_threshold` holds at a time (32 MB)
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
@@ -758,12 +759,14 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
 
 def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> None:
     """DrsplatError when the support sums could leave the fixed point's range, checked before any
-    view is rendered: q[j, c] ≤ mass_j · views (a view votes at most 1 per cluster), and a mask's
-    mass is at most its view's pixels (the check's paper weights sum to ≤ 1 a pixel), so
-    max_pixels · num_views must stay under 2³⁹ (2⁶³ units of 2⁻²⁴): 16,000 views of 8K images."""
-    if not float(max_pixels) * max(num_views, 1) < 2.0**63 / SUPPORT_SCALE:
+    view is rendered: q[j, c] = Σ_i w_ij (V_ic − v_icv) ≤ mass_j · max V, a mask's mass is at most its
+    view's pixels (the check's paper weights sum to ≤ 1 a pixel), and a slot's count V is at most
+    the votes cast into its Gaussian's slots, VIEW_VOTES a view (space-saving's evictions hand a
+    slot's count on, so one slot can hold them all), so max_pixels · num_views · VIEW_VOTES must stay
+    under 2³⁹ (2⁶³ units of 2⁻²⁴): 1,650 views of 8K images, 26,500 of 1920x1080."""
+    if not float(max_pixels) * max(num_views, 1) * VIEW_VOTES < 2.0**63 / SUPPORT_SCALE:
         raise DrsplatError(f"--aggregate {mode}: the mask check cannot judge {num_views:,} views of up to {max_pixels:,} pixels: "
-                           f"views x pixels pass the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
+                           f"views x pixels x {VIEW_VOTES:g} votes pass the range of its exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); register without the check "
                            f"(--aggregate vote-reject) or with fewer or smaller views")
 
 
@@ -1251,18 +1254,17 @@ class CheckSink:
 
     def _check_range(self, view: ViewPairs) -> None:
         """ValueError, naming the view, once the views added could take a support sum past its fixed
-        point's range: q[j, c] ≤ mass_j · views and a mask's mass is at most its view's pair weight,
-        so (the most pair weight of one view) x (views) must stay under 2⁶³ units of 2⁻²⁴, as
-        `fixed_point_fits` asks of pixels x views before a registration (whose weights sum to ≤ 1 a
-        pixel). Only a caller's own pair weights can pass it (round 35: over ~5.5e11 they wrapped)."""
+        point's range, the bound `fixed_point_fits` puts on pixels x views before a registration with
+        a mask's mass in place of its pixels: (the most pair weight of one view) x (views) x VIEW_VOTES
+        under 2³⁹. Registration's weights sum to ≤ 1 a pixel, so only a caller's own pair weights can
+        pass it (round 35: over ~5.5e11 they wrapped). A view refused is not counted."""
         total = float(view.weights.sum(dtype=np.float64)) if view.weights.size else 0.0
-        self._largest_view_weight = max(self._largest_view_weight, total)
-        self._views_added += 1
-        if not self._largest_view_weight * self._views_added < 2.0**63 / SUPPORT_SCALE:
-            views = f"{self._views_added:,} view{'s' if self._views_added != 1 else ''}"
-            raise ValueError(f"view {view.name!r}: {views} of up to {self._largest_view_weight:.4g} pair weight each pass "
-                             f"the range of the check's exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); registration's weights sum to at most "
-                             "1 a pixel")
+        largest, views = max(self._largest_view_weight, total), self._views_added + 1
+        if not largest * views * VIEW_VOTES < 2.0**63 / SUPPORT_SCALE:
+            raise ValueError(f"view {view.name!r}: {views:,} view{'s' if views != 1 else ''} of up to {largest:.4g} pair weight each, "
+                             f"x {VIEW_VOTES:g} votes, pass the range of the check's exact sums ({2.0**63 / SUPPORT_SCALE:.3g}); "
+                             "registration's weights sum to at most 1 a pixel")
+        self._largest_view_weight, self._views_added = largest, views
 
     def kept_pairs(self, partial_supports: Callable[[Callable[[SupportFile], None]], None] | None = None) -> KeptPairs:
         """The masks judged (once: `judge_masks`) and the pairs they keep: what the mode's sums are

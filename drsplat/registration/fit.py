@@ -124,10 +124,10 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
 
 @dataclass
 class FitChoice:
-    """The fit stage's decision: footprint "paper" or "sharp"; views: the names of the probe views
-    scored (those with a mask over a Gaussian they see, `scores_footprints`); paper, sharp: [P] their
-    scores S_u; held_paper, held_sharp: [P(P-1)/2] their held-out scores H_u, one per pair of them
-    (module docstring)."""
+    """The fit stage's decision: footprint "paper" or "sharp"; views: the probe views' names; paper,
+    sharp: [P] the scores S_u of the P probe views scored (those with a mask over a Gaussian they see,
+    `scores_footprints`; `scored` names them); held_paper, held_sharp: [P(P-1)/2] their held-out
+    scores H_u, one per pair of them (module docstring)."""
 
     footprint: str
     views: list[str]
@@ -135,6 +135,11 @@ class FitChoice:
     sharp: np.ndarray
     held_paper: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     held_sharp: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    scored: list[str] | None = None  # the probe views scored; None: all of them
+
+    def __post_init__(self) -> None:
+        if self.scored is None:
+            self.scored = list(self.views)
 
     @property
     def margin(self) -> float:
@@ -537,8 +542,12 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             scores[footprint].append(float(s_and_h[0]))
             held[footprint] += s_and_h[1:].tolist()
             kept_labels[footprint].keep(labels, feats)
-    choice = FitChoice("paper", names, np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]), np.array(held["sharp"]))
+    choice = FitChoice("paper", [views[i].name for i in picks], np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]),
+                       np.array(held["sharp"]), scored=names)
     choice.footprint = choice.decide()
+    if not names:
+        log.info("fit: none of the %d probe views has a mask over a Gaussian it sees: the rasterized (filtered) footprints", len(picks))
+        return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
     if len(names) < len(picks):
         log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
     log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
