@@ -162,14 +162,14 @@ def mean_or_zero(values: np.ndarray) -> float:
     return float(np.mean(values)) if len(values) else 0.0
 
 
-def scores_footprints(ids: np.ndarray, weights: np.ndarray, groups: np.ndarray) -> bool:
-    """Whether a probe view can score the footprints: some slot of weight > 0 lies in a pixel of a
-    mask (ids, weights [H, W, k]; groups [H, W] its grouped masks, -1 none). A view without (no mask
-    file's masks, or masks only over pixels it renders nothing in) would score 0 under both, and its
-    zeros, in S and in H's pairs, would pull both margins toward 0 (the paper's footprint; round 36).
-    The sharp weights are w·max(·, SHARP_FLOOR) > 0 exactly where w > 0, so one test serves both."""
-    masked = groups >= 0
-    return bool(masked.any() and np.any((ids[masked] >= 0) & (weights[masked] > 0)))
+def scores_footprints(pair_weights: np.ndarray) -> bool:
+    """Whether a probe view can score the footprints, from its pairs' weights [P] under the paper's
+    footprint: some pair of weight > 0, i.e. some slot of weight > 0 in a pixel of a mask (pairs are
+    summed over masked pixels only). A view without (no mask file's masks, or masks only over pixels
+    it renders nothing in) would score 0 under both footprints: that leaves S's sign as it is, but
+    its zeros would dilute H's mean toward 0, so that H could only keep the paper's footprint (round
+    36). The sharp weights are w·max(·, SHARP_FLOOR) > 0 exactly where w > 0: one test serves both."""
+    return bool(pair_weights.size and np.max(pair_weights) > 0)
 
 
 def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
@@ -527,14 +527,16 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
-        scored = scores_footprints(out.ids, out.weights, groups)
-        if scored:
-            names.append(views[i].name)
-        for footprint in FOOTPRINTS:
+        scored = None
+        for footprint in FOOTPRINTS:  # the paper's first: its pairs decide whether the view scores
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
             view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
                 kept[footprint][int(i)] = view
+            if scored is None:
+                scored = scores_footprints(view.weights)
+                if scored:
+                    names.append(views[i].name)
             if not scored:
                 continue
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
