@@ -184,3 +184,16 @@ def small_page_zeros(shape: int | tuple[int, ...], dtype=np.float32) -> np.ndarr
         buf.madvise(mmap.MADV_NOHUGEPAGE)
     return np.frombuffer(buf, dtype, count=nbytes // dtype.itemsize).reshape(shape)
 
+
+def small_page_full(shape: int | tuple[int, ...], value, dtype) -> np.ndarray:
+    """`np.full(shape, value, dtype)` in small pages (`small_page_zeros`), for the per-Gaussian tables
+    a registration makes once per block and then touches a few rows a view at a time (the check's
+    and the vote's slots, the floater statistics' scratch, the coalescer's): with numpy's huge-page
+    advice their first touches stalled on the kernel's compaction (flowers, the check's 104 MB of
+    slots: 465 ms in the first view's fold, 3-5 ms in the later ones; docs/registration.md, "Huge
+    pages")."""
+    out = small_page_zeros(shape, dtype)
+    if value != 0:
+        out.fill(value)
+    return out
+

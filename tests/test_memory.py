@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.memory import SMALL_PAGES_FROM, small_page_zeros
+from drsplat.memory import SMALL_PAGES_FROM, small_page_full, small_page_zeros
 from drsplat.registration.sums import Accumulator
 
 
@@ -47,6 +47,37 @@ def test_large_arrays_are_not_advised_huge_pages():
     ours = small_page_zeros(4 * SMALL_PAGES_FROM, np.uint8)
     assert _thp_eligible(ours) is False
     assert _thp_eligible(Accumulator(10_000, 512).F) is False  # the sums, made once per registration
+
+
+@pytest.mark.parametrize("value,dtype", [(-1, np.int32), (0, np.float64), (2.5, np.float32)])
+def test_small_page_full_is_np_full(value, dtype):
+    for shape in ((3_000_000,), (700, 16), (0, 4), 5):
+        got = small_page_full(shape, value, dtype)
+        want = np.full(shape, value, dtype)
+        assert got.shape == want.shape and got.dtype == want.dtype and got.flags.writeable
+        np.testing.assert_array_equal(got, want)
+
+
+def test_the_per_gaussian_tables_of_a_registration_are_not_advised_huge_pages():
+    """The check's and the vote's slots, the floater statistics' scratch and sums and the coalescer's
+    scratch are made once per registration (or block) and touched a view's Gaussians at a time; in
+    numpy's huge pages their first touches stalled on the kernel's compaction (flowers: the check's
+    slots 465 ms in the first view, 3-5 ms after). Skipped where numpy's arrays get no THP."""
+    from drsplat.registration.aggregate import StatsScratch, SurfaceSupport
+    from drsplat.registration.check import fold_block_votes
+    from drsplat.registration.coalesce import Coalescer
+    from drsplat.registration.vote import VoteSink
+
+    n = 2 * SMALL_PAGES_FROM // 8
+    if not _thp_eligible(np.zeros(4 * SMALL_PAGES_FROM, np.uint8)):
+        pytest.skip("this kernel gives numpy's arrays no transparent huge pages")
+    slot_c, slot_v = fold_block_votes(iter([]), [], 0, n)
+    scratch = StatsScratch.new(n, 2, 40)
+    support = SurfaceSupport.zeros(n)
+    coalescer = Coalescer(n, parts=2)
+    sink_state = VoteSink(n, 8)._empty(n)
+    tables = [slot_c, slot_v, scratch.sums, scratch.seen, support.total, support.views_seen, coalescer._seen, coalescer._acc, *sink_state[1:]]
+    assert [_thp_eligible(t) for t in tables] == [False] * len(tables)
 
 
 @pytest.mark.parametrize("shape,dtype", [((1000, 512), np.float32), ((7, 3), np.int32), (0, np.float64), ((5,), np.float64), ((2, 3, 4), np.uint8)])

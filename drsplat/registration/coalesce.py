@@ -19,6 +19,7 @@ import numba
 import numpy as np
 
 from drsplat._sort_kernels import stable_order
+from drsplat.memory import small_page_full
 
 
 @numba.njit(cache=True)
@@ -152,9 +153,10 @@ class Coalescer:
 
     def __init__(self, num_gaussians: int, capacity: int = 1 << 20, parts: int | None = None):
         self.parts = max(1, int(parts or coalesce_parts(num_gaussians)))
-        self._seen = np.full((self.parts, num_gaussians), -1, np.int32)
-        self._acc = np.zeros((self.parts, num_gaussians), np.float32)
-        self._touched = np.zeros((self.parts, num_gaussians), np.int32)
+        # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_full)
+        self._seen = small_page_full((self.parts, num_gaussians), -1, np.int32)
+        self._acc = small_page_full((self.parts, num_gaussians), 0, np.float32)
+        self._touched = small_page_full((self.parts, num_gaussians), 0, np.int32)
         self._alloc(max(1, capacity // self.parts))
 
     @property

@@ -106,6 +106,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import VOTE_SLOTS
+from drsplat.memory import small_page_full
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
@@ -904,8 +905,9 @@ class VoteSink:
         self._trimmed_sums: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # in one block: (F, W, kept) once trimmed, in place
 
     def _empty(self, rows: int):
-        return (Accumulator(rows, self.dim), np.full((rows, self.slots), -1, np.int32), np.zeros((rows, self.slots)),
-                np.zeros((rows, self.slots)), np.zeros(rows))
+        # made once a block, touched a few rows a view: small pages (drsplat.memory.small_page_full)
+        return (Accumulator(rows, self.dim), small_page_full((rows, self.slots), -1, np.int32), small_page_full((rows, self.slots), 0, np.float64),
+                small_page_full((rows, self.slots), 0, np.float64), small_page_full(rows, 0, np.float64))
 
     @property
     def num_blocks(self) -> int:
