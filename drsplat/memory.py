@@ -186,7 +186,8 @@ def small_page_zeros(shape: int | tuple[int, ...], dtype=np.float32) -> np.ndarr
 
 
 def small_page_full(shape: int | tuple[int, ...], value, dtype) -> np.ndarray:
-    """`np.full(shape, value, dtype)` in small pages (`small_page_zeros`), for the per-Gaussian tables
+    """`np.full(shape, value, dtype)` in small pages (`small_page_zeros`, which zero tables use
+    directly), for the per-Gaussian tables
     a registration makes once per block and then touches a few rows a view at a time (the check's
     and the vote's slots, the floater statistics' scratch, the coalescer's): with numpy's huge-page
     advice their first touches stalled on the kernel's compaction (flowers, the check's 104 MB of

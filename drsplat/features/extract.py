@@ -342,16 +342,13 @@ class ImageStamps:
         with os.fdopen(fd, "a", encoding="utf-8") as f:
             f.write(json.dumps({"stem": stem, "stamp": stamp}) + "\n")
 
-    def finish(self, manifest: dict, images: int) -> None:
-        """The manifest written with every known stamp, then the journal it now holds removed."""
-        featurefiles.write_manifest(self.out, {**manifest, "images": images, IMAGE_STAMPS: self.known})
-        (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
-
-    def fold(self) -> None:
-        """The folder's manifest as it is, with every known stamp, then the journal it now holds
-        removed: a run given no manifest of its own finishes as `finish` does (the journal left behind
-        would read as an unfinished run's, `registration.views.select_views`)."""
-        featurefiles.write_manifest(self.out, {**featurefiles.read_manifest(self.out), IMAGE_STAMPS: self.known})
+    def finish(self, manifest: dict | None, images: int | None = None) -> None:
+        """The manifest written with every known stamp (and `images`, the run's count), then the
+        journal it now holds removed. manifest None: the folder's own as it is, for a run given none
+        (a journal left behind would read as an unfinished run's, `registration.views.select_views`)."""
+        base = featurefiles.read_manifest(self.out) if manifest is None else manifest
+        counted = {} if images is None else {"images": images}
+        featurefiles.write_manifest(self.out, {**base, **counted, IMAGE_STAMPS: self.known})
         (self.out / STAMP_JOURNAL).unlink(missing_ok=True)
 
 
@@ -524,5 +521,5 @@ def extract_features(
     if manifest is not None:
         stamps.finish(manifest, len(report.written) + len(report.skipped))
     elif stamps.tracked:  # a call without a manifest on a folder that records stamps: its journal goes into the folder's own
-        stamps.fold()
+        stamps.finish(None)
     return report

@@ -107,16 +107,19 @@ class LanguageField:
             raise ValueError(f"lut_bits must be 8 or 32, got {lut_bits}")
         q = unit_rows(self._check_queries(queries))
         if device is not None:
-            return self.scores_torch(q, device, lut_bits).cpu().numpy()
+            return self._scores_on_device(q, device, lut_bits).cpu().numpy()
         return self.storage.scores(q, lut_bits)
 
     def scores_torch(self, queries: np.ndarray, device: str, lut_bits: int = 32):
-        """`scores` as a torch tensor [N, K] float32 on `device` (unit queries)."""
+        """`scores` as a torch tensor [N, K] float32 on `device` (unit queries, checked as `scores` checks them)."""
+        return self._scores_on_device(self._check_queries(queries), device, lut_bits)
+
+    def _scores_on_device(self, queries: np.ndarray, device: str, lut_bits: int):
+        """`scores_torch` of queries checked already."""
         from drsplat.lang import torch_scoring  # imports torch: only when a torch device is asked for
 
         if lut_bits != 32:
             raise ValueError("8-bit tables are a CPU (AVX-512) kernel; the torch scorer uses float32 tables (lut_bits=32)")
-        queries = self._check_queries(queries)
         if self._on_device is None or str(self._on_device.device) != str(torch_scoring.torch.device(device)):
             self._on_device = torch_scoring.to_device(self, device)
         return torch_scoring.field_scores_torch(self, np.asarray(queries, np.float32), self._on_device)

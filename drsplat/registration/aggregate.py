@@ -122,7 +122,7 @@ import numpy as np
 
 from drsplat.defaults import (AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_BUFFER_BYTES, EXACT_TRIM_SLOT_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES,
                               SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES)
-from drsplat.memory import small_page_full
+from drsplat.memory import small_page_zeros
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
 
@@ -680,8 +680,8 @@ class SurfaceSupport:
 
     @classmethod
     def zeros(cls, n: int) -> SurfaceSupport:
-        zeros = small_page_full  # made once a registration, touched a view's Gaussians at a time: small pages
-        return cls(zeros(n, 0, np.float64), zeros(n, 0, np.float64), zeros(n, 0, np.float64), zeros(n, 0, np.int32), zeros(n, 0, np.int32))
+        zeros = small_page_zeros  # made once a registration, touched a view's Gaussians at a time: small pages
+        return cls(zeros(n, np.float64), zeros(n, np.float64), zeros(n, np.float64), zeros(n, np.int32), zeros(n, np.int32))
 
     def rejected(self) -> np.ndarray:
         """[N] bool: P < PEAK_MIN, B > FRONT_MAX·A and views_front > FRONT_MAX·views_seen (never seen: kept)."""
@@ -926,8 +926,8 @@ class StatsScratch:
 
     @classmethod
     def new(cls, n: int, parts: int, k: int, flag_pixels: int = 0) -> StatsScratch:
-        # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_full)
-        return cls(np.empty(n), small_page_full((parts, n, 3), 0, np.int64), small_page_full((parts, n), 0, np.int32), np.empty((flag_pixels, k), np.bool_))
+        # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_zeros)
+        return cls(np.empty(n), small_page_zeros((parts, n, 3), np.int64), small_page_zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
 
     @property
     def peaks(self) -> np.ndarray:
@@ -1059,7 +1059,7 @@ class ViewHook:
             projected = project_gaussians(geometry, camera)
             return projected.means2d, projected.conics
         if self._means2d is None or self._means2d.shape[0] != n:
-            self._means2d, self._conics = small_page_full((n, 2), 0, np.float64), small_page_full((n, 3), 0, np.float64)
+            self._means2d, self._conics = small_page_zeros((n, 2), np.float64), small_page_zeros((n, 3), np.float64)
         self._means2d[rows] = projected.means2d
         self._conics[rows] = projected.conics
         return self._means2d, self._conics

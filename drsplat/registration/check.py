@@ -116,7 +116,7 @@ import numpy as np
 
 from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_READ_BYTES, SUPPORT_SCRATCH_BYTES, SUPPORT_TABLE_BYTES
 from drsplat.errors import DrsplatError
-from drsplat.memory import format_size, small_page_full
+from drsplat.memory import format_size, small_page_full, small_page_zeros
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat._sort_kernels import stable_order
@@ -713,7 +713,7 @@ def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo:
     [hi - lo, S] float64 votes). per_view: each view's [M] mask clusters. A Gaussian's slots depend on
     its own pairs only, so they are the same bits whatever block holds it."""
     slot_c = small_page_full((hi - lo, slots), -1, np.int32)  # made once a block, touched a few rows a view: small pages
-    slot_v = small_page_full((hi - lo, slots), 0, np.float64)
+    slot_v = small_page_zeros((hi - lo, slots), np.float64)
     for view, clusters in zip(views, per_view):
         if view.gaussians.size:
             rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)

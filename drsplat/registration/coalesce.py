@@ -19,7 +19,7 @@ import numba
 import numpy as np
 
 from drsplat._sort_kernels import stable_order
-from drsplat.memory import small_page_full
+from drsplat.memory import small_page_full, small_page_zeros
 
 
 @numba.njit(cache=True)
@@ -155,8 +155,8 @@ class Coalescer:
         self.parts = max(1, int(parts or coalesce_parts(num_gaussians)))
         # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_full)
         self._seen = small_page_full((self.parts, num_gaussians), -1, np.int32)
-        self._acc = small_page_full((self.parts, num_gaussians), 0, np.float32)
-        self._touched = small_page_full((self.parts, num_gaussians), 0, np.int32)
+        self._acc = small_page_zeros((self.parts, num_gaussians), np.float32)
+        self._touched = small_page_zeros((self.parts, num_gaussians), np.int32)
         self._alloc(max(1, capacity // self.parts))
 
     @property

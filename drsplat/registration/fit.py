@@ -547,15 +547,15 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     choice = FitChoice("paper", [views[i].name for i in picks], np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]),
                        np.array(held["sharp"]), scored=names)
     choice.footprint = choice.decide()
-    if not names:
-        log.info("fit: none of the %d probe views has a mask over a Gaussian it sees: the rasterized (filtered) footprints", len(picks))
-        return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
     if len(names) < len(picks):
         log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
-    log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
-             "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(names),
-             "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
-             mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
+    if names:
+        log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
+                 "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(names),
+                 "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
+                 mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
+    else:
+        log.info("fit: no probe view to score: the rasterized (filtered) footprints")
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
 
 

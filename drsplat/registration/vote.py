@@ -106,7 +106,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import VOTE_SLOTS
-from drsplat.memory import small_page_full
+from drsplat.memory import small_page_full, small_page_zeros
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
@@ -906,8 +906,8 @@ class VoteSink:
 
     def _empty(self, rows: int):
         # made once a block, touched a few rows a view: small pages (drsplat.memory.small_page_full)
-        return (Accumulator(rows, self.dim), small_page_full((rows, self.slots), -1, np.int32), small_page_full((rows, self.slots), 0, np.float64),
-                small_page_full((rows, self.slots), 0, np.float64), small_page_full(rows, 0, np.float64))
+        return (Accumulator(rows, self.dim), small_page_full((rows, self.slots), -1, np.int32), small_page_zeros((rows, self.slots), np.float64),
+                small_page_zeros((rows, self.slots), np.float64), small_page_zeros(rows, np.float64))
 
     @property
     def num_blocks(self) -> int:
