@@ -136,6 +136,7 @@ UNDISTORT_HINT = (
 )
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".webp", ".bmp", ".tif", ".tiff")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+IMAGE_SUFFIXES_LOWER = frozenset(s.lower() for s in IMAGE_SUFFIXES)
 
 
 @dataclass
@@ -281,7 +282,7 @@ def read_colmap_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
     cameras: dict[int, ColmapCamera] = {}
     declared = r.one("<u8")
     for k in range(declared):
-        cam_id, model_id = r.one("<i4"), r.one("<i4")
+        cam_id, model_id = r.one("<u4"), r.one("<i4")  # camera_t is uint32 (as images.bin's CAMERA_ID), the model an int
         _unique_id(path, cameras, cam_id, "CAMERA_ID", f"camera record {k}")
         if model_id not in COLMAP_MODELS:
             raise InputError(path, f"camera {cam_id} has unknown model id {model_id}", field="model_id")
@@ -633,13 +634,22 @@ class DatasetPaths:
 
     def find(self, name: str) -> Path | None:
         """The image `name` names, trying image suffixes when it has none (NeRF-synthetic), or None."""
+        found = self.find_named(name)
+        return found[0] if found is not None else None
+
+    def find_named(self, name: str) -> tuple[Path, str] | None:
+        """(the image `name` names, resolved; the stem the dataset knows it by), or None. The stem is
+        that of the name as given (with the suffix tried, when it has none), never that of the file a
+        symbolic link leads to (a git-annex or DVC key, a content hash): the stem pairs a view with
+        its feature files, which are named after the image as the dataset names it."""
         p = self.image(name)
+        last = Path(name.replace("\\", "/")).name
         if p.is_file():
-            return p
+            return p, Path(last).stem
         for suffix in IMAGE_SUFFIXES:
             q = p.with_name(p.name + suffix)
             if q.is_file():
-                return q
+                return q.resolve(), last  # resolved as a name with its suffix is (`image`)
         return None
 
 
@@ -805,15 +815,23 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
         rec = {**meta, **frame}
+        if "camera_angle_x" in frame and "fl_x" not in frame:  # the frame's own lens: the file's shared fl_x is another's
+            rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y")}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
             raise InputError(path, f"frame {i} has no image path string", field="file_path")
         check_image_name(path, frame["file_path"], f"frame {i}", "file_path")
-        image = paths.find(frame["file_path"])
-        if image is None:
+        found = paths.find_named(frame["file_path"])
+        sized = "w" in rec and "h" in rec
+        if found is None and (require_images or not sized):  # without w and h the image gives the size
             missing.append(frame["file_path"])
             continue
+        if found is None:  # a registration reads the feature files, not the images
+            last = Path(frame["file_path"].replace("\\", "/")).name
+            image, name = paths.image(frame["file_path"]), Path(last).stem if Path(last).suffix.lower() in IMAGE_SUFFIXES_LOWER else last
+        else:
+            image, name = found
         c2w = _transform_matrix(path, frame, i)
-        if "w" in rec and "h" in rec:
+        if sized:
             width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
         else:
             width, height = _image_size(image)
@@ -829,7 +847,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         check_centre(path, f"frame {i}", c2w[:3, 3], "transform_matrix")
         R, t = c2w_opengl_to_w2c_opencv(c2w)
         camera = Camera(R=R, t=t, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, image_path=image,
-                        name=image.stem, distortion=dist if np.any(dist != 0) else None)
+                        name=name, distortion=dist if np.any(dist != 0) else None)
         validate_camera(camera, path, f"frame {i}", {**TRANSFORMS_POSE_FIELDS, **focal_fields})
         check_distortion(path, camera, where)
         cameras.append(camera)
@@ -912,13 +930,14 @@ def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], wh
     return focal
 
 
-def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Camera], list[str]]:
+def read_3dgs_cameras_json(path: Path, images_dir: Path | None, require_images: bool = True) -> tuple[list[Camera], list[str]]:
     """Cameras of a 3DGS `cameras.json` (c2w rotation and position, OpenCV axes, centred principal point)."""
     records = _json(path)
     if not isinstance(records, list):
         raise InputError(path, "is not a list of cameras as 3DGS writes it")
     paths = DatasetPaths(images_dir, path) if images_dir is not None else None
-    cameras, missing = [], 0
+    cameras: list[Camera] = []
+    missing: list[str] = []
     for i, rec in enumerate(records):
         where = f" in camera {i}"
         if not isinstance(rec, dict):
@@ -940,8 +959,10 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None) -> tuple[list[Ca
         width, height = _size(path, rec, "width", where), _size(path, rec, "height", where)
         image = paths.find(name) if paths is not None else None
         if paths is not None and image is None:
-            missing.append(name)
-            continue
+            if require_images:
+                missing.append(name)
+                continue
+            image = paths.image(name)  # the file holds the size: a registration reads feature files, not images
         check_rotation(path, f"camera {i}", rot, "rotation")
         check_centre(path, f"camera {i}", pos, "position")
         R = rot.T
@@ -1039,7 +1060,7 @@ def _find_cameras_json(src: Path) -> Path | None:
 
 def _read_cameras_json(path: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
     images_dir = path.parent / "images"
-    return read_3dgs_cameras_json(path, images_dir if images_dir.is_dir() else None)
+    return read_3dgs_cameras_json(path, images_dir if images_dir.is_dir() else None, require_images)
 
 
 def _find_scannet(src: Path) -> Path | None:

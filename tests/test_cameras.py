@@ -915,3 +915,92 @@ def test_a_colmap_folder_of_mixed_or_partial_files_says_what_is_there_and_what_i
     with pytest.raises(InputError) as info:
         load_cameras(tmp_path / "m", require_images=False)
     assert str(info.value).startswith(f"{sparse}: {words}")
+
+
+def _cameras_json(root, names=("a", "b"), images=("a",)):
+    """A 3DGS cameras.json of 64x48 cameras `names` beside an images/ folder holding `images` (png)."""
+    from PIL import Image
+
+    (root / "images").mkdir(parents=True)
+    for name in images:
+        Image.new("RGB", (64, 48)).save(root / "images" / f"{name}.png")
+    records = [{"id": i, "img_name": n, "width": 64, "height": 48, "position": [0.0, 0.0, -3.0 - i], "rotation": np.eye(3).tolist(),
+                "fx": 50.0, "fy": 50.0} for i, n in enumerate(names)]
+    (root / "cameras.json").write_text(json.dumps(records))
+    return root
+
+
+def test_a_cameras_json_whose_images_folder_lacks_an_image_skips_that_camera_and_says_so(tmp_path, caplog):
+    """Round 39: one image missing from images/ stopped every command with "AttributeError: 'int' object has no
+    attribute 'append'"; the camera is skipped and counted, as the other formats do."""
+    root = _cameras_json(tmp_path)
+    with caplog.at_level(logging.WARNING):
+        cameras = load_cameras(root)
+    assert [c.name for c in cameras] == ["a"] and "1 frame(s) skipped" in caplog.text and "b" in caplog.text
+
+
+def test_cameras_without_their_images_are_kept_for_registration_when_the_file_gives_their_size(tmp_path):
+    """Round 39: `register` reads feature files, not images (load_cameras(require_images=False)); transforms.json and
+    cameras.json ignored that and skipped every camera whose photo was absent, so such a dataset could not register."""
+    root = _cameras_json(tmp_path / "json", images=())
+    assert [c.name for c in load_cameras(root, require_images=False)] == ["a", "b"]
+    with pytest.raises(InputError, match="no usable camera"):
+        load_cameras(root)
+    sized = _transforms_dataset(tmp_path / "sized", fl_x=50.0)
+    (sized / "images" / "v.png").unlink()
+    kept = load_cameras(sized, require_images=False)
+    assert [(c.name, c.width, c.height) for c in kept] == [("v", 64, 48)]
+    unsized = _transforms_dataset(tmp_path / "unsized", fl_x=50.0)
+    record = json.loads((unsized / "transforms.json").read_text())
+    for frame in record["frames"]:
+        del frame["w"], frame["h"]
+    (unsized / "transforms.json").write_text(json.dumps(record))
+    (unsized / "images" / "v.png").unlink()
+    with pytest.raises(InputError, match="no usable camera"):  # only the image could give its size
+        load_cameras(unsized, require_images=False)
+
+
+def test_a_transforms_frame_through_a_symbolic_link_is_named_as_its_file_path_names_it(tmp_path):
+    """Round 39: a camera took the stem of the file its image's link leads to (a git-annex or DVC key, a content
+    hash), so no feature file matched and two links to one file collided; the name is the file_path's."""
+    from PIL import Image
+
+    (tmp_path / "images").mkdir()
+    (tmp_path / "store").mkdir()
+    frames = []
+    for i in range(2):
+        Image.new("RGB", (64, 48)).save(tmp_path / "store" / f"{i:012x}.png")
+        (tmp_path / "images" / f"frame_{i}.png").symlink_to(f"../store/{i:012x}.png")
+        matrix = np.eye(4)
+        matrix[2, 3] = 3.0 + i
+        frames.append({"file_path": f"images/frame_{i}", "transform_matrix": matrix.tolist()})  # no suffix: tried
+    frames[0]["file_path"] += ".png"
+    (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": frames}))
+    cameras = load_cameras(tmp_path)
+    assert [c.name for c in cameras] == ["frame_0", "frame_1"]
+    assert [c.image_path.name for c in cameras] == ["000000000000.png", "000000000001.png"]  # the file itself, resolved
+
+
+def test_a_frames_own_camera_angle_x_wins_over_the_files_shared_fl_x(tmp_path):
+    """Round 39: per-frame intrinsics override the file's, but a shared fl_x was taken before a frame's own
+    camera_angle_x (a 7 % wrong focal length, silently)."""
+    root = _transforms_dataset(tmp_path, fl_x=50.0, frame={"camera_angle_x": 1.2})
+    (camera,) = load_cameras(root)
+    assert camera.fx == pytest.approx(32.0 / np.tan(0.6), rel=1e-12)
+    (shared,) = load_cameras(_transforms_dataset(tmp_path / "shared", fl_x=50.0))
+    assert shared.fx == 50.0
+
+
+def test_a_colmap_camera_id_past_2_31_in_cameras_bin_is_read_as_images_bin_refers_to_it(tmp_path):
+    """Round 39: COLMAP's camera_t is uint32; cameras.bin's id was read as int32, so a model whose camera id is
+    3,000,000,000 (pycolmap writes such models) was refused with an error blaming images.bin."""
+    import struct
+
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    cam_id = 3_000_000_000
+    (sparse / "cameras.bin").write_bytes(struct.pack("<QIiQQ4d", 1, cam_id, 1, 64, 48, 50.0, 50.0, 32.0, 24.0))
+    (sparse / "images.bin").write_bytes(struct.pack("<QI7dI", 1, 1, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, cam_id) + b"a.png\0"
+                                        + struct.pack("<Q", 0))
+    (camera,) = load_cameras(tmp_path, require_images=False)
+    assert (camera.name, camera.width, camera.fx, camera.cx) == ("a", 64, 50.0, 32.0)

@@ -400,3 +400,18 @@ def test_huge_ids_of_overlapping_levels_are_refused_not_wrapped_into_valid_rows(
         with pytest.raises(InputError, match=rf"w_s\.npy: mask id {2**62 + 5} at level 1 \({2**62 + 5 + 2**63} once offset by the "
                                              rf"{2**63} ids of the levels before it\) is out of range"):
             read_features(tmp_path, "w", level=1)
+
+
+def test_embeddings_of_another_dimension_name_the_odd_file_not_the_first_view(tmp_path):
+    """Round 39: with the first view's embeddings stored transposed, the error blamed the second view's good file
+    ("orbit_001_f.npy: embeddings are 512-D but orbit_000_f.npy has 32-D ones"); the file of the fewest views is named."""
+    from drsplat.registration.views import read_feature_headers
+
+    rng = np.random.default_rng(9)
+    cams = [Camera(R=np.eye(3), t=np.zeros(3), fx=60.0, fy=60.0, cx=20.0, cy=15.0, width=40, height=30, name=f"v{i}") for i in range(4)]
+    for cam in cams:
+        write_features(tmp_path, cam.name, rng.integers(-1, 6, size=(4, 15, 20)), rng.normal(size=(6, 16)).astype(np.float32))
+    np.save(feat_path(tmp_path, "v0"), np.load(feat_path(tmp_path, "v0")).T.copy())  # 16 x 6: stored transposed
+    with pytest.raises(InputError, match=r"v0_f.npy: field 'shape': embeddings are 6-D but v1_f.npy has 16-D ones \(as have 3 of the 4 "
+                                         r"views\).*stored transposed"):
+        read_feature_headers(tmp_path, cams, 1)

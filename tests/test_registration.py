@@ -401,6 +401,27 @@ def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
     assert "2 feature pairs in" in caplog.text and "are incomplete" in caplog.text and cams[0].name in caplog.text
 
 
+def test_cameras_named_with_several_dots_match_langsplats_feature_files(tiny, caplog):
+    """Round 39: LangSplat names a view's files by the image name up to its first dot (frame-000000.color.png ->
+    frame-000000_s.npy), 3DGS its cameras the same way; pairing by the last dot's stem matched none. The fallback
+    registers the same bytes as the plain names, and is not taken where two cameras would share one stem."""
+    cams = load_cameras(tiny)
+    scene = load_ply(tiny / "scene.ply")
+    plain = register_features(scene, cams, tiny / "features", RegisterOptions(aggregate="paper"), show_progress=False)
+    dotted = [dataclasses.replace(c, name=f"{c.name}.color") for c in cams]
+    with caplog.at_level(logging.INFO, logger="drsplat.registration"):
+        again = register_features(scene, dotted, tiny / "features", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert again.num_views == plain.num_views == len(cams) and not again.missing_features
+    assert np.array_equal(again.features, plain.features) and np.array_equal(again.weights, plain.weights)
+    assert f"{len(cams)} cameras matched their feature files by the image name up to its first dot" in caplog.text
+    stems = [cams[0].name]
+    twins = [dataclasses.replace(cams[0], name=f"{cams[0].name}.left"), dataclasses.replace(cams[0], name=f"{cams[0].name}.right")]
+    sel = pair_views(twins, stems)
+    assert sel.views == [] and sel.missing == [c.name for c in twins] and sel.unmatched == stems
+    exact = pair_views([cams[0], twins[0]], stems)  # the exact name keeps its files; the dotted one is not a second view of them
+    assert [c.name for c in exact.views] == [cams[0].name] and exact.missing == [twins[0].name]
+
+
 def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
     """Features stored at twice the camera resolution register exactly like the originals."""
     cams = load_cameras(tiny)

@@ -7,7 +7,9 @@ ids resampled to its camera (a uniform scale only).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,14 +35,30 @@ class ViewSelection:
     unmatched: list[str] = field(default_factory=list)
 
 
+def feature_stem(name: str, available: set[str]) -> str | None:
+    """The feature stem of the camera image stem `name`: `name` itself, else the name up to its first
+    dot, the stem LangSplat's preprocess.py names its files by (`name.split('.')[0]`, as 3DGS names
+    its cameras: "frame-000000.color.png" -> frame-000000_s.npy), or None."""
+    if name in available:
+        return name
+    short = name.split(".")[0]
+    return short if short != name and short in available else None
+
+
 def pair_views(cameras: Sequence[Camera], stems: Sequence[str]) -> ViewSelection:
-    """Match cameras to feature files by image stem."""
+    """Match cameras to feature files by image stem (`feature_stem`); a view paired by LangSplat's
+    stem takes it as its name, by which its files are read."""
     available = set(stems)
+    keys = [feature_stem(c.name, available) for c in cameras]
+    shorts = Counter(k for c, k in zip(cameras, keys) if k is not None and k != c.name)
     names = {c.name for c in cameras}
+    # a stem that two images cut to, or that another camera is named: whose files they are is unknown, so no dotted name takes them
+    keys = [None if k is not None and k != c.name and (shorts[k] > 1 or k in names) else k for c, k in zip(cameras, keys)]
+    used = {k for k in keys if k is not None}
     return ViewSelection(
-        views=[c for c in cameras if c.name in available],
-        missing=[c.name for c in cameras if c.name not in available],
-        unmatched=sorted(s for s in stems if s not in names),
+        views=[c if k == c.name else dataclasses.replace(c, name=k) for c, k in zip(cameras, keys) if k is not None],
+        missing=[c.name for c, k in zip(cameras, keys) if k is None],
+        unmatched=sorted(s for s in stems if s not in used),
     )
 
 
@@ -66,6 +84,11 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
         log.warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
                     "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
+    given = {c.name for c in cameras}
+    renamed = [c.name for c in sel.views if c.name not in given]
+    if renamed:
+        log.info("%d cameras matched their feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
+                 len(renamed), ", ".join(renamed[:3]))
     if sel.unmatched:
         log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
     duplicates = len(sel.views) - len({c.name for c in sel.views})
@@ -103,6 +126,7 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
     view gives D.
     """
     dim, first, max_masks, total_masks = 0, None, 0, 0
+    dims: dict[int, list[Path]] = {}  # D -> the embedding files of that D
     for cam in views:
         spath, fpath = seg_path(features_dir, cam.name), feat_path(features_dir, cam.name)
         if missing_ok and not (spath.is_file() and fpath.is_file()):
@@ -113,11 +137,16 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
         f_shape, f_dtype, _ = npy_header(fpath)
         check_feat_layout(fpath, f_shape, f_dtype)
         max_masks, total_masks = max(max_masks, int(f_shape[0])), total_masks + int(f_shape[0])
+        dims.setdefault(int(f_shape[1]), []).append(fpath)
         if first is None:
             dim, first = int(f_shape[1]), fpath
-        elif f_shape[1] != dim:
-            raise InputError(fpath, f"embeddings are {f_shape[1]}-D but {first.name} has {dim}-D ones: one registration reads one "
-                                    "model's features (a folder mixing two CLIP models?)", field="shape")
+    if len(dims) > 1:  # the files of the fewest views are the odd ones (a transposed file, another model's), not the first view's D
+        common = max(dims, key=lambda d: len(dims[d]))
+        odd = min((d for d in dims if d != common), key=lambda d: len(dims[d]))
+        fpath = dims[odd][0]
+        raise InputError(fpath, f"embeddings are {odd}-D but {dims[common][0].name} has {common}-D ones (as have {len(dims[common])} of the "
+                                f"{sum(map(len, dims.values()))} views): one registration reads one model's features (a folder mixing two CLIP "
+                                "models, or an embedding file stored transposed?)", field="shape")
     if first is None and views:  # every view's files missing here
         npy_header(feat_path(features_dir, views[0].name))  # the error naming the first view's file
     return FeatureHeaders(dim, max_masks, total_masks)
