@@ -228,6 +228,24 @@ def otsu_scores(scores: np.ndarray) -> np.ndarray:
     return s[np.isfinite(s) & (s != 0)]
 
 
+OTSU_NOISE_SPREAD = 1e-5  # scores spanning less than this are float32 rounding of one value (a query unlike every feature: ~1e-8)
+
+
+def otsu_split_problem(scores: np.ndarray, threshold: float) -> str | None:
+    """Why Otsu's `threshold` of `scores` is no real split, in words, or None when it is one: no
+    score but 0, one value only, or a span under OTSU_NOISE_SPREAD (float32 rounding of one value).
+    `drsplat query` and the viewer each say it in their own terms."""
+    scored = otsu_scores(scores)
+    if scored.size == 0:
+        return f"no Gaussian scores anything but 0, so there is nothing to split; every assigned Gaussian scores {threshold:.4f} and is selected"
+    if scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
+        return f"every one of the {scored.size:,} scored Gaussians scores {threshold:.4f}, so there is nothing to split; all of them are selected"
+    if scored.max() - scored.min() < OTSU_NOISE_SPREAD:
+        return (f"the {scored.size:,} scored Gaussians' scores span only {scored.max() - scored.min():.2g}, so the split ({threshold:.4g}) "
+                "is rounding noise, not a match")
+    return None
+
+
 def otsu_threshold(scores: np.ndarray, bins: int = 256) -> float:
     """Threshold maximising the between-class variance of `otsu_scores` (Otsu); with one value
     among them (nothing to split), that value, which selects them all.

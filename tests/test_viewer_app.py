@@ -370,12 +370,46 @@ def test_still_frames_are_drawn_progressively_and_equal_a_whole_frame(app, monke
             break
     assert len(progress) >= 4 and progress[-1] is None, progress
     assert all(0 < p < 1 for p in progress[:-1]), "the status line shows the progress in between"
-    chunked = _screen(app).copy()
+    chunked = app._target.read_rgb()  # the splats alone: the panels over them settle in a window's first frames
     app.progressive = False
     app._drawn_key = None
     app.run(max_frames=1)
     app.progressive = True
-    np.testing.assert_array_equal(chunked, _screen(app), err_msg="chunks drawn in order blend to the same image")
+    np.testing.assert_array_equal(chunked, app._target.read_rgb(), err_msg="chunks drawn in order blend to the same image")
+
+
+def test_a_style_change_while_a_still_frame_is_drawn_is_in_the_frame_it_ends_with(app, monkeypatch):
+    """Round 39: the style is applied in the projection that starts a still frame; a query, threshold or mode change
+    made while the frame was drawn in chunks was lost (the frame ended with the old style and was never redrawn)."""
+    import viewer.app
+
+    state = app.state
+    app.input.last_change = 0.0
+    app.view.rotate(-20, 0)
+    _settle(app)
+    monkeypatch.setattr(viewer.app, "MIN_STILL_CHUNK", 100)
+    monkeypatch.setattr(viewer.app, "next_still_chunk", lambda chunk, num, seconds, target=0: 700)
+    app.progressive = True
+    app._still_chunk = 700
+    app._drawn_key = None
+    app.run(max_frames=1)
+    assert app.still_progress() is not None, "a still frame is in progress"
+    assert state.run_oracle_query(state.oracle.names.index("ball"))  # a new query: the highlight changes
+    mode = state.mode
+    for _ in range(20):
+        app.run(max_frames=1)
+        if app.still_progress() is None:
+            break
+    assert app.still_progress() is None
+    ended = app._target.read_rgb()
+    app.progressive = False
+    app._drawn_key = None
+    app.run(max_frames=1)
+    app.progressive = True
+    whole = app._target.read_rgb()
+    state.query, state.mode = None, mode
+    state.style_version += 1
+    np.testing.assert_array_equal(ended, whole, err_msg="the still frame drawn in chunks shows the style of its end")
 
 
 def test_the_loop_sleeps_when_nothing_changes(app, monkeypatch):

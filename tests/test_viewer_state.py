@@ -238,3 +238,124 @@ def test_an_embedding_file_of_several_rows_says_the_viewer_queries_by_the_first(
     count = len(state.messages)
     assert state.run_embedding_query(tmp_path / "one.npy")
     assert not any("embeddings; the viewer" in m.text for m in state.messages[count:])
+
+
+@pytest.mark.parametrize("value, expected", [(0.0, 20.0), (float("nan"), 60.0), (1e6, 110.0), (-30.0, 20.0), (75.0, 75.0)])
+def test_a_typed_field_of_view_is_kept_in_the_sliders_range(value, expected):
+    """Round 39: a typed fov of 0 divided by zero and closed the window, NaN blanked the view, 1e6 gave a negative
+    focal length; roll and fly speed took NaN (`viewer.settings.in_range`, which the View panel applies)."""
+    from viewer.camera import intrinsics_for
+    from viewer.settings import FOV_RANGE, in_range
+
+    fov = in_range(value, *FOV_RANGE, 60.0)
+    assert fov == expected
+    fx, fy, _, _ = intrinsics_for(640, 480, fov)
+    assert np.isfinite([fx, fy]).all() and fx > 0 and fy > 0
+
+
+class _OracleEncoder:
+    """A stand-in CLIP text encoder: the dataset's oracle vectors for its label names (tests/test_viewer_render.py)."""
+
+    def __init__(self, state):
+        self.model_id = state.field.clip_model
+        self._vectors = dict(zip(state.oracle.names, state.oracle.embeddings))
+
+    def encode_text(self, phrases):
+        rng = np.random.default_rng(0)  # LERF's canonical negatives ("object", "things", ...): fixed random directions
+        dim = next(iter(self._vectors.values())).shape[0]
+        return np.stack([self._vectors[p] if p in self._vectors else rng.normal(size=dim) for p in phrases]).astype(np.float32)
+
+
+def test_a_relevancy_query_starts_at_the_clis_threshold_of_one_half(state):
+    """Round 39: with an encoder loaded every text query is scored by relevancy, and the GUI started it at Otsu's
+    split (selecting ~78 % of a scene with negatives) where `drsplat query --relevancy` and the evaluation use 0.5."""
+    from drsplat.query import select
+
+    names = state.oracle.names
+    state.encoder = _OracleEncoder(state)
+    state.settings.query.negatives = f"{names[0]}, {names[1]}"
+    assert state.run_text_query(names[2]) and state.query.metric == "relevancy"
+    assert state.threshold == 0.5
+    expected = select(state.query.scores, 0.5) & state.query.assigned
+    np.testing.assert_array_equal(state.selection, expected)
+
+
+def test_a_cosine_query_whose_scores_are_one_value_says_otsu_has_nothing_to_split(state, tmp_path):
+    """Round 39: 500 copies of one Gaussian scored one value; the GUI selected them all without the warning
+    `drsplat query --threshold auto` gives."""
+    from drsplat.lang import export_scene
+    from viewer.state import ViewerState
+
+    one = np.flatnonzero(state.field.assigned())[0]
+    rows = np.full(500, one)
+    out = tmp_path / "same.ply"
+    export_scene(state.scene.subset(rows), state.field.subset(rows), out, "drsplat")
+    same = ViewerState()
+    assert same.load_scene(out) and same.load_source(state.source_dir)
+    assert same.run_oracle_query(0) and same.query.metric == "cosine"
+    warned = [m.text for m in same.messages if m.level == "warning"]
+    assert any("automatic threshold: every one of the 500 scored Gaussians scores" in t for t in warned), warned
+    assert same.selection.sum() == 500
+
+
+def test_a_click_in_hide_selection_mode_picks_what_is_drawn_not_the_hidden_selection(state):
+    """Round 39: ctrl+click rasterized the whole scene, so in *hide selection* the click queried the hidden object
+    behind which the user clicked; now only the Gaussians drawn are picked (and in *selection only* the same)."""
+    from drsplat.raster import rasterize
+    from viewer.camera import camera_for_size
+
+    state.run_oracle_query(0)
+    state.set_mode("hide_selection")
+    hidden = state.selection.copy()
+    assert 0 < hidden.sum() < hidden.size
+    cam = camera_for_size(state.cameras[0], 96, None)
+    front = rasterize(state.scene, cam, topk=1).ids[..., 0]
+    vs, us = np.nonzero((front >= 0) & hidden[np.maximum(front, 0)])
+    assert vs.size, "the hidden label is in front somewhere in this view"
+    picks = [state.pick(cam, u + 0.5, v + 0.5) for v, u in zip(vs[:: max(1, vs.size // 8)], us[:: max(1, vs.size // 8)])]
+    assert any(p.size for p in picks)
+    assert not any(hidden[p].any() for p in picks if p.size), "no hidden Gaussian is picked"
+    state.set_mode("selection")
+    shown = [state.pick(cam, u + 0.5, v + 0.5) for v, u in zip(vs[:4], us[:4])]
+    assert all(hidden[p].all() for p in shown if p.size) and any(p.size for p in shown)
+
+
+def test_an_oracle_label_file_that_is_refused_is_said_in_the_gui(state, tmp_path):
+    """Round 39: a repeated label name made the oracle buttons vanish with the reason in the terminal only."""
+    import json
+
+    from drsplat.defaults import ORACLE_LABEL_NAMES
+
+    ds = Path(shutil.copytree(state.source_dir, tmp_path / "labels"))
+    names = json.loads((ds / ORACLE_LABEL_NAMES).read_text())
+    names[1] = names[0]
+    (ds / ORACLE_LABEL_NAMES).write_text(json.dumps(names))
+    assert state.load_source(ds) and state.oracle is None
+    assert state.messages[-1].level == "warning" and "no oracle labels" in state.messages[-1].text
+    assert "repeats" in state.messages[-1].text
+
+
+def test_a_scene_opened_beside_the_current_one_keeps_its_cameras_only_when_it_is_derived_from_it(state, tmp_path):
+    """Round 39: every PLY opened from the current scene's folder kept its cameras and oracle, so registering an
+    unrelated scene there used the other scene's cameras and features, silently wrong."""
+    import types
+
+    from drsplat.lang import export_scene
+    from viewer.app import ViewerApp, derived_from
+
+    scene, field = state.scene, state.field
+    extent = float(np.ptp(scene.means, axis=0).max())
+    half = np.arange(0, scene.num_gaussians, 2)
+    assert derived_from(scene.means[half], scene.means) and not derived_from(scene.means, scene.means[half])
+    assert derived_from(scene.means + 1e-4 * extent, scene.means), "quantised positions (.spz, compressed PLY) still match"
+    assert not derived_from(scene.means + 0.05 * extent, scene.means)
+    folder = state.scene_path.parent
+    export_scene(scene.subset(half), field.subset(half), folder / "export.ply", "drsplat")
+    host = types.SimpleNamespace(state=state)
+    assert ViewerApp.open_scene(host, folder / "export.ply") and len(state.cameras) and state.oracle is not None
+    other = scene.subset(half)
+    other.means = other.means + np.array([0.3 * extent, 0.0, 0.0], other.means.dtype)
+    export_scene(other, field.subset(half), folder / "other.ply", "drsplat")
+    assert ViewerApp.open_scene(host, folder / "other.ply")
+    assert state.cameras == [] and state.oracle is None and state.source_dir is None
+    assert "is not the previous scene" in " ".join(m.text for m in state.messages[-3:])

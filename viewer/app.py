@@ -258,6 +258,7 @@ class ViewerApp:
             self.renderer.set_style(state.style())
             self._style_version = state.style_version
             self._drawn_key = None
+            self._still = None  # its projection holds the old style: a still frame in progress starts again
 
     def camera_changed(self) -> None:
         self.input.last_change = time.perf_counter()
@@ -570,8 +571,13 @@ class ViewerApp:
             return False
         path = Path(str(path).strip())
         same_folder = self.state.scene_path is not None and path.resolve().parent == self.state.scene_path.resolve().parent
+        previous = self.state.scene
         if not self.state.load_scene(path):
             return False
+        if same_folder and previous is not None and not (derived_from(self.state.scene.means, previous.means) or derived_from(previous.means, self.state.scene.means)):
+            self.state.info(f"{path.name} is not the previous scene, an export or registration of it, nor the scene it came from: "
+                            "its training cameras and oracle labels were dropped (start with --source to give its own)")
+            same_folder = False
         if not same_folder:
             self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
         elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir):
@@ -628,6 +634,21 @@ class ViewerApp:
             self.state.error(f"screenshot to {path} failed: {exc}")
             return
         self.state.info(f"screenshot {image.shape[1]}x{image.shape[0]} saved to {path}")
+
+
+def derived_from(means: np.ndarray, previous: np.ndarray, tolerance: float = 1e-3) -> bool:
+    """Whether every Gaussian of `means` [M, 3] lies where one of `previous` [N, 3] does (within
+    `tolerance` x its extent): an export or a registration of that scene (a subset of its rows, .spz /
+    compressed positions quantised), not another scene that happens to share its folder."""
+    from scipy.spatial import cKDTree
+
+    new, old = np.asarray(means, np.float64), np.asarray(previous, np.float64)
+    new, old = new[np.isfinite(new).all(axis=1)], old[np.isfinite(old).all(axis=1)]
+    if new.shape[0] == 0 or old.shape[0] == 0 or new.shape[0] > old.shape[0]:
+        return new.shape[0] == 0
+    extent = max(float(np.ptp(old, axis=0).max()), 1e-12)
+    dist, _ = cKDTree(old).query(new, distance_upper_bound=tolerance * extent)
+    return bool(np.isfinite(dist).all())
 
 
 def clamped_render_scale(value: float) -> float:

@@ -21,7 +21,7 @@ from imgui_bundle import imgui
 
 from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
 from viewer.camera import UP_AXES, ViewController
-from viewer.settings import CODEBOOK_CHOICES, FLY_SPEED_RANGE, RENDER_SCALE_RANGE
+from viewer.settings import CODEBOOK_CHOICES, FLY_SPEED_RANGE, FOV_RANGE, RENDER_SCALE_RANGE, ROLL_RANGE, in_range
 from viewer.state import ViewerState
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
 
@@ -183,15 +183,17 @@ class ViewPanel:
             settings.up_axis = names[current]
             view.set_up_axis(settings.up_axis, host.state.cameras)
             host.camera_changed()
-        changed, roll = imgui.slider_float("roll", math.degrees(view.roll), -180.0, 180.0, "%.0f deg")
+        changed, roll = imgui.slider_float("roll", math.degrees(view.roll), *ROLL_RANGE, "%.0f deg")
         if changed:
-            view.set_roll(math.radians(roll))
+            view.set_roll(math.radians(in_range(roll, *ROLL_RANGE, math.degrees(view.roll))))
             host.camera_changed()
-        _, settings.fly_speed = imgui.slider_float("fly speed", settings.fly_speed, *FLY_SPEED_RANGE, "%.2f", imgui.SliderFlags_.logarithmic.value)
-        _, settings.render_scale = imgui.slider_float("resolution", settings.render_scale, *RENDER_SCALE_RANGE, "%.2fx")
-        changed, fov = imgui.slider_float("fov", view.fov_y_deg, 20.0, 110.0, "%.0f deg")
+        changed, speed = imgui.slider_float("fly speed", settings.fly_speed, *FLY_SPEED_RANGE, "%.2f", imgui.SliderFlags_.logarithmic.value)
         if changed:
-            view.fov_y_deg = fov
+            settings.fly_speed = in_range(speed, *FLY_SPEED_RANGE, settings.fly_speed)
+        _, settings.render_scale = imgui.slider_float("resolution", settings.render_scale, *RENDER_SCALE_RANGE, "%.2fx")
+        changed, fov = imgui.slider_float("fov", view.fov_y_deg, *FOV_RANGE, "%.0f deg")
+        if changed:
+            view.fov_y_deg = in_range(fov, *FOV_RANGE, view.fov_y_deg)
             host.camera_changed()
         n = len(host.state.cameras)
         if n:

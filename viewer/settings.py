@@ -12,6 +12,7 @@ action (a query phrase, a file to open) and which sections are open to the panel
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,16 @@ FLY_SPEED = 0.4  # scene-distance units per second (times the orbit distance)
 FLY_SPEED_RANGE = (0.02, 5.0)
 RENDER_SCALE_RANGE = (0.25, 1.0)
 CODEBOOK_CHOICES = ("none", "scene", "file")
+FOV_RANGE = (20.0, 110.0)  # the View panel's field of view, degrees
+ROLL_RANGE = (-180.0, 180.0)  # degrees
+
+
+def in_range(value: float, lo: float, hi: float, fallback: float) -> float:
+    """`value` clamped to [lo, hi]; `fallback` when it is not a number. imgui's ctrl+click lets a
+    slider take any typed value: a field of view of 0 divided by zero (the frame loop ended), NaN
+    blanked the view, and a NaN fly speed outlived "reset view"."""
+    value = float(value)
+    return min(max(value, lo), hi) if math.isfinite(value) else fallback
 
 
 @dataclass

@@ -22,7 +22,7 @@ import numpy as np
 
 from drsplat import query as dq
 from drsplat.cameras import Camera, dataset_inputs, load_cameras
-from drsplat.commands.common import protected_feature_folders
+from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
@@ -30,7 +30,7 @@ from drsplat.frames import cameras_in_scene_frame
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, export_kind, export_scene, read_field
-from drsplat.query import load_query_embeddings, otsu_threshold, select
+from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
@@ -171,8 +171,11 @@ class ViewerState:
         self.source_dir = source
         if self.features_dir is None and (source / "features").is_dir():
             self.features_dir = source / "features"
-        self.oracle = read_oracle_queries(source)
+        problems: list[str] = []
+        self.oracle = read_oracle_queries(source, problems)
         self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
+        for problem in problems:  # the labels are gone from the panel: say why there (last, in the status line), not only in the terminal
+            self.warning(f"no oracle labels: {problem}")
         return True
 
     def next_step(self) -> str:
@@ -268,7 +271,7 @@ class ViewerState:
         if result.assigned is None and self.field is not None:
             result.assigned = self.field.assigned()
         self.query = result
-        self.threshold = float(otsu_threshold(result.scores if result.assigned is None else result.scores[result.assigned]))
+        self.threshold = self._first_threshold(result)
         if self.mode in ("color", "segmentation"):
             self.mode = "highlight"
         self.style_version += 1
@@ -322,6 +325,19 @@ class ViewerState:
         self._set_query(QueryResult(Path(path).name, "embedding", scores, metric))
         return True
 
+    def _first_threshold(self, result: QueryResult) -> float:
+        """The threshold a new query starts at, as `drsplat query` chooses it: 0.5 for relevancy (a
+        Gaussian nearer the query than the negatives), Otsu's split of the assigned scores for cosine,
+        with a warning when that split is none (one value, or rounding noise)."""
+        if result.metric == "relevancy":
+            return float(DEFAULT_RELEVANCY_THRESHOLD)
+        scored = result.scores if result.assigned is None else result.scores[result.assigned]
+        threshold = float(otsu_threshold(scored))
+        problem = otsu_split_problem(scored, threshold)
+        if problem is not None:
+            self.warning(f"automatic threshold: {problem} (move the threshold to choose)")
+        return threshold
+
     def pick(self, camera: Camera, u: float, v: float, radius: int = 2, topk: int = 8) -> np.ndarray:
         """Gaussians under pixel (u, v) of `camera`: ids [k] by descending blending weight w = T·α.
 
@@ -331,13 +347,23 @@ class ViewerState:
 
         if self.scene is None:
             return np.zeros(0, np.int64)
-        if self._prepared is None:
-            self._prepared = prepare_scene(self.scene)
+        shown = None
+        if self.query is not None and self.mode in ("selection", "hide_selection"):  # hidden splats are not under the cursor
+            shown = np.flatnonzero(self.export_mask())
+            if shown.size == 0:
+                return np.zeros(0, np.int64)
+            prepared = prepare_scene(self.scene.subset(shown))
+        else:
+            if self._prepared is None:
+                self._prepared = prepare_scene(self.scene)
+            prepared = self._prepared
         size = 2 * radius + 1
         u0, v0 = int(np.floor(u)) - radius, int(np.floor(v)) - radius
         window = dataclasses.replace(camera, cx=camera.cx - u0, cy=camera.cy - v0, width=size, height=size)
-        out = rasterize(self._prepared, window, topk=topk)
+        out = rasterize(prepared, window, topk=topk)
         ids, weights = out.ids.reshape(-1), out.weights.reshape(-1)
+        if shown is not None:
+            ids = np.where(ids >= 0, shown[np.maximum(ids, 0)], -1)
         keep = ids >= 0
         if not keep.any():
             return np.zeros(0, np.int64)
@@ -599,7 +625,7 @@ class ViewerState:
         return True
 
 
-def read_oracle_queries(source: Path) -> OracleQueries | None:
+def read_oracle_queries(source: Path, problems: list[str] | None = None) -> OracleQueries | None:
     """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
     names_path, emb_path = source / ORACLE_LABEL_NAMES, source / ORACLE_TEXT_EMBEDDINGS
     if not (names_path.exists() and emb_path.exists()):  # a FIFO or folder there is refused by name below
@@ -611,9 +637,16 @@ def read_oracle_queries(source: Path) -> OracleQueries | None:
         names = checked_names(names_path, names)  # strings, not blank, no control characters, none repeated
         emb = load_npy(emb_path, "embedding array")  # header checked against the file size
     except (OSError, ValueError, DrsplatError) as exc:
-        log.warning("ignoring oracle queries of %s: %s", source, exc)
-        return None
+        return _no_oracle(problems, f"ignoring oracle queries of {source}: {exc}")
     if emb.ndim != 2 or emb.shape[0] != len(names):
-        log.warning("ignoring oracle queries of %s: %d names but embeddings of shape %s", source, len(names), emb.shape)
-        return None
+        return _no_oracle(problems, f"ignoring oracle queries of {source}: {len(names)} names but embeddings of shape {emb.shape}")
     return OracleQueries([str(n) for n in names], emb.astype(np.float32))
+
+
+def _no_oracle(problems: list[str] | None, text: str) -> None:
+    """Record why the oracle labels were not read: in `problems` (shown in the GUI), else the log."""
+    if problems is not None:
+        problems.append(text)
+    else:
+        log.warning("%s", text)
+    return None

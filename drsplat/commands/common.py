@@ -30,7 +30,6 @@ log = logging.getLogger(__name__)
 DEFAULT_RELEVANCY_THRESHOLD = 0.5
 MAX_IMAGE_WIDTH = 16384  # --resolution as a width, viewer windows (larger than any GPU texture)
 MAX_COUNT = 10**9  # generic upper bound for "how many" flags (--top, --max-train...)
-NOISE_SPREAD = 1e-5  # scores spanning less than this are float32 rounding of one value (a query unlike every feature: ~1e-8)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -293,22 +292,15 @@ def checked_text_query(phrase: str) -> str:
 
 def resolve_threshold(value: str | None, scores: np.ndarray, relevancy: bool) -> float:
     """The selection threshold: a number, or 'auto' (Otsu); None = 0.5 for relevancy, 'auto' for cosine."""
-    from drsplat.query import otsu_scores, otsu_threshold
+    from drsplat.query import otsu_split_problem, otsu_threshold
 
     if value is None:
         value = str(DEFAULT_RELEVANCY_THRESHOLD) if relevancy else "auto"
     if value == "auto":
         threshold = otsu_threshold(scores)
-        scored = otsu_scores(scores)
-        if scored.size == 0:
-            log.warning("--threshold auto: no Gaussian scores anything but 0, so there is nothing to split; every assigned Gaussian "
-                        "scores %.4f and is selected (give --threshold a number to choose)", threshold)
-        elif scored.min() == scored.max():  # Otsu splits two groups; one value has none to split
-            log.warning("--threshold auto: every one of the %s scored Gaussians scores %.4f, so there is nothing to split; "
-                        "all of them are selected (give --threshold a number to choose)", f"{scored.size:,}", threshold)
-        elif scored.max() - scored.min() < NOISE_SPREAD:  # a query orthogonal to every feature: float32 rounding, ~1e-8
-            log.warning("--threshold auto: the %s scored Gaussians' scores span only %.2g, so the split (%.4g) is rounding noise, "
-                        "not a match (give --threshold a number to choose)", f"{scored.size:,}", scored.max() - scored.min(), threshold)
+        problem = otsu_split_problem(scores, threshold)
+        if problem is not None:
+            log.warning("--threshold auto: %s (give --threshold a number to choose)", problem)
         else:
             log.info("automatic (Otsu) threshold: %.4f", threshold)
         return threshold
