@@ -835,6 +835,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
         else:
             width, height = _image_size(image)
+            _check_half_size(path, rec, (width, height), image, where)
         fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where)
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
@@ -928,6 +929,16 @@ def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], wh
                              f"{size} pixels in {name}; it must lie in [{low:g}, {high:g}] ({MIN_FOCAL_RATIO:g} to {MAX_INTRINSIC_RATIO:g} "
                              f"times the {name}), so the angle in [{narrowest:.9g}, {widest:.9g}] rad", field=key)
     return focal
+
+
+def _check_half_size(path: Path, rec: dict, size: tuple[int, int], image: Path, where: str) -> None:
+    """A record giving only one of w and h, the other read from the image: InputError naming the one
+    given when it is not the image's (the intrinsics would refer to a size no file has)."""
+    for key, got in zip(("w", "h"), size):
+        if key in rec and _size(path, rec, key, where) != got:
+            other = "h" if key == "w" else "w"
+            raise InputError(path, f"gives {key} = {plain_numbers(rec[key])}{where} but no {other}, and its image {image.name} is "
+                             f"{size[0]}x{size[1]}: give both w and h (the size the intrinsics refer to), or neither", field=key)
 
 
 def read_3dgs_cameras_json(path: Path, images_dir: Path | None, require_images: bool = True) -> tuple[list[Camera], list[str]]:
@@ -1407,6 +1418,19 @@ def lens_shifts(camera: Camera) -> dict[str, float]:
     with np.errstate(over="ignore"):
         terms = np.abs(np.asarray(camera.distortion, np.float64)) * np.array([r * r, r**4, 3.0 * r, 3.0 * r])
     return dict(zip(DISTORTION_FIELDS, terms.tolist()))
+
+
+def lens_corner_shift(camera: Camera) -> float:
+    """How far, in pixels, the camera's lens distortion moves the image corner farthest from the
+    principal point (0 without distortion): where masks of the distorted photo and the pinhole
+    camera's pixels part most."""
+    if camera.distortion is None:
+        return 0.0
+    xs, ys = (np.array([0.0, camera.width]) - camera.cx) / camera.fx, (np.array([0.0, camera.height]) - camera.cy) / camera.fy
+    corners = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    corner = corners[[np.argmax((corners**2).sum(axis=1))]]  # the tangential terms are not symmetric: the corner itself, signed
+    moved = distort_normalized(corner, np.asarray(camera.distortion, np.float64)) - corner
+    return float(np.hypot(moved[0, 0] * camera.fx, moved[0, 1] * camera.fy))
 
 
 def check_distortion(path: Path, camera: Camera, where: str) -> None:

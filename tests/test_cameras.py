@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import warnings
@@ -1004,3 +1005,33 @@ def test_a_colmap_camera_id_past_2_31_in_cameras_bin_is_read_as_images_bin_refer
                                         + struct.pack("<Q", 0))
     (camera,) = load_cameras(tmp_path, require_images=False)
     assert (camera.name, camera.width, camera.fx, camera.cx) == ("a", 64, 50.0, 32.0)
+
+
+def test_a_transforms_json_giving_w_without_h_must_agree_with_its_image(tmp_path):
+    """Round 39: a frame giving w but no h took both from the image, silently ignoring a w that named another size."""
+    root = _transforms_dataset(tmp_path / "bad", fl_x=50.0, frame={"w": 128})
+    record = json.loads((root / "transforms.json").read_text())
+    del record["frames"][0]["h"]
+    (root / "transforms.json").write_text(json.dumps(record))
+    with pytest.raises(InputError, match=r"field 'w': gives w = 128 in frame 0 but no h, and its image v.png is 64x48"):
+        load_cameras(root)
+    record["frames"][0]["w"] = 64
+    (root / "transforms.json").write_text(json.dumps(record))
+    (camera,) = load_cameras(root)
+    assert (camera.width, camera.height) == (64, 48)
+
+
+def test_the_corner_shift_of_a_lens_is_where_its_distortion_moves_the_farthest_corner():
+    """`lens_corner_shift`, which the warning about distorted views and another tool's features quotes: against the
+    distortion of the corner computed by hand."""
+    from drsplat.cameras import lens_corner_shift
+
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=500.0, fy=400.0, cx=300.0, cy=260.0, width=640, height=480, name="v",
+                 distortion=np.array([-0.1, 0.02, 0.001, -0.002]))
+    x, y = 340.0 / 500.0, -260.0 / 400.0  # the farthest corner, (640, 0)
+    r2 = x * x + y * y
+    radial = 1 - 0.1 * r2 + 0.02 * r2 * r2
+    xd = x * radial + 2 * 0.001 * x * y - 0.002 * (r2 + 2 * x * x)
+    yd = y * radial + 0.001 * (r2 + 2 * y * y) + 2 * -0.002 * x * y
+    assert lens_corner_shift(cam) == pytest.approx(np.hypot((xd - x) * 500.0, (yd - y) * 400.0), rel=1e-12)
+    assert lens_corner_shift(dataclasses.replace(cam, distortion=None)) == 0.0

@@ -422,6 +422,31 @@ def test_cameras_named_with_several_dots_match_langsplats_feature_files(tiny, ca
     assert [c.name for c in exact.views] == [cams[0].name] and exact.missing == [twins[0].name]
 
 
+def test_distorted_views_with_another_tools_features_are_warned_of(tiny, tmp_path, caplog):
+    """Round 39: LangSplat's preprocess segments the photos as stored, `drsplat features` undistorts them first;
+    registration projects through the pinhole camera, so a folder without drsplat's manifest and views with
+    lens distortion meant masks off by the lens's shift at the corners, silently."""
+    import shutil
+
+    from drsplat.cameras import lens_corner_shift
+    from drsplat.features.format import MANIFEST_NAME
+    from drsplat.registration import register
+
+    lens = np.array([-0.05, 0.01, 0.0, 0.0])
+    cams = [dataclasses.replace(c, distortion=lens) for c in load_cameras(tiny)]
+    scene = load_ply(tiny / "scene.ply")
+    feats = Path(shutil.copytree(tiny / "features", tmp_path / "langsplat"))
+    (feats / MANIFEST_NAME).unlink()
+    with caplog.at_level(logging.WARNING):
+        register(scene, cams, feats, tmp_path / "a.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    shift = max(lens_corner_shift(c) for c in cams)
+    assert f"{len(cams)} of {len(cams)} views have lens distortion" in caplog.text and f"up to {shift:.1f} px off" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # drsplat's own features (a manifest): undistorted before segmenting
+        register(scene, cams, tiny / "features", tmp_path / "b.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert "lens distortion" not in caplog.text
+
+
 def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
     """Features stored at twice the camera resolution register exactly like the originals."""
     cams = load_cameras(tiny)

@@ -359,3 +359,25 @@ def test_a_scene_opened_beside_the_current_one_keeps_its_cameras_only_when_it_is
     assert ViewerApp.open_scene(host, folder / "other.ply")
     assert state.cameras == [] and state.oracle is None and state.source_dir is None
     assert "is not the previous scene" in " ".join(m.text for m in state.messages[-3:])
+
+
+def test_an_export_of_nothing_shown_in_hide_selection_says_so(state, tmp_path):
+    """Round 39: with every Gaussian selected and hidden, the export said "the selection is empty"."""
+    state.run_oracle_query(0)
+    state.set_threshold(-1.0)  # every assigned Gaussian selected
+    state.set_mode("hide_selection")
+    assert state.selection.all() and not state.export_mask().any(), "a registered PLY holds assigned Gaussians only"
+    assert state.export_selection(tmp_path / "shown.ply", "standard") is None
+    assert "nothing is shown to export" in state.messages[-1].text and not (tmp_path / "shown.ply").exists()
+
+
+@pytest.mark.parametrize("text, negatives, words", [
+    ("ball\x1b[2J", "", "holds"), ("ball", "mug,,table", "entry 2 of 3 is empty"), ("ball", "mug, mug", "repeats the phrase 'mug'"),
+    ("ball", "mug\u202e", "which a terminal would not show as itself")])
+def test_typed_queries_and_negatives_are_checked_like_the_clis(state, text, negatives, words):
+    """Round 39: the GUI embedded what `drsplat query --text / --negatives` refuses: hidden characters, empty and
+    repeated negative phrases."""
+    state.encoder = _OracleEncoder(state)
+    state.settings.query.negatives = negatives
+    assert not state.run_text_query(text)
+    assert words in state.messages[-1].text and state.messages[-1].level == "error", state.messages[-1].text

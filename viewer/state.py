@@ -22,10 +22,10 @@ import numpy as np
 
 from drsplat import query as dq
 from drsplat.cameras import Camera, dataset_inputs, load_cameras
-from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, protected_feature_folders
+from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases, protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character
 from drsplat.frames import cameras_in_scene_frame
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
@@ -258,7 +258,8 @@ class ViewerState:
         negatives (plus the user's negative phrases), else cosine."""
 
         q = dq.unit_rows(embeddings)[:1]
-        negatives = [p.strip() for p in self.settings.query.negatives.split(",") if p.strip()]
+        typed = self.settings.query.negatives
+        negatives = checked_phrases("negative phrases", typed) if typed.strip() else []  # as `drsplat query --negatives` checks them
         if self.encoder is not None:
             neg = dq.negative_embeddings(self.encoder, self.field, negatives)
             return dq.relevancy(self.field, q, neg)[:, 0], "relevancy"
@@ -282,6 +283,10 @@ class ViewerState:
         text = text.strip()
         if not text:
             self.error("type a phrase to search for")
+            return False
+        hidden = hidden_character(text)
+        if hidden is not None:  # as `drsplat query --text` refuses it: a pasted control character would be embedded too
+            self.error(f"the query {text[:40]!r} holds {hidden}, which a terminal would not show as itself; type the phrase again")
             return False
         if not self._require_field():
             return False
@@ -536,6 +541,9 @@ class ViewerState:
             return None
         selected = self.export_mask()
         count = int(selected.sum())
+        if count == 0 and self.mode == "hide_selection":  # what is written is what is shown: the Gaussians not selected
+            self.error("nothing is shown to export: every Gaussian is selected and hidden; raise the threshold, or leave hide selection")
+            return None
         if count == 0:
             self.error("the selection is empty: run a query and lower the threshold")
             return None

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera, same_aspect
+from drsplat.cameras import Camera, lens_corner_shift, same_aspect
 from drsplat.errors import InputError
 from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
@@ -101,6 +101,23 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
             f"features: {', '.join(stems[:3])}...)",
         )
     return sel
+
+
+def warn_if_distorted_without_manifest(views: Sequence[Camera], manifest: dict, features_dir: Path) -> None:
+    """One warning when views have lens distortion and the features folder has no drsplat manifest.
+
+    `drsplat features` undistorts the photos before segmenting them, so its masks lie on the pinhole
+    camera's pixels, which registration projects through. A folder without a manifest holds another
+    tool's features (LangSplat's preprocess segments the photos as stored): their masks are off by the
+    lens's shift, most at the corners (`lens_corner_shift`)."""
+    distorted = [c for c in views if c.distortion is not None]
+    if manifest or not distorted:
+        return
+    worst = max(distorted, key=lens_corner_shift)
+    log.warning("%d of %d views have lens distortion and %s has no drsplat manifest: features made by another tool (LangSplat's "
+                "preprocess) are masks of the distorted photos, but registration projects through the undistorted pinhole camera, so "
+                "masks land up to %.1f px off at the corners (%s); undistort the images before segmenting them, or make the features with "
+                "`drsplat features`, which does", len(distorted), len(views), features_dir, lens_corner_shift(worst), worst.name)
 
 
 @dataclass
