@@ -212,11 +212,20 @@ def negative_embeddings(encoder: TextEncoder | None, field: LanguageField, user_
 # Thresholds and segmentation
 
 
+def thresholds_as_compared(thresholds, scores: np.ndarray) -> np.ndarray:
+    """The thresholds τ (float64, any shape) as `scores` meet them: rounded to float32 when the
+    scores are float32, as the official code's tensors compare. A score of float32(0.7) lies below
+    the float64 0.7 but equals float32(0.7): "score ≥ 0.7" then selects it, as the user meant."""
+    taus = np.asarray(thresholds, np.float64)
+    return taus.astype(np.float32).astype(np.float64) if np.asarray(scores).dtype == np.float32 else taus
+
+
 def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = None) -> np.ndarray:
     """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected), among the Gaussians
     `assigned` [N] bool (`LanguageField.assigned`) when given: one without a feature scores 0 as a
-    cosine and ½ as a relevancy, which a threshold at or below it would otherwise select."""
-    picked = np.asarray(scores) >= threshold
+    cosine and ½ as a relevancy, which a threshold at or below it would otherwise select. Float32
+    scores meet the threshold in float32 (`thresholds_as_compared`)."""
+    picked = np.asarray(scores) >= thresholds_as_compared(threshold, scores)
     return picked if assigned is None else picked & assigned
 
 

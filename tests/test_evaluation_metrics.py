@@ -239,3 +239,22 @@ def test_unassigned_gaussians_are_misses_not_label_zero():
     assert reps["seg", "count"].nonfinite == 0
     plain = {(r.task, r.weighting): r for r in evaluate_scene(scene, scores, gt, ["a", "b"], weightings=("count",))}
     assert plain["seg", "count"].iou[0] == pytest.approx(2 / 3)
+
+
+def test_float32_scores_meet_tau_in_float32_through_evaluate_scene_and_the_voxel_report():
+    """`evaluate_scene(assigned=...)` (what `drsplat eval iou` always calls) cast float32 scores to float64
+    before the grid search, and the voxel report compared in float64: a score of float32(0.3) counted as
+    above τ = 0.3 there, undoing round 19's mend (an independent re-implementation, round 40)."""
+    from drsplat.eval.metrics import evaluate_scene
+    from drsplat.scene import GaussianScene
+
+    n = 5
+    scene = GaussianScene(means=np.array([[5, 5, 5], [3, 3, 3], [7, 7, 7], [0, 0, 0], [10, 10, 10]], np.float32),
+                          quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32), log_scales=np.full((n, 3), -3, np.float32),
+                          opacity_logits=np.full(n, 3, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    scores = np.array([[0.3], [0.3], [0.3], [0.9], [0.9]], np.float32)
+    gt = np.array([-1, -1, -1, 0, 0])
+    for assigned in (None, np.ones(n, bool)):
+        reports = evaluate_scene(scene, scores, gt, ["a"], tasks=("loc",), weightings=("volume", "count", "voxel"),
+                                 taus=np.array([0.3]), assigned=assigned)
+        assert [r.miou for r in reports] == pytest.approx([1.0, 1.0, 1.0])

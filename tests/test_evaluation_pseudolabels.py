@@ -153,3 +153,18 @@ def test_scales_at_the_ends_of_float64_label_like_the_reference(scale):
         with np.errstate(invalid="raise"):  # no NaN made on the way (the old cell indices)
             got = pseudo_labels(gaussians, pts, labels, engine=engine, show_progress=False)
         assert got.labels.tolist() == want.tolist() and got.num_points.tolist() == [2 if scale > 1 else 1], engine
+
+
+def test_coordinates_too_large_for_the_kdtree_engine_are_one_error_and_the_grid_labels_them():
+    """Round 40: points near 1e199 made scipy's sparse_distance_matrix stop with "Encountering floating point
+    overflow" inside the kdtree engine; it now refuses them in one sentence, and the grid engine labels them
+    as the brute-force reference does."""
+    rng = np.random.default_rng(5)
+    n, p = 20, 200
+    g = (rng.uniform(-1, 1, (n, 3)) * 1e199, np.tile(np.eye(3), (n, 1, 1)), np.full((n, 3), 0.3e199))
+    pts = rng.uniform(-1.2, 1.2, (p, 3)) * 1e199
+    labels = rng.integers(0, 3, p)
+    with pytest.raises(ValueError, match="the kdtree engine cannot label coordinates this large .*use the grid engine"):
+        pseudo_labels(g, pts, labels, engine="kdtree", show_progress=False)
+    grid = pseudo_labels(g, pts, labels, show_progress=False)
+    np.testing.assert_array_equal(grid.labels, pseudo_labels_reference(g, pts, labels))

@@ -584,3 +584,16 @@ def test_query_rows_judges_a_row_as_the_float32_it_becomes(value, why):
     rows[1] = value
     with pytest.raises(DrsplatError, match=f"label embedding 1 {why}: it has no direction to score by"):
         query_rows(rows, "label embedding")
+
+
+def test_float32_scores_meet_a_typed_threshold_in_float32():
+    """Round 40: float32(0.7) lies below the float64 0.7, so `--threshold 0.7` left out a Gaussian scoring exactly
+    0.7 in float32 (`query.select`, `eval lerf`'s `select_queries`); the evaluation's grid already compared in float32."""
+    from drsplat.eval.lerf import select_queries
+    from drsplat.query import select
+
+    scores = np.array([0.7, 0.6999999, 0.71], np.float32)
+    assert select(scores, 0.7).tolist() == [True, False, True]
+    assert select(scores.astype(np.float64), 0.7).tolist() == [False, False, True]  # float64 scores: float64 compare
+    chosen, taus = select_queries(scores[:, None], 0.7)
+    assert chosen[:, 0].tolist() == [True, False, True] and taus.tolist() == [0.7]

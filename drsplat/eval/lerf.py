@@ -20,7 +20,7 @@ from drsplat.cameras import Camera
 from drsplat.defaults import LERF_ALPHA_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
-from drsplat.query import otsu_threshold
+from drsplat.query import otsu_threshold, thresholds_as_compared
 from drsplat.raster import prepare_scene, rasterize
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ def select_queries(scores: np.ndarray, threshold: float | None = None, assigned:
     if assigned is not None:
         s = np.where(np.asarray(assigned, bool)[:, None], s, -np.inf)
     taus = np.array([threshold if threshold is not None else otsu_threshold(s[:, l]) for l in range(s.shape[1])], np.float64)
-    return s >= taus[None, :], taus
+    return s >= thresholds_as_compared(taus, scores)[None, :], taus  # float32 scores meet τ in float32
 
 
 def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], selections: dict[str, np.ndarray],

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from drsplat.query import thresholds_as_compared
+
 log = logging.getLogger(__name__)
 
 IOU_THRESHOLDS = (0.15, 0.3, 0.45)
@@ -220,13 +222,12 @@ def localisation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.n
     weights: [N]; taus: [T] grid (default 0, 0.01, …, 1). The report keeps the curve mIoU(τ) and the
     per-label IoU at the best τ. Labels without ground truth are excluded from the means.
     """
-    single = np.asarray(scores).dtype == np.float32
     s, nonfinite = _clean_scores(scores)
     num_labels = s.shape[1]
     taus = np.asarray(DEFAULT_TAU_GRID if taus is None else taus, dtype=np.float64)
     # float32 scores meet τ in float32, as the official code's tensors do: a score of float32(0.3) is not > 0.3 there, and
     # was here (the float64 0.3 lies below it; a cross-check, 2026-11-30)
-    compared = taus.astype(np.float32).astype(np.float64) if single else taus
+    compared = thresholds_as_compared(taus, scores)
     gt = np.asarray(gt_labels, np.int64)
     curves = np.stack([threshold_iou_curve(s[:, l], gt == l, weights, compared) for l in range(num_labels)], axis=1)
     present = np.array([(gt == l).any() and float(np.asarray(weights)[gt == l].sum()) > 0 for l in range(num_labels)])
@@ -422,6 +423,7 @@ def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: 
                               label_names: list[str]) -> IoUReport:
     """Localisation IoU on voxels at a given τ: occupancy of {score_l > τ} vs occupancy of {gt = l}."""
     s, nonfinite = _clean_scores(scores)
+    compared = float(thresholds_as_compared(threshold, scores))  # the selection `localisation_report` judged at this τ
     gt = np.asarray(gt_labels, np.int64)
     iou = np.full(s.shape[1], np.nan)
     for l in range(s.shape[1]):
@@ -429,7 +431,7 @@ def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: 
         if not g.any():
             continue
         gv = setup.occupancy(g)
-        pv = setup.occupancy(s[:, l] > threshold)
+        pv = setup.occupancy(s[:, l] > compared)
         union = np.count_nonzero(gv | pv)
         iou[l] = np.count_nonzero(gv & pv) / union if union else np.nan
     return IoUReport(task="loc", weighting="voxel", label_names=list(label_names), iou=iou, threshold=float(threshold), nonfinite=nonfinite)
@@ -503,8 +505,9 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
     gt = np.asarray(gt_labels, np.int64)
     if scores.shape[0] != scene.num_gaussians or gt.shape[0] != scene.num_gaussians:
         raise ValueError(f"scores {scores.shape} / labels {gt.shape} do not match the scene's {scene.num_gaussians} Gaussians")
-    if assigned is not None:
-        scores = np.where(np.asarray(assigned, bool)[:, None], scores.astype(np.float64), -np.inf)
+    if assigned is not None:  # keep float32 scores float32: localisation compares them with τ in float32 (round 19)
+        dtype = scores.dtype if scores.dtype in (np.float32, np.float64) else np.dtype(np.float64)
+        scores = np.where(np.asarray(assigned, bool)[:, None], scores.astype(dtype, copy=False), dtype.type(-np.inf))
     reports: list[IoUReport] = []
     loc_tau: float | None = None
     for weighting in [w for w in weightings if w != "voxel"]:

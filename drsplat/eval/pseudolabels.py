@@ -241,7 +241,8 @@ def _prepare(gaussians, points, point_labels, radius: float) -> _Prepared:
             eu_radius[todo] = radius * largest
         if len(pts):  # no point lies farther from μ than |μ − c| + the points' half-diagonal (c: their box's centre)
             lo, hi = pts.min(axis=0), pts.max(axis=0)
-            reach = np.linalg.norm(means[todo] - 0.5 * (lo + hi), axis=1) + 0.5 * np.linalg.norm(hi - lo)
+            with np.errstate(over="ignore"):  # past the float64 range the reach is inf, which leaves the radius as it is
+                reach = np.linalg.norm(means[todo] - 0.5 * (lo + hi), axis=1) + 0.5 * np.linalg.norm(hi - lo)
             eu_radius[todo] = np.minimum(eu_radius[todo], np.nextafter(reach * (1 + 1e-9), np.inf))
     classes, point_class = np.unique(plab, return_inverse=True)
     return _Prepared(means, white, half, eu_radius, todo, pts, point_class.astype(np.int64), classes, nonfinite)
@@ -257,7 +258,8 @@ def _point_grid(pts: np.ndarray, half: np.ndarray, max_cells: int):
     extent = np.maximum(hi - lo, 1e-9)
     # a half-extent beyond the points' extent (or infinite) visits every cell whatever the cell size
     typical = float(np.median(np.minimum(half.max(axis=1), extent.max()))) if len(half) else 1.0
-    h = max(typical, float(np.prod(extent) / max_cells) ** (1 / 3), float(extent.max()) / 4096, 1e-12)
+    with np.errstate(over="ignore"):  # a volume past the float64 range is inf: then one cell holds every point (right, only slower)
+        h = max(typical, float(np.prod(extent) / max_cells) ** (1 / 3), float(extent.max()) / 4096, 1e-12)
     dims = np.minimum(np.floor(extent / h).astype(np.int64) + 1, 1 << 20)
     cell = np.minimum(((pts - lo) / h).astype(np.int64), dims - 1)
     flat = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
@@ -343,5 +345,19 @@ def pseudo_labels(gaussians, points: np.ndarray, point_labels: np.ndarray, radiu
         if engine == "grid":
             _labels_grid(prep, radius, weighting, chunk, max_cells, out, show_progress, on_progress, cancel)
         else:
+            _check_kdtree_range(prep)
             _labels_kdtree(prep, radius, weighting, chunk, max_pairs, out, show_progress, on_progress, cancel)
     return PseudoLabels(*out, nonfinite=prep.nonfinite)
+
+
+KDTREE_MAX_COORDINATE = 1e150  # squared distances between coordinates past this overflow float64 inside scipy's KD-tree
+
+
+def _check_kdtree_range(prep: _Prepared) -> None:
+    """ValueError when a finite coordinate of the points or Gaussians is too large for the kdtree
+    engine: scipy's `sparse_distance_matrix` then stops with "Encountering floating point overflow"
+    (a round-40 probe, coordinates near 1e199); the grid engine labels them."""
+    largest = max(float(np.abs(prep.pts).max(initial=0.0)), float(np.abs(prep.means[prep.todo]).max(initial=0.0)))
+    if largest > KDTREE_MAX_COORDINATE:
+        raise ValueError(f"the kdtree engine cannot label coordinates this large (up to {largest:.3g}; its squared distances "
+                         f"overflow past {KDTREE_MAX_COORDINATE:.0e}); use the grid engine (the default)")
