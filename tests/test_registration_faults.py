@@ -227,6 +227,47 @@ def test_a_scene_edited_without_changing_its_size_restarts_the_checkpoint(tiny, 
     assert out.read_bytes() == fresh.read_bytes()
 
 
+def test_sh_edited_past_the_render_limit_restarts_the_checkpoint(tiny, tmp_path, monkeypatch, capsys):
+    """The SH are not in the scene digest (a recoloured scene resumes), but an SH coefficient past
+    MAX_SH_COEFFICIENT keeps its Gaussian out of every view: a log begun before such an edit held
+    views that saw it, and the resume wrote a field neither scene gives (probe round 40)."""
+    from drsplat.scene import load_ply, save_ply
+
+    ds = _copy(tiny, tmp_path)
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(ds, out, monkeypatch)
+    scene = load_ply(ds / "scene.ply")
+    scene.sh[::5, 0, 0] = 1e35  # finite float32: the loader keeps the row, the rasterizer skips it
+    (ds / "scene.ply").unlink()
+    save_ply(scene, ds / "scene.ply")
+    capsys.readouterr()
+    assert main(_args(ds, out)) == 0
+    assert "(the scene's Gaussians changed); starting over" in capsys.readouterr().err
+    fresh = tmp_path / "fresh" / "reg.ply"
+    assert main(_args(ds, fresh)) == 0
+    assert out.read_bytes() == fresh.read_bytes()
+
+
+def test_an_earlier_output_keeps_its_codebook_until_the_new_ply_is_in_place(tiny, tmp_path, monkeypatch):
+    """The codebook beside --out was written at the first encoded chunk: a run stopped in the rest of
+    the write left the earlier output naming a codebook it no longer matched (probe round 40)."""
+    from drsplat.lang import codebook_path_for
+    from drsplat.registration import output
+
+    out = tmp_path / "reg.ply"
+    assert main(_args(tiny, out, "--codebook", "scene", "--topk", "20")) == 0
+    book, ply = codebook_path_for(out).read_bytes(), out.read_bytes()
+    seen = []
+
+    def full_disk(self):  # every block encoded, the PLY not yet in place: the disk fills
+        seen.append(codebook_path_for(out).read_bytes() == book)
+        raise OSError(errno.ENOSPC, "No space left on device", str(out))
+
+    monkeypatch.setattr(output.PlyTarget, "close", full_disk)
+    assert main(_args(tiny, out, "--codebook", "scene", "--topk", "10")) == 1
+    assert seen == [True] and out.read_bytes() == ply and codebook_path_for(out).read_bytes() == book
+
+
 def test_a_second_registration_into_the_same_output_is_refused_at_once(tiny, tmp_path, capsys):
     """Two runs writing one output shared its checkpoint: the second rewrote the log under the first
     (a mixed field written over a good one, false errors, tracebacks). Now it fails before any work."""

@@ -205,11 +205,15 @@ def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
     return target, crc
 
 
-def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Path) -> GaussianScene:
+def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Path, write_codebook: bool = True) -> GaussianScene:
     """The scene with the field's extra properties and header comment; writes the codebook.
 
     The codebook (pq, ivfpq) is written next to `ply_path` as `<stem>.codebook.faiss`; save the
-    returned scene to `ply_path` with `drsplat.scene.save_ply`.
+    returned scene to `ply_path` with `drsplat.scene.save_ply`. write_codebook=False: the comment
+    names it and its CRC (from memory) but the caller writes it (`write_codebook_beside`) just before
+    it puts the PLY in place: written at the first chunk, it replaced the codebook of an earlier
+    output of that name for the whole rest of the write, and a run stopped there left that output
+    naming a codebook it no longer matched.
     """
     if field.num_gaussians != scene.num_gaussians:
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
@@ -218,7 +222,12 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     if problem is not None:  # before the codebook is written beside it: a refused output leaves nothing
         raise OutputError(ply_path, problem)
     base = strip_field(scene)
-    name, crc = write_codebook_beside(field.codebook, ply_path) if needs_codebook(field.kind) else (None, None)
+    if not needs_codebook(field.kind):
+        name, crc = None, None
+    elif write_codebook:
+        name, crc = write_codebook_beside(field.codebook, ply_path)
+    else:
+        name, crc = codebook_path_for(ply_path), zlib.crc32(field.codebook.file_bytes())
     comment = field_comment(field, name.name if name is not None else None, crc)
     extra = dict(base.extra)
     extra.update(field_extras(field, comment[len(COMMENT_PREFIX):].strip()))

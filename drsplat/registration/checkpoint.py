@@ -32,13 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat._scene_kernels import bounded_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
-from drsplat.scene import GaussianScene
+from drsplat.scene import MAX_SH_COEFFICIENT, GaussianScene
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
                            temp_stem, work_folder)
 
@@ -80,11 +81,20 @@ def lock_run(checkpoint: Path) -> RunLock:
 
 def _scene_digest(scene: GaussianScene) -> str:
     """sha1 of every Gaussian's mean, scales, opacity and rotation (what registration reads; ~1 GB/s,
-    so a 50M-Gaussian scene's 2.8 GB take a few seconds against hours of registration)."""
+    so a 50M-Gaussian scene's 2.8 GB take a few seconds against hours of registration), and of which
+    Gaussians the SH leave unrendered: the SH themselves are not read (a recoloured scene resumes),
+    but a coefficient past MAX_SH_COEFFICIENT keeps its Gaussian out of every view (`prepare_scene`),
+    so a log begun before such an edit holds views that saw it. Hashed only when some are (the
+    digest of a scene whose Gaussians all render is the one earlier logs hold)."""
     h = hashlib.sha1()
-    h.update(str(scene.num_gaussians).encode())
+    n = scene.num_gaussians
+    h.update(str(n).encode())
     for arr in (scene.means, scene.log_scales, scene.opacity_logits, scene.quats):
         h.update(memoryview(np.ascontiguousarray(arr)).cast("B"))
+    renders = np.ones(n, bool)
+    bounded_rows_kernel(np.ascontiguousarray(scene.sh.reshape(n, 3 * scene.sh.shape[1])), MAX_SH_COEFFICIENT, False, renders)
+    if not renders.all():
+        h.update(b"unrendered by their SH:" + np.packbits(renders).tobytes())
     return h.hexdigest()
 
 

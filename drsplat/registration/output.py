@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 
 from drsplat.lang import COMMENT_PREFIX, META_PROPERTY, Codebook, attach_field, build_field, encode_meta_column, encode_meta_columns, is_meta_column
+from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import small_page_zeros
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import Block
@@ -132,6 +133,7 @@ class PlyTarget:
                 raise DrsplatError(f"the scene has no Gaussians to write to {self.out}")
             dtype, comments, offset = _widen_meta_if_short(self._body_path, self._header, self.written, self._body_offset)
             header = ply_header(dtype, comments, self.written)
+            write_codebook_of(self._codebook, self.out)  # just before the PLY: an earlier output of this name keeps its codebook until then
             if offset > 0 and len(header) == offset:
                 with open(self._body_path, "r+b") as f:
                     f.write(header)
@@ -159,6 +161,13 @@ class PlyTarget:
             raise OSError(exc.errno, exc.strerror, str(self.out)) from None
 
 
+def write_codebook_of(codebook: Codebook | str, out: Path) -> None:
+    """Write a codebook beside `out` (`write_codebook_beside`; "none" or a name: nothing), the last step
+    before the registered PLY goes into place (`encode_rows` leaves it out)."""
+    if not isinstance(codebook, str):
+        write_codebook_beside(codebook, out)
+
+
 def encode_rows(scene: GaussianScene, out: Path, clip_model: str, codebook: Codebook | str, block: Block, keep: np.ndarray,
                 first_row: int) -> Iterator[tuple[np.ndarray, list[str]]]:
     """The kept rows of `block` as PLY vertex records, WRITE_CHUNK Gaussians at a time: (vertices
@@ -171,7 +180,7 @@ def encode_rows(scene: GaussianScene, out: Path, clip_model: str, codebook: Code
         rows = slice(lo - block.lo, hi - block.lo)
         chunk_keep = keep[rows]
         field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=codebook, clip_model=clip_model)
-        part = _with_meta_rows(attach_field(scene.subset(slice(lo, hi)).subset(chunk_keep), field, out), written)
+        part = _with_meta_rows(attach_field(scene.subset(slice(lo, hi)).subset(chunk_keep), field, out, write_codebook=False), written)
         vertices = scene_to_vertices(part)
         yield vertices, part.comments
         written += int(vertices.shape[0])

@@ -75,7 +75,6 @@ import numpy as np
 from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads
 from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
-from drsplat.lang.plyformat import write_codebook_beside
 from drsplat.memory import peak_rss
 from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
 from drsplat.registration.check import CheckSink, KeptPairs, SupportFile, write_block_supports
@@ -495,14 +494,6 @@ def judged(job: ReduceJob, keep: list[np.ndarray]) -> ReduceJob:
     return dataclasses.replace(job, keep=keep, check_clusters=None, check_num_clusters=0, check_slots=0)
 
 
-def shared_codebook(codebook: Codebook | str, out: Path) -> Codebook | str:
-    """The codebook the reducers encode with: its file written beside `out` once, here (as the
-    first chunk of a single write writes it), and named there, so no reducer writes it again."""
-    if isinstance(codebook, str):
-        return codebook
-    return dataclasses.replace(codebook, path=write_codebook_beside(codebook, out)[0])
-
-
 class BlockReduce:
     """One run's reduce on `pool`: the scene codebook's sample (`sample`, what the driver's sink
     would give) and the blocks (`finish`)."""
@@ -522,7 +513,7 @@ class BlockReduce:
         gets the reducers' counts: each reducer folds its own block's floater statistics). Returns
         (the parts in block order, weights [N] float32: the result's W)."""
         t0 = time.perf_counter()
-        parts = self.pool.reduce(self.job, scene, shared_codebook(codebook, Path(self.job.out)))
+        parts = self.pool.reduce(self.job, scene, codebook)  # the driver writes its file when it assembles the parts
         log.info("%d blocks finished by reducer tasks (%d at once) in %.1f s", len(parts), self.pool.workers, time.perf_counter() - t0)
         weights = np.zeros(self.job.num_gaussians, np.float32)
         for part in parts:
