@@ -264,3 +264,25 @@ def test_text_queries_read_the_model_config_features_read(tmp_path):
     labelled = drsplat("segment", str(reg), "--labels", "chair,table", "--clip-checkpoint", str(ckpt), "--clip-config", str(cfg), "--out",
                        str(tmp_path / "l.npy"))
     assert labelled.returncode == 0, labelled.stderr
+
+
+def test_a_tokenizer_that_needs_a_missing_package_or_the_hub_is_one_sentence(tiny_clip, monkeypatch):
+    """Round 40: `--clip-model ViT-B-16-SigLIP` loaded its weights, then stopped with a traceback from
+    open_clip.get_tokenizer ("No module named 'transformers'"); offline, its Hugging Face tokenizer likewise."""
+    import open_clip
+
+    from drsplat.errors import DrsplatError, WeightsUnavailableError
+
+    def missing(model):
+        raise ModuleNotFoundError("No module named 'transformers'", name="transformers")
+
+    monkeypatch.setattr(open_clip, "get_tokenizer", missing)
+    with pytest.raises(DrsplatError, match=r"needs the Python package 'transformers', which is not installed \(pip install transformers\)"):
+        ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")
+
+    def offline(model):
+        raise OSError("We couldn't connect to 'https://huggingface.co'")
+
+    monkeypatch.setattr(open_clip, "get_tokenizer", offline)
+    with pytest.raises(WeightsUnavailableError, match="is not in the local Hugging Face cache and cannot be downloaded"):
+        ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")

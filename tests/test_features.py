@@ -677,3 +677,32 @@ def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weig
     assert main(args) == 1
     assert "manifest.json is not a drsplat features manifest" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
+
+
+def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_locks_nothing(weights, tmp_path):
+    """Round 40: a resume with other SAM weights (another --sam-checkpoint, or another --sam-model downloaded, whose
+    path the manifest kept as "") was accepted, mixing SAM models in one folder; and a folder holding only the manifest
+    of a run stopped before its first pair (SAM takes minutes an image on a CPU) refused every other setting."""
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8)))
+    cameras = load_cameras(src)
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    params = SamParams(points_per_side=2, crop_n_layers=0)
+    other = make_tiny_sam(tmp_path / "other_sam.pth", seed=1)
+    made = {}
+    for name, path in (("a", weights["sam"]), ("b", other)):
+        gen = SamGenerator(load_sam(path), params, path)
+        made[name] = (gen, make_manifest(gen, encoder, NmsParams(), 64, 1080))
+    out = tmp_path / "features"
+    extract_features(cameras, out, made["a"][0], encoder, manifest=made["a"][1], show_progress=False)
+    assert featurefiles.read_manifest(out)["sam_weights"].startswith(f"{weights['sam'].stat().st_size}:")
+    with pytest.raises(DrsplatError, match="holds features made with sam_weights .* SAM weights"):
+        extract_features(cameras, out, made["b"][0], encoder, manifest=made["b"][1], show_progress=False)
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    slic = make_generator("slic")
+    featurefiles.write_manifest(stopped, make_manifest(slic, encoder, NmsParams(), 64, 1080))  # the first run wrote no pair
+    felz = make_generator("felzenszwalb")
+    report = extract_features(cameras, stopped, felz, encoder, manifest=make_manifest(felz, encoder, NmsParams(), 64, 1080), show_progress=False)
+    assert report.written == ["view"] and featurefiles.read_manifest(stopped)["mask_generator"] == "felzenszwalb"

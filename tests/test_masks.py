@@ -3,6 +3,8 @@ kernel against a matrix product, SAM loading from checkpoints, and the weight-fr
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -235,3 +237,42 @@ def test_weight_free_generators(generator):
         assert level.masks.reshape(len(level), -1).any(axis=1).all()
     post = masks_update(levels)
     assert [len(lv) for lv in post] == counts  # disjoint regions survive NMS untouched
+
+
+@pytest.mark.parametrize("shape", [(1, 40), (40, 1), (1, 1), (2, 6000)])
+def test_sam_on_an_image_it_cannot_resize_gives_no_mask_not_a_crash(tmp_path, shape):
+    """Round 40: an image 1 px high or wide (the crop layer halves it to nothing) or past 2048:1 (SAM resizes its
+    short side to 0) crashed in torchvision ("height and width must be > 0"), and every rerun at the same image."""
+    sam = load_sam(make_tiny_sam(tmp_path / "tiny.pth"))
+    image = np.full((*shape, 3), 128, np.uint8)
+    for layers in (0, 1):
+        gen = SamGenerator(sam, SamParams(points_per_side=2, crop_n_layers=layers))
+        levels = gen.generate(image)
+        assert len(levels) == 4 and all(level.masks.shape[1:] == shape for level in levels)
+
+
+def test_bad_sam_checkpoints_are_one_sentence_and_no_pickle_runs(tmp_path):
+    """Round 40: torch's paragraphs (cut mid-sentence, pointing at weights_only=False) or a bare "(101)"; a folder was
+    "does not exist"; a pickle calling os.system must never run."""
+    import pickle
+
+    ckpt = make_tiny_sam(tmp_path / "tiny.pth")
+    (tmp_path / "cut.pth").write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+    marker = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    (tmp_path / "evil.pth").write_bytes(pickle.dumps({"model": Evil()}, protocol=2))
+    (tmp_path / "evil4.pth").write_bytes(pickle.dumps({"model": Evil()}, protocol=4))  # a protocol torch's safe unpickler cannot read
+    (tmp_path / "folder.pth").mkdir()
+    (tmp_path / "text.pth").write_text("hello")
+    cases = {"cut.pth": "the file is cut short", "evil.pth": "holds Python objects besides tensors",
+             "evil4.pth": "it is a pickle, but not of a checkpoint torch can read",
+             "folder.pth": "is not a file (--sam-checkpoint)", "text.pth": "neither a torch.save checkpoint"}
+    for name, words in cases.items():
+        with pytest.raises(InputError) as err:
+            load_sam(tmp_path / name)
+        assert words in str(err.value) and "\n" not in str(err.value) and "weights_only set to False" not in str(err.value), str(err.value)
+    assert not marker.exists()

@@ -46,6 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=resolution_value, default=-1, metavar="R",
                    help="image scale as 3DGS -r: -1 full size capped at 1600 px wide, 1/2/4/8 divide, other values a target width")
     p.add_argument("--max-height", type=nonneg_int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as register and synth; batch logs)")
     p.add_argument("--batch-size", type=int_range(1, 4096), default=64, metavar="N", help="CLIP crops per batch")
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="spread images over Ray workers (pip install 'drsplat[ray]'), one model load per worker: ADDRESS of a "
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         generator, encoder = build_models(spec)
         manifest = make_manifest(generator, encoder, spec.nms, args.resolution, args.max_height or None, extra)
         log.info("%d images from %s; masks %s; CLIP %s on %s", len(cameras), args.source, args.masks, encoder.model_id, encoder.device)
-        report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest)
+        report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest, show_progress=not args.no_progress)
     n = len(report.written)
     per = report.times
     log.info(

@@ -12,13 +12,14 @@ one sentence which flag to use; network and hub exceptions never reach the user.
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.device import resolve_device
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
 from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 from drsplat.utils import read_json
@@ -39,13 +40,18 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
         return "its weights do not fit this architecture (missing, unexpected or mis-shaped tensors)"
     try:
         with open(path, "rb") as f:
-            head = f.read(1)
+            start = f.read(4)
+        head = start[:1]
         is_zip = zipfile.is_zipfile(path)
     except OSError as err:
         return f"it cannot be read ({err.strerror or err})"
+    if not is_zip and start == b"PK\x03\x04":
+        return "it starts as a zip archive but its end is missing: the file is cut short (an interrupted download or copy?)"
+    if not is_zip and Path(path).suffix == ".safetensors":
+        return "it is not a readable safetensors file (cut short, or of another format)"
     if not is_zip and head != b"\x80":
         return "it is neither a torch.save checkpoint (a zip archive) nor a pickle"
-    if "Unsupported global" in text:
+    if "unsupported global" in text.lower():  # "Unsupported global: ..." and "unsupported GLOBAL posix.system ... is blocked"
         return "it holds Python objects besides tensors, which are not unpickled (torch.load weights_only)"
     return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
 
@@ -94,15 +100,23 @@ class ClipEncoder:
             weights = resolve_pretrained_weights(model, self.pretrained)
         self.checkpoint = weights
         try:
-            with _quiet_open_clip():
+            with _quiet_open_clip(), warnings.catch_warnings():  # torch's pickle-protocol UserWarning: the error below says it
+                warnings.simplefilter("ignore", UserWarning)
                 net = open_clip.create_model(model, pretrained=weights, device="cpu")
         except Exception as exc:  # unpickling / zip / shape errors of many kinds: one clear line
             if weights is None:
                 raise
             raise InputError(weights, f"not an open_clip checkpoint for {model}: {checkpoint_problem(Path(weights), exc)}") from None
         self.net = net.to(self.device, dtype=self.dtype).eval()
-        with _quiet_open_clip():
-            self.tokenizer = open_clip.get_tokenizer(model)
+        try:
+            with _quiet_open_clip():
+                self.tokenizer = open_clip.get_tokenizer(model)
+        except ImportError as exc:  # Hugging Face tokenizers (SigLIP, ...) need transformers
+            raise DrsplatError(f"the text tokenizer of OpenCLIP model {model} needs the Python package "
+                               f"'{exc.name or 'transformers'}', which is not installed (pip install {exc.name or 'transformers'})") from None
+        except OSError:  # a Hugging Face tokenizer neither in the cache nor downloadable
+            raise WeightsUnavailableError(f"the text tokenizer of OpenCLIP model {model} is not in the local Hugging Face cache and "
+                                          "cannot be downloaded; run once with internet access") from None
         tag_cfg = open_clip.get_pretrained_cfg(model, self.pretrained) if not self.pretrained.startswith(("file:", "random")) else {}
         self.mean = tuple(tag_cfg.get("mean", OPENAI_MEAN))
         self.std = tuple(tag_cfg.get("std", OPENAI_STD))

@@ -238,6 +238,7 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
         "resolution": resolution,
         "max_height": max_height,
         "clip_weights": weights_digest(encoder.checkpoint),
+        "sam_weights": weights_digest(getattr(generator, "checkpoint", None)),
         "versions": versions(),
     }
     manifest.update(extra or {})
@@ -245,7 +246,7 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
 
 
 def weights_digest(path: str | Path | None) -> str | None:
-    """'size:sha1' of a CLIP weights file (None without one): two files of one name (every download
+    """'size:sha1' of a CLIP or SAM weights file (None without one): two files of one name (every download
     is `open_clip_pytorch_model.bin`) are told apart by their contents, so that features of two
     weights are not mixed in one folder (`RESUME_KEYS`). About a second for ViT-B-16's 600 MB."""
     if path is None or not Path(path).is_file():
@@ -264,6 +265,10 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         if features_dir.is_dir() and featurefiles.list_stems(features_dir):
             raise DrsplatError(f"{features_dir} already holds feature files without a manifest.json; use a new --out folder so features of different origins are not mixed")
         return
+    if not any(features_dir.glob(f"*{featurefiles.SEG_SUFFIX}")) and not any(features_dir.glob(f"*{featurefiles.FEAT_SUFFIX}")):
+        if "mask_generator" in old or IMAGE_STAMPS in old:  # drsplat's own, of a run stopped before its first pair: nothing to mix
+            log.info("%s: its manifest is of a run that wrote no feature file; replaced by this run's", features_dir)
+            return
     if "mask_generator" not in old and IMAGE_STAMPS not in old and "clip_model_id" not in old and "clip" not in old:
         raise DrsplatError(f"{features_dir / featurefiles.MANIFEST_NAME} is not a drsplat features manifest (it names no mask "
                            "generator or CLIP model): another tool's file; use a new --out folder")
@@ -288,6 +293,7 @@ RESUME_KEYS = {  # manifest entries that change every feature file: a run resumi
     "resolution": "--resolution",
     "max_height": "--max-height",
     "clip_weights": "CLIP weights (a --clip-checkpoint file of the same name but other contents)",
+    "sam_weights": "SAM weights (--sam-checkpoint, or the --sam-model downloaded)",
 }
 
 

@@ -32,7 +32,7 @@ from drsplat.features.masks.sam import load_sam, SamGenerator
 def _sam(options: dict) -> MaskGenerator:
     checkpoint = options.get("sam_checkpoint")
     checkpoint = Path(checkpoint) if checkpoint is not None else resolve_sam_checkpoint(options.get("sam_model", "vit_h"))
-    return SamGenerator(load_sam(checkpoint, options.get("device", "cpu")), options.get("sam_params"))
+    return SamGenerator(load_sam(checkpoint, options.get("device", "cpu")), options.get("sam_params"), checkpoint)
 
 
 def _felzenszwalb(options: dict) -> MaskGenerator:

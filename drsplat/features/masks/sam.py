@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.errors import InputError
+from drsplat.features.clip import checkpoint_problem
 from drsplat.features.masks.base import MaskSet, empty_maskset
 
 log = logging.getLogger(__name__)
@@ -163,13 +165,15 @@ def load_sam(checkpoint: str | Path, device: str = "cpu"):
     import torch
 
     checkpoint = Path(checkpoint)
-    if not checkpoint.is_file():
-        raise InputError(checkpoint, "SAM checkpoint file does not exist (--sam-checkpoint)")
+    if not checkpoint.is_file():  # a folder, FIFO or device exists but is no checkpoint
+        raise InputError(checkpoint, "is not a file (--sam-checkpoint): expected a SAM checkpoint file" if checkpoint.exists()
+                         else "SAM checkpoint file does not exist (--sam-checkpoint)")
     try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle / zip errors of many kinds
-        first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise InputError(checkpoint, f"not a readable PyTorch checkpoint ({first_line})") from None
+        with warnings.catch_warnings():  # torch's UserWarning on a pickle protocol its safe unpickler may not read
+            warnings.simplefilter("ignore")
+            state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle / zip errors of many kinds: torch's text runs to paragraphs on weights_only
+        raise InputError(checkpoint, f"not a readable PyTorch checkpoint: {checkpoint_problem(checkpoint, exc)}") from None
     if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
         state = state["model"]
     try:
@@ -211,10 +215,11 @@ class SamGenerator:
 
     name = "sam"
 
-    def __init__(self, sam, params: SamParams | None = None):
+    def __init__(self, sam, params: SamParams | None = None, checkpoint: Path | None = None):
         from segment_anything import SamPredictor
         from segment_anything.utils.amg import build_all_layer_point_grids
 
+        self.checkpoint = checkpoint  # the weights file (given or downloaded): the manifest records its digest
         self.params = params or SamParams()
         self.predictor = SamPredictor(sam)
         p = self.params
@@ -227,9 +232,19 @@ class SamGenerator:
         """image: [H, W, 3] uint8 RGB -> four MaskSets (LEVELS order), scores = IoU · stability."""
         import torch
         from segment_anything.utils.amg import generate_crop_boxes
+        from segment_anything.utils.transforms import ResizeLongestSide
 
         h, w = image.shape[:2]
         crop_boxes, layer_idxs = generate_crop_boxes((h, w), self.params.crop_n_layers, self.params.crop_overlap_ratio)
+        # a crop SAM would resize to no pixels (an image 1 px high cut in two by the crop layer, or one past
+        # 2048:1) cannot be segmented: torchvision's resize raised "height and width must be > 0"
+        target = self.predictor.transform.target_length
+        usable = [(box, layer) for box, layer in zip(crop_boxes, layer_idxs)
+                  if min(box[3] - box[1], box[2] - box[0]) > 0
+                  and min(ResizeLongestSide.get_preprocess_shape(box[3] - box[1], box[2] - box[0], target)) > 0]
+        if not usable:
+            return [empty_maskset(h, w) for _ in range(4)]
+        crop_boxes, layer_idxs = [box for box, _ in usable], [layer for _, layer in usable]
         per_crop = [self._process_crop(image, box, layer, (h, w)) for box, layer in zip(crop_boxes, layer_idxs)]
         levels = []
         with torch.inference_mode():
