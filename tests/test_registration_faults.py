@@ -513,3 +513,33 @@ def test_cameras_that_moved_by_an_ulp_do_not_resume_the_old_log(tiny, tmp_path):
     fresh = register_features(scene, new, features, options, show_progress=False)
     assert resumed.resumed_views == 0
     assert np.array_equal(resumed.weights, fresh.weights) and np.array_equal(resumed.features, fresh.features)
+
+
+def test_a_checkpoint_this_user_may_not_rewrite_is_refused_before_any_work(tiny, tmp_path, monkeypatch, capsys):
+    """Round 40: a run begun under another account left a log its owner alone may write; the rerun took it for an
+    unreadable log ("starting from scratch") after the fit stage, then failed; a read error (EIO) would have
+    truncated a log that may be whole. Both are now one error naming the log, before any work, the log kept."""
+    from drsplat.registration import checkpoint as ck
+    from drsplat.registration import pairlog
+
+    out = tmp_path / "reg.ply"
+    _stopped_after_five_views(tiny, out, monkeypatch)
+    log_path = ck.checkpoint_path_for(out)
+    kept = log_path.read_bytes()
+    monkeypatch.setattr(ck, "_may_rewrite", lambda path: False)
+    rendered = []
+    monkeypatch.setattr(ck, "_scene_digest", lambda scene: rendered.append(1) or "x")  # any work on the scene
+    capsys.readouterr()
+    assert main(_args(tiny, out)) == 1
+    err = capsys.readouterr().err
+    assert "cannot be read and rewritten by this user" in err and str(log_path) in err and "starting from scratch" not in err
+    assert log_path.read_bytes() == kept and not out.exists() and rendered == []
+    monkeypatch.undo()
+
+    def io_error(path, mode="r", *args, **kwargs):
+        raise OSError(errno.EIO, "Input/output error", str(path))
+
+    monkeypatch.setattr(pairlog, "open", io_error, raising=False)  # the log's own open in _valid_records
+    capsys.readouterr()
+    assert main(_args(tiny, out)) == 1
+    assert "cannot be read to resume" in capsys.readouterr().err and log_path.read_bytes() == kept

@@ -75,8 +75,20 @@ def lock_path_for(checkpoint: Path) -> Path:
 def lock_run(checkpoint: Path) -> RunLock:
     """The run's lock beside the pair log `checkpoint` (`RunLock`): taken before any work, so that a
     second run into the same output, or an output folder that takes no file, is refused at once.
-    Checkpoint(lock=...) takes it over."""
-    return RunLock.acquire(lock_path_for(checkpoint), checkpoint.name[1:].removesuffix(".register.log"))
+    Checkpoint(lock=...) takes it over. A pair log there that this user may not rewrite (a run begun
+    under another account: root's, then resumed as oneself) is refused too, before any work: it was
+    taken for an unreadable log, "starting from scratch", after the fit stage, and then failed."""
+    lock = RunLock.acquire(lock_path_for(checkpoint), checkpoint.name[1:].removesuffix(".register.log"))
+    if os.path.lexists(checkpoint) and not _may_rewrite(checkpoint):
+        lock.release()
+        raise OutputError(checkpoint, "the checkpoint of a stopped run here cannot be read and rewritten by this user (permission denied): "
+                          "give it this user's permissions to resume, or delete it to start over")
+    return lock
+
+
+def _may_rewrite(path: Path) -> bool:
+    """Whether this process may read and rewrite `path` (its permissions, as the kernel judges them for this user)."""
+    return os.access(path, os.R_OK | os.W_OK)
 
 
 def _scene_digest(scene: GaussianScene) -> str:

@@ -54,7 +54,8 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.registration.aggregate import ViewStats
-from drsplat.utils import TEMP_SUFFIX
+from drsplat.errors import OutputError
+from drsplat.utils import TEMP_SUFFIX, os_error_cause
 
 log = logging.getLogger(__name__)
 
@@ -581,7 +582,10 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
                             else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", len(records))
                 f.truncate(end)
             return records
-    except (OSError, ValueError, json.JSONDecodeError) as exc:
+    except OSError as exc:  # not the log's contents: starting over would truncate a log that may be whole
+        raise OutputError(path, f"the checkpoint of a stopped run cannot be read to resume ({os_error_cause(exc)}); make it readable and "
+                          "writable to resume, or delete it to start over") from None
+    except (ValueError, json.JSONDecodeError) as exc:
         log.warning("%s is not a readable checkpoint (%s); starting from scratch", path, exc)
         return None
 
