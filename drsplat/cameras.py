@@ -643,14 +643,22 @@ class DatasetPaths:
         symbolic link leads to (a git-annex or DVC key, a content hash): the stem pairs a view with
         its feature files, which are named after the image as the dataset names it."""
         p = self.image(name)
-        last = Path(name.replace("\\", "/")).name
         if p.is_file():
-            return p, Path(last).stem
+            return p, dataset_stem(name, is_file_name=True)
         for suffix in IMAGE_SUFFIXES:
             q = p.with_name(p.name + suffix)
             if q.is_file():
-                return q.resolve(), last  # resolved as a name with its suffix is (`image`)
+                return q.resolve(), dataset_stem(name, is_file_name=False)  # resolved as a name with its suffix is (`image`)
         return None
+
+
+def dataset_stem(name: str, is_file_name: bool) -> str:
+    """The stem a dataset knows the image `name` (a path as a camera file gives it) by: its last part
+    without the suffix when `is_file_name` (a file of that very name exists), else without it only
+    when it is an image suffix: a NeRF name such as "frame.001" has none (its file is frame.001.png),
+    so without the file a suffix drsplat cannot read (".exr") cannot be told from part of the name."""
+    last = Path(name.replace("\\", "/")).name
+    return Path(last).stem if is_file_name or Path(last).suffix.lower() in IMAGE_SUFFIXES_LOWER else last
 
 
 def check_image_name(path: Path, name: str, where: str, field: str) -> None:
@@ -815,8 +823,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
         rec = {**meta, **frame}
-        if "camera_angle_x" in frame and "fl_x" not in frame:  # the frame's own lens: the file's shared fl_x is another's
-            rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y")}
+        if "camera_angle_x" in frame and "fl_x" not in frame:  # the frame's own lens: the file's shared fl_x / fl_y are another's
+            rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
             raise InputError(path, f"frame {i} has no image path string", field="file_path")
         check_image_name(path, frame["file_path"], f"frame {i}", "file_path")
@@ -826,8 +834,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             missing.append(frame["file_path"])
             continue
         if found is None:  # a registration reads the feature files, not the images
-            last = Path(frame["file_path"].replace("\\", "/")).name
-            image, name = paths.image(frame["file_path"]), Path(last).stem if Path(last).suffix.lower() in IMAGE_SUFFIXES_LOWER else last
+            image, name = paths.image(frame["file_path"]), dataset_stem(frame["file_path"], is_file_name=False)
         else:
             image, name = found
         c2w = _transform_matrix(path, frame, i)
@@ -858,8 +865,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:
     """(fx, fy, the fields they came from) of a transforms.json frame `rec` (its own keys over the
     file's): fl_x and fl_y (fy = fl_x without fl_y), else the fields of view camera_angle_x and
-    camera_angle_y (fy = fx without camera_angle_y, so that angle must give a focal length the
-    height allows too: `_focal_from_angle`). Errors about them name these fields, never fx or fy."""
+    camera_angle_y, or camera_angle_x and fl_y (fy = fx without either, so that angle must give a
+    focal length the height allows too: `_focal_from_angle`). Errors about them name these fields, never fx or fy."""
     if "fl_x" in rec:
         fx = _number(path, rec, "fl_x", where=where)
         fy = _number(path, rec, "fl_y", fx, where=where)
@@ -869,6 +876,9 @@ def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -
             fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where)
             fy = _focal_from_angle(path, rec, "camera_angle_y", ("height", height), where)
             return fx, fy, {"fx": "camera_angle_x", "fy": "camera_angle_y"}
+        if "fl_y" in rec:  # the angle across, the focal length down (a frame's own fl_y beside its camera_angle_x)
+            fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where)
+            return fx, _number(path, rec, "fl_y", where=where), {"fx": "camera_angle_x", "fy": "fl_y"}
         fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where, also=("height", height))
         return fx, fx, {"fx": "camera_angle_x", "fy": "camera_angle_x"}
     raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")

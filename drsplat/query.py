@@ -217,7 +217,10 @@ def thresholds_as_compared(thresholds, scores: np.ndarray) -> np.ndarray:
     scores are float32, as the official code's tensors compare. A score of float32(0.7) lies below
     the float64 0.7 but equals float32(0.7): "score ≥ 0.7" then selects it, as the user meant."""
     taus = np.asarray(thresholds, np.float64)
-    return taus.astype(np.float32).astype(np.float64) if np.asarray(scores).dtype == np.float32 else taus
+    if np.asarray(scores).dtype != np.float32:
+        return taus
+    with np.errstate(over="ignore"):  # a threshold past float32's range is ±inf there, and compares as it should
+        return taus.astype(np.float32).astype(np.float64)
 
 
 def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = None) -> np.ndarray:

@@ -990,6 +990,9 @@ def test_a_frames_own_camera_angle_x_wins_over_the_files_shared_fl_x(tmp_path):
     assert camera.fx == pytest.approx(32.0 / np.tan(0.6), rel=1e-12)
     (shared,) = load_cameras(_transforms_dataset(tmp_path / "shared", fl_x=50.0))
     assert shared.fx == 50.0
+    # the frame's own fl_y beside its camera_angle_x is kept (the review of round 39 found it dropped with the file's)
+    (own,) = load_cameras(_transforms_dataset(tmp_path / "own_fy", fl_x=50.0, fl_y=45.0, frame={"camera_angle_x": 1.2, "fl_y": 40.0}))
+    assert own.fx == pytest.approx(32.0 / np.tan(0.6), rel=1e-12) and own.fy == 40.0
 
 
 def test_a_colmap_camera_id_past_2_31_in_cameras_bin_is_read_as_images_bin_refers_to_it(tmp_path):

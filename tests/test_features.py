@@ -679,10 +679,11 @@ def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weig
     assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
 
 
-def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_locks_nothing(weights, tmp_path):
+def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_says_what_to_do(weights, tmp_path):
     """Round 40: a resume with other SAM weights (another --sam-checkpoint, or another --sam-model downloaded, whose
     path the manifest kept as "") was accepted, mixing SAM models in one folder; and a folder holding only the manifest
-    of a run stopped before its first pair (SAM takes minutes an image on a CPU) refused every other setting."""
+    of a run stopped before its first pair (SAM takes minutes an image on a CPU) refused every other setting without
+    saying that deleting the manifest is safe when no run is writing there."""
     from PIL import Image
 
     src = _one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8)))
@@ -704,5 +705,10 @@ def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_locks_n
     slic = make_generator("slic")
     featurefiles.write_manifest(stopped, make_manifest(slic, encoder, NmsParams(), 64, 1080))  # the first run wrote no pair
     felz = make_generator("felzenszwalb")
+    # still refused (another run may be writing there now: the manifest is all that tells them apart), saying what to do
+    with pytest.raises(DrsplatError, match="holds no feature file yet, only the manifest of a run stopped before its first: if no "
+                                           "`drsplat features` is writing there now, delete manifest.json"):
+        extract_features(cameras, stopped, felz, encoder, manifest=make_manifest(felz, encoder, NmsParams(), 64, 1080), show_progress=False)
+    (stopped / featurefiles.MANIFEST_NAME).unlink()
     report = extract_features(cameras, stopped, felz, encoder, manifest=make_manifest(felz, encoder, NmsParams(), 64, 1080), show_progress=False)
     assert report.written == ["view"] and featurefiles.read_manifest(stopped)["mask_generator"] == "felzenszwalb"

@@ -597,3 +597,8 @@ def test_float32_scores_meet_a_typed_threshold_in_float32():
     assert select(scores.astype(np.float64), 0.7).tolist() == [False, False, True]  # float64 scores: float64 compare
     chosen, taus = select_queries(scores[:, None], 0.7)
     assert chosen[:, 0].tolist() == [True, False, True] and taus.tolist() == [0.7]
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a threshold past float32's range (typed into the viewer): no overflow warning
+        assert not select(scores, 1e39).any() and select(scores, -1e39).all()

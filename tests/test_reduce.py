@@ -309,6 +309,23 @@ def test_assembled_parts_equal_a_single_write(tmp_path, case):
     assert out.read_bytes() == expected.read_bytes()
     if case == "short_file":
         assert "lang_meta_1" in load_ply(out).extra
+    # the codebook beside the output is written after the body, just before the rename (round 40): a copy that fails
+    # leaves it, and the earlier output, as they were
+    from drsplat.registration import reduce as reduce_module
+
+    written_books = []
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(reduce_module, "write_codebook_of", lambda book, path: written_books.append((book, path)))
+        assert assemble_parts(out, parts, "BOOK") == written and written_books == [("BOOK", out)]
+
+        def full_disk(*args):
+            raise OSError(28, "No space left on device")
+
+        m.setattr(reduce_module, "_copy_parts", full_disk)
+        m.setattr(reduce_module.shutil, "copyfileobj", full_disk)
+        with pytest.raises(OSError):
+            assemble_parts(out, parts, "BOOK")
+    assert written_books == [("BOOK", out)] and out.read_bytes() == expected.read_bytes()
 
 
 def test_a_log_the_reducer_cannot_read_is_one_clear_error(tmp_path):

@@ -248,9 +248,13 @@ def test_sh_edited_past_the_render_limit_restarts_the_checkpoint(tiny, tmp_path,
     assert out.read_bytes() == fresh.read_bytes()
 
 
-def test_an_earlier_output_keeps_its_codebook_until_the_new_ply_is_in_place(tiny, tmp_path, monkeypatch):
+@pytest.mark.parametrize("stop", ["after_encoding", "copying_the_body"])
+def test_an_earlier_output_keeps_its_codebook_until_the_new_ply_is_in_place(tiny, tmp_path, monkeypatch, stop):
     """The codebook beside --out was written at the first encoded chunk: a run stopped in the rest of
-    the write left the earlier output naming a codebook it no longer matched (probe round 40)."""
+    the write left the earlier output naming a codebook it no longer matched (probe round 40). Stopped
+    once every block is encoded, or while the body is copied behind a header of another length (the
+    path of a FIFO output or a widened header; the review of round 40 found the codebook written
+    before that copy), the earlier output and its codebook are as they were."""
     from drsplat.lang import codebook_path_for
     from drsplat.registration import output
 
@@ -259,11 +263,16 @@ def test_an_earlier_output_keeps_its_codebook_until_the_new_ply_is_in_place(tiny
     book, ply = codebook_path_for(out).read_bytes(), out.read_bytes()
     seen = []
 
-    def full_disk(self):  # every block encoded, the PLY not yet in place: the disk fills
+    def full_disk(*args):
         seen.append(codebook_path_for(out).read_bytes() == book)
         raise OSError(errno.ENOSPC, "No space left on device", str(out))
 
-    monkeypatch.setattr(output.PlyTarget, "close", full_disk)
+    if stop == "after_encoding":
+        monkeypatch.setattr(output.PlyTarget, "close", full_disk)
+    else:
+        opened = output.PlyTarget.open
+        monkeypatch.setattr(output.PlyTarget, "open", lambda self, codebook, rows_hint=None: opened(self, codebook, None))
+        monkeypatch.setattr(output.shutil, "copyfileobj", full_disk)
     assert main(_args(tiny, out, "--codebook", "scene", "--topk", "10")) == 1
     assert seen == [True] and out.read_bytes() == ply and codebook_path_for(out).read_bytes() == book
 

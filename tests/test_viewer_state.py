@@ -349,6 +349,10 @@ def test_a_scene_opened_beside_the_current_one_keeps_its_cameras_only_when_it_is
     assert derived_from(scene.means[half], scene.means) and not derived_from(scene.means, scene.means[half])
     assert derived_from(scene.means + 1e-4 * extent, scene.means), "quantised positions (.spz, compressed PLY) still match"
     assert not derived_from(scene.means + 0.05 * extent, scene.means)
+    # a small scene far from the origin written as .spz: positions rounded to its fixed-point steps (the review of round 39)
+    far = scene.means.astype(np.float64) * (0.2 / extent) + 5000.0
+    step = 2.0 ** -10  # 24-bit fixed point with the coordinates near 5000: 10 fractional bits
+    assert derived_from(np.round(far / step) * step, far) and not derived_from(far + 0.01, far)
     folder = state.scene_path.parent
     export_scene(scene.subset(half), field.subset(half), folder / "export.ply", "drsplat")
     host = types.SimpleNamespace(state=state)

@@ -563,9 +563,10 @@ class ViewerApp:
 
     def open_scene(self, path: str | Path) -> bool:
         """Open another PLY (Scene panel, file dialog, drop). The training cameras and oracle
-        labels are kept when it lies in the same folder as the current scene (an export or a
-        registration of it), else dropped; kept, they are read again for the new scene, whose frame
-        and trainer's camera refinements (drsplat.frames) may not be the old one's."""
+        labels are kept when it lies in the same folder as the current scene and is that scene, an
+        export or registration of it, or the scene it came from (`derived_from`), else dropped;
+        kept, they are read again for the new scene, whose frame and trainer's camera refinements
+        (drsplat.frames) may not be the old one's."""
         if not str(path).strip():  # Path("") is ".", which would then be "not a file"
             self.state.error("type the path of a PLY to open")
             return False
@@ -637,17 +638,27 @@ class ViewerApp:
 
 
 def derived_from(means: np.ndarray, previous: np.ndarray, tolerance: float = 1e-3) -> bool:
-    """Whether every Gaussian of `means` [M, 3] lies where one of `previous` [N, 3] does (within
-    `tolerance` x its extent): an export or a registration of that scene (a subset of its rows, .spz /
-    compressed positions quantised), not another scene that happens to share its folder."""
+    """Whether every Gaussian of `means` [M, 3] lies where one of `previous` [N, 3] does: an export or
+    a registration of that scene (a subset of its rows), not another scene that happens to share its
+    folder. Within `tolerance` x the scene's extent (a compressed PLY quantises positions relative to
+    its chunks' boxes) or one .spz step, whichever is larger (.spz stores 24-bit fixed point, steps of
+    2⁻¹² units, coarser past ±2048: a small or far-from-origin scene moves by more than its extent's
+    1e-3; `splat_formats.spz_fractional_bits`)."""
     from scipy.spatial import cKDTree
+
+    from drsplat.errors import OutputError
+    from drsplat.splat_formats import spz_fractional_bits
 
     new, old = np.asarray(means, np.float64), np.asarray(previous, np.float64)
     new, old = new[np.isfinite(new).all(axis=1)], old[np.isfinite(old).all(axis=1)]
     if new.shape[0] == 0 or old.shape[0] == 0 or new.shape[0] > old.shape[0]:
         return new.shape[0] == 0
     extent = max(float(np.ptp(old, axis=0).max()), 1e-12)
-    dist, _ = cKDTree(old).query(new, distance_upper_bound=tolerance * extent)
+    try:
+        step = 2.0 ** -spz_fractional_bits(old)  # a rounding of half a step per axis: √3/2 steps at most
+    except OutputError:  # beyond what .spz can store: no .spz export of it exists
+        step = 0.0
+    dist, _ = cKDTree(old).query(new, distance_upper_bound=max(tolerance * extent, step))
     return bool(np.isfinite(dist).all())
 
 

@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
 
         log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, args.clip_model)
         report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,
-                                      max_height=args.max_height or None, manifest_extra=extra)
+                                      max_height=args.max_height or None, manifest_extra=extra, show_progress=not args.no_progress)
     else:
         generator, encoder = build_models(spec)
         manifest = make_manifest(generator, encoder, spec.nms, args.resolution, args.max_height or None, extra)

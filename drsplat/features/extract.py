@@ -265,10 +265,6 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         if features_dir.is_dir() and featurefiles.list_stems(features_dir):
             raise DrsplatError(f"{features_dir} already holds feature files without a manifest.json; use a new --out folder so features of different origins are not mixed")
         return
-    if not any(features_dir.glob(f"*{featurefiles.SEG_SUFFIX}")) and not any(features_dir.glob(f"*{featurefiles.FEAT_SUFFIX}")):
-        if "mask_generator" in old or IMAGE_STAMPS in old:  # drsplat's own, of a run stopped before its first pair: nothing to mix
-            log.info("%s: its manifest is of a run that wrote no feature file; replaced by this run's", features_dir)
-            return
     if "mask_generator" not in old and IMAGE_STAMPS not in old and "clip_model_id" not in old and "clip" not in old:
         raise DrsplatError(f"{features_dir / featurefiles.MANIFEST_NAME} is not a drsplat features manifest (it names no mask "
                            "generator or CLIP model): another tool's file; use a new --out folder")
@@ -277,14 +273,25 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
     if old.get("mask_generator") != manifest["mask_generator"]:
         raise DrsplatError(
             f"{features_dir} holds features made with mask generator {old.get('mask_generator')!r}, this run uses "
-            f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks"
+            f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks{_no_pair_yet(features_dir)}"
         )
     for key, flag in RESUME_KEYS.items():
         if key in old and old[key] != json.loads(json.dumps(manifest.get(key))):  # as stored: tuples are lists
             raise DrsplatError(f"{features_dir} holds features made with {key} {old[key]!r}, this run's is {manifest.get(key)!r}: resuming "
-                               f"would mix the two in one folder; use a new --out folder or the same {flag}")
+                               f"would mix the two in one folder; use a new --out folder or the same {flag}{_no_pair_yet(features_dir)}")
     for key, flag in (("source", "--source"), ("sam_checkpoint", "--sam-checkpoint")):
         check_same_path(features_dir, key, flag, old.get(key), manifest.get(key))
+
+
+def _no_pair_yet(features_dir: Path) -> str:
+    """The remedy's tail when the folder holds no feature pair yet (a run stopped in its first image:
+    SAM takes minutes an image on a CPU): its manifest alone then refuses other settings, since another
+    run may be working there now (the manifest is all that tells them apart); deleting it is safe
+    once none is."""
+    if featurefiles.list_stems(features_dir):
+        return ""
+    return (f" (the folder holds no feature file yet, only the manifest of a run stopped before its first: if no `drsplat features` "
+            f"is writing there now, delete {featurefiles.MANIFEST_NAME} to start with these settings)")
 
 
 RESUME_KEYS = {  # manifest entries that change every feature file: a run resuming into the folder must repeat them

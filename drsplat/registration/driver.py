@@ -50,7 +50,7 @@ from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLo
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import RegisterOptions
-from drsplat.registration.output import ArrayTarget, PlyTarget, Target, write_codebook_of
+from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, wants_reducers
@@ -694,8 +694,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     if not np.any(weights > 0):
         raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
                                             sum(p.fates.dropped for p in parts), sum(p.rejected for p in parts), asked))
-    write_codebook_of(codebook, Path(reduce.job.out))  # just before the PLY (drsplat.registration.output.write_codebook_of)
-    written = assemble_parts(Path(reduce.job.out), parts)
+    written = assemble_parts(Path(reduce.job.out), parts, codebook)  # the codebook written after the body, before the rename
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))
 

@@ -133,10 +133,11 @@ class PlyTarget:
                 raise DrsplatError(f"the scene has no Gaussians to write to {self.out}")
             dtype, comments, offset = _widen_meta_if_short(self._body_path, self._header, self.written, self._body_offset)
             header = ply_header(dtype, comments, self.written)
-            write_codebook_of(self._codebook, self.out)  # just before the PLY: an earlier output of this name keeps its codebook until then
+            # the codebook is written last, just before the PLY's rename: an earlier output of this name keeps its own until then
             if offset > 0 and len(header) == offset:
                 with open(self._body_path, "r+b") as f:
                     f.write(header)
+                write_codebook_of(self._codebook, self.out)
                 replace_with_temp(self._body_path, self.out)
             else:
                 with atomic_path(self.out, self.cancel) as tmp:
@@ -144,6 +145,7 @@ class PlyTarget:
                         f.write(header)
                         src.seek(offset)
                         shutil.copyfileobj(src, f, 1 << 24)
+                    write_codebook_of(self._codebook, self.out)
         finally:
             self._body_path.unlink(missing_ok=True)
         return self.written
@@ -163,7 +165,8 @@ class PlyTarget:
 
 def write_codebook_of(codebook: Codebook | str, out: Path) -> None:
     """Write a codebook beside `out` (`write_codebook_beside`; "none" or a name: nothing), the last step
-    before the registered PLY goes into place (`encode_rows` leaves it out)."""
+    before the registered PLY is renamed into place, after its body is written (`encode_rows` leaves it
+    out): an earlier output of that name names its own codebook until the new PLY replaces it."""
     if not isinstance(codebook, str):
         write_codebook_beside(codebook, out)
 

@@ -25,7 +25,8 @@ while streaming: part b's rows are numbered from the prefix sum of the kept rows
 than L gets its widened columns (`_widen_meta_if_short`) exactly as a single write.
 
 Codebooks: `none` and a faiss file are the same object for every reducer (the codebook file
-beside the output is written once, by the driver, before the reducers start); `--codebook scene`
+beside the output is written once, by the driver, after the assembled body and just before its
+rename, so that an earlier output of that name keeps its own until then); `--codebook scene`
 is trained on the masks' embeddings topped up with a sample of the Gaussians that will be
 assigned: the reducers first tell which those are (`candidates_block`, one task per block: weight
 received and not rejected), then sum the sampled ones (`BlockReduce.sample`, one task per block
@@ -78,7 +79,7 @@ from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.memory import peak_rss
 from drsplat.registration.aggregate import SurfaceSupport, ViewStats, reject_rows
 from drsplat.registration.check import CheckSink, KeptPairs, SupportFile, write_block_supports
-from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows
+from drsplat.registration.output import _meta_period, _widen_meta_if_short, encode_rows, write_codebook_of
 from drsplat.registration.pairlog import LogRecord, PairLog, ShardError
 from drsplat.registration.plan import WRITE_CHUNK
 from drsplat.registration.sink import LogSink
@@ -303,10 +304,11 @@ def _candidates_task(job, index):
 # ----------------------------------------------------------------------------- the driver's side
 
 
-def assemble_parts(out: Path, parts: list[PartResult]) -> int:
+def assemble_parts(out: Path, parts: list[PartResult], codebook: Codebook | str = "none") -> int:
     """Header + the parts, in block order, into `out` (atomically): each part streamed COPY_ROWS
     rows at a time with its `lang_meta` rows renumbered from the kept rows before it, so the bytes
     are those of a single write (drsplat.registration.output.PlyTarget). Returns the rows written.
+    codebook: written beside `out` after the body, just before the rename (`write_codebook_of`).
 
     The header is the first block's (its dtype and comments, as PlyTarget takes its first chunk's);
     a file of fewer rows than the field comment's length gets the widened `lang_meta_*` columns.
@@ -322,13 +324,17 @@ def assemble_parts(out: Path, parts: list[PartResult]) -> int:
             with open(body, "wb") as f:
                 _copy_parts(f, parts, dtype, period)
             dtype, comments, _ = _widen_meta_if_short(body, (dtype, comments), total)
-            with atomic_path(out) as target, open(target, "wb") as f, open(body, "rb") as src:
-                f.write(ply_header(dtype, comments, total))
-                shutil.copyfileobj(src, f)
+            with atomic_path(out) as target:
+                with open(target, "wb") as f, open(body, "rb") as src:
+                    f.write(ply_header(dtype, comments, total))
+                    shutil.copyfileobj(src, f)
+                write_codebook_of(codebook, out)
         return total
-    with atomic_path(out) as target, open(target, "wb") as f:
-        f.write(ply_header(dtype, comments, total))
-        _copy_parts(f, parts, dtype, period)
+    with atomic_path(out) as target:
+        with open(target, "wb") as f:
+            f.write(ply_header(dtype, comments, total))
+            _copy_parts(f, parts, dtype, period)
+        write_codebook_of(codebook, out)
     return total
 
 
