@@ -24,7 +24,8 @@ import glfw
 import moderngl
 
 from drsplat.cameras import Camera
-from drsplat.splat_formats import SCENE_SUFFIXES
+from drsplat.errors import OutputError
+from drsplat.splat_formats import SCENE_SUFFIXES, spz_fractional_bits
 from drsplat.utils import atomic_path, describe_os_error
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
@@ -644,10 +645,7 @@ def derived_from(means: np.ndarray, previous: np.ndarray, tolerance: float = 1e-
     its chunks' boxes) or one .spz step, whichever is larger (.spz stores 24-bit fixed point, steps of
     2⁻¹² units, coarser past ±2048: a small or far-from-origin scene moves by more than its extent's
     1e-3; `splat_formats.spz_fractional_bits`)."""
-    from scipy.spatial import cKDTree
-
-    from drsplat.errors import OutputError
-    from drsplat.splat_formats import spz_fractional_bits
+    from scipy.spatial import cKDTree  # scipy's KD-tree only when a scene is opened beside another
 
     new, old = np.asarray(means, np.float64), np.asarray(previous, np.float64)
     new, old = new[np.isfinite(new).all(axis=1)], old[np.isfinite(old).all(axis=1)]
