@@ -1415,6 +1415,14 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 MAX_LENS_SHIFT = 100.0
 
 
+def farthest_corner(camera: Camera) -> np.ndarray:
+    """[2] the image corner farthest from the principal point, in normalised (signed) coordinates
+    ((u - cx) / fx, (v - cy) / fy): where a lens's distortion moves the image most."""
+    xs = np.array([0.0, camera.width]) - camera.cx
+    ys = np.array([0.0, camera.height]) - camera.cy
+    return np.array([xs[np.argmax(np.abs(xs))] / camera.fx, ys[np.argmax(np.abs(ys))] / camera.fy])
+
+
 def lens_shifts(camera: Camera) -> dict[str, float]:
     """Each distortion coefficient's bound on how far it moves a point of the image, relative to the
     point's distance from the principal point, at the image corner farthest from it (where r, and so
@@ -1422,8 +1430,7 @@ def lens_shifts(camera: Camera) -> dict[str, float]:
 
     Their sum bounds the shift of every point of the image. r is finite (`validate_intrinsics` bounds
     it by 1e12); a coefficient near 1e308 gives inf, beyond any bound, and never NaN."""
-    u = np.abs(np.array([0.0, camera.width]) - camera.cx).max() / camera.fx
-    v = np.abs(np.array([0.0, camera.height]) - camera.cy).max() / camera.fy
+    u, v = np.abs(farthest_corner(camera))
     r = np.float64(np.hypot(u, v))
     with np.errstate(over="ignore"):
         terms = np.abs(np.asarray(camera.distortion, np.float64)) * np.array([r * r, r**4, 3.0 * r, 3.0 * r])
@@ -1436,9 +1443,7 @@ def lens_corner_shift(camera: Camera) -> float:
     camera's pixels part most."""
     if camera.distortion is None:
         return 0.0
-    xs, ys = (np.array([0.0, camera.width]) - camera.cx) / camera.fx, (np.array([0.0, camera.height]) - camera.cy) / camera.fy
-    corners = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    corner = corners[[np.argmax((corners**2).sum(axis=1))]]  # the tangential terms are not symmetric: the corner itself, signed
+    corner = farthest_corner(camera)[None]  # the tangential terms are not symmetric: the corner itself, signed
     moved = distort_normalized(corner, np.asarray(camera.distortion, np.float64)) - corner
     return float(np.hypot(moved[0, 0] * camera.fx, moved[0, 1] * camera.fy))
 

@@ -196,6 +196,15 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
     return float(np.mean(seen))
 
 
+def sh_in_range(scene: GaussianScene) -> np.ndarray:
+    """[N] bool: the Gaussians whose SH coefficients are all finite and within MAX_SH_COEFFICIENT;
+    `prepare_scene` renders no other (a colour past float32's range would be infinite)."""
+    n = scene.num_gaussians
+    ok = np.ones(n, bool)
+    bounded_rows_kernel(np.ascontiguousarray(scene.sh.reshape(n, 3 * scene.sh.shape[1])), MAX_SH_COEFFICIENT, False, ok)
+    return ok
+
+
 def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
     """The view-independent arrays of `scene`; unusable Gaussians are flagged (`finite`) and counted.
 
@@ -209,10 +218,10 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     if isinstance(scene, PreparedScene):
         return scene
     n = scene.num_gaussians
-    finite = np.ones(n, bool)
+    finite = sh_in_range(scene)
     everything = float(np.finfo(np.float64).max)
     for rows, limit in ((scene.means, MAX_COORDINATE), (scene.quats, everything), (scene.log_scales, everything),
-                        (scene.opacity_logits.reshape(n, 1), everything), (scene.sh.reshape(n, 3 * scene.sh.shape[1]), MAX_SH_COEFFICIENT)):
+                        (scene.opacity_logits.reshape(n, 1), everything)):
         bounded_rows_kernel(np.ascontiguousarray(rows), limit, False, finite)
     cov = scene.covariances()
     bounded_rows_kernel(cov.reshape(n, 9), everything, False, finite)

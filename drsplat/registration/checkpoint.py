@@ -32,14 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat._scene_kernels import bounded_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
-from drsplat.scene import MAX_SH_COEFFICIENT, GaussianScene
+from drsplat.raster import sh_in_range
+from drsplat.scene import GaussianScene
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
                            temp_stem, work_folder)
 
@@ -103,8 +103,7 @@ def _scene_digest(scene: GaussianScene) -> str:
     h.update(str(n).encode())
     for arr in (scene.means, scene.log_scales, scene.opacity_logits, scene.quats):
         h.update(memoryview(np.ascontiguousarray(arr)).cast("B"))
-    renders = np.ones(n, bool)
-    bounded_rows_kernel(np.ascontiguousarray(scene.sh.reshape(n, 3 * scene.sh.shape[1])), MAX_SH_COEFFICIENT, False, renders)
+    renders = sh_in_range(scene)
     if not renders.all():
         h.update(b"unrendered by their SH:" + np.packbits(renders).tobytes())
     return h.hexdigest()
