@@ -303,6 +303,7 @@ def test_a_click_in_hide_selection_mode_picks_what_is_drawn_not_the_hidden_selec
     behind which the user clicked; now only the Gaussians drawn are picked (and in *selection only* the same)."""
     from drsplat.raster import rasterize
     from viewer.camera import camera_for_size
+    from viewer.state import ViewerState
 
     state.run_oracle_query(0)
     state.set_mode("hide_selection")
@@ -315,6 +316,13 @@ def test_a_click_in_hide_selection_mode_picks_what_is_drawn_not_the_hidden_selec
     picks = [state.pick(cam, u + 0.5, v + 0.5) for v, u in zip(vs[:: max(1, vs.size // 8)], us[:: max(1, vs.size // 8)])]
     assert any(p.size for p in picks)
     assert not any(hidden[p].any() for p in picks if p.size), "no hidden Gaussian is picked"
+    # the pick among the shown Gaussians (the whole scene's prepared arrays, masked: no per-click preparation) is the
+    # pick of a scene made of them alone
+    shown_ids = np.flatnonzero(~hidden)
+    alone = ViewerState()
+    alone.scene = state.scene.subset(~hidden)
+    for v, u, picked in zip(vs[:: max(1, vs.size // 8)], us[:: max(1, vs.size // 8)], picks):
+        np.testing.assert_array_equal(picked, shown_ids[alone.pick(cam, u + 0.5, v + 0.5)])
     state.set_mode("selection")
     shown = [state.pick(cam, u + 0.5, v + 0.5) for v, u in zip(vs[:4], us[:4])]
     assert all(hidden[p].all() for p in shown if p.size) and any(p.size for p in shown)

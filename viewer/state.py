@@ -352,23 +352,16 @@ class ViewerState:
 
         if self.scene is None:
             return np.zeros(0, np.int64)
+        if self._prepared is None:
+            self._prepared = prepare_scene(self.scene)
         shown = None
         if self.query is not None and self.mode in ("selection", "hide_selection"):  # hidden splats are not under the cursor
-            shown = np.flatnonzero(self.export_mask())
-            if shown.size == 0:
-                return np.zeros(0, np.int64)
-            prepared = prepare_scene(self.scene.subset(shown))
-        else:
-            if self._prepared is None:
-                self._prepared = prepare_scene(self.scene)
-            prepared = self._prepared
+            shown = self.export_mask()
         size = 2 * radius + 1
         u0, v0 = int(np.floor(u)) - radius, int(np.floor(v)) - radius
         window = dataclasses.replace(camera, cx=camera.cx - u0, cy=camera.cy - v0, width=size, height=size)
-        out = rasterize(prepared, window, topk=topk)
+        out = rasterize(self._prepared, window, topk=topk, mask=shown)
         ids, weights = out.ids.reshape(-1), out.weights.reshape(-1)
-        if shown is not None:
-            ids = np.where(ids >= 0, shown[np.maximum(ids, 0)], -1)
         keep = ids >= 0
         if not keep.any():
             return np.zeros(0, np.int64)
