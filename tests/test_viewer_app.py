@@ -548,3 +548,42 @@ def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
     finally:
         signal.signal(signal.SIGTERM, before)
     assert "interrupted; no partial output was written" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("typed", [0.0, float("nan"), float("inf"), -1e6, 1e6])
+def test_values_typed_into_the_view_panels_sliders_are_kept_in_their_ranges(app, monkeypatch, typed):
+    """Round 39 (the review's gap): a value typed into the View panel's fov, roll or fly-speed slider (ctrl+click
+    lets imgui take any number) reaches the view only within the slider's range, and a NaN or ±inf leaves it as it was;
+    the typed value is fed through the panel itself, not through `in_range` alone."""
+    import math
+
+    from imgui_bundle import imgui
+
+    from viewer.settings import FLY_SPEED_RANGE, FOV_RANGE, ROLL_RANGE
+
+    real = imgui.slider_float
+
+    def typed_into(label, value, *args):
+        if label in ("fov", "roll", "fly speed"):
+            real(label, value, *args)  # the widget is still drawn
+            return True, typed
+        return real(label, value, *args)
+
+    view, settings = app.view, app.state.settings.view
+    before = (view.fov_y_deg, view.roll, settings.fly_speed)
+    monkeypatch.setattr(imgui, "slider_float", typed_into)
+    app.panels.open_next["View"] = True
+    try:
+        _draw_in_frame(app)
+        fov, roll, speed = view.fov_y_deg, math.degrees(view.roll), settings.fly_speed
+        if not math.isfinite(typed):
+            assert (fov, view.roll, speed) == before
+        else:
+            assert FOV_RANGE[0] <= fov <= FOV_RANGE[1] and fov == min(max(typed, FOV_RANGE[0]), FOV_RANGE[1])
+            assert ROLL_RANGE[0] - 1e-9 <= roll <= ROLL_RANGE[1] + 1e-9
+            assert FLY_SPEED_RANGE[0] <= speed <= FLY_SPEED_RANGE[1]
+        camera = view.camera()
+        assert np.isfinite([camera.fx, camera.fy]).all() and camera.fx > 0 and np.isfinite(camera.R).all()
+    finally:
+        view.fov_y_deg, settings.fly_speed = before[0], before[2]
+        view.set_roll(before[1])

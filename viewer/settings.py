@@ -28,7 +28,7 @@ ROLL_RANGE = (-180.0, 180.0)  # degrees
 
 
 def in_range(value: float, lo: float, hi: float, fallback: float) -> float:
-    """`value` clamped to [lo, hi]; `fallback` when it is not a number. imgui's ctrl+click lets a
+    """`value` clamped to [lo, hi]; `fallback` when it is not finite (NaN or ±inf). imgui's ctrl+click lets a
     slider take any typed value: a field of view of 0 divided by zero (the frame loop ended), NaN
     blanked the view, and a NaN fly speed outlived "reset view"."""
     value = float(value)
