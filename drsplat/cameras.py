@@ -1195,7 +1195,7 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     distorted = sum(c.distortion is not None for c in cameras)
     if distorted:
         log.info("%s: %d of %d cameras have lens distortion (k1, k2, p1, p2); their images are undistorted to the pinhole cameras "
-                 "as they are read", path, distorted, len(cameras))
+                 "wherever they are read (`drsplat features`)", path, distorted, len(cameras))
     transform = dataparser_transforms_path(source)
     if transform is not None:
         cameras, scale = cameras_in_trained_frame(transform, cameras)

@@ -43,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_verbosity(sub: argparse.ArgumentParser) -> None:
     """-v / -q after the subcommand too (`drsplat register ... -q`), and after a nested one (`drsplat
     pq train ... -q`, `eval iou`, `bench ...`); SUPPRESS keeps the global flag's value."""
+    sub.set_defaults(_usage_parser=sub)  # a UsageError prints this command's usage, not the top level's
     group = sub.add_argument_group("logging")
     for flags, dest, text in ((("-v", "--verbose"), "verbose", "debug logging"), (("-q", "--quiet"), "quiet", "warnings and errors only")):
         if not any(f in sub._option_string_actions for f in flags):
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("interrupted; %s", interrupted_note(args))
         return 1
     except UsageError as exc:
-        parser.print_usage(sys.stderr)
+        getattr(args, "_usage_parser", parser).print_usage(sys.stderr)
         log.error("%s", exc)
         return 2
     except DrsplatError as exc:

@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=1100)
     parser.add_argument("--height", type=int, default=660)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     args.out_dir.mkdir(parents=True, exist_ok=True)
     state = ViewerState()
     folder = demo_dir()
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             va.next_still_chunk = chunk_rule
         for name, image in shots.items():
             save_image(image, args.out_dir / name)
-            log.warning("wrote %s", args.out_dir / name)
+            log.info("wrote %s", args.out_dir / name)
     finally:
         app.close()
     return 0

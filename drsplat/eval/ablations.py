@@ -198,9 +198,11 @@ def ablate_topk(root: Path, preset: str, seeds: list[int], values=TOPK_VALUES, c
 
 def ablate_pq(root: Path, preset: str, seeds: list[int], values=PQ_VALUES, repeats: int = 9, cancel: CancelToken | None = None) -> AblationResult:
     table: dict[str, list] = {}
+    sizes = []
     for seed in seeds:
         _check(cancel)
         ds = dataset(root, preset, seed)
+        sizes.append(f"{ds.scene.num_gaussians:,}")
         res = register(ds, 40, collect=True, cancel=cancel)
         for m in (None,) + tuple(values):
             _check(cancel)
@@ -223,9 +225,8 @@ def ablate_pq(root: Path, preset: str, seeds: list[int], values=PQ_VALUES, repea
     for key, per in table.items():
         loc, seg, nbytes, ms = np.mean(per, axis=0)
         rows.append([key, float(loc), float(seg), int(nbytes), float(ms)])
-    n = ds.scene.num_gaussians
     return AblationResult("pq", ["PQ sub-vectors", "loc mIoU", "seg mIoU", "bytes/Gaussian", f"query ms ({len(ds.names)} queries)"], rows,
-                          [f"preset {preset} ({n} Gaussians), seeds {seeds}; codebook trained per scene on its mask embeddings; "
+                          [f"preset {preset} ({' / '.join(sizes)} Gaussians), seeds {seeds}; codebook trained per scene on its mask embeddings; "
                            f"query time = median of {repeats} scorings of all labels after a warm-up."])
 
 
@@ -593,7 +594,7 @@ ABLATION_FLAGS = {"topk": ("values",), "pq": ("values",), "robustness": (), "met
 
 def add_ablate_parser(sub) -> None:
     p = sub.add_parser("ablate", help="reproduce the paper's ablations on synthetic scenes (tables + PNG plots)",
-                       description=__doc__.split("\n\n")[0] + "; see docs/evaluation.md.")
+                       description=__doc__.split("\n\n")[0].rstrip(".") + "; see docs/evaluation.md.")
     p.add_argument("ablation", choices=ABLATIONS)
     p.add_argument("--preset", default=None, metavar="NAME[,NAME]",
                    help="synthetic preset (default tiny); for 'aggregate' a comma-separated list (default: every hard-* room but hard-tiny)")
