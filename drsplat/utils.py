@@ -142,10 +142,13 @@ def file_ancestor(path: Path) -> Path | None:
 
 
 def ensure_parent(path: Path) -> None:
-    """Create the folder of an output (and its parents); OutputError when an ancestor is a file."""
+    """Create the folder of an output (and its parents), saying so at INFO (a mistyped folder is then
+    seen); OutputError when an ancestor is a file."""
     blocker = file_ancestor(path)
     if blocker is not None:
         raise OutputError(path, f"{blocker} is a file, not a folder")
+    if not path.parent.is_dir():
+        log.info("created the folder %s for %s", path.parent, path.name)
     path.parent.mkdir(parents=True, exist_ok=True)
 
 

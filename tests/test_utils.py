@@ -53,6 +53,18 @@ def test_an_output_under_a_file_is_refused_before_anything_runs(tmp_path):
     assert blocker.read_bytes() == b"ply" and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
 
 
+def test_an_output_folder_that_is_created_is_said(tmp_path, caplog):
+    """Round 41: `query --scores /nonexistent_dir/s.npy` made the folder without a word, so a mistyped folder went unseen."""
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="drsplat"):
+        save_npy_atomic(tmp_path / "made" / "deeper" / "s.npy", np.arange(3))
+        save_npy_atomic(tmp_path / "made" / "deeper" / "t.npy", np.arange(3))
+    said = [r.getMessage() for r in caplog.records if "created the folder" in r.getMessage()]
+    assert said == [f"created the folder {tmp_path / 'made' / 'deeper'} for s.npy"]
+    np.testing.assert_array_equal(np.load(tmp_path / "made" / "deeper" / "t.npy"), np.arange(3))
+
+
 def test_a_temp_beside_an_output_is_committed_through_a_link(tmp_path):
     """temp_beside + replace_with_temp (what atomic_path does): the temp lies beside the link's
     target with normal permissions, and the link stays a link to the new bytes."""
