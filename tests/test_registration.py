@@ -401,6 +401,28 @@ def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
     assert "2 feature pairs in" in caplog.text and "are incomplete" in caplog.text and cams[0].name in caplog.text
 
 
+def test_views_that_copy_another_views_camera_are_warned_of(tiny, tmp_path, caplog):
+    """Round 41: a dataset listing one photo twice under two names (every view copied, its features with it) moved the
+    cross-view check's verdicts (a copy's votes counted as a second view's), without a word. Such copies are said;
+    a camera whose pose differs in one bit is not a copy."""
+    import shutil
+
+    from drsplat.registration.views import same_camera_copies
+
+    feats = Path(shutil.copytree(tiny / "features", tmp_path / "features"))
+    cams = load_cameras(tiny)
+    for cam in cams[:2]:
+        for suffix in ("_s.npy", "_f.npy"):
+            shutil.copy(feats / f"{cam.name}{suffix}", feats / f"copy_{cam.name}{suffix}")
+    copies = [dataclasses.replace(c, name=f"copy_{c.name}") for c in cams[:2]]
+    assert same_camera_copies(cams + copies) == [(cams[0].name, copies[0].name), (cams[1].name, copies[1].name)]
+    moved = dataclasses.replace(copies[0], t=np.nextafter(np.asarray(cams[0].t, np.float64), np.inf))
+    assert same_camera_copies(cams + [moved]) == [] and same_camera_copies(cams) == []
+    with caplog.at_level(logging.WARNING):
+        register_features(load_ply(tiny / "scene.ply"), cams + copies, feats, RegisterOptions(topk=5, aggregate="paper"), show_progress=False)
+    assert f"2 views have the very pose, intrinsics and size of another view (e.g. {cams[0].name} and copy_{cams[0].name})" in caplog.text
+
+
 def test_cameras_named_with_several_dots_match_langsplats_feature_files(tiny, caplog):
     """Round 39: LangSplat names a view's files by the image name up to its first dot (frame-000000.color.png ->
     frame-000000_s.npy), 3DGS its cameras the same way; pairing by the last dot's stem matched none. The fallback

@@ -94,6 +94,11 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     duplicates = len(sel.views) - len({c.name for c in sel.views})
     if duplicates:
         log.warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
+    copies = same_camera_copies(sel.views)
+    if copies:
+        log.warning("%d views have the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
+                    "own, so what a copied view's masks say counts twice in the cross-view check and the vote; drop the copies from the "
+                    "dataset if they are one photo", len(copies), copies[0][0], copies[0][1])
     if not sel.views:
         raise InputError(
             features_dir,
@@ -101,6 +106,22 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
             f"features: {', '.join(stems[:3])}...)",
         )
     return sel
+
+
+def same_camera_copies(views: Sequence[Camera]) -> list[tuple[str, str]]:
+    """(earlier view's name, later view's name) for every view whose R, t, intrinsics and size equal
+    an earlier view's bit for bit: a dataset listing one photo twice (round 41: the cross-view check
+    took a copied view's votes as a second view's and kept a mislabelled mask it had dropped)."""
+    first: dict[tuple, str] = {}
+    copies = []
+    for c in views:
+        key = (np.asarray(c.R, np.float64).tobytes(), np.asarray(c.t, np.float64).tobytes(), float(c.fx), float(c.fy), float(c.cx),
+               float(c.cy), int(c.width), int(c.height))
+        if key in first:
+            copies.append((first[key], c.name))
+        else:
+            first[key] = c.name
+    return copies
 
 
 def warn_if_distorted_without_manifest(views: Sequence[Camera], manifest: dict, features_dir: Path) -> None:
