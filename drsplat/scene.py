@@ -295,6 +295,7 @@ class LoadReport:
     nonfinite_extra: int = 0
     trailing_bytes: int = 0  # data after the last element: the header's counts may be smaller than the data
     row_bytes: int = 0  # bytes per vertex row (to say how many rows the trailing bytes could hold)
+    trailing_lines: int = 0  # an ASCII PLY's data lines after the rows its header declares (its counts may be smaller than the data)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
@@ -324,7 +325,7 @@ class LoadReport:
             notes.append(f"{self.nonfinite_extra} non-finite values in extra properties (kept as they are)")
         if self.rows_in_file == 0:
             notes.append("the file holds no Gaussians" + (" (its vertex element has 0 rows)" if self.layout in ("inria", "compressed") else ""))
-        if self.trailing_bytes:
+        if self.trailing_bytes or self.trailing_lines:
             notes.append(self.trailing_note())
         if self.far_means:
             notes.append(f"{self.far_means} Gaussians lie beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
@@ -342,6 +343,9 @@ class LoadReport:
         return notes
 
     def trailing_note(self) -> str:
+        if self.trailing_lines:
+            return (f"{self.trailing_lines:,} more data lines follow the declared rows: the header's vertex count "
+                    f"({self.rows_in_file:,}) may be smaller than the data, which is ignored")
         rows = f", room for {self.trailing_bytes // self.row_bytes:,} more rows" if self.row_bytes else ""
         return (f"{self.trailing_bytes:,} bytes follow the declared data{rows}: the header's vertex count "
                 f"({self.rows_in_file:,}) may be smaller than the data, which is ignored")
@@ -382,6 +386,8 @@ def read_ply_header(path: Path) -> PlyHeader:
     except UnicodeDecodeError:
         raise _fail(path, "has a header that is not ASCII text") from None
     fmt, elements, comments = None, [], []
+    element_names: set[str] = set()
+    property_names: set[str] = set()  # of the last element (a set: a list scan per line made a long header quadratic)
     for lineno, raw in enumerate(text.replace("\r", "").split("\n")[1:], start=2):
         words = raw.split()
         if not words:
@@ -401,8 +407,10 @@ def read_ply_header(path: Path) -> PlyHeader:
         elif key == "element":
             if len(words) != 3 or not words[2].isdigit():
                 raise _fail(path, f"has a malformed element line (header line {lineno})")
-            if any(e.name == words[1] for e in elements):
+            if words[1] in element_names:
                 raise _fail(path, f"declares element '{words[1]}' twice (header line {lineno})", field=words[1])
+            element_names.add(words[1])
+            property_names = set()
             elements.append(PlyElement(words[1], int(words[2]), []))
         elif key == "property":
             if not elements:
@@ -415,8 +423,9 @@ def read_ply_header(path: Path) -> PlyHeader:
                 name, dtype = words[2], PLY_TYPES[words[1]]
             else:
                 raise _fail(path, f"has a malformed property line (header line {lineno})")
-            if any(name == existing for existing, _ in elements[-1].properties):
+            if name in property_names:
                 raise _fail(path, f"declares property '{name}' twice in element '{elements[-1].name}' (header line {lineno})", field=name)
+            property_names.add(name)
             elements[-1].properties.append((name, dtype))
         else:
             raise _fail(path, f"has an unknown header keyword (header line {lineno})")
@@ -437,6 +446,9 @@ def check_element_sizes(path: Path, header: PlyHeader, size: int) -> None:
     remaining = size - header.data_offset
     need = 0
     for element in header.elements:
+        if element.count and not element.properties and element.name in NEEDED_ELEMENTS:
+            raise _fail(path, f"declares {element.count:,} rows of element '{element.name}' but no properties for them: "
+                              "its header is wrong", field=element.name)
         need += element.count * element.min_row_bytes(header.format)
         if need > remaining:
             raise _fail(path, f"declares {element.count} rows of element '{element.name}' (with the elements before it at least "
@@ -536,7 +548,8 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
     scene, report = assemble_scene(path, raw, order, layout, comments, purpose)
     report.trailing_bytes = trailing_bytes(header, path.stat().st_size)
     report.row_bytes = data["vertex"].dtype.itemsize if header.format != "ascii" else 0
-    if report.trailing_bytes:
+    report.trailing_lines = trailing_ascii_lines(path, header)
+    if report.trailing_bytes or report.trailing_lines:
         log.warning("%s: %s", path, report.trailing_note())
     return scene, report
 
@@ -556,6 +569,17 @@ def refuse_undeclared_row_bytes(path: Path, header: PlyHeader, size: int) -> Non
         raise _fail(path, f"holds {extra // last.count} bytes more per vertex row than its header declares ({last.count:,} rows of "
                           f"{row} bytes, then {extra:,} bytes = {extra // last.count} x {last.count:,}): a property is missing from "
                           "the header, and every row would be misread", field="vertex")
+
+
+def trailing_ascii_lines(path: Path, header: PlyHeader) -> int:
+    """Non-blank lines after the rows an ASCII PLY's header declares (one line a row; plyfile ignores
+    them), 0 for a binary PLY."""
+    if header.format != "ascii":
+        return 0
+    with open(path, "rb") as f:
+        f.seek(header.data_offset)
+        lines = sum(1 for line in f if line.strip())
+    return max(0, lines - sum(e.count for e in header.elements))
 
 
 def trailing_bytes(header: PlyHeader, size: int) -> int:
@@ -830,7 +854,7 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         rgb = lo + rgba[:, :3] * (hi - lo)
     else:
         rgb = rgba[:, :3]
-    logits = opacity_logits(rgba[:, 3])
+    logits = opacity_logits(np.clip(c & 0xFF, 0.5, 254.5) / 255.0)  # bytes 0 and 255 half a step inside, as .splat / .spz read them
     dc = dc_from_rgb(rgb)
     rest = None
     if "sh" in data:
@@ -841,7 +865,9 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
             raise _fail(path, f"is a compressed PLY whose 'sh' element has {n_rest} properties x {len(shv)} rows", field="sh")
         if any(f"f_rest_{i}" not in shv.dtype.names for i in range(n_rest)):
             raise _fail(path, f"is a compressed PLY whose 'sh' element does not name its properties f_rest_0..f_rest_{n_rest - 1}", field="sh")
-        raw = np.stack([shv[f"f_rest_{i}"] for i in range(n_rest)], axis=1)
+        for i in range(n_rest):  # codes are bytes: a char or float column would be read as other values
+            check_integer_column(path, f"f_rest_{i}", shv[f"f_rest_{i}"], "uchar", "SH codes", bit_pattern=False)
+        raw = np.stack([shv[f"f_rest_{i}"] for i in range(n_rest)], axis=1).astype(np.uint8)
         rest = decode_sh_bytes(raw)
     k = 1 if rest is None else (rest.shape[1] // 3 + 1)
     sh = np.zeros((n, k, 3), np.float32)
@@ -1070,7 +1096,7 @@ def morton_order(means: np.ndarray) -> np.ndarray:
     MORTON_BUCKET equal codes is ordered again the same way within its own range (float64 math)."""
     xyz = np.asarray(means, np.float64)
     order = np.arange(xyz.shape[0], dtype=np.int64)
-    pending = [(0, order.shape[0])]
+    pending = [(0, order.shape[0])] if order.shape[0] else []  # no means: nothing to order
     while pending:
         start, stop = pending.pop()
         part = order[start:stop]

@@ -60,7 +60,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, compressed_ply_bytes, dc_from_rgb,
+from drsplat.scene import (COMPRESSED_SCALE_LIMIT, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, compressed_ply_bytes, dc_from_rgb,
                            load_ply_report, opacity_logits, save_ply)
 from drsplat.utils import write_bytes_atomic
 
@@ -209,10 +209,14 @@ def _archive_records(path: Path) -> list | None:
 def _torch_load(path: Path, mmap: bool):
     import pickle
 
+    import warnings
+
     import torch
 
     try:
-        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+        with warnings.catch_warnings():  # torch's own notes (a sparse tensor's invariants scanned): the refusal says what matters
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:
         raise InputError(path, f"holds something other than tensors and plain values, which is not read ({_refusal(exc)})") from None
     except Exception as exc:  # noqa: BLE001 - torch's reader of an untrusted archive raises many kinds (KeyError, IndexError, AssertionError, ...)
@@ -743,7 +747,8 @@ def save_compressed_ply(scene: GaussianScene, path: str | Path) -> None:
     path = Path(path)
     _refuse_nonfinite(scene, path, "compressed.ply")
     data, clipped = compressed_ply_bytes(scene)
-    _warn_clipped(path, "compressed.ply", {"SH": clipped})
+    scales = int(np.count_nonzero(np.abs(scene.log_scales) > COMPRESSED_SCALE_LIMIT))  # the chunk ranges are clamped to ±20
+    _warn_clipped(path, "compressed.ply", {"log scale": scales, "SH": clipped})
     write_bytes_atomic(path, data)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from drsplat.cli import main
+from drsplat.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +108,32 @@ def test_malformed_ascii_cloud_names_the_file(pq, tmp_path, rows, words, capsys)
     assert main(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(cloud), "--out", str(tmp_path / "o.npy")]) == 1
     err = capsys.readouterr().err
     assert "bad.labels.ply" in err and words in err and "Traceback" not in err
+
+
+def test_a_cloud_whose_coordinates_are_lists_names_the_field(tmp_path):
+    """Round 41: `eval pseudolabels` on a point cloud whose x is a list property: numpy's "setting an array element
+    with a sequence". Now one error naming the field."""
+    from drsplat.eval.datasets import load_labelled_points
+
+    cloud = tmp_path / "list.ply"
+    cloud.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty list uchar float x\nproperty float y\nproperty float z\n"
+                     "property ushort label\nend_header\n2 0 1 0 0 1\n1 5 1 1 2\n")
+    with pytest.raises(InputError, match="field 'x': property x is a list"):
+        load_labelled_points(cloud)
+
+
+def test_info_escapes_control_characters_in_the_file_name(tmp_path, capsys):
+    """Round 41: `info` printed a file name's ESC raw to the terminal (logs and errors escaped it already)."""
+    import shutil
+
+    from drsplat.synthetic import write_dataset
+
+    ds = write_dataset(tmp_path / "ds", "tiny", 0, show_progress=False)
+    odd = tmp_path / "w\x1b[2J.ply"
+    shutil.copy(ds / "scene.ply", odd)
+    assert main(["info", str(odd)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "w\\u001b[2J.ply" in out.splitlines()[0]
 
 
 @pytest.mark.parametrize("category, words", [(None, "is null"), (5, "is 5"), ("", "an empty string"), (["a"], '["a"]')])

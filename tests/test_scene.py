@@ -169,6 +169,8 @@ def test_ascii_ply_loads(tmp_path):
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n" + b"\0" * 40, "is truncated"),
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n" + b"\0" * 4, "field 'y'"),
         (b"ply\nformat weird 1.0\nend_header\n", "unknown format"),
+        # round 41: rows without properties passed the size check (0 bytes a row) and numpy overflowed on the count
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 100000000000000000000\nend_header\n", "but no properties for them"),
     ],
 )
 def test_bad_input_gives_one_clear_error(tmp_path, content, expected):
@@ -178,6 +180,27 @@ def test_bad_input_gives_one_clear_error(tmp_path, content, expected):
         load_ply(path)
     assert expected in str(info.value)
     assert str(path) in str(info.value)
+
+
+def test_an_ascii_ply_with_more_rows_than_its_header_declares_is_said(tmp_path, caplog):
+    """Round 41: the binary PLY's trailing bytes were said, an ASCII PLY's extra rows were dropped without a word."""
+    import logging
+
+    from plyfile import PlyData
+
+    from drsplat.scene import load_ply_report
+
+    save_ply(random_scene(6, 0), tmp_path / "bin.ply")
+    ply = PlyData.read(str(tmp_path / "bin.ply"))
+    ply.text = True
+    ply.write(str(tmp_path / "ascii.ply"))
+    text = (tmp_path / "ascii.ply").read_bytes()
+    (tmp_path / "short.ply").write_bytes(text.replace(b"element vertex 6", b"element vertex 4"))
+    with caplog.at_level(logging.WARNING):
+        scene, report = load_ply_report(tmp_path / "short.ply")
+    assert scene.num_gaussians == 4 and "2 more data lines follow the declared rows" in caplog.text
+    assert any("2 more data lines" in note for note in report.findings())
+    assert load_ply_report(tmp_path / "ascii.ply")[1].findings() == []
 
 
 def test_missing_file_error(tmp_path):

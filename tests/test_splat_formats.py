@@ -389,7 +389,7 @@ def test_compressed_ply_writer_agrees_with_splat_transform_now(tmp_path, degree)
     assert after_header_comment(ours) == after_header_comment((tmp_path / "lib.compressed.ply").read_bytes())
 
 
-@pytest.mark.parametrize("name", ["e.spz", "e4.spz", "e.splat", "e.ply"])
+@pytest.mark.parametrize("name", ["e.spz", "e4.spz", "e.splat", "e.ply", "e.compressed.ply"])
 def test_a_written_scene_of_no_gaussians_reads_back_empty_with_a_finding(tmp_path, name):
     """A version-4 spz of no points has no streams at all (empty blocks have none); its reader used to
     fail there with a KeyError. Every file type reads back as no Gaussians, with the same finding."""
@@ -579,3 +579,56 @@ def test_mutated_spz_files_load_or_fail_with_one_input_error(tmp_path):
                 assert str(path) in str(exc)
                 outcomes["refused"] += 1
     assert outcomes["refused"] > 150 and sum(outcomes.values()) == 300
+
+
+# ---------------------------------------------------------------------------------------------- round 41
+
+
+def _with_sh_element_as(path: Path, out: Path, dtype: str, values=None) -> None:
+    """`path`'s compressed PLY with its 'sh' element's columns retyped to `dtype` (plyfile), holding `values` or the codes."""
+    from plyfile import PlyData, PlyElement
+
+    ply = PlyData.read(str(path))
+    sh = ply["sh"].data
+    names = sh.dtype.names
+    table = np.empty(len(sh), dtype=[(k, dtype) for k in names])
+    for k in names:
+        table[k] = sh[k] if values is None else values
+    elements = [e if e.name != "sh" else PlyElement.describe(table, "sh") for e in ply.elements]
+    PlyData(elements, text=False, byte_order="<").write(str(out))
+
+
+def test_a_compressed_plys_sh_codes_are_bytes_whatever_their_declared_type(tmp_path):
+    """Round 41: a compressed PLY whose 'sh' element was rewritten as char, or as float holding real coefficients,
+    loaded without a word: SH off by up to 8. Codes typed char read as the same bytes; a column of non-codes is one
+    error naming it."""
+    scene = random_scene(300, degree=2)
+    save_scene(scene, tmp_path / "c.compressed.ply")
+    base = load_scene(tmp_path / "c.compressed.ply")
+    _with_sh_element_as(tmp_path / "c.compressed.ply", tmp_path / "char.compressed.ply", "i2")
+    np.testing.assert_array_equal(load_scene(tmp_path / "char.compressed.ply").sh, base.sh)
+    _with_sh_element_as(tmp_path / "c.compressed.ply", tmp_path / "real.compressed.ply", "f4", values=0.37)
+    with pytest.raises(InputError, match="f_rest_0"):
+        load_scene(tmp_path / "real.compressed.ply")
+
+
+def test_a_compressed_ply_of_opaque_and_clear_splats_reads_back_without_infinities(tmp_path):
+    """Round 41: opacity bytes 0 and 255 decoded to logits of -inf and +inf, so re-reading drsplat's own export of a
+    scene with logits of +-10 found "5 infinite opacity logits clamped"; they are read half a step inside, as .splat
+    and .spz read theirs."""
+    scene = random_scene(6)
+    scene.opacity_logits[:] = [10, -10, 10, -10, 10, 0.5]
+    save_scene(scene, tmp_path / "c.compressed.ply")
+    back, report = load_scene_report(tmp_path / "c.compressed.ply")
+    assert report.findings() == [] and np.isfinite(back.opacity_logits).all()
+    assert back.opacity_logits.max() == pytest.approx(np.log(254.5 / 0.5), abs=1e-5) and back.opacity_logits.min() == pytest.approx(-np.log(254.5 / 0.5), abs=1e-5)
+
+
+def test_log_scales_the_compressed_format_clamps_are_counted(tmp_path, caplog):
+    """Round 41: a log scale of 25 read back as 20 without a word; .spz counted its clipping already."""
+    scene = random_scene(8)
+    scene.log_scales[:2, 0] = [25.0, -23.0]
+    with caplog.at_level(logging.WARNING):
+        save_scene(scene, tmp_path / "c.compressed.ply")
+    assert "2 log scale" in caplog.text, caplog.text
+    assert np.abs(load_scene(tmp_path / "c.compressed.ply").log_scales).max() <= 20.0 + 1e-5

@@ -20,7 +20,7 @@ import numpy as np
 from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, output_file,
                                      threshold_value)
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
-from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable, json_text, outputs_together
 
@@ -428,7 +428,7 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     reports = evaluate_scene(scene, scores, gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
                              args.voxel_resolution, args.voxel_empty, assigned=assigned)
     check_defined(reports, sub_names)
-    print(f"{args.registered.name}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
+    print(f"{shown_path(args.registered.name)}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
           f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}")
     print(format_reports(reports))
     for r in reports:
@@ -509,7 +509,7 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
             with atomic_path(args.names_out) as tmp:
                 tmp.write_text(json.dumps(names) + "\n")
     counts = np.bincount(labels[labels >= 0], minlength=len(names))
-    print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {args.out}")
+    print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {shown_path(args.out)}")
     for k in np.flatnonzero(counts):
         print(f"  {names[k]:<20} {int(counts[k]):>9}")
     return 0
@@ -583,7 +583,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
     report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=True)
     require_scored_pairs(args, report)
-    print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
+    print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
           f"thresholds {'per-query Otsu' if threshold is None else threshold}")
     print(report.format())
     doc = report.to_dict()
@@ -631,7 +631,7 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
                                   cancel=token, assigned=assigned)
         token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
-    print(f"{args.registered.name}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
+    print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
     print(report.format())
     write_json(args.json, report.to_dict())
     return 0

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.errors import shown_path
 from drsplat.scene import GaussianScene, LoadReport
 from drsplat.splat_formats import load_scene_report
 from drsplat.utils import clipped, json_text
@@ -85,7 +86,7 @@ def format_summary(s: dict) -> str:
         return "-" if values is None else " ".join(_number(v, spec) for v in values)
 
     lines = [
-        f"{s['path']} ({s['layout']} layout)",
+        f"{shown_path(s['path'])} ({s['layout']} layout)",
         f"  gaussians      {s['num_gaussians']:,} (rows in file {s['rows_in_file']:,})",
         f"  SH degree      {s['sh_degree']}",
         f"  bbox min       {box(lo)}",

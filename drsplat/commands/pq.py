@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders
-from drsplat.errors import InputError, UsageError
+from drsplat.errors import InputError, UsageError, shown_path
 from drsplat.lang.codebook import PQ_KSUB
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ def run_train(args: argparse.Namespace) -> int:
     log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
     book = train_codebook(x, m=args.m, seed=args.seed)
     book.save(args.out)
-    print(f"wrote {args.out}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
+    print(f"wrote {shown_path(args.out)}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
     return 0
 
 
@@ -122,7 +122,7 @@ def run_info(args: argparse.Namespace) -> int:
 
     book = load_codebook(args.codebook)
     index = book.index
-    print(f"file:        {args.codebook}")
+    print(f"file:        {shown_path(args.codebook)}")
     print(f"type:        {type(index).__name__} ({book.kind})")
     print(f"dimension:   {book.dim}")
     print(f"metric:      {'inner product' if index.metric_type == 0 else 'L2'}")

@@ -446,6 +446,10 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
     for f in ("x", "y", "z", label_field):
         if f not in names:
             raise InputError(path, "vertex property missing (a labelled cloud needs x, y, z and a label)", field=f)
+    for k in "xyz":
+        if vertex.data.dtype[k].kind not in "iuf":  # a list property: plyfile gives an object column of arrays
+            raise InputError(path, f"property {k} is a {'list' if vertex.data.dtype[k].kind == 'O' else vertex.data.dtype[k]}; "
+                                   "a point's coordinates are numbers", field=k)
     pts = np.stack([np.asarray(vertex[k], np.float64) for k in "xyz"], axis=1)
     column = np.asarray(vertex[label_field])
     if column.dtype.kind == "f":  # astype(int64) would turn 1.5 into class 1 and NaN into garbage, without a word
