@@ -854,7 +854,7 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         rgb = lo + rgba[:, :3] * (hi - lo)
     else:
         rgb = rgba[:, :3]
-    logits = opacity_logits(np.clip(c & 0xFF, 0.5, 254.5) / 255.0)  # bytes 0 and 255 half a step inside, as .splat / .spz read them
+    logits = opacity_logits(byte_alpha(c & 0xFF))
     dc = dc_from_rgb(rgb)
     rest = None
     if "sh" in data:
@@ -898,6 +898,13 @@ def _unpack_smallest_three(packed: np.ndarray) -> np.ndarray:
         q[rows, idx] = m[rows]
         q[np.ix_(rows, others)] = abc[rows]
     return q
+
+
+def byte_alpha(a: np.ndarray) -> np.ndarray:
+    """[N] 8-bit alphas (0..255) -> [N] float64 opacities a/255, 0 and 255 read half a step inside
+    (0.5/255 and 1 - 0.5/255): a file that stores an opacity in a byte cannot say "exactly 0" or
+    "exactly 1", and ±inf logits would be counted as non-finite (.splat, .spz, compressed PLY)."""
+    return np.clip(np.asarray(a, np.float64), 0.5, 254.5) / 255.0
 
 
 def opacity_logits(alpha: np.ndarray) -> np.ndarray:

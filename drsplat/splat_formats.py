@@ -60,7 +60,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (COMPRESSED_SCALE_LIMIT, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, compressed_ply_bytes, dc_from_rgb,
+from drsplat.scene import (COMPRESSED_SCALE_LIMIT, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
                            load_ply_report, opacity_logits, save_ply)
 from drsplat.utils import write_bytes_atomic
 
@@ -431,11 +431,6 @@ def splat_columns(path: Path) -> tuple[dict, list[str], str]:
         "extra": {},
     }
     return cols, list(SPLAT_RECORD.names), "splat"
-
-
-def byte_alpha(a: np.ndarray) -> np.ndarray:
-    """[N] uint8 alphas -> [N] float64 opacities a/255, 0 and 255 read half a step inside (module docstring)."""
-    return np.clip(np.asarray(a, np.float64), 0.5, 254.5) / 255.0
 
 
 # ----------------------------------------------------------------------------- .spz
