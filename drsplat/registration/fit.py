@@ -37,7 +37,8 @@ on the CPU with the numba engine whatever the run's engine, so every engine and 
 Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
 geometry without its SH), the sharp weights, two coalescings and two re-render passes, O(H·W·k):
 each pass re-renders the view's own labelling and every earlier probe view's translated one
-(`rerender_scores`: 8 passes over the slots for 4 probe views, where one labelling a pass took 20).
+(`rerender_scores`: 2P passes over the slots for P probe views, where one labelling a pass took P(P + 1);
+the figures below are of 4 probe views, before round 41 made them 8).
 Measured on flowers at 640x480 (region masks, 2 threads, alternated, two sessions' hours): the stage
 2.68-2.74 -> 2.33-2.36 s and 2.38-2.50 -> 2.18-2.23 s; on a 320x240 room 0.18-0.19 s either way. When
 the view pass computes views as the probe does (numba, in this process), the chosen footprint's
