@@ -78,6 +78,12 @@ class Camera:
         """[3] camera centre in world coordinates, -Rᵀ t."""
         return -self.R.T @ self.t
 
+    def geometry_bits(self) -> bytes:
+        """The intrinsics (fx, fy, cx, cy) then R and t, each by its exact float64 bits: what makes two
+        cameras the same camera (the size aside). A pose that moved at all gives other bytes."""
+        return (np.array([self.fx, self.fy, self.cx, self.cy], np.float64).tobytes() + np.asarray(self.R, np.float64).tobytes()
+                + np.asarray(self.t, np.float64).tobytes())
+
     def ray_origin(self) -> np.ndarray:
         """[3] float64 origin of the pixel rays, -Rᵀ t computed in float64 (`center` keeps R's dtype)."""
         return -np.asarray(self.R, np.float64).T @ np.asarray(self.t, np.float64)

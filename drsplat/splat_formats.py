@@ -53,6 +53,7 @@ from __future__ import annotations
 import io
 import logging
 import re
+import warnings
 import zlib
 from pathlib import Path
 
@@ -60,7 +61,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (COMPRESSED_SCALE_LIMIT, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
+from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
                            load_ply_report, opacity_logits, save_ply)
 from drsplat.utils import write_bytes_atomic
 
@@ -208,8 +209,6 @@ def _archive_records(path: Path) -> list | None:
 
 def _torch_load(path: Path, mmap: bool):
     import pickle
-
-    import warnings
 
     import torch
 
@@ -742,8 +741,7 @@ def save_compressed_ply(scene: GaussianScene, path: str | Path) -> None:
     path = Path(path)
     _refuse_nonfinite(scene, path, "compressed.ply")
     data, clipped = compressed_ply_bytes(scene)
-    scales = int(np.count_nonzero(np.abs(scene.log_scales) > COMPRESSED_SCALE_LIMIT))  # the chunk ranges are clamped to ±20
-    _warn_clipped(path, "compressed.ply", {"log scale": scales, "SH": clipped})
+    _warn_clipped(path, "compressed.ply", clipped)
     write_bytes_atomic(path, data)
 
 

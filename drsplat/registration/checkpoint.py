@@ -135,8 +135,7 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
     h = hashlib.sha1()
     for c in cameras:
         h.update(f"{c.name}|{c.width}x{c.height}|".encode())
-        h.update(np.array([c.fx, c.fy, c.cx, c.cy], np.float64).tobytes())
-        h.update(np.asarray(c.R, np.float64).tobytes() + np.asarray(c.t, np.float64).tobytes())
+        h.update(c.geometry_bits())
     return h.hexdigest()
 
 

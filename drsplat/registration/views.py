@@ -97,7 +97,7 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     copies = same_camera_copies(sel.views)
     if copies:
         log.warning("%d views have the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
-                    "own, so what a copied view's masks say counts twice in the cross-view check and the vote; drop the copies from the "
+                    "own, so what a copied view's masks say counts twice in the cross-view check; drop the copies from the "
                     "dataset if they are one photo", len(copies), copies[0][0], copies[0][1])
     if not sel.views:
         raise InputError(
@@ -115,8 +115,7 @@ def same_camera_copies(views: Sequence[Camera]) -> list[tuple[str, str]]:
     first: dict[tuple, str] = {}
     copies = []
     for c in views:
-        key = (np.asarray(c.R, np.float64).tobytes(), np.asarray(c.t, np.float64).tobytes(), float(c.fx), float(c.fy), float(c.cx),
-               float(c.cy), int(c.width), int(c.height))
+        key = (c.geometry_bits(), int(c.width), int(c.height))
         if key in first:
             copies.append((first[key], c.name))
         else:
