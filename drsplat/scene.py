@@ -296,6 +296,7 @@ class LoadReport:
     trailing_bytes: int = 0  # data after the last element: the header's counts may be smaller than the data
     row_bytes: int = 0  # bytes per vertex row (to say how many rows the trailing bytes could hold)
     trailing_lines: int = 0  # an ASCII PLY's data lines after the rows its header declares (its counts may be smaller than the data)
+    spare_chunks: int = 0  # a compressed PLY's chunks past the ceil(rows / 256) its splats use (its vertex count may be smaller than the data)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
@@ -327,6 +328,8 @@ class LoadReport:
             notes.append("the file holds no Gaussians" + (" (its vertex element has 0 rows)" if self.layout in ("inria", "compressed") else ""))
         if self.trailing_bytes or self.trailing_lines:
             notes.append(self.trailing_note())
+        if self.spare_chunks:
+            notes.append(self.spare_chunks_note())
         if self.far_means:
             notes.append(f"{self.far_means} Gaussians lie beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
                          "see them (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
@@ -341,6 +344,11 @@ class LoadReport:
             notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "
                          "their scale overflows float32 (infinite)")
         return notes
+
+    def spare_chunks_note(self) -> str:
+        used = -(-self.rows_in_file // COMPRESSED_CHUNK)
+        return (f"{used + self.spare_chunks:,} chunks where its {self.rows_in_file:,} splats use {used:,} ({COMPRESSED_CHUNK} a chunk): "
+                "the header's vertex count may be smaller than the data; the spare chunks are ignored")
 
     def trailing_note(self) -> str:
         if self.trailing_lines:
@@ -551,6 +559,10 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
     report.trailing_lines = trailing_ascii_lines(path, header)
     if report.trailing_bytes or report.trailing_lines:
         log.warning("%s: %s", path, report.trailing_note())
+    if layout == "compressed":
+        report.spare_chunks = len(data["chunk"]) - -(-len(data["vertex"]) // COMPRESSED_CHUNK)
+        if report.spare_chunks:
+            log.warning("%s: %s", path, report.spare_chunks_note())
     return scene, report
 
 
@@ -825,10 +837,10 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         if name not in vertex.dtype.names:
             raise _fail(path, "is a compressed PLY missing a packed vertex property", field=name)
         check_integer_column(path, name, vertex[name], "uint", "packed bit fields", bit_pattern=True)
-    need_chunks = (n + 255) // 256
+    need_chunks = (n + COMPRESSED_CHUNK - 1) // COMPRESSED_CHUNK
     if len(chunk) < need_chunks:
         raise _fail(path, f"is a compressed PLY with {len(chunk)} chunks for {n} splats (needs {need_chunks})", field="chunk")
-    ci = np.arange(n) // 256
+    ci = np.arange(n) // COMPRESSED_CHUNK
 
     def chunk_range(prefix_min: str, prefix_max: str, axes: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         try:

@@ -89,6 +89,8 @@ SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".pt", ".ckpt", ".pth")  # the scene
 CHECKPOINT_SUFFIXES = (".pt", ".ckpt", ".pth")  # trainer checkpoints (module docstring)
 ZIP_MAGIC = b"PK\x03\x04"  # torch.save's archive
 MAX_CHECKPOINT_INFLATION = 64  # record bytes per file byte a checkpoint may declare (torch.save stores them: ~1:1)
+SCENE_FILES_READ = "PLY (INRIA or compressed), .splat, .spz and gsplat or nerfstudio checkpoints (.pt, .ckpt, .pth)"
+OTHER_SPLAT_SUFFIXES = (".ksplat", ".sog", ".sogs", ".glb", ".gltf", ".lcc", ".ssplat", ".spx")  # splat formats drsplat does not read
 SNIFF_BYTES = 4096  # what scene_format reads of a file: enough of a gzip stream to inflate an spz header
 
 
@@ -112,9 +114,22 @@ def scene_format(path: Path) -> str:
             return "splat"
         log.warning("%s: is named .splat but holds an .spz file (its first bytes are an spz header); read as .spz", path)
         return "spz"
+    if head[:2] == GZIP_MAGIC and _inflated_start(head, 4).startswith(b"ply"):
+        raise InputError(path, f"is a gzip-compressed PLY file: decompress it first (gunzip -k); drsplat reads {SCENE_FILES_READ}")
     if head[:2] == GZIP_MAGIC or (len(head) >= 4 and int.from_bytes(head[:4], "little") == NGSP_MAGIC) or path.suffix.lower() == ".spz":
         return "spz"
+    if not head.startswith(b"ply"):
+        known = f" (a {path.suffix} file: convert it to PLY first, e.g. with PlayCanvas splat-transform)" if path.suffix.lower() in OTHER_SPLAT_SUFFIXES else ""
+        raise InputError(path, f"is not a PLY file (it does not start with 'ply'){known}; drsplat reads {SCENE_FILES_READ}")
     return "ply"
+
+
+def _inflated_start(head: bytes, size: int) -> bytes:
+    """The first `size` bytes of the gzip stream that `head` starts, b"" when it does not inflate."""
+    try:
+        return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, size)
+    except zlib.error:
+        return b""
 
 
 def _holds_spz_header(head: bytes) -> bool:
@@ -126,12 +141,7 @@ def _holds_spz_header(head: bytes) -> bool:
 
     if is_header(head):
         return True
-    if head[:2] != GZIP_MAGIC:
-        return False
-    try:
-        return is_header(zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, 8))
-    except zlib.error:
-        return False
+    return head[:2] == GZIP_MAGIC and is_header(_inflated_start(head, 8))
 
 
 def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[GaussianScene, LoadReport]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gzip
 import json
 import logging
+import re
 import struct
 import subprocess
 from pathlib import Path
@@ -149,7 +150,7 @@ def test_splat_round_trip_within_quantisation(tmp_path):
 def test_scene_format_reads_the_first_bytes(tmp_path):
     scene = random_scene(8, degree=0)
     save_ply(scene, tmp_path / "a.ply")
-    cases = {"a.ply": "ply", "named.splat": "ply", "b.spz": "spz", "b.bin": "spz", "c.splat": "splat", "c.dat": "ply", "v4.data": "spz",
+    cases = {"a.ply": "ply", "named.splat": "ply", "b.spz": "spz", "b.bin": "spz", "c.splat": "splat", "v4.data": "spz",
              "gzip-like.splat": "splat"}
     (tmp_path / "named.splat").write_bytes((tmp_path / "a.ply").read_bytes())  # a PLY named .splat is still read as PLY
     write(tmp_path / "b.spz", encode_spz(scene))
@@ -162,6 +163,8 @@ def test_scene_format_reads_the_first_bytes(tmp_path):
     write(tmp_path / "gzip-like.splat", first.tobytes())
     assert {name: scene_format(tmp_path / name) for name in cases} == cases
     assert load_scene(tmp_path / "named.splat").num_gaussians == 8
+    with pytest.raises(InputError, match="c.dat: is not a PLY file"):  # a .splat by its bytes, but no name says so
+        scene_format(tmp_path / "c.dat")
 
 
 # ---------------------------------------------------------------------------------------------- writing
@@ -632,3 +635,33 @@ def test_log_scales_the_compressed_format_clamps_are_counted(tmp_path, caplog):
         save_scene(scene, tmp_path / "c.compressed.ply")
     assert "2 log scale" in caplog.text, caplog.text
     assert np.abs(load_scene(tmp_path / "c.compressed.ply").log_scales).max() <= 20.0 + 1e-5
+
+
+def test_a_compressed_ply_with_more_chunks_than_its_splats_use_is_said(tmp_path):
+    """Round 41, left as found then: a compressed PLY of 300 splats' chunks whose vertex and sh elements were cut to
+    200 rows (a vertex count smaller than the data) loaded without a word. The spare chunk is a finding."""
+    from plyfile import PlyData, PlyElement
+    save_scene(random_scene(600, degree=1), tmp_path / "c.compressed.ply")
+    ply = PlyData.read(str(tmp_path / "c.compressed.ply"))
+    cut = [e if e.name == "chunk" else PlyElement.describe(e.data[:200], e.name) for e in ply.elements]
+    PlyData(cut, text=False, byte_order="<").write(str(tmp_path / "cut.compressed.ply"))
+    scene, report = load_scene_report(tmp_path / "cut.compressed.ply")
+    assert len(scene) == 200 and report.spare_chunks == 2
+    assert any("3 chunks where its 200 splats use 1" in note for note in report.findings()), report.findings()
+    assert load_scene_report(tmp_path / "c.compressed.ply")[1].findings() == []
+
+
+@pytest.mark.parametrize("name, content, expected", [
+    ("scene.ply.gz", gzip.compress(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nend_header\n"),
+     "is a gzip-compressed PLY file: decompress it first"),
+    ("scene.ksplat", b"\x01\x00" + b"\x00" * 100, "(a .ksplat file: convert it to PLY first"),
+    ("scene.sog", b"PK\x03\x04" + b"\x00" * 100, "(a .sog file: convert it to PLY first"),
+    ("scene.bin", b"\x00" * 100, "is not a PLY file (it does not start with 'ply'); drsplat reads PLY"),
+])
+def test_scene_files_of_formats_drsplat_does_not_read_say_what_it_reads(tmp_path, name, content, expected):
+    """Round 41, left as found then: scene.ply.gz was "a gzip file without the spz header", and .ksplat / .sog files
+    "not a PLY file" without a word on what is read."""
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(InputError, match=re.escape(expected)) as info:
+        load_scene(tmp_path / name)
+    assert name in str(info.value) and ".spz" in str(info.value)

@@ -207,6 +207,9 @@ def test_cli_exports_splat_and_spz_by_the_name(demo, query, tmp_path, capsys):
     assert main(["query", str(registered), "--embedding", str(q), "--out", str(tmp_path / "f.spz"), "--format", "drsplat"]) == 2
     err = capsys.readouterr().err
     assert "--out" in err and "f.spz" in err and "drsplat export is a PLY" in err and not (tmp_path / "f.spz").exists()
+    for name in ("sel.codebook.faiss", "sel.npy"):  # round 41, left as found then: a PLY was written under such a name
+        assert main(["query", str(registered), "--embedding", str(q), "--out", str(tmp_path / name)]) == 2
+        assert f"a {Path(name).suffix} name would hold a PLY" in capsys.readouterr().err and not (tmp_path / name).exists()
     assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--out", str(tmp_path / "l.npy"),
                  "--ply", str(tmp_path / "seg.spz")]) == 0
     assert load_scene(tmp_path / "seg.spz").num_gaussians == load_ply(registered).num_gaussians

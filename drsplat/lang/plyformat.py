@@ -493,12 +493,19 @@ REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in t
                      ".spz and compressed PLY files (PlayCanvas's packed format) do not have")
 
 
+EXPORT_SUFFIXES = ("", ".ply", ".splat", ".spz")  # no suffix: a device or FIFO (/dev/stdout), written as a PLY
+
+
 def export_problem(path: str | Path, fmt: str) -> str | None:
     """Why `path` cannot take an export in format `fmt`, or None: a drsplat export is a PLY (the
-    field lives in its vertex properties), so it refuses a .splat, .spz or .compressed.ply name."""
+    field lives in its vertex properties), so it refuses a .splat, .spz or .compressed.ply name; any
+    export refuses a name of another file type (`x.codebook.faiss`, `sel.npy`), which would hold a PLY."""
     if fmt not in EXPORT_FORMATS:
         return f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}"
-    kind = written_format(path)
+    kind, suffix = written_format(path), Path(path).suffix.lower()
+    if suffix not in EXPORT_SUFFIXES:
+        return (f"{Path(path).name}: an export is the scene file its name asks for (.ply, .compressed.ply, .splat or .spz); "
+                f"a {suffix} name would hold a PLY")
     if fmt == "drsplat" and kind != "ply":
         return (f"{Path(path).name}: a drsplat export is a PLY (the language field lives in its vertex properties); "
                 f"name it .ply, or export a standard .{kind}")
