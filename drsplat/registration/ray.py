@@ -39,8 +39,11 @@ import dataclasses
 import logging
 import socket
 import time
+import types
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 from drsplat.cameras import Camera
 from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads, worker_slots
@@ -49,12 +52,88 @@ from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ShardWriter, ViewPairs
+from drsplat.features.format import feat_path, seg_path
 from drsplat.registration.views import load_view_features
+from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
 
 VIEWS_PER_TASK = 2  # views per actor call: a call's overhead is small next to a view's
 IN_FLIGHT = 2  # calls queued on each actor at once, so it starts its next views while the driver sums
+WAIT_SECONDS = 0.5  # the driver's wait for a call, between checks of the cancel token and of stalled workers
+STALL_SECONDS = 120.0  # a worker whose oldest call waits this long (plus 10x the slowest call seen) while the others
+#                        progress is taken for lost (its node gone, or never placed: the cluster's CPUs busy); its views move
+MARK_BYTES = 8192  # a feature file's first and last bytes compared between the driver and a worker (feature_mark)
+
+
+def feature_mark(path: Path) -> tuple[int, int] | None:
+    """(size, CRC-32 of the first and last MARK_BYTES) of a feature file, or None when it cannot be read:
+    what a worker's copy must match (a stale or foreign copy on a node reads as the driver's file otherwise)."""
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, 2)
+            f.seek(0)
+            head = f.read(MARK_BYTES)
+            f.seek(max(0, size - MARK_BYTES))
+            tail = f.read(MARK_BYTES)
+    except OSError:
+        return None
+    return size, zlib.crc32(tail, zlib.crc32(head))
+
+
+def _code_identity() -> dict[str, str]:
+    """What a process must share with the driver for the same bits: drsplat's sources (a digest of every
+    .py file of the package it imports), Python, numpy and numba. Self-contained (its imports inside):
+    `check_nodes_run_this_code` ships it by value, so a node runs this code, not its own drsplat's."""
+    import hashlib
+    import sys
+    from pathlib import Path
+
+    import numba
+    import numpy
+
+    import drsplat
+
+    package = Path(drsplat.__file__).resolve().parent
+    h = hashlib.sha1()
+    for f in sorted(package.rglob("*.py")):
+        h.update(str(f.relative_to(package)).encode() + b"\0" + f.read_bytes())
+    return {"drsplat sources": h.hexdigest()[:12], "python": sys.version.split()[0], "numpy": numpy.__version__, "numba": numba.__version__}
+
+
+PROBE_SECONDS = 60.0  # a node that does not answer the code probe in this time is not checked (said at debug level)
+
+
+def check_nodes_run_this_code(ray) -> None:
+    """One task on every live node (no CPU asked, so a busy node answers too) reports what its workers
+    import (`_code_identity`, shipped by value); a node that imports another drsplat, Python, numpy or
+    numba is one DrsplatError before any view, naming the node and what differs. A node whose workers
+    cannot import drsplat at all is said the same way, not as Ray's traceback."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    by_value = types.FunctionType(_code_identity.__code__, {"__builtins__": __builtins__}, "_code_identity")
+    mine = _code_identity()
+    task = ray.remote(num_cpus=0, max_retries=0)(by_value)
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote():
+            n.get("NodeManagerHostname") or n.get("NodeManagerAddress") for n in nodes}
+    ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=PROBE_SECONDS)
+    for ref in ready:
+        node = refs[ref]
+        try:
+            theirs = ray.get(ref)
+        except ray.exceptions.RayError as exc:
+            cause = getattr(exc, "cause", None) or exc
+            raise DrsplatError(f"the Ray node {node} cannot run drsplat ({type(cause).__name__}: {str(cause).splitlines()[-1]}): every node "
+                               "needs drsplat importable with its dependencies (a node of another host gets the driver's package "
+                               "through Ray's py_modules unless its address is this host's)") from None
+        differ = [f"{k} {theirs.get(k)} there, {v} here" for k, v in mine.items() if theirs.get(k) != v]
+        if differ:
+            raise DrsplatError(f"the Ray node {node} runs other code than this driver ({'; '.join(differ)}): its views would not be "
+                               "this run's bits; every node needs the driver's drsplat (a node of another host gets it through Ray's "
+                               "py_modules unless its address is this host's) and the same Python, numpy and numba")
+    if len(ready) < len(refs):
+        log.debug("Ray: %d node(s) did not answer the code probe in %.0f s", len(refs) - len(ready), PROBE_SECONDS)
 
 
 @dataclass
@@ -84,17 +163,20 @@ class _ViewWorker:
         self._views = 0
         self._shard: ShardWriter | None = None
 
-    def compute(self, shared: list, cameras: list[Camera]) -> _CallResult:
+    def compute(self, shared: list, cameras: list[Camera], marks: list | None = None) -> _CallResult:
         """The ViewPairs of `cameras`, their features read here; stops at the first view that fails.
 
         shared: [geometry, job, index] references (see the class docstring).
+        marks: per camera, the driver's `feature_mark` of its (mask, embedding) files.
         """
         stats, views = WorkerStats(), []
         error = None
         try:
-            for cam in cameras:
+            for i, cam in enumerate(cameras):
                 t0 = time.perf_counter()
                 computer = self._computer or self._start(shared)
+                if marks is not None:
+                    self._check_marks(cam, marks[i])
                 view = computer.compute(cam, *self._read(cam))
                 if self._shard is not None:
                     t1 = time.perf_counter()
@@ -139,6 +221,16 @@ class _ViewWorker:
                 raise self._error from None
         return self._computer
 
+    def _check_marks(self, cam: Camera, marks: tuple) -> None:
+        """The driver's marks of the view's files against this node's copies: a copy that differs is one error."""
+        for path, mark in zip((seg_path(self._job.features_dir, cam.name), feat_path(self._job.features_dir, cam.name)), marks):
+            here = feature_mark(path)
+            if mark is not None and here is not None and here != mark:
+                raise InputError(path, f"differs on the Ray worker node {socket.gethostname()} from the driver's copy ({here[0]:,} bytes "
+                                 f"here, {mark[0]:,} on the driver{'' if here[0] != mark[0] else ', other contents'}): Ray workers read "
+                                 f"the feature files themselves, so every node needs the driver's {self._job.features_dir} at the same "
+                                 "path (a shared file system or an up-to-date copy)")
+
     def _read(self, cam: Camera):
         try:
             return load_view_features(self._job.features_dir, cam, self._job.level)
@@ -166,6 +258,7 @@ class RayExecutor:
         self._owns = connect(cluster.address)
         self._actors: list = []
         self._refs: list = []  # [geometry, job, culling index] in the object store
+        self.cancel: CancelToken | None = None  # checked while the driver waits for calls (a Ctrl-C never waits for a stalled worker)
         self.worker_stats: dict[int, WorkerStats] = {}
         where = "a local instance" if self._owns and not cluster.address else cluster.address
         try:
@@ -181,7 +274,9 @@ class RayExecutor:
             if gpus:  # Ray shows each actor its own GPU only, as device 0
                 job = dataclasses.replace(job, device="cuda")
             culling = (index or SpatialIndex.build(geometry)) if job.cull else None  # built once, not by every worker
+            check_nodes_run_this_code(ray)
             self._refs = [ray.put(geometry), ray.put(job), ray.put(culling)]
+            self._features_dir = job.features_dir
             actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=TASK_RETRIES, max_task_retries=TASK_RETRIES)(_ViewWorker)
             self._actors = [actor.remote() for _ in range(self.workers)]
         except BaseException:
@@ -196,36 +291,93 @@ class RayExecutor:
     def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]:
         """The ViewPairs of `views`, in order (calls finish out of order; results are reordered).
 
-        Calls go to the actor with the fewest queued, at most IN_FLIGHT each, and never more than
-        2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here).
+        Calls go to the live actor with the fewest queued, at most IN_FLIGHT each, and never more than
+        2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here). A call
+        whose actor became unavailable (its node lost) goes to another actor, and an actor that makes
+        no progress for STALL_SECONDS while the others do (never placed: the cluster's CPUs busy; or
+        its node lost with no room to restart it) is stopped and its calls given to the others (the
+        views are the same bits wherever they are computed).
         """
         ray = import_ray()
         chunks = [list(views[i : i + self.views_per_task]) for i in range(0, len(views), self.views_per_task)]
-        window = 2 * IN_FLIGHT * len(self._actors)
-        queued: dict = {}  # ref -> (chunk index, actor index)
-        load = [0] * len(self._actors)  # calls queued per actor
+        actors = list(self._actors)
+        window = 2 * IN_FLIGHT * len(actors)
+        queued: dict = {}  # ref -> (chunk index, actor, submitted at)
+        load = {id(a): 0 for a in actors}  # calls queued per actor
         finished: dict[int, _CallResult] = {}
+        todo: list[int] = []  # chunks to submit again (their actor was lost), before new ones
+        attempts: dict[int, int] = {}
         submitted = 0
+        slowest = 0.0
+        last_done = time.monotonic()
+
+        def marks_of(chunk: list[Camera]) -> list:
+            return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
+
+        def submit(chunk: int) -> bool:
+            live = [a for a in actors if load[id(a)] < IN_FLIGHT]
+            if not live:
+                return False
+            actor = min(live, key=lambda a: load[id(a)])
+            queued[actor.compute.remote(self._refs, chunks[chunk], marks_of(chunks[chunk]))] = (chunk, actor, time.monotonic())
+            load[id(actor)] += 1
+            return True
 
         def top_up(first_unyielded: int) -> None:
             nonlocal submitted
-            while submitted < min(len(chunks), first_unyielded + window):
-                actor = min(range(len(load)), key=load.__getitem__)
-                if load[actor] >= IN_FLIGHT:
-                    return
-                queued[self._actors[actor].compute.remote(self._refs, chunks[submitted])] = (submitted, actor)
-                load[actor] += 1
+            while todo and submit(todo[0]):
+                todo.pop(0)
+            while submitted < min(len(chunks), first_unyielded + window) and submit(submitted):
                 submitted += 1
+
+        def lose(actor, why: str) -> None:
+            """Stop `actor` and queue its calls again on the others."""
+            if actor not in actors:
+                return
+            actors.remove(actor)
+            if not actors:
+                raise DrsplatError(f"every Ray registration worker was lost ({why}); the views logged so far are kept: rerun to resume")
+            log.warning("Ray: a registration worker was lost (%s); its views go to the %d other worker(s)", why, len(actors))
+            for ref, (chunk, owner, _) in list(queued.items()):
+                if owner is actor:
+                    del queued[ref]
+                    todo.append(chunk)
+                    try:
+                        ray.cancel(ref)
+                    except Exception:  # noqa: BLE001 - the call of a dead actor
+                        pass
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception as exc:  # noqa: BLE001 - an actor already gone
+                log.debug("a lost worker was not killed (%s)", exc)
+            todo.sort()
 
         try:
             for index in range(len(chunks)):
                 top_up(index)
                 while index not in finished:
-                    ready, _ = ray.wait(list(queued), num_returns=1)
+                    ready, _ = ray.wait(list(queued), num_returns=1, timeout=WAIT_SECONDS)
+                    if self.cancel is not None:
+                        self.cancel.raise_if_cancelled()
                     for ref in ready:
-                        chunk, actor = queued.pop(ref)
-                        load[actor] -= 1
-                        finished[chunk] = self._collect(ref)
+                        chunk, actor, at = queued.pop(ref)
+                        load[id(actor)] -= 1
+                        try:
+                            finished[chunk] = self._collect(ref)
+                        except ray.exceptions.ActorUnavailableError:  # its node lost: the call may not have run; run it elsewhere
+                            attempts[chunk] = attempts.get(chunk, 0) + 1
+                            if attempts[chunk] > TASK_RETRIES:
+                                raise DrsplatError(f"views {chunks[chunk][0].name}.. found no available Ray worker in {TASK_RETRIES + 1} "
+                                                   "tries; the views logged so far are kept: rerun to resume") from None
+                            lose(actor, "it became unavailable, its node lost")
+                            continue
+                        slowest = max(slowest, time.monotonic() - at)
+                        last_done = time.monotonic()
+                    now = time.monotonic()
+                    for ref, (chunk, actor, at) in list(queued.items()):
+                        if ref in queued and now - at > STALL_SECONDS + 10 * slowest and now - last_done < now - at:
+                            lose(actor, f"no call finished for {now - at:.0f} s while the others progressed: its node lost or the "
+                                        "cluster's CPUs taken by other work")
                     top_up(index)
                 result = finished.pop(index)
                 yield from result.views
@@ -263,5 +415,7 @@ def _get(ref) -> _CallResult:
         return ray.get(ref)
     except ray.exceptions.RayTaskError as exc:  # a Python error inside the call: show the original one
         raise exc.as_instanceof_cause() from None
-    except ray.exceptions.RayError as exc:  # the worker died more than TASK_RETRIES times, node lost, ...
+    except ray.exceptions.ActorUnavailableError:  # its node lost: view_pairs runs the call on another worker
+        raise
+    except ray.exceptions.RayError as exc:  # the worker died more than TASK_RETRIES times, ...
         raise DrsplatError(f"a Ray registration worker failed after {TASK_RETRIES} restarts: {exc}") from None
