@@ -113,7 +113,7 @@ def test_a_cancel_is_seen_while_the_driver_waits_for_a_worker_that_never_starts(
     assert time.monotonic() - t0 < 30
 
 
-def test_a_feature_file_that_differs_on_a_worker_node_is_one_error(local, tiny, monkeypatch):
+def test_a_feature_file_that_differs_on_a_worker_node_is_one_error(cluster, local, tiny, monkeypatch):
     """Was: a node holding a stale copy of the features folder (same sizes, other embeddings) gave
     another field, exit 0. Now the driver sends each view's file marks and the worker compares.
     (The driver's mark of one file is changed here: the worker's copy then differs from it.)"""
@@ -134,7 +134,7 @@ def test_a_feature_file_that_differs_on_a_worker_node_is_one_error(local, tiny, 
     assert "other contents" in message and f"every node needs the driver's {tiny / 'features'} at the same path" in message
 
 
-def test_a_node_that_imports_other_code_is_refused_before_any_view(local, tiny, monkeypatch):
+def test_a_node_that_imports_other_code_is_refused_before_any_view(cluster, local, tiny, monkeypatch):
     """Was: a node importing another drsplat (`--ray auto` puts the driver's folder on every node's
     PYTHONPATH, which on another host holds another checkout or nothing) computed its views with
     it: another field, exit 0. Now one probe per node compares drsplat's sources, Python, numpy and
@@ -143,3 +143,29 @@ def test_a_node_that_imports_other_code_is_refused_before_any_view(local, tiny, 
     monkeypatch.setattr(np, "__version__", "0.0.0")
     with pytest.raises(DrsplatError, match=r"^the Ray node .* runs other code than this driver \(numpy [0-9.]+ there, 0\.0\.0 here\)"):
         register_features(scene, cams, tiny / "features", ON_RAY, show_progress=False)
+
+
+def test_a_worker_node_without_the_outputs_folder_fails_at_its_first_view(cluster, local, tiny, tmp_path, monkeypatch):
+    """Was: a worker whose node does not share the output's folder created the shard folder on its
+    own disk, wrote its shards there, and the run failed only after the whole view pass, when a
+    reducer followed a pointer ("the worker's shard holding view orbit_002 cannot be read"). Now a
+    worker that does not see the folder the driver made fails at its first view. (The job's shard
+    folder is pointed at a folder nobody made here: what such a node sees.)"""
+    import dataclasses
+
+    import drsplat.registration.ray as rr
+    from drsplat.registration import register
+
+    scene, cams, _ = local
+    executor_init = rr.RayExecutor.__init__
+    elsewhere = tmp_path / "not-on-this-node" / ".reg.ply.register.log.shards"
+
+    def init(self, geometry, job, *args, **kwargs):
+        executor_init(self, geometry, dataclasses.replace(job, shard_dir=str(elsewhere)), *args, **kwargs)
+
+    monkeypatch.setattr(rr.RayExecutor, "__init__", init)
+    options = RegisterOptions(ray="auto", aggregate="paper", block_size=1024)
+    with pytest.raises(DrsplatError, match=r"cannot write its shard of the log in .*not-on-this-node.* \(the driver made this folder, but "
+                                           r"this node does not see it\): the partitioned reduce needs the output's folder"):
+        register(scene, cams, tiny / "features", tmp_path / "out" / "reg.ply", options, show_progress=False)
+    assert not elsewhere.exists()

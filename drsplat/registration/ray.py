@@ -36,6 +36,7 @@ A worker that dies is restarted with the same geometry and its queued calls retr
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import socket
 import time
@@ -92,7 +93,7 @@ def _code_identity() -> dict[str, str]:
     import numba
     import numpy
 
-    import drsplat
+    import drsplat  # inside: the function is shipped by value and runs on another node
 
     package = Path(drsplat.__file__).resolve().parent
     h = hashlib.sha1()
@@ -212,6 +213,8 @@ class _ViewWorker:
         self._job = job
         if job.shard_dir is not None:
             try:
+                if not Path(job.shard_dir).is_dir():  # the driver made it before any view: this node does not share its storage
+                    raise FileNotFoundError(errno.ENOENT, "the driver made this folder, but this node does not see it")
                 self._shard = ShardWriter(job.shard_dir, job.log_params)
             except OSError as exc:
                 self._computer = None
