@@ -372,7 +372,9 @@ class RayExecutor:
                             if attempts[chunk] > TASK_RETRIES:
                                 raise DrsplatError(f"views {chunks[chunk][0].name}.. found no available Ray worker in {TASK_RETRIES + 1} "
                                                    "tries; the views logged so far are kept: rerun to resume") from None
+                            todo.append(chunk)  # this call, then the others queued on the lost actor
                             lose(actor, "it became unavailable, its node lost")
+                            todo.sort()
                             continue
                         slowest = max(slowest, time.monotonic() - at)
                         last_done = time.monotonic()
