@@ -23,36 +23,16 @@ from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
+from tests.ray_cluster import two_node_cluster
 
 ray = pytest.importorskip("ray", reason="the Ray backend needs the optional ray package (pip install -e '.[ray]')")
-
-OBJECT_STORE = 80 * 1024 * 1024
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A two-node Ray cluster on this machine; the driver joins it through drsplat.cluster.connect.
-
-    The cluster's nodes are started from this process (ray.cluster_utils), which installs Ray's
-    SIGTERM handler here (a node's shutdown hook); it is put back when the cluster stops.
-    """
-    from ray.cluster_utils import Cluster
-
-    from drsplat.cluster import connect
-
-    node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
-    sigterm = signal.getsignal(signal.SIGTERM)
-    c = Cluster(initialize_head=True, head_node_args=node_args)
-    try:
-        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
-        c.wait_for_nodes()
-        connect(c.address)
-        assert len([n for n in ray.nodes() if n["Alive"]]) == 2
+    """A two-node Ray cluster on this machine (tests.ray_cluster); the driver joins it."""
+    with two_node_cluster() as c:
         yield c
-    finally:
-        ray.shutdown()
-        c.shutdown()
-        signal.signal(signal.SIGTERM, sigterm)
 
 
 @pytest.fixture(scope="module")

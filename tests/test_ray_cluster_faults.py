@@ -8,7 +8,6 @@ to restart it) must not hang the run or a Ctrl-C; a node whose feature files are
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 from pathlib import Path
@@ -22,31 +21,18 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
+from tests.ray_cluster import two_node_cluster
 
 ray = pytest.importorskip("ray", reason="the Ray backend needs the optional ray package (pip install -e '.[ray]')")
 
-OBJECT_STORE = 80 * 1024 * 1024
 ON_RAY = RegisterOptions(ray="auto", aggregate="paper")
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    from ray.cluster_utils import Cluster
-
-    from drsplat.cluster import connect
-
-    node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
-    sigterm = signal.getsignal(signal.SIGTERM)
-    c = Cluster(initialize_head=True, head_node_args=node_args)
-    try:
-        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
-        c.wait_for_nodes()
-        connect(c.address)
+    """A two-node Ray cluster on this machine (tests.ray_cluster); the driver joins it."""
+    with two_node_cluster() as c:
         yield c
-    finally:
-        ray.shutdown()
-        c.shutdown()
-        signal.signal(signal.SIGTERM, sigterm)
 
 
 @pytest.fixture(scope="module")

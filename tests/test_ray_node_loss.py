@@ -6,7 +6,6 @@ Its own two-node cluster (ray.cluster_utils.Cluster, one CPU each), since the te
 
 from __future__ import annotations
 
-import signal
 
 import numpy as np
 import pytest
@@ -15,30 +14,16 @@ from drsplat.cameras import load_cameras
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
+from tests.ray_cluster import two_node_cluster
 
 ray = pytest.importorskip("ray", reason="the Ray backend needs the optional ray package (pip install -e '.[ray]')")
-
-OBJECT_STORE = 80 * 1024 * 1024
 
 
 @pytest.fixture
 def cluster():
-    from ray.cluster_utils import Cluster
-
-    from drsplat.cluster import connect
-
-    node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
-    sigterm = signal.getsignal(signal.SIGTERM)
-    c = Cluster(initialize_head=True, head_node_args=node_args)
-    try:
-        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
-        c.wait_for_nodes()
-        connect(c.address)
+    """A two-node Ray cluster on this machine (tests.ray_cluster); the driver joins it."""
+    with two_node_cluster() as c:
         yield c
-    finally:
-        ray.shutdown()
-        c.shutdown()
-        signal.signal(signal.SIGTERM, sigterm)
 
 
 def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path, monkeypatch, caplog):

@@ -64,32 +64,15 @@ def _register_both(scene, cams, features, tmp_path: Path, **options) -> tuple[Pa
 # ----------------------------------------------------------------------------- on a Ray cluster
 
 
-OBJECT_STORE = 80 * 1024 * 1024
-
-
 @pytest.fixture(scope="module")
 def cluster():
-    """A two-node Ray cluster on this machine, as tests/test_distributed.py starts it (the SIGTERM
-    handler its nodes install here is put back when it stops)."""
-    import signal
-
+    """A two-node Ray cluster on this machine (tests.ray_cluster); the driver joins it."""
     if ray is None:
         pytest.skip("the partitioned reduce needs the optional ray package (pip install -e '.[ray]')")
-    from ray.cluster_utils import Cluster
+    from tests.ray_cluster import two_node_cluster
 
-    from drsplat.cluster import connect
-
-    sigterm = signal.getsignal(signal.SIGTERM)
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False})
-    try:
-        c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
-        c.wait_for_nodes()
-        connect(c.address)
+    with two_node_cluster() as c:
         yield c
-    finally:
-        ray.shutdown()
-        c.shutdown()
-        signal.signal(signal.SIGTERM, sigterm)
 
 
 # pairwise, not the full product: each codebook and each mode once (every mode on Ray: tests/test_distributed.py)
