@@ -629,7 +629,10 @@ def check_integer_column(path: Path, name: str, column: np.ndarray, storage: str
     if have.kind in "iu" and have.itemsize <= want.itemsize:
         return  # narrower or same-width integers: every value keeps its bits
     values = np.asarray(column, np.float64) if have.kind == "f" else np.asarray(column)
-    low, high = -(1 << (bits - 1)), (1 << bits) - 1
+    # a signed integer of storage's width or less holds the same bits (char -1 is byte 255); a float holds a value,
+    # and a negative value is no unsigned code (float -1.0 cast to uchar is 255 on x86: a coefficient of -1 read as +4)
+    low = 0 if have.kind == "f" and want.kind == "u" else -(1 << (bits - 1))
+    high = (1 << bits) - 1
     with np.errstate(invalid="ignore"):
         bad = ~((values >= low) & (values <= high)) | ((values != np.floor(values)) if have.kind == "f" else False)
     if np.any(bad):

@@ -665,3 +665,28 @@ def test_scene_files_of_formats_drsplat_does_not_read_say_what_it_reads(tmp_path
     with pytest.raises(InputError, match=re.escape(expected)) as info:
         load_scene(tmp_path / name)
     assert name in str(info.value) and ".spz" in str(info.value)
+
+
+def test_a_compressed_plys_sh_codes_typed_char_read_as_their_bytes(tmp_path):
+    """Review of round 41: its test retyped the codes as short (i2), which the reader before the mend read right too;
+    char (i1) is the type that changed the values: codes 128..255 stored as -128..-1 are the same bytes."""
+    scene = random_scene(300, degree=2)
+    save_scene(scene, tmp_path / "c.compressed.ply")
+    base = load_scene(tmp_path / "c.compressed.ply")
+    from plyfile import PlyData
+
+    codes = np.stack([PlyData.read(str(tmp_path / "c.compressed.ply"))["sh"].data[f"f_rest_{i}"] for i in range(24)])
+    assert codes.max() > 127  # some codes wrap when typed char
+    _with_sh_element_as(tmp_path / "c.compressed.ply", tmp_path / "char.compressed.ply", "i1")
+    np.testing.assert_array_equal(load_scene(tmp_path / "char.compressed.ply").sh, base.sh)
+
+
+@pytest.mark.parametrize("value", [-1.0, -2.0])
+def test_a_float_sh_column_of_negative_whole_coefficients_is_refused_not_read_as_codes(tmp_path, value):
+    """Review of round 41: a compressed PLY whose 'sh' element holds real coefficients as float passed the check when
+    they were whole numbers: -1.0 was read as byte 255 (a coefficient of +4.0). A float holds a value, and a negative
+    value is no byte code."""
+    save_scene(random_scene(300, degree=2), tmp_path / "c.compressed.ply")
+    _with_sh_element_as(tmp_path / "c.compressed.ply", tmp_path / "real.compressed.ply", "f4", values=value)
+    with pytest.raises(InputError, match=rf"field 'f_rest_0': property f_rest_0 is declared float and row 0 holds {value!r}, which is not a whole number in 0\.\.255"):
+        load_scene(tmp_path / "real.compressed.ply")
