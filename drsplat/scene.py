@@ -857,16 +857,29 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         p = packed.astype(np.uint32)
         return np.stack([_unorm(p, 21, 11), _unorm(p, 11, 10), _unorm(p, 0, 11)], axis=1)
 
+    def lerp(lo: np.ndarray, hi: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """lo + t·(hi - lo) in float32; where a finite range spans past float32 (a chunk from -3e38 to 3e38, which
+        drsplat's own writer makes of a finite scene) in float64, rounded once: it overflowed, with numpy's
+        warnings, and its rows were dropped as NaN. A range the file holds as ±inf or NaN gives non-finite rows
+        for `assemble_scene` to count, without numpy's words."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            out = lo + t * (hi - lo)
+            wide = ~np.isfinite(out) & np.isfinite(lo) & np.isfinite(hi)
+            if wide.any():
+                exact = lo.astype(np.float64) + t.astype(np.float64) * (hi.astype(np.float64) - lo.astype(np.float64))
+                out[wide] = exact[wide].astype(np.float32)
+        return out
+
     lo, hi = chunk_range("min_", "max_", ("x", "y", "z"))
-    means = lo + unpack_111011(vertex["packed_position"]) * (hi - lo)
+    means = lerp(lo, hi, unpack_111011(vertex["packed_position"]))
     lo, hi = chunk_range("min_scale_", "max_scale_", ("x", "y", "z"))
-    log_scales = lo + unpack_111011(vertex["packed_scale"]) * (hi - lo)
+    log_scales = lerp(lo, hi, unpack_111011(vertex["packed_scale"]))
     quats = _unpack_smallest_three(vertex["packed_rotation"].astype(np.uint32))
     c = vertex["packed_color"].astype(np.uint32)
     rgba = np.stack([_unorm(c, 24, 8), _unorm(c, 16, 8), _unorm(c, 8, 8), _unorm(c, 0, 8)], axis=1)
     if "min_r" in chunk.dtype.names:
         lo, hi = chunk_range("min_", "max_", ("r", "g", "b"))
-        rgb = lo + rgba[:, :3] * (hi - lo)
+        rgb = lerp(lo, hi, rgba[:, :3])
     else:
         rgb = rgba[:, :3]
     logits = opacity_logits(byte_alpha(c & 0xFF))

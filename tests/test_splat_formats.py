@@ -690,3 +690,40 @@ def test_a_float_sh_column_of_negative_whole_coefficients_is_refused_not_read_as
     _with_sh_element_as(tmp_path / "c.compressed.ply", tmp_path / "real.compressed.ply", "f4", values=value)
     with pytest.raises(InputError, match=rf"field 'f_rest_0': property f_rest_0 is declared float and row 0 holds {value!r}, which is not a whole number in 0\.\.255"):
         load_scene(tmp_path / "real.compressed.ply")
+
+
+def test_a_compressed_ply_of_a_scene_spanning_past_float32_reads_back_every_gaussian(tmp_path):
+    """Review of round 41: drsplat's own compressed PLY of a finite scene with means at +-3e38 put both in one chunk,
+    whose range (6e38) overflowed float32 as it was read: numpy's "overflow encountered in subtract" and "invalid
+    value encountered in multiply", and all 6 Gaussians dropped as NaN or infinite."""
+    import warnings
+
+    scene = random_scene(6)
+    scene.means[0], scene.means[1] = [3e38, 0, 0], [-3e38, 0, 0]
+    save_scene(scene, tmp_path / "far.compressed.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back, report = load_scene_report(tmp_path / "far.compressed.ply")
+    assert back.num_gaussians == 6 and np.isfinite(back.means).all()
+    assert (back.means[:, 0].min(), back.means[:, 0].max()) == pytest.approx((-3e38, 3e38), rel=1e-6)
+    assert not any("dropped" in note for note in report.findings())
+
+
+@pytest.mark.parametrize("column, value", [("min_x", np.inf), ("max_scale_y", -np.inf), ("min_r", np.inf)])
+def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_numpys_warnings(tmp_path, column, value):
+    """Review of round 41: an infinite chunk range printed numpy's "invalid value encountered in multiply" before the
+    loader's own count of the rows it dropped."""
+    import warnings
+
+    from plyfile import PlyData, PlyElement
+
+    save_scene(random_scene(300, degree=0), tmp_path / "c.compressed.ply")
+    ply = PlyData.read(str(tmp_path / "c.compressed.ply"))
+    chunk = ply["chunk"].data.copy()
+    chunk[column][0] = value
+    elements = [e if e.name != "chunk" else PlyElement.describe(chunk, "chunk") for e in ply.elements]
+    PlyData(elements, text=False, byte_order="<").write(str(tmp_path / "inf.compressed.ply"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back, report = load_scene_report(tmp_path / "inf.compressed.ply")
+    assert back.num_gaussians < 300 and any("dropped" in note for note in report.findings())
