@@ -800,3 +800,17 @@ def test_a_mask_level_that_is_empty_in_every_view_is_named(tiny, tmp_path):
                                            r"0, 1, 2 hold some: choose one with --level"):
         register(scene, cams, feats, tmp_path / "reg.ply", RegisterOptions(aggregate="paper", level=3), show_progress=False)
     assert register(scene, cams, feats, tmp_path / "reg1.ply", RegisterOptions(aggregate="paper", level=1), show_progress=False).num_assigned > 0
+
+
+def test_register_into_a_folder_it_creates_says_so_once(tiny, tmp_path, capsys):
+    """Review of round 41: `query --scores /nonexistent_dir/s.npy` now says at INFO that it creates the folder, but
+    `register --out /nonexistent_dir/out.ply` made the folder without a word (its lock file, beside the output, made
+    it before `ensure_parent` looked), the long run a mistyped folder matters most for."""
+    from drsplat.cli import main
+
+    out = tmp_path / "made" / "deeper" / "out.ply"
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out),
+                 "--aggregate", "paper", "--no-progress"]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "created the folder" in line]
+    assert said == [f"INFO: created the folder {out.parent} for out.ply"], said
+    assert out.exists()

@@ -176,6 +176,8 @@ class RunLock:
         """DrsplatError naming `what` when another process holds the lock; OutputError naming the
         folder when it cannot hold the run's files (`_check_folder`)."""
         refuse_odd_entry(path)
+        if not path.parent.is_dir() and not os.path.lexists(path.parent):  # the output's folder, made here first (utils.ensure_parent's words)
+            log.info("created the folder %s for %s", path.parent, what)
         while True:
             problem = "the folder cannot be made"
             try:
