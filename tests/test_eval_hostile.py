@@ -233,3 +233,23 @@ def test_a_synthetic_folder_is_guarded_without_walking_it(tmp_path, capsys):
     code = main(["eval", "iou", str(reg), "--synthetic", "/", "--json", str(tmp_path / "report.json")])
     err = capsys.readouterr().err
     assert code == 1 and "/proc" not in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary"])
+def test_a_labelled_cloud_with_more_rows_than_its_header_declares_is_said(tmp_path, kind, caplog):
+    """Review of round 41: a scene PLY's rows past its header's count are now said, but the ground-truth cloud of
+    `eval pseudolabels` / `--gt-points` dropped them without a word (3 of 6 points labelled the scene)."""
+    from drsplat.eval.datasets import load_labelled_points
+
+    header = "ply\nformat {} 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty ushort label\nend_header\n"
+    cloud = tmp_path / "short.ply"
+    if kind == "ascii":
+        cloud.write_text(header.format("ascii") + "".join(f"{i} {i} {i} 1\n" for i in range(6)))
+    else:
+        rows = np.zeros(6, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u2")])
+        cloud.write_bytes(header.format("binary_little_endian").encode() + rows.tobytes())
+    with caplog.at_level(logging.WARNING):
+        points = load_labelled_points(cloud, ["chair"])
+    assert len(points.labels) == 3
+    words = "3 more data lines" if kind == "ascii" else "42 bytes"
+    assert f"{words} follow the 3 points the header declares" in caplog.text, caplog.text

@@ -39,7 +39,7 @@ from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.eval.polyfill import fill_polygon, truncate_vertices
-from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile
+from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile, trailing_ascii_lines, trailing_bytes
 from drsplat.utils import atomic_path, checked_names, load_npy, read_json, regular_file
 
 log = logging.getLogger(__name__)
@@ -434,7 +434,8 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
     """([P, 3] float64 points, [P] int64 raw labels) from a PLY's vertex element."""
     from plyfile import PlyElementParseError, PlyParseError
 
-    check_element_sizes(path, read_ply_header(path), path.stat().st_size)  # no allocation from a lying header
+    header = read_ply_header(path)
+    check_element_sizes(path, header, path.stat().st_size)  # no allocation from a lying header
     try:
         ply = read_plyfile(path)
         vertex = ply["vertex"]
@@ -450,6 +451,10 @@ def _read_labelled_ply(path: Path, label_field: str) -> tuple[np.ndarray, np.nda
         if vertex.data.dtype[k].kind not in "iuf":  # a list property: plyfile gives an object column of arrays
             raise InputError(path, f"property {k} is a {'list' if vertex.data.dtype[k].kind == 'O' else vertex.data.dtype[k]}; "
                                    "a point's coordinates are numbers", field=k)
+    extra_lines, extra_bytes = trailing_ascii_lines(path, header), trailing_bytes(header, path.stat().st_size)
+    if extra_lines or extra_bytes:  # a header whose count is smaller than the data: the points after it would go unscored
+        log.warning("%s: %s follow the %s points the header declares; they are ignored (is the header's vertex count wrong?)", path,
+                    f"{extra_lines:,} more data lines" if extra_lines else f"{extra_bytes:,} bytes", f"{len(vertex.data):,}")
     pts = np.stack([np.asarray(vertex[k], np.float64) for k in "xyz"], axis=1)
     column = np.asarray(vertex[label_field])
     if column.dtype.kind == "f":  # astype(int64) would turn 1.5 into class 1 and NaN into garbage, without a word
