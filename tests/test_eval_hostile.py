@@ -253,3 +253,18 @@ def test_a_labelled_cloud_with_more_rows_than_its_header_declares_is_said(tmp_pa
     assert len(points.labels) == 3
     words = "3 more data lines" if kind == "ascii" else "42 bytes"
     assert f"{words} follow the 3 points the header declares" in caplog.text, caplog.text
+
+
+@pytest.mark.parametrize("category, words", [("mug\x1b[2J", "U+001B"), ("mug\u202egum", "U+202E")])
+def test_a_lerf_category_holding_a_hidden_character_is_refused_naming_it(tmp_path, category, words):
+    """Review of round 41: file names on stdout are now escaped, but a LERF annotation's category was printed raw in
+    `eval lerf`'s table (an ESC could clear the screen or forge a line) and embedded as a query that `--text` refuses."""
+    import json
+
+    from drsplat.eval.datasets import read_lerf_document
+
+    doc = tmp_path / "frame.json"
+    doc.write_text(json.dumps({"info": {"width": 8, "height": 8}, "objects": [{"category": category, "segmentation": [[0, 0], [4, 0], [4, 4]]}]}))
+    with pytest.raises(InputError, match=r"field 'objects\[0\].category'") as exc:
+        read_lerf_document(doc)
+    assert words in str(exc.value) and "\x1b" not in str(exc.value)

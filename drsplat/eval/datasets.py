@@ -37,10 +37,10 @@ import numpy as np
 
 from drsplat.cameras import FRAMING_TOLERANCE, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, hidden_character
 from drsplat.eval.polyfill import fill_polygon, truncate_vertices
 from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile, trailing_ascii_lines, trailing_bytes
-from drsplat.utils import atomic_path, checked_names, load_npy, read_json, regular_file
+from drsplat.utils import atomic_path, checked_names, clipped, load_npy, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +205,10 @@ def _category(path: Path, k: int, value: object) -> str:
     """objects[k].category as given, or one InputError: str() would turn null, 5 or a list into a
     category of its own ("None"), and a blank one names nothing a query could embed."""
     if isinstance(value, str) and value.strip():
+        hidden = hidden_character(value)
+        if hidden is not None:  # printed in `eval lerf`'s table and embedded as a query, which `--text` refuses alike
+            raise InputError(path, f"{clipped(json.dumps(value), 60)} holds {hidden}, which a terminal would not show as itself",
+                             field=f"objects[{k}].category")
         return value
     kind = ("null" if value is None else "an empty string" if isinstance(value, str) else json.dumps(value)[:40])
     raise InputError(path, f"is {kind}, not a non-empty string", field=f"objects[{k}].category")
