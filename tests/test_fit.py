@@ -352,6 +352,29 @@ def test_the_fit_decides_alike_whatever_order_the_cameras_come_in(rooms, source)
             np.testing.assert_array_equal(getattr(choice, name), getattr(base, name))
 
 
+def test_views_of_one_name_are_probed_in_the_same_order_whatever_the_list(rooms):
+    """Review of round 41: probe views are taken in name order, ties "in the list's order": two cameras of one name
+    (images named alike in two folders) among the probes were scored in the order the file listed them, and the
+    held-out scores changed with a shuffle (2 outcomes in 6 shuffles of hard-tiny). Ties follow the pose."""
+    import dataclasses
+
+    data = rooms["geometry"]
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    order = sorted(range(len(cams)), key=lambda j: cams[j].name)
+    place = order.index(int(probe_picks(cams)[2]))
+    a, b = order[place], order[place + 1]
+    cams = list(cams)
+    cams[b] = dataclasses.replace(cams[b], name=cams[a].name)
+    base = choose_footprint(scene, cams, data / "features", 1, 40)
+    for seed in range(4):
+        perm = np.random.default_rng(seed).permutation(len(cams))
+        shuffled = [cams[j] for j in perm]
+        assert [int(perm[i]) for i in probe_picks(shuffled)] == probe_picks(cams).tolist()  # the same cameras, in the same order
+        choice = choose_footprint(scene, shuffled, data / "features", 1, 40)
+        np.testing.assert_array_equal(choice.held_paper, base.held_paper)
+        np.testing.assert_array_equal(choice.held_sharp, base.held_sharp)
+
+
 def test_a_probe_view_without_masks_is_left_out_of_the_scores_not_a_crash(rooms, tmp_path):
     """Was (a probe, 2026-12-01): the default mode raised IndexError when one of the fit stage's probe
     views had a feature file with no masks (a segmenter that found nothing there): its mask map was
