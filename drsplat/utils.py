@@ -141,15 +141,30 @@ def file_ancestor(path: Path) -> Path | None:
     return None
 
 
+def dangling_ancestor(path: Path) -> Path | None:
+    """The nearest ancestor of `path` that is a symbolic link to nothing (no folder can be made there: mkdir says
+    "File exists"), when no existing folder comes first; else None."""
+    for ancestor in Path(path).parents:
+        if ancestor.exists():
+            return None
+        if ancestor.is_symlink():
+            return ancestor
+    return None
+
+
 def ensure_parent(path: Path) -> None:
-    """Create the folder of an output (and its parents), saying so at INFO (a mistyped folder is then
-    seen); OutputError when an ancestor is a file."""
+    """Create the folder of an output (and its parents), saying so at INFO once it is made (a mistyped
+    folder is then seen); OutputError when an ancestor is a file or a link to nothing."""
     blocker = file_ancestor(path)
     if blocker is not None:
         raise OutputError(path, f"{blocker} is a file, not a folder")
-    if not path.parent.is_dir():
-        log.info("created the folder %s for %s", path.parent, path.name)
+    dangling = dangling_ancestor(path)
+    if dangling is not None:
+        raise OutputError(path, f"{dangling} is a link to {os.readlink(dangling)}, which does not exist")
+    missing = not path.parent.is_dir()
     path.parent.mkdir(parents=True, exist_ok=True)
+    if missing:
+        log.info("created the folder %s for %s", path.parent, path.name)
 
 
 def check_outputs_writable(*paths: str | Path | None) -> None:
@@ -745,6 +760,9 @@ def guard_outputs(
         blocker = file_ancestor(out)
         if blocker is not None:
             raise OutputError(out, f"{flag} lies under {blocker}, which is a file, not a folder")
+        dangling = dangling_ancestor(out)
+        if dangling is not None:
+            raise OutputError(out, f"{flag} lies under {dangling}, a link to {os.readlink(dangling)}, which does not exist")
         for in_flag, inp in given_in.items():
             if _same_file(out, inp):
                 raise OutputError(out, f"{flag} is the same file as the input {in_flag}; writing it would destroy the input. Choose another output path")

@@ -211,3 +211,17 @@ def test_label_names_that_differ_only_in_how_accents_are_encoded_are_one_name(tm
     with pytest.raises(InputError, match=r"entry 1 repeats the name .* of entry 0 \(apart from spaces around it or how its accents"):
         checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe\u0301"])
     assert checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe"]) == ["caf\u00e9", "cafe"]
+
+
+def test_an_output_under_a_link_to_nothing_is_refused_naming_the_link_not_said_created(tmp_path, caplog):
+    """Review of round 41: `query --scores dang/s.npy`, dang a symbolic link to a folder that does not exist, logged
+    "created the folder .../dang for s.npy" and then failed with the OS's "File exists"."""
+    import logging
+    import os
+
+    os.symlink(tmp_path / "gone", tmp_path / "dang")
+    with caplog.at_level(logging.INFO, logger="drsplat"), pytest.raises(OutputError, match=f"{tmp_path / 'dang'} is a link to {tmp_path / 'gone'}, which does not exist"):
+        save_npy_atomic(tmp_path / "dang" / "s.npy", np.arange(3))
+    assert "created the folder" not in caplog.text and not (tmp_path / "gone").exists()
+    with pytest.raises(OutputError, match="--scores lies under .*dang, a link to .*gone, which does not exist"):
+        guard_outputs({}, {"--scores": tmp_path / "dang" / "s.npy"})
