@@ -263,7 +263,7 @@ class PlyElement:
         """The fewest bytes one row can take: fixed sizes plus list counts (binary), or one
         character and a separator per value (ASCII)."""
         if fmt == "ascii":
-            return 2 * len(self.properties)
+            return max(1, 2 * len(self.properties))  # a row of no properties is still a line
         total = 0
         for name, t in self.properties:
             total += np.dtype(self.list_types[name][0]).itemsize if t == "list" else np.dtype(t).itemsize
@@ -457,6 +457,9 @@ def check_element_sizes(path: Path, header: PlyHeader, size: int) -> None:
         if element.count and not element.properties and element.name in NEEDED_ELEMENTS:
             raise _fail(path, f"declares {element.count:,} rows of element '{element.name}' but no properties for them: "
                               "its header is wrong", field=element.name)
+        if element.count >= 1 << 63:  # numpy cannot index it, even at 0 bytes a row (plyfile: "Python int too large to convert to C long")
+            raise _fail(path, f"declares {element.count:,} rows of element '{element.name}', more than a file can index: its header is wrong",
+                        field=element.name)
         need += element.count * element.min_row_bytes(header.format)
         if need > remaining:
             raise _fail(path, f"declares {element.count} rows of element '{element.name}' (with the elements before it at least "

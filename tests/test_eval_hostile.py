@@ -268,3 +268,15 @@ def test_a_lerf_category_holding_a_hidden_character_is_refused_naming_it(tmp_pat
     with pytest.raises(InputError, match=r"field 'objects\[0\].category'") as exc:
         read_lerf_document(doc)
     assert words in str(exc.value) and "\x1b" not in str(exc.value)
+
+
+def test_a_labelled_cloud_declaring_an_element_past_2_63_rows_is_one_error_naming_it(tmp_path):
+    """Review of round 41: a labelled cloud with `element junk 100000000000000000000` (no properties) after its vertices
+    was "not a readable PLY point cloud ... (Python int too large to convert to C long)"."""
+    from drsplat.eval.datasets import load_labelled_points
+
+    cloud = tmp_path / "junk.ply"
+    cloud.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+                      b"property ushort label\nelement junk 100000000000000000000\nend_header\n" + b"\0" * 28)
+    with pytest.raises(InputError, match="field 'junk': declares 100,000,000,000,000,000,000 rows of element 'junk', more than a file can index"):
+        load_labelled_points(cloud, ["chair"])

@@ -171,6 +171,12 @@ def test_ascii_ply_loads(tmp_path):
         (b"ply\nformat weird 1.0\nend_header\n", "unknown format"),
         # round 41: rows without properties passed the size check (0 bytes a row) and numpy overflowed on the count
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 100000000000000000000\nend_header\n", "but no properties for them"),
+        # review of round 41: an ASCII element of no properties passed the size check (0 bytes a row: numpy's "Maximum allowed
+        # dimension exceeded"), and one past 2**63 rows failed in plyfile ("Python int too large to convert to C long")
+        (b"ply\nformat ascii 1.0\nelement junk 1000000000000000\nelement vertex 1\nproperty float x\nproperty float y\n"
+         b"property float z\nend_header\n1 2 3\n", "declares 1000000000000000 rows of element 'junk'"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nelement junk 100000000000000000000\nend_header\n"
+         + b"\0" * 4, "more than a file can index"),
     ],
 )
 def test_bad_input_gives_one_clear_error(tmp_path, content, expected):
