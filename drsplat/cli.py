@@ -92,7 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("drsplat: interrupted while starting; nothing was done\n")
         return 1
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # argparse's own parse_args would print the top level's usage for them
+        getattr(args, "_usage_parser", parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     setup_logging(args.verbose, args.quiet)
     try:
         with sigterm_as_interrupt():
