@@ -65,3 +65,36 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
     assert "a registration worker was lost" in caplog.text
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)
+
+
+def test_a_node_lost_while_features_run_moves_its_images(cluster, tmp_path, monkeypatch, capsys):
+    """Was (round 42): `features --ray` on a two-node cluster whose second node is lost once the
+    workers loaded their models stopped with "a Ray feature worker failed after 3 retries: ... is
+    temporarily unavailable" (ActorPool neither retries a lost node's call nor gives up its actor),
+    however many workers were left. Now the image goes to a worker left, and the files are the local
+    run's."""
+    import drsplat.features.ray as fr
+    from drsplat.cli import main
+    from tests.test_clip import TINY_CLIP, make_tiny_clip
+
+    data = write_dataset(tmp_path / "data", "tiny", 0, show_progress=False)
+    clip = make_tiny_clip(tmp_path / "weights")
+
+    def features(out, *extra):
+        return main(["-q", "features", "--source", str(data), "--out", str(out), "--masks", "slic", "--clip-model", TINY_CLIP,
+                     "--clip-checkpoint", str(clip), "--clip-config", str(clip.parent / f"{TINY_CLIP}.json"), "--resolution", "64", "--device", "cpu", "--no-progress", *extra])
+
+    assert features(tmp_path / "local") == 0
+    started = fr._check_started
+
+    def then_lose_a_node(actors):
+        started(actors)
+        cluster.remove_node(next(iter(cluster.worker_nodes)), allow_graceful=False)
+
+    monkeypatch.setattr(fr, "_check_started", then_lose_a_node)
+    assert features(tmp_path / "ray", "--ray", cluster.address, "--ray-workers", "2") == 0
+    assert "a feature worker was lost" in capsys.readouterr().err
+    local = sorted(p.name for p in (tmp_path / "local").glob("*.npy"))
+    assert local and local == sorted(p.name for p in (tmp_path / "ray").glob("*.npy"))
+    for name in local:
+        np.testing.assert_array_equal(np.load(tmp_path / "ray" / name), np.load(tmp_path / "local" / name), err_msg=name)

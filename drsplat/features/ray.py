@@ -6,7 +6,9 @@ for a slot; a cluster without GPUs is refused up front); every actor is checked 
 before any image is sent, so a worker that cannot load its models (no usable GPU on its node) is
 one error, not a wait. The driver sends images and writes the returned `<stem>_s.npy` /
 `<stem>_f.npy` atomically itself, so a dead worker (actor restarted, call retried) leaves no half
-or duplicate file, and complete pairs already on disk are skipped.
+or duplicate file, and complete pairs already on disk are skipped. A worker whose node is lost
+has its image sent to another worker (`_results_as_they_come`). A worker that is never placed (the
+cluster's CPUs taken by other work) is still waited for, unlike registration's.
 """
 
 from __future__ import annotations
@@ -88,6 +90,54 @@ def _check_started(actors: list) -> None:
         raise DrsplatError(f"{len(errors)} of {len(actors)} Ray feature workers could not load their models: {errors[0]}")
 
 
+WAIT_SECONDS = 0.5  # the driver's wait for a result, between checks of the cancel token
+
+
+def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):
+    """Each camera's extract result, in the order they finish: one call queued per actor (`send(actor,
+    camera)` reads the image and submits it). A call whose actor became unavailable (its node lost:
+    Ray does not retry those, and an actor restarted with no CPU to run on would be waited for
+    forever) goes to another actor, at most TASK_RETRIES times, and the lost actor is given up; a
+    cancel is seen within WAIT_SECONDS."""
+    todo = list(cameras)
+    live = list(actors)
+    busy: dict = {}  # ref -> (camera, actor)
+    tries: dict[str, int] = {}
+    while todo or busy:
+        for a in [a for a in live if all(owner is not a for _, owner in busy.values())]:
+            if not todo:
+                break
+            cam = todo.pop(0)
+            busy[send(a, cam)] = (cam, a)
+        ready, _ = ray.wait(list(busy), num_returns=1, timeout=WAIT_SECONDS)
+        if cancel is not None and cancel.cancelled:
+            for a in live:
+                ray.kill(a)
+            cancel.raise_if_cancelled()
+        for ref in ready:
+            cam, actor = busy.pop(ref)
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayTaskError as exc:
+                raise exc.as_instanceof_cause() from None
+            except ray.exceptions.ActorUnavailableError:
+                tries[cam.name] = tries.get(cam.name, 0) + 1
+                if tries[cam.name] > TASK_RETRIES:
+                    raise DrsplatError(f"image {cam.name} found no available Ray feature worker in {TASK_RETRIES + 1} tries") from None
+                todo.insert(0, cam)
+                if actor in live:
+                    live.remove(actor)
+                    ray.kill(actor, no_restart=True)
+                if not live:
+                    raise DrsplatError("every Ray feature worker was lost (their nodes became unavailable); the images written so "
+                                       "far are kept: rerun to skip them") from None
+                log.warning("Ray: a feature worker was lost (its node became unavailable); its image goes to the %d other worker(s)", len(live))
+                continue
+            except ray.exceptions.RayError as exc:
+                raise DrsplatError(f"a Ray feature worker failed after {TASK_RETRIES} retries: {exc}") from None
+            yield result
+
+
 def extract_features_ray(
     cameras: list,
     out_dir: str | Path,
@@ -108,8 +158,6 @@ def extract_features_ray(
     FeatureReport. GPU workers (spec.device == "cuda") each request one GPU.
     """
     ray = import_ray()
-    from ray.util import ActorPool
-
     out = Path(out_dir)
     owns = connect(address)
     actors: list = []
@@ -128,31 +176,20 @@ def extract_features_ray(
         stamps.tracked = True
         report = FeatureReport()
         todo = todo_cameras(cameras, out, report, stamps)
-        pool = ActorPool(actors)
         read_at: dict[str, str | None] = {}  # each image as it was read, not as it may be when its pair comes back
 
-        def submit(a, c):
+        def send(a, c):
             read_at[c.name] = file_stamp(c.image_path)
             rgb, file_size = load_image_sized(c)
             note_image(report, c, rgb, file_size)
             return a.extract.remote(c.name, rgb)
 
-        for cam in todo:
-            pool.submit(submit, cam)
+        results = _results_as_they_come(ray, actors, todo, send, cancel)
         finished = len(report.skipped)
         if on_progress is not None:
             on_progress(finished, len(cameras))
         for _ in progress(range(len(todo)), desc="features", total=len(todo), enabled=show_progress, unit="img"):
-            if cancel is not None and cancel.cancelled:
-                for a in actors:
-                    ray.kill(a)
-                cancel.raise_if_cancelled()
-            try:
-                stem, seg, feats, times, counts = pool.get_next_unordered()
-            except ray.exceptions.RayTaskError as exc:
-                raise exc.as_instanceof_cause() from None
-            except ray.exceptions.RayError as exc:
-                raise DrsplatError(f"a Ray feature worker failed after {TASK_RETRIES} retries: {exc}") from None
+            stem, seg, feats, times, counts = next(results)
             record_result(out, stem, seg, feats, times, counts, report)
             stamps.add(stem, read_at.get(stem))
             finished += 1
