@@ -84,6 +84,10 @@ class Camera:
         return (np.array([self.fx, self.fy, self.cx, self.cy], np.float64).tobytes() + np.asarray(self.R, np.float64).tobytes()
                 + np.asarray(self.t, np.float64).tobytes())
 
+    def exact_key(self) -> bytes:
+        """`geometry_bits` and the image size: equal only for the very same camera (a view listed twice)."""
+        return self.geometry_bits() + np.array([self.width, self.height], np.int64).tobytes()
+
     def ray_origin(self) -> np.ndarray:
         """[3] float64 origin of the pixel rays, -Rᵀ t computed in float64 (`center` keeps R's dtype)."""
         return -np.asarray(self.R, np.float64).T @ np.asarray(self.t, np.float64)

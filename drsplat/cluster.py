@@ -24,6 +24,7 @@ from drsplat.errors import DrsplatError
 log = logging.getLogger(__name__)
 
 TASK_RETRIES = 3
+WAIT_SECONDS = 0.5  # a driver's wait on Ray results at a time, between checks of its cancel token (and stalled workers)
 LOCAL_ADDRESSES = ("", "local")
 
 

@@ -327,7 +327,7 @@ def test_probe_picks_follow_the_views_names_not_their_order():
 
     names = [f"view_{i:03d}" for i in range(100)]
     order = np.random.default_rng(4).permutation(100)
-    views = [SimpleNamespace(name=names[j]) for j in order]
+    views = [SimpleNamespace(name=names[j], exact_key=lambda: b"") for j in order]
     picks = probe_picks(views, 4)
     assert [views[i].name for i in picks] == [names[j] for j in probe_views(100, 4)]  # the same views, scored in name order
     assert probe_picks(views[:3], 4).size == 3 and probe_picks([], 4).size == 0

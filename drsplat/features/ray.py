@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import load_image_sized
-from drsplat.cluster import TASK_RETRIES, connect, import_ray, set_worker_threads, worker_slots
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, connect, import_ray, set_worker_threads, worker_slots
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
@@ -90,7 +90,6 @@ def _check_started(actors: list) -> None:
         raise DrsplatError(f"{len(errors)} of {len(actors)} Ray feature workers could not load their models: {errors[0]}")
 
 
-WAIT_SECONDS = 0.5  # the driver's wait for a result, between checks of the cancel token
 
 
 def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):

@@ -181,20 +181,13 @@ def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
 
 def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES) -> np.ndarray:
     """[min(count, V)] indices into `views` of the probe views, in the order they are scored: the
-    `probe_views` places of the views sorted by name (a dataset's names are unique; ties keep the list
-    order). The list's own order is the order a file happens to give (a transforms.json's frames, a
+    `probe_views` places of the views sorted by name (two views of one name by `Camera.exact_key`, never
+    by the list's order). The list's own order is the order a file happens to give (a transforms.json's frames, a
     COLMAP model's image ids): with it, a shuffled transforms.json of one room took other probe views
     and flipped the footprint (round 41: seg mIoU vol 0.594 -> 0.426), and the held-out score, which
     scores each probe labelling on the later probe views, changed with the order of the same probes."""
-    by_name = sorted(range(len(views)), key=lambda j: (views[j].name, _pose_key(views[j]), j))
+    by_name = sorted(range(len(views)), key=lambda j: (views[j].name, views[j].exact_key(), j))
     return np.array([by_name[j] for j in probe_views(len(views), count)], np.int64)
-
-
-def _pose_key(view) -> bytes:
-    """What orders two views of one name (cameras of two folders' images named alike, which share a feature file):
-    their exact geometry, so that their order, and the held-out score, do not follow the list's."""
-    bits = getattr(view, "geometry_bits", None)
-    return b"" if bits is None else bits() + np.array([getattr(view, "width", 0), getattr(view, "height", 0)], np.int64).tobytes()
 
 
 def is_fit_mode(mode: str) -> bool:

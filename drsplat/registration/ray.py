@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.cameras import Camera
-from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads, worker_slots
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads, worker_slots
 from drsplat.errors import DrsplatError, InputError
 from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
@@ -61,7 +61,6 @@ log = logging.getLogger(__name__)
 
 VIEWS_PER_TASK = 2  # views per actor call: a call's overhead is small next to a view's
 IN_FLIGHT = 2  # calls queued on each actor at once, so it starts its next views while the driver sums
-WAIT_SECONDS = 0.5  # the driver's wait for a call, between checks of the cancel token and of stalled workers
 STALL_SECONDS = 120.0  # a worker whose oldest call waits this long (plus 10x the slowest call seen) while the others
 #                        progress is taken for lost (its node gone, or never placed: the cluster's CPUs busy); its views move
 MARK_BYTES = 8192  # a feature file's first and last bytes compared between the driver and a worker (feature_mark)

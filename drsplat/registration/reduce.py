@@ -73,7 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cluster import TASK_RETRIES, ClusterOptions, connect, import_ray, set_worker_threads
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads
 from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.memory import peak_rss
@@ -90,7 +90,6 @@ from drsplat.utils import TEMP_SUFFIX, CancelToken, atomic_path, temp_prefix, wo
 
 log = logging.getLogger(__name__)
 
-WAIT_SECONDS = 0.5  # between checks of the cancel token while reducers run
 COPY_ROWS = WRITE_CHUNK  # rows of a part read, patched and written at a time by the driver
 
 

@@ -115,7 +115,7 @@ def same_camera_copies(views: Sequence[Camera]) -> list[tuple[str, str]]:
     first: dict[tuple, str] = {}
     copies = []
     for c in views:
-        key = (c.geometry_bits(), int(c.width), int(c.height))
+        key = c.exact_key()
         if key in first:
             copies.append((first[key], c.name))
         else:
