@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 
 TASK_RETRIES = 3
 WAIT_SECONDS = 0.5  # a driver's wait on Ray results at a time, between checks of its cancel token (and stalled workers)
+STALL_SECONDS = 120.0  # a worker whose oldest call waits this long (plus 10x the slowest call seen) while the others
+#                        progress is taken for lost (its node gone, or never placed: the cluster's CPUs busy); see `stalled`
 LOCAL_ADDRESSES = ("", "local")
 
 
@@ -53,12 +55,42 @@ def _runtime_env(address: str | None) -> dict:
 
     On this machine (a local instance, or a cluster address on this host) workers import the
     package from the driver's folder (PYTHONPATH), which also reuses numba's on-disk cache of
-    compiled kernels; on other hosts Ray ships the package (`py_modules`).
+    compiled kernels; on other hosts Ray ships the package (`py_modules`). A cluster joined on this
+    host (`auto`, or its address) that has nodes on other hosts is joined again with the package
+    shipped (`connect`), so those nodes run the driver's code, not what their PYTHONPATH holds.
     """
     package = Path(__file__).resolve().parent  # the drsplat package folder
     if _on_this_host(address):
         return {"env_vars": {"PYTHONPATH": str(package.parent)}}
-    return {"py_modules": [str(package)], "excludes": ["__pycache__", "*.pyc"]}
+    return _shipped_env()
+
+
+def _shipped_env() -> dict:
+    """The runtime environment that ships the driver's drsplat package to every node (`py_modules`:
+    Ray zips the folder once, each node unpacks it once per cluster session, keyed by its contents)."""
+    return {"py_modules": [str(Path(__file__).resolve().parent)], "excludes": ["__pycache__", "*.pyc"]}
+
+
+def _host_addresses() -> set[str]:
+    """This machine's addresses as Ray nodes report theirs (NodeManagerAddress)."""
+    addresses = {"127.0.0.1"}
+    try:
+        addresses.update(socket.gethostbyname_ex(socket.gethostname())[2])
+    except OSError:
+        pass
+    try:
+        import ray
+
+        addresses.add(ray.util.get_node_ip_address())
+    except Exception:  # noqa: BLE001 - Ray not connected, or no address to read
+        pass
+    return addresses
+
+
+def _nodes_elsewhere(ray) -> list[str]:
+    """The addresses of the cluster's live nodes that are not this machine's."""
+    mine = _host_addresses()
+    return sorted({n.get("NodeManagerAddress", "?") for n in ray.nodes() if n.get("Alive") and n.get("NodeManagerAddress") not in mine})
 
 
 def _on_this_host(address: str | None) -> bool:
@@ -69,12 +101,7 @@ def _on_this_host(address: str | None) -> bool:
         ip = socket.gethostbyname(host)
     except OSError:
         return False
-    if ip.startswith("127."):
-        return True
-    try:
-        return ip in socket.gethostbyname_ex(socket.gethostname())[2]
-    except OSError:
-        return False
+    return ip.startswith("127.") or ip in _host_addresses()
 
 
 def _check_reachable(address: str, timeout: float = 3.0) -> None:
@@ -114,6 +141,12 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     try:
         with _process_state_kept():
             ray.init(**kwargs)
+            elsewhere = [] if local or "py_modules" in kwargs["runtime_env"] else _nodes_elsewhere(ray)
+            if elsewhere:  # the driver's folder is this host's: the nodes of other hosts get the package itself
+                log.info("Ray: %d node(s) on other hosts (%s): drsplat is shipped to them with Ray's py_modules", len(elsewhere),
+                         ", ".join(elsewhere[:3]))
+                ray.shutdown()
+                ray.init(**{**kwargs, "runtime_env": _shipped_env()})
     except (ConnectionError, RuntimeError, ValueError) as exc:
         hint = "" if local or address == "auto" else auth_hint()
         raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}{hint}") from None
@@ -177,6 +210,17 @@ def worker_slots(nodes: list[dict], gpus_per_worker: int) -> int:
             fit = min(fit, int(resources.get("GPU", 0)) // gpus_per_worker)
         slots += fit
     return slots
+
+
+def stalled(waited: float, slowest: float) -> bool:
+    """Whether a Ray worker whose oldest call (or its start) has waited `waited` seconds is taken for
+    lost, the others having progressed meanwhile (the caller's condition): STALL_SECONDS plus 10x
+    the slowest call seen (`slowest`) have passed. Ray drivers then move its work to the other
+    workers (drsplat.registration.ray, drsplat.features.ray); a worker never placed (the cluster's
+    CPUs or GPUs taken by other work, or its node lost with no room to restart it) would otherwise
+    be waited for forever. With no other worker progressing, `stalled(waited, 0.0)` bounds the
+    wait for a worker that never starts at all. Read at call time, so a test may lower it."""
+    return waited > STALL_SECONDS + 10 * slowest
 
 
 def set_worker_threads() -> None:

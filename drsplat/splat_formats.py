@@ -61,7 +61,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
+from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
                            load_ply_report, opacity_logits, save_ply)
 from drsplat.utils import write_bytes_atomic
 
@@ -751,7 +751,12 @@ def save_compressed_ply(scene: GaussianScene, path: str | Path) -> None:
     path = Path(path)
     _refuse_nonfinite(scene, path, "compressed.ply")
     data, clipped = compressed_ply_bytes(scene)
+    coarse = clipped.pop("coarse position")
     _warn_clipped(path, "compressed.ply", clipped)
+    if coarse:
+        log.warning("%s: %s splats are stored farther from their place than their own size and %.0f%% of the scene's extent: a far splat "
+                    "widened their chunk's position range (the format keeps 11-10-11 bits of a chunk's range); a .ply keeps them exact",
+                    path, f"{coarse:,}", 100 * COARSE_EXTENT_SHARE)
     write_bytes_atomic(path, data)
 
 

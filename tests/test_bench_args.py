@@ -296,6 +296,20 @@ def test_benches_run_on_scenes_of_one_and_two_gaussians(scenes, capsys):
     assert code == 0 and "1 Gaussians, 2 orbiting views" in out, err
 
 
+def test_bench_tables_show_a_scene_named_with_escape_as_its_escaped_name(scenes, tmp_path, capsys):
+    """Round 42 (left as found then): the bench commands printed a scene's file name raw, so a name
+    holding ESC could rewrite the terminal's line; it is shown JSON-escaped, as every message shows it."""
+    import shutil
+
+    hostile = tmp_path / "scene\x1b[2Kx.ply"
+    shutil.copy(scenes[2], hostile)
+    code, err, out = run_cli(["bench", "io", str(hostile), "--views", "1", "--repeats", "1"], capsys)
+    assert code == 0 and "\x1b" not in out and '"scene\\u001b[2Kx.ply": 2 Gaussians' in out, out
+    code, err, out = run_cli(["bench", "register", "--skip-synthetic", "--skip-stages", "--engine", "numba", "--device", "cpu", "--real", str(hostile),
+                              "--views", "2", "--size", "32x24", "--repeats", "1"], capsys)
+    assert code == 0 and "\x1b" not in out and '"scene\\u001b[2Kx.ply": 2 Gaussians' in out, out
+
+
 # ----------------------------------------------------------------------------- bench register
 
 

@@ -356,7 +356,8 @@ def test_read_block_reads_exactly_the_blocks_pairs_in_record_order(tmp_path):
 @pytest.mark.parametrize("sink", ["log", "vote"])
 def test_block_replays_over_many_chunks_equal_the_in_memory_sums(tmp_path, sink):
     """Blocks that start and end inside 2^16-Gaussian chunks, replayed from the log, give the bits
-    of summing every view in memory (the log's records are grouped by chunk)."""
+    of summing every view in memory (the log's records are grouped by chunk), and so do blocks made
+    in the previous block's arrays (`blocks(reuse=True)`, what the driver asks for), the last one smaller."""
     from drsplat.registration.sink import LogSink, MemorySink
     from drsplat.registration.vote import VoteSink
 
@@ -372,9 +373,16 @@ def test_block_replays_over_many_chunks_equal_the_in_memory_sums(tmp_path, sink)
             streamed.add(v)
         (whole,) = list(memory.blocks())
         blocks = list(streamed.blocks())
-    assert len(blocks) == 4
-    for b in blocks:
+        # reused: each block in the last one's arrays (copied here as they come, as the driver encodes them)
+        reused, previous = [], None
+        for b in streamed.blocks(reuse=True):
+            assert previous is None or np.shares_memory(previous, b.F)
+            previous = b.F
+            reused.append((b.lo, b.hi, b.F.copy(), b.W.copy()))
+    assert len(blocks) == 4 == len(reused)
+    for b, (lo, hi, F, W) in zip(blocks, reused):
         assert np.array_equal(b.F, whole.F[b.lo : b.hi]) and np.array_equal(b.W, whole.W[b.lo : b.hi])
+        assert (lo, hi) == (b.lo, b.hi) and np.array_equal(F, b.F) and np.array_equal(W, b.W)
     assert np.count_nonzero(whole.W) > 10_000
 
 
@@ -582,11 +590,13 @@ class _BlockWatcher:
     def __init__(self):
         self.refs: list = []
 
-    def alive(self) -> int:
+    def alive(self, sums=None) -> int:
+        """Blocks whose F is alive, but for one whose memory holds `sums` (F, W): the next block made
+        in the last one's arrays (`blocks(reuse=True)`) is one block's memory."""
         import gc
 
         gc.collect()
-        return sum(ref() is not None for ref in self.refs)
+        return sum(ref() is not None and (sums is None or not np.shares_memory(ref(), sums[0])) for ref in self.refs)
 
     def open(self, codebook, rows_hint=None) -> None:
         pass
@@ -616,7 +626,7 @@ def test_one_block_of_sums_is_alive_at_a_time(tiny, inputs, tmp_path, monkeypatc
 
     class Watched(Accumulator):
         def __init__(self, *args, **kwargs):
-            alive_when_summing.append(watcher.alive())
+            alive_when_summing.append(watcher.alive(kwargs.get("sums")))
             super().__init__(*args, **kwargs)
 
     monkeypatch.setattr(sink, "Accumulator", Watched)

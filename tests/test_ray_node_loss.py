@@ -39,7 +39,7 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)[:10]
     local = register_features(scene, cams, data / "features", RegisterOptions(aggregate="paper"), show_progress=False)
     monkeypatch.setattr(rr, "VIEWS_PER_TASK", 1)
-    monkeypatch.setattr(rr, "STALL_SECONDS", 5.0, raising=False)  # not on the code before: shows its wait
+    monkeypatch.setattr("drsplat.cluster.STALL_SECONDS", 5.0)
     executor_init = rr.RayExecutor.__init__
 
     def init(self, *args, **kwargs):
@@ -87,9 +87,10 @@ def test_a_node_lost_while_features_run_moves_its_images(cluster, tmp_path, monk
     assert features(tmp_path / "local") == 0
     started = fr._check_started
 
-    def then_lose_a_node(actors):
-        started(actors)
+    def then_lose_a_node(*args, **kwargs):
+        started_actors = started(*args, **kwargs)
         cluster.remove_node(next(iter(cluster.worker_nodes)), allow_graceful=False)
+        return started_actors
 
     monkeypatch.setattr(fr, "_check_started", then_lose_a_node)
     assert features(tmp_path / "ray", "--ray", cluster.address, "--ray-workers", "2") == 0

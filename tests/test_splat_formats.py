@@ -287,6 +287,27 @@ def test_pack_smallest_three_matches_the_reference_loop():
     assert np.array_equal(pack_smallest_three(unit), codec_pack_smallest_three(unit))
 
 
+def test_a_far_splat_that_coarsens_its_chunk_neighbours_is_said(tmp_path, caplog):
+    """Round 42 (left as found then): one splat at 1e30 widened its chunk's position range, and the
+    compressed PLY stored its 255 neighbours ~1e26 from their places without a word. Now a warning
+    counts the splats moved by more than their own size and 1% of the scene's extent; an ordinary
+    scene (and a .ply) gets none."""
+    scene = random_scene(1024, degree=0)
+    with caplog.at_level(logging.WARNING, logger="drsplat.splat_formats"):
+        save_scene(scene, tmp_path / "plain.compressed.ply")
+    assert not caplog.records, caplog.text
+    assert compressed_ply_bytes(scene)[1]["coarse position"] == 0
+    scene.means[7] = (1e30, 0.0, 0.0)
+    with caplog.at_level(logging.WARNING, logger="drsplat.splat_formats"):
+        save_scene(scene, tmp_path / "far.compressed.ply")
+    (record,) = caplog.records
+    stored = load_scene(tmp_path / "far.compressed.ply").means.astype(np.float64)  # in Morton order, as written
+    moved = np.linalg.norm(stored - scene.means[morton_order(scene.means)], axis=1)
+    count = compressed_ply_bytes(scene)[1]["coarse position"]
+    assert f"{count:,} splats are stored farther from their place" in record.getMessage() and "far.compressed.ply" in record.getMessage()
+    assert 200 <= count <= 256 and np.count_nonzero(moved > 1.0) >= 200
+
+
 def test_far_positions_get_fewer_fractional_bits_and_too_far_is_refused(tmp_path, caplog):
     """The library writes 12 fractional bits and wraps a coordinate beyond ±2048 around; drsplat stores
     such a scene with as many bits as fit (the header says how many) and refuses one beyond 24 bits."""

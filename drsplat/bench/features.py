@@ -18,7 +18,7 @@ import numpy as np
 
 from drsplat.bench.common import choice_list, format_table, int_list, machine_line
 from drsplat.commands.common import int_range, positive_int, resolution_value
-from drsplat.errors import InputError
+from drsplat.errors import InputError, shown_path
 
 DEFAULT_SOURCE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "fern"
 GENERATORS = ("sam", "felzenszwalb", "slic")
@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     cameras = feature_cameras(args.source, args.resolution)
     encoder = ClipEncoder.random("ViT-B-16", device="cpu")
     cam = cameras[0]
-    print(f"{args.source.name}: {len(cameras)} images, features at {cam.width}x{cam.height}; CPU; CLIP ViT-B-16 and SAM with random weights")
+    print(f"{shown_path(args.source.name)}: {len(cameras)} images, features at {cam.width}x{cam.height}; CPU; CLIP ViT-B-16 and SAM with random weights")
     rows, crop_pm, clip_pm = _stage_rows(args, cameras, encoder)
     print("\nseconds per image (median over the images timed)")
     print(format_table(["mask generator", "images", "masks/img", "mask generation", "post-processing", "cropping", "CLIP", "total"], rows))

@@ -12,7 +12,7 @@ import numpy as np
 
 from drsplat.bench.common import format_table, machine_line, median_seconds
 from drsplat.commands.common import nonneg_int, positive_int
-from drsplat.errors import InputError
+from drsplat.errors import InputError, shown_path
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.scene import GaussianScene, load_ply, morton_order, save_ply
 from drsplat.splat_formats import load_scene, save_scene, written_format
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         ["plyfile read (bare)", t_plyfile * 1e3, size_mb / t_plyfile, 1.0],
         ["drsplat save_ply", t_save * 1e3, out_mb / t_save, t_save / t_plyfile],
     ]
-    print(f"{path.name}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}, {size_mb:.1f} MB; median of {args.repeats}")
+    print(f"{shown_path(path.name)}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}, {size_mb:.1f} MB; median of {args.repeats}")
     print(format_table(["operation", "ms", "MB/s", "time / plyfile read"], rows))
     print("\nFile types drsplat writes (`save_scene`: by the name), read back by `load_scene`:")
     print(types)

@@ -22,7 +22,7 @@ from drsplat.bench.common import format_table, machine_line, scene_file, view_si
 from drsplat.bench.register import DEFAULT_REAL, orbit_cameras
 from drsplat.commands.common import positive_int
 from drsplat.defaults import DEFAULT_TOPK
-from drsplat.errors import DrsplatError, UsageError
+from drsplat.errors import DrsplatError, UsageError, shown_path
 
 DEFAULT_CONFIGS = "16x1x0,8x1x16,2x1x32,1x1x32,1x1x64"
 TILE_PIXELS = 256  # a 16 x 16 tile
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
             rows.append([cam.name, f"{block}x{warps}x{shown}", 1e3 * (time.perf_counter() - t0) if index == 0 else "", ms, *agree])
     import torch
 
-    print(f"{args.real.name}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {width}x{height}, top-{args.topk}, "
+    print(f"{shown_path(args.real.name)}: {scene.num_gaussians:,} Gaussians, {len(cameras)} orbiting views {width}x{height}, top-{args.topk}, "
           f"{torch.cuda.get_device_name(0)}; median of {args.repeats} calls")
     print(format_table(["view", "project ms", "bin ms", "tile-list entries"], stages))
     print()

@@ -34,7 +34,7 @@ from drsplat.commands.common import nonneg_int, output_file, positive_int, topk_
 from drsplat.bench.common import format_table, gaussian_count, guard_bench_outputs, int_list, machine_line, peak_rss_mb, scene_file, view_size
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, MAX_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
-from drsplat.errors import UsageError
+from drsplat.errors import UsageError, shown_path
 
 log = logging.getLogger(__name__)
 
@@ -903,10 +903,10 @@ def _speed_scene(args: argparse.Namespace):
     if args.gaussians:
         return blob_scene(args.gaussians), f"random blob scene {args.gaussians}"
     if args.real == DEFAULT_REAL and not DEFAULT_REAL.is_file():
-        return None, f"{args.real} is absent"
+        return None, f"{shown_path(args.real)} is absent"
     from drsplat.scene import load_ply
 
-    return load_ply(args.real, purpose="benchmark"), args.real.name
+    return load_ply(args.real, purpose="benchmark"), shown_path(args.real.name)
 
 
 def run(args: argparse.Namespace) -> int:

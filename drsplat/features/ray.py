@@ -7,21 +7,23 @@ before any image is sent, so a worker that cannot load its models (no usable GPU
 one error, not a wait. The driver sends images and writes the returned `<stem>_s.npy` /
 `<stem>_f.npy` atomically itself, so a dead worker (actor restarted, call retried) leaves no half
 or duplicate file, and complete pairs already on disk are skipped. A worker whose node is lost
-has its image sent to another worker (`_results_as_they_come`). A worker that is never placed (the
-cluster's CPUs taken by other work) is still waited for, unlike registration's.
+has its image sent to another worker (`_results_as_they_come`); so has a worker never placed (the
+cluster's CPUs taken by other work) or stalled while the others progress, by registration's rule
+(drsplat.cluster.stalled), and a cluster where no worker starts is one error after STALL_SECONDS.
 """
 
 from __future__ import annotations
 
 import logging
 import socket
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.cameras import load_image_sized
-from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, connect, import_ray, set_worker_threads, worker_slots
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, connect, import_ray, set_worker_threads, stalled, worker_slots
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
@@ -55,66 +57,146 @@ def actor_count(nodes: list[dict], gpus_per_actor: int, workers: int | None, add
 
 
 class _FeatureWorker:
-    """Ray actor: one model load per worker, then one image per call. A worker that cannot load its
-    models keeps the error and reports it (`start_error`) instead of dying, so the driver says why."""
+    """Ray actor: one model load per worker (its first `load` or `extract`, so a restarted worker loads
+    again), then one image per call. Its constructor is cheap, so `ready` answers as soon as the
+    worker is placed: the driver tells a worker never placed from one loading its models. A worker
+    that cannot load its models keeps the error and reports it (`load`) instead of dying, so the
+    driver says why."""
 
     def __init__(self, spec) -> None:
         set_worker_threads()
-        try:
-            self.generator, self.encoder = build_models(spec)
-        except DrsplatError as exc:
-            self.error = f"{exc} (Ray node {socket.gethostname()})"
-        else:
-            self.error = None
+        self.spec = spec
         self.nms = spec.nms
+        self.models = None
+        self.error: str | None = None
 
-    def start_error(self) -> str | None:
-        return self.error
+    def ready(self) -> str:
+        return socket.gethostname()
+
+    def _models(self):
+        if self.models is None and self.error is None:
+            try:
+                self.models = build_models(self.spec)
+            except DrsplatError as exc:
+                self.error = f"{exc} (Ray node {socket.gethostname()})"
+        if self.error is not None:
+            raise DrsplatError(self.error)
+        return self.models
+
+    def load(self) -> str | None:
+        try:
+            self._models()
+        except DrsplatError:
+            return self.error
+        return None
 
     def manifest(self, resolution: float, max_height: int | None, extra: dict | None) -> dict:
-        return make_manifest(self.generator, self.encoder, self.nms, resolution, max_height, extra)
+        generator, encoder = self._models()
+        return make_manifest(generator, encoder, self.nms, resolution, max_height, extra)
 
     def extract(self, stem: str, image: np.ndarray):
-        seg, feats, times, counts = extract_image(image, self.generator, self.encoder, self.nms)
+        generator, encoder = self._models()
+        seg, feats, times, counts = extract_image(image, generator, encoder, self.nms)
         return stem, seg, feats, times, counts
 
 
-def _check_started(actors: list) -> None:
-    """One DrsplatError when any actor could not load its models (e.g. a GPU Ray declared that torch cannot use)."""
+def _cancelled(ray, actors: list, cancel: CancelToken | None) -> None:
+    if cancel is not None and cancel.cancelled:
+        for a in actors:
+            ray.kill(a, no_restart=True)
+        cancel.raise_if_cancelled()
+
+
+def _check_started(actors: list, cancel: CancelToken | None = None) -> list:
+    """The actors that started, each with its models loaded. A worker not placed (the cluster's CPUs
+    or GPUs taken by other work) while others are is given up with a warning once
+    drsplat.cluster.stalled says so (STALL_SECONDS plus 10x the slowest placement); none placed in
+    STALL_SECONDS is one DrsplatError, not a wait. One DrsplatError when any placed worker could not
+    load its models (e.g. a GPU Ray declared that torch cannot use); a cancel is seen within WAIT_SECONDS."""
     ray = import_ray()
+    t0 = time.monotonic()
+    pending = {a.ready.remote(): a for a in actors}
+    loads = {id(a): a.load.remote() for a in actors}  # queued behind `ready`: a worker loads as soon as it is placed
+    placed: list = []
+    slowest = 0.0
     try:
-        errors = [e for e in ray.get([a.start_error.remote() for a in actors]) if e is not None]
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=WAIT_SECONDS)
+            _cancelled(ray, actors, cancel)
+            for ref in ready:
+                placed.append(pending.pop(ref))
+                ray.get(ref)
+                slowest = max(slowest, time.monotonic() - t0)
+            waited = time.monotonic() - t0
+            if pending and stalled(waited, slowest if placed else 0.0):
+                if not placed:
+                    raise DrsplatError(f"no Ray feature worker started in {waited:.0f} s: the cluster's CPUs (or GPUs) are "
+                                       "taken by other work, or its nodes lost: rerun when the cluster has room")
+                log.warning("Ray: %d of %d feature workers did not start in %.0f s while the others did (the cluster's CPUs taken by "
+                            "other work, or their node lost); their images go to the %d that did", len(pending), len(actors), waited,
+                            len(placed))
+                for a in pending.values():
+                    ray.kill(a, no_restart=True)
+                break
+        loading = {loads[id(a)]: a for a in placed}
+        started, errors = [], []
+        while loading:  # no bound: a placed worker loading its models is progressing
+            ready, _ = ray.wait(list(loading), num_returns=len(loading), timeout=WAIT_SECONDS)
+            _cancelled(ray, actors, cancel)
+            for ref in ready:
+                a = loading.pop(ref)
+                try:
+                    error = ray.get(ref)
+                except ray.exceptions.ActorUnavailableError:  # its node lost while it loaded
+                    log.warning("Ray: a feature worker was lost while it loaded its models (its node became unavailable)")
+                    ray.kill(a, no_restart=True)
+                    continue
+                if error is None:
+                    started.append(a)
+                else:
+                    errors.append(error)
     except ray.exceptions.RayError as exc:
         raise DrsplatError(f"a Ray feature worker could not start: {exc}") from None
     if errors:
-        raise DrsplatError(f"{len(errors)} of {len(actors)} Ray feature workers could not load their models: {errors[0]}")
-
-
+        raise DrsplatError(f"{len(errors)} of {len(placed)} Ray feature workers could not load their models: {errors[0]}")
+    if not started:
+        raise DrsplatError("every Ray feature worker was lost while it loaded its models (their nodes became unavailable)")
+    return started
 
 
 def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):
     """Each camera's extract result, in the order they finish: one call queued per actor (`send(actor,
     camera)` reads the image and submits it). A call whose actor became unavailable (its node lost:
     Ray does not retry those, and an actor restarted with no CPU to run on would be waited for
-    forever) goes to another actor, at most TASK_RETRIES times, and the lost actor is given up; a
-    cancel is seen within WAIT_SECONDS."""
+    forever) goes to another actor, at most TASK_RETRIES times, and the lost actor is given up; so
+    does the call of an actor stalled while others finished calls (drsplat.cluster.stalled: its node
+    lost with no room to restart it, or its CPU taken). A cancel is seen within WAIT_SECONDS."""
     todo = list(cameras)
     live = list(actors)
-    busy: dict = {}  # ref -> (camera, actor)
+    busy: dict = {}  # ref -> (camera, actor, submitted at)
     tries: dict[str, int] = {}
+    slowest = 0.0
+    last_done = time.monotonic()
+
+    def lose(actor, cam, why: str) -> None:
+        todo.insert(0, cam)
+        if actor in live:
+            live.remove(actor)
+            ray.kill(actor, no_restart=True)
+        if not live:
+            raise DrsplatError(f"every Ray feature worker was lost ({why}); the images written so far are kept: rerun to skip them")
+        log.warning("Ray: a feature worker was lost (%s); its image goes to the %d other worker(s)", why, len(live))
+
     while todo or busy:
-        for a in [a for a in live if all(owner is not a for _, owner in busy.values())]:
+        for a in [a for a in live if all(owner is not a for _, owner, _ in busy.values())]:
             if not todo:
                 break
             cam = todo.pop(0)
-            busy[send(a, cam)] = (cam, a)
+            busy[send(a, cam)] = (cam, a, time.monotonic())
         ready, _ = ray.wait(list(busy), num_returns=1, timeout=WAIT_SECONDS)
-        if cancel is not None and cancel.cancelled:
-            for a in live:
-                ray.kill(a)
-            cancel.raise_if_cancelled()
+        _cancelled(ray, live, cancel)
         for ref in ready:
-            cam, actor = busy.pop(ref)
+            cam, actor, at = busy.pop(ref)
             try:
                 result = ray.get(ref)
             except ray.exceptions.RayTaskError as exc:
@@ -123,18 +205,23 @@ def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, canc
                 tries[cam.name] = tries.get(cam.name, 0) + 1
                 if tries[cam.name] > TASK_RETRIES:
                     raise DrsplatError(f"image {cam.name} found no available Ray feature worker in {TASK_RETRIES + 1} tries") from None
-                todo.insert(0, cam)
-                if actor in live:
-                    live.remove(actor)
-                    ray.kill(actor, no_restart=True)
-                if not live:
-                    raise DrsplatError("every Ray feature worker was lost (their nodes became unavailable); the images written so "
-                                       "far are kept: rerun to skip them") from None
-                log.warning("Ray: a feature worker was lost (its node became unavailable); its image goes to the %d other worker(s)", len(live))
+                lose(actor, cam, "its node became unavailable")
                 continue
             except ray.exceptions.RayError as exc:
                 raise DrsplatError(f"a Ray feature worker failed after {TASK_RETRIES} retries: {exc}") from None
+            slowest = max(slowest, time.monotonic() - at)
+            last_done = time.monotonic()
             yield result
+        now = time.monotonic()
+        for ref, (cam, actor, at) in list(busy.items()):
+            if now - last_done < now - at and stalled(now - at, slowest):
+                del busy[ref]
+                try:
+                    ray.cancel(ref)
+                except Exception:  # noqa: BLE001 - the call of a killed actor
+                    pass
+                lose(actor, cam, f"no image finished on it for {now - at:.0f} s while the others progressed: its node lost or "
+                                 "the cluster's CPUs taken by other work")
 
 
 def extract_features_ray(
@@ -166,8 +253,8 @@ def extract_features_ray(
         actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
         actors = [actor.remote(spec) for _ in range(count)]
         log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
-        _check_started(actors)
-        manifest = ray.get(actors[0].manifest.remote(resolution, max_height, manifest_extra))
+        started = _check_started(actors, cancel)
+        manifest = ray.get(started[0].manifest.remote(resolution, max_height, manifest_extra))
         stamps = ImageStamps.read(out)
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
@@ -178,12 +265,14 @@ def extract_features_ray(
         read_at: dict[str, str | None] = {}  # each image as it was read, not as it may be when its pair comes back
 
         def send(a, c):
+            again = c.name in read_at  # sent again (its worker lost): counted once in the report
             read_at[c.name] = file_stamp(c.image_path)
             rgb, file_size = load_image_sized(c)
-            note_image(report, c, rgb, file_size)
+            if not again:
+                note_image(report, c, rgb, file_size)
             return a.extract.remote(c.name, rgb)
 
-        results = _results_as_they_come(ray, actors, todo, send, cancel)
+        results = _results_as_they_come(ray, started, todo, send, cancel)
         finished = len(report.skipped)
         if on_progress is not None:
             on_progress(finished, len(cameras))
@@ -195,7 +284,7 @@ def extract_features_ray(
             if on_progress is not None:
                 on_progress(finished, len(cameras))
         stamps.finish(manifest, len(report.written) + len(report.skipped))
-        report.workers = count
+        report.workers = len(started)
         return report
     finally:
         for a in actors:  # their models and GPUs go back to the cluster now, not when this driver exits

@@ -720,6 +720,7 @@ class SurfaceSupport:
 
 STATS_SCALE = float(1 << 32)  # the per-view sums' fixed point: units of 2⁻³² in int64 (exact up to 2³¹ pixels of weight 1)
 STATS_SCRATCH_BYTES = 28  # per Gaussian per part of `surface_stats`: its peak, total, front and view stamps
+RAY_GEOMETRY_BYTES = 80  # per Gaussian of RayGeometry: mean (3 float64), precision (6 float64), reach (float64)
 STATS_EXTRA_SCRATCH = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 1.4 GB each)
 
 
@@ -1106,6 +1107,11 @@ class Aggregator:
         self.views_folded = 0  # views whose statistics are in `support` (a checkpoint snapshots only a consistent state)
         self._rejected: np.ndarray | None = None
 
+    def end_views(self) -> None:
+        """Let go of what only the view pass uses: the hook and its RayGeometry (RAY_GEOMETRY_BYTES a
+        Gaussian), which the memory plan counts for the view pass and not for the blocks after it."""
+        self.hook = None
+
     def add(self, stats: ViewStats | None) -> None:
         """Fold one view's statistics (from the hook's second output) into the running support."""
         if self.support is not None:
@@ -1158,7 +1164,7 @@ class Aggregator:
         kept = per_block = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
-            views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + 80) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
+            views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + RAY_GEOMETRY_BYTES) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8 + (SPECIFICITY_SLOT_BYTES if stages.specific else 0)  # step 4's specificities
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks

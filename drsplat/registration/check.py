@@ -1332,8 +1332,8 @@ class CheckSink:
             self._summed = True
         return self._inner
 
-    def blocks(self) -> Iterator[Block]:
-        yield from self._judged().blocks()
+    def blocks(self, reuse: bool = False) -> Iterator[Block]:
+        yield from self._judged().blocks(reuse)
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._judged().sample(ids)

@@ -940,7 +940,7 @@ class DeviceSink:
         weights is positive exactly when one of them is)."""
         return (self.W > 0).cpu().numpy()
 
-    def blocks(self) -> Iterator[Block]:
+    def blocks(self, reuse: bool = False) -> Iterator[Block]:
         F, W = to_host(self.F), self.W.cpu().numpy()
         yield Block(0, F.shape[0], F, W)
 
@@ -1135,7 +1135,7 @@ class DeviceVoteSink:
         W = W.cpu().numpy().copy()
         return F, W, kept_weights(W, removed)
 
-    def blocks(self) -> Iterator[Block]:
+    def blocks(self, reuse: bool = False) -> Iterator[Block]:
         """The trimmed sums as one block (on a CPU F is trimmed in place, so once: a second call gets the same sums)."""
         if self._trimmed_sums is None:
             self._trimmed_sums = self._trimmed(None)

@@ -340,7 +340,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     n = scene.num_gaussians
     if mode_stages(options.aggregate).check:  # a view's paper weights sum to at most its pixels: refused if the exact sums could overflow
         fixed_point_fits(max((cam.width * cam.height for cam in run.views), default=0), len(run.views), options.aggregate)
-    block = options.block_size or _plan_block(run, memory_base)
+    block = options.block_size or _plan_block(run, memory_base, probe.pass_bytes if probe is not None else 0)
     # the partitioned reduce (Ray, blocks, a PLY): the workers log the views in shards and the reducers fold the statistics
     reducers = wants_reducers(options.place, options.reducers, block, n, isinstance(target, PlyTarget))
     aggregator = Aggregator(options.aggregate, scene, stats_on_reducers=reducers, rays=probe.rays if probe is not None else None)
@@ -365,6 +365,9 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         pool = ReducePool(options.cluster, cancel) if reducers else None  # its Ray connection outlives the view pass's executor
         sink, device_pairs = _open_sink(run, aggregator, ckpt, block, cancel, show_progress, out)
         workers, worker_rss = _view_pass(run, aggregator, ckpt, sink, totals, device_pairs, show_progress, on_progress, cancel, probe)
+        # the blocks' plan counts neither the geometry, culling index and rays the view pass took over nor the probe's kept views
+        aggregator.end_views()
+        fit_choice, probe = (probe.choice if probe is not None else None), None
         changed = changed_features(run.features_dir, stamps)
         if changed:  # some views were read before the change, some maybe after: the sums mix two sets of features
             raise DrsplatError(f"{run.features_dir}: the feature files of {len(changed)} view(s) changed while the registration read them "
@@ -439,7 +442,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         sums_on=sums_place(sink), pairs_on=options.device if device_pairs else "host",
         finish_cpu_seconds=time.process_time() - finish_cpu0, reducers=reduce is not None,
         reducer_seconds=reducer_seconds[0], reducer_sum_seconds=reducer_seconds[1], driver_view_cpu_seconds=totals.driver_view_cpu_seconds,
-        fit=probe.choice if probe is not None else None,
+        fit=fit_choice,
     )
 
 
@@ -519,7 +522,7 @@ def _check_memory_before_probe(run: Run) -> int | None:
     if options.block_size or not is_fit_mode(options.aggregate):
         return None
     rss = current_rss()
-    base = rss + probe_memory(run.scene.num_gaussians)
+    base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4)
     if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
         pixels = max((cam.width * cam.height for cam in run.views), default=0)
         raise _refusal_for_footprints(run, rss + probe_memory_bound(run.scene.num_gaussians, pixels, options.topk,
@@ -542,13 +545,15 @@ def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
     return max(refusals, key=lambda refusal: refusal[:2])[2] if refusals else None
 
 
-def _plan_block(run: Run, base: int | None = None) -> int:
+def _plan_block(run: Run, base: int | None = None, taken_over: int = 0) -> int:
     """The block to register with (`choose_block`). base: the resident memory the plan starts from,
     as checked before a fit mode's probe (the larger of it and the process's now is used, so that a
-    budget accepted then is accepted now unless the probe held more than was allowed for)."""
+    budget accepted then is accepted now unless the probe held more than was allowed for).
+    taken_over: bytes the process holds now that the plan counts per Gaussian itself (the probe's
+    geometry, culling index and rays, `FitStage.pass_bytes`), not counted twice."""
     if base is not None:
         trim_heap()  # the probe's freed arrays are not memory in use
-        base = max(base, current_rss())
+        base = max(base, current_rss() - taken_over)
     plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate,
                            total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
     block = choose_block(plan, run.options.memory_budget, whole=mode_stages(run.options.aggregate).solve)
@@ -666,7 +671,7 @@ def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target,
     blocks = 0
     sum_seconds = sum_cpu = 0.0
     count = sink.num_blocks
-    stream = sink.blocks()
+    stream = sink.blocks(reuse=True)  # each block is dropped (its rows encoded or copied) before the next is asked for
     bar = progress(range(count), desc="blocks", total=count, enabled=show_progress and count > 1, unit="block")
     for _ in bar:
         if cancel is not None:

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,34 +94,60 @@ RERENDER_TABLE_BYTES = 1 << 26
 # held-out score"); on an independent generator's silhouettes it was +0.0024 to +0.020 where S chose wrong
 HELD_OUT_MIN_MARGIN = 0.002
 TRANSLATION_BLOCK_BYTES = 1 << 26  # the held-out score's cosines [rows, G] float64 made at once (`mask_translation`)
-# What the process holds after the probe beyond what it held before (the memory plan is checked
-# before the probe and made after it, from one figure): the kernels and libraries its first views
-# load, and per Gaussian the geometry, rays and culling index the view pass takes over plus the
-# probe views' freed projections. Measured +73 MB (2,763 Gaussians), +100 MB (27,354), +187 MB (294,608).
+# What the probe holds beyond what the view pass's own plan counts (drsplat.registration.plan: the
+# geometry, the culling index and the rays it makes are the pass's, and counted there per Gaussian):
+# the kernels and libraries its first views load; the probe views' pairs it keeps for the pass, at
+# most PROBE_KEEP_BYTES (a view past it is rendered again by the pass: the same pairs); and while a
+# probe view is scored, its dense labellings [N, 1 + E] int32 (E earlier probe views) and its own
+# labels [N]. Until 2026-12-03 this was 512 bytes per Gaussian measured on rooms of ≤ 295k
+# Gaussians, the geometry and rays counted twice: a 20M-Gaussian city was refused at 20.9 GB for
+# one view, and peaked at 9.8 GB in its view pass.
 PROBE_LOAD_BYTES = 96 << 20
-PROBE_HELD_BYTES = 512
+PROBE_KEEP_BYTES = 256 << 20
+PROBE_LABEL_BYTES = 4 * (FIT_PROBES + 2)
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
+HELD_OUT_BYTES = 8  # a probe view's sparse labelling kept for the later ones (`HeldOut`): id and mask per Gaussian it labels
 
 
-def probe_memory(num_gaussians: int) -> int:
-    """Bytes the fit stage's probe adds to the process's resident memory (an estimate, on the safe side
-    where a view's masks are few next to its pixels, as they are from a segmenter)."""
-    return PROBE_LOAD_BYTES + PROBE_HELD_BYTES * num_gaussians
+def probe_memory(num_gaussians: int, embedding_bytes: int = 0) -> int:
+    """Bytes the fit stage's probe adds to the process's resident memory beyond the view pass's plan
+    (PROBE_LOAD_BYTES and the constants below it; an estimate, on the safe side where a view's masks
+    are few next to its pixels, as they are from a segmenter). embedding_bytes: the largest view's
+    mask embeddings (M·D·4), which no term of the view pass's plan counts (its vote and check count
+    clusters, `fit` and `fit-reject` nothing): the probe holds every probe view's (`HeldOut`), and
+    while a view is scored its own unit rows and an earlier view's, float64 (`probe_embedding_bytes`)."""
+    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + PROBE_LABEL_BYTES * num_gaussians + probe_embedding_bytes(embedding_bytes)
+
+
+def probe_embedding_bytes(embedding_bytes: int) -> int:
+    """What the probe's embeddings hold at most, views of `embedding_bytes` (M·D·4) each: the probe
+    views' float32 rows kept for the held-out scores (`HeldOut`, FIT_PROBES views) and, while one is
+    scored, its float64 unit rows and those of the earlier view being translated (2 x 2 x its bytes)
+    with the translation's cosine block (TRANSLATION_BLOCK_BYTES). 0 when there are none. Until
+    2026-12-03 `probe_memory` did not count them: `--aggregate fit` on 8 views of 20,000 masks of
+    1024-D (82 MB a view) was accepted at 1.17 GB and peaked at 1.53 GB (VmHWM) in its probe."""
+    if embedding_bytes <= 0:
+        return 0
+    return (FIT_PROBES + 4) * embedding_bytes + TRANSLATION_BLOCK_BYTES
 
 
 def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0, max_masks: int = 0) -> int:
-    """`probe_memory` with each probe view's kept pairs and statistics at their most: a pair per top-k
-    slot of every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but
-    no more than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every
-    Gaussian they name. What a refusal's named budget is made from, so that the budget typed back is
-    not refused once the probe has run, plus the re-render's tables of one probe view scored while the
-    others' pairs are held (`rerender_table_bytes`: its own and the earlier views' labellings, labels
-    below its masks). pixels: the largest view's; embedding_bytes: the largest view's mask embeddings
-    (M·D·4), which its kept pairs hold too; max_masks: its masks (0: not known, then one per pixel)."""
+    """`probe_memory` with a probe view's pairs and statistics at their most: a pair per top-k slot of
+    every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but no more
+    than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every Gaussian
+    they name: the view being scored holds them under both footprints, the kept views at most
+    PROBE_KEEP_BYTES. Then the earlier probe views' sparse labellings and embeddings (`HeldOut`) and
+    the re-render's tables of one probe view scored (`rerender_table_bytes`: its own and the earlier
+    views' labellings, labels below its masks). What a refusal's named budget is made from, so that
+    the budget typed back is not refused once the probe has run. pixels: the largest view's;
+    embedding_bytes: the largest view's mask embeddings (M·D·4), which its pairs hold too;
+    max_masks: its masks (0: not known, then one per pixel)."""
     slots = pixels * topk
-    held = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + min(num_gaussians, slots) * PROBE_STATS_BYTES + embedding_bytes
+    seen = min(num_gaussians, slots)
+    scored = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + seen * PROBE_STATS_BYTES + embedding_bytes
+    held_out = FIT_PROBES * len(FOOTPRINTS) * seen * HELD_OUT_BYTES  # each footprint keeps its own labellings (their embeddings: probe_memory)
     tables = rerender_table_bytes(FIT_PROBES, max_masks if max_masks > 0 else pixels, max(1, numba.get_num_threads()))
-    return probe_memory(num_gaussians) + FIT_PROBES * held + tables
+    return probe_memory(num_gaussians, embedding_bytes) + len(FOOTPRINTS) * scored + held_out + tables
 
 
 @dataclass
@@ -181,13 +208,23 @@ def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
 
 def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES) -> np.ndarray:
     """[min(count, V)] indices into `views` of the probe views, in the order they are scored: the
-    `probe_views` places of the views sorted by name (two views of one name by `Camera.exact_key`, never
-    by the list's order). The list's own order is the order a file happens to give (a transforms.json's frames, a
-    COLMAP model's image ids): with it, a shuffled transforms.json of one room took other probe views
-    and flipped the footprint (round 41: seg mIoU vol 0.594 -> 0.426), and the held-out score, which
-    scores each probe labelling on the later probe views, changed with the order of the same probes."""
-    by_name = sorted(range(len(views)), key=lambda j: (views[j].name, views[j].exact_key(), j))
+    `probe_views` places of the views sorted by name in natural order (`natural_key`; two views of
+    one name by `Camera.exact_key`, never by the list's order). The list's own order is the order a
+    file happens to give (a transforms.json's frames, a COLMAP model's image ids): with it, a
+    shuffled transforms.json of one room took other probe views and flipped the footprint (round 41:
+    seg mIoU vol 0.594 -> 0.426), and the held-out score, which scores each probe labelling on the
+    later probe views, changed with the order of the same probes. In plain character order,
+    unpadded frame_1 .. frame_150 put the probes at frames 4, 22, 57, 73, ...: not evenly through
+    the capture."""
+    by_name = sorted(range(len(views)), key=lambda j: (natural_key(views[j].name), views[j].name, views[j].exact_key(), j))
     return np.array([by_name[j] for j in probe_views(len(views), count)], np.int64)
+
+
+def natural_key(name: str) -> tuple:
+    """A sort key that orders the digit runs of `name` by their value: frame_2 before frame_10. Text
+    and numbers alternate in the same places of every key (`re.split` on digit runs), so keys compare."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(part) if i % 2 else part for i, part in enumerate(parts))
 
 
 def is_fit_mode(mode: str) -> bool:
@@ -500,18 +537,26 @@ class FitStage:
     rays: RayGeometry | None
     pairs: dict[int, ViewPairs]
 
+    @property
+    def pass_bytes(self) -> int:
+        """Bytes of the arrays the view pass takes over (geometry, culling index, rays), which the
+        pass's memory plan counts per Gaussian itself (drsplat.registration.plan)."""
+        held = [self.geometry, self.index, self.rays]
+        return sum(int(value.nbytes) for part in held if part is not None for value in vars(part).values() if isinstance(value, np.ndarray))
+
 
 def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, *,
               geometry: PreparedScene | None = None, cull: bool = True, keep_pairs: bool = False, count: int = FIT_PROBES,
-              cancel: CancelToken | None = None) -> FitStage:
+              cancel: CancelToken | None = None, keep_bytes: int | None = None) -> FitStage:
     """The fit stage of `mode` (a fit mode; module docstring) on `count` probe views of `views`.
 
     Each probe view is rendered once, by a numba ViewComputer that culls (`cull`) and takes the
     median as the view pass does, and coalesced under each footprint; a footprint's score is read
     from its pairs (ℓ) and the render (r). keep_pairs: also compute the views' floater statistics
     when the mode rejects, and keep the chosen footprint's ViewPairs for a view pass that computes
-    views the same way (numba, in this process). geometry: `prepare_geometry(scene)` when made
-    already. cancel: checked before each probe view.
+    views the same way (numba, in this process), as many probe views as keep both footprints' pairs
+    within `keep_bytes` (default PROBE_KEEP_BYTES; the pass renders the others again: the same pairs). geometry:
+    `prepare_geometry(scene)` when made already. cancel: checked before each probe view.
     """
     geometry = geometry if geometry is not None else prepare_geometry(scene)
     candidates = {footprint: resolve_mode(mode, footprint) for footprint in FOOTPRINTS}
@@ -528,6 +573,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     kept_labels = {footprint: HeldOut() for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     names: list[str] = []  # the probe views scored
+    kept_bytes, keep_bytes = 0, PROBE_KEEP_BYTES if keep_bytes is None else keep_bytes
     for i in picks:
         if cancel is not None:
             cancel.raise_if_cancelled()
@@ -540,11 +586,10 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
         scored = None
+        both: dict[str, ViewPairs] = {}
         for footprint in FOOTPRINTS:  # the paper's first: its pairs decide whether the view scores
             weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
-            view = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
-            if keep_pairs and cam is views[i]:  # a view probed at its masks' coarser resolution is rendered again by the pass
-                kept[footprint][int(i)] = view
+            view = both[footprint] = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             if scored is None:
                 scored = scores_footprints(view.weights)
                 if scored:
@@ -556,6 +601,13 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             scores[footprint].append(float(s_and_h[0]))
             held[footprint] += s_and_h[1:].tolist()
             kept_labels[footprint].keep(labels, feats)
+        # the footprints' views share the embeddings and the statistics
+        view_bytes = both["paper"].nbytes + sum(v.gaussians.nbytes + v.masks.nbytes + v.weights.nbytes + v.used.nbytes for f, v in both.items() if f != "paper")
+        # a view probed at its masks' coarser resolution is rendered again by the pass
+        if keep_pairs and cam is views[i] and kept_bytes + view_bytes <= keep_bytes:
+            kept_bytes += view_bytes
+            for footprint, view in both.items():
+                kept[footprint][int(i)] = view
     choice = FitChoice("paper", [views[i].name for i in picks], np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]),
                        np.array(held["sharp"]), scored=names)
     choice.footprint = choice.decide()

@@ -152,7 +152,9 @@ class ViewPairs:
 
     @property
     def nbytes(self) -> int:
-        return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes)
+        """Bytes of its host arrays: embeddings, pairs, masks used and statistics (what a kept view holds)."""
+        stats = 0 if self.stats is None else sum(int(getattr(self.stats, name).nbytes) for name in ("ids", "peak", "total", "front"))
+        return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes + stats)
 
 
 def chunk_grouping(ids: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:

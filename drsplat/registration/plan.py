@@ -1,7 +1,8 @@
 """The memory plan of a registration: one block of Gaussians (sums held in memory while the views
 are computed) or many (sums per block, replayed from the pair log), chosen for a budget.
 
-A registration holds the scene, its prepared geometry (~101 B per Gaussian) and one view in flight
+A registration holds the scene, its prepared geometry (~101 B per Gaussian), the culling index (40 B)
+and one view in flight
 (projection ~128 B per Gaussian, tile lists of at most `drsplat.raster.tile_list_cap` entries, its
 top-k buffers and pairs) while views are computed, and the
 sums F [B, D] float32 + W [B] of a block of B Gaussians. With one block (B = N) the sums are kept
@@ -41,6 +42,7 @@ from drsplat.registration.vote import cluster_bytes
 from drsplat.scene import GaussianScene
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
+INDEX_BYTES = 40  # the culling index (drsplat.registration.culling.SpatialIndex): Morton order (int64), spread (float64), mean (3 float64)
 PROJECTION_BYTES = 128  # one view's Projected arrays and depth order keys, per Gaussian (its tile lists: `tile_list_bytes`)
 PAIR_BYTES = 12  # one distinct (Gaussian, mask, weight) pair
 SUM_BYTES = 16  # per Gaussian of a block besides F's 4·D: W, the accumulator's counting sort
@@ -137,7 +139,7 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     base = (current_rss() if base is None else base) + mode_kept
     view = (n * (PROJECTION_BYTES + SCRATCH_BYTES * coalesce_parts(n)) + tile_list_bytes(n) + pixels * topk * 8
             + 2 * PAIR_BYTES * view_pairs_bound(n, pixels, topk, max_masks) + mode_views - mode_kept)
-    views_peak = base + OVERHEAD + n * GEOMETRY_BYTES + view
+    views_peak = base + OVERHEAD + n * (GEOMETRY_BYTES + INDEX_BYTES) + view
     row_bytes = scene.sh.shape[1] * 12 + 64
     return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + mode_block, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
                       pair_buffer=(1 << 23) * PAIR_BYTES)

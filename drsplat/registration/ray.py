@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.cameras import Camera
-from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads, worker_slots
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads, stalled, worker_slots
 from drsplat.errors import DrsplatError, InputError
 from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
@@ -61,8 +61,6 @@ log = logging.getLogger(__name__)
 
 VIEWS_PER_TASK = 2  # views per actor call: a call's overhead is small next to a view's
 IN_FLIGHT = 2  # calls queued on each actor at once, so it starts its next views while the driver sums
-STALL_SECONDS = 120.0  # a worker whose oldest call waits this long (plus 10x the slowest call seen) while the others
-#                        progress is taken for lost (its node gone, or never placed: the cluster's CPUs busy); its views move
 MARK_BYTES = 8192  # a feature file's first and last bytes compared between the driver and a worker (feature_mark)
 
 
@@ -104,24 +102,32 @@ def _code_identity() -> dict[str, str]:
 PROBE_SECONDS = 60.0  # a node that does not answer the code probe in this time is not checked (said at debug level)
 
 
-def check_nodes_run_this_code(ray) -> None:
+def check_nodes_run_this_code(ray) -> list[dict]:
     """One task on every live node (no CPU asked, so a busy node answers too) reports what its workers
     import (`_code_identity`, shipped by value); a node that imports another drsplat, Python, numpy or
     numba is one DrsplatError before any view, naming the node and what differs. A node whose workers
-    cannot import drsplat at all is said the same way, not as Ray's traceback."""
+    cannot import drsplat at all is said the same way, not as Ray's traceback.
+
+    Returns the nodes (ray.nodes() entries) to place workers on: a node that ray.nodes() still lists
+    as alive but that is gone (lost a moment ago: Ray says its probe cannot be scheduled, "the node
+    ... doesn't exist any more") is left out with a warning, not refused and not counted as a worker
+    slot (a worker asked for there would never be placed); a node that does not answer in PROBE_SECONDS is kept."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     by_value = types.FunctionType(_code_identity.__code__, {"__builtins__": __builtins__}, "_code_identity")
     mine = _code_identity()
     task = ray.remote(num_cpus=0, max_retries=0)(by_value)
     nodes = [n for n in ray.nodes() if n.get("Alive")]
-    refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote():
-            n.get("NodeManagerHostname") or n.get("NodeManagerAddress") for n in nodes}
+    refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(): n for n in nodes}
     ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=PROBE_SECONDS)
+    gone = []
     for ref in ready:
-        node = refs[ref]
+        node = refs[ref].get("NodeManagerHostname") or refs[ref].get("NodeManagerAddress")
         try:
             theirs = ray.get(ref)
+        except ray.exceptions.TaskUnschedulableError:  # the node left the cluster since ray.nodes() listed it
+            gone.append(refs[ref])
+            continue
         except ray.exceptions.RayError as exc:
             cause = getattr(exc, "cause", None) or exc
             raise DrsplatError(f"the Ray node {node} cannot run drsplat ({type(cause).__name__}: {str(cause).splitlines()[-1]}): every node "
@@ -134,6 +140,10 @@ def check_nodes_run_this_code(ray) -> None:
                                "py_modules unless its address is this host's) and the same Python, numpy and numba")
     if len(ready) < len(refs):
         log.debug("Ray: %d node(s) did not answer the code probe in %.0f s", len(refs) - len(ready), PROBE_SECONDS)
+    if gone:
+        log.warning("Ray: %d node(s) listed as alive are gone (lost a moment ago: %s); no worker is asked for there", len(gone),
+                    ", ".join(n.get("NodeID", "?")[:12] for n in gone))
+    return [n for n in nodes if all(n is not g for g in gone)]
 
 
 @dataclass
@@ -265,7 +275,8 @@ class RayExecutor:
         where = "a local instance" if self._owns and not cluster.address else cluster.address
         try:
             gpus = 1 if job.device.startswith("cuda") else 0
-            slots = worker_slots(ray.nodes(), gpus)
+            nodes = check_nodes_run_this_code(ray)  # before any view; and the nodes still there, a node just lost left out
+            slots = worker_slots(nodes, gpus)
             if slots == 0:
                 need = "a GPU and a CPU on one node" if gpus else "a CPU"
                 raise DrsplatError(f"--device {job.device} on Ray needs workers with {need}, but the cluster at {where} has none")
@@ -276,7 +287,6 @@ class RayExecutor:
             if gpus:  # Ray shows each actor its own GPU only, as device 0
                 job = dataclasses.replace(job, device="cuda")
             culling = (index or SpatialIndex.build(geometry)) if job.cull else None  # built once, not by every worker
-            check_nodes_run_this_code(ray)
             self._refs = [ray.put(geometry), ray.put(job), ray.put(culling)]
             self._features_dir = job.features_dir
             actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=TASK_RETRIES, max_task_retries=TASK_RETRIES)(_ViewWorker)
@@ -296,7 +306,7 @@ class RayExecutor:
         Calls go to the live actor with the fewest queued, at most IN_FLIGHT each, and never more than
         2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here). A call
         whose actor became unavailable (its node lost) goes to another actor, and an actor that makes
-        no progress for STALL_SECONDS while the others do (never placed: the cluster's CPUs busy; or
+        no progress for STALL_SECONDS (drsplat.cluster.stalled) while the others do (never placed: the cluster's CPUs busy; or
         its node lost with no room to restart it) is stopped and its calls given to the others (the
         views are the same bits wherever they are computed).
         """
@@ -379,7 +389,7 @@ class RayExecutor:
                         last_done = time.monotonic()
                     now = time.monotonic()
                     for ref, (chunk, actor, at) in list(queued.items()):
-                        if ref in queued and now - at > STALL_SECONDS + 10 * slowest and now - last_done < now - at:
+                        if ref in queued and now - last_done < now - at and stalled(now - at, slowest):
                             lose(actor, f"no call finished for {now - at:.0f} s while the others progressed: its node lost or the "
                                         "cluster's CPUs taken by other work")
                     top_up(index)

@@ -129,6 +129,18 @@ class Accumulator:
         self._rows = np.zeros((256, dim), np.float32)
         self._num_rows = 0
 
+    def reused(self, rows: int) -> Accumulator:
+        """An empty Accumulator of `rows` ≤ N Gaussians in this one's first rows of F and W (zeroed:
+        their pages are touched already) and its pair buffers; this one is not to be used after."""
+        if rows > self.F.shape[0]:
+            raise ValueError(f"an Accumulator of {self.F.shape[0]} rows cannot hold {rows}")
+        F, W = self.F[:rows], self.W[:rows]
+        zero_in_parallel(F)
+        W.fill(0)
+        other = object.__new__(Accumulator)
+        other.__dict__.update(self.__dict__, F=F, W=W, _filled=0, _num_rows=0)
+        return other
+
     @property
     def dim(self) -> int:
         return self.F.shape[1]

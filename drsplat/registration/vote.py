@@ -904,7 +904,16 @@ class VoteSink:
         self._state = None if plog is not None else self._empty(num_gaussians)
         self._trimmed_sums: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # in one block: (F, W, kept) once trimmed, in place
 
-    def _empty(self, rows: int):
+    def _empty(self, rows: int, spare: tuple | None = None):
+        """A block's state for `rows` Gaussians: its Accumulator and the vote's slots (candidates, votes,
+        specificities) and totals; in an earlier block's state `spare` when given (`Accumulator.reused`)."""
+        if spare is not None and spare[1].shape[0] >= rows:
+            acc, slot_c, slot_v, slot_s, total = spare
+            slot_c, slot_v, slot_s, total = slot_c[:rows], slot_v[:rows], slot_s[:rows], total[:rows]
+            slot_c.fill(-1)
+            for table in (slot_v, slot_s, total):
+                table.fill(0.0)
+            return acc.reused(rows), slot_c, slot_v, slot_s, total
         # made once a block, touched a few rows a view: small pages (drsplat.memory.small_page_full)
         return (Accumulator(rows, self.dim), small_page_full((rows, self.slots), -1, np.int32), small_page_zeros((rows, self.slots), np.float64),
                 small_page_zeros((rows, self.slots), np.float64), small_page_zeros(rows, np.float64))
@@ -943,25 +952,36 @@ class VoteSink:
                  row: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         return trim_sums(F, slot_c, slot_v, slot_s, self.clusters, self.trim, self.specific, self.exact, lo, hi, row)
 
-    def blocks(self) -> Iterator[Block]:
+    def blocks(self, reuse: bool = False) -> Iterator[Block]:
         if self._state is not None:
             if self._trimmed_sums is None:  # F is trimmed in place: once, whoever asks again gets the same sums
                 self._trimmed_sums = self._finish(self._state, 0, self.num_gaussians)
                 self.specific = self.exact = None  # their replays are done: the pairs they hold (a check's record) can go
             yield Block(0, self.num_gaussians, *self._trimmed_sums)
             return
+        spare = None
         for lo in range(0, self.num_gaussians, self.block):
-            # as LogSink.blocks: nothing here holds a block across the yield
-            yield self.block_sums(lo, min(self.num_gaussians, lo + self.block))
+            hi = min(self.num_gaussians, lo + self.block)
+            if not reuse:  # as LogSink.blocks: nothing here holds a block across the yield
+                yield self.block_sums(lo, hi)
+                continue
+            state = self._block_state(lo, hi, spare)
+            spare = state
+            yield Block(lo, hi, *self._finish(state, lo, hi))
 
     def block_sums(self, lo: int, hi: int) -> Block:
         """The trimmed sums of Gaussians lo .. hi-1 from one replay of the log (needs the log; a
         reducer's block, drsplat.registration.reduce)."""
-        state = self._empty(hi - lo)
+        state = self._block_state(lo, hi)
+        return Block(lo, hi, *self._finish(state, lo, hi))
+
+    def _block_state(self, lo: int, hi: int, spare: tuple | None = None):
+        """The state of Gaussians lo .. hi-1 with every logged view folded in (in `spare`'s arrays, `_empty`)."""
+        state = self._empty(hi - lo, spare)
         for index, view in enumerate(self._log.block_views(lo, hi)):  # only the chunks of [lo, hi) are read
             if view.gaussians.size:
                 self._fold(state, view.gaussians - np.int32(lo), view.masks, self.clusters.per_view[index], view.weights, view.feats)
-        return Block(lo, hi, *self._finish(state, lo, hi))
+        return state
 
     def sample(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F [S, D], W [S]) of the Gaussians `ids` [S] (sorted, distinct)."""
