@@ -22,7 +22,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from drsplat.errors import Cancelled, InputError, OutputError, hidden_character
+from drsplat.errors import Cancelled, InputError, OutputError, hidden_character, shown_path
 
 log = logging.getLogger("drsplat")
 
@@ -216,11 +216,13 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
     An existing `path` is replaced only when it is empty or `replaceable(path)` says it is an
     earlier output of the same kind (it is moved aside, the new folder renamed in, the old one
     deleted); otherwise OutputError. On failure or interrupt the temp folder is deleted, and
-    temp folders of killed runs are swept first.
+    temp folders of killed runs are swept first. A link to a folder (or to nothing) is followed: the
+    folder it names is replaced and the link stays (renamed over, the link itself became the folder
+    and a temp link was left behind; probe round 44).
     """
     import shutil
 
-    path = Path(path)
+    path = output_target(Path(path))
     if path.exists() and not path.is_dir():
         raise OutputError(path, "exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not replaceable(path):
@@ -250,14 +252,22 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
 
 
 def output_target(path: str | Path) -> Path:
-    """Where writing `path` lands: a symlink's resolved target (the link itself stays), else `path`."""
+    """Where writing `path` lands: a symlink's resolved target (the link itself stays), else `path`.
+
+    A link to a device, FIFO, pipe or socket is returned as it is: such a node is written in place
+    through the link, and its resolved name may not be openable at all (`/dev/stdout` on a pipe
+    resolves to `/proc/PID/fd/pipe:[N]`, which names no file; probe round 44).
+    """
     path = Path(path)
     if path.is_symlink():
         try:
-            os.stat(path)
+            mode = os.stat(path).st_mode
         except OSError as exc:  # dangling is fine (the target is made); a loop would be replaced by a file (probe round 14)
             if exc.errno == errno.ELOOP:
                 raise OutputError(path, "it is a loop of symbolic links (or a chain too long to follow)") from None
+        else:
+            if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+                return path
         return Path(os.path.realpath(path))
     return path
 
@@ -338,16 +348,17 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     (LABELS.npy beside a missing coloured PLY). Each file is still written atomically on its own;
     a device or FIFO output is left as it is."""
     given = [Path(p) for p in paths if p is not None]
-    before = {p: _file_identity(p) for p in given}
+    targets = [output_target(p) for p in given]  # a link's target holds what is written: the link (the user's) stays
+    before = [_file_identity(t) for t in targets]
     try:
         yield
     except BaseException:
-        for p in given:
-            now = _file_identity(p)
-            if now is not None and now != before[p]:
+        for target, then in zip(targets, before):
+            now = _file_identity(target)
+            if now is not None and now != then:
                 with contextlib.suppress(OSError):
-                    p.unlink()
-                    log.info("removed %s: the other outputs of this command were not written", p)
+                    target.unlink()
+                    log.info("removed %s: the other outputs of this command were not written", shown_path(target))
         raise
 
 

@@ -1534,6 +1534,75 @@ def test_outputs_that_are_devices_fifos_or_symlinks(tmp_path, world, capsys):
     assert code == 0 and stat.S_ISFIFO(os.stat(fifo).st_mode) and got == [ref.read_bytes()]
 
 
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs Linux's /proc")
+def test_an_output_through_a_link_to_a_pipe_is_written_into_the_pipe(tmp_path, world, capsys):
+    """Round 44: `--scores /dev/stdout` with stdout a pipe (or bash's `>(...)`) failed for every command:
+    the link resolves to /proc/PID/fd/pipe:[N], which names no file ("folder /proc/PID/fd does not
+    accept new files"). A link to a pipe is now written in place through the link, in this process
+    and as the CLI run in a shell pipeline."""
+    import threading
+
+    base = ["query", world["reg"], "--embedding", world["q"]]
+    ref = tmp_path / "ref.npy"
+    assert run_cli([*base, "--scores", ref], capsys)[0] == 0
+    read_end, write_end = os.pipe()
+    link = tmp_path / "to_pipe.npy"
+    link.symlink_to(f"/proc/self/fd/{write_end}")
+    got: list[bytes] = []
+    reader = threading.Thread(target=lambda: got.append(os.fdopen(read_end, "rb").read()), daemon=True)
+    reader.start()
+    try:
+        code, err = run_cli([*base, "--scores", link], capsys)
+    finally:
+        os.close(write_end)
+    reader.join(timeout=30)
+    assert code == 0 and not error_lines(err), err
+    assert got == [ref.read_bytes()] and link.is_symlink()
+    script = "import sys; from drsplat.cli import main; sys.exit(main(sys.argv[1:]))"
+    argv = [str(a) for a in [*base, "--scores", "/dev/stdout", "-q"]]
+    proc = subprocess.run([sys.executable, "-c", script, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
+    assert proc.returncode == 0 and proc.stdout == ref.read_bytes(), proc.stderr.decode()[-2000:]
+
+
+def test_a_table_goes_to_stderr_when_an_output_is_stdout(tmp_path, world):
+    """Round 44: `segment --out /dev/stdout | ...` put its label table into the labels' bytes (the same for
+    `eval iou --json /dev/stdout`); the table now goes to stderr when an output is stdout itself."""
+    script = "import sys; from drsplat.cli import main; sys.exit(main(sys.argv[1:]))"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    ref = tmp_path / "labels.npy"
+    argv = ["segment", str(world["reg"]), "--embeddings", str(world["L"]), "-q", "--out"]
+    plain = subprocess.run([sys.executable, "-c", script, *argv, str(ref)], capture_output=True, cwd=ROOT, env=env, timeout=300)
+    assert plain.returncode == 0 and b"(none / background)" in plain.stdout, plain.stderr.decode()[-2000:]
+    piped = subprocess.run([sys.executable, "-c", script, *argv, "/dev/stdout"], capture_output=True, cwd=ROOT, env=env, timeout=300)
+    assert piped.returncode == 0 and piped.stdout == ref.read_bytes(), piped.stderr.decode()[-2000:]
+    assert b"(none / background)" in piped.stderr
+
+
+def test_a_failed_second_output_removes_the_file_behind_a_link_not_the_link(tmp_path, world, capsys):
+    """Round 44: `segment --out L.npy --ply /dev/full` with L.npy a link deleted the user's link and left
+    the labels it had written at the link's target. Now the file written (the target) is removed and
+    the link stays as it was."""
+    target = tmp_path / "real" / "labels.npy"
+    target.parent.mkdir()
+    link = tmp_path / "L.npy"
+    link.symlink_to(target)
+    code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--out", link, "--ply", "/dev/full"], capsys)
+    assert code == 1 and "/dev/full" in error_lines(err)[0], err
+    assert link.is_symlink() and os.readlink(link) == str(target) and not target.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["L.npy", "real"] and not any(target.parent.iterdir())
+
+
+def test_an_output_name_holding_a_newline_cannot_forge_a_log_line(tmp_path, world, capsys):
+    """Round 44: query's and segment's "wrote ..." lines printed the output's name raw, so a name with
+    a newline put a line of the caller's choosing (here an ERROR) into the log. It is now shown quoted."""
+    forged = "s.npy\nERROR forged line"
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / forged], capsys)
+    assert code == 0 and (tmp_path / forged).is_file(), err
+    assert not [line for line in err.splitlines() if line.startswith("ERROR")], err
+    assert "forged line" in err  # shown, escaped: the user still sees where the scores went
+
+
 @pytest.mark.parametrize("flag", [["--scores", "s.npy"], ["--out", "o.ply", "--threshold", "0.0"]])
 def test_disk_full_and_file_size_limit_during_query_outputs(tmp_path, world, flag):
     """Real faults in a child process: RLIMIT_FSIZE makes the write fail (EFBIG, or numpy's short write);

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import pytest
@@ -494,6 +495,41 @@ def test_ply_round_trip_through_save_and_load(tmp_path, data, books):
         back = read_field(load_ply(ply), ply)
         assert back.kind == field.kind
         np.testing.assert_array_equal(back.scores(dirs), field.scores(dirs))
+
+
+def test_a_pq_ply_exported_through_a_link_keeps_its_codebook_beside_the_target(tmp_path, data, books, caplog):
+    """Round 44: written through links/reg.ply -> real/target.ply, the codebook went beside the link as
+    reg.codebook.faiss while the target's header named that file in real/, where it was not: the file
+    read directly was refused. Now it lies beside the target under the target's name, and the PLY
+    reads back through the link and directly. Into a FIFO nothing is written beside it, and one warning
+    names the codebook its reader would need."""
+    import threading
+
+    from drsplat.lang import export_scene
+    from drsplat.scene import load_ply
+
+    x, w, _, dirs = data
+    field = build_field(x, w, books[16], clip_model="oracle")
+    (tmp_path / "real").mkdir()
+    (tmp_path / "links").mkdir()
+    target, link = tmp_path / "real" / "target.ply", tmp_path / "links" / "reg.ply"
+    link.symlink_to(target)
+    export_scene(tiny_scene(len(x)), field, link, "drsplat")
+    assert sorted(p.name for p in (tmp_path / "links").iterdir()) == ["reg.ply"] and link.is_symlink()
+    assert sorted(p.name for p in (tmp_path / "real").iterdir()) == ["target.codebook.faiss", "target.ply"]
+    for opened in (target, link):
+        np.testing.assert_array_equal(read_field(load_ply(opened), opened).scores(dirs), field.scores(dirs))
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    got: list[bytes] = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        export_scene(tiny_scene(len(x)), field, fifo, "drsplat")
+    reader.join(timeout=30)
+    assert got and got[0].startswith(b"ply\n") and b"codebook=pipe.codebook.faiss" in got[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["links", "pipe.ply", "real"]
+    assert any("pipe.codebook.faiss) was not written" in r.getMessage() for r in caplog.records)
 
 
 def test_read_field_errors_name_the_problem(tmp_path, data, books):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 import socket
 from pathlib import Path
 
@@ -225,3 +226,27 @@ def test_an_output_under_a_link_to_nothing_is_refused_naming_the_link_not_said_c
     assert "created the folder" not in caplog.text and not (tmp_path / "gone").exists()
     with pytest.raises(OutputError, match="--scores lies under .*dang, a link to .*gone, which does not exist"):
         guard_outputs({}, {"--scores": tmp_path / "dang" / "s.npy"})
+
+
+def test_a_folder_output_given_as_a_link_is_replaced_behind_the_link(tmp_path):
+    """Round 44: `synth` into a link to a folder renamed the new folder over the link (the link became
+    a folder, the target kept the old output) and left a `.<name>.dslink...partial` temp link. Now the
+    target folder gets the new output and the link stays; a link to nothing gets its target made."""
+    from drsplat.utils import atomic_folder
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "old.txt").write_text("old")
+    link = tmp_path / "out"
+    link.symlink_to(real)
+    with atomic_folder(link, replaceable=lambda p: (p / "old.txt").is_file()) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert link.is_symlink() and os.readlink(link) == str(real)
+    assert [p.name for p in real.iterdir()] == ["new.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "real"]
+    dangling = tmp_path / "later"
+    dangling.symlink_to(tmp_path / "made")
+    with atomic_folder(dangling, replaceable=lambda p: False) as tmp:
+        (tmp / "x.txt").write_text("x")
+    assert dangling.is_symlink() and (tmp_path / "made" / "x.txt").read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["later", "made", "out", "real"]

@@ -29,7 +29,7 @@ from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hi
 from drsplat.frames import cameras_in_scene_frame
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
-from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, export_kind, export_scene, read_field
+from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
@@ -484,7 +484,7 @@ class ViewerState:
         oracle label files; and the features folder, whose feature files an output may not replace."""
         inputs: dict[str, Path | None] = {
             "PLY you opened": self.scene_path,
-            "codebook beside the PLY you opened": codebook_path_for(self.scene_path) if self.scene_path is not None else None,
+            "codebook beside the PLY you opened": written_codebook_path(self.scene_path) if self.scene_path is not None else None,
             "codebook the opened PLY's field names": self.field.codebook_path if self.field is not None else None,
         }
         if self.source_dir is not None:
@@ -492,7 +492,7 @@ class ViewerState:
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
             inputs["output of the registration running"] = self.registration.output
-            inputs["codebook of the registration running"] = codebook_path_for(self.registration.output)
+            inputs["codebook of the registration running"] = written_codebook_path(self.registration.output)
         return inputs, protected_feature_folders("--features", [self.features_dir])
 
     def guard_output(self, path: str | Path, what: str) -> bool:
@@ -547,7 +547,7 @@ class ViewerState:
             self.error(f"export to {path} refused: the path ends with a separator, so it names a folder; give a file name")
             return None
         try:
-            codebook = codebook_path_for(path) if fmt == "drsplat" else None
+            codebook = written_codebook_path(path) if fmt == "drsplat" else None
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {"the export": Path(path), "the export's codebook": codebook}, folders)
             export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)

@@ -9,8 +9,11 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import re
+import sys
 from collections.abc import Callable
+from typing import TextIO
 from pathlib import Path
 
 import numpy as np
@@ -372,11 +375,31 @@ def export_outputs(path, fmt: str, flag: str) -> dict:
     """The files an export to `path` (given by `flag`) in format `fmt` writes besides the file itself
     (for guard_outputs): a drsplat PLY's codebook beside it. UsageError when the name and the format
     disagree (a drsplat export named .spz), before any work."""
-    from drsplat.lang import codebook_path_for, export_problem
+    from drsplat.lang import export_problem, written_codebook_path
 
     if path is None:
         return {}
     problem = export_problem(path, fmt)
     if problem is not None:
         raise UsageError(f"{flag}: {problem}")
-    return {"the export's codebook": codebook_path_for(path)} if fmt == "drsplat" else {}
+    return {"the export's codebook": written_codebook_path(path)} if fmt == "drsplat" else {}
+
+
+def table_stream(*outputs: Path | None) -> TextIO:
+    """Where a command prints its table: standard output, or standard error when one of its outputs is
+    standard output itself (`--json /dev/stdout`, `--out /dev/stdout | ...`), so the table does not
+    mix into the file's bytes (probe round 44)."""
+    try:
+        shown = os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real descriptor (a captured or closed stream): no output can be it
+        return sys.stdout
+    for path in outputs:
+        if path is None:
+            continue
+        try:
+            st = os.stat(path)
+        except OSError:
+            continue
+        if (st.st_dev, st.st_ino) == (shown.st_dev, shown.st_ino):
+            return sys.stderr
+    return sys.stdout

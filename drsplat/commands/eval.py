@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, output_file,
+from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, output_file, table_stream,
                                      threshold_value)
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
@@ -280,7 +280,7 @@ def assigned_rows(path: Path, field) -> np.ndarray:
         raise InputError(path, f"none of its {assigned.size} Gaussians holds a language feature (every stored norm is 0 or "
                                "non-finite): nothing to evaluate; register the scene again")
     if not assigned.all():
-        log.info("%s: %d of %d Gaussians hold a language feature; the others are never selected", path, int(assigned.sum()), assigned.size)
+        log.info("%s: %d of %d Gaussians hold a language feature; the others are never selected", shown_path(path), int(assigned.sum()), assigned.size)
     return assigned
 
 
@@ -308,7 +308,7 @@ def write_json(path: Path | None, doc: dict) -> None:
 
     with atomic_path(path) as tmp:
         tmp.write_text(json_text(doc) + "\n")
-    log.info("wrote %s", path)
+    log.info("wrote %s", shown_path(path))
 
 
 def check_classes(args: argparse.Namespace, raw_names: list[str]) -> None:
@@ -402,11 +402,12 @@ def load_eval_scene(args: argparse.Namespace):
         raise InputError(args.original, f"is not the scene {args.registered.name} was registered from: {exc}; if it was registered "
                                         "from a .spz or .splat copy of this scene, pass that copy as --original (.spz stores "
                                         "positions in steps of 1/4096)") from None
-    log.info("evaluating on the %d Gaussians of %s (%d registered)", original.num_gaussians, args.original, scene.num_gaussians)
+    log.info("evaluating on the %d Gaussians of %s (%d registered)", original.num_gaussians, shown_path(args.original), scene.num_gaussians)
     return original, field, index
 
 
-def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], index: np.ndarray | None = None) -> int:
+def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], index: np.ndarray | None = None,
+                        saved_labels: Path | None = None) -> int:
     from drsplat.eval.metrics import evaluate_scene, expand_scores, format_curve, format_reports
 
     present = sorted(set(int(x) for x in np.unique(gt) if x >= 0))
@@ -428,12 +429,13 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     reports = evaluate_scene(scene, scores, gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
                              args.voxel_resolution, args.voxel_empty, assigned=assigned)
     check_defined(reports, sub_names)
+    stream = table_stream(args.json, saved_labels)
     print(f"{shown_path(args.registered.name)}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
-          f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}")
-    print(format_reports(reports))
+          f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}", file=stream)
+    print(format_reports(reports), file=stream)
     for r in reports:
         if r.curve and (args.curve or r is next(x for x in reports if x.curve)):
-            print(format_curve(r, every=1 if args.curve else 10))
+            print(format_curve(r, every=1 if args.curve else 10), file=stream)
     write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "reports": [r.to_dict() for r in reports]})
     return 0
 
@@ -491,7 +493,7 @@ def run_scannet(args: argparse.Namespace) -> int:
     with outputs_together([args.save_labels, args.json]):  # labels without the evaluation they were saved for would be half a run
         if args.save_labels is not None:
             save_npy_atomic(args.save_labels, gt.astype(np.int32))
-        return _evaluate_and_print(args, scene, field, gt, names, index)
+        return _evaluate_and_print(args, scene, field, gt, names, index, saved_labels=args.save_labels)
 
 
 def run_pseudolabels(args: argparse.Namespace) -> int:
@@ -509,9 +511,10 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
             with atomic_path(args.names_out) as tmp:
                 tmp.write_text(json.dumps(names) + "\n")
     counts = np.bincount(labels[labels >= 0], minlength=len(names))
-    print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {shown_path(args.out)}")
+    stream = table_stream(args.out, args.names_out)
+    print(f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled; wrote {shown_path(args.out)}", file=stream)
     for k in np.flatnonzero(counts):
-        print(f"  {names[k]:<20} {int(counts[k]):>9}")
+        print(f"  {names[k]:<20} {int(counts[k]):>9}", file=stream)
     return 0
 
 
@@ -583,9 +586,10 @@ def run_lerf(args: argparse.Namespace) -> int:
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
     report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=True)
     require_scored_pairs(args, report)
+    stream = table_stream(args.json)
     print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
-          f"thresholds {'per-query Otsu' if threshold is None else threshold}")
-    print(report.format())
+          f"thresholds {'per-query Otsu' if threshold is None else threshold}", file=stream)
+    print(report.format(), file=stream)
     doc = report.to_dict()
     doc["thresholds"] = {n: float(t) for n, t in zip(names, taus)}
     write_json(args.json, doc)
@@ -631,7 +635,9 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
                                   cancel=token, assigned=assigned)
         token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
-    print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views")
-    print(report.format())
+    stream = table_stream(args.json)
+    print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views",
+          file=stream)
+    print(report.format(), file=stream)
     write_json(args.json, report.to_dict())
     return 0

@@ -23,7 +23,7 @@ from drsplat.commands.common import (
     checked_text_query,
     threshold_value,
 )
-from drsplat.errors import DrsplatError, UsageError
+from drsplat.errors import DrsplatError, UsageError, shown_path
 from drsplat.lang import LanguageField
 
 log = logging.getLogger(__name__)
@@ -95,7 +95,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.lang import codebook_path_for, export_kind, export_scene
+    from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import select
     from drsplat.splat_formats import check_writable
     from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         checked_phrases("--negatives", args.negatives)  # a usage error before any file is read
     inputs = {"REGISTERED.ply": args.registered, "--embedding": args.embedding, "--gaussians": args.gaussians,
               "--negative-embeddings": args.negative_embeddings, "--clip-checkpoint": args.clip_checkpoint,
-              "the registered PLY's codebook": codebook_path_for(args.registered)}
+              "the registered PLY's codebook": written_codebook_path(args.registered)}
     outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format, "--out")}
     guard_outputs(inputs, outputs)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
@@ -140,10 +140,10 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         if args.scores is not None:
             written = scores[:, 0].copy() if single else scores
             save_npy_atomic(args.scores, written)
-            log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, args.scores)
+            log.info("wrote %s scores %s to %s", "relevancy" if args.relevancy else "cosine", written.shape, shown_path(args.scores))
         if args.out is not None:
             export_scene(chosen, field.subset(mask), args.out, args.format)
-            log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), args.out, export_kind(args.out, args.format))
+            log.info("wrote %d selected Gaussians to %s (%s)", int(mask.sum()), shown_path(args.out), export_kind(args.out, args.format))
     if args.out is None and args.scores is None:
         print_top(best, assigned, args.top, "relevancy" if args.relevancy else "cosine")
     return 0

@@ -75,9 +75,9 @@ def other_data_suffix(path: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
-    from drsplat.errors import UsageError
+    from drsplat.errors import UsageError, shown_path
     from drsplat.frames import cameras_in_scene_frame, refinement_comment
-    from drsplat.lang import REGISTERED_IS_PLY, codebook_path_for, header_text_problem
+    from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene_report, written_format
 
@@ -91,10 +91,10 @@ def run(args: argparse.Namespace) -> int:
                               aggregate=args.aggregate)
     options.check()
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
-    written_codebook = codebook_path_for(args.out) if args.codebook != "none" else None
+    written_codebook = written_codebook_path(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
         written_codebook = None  # the codebook already sits where the registered PLY names it
-    named = codebook_path_for(args.out).name if args.codebook != "none" else None
+    named = codebook_name_for(args.out) if args.codebook != "none" else None
     problem = header_text_problem("", named)  # said now, not after the whole registration (the manifest's CLIP id is checked as it is read)
     if problem is not None:
         raise UsageError(f"--out {json.dumps(str(args.out))[:80]}: {problem}")
@@ -121,5 +121,5 @@ def run(args: argparse.Namespace) -> int:
     with cancel_on_signals(token, "the current view"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
     if token.cancelled:  # the interrupt came while the output was being finished: it was completed, not left half done
-        log.warning("the interrupt came after the last view; the output was finished and written to %s", args.out)
+        log.warning("the interrupt came after the last view; the output was finished and written to %s", shown_path(args.out))
     return 0

@@ -22,9 +22,10 @@ from drsplat.commands.common import (
     output_file,
     scoring_device,
     checked_phrases,
+    table_stream,
 )
 from drsplat.defaults import ORACLE_LABEL_NAMES
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, shown_path
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.utils import checked_names, clipped, read_json
@@ -109,7 +110,7 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> li
             return checked_names(path, names)
         if explicit:
             raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
-        log.info("ignoring %s: it does not name the %d label rows", path, count)
+        log.info("ignoring %s: it does not name the %d label rows", shown_path(path), count)
     return [f"label_{i}" for i in range(count)]
 
 
@@ -139,13 +140,13 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
-    from drsplat.lang import codebook_path_for, export_kind, export_scene
+    from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import label_colors, segment
     from drsplat.splat_formats import check_writable
     from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
-              "the registered PLY's codebook": codebook_path_for(args.registered),
+              "the registered PLY's codebook": written_codebook_path(args.registered),
               "--names" if getattr(args, "names", None) is not None else "--names (by default gt/label_names.json)": names_input(args)}
     if args.labels is not None:
         label_phrases(args.labels)  # a usage error before any file is read
@@ -170,13 +171,14 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         check_writable(coloured, args.ply)  # before LABELS.npy is written: a refused export leaves no half of the outputs
     with outputs_together(outputs.values()):  # a failed export (a full disk) takes LABELS.npy with it
         save_npy_atomic(args.out, seg.labels)
-        log.info("wrote %d labels to %s", seg.labels.shape[0], args.out)
+        log.info("wrote %d labels to %s", seg.labels.shape[0], shown_path(args.out))
         if coloured is not None:
             export_scene(coloured, field, args.ply, args.format)
-            log.info("wrote the label-coloured scene to %s (%s)", args.ply, export_kind(args.ply, args.format))
+            log.info("wrote the label-coloured scene to %s (%s)", shown_path(args.ply), export_kind(args.ply, args.format))
     counts = np.bincount(seg.labels + 1, minlength=len(names) + 1)
-    print(f"{'label':<24} {'gaussians':>10}")
+    stream = table_stream(args.out, args.ply)
+    print(f"{'label':<24} {'gaussians':>10}", file=stream)
     for i, name in enumerate(names):  # a name is cut as an error quotes it: a names file can hold one of megabytes
-        print(f"{clipped(name, SHOWN_NAME_CHARS):<24} {int(counts[i + 1]):>10}")
-    print(f"{'(none / background)':<24} {int(counts[0]):>10}")
+        print(f"{clipped(name, SHOWN_NAME_CHARS):<24} {int(counts[i + 1]):>10}", file=stream)
+    print(f"{'(none / background)':<24} {int(counts[0]):>10}", file=stream)
     return 0

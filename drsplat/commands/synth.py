@@ -8,7 +8,7 @@ from pathlib import Path
 
 from drsplat.commands.common import float_range, int_range, seed_int
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
-from drsplat.errors import OutputError, UsageError
+from drsplat.errors import OutputError, UsageError, shown_path
 
 log = logging.getLogger(__name__)
 
@@ -94,5 +94,5 @@ def run(args: argparse.Namespace) -> int:
                           mask_source=args.mask_source, merge_fraction=args.merge, split_fraction=args.split, width=args.width, show_progress=not args.no_progress,
                           cancel=token)
         token.raise_if_cancelled()
-    log.info("synthetic dataset written to %s", args.out_dir)
+    log.info("synthetic dataset written to %s", shown_path(args.out_dir))
     return 0

@@ -36,14 +36,14 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
-from drsplat.errors import InputError, OutputError, hidden_character
+from drsplat.errors import InputError, OutputError, hidden_character, shown_path
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
 from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, clipped, file_stamp
+from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +61,25 @@ CRC_TEXT = re.compile(r"[0-9a-fA-F]{8}")  # not int(x, 16) alone, which takes "-
 
 
 def codebook_path_for(ply_path: str | Path) -> Path:
-    """The codebook file next to a registered PLY: `<stem>.codebook.faiss`."""
+    """The codebook file's name next to a registered PLY: `<stem>.codebook.faiss` (no link followed;
+    where one is written: `written_codebook_path`)."""
     ply_path = Path(ply_path)
     return ply_path.with_name(f"{ply_path.stem}.codebook.faiss")
+
+
+def written_codebook_path(ply_path: str | Path) -> Path | None:
+    """Where the codebook of a registered PLY written at `ply_path` goes: `codebook_path_for` the file
+    the path names, so beside a link's target and named after it (beside the link, under the link's
+    name, the target read from its own folder named a file that was not there; probe round 44).
+    None when `ply_path` is a device, FIFO or socket, beside which nothing is written (`--out /dev/null`
+    run as root left /dev/null.codebook.faiss)."""
+    target = output_target(Path(ply_path))
+    return None if is_special_file(target) else codebook_path_for(target)
+
+
+def codebook_name_for(ply_path: str | Path) -> str:
+    """The codebook file name that a registered PLY written at `ply_path` records in its header."""
+    return (written_codebook_path(ply_path) or codebook_path_for(ply_path)).name
 
 
 def header_text_problem(clip_model: str, codebook_name: str | None) -> str | None:
@@ -191,10 +207,17 @@ def strip_field(scene: GaussianScene) -> GaussianScene:
 def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
     """Write `codebook` (a Codebook) beside `ply_path` as `<stem>.codebook.faiss`, from memory
     (`Codebook.file_bytes`), unless that file holds those bytes already; returns (that path, the
-    CRC-32 of the bytes), which the field comment records (`field_comment`) and `read_field` checks."""
-    target = codebook_path_for(ply_path)
+    CRC-32 of the bytes), which the field comment records (`field_comment`) and `read_field` checks.
+    Beside a link's target (`written_codebook_path`); beside a device or FIFO nothing is written, and
+    a warning names the file the PLY's reader will need."""
+    target = written_codebook_path(ply_path)
     data = codebook.file_bytes()
     crc = zlib.crc32(data)
+    if target is None:
+        named = codebook_path_for(ply_path)
+        log.warning("%s is a device or pipe: the codebook its PLY names (%s) was not written; a reader of that PLY needs it "
+                    "beside the PLY (or register with --codebook none)", shown_path(ply_path), shown_path(named.name))
+        return named, crc
     stamp = file_stamp(target)
     if stamp is not None and codebook.written.get(target) == stamp:  # this call's earlier chunks wrote it, and it is unchanged
         return target, crc
@@ -217,7 +240,7 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     """
     if field.num_gaussians != scene.num_gaussians:
         raise ValueError(f"field has {field.num_gaussians} Gaussians, scene has {scene.num_gaussians}")
-    codebook_name = codebook_path_for(ply_path).name if needs_codebook(field.kind) else None
+    codebook_name = codebook_name_for(ply_path) if needs_codebook(field.kind) else None
     problem = header_text_problem(field.clip_model, codebook_name)
     if problem is not None:  # before the codebook is written beside it: a refused output leaves nothing
         raise OutputError(ply_path, problem)
@@ -227,7 +250,7 @@ def attach_field(scene: GaussianScene, field: LanguageField, ply_path: str | Pat
     elif write_codebook:
         name, crc = write_codebook_beside(field.codebook, ply_path)
     else:
-        name, crc = codebook_path_for(ply_path), zlib.crc32(field.codebook.file_bytes())
+        name, crc = Path(codebook_name), zlib.crc32(field.codebook.file_bytes())
     comment = field_comment(field, name.name if name is not None else None, crc)
     extra = dict(base.extra)
     extra.update(field_extras(field, comment[len(COMMENT_PREFIX):].strip()))
@@ -416,8 +439,14 @@ def _without_altered_codes(storage, ply_path: Path):
 
 def codebook_named_by(ply_path: Path, name: str) -> Path:
     """The codebook a PLY header names, relative to the PLY's folder; a name leaving that folder
-    (`../`, absolute) is followed but warned about, since a header is not trusted input."""
+    (`../`, absolute) is followed but warned about, since a header is not trusted input. A PLY opened
+    through a link whose folder lacks the file is read with the one beside the link's target, where
+    `written_codebook_path` puts it."""
     target = ply_path.parent / name
+    if ply_path.is_symlink() and not target.exists():
+        beside_target = Path(os.path.realpath(ply_path)).parent / name
+        if beside_target.exists():
+            ply_path, target = Path(os.path.realpath(ply_path)), beside_target
     folder = os.path.normpath(os.path.abspath(ply_path.parent))
     if os.path.commonpath([folder, os.path.normpath(os.path.abspath(target))]) != folder:
         log.warning("%s: the header names a codebook outside the PLY's folder (%s); reading it as named", ply_path, target)
