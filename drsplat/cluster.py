@@ -14,12 +14,15 @@ import os
 import signal
 import socket
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 from drsplat.errors import DrsplatError
+from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +224,61 @@ def stalled(waited: float, slowest: float) -> bool:
     be waited for forever. With no other worker progressing, `stalled(waited, 0.0)` bounds the
     wait for a worker that never starts at all. Read at call time, so a test may lower it."""
     return waited > STALL_SECONDS + 10 * slowest
+
+
+def kill_if_cancelled(ray, actors: list, cancel: CancelToken | None) -> None:
+    """Stop `actors` and raise Cancelled when `cancel` is set (a Ctrl-C never waits for a worker)."""
+    if cancel is not None and cancel.cancelled:
+        for actor in actors:
+            ray.kill(actor, no_restart=True)
+        cancel.raise_if_cancelled()
+
+
+def placed_actors(actors: list, what: str, work: str, cancel: CancelToken | None = None,
+                  queue_after_ready: Callable[[Any], None] | None = None) -> list:
+    """The actors among `actors` that Ray placed (each answered its `ready` call), in their order.
+
+    A worker not placed (the cluster's CPUs or GPUs taken by other work, its node lost) while others
+    are is stopped with a warning once `stalled` says so (STALL_SECONDS plus 10x the slowest
+    placement): its `work` goes to the others. None placed in STALL_SECONDS is one DrsplatError, not
+    a wait (a registration on a cluster whose CPUs were all held waited forever: its stall rule needs
+    a worker that progresses). A cancel is seen within WAIT_SECONDS.
+
+    what: the workers' kind in messages ("feature", "registration"); work: what they are given ("images").
+    queue_after_ready: called with each actor right after its `ready` call is sent, to queue a call
+    behind it (a feature worker loads its models as soon as it is placed, not after the others).
+    """
+    ray = import_ray()
+    t0 = time.monotonic()
+    pending = {}
+    for actor in actors:
+        pending[actor.ready.remote()] = actor
+        if queue_after_ready is not None:
+            queue_after_ready(actor)
+    placed: set[int] = set()
+    slowest = 0.0
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=WAIT_SECONDS)
+            kill_if_cancelled(ray, actors, cancel)
+            for ref in ready:
+                placed.add(id(pending.pop(ref)))
+                ray.get(ref)
+                slowest = max(slowest, time.monotonic() - t0)
+            waited = time.monotonic() - t0
+            if pending and stalled(waited, slowest if placed else 0.0):
+                if not placed:
+                    raise DrsplatError(f"no Ray {what} worker started in {waited:.0f} s: the cluster's CPUs (or GPUs) are "
+                                       "taken by other work, or its nodes lost: rerun when the cluster has room")
+                log.warning("Ray: %d of %d %s workers did not start in %.0f s while the others did (the cluster's CPUs taken by "
+                            "other work, or their node lost); their %s go to the %d that did", len(pending), len(actors), what, waited,
+                            work, len(placed))
+                for a in pending.values():
+                    ray.kill(a, no_restart=True)
+                break
+    except ray.exceptions.RayError as exc:
+        raise DrsplatError(f"a Ray {what} worker could not start: {exc}") from None
+    return [a for a in actors if id(a) in placed]
 
 
 def set_worker_threads() -> None:

@@ -18,12 +18,14 @@ import logging
 import socket
 import time
 from collections.abc import Callable
+from typing import Any
 from pathlib import Path
 
 import numpy as np
 
 from drsplat.cameras import load_image_sized
-from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, connect, import_ray, set_worker_threads, stalled, worker_slots
+from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, connect, import_ray, kill_if_cancelled, placed_actors, set_worker_threads, stalled,
+                             worker_slots)
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
@@ -100,49 +102,24 @@ class _FeatureWorker:
         return stem, seg, feats, times, counts
 
 
-def _cancelled(ray, actors: list, cancel: CancelToken | None) -> None:
-    if cancel is not None and cancel.cancelled:
-        for a in actors:
-            ray.kill(a, no_restart=True)
-        cancel.raise_if_cancelled()
-
-
 def _check_started(actors: list, cancel: CancelToken | None = None) -> list:
-    """The actors that started, each with its models loaded. A worker not placed (the cluster's CPUs
-    or GPUs taken by other work) while others are is given up with a warning once
-    drsplat.cluster.stalled says so (STALL_SECONDS plus 10x the slowest placement); none placed in
-    STALL_SECONDS is one DrsplatError, not a wait. One DrsplatError when any placed worker could not
+    """The actors that started, each with its models loaded. The placed ones first
+    (drsplat.cluster.placed_actors: a worker not placed while others are is given up with a warning,
+    none placed in STALL_SECONDS is one DrsplatError, not a wait). One DrsplatError when any placed worker could not
     load its models (e.g. a GPU Ray declared that torch cannot use); a cancel is seen within WAIT_SECONDS."""
     ray = import_ray()
-    t0 = time.monotonic()
-    pending = {a.ready.remote(): a for a in actors}
-    loads = {id(a): a.load.remote() for a in actors}  # queued behind `ready`: a worker loads as soon as it is placed
-    placed: list = []
-    slowest = 0.0
+    loads: dict[int, Any] = {}
+
+    def load_once_placed(actor) -> None:  # queued behind `ready`: a worker loads as soon as it is placed
+        loads[id(actor)] = actor.load.remote()
+
+    placed = placed_actors(actors, "feature", "images", cancel, queue_after_ready=load_once_placed)
     try:
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=WAIT_SECONDS)
-            _cancelled(ray, actors, cancel)
-            for ref in ready:
-                placed.append(pending.pop(ref))
-                ray.get(ref)
-                slowest = max(slowest, time.monotonic() - t0)
-            waited = time.monotonic() - t0
-            if pending and stalled(waited, slowest if placed else 0.0):
-                if not placed:
-                    raise DrsplatError(f"no Ray feature worker started in {waited:.0f} s: the cluster's CPUs (or GPUs) are "
-                                       "taken by other work, or its nodes lost: rerun when the cluster has room")
-                log.warning("Ray: %d of %d feature workers did not start in %.0f s while the others did (the cluster's CPUs taken by "
-                            "other work, or their node lost); their images go to the %d that did", len(pending), len(actors), waited,
-                            len(placed))
-                for a in pending.values():
-                    ray.kill(a, no_restart=True)
-                break
         loading = {loads[id(a)]: a for a in placed}
         started, errors = [], []
         while loading:  # no bound: a placed worker loading its models is progressing
             ready, _ = ray.wait(list(loading), num_returns=len(loading), timeout=WAIT_SECONDS)
-            _cancelled(ray, actors, cancel)
+            kill_if_cancelled(ray, actors, cancel)
             for ref in ready:
                 a = loading.pop(ref)
                 try:
@@ -194,7 +171,7 @@ def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, canc
             cam = todo.pop(0)
             busy[send(a, cam)] = (cam, a, time.monotonic())
         ready, _ = ray.wait(list(busy), num_returns=1, timeout=WAIT_SECONDS)
-        _cancelled(ray, live, cancel)
+        kill_if_cancelled(ray, live, cancel)
         for ref in ready:
             cam, actor, at = busy.pop(ref)
             try:

@@ -47,7 +47,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.cameras import Camera
-from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads, stalled, worker_slots
+from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, placed_actors, set_worker_threads, stalled,
+                             worker_slots)
 from drsplat.errors import DrsplatError, InputError
 from drsplat.raster import PreparedScene
 from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
@@ -173,6 +174,10 @@ class _ViewWorker:
         self._views = 0
         self._shard: ShardWriter | None = None
 
+    def ready(self) -> bool:
+        """Answers once Ray placed this worker (`drsplat.cluster.placed_actors`); its constructor is cheap."""
+        return True
+
     def compute(self, shared: list, cameras: list[Camera], marks: list | None = None) -> _CallResult:
         """The ViewPairs of `cameras`, their features read here; stops at the first view that fails.
 
@@ -269,6 +274,7 @@ class RayExecutor:
         ray = import_ray()
         self._owns = connect(cluster.address)
         self._actors: list = []
+        self._placed = False  # the actors' placement waited for (`view_pairs`, where the cancel token is set)
         self._refs: list = []  # [geometry, job, culling index] in the object store
         self.cancel: CancelToken | None = None  # checked while the driver waits for calls (a Ctrl-C never waits for a stalled worker)
         self.worker_stats: dict[int, WorkerStats] = {}
@@ -303,6 +309,8 @@ class RayExecutor:
     def view_pairs(self, views: Sequence[Camera]) -> Iterator[ViewPairs]:
         """The ViewPairs of `views`, in order (calls finish out of order; results are reordered).
 
+        Before the first call, the actors Ray placed are waited for (drsplat.cluster.placed_actors): one
+        not placed while others are is stopped, none placed in STALL_SECONDS is one DrsplatError.
         Calls go to the live actor with the fewest queued, at most IN_FLIGHT each, and never more than
         2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here). A call
         whose actor became unavailable (its node lost) goes to another actor, and an actor that makes
@@ -311,6 +319,9 @@ class RayExecutor:
         views are the same bits wherever they are computed).
         """
         ray = import_ray()
+        if not self._placed:  # a cluster with no room for any worker is one error, not a wait for the first call
+            self._actors = placed_actors(self._actors, "registration", "views", self.cancel)
+            self._placed = True
         chunks = [list(views[i : i + self.views_per_task]) for i in range(0, len(views), self.views_per_task)]
         actors = list(self._actors)
         window = 2 * IN_FLIGHT * len(actors)
