@@ -451,7 +451,10 @@ def project_gaussians_reference(
     usable = _usable(prep, mask)
     n = prep.num_gaussians
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    pc = prep.means @ rot.T + trans
+    # the kernel's order of operations (r0·x + r1·y + r2·z + t, left to right): a matmul rounds otherwise, and a mean the
+    # kernel puts on the near plane exactly (1e3 or more from the origin) was behind it here, or the reverse
+    m = prep.means
+    pc = np.stack([rot[i, 0] * m[:, 0] + rot[i, 1] * m[:, 1] + rot[i, 2] * m[:, 2] + trans[i] for i in range(3)], axis=1)
     depths = np.where(usable, pc[:, 2], 0.0)
     in_front = usable & (depths >= near)
     idx = np.flatnonzero(in_front & (prep.opacities >= ALPHA_MIN))

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.cameras import load_cameras
-from drsplat.raster import prepare_scene, rasterize
+from drsplat.cameras import load_cameras, look_at_camera
+from drsplat.raster import NEAR, prepare_scene, project_gaussians, rasterize
+from drsplat.testing import gaussians
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.aggregate import mode_hook
 from drsplat.registration.compute import renders_whole, ViewComputer, ViewJob, prepare_geometry
@@ -257,3 +258,27 @@ def test_visible_kernel_matches_the_numpy_test(city, tiny, block_size):
         sizes.append(got.size)
     assert min(sizes) == 0 and max(sizes) > 0  # the "away" camera sees nothing
 
+
+def test_a_gaussian_on_the_near_plane_far_from_the_origin_is_never_culled_when_the_rasterizer_keeps_it():
+    """The block test computed the boxes' camera z by a matmul, which rounds otherwise than the
+    rasterizer's r0·x + r1·y + r2·z + t: a Gaussian 1e5-1e6 out whose z the rasterizer rounds to
+    the near plane exactly had its one-Gaussian block's z a few ulps below it, and was culled
+    though the full render uses it (4 of the 111 kept here, before the mend)."""
+    rng = np.random.default_rng(3)
+    kept = culled = 0
+    for offset in (1e5, 1e6):
+        n = 64
+        means = (offset * np.array([1.0, -0.7, 0.3]) + rng.normal(size=(n, 3)) * 0.3).astype(np.float32)
+        scene = gaussians(means, log_scale=-4.0, opacity_logit=2.0)
+        prep = prepare_scene(scene)
+        index = SpatialIndex.build(prep, block_size=1)
+        for g in range(n):
+            cam = look_at_camera(prep.means[g] - [0.3, 0.2, 1.0], prep.means[g], 40, 30, fov_x_deg=60)
+            rot = np.asarray(cam.R, np.float64)
+            t = -(rot @ prep.means[g])
+            t[2] += NEAR  # the mean straight ahead, on the near plane (to rounding)
+            cam = dataclasses.replace(cam, t=t)
+            if project_gaussians(prep, cam).valid[g]:
+                kept += 1
+                culled += g not in index.visible(cam)
+    assert kept > 20 and culled == 0

@@ -30,7 +30,9 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
     """Was: the second node lost right after the workers were asked for (before its worker ran a view)
     left its worker restarting with no CPU to run on, and the run waited for it forever (240 s seen;
     lost while a call ran, the run stopped 1 time in 4 with "a Ray registration worker failed after 3
-    restarts", no restart tried). Now its calls go to the worker left and the field is the local run's."""
+    restarts", no restart tried). Now its calls go to the worker left and the field is the local run's.
+    (Lost before Ray placed its worker, as nearly always here, the worker is given up at placement,
+    round 44; placed first, it is lost in the view loop.)"""
     import threading
 
     import drsplat.registration.ray as rr
@@ -62,7 +64,7 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
         thread.join(60)
     assert not thread.is_alive(), "the run waited for the lost node's worker"
     assert "error" not in box, box.get("error")
-    assert "a registration worker was lost" in caplog.text
+    assert "a registration worker was lost" in caplog.text or "1 of 2 registration workers did not start in" in caplog.text
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)
 

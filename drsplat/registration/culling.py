@@ -109,8 +109,11 @@ class SpatialIndex:
         if self.num_blocks == 0:
             return np.zeros(0, bool)
         corners = np.stack([np.where(np.array([(c >> a) & 1 for a in range(3)], bool), self.hi, self.lo) for c in range(8)], axis=1)
-        cam = corners @ np.asarray(camera.R, np.float64).T + np.asarray(camera.t, np.float64)  # [B, 8, 3]
-        x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
+        # [B, 8] camera coordinates in the rasterizer's own order of operations (r0·x + r1·y + r2·z + t, left to right, as
+        # kernels.project_points): rounding is monotone in each coordinate, so the box's farthest corner is at least every
+        # mean's z as the rasterizer rounds it (a matmul rounds otherwise: a Gaussian on the near plane 1e5 out was culled)
+        rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+        x, y, z = (rot[i, 0] * corners[..., 0] + rot[i, 1] * corners[..., 1] + rot[i, 2] * corners[..., 2] + trans[i] for i in range(3))
         z_max = z.max(axis=1)
         z_lo = np.maximum(z.min(axis=1), near)
         radius = _radius_bound(camera, self.max_lam, z_lo)[:, None]
