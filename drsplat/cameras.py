@@ -1329,6 +1329,9 @@ def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
     return out
 
 
+SCANNET_INTRINSIC_FIELDS: FieldNames = {"fx": "K[0][0]", "fy": "K[1][1]", "cx": "K[0][2]", "cy": "K[1][2]"}  # intrinsic_color.txt's 4 x 4 matrix
+
+
 def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]:
     """Cameras of an exported ScanNet scene: pose/<i>.txt (camera-to-world), intrinsic/intrinsic_color.txt, color/<i>.jpg.
 
@@ -1339,7 +1342,8 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
     pose_dir = scene_dir / "pose"
     if not pose_dir.is_dir():
         raise InputError(scene_dir, "no pose/ folder (export the .sens file with ScanNet's SensReader)")
-    K = _read_matrix(scene_dir / "intrinsic" / "intrinsic_color.txt")
+    k_path = scene_dir / "intrinsic" / "intrinsic_color.txt"
+    K = _read_matrix(k_path)
     poses = sorted(pose_dir.glob("*.txt"), key=lambda p: (len(p.stem), p.stem))[:: max(1, stride)]
     cameras, skipped = [], 0
     size: tuple[int, int] | None = None
@@ -1359,6 +1363,8 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
         t = -R @ c2w[:3, 3]
         camera = Camera(R=R, t=t, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=size[0], height=size[1],
                         image_path=image, name=pose_path.stem)
+        # the intrinsics are the intrinsic file's (a NaN fx there was said to be pose/<i>.txt's), the pose the frame's
+        validate_intrinsics(camera, k_path, f"the colour camera (of frame {pose_path.stem})", SCANNET_INTRINSIC_FIELDS)
         validate_camera(camera, pose_path, f"frame {pose_path.stem}")
         cameras.append(camera)
     if skipped:

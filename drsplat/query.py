@@ -19,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from drsplat.defaults import MIN_NORM
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
 from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows
@@ -104,8 +105,18 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
         beyond = np.flatnonzero((np.abs(arr) > np.finfo(np.float32).max).any(axis=1)) if arr.dtype.itemsize > 4 else np.zeros(0, int)
     if beyond.size:  # the float32 cast would make them inf (with numpy's overflow warning)
         raise InputError(path, f"rows {beyond[:10].tolist()} hold values beyond float32's range (±3.4e38); embeddings are stored as float32")
+    wide = arr.astype(np.float64)
+    with np.errstate(invalid="ignore"):  # each row's norm as stored, scaled by its largest value (1e-300 squared is 0 in float64)
+        largest = np.abs(wide).max(axis=1)
+        ok = np.isfinite(largest) & (largest > 0)
+        scaled = wide / np.where(ok, largest, 1.0)[:, None]
+        stored_norms = np.where(ok, largest * np.sqrt(np.einsum("ij,ij->i", np.where(ok[:, None], scaled, 0.0), np.where(ok[:, None], scaled, 0.0))), 0.0)
     arr = arr.astype(np.float32)
     bad = ~has_direction(arr)
+    underflow = bad & ok & np.isfinite(wide).all(axis=1) & (stored_norms < MIN_NORM)  # a float64 row of 1e-300 is no zero row in its file
+    if underflow.any():
+        raise InputError(path, f"rows {np.flatnonzero(underflow)[:10].tolist()} have a norm of {stored_norms[underflow].min():.3g}, below float32's "
+                               f"smallest normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an embedding: rescale it")
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
     norms = np.linalg.norm(arr.astype(np.float64), axis=1)
@@ -113,6 +124,10 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if huge.any():
         raise InputError(path, f"rows {np.flatnonzero(huge)[:10].tolist()} have a norm of {norms[huge].max():.3g}, beyond float32's range "
                                "(the sum of squares overflows); this is not an embedding: rescale it")
+    tiny = norms < MIN_NORM  # subnormal entries keep a few bits each: a row of 3e-45 kept cosine ~0.6 to its direction, used without a word
+    if tiny.any():
+        raise InputError(path, f"rows {np.flatnonzero(tiny)[:10].tolist()} have a norm of {norms[tiny].min():.3g}, below float32's smallest "
+                               f"normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an embedding: rescale it")
     return unit_rows(arr)
 
 

@@ -1038,3 +1038,24 @@ def test_the_corner_shift_of_a_lens_is_where_its_distortion_moves_the_farthest_c
     yd = y * radial + 0.001 * (r2 + 2 * y * y) + 2 * -0.002 * x * y
     assert lens_corner_shift(cam) == pytest.approx(np.hypot((xd - x) * 500.0, (yd - y) * 400.0), rel=1e-12)
     assert lens_corner_shift(dataclasses.replace(cam, distortion=None)) == 0.0
+
+
+@pytest.mark.parametrize("entry, row, column, words", [
+    ("nan", 0, 0, "focal length K[0][0]=nan"),
+    ("inf", 1, 1, "focal length K[1][1]=inf"),
+    ("nan", 0, 2, "a non-finite principal point"),
+    ("1e-320", 0, 0, "K[0][0]=9.99989e-321 for an image 64 pixels"),
+])
+def test_scannet_intrinsics_that_are_no_camera_name_the_intrinsic_file(tmp_path, entry, row, column, words):
+    """Round 46: a NaN, infinite or subnormal entry of ScanNet's intrinsic/intrinsic_color.txt was refused as field 'fx' of
+    pose/0.txt, a file that holds no intrinsics. Now the error names the intrinsic file and the matrix entry."""
+    from drsplat.cameras import load_scannet_cameras
+
+    scene = _scannet_scene(tmp_path / "scene0000_00", np.eye(4))
+    K = np.loadtxt(scene / "intrinsic" / "intrinsic_color.txt")
+    K[row, column] = float(entry)
+    np.savetxt(scene / "intrinsic" / "intrinsic_color.txt", K)
+    with pytest.raises(InputError) as info:
+        load_scannet_cameras(scene)
+    assert info.value.path == scene / "intrinsic" / "intrinsic_color.txt" and info.value.field == f"K[{row}][{column}]"
+    assert words in str(info.value)

@@ -294,3 +294,25 @@ def test_unrecognized_arguments_show_the_commands_usage(argv, command, capsys):
         main(argv)
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.startswith(f"usage: {command} ") and "unrecognized arguments: " + argv[-1] in err, err
+
+
+def test_a_double_cloud_too_large_for_the_kdtree_engine_is_one_error_naming_it(tmp_path, capsys):
+    """Round 46: `eval pseudolabels --engine kdtree` on a labelled cloud with double-precision coordinates of 1e300
+    ended in the library's ValueError traceback. Now one error naming the cloud, exit 1, nothing written."""
+    import plyfile
+
+    from drsplat.scene import save_ply
+    from drsplat.testing import gaussians
+
+    scene = tmp_path / "scene.ply"
+    save_ply(gaussians(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])), scene)
+    rows = np.zeros(3, [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("label", "<u2")])
+    rows["x"] = [0.0, 1.0, 1e300]
+    rows["label"] = [1, 2, 1]
+    cloud = tmp_path / "cloud.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(rows, "vertex")]).write(str(cloud))
+    out = tmp_path / "labels.npy"
+    assert main(["eval", "pseudolabels", str(scene), "--points", str(cloud), "--out", str(out), "--engine", "kdtree"]) == 1
+    err = capsys.readouterr().err
+    assert f"{cloud}: holds point coordinates up to 1e+300" in err and "--engine grid" in err and "Traceback" not in err
+    assert not out.exists()

@@ -380,6 +380,26 @@ def test_a_polygon_with_a_far_vertex_is_filled_as_its_shape_says(far):
     assert clip_polygon(np.array([[500.0, 500.0], [600.0, 500.0], [550.0, 600.0]]), -2, -2, 130, 98).shape == (0, 2)
 
 
+@pytest.mark.parametrize("far", [1.7e308, np.finfo(np.float64).max])
+def test_a_polygon_whose_vertices_lie_the_whole_float64_range_apart_is_clipped_without_nan(far):
+    """Round 46: a LERF annotation polygon with vertices at -1.7e308 and +1.7e308 (finite JSON numbers) made clip_polygon's
+    b - a overflow to inf: numpy's "overflow encountered in subtract", NaN crossing points, and 48 of the 1,081 pixels
+    below the diagonal painted. The crossing is now computed in halves: the mask of the same triangle at 1e307."""
+    import warnings
+
+    from drsplat.eval.datasets import clip_polygon, polygon_mask
+
+    def triangle(v: float) -> np.ndarray:
+        return np.array([[-v, -v], [v, v], [-v, v]])
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clipped = clip_polygon(triangle(far), -2, -2, 66, 50)
+        painted = polygon_mask(triangle(far), 48, 64)
+    assert np.isfinite(clipped).all()
+    assert np.array_equal(painted, polygon_mask(triangle(1e307), 48, 64)) and painted.sum() == 1081
+
+
 def boundary_band(mask: np.ndarray) -> np.ndarray:
     """[H, W] bool: the pixels within one pixel (8-neighbourhood) of the mask's edge, inside or out."""
     padded = np.pad(mask, 1, mode="edge")

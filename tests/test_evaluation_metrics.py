@@ -175,6 +175,17 @@ def test_voxel_iou_identical_disjoint_and_half():
     assert rep.iou[1] == 0.0
 
 
+def test_grid_for_leaves_out_means_no_view_can_see():
+    """Round 46: two Gaussians at ±3e38 (finite; the loader says no view can see them) spanned the voxel grid: voxels
+    ~6e36 wide, the scene in one of them, the voxel IoU of 7 of 8 labels undefined. Means beyond 1e15 (MAX_COORDINATE)
+    now lie outside the grid, which is the grid of the others."""
+    means = np.random.default_rng(2).uniform(-2, 2, (50, 3))
+    far = np.vstack([means, [[-3e38, 0.0, 0.0], [3e38, 0.0, 0.0], [0.0, 2e15, 0.0]]])
+    want, got = grid_for(means, resolution=32), grid_for(far, resolution=32)
+    assert got.voxel_size == want.voxel_size and got.shape == want.shape
+    np.testing.assert_array_equal(got.origin, want.origin)
+
+
 def test_grid_for_has_requested_resolution():
     g = grid_for(np.array([[0, 0, 0], [4.0, 2.0, 1.0]]), resolution=40, padding=0.0)
     assert max(g.shape) == 40 and g.voxel_size == pytest.approx(0.1)

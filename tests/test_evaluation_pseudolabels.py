@@ -168,3 +168,25 @@ def test_coordinates_too_large_for_the_kdtree_engine_are_one_error_and_the_grid_
         pseudo_labels(g, pts, labels, engine="kdtree", show_progress=False)
     grid = pseudo_labels(g, pts, labels, show_progress=False)
     np.testing.assert_array_equal(grid.labels, pseudo_labels_reference(g, pts, labels))
+
+
+def test_two_points_the_whole_float64_range_apart_leave_the_grid_labels_as_they_were():
+    """Round 46: a good labelled cloud plus two points at ±1.7e308 (finite; a double-precision cloud) made the grid's
+    extent hi - lo overflow to inf: inf / inf cell counts and indices (numpy's warnings), and `eval pseudolabels`
+    labelled none of 2,763 Gaussians, exit 0. The grid is now one cell there, and the labels are those of the cloud
+    without the two points."""
+    import warnings
+
+    rng = np.random.default_rng(7)
+    n, p = 30, 300
+    g = (rng.uniform(-1, 1, (n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.full((n, 3), 0.3))
+    pts = rng.uniform(-1.2, 1.2, (p, 3))
+    labels = rng.integers(0, 3, p)
+    far = np.vstack([pts, [[-1.7e308, -1.7e308, 0.0], [1.7e308, 1.7e308, 0.0]]])
+    want = pseudo_labels(g, pts, labels, show_progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = pseudo_labels(g, far, np.r_[labels, 1, 2], show_progress=False)
+    assert (want.labels >= 0).sum() > n // 2
+    np.testing.assert_array_equal(got.labels, want.labels)
+    np.testing.assert_array_equal(got.num_points, want.num_points)

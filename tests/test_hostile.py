@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import os
 import signal
 import struct
@@ -2506,6 +2507,25 @@ def test_pq_train_on_non_finite_embeddings_names_the_file(tmp_path, capsys):
     assert not (tmp_path / "cb.faiss").exists()
 
 
+@pytest.mark.parametrize("scale, words", [(3e38, "10 of 600 embeddings that have a norm beyond float32's range"),
+                                          (1e-44, "10 of 600 embeddings that have a norm below 1.18e-38")])
+def test_pq_train_skips_rows_whose_norm_float32_cannot_hold_and_counts_them(tmp_path, capsys, scale, words):
+    """Round 46: `pq train --embeddings` on float32 rows of values near 3e38 printed numpy's "overflow encountered in
+    reduce" and trained on them; rows scaled to subnormals (1e-44) were trained on without a word. Both are now judged
+    as the feature reader judges a mask's embedding: skipped and counted in one warning, without numpy's words."""
+    import warnings
+
+    rows = np.random.default_rng(0).normal(size=(600, 16)).astype(np.float32)
+    rows[:10] = (rows[:10] / np.abs(rows[:10]).max(axis=1, keepdims=True) * scale).astype(np.float32)
+    emb = tmp_path / "e.npy"
+    np.save(emb, rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, err = run_cli(["pq", "train", "--embeddings", emb, "--out", tmp_path / "cb.faiss", "--m", "4"], capsys)
+    assert code == 0, err
+    assert f"skipping {words}" in err and "on 590 embeddings of dimension 16" in err, err
+
+
 def test_feature_rows_whose_norm_overflows_float32_are_counted_like_non_finite(tmp_path):
     """A _f.npy row of finite values near 3e38 has a norm beyond float32: registration printed numpy's
     "RuntimeWarning: overflow encountered in cast" from its vote stage. Now it is refused (or, with
@@ -2864,6 +2884,24 @@ def test_a_codebook_of_subnormal_centroids_scores_no_row_infinite(tmp_path, caps
     normal = read_field(load_ply(_registered_with(tmp_path / "ok.ply", _scaled_codebook(1e-30))), tmp_path / "ok.ply")
     assert normal.assigned().all()  # tiny but normal norms still score, as the decoded reference does
     np.testing.assert_allclose(normal.scores(np.ones(8)), normal.scores_reference(np.ones(8)), atol=1e-6)
+
+
+@pytest.mark.parametrize("scale, spread, warned", [(1e20, 1.0, True), (1e-30, 1.0, True), (1.0, 1.0, False), (1.0, 1e-6, False)])
+def test_a_codebook_that_gives_every_feature_the_same_code_is_said(caplog, scale, spread, warned):
+    """Round 46: a codebook of centroids ~1e20 (their float32 squared distances to a unit row overflow to inf) or ~1e-30
+    (they vanish beside a unit row's sub-vectors) passed every check, and faiss gave every feature the first code: every
+    Gaussian of the registered field scored alike, without a word. Encoding now says so, naming the codebook; features
+    merely too alike for a usable codebook (1e-6 apart) are not said to be its fault."""
+    from drsplat.lang import build_field
+
+    rng = np.random.default_rng(1)
+    features = (rng.standard_normal(8) + spread * rng.standard_normal((40, 8))).astype(np.float32)
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        field = build_field(features, np.ones(40, np.float32), _scaled_codebook(scale), clip_model="oracle")
+    said = "the codebook gives all 40 features the same code, though they differ" in caplog.text
+    assert said == warned, caplog.text
+    assert not warned or (field.storage.codes == field.storage.codes[0]).all()
+    assert (field.storage.codes == field.storage.codes[0]).all() if spread < 1 else True  # too alike for any code to differ
 
 
 def test_a_codebook_whose_reconstructions_pass_float32_is_refused(tmp_path, capsys):

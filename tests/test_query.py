@@ -193,6 +193,27 @@ def test_embedding_and_id_files_are_validated(tmp_path):
         load_query_embeddings(tmp_path / "missing.npy", DIM)
 
 
+def test_query_rows_of_subnormal_norm_are_refused_and_a_smallest_normal_one_is_read(tmp_path):
+    """Round 46: a query row scaled to float32 subnormals (entries of 1.4e-45 .. 3e-45) was normalised and scored without a
+    word, though its few bits kept cosine ~0.9 to the direction it was saved from; now refused by name, as the feature
+    reader ignores such mask embeddings; a float64 row of 1e-300 was called "zero or non-finite", which its file does not
+    hold. A row just above float32's smallest normal reads as its direction."""
+    rows = np.random.default_rng(3).normal(size=(3, DIM))
+    rows /= np.abs(rows).max(axis=1, keepdims=True)
+    tiny = rows.copy()
+    tiny[1] *= 3e-45
+    np.save(tmp_path / "tiny.npy", tiny.astype(np.float32))
+    with pytest.raises(InputError, match=r"tiny\.npy: rows \[1\] have a norm of .* below float32's smallest normal number"):
+        load_query_embeddings(tmp_path / "tiny.npy", DIM)
+    np.save(tmp_path / "under.npy", rows * np.r_[1.0, 1e-300, 1.0][:, None])  # float64 rows that the float32 cast makes zero rows
+    with pytest.raises(InputError, match=r"under\.npy: rows \[1\] have a norm of .* below float32's smallest normal number"):
+        load_query_embeddings(tmp_path / "under.npy", DIM)
+    small = rows.copy()
+    small[1] *= 1e-37
+    np.save(tmp_path / "small.npy", small.astype(np.float32))
+    np.testing.assert_allclose(load_query_embeddings(tmp_path / "small.npy", DIM)[1], rows[1] / np.linalg.norm(rows[1]), atol=1e-5)
+
+
 # ---------------------------------------------------------------------------------------------
 # CLI
 

@@ -324,10 +324,15 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     Ctrl-C stops the vote at its next chunk (`cancel_on_signals`): the grid engine's kernel holds the
     main thread for minutes on a large scene."""
     from drsplat.eval.datasets import load_labelled_points
-    from drsplat.eval.pseudolabels import pseudo_labels
+    from drsplat.eval.pseudolabels import KDTREE_MAX_COORDINATE, pseudo_labels
 
     check_classes(args, raw_names)
     pts = load_labelled_points(cloud, raw_names, args.classes)
+    if args.engine == "kdtree":  # a double-precision cloud can hold what scipy's KD-tree cannot square (the library's ValueError)
+        largest = float(np.abs(pts.points).max(initial=0.0))
+        if largest > KDTREE_MAX_COORDINATE:
+            raise InputError(cloud, f"holds point coordinates up to {largest:.3g}: the kdtree engine's squared distances overflow past "
+                                    f"{KDTREE_MAX_COORDINATE:.0e}; use --engine grid (the default)")
     token = CancelToken()
     with cancel_on_signals(token, "the current chunk of Gaussians"):
         res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,

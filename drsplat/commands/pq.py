@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders
+from drsplat.defaults import MIN_NORM
 from drsplat.errors import InputError, UsageError, shown_path
 from drsplat.lang.codebook import PQ_KSUB
 
@@ -74,10 +75,20 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
         dim = arr.shape[1]
         parts.append(float32_rows(path, arr))
     x = np.concatenate(parts)
-    ok = np.isfinite(x).all(axis=1) & (np.abs(x).sum(axis=1) > 0)
+    ok = np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
     if not ok.all():
         log.warning("skipping %d of %d embeddings that are zero or non-finite", int((~ok).sum()), len(x))
-    return x[ok]
+    # judged as the feature reader judges a mask's embedding (`features.format.read_features_report`), in float64: a float32 sum of
+    # values near 3e38 overflowed (numpy's warning on stderr) and such rows were trained on; a norm below float32's smallest normal
+    # keeps too few bits to hold a direction
+    chunk = 1 << 16  # rows at a time: a float64 square of every row at once would double the embeddings' memory
+    with np.errstate(invalid="ignore"):
+        norms = np.concatenate([np.zeros(0), *(np.sqrt(np.square(x[i : i + chunk], dtype=np.float64).sum(axis=1)) for i in range(0, len(x), chunk))])
+    huge, tiny = ok & (norms > np.finfo(np.float32).max), ok & (norms < MIN_NORM)
+    for bad, why in ((huge, "a norm beyond float32's range (+-3.4e38)"), (tiny, f"a norm below {MIN_NORM:.3g} (float32's smallest normal number), too small to hold a direction")):
+        if bad.any():
+            log.warning("skipping %d of %d embeddings that have %s", int(bad.sum()), len(x), why)
+    return x[ok & ~huge & ~tiny]
 
 
 def float32_rows(path: Path, arr: np.ndarray) -> np.ndarray:

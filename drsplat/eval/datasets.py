@@ -104,8 +104,11 @@ def clip_polygon(points: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi
         for i in range(poly.shape[0]):
             a, b = poly[i - 1], poly[i]
             if inside[i] != inside[i - 1]:  # the edge a -> b crosses the bound: keep the crossing
-                t = (bound - a[axis]) / (b[axis] - a[axis])
-                cross = a + t * (b - a)
+                # in halves (exact for normal numbers, so the same bits): b − a of two finite vertices ±1.7e308 apart
+                # overflowed to inf, and the crossing became NaN (numpy's warnings, then a wrong mask; round 46)
+                ha, hb = a * 0.5, b * 0.5
+                t = (bound * 0.5 - ha[axis]) / (hb[axis] - ha[axis])
+                cross = (ha + t * (hb - ha)) * 2.0
                 cross[axis] = bound
                 out.append(cross)
             if inside[i]:

@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from drsplat.query import thresholds_as_compared
+from drsplat.scene import MAX_COORDINATE
 
 log = logging.getLogger(__name__)
 
@@ -287,9 +288,14 @@ class VoxelGrid:
 
 
 def grid_for(means: np.ndarray, resolution: int = 96, padding: float = 0.02) -> VoxelGrid:
-    """A grid around `means` ([N, 3], finite rows only) with `resolution` voxels on the longest side."""
+    """A grid around `means` ([N, 3], finite rows within MAX_COORDINATE only) with `resolution` voxels on the longest side.
+
+    A mean beyond MAX_COORDINATE (1e15) is one no view can see (the scene loader says so; the rasterizer skips it):
+    in the box, two such Gaussians at ±3e38 made every voxel ~6e36 wide, so the whole scene fell in one voxel and the
+    voxel IoU of 7 of 8 labels was undefined (round 46). Such a Gaussian lies outside the grid, as its mass does."""
     m = np.asarray(means, np.float64)
-    m = m[np.isfinite(m).all(axis=1)]
+    with np.errstate(invalid="ignore"):
+        m = m[np.isfinite(m).all(axis=1) & (np.abs(m) <= MAX_COORDINATE).all(axis=1)]
     if m.shape[0] == 0:
         return VoxelGrid(np.zeros(3), 1.0, (1, 1, 1))
     lo, hi = m.min(axis=0), m.max(axis=0)

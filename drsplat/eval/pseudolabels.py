@@ -255,13 +255,18 @@ def _point_grid(pts: np.ndarray, half: np.ndarray, max_cells: int):
     enlarged when needed to keep at most `max_cells` cells.
     """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    extent = np.maximum(hi - lo, 1e-9)
+    with np.errstate(over="ignore"):  # points ±1.7e308 apart: an extent past the float64 range is inf (one cell, below)
+        extent = np.maximum(hi - lo, 1e-9)
     # a half-extent beyond the points' extent (or infinite) visits every cell whatever the cell size
     typical = float(np.median(np.minimum(half.max(axis=1), extent.max()))) if len(half) else 1.0
     with np.errstate(over="ignore"):  # a volume past the float64 range is inf: then one cell holds every point (right, only slower)
         h = max(typical, float(np.prod(extent) / max_cells) ** (1 / 3), float(extent.max()) / 4096, 1e-12)
-    dims = np.minimum(np.floor(extent / h).astype(np.int64) + 1, 1 << 20)
-    cell = np.minimum(((pts - lo) / h).astype(np.int64), dims - 1)
+    if math.isfinite(h):
+        dims = np.minimum(np.floor(extent / h).astype(np.int64) + 1, 1 << 20)
+        cell = np.minimum(((pts - lo) / h).astype(np.int64), dims - 1)
+    else:  # one cell, said without inf / inf: an infinite extent made NaN cell counts and indices, cast to int64's
+        # smallest value, and no Gaussian found a point (two points at ±1.7e308 beside a good cloud labelled nothing; round 46)
+        dims, cell = np.ones(3, np.int64), np.zeros((len(pts), 3), np.int64)
     flat = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     order = np.argsort(flat, kind="stable")
     start = np.searchsorted(flat[order], np.arange(int(np.prod(dims)) + 1))

@@ -24,6 +24,7 @@ drsplat.lang.field dispatch through it).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,7 +33,7 @@ import numba
 import numpy as np
 
 from drsplat._scene_kernels import transpose_copy
-from drsplat.errors import InputError
+from drsplat.errors import InputError, shown_path
 from drsplat.lang.codebook import Codebook, unit_check, unit_rows
 from drsplat.lang.lut import (
     BLOCKED_MIN_M,
@@ -47,6 +48,8 @@ from drsplat.lang.lut import (
 )
 
 EXACT_CHUNK = 32768
+log = logging.getLogger(__name__)
+
 ENCODE_CHUNK = 65536
 
 ColumnGetter = Callable[[str], np.ndarray]  # PLY property name -> [N] array (raises InputError when missing)
@@ -336,6 +339,20 @@ class ExactStorage:
 NORM_RTOL = 2e-6  # stored vs recomputed reconstruction norm: intact rows of the demo are <= 1.3e-7 apart (float32 rounding)
 
 
+def _codes_with_lists(codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
+    """[n, M (+1)] int64: the PQ codes of n rows, with their inverted list (ivfpq) as a last column."""
+    return codes.astype(np.int64) if list_ids is None else np.concatenate([codes.astype(np.int64), list_ids[:, None].astype(np.int64)], axis=1)
+
+
+def _tells_directions_apart(codebook: Codebook, probes: int = 16) -> bool:
+    """Whether `codebook` gives `probes` random unit directions more than one code: a codebook of usable scale always
+    does (with M sub-quantisers of 256 centroids each); one whose centroids overflow or vanish in faiss's float32
+    distances gives them all the first code."""
+    rows = unit_rows(np.random.default_rng(0).standard_normal((probes, codebook.dim)).astype(np.float32))
+    full = _codes_with_lists(*codebook.encode(rows))
+    return bool((full != full[0]).any())
+
+
 @dataclass
 class PQStorage:
     """codes: [N, M] uint8; list_ids: [N] int32 coarse lists (ivfpq) or None; norms: [N] float32 of the
@@ -362,6 +379,8 @@ class PQStorage:
         codes = np.zeros((n, codebook.m), np.uint8)
         list_ids = np.zeros(n, np.int32) if codebook.kind == "ivfpq" else None
         norms = np.zeros(n, np.float32)
+        first: tuple[np.ndarray, np.ndarray] | None = None  # the first encoded row and its code (with its list)
+        encoded, rows_differ, codes_differ = 0, False, False
         for start in range(0, n, ENCODE_CHUNK):
             stop = min(n, start + ENCODE_CHUNK)
             x = np.asarray(features[start:stop], np.float32)
@@ -377,6 +396,20 @@ class PQStorage:
             if list_ids is not None:
                 list_ids[start + rows] = ids
             norms[start + rows] = reconstruction_norms(codebook, c, ids)
+            full = _codes_with_lists(c, ids)
+            first = first or (x[0].copy(), full[0].copy())
+            encoded += rows.size
+            rows_differ = rows_differ or bool((x != first[0]).any())
+            codes_differ = codes_differ or bool((full != first[1]).any())
+        if rows_differ and not codes_differ and not _tells_directions_apart(codebook):  # not merely features too alike for it
+            # faiss assigns codes by float32 squared distances: centroids of 1e20 overflow them to inf, of 1e18 or 1e-20 swamp or
+            # vanish beside a unit row's sub-vectors, and every row gets the first code (a codebook scaled by a corrupt or
+            # hand-made file; round 46): every Gaussian would score alike, without a word
+            scale = float(np.abs(codebook.centroids).max())
+            log.warning("%s: the codebook gives all %s features the same code, though they differ: its centroids (largest "
+                        "magnitude %.3g) cannot tell unit features apart in faiss's float32 distances (CLIP codebooks' centroids "
+                        "are near unit scale), so every Gaussian scores alike", "codebook" if codebook.path is None else shown_path(codebook.path),
+                        f"{encoded:,}", scale)
         return cls(codes, list_ids, norms, codebook)
 
     def norm_mismatches(self, rtol: float = NORM_RTOL) -> np.ndarray:
