@@ -106,20 +106,11 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if beyond.size:  # the float32 cast would make them inf (with numpy's overflow warning)
         raise InputError(path, f"rows {beyond[:10].tolist()} hold values beyond float32's range (±3.4e38); embeddings are stored as float32")
     wide = arr.astype(np.float64)
-    with np.errstate(invalid="ignore"):  # each row's norm as stored, scaled by its largest value (1e-300 squared is 0 in float64)
-        largest = np.abs(wide).max(axis=1)
-        ok = np.isfinite(largest) & (largest > 0)
-        scaled = wide / np.where(ok, largest, 1.0)[:, None]
-        stored_norms = np.where(ok, largest * np.sqrt(np.einsum("ij,ij->i", np.where(ok[:, None], scaled, 0.0), np.where(ok[:, None], scaled, 0.0))), 0.0)
-    arr = arr.astype(np.float32)
-    bad = ~has_direction(arr)
-    underflow = bad & ok & np.isfinite(wide).all(axis=1) & (stored_norms < MIN_NORM)  # a float64 row of 1e-300 is no zero row in its file
-    if underflow.any():
-        raise InputError(path, f"rows {np.flatnonzero(underflow)[:10].tolist()} have a norm of {stored_norms[underflow].min():.3g}, below float32's "
-                               f"smallest normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an embedding: rescale it")
+    bad = ~has_direction(wide)  # judged as stored: a float64 row of 1e-300 has a direction in its file (its float32 cast has none)
     if bad.any():
         raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
-    norms = np.linalg.norm(arr.astype(np.float64), axis=1)
+    peak = np.abs(wide).max(axis=1)
+    norms = peak * np.linalg.norm(wide / peak[:, None], axis=1)  # scaled by the peak: 1e-300 squared is 0 even in float64
     huge = norms > np.finfo(np.float32).max  # its float32 norm is inf: garbage, not an embedding (CLIP's are near 1)
     if huge.any():
         raise InputError(path, f"rows {np.flatnonzero(huge)[:10].tolist()} have a norm of {norms[huge].max():.3g}, beyond float32's range "
@@ -128,7 +119,7 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     if tiny.any():
         raise InputError(path, f"rows {np.flatnonzero(tiny)[:10].tolist()} have a norm of {norms[tiny].min():.3g}, below float32's smallest "
                                f"normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an embedding: rescale it")
-    return unit_rows(arr)
+    return unit_rows(arr.astype(np.float32))
 
 
 def load_gaussian_ids(path: str | Path, n: int) -> np.ndarray:

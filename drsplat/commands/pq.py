@@ -47,7 +47,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
     """All embedding rows [n, D] float32 from .npy files and feature folders (finite nonzero rows)."""
-    from drsplat.features.format import FEAT_SUFFIX
+    from drsplat.features.format import FEAT_SUFFIX, embedding_norms
     from drsplat.utils import load_npy
 
     files = list(arrays)
@@ -81,9 +81,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
     # judged as the feature reader judges a mask's embedding (`features.format.read_features_report`), in float64: a float32 sum of
     # values near 3e38 overflowed (numpy's warning on stderr) and such rows were trained on; a norm below float32's smallest normal
     # keeps too few bits to hold a direction
-    chunk = 1 << 16  # rows at a time: a float64 square of every row at once would double the embeddings' memory
-    with np.errstate(invalid="ignore"):
-        norms = np.concatenate([np.zeros(0), *(np.sqrt(np.square(x[i : i + chunk], dtype=np.float64).sum(axis=1)) for i in range(0, len(x), chunk))])
+    norms = embedding_norms(x)
     huge, tiny = ok & (norms > np.finfo(np.float32).max), ok & (norms < MIN_NORM)
     for bad, why in ((huge, "a norm beyond float32's range (+-3.4e38)"), (tiny, f"a norm below {MIN_NORM:.3g} (float32's smallest normal number), too small to hold a direction")):
         if bad.any():

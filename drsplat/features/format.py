@@ -241,9 +241,8 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     with np.errstate(over="ignore", invalid="ignore"):  # float64 values past float32 become inf: counted below, without numpy's warning
         feats = feats.astype(np.float32)
     row_ok = np.isfinite(feats).all(axis=1)
-    with np.errstate(invalid="ignore"):  # rows whose norm overflows float32 (values near 3e38): as unusable as inf
-        norms = np.sqrt(np.square(feats, dtype=np.float64).sum(axis=1))
-        row_ok &= norms <= np.finfo(np.float32).max
+    norms = embedding_norms(feats)
+    row_ok &= norms <= np.finfo(np.float32).max  # rows whose norm overflows float32 (values near 3e38): as unusable as inf
     bad = int(m - np.count_nonzero(row_ok))
     if bad:
         if not drop_nonfinite:
@@ -269,6 +268,17 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
                     "since only their direction is lifted", fpath, int(off.sum()), m, norms[off].min(), norms[off].max())
         feats[off] = (feats[off].astype(np.float64) / norms[off, None]).astype(np.float32)
     return ids.astype(np.int32), feats, bad
+
+
+def embedding_norms(feats: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
+    """[N] float64 L2 norms of embedding rows feats [N, D] float32, squares summed in float64 (whose range
+    holds the square of every finite float32, 3.4e38² and 1e-45²: no overflow or underflow), `chunk`
+    rows at a time so a large array is not copied whole in float64. A non-finite row's norm is NaN or inf."""
+    out = np.empty(feats.shape[0], np.float64)
+    with np.errstate(invalid="ignore"):
+        for i in range(0, feats.shape[0], chunk):
+            out[i : i + chunk] = np.sqrt(np.square(feats[i : i + chunk], dtype=np.float64).sum(axis=1))
+    return out
 
 
 def resample_nearest(mask_ids: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -339,9 +339,9 @@ class ExactStorage:
 NORM_RTOL = 2e-6  # stored vs recomputed reconstruction norm: intact rows of the demo are <= 1.3e-7 apart (float32 rounding)
 
 
-def _codes_with_lists(codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
-    """[n, M (+1)] int64: the PQ codes of n rows, with their inverted list (ivfpq) as a last column."""
-    return codes.astype(np.int64) if list_ids is None else np.concatenate([codes.astype(np.int64), list_ids[:, None].astype(np.int64)], axis=1)
+def _other_code(codes: np.ndarray, list_ids: np.ndarray | None, code: np.ndarray, list_id: int | None) -> bool:
+    """Whether any of the rows' PQ codes [n, M] (with their inverted lists [n], ivfpq) differs from `code` (`list_id`)."""
+    return bool((codes != code).any()) or (list_ids is not None and bool((list_ids != list_id).any()))
 
 
 def _tells_directions_apart(codebook: Codebook, probes: int = 16) -> bool:
@@ -349,8 +349,8 @@ def _tells_directions_apart(codebook: Codebook, probes: int = 16) -> bool:
     does (with M sub-quantisers of 256 centroids each); one whose centroids overflow or vanish in faiss's float32
     distances gives them all the first code."""
     rows = unit_rows(np.random.default_rng(0).standard_normal((probes, codebook.dim)).astype(np.float32))
-    full = _codes_with_lists(*codebook.encode(rows))
-    return bool((full != full[0]).any())
+    codes, list_ids = codebook.encode(rows)
+    return _other_code(codes, list_ids, codes[0], None if list_ids is None else list_ids[0])
 
 
 @dataclass
@@ -379,7 +379,7 @@ class PQStorage:
         codes = np.zeros((n, codebook.m), np.uint8)
         list_ids = np.zeros(n, np.int32) if codebook.kind == "ivfpq" else None
         norms = np.zeros(n, np.float32)
-        first: tuple[np.ndarray, np.ndarray] | None = None  # the first encoded row and its code (with its list)
+        first = None  # (row, code, list) of the first encoded row, while every code equals its code
         encoded, rows_differ, codes_differ = 0, False, False
         for start in range(0, n, ENCODE_CHUNK):
             stop = min(n, start + ENCODE_CHUNK)
@@ -396,11 +396,11 @@ class PQStorage:
             if list_ids is not None:
                 list_ids[start + rows] = ids
             norms[start + rows] = reconstruction_norms(codebook, c, ids)
-            full = _codes_with_lists(c, ids)
-            first = first or (x[0].copy(), full[0].copy())
             encoded += rows.size
-            rows_differ = rows_differ or bool((x != first[0]).any())
-            codes_differ = codes_differ or bool((full != first[1]).any())
+            if not codes_differ:  # for a usable codebook settled within the first chunk: nothing more is compared after it
+                first = first or (x[0].copy(), c[0].copy(), None if ids is None else ids[0])
+                codes_differ = _other_code(c, ids, first[1], first[2])
+                rows_differ = rows_differ or bool((x != first[0]).any())
         if rows_differ and not codes_differ and not _tells_directions_apart(codebook):  # not merely features too alike for it
             # faiss assigns codes by float32 squared distances: centroids of 1e20 overflow them to inf, of 1e18 or 1e-20 swamp or
             # vanish beside a unit row's sub-vectors, and every row gets the first code (a codebook scaled by a corrupt or
