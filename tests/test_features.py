@@ -568,6 +568,21 @@ def test_ray_cuda_actor_count_is_one_per_gpu_with_a_cpu_beside_it():
         actor_count([node(8), node(4)], 1, None, "h:1")
 
 
+def test_ray_feature_workers_whose_manifests_differ_are_one_error_naming_the_entry():
+    """Each feature worker makes the manifest as it loads its models (a lost node cannot stop the run
+    at a later manifest call, CI of stop 82); two that differ (a node's weights file of the same name
+    holding other weights) would mix two models' features in one folder, and are refused."""
+    from drsplat.features.ray import _check_same_manifests
+
+    one = {"format": "langsplat", "clip_weights": "600:aa", "dim": 512}
+    _check_same_manifests([one, dict(one), dict(one)])
+    with pytest.raises(DrsplatError, match=r"manifests differ in 'clip_weights' \('600:aa' on one node, '600:bb' on another\); every node needs the "
+                                           r"same weights files"):
+        _check_same_manifests([one, dict(one), {**one, "clip_weights": "600:bb"}])
+    with pytest.raises(DrsplatError, match=r"differ in 'sam_weights' \(None on one node, '1:cc' on another\)"):
+        _check_same_manifests([one, {**one, "sam_weights": "1:cc"}])
+
+
 @pytest.fixture
 def fake_gpu_cluster():
     """A local two-node Ray cluster that declares three GPUs Ray cannot use: two on a head node with

@@ -6,6 +6,7 @@ Its own two-node cluster (ray.cluster_utils.Cluster, one CPU each), since the te
 
 from __future__ import annotations
 
+import time
 
 import numpy as np
 import pytest
@@ -69,12 +70,22 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
     np.testing.assert_array_equal(box["result"].weights, local.weights)
 
 
-def test_a_node_lost_while_features_run_moves_its_images(cluster, tmp_path, monkeypatch, capsys):
+def _node_of(actor) -> str:
+    """The Ray node an actor runs on (GCS's actor table; the state API would need the dashboard)."""
+    from ray._private import state
+
+    return state.actors(actor_id=actor._actor_id.hex())["Address"]["NodeID"]
+
+
+@pytest.mark.parametrize("lost_worker", ["first", "second"])
+def test_a_node_lost_while_features_run_moves_its_images(cluster, tmp_path, monkeypatch, capsys, lost_worker):
     """Was (round 42): `features --ray` on a two-node cluster whose second node is lost once the
     workers loaded their models stopped with "a Ray feature worker failed after 3 retries: ... is
     temporarily unavailable" (ActorPool neither retries a lost node's call nor gives up its actor),
     however many workers were left. Now the image goes to a worker left, and the files are the local
-    run's."""
+    run's. Was too (CI of stop 82): the lost node held the first started worker, the one then asked
+    for the manifest, and Ray's ActorUnavailableError stopped the run; the started workers are
+    ordered here so that each place is tested every run."""
     import drsplat.features.ray as fr
     from drsplat.cli import main
     from tests.test_clip import TINY_CLIP, make_tiny_clip
@@ -90,9 +101,14 @@ def test_a_node_lost_while_features_run_moves_its_images(cluster, tmp_path, monk
     started = fr._check_started
 
     def then_lose_a_node(*args, **kwargs):
-        started_actors = started(*args, **kwargs)
-        cluster.remove_node(next(iter(cluster.worker_nodes)), allow_graceful=False)
-        return started_actors
+        started_actors, manifest = started(*args, **kwargs)
+        node = next(iter(cluster.worker_nodes))
+        on_it = [a for a in started_actors if _node_of(a) == node.node_id]
+        assert len(on_it) == 1 and len(started_actors) == 2, "one worker on each node (one CPU each)"
+        others = [a for a in started_actors if a is not on_it[0]]
+        cluster.remove_node(node, allow_graceful=False)
+        time.sleep(1.0)  # its worker's process gone (the failure seen in CI), the node not yet marked dead
+        return (on_it + others if lost_worker == "first" else others + on_it), manifest
 
     monkeypatch.setattr(fr, "_check_started", then_lose_a_node)
     assert features(tmp_path / "ray", "--ray", cluster.address, "--ray-workers", "2") == 0

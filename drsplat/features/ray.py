@@ -4,7 +4,7 @@ One actor per worker loads the mask generator and CLIP once (on a GPU of its own
 is CUDA: one actor per GPU that has a CPU beside it on its node, never more, so none waits forever
 for a slot; a cluster without GPUs is refused up front); every actor is checked to have started
 before any image is sent, so a worker that cannot load its models (no usable GPU on its node) is
-one error, not a wait. The driver sends images and writes the returned `<stem>_s.npy` /
+one error, not a wait; each makes the folder's manifest as it loads (two that differ are one error). The driver sends images and writes the returned `<stem>_s.npy` /
 `<stem>_f.npy` atomically itself, so a dead worker (actor restarted, call retried) leaves no half
 or duplicate file, and complete pairs already on disk are skipped. A worker whose node is lost
 has its image sent to another worker (`_results_as_they_come`); so has a worker never placed (the
@@ -85,16 +85,13 @@ class _FeatureWorker:
             raise DrsplatError(self.error)
         return self.models
 
-    def load(self) -> str | None:
+    def load(self, resolution: float, max_height: int | None, extra: dict | None) -> tuple[str | None, dict | None]:
+        """(None, the features folder's manifest as this worker makes it), or (why its models did not load, None)."""
         try:
-            self._models()
+            generator, encoder = self._models()
         except DrsplatError:
-            return self.error
-        return None
-
-    def manifest(self, resolution: float, max_height: int | None, extra: dict | None) -> dict:
-        generator, encoder = self._models()
-        return make_manifest(generator, encoder, self.nms, resolution, max_height, extra)
+            return self.error, None
+        return None, make_manifest(generator, encoder, self.nms, resolution, max_height, extra)
 
     def extract(self, stem: str, image: np.ndarray):
         generator, encoder = self._models()
@@ -102,34 +99,41 @@ class _FeatureWorker:
         return stem, seg, feats, times, counts
 
 
-def _check_started(actors: list, cancel: CancelToken | None = None) -> list:
-    """The actors that started, each with its models loaded. The placed ones first
-    (drsplat.cluster.placed_actors: a worker not placed while others are is given up with a warning,
-    none placed in STALL_SECONDS is one DrsplatError, not a wait). One DrsplatError when any placed worker could not
-    load its models (e.g. a GPU Ray declared that torch cannot use); a cancel is seen within WAIT_SECONDS."""
+def _check_started(actors: list, manifest_args: tuple, cancel: CancelToken | None = None) -> tuple[list, dict]:
+    """The actors that started, each with its models loaded, and the features folder's manifest they
+    made as they loaded (manifest_args: resolution, max_height, extra of make_manifest). The placed
+    ones first (drsplat.cluster.placed_actors: a worker not placed while others are is given up with a
+    warning, none placed in STALL_SECONDS is one DrsplatError, not a wait). One DrsplatError when any
+    placed worker could not load its models (e.g. a GPU Ray declared that torch cannot use), or when
+    two workers make other manifests (another weights file or package version on a node: their
+    features would be mixed in one folder); a cancel is seen within WAIT_SECONDS.
+
+    The manifest comes with the load, not from a later call: a node lost once its worker loaded
+    (Ray: unavailable) stopped the run there, whoever was left to take its images."""
     ray = import_ray()
     loads: dict[int, Any] = {}
 
     def load_once_placed(actor) -> None:  # queued behind `ready`: a worker loads as soon as it is placed
-        loads[id(actor)] = actor.load.remote()
+        loads[id(actor)] = actor.load.remote(*manifest_args)
 
     placed = placed_actors(actors, "feature", "images", cancel, queue_after_ready=load_once_placed)
     try:
         loading = {loads[id(a)]: a for a in placed}
-        started, errors = [], []
+        started, errors, manifests = [], [], []
         while loading:  # no bound: a placed worker loading its models is progressing
             ready, _ = ray.wait(list(loading), num_returns=len(loading), timeout=WAIT_SECONDS)
             kill_if_cancelled(ray, actors, cancel)
             for ref in ready:
                 a = loading.pop(ref)
                 try:
-                    error = ray.get(ref)
+                    error, manifest = ray.get(ref)
                 except ray.exceptions.ActorUnavailableError:  # its node lost while it loaded
                     log.warning("Ray: a feature worker was lost while it loaded its models (its node became unavailable)")
                     ray.kill(a, no_restart=True)
                     continue
                 if error is None:
                     started.append(a)
+                    manifests.append(manifest)
                 else:
                     errors.append(error)
     except ray.exceptions.RayError as exc:
@@ -138,7 +142,20 @@ def _check_started(actors: list, cancel: CancelToken | None = None) -> list:
         raise DrsplatError(f"{len(errors)} of {len(placed)} Ray feature workers could not load their models: {errors[0]}")
     if not started:
         raise DrsplatError("every Ray feature worker was lost while it loaded its models (their nodes became unavailable)")
-    return started
+    _check_same_manifests(manifests)
+    return started, manifests[0]
+
+
+def _check_same_manifests(manifests: list[dict]) -> None:
+    """One DrsplatError naming the first entry on which two workers' manifests differ (e.g.
+    clip_weights: a node's weights file of the same name holds other weights)."""
+    first = manifests[0]
+    for other in manifests[1:]:
+        differ = sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
+        if differ:
+            key = differ[0]
+            raise DrsplatError(f"two Ray feature workers would make other features: their manifests differ in {key!r} ({first.get(key)!r} "
+                               f"on one node, {other.get(key)!r} on another); every node needs the same weights files and packages")
 
 
 def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):
@@ -230,8 +247,7 @@ def extract_features_ray(
         actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
         actors = [actor.remote(spec) for _ in range(count)]
         log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
-        started = _check_started(actors, cancel)
-        manifest = ray.get(started[0].manifest.remote(resolution, max_height, manifest_extra))
+        started, manifest = _check_started(actors, (resolution, max_height, manifest_extra), cancel)
         stamps = ImageStamps.read(out)
         check_manifest_compatible(out, manifest)
         out.mkdir(parents=True, exist_ok=True)
