@@ -568,19 +568,27 @@ def test_ray_cuda_actor_count_is_one_per_gpu_with_a_cpu_beside_it():
         actor_count([node(8), node(4)], 1, None, "h:1")
 
 
-def test_ray_feature_workers_whose_manifests_differ_are_one_error_naming_the_entry():
+def test_ray_feature_workers_whose_manifests_differ_are_one_error_naming_the_entry(caplog):
     """Each feature worker makes the manifest as it loads its models (a lost node cannot stop the run
-    at a later manifest call, CI of stop 82); two that differ (a node's weights file of the same name
-    holding other weights) would mix two models' features in one folder, and are refused."""
+    at a later manifest call, CI of stop 82); two that differ in what shapes the features (a node's
+    weights file of the same name holding other weights) would mix two models' features in one
+    folder, and are refused. Each host's own hub cache path is not a difference; other library
+    versions are said."""
     from drsplat.features.ray import _check_same_manifests
 
-    one = {"format": "langsplat", "clip_weights": "600:aa", "dim": 512}
-    _check_same_manifests([one, dict(one), dict(one)])
+    one = {"format": "langsplat", "clip_weights": "600:aa", "dim": 512, "clip": {"checkpoint": "/home/a/.cache/x.bin"},
+           "versions": {"torch": "2.14.1"}}
+    with caplog.at_level("WARNING"):
+        _check_same_manifests([one, dict(one), {**one, "clip": {"checkpoint": "/root/.cache/x.bin"}}])
+    assert not caplog.text
     with pytest.raises(DrsplatError, match=r"manifests differ in 'clip_weights' \('600:aa' on one node, '600:bb' on another\); every node needs the "
                                            r"same weights files"):
         _check_same_manifests([one, dict(one), {**one, "clip_weights": "600:bb"}])
     with pytest.raises(DrsplatError, match=r"differ in 'sam_weights' \(None on one node, '1:cc' on another\)"):
         _check_same_manifests([one, {**one, "sam_weights": "1:cc"}])
+    with caplog.at_level("WARNING"):
+        _check_same_manifests([one, {**one, "versions": {"torch": "2.14.0"}}])
+    assert "other library versions ({'torch': '2.14.1'} on one, {'torch': '2.14.0'} on another)" in caplog.text
 
 
 @pytest.fixture

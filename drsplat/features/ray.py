@@ -30,6 +30,7 @@ from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
     IMAGE_STAMPS,
+    RESUME_KEYS,
     FeatureReport,
     ImageStamps,
     build_models,
@@ -147,15 +148,25 @@ def _check_started(actors: list, manifest_args: tuple, cancel: CancelToken | Non
 
 
 def _check_same_manifests(manifests: list[dict]) -> None:
-    """One DrsplatError naming the first entry on which two workers' manifests differ (e.g.
-    clip_weights: a node's weights file of the same name holds other weights)."""
+    """One DrsplatError naming the first entry that shapes the features (the models, their weights'
+    digests, the mask and resize settings: RESUME_KEYS and the model identity) on which two workers'
+    manifests differ, e.g. clip_weights: a node's weights file of the same name holds other weights.
+    Other library versions are a warning (the features may differ in their last bits); paths are
+    not compared, since each host has its own hub cache."""
     first = manifests[0]
     for other in manifests[1:]:
-        differ = sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
+        differ = [k for k in SHAPING_KEYS if first.get(k) != other.get(k)]
         if differ:
             key = differ[0]
             raise DrsplatError(f"two Ray feature workers would make other features: their manifests differ in {key!r} ({first.get(key)!r} "
-                               f"on one node, {other.get(key)!r} on another); every node needs the same weights files and packages")
+                               f"on one node, {other.get(key)!r} on another); every node needs the same weights files and settings")
+        if first.get("versions") != other.get("versions"):
+            log.warning("Ray: the feature workers' nodes run other library versions (%s on one, %s on another): their features may "
+                        "differ in their last bits", first.get("versions"), other.get("versions"))
+            return
+
+
+SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)
 
 
 def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):
