@@ -91,6 +91,46 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     return unit_rows(mean)[0]
 
 
+@dataclass
+class EmbeddingRowProblems:
+    """Rows of an embedding file [K, D] that float32 cannot use, each judged as stored (a float64 row
+    of 1e-300 has a direction in its file; its float32 cast has none), one [K] mask per kind; a row
+    is in the first kind it meets, in this order. norms: [K] float64, as stored."""
+
+    beyond_float32: np.ndarray  # a finite value past ±3.4e38: the float32 cast is inf
+    no_direction: np.ndarray  # zero, NaN or infinite
+    huge_norm: np.ndarray  # finite values whose sum of squares overflows float32: not an embedding (CLIP's are near 1)
+    tiny_norm: np.ndarray  # a norm below float32's smallest normal: subnormal entries keep a few bits each
+    norms: np.ndarray
+
+    def any(self) -> np.ndarray:
+        return self.beyond_float32 | self.no_direction | self.huge_norm | self.tiny_norm
+
+    def counts(self) -> str:
+        """'2 beyond float32's range, 1 zero or non-finite' (the kinds that occur)."""
+        kinds = (("beyond float32's range", self.beyond_float32), ("zero or non-finite", self.no_direction),
+                 ("of a norm beyond float32's range", self.huge_norm), ("of a norm below float32's smallest normal", self.tiny_norm))
+        return ", ".join(f"{int(m.sum())} {what}" for what, m in kinds if m.any())
+
+
+def embedding_row_problems(arr: np.ndarray) -> EmbeddingRowProblems:
+    """The rows of arr [K, D] (any float or integer dtype) that no float32 unit row can stand for
+    (EmbeddingRowProblems). The norm is taken scaled by each row's largest entry, so that 1e-300
+    squared is not 0 even in float64: norm = peak · ‖row / peak‖."""
+    with np.errstate(invalid="ignore"):
+        big = np.isfinite(arr) & (np.abs(arr) > np.finfo(np.float32).max) if arr.dtype.itemsize > 4 else np.zeros(arr.shape, bool)
+    beyond = big.any(axis=1)
+    wide = arr.astype(np.float64)
+    no_direction = ~has_direction(wide) & ~beyond
+    norms = np.zeros(len(arr))
+    ok = ~(beyond | no_direction)
+    peak = np.abs(wide[ok]).max(axis=1)
+    norms[ok] = peak * np.linalg.norm(wide[ok] / peak[:, None], axis=1)
+    huge = ok & (norms > np.finfo(np.float32).max)
+    tiny = ok & (norms < MIN_NORM)
+    return EmbeddingRowProblems(beyond, no_direction, huge, tiny, norms)
+
+
 def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     """Read Q.npy, (D,) or (K, D), as unit rows [K, D] (InputError for bad shape or values)."""
     arr = _load_npy(path)
@@ -101,24 +141,19 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
         raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {shape}")
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
-    with np.errstate(invalid="ignore"):
-        beyond = np.flatnonzero((np.abs(arr) > np.finfo(np.float32).max).any(axis=1)) if arr.dtype.itemsize > 4 else np.zeros(0, int)
-    if beyond.size:  # the float32 cast would make them inf (with numpy's overflow warning)
-        raise InputError(path, f"rows {beyond[:10].tolist()} hold values beyond float32's range (±3.4e38); embeddings are stored as float32")
-    wide = arr.astype(np.float64)
-    bad = ~has_direction(wide)  # judged as stored: a float64 row of 1e-300 has a direction in its file (its float32 cast has none)
-    if bad.any():
-        raise InputError(path, f"rows {np.flatnonzero(bad)[:10].tolist()} are zero or non-finite")
-    peak = np.abs(wide).max(axis=1)
-    norms = peak * np.linalg.norm(wide / peak[:, None], axis=1)  # scaled by the peak: 1e-300 squared is 0 even in float64
-    huge = norms > np.finfo(np.float32).max  # its float32 norm is inf: garbage, not an embedding (CLIP's are near 1)
-    if huge.any():
-        raise InputError(path, f"rows {np.flatnonzero(huge)[:10].tolist()} have a norm of {norms[huge].max():.3g}, beyond float32's range "
-                               "(the sum of squares overflows); this is not an embedding: rescale it")
-    tiny = norms < MIN_NORM  # subnormal entries keep a few bits each: a row of 3e-45 kept cosine ~0.6 to its direction, used without a word
-    if tiny.any():
-        raise InputError(path, f"rows {np.flatnonzero(tiny)[:10].tolist()} have a norm of {norms[tiny].min():.3g}, below float32's smallest "
-                               f"normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an embedding: rescale it")
+    bad = embedding_row_problems(arr)
+    if bad.beyond_float32.any():  # the float32 cast would make them inf (with numpy's overflow warning)
+        raise InputError(path, f"rows {np.flatnonzero(bad.beyond_float32)[:10].tolist()} hold values beyond float32's range (±3.4e38); "
+                               "embeddings are stored as float32")
+    if bad.no_direction.any():
+        raise InputError(path, f"rows {np.flatnonzero(bad.no_direction)[:10].tolist()} are zero or non-finite")
+    if bad.huge_norm.any():
+        raise InputError(path, f"rows {np.flatnonzero(bad.huge_norm)[:10].tolist()} have a norm of {bad.norms[bad.huge_norm].max():.3g}, beyond "
+                               "float32's range (the sum of squares overflows); this is not an embedding: rescale it")
+    if bad.tiny_norm.any():
+        raise InputError(path, f"rows {np.flatnonzero(bad.tiny_norm)[:10].tolist()} have a norm of {bad.norms[bad.tiny_norm].min():.3g}, below "
+                               f"float32's smallest normal number ({MIN_NORM:.3g}): too few bits to hold a direction; this is not an "
+                               "embedding: rescale it")
     return unit_rows(arr.astype(np.float32))
 
 

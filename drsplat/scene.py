@@ -303,6 +303,7 @@ class LoadReport:
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
     scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
+    negative_scales: int = 0  # .splat rows with a negative scale, read as its magnitude (a covariance holds its square)
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
     @property
@@ -318,6 +319,9 @@ class LoadReport:
             notes.append(f"{self.dropped_inf_rows} rows with infinite position, scale, rotation or colour dropped")
         if self.beyond_float32:
             notes.append(f"{self.beyond_float32} rows hold double-precision values beyond float32's range (+-3.4e38), read as infinite")
+        if self.negative_scales:
+            notes.append(f"{self.negative_scales} rows have a negative scale, read as its magnitude (a Gaussian's covariance R S² Rᵀ "
+                         "holds the square of each scale, so a viewer draws it so)")
         if self.clamped_opacity:
             notes.append(f"{self.clamped_opacity} infinite opacity logits clamped to +-{MAX_OPACITY_LOGIT:g}")
         if self.zero_quaternions:
@@ -999,6 +1003,7 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
     report.scene_extent = scene_extent(means)
     report.huge_scales = count_huge_scales(log_scales, report.scene_extent)
     report.beyond_float32 = int(cols.get("beyond_float32", 0))
+    report.negative_scales = int(cols.get("negative_scales", 0))
     report.nonfinite_extra = sum(int((~np.isfinite(v)).sum()) for v in extra.values() if np.issubdtype(v.dtype, np.floating))
     for note in report.findings():
         log.warning("%s: %s", path, note)

@@ -296,6 +296,22 @@ def test_benches_run_on_scenes_of_one_and_two_gaussians(scenes, capsys):
     assert code == 0 and "1 Gaussians, 2 orbiting views" in out, err
 
 
+def test_bench_io_on_a_scene_spz_cannot_hold_says_so_in_its_table(tmp_path, capsys):
+    """Was (round 46, left as found): `bench io` on a scene with a mean past .spz's 24-bit fixed point
+    stopped with "cannot write /tmp/tmpXXXX/scene.spz: positions reach 1e+07 units", naming a temp
+    file the user never gave. Now the .spz rows say "not written" and why, and the other types are timed."""
+    from drsplat.scene import save_ply
+    from drsplat.testing import gaussians
+
+    far = tmp_path / "far.ply"
+    save_ply(gaussians(np.array([[0.0, 0.0, 0.0], [1e7, 0.0, 0.0], [0.0, 1.0, 0.0]]), log_scale=-1.5, opacity_logit=5.0), far)
+    code, err, out = run_cli(["bench", "io", str(far), "--views", "0", "--repeats", "1"], capsys)
+    assert code == 0, err
+    assert out.count("| not written |") == 2 and "tmp" not in out.replace(str(tmp_path), "")
+    assert ".spz v3 (gzip): not written: positions reach 1e+07 units; .spz stores 24-bit fixed point" in out
+    assert "| .splat " in out and "| compressed PLY " in out
+
+
 def test_bench_tables_show_a_scene_named_with_escape_as_its_escaped_name(scenes, tmp_path, capsys):
     """Round 42 (left as found then): the bench commands printed a scene's file name raw, so a name
     holding ESC could rewrite the terminal's line; it is shown JSON-escaped, as every message shows it."""
@@ -449,8 +465,27 @@ def test_negatives_rows_with_nan_are_counted_and_left_out(tmp_path, caplog):
     np.save(tmp_path / "n.npy", rows)
     kept = text_negatives(tmp_path / "n.npy", 8)
     assert np.array_equal(kept, rows[[0, 2, 3]])
-    assert "2 of its 5 rows hold NaN or infinite values or are all zeros" in caplog.text
+    assert "2 of its 5 rows are no float32 embedding (2 zero or non-finite)" in caplog.text
     assert text_negatives(tmp_path / "absent.npy", 8) is None
+
+
+def test_negatives_rows_float32_cannot_hold_are_counted_by_kind(tmp_path, caplog):
+    """Was (round 46, left as found): a float64 row beyond float32's range was counted among the rows
+    holding "NaN or infinite values" (its float32 cast), and a row of subnormal norm was kept. Each kind
+    is now judged as stored, by the query loader's owner (drsplat.query.embedding_row_problems)."""
+    from drsplat.bench.query import text_negatives
+
+    rows = np.random.default_rng(0).normal(size=(6, 8))
+    rows[1, 2] = 1e39  # beyond float32
+    rows[2] = 1e-44  # a float32 cast keeps a few bits of a direction
+    rows[3] = 3e38  # finite in float32, its norm is not
+    rows[5, 0] = np.inf
+    np.save(tmp_path / "n.npy", rows)
+    with caplog.at_level("WARNING"):
+        kept = text_negatives(tmp_path / "n.npy", 8)
+    np.testing.assert_array_equal(kept, rows[[0, 4]].astype(np.float32))
+    assert ("4 of its 6 rows are no float32 embedding (1 beyond float32's range, 1 zero or non-finite, 1 of a norm beyond float32's range, "
+            "1 of a norm below float32's smallest normal)") in caplog.text
 
 
 # ----------------------------------------------------------------------------- bench scale

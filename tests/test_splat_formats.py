@@ -538,6 +538,24 @@ def test_hostile_splat_files(tmp_path):
     assert back.num_gaussians == 2 and report.dropped_nan_rows == 1 and report.dropped_inf_rows == 1
 
 
+def test_a_splat_row_with_a_negative_scale_reads_as_its_magnitude_and_is_said(tmp_path):
+    """Was (round 46, left as found): a `.splat` scale below 0 took a NaN log and its row was dropped
+    as one "with NaN values". A viewer's covariance R S² Rᵀ holds each scale's square, so the row
+    draws as the scale's magnitude: it is read so, and counted in its own finding."""
+    scene = random_scene(4, degree=0)
+    raw = np.frombuffer(encode_splat(scene), np.uint8).copy().reshape(4, 32)
+    scales = raw[:, 12:24].copy().view(np.float32)  # [4, 3]
+    flipped = scales.copy()
+    flipped[1, 0] *= -1
+    flipped[3] *= -1
+    raw[:, 12:24] = flipped.view(np.uint8)
+    back, report = load_scene_report(write(tmp_path / "signed.splat", raw.tobytes()))
+    plain, _ = load_scene_report(write(tmp_path / "plain.splat", encode_splat(scene)))
+    assert back.num_gaussians == 4 and report.dropped_nan_rows == 0 and report.negative_scales == 2
+    np.testing.assert_array_equal(back.log_scales, plain.log_scales)
+    assert any(f.startswith("2 rows have a negative scale, read as its magnitude") for f in report.findings())
+
+
 def test_trailing_bytes_in_a_gzip_spz_are_warned(tmp_path, caplog):
     scene = random_scene(8)
     body = gzip.decompress(encode_spz(scene, 3))

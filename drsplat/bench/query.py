@@ -20,9 +20,9 @@ import numpy as np
 from drsplat.commands.common import int_range, output_file, positive_int
 from drsplat.bench.common import choice_list, count_arg, count_list, format_table, guard_bench_outputs, machine_line, median_seconds, peak_rss_mb
 from drsplat.errors import DrsplatError, InputError, UsageError
-from drsplat.lang import (PQ_KSUB, Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, has_direction, load_codebook, lut_scores,
+from drsplat.lang import (PQ_KSUB, Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores,
                           lut_scores_blocked, train_codebook)
-from drsplat.query import unit_rows
+from drsplat.query import embedding_row_problems, unit_rows
 
 log = logging.getLogger(__name__)
 
@@ -389,8 +389,9 @@ def official_codebook(args: argparse.Namespace) -> Codebook | None:
 
 def text_negatives(path: Path, dim: int) -> np.ndarray | None:
     """The CLIP text embeddings [K, dim] of `path` (float32), None when there is no such file.
-    One error naming the file when it is not a readable 2-D numeric array of `dim` columns; rows
-    with a non-finite value or of zero length are counted and left out, with a warning (all of them: an error)."""
+    One error naming the file when it is not a readable 2-D numeric array of `dim` columns; rows no
+    float32 embedding can stand for (drsplat.query.embedding_row_problems: non-finite, zero, beyond
+    float32, a subnormal norm) are counted by kind and left out, with a warning (all of them: an error)."""
     from drsplat.utils import load_npy
 
     if not path.is_file():
@@ -399,14 +400,14 @@ def text_negatives(path: Path, dim: int) -> np.ndarray | None:
     if rows.ndim != 2 or rows.shape[1] != dim or rows.dtype.kind not in "fiu":
         raise InputError(path, f"is a {rows.dtype} array of shape {rows.shape}; expected [K, {dim}] numbers, one text embedding per row, "
                                "as wide as the codebook beside it")
-    with np.errstate(over="ignore", invalid="ignore"):
-        rows = rows.astype(np.float32)
-        usable = has_direction(rows)
-    if not usable.any():
-        raise InputError(path, f"none of its {len(rows)} rows is usable: each holds NaN or infinite values or is all zeros")
-    if not usable.all():
-        log.warning("%s: %d of its %d rows hold NaN or infinite values or are all zeros; left out of the 8-bit table", path, int((~usable).sum()), len(rows))
-    return rows[usable]
+    bad = embedding_row_problems(rows)
+    unusable = bad.any()
+    if unusable.all():
+        raise InputError(path, f"none of its {len(rows)} rows is usable as a float32 embedding ({bad.counts()})")
+    if unusable.any():
+        log.warning("%s: %d of its %d rows are no float32 embedding (%s); left out of the 8-bit table", path, int(unusable.sum()), len(rows),
+                    bad.counts())
+    return rows[~unusable].astype(np.float32)
 
 
 def check_flags(args: argparse.Namespace, backends: list[str]) -> None:
