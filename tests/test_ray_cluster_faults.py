@@ -188,7 +188,7 @@ def tiny_clip(tmp_path_factory) -> Path:
     return make_tiny_clip(tmp_path_factory.mktemp("weights"))
 
 
-def features_cli(tiny, clip, out, *extra, wait: float = 90.0):
+def features_cli(tiny, clip, out, *extra, wait: float = 180.0):
     """`drsplat features` (slic masks, the tiny CLIP, 64 px) on `tiny` into `out`, in a thread joined for
     `wait` s: (its exit status, or None when it still waits)."""
     from drsplat.cli import main
