@@ -206,12 +206,28 @@ def test_normalize_rows_matches_its_reference():
     _, bad_b = normalize_rows_reference(b, wb)
     assert bad_a == bad_b
     assert bad_a.dropped == 30 and bad_a.weak == 10  # rows 60-69: the five kept at 1.01e-4 of their weight and the five at 0.049
+    assert bad_a.nonfinite == 15  # rows 30-44 (NaN, inf, NaN weight) of the 30; the other 15 cancelled
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(wa, wb)
     ok = wa > 0
     np.testing.assert_allclose(np.linalg.norm(a[ok].astype(np.float64), axis=1), 1.0, rtol=1e-6)
     assert ok[50:55].all() and np.allclose(a[50:55], 1 / np.sqrt(37), rtol=1e-6)
     assert not ok[20:30].any() and not ok[55:60].any() and ok[60:65].all()
+
+
+def test_dropped_sums_are_said_by_their_cause():
+    """Was (round 45, left as found): Gaussians whose weight overflowed float32 (`--aggregate anchor`
+    on log scales past ~50) were dropped and counted, but the warning said their masks' embeddings
+    point opposite ways. Non-finite and cancelled sums are now counted and said apart."""
+    from drsplat.registration.driver import unusable_sums
+    from drsplat.registration.sums import RowFates
+
+    both = unusable_sums(RowFates(dropped=5, nonfinite=2))
+    assert both.startswith("2 Gaussians got a non-finite feature sum or weight (a weight beyond float32's range")
+    assert "; 3 Gaussians got feature sums that cancel out" in both and both.endswith("; they are left unassigned")
+    assert "cancel" not in unusable_sums(RowFates(dropped=2, nonfinite=2))
+    assert "non-finite" not in unusable_sums(RowFates(dropped=2))
+    assert RowFates(3, 1, 2) + RowFates(1, 0, 1) == RowFates(4, 1, 3)
 
 
 def test_normalize_rows_judges_a_trimmed_sum_against_the_weight_it_still_holds():
@@ -232,7 +248,7 @@ def test_normalize_rows_judges_a_trimmed_sum_against_the_weight_it_still_holds()
         f, w = F.copy(), W.copy()
         _, fates = kernel(f, w, kept=kept)
         assert (w[:4] > 0).all() and w[4] == 0 and w[5] == 0
-        assert fates.dropped == 2 and fates.weak == 0
+        assert fates.dropped == 2 and fates.weak == 0 and fates.nonfinite == 1
         np.testing.assert_allclose(f[:4], F[:4] / 1.8, rtol=1e-6)
         f, w = F.copy(), W.copy()
         _, fates = kernel(f, w)

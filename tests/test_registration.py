@@ -230,8 +230,8 @@ def test_sums_that_cancel_leave_their_gaussians_unassigned_and_say_why(tiny, tmp
         doubled += [cam, dataclasses.replace(cam, name=cam.name + "_neg")]
         half += [cam] + ([dataclasses.replace(cam, name=cam.name + "_neg")] if i % 2 else [])
     options = RegisterOptions(topk=10, aggregate="paper")
-    with pytest.raises(DrsplatError, match=r"no Gaussian kept a language feature from 32 views: \d+ Gaussians got feature sums that are "
-                                           r"non-finite or cancel out"):
+    with pytest.raises(DrsplatError, match=r"no Gaussian kept a language feature from 32 views: \d+ Gaussians got feature sums that "
+                                           r"cancel out .*; they are left unassigned"):
         register_features(scene, doubled, features, options, show_progress=False)
     clean = register_features(scene, cams, tiny / "features", options, show_progress=False)
     with caplog.at_level(logging.WARNING, logger="drsplat"):

@@ -236,13 +236,13 @@ def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
     return book
 
 
-def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: int = 0,
+def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: RowFates | None = None,
                      rejected: int = 0, mode: str = "") -> str:
     """The error when registration gave no Gaussian a feature (nothing is written); hint: `unassigned_hint`'s;
     unusable: Gaussians whose sums were dropped by `normalize_rows`, rejected: Gaussians with weight
     that `mode`'s floater rejection dropped (either is then the likely cause)."""
     written = f"; nothing was written to {out}" if out is not None else ""
-    if unusable:
+    if unusable is not None and unusable.dropped:
         return f"no Gaussian kept a language feature from {num_views} views: {unusable_sums(unusable)}{written}"
     if rejected:
         return (f"no Gaussian kept a language feature from {num_views} views: floater rejection (--aggregate {mode}) left all "
@@ -287,10 +287,19 @@ def weak_sums(count: int) -> str:
             "of one capture never disagree that much: were some feature files made with another model, or negated?)")
 
 
-def unusable_sums(count: int) -> str:
-    """What `normalize_rows` dropped, in words."""
-    return (f"{count} Gaussians got feature sums that are non-finite or cancel out (|Σ w f| ≤ {CANCEL_RATIO:g} Σ w: their masks' "
-            "embeddings point opposite ways) and are left unassigned")
+def unusable_sums(fates: RowFates) -> str:
+    """What `normalize_rows` dropped, in words: the non-finite sums and the cancelled ones apart, since
+    their causes differ (a weight past float32's range, a Gaussian of absurd size; masks' embeddings
+    pointing opposite ways)."""
+    parts = []
+    cancelled = fates.dropped - fates.nonfinite
+    if fates.nonfinite:
+        parts.append(f"{fates.nonfinite} Gaussians got a non-finite feature sum or weight (a weight beyond float32's range: a Gaussian "
+                     "of absurd size or opacity; or non-finite embeddings)")
+    if cancelled:
+        parts.append(f"{cancelled} Gaussians got feature sums that cancel out (|Σ w f| ≤ {CANCEL_RATIO:g} Σ w: their masks' "
+                     "embeddings point opposite ways)")
+    return "; ".join(parts) + "; they are left unassigned"
 
 
 def run_registration(
@@ -403,7 +412,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), fates.dropped,
+                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), fates,
                                                     aggregator.num_rejected, asked))
             written = target.close()
         else:
@@ -426,7 +435,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         ckpt.remove()
     aggregator.log_rejected(asked)
     if fates.dropped:
-        log.warning("%s", unusable_sums(fates.dropped))
+        log.warning("%s", unusable_sums(fates))
     if fates.weak:
         log.warning("%s", weak_sums(fates.weak))
     return RegistrationResult(
@@ -700,7 +709,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
         raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
-                                            sum(p.fates.dropped for p in parts), sum(p.rejected for p in parts), asked))
+                                            sum((p.fates for p in parts), RowFates()), sum(p.rejected for p in parts), asked))
     written = assemble_parts(Path(reduce.job.out), parts, codebook)  # the codebook written after the body, before the rename
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
             written, sum(p.seconds for p in parts))

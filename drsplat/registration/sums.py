@@ -30,16 +30,18 @@ WEAK_RESULTANT = 0.05  # |Σ w f| < this · Σ w: kept, but counted as a guess (
 @dataclass(frozen=True)
 class RowFates:
     """What `normalize_rows` did with the rows it did not simply normalise. dropped: rows left
-    unassigned (non-finite or cancelled sums); weak: rows kept whose sum is under WEAK_RESULTANT of
+    unassigned (non-finite or cancelled sums), of which nonfinite: those whose sum, weight or kept
+    weight is not finite (a weight past float32's range, NaN features); weak: rows kept whose sum is under WEAK_RESULTANT of
     its weight, |Σ w f| < 0.05 Σ w: the masks' embeddings point so many ways (or opposite ways) that
     the direction is decided by a small remainder of them. With CLIP's embeddings, whose pairwise
     cosines are well above 0, no sum comes near that; 400 equally weighted random unit vectors do."""
 
     dropped: int = 0
     weak: int = 0
+    nonfinite: int = 0
 
     def __add__(self, other: RowFates) -> RowFates:
-        return RowFates(self.dropped + other.dropped, self.weak + other.weak)
+        return RowFates(self.dropped + other.dropped, self.weak + other.weak, self.nonfinite + other.nonfinite)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -219,11 +221,12 @@ def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, wei
 @numba.njit(parallel=True, cache=True)
 def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cover - jitted
     """`normalize_rows` row by row in parallel, each norm judged against R (W, or the kept weight);
-    returns the counts of rows dropped for non-finite or cancelled sums and of rows kept under
-    weak_ratio of their weight."""
+    returns the counts of rows dropped for non-finite or cancelled sums, of rows kept under
+    weak_ratio of their weight, and of the dropped rows that were non-finite."""
     n, dim = F.shape
     bad = np.zeros(n, np.int64)
     weak = np.zeros(n, np.int64)
+    nonfinite = np.zeros(n, np.int64)
     whole = dim - dim % 8
     for i in numba.prange(n):
         f = F[i]
@@ -250,6 +253,7 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
         finite = np.isfinite(norm) and np.isfinite(w) and np.isfinite(r)
         if not finite and w != 0:
             bad[i] = 1
+            nonfinite[i] = 1
         if finite and w > 0 and not norm > cancel_ratio * r:
             bad[i] = 1
         if finite and w > 0 and norm > cancel_ratio * r:
@@ -266,7 +270,7 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
             for d in range(dim):
                 f[d] = 0.0
             W[i] = 0.0
-    return bad.sum(), weak.sum()
+    return bad.sum(), weak.sum(), nonfinite.sum()
 
 
 def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None) -> tuple[np.ndarray, RowFates]:
@@ -294,8 +298,8 @@ def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None)
         return F, RowFates()
     if not (F.flags.c_contiguous and F.dtype == np.float32 and W.dtype == np.float32 and (kept is None or kept.dtype == np.float32)):
         return normalize_rows_reference(F, W, kept=kept)
-    dropped, weak = _normalize_rows_kernel(F, W, W if kept is None else np.ascontiguousarray(kept), CANCEL_RATIO, WEAK_RESULTANT)
-    return F, RowFates(int(dropped), int(weak))
+    dropped, weak, nonfinite = _normalize_rows_kernel(F, W, W if kept is None else np.ascontiguousarray(kept), CANCEL_RATIO, WEAK_RESULTANT)
+    return F, RowFates(int(dropped), int(weak), int(nonfinite))
 
 
 def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536, kept: np.ndarray | None = None) -> tuple[np.ndarray, RowFates]:
@@ -305,14 +309,16 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536, k
 
     Returns (F, RowFates).
     """
-    bad_total = weak_total = 0
+    bad_total = weak_total = nonfinite_total = 0
     for start in range(0, F.shape[0], chunk):
         f, w = F[start : start + chunk], W[start : start + chunk]
         k = (w if kept is None else kept[start : start + chunk]).astype(np.float64)
         norm = np.sqrt(np.einsum("nd,nd->n", f, f, dtype=np.float64))
         finite = np.isfinite(norm) & np.isfinite(w) & np.isfinite(k)
         cancelled = finite & (w > 0) & ~(norm > CANCEL_RATIO * k)
-        bad_total += int(np.count_nonzero(~finite & (w != 0))) + int(np.count_nonzero(cancelled))
+        nonfinite = int(np.count_nonzero(~finite & (w != 0)))
+        nonfinite_total += nonfinite
+        bad_total += nonfinite + int(np.count_nonzero(cancelled))
         ok = finite & (w > 0) & ~cancelled
         weak_total += int(np.count_nonzero(ok & (norm < WEAK_RESULTANT * k)))
         with np.errstate(over="ignore"):
@@ -323,4 +329,4 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536, k
         f[usual] /= scale[usual, None]
         f[~ok] = 0.0
         w[~ok] = 0.0
-    return F, RowFates(bad_total, weak_total)
+    return F, RowFates(bad_total, weak_total, nonfinite_total)
