@@ -224,9 +224,8 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
     returns the counts of rows dropped for non-finite or cancelled sums, of rows kept under
     weak_ratio of their weight, and of the dropped rows that were non-finite."""
     n, dim = F.shape
-    bad = np.zeros(n, np.int64)
+    bad = np.zeros(n, np.int64)  # 1: cancelled, 2: non-finite (one array: the block's scratch is counted per Gaussian)
     weak = np.zeros(n, np.int64)
-    nonfinite = np.zeros(n, np.int64)
     whole = dim - dim % 8
     for i in numba.prange(n):
         f = F[i]
@@ -252,8 +251,7 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
         r = R[i]
         finite = np.isfinite(norm) and np.isfinite(w) and np.isfinite(r)
         if not finite and w != 0:
-            bad[i] = 1
-            nonfinite[i] = 1
+            bad[i] = 2
         if finite and w > 0 and not norm > cancel_ratio * r:
             bad[i] = 1
         if finite and w > 0 and norm > cancel_ratio * r:
@@ -270,7 +268,13 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
             for d in range(dim):
                 f[d] = 0.0
             W[i] = 0.0
-    return bad.sum(), weak.sum(), nonfinite.sum()
+    dropped = nonfinite = 0
+    for i in range(n):
+        if bad[i]:
+            dropped += 1
+            if bad[i] == 2:
+                nonfinite += 1
+    return dropped, weak.sum(), nonfinite
 
 
 def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None) -> tuple[np.ndarray, RowFates]:
