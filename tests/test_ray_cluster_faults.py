@@ -299,3 +299,23 @@ def test_a_cluster_with_nodes_on_other_hosts_gets_the_package_shipped(cluster, t
         ray.shutdown()
         monkeypatch.undo()
         dc.connect(cluster.address)  # as the fixture left it, for the tests after this one
+
+
+def test_feature_workers_read_the_weights_a_relative_path_names_from_the_drivers_folder(cluster, tiny, tiny_clip, tmp_path,
+                                                                                       monkeypatch):
+    """Was (probe r47): `features --ray ADDRESS --clip-checkpoint weights/x.pt --clip-config weights/x.json`, run
+    from a folder other than the one the cluster was started in, failed with "2 of 2 Ray feature workers
+    could not load their models: weights/x.json: file not found" (each worker resolved the paths in its
+    node's working folder), where the local run read them. Now the workers read the driver's files: the
+    local run's feature files."""
+    from tests.test_clip import TINY_CLIP
+
+    assert features_cli(tiny, tiny_clip, tmp_path / "local") == 0
+    monkeypatch.chdir(tiny_clip.parent.parent)  # not the folder the cluster was started in
+    relative = Path(tiny_clip.parent.name) / tiny_clip.name
+    assert (Path(tiny_clip.parent.name) / f"{TINY_CLIP}.json").is_file()
+    assert features_cli(tiny, relative, tmp_path / "ray", "--ray", cluster.address, "--ray-workers", "2") == 0
+    local = sorted(p.name for p in (tmp_path / "local").glob("*.npy"))
+    assert local and local == sorted(p.name for p in (tmp_path / "ray").glob("*.npy"))
+    for name in local:
+        np.testing.assert_array_equal(np.load(tmp_path / "ray" / name), np.load(tmp_path / "local" / name), err_msg=name)

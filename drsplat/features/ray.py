@@ -14,6 +14,7 @@ cluster's CPUs taken by other work) or stalled while the others progress, by reg
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import socket
 import time
@@ -250,6 +251,10 @@ def extract_features_ray(
     """
     ray = import_ray()
     out = Path(out_dir)
+    # the files a worker reads, as the driver's working folder names them: a worker's own is the one its
+    # node was started in (`ray start`'s), where a relative --clip-checkpoint is another file or none
+    spec = dataclasses.replace(spec, **{k: Path(v).absolute() for k in ("clip_checkpoint", "clip_config", "sam_checkpoint")
+                                        if (v := getattr(spec, k)) is not None})
     owns = connect(address)
     actors: list = []
     try:
