@@ -589,6 +589,31 @@ def test_ray_feature_workers_whose_manifests_differ_are_one_error_naming_the_ent
     with caplog.at_level("WARNING"):
         _check_same_manifests([one, {**one, "versions": {"torch": "2.14.0"}}])
     assert "other library versions ({'torch': '2.14.1'} on one, {'torch': '2.14.0'} on another)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        _check_same_manifests([{**one, "clip_precision": "float16"}, {**one, "clip_precision": "float32"}])
+    assert "other CLIP precisions (float16 on a CUDA device) (float16 on one, float32 on another)" in caplog.text
+
+
+def test_a_folder_resumed_in_another_clip_precision_is_said(tmp_path, caplog):
+    """Was (a probe of `features --ray`, left as found then fixed): CLIP embeds in float16 on a CUDA
+    device and float32 on the CPU, and nothing recorded which; a folder begun on a GPU and finished on
+    CPUs mixed the two without a word. The manifest records it, and a resume in the other is warned
+    about (not refused: the two differ in their last bits, as other library versions do)."""
+    from drsplat.features import format as featurefiles
+    from drsplat.features.extract import check_manifest_compatible, clip_precision
+
+    class Encoder:
+        dtype = "torch.float16"
+
+    assert clip_precision(Encoder()) == "float16" and clip_precision(object()) is None
+    made = {"format": "langsplat", "mask_generator": "slic", "clip_model_id": "m/p", "clip_precision": "float16"}
+    featurefiles.write_manifest(tmp_path, made)
+    with caplog.at_level("WARNING"):
+        check_manifest_compatible(tmp_path, dict(made))
+        assert not caplog.text
+        check_manifest_compatible(tmp_path, {**made, "clip_precision": "float32"})
+    assert "holds features CLIP made in float16, this run's are in float32" in caplog.text
 
 
 @pytest.fixture

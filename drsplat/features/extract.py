@@ -239,10 +239,18 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
         "max_height": max_height,
         "clip_weights": weights_digest(encoder.checkpoint),
         "sam_weights": weights_digest(getattr(generator, "checkpoint", None)),
+        "clip_precision": clip_precision(encoder),
         "versions": versions(),
     }
     manifest.update(extra or {})
     return manifest
+
+
+def clip_precision(encoder) -> str | None:
+    """'float16' or 'float32': the precision CLIP embeds in (float16 on a CUDA device); None when the
+    encoder does not say."""
+    dtype = getattr(encoder, "dtype", None)
+    return None if dtype is None else str(dtype).removeprefix("torch.")
 
 
 def weights_digest(path: str | Path | None) -> str | None:
@@ -281,6 +289,9 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
                                f"would mix the two in one folder; use a new --out folder or the same {flag}{_no_pair_yet(features_dir)}")
     for key, flag in (("source", "--source"), ("sam_checkpoint", "--sam-checkpoint")):
         check_same_path(features_dir, key, flag, old.get(key), manifest.get(key))
+    if old.get("clip_precision") and manifest.get("clip_precision") and old["clip_precision"] != manifest["clip_precision"]:
+        log.warning("%s holds features CLIP made in %s, this run's are in %s (CLIP runs in float16 on a CUDA device, float32 on "
+                    "the CPU: --device): the two differ in their last bits", features_dir, old["clip_precision"], manifest["clip_precision"])
 
 
 def _no_pair_yet(features_dir: Path) -> str:

@@ -152,8 +152,9 @@ def _check_same_manifests(manifests: list[dict]) -> None:
     """One DrsplatError naming the first entry that shapes the features (the models, their weights'
     digests, the mask and resize settings: RESUME_KEYS and the model identity) on which two workers'
     manifests differ, e.g. clip_weights: a node's weights file of the same name holds other weights.
-    Other library versions are a warning (the features may differ in their last bits); paths are
-    not compared, since each host has its own hub cache."""
+    Other library versions or CLIP precisions (`--device auto` on a cluster of GPU and CPU nodes) are
+    a warning (the features may differ in their last bits); paths are not compared, since each host
+    has its own hub cache."""
     first = manifests[0]
     for other in manifests[1:]:
         differ = [k for k in SHAPING_KEYS if first.get(k) != other.get(k)]
@@ -161,10 +162,11 @@ def _check_same_manifests(manifests: list[dict]) -> None:
             key = differ[0]
             raise DrsplatError(f"two Ray feature workers would make other features: their manifests differ in {key!r} ({first.get(key)!r} "
                                f"on one node, {other.get(key)!r} on another); every node needs the same weights files and settings")
-        if first.get("versions") != other.get("versions"):
-            log.warning("Ray: the feature workers' nodes run other library versions (%s on one, %s on another): their features may "
-                        "differ in their last bits", first.get("versions"), other.get("versions"))
-            return
+        for key, what in (("versions", "library versions"), ("clip_precision", "CLIP precisions (float16 on a CUDA device)")):
+            if first.get(key) != other.get(key):
+                log.warning("Ray: the feature workers' nodes run other %s (%s on one, %s on another): their features may differ in "
+                            "their last bits", what, first.get(key), other.get(key))
+                return
 
 
 SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)
