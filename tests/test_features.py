@@ -586,6 +586,8 @@ def test_ray_feature_workers_whose_manifests_differ_are_one_error_naming_the_ent
         _check_same_manifests([one, dict(one), {**one, "clip_weights": "600:bb"}])
     with pytest.raises(DrsplatError, match=r"differ in 'sam_weights' \(None on one node, '1:cc' on another\)"):
         _check_same_manifests([one, {**one, "sam_weights": "1:cc"}])
+    with pytest.raises(DrsplatError, match=r"differ in 'dim'"):  # a third worker's difference is seen past a second's other versions
+        _check_same_manifests([one, {**one, "versions": {"torch": "2.14.0"}}, {**one, "dim": 768}])
     with caplog.at_level("WARNING"):
         _check_same_manifests([one, {**one, "versions": {"torch": "2.14.0"}}])
     assert "other library versions ({'torch': '2.14.1'} on one, {'torch': '2.14.0'} on another)" in caplog.text

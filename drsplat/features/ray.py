@@ -107,8 +107,8 @@ def _check_started(actors: list, manifest_args: tuple, cancel: CancelToken | Non
     ones first (drsplat.cluster.placed_actors: a worker not placed while others are is given up with a
     warning, none placed in STALL_SECONDS is one DrsplatError, not a wait). One DrsplatError when any
     placed worker could not load its models (e.g. a GPU Ray declared that torch cannot use), or when
-    two workers make other manifests (another weights file or package version on a node: their
-    features would be mixed in one folder); a cancel is seen within WAIT_SECONDS.
+    two workers' manifests differ in what shapes the features (`_check_same_manifests`: another
+    weights file on a node, whose features would be mixed in one folder); a cancel is seen within WAIT_SECONDS.
 
     The manifest comes with the load, not from a later call: a node lost once its worker loaded
     (Ray: unavailable) stopped the run there, whoever was left to take its images."""
@@ -162,11 +162,11 @@ def _check_same_manifests(manifests: list[dict]) -> None:
             key = differ[0]
             raise DrsplatError(f"two Ray feature workers would make other features: their manifests differ in {key!r} ({first.get(key)!r} "
                                f"on one node, {other.get(key)!r} on another); every node needs the same weights files and settings")
-        for key, what in (("versions", "library versions"), ("clip_precision", "CLIP precisions (float16 on a CUDA device)")):
-            if first.get(key) != other.get(key):
-                log.warning("Ray: the feature workers' nodes run other %s (%s on one, %s on another): their features may differ in "
-                            "their last bits", what, first.get(key), other.get(key))
-                return
+    for key, what in (("versions", "library versions"), ("clip_precision", "CLIP precisions (float16 on a CUDA device)")):
+        other = next((m for m in manifests[1:] if m.get(key) != first.get(key)), None)
+        if other is not None:  # once per kind, not once per worker
+            log.warning("Ray: the feature workers' nodes run other %s (%s on one, %s on another): their features may differ in "
+                        "their last bits", what, first.get(key), other.get(key))
 
 
 SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)
