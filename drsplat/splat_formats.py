@@ -432,9 +432,9 @@ def splat_columns(path: Path) -> tuple[dict, list[str], str]:
     scales = rec["scale"].astype(np.float64)
     # A viewer's covariance (R S)(R S)ᵀ = R S² Rᵀ holds the square of each scale, so a negative scale
     # draws as its magnitude: read as that and counted. A zero scale's log is -inf, which assemble_scene drops and counts.
-    negative = scales < 0
     with np.errstate(divide="ignore"):
         log_scales = np.log(np.abs(scales)).astype(np.float32)
+    negative = (scales < 0).any(axis=1) & np.isfinite(log_scales).all(axis=1)  # a row of -inf or 0 scale is dropped, not read
     cols = {
         "means": rec["position"].astype(np.float32),
         "quats": (rec["rotation"].astype(np.float32) - 128.0) / 128.0,
@@ -442,7 +442,7 @@ def splat_columns(path: Path) -> tuple[dict, list[str], str]:
         "opacity_logits": opacity_logits(byte_alpha(rec["rgba"][:, 3])),
         "sh": dc_from_rgb(rec["rgba"][:, :3].astype(np.float32) / 255.0)[:, None, :],
         "extra": {},
-        "negative_scales": int(negative.any(axis=1).sum()),
+        "negative_scales": int(negative.sum()),
     }
     return cols, list(SPLAT_RECORD.names), "splat"
 

@@ -298,7 +298,7 @@ def test_benches_run_on_scenes_of_one_and_two_gaussians(scenes, capsys):
 
 def test_bench_io_on_a_scene_spz_cannot_hold_says_so_in_its_table(tmp_path, capsys):
     """Was (round 46, left as found): `bench io` on a scene with a mean past .spz's 24-bit fixed point
-    stopped with "cannot write /tmp/tmpXXXX/scene.spz: positions reach 1e+07 units", naming a temp
+    stopped with "cannot write /tmp/tmpqpknpi30/scene.spz: positions reach 1e+07 units", naming a temp
     file the user never gave. Now the .spz rows say "not written" and why, and the other types are timed."""
     from drsplat.scene import save_ply
     from drsplat.testing import gaussians

@@ -554,6 +554,10 @@ def test_a_splat_row_with_a_negative_scale_reads_as_its_magnitude_and_is_said(tm
     assert back.num_gaussians == 4 and report.dropped_nan_rows == 0 and report.negative_scales == 2
     np.testing.assert_array_equal(back.log_scales, plain.log_scales)
     assert any(f.startswith("2 rows have a negative scale, read as its magnitude") for f in report.findings())
+    flipped[0, 1] = -np.inf  # dropped as an infinite scale, not read as a magnitude: not counted as one
+    raw[:, 12:24] = flipped.view(np.uint8)
+    back, report = load_scene_report(write(tmp_path / "inf.splat", raw.tobytes()))
+    assert back.num_gaussians == 3 and report.dropped_inf_rows == 1 and report.negative_scales == 2
 
 
 def test_trailing_bytes_in_a_gzip_spz_are_warned(tmp_path, caplog):

@@ -4,7 +4,8 @@ One actor per worker loads the mask generator and CLIP once (on a GPU of its own
 is CUDA: one actor per GPU that has a CPU beside it on its node, never more, so none waits forever
 for a slot; a cluster without GPUs is refused up front); every actor is checked to have started
 before any image is sent, so a worker that cannot load its models (no usable GPU on its node) is
-one error, not a wait; each makes the folder's manifest as it loads (two that differ are one error). The driver sends images and writes the returned `<stem>_s.npy` /
+one error, not a wait; each makes the folder's manifest as it loads (two that differ in what shapes
+the features are one error). The driver sends images and writes the returned `<stem>_s.npy` /
 `<stem>_f.npy` atomically itself, so a dead worker (actor restarted, call retried) leaves no half
 or duplicate file, and complete pairs already on disk are skipped. A worker whose node is lost
 has its image sent to another worker (`_results_as_they_come`); so has a worker never placed (the
@@ -148,6 +149,9 @@ def _check_started(actors: list, manifest_args: tuple, cancel: CancelToken | Non
     return started, manifests[0]
 
 
+SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)  # manifest entries two workers must share
+
+
 def _check_same_manifests(manifests: list[dict]) -> None:
     """One DrsplatError naming the first entry that shapes the features (the models, their weights'
     digests, the mask and resize settings: RESUME_KEYS and the model identity) on which two workers'
@@ -168,8 +172,6 @@ def _check_same_manifests(manifests: list[dict]) -> None:
             log.warning("Ray: the feature workers' nodes run other %s (%s on one, %s on another): their features may differ in "
                         "their last bits", what, first.get(key), other.get(key))
 
-
-SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)
 
 
 def _results_as_they_come(ray, actors: list, cameras: list, send: Callable, cancel: CancelToken | None):
