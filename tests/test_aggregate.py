@@ -93,6 +93,30 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
 
 
+def test_anchor_centre_vote_of_a_footprint_larger_than_the_view_is_capped_at_the_view():
+    """Was (round 45, left as found): the anchor's centre vote w·(1 + c·A) took A = 2π·sqrt(det Σ')
+    unbounded, so a Gaussian of log scale ~50 (det Σ' ~ 1e90 px⁴) weighed inf in float32 and was
+    dropped as a non-finite sum. A is now capped at the view's H·W pixels in the numba kernel, the
+    numpy reference and the torch version alike; footprints within the view are unchanged."""
+    import torch
+
+    from drsplat.registration.device_sums import view_weights_torch
+
+    h, w, k = 6, 8, 2
+    ids = np.full((h, w, k), -1, np.int32)
+    weights = np.zeros((h, w, k), np.float32)
+    ids[2, 3, :2] = [0, 1]
+    weights[2, 3, :2] = [0.5, 0.25]
+    means2d = np.array([[3.5, 2.5], [3.2, 2.9]])
+    conics = np.array([[1e-45, 0.0, 1e-45],  # a footprint of ~6e45 px: far beyond float32 uncapped
+                       [0.5, 0.0, 0.5]])  # 4π px, within the view
+    for got in (view_weights("anchor", ids, weights, means2d, conics),
+                view_weights_reference("anchor", ids, weights, means2d, conics),
+                view_weights_torch("anchor", *(torch.from_numpy(a) for a in (ids, weights, means2d, conics))).numpy()):
+        assert np.isfinite(got).all()
+        np.testing.assert_allclose(got[2, 3, 0], 0.5 * (1.0 + ANCHOR_GAIN * h * w), rtol=1e-6)
+        np.testing.assert_allclose(got[2, 3, 1], 0.25 * (1.0 + ANCHOR_GAIN * 4.0 * np.pi), rtol=1e-6)
+
 @pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1", "no_masks"])
 def test_explain_kernel_agrees_with_reference_and_keeps_each_gaussians_view_weight(case):
     rng = np.random.default_rng(zlib.crc32(repr(("explain", case)).encode()))

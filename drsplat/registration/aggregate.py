@@ -20,7 +20,10 @@ unsupported Gaussians unassigned after it (`SurfaceSupport`):
                                                        c = ANCHOR_GAIN footprints: A_i = 2π·sqrt(det Σ'_i)
                                                        = 2π / sqrt(a·c - b²) = Σ_p exp(-½ d²), so an
                                                        unoccluded Gaussian's centre pixel weighs about as
-                                                       much as its whole footprint, an occluded one little
+                                                       much as its whole footprint, an occluded one little;
+                                                       A_i is capped at the view's H·W pixels (no footprint
+                                                       covers more of it; uncapped, a Gaussian of log scale
+                                                       ≥ ~50 made the centre's weight overflow float32)
     sharp           w · max(exp(-½ dᵀ (Σ₀⁻¹ - Σ'⁻¹) d), SHARP_FLOOR)
                                                        the Gaussian's own footprint before 3DGS's screen-space
                                                        low-pass filter: Σ' = Σ₂ + 0.3·I is what the rasterizer
@@ -231,7 +234,8 @@ def view_weights_reference(weighting: str, ids: np.ndarray, weights: np.ndarray,
     if weighting == "centre":
         return np.where(at_centre, w, 0.0).astype(np.float32)
     if weighting == "anchor":
-        return (w * (1.0 + anchor_gain * footprint_area(conics)[g] * at_centre)).astype(np.float32)
+        area = np.minimum(footprint_area(conics), float(h * wd))[g]
+        return (w * (1.0 + anchor_gain * area * at_centre)).astype(np.float32)
     if weighting == "sharp":
         da, db, dc = sharpening(conics).T
         q = -0.5 * (da[g] * dx * dx + dc[g] * dy * dy) - db[g] * dx * dy
@@ -268,6 +272,7 @@ def footprint_area(conics: np.ndarray) -> np.ndarray:
 def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor_gain, out):  # pragma: no cover - jitted
     """out[y, x, s] = the weighting `code` (see _WEIGHTING_CODE) of slot s of pixel (x, y)."""
     h, wd, k = ids.shape
+    view_pixels = np.float64(h * wd)  # the anchor's footprint cap
     for y in numba.prange(h):
         py = y + 0.5
         for x in range(wd):
@@ -293,7 +298,7 @@ def _view_weights_kernel(code, ids, weights, means2d, conics, ellipse_d2, anchor
                         out[y, x, s] = w if at_centre else 0.0
                     elif at_centre:
                         det = conics[g, 0] * conics[g, 2] - conics[g, 1] * conics[g, 1]
-                        area = 2.0 * np.pi / np.sqrt(det) if det > 0.0 else 0.0
+                        area = min(2.0 * np.pi / np.sqrt(det), view_pixels) if det > 0.0 else 0.0
                         out[y, x, s] = w * (1.0 + anchor_gain * area)
                     else:
                         out[y, x, s] = w

@@ -449,6 +449,7 @@ def view_weights_torch(weighting: str, ids: torch.Tensor, weights: torch.Tensor,
         else:
             det = a * c - b * b
             area = torch.where(det > 0, torch.full_like(det, 2.0 * torch.pi) / torch.sqrt(torch.where(det > 0, det, torch.ones_like(det))), zero)
+            area = torch.clamp(area, max=float(h * wd))  # capped at the view's pixels, as the kernel's
             out = torch.where(at_centre, w * (1.0 + anchor_gain * area), w)
     return torch.where(valid, out, zero).to(torch.float32)
 
