@@ -71,12 +71,12 @@ def test_the_per_gaussian_tables_of_a_registration_are_not_advised_huge_pages():
     n = 2 * SMALL_PAGES_FROM // 8
     if not _thp_eligible(np.zeros(4 * SMALL_PAGES_FROM, np.uint8)):
         pytest.skip("this kernel gives numpy's arrays no transparent huge pages")
-    slot_c, slot_v = fold_block_votes(iter([]), [], 0, n)
+    slot_c, slot_v, slot_n = fold_block_votes(iter([]), [], 0, n)
     scratch = StatsScratch.new(n, 2, 40)
     support = SurfaceSupport.zeros(n)
     coalescer = Coalescer(n, parts=2)
     sink_state = VoteSink(n, 8)._empty(n)
-    tables = [slot_c, slot_v, scratch.sums, scratch.seen, support.total, support.views_seen, coalescer._seen, coalescer._acc, *sink_state[1:]]
+    tables = [slot_c, slot_v, slot_n, scratch.sums, scratch.seen, support.total, support.views_seen, coalescer._seen, coalescer._acc, *sink_state[1:]]
     assert [_thp_eligible(t) for t in tables] == [False] * len(tables)
 
 

@@ -1175,7 +1175,7 @@ class Aggregator:
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
             # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)
-            per_block += 12 * CHECK_SLOTS
+            per_block += 12 * CHECK_SLOTS + 8  # and its count of voting views
             kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
             if stages.vote:  # after the check the vote trims exactly (drsplat.registration.vote.exact_trimmed_features)
                 per_block += EXACT_TRIM_SLOT_BYTES

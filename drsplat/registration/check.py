@@ -14,10 +14,14 @@ Gaussians and drops whole masks:
    vote);
 2. once every view is in, mask j of view v asks the other views what its Gaussians are:
 
-       q_jc = Σ_{i ∈ j} w_ij (V_ic − v_icv) / Σ_{i ∈ j} w_ij
+       q_jc = Σ_{i ∈ j} w_ij φ_i (V_ic − v_icv) / Σ_{i ∈ j} w_ij,   φ_i = min(1, n_i / Σ_c (V_ic − v_icv))
 
    (v_icv: view v's own vote, so that a mask never supports itself; `add_view_support`), in units of
-   views. Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
+   views; n_i the other views that vote for Gaussian i. A view gives each cluster one vote at most,
+   so a Gaussian inside one mask of each view has φ = 1; one spread over several masks in every view
+   (faint dust or haze in front of the objects) counts one vote a view over all its clusters
+   (`diffuse_share`; since 2026-12-04, round 47 of docs/hostile.md: such dust held 0.85 of an
+   object's mask's weight and its votes for the table behind it dropped the mask). Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
    (one object's crops from different views can be farther apart than the clustering's 0.9):
 
        like = min(CLUSTER_COSINE, ½ (median_j f̂_j·ĉ_j + median cos(f_j, f_k) over two masks j ≠ k of one view))
@@ -216,12 +220,18 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     means = means.astype(np.float64)
     votes = [view_votes_reference(g, c[m], w, num_gaussians, k) for g, m, w, c, _ in views]
     V = np.sum(votes, axis=0) if votes else np.zeros((num_gaussians, k))
+    voting_views = np.sum([v.sum(axis=1) > 0 for v in votes], axis=0) if votes else np.zeros(num_gaussians)
     out = []
     for (g, m, w, c, feats), own_votes in zip(views, votes):
         num_masks = c.shape[0]
         q = np.zeros((num_masks, k))
-        other = np.maximum(V - own_votes, 0.0)[g]  # the kernel adds the positive terms only
-        np.add.at(q, m, fixed_support(w.astype(np.float64)[:, None] * other))
+        other_all = np.maximum(V - own_votes, 0.0)  # the kernel adds the positive terms only
+        other_views = voting_views - (own_votes.sum(axis=1) > 0)
+        other_votes = fixed_support(other_all).sum(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            phi = np.where(other_votes > 0, np.minimum(1.0, other_views / (other_votes / SUPPORT_SCALE)), 1.0)[g]
+        other = other_all[g]
+        np.add.at(q, m, fixed_support(w.astype(np.float64)[:, None] * other * phi[:, None]))
         q /= SUPPORT_SCALE
         mass = np.bincount(m, fixed_support(w), num_masks) / SUPPORT_SCALE
         units = unit_rows(feats)
@@ -236,7 +246,7 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
         r = np.zeros((num_masks, k))
         voted = other.max(axis=1) > 0 if k else np.zeros(g.shape[0], bool)
         if k:
-            np.add.at(r, (m[voted], np.argmax(other, axis=1)[voted]), fixed_support(w[voted]))
+            np.add.at(r, (m[voted], np.argmax(other, axis=1)[voted]), fixed_support(w[voted].astype(np.float64) * phi[voted]))
         r /= SUPPORT_SCALE
         own, alt, core = np.zeros(num_masks), np.zeros(num_masks), np.zeros(num_masks)
         for j in np.flatnonzero(has) if like is not None else ():
@@ -296,10 +306,11 @@ def _run_end(rows, order, start):  # pragma: no cover - jitted
 
 
 @numba.njit(cache=True, parallel=True)
-def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot_c, slot_v):  # pragma: no cover - jitted
+def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot_c, slot_v, slot_n):  # pragma: no cover - jitted
     """Step 1 for one view: each Gaussian's votes per cluster (`_group_votes`: one vote per view and
     cluster at most) added to its slots slot_c / slot_v [N, S] with the space-saving rule (a new
-    cluster replaces the slot with the fewest votes and inherits them). order: the pairs sorted by
+    cluster replaces the slot with the fewest votes and inherits them), and slot_n [N] += 1 where the
+    view votes for the Gaussian at all (its count of voting views). order: the pairs sorted by
     row (`stable_order`). A Gaussian's votes touch its own row only, so row-aligned parts of the
     view are folded in parallel (vote._row_aligned_cuts): the same bits as one pass."""
     cuts = _row_aligned_cuts(rows, order, VOTE_PARTS)
@@ -312,6 +323,8 @@ def _fold_votes_kernel(rows, clusters, weights, order, presence, full_view, slot
             r = rows[order[start]]
             end = _run_end(rows, order, start)
             n_found = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+            if n_found > 0:
+                slot_n[r] += 1.0
             for d in range(n_found):
                 hit = space_saving_slot(slot_c, slot_v, r, found[d])
                 slot_c[r, hit] = found[d]
@@ -329,11 +342,29 @@ def _fixed(x):  # pragma: no cover - jitted
     return np.int64(x * SUPPORT_SCALE + 0.5)
 
 
+@numba.njit(cache=True, inline="always")
+def diffuse_share(other_views, other_votes):  # pragma: no cover - jitted
+    """φ = min(1, n / V): a Gaussian's weight in the check's support, from the n other views that vote
+    for it and the votes V (fixed point, `_fixed`) they cast over all clusters. A view gives each cluster
+    one vote at most, so a Gaussian inside one mask a view has V ≤ n and φ = 1; one spread over several
+    masks in every view (faint haze or dust in front of the objects, a large blurred Gaussian) has
+    V > n, and φ scales it to one vote a view. Without it such Gaussians outvoted the objects behind
+    them: their masks' own Gaussians held 0.2 of the weight, and the haze's votes for the table it
+    also hangs over dropped the objects' correct masks (an independent generator's dusty clutter:
+    490 of 2,054 masks, docs/hostile.md round 47)."""
+    if other_votes <= 0:
+        return 1.0
+    return min(1.0, other_views / (other_votes / SUPPORT_SCALE))
+
+
 @numba.njit(cache=True, parallel=True)
-def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, presence, full_view, entry_mask, entry_cluster, entry_value,
+def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, slot_n, presence, full_view, entry_mask, entry_cluster, entry_value,
                     entry_core, scratch, core, touched, mass, j_lo):  # pragma: no cover - jitted
-    """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) over the slots of Gaussian i, mass[j] += w_ij
-    (one view, `add_view_support`, step 2). clusters: [P] the cluster of each pair's mask; order:
+    """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) φ_i over the slots of Gaussian i, mass[j] += w_ij
+    (one view, `add_view_support`, step 2), with φ_i = min(1, n_i / Σ_c (V_ic − v_icv)), n_i the
+    other views that vote for i (slot_n less this view): a Gaussian whose other views vote for more
+    than one cluster each on average (faint haze or dust spread over several masks in every view)
+    weighs as one vote per view, `diffuse_share`. clusters: [P] the cluster of each pair's mask; order:
     the pairs sorted by row (`stable_order`), so each Gaussian's pairs of the view are consecutive.
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
@@ -386,6 +417,7 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
             found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
             win = -1  # the cluster the other views vote most for
             win_votes = 0.0
+            other_votes = np.int64(0)  # Σ_c (V_ic − v_icv) in fixed point: the same bits in any slot order
             for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
                 own[s] = 0.0
                 for d in range(found_n):
@@ -394,8 +426,10 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                 c = slot_c[r, s]
                 if c >= 0:
                     other = slot_v[r, s] - own[s]
+                    other_votes += _fixed(other)
                     if other > win_votes or (other == win_votes and other > 0.0 and c < win):
                         win, win_votes = c, other
+            phi = diffuse_share(slot_n[r] - (1.0 if found_n > 0 else 0.0), other_votes)
             for i in range(start, end):
                 p = order[i]
                 w = np.float64(weights[p])
@@ -414,9 +448,9 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, prese
                             met_j[at] = j
                             met_c[at] = c
                             at += 1
-                        scratch[part, j, c] += _fixed(w * other)
+                        scratch[part, j, c] += _fixed(w * other * phi)
                 if win >= 0:
-                    core[part, j, win] += _fixed(w)
+                    core[part, j, win] += _fixed(w * phi)
             start = end
         met_n[part] = at - room[part]
     for j in range(num_masks):
@@ -707,27 +741,29 @@ class SupportScratch:
 
 
 def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
-                     slots: int = CHECK_SLOTS) -> tuple[np.ndarray, np.ndarray]:
+                     slots: int = CHECK_SLOTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 1 for Gaussians lo .. hi-1: their presence votes over `views` (every view in order, with
     those Gaussians' pairs) folded into slots (slot_c [hi - lo, S] int32 clusters, -1 free; slot_v
-    [hi - lo, S] float64 votes). per_view: each view's [M] mask clusters. A Gaussian's slots depend on
-    its own pairs only, so they are the same bits whatever block holds it."""
+    [hi - lo, S] float64 votes) and the count of views that vote for each (slot_n [hi - lo] float64).
+    per_view: each view's [M] mask clusters. A Gaussian's slots depend on its own pairs only, so they
+    are the same bits whatever block holds it."""
     slot_c = small_page_full((hi - lo, slots), -1, np.int32)  # made once a block, touched a few rows a view: small pages
     slot_v = small_page_zeros((hi - lo, slots), np.float64)
+    slot_n = small_page_zeros(hi - lo, np.float64)
     for view, clusters in zip(views, per_view):
         if view.gaussians.size:
             rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
             _fold_votes_kernel(rows, np.ascontiguousarray(clusters[view.masks], np.int32), np.ascontiguousarray(view.weights, np.float32),
-                               stable_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v)
-    return slot_c, slot_v
+                               stable_order(rows), PRESENCE, FULL_VIEW, slot_c, slot_v, slot_n)
+    return slot_c, slot_v, slot_n
 
 
-def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray,
+def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_n: np.ndarray,
                      support: ViewSupport | PartialSupport, scratch: SupportScratch | None = None,
                      emit: Callable[[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], None] | None = None) -> None:
     """Step 2's sums of one view's pairs of Gaussians lo .. lo + len(slot_c) - 1 added to support's q
-    and mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v: those
-    Gaussians' slots folded over all views; scratch: reused between calls (None: a new one). The
+    and mass (`_support_kernel`). clusters: [M] the view's mask clusters; slot_c / slot_v / slot_n: those
+    Gaussians' slots and voting views folded over all views (`fold_block_votes`); scratch: reused between calls (None: a new one). The
     terms of q[j, c] are added in Gaussian order, so blocks taken in increasing `lo` give one
     block's bits. emit: receives each run of masks' entries (mask, cluster, fixed, core) as it is
     summed, instead of support keeping them (support, empty of entries, then gets the masses only):
@@ -738,7 +774,7 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
         scratch = SupportScratch(support.num_clusters)
     pairs = (rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-             np.ascontiguousarray(clusters[view.masks], np.int32), stable_order(rows), slot_c, slot_v, PRESENCE, FULL_VIEW)
+             np.ascontiguousarray(clusters[view.masks], np.int32), stable_order(rows), slot_c, slot_v, slot_n, PRESENCE, FULL_VIEW)
     num_masks = support.mass_fixed.shape[0]
     step = scratch.masks_per_run(num_masks)  # ≥ 1; a view with pairs has masks
     entries = (support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core)
@@ -799,11 +835,11 @@ def block_supports(views: Iterator[ViewPairs], pair_views: Iterator[ViewPairs], 
     no view's part is held whole. per_view: each view's [M] mask clusters. Returns each view's
     masses [M] int64 and pair counts [M] int64 (the Gaussians with a pair in each mask) from these
     Gaussians."""
-    slot_c, slot_v = fold_block_votes(views, per_view, lo, hi, slots)
+    slot_c, slot_v, slot_n = fold_block_votes(views, per_view, lo, hi, slots)
     masses, counts = [], []
     for v, (view, clusters) in enumerate(zip(pair_views, per_view)):
         part = PartialSupport.empty(clusters.shape[0])
-        add_view_support(view, lo, clusters, slot_c, slot_v, part, scratch, emit=lambda run, v=v: emit(v, run))
+        add_view_support(view, lo, clusters, slot_c, slot_v, slot_n, part, scratch, emit=lambda run, v=v: emit(v, run))
         masses.append(part.mass_fixed)
         counts.append(np.bincount(view.masks[view.weights > 0], minlength=clusters.shape[0])[: clusters.shape[0]].astype(np.int64))
     return masses, counts
