@@ -21,8 +21,9 @@ Gaussians and drops whole masks:
    so a Gaussian inside one mask of each view has φ = 1; one spread over several masks in every view
    (faint dust or haze in front of the objects) counts one vote a view over all its clusters
    (`diffuse_share`; since 2026-12-04, round 47 of docs/hostile.md: such dust held 0.85 of an
-   object's mask's weight and its votes for the table behind it dropped the mask). Which clusters say the same as the mask is decided by the scene, not by a fixed cosine
-   (one object's crops from different views can be farther apart than the clustering's 0.9):
+   object's mask's weight and its votes for the table behind it dropped the mask). Which clusters
+   say the same as the mask is decided by the scene, not by a fixed cosine (one object's crops from
+   different views can be farther apart than the clustering's 0.9):
 
        like = min(CLUSTER_COSINE, ½ (median_j f̂_j·ĉ_j + median cos(f_j, f_k) over two masks j ≠ k of one view))
 
@@ -94,7 +95,8 @@ the views' distinct pairs (PAIR_BYTES = 12 per pair) in memory (PairRecord). Ste
 block by block: a
 block's Gaussians take 12·CHECK_SLOTS bytes each for their slots (twice the vote's: a label split
 by embedding noise takes several clusters; on hard-room with 20% mislabels and noise 0.5, 8 / 16 /
-32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol), and every view has a
+32 / 64 slots gave 0.598 / 0.692 / 0.653 / 0.649 labelled seg mIoU vol) and 8 for their count of
+voting views, and every view has a
 sparse support table (`ViewSupport`: 24 bytes per (mask, cluster) pair that occurs; M masks x K
 clusters dense until 2026-11-27; one view's [M, K] dense scratch while a view is summed), summed a
 block at a time into parts that `SupportTables` (drsplat.registration.supports) holds in memory up
