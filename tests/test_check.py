@@ -95,7 +95,8 @@ def _random_views(rng, n: int, labels: np.ndarray, num_views: int, hard: bool) -
 def test_check_kernels_agree_with_the_reference(seed, hard, like):
     """The kernels (votes folded into slots, the other views' support per mask, the agreement with
     the consensus, own and the grouped alt) against the dense numpy reference, on random views with
-    at most 4 labels (the slots never overflow), two "like" cosines and, with `hard`, zero and
+    at most 4 labels (the slots never overflow) whose Gaussians often lie in several masks of a view
+    (the support's diffuse share φ below 1), two "like" cosines and, with `hard`, zero and
     1e-30 weights, a mask without a cluster and a view with no pairs."""
     rng = np.random.default_rng(seed)
     n = 40
@@ -107,6 +108,9 @@ def test_check_kernels_agree_with_the_reference(seed, hard, like):
     ref = check_reference([(v.gaussians, v.masks, v.weights, c, v.feats) for v, c in zip(record.views, clusters.per_view)], n,
                           means, like)
     assert len(ref) == 7
+    votes = [view_votes_reference(v.gaussians, c[v.masks], v.weights, n, means.shape[0]) for v, c in zip(record.views, clusters.per_view)]
+    voting_views = np.sum([v.sum(axis=1) > 0 for v in votes], axis=0)
+    assert (np.sum(votes, axis=0).sum(axis=1) > voting_views + 1e-9).sum() >= 10  # Gaussians spread over several masks a view: φ < 1
     for view, c, (r_mass, r_total, r_agree, r_own, r_alt, r_core) in zip(record.views, clusters.per_view, ref):
         sup = ViewSupport.empty(view.feats, c, means.shape[0])
         add_view_support(view, 0, c, slot_c, slot_v, slot_n, sup)
