@@ -616,6 +616,11 @@ def test_a_folder_resumed_in_another_clip_precision_is_said(tmp_path, caplog):
         assert not caplog.text
         check_manifest_compatible(tmp_path, {**made, "clip_precision": "float32"})
     assert "holds features CLIP made in float16, this run's are in float32" in caplog.text
+    caplog.clear()
+    featurefiles.write_manifest(tmp_path, {**made, "clip_precision": "float16\nERROR forged"})  # an edited manifest cannot forge a log line
+    with caplog.at_level("WARNING"):
+        check_manifest_compatible(tmp_path, {**made, "clip_precision": "float32"})
+    assert len(caplog.records) == 1 and "\n" not in caplog.records[0].getMessage() and '"float16\\nERROR forged"' in caplog.text
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError, InputError
+from drsplat.errors import DrsplatError, InputError, shown_path
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -291,7 +291,8 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         check_same_path(features_dir, key, flag, old.get(key), manifest.get(key))
     if old.get("clip_precision") and manifest.get("clip_precision") and old["clip_precision"] != manifest["clip_precision"]:
         log.warning("%s holds features CLIP made in %s, this run's are in %s (CLIP runs in float16 on a CUDA device, float32 on "
-                    "the CPU: --device): the two differ in their last bits", features_dir, old["clip_precision"], manifest["clip_precision"])
+                    "the CPU: --device): the two differ in their last bits", shown_path(features_dir), shown_path(old["clip_precision"]),
+                    manifest["clip_precision"])  # the stored value as shown: the manifest is a file a user may have edited
 
 
 def _no_pair_yet(features_dir: Path) -> str:
