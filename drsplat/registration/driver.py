@@ -531,11 +531,12 @@ def _check_memory_before_probe(run: Run) -> int | None:
     if options.block_size or not is_fit_mode(options.aggregate):
         return None
     rss = current_rss()
-    base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4)
+    rejects = mode_stages(options.aggregate).reject
+    base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4, rejects)
     if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
         pixels = max((cam.width * cam.height for cam in run.views), default=0)
         raise _refusal_for_footprints(run, rss + probe_memory_bound(run.scene.num_gaussians, pixels, options.topk,
-                                                                     run.headers.max_masks * run.dim * 4, run.headers.max_masks))
+                                                                     run.headers.max_masks * run.dim * 4, run.headers.max_masks, rejects))
     return base
 
 

@@ -34,6 +34,15 @@ view with no mask over a Gaussian it sees is left out of both means (`scores_foo
 downstream (places, blocks, the pair log's header) sees that mode. The probe renders
 on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
 
+A mode that rejects floaters (`...-reject`, the default) leaves out of every labelling it scores
+in probe view b the Gaussians its rejection would leave unassigned on the probe views up to b (their
+floater statistics folded in probe order, `probe_floaters`): the registration gives them no label,
+and their labels are noise to the scores. Faint dust over a table of small objects labels each
+grain with whatever lies behind it in one view, which lies elsewhere in the next: it moved H's
+margin from +0.094 to -0.021 on an independent generator's room, whose silhouette masks the sharp
+footprint labels 0.929 right against the paper's 0.853 (docs/evaluation.md, "Floaters left out of
+the fit's scores"). A mode without rejection keeps its floaters labelled, so its fit scores them.
+
 Cost: per probe view one top-k render (culled as the view pass culls, on the registration's
 geometry without its SH), the sharp weights, two coalescings and two re-render passes, O(H·W·k):
 each pass re-renders the view's own labelling and every earlier probe view's translated one
@@ -67,7 +76,7 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.raster import PreparedScene
-from drsplat.registration.aggregate import RayGeometry, mode_hook, mode_stages
+from drsplat.registration.aggregate import RayGeometry, SurfaceSupport, mode_hook, mode_stages
 from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
@@ -106,17 +115,22 @@ PROBE_LOAD_BYTES = 96 << 20
 PROBE_KEEP_BYTES = 256 << 20
 PROBE_LABEL_BYTES = 4 * (FIT_PROBES + 2)
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
+# a rejecting mode's probe: the probe views' statistics folded (SurfaceSupport, 32 bytes a Gaussian) and
+# what `rejected` makes of them (its [N] bool temporaries and result)
+PROBE_SUPPORT_BYTES = 40
 HELD_OUT_BYTES = 8  # a probe view's sparse labelling kept for the later ones (`HeldOut`): id and mask per Gaussian it labels
 
 
-def probe_memory(num_gaussians: int, embedding_bytes: int = 0) -> int:
+def probe_memory(num_gaussians: int, embedding_bytes: int = 0, rejects: bool = False) -> int:
     """Bytes the fit stage's probe adds to the process's resident memory beyond the view pass's plan
     (PROBE_LOAD_BYTES and the constants below it; an estimate, on the safe side where a view's masks
     are few next to its pixels, as they are from a segmenter). embedding_bytes: the largest view's
     mask embeddings (M·D·4), which no term of the view pass's plan counts (its vote and check count
     clusters, `fit` and `fit-reject` nothing): the probe holds every probe view's (`HeldOut`), and
-    while a view is scored its own unit rows and an earlier view's, float64 (`probe_embedding_bytes`)."""
-    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + PROBE_LABEL_BYTES * num_gaussians + probe_embedding_bytes(embedding_bytes)
+    while a view is scored its own unit rows and an earlier view's, float64 (`probe_embedding_bytes`).
+    rejects: the mode rejects floaters (the probe folds its views' statistics: PROBE_SUPPORT_BYTES)."""
+    per_gaussian = PROBE_LABEL_BYTES + (PROBE_SUPPORT_BYTES if rejects else 0)
+    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes)
 
 
 def probe_embedding_bytes(embedding_bytes: int) -> int:
@@ -131,7 +145,7 @@ def probe_embedding_bytes(embedding_bytes: int) -> int:
     return (FIT_PROBES + 4) * embedding_bytes + TRANSLATION_BLOCK_BYTES
 
 
-def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0, max_masks: int = 0) -> int:
+def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0, max_masks: int = 0, rejects: bool = False) -> int:
     """`probe_memory` with a probe view's pairs and statistics at their most: a pair per top-k slot of
     every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but no more
     than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every Gaussian
@@ -141,13 +155,13 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
     views' labellings, labels below its masks). What a refusal's named budget is made from, so that
     the budget typed back is not refused once the probe has run. pixels: the largest view's;
     embedding_bytes: the largest view's mask embeddings (M·D·4), which its pairs hold too;
-    max_masks: its masks (0: not known, then one per pixel)."""
+    max_masks: its masks (0: not known, then one per pixel); rejects: as `probe_memory`'s."""
     slots = pixels * topk
     seen = min(num_gaussians, slots)
     scored = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + seen * PROBE_STATS_BYTES + embedding_bytes
     held_out = FIT_PROBES * len(FOOTPRINTS) * seen * HELD_OUT_BYTES  # each footprint keeps its own labellings (their embeddings: probe_memory)
     tables = rerender_table_bytes(FIT_PROBES, max_masks if max_masks > 0 else pixels, max(1, numba.get_num_threads()))
-    return probe_memory(num_gaussians, embedding_bytes) + len(FOOTPRINTS) * scored + held_out + tables
+    return probe_memory(num_gaussians, embedding_bytes, rejects) + len(FOOTPRINTS) * scored + held_out + tables
 
 
 @dataclass
@@ -188,6 +202,16 @@ class FitChoice:
 def mean_or_zero(values: np.ndarray) -> float:
     """The mean of a fit score's values [P], 0 when there are none (no probe view, or no pair of them)."""
     return float(np.mean(values)) if len(values) else 0.0
+
+
+def probe_floaters(support: SurfaceSupport | None, stats) -> np.ndarray | None:
+    """[N] bool: the Gaussians floater rejection would leave unassigned on the probe views so far
+    (`SurfaceSupport.rejected` after folding this view's statistics `stats` into `support`, the
+    probe's running statistics), or None for a mode that rejects nothing (support None)."""
+    if support is None or stats is None:
+        return None
+    support.add(stats)
+    return support.rejected()
 
 
 def scores_footprints(pair_weights: np.ndarray) -> bool:
@@ -560,9 +584,13 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     """
     geometry = geometry if geometry is not None else prepare_geometry(scene)
     candidates = {footprint: resolve_mode(mode, footprint) for footprint in FOOTPRINTS}
-    rays = RayGeometry.from_scene(scene) if keep_pairs and mode_stages(candidates["sharp"]).reject else None
+    # a mode that rejects floaters has them left out of the labellings, so the probe computes the floater
+    # statistics whatever the place and engine of the view pass (every place decides alike)
+    rejects = mode_stages(mode).reject
+    rays = RayGeometry.from_scene(scene) if rejects else None
     # the sharp candidate's hook gives the sharp weights, and renders with the median exactly when the view pass will
-    hook = mode_hook(candidates["sharp"] if keep_pairs else "sharp", rays)
+    hook = mode_hook(candidates["sharp"], rays)
+    support = SurfaceSupport.zeros(geometry.num_gaussians) if rejects else None  # the probe views' statistics, folded in probe order
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull, by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
     picks = probe_picks(views, count)
     # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
@@ -582,6 +610,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         out = computer.rasterize(cam)
         raster_seconds = time.perf_counter() - t0
         stats = hook.stats(cam, out)
+        floating = probe_floaters(support, stats)
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
@@ -597,7 +626,10 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             if not scored:
                 continue
             labels = pairs_labels(*grouped_pairs(view.gaussians, view.masks, view.weights, same), geometry.num_gaussians)
-            s_and_h = rerender_scores(out.ids, weights, kept_labels[footprint].labellings(labels, groups, units), groups, feats.shape[0])
+            labellings = kept_labels[footprint].labellings(labels, groups, units)
+            if floating is not None:  # what the rejection would leave unassigned labels nothing (module docstring)
+                labellings[floating] = -1
+            s_and_h = rerender_scores(out.ids, weights, labellings, groups, feats.shape[0])
             scores[footprint].append(float(s_and_h[0]))
             held[footprint] += s_and_h[1:].tolist()
             kept_labels[footprint].keep(labels, feats)
