@@ -424,6 +424,19 @@ def test_every_rejecting_mode_has_its_mode_without_the_rejection():
     assert without_rejection("fit-check-vote-reject") == "fit-check-vote" and without_rejection("reject") == "paper"
 
 
+def test_every_checking_mode_has_its_mode_without_the_check():
+    """A check that drops a quarter of the masks or more names the same mode without the check
+    (drsplat.registration.check.heavy_drop_warning), which must exist and differ in nothing else."""
+    from drsplat.registration.aggregate import mode_stages, without_check
+
+    for mode in MODES:
+        other = without_check(mode)
+        assert other in MODES and not mode_stages(other).check
+        assert dataclasses.replace(mode_stages(mode), check=False) == mode_stages(other), mode
+    assert without_check("fit-check-vote-reject") == "fit-vote-reject" and without_check("check") == "paper"
+    assert without_check("check-reject") == "reject" and without_check("vote") == "vote"
+
+
 def test_rejection_on_a_rendered_wall():
     """A faint floater in mid-air is rejected; a faint Gaussian lying in the wall is kept."""
     rng = np.random.default_rng(0)

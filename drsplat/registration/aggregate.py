@@ -196,6 +196,14 @@ def without_rejection(mode: str) -> str:
     return mode[: -len("-reject")] if mode != "reject" else "paper"
 
 
+def without_check(mode: str) -> str:
+    """`mode` without its cross-view mask check: "fit-check-vote-reject" -> "fit-vote-reject",
+    "check" -> "paper", "check-reject" -> "reject"; a mode without the check is returned as it is."""
+    if not mode_stages(mode).check:
+        return mode
+    return "-".join(part for part in mode.split("-") if part != "check") or "paper"
+
+
 def split_mode(mode: str) -> tuple[str, bool]:
     """(weighting, reject) of a mode name; ValueError for an unknown mode."""
     stages = mode_stages(mode)

@@ -159,6 +159,21 @@ CHECK_MAX_CLUSTER_SHARE = 0.9
 # step 3: a view whose dropped masks hold at least this share of a Gaussian's weight in it gives the
 # Gaussian no pair at all (what is left of it there is its neighbours' masks spilling onto it)
 CHECK_ABSTAIN = 0.5
+# a check that drops this share of the masks with pairs or more says so as a warning (`heavy_drop_warning`):
+# mislabels on oracle rooms drop about their own share, correct masks ~0-2 %; faint dust before the
+# objects made the check drop 24 % of correct masks (round 47)
+CHECK_WARN_DROPPED = 0.25
+
+
+def heavy_drop_warning(dropped: int, present: int, without: str) -> str | None:
+    """The warning of a check that dropped `dropped` of the `present` masks with pairs, when that is
+    CHECK_WARN_DROPPED of them or more (else None); without: the mode to run without the check."""
+    if present <= 0 or dropped < CHECK_WARN_DROPPED * present:
+        return None
+    return (f"mask check: {dropped:,} of {present:,} masks ({100.0 * dropped / present:.0f} %) dropped as contradicted by the other "
+            "views of their Gaussians. So many are dropped when a large share of the masks carry wrong labels, or when right masks "
+            "cover Gaussians that the other views put under other labels (faint dust or haze in front of the objects, a scene "
+            f"that changed between the photos); if the masks' labels are right, --aggregate {without} registers without the check")
 
 
 @dataclass

@@ -42,9 +42,9 @@ from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, share_within_near_plane
-from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_rejection
+from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
-from drsplat.registration.check import CheckSink, fixed_point_fits
+from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
@@ -434,6 +434,10 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     if ckpt is not None:
         ckpt.remove()
     aggregator.log_rejected(asked)
+    verdicts = getattr(sink, "verdicts", None) if aggregator.check else None
+    heavy = heavy_drop_warning(verdicts.dropped, verdicts.present, without_check(asked)) if verdicts is not None else None
+    if heavy:
+        log.warning("%s", heavy)
     if fates.dropped:
         log.warning("%s", unusable_sums(fates))
     if fates.weak:
