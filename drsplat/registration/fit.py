@@ -576,8 +576,9 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
 
     Each probe view is rendered once, by a numba ViewComputer that culls (`cull`) and takes the
     median as the view pass does, and coalesced under each footprint; a footprint's score is read
-    from its pairs (ℓ) and the render (r). keep_pairs: also compute the views' floater statistics
-    when the mode rejects, and keep the chosen footprint's ViewPairs for a view pass that computes
+    from its pairs (ℓ) and the render (r). A mode that rejects floaters has each view's floater
+    statistics computed and folded, and scores its labellings without what they reject (module
+    docstring). keep_pairs: keep the chosen footprint's ViewPairs (statistics included) for a view pass that computes
     views the same way (numba, in this process), as many probe views as keep both footprints' pairs
     within `keep_bytes` (default PROBE_KEEP_BYTES; the pass renders the others again: the same pairs). geometry:
     `prepare_geometry(scene)` when made already. cancel: checked before each probe view.
