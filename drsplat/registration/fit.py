@@ -178,6 +178,7 @@ class FitChoice:
     held_paper: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     held_sharp: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     scored: list[str] | None = None  # the probe views scored; None: all of them
+    floaters: int = 0  # Gaussians left out of the last probe view's labellings as floaters (a rejecting mode's; module docstring)
 
     def __post_init__(self) -> None:
         if self.scored is None:
@@ -603,6 +604,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     names: list[str] = []  # the probe views scored
     kept_bytes, keep_bytes = 0, PROBE_KEEP_BYTES if keep_bytes is None else keep_bytes
+    floaters = 0
     for i in picks:
         if cancel is not None:
             cancel.raise_if_cancelled()
@@ -612,6 +614,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         raster_seconds = time.perf_counter() - t0
         stats = hook.stats(cam, out)
         floating = probe_floaters(support, stats)
+        floaters = int(np.count_nonzero(floating)) if floating is not None else 0
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
@@ -642,15 +645,16 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             for footprint, view in both.items():
                 kept[footprint][int(i)] = view
     choice = FitChoice("paper", [views[i].name for i in picks], np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]),
-                       np.array(held["sharp"]), scored=names)
+                       np.array(held["sharp"]), scored=names, floaters=floaters)
     choice.footprint = choice.decide()
     if len(names) < len(picks):
         log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
     if names:
         log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
-                 "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f)", len(names),
+                 "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f%s)", len(names),
                  "sharp" if choice.footprint == "sharp" else "rasterized (filtered)",
-                 mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp))
+                 mean_or_zero(choice.paper), mean_or_zero(choice.sharp), mean_or_zero(choice.held_paper), mean_or_zero(choice.held_sharp),
+                 f"; {choice.floaters:,} Gaussians the floater rejection drops left unlabelled" if rejects else "")
     else:
         log.info("fit: no probe view to score: the rasterized (filtered) footprints")
     return FitStage(resolve_mode(mode, choice.footprint), choice, geometry, computer.index, rays, kept[choice.footprint])
