@@ -4,13 +4,15 @@ write their resolved mode's bytes."""
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
 from drsplat.cameras import load_cameras
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.registration import RegisterOptions, register, register_features
-from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, SurfaceSupport, sharpening, view_weights, view_weights_reference
+from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, SurfaceSupport, ViewStats, sharpening, view_weights, view_weights_reference
 from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
@@ -22,6 +24,7 @@ from drsplat.registration.fit import (
     footprint_score,
     footprint_score_reference,
     FIT_PROBES,
+    probe_floaters,
     probe_picks,
     probe_views,
     rerender_reference,
@@ -823,6 +826,23 @@ def test_the_probe_is_charged_for_the_embeddings_it_holds(rooms, tmp_path, monke
     # a rejecting mode's probe folds its views' floater statistics too (test_floaters_the_rejection_drops_...)
     register_features(scene, cams, tmp_path, RegisterOptions(topk=10, aggregate="fit-reject"), show_progress=False)
     assert charged[1:] == [(embedding_bytes, True)]
-    support = SurfaceSupport.zeros(scene.num_gaussians)
-    folded = sum(a.nbytes for a in vars(support).values()) + support.rejected().nbytes
-    assert probe_memory(scene.num_gaussians, 0, True) - probe_memory(scene.num_gaussians) >= folded
+    # what folding holds at its peak: the statistics, the previous view's rejected set, and what making the next one allocates
+    n = 100_000
+    rng = np.random.default_rng(1)
+    stats = ViewStats(np.arange(n, dtype=np.int32), rng.uniform(0, 1, n), rng.uniform(0, 2, n), rng.uniform(0, 2, n))
+    support = SurfaceSupport.zeros(n)
+    previous = probe_floaters(support, stats)
+    started = not tracemalloc.is_tracing()
+    if started:
+        tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        probe_floaters(support, stats)
+        making = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        if started:
+            tracemalloc.stop()
+    held = sum(a.nbytes for a in vars(support).values()) + previous.nbytes
+    assert making >= 8 * n  # numpy's temporaries are traced (a float64 one at least)
+    assert probe_memory(n, 0, True) - probe_memory(n) >= held + making

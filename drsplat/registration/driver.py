@@ -43,7 +43,8 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
-from drsplat.registration.fit import FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_memory, probe_memory_bound, resolve_mode
+from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_folds_floaters, probe_memory, probe_memory_bound,
+                                      resolve_mode)
 from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
@@ -434,7 +435,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
     if ckpt is not None:
         ckpt.remove()
     aggregator.log_rejected(asked)
-    verdicts = getattr(sink, "verdicts", None) if aggregator.check else None
+    verdicts = sink.verdicts if aggregator.check else None  # a check mode's sink is its CheckSink, judged by now
     heavy = heavy_drop_warning(verdicts.dropped, verdicts.present, without_check(asked)) if verdicts is not None else None
     if heavy:
         log.warning("%s", heavy)
@@ -535,7 +536,7 @@ def _check_memory_before_probe(run: Run) -> int | None:
     if options.block_size or not is_fit_mode(options.aggregate):
         return None
     rss = current_rss()
-    rejects = mode_stages(options.aggregate).reject
+    rejects = probe_folds_floaters(options.aggregate)
     base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4, rejects)
     if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
         pixels = max((cam.width * cam.height for cam in run.views), default=0)

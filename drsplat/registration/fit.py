@@ -115,9 +115,10 @@ PROBE_LOAD_BYTES = 96 << 20
 PROBE_KEEP_BYTES = 256 << 20
 PROBE_LABEL_BYTES = 4 * (FIT_PROBES + 2)
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
-# a rejecting mode's probe: the probe views' statistics folded (SurfaceSupport, 32 bytes a Gaussian) and
-# what `rejected` makes of them (its [N] bool temporaries and result)
-PROBE_SUPPORT_BYTES = 40
+# a rejecting mode's probe (`probe_folds_floaters`): the probe views' statistics folded (SurfaceSupport,
+# 32 bytes a Gaussian), the last view's rejected set (1) and what `rejected` makes while it runs (a
+# float64 and some bool temporaries: 10 measured); tests/test_fit.py measures the peak
+PROBE_SUPPORT_BYTES = 48
 HELD_OUT_BYTES = 8  # a probe view's sparse labelling kept for the later ones (`HeldOut`): id and mask per Gaussian it labels
 
 
@@ -128,7 +129,7 @@ def probe_memory(num_gaussians: int, embedding_bytes: int = 0, rejects: bool = F
     mask embeddings (M·D·4), which no term of the view pass's plan counts (its vote and check count
     clusters, `fit` and `fit-reject` nothing): the probe holds every probe view's (`HeldOut`), and
     while a view is scored its own unit rows and an earlier view's, float64 (`probe_embedding_bytes`).
-    rejects: the mode rejects floaters (the probe folds its views' statistics: PROBE_SUPPORT_BYTES)."""
+    rejects: the probe folds its views' floater statistics (`probe_folds_floaters`: PROBE_SUPPORT_BYTES)."""
     per_gaussian = PROBE_LABEL_BYTES + (PROBE_SUPPORT_BYTES if rejects else 0)
     return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes)
 
@@ -205,11 +206,18 @@ def mean_or_zero(values: np.ndarray) -> float:
     return float(np.mean(values)) if len(values) else 0.0
 
 
+def probe_folds_floaters(mode: str) -> bool:
+    """Whether the fit stage of `mode` folds its probe views' floater statistics and scores its
+    labellings without what they reject: exactly when the mode rejects floaters (module docstring)."""
+    return mode_stages(mode).reject
+
+
 def probe_floaters(support: SurfaceSupport | None, stats) -> np.ndarray | None:
     """[N] bool: the Gaussians floater rejection would leave unassigned on the probe views so far
     (`SurfaceSupport.rejected` after folding this view's statistics `stats` into `support`, the
-    probe's running statistics), or None for a mode that rejects nothing (support None)."""
-    if support is None or stats is None:
+    probe's running statistics), or None for a mode that rejects nothing (support None; a rejecting
+    mode's hook always gives statistics)."""
+    if support is None:
         return None
     support.add(stats)
     return support.rejected()
@@ -588,7 +596,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     candidates = {footprint: resolve_mode(mode, footprint) for footprint in FOOTPRINTS}
     # a mode that rejects floaters has them left out of the labellings, so the probe computes the floater
     # statistics whatever the place and engine of the view pass (every place decides alike)
-    rejects = mode_stages(mode).reject
+    rejects = probe_folds_floaters(mode)
     rays = RayGeometry.from_scene(scene) if rejects else None
     # the sharp candidate's hook gives the sharp weights, and renders with the median exactly when the view pass will
     hook = mode_hook(candidates["sharp"], rays)
@@ -604,7 +612,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     names: list[str] = []  # the probe views scored
     kept_bytes, keep_bytes = 0, PROBE_KEEP_BYTES if keep_bytes is None else keep_bytes
-    floaters = 0
+    floating = None
     for i in picks:
         if cancel is not None:
             cancel.raise_if_cancelled()
@@ -614,7 +622,6 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         raster_seconds = time.perf_counter() - t0
         stats = hook.stats(cam, out)
         floating = probe_floaters(support, stats)
-        floaters = int(np.count_nonzero(floating)) if floating is not None else 0
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
         units = unit_rows(feats)
@@ -645,7 +652,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             for footprint, view in both.items():
                 kept[footprint][int(i)] = view
     choice = FitChoice("paper", [views[i].name for i in picks], np.array(scores["paper"]), np.array(scores["sharp"]), np.array(held["paper"]),
-                       np.array(held["sharp"]), scored=names, floaters=floaters)
+                       np.array(held["sharp"]), scored=names, floaters=int(np.count_nonzero(floating)) if floating is not None else 0)
     choice.footprint = choice.decide()
     if len(names) < len(picks):
         log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
