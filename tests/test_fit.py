@@ -481,6 +481,35 @@ def test_floaters_the_rejection_drops_do_not_sway_a_rejecting_modes_fit(rooms):
                                   np.concatenate([kept.paper, kept.sharp, kept.held_paper, kept.held_sharp]))
 
 
+def test_a_torch_pass_on_a_gpu_renders_its_probe_on_that_gpu_and_every_other_pass_on_the_cpu():
+    """On an H200 the probe rendered by numba on the host took 3.3 s of a 4.3 s flowers registration
+    (2026-12-04): a torch pass on a GPU in this process renders its probe there. A Ray driver may
+    have no GPU, and a CPU pass's probe culls with numba."""
+    from drsplat.registration.fit import probe_engine
+
+    assert probe_engine("torch", "cuda", "local") == ("torch", "cuda")
+    assert probe_engine("torch", "cuda:1", "local") == ("torch", "cuda:1")
+    assert probe_engine("torch", "cuda", "ray") == ("numba", "cpu")
+    assert probe_engine("torch", "cpu", "local") == ("numba", "cpu")
+    assert probe_engine("numba", "cpu", "local") == ("numba", "cpu")
+
+
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "fit"])
+def test_a_probe_rendered_by_the_torch_engine_scores_as_numbas(rooms, mode):
+    """The probe through the torch engine (its lists copied to the host, as on a GPU; here on the CPU,
+    whose kernels are numba's): the same scores bit for bit, the same floaters, the same footprint;
+    it builds no culling index (the torch engine renders every Gaussian)."""
+    data = rooms["geometry"]
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    dusty = _with_dust(scene, 2_000, 0.03, 0.07)  # floaters for the rejecting mode to leave out
+    numba = fit_stage(mode, dusty, cams, data / "features", 1, 40)
+    torch = fit_stage(mode, dusty, cams, data / "features", 1, 40, engine="torch", device="cpu")
+    for field in ("paper", "sharp", "held_paper", "held_sharp"):
+        np.testing.assert_array_equal(getattr(torch.choice, field), getattr(numba.choice, field), err_msg=field)
+    assert torch.choice.floaters == numba.choice.floaters and (torch.choice.floaters > 0) == mode.endswith("-reject")
+    assert torch.mode == numba.mode and torch.index is None
+
+
 def test_a_probe_view_of_another_embedding_size_is_named_not_a_numpy_error(rooms, tmp_path):
     """Round 31 (not mended then): `fit_stage` called directly on probe views whose embeddings differ in
     length raised numpy's matmul error from the held-out score. It now checks the probe views' headers

@@ -43,8 +43,8 @@ from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, share_within_near_plane
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
-from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_folds_floaters, probe_memory, probe_memory_bound,
-                                      resolve_mode)
+from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
+                                      probe_memory_bound, resolve_mode)
 from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
@@ -464,13 +464,14 @@ def _fit_stage(run: Run, cancel: CancelToken | None) -> FitStage | None:
     """A fit mode's stage (drsplat.registration.fit), or None for other modes: the footprint picked on
     its probe views before any view is summed, on the geometry the view pass then uses. When the
     pass computes views as the probe does (numba, in this process) the probe views' pairs are kept
-    for it, so they are rendered once."""
+    for it, so they are rendered once; a torch pass on a GPU renders the probe views there (`probe_engine`)."""
     options = run.options
     if not is_fit_mode(options.aggregate):
         return None
     same_views = options.place == "local" and options.engine == "numba"
+    engine, device = probe_engine(options.engine, options.device, options.place)
     return fit_stage(options.aggregate, run.scene, run.views, run.features_dir, options.level, options.topk,
-                     geometry=prepare_geometry(run.scene), cull=options.cull, keep_pairs=same_views, cancel=cancel)
+                     geometry=prepare_geometry(run.scene), cull=options.cull, keep_pairs=same_views, cancel=cancel, engine=engine, device=device)
 
 
 def device_pairs_apply(options: RegisterOptions) -> bool:

@@ -31,8 +31,10 @@ H's margin stayed at or below +0.0009 over 126 rooms, though it goes far below z
 36 measured -0.078 on a merged room), and with the paper's otherwise (`FitChoice.decide`); a probe
 view with no mask over a Gaussian it sees is left out of both means (`scores_footprints`):
 "fit-vote-reject" becomes "sharp-vote-reject" or "vote-reject" (`resolve_mode`), and everything
-downstream (places, blocks, the pair log's header) sees that mode. The probe renders
-on the CPU with the numba engine whatever the run's engine, so every engine and place decides alike.
+downstream (places, blocks, the pair log's header) sees that mode. The probe renders on the CPU
+with the numba engine, so every CPU engine and place decides alike, bit for bit; a pass of the torch
+engine on a GPU in this process renders its probe views there (`probe_engine`), whose top-k lists
+equal numba's but for near-ties and the weights' last float32 bit.
 
 A mode that rejects floaters (`...-reject`, the default) leaves out of every labelling it scores
 in probe view b the Gaussians its rejection would leave unassigned on the probe views up to b (their
@@ -204,6 +206,17 @@ class FitChoice:
 def mean_or_zero(values: np.ndarray) -> float:
     """The mean of a fit score's values [P], 0 when there are none (no probe view, or no pair of them)."""
     return float(np.mean(values)) if len(values) else 0.0
+
+
+def probe_engine(engine: str, device: str, place: str) -> tuple[str, str]:
+    """(engine, device) the fit stage renders its probe views with, for a view pass of `engine` on
+    `device` at `place`: the pass's own when it is the torch engine on a GPU in this process, else
+    numba on the CPU (which culls, and is what a CPU or Ray pass decides with). On an H200 the probe
+    rendered by numba on the host took 3.3 s of a 4.3 s registration of 10 flowers views, whose
+    view pass takes 0.66 s (2026-12-04, docs/gpu.md); a Ray driver may have no GPU of its own."""
+    if engine == "torch" and place == "local" and device != "cpu":
+        return engine, device
+    return "numba", "cpu"
 
 
 def probe_folds_floaters(mode: str) -> bool:
@@ -580,11 +593,12 @@ class FitStage:
 
 def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, *,
               geometry: PreparedScene | None = None, cull: bool = True, keep_pairs: bool = False, count: int = FIT_PROBES,
-              cancel: CancelToken | None = None, keep_bytes: int | None = None) -> FitStage:
+              cancel: CancelToken | None = None, keep_bytes: int | None = None, engine: str = "numba", device: str = "cpu") -> FitStage:
     """The fit stage of `mode` (a fit mode; module docstring) on `count` probe views of `views`.
 
-    Each probe view is rendered once, by a numba ViewComputer that culls (`cull`) and takes the
-    median as the view pass does, and coalesced under each footprint; a footprint's score is read
+    Each probe view is rendered once, by a ViewComputer of `engine` on `device` (`probe_engine`;
+    numba culls, `cull`) that takes the median as the view pass does, its top-k lists on the host,
+    and coalesced under each footprint; a footprint's score is read
     from its pairs (ℓ) and the render (r). A mode that rejects floaters has each view's floater
     statistics computed and folded, and scores its labellings without what they reject (module
     docstring). keep_pairs: keep the chosen footprint's ViewPairs (statistics included) for a view pass that computes
@@ -601,7 +615,8 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     # the sharp candidate's hook gives the sharp weights, and renders with the median exactly when the view pass will
     hook = mode_hook(candidates["sharp"], rays)
     support = SurfaceSupport.zeros(geometry.num_gaussians) if rejects else None  # the probe views' statistics, folded in probe order
-    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, hook=hook, cull=cull, by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
+    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device, hook=hook, cull=cull,
+                                              by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
     picks = probe_picks(views, count)
     # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
     # layout the format's: `register` checked every view's headers already; this guards a direct call
