@@ -637,6 +637,26 @@ def test_sums_that_do_not_fit_the_device_go_to_the_host(room, monkeypatch, caplo
     assert asked == [0, VOTE_SLOT_BYTES]
 
 
+def test_the_caching_allocators_unused_blocks_count_as_free_device_memory(monkeypatch):
+    """The fit stage's probe views are rendered on the GPU (2026-12-04) before the sums are made,
+    and torch's caching allocator keeps their blocks reserved; `mem_get_info` counts them as taken,
+    though the allocator releases them when F needs the room. Sums that fit only with them go to the
+    device; with none cached, to the host."""
+    import drsplat.registration.device_sums as device_sums
+
+    gib, dim = 1 << 30, 512
+    need_per_gaussian = device_sums.DEVICE_HEADROOM * 4 * (dim + 1)
+    n = int((2.5 * gib - 8 * device_sums.PAIR_CHUNK * dim) / need_per_gaussian)  # F and W take 2.5 GiB with the headroom
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1 * gib, 80 * gib))
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 1 * gib)
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: 4 * gib)  # 3 GiB held unused by the allocator
+    assert device_sums.sums_fit_device(n, dim, "cuda")
+    assert not device_sums.sums_fit_device(2 * n, dim, "cuda")  # 5 GiB: more than the 4 GiB free with the cache
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: 1 * gib)  # nothing cached: 1 GiB free
+    assert not device_sums.sums_fit_device(n, dim, "cuda")
+    assert device_sums.sums_fit_device(n, dim, "cpu")
+
+
 @pytest.mark.parametrize("mode,sums_on", [("paper", "cpu"), ("vote-reject", "cpu")])
 def test_a_device_run_resumes_from_its_pair_log(room, tmp_path, mode, sums_on):
     """The device path logs every view's pairs: a run that fails at view 2 resumes and writes numba's

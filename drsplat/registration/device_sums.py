@@ -859,11 +859,15 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
 def sums_fit_device(num_gaussians: int, dim: int, device: str, extra_per_gaussian: int = 0) -> bool:
     """Whether F [N, D] and W [N] (float32), plus `extra_per_gaussian` bytes per Gaussian (a vote's
     slots), fit the free memory of a CUDA `device`; always True for the CPU, whose memory the
-    registration's plan budgets (drsplat.registration.plan)."""
+    registration's plan budgets (drsplat.registration.plan). Free counts the blocks torch's caching
+    allocator holds unused (reserved less allocated), which it releases when an allocation needs
+    them: the fit stage's probe views, rendered on the device before the sums are made, leave such
+    blocks (a flowers view at 640x480 peaks at 2.5 GB on the device), which `mem_get_info` counts as taken."""
     dev = torch.device(device)
     if dev.type != "cuda":
         return True
     free, _ = torch.cuda.mem_get_info(dev)
+    free += torch.cuda.memory_reserved(dev) - torch.cuda.memory_allocated(dev)
     return DEVICE_HEADROOM * num_gaussians * (4 * (dim + 1) + extra_per_gaussian) + 8 * PAIR_CHUNK * dim <= free
 
 
