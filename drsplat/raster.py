@@ -179,6 +179,21 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
     return float(np.mean(near & ~rendered))
 
 
+def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
+    """The median over Gaussians in front of some camera of their smallest camera-space depth z > 0
+    over the views (`Camera.world_to_camera`), estimated on every ⌈N / sample⌉-th Gaussian: how far
+    the capture's Gaussians lie from its cameras, in scene units; NaN when none lies in front.
+
+    means: [N, 3] world means; cameras: the views."""
+    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    nearest = np.full(len(means), np.inf)
+    for cam in cameras:
+        z = cam.world_to_camera(means)[:, 2]
+        nearest = np.where(z > 0, np.minimum(nearest, z), nearest)
+    nearest = nearest[np.isfinite(nearest)]
+    return float(np.median(nearest)) if nearest.size else float("nan")
+
+
 def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
     """The share of Gaussians whose mean some view sees: z ≥ NEAR and its projection inside the image
     (0 ≤ u < W, 0 ≤ v < H), estimated on every ⌈N / sample⌉-th Gaussian. A trained scene's training

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -41,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, share_within_near_plane
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
                                       probe_memory_bound, resolve_mode)
@@ -798,10 +799,25 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     near = share_within_near_plane(scene.means, cameras)
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
-                      "which culls them: are the scene and its cameras in the same units?")
+                      "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras)))
     if small:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
         return why
     return why + frame_hint(scene.means, cameras)
+
+
+def near_plane_remedy(depth: float) -> str:
+    """What to do about a scene the near plane culls, given how far its Gaussians lie from the cameras
+    (`median_nearest_depth`, scene units): a capture whose Gaussians lie a median under 1 unit from
+    its cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
+    together, they stay in one unit system), so scaling both up by the power of ten that brings that
+    median to 1 or more renders it; otherwise the scene and cameras disagree on units."""
+    if not np.isfinite(depth) or depth <= 0 or depth >= 1.0:
+        return "are the scene and its cameras in the same units?"
+    factor = 10.0 ** math.ceil(-math.log10(depth)) if depth > 1e-300 else math.inf
+    if not math.isfinite(factor):  # a subnormal depth: no factor to say
+        return "are the scene and its cameras in the same units?"
+    return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, so the whole capture is at a scale the near plane "
+            f"does not fit: scale the scene and its cameras up together (by {factor:g}, say) and register again")
 
 
 def n_unassigned(result: RegistrationResult) -> int:
