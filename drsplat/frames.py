@@ -68,6 +68,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, cameras_in_trained_f
                              in_trained_frame, qvec_to_rotmat, read_colmap_model)
 from drsplat.errors import InputError
 from drsplat.raster import share_in_some_view
+from drsplat.utils import spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +213,7 @@ def scene_sample(means: np.ndarray) -> tuple[np.ndarray, float] | None:
     their median), or None without two finite centres or with no spread."""
     finite = np.asarray(means, np.float64)
     finite = finite[np.isfinite(finite).all(axis=1)]
-    finite = finite[:: max(1, -(-len(finite) // (10 * FRAME_SAMPLE)))]
+    finite = spread_rows(finite, 10 * FRAME_SAMPLE)
     if len(finite) < 2:
         return None
     spread = float(np.median(np.linalg.norm(finite - np.median(finite, axis=0), axis=1)))
@@ -230,13 +231,13 @@ def best_move(means: np.ndarray, evidence: ColmapEvidence) -> tuple[FrameMove, s
         return None
     centres, spread = sample
     tree = cKDTree(centres)
-    points = evidence.points[:: max(1, -(-len(evidence.points) // FRAME_SAMPLE))]
+    points = spread_rows(evidence.points, FRAME_SAMPLE)
     given = point_misfit(tree, spread, points)
     misfits = [point_misfit(tree, spread, move_points(m.matrix, points)) for m in moves]
     k = int(np.argmin(misfits))
     if not (misfits[k] * FRAME_FIT_GAIN < given and misfits[k] <= FRAME_FIT_MAX):
         return None
-    cover = point_misfit(cKDTree(move_points(moves[k].matrix, points)), spread, centres[:: max(1, -(-len(centres) // FRAME_SAMPLE))])
+    cover = point_misfit(cKDTree(move_points(moves[k].matrix, points)), spread, spread_rows(centres, FRAME_SAMPLE))
     if not cover <= FRAME_COVER_MAX:  # points of another model that the move heaps onto one part of the scene
         return None
     return moves[k], (f"the COLMAP model's sparse points lie {given:.3g} scene sizes from its Gaussians as given and {misfits[k]:.3g} "

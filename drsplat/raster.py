@@ -34,6 +34,7 @@ from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK
+from drsplat.utils import spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +169,7 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
 
     means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians).
     """
-    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    means = spread_rows(np.asarray(means, np.float64), sample)
     if len(means) == 0 or not cameras:
         return 0.0
     rendered, near = np.zeros(len(means), bool), np.zeros(len(means), bool)
@@ -185,7 +186,7 @@ def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: i
     the capture's Gaussians lie from its cameras, in scene units; NaN when none lies in front.
 
     means: [N, 3] world means; cameras: the views."""
-    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    means = spread_rows(np.asarray(means, np.float64), sample)
     nearest = np.full(len(means), np.inf)
     for cam in cameras:
         z = cam.world_to_camera(means)[:, 2]
@@ -201,7 +202,7 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
     has few seen, or none.
 
     means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians)."""
-    means = np.asarray(means, np.float64)[:: max(1, -(-len(means) // sample))]
+    means = spread_rows(np.asarray(means, np.float64), sample)
     if len(means) == 0 or not cameras:
         return 0.0
     seen = np.zeros(len(means), bool)

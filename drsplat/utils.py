@@ -602,6 +602,12 @@ def _unreachable(path: Path) -> str:
     return "file not found"
 
 
+def spread_rows(rows: np.ndarray, count: int) -> np.ndarray:
+    """Every ⌈N / count⌉-th row of rows [N, ...]: at most `count` rows spread over all of them (a
+    view, not a copy), the sample the scene-wide estimates take."""
+    return rows[:: max(1, -(-len(rows) // count))]
+
+
 def clipped(text: str, limit: int) -> str:
     """`text` as a message quotes it: cut after `limit` characters, its length said, so a hostile
     value of megabytes cannot flood the terminal."""

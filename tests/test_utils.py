@@ -250,3 +250,17 @@ def test_a_folder_output_given_as_a_link_is_replaced_behind_the_link(tmp_path):
         (tmp / "x.txt").write_text("x")
     assert dangling.is_symlink() and (tmp_path / "made" / "x.txt").read_text() == "x"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["later", "made", "out", "real"]
+
+
+def test_spread_rows_takes_at_most_count_rows_spread_over_all_of_them():
+    """The sample the scene-wide estimates take (the near plane's shares, the frame decision):
+    every ⌈N / count⌉-th row, so never more than `count`, from the first row to near the last."""
+    from drsplat.utils import spread_rows
+
+    rows = np.arange(30).reshape(10, 3)
+    assert spread_rows(rows, 3)[:, 0].tolist() == [0, 12, 24]  # every 4th of 10
+    assert spread_rows(rows, 10).shape == (10, 3) and spread_rows(rows, 100).shape == (10, 3)
+    assert spread_rows(rows, 1)[:, 0].tolist() == [0]
+    assert spread_rows(np.zeros((0, 3)), 5).shape == (0, 3)
+    for n, count in ((100_001, 100_000), (7, 2), (1_000, 999)):
+        assert 1 <= len(spread_rows(np.zeros(n), count)) <= count

@@ -811,11 +811,9 @@ def near_plane_remedy(depth: float) -> str:
     its cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
     together, they stay in one unit system), so scaling both up by the power of ten that brings that
     median to 1 or more renders it; otherwise the scene and cameras disagree on units."""
-    if not np.isfinite(depth) or depth <= 0 or depth >= 1.0:
+    if not 1e-300 < depth < 1.0:  # NaN too; under 1e-300 the factor would pass float64's range
         return "are the scene and its cameras in the same units?"
-    factor = 10.0 ** math.ceil(-math.log10(depth)) if depth > 1e-300 else math.inf
-    if not math.isfinite(factor):  # a subnormal depth: no factor to say
-        return "are the scene and its cameras in the same units?"
+    factor = 10.0 ** math.ceil(-math.log10(depth))
     return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, so the whole capture is at a scale the near plane "
             f"does not fit: scale the scene and its cameras up together (by {factor:g}, say) and register again")
 
