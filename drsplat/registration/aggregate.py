@@ -330,10 +330,10 @@ def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: 
     ids, weights = np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32)
     means2d, conics = np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64)
     if weighting == "sharp":
-        delta = np.empty_like(conics)
-        _sharpening_kernel(conics, BLUR - SHARP_BLUR, delta)
+        screen = np.empty((conics.shape[0], 5))
+        _sharp_screen_kernel(means2d, conics, BLUR - SHARP_BLUR, screen)
         parts = max(1, min(ids.shape[0], 4 * numba.get_num_threads()))  # runs of rows, each with one row buffer
-        _sharp_weights_kernel(ids, weights, means2d, delta, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
+        _sharp_weights_kernel(ids, weights, screen, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
         return out
     _view_weights_kernel(_WEIGHTING_CODE[weighting], ids, weights, means2d, conics, ELLIPSE_D2, float(anchor_gain), out)
     return out
@@ -359,24 +359,29 @@ def sharp_exp(q):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True)
-def _sharpening_kernel(conics, shift, out):  # pragma: no cover - jitted
-    """out[g] = `sharpening`(conics)[g], the same operations, in parallel over the Gaussians."""
+def _sharp_screen_kernel(means2d, conics, shift, out):  # pragma: no cover - jitted
+    """out[g] = (u, v, Δa, Δb, Δc): the screen mean means2d[g] beside `sharpening`(conics)[g] (the
+    same operations), in parallel over the Gaussians: what `_sharp_weights_kernel` reads per slot,
+    in one 40-byte row instead of rows of two arrays."""
     for g in numba.prange(conics.shape[0]):
         a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-        out[g, 0] = out[g, 1] = out[g, 2] = 0.0
+        out[g, 0] = means2d[g, 0]
+        out[g, 1] = means2d[g, 1]
+        out[g, 2] = out[g, 3] = out[g, 4] = 0.0
         det = a * c - b * b
         if det > 0.0:
             sxx, sxy, syy = c / det - shift, -b / det, a / det - shift
             det0 = sxx * syy - sxy * sxy
             if det0 > 0.0 and sxx > 0.0:
-                out[g, 0] = syy / det0 - a
-                out[g, 1] = -sxy / det0 - b
-                out[g, 2] = sxx / det0 - c
+                out[g, 2] = syy / det0 - a
+                out[g, 3] = -sxy / det0 - b
+                out[g, 4] = sxx / det0 - c
 
 
 @numba.njit(parallel=True, cache=True)
-def _sharp_weights_kernel(ids, weights, means2d, delta, log_floor, floor, parts, out):  # pragma: no cover - jitted
-    """out = the sharp weighting of each slot, over `parts` runs of rows in parallel: per pixel, first
+def _sharp_weights_kernel(ids, weights, screen, log_floor, floor, parts, out):  # pragma: no cover - jitted
+    """out = the sharp weighting of each slot (screen: [N, 5] rows of `_sharp_screen_kernel`), over
+    `parts` runs of rows in parallel: per pixel, first
     the exponents q = -½ dᵀ Δ d of its slots up to the first empty one (gathers), then w ·
     max(sharp_exp(clamp(q, log_floor, 0)), floor) over those slots in one branch-free loop
     (vectorised); the slots from the first empty one on (the padding: every engine puts it last)
@@ -391,9 +396,9 @@ def _sharp_weights_kernel(ids, weights, means2d, delta, log_floor, floor, parts,
                 n = 0
                 while n < k and ids[y, x, n] >= 0:
                     g = ids[y, x, n]
-                    dx = means2d[g, 0] - px
-                    dy = means2d[g, 1] - py
-                    q[n] = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
+                    dx = screen[g, 0] - px
+                    dy = screen[g, 1] - py
+                    q[n] = -0.5 * (screen[g, 2] * dx * dx + screen[g, 4] * dy * dy) - screen[g, 3] * dx * dy
                     n += 1
                 for s in range(n):
                     out[y, x, s] = np.float64(weights[y, x, s]) * max(sharp_exp(min(max(q[s], log_floor), 0.0)), floor)
@@ -402,9 +407,9 @@ def _sharp_weights_kernel(ids, weights, means2d, delta, log_floor, floor, parts,
                     if g < 0:
                         out[y, x, s] = 0.0
                         continue
-                    dx = means2d[g, 0] - px
-                    dy = means2d[g, 1] - py
-                    qs = -0.5 * (delta[g, 0] * dx * dx + delta[g, 2] * dy * dy) - delta[g, 1] * dx * dy
+                    dx = screen[g, 0] - px
+                    dy = screen[g, 1] - py
+                    qs = -0.5 * (screen[g, 2] * dx * dx + screen[g, 4] * dy * dy) - screen[g, 3] * dx * dy
                     out[y, x, s] = np.float64(weights[y, x, s]) * max(sharp_exp(min(max(qs, log_floor), 0.0)), floor)
 
 
@@ -732,7 +737,7 @@ class SurfaceSupport:
 
 
 STATS_SCALE = float(1 << 32)  # the per-view sums' fixed point: units of 2⁻³² in int64 (exact up to 2³¹ pixels of weight 1)
-STATS_SCRATCH_BYTES = 28  # per Gaussian per part of `surface_stats`: its peak, total, front and view stamps
+STATS_SCRATCH_BYTES = 36  # per Gaussian per part of `surface_stats`: its peak, total, front, nearest clamp and view stamp
 RAY_GEOMETRY_BYTES = 80  # per Gaussian of RayGeometry: mean (3 float64), precision (6 float64), reach (float64)
 STATS_EXTRA_SCRATCH = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 1.4 GB each)
 
@@ -809,29 +814,30 @@ def _fixed_weight(w, scale):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
-                          near, sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
+                          sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
     """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
     P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
 
     Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) and t*_g(p) < D(p) -
-    κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
-    first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
-    never < the limit). Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
-    same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
-    Σ fixed w·[in front] (`_fixed_weight`: exact in any order); seen[t, g] == stamp marks the
-    Gaussians it saw, whose first slot sets the three values instead of adding to them, so nothing
-    is cleared between views (stamp: a number no earlier view of these buffers used). One record,
-    not three arrays: a slot touches two cache lines instead of four, and three arrays whose
-    addresses fall on the same cache sets cannot evict one another (docs/registration.md).
-    flags: [H·W, k] bool to receive the in-front test, or [0, k] for none.
+    κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0). Part t keeps one record per
+    Gaussian (sums [P, N, 4] int64; peaks: the same memory as float64): peaks[t, g, 0] = max w,
+    sums[t, g, 1] = Σ fixed w, sums[t, g, 2] = Σ fixed w·[in front] (`_fixed_weight`: exact in any
+    order) and peaks[t, g, 3] = its nearest clamp zc - reach in this view, which settles most slots
+    without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach], the same float64 operations as
+    `_ray_depth`, so near ≥ the limit means t* ≥ it; NaN is never < the limit). seen[t, g] == stamp
+    marks the Gaussians the part saw: their first slot computes the clamp and sets the record
+    instead of adding to it, so nothing is cleared between views and only the Gaussians a view
+    sees get a clamp (stamp: a number no earlier view of these buffers used). A later slot of g
+    reads its compact stamp and one 32-byte record, not a clamp in a third array
+    (docs/registration.md, "Floater statistics"). flags: [H·W, k] bool to receive the in-front
+    test, or [0, k] for none.
     """
-    for g in numba.prange(near.shape[0]):
-        near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
     height = n_pix // width if width > 0 else 0
     parts = sums.shape[0]
     keep_flags = flags.shape[0] == n_pix
+    r2x, r2y, r2z = rot[2, 0], rot[2, 1], rot[2, 2]
     for part in numba.prange(parts):
         for y in range(part, height, parts):
             for p in range(y * width, (y + 1) * width):
@@ -843,7 +849,7 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                 m = median_ids[p]
                 surface = np.inf
                 if m >= 0:
-                    surface = _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                    surface = _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, r2x, r2y, r2z, tz)
                 limit = (1.0 - tolerance) * surface
                 for s in range(k):
                     g = ids[p, s]
@@ -852,16 +858,19 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                             for r in range(s, k):
                                 flags[p, r] = False
                         break
+                    first = seen[part, g] != stamp
+                    if first:
+                        seen[part, g] = stamp
+                        peaks[part, g, 3] = r2x * means[g, 0] + r2y * means[g, 1] + r2z * means[g, 2] + tz - reach[g]
                     in_front = False
-                    if near[g] < limit:
-                        t = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
+                    if peaks[part, g, 3] < limit:
+                        t = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, r2x, r2y, r2z, tz)
                         in_front = t < limit and t < surface - FRONT_REACH_SHARE * reach[g]
                     if keep_flags:
                         flags[p, s] = in_front
                     w = np.float64(weights[p, s])
                     fixed = _fixed_weight(w, scale)
-                    if seen[part, g] != stamp:
-                        seen[part, g] = stamp
+                    if first:
                         peaks[part, g, 0] = w if w > 0.0 else 0.0
                         sums[part, g, 1] = fixed
                         sums[part, g, 2] = fixed if in_front else 0
@@ -928,11 +937,10 @@ def stats_parts(num_gaussians: int) -> int:
 
 @dataclass
 class StatsScratch:
-    """Reusable buffers of `surface_stats`: per part [P, N, 3] records (peak as float64 bits, total,
-    front), view stamps [P, N] (`seen`), [N] nearest clamps, flags [H·W, k] bool (or [0, k] without)
-    and the last view's stamp."""
+    """Reusable buffers of `surface_stats`: per part [P, N, 4] records (peak and nearest clamp as
+    float64 bits, total, front), view stamps [P, N] (`seen`), flags [H·W, k] bool (or [0, k]
+    without) and the last view's stamp."""
 
-    near: np.ndarray
     sums: np.ndarray
     seen: np.ndarray
     flags: np.ndarray
@@ -941,11 +949,11 @@ class StatsScratch:
     @classmethod
     def new(cls, n: int, parts: int, k: int, flag_pixels: int = 0) -> StatsScratch:
         # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_zeros)
-        return cls(np.empty(n), small_page_zeros((parts, n, 3), np.int64), small_page_zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
+        return cls(small_page_zeros((parts, n, 4), np.int64), small_page_zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
 
     @property
     def peaks(self) -> np.ndarray:
-        """The records as float64 (the same memory): [..., 0] is each part's peak."""
+        """The records as float64 (the same memory): [..., 0] is each part's peak, [..., 3] its nearest clamp."""
         return self.sums.view(np.float64)
 
     def fits(self, n: int, parts: int, k: int, flag_pixels: int) -> bool:
@@ -979,7 +987,7 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
                           geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
                           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
-                          scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
+                          scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
     chunks = max(1, min(n, 8 * numba.get_num_threads()))
     stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, chunks))
     return stats, scratch
@@ -1177,7 +1185,7 @@ class Aggregator:
         kept = per_block = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
-            views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + RAY_GEOMETRY_BYTES) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
+            views += (STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + RAY_GEOMETRY_BYTES) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8 + (SPECIFICITY_SLOT_BYTES if stages.specific else 0)  # step 4's specificities
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
