@@ -7,7 +7,8 @@ patches themselves, sampled at the pixel centres: the `sharp` weights w̃ of
 drsplat.registration.aggregate) depends on the scene, its training and its segmenter, which a user
 cannot know, and it decides which weighting is right: on thin and small objects each loses where
 the other wins (docs/evaluation.md, "The fit stage"). The fit stage asks the data. In P probe views
-(`probe_picks`: evenly spaced in the views' name order) and for each footprint u ∈ {paper, sharp}:
+(`ProbeOrder`: the camera poses in farthest-point order, passing over views that cannot score) and
+for each footprint u ∈ {paper, sharp}:
 
     ℓ_u(g) = argmax_j Σ_{p : m(p) = j} u_g(p)         the view's own labelling of its Gaussians
     r_u(p) = argmax_j Σ_s u_s(p)·[ℓ_u(g_s) = j]         that labelling re-rendered (s: p's top-k slots)
@@ -67,7 +68,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,12 +87,12 @@ from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
 from drsplat.features.format import read_features_report, resample_nearest, seg_path
 from drsplat.registration.views import check_aspect, read_feature_headers
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, scene_extent
 from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
 
-FIT_PROBES = 8  # probe views of the fit stage (evenly spaced in name order; all views when there are fewer)
+FIT_PROBES = 8  # probe views of the fit stage that score (`ProbeOrder`; all views when there are fewer); as many more may be passed over
 FOOTPRINTS = ("paper", "sharp")
 # the re-render's per-part tables: per label and labelling its float64 sum and int32 mark, and per
 # mask its int32 counts (`rerender_scores`; 64 MB: a 2-million-mask view re-renders one labelling a
@@ -246,31 +246,80 @@ def scores_footprints(pair_weights: np.ndarray) -> bool:
     return bool(pair_weights.size and np.max(pair_weights) > 0)
 
 
-def probe_views(num_views: int, count: int = FIT_PROBES) -> np.ndarray:
-    """[min(count, num_views)] places ⌊(i + ½)·V / P⌋ of the probe views, ascending and distinct."""
-    p = min(count, num_views)
-    return np.floor((np.arange(p) + 0.5) * num_views / max(p, 1)).astype(np.int64)
+def probe_scale(scene: GaussianScene) -> float:
+    """The length that weighs a view's direction against its position in `pose_points`: the scene's
+    extent (`scene_extent`, robust to stray means), 1 for a scene without one. The scene's, not the
+    cameras': a view added or left out then moves no other view's point."""
+    extent = scene_extent(scene.means)
+    return extent if np.isfinite(extent) and extent > 0.0 else 1.0
 
 
-def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES) -> np.ndarray:
-    """[min(count, V)] indices into `views` of the probe views, in the order they are scored: the
-    `probe_views` places of the views sorted by name in natural order (`natural_key`; two views of
-    one name by `Camera.exact_key`, never by the list's order). The list's own order is the order a
-    file happens to give (a transforms.json's frames, a COLMAP model's image ids): with it, a
-    shuffled transforms.json of one room took other probe views and flipped the footprint (round 41:
-    seg mIoU vol 0.594 -> 0.426), and the held-out score, which scores each probe labelling on the
-    later probe views, changed with the order of the same probes. In plain character order,
-    unpadded frame_1 .. frame_150 put the probes at frames 4, 22, 57, 73, ...: not evenly through
-    the capture."""
-    by_name = sorted(range(len(views)), key=lambda j: (natural_key(views[j].name), views[j].name, views[j].exact_key(), j))
-    return np.array([by_name[j] for j in probe_views(len(views), count)], np.int64)
+def pose_points(views: Sequence[Camera], scale: float = 1.0) -> np.ndarray:
+    """[V, 6] float64 each view's pose as a point: its camera centre c and its viewing direction d
+    (the camera's +z in the world, R's last row) times `scale` (`probe_scale`):
+
+        x_v = (c_v, scale·d_v)
+
+    so that two views far apart and two views at one place looking different ways are both far
+    apart, in the scene's units. Non-finite entries count as 0."""
+    if not len(views):
+        return np.zeros((0, 6))
+    centres = np.array([v.ray_origin() for v in views], np.float64).reshape(-1, 3)
+    ahead = np.array([np.asarray(v.R, np.float64)[2] for v in views]).reshape(-1, 3)
+    points = np.concatenate([centres, scale * ahead], axis=1)
+    return np.nan_to_num(points, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def natural_key(name: str) -> tuple:
-    """A sort key that orders the digit runs of `name` by their value: frame_2 before frame_10. Text
-    and numbers alternate in the same places of every key (`re.split` on digit runs), so keys compare."""
-    parts = re.split(r"(\d+)", name)
-    return tuple(int(part) if i % 2 else part for i, part in enumerate(parts))
+@dataclass
+class ProbeOrder:
+    """The order the fit stage probes the views in: farthest-point order of their poses
+    (`pose_points`) over the views that score. The first is the lowest pose (compared coordinate by
+    coordinate); each next one the pose farthest from the nearest of the views probed so far that
+    scored (`scores_footprints`); a view that did not score is passed over and moves no distance.
+    Ties (a symmetric capture) go to the lower pose, then the name and `Camera.exact_key`: never the
+    list's order. So the views probed depend on the cameras alone: not on the order a file lists
+    them in (round 41: a shuffled transforms.json took other probe views and flipped the footprint,
+    seg mIoU vol 0.594 -> 0.426), nor on their names, nor on views that see nothing (round 49: a
+    room's views renamed, then one blind camera added, flipped the footprint twice, 0.642 -> 0.498
+    -> 0.642, when the probes were evenly spaced in name order)."""
+
+    points: np.ndarray  # [V, 6] pose_points
+    rank: np.ndarray  # [V] each view's place in the tie order
+    gap: np.ndarray  # [V] distance to the nearest probed view that scored (+inf before one has)
+    open: np.ndarray  # [V] bool: not probed yet
+
+    @classmethod
+    def of(cls, views: Sequence[Camera], scale: float = 1.0) -> ProbeOrder:
+        points = pose_points(views, scale)
+        ties = sorted(range(len(views)), key=lambda j: (tuple(points[j].tolist()), views[j].name, views[j].exact_key()))
+        rank = np.empty(len(views), np.int64)
+        rank[ties] = np.arange(len(views))
+        return cls(points, rank, np.full(len(views), np.inf), np.ones(len(views), bool))
+
+    def next(self) -> int | None:
+        """The next view to probe (an index into the views), or None when every view was probed."""
+        candidates = np.flatnonzero(self.open)
+        if candidates.size == 0:
+            return None
+        far = candidates[self.gap[candidates] == self.gap[candidates].max()]
+        return int(far[np.argmin(self.rank[far])])
+
+    def probed(self, view: int, scored: bool) -> None:
+        """Record that `view` was probed, and whether it scored (only a view that scored moves the distances)."""
+        self.open[view] = False
+        if scored:
+            self.gap = np.minimum(self.gap, np.linalg.norm(self.points - self.points[view], axis=1))
+
+
+def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES, scale: float = 1.0) -> np.ndarray:
+    """[min(count, V)] indices into `views` of the probe views, in the order they are scored, when
+    every view probed scores (`ProbeOrder`; scale: `probe_scale` of the scene)."""
+    order = ProbeOrder.of(views, scale)
+    picks = []
+    while len(picks) < count and (view := order.next()) is not None:
+        order.probed(view, True)
+        picks.append(view)
+    return np.array(picks, np.int64)
 
 
 def is_fit_mode(mode: str) -> bool:
@@ -617,10 +666,8 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     support = SurfaceSupport.zeros(geometry.num_gaussians) if rejects else None  # the probe views' statistics, folded in probe order
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device, hook=hook, cull=cull,
                                               by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
-    picks = probe_picks(views, count)
-    # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
-    # layout the format's: `register` checked every view's headers already; this guards a direct call
-    read_feature_headers(features_dir, [views[i] for i in picks], level)
+    order = ProbeOrder.of(views, probe_scale(scene))
+    picks: list[int] = []  # the views probed, in probe order
     scores: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     kept_labels = {footprint: HeldOut() for footprint in FOOTPRINTS}
@@ -628,9 +675,13 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     names: list[str] = []  # the probe views scored
     kept_bytes, keep_bytes = 0, PROBE_KEEP_BYTES if keep_bytes is None else keep_bytes
     floating = None
-    for i in picks:
+    while len(names) < count and len(picks) - len(names) < count and (i := order.next()) is not None:
         if cancel is not None:
             cancel.raise_if_cancelled()
+        picks.append(i)
+        # one embedding size over the probe views (a held-out score compares two views' embeddings), each file's
+        # layout the format's: `register` checked every view's headers already; this guards a direct call
+        read_feature_headers(features_dir, [views[picks[0]], views[i]], level)
         cam, mask_ids, feats, nonfinite = probe_view(features_dir, views[i], level)
         t0 = time.perf_counter()
         out = computer.rasterize(cam)
@@ -647,6 +698,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
             view = both[footprint] = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             if scored is None:
                 scored = scores_footprints(view.weights)
+                order.probed(i, scored)
                 if scored:
                     names.append(views[i].name)
             if not scored:
@@ -670,7 +722,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
                        np.array(held["sharp"]), scored=names, floaters=int(np.count_nonzero(floating)) if floating is not None else 0)
     choice.footprint = choice.decide()
     if len(names) < len(picks):
-        log.info("fit: %d of the %d probe views have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
+        log.info("fit: %d of the %d views probed have no mask over a Gaussian they see, and are not scored", len(picks) - len(names), len(picks))
     if names:
         log.info("fit: the masks of %d probe views follow the %s footprints (mean per-mask IoU of their re-rendered labels: paper %.3f, "
                  "sharp %.3f; of the labels of another probe view: paper %.3f, sharp %.3f%s)", len(names),
