@@ -933,6 +933,10 @@ def test_info_describes_the_language_field(tmp_path, world, capsys):
     field = summary["language_field"]
     assert code == 0 and field["kind"] == "exact" and field["dim"] == world["dim"] and field["nonfinite"] == 0
     assert field["assigned"] + field["unassigned"] == summary["num_gaussians"] and field["assigned"] > 0
+    from plyfile import PlyData  # round 49: the uint16 lang_meta column was left out of the bytes a Gaussian
+
+    stored = sum(np.dtype(p.val_dtype).itemsize for p in PlyData.read(str(world["reg"]))["vertex"].properties if p.name.startswith("lang_"))
+    assert field["bytes_per_gaussian"] == stored == 4 + 2 + 2 * world["dim"]
     bad = _with_lang_columns(world, tmp_path / "allnan.ply", lambda v: np.full_like(v, 0x7E00))
     code, out = main(["info", str(bad)]), capsys.readouterr().out
     assert code == 0 and "0 assigned" in out and f"{summary['num_gaussians']:,} Gaussians have non-finite language features" in out, out

@@ -623,3 +623,27 @@ def test_float32_scores_meet_a_typed_threshold_in_float32():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a threshold past float32's range (typed into the viewer): no overflow warning
         assert not select(scores, 1e39).any() and select(scores, -1e39).all()
+
+
+def test_segment_names_a_background_row_from_the_datasets_own_list(tmp_path, caplog):
+    """Round 49: with --background the last row of a synthetic dataset's text_embeddings.npy is the
+    background, and its gt/label_names.json names all the rows; the names were ignored ("does not
+    name the 7 label rows") and the table showed label_0 .. label_6. Now the first names are the
+    labels'. A list of another length is still ignored with a message that says what it should hold,
+    and a --names file of the wrong length is refused naming both lengths."""
+    import json
+
+    from drsplat.commands.segment import embedding_names
+
+    (tmp_path / "gt").mkdir()
+    names = ["wall", "floor", "mug", "background"]
+    (tmp_path / "gt" / "label_names.json").write_text(json.dumps(names))
+    assert embedding_names(tmp_path / "text_embeddings.npy", None, 3, background=True) == names[:3]
+    assert embedding_names(tmp_path / "text_embeddings.npy", None, 4) == names
+    with caplog.at_level("INFO"):
+        assert embedding_names(tmp_path / "text_embeddings.npy", None, 3) == ["label_0", "label_1", "label_2"]
+    assert "is not a list of 3 names" in caplog.text
+    explicit = tmp_path / "names.json"
+    explicit.write_text(json.dumps(names + ["extra"]))
+    with pytest.raises(InputError, match=r"3 names .*or 4, the last the background row"):
+        embedding_names(tmp_path / "text_embeddings.npy", explicit, 3, background=True)

@@ -76,7 +76,7 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
         emb = load_query_embeddings(args.embeddings, field.dim)
-        names = embedding_names(args.embeddings, getattr(args, "names", None), emb.shape[0] - int(args.background))
+        names = embedding_names(args.embeddings, getattr(args, "names", None), emb.shape[0] - int(args.background), bool(args.background))
     if args.background:
         if emb.shape[0] < 2:
             raise DrsplatError("--background needs at least one label besides the background row")
@@ -99,18 +99,22 @@ def warn_repeated_rows(embeddings: np.ndarray, names: list[str]) -> None:
                         names[i], names[first[group]], names[first[group]], names[i])
 
 
-def embedding_names(embeddings: Path, names_path: Path | None, count: int) -> list[str]:
+def embedding_names(embeddings: Path, names_path: Path | None, count: int, background: bool = False) -> list[str]:
     """Names of `count` label embeddings: NAMES.json (a JSON list) when given, else the dataset's
-    gt/label_names.json beside the embeddings when it names exactly `count` labels, else label_i."""
+    gt/label_names.json beside the embeddings when it names exactly `count` labels, else label_i.
+    background: the file's rows hold one more, the background (--background, its last row), which a
+    list may name too (round 49: a dataset's 8 names for its 8 rows were ignored as "not naming the
+    7 label rows")."""
     explicit = names_path is not None
     path = names_path if explicit else default_names_path(embeddings)
     if explicit or path.is_file():
         names = read_json(path, "a JSON list of names")
-        if isinstance(names, list) and len(names) == count:
-            return checked_names(path, names)
+        if isinstance(names, list) and (len(names) == count or (background and len(names) == count + 1)):
+            return checked_names(path, names[:count])
+        rows = f"{count} names (one per label row of {embeddings.name}" + (f"; or {count + 1}, the last the background row)" if background else ")")
         if explicit:
-            raise InputError(path, f"must be a JSON list of {count} names (one per label row of {embeddings.name})")
-        log.info("ignoring %s: it does not name the %d label rows", shown_path(path), count)
+            raise InputError(path, f"must be a JSON list of {rows}")
+        log.info("ignoring %s: it is not a list of %s", shown_path(path), rows)
     return [f"label_{i}" for i in range(count)]
 
 

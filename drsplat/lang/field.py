@@ -88,7 +88,8 @@ class LanguageField:
         return self.num_gaussians
 
     def bytes_per_gaussian(self) -> int:
-        """Stored bytes per Gaussian in the PLY (weight and norm included)."""
+        """Stored bytes per Gaussian of the field in the PLY (weight and norm included; not the uint16
+        `lang_meta` columns that carry its description, as many as the file's rows need)."""
         return self.storage.bytes_per_gaussian() + 4
 
     def scores(self, queries: np.ndarray, lut_bits: int = 32, device: str | None = None) -> np.ndarray:
