@@ -737,7 +737,7 @@ class SurfaceSupport:
 
 
 STATS_SCALE = float(1 << 32)  # the per-view sums' fixed point: units of 2⁻³² in int64 (exact up to 2³¹ pixels of weight 1)
-STATS_SCRATCH_BYTES = 36  # per Gaussian per part of `surface_stats`: its peak, total, front, nearest clamp and view stamp
+STATS_SCRATCH_BYTES = 28  # per Gaussian per part of `surface_stats`: its peak, total, front and view stamps
 RAY_GEOMETRY_BYTES = 80  # per Gaussian of RayGeometry: mean (3 float64), precision (6 float64), reach (float64)
 STATS_EXTRA_SCRATCH = 256 << 20  # scratch of the parts beyond the first (a 50M scene keeps one part: 1.4 GB each)
 
@@ -814,30 +814,29 @@ def _fixed_weight(w, scale):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
-                          sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
+                          near, sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
     """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
     P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
 
     Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) and t*_g(p) < D(p) -
-    κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0). Part t keeps one record per
-    Gaussian (sums [P, N, 4] int64; peaks: the same memory as float64): peaks[t, g, 0] = max w,
-    sums[t, g, 1] = Σ fixed w, sums[t, g, 2] = Σ fixed w·[in front] (`_fixed_weight`: exact in any
-    order) and peaks[t, g, 3] = its nearest clamp zc - reach in this view, which settles most slots
-    without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach], the same float64 operations as
-    `_ray_depth`, so near ≥ the limit means t* ≥ it; NaN is never < the limit). seen[t, g] == stamp
-    marks the Gaussians the part saw: their first slot computes the clamp and sets the record
-    instead of adding to it, so nothing is cleared between views and only the Gaussians a view
-    sees get a clamp (stamp: a number no earlier view of these buffers used). A later slot of g
-    reads its compact stamp and one 32-byte record, not a clamp in a third array
-    (docs/registration.md, "Floater statistics"). flags: [H·W, k] bool to receive the in-front
-    test, or [0, k] for none.
+    κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
+    first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
+    never < the limit). Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
+    same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
+    Σ fixed w·[in front] (`_fixed_weight`: exact in any order); seen[t, g] == stamp marks the
+    Gaussians it saw, whose first slot sets the three values instead of adding to them, so nothing
+    is cleared between views (stamp: a number no earlier view of these buffers used). One record,
+    not three arrays: a slot touches two cache lines instead of four, and three arrays whose
+    addresses fall on the same cache sets cannot evict one another (docs/registration.md).
+    flags: [H·W, k] bool to receive the in-front test, or [0, k] for none.
     """
+    for g in numba.prange(near.shape[0]):
+        near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
     height = n_pix // width if width > 0 else 0
     parts = sums.shape[0]
     keep_flags = flags.shape[0] == n_pix
-    r2x, r2y, r2z = rot[2, 0], rot[2, 1], rot[2, 2]
     for part in numba.prange(parts):
         for y in range(part, height, parts):
             for p in range(y * width, (y + 1) * width):
@@ -849,7 +848,7 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                 m = median_ids[p]
                 surface = np.inf
                 if m >= 0:
-                    surface = _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, r2x, r2y, r2z, tz)
+                    surface = _ray_depth(m, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
                 limit = (1.0 - tolerance) * surface
                 for s in range(k):
                     g = ids[p, s]
@@ -858,19 +857,16 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                             for r in range(s, k):
                                 flags[p, r] = False
                         break
-                    first = seen[part, g] != stamp
-                    if first:
-                        seen[part, g] = stamp
-                        peaks[part, g, 3] = r2x * means[g, 0] + r2y * means[g, 1] + r2z * means[g, 2] + tz - reach[g]
                     in_front = False
-                    if peaks[part, g, 3] < limit:
-                        t = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, r2x, r2y, r2z, tz)
+                    if near[g] < limit:
+                        t = _ray_depth(g, dx, dy, dz, origin[0], origin[1], origin[2], means, prec, reach, rot[2, 0], rot[2, 1], rot[2, 2], tz)
                         in_front = t < limit and t < surface - FRONT_REACH_SHARE * reach[g]
                     if keep_flags:
                         flags[p, s] = in_front
                     w = np.float64(weights[p, s])
                     fixed = _fixed_weight(w, scale)
-                    if first:
+                    if seen[part, g] != stamp:
+                        seen[part, g] = stamp
                         peaks[part, g, 0] = w if w > 0.0 else 0.0
                         sums[part, g, 1] = fixed
                         sums[part, g, 2] = fixed if in_front else 0
@@ -937,10 +933,11 @@ def stats_parts(num_gaussians: int) -> int:
 
 @dataclass
 class StatsScratch:
-    """Reusable buffers of `surface_stats`: per part [P, N, 4] records (peak and nearest clamp as
-    float64 bits, total, front), view stamps [P, N] (`seen`), flags [H·W, k] bool (or [0, k]
-    without) and the last view's stamp."""
+    """Reusable buffers of `surface_stats`: per part [P, N, 3] records (peak as float64 bits, total,
+    front), view stamps [P, N] (`seen`), [N] nearest clamps, flags [H·W, k] bool (or [0, k] without)
+    and the last view's stamp."""
 
+    near: np.ndarray
     sums: np.ndarray
     seen: np.ndarray
     flags: np.ndarray
@@ -949,11 +946,11 @@ class StatsScratch:
     @classmethod
     def new(cls, n: int, parts: int, k: int, flag_pixels: int = 0) -> StatsScratch:
         # made once a registration, touched a view's Gaussians at a time: small pages (drsplat.memory.small_page_zeros)
-        return cls(small_page_zeros((parts, n, 4), np.int64), small_page_zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
+        return cls(np.empty(n), small_page_zeros((parts, n, 3), np.int64), small_page_zeros((parts, n), np.int32), np.empty((flag_pixels, k), np.bool_))
 
     @property
     def peaks(self) -> np.ndarray:
-        """The records as float64 (the same memory): [..., 0] is each part's peak, [..., 3] its nearest clamp."""
+        """The records as float64 (the same memory): [..., 0] is each part's peak."""
         return self.sums.view(np.float64)
 
     def fits(self, n: int, parts: int, k: int, flag_pixels: int) -> bool:
@@ -987,7 +984,7 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
                           geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
                           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
-                          scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
+                          scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
     chunks = max(1, min(n, 8 * numba.get_num_threads()))
     stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, chunks))
     return stats, scratch
@@ -1185,7 +1182,7 @@ class Aggregator:
         kept = per_block = 0
         if reject:  # statistics, per-view scratch and RayGeometry per Gaussian; one flag per slot
             kept = 32 * num_gaussians
-            views += (STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + RAY_GEOMETRY_BYTES) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
+            views += (8 + STATS_SCRATCH_BYTES * stats_parts(num_gaussians) + RAY_GEOMETRY_BYTES) * num_gaussians + pixels * 4  # StatsScratch, RayGeometry, median ids
         if stages.vote:  # vote slots, W and a scratch per Gaussian of a block (the weighted mean's F is counted by the plan anyway)
             per_block += VOTE_SLOT_BYTES + 8 + (SPECIFICITY_SLOT_BYTES if stages.specific else 0)  # step 4's specificities
         if stages.check:  # the check's slots per Gaussian of a block and its dense support scratch, bounded whatever a view's masks
