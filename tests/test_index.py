@@ -759,32 +759,3 @@ def test_the_writer_refuses_header_text_its_reader_would_refuse(tmp_path, data, 
     with pytest.raises(OutputError, match=rf"cannot write .*: field '{field}' of the 'drsplat\.lang' header comment: .* holds a "):
         attach_field(tiny_scene(len(x)), field_obj, ply)
     assert list(tmp_path.iterdir()) == []  # not even the codebook beside it
-
-
-def test_a_scene_codebook_is_the_same_for_any_order_of_the_gaussians_and_masks():
-    """Round 49: `--codebook scene` topped its training set up with Gaussians drawn by id, and PQ's
-    k-means starts from (and subsamples) rows by their place, so a scene.ply with its rows permuted
-    trained another codebook (max Δscore 0.034, 7 of 2,763 segment labels). Now the sample is the
-    Gaussians of the smallest content keys, and the training rows are put in the order of their bits:
-    the same Gaussians for a permuted scene, and the same codebook for permuted rows, bit for bit."""
-    from drsplat.lang.field import SCENE_FEATURE_SAMPLE, gaussian_keys, scene_sample_ids
-    from drsplat.testing import random_scene
-
-    rng = np.random.default_rng(49)
-    scene = random_scene(rng, SCENE_FEATURE_SAMPLE + 5000)
-    perm = rng.permutation(scene.num_gaussians)
-    moved = scene.subset(perm)  # moved's Gaussian i is scene's perm[i]
-    candidates = np.flatnonzero(rng.random(scene.num_gaussians) < 0.9)
-    inverse = np.argsort(perm)
-    picked = scene_sample_ids(candidates, gaussian_keys(scene))
-    picked_moved = scene_sample_ids(np.sort(inverse[candidates]), gaussian_keys(moved))
-    assert picked.size == SCENE_FEATURE_SAMPLE and np.array_equal(np.sort(perm[picked_moved]), picked)
-    x = rng.normal(size=(600, 64)).astype(np.float32)
-    a, b = train_codebook(x, m=8), train_codebook(x[rng.permutation(600)], m=8)
-    assert np.array_equal(a.centroids, b.centroids)
-    features = rng.normal(size=(3000, 64)).astype(np.float32)
-    weights = rng.random(3000).astype(np.float32)
-    order = rng.permutation(3000)
-    one = build_field(features, weights, codebook="scene", m=8, train_embeddings=x[:100])
-    other = build_field(features[order], weights[order], codebook="scene", m=8, train_embeddings=x[:100][rng.permutation(100)])
-    assert np.array_equal(one.codebook.centroids, other.codebook.centroids)

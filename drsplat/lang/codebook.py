@@ -336,16 +336,12 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     """Train a faiss IndexPQ (inner product, M sub-vectors x 8 bits) on embeddings [n, D].
 
     Each sub-quantiser is a 256-centroid k-means over its D/M-dimensional slice. Rows are
-    L2-normalised first (CLIP embeddings are compared by cosine), then put in the order of their
-    bits: k-means starts from, and subsamples, rows by their place, so the same rows in another
-    order (views or Gaussians listed otherwise) trained another codebook (round 49).
+    L2-normalised first (CLIP embeddings are compared by cosine).
     """
     faiss = _faiss()
 
     x = unit_rows(np.asarray(embeddings, np.float32))
     n, d = x.shape
-    if n and d:
-        x = x[np.argsort(np.ascontiguousarray(x).view(np.dtype((np.void, 4 * d))).reshape(-1), kind="stable")]
     if m <= 0 or d % m:
         raise InputError(None, f"M={m} sub-vectors do not divide the embedding dimension {d}")
     if n < PQ_KSUB:

@@ -189,36 +189,12 @@ def build_field(
     return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book, checked=checked))
 
 
-def row_keys(rows: np.ndarray, seed: int = 0) -> np.ndarray:
-    """[N] uint64: a hash of each row's bits (rows [N, ...] of 4-byte values), mixed column by column
-    (xor, multiply by an odd constant, xor-shift: splitmix64's finaliser), so that a row's key
-    depends on its contents only, not on its place."""
-    bits = np.ascontiguousarray(rows).reshape(rows.shape[0], -1).view(np.uint32)
-    keys = np.full(rows.shape[0], np.uint64(0x9E3779B97F4A7C15) ^ np.uint64(seed), np.uint64)
-    for column in bits.T:  # uint64 products wrap: the hash's arithmetic is modulo 2⁶⁴
-        keys ^= column
-        keys *= np.uint64(0xBF58476D1CE4E5B9)
-        keys ^= keys >> np.uint64(31)
-    return keys
-
-
-def gaussian_keys(scene) -> np.ndarray:
-    """[N] uint64 `row_keys` of each Gaussian's own parameters (mean, rotation, scales, opacity): the
-    same key for the same Gaussian wherever it sits in the file."""
-    columns = [scene.means, scene.quats, scene.log_scales, scene.opacity_logits.reshape(-1, 1)]
-    return row_keys(np.concatenate([np.asarray(c, np.float32).reshape(scene.num_gaussians, -1) for c in columns], axis=1))
-
-
-def scene_sample_ids(candidates: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """Sorted ids of at most SCENE_FEATURE_SAMPLE Gaussians of the ids `candidates` [n], whose features
-    top up a scene codebook's training set when the masks are too few: those of the smallest keys
-    (keys [N]: `gaussian_keys`, or `row_keys` of the features), so the same Gaussians whatever order the
-    scene's file lists them in (round 49: drawn by id, a permuted scene.ply trained another codebook,
-    max Δscore 0.034). `train_codebook` then sees its rows in an order of their own."""
-    if candidates.size <= SCENE_FEATURE_SAMPLE:
-        return np.sort(candidates)
-    chosen = candidates[np.argpartition(keys[candidates], SCENE_FEATURE_SAMPLE - 1)[:SCENE_FEATURE_SAMPLE]]
-    return np.sort(chosen)
+def scene_sample_ids(candidates: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Sorted ids of at most SCENE_FEATURE_SAMPLE Gaussians, drawn from the ids `candidates` [n],
+    whose features top up a scene codebook's training set when the masks are too few."""
+    rng = np.random.default_rng(seed)
+    take = rng.choice(candidates, size=min(candidates.size, SCENE_FEATURE_SAMPLE), replace=False) if candidates.size else candidates
+    return np.sort(take)
 
 
 def scene_training_set(train: np.ndarray | None, sample_features: Callable[[], np.ndarray], dim: int) -> np.ndarray:
@@ -238,10 +214,4 @@ def scene_training_set(train: np.ndarray | None, sample_features: Callable[[], n
 
 
 def _scene_training_set(features: np.ndarray, assigned: np.ndarray, train: np.ndarray | None, seed: int) -> np.ndarray:
-    def sample() -> np.ndarray:
-        candidates = np.flatnonzero(assigned)
-        keys = np.zeros(features.shape[0], np.uint64)
-        keys[candidates] = row_keys(np.asarray(features[candidates], np.float32), seed)
-        return features[scene_sample_ids(candidates, keys)]
-
-    return scene_training_set(train, sample, features.shape[1])
+    return scene_training_set(train, lambda: features[scene_sample_ids(np.flatnonzero(assigned), seed)], features.shape[1])

@@ -40,7 +40,7 @@ from drsplat.features.modelid import manifest_model_id
 from drsplat.frames import frame_hint
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
-from drsplat.lang.field import gaussian_keys, scene_sample_ids, scene_training_set
+from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
@@ -408,7 +408,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
         if codebook == "scene":
-            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates, run.scene)
+            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
         if reduce is None:
             # the kept rows as far as known now (the header's room; drsplat.registration.output.PlyTarget)
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
@@ -664,13 +664,12 @@ def in_view_order(indices: range, ready: dict[int, ViewPairs], computed: Iterato
             yield view.grouped() if grouped else view
 
 
-def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray, scene: GaussianScene) -> Codebook:
+def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:
     """The scene codebook: PQ trained on the masks' embeddings, topped up with the unit features of a
-    sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan;
-    chosen by their own parameters, `gaussian_keys`, so the same in any order of the scene's file)."""
+    sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan)."""
 
     def sample_features() -> np.ndarray:
-        ids = scene_sample_ids(np.flatnonzero(candidates), gaussian_keys(scene))
+        ids = scene_sample_ids(np.flatnonzero(candidates))
         F, W = sink.sample(ids)
         F, _ = normalize_rows(F, W)
         return F[W > 0]
