@@ -26,7 +26,7 @@ import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError, hidden_character
-from drsplat.utils import clipped, write_bytes_atomic
+from drsplat.utils import clipped, spread_rows, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -720,8 +720,7 @@ def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
     Not a tighter box: a sky dome of large, far Gaussians (a tenth of an unbounded capture) is part
     of its size, so it widens the box instead of standing out against it. Not the whole box either:
     one stray mean 1e14 away made every Gaussian small beside it (a probe, 2026-12-01)."""
-    step = max(1, -(-means.shape[0] // max(sample, 1)))
-    rows = np.asarray(means[::step], np.float64)
+    rows = np.asarray(spread_rows(means, max(sample, 1)), np.float64)
     with np.errstate(invalid="ignore"):
         rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
     n = rows.shape[0]

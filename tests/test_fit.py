@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import tracemalloc
+import warnings
 
 import numpy as np
 import pytest
@@ -324,11 +325,11 @@ def rooms(tmp_path_factory):
     return {src: write_dataset(root / src, "hard-tiny", 0, mask_source=src, show_progress=False) for src in ("render", "geometry")}
 
 
-def _ring(count: int, names=None) -> list:
-    """`count` cameras evenly on a circle of radius 4 around the origin, each looking at it."""
+def _ring(count: int) -> list:
+    """`count` cameras evenly on a circle of radius 4 around the origin, each looking at it, named frame_0 ..."""
     angles = 2 * np.pi * np.arange(count) / count
     eyes = np.stack([4 * np.cos(angles), np.zeros(count), 4 * np.sin(angles)], 1)
-    return [dataclasses.replace(look_at_camera(eye, np.zeros(3), 16, 12, 50.0), name=names[j] if names else f"frame_{j}") for j, eye in enumerate(eyes)]
+    return [dataclasses.replace(look_at_camera(eye, np.zeros(3), 16, 12, 50.0), name=f"frame_{j}") for j, eye in enumerate(eyes)]
 
 
 def test_probe_picks_spread_through_the_capture_in_farthest_point_order():
@@ -341,6 +342,11 @@ def test_probe_picks_spread_through_the_capture_in_farthest_point_order():
     assert steps[:2] == [0, 50] and sorted(steps[2:4]) == [25, 75]
     assert sorted(step // 25 for step in steps[4:]) == [0, 1, 2, 3] and all(abs(step % 25 - 12.5) <= 0.5 for step in steps[4:])
     assert probe_picks(views[:3], 4).size == 3 and probe_picks([], 4).size == 0
+    # a pose whose centre overflows float64 counts as the origin, with no numpy warning (the review's hostile pose)
+    views[5] = dataclasses.replace(views[5], t=np.array([1e308, -1e308, 1e308]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(set(probe_picks(views, 8).tolist())) == 8
 
 
 def test_probe_picks_follow_the_cameras_not_their_order_nor_their_names():

@@ -264,9 +264,10 @@ def pose_points(views: Sequence[Camera], scale: float = 1.0) -> np.ndarray:
     apart, in the scene's units. Non-finite entries count as 0."""
     if not len(views):
         return np.zeros((0, 6))
-    centres = np.array([v.ray_origin() for v in views], np.float64).reshape(-1, 3)
-    ahead = np.array([np.asarray(v.R, np.float64)[2] for v in views]).reshape(-1, 3)
-    points = np.concatenate([centres, scale * ahead], axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a hostile pose's overflow is the 0 below, not a numpy warning
+        centres = np.array([v.ray_origin() for v in views], np.float64).reshape(-1, 3)
+        ahead = np.array([np.asarray(v.R, np.float64)[2] for v in views]).reshape(-1, 3)
+        points = np.concatenate([centres, scale * ahead], axis=1)
     return np.nan_to_num(points, nan=0.0, posinf=0.0, neginf=0.0)
 
 
@@ -308,7 +309,8 @@ class ProbeOrder:
         """Record that `view` was probed, and whether it scored (only a view that scored moves the distances)."""
         self.open[view] = False
         if scored:
-            self.gap = np.minimum(self.gap, np.linalg.norm(self.points - self.points[view], axis=1))
+            with np.errstate(over="ignore"):  # poses 1e308 apart are +inf apart: the farthest, as they are
+                self.gap = np.minimum(self.gap, np.linalg.norm(self.points - self.points[view], axis=1))
 
 
 def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES, scale: float = 1.0) -> np.ndarray:
