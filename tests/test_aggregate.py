@@ -93,6 +93,26 @@ def test_view_weights_kernel_agrees_with_reference(weighting, case):
         np.testing.assert_array_equal(got, np.where(ids >= 0, weights, 0))
 
 
+
+@pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1", "holes"])
+def test_sharp_weights_from_a_culled_projection_are_the_whole_scenes_bits(case):
+    """The sharp weighting from the projected rows of some Gaussians (a culled view: their scene ids
+    `rows`, in any order) is `view_weights("sharp")` of the whole scene's arrays bit for bit; only
+    those rows of the reused screen table are made, so what other views left there is never read."""
+    from drsplat.registration.aggregate import sharp_weights
+
+    rng = np.random.default_rng(zlib.crc32(repr(("culled sharp", case)).encode()))
+    n, screen = 3000, None
+    for view in range(3):
+        ids, weights, means2d, conics, _ = _random_view(rng, 9, 13, 1 if case == "k1" else 6, n, case)
+        rows = np.union1d(ids[ids >= 0], rng.choice(n, size=50, replace=False)).astype(np.int32)
+        rows = rows[rng.permutation(rows.size)] if view == 1 else rows
+        want = view_weights("sharp", ids, weights, means2d, conics)
+        got, screen = sharp_weights(ids, weights, means2d[rows], conics[rows], rows, n, screen)
+        np.testing.assert_array_equal(got, want, err_msg=f"view {view}")
+        assert screen.shape == (n, 5)
+        screen.fill(np.nan)  # rows left by another view: read, they would make the weights NaN
+
 def test_anchor_centre_vote_of_a_footprint_larger_than_the_view_is_capped_at_the_view():
     """Was (round 45, left as found): the anchor's centre vote w·(1 + c·A) took A = 2π·sqrt(det Σ')
     unbounded, so a Gaussian of log scale ~50 (det Σ' ~ 1e90 px⁴) weighed inf in float32 and was
@@ -243,6 +263,41 @@ def test_surface_stats_kernel_agrees_with_reference(case):
     if case == "random":
         assert (got.front > 0).any() and (got.front < got.total).any() and (got.views_front > 0).any()
 
+
+
+@pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1"])
+def test_surface_stats_over_candidates_are_the_reference_bits(case):
+    """Given the ascending ids a culled view projected (`candidates`: every Gaussian its lists name,
+    and others it projected but no pixel kept), the statistics are made over those only, and are the
+    reference's bit for bit; views with and without candidates share one scratch in turn, so a
+    clamp left from another view is never read."""
+    rng = np.random.default_rng(zlib.crc32(repr(("candidates", case)).encode()))
+    scratch = None
+    for view in range(6):
+        geometry, cam, ids, weights, median = _random_stats_inputs(rng, case, n=2000, k=1 if case == "k1" else 12)  # a few hundred named
+        n = geometry.reach.shape[0]
+        named = np.unique(ids[ids >= 0])
+        extra = rng.choice(n, size=int(rng.integers(0, n // 2)), replace=False)
+        candidates = np.union1d(named, extra if view % 3 else np.zeros(0, np.int64)).astype(np.int32)  # view 0, 3: exactly those named
+        given = None if view % 2 else candidates
+        stats, scratch = surface_stats(geometry, cam, ids, weights, median, scratch=scratch, parts=1 + view % 3, candidates=given)
+        ref = surface_stats_reference(geometry, cam, ids, weights, median)
+        for name in ("ids", "peak", "total", "front"):
+            np.testing.assert_array_equal(getattr(stats, name), getattr(ref, name), err_msg=f"view {view} {name}")
+        scratch.near.fill(np.inf)  # as if every clamp were left from a view far behind: a stale one read would skip the depth test
+
+
+def test_surface_stats_refuse_candidates_that_leave_out_a_gaussian_seen():
+    """Candidates that miss a Gaussian the lists name would lose its statistics and read a stale
+    clamp: an error, as are candidates out of order or out of the scene."""
+    rng = np.random.default_rng(21)
+    geometry, cam, ids, weights, median = _random_stats_inputs(rng, "random")
+    named = np.unique(ids[ids >= 0]).astype(np.int32)
+    with pytest.raises(ValueError, match="not among its candidates"):
+        surface_stats(geometry, cam, ids, weights, median, candidates=np.delete(named, named.size // 2))
+    for bad in (named[::-1], np.append(named, geometry.reach.shape[0]), np.append(named[:1], named)):
+        with pytest.raises(ValueError, match="ascending ids"):
+            surface_stats(geometry, cam, ids, weights, median, candidates=bad)
 
 @pytest.mark.parametrize("case", ["random", "hard"])
 def test_surface_stats_are_the_same_bits_in_any_number_of_parts(case):

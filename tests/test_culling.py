@@ -13,7 +13,8 @@ from drsplat.cameras import load_cameras, look_at_camera
 from drsplat.raster import NEAR, prepare_scene, project_gaussians, rasterize
 from drsplat.testing import gaussians
 from drsplat.registration import RegisterOptions, register
-from drsplat.registration.aggregate import mode_hook
+from drsplat.registration import aggregate
+from drsplat.registration.aggregate import RayGeometry, mode_hook
 from drsplat.registration.compute import renders_whole, ViewComputer, ViewJob, prepare_geometry
 from drsplat.registration.culling import (SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes, remap_ids,
                                          remap_ids_reference, subset_geometry, subset_geometry_reference)
@@ -73,15 +74,19 @@ def test_city_views_see_a_small_part_and_render_the_same(city):
     assert np.mean(seen) < 0.5, seen
 
 
-@pytest.mark.parametrize("weighting", [None, "sharp", "anchor"])
-def test_view_computer_pairs_equal_with_and_without_culling(city, weighting):
+@pytest.mark.parametrize("weighting", [None, "sharp", "anchor", "sharp-reject"])
+def test_view_computer_pairs_equal_with_and_without_culling(city, weighting, monkeypatch):
     """The same pairs, bit for bit, whether a view renders its culled subset or the whole scene; a
     weighting that reads the projection (sharp, anchor) reads the culled render's own, by scene id,
-    instead of projecting the whole scene again."""
+    instead of projecting the whole scene again; floater statistics (`-reject`) are the same too,
+    a culled view's made over its projected Gaussians only."""
+    projections = []
+    monkeypatch.setattr(aggregate, "project_gaussians", lambda *args: projections.append(args) or project_gaussians(*args))
     scene, cams = city
     geometry = prepare_geometry(scene)
     rng = np.random.default_rng(3)
-    hooks = [mode_hook(weighting, None) if weighting else None for _ in range(2)]
+    rays = RayGeometry.from_scene(scene) if weighting and weighting.endswith("-reject") else None
+    hooks = [mode_hook(weighting, rays) if weighting else None for _ in range(2)]
     culled = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=True, hook=hooks[0]))
     full = ViewComputer(geometry, ViewJob(Path("."), 0, 5, cull=False, hook=hooks[1]))
     n = geometry.num_gaussians
@@ -96,11 +101,18 @@ def test_view_computer_pairs_equal_with_and_without_culling(city, weighting):
         for field in ("gaussians", "masks", "weights", "used"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{cam.name} {field}")
         assert a.num_pairs == b.num_pairs > 0
+        if rays is not None:
+            for field in ("ids", "peak", "total", "front"):
+                np.testing.assert_array_equal(getattr(a.stats, field), getattr(b.stats, field), err_msg=f"{cam.name} stats {field}")
+            assert 0 < a.stats.ids.size
     assert max(projected[:4]) < 0.35 * n  # room views render their culled subset
     slots = overview.width * overview.height * 5
     assert projected[4] == n and renders_whole(culled._index.visible(overview).size, n, slots)  # most of the city in view: rendered whole
-    if weighting:  # the culled views' projections were scattered by scene id, never the scene projected again
+    assert projections == []  # the hooks read the renders' own projections, never the scene's projected again
+    if weighting == "anchor":  # the culled views' projections were scattered by scene id
         assert hooks[0]._means2d is not None and hooks[1]._means2d is None
+    if weighting and weighting.startswith("sharp"):  # their sharp table rows were made from the culled rows themselves
+        assert hooks[0]._means2d is None and hooks[0]._screen is not None
 
 
 def test_registered_field_bytes_equal_with_and_without_culling(tiny, tmp_path):

@@ -330,14 +330,32 @@ def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: 
     ids, weights = np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32)
     means2d, conics = np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64)
     if weighting == "sharp":
-        screen = np.empty((conics.shape[0], 5))
-        _sharp_screen_kernel(means2d, conics, BLUR - SHARP_BLUR, screen)
-        parts = max(1, min(ids.shape[0], 4 * numba.get_num_threads()))  # runs of rows, each with one row buffer
-        _sharp_weights_kernel(ids, weights, screen, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
-        return out
+        return sharp_weights(ids, weights, means2d, conics, out=out)[0]
     _view_weights_kernel(_WEIGHTING_CODE[weighting], ids, weights, means2d, conics, ELLIPSE_D2, float(anchor_gain), out)
     return out
 
+
+
+def sharp_weights(ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray, rows: np.ndarray | None = None,
+                  num_gaussians: int | None = None, screen: np.ndarray | None = None, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`view_weights("sharp", ...)` from a projection of some of the scene's Gaussians: means2d [V, 2]
+    and conics [V, 3] float64 of the Gaussians rows [V] (scene ids; None: row i is Gaussian i). ids,
+    weights: [H, W, k] (every id among rows). Only those V rows of the [N, 5] screen table
+    (`_sharp_screen_kernel`) are made, so a culled view costs O(V + slots), not O(N) (num_gaussians:
+    N, default V). screen: an [N, 5] buffer to reuse; out: a [H, W, k] float32 one. Returns (out,
+    screen). The same bits as one formula per slot."""
+    ids, weights = np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32)
+    means2d, conics = np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64)
+    n = conics.shape[0] if num_gaussians is None else int(num_gaussians)
+    if screen is None or screen.shape != (n, 5):
+        screen = np.empty((n, 5))
+    if out is None or out.shape != ids.shape:
+        out = np.empty(ids.shape, np.float32)
+    every = rows is None
+    _sharp_screen_kernel(means2d, conics, BLUR - SHARP_BLUR, np.zeros(0, np.int32) if every else np.ascontiguousarray(rows, np.int32), every, screen)
+    parts = max(1, min(ids.shape[0], 4 * numba.get_num_threads()))  # runs of rows, each with one row buffer
+    _sharp_weights_kernel(ids, weights, screen, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
+    return out, screen
 
 @numba.njit(inline="always")
 def sharp_exp(q):  # pragma: no cover - jitted
@@ -359,14 +377,15 @@ def sharp_exp(q):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True)
-def _sharp_screen_kernel(means2d, conics, shift, out):  # pragma: no cover - jitted
-    """out[g] = (u, v, Δa, Δb, Δc): the screen mean means2d[g] beside `sharpening`(conics)[g] (the
-    same operations), in parallel over the Gaussians: what `_sharp_weights_kernel` reads per slot,
-    in one 40-byte row instead of rows of two arrays."""
-    for g in numba.prange(conics.shape[0]):
-        a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-        out[g, 0] = means2d[g, 0]
-        out[g, 1] = means2d[g, 1]
+def _sharp_screen_kernel(means2d, conics, shift, rows, every, out):  # pragma: no cover - jitted
+    """out[g] = (u, v, Δa, Δb, Δc): the screen mean means2d[i] beside `sharpening`(conics)[i] (the
+    same operations) of the Gaussian g = rows[i] (g = i when `every`), in parallel over the rows:
+    what `_sharp_weights_kernel` reads per slot, in one 40-byte row instead of rows of two arrays."""
+    for i in numba.prange(conics.shape[0]):
+        g = np.int64(i) if every else np.int64(rows[i])
+        a, b, c = conics[i, 0], conics[i, 1], conics[i, 2]
+        out[g, 0] = means2d[i, 0]
+        out[g, 1] = means2d[i, 1]
         out[g, 2] = out[g, 3] = out[g, 4] = 0.0
         det = a * c - b * b
         if det > 0.0:
@@ -814,7 +833,7 @@ def _fixed_weight(w, scale):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
-                          near, sums, peaks, seen, stamp, flags):  # pragma: no cover - jitted
+                          candidates, every, near, sums, peaks, seen, stamp, flags, part_seen):  # pragma: no cover - jitted
     """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
     P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
@@ -822,22 +841,26 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
     Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) and t*_g(p) < D(p) -
     κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
     first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
-    never < the limit). Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
+    never < the limit), for the Gaussians `candidates` [V] int32 names (every one of the scene when
+    `every`): the view's cost follows what it sees, not the scene's size. Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
     same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
     Σ fixed w·[in front] (`_fixed_weight`: exact in any order); seen[t, g] == stamp marks the
     Gaussians it saw, whose first slot sets the three values instead of adding to them, so nothing
     is cleared between views (stamp: a number no earlier view of these buffers used). One record,
     not three arrays: a slot touches two cache lines instead of four, and three arrays whose
     addresses fall on the same cache sets cannot evict one another (docs/registration.md).
-    flags: [H·W, k] bool to receive the in-front test, or [0, k] for none.
+    flags: [H·W, k] bool to receive the in-front test, or [0, k] for none. part_seen [P] int64:
+    how many Gaussians each part saw (what the merge must find again, `surface_stats`).
     """
-    for g in numba.prange(near.shape[0]):
+    for i in numba.prange(near.shape[0] if every else candidates.shape[0]):
+        g = np.int64(i) if every else np.int64(candidates[i])
         near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
     height = n_pix // width if width > 0 else 0
     parts = sums.shape[0]
     keep_flags = flags.shape[0] == n_pix
     for part in numba.prange(parts):
+        part_count = np.int64(0)
         for y in range(part, height, parts):
             for p in range(y * width, (y + 1) * width):
                 rx = (p % width + 0.5 - cx) / fx
@@ -867,6 +890,7 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                     fixed = _fixed_weight(w, scale)
                     if seen[part, g] != stamp:
                         seen[part, g] = stamp
+                        part_count += 1
                         peaks[part, g, 0] = w if w > 0.0 else 0.0
                         sums[part, g, 1] = fixed
                         sums[part, g, 2] = fixed if in_front else 0
@@ -876,19 +900,25 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
                     peaks[part, g, 0] = w if w > pk else pk
                     sums[part, g, 1] += fixed
                     sums[part, g, 2] += fixed if in_front else 0
+        part_seen[part] = part_count
 
 
 @numba.njit(parallel=True, cache=True)
-def _merge_stats_kernel(seen, stamp, sums, peaks, scale, chunks):  # pragma: no cover - jitted
+def _merge_stats_kernel(seen, stamp, sums, peaks, scale, candidates, every, chunks):  # pragma: no cover - jitted
     """The parts of `_surface_stats_kernel` (its records sums / peaks) as one view's (ids [T], peak [T], total [T], front [T]):
     every Gaussian some part saw (seen[t, g] == stamp) in id order, its largest peak and the exact
-    sums of its parts as float64 (÷ scale). Two passes in parallel over `chunks` runs of ids:
-    count, then write at each run's offset."""
+    sums of its parts as float64 (÷ scale). Looks at the ascending ids `candidates` [V] only (every
+    id of the scene when `every`). Two passes in parallel over `chunks` runs of them: count, then
+    write at each run's offset. Also returns how many (part, Gaussian) marks it found (int64),
+    which equals Σ part_seen of `_surface_stats_kernel` exactly when no Gaussian seen is left out."""
     parts, n = seen.shape
+    if not every:
+        n = candidates.shape[0]
     found = np.zeros(chunks + 1, np.int64)
     for c in numba.prange(chunks):
         count = 0
-        for g in range(c * n // chunks, (c + 1) * n // chunks):
+        for i in range(c * n // chunks, (c + 1) * n // chunks):
+            g = np.int64(i) if every else np.int64(candidates[i])
             hit = False
             for part in range(parts):
                 hit = hit or seen[part, g] == stamp
@@ -900,9 +930,12 @@ def _merge_stats_kernel(seen, stamp, sums, peaks, scale, chunks):  # pragma: no 
     out_peak = np.empty(found[chunks])
     out_total = np.empty(found[chunks])
     out_front = np.empty(found[chunks])
+    chunk_marks = np.zeros(chunks, np.int64)
     for c in numba.prange(chunks):
         o = found[c]
-        for g in range(c * n // chunks, (c + 1) * n // chunks):
+        marks = np.int64(0)
+        for i in range(c * n // chunks, (c + 1) * n // chunks):
+            g = np.int64(i) if every else np.int64(candidates[i])
             hit = False
             pk = 0.0
             t = np.int64(0)
@@ -910,6 +943,7 @@ def _merge_stats_kernel(seen, stamp, sums, peaks, scale, chunks):  # pragma: no 
             for part in range(parts):
                 if seen[part, g] == stamp:
                     hit = True
+                    marks += 1
                     v = peaks[part, g, 0]
                     pk = v if v > pk else pk
                     t += sums[part, g, 1]
@@ -920,7 +954,8 @@ def _merge_stats_kernel(seen, stamp, sums, peaks, scale, chunks):  # pragma: no 
                 out_total[o] = t / scale
                 out_front[o] = f / scale
                 o += 1
-    return out_ids, out_peak, out_total, out_front
+        chunk_marks[c] = marks
+    return out_ids, out_peak, out_total, out_front, chunk_marks.sum()
 
 
 def stats_parts(num_gaussians: int) -> int:
@@ -967,11 +1002,16 @@ class StatsScratch:
 
 def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.ndarray, median_ids: np.ndarray,
                   tolerance: float = FRONT_TOLERANCE, scratch: StatsScratch | None = None, parts: int | None = None,
-                  keep_flags: bool = False) -> tuple[ViewStats, StatsScratch]:
+                  keep_flags: bool = False, candidates: np.ndarray | None = None) -> tuple[ViewStats, StatsScratch]:
     """`surface_stats_reference` with numba kernels: the in-front test and the sums in one pass,
     in parallel over `parts` sets of pixel rows (default `stats_parts`; the same statistics for
     any), then their merge, Gaussians in id order. scratch: buffers of a previous call to reuse; keep_flags: also keep the
-    in-front test of every slot in scratch.flags [H·W, k]. Returns (stats, the buffers used)."""
+    in-front test of every slot in scratch.flags [H·W, k]. candidates: [V] the ascending ids of
+    every Gaussian `ids` can name (a culled view's projected ids, `RasterOutput.projected_ids`), so
+    that the per-Gaussian work is O(V), not O(N): a 50M-Gaussian scene's view that sees 200,000
+    of them would otherwise scan 50M clamps and 2 x 50M stamps (None: every Gaussian). A Gaussian
+    of `ids` that is not among them is an error (the merge counts the parts' marks again).
+    Returns (stats, the buffers used)."""
     h, w, k = ids.shape
     ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
     n = geometry.reach.shape[0]
@@ -979,15 +1019,22 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     flag_pixels = ids2.shape[0] if keep_flags else 0
     if scratch is None or not scratch.fits(n, parts, k, flag_pixels):
         scratch = StatsScratch.new(n, parts, k, flag_pixels)
+    every = candidates is None
+    candidates = np.zeros(0, np.int32) if every else np.ascontiguousarray(candidates, np.int32)
+    if not every and candidates.size and (candidates[0] < 0 or candidates[-1] >= n or np.any(candidates[1:] <= candidates[:-1])):
+        raise ValueError(f"candidates must be ascending ids of the scene's {n:,} Gaussians")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     stamp = scratch.next_stamp()
+    part_seen = np.zeros(parts, np.int64)
     _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
                           geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
                           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
-                          scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags)
-    chunks = max(1, min(n, 8 * numba.get_num_threads()))
-    stats = ViewStats(*_merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, chunks))
-    return stats, scratch
+                          candidates, every, scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags, part_seen)
+    chunks = max(1, min(n if every else candidates.size, 8 * numba.get_num_threads()))
+    *merged, found = _merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, candidates, every, chunks)
+    if found != part_seen.sum():
+        raise ValueError("the view's top-k lists name Gaussians that are not among its candidates")
+    return ViewStats(*merged), scratch
 
 
 # ----------------------------------------------------------------------------- the registration hook
@@ -1009,6 +1056,7 @@ class ViewHook:
     _seen: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _means2d: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     _conics: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    _screen: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.weighting, self.reject = split_mode(self.mode)
@@ -1041,7 +1089,8 @@ class ViewHook:
             return None
         if out.median_ids is None:
             raise ValueError(f"--aggregate {self.mode} needs the rasterizer's median Gaussians (rasterize(..., with_median=True))")
-        stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch)
+        stats, self._scratch = surface_stats(self.rays, camera, out.ids, out.weights, out.median_ids, scratch=self._scratch,
+                                             candidates=getattr(out, "projected_ids", None))
         return stats
 
     def weights(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> np.ndarray:
@@ -1060,27 +1109,41 @@ class ViewHook:
                 self._seen = np.full(max(n, 1), -1, np.int32)
             self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
             return self._buffer
-        means2d, conics = self._projection(geometry, camera, out) if self.needs_projection else (np.zeros((0, 2)), np.zeros((0, 3)))
+        if self.weighting == "sharp":
+            means2d, conics, rows = self._projection(geometry, camera, out)
+            if self._screen is None or self._screen.shape[0] != geometry.num_gaussians:
+                self._screen = small_page_zeros((geometry.num_gaussians, 5), np.float64)  # made once, a view's rows written at a time
+            self._buffer, self._screen = sharp_weights(out.ids, out.weights, means2d, conics, rows, geometry.num_gaussians, self._screen, self._buffer)
+            return self._buffer
+        means2d, conics = self._scene_projection(geometry, camera, out) if self.needs_projection else (np.zeros((0, 2)), np.zeros((0, 3)))
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer
 
-    def _projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray]:
-        """(means2d [N, 2], conics [N, 3]) float64 by scene id, right for every Gaussian out.ids names:
-        the render's own projection when it covers the scene; scattered into this hook's buffers when
-        it covers a culled subset (out.projected_ids: its rows' scene ids; a Gaussian's projection
-        does not depend on the others, so these are the same bits); projected here otherwise."""
+    def _projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(means2d [V, 2], conics [V, 3] float64, rows [V] their scene ids or None for V = N in id
+        order), right for every Gaussian out.ids names: the render's own projection (of a culled
+        subset: out.projected_ids), or projected here when the render kept none."""
         projected = getattr(out, "projected", None)
-        n = geometry.num_gaussians
-        if projected is not None and projected.means2d.shape[0] == n and getattr(out, "projected_ids", None) is None:
-            return projected.means2d, projected.conics
         rows = getattr(out, "projected_ids", None)
+        if projected is not None and rows is None and projected.means2d.shape[0] == geometry.num_gaussians:
+            return projected.means2d, projected.conics, None
         if projected is None or rows is None or rows.shape[0] != projected.means2d.shape[0]:
             projected = project_gaussians(geometry, camera)
-            return projected.means2d, projected.conics
+            return projected.means2d, projected.conics, None
+        return projected.means2d, projected.conics, rows
+
+    def _scene_projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray]:
+        """(means2d [N, 2], conics [N, 3]) float64 by scene id (`_projection`'s rows scattered into this
+        hook's buffers when it covers a culled subset; a Gaussian's projection does not depend on the
+        others, so these are the same bits)."""
+        means2d, conics, rows = self._projection(geometry, camera, out)
+        if rows is None:
+            return means2d, conics
+        n = geometry.num_gaussians
         if self._means2d is None or self._means2d.shape[0] != n:
             self._means2d, self._conics = small_page_zeros((n, 2), np.float64), small_page_zeros((n, 3), np.float64)
-        self._means2d[rows] = projected.means2d
-        self._conics[rows] = projected.conics
+        self._means2d[rows] = means2d
+        self._conics[rows] = conics
         return self._means2d, self._conics
 
 
