@@ -75,11 +75,16 @@ def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageFie
 def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     """The paper's self-referencing query: normalize(mean of the unit features of Gaussians `ids`): [D].
 
-    ids: [n] Gaussian indices. PQ fields use the reconstructions of those Gaussians.
-    Gaussians without a feature (`LanguageField.assigned`: a PQ row's codes decode to a vector even
-    then) are ignored.
+    ids: [n] Gaussian indices, read as a set: an id given twice counts once, and the mean is taken
+    in id order, so one set of Gaussians gives one query, the same bits in any order and as a
+    boolean mask (round 50: 5 of 50 ids repeated moved the cosines by up to 0.0074). PQ fields use
+    the reconstructions of those Gaussians. Gaussians without a feature (`LanguageField.assigned`:
+    a PQ row's codes decode to a vector even then) are ignored.
     """
-    ids = np.asarray(ids).reshape(-1)
+    given = np.asarray(ids).reshape(-1)
+    ids = np.unique(given)
+    if ids.size < given.size:
+        log.info("%d repeated Gaussian ids counted once", given.size - ids.size)
     ids = ids[field.assigned()[ids]] if ids.size else ids
     feats = unit_rows(field.reconstruct(ids)) if ids.size else np.zeros((0, field.dim), np.float32)
     feats = feats[np.linalg.norm(feats, axis=1) > 0]

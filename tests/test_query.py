@@ -108,6 +108,19 @@ def test_click_query_is_the_mean_feature(world, fields):
         click_query(fields["exact"], np.array([0, 1]))
 
 
+
+def test_click_query_reads_its_ids_as_a_set(world, fields):
+    """One set of Gaussians, one query: repeated ids count once and the order does not matter, the
+    same bits as its boolean mask (round 50: repeating 5 of 50 ids moved the cosines by 0.0074)."""
+    _, _, lab, _ = world
+    ids = np.flatnonzero(lab == 3)[:50]
+    mask = np.zeros(lab.shape[0], bool)
+    mask[ids] = True
+    for name in ("exact", "pq"):
+        want = click_query(fields[name], np.flatnonzero(mask))
+        for given in (ids[::-1], np.concatenate([ids, ids[:5]]), np.repeat(ids, 3)[::-1]):
+            np.testing.assert_array_equal(click_query(fields[name], given), want, err_msg=name)
+
 def test_click_query_on_features_that_cancel_is_one_error_not_a_zero_query():
     """Two selected Gaussians of opposite features have a mean of no direction; the field refuses a
     zero query (round 38), so the click says why in the words a user reads."""
