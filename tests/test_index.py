@@ -113,6 +113,28 @@ def test_lut_kernel_edge_shapes(books):
         np.testing.assert_allclose(got, lut_scores_reference(book, codes, None, norms, q), atol=TOL, rtol=0)
 
 
+
+def test_lut_kernel_sums_in_the_order_written():
+    """The four-codes-a-load kernel adds each row's table entries in float32 in the order its source
+    writes them (four running sums, then (a0 + a1) + (a2 + a3), times 1/norm), so its bits do not
+    depend on how the compiler vectorised it. Until round 50 it allowed reassociation: a process that
+    compiled it scored other float32 bits (one ulp, 2/3 of the entries) than one that loaded it from
+    numba's cache."""
+    from drsplat.lang.lut import _lut_scores_kernel_m4
+
+    rng = np.random.default_rng(50)
+    n, m, k = 700, 32, 3
+    codes = rng.integers(0, 256, (n, m), dtype=np.uint8)
+    tables = (rng.normal(size=(k, m, 256)) * 0.01).astype(np.float32)
+    norms = (rng.random(n) + 0.5).astype(np.float32)
+    got = np.empty((n, k), np.float32)
+    _lut_scores_kernel_m4(codes.view(np.uint32), np.zeros(n, np.int32), tables.reshape(k, m * 256), np.zeros((k, 0), np.float32), norms, got)
+    sums = np.zeros((4, n, k), np.float32)
+    for j in range(m):
+        sums[j % 4] += tables[:, j, codes[:, j]].T
+    want = ((sums[0] + sums[1]) + (sums[2] + sums[3])) * (np.float32(1.0) / norms)[:, None]
+    np.testing.assert_array_equal(got, want)
+
 def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
     """256 copies of 3 embeddings trained without a word into 256 centroids a sub-vector (round 29a):
     a codebook of those 3 directions only. Counted and said; a varied set says nothing."""

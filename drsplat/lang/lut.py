@@ -22,7 +22,9 @@ log = logging.getLogger(__name__)
 
 
 LUT_BLOCK = 1024
-FAST = {"reassoc", "nsz", "arcp", "contract"}  # fastmath without nnan/ninf: non-finite norms are tested
+FAST = {"nsz", "arcp", "contract"}  # fastmath without nnan/ninf (non-finite norms are tested) and without reassoc: the sums keep
+# their written order, so every compile gives the same bits (with reassoc a process that compiled `_lut_scores_kernel_m4`
+# scored one ulp off one that loaded it from numba's cache, round 50), and the gathers stay scalar, which is faster here
 # The smallest stored norm a row is scored by: float32's smallest normal number. Below it 1/norm
 # overflows float32 (a codebook of subnormal centroids scored every row inf, selected and written
 # to --scores without a word: a probe, round 29a), so such a row is read as holding no feature.
