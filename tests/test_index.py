@@ -135,6 +135,19 @@ def test_lut_kernel_sums_in_the_order_written():
     want = ((sums[0] + sums[1]) + (sums[2] + sums[3])) * (np.float32(1.0) / norms)[:, None]
     np.testing.assert_array_equal(got, want)
 
+
+@pytest.mark.parametrize("m", [8, 16])
+def test_a_query_scores_the_same_bits_alone_and_in_a_batch(data, books, m):
+    """A PQ field's scores of a query alone are its column of any batch's, bit for bit: each query's
+    tables are made on their own (round 50: one contraction for the batch rounded them otherwise)."""
+    x, w, _, _ = data
+    field = build_field(x, w, books[m], clip_model="oracle")
+    q = hard_queries(x.shape[1], np.random.default_rng(50 + m))
+    batch = field.scores(q)
+    for k in range(q.shape[0]):
+        np.testing.assert_array_equal(field.scores(q[k : k + 1])[:, 0], batch[:, k], err_msg=f"query {k}")
+    np.testing.assert_array_equal(field.scores(q[::-1])[:, ::-1], batch)
+
 def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
     """256 copies of 3 embeddings trained without a word into 256 centroids a sub-vector (round 29a):
     a codebook of those 3 directions only. Counted and said; a varied set says nothing."""
