@@ -160,20 +160,24 @@ def blend_cosines(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, em
 def blend_local_cosines(local: np.ndarray, weights: np.ndarray, features: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
     """[E, P] float32 `blend_cosines` of pixels whose slots are rows of `features` already: local
     [P, k] int32 (-1 empty, `local_ids`), weights [P, k]. A block of pixels at a time: the blend
-    (`_blend_kernel`), then its norms and its product with the embeddings (BLAS); 0 where a pixel's
-    blend is zero."""
+    (`_blend_kernel`), then its norms and its product with each embedding (BLAS, one matrix-vector
+    product an embedding, so an embedding's cosines are the same bits whatever the others: round 50
+    found one [P, D] x [D, E] product rounding the query's column otherwise when a negative was
+    repeated, which moved LangSplat's localization peak); 0 where a pixel's blend is zero."""
     n_pix, k = local.shape
     wts = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
     feats = np.ascontiguousarray(features, np.float32)
-    emb_t = np.ascontiguousarray(np.asarray(embeddings, np.float32).T)
-    out = np.empty((emb_t.shape[1], n_pix), np.float32)
+    emb = np.ascontiguousarray(embeddings, np.float32).reshape(-1, feats.shape[1])
+    out = np.empty((emb.shape[0], n_pix), np.float32)
     block = np.empty((min(BLEND_BLOCK, n_pix), feats.shape[1]), np.float32)
     norms = np.empty(block.shape[0])
     for lo in range(0, n_pix, BLEND_BLOCK):
         hi = min(lo + BLEND_BLOCK, n_pix)
         blend, norm = block[: hi - lo], norms[: hi - lo]
         _blend_kernel(local[lo:hi], wts[lo:hi], feats, blend, norm)
-        dots = (blend @ emb_t).astype(np.float64).T
+        dots = np.empty((emb.shape[0], hi - lo))
+        for e in range(emb.shape[0]):
+            dots[e] = blend @ emb[e]
         out[:, lo:hi] = np.divide(dots, norm, out=np.zeros_like(dots), where=norm > 0)
     return out
 
