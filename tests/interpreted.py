@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,17 +19,56 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_interpreted(worker: str, *argv: str, timeout: int = 900) -> None:
-    """Run the Python source `worker` with `argv` in a subprocess under TRITON_INTERPRET=1, from the
-    repository root (so it imports drsplat and tests); fail with its last stderr if it fails."""
-    env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT))
-    done = subprocess.run([sys.executable, "-c", worker, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
-    assert done.returncode == 0, done.stderr[-3000:]
+SHARDS = 2  # worker processes an interpreted run is split into: the interpreter is one Python thread, and CI has 2 cores
+SHARD_VARIABLE = "DRSPLAT_TEST_SHARD"  # "i/n", set in each worker's environment only
+
+
+def share(items) -> list:
+    """The items this worker process takes: every n-th from its i-th ($DRSPLAT_TEST_SHARD = "i/n"),
+    all of them when the variable is not set (a worker run by hand)."""
+    items = list(items)
+    shard = os.environ.get(SHARD_VARIABLE)
+    if not shard:
+        return items
+    index, count = (int(part) for part in shard.split("/"))
+    return items[index::count]
+
+
+def shard_name() -> str:
+    """A name for this worker's own files ("0of2"; "all" when not sharded)."""
+    shard = os.environ.get(SHARD_VARIABLE)
+    return shard.replace("/", "of") if shard else "all"
+
+
+def run_interpreted(worker: str, *argv: str, timeout: int = 900, shards: int = SHARDS) -> None:
+    """Run the Python source `worker` with `argv` under TRITON_INTERPRET=1 from the repository root
+    (so it imports drsplat and tests), in `shards` subprocesses at once, each taking its `share` of
+    the worker's items; fail with a failed one's last stderr. Each shard's own stderr and exit code
+    are kept apart, so a failure names its shard."""
+    procs, logs = [], []
+    try:
+        for index in range(shards):
+            env = dict(os.environ, TRITON_INTERPRET="1", PYTHONPATH=str(ROOT), **{SHARD_VARIABLE: f"{index}/{shards}"})
+            logs.append(tempfile.TemporaryFile("w+"))  # a file, not a pipe: a chatty shard never waits on a full pipe
+            procs.append(subprocess.Popen([sys.executable, "-c", worker, *argv], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=logs[-1]))
+        deadline = time.monotonic() + timeout
+        for proc in procs:
+            proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        for index, (proc, log) in enumerate(zip(procs, logs)):
+            log.seek(0)
+            assert proc.returncode == 0, f"shard {index}/{shards}: " + log.read()[-3000:]
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log in logs:
+            log.close()
 
 
 def interpreted_outputs(out: Path, worker: str, *argv: str, timeout: int = 900) -> Path:
     """`run_interpreted(worker, *argv, out)`: a worker that writes its results into the folder `out`
-    (its last argument); returns `out`."""
+    (its last argument; each shard writes the files of its own items); returns `out`."""
     run_interpreted(worker, *argv, str(out), timeout=timeout)
     return out
 

@@ -40,8 +40,9 @@ import json, sys
 import numpy as np
 import torch
 from drsplat.registration.coalesce_triton import coalesce_triton
+from tests.interpreted import share
 from tests.test_coalesce_triton import cases
-for i, (name, (ids, weights, masks, m, n)) in enumerate(cases().items()):
+for i, (name, (ids, weights, masks, m, n)) in share(enumerate(cases().items())):
     out = coalesce_triton(torch.from_numpy(ids), torch.from_numpy(weights), torch.from_numpy(masks), m, n)
     np.savez(sys.argv[1] + "/" + str(i) + ".npz", **{key: t.numpy() for key, t in zip(["g", "m", "w", "counts", "flags"], out)})
 """

@@ -49,6 +49,7 @@ import drsplat.registration.device_sums as device_sums
 from drsplat.raster_ops import render_topk
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.front_triton import front_flags_triton
+from tests.interpreted import share, shard_name
 from tests.test_cuda_path import MODES, small_world
 
 # the CUDA kernels as the CPU kernels, in this process only
@@ -62,9 +63,10 @@ device_sums.front_flags = lambda rays, camera, ids, median_ids, tolerance=device
     rays.means, rays.precisions, rays.reach, camera, ids, median_ids, tolerance)
 device_sums.TileCapacity.for_device = classmethod(lambda cls, device: cls())  # sized from earlier views, as on CUDA
 out = Path(sys.argv[1])
-scene, cameras = small_world(out / "features")
-for mode in MODES:
-    got = register_features(scene, cameras, out / "features", RegisterOptions(topk=6, aggregate=mode, engine="torch", device="cpu"),
+features = out / ("features-" + shard_name())  # each shard writes its own (the same files)
+scene, cameras = small_world(features)
+for mode in share(MODES):
+    got = register_features(scene, cameras, features, RegisterOptions(topk=6, aggregate=mode, engine="torch", device="cpu"),
                             show_progress=False)
     np.savez(out / (mode + ".npz"), features=got.features, weights=got.weights, sums_on=got.sums_on, pairs_on=got.pairs_on, pairs=got.num_pairs)
 """

@@ -52,8 +52,9 @@ import json, sys
 import numpy as np
 from drsplat.registration.aggregate import FRONT_TOLERANCE
 from drsplat.registration.front_triton import front_flags_triton
+from tests.interpreted import share
 from tests.test_front_triton import _inputs
-for name in json.loads(sys.argv[1]):
+for name in share(json.loads(sys.argv[1])):
     rays, camera, ids, median = _inputs(name)
     with np.errstate(all="ignore"):
         flags = front_flags_triton(rays.means, rays.precisions, rays.reach, camera, ids, median, FRONT_TOLERANCE)

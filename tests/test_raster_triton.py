@@ -69,25 +69,25 @@ import json, sys
 import numpy as np
 from drsplat.raster_torch import bin_gaussians_torch, project_gaussians_fused, tile_lists_torch
 from drsplat.raster_triton import composite_topk_triton
+from tests.interpreted import share
 from tests.test_raster_triton import CASES, PROJECT_CASES, SIZED, VARIANTS, triton_op_kernel
-for name in json.loads(sys.argv[1]):
+for name in share(json.loads(sys.argv[1])):
     case = CASES[name]()
     ids, weights, alpha, median = triton_op_kernel(case)[:4]
     np.savez(sys.argv[2] + "/" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(), median=median.numpy())
-for variant, runs in VARIANTS.items():
-    for name, block, chunk in runs:
-        case = CASES[name]()
-        p = project_gaussians_fused(case.scene, case.camera)
-        ids, weights, alpha, median = composite_topk_triton(p, bin_gaussians_torch(p), case.topk, with_median=True, block=block, chunk=chunk)
-        np.savez(sys.argv[2] + "/" + variant + "-" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(),
-                 median=median.numpy())
-for name in SIZED:  # tile lists sized without a read (registration's device path): padding past the lists
+for variant, name, block, chunk in share((variant, *run) for variant, runs in VARIANTS.items() for run in runs):
+    case = CASES[name]()
+    p = project_gaussians_fused(case.scene, case.camera)
+    ids, weights, alpha, median = composite_topk_triton(p, bin_gaussians_torch(p), case.topk, with_median=True, block=block, chunk=chunk)
+    np.savez(sys.argv[2] + "/" + variant + "-" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(),
+             median=median.numpy())
+for name in share(SIZED):  # tile lists sized without a read (registration's device path): padding past the lists
     case = CASES[name]()
     p = project_gaussians_fused(case.scene, case.camera)
     lists = tile_lists_torch(p, int(tile_lists_torch(p).needed) + 777)
     ids, weights, alpha, median = composite_topk_triton(p, lists.as_tuple(), case.topk, with_median=True)
     np.savez(sys.argv[2] + "/sized-" + name + ".npz", ids=ids.numpy(), weights=weights.numpy(), alpha=alpha.numpy(), median=median.numpy())
-for name in PROJECT_CASES:
+for name in share(PROJECT_CASES):
     case = PROJECT_CASES[name]()
     with np.errstate(all="ignore"):
         p = project_gaussians_fused(case.scene, case.camera)

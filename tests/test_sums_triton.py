@@ -53,8 +53,9 @@ import json, sys
 import numpy as np
 import torch
 from drsplat.registration.sums_triton import add_pairs_triton
+from tests.interpreted import share
 from tests.test_sums_triton import CASES, views
-for name in json.loads(sys.argv[1]):
+for name in share(json.loads(sys.argv[1])):
     n, dim, _ = CASES[name]
     F, W = torch.zeros((n, dim)), torch.zeros(n)
     for view in views(name):

@@ -55,8 +55,9 @@ import numpy as np
 import torch
 from drsplat.registration.vote import FULL_VIEW
 from drsplat.registration.vote_triton import vote_fold_triton
+from tests.interpreted import share
 from tests.test_vote_triton import CASES, empty_slots, views
-for name in json.loads(sys.argv[1]):
+for name in share(json.loads(sys.argv[1])):
     state = [torch.from_numpy(a) for a in empty_slots(name)]
     for rows, clusters, weights in views(name):
         vote_fold_triton(torch.from_numpy(rows), torch.from_numpy(clusters), torch.from_numpy(weights), CASES[name][1], FULL_VIEW, *state)
