@@ -112,6 +112,8 @@ def test_sharp_weights_from_a_culled_projection_are_the_whole_scenes_bits(case):
         np.testing.assert_array_equal(got, want, err_msg=f"view {view}")
         assert screen.shape == (n, 5)
         screen.fill(np.nan)  # rows left by another view: read, they would make the weights NaN
+    with pytest.raises(ValueError, match="rows must name"):  # the table is written at rows: never outside it
+        sharp_weights(ids, weights, means2d[:2], conics[:2], np.array([0, n], np.int32), n, screen)
 
 def test_anchor_centre_vote_of_a_footprint_larger_than_the_view_is_capped_at_the_view():
     """Was (round 45, left as found): the anchor's centre vote w·(1 + c·A) took A = 2π·sqrt(det Σ')

@@ -325,15 +325,14 @@ def view_weights(weighting: str, ids: np.ndarray, weights: np.ndarray, means2d: 
     """`view_weights_reference` with a numba kernel; out: a [H, W, k] float32 buffer to reuse."""
     if weighting not in _WEIGHTING_CODE:
         raise ValueError(f"unknown weighting {weighting!r}")
+    if weighting == "sharp":
+        return sharp_weights(ids, weights, means2d, conics, out=out)[0]
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
     ids, weights = np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float32)
     means2d, conics = np.ascontiguousarray(means2d, np.float64), np.ascontiguousarray(conics, np.float64)
-    if weighting == "sharp":
-        return sharp_weights(ids, weights, means2d, conics, out=out)[0]
     _view_weights_kernel(_WEIGHTING_CODE[weighting], ids, weights, means2d, conics, ELLIPSE_D2, float(anchor_gain), out)
     return out
-
 
 
 def sharp_weights(ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, conics: np.ndarray, rows: np.ndarray | None = None,
@@ -351,8 +350,10 @@ def sharp_weights(ids: np.ndarray, weights: np.ndarray, means2d: np.ndarray, con
         screen = np.empty((n, 5))
     if out is None or out.shape != ids.shape:
         out = np.empty(ids.shape, np.float32)
-    every = rows is None
-    _sharp_screen_kernel(means2d, conics, BLUR - SHARP_BLUR, np.zeros(0, np.int32) if every else np.ascontiguousarray(rows, np.int32), every, screen)
+    rows = np.arange(conics.shape[0], dtype=np.int32) if rows is None else np.ascontiguousarray(rows, np.int32)
+    if rows.shape[0] != conics.shape[0] or (rows.size and (rows.min() < 0 or rows.max() >= n)):  # the kernel writes screen[rows]: no row outside it
+        raise ValueError(f"rows must name one of the scene's {n:,} Gaussians for each of the {conics.shape[0]:,} projected")
+    _sharp_screen_kernel(means2d, conics, BLUR - SHARP_BLUR, rows, screen)
     parts = max(1, min(ids.shape[0], 4 * numba.get_num_threads()))  # runs of rows, each with one row buffer
     _sharp_weights_kernel(ids, weights, screen, SHARP_LOG_FLOOR, SHARP_FLOOR, parts, out)
     return out, screen
@@ -377,12 +378,12 @@ def sharp_exp(q):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True)
-def _sharp_screen_kernel(means2d, conics, shift, rows, every, out):  # pragma: no cover - jitted
+def _sharp_screen_kernel(means2d, conics, shift, rows, out):  # pragma: no cover - jitted
     """out[g] = (u, v, Δa, Δb, Δc): the screen mean means2d[i] beside `sharpening`(conics)[i] (the
-    same operations) of the Gaussian g = rows[i] (g = i when `every`), in parallel over the rows:
+    same operations) of the Gaussian g = rows[i], in parallel over the rows:
     what `_sharp_weights_kernel` reads per slot, in one 40-byte row instead of rows of two arrays."""
     for i in numba.prange(conics.shape[0]):
-        g = np.int64(i) if every else np.int64(rows[i])
+        g = rows[i]
         a, b, c = conics[i, 0], conics[i, 1], conics[i, 2]
         out[g, 0] = means2d[i, 0]
         out[g, 1] = means2d[i, 1]
@@ -833,7 +834,7 @@ def _fixed_weight(w, scale):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True)
 def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, rot, origin, tz, fx, fy, cx, cy, tolerance, scale,
-                          candidates, every, near, sums, peaks, seen, stamp, flags, part_seen):  # pragma: no cover - jitted
+                          candidates, near, sums, peaks, seen, stamp, flags, part_seen):  # pragma: no cover - jitted
     """The in-front test and the per-Gaussian sums of one view in one pass, in parallel over
     P = sums.shape[0] parts, part t taking the pixel rows t, t + P, t + 2P, ... with its own [N]
     scratch (rows interleaved: every part gets a share of the busy rows).
@@ -841,8 +842,8 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
     Per slot (p, s), g = ids[p, s]: in front when t*_g(p) < (1 - τ)·D(p) and t*_g(p) < D(p) -
     κ·s_g (`in_front_reference`; D = +inf where median_ids[p] < 0); near [N] float64, each Gaussian's nearest clamp zc - reach, is computed
     first and settles most slots without Σ⁻¹ (t* is clamped to [zc - reach, zc + reach]; NaN is
-    never < the limit), for the Gaussians `candidates` [V] int32 names (every one of the scene when
-    `every`): the view's cost follows what it sees, not the scene's size. Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
+    never < the limit), for the Gaussians `candidates` [V] int32 names: the view's cost follows
+    what it sees, not the scene's size. Part t keeps, in one record per Gaussian (sums [P, N, 3] int64; peaks: the
     same memory as float64), peaks[t, g, 0] = max w, sums[t, g, 1] = Σ fixed w and sums[t, g, 2] =
     Σ fixed w·[in front] (`_fixed_weight`: exact in any order); seen[t, g] == stamp marks the
     Gaussians it saw, whose first slot sets the three values instead of adding to them, so nothing
@@ -852,8 +853,8 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
     flags: [H·W, k] bool to receive the in-front test, or [0, k] for none. part_seen [P] int64:
     how many Gaussians each part saw (what the merge must find again, `surface_stats`).
     """
-    for i in numba.prange(near.shape[0] if every else candidates.shape[0]):
-        g = np.int64(i) if every else np.int64(candidates[i])
+    for i in numba.prange(candidates.shape[0]):
+        g = candidates[i]
         near[g] = rot[2, 0] * means[g, 0] + rot[2, 1] * means[g, 1] + rot[2, 2] * means[g, 2] + tz - reach[g]
     n_pix, k = ids.shape
     height = n_pix // width if width > 0 else 0
@@ -904,21 +905,19 @@ def _surface_stats_kernel(ids, weights, median_ids, width, means, prec, reach, r
 
 
 @numba.njit(parallel=True, cache=True)
-def _merge_stats_kernel(seen, stamp, sums, peaks, scale, candidates, every, chunks):  # pragma: no cover - jitted
+def _merge_stats_kernel(seen, stamp, sums, peaks, scale, candidates, chunks):  # pragma: no cover - jitted
     """The parts of `_surface_stats_kernel` (its records sums / peaks) as one view's (ids [T], peak [T], total [T], front [T]):
     every Gaussian some part saw (seen[t, g] == stamp) in id order, its largest peak and the exact
-    sums of its parts as float64 (÷ scale). Looks at the ascending ids `candidates` [V] only (every
-    id of the scene when `every`). Two passes in parallel over `chunks` runs of them: count, then
+    sums of its parts as float64 (÷ scale). Looks at the ascending ids `candidates` [V] only. Two passes in parallel over `chunks` runs of them: count, then
     write at each run's offset. Also returns how many (part, Gaussian) marks it found (int64),
     which equals Σ part_seen of `_surface_stats_kernel` exactly when no Gaussian seen is left out."""
-    parts, n = seen.shape
-    if not every:
-        n = candidates.shape[0]
+    parts = seen.shape[0]
+    n = candidates.shape[0]
     found = np.zeros(chunks + 1, np.int64)
     for c in numba.prange(chunks):
         count = 0
         for i in range(c * n // chunks, (c + 1) * n // chunks):
-            g = np.int64(i) if every else np.int64(candidates[i])
+            g = candidates[i]
             hit = False
             for part in range(parts):
                 hit = hit or seen[part, g] == stamp
@@ -935,7 +934,7 @@ def _merge_stats_kernel(seen, stamp, sums, peaks, scale, candidates, every, chun
         o = found[c]
         marks = np.int64(0)
         for i in range(c * n // chunks, (c + 1) * n // chunks):
-            g = np.int64(i) if every else np.int64(candidates[i])
+            g = candidates[i]
             hit = False
             pk = 0.0
             t = np.int64(0)
@@ -1019,9 +1018,10 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     flag_pixels = ids2.shape[0] if keep_flags else 0
     if scratch is None or not scratch.fits(n, parts, k, flag_pixels):
         scratch = StatsScratch.new(n, parts, k, flag_pixels)
-    every = candidates is None
-    candidates = np.zeros(0, np.int32) if every else np.ascontiguousarray(candidates, np.int32)
-    if not every and candidates.size and (candidates[0] < 0 or candidates[-1] >= n or np.any(candidates[1:] <= candidates[:-1])):
+    if candidates is None:
+        candidates = np.arange(n, dtype=np.int32)
+    candidates = np.ascontiguousarray(candidates, np.int32)
+    if candidates.size and (candidates[0] < 0 or candidates[-1] >= n or np.any(candidates[1:] <= candidates[:-1])):
         raise ValueError(f"candidates must be ascending ids of the scene's {n:,} Gaussians")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     stamp = scratch.next_stamp()
@@ -1029,9 +1029,9 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     _surface_stats_kernel(ids2, np.ascontiguousarray(weights.reshape(-1, k), np.float32), np.ascontiguousarray(median_ids.reshape(-1), np.int32), w,
                           geometry.means, geometry.precisions, geometry.reach, np.ascontiguousarray(rot), camera.ray_origin(), float(trans[2]),
                           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), float(tolerance), STATS_SCALE,
-                          candidates, every, scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags, part_seen)
-    chunks = max(1, min(n if every else candidates.size, 8 * numba.get_num_threads()))
-    *merged, found = _merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, candidates, every, chunks)
+                          candidates, scratch.near, scratch.sums, scratch.peaks, scratch.seen, stamp, scratch.flags, part_seen)
+    chunks = max(1, min(candidates.size, 8 * numba.get_num_threads()))
+    *merged, found = _merge_stats_kernel(scratch.seen, stamp, scratch.sums, scratch.peaks, STATS_SCALE, candidates, chunks)
     if found != part_seen.sum():
         raise ValueError("the view's top-k lists name Gaussians that are not among its candidates")
     return ViewStats(*merged), scratch
