@@ -79,6 +79,27 @@ def one_torch_thread():
     torch.set_num_threads(before)
 
 
+# The test files that start a Ray cluster on this machine. Under pytest-xdist (the README's `-n 2
+# --dist loadfile`) they run on one worker, one after another: a second cluster started while the first
+# runs is one that `ray.init()` without an address could join (it finds the newest on the machine).
+RAY_CLUSTER_FILES = frozenset({"test_distributed.py", "test_features.py", "test_ray_cluster_faults.py", "test_ray_node_loss.py", "test_reduce.py"})
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """`--dist loadfile` with RAY_CLUSTER_FILES as one unit of work; other modes are xdist's own."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class RayFilesTogether(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return "the Ray cluster files" if Path(path).name in RAY_CLUSTER_FILES else path
+
+    return RayFilesTogether(config, log)
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--reverse-files", action="store_true", help="run the test files in reverse order (each file's tests keep their order): finds tests that depend on what an earlier file left behind")
 

@@ -1,15 +1,17 @@
-"""The suite's own guarantees: files can run in any order (--reverse-files), and a test that
-leaves process-wide state changed is reported (tests/process_state.py, checked by conftest)."""
+"""The suite's own guarantees: files can run in any order (--reverse-files), and in two processes at
+once (pytest-xdist) with the Ray cluster files on one of them; a test that leaves process-wide state
+changed is reported (tests/process_state.py, checked by conftest)."""
 
 from __future__ import annotations
 
 import builtins
 import os
+import re
 import signal
 from pathlib import Path
 from types import SimpleNamespace
 
-from tests.conftest import reversed_by_file
+from tests.conftest import RAY_CLUSTER_FILES, reversed_by_file
 from tests.process_state import ProcessState
 
 
@@ -43,3 +45,12 @@ def test_an_environment_variable_a_library_sets_on_import_may_appear_but_not_cha
     after_import = ProcessState.capture()
     monkeypatch.setenv("TCM_ENABLE", "0")
     assert after_import.changes(ProcessState.capture()) == ["os.environ['TCM_ENABLE']"]
+
+
+def test_every_file_that_starts_a_ray_cluster_is_one_the_scheduler_keeps_together():
+    """A new test file that starts a cluster (ray.cluster_utils, tests.ray_cluster) must join
+    RAY_CLUSTER_FILES, or under xdist it could run beside another cluster on this machine."""
+    here = Path(__file__).parent
+    starting = {p.name for p in here.glob("test_*.py") if p.name != Path(__file__).name and re.search(r"cluster_utils|two_node_cluster|ray\.init\(|ray start", p.read_text())}
+    assert starting and starting <= RAY_CLUSTER_FILES, sorted(starting - RAY_CLUSTER_FILES)
+    assert all((here / name).exists() for name in RAY_CLUSTER_FILES)
