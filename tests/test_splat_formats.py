@@ -695,12 +695,12 @@ def test_a_compressed_ply_with_more_chunks_than_its_splats_use_is_said(tmp_path)
 
 
 @pytest.mark.parametrize("name, content, expected", [
-    ("scene.ply.gz", gzip.compress(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nend_header\n"),
+    ("scene.ply.gz", gzip.compress(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nend_header\n", mtime=0),
      "is a gzip-compressed PLY file: decompress it first"),
     ("scene.ksplat", b"\x01\x00" + b"\x00" * 100, "(a .ksplat file: convert it to PLY first"),
     ("scene.sog", b"PK\x03\x04" + b"\x00" * 100, "(a .sog file: convert it to PLY first"),
     ("scene.bin", b"\x00" * 100, "is not a PLY file (it does not start with 'ply'); drsplat reads PLY"),
-])
+], ids=["ply.gz", "ksplat", "sog", "bin"])  # the same names in every process (pytest-xdist compares its workers' collections)
 def test_scene_files_of_formats_drsplat_does_not_read_say_what_it_reads(tmp_path, name, content, expected):
     """Round 41, left as found then: scene.ply.gz was "a gzip file without the spz header", and .ksplat / .sog files
     "not a PLY file" without a word on what is read."""
