@@ -11,6 +11,12 @@ import pytest
 
 from tests.process_state import ProcessState, root_logger_kept
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Two test processes (and their Ray nodes) share the cores: an OpenMP thread that spins while it
+    # waits takes them from the other process (numba's small parallel regions ran up to 7x slower).
+    # Set before numba or torch loads the OpenMP runtime, which reads it once.
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
 # ../shared/data beside the checkout (a symlink works), or wherever DRSPLAT_SHARED_DATA points
 SHARED_DATA = Path(os.environ.get("DRSPLAT_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 
