@@ -11,7 +11,9 @@ import signal
 from pathlib import Path
 from types import SimpleNamespace
 
-from tests.conftest import RAY_CLUSTER_FILES, reversed_by_file
+import pytest
+
+from tests.conftest import RAY_CLUSTER_FILES, pytest_xdist_make_scheduler, reversed_by_file
 from tests.process_state import ProcessState
 
 
@@ -54,3 +56,12 @@ def test_every_file_that_starts_a_ray_cluster_is_one_the_scheduler_keeps_togethe
     starting = {p.name for p in here.glob("test_*.py") if p.name != Path(__file__).name and re.search(r"cluster_utils|two_node_cluster|ray\.init\(|ray start", p.read_text())}
     assert starting and starting <= RAY_CLUSTER_FILES, sorted(starting - RAY_CLUSTER_FILES)
     assert all((here / name).exists() for name in RAY_CLUSTER_FILES)
+
+
+def test_the_scheduler_gives_the_ray_cluster_files_to_one_process_and_every_other_file_its_own_unit():
+    pytest.importorskip("xdist", reason="the parallel run needs pytest-xdist (pip install -e '.[test]')")
+    scheduler = pytest_xdist_make_scheduler(SimpleNamespace(getvalue={"dist": "loadfile", "tx": ["2*popen"]}.get), None)
+    scope = scheduler._split_scope
+    assert scope("tests/test_reduce.py::test_a[x]") == scope("tests/test_distributed.py::test_b") == scope("tests/test_features.py::test_c")
+    assert scope("tests/test_scene.py::test_d") == "tests/test_scene.py" != scope("tests/test_reduce.py::test_a[x]")
+    assert pytest_xdist_make_scheduler(SimpleNamespace(getvalue={"dist": "load"}.get), None) is None  # other modes: xdist's own
