@@ -50,10 +50,10 @@ def test_an_environment_variable_a_library_sets_on_import_may_appear_but_not_cha
 
 
 def test_every_file_that_starts_a_ray_cluster_is_one_the_scheduler_keeps_together():
-    """A new test file that starts a cluster (ray.cluster_utils, tests.ray_cluster) must join
+    """A new test file that starts a cluster (ray.cluster_utils, tests.ray_cluster, a local Ray run) must join
     RAY_CLUSTER_FILES, or under xdist it could run beside another cluster on this machine."""
     here = Path(__file__).parent
-    starting = {p.name for p in here.glob("test_*.py") if p.name != Path(__file__).name and re.search(r"cluster_utils|two_node_cluster|ray\.init\(|ray start", p.read_text())}
+    starting = {p.name for p in here.glob("test_*.py") if p.name != Path(__file__).name and re.search(r'cluster_utils|two_node_cluster|ray\.init\(|ray start|ray="local"|"--ray"', p.read_text())}
     assert starting and starting <= RAY_CLUSTER_FILES, sorted(starting - RAY_CLUSTER_FILES)
     assert all((here / name).exists() for name in RAY_CLUSTER_FILES)
 

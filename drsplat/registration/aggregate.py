@@ -1018,11 +1018,12 @@ def surface_stats(geometry: RayGeometry, camera, ids: np.ndarray, weights: np.nd
     flag_pixels = ids2.shape[0] if keep_flags else 0
     if scratch is None or not scratch.fits(n, parts, k, flag_pixels):
         scratch = StatsScratch.new(n, parts, k, flag_pixels)
-    if candidates is None:
+    if candidates is None:  # a view rendered whole: every id, ascending by construction (no O(N) check per view)
         candidates = np.arange(n, dtype=np.int32)
-    candidates = np.ascontiguousarray(candidates, np.int32)
-    if candidates.size and (candidates[0] < 0 or candidates[-1] >= n or np.any(candidates[1:] <= candidates[:-1])):
-        raise ValueError(f"candidates must be ascending ids of the scene's {n:,} Gaussians")
+    else:
+        candidates = np.ascontiguousarray(candidates, np.int32)
+        if candidates.size and (candidates[0] < 0 or candidates[-1] >= n or np.any(candidates[1:] <= candidates[:-1])):
+            raise ValueError(f"candidates must be ascending ids of the scene's {n:,} Gaussians")
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     stamp = scratch.next_stamp()
     part_seen = np.zeros(parts, np.int64)
