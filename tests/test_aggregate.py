@@ -642,9 +642,13 @@ def test_memory_plan_counts_the_mask_clusters_of_each_stage_that_keeps_them(hard
     """The vote, check and solve stages each keep a MaskClusters of the views' masks until the sums
     are finished: the plan counts one bound (every mask its own cluster) per stage, and the check
     its views' unit embeddings and its support tables (the cap held and one view's merge), before
-    and after the views, and nothing for `paper`."""
+    and after the views, and nothing for `paper`; the sums' buffer of embedding rows is counted from
+    the views' masks in every mode."""
     from drsplat.defaults import SUPPORT_TABLE_BYTES
     from drsplat.registration.check import check_units_bytes
+    from drsplat.registration.sums import buffer_bytes
+    from drsplat.registration.check import support_scratch_bytes
+    from drsplat.registration.vote import trim_buffer_bytes
     from drsplat.registration.supports import table_bytes
     from drsplat.registration.vote import cluster_bytes
 
@@ -657,8 +661,13 @@ def test_memory_plan_counts_the_mask_clusters_of_each_stage_that_keeps_them(hard
         without = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode)
         with_masks = estimate_memory(scene, cams, 1024, 40, base=0, aggregate=mode, **masks)
         extra = stages * bound + check * units  # the check also keeps every view's unit embeddings and support tables
+        # and its support scratch and the exact trim's buffer are sized by the masks, not at their caps
+        n, pixels = scene.num_gaussians, max(c.width * c.height for c in cams)
+        extra += (Aggregator.memory_bytes(mode, n, pixels, 40, support_scratch_bytes(24_000, 3_000), trim_buffer_bytes(1024, 24_000, 3_000))[1]
+                  - Aggregator.memory_bytes(mode, n, pixels, 40)[1])
         assert with_masks.views - without.views == with_masks.base - without.base == extra, mode
-        assert with_masks.in_memory - without.in_memory == extra, mode
+        assert with_masks.pair_buffer - without.pair_buffer == buffer_bytes(1024, 24_000, 3_000) - buffer_bytes(1024), mode
+        assert with_masks.in_memory - without.in_memory == extra + with_masks.pair_buffer - without.pair_buffer, mode
     assert units >= 24_000 * 1024 * 8  # float64 unit rows of every mask
     assert bound > 24_000 * 1024 * 12  # leaders and sums of 24,000 clusters at 1024-D
 

@@ -25,7 +25,7 @@ from drsplat.registration.checkpoint import checkpoint_path_for
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.plan import MemoryPlan, choose_block, estimate_memory
-from drsplat.registration.sums import Accumulator, accumulate_view_reference
+from drsplat.registration.sums import PAIR_CAPACITY, PAIR_SLOT_BYTES, Accumulator, accumulate_view_reference, add_pairs_in_place, buffer_bytes, buffered_rows
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -56,6 +56,32 @@ def in_memory(tiny, inputs, tmp_path_factory) -> dict[bool, bytes]:
 
 
 # ----------------------------------------------------------------------------- kernels
+
+
+def test_the_sums_hold_no_more_embedding_rows_than_the_plan_counts():
+    """Views of many 1024-D masks: the accumulator's embedding rows (the buffer, and the old one while
+    it grows) stay within what `buffer_bytes` counts for those mask counts, and the sums are those of
+    the pairs added one by one. Until 2026-12-05 the buffer held up to 2¹⁶ rows and doubled past
+    them (128,000 rows, 500 MiB, on 40 views of 2,000 masks) and the plan counted none."""
+    rng = np.random.default_rng(5)
+    n, d, masks, views = 50, 1024, 2_000, 12
+    acc = Accumulator(n, d)
+    F_ref, W_ref = np.zeros((n, d), np.float32), np.zeros(n, np.float32)
+    held = 0
+    for _ in range(views):
+        feats = rng.normal(size=(masks, d)).astype(np.float32)
+        g = rng.integers(0, n, 40).astype(np.int32)
+        m = rng.integers(0, masks, 40).astype(np.int32)
+        w = rng.random(40).astype(np.float32)
+        before = acc._rows.nbytes
+        acc.add_pairs(g, m, w, feats)
+        held = max(held, acc._rows.nbytes + (before if acc._rows.nbytes != before else 0))  # both buffers while it grew
+        add_pairs_in_place(F_ref, W_ref, g, m, w, feats)
+    assert views * masks > buffered_rows(d)  # the buffer was flushed for its rows
+    assert held <= buffer_bytes(d, views * masks, masks) - PAIR_CAPACITY * PAIR_SLOT_BYTES
+    F, W = acc.sums()
+    np.testing.assert_array_equal(F, F_ref)
+    np.testing.assert_array_equal(W, W_ref)
 
 
 @pytest.mark.parametrize("case", ["random", "tiny_buffer", "empty"])

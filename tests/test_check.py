@@ -1116,6 +1116,25 @@ def test_the_memory_plan_counts_the_checks_bounded_support_scratch():
     assert run * 16_000 * SUPPORT_ENTRY_BYTES <= SUPPORT_SCRATCH_BYTES
 
 
+@pytest.mark.parametrize("total, most", [(955, 60), (24_000, 3_000), (16_000, 4_000), (300, 300), (1, 1)])
+def test_the_support_scratch_holds_no_more_than_the_plan_counts_for_the_masks(total, most):
+    """What `SupportScratch.take` allocates for a view of up to `most` masks against up to `total`
+    clusters stays within `support_scratch_bytes`, which stays within the caps; a capture of 955 masks
+    (hard-room) is charged ~1 MB, not the caps' 128 MB."""
+    from drsplat.defaults import SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
+    from drsplat.registration.check import SupportScratch, support_scratch_bytes
+
+    bound = support_scratch_bytes(total, most)
+    assert bound <= SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
+    for clusters in sorted({1, max(1, total // 3), total}):
+        for masks in sorted({1, most}):
+            scratch = SupportScratch(clusters)
+            held = sum(a.nbytes for a in scratch.take(scratch.masks_per_run(masks)))  # a view is summed in runs of its masks
+            assert held <= bound, (clusters, masks)
+    if total == 955:
+        assert bound < 2 << 20
+
+
 def test_the_default_does_not_lose_to_paper_where_a_small_object_is_masked_in_one_view_only(tmp_path):
     """hard-tiny seed 2, clean render masks: a ball masked in one view (5 and 6 px masks: too small
     to be masked in the others, where its Gaussians lie inside floor masks). The check dropped both

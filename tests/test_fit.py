@@ -760,7 +760,7 @@ def test_the_probe_holds_no_more_than_its_bound_when_every_pixel_pair_is_its_own
     pixels = max(c.width * c.height for c in cams)
     masks = max(load_view_features(tmp_path, c, 1)[1].shape[0] for c in cams)
     assert masks > 500
-    charged = probe_memory(scene.num_gaussians, masks * 32 * 4)
+    charged = probe_memory(scene.num_gaussians, masks * 32 * 4, max_masks=masks)
     bound = probe_memory_bound(scene.num_gaussians, pixels, topk, masks * 32 * 4, masks) - charged
     assert tables and scored + held_out + max(tables) <= bound, (scored, held_out, max(tables), bound)
     assert bound <= probe_memory_bound(scene.num_gaussians, pixels, topk, masks * 32 * 4) - charged
@@ -875,7 +875,7 @@ def test_the_probe_is_charged_for_the_embeddings_it_holds(rooms, tmp_path, monke
     assert probe_memory(scene.num_gaussians, embedding_bytes) - probe_memory(scene.num_gaussians) >= sum(held.values()) + 4 * embedding_bytes
 
     charged = []
-    monkeypatch.setattr(driver, "probe_memory", lambda n, emb=0, rejects=False: charged.append((emb, rejects)) or probe_memory(n, emb, rejects))
+    monkeypatch.setattr(driver, "probe_memory", lambda n, emb=0, rejects=False, max_masks=0: charged.append((emb, rejects)) or probe_memory(n, emb, rejects, max_masks))
     register_features(scene, cams, tmp_path, RegisterOptions(topk=10, aggregate="fit"), show_progress=False)
     assert charged == [(embedding_bytes, False)]
     # a rejecting mode's probe folds its views' floater statistics too (test_floaters_the_rejection_drops_...)

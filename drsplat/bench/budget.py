@@ -58,6 +58,8 @@ CASES = {
                                  note="one view's own support table past the cap (~360 MB a view): summed and judged in runs of masks"),
     "shared-labels": BudgetCase(20_000, 8, 3_000, 1024, "fit-check-vote-reject", "2GB", labels=50, note="3,000 masks of 50 labels a view"),
     "paper-control": BudgetCase(20_000, 8, 3_000, 1024, "paper", "1GB", note="the vote-clusters input, paper's mean"),
+    "embedding-rows": BudgetCase(20_000, 40, 2_000, 1024, "paper", "800MB",
+                                 note="the sums' buffer of mask embeddings: 80,000 rows of 1024-D over the views (a block replays them all)"),
     "tiny": BudgetCase(2_000, 2, 40, 64, "vote-reject", "1GB", width=64, height=48, note="smoke case"),
 }
 DEFAULT_CASES = ("vote-clusters", "check-scratch", "shared-labels", "paper-control")

@@ -1234,10 +1234,13 @@ class Aggregator:
                      self.num_rejected, PEAK_MIN, without_rejection(asked or self.mode))
 
     @staticmethod
-    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int) -> tuple[int, int, int]:
+    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int, support_scratch: int = SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH,
+                     trim_buffer: int = EXACT_TRIM_BUFFER_BYTES) -> tuple[int, int, int]:
         """(bytes held while views are rasterized, bytes held until the sums are finished, bytes per
         Gaussian of a block of sums) by `mode` for a scene of `num_gaussians` and views of at most
-        `pixels` pixels (registration's memory plan)."""
+        `pixels` pixels (registration's memory plan). support_scratch, trim_buffer: the check's support
+        scratch and the exact trim's buffer, where the plan knows the views' masks
+        (`check.support_scratch_bytes`, `vote.trim_buffer_bytes`); their caps by default."""
         stages = mode_stages(mode)
         weighting, reject = stages.weighting, stages.reject
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer
@@ -1253,10 +1256,10 @@ class Aggregator:
             # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)
             per_block += 12 * CHECK_SLOTS + 8  # and its count of voting views
-            kept += SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
+            kept += support_scratch
             if stages.vote:  # after the check the vote trims exactly (drsplat.registration.vote.exact_trimmed_features)
                 per_block += EXACT_TRIM_SLOT_BYTES
-                kept += EXACT_TRIM_BUFFER_BYTES
+                kept += trim_buffer
         if stages.solve:  # slots, CG vectors and a re-rendered view (drsplat.registration.solve)
             kept += (76 * SOLVE_SLOTS + 8) * num_gaussians + pixels * (topk * 8 + 4)
         return views + kept, kept, per_block

@@ -757,6 +757,20 @@ class SupportScratch:
         return self._values[:size].reshape(shape), self._core[:size].reshape(shape), self._touched[:size].reshape(shape)
 
 
+def support_scratch_bytes(total_masks: int = 0, max_masks: int = 0) -> int:
+    """The most a `SupportScratch` holds for views of `max_masks` masks at most against at most
+    `total_masks` clusters (every mask its own cluster): one layer of a run of masks, L·K·E bytes
+    (E = SUPPORT_ENTRY_BYTES) for a run of L ≤ max_masks masks within SUPPORT_SCRATCH_BYTES (one mask
+    at the least, so K·E when that alone is more), and the further layers, each as large, within
+    SUPPORT_EXTRA_SCRATCH, one per numba thread. SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH when
+    the counts are not known (0). A capture of a few thousand masks needs ~1 MB of the 128."""
+    if total_masks <= 0 or max_masks <= 0:
+        return SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
+    per_mask = SUPPORT_ENTRY_BYTES * total_masks
+    layer = max(per_mask, min(max_masks * per_mask, SUPPORT_SCRATCH_BYTES))
+    return layer + min((numba.config.NUMBA_NUM_THREADS - 1) * layer, SUPPORT_EXTRA_SCRATCH)
+
+
 def fold_block_votes(views: Iterator[ViewPairs], per_view: list[np.ndarray], lo: int, hi: int,
                      slots: int = CHECK_SLOTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 1 for Gaussians lo .. hi-1: their presence votes over `views` (every view in order, with

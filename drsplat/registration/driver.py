@@ -539,7 +539,7 @@ def _check_memory_before_probe(run: Run) -> int | None:
         return None
     rss = current_rss()
     rejects = probe_folds_floaters(options.aggregate)
-    base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4, rejects)
+    base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4, rejects, max_masks=run.headers.max_masks)
     if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
         pixels = max((cam.width * cam.height for cam in run.views), default=0)
         raise _refusal_for_footprints(run, rss + probe_memory_bound(run.scene.num_gaussians, pixels, options.topk,

@@ -124,28 +124,38 @@ PROBE_SUPPORT_BYTES = 48
 HELD_OUT_BYTES = 8  # a probe view's sparse labelling kept for the later ones (`HeldOut`): id and mask per Gaussian it labels
 
 
-def probe_memory(num_gaussians: int, embedding_bytes: int = 0, rejects: bool = False) -> int:
+def probe_memory(num_gaussians: int, embedding_bytes: int = 0, rejects: bool = False, max_masks: int = 0) -> int:
     """Bytes the fit stage's probe adds to the process's resident memory beyond the view pass's plan
     (PROBE_LOAD_BYTES and the constants below it; an estimate, on the safe side where a view's masks
     are few next to its pixels, as they are from a segmenter). embedding_bytes: the largest view's
     mask embeddings (M·D·4), which no term of the view pass's plan counts (its vote and check count
     clusters, `fit` and `fit-reject` nothing): the probe holds every probe view's (`HeldOut`), and
     while a view is scored its own unit rows and an earlier view's, float64 (`probe_embedding_bytes`).
-    rejects: the probe folds its views' floater statistics (`probe_folds_floaters`: PROBE_SUPPORT_BYTES)."""
+    rejects: the probe folds its views' floater statistics (`probe_folds_floaters`: PROBE_SUPPORT_BYTES).
+    max_masks: the masks of the largest view (0: not known), which bound the translation's cosines."""
     per_gaussian = PROBE_LABEL_BYTES + (PROBE_SUPPORT_BYTES if rejects else 0)
-    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes)
+    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes, max_masks)
 
 
-def probe_embedding_bytes(embedding_bytes: int) -> int:
+def probe_embedding_bytes(embedding_bytes: int, max_masks: int = 0) -> int:
     """What the probe's embeddings hold at most, views of `embedding_bytes` (M·D·4) each: the probe
     views' float32 rows kept for the held-out scores (`HeldOut`, FIT_PROBES views) and, while one is
     scored, its float64 unit rows and those of the earlier view being translated (2 x 2 x its bytes)
-    with the translation's cosine block (TRANSLATION_BLOCK_BYTES). 0 when there are none. Until
+    with the translation's cosine block (`translation_block_bytes`). 0 when there are none. Until
     2026-12-03 `probe_memory` did not count them: `--aggregate fit` on 8 views of 20,000 masks of
     1024-D (82 MB a view) was accepted at 1.17 GB and peaked at 1.53 GB (VmHWM) in its probe."""
     if embedding_bytes <= 0:
         return 0
-    return (FIT_PROBES + 4) * embedding_bytes + TRANSLATION_BLOCK_BYTES
+    return (FIT_PROBES + 4) * embedding_bytes + translation_block_bytes(max_masks)
+
+
+def translation_block_bytes(max_masks: int = 0) -> int:
+    """The most `mask_translation`'s cosines [rows, G] float64 hold at once for views of `max_masks`
+    masks at most (rows ≤ max_masks, G ≤ max_masks; one row at the least): TRANSLATION_BLOCK_BYTES
+    when that is not known (0)."""
+    if max_masks <= 0:
+        return TRANSLATION_BLOCK_BYTES
+    return max(min(TRANSLATION_BLOCK_BYTES, 8 * max_masks * max_masks), 8 * max_masks)
 
 
 def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_bytes: int = 0, max_masks: int = 0, rejects: bool = False) -> int:
@@ -164,7 +174,7 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
     scored = view_pairs_bound(num_gaussians, pixels, topk, max_masks) * PAIR_BYTES + seen * PROBE_STATS_BYTES + embedding_bytes
     held_out = FIT_PROBES * len(FOOTPRINTS) * seen * HELD_OUT_BYTES  # each footprint keeps its own labellings (their embeddings: probe_memory)
     tables = rerender_table_bytes(FIT_PROBES, max_masks if max_masks > 0 else pixels, max(1, numba.get_num_threads()))
-    return probe_memory(num_gaussians, embedding_bytes, rejects) + len(FOOTPRINTS) * scored + held_out + tables
+    return probe_memory(num_gaussians, embedding_bytes, rejects, max_masks) + len(FOOTPRINTS) * scored + held_out + tables
 
 
 @dataclass

@@ -35,17 +35,18 @@ from drsplat.errors import DrsplatError
 from drsplat.memory import available_memory, current_rss, format_size
 from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
 from drsplat.registration.aggregate import Aggregator, mode_stages
-from drsplat.registration.check import check_units_bytes
+from drsplat.registration.check import check_units_bytes, support_scratch_bytes
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
+from drsplat.registration.sums import FLUSH_BYTES, PAIR_CAPACITY, PAIR_SLOT_BYTES, buffer_bytes
 from drsplat.registration.supports import table_bytes
-from drsplat.registration.vote import cluster_bytes
+from drsplat.registration.vote import cluster_bytes, trim_buffer_bytes
 from drsplat.scene import GaussianScene
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
 INDEX_BYTES = 40  # the culling index (drsplat.registration.culling.SpatialIndex): Morton order (int64), spread (float64), mean (3 float64)
 PROJECTION_BYTES = 128  # one view's Projected arrays and depth order keys, per Gaussian (its tile lists: `tile_list_bytes`)
 PAIR_BYTES = 12  # one distinct (Gaussian, mask, weight) pair
-SUM_BYTES = 16  # per Gaussian of a block besides F's 4·D: W, the accumulator's counting sort
+SUM_BYTES = 4 + FLUSH_BYTES  # per Gaussian of a block besides F's 4·D: W, and the counting sort of the accumulator's flush
 OUTPUT_COPIES = 10  # bytes per Gaussian per embedding value while a chunk of rows is encoded and written
 WRITE_CHUNK = 1 << 15  # Gaussians encoded and written at a time
 BLOCK_ALIGN = 1024  # block sizes are multiples of this
@@ -62,7 +63,7 @@ class MemoryPlan:
     base: what the process holds already (the loaded scene, libraries, the aggregation mode's
     statistics). views: the peak of the view pass without sums (geometry + one view + scratch).
     sum_bytes: per Gaussian of a block's sums (F row, W, sorting, the mode's slots). write_bytes: per Gaussian of
-    a chunk being encoded and written. pair_buffer: the accumulator's pair buffer.
+    a chunk being encoded and written. pair_buffer: the accumulator's buffers of pairs and mask embeddings (`sums.buffer_bytes`).
     """
 
     num_gaussians: int
@@ -130,7 +131,8 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     0: the mask clusters of the vote, check and solve stages are not counted)."""
     n = scene.num_gaussians
     pixels = max((c.width * c.height for c in views), default=0)
-    mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk)
+    mode_views, mode_kept, mode_block = Aggregator.memory_bytes(aggregate, n, pixels, topk, support_scratch_bytes(total_masks, max_masks),
+                                                                trim_buffer_bytes(dim, total_masks, max_masks))
     stages = mode_stages(aggregate)  # the vote, check and solve stages each keep the views' mask clusters until the sums are finished
     clusters = (stages.vote + stages.check + stages.solve) * cluster_bytes(total_masks, max_masks, dim) if total_masks else 0
     if stages.check and total_masks:  # and the check's unit embeddings and support tables
@@ -141,8 +143,9 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
             + 2 * PAIR_BYTES * view_pairs_bound(n, pixels, topk, max_masks) + mode_views - mode_kept)
     views_peak = base + OVERHEAD + n * (GEOMETRY_BYTES + INDEX_BYTES) + view
     row_bytes = scene.sh.shape[1] * 12 + 64
-    return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + mode_block, write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
-                      pair_buffer=(1 << 23) * PAIR_BYTES)
+    buffered = PAIR_SLOT_BYTES if n > PAIR_CAPACITY else 0  # a block past PAIR_CAPACITY buffers a pair per Gaussian
+    return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + buffered + mode_block,
+                      write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32, pair_buffer=buffer_bytes(dim, total_masks, max_masks))
 
 
 def budget_hint(plan: MemoryPlan, fits: int) -> str:

@@ -22,7 +22,10 @@ import numpy as np
 
 from drsplat.memory import small_page_zeros
 
-MAX_BUFFERED_ROWS = 1 << 16  # mask embeddings held between flushes (128 MB at D = 512)
+ROW_BUFFER_BYTES = 64 << 20  # mask embeddings held between flushes: 32,768 rows at D = 512, 16,384 at D = 1024 (`buffered_rows`)
+PAIR_CAPACITY = 1 << 23  # pairs buffered between flushes (at least one per Gaussian summed)
+PAIR_SLOT_BYTES = 16  # a buffered pair: Gaussian, row and weight (12), and its place in the flush's counting sort (4)
+FLUSH_BYTES = 16  # per Gaussian summed, the flush's counting sort: its starts and fill pointers (int64 each)
 CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
 WEAK_RESULTANT = 0.05  # |Σ w f| < this · Σ w: kept, but counted as a guess (`RowFates.weak`); CLIP's crops embed far closer than that
 
@@ -109,12 +112,13 @@ class Accumulator:
 
     Views' distinct (Gaussian, mask) pairs and the embeddings of their masks are buffered; a flush
     folds the buffer into F grouped by Gaussian, so memory is N·D + the buffer (`pair_capacity`
-    pairs, at least N, and about `max_rows` embeddings), never Gaussians x masks. sums: (F [N, D],
+    pairs, at least N, and `max_rows` embeddings plus one view's, default `buffered_rows(D)`; the most
+    it holds: `buffer_bytes`), never Gaussians x masks. sums: (F [N, D],
     W [N]) float32 to add into in place instead of new zeros (the vote's exact trim subtracts its
     trimmed pairs from a block's sums, weights negated).
     """
 
-    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = 1 << 23, max_rows: int = MAX_BUFFERED_ROWS,
+    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = PAIR_CAPACITY, max_rows: int | None = None,
                  sums: tuple[np.ndarray, np.ndarray] | None = None):
         if sums is None:
             self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
@@ -122,7 +126,7 @@ class Accumulator:
             self.W = np.zeros(num_gaussians, np.float32)
         else:
             self.F, self.W = sums
-        self._max_rows = int(max_rows)
+        self._max_rows = buffered_rows(dim) if max_rows is None else int(max_rows)
         capacity = max(pair_capacity, num_gaussians, 1)
         self._pair_g = np.zeros(capacity, np.int32)
         self._pair_row = np.zeros(capacity, np.int32)
@@ -173,10 +177,12 @@ class Accumulator:
             start += take
 
     def _push_rows(self, feats: np.ndarray) -> int:
-        """Store a view's embeddings after the buffered ones; returns their first row."""
+        """Store a view's embeddings after the buffered ones; returns their first row. The buffer
+        doubles as it grows, but never past max_rows + the view's rows, what it can need (its rows
+        are flushed once there are more than max_rows before a view is pushed)."""
         need = self._num_rows + feats.shape[0]
         if need > self._rows.shape[0]:
-            grown = np.zeros((max(need, 2 * self._rows.shape[0]), self.dim), np.float32)
+            grown = np.zeros((max(need, min(2 * self._rows.shape[0], self._max_rows + feats.shape[0])), self.dim), np.float32)
             grown[: self._num_rows] = self._rows[: self._num_rows]
             self._rows = grown
         self._rows[self._num_rows : need] = feats
@@ -197,6 +203,28 @@ class Accumulator:
         """(F [N, D], W [N]) with every added view folded in."""
         self.flush()
         return self.F, self.W
+
+
+def buffered_rows(dim: int) -> int:
+    """The mask embeddings an Accumulator of `dim`-D rows holds between flushes (ROW_BUFFER_BYTES)."""
+    return max(1, ROW_BUFFER_BYTES // (4 * max(dim, 1)))
+
+
+def buffer_bytes(dim: int, total_masks: int = 0, max_masks: int = 0, rows: int | None = None, pairs: int = PAIR_CAPACITY) -> int:
+    """The most an Accumulator of `dim`-D rows holds in its buffers beyond F, W and the flush's
+    per-Gaussian scratch (FLUSH_BYTES), for views of `max_masks` masks at most and `total_masks` in
+    all (0: not known): `pairs` pairs of PAIR_SLOT_BYTES (its pair_capacity; a block of B > pairs
+    Gaussians buffers B pairs: PAIR_SLOT_BYTES more per Gaussian), and the embedding rows. Those are
+    at most R = min(rows + max_masks, total_masks) (rows: its max_rows, default buffered_rows(D)),
+    and twice that while the buffer grows (the old rows and the new buffer both held): 2 · R · 4D.
+    Unknown mask counts take a view of `rows` masks. Until 2026-12-05 the plan counted no rows: a `paper` registration of
+    40 views of 2,000 1024-D masks, which grew the buffer to 128,000 rows (500 MiB), was accepted
+    under 800 MB and peaked at 833 MiB."""
+    cap = buffered_rows(dim) if rows is None else rows
+    held = cap + (max_masks if max_masks > 0 else cap)
+    if total_masks > 0:
+        held = min(held, total_masks)
+    return pairs * PAIR_SLOT_BYTES + 2 * held * 4 * max(dim, 1)
 
 
 def accumulate_view_reference(F: np.ndarray, W: np.ndarray, ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarray, feats: np.ndarray) -> int:
