@@ -52,3 +52,13 @@ def test_the_peak_is_the_childs_own_not_the_parents(tmp_path):
     (run,) = run_case("tiny", BudgetCase(**TINY, budget="1GB"), tmp_path)
     assert run.code == 0 and 0 < run.peak < 400 << 20, run
     del ballast
+
+
+def test_a_small_capture_registers_under_a_budget_of_its_own_size(tmp_path):
+    """A capture of 30,000 Gaussians and 480 masks (the default mode, its fit probe included) is
+    accepted under 1 GB and holds it. Until 2026-12-05 the plan charged every scene the large ones'
+    reserves (the sums' 8 M-pair buffer, the probe's 256 MB of kept views, the check's 128 MB of
+    support scratch, the trim's and the translation's buffers at their caps): such a room was refused
+    below ~1.5 GB and peaked at ~0.4 GB."""
+    (run,) = run_case("small", BudgetCase(30_000, 8, 60, 512, "fit-check-vote-reject", "1GB"), tmp_path)
+    assert run.code == 0 and 0 < run.peak <= run.budget, run

@@ -25,7 +25,8 @@ from drsplat.registration.checkpoint import checkpoint_path_for
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.plan import MemoryPlan, choose_block, estimate_memory
-from drsplat.registration.sums import PAIR_CAPACITY, PAIR_SLOT_BYTES, Accumulator, accumulate_view_reference, add_pairs_in_place, buffer_bytes, buffered_rows
+from drsplat.registration.sums import (PAIR_CAPACITY, PAIR_SLOT_BYTES, Accumulator, accumulate_view_reference, add_pairs_in_place, buffer_bytes, buffered_rows,
+                                      pair_capacity_for)
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -82,6 +83,19 @@ def test_the_sums_hold_no_more_embedding_rows_than_the_plan_counts():
     F, W = acc.sums()
     np.testing.assert_array_equal(F, F_ref)
     np.testing.assert_array_equal(W, W_ref)
+
+
+def test_a_small_scene_buffers_as_many_pairs_as_the_plan_counts():
+    """The pair buffer grows with the scene up to PAIR_CAPACITY (64 pairs a Gaussian, 2²⁰ at the
+    least, one a Gaussian at the most), and the plan's `buffer_bytes` counts what an Accumulator of
+    that scene allocates: a scene of 27,354 Gaussians buffers 1.75 M pairs (28 MB), not 8 M (128 MB)."""
+    for n in (1, 1_000, 27_354, 200_000):
+        acc = Accumulator(n, 4)
+        capacity = acc._pair_g.shape[0]
+        assert capacity == pair_capacity_for(n) >= n
+        assert capacity * PAIR_SLOT_BYTES <= buffer_bytes(4, 100, 10, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)) - 2 * 100 * 16
+    assert pair_capacity_for(27_354) == 64 * 27_354 < PAIR_CAPACITY
+    assert pair_capacity_for(1) == 1 << 20 and pair_capacity_for(200_000) == PAIR_CAPACITY and pair_capacity_for(1 << 24) == 1 << 24
 
 
 @pytest.mark.parametrize("case", ["random", "tiny_buffer", "empty"])

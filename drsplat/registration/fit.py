@@ -108,13 +108,17 @@ TRANSLATION_BLOCK_BYTES = 1 << 26  # the held-out score's cosines [rows, G] floa
 # What the probe holds beyond what the view pass's own plan counts (drsplat.registration.plan: the
 # geometry, the culling index and the rays it makes are the pass's, and counted there per Gaussian):
 # the kernels and libraries its first views load; the probe views' pairs it keeps for the pass, at
-# most PROBE_KEEP_BYTES (a view past it is rendered again by the pass: the same pairs); and while a
+# most `probe_keep_bytes` (a view past it is rendered again by the pass: the same pairs); and while a
 # probe view is scored, its dense labellings [N, 1 + E] int32 (E earlier probe views) and its own
 # labels [N]. Until 2026-12-03 this was 512 bytes per Gaussian measured on rooms of ≤ 295k
 # Gaussians, the geometry and rays counted twice: a 20M-Gaussian city was refused at 20.9 GB for
 # one view, and peaked at 9.8 GB in its view pass.
 PROBE_LOAD_BYTES = 96 << 20
 PROBE_KEEP_BYTES = 256 << 20
+# below PROBE_KEEP_BYTES, the probe keeps this much per Gaussian of the scene (`probe_keep_bytes`): both
+# footprints' pairs of the 8 probe views took 133-188 bytes per Gaussian on the hard rooms and the demo
+PROBE_KEEP_PER_GAUSSIAN = 1024
+PROBE_KEEP_MIN = 32 << 20
 PROBE_LABEL_BYTES = 4 * (FIT_PROBES + 2)
 PROBE_STATS_BYTES = 28  # a probe view's floater statistics of one Gaussian it saw (id, peak, total, in front)
 # a rejecting mode's probe (`probe_folds_floaters`): the probe views' statistics folded (SurfaceSupport,
@@ -134,7 +138,15 @@ def probe_memory(num_gaussians: int, embedding_bytes: int = 0, rejects: bool = F
     rejects: the probe folds its views' floater statistics (`probe_folds_floaters`: PROBE_SUPPORT_BYTES).
     max_masks: the masks of the largest view (0: not known), which bound the translation's cosines."""
     per_gaussian = PROBE_LABEL_BYTES + (PROBE_SUPPORT_BYTES if rejects else 0)
-    return PROBE_LOAD_BYTES + PROBE_KEEP_BYTES + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes, max_masks)
+    return PROBE_LOAD_BYTES + probe_keep_bytes(num_gaussians) + per_gaussian * num_gaussians + probe_embedding_bytes(embedding_bytes, max_masks)
+
+
+def probe_keep_bytes(num_gaussians: int) -> int:
+    """The most the probe keeps of its views' pairs for the view pass (views past it are rendered
+    again by the pass, to the same pairs): PROBE_KEEP_PER_GAUSSIAN bytes per Gaussian of the scene
+    within [PROBE_KEEP_MIN, PROBE_KEEP_BYTES]. Until 2026-12-05 every scene was charged 256 MB for
+    it; hard-room (27,354 Gaussians) keeps ~7 MB."""
+    return int(min(PROBE_KEEP_BYTES, max(PROBE_KEEP_MIN, PROBE_KEEP_PER_GAUSSIAN * num_gaussians)))
 
 
 def probe_embedding_bytes(embedding_bytes: int, max_masks: int = 0) -> int:
@@ -163,7 +175,7 @@ def probe_memory_bound(num_gaussians: int, pixels: int, topk: int, embedding_byt
     every pixel (thousands of masks a view split a Gaussian's pixels into as many pairs), but no more
     than every Gaussian in every mask (`plan.view_pairs_bound`), and statistics for every Gaussian
     they name: the view being scored holds them under both footprints, the kept views at most
-    PROBE_KEEP_BYTES. Then the earlier probe views' sparse labellings and embeddings (`HeldOut`) and
+    `probe_keep_bytes`. Then the earlier probe views' sparse labellings and embeddings (`HeldOut`) and
     the re-render's tables of one probe view scored (`rerender_table_bytes`: its own and the earlier
     views' labellings, labels below its masks). What a refusal's named budget is made from, so that
     the budget typed back is not refused once the probe has run. pixels: the largest view's;
@@ -664,7 +676,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     statistics computed and folded, and scores its labellings without what they reject (module
     docstring). keep_pairs: keep the chosen footprint's ViewPairs (statistics included) for a view pass that computes
     views the same way (numba, in this process), as many probe views as keep both footprints' pairs
-    within `keep_bytes` (default PROBE_KEEP_BYTES; the pass renders the others again: the same pairs). geometry:
+    within `keep_bytes` (default `probe_keep_bytes(N)`; the pass renders the others again: the same pairs). geometry:
     `prepare_geometry(scene)` when made already. cancel: checked before each probe view.
     """
     geometry = geometry if geometry is not None else prepare_geometry(scene)
@@ -685,7 +697,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     kept_labels = {footprint: HeldOut() for footprint in FOOTPRINTS}
     kept: dict[str, dict[int, ViewPairs]] = {footprint: {} for footprint in FOOTPRINTS}
     names: list[str] = []  # the probe views scored
-    kept_bytes, keep_bytes = 0, PROBE_KEEP_BYTES if keep_bytes is None else keep_bytes
+    kept_bytes, keep_bytes = 0, probe_keep_bytes(geometry.num_gaussians) if keep_bytes is None else keep_bytes
     floating = None
     while len(names) < count and len(picks) - len(names) < count and (i := order.next()) is not None:
         if cancel is not None:

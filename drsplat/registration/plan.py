@@ -37,7 +37,7 @@ from drsplat.raster import TILE_ENTRY_BYTES, tile_list_cap
 from drsplat.registration.aggregate import Aggregator, mode_stages
 from drsplat.registration.check import check_units_bytes, support_scratch_bytes
 from drsplat.registration.coalesce import SCRATCH_BYTES, coalesce_parts
-from drsplat.registration.sums import FLUSH_BYTES, PAIR_CAPACITY, PAIR_SLOT_BYTES, buffer_bytes
+from drsplat.registration.sums import FLUSH_BYTES, PAIR_CAPACITY, PAIR_SLOT_BYTES, buffer_bytes, pair_capacity_for
 from drsplat.registration.supports import table_bytes
 from drsplat.registration.vote import cluster_bytes, trim_buffer_bytes
 from drsplat.scene import GaussianScene
@@ -145,7 +145,8 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
     row_bytes = scene.sh.shape[1] * 12 + 64
     buffered = PAIR_SLOT_BYTES if n > PAIR_CAPACITY else 0  # a block past PAIR_CAPACITY buffers a pair per Gaussian
     return MemoryPlan(n, dim, base, views_peak, sum_bytes=4 * dim + SUM_BYTES + buffered + mode_block,
-                      write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32, pair_buffer=buffer_bytes(dim, total_masks, max_masks))
+                      write_bytes=OUTPUT_COPIES * dim + 2 * row_bytes + 32,
+                      pair_buffer=buffer_bytes(dim, total_masks, max_masks, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)))
 
 
 def budget_hint(plan: MemoryPlan, fits: int) -> str:

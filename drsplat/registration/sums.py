@@ -23,7 +23,9 @@ import numpy as np
 from drsplat.memory import small_page_zeros
 
 ROW_BUFFER_BYTES = 64 << 20  # mask embeddings held between flushes: 32,768 rows at D = 512, 16,384 at D = 1024 (`buffered_rows`)
-PAIR_CAPACITY = 1 << 23  # pairs buffered between flushes (at least one per Gaussian summed)
+PAIR_CAPACITY = 1 << 23  # pairs buffered between flushes at most (`pair_capacity`; at least one per Gaussian summed)
+PAIRS_PER_GAUSSIAN = 64  # below PAIR_CAPACITY, pairs buffered per Gaussian summed: a flush's O(N) sort is spread over 64·N pairs
+MIN_PAIR_CAPACITY = 1 << 20
 PAIR_SLOT_BYTES = 16  # a buffered pair: Gaussian, row and weight (12), and its place in the flush's counting sort (4)
 FLUSH_BYTES = 16  # per Gaussian summed, the flush's counting sort: its starts and fill pointers (int64 each)
 CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
@@ -111,14 +113,14 @@ class Accumulator:
     """Running sums F [N, D] = Σ_j w_ij f_j and W [N] = Σ_j w_ij.
 
     Views' distinct (Gaussian, mask) pairs and the embeddings of their masks are buffered; a flush
-    folds the buffer into F grouped by Gaussian, so memory is N·D + the buffer (`pair_capacity`
+    folds the buffer into F grouped by Gaussian, so memory is N·D + the buffer (`pair_capacity`, default `pair_capacity_for(N)`
     pairs, at least N, and `max_rows` embeddings plus one view's, default `buffered_rows(D)`; the most
     it holds: `buffer_bytes`), never Gaussians x masks. sums: (F [N, D],
     W [N]) float32 to add into in place instead of new zeros (the vote's exact trim subtracts its
     trimmed pairs from a block's sums, weights negated).
     """
 
-    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int = PAIR_CAPACITY, max_rows: int | None = None,
+    def __init__(self, num_gaussians: int, dim: int, pair_capacity: int | None = None, max_rows: int | None = None,
                  sums: tuple[np.ndarray, np.ndarray] | None = None):
         if sums is None:
             self.F = small_page_zeros((num_gaussians, dim), np.float32)  # made once: no huge pages (drsplat.memory)
@@ -127,7 +129,7 @@ class Accumulator:
         else:
             self.F, self.W = sums
         self._max_rows = buffered_rows(dim) if max_rows is None else int(max_rows)
-        capacity = max(pair_capacity, num_gaussians, 1)
+        capacity = pair_capacity_for(num_gaussians) if pair_capacity is None else max(pair_capacity, num_gaussians, 1)
         self._pair_g = np.zeros(capacity, np.int32)
         self._pair_row = np.zeros(capacity, np.int32)
         self._pair_w = np.zeros(capacity, np.float32)
@@ -203,6 +205,14 @@ class Accumulator:
         """(F [N, D], W [N]) with every added view folded in."""
         self.flush()
         return self.F, self.W
+
+
+def pair_capacity_for(num_gaussians: int) -> int:
+    """The pairs an Accumulator of `num_gaussians` buffers by default: PAIRS_PER_GAUSSIAN per Gaussian
+    within [MIN_PAIR_CAPACITY, PAIR_CAPACITY], and at least one per Gaussian. A flush costs O(N) for
+    its counting sort besides its pairs, so a small scene flushes as cheaply with a small buffer;
+    8 M pairs (128 MB) for a scene of 27,000 Gaussians were memory its views never filled."""
+    return int(max(min(max(PAIRS_PER_GAUSSIAN * num_gaussians, MIN_PAIR_CAPACITY), PAIR_CAPACITY), num_gaussians, 1))
 
 
 def buffered_rows(dim: int) -> int:
