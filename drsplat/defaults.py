@@ -25,7 +25,6 @@ VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)
 SPECIFICITY_SLOT_BYTES = 8 * VOTE_SLOTS  # per Gaussian of a block the vote trims by specificity: each slot's P (float64)
 EXACT_TRIM_SLOT_BYTES = 28  # per Gaussian of a block the vote trims exactly (after the check): its trimmed-slot bits (uint64), the removed weight (float32) and a buffered pair (16 with its place in the flush's sort: the buffer holds at least one per Gaussian)
-EXACT_TRIM_BUFFER_BYTES = (16 << 21) + (32 << 20)  # the exact trim's buffer where the views' masks are not known: 2²¹ pairs of 16 bytes and 16 MB of mask embeddings, twice that as it grows (drsplat.registration.vote.trim_buffer_bytes)
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
 SUPPORT_SCRATCH_BYTES = 64 << 20  # one layer of the check's dense support scratch: a view's masks are summed in runs that keep it within this
 SUPPORT_TABLE_BYTES = 256 << 20  # the check's support tables held in memory; their parts past it spill to disk (registration.supports)

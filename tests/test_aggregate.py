@@ -664,7 +664,7 @@ def test_memory_plan_counts_the_mask_clusters_of_each_stage_that_keeps_them(hard
         # and its support scratch and the exact trim's buffer are sized by the masks, not at their caps
         n, pixels = scene.num_gaussians, max(c.width * c.height for c in cams)
         extra += (Aggregator.memory_bytes(mode, n, pixels, 40, support_scratch_bytes(24_000, 3_000), trim_buffer_bytes(1024, 24_000, 3_000))[1]
-                  - Aggregator.memory_bytes(mode, n, pixels, 40)[1])
+                  - Aggregator.memory_bytes(mode, n, pixels, 40, support_scratch_bytes(), trim_buffer_bytes(1024))[1])
         assert with_masks.views - without.views == with_masks.base - without.base == extra, mode
         assert with_masks.pair_buffer - without.pair_buffer == buffer_bytes(1024, 24_000, 3_000) - buffer_bytes(1024), mode
         assert with_masks.in_memory - without.in_memory == extra + with_masks.pair_buffer - without.pair_buffer, mode

@@ -85,15 +85,17 @@ def test_the_sums_hold_no_more_embedding_rows_than_the_plan_counts():
     np.testing.assert_array_equal(W, W_ref)
 
 
-def test_a_small_scene_buffers_as_many_pairs_as_the_plan_counts():
+def test_a_small_scene_buffers_as_many_pairs_as_the_plan_counts(inputs):
     """The pair buffer grows with the scene up to PAIR_CAPACITY (64 pairs a Gaussian, 2²⁰ at the
-    least, one a Gaussian at the most), and the plan's `buffer_bytes` counts what an Accumulator of
-    that scene allocates: a scene of 27,354 Gaussians buffers 1.75 M pairs (28 MB), not 8 M (128 MB)."""
+    least, one a Gaussian at the most), and the memory plan of a scene counts the buffers its sums'
+    Accumulator allocates: a scene of 27,354 Gaussians buffers 1.75 M pairs (28 MB), not 8 M (128 MB)."""
+    scene, cams = inputs
+    plan = estimate_memory(scene, cams, 512, 40, base=0, aggregate="paper", total_masks=100, max_masks=10)
+    acc = Accumulator(scene.num_gaussians, 512)
+    rows = 2 * 100 * 512 * 4  # every mask's row, and as many while the row buffer grows
+    assert acc._pair_g.shape[0] * PAIR_SLOT_BYTES + rows == plan.pair_buffer
     for n in (1, 1_000, 27_354, 200_000):
-        acc = Accumulator(n, 4)
-        capacity = acc._pair_g.shape[0]
-        assert capacity == pair_capacity_for(n) >= n
-        assert capacity * PAIR_SLOT_BYTES <= buffer_bytes(4, 100, 10, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)) - 2 * 100 * 16
+        assert Accumulator(n, 4)._pair_g.shape[0] == pair_capacity_for(n) >= n
     assert pair_capacity_for(27_354) == 64 * 27_354 < PAIR_CAPACITY
     assert pair_capacity_for(1) == 1 << 20 and pair_capacity_for(200_000) == PAIR_CAPACITY and pair_capacity_for(1 << 24) == 1 << 24
 

@@ -1102,14 +1102,17 @@ def test_the_memory_plan_counts_the_checks_bounded_support_scratch():
     parallel layers), and with a vote after it the exact trim's buffer; a mode without the check
     holds none of it. The bound holds whatever a view's masks: 4,000 masks against 16,000 clusters
     (1.1 GB dense) are summed in runs of 246."""
-    from drsplat.defaults import EXACT_TRIM_BUFFER_BYTES, SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
+    from drsplat.defaults import SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES
     from drsplat.registration.aggregate import Aggregator
-    from drsplat.registration.check import SUPPORT_ENTRY_BYTES, SupportScratch
+    from drsplat.registration.check import SUPPORT_ENTRY_BYTES, SupportScratch, support_scratch_bytes
+    from drsplat.registration.vote import trim_buffer_bytes
 
     bound = SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
-    for mode, trim in (("check-vote-reject", EXACT_TRIM_BUFFER_BYTES), ("fit-check-vote-reject", EXACT_TRIM_BUFFER_BYTES), ("check-reject", 0)):
+    unknown = (support_scratch_bytes(), trim_buffer_bytes(512))  # mask counts not known: the caps
+    assert unknown == (bound, (16 << 21) + (32 << 20))  # 2²¹ pairs of 16 bytes, 16 MB of rows twice over
+    for mode, trim in (("check-vote-reject", unknown[1]), ("fit-check-vote-reject", unknown[1]), ("check-reject", 0)):
         without = mode.replace("check-", "")
-        kept = Aggregator.memory_bytes(mode, 50_000, 320 * 240, 40)[1] - Aggregator.memory_bytes(without, 50_000, 320 * 240, 40)[1]
+        kept = Aggregator.memory_bytes(mode, 50_000, 320 * 240, 40, *unknown)[1] - Aggregator.memory_bytes(without, 50_000, 320 * 240, 40, *unknown)[1]
         assert kept == bound + trim, mode
     run = SupportScratch(16_000).masks_per_run(4_000)
     assert run == SUPPORT_SCRATCH_BYTES // (SUPPORT_ENTRY_BYTES * 16_000) == 246

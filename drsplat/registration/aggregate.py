@@ -123,8 +123,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import (AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_BUFFER_BYTES, EXACT_TRIM_SLOT_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES,
-                              SUPPORT_EXTRA_SCRATCH, SUPPORT_SCRATCH_BYTES, VOTE_SLOT_BYTES)
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_SLOT_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, VOTE_SLOT_BYTES
 from drsplat.memory import small_page_zeros
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
@@ -1234,13 +1233,12 @@ class Aggregator:
                      self.num_rejected, PEAK_MIN, without_rejection(asked or self.mode))
 
     @staticmethod
-    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int, support_scratch: int = SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH,
-                     trim_buffer: int = EXACT_TRIM_BUFFER_BYTES) -> tuple[int, int, int]:
+    def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int, support_scratch: int, trim_buffer: int) -> tuple[int, int, int]:
         """(bytes held while views are rasterized, bytes held until the sums are finished, bytes per
         Gaussian of a block of sums) by `mode` for a scene of `num_gaussians` and views of at most
         `pixels` pixels (registration's memory plan). support_scratch, trim_buffer: the check's support
-        scratch and the exact trim's buffer, where the plan knows the views' masks
-        (`check.support_scratch_bytes`, `vote.trim_buffer_bytes`); their caps by default."""
+        scratch and the exact trim's buffer (`check.support_scratch_bytes`, `vote.trim_buffer_bytes`:
+        from the views' mask counts, or their caps where those are not known)."""
         stages = mode_stages(mode)
         weighting, reject = stages.weighting, stages.reject
         views = pixels * topk * 4 if weighting != "paper" else 0  # the reweighted [H, W, k] buffer

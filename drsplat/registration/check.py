@@ -768,6 +768,7 @@ def support_scratch_bytes(total_masks: int = 0, max_masks: int = 0) -> int:
         return SUPPORT_SCRATCH_BYTES + SUPPORT_EXTRA_SCRATCH
     per_mask = SUPPORT_ENTRY_BYTES * total_masks
     layer = max(per_mask, min(max_masks * per_mask, SUPPORT_SCRATCH_BYTES))
+    # the most threads numba may be set to, not today's count: `take` reads the count when it runs
     return layer + min((numba.config.NUMBA_NUM_THREADS - 1) * layer, SUPPORT_EXTRA_SCRATCH)
 
 

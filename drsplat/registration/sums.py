@@ -215,9 +215,9 @@ def pair_capacity_for(num_gaussians: int) -> int:
     return int(max(min(max(PAIRS_PER_GAUSSIAN * num_gaussians, MIN_PAIR_CAPACITY), PAIR_CAPACITY), num_gaussians, 1))
 
 
-def buffered_rows(dim: int) -> int:
-    """The mask embeddings an Accumulator of `dim`-D rows holds between flushes (ROW_BUFFER_BYTES)."""
-    return max(1, ROW_BUFFER_BYTES // (4 * max(dim, 1)))
+def buffered_rows(dim: int, row_bytes: int = ROW_BUFFER_BYTES) -> int:
+    """The mask embeddings of `dim`-D an Accumulator holds between flushes within `row_bytes` (one at the least)."""
+    return max(1, row_bytes // (4 * max(dim, 1)))
 
 
 def buffer_bytes(dim: int, total_masks: int = 0, max_masks: int = 0, rows: int | None = None, pairs: int = PAIR_CAPACITY) -> int:

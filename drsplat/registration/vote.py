@@ -105,12 +105,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import EXACT_TRIM_BUFFER_BYTES, VOTE_SLOTS
+from drsplat.defaults import VOTE_SLOTS
 from drsplat.memory import small_page_full, small_page_zeros
 from drsplat._sort_kernels import stable_order
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import Block, PairSource, sample_rows
-from drsplat.registration.sums import Accumulator, buffer_bytes
+from drsplat.registration.sums import PAIR_SLOT_BYTES, Accumulator, buffer_bytes, buffered_rows
 
 CLUSTER_COSINE = 0.9  # a mask joins a cluster whose leader is at least this similar
 MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its votes are below this x the winner's
@@ -672,19 +672,15 @@ def _trimmed_pairs_kernel(rows, clusters, slot_c, bits, out):  # pragma: no cove
         out[p] = hit
 
 
-def trim_buffer_rows(dim: int) -> int:
-    """The mask embeddings of `dim`-D the exact trim buffers between flushes (TRIM_BUFFER_FEAT_BYTES)."""
-    return max(1, TRIM_BUFFER_FEAT_BYTES // (4 * max(dim, 1)))
-
-
 def trim_buffer_bytes(dim: int, total_masks: int = 0, max_masks: int = 0) -> int:
     """The most the exact trim's buffer holds (`sums.buffer_bytes` of its TRIM_BUFFER_PAIRS pairs and
-    `trim_buffer_rows` rows) for views of `max_masks` `dim`-D masks at most, `total_masks` in all;
-    defaults.EXACT_TRIM_BUFFER_BYTES when they are not known (0): a small capture's masks fill
-    far less than that, a view of thousands of 1024-D masks more."""
+    TRIM_BUFFER_FEAT_BYTES of rows) for views of `max_masks` `dim`-D masks at most, `total_masks` in all.
+    When they are not known (0): its pairs and twice TRIM_BUFFER_FEAT_BYTES of rows (64 MB), what it
+    was counted as before the masks were; a small capture's masks fill far less than that, a view of
+    thousands of 1024-D masks more."""
     if total_masks <= 0 or max_masks <= 0:
-        return EXACT_TRIM_BUFFER_BYTES
-    return buffer_bytes(dim, total_masks, max_masks, rows=trim_buffer_rows(dim), pairs=TRIM_BUFFER_PAIRS)
+        return TRIM_BUFFER_PAIRS * PAIR_SLOT_BYTES + 2 * TRIM_BUFFER_FEAT_BYTES
+    return buffer_bytes(dim, total_masks, max_masks, rows=buffered_rows(dim, TRIM_BUFFER_FEAT_BYTES), pairs=TRIM_BUFFER_PAIRS)
 
 
 def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray, slot_s: np.ndarray, means: np.ndarray,
@@ -712,7 +708,7 @@ def exact_trimmed_features(F: np.ndarray, slot_c: np.ndarray, slot_v: np.ndarray
     # negated (f + (−w)·x is f − w·x to the bit): each row of F is read and written once per flush, not once
     # per view, and a row's pairs go in their order, so the bits do not depend on where flushes fall
     removed = np.zeros(F.shape[0], np.float32) if removed is None else removed
-    out = Accumulator(F.shape[0], F.shape[1], TRIM_BUFFER_PAIRS, trim_buffer_rows(F.shape[1]), sums=(F, removed))
+    out = Accumulator(F.shape[0], F.shape[1], TRIM_BUFFER_PAIRS, buffered_rows(F.shape[1], TRIM_BUFFER_FEAT_BYTES), sums=(F, removed))
     for rows, clusters, masks, weights, feats in views:
         if rows.size:
             rows = np.ascontiguousarray(rows, np.int32)
