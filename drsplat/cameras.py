@@ -1534,6 +1534,22 @@ def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
 
 EXIF_ORIENTATION = 0x0112
 EXIF_ROTATED = (5, 6, 7, 8)  # orientations that swap width and height
+EXIF_TURNS = {2: "mirrored", 3: "turned 180°", 4: "flipped", 5: "transposed", 6: "turned 90°", 7: "transversed", 8: "turned 270°"}
+
+
+def exif_orientation(path: Path | None) -> int:
+    """The EXIF orientation tag of the image file at `path` (1: stored upright; 2-8: `EXIF_TURNS`), 1
+    when it has none, there is no file, or its header cannot be read (the header only: no pixels)."""
+    if path is None:
+        return 1
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            value = im.getexif().get(EXIF_ORIENTATION, 1)
+    except (OSError, *PILLOW_DECODE_ERRORS):
+        return 1
+    return value if isinstance(value, int) and value in EXIF_TURNS else 1
 
 
 PILLOW_DECODE_ERRORS = (ValueError, SyntaxError, IndexError, EOFError, struct.error, zlib.error)  # malformed PNG chunks, among others
@@ -1596,7 +1612,10 @@ def check_image_framing(path: Path, im, camera: Camera) -> None:
 def rgb_pixels(path: Path, im) -> np.ndarray:
     """[h, w, 3] uint8 of an open PIL image. 16-bit integer images (modes I;16*, and I holding
     0..65535) are scaled by 255/65535, float images (mode F) holding 0..1 by 255; other integer or
-    float ranges are an InputError (Pillow's own conversion would clip them to white or black)."""
+    float ranges are an InputError (Pillow's own conversion would clip them to white or black).
+    A 32-bit integer image (mode I) whose pixels all lie in 0..255 holds 8-bit values (a tool that
+    wrote them as int32): they are read as they are, with a warning, since read as 16-bit they
+    would be black (at most 1/257 of white); Pillow opens 16-bit PNG and TIFF as I;16."""
 
     mode = im.mode
     if mode.startswith("I;16") or mode in ("I", "F"):
@@ -1611,6 +1630,9 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
                 raise InputError(path, f"holds 32-bit integer pixels beyond 0..65535 (mode {mode}); save it as an 8- or 16-bit image",
                                  field="mode")
             scaled = values * (255.0 / 65535.0)
+            if mode == "I" and values.size and values.max() <= 255:
+                log.warning("%s: 32-bit integer pixels all within 0..255, read as 8-bit values (as 16-bit they would be black)", path)
+                scaled = values
         grey = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
         return np.repeat(grey[..., None], 3, axis=2)
     return np.asarray(im.convert("RGB") if mode != "RGB" else im)

@@ -4,6 +4,7 @@ offline errors; plus the crop recipe and the id layout."""
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -387,6 +388,21 @@ def test_load_image_scales_16_bit_and_float_grey_and_refuses_other_ranges(tmp_pa
         with pytest.raises(InputError, match=words) as info:
             load_image(cam)
         assert "view" in str(info.value)
+
+
+def test_load_image_reads_8_bit_values_stored_as_32_bit_integers_as_8_bit_and_says_so(tmp_path, caplog):
+    """A 32-bit integer TIFF of 0..255 (a tool that wrote 8-bit values as int32) was scaled as 16-bit:
+    a black image (at most 1 of 255), with no word."""
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+
+    ramp = np.tile(np.arange(64, dtype=np.int32) * 4, (48, 1))  # 0..252
+    cam = load_cameras(_one_camera_dataset(tmp_path / "i32", Image.fromarray(ramp)))[0]
+    with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
+        rgb = load_image(cam)
+    assert np.array_equal(rgb[..., 1], ramp.astype(np.uint8))
+    assert any("view.tif" in r.getMessage() and "read as 8-bit values" in r.getMessage() for r in caplog.records)
 
 
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):

@@ -469,6 +469,37 @@ def test_distorted_views_with_another_tools_features_are_warned_of(tiny, tmp_pat
     assert "lens distortion" not in caplog.text
 
 
+def test_photos_marked_as_turned_with_another_tools_features_are_warned_of(tiny, tmp_path, caplog):
+    """Round 39 left as found: LangSplat's preprocess reads photos with cv2.imread, which applies the EXIF
+    orientation; 3DGS, COLMAP and registration do not. A photo marked as turned 180° has masks upside down
+    against its camera, of the very same shape, and registration said nothing."""
+    import shutil
+
+    from PIL import Image
+
+    from drsplat.cameras import EXIF_ORIENTATION
+    from drsplat.features.format import MANIFEST_NAME
+    from drsplat.registration import register
+
+    cams = load_cameras(tiny)
+    turned = tmp_path / "turned.png"
+    with Image.open(cams[1].image_path) as im:
+        exif = im.getexif()
+        exif[EXIF_ORIENTATION] = 3
+        im.save(turned, exif=exif)
+    cams[1] = dataclasses.replace(cams[1], image_path=turned)
+    scene = load_ply(tiny / "scene.ply")
+    feats = Path(shutil.copytree(tiny / "features", tmp_path / "langsplat"))
+    (feats / MANIFEST_NAME).unlink()
+    with caplog.at_level(logging.WARNING):
+        register(scene, cams, feats, tmp_path / "a.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert f"1 of {len(cams)} views' photos carry an EXIF orientation ({cams[1].name}: turned 180°)" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # drsplat's own features (a manifest) read the pixels as stored, as registration does
+        register(scene, cams, tiny / "features", tmp_path / "b.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert "EXIF orientation" not in caplog.text
+
+
 def test_feature_maps_at_another_resolution_are_resampled(tiny, tmp_path):
     """Features stored at twice the camera resolution register exactly like the originals."""
     cams = load_cameras(tiny)

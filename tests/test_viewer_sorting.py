@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -148,6 +149,52 @@ def test_pitch_stops_short_of_the_pole():
         view.rotate(0, 50)
     cos_up = abs(view.forward @ view.up)
     assert cos_up < 1.0 and np.isfinite(view.camera().R).all()
+
+
+def _polar_degrees(view: ViewController) -> float:
+    """The angle between the view's turned direction (eye - target orbiting, target - eye flying) and up."""
+    offset = view.eye - view.target if view.mode == "orbit" else view.target - view.eye
+    return math.degrees(math.acos(np.clip(offset @ view.up / np.linalg.norm(offset), -1.0, 1.0)))
+
+
+def _from_pole_degrees(view: ViewController) -> float:
+    polar = _polar_degrees(view)
+    return min(polar, 180.0 - polar)
+
+
+@pytest.mark.parametrize("mode", ["orbit", "fly"])
+def test_a_view_inside_the_pole_margin_drags_out_of_it_one_pixel_at_a_time(mode):
+    # a view 1 degree off the up axis (a top-down training camera, or +Z chosen under such a view):
+    # slow drags away from the pole used to be refused one by one, as each stayed inside the 3-degree margin
+    a = math.radians(1.0)
+    view = ViewController(eye=np.array([0.0, -4.0 * math.sin(a), 4.0 * math.cos(a)]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]), mode=mode)
+    away = 1 if mode == "orbit" else -1  # fly turns the target around the eye: the other way
+    start = _from_pole_degrees(view)
+    for _ in range(3):
+        view.rotate(0, -away)  # toward the pole: held where it is, never over it
+    assert _from_pole_degrees(view) == pytest.approx(start, abs=1e-9)
+    angles = []
+    for _ in range(40):
+        view.rotate(0, away)
+        angles.append(_from_pole_degrees(view))
+    assert np.all(np.diff(angles) > 0.2) and angles[-1] > 10.0
+    assert view.distance == pytest.approx(4.0)
+
+
+def test_a_view_straight_down_the_up_axis_drags_out_of_it():
+    view = ViewController(eye=np.array([0.0, 0.0, 4.0]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    view.rotate(0, 100)
+    assert _from_pole_degrees(view) == pytest.approx(math.degrees(100 * view.rotate_speed))
+    assert np.isfinite(view.camera().R).all() and view.distance == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize("pixels", [400, -400, 1000])
+def test_one_fast_drag_stops_at_the_pole_margin_on_its_own_side(pixels):
+    view = ViewController(eye=np.array([0.0, -4.0, 0.0]), target=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    view.rotate(0, pixels)
+    assert _from_pole_degrees(view) == pytest.approx(3.0)
+    assert view.eye[1] < 0  # still on the side it started from: not carried over the pole
+    assert view.distance == pytest.approx(4.0)
 
 
 def test_snap_to_a_training_camera_reproduces_its_pose_and_fov():

@@ -15,6 +15,8 @@ import numpy as np
 
 from drsplat.cameras import Camera, look_at
 
+POLE_MARGIN = math.radians(3)  # how close pitch may bring the view direction to the up axis
+
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     """[3, 3] rotation by `angle` radians about `axis` (Rodrigues)."""
@@ -139,21 +141,51 @@ class ViewController:
         """Mouse drag: yaw about the world up axis by dx, pitch about the camera right axis by dy.
 
         Orbit mode moves the eye around the target; fly mode turns the target around the eye.
-        Pitch stops 3 degrees short of the poles.
+        Pitch stops POLE_MARGIN short of the poles: the turned direction's angle to the up axis,
+        φ ∈ [0, π], moves by the pitch angle toward the nearer pole only as far as φ = POLE_MARGIN
+        (or π - POLE_MARGIN), and freely away from it, so a view that starts within the margin (a
+        top-down training camera, an up axis changed under the view) can always be dragged out,
+        and one fast drag cannot carry the view over the pole. At a pole the right axis is the
+        camera's own (`look_at`'s), so a drag there still turns the view.
         """
         yaw = rotation_about(self.up, -dx * self.rotate_speed)
-        right = np.cross(self.forward, self.up)
         offset = self.eye - self.target if self.mode == "orbit" else self.target - self.eye
         offset = yaw @ offset
+        axis = yaw @ self._pitch_axis()
         pitch_angle = (dy if self.mode == "orbit" else -dy) * self.rotate_speed
-        pitched = rotation_about(yaw @ right, pitch_angle) @ offset
-        cos_up = pitched @ self.up / max(np.linalg.norm(pitched), 1e-12)
-        if abs(cos_up) < math.cos(math.radians(3)):
-            offset = pitched
+        if pitch_angle:
+            offset = rotation_about(axis, self._allowed_pitch(offset, axis, pitch_angle)) @ offset
         if self.mode == "orbit":
             self.eye = self.target + offset
         else:
             self.target = self.eye + offset
+
+    def _pitch_axis(self) -> np.ndarray:
+        """[3] the horizontal axis pitch turns about: forward × up, or the camera's right axis where
+        the view looks along up (their cross product vanishes there)."""
+        right = np.cross(self.forward, self.up)
+        if np.linalg.norm(right) < 1e-9:
+            right = look_at(self.eye, self.target, self.up)[0][0]
+        return right
+
+    def _allowed_pitch(self, offset: np.ndarray, axis: np.ndarray, angle: float) -> float:
+        """The part of a pitch by `angle` radians about `axis` (horizontal, across `offset`) that
+        keeps offset's angle to up, φ, within [POLE_MARGIN, π - POLE_MARGIN] where it moves toward
+        a pole: about such an axis φ moves by exactly |angle| until it reaches a pole."""
+        polar = self._polar(offset)
+        toward = self._polar(rotation_about(axis, math.copysign(1e-6, angle)) @ offset) - polar  # the sign of dφ for this turn
+        if polar < 1e-9 or polar > math.pi - 1e-9:  # at a pole every turn moves away from it
+            return angle
+        step = abs(angle)
+        if toward < 0:
+            step = min(step, max(polar - POLE_MARGIN, 0.0))
+        else:
+            step = min(step, max(math.pi - POLE_MARGIN - polar, 0.0))
+        return math.copysign(step, angle)
+
+    def _polar(self, v: np.ndarray) -> float:
+        """φ: the angle between v [3] and the up axis, in [0, π]."""
+        return math.acos(float(np.clip(v @ self.up / max(np.linalg.norm(v), 1e-300), -1.0, 1.0)))
 
     def pan(self, dx: float, dy: float) -> None:
         """Move eye and target together in the image plane, dx, dy in pixels at the target depth."""

@@ -626,6 +626,16 @@ class ViewerState:
         return True
 
 
+def typed_labels(text: str) -> list[str] | None:
+    """The labels typed into the Display panel's segment field: its comma-separated entries, stripped,
+    empty ones kept, so that `run_segmentation` refuses `mug,,table` as `drsplat segment` does
+    (dropped, the colours would follow other labels than the user counted); None for a blank field
+    (the oracle's labels)."""
+    if not text.strip():
+        return None
+    return [entry.strip() for entry in text.split(",")]
+
+
 def read_oracle_queries(source: Path, problems: list[str] | None = None) -> OracleQueries | None:
     """The oracle "text" of a synthetic dataset: gt/label_names.json and text_embeddings.npy."""
     names_path, emb_path = source / ORACLE_LABEL_NAMES, source / ORACLE_TEXT_EMBEDDINGS

@@ -59,7 +59,8 @@ from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts,
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
-from drsplat.registration.views import FeatureHeaders, ViewSelection, read_feature_headers, select_views, warn_if_distorted_without_manifest
+from drsplat.registration.views import (FeatureHeaders, ViewSelection, read_feature_headers, select_views, warn_if_distorted_without_manifest,
+                                        warn_if_turned_without_manifest)
 from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken, describe_os_error, progress
@@ -755,6 +756,7 @@ def register(
     manifest = read_manifest(run.features_dir)
     check_manifest_dim(run.features_dir, manifest, run.dim)
     warn_if_distorted_without_manifest(run.selection.views, manifest, run.features_dir)
+    warn_if_turned_without_manifest(run.selection.views, manifest, run.features_dir)
     target = PlyTarget(scene, out, manifest_model_id(manifest), cancel)
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,

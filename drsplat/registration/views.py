@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import Camera, lens_corner_shift, same_aspect
+from drsplat.cameras import EXIF_TURNS, Camera, exif_orientation, lens_corner_shift, same_aspect
 from drsplat.errors import InputError
 from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
@@ -138,6 +138,28 @@ def warn_if_distorted_without_manifest(views: Sequence[Camera], manifest: dict, 
                 "preprocess) are masks of the distorted photos, but registration projects through the undistorted pinhole camera, so "
                 "masks land up to %.1f px off at the corners (%s); undistort the images before segmenting them, or make the features with "
                 "`drsplat features`, which does", len(distorted), len(views), features_dir, lens_corner_shift(worst), worst.name)
+
+
+def warn_if_turned_without_manifest(views: Sequence[Camera], manifest: dict, features_dir: Path) -> None:
+    """One warning when views' photos carry an EXIF orientation other than upright and the features
+    folder has no drsplat manifest.
+
+    3DGS, COLMAP and registration read a photo's pixels as stored; LangSplat's preprocess reads them
+    with cv2.imread, which applies the orientation, so its masks of a photo marked as turned 180°
+    are upside down against the camera, with the very same shape (no size check can see it; one
+    turned by 90° has its sides swapped, which the header check refuses). `drsplat features` reads
+    the pixels as stored. Only the files' headers are read."""
+    if manifest:
+        return
+    turned = [(c, orientation) for c in views if (orientation := exif_orientation(c.image_path)) != 1]
+    if not turned:
+        return
+    camera, orientation = turned[0]
+    log.warning("%d of %d views' photos carry an EXIF orientation (%s: %s) and %s has no drsplat manifest: features made by another "
+                "tool that reads photos with OpenCV (LangSplat's preprocess) are masks of the photos as the tag shows them, while "
+                "registration projects onto the pixels as stored, so its masks lie %s against the cameras; store the pixels upright "
+                "(e.g. `mogrify -auto-orient`) and rebuild the cameras from them, or make the features with `drsplat features`",
+                len(turned), len(views), camera.name, EXIF_TURNS[orientation], features_dir, EXIF_TURNS[orientation])
 
 
 @dataclass
