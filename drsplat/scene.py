@@ -193,6 +193,12 @@ class GaussianScene:
         """[N, 3] view-independent RGB in [0, 1]: clip(0.5 + C0 · sh_dc)."""
         return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)
 
+    def identity_rows(self, ids: np.ndarray) -> np.ndarray:
+        """[len(ids), 11] float32: what tells the Gaussians `ids` apart wherever the file lists them, as
+        stored: mean, rotation, log-scales and opacity logit (colour left out: two Gaussians alike
+        in these lie on one another)."""
+        return np.concatenate([self.means[ids], self.quats[ids], self.log_scales[ids], self.opacity_logits[ids, None]], axis=1).astype(np.float32)
+
     def subset(self, index: np.ndarray) -> "GaussianScene":
         """The Gaussians selected by a boolean mask [N] or an index array, extras included."""
         return dataclasses.replace(

@@ -409,7 +409,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
         if codebook == "scene":
-            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates)
+            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates, run.scene)
         if reduce is None:
             # the kept rows as far as known now (the header's room; drsplat.registration.output.PlyTarget)
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
@@ -665,15 +665,19 @@ def in_view_order(indices: range, ready: dict[int, ViewPairs], computed: Iterato
             yield view.grouped() if grouped else view
 
 
-def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray) -> Codebook:
+def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray, scene: GaussianScene) -> Codebook:
     """The scene codebook: PQ trained on the masks' embeddings, topped up with the unit features of a
-    sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan)."""
+    sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan),
+    drawn and ordered by their parameters' hashes (`scene_sample_ids`, `GaussianScene.identity_rows`),
+    so the same in any order of the scene file's Gaussians."""
 
     def sample_features() -> np.ndarray:
-        ids = scene_sample_ids(np.flatnonzero(candidates))
-        F, W = sink.sample(ids)
+        ids = scene_sample_ids(np.flatnonzero(candidates), scene.identity_rows)
+        ascending = np.sort(ids)  # what a sink replays
+        F, W = sink.sample(ascending)
         F, _ = normalize_rows(F, W)
-        return F[W > 0]
+        at = np.searchsorted(ascending, ids)  # back in sample order: the codebook's k-means sees its rows in it
+        return F[at][W[at] > 0]
 
     train = scene_training_set(totals.mask_embeddings(), sample_features, totals.dim)
     totals.embeddings = []
