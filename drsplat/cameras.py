@@ -1534,20 +1534,34 @@ def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
 
 EXIF_ORIENTATION = 0x0112
 EXIF_ROTATED = (5, 6, 7, 8)  # orientations that swap width and height
-EXIF_TURNS = {2: "mirrored", 3: "turned 180°", 4: "flipped", 5: "transposed", 6: "turned 90°", 7: "transversed", 8: "turned 270°"}
+EXIF_TURNS = {2: "mirrored", 3: "turned 180°", 4: "flipped", 5: "transposed", 6: "turned 90°", 7: "transverse", 8: "turned 270°"}
 
 
 def exif_orientation(path: Path | None) -> int:
     """The EXIF orientation tag of the image file at `path` (1: stored upright; 2-8: `EXIF_TURNS`), 1
-    when it has none, there is no file, or its header cannot be read (the header only: no pixels)."""
-    if path is None:
+    when it has none or there is no regular file there (a named pipe would block the open: round 51;
+    the header only, no pixels)."""
+    if path is None or not Path(path).is_file():
         return 1
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            value = im.getexif().get(EXIF_ORIENTATION, 1)
+        with warnings.catch_warnings():  # Pillow warns of a corrupt EXIF block as it opens the file
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                return image_orientation(im)
     except (OSError, *PILLOW_DECODE_ERRORS):
+        return 1
+
+
+def image_orientation(im) -> int:
+    """The EXIF orientation tag of an open PIL image (`exif_orientation`), 1 when it has none or its
+    EXIF block cannot be read (Pillow's warnings about a corrupt block are not the user's concern here)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            value = im.getexif().get(EXIF_ORIENTATION, 1)
+    except PILLOW_DECODE_ERRORS:
         return 1
     return value if isinstance(value, int) and value in EXIF_TURNS else 1
 
@@ -1601,7 +1615,7 @@ def check_image_framing(path: Path, im, camera: Camera) -> None:
     if same_aspect(w, h, camera.width, camera.height, FRAMING_TOLERANCE):
         return
     hint = ""
-    if im.getexif().get(EXIF_ORIENTATION) in EXIF_ROTATED:
+    if image_orientation(im) in EXIF_ROTATED:
         hint = ("; its EXIF orientation says to rotate it, which 3DGS, COLMAP and drsplat do not do: store the pixels "
                 "upright (e.g. `mogrify -auto-orient`) and rebuild the cameras from those images")
     raise InputError(path, f"is {w}x{h} but camera {camera.name!r} is {camera.size_text()}: the aspect ratios "

@@ -197,7 +197,7 @@ class GaussianScene:
         """[len(ids), 11] float32: what tells the Gaussians `ids` apart wherever the file lists them, as
         stored: mean, rotation, log-scales and opacity logit (colour left out: two Gaussians alike
         in these lie on one another)."""
-        return np.concatenate([self.means[ids], self.quats[ids], self.log_scales[ids], self.opacity_logits[ids, None]], axis=1).astype(np.float32)
+        return np.concatenate([self.means[ids], self.quats[ids], self.log_scales[ids], self.opacity_logits[ids, None]], axis=1).astype(np.float32, copy=False)
 
     def subset(self, index: np.ndarray) -> "GaussianScene":
         """The Gaussians selected by a boolean mask [N] or an index array, extras included."""

@@ -1059,3 +1059,39 @@ def test_scannet_intrinsics_that_are_no_camera_name_the_intrinsic_file(tmp_path,
         load_scannet_cameras(scene)
     assert info.value.path == scene / "intrinsic" / "intrinsic_color.txt" and info.value.field == f"K[{row}][{column}]"
     assert words in str(info.value)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="needs FIFOs")
+def test_the_exif_orientation_of_a_pipe_a_corrupt_block_or_no_file_is_upright_without_a_word(tmp_path):
+    """`exif_orientation` reads a header for registration's warning about turned photos: a named pipe
+    given as a photo blocked that open for ever (round 51), and a corrupt EXIF block printed Pillow's
+    warnings; each is read as upright, silently. A tagged file gives its tag."""
+    import os
+    import threading
+
+    from PIL import Image
+
+    from drsplat.cameras import EXIF_ORIENTATION, exif_orientation
+
+    image = Image.fromarray(np.zeros((8, 8, 3), np.uint8))
+    exif = image.getexif()
+    exif[EXIF_ORIENTATION] = 3
+    image.save(tmp_path / "turned.jpg", exif=exif)
+    data = bytearray((tmp_path / "turned.jpg").read_bytes())
+    at = data.find(b"Exif")
+    data[at + 20:at + 26] = b"\xff" * 6  # the orientation entry's count and offset point past the file
+    (tmp_path / "corrupt.jpg").write_bytes(bytes(data))
+    os.mkfifo(tmp_path / "pipe.jpg")
+    (tmp_path / "folder.jpg").mkdir()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = {name: exif_orientation(tmp_path / name) for name in ("turned.jpg", "corrupt.jpg", "folder.jpg", "missing.jpg")}
+    assert got == {"turned.jpg": 3, "corrupt.jpg": 1, "folder.jpg": 1, "missing.jpg": 1}
+    assert not caught, [str(w.message) for w in caught]
+    assert exif_orientation(None) == 1
+    piped = []
+    reader = threading.Thread(target=lambda: piped.append(exif_orientation(tmp_path / "pipe.jpg")), daemon=True)
+    reader.start()
+    reader.join(30)
+    assert not reader.is_alive(), "the open of a named pipe blocked"
+    assert piped == [1]

@@ -524,6 +524,8 @@ def test_row_hashes_equal_a_plain_loop_of_their_formula():
         np.testing.assert_array_equal(row_hashes(rows, seed), np.array(expected, np.uint64))
     with pytest.raises(ValueError, match="whole 32-bit words"):
         row_hashes(np.zeros((3, 3), np.uint8))
+    assert row_hashes(np.zeros((0, 11), np.float32)).shape == (0,)  # no rows: no keys (a reshape of 0 rows to (0, -1) raised)
+    np.testing.assert_array_equal(row_hashes(rows[:, 0]), row_hashes(rows[:, :1]))  # a 1-D row is one word
 
 
 def test_a_scene_codebook_topped_up_with_features_is_the_same_for_permuted_rows(data):

@@ -136,14 +136,16 @@ def test_typed_segmentation_labels_are_checked_like_the_clis(state, names, words
     assert words in state.messages[-1].text, state.messages[-1].text
 
 
-@pytest.mark.parametrize("text", ["mug,,table", "mug,table,", " , mug"])
-def test_the_segment_fields_empty_entries_reach_the_check_instead_of_being_dropped(state, text):
-    """Round 39 left as found: the Display panel dropped `mug,,table`'s empty entry before the check."""
-    from viewer.state import typed_labels
+@pytest.mark.parametrize("text, entry", [("mug,,table", "entry 2 of 3"), ("mug,table,", "entry 3 of 3"), (" , mug", "entry 1 of 2")])
+def test_the_segment_fields_empty_entries_reach_the_check_instead_of_being_dropped(state, text, entry):
+    """Round 39 left as found: the Display panel dropped `mug,,table`'s empty entry before the check,
+    and segmented two labels where three were typed. The field goes to the state as typed."""
+    assert not state.run_segmentation(text)
+    assert f"{entry} is empty" in state.messages[-1].text and state.messages[-1].level == "error", state.messages[-1].text
 
-    assert not state.run_segmentation(typed_labels(text))
-    assert "empty name" in state.messages[-1].text, state.messages[-1].text
-    assert typed_labels("  ") is None and typed_labels(" mug , table") == ["mug", "table"]
+
+def test_a_blank_segment_field_segments_by_the_oracles_labels(state):
+    assert state.run_segmentation("  ") and state.segment_names == list(state.oracle.names)
 
 
 def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):

@@ -22,7 +22,7 @@ from imgui_bundle import imgui
 from drsplat.lang import EXPORT_FORMAT_HELP, EXPORT_FORMATS
 from viewer.camera import UP_AXES, ViewController
 from viewer.settings import CODEBOOK_CHOICES, FLY_SPEED_RANGE, FOV_RANGE, RENDER_SCALE_RANGE, ROLL_RANGE, in_range
-from viewer.state import ViewerState, typed_labels
+from viewer.state import ViewerState
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HIGHLIGHT_RGB
 
 ERROR_COLOR = imgui.ImVec4(1.0, 0.45, 0.4, 1.0)
@@ -227,7 +227,7 @@ class DisplayPanel:
             imgui.text("above threshold (H toggles)")
         self.segment_text, submitted = submit_field("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), self.segment_text, "segment", -80)
         if submitted:
-            state.run_segmentation(typed_labels(self.segment_text))
+            state.run_segmentation(self.segment_text)
         if state.segmentation is not None:
             for name, color in zip(state.segment_names, state.segment_colors):
                 imgui.color_button(f"##{name}", imgui.ImVec4(*[float(c) for c in color], 1.0))

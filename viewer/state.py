@@ -438,12 +438,17 @@ class ViewerState:
 
     # ---------------------------------------------------------------- segmentation
 
-    def run_segmentation(self, names: list[str] | None = None) -> bool:
-        """Argmax segmentation (drsplat.query.segment) over typed labels (CLIP) or the oracle labels."""
+    def run_segmentation(self, names: list[str] | str | None = None) -> bool:
+        """Argmax segmentation (drsplat.query.segment) over typed labels (CLIP) or the oracle labels.
+        names: the labels, or the Display panel's comma-separated field as typed, checked as
+        `drsplat segment --labels` checks it (`checked_phrases`: `mug,,table` is refused, not read as
+        two labels); None or a blank field: the oracle's labels."""
 
         if not self._require_field():
             return False
         try:
+            if isinstance(names, str):
+                names = checked_phrases("labels", names) if names.strip() else None
             if names:
                 names = checked_names(Path("the typed labels"), list(names))  # no repeats or blanks: each names one colour
                 if self.encoder is None:
@@ -624,16 +629,6 @@ class ViewerState:
             self.cameras, self.oracle = cameras, oracle
             self.start_text_encoder()
         return True
-
-
-def typed_labels(text: str) -> list[str] | None:
-    """The labels typed into the Display panel's segment field: its comma-separated entries, stripped,
-    empty ones kept, so that `run_segmentation` refuses `mug,,table` as `drsplat segment` does
-    (dropped, the colours would follow other labels than the user counted); None for a blank field
-    (the oracle's labels)."""
-    if not text.strip():
-        return None
-    return [entry.strip() for entry in text.split(",")]
 
 
 def read_oracle_queries(source: Path, problems: list[str] | None = None) -> OracleQueries | None:

@@ -200,10 +200,10 @@ def row_hashes(rows: np.ndarray, seed: int = 0) -> np.ndarray:
     these keys independent of the rows' order."""
     rows = np.ascontiguousarray(rows)
     n = rows.shape[0]
-    row_bytes = rows.nbytes // n if n else 0
+    row_bytes = rows.itemsize * int(np.prod(rows.shape[1:], dtype=np.int64))
     if row_bytes % 4:
         raise ValueError(f"rows of {row_bytes} bytes are not whole 32-bit words")
-    words = rows.reshape(n, -1).view(np.uint8).view(np.uint32).reshape(n, row_bytes // 4).astype(np.uint64)
+    words = rows.reshape(n, row_bytes // rows.itemsize).view(np.uint8).view(np.uint32).astype(np.uint64)
     h = np.full(n, np.uint64(14695981039346656037) ^ np.uint64(seed & (2**64 - 1)), np.uint64)
     with np.errstate(over="ignore"):  # arithmetic mod 2⁶⁴ is the hash
         for column in words.T:
