@@ -654,6 +654,19 @@ def check_integer_column(path: Path, name: str, column: np.ndarray, storage: str
                     f"number in {low}..{high}: casting it to {storage} would misread it; {expected}", field=name)
 
 
+GAUSSIAN_ONLY_PROPERTIES = ("opacity", "scale_0", "rot_0", "f_dc_0")
+
+
+def refuse_point_cloud(path: Path, names: tuple[str, ...]) -> None:
+    """Refuse a PLY of points (positions, maybe colours and normals) that has none of a Gaussian's own
+    properties: COLMAP's points3D.ply and 3DGS's input.ply are what a user most often passes by
+    mistake, and "missing opacity" alone does not say which file they want instead."""
+    if {"x", "y", "z"} <= set(names) and not set(GAUSSIAN_ONLY_PROPERTIES) & set(names):
+        raise _fail(path, "holds a point cloud (x, y, z" + (", colours" if "red" in names else "") + "), not trained Gaussians: "
+                    "no opacity, scale_*, rot_* or f_dc_* property (COLMAP's points3D.ply and 3DGS's input.ply look so); "
+                    "give the trained scene, e.g. the trainer's point_cloud/iteration_30000/point_cloud.ply")
+
+
 def _require(path: Path, vertex: np.ndarray, name: str) -> None:
     if name not in vertex.dtype.names:
         raise _fail(path, "is missing a required vertex property of the 3DGS layout", field=name)
@@ -684,6 +697,7 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
         raise _fail(path, f"numbers its {n_rest} f_rest_* properties wrongly: {missing[0]} is missing (expected f_rest_0..f_rest_{n_rest - 1})", field=missing[0])
     n = len(vertex)
     surfels = "scale_2" not in names and {"scale_0", "scale_1"} <= set(names)  # 2DGS: two scales, a flat disk
+    refuse_point_cloud(path, names)
     for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(2 if surfels else 3)),
                  *(f"f_dc_{i}" for i in range(3))):
         _require(path, vertex, name)

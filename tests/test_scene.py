@@ -529,6 +529,25 @@ def test_a_2dgs_ply_of_surfels_reads_as_flat_gaussians(tmp_path, caplog):
     assert rows_covered(face_on) >= 7 and rows_covered(edge_on) <= 3  # edge-on, a line as wide as 3DGS's 0.3 px² dilation
 
 
+@pytest.mark.parametrize("names", [("x", "y", "z", "red", "green", "blue"), ("x", "y", "z", "nx", "ny", "nz")])
+def test_a_point_cloud_ply_is_refused_as_points_not_as_a_missing_opacity(tmp_path, names):
+    """COLMAP's points3D.ply (and 3DGS's input.ply) given where the trained scene belongs was refused
+    as "field 'opacity': is missing a required vertex property", which does not say that the file is
+    the wrong one; the refusal now says it holds points and names the file a trainer writes."""
+    from plyfile import PlyData, PlyElement
+
+    rows = np.zeros(3, dtype=[(k, "u1" if k in ("red", "green", "blue") else "<f4") for k in names])
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(tmp_path / "points3D.ply"))
+    with pytest.raises(InputError, match=r"points3D.ply: holds a point cloud .*not trained Gaussians.*point_cloud.ply") as err:
+        load_ply(tmp_path / "points3D.ply")
+    assert ("colours" in str(err.value)) == ("red" in names)
+    one_missing = ["x", "y", "z", "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1", "scale_2", "f_dc_0", "f_dc_1", "f_dc_2"]
+    rows = np.zeros(3, dtype=[(k, "<f4") for k in one_missing])
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(tmp_path / "gaussians.ply"))
+    with pytest.raises(InputError, match="field 'opacity': is missing a required vertex property"):  # a Gaussian file short of one keeps naming it
+        load_ply(tmp_path / "gaussians.ply")
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("signed", [False, True])
 def test_bounded_rows_kernel_matches_numpy(dtype, signed):
