@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="drsplat", description="Language search for 3D Gaussian Splatting scenes (Dr. Splat).")
     parser.add_argument("--version", action="version", version=f"drsplat {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only (no progress bars)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         importlib.import_module(f"drsplat.commands.{name}").add_parser(subparsers)
@@ -45,7 +45,7 @@ def _add_verbosity(sub: argparse.ArgumentParser) -> None:
     pq train ... -q`, `eval iou`, `bench ...`); SUPPRESS keeps the global flag's value."""
     sub.set_defaults(_usage_parser=sub)  # a UsageError prints this command's usage, not the top level's
     group = sub.add_argument_group("logging")
-    for flags, dest, text in ((("-v", "--verbose"), "verbose", "debug logging"), (("-q", "--quiet"), "quiet", "warnings and errors only")):
+    for flags, dest, text in ((("-v", "--verbose"), "verbose", "debug logging"), (("-q", "--quiet"), "quiet", "warnings and errors only (no progress bars)")):
         if not any(f in sub._option_string_actions for f in flags):
             group.add_argument(*flags, dest=dest, action="store_true", default=argparse.SUPPRESS, help=text)
     for action in sub._actions:
@@ -96,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:  # argparse's own parse_args would print the top level's usage for them
         getattr(args, "_usage_parser", parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     setup_logging(args.verbose, args.quiet)
+    if args.quiet and hasattr(args, "no_progress"):  # a progress bar is info-level output (round 51: -q still drew bars)
+        args.no_progress = True
     try:
         with sigterm_as_interrupt():
             result = args.func(args)

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import subprocess
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -316,3 +319,20 @@ def test_a_double_cloud_too_large_for_the_kdtree_engine_is_one_error_naming_it(t
     err = capsys.readouterr().err
     assert f"{cloud}: holds point coordinates up to 1e+300" in err and "--engine grid" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_json_is_written_when_the_tables_reader_has_gone(pq, tmp_path):
+    """`drsplat eval iou ... --json OUT | head`: the table's reader went before the table was printed;
+    the command ended quietly with exit 0 and no OUT (round 51)."""
+    out = tmp_path / "report.json"
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the first line
+    try:
+        proc = subprocess.run([sys.executable, "-m", "drsplat", "-q", "eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]),
+                               "--json", str(out)], stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=300)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["reports"] and doc["labels"]

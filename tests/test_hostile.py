@@ -2780,6 +2780,19 @@ def test_verbosity_flags_follow_nested_subcommands_too():
     assert parser.parse_known_args(["pq", "train", "--embeddings", "e.npy", "--out", "c.faiss"])[0].quiet is False
 
 
+def test_quiet_draws_no_progress_bars(world, tmp_path, capsys):
+    """`-q` says "warnings and errors only", yet `drsplat -q register` drew its progress bar on stderr
+    (round 51); the bar is info-level output, so -q hides it, before or after the command."""
+    ds = world["ds"]
+    base = ["register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features")]
+    for n, argv in enumerate((["-q", *base], [*base, "-q"])):
+        assert main([*argv, "--out", str(tmp_path / f"r{n}.ply")]) == 0
+        err = capsys.readouterr().err
+        assert "register:" not in err and "%|" not in err, err
+    assert main([*base, "--out", str(tmp_path / "loud.ply")]) == 0  # the bar is there without -q: the check above can see one
+    assert "%|" in capsys.readouterr().err
+
+
 def test_an_out_name_its_codebook_header_cannot_carry_is_refused_before_registering(world, tmp_path, capsys):
     """Was (a probe, 2026-12-01): with a codebook, `--out` named with a control character registered
     every view and only then failed to write the header naming 'a\\x1bb.codebook.faiss'. Now a usage

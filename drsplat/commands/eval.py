@@ -435,13 +435,14 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
                              args.voxel_resolution, args.voxel_empty, assigned=assigned)
     check_defined(reports, sub_names)
     stream = table_stream(args.json, saved_labels)
+    # the file first: a table reader that goes (`| head`) ends the command quietly, and must not take the file with it
+    write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "reports": [r.to_dict() for r in reports]})
     print(f"{shown_path(args.registered.name)}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
           f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}", file=stream)
     print(format_reports(reports), file=stream)
     for r in reports:
         if r.curve and (args.curve or r is next(x for x in reports if x.curve)):
             print(format_curve(r, every=1 if args.curve else 10), file=stream)
-    write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "reports": [r.to_dict() for r in reports]})
     return 0
 
 
@@ -589,15 +590,15 @@ def run_lerf(args: argparse.Namespace) -> int:
     selected, taus = select_queries(scores, threshold, assigned)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
-    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=True)
+    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=not args.quiet)
     require_scored_pairs(args, report)
     stream = table_stream(args.json)
+    doc = report.to_dict()
+    doc["thresholds"] = {n: float(t) for n, t in zip(names, taus)}
+    write_json(args.json, doc)  # before the table, as in `eval iou`
     print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views; "
           f"thresholds {'per-query Otsu' if threshold is None else threshold}", file=stream)
     print(report.format(), file=stream)
-    doc = report.to_dict()
-    doc["thresholds"] = {n: float(t) for n, t in zip(names, taus)}
-    write_json(args.json, doc)
     return 0
 
 
@@ -636,13 +637,13 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
     mask_threshold = LANGSPLAT_MASK_THRESHOLD if args.mask_threshold is None else args.mask_threshold
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
-        report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=True,
+        report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=not args.quiet,
                                   cancel=token, assigned=assigned)
         token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
     stream = table_stream(args.json)
+    write_json(args.json, report.to_dict())  # before the table, as in `eval iou`
     print(f"{shown_path(args.registered.name)}: {len(report.rows)} (view, category) pairs over {len(views) - len(report.missing_views)} views",
           file=stream)
     print(report.format(), file=stream)
-    write_json(args.json, report.to_dict())
     return 0

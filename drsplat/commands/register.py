@@ -26,12 +26,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "Ctrl-C stops at the end of the current view and keeps a checkpoint; the same command resumes.",
     )
     p.add_argument("scene", type=Path, metavar="SCENE", help="trained 3DGS scene (PLY, INRIA or compressed; .splat; .spz)")
-    p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0) or transforms.json")
+    p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0), transforms.json or 3DGS cameras.json")
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
     p.add_argument("--level", type=mask_level, default=DEFAULT_LEVEL, help=f"mask level of the feature files: an index or LangSplat's name, default, s, m or l (default: {DEFAULT_LEVEL}, 's')")
     p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
     p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
-                   help="'none' (exact float16 features), 'scene' (PQ trained on this scene) or a faiss codebook file")
+                   help="'none' (exact float16 features, the default), 'scene' (PQ trained on this scene) or a faiss codebook file")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
                    "(weight by the Gaussian's own falloff / only its 2-sigma ellipse), responsibility (w / pixel sum), "
