@@ -454,3 +454,108 @@ def frame_hint(means: np.ndarray, cameras: Sequence[Camera]) -> str:
             "dataset's cameras and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
             "is off: `drsplat register` moves a COLMAP dataset's cameras there itself, from the model's images and sparse points, "
             "which must be those gsplat was trained on): give the cameras of the scene's frame")
+
+
+PHOTO_CHECK_VIEWS = 4  # views re-rendered by `warn_if_scene_misses_its_images`, spread over the training order
+PHOTO_CHECK_WIDTH = 96  # px: the width they are compared at (a frame mismatch shows at any size; this keeps it a few ms)
+PHOTO_CHECK_SAMPLE = 1_000_000  # Gaussians rendered at most: a spread subset of a larger scene shows the same picture, sparser
+FLAT_GREY = 1e-6  # grey-level spread under which an image is flat (8-bit steps are 4e-3)
+PHOTO_MIN_PIXELS = 100  # covered pixels a view needs to count
+# median correlation under which the scene does not show its own training images: its own frame gave
+# 0.91-1.00 on every synthetic preset (2 seeds), moves of it 0.0-0.78 (a room turned half round about its
+# up axis looks much like itself; turned about another axis, shrunk, shifted, flipped: mostly under 0.5)
+PHOTO_MATCH_MIN = 0.6
+
+
+def grey_correlation(render: np.ndarray, image: np.ndarray, covered: np.ndarray) -> float:
+    """Pearson correlation ρ of two images' grey levels over the pixels `covered`.
+
+    render, image: [H, W, 3] in [0, 1]; covered: [H, W] bool. With g = (R + G + B) / 3,
+
+        ρ = Σ (r − r̄)(g − ḡ) / √(Σ (r − r̄)² · Σ (g − ḡ)²)    over covered pixels,
+
+    invariant to a gain and an offset of either image (a trainer's exposure or appearance
+    compensation keeps ρ high), NaN when either is flat over them.
+    """
+    r = render[covered].mean(axis=1, dtype=np.float64)
+    g = image[covered].mean(axis=1, dtype=np.float64)
+    if r.size < 2 or r.std() < FLAT_GREY or g.std() < FLAT_GREY:  # rounding, not a picture: no correlation to speak of
+        return float("nan")
+    r, g = r - r.mean(), g - g.mean()
+    return float(np.dot(r, g) / np.sqrt(np.dot(r, r) * np.dot(g, g)))
+
+
+def over_fitted_background(rgb: np.ndarray, alpha: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """A render over black, rgb [H, W, 3] with alpha [H, W], put over the background colour b [3]
+    that brings it nearest to image [H, W, 3] in least squares:
+
+        b = Σ (1 − α)(I − C) / Σ (1 − α)²,   C' = C + (1 − α) b,
+
+    since trainers composite over a background of their own (white for NeRF-synthetic captures,
+    a random or learned one), and the scene's partly transparent pixels show it."""
+    t = (1.0 - alpha.astype(np.float64))[..., None]
+    denominator = float(np.sum(t * t))
+    if denominator <= 0:
+        return rgb
+    background = np.sum(t * (image - rgb), axis=(0, 1)) / denominator
+    return rgb + t * background
+
+
+def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
+                    sample: int = PHOTO_CHECK_SAMPLE) -> dict[str, float]:
+    """How well the scene re-renders its training images: camera name -> `grey_correlation` of the
+    scene's render (black background) and the camera's image, both `width` px wide, over the pixels
+    the render covers (α ≥ ½), for up to `views` cameras with an image file, spread over the list.
+
+    A 3DGS scene is fitted to exactly these images, so in its cameras' frame ρ is near 1; in
+    another frame (moved, turned, scaled) its render shows other things where the image has its
+    own, and ρ is near 0. Views whose image cannot be read, or where the render covers under
+    PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
+    Gaussians; over `sample`, a subset spread over the file is rendered.
+    """
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+    from drsplat.raster import prepare_scene, rasterize
+
+    with_images = [c for c in cameras if c.image_path is not None]
+    if not with_images or scene.num_gaussians == 0:
+        return {}
+    picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]
+    subset = scene if scene.num_gaussians <= sample else scene.subset(spread_rows(np.arange(scene.num_gaussians), sample))
+    prepared = prepare_scene(subset)
+    out: dict[str, float] = {}
+    for camera in picked:
+        try:
+            image = load_image(camera)
+        except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
+            continue
+        small = camera.scaled(min(1.0, width / camera.width))
+        picture = np.asarray(Image.fromarray(image).resize((small.width, small.height), Image.BILINEAR), np.float32) / 255.0
+        raster = rasterize(prepared, small, 1, with_rgb=True)
+        covered = raster.alpha >= 0.5
+        if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
+            continue
+        rho = grey_correlation(over_fitted_background(raster.rgb, raster.alpha, picture), picture, covered)
+        if np.isfinite(rho):
+            out[camera.name] = rho
+    return out
+
+
+def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:
+    """One warning when the scene does not re-render its training images (`photo_agreement`'s
+    median ρ under PHOTO_MATCH_MIN): a scene in another frame than its cameras, which may still
+    sit inside every view (a splatfacto export shrunk into [−1, 1] without its
+    dataparser_transforms.json), and then registers every Gaussian, wrongly (round 51)."""
+    agreement = photo_agreement(scene, cameras)
+    if not agreement:
+        return
+    median = float(np.median(list(agreement.values())))
+    log.debug("the scene re-renders its training images with a median grey correlation of %.2f (%s)", median,
+              ", ".join(f"{n} {r:.2f}" for n, r in agreement.items()))
+    if median >= PHOTO_MATCH_MIN:
+        return
+    log.warning("the scene does not look like its training images from their cameras: its renders and the images correlate "
+                "%.2f (median of %d views; a scene in its cameras' frame is near 1): the scene may be in another frame than its "
+                "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
+                "dataset's cameras), or the images are not this scene's", median, len(agreement))

@@ -14,7 +14,8 @@ from drsplat.cameras import load_cameras, look_at
 from drsplat.cli import main
 from drsplat.commands.common import load_registered
 from drsplat.errors import InputError
-from drsplat.frames import FrameMove, cameras_in_scene_frame, gsplat_normalizations, move_points, principal_axes, up_and_scale
+from drsplat.frames import (LOW_SEEN_FRACTION, PHOTO_MATCH_MIN, FrameMove, cameras_in_scene_frame, grey_correlation, gsplat_normalizations,
+                            move_points, over_fitted_background, photo_agreement, principal_axes, up_and_scale)
 from drsplat.raster import share_in_some_view
 from drsplat.scene import load_ply, quat_to_rotmat, save_ply
 from drsplat.synthetic import rotmat_to_quat
@@ -706,3 +707,44 @@ def test_a_registered_header_naming_another_file_leaves_the_cameras_as_they_are(
     err = capsys.readouterr().err
     assert "which cannot be read" in err and str(target) in err
 
+
+
+def test_the_fitted_background_and_the_correlation_are_what_their_formulas_say():
+    """A render over black put over the background it was shown on (white, as NeRF-synthetic
+    images are) equals the image exactly; the grey correlation ignores gain and offset, and is NaN
+    for a flat image rather than a number."""
+    rng = np.random.default_rng(3)
+    colour, alpha = rng.random((20, 30, 3)), rng.random((20, 30))
+    over_black = colour * alpha[..., None]
+    image = over_black + (1 - alpha[..., None]) * np.array([1.0, 0.9, 0.8])
+    np.testing.assert_allclose(over_fitted_background(over_black, alpha, image), image, atol=1e-12)
+    everywhere = np.ones((20, 30), bool)
+    assert grey_correlation(0.5 * image + 0.2, image, everywhere) == pytest.approx(1.0)
+    assert grey_correlation(1.0 - image, image, everywhere) == pytest.approx(-1.0)
+    assert np.isnan(grey_correlation(np.full_like(image, 0.3), image, everywhere))
+
+
+def test_a_scene_in_another_frame_that_still_fills_every_view_is_warned_about(tiny_seed0, tmp_path, capsys):
+    """Round 51: the room moved as splatfacto exports it (centred, turned 90° about x, shrunk into
+    [-1, 1]) and registered with the dataset's own cameras (its dataparser_transforms.json not
+    copied) sat inside every view, so the "seen by few views" hint never came; every Gaussian got a
+    feature, all wrong (seg mIoU 0.950 -> 0.004), without a word. Its renders do not look like the
+    training images; the room in its own frame does, and registers without the warning."""
+    scene, _, cams, _ = tiny_seed0
+    centre = scene.means.astype(np.float64).mean(axis=0)
+    scale = 1.0 / float(np.abs(scene.means - centre).max())
+    turn = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = scale * turn, -scale * turn @ centre
+    moved = _moved_scene(scene, FrameMove("splatfacto-like", matrix))
+    assert share_in_some_view(moved.means, cams) >= LOW_SEEN_FRACTION  # the old hint cannot see it
+    agreement = photo_agreement(moved, cams)
+    assert agreement and max(agreement.values()) < PHOTO_MATCH_MIN, agreement
+    assert min(photo_agreement(scene, cams).values()) > 0.9
+    data = Path(cams[0].image_path).parents[1]  # the synthetic dataset the fixture made
+    for name, s in (("moved", moved), ("own", scene)):
+        save_ply(s, tmp_path / f"{name}.ply")
+        assert main(["register", str(tmp_path / f"{name}.ply"), "--source", str(data), "--features", str(data / "features"),
+                     "--out", str(tmp_path / f"{name}_reg.ply"), "--no-progress", "--aggregate", "paper"]) == 0
+        err = capsys.readouterr().err
+        assert ("does not look like its training images" in err) == (name == "moved"), err

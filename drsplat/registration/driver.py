@@ -37,7 +37,7 @@ from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import check_manifest_dim, feat_path, read_manifest, seg_path
 from drsplat.features.modelid import manifest_model_id
-from drsplat.frames import frame_hint
+from drsplat.frames import frame_hint, warn_if_scene_misses_its_images
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
@@ -761,6 +761,7 @@ def register(
     check_manifest_dim(run.features_dir, manifest, run.dim)
     warn_if_distorted_without_manifest(run.selection.views, manifest, run.features_dir)
     warn_if_turned_without_manifest(run.selection.views, manifest, run.features_dir)
+    warn_if_scene_misses_its_images(scene, run.selection.views)
     target = PlyTarget(scene, out, manifest_model_id(manifest), cancel)
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
