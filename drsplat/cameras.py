@@ -1033,8 +1033,14 @@ def _find_colmap(src: Path) -> Path | None:
     return None
 
 
+def colmap_root(sparse: Path) -> Path:
+    """The dataset folder of the COLMAP model folder `sparse` (DATASET/sparse/0, DATASET/sparse or DATASET itself):
+    the folder whose images/ the model's image names are read in."""
+    return sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
+
+
 def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
-    root = sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
+    root = colmap_root(sparse)
     # warned here, once per load, not in read_colmap_model, which other steps read again; the two are
     # not compared (points3D alone may be large): a text model edited by hand beside the binary one
     # it came from was ignored without a word
@@ -1043,11 +1049,15 @@ def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list
                     "one is used, as COLMAP does, and the text one is ignored (remove the one that is not meant)", sparse)
     else:
         _warn_stray_files(sparse)
-    cameras = cameras_from_colmap(read_colmap_model(sparse), root / "images", sparse)
+    model = read_colmap_model(sparse)
+    cameras = cameras_from_colmap(model, root / "images", sparse)
     if not require_images:
         return cameras, []
+    # the names as images.bin gives them (cameras_from_colmap's order), subfolders kept: the missing
+    # list and its hint then name the path the reader looked at, images/NAME, not the file's last part
+    names = sorted(img.name for img in model.images.values())
     found = [c.image_path is not None and c.image_path.is_file() for c in cameras]
-    missing = [c.image_path.name if c.image_path is not None else c.name for c, ok in zip(cameras, found) if not ok]
+    missing = [name for name, ok in zip(names, found) if not ok]
     return [c for c, ok in zip(cameras, found) if ok], missing
 
 
@@ -1172,19 +1182,148 @@ def resolution_scale(width: int, resolution: float) -> float:
     raise ValueError(f"resolution must be -1, 1, 2, 4, 8 or a target width, got {resolution}")
 
 
-def _missing_hint(source: Path, missing: str) -> str:
-    """Where the first missing image was looked for, and a file of its stem with another suffix
-    beside it (images saved as .jpg where the cameras name .png)."""
-    folder = source if source.is_dir() else source.parent
-    candidates = [Path(missing)] if Path(missing).is_absolute() else [folder / "images" / missing, folder / missing]  # COLMAP names them in images/
-    wanted = next((c for c in candidates if c.parent.is_dir()), candidates[-1])
-    others = sorted(p.name for p in wanted.parent.glob(f"{glob.escape(wanted.stem)}.*") if p.is_file()) if wanted.parent.is_dir() else []
+def image_folder(kind: str, found: Path) -> Path:
+    """The folder the reader of `kind` looks up image names in, for the camera file or model folder
+    `found` (`detect_dataset`'s): COLMAP's DATASET/images, a transforms.json's own folder (its
+    file_path values hold their subfolder), cameras.json's sibling images/, ScanNet's color/."""
+    if kind == "colmap":
+        return colmap_root(found) / "images"
+    if kind == "cameras_json":
+        return found.parent / "images"
+    if kind == "scannet":
+        return found / "color"
+    return found if found.is_dir() else found.parent
+
+
+def _missing_hint(kind: str, found: Path, missing: str) -> str:
+    """Where the first missing image was looked for (the path the reader of `kind` opened), and why
+    it is not there: its folder does not exist (naming images_N/ folders beside it), the path is no
+    regular file, or files of its name with another extension lie in that folder (images saved as
+    .jpg where the cameras name .png). A file of the very name is never "another extension"."""
+    wanted = Path(missing) if Path(missing).is_absolute() else image_folder(kind, found) / missing
     hint = f"e.g. {wanted}"
-    if others:
+    if not wanted.parent.is_dir():
+        return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
+    if os.path.lexists(wanted):
+        return hint + "; it is there but is not a regular file (a folder, a broken link or a pipe?)"
+    # a name with an image suffix is opened as it is; one without (cameras.json, NeRF names) gets each suffix tried
+    named = wanted.suffix.lower() in IMAGE_SUFFIXES_LOWER
+    stem = wanted.stem if named else wanted.name
+    others = sorted(p.name for p in wanted.parent.glob(f"{glob.escape(stem)}.*") if p.is_file() and p.name != wanted.name)
+    if others and named:
         hint += f"; {', '.join(others[:3])} in that folder has its name but another extension: the cameras name '{wanted.suffix}' files"
-    elif not wanted.parent.is_dir():
-        hint += f"; the folder {wanted.parent} does not exist"
+    elif others:
+        hint += f"; {', '.join(others[:3])} in that folder has its name, with an extension drsplat does not read as an image"
     return hint
+
+
+def _downscaled_folders_hint(images: Path) -> str:
+    """For a missing images/ folder: the images_N/ folders beside it (Mip-NeRF 360 and LLFF ship
+    images_2/, images_4/, images_8/; 3DGS reads one with `-i images_2`), and the way drsplat reads
+    one, since it has no option naming an images folder: link or rename it to images/."""
+    if images.name != "images" or not images.parent.is_dir():
+        return ""
+    folders = sorted(p.name for p in images.parent.glob("images_*") if p.is_dir())
+    if not folders:
+        return ""
+    first = folders[0]
+    factor = first.partition("_")[2]
+    scale = f", with --resolution {factor} (the size 3DGS trains at with -i {first})" if factor in {str(d) for d in RESOLUTION_DIVISORS[1:]} else ""
+    return (f"; {images.parent} holds {', '.join(f + '/' for f in folders)}, which 3DGS reads with -i {first}: drsplat reads images/ only, "
+            f"so link or rename one to images/ (e.g. `ln -s {first} {images}`){scale}")
+
+
+# A principal point this many times its image's centre, in every view, is the mark of intrinsics made for an image this many
+# times the size: images downscaled after calibration (3DGS's images_2/ in images/), or w/h not scaled with fl/cx/cy.
+# An off-centre principal point is valid (a crop), so this is a warning, and a crop of each view whose corner (or quarter)
+# falls on the principal point of every view alike is the only honest input that shows it.
+OFF_SIZE_FACTORS = {2.0: ("2x", "the corner of"), 4.0: ("4x", "beyond the corner of"), 0.5: ("½x", "a quarter of the way into"),
+                    0.25: ("¼x", "an eighth of the way into")}
+OFF_SIZE_TOLERANCE = 0.01  # of the side the intrinsics fit: a calibrated principal point lies off-centre by about this much
+VIEW_NOUNS = {"colmap": "images", "transforms": "frames", "cameras_json": "cameras", "scannet": "frames"}
+PRINCIPAL_FIELDS = {"colmap": "PARAMS", "transforms": "cx", "cameras_json": "width", "scannet": "K[0][2]"}
+OFF_SIZE_CAUSES = {  # (intrinsics of a larger image, of a smaller one): how each format comes to hold them
+    "colmap": ("WIDTH/HEIGHT scaled down without the PARAMS", "PARAMS of downscaled copies, or WIDTH/HEIGHT not scaled with them"),
+    "transforms": ("images/ holding downscaled copies where the file gives no w/h, or w/h not scaled with fl_x/cx/cy",
+                   "fl_x/cx/cy of downscaled copies, or w/h not scaled with them"),
+    "cameras_json": ("width/height not scaled with fx/fy", "width/height not scaled with fx/fy"),
+    "scannet": ("color/ holding downscaled copies", "intrinsic_color.txt of downscaled copies"),
+}
+
+
+def camera_file(kind: str, found: Path) -> Path:
+    """The file holding the intrinsics of a dataset `found` by `detect_dataset`: COLMAP's cameras.bin (cameras.txt
+    when there is no binary model, as `read_colmap_model` chooses), ScanNet's intrinsic_color.txt, else `found`."""
+    if kind == "colmap":
+        return found / ("cameras.bin" if _has_model(found, ".bin") else "cameras.txt")
+    if kind == "scannet":
+        return found / "intrinsic" / "intrinsic_color.txt"
+    return found
+
+
+def principal_point_factor(camera: Camera, factor: float) -> bool:
+    """Whether the camera's principal point is `factor` times its image centre: |cx - factor·w/2| and |cy - factor·h/2|
+    each within a pixel, or OFF_SIZE_TOLERANCE of the side the intrinsics fit (factor·side), but never more than a
+    sixteenth of the side (so no side is near two factors, or factor 1: a centred camera)."""
+    for value, side in ((camera.cx, camera.width), (camera.cy, camera.height)):
+        tolerance = min(max(1.0, OFF_SIZE_TOLERANCE * factor * side), side / 16)
+        if abs(value - factor * side / 2) > tolerance:
+            return False
+    return True
+
+
+def off_size_factor(cameras: list[Camera]) -> float | None:
+    """The factor of OFF_SIZE_FACTORS (2, 4, ½, ¼) that every camera's principal point is of its image centre
+    (`principal_point_factor`), or None: the intrinsics then fit an image that factor times the size."""
+    for factor in OFF_SIZE_FACTORS:
+        if cameras and all(principal_point_factor(c, factor) for c in cameras):
+            return factor
+    return None
+
+
+def warn_intrinsics_of_another_size(kind: str, found: Path, cameras: list[Camera]) -> float | None:
+    """Warn once, naming the camera file, when every camera's principal point is 2x, 4x, ½x or ¼x its image centre
+    (`off_size_factor`): intrinsics made for another image size (a probe, round 51: images/ holding half-size copies
+    with fl/cx of the full size registered at seg mIoU 0.13 for 0.96, without a word). Returns that factor, or None.
+    Nothing is rescaled: which of the size and the intrinsics is wrong is the user's to say."""
+    factor = off_size_factor(cameras)
+    if factor is None:
+        return None
+    label, place = OFF_SIZE_FACTORS[factor]
+    first = cameras[0]
+    fits = f"{math.floor(factor * first.width + 0.5)}x{math.floor(factor * first.height + 0.5)}"
+    if all((c.cx, c.cy, c.width, c.height) == (first.cx, first.cy, first.width, first.height) for c in cameras):
+        where = f"is at ({first.cx:g}, {first.cy:g}), {place} their {first.width}x{first.height} images"
+    else:
+        where = f"is {place} its image (e.g. ({first.cx:g}, {first.cy:g}) in {first.name!r}'s {first.width}x{first.height})"
+    larger, smaller = OFF_SIZE_CAUSES.get(kind, ("the size not scaled with the intrinsics",) * 2)
+    log.warning("%s: field '%s': the principal point of all %d %s %s (%s the centre): intrinsics of a %s image? (%s); they are used as "
+                "they are, which misplaces every Gaussian in every view", camera_file(kind, found), PRINCIPAL_FIELDS.get(kind, "cx"),
+                len(cameras), VIEW_NOUNS.get(kind, "views"), where, label, fits, larger if factor > 1 else smaller)
+    return factor
+
+
+IMAGE_MULTIPLES = (2, 4, 8)  # images this many times their camera's size: 3DGS -r's divisors
+
+
+def note_images_larger_than_cameras(kind: str, found: Path, cameras: list[Camera]) -> None:
+    """One INFO line when the first camera's image file is 2x, 4x or 8x the camera's size (within the rounding of a
+    downscaled side): the views are registered at the cameras' size, as 3DGS does with -r 2, where 3DGS without -r
+    trains at the images' (its size from the file, its field of view from the camera), and `--resolution WIDTH`
+    reads them at that size. One image header, not every image: a hint, not a check."""
+    camera = next((c for c in cameras if c.image_path is not None), None)
+    if camera is None or not camera.image_path.is_file():
+        return
+    try:
+        size = _image_size(camera.image_path)
+    except InputError:  # an unreadable image is said where it is read
+        return
+    for times in IMAGE_MULTIPLES:
+        if abs(size[0] - times * camera.width) <= times / 2 and abs(size[1] - times * camera.height) <= times / 2:
+            log.info("%s: the images are %dx their cameras (e.g. %s is %dx%d, its camera %dx%d): they are read at the cameras' size, as 3DGS "
+                     "trains with -r %d; `--resolution %d` reads them at their own size", camera_file(kind, found), times, camera.image_path.name,
+                     size[0], size[1], camera.width, camera.height, times, size[0])
+            return
 
 
 def load_cameras(source: str | Path, resolution: float = -1, require_images: bool = True) -> list[Camera]:
@@ -1200,8 +1339,10 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
         log.warning("%s: %d frame(s) skipped because their image is missing or not a regular file (%s; %d cameras kept)",
                     path, len(missing), shown, len(cameras))
     if not cameras:
-        raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(Path(source), missing[0])})" if missing else ""))
+        raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(kind, path, missing[0])})" if missing else ""))
     _check_unique_names(path, kind, cameras)
+    if warn_intrinsics_of_another_size(kind, path, cameras) is None:  # else a larger image fits the intrinsics, not the size
+        note_images_larger_than_cameras(kind, path, cameras)
     distorted = sum(c.distortion is not None for c in cameras)
     if distorted:
         log.info("%s: %d of %d cameras have lens distortion (k1, k2, p1, p2); their images are undistorted to the pinhole cameras "
@@ -1323,10 +1464,23 @@ def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
             upscaled.append((c, out[-1], scale))
     if upscaled:
         c, big, scale = max(upscaled, key=lambda u: u[2])
+        if image_holds(c, big.width, big.height):  # cameras of downscaled images read at the files' size: detail gained, not invented
+            return out
         log.warning("resolution %g upscales %d of %d views (the most: %dx%d to %dx%d, %.3gx); their images and masks hold no more "
                     "detail than their own size, so the larger views only cost time and memory (-1 keeps their size)",
                     resolution, len(upscaled), len(cameras), c.width, c.height, big.width, big.height, scale)
     return out
+
+
+def image_holds(camera: Camera, width: int, height: int) -> bool:
+    """Whether the camera's image file (its header) is at least width x height; False without one."""
+    if camera.image_path is None or not camera.image_path.is_file():
+        return False
+    try:
+        size = _image_size(camera.image_path)
+    except InputError:  # an unreadable image is said where it is read
+        return False
+    return size[0] >= width and size[1] >= height
 
 
 SCANNET_INTRINSIC_FIELDS: FieldNames = {"fx": "K[0][0]", "fy": "K[1][1]", "cx": "K[0][2]", "cy": "K[1][2]"}  # intrinsic_color.txt's 4 x 4 matrix

@@ -1095,3 +1095,118 @@ def test_the_exif_orientation_of_a_pipe_a_corrupt_block_or_no_file_is_upright_wi
     reader.join(30)
     assert not reader.is_alive(), "the open of a named pipe blocked"
     assert piped == [1]
+
+
+def _views_dataset(root, sizes, intrinsics, image_size=None, give_size=True):
+    """A transforms.json of three views looking at the origin, frame k of size `sizes[k]` (w, h) with (fl, cx, cy)
+    `intrinsics[k]`; images of `image_size` (default each frame's size); w/h written only when `give_size`."""
+    from PIL import Image
+
+    from drsplat.cameras import look_at_camera, w2c_opencv_to_c2w_opengl
+
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for k, ((w, h), (fl, cx, cy)) in enumerate(zip(sizes, intrinsics)):
+        cam = look_at_camera([np.cos(k), 0.3, np.sin(k) * 3.0 + 3.0], [0, 0, 0], w, h)
+        Image.new("RGB", image_size or (w, h)).save(root / "images" / f"v{k}.png")
+        frame = {"file_path": f"images/v{k}.png", "transform_matrix": w2c_opencv_to_c2w_opengl(cam.R, cam.t).tolist(), "fl_x": fl,
+                 "fl_y": fl, "cx": cx, "cy": cy}
+        frames.append({**frame, "w": w, "h": h} if give_size else frame)
+    (root / "transforms.json").write_text(json.dumps({"frames": frames}))
+    return root
+
+
+def _warnings(caplog, words: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records if words in r.getMessage()]
+
+
+def test_intrinsics_made_for_twice_or_half_the_image_size_are_one_warning_naming_the_file(tmp_path, caplog):
+    """Round 51 (F1): transforms.json without w/h beside half-size images (fl/cx of the full size), or w/h of the full
+    size with fl/cx/cy halved, put every principal point at the images' corner or a quarter of the way in; registered
+    without a word at seg mIoU 0.13 for 0.96. Now one warning naming the file, the field, the pattern and the size the
+    intrinsics fit; a COLMAP model whose WIDTH/HEIGHT were halved without its PARAMS is named by its cameras.txt."""
+    full = [(64, 48)] * 3
+    downscaled = _views_dataset(tmp_path / "a", full, [(50.0, 32.0, 24.0)] * 3, image_size=(32, 24), give_size=False)
+    halved = _views_dataset(tmp_path / "b", full, [(25.0, 16.0, 12.0)] * 3)
+    with caplog.at_level(logging.INFO):
+        assert [(c.width, c.cx) for c in load_cameras(downscaled)] == [(32, 32.0)] * 3  # warned, not rescaled
+        load_cameras(halved)
+    said = _warnings(caplog, "principal point")
+    assert len(said) == 2, said
+    assert said[0] == (f"{downscaled / 'transforms.json'}: field 'cx': the principal point of all 3 frames is at (32, 24), the corner of "
+                       "their 32x24 images (2x the centre): intrinsics of a 64x48 image? (images/ holding downscaled copies where the file "
+                       "gives no w/h, or w/h not scaled with fl_x/cx/cy); they are used as they are, which misplaces every Gaussian in every view")
+    assert "the principal point of all 3 frames is at (16, 12), a quarter of the way into their 64x48 images (½x the centre): " \
+           "intrinsics of a 32x24 image?" in said[1]
+    caplog.clear()
+    root = tmp_path / "colmap"
+    _tiny_colmap(root)
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 32 24 50 50 32 24\n")  # WIDTH HEIGHT halved, PARAMS not
+    with caplog.at_level(logging.INFO):
+        load_cameras(root)
+    said = _warnings(caplog, "principal point")
+    assert len(said) == 1 and said[0].startswith(f"{root / 'sparse' / '0' / 'cameras.txt'}: field 'PARAMS': the principal point of all 2 "
+                                                 "images is at (32, 24), the corner of their 32x24 images (2x the centre)"), said
+    assert not _warnings(caplog, "their cameras")  # the images fit the PARAMS, not the size: no hint to read them at theirs
+    # valid off-centre principal points say nothing: views all cropped to the top-left 200x150 of 256x192 (principal
+    # point at 64%), each view cropped to its own box, a calibrated principal point (fox's), the quadrants of split images
+    rng = np.random.default_rng(5)
+    honest = {
+        "centred": ([(256, 192)] * 3, [(128.0, 96.0)] * 3),
+        "crop at 64%": ([(200, 150)] * 3, [(128.0, 96.0)] * 3),
+        "random crops": tuple(zip(*[((256 - int(a), 192 - int(b)), (128.0 - int(c), 96.0 - int(d))) for a, b, c, d in rng.integers(0, 60, (3, 4))])),
+        "calibrated": ([(1080, 1920)] * 3, [(554.558, 965.268)] * 3),
+        "quadrants": ([(128, 96)] * 3, [(128.0, 96.0), (0.0, 96.0), (128.0, 0.0)]),
+    }
+    caplog.clear()
+    for case, (sizes, points) in honest.items():
+        with caplog.at_level(logging.INFO):
+            load_cameras(_views_dataset(tmp_path / case, list(sizes), [(200.0, cx, cy) for cx, cy in points]))
+        assert not _warnings(caplog, "principal point") and not _warnings(caplog, "their cameras"), case
+
+
+def test_colmap_cameras_of_half_the_images_size_say_at_which_size_they_are_read(tmp_path, caplog):
+    """Round 51 (N1): COLMAP cameras of 32x24 (all of their intrinsics halved) beside 64x48 images registered at 32x24
+    without a word, 3DGS without -r trains at the images' size. Now one INFO line saying so, and the flag for theirs."""
+    root = tmp_path / "colmap"
+    _tiny_colmap(root)
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 32 24 25 25 16 12\n")
+    with caplog.at_level(logging.INFO):
+        assert {(c.width, c.height) for c in load_cameras(root)} == {(32, 24)}
+    said = _warnings(caplog, "their cameras")
+    assert said == [f"{root / 'sparse' / '0' / 'cameras.txt'}: the images are 2x their cameras (e.g. a.png is 64x48, its camera 32x24): they "
+                    "are read at the cameras' size, as 3DGS trains with -r 2; `--resolution 64` reads them at their own size"], said
+    assert not _warnings(caplog, "principal point")
+    caplog.clear()
+    with caplog.at_level(logging.INFO):  # the advice taken: the images' own size, and no "upscales ... no more detail" warning against it
+        assert {(c.width, c.height) for c in load_cameras(root, resolution=64)} == {(64, 48)}
+    assert not _warnings(caplog, "upscales"), caplog.text
+
+
+def test_a_colmap_dataset_without_images_but_images_2_names_the_path_it_read_and_the_way_out(tmp_path):
+    """Round 51 (F4): DATASET/sparse/0 beside images_2/ and no images/ (3DGS's `-i images_2`, Mip-NeRF 360's layout)
+    was told "every image file is missing: e.g. DATASET/DSC0001.JPG", a path the COLMAP reader never opens; with a file
+    put there, the hint added that it "has its name but another extension" though its extension was the one named."""
+    from PIL import Image
+
+    root = _tiny_colmap(tmp_path / "garden", image_names=("DSC0001.JPG",))
+    (root / "images").rename(root / "images_2")
+    (root / "images_4").mkdir()
+    Image.new("RGB", (64, 48)).save(root / "DSC0001.JPG")  # where the old hint pointed
+    with pytest.raises(InputError) as caught:
+        load_cameras(root)
+    message = str(caught.value)
+    assert f"every image file is missing: e.g. {root / 'images' / 'DSC0001.JPG'}; the folder {root / 'images'} does not exist; " \
+           f"{root} holds images_2/, images_4/, which 3DGS reads with -i images_2: drsplat reads images/ only, so link or rename one " \
+           f"to images/ (e.g. `ln -s images_2 {root / 'images'}`), with --resolution 2" in message, message
+    assert "another extension" not in message
+
+
+def test_a_missing_image_that_is_a_folder_of_its_name_is_said_to_be_no_regular_file(tmp_path):
+    """The companion of the round 51 hint: the path the reader opened is there, but as a folder; the hint said only
+    "e.g. DATASET/images/a.png", as if nothing were there."""
+    root = _tiny_colmap(tmp_path / "d", image_names=("a.png",))
+    (root / "images" / "a.png").unlink()
+    (root / "images" / "a.png").mkdir()
+    with pytest.raises(InputError, match=r"e\.g\. .*images/a\.png; it is there but is not a regular file"):
+        load_cameras(root)

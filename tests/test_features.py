@@ -783,3 +783,28 @@ def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_says_wh
     (stopped / featurefiles.MANIFEST_NAME).unlink()
     report = extract_features(cameras, stopped, felz, encoder, manifest=make_manifest(felz, encoder, NmsParams(), 64, 1080), show_progress=False)
     assert report.written == ["view"] and featurefiles.read_manifest(stopped)["mask_generator"] == "felzenszwalb"
+
+
+def test_features_on_a_3dgs_model_folder_without_images_is_refused_before_any_model_loads(tmp_path, weights, capsys, monkeypatch):
+    """Round 51 (F5): `features --source output/run1` (3DGS's model folder: cameras.json, no images/) built SAM and CLIP
+    (minutes and gigabytes with the real models), then stopped with "input: camera 'DSC0001' has no image file". Now one
+    error before any model loads, naming cameras.json, the folder looked in and where --source should point."""
+    import json
+
+    import drsplat.features.extract as extract
+
+    def no_models(*args, **kwargs):
+        raise AssertionError("a model was built")
+
+    monkeypatch.setattr(extract, "build_models", no_models)
+    run = tmp_path / "output" / "run1"
+    run.mkdir(parents=True)
+    (run / "cameras.json").write_text(json.dumps([{"id": 0, "img_name": "DSC0001", "width": 64, "height": 48, "position": [0, 0, -4],
+                                                   "rotation": np.eye(3).tolist(), "fx": 50.0, "fy": 50.0}]))
+    out = tmp_path / "features"
+    assert main(slic_features_argv(run, out, weights)) == 1
+    err = capsys.readouterr().err
+    assert (f"{run / 'cameras.json'}: field 'img_name': none of its 1 cameras has an image (e.g. 'DSC0001'): the images are looked for "
+            f"in {run / 'images'}, which does not exist") in err, err
+    assert "give --source the dataset folder 3DGS trained from" in err
+    assert not out.exists()

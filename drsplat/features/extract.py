@@ -205,9 +205,28 @@ def feature_cameras(source: str | Path, resolution: float = -1, max_height: int 
     """Training cameras at the resolution features are made at: `load_cameras(resolution)`, then
     LangSplat's cap of `max_height` rows (registration resamples id maps to its render size)."""
     cameras = load_cameras(source, resolution=resolution)
+    refuse_cameras_without_images(source, cameras)
     if max_height:
         cameras = [c.scaled(max_height / c.height) if c.height > max_height else c for c in cameras]
     return cameras
+
+
+def refuse_cameras_without_images(source: str | Path, cameras: list) -> None:
+    """InputError naming the camera file and the folder its images were looked for in when a camera has no image
+    file (`image_path` None): a 3DGS cameras.json with no images/ beside it, as in a training output folder. The
+    loader keeps such cameras for `register`, which reads feature files; `features` needs the photographs, and
+    said so only after SAM and CLIP were loaded (a probe, round 51: minutes and gigabytes with the real models)."""
+    from drsplat.cameras import detect_dataset, image_folder
+
+    lacking = [c for c in cameras if c.image_path is None]
+    if not lacking:
+        return
+    kind, found = detect_dataset(source)
+    count = f"none of its {len(cameras)} cameras has" if len(lacking) == len(cameras) else f"{len(lacking)} of its {len(cameras)} cameras have"
+    raise InputError(found, f"{count} an image (e.g. {lacking[0].name!r}): the images are looked for in "
+                     f"{image_folder(kind, found)}, which does not exist (3DGS writes cameras.json into its model folder, and the images "
+                     "stay in the dataset folder): give --source the dataset folder 3DGS trained from (its -s, holding images/)",
+                     field="img_name" if kind == "cameras_json" else None)
 
 
 def versions() -> dict[str, str]:
