@@ -4,7 +4,11 @@ Reads the INRIA 3DGS layout by property name (any order, with or without normals
 0-3) and the SuperSplat/PlayCanvas compressed PLY. Writes exactly the INRIA layout. A Mip-Splatting
 PLY's 3D smoothing filter (its `filter_3D` property) is fused into the scales and opacities as its
 renderer applies it (`fuse_3d_filter`), and the property dropped. A 2DGS PLY (two scales per
-Gaussian: flat surfels) is read as flat 3D Gaussians (`surfel_scales`).
+Gaussian: flat surfels) is read as flat 3D Gaussians (`surfel_scales`). nerfstudio's
+`--ply-color-mode rgb` export (uchar red/green/blue for f_dc_*) is read as SH degree 0 colours
+(`rgb_colour_problem`). Integer-typed parameters are refused (`refuse_integer_parameters`);
+activated opacities and linear scales stored in the logits' and log scales' places are findings
+(`stored_as_activated_opacities`, `linear_scale_floor`).
 
 Non-finite policy (reported through `LoadReport`, never silent):
 - rows with NaN in any attribute are dropped;
@@ -42,6 +46,8 @@ EXTENT_SAMPLE = 1 << 20  # at most this many means make `scene_extent` (every k-
 EXTENT_TRIM_FROM = 100  # `scene_extent` of fewer means is their whole box
 HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
+ENCODING_CHECK_ROWS = 16  # fewer Gaussians may all look activated by chance (`stored_as_activated_opacities`, `linear_scale_floor`)
+THINNEST_SCALE_SHARE = 1e-3  # real scenes' thinnest Gaussian: 8e-10 to 2e-5 of their extent (guitar, flowers, biker, train-1000)
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
 
 
@@ -310,6 +316,8 @@ class LoadReport:
     scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     negative_scales: int = 0  # .splat rows with a negative scale, read as its magnitude (a covariance holds its square)
+    activated_opacities: bool = False  # an INRIA PLY's opacity column holds sigmoid values, not logits (`stored_as_activated_opacities`)
+    linear_scale_floor: float = 0.0  # an INRIA PLY whose scale_* hold exp(s), not s: its thinnest scale read as a log (`linear_scale_floor`), else 0
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
     @property
@@ -346,7 +354,16 @@ class LoadReport:
         if self.large_sh:
             notes.append(f"{self.large_sh} Gaussians have an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
-        if self.huge_scales:
+        if self.activated_opacities:
+            notes.append("every opacity logit lies in [0, 1], so every Gaussian is 50-73 % opaque: are activated opacities (sigmoid, "
+                         "0 to 1) stored where 3DGS stores logits? A trained 3DGS scene has negative logits (its faint Gaussians); "
+                         "re-export the logits log(α / (1 - α))")
+        if self.linear_scale_floor:
+            notes.append(f"every scale_* is at least 0, so every Gaussian is at least 1 unit across on every axis (the thinnest "
+                         f"{self.linear_scale_floor:.3g}, {self.linear_scale_floor / self.scene_extent:.2g} of the scene's extent "
+                         f"{self.scene_extent:.3g}): are exp(scales) stored where 3DGS stores log scales? A trained scene's thinnest "
+                         f"Gaussians are under {THINNEST_SCALE_SHARE:g} of its extent; re-export the log scales")
+        if self.huge_scales and not self.linear_scale_floor:  # linear scales: the note above names the cause of the huge ones
             notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of "
                          f"{100 * (1 - 2 * EXTENT_OUTLIERS):g} % of its means on each axis, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
                          "of what lies behind it (a training blow-up or a units mix-up?)")
@@ -667,9 +684,59 @@ def refuse_point_cloud(path: Path, names: tuple[str, ...]) -> None:
                     "give the trained scene, e.g. the trainer's point_cloud/iteration_30000/point_cloud.ply")
 
 
+RGB_PROPERTIES = ("red", "green", "blue")  # a point cloud's colours; nerfstudio's `--ply-color-mode rgb` writes them for f_dc_*
+
+
+def colours_as_rgb(names: tuple[str, ...]) -> bool:
+    """Whether a vertex element holds its colours as red/green/blue where 3DGS's f_dc_0..2 belong (none of them)."""
+    return set(RGB_PROPERTIES) <= set(names) and not any(f"f_dc_{i}" in names for i in range(3))
+
+
+def rgb_colour_problem(vertex: np.ndarray) -> str | None:
+    """Why the red/green/blue of a vertex element with `colours_as_rgb` cannot stand in for f_dc_0..2
+    (None when they can: `dc_from_rgb` of value / 255). nerfstudio's `ns-export gaussian-splat
+    --ply-color-mode rgb` writes uchar red/green/blue = 255·clamp(0.5 + SH_C0·f_dc, 0, 1) and no
+    f_rest_* (it drops the higher SH), the rest as 3DGS writes it. A float colour may be 0-1 or
+    0-255, and f_rest_* beside 8-bit colours are SH terms of a DC that is gone: neither is guessed."""
+    names = vertex.dtype.names or ()
+    types = sorted({NUMPY_TO_PLY.get(f"{vertex.dtype[c].kind}{vertex.dtype[c].itemsize}", str(vertex.dtype[c])) for c in RGB_PROPERTIES})
+    if types != ["uchar"]:
+        return f"declared {'/'.join(types)}, not uchar 0-255"
+    if any(n.startswith("f_rest_") for n in names):
+        return "beside f_rest_* SH coefficients whose DC term f_dc_* is missing"
+    return None
+
+
 def _require(path: Path, vertex: np.ndarray, name: str) -> None:
-    if name not in vertex.dtype.names:
-        raise _fail(path, "is missing a required vertex property of the 3DGS layout", field=name)
+    """InputError when the vertex element lacks `name`, saying why where the file shows it: the same
+    name in another case (PLY names are case-sensitive) or colours as red/green/blue (`rgb_colour_problem`)."""
+    names = vertex.dtype.names or ()
+    if name in names:
+        return
+    problem = "is missing a required vertex property of the 3DGS layout"
+    other_case = next((n for n in names if n.lower() == name.lower()), None)
+    rgb = rgb_colour_problem(vertex) if name.startswith("f_dc_") and colours_as_rgb(names) else None
+    if other_case is not None:
+        problem += f" ('{other_case}' is there, but PLY property names are case-sensitive and 3DGS writes them in lower case)"
+    elif rgb is not None:
+        problem += (f": its colours are stored as red/green/blue ({rgb}), not as SH coefficients; re-export with SH coefficients "
+                    "f_dc_* (nerfstudio: ns-export gaussian-splat --ply-color-mode sh_coeffs)")
+    raise _fail(path, problem, field=name)
+
+
+def refuse_integer_parameters(path: Path, vertex: np.ndarray, names: list[str]) -> None:
+    """InputError naming the first of the Gaussian parameters `names` (x/y/z, opacity, scale_*,
+    rot_*, f_dc_*, f_rest_*, filter_3D) that the file declares with an integer type. Every 3DGS
+    writer stores them as float (a logit, log scales, SH coefficients); an integer column is another
+    encoding (0-255 alpha or colour), which read as the parameter is wrong for every Gaussian
+    (alpha 255 as logit 255, colour 200 as an SH coefficient: white)."""
+    for name in names:
+        dtype = vertex.dtype[name]
+        if dtype.kind in "iu":
+            declared = NUMPY_TO_PLY.get(f"{dtype.kind}{dtype.itemsize}", str(dtype))
+            raise _fail(path, f"property {name} is declared {declared}, an integer type, where every 3DGS writer stores a float "
+                              "(an opacity logit, log scale, rotation or SH coefficient), so its values would be misread; "
+                              "re-export the scene with float properties", field=name)
 
 
 def rows_beyond_float32(vertex: np.ndarray, names: list[str]) -> int:
@@ -698,23 +765,33 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     n = len(vertex)
     surfels = "scale_2" not in names and {"scale_0", "scale_1"} <= set(names)  # 2DGS: two scales, a flat disk
     refuse_point_cloud(path, names)
-    for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *(f"scale_{i}" for i in range(2 if surfels else 3)),
-                 *(f"f_dc_{i}" for i in range(3))):
+    rgb = colours_as_rgb(names) and rgb_colour_problem(vertex) is None  # nerfstudio's rgb export: uchar red/green/blue for f_dc_*
+    colour_names = list(RGB_PROPERTIES) if rgb else [f"f_dc_{i}" for i in range(3)]
+    scale_names = [f"scale_{i}" for i in range(2 if surfels else 3)]
+    for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *scale_names, *colour_names):
         _require(path, vertex, name)
+    refuse_integer_parameters(path, vertex, [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES)
+                                             or name.startswith("f_rest_") or name == MIP_FILTER])
     columns = _column_reader(vertex)
     k = (degree + 1) ** 2
+    stored_scales = columns(scale_names)
     cols = {
         "means": columns(["x", "y", "z"]),
         "quats": columns([f"rot_{i}" for i in range(4)]),
-        "log_scales": surfel_scales(columns(["scale_0", "scale_1"])) if surfels else columns([f"scale_{i}" for i in range(3)]),
+        "log_scales": surfel_scales(stored_scales) if surfels else stored_scales,
         "opacity_logits": columns(["opacity"])[:, 0].copy(),
+        "stored_log_scales": stored_scales,  # as the file holds them (before a 2DGS third scale or Mip's filter): `linear_scale_floor`
     }
+    cols["stored_opacity"] = cols["opacity_logits"]  # the same: `stored_as_activated_opacities`
     if surfels:
         log.info("%s: %s 2D Gaussian surfels (2DGS: scale_0 and scale_1, no scale_2) read as flat 3D Gaussians %g times as thick as "
                  "their smaller scale; drsplat rasterizes them by 3DGS's projection, not 2DGS's ray-splat intersection", path, f"{n:,}",
                  SURFEL_THICKNESS)
     sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
-    coeffs = columns(sh_names)
+    coeffs = dc_from_rgb(columns(colour_names) / np.float32(255)) if rgb else columns(sh_names)  # rgb: no f_rest_* (`rgb_colour_problem`)
+    if rgb:
+        log.info("%s: base colours of %s Gaussians read from uchar red/green/blue (nerfstudio's --ply-color-mode rgb export) "
+                 "as SH degree 0, to 1/255 of a colour; view-dependent colour is not in the file", path, f"{n:,}")
     sh = np.empty((n, k, 3), np.float32)
     sh[:, 0, :] = coeffs[:, :3]
     if degree > 0:
@@ -725,7 +802,7 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
         log.info("%s: Mip-Splatting's 3D filter (%s) fused into the scales and opacities of %s Gaussians, as its renderer applies it",
                  path, MIP_FILTER, f"{n:,}")
     cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
-                                           and not name.startswith("f_rest_")])
+                                           and not name.startswith("f_rest_") and not (rgb and name in RGB_PROPERTIES)])
     read = [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES) or name.startswith("f_rest_")]
     cols["beyond_float32"] = rows_beyond_float32(vertex, read)  # normals are never read: a huge nx changes nothing
     return cols
@@ -749,6 +826,46 @@ def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
     k = math.ceil(EXTENT_OUTLIERS * n) if n >= EXTENT_TRIM_FROM else 0  # a few dozen means are all the scene there is
     ranked = np.partition(rows, [k, n - 1 - k], axis=0)
     return float(np.linalg.norm(ranked[n - 1 - k] - ranked[k]))
+
+
+def _finite_values(stored: np.ndarray) -> np.ndarray:
+    """The finite entries of `stored`, flattened (NaN and infinite rows are the non-finite policy's)."""
+    values = np.asarray(stored).ravel()
+    return values[np.isfinite(values)]
+
+
+def stored_as_activated_opacities(stored: np.ndarray) -> bool:
+    """Whether an INRIA PLY's `opacity` column [N] holds activated opacities α = sigmoid(logit),
+    where 3DGS stores the logit: at least ENCODING_CHECK_ROWS finite values, every one in [0, 1]
+    (read as logits: every opacity in [0.5, 0.731]), not all equal.
+
+    A trained 3DGS scene always has negative logits: pruning at α = 0.005 and the opacity reset to
+    α = 0.01 leave its faint Gaussians at logits from -5.3 to 0 (real scenes have 8-18 % of their
+    logits in [0, 1]: flowers, guitar, biker, train-1000), and sigmoid values never leave [0, 1].
+    Fewer rows may all land in [0, 1] by chance; one value for every Gaussian is a hand-made scene,
+    whose encoding it does not show."""
+    values = _finite_values(stored)
+    return values.size >= ENCODING_CHECK_ROWS and bool(values.min() >= 0.0) and bool(values.max() <= 1.0) and bool(values.max() > values.min())
+
+
+def linear_scale_floor(stored: np.ndarray, extent: float) -> float:
+    """exp(min s) when an INRIA PLY's scale_* columns [N, C] look like linear scales exp(s), where
+    3DGS stores log scales s, else 0.0. Linear when, over at least ENCODING_CHECK_ROWS rows of
+    finite values, not all equal:
+
+        min s >= 0                                      (read as logs: every axis of every Gaussian >= 1 unit)
+        exp(min s) >= THINNEST_SCALE_SHARE · extent     (the thinnest Gaussian is a visible part of the scene)
+
+    The first alone could be a real scene in fine units (millimetres, every Gaussian >= 1 mm); the
+    second is unit-free: a trained scene's thinnest Gaussians are flat, 8e-10 to 2e-5 of its extent
+    (the diagonal of `scene_extent`), while linear scales read as logs make each >= 1 unit, over
+    1e-3 of any scene under 1000 units across (a linear scene wider than that is not caught)."""
+    values = _finite_values(stored)
+    if values.size < ENCODING_CHECK_ROWS * stored.shape[-1] or extent <= 0.0 or not values.min() >= 0.0 or values.max() == values.min():
+        return 0.0
+    with np.errstate(over="ignore"):
+        thinnest = float(np.exp(np.float64(values.min())))
+    return thinnest if thinnest >= THINNEST_SCALE_SHARE * extent else 0.0
 
 
 def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:
@@ -1021,6 +1138,9 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
     report.large_sh = count_rows_beyond(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT)
     report.scene_extent = scene_extent(means)
     report.huge_scales = count_huge_scales(log_scales, report.scene_extent)
+    if "stored_opacity" in cols:  # the INRIA layout: the stored columns are 3DGS's raw parameters, which other encodings mimic
+        report.activated_opacities = stored_as_activated_opacities(cols["stored_opacity"])
+        report.linear_scale_floor = linear_scale_floor(cols["stored_log_scales"], report.scene_extent)
     report.beyond_float32 = int(cols.get("beyond_float32", 0))
     report.negative_scales = int(cols.get("negative_scales", 0))
     report.nonfinite_extra = sum(int((~np.isfinite(v)).sum()) for v in extra.values() if np.issubdtype(v.dtype, np.floating))

@@ -573,3 +573,123 @@ def test_bounded_rows_kernel_matches_numpy(dtype, signed):
     np.testing.assert_array_equal(within, expected)
     assert count_rows_beyond(a, limit, signed) == int(np.count_nonzero(~((a <= limit) if signed else (np.abs(a) <= limit)).all(axis=1)))
     assert count_rows_beyond(a[:0], limit) == 0
+
+
+def _write_vertices(path, columns: dict, text: bool = False, byte_order: str = "<") -> None:
+    """A PLY of one vertex element holding `columns` (name -> [N] array, its dtype the property's type), in order."""
+    from plyfile import PlyData, PlyElement
+
+    n = len(next(iter(columns.values())))
+    rows = np.empty(n, dtype=[(k, (byte_order if v.dtype.itemsize > 1 else "") + v.dtype.str[1:]) for k, v in columns.items()])
+    for k, v in columns.items():
+        rows[k] = v
+    PlyData([PlyElement.describe(rows, "vertex")], text=text, byte_order=byte_order).write(str(path))
+
+
+def _inria_columns(n: int = 100, seed: int = 0) -> dict:
+    """The INRIA layout's columns (SH degree 0) of a trained-looking scene: logits of faint and opaque
+    Gaussians, flat Gaussians (the thinnest axis 1e-3 of the others)."""
+    rng = np.random.default_rng(seed)
+    columns = {k: rng.normal(size=n).astype(np.float32) for k in ("x", "y", "z")}
+    columns |= {f"f_dc_{i}": rng.normal(size=n).astype(np.float32) for i in range(3)}
+    columns["opacity"] = rng.uniform(-5, 6, n).astype(np.float32)
+    columns |= {f"scale_{i}": rng.uniform(-5, -2, n).astype(np.float32) - (7 if i == 2 else 0) for i in range(3)}
+    columns |= {f"rot_{i}": rng.normal(size=n).astype(np.float32) for i in range(4)}
+    return columns
+
+
+def test_opacities_stored_activated_are_said_and_trained_logits_are_not(tmp_path, caplog):
+    """r51 F1: a PLY whose opacity holds sigmoid values (0 to 1), as some converters write it, was read
+    as logits without a word: every Gaussian 50-73 % opaque. Every logit in [0, 1] is now a finding;
+    a trained scene (negative logits), a few Gaussians or one opacity for all are not."""
+    import logging
+
+    trained = _inria_columns(200)
+    _write_vertices(tmp_path / "trained.ply", trained)
+    assert load_ply_report(tmp_path / "trained.ply")[1].findings() == []
+    activated = trained | {"opacity": (1 / (1 + np.exp(-trained["opacity"]))).astype(np.float32)}
+    _write_vertices(tmp_path / "activated.ply", activated)
+    with caplog.at_level(logging.WARNING):
+        _, report = load_ply_report(tmp_path / "activated.ply")
+    assert [note for note in report.findings() if "every opacity logit lies in [0, 1]" in note and "activated opacities" in note]
+    assert "activated.ply: every opacity logit lies in [0, 1]" in caplog.text
+    for name, rows in (("three.ply", slice(0, 3)), ("constant.ply", slice(None))):
+        columns = {k: v[rows] for k, v in activated.items()}
+        if name == "constant.ply":
+            columns["opacity"] = np.ones_like(columns["opacity"])
+        _write_vertices(tmp_path / name, columns)
+        assert load_ply_report(tmp_path / name)[1].findings() == [], name
+
+
+def test_scales_stored_linearly_are_said_not_blamed_on_a_few_huge_gaussians(tmp_path):
+    """r51 F2: scale_* holding exp(log scale) made every Gaussian at least 1 unit across, and the
+    only finding blamed the few that came out over 10x the scene. The finding now names the cause;
+    a scene in fine units whose log scales are all >= 0 but whose thinnest Gaussians are small
+    beside its extent (a building in millimetres) is not flagged."""
+    trained = _inria_columns(300, seed=1)
+    linear = trained | {f"scale_{i}": np.exp(trained[f"scale_{i}"]) for i in range(3)}
+    linear["scale_0"][:4] = 40.0  # a few blown up past the scene, as in the probe's file
+    _write_vertices(tmp_path / "linear.ply", linear)
+    notes = load_ply_report(tmp_path / "linear.ply")[1].findings()
+    assert len(notes) == 1 and "every scale_* is at least 0" in notes[0] and "are exp(scales) stored where 3DGS stores log scales?" in notes[0]
+    millimetres = trained | {k: trained[k] * np.float32(1e4) for k in ("x", "y", "z")}
+    millimetres |= {f"scale_{i}": np.float32(0.5) * (trained[f"scale_{i}"] + 12) for i in range(3)}  # log scales 0 to 5
+    assert min(millimetres[f"scale_{i}"].min() for i in range(3)) >= 0
+    _write_vertices(tmp_path / "millimetres.ply", millimetres)
+    assert load_ply_report(tmp_path / "millimetres.ply")[1].findings() == []
+
+
+def test_integer_gaussian_parameters_are_refused_and_real_layouts_still_load(tmp_path):
+    """r51 F3: `property uchar opacity` (0-255 alpha) read as logits made every Gaussian opaque, and
+    uchar f_dc_* made every colour white, without a word. Every 3DGS writer stores the parameters as
+    float: an integer one is refused, naming it and its type. The layouts of real writers still load
+    to the same values: big-endian, ASCII, double, SuperSplat's uchar extras, red/green/blue beside f_dc_*."""
+    base = _inria_columns(50, seed=2)
+    for name, dtype, ply_type in (("opacity", np.uint8, "uchar"), ("f_dc_1", np.uint8, "uchar"), ("x", np.int32, "int"),
+                                  ("scale_2", np.int16, "short"), ("rot_0", np.int8, "char")):
+        path = tmp_path / f"{name}.ply"
+        _write_vertices(path, base | {name: np.clip(base[name] * 10, 0, 100).astype(dtype)})
+        with pytest.raises(InputError, match=rf"field '{name}': property {name} is declared {ply_type}, an integer type") as err:
+            load_ply(path)
+        assert str(path) in str(err.value) and "float" in str(err.value)
+    _write_vertices(tmp_path / "reference.ply", base)
+    reference = load_ply(tmp_path / "reference.ply")
+    layouts = {
+        "big_endian.ply": (base, {"byte_order": ">"}),
+        "ascii.ply": (base, {"text": True}),
+        "double.ply": ({k: v.astype(np.float64) for k, v in base.items()}, {}),
+        "supersplat.ply": (base | {"state": np.zeros(50, np.uint8), "selection": np.ones(50, np.uint8)}, {}),
+        "rgb_beside_dc.ply": (base | {k: np.full(50, 7, np.uint8) for k in ("red", "green", "blue")}, {}),
+    }
+    for name, (columns, options) in layouts.items():
+        _write_vertices(tmp_path / name, columns, **options)
+        scene, report = load_ply_report(tmp_path / name)
+        for attr in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(scene, attr), getattr(reference, attr), err_msg=f"{name} {attr}")
+        assert report.findings() == [], name
+        assert list(scene.extra) == [k for k in columns if k in ("state", "selection", "red", "green", "blue")], name
+
+
+def test_rgb_colours_are_read_as_base_colours_and_other_names_say_why_they_are_missing(tmp_path):
+    """r51 F7: nerfstudio's `ns-export gaussian-splat --ply-color-mode rgb` writes uchar red/green/blue
+    where f_dc_* belong (and no f_rest_*): refused as "missing f_dc_0". Now read as SH degree 0 base
+    colours (`dc_from_rgb`); red/green/blue that cannot be read so (float, or beside f_rest_*) say
+    so in the error, and an upper-case X says that 'X' is there (names are case-sensitive)."""
+    base = _inria_columns(40, seed=3)
+    rgb = np.random.default_rng(3).integers(0, 256, (40, 3)).astype(np.uint8)
+    nerfstudio = {k: v for k, v in base.items() if not k.startswith("f_dc_")} | {k: rgb[:, i] for i, k in enumerate(("red", "green", "blue"))}
+    _write_vertices(tmp_path / "rgb.ply", nerfstudio)
+    scene, report = load_ply_report(tmp_path / "rgb.ply")
+    assert scene.sh_degree == 0 and scene.extra == {} and report.findings() == []
+    np.testing.assert_allclose(scene.base_colors(), rgb / 255.0, atol=1e-6)
+    np.testing.assert_array_equal(scene.opacity_logits, base["opacity"])
+    for name, columns, why in (("float.ply", nerfstudio | {k: rgb[:, i] / np.float32(255) for i, k in enumerate(("red", "green", "blue"))},
+                                "declared float"),
+                               ("rest.ply", nerfstudio | {f"f_rest_{i}": np.zeros(40, np.float32) for i in range(9)}, "beside f_rest_*")):
+        _write_vertices(tmp_path / name, columns)
+        with pytest.raises(InputError, match=rf"{name}: field 'f_dc_0': is missing .*colours are stored as red/green/blue \({why}.*"
+                                             "re-export with SH coefficients"):
+            load_ply(tmp_path / name)
+    _write_vertices(tmp_path / "upper.ply", {k.upper(): v for k, v in base.items()})
+    with pytest.raises(InputError, match=r"upper.ply: field 'x': is missing .*'X' is there, but PLY property names are case-sensitive"):
+        load_ply(tmp_path / "upper.ply")
