@@ -50,18 +50,28 @@ def feat_path(features_dir: str | Path, stem: str) -> Path:
     return Path(features_dir) / f"{stem}{FEAT_SUFFIX}"
 
 
-def list_stems(features_dir: str | Path) -> list[str]:
-    """Sorted image stems that have a `<stem>_s.npy` file in `features_dir`."""
+def is_apple_double(name: str) -> bool:
+    """True for a macOS AppleDouble file name, `._<name>`: the resource fork a Mac writes beside every
+    file it copies to a FAT/exFAT disk or into a zip (`._orbit_000_s.npy`, 4 KiB of metadata). Never a
+    feature file, so never counted as one (round 51: each was listed as a feature file without a camera)."""
+    return name.startswith("._")
+
+
+def list_stems(features_dir: str | Path, suffix: str = SEG_SUFFIX) -> list[str]:
+    """Sorted image stems that have a `<stem><suffix>` regular file (by default `<stem>_s.npy`) in
+    `features_dir`; AppleDouble files (`is_apple_double`) are not feature files."""
     features_dir = Path(features_dir)
     if not features_dir.is_dir():
         raise InputError(features_dir, "features folder does not exist")
-    return sorted(p.name[: -len(SEG_SUFFIX)] for p in features_dir.glob(f"*{SEG_SUFFIX}") if p.is_file())
+    return sorted(p.name[: -len(suffix)] for p in features_dir.glob(f"*{suffix}") if p.is_file() and not is_apple_double(p.name))
 
 
 def irregular_feature_entries(features_dir: str | Path) -> list[str]:
     """Names in `features_dir` shaped like a feature file (`*_s.npy`, `*_f.npy`) that are not regular
-    files (a folder, a device, a broken link): `list_stems` passes over them."""
-    return sorted(p.name for suffix in (SEG_SUFFIX, FEAT_SUFFIX) for p in Path(features_dir).glob(f"*{suffix}") if not p.is_file())
+    files (a folder, a device, a broken link): `list_stems` passes over them. AppleDouble names are no
+    feature files whatever they are."""
+    return sorted(p.name for suffix in (SEG_SUFFIX, FEAT_SUFFIX) for p in Path(features_dir).glob(f"*{suffix}")
+                  if not p.is_file() and not is_apple_double(p.name))
 
 
 def write_features(features_dir: str | Path, stem: str, seg: np.ndarray, feats: np.ndarray) -> None:
@@ -109,7 +119,8 @@ def is_valid_pair(features_dir: str | Path, stem: str) -> bool:
 def check_seg_layout(path: Path, shape: tuple[int, ...], dtype: np.dtype, level: int | None = None) -> None:
     """InputError (naming `path` and the field) unless a mask-id file's shape and dtype are the
     format's: (L, H, W) or (H, W) with L, H, W > 0, integer or float ids (not bool), and, for a
-    `level`, level < L unless L = 1 (a single level serves every level)."""
+    `level`, level < L unless L = 1 (a single level serves every level; among files with several
+    levels, registration warns of it: `registration.views.single_level_files_note`)."""
     if len(shape) not in (2, 3) or 0 in shape:
         raise InputError(path, f"mask ids have shape {tuple(shape)}, expected (L, H, W) or (H, W) with L, H, W > 0", field="shape")
     if dtype.kind not in "iuf":

@@ -1,22 +1,23 @@
 """Which views a registration uses: cameras paired with LangSplat feature files by image stem.
 
-Owns the pairing rule (camera name == feature stem), the warnings that count what is skipped, the
-check of every view's headers before the pass (and D read from them), and loading one view's mask
-ids resampled to its camera (a uniform scale only).
+Owns the pairing rule (camera name == feature stem, in Unicode NFC), the warnings that count what is
+skipped, the check of every view's headers before the pass (and D read from them), and loading one
+view's mask ids resampled to its camera (a uniform scale only).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import unicodedata
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import EXIF_TURNS, Camera, exif_orientation, lens_corner_shift, same_aspect
+from drsplat.cameras import ASPECT_TOLERANCE, EXIF_TURNS, Camera, exif_orientation, lens_corner_shift, same_aspect
 from drsplat.errors import InputError
 from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
@@ -24,42 +25,96 @@ from drsplat.utils import npy_header
 
 log = logging.getLogger(__name__)
 
+COARSE_SCALE = 16  # a mask map under 1/16 of its camera's side (one mask pixel for more than 16x16 view pixels) is warned of
+COARSE_SIDE = 8  # as is one under 8 pixels a side that is smaller than its camera (the tiny preset's 1/8 map is 16x12: quiet)
+ROUNDING_SIDE = 2  # a map side under 2 pixels gets no one-pixel rounding allowance in the aspect check (`map_fits_camera`)
+
 
 @dataclass
 class ViewSelection:
     """views: cameras with features, in camera order; missing: camera names without a feature
-    file; unmatched: feature stems without a camera."""
+    file; unmatched: feature stems without a camera; renamed: (camera name, feature stem) of the
+    views paired by another spelling than their camera's name (which the view then takes)."""
 
     views: list[Camera]
     missing: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)
+    renamed: list[tuple[str, str]] = field(default_factory=list)
 
 
-def feature_stem(name: str, available: set[str]) -> str | None:
+def name_key(name: str) -> str:
+    """A name as cameras and feature files are paired: in Unicode NFC. A folder copied from macOS
+    (its file system, or a zip made there) holds names decomposed ("o" + U+0301), Linux tools and
+    camera files write them composed ("ó"): two spellings of one name that look the same in every
+    message (round 51: 14 of 16 views dropped, both warnings listing identical-looking names)."""
+    return unicodedata.normalize("NFC", name)
+
+
+def stems_by_key(stems: Iterable[str]) -> dict[str, list[str]]:
+    """The feature stems grouped by `name_key`: a group of two is two files one name could mean."""
+    groups: dict[str, list[str]] = {}
+    for stem in stems:
+        groups.setdefault(name_key(stem), []).append(stem)
+    return groups
+
+
+def feature_stem(name: str, available: set[str], by_key: dict[str, list[str]] | None = None) -> str | None:
     """The feature stem of the camera image stem `name`: `name` itself, else the name up to its first
     dot, the stem LangSplat's preprocess.py names its files by (`name.split('.')[0]`, as 3DGS names
-    its cameras: "frame-000000.color.png" -> frame-000000_s.npy), or None."""
-    if name in available:
-        return name
-    short = name.split(".")[0]
-    return short if short != name and short in available else None
+    its cameras: "frame-000000.color.png" -> frame-000000_s.npy), or None. Each is taken as spelled,
+    else the one stem equal to it in Unicode NFC (`name_key`; by_key: `stems_by_key(available)`):
+    two stems of that form are two files, and whose is unknown, so neither is taken."""
+    by_key = stems_by_key(available) if by_key is None else by_key
+    for candidate in dict.fromkeys((name, name.split(".")[0])):
+        if candidate in available:
+            return candidate
+        same = by_key.get(name_key(candidate), [])
+        if len(same) == 1:
+            return same[0]
+    return None
 
 
 def pair_views(cameras: Sequence[Camera], stems: Sequence[str]) -> ViewSelection:
-    """Match cameras to feature files by image stem (`feature_stem`); a view paired by LangSplat's
-    stem takes it as its name, by which its files are read."""
+    """Match cameras to feature files by image stem (`feature_stem`); a view paired by another
+    spelling (LangSplat's stem, or the name in another Unicode normalisation) takes the stem as its
+    name, by which its files are read."""
     available = set(stems)
-    keys = [feature_stem(c.name, available) for c in cameras]
+    by_key = stems_by_key(available)
+    keys = [feature_stem(c.name, available, by_key) for c in cameras]
     shorts = Counter(k for c, k in zip(cameras, keys) if k is not None and k != c.name)
     names = {c.name for c in cameras}
-    # a stem that two images cut to, or that another camera is named: whose files they are is unknown, so no dotted name takes them
+    # a stem that two images cut to (or spell alike), or that another camera is named: whose files they are is unknown, so
+    # no other spelling takes them
     keys = [None if k is not None and k != c.name and (shorts[k] > 1 or k in names) else k for c, k in zip(cameras, keys)]
     used = {k for k in keys if k is not None}
     return ViewSelection(
         views=[c if k == c.name else dataclasses.replace(c, name=k) for c, k in zip(cameras, keys) if k is not None],
         missing=[c.name for c, k in zip(cameras, keys) if k is None],
         unmatched=sorted(s for s in stems if s not in used),
+        renamed=[(c.name, k) for c, k in zip(cameras, keys) if k is not None and k != c.name],
     )
+
+
+def spelling_hint(missing: Sequence[str], unmatched: Sequence[str]) -> str:
+    """'; ...' naming a camera without features and a feature stem without a camera that are one name
+    ignoring case (images ORBIT_000.JPG, files orbit_000_s.npy: pairing is case-sensitive, as the file
+    systems of Linux are), or that spell alike in Unicode NFC but are not paired because several files
+    do (`feature_stem`); '' when there is none."""
+    by_key = stems_by_key(unmatched)
+    folded: dict[str, list[str]] = {}
+    for stem in unmatched:
+        folded.setdefault(name_key(stem).casefold(), []).append(stem)
+    for name in missing:
+        for candidate in dict.fromkeys((name, name.split(".")[0])):
+            alike = by_key.get(name_key(candidate), [])
+            if len(alike) > 1:
+                return (f"; camera {ascii(name)} has {len(alike)} feature files of its name in different Unicode encodings "
+                        f"({', '.join(ascii(s + SEG_SUFFIX) for s in alike[:3])}): whose they are is unknown, so none is used")
+            cased = folded.get(name_key(candidate).casefold(), [])
+            if cased:
+                return (f"; camera '{name}' and {cased[0]}{SEG_SUFFIX} match ignoring case, but names are paired case-sensitively: "
+                        "rename the images or the feature files to one spelling")
+    return ""
 
 
 def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection:
@@ -69,7 +124,7 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     if irregular:
         log.warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
                     "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
-    halves = sorted(set(stems) ^ {p.name[: -len(FEAT_SUFFIX)] for p in features_dir.glob(f"*{FEAT_SUFFIX}") if p.is_file()})
+    halves = sorted(set(stems) ^ set(list_stems(features_dir, FEAT_SUFFIX)))
     if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
         log.warning("%d feature pairs in %s are incomplete (a %s without its %s, or the reverse) and their cameras are skipped "
                     "(e.g. %s); rerun `drsplat features` to complete them", len(halves), features_dir, SEG_SUFFIX, FEAT_SUFFIX,
@@ -78,17 +133,21 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
     sel = pair_views(cameras, stems)
+    hint = spelling_hint(sel.missing, sel.unmatched)
     if sel.missing:
-        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)", len(sel.missing), len(cameras), features_dir,
-                    ", ".join(sel.missing[:3]))
+        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)%s", len(sel.missing), len(cameras), features_dir,
+                    ", ".join(sel.missing[:3]), hint)
     if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
         log.warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
                     "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
-    given = {c.name for c in cameras}
-    renamed = [c.name for c in sel.views if c.name not in given]
+    renamed = [stem for name, stem in sel.renamed if name_key(stem) != name_key(name)]
     if renamed:
         log.info("%d cameras matched their feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
                  len(renamed), ", ".join(renamed[:3]))
+    respelled = [(name, stem) for name, stem in sel.renamed if stem not in (name, name.split(".")[0])]
+    if respelled:
+        log.info("%d cameras matched their feature files only in Unicode NFC, the names' accents being encoded differently (e.g. camera "
+                 "%s, file %s), as in a folder copied from macOS", len(respelled), ascii(respelled[0][0]), ascii(respelled[0][1] + SEG_SUFFIX))
     if sel.unmatched:
         log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
     duplicates = len(sel.views) - len({c.name for c in sel.views})
@@ -103,9 +162,49 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
         raise InputError(
             features_dir,
             f"no feature file matches a camera image stem (cameras: {', '.join(c.name for c in cameras[:3])}...; "
-            f"features: {', '.join(stems[:3])}...)",
+            f"features: {', '.join(stems[:3])}...){hint}",
         )
+    warn_if_far_coarser(features_dir, sel.views)
     return sel
+
+
+def far_coarser(w: int, h: int, cam: Camera) -> bool:
+    """True when a w x h mask map is far coarser than camera `cam`: smaller than it, and under
+    1/COARSE_SCALE of its width or height, or under COARSE_SIDE pixels a side. Maps of 1/2, 1/4 and
+    1/8 of the camera register well (round 51, 256x192 views: seg mIoU 0.98, 0.95, 0.89 against 0.96
+    at full size), one of 1/64 does not (0.28): each of its pixels stands for 64x64 view pixels."""
+    if w >= cam.width and h >= cam.height:
+        return False
+    return w * COARSE_SCALE < cam.width or h * COARSE_SCALE < cam.height or min(w, h) < COARSE_SIDE
+
+
+def mask_map_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of the mask map in `path` from its header, or None when the header is not a
+    mask map's: `read_feature_headers` names that file's problem."""
+    try:
+        shape, _, _ = npy_header(path)
+    except InputError:
+        return None
+    return (int(shape[-1]), int(shape[-2])) if len(shape) in (2, 3) and 0 not in shape else None
+
+
+def warn_if_far_coarser(features_dir: Path, views: Sequence[Camera]) -> None:
+    """One warning when views' mask maps are far coarser than their cameras (`far_coarser`): they are
+    resampled to the camera like any smaller map, and the masks of a 4x3 map for a 256x192 camera
+    lost most of what they said (round 51: seg mIoU 0.96 -> 0.28, without a word). Headers only."""
+    coarse = []
+    for cam in views:
+        size = mask_map_size(seg_path(features_dir, cam.name))
+        # a map of another aspect is refused by `read_feature_headers` next: one message for it, not two
+        if size is not None and far_coarser(*size, cam) and map_fits_camera(*size, cam.width, cam.height):
+            coarse.append((cam, *size))
+    if not coarse:
+        return
+    cam, w, h = coarse[0]
+    log.warning("%d of %d views' mask maps are far coarser than their cameras (e.g. %s: field 'shape': mask map %dx%d for a %dx%d camera, "
+                "each mask pixel covering %.3gx%.3g view pixels): their masks are resampled to the camera and lose their shapes; "
+                "make the masks at the camera's size, or at least 1/%d of it", len(coarse), len(views), seg_path(features_dir, cam.name).name,
+                w, h, cam.width, cam.height, cam.width / w, cam.height / h, COARSE_SCALE)
 
 
 def same_camera_copies(views: Sequence[Camera]) -> list[tuple[str, str]]:
@@ -170,6 +269,7 @@ class FeatureHeaders:
     dim: int
     max_masks: int
     total_masks: int
+    levels: dict[str, int] = field(default_factory=dict)  # mask-id file name -> its levels (`single_level_note`)
 
 
 def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> FeatureHeaders:
@@ -186,12 +286,14 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
     """
     dim, first, max_masks, total_masks = 0, None, 0, 0
     dims: dict[int, list[Path]] = {}  # D -> the embedding files of that D
+    levels: dict[str, int] = {}  # mask-id file name -> its levels
     for cam in views:
         spath, fpath = seg_path(features_dir, cam.name), feat_path(features_dir, cam.name)
         if missing_ok and not (spath.is_file() and fpath.is_file()):
             continue
         s_shape, s_dtype, _ = npy_header(spath)
         check_seg_layout(spath, s_shape, s_dtype, level)
+        levels[spath.name] = int(s_shape[0]) if len(s_shape) == 3 else 1
         check_aspect(spath, s_shape[-1], s_shape[-2], cam)
         f_shape, f_dtype, _ = npy_header(fpath)
         check_feat_layout(fpath, f_shape, f_dtype)
@@ -208,15 +310,51 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
                                 "models, or an embedding file stored transposed?)", field="shape")
     if first is None and views:  # every view's files missing here
         npy_header(feat_path(features_dir, views[0].name))  # the error naming the first view's file
-    return FeatureHeaders(dim, max_masks, total_masks)
+    return FeatureHeaders(dim, max_masks, total_masks, levels)
+
+
+def single_level_note(levels: dict[str, int], level: int) -> str | None:
+    """The warning, or None, for mask-id files (name -> levels) that mix one level with several when
+    `level` is not 0.
+
+    A single-level file serves every level (`check_seg_layout`): right in a folder of single-level
+    files, but beside files of 4 levels it is one scale of masks standing in for level `level` of
+    the others (round 51: a view's level-1 masks served `--level 3` without a word, while a file of
+    3 levels was refused). At level 0 its one level is the level asked for."""
+    single = sorted(name for name, count in levels.items() if count == 1)
+    multi = Counter(count for count in levels.values() if count > 1)
+    if level == 0 or not single or not multi:
+        return None
+    counts = sorted(multi)
+    several = str(counts[0]) if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"
+    if len(single) == 1:
+        return (f"{single[0]} has one level; the other {multi.total()} views have {several}: it is used as level {level}, a mask "
+                "scale of its own beside the others' (remake its features with all levels, or register those with one)")
+    return (f"{len(single)} views' mask files have one level ({', '.join(single[:3])}{', ...' if len(single) > 3 else ''}); the other "
+            f"{multi.total()} views have {several}: their one level is used as level {level}, a mask scale of its own beside the "
+            "others' (remake their features with all levels, or register those with one)")
 
 
 def check_aspect(path: Path, w: int, h: int, cam: Camera) -> None:
-    """InputError unless a w x h mask map (from `path`) is camera `cam`'s image uniformly scaled."""
-    if not same_aspect(w, h, cam.width, cam.height):
+    """InputError unless a w x h mask map (from `path`) is camera `cam`'s image uniformly scaled (`map_fits_camera`)."""
+    if not map_fits_camera(w, h, cam.width, cam.height):
+        tiny = "; a map of 1 pixel a side cannot show its aspect, so no rounding excuses it" \
+            if same_aspect(w, h, cam.width, cam.height) else " (a transposed or cropped map?)"
         raise InputError(path, f"mask map is {w}x{h} (width x height) but camera '{cam.name}' is {cam.width}x{cam.height}: "
-                               f"aspect ratios {w / h:.4g} and {cam.width / cam.height:.4g} differ (a transposed or cropped map?); "
+                               f"aspect ratios {w / h:.4g} and {cam.width / cam.height:.4g} differ{tiny}; "
                                "only a uniform scale of the camera size is resampled", field="shape")
+
+
+def map_fits_camera(w: int, h: int, width: int, height: int) -> bool:
+    """True if a w x h mask map is the width x height camera image uniformly scaled: `same_aspect`, except
+    that a map smaller than its camera with a side of 1 pixel (under ROUNDING_SIDE) must match within
+    ASPECT_TOLERANCE. same_aspect allows a pixel of rounding per side, which for a 1-pixel side is a
+    scale anywhere in (0, 2/size], so nearly any aspect (round 51: a 1x1 map passed for a 256x192
+    camera, 1.0 against 1.333). A 2-pixel side keeps the allowance: 3x2 is 101x75 rounded, and is
+    warned of as far coarser than its camera (`far_coarser`)."""
+    if min(w, h) < ROUNDING_SIDE and (w < width or h < height):
+        return abs((w / h) / (width / height) - 1.0) <= ASPECT_TOLERANCE
+    return same_aspect(w, h, width, height)
 
 
 def load_view_features(features_dir: Path, cam: Camera, level: int) -> tuple[np.ndarray, np.ndarray, int]:
