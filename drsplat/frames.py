@@ -65,9 +65,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, cameras_in_trained_frame, dataparser_transforms_path, detect_dataset,
-                             in_trained_frame, qvec_to_rotmat, read_colmap_model)
+                             in_trained_frame, load_image, qvec_to_rotmat, read_colmap_model)
 from drsplat.errors import InputError
-from drsplat.raster import share_in_some_view
+from drsplat.raster import prepare_scene, rasterize, share_in_some_view
 from drsplat.utils import spread_rows
 
 log = logging.getLogger(__name__)
@@ -515,9 +515,6 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     Gaussians; over `sample`, a subset spread over the file is rendered.
     """
     from PIL import Image
-
-    from drsplat.cameras import load_image
-    from drsplat.raster import prepare_scene, rasterize
 
     with_images = [c for c in cameras if c.image_path is not None]
     if not with_images or scene.num_gaussians == 0:

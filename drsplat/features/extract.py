@@ -32,7 +32,7 @@ from drsplat.features.modelid import (
 )
 from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
 import drsplat
-from drsplat.cameras import load_cameras, load_image_sized
+from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized
 from drsplat.features.clip import ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
@@ -216,7 +216,6 @@ def refuse_cameras_without_images(source: str | Path, cameras: list) -> None:
     file (`image_path` None): a 3DGS cameras.json with no images/ beside it, as in a training output folder. The
     loader keeps such cameras for `register`, which reads feature files; `features` needs the photographs, and
     said so only after SAM and CLIP were loaded (a probe, round 51: minutes and gigabytes with the real models)."""
-    from drsplat.cameras import detect_dataset, image_folder
 
     lacking = [c for c in cameras if c.image_path is None]
     if not lacking:
