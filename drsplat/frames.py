@@ -510,13 +510,13 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
 
     A 3DGS scene is fitted to exactly these images, so in its cameras' frame ρ is near 1; in
     another frame (moved, turned, scaled) its render shows other things where the image has its
-    own, and ρ is near 0. Views whose image cannot be read, or where the render covers under
+    own, and ρ is near 0. Views whose image is no regular file or cannot be read, or where the render covers under
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
     Gaussians; over `sample`, a subset spread over the file is rendered.
     """
     from PIL import Image
 
-    with_images = [c for c in cameras if c.image_path is not None]
+    with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
     if not with_images or scene.num_gaussians == 0:
         return {}
     picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]

@@ -748,3 +748,25 @@ def test_a_scene_in_another_frame_that_still_fills_every_view_is_warned_about(ti
                      "--out", str(tmp_path / f"{name}_reg.ply"), "--no-progress", "--aggregate", "paper"]) == 0
         err = capsys.readouterr().err
         assert ("does not look like its training images" in err) == (name == "moved"), err
+
+
+def test_the_frame_check_passes_over_pipes_and_unreadable_images_without_blocking(tiny_seed0, tmp_path):
+    """The check opens the training images, which registration itself never needs: a named pipe
+    given as an image blocked an open for ever (round 51, the EXIF read), and a damaged file must
+    leave its view out, not stop the registration."""
+    import os
+    import threading
+
+    scene, _, cams, _ = tiny_seed0
+    pipe, broken = tmp_path / "pipe.png", tmp_path / "broken.png"
+    os.mkfifo(pipe)
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    odd = [dataclasses.replace(c, image_path=pipe if i % 8 == 0 else broken) for i, c in enumerate(cams)]  # the check picks views 0, 4, 8, 12
+    result: list = []
+    worker = threading.Thread(target=lambda: result.append(photo_agreement(scene, odd)), daemon=True)
+    worker.start()
+    worker.join(timeout=120)
+    if worker.is_alive():  # let the blocked open go, so the test process can end
+        with open(pipe, "wb"):
+            pass
+    assert not worker.is_alive() and result == [{}], result
