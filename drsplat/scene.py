@@ -692,9 +692,16 @@ def colours_as_rgb(names: tuple[str, ...]) -> bool:
     return set(RGB_PROPERTIES) <= set(names) and not any(f"f_dc_{i}" in names for i in range(3))
 
 
+def colours_from_bytes(values: np.ndarray) -> np.ndarray:
+    """Colours in [0, 1] [N, 3] of nerfstudio's uchar red/green/blue v [N, 3]: it writes
+    v = ⌊255·c⌋ (a cast, not a rounding), so c lies in [v/255, (v+1)/255) and is read at the middle,
+    min((v + ½) / 255, 1) (255 is a clamped 1): within ½/255 of c, where v/255 is up to 1/255 dark."""
+    return np.minimum((values.astype(np.float32) + np.float32(0.5)) / np.float32(255), np.float32(1))
+
+
 def rgb_colour_problem(vertex: np.ndarray) -> str | None:
     """Why the red/green/blue of a vertex element with `colours_as_rgb` cannot stand in for f_dc_0..2
-    (None when they can: `dc_from_rgb` of value / 255). nerfstudio's `ns-export gaussian-splat
+    (None when they can: `dc_from_rgb` of `colours_from_bytes`). nerfstudio's `ns-export gaussian-splat
     --ply-color-mode rgb` writes uchar red/green/blue = 255·clamp(0.5 + SH_C0·f_dc, 0, 1) and no
     f_rest_* (it drops the higher SH), the rest as 3DGS writes it. A float colour may be 0-1 or
     0-255, and f_rest_* beside 8-bit colours are SH terms of a DC that is gone: neither is guessed."""
@@ -788,7 +795,7 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
                  "their smaller scale; drsplat rasterizes them by 3DGS's projection, not 2DGS's ray-splat intersection", path, f"{n:,}",
                  SURFEL_THICKNESS)
     sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
-    coeffs = dc_from_rgb(columns(colour_names) / np.float32(255)) if rgb else columns(sh_names)  # rgb: no f_rest_* (`rgb_colour_problem`)
+    coeffs = dc_from_rgb(colours_from_bytes(columns(colour_names))) if rgb else columns(sh_names)  # rgb: no f_rest_* (`rgb_colour_problem`)
     if rgb:
         log.info("%s: base colours of %s Gaussians read from uchar red/green/blue (nerfstudio's --ply-color-mode rgb export) "
                  "as SH degree 0, to 1/255 of a colour; view-dependent colour is not in the file", path, f"{n:,}")

@@ -1148,6 +1148,12 @@ def test_intrinsics_made_for_twice_or_half_the_image_size_are_one_warning_naming
     assert len(said) == 1 and said[0].startswith(f"{root / 'sparse' / '0' / 'cameras.txt'}: field 'PARAMS': the principal point of all 2 "
                                                  "images is at (32, 24), the corner of their 32x24 images (2x the centre)"), said
     assert not _warnings(caplog, "their cameras")  # the images fit the PARAMS, not the size: no hint to read them at theirs
+    caplog.clear()  # a real calibration lies off-centre (fox: 1.35 % of the side): its half-size images are still caught (round 52)
+    fox = _views_dataset(tmp_path / "fox", [(1080, 1920)] * 3, [(1600.0, 554.558, 965.268)] * 3, image_size=(540, 960), give_size=False)
+    with caplog.at_level(logging.INFO):
+        load_cameras(fox)
+    said = _warnings(caplog, "principal point")
+    assert len(said) == 1 and "(2x the centre): intrinsics of a 1080x1920 image?" in said[0], said
     # valid off-centre principal points say nothing: views all cropped to the top-left 200x150 of 256x192 (principal
     # point at 64%), each view cropped to its own box, a calibrated principal point (fox's), the quadrants of split images
     rng = np.random.default_rng(5)
@@ -1181,6 +1187,7 @@ def test_colmap_cameras_of_half_the_images_size_say_at_which_size_they_are_read(
     with caplog.at_level(logging.INFO):  # the advice taken: the images' own size, and no "upscales ... no more detail" warning against it
         assert {(c.width, c.height) for c in load_cameras(root, resolution=64)} == {(64, 48)}
     assert not _warnings(caplog, "upscales"), caplog.text
+    assert not _warnings(caplog, "their cameras"), caplog.text  # a --resolution of the user's own: the note's advice is not repeated
 
 
 def test_a_colmap_dataset_without_images_but_images_2_names_the_path_it_read_and_the_way_out(tmp_path):

@@ -17,7 +17,7 @@ from drsplat.cameras import Camera, load_cameras
 from drsplat.errors import InputError
 from drsplat.features.format import list_stems, write_features
 from drsplat.registration import RegisterOptions, register_features
-from drsplat.registration.views import check_aspect, pair_views, read_feature_headers, select_views, single_level_note
+from drsplat.registration.views import check_aspect, pair_views, read_feature_headers, select_views, single_level_note, spelling_hint
 from drsplat.scene import load_ply
 
 WARN = "drsplat.registration"
@@ -193,3 +193,15 @@ def test_cameras_and_feature_files_that_match_ignoring_case_are_said_to(tiny, tm
     with pytest.raises(InputError, match=r"no feature file matches a camera image stem .*; camera 'ORBIT_000' and orbit_000_s.npy match "
                                          r"ignoring case, but names are paired case-sensitively"):
         select_views(cams, tiny / "features")
+
+
+def test_two_cameras_naming_one_feature_file_are_said_to_and_not_as_a_case_mismatch():
+    """Round 52: cameras frame-0.color and frame-0.depth both cut to LangSplat's stem frame-0 and are
+    rightly left unpaired, but the warning said they "match ignoring case", though nothing differed
+    in case; it now says two cameras name the file. A real case-only mismatch keeps its hint."""
+    sel = pair_views(cameras([(8, 6)] * 2, prefix="frame-0."), ["frame-0"])
+    assert not sel.views and sel.unmatched == ["frame-0"]
+    hint = spelling_hint(sel.missing, sel.unmatched)
+    assert "both name the feature file 'frame-0_s.npy'" in hint and "ignoring case" not in hint, hint
+    sel = pair_views(cameras([(8, 6)], prefix="ORBIT_"), ["orbit_0"])
+    assert "camera 'ORBIT_0' and orbit_0_s.npy match ignoring case" in spelling_hint(sel.missing, sel.unmatched)

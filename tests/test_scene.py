@@ -677,11 +677,13 @@ def test_rgb_colours_are_read_as_base_colours_and_other_names_say_why_they_are_m
     so in the error, and an upper-case X says that 'X' is there (names are case-sensitive)."""
     base = _inria_columns(40, seed=3)
     rgb = np.random.default_rng(3).integers(0, 256, (40, 3)).astype(np.uint8)
+    rgb[0], rgb[1] = 255, 0  # the ends: a clamped 1, and the darkest step
     nerfstudio = {k: v for k, v in base.items() if not k.startswith("f_dc_")} | {k: rgb[:, i] for i, k in enumerate(("red", "green", "blue"))}
     _write_vertices(tmp_path / "rgb.ply", nerfstudio)
     scene, report = load_ply_report(tmp_path / "rgb.ply")
     assert scene.sh_degree == 0 and scene.extra == {} and report.findings() == []
-    np.testing.assert_allclose(scene.base_colors(), rgb / 255.0, atol=1e-6)
+    # nerfstudio casts 255·c to uchar: c is read at the middle of its step, (v + ½) / 255, and 255 as 1 (round 52: v/255 read dark)
+    np.testing.assert_allclose(scene.base_colors(), np.minimum((rgb + 0.5) / 255.0, 1.0), atol=1e-6)
     np.testing.assert_array_equal(scene.opacity_logits, base["opacity"])
     for name, columns, why in (("float.ply", nerfstudio | {k: rgb[:, i] / np.float32(255) for i, k in enumerate(("red", "green", "blue"))},
                                 "declared float"),

@@ -99,7 +99,7 @@ def spelling_hint(missing: Sequence[str], unmatched: Sequence[str]) -> str:
     """'; ...' naming a camera without features and a feature stem without a camera that are one name
     ignoring case (images ORBIT_000.JPG, files orbit_000_s.npy: pairing is case-sensitive, as the file
     systems of Linux are), or that spell alike in Unicode NFC but are not paired because several files
-    do (`feature_stem`); '' when there is none."""
+    do (`feature_stem`), or two cameras that name one feature file (`pair_views`); '' when there is none."""
     by_key = stems_by_key(unmatched)
     folded: dict[str, list[str]] = {}
     for stem in unmatched:
@@ -110,7 +110,12 @@ def spelling_hint(missing: Sequence[str], unmatched: Sequence[str]) -> str:
             if len(alike) > 1:
                 return (f"; camera {ascii(name)} has {len(alike)} feature files of its name in different Unicode encodings "
                         f"({', '.join(ascii(s + SEG_SUFFIX) for s in alike[:3])}): whose they are is unknown, so none is used")
-            cased = folded.get(name_key(candidate).casefold(), [])
+            others = [m for m in missing if m != name and alike and name_key(m.split(".")[0]) == name_key(alike[0])]
+            if len(alike) == 1 and others:  # its file is there: two cameras took it (`pair_views`), not a spelling
+                return (f"; cameras {ascii(name)} and {ascii(others[0])} both name the feature file "
+                        f"{ascii(alike[0] + SEG_SUFFIX)} (by the name up to its first dot, or spelled alike): whose it is is unknown, "
+                        "so neither takes it")
+            cased = [stem for stem in folded.get(name_key(candidate).casefold(), []) if name_key(stem) != name_key(candidate)]
             if cased:
                 return (f"; camera '{name}' and {cased[0]}{SEG_SUFFIX} match ignoring case, but names are paired case-sensitively: "
                         "rename the images or the feature files to one spelling")
