@@ -487,19 +487,25 @@ def grey_correlation(render: np.ndarray, image: np.ndarray, covered: np.ndarray)
 
 
 def over_fitted_background(rgb: np.ndarray, alpha: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """A render over black, rgb [H, W, 3] with alpha [H, W], put over the background colour b [3]
-    that brings it nearest to image [H, W, 3] in least squares:
+    """A render over black, rgb [H, W, 3] with alpha [H, W], put over the background colour that
+    explains image [H, W, 3] best, with t = 1 − α, per channel by least squares over all pixels:
 
-        b = Σ (1 − α)(I − C) / Σ (1 − α)²,   C' = C + (1 − α) b,
+        I ≈ a·C + b·t + c,   C' = C + t·b / a   (C alone where a ≤ 0),
 
     since trainers composite over a background of their own (white for NeRF-synthetic captures,
-    a random or learned one), and the scene's partly transparent pixels show it."""
-    t = (1.0 - alpha.astype(np.float64))[..., None]
-    denominator = float(np.sum(t * t))
-    if denominator <= 0:
-        return rgb
-    background = np.sum(t * (image - rgb), axis=(0, 1)) / denominator
-    return rgb + t * background
+    a random or learned one) and the scene's partly transparent pixels show it, while a photo's
+    exposure and white balance (a, c) differ from the render's: fitting b without them took a
+    darker photo for a darker background and misjudged a scene in its own frame (round 52)."""
+    t = 1.0 - alpha.astype(np.float64).ravel()
+    out = rgb.astype(np.float64)
+    if not np.any(t > 0):
+        return out
+    for ch in range(3):
+        design = np.stack([out[..., ch].ravel(), t, np.ones_like(t)], axis=1)
+        (a, b, _), *_ = np.linalg.lstsq(design, image[..., ch].astype(np.float64).ravel(), rcond=None)
+        if a > 0:
+            out[..., ch] += (b / a) * t.reshape(alpha.shape)
+    return out
 
 
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
@@ -514,8 +520,6 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
     Gaussians; over `sample`, a subset spread over the file is rendered.
     """
-    from PIL import Image
-
     with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
     if not with_images or scene.num_gaussians == 0:
         return {}
@@ -524,12 +528,13 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     prepared = prepare_scene(subset)
     out: dict[str, float] = {}
     for camera in picked:
+        # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
+        full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
+        small = full.scaled(min(1.0, width / full.width))
         try:
-            image = load_image(camera)
+            picture = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
         except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
             continue
-        small = camera.scaled(min(1.0, width / camera.width))
-        picture = np.asarray(Image.fromarray(image).resize((small.width, small.height), Image.BILINEAR), np.float32) / 255.0
         raster = rasterize(prepared, small, 1, with_rgb=True)
         covered = raster.alpha >= 0.5
         if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
