@@ -535,6 +535,9 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
     Gaussians; over `sample`, a subset spread over the file is rendered.
     """
+    for label, value in (("views", views), ("width", width), ("sample", sample), ("supersample", supersample)):
+        if value < 1:
+            raise ValueError(f"photo_agreement: {label} must be at least 1, got {value}")
     with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
     if not with_images or scene.num_gaussians == 0:
         return {}

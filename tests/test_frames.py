@@ -814,3 +814,6 @@ def test_the_frame_check_samples_a_dense_scene_as_its_photos_do(tmp_path):
         cams.append(dataclasses.replace(cam, image_path=tmp_path / f"v{i}.png"))
     assert min(photo_agreement(scene, cams).values()) > 0.9
     assert max(photo_agreement(scene, cams, supersample=1).values()) < PHOTO_MATCH_MIN  # what one sample a pixel made of it
+    for label in ("views", "width", "sample", "supersample"):  # were a ZeroDivisionError from inside (round 52)
+        with pytest.raises(ValueError, match=f"{label} must be at least 1"):
+            photo_agreement(scene, cams, **{label: 0})
