@@ -817,3 +817,23 @@ def test_the_frame_check_samples_a_dense_scene_as_its_photos_do(tmp_path):
     for label in ("views", "width", "sample", "supersample"):  # were a ZeroDivisionError from inside (round 52)
         with pytest.raises(ValueError, match=f"{label} must be at least 1"):
             photo_agreement(scene, cams, **{label: 0})
+
+
+def test_a_scene_too_large_to_draw_faithfully_is_not_checked_and_says_so(tiny_seed0, monkeypatch, caplog):
+    """Round 52: a scene thinned to the check's sample looks sparser than its photos (flowers on a
+    27th of its Gaussians: 0.45 in its own frame), so a 25M-Gaussian scene would have been told it is
+    in another frame. Over PHOTO_CHECK_MAX_THINNING times the sample the check stands aside, in words."""
+    import drsplat.frames as frames
+
+    scene, _, cams, _ = tiny_seed0
+    matrix = np.eye(4)
+    matrix[:3, :3] = [[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]  # turned 90° about x, about the origin
+    turned = _moved_scene(scene, FrameMove("turned", matrix))
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        frames.warn_if_scene_misses_its_images(turned, cams)
+    assert "does not look like its training images" in caplog.text  # checked at its size
+    caplog.clear()
+    monkeypatch.setattr(frames, "PHOTO_CHECK_SAMPLE", scene.num_gaussians // 8)  # the scene now 8 times the sample
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        frames.warn_if_scene_misses_its_images(turned, cams)
+    assert "does not look like" not in caplog.text and "not checked against its training images" in caplog.text, caplog.text
