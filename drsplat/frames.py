@@ -76,6 +76,8 @@ FRAME_SAMPLE = 20_000  # sparse points the frame decision measures (and 10x as m
 FRAME_FIT_GAIN = 4.0  # a move is taken when the sparse points lie this many times nearer the scene there than as given
 FRAME_FIT_MAX = 0.05  # ... and on the scene there: their median distance to it at most this share of its size (any move that shrinks a far model nears it)
 FRAME_COVER_MAX = 0.1  # ... and the scene on them: the Gaussians' median distance to the nearest point at most this share (points heaped on a part of it)
+SPLATFACTO_FRAME = ("nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
+                    "dataset's cameras")  # the remedy both frame warnings give
 LOW_SEEN_FRACTION = 0.5  # below this share of the Gaussians' centres inside some view, a scene is most likely in another frame than its cameras (`frame_hint`)
 CAMERA_UP = np.array([0.0, -1.0, 0.0])  # OpenCV camera axes: y points down
 CAMERA_FORWARD = np.array([0.0, 0.0, 1.0])
@@ -450,14 +452,13 @@ def frame_hint(means: np.ndarray, cameras: Sequence[Camera]) -> str:
     if seen >= LOW_SEEN_FRACTION:
         return ""
     return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
-            "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
-            "dataset's cameras and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
+            f"cameras ({SPLATFACTO_FRAME} and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
             "is off: `drsplat register` moves a COLMAP dataset's cameras there itself, from the model's images and sparse points, "
             "which must be those gsplat was trained on): give the cameras of the scene's frame")
 
 
 PHOTO_CHECK_VIEWS = 4  # views re-rendered by `warn_if_scene_misses_its_images`, spread over the training order
-PHOTO_CHECK_WIDTH = 96  # px: the width they are compared at (a frame mismatch shows at any size; this keeps it a few ms)
+PHOTO_CHECK_WIDTH = 96  # px: the longer side they are compared at (a frame mismatch shows at any size; this keeps it a few ms)
 PHOTO_CHECK_SAMPLE = 1_000_000  # Gaussians rendered at most: a spread subset of a larger scene shows the same picture, sparser
 # ... but only so much sparser: flowers (542k) in its own frame correlated 0.98 whole, 0.77 on a fifth of it, 0.45 on
 # a 27th (round 52), so a scene over this many times the sample is not checked (a false alarm at 25M otherwise)
@@ -529,7 +530,7 @@ def supersampled_render(prepared, camera: Camera, factor: int) -> tuple[np.ndarr
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
                     sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE) -> dict[str, float]:
     """How well the scene re-renders its training images: camera name -> `grey_correlation` of the
-    scene's render (black background) and the camera's image, both `width` px wide, over the pixels
+    scene's render (black background) and the camera's image, both `width` px on their longer side, over the pixels
     the render covers (α ≥ ½), for up to `views` cameras with an image file, spread over the list.
 
     A 3DGS scene is fitted to exactly these images, so in its cameras' frame ρ is near 1; in
@@ -551,7 +552,7 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     for camera in picked:
         # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
         full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
-        small = full.scaled(min(1.0, width / full.width))
+        small = full.scaled(min(1.0, width / max(full.width, full.height)))  # the longer side: a 10 x 100000 camera is no 96 x 960000 render
         try:
             picture = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
         except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
@@ -586,5 +587,4 @@ def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:
         return
     log.warning("the scene does not look like its training images from their cameras: its renders and the images correlate "
                 "%.2f (median of %d views; a scene in its cameras' frame is near 1): the scene may be in another frame than its "
-                "cameras (nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
-                "dataset's cameras), or the images are not this scene's", median, len(agreement))
+                "cameras (%s), or the images are not this scene's", median, len(agreement), SPLATFACTO_FRAME)

@@ -837,3 +837,23 @@ def test_a_scene_too_large_to_draw_faithfully_is_not_checked_and_says_so(tiny_se
     with caplog.at_level(logging.INFO, logger="drsplat.frames"):
         frames.warn_if_scene_misses_its_images(turned, cams)
     assert "does not look like" not in caplog.text and "not checked against its training images" in caplog.text, caplog.text
+
+
+def test_the_frame_check_bounds_the_longer_side_of_a_tall_camera(tmp_path, monkeypatch):
+    """Read-through: the check scaled a view to 96 px wide, so a 10 x 100000 camera (and image) would
+    have been rendered at 10 x 100000 pixels, 4x4 samples each; the longer side is what is bounded."""
+    from PIL import Image
+
+    import drsplat.frames as frames
+    from drsplat.cameras import look_at_camera
+    from drsplat.scene import GaussianScene
+
+    Image.new("RGB", (10, 4000), (90, 90, 90)).save(tmp_path / "tall.png")
+    cam = dataclasses.replace(look_at_camera(np.array([0.0, 0.0, -3.0]), np.zeros(3), 10, 4000, 1.0, name="tall"), image_path=tmp_path / "tall.png")
+    scene = GaussianScene(means=np.zeros((1, 3), np.float32), quats=np.float32([[1, 0, 0, 0]]), log_scales=np.zeros((1, 3), np.float32),
+                          opacity_logits=np.zeros(1, np.float32), sh=np.zeros((1, 1, 3), np.float32))
+    sizes = []
+    real = frames.supersampled_render
+    monkeypatch.setattr(frames, "supersampled_render", lambda p, c, f: (sizes.append((c.width, c.height)), real(p, c, f))[1])
+    frames.photo_agreement(scene, [cam])
+    assert sizes and max(sizes[0]) <= frames.PHOTO_CHECK_WIDTH, sizes
