@@ -288,6 +288,27 @@ def test_orbit_cameras_see_scenes_of_one_two_or_three_gaussians():
     assert np.isfinite(orbit_cameras(big, 2, 32, 24)[0].R).all()
 
 
+def test_orbit_cameras_take_the_scenes_axes_without_a_square_matrix_of_its_points():
+    """Was: the axes came from an SVD with full_matrices=True on up to 20,000 points, which also built a
+    20000 x 20000 U (3.2 GB) that the bench's peak RSS then counted. 6,000 points would take 288 MB."""
+    import tracemalloc
+
+    from drsplat.bench.register import orbit_cameras
+
+    means = np.random.default_rng(1).normal(size=(6000, 3)) * [4.0, 2.0, 0.5]
+    tracemalloc.start()
+    try:
+        cams = orbit_cameras(means, 4, 32, 24)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB traced to place 4 cameras around 6,000 points"
+    up = np.array([0.0, 0.0, 1.0])  # the flattest axis: the orbit's plane is the two widest
+    for cam in cams:
+        down = cam.R[1]
+        assert abs(abs(down @ up) - 1) < 0.2
+
+
 def test_benches_run_on_scenes_of_one_and_two_gaussians(scenes, capsys):
     code, err, out = run_cli(["bench", "io", scenes[2], "--views", "1", "--repeats", "1"], capsys)
     assert code == 0 and "2 Gaussians" in out, err

@@ -17,6 +17,7 @@ from drsplat.cameras import Camera, load_cameras
 from drsplat.errors import InputError
 from drsplat.features.format import list_stems, write_features
 from drsplat.registration import RegisterOptions, register_features
+from drsplat.registration.driver import prepare_run
 from drsplat.registration.views import check_aspect, pair_views, read_feature_headers, select_views, single_level_note, spelling_hint
 from drsplat.scene import load_ply
 
@@ -106,18 +107,20 @@ def test_two_feature_files_of_one_name_in_nfc_pair_with_neither_and_are_named(tm
 
 # F3: mask maps far coarser than their camera
 
-def test_mask_maps_far_coarser_than_their_camera_are_warned_of_once_and_halves_to_eighths_are_not(tmp_path, caplog):
+def test_mask_maps_far_coarser_than_their_camera_are_warned_of_once_and_halves_to_eighths_are_not(tiny, tmp_path, caplog):
     """Round 51: 4x3 maps for 256x192 cameras were resampled without a word (seg mIoU 0.96 -> 0.28); maps of 1/2, 1/4
-    and 1/8 (0.98, 0.95, 0.89) stay quiet, as does 1/8 of the tiny preset's 128x96 (16x12)."""
+    and 1/8 (0.98, 0.95, 0.89) stay quiet, as does 1/8 of the tiny preset's 128x96 (16x12). The sizes come from the one
+    pass over the headers that registration makes anyway (`read_feature_headers`), not from a pass of their own."""
+    scene, options = load_ply(tiny / "scene.ply"), RegisterOptions(aggregate="paper", level=0)  # level 0: no single-level note
     quiet = cameras([(256, 192)] * 4 + [(128, 96)])
     write_maps(tmp_path, quiet, [(4, 192, 256), (4, 96, 128), (4, 48, 64), (4, 24, 32), (4, 12, 16)])
     with caplog.at_level(logging.WARNING, logger=WARN):
-        select_views(quiet, tmp_path)
+        prepare_run(scene, quiet, tmp_path, options)
     assert not warnings_of(caplog)
     coarse = cameras([(256, 192)] * 3, prefix="c", first=5)
     write_maps(tmp_path, coarse, [(4, 3, 4), (3, 4), (4, 12, 16)])
     with caplog.at_level(logging.WARNING, logger=WARN):
-        select_views(quiet + coarse, tmp_path)
+        assert len(prepare_run(scene, quiet + coarse, tmp_path, options).headers.coarse) == 2
     said = warnings_of(caplog)
     assert len(said) == 1 and said[0].startswith("2 of 8 views' mask maps are far coarser than their cameras (e.g. c0_s.npy: field 'shape': "
                                                  "mask map 4x3 for a 256x192 camera, each mask pixel covering 64x64 view pixels)")

@@ -59,7 +59,7 @@ from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts,
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
-from drsplat.registration.views import (FeatureHeaders, ViewSelection, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
+from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
                                         warn_if_turned_without_manifest)
 from drsplat.registration.vote import VoteSink
 from drsplat.scene import GaussianScene
@@ -226,9 +226,9 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
     headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
-    note = single_level_note(headers.levels, options.level)
-    if note is not None:  # here, once: the fit stage reads its probe views' headers again
-        log.warning("%s", note)
+    for note in (single_level_note(headers.levels, options.level), far_coarser_note(headers.coarse, len(selection.views))):
+        if note is not None:  # here, once: the fit stage reads its probe views' headers again
+            log.warning("%s", note)
     return Run(scene, selection, features_dir, headers, options)
 
 

@@ -169,7 +169,6 @@ def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection
             f"no feature file matches a camera image stem (cameras: {', '.join(c.name for c in cameras[:3])}...; "
             f"features: {', '.join(stems[:3])}...){hint}",
         )
-    warn_if_far_coarser(features_dir, sel.views)
     return sel
 
 
@@ -183,33 +182,17 @@ def far_coarser(w: int, h: int, cam: Camera) -> bool:
     return w * COARSE_SCALE < cam.width or h * COARSE_SCALE < cam.height or min(w, h) < COARSE_SIDE
 
 
-def mask_map_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) of the mask map in `path` from its header, or None when the header is not a
-    mask map's: `read_feature_headers` names that file's problem."""
-    try:
-        shape, _, _ = npy_header(path)
-    except InputError:
-        return None
-    return (int(shape[-1]), int(shape[-2])) if len(shape) in (2, 3) and 0 not in shape else None
-
-
-def warn_if_far_coarser(features_dir: Path, views: Sequence[Camera]) -> None:
-    """One warning when views' mask maps are far coarser than their cameras (`far_coarser`): they are
-    resampled to the camera like any smaller map, and the masks of a 4x3 map for a 256x192 camera
-    lost most of what they said (round 51: seg mIoU 0.96 -> 0.28, without a word). Headers only."""
-    coarse = []
-    for cam in views:
-        size = mask_map_size(seg_path(features_dir, cam.name))
-        # a map of another aspect is refused by `read_feature_headers` next: one message for it, not two
-        if size is not None and far_coarser(*size, cam) and map_fits_camera(*size, cam.width, cam.height):
-            coarse.append((cam, *size))
+def far_coarser_note(coarse: Sequence[CoarseMap], views: int) -> str | None:
+    """The warning, or None, for the mask maps far coarser than their cameras (`far_coarser`) among
+    `views` views: they are resampled to the camera like any smaller map, and the masks of a 4x3 map
+    for a 256x192 camera lost most of what they said (round 51: seg mIoU 0.96 -> 0.28, without a word)."""
     if not coarse:
-        return
-    cam, w, h = coarse[0]
-    log.warning("%d of %d views' mask maps are far coarser than their cameras (e.g. %s: field 'shape': mask map %dx%d for a %dx%d camera, "
-                "each mask pixel covering %.3gx%.3g view pixels): their masks are resampled to the camera and lose their shapes; "
-                "make the masks at the camera's size, or at least 1/%d of it", len(coarse), len(views), seg_path(features_dir, cam.name).name,
-                w, h, cam.width, cam.height, cam.width / w, cam.height / h, COARSE_SCALE)
+        return None
+    first = coarse[0]
+    return (f"{len(coarse)} of {views} views' mask maps are far coarser than their cameras (e.g. {first.file}: field 'shape': mask map "
+            f"{first.width}x{first.height} for a {first.camera_width}x{first.camera_height} camera, each mask pixel covering "
+            f"{first.camera_width / first.width:.3g}x{first.camera_height / first.height:.3g} view pixels): their masks are resampled to "
+            f"the camera and lose their shapes; make the masks at the camera's size, or at least 1/{COARSE_SCALE} of it")
 
 
 def same_camera_copies(views: Sequence[Camera]) -> list[tuple[str, str]]:
@@ -266,6 +249,17 @@ def warn_if_turned_without_manifest(views: Sequence[Camera], manifest: dict, fea
                 len(turned), len(views), camera.name, EXIF_TURNS[orientation], features_dir, EXIF_TURNS[orientation])
 
 
+@dataclass(frozen=True)
+class CoarseMap:
+    """A view's mask map far coarser than its camera (`far_coarser`): the file's name and both sizes."""
+
+    file: str
+    width: int
+    height: int
+    camera_width: int
+    camera_height: int
+
+
 @dataclass
 class FeatureHeaders:
     """What the views' feature-file headers say: dim, D of the embeddings; max_masks, the most masks
@@ -275,6 +269,7 @@ class FeatureHeaders:
     max_masks: int
     total_masks: int
     levels: dict[str, int] = field(default_factory=dict)  # mask-id file name -> its levels (`single_level_note`)
+    coarse: list[CoarseMap] = field(default_factory=list)  # the maps far coarser than their camera (`far_coarser_note`)
 
 
 def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int, missing_ok: bool = False) -> FeatureHeaders:
@@ -292,6 +287,7 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
     dim, first, max_masks, total_masks = 0, None, 0, 0
     dims: dict[int, list[Path]] = {}  # D -> the embedding files of that D
     levels: dict[str, int] = {}  # mask-id file name -> its levels
+    coarse: list[CoarseMap] = []
     for cam in views:
         spath, fpath = seg_path(features_dir, cam.name), feat_path(features_dir, cam.name)
         if missing_ok and not (spath.is_file() and fpath.is_file()):
@@ -300,6 +296,8 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
         check_seg_layout(spath, s_shape, s_dtype, level)
         levels[spath.name] = int(s_shape[0]) if len(s_shape) == 3 else 1
         check_aspect(spath, s_shape[-1], s_shape[-2], cam)
+        if far_coarser(s_shape[-1], s_shape[-2], cam):
+            coarse.append(CoarseMap(spath.name, int(s_shape[-1]), int(s_shape[-2]), cam.width, cam.height))
         f_shape, f_dtype, _ = npy_header(fpath)
         check_feat_layout(fpath, f_shape, f_dtype)
         max_masks, total_masks = max(max_masks, int(f_shape[0])), total_masks + int(f_shape[0])
@@ -315,7 +313,7 @@ def read_feature_headers(features_dir: Path, views: Sequence[Camera], level: int
                                 "models, or an embedding file stored transposed?)", field="shape")
     if first is None and views:  # every view's files missing here
         npy_header(feat_path(features_dir, views[0].name))  # the error naming the first view's file
-    return FeatureHeaders(dim, max_masks, total_masks, levels)
+    return FeatureHeaders(dim, max_masks, total_masks, levels, coarse)
 
 
 def single_level_note(levels: dict[str, int], level: int) -> str | None:
