@@ -1681,10 +1681,13 @@ def same_aspect(w: int, h: int, width: int, height: int, tolerance: float = ASPE
 
 
 def _rounds_to(w: int, h: int, width: int, height: int) -> bool:
-    """True if one scale s gives w and h within a pixel: |w - s·width| <= 1 and |h - s·height| <= 1."""
+    """True if one scale s gives w and h within less than a pixel: |w - s·width| < 1 and |h - s·height| < 1.
+
+    Strictly less: rounding, floor or ceil moves a side by under a pixel, and a whole pixel on each side
+    in opposite directions is another aspect (5x2 met 4x3, a 256x192 camera at 1/64, at the interval's end)."""
     lo_x, hi_x = (w - 1) / width, (w + 1) / width
     lo_y, hi_y = (h - 1) / height, (h + 1) / height
-    return max(lo_x, lo_y) <= min(hi_x, hi_y)
+    return max(lo_x, lo_y) < min(hi_x, hi_y)
 
 
 EXIF_ORIENTATION = 0x0112

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.cameras import Camera, load_cameras
+from drsplat.cameras import Camera, load_cameras, same_aspect
 from drsplat.errors import InputError
 from drsplat.features.format import list_stems, write_features
 from drsplat.registration import RegisterOptions, register_features
@@ -139,6 +139,21 @@ def test_a_mask_map_of_one_pixel_a_side_is_held_to_its_cameras_aspect(tmp_path):
     for (w, h), (width, height) in [((1, 1), (64, 64)), ((100, 1), (1000, 10)), ((4, 3), (256, 192)), ((25, 18), (101, 75)),
                                     ((3, 2), (101, 75)), ((512, 384), (256, 192)), ((2, 1), (2, 1))]:
         check_aspect(tmp_path / "v_s.npy", w, h, cameras([(width, height)])[0])
+
+
+def test_a_map_whose_sides_are_each_a_whole_pixel_off_the_other_way_is_another_aspect(tmp_path):
+    """Round 52: 5x2 passed for a 256x192 camera (2.5 against 1.333): the rounding allowance took |w - s·width| <= 1 on
+    each side, and s = 1/64 gives 4x3, one pixel off either side in opposite directions. Rounding, floor and ceil move a side
+    by less than a pixel, so the allowance is strict; every such downscale of 200,000 random sizes and scales still passes."""
+    with pytest.raises(InputError, match=r"v0_s.npy: field 'shape': mask map is 5x2 .*aspect ratios 2.5 and 1.333 differ"):
+        check_aspect(tmp_path / "v0_s.npy", 5, 2, cameras([(256, 192)])[0])
+    rng = np.random.default_rng(0)
+    sizes = rng.integers(1, 5000, size=(200_000, 2))
+    scales = np.exp(rng.uniform(np.log(1e-3), np.log(4.0), size=200_000))
+    rules = [np.floor, np.ceil, np.round]
+    for (width, height), scale, (rx, ry) in zip(sizes, scales, rng.integers(0, 3, size=(200_000, 2))):
+        w, h = max(1, int(rules[rx](scale * width))), max(1, int(rules[ry](scale * height)))
+        assert same_aspect(w, h, int(width), int(height)), (w, h, width, height, scale)
 
 
 # F4: a single-level mask file among files of several levels
