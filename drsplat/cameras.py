@@ -1272,35 +1272,49 @@ def principal_point_factor(camera: Camera, factor: float) -> bool:
     return True
 
 
-def off_size_factor(cameras: list[Camera]) -> float | None:
-    """The factor of OFF_SIZE_FACTORS (2, 4, ½, ¼) that every camera's principal point is of its image centre
-    (`principal_point_factor`), or None: the intrinsics then fit an image that factor times the size."""
-    for factor in OFF_SIZE_FACTORS:
-        if cameras and all(principal_point_factor(c, factor) for c in cameras):
-            return factor
-    return None
+def camera_off_size_factor(camera: Camera) -> float | None:
+    """The factor of OFF_SIZE_FACTORS (2, 4, ½, ¼) that the camera's principal point is of its image centre
+    (`principal_point_factor`), or None: its intrinsics then fit an image that factor times the size."""
+    return next((factor for factor in OFF_SIZE_FACTORS if principal_point_factor(camera, factor)), None)
 
 
-def warn_intrinsics_of_another_size(kind: str, found: Path, cameras: list[Camera]) -> float | None:
+def off_size_factors(cameras: list[Camera]) -> list[float] | None:
+    """Each camera's `camera_off_size_factor` when every camera has one (a dataset of downscaled copies, some
+    at 2x and some at 4x among them), else None: one centred camera says the sizes are not all off (a split
+    image's quadrants put one of four principal points at the corner)."""
+    factors = [camera_off_size_factor(c) for c in cameras]
+    return factors if factors and None not in factors else None
+
+
+def warn_intrinsics_of_another_size(kind: str, found: Path, cameras: list[Camera]) -> list[float] | None:
     """Warn once, naming the camera file, when every camera's principal point is 2x, 4x, ½x or ¼x its image centre
-    (`off_size_factor`): intrinsics made for another image size (a probe, round 51: images/ holding half-size copies
-    with fl/cx of the full size registered at seg mIoU 0.13 for 0.96, without a word). Returns that factor, or None.
-    Nothing is rescaled: which of the size and the intrinsics is wrong is the user's to say."""
-    factor = off_size_factor(cameras)
-    if factor is None:
+    (`off_size_factors`): intrinsics made for another image size (a probe, round 51: images/ holding half-size copies
+    with fl/cx of the full size registered at seg mIoU 0.13 for 0.96, without a word; round 52: copies at 2x and 4x
+    mixed). Returns the factors, or None. Nothing is rescaled: which of the size and the intrinsics is wrong is the
+    user's to say."""
+    factors = off_size_factors(cameras)
+    if factors is None:
         return None
+    larger, smaller = OFF_SIZE_CAUSES.get(kind, ("the size not scaled with the intrinsics",) * 2)
+    first, factor = cameras[0], factors[0]
     label, place = OFF_SIZE_FACTORS[factor]
-    first = cameras[0]
     fits = f"{math.floor(factor * first.width + 0.5)}x{math.floor(factor * first.height + 0.5)}"
+    if len(set(factors)) > 1:
+        counts = ", ".join(f"{factors.count(f)} at {OFF_SIZE_FACTORS[f][0]}" for f in OFF_SIZE_FACTORS if f in factors)
+        log.warning("%s: field '%s': the principal point of all %d %s is off their image centres by factors that differ (%s; e.g. %r's "
+                    "(%g, %g) in its %dx%d, %s the centre): intrinsics of images of other sizes? (%s); they are used as they are, which "
+                    "misplaces every Gaussian in every view", camera_file(kind, found), PRINCIPAL_FIELDS.get(kind, "cx"), len(cameras),
+                    VIEW_NOUNS.get(kind, "views"), counts, first.name, first.cx, first.cy, first.width, first.height, label,
+                    larger if max(factors) > 1 else smaller)
+        return factors
     if all((c.cx, c.cy, c.width, c.height) == (first.cx, first.cy, first.width, first.height) for c in cameras):
         where = f"is at ({first.cx:g}, {first.cy:g}), {place} their {first.width}x{first.height} images"
     else:
         where = f"is {place} its image (e.g. ({first.cx:g}, {first.cy:g}) in {first.name!r}'s {first.width}x{first.height})"
-    larger, smaller = OFF_SIZE_CAUSES.get(kind, ("the size not scaled with the intrinsics",) * 2)
     log.warning("%s: field '%s': the principal point of all %d %s %s (%s the centre): intrinsics of a %s image? (%s); they are used as "
                 "they are, which misplaces every Gaussian in every view", camera_file(kind, found), PRINCIPAL_FIELDS.get(kind, "cx"),
                 len(cameras), VIEW_NOUNS.get(kind, "views"), where, label, fits, larger if factor > 1 else smaller)
-    return factor
+    return factors
 
 
 IMAGE_MULTIPLES = (2, 4, 8)  # images this many times their camera's size: 3DGS -r's divisors

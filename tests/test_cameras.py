@@ -1171,6 +1171,29 @@ def test_intrinsics_made_for_twice_or_half_the_image_size_are_one_warning_naming
         assert not _warnings(caplog, "principal point") and not _warnings(caplog, "their cameras"), case
 
 
+def test_intrinsics_of_two_other_sizes_in_one_dataset_are_one_warning_counting_each(tmp_path, caplog):
+    """Round 52 (left as found): frames holding downscaled copies at 2x and at 4x, beside full-size intrinsics, put every
+    principal point at a corner or beyond, yet no one factor fitted every camera, so nothing was said."""
+    from PIL import Image
+
+    full = [(256, 192)] * 3
+    mixed = _views_dataset(tmp_path / "mixed", full, [(200.0, 128.0, 96.0)] * 3, give_size=False)
+    for k, size in enumerate([(128, 96), (64, 48), (128, 96)]):  # the files replaced by copies of half and a quarter the size
+        Image.new("RGB", size).save(mixed / "images" / f"v{k}.png")
+    with caplog.at_level(logging.INFO):
+        assert [c.width for c in load_cameras(mixed)] == [128, 64, 128]  # warned, not rescaled
+    said = _warnings(caplog, "principal point")
+    assert said == [f"{mixed / 'transforms.json'}: field 'cx': the principal point of all 3 frames is off their image centres by factors "
+                    "that differ (2 at 2x, 1 at 4x; e.g. 'v0''s (128, 96) in its 128x96, 2x the centre): intrinsics of images of other "
+                    "sizes? (images/ holding downscaled copies where the file gives no w/h, or w/h not scaled with fl_x/cx/cy); they are "
+                    "used as they are, which misplaces every Gaussian in every view"], said
+    caplog.clear()  # one frame at its own size: the others may be crops or quadrants, so no word
+    Image.new("RGB", (256, 192)).save(mixed / "images" / "v1.png")
+    with caplog.at_level(logging.INFO):
+        load_cameras(mixed)
+    assert not _warnings(caplog, "principal point")
+
+
 def test_colmap_cameras_of_half_the_images_size_say_at_which_size_they_are_read(tmp_path, caplog):
     """Round 51 (N1): COLMAP cameras of 32x24 (all of their intrinsics halved) beside 64x48 images registered at 32x24
     without a word, 3DGS without -r trains at the images' size. Now one INFO line saying so, and the flag for theirs."""
