@@ -613,6 +613,13 @@ def test_opacities_stored_activated_are_said_and_trained_logits_are_not(tmp_path
         _, report = load_ply_report(tmp_path / "activated.ply")
     assert [note for note in report.findings() if "every opacity logit lies in [0, 1]" in note and "activated opacities" in note]
     assert "activated.ply: every opacity logit lies in [0, 1]" in caplog.text
+    stray = activated | {"opacity": activated["opacity"].copy()}
+    stray["opacity"][7] = np.nextafter(np.float32(1), np.float32(2))  # round 52: one value a ulp past 1 hid the finding
+    _write_vertices(tmp_path / "stray.ply", stray)
+    assert [note for note in load_ply_report(tmp_path / "stray.ply")[1].findings() if "every opacity logit but 1 lies in [0, 1]" in note]
+    stray["opacity"][:3] = [5.0, -2.0, 1.5]  # 4 of 200 out: more than a stray, so logits
+    _write_vertices(tmp_path / "strays.ply", stray)
+    assert load_ply_report(tmp_path / "strays.ply")[1].findings() == []
     for name, rows in (("three.ply", slice(0, 3)), ("constant.ply", slice(None))):
         columns = {k: v[rows] for k, v in activated.items()}
         if name == "constant.ply":
@@ -632,6 +639,11 @@ def test_scales_stored_linearly_are_said_not_blamed_on_a_few_huge_gaussians(tmp_
     _write_vertices(tmp_path / "linear.ply", linear)
     notes = load_ply_report(tmp_path / "linear.ply")[1].findings()
     assert len(notes) == 1 and "every scale_* is at least 0" in notes[0] and "are exp(scales) stored where 3DGS stores log scales?" in notes[0]
+    city = linear | {k: trained[k] * np.float32(600) for k in ("x", "y", "z")}  # round 52: 5,575 units across (metres) was not caught
+    city |= {f"scale_{i}": np.exp(trained[f"scale_{i}"] + np.float32(np.log(600))) for i in range(3)}
+    _write_vertices(tmp_path / "city.ply", city)
+    notes = load_ply_report(tmp_path / "city.ply")[1].findings()
+    assert len(notes) == 1 and "are exp(scales) stored where 3DGS stores log scales?" in notes[0], notes
     millimetres = trained | {k: trained[k] * np.float32(1e4) for k in ("x", "y", "z")}
     millimetres |= {f"scale_{i}": np.float32(0.5) * (trained[f"scale_{i}"] + 12) for i in range(3)}  # log scales 0 to 5
     assert min(millimetres[f"scale_{i}"].min() for i in range(3)) >= 0
