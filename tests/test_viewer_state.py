@@ -292,6 +292,29 @@ def test_a_relevancy_query_starts_at_the_clis_threshold_of_one_half(state):
     np.testing.assert_array_equal(state.selection, expected)
 
 
+def test_the_viewers_scores_are_the_clis_bit_for_bit(state, tmp_path):
+    """Round 53: the viewer made the query a unit row and the library made it one again; float32 normalising is not
+    idempotent, so every viewer score was up to 6e-8 off `drsplat query`'s, and a Gaussian at the threshold was selected
+    and exported by one and not the other. Embedding files and text queries (cosine and relevancy) now score as the CLI's."""
+    from drsplat.cli import build_parser
+    from drsplat.commands.query import build_queries, compute_scores
+
+    names = state.oracle.names
+    path = tmp_path / "q.npy"
+    np.save(path, (state.oracle.embeddings[2] * 3.7).astype(np.float32))  # not a unit row: normalised once, where both do it
+    cases = [(["--embedding", str(path)], lambda: state.run_embedding_query(path))]
+    encoder = _OracleEncoder(state)
+    cases.append((["--text", names[2], "--relevancy"], lambda: state.run_text_query(names[2])))
+    for argv, run_in_viewer in cases:
+        args = build_parser().parse_args(["query", str(state.scene_path), *argv])
+        queries, _, used = build_queries(args, state.field, encoder_factory=lambda *_: encoder)
+        expected = compute_scores(args, state.field, queries, used, encoder_factory=lambda *_: encoder)[:, 0]
+        state.encoder = encoder if "--text" in argv else None
+        assert run_in_viewer()
+        assert state.query.metric == ("relevancy" if "--relevancy" in argv else "cosine")
+        np.testing.assert_array_equal(state.query.scores, expected, err_msg=" ".join(argv))
+
+
 def test_a_cosine_query_whose_scores_are_one_value_says_otsu_has_nothing_to_split(state, tmp_path):
     """Round 39: 500 copies of one Gaussian scored one value; the GUI selected them all without the warning
     `drsplat query --threshold auto` gives."""

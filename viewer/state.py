@@ -257,7 +257,9 @@ class ViewerState:
         """Scores [N] of one query [D]: relevancy when a CLIP encoder provides the canonical
         negatives (plus the user's negative phrases), else cosine."""
 
-        q = dq.unit_rows(embeddings)[:1]
+        # as given: the library makes them unit rows once, and float32 normalising is not idempotent, so a second
+        # pass here moved scores by up to 6e-8 from `drsplat query`'s and a Gaussian at the threshold changed sides
+        q = np.atleast_2d(np.asarray(embeddings, np.float32))[:1]
         typed = self.settings.query.negatives
         negatives = checked_phrases("negative phrases", typed) if typed.strip() else []  # as `drsplat query --negatives` checks them
         if self.encoder is not None:
