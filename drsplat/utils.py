@@ -10,6 +10,7 @@ import json
 import logging
 import math
 import os
+import shlex
 import socket
 import stat
 import tempfile
@@ -397,9 +398,11 @@ FIFO_POLL_SECONDS = 0.1  # how often a FIFO output with no reader yet is tried a
 
 
 @contextlib.contextmanager
-def fifo_reader(path: Path, shown: Path | None = None, cancel: CancelToken | None = None) -> Iterator[None]:
+def fifo_reader(path: Path, shown: Path | None = None, cancel: CancelToken | None = None, wait: bool = True) -> Iterator[None]:
     """Wait until some process has the FIFO `path` open to read, then hold a write end of it open
     while the block writes (nothing for any other path). shown: the name to log (default `path`).
+    wait=False: an OutputError at once when no process reads it (a window's thread must not block;
+    probing without holding the write end open would send the reader an end-of-file).
 
     Opening a FIFO to write blocks until a reader opens it, inside a system call that the signal
     handler of `cancel_on_signals` does not end (it only cancels, and Python retries the call): a
@@ -421,6 +424,9 @@ def fifo_reader(path: Path, shown: Path | None = None, cancel: CancelToken | Non
         except OSError as exc:
             if exc.errno != errno.ENXIO:
                 raise
+            if not wait:
+                raise OutputError(shown or path, "it is a FIFO that no process reads yet; start its reader first (e.g. "
+                                                 f"`cat {shlex.quote(str(shown or path))} > FILE`), then write again") from None
             if cancel is not None:
                 cancel.raise_if_cancelled()
             if not said:

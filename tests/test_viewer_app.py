@@ -68,6 +68,32 @@ def test_window_draws_the_scene_and_the_panels(app, tmp_path):
     assert "screenshot 320x240" in state.messages[-1].text
 
 
+def test_a_screenshot_to_a_fifo_nobody_reads_is_refused_not_waited_on(app, tmp_path, monkeypatch):
+    """Round 53: the View panel's screenshot to a FIFO with no reader blocked the window's thread (no frame, no way to
+    close it). It is refused at once, naming the FIFO; a typed `~/shot.png` is in the home folder, not a folder named `~`."""
+    import os
+    import threading
+
+    app.run(max_frames=1)
+    fifo = tmp_path / "shot.png"
+    os.mkfifo(fifo)
+    drained: list[bytes] = []  # a screenshot that waits is let go after 20 s, so that the test fails instead of hanging
+    rescue = threading.Timer(20.0, lambda: drained.append(fifo.read_bytes()))
+    rescue.start()
+    try:
+        app.screenshot(fifo)  # on this thread: the GL context is current here
+    finally:
+        rescue.cancel()
+    assert not drained, "the screenshot waited for a reader of the FIFO"
+    assert "it is a FIFO that no process reads yet" in app.state.messages[-1].text, app.state.messages[-1].text
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(tmp_path)
+    app.screenshot("~/shot.png")
+    assert (home / "shot.png").stat().st_size > 1000 and not (tmp_path / "~").exists()
+
+
 def test_camera_modes_snap_reset_and_resize(app):
     import glfw
 

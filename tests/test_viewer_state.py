@@ -315,6 +315,58 @@ def test_the_viewers_scores_are_the_clis_bit_for_bit(state, tmp_path):
         np.testing.assert_array_equal(state.query.scores, expected, err_msg=" ".join(argv))
 
 
+def test_an_export_to_a_fifo_nobody_reads_is_refused_at_once_and_one_that_is_read_is_written_whole(state, tmp_path):
+    """Round 53: an export (or screenshot) to a FIFO with no reader waited for one on the window's thread: no frame
+    drawn, no message, the window could not be closed. It is now refused at once, naming the FIFO and the way out; with
+    a reader, the PLY arrives whole (the write end is held open, so the reader sees no end-of-file before it)."""
+    import os
+    import threading
+
+    from drsplat.scene import load_ply
+
+    assert state.run_oracle_query(0)
+    fifo = tmp_path / "sel.ply"
+    os.mkfifo(fifo)
+    done: list = []
+    worker = threading.Thread(target=lambda: done.append(state.export_selection(fifo, "standard")), daemon=True)
+    worker.start()
+    worker.join(10)
+    if worker.is_alive():  # let the blocked export end, so the test fails instead of hanging
+        with open(fifo, "rb") as drain:
+            drain.read()
+        worker.join(10)
+        pytest.fail("the export waited for a reader of the FIFO")
+    assert done == [None]
+    assert "it is a FIFO that no process reads yet; start its reader first" in state.messages[-1].text, state.messages[-1].text
+    received: list[bytes] = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    for _ in range(200):  # refused until the reader has the FIFO open (a probe that opened and closed it would end its read)
+        count = state.export_selection(fifo, "standard")
+        if count is not None:
+            break
+        time.sleep(0.02)
+    reader.join(10)
+    assert count == int(state.selection.sum()) and received
+    (tmp_path / "got.ply").write_bytes(received[0])
+    assert load_ply(tmp_path / "got.ply").num_gaussians == count
+
+
+def test_a_typed_tilde_is_the_home_folder_as_in_a_shell(state, tmp_path, monkeypatch):
+    """Round 53: `~/sel.ply` typed as an export path said "exported ... to ~/sel.ply" and made a folder named `~` in the
+    working folder, nothing in the home folder; opening `~/scene.ply` said it did not exist."""
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    assert state.run_oracle_query(0)
+    assert state.export_selection("~/sel.ply", "standard") == int(state.selection.sum())
+    assert (home / "sel.ply").is_file() and not (work / "~").exists()
+    assert f"to {home / 'sel.ply'}" in state.messages[-1].text
+    assert state.load_scene("~/sel.ply") and state.scene_path == home / "sel.ply"
+
+
 def test_a_cosine_query_whose_scores_are_one_value_says_otsu_has_nothing_to_split(state, tmp_path):
     """Round 39: 500 copies of one Gaussian scored one value; the GUI selected them all without the warning
     `drsplat query --threshold auto` gives."""

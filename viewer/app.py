@@ -26,10 +26,10 @@ import moderngl
 from drsplat.cameras import Camera
 from drsplat.errors import OutputError
 from drsplat.splat_formats import SCENE_SUFFIXES, spz_fractional_bits
-from drsplat.utils import atomic_path, describe_os_error
+from drsplat.utils import atomic_path, describe_os_error, fifo_reader
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
-from viewer.paths import default_layout_path, image_format
+from viewer.paths import default_layout_path, image_format, typed_path
 from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import ViewerState
@@ -571,7 +571,7 @@ class ViewerApp:
         if not str(path).strip():  # Path("") is ".", which would then be "not a file"
             self.state.error("type the path of a PLY to open")
             return False
-        path = Path(str(path).strip())
+        path = typed_path(str(path).strip())
         same_folder = self.state.scene_path is not None and path.resolve().parent == self.state.scene_path.resolve().parent
         previous = self.state.scene
         if not self.state.load_scene(path):
@@ -627,9 +627,11 @@ class ViewerApp:
             return
         if not self.state.guard_output(path, "the screenshot"):
             return
+        path = typed_path(path)
         try:
             image = render_offscreen(self.ctx, self.renderer, self.view.camera())
-            save_image(image, path)
+            with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
+                save_image(image, path)
             self._drawn_key = None
             self._still = None
         except Exception as exc:  # noqa: BLE001 - reported in the GUI

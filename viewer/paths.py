@@ -27,6 +27,16 @@ def image_format(path: str | Path) -> str:
     return IMAGE_FORMATS[suffix]
 
 
+def typed_path(text: str | Path) -> Path:
+    """The path a user typed into a panel, with a leading `~` or `~user` read as the shell reads it
+    (the viewer has no shell: `~/sel.ply` made a folder named `~` in the working folder, round 53)."""
+    path = Path(text)
+    try:
+        return path.expanduser()
+    except RuntimeError:  # no home folder to be found: the path as typed, which says so where it is used
+        return path
+
+
 def user_config_dir() -> Path:
     if os.environ.get("DRSPLAT_CONFIG_DIR"):
         return Path(os.environ["DRSPLAT_CONFIG_DIR"])

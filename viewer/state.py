@@ -35,8 +35,9 @@ from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
-from drsplat.utils import check_output_writable, checked_names, describe_os_error, guard_outputs, load_npy, names_a_folder, read_json
+from drsplat.utils import check_output_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
+from viewer.paths import typed_path
 from viewer.registration import RegistrationJob, start_job
 from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
@@ -126,7 +127,7 @@ class ViewerState:
         """Load a PLY and its language field (if registered); clears the query."""
 
         try:
-            path = Path(path)
+            path = typed_path(path)
             with LibraryWarnings(self.messages):  # what the load warns of is shown, not only logged
                 scene, report = load_scene_report(path, purpose="show; open another PLY")  # refuses a file with no usable row
                 lang = read_field(scene, path)
@@ -159,7 +160,7 @@ class ViewerState:
         """Training cameras of a dataset directory, and its oracle label queries if it has them."""
 
         try:
-            source = Path(source)
+            source = typed_path(source)
             with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
                 cameras = load_cameras(source, require_images=False)
                 if self.scene is not None:
@@ -322,6 +323,7 @@ class ViewerState:
 
         if not self._require_field():
             return False
+        path = typed_path(path)
         try:
             emb = load_query_embeddings(path, self.field.dim)
             scores, metric = self._score(emb[0])
@@ -511,6 +513,7 @@ class ViewerState:
         if names_a_folder(path):
             self.error(f"{what} to {path} refused: the path ends with a separator, so it names a folder; give a file name")
             return False
+        path = typed_path(path)
         try:
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {what: Path(path)}, folders)
@@ -553,11 +556,13 @@ class ViewerState:
         if names_a_folder(path):  # Path("sel/") is Path("sel"): the export took the folder's name, as the CLI's --out once did
             self.error(f"export to {path} refused: the path ends with a separator, so it names a folder; give a file name")
             return None
+        path = typed_path(path)
         try:
             codebook = written_codebook_path(path) if fmt == "drsplat" else None
             inputs, folders = self.read_inputs()
-            guard_outputs(inputs, {"the export": Path(path), "the export's codebook": codebook}, folders)
-            export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
+            guard_outputs(inputs, {"the export": path, "the export's codebook": codebook}, folders)
+            with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
+                export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
             return None
@@ -583,6 +588,8 @@ class ViewerState:
         if self.registration is not None and not self.registration.finished:
             self.error("a registration is already running")
             return False
+        output = typed_path(output) if str(output).strip() else output
+        codebook = codebook if codebook in ("none", "scene") or not codebook.strip() else str(typed_path(codebook))
         if codebook not in ("none", "scene") and not Path(codebook).is_file():
             self.error(f"codebook file {codebook or '(empty)'} does not exist")
             return False
