@@ -94,6 +94,24 @@ def test_a_screenshot_to_a_fifo_nobody_reads_is_refused_not_waited_on(app, tmp_p
     assert (home / "shot.png").stat().st_size > 1000 and not (tmp_path / "~").exists()
 
 
+def test_a_window_past_the_drivers_largest_image_renders_within_it(app):
+    """Round 53: a window wider than GL_MAX_TEXTURE_SIZE (several HiDPI monitors) made its offscreen image fail inside the
+    frame loop, which ended the viewer. The image now keeps within the limit (here lowered to 100) and is stretched over
+    the window."""
+    limit = app.max_side
+    try:
+        app.max_side = 100
+        app.view.rotate(5, 0)
+        app.camera_changed()
+        app.run(max_frames=4)
+        assert app._target is not None and max(app._target.width, app._target.height) <= 100
+        assert _screen(app).std() > 10  # the scene is drawn over the whole window
+    finally:
+        app.max_side = limit
+        app.camera_changed()
+        app.run(max_frames=2)
+
+
 def test_camera_modes_snap_reset_and_resize(app):
     import glfw
 

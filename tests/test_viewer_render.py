@@ -450,7 +450,27 @@ def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     assert "missing.ply" in err and err.count("ERROR") == 1, "a start-up error is printed once"
     assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--oracle", "unicorn"]) == 1
     assert "unicorn" in capsys.readouterr().err
+    # round 53: the side that keeps a camera's aspect was never range-checked (a moderngl traceback)
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), "--camera", "0", "--height", "16384"]) == 2
+    err = capsys.readouterr().err
+    assert "--height 16384 keeps camera 0's aspect, a 21845x16384 image, but a side must be 1 to 16384 pixels" in err, err
+    assert err.count("ERROR") == 1 and "Traceback" not in err
     assert not out.exists()
+
+
+def test_a_window_wider_than_the_largest_image_is_drawn_smaller_and_stretched(gl_context):
+    """Round 53: a window (or a screenshot) past the driver's largest image (GL_MAX_TEXTURE_SIZE, 16384 on llvmpipe)
+    made moderngl fail inside the frame loop, which ended the viewer; the window now renders within it, and an
+    offscreen image past it is one error naming the limit."""
+    from drsplat.errors import DrsplatError
+    from viewer.renderer import OffscreenTarget, fit_within, max_image_side
+
+    side = max_image_side(gl_context)
+    assert side >= 1024
+    assert fit_within(side + 616, 100, side) == (side, int(100 * side / (side + 616)))
+    assert fit_within(0, 5, side) == (1, 5) and fit_within(640, 480, side) == (640, 480)
+    with pytest.raises(DrsplatError, match=rf"cannot render a {side + 1}x10 image: the OpenGL driver renders 1 to {side} pixels a side"):
+        OffscreenTarget(gl_context, side + 1, 10)
 
 
 def test_moving_subsample_draws_the_budget_and_resembles_the_full_frame(state, gl_context):

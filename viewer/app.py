@@ -30,7 +30,8 @@ from drsplat.utils import atomic_path, describe_os_error, fifo_reader
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
 from viewer.paths import default_layout_path, image_format, typed_path
-from viewer.renderer import GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, preload_torch, render_offscreen
+from viewer.renderer import (GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, fit_within, max_image_side, preload_torch,
+                             render_offscreen)
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import ViewerState
 
@@ -180,6 +181,7 @@ class ViewerApp:
         self.view = ViewController.for_scene(means, state.cameras, fb_w, fb_h, log_scales)
         self.renderer: SplatRenderer | None = None
         self.blitter = Blitter(self.ctx)
+        self.max_side = max_image_side(self.ctx)  # a window wider than the largest image is drawn smaller and stretched
         self._target: OffscreenTarget | None = None
         self._pending: OffscreenTarget | None = None
         self._still: StillFrame | None = None
@@ -383,7 +385,7 @@ class ViewerApp:
         if self.renderer is not None and fb_w > 0 and fb_h > 0:
             moving = self.moving
             scale = clamped_render_scale(self.state.settings.view.render_scale) * (self.moving_scale if moving else 1.0)
-            camera = camera_for_size(self.view.camera(), max(1, int(fb_w * scale)), max(1, int(fb_h * scale)))
+            camera = camera_for_size(self.view.camera(), *fit_within(int(fb_w * scale), int(fb_h * scale), self.max_side))
             if self.renderer.update_order(camera):
                 self._drawn_key = None
                 self._still = None

@@ -18,7 +18,7 @@ from drsplat.cli import setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import Cancelled, DrsplatError
+from drsplat.errors import Cancelled, DrsplatError, UsageError
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.scene import load_ply
@@ -143,6 +143,18 @@ def build_state(args: argparse.Namespace):
     return state
 
 
+def check_screenshot_size(camera, args: argparse.Namespace) -> None:
+    """UsageError when the size a training camera gives the screenshot (its own, or the side that keeps its aspect beside
+    --width or --height) is not 1 to MAX_IMAGE_WIDTH pixels a side: --height 16384 on a 4:3 camera asked for a
+    21845-pixel width, and --width 16 on a 4000x10 one for a height of 0 (round 53: moderngl tracebacks)."""
+    if 1 <= camera.width <= MAX_IMAGE_WIDTH and 1 <= camera.height <= MAX_IMAGE_WIDTH:
+        return
+    given = " ".join(f"--{name} {value}" for name, value in (("width", args.width), ("height", args.height)) if value is not None)
+    how = f"{given} keeps camera {args.camera}'s aspect" if given else f"camera {args.camera}'s own size"
+    raise UsageError(f"--camera {args.camera}: {how}, a {camera.width}x{camera.height} image, but a side must be 1 to {MAX_IMAGE_WIDTH} "
+                     "pixels; give --width and --height both, or a smaller one")
+
+
 def screenshot(args: argparse.Namespace, state) -> int:
     from viewer.app import render_screenshot  # moderngl, imgui and glfw: GL only when a window or an image is made
 
@@ -154,6 +166,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if not 0 <= args.camera < len(state.cameras):
             raise DrsplatError(f"--camera {args.camera} is out of range: the dataset has {len(state.cameras)} cameras (0..{len(state.cameras) - 1})")
         camera = camera_for_size(state.cameras[args.camera], args.width, args.height)
+        check_screenshot_size(camera, args)
     else:
         view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720, state.scene.log_scales)
         camera = view.camera()
@@ -242,6 +255,9 @@ def _run(args: argparse.Namespace) -> int:
         return 1
     except StartupError:
         return 1  # already logged by the state
+    except UsageError as exc:  # a value out of range, found once the cameras are read: exit 2, as argparse's
+        log.error("%s", exc)
+        return 2
     except DrsplatError as exc:
         log.error("%s", exc)
         return 1

@@ -20,6 +20,7 @@ import moderngl
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import DrsplatError
 from drsplat.scene import GaussianScene
 from viewer.assets import load_shader
 from viewer.sorting import BackgroundSorter, SortResult
@@ -296,10 +297,33 @@ class SplatRenderer:
         cs["count"].value = count
 
 
+def max_image_side(ctx: moderngl.Context) -> int:
+    """The largest side, in pixels, of an image this context can render into: the least of its
+    driver's texture, renderbuffer and viewport limits (16384 on llvmpipe; less on some GPUs)."""
+    info = ctx.info
+    limits = [int(info.get("GL_MAX_TEXTURE_SIZE", 0)), int(info.get("GL_MAX_RENDERBUFFER_SIZE", 0))]
+    dims = info.get("GL_MAX_VIEWPORT_DIMS")
+    limits += [int(d) for d in dims] if isinstance(dims, (tuple, list)) else []
+    return min(limit for limit in limits if limit > 0)
+
+
+def fit_within(width: int, height: int, side: int) -> tuple[int, int]:
+    """width x height scaled down, keeping its aspect, until neither side passes `side` (at least 1
+    pixel each): a window wider than the GPU's largest image is drawn smaller and stretched over it."""
+    width, height = max(1, width), max(1, height)
+    if max(width, height) <= side:
+        return width, height
+    factor = side / max(width, height)
+    return max(1, min(side, int(width * factor))), max(1, min(side, int(height * factor)))
+
+
 class OffscreenTarget:
     """An RGBA8 framebuffer of a fixed size to render into and read back."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
+        side = max_image_side(ctx)
+        if not (1 <= width <= side and 1 <= height <= side):
+            raise DrsplatError(f"cannot render a {width}x{height} image: the OpenGL driver renders 1 to {side} pixels a side")
         self.ctx = ctx
         self.width, self.height = width, height
         self.texture = ctx.texture((width, height), 4)
