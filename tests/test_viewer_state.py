@@ -367,6 +367,27 @@ def test_a_typed_tilde_is_the_home_folder_as_in_a_shell(state, tmp_path, monkeyp
     assert state.load_scene("~/sel.ply") and state.scene_path == home / "sel.ply"
 
 
+def test_the_scene_panels_assigned_count_is_the_set_queries_use(state, tmp_path):
+    """Round 53: the Scene panel counted rows with a registration weight; queries, exports and `drsplat info` count rows
+    with a stored feature. A file whose 100 features were zeroed (weights kept) was warned of on loading, then shown
+    with those 100 counted as assigned."""
+    from plyfile import PlyData
+
+    from viewer.state import ViewerState
+
+    ply = PlyData.read(str(state.scene_path))
+    rows = ply["vertex"].data
+    names = [name for name in rows.dtype.names if name.startswith("lang_") and name[5:].isdigit()]
+    zeroed = np.flatnonzero(rows["lang_weight"] > 0)[:100]
+    for name in names:
+        rows[name][zeroed] = 0
+    ply.write(str(tmp_path / "zeroed.ply"))
+    other = ViewerState()
+    assert other.load_scene(tmp_path / "zeroed.ply")
+    weighted = int((other.field.weights > 0).sum())
+    assert other.assigned_count == int(other.field.assigned().sum()) == weighted - 100
+
+
 def test_a_cosine_query_whose_scores_are_one_value_says_otsu_has_nothing_to_split(state, tmp_path):
     """Round 39: 500 copies of one Gaussian scored one value; the GUI selected them all without the warning
     `drsplat query --threshold auto` gives."""

@@ -156,7 +156,7 @@ class ScenePanel:
         imgui.text(f"bounds: [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}]")
         if state.field is not None:
             f = state.field
-            imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {int((f.weights > 0).sum()):,} assigned")
+            imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {state.assigned_count:,} assigned")  # as queries and `drsplat info` count them
         else:
             imgui.text_colored(NOTE_COLOR, "no language field (see Registration)")
         imgui.text(f"training cameras: {len(state.cameras)}")

@@ -74,6 +74,7 @@ class ViewerState:
         self.scene_path: Path | None = None
         self.scene_refinements: np.ndarray | None = None  # the open scene's trainer's camera refinements (drsplat.frames)
         self.field = None  # drsplat.lang.LanguageField | None
+        self.assigned_count = 0  # the field's Gaussians with a feature (`LanguageField.assigned`), counted once per scene
         self.cameras: list[Camera] = []
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
@@ -142,6 +143,7 @@ class ViewerState:
         loads this one's). refinements: its trainer's camera refinements (`LoadReport.camera_refinements`),
         which the training cameras read next take (`load_source`)."""
         self.scene, self.field, self.scene_path, self.scene_refinements = scene, lang, path, refinements
+        self.assigned_count = 0 if lang is None else int(lang.assigned().sum())
         self.query = None
         self.segmentation = None
         self.segment_names, self.segment_colors = [], np.zeros((0, 3), np.float32)
