@@ -159,6 +159,13 @@ def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, cap
     assert usable_layout_path(tmp_path / "new" / "imgui.ini") == tmp_path / "new" / "imgui.ini" and (tmp_path / "new").is_dir()
     assert usable_layout_path(None) is None
     np.testing.assert_equal(blocker.read_text(), "a file where the config folder should be")
+    import os
+
+    os.mkfifo(tmp_path / "new" / "fifo.ini")  # round 53: imgui's fopen of a FIFO blocked the first frame for ever
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert usable_layout_path(tmp_path / "new" / "fifo.ini") is None
+    assert "fifo.ini is not a regular file" in caplog.text
 
 
 @pytest.mark.parametrize("value, expected", [(float("nan"), 1.0), (4.0, 1.0), (0.0, 0.25), (0.5, 0.5), (float("inf"), 1.0)])

@@ -673,16 +673,21 @@ def clamped_render_scale(value: float) -> float:
 
 def usable_layout_path(path: str | Path | None) -> Path | None:
     """`path` (the imgui layout file) once its folder exists, or None, with a warning, when the
-    folder cannot be made (a file in the way, a read-only parent): the layout is a convenience and
-    must not stop the viewer from starting."""
+    folder cannot be made (a file in the way, a read-only parent) or `path` is there but not a
+    regular file (imgui's fopen of a FIFO blocked the first frame for ever, round 53): the layout is
+    a convenience and must not stop the viewer from starting."""
     if path is None:
         return None
+    path = Path(path)
     try:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         log.warning("the panel layout will not be saved: %s (set DRSPLAT_CONFIG_DIR to a writable folder)", describe_os_error(exc))
         return None
-    return Path(path)
+    if os.path.lexists(path) and not path.is_file():
+        log.warning("the panel layout is neither read nor saved: %s is not a regular file (set DRSPLAT_CONFIG_DIR to another folder)", path)
+        return None
+    return path
 
 
 def keyboard_to_scene(want_text_input: bool) -> bool:
