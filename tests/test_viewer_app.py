@@ -594,6 +594,33 @@ def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
     assert "interrupted; no partial output was written" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("typed", [-5, 999])
+def test_a_camera_index_typed_into_the_view_panel_is_kept_among_the_cameras(app, monkeypatch, typed):
+    """Round 53: -5 typed into "camera (N/P)" (ctrl+click takes any integer) was kept: the slider showed -5 and N then
+    snapped to camera n - 4. The index is kept in 0..n-1, as the float sliders keep theirs, and the view snaps there."""
+    import glfw
+    from imgui_bundle import imgui
+
+    real = imgui.slider_int
+
+    def typed_into(label, value, *args):
+        if label == "camera (N/P)":
+            real(label, value, *args)
+            return True, typed
+        return real(label, value, *args)
+
+    glfw.set_window_size(app.window, 320, 240)
+    app.run(max_frames=2)
+    n = len(app.state.cameras)
+    monkeypatch.setattr(imgui, "slider_int", typed_into)
+    app.panels.open_next["View"] = True
+    _draw_in_frame(app)
+    monkeypatch.setattr(imgui, "slider_int", real)
+    expected = 0 if typed < 0 else n - 1
+    assert app.state.settings.view.camera_index == expected
+    assert np.allclose(app.view.camera().R, app.state.cameras[expected].R, atol=1e-6)
+
+
 @pytest.mark.parametrize("typed", [0.0, float("nan"), float("inf"), -1e6, 1e6])
 def test_values_typed_into_the_view_panels_sliders_are_kept_in_their_ranges(app, monkeypatch, typed):
     """Round 39 (the review's gap): a value typed into the View panel's fov, roll or fly-speed slider (ctrl+click

@@ -197,8 +197,10 @@ class ViewPanel:
             host.camera_changed()
         n = len(host.state.cameras)
         if n:
-            settings.camera_index = min(settings.camera_index, n - 1)
-            changed, settings.camera_index = imgui.slider_int("camera (N/P)", settings.camera_index, 0, n - 1)
+            settings.camera_index = min(max(settings.camera_index, 0), n - 1)
+            changed, typed = imgui.slider_int("camera (N/P)", settings.camera_index, 0, n - 1)
+            # ctrl+click takes any integer: kept in range, as the float sliders are (-5 was kept, and N went to camera n - 4)
+            settings.camera_index = int(in_range(typed, 0, n - 1, settings.camera_index))
             imgui.same_line()
             if imgui.button("snap") or changed:
                 host.snap_to_camera(settings.camera_index)
