@@ -30,7 +30,7 @@ import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError, hidden_character
-from drsplat.utils import clipped, spread_rows, write_bytes_atomic
+from drsplat.utils import clipped, spread_rows, unreachable_cause, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -574,7 +574,7 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
     InputError saying there is nothing to do that, instead of a warning (`assemble_scene`)."""
     path = Path(path)
     if not path.is_file():
-        raise _fail(path, "does not exist" if not path.exists() else "is not a file")
+        raise _fail(path, unreachable_cause(path, "does not exist") if not path.exists() else "is not a file")
     header, data = read_ply_elements(path)
     if "vertex" not in data:
         raise _fail(path, "has no 'vertex' element", field="vertex")

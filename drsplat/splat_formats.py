@@ -63,7 +63,7 @@ import zstandard
 from drsplat.errors import InputError, OutputError
 from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
                            load_ply_report, opacity_logits, save_ply)
-from drsplat.utils import write_bytes_atomic
+from drsplat.utils import unreachable_cause, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[Gau
     fixed. purpose: as in `load_ply_report` (an empty file is then one error naming it)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "does not exist" if not path.exists() else "is not a file")
+        raise InputError(path, unreachable_cause(path, "does not exist") if not path.exists() else "is not a file")
     kind = scene_format(path)
     if kind == "ply":
         return load_ply_report(path, purpose)

@@ -591,13 +591,13 @@ def regular_file(path: str | Path) -> Path:
     (a FIFO or device would block a read or never end, a folder cannot be read)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "is not a file" if path.exists() else _unreachable(path))
+        raise InputError(path, "is not a file" if path.exists() else unreachable_cause(path))
     return path
 
 
-def _unreachable(path: Path) -> str:
+def unreachable_cause(path: Path, missing: str = "file not found") -> str:
     """Why a path that does not resolve to anything is not there: a link loop, a link whose target is
-    missing (it exists, so "file not found" would puzzle), or no such file."""
+    missing (it exists, so "file not found" would puzzle), or no such file (`missing`)."""
     try:
         os.stat(path)
     except OSError as exc:
@@ -605,7 +605,7 @@ def _unreachable(path: Path) -> str:
             return "is a loop of symbolic links (too many levels to resolve)"
     if path.is_symlink():
         return f"is a symbolic link to {os.readlink(path)}, which does not exist"
-    return "file not found"
+    return missing
 
 
 def spread_rows(rows: np.ndarray, count: int) -> np.ndarray:

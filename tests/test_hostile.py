@@ -363,6 +363,11 @@ def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_i
                         "--threshold", "0.5", "--mode", "selection"])
     err = capsys.readouterr().err
     assert code == 0 and "--threshold and --mode selection apply to a query" in err, err
+    # round 53: with --mode segmentation (the demo's oracle labels) --threshold was dropped without a word
+    code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "g.png"), "--width", "32",
+                        "--height", "32", "--threshold", "0.2", "--mode", "segmentation"])
+    err = capsys.readouterr().err
+    assert code == 0 and "--threshold applies to a query's selection, not to --mode segmentation" in err, err
 
 
 def test_viewer_unknown_demo_preset_is_a_usage_error(tmp_path, capsys):

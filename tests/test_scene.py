@@ -210,8 +210,21 @@ def test_an_ascii_ply_with_more_rows_than_its_header_declares_is_said(tmp_path, 
 
 
 def test_missing_file_error(tmp_path):
+    """A missing scene does not exist; a symbolic link loop or a link whose target is gone says so (round 53: a loop
+    "does not exist", though `ls` lists it), through every scene loader."""
+    import os
+
+    from drsplat.splat_formats import load_scene_report
+
     with pytest.raises(InputError, match="does not exist"):
         load_ply(tmp_path / "nope.ply")
+    os.symlink(tmp_path / "loop.ply", tmp_path / "loop.ply")
+    os.symlink(tmp_path / "gone.splat", tmp_path / "dangling.splat")
+    for load in (load_ply, load_scene_report):
+        with pytest.raises(InputError, match=r"loop.ply: is a loop of symbolic links"):
+            load(tmp_path / "loop.ply")
+    with pytest.raises(InputError, match=r"dangling.splat: is a symbolic link to .*gone.splat, which does not exist"):
+        load_scene_report(tmp_path / "dangling.splat")
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -520,7 +520,7 @@ def test_open_and_drop_a_ply(app, registered, dataset, tmp_path, monkeypatch):
     assert "no file dialog" in state.messages[-1].text and app._file_dialog is None
     app._dropped = [str(tmp_path / "notes.txt")]
     app.run(max_frames=1)
-    assert "none a .ply" in state.messages[-1].text
+    assert "none a 3DGS scene (.ply, .splat, .spz, .pt, .ckpt, .pth)" in state.messages[-1].text  # round 53: checkpoints open too
     app._dropped = [str(dataset / "scene.ply")]
     app.run(max_frames=1)
     assert state.scene_path == dataset / "scene.ply" and state.field is None

@@ -371,6 +371,9 @@ def test_a_typed_tilde_is_the_home_folder_as_in_a_shell(state, tmp_path, monkeyp
     assert state.export_selection("~/sel.ply", "standard") == int(state.selection.sum())
     assert (home / "sel.ply").is_file() and not (work / "~").exists()
     assert f"to {home / 'sel.ply'}" in state.messages[-1].text
+    state.set_threshold(float(state.query.scores[state.query.assigned].max()))  # the best Gaussian alone (no two tie here)
+    assert state.export_selection(tmp_path / "one.ply", "standard") == 1
+    assert state.messages[-1].text.startswith("exported 1 Gaussian to "), state.messages[-1].text  # not "1 Gaussians"
     assert state.load_scene("~/sel.ply") and state.scene_path == home / "sel.ply"
 
 

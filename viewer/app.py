@@ -611,7 +611,7 @@ class ViewerApp:
         dropped, self._dropped = self._dropped, []
         plys = [p for p in dropped if p.lower().endswith(SCENE_SUFFIXES)]
         if dropped and not plys:
-            self.state.error(f"dropped {len(dropped)} file(s), none a .ply, .splat or .spz: drop a 3DGS scene to open it")
+            self.state.error(f"dropped {len(dropped)} file(s), none a 3DGS scene ({', '.join(SCENE_SUFFIXES)}): drop one to open it")
         if plys:
             self.open_scene(plys[0])
         dialog = self._file_dialog

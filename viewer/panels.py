@@ -141,7 +141,7 @@ class ScenePanel:
 
     def draw(self, host: PanelHost) -> None:
         state = host.state
-        self.open_path, submitted = submit_field("##open", "scene.ply (or drop a PLY)", self.open_path, "open", -110)
+        self.open_path, submitted = submit_field("##open", "scene.ply (or drop a scene file)", self.open_path, "open", -110)
         if submitted:
             host.open_scene(self.open_path)
         imgui.same_line()

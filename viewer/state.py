@@ -568,7 +568,7 @@ class ViewerState:
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
             return None
-        self.info(f"exported {count:,} Gaussians to {path} ({export_kind(path, fmt)})")
+        self.info(f"exported {count:,} Gaussian{'' if count == 1 else 's'} to {path} ({export_kind(path, fmt)})")
         return count
 
     # ---------------------------------------------------------------- registration
