@@ -505,12 +505,13 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
     """
     path = Path(path)
     header = read_ply_header(path)
-    size = path.stat().st_size
-    check_element_sizes(path, header, size)
-    for element in header.elements:
+    for element in header.elements:  # before the sizes: a list row's size is unknown, so the size check blamed a truncation
         if element.has_lists and element.name in NEEDED_ELEMENTS:
             raise _fail(path, f"element '{element.name}' has list properties, which 3DGS files never have", field=element.name)
+    size = path.stat().st_size
+    check_element_sizes(path, header, size)
     if header.format == "ascii":
+        refuse_python_only_numbers(path, header.data_offset)
         return header, _read_with_plyfile(path)
     endian = "<" if header.format == "binary_little_endian" else ">"
     data: dict[str, np.ndarray] = {}
@@ -546,6 +547,29 @@ def read_plyfile(path: Path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return PlyData.read(str(path))
+
+
+ASCII_SCAN_BYTES = 1 << 24  # the ASCII body is scanned in blocks of this size (`refuse_python_only_numbers`)
+
+
+def refuse_python_only_numbers(path: Path, data_offset: int) -> None:
+    """InputError naming the line of an ASCII PLY's body that holds '_' or a byte outside ASCII. The
+    body is parsed by Python's int() and float(), which read '1_5' as 15 (PEP 515) and Unicode digits
+    such as '١٥' as numbers; a PLY number has neither (round 53: a value '1_5' was read as 15, silently)."""
+    line = 1
+    with open(path, "rb") as f:
+        f.seek(data_offset)
+        while block := f.read(ASCII_SCAN_BYTES):
+            bad = re.search(rb"[_\x80-\xff]", block)
+            if bad is None:
+                line += block.count(b"\n")
+                continue
+            line += block.count(b"\n", 0, bad.start())
+            start = block.rfind(b"\n", 0, bad.start()) + 1
+            end = block.find(b"\n", bad.start())
+            shown = block[start:end if end >= 0 else len(block)].decode("utf-8", "replace")
+            raise _fail(path, f"data line {line} of the ASCII body ({clipped(shown, 80)!r}) holds {bad.group().decode('latin-1')!r}, "
+                              "which no PLY number has (Python would read 1_5 as 15)")
 
 
 def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
@@ -972,7 +996,8 @@ def _column_reader(vertex: np.ndarray):
         return lambda wanted: matrix[:, [index[w] for w in wanted]].astype(np.float32)
 
     def gather(wanted: list[str]) -> np.ndarray:
-        with np.errstate(over="ignore"):  # a double beyond float32 becomes inf, counted by `rows_beyond_float32`
+        # a double beyond float32 becomes inf, counted by `rows_beyond_float32`; a signalling NaN a NaN, dropped and counted
+        with np.errstate(over="ignore", invalid="ignore"):
             return np.stack([vertex[w].astype(np.float32) for w in wanted], axis=1)
 
     return gather
@@ -1005,12 +1030,28 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
     ci = np.arange(n) // COMPRESSED_CHUNK
 
     def chunk_range(prefix_min: str, prefix_max: str, axes: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-        try:
-            lo = np.stack([chunk[f"{prefix_min}{a}"][ci] for a in axes], axis=1).astype(np.float32)
-            hi = np.stack([chunk[f"{prefix_max}{a}"][ci] for a in axes], axis=1).astype(np.float32)
-        except ValueError as exc:
-            raise _fail(path, f"is a compressed PLY whose chunk element lacks a range ({exc})", field="chunk") from None
-        return lo, hi
+        """The chunk ranges [n, len(axes)] of every splat, after checking the chunks' properties: float-typed (an
+        integer min_x of -1082130432 was read as it is), and min <= max (a damaged file decoded mirrored, without a word)."""
+        names = [f"{prefix}{a}" for prefix in (prefix_min, prefix_max) for a in axes]
+        missing = [name for name in names if name not in chunk.dtype.names]
+        if missing:
+            raise _fail(path, f"is a compressed PLY whose chunk element lacks the range property {missing[0]}", field=missing[0])
+        for name in names:
+            if chunk.dtype[name].kind != "f":
+                declared = NUMPY_TO_PLY.get(f"{chunk.dtype[name].kind}{chunk.dtype[name].itemsize}", str(chunk.dtype[name]))
+                raise _fail(path, f"is a compressed PLY whose chunk property {name} is declared {declared}; every writer stores "
+                                  "the chunk ranges as float, so its values would be misread", field=name)
+        with np.errstate(over="ignore", invalid="ignore"):  # a double past float32 is inf, a signalling NaN a NaN: both counted later
+            lo = np.stack([chunk[f"{prefix_min}{a}"][:need_chunks] for a in axes], axis=1).astype(np.float32)
+            hi = np.stack([chunk[f"{prefix_max}{a}"][:need_chunks] for a in axes], axis=1).astype(np.float32)
+        inverted = lo > hi
+        if inverted.any():
+            rows, cols = np.nonzero(inverted)
+            log.warning("%s: field '%s%s': %d of %d chunks hold a range whose min is above its max (chunk %d: %g > %g); no writer "
+                        "stores one, so the file is damaged: their splats are decoded mirrored across the range",
+                        path, prefix_min, axes[cols[0]], int(inverted.any(axis=1).sum()), need_chunks, rows[0],
+                        lo[rows[0], cols[0]], hi[rows[0], cols[0]])
+        return lo[ci], hi[ci]
 
     def unpack_111011(packed: np.ndarray) -> np.ndarray:
         p = packed.astype(np.uint32)

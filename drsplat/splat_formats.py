@@ -96,7 +96,7 @@ SNIFF_BYTES = 4096  # what scene_format reads of a file: enough of a gzip stream
 
 def scene_format(path: Path) -> str:
     """"ply", "splat", "spz" or "checkpoint": PLY by its first line ("ply"), a trainer checkpoint by
-    its name and a zip archive's first bytes, then `.splat` by its name (the format has no header, and
+    its name and a zip archive's first bytes, a gzipped PLY refused by its first bytes, then `.splat` by its name (the format has no header, and
     a first float's bytes can be anything, gzip's magic included) unless its first bytes are an spz
     header (`_holds_spz_header`: an spz renamed, read as spz with a warning), then spz by its first
     bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then names what is wrong."""
@@ -109,13 +109,15 @@ def scene_format(path: Path) -> str:
             raise InputError(path, "is not a torch checkpoint archive (torch.save's zip; a file saved with "
                                    "_use_new_zipfile_serialization=False, or another file named like one)")
         return "checkpoint"
+    # before .splat's name: a gzipped PLY named .splat was read as 6,620 garbage records (a first float whose bytes
+    # start a gzip stream that inflates to "ply" is no .splat a trainer writes)
+    if head[:2] == GZIP_MAGIC and _inflated_start(head, 4).startswith(b"ply"):
+        raise InputError(path, f"is a gzip-compressed PLY file: decompress it first (gunzip -k); drsplat reads {SCENE_FILES_READ}")
     if path.suffix.lower() == ".splat":
         if not _holds_spz_header(head):
             return "splat"
         log.warning("%s: is named .splat but holds an .spz file (its first bytes are an spz header); read as .spz", path)
         return "spz"
-    if head[:2] == GZIP_MAGIC and _inflated_start(head, 4).startswith(b"ply"):
-        raise InputError(path, f"is a gzip-compressed PLY file: decompress it first (gunzip -k); drsplat reads {SCENE_FILES_READ}")
     if head[:2] == GZIP_MAGIC or (len(head) >= 4 and int.from_bytes(head[:4], "little") == NGSP_MAGIC) or path.suffix.lower() == ".spz":
         return "spz"
     if not head.startswith(b"ply"):
@@ -429,7 +431,8 @@ def splat_columns(path: Path) -> tuple[dict, list[str], str]:
                                f"({size // SPLAT_RECORD.itemsize:,} records and {size % SPLAT_RECORD.itemsize} bytes): truncated, "
                                "or not a .splat file", field="size")
     rec = np.fromfile(path, SPLAT_RECORD)
-    scales = rec["scale"].astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN is a NaN here, dropped and counted by assemble_scene
+        scales = rec["scale"].astype(np.float64)
     # A viewer's covariance (R S)(R S)ᵀ = R S² Rᵀ holds the square of each scale, so a negative scale
     # draws as its magnitude: read as that and counted. A zero scale's log is -inf, which assemble_scene drops and counts.
     with np.errstate(divide="ignore"):
@@ -509,7 +512,13 @@ def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes]
     if int(header["magic"]) != NGSP_MAGIC:
         raise InputError(path, "is a gzip file without the spz header (magic 'NGSP'): not an .spz file", field="magic")
     version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
-    _check_spz_header(path, version, degree, int(header["fractional_bits"]))
+    try:
+        _check_spz_header(path, version, degree, int(header["fractional_bits"]))
+    except InputError:
+        damage = gzip_damage(data)  # a header of nonsense in a stream that fails its checksum: the stream is what is wrong
+        if damage is not None:
+            raise InputError(path, f"is a damaged gzip stream ({damage}), so its spz header reads as nonsense", field="gzip") from None
+        raise
     sizes = spz_block_sizes(points, version, degree)
     need = _check_ratio(path, sizes, len(data))
     body = _inflate(path, inflater, need + MAX_LEGACY_EXTENSION_BYTES)
@@ -526,6 +535,25 @@ def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes]
                     "smaller than the data, which is ignored", path, len(extensions), points)
         extensions = b""
     return header, blocks, extensions
+
+
+def gzip_damage(data: bytes, block: int = 1 << 20) -> str | None:
+    """What is wrong with the gzip stream that `data` starts (zlib's words, or "it ends before its
+    end"), or None when it inflates whole and its checksum holds. Inflates at most MAX_SPZ_RATIO
+    times len(data), in `block`-byte steps, keeping none of it (a stream that would inflate past
+    that is not judged: None)."""
+    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    budget, pending = MAX_SPZ_RATIO * len(data), data
+    try:
+        while budget > 0 and not inflater.eof:
+            out = inflater.decompress(pending, block)
+            pending = inflater.unconsumed_tail
+            budget -= len(out)
+            if not out and not pending:
+                return "it ends before its end"
+    except zlib.error as exc:
+        return str(exc)
+    return None
 
 
 def _check_ratio(path: Path, sizes: list[tuple[str, int]], file_bytes: int) -> int:
