@@ -36,8 +36,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--features", type=Path, nargs="+", default=[], metavar="DIR", help="LangSplat feature folders (<stem>_f.npy)")
     train.add_argument("--out", type=output_file, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
     train.add_argument("--m", type=positive_int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
-    train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset)")
-    train.add_argument("--seed", type=int_range(0, FAISS_MAX_SEED), default=0, help=f"k-means seed, 0..{FAISS_MAX_SEED} (faiss takes a C int)")
+    train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset); default 200000")
+    train.add_argument("--seed", type=int_range(0, FAISS_MAX_SEED), default=0, help=f"k-means seed, 0..{FAISS_MAX_SEED} (faiss takes a C int); default 0")
     train.set_defaults(func=run_train)
 
     info = actions.add_parser("info", help="print what a codebook file contains")

@@ -46,7 +46,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=resolution_value, default=-1,
                    help="camera resolution as 3DGS's -r: 1, 2, 4, 8 divide, another number is a width in pixels; "
                    "default -1: full size, capped at 1600 px wide. Smaller views register faster and less exactly: 2 measured "
-                   "1.7x faster per view and -0.04 seg mIoU (docs/evaluation.md, \"Resolution\"; `drsplat eval ablate resolution`)")
+                   "1.7x (flowers) to 2.6x (a 640x480 room) faster per view and -0.013 seg mIoU on that room (docs/evaluation.md, "
+                   "\"Resolution\"; `drsplat eval ablate resolution`)")
     p.add_argument("--out", type=output_file, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
