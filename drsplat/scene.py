@@ -544,7 +544,7 @@ def read_plyfile(path: Path):
 
     from plyfile import PlyData
 
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), np.errstate(over="ignore"):  # 1e39 into a float property is inf, counted by the load
         warnings.simplefilter("ignore", UserWarning)
         return PlyData.read(str(path))
 

@@ -114,6 +114,11 @@ def scene_format(path: Path) -> str:
     if head[:2] == GZIP_MAGIC and _inflated_start(head, 4).startswith(b"ply"):
         raise InputError(path, f"is a gzip-compressed PLY file: decompress it first (gunzip -k); drsplat reads {SCENE_FILES_READ}")
     if path.suffix.lower() == ".splat":
+        if head[:2] == GZIP_MAGIC and not _holds_spz_header(head) and gzip_damage(path.read_bytes()) is None:
+            # a whole gzip stream whose checksum holds is no .splat a trainer wrote (its first float starting 1f 8b
+            # would not inflate): read as records, a gzipped .splat gave ~1,000 Gaussians of ±3e38
+            raise InputError(path, "is a gzip-compressed file: decompress it first (gunzip -k, after naming it .splat.gz); drsplat "
+                                   f"reads {SCENE_FILES_READ}")
         if not _holds_spz_header(head):
             return "splat"
         log.warning("%s: is named .splat but holds an .spz file (its first bytes are an spz header); read as .spz", path)

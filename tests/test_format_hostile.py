@@ -142,3 +142,24 @@ def test_a_list_property_in_the_vertex_element_is_named_not_called_a_truncation(
                      b"end_header\n" + b"\0" * 6)
     with pytest.raises(InputError, match=r"field 'vertex': element 'vertex' has list properties, which 3DGS files never have"):
         load_ply(path)
+
+
+def test_a_gzipped_splat_is_refused_not_read_as_records(tmp_path):
+    """Round 53a (second probe): a gzip of a .splat whose size is a multiple of 32 was read as ~1,000 Gaussians of ±3e38
+    with warnings that blamed the scene, exit 0. A whole gzip stream whose checksum holds is refused."""
+    save_scene(small_scene(), tmp_path / "plain.splat")
+    (tmp_path / "g.splat").write_bytes(gzip.compress((tmp_path / "plain.splat").read_bytes(), mtime=0))
+    with pytest.raises(InputError, match=r"g.splat: is a gzip-compressed file: decompress it first"):
+        load_scene_report(tmp_path / "g.splat")
+    assert load_scene_report(tmp_path / "plain.splat")[0].num_gaussians == 300  # the file itself still reads
+
+
+def test_an_ascii_value_beyond_float32_is_counted_without_numpys_overflow_warning(tmp_path, caplog):
+    """1e39 in an ASCII float property leaked numpy's "overflow encountered in cast" (a refusal under -W error)."""
+    header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(f"property float {name}\n" for name in (
+        "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"))
+    row = "2 3 0.1 0.2 0.3 0.5 -1 -2 -3 1 0 0 0\n"
+    (tmp_path / "big.ply").write_text(header + "end_header\n" + "1e39 " + row + "1 " + row)
+    with caplog.at_level(logging.WARNING):
+        scene, _ = load_without_numpy_warnings(tmp_path / "big.ply")
+    assert scene.num_gaussians == 1 and "1 rows with infinite" in caplog.text
