@@ -289,6 +289,7 @@ class PlyHeader:
     elements: list[PlyElement]
     comments: list[str]
     data_offset: int
+    non_ascii_comment: str | None = None  # the problem of the first comment outside ASCII (dropped); plyfile refuses it
 
 
 @dataclass
@@ -418,11 +419,8 @@ def read_ply_header(path: Path) -> PlyHeader:
     nl = head.find(b"\n", end)
     if nl < 0:
         raise _fail(path, "is truncated right after 'end_header'")
-    try:
-        text = head[:end].decode("ascii")
-    except UnicodeDecodeError:
-        raise _fail(path, "has a header that is not ASCII text") from None
-    fmt, elements, comments = None, [], []
+    text, non_ascii_comment = _ascii_header_text(path, head[:end])
+    fmt, fmt_line, elements, comments = None, 0, [], []
     element_names: set[str] = set()
     property_names: set[str] = set()  # of the last element (a set: a list scan per line made a long header quadratic)
     for lineno, raw in enumerate(text.replace("\r", "").split("\n")[1:], start=2):
@@ -436,7 +434,9 @@ def read_ply_header(path: Path) -> PlyHeader:
         if key == "format":
             if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
                 raise _fail(path, f"has an unknown format line (header line {lineno}); expected ascii, binary_little_endian or binary_big_endian")
-            fmt = words[1]
+            if fmt is not None:  # plyfile takes the last one, a hand parser the first: the rows would be read two ways
+                raise _fail(path, f"has two 'format' lines (header lines {fmt_line} and {lineno}); a PLY header has one")
+            fmt, fmt_line = words[1], lineno
         elif key == "comment":
             comments.append(raw[len("comment"):].strip())
         elif key == "obj_info":
@@ -468,7 +468,33 @@ def read_ply_header(path: Path) -> PlyHeader:
             raise _fail(path, f"has an unknown header keyword (header line {lineno})")
     if fmt is None:
         raise _fail(path, "has no 'format' line in its header")
-    return PlyHeader(fmt, elements, comments, nl + 1)
+    return PlyHeader(fmt, elements, comments, nl + 1, non_ascii_comment)
+
+
+def _ascii_header_text(path: Path, header: bytes) -> tuple[str, str | None]:
+    """The header's text, and the problem of its first comment outside ASCII (None when it is ASCII).
+    A comment (or obj_info) holding other bytes, such as an author's name in UTF-8, is read as an empty
+    line, with a warning, since it carries no data (other readers take such files); any other line
+    outside ASCII is one InputError naming it. Line numbers count from 'ply' as 1."""
+    try:
+        return header.decode("ascii"), None
+    except UnicodeDecodeError:
+        pass
+    lines, problem = [], None
+    for lineno, raw in enumerate(header.split(b"\n"), start=1):
+        if raw.isascii():
+            lines.append(raw.decode("ascii"))
+            continue
+        line = raw.rstrip(b"\r").decode("utf-8", "replace")
+        char = next((c for c in line if ord(c) > 127), "?")
+        shown = f"header line {lineno} ({clipped(line, 80)!r}) holds {char!r}, outside ASCII"
+        if line.split(" ", 1)[0] not in ("comment", "obj_info"):
+            raise _fail(path, f"{shown}; a PLY header is ASCII text (remove the character, or re-export the file)")
+        if problem is None:
+            problem = shown
+            log.warning("%s: %s; the comment is dropped (a PLY header is ASCII text)", path, shown)
+        lines.append("")
+    return "\n".join(lines), problem
 
 
 NEEDED_ELEMENTS = ("vertex", "chunk", "sh")  # what the INRIA and compressed layouts read
@@ -511,6 +537,9 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
     size = path.stat().st_size
     check_element_sizes(path, header, size)
     if header.format == "ascii":
+        if header.non_ascii_comment is not None:  # plyfile, which parses the ASCII body, refuses the header
+            raise _fail(path, f"{header.non_ascii_comment}; an ASCII PLY's header must be ASCII text to be parsed (remove the "
+                              "character, or re-export the file)")
         refuse_python_only_numbers(path, header.data_offset)
         return header, _read_with_plyfile(path)
     endian = "<" if header.format == "binary_little_endian" else ">"
@@ -568,7 +597,9 @@ def refuse_python_only_numbers(path: Path, data_offset: int) -> None:
             start = block.rfind(b"\n", 0, bad.start()) + 1
             end = block.find(b"\n", bad.start())
             shown = block[start:end if end >= 0 else len(block)].decode("utf-8", "replace")
-            raise _fail(path, f"data line {line} of the ASCII body ({clipped(shown, 80)!r}) holds {bad.group().decode('latin-1')!r}, "
+            # the character, not its first byte: an Arabic digit's lead byte read as Latin-1 showed as 'Ù'
+            char = next((c for c in shown if c == "_" or ord(c) > 127), bad.group().decode("latin-1"))
+            raise _fail(path, f"data line {line} of the ASCII body ({clipped(shown, 80)!r}) holds {char!r}, "
                               "which no PLY number has (Python would read 1_5 as 15)")
 
 

@@ -114,12 +114,13 @@ def scene_format(path: Path) -> str:
     if head[:2] == GZIP_MAGIC and _inflated_start(head, 4).startswith(b"ply"):
         raise InputError(path, f"is a gzip-compressed PLY file: decompress it first (gunzip -k); drsplat reads {SCENE_FILES_READ}")
     if path.suffix.lower() == ".splat":
-        if head[:2] == GZIP_MAGIC and not _holds_spz_header(head) and gzip_damage(path.read_bytes()) is None:
+        holds_spz = _holds_spz_header(head)
+        if head[:2] == GZIP_MAGIC and not holds_spz and gzip_damage(path.read_bytes()) is None:
             # a whole gzip stream whose checksum holds is no .splat a trainer wrote (its first float starting 1f 8b
             # would not inflate): read as records, a gzipped .splat gave ~1,000 Gaussians of ±3e38
             raise InputError(path, "is a gzip-compressed file: decompress it first (gunzip -k, after naming it .splat.gz); drsplat "
                                    f"reads {SCENE_FILES_READ}")
-        if not _holds_spz_header(head):
+        if not holds_spz:
             return "splat"
         log.warning("%s: is named .splat but holds an .spz file (its first bytes are an spz header); read as .spz", path)
         return "spz"
@@ -517,6 +518,9 @@ def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes]
     if int(header["magic"]) != NGSP_MAGIC:
         raise InputError(path, "is a gzip file without the spz header (magic 'NGSP'): not an .spz file", field="magic")
     version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
+    if version >= 4 and gzip_damage(data) is None:  # version 4 is no gzip stream: read as one, it was called "truncated"
+        raise InputError(path, f"is a gzip-compressed spz version {version} file (version 4 is a plain 'NGSP' file of zstd "
+                               "streams, not a gzip stream): decompress it first (gunzip -k, after naming it .spz.gz)", field="gzip")
     try:
         _check_spz_header(path, version, degree, int(header["fractional_bits"]))
     except InputError:

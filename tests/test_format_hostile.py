@@ -1,6 +1,7 @@
 """Scene files that are damaged in ways a reader could take for values (round 53a, docs/hostile.md):
 signalling NaNs, Python-only numbers in an ASCII PLY, compressed-PLY chunk ranges that are inverted or
-integer-typed, a gzipped PLY named .splat, an spz stream whose checksum fails, list properties."""
+integer-typed, a gzipped PLY named .splat, an spz stream whose checksum fails, list properties; and round 53a's
+leftovers: a header line outside ASCII, two format lines, a gzipped version-4 spz."""
 
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ def test_an_ascii_ply_number_with_an_underscore_or_a_non_ascii_digit_is_refused(
     head, body = text.split(b"end_header\n", 1)
     lines = body.split(b"\n")
     assert load_ply(tmp_path / "a.ply").num_gaussians == 3  # the file as written reads
-    for bad, shown in ((b"1_5", "'_'"), ("\u0661\u0665".encode(), "'\\xd9'")):
+    for bad, shown in ((b"1_5", "'_'"), ("\u0661\u0665".encode(), "'\u0661'")):  # the digit, not its lead byte as Latin-1
         fields = lines[1].split(b" ")
         fields[0] = bad
         damaged = head + b"end_header\n" + b"\n".join([lines[0], b" ".join(fields), *lines[2:]])
@@ -163,3 +164,51 @@ def test_an_ascii_value_beyond_float32_is_counted_without_numpys_overflow_warnin
     with caplog.at_level(logging.WARNING):
         scene, _ = load_without_numpy_warnings(tmp_path / "big.ply")
     assert scene.num_gaussians == 1 and "1 rows with infinite" in caplog.text
+
+
+def test_a_header_comment_outside_ascii_is_dropped_with_a_warning_and_another_line_is_named(tmp_path, caplog):
+    """A UTF-8 comment ("Made by Jörg") refused the whole file as "a header that is not ASCII text", naming no line
+    (splat-transform reads it). A binary PLY now reads with the comment dropped and said; an ASCII PLY (parsed by
+    plyfile, which refuses such a header) and a non-comment line are one error naming the line and character."""
+    scene = small_scene(5)
+    save_ply(scene, tmp_path / "a.ply")
+    data = (tmp_path / "a.ply").read_bytes()
+    fmt = b"format binary_little_endian 1.0\n"
+    (tmp_path / "u.ply").write_bytes(data.replace(fmt, fmt + "comment Made by Jörg\n".encode(), 1))
+    with caplog.at_level(logging.WARNING):
+        loaded = load_ply(tmp_path / "u.ply")
+    np.testing.assert_array_equal(loaded.means, scene.means)
+    assert not any("Jörg" in c for c in loaded.comments)
+    assert "u.ply: header line 3 ('comment Made by Jörg') holds 'ö', outside ASCII; the comment is dropped" in caplog.text
+    (tmp_path / "p.ply").write_bytes(data.replace(b"property float x", "property float é".encode(), 1))
+    with pytest.raises(InputError, match=r"p.ply: header line \d+ \('property float é'\) holds 'é', outside ASCII"):
+        load_ply(tmp_path / "p.ply")
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(tmp_path / "a.ply"))
+    ply.text = True
+    ply.write(str(tmp_path / "t.ply"))
+    text = (tmp_path / "t.ply").read_bytes()
+    (tmp_path / "t.ply").write_bytes(text.replace(b"format ascii 1.0\n", "format ascii 1.0\ncomment Jörg\n".encode(), 1))
+    with pytest.raises(InputError, match=r"t.ply: header line 3 \('comment Jörg'\) holds 'ö', outside ASCII; an ASCII PLY's header"):
+        load_ply(tmp_path / "t.ply")
+
+
+def test_two_format_lines_are_refused(tmp_path):
+    """The second format line won over the first (plyfile's reading); a hand parser would take the first. Neither is right."""
+    save_ply(small_scene(5), tmp_path / "a.ply")
+    data = (tmp_path / "a.ply").read_bytes()
+    (tmp_path / "f.ply").write_bytes(data.replace(b"element vertex", b"format ascii 1.0\nelement vertex", 1))
+    with pytest.raises(InputError, match=r"f.ply: has two 'format' lines \(header lines 2 and 3\)"):
+        load_ply(tmp_path / "f.ply")
+
+
+def test_a_gzipped_version_4_spz_is_named_not_called_truncated(tmp_path):
+    """Version 4 is a plain file of zstd streams; gzipped, it was read as a version 1-3 stream and called "truncated"."""
+    scene = small_scene()
+    save_scene(scene, tmp_path / "v4.spz", spz_version=4)
+    assert load_scene_report(tmp_path / "v4.spz")[0].num_gaussians == 300
+    (tmp_path / "g.spz").write_bytes(gzip.compress((tmp_path / "v4.spz").read_bytes(), mtime=0))
+    with pytest.raises(InputError) as err:
+        load_scene_report(tmp_path / "g.spz")
+    assert "is a gzip-compressed spz version 4 file" in str(err.value) and "truncated" not in str(err.value), err.value
