@@ -983,6 +983,38 @@ def test_a_failed_second_output_takes_the_first_with_it(tmp_path, world, capsys)
     assert Path("/dev/full").is_char_device()
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_a_codebook_written_to_a_full_disk_is_one_error(tmp_path, world, capsys):
+    """Round 54: `pq train --out /dev/full` was a traceback (faiss's writer raises RuntimeError, not OSError).
+    The codebook is serialised in memory and written by drsplat's own atomic writer; the bytes are faiss's."""
+    code, err = run_cli(["pq", "train", "--features", world["ds"] / "features", "--out", "/dev/full", "--m", "8"], capsys)
+    assert code == 1 and "Traceback" not in err and error_lines(err) == ["ERROR: /dev/full: the disk is full (no space left on the device)"], err
+    code, err = run_cli(["pq", "train", "--features", world["ds"] / "features", "--out", tmp_path / "c.faiss", "--m", "8"], capsys)
+    assert code == 0, err
+    import faiss
+
+    faiss.write_index(faiss.read_index(str(tmp_path / "c.faiss")), str(tmp_path / "again.faiss"))
+    assert (tmp_path / "c.faiss").read_bytes() == (tmp_path / "again.faiss").read_bytes()
+
+
+def test_clip_flags_that_no_text_reads_are_said(tmp_path, world, capsys):
+    """Round 54: `--clip-checkpoint MISSING.pt` (or --clip-model, --pretrained, --clip-config) beside embedding queries was
+    accepted without a word: no text encoder is loaded, so the flag is never read. Now one warning names the flags."""
+    ds = world["ds"]
+    runs = {
+        "query": ["query", world["reg"], "--embedding", world["q"], "--top", "1", "--clip-checkpoint", tmp_path / "missing.pt"],
+        "segment": ["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "l.npy", "--clip-model", "ViT-X"],
+        "eval": ["eval", "iou", world["reg"], "--synthetic", ds, "--task", "seg", "--weighting", "count", "--pretrained", "x",
+                 "--clip-config", tmp_path / "none.json"],
+    }
+    flags = {"query": "--clip-checkpoint", "segment": "--clip-model", "eval": "--pretrained, --clip-config"}
+    for name, argv in runs.items():
+        code, err = run_cli(argv, capsys)
+        assert code == 0 and f"{flags[name]} not used: every query, label and negative came as embeddings" in err, (name, err)
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--top", "1"], capsys)
+    assert code == 0 and "not used" not in err, err
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

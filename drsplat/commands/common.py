@@ -261,6 +261,20 @@ def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = 
     )
 
 
+CLIP_FLAGS = (("--clip-checkpoint", "clip_checkpoint"), ("--clip-model", "clip_model"), ("--pretrained", "pretrained"),
+              ("--clip-config", "clip_config"))
+
+
+def warn_unused_clip_flags(args: argparse.Namespace, encoder: object | None) -> None:
+    """One warning naming the CLIP flags given when no text encoder was loaded (encoder None): every
+    query, label and negative came as embeddings, so the flags were not read. Round 54: a
+    `--clip-checkpoint` that does not exist passed without a word."""
+    given = [flag for flag, dest in CLIP_FLAGS if getattr(args, dest, None) is not None]
+    if encoder is None and given:
+        log.warning("%s not used: every query, label and negative came as embeddings (or Gaussian ids), so no CLIP text "
+                    "encoder was loaded", ", ".join(given))
+
+
 def checked_phrases(flag: str, text: str) -> list[str]:
     """The comma-separated phrases of `flag` (`--labels`, `--negatives`), stripped, or one UsageError
     naming the first entry that `name_problem` finds (empty: `a,,b`, a trailing comma; a hidden

@@ -183,7 +183,7 @@ def _add_lerf(sub) -> None:
 def label_embeddings(args: argparse.Namespace, field, names: list[str], negatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """([L, D] the labels' query embeddings, [C, D] the relevancy's negatives or None): from
     --text-embeddings / --negative-embeddings, else through the CLIP text encoder."""
-    from drsplat.commands.common import load_encoder, oracle_flag
+    from drsplat.commands.common import load_encoder, oracle_flag, warn_unused_clip_flags
     from drsplat.query import load_query_embeddings, negative_embeddings, text_embeddings
 
     encoder = None
@@ -195,11 +195,13 @@ def label_embeddings(args: argparse.Namespace, field, names: list[str], negative
         encoder = load_encoder(args, field, oracle_flag("--text-embeddings"))
         queries = text_embeddings(encoder, names, field)
     if not negatives:
+        warn_unused_clip_flags(args, encoder)
         return queries, None
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
     if encoder is None and extra is None:
         encoder = load_encoder(args, field, "--negative-embeddings ((C, D) rows standing for the canonical phrases, which "
                                             "relevancy needs)")
+    warn_unused_clip_flags(args, encoder)
     return queries, negative_embeddings(encoder, field, [], extra)
 
 

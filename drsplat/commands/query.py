@@ -80,6 +80,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     device = common.scoring_device(args)
     lut_bits = common.lut_bits_for(args, field, device)
     if not args.relevancy:
+        common.warn_unused_clip_flags(args, encoder)
         return cosine(field, queries, lut_bits=lut_bits, device=device)
     user = [] if args.negatives is None else checked_phrases("--negatives", args.negatives)
     extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
@@ -91,6 +92,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
                                "a CLIP text encoder, and this scene's features are synthetic oracle embeddings; pass --negative-embeddings "
                                "N.npy (rows of the synthetic dataset's text_embeddings.npy)" + (" instead of --negatives" if user else ""))
         encoder = (encoder_factory or common.load_encoder)(args, field)
+    common.warn_unused_clip_flags(args, encoder)
     return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits, device=device)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from drsplat.defaults import UNIT_TOLERANCE
 from drsplat.errors import InputError
-from drsplat.utils import atomic_path
+from drsplat.utils import write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -120,10 +120,9 @@ class Codebook:
         return np.ascontiguousarray(np.einsum("kd,ld->kl", np.asarray(queries, np.float32), self.coarse), dtype=np.float32)
 
     def save(self, path: str | Path) -> None:
-        faiss = _faiss()
-
-        with atomic_path(path) as tmp:
-            faiss.write_index(self.index, str(tmp))
+        """Write the faiss index atomically. Serialised in memory, then written by Python: faiss's own
+        writer raised a RuntimeError (a traceback) on a full disk or /dev/full, not an OSError."""
+        write_bytes_atomic(path, _faiss().serialize_index(self.index).tobytes())
 
 
 def codebook_from_index(index: object, path: Path | None = None) -> Codebook:
