@@ -1015,6 +1015,17 @@ def test_clip_flags_that_no_text_reads_are_said(tmp_path, world, capsys):
     assert code == 0 and "not used" not in err, err
 
 
+def test_eval_refuses_negative_embeddings_with_cosine_scores(tmp_path, world, capsys):
+    """Round 54: `eval iou --negative-embeddings N.npy` without --relevancy exited 0 with cosine scores, the file never
+    read (a missing one too); `query` refuses the same. With --relevancy the same file is read."""
+    base = ["eval", "iou", world["reg"], "--synthetic", world["ds"], "--task", "seg", "--weighting", "count"]
+    code, err = run_cli([*base, "--negative-embeddings", tmp_path / "missing.npy"], capsys)
+    assert code == 2 and error_lines(err) == ["ERROR: --negative-embeddings applies to relevancy scores only (cosine scores have "
+                                              "no negatives): add --relevancy or drop it"], err
+    code, err = run_cli([*base, "--negative-embeddings", world["L"], "--relevancy"], capsys)
+    assert code == 0, err
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

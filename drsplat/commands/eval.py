@@ -255,6 +255,15 @@ def check_metric_flags(args: argparse.Namespace) -> None:
     """--taus and --weighting checked before any file is read (the grid and the list are parsed once here)."""
     parse_taus(args.taus)
     args.weighting = parse_weightings(args.weighting)
+    check_negatives_flag(args, args.relevancy)
+
+
+def check_negatives_flag(args: argparse.Namespace, relevancy: bool) -> None:
+    """UsageError for --negative-embeddings where the scores are cosine (it was ignored without a word,
+    round 54; `drsplat query` refuses it so)."""
+    if args.negative_embeddings is not None and not relevancy:
+        raise UsageError("--negative-embeddings applies to relevancy scores only (cosine scores have no negatives): add "
+                         "--relevancy or drop it")
 
 
 def cloud_inputs(flag: str, cloud: Path | None) -> dict[str, Path]:
@@ -609,13 +618,15 @@ PROTOCOL_FLAGS = {"opengaussian": (("threshold", "--threshold"), ("alpha_thresho
 
 
 def check_protocol_flags(args: argparse.Namespace) -> None:
-    """UsageError for a flag of the other `eval lerf` protocol (it would be ignored without a word)."""
+    """UsageError for a flag of the other `eval lerf` protocol (it would be ignored without a word), and
+    for --negative-embeddings with cosine scores (LangSplat's protocol always scores relevancy)."""
     for protocol, flags in PROTOCOL_FLAGS.items():
         given = [flag for name, flag in flags if getattr(args, name) is not None]
         if given and protocol != args.protocol:
             raise UsageError(f"{', '.join(given)} belong{'s' if len(given) == 1 else ''} to --protocol {protocol}, not "
                              f"{args.protocol} (OpenGaussian's protocol thresholds the Gaussians' scores and their rendered "
                              "occupancy; LangSplat's the relevancy map of the rendered features)")
+    check_negatives_flag(args, args.relevancy or args.protocol == "langsplat")
 
 
 def require_scored_pairs(args: argparse.Namespace, report) -> None:
