@@ -1026,6 +1026,24 @@ def test_eval_refuses_negative_embeddings_with_cosine_scores(tmp_path, world, ca
     assert code == 0, err
 
 
+@pytest.mark.parametrize("case", ["query_scene", "query_scores", "register_features", "segment_names", "synth_out"])
+def test_an_empty_or_blank_path_is_a_usage_error_naming_the_argument(tmp_path, world, capsys, case):
+    """Round 54: `query ''` read Path('') = Path('.') as the registered PLY and ended in a traceback (ValueError: has an
+    empty name); other empty paths were read as the current folder. Every `type=Path` argument now refuses them."""
+    ds, reg, q = world["ds"], world["reg"], world["q"]
+    argv, name, value = {
+        "query_scene": (["query", "", "--embedding", q], "REGISTERED.ply", ""),
+        "query_scores": (["query", reg, "--embedding", q, "--scores", " "], "--scores", " "),
+        "register_features": (["register", ds / "scene.ply", "--source", ds, "--features", "", "--out", tmp_path / "r.ply"], "--features", ""),
+        "segment_names": (["segment", reg, "--embeddings", world["L"], "--names", "", "--out", tmp_path / "l.npy"], "--names", ""),
+        "synth_out": (["synth", "  "], "out_dir", "  "),
+    }[case]
+    code, err = run_cli(argv, capsys)
+    why = "is empty" if not value else "is only blank space"
+    assert code == 2 and f"error: argument {name}: {value!r} {why}: give a path" in err, err
+    assert not (tmp_path / "r.ply").exists() and not (tmp_path / "l.npy").exists()
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

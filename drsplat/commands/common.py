@@ -77,6 +77,19 @@ class ArgumentParser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = NEGATIVE_NUMBER
+        self.register("type", Path, path_value)  # every `type=Path` argument is read by path_value
+
+
+def path_value(text: str) -> Path:
+    """argparse type of a path (what `type=Path` means on drsplat's parsers): an empty or blank value is
+    refused, since Path("") is Path(".") (round 54: `query ''` read the current folder as the PLY and
+    ended in a traceback)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is {'empty' if not text else 'only blank space'}: give a path")
+    return Path(text)
+
+
+path_value.__name__ = "path"
 
 
 def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:
@@ -138,7 +151,7 @@ def output_file(text: str) -> Path:
     (Path("newdir/") is Path("newdir"): the file would take the folder's name)."""
     if names_a_folder(text):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a path separator, so it names a folder; give a file name")
-    return Path(text)
+    return path_value(text)
 
 
 def threshold_value(text: str) -> str:
