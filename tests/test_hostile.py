@@ -1044,6 +1044,18 @@ def test_an_empty_or_blank_path_is_a_usage_error_naming_the_argument(tmp_path, w
     assert not (tmp_path / "r.ply").exists() and not (tmp_path / "l.npy").exists()
 
 
+def test_voxel_flags_without_the_voxel_iou_are_a_usage_error(world, capsys):
+    """Round 54: `eval iou --voxel-empty 1e21` (or --voxel-resolution) with the default --weighting volume,count exited 0,
+    the value never used."""
+    base = ["eval", "iou", world["reg"], "--synthetic", world["ds"], "--task", "seg"]
+    code, err = run_cli([*base, "--voxel-empty", "1e21"], capsys)
+    assert code == 2 and "ERROR: --voxel-empty applies to the voxel IoU only: add voxel to --weighting (now volume,count)" in err, err
+    code, err = run_cli([*base, "--voxel-resolution", "8", "--voxel-empty", "0.1", "--weighting", "count"], capsys)
+    assert code == 2 and "--voxel-resolution, --voxel-empty apply to the voxel IoU only" in err, err
+    code, err = run_cli([*base, "--voxel-resolution", "8", "--weighting", "voxel"], capsys)
+    assert code == 0, err
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

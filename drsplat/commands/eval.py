@@ -27,6 +27,8 @@ from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable
 log = logging.getLogger(__name__)
 
 WEIGHTINGS = ("volume", "count", "voxel")
+VOXEL_RESOLUTION = 96  # voxels along the longest side of the labelled region (`eval.metrics.evaluate_scene`'s default)
+VOXEL_EMPTY = 0.01  # α-mass below which a voxel is empty
 # the Mahalanobis radius of a vote: a point at r = 40 weighs exp(-800) = 0 in float64, so a larger radius
 # adds no Gaussian vote, only neighbour-search work (every point near every Gaussian at 1e308)
 MAX_RADIUS = 40.0
@@ -70,8 +72,10 @@ def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--weighting", default="volume,count", metavar="LIST",
                    help="comma-separated subset of volume (Dr. Splat), count (OpenGaussian), voxel; default volume,count")
     t.add_argument("--taus", default="0:1:0.01", metavar="START:STOP:STEP", help="localisation threshold grid (inclusive)")
-    t.add_argument("--voxel-resolution", type=int_range(1, 2048), default=96, help="voxels along the longest side of the labelled region")
-    t.add_argument("--voxel-empty", type=float_range(0.0, None), default=0.01, help="α-mass below which a voxel is empty")
+    t.add_argument("--voxel-resolution", type=int_range(1, 2048), default=None,
+                   help=f"voxels along the longest side of the labelled region (default {VOXEL_RESOLUTION}; --weighting voxel)")
+    t.add_argument("--voxel-empty", type=float_range(0.0, None), default=None,
+                   help=f"α-mass below which a voxel is empty (default {VOXEL_EMPTY}; --weighting voxel)")
     t.add_argument("--curve", action="store_true", help="print the whole localisation grid search")
     t.add_argument("--json", type=output_file, metavar="OUT.json", help="also write the full report (per label, curves) as JSON")
     t.add_argument("--original", type=Path, metavar="SCENE.ply",
@@ -256,6 +260,13 @@ def check_metric_flags(args: argparse.Namespace) -> None:
     parse_taus(args.taus)
     args.weighting = parse_weightings(args.weighting)
     check_negatives_flag(args, args.relevancy)
+    given = [flag for flag, name in (("--voxel-resolution", "voxel_resolution"), ("--voxel-empty", "voxel_empty"))
+             if getattr(args, name) is not None]
+    if given and "voxel" not in args.weighting:  # they were ignored without a word (round 54)
+        raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to the voxel IoU only: add voxel to "
+                         f"--weighting (now {','.join(args.weighting)}) or drop {'it' if len(given) == 1 else 'them'}")
+    args.voxel_resolution = VOXEL_RESOLUTION if args.voxel_resolution is None else args.voxel_resolution
+    args.voxel_empty = VOXEL_EMPTY if args.voxel_empty is None else args.voxel_empty
 
 
 def check_negatives_flag(args: argparse.Namespace, relevancy: bool) -> None:
