@@ -1027,9 +1027,10 @@ def test_eval_refuses_negative_embeddings_with_cosine_scores(tmp_path, world, ca
 
 
 @pytest.mark.parametrize("case", ["query_scene", "query_scores", "register_features", "segment_names", "synth_out"])
-def test_an_empty_or_blank_path_is_a_usage_error_naming_the_argument(tmp_path, world, capsys, case):
+def test_an_empty_or_blank_path_is_a_usage_error_naming_the_argument(tmp_path, world, capsys, case, monkeypatch):
     """Round 54: `query ''` read Path('') = Path('.') as the registered PLY and ended in a traceback (ValueError: has an
     empty name); other empty paths were read as the current folder. Every `type=Path` argument now refuses them."""
+    monkeypatch.chdir(tmp_path)  # where the old code wrote a blank-named output
     ds, reg, q = world["ds"], world["reg"], world["q"]
     argv, name, value = {
         "query_scene": (["query", "", "--embedding", q], "REGISTERED.ply", ""),
@@ -1054,6 +1055,18 @@ def test_voxel_flags_without_the_voxel_iou_are_a_usage_error(world, capsys):
     assert code == 2 and "--voxel-resolution, --voxel-empty apply to the voxel IoU only" in err, err
     code, err = run_cli([*base, "--voxel-resolution", "8", "--weighting", "voxel"], capsys)
     assert code == 0, err
+
+
+def test_list_flag_values_with_control_characters_are_shown_escaped(tmp_path, capsys):
+    """Round 54: `bench register --topks ESC[2J` printed the raw ESC (it cleared the screen) in "in '...'"; `eval ablate
+    --preset 'a<newline>b'` and `--out-dir` printed a raw newline (a forged second line)."""
+    touched = tmp_path / "a\nb"
+    touched.write_text("")
+    for argv in (["bench", "register", "--topks", "\x1b[2J"], ["eval", "ablate", "topk", "--preset", "a\nb", "--out-dir", tmp_path],
+                 ["eval", "ablate", "topk", "--out-dir", touched]):
+        code, err = run_cli(argv, capsys)
+        last = err.strip().splitlines()[-1]
+        assert code == 2 and "\x1b" not in err and ("a\\nb" in last or "\\x1b[2J" in last), (argv, err)
 
 
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):

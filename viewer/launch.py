@@ -18,7 +18,7 @@ from drsplat.cli import setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import Cancelled, DrsplatError, UsageError
+from drsplat.errors import Cancelled, DrsplatError, UsageError, shown_path
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.scene import load_ply
@@ -211,7 +211,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
                     "own colours", args.mode)
     render_screenshot(state, camera, args.screenshot)
-    log.info("wrote %s (%dx%d)", args.screenshot, camera.width, camera.height)
+    log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
 
 

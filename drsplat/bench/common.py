@@ -121,7 +121,7 @@ def int_list(item: Callable[[str], int]) -> Callable[[str], list[int]]:
         try:
             return [item(s.strip()) for s in items]
         except argparse.ArgumentTypeError as exc:
-            raise argparse.ArgumentTypeError(f"in '{text}': {exc}") from None
+            raise argparse.ArgumentTypeError(f"in {text!r}: {exc}") from None
 
     parse.__name__ = "integer list"
     return parse

@@ -937,7 +937,7 @@ def run(args: argparse.Namespace) -> int:
             print(text)
             if args.json is not None:
                 write_json(args.json, {**counts, "scene": name, "gaussians": scene.num_gaussians, "size": f"{width}x{height}", "topk": args.real_topk})
-                print(f"wrote {args.json}")
+                print(f"wrote {shown_path(args.json)}")
     elif not args.skip_real:
         if scene is None:
             print(f"skipped the real-scene table: {name} (pass --real SCENE.ply or --gaussians N)")

@@ -29,7 +29,7 @@ import numpy as np
 from drsplat.utils import CancelToken, atomic_path, cancel_on_signals, check_outputs_writable, json_text
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.cameras import RESOLUTION_DIVISORS, load_cameras, scale_cameras
-from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, segmentation_iou
 from drsplat.lang import build_field
@@ -645,7 +645,7 @@ def _modes(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
     modes = tuple(_list("--modes", text)) if text is not None else default
     bad = [m for m in modes if m not in AGGREGATE_MODES]
     if bad:
-        raise UsageError(f"--modes: unknown mode {', '.join(bad)} (modes: {', '.join(AGGREGATE_MODES)})")
+        raise UsageError(f"--modes: unknown mode {', '.join(map(repr, bad))} (modes: {', '.join(AGGREGATE_MODES)})")
     return modes
 
 
@@ -653,7 +653,7 @@ def _presets(text: str | None, several: bool) -> tuple[str, ...]:
     presets = tuple(_list("--preset", text)) if text is not None else (AGGREGATE_PRESETS if several else ("tiny",))
     bad = [p for p in presets if p not in PRESETS]
     if bad:
-        raise UsageError(f"--preset: unknown preset {', '.join(bad)} (presets: {', '.join(PRESETS)})")
+        raise UsageError(f"--preset: unknown preset {', '.join(map(repr, bad))} (presets: {', '.join(PRESETS)})")
     if not several and len(presets) > 1:
         raise UsageError(f"--preset {text!r}: this ablation takes one preset (only aggregate compares several)")
     return presets
@@ -692,10 +692,10 @@ def ablate_settings(args: argparse.Namespace) -> AblateSettings:
         settings.corruptions = tuple(_list("--corruptions", args.corruptions)) if args.corruptions is not None else ("own",)
         bad = [s for s in settings.sources if s is not None and s not in MASK_SOURCES]
         if bad:
-            raise UsageError(f"--mask-source: unknown {', '.join(bad)} (mask sources: {', '.join(MASK_SOURCES)})")
+            raise UsageError(f"--mask-source: unknown {', '.join(map(repr, bad))} (mask sources: {', '.join(MASK_SOURCES)})")
         bad = [c for c in settings.corruptions if c not in CORRUPTIONS]
         if bad:
-            raise UsageError(f"--corruptions: unknown {', '.join(bad)} (corruptions: {', '.join(CORRUPTIONS)})")
+            raise UsageError(f"--corruptions: unknown {', '.join(map(repr, bad))} (corruptions: {', '.join(CORRUPTIONS)})")
         refused = ([c for c in settings.corruptions if segmenter_corruption_error("segmenter", *CORRUPTIONS[c][1:])]
                    if "segmenter" in settings.sources else [])
         if refused:
@@ -736,7 +736,7 @@ def ablation_outputs(out_dir: Path, name: str) -> tuple[Path, Path]:
     their place or a read-only OUT_DIR would otherwise be found after minutes of registrations."""
     png, doc = out_dir / f"ablation_{name}.png", out_dir / f"ablation_{name}.json"
     if out_dir.exists() and not out_dir.is_dir():
-        raise UsageError(f"--out-dir {out_dir}: is a file, not a folder")
+        raise UsageError(f"--out-dir {shown_path(out_dir)}: is a file, not a folder")
     check_outputs_writable(png, doc)
     return png, doc
 
@@ -750,7 +750,7 @@ def run_ablate(args: argparse.Namespace) -> int:
     plot(result, png)
     with atomic_path(doc) as tmp:
         tmp.write_text(json_text(result.to_dict()) + "\n")
-    log.info("wrote %s and %s", png, doc)
+    log.info("wrote %s and %s", shown_path(png), shown_path(doc))
     return 0
 
 
