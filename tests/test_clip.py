@@ -217,8 +217,20 @@ def test_weights_in_the_hub_cache_are_used_offline(monkeypatch, tmp_path):
 
 
 def test_unknown_tag_names_the_known_ones():
-    with pytest.raises(DrsplatError, match="unknown OpenCLIP pretrained tag 'nope' for model ViT-B-16 .*laion2b_s34b_b88k"):
+    with pytest.raises(DrsplatError, match="unknown OpenCLIP pretrained tag 'nope' for model 'ViT-B-16' .*laion2b_s34b_b88k"):
         resolve_pretrained_weights("ViT-B-16", "nope")
+
+
+def test_an_unknown_model_or_tag_with_a_newline_is_shown_escaped():
+    """Round 54: `--clip-model $'a\\nb'` printed a raw newline inside the error (a forged second line)."""
+    from drsplat.features.clip import ClipEncoder
+
+    with pytest.raises(DrsplatError) as err:
+        ClipEncoder(model="a\nb", device="cpu")
+    assert "\n" not in str(err.value) and "'a\\nb'" in str(err.value), err.value
+    with pytest.raises(DrsplatError) as err:
+        resolve_pretrained_weights("ViT-B-16", "x\ny")
+    assert "\n" not in str(err.value) and "'x\\ny'" in str(err.value), err.value
 
 
 def test_file_label_asks_for_the_checkpoint():

@@ -79,7 +79,7 @@ class ClipEncoder:
         import torch
 
         if model not in open_clip.list_models():
-            raise DrsplatError(f"unknown OpenCLIP model '{model}' (see open_clip.list_models()); an architecture open_clip does not ship "
+            raise DrsplatError(f"unknown OpenCLIP model {model!r} (see open_clip.list_models()); an architecture open_clip does not ship "
                                "needs its model config: --clip-config CONFIG.json")
         self.device = resolve_device(device)
         self.dtype = torch.float16 if self.device == "cuda" else torch.float32

@@ -95,7 +95,7 @@ def resolve_pretrained_weights(model: str, pretrained: str) -> str:
     cfg = open_clip.get_pretrained_cfg(model, pretrained)
     if not cfg:
         tags = ", ".join(open_clip.list_pretrained_tags_by_model(model)) or "none"
-        raise DrsplatError(f"unknown OpenCLIP pretrained tag '{pretrained}' for model {model} (known tags: {tags}); or pass --clip-checkpoint PATH")
+        raise DrsplatError(f"unknown OpenCLIP pretrained tag {pretrained!r} for model {model!r} (known tags: {tags}); or pass --clip-checkpoint PATH")
     cache_dir = hf_cache_dir()
     hub = cfg.get("hf_hub", "")
     if hub:
