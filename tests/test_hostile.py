@@ -1063,10 +1063,11 @@ def test_list_flag_values_with_control_characters_are_shown_escaped(tmp_path, ca
     touched = tmp_path / "a\nb"
     touched.write_text("")
     for argv in (["bench", "register", "--topks", "\x1b[2J"], ["eval", "ablate", "topk", "--preset", "a\nb", "--out-dir", tmp_path],
-                 ["eval", "ablate", "topk", "--out-dir", touched]):
+                 ["eval", "ablate", "topk", "--out-dir", touched], ["bench", "kernel", "--size", "\x1b[2J"],
+                 ["bench", "eval", "--gaussians", "1\n2"]):
         code, err = run_cli(argv, capsys)
         last = err.strip().splitlines()[-1]
-        assert code == 2 and "\x1b" not in err and ("a\\nb" in last or "\\x1b[2J" in last), (argv, err)
+        assert code == 2 and "\x1b" not in err and any(shown in last for shown in ("a\\nb", "1\\n2", "\\x1b[2J", "\\u001b[2J")), (argv, err)
 
 
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):

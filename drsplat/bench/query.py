@@ -19,7 +19,7 @@ import numpy as np
 
 from drsplat.commands.common import int_range, output_file, positive_int
 from drsplat.bench.common import choice_list, count_arg, count_list, format_table, guard_bench_outputs, machine_line, median_seconds, peak_rss_mb
-from drsplat.errors import DrsplatError, InputError, UsageError
+from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.lang import (PQ_KSUB, Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores,
                           lut_scores_blocked, train_codebook)
 from drsplat.query import embedding_row_problems, unit_rows
@@ -510,5 +510,5 @@ def run(args: argparse.Namespace) -> int:
         print(text_query_table(official, negatives, TEXT_NEGATIVES, TEXT_TABLE_N, args.seed, args.repeats))
     print(machine_line())
     plot(rows, args.plot)
-    print(f"plot: {args.plot}")
+    print(f"plot: {shown_path(args.plot)}")
     return 0

@@ -21,7 +21,7 @@ import numpy as np
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
 from drsplat.features.masks.base import LEVELS
-from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character
+from drsplat.errors import DrsplatError, InputError, UsageError, escape_hidden, hidden_character
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
@@ -78,6 +78,12 @@ class ArgumentParser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = NEGATIVE_NUMBER
         self.register("type", Path, path_value)  # every `type=Path` argument is read by path_value
+
+    def error(self, message: str):
+        """argparse's usage error, with the characters a terminal would not show as themselves escaped,
+        newlines included: a type's error quotes the value as given (round 54: `--topks ESC[2J` cleared
+        the screen; a newline forged a line)."""
+        super().error(escape_hidden(message).replace("\n", "\\n"))
 
 
 def path_value(text: str) -> Path:
