@@ -184,7 +184,7 @@ def test_ablate_output_that_is_a_folder_is_found_first(tmp_path, capsys):
     assert not (tmp_path / "datasets").exists()
 
 
-@pytest.mark.parametrize("taus", ["1e-7:2e-7:1e-8", "0:1e308:1e304"])
+@pytest.mark.parametrize("taus", ["1e-7:2e-7:1e-8", "0:1e308:1e304", "1e308:1.7e308:1e308"])  # the last was a traceback (round 54)
 def test_taus_too_fine_or_too_large_is_a_usage_error(pq, taus, capsys):
     assert main(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--taus", taus]) == 2
     assert "--taus" in capsys.readouterr().err

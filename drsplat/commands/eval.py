@@ -238,8 +238,9 @@ def parse_taus(text: str) -> np.ndarray:
     if not np.isfinite(count) or count > MAX_TAUS:
         raise UsageError(f"--taus {text!r} is a grid of {count:.3g} thresholds; at most {MAX_TAUS} (use a larger STEP)")
     with np.errstate(over="ignore", invalid="ignore"):
-        grid = np.round(np.arange(start, stop + 0.5 * step, step), 6)
-    if not np.isfinite(grid).all():  # STOP + STEP/2 beyond float range
+        end = stop + 0.5 * step
+        grid = np.round(np.arange(start, end, step), 6) if np.isfinite(end) else None  # numpy's arange raises on an infinite end
+    if grid is None or not np.isfinite(grid).all():  # STOP + STEP/2 beyond float range (round 54: a traceback)
         raise UsageError(f"--taus {text!r}: the grid reaches beyond the range of floating-point numbers")
     return grid
 
