@@ -1070,6 +1070,18 @@ def test_list_flag_values_with_control_characters_are_shown_escaped(tmp_path, ca
         assert code == 2 and "\x1b" not in err and any(shown in last for shown in ("a\\nb", "1\\n2", "\\x1b[2J", "\\u001b[2J")), (argv, err)
 
 
+def test_an_array_output_named_as_another_file_type_is_refused(tmp_path, world, capsys):
+    """Round 54: `query --scores o.ply` wrote .npy bytes under a PLY name (exit 0) while `--out o.npy` was refused; the
+    arrays of query, segment and eval pseudolabels / scannet now refuse the names drsplat reads as other types."""
+    for argv, flag in ((["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / "o.ply"], "--scores"),
+                       (["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "l.json"], "--out")):
+        code, err = run_cli(argv, capsys)
+        assert code == 2 and f"argument {flag}:" in err and "this output is a .npy array" in err, err
+    assert not list(tmp_path.iterdir())
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / "o.npy"], capsys)
+    assert code == 0 and np.load(tmp_path / "o.npy").ndim == 1, err
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

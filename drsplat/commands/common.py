@@ -160,6 +160,19 @@ def output_file(text: str) -> Path:
     return path_value(text)
 
 
+OTHER_FILE_SUFFIXES = (".ply", ".splat", ".spz", ".faiss", ".json", ".png", ".jpg", ".jpeg")  # what drsplat and 3DGS tools read by name
+
+
+def npy_output_file(text: str) -> Path:
+    """argparse type of a .npy array to write (`output_file`): a name of another file type drsplat
+    writes or reads (`scores.ply`) is refused, since an array under it would be read as that type
+    (round 54: `query --scores o.ply` wrote .npy bytes as o.ply; `--out o.npy` was refused)."""
+    path = output_file(text)
+    if path.suffix.lower() in OTHER_FILE_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"{text!r}: this output is a .npy array; a {path.suffix} name would hold one (name it .npy)")
+    return path
+
+
 def threshold_value(text: str) -> str:
     """argparse type for --threshold: 'auto' or a finite number in [-1, 1] (cosine and relevancy range).
 

@@ -19,7 +19,6 @@ from drsplat.commands.common import (
     float_range,
     load_registered,
     lut_bits_for,
-    output_file,
     scoring_device,
     checked_phrases,
     table_stream,
@@ -59,7 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--min-score", type=float_range(-1.0, 1.0), default=None, help="Gaussians whose best cosine is below this get -1")
     add_lut_bits_argument(parser)
-    parser.add_argument("--out", type=output_file, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
+    parser.add_argument("--out", type=common.npy_output_file, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
     parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label: a PLY, or .splat / .spz / .compressed.ply by the name (see --format)")
     add_format_argument(parser, "--ply")
     add_clip_arguments(parser, scoring=True)
