@@ -1082,6 +1082,16 @@ def test_an_array_output_named_as_another_file_type_is_refused(tmp_path, world, 
     assert code == 0 and np.load(tmp_path / "o.npy").ndim == 1, err
 
 
+def test_an_ablation_refuses_a_features_folder_as_its_out_dir(world, capsys):
+    """Round 54: `eval ablate topk --out-dir FEATURES` wrote its plots and a whole datasets/ tree into a LangSplat
+    features folder (exit 0), which register and synth protect."""
+    features = world["ds"] / "features"
+    before = sorted(p.name for p in features.iterdir())
+    code, err = run_cli(["eval", "ablate", "topk", "--preset", "tiny", "--values", "1", "--out-dir", features], capsys)
+    assert code == 2 and "holds LangSplat feature files (a features folder); give a folder of its own" in err, err
+    assert sorted(p.name for p in features.iterdir()) == before
+
+
 def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
     from drsplat.utils import outputs_together, save_npy_atomic
 

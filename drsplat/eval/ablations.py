@@ -731,12 +731,21 @@ def _value_parser(ablation: str, presets: tuple[str, ...]):
     return int_range(1, MAX_TOPK)
 
 
+def _holds_feature_files(folder: Path) -> bool:
+    """Whether `folder` holds a file named like a LangSplat feature file or drsplat's features manifest."""
+    from drsplat.features.format import FEATURE_FILE_PATTERNS
+
+    return any(next(folder.glob(pattern), None) is not None for pattern in FEATURE_FILE_PATTERNS)
+
+
 def ablation_outputs(out_dir: Path, name: str) -> tuple[Path, Path]:
     """(PNG, JSON) an ablation writes, probed before the work (`check_output_writable`): a folder in
     their place or a read-only OUT_DIR would otherwise be found after minutes of registrations."""
     png, doc = out_dir / f"ablation_{name}.png", out_dir / f"ablation_{name}.json"
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out-dir {shown_path(out_dir)}: is a file, not a folder")
+    if out_dir.is_dir() and _holds_feature_files(out_dir):  # its datasets/ tree and plots would mix with a features folder (round 54)
+        raise UsageError(f"--out-dir {shown_path(out_dir)}: holds LangSplat feature files (a features folder); give a folder of its own")
     check_outputs_writable(png, doc)
     return png, doc
 
