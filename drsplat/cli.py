@@ -19,7 +19,7 @@ import threading
 
 from drsplat import __version__
 from drsplat.commands.common import ArgumentParser
-from drsplat.errors import INTERRUPTED_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
+from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
 from drsplat.utils import describe_os_error
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             parser = build_parser()
     except KeyboardInterrupt:
-        sys.stderr.write("drsplat: interrupted while starting; nothing was done\n")
+        sys.stderr.write(STARTING_NOTE)
         return 1
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # argparse's own parse_args would print the top level's usage for them

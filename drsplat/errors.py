@@ -73,6 +73,7 @@ class Cancelled(DrsplatError):
 # RESUMABLE_NOTE when its output folder holds finished images (its parser's `interrupted_note`);
 # `register` says itself whether it kept a checkpoint to resume from (Checkpoint.leave)
 INTERRUPTED_NOTE = "no partial output file was left"
+STARTING_NOTE = "drsplat: interrupted while starting; nothing was done\n"  # Ctrl-C before any command ran (drsplat.console)
 RESUMABLE_NOTE = f"{INTERRUPTED_NOTE}; what was finished is kept, and the same command resumes from it"
 
 

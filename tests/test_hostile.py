@@ -1267,10 +1267,20 @@ def test_an_interrupt_says_it_resumes_only_where_something_was_kept(tmp_path, mo
     assert not (tmp_path / "r.ply").exists()
 
 
-def _interrupted_at_import(where: str, interrupt: str) -> subprocess.CompletedProcess:
+def _console_script_entry() -> str:
+    """The `drsplat` console script's entry as pyproject.toml declares it ("module:function")."""
+    import re
+
+    return re.search(r'(?m)^drsplat = "([\w.]+:\w+)"', (ROOT / "pyproject.toml").read_text()).group(1)  # tomllib is 3.11+
+
+
+def _interrupted_at_import(where: str, interrupt: str, via_console_script: bool = False) -> subprocess.CompletedProcess:
     """Run `drsplat info --help` (or main.py --help for "viewer.launch") in a child process whose
     import of module `where` first runs the statement `interrupt` (an import hook: as deterministic as
-    a real signal is not)."""
+    a real signal is not); as `python -m drsplat`, or as the console script pip writes (it imports the
+    declared module and calls the function)."""
+    module, function = _console_script_entry().split(":")
+    start = (f"import {module}; {module}.{function}()" if via_console_script else 'runpy.run_module("drsplat", run_name="__main__")')
     hook = textwrap.dedent(f"""
         import builtins, importlib, os, runpy, signal, sys
         real_import, real_import_module = builtins.__import__, importlib.import_module
@@ -1289,7 +1299,7 @@ def _interrupted_at_import(where: str, interrupt: str) -> subprocess.CompletedPr
             runpy.run_path({str(ROOT / "main.py")!r}, run_name="__main__")
         else:
             sys.argv = ["drsplat", "info", "--help"]
-            runpy.run_module("drsplat", run_name="__main__")
+            {start}
     """)
     return subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
 
@@ -1305,6 +1315,13 @@ def test_ctrl_c_while_python_imports_is_one_line(where):
     """Ctrl-C before any command runs (Python still importing the command line, a command's module or
     the viewer): one line and exit 1, no traceback."""
     _assert_one_line_start_up_interrupt(_interrupted_at_import(where, "raise KeyboardInterrupt"))
+
+
+@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.common", "numpy"])
+def test_ctrl_c_while_the_console_script_imports_is_one_line(where):
+    """Round 54: the console script (`drsplat`, not `python -m drsplat`) imported drsplat.cli itself, so a Ctrl-C in
+    its 1-4 s of imports (numpy, every command) was a KeyboardInterrupt traceback of 16-41 lines, exit 130."""
+    _assert_one_line_start_up_interrupt(_interrupted_at_import(where, "raise KeyboardInterrupt", via_console_script=True))
 
 
 @pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register"])

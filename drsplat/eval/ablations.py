@@ -35,7 +35,7 @@ from drsplat.eval.metrics import argmax_labels, evaluate_scene, scene_weights, s
 from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
-from drsplat.features.format import read_manifest
+from drsplat.features.format import FEATURE_FILE_PATTERNS, read_manifest
 from drsplat.commands.common import int_range, seed_int
 from drsplat.defaults import MAX_TOPK
 from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, segmenter_corruption_error, write_dataset
@@ -733,8 +733,6 @@ def _value_parser(ablation: str, presets: tuple[str, ...]):
 
 def _holds_feature_files(folder: Path) -> bool:
     """Whether `folder` holds a file named like a LangSplat feature file or drsplat's features manifest."""
-    from drsplat.features.format import FEATURE_FILE_PATTERNS
-
     return any(next(folder.glob(pattern), None) is not None for pattern in FEATURE_FILE_PATTERNS)
 
 

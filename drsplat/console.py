@@ -1,0 +1,25 @@
+"""The `drsplat` console script's entry: imports nothing heavy before it can answer Ctrl-C.
+
+The console script (pyproject's `drsplat = "drsplat.console:entry"`) and `python -m drsplat` both
+start here. Importing `drsplat.cli` takes seconds on a busy machine (numpy and every command's module);
+a Ctrl-C or SIGTERM then printed a KeyboardInterrupt traceback of 16-41 lines (exit 130) when the
+console script imported `drsplat.cli` itself (round 54).
+"""
+
+import signal
+import sys
+
+from drsplat.errors import STARTING_NOTE
+
+
+def entry() -> None:
+    """SIGTERM while Python imports the command line is Ctrl-C there: one line, exit 1. Python's own
+    handler, not drsplat.cli's context manager: that is the import it guards; `drsplat.cli.main`
+    takes over with it before it builds the parser."""
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        from drsplat.cli import entry as cli_entry  # the slow import this handler guards
+    except KeyboardInterrupt:  # Ctrl-C while Python imports the command line: before any command ran
+        sys.stderr.write(STARTING_NOTE)
+        raise SystemExit(1) from None
+    cli_entry()
