@@ -1334,9 +1334,9 @@ def note_images_larger_than_cameras(kind: str, found: Path, cameras: list[Camera
         return
     for times in IMAGE_MULTIPLES:
         if abs(size[0] - times * camera.width) <= times / 2 and abs(size[1] - times * camera.height) <= times / 2:
-            log.info("%s: the images are %dx their cameras (e.g. %s is %dx%d, its camera %dx%d): they are read at the cameras' size, as 3DGS "
-                     "trains with -r %d; `--resolution %d` reads them at their own size", camera_file(kind, found), times, camera.image_path.name,
-                     size[0], size[1], camera.width, camera.height, times, size[0])
+            log.info("%s: the first image is %dx its camera (%s is %dx%d, its camera %dx%d): the views are read at the cameras' size, as "
+                     "3DGS trains with -r %d; where the images are all so, `--resolution %d` reads them at their own size", camera_file(kind, found),
+                     times, camera.image_path.name, size[0], size[1], camera.width, camera.height, times, size[0])
             return
 
 
@@ -1477,13 +1477,14 @@ def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
         out.append(c.scaled(scale) if scale != 1.0 else c)
         if scale > 1.0:
             upscaled.append((c, out[-1], scale))
-    if upscaled:
-        c, big, scale = max(upscaled, key=lambda u: u[2])
-        if image_holds(c, big.width, big.height):  # cameras of downscaled images read at the files' size: detail gained, not invented
-            return out
-        log.warning("resolution %g upscales %d of %d views (the most: %dx%d to %dx%d, %.3gx); their images and masks hold no more "
-                    "detail than their own size, so the larger views only cost time and memory (-1 keeps their size)",
-                    resolution, len(upscaled), len(cameras), c.width, c.height, big.width, big.height, scale)
+    # cameras of downscaled images read at the files' size gain detail; the others' is invented. Each view's own image
+    # is asked (round 54: only the most-scaled one was, so 15 of 16 upscaled views passed unsaid)
+    invented = [u for u in upscaled if not image_holds(u[0], u[1].width, u[1].height)]
+    if invented:
+        c, big, scale = max(invented, key=lambda u: u[2])
+        log.warning("resolution %g upscales %d of %d views beyond their images (the most: %dx%d to %dx%d, %.3gx); their images and masks "
+                    "hold no more detail than their own size, so the larger views only cost time and memory (-1 keeps their size)",
+                    resolution, len(invented), len(cameras), c.width, c.height, big.width, big.height, scale)
     return out
 
 

@@ -1202,15 +1202,31 @@ def test_colmap_cameras_of_half_the_images_size_say_at_which_size_they_are_read(
     (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 32 24 25 25 16 12\n")
     with caplog.at_level(logging.INFO):
         assert {(c.width, c.height) for c in load_cameras(root)} == {(32, 24)}
-    said = _warnings(caplog, "their cameras")
-    assert said == [f"{root / 'sparse' / '0' / 'cameras.txt'}: the images are 2x their cameras (e.g. a.png is 64x48, its camera 32x24): they "
-                    "are read at the cameras' size, as 3DGS trains with -r 2; `--resolution 64` reads them at their own size"], said
+    said = _warnings(caplog, "its camera")
+    assert said == [f"{root / 'sparse' / '0' / 'cameras.txt'}: the first image is 2x its camera (a.png is 64x48, its camera 32x24): the views "
+                    "are read at the cameras' size, as 3DGS trains with -r 2; where the images are all so, `--resolution 64` reads them at "
+                    "their own size"], said
     assert not _warnings(caplog, "principal point")
     caplog.clear()
     with caplog.at_level(logging.INFO):  # the advice taken: the images' own size, and no "upscales ... no more detail" warning against it
         assert {(c.width, c.height) for c in load_cameras(root, resolution=64)} == {(64, 48)}
     assert not _warnings(caplog, "upscales"), caplog.text
-    assert not _warnings(caplog, "their cameras"), caplog.text  # a --resolution of the user's own: the note's advice is not repeated
+    assert not _warnings(caplog, "its camera"), caplog.text  # a --resolution of the user's own: the note's advice is not repeated
+
+
+def test_a_resolution_that_only_some_images_hold_warns_for_the_others(tmp_path, caplog):
+    """Round 54: with one image at 2x its camera and the others at 1x, `--resolution 64` upscaled every other view 2x without
+    a word: only the most-scaled view's image was asked, and it (the first) held the size. Each view's own image is asked."""
+    from PIL import Image
+
+    root = _tiny_colmap(tmp_path / "colmap", ("a.png", "b.png", "c.png"))
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 32 24 25 25 16 12\n")
+    for name in ("b.png", "c.png"):
+        Image.new("RGB", (32, 24)).save(root / "images" / name)
+    with caplog.at_level(logging.WARNING):
+        assert {(c.width, c.height) for c in load_cameras(root, resolution=64)} == {(64, 48)}
+    said = _warnings(caplog, "upscales")
+    assert len(said) == 1 and "resolution 64 upscales 2 of 3 views beyond their images" in said[0], caplog.text
 
 
 def test_a_colmap_dataset_without_images_but_images_2_names_the_path_it_read_and_the_way_out(tmp_path):
