@@ -912,8 +912,14 @@ def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
         c2w = np.asarray(rows, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
         raise InputError(path, f"frame {i} has no valid 4x4 matrix of numbers", field="transform_matrix") from None
-    if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-        raise InputError(path, f"frame {i} has a transform_matrix of shape {c2w.shape} or with non-finite values", field="transform_matrix")
+    if c2w.shape != (4, 4):
+        shape = "x".join(map(str, c2w.shape))
+        raise InputError(path, f"frame {i} has a {shape} transform_matrix; expected 4x4 (a 3x4 pose needs its bottom row 0 0 0 1)",
+                         field="transform_matrix")
+    if not np.isfinite(c2w).all():  # one cause with its place (round 54: "of shape (4, 4) or with non-finite values")
+        r, c = (int(k) for k in np.argwhere(~np.isfinite(c2w))[0])
+        raise InputError(path, f"frame {i} has a non-finite value ({c2w[r, c]}) at row {r}, column {c} of its transform_matrix",
+                         field="transform_matrix")
     if np.abs(c2w[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
         raise InputError(path, f"frame {i} has the bottom row {c2w[3].tolist()} in its transform_matrix; expected [0, 0, 0, 1] "
                                "(a camera-to-world pose; a transposed matrix has its translation there)", field="transform_matrix")

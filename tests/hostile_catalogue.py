@@ -133,7 +133,10 @@ TRANSFORMS_CASES: dict[str, tuple[object, str]] = {
     "huge_width": ({"frames": [_frame(w=10**9)]}, "'w'"),
     "all_zero_matrix": ({"frames": [_frame(transform_matrix=np.zeros((4, 4)).tolist())]}, "transform_matrix"),
     "scaled_rotation": ({"frames": [_frame(transform_matrix=np.diag([3.0, 3.0, 3.0, 1.0]).tolist())]}, "rotation"),  # eye(4) * 3 is now a bottom-row error
-    "nan_translation": ({"frames": [_frame(transform_matrix=[[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]}, "transform_matrix"),
+    "nan_translation": ({"frames": [_frame(transform_matrix=[[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])]},
+                        "frame 0 has a non-finite value (nan) at row 0, column 3 of its transform_matrix"),  # round 54: was "of shape (4, 4) or with non-finite values"
+    "three_by_four_matrix": ({"frames": [_frame(transform_matrix=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])]},
+                             "frame 0 has a 3x4 transform_matrix; expected 4x4"),
     "matrix_of_strings": ({"frames": [_frame(transform_matrix=[["a"] * 4] * 4)]}, "transform_matrix"),
     "file_path_int": ({"frames": [_frame(file_path=7)]}, "file_path"),
     "bool_width": ({"frames": [_frame(w=True)]}, "'w'"),

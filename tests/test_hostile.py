@@ -1076,7 +1076,7 @@ def test_an_array_output_named_as_another_file_type_is_refused(tmp_path, world, 
     for argv, flag in ((["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / "o.ply"], "--scores"),
                        (["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "l.json"], "--out")):
         code, err = run_cli(argv, capsys)
-        assert code == 2 and f"argument {flag}:" in err and "this output is a .npy array" in err, err
+        assert code == 2 and f"ERROR: {flag} " in err and "this output is a .npy array" in err, err
     assert not list(tmp_path.iterdir())
     code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", tmp_path / "o.npy"], capsys)
     assert code == 0 and np.load(tmp_path / "o.npy").ndim == 1, err

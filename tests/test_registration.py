@@ -636,7 +636,7 @@ def test_cli_first_ctrl_c_stops_cleanly_and_the_rerun_resumes(tiny, tmp_path, mo
     assert len(list(tmp_path.glob(".out.ply.register.log"))) == 1  # the checkpoint, a hidden file
     assert signal.getsignal(signal.SIGINT) is before  # the command's own handler is gone again
     monkeypatch.setattr(registration.ViewComputer, "compute", original)
-    assert "stopping after the current view" in capsys.readouterr().err
+    assert "stopping after the current step (a view" in capsys.readouterr().err
     assert main(args) == 0
     done = [c.name for c in load_cameras(tiny)].index(calls["at"]) + 1  # the view that was computing when Ctrl-C came is kept
     assert done >= 4 and f"{done} of 16 views already registered" in capsys.readouterr().err

@@ -201,7 +201,7 @@ def test_features_rewritten_with_their_old_size_and_mtime_restart_the_checkpoint
     assert (feats.stat().st_size, feats.stat().st_mtime_ns) == (before.st_size, before.st_mtime_ns)
     capsys.readouterr()
     assert main(_args(ds, out)) == 0
-    assert "the feature files of view orbit_001 changed since it was logged; resuming from the 1 views before it" in capsys.readouterr().err
+    assert "the feature files of view orbit_001 changed since it was logged; resuming from the 1 view before it" in capsys.readouterr().err
     fresh = tmp_path / "fresh" / "reg.ply"
     assert main(_args(ds, fresh)) == 0
     assert out.read_bytes() == fresh.read_bytes()

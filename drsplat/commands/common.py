@@ -21,7 +21,7 @@ import numpy as np
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import MAX_TOPK
 from drsplat.features.masks.base import LEVELS
-from drsplat.errors import DrsplatError, InputError, UsageError, escape_hidden, hidden_character
+from drsplat.errors import DrsplatError, InputError, UsageError, escape_hidden, hidden_character, shown_path
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
@@ -163,14 +163,13 @@ def output_file(text: str) -> Path:
 OTHER_FILE_SUFFIXES = (".ply", ".splat", ".spz", ".faiss", ".json", ".png", ".jpg", ".jpeg")  # what drsplat and 3DGS tools read by name
 
 
-def npy_output_file(text: str) -> Path:
-    """argparse type of a .npy array to write (`output_file`): a name of another file type drsplat
-    writes or reads (`scores.ply`) is refused, since an array under it would be read as that type
-    (round 54: `query --scores o.ply` wrote .npy bytes as o.ply; `--out o.npy` was refused)."""
-    path = output_file(text)
-    if path.suffix.lower() in OTHER_FILE_SUFFIXES:
-        raise argparse.ArgumentTypeError(f"{text!r}: this output is a .npy array; a {path.suffix} name would hold one (name it .npy)")
-    return path
+def check_npy_name(flag: str, path: Path | None) -> None:
+    """UsageError for a .npy array output named as another file type drsplat writes or reads
+    (`scores.ply`), since an array under it would be read as that type (round 54: `query --scores
+    o.ply` wrote .npy bytes as o.ply; `--out o.npy` was refused). Called after the input guard, which
+    says first when the name is one of the command's inputs."""
+    if path is not None and path.suffix.lower() in OTHER_FILE_SUFFIXES:
+        raise UsageError(f"{flag} {shown_path(path)}: this output is a .npy array; a {path.suffix} name would hold one (name it .npy)")
 
 
 def threshold_value(text: str) -> str:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import (float_range, guard_args, guard_field_codebook, int_range, npy_output_file, output_file, table_stream,
+from drsplat.commands.common import (check_npy_name, float_range, guard_args, guard_field_codebook, int_range, output_file, table_stream,
                                      threshold_value)
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
@@ -142,7 +142,7 @@ def _add_scannet(sub) -> None:
     p = sub.add_parser("scannet", help="3D IoU on a ScanNet scene: pseudo ground truth from *_vh_clean_2.labels.ply (NYU40)")
     p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
     p.add_argument("--scene-dir", type=Path, required=True, metavar="DIR", help="ScanNet scene folder (or the labels.ply itself)")
-    p.add_argument("--save-labels", type=npy_output_file, metavar="OUT.npy", help="also save the pseudo-labels")
+    p.add_argument("--save-labels", type=output_file, metavar="OUT.npy", help="also save the pseudo-labels")
     _add_pseudo_arguments(p)
     _add_query_arguments(p, "JSON list of the raw label names 1..K (default: the 40 NYU40 classes)")
     _add_task_arguments(p)
@@ -153,7 +153,7 @@ def _add_pseudolabels(sub) -> None:
     p = sub.add_parser("pseudolabels", help="label every Gaussian from a labelled point cloud (Mahalanobis vote)")
     p.add_argument("scene", type=Path, metavar="SCENE.ply")
     p.add_argument("--points", type=Path, required=True, metavar="CLOUD", help="labelled cloud: PLY with x, y, z, label (ScanNet layout), or .pcd/.xyz/.pts with labels in CLOUD.labels.npy")
-    p.add_argument("--out", type=npy_output_file, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
+    p.add_argument("--out", type=output_file, required=True, metavar="LABELS.npy", help="(N,) int32 labels, -1 none")
     p.add_argument("--names-out", type=output_file, metavar="NAMES.json", help="write the label names (index = label id)")
     p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
     _add_pseudo_arguments(p)
@@ -517,6 +517,7 @@ def run_scannet(args: argparse.Namespace) -> int:
     check_outputs_writable(args.json, args.save_labels)
     scene, field, index = load_eval_scene(args)
     guard_field_codebook(args.registered, field, {"--json": args.json, "--save-labels": args.save_labels})
+    check_npy_name("--save-labels", args.save_labels)
     raw = load_label_names(args.label_names, list(NYU40_NAMES))
     gt, names = pseudo_from_cloud(args, scene, cloud, raw)
     with outputs_together([args.save_labels, args.json]):  # labels without the evaluation they were saved for would be half a run
@@ -530,6 +531,7 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     from drsplat.utils import atomic_path, save_npy_atomic
 
     guard_args(args, ("out", "names_out"), extra_inputs=cloud_inputs("--points", args.points))
+    check_npy_name("--out", args.out)
     check_outputs_writable(args.out, args.names_out)
     scene = load_row_aligned_scene(args.scene, "the labels written (one per row)")
     raw = load_label_names(args.label_names, list(NYU40_NAMES))

@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--negatives", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")
     parser.add_argument("--negative-embeddings", type=Path, metavar="N.npy", help="negative embeddings (C, D) for --relevancy without a text encoder")
     parser.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold (number, or 'auto' for Otsu); default 0.5 for relevancy, auto for cosine")
-    parser.add_argument("--scores", type=common.npy_output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
+    parser.add_argument("--scores", type=output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
     parser.add_argument("--out", type=output_file, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY, or .splat / .spz / .compressed.ply by the name (see --format)")
     add_format_argument(parser, "--out")
     parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
@@ -117,6 +117,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
+    common.check_npy_name("--scores", args.scores)
     assigned = field.assigned()
     if not assigned.any():  # every score would be 0 (--scores wrote them until 2026-11-30): nothing to score, select or rank
         raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned or "

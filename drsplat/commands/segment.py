@@ -58,7 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--min-score", type=float_range(-1.0, 1.0), default=None, help="Gaussians whose best cosine is below this get -1")
     add_lut_bits_argument(parser)
-    parser.add_argument("--out", type=common.npy_output_file, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
+    parser.add_argument("--out", type=common.output_file, required=True, metavar="LABELS.npy", help="int32 (N,) label per Gaussian")
     parser.add_argument("--ply", type=Path, metavar="COLOURED.ply", help="also write the scene coloured by label: a PLY, or .splat / .spz / .compressed.ply by the name (see --format)")
     add_format_argument(parser, "--ply")
     add_clip_arguments(parser, scoring=True)
@@ -158,6 +158,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
+    common.check_npy_name("--out", args.out)
     assigned = field.assigned()
     if not assigned.any():  # every label would be -1 (written so until 2026-11-30): nothing to segment
         raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned or "

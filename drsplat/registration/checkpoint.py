@@ -37,7 +37,7 @@ from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder
+from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
 from drsplat.raster import sh_in_range
 from drsplat.scene import GaussianScene
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
@@ -404,8 +404,8 @@ class Checkpoint:
             return
         for i, record in enumerate(self.log.records):
             if record.meta.get("stamp") != feature_stamp(self.features_dir, record.name):
-                log.warning("%s: the feature files of view %s changed since it was logged; resuming from the %d views before it",
-                            self.path, record.name, i)
+                log.warning("%s: the feature files of view %s changed since it was logged; resuming from the %s before it",
+                            self.path, record.name, views_before(i))
                 self.log.truncate(i)
                 return
 
@@ -419,7 +419,7 @@ class Checkpoint:
             for i, record in enumerate(self.log.records):
                 problem = _shard_record_problem(self.path, record.meta.get("shard"), files)
                 if problem is not None:
-                    log.warning("%s: view %s %s; resuming from the %d views before it", self.path, record.name, problem, i)
+                    log.warning("%s: view %s %s; resuming from the %s before it", self.path, record.name, problem, views_before(i))
                     self.log.truncate(i)
                     break
         finally:

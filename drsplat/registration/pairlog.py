@@ -157,6 +157,11 @@ class ViewPairs:
         return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes + stats)
 
 
+def views_before(count: int) -> str:
+    """"1 view" or "N views": how many logged views a resume keeps."""
+    return f"{count} view" + ("" if count == 1 else "s")
+
+
 def chunk_grouping(ids: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
     """(order, starts): the stable order that groups `ids` [P] int32 by Gaussian chunk (None when
     they are grouped already) and the [C + 1] int64 chunk starts of the grouped ids. O(P) radix sort
@@ -579,9 +584,9 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
                 return None
             records, end = _scan(f, size)
             if end < size:
-                log.warning("%s: %s; resuming from the %d views before it", path,
+                log.warning("%s: %s; resuming from the %s before it", path,
                             "the last view's record is incomplete (the run was killed while writing it)" if _is_torn_tail(f, end, size)
-                            else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", len(records))
+                            else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", views_before(len(records)))
                 f.truncate(end)
             return records
     except OSError as exc:  # not the log's contents: starting over would truncate a log that may be whole
