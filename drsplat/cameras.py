@@ -1370,9 +1370,11 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
                  "wherever they are read (`drsplat features`)", path, distorted, len(cameras))
     transform = dataparser_transforms_path(source)
     if transform is not None:
-        cameras, scale = cameras_in_trained_frame(transform, cameras)
-        log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g), where a "
-                 "splatfacto export lies", transform, len(cameras), scale)
+        applied = applied_transform(path) if kind == "transforms" else None
+        cameras, scale = cameras_in_trained_frame(transform, cameras, applied)
+        log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g%s), where a "
+                 "splatfacto export lies", transform, len(cameras), scale,
+                 f"; after undoing {path.name}'s applied_transform, which the file includes" if applied is not None else "")
     return scale_cameras(cameras, resolution)
 
 
@@ -1403,18 +1405,7 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     data = read_json(path, "nerfstudio dataparser transform")
     if not isinstance(data, dict):
         raise InputError(path, "is not a JSON object with 'transform' and 'scale'")
-    rows = data.get("transform")
-    if not (isinstance(rows, list) and len(rows) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in rows)):
-        raise InputError(path, "is not 3 (or 4) rows of 4 numbers", field="transform")
-    values = np.array([[_number(path, {"transform": v}, "transform", where=f" in row {i}") for v in r] for i, r in enumerate(rows)])
-    if len(rows) == 4 and not np.allclose(values[3], (0.0, 0.0, 0.0, 1.0)):
-        raise InputError(path, "has a fourth row that is not 0 0 0 1", field="transform")
-    rotation, translation = values[:3, :3], values[:3, 3]
-    if not is_rotation(rotation, atol=1e-4):
-        raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field="transform")
-    if np.abs(translation).max() > MAX_COORDINATE:
-        raise InputError(path, f"has the translation {plain_numbers(translation)} in its last column, beyond any scene (more than "
-                         f"{MAX_COORDINATE:g}: nerfstudio centres the cameras, which lie within it)", field="transform")
+    rotation, translation = rigid_rows(path, data.get("transform"), "transform")
     scale = _number(path, data, "scale")
     if not scale > 0:
         raise InputError(path, f"has scale {plain_numbers(scale)}; it must be above 0", field="scale")
@@ -1425,6 +1416,37 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     return rotation, translation, scale
 
 
+def rigid_rows(path: Path, rows: object, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """(R [3, 3], t [3]) of a rigid move given as 3 (or 4) rows of 4 numbers (nerfstudio's `transform` and
+    `applied_transform`); InputError naming `field` when it is not one: R a rotation within 1e-4, t within
+    MAX_COORDINATE, a fourth row 0 0 0 1."""
+    if not (isinstance(rows, list) and len(rows) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in rows)):
+        raise InputError(path, "is not 3 (or 4) rows of 4 numbers", field=field)
+    values = np.array([[_number(path, {field: v}, field, where=f" in row {i}") for v in r] for i, r in enumerate(rows)])
+    if len(rows) == 4 and not np.allclose(values[3], (0.0, 0.0, 0.0, 1.0)):
+        raise InputError(path, "has a fourth row that is not 0 0 0 1", field=field)
+    rotation, translation = values[:3, :3], values[:3, 3]
+    if not is_rotation(rotation, atol=1e-4):
+        raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field=field)
+    if np.abs(translation).max() > MAX_COORDINATE:
+        raise InputError(path, f"has the translation {plain_numbers(translation)} in its last column, beyond any scene (more than "
+                         f"{MAX_COORDINATE:g}: nerfstudio centres the cameras, which lie within it)", field=field)
+    return rotation, translation
+
+
+def applied_transform(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R_A [3, 3], t_A [3]) of the `applied_transform` of a nerfstudio transforms.json `path`, or None
+    without one. ns-process-data writes every pose as A·c2w (A: its move of the COLMAP frame), and
+    ns-train saves dataparser_transforms.json as T·A, a move from the frame before A (nerfstudio's
+    dataparser: "the transformation to dataparser output coordinates from original data coordinates").
+    So with that file the poses are first moved back by A⁻¹ (`cameras_in_trained_frame`); round 54: they
+    were not, and a splatfacto scene registered in a frame off by A (seg mIoU 0.135 against 0.950)."""
+    meta = _json(path)
+    if not isinstance(meta, dict) or "applied_transform" not in meta:
+        return None
+    return rigid_rows(path, meta["applied_transform"], "applied_transform")
+
+
 def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarray, scale: float) -> Camera:
     """`camera` in the frame x' = s·(R x + t): world-to-camera R_c R_Rᵀ, s·(t_c − R_c Rᵀ t), so that
     camera coordinates are s times the old ones and every point projects to the same pixel."""
@@ -1432,10 +1454,18 @@ def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarr
     return dataclasses.replace(camera, R=r, t=scale * (np.asarray(camera.t, np.float64) - r @ translation))
 
 
-def cameras_in_trained_frame(path: Path, cameras: list[Camera]) -> tuple[list[Camera], float]:
+def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: tuple[np.ndarray, np.ndarray] | None = None
+                             ) -> tuple[list[Camera], float]:
     """(`cameras` moved into the frame of the dataparser_transforms.json `path`, its scale): every one
-    `in_trained_frame`, then held to the bound of the camera files (`check_trained_camera`)."""
+    `in_trained_frame`, then held to the bound of the camera files (`check_trained_camera`). applied:
+    the (R_A, t_A) the cameras' file already applied (`applied_transform`), undone first:
+
+        x' = s·(R R_Aᵀ (x − t_A) + t) = s·(R' x + t'),  R' = R R_Aᵀ,  t' = t − R' t_A
+    """
     rotation, translation, scale = read_dataparser_transform(path)
+    if applied is not None:
+        rotation = rotation @ applied[0].T
+        translation = translation - rotation @ applied[1]
     moved = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
     for camera, there in zip(cameras, moved):
         check_trained_camera(path, camera, there, rotation @ camera.ray_origin() + translation, scale)

@@ -500,6 +500,44 @@ def test_a_splatfacto_scene_registers_with_its_datasets_cameras_and_dataparser_t
     assert np.quantile(cos, 0.01) > 0.999
 
 
+def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transform(tmp_path, caplog):
+    """Round 54: ns-process-data writes every pose as A·c2w with `applied_transform`: A, and ns-train saves
+    dataparser_transforms.json as T·A (a move from the frame before A). drsplat applied T·A to poses already moved by A:
+    a splatfacto scene registered off by A (seg mIoU 0.135 against 0.950), with a frame warning that asked for the file
+    already there. The same dataset with and without A gives the same cameras; a bad applied_transform is one error."""
+    import shutil
+
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    _, rotation, translation, scale = _similarity()
+    plain, applied = tmp_path / "plain", tmp_path / "applied"
+    shutil.copytree(data, plain)
+    shutil.copytree(data, applied)
+    move = np.eye(4)[[1, 0, 2, 3]]  # nerfstudio's: rows (1, 0, 2), the third negated, and here a translation too
+    move[2, :3] *= -1
+    move[:3, 3] = (0.1, -0.2, 0.3)
+    meta = json.loads((data / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame["transform_matrix"] = (move @ np.asarray(frame["transform_matrix"])).tolist()
+    meta["applied_transform"] = move[:3].tolist()
+    (applied / "transforms.json").write_text(json.dumps(meta))
+    saved = np.r_[np.c_[rotation, translation], [[0, 0, 0, 1]]] @ move  # what ns-train writes: T·A, from the frame before A
+    for folder in (plain, applied):  # plain: the poses of that frame (as COLMAP's are), with the same file
+        (folder / "dataparser_transforms.json").write_text(json.dumps({"transform": saved[:3].tolist(), "scale": scale}))
+    want = load_cameras(plain)
+    with caplog.at_level(logging.INFO):
+        got = load_cameras(applied)
+    assert "after undoing transforms.json's applied_transform" in caplog.text
+    for a, b in zip(want, got):
+        np.testing.assert_allclose(b.R, a.R, atol=1e-12)
+        np.testing.assert_allclose(b.t, a.t, atol=1e-9)
+    meta["applied_transform"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+    (applied / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"transforms.json: field 'applied_transform': has a 3x3 part that is not a rotation"):
+        load_cameras(applied)
+
+
 @pytest.mark.parametrize("content, words", [
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0]], "scale": 1}, "'transform': is not 3 (or 4) rows of 4 numbers"),
     ({"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1}, "is not a rotation"),
