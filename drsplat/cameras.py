@@ -124,6 +124,16 @@ class Camera:
         return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height,
                                    unscaled_size=self.unscaled_size or (self.width, self.height))
 
+    def centred(self) -> "Camera":
+        """The same camera with its principal point at the image centre, cx = W/2, cy = H/2 (pixel
+        centres at +0.5): how INRIA's gaussian-splatting projects, which keeps only the two fields of
+        view of a COLMAP camera (`frames.cameras_with_principal_point`)."""
+        return dataclasses.replace(self, cx=self.width / 2, cy=self.height / 2)
+
+    def principal_point_shift(self) -> float:
+        """How far the principal point lies from the image centre, max(|cx − W/2|, |cy − H/2|) / max(W, H)."""
+        return max(abs(self.cx - self.width / 2), abs(self.cy - self.height / 2)) / max(self.width, self.height)
+
     def size_text(self) -> str:
         """'WxH' as the camera file gives it, with this camera's own size after it when scaled."""
         own = f"{self.width}x{self.height}"

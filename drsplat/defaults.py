@@ -20,6 +20,10 @@ AGGREGATE_MODES = ("paper", "core", "ellipse", "responsibility", "reject", "core
                    "fit", "fit-reject", "fit-vote", "fit-vote-reject",
                    "sharp-check-vote-reject", "fit-check-vote-reject",
                    "explain-vote", "sharp-check-vote", "fit-check-vote")  # drsplat.registration.aggregate implements them; every "-reject" mode has its mode without the rejection
+# --principal-point (register, eval lerf): decide from the training images, the camera file's cx, cy (gsplat, nerfstudio) or the
+# image centres (INRIA's gaussian-splatting); drsplat.frames.cameras_with_principal_point
+PRINCIPAL_POINTS = ("auto", "file", "centre")
+DEFAULT_PRINCIPAL_POINT = "auto"
 ENGINES = ("numba", "torch")  # the --engine choices: keys of drsplat.raster.ENGINES (numba on the CPU, torch on the CPU or CUDA)
 VOTE_SLOTS = 8  # candidate mask clusters kept per Gaussian by the -vote stage (drsplat.registration.vote; the memory plan counts them)
 VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), votes and paper weight (float64)

@@ -26,7 +26,7 @@ from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character
-from drsplat.frames import cameras_in_scene_frame
+from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
@@ -166,8 +166,10 @@ class ViewerState:
             with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
                 cameras = load_cameras(source, require_images=False)
                 if self.scene is not None:
-                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=self.scene_path.name if self.scene_path else "the scene",
-                                                     scene_path=self.scene_path, refinements=self.scene_refinements)
+                    what = self.scene_path.name if self.scene_path else "the scene"
+                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=what, scene_path=self.scene_path,
+                                                     refinements=self.scene_refinements)
+                    cameras = cameras_with_principal_point(self.scene, cameras, what=what, source=source)
             self.cameras = cameras
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import RESOLUTION_DIVISORS
-from drsplat.defaults import MAX_TOPK
+from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, MAX_TOPK, PRINCIPAL_POINTS
 from drsplat.features.masks.base import LEVELS
 from drsplat.errors import DrsplatError, InputError, UsageError, escape_hidden, hidden_character, shown_path
 from drsplat.memory import parse_size
@@ -245,6 +245,14 @@ def lut_bits_for(args: argparse.Namespace, field: LanguageField, device: str | N
 def add_lut_bits_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lut-bits", type=int, choices=(32, 8), default=32,
                         help="PQ look-up tables: 32 exact float32 (default), 8 faster 8-bit tables (see `drsplat bench query` for the error)")
+
+
+def add_principal_point_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--principal-point", choices=PRINCIPAL_POINTS, default=DEFAULT_PRINCIPAL_POINT,
+                        help="the cameras' principal points: 'file' (cx, cy as the camera file gives them, as gsplat and nerfstudio "
+                        "train), 'centre' (every principal point at its image centre, as INRIA's gaussian-splatting trains, which "
+                        "reads a COLMAP camera as two fields of view), or 'auto': the one under which the scene re-renders its "
+                        "training images better, decided only when some principal point lies off-centre (default: %(default)s)")
 
 
 def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import (check_npy_name, float_range, guard_args, guard_field_codebook, int_range, output_file, table_stream,
-                                     threshold_value)
+from drsplat.commands.common import (add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range,
+                                     output_file, table_stream, threshold_value)
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
@@ -169,6 +169,7 @@ def _add_lerf(sub) -> None:
     p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=None,
                    help=f"rendered occupancy above which a pixel is selected (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
+    add_principal_point_argument(p)
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
                    help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
                         "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
@@ -576,7 +577,7 @@ def trained_cameras(scene, registered: Path) -> dict:
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.commands.common import load_registered
-    from drsplat.frames import cameras_in_scene_frame
+    from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point
     from drsplat.eval.datasets import lerf_annotation_files, load_lerf_annotations
     from drsplat.eval.lerf import lerf_2d_report, select_queries
 
@@ -594,6 +595,7 @@ def run_lerf(args: argparse.Namespace) -> int:
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
     cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.registered), **trained_cameras(scene, args.registered))
+    cameras = cameras_with_principal_point(scene, cameras, args.principal_point, what=str(args.registered), source=args.source)
     guard_field_codebook(args.registered, field, {"--json": args.json})
     assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})

@@ -8,7 +8,7 @@ import json
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
+from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals
@@ -48,6 +48,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "default -1: full size, capped at 1600 px wide. Smaller views register faster and less exactly: 2 measured "
                    "1.7x (flowers) to 2.6x (a 640x480 room) faster per view and -0.013 seg mIoU on that room (docs/evaluation.md, "
                    "\"Resolution\"; `drsplat eval ablate resolution`)")
+    add_principal_point_argument(p)
     p.add_argument("--out", type=output_file, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
@@ -77,7 +78,7 @@ def other_data_suffix(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError, shown_path
-    from drsplat.frames import cameras_in_scene_frame, refinement_comment
+    from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene_report, written_format
@@ -115,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
                                      refinements=report.camera_refinements)  # trainers' own worlds and cameras
+    cameras = cameras_with_principal_point(scene, cameras, args.principal_point, what=str(args.scene), source=args.source)
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
