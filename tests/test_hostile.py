@@ -1045,6 +1045,27 @@ def test_an_empty_or_blank_path_is_a_usage_error_naming_the_argument(tmp_path, w
     assert not (tmp_path / "r.ply").exists() and not (tmp_path / "l.npy").exists()
 
 
+@pytest.mark.parametrize("case", ["register_codebook", "register_ray", "features_pretrained", "features_ray", "query_clip_model"])
+def test_an_empty_or_blank_name_is_a_usage_error_naming_the_flag(tmp_path, world, capsys, case, monkeypatch):
+    """Round 54: `register --codebook ''` read the current folder as the codebook, `--ray ''` and `features --pretrained ''`
+    went on as if the flag were not given. A name or address with no empty meaning refuses them."""
+    monkeypatch.chdir(tmp_path)
+    ds, reg, q = world["ds"], world["reg"], world["q"]
+    register = ["register", ds / "scene.ply", "--source", ds, "--features", ds / "features", "--out", tmp_path / "r.ply"]
+    features = ["features", "--source", ds, "--out", tmp_path / "f", "--masks", "slic"]
+    argv, name, value = {
+        "register_codebook": ([*register, "--codebook", ""], "--codebook", ""),
+        "register_ray": ([*register, "--ray", " "], "--ray", " "),
+        "features_pretrained": ([*features, "--pretrained", ""], "--pretrained", ""),
+        "features_ray": ([*features, "--ray", ""], "--ray", ""),
+        "query_clip_model": (["query", reg, "--text", "a mug", "--clip-model", "\t"], "--clip-model", "\t"),
+    }[case]
+    code, err = run_cli(argv, capsys)
+    why = "is empty" if not value else "is only blank space"
+    assert code == 2 and f"error: argument {name}: {value!r} {why}: give a value, or leave the flag out" in err, err
+    assert not (tmp_path / "r.ply").exists() and not (tmp_path / "f").exists()
+
+
 def test_voxel_flags_without_the_voxel_iou_are_a_usage_error(world, capsys):
     """Round 54: `eval iou --voxel-empty 1e21` (or --voxel-resolution) with the default --weighting volume,count exited 0,
     the value never used."""

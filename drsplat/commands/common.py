@@ -98,6 +98,18 @@ def path_value(text: str) -> Path:
 path_value.__name__ = "path"
 
 
+def text_value(text: str) -> str:
+    """argparse type of a name or address that has no empty meaning (a codebook, a Ray address, a CLIP
+    model or tag): an empty or blank value is refused, not read as unset or as the current folder
+    (round 54: `register --codebook ''` read "." as the codebook, `--ray ''` and `--pretrained ''` the defaults)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is {'empty' if not text else 'only blank space'}: give a value, or leave the flag out")
+    return text
+
+
+text_value.__name__ = "value"
+
+
 def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:
     """argparse type: a finite float in [lo, hi] ((lo, hi] with lo_open)."""
 
@@ -203,8 +215,8 @@ def add_clip_arguments(parser: argparse.ArgumentParser, scoring: bool = False) -
     """CLIP encoder flags; scoring: --device also places the scoring, with --engine (drsplat.device)."""
     group = parser.add_argument_group("CLIP text encoder (text queries)")
     group.add_argument("--clip-checkpoint", type=Path, metavar="PATH", help="local OpenCLIP weights file")
-    group.add_argument("--clip-model", default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
-    group.add_argument("--pretrained", default=None, help="pretrained tag (default: the one recorded in the PLY)")
+    group.add_argument("--clip-model", type=text_value, default=None, help="OpenCLIP architecture (default: the one recorded in the PLY)")
+    group.add_argument("--pretrained", type=text_value, default=None, help="pretrained tag (default: the one recorded in the PLY)")
     group.add_argument("--clip-config", type=Path, default=None, metavar="JSON",
                        help="open_clip model config file, for an architecture open_clip does not ship (the one `features --clip-config` read)")
     if scoring:

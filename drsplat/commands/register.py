@@ -8,7 +8,7 @@ import json
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, topk_int
+from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, text_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals
@@ -30,7 +30,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--features", type=Path, required=True, help="LangSplat feature folder (<stem>_s.npy, <stem>_f.npy)")
     p.add_argument("--level", type=mask_level, default=DEFAULT_LEVEL, help=f"mask level of the feature files: an index or LangSplat's name, default, s, m or l (default: {DEFAULT_LEVEL}, 's')")
     p.add_argument("--topk", type=topk_int, default=DEFAULT_TOPK, help=f"Gaussians kept per pixel (default: {DEFAULT_TOPK})")
-    p.add_argument("--codebook", default=DEFAULT_CODEBOOK,
+    p.add_argument("--codebook", type=text_value, default=DEFAULT_CODEBOOK,
                    help="'none' (exact float16 features, the default), 'scene' (PQ trained on this scene) or a faiss codebook file")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help="how pixel weights become Gaussian features: paper (Dr. Splat's weighted mean), core / ellipse "
@@ -54,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
                    "streamed in blocks through a pair log on disk, with the same output. Default: in memory if it fits the "
                    "memory available, else stop and say which budget fits")
-    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+    p.add_argument("--ray", nargs="?", type=text_value, const="local", default=None, metavar="ADDRESS",
                    help="compute views on a Ray cluster (pip install 'drsplat[ray]'): ADDRESS of a running cluster "
                    "(host:port or 'auto'), or no value to start a local one; same output as without")
     p.add_argument("--ray-workers", type=positive_int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
