@@ -161,6 +161,7 @@ def test_lerf_category_must_be_a_string(tmp_path, category, words):
     (["aggregate", "--mask-source", "x"], "--mask-source"), (["aggregate", "--preset", "nosuch"], "--preset"),
     (["topk", "--modes", "paper"], "--modes"), (["topk", "--mask-source", "render"], "--mask-source"),
     (["topk", "--width", "64"], "--width"), (["metrics", "--values", "1"], "--values"), (["pq", "--corruptions", "clean"], "--corruptions"),
+    (["aggregate", "--modes", "paper,paper"], "--modes: 'paper' given twice"), (["aggregate", "--preset", "tiny, tiny"], "--preset: 'tiny' given twice"),
 ])
 def test_ablate_bad_flags_exit_2_before_any_work(tmp_path, flags, words, capsys):
     assert main(["eval", "ablate", *flags, "--out-dir", str(tmp_path / "ab")]) == 2

@@ -253,8 +253,11 @@ def parse_weightings(text: str | tuple[str, ...]) -> tuple[str, ...]:
     items = tuple(w.strip() for w in text.split(",") if w.strip())
     unknown = [w for w in items if w not in WEIGHTINGS]
     if unknown or not items:
-        raise UsageError(f"--weighting: unknown {', '.join(unknown) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
-    return tuple(dict.fromkeys(items))
+        raise UsageError(f"--weighting: unknown {', '.join(map(repr, unknown)) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
+    repeated = sorted({w for w in items if items.count(w) > 1})
+    if repeated:  # each weighting is one row of the table: a repeat is a slip, refused as --classes and ablate's lists refuse theirs
+        raise UsageError(f"--weighting: {', '.join(repeated)} given twice")
+    return items
 
 
 def check_metric_flags(args: argparse.Namespace) -> None:

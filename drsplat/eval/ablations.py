@@ -617,12 +617,15 @@ def add_ablate_parser(sub) -> None:
 
 
 def _list(flag: str, text: str) -> list[str]:
-    """The comma-separated entries of `flag`, stripped; UsageError for an empty one or none at all."""
+    """The comma-separated entries of `flag`, stripped; UsageError for an empty one, none at all, or one given twice."""
     items = [t.strip() for t in text.split(",")]
     if not any(items):
         raise UsageError(f"{flag} {text!r} gives no value; expected a comma-separated list")
     if not all(items):
         raise UsageError(f"{flag} {text!r}: an entry is empty (two commas in a row, or one at an end)")
+    repeated = sorted({t for t in items if items.count(t) > 1})
+    if repeated:  # a mode or preset run twice is a slip (and twice the time)
+        raise UsageError(f"{flag}: {', '.join(map(repr, repeated))} given twice")
     return items
 
 
