@@ -1380,11 +1380,9 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
                  "wherever they are read (`drsplat features`)", path, distorted, len(cameras))
     transform = dataparser_transforms_path(source)
     if transform is not None:
-        applied = applied_transform(path) if kind == "transforms" else None
-        cameras, scale = cameras_in_trained_frame(transform, cameras, applied)
+        cameras, scale, undone = dataset_in_trained_frame(transform, kind, path, cameras)
         log.info("%s: the %d cameras moved into the frame nerfstudio trained in (rotation, translation, scale %.6g%s), where a "
-                 "splatfacto export lies", transform, len(cameras), scale,
-                 f"; after undoing {path.name}'s applied_transform, which the file includes" if applied is not None else "")
+                 "splatfacto export lies", transform, len(cameras), scale, f"; after undoing {undone}, which the file includes" if undone else "")
     return scale_cameras(cameras, resolution)
 
 
@@ -1426,10 +1424,10 @@ def read_dataparser_transform(path: Path) -> tuple[np.ndarray, np.ndarray, float
     return rotation, translation, scale
 
 
-def rigid_rows(path: Path, rows: object, field: str) -> tuple[np.ndarray, np.ndarray]:
+def rigid_rows(path: Path, rows: object, field: str, why: str = "nerfstudio's orients, centres and then scales") -> tuple[np.ndarray, np.ndarray]:
     """(R [3, 3], t [3]) of a rigid move given as 3 (or 4) rows of 4 numbers (nerfstudio's `transform` and
-    `applied_transform`); InputError naming `field` when it is not one: R a rotation within 1e-4, t within
-    MAX_COORDINATE, a fourth row 0 0 0 1."""
+    `applied_transform`); InputError naming `field` when it is not one: R a rotation within 1e-4 (`why`
+    it must be one), t within MAX_COORDINATE, a fourth row 0 0 0 1."""
     if not (isinstance(rows, list) and len(rows) in (3, 4) and all(isinstance(r, list) and len(r) == 4 for r in rows)):
         raise InputError(path, "is not 3 (or 4) rows of 4 numbers", field=field)
     values = np.array([[_number(path, {field: v}, field, where=f" in row {i}") for v in r] for i, r in enumerate(rows)])
@@ -1437,24 +1435,57 @@ def rigid_rows(path: Path, rows: object, field: str) -> tuple[np.ndarray, np.nda
         raise InputError(path, "has a fourth row that is not 0 0 0 1", field=field)
     rotation, translation = values[:3, :3], values[:3, 3]
     if not is_rotation(rotation, atol=1e-4):
-        raise InputError(path, "has a 3x3 part that is not a rotation (nerfstudio's orients, centres and then scales)", field=field)
+        raise InputError(path, f"has a 3x3 part that is not a rotation ({why})", field=field)
     if np.abs(translation).max() > MAX_COORDINATE:
         raise InputError(path, f"has the translation {plain_numbers(translation)} in its last column, beyond any scene (more than "
                          f"{MAX_COORDINATE:g}: nerfstudio centres the cameras, which lie within it)", field=field)
     return rotation, translation
 
 
-def applied_transform(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(R_A [3, 3], t_A [3]) of the `applied_transform` of a nerfstudio transforms.json `path`, or None
-    without one. ns-process-data writes every pose as A·c2w (A: its move of the COLMAP frame), and
-    ns-train saves dataparser_transforms.json as T·A, a move from the frame before A (nerfstudio's
-    dataparser: "the transformation to dataparser output coordinates from original data coordinates").
-    So with that file the poses are first moved back by A⁻¹ (`cameras_in_trained_frame`); round 54: they
-    were not, and a splatfacto scene registered in a frame off by A (seg mIoU 0.135 against 0.950)."""
+# nerfstudio's dataparser (v1.0.0 on) takes this applied_transform for a transforms.json without one when a colmap/sparse/0
+# folder lies beside it: ns-process-data before v0.2.0 moved the poses so and wrote no key (nerfstudio_dataparser.py, the
+# `elif (self.config.data / "colmap" / "sparse" / "0").exists()` branch); ns-train then saves T·A with it
+NERFSTUDIO_COLMAP_APPLIED = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class AppliedMove:
+    """What a nerfstudio transforms.json says its poses carry, which ns-train's dataparser_transforms.json
+    includes (`applied_move`): x_file = A x for the frame before A (rotation R_A [3, 3], translation
+    t_A [3]); scale a, which ns-train multiplies into the saved scale but never into the poses. what: where
+    A came from, for the log ("" when there is none)."""
+
+    rotation: np.ndarray | None = None
+    translation: np.ndarray | None = None
+    scale: float = 1.0
+    what: str = ""
+
+
+def applied_move(path: Path) -> AppliedMove:
+    """The `AppliedMove` of a nerfstudio transforms.json `path`. ns-process-data writes every pose as A·c2w
+    and records A as `applied_transform`; ns-train saves dataparser_transforms.json as (T·A, s·a), a move
+    from the frame before A (nerfstudio's dataparser: "the transformation to dataparser output coordinates
+    from original data coordinates"), with a = `applied_scale` (1 without it), while it trains on T·P with
+    translations times s. Without the key, when a colmap/sparse/0 folder lies beside the file, nerfstudio
+    takes NERFSTUDIO_COLMAP_APPLIED for A (v1.0.0 on). Round 54: A was not undone, and a splatfacto scene
+    registered in a frame off by A (seg mIoU 0.135 against 0.950)."""
     meta = _json(path)
-    if not isinstance(meta, dict) or "applied_transform" not in meta:
-        return None
-    return rigid_rows(path, meta["applied_transform"], "applied_transform")
+    meta = meta if isinstance(meta, dict) else {}
+    scale = 1.0
+    if "applied_scale" in meta:
+        scale = _number(path, meta, "applied_scale")
+        low, high = DATAPARSER_SCALES
+        if not low <= scale <= high:
+            raise InputError(path, f"has applied_scale {plain_numbers(scale)}; it must lie in [{low:g}, {high:g}] (nerfstudio "
+                             "multiplies it into the dataparser's scale, which puts the cameras within 1 of the origin)", field="applied_scale")
+    if "applied_transform" in meta:
+        rotation, translation = rigid_rows(path, meta["applied_transform"], "applied_transform",
+                                           "ns-process-data's applied_transform is a rigid move of the poses")
+        return AppliedMove(rotation, translation, scale, f"{path.name}'s applied_transform")
+    if (path.parent / "colmap" / "sparse" / "0").is_dir():
+        return AppliedMove(NERFSTUDIO_COLMAP_APPLIED[:, :3], NERFSTUDIO_COLMAP_APPLIED[:, 3], scale,
+                           "the applied_transform nerfstudio takes for a transforms.json without one beside a colmap/sparse/0 folder")
+    return AppliedMove(scale=scale)
 
 
 def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarray, scale: float) -> Camera:
@@ -1464,22 +1495,33 @@ def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarr
     return dataclasses.replace(camera, R=r, t=scale * (np.asarray(camera.t, np.float64) - r @ translation))
 
 
-def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: tuple[np.ndarray, np.ndarray] | None = None
-                             ) -> tuple[list[Camera], float]:
-    """(`cameras` moved into the frame of the dataparser_transforms.json `path`, its scale): every one
-    `in_trained_frame`, then held to the bound of the camera files (`check_trained_camera`). applied:
-    the (R_A, t_A) the cameras' file already applied (`applied_transform`), undone first:
+def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: AppliedMove = AppliedMove()) -> tuple[list[Camera], float]:
+    """(`cameras` moved into the frame of the dataparser_transforms.json `path`, the scale they moved by):
+    every one `in_trained_frame`, then held to the bound of the camera files (`check_trained_camera`).
+    applied: what the cameras' file already carries (`applied_move`), undone first: with the file's
+    (R, t, S) and A = (R_A, t_A), a,
 
-        x' = s·(R R_Aᵀ (x − t_A) + t) = s·(R' x + t'),  R' = R R_Aᵀ,  t' = t − R' t_A
+        x' = s·(R R_Aᵀ (x − t_A) + t) = s·(R' x + t'),  R' = R R_Aᵀ,  t' = t − R' t_A,  s = S / a
     """
     rotation, translation, scale = read_dataparser_transform(path)
-    if applied is not None:
-        rotation = rotation @ applied[0].T
-        translation = translation - rotation @ applied[1]
+    if applied.rotation is not None:
+        rotation = rotation @ applied.rotation.T
+        translation = translation - rotation @ applied.translation
+    scale = scale / applied.scale
     moved = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
     for camera, there in zip(cameras, moved):
         check_trained_camera(path, camera, there, rotation @ camera.ray_origin() + translation, scale)
     return moved, scale
+
+
+def dataset_in_trained_frame(path: Path, kind: str, found: Path, cameras: list[Camera]) -> tuple[list[Camera], float, str]:
+    """(the `cameras` of a dataset (format `kind`, file or folder `found`) in the frame of nerfstudio's
+    dataparser_transforms.json `path`, the scale, "" or what of a transforms.json was undone first, for
+    the log): a transforms.json's `applied_move` undone, then `cameras_in_trained_frame`."""
+    applied = applied_move(found) if kind == "transforms" else AppliedMove()
+    moved, scale = cameras_in_trained_frame(path, cameras, applied)
+    undone = [what for what in (applied.what, f"{found.name}'s applied_scale {applied.scale:g}" if applied.scale != 1.0 else "") if what]
+    return moved, scale, " and ".join(undone)
 
 
 def check_trained_camera(path: Path, camera: Camera, moved: Camera, unscaled: np.ndarray, scale: float) -> None:

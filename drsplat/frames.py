@@ -72,7 +72,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, applied_transform, cameras_in_trained_frame, dataparser_transforms_path, detect_dataset,
+from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transforms_path, dataset_in_trained_frame, detect_dataset,
                              in_trained_frame, load_image, qvec_to_rotmat, read_colmap_model)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
@@ -277,11 +277,9 @@ def cameras_in_scene_frame(means: np.ndarray, cameras: list[Camera], source: str
       refinements: its load report's `camera_refinements`, read with the scene)."""
     run = run_dataparser_transform(scene_path) if scene_path is not None and dataparser_transforms_path(source) is None else None
     if run is not None:
-        kind, found = detect_dataset(source)
-        applied = applied_transform(found) if kind == "transforms" else None  # the run's file includes it (`applied_transform`)
-        moved, scale = cameras_in_trained_frame(run, cameras, applied)  # held to the camera files' bounds, as the file beside them is
-        log.warning("%s was trained by nerfstudio in the frame of its run's %s: the %d cameras of %s are moved there (scale %.6g)",
-                    what, run, len(cameras), source, scale)
+        moved, scale, undone = dataset_in_trained_frame(run, *detect_dataset(source), cameras)  # as the file beside the cameras is read
+        log.warning("%s was trained by nerfstudio in the frame of its run's %s: the %d cameras of %s are moved there (scale %.6g%s)",
+                    what, run, len(cameras), source, scale, f"; after undoing {undone}, which the run's file includes" if undone else "")
         return moved
     evidence = colmap_evidence(source)
     found = best_move(means, evidence) if evidence is not None and len(means) else None

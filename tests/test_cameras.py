@@ -500,13 +500,18 @@ def test_a_splatfacto_scene_registers_with_its_datasets_cameras_and_dataparser_t
     assert np.quantile(cos, 0.01) > 0.999
 
 
-def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transform(tmp_path, caplog):
+@pytest.mark.parametrize("case", ["applied_transform", "colmap_folder", "applied_scale", "checkpoint_run"])
+def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transform(tmp_path, caplog, case):
     """Round 54: ns-process-data writes every pose as A·c2w with `applied_transform`: A, and ns-train saves
     dataparser_transforms.json as T·A (a move from the frame before A). drsplat applied T·A to poses already moved by A:
     a splatfacto scene registered off by A (seg mIoU 0.135 against 0.950), with a frame warning that asked for the file
-    already there. The same dataset with and without A gives the same cameras; a bad applied_transform is one error."""
+    already there. Round 55 (nerfstudio_dataparser.py read again): without the key, beside a colmap/sparse/0 folder,
+    nerfstudio takes A = [[0,1,0],[1,0,0],[0,0,-1]] itself; `applied_scale` a is multiplied into the saved scale and never
+    into the poses (the scale was a times too large); a checkpoint's run file is read the same way. Each dataset gives
+    the cameras of the one without A and a, with the file T·A and scale s; a bad applied_transform is one error."""
     import shutil
 
+    from drsplat.frames import cameras_in_scene_frame
     from drsplat.synthetic import write_dataset
 
     data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
@@ -514,28 +519,50 @@ def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transfor
     plain, applied = tmp_path / "plain", tmp_path / "applied"
     shutil.copytree(data, plain)
     shutil.copytree(data, applied)
-    move = np.eye(4)[[1, 0, 2, 3]]  # nerfstudio's: rows (1, 0, 2), the third negated, and here a translation too
-    move[2, :3] *= -1
-    move[:3, 3] = (0.1, -0.2, 0.3)
+    move = np.eye(4)
+    if case != "applied_scale":
+        move = np.eye(4)[[1, 0, 2, 3]]  # nerfstudio's rows (1, 0, 2), the third negated; as a key, a translation too
+        move[2, :3] *= -1
+        move[:3, 3] = (0.1, -0.2, 0.3) if case != "colmap_folder" else 0.0
     meta = json.loads((data / "transforms.json").read_text())
     for frame in meta["frames"]:
         frame["transform_matrix"] = (move @ np.asarray(frame["transform_matrix"])).tolist()
-    meta["applied_transform"] = move[:3].tolist()
+    if case == "colmap_folder":
+        (applied / "colmap" / "sparse" / "0").mkdir(parents=True)
+    else:
+        meta["applied_transform"] = move[:3].tolist()
+    a = 2.5 if case == "applied_scale" else 1.0
+    if a != 1.0:
+        meta["applied_scale"] = a
     (applied / "transforms.json").write_text(json.dumps(meta))
     saved = np.r_[np.c_[rotation, translation], [[0, 0, 0, 1]]] @ move  # what ns-train writes: T·A, from the frame before A
-    for folder in (plain, applied):  # plain: the poses of that frame (as COLMAP's are), with the same file
-        (folder / "dataparser_transforms.json").write_text(json.dumps({"transform": saved[:3].tolist(), "scale": scale}))
+    (plain / "dataparser_transforms.json").write_text(json.dumps({"transform": saved[:3].tolist(), "scale": scale}))
+    run = tmp_path / "outputs" / "room" / "splatfacto" / "2026-12-05_120000"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    (run if case == "checkpoint_run" else applied).joinpath("dataparser_transforms.json").write_text(
+        json.dumps({"transform": saved[:3].tolist(), "scale": scale * a}))
     want = load_cameras(plain)
     with caplog.at_level(logging.INFO):
         got = load_cameras(applied)
-    assert "after undoing transforms.json's applied_transform" in caplog.text
-    for a, b in zip(want, got):
-        np.testing.assert_allclose(b.R, a.R, atol=1e-12)
-        np.testing.assert_allclose(b.t, a.t, atol=1e-9)
-    meta["applied_transform"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
-    (applied / "transforms.json").write_text(json.dumps(meta))
-    with pytest.raises(InputError, match=r"transforms.json: field 'applied_transform': has a 3x3 part that is not a rotation"):
-        load_cameras(applied)
+        if case == "checkpoint_run":
+            got = cameras_in_scene_frame(np.zeros((0, 3)), got, applied, scene_path=run / "nerfstudio_models" / "step-000029999.ckpt")
+    assert {"applied_transform": "after undoing transforms.json's applied_transform, which the file includes",
+            "colmap_folder": "after undoing the applied_transform nerfstudio takes for a transforms.json without one beside a colmap",
+            "applied_scale": "after undoing transforms.json's applied_transform and transforms.json's applied_scale 2.5",
+            "checkpoint_run": "after undoing transforms.json's applied_transform, which the run's file includes"}[case] in caplog.text
+    for a_cam, b_cam in zip(want, got):
+        np.testing.assert_allclose(b_cam.R, a_cam.R, atol=1e-12)
+        np.testing.assert_allclose(b_cam.t, a_cam.t, atol=1e-9)
+    if case == "applied_transform":
+        meta["applied_transform"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+        (applied / "transforms.json").write_text(json.dumps(meta))
+        with pytest.raises(InputError, match=r"transforms.json: field 'applied_transform': has a 3x3 part that is not a rotation "
+                                             r"\(ns-process-data's applied_transform is a rigid move of the poses\)"):
+            load_cameras(applied)
+        meta["applied_transform"], meta["applied_scale"] = move[:3].tolist(), 0.0
+        (applied / "transforms.json").write_text(json.dumps(meta))
+        with pytest.raises(InputError, match=r"transforms.json: field 'applied_scale': has applied_scale 0; it must lie in"):
+            load_cameras(applied)
 
 
 @pytest.mark.parametrize("content, words", [
