@@ -1050,7 +1050,7 @@ def test_an_empty_or_blank_name_is_a_usage_error_naming_the_flag(tmp_path, world
     """Round 54: `register --codebook ''` read the current folder as the codebook, `--ray ''` and `features --pretrained ''`
     went on as if the flag were not given. A name or address with no empty meaning refuses them."""
     monkeypatch.chdir(tmp_path)
-    ds, reg, q = world["ds"], world["reg"], world["q"]
+    ds, reg = world["ds"], world["reg"]
     register = ["register", ds / "scene.ply", "--source", ds, "--features", ds / "features", "--out", tmp_path / "r.ply"]
     features = ["features", "--source", ds, "--out", tmp_path / "f", "--masks", "slic"]
     argv, name, value = {
