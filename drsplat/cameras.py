@@ -1162,6 +1162,8 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
             return reader.kind, found
     if src.is_file():
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
+    if not src.is_dir():  # a device or a pipe: "has no COLMAP model" would read as if it were a folder
+        raise InputError(src, "is not a dataset folder, transforms.json or cameras.json (it is no regular file or folder)")
     raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS))
 
 

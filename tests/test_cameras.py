@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,6 +164,24 @@ def test_bad_camera_files_give_clear_errors(tmp_path, files, expected):
         (tmp_path / name).write_text(text)
     with pytest.raises(InputError, match=expected):
         load_cameras(tmp_path)
+
+
+def test_a_device_or_a_pipe_given_as_a_dataset_or_annotations_is_called_no_folder(tmp_path):
+    """Round 54: `--source /dev/null` was told it "has no COLMAP model (sparse/0), no transforms.json, ..." and
+    `eval lerf --annotations /dev/null` "annotation folder not found", as if each were an empty folder or absent."""
+    import os
+
+    from drsplat.eval.datasets import lerf_annotation_files
+
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    for path in (Path("/dev/null"), pipe):
+        with pytest.raises(InputError, match=r"is not a dataset folder, transforms.json or cameras.json \(it is no regular file or folder\)"):
+            load_cameras(path)
+        with pytest.raises(InputError, match=r": is not a folder \(expected lerf_ovs/label/<scene>/ with frame_\*.json\)"):
+            lerf_annotation_files(path)
+    with pytest.raises(InputError, match="annotation folder not found"):
+        lerf_annotation_files(tmp_path / "absent")
 
 
 def test_truncated_colmap_binary(tmp_path):

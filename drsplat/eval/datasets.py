@@ -304,7 +304,8 @@ def lerf_annotation_files(label_dir: str | Path) -> list[Path]:
     """The annotation files of one LERF-OVS scene folder: every `*.json` in it, sorted."""
     label_dir = Path(label_dir)
     if not label_dir.is_dir():
-        raise InputError(label_dir, "annotation folder not found (expected lerf_ovs/label/<scene>/ with frame_*.json)")
+        found = "is not a folder" if label_dir.exists() else "annotation folder not found"
+        raise InputError(label_dir, f"{found} (expected lerf_ovs/label/<scene>/ with frame_*.json)")
     files = sorted(label_dir.glob("*.json"))
     if not files:
         raise InputError(label_dir, "no *.json annotations in this folder (expected frame_XXXXX.json, LabelMe-style)")
