@@ -33,6 +33,12 @@ def escape_hidden(text: str) -> str:
     return "".join(ch if ch in "\n\t" or unicodedata.category(ch) not in HIDDEN_CATEGORIES else f"\\u{ord(ch):04x}" for ch in text)
 
 
+def one_line(text: str) -> str:
+    """`text` as one line of a terminal or a status bar: `escape_hidden`, and its line breaks written as \\n and \\r
+    (a name holding a newline forged a line of its own, round 54)."""
+    return escape_hidden(text).replace("\n", "\\n").replace("\r", "\\r")
+
+
 def shown_path(path: str | Path) -> str:
     """A path as a message prints it: as it is, or JSON-escaped and quoted when it holds a character
     a terminal would not show as itself (`hidden_character`), so a file named with ESC or a newline

@@ -221,6 +221,21 @@ def test_what_a_load_warns_of_is_shown_and_a_field_with_nothing_assigned_is_said
     assert any(m.level == "warning" and "NaN" in m.text for m in s.messages), [m.text for m in s.messages]
 
 
+def test_a_path_with_a_line_break_fails_in_one_line(tmp_path, caplog):
+    """Round 54: the viewer's "cannot open ..." message quoted a typed path with its newline raw, forging a line of the log
+    (the CLI escapes them since round 54); every failure message is now one line, the break written as \\n."""
+    from viewer.state import ViewerState
+
+    s = ViewerState()
+    with caplog.at_level(logging.ERROR):
+        assert not s.load_scene(tmp_path / "a\nERROR: forged.ply")
+        assert not s.load_source(tmp_path / "b\rdata")
+    texts = [m.text for m in s.messages if m.level == "error"]
+    assert len(texts) == 2 and all("\n" not in t and "\r" not in t for t in texts), texts
+    assert "a\\nERROR: forged.ply" in texts[0] and "b\\rdata" in texts[1], texts
+    assert not any(line.startswith("ERROR: forged") for line in caplog.text.splitlines())
+
+
 def test_a_threshold_that_is_not_a_number_is_refused_and_the_last_kept(state):
     """Round 29a: imgui's ctrl+click lets the threshold slider take a typed "nan", which selected
     nothing while the slider showed "nan" (and "inf" the same); the threshold is kept instead."""

@@ -25,7 +25,7 @@ from drsplat.cameras import Camera, dataset_inputs, load_cameras
 from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases, protected_feature_folders
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
@@ -109,13 +109,14 @@ class ViewerState:
         self.messages.add("error", text)
 
     def _fail(self, exc: BaseException, what: str) -> bool:
+        # one line: a typed path or query holding a newline forged a line of the log (round 54)
         if isinstance(exc, OSError):  # the cause in words ("the disk is full"), not "[Errno 28] ..."
-            self.error(f"{what}: {describe_os_error(exc)}")
+            self.error(one_line(f"{what}: {describe_os_error(exc)}"))
         elif isinstance(exc, (DrsplatError, ValueError)):
-            self.error(f"{what}: {exc}")
+            self.error(one_line(f"{what}: {exc}"))
         else:
             log.debug("%s", traceback.format_exc())
-            self.error(f"{what}: unexpected {type(exc).__name__}: {exc}")
+            self.error(one_line(f"{what}: unexpected {type(exc).__name__}: {exc}"))
         return False
 
     # ---------------------------------------------------------------- loading

@@ -21,7 +21,7 @@ import numpy as np
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, MAX_TOPK, PRINCIPAL_POINTS
 from drsplat.features.masks.base import LEVELS
-from drsplat.errors import DrsplatError, InputError, UsageError, escape_hidden, hidden_character, shown_path
+from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character, one_line, shown_path
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.scene import GaussianScene
@@ -83,7 +83,7 @@ class ArgumentParser(argparse.ArgumentParser):
         """argparse's usage error, with the characters a terminal would not show as themselves escaped,
         newlines included: a type's error quotes the value as given (round 54: `--topks ESC[2J` cleared
         the screen; a newline forged a line)."""
-        super().error(escape_hidden(message).replace("\n", "\\n"))
+        super().error(one_line(message))
 
 
 def path_value(text: str) -> Path:
