@@ -1286,6 +1286,14 @@ def test_an_interrupt_says_it_resumes_only_where_something_was_kept(tmp_path, mo
     err = capsys.readouterr().err
     assert code == 1 and "cancelled before the first view; no partial output file was left" in err and "resumes" not in err, err
     assert not (tmp_path / "r.ply").exists()
+    # round 54: a rerun stopped before it resumed from an earlier run's checkpoint said only "interrupted", as if nothing were kept
+    from drsplat.commands import register as register_cmd
+    from drsplat.registration.checkpoint import checkpoint_path_for
+
+    args = argparse.Namespace(out=tmp_path / "r.ply", interrupted_note=register_cmd.interrupted_note)
+    assert interrupted_note(args) == "no partial output file was left"
+    checkpoint_path_for(args.out).write_bytes(b"a pair log")
+    assert interrupted_note(args).endswith(f"the registration checkpoint {checkpoint_path_for(args.out)} is kept, and the same command resumes from it")
 
 
 def _console_script_entry() -> str:

@@ -60,7 +60,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ray-workers", type=positive_int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_arguments(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, interrupted_note=interrupted_note)
+
+
+def interrupted_note(args: argparse.Namespace) -> str:
+    """What a stopped registration's last line adds: that the same command resumes, when a checkpoint is
+    there (kept by this run, or by an earlier one that this run was stopped before resuming from)."""
+    from drsplat.errors import INTERRUPTED_NOTE, shown_path
+    from drsplat.registration.checkpoint import checkpoint_path_for
+
+    checkpoint = checkpoint_path_for(args.out)
+    if not checkpoint.is_file():
+        return INTERRUPTED_NOTE
+    return f"{INTERRUPTED_NOTE}; the registration checkpoint {shown_path(checkpoint)} is kept, and the same command resumes from it"
 
 
 OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".jsonl", ".txt", ".bin", ".db", ".faiss", ".csv", ".yml", ".yaml", ".pt", ".pth",
