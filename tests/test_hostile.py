@@ -368,6 +368,12 @@ def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_i
                         "--height", "32", "--threshold", "0.2", "--mode", "segmentation"])
     err = capsys.readouterr().err
     assert code == 0 and "--threshold applies to a query's selection, not to --mode segmentation" in err, err
+    # round 54: --features and --clip-checkpoint, which a screenshot without a text query never reads, were taken without a word
+    code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "f.png"), "--width", "32", "--height", "32",
+                        "--features", str(tmp_path / "nowhere"), "--clip-checkpoint", str(tmp_path / "w.bin")])
+    err = capsys.readouterr().err
+    assert code == 0 and "--features applies to registering from the viewer window" in err, err
+    assert "--clip-checkpoint applies to a text query (--query or --negatives)" in err and "--clip-config" not in err, err
 
 
 def test_viewer_unknown_demo_preset_is_a_usage_error(tmp_path, capsys):

@@ -155,6 +155,17 @@ def check_screenshot_size(camera, args: argparse.Namespace) -> None:
                      "pixels; give --width and --height both, or a smaller one")
 
 
+def warn_unused_screenshot_flags(args: argparse.Namespace) -> None:
+    """One warning per flag a screenshot does not use (round 54: they were taken without a word): --features (a
+    screenshot registers nothing), --clip-checkpoint and --clip-config without a text query or negatives."""
+    if args.features is not None:
+        log.warning("--features applies to registering from the viewer window; a screenshot registers nothing, so it is not read")
+    if not (args.query or args.negatives):
+        for flag, value in (("--clip-checkpoint", args.clip_checkpoint), ("--clip-config", args.clip_config)):
+            if value is not None:
+                log.warning("%s applies to a text query (--query or --negatives); this screenshot encodes no text, so it is not read", flag)
+
+
 def screenshot(args: argparse.Namespace, state) -> int:
     from viewer.app import render_screenshot  # moderngl, imgui and glfw: GL only when a window or an image is made
 
@@ -170,6 +181,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
     else:
         view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720, state.scene.log_scales)
         camera = view.camera()
+    warn_unused_screenshot_flags(args)
     state.settings.query.negatives = args.negatives
     wants_query = bool(args.query or args.embedding or args.oracle)
     if args.query or args.negatives:
