@@ -200,6 +200,20 @@ def test_query_plot_may_not_replace_a_cached_codebook_or_the_negatives(tmp_path,
     negatives.unlink()
 
 
+def test_query_plot_named_other_than_png_and_flags_no_backend_reads(tmp_path, capsys, no_work):
+    """Round 54: `bench query --plot x.npy` wrote a PNG under an array's name; --cache-dir and --official, with backends that
+    read neither, were taken without a word. The name is refused before any work; the flags get one warning each."""
+    code, err, _ = run_cli(["bench", "query", "--backends", "float32", "--plot", tmp_path / "x.npy"], capsys)
+    assert code == 2 and "--plot " in err and "the plot is a PNG image; name it .png" in err, err
+    assert not (tmp_path / "x.npy").exists()
+    with pytest.raises(AssertionError, match="started its work"):  # the flags pass, with their warnings, and the work begins
+        main(["bench", "query", "--backends", "float16", "--cache-dir", str(tmp_path / "c"), "--official", str(tmp_path / "o.faiss"),
+              "--plot", str(tmp_path / "q.PNG")])
+    err = capsys.readouterr().err
+    assert "--cache-dir holds trained PQ codebooks; --backends float16 trains none, so it is not used" in err, err
+    assert "--official is read by the 'official' backend, which --backends float16 leaves out; it is not used" in err, err
+
+
 def test_register_outputs_may_not_replace_the_default_real_scene(tmp_path, capsys, no_work, monkeypatch):
     """The default --real is resolved in the bench, after the command line's own guard: it is guarded there."""
     import drsplat.bench.register as register

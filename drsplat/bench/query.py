@@ -50,7 +50,8 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
                    help=f"object classes in the synthetic embeddings, 2..{MAX_LABELS:,} (a query's class against the rest; default: 40)")
     p.add_argument("--queries", type=positive_int, default=8, help="text queries whose errors are averaged, one class each: at most --labels (default: 8)")
     p.add_argument("--train", type=positive_int, default=5_000, help=f"embeddings used to train the general PQ codebooks, at least {PQ_KSUB} (default: 5000)")
-    p.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()) / "drsplat-bench-query", help="trained codebooks are kept here for reuse")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="trained PQ codebooks (the pq* backends) are kept here for reuse (default: drsplat-bench-query in the temp folder)")
     p.add_argument("--official", type=Path, default=None,
                    help="official Dr. Splat IVFPQ codebook, with text_negative.npy beside it (default: ../shared/data/drsplat/pq_index.faiss, "
                         "skipped when absent)")
@@ -411,10 +412,17 @@ def text_negatives(path: Path, dim: int) -> np.ndarray | None:
 
 
 def check_flags(args: argparse.Namespace, backends: list[str]) -> None:
-    """Flags that are wrong together, refused before any work (exit 2)."""
+    """Flags that are wrong together, refused before any work (exit 2); flags no chosen backend reads,
+    warned about (round 54: taken without a word); --cache-dir's default filled in."""
+    pq = [b for b in backends if b.startswith("pq")]
+    if args.cache_dir is not None and not pq:
+        log.warning("--cache-dir holds trained PQ codebooks; --backends %s trains none, so it is not used", ",".join(backends))
+    if args.official is not None and "official" not in backends:
+        log.warning("--official is read by the 'official' backend, which --backends %s leaves out; it is not used", ",".join(backends))
+    if args.cache_dir is None:
+        args.cache_dir = Path(tempfile.gettempdir()) / "drsplat-bench-query"
     if args.queries > args.labels:
         raise UsageError(f"--queries {args.queries} is more than --labels {args.labels}: each query asks for a different class")
-    pq = [b for b in backends if b.startswith("pq")]
     uneven = [b for b in pq if args.dim % int(b[2:])]
     if uneven:
         raise UsageError(f"--dim {args.dim} cannot be split into the sub-vectors of {', '.join(uneven)} (--backends): "
@@ -433,6 +441,8 @@ def check_outputs(args: argparse.Namespace, backends: list[str]) -> None:
         inputs["--official"] = official_path(args)
         inputs[f"--official's {TEXT_NEGATIVES}"] = official_path(args).parent / TEXT_NEGATIVES
     guard_bench_outputs(inputs, {"--plot": args.plot})
+    if args.plot.suffix.lower() != ".png":  # after the guard, which names an input it would hit; matplotlib writes PNG bytes whatever the name (round 54: --plot x.npy)
+        raise UsageError(f"--plot {shown_path(args.plot)}: the plot is a PNG image; name it .png")
     from drsplat.utils import check_output_writable
 
     for path in inputs.values():  # a codebook to train is cached: an unwritable --cache-dir is found now, not after the training
