@@ -204,6 +204,29 @@ def _points3d_bin(records: list[tuple[int, tuple[float, float, float], int]], de
     return out
 
 
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_a_colmap_binary_count_beyond_its_file_is_called_a_wrong_count(tmp_path, name):
+    """Round 54: a count of 2⁶³ in a COLMAP binary header was called "truncated at byte N" at the first record short of
+    it, which reads as a cut file. It is refused before any record is read, naming the count's field and what the
+    file can hold."""
+    import struct
+
+    from drsplat.cameras import read_colmap_cameras_bin, read_colmap_images_bin, read_colmap_points_bin
+
+    record = {"cameras.bin": struct.pack("<IiQQ3d", 1, 0, 64, 48, 50.0, 32.0, 24.0),
+              "images.bin": struct.pack("<I7dI", 1, 1, 0, 0, 0, 0, 0, 0, 1) + b"a.png\x00" + struct.pack("<Q", 0),
+              "points3D.bin": _points3d_bin([(1, (0.0, 0.0, 0.0), 0)])[8:]}[name]
+    field = {"cameras.bin": "num_cameras", "images.bin": "num_reg_images", "points3D.bin": "num_points3D"}[name]
+    read = {"cameras.bin": read_colmap_cameras_bin, "images.bin": read_colmap_images_bin, "points3D.bin": read_colmap_points_bin}[name]
+    path = tmp_path / name
+    path.write_bytes(struct.pack("<Q", 1) + record)
+    assert len(read(path)) == 1
+    path.write_bytes(struct.pack("<Q", 1 << 63) + record)
+    with pytest.raises(InputError, match=rf"{name}: field '{field}': declares {1 << 63} \w+, but the {len(record)} bytes after the count "
+                                         r"hold at most 1 \(a record takes at least \d+ bytes\): the count is wrong"):
+        read(path)
+
+
 def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_bytes(tmp_path):
     """points3D.bin is read by finding each record's start from the track lengths, then gathering the
     positions at once: ids and positions as written, tracks of any length skipped; a file cut inside a
@@ -218,9 +241,10 @@ def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_byt
     assert list(points) == [7, 3, 1 << 40]
     for pid, xyz, _ in records:
         assert points[pid].tolist() == list(xyz)
-    for cut in (8 + 20, len(data) - 4):  # inside the first record's head; inside the last track
+    for cut, words in ((8 + 20, "field .num_points3D.: declares 3 points, but the 20 bytes after the count hold at most 0"),  # in the first head
+                       (len(data) - 4, "is truncated")):  # inside the last track
         path.write_bytes(data[:cut])
-        with pytest.raises(InputError, match="points3D.bin: is truncated"):
+        with pytest.raises(InputError, match=f"points3D.bin: {words}"):
             read_colmap_points_bin(path)
     path.write_bytes(_points3d_bin(records, declared=2))
     with pytest.raises(InputError, match="declares 2 points but"):
