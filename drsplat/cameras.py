@@ -596,7 +596,15 @@ COLMAP_IMAGE_FIELDS: FieldNames = {"rotation": "QW QX QY QZ", "translation": "TX
 
 
 def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> list[Camera]:
-    """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`)."""
+    """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`); two images of one
+    name stem are refused by their IMAGE_IDs (`_check_unique_names` would count the sorted list's positions)."""
+    first: dict[str, ColmapImage] = {}
+    for img in sorted(model.images.values(), key=lambda im: im.image_id):
+        other = first.setdefault(Path(img.name).stem, img)
+        if other is not img:
+            raise InputError(model.images_path or source, f"images {other.image_id} ({other.name!r}) and {img.image_id} ({img.name!r}) "
+                             f"(IMAGE_ID) both name the image stem {Path(img.name).stem!r}; each view needs its own image (the stem "
+                             "pairs a view with its feature files)", field="NAME")
     out = []
     paths = DatasetPaths(images_dir, source)
     for img in sorted(model.images.values(), key=lambda im: im.name):

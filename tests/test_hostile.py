@@ -2654,9 +2654,11 @@ def test_two_cameras_of_one_image_are_one_input_error(tmp_path, kind):
     else:
         (tmp_path / "sparse" / "0").mkdir(parents=True)
         (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
-        (tmp_path / "sparse" / "0" / "images.txt").write_text("1 1 0 0 0 0 0 4 1 v.png\n\n2 1 0 0 0 0 0 5 1 v.png\n\n")
+        # round 54: named by their places in the sorted list ("cameras 0 and 1"), not by the IMAGE_IDs the file gives them
+        (tmp_path / "sparse" / "0" / "images.txt").write_text("9 1 0 0 0 0 0 4 1 v.png\n\n2 1 0 0 0 0 0 5 1 a.png\n\n4 1 0 0 0 0 0 6 1 v.jpg\n\n")
         field = "NAME"
-    with pytest.raises(InputError, match=f"field '{field}': cameras 0 and 1 both name the image stem 'v'"):
+    which = "cameras 0 and 1" if kind == "transforms" else r"images 4 \('v.jpg'\) and 9 \('v.png'\) \(IMAGE_ID\)"
+    with pytest.raises(InputError, match=f"field '{field}': {which} both name the image stem 'v'"):
         load_cameras(tmp_path, require_images=False)
 
 
