@@ -1269,6 +1269,10 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
     .jpg where the cameras name .png). A file of the very name is never "another extension"."""
     wanted = Path(missing) if Path(missing).is_absolute() else image_folder(kind, found) / missing
     hint = f"e.g. {wanted}"
+    if "\\" in missing and os.sep != "\\":  # a camera file written on Windows: its separators are part of one file name here
+        slashed = image_folder(kind, found) / missing.replace("\\", "/")
+        if slashed.exists() or any(slashed.with_name(slashed.name + suffix).exists() for suffix in IMAGE_SUFFIXES):
+            return hint + f"; the name holds Windows backslashes ('\\'), which are no folder separators here: {slashed} is there (write '/' in {found.name})"
     if not wanted.parent.is_dir():
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
     if os.path.lexists(wanted):

@@ -1408,3 +1408,19 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
         assert paths.find_named("a")[0] == (root / "images" / "a.png").resolve() and paths.find_named("missing") is None
     finally:
         os.chmod(locked, 0o755)
+
+
+def test_a_windows_backslash_image_path_is_named_as_the_cause(tmp_path):
+    """Round 54: a transforms.json written on Windows (`images\\sub\\a.png`) lost every frame with only "missing"; on
+    POSIX the backslashes are part of one file name. The error now says so and names the file that is there."""
+    from PIL import Image
+
+    (tmp_path / "images" / "sub").mkdir(parents=True)
+    Image.new("RGB", (64, 48)).save(tmp_path / "images" / "sub" / "a.png")
+    c2w = np.eye(4)
+    c2w[2, 3] = 4.0
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": [
+        {"file_path": "images\\sub\\a.png", "transform_matrix": c2w.tolist()}]}))
+    with pytest.raises(InputError, match=r"the name holds Windows backslashes \('\\'\), which are no folder separators here: "
+                                         r".*images/sub/a.png is there \(write '/' in transforms.json\)"):
+        load_cameras(tmp_path)
