@@ -627,6 +627,8 @@ def _json(path: Path):
 
 def _number(path: Path, record: dict, key: str, default: float | None = None, where: str = "") -> float:
     value = record.get(key, default)
+    if value is None and key in record:  # round 54: `"k1": null` was called missing, which the file plainly has
+        raise InputError(path, f"is null{where} (a JSON null, expected a number)", field=key)
     if value is None:
         raise InputError(path, f"is missing{where}", field=key)
     if isinstance(value, bool) or not isinstance(value, (int, float)):

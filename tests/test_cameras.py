@@ -617,6 +617,7 @@ def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transfor
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1e400]], "scale": 1}, "'transform': has a non-finite value in row 2"),
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 2]], "scale": 1}, "fourth row that is not 0 0 0 1"),
     ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}, "'scale': is missing"),
+    ({"transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": None}, "'scale': is null (a JSON null, expected a number)"),  # was "missing"
     ([1, 2], "is not a JSON object"),
 ])
 def test_a_bad_dataparser_transforms_file_is_one_error_naming_it(tmp_path, content, words):
