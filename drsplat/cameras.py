@@ -703,7 +703,7 @@ class DatasetPaths:
 
     def may_hold(self, name: str) -> bool:
         """False when the folder of the image `name` names lists no entry of that name, with or without an
-        image suffix, in any case: the folder is listed once (round 54: a transforms.json of 300,000 absent
+        image suffix, in any case or Unicode normalisation: the folder is listed once (round 54: a transforms.json of 300,000 absent
         images took 2:48, a dozen stat calls and a resolve each). True when it lists one, or cannot be
         listed: then `find_named`'s own calls decide, so symbolic links and case-blind file systems
         find what they found before."""
@@ -711,7 +711,7 @@ class DatasetPaths:
         folder = target.parent
         if folder not in self.listings:
             try:
-                self.listings[folder] = frozenset(entry.casefold() for entry in os.listdir(folder))
+                self.listings[folder] = frozenset(_folded(entry) for entry in os.listdir(folder))
             except (FileNotFoundError, NotADirectoryError):  # no such folder: it holds nothing
                 self.listings[folder] = frozenset()
             except (OSError, ValueError):  # unreadable, or a name no file system holds: the calls decide
@@ -719,8 +719,13 @@ class DatasetPaths:
         listing = self.listings[folder]
         if listing is None:
             return True
-        base = target.name.casefold()
+        base = _folded(target.name)
         return base in listing or any(base + suffix in listing for suffix in IMAGE_SUFFIXES_LOWER)
+
+
+def _folded(name: str) -> str:
+    """A file name as case- and normalisation-blind file systems compare it (macOS: "é" composed or not is one name)."""
+    return unicodedata.normalize("NFC", name).casefold()
 
 
 def dataset_stem(name: str, is_file_name: bool) -> str:

@@ -1378,7 +1378,7 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
 
     root = tmp_path / "data"
     (root / "images" / "sub").mkdir(parents=True)
-    for name in ("a.png", "B.JPG", "c", "frame.001.png", "sub/d.jpeg", "e.PNG"):
+    for name in ("a.png", "B.JPG", "c", "frame.001.png", "sub/d.jpeg", "e.PNG", "caf\u0065\u0301.png"):  # the last decomposed, as macOS stores it
         (root / "images" / name).write_bytes(b"x")
     (root / "images" / "link.png").symlink_to(root / "images" / "a.png")
     (root / "images" / "dangling.png").symlink_to(root / "images" / "nowhere.png")
@@ -1399,7 +1399,7 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
 
     names = ["a.png", "a", "A.png", "B", "B.JPG", "b.jpg", "c", "missing", "missing.png", "sub/d", "sub/d.jpeg", "nosub/x.png",
              "frame.001", "link", "link.png", "dangling.png", "folder.png", "folder", "e", "a.png/x", "../images/a", "locked/f",
-             str(root / "images" / "a"), "sub\\d.jpeg"]
+             str(root / "images" / "a"), "sub\\d.jpeg", "caf\u00e9", "caf\u0065\u0301", "CAF\u00c9.png"]
     os.chmod(locked, 0o311)  # listable by no one but root; its files still reachable
     try:
         paths, plain = DatasetPaths(root / "images", root / "transforms.json"), DatasetPaths(root / "images", root / "transforms.json")
