@@ -73,7 +73,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transforms_path, dataset_in_trained_frame, detect_dataset,
-                             in_trained_frame, load_image, qvec_to_rotmat, read_colmap_model)
+                             in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, read_colmap_model)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize, share_in_some_view
@@ -591,16 +591,18 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     to the image centres (`Camera.centred`), as INRIA's gaussian-splatting trains: it reads a COLMAP
     camera as fov_x = 2·atan(W / 2 fx), fov_y = 2·atan(H / 2 fy) and projects symmetrically; "auto"
     renders up to PRINCIPAL_POINT_VIEWS training views under both readings and takes the one whose
-    renders look more like the training images (`photo_agreement`): per view v,
+    renders look more like the training images (`photo_agreement`; a view one reading shows nothing
+    of counts ρ = 0 for it): per view v,
 
         g_v = ρ_v(centred) − ρ_v(as given),   the centres when median_v g_v > PRINCIPAL_POINT_MARGIN
                                               and median_v ρ_v(centred) ≥ PHOTO_MATCH_MIN,
 
     since moving the principal point by (δx, δy) translates the whole render by (δx, δy) pixels and
     the scene was fitted to the images under its trainer's reading. "auto" keeps the file's without
-    rendering when every principal point lies within PRINCIPAL_POINT_MIN_SHIFT of its centre or a
-    camera has lens distortion (INRIA trains on undistorted images only), and with a warning when
-    no training image can be compared. Taking the centres is said in one warning naming `what`.
+    rendering when every principal point lies within PRINCIPAL_POINT_MIN_SHIFT of its centre, a
+    camera has lens distortion (INRIA trains on undistorted images only) or every principal point is
+    a multiple of its centre (`cameras.off_size_factors`: intrinsics of another image size, warned
+    about on loading), and with a warning when no training image can be compared. Taking the centres is said in one warning naming `what`.
     """
     if choice not in PRINCIPAL_POINTS:
         raise ValueError(f"cameras_with_principal_point: choice must be one of {PRINCIPAL_POINTS}, got {choice!r}")
@@ -615,11 +617,18 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         log.info("--principal-point centre: the principal points of %s are moved to their image centres (up to %s of the side)", of, worst)
         return centred
     if any(c.distortion is not None and np.any(c.distortion) for c in cameras):
-        log.debug("the principal points of %s are taken as given: a camera has lens distortion, which INRIA's trainer does not read", of)
+        log.info("the principal points of %s are used as the camera file gives them, up to %s of the side off-centre: a camera "
+                 "has lens distortion, which INRIA's gaussian-splatting does not train with (--principal-point centre moves them)", of, worst)
+        return cameras
+    if off_size_factors(cameras) is not None:  # intrinsics of another image size, said on loading: centring would not mend them
+        log.info("the principal points of %s are used as the camera file gives them: each is a multiple of its image centre, "
+                 "intrinsics of another image size (the warning above)", of)
         return cameras
     as_given = photo_agreement(scene, cameras, views=PRINCIPAL_POINT_VIEWS)
     at_centre = photo_agreement(scene, centred, views=PRINCIPAL_POINT_VIEWS)
-    common = [name for name in as_given if name in at_centre]
+    # a view one reading renders and the other shows nothing of (a principal point far off the image) counts ρ = 0 for the latter
+    common = sorted(set(as_given) | set(at_centre))
+    as_given, at_centre = ({name: r.get(name, 0.0) for name in common} for r in (as_given, at_centre))
     if not common:
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
                     "could be compared with %s's renders to tell how it was trained: they are used as the camera file gives them "

@@ -935,3 +935,25 @@ def test_register_takes_the_principal_points_its_scene_was_trained_with(tiny_see
         assert ("trained with every principal point at its image centre" in err) == (name == "auto"), err
     assert outputs["auto"].read_bytes() == outputs["made"].read_bytes()
     assert outputs["file"].read_bytes() != outputs["made"].read_bytes()
+
+
+def test_the_principal_point_decision_on_far_off_sized_and_distorted_cameras(tiny_seed0, caplog):
+    """Round 55a's probe: principal points 10 image widths off showed nothing of the scene under the file's reading, so
+    no view was comparable and the warning said no image could be compared (all 16 were there); it is a loss for that
+    reading now. Intrinsics of twice the image size (every principal point at 2x the centre, warned about on loading)
+    and cameras with lens distortion keep the file's principal points, in words at INFO (distortion was said at DEBUG)."""
+    from drsplat.frames import cameras_with_principal_point
+
+    scene, _, cams, _ = tiny_seed0
+    far = [dataclasses.replace(c, cx=10.0 * c.width, cy=c.height / 2) for c in cams]
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        moved = cameras_with_principal_point(scene, far)
+    assert [(c.cx, c.cy) for c in moved] == [(c.width / 2, c.height / 2) for c in cams]
+    assert "trained with every principal point at its image centre" in caplog.text and "no training image" not in caplog.text
+    caplog.clear()
+    doubled = [dataclasses.replace(c, cx=float(c.width), cy=float(c.height)) for c in cams]
+    distorted = [dataclasses.replace(c, distortion=np.array([0.01, 0.0, 0.0, 0.0])) for c in _shifted(cams)]
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        assert cameras_with_principal_point(scene, doubled) == doubled
+        assert cameras_with_principal_point(scene, distorted) == distorted
+    assert "intrinsics of another image size" in caplog.text and "a camera has lens distortion" in caplog.text, caplog.text
