@@ -122,6 +122,31 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     assert doc["mIoU"] > 0.5 and doc["mAcc@0.25"] > 0.6
 
 
+def test_eval_lerf_takes_the_principal_points_the_scene_was_trained_with(registered, tmp_path, capsys):
+    """Round 55: the 2D protocol renders the registered scene from the dataset's cameras; with every cx, cy of its
+    transforms.json 5 px, 3 px off the centres the scene was trained about, `--principal-point auto` renders from the
+    centres (the very report of the dataset as made) and `file` from the shifted ones (another report)."""
+    import shutil
+
+    r = registered
+    shifted = tmp_path / "shifted"
+    shutil.copytree(r["ds"], shifted)
+    transforms = json.loads((shifted / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        frame["cx"], frame["cy"] = frame["cx"] + 5, frame["cy"] - 3
+    (shifted / "transforms.json").write_text(json.dumps(transforms))
+    reports = {}
+    for name, source, flags in (("made", r["ds"], []), ("auto", shifted, []), ("file", shifted, ["--principal-point", "file"])):
+        js = tmp_path / f"{name}.json"
+        assert main(["eval", "lerf", str(r["ply"]), "--source", str(source), "--annotations", str(r["labels"]), *query_args(r),
+                     "--json", str(js), *flags]) == 0
+        err = capsys.readouterr().err
+        assert ("trained with every principal point at its image centre" in err) == (name == "auto"), err
+        reports[name] = json.loads(js.read_text())
+    assert reports["auto"]["rows"] == reports["made"]["rows"] and reports["auto"]["mIoU"] == reports["made"]["mIoU"]
+    assert reports["file"]["mIoU"] < reports["made"]["mIoU"] - 0.01, (reports["file"]["mIoU"], reports["made"]["mIoU"])
+
+
 def test_eval_lerf_langsplat_protocol(registered, tmp_path, capsys):
     """LangSplat's relevancy-map protocol: the oracle's queries find their objects; the same queries
     shifted by one label do not; the per-pair JSON holds the IoUs the means are made of."""
