@@ -11,6 +11,7 @@ import glob
 import logging
 import math
 import os
+import re
 import struct
 import unicodedata
 import warnings
@@ -1521,6 +1522,7 @@ class AppliedMove:
     translation: np.ndarray | None = None
     scale: float = 1.0
     what: str = ""
+    orientation: str | None = None  # the file's `orientation_override` (nerfstudio's orientation method for it), if any
 
 
 def applied_move(path: Path) -> AppliedMove:
@@ -1533,6 +1535,7 @@ def applied_move(path: Path) -> AppliedMove:
     registered in a frame off by A (seg mIoU 0.135 against 0.950)."""
     meta = _json(path)
     meta = meta if isinstance(meta, dict) else {}
+    orientation = meta.get("orientation_override") if isinstance(meta.get("orientation_override"), str) else None
     scale = 1.0
     if "applied_scale" in meta:
         scale = _number(path, meta, "applied_scale")
@@ -1543,11 +1546,12 @@ def applied_move(path: Path) -> AppliedMove:
     if "applied_transform" in meta:
         rotation, translation = rigid_rows(path, meta["applied_transform"], "applied_transform",
                                            "ns-process-data's applied_transform is a rigid move of the poses")
-        return AppliedMove(rotation, translation, scale, f"{path.name}'s applied_transform")
+        return AppliedMove(rotation, translation, scale, f"{path.name}'s applied_transform", orientation)
     if (path.parent / "colmap" / "sparse" / "0").is_dir():
         return AppliedMove(NERFSTUDIO_COLMAP_APPLIED[:, :3], NERFSTUDIO_COLMAP_APPLIED[:, 3], scale,
-                           "the applied_transform nerfstudio takes for a transforms.json without one beside a colmap/sparse/0 folder")
-    return AppliedMove(scale=scale)
+                           "the applied_transform nerfstudio takes for a transforms.json without one beside a colmap/sparse/0 folder",
+                           orientation)
+    return AppliedMove(scale=scale, orientation=orientation)
 
 
 def in_trained_frame(camera: Camera, rotation: np.ndarray, translation: np.ndarray, scale: float) -> Camera:
@@ -1576,11 +1580,35 @@ def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: Applied
     return moved, scale
 
 
+PCA_ORIENTATION = re.compile(r"^\s*orientation_method:\s*['\"]?pca['\"]?\s*$", re.MULTILINE)  # a line of ns-train's config.yml
+
+
+def warn_if_pca_oriented(path: Path, override: str | None) -> None:
+    """One warning when nerfstudio oriented the run of the dataparser file `path` by PCA: its config.yml
+    beside the file says `orientation_method: pca`, or the transforms.json's `orientation_override` (which
+    replaces it) does. When PCA's up-flip fires, the saved transform misses a half turn about x in
+    every release (v1.1.4 and earlier flip the poses, v1.1.5 the saved transform only; round 55b), so
+    the cameras may land half-turned from the scene, and which release trained the run cannot be read."""
+    config = path.parent / "config.yml"
+    method = override
+    if method is None and config.is_file():
+        try:
+            method = "pca" if PCA_ORIENTATION.search(config.read_text(errors="replace")) else None
+        except OSError:
+            method = None
+    if method == "pca":
+        log.warning("%s: nerfstudio oriented this run by PCA (%s), whose saved transform misses the half turn about x that its "
+                    "up-flip may apply (nerfstudio releases differ): if the registration warns that the scene does not look like "
+                    "its images, retrain with --orientation-method up (the default)", path,
+                    "the transforms.json's orientation_override" if override == "pca" else "config.yml")
+
+
 def dataset_in_trained_frame(path: Path, kind: str, found: Path, cameras: list[Camera]) -> tuple[list[Camera], float, str]:
     """(the `cameras` of a dataset (format `kind`, file or folder `found`) in the frame of nerfstudio's
     dataparser_transforms.json `path`, the scale, "" or what of a transforms.json was undone first, for
     the log): a transforms.json's `applied_move` undone, then `cameras_in_trained_frame`."""
     applied = applied_move(found) if kind == "transforms" else AppliedMove()
+    warn_if_pca_oriented(path, applied.orientation)
     moved, scale = cameras_in_trained_frame(path, cameras, applied)
     undone = [what for what in (applied.what, f"{found.name}'s applied_scale {applied.scale:g}" if applied.scale != 1.0 else "") if what]
     return moved, scale, " and ".join(undone)

@@ -1425,3 +1425,30 @@ def test_a_windows_backslash_image_path_is_named_as_the_cause(tmp_path):
     with pytest.raises(InputError, match=r"the name holds Windows backslashes \('\\'\), which are no folder separators here: "
                                          r".*images/sub/a.png is there \(write '/' in transforms.json\)"):
         load_cameras(tmp_path)
+
+
+def test_a_nerfstudio_run_oriented_by_pca_is_warned_about(tmp_path, caplog):
+    """Round 55b: nerfstudio's --orientation-method pca may turn its poses half round about x when its up-flip fires,
+    and the saved dataparser transform misses that turn in every release (which one trained a run cannot be read). A
+    run whose config.yml says pca, or whose transforms.json's orientation_override does, gets one warning; another
+    override replaces the config's method, as in nerfstudio."""
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+    meta = json.loads((data / "transforms.json").read_text())
+
+    def warned(config: str | None, override: str | None) -> bool:
+        caplog.clear()
+        if config is None:
+            (data / "config.yml").unlink(missing_ok=True)
+        else:
+            (data / "config.yml").write_text(config)
+        (data / "transforms.json").write_text(json.dumps({**meta, "orientation_override": override} if override else meta))
+        with caplog.at_level(logging.WARNING):
+            load_cameras(data)
+        return "nerfstudio oriented this run by PCA" in caplog.text
+
+    config = "!!python/object:nerfstudio.engine.trainer.TrainerConfig\npipeline:\n  datamanager:\n    dataparser:\n      orientation_method: {}\n"
+    assert warned(config.format("pca"), None) and warned(None, "pca") and warned(config.format("up"), "pca")
+    assert not warned(config.format("up"), None) and not warned(None, None) and not warned(config.format("pca"), "none")
