@@ -536,8 +536,14 @@ def supersampled_render(prepared, camera: Camera, factor: int) -> tuple[np.ndarr
     return rgb, alpha
 
 
+def photo_scene(scene, sample: int = PHOTO_CHECK_SAMPLE):
+    """The prepared scene `photo_agreement` renders: `scene`, or over `sample` Gaussians a subset spread over the file."""
+    subset = scene if scene.num_gaussians <= sample else scene.subset(spread_rows(np.arange(scene.num_gaussians), sample))
+    return prepare_scene(subset)
+
+
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
-                    sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE) -> dict[str, float]:
+                    sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE, prepared=None) -> dict[str, float]:
     """How well the scene re-renders its training images: camera name -> `grey_correlation` of the
     scene's render (black background) and the camera's image, both `width` px on their longer side, over the pixels
     the render covers (α ≥ ½), for up to `views` cameras with an image file, spread over the list.
@@ -546,7 +552,8 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     another frame (moved, turned, scaled) its render shows other things where the image has its
     own, and ρ is near 0. Views whose image is no regular file or cannot be read, or where the render covers under
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
-    Gaussians; over `sample`, a subset spread over the file is rendered.
+    Gaussians; over `sample`, a subset spread over the file is rendered. prepared: that subset's
+    `photo_scene`, when the caller renders it more than once.
     """
     for label, value in (("views", views), ("width", width), ("sample", sample), ("supersample", supersample)):
         if value < 1:
@@ -555,8 +562,7 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     if not with_images or scene.num_gaussians == 0:
         return {}
     picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]
-    subset = scene if scene.num_gaussians <= sample else scene.subset(spread_rows(np.arange(scene.num_gaussians), sample))
-    prepared = prepare_scene(subset)
+    prepared = photo_scene(scene, sample) if prepared is None else prepared
     out: dict[str, float] = {}
     for camera in picked:
         # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
@@ -624,8 +630,9 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         log.info("the principal points of %s are used as the camera file gives them: each is a multiple of its image centre, "
                  "intrinsics of another image size (the warning above)", of)
         return cameras
-    as_given = photo_agreement(scene, cameras, views=PRINCIPAL_POINT_VIEWS)
-    at_centre = photo_agreement(scene, centred, views=PRINCIPAL_POINT_VIEWS)
+    prepared = photo_scene(scene)
+    as_given = photo_agreement(scene, cameras, views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
+    at_centre = photo_agreement(scene, centred, views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
     # a view one reading renders and the other shows nothing of (a principal point far off the image) counts ρ = 0 for the latter
     common = sorted(set(as_given) | set(at_centre))
     as_given, at_centre = ({name: r.get(name, 0.0) for name in common} for r in (as_given, at_centre))
