@@ -957,3 +957,14 @@ def test_the_principal_point_decision_on_far_off_sized_and_distorted_cameras(tin
         assert cameras_with_principal_point(scene, doubled) == doubled
         assert cameras_with_principal_point(scene, distorted) == distorted
     assert "intrinsics of another image size" in caplog.text and "a camera has lens distortion" in caplog.text, caplog.text
+
+
+def test_a_rig_with_some_cameras_off_centre_is_decided_on_those(tiny_seed0):
+    """Round 55a: a model where only every third camera's principal point is off-centre (a rig, or merged models) kept
+    the file's at every offset: the centred views compared gave gain 0 and the median followed them. Only the views
+    whose principal point is off-centre are compared now."""
+    from drsplat.frames import cameras_with_principal_point
+
+    scene, _, cams, _ = tiny_seed0
+    rig = [dataclasses.replace(c, cx=c.cx + 2.56, cy=c.cy - 1.5) if i % 3 == 0 else c for i, c in enumerate(cams)]
+    assert [(c.cx, c.cy) for c in cameras_with_principal_point(scene, rig)] == [(c.width / 2, c.height / 2) for c in cams]
