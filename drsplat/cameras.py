@@ -689,9 +689,13 @@ class DatasetPaths:
         """(the image `name` names, resolved; the stem the dataset knows it by), or None. The stem is
         that of the name as given (with the suffix tried, when it has none), never that of the file a
         symbolic link leads to (a git-annex or DVC key, a content hash): the stem pairs a view with
-        its feature files, which are named after the image as the dataset names it."""
-        if not self.may_hold(name):
-            return None
+        its feature files, which are named after the image as the dataset names it. An absent image is
+        answered from its folder's listing (`may_hold`), any other by `stat_named`."""
+        return self.stat_named(name) if self.may_hold(name) else None
+
+    def stat_named(self, name: str) -> tuple[Path, str] | None:
+        """`find_named` by stat calls alone: the name as given, then with each image suffix (the reference
+        `may_hold`'s shortcut is tested against)."""
         p = self.image(name)
         if p.is_file():
             return p, dataset_stem(name, is_file_name=True)
@@ -700,7 +704,6 @@ class DatasetPaths:
             if q.is_file():
                 return q.resolve(), dataset_stem(name, is_file_name=False)  # resolved as a name with its suffix is (`image`)
         return None
-
 
     def may_hold(self, name: str) -> bool:
         """False when the folder of the image `name` names lists no entry of that name, with or without an

@@ -1371,10 +1371,10 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
     """Round 54: a transforms.json of 300,000 absent images took 2:48, a dozen stat calls and a resolve a frame.
     `DatasetPaths.may_hold` lists each folder once and answers an absent image from the listing; every name, present,
     absent, suffixless, in another case, through a link, dangling, in a missing or unlistable folder, finds what the
-    stat calls alone find (the reference below: `find_named` without the shortcut)."""
+    stat calls alone find (`stat_named`, the reference)."""
     import os
 
-    from drsplat.cameras import IMAGE_SUFFIXES, DatasetPaths, dataset_stem
+    from drsplat.cameras import DatasetPaths
 
     root = tmp_path / "data"
     (root / "images" / "sub").mkdir(parents=True)
@@ -1387,16 +1387,6 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
     locked.mkdir()
     (locked / "f.png").write_bytes(b"x")
 
-    def reference(paths: DatasetPaths, name: str):
-        p = paths.image(name)
-        if p.is_file():
-            return p, dataset_stem(name, is_file_name=True)
-        for suffix in IMAGE_SUFFIXES:
-            q = p.with_name(p.name + suffix)
-            if q.is_file():
-                return q.resolve(), dataset_stem(name, is_file_name=False)
-        return None
-
     names = ["a.png", "a", "A.png", "B", "B.JPG", "b.jpg", "c", "missing", "missing.png", "sub/d", "sub/d.jpeg", "nosub/x.png",
              "frame.001", "link", "link.png", "dangling.png", "folder.png", "folder", "e", "a.png/x", "../images/a", "locked/f",
              str(root / "images" / "a"), "sub\\d.jpeg", "caf\u00e9", "caf\u0065\u0301", "CAF\u00c9.png"]
@@ -1404,7 +1394,7 @@ def test_the_listing_shortcut_finds_what_the_stat_calls_find(tmp_path):
     try:
         paths, plain = DatasetPaths(root / "images", root / "transforms.json"), DatasetPaths(root / "images", root / "transforms.json")
         for name in names:
-            assert paths.find_named(name) == reference(plain, name), name
+            assert paths.find_named(name) == plain.stat_named(name), name
         assert paths.listings[root / "images"] is not None and paths.listings[root / "images" / "nosub"] == frozenset()
         assert paths.find_named("a")[0] == (root / "images" / "a.png").resolve() and paths.find_named("missing") is None
     finally:
