@@ -866,3 +866,50 @@ def composite_topk(
                     out_alpha[py, px] = 1.0 - trans[p]
                     if with_median:
                         out_median[py, px] = med[p]
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def sh_colors(sh, means, centre, valid, c1, c2, c3, out):  # pragma: no cover - numba
+    """out[i] = max(0, 0.5 + Σ_k sh[i, k]·Y_k(d_i)) for valid Gaussians, d_i = normalize(means[i] − centre)
+    (d_i = 0 at the centre itself), 0 elsewhere: raster.eval_sh per Gaussian, its basis in 3DGS's order and
+    signs and its sum in the same order (k = 0, 1, ...), in float64.
+
+    sh: [N, K, 3] float32, K = 1, 4, 9 or 16. means: [N, 3] float64. centre: [3] float64. valid: [N] bool.
+    c1: float; c2: [5]; c3: [7] float64 (raster.SH_C1, SH_C2, SH_C3). out: [N, 3] float32, overwritten.
+    """
+    n, num_coeffs = sh.shape[0], sh.shape[1]
+    c0 = 0.28209479177387814
+    for i in prange(n):
+        if not valid[i]:
+            out[i, 0] = 0.0
+            out[i, 1] = 0.0
+            out[i, 2] = 0.0
+            continue
+        dx, dy, dz = means[i, 0] - centre[0], means[i, 1] - centre[1], means[i, 2] - centre[2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if norm > 0:
+            dx, dy, dz = dx / norm, dy / norm, dz / norm
+        basis = np.empty(16)
+        basis[0] = c0
+        if num_coeffs > 1:
+            basis[1], basis[2], basis[3] = -c1 * dy, c1 * dz, -c1 * dx
+        if num_coeffs > 4:
+            xx, yy, zz = dx * dx, dy * dy, dz * dz
+            basis[4] = c2[0] * dx * dy
+            basis[5] = c2[1] * dy * dz
+            basis[6] = c2[2] * (2 * zz - xx - yy)
+            basis[7] = c2[3] * dx * dz
+            basis[8] = c2[4] * (xx - yy)
+            if num_coeffs > 9:
+                basis[9] = c3[0] * dy * (3 * xx - yy)
+                basis[10] = c3[1] * dx * dy * dz
+                basis[11] = c3[2] * dy * (4 * zz - xx - yy)
+                basis[12] = c3[3] * dz * (2 * zz - 3 * xx - 3 * yy)
+                basis[13] = c3[4] * dx * (4 * zz - xx - yy)
+                basis[14] = c3[5] * dz * (xx - yy)
+                basis[15] = c3[6] * dx * (xx - 3 * yy)
+        for ch in range(3):
+            value = 0.5
+            for k in range(num_coeffs):
+                value += basis[k] * np.float64(sh[i, k, ch])
+            out[i, ch] = max(value, 0.0)

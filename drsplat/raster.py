@@ -408,6 +408,14 @@ def _add_colors(out: Projected, prep: PreparedScene, camera: Camera) -> None:
     out.colors[idx] = eval_sh(prep.sh[idx], dirs / np.where(norm > 0, norm, 1.0))
 
 
+def _add_colors_numba(out: Projected, prep: PreparedScene, camera: Camera) -> None:
+    """`_add_colors` by the numba kernel `sh_colors` (the same sums in the same order; 542k Gaussians of
+    SH degree 2: 0.53 s a view in numpy)."""
+    out.colors = np.empty((prep.num_gaussians, 3), np.float32)
+    kernels.sh_colors(prep.sh, prep.means, np.asarray(camera.center, np.float64), out.valid, SH_C1, np.asarray(SH_C2), np.asarray(SH_C3),
+                      out.colors)
+
+
 def project_gaussians(
     scene: GaussianScene | PreparedScene,
     camera: Camera,
@@ -441,7 +449,7 @@ def project_gaussians(
     out.num_behind = int(np.count_nonzero(status == kernels.BEHIND))
     out.num_nonfinite = prep.num_nonfinite + int(np.count_nonzero(status == kernels.NONFINITE))
     if with_colors:
-        _add_colors(out, prep, camera)
+        _add_colors_numba(out, prep, camera)
     return out
 
 

@@ -374,6 +374,34 @@ def test_sh_basis_is_orthonormal_with_3dgs_signs():
     assert (eval_sh(sh, x_dir) == 0).all(), "colours clamp at 0"
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_the_sh_colour_kernel_matches_eval_sh(degree):
+    """The numba `sh_colors` (project_gaussians' colours) against the numpy reference `_add_colors` (eval_sh): random
+    coefficients, coefficients of ±1e4 (the clamp at 0 and large sums), a Gaussian at the camera centre (no direction),
+    mean directions along each axis, invalid Gaussians (colour 0). float64 sums in one order: equal to float32 rounding."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.raster import _add_colors, _add_colors_numba, prepare_scene, project_gaussians
+
+    rng = np.random.default_rng(degree)
+    cam = look_at_camera(np.array([0.3, -0.2, -4.0]), np.zeros(3), 64, 48)
+    means = np.r_[rng.normal(size=(300, 3)), [cam.center], cam.center + np.eye(3), [cam.center - 1e-12]].astype(np.float32)
+    scene = gaussians(means, log_scale=-2.0)
+    k = (degree + 1) ** 2
+    sh = rng.normal(scale=0.5, size=(len(means), k, 3)).astype(np.float32)
+    sh[:40] *= 2e4
+    scene.sh = sh
+    prep = prepare_scene(scene)
+    projected = project_gaussians(prep, cam)
+    projected.valid[::7] = False
+    projected.valid[300:] = True  # the centre itself and points beside it, whether or not the camera sees them
+    fast, reference = dataclasses.replace(projected), dataclasses.replace(projected)
+    _add_colors_numba(fast, prep, cam)
+    _add_colors(reference, prep, cam)
+    np.testing.assert_allclose(fast.colors, reference.colors, rtol=1e-6, atol=1e-6)
+    assert (fast.colors[~projected.valid] == 0).all() and (fast.colors >= 0).all() and fast.colors.dtype == np.float32
+    assert (reference.colors == 0).any() and (reference.colors > 1).any()  # the clamp and large colours both met
+
+
 def test_view_dependent_colour_uses_camera_to_mean_direction():
     scene = gaussians([[0.0, 0.0, 0.0]], log_scale=-1.0)
     scene.sh = np.zeros((1, 4, 3), np.float32)
