@@ -707,10 +707,10 @@ class DatasetPaths:
 
     def may_hold(self, name: str) -> bool:
         """False when the folder of the image `name` names lists no entry of that name, with or without an
-        image suffix, in any case or Unicode normalisation: the folder is listed once (round 54: a transforms.json of 300,000 absent
-        images took 2:48, a dozen stat calls and a resolve each). True when it lists one, or cannot be
-        listed: then `find_named`'s own calls decide, so symbolic links and case-blind file systems
-        find what they found before."""
+        image suffix, in any case or Unicode normalisation: the folder is listed once (round 54: a
+        transforms.json of 300,000 absent images took 2:48, a dozen stat calls and a resolve each).
+        True when it lists one, or cannot be listed: then `stat_named` decides, so symbolic links and
+        case-blind file systems find what they found before."""
         target = self.root / name
         folder = target.parent
         if folder not in self.listings:

@@ -616,8 +616,8 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     if choice not in PRINCIPAL_POINTS:
         raise ValueError(f"cameras_with_principal_point: choice must be one of {PRINCIPAL_POINTS}, got {choice!r}")
     cameras = list(cameras)
-    shifted = sum(c.principal_point_shift() >= PRINCIPAL_POINT_MIN_SHIFT for c in cameras)
-    if choice == "file" or not shifted:
+    off = [i for i, c in enumerate(cameras) if c.principal_point_shift() >= PRINCIPAL_POINT_MIN_SHIFT]
+    if choice == "file" or not off:
         return cameras
     centred = [c.centred() for c in cameras]
     of = f"the {len(cameras)} cameras of {source}" if source is not None else f"the {len(cameras)} cameras"
@@ -636,7 +636,6 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     prepared = photo_scene(scene)
     # only the views whose principal point is off-centre tell the readings apart (round 55a: a rig with every third camera
     # off-centre gave gain 0 in most compared views, and the median kept the file's)
-    off = [i for i, c in enumerate(cameras) if c.principal_point_shift() >= PRINCIPAL_POINT_MIN_SHIFT]
     as_given = photo_agreement(scene, [cameras[i] for i in off], views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
     at_centre = photo_agreement(scene, [centred[i] for i in off], views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
     # a view one reading renders and the other shows nothing of (a principal point far off the image) counts ρ = 0 for the latter
@@ -646,7 +645,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
                     "could be compared with %s's renders to tell how it was trained: they are used as the camera file gives them "
                     "(as gsplat and nerfstudio train); for a scene trained by INRIA's gaussian-splatting, which takes every "
-                    "principal point at the image centre, pass --principal-point centre", shifted, of, worst, what)
+                    "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what)
         return cameras
     gain = float(np.median([at_centre[name] - as_given[name] for name in common]))
     given_rho, centre_rho = (float(np.median([r[name] for name in common])) for r in (as_given, at_centre))
