@@ -1583,6 +1583,7 @@ def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: Applied
     return moved, scale
 
 
+CONFIG_READ_BYTES = 1 << 20  # of a nerfstudio run's config.yml that `warn_if_pca_oriented` reads
 PCA_ORIENTATION = re.compile(r"^\s*orientation_method:\s*['\"]?pca['\"]?\s*$", re.MULTILINE)  # a line of ns-train's config.yml
 
 
@@ -1596,7 +1597,9 @@ def warn_if_pca_oriented(path: Path, override: str | None) -> None:
     method = override
     if method is None and config.is_file():
         try:
-            method = "pca" if PCA_ORIENTATION.search(config.read_text(errors="replace")) else None
+            with open(config, "rb") as f:  # its head only: ns-train writes a few KB, and the file is not this command's to trust
+                text = f.read(CONFIG_READ_BYTES).decode("utf-8", errors="replace")
+            method = "pca" if PCA_ORIENTATION.search(text) else None
         except OSError:
             method = None
     if method == "pca":

@@ -77,7 +77,8 @@ class Cancelled(DrsplatError):
 
 # what the command line adds to a Cancelled or an interrupt (drsplat.cli); `features` adds
 # RESUMABLE_NOTE when its output folder holds finished images (its parser's `interrupted_note`);
-# `register` says itself whether it kept a checkpoint to resume from (Checkpoint.leave)
+# `register` adds that the same command resumes when a checkpoint is there (its `interrupted_note`; the
+# checkpoint's own warning, Checkpoint.leave, names it when this run kept it)
 INTERRUPTED_NOTE = "no partial output file was left"
 STARTING_NOTE = "drsplat: interrupted while starting; nothing was done\n"  # Ctrl-C before any command ran (drsplat.console)
 RESUMABLE_NOTE = f"{INTERRUPTED_NOTE}; what was finished is kept, and the same command resumes from it"

@@ -357,7 +357,7 @@ def test_eval_cli_rejects_bad_options(registered, capsys):
     assert main(base + ["--weighting", "volume,mass"]) == 2
     assert "mass" in capsys.readouterr().err
     assert main(base + ["--weighting", "count,volume,count"]) == 2  # round 54: accepted, the repeat dropped without a word
-    assert "--weighting: count given twice" in capsys.readouterr().err
+    assert "--weighting: 'count' given twice" in capsys.readouterr().err
     assert main(base + ["--weighting", "a\nb"]) == 2  # round 54: the newline printed raw, a forged line
     assert capsys.readouterr().err.strip().splitlines()[-1] == "ERROR: --weighting: unknown 'a\\nb'; choose from volume, count, voxel"
     bad = r["root"] / "bad_labels.npy"

@@ -12,7 +12,8 @@ import math
 import os
 import re
 import sys
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Sequence
 from typing import TextIO
 from pathlib import Path
 
@@ -86,13 +87,18 @@ class ArgumentParser(argparse.ArgumentParser):
         super().error(one_line(message))
 
 
+def refuse_blank(text: str, wanted: str) -> str:
+    """`text`, or argparse's error when it is empty or only blank space ("give `wanted`")."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is {'empty' if not text else 'only blank space'}: give {wanted}")
+    return text
+
+
 def path_value(text: str) -> Path:
     """argparse type of a path (what `type=Path` means on drsplat's parsers): an empty or blank value is
     refused, since Path("") is Path(".") (round 54: `query ''` read the current folder as the PLY and
     ended in a traceback)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError(f"{text!r} is {'empty' if not text else 'only blank space'}: give a path")
-    return Path(text)
+    return Path(refuse_blank(text, "a path"))
 
 
 path_value.__name__ = "path"
@@ -102,12 +108,18 @@ def text_value(text: str) -> str:
     """argparse type of a name or address that has no empty meaning (a codebook, a Ray address, a CLIP
     model or tag): an empty or blank value is refused, not read as unset or as the current folder
     (round 54: `register --codebook ''` read "." as the codebook, `--ray ''` and `--pretrained ''` the defaults)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError(f"{text!r} is {'empty' if not text else 'only blank space'}: give a value, or leave the flag out")
-    return text
+    return refuse_blank(text, "a value, or leave the flag out")
 
 
 text_value.__name__ = "value"
+
+
+def refuse_repeats(flag: str, values: Sequence, shown: Callable[[object], str] = repr) -> None:
+    """UsageError naming the entries of the list flag `flag` given more than once: a slip (a table row or
+    an ablation's mode twice), refused as --classes refuses its names."""
+    repeated = sorted(value for value, count in Counter(values).items() if count > 1)
+    if repeated:
+        raise UsageError(f"{flag}: {', '.join(map(shown, repeated))} given twice")
 
 
 def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import (add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range,
-                                     output_file, table_stream, threshold_value)
+                                     output_file, refuse_repeats, table_stream, threshold_value)
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
@@ -254,9 +254,7 @@ def parse_weightings(text: str | tuple[str, ...]) -> tuple[str, ...]:
     unknown = [w for w in items if w not in WEIGHTINGS]
     if unknown or not items:
         raise UsageError(f"--weighting: unknown {', '.join(map(repr, unknown)) if unknown else repr(text)}; choose from {', '.join(WEIGHTINGS)}")
-    repeated = sorted({w for w in items if items.count(w) > 1})
-    if repeated:  # each weighting is one row of the table: a repeat is a slip, refused as --classes and ablate's lists refuse theirs
-        raise UsageError(f"--weighting: {', '.join(repeated)} given twice")
+    refuse_repeats("--weighting", items)  # each weighting is one row of the table
     return items
 
 

@@ -36,7 +36,7 @@ from drsplat.lang import build_field
 from drsplat.registration import RegisterOptions, register_features
 from drsplat.scene import load_ply
 from drsplat.features.format import FEATURE_FILE_PATTERNS, read_manifest
-from drsplat.commands.common import int_range, seed_int
+from drsplat.commands.common import int_range, refuse_repeats, seed_int
 from drsplat.defaults import MAX_TOPK
 from drsplat.synthetic import MASK_SOURCES, MAX_WIDTH, MIN_WIDTH, PRESETS, WRONG_LABELS, segmenter_corruption_error, write_dataset
 
@@ -623,9 +623,7 @@ def _list(flag: str, text: str) -> list[str]:
         raise UsageError(f"{flag} {text!r} gives no value; expected a comma-separated list")
     if not all(items):
         raise UsageError(f"{flag} {text!r}: an entry is empty (two commas in a row, or one at an end)")
-    repeated = sorted({t for t in items if items.count(t) > 1})
-    if repeated:  # a mode or preset run twice is a slip (and twice the time)
-        raise UsageError(f"{flag}: {', '.join(map(repr, repeated))} given twice")
+    refuse_repeats(flag, items)  # a mode or preset run twice costs twice the time
     return items
 
 
@@ -637,9 +635,7 @@ def _int_list(flag: str, text: str, parse) -> list[int]:
             values.append(parse(item))
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"{flag}: {exc}") from None
-    repeated = sorted({v for v in values if values.count(v) > 1})
-    if repeated:
-        raise UsageError(f"{flag}: {', '.join(map(str, repeated))} given twice")
+    refuse_repeats(flag, values, str)  # "1,01" is one value twice
     return values
 
 
