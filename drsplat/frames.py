@@ -591,6 +591,16 @@ PRINCIPAL_POINT_MIN_SHIFT = 1e-3  # of the longer side: principal points nearer 
 PRINCIPAL_POINT_MARGIN = 2e-3
 
 
+def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, principal_point: str = DEFAULT_PRINCIPAL_POINT,
+                       what: str = "the scene", scene_path: str | Path | None = None,
+                       refinements: np.ndarray | None = None) -> list[Camera]:
+    """`cameras` of dataset `source` as their scene (a GaussianScene) was trained with them: moved into
+    its frame (`cameras_in_scene_frame`), then with its principal points (`cameras_with_principal_point`,
+    `principal_point` its choice). Both render views of the scene when they must decide."""
+    cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
+    return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
+
+
 def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str = DEFAULT_PRINCIPAL_POINT, what: str = "the scene",
                                  source: str | Path | None = None) -> list[Camera]:
     """`cameras` with the principal points their scene (a GaussianScene) was trained with.

@@ -630,7 +630,7 @@ def test_the_viewer_opening_another_checkpoint_of_the_run_takes_its_refinements(
     assert state.load_scene(first) and state.load_source(source)
     by_name = {c.name: c for c in truth}
     assert all(np.allclose(c.R, by_name[c.name].R, atol=1e-6) for c in state.cameras)
-    assert ViewerApp.open_scene(types.SimpleNamespace(state=state), later)
+    assert ViewerApp.open_scene(types.SimpleNamespace(state=state, background_checks=False), later)
     given = {c.name: c for c in load_cameras(source, require_images=False)}
     for c in state.cameras:  # zero refinements: the model's own cameras
         np.testing.assert_allclose(c.R, given[c.name].R, atol=1e-9)
@@ -968,3 +968,54 @@ def test_a_rig_with_some_cameras_off_centre_is_decided_on_those(tiny_seed0):
     scene, _, cams, _ = tiny_seed0
     rig = [dataclasses.replace(c, cx=c.cx + 2.56, cy=c.cy - 1.5) if i % 3 == 0 else c for i, c in enumerate(cams)]
     assert [(c.cx, c.cy) for c in cameras_with_principal_point(scene, rig)] == [(c.width / 2, c.height / 2) for c in cams]
+
+
+def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_register_would(tiny_seed0, tmp_path, monkeypatch):
+    """Round 55's leftover: the viewer decided the principal points (and the frame) on the window's thread, 2.4 s of
+    renders on a 542k-Gaussian scene during which nothing was drawn. `load_source(..., background=True)` returns
+    with the cameras still being checked (registration and snapping wait, and say why), the check's warning
+    reaches the window's log once, and the cameras it takes are the ones `register` takes: here, on a dataset
+    whose principal points are 5 px, -3 px off the centres its scene was trained about, the centred ones. A
+    check that ends after another scene opened is dropped."""
+    import json
+    import threading
+
+    import viewer.cameracheck
+    from drsplat.scene import GaussianScene
+    from viewer.state import ViewerState
+
+    scene, _, cams, _ = tiny_seed0
+    data = Path(cams[0].image_path).parents[1]
+    shifted = tmp_path / "shifted"
+    shutil.copytree(data, shifted)
+    transforms = json.loads((shifted / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        frame["cx"], frame["cy"] = frame["cx"] + 5, frame["cy"] - 3
+    (shifted / "transforms.json").write_text(json.dumps(transforms))
+    release, real = threading.Event(), viewer.cameracheck.cameras_as_trained
+    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", lambda *a, **k: (release.wait(60), real(*a, **k))[1])
+
+    state = ViewerState()
+    assert state.load_scene(data / "scene.ply")
+    assert state.load_source(shifted, background=True)
+    assert state.cameras_pending and state.cameras == [] and state.source_dir == shifted, "load_source returned before the check ended"
+    assert not state.poll_camera_check()
+    state.features_dir = data / "features"
+    assert not state.start_registration(tmp_path / "r.ply", background=False)
+    assert "still being checked" in state.messages[-1].text
+    release.set()
+    state.camera_check.thread.join(60)
+    assert state.poll_camera_check() and not state.cameras_pending
+    assert [c.geometry_bits() for c in state.cameras] == [c.geometry_bits() for c in cams]  # the cameras the images were made with
+    warned = [m.text for m in state.messages if "trained with every principal point at its image centre" in m.text]
+    assert len(warned) == 1, [m.text for m in state.messages]
+    assert state.messages[-1].text == f"{len(cams)} training cameras from {shifted}"
+
+    release.clear()
+    assert state.load_source(shifted, background=True)
+    other = GaussianScene(means=scene.means[:10], quats=scene.quats[:10], log_scales=scene.log_scales[:10],
+                          opacity_logits=scene.opacity_logits[:10], sh=scene.sh[:10])
+    state.set_scene(other)  # another scene opens while the check runs
+    release.set()
+    state.camera_check.thread.join(60)
+    assert not state.poll_camera_check() and state.cameras == [] and not state.cameras_pending, "another scene's cameras were taken"

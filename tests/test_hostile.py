@@ -2092,7 +2092,7 @@ def test_screenshot_into_an_unwritable_folder_fails_before_rendering(tmp_path, w
     """Was: a PermissionError traceback after loading and rendering. Now one error first."""
     import viewer.launch as launch
 
-    def no_state(args):
+    def no_state(args, background_checks=False):
         raise AssertionError("the scene was loaded before the output was checked")
 
     monkeypatch.setattr(launch, "build_state", no_state)

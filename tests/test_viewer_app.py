@@ -561,7 +561,7 @@ def test_no_display_is_reported_before_anything_is_generated(monkeypatch, capsys
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     monkeypatch.delenv("DRSPLAT_VIEWER_PLATFORM", raising=False)
-    monkeypatch.setattr(viewer.launch, "build_state", lambda args: pytest.fail("nothing may be loaded or generated"))
+    monkeypatch.setattr(viewer.launch, "build_state", lambda args, **_: pytest.fail("nothing may be loaded or generated"))
     assert viewer.launch.main([]) == 1
     err = capsys.readouterr().err
     assert "no display" in err and "--screenshot" in err and err.count("ERROR") == 1
@@ -574,7 +574,7 @@ def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
 
     import viewer.launch
 
-    def build_state(args):
+    def build_state(args, background_checks=False):
         os.kill(os.getpid(), signal.SIGTERM)  # arrives while the scene loads
         time.sleep(5)  # the handler interrupts this
         pytest.fail("SIGTERM did not stop the viewer")
@@ -665,3 +665,31 @@ def test_values_typed_into_the_view_panels_sliders_are_kept_in_their_ranges(app,
     finally:
         view.fov_y_deg, settings.fly_speed = before[0], before[2]
         view.set_roll(before[1])
+
+
+def test_cameras_checked_in_the_background_bring_an_untouched_view_to_the_first_camera(app, dataset):
+    """The training cameras now arrive after the window opens (their checks against the scene run on a worker
+    thread): a view nobody moved goes to the first camera, as it starts there when the cameras are in at once;
+    a view the user moved meanwhile stays where it is."""
+    import glfw
+
+    from viewer.camera import ViewController
+
+    state = app.state
+    app.run(max_frames=1)  # the scene is synced (a first frame makes its view)
+    fb_w, fb_h = glfw.get_framebuffer_size(app.window)
+    for moved in (False, True):
+        app.view = ViewController.for_scene(state.scene.means, [], fb_w, fb_h, state.scene.log_scales)
+        if moved:
+            app.view.pan(40.0, 10.0)
+        before = app.view.eye.copy()
+        assert state.load_source(dataset, background=True) and state.cameras_pending
+        state.camera_check.thread.join(60)
+        app.run(max_frames=1)
+        assert not state.cameras_pending and state.cameras
+        home = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h, state.scene.log_scales)
+        if moved:
+            np.testing.assert_array_equal(app.view.eye, before)
+        else:
+            np.testing.assert_allclose(app.view.eye, home.eye, atol=1e-9)
+            assert not np.allclose(before, home.eye)

@@ -496,7 +496,7 @@ def test_a_scene_opened_beside_the_current_one_keeps_its_cameras_only_when_it_is
     assert derived_from(np.round(far / step) * step, far) and not derived_from(far + 0.01, far)
     folder = state.scene_path.parent
     export_scene(scene.subset(half), field.subset(half), folder / "export.ply", "drsplat")
-    host = types.SimpleNamespace(state=state)
+    host = types.SimpleNamespace(state=state, background_checks=False)
     assert ViewerApp.open_scene(host, folder / "export.ply") and len(state.cameras) and state.oracle is not None
     other = scene.subset(half)
     other.means = other.means + np.array([0.3 * extent, 0.0, 0.0], other.means.dtype)
@@ -526,3 +526,20 @@ def test_typed_queries_and_negatives_are_checked_like_the_clis(state, text, nega
     state.settings.query.negatives = negatives
     assert not state.run_text_query(text)
     assert words in state.messages[-1].text and state.messages[-1].level == "error", state.messages[-1].text
+
+
+def test_library_warnings_take_only_their_own_threads_records():
+    """A camera check on a worker thread records its warnings into the window's log while the window's thread loads a
+    scene under its own `LibraryWarnings`: each block shows what its thread's work warned of, once, not the other's."""
+    import threading
+
+    from viewer.messages import LibraryWarnings, MessageLog
+
+    messages = MessageLog()
+    library = logging.getLogger("drsplat.test")
+    with LibraryWarnings(messages):
+        library.warning("this thread's warning")
+        worker = threading.Thread(target=library.warning, args=("another thread's warning",))
+        worker.start()
+        worker.join()
+    assert [m.text for m in messages] == ["this thread's warning"]

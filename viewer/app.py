@@ -190,6 +190,7 @@ class ViewerApp:
         self._drawn_key: tuple | None = None
         self.moving_scale = MOVING_SCALE
         self.progressive = True  # draw still frames in chunks (benches and tests turn it off)
+        self.background_checks = True  # the training cameras' checks on a worker thread (tests that read them at once turn it off)
         self._scene_version = -1
         self._budget_calibrated = False
         self._style_version = -1
@@ -471,6 +472,7 @@ class ViewerApp:
         """One iteration of the main loop (events are polled or waited for by `run`)."""
         start = time.perf_counter()
         self.state.poll_registration()
+        self._poll_camera_check()
         self._poll_file_inputs()
         self.sync_scene()
         imgui.backends.opengl3_new_frame()
@@ -498,7 +500,8 @@ class ViewerApp:
         animating = self.moving or self._still is not None or (self.view.mode == "fly" and self._fly_keys_down())
         sort_pending = r is not None and r.sorter.busy
         job = self.state.registration
-        jobs = (job is not None and not job.finished) or sort_pending or self._file_dialog is not None or self.state.encoder_loading
+        jobs = ((job is not None and not job.finished) or sort_pending or self._file_dialog is not None or self.state.encoder_loading
+                or self.state.cameras_pending)
         return idle_timeout(animating, self.input.events, jobs)
 
     def _fly_keys_down(self) -> bool:
@@ -542,8 +545,20 @@ class ViewerApp:
         t = r.times
         return f"frame {self.frame_seconds * 1000:.0f} ms, draw {t.draw * 1000:.0f} ms, {t.drawn:,} splats" + (" (moving subsample)" if t.drawn < r.num else "")
 
+    def _poll_camera_check(self) -> None:
+        """Cameras checked in the background arrived: an untouched view goes to its home with them (the first
+        training camera, as when the cameras are there at once)."""
+        state = self.state
+        if state.poll_camera_check() and state.cameras and state.scene is not None and self.view.at_home:
+            fb_w, fb_h = glfw.get_framebuffer_size(self.window)
+            self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h, state.scene.log_scales)
+            self.camera_changed()
+
     def snap_to_camera(self, index: int) -> None:
         cams = self.state.cameras
+        if self.state.cameras_pending:
+            self.state.error("the training cameras are still being checked against the scene; snap to one when they are in")
+            return
         if not 0 <= index < len(cams):
             self.state.error(f"no training camera {index} (there are {len(cams)})")
             return
@@ -584,7 +599,7 @@ class ViewerApp:
             same_folder = False
         if not same_folder:
             self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
-        elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir):
+        elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir, background=self.background_checks):
             self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
         self.state.start_text_encoder()
         self.state.settings.reset_paths(self.state.scene_path)

@@ -223,6 +223,12 @@ class ViewController:
         self.roll = 0.0
         self.fov_y_deg = math.degrees(2 * math.atan(0.5 * camera.height / camera.fy))
 
+    @property
+    def at_home(self) -> bool:
+        """True while the view is its home view (nobody has moved it)."""
+        assert self.home is not None
+        return self.roll == 0.0 and all(np.array_equal(a, b) for a, b in zip((self.eye, self.target, self.up), self.home))
+
     def reset(self) -> None:
         assert self.home is not None
         self.eye, self.target, self.up = (a.copy() for a in self.home)

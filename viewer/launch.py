@@ -120,8 +120,10 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     return registered, dataset
 
 
-def build_state(args: argparse.Namespace):
-    """A ViewerState with the scene, cameras, features and encoder the arguments name."""
+def build_state(args: argparse.Namespace, background_checks: bool = False):
+    """A ViewerState with the scene, cameras, features and encoder the arguments name. background_checks:
+    the cameras' checks against the scene (`ViewerState.load_source`) run on a worker thread, so that the
+    window opens at once; a screenshot needs them done."""
 
 
     state = ViewerState()
@@ -138,7 +140,7 @@ def build_state(args: argparse.Namespace):
         raise StartupError(state.messages[-1].text)
     if args.features is not None:
         state.features_dir = args.features
-    if source is not None and not state.load_source(source):
+    if source is not None and not state.load_source(source, background=background_checks):
         raise StartupError(state.messages[-1].text)
     return state
 
@@ -261,7 +263,7 @@ def _run(args: argparse.Namespace) -> int:
 
             log.error("%s", no_display_message())
             return 1
-        state = build_state(args)
+        state = build_state(args, background_checks=args.screenshot is None)
         if args.screenshot is not None:
             return screenshot(args, state)
         return interactive(state)

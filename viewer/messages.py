@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -48,11 +49,15 @@ class LibraryWarnings(logging.Handler):
     def __init__(self, messages: MessageLog):
         super().__init__(logging.WARNING)
         self.messages = messages
+        self.thread: int | None = None
 
     def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self.thread:  # another thread's work (a camera check, a registration) is not what this block did
+            return
         self.messages.record("error" if record.levelno >= logging.ERROR else "warning", record.getMessage())
 
     def __enter__(self) -> "LibraryWarnings":
+        self.thread = threading.get_ident()
         logging.getLogger("drsplat").addHandler(self)
         return self
 

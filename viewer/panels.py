@@ -159,7 +159,7 @@ class ScenePanel:
             imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {state.assigned_count:,} assigned")  # as queries and `drsplat info` count them
         else:
             imgui.text_colored(NOTE_COLOR, "no language field (see Registration)")
-        imgui.text(f"training cameras: {len(state.cameras)}")
+        imgui.text("training cameras: being checked against the scene..." if state.cameras_pending else f"training cameras: {len(state.cameras)}")
         imgui.text(host.frame_stats())
 
 

@@ -26,7 +26,6 @@ from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
-from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
@@ -36,6 +35,7 @@ from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
+from viewer.cameracheck import CameraCheck, checked_cameras, start_camera_check
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.paths import typed_path
 from viewer.registration import RegistrationJob, start_job
@@ -96,6 +96,7 @@ class ViewerState:
         self.scene_version = 0
         self._prepared = None
         self._encoder_lock = threading.Lock()
+        self.camera_check: CameraCheck | None = None
 
     # ---------------------------------------------------------------- messages
 
@@ -159,29 +160,66 @@ class ViewerState:
             self.encoder_status = "this scene has no language field: register it (Registration panel) to query it"
         self.info(f"loaded {path.name if path else 'scene'}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
 
-    def load_source(self, source: str | Path) -> bool:
-        """Training cameras of a dataset directory, and its oracle label queries if it has them."""
+    def load_source(self, source: str | Path, background: bool = False) -> bool:
+        """Training cameras of a dataset directory, and its oracle label queries if it has them.
+
+        The cameras are read here (a bad file is refused now); their checks against the open scene
+        (`checked_cameras`: the frame, the principal point) render views of it, seconds on a 500k-Gaussian
+        scene, so with `background` they run on a worker thread and `poll_camera_check` takes the
+        cameras when they end (the window froze for them). Until then `cameras` is empty."""
 
         try:
             source = typed_path(source)
-            with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
+            with LibraryWarnings(self.messages):
                 cameras = load_cameras(source, require_images=False)
-                if self.scene is not None:
-                    what = self.scene_path.name if self.scene_path else "the scene"
-                    cameras = cameras_in_scene_frame(self.scene.means, cameras, source, what=what, scene_path=self.scene_path,
-                                                     refinements=self.scene_refinements)
-                    cameras = cameras_with_principal_point(self.scene, cameras, what=what, source=source)
-            self.cameras = cameras
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")
+        self.camera_check = None  # a check of another dataset still running: its cameras are not taken
+        if self.scene is not None and background:
+            self.cameras = []
+            self.camera_check = start_camera_check(self.scene, cameras, source, self.scene_path, self.scene_refinements,
+                                                   self.scene_version, self.messages)
+            self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame and principal points)...")
+        elif self.scene is not None:
+            try:
+                with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
+                    cameras = checked_cameras(self.scene, cameras, source, self.scene_path, self.scene_refinements)
+            except Exception as exc:  # noqa: BLE001
+                return self._fail(exc, f"cannot read cameras from {source}")
         self.source_dir = source
         if self.features_dir is None and (source / "features").is_dir():
             self.features_dir = source / "features"
         problems: list[str] = []
         self.oracle = read_oracle_queries(source, problems)
-        self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
+        if self.camera_check is None:
+            self.cameras = cameras
+            self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
+        elif self.oracle is not None:
+            self.info(f"{len(self.oracle.names)} oracle label queries from {source}")
         for problem in problems:  # the labels are gone from the panel: say why there (last, in the status line), not only in the terminal
             self.warning(f"no oracle labels: {problem}")
+        return True
+
+    @property
+    def cameras_pending(self) -> bool:
+        """True while the training cameras are being checked against the scene (`load_source` in the background)."""
+        return self.camera_check is not None and not self.camera_check.reported
+
+    def poll_camera_check(self) -> bool:
+        """When a finished camera check is pending: take its cameras (or report its failure); True when done now.
+        A check of a scene that is no longer open is dropped."""
+        check = self.camera_check
+        if check is None or not check.finished or check.reported:
+            return False
+        check.reported = True
+        self.camera_check = None
+        if check.scene_version != self.scene_version:
+            return False
+        if check.error is not None:
+            self._fail(check.error, f"cannot read cameras from {check.source}")
+            return True
+        self.cameras = check.cameras
+        self.info(f"{len(self.cameras)} training cameras from {check.source}")
         return True
 
     def next_step(self) -> str:
@@ -502,7 +540,7 @@ class ViewerState:
             "codebook the opened PLY's field names": self.field.codebook_path if self.field is not None else None,
         }
         if self.source_dir is not None:
-            inputs.update(dataset_inputs(self.source_dir, self.cameras))
+            inputs.update(dataset_inputs(self.source_dir, self.camera_check.given if self.cameras_pending else self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
             inputs["output of the registration running"] = self.registration.output
@@ -583,6 +621,10 @@ class ViewerState:
 
         if self.scene is None or self.scene_path is None:
             self.error("no scene file is loaded")
+            return False
+        if self.cameras_pending:
+            self.error("the training cameras are still being checked against the scene (its frame and principal points); "
+                       "register when they are in")
             return False
         if not self.cameras:
             self.error("registration needs the training cameras: set the dataset directory (--source)")

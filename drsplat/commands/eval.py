@@ -578,7 +578,7 @@ def trained_cameras(scene, registered: Path) -> dict:
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.commands.common import load_registered
-    from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point
+    from drsplat.frames import cameras_as_trained
     from drsplat.eval.datasets import lerf_annotation_files, load_lerf_annotations
     from drsplat.eval.lerf import lerf_2d_report, select_queries
 
@@ -595,8 +595,8 @@ def run_lerf(args: argparse.Namespace) -> int:
         raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
-    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.registered), **trained_cameras(scene, args.registered))
-    cameras = cameras_with_principal_point(scene, cameras, args.principal_point, what=str(args.registered), source=args.source)
+    cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.registered),
+                                 **trained_cameras(scene, args.registered))
     guard_field_codebook(args.registered, field, {"--json": args.json})
     assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})

@@ -90,7 +90,7 @@ def other_data_suffix(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import UsageError, shown_path
-    from drsplat.frames import cameras_in_scene_frame, cameras_with_principal_point, refinement_comment
+    from drsplat.frames import cameras_as_trained, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene_report, written_format
@@ -126,9 +126,8 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--keep-unassigned: %d of the %d rows of %s were dropped on loading (non-finite values), so the registered "
                     "PLY has %d rows and its row i is not always the file's row i; drop those rows from the scene file first "
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
-    cameras = cameras_in_scene_frame(scene.means, cameras, args.source, what=str(args.scene), scene_path=args.scene,
-                                     refinements=report.camera_refinements)  # trainers' own worlds and cameras
-    cameras = cameras_with_principal_point(scene, cameras, args.principal_point, what=str(args.scene), source=args.source)
+    cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.scene), scene_path=args.scene,
+                                 refinements=report.camera_refinements)  # trainers' own worlds, cameras and principal points
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
