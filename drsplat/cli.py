@@ -76,11 +76,12 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
 
 
-def interrupted_note(args: argparse.Namespace) -> str:
+def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:
     """What an interrupted command's last line adds: its parser's `interrupted_note`, a text or a
-    function of the arguments (what the stopped run kept), else INTERRUPTED_NOTE."""
+    function of the arguments and the exception that stopped it (what the stopped run kept), else
+    INTERRUPTED_NOTE."""
     note = getattr(args, "interrupted_note", INTERRUPTED_NOTE)
-    return note(args) if callable(note) else note
+    return note(args, exc) if callable(note) else note
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,10 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             result = args.func(args)
     except Cancelled as exc:
-        log.error("%s; %s", exc, interrupted_note(args))
+        log.error("%s; %s", exc, interrupted_note(args, exc))
         return 1
-    except KeyboardInterrupt:
-        log.error("interrupted; %s", interrupted_note(args))
+    except KeyboardInterrupt as exc:
+        log.error("interrupted; %s", interrupted_note(args, exc))
         return 1
     except UsageError as exc:
         getattr(args, "_usage_parser", parser).print_usage(sys.stderr)

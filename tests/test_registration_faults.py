@@ -62,13 +62,23 @@ class _FullDisk:
         self._file.close()
 
 
-def _fill_disk_in(cls, attribute: str, opener: str, calls: int, monkeypatch) -> None:
-    """Make the file `attribute` that `cls.opener` opens fail like a full disk from its `calls`-th write."""
+class _CtrlC(_FullDisk):
+    """A binary file whose `calls`-th write is where Ctrl-C arrives."""
+
+    def write(self, data) -> int:
+        self._left -= 1
+        if self._left <= 0:
+            raise KeyboardInterrupt
+        return self._file.write(data)
+
+
+def _fill_disk_in(cls, attribute: str, opener: str, calls: int, monkeypatch, failing=_FullDisk) -> None:
+    """Make the file `attribute` that `cls.opener` opens fail like a full disk (or as `failing` does) from its `calls`-th write."""
     original = getattr(cls, opener)
 
     def opened(self, *args, **kwargs):
         result = original(self, *args, **kwargs)
-        setattr(self, attribute, _FullDisk(getattr(self, attribute), calls))
+        setattr(self, attribute, failing(getattr(self, attribute), calls))
         return result
 
     monkeypatch.setattr(cls, opener, opened)
@@ -88,6 +98,21 @@ def test_disk_full_while_writing_the_output_keeps_the_checkpoint_and_the_rerun_r
     assert main(_args(tiny, out)) == 0
     assert "16 of 16 views already registered" in capsys.readouterr().err
     assert out.read_bytes() == uninterrupted and sorted(p.name for p in tmp_path.iterdir()) == ["reg.ply"]
+
+
+def test_ctrl_c_during_the_views_says_the_kept_checkpoint_once(tiny, uninterrupted, tmp_path, monkeypatch, capsys):
+    """Round 54's leftover: a registration stopped during its views said the kept checkpoint twice, in its warning
+    (with the views it holds) and again in the last line. The last line now says only what the warning does not."""
+    out = tmp_path / "reg.ply"
+    _fill_disk_in(PairLog, "_file", "__init__", 5 * 8 + 1, monkeypatch, _CtrlC)  # the 6th view's first write
+    assert main(_args(tiny, out)) == 1
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert err.count(str(checkpoint_path_for(out))) == 1 and f"kept the registration checkpoint {checkpoint_path_for(out)} (5 of 16 views" in err, err
+    assert err.rstrip().splitlines()[-1] == "ERROR: interrupted; no partial output file was left", err
+    assert main(_args(tiny, out)) == 0
+    assert "5 of 16 views already registered" in capsys.readouterr().err
+    assert out.read_bytes() == uninterrupted
 
 
 def test_disk_full_while_logging_views_names_the_log(tiny, uninterrupted, tmp_path, monkeypatch, capsys):

@@ -56,7 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, interrupted_note=interrupted_note)
 
 
-def interrupted_note(args: argparse.Namespace) -> str:
+def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:
     """What an interrupted run's last line adds: that the same command resumes, when the output
     folder holds finished images (pairs are written atomically: only whole ones are there)."""
     from drsplat.features.format import FEAT_SUFFIX

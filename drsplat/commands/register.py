@@ -63,14 +63,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, interrupted_note=interrupted_note)
 
 
-def interrupted_note(args: argparse.Namespace) -> str:
+def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:
     """What a stopped registration's last line adds: that the same command resumes, when a checkpoint is
-    there (kept by this run, or by an earlier one that this run was stopped before resuming from)."""
+    there (kept by an earlier run that this one was stopped before resuming from). One kept by this
+    run was said by its own warning just above (`Checkpoint.leave`: `exc.checkpoint_said`), with its
+    views: not twice."""
     from drsplat.errors import INTERRUPTED_NOTE, shown_path
     from drsplat.registration.checkpoint import checkpoint_path_for
 
     checkpoint = checkpoint_path_for(args.out)
-    if not checkpoint.is_file():
+    if getattr(exc, "checkpoint_said", False) or not checkpoint.is_file():
         return INTERRUPTED_NOTE
     return f"{INTERRUPTED_NOTE}; the registration checkpoint {shown_path(checkpoint)} is kept, and the same command resumes from it"
 

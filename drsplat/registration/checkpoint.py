@@ -377,16 +377,16 @@ class Checkpoint:
         shards = f", with the workers' shards in {self.shards_dir.name}" if self.shards_dir is not None else ""
         return f"{self.path} ({self.done} of {self.total} views, {format_size(size)}{shards})"
 
-    def leave(self, why: str) -> None:
+    def leave(self, why: str) -> bool:
         """A run ended early (`why`): keep a log that holds views, with one message saying what it is;
-        remove a temporary one or one that holds nothing."""
+        remove a temporary one or one that holds nothing. True when it was kept and said."""
         try:
             self.log.close()
         except OSError as exc:  # a full disk fails the buffered tail's flush too: the rerun cuts that record off
             log.debug("the checkpoint's last record was not flushed (%s)", exc)
         if self.temporary or self.done == 0:
             self.remove()
-            return
+            return False
         try:
             if self.stats_path is not None and self.aggregator.views_folded == self.done:
                 try:  # the statistics cover exactly the logged views: the rerun resumes from all of them
@@ -395,6 +395,7 @@ class Checkpoint:
                     log.debug("no statistics snapshot at the stop (%s)", exc)
             log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
                         why, self.describe())
+            return True
         finally:
             self._release()
 

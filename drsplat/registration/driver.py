@@ -426,8 +426,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             reducer_seconds = (task_seconds, sum_seconds)
     except BaseException as exc:
         target.abort()
-        if ckpt is not None:
-            ckpt.leave(_why(exc))
+        if ckpt is not None and ckpt.leave(_why(exc)):
+            exc.checkpoint_said = True  # the command's last line need not say it again (drsplat.commands.register.interrupted_note)
         raise
     finally:
         if reduce is not None:
