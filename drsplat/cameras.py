@@ -1587,26 +1587,33 @@ CONFIG_READ_BYTES = 1 << 20  # of a nerfstudio run's config.yml that `warn_if_pc
 PCA_ORIENTATION = re.compile(r"^\s*orientation_method:\s*['\"]?pca['\"]?\s*$", re.MULTILINE)  # a line of ns-train's config.yml
 
 
-def warn_if_pca_oriented(path: Path, override: str | None) -> None:
-    """One warning when nerfstudio oriented the run of the dataparser file `path` by PCA: its config.yml
-    beside the file says `orientation_method: pca`, or the transforms.json's `orientation_override` (which
-    replaces it) does. When PCA's up-flip fires, the saved transform misses a half turn about x in
-    every release (v1.1.4 and earlier flip the poses, v1.1.5 the saved transform only; round 55b), so
-    the cameras may land half-turned from the scene, and which release trained the run cannot be read."""
+def pca_orientation(path: Path, override: str | None) -> str | None:
+    """Where it is said that nerfstudio oriented the run of the dataparser file `path` by PCA, or None:
+    its config.yml beside the file says `orientation_method: pca`, or the transforms.json's
+    `orientation_override` (which replaces it) does."""
+    if override is not None:
+        return "the transforms.json's orientation_override" if override == "pca" else None
     config = path.parent / "config.yml"
-    method = override
-    if method is None and config.is_file():
-        try:
-            with open(config, "rb") as f:  # its head only: ns-train writes a few KB, and the file is not this command's to trust
-                text = f.read(CONFIG_READ_BYTES).decode("utf-8", errors="replace")
-            method = "pca" if PCA_ORIENTATION.search(text) else None
-        except OSError:
-            method = None
-    if method == "pca":
+    if not config.is_file():
+        return None
+    try:
+        with open(config, "rb") as f:  # its head only: ns-train writes a few KB, and the file is not this command's to trust
+            text = f.read(CONFIG_READ_BYTES).decode("utf-8", errors="replace")
+    except OSError:
+        return None
+    return "config.yml" if PCA_ORIENTATION.search(text) else None
+
+
+def warn_if_pca_oriented(path: Path, override: str | None) -> None:
+    """One warning when nerfstudio oriented the run of the dataparser file `path` by PCA (`pca_orientation`).
+    When PCA's up-flip fires, the saved transform misses a half turn about x in every release (v1.1.4
+    and earlier flip the poses, v1.1.5 the saved transform only; round 55b), so the cameras may land
+    half-turned from the scene; `frames.cameras_with_pca_turn` decides by the images where a scene is given."""
+    said = pca_orientation(path, override)
+    if said is not None:
         log.warning("%s: nerfstudio oriented this run by PCA (%s), whose saved transform misses the half turn about x that its "
-                    "up-flip may apply (nerfstudio releases differ): if the registration warns that the scene does not look like "
-                    "its images, retrain with --orientation-method up (the default)", path,
-                    "the transforms.json's orientation_override" if override == "pca" else "config.yml")
+                    "up-flip may apply (nerfstudio releases differ): register, eval lerf and the viewer render the scene from "
+                    "the cameras as saved and turned so, and take the reading that looks like the images", path, said)
 
 
 def dataset_in_trained_frame(path: Path, kind: str, found: Path, cameras: list[Camera]) -> tuple[list[Camera], float, str]:

@@ -72,8 +72,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, dataparser_transforms_path, dataset_in_trained_frame, detect_dataset,
-                             in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, read_colmap_model)
+from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
+                             detect_dataset, in_trained_frame, load_image, off_size_factors, pca_orientation, qvec_to_rotmat,
+                             read_colmap_model)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize, share_in_some_view
@@ -598,7 +599,23 @@ def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, pri
     its frame (`cameras_in_scene_frame`), then with its principal points (`cameras_with_principal_point`,
     `principal_point` its choice). Both render views of the scene when they must decide."""
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
+    run = pca_oriented_run(source, scene_path)
+    if run is not None:
+        cameras = cameras_with_pca_turn(scene, cameras, what, str(run))
     return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
+
+
+def pca_oriented_run(source: str | Path, scene_path: str | Path | None = None) -> Path | None:
+    """The dataparser_transforms.json the cameras of dataset `source` were moved by (the one beside them, else the
+    run's of a nerfstudio checkpoint `scene_path`), when its run was oriented by PCA (`cameras.pca_orientation`)."""
+    path = dataparser_transforms_path(source)
+    if path is None and scene_path is not None:
+        path = run_dataparser_transform(scene_path)
+    if path is None:
+        return None
+    kind, found = detect_dataset(source)
+    override = applied_move(found).orientation if kind == "transforms" else None
+    return path if pca_orientation(path, override) is not None else None
 
 
 def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str = DEFAULT_PRINCIPAL_POINT, what: str = "the scene",
@@ -643,30 +660,91 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         log.info("the principal points of %s are used as the camera file gives them: each is a multiple of its image centre, "
                  "intrinsics of another image size (the warning above)", of)
         return cameras
-    prepared = photo_scene(scene)
     # only the views whose principal point is off-centre tell the readings apart (round 55a: a rig with every third camera
     # off-centre gave gain 0 in most compared views, and the median kept the file's)
-    as_given = photo_agreement(scene, [cameras[i] for i in off], views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
-    at_centre = photo_agreement(scene, [centred[i] for i in off], views=PRINCIPAL_POINT_VIEWS, prepared=prepared)
-    # a view one reading renders and the other shows nothing of (a principal point far off the image) counts ρ = 0 for the latter
-    common = sorted(set(as_given) | set(at_centre))
-    as_given, at_centre = ({name: r.get(name, 0.0) for name in common} for r in (as_given, at_centre))
-    if not common:
+    compared = compare_readings(scene, [cameras[i] for i in off], [centred[i] for i in off], PRINCIPAL_POINT_VIEWS)
+    if not compared.views:
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
                     "could be compared with %s's renders to tell how it was trained: they are used as the camera file gives them "
                     "(as gsplat and nerfstudio train); for a scene trained by INRIA's gaussian-splatting, which takes every "
                     "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what)
         return cameras
-    gain = float(np.median([at_centre[name] - as_given[name] for name in common]))
-    given_rho, centre_rho = (float(np.median([r[name] for name in common])) for r in (as_given, at_centre))
-    if gain > PRINCIPAL_POINT_MARGIN and centre_rho >= PHOTO_MATCH_MIN:  # under the bar, images of another scene's noise decided
+    if compared.prefers_second(PRINCIPAL_POINT_MARGIN):
         log.warning("%s was trained with every principal point at its image centre, as INRIA's gaussian-splatting trains: its renders "
                     "look more like its training images so (median grey correlation %.3f against %.3f with the camera file's, %d "
                     "views): the principal points of %s are moved to their image centres (up to %s of the side); "
-                    "--principal-point file keeps them", what, centre_rho, given_rho, len(common), of, worst)
+                    "--principal-point file keeps them", what, compared.second, compared.first, compared.views, of, worst)
         return centred
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
-             "image centres, %d views)", of, given_rho, centre_rho, len(common))
+             "image centres, %d views)", of, compared.first, compared.second, compared.views)
+    return cameras
+
+
+@dataclass(frozen=True)
+class Readings:
+    """Two readings of the same cameras compared by their renders (`compare_readings`): the median ρ of
+    each over the compared views, the median of their per-view differences (second − first), and
+    how many views were compared."""
+
+    first: float
+    second: float
+    gain: float
+    views: int
+
+    def prefers_second(self, margin: float) -> bool:
+        """The second reading wins by more than `margin` and itself looks like the images (ρ ≥ PHOTO_MATCH_MIN: under
+        the bar, images of another scene's noise would decide)."""
+        return self.views > 0 and self.gain > margin and self.second >= PHOTO_MATCH_MIN
+
+
+def compare_readings(scene, first: Sequence[Camera], second: Sequence[Camera], views: int) -> Readings:
+    """`photo_agreement` of two readings of the same cameras (first[i] and second[i] one camera read
+    two ways) over up to `views` of them; a view one reading renders and the other shows nothing of (a
+    principal point far off the image, a camera turned away) counts ρ = 0 for the latter:
+
+        gain = median_v (ρ_v(second) − ρ_v(first))
+    """
+    prepared = photo_scene(scene)
+    one = photo_agreement(scene, first, views=views, prepared=prepared)
+    two = photo_agreement(scene, second, views=views, prepared=prepared)
+    common = sorted(set(one) | set(two))
+    if not common:
+        return Readings(0.0, 0.0, 0.0, 0)
+    one, two = ({name: r.get(name, 0.0) for name in common} for r in (one, two))
+    gain = float(np.median([two[name] - one[name] for name in common]))
+    return Readings(float(np.median(list(one.values()))), float(np.median(list(two.values()))), gain, len(common))
+
+
+HALF_TURN_X = np.diag([1.0, -1.0, -1.0])  # nerfstudio's PCA up-flip: a half turn about x
+PCA_TURN_MARGIN = 0.02  # median gain of grey correlation that decides for the half turn (the two readings see other sides of a scene)
+
+
+def cameras_with_pca_turn(scene, cameras: Sequence[Camera], what: str = "the scene", run: str = "the run") -> list[Camera]:
+    """`cameras` in the frame a nerfstudio run oriented by PCA trained in (`cameras.pca_orientation`).
+
+    When PCA's up-flip fires, nerfstudio turns its poses half round about x, F = diag(1, −1, −1), and
+    the transform it saves in dataparser_transforms.json misses that turn (v1.1.4 and earlier flip the
+    poses only, v1.1.5 the saved transform only), so the cameras it gives are the trained ones or
+    those turned by F; which release trained the run cannot be read. Both are rendered (up to
+    PHOTO_CHECK_VIEWS views, `compare_readings`) and the turned ones taken, with one warning, when
+
+        median_v ρ_v(F) − ρ_v(as saved) > PCA_TURN_MARGIN  and  median_v ρ_v(F) ≥ PHOTO_MATCH_MIN.
+
+    A camera turned by F: world-to-camera R·F, t (`in_trained_frame` with R = F, no translation)."""
+    cameras = list(cameras)
+    turned = [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cameras]
+    compared = compare_readings(scene, cameras, turned, PHOTO_CHECK_VIEWS)
+    if not compared.views:
+        log.warning("%s was oriented by nerfstudio's PCA, whose saved transform may miss a half turn about x, and no training image "
+                    "could be compared with %s's renders to tell: the cameras are used as the transform gives them", run, what)
+        return cameras
+    if compared.prefers_second(PCA_TURN_MARGIN):
+        log.warning("%s was oriented by nerfstudio's PCA and its saved transform misses the half turn about x that PCA's up-flip "
+                    "applied: %s's renders look like its training images only with the %d cameras turned so (median grey correlation "
+                    "%.3f against %.3f, %d views), so they are", run, what, len(cameras), compared.second, compared.first, compared.views)
+        return turned
+    log.info("%s was oriented by nerfstudio's PCA; its cameras are used as its saved transform gives them (median grey correlation "
+             "%.3f against %.3f turned half round about x, %d views)", run, compared.first, compared.second, compared.views)
     return cameras
 
 

@@ -1019,3 +1019,35 @@ def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_registe
     release.set()
     state.camera_check.thread.join(60)
     assert not state.poll_camera_check() and state.cameras == [] and not state.cameras_pending, "another scene's cameras were taken"
+
+
+def test_a_pca_oriented_nerfstudio_run_gets_the_half_turn_its_renders_show(tmp_path, caplog):
+    """Round 55b's leftover: when nerfstudio's PCA up-flip fires, its saved dataparser transform misses a half turn
+    about x (which release trained a run cannot be read), and registration then placed every camera half round from
+    the scene, with a warning only. Both readings are rendered now: a run whose scene lies in the saved frame keeps
+    the cameras, one whose scene was trained half-turned gets them turned, with one warning; a run not oriented by
+    PCA is not rendered at all."""
+    import json
+
+    from drsplat.cameras import in_trained_frame
+    from drsplat.frames import HALF_TURN_X, cameras_as_trained
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    turned_scene = _moved_scene(scene, FrameMove("a half turn about x", np.block([[HALF_TURN_X, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]])))
+    turned = [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cams]
+    (data / "config.yml").write_text("pipeline:\n  datamanager:\n    dataparser:\n      orientation_method: pca\n")
+    for trained, truth, said in ((scene, cams, False), (turned_scene, turned, True)):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+            got = cameras_as_trained(trained, cams, data)
+        assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in truth]
+        assert ("misses the half turn about x that PCA's up-flip applied" in caplog.text) == said, caplog.text
+        assert "oriented by nerfstudio's PCA" in caplog.text
+    (data / "config.yml").write_text("pipeline:\n  datamanager:\n    dataparser:\n      orientation_method: up\n")
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        got = cameras_as_trained(turned_scene, cams, data)
+    assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in cams] and "PCA" not in caplog.text
