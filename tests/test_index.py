@@ -462,6 +462,16 @@ def test_half_kernel_on_hard_values():
     np.testing.assert_allclose(got[finite], ref[finite], atol=TOL, rtol=0)
     assert np.all(got[~finite] == 0) and (~finite).sum() == 3
     assert abs(got[2, 0] - ref[2, 0]) < TOL and abs(got[1, 1] - ref[1, 1]) < TOL
+    # round 56a: with norms given rather than made from the rows (ExactStorage's known_norms), a row holding inf or NaN read as
+    # finite halves (65536, 98304) and scored; it scores 0 as the docstring says, and so does the float64 reference
+    from drsplat.lang.backends import ExactStorage
+
+    given = np.where(np.isfinite(norms), norms, 1.0).astype(np.float32)
+    assert np.all(half_scores(f, given, q)[4:6] == 0)
+    np.testing.assert_array_equal(half_scores(f, given, q)[finite], got[finite])
+    storage = ExactStorage(f, given)
+    assert np.all(storage.scores(q)[4:6] == 0) and np.all(storage.scores_reference(q)[4:6] == 0)
+    assert np.isfinite(storage.scores_reference(q)).all()
 
 
 def test_backends_agree_on_selection(data, books):

@@ -313,7 +313,7 @@ class ExactStorage:
         norm = np.linalg.norm(f, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (f @ q.astype(np.float64).T) / norm[:, None]
-        return np.where(norm[:, None] > 0, s, 0.0).astype(np.float32)
+        return np.where((np.isfinite(norm) & (norm > 0))[:, None], s, 0.0).astype(np.float32)  # a non-finite row scores 0
 
     def reconstruct(self, index: np.ndarray | slice) -> np.ndarray:
         return self.features[index].astype(np.float32)

@@ -103,12 +103,16 @@ HALF_TO_FLOAT_SCALE = np.float32(2.0**112)
 
 @numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
 def _half_scores_kernel(bits, q_scaled, inv_norms, out):  # pragma: no cover - jitted
-    """out[i, k] = Σ_d half(bits[i, d]) · q[k, d] · inv_norms[i] for float16 features.
+    """out[i, k] = Σ_d half(bits[i, d]) · q[k, d] · inv_norms[i] for float16 features; 0 for a row
+    holding an inf or NaN half, whatever its norm.
 
     bits: [N, D] uint16 float16 bit patterns; q_scaled: [K, D] = q · 2^112.
     half -> float: the sign moves to bit 31 and exponent+mantissa are shifted left by 13 into a
     float32, which is then the half's value times 2^-112 (exact for zero, subnormal and normal
     halves: the float32 exponent range covers them all); the 2^112 is folded into the query.
+    An inf or NaN half (exponent bits all set) would read as a finite float32 so: such rows are
+    found by their exponent bits (round 56a: with a norm given, not made from the row, they scored
+    65536).
     """
     n, d = bits.shape
     k_count = q_scaled.shape[0]
@@ -118,9 +122,16 @@ def _half_scores_kernel(bits, q_scaled, inv_norms, out):  # pragma: no cover - j
         values = buf.view(np.float32)
         for i in range(b * block, min(n, (b + 1) * block)):
             row = bits[i]
+            largest = np.uint32(0)  # of the magnitudes' bits: inf and NaN are the patterns from 0x7C00 up
             for j in range(d):
                 h = np.uint32(row[j])
-                buf[j] = ((h & np.uint32(0x7FFF)) << np.uint32(13)) | ((h & np.uint32(0x8000)) << np.uint32(16))
+                magnitude = h & np.uint32(0x7FFF)
+                buf[j] = (magnitude << np.uint32(13)) | ((h & np.uint32(0x8000)) << np.uint32(16))
+                largest = max(largest, magnitude)
+            if largest >= np.uint32(0x7C00):
+                for k in range(k_count):
+                    out[i, k] = 0.0
+                continue
             for k in range(k_count):
                 qk = q_scaled[k]
                 acc = np.float32(0.0)
