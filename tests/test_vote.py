@@ -264,6 +264,19 @@ def test_trim_kernel_agrees_with_reference(case):
         assert (np.abs(got - F).max(axis=1) > 1e-3).sum() > 10
 
 
+def test_a_nan_vote_neither_wins_nor_is_trimmed_in_the_kernel_and_its_reference():
+    """Round 56a: with a NaN vote numpy's argmax took the NaN slot as the winner and the kernel did not, so the two
+    disagreed (the fold never makes a NaN vote; the reference is held to the kernel's rule all the same)."""
+    from drsplat.registration.vote import trimmed_slots, trimmed_slots_reference
+
+    means = np.eye(3, dtype=np.float32)  # three unlike clusters
+    slot_c = np.array([[0, 1, 2], [2, 0, 1]], np.int32)
+    slot_v = np.array([[1.0, np.nan, 5.0], [np.nan, 5.0, 0.05]])
+    bits = trimmed_slots(slot_c, slot_v, np.ones((2, 3)), means)
+    want = trimmed_slots_reference(slot_c, slot_v, means)
+    assert [[bool(int(b) >> s & 1) for s in range(3)] for b in bits] == want.tolist() == [[True, False, False], [False, False, True]]
+
+
 def test_trim_with_its_table_of_cluster_cosines_is_bit_for_bit_the_trim_without(monkeypatch):
     """The trim keeps each pair of clusters' cosine in a [K, K] table (TRIM_COSINE_TABLE_BYTES); many
     Gaussians sharing few clusters, and clusters at the vote's threshold, trim the same bits with it

@@ -457,7 +457,7 @@ def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.nd
     for t in range(num_slots):  # G_s = V_s, then + V_t of each other like slot t in slot order: the kernel's order
         group = group + np.where(like[:, :, t] & (np.arange(num_slots) != t)[None, :], v[:, t : t + 1], 0.0)
     group = np.where(ok, group, -np.inf)
-    best = np.argmax(group, axis=1)  # first of equal maxima
+    best = np.argmax(np.where(np.isnan(group), -np.inf, group), axis=1)  # first of equal maxima; a NaN vote never wins, as in the kernel
     rows = np.arange(mixed.size)
     drop = ok & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
     if slot_p is not None:
@@ -588,9 +588,11 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, s
                     if t != s and slot_c[i, t] >= 0 and sim[s, t] >= threshold:
                         group[s] += slot_v[i, t]
             best = -1
-            for s in range(num_slots):
-                if slot_c[i, s] >= 0 and (best < 0 or group[s] > group[best]):
+            for s in range(num_slots):  # a NaN vote never wins (the fold makes none; the reference holds the same rule)
+                if slot_c[i, s] >= 0 and not np.isnan(group[s]) and (best < 0 or group[s] > group[best]):
                     best = s
+            if best < 0:
+                continue
             g_win = group[best]
             trim = np.uint64(0)
             for s in range(num_slots):
