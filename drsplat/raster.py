@@ -20,6 +20,8 @@ CPU or CUDA). All return the same `RasterOutput`; tests check that they agree (d
 
 from __future__ import annotations
 
+import dataclasses
+
 import importlib
 import logging
 from collections.abc import Callable, Sequence
@@ -221,6 +223,19 @@ def sh_in_range(scene: GaussianScene) -> np.ndarray:
     return ok
 
 
+SCENE_ARRAYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def widened_scene(scene: GaussianScene) -> GaussianScene:
+    """`scene`, or a copy whose float16 arrays are float32 (the same values): numba loads no float16, and numpy
+    would compute its exponentials and products in float16 (round 56a: a scene built with float16 SH raised
+    NotImplementedError from the kernels)."""
+    narrow = [name for name in SCENE_ARRAYS if np.asarray(getattr(scene, name)).dtype == np.float16]
+    if not narrow:
+        return scene
+    return dataclasses.replace(scene, **{name: np.asarray(getattr(scene, name), np.float32) for name in narrow})
+
+
 def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
     """The view-independent arrays of `scene`; unusable Gaussians are flagged (`finite`) and counted.
 
@@ -233,6 +248,7 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     """
     if isinstance(scene, PreparedScene):
         return scene
+    scene = widened_scene(scene)
     n = scene.num_gaussians
     finite = sh_in_range(scene)
     everything = float(np.finfo(np.float64).max)

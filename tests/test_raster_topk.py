@@ -255,3 +255,19 @@ def test_normalize_rows_judges_a_trimmed_sum_against_the_weight_it_still_holds()
         assert fates.dropped == 6 and not (w > 0).any()  # against W every one looks cancelled
     with pytest.raises(ValueError, match="kept has shape"):
         normalize_rows(F.copy(), W.copy(), kept=kept[:5])
+
+
+def test_a_scene_of_float16_arrays_renders_as_its_values_in_float32():
+    """Round 56a: a GaussianScene built with float16 arrays (its SH, quaternions, ...) raised NotImplementedError from
+    numba, which loads no float16. Each array is read as float32 now: the same top-k lists, bit for bit, as the scene
+    whose arrays hold the same values in float32."""
+    import dataclasses
+
+    scene = random_scene(np.random.default_rng(0), 60)
+    names = ("means", "quats", "log_scales", "opacity_logits", "sh")
+    half = dataclasses.replace(scene, **{name: getattr(scene, name).astype(np.float16) for name in names})
+    widened = dataclasses.replace(scene, **{name: getattr(half, name).astype(np.float32) for name in names})
+    got, want = rasterize_topk(half, front_camera(), 6), rasterize_topk(widened, front_camera(), 6)
+    np.testing.assert_array_equal(got.ids, want.ids)
+    np.testing.assert_array_equal(got.weights, want.weights)
+    assert (got.ids >= 0).any()

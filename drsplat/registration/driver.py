@@ -42,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane, widened_scene
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
                                       probe_memory_bound, resolve_mode)
@@ -759,6 +759,7 @@ def register(
     between the checkpoint's fsyncs and the mode's statistics snapshots.
     """
     out = Path(out)
+    scene = widened_scene(scene)  # float16 arrays as float32: numba loads no float16
     run = prepare_run(scene, cameras, features_dir, options)
     manifest = read_manifest(run.features_dir)
     check_manifest_dim(run.features_dir, manifest, run.dim)
@@ -847,6 +848,7 @@ def register_features(
 ) -> RegistrationResult:
     """Register `features_dir` onto `scene` and return the features [N, D] in memory (result.features:
     unit rows, zero where unassigned). checkpoint: a pair log to resume from (removed at the end)."""
+    scene = widened_scene(scene)  # float16 arrays as float32: numba loads no float16
     run = prepare_run(scene, cameras, features_dir, options)
     target = ArrayTarget(scene.num_gaussians, run.dim)
     result = run_registration(run, target, checkpoint=Path(checkpoint) if checkpoint is not None else None, checkpoint_every=checkpoint_every,
