@@ -643,15 +643,21 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     if choice not in PRINCIPAL_POINTS:
         raise ValueError(f"cameras_with_principal_point: choice must be one of {PRINCIPAL_POINTS}, got {choice!r}")
     cameras = list(cameras)
-    off = [i for i, c in enumerate(cameras) if c.principal_point_shift() >= PRINCIPAL_POINT_MIN_SHIFT]
-    if choice == "file" or not off:
+    if choice == "file":
         return cameras
     centred = [c.centred() for c in cameras]
-    of = f"the {len(cameras)} cameras of {source}" if source is not None else f"the {len(cameras)} cameras"
-    worst = f"{100 * max(c.principal_point_shift() for c in cameras):.2g} %"
-    if choice == "centre":
-        log.info("--principal-point centre: the principal points of %s are moved to their image centres (up to %s of the side)", of, worst)
+    moved = sum(c.principal_point_shift() > 0 for c in cameras)
+    of = (f"{moved} of the {len(cameras)} cameras" if moved < len(cameras) else f"the {len(cameras)} cameras") + \
+        (f" of {source}" if source is not None else "")
+    worst = f"{100 * max((c.principal_point_shift() for c in cameras), default=0.0):.2g} %"
+    if choice == "centre":  # every one, however near its centre (round 56b: those within PRINCIPAL_POINT_MIN_SHIFT were kept)
+        if moved:
+            log.info("--principal-point centre: the principal points of %s are moved to their image centres (up to %s of the side)",
+                     of, worst)
         return centred
+    off = [i for i, c in enumerate(cameras) if c.principal_point_shift() >= PRINCIPAL_POINT_MIN_SHIFT]
+    if not off:
+        return cameras
     if any(c.distortion is not None and np.any(c.distortion) for c in cameras):
         log.info("the principal points of %s are used as the camera file gives them, up to %s of the side off-centre: a camera "
                  "has lens distortion, which INRIA's gaussian-splatting does not train with (--principal-point centre moves them)", of, worst)
@@ -671,12 +677,12 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         return cameras
     if compared.prefers_second(PRINCIPAL_POINT_MARGIN):
         log.warning("%s was trained with every principal point at its image centre, as INRIA's gaussian-splatting trains: its renders "
-                    "look more like its training images so (median grey correlation %.3f against %.3f with the camera file's, %d "
-                    "views): the principal points of %s are moved to their image centres (up to %s of the side); "
-                    "--principal-point file keeps them", what, compared.second, compared.first, compared.views, of, worst)
+                    "look more like its training images so (median grey correlation %.3f against %.3f with the camera file's, %s): "
+                    "the principal points of %s are moved to their image centres (up to %s of the side); "
+                    "--principal-point file keeps them", what, compared.second, compared.first, compared.of_views(), of, worst)
         return centred
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
-             "image centres, %d views)", of, compared.first, compared.second, compared.views)
+             "image centres, %s)", of, compared.first, compared.second, compared.of_views())
     return cameras
 
 
@@ -690,6 +696,9 @@ class Readings:
     second: float
     gain: float
     views: int
+
+    def of_views(self) -> str:
+        return f"{self.views} view" if self.views == 1 else f"{self.views} views"
 
     def prefers_second(self, margin: float) -> bool:
         """The second reading wins by more than `margin` and itself looks like the images (ρ ≥ PHOTO_MATCH_MIN: under
@@ -741,10 +750,10 @@ def cameras_with_pca_turn(scene, cameras: Sequence[Camera], what: str = "the sce
     if compared.prefers_second(PCA_TURN_MARGIN):
         log.warning("%s was oriented by nerfstudio's PCA and its saved transform misses the half turn about x that PCA's up-flip "
                     "applied: %s's renders look like its training images only with the %d cameras turned so (median grey correlation "
-                    "%.3f against %.3f, %d views), so they are", run, what, len(cameras), compared.second, compared.first, compared.views)
+                    "%.3f against %.3f, %s), so they are", run, what, len(cameras), compared.second, compared.first, compared.of_views())
         return turned
     log.info("%s was oriented by nerfstudio's PCA; its cameras are used as its saved transform gives them (median grey correlation "
-             "%.3f against %.3f turned half round about x, %d views)", run, compared.first, compared.second, compared.views)
+             "%.3f against %.3f turned half round about x, %s)", run, compared.first, compared.second, compared.of_views())
     return cameras
 
 

@@ -1051,3 +1051,19 @@ def test_a_pca_oriented_nerfstudio_run_gets_the_half_turn_its_renders_show(tmp_p
     with caplog.at_level(logging.INFO, logger="drsplat.frames"):
         got = cameras_as_trained(turned_scene, cams, data)
     assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in cams] and "PCA" not in caplog.text
+
+
+def test_principal_point_centre_centres_every_camera_and_the_decision_counts_what_it_moves(tiny_seed0, caplog):
+    """Round 56b: `--principal-point centre` left cameras within 0.1 % of their centres as they were (the help says every
+    principal point goes to its image centre), and the decision's warning said "1 views" and "the 16 cameras are moved"
+    when 15 were centred already."""
+    from drsplat.frames import cameras_with_principal_point
+
+    scene, _, cams, _ = tiny_seed0
+    near = _shifted(cams, 0.05, 0.0)
+    assert [(c.cx, c.cy) for c in cameras_with_principal_point(scene, near, "centre")] == [(c.width / 2, c.height / 2) for c in cams]
+    one_off = [*_shifted(cams[:1]), *cams[1:]]
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        got = cameras_with_principal_point(scene, one_off, source="DATA")
+    assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in cams]
+    assert "1 view)" in caplog.text and f"1 of the {len(cams)} cameras of DATA are moved" in caplog.text, caplog.text
