@@ -65,6 +65,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -544,7 +545,8 @@ def photo_scene(scene, sample: int = PHOTO_CHECK_SAMPLE):
 
 
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
-                    sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE, prepared=None) -> dict[str, float]:
+                    sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE, prepared=None,
+                    pictures: dict | None = None, skipped: Counter | None = None) -> dict[str, float]:
     """How well the scene re-renders its training images: camera name -> `grey_correlation` of the
     scene's render (black background) and the camera's image, both `width` px on their longer side, over the pixels
     the render covers (α ≥ ½), for up to `views` cameras with an image file, spread over the list.
@@ -554,12 +556,18 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     own, and ρ is near 0. Views whose image is no regular file or cannot be read, or where the render covers under
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
     Gaussians; over `sample`, a subset spread over the file is rendered. prepared: that subset's
-    `photo_scene`, when the caller renders it more than once.
+    `photo_scene`, when the caller renders it more than once. pictures: the images read so far, by
+    file and size, for a caller that compares readings of the same cameras (each image is decoded
+    once: round 56b, 6400x4800 JPEGs were decoded twice); skipped: counts why views were left out.
     """
     for label, value in (("views", views), ("width", width), ("sample", sample), ("supersample", supersample)):
         if value < 1:
             raise ValueError(f"photo_agreement: {label} must be at least 1, got {value}")
+    pictures = {} if pictures is None else pictures
+    skipped = Counter() if skipped is None else skipped
     with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
+    if len(with_images) < len(cameras):
+        skipped[NO_IMAGE_FILE] = max(skipped[NO_IMAGE_FILE], len(cameras) - len(with_images))
     if not with_images or scene.num_gaussians == 0:
         return {}
     picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]
@@ -569,18 +577,38 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
         # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
         full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
         small = full.scaled(min(1.0, width / max(full.width, full.height)))  # the longer side: a 10 x 100000 camera is no 96 x 960000 render
-        try:
-            picture = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
-        except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
+        key = (camera.image_path, small.width, small.height)
+        if key not in pictures:
+            try:
+                pictures[key] = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
+            except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
+                pictures[key] = None
+        picture = pictures[key]
+        if picture is None:
+            skipped[UNREADABLE_IMAGE] += 1
             continue
         rgb, alpha = supersampled_render(prepared, small, supersample)
         covered = alpha >= 0.5
         if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
+            skipped[LITTLE_COVERED] += 1
             continue
         rho = grey_correlation(over_fitted_background(rgb, alpha, picture), picture, covered)
         if np.isfinite(rho):
             out[camera.name] = rho
+        else:
+            skipped[FLAT_PICTURE] += 1
     return out
+
+
+NO_IMAGE_FILE = "with no image file"  # why `photo_agreement` left views out (its `skipped` counts), in words
+UNREADABLE_IMAGE = "whose image could not be read"
+LITTLE_COVERED = f"where the render covers under {PHOTO_MIN_PIXELS} pixels"
+FLAT_PICTURE = "where the image or the render is one flat grey"
+
+
+def skipped_views(skipped: Counter) -> str:
+    """`photo_agreement`'s skipped counts in words: "3 views whose image could not be read, 1 view with no image file"."""
+    return ", ".join(f"{n} view{'s' if n != 1 else ''} {why}" for why, n in skipped.items() if n) or "no view was left out"
 
 
 PRINCIPAL_POINT_VIEWS = 8  # views `cameras_with_principal_point` renders under each reading
@@ -671,9 +699,9 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     compared = compare_readings(scene, [cameras[i] for i in off], [centred[i] for i in off], PRINCIPAL_POINT_VIEWS)
     if not compared.views:
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
-                    "could be compared with %s's renders to tell how it was trained: they are used as the camera file gives them "
+                    "could be compared with %s's renders to tell how it was trained (%s): they are used as the camera file gives them "
                     "(as gsplat and nerfstudio train); for a scene trained by INRIA's gaussian-splatting, which takes every "
-                    "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what)
+                    "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what, compared.left_out)
         return cameras
     if compared.prefers_second(PRINCIPAL_POINT_MARGIN):
         log.warning("%s was trained with every principal point at its image centre, as INRIA's gaussian-splatting trains: its renders "
@@ -696,6 +724,7 @@ class Readings:
     second: float
     gain: float
     views: int
+    left_out: str = ""  # the first reading's views left out, and why (`skipped_views`)
 
     def of_views(self) -> str:
         return f"{self.views} view" if self.views == 1 else f"{self.views} views"
@@ -713,15 +742,15 @@ def compare_readings(scene, first: Sequence[Camera], second: Sequence[Camera], v
 
         gain = median_v (ρ_v(second) − ρ_v(first))
     """
-    prepared = photo_scene(scene)
-    one = photo_agreement(scene, first, views=views, prepared=prepared)
-    two = photo_agreement(scene, second, views=views, prepared=prepared)
+    prepared, pictures, skipped = photo_scene(scene), {}, Counter()
+    one = photo_agreement(scene, first, views=views, prepared=prepared, pictures=pictures, skipped=skipped)
+    two = photo_agreement(scene, second, views=views, prepared=prepared, pictures=pictures)
     common = sorted(set(one) | set(two))
     if not common:
-        return Readings(0.0, 0.0, 0.0, 0)
+        return Readings(0.0, 0.0, 0.0, 0, skipped_views(skipped))
     one, two = ({name: r.get(name, 0.0) for name in common} for r in (one, two))
     gain = float(np.median([two[name] - one[name] for name in common]))
-    return Readings(float(np.median(list(one.values()))), float(np.median(list(two.values()))), gain, len(common))
+    return Readings(float(np.median(list(one.values()))), float(np.median(list(two.values()))), gain, len(common), skipped_views(skipped))
 
 
 HALF_TURN_X = np.diag([1.0, -1.0, -1.0])  # nerfstudio's PCA up-flip: a half turn about x
@@ -745,7 +774,8 @@ def cameras_with_pca_turn(scene, cameras: Sequence[Camera], what: str = "the sce
     compared = compare_readings(scene, cameras, turned, PHOTO_CHECK_VIEWS)
     if not compared.views:
         log.warning("%s was oriented by nerfstudio's PCA, whose saved transform may miss a half turn about x, and no training image "
-                    "could be compared with %s's renders to tell: the cameras are used as the transform gives them", run, what)
+                    "could be compared with %s's renders to tell (%s): the cameras are used as the transform gives them", run, what,
+                    compared.left_out)
         return cameras
     if compared.prefers_second(PCA_TURN_MARGIN):
         log.warning("%s was oriented by nerfstudio's PCA and its saved transform misses the half turn about x that PCA's up-flip "
