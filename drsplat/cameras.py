@@ -16,6 +16,7 @@ import struct
 import unicodedata
 import warnings
 import zlib
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -883,7 +884,10 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     """Cameras of a NeRF-synthetic or instant-ngp/nerfstudio transforms.json.
 
     Returns (cameras, the image names of frames skipped because their image is missing). Per-frame
-    intrinsics override the shared ones. OpenCV distortion (k1, k2, p1, p2) is kept on the
+    intrinsics override the shared ones, as instant-ngp reads them; in a nerfstudio dataset (its
+    dataparser_transforms.json beside the file, or an `applied_transform`) the shared ones win, as
+    nerfstudio reads them (it never reads a frame's own when the file has one); frames that disagree
+    with the shared values are said in one warning either way. OpenCV distortion (k1, k2, p1, p2) is kept on the
     camera and removed by `load_image` (within `check_distortion`'s bound); fisheye models are refused. Every value is type- and
     range-checked (`validate_camera`); errors name the frame and the field.
     """
@@ -898,11 +902,18 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
     paths = DatasetPaths(path.parent, path)
     cameras, missing = [], []
+    shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
+    disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
         rec = {**meta, **frame}
+        for key in SHARED_INTRINSICS:
+            if key in meta and key in frame and frame[key] != meta[key]:
+                disagreeing[key] += 1
+                if shared_wins:
+                    rec[key] = meta[key]
         if "camera_angle_x" in frame and "fl_x" not in frame:  # the frame's own lens: the file's shared fl_x / fl_y are another's
             rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
@@ -939,7 +950,18 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         validate_camera(camera, path, f"frame {i}", {**TRANSFORMS_POSE_FIELDS, **focal_fields})
         check_distortion(path, camera, where)
         cameras.append(camera)
+    if disagreeing:
+        fields = ", ".join(f"{key} ({n} frame{'s' if n != 1 else ''})" for key, n in disagreeing.items())
+        log.warning("%s gives frames their own %s unlike the file's shared values: nerfstudio uses the shared ones, instant-ngp "
+                    "the frames'; %s", path, fields,
+                    "this is a nerfstudio dataset (a dataparser_transforms.json beside it, or an applied_transform), so the shared "
+                    "ones are used" if shared_wins else "the frames' are used (a nerfstudio dataset would have its "
+                    "dataparser_transforms.json beside it or an applied_transform, and then take the shared ones)")
     return cameras, missing
+
+
+# intrinsics nerfstudio takes from a transforms.json's top level for every frame when it is there (never the frame's own)
+SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:

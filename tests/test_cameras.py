@@ -1442,3 +1442,32 @@ def test_a_nerfstudio_run_oriented_by_pca_is_warned_about(tmp_path, caplog):
     config = "!!python/object:nerfstudio.engine.trainer.TrainerConfig\npipeline:\n  datamanager:\n    dataparser:\n      orientation_method: {}\n"
     assert warned(config.format("pca"), None) and warned(None, "pca") and warned(config.format("up"), "pca")
     assert not warned(config.format("up"), None) and not warned(None, None) and not warned(config.format("pca"), "none")
+
+
+def test_frames_intrinsics_unlike_the_shared_ones_follow_nerfstudio_in_a_nerfstudio_dataset(tmp_path, caplog):
+    """Round 56b: a transforms.json with shared cx, cy and each frame's own took the frames' (instant-ngp's rule), but
+    nerfstudio never reads a frame's own when the file has shared ones: a splatfacto run of such a file was registered
+    with every principal point 5 px, -3 px off, without a word. A nerfstudio dataset (its dataparser_transforms.json
+    beside the file) now takes the shared values; any other keeps the frames'; both say the disagreement once."""
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    meta = json.loads((data / "transforms.json").read_text())
+    truth = load_cameras(data)
+    frame = meta["frames"][0]
+    shared = {key: frame[key] for key in ("fl_x", "fl_y", "cx", "cy", "w", "h") if key in frame}
+    assert {"cx", "cy"} <= set(shared), sorted(frame)
+    for f in meta["frames"]:
+        f["cx"], f["cy"] = f["cx"] + 5, f["cy"] - 3
+    (data / "transforms.json").write_text(json.dumps({**meta, **shared}))
+    for nerfstudio in (False, True):
+        if nerfstudio:
+            (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            got = load_cameras(data)
+        offset = (0.0, 0.0) if nerfstudio else (5.0, -3.0)
+        assert [(c.cx - t.cx, c.cy - t.cy) for c, t in zip(got, truth)] == [offset] * len(truth)
+        said = [r.getMessage() for r in caplog.records if "unlike the file's shared values" in r.getMessage()]
+        assert len(said) == 1 and f"cx ({len(truth)} frames), cy ({len(truth)} frames)" in said[0], caplog.text
+        assert ("so the shared ones are used" in said[0]) == nerfstudio
