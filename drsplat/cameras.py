@@ -1548,6 +1548,7 @@ class AppliedMove:
     scale: float = 1.0
     what: str = ""
     orientation: str | None = None  # the file's `orientation_override` (nerfstudio's orientation method for it), if any
+    implied: bool = False  # A is the one nerfstudio takes beside a colmap/sparse/0 folder, not the file's own
 
 
 def applied_move(path: Path) -> AppliedMove:
@@ -1575,7 +1576,7 @@ def applied_move(path: Path) -> AppliedMove:
     if (path.parent / "colmap" / "sparse" / "0").is_dir():
         return AppliedMove(NERFSTUDIO_COLMAP_APPLIED[:, :3], NERFSTUDIO_COLMAP_APPLIED[:, 3], scale,
                            "the applied_transform nerfstudio takes for a transforms.json without one beside a colmap/sparse/0 folder",
-                           orientation)
+                           orientation, implied=True)
     return AppliedMove(scale=scale, orientation=orientation)
 
 

@@ -73,9 +73,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drsplat.cameras import (DATAPARSER_TRANSFORMS, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
+from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
                              detect_dataset, in_trained_frame, load_image, off_size_factors, pca_orientation, qvec_to_rotmat,
-                             read_colmap_model)
+                             read_colmap_model, read_dataparser_transform)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize, share_in_some_view
@@ -627,23 +627,58 @@ def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, pri
     its frame (`cameras_in_scene_frame`), then with its principal points (`cameras_with_principal_point`,
     `principal_point` its choice). Both render views of the scene when they must decide."""
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
-    run = pca_oriented_run(source, scene_path)
+    run = nerfstudio_run_file(source, scene_path)
     if run is not None:
-        cameras = cameras_with_pca_turn(scene, cameras, what, str(run))
+        path, applied = run
+        if applied.implied:
+            cameras = cameras_with_implied_move(scene, cameras, path, applied, what)
+        if pca_orientation(path, applied.orientation) is not None:
+            cameras = cameras_with_pca_turn(scene, cameras, what, str(path))
     return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
 
 
-def pca_oriented_run(source: str | Path, scene_path: str | Path | None = None) -> Path | None:
-    """The dataparser_transforms.json the cameras of dataset `source` were moved by (the one beside them, else the
-    run's of a nerfstudio checkpoint `scene_path`), when its run was oriented by PCA (`cameras.pca_orientation`)."""
+def nerfstudio_run_file(source: str | Path, scene_path: str | Path | None = None) -> tuple[Path, AppliedMove] | None:
+    """(the dataparser_transforms.json the cameras of dataset `source` were moved by: the one beside them, else the run's of a
+    nerfstudio checkpoint `scene_path`; what the dataset's transforms.json says its poses carry, `applied_move`), or None."""
     path = dataparser_transforms_path(source)
     if path is None and scene_path is not None:
         path = run_dataparser_transform(scene_path)
     if path is None:
         return None
     kind, found = detect_dataset(source)
-    override = applied_move(found).orientation if kind == "transforms" else None
-    return path if pca_orientation(path, override) is not None else None
+    return path, (applied_move(found) if kind == "transforms" else AppliedMove())
+
+
+def cameras_with_implied_move(scene, cameras: Sequence[Camera], path: Path, applied: AppliedMove, what: str = "the scene") -> list[Camera]:
+    """`cameras`, moved by the dataparser file `path` after undoing the applied_transform A nerfstudio takes for a
+    transforms.json without one beside a colmap/sparse/0 folder (`applied_move`), or as they would be without undoing it.
+
+    nerfstudio looks for that folder under ns-train's --data: given the dataset folder it finds it and saves T·A;
+    given the transforms.json itself (--data DIR/transforms.json) it does not, and saves T (round 56b: the cameras
+    then landed turned by A's half turn about (1, 1, 0), seg mIoU 0.211 against 0.950, without a word). Which way
+    a run was started is not in its files, so both are rendered (`compare_readings`). With the file's (R, t, s)
+    and A's rotation R_A, the undone reading puts x at x'_U = s·(R R_Aᵀ x + t), the other at x'_N = s·(R x + t), so
+
+        x'_N = Q x'_U + s·(I − Q) t,   Q = R R_A Rᵀ,
+
+    and the other reading is taken, with one warning, when it matches the images by PCA_TURN_MARGIN more."""
+    rotation, translation, scale = read_dataparser_transform(path)
+    scale = scale / applied.scale
+    q = rotation @ applied.rotation @ rotation.T
+    offset = scale * (translation - q @ translation)
+    cameras = list(cameras)
+    kept = [in_trained_frame(c, q, offset, 1.0) for c in cameras]
+    compared = compare_readings(scene, cameras, kept, PHOTO_CHECK_VIEWS)
+    if compared.prefers_second(PCA_TURN_MARGIN):
+        log.warning("%s was trained in the frame of %s without %s (ns-train was given the transforms.json, not its folder, "
+                    "and found no colmap folder under it): its renders look like its training images only so (median grey "
+                    "correlation %.3f against %.3f, %s), so the %d cameras are moved so", what, path, applied.what,
+                    compared.second, compared.first, compared.of_views(), len(cameras))
+        return kept
+    return cameras
+
+
+
 
 
 def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str = DEFAULT_PRINCIPAL_POINT, what: str = "the scene",

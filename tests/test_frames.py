@@ -1095,3 +1095,33 @@ def test_the_principal_point_decision_reads_each_image_once_and_says_why_views_w
     assert "no training image could be compared" in text
     assert f"{len(cams) - 8} views with no image file" in text and "views whose image could not be read" in text, text
     assert "where the image or the render is one flat grey" in text, text
+
+
+def test_a_nerfstudio_run_given_its_transforms_json_keeps_the_frame_without_the_implied_move(tmp_path, caplog):
+    """Round 56b: nerfstudio takes A = [[0,1,0],[1,0,0],[0,0,-1]] for a transforms.json without applied_transform only
+    when it finds colmap/sparse/0 under ns-train's --data; given the file itself (--data DIR/transforms.json) it does not,
+    and saves the dataparser transform without A. drsplat undid A whenever the folder lay beside the file: such a run
+    registered turned by A's half turn (seg mIoU 0.211 against 0.950), and the frame check passed it. Both readings
+    are rendered now: the scene in the frame with A undone keeps the cameras, the one without gets them back, warned."""
+    import json
+
+    from drsplat.cameras import NERFSTUDIO_COLMAP_APPLIED
+    from drsplat.frames import cameras_as_trained
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    truth, scene = load_cameras(data), load_ply(data / "scene.ply")
+    (data / "colmap" / "sparse" / "0").mkdir(parents=True)
+    (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+    with caplog.at_level(logging.WARNING):
+        loaded = load_cameras(data)  # A undone: x' = R_Aᵀ x
+    rotation = NERFSTUDIO_COLMAP_APPLIED[:, :3]
+    undone_scene = _moved_scene(scene, FrameMove("A undone", np.block([[rotation.T, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]])))
+    for trained, want, said in ((undone_scene, loaded, False), (scene, truth, True)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+            got = cameras_as_trained(trained, loaded, data)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g.R, w.R, atol=1e-12)
+            np.testing.assert_allclose(g.t, w.t, atol=1e-12)
+        assert ("ns-train was given the transforms.json, not its folder" in caplog.text) == said, caplog.text
