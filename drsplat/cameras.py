@@ -1599,6 +1599,11 @@ def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: Applied
     if applied.rotation is not None:
         rotation = rotation @ applied.rotation.T
         translation = translation - rotation @ applied.translation
+    low, high = DATAPARSER_SCALES
+    if not low <= scale / applied.scale <= high:  # each within the bounds, their quotient not (round 56b: cameras at 1e30 or all at the origin)
+        raise InputError(path, f"has scale {plain_numbers(scale)}, which over the transforms.json's applied_scale "
+                               f"{plain_numbers(applied.scale)} (ns-train multiplies that into it) gives {plain_numbers(scale / applied.scale)}, "
+                               f"outside [{low:g}, {high:g}]: one of the two is not this dataset's", field="scale")
     scale = scale / applied.scale
     moved = [in_trained_frame(c, rotation, translation, scale) for c in cameras]
     for camera, there in zip(cameras, moved):

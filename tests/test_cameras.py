@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import logging
 import warnings
 from pathlib import Path
@@ -606,6 +607,16 @@ def test_a_nerfstudio_applied_transform_is_undone_before_its_dataparser_transfor
         (applied / "transforms.json").write_text(json.dumps(meta))
         with pytest.raises(InputError, match=r"transforms.json: field 'applied_scale': has applied_scale 0; it must lie in"):
             load_cameras(applied)
+        # round 56b: each within its bounds, their quotient not: cameras at 1e30 (an error quoting a scale in neither file) or
+        # all at the origin (exit 0); one error now, naming both values and the dataparser file's field
+        for a, s in ((1e-15, 1e15), (1e15, 1e-15)):
+            meta["applied_scale"] = a
+            (applied / "transforms.json").write_text(json.dumps(meta))
+            (applied / "dataparser_transforms.json").write_text(json.dumps({**json.loads((applied / "dataparser_transforms.json").read_text()), "scale": s}))
+            with pytest.raises(InputError, match=re.escape(f"dataparser_transforms.json: field 'scale': has scale {s:g}, which over the "
+                                                           f"transforms.json's applied_scale {a:g} (ns-train multiplies that into it) "
+                                                           f"gives {s / a:g}, outside")):
+                load_cameras(applied)
 
 
 @pytest.mark.parametrize("content, words", [
