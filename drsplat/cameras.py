@@ -849,11 +849,18 @@ def _check_intrinsic(path: Path, where: str, name: str, value: float, side_name:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file from its header. Pillow's warning for a file over its pixel limit is
+    left to `load_image_sized`, which reads the pixels and logs it naming the file (round 56b: a 108-megapixel
+    photo printed Pillow's raw DecompressionBombWarning here)."""
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            return im.size
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                return im.size
+    except Image.DecompressionBombError as exc:
+        raise InputError(path, f"is not a readable image: {exc}") from None
     except Exception as exc:
         raise InputError(path, f"is not a readable image ({exc.__class__.__name__})") from None
 

@@ -1482,3 +1482,21 @@ def test_frames_intrinsics_unlike_the_shared_ones_follow_nerfstudio_in_a_nerfstu
         said = [r.getMessage() for r in caplog.records if "unlike the file's shared values" in r.getMessage()]
         assert len(said) == 1 and f"cx ({len(truth)} frames), cy ({len(truth)} frames)" in said[0], caplog.text
         assert ("so the shared ones are used" in said[0]) == nerfstudio
+
+
+def test_an_image_over_pillows_pixel_limit_is_sized_without_its_raw_warning(tmp_path, monkeypatch, recwarn):
+    """Round 56b: reading the size of a 108-megapixel photo (a transforms.json without w, h) printed Pillow's raw
+    DecompressionBombWarning; one past twice the limit was "not a readable image (DecompressionBombError)" with no
+    reason. The size is read quietly now (decoding the pixels still logs the warning, naming the file), and the error
+    says why. Pillow's limit is lowered for the test instead of writing a 100-megapixel file."""
+    from PIL import Image
+
+    from drsplat.cameras import _image_size
+
+    Image.new("RGB", (40, 30)).save(tmp_path / "big.png")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 1,200 pixels: over the limit, under twice it
+    assert _image_size(tmp_path / "big.png") == (40, 30)
+    assert not [w for w in recwarn if issubclass(w.category, Image.DecompressionBombWarning)]
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 500)
+    with pytest.raises(InputError, match=r"big.png: is not a readable image: Image size \(1200 pixels\) exceeds limit"):
+        _image_size(tmp_path / "big.png")
