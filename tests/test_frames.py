@@ -912,20 +912,26 @@ def test_a_scene_trained_with_the_files_principal_points_keeps_them(tiny_seed0, 
     assert "no training image could be compared" in caplog.text and "pass --principal-point centre" in caplog.text
 
 
+def _dataset_with_shifted_principal_points(data: Path, to: Path) -> Path:
+    """A copy of dataset `data` at `to` whose transforms.json moves every cx, cy by 5 px, -3 px."""
+    import json
+
+    shutil.copytree(data, to)
+    transforms = json.loads((to / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        frame["cx"], frame["cy"] = frame["cx"] + 5, frame["cy"] - 3
+    (to / "transforms.json").write_text(json.dumps(transforms))
+    return to
+
+
 def test_register_takes_the_principal_points_its_scene_was_trained_with(tiny_seed0, tmp_path, capsys):
     """The command end to end: the dataset's transforms.json with every cx, cy moved 5 px, 3 px off
     the centre the scene and its images were made about registers to the very bytes of the dataset as
     made; `--principal-point file` registers the shifted views (other bytes)."""
-    import json
 
     scene, _, cams, _ = tiny_seed0
     data = Path(cams[0].image_path).parents[1]
-    shifted = tmp_path / "shifted"
-    shutil.copytree(data, shifted)
-    transforms = json.loads((shifted / "transforms.json").read_text())
-    for frame in transforms["frames"]:
-        frame["cx"], frame["cy"] = frame["cx"] + 5, frame["cy"] - 3
-    (shifted / "transforms.json").write_text(json.dumps(transforms))
+    shifted = _dataset_with_shifted_principal_points(data, tmp_path / "shifted")
     outputs = {}
     for name, source, flags in (("made", data, []), ("auto", shifted, []), ("file", shifted, ["--principal-point", "file"])):
         outputs[name] = tmp_path / f"{name}.ply"
@@ -977,7 +983,6 @@ def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_registe
     reaches the window's log once, and the cameras it takes are the ones `register` takes: here, on a dataset
     whose principal points are 5 px, -3 px off the centres its scene was trained about, the centred ones. A
     check that ends after another scene opened is dropped."""
-    import json
     import threading
 
     import viewer.cameracheck
@@ -986,12 +991,7 @@ def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_registe
 
     scene, _, cams, _ = tiny_seed0
     data = Path(cams[0].image_path).parents[1]
-    shifted = tmp_path / "shifted"
-    shutil.copytree(data, shifted)
-    transforms = json.loads((shifted / "transforms.json").read_text())
-    for frame in transforms["frames"]:
-        frame["cx"], frame["cy"] = frame["cx"] + 5, frame["cy"] - 3
-    (shifted / "transforms.json").write_text(json.dumps(transforms))
+    shifted = _dataset_with_shifted_principal_points(data, tmp_path / "shifted")
     release, real = threading.Event(), viewer.cameracheck.cameras_as_trained
     monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", lambda *a, **k: (release.wait(60), real(*a, **k))[1])
 
