@@ -1749,6 +1749,15 @@ def test_a_table_goes_to_stderr_when_an_output_is_stdout(tmp_path, world):
     piped = subprocess.run([sys.executable, "-c", script, *argv, "/dev/stdout"], capture_output=True, cwd=ROOT, env=env, timeout=300)
     assert piped.returncode == 0 and piped.stdout == ref.read_bytes(), piped.stderr.decode()[-2000:]
     assert b"(none / background)" in piped.stderr
+    # round 56d: `query --out /dev/stdout | ...` (and `--scores /dev/stdout --threshold`) began the file with its count line
+    base = ["query", str(world["reg"]), "--embedding", str(world["q"]), "--threshold", "0.1", "-q"]
+    for flag, name in (("--out", "sel.ply"), ("--scores", "s.npy")):
+        ref = tmp_path / name
+        plain = subprocess.run([sys.executable, "-c", script, *base, flag, str(ref)], capture_output=True, cwd=ROOT, env=env, timeout=300)
+        assert plain.returncode == 0 and b"Gaussians score >=" in plain.stdout, plain.stderr.decode()[-2000:]
+        piped = subprocess.run([sys.executable, "-c", script, *base, flag, "/dev/stdout"], capture_output=True, cwd=ROOT, env=env, timeout=300)
+        assert piped.returncode == 0 and piped.stdout == ref.read_bytes(), (flag, piped.stdout[:80], piped.stderr.decode()[-2000:])
+        assert b"Gaussians score >=" in piped.stderr
 
 
 def test_a_failed_second_output_removes_the_file_behind_a_link_not_the_link(tmp_path, world, capsys):

@@ -132,7 +132,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         mask = select(best, threshold, assigned)
         unassigned = len(field) - int(assigned.sum())
         left_out = f" ({unassigned:,} Gaussians without a language feature left out)" if unassigned else ""
-        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}")
+        # to stderr when --out or --scores is standard output itself (round 56d: `--out /dev/stdout | ...` began with this line)
+        print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}", file=common.table_stream(args.out, args.scores))
         if args.out is not None and not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
             raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
                                f"nothing written to {args.out}; lower --threshold")
