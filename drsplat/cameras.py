@@ -1643,7 +1643,7 @@ def warn_if_pca_oriented(path: Path, override: str | None) -> None:
     """One warning when nerfstudio oriented the run of the dataparser file `path` by PCA (`pca_orientation`).
     When PCA's up-flip fires, the saved transform misses a half turn about x in every release (v1.1.4
     and earlier flip the poses, v1.1.5 the saved transform only; round 55b), so the cameras may land
-    half-turned from the scene; `frames.cameras_with_pca_turn` decides by the images where a scene is given."""
+    half-turned from the scene; `frames.cameras_of_nerfstudio_run` decides by the images where a scene is given."""
     said = pca_orientation(path, override)
     if said is not None:
         log.warning("%s: nerfstudio oriented this run by PCA (%s), whose saved transform misses the half turn about x that its "

@@ -568,6 +568,8 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
     if len(with_images) < len(cameras):
         skipped[NO_IMAGE_FILE] = max(skipped[NO_IMAGE_FILE], len(cameras) - len(with_images))
+    if with_images and scene.num_gaussians == 0:
+        skipped[EMPTY_SCENE] = max(skipped[EMPTY_SCENE], len(with_images))
     if not with_images or scene.num_gaussians == 0:
         return {}
     picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]
@@ -604,6 +606,7 @@ NO_IMAGE_FILE = "with no image file"  # why `photo_agreement` left views out (it
 UNREADABLE_IMAGE = "whose image could not be read"
 LITTLE_COVERED = f"where the render covers under {PHOTO_MIN_PIXELS} pixels"
 FLAT_PICTURE = "where the image or the render is one flat grey"
+EMPTY_SCENE = "of a scene with no Gaussians to render"
 
 
 def skipped_views(skipped: Counter) -> str:
@@ -629,11 +632,7 @@ def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, pri
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
     run = nerfstudio_run_file(source, scene_path)
     if run is not None:
-        path, applied = run
-        if applied.implied:
-            cameras = cameras_with_implied_move(scene, cameras, path, applied, what)
-        if pca_orientation(path, applied.orientation) is not None:
-            cameras = cameras_with_pca_turn(scene, cameras, what, str(path))
+        cameras = cameras_of_nerfstudio_run(scene, cameras, *run, what=what)
     return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
 
 
@@ -649,36 +648,116 @@ def nerfstudio_run_file(source: str | Path, scene_path: str | Path | None = None
     return path, (applied_move(found) if kind == "transforms" else AppliedMove())
 
 
-def cameras_with_implied_move(scene, cameras: Sequence[Camera], path: Path, applied: AppliedMove, what: str = "the scene") -> list[Camera]:
+HALF_TURN_X = np.diag([1.0, -1.0, -1.0])  # nerfstudio's PCA up-flip: a half turn about x
+READING_MARGIN = 0.02  # median gain of grey correlation that decides for another reading of a nerfstudio run (they see other sides of a scene)
+READING_VIEWS = 8  # views `cameras_of_nerfstudio_run` renders under each reading
+
+
+def without_implied_move(cameras: Sequence[Camera], path: Path, applied: AppliedMove) -> list[Camera]:
     """`cameras`, moved by the dataparser file `path` after undoing the applied_transform A nerfstudio takes for a
-    transforms.json without one beside a colmap/sparse/0 folder (`applied_move`), or as they would be without undoing it.
+    transforms.json without one beside a colmap/sparse/0 folder (`applied_move`), as they would be without undoing it.
 
-    nerfstudio looks for that folder under ns-train's --data: given the dataset folder it finds it and saves T·A;
-    given the transforms.json itself (--data DIR/transforms.json) it does not, and saves T (round 56b: the cameras
-    then landed turned by A's half turn about (1, 1, 0), seg mIoU 0.211 against 0.950, without a word). Which way
-    a run was started is not in its files, so both are rendered (`compare_readings`). With the file's (R, t, s)
-    and A's rotation R_A, the undone reading puts x at x'_U = s·(R R_Aᵀ x + t), the other at x'_N = s·(R x + t), so
+    With the file's (R, t, s) and A's rotation R_A, the undone reading puts x at x'_U = s·(R R_Aᵀ x + t), the other
+    at x'_N = s·(R x + t), so
 
-        x'_N = Q x'_U + s·(I − Q) t,   Q = R R_A Rᵀ,
-
-    and the other reading is taken, with one warning, when it matches the images by PCA_TURN_MARGIN more."""
+        x'_N = Q x'_U + s·(I − Q) t,   Q = R R_A Rᵀ."""
     rotation, translation, scale = read_dataparser_transform(path)
     scale = scale / applied.scale
     q = rotation @ applied.rotation @ rotation.T
     offset = scale * (translation - q @ translation)
+    return [in_trained_frame(c, q, offset, 1.0) for c in cameras]
+
+
+def half_turned(cameras: Sequence[Camera]) -> list[Camera]:
+    """`cameras` turned half round about x, F = diag(1, −1, −1): world-to-camera R·F, t (`in_trained_frame` with R = F)."""
+    return [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cameras]
+
+
+def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, applied: AppliedMove, what: str = "the scene") -> list[Camera]:
+    """`cameras`, moved by nerfstudio's dataparser file `path` (`applied`: what the dataset's transforms.json
+    carries), in the frame the run trained in, where its files leave two things open:
+
+    - the applied_transform A nerfstudio takes itself for a transforms.json without one beside a colmap/sparse/0
+      folder (`applied.implied`) is in the saved transform only when ns-train's --data was the dataset folder,
+      where it looks for that folder; given the transforms.json itself it saves T without A (round 56b: the
+      cameras landed turned by A's half turn about (1, 1, 0), seg mIoU 0.211 against 0.950, without a word);
+      the cameras come undone (`without_implied_move` is the other reading);
+    - a run oriented by PCA (`cameras.pca_orientation`): when PCA's up-flip fires, nerfstudio turns its poses half
+      round about x and the saved transform misses that turn (v1.1.4 and earlier flip the poses only, v1.1.5 the
+      saved transform only; `half_turned` is the other reading).
+
+    Which applies is in no file, so every combination is rendered together (`best_reading`; deciding one at a
+    time could compare two wrong readings: round 56c) and the best taken, with one warning, when it matches the
+    images by READING_MARGIN more than the cameras as moved; a warning too when none looks like the images."""
     cameras = list(cameras)
-    kept = [in_trained_frame(c, q, offset, 1.0) for c in cameras]
-    compared = compare_readings(scene, cameras, kept, PHOTO_CHECK_VIEWS)
-    if compared.prefers_second(PCA_TURN_MARGIN):
-        log.warning("%s was trained in the frame of %s without %s (ns-train was given the transforms.json, not its folder, "
-                    "and found no colmap folder under it): its renders look like its training images only so (median grey "
-                    "correlation %.3f against %.3f, %s), so the %d cameras are moved so", what, path, applied.what,
-                    compared.second, compared.first, compared.of_views(), len(cameras))
-        return kept
-    return cameras
+    implied = (f"without {applied.what} (ns-train, given the transforms.json and not its folder, finds no colmap folder "
+               "under it and saves no such move)")
+    turn = "turned half round about x (PCA's up-flip, which the saved transform misses)"
+    readings: list[tuple[str, str, list[Camera]]] = [("saved", "as the saved transform gives them", cameras)]
+    if applied.implied:
+        readings.append(("without A", implied, without_implied_move(cameras, path, applied)))
+    if pca_orientation(path, applied.orientation) is not None:
+        readings += [(f"{label}, turned" if i else "turned", f"{words}, and {turn}" if i else turn, half_turned(c))
+                     for i, (label, words, c) in enumerate(readings)]
+    if len(readings) == 1:
+        return cameras
+    chosen, scores = best_reading(scene, [c for _, _, c in readings], READING_MARGIN, READING_VIEWS)
+    said = ", ".join(f"{label} {score:.3f}" for (label, _, _), score in zip(readings, scores.medians))
+    if not scores.views:
+        log.warning("%s leaves open how %s was trained (%s), and no training image could be compared with its renders to tell "
+                    "(%s): the cameras are used as the saved transform gives them", path, what,
+                    "; or ".join(words for _, words, _ in readings[1:]), scores.left_out)
+        return cameras
+    if max(scores.medians) < PHOTO_MATCH_MIN:
+        log.warning("%s leaves open how %s was trained, and under none of its readings do the renders look like the training "
+                    "images (median grey correlation: %s; %s): the cameras are used as the saved transform gives them, and "
+                    "the scene may not be this dataset's", path, what, said, scores.of_views())
+        return cameras
+    if chosen:
+        log.warning("%s was trained in the frame of %s with its %d cameras %s: only so do its renders look like its training "
+                    "images (median grey correlation: %s; %s), so they are taken so", what, path, len(cameras), readings[chosen][1],
+                    said, scores.of_views())
+    else:
+        log.info("%s: the cameras are used as its saved transform gives them (median grey correlation: %s; %s)", path, said,
+                 scores.of_views())
+    return readings[chosen][2]
 
 
+@dataclass(frozen=True)
+class ReadingScores:
+    """Several readings of the same cameras scored by their renders (`best_reading`): each one's median ρ
+    over the compared views, how many views were compared, and the views left out and why."""
 
+    medians: list[float]
+    views: int
+    left_out: str
+
+    def of_views(self) -> str:
+        return f"{self.views} view" if self.views == 1 else f"{self.views} views"
+
+
+def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, views: int = PHOTO_CHECK_VIEWS) -> tuple[int, ReadingScores]:
+    """(the index of the reading of the same cameras (readings[r][i] is camera i read the r-th way) whose renders look
+    most like the training images, its scores): `photo_agreement` of each over up to `views` cameras, a view one
+    reading shows nothing of counting ρ = 0 for it; reading r > 0 is taken over reading 0 when
+
+        median_v (ρ_v(r) − ρ_v(0)) > margin  and  median_v ρ_v(r) ≥ PHOTO_MATCH_MIN,
+
+    the one of largest gain among those; else 0."""
+    prepared, pictures, skipped = photo_scene(scene), {}, Counter()
+    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None)
+             for r, cams in enumerate(readings)]
+    common = sorted(set().union(*found))
+    if not common:
+        return 0, ReadingScores([0.0] * len(readings), 0, skipped_views(skipped))
+    rho = np.array([[f.get(name, 0.0) for name in common] for f in found])
+    medians = [float(m) for m in np.median(rho, axis=1)]
+    gains = [float(np.median(rho[r] - rho[0])) for r in range(len(readings))]
+    chosen = 0
+    for r in range(1, len(readings)):
+        if gains[r] > margin and medians[r] >= PHOTO_MATCH_MIN and gains[r] > gains[chosen]:
+            chosen = r
+    return chosen, ReadingScores(medians, len(common), skipped_views(skipped))
 
 
 def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str = DEFAULT_PRINCIPAL_POINT, what: str = "the scene",
@@ -731,95 +810,26 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         return cameras
     # only the views whose principal point is off-centre tell the readings apart (round 55a: a rig with every third camera
     # off-centre gave gain 0 in most compared views, and the median kept the file's)
-    compared = compare_readings(scene, [cameras[i] for i in off], [centred[i] for i in off], PRINCIPAL_POINT_VIEWS)
+    chosen, compared = best_reading(scene, [[cameras[i] for i in off], [centred[i] for i in off]], PRINCIPAL_POINT_MARGIN,
+                                    PRINCIPAL_POINT_VIEWS)
+    given_rho, centre_rho = compared.medians
     if not compared.views:
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
                     "could be compared with %s's renders to tell how it was trained (%s): they are used as the camera file gives them "
                     "(as gsplat and nerfstudio train); for a scene trained by INRIA's gaussian-splatting, which takes every "
                     "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what, compared.left_out)
         return cameras
-    if compared.prefers_second(PRINCIPAL_POINT_MARGIN):
+    if chosen:
         log.warning("%s was trained with every principal point at its image centre, as INRIA's gaussian-splatting trains: its renders "
                     "look more like its training images so (median grey correlation %.3f against %.3f with the camera file's, %s): "
                     "the principal points of %s are moved to their image centres (up to %s of the side); "
-                    "--principal-point file keeps them", what, compared.second, compared.first, compared.of_views(), of, worst)
+                    "--principal-point file keeps them", what, centre_rho, given_rho, compared.of_views(), of, worst)
         return centred
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
-             "image centres, %s)", of, compared.first, compared.second, compared.of_views())
+             "image centres, %s)", of, given_rho, centre_rho, compared.of_views())
     return cameras
 
 
-@dataclass(frozen=True)
-class Readings:
-    """Two readings of the same cameras compared by their renders (`compare_readings`): the median ρ of
-    each over the compared views, the median of their per-view differences (second − first), and
-    how many views were compared."""
-
-    first: float
-    second: float
-    gain: float
-    views: int
-    left_out: str = ""  # the first reading's views left out, and why (`skipped_views`)
-
-    def of_views(self) -> str:
-        return f"{self.views} view" if self.views == 1 else f"{self.views} views"
-
-    def prefers_second(self, margin: float) -> bool:
-        """The second reading wins by more than `margin` and itself looks like the images (ρ ≥ PHOTO_MATCH_MIN: under
-        the bar, images of another scene's noise would decide)."""
-        return self.views > 0 and self.gain > margin and self.second >= PHOTO_MATCH_MIN
-
-
-def compare_readings(scene, first: Sequence[Camera], second: Sequence[Camera], views: int) -> Readings:
-    """`photo_agreement` of two readings of the same cameras (first[i] and second[i] one camera read
-    two ways) over up to `views` of them; a view one reading renders and the other shows nothing of (a
-    principal point far off the image, a camera turned away) counts ρ = 0 for the latter:
-
-        gain = median_v (ρ_v(second) − ρ_v(first))
-    """
-    prepared, pictures, skipped = photo_scene(scene), {}, Counter()
-    one = photo_agreement(scene, first, views=views, prepared=prepared, pictures=pictures, skipped=skipped)
-    two = photo_agreement(scene, second, views=views, prepared=prepared, pictures=pictures)
-    common = sorted(set(one) | set(two))
-    if not common:
-        return Readings(0.0, 0.0, 0.0, 0, skipped_views(skipped))
-    one, two = ({name: r.get(name, 0.0) for name in common} for r in (one, two))
-    gain = float(np.median([two[name] - one[name] for name in common]))
-    return Readings(float(np.median(list(one.values()))), float(np.median(list(two.values()))), gain, len(common), skipped_views(skipped))
-
-
-HALF_TURN_X = np.diag([1.0, -1.0, -1.0])  # nerfstudio's PCA up-flip: a half turn about x
-PCA_TURN_MARGIN = 0.02  # median gain of grey correlation that decides for the half turn (the two readings see other sides of a scene)
-
-
-def cameras_with_pca_turn(scene, cameras: Sequence[Camera], what: str = "the scene", run: str = "the run") -> list[Camera]:
-    """`cameras` in the frame a nerfstudio run oriented by PCA trained in (`cameras.pca_orientation`).
-
-    When PCA's up-flip fires, nerfstudio turns its poses half round about x, F = diag(1, −1, −1), and
-    the transform it saves in dataparser_transforms.json misses that turn (v1.1.4 and earlier flip the
-    poses only, v1.1.5 the saved transform only), so the cameras it gives are the trained ones or
-    those turned by F; which release trained the run cannot be read. Both are rendered (up to
-    PHOTO_CHECK_VIEWS views, `compare_readings`) and the turned ones taken, with one warning, when
-
-        median_v ρ_v(F) − ρ_v(as saved) > PCA_TURN_MARGIN  and  median_v ρ_v(F) ≥ PHOTO_MATCH_MIN.
-
-    A camera turned by F: world-to-camera R·F, t (`in_trained_frame` with R = F, no translation)."""
-    cameras = list(cameras)
-    turned = [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cameras]
-    compared = compare_readings(scene, cameras, turned, PHOTO_CHECK_VIEWS)
-    if not compared.views:
-        log.warning("%s was oriented by nerfstudio's PCA, whose saved transform may miss a half turn about x, and no training image "
-                    "could be compared with %s's renders to tell (%s): the cameras are used as the transform gives them", run, what,
-                    compared.left_out)
-        return cameras
-    if compared.prefers_second(PCA_TURN_MARGIN):
-        log.warning("%s was oriented by nerfstudio's PCA and its saved transform misses the half turn about x that PCA's up-flip "
-                    "applied: %s's renders look like its training images only with the %d cameras turned so (median grey correlation "
-                    "%.3f against %.3f, %s), so they are", run, what, len(cameras), compared.second, compared.first, compared.of_views())
-        return turned
-    log.info("%s was oriented by nerfstudio's PCA; its cameras are used as its saved transform gives them (median grey correlation "
-             "%.3f against %.3f turned half round about x, %s)", run, compared.first, compared.second, compared.of_views())
-    return cameras
 
 
 def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:

@@ -1044,8 +1044,8 @@ def test_a_pca_oriented_nerfstudio_run_gets_the_half_turn_its_renders_show(tmp_p
         with caplog.at_level(logging.INFO, logger="drsplat.frames"):
             got = cameras_as_trained(trained, cams, data)
         assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in truth]
-        assert ("misses the half turn about x that PCA's up-flip applied" in caplog.text) == said, caplog.text
-        assert "oriented by nerfstudio's PCA" in caplog.text
+        assert ("cameras turned half round about x (PCA's up-flip, which the saved transform misses)" in caplog.text) == said, caplog.text
+        assert "median grey correlation: saved" in caplog.text
     (data / "config.yml").write_text("pipeline:\n  datamanager:\n    dataparser:\n      orientation_method: up\n")
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="drsplat.frames"):
@@ -1124,4 +1124,35 @@ def test_a_nerfstudio_run_given_its_transforms_json_keeps_the_frame_without_the_
         for g, w in zip(got, want, strict=True):
             np.testing.assert_allclose(g.R, w.R, atol=1e-12)
             np.testing.assert_allclose(g.t, w.t, atol=1e-12)
-        assert ("ns-train was given the transforms.json, not its folder" in caplog.text) == said, caplog.text
+        assert ("ns-train, given the transforms.json and not its folder, finds no colmap folder" in caplog.text) == said, caplog.text
+
+
+def test_nerfstudios_implied_move_and_pca_turn_are_decided_together(tmp_path):
+    """Round 56c: a run whose transforms.json implies nerfstudio's A (a colmap folder beside it) and which was oriented by
+    PCA has four readings; deciding A first and the turn after compared two wrong ones on hard-room when the truth was
+    "A not in the saved transform, turned": exit 0, every camera wrong. All four are rendered together now, and each
+    truth is found."""
+    import json
+
+    from drsplat.cameras import NERFSTUDIO_COLMAP_APPLIED, in_trained_frame
+    from drsplat.frames import HALF_TURN_X, cameras_as_trained
+
+    data = tmp_path / "room"
+    assert main(["synth", str(data), "--preset", "hard-room", "--seed", "3", "--no-progress", "-q"]) == 0
+    truth, scene = load_cameras(data), load_ply(data / "scene.ply")
+    (data / "colmap" / "sparse" / "0").mkdir(parents=True)
+    (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+    (data / "config.yml").write_text("pipeline:\n  datamanager:\n    dataparser:\n      orientation_method: pca\n")
+    loaded = load_cameras(data)  # A undone
+
+    def moved(s, rotation):
+        return _moved_scene(s, FrameMove("a turn", np.block([[rotation, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]])))
+
+    def turned(cameras):
+        return [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cameras]
+
+    undone = moved(scene, NERFSTUDIO_COLMAP_APPLIED[:, :3].T)
+    for trained, want in ((undone, loaded), (scene, truth), (moved(undone, HALF_TURN_X), turned(loaded)),
+                          (moved(scene, HALF_TURN_X), turned(truth))):
+        got = cameras_as_trained(trained, loaded, data)
+        assert max(max(np.abs(g.R - w.R).max(), np.abs(g.t - w.t).max()) for g, w in zip(got, want, strict=True)) < 1e-9
