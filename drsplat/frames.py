@@ -79,7 +79,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize, share_in_some_view
-from drsplat.utils import spread_rows
+from drsplat.utils import CancelToken, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -625,14 +625,19 @@ PRINCIPAL_POINT_MARGIN = 2e-3
 
 def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, principal_point: str = DEFAULT_PRINCIPAL_POINT,
                        what: str = "the scene", scene_path: str | Path | None = None,
-                       refinements: np.ndarray | None = None) -> list[Camera]:
+                       refinements: np.ndarray | None = None, cancel: CancelToken | None = None) -> list[Camera]:
     """`cameras` of dataset `source` as their scene (a GaussianScene) was trained with them: moved into
-    its frame (`cameras_in_scene_frame`), then with its principal points (`cameras_with_principal_point`,
-    `principal_point` its choice). Both render views of the scene when they must decide."""
+    its frame (`cameras_in_scene_frame`), the readings a nerfstudio run leaves open decided
+    (`cameras_of_nerfstudio_run`), then with its principal points (`cameras_with_principal_point`,
+    `principal_point` its choice). Each step renders views of the scene when it must decide; `cancel`
+    (the viewer's, when another check replaces this one) is honoured between them (Cancelled)."""
+    stop = cancel.raise_if_cancelled if cancel is not None else (lambda: None)
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
+    stop()
     run = nerfstudio_run_file(source, scene_path)
     if run is not None:
         cameras = cameras_of_nerfstudio_run(scene, cameras, *run, what=what)
+        stop()
     return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
 
 

@@ -1015,10 +1015,12 @@ def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_registe
     assert state.load_source(shifted, background=True)
     other = GaussianScene(means=scene.means[:10], quats=scene.quats[:10], log_scales=scene.log_scales[:10],
                           opacity_logits=scene.opacity_logits[:10], sh=scene.sh[:10])
-    state.set_scene(other)  # another scene opens while the check runs
+    check = state.camera_check
+    state.set_scene(other)  # another scene opens while the check runs: the check is stopped, its cameras and warnings unused
     release.set()
-    state.camera_check.thread.join(60)
+    check.thread.join(60)
     assert not state.poll_camera_check() and state.cameras == [] and not state.cameras_pending, "another scene's cameras were taken"
+    assert sum("trained with every principal point at its image centre" in m.text for m in state.messages) == 1
 
 
 def test_a_pca_oriented_nerfstudio_run_gets_the_half_turn_its_renders_show(tmp_path, caplog):
@@ -1156,3 +1158,77 @@ def test_nerfstudios_implied_move_and_pca_turn_are_decided_together(tmp_path):
                           (moved(scene, HALF_TURN_X), turned(truth))):
         got = cameras_as_trained(trained, loaded, data)
         assert max(max(np.abs(g.R - w.R).max(), np.abs(g.t - w.t).max()) for g, w in zip(got, want, strict=True)) < 1e-9
+
+
+def test_a_replaced_camera_check_is_stopped_and_silent_and_checks_run_one_at_a_time(tiny_seed0, tmp_path, monkeypatch):
+    """Round 56c: every load_source started a check of its own while the replaced ones kept rendering (six quick opens of
+    one folder: six checks at once on 2 cores) and each logged its warning; a check that failed left the dataset's
+    images unguarded and registration saying "set the dataset directory". Now a replacing check stops the one before
+    (at its next step) and waits for it, only the taken check's warnings are shown, and a failed check keeps the
+    dataset's files guarded and is named when registering."""
+    import threading
+
+    import viewer.cameracheck
+    from viewer.state import ViewerState
+
+    scene, _, cams, _ = tiny_seed0
+    data = Path(cams[0].image_path).parents[1]
+    shifted = _dataset_with_shifted_principal_points(data, tmp_path / "shifted")
+    release, real, running, most = threading.Event(), viewer.cameracheck.cameras_as_trained, [0], [0]
+
+    def counted(*a, **k):
+        running[0] += 1
+        most[0] = max(most[0], running[0])
+        try:
+            release.wait(60)
+            return real(*a, **k)
+        finally:
+            running[0] -= 1
+
+    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", counted)
+    state = ViewerState()
+    assert state.load_scene(data / "scene.ply")
+    checks = []
+    for _ in range(3):
+        assert state.load_source(shifted, background=True)
+        checks.append(state.camera_check)
+    assert checks[0].cancel.cancelled and checks[1].cancel.cancelled and not checks[2].cancel.cancelled
+    release.set()
+    checks[2].thread.join(60)
+    assert state.poll_camera_check() and [c.geometry_bits() for c in state.cameras] == [c.geometry_bits() for c in cams]
+    assert most[0] == 1, "checks rendered at once"
+    assert sum("trained with every principal point at its image centre" in m.text for m in state.messages) == 1
+
+    def failing(*a, **k):
+        raise InputError(shifted / "transforms.json", "a bad value", field="cx")
+
+    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", failing)
+    assert state.load_source(shifted, background=True)
+    state.camera_check.thread.join(60)
+    assert state.poll_camera_check() and state.cameras == []
+    image = cams[0].image_path.relative_to(data)
+    assert not state.guard_output(shifted / image, "the screenshot"), "a training image of the dataset was left unguarded"
+    state.features_dir = data / "features"
+    assert not state.start_registration(tmp_path / "r.ply", background=False)
+    assert f"those of {shifted} could not be used" in state.messages[-1].text and "a bad value" in state.messages[-1].text
+
+
+def test_the_viewer_checks_the_cameras_at_once_where_numba_cannot_run_two_threads(tiny_seed0, monkeypatch):
+    """Round 56c: with numba's workqueue threading layer (its fallback where neither omp nor tbb is installed), a query
+    on the window's thread while the check rendered ended the process ("Concurrent access has been detected"). There
+    the check runs at once, as before; and the layer is asked of numba after a parallel kernel ran."""
+    import numba
+
+    import viewer.cameracheck
+    import viewer.state
+    from viewer.state import ViewerState
+
+    scene, _, cams, _ = tiny_seed0
+    data = Path(cams[0].image_path).parents[1]
+    for layer, safe in (("workqueue", False), ("omp", True), ("tbb", True)):
+        monkeypatch.setattr(numba, "threading_layer", lambda layer=layer: layer)
+        assert viewer.cameracheck.concurrent_kernels_safe() == safe
+    monkeypatch.setattr(viewer.state, "concurrent_kernels_safe", lambda: False)
+    state = ViewerState()
+    assert state.load_scene(data / "scene.ply") and state.load_source(data, background=True)
+    assert not state.cameras_pending and len(state.cameras) == len(cams)

@@ -678,12 +678,18 @@ def test_cameras_checked_in_the_background_bring_an_untouched_view_to_the_first_
     state = app.state
     app.run(max_frames=1)  # the scene is synced (a first frame makes its view)
     fb_w, fb_h = glfw.get_framebuffer_size(app.window)
-    for moved in (False, True):
+    for moved in (False, True, "fly", "fov"):
         app.view = ViewController.for_scene(state.scene.means, [], fb_w, fb_h, state.scene.log_scales)
-        if moved:
+        if moved is True:
             app.view.pan(40.0, 10.0)
+        elif moved == "fly":  # round 56c: a view switched to fly mode (or given another field of view) was reset too
+            app.view.mode = "fly"
+        elif moved == "fov":
+            app.view.fov_y_deg = 75.0
         before = app.view.eye.copy()
         assert state.load_source(dataset, background=True) and state.cameras_pending
+        app.step_camera(1)  # round 56c: N said "start with --source DATASET"
+        assert "still being checked" in state.messages[-1].text
         state.camera_check.thread.join(60)
         app.run(max_frames=1)
         assert not state.cameras_pending and state.cameras

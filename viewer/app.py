@@ -570,6 +570,9 @@ class ViewerApp:
     def step_camera(self, step: int) -> None:
         """Snap to the training camera `step` after the current one (N / P), wrapping around."""
         n = len(self.state.cameras)
+        if self.state.cameras_pending:
+            self.snap_to_camera(0)  # which says they are being checked
+            return
         if n == 0:
             self.state.error("no training cameras to snap to (start with --source DATASET)")
             return
@@ -598,9 +601,9 @@ class ViewerApp:
                             "its training cameras and oracle labels were dropped (start with --source to give its own)")
             same_folder = False
         if not same_folder:
-            self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
+            self.state.forget_source()
         elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir, background=self.background_checks):
-            self.state.cameras, self.state.oracle, self.state.source_dir = [], None, None
+            self.state.forget_source()
         self.state.start_text_encoder()
         self.state.settings.reset_paths(self.state.scene_path)
         return True

@@ -61,6 +61,7 @@ class ViewController:
     roll: float = 0.0  # radians about the view direction, applied after look_at
     auto_up: np.ndarray | None = field(default=None, repr=False)
     home: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    home_fov: float | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.eye = np.asarray(self.eye, np.float64)
@@ -68,6 +69,8 @@ class ViewController:
         self.up = np.asarray(self.up, np.float64) / max(np.linalg.norm(self.up), 1e-12)
         if self.home is None:
             self.home = (self.eye.copy(), self.target.copy(), self.up.copy())
+        if self.home_fov is None:
+            self.home_fov = self.fov_y_deg
 
     @classmethod
     def for_scene(cls, means: np.ndarray, cameras: list[Camera] | None = None, width: int = 1280, height: int = 720,
@@ -85,6 +88,7 @@ class ViewController:
             view.up = _mean_up(cameras)
             view.auto_up = view.up.copy()
             view.home = (view.eye.copy(), view.target.copy(), view.up.copy())
+            view.home_fov = view.fov_y_deg
             return view
         center = _robust_center(means)
         radius = _robust_radius(means, center, log_scales)
@@ -225,9 +229,10 @@ class ViewController:
 
     @property
     def at_home(self) -> bool:
-        """True while the view is its home view (nobody has moved it)."""
+        """True while the view is its home view: nobody has moved it, turned it to fly mode or changed its field of view."""
         assert self.home is not None
-        return self.roll == 0.0 and all(np.array_equal(a, b) for a, b in zip((self.eye, self.target, self.up), self.home))
+        return (self.roll == 0.0 and self.mode == "orbit" and self.fov_y_deg == self.home_fov
+                and all(np.array_equal(a, b) for a, b in zip((self.eye, self.target, self.up), self.home)))
 
     def reset(self) -> None:
         assert self.home is not None

@@ -3,7 +3,14 @@
 `drsplat.frames.cameras_as_trained` decides the cameras' frame and principal points by rendering
 views of the scene: 2-3 s on a 542k-Gaussian scene, longer on bigger ones, during which the
 window did not redraw. `ViewerState.load_source(..., background=True)` runs it here and takes the
-cameras when it ends (`ViewerState.poll_camera_check`)."""
+cameras when it ends (`ViewerState.poll_camera_check`).
+
+One check renders at a time: a check that replaces another cancels it (it stops at its next
+step) and waits for it to end. A check's warnings are kept with it and shown only when its
+cameras are taken, so a replaced check says nothing (round 56c: six quick opens of one folder
+rendered six checks at once and logged six warnings, and a check of a closed scene warned about
+it after the next scene opened).
+"""
 
 from __future__ import annotations
 
@@ -15,8 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import Camera
+from drsplat.errors import Cancelled
 from drsplat.frames import cameras_as_trained
 from drsplat.scene import GaussianScene
+from drsplat.utils import CancelToken
 from viewer.messages import LibraryWarnings, MessageLog
 
 log = logging.getLogger(__name__)
@@ -24,32 +33,57 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class CameraCheck:
-    """One check of the cameras of `source` against the scene of `scene_version`: its outcome (cameras or error)."""
+    """One check of the cameras of `source` against the scene of `scene_version`: its outcome (cameras or
+    error) and the warnings it gave (`messages`, shown when its cameras are taken)."""
 
     source: Path
     scene_version: int
     given: list[Camera] = field(default_factory=list)  # as read from the dataset: the files they name are inputs meanwhile
     thread: threading.Thread | None = None
+    cancel: CancelToken = field(default_factory=CancelToken)
+    messages: MessageLog = field(default_factory=MessageLog)
     cameras: list[Camera] = field(default_factory=list)
     error: BaseException | None = None
     finished: bool = False
     reported: bool = False
 
+    def stop(self) -> None:
+        """Cancel the check: it ends at its next step, its cameras and warnings unused."""
+        self.cancel.cancel()
+
+
+def concurrent_kernels_safe() -> bool:
+    """Whether numba's threading layer lets a worker thread run parallel kernels while the window's thread runs
+    others (omp and tbb do; workqueue, numba's fallback where neither is installed, ends the process on
+    "Concurrent access": round 56c). Asked after one parallel kernel has run, which makes numba pick its layer."""
+    import numba
+
+    from drsplat._scene_kernels import bounded_rows_kernel
+
+    bounded_rows_kernel(np.zeros((1, 1)), 1.0, False, np.ones(1, bool))
+    return numba.threading_layer() in ("omp", "tbb")
+
 
 def checked_cameras(scene: GaussianScene, cameras: list[Camera], source: Path, scene_path: Path | None,
-                    refinements: np.ndarray | None) -> list[Camera]:
+                    refinements: np.ndarray | None, cancel: CancelToken | None = None) -> list[Camera]:
     """The viewer's reading of the training cameras: `cameras_as_trained` with the principal point
     decided by the scene ("auto"), the warnings naming the scene file."""
     what = scene_path.name if scene_path is not None else "the scene"
-    return cameras_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements)
+    return cameras_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel)
 
 
-def run_camera_check(check: CameraCheck, scene: GaussianScene, cameras: list[Camera], scene_path: Path | None,
-                     refinements: np.ndarray | None, messages: MessageLog) -> None:
-    """The check's body: its warnings go to `messages` (the window's log); any failure ends up in check.error."""
+def run_camera_check(check: CameraCheck, scene: GaussianScene, scene_path: Path | None, refinements: np.ndarray | None,
+                     previous: CameraCheck | None) -> None:
+    """The check's body, after `previous` (stopped by its caller) has ended: its warnings go to check.messages; a
+    failure ends up in check.error, a cancellation in neither."""
     try:
-        with LibraryWarnings(messages):
-            check.cameras = checked_cameras(scene, cameras, check.source, scene_path, refinements)
+        if previous is not None and previous.thread is not None:
+            previous.thread.join()
+        check.cancel.raise_if_cancelled()
+        with LibraryWarnings(check.messages):
+            check.cameras = checked_cameras(scene, check.given, check.source, scene_path, refinements, check.cancel)
+    except Cancelled:
+        pass
     except BaseException as exc:  # noqa: BLE001 - reported in the GUI by ViewerState.poll_camera_check
         check.error = exc
         log.debug("camera check failed", exc_info=True)
@@ -58,9 +92,12 @@ def run_camera_check(check: CameraCheck, scene: GaussianScene, cameras: list[Cam
 
 
 def start_camera_check(scene: GaussianScene, cameras: list[Camera], source: Path, scene_path: Path | None,
-                       refinements: np.ndarray | None, scene_version: int, messages: MessageLog) -> CameraCheck:
+                       refinements: np.ndarray | None, scene_version: int, previous: CameraCheck | None = None) -> CameraCheck:
+    """A check of `cameras` on a worker thread; `previous`, a check it replaces, is stopped and waited for first."""
+    if previous is not None:
+        previous.stop()
     check = CameraCheck(source=Path(source), scene_version=scene_version, given=list(cameras))
-    check.thread = threading.Thread(target=run_camera_check, args=(check, scene, check.given, scene_path, refinements, messages),
+    check.thread = threading.Thread(target=run_camera_check, args=(check, scene, scene_path, refinements, previous),
                                     name="camera-check", daemon=True)
     check.thread.start()
     return check

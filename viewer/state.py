@@ -35,7 +35,7 @@ from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
-from viewer.cameracheck import CameraCheck, checked_cameras, start_camera_check
+from viewer.cameracheck import CameraCheck, checked_cameras, concurrent_kernels_safe, start_camera_check
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.paths import typed_path
 from viewer.registration import RegistrationJob, start_job
@@ -97,6 +97,8 @@ class ViewerState:
         self._prepared = None
         self._encoder_lock = threading.Lock()
         self.camera_check: CameraCheck | None = None
+        self.dataset_cameras: list[Camera] = []  # as read from source_dir, before any check: the files they name are guarded
+        self.camera_problem: str | None = None  # why the last check of the training cameras failed
 
     # ---------------------------------------------------------------- messages
 
@@ -144,6 +146,7 @@ class ViewerState:
         CLIP encoder (another scene's features may come from another model; `start_text_encoder`
         loads this one's). refinements: its trainer's camera refinements (`LoadReport.camera_refinements`),
         which the training cameras read next take (`load_source`)."""
+        self.drop_camera_check()  # it checked the cameras against the scene closed now
         self.scene, self.field, self.scene_path, self.scene_refinements = scene, lang, path, refinements
         self.assigned_count = 0 if lang is None else int(lang.assigned().sum())
         self.query = None
@@ -165,8 +168,10 @@ class ViewerState:
 
         The cameras are read here (a bad file is refused now); their checks against the open scene
         (`checked_cameras`: the frame, the principal point) render views of it, seconds on a 500k-Gaussian
-        scene, so with `background` they run on a worker thread and `poll_camera_check` takes the
-        cameras when they end (the window froze for them). Until then `cameras` is empty."""
+        scene, so with `background` they run on a worker thread (`viewer.cameracheck`; where numba's
+        threads allow two at once, `concurrent_kernels_safe`) and `poll_camera_check` takes the cameras
+        when they end (the window froze for them). Until then `cameras` is empty; the dataset's files are
+        guarded all the while (`dataset_cameras`)."""
 
         try:
             source = typed_path(source)
@@ -174,17 +179,20 @@ class ViewerState:
                 cameras = load_cameras(source, require_images=False)
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")
-        self.camera_check = None  # a check of another dataset still running: its cameras are not taken
-        if self.scene is not None and background:
-            self.cameras = []
+        previous, self.camera_check = self.camera_check, None  # a check still running is replaced: its cameras are not taken
+        if previous is not None:
+            previous.stop()
+        self.dataset_cameras, self.camera_problem, self.cameras = cameras, None, []
+        if self.scene is not None and background and concurrent_kernels_safe():
             self.camera_check = start_camera_check(self.scene, cameras, source, self.scene_path, self.scene_refinements,
-                                                   self.scene_version, self.messages)
+                                                   self.scene_version, previous)
             self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame and principal points)...")
         elif self.scene is not None:
             try:
                 with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
                     cameras = checked_cameras(self.scene, cameras, source, self.scene_path, self.scene_refinements)
             except Exception as exc:  # noqa: BLE001
+                self.dataset_cameras = []
                 return self._fail(exc, f"cannot read cameras from {source}")
         self.source_dir = source
         if self.features_dir is None and (source / "features").is_dir():
@@ -205,19 +213,32 @@ class ViewerState:
         """True while the training cameras are being checked against the scene (`load_source` in the background)."""
         return self.camera_check is not None and not self.camera_check.reported
 
+    def forget_source(self) -> None:
+        """No dataset: no training cameras (nor a check of them), oracle labels or guarded dataset files."""
+        self.drop_camera_check()
+        self.cameras, self.dataset_cameras, self.camera_problem, self.oracle, self.source_dir = [], [], None, None, None
+
+    def drop_camera_check(self) -> None:
+        """Stop a check still running (another scene opened, or no dataset now): its cameras and warnings are not taken."""
+        if self.camera_check is not None:
+            self.camera_check.stop()
+            self.camera_check = None
+
     def poll_camera_check(self) -> bool:
-        """When a finished camera check is pending: take its cameras (or report its failure); True when done now.
-        A check of a scene that is no longer open is dropped."""
+        """When a finished camera check is pending: take its cameras, with the warnings it gave (or report its
+        failure, after which the dataset stays guarded and registration says why it cannot run); True when done now."""
         check = self.camera_check
         if check is None or not check.finished or check.reported:
             return False
         check.reported = True
         self.camera_check = None
-        if check.scene_version != self.scene_version:
+        if check.scene_version != self.scene_version or check.cancel.cancelled:
             return False
         if check.error is not None:
             self._fail(check.error, f"cannot read cameras from {check.source}")
+            self.camera_problem = self.messages[-1].text
             return True
+        self.messages.extend(check.messages)
         self.cameras = check.cameras
         self.info(f"{len(self.cameras)} training cameras from {check.source}")
         return True
@@ -540,7 +561,7 @@ class ViewerState:
             "codebook the opened PLY's field names": self.field.codebook_path if self.field is not None else None,
         }
         if self.source_dir is not None:
-            inputs.update(dataset_inputs(self.source_dir, self.camera_check.given if self.cameras_pending else self.cameras))
+            inputs.update(dataset_inputs(self.source_dir, self.dataset_cameras or self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
             inputs["output of the registration running"] = self.registration.output
@@ -625,6 +646,9 @@ class ViewerState:
         if self.cameras_pending:
             self.error("the training cameras are still being checked against the scene (its frame and principal points); "
                        "register when they are in")
+            return False
+        if not self.cameras and self.camera_problem is not None:
+            self.error(f"registration needs the training cameras, and those of {self.source_dir} could not be used: {self.camera_problem}")
             return False
         if not self.cameras:
             self.error("registration needs the training cameras: set the dataset directory (--source)")
