@@ -910,6 +910,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     paths = DatasetPaths(path.parent, path)
     cameras, missing = [], []
     shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
+    shared_distortion = any(key in meta for key in NERFSTUDIO_DISTORTION[:3] + NERFSTUDIO_DISTORTION[4:])  # its test leaves k4 out
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
@@ -921,7 +922,15 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
                 disagreeing[key] += 1
                 if shared_wins:
                     rec[key] = meta[key]
-        if "camera_angle_x" in frame and "fl_x" not in frame:  # the frame's own lens: the file's shared fl_x / fl_y are another's
+        if shared_wins and shared_distortion:  # nerfstudio takes every coefficient from the top level then (0 where absent)
+            for key in NERFSTUDIO_DISTORTION:
+                if key in meta:
+                    continue
+                if frame.get(key, 0) != 0:
+                    disagreeing[key] += 1
+                rec.pop(key, None)
+        if "camera_angle_x" in frame and "fl_x" not in frame and not (shared_wins and "fl_x" in meta):
+            # the frame's own lens: the file's shared fl_x / fl_y are another's (nerfstudio never reads camera_angle_x)
             rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
             raise InputError(path, f"frame {i} has no image path string", field="file_path")
@@ -969,6 +978,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
 
 # intrinsics nerfstudio takes from a transforms.json's top level for every frame when it is there (never the frame's own)
 SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2")
+NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")  # one of them (k4 aside) at the top level: nerfstudio reads all from there
 
 
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:

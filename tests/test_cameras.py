@@ -1500,3 +1500,26 @@ def test_an_image_over_pillows_pixel_limit_is_sized_without_its_raw_warning(tmp_
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 500)
     with pytest.raises(InputError, match=r"big.png: is not a readable image: Image size \(1200 pixels\) exceeds limit"):
         _image_size(tmp_path / "big.png")
+
+
+def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from_the_top_level(tmp_path, caplog):
+    """Round 56c: nerfstudio reads every distortion coefficient from a transforms.json's top level once one is there (0 where
+    absent), and never a frame's camera_angle_x; drsplat kept a frame's own p1 beside a shared k1, and let a frame's
+    camera_angle_x replace the shared fl_x (fx 117.15 instead of 106.51)."""
+    from drsplat.synthetic import write_dataset
+
+    data = write_dataset(tmp_path / "room", "tiny", 0, show_progress=False)
+    meta = json.loads((data / "transforms.json").read_text())
+    truth = load_cameras(data)
+    fl_x = meta["frames"][0]["fl_x"]
+    for f in meta["frames"]:
+        f["p1"] = 0.001
+        f["camera_angle_x"] = 1.0
+        del f["fl_x"]
+        f.pop("fl_y", None)
+    (data / "transforms.json").write_text(json.dumps({**meta, "fl_x": fl_x, "k1": 0.0}))
+    (data / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 1.0}))
+    with caplog.at_level(logging.WARNING):
+        got = load_cameras(data)
+    assert [(c.fx, c.fy, c.distortion) for c in got] == [(fl_x, fl_x, None)] * len(truth)  # not 2·atan's focal of camera_angle_x 1.0
+    assert f"p1 ({len(truth)} frames)" in caplog.text and "so the shared ones are used" in caplog.text, caplog.text
