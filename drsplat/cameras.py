@@ -859,10 +859,36 @@ def _image_size(path: Path) -> tuple[int, int]:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(path) as im:
                 return im.size
-    except Image.DecompressionBombError as exc:
-        raise InputError(path, f"is not a readable image: {exc}") from None
+    except Image.DecompressionBombError as exc:  # a limit on decoding: the header is still read (round 56c: it refused the dataset)
+        size = header_size(path)
+        if size is None:
+            raise InputError(path, f"is not a readable image: {exc}") from None
+        return size
     except Exception as exc:
         raise InputError(path, f"is not a readable image ({exc.__class__.__name__})") from None
+
+
+def header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) in an image file's header as Pillow's format plugins read it, without `Image.open`'s pixel
+    limit (a guard for decoding, which `load_image_sized` keeps); None when no plugin reads the file."""
+    from PIL import Image
+
+    Image.init()
+    with open(path, "rb") as f:
+        prefix = f.read(16)
+        for fmt in Image.ID:
+            factory, accept = Image.OPEN[fmt]
+            accepted = True if accept is None else accept(prefix)
+            if isinstance(accepted, str) or not accepted:  # a str is Pillow's reason for refusing it
+                continue
+            f.seek(0)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    return tuple(factory(f, str(path)).size)
+            except (OSError, *PILLOW_DECODE_ERRORS, TypeError):
+                continue
+    return None
 
 
 def c2w_opengl_to_w2c_opencv(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

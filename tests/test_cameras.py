@@ -1486,9 +1486,9 @@ def test_frames_intrinsics_unlike_the_shared_ones_follow_nerfstudio_in_a_nerfstu
 
 def test_an_image_over_pillows_pixel_limit_is_sized_without_its_raw_warning(tmp_path, monkeypatch, recwarn):
     """Round 56b: reading the size of a 108-megapixel photo (a transforms.json without w, h) printed Pillow's raw
-    DecompressionBombWarning; one past twice the limit was "not a readable image (DecompressionBombError)" with no
-    reason. The size is read quietly now (decoding the pixels still logs the warning, naming the file), and the error
-    says why. Pillow's limit is lowered for the test instead of writing a 100-megapixel file."""
+    DecompressionBombWarning; one past twice the limit refused the dataset ("not a readable image"), though only its
+    size is needed. The size is read from the header now, quietly (decoding the pixels still logs the warning, naming
+    the file). Pillow's limit is lowered for the test instead of writing a 100-megapixel file."""
     from PIL import Image
 
     from drsplat.cameras import _image_size
@@ -1497,9 +1497,14 @@ def test_an_image_over_pillows_pixel_limit_is_sized_without_its_raw_warning(tmp_
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 1,200 pixels: over the limit, under twice it
     assert _image_size(tmp_path / "big.png") == (40, 30)
     assert not [w for w in recwarn if issubclass(w.category, Image.DecompressionBombWarning)]
+    # past twice the limit Pillow's open refuses the file; its header is read all the same (round 56c: it refused the dataset)
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 500)
-    with pytest.raises(InputError, match=r"big.png: is not a readable image: Image size \(1200 pixels\) exceeds limit"):
-        _image_size(tmp_path / "big.png")
+    assert _image_size(tmp_path / "big.png") == (40, 30)
+    Image.new("RGB", (40, 30)).save(tmp_path / "big.jpg")
+    assert _image_size(tmp_path / "big.jpg") == (40, 30)
+    (tmp_path / "big.jpg").write_bytes((tmp_path / "big.jpg").read_bytes()[:2])
+    with pytest.raises(InputError, match=r"big.jpg: is not a readable image"):
+        _image_size(tmp_path / "big.jpg")
 
 
 def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from_the_top_level(tmp_path, caplog):
