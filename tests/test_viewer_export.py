@@ -22,6 +22,7 @@ from drsplat.lang import (
     field_metadata,
     read_field,
 )
+from drsplat.lang.plyformat import META_LONG_MAX_BYTES
 from drsplat.scene import load_ply, save_ply
 from tests.conftest import splat_transform_command
 
@@ -42,15 +43,12 @@ def query(demo):
     return np.load(folder / "text_embeddings.npy")[names.index("mug")]
 
 
-@given(st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=0x2FF), min_size=1, max_size=80), st.integers(0, 400), st.randoms(use_true_random=False))
+@given(st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=0x2FF), min_size=1, max_size=300), st.integers(0, 400), st.randoms(use_true_random=False))
 @settings(max_examples=60, deadline=None)
 def test_meta_column_survives_reordering_and_subsets_keeping_each_position(text, extra_rows, rnd):
     data = text.encode()
     column = encode_meta_column(text, len(data) + extra_rows)
-    if len(data) > 255:
-        assert column is None
-        return
-    assert column.dtype == np.uint16 and column.shape == (len(data) + extra_rows,)
+    assert column.dtype == (np.uint16 if len(data) <= 255 else np.uint32) and column.shape == (len(data) + extra_rows,)
     rows = list(range(column.size))
     rnd.shuffle(rows)
     assert decode_meta_column(column[rows]) == text
@@ -63,7 +61,10 @@ def test_meta_column_survives_reordering_and_subsets_keeping_each_position(text,
 
 def test_meta_column_refuses_what_it_cannot_carry():
     assert encode_meta_column("kind=pq", 3) is None, "fewer rows than bytes"
-    assert encode_meta_column("x" * 256, 1000) is None
+    assert encode_meta_column("x" * (META_LONG_MAX_BYTES + 1), META_LONG_MAX_BYTES + 10) is None
+    longest = encode_meta_column("x" * META_LONG_MAX_BYTES, META_LONG_MAX_BYTES)
+    assert longest.dtype == np.uint32 and longest.max() < 1 << 23, "a float32 copy of the column keeps every cell"
+    assert decode_meta_column(longest.astype(np.float32)) == "x" * META_LONG_MAX_BYTES
     assert encode_meta_column("", 10) is None
     column = encode_meta_column("kind=pq dim=512", 100)
     assert decode_meta_column(column[column >> 8 != 3]) is None, "a lost position does not decode"
@@ -99,6 +100,24 @@ def test_field_survives_a_tool_that_drops_header_comments(demo, query, tmp_path)
     back = read_field(back_scene, out)
     assert back is not None and (back.kind, back.dim, back.clip_model) == (field.kind, field.dim, field.clip_model)
     order = np.random.default_rng(3).permutation(scene.num_gaussians)
+    np.testing.assert_array_equal(back.scores(query[None])[:, 0], field.scores(query[None])[order, 0])
+
+
+def test_a_long_codebook_name_keeps_its_field_through_a_tool_that_drops_comments(demo, query, tmp_path):
+    """Round 56d: metadata over 255 bytes (a codebook name of 35 "é", 6 bytes each once URL-quoted) got no `lang_meta`
+    column, without a word, so after splat-transform the file "has no language field ... run drsplat register first".
+    Such metadata is carried in uint cells now (plain metadata keeps its ushort column, byte for byte)."""
+    registered, _ = demo
+    scene = load_ply(registered)
+    field = read_field(scene, registered)
+    name = tmp_path / ("é" * 40 + ".ply")
+    export_scene(scene, field, name, "drsplat")
+    written = load_ply(name)
+    assert written.extra[META_PROPERTY].dtype == np.uint32 and scene.extra[META_PROPERTY].dtype == np.uint16
+    out = tmp_path / "no_comments.ply"  # beside the export, whose codebook the metadata names
+    _strip_comments(name, out, permute_seed=5)
+    back = read_field(load_ply(out), out)
+    order = np.random.default_rng(5).permutation(scene.num_gaussians)
     np.testing.assert_array_equal(back.scores(query[None])[:, 0], field.scores(query[None])[order, 0])
 
 

@@ -6,10 +6,10 @@ A registered PLY is an INRIA-layout PLY plus:
   codebook_crc=<8 hex>]` (values URL-quoted), the field's metadata; codebook_crc is the CRC-32 of
   the codebook file written beside the PLY, checked on load (files written before 2026-11-30 have
   none);
-- the same metadata as a vertex property, `lang_meta` (ushort), for tools that keep vertex
-  properties but drop header comments (PlayCanvas splat-transform does): with b the metadata's
-  UTF-8 bytes (the comment without its prefix, L = len(b) <= 255), row i holds
-  (k << 8) | b[k] with k = i mod L. Every row carries one (position, byte) pair, so the text can
+- the same metadata as a vertex property, `lang_meta` (ushort; uint when L > 255), for tools that
+  keep vertex properties but drop header comments (PlayCanvas splat-transform does): with b the
+  metadata's UTF-8 bytes (the comment without its prefix, L = len(b) <= META_LONG_MAX_BYTES), row i
+  holds (k << 8) | b[k] with k = i mod L. Every row carries one (position, byte) pair, so the text can
   be read back after rows are reordered or subset (each position by majority over its rows) as
   long as every position keeps a row; 2 bytes per Gaussian. A scene of n < L rows gets
   C = ceil(L / n) columns `lang_meta`, `lang_meta_1`, ... (`encode_meta_columns`), so small
@@ -49,7 +49,9 @@ log = logging.getLogger(__name__)
 
 COMMENT_PREFIX = "drsplat.lang"
 META_PROPERTY = "lang_meta"
-META_MAX_BYTES = 255
+META_MAX_BYTES = 255  # metadata this long or shorter is carried in ushort cells; longer in uint ones (round 56d: a long or
+# non-ASCII codebook name, 6 bytes a character once URL-quoted, lost the column without a word)
+META_LONG_MAX_BYTES = 1 << 15  # the longest carried: its cells stay below 2^23, which a tool's float32 copy of the column holds exactly
 SHOWN_CHARS = 40  # how much of a header value an error echoes: a hostile header can hold megabytes
 DIM_TEXT = re.compile(r"-?[0-9]+")  # not \d or int() alone, which take any Unicode digit ("５１２")
 DIM_MAX_CHARS = 12  # a longer dim= is far beyond MAX_DIM, and int() refuses more than 4,300 digits
@@ -114,14 +116,19 @@ def field_comment(field: LanguageField, codebook_name: str | None, codebook_crc:
 def encode_meta_column(text: str, n: int) -> np.ndarray | None:
     """[n] uint16 `lang_meta` column of a metadata text: row i = (k << 8) | byte[k], k = i mod L.
 
-    None when the text cannot be carried: empty, longer than META_MAX_BYTES, or more bytes than
+    None when the text cannot be carried: empty, longer than META_LONG_MAX_BYTES, or more bytes than
     rows (a scene of fewer Gaussians than the text's length keeps the comment form only).
     """
     data = text.encode("utf-8")
-    if not data or len(data) > META_MAX_BYTES or n < len(data):
+    if not data or len(data) > META_LONG_MAX_BYTES or n < len(data):
         return None
     k = np.arange(n, dtype=np.int64) % len(data)
-    return ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16)
+    return _meta_cells(data, k)
+
+
+def _meta_cells(data: bytes, k: np.ndarray) -> np.ndarray:
+    """(k << 8) | data[k]: ushort cells for metadata of up to META_MAX_BYTES bytes, uint cells for longer."""
+    return ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16 if len(data) <= META_MAX_BYTES else np.uint32)
 
 
 def meta_column_name(j: int) -> str:
@@ -145,14 +152,14 @@ def encode_meta_columns(text: str, n: int) -> dict[str, np.ndarray]:
     Cell (i, j) holds (k << 8) | byte[k] with k = (i·C + j) mod L, so every position has a cell
     even when the scene has fewer rows than the text has bytes (a small export: a 78-Gaussian PQ
     export with an 80-byte codebook name gets 2 columns). C = 1 is exactly `encode_meta_column`.
-    Empty when nothing can be carried: no rows, an empty text or one over META_MAX_BYTES.
+    Empty when nothing can be carried: no rows, an empty text or one over META_LONG_MAX_BYTES.
     """
     data = text.encode("utf-8")
-    if n <= 0 or not data or len(data) > META_MAX_BYTES:
+    if n <= 0 or not data or len(data) > META_LONG_MAX_BYTES:
         return {}
     count = -(-len(data) // n)
     k = (np.arange(n * count, dtype=np.int64) % len(data)).reshape(n, count)
-    cells = ((k << 8) | np.frombuffer(data, np.uint8)[k]).astype(np.uint16)
+    cells = _meta_cells(data, k)
     return {meta_column_name(j): np.ascontiguousarray(cells[:, j]) for j in range(count)}
 
 
@@ -166,16 +173,17 @@ def decode_meta_column(column: np.ndarray) -> str | None:
     """The metadata text of a `lang_meta` column (any row order, any subset keeping each position),
     or None when it does not decode: L = 1 + the largest position, each byte by majority vote."""
     values = np.asarray(column).astype(np.int64, copy=False)
-    if values.size == 0 or values.min() < 0 or values.max() > 0xFFFF:
+    if values.size == 0 or values.min() < 0 or values.max() >= META_LONG_MAX_BYTES << 8:
         return None
-    pos, byte = values >> 8, values & 0xFF
-    length = int(pos.max()) + 1
-    counts = np.zeros((length, 256), np.int64)
-    np.add.at(counts, (pos, byte), 1)
-    if np.any(counts.sum(axis=1) == 0):
+    cells, counts = np.unique(values, return_counts=True)  # sorted by position, then byte
+    pos = cells >> 8
+    length = int(pos[-1]) + 1
+    if np.unique(pos).size != length:  # a position no row keeps
         return None
+    order = np.lexsort((-counts, pos))  # per position the most frequent byte first, the lowest among equals (stable)
+    first = np.flatnonzero(np.r_[True, pos[order][1:] != pos[order][:-1]])
     try:
-        return counts.argmax(axis=1).astype(np.uint8).tobytes().decode("utf-8")
+        return (cells[order][first] & 0xFF).astype(np.uint8).tobytes().decode("utf-8")
     except UnicodeDecodeError:
         return None
 
@@ -486,8 +494,8 @@ def integer_storage(name: str) -> tuple[str, str, bool] | None:
     suffix = name[len("lang_"):]
     if _is_ascii_number(suffix):
         return "ushort", "float16 bit patterns", True
-    if is_meta_column(name):
-        return "ushort", "metadata position << 8 | byte", True
+    if is_meta_column(name):  # ushort for metadata of up to 255 bytes, uint for longer: either holds its cells
+        return "uint", "metadata position << 8 | byte", False
     if suffix.startswith("code_"):
         return "uchar", "PQ codes", False
     if name == "lang_list":
