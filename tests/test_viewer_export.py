@@ -142,6 +142,8 @@ def test_export_formats_standard_and_drsplat(demo, query, tmp_path):
     other.mkdir()
     export_scene(scene.subset(mask), field.subset(mask), other / "std.ply", "standard")
     std = load_ply(other / "std.ply")
+    # round 56d: SIBR reads the count from the third header line, where the demo's "drsplat.synthetic" comment was carried
+    assert (other / "std.ply").read_bytes().split(b"\n")[2] == f"element vertex {int(mask.sum())}".encode() and not std.comments
     assert std.extra == {} and read_field(std, other / "std.ply") is None, "standard: INRIA layout only"
     export_scene(scene.subset(mask), field.subset(mask), other / "sel.ply", "drsplat")
     assert (other / "sel.codebook.faiss").is_file(), "the codebook is copied beside the export"
@@ -178,6 +180,9 @@ def test_cli_segment_prints_the_dataset_label_names_and_exports(demo, tmp_path, 
     printed = capsys.readouterr().out
     assert all(name in printed for name in names) and "label_0" not in printed
     assert read_field(load_ply(tmp_path / "seg.ply"), tmp_path / "seg.ply") is not None
+    # round 56d: the coloured scene keeps its SH degree (3), the rest zero: INRIA's loader asserts 45 f_rest columns
+    coloured = load_ply(tmp_path / "seg.ply")
+    assert coloured.sh.shape[1] == load_ply(registered).sh.shape[1] == 16 and not coloured.sh[:, 1:].any()
     bad = tmp_path / "names.json"
     bad.write_text(json.dumps(["a", "b"]))
     assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--names", str(bad), "--out", str(tmp_path / "l2.npy")]) == 1

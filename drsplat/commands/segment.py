@@ -135,9 +135,11 @@ def names_input(args: argparse.Namespace) -> Path | None:
 
 
 def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray) -> GaussianScene:
-    """Scene whose view-independent colour is its label's colour (grey for -1), SH rest zeroed."""
+    """Scene whose view-independent colour is its label's colour (grey for -1), its SH rest zeroed at the scene's own
+    degree (round 56d: written at degree 0, it failed INRIA's loader and GaussianSplattingViewer, which expect the
+    45 f_rest columns of degree 3)."""
     rgb = np.where(labels[:, None] >= 0, colors[np.maximum(labels, 0)] if len(colors) else BACKGROUND_GREY, BACKGROUND_GREY)
-    sh = np.zeros((scene.num_gaussians, 1, 3), np.float32)
+    sh = np.zeros((scene.num_gaussians, scene.sh.shape[1], 3), np.float32)
     sh[:, 0] = (rgb - 0.5) / SH_C0
     base = strip_field(scene)
     return GaussianScene(base.means, base.quats, base.log_scales, base.opacity_logits, sh, dict(base.extra), list(base.comments))

@@ -522,8 +522,10 @@ EXPORT_FORMAT_HELP = {
 
 
 def standard_scene(scene: GaussianScene) -> GaussianScene:
-    """The scene in the INRIA layout only: no extra vertex properties, no drsplat.lang comment."""
-    return dataclasses.replace(strip_field(scene), extra={})
+    """The scene in the INRIA layout only: no extra vertex properties and no header comments, as INRIA's
+    3DGS writes it (round 56d: SIBR, its C++ viewer, reads the vertex count from the header's third line,
+    where a carried comment such as "drsplat.synthetic preset=tiny" sat, and opened 0 Gaussians)."""
+    return dataclasses.replace(strip_field(scene), extra={}, comments=[])
 
 
 REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in the PLY's vertex properties, which .splat, "
