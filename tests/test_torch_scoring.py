@@ -47,6 +47,21 @@ def test_torch_scores_equal_cpu_kernels(data, codebook):
         field.scores(q, lut_bits=8, device="cpu")
 
 
+def test_torch_scores_a_non_finite_row_0_as_the_cpu_kernel_does():
+    """Round 56a: with norms given rather than made from the rows, the CPU kernel read inf and NaN halves as finite
+    numbers; it scores such a row 0 now, and so does the torch scorer (it gave inf and NaN)."""
+    from drsplat.lang.backends import ExactStorage
+
+    rng = np.random.default_rng(0)
+    f = rng.normal(size=(6, 16)).astype(np.float16)
+    f[2, 3], f[4, 0] = np.inf, np.nan
+    field = LanguageField(16, "oracle", np.ones(6, np.float32), ExactStorage(f, np.ones(6, np.float32)))
+    q = hard_queries(16, np.random.default_rng(1))
+    cpu, on_torch = field.scores(q), field.scores(q, device="cpu")
+    assert (cpu[[2, 4]] == 0).all() and np.isfinite(on_torch).all()
+    np.testing.assert_allclose(on_torch, cpu, atol=1e-5, rtol=0)
+
+
 def test_device_copy_is_made_once(data):
     x, w = data
     field = build_field(x, w, "none", clip_model="oracle")

@@ -48,14 +48,16 @@ def to_device(field, device: str | torch.device) -> DeviceField:
 
 
 def half_scores_torch(dev: DeviceField, queries: np.ndarray, rows_per_step: int = ROWS_PER_STEP) -> torch.Tensor:
-    """Cosine of unit queries [K, D] against the float16 features: [N, K] float32 on the device."""
+    """Cosine of unit queries [K, D] against the float16 features: [N, K] float32 on the device; 0 for an
+    unassigned row and for one holding inf or NaN, whatever its norm (`lut.half_scores`: with finite
+    queries such a row's products are never finite)."""
     q = torch.from_numpy(np.ascontiguousarray(queries, np.float32)).to(dev.device)
     n = dev.features.shape[0]
     out = torch.empty((n, q.shape[0]), dtype=torch.float32, device=dev.device)
     for s in range(0, n, rows_per_step):
         rows = dev.features[s : s + rows_per_step].float()
         out[s : s + rows_per_step] = (rows @ q.T) * dev.inv_norms[s : s + rows_per_step, None]
-    return torch.where(dev.inv_norms[:, None] > 0, out, 0.0)
+    return torch.where((dev.inv_norms[:, None] > 0) & torch.isfinite(out), out, 0.0)
 
 
 def lut_scores_torch(dev: DeviceField, luts: np.ndarray, coarse: np.ndarray, rows_per_step: int = ROWS_PER_STEP) -> torch.Tensor:
