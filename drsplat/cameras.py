@@ -886,7 +886,7 @@ def header_size(path: Path) -> tuple[int, int] | None:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     return tuple(factory(f, str(path)).size)
-            except (OSError, *PILLOW_DECODE_ERRORS, TypeError):
+            except (OSError, *PILLOW_DECODE_ERRORS, TypeError, Image.DecompressionBombError):  # WebP's and ICO's openers check the limit themselves
                 continue
     return None
 
@@ -935,6 +935,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
     paths = DatasetPaths(path.parent, path)
     cameras, missing = [], []
+    meta = {**meta, **distortion_keys(path, meta, "the file's distortion_params")}
     shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
     shared_distortion = any(key in meta for key in NERFSTUDIO_DISTORTION[:3] + NERFSTUDIO_DISTORTION[4:])  # its test leaves k4 out
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
@@ -942,6 +943,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         where = f" in frame {i}"
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
+        frame = {**frame, **distortion_keys(path, frame, f"frame {i}'s distortion_params")}
         rec = {**meta, **frame}
         for key in SHARED_INTRINSICS:
             if key in meta and key in frame and frame[key] != meta[key]:
@@ -955,6 +957,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
                 if frame.get(key, 0) != 0:
                     disagreeing[key] += 1
                 rec.pop(key, None)
+        if shared_wins and "fl_x" in meta and "camera_angle_x" in frame and "fl_x" not in frame:
+            disagreeing["camera_angle_x"] += 1  # nerfstudio never reads it: the shared fl_x is the frame's focal length
         if "camera_angle_x" in frame and "fl_x" not in frame and not (shared_wins and "fl_x" in meta):
             # the frame's own lens: the file's shared fl_x / fl_y are another's (nerfstudio never reads camera_angle_x)
             rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
@@ -994,12 +998,24 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         cameras.append(camera)
     if disagreeing:
         fields = ", ".join(f"{key} ({n} frame{'s' if n != 1 else ''})" for key, n in disagreeing.items())
-        log.warning("%s gives frames their own %s unlike the file's shared values: nerfstudio uses the shared ones, instant-ngp "
-                    "the frames'; %s", path, fields,
+        log.warning("%s gives frames intrinsics of their own beside the file's shared ones (%s): nerfstudio reads only the shared "
+                    "ones (a distortion coefficient absent there as 0, camera_angle_x never), instant-ngp the frames'; %s", path, fields,
                     "this is a nerfstudio dataset (a dataparser_transforms.json beside it, or an applied_transform), so the shared "
                     "ones are used" if shared_wins else "the frames' are used (a nerfstudio dataset would have its "
                     "dataparser_transforms.json beside it or an applied_transform, and then take the shared ones)")
     return cameras, missing
+
+
+def distortion_keys(path: Path, rec: dict, where: str) -> dict[str, float]:
+    """nerfstudio's `distortion_params` [k1, k2, k3, k4, p1, p2] of a transforms.json object (the file's or a
+    frame's) as those keys, where the object gives the list (its own keys first: {} without the list)."""
+    params = rec.get("distortion_params")
+    if params is None:
+        return {}
+    if not isinstance(params, list) or len(params) != len(NERFSTUDIO_DISTORTION):
+        raise InputError(path, f"{where} is not a list of {len(NERFSTUDIO_DISTORTION)} numbers [k1, k2, k3, k4, p1, p2], as "
+                               "nerfstudio writes it", field="distortion_params")
+    return {key: value for key, value in zip(NERFSTUDIO_DISTORTION, params) if key not in rec}
 
 
 # intrinsics nerfstudio takes from a transforms.json's top level for every frame when it is there (never the frame's own)

@@ -1479,7 +1479,7 @@ def test_frames_intrinsics_unlike_the_shared_ones_follow_nerfstudio_in_a_nerfstu
             got = load_cameras(data)
         offset = (0.0, 0.0) if nerfstudio else (5.0, -3.0)
         assert [(c.cx - t.cx, c.cy - t.cy) for c, t in zip(got, truth)] == [offset] * len(truth)
-        said = [r.getMessage() for r in caplog.records if "unlike the file's shared values" in r.getMessage()]
+        said = [r.getMessage() for r in caplog.records if "intrinsics of their own beside the file's shared ones" in r.getMessage()]
         assert len(said) == 1 and f"cx ({len(truth)} frames), cy ({len(truth)} frames)" in said[0], caplog.text
         assert ("so the shared ones are used" in said[0]) == nerfstudio
 
@@ -1505,6 +1505,10 @@ def test_an_image_over_pillows_pixel_limit_is_sized_without_its_raw_warning(tmp_
     (tmp_path / "big.jpg").write_bytes((tmp_path / "big.jpg").read_bytes()[:2])
     with pytest.raises(InputError, match=r"big.jpg: is not a readable image"):
         _image_size(tmp_path / "big.jpg")
+    # round 56e: WebP's opener checks the limit itself: a raw DecompressionBombError traceback; one InputError now
+    Image.new("RGB", (40, 30)).save(tmp_path / "big.webp")
+    with pytest.raises(InputError, match=r"big.webp: is not a readable image: Image size \(1200 pixels\) exceeds"):
+        _image_size(tmp_path / "big.webp")
 
 
 def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from_the_top_level(tmp_path, caplog):
@@ -1528,3 +1532,15 @@ def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from
         got = load_cameras(data)
     assert [(c.fx, c.fy, c.distortion) for c in got] == [(fl_x, fl_x, None)] * len(truth)  # not 2·atan's focal of camera_angle_x 1.0
     assert f"p1 ({len(truth)} frames)" in caplog.text and "so the shared ones are used" in caplog.text, caplog.text
+    assert f"camera_angle_x ({len(truth)} frames)" in caplog.text, "round 56e: the frames' camera_angle_x was overruled silently"
+    # round 56e: nerfstudio's `distortion_params` list [k1, k2, k3, k4, p1, p2] was ignored everywhere
+    meta = json.loads((data / "transforms.json").read_text())
+    meta.pop("k1")
+    meta["distortion_params"] = [0.01, 0.0, 0.0, 0.0, 0.002, 0.0]
+    (data / "transforms.json").write_text(json.dumps(meta))
+    got = load_cameras(data)
+    assert all(np.array_equal(c.distortion, [0.01, 0.0, 0.002, 0.0]) for c in got)
+    meta["distortion_params"] = [0.01, 0.0]
+    (data / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"field 'distortion_params': the file's distortion_params is not a list of 6 numbers"):
+        load_cameras(data)

@@ -1189,7 +1189,9 @@ def test_a_replaced_camera_check_is_stopped_and_silent_and_checks_run_one_at_a_t
     state = ViewerState()
     assert state.load_scene(data / "scene.ply")
     checks = []
-    for _ in range(3):
+    for reopen in (False, False, True):
+        if reopen:  # round 56e: the scene opened again drops the running check; the next one still waits for it
+            assert state.load_scene(data / "scene.ply")
         assert state.load_source(shifted, background=True)
         checks.append(state.camera_check)
     assert checks[0].cancel.cancelled and checks[1].cancel.cancelled and not checks[2].cancel.cancelled

@@ -22,7 +22,9 @@ from drsplat.lang import (
     field_metadata,
     read_field,
 )
+from drsplat.errors import InputError
 from drsplat.lang.plyformat import META_LONG_MAX_BYTES
+from drsplat.splat_formats import load_scene
 from drsplat.scene import load_ply, save_ply
 from tests.conftest import splat_transform_command
 
@@ -43,7 +45,7 @@ def query(demo):
     return np.load(folder / "text_embeddings.npy")[names.index("mug")]
 
 
-@given(st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=0x2FF), min_size=1, max_size=300), st.integers(0, 400), st.randoms(use_true_random=False))
+@given(st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=0x2FF, blacklist_categories=("Cc", "Cf", "Cs", "Zl", "Zp")), min_size=1, max_size=300), st.integers(0, 400), st.randoms(use_true_random=False))
 @settings(max_examples=60, deadline=None)
 def test_meta_column_survives_reordering_and_subsets_keeping_each_position(text, extra_rows, rnd):
     data = text.encode()
@@ -114,9 +116,19 @@ def test_a_long_codebook_name_keeps_its_field_through_a_tool_that_drops_comments
     export_scene(scene, field, name, "drsplat")
     written = load_ply(name)
     assert written.extra[META_PROPERTY].dtype == np.uint32 and scene.extra[META_PROPERTY].dtype == np.uint16
+    from drsplat.commands.info import field_summary  # round 56e: `info` counted the uint column as 2 bytes a Gaussian
+
+    assert field_summary(written, name)[0]["bytes_per_gaussian"] == field_summary(scene, registered)[0]["bytes_per_gaussian"] + 2
     out = tmp_path / "no_comments.ply"  # beside the export, whose codebook the metadata names
     _strip_comments(name, out, permute_seed=5)
     back = read_field(load_ply(out), out)
+    # round 56e: a tool that narrows the uint column to ushort keeps each cell's low 16 bits: the text does not decode,
+    # said so, not named as a made-up metadata entry
+    narrowed = load_ply(out)
+    narrowed.extra[META_PROPERTY] = narrowed.extra[META_PROPERTY].astype(np.uint16)
+    save_ply(narrowed, tmp_path / "narrowed.ply")
+    with pytest.raises(InputError, match=r"the language field's metadata column does not decode"):
+        read_field(load_ply(tmp_path / "narrowed.ply"), tmp_path / "narrowed.ply")
     order = np.random.default_rng(5).permutation(scene.num_gaussians)
     np.testing.assert_array_equal(back.scores(query[None])[:, 0], field.scores(query[None])[order, 0])
 
@@ -183,6 +195,13 @@ def test_cli_segment_prints_the_dataset_label_names_and_exports(demo, tmp_path, 
     # round 56d: the coloured scene keeps its SH degree (3), the rest zero: INRIA's loader asserts 45 f_rest columns
     coloured = load_ply(tmp_path / "seg.ply")
     assert coloured.sh.shape[1] == load_ply(registered).sh.shape[1] == 16 and not coloured.sh[:, 1:].any()
+    # round 56e: a .compressed.ply stores no exact 0 (its rest read back 0.0156 and tinted every label): degree 0 there
+    assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--out", str(tmp_path / "l3.npy"),
+                 "--ply", str(tmp_path / "seg.compressed.ply")]) == 0
+    compressed = load_scene(tmp_path / "seg.compressed.ply")  # its rows in the format's own order: each a label's colour
+    assert compressed.sh.shape[1] == 1
+    palette = np.unique(coloured.sh[:, 0], axis=0)
+    assert np.abs(compressed.sh[:, 0][:, None, :] - palette[None]).max(axis=2).min(axis=1).max() < 0.02
     bad = tmp_path / "names.json"
     bad.write_text(json.dumps(["a", "b"]))
     assert main(["segment", str(registered), "--embeddings", str(folder / "text_embeddings.npy"), "--names", str(bad), "--out", str(tmp_path / "l2.npy")]) == 1

@@ -543,3 +543,24 @@ def test_library_warnings_take_only_their_own_threads_records():
         worker.start()
         worker.join()
     assert [m.text for m in messages] == ["this thread's warning"]
+
+
+def test_a_query_waits_for_a_registration_where_numba_cannot_run_two_threads(state, tmp_path, monkeypatch):
+    """Round 56e: under numba's workqueue threading layer a query (or a click) during the viewer's registration ran
+    kernels beside the registration's and the process ended ("Concurrent access has been detected"). There they are
+    refused while it runs, saying why; with omp or tbb they run."""
+    import viewer.state
+    from viewer.registration import RegistrationJob
+
+    monkeypatch.setattr(viewer.state, "concurrent_kernels_safe", lambda: False)
+    state._kernels_safe = None
+    assert not state.kernels_safe()
+    state.registration = RegistrationJob(output=tmp_path / "r.ply")  # running
+    assert not state.run_oracle_query(0)
+    assert "waits for the registration running" in state.messages[-1].text
+    camera = state.cameras[0]
+    assert state.pick(camera, camera.cx, camera.cy).size == 0 and "picking a splat waits" in state.messages[-1].text
+    state.registration.finished = True
+    assert state.run_oracle_query(0)
+    state._kernels_safe, state.registration = True, RegistrationJob(output=tmp_path / "r.ply")
+    assert state.run_oracle_query(0)

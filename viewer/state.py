@@ -97,6 +97,8 @@ class ViewerState:
         self._prepared = None
         self._encoder_lock = threading.Lock()
         self.camera_check: CameraCheck | None = None
+        self._stopped_check: CameraCheck | None = None  # a check stopped with its scene, which the next one waits for
+        self._kernels_safe: bool | None = None  # `kernels_safe`, once asked
         self.dataset_cameras: list[Camera] = []  # as read from source_dir, before any check: the files they name are guarded
         self.camera_problem: str | None = None  # why the last check of the training cameras failed
 
@@ -179,11 +181,12 @@ class ViewerState:
                 cameras = load_cameras(source, require_images=False)
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"cannot read cameras from {source}")
-        previous, self.camera_check = self.camera_check, None  # a check still running is replaced: its cameras are not taken
+        previous, self.camera_check = self.camera_check or self._stopped_check, None  # replaced: its cameras are not taken
+        self._stopped_check = None
         if previous is not None:
             previous.stop()
         self.dataset_cameras, self.camera_problem, self.cameras = cameras, None, []
-        if self.scene is not None and background and concurrent_kernels_safe():
+        if self.scene is not None and background and self.kernels_safe():
             self.camera_check = start_camera_check(self.scene, cameras, source, self.scene_path, self.scene_refinements,
                                                    self.scene_version, previous)
             self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame and principal points)...")
@@ -219,10 +222,12 @@ class ViewerState:
         self.cameras, self.dataset_cameras, self.camera_problem, self.oracle, self.source_dir = [], [], None, None, None
 
     def drop_camera_check(self) -> None:
-        """Stop a check still running (another scene opened, or no dataset now): its cameras and warnings are not taken."""
+        """Stop a check still running (another scene opened, or no dataset now): its cameras and warnings are not taken.
+        It is kept as `_stopped_check` until it ends, so that the next check waits for it (round 56e: reopening a scene
+        started a second one beside it)."""
         if self.camera_check is not None:
             self.camera_check.stop()
-            self.camera_check = None
+            self._stopped_check, self.camera_check = self.camera_check, None
 
     def poll_camera_check(self) -> bool:
         """When a finished camera check is pending: take its cameras, with the warnings it gave (or report its
@@ -305,7 +310,25 @@ class ViewerState:
 
     # ---------------------------------------------------------------- queries
 
+    def kernels_safe(self) -> bool:
+        """`concurrent_kernels_safe`, asked once, before any worker thread runs kernels (asking runs one)."""
+        if self._kernels_safe is None:
+            self._kernels_safe = concurrent_kernels_safe()
+        return self._kernels_safe
+
+    def kernels_busy(self, what: str) -> bool:
+        """True, with an error naming `what`, while a registration runs kernels on its thread and numba's threading
+        layer cannot run the window's beside them (workqueue ends the process: round 56e)."""
+        job = self.registration
+        if job is None or job.finished or self._kernels_safe is not False:
+            return False
+        self.error(f"{what} waits for the registration running: numba's threading layer here cannot run two threads' kernels "
+                   "at once (install tbb, or an OpenMP runtime, to query while registering)")
+        return True
+
     def _require_field(self) -> bool:
+        if self.kernels_busy("a query"):
+            return False
         if self.scene is None:
             self.error("no scene is loaded")
             return False
@@ -418,7 +441,7 @@ class ViewerState:
         registration uses) and keeps each Gaussian's largest weight in the window.
         """
 
-        if self.scene is None:
+        if self.scene is None or self.kernels_busy("picking a splat"):
             return np.zeros(0, np.int64)
         if self._prepared is None:
             self._prepared = prepare_scene(self.scene)
@@ -681,6 +704,7 @@ class ViewerState:
             self.error(str(exc))
             return False
         options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=engine, device=device)
+        self.kernels_safe()  # asked before the job's thread runs kernels
         self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
         self.registration.scene_version = self.scene_version
         if not background:

@@ -122,8 +122,9 @@ def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[s
         return None, []
     nonfinite = int(np.count_nonzero(~np.isfinite(field.norms)))
     assigned = int(np.count_nonzero(field.assigned()))
-    # the field's own bytes and the uint16 `lang_meta` columns that carry its description (round 49: 1028 of 1030 were said)
-    meta_bytes = 2 * sum(1 for name in scene.extra if is_meta_column(name))
+    # the field's own bytes and the `lang_meta` columns that carry its description (round 49: 1028 of 1030 were said), ushort
+    # or, for metadata over 255 bytes, uint (round 56e: counted as 2 bytes each)
+    meta_bytes = sum(np.asarray(column).dtype.itemsize for name, column in scene.extra.items() if is_meta_column(name))
     summary = {"kind": field.kind, "dim": field.dim, "clip_model": field.clip_model, "bytes_per_gaussian": field.bytes_per_gaussian() + meta_bytes,
                "codebook": None if field.codebook_path is None else str(field.codebook_path), "assigned": assigned,
                "unassigned": field.num_gaussians - assigned, "nonfinite": nonfinite}

@@ -134,12 +134,13 @@ def names_input(args: argparse.Namespace) -> Path | None:
     return default if default.is_file() else None
 
 
-def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray) -> GaussianScene:
-    """Scene whose view-independent colour is its label's colour (grey for -1), its SH rest zeroed at the scene's own
-    degree (round 56d: written at degree 0, it failed INRIA's loader and GaussianSplattingViewer, which expect the
-    45 f_rest columns of degree 3)."""
+def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray, keep_degree: bool = True) -> GaussianScene:
+    """Scene whose view-independent colour is its label's colour (grey for -1), its SH rest zero: at the scene's own
+    degree when `keep_degree` (a PLY: written at degree 0, it failed INRIA's loader and GaussianSplattingViewer, which
+    expect degree 3's 45 f_rest columns; round 56d), else at degree 0 (a .compressed.ply stores no exact 0, its rest
+    came back 0.0156 and tinted every colour: round 56e)."""
     rgb = np.where(labels[:, None] >= 0, colors[np.maximum(labels, 0)] if len(colors) else BACKGROUND_GREY, BACKGROUND_GREY)
-    sh = np.zeros((scene.num_gaussians, scene.sh.shape[1], 3), np.float32)
+    sh = np.zeros((scene.num_gaussians, scene.sh.shape[1] if keep_degree else 1, 3), np.float32)
     sh[:, 0] = (rgb - 0.5) / SH_C0
     base = strip_field(scene)
     return GaussianScene(base.means, base.quats, base.log_scales, base.opacity_logits, sh, dict(base.extra), list(base.comments))
@@ -148,7 +149,7 @@ def coloured_scene(scene: GaussianScene, labels: np.ndarray, colors: np.ndarray)
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import label_colors, segment
-    from drsplat.splat_formats import check_writable
+    from drsplat.splat_formats import check_writable, written_format
     from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
@@ -173,7 +174,8 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     if args.min_score is not None and not (seg.labels >= 0).any():
         log.warning("no Gaussian's best score reaches --min-score %g (the best is %.4f): every label is -1", args.min_score,
                     float(seg.scores[assigned].max()))
-    coloured = coloured_scene(scene, seg.labels, label_colors(len(names))) if args.ply is not None else None
+    coloured = None if args.ply is None else coloured_scene(scene, seg.labels, label_colors(len(names)),
+                                                             keep_degree=written_format(args.ply) == "ply")
     if coloured is not None:
         check_writable(coloured, args.ply)  # before LABELS.npy is written: a refused export leaves no half of the outputs
     with outputs_together(outputs.values()):  # a failed export (a full disk) takes LABELS.npy with it

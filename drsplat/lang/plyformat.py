@@ -11,7 +11,7 @@ A registered PLY is an INRIA-layout PLY plus:
   metadata's UTF-8 bytes (the comment without its prefix, L = len(b) <= META_LONG_MAX_BYTES), row i
   holds (k << 8) | b[k] with k = i mod L. Every row carries one (position, byte) pair, so the text can
   be read back after rows are reordered or subset (each position by majority over its rows) as
-  long as every position keeps a row; 2 bytes per Gaussian. A scene of n < L rows gets
+  long as every position keeps a row; 2 bytes per Gaussian (4 in uint cells). A scene of n < L rows gets
   C = ceil(L / n) columns `lang_meta`, `lang_meta_1`, ... (`encode_meta_columns`), so small
   exports stay queryable without their comment;
 - `lang_weight` float: total registration weight (0 = unassigned);
@@ -180,12 +180,17 @@ def decode_meta_column(column: np.ndarray) -> str | None:
     length = int(pos[-1]) + 1
     if np.unique(pos).size != length:  # a position no row keeps
         return None
+    if np.asarray(column).dtype.itemsize <= 2 and length > META_MAX_BYTES:  # a uint column narrowed to 16 bits: positions wrapped
+        return None
     order = np.lexsort((-counts, pos))  # per position the most frequent byte first, the lowest among equals (stable)
     first = np.flatnonzero(np.r_[True, pos[order][1:] != pos[order][:-1]])
     try:
-        return (cells[order][first] & 0xFF).astype(np.uint8).tobytes().decode("utf-8")
+        text = (cells[order][first] & 0xFF).astype(np.uint8).tobytes().decode("utf-8")
     except UnicodeDecodeError:
         return None
+    # metadata drsplat writes is printable (its values URL-quoted): a control character is a column cut or retyped (round 56e:
+    # a uint column declared ushort decoded to "8%25A=%12", then named as a made-up entry)
+    return None if hidden_character(text) is not None else text
 
 
 def field_extras(field: LanguageField, meta: str | None = None) -> dict[str, np.ndarray]:
