@@ -19,8 +19,10 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
+from drsplat._scene_kernels import bounded_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.errors import Cancelled
 from drsplat.frames import cameras_as_trained
@@ -56,10 +58,6 @@ def concurrent_kernels_safe() -> bool:
     """Whether numba's threading layer lets a worker thread run parallel kernels while the window's thread runs
     others (omp and tbb do; workqueue, numba's fallback where neither is installed, ends the process on
     "Concurrent access": round 56c). Asked after one parallel kernel has run, which makes numba pick its layer."""
-    import numba
-
-    from drsplat._scene_kernels import bounded_rows_kernel
-
     bounded_rows_kernel(np.zeros((1, 1)), 1.0, False, np.ones(1, bool))
     return numba.threading_layer() in ("omp", "tbb")
 
