@@ -794,8 +794,8 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         return cameras
     centred = [c.centred() for c in cameras]
     moved = sum(c.principal_point_shift() > 0 for c in cameras)
-    of = (f"{moved} of the {len(cameras)} cameras" if moved < len(cameras) else f"the {len(cameras)} cameras") + \
-        (f" of {source}" if source is not None else "")
+    every = f"the {len(cameras)} cameras" + (f" of {source}" if source is not None else "")
+    of = f"{moved} of {every}" if moved < len(cameras) else every
     worst = f"{100 * max((c.principal_point_shift() for c in cameras), default=0.0):.2g} %"
     if choice == "centre":  # every one, however near its centre (round 56b: those within PRINCIPAL_POINT_MIN_SHIFT were kept)
         if moved:
@@ -822,7 +822,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
                     "could be compared with %s's renders to tell how it was trained (%s): they are used as the camera file gives them "
                     "(as gsplat and nerfstudio train); for a scene trained by INRIA's gaussian-splatting, which takes every "
-                    "principal point at the image centre, pass --principal-point centre", len(off), of, worst, what, compared.left_out)
+                    "principal point at the image centre, pass --principal-point centre", len(off), every, worst, what, compared.left_out)
         return cameras
     if chosen:
         log.warning("%s was trained with every principal point at its image centre, as INRIA's gaussian-splatting trains: its renders "
@@ -833,8 +833,6 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
              "image centres, %s)", of, given_rho, centre_rho, compared.of_views())
     return cameras
-
-
 
 
 def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:

@@ -185,18 +185,19 @@ class ViewerState:
         self._stopped_check = None
         if previous is not None:
             previous.stop()
-        self.dataset_cameras, self.camera_problem, self.cameras = cameras, None, []
+        read = cameras
         if self.scene is not None and background and self.kernels_safe():
             self.camera_check = start_camera_check(self.scene, cameras, source, self.scene_path, self.scene_refinements,
                                                    self.scene_version, previous)
+            self.cameras = []
             self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame and principal points)...")
         elif self.scene is not None:
             try:
                 with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
                     cameras = checked_cameras(self.scene, cameras, source, self.scene_path, self.scene_refinements)
-            except Exception as exc:  # noqa: BLE001
-                self.dataset_cameras = []
+            except Exception as exc:  # noqa: BLE001 - the cameras and dataset in use stay as they were
                 return self._fail(exc, f"cannot read cameras from {source}")
+        self.dataset_cameras, self.camera_problem = read, None
         self.source_dir = source
         if self.features_dir is None and (source / "features").is_dir():
             self.features_dir = source / "features"
