@@ -937,7 +937,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     cameras, missing = [], []
     meta = {**meta, **distortion_keys(path, meta, "the file's distortion_params")}
     shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
-    shared_distortion = any(key in meta for key in NERFSTUDIO_DISTORTION[:3] + NERFSTUDIO_DISTORTION[4:])  # its test leaves k4 out
+    shared_distortion = any(key in meta for key in NERFSTUDIO_SHARED_DISTORTION)
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
@@ -1015,12 +1015,15 @@ def distortion_keys(path: Path, rec: dict, where: str) -> dict[str, float]:
     if not isinstance(params, list) or len(params) != len(NERFSTUDIO_DISTORTION):
         raise InputError(path, f"{where} is not a list of {len(NERFSTUDIO_DISTORTION)} numbers [k1, k2, k3, k4, p1, p2], as "
                                "nerfstudio writes it", field="distortion_params")
-    return {key: value for key, value in zip(NERFSTUDIO_DISTORTION, params) if key not in rec}
+    # each entry checked here, named by the list it is in: later checks would name its key in whichever frame read it first
+    return {key: _number(path, {"distortion_params": value}, "distortion_params", where=f" ({where}, its {key})")
+            for key, value in zip(NERFSTUDIO_DISTORTION, params) if key not in rec}
 
 
 # intrinsics nerfstudio takes from a transforms.json's top level for every frame when it is there (never the frame's own)
-SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2")
-NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")  # one of them (k4 aside) at the top level: nerfstudio reads all from there
+NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")  # nerfstudio's distortion keys, in its distortion_params order
+NERFSTUDIO_SHARED_DISTORTION = ("k1", "k2", "k3", "p1", "p2")  # one of these at the top level: nerfstudio reads all six from there
+SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", *NERFSTUDIO_DISTORTION)
 
 
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:

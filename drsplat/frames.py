@@ -566,10 +566,9 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     pictures = {} if pictures is None else pictures
     skipped = Counter() if skipped is None else skipped
     with_images = [c for c in cameras if c.image_path is not None and c.image_path.is_file()]  # a named pipe would block the open
-    if len(with_images) < len(cameras):
-        skipped[NO_IMAGE_FILE] = max(skipped[NO_IMAGE_FILE], len(cameras) - len(with_images))
-    if with_images and scene.num_gaussians == 0:
-        skipped[EMPTY_SCENE] = max(skipped[EMPTY_SCENE], len(with_images))
+    skipped[NO_IMAGE_FILE] += len(cameras) - len(with_images)
+    if scene.num_gaussians == 0:
+        skipped[EMPTY_SCENE] += len(with_images)
     if not with_images or scene.num_gaussians == 0:
         return {}
     picked = [with_images[i] for i in spread_rows(np.arange(len(with_images)), views)]

@@ -1544,3 +1544,7 @@ def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from
     (data / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match=r"field 'distortion_params': the file's distortion_params is not a list of 6 numbers"):
         load_cameras(data)
+    meta["distortion_params"] = ["a", 0, 0, 0, 0, 0]  # the read-through: it was named 'k1' in frame 1, a key the file does not have
+    (data / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"field 'distortion_params': has a non-numeric value \(the file's distortion_params, its k1\)"):
+        load_cameras(data)

@@ -33,7 +33,7 @@ from viewer.paths import default_layout_path, image_format, typed_path
 from viewer.renderer import (GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, fit_within, max_image_side, preload_torch,
                              render_offscreen)
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
-from viewer.state import ViewerState
+from viewer.state import CAMERAS_BEING_CHECKED, ViewerState
 
 log = logging.getLogger(__name__)
 
@@ -557,7 +557,7 @@ class ViewerApp:
     def snap_to_camera(self, index: int) -> None:
         cams = self.state.cameras
         if self.state.cameras_pending:
-            self.state.error("the training cameras are still being checked against the scene; snap to one when they are in")
+            self.state.error(f"{CAMERAS_BEING_CHECKED}; snap to one when they are in")
             return
         if not 0 <= index < len(cams):
             self.state.error(f"no training camera {index} (there are {len(cams)})")

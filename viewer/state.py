@@ -43,6 +43,7 @@ from viewer.settings import ViewerSettings
 from viewer.style import DISPLAY_MODE_NAMES, DISPLAY_MODES, HEATMAP_MIX, HIGHLIGHT_MIX, HIGHLIGHT_RGB, SEGMENT_MIX, heat_colors, splat_style  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
+CAMERAS_BEING_CHECKED = "the training cameras are still being checked against the scene"  # what waits for `cameras_pending` says
 NO_FIELD_STATUS = "no language field loaded"  # the encoder status until a scene with a language field opens
 
 
@@ -668,8 +669,7 @@ class ViewerState:
             self.error("no scene file is loaded")
             return False
         if self.cameras_pending:
-            self.error("the training cameras are still being checked against the scene (its frame and principal points); "
-                       "register when they are in")
+            self.error(f"{CAMERAS_BEING_CHECKED} (its frame and principal points); register when they are in")
             return False
         if not self.cameras and self.camera_problem is not None:
             self.error(f"registration needs the training cameras, and those of {self.source_dir} could not be used: {self.camera_problem}")
