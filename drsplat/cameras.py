@@ -935,7 +935,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
     paths = DatasetPaths(path.parent, path)
     cameras, missing = [], []
-    meta = {**meta, **distortion_keys(path, meta, "the file's distortion_params")}
+    listed_over_keys: Counter = Counter()  # objects whose distortion_params list and own keys disagree (the list wins)
+    meta = {**meta, **distortion_keys(path, meta, "the file's distortion_params", listed_over_keys)}
     shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
     shared_distortion = any(key in meta for key in NERFSTUDIO_SHARED_DISTORTION)
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
@@ -943,7 +944,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         where = f" in frame {i}"
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
-        frame = {**frame, **distortion_keys(path, frame, f"frame {i}'s distortion_params")}
+        frame = {**frame, **distortion_keys(path, frame, f"frame {i}'s distortion_params", listed_over_keys)}
         rec = {**meta, **frame}
         for key in SHARED_INTRINSICS:
             if key in meta and key in frame and frame[key] != meta[key]:
@@ -996,6 +997,10 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         validate_camera(camera, path, f"frame {i}", {**TRANSFORMS_POSE_FIELDS, **focal_fields})
         check_distortion(path, camera, where)
         cameras.append(camera)
+    if listed_over_keys:
+        keys = ", ".join(f"{key} in {n} place{'s' if n != 1 else ''}" for key, n in listed_over_keys.items())
+        log.warning("%s gives distortion coefficients both as keys and in a distortion_params list that disagree (%s): "
+                    "the list's are used, as nerfstudio reads them (it never reads the keys beside a list)", path, keys)
     if disagreeing:
         fields = ", ".join(f"{key} ({n} frame{'s' if n != 1 else ''})" for key, n in disagreeing.items())
         log.warning("%s gives frames intrinsics of their own beside the file's shared ones (%s): nerfstudio reads only the shared "
@@ -1006,9 +1011,11 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     return cameras, missing
 
 
-def distortion_keys(path: Path, rec: dict, where: str) -> dict[str, float]:
+def distortion_keys(path: Path, rec: dict, where: str, overridden: Counter) -> dict[str, float]:
     """nerfstudio's `distortion_params` [k1, k2, k3, k4, p1, p2] of a transforms.json object (the file's or a
-    frame's) as those keys, where the object gives the list (its own keys first: {} without the list)."""
+    frame's) as those keys, where the object gives the list ({} without it). The list wins over keys beside it, as
+    nerfstudio reads an object (it never looks at the keys then); a key whose value is not the list's is counted in
+    `overridden`."""
     params = rec.get("distortion_params")
     if params is None:
         return {}
@@ -1016,8 +1023,10 @@ def distortion_keys(path: Path, rec: dict, where: str) -> dict[str, float]:
         raise InputError(path, f"{where} is not a list of {len(NERFSTUDIO_DISTORTION)} numbers [k1, k2, k3, k4, p1, p2], as "
                                "nerfstudio writes it", field="distortion_params")
     # each entry checked here, named by the list it is in: later checks would name its key in whichever frame read it first
-    return {key: _number(path, {"distortion_params": value}, "distortion_params", where=f" ({where}, its {key})")
-            for key, value in zip(NERFSTUDIO_DISTORTION, params) if key not in rec}
+    listed = {key: _number(path, {"distortion_params": value}, "distortion_params", where=f" ({where}, its {key})")
+              for key, value in zip(NERFSTUDIO_DISTORTION, params)}
+    overridden.update(key for key, value in listed.items() if key in rec and rec[key] != value)
+    return listed
 
 
 # intrinsics nerfstudio takes from a transforms.json's top level for every frame when it is there (never the frame's own)

@@ -1540,6 +1540,18 @@ def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from
     (data / "transforms.json").write_text(json.dumps(meta))
     got = load_cameras(data)
     assert all(np.array_equal(c.distortion, [0.01, 0.0, 0.002, 0.0]) for c in got)
+    # a key beside the list: nerfstudio reads the list alone (drsplat took the key); one warning names it
+    caplog.clear()
+    meta["k1"] = 0.03
+    meta["frames"][0]["distortion_params"], meta["frames"][0]["p2"] = [0.01, 0.0, 0.0, 0.0, 0.002, 0.0], 0.004
+    (data / "transforms.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING):
+        got = load_cameras(data)
+    assert all(np.array_equal(c.distortion, [0.01, 0.0, 0.002, 0.0]) for c in got)
+    assert "disagree (k1 in 1 place, p1 in 1 place, p2 in 1 place): the list's are used" in caplog.text, caplog.text
+    meta.pop("k1")
+    meta["frames"][0].pop("distortion_params")
+    meta["frames"][0].pop("p2")
     meta["distortion_params"] = [0.01, 0.0]
     (data / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match=r"field 'distortion_params': the file's distortion_params is not a list of 6 numbers"):

@@ -200,6 +200,8 @@ def test_normalize_rows_matches_its_reference():
     W[40:45] = np.nan
     F[45:50] = 1e36  # squares overflow float32, not the float64 sum
     F[50:55] = 1e38  # the norm itself passes float32's range (6e38): divided in float64, not zeroed (round 22)
+    F[74:79] = rng.choice([1e-44, 3e-44, 7e-44], (5, 37))  # subnormal sums: a float32 norm of a few bits gave length 0.88-0.98 (round 56a)
+    W[74:79] = 1e-42
     a, wa = F.copy(), W.copy()
     b, wb = F.copy(), W.copy()
     _, bad_a = normalize_rows(a, wa)
@@ -211,7 +213,7 @@ def test_normalize_rows_matches_its_reference():
     np.testing.assert_array_equal(wa, wb)
     ok = wa > 0
     np.testing.assert_allclose(np.linalg.norm(a[ok].astype(np.float64), axis=1), 1.0, rtol=1e-6)
-    assert ok[50:55].all() and np.allclose(a[50:55], 1 / np.sqrt(37), rtol=1e-6)
+    assert ok[50:55].all() and np.allclose(a[50:55], 1 / np.sqrt(37), rtol=1e-6) and ok[74:79].all()
     assert not ok[20:30].any() and not ok[55:60].any() and ok[60:65].all()
 
 

@@ -71,6 +71,41 @@ def test_operator_kernel_matches_reference(clusters, slots):
     np.testing.assert_allclose(target_sums(views, slot_c), sum(target_view_reference(v, slot_c) for v in views), rtol=1e-12)
 
 
+def test_solve_kernels_leave_out_weights_the_renderer_never_gives_as_their_references_do():
+    """Round 56a: a NaN or infinite weight made the dense reference's whole pixel NaN and the kernel's candidate
+    clusters only. Every kernel and reference now reads only finite positive weights, so a view with NaN, ±inf,
+    negative and zero weights gives what the same view without those contributions gives; subnormal
+    weights (and 1) are kept, and kernels and references agree on them."""
+    rng = np.random.default_rng(56)
+    n, clusters, slots = 20, 5, 4
+    views = _random_views(rng, 2, 150, 6, n, clusters)
+    for v in views:
+        listed = np.argwhere(v.ids >= 0)
+        pick = listed[rng.choice(len(listed), 40, replace=False)]
+        v.weights[pick[:8, 0], pick[:8, 1]] = np.nan
+        v.weights[pick[8:14, 0], pick[8:14, 1]] = np.inf
+        v.weights[pick[14:18, 0], pick[14:18, 1]] = -np.inf
+        v.weights[pick[18:26, 0], pick[18:26, 1]] = -0.3
+        v.weights[pick[26:32, 0], pick[26:32, 1]] = 1e-45  # float32 subnormal: kept
+        v.weights[pick[32:, 0], pick[32:, 1]] = 1.0  # the largest a renderer gives: kept
+    clean = [SolveView(np.where((v.weights > 0) & (v.weights < np.inf), v.ids, -1), np.nan_to_num(v.weights), v.labels) for v in views]
+    for got, want in ((slot_sums(views, n, slots), slot_sums(clean, n, slots)), (slot_sums_reference(views, n, slots), slot_sums(clean, n, slots))):
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    slot_c, _, _ = slot_sums(clean, n, slots)
+    x = rng.normal(size=slot_c.shape) * (slot_c >= 0)
+    for view, plain in zip(views, clean):
+        out, want = np.zeros_like(x), np.zeros_like(x)
+        apply_view(view, slot_c, x, out)
+        apply_view(plain, slot_c, x, want)
+        np.testing.assert_array_equal(out, want)
+        np.testing.assert_allclose(out, apply_view_reference(view, slot_c, x, clusters), rtol=1e-10, atol=1e-12)
+        assert np.isfinite(apply_view_reference(view, slot_c, x, clusters)).all()
+    np.testing.assert_array_equal(target_sums(views, slot_c), target_sums(clean, slot_c))
+    np.testing.assert_allclose(target_sums(views, slot_c), sum(target_view_reference(v, slot_c) for v in views), rtol=1e-12)
+    assert residual_reference(views, slot_c, x, clusters) == residual_reference(clean, slot_c, x, clusters)
+
+
 def test_conjugate_gradients_solve_the_normal_equations():
     """With enough iterations CG reaches the dense solution of (WᵀW + λ·diag(T)) x = (1 + λ)·S."""
     rng = np.random.default_rng(3)

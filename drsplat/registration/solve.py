@@ -43,6 +43,7 @@ It needs all Gaussians in one block in memory: registration refuses `--aggregate
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -72,6 +73,14 @@ class SolveView:
     labels: np.ndarray
 
 
+def counted(view: SolveView) -> np.ndarray:
+    """[P, k] bool: the contributions the solve reads, a Gaussian (id ≥ 0) with a finite positive weight. The
+    renderer gives nothing else; a zero, negative, NaN or infinite weight is left out everywhere alike, kernels and
+    references (a NaN would otherwise spoil a reference's whole pixel and the kernel's candidates only)."""
+    w = view.weights
+    return (view.ids >= 0) & (w > 0) & (w < np.inf)
+
+
 # ----------------------------------------------------------------------------- candidate slots
 
 
@@ -91,7 +100,7 @@ def slot_sums_reference(views: Iterable[SolveView], n: int, slots: int = SOLVE_S
                 continue
             for j in range(v.ids.shape[1]):
                 g, w = int(v.ids[p, j]), float(v.weights[p, j])
-                if g < 0 or not w > 0:
+                if g < 0 or not 0 < w < math.inf:
                     continue
                 square[g] += w * w
                 hit = np.flatnonzero(slot_c[g] == c)
@@ -117,7 +126,7 @@ def _slot_kernel(ids, weights, labels, slot_c, slot_s, square):  # pragma: no co
         for j in range(k):
             g = ids[p, j]
             w = np.float64(weights[p, j])
-            if g < 0 or not w > 0.0:
+            if g < 0 or not 0.0 < w < np.inf:
                 continue
             square[g] += w * w
             found = -1
@@ -158,7 +167,7 @@ def apply_view_reference(view: SolveView, slot_c: np.ndarray, x: np.ndarray, num
     rows = np.repeat(np.arange(n), slots)
     ok = slot_c.reshape(-1) >= 0
     dense[rows[ok], slot_c.reshape(-1)[ok]] = x.reshape(-1)[ok]
-    keep = (view.labels >= 0)[:, None] & (view.ids >= 0)
+    keep = (view.labels >= 0)[:, None] & counted(view)
     g = np.where(keep, view.ids, 0)
     w = np.where(keep, view.weights.astype(np.float64), 0.0)
     y = np.einsum("pk,pkc->pc", w, dense[g])  # [P, K] rendered coefficients
@@ -181,9 +190,9 @@ def _apply_kernel(ids, weights, labels, slot_c, x, out, uc, uy):  # pragma: no c
         u = 0
         for j in range(k):
             g = ids[p, j]
-            if g < 0:
-                continue
             w = np.float64(weights[p, j])
+            if g < 0 or not 0.0 < w < np.inf:
+                continue
             for s in range(slots):
                 c = slot_c[g, s]
                 if c < 0:
@@ -201,9 +210,9 @@ def _apply_kernel(ids, weights, labels, slot_c, x, out, uc, uy):  # pragma: no c
                 uy[at] += w * x[g, s]
         for j in range(k):
             g = ids[p, j]
-            if g < 0:
-                continue
             w = np.float64(weights[p, j])
+            if g < 0 or not 0.0 < w < np.inf:
+                continue
             for s in range(slots):
                 c = slot_c[g, s]
                 if c < 0:
@@ -223,7 +232,7 @@ def apply_view(view: SolveView, slot_c: np.ndarray, x: np.ndarray, out: np.ndarr
 def target_view_reference(view: SolveView, slot_c: np.ndarray) -> np.ndarray:
     """(Wᵀe) at the slots over one view: [n, slots] float64 Σ_p w_gp·[c(p) = c_gs] (numpy reference)."""
     out = np.zeros(slot_c.shape)
-    keep = (view.labels >= 0)[:, None] & (view.ids >= 0)
+    keep = (view.labels >= 0)[:, None] & counted(view)
     p, j = np.nonzero(keep)
     g = view.ids[p, j]
     hit = slot_c[g] == view.labels[p][:, None]  # [pairs, slots]
@@ -243,11 +252,12 @@ def _target_kernel(ids, weights, labels, slot_c, out):  # pragma: no cover - jit
             continue
         for j in range(k):
             g = ids[p, j]
-            if g < 0:
+            w = np.float64(weights[p, j])
+            if g < 0 or not 0.0 < w < np.inf:
                 continue
             for s in range(slots):
                 if slot_c[g, s] == c:
-                    out[g, s] += np.float64(weights[p, j])
+                    out[g, s] += w
                     break
 
 
@@ -270,8 +280,8 @@ def residual_reference(views: Iterable[SolveView], slot_c: np.ndarray, x: np.nda
     total = 0.0
     for v in views:
         keep = v.labels >= 0
-        g = np.where(v.ids[keep] >= 0, v.ids[keep], 0)
-        w = np.where(v.ids[keep] >= 0, v.weights[keep].astype(np.float64), 0.0)
+        g = np.where(counted(v)[keep], v.ids[keep], 0)
+        w = np.where(counted(v)[keep], v.weights[keep].astype(np.float64), 0.0)
         y = np.einsum("pk,pkc->pc", w, dense[g])
         y[np.arange(y.shape[0]), v.labels[keep]] -= 1.0
         total += float(np.sum(y * y))

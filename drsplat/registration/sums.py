@@ -30,6 +30,7 @@ PAIR_SLOT_BYTES = 16  # a buffered pair: Gaussian, row and weight (12), and its 
 FLUSH_BYTES = 16  # per Gaussian summed, the flush's counting sort: its starts and fill pointers (int64 each)
 CANCEL_RATIO = 1e-4  # |Σ w f| ≤ this · Σ w: the sum cancelled (`normalize_rows`); float32 sums leave ~1e-7 of the weight, CLIP crops far more
 WEAK_RESULTANT = 0.05  # |Σ w f| < this · Σ w: kept, but counted as a guess (`RowFates.weak`); CLIP's crops embed far closer than that
+FLOAT32_TINY = np.float32(np.finfo(np.float32).tiny)  # the smallest normal float32: a norm under it holds too few bits to divide by
 
 
 @dataclass(frozen=True)
@@ -296,10 +297,10 @@ def _normalize_rows_kernel(F, W, R, cancel_ratio, weak_ratio):  # pragma: no cov
             if norm < weak_ratio * r:
                 weak[i] = 1
             scale = np.float32(norm)
-            if np.isfinite(scale):
+            if np.isfinite(scale) and scale >= FLOAT32_TINY:
                 for d in range(dim):
                     f[d] /= scale
-            else:  # |F_i| past float32's range (finite entries, large sums): divided in float64, not zeroed by inf
+            else:  # |F_i| past float32's range (zeroed by inf) or subnormal there (a few bits): divided in float64
                 for d in range(dim):
                     f[d] = np.float32(np.float64(f[d]) / norm)
         else:
@@ -328,7 +329,8 @@ def normalize_rows(F: np.ndarray, W: np.ndarray, kept: np.ndarray | None = None)
 
     |F_i| is summed in float64 and rounded to float32 before the division, as in
     `normalize_rows_reference` (a norm beyond float32's range divides in float64: the float32 norm
-    is inf, and dividing by it zeroed a row that kept its weight, round 22); one pass over F in parallel (the reference makes several
+    is inf, and dividing by it zeroed a row that kept its weight, round 22; so does a norm that is subnormal in float32,
+    whose few bits gave rows of length 0.88-0.98, round 56a); one pass over F in parallel (the reference makes several
     passes and a float64 copy of each chunk). The float64 sums may round differently in the last
     bit, so a row can differ from the reference's by one float32 ulp where its norm lies on a
     float32 rounding boundary. Returns (F, RowFates: the rows with weight dropped for non-finite or
@@ -365,7 +367,7 @@ def normalize_rows_reference(F: np.ndarray, W: np.ndarray, chunk: int = 65536, k
         weak_total += int(np.count_nonzero(ok & (norm < WEAK_RESULTANT * k)))
         with np.errstate(over="ignore"):
             scale = norm.astype(np.float32)
-        big = ok & ~np.isfinite(scale)  # |F_i| past float32's range: divided in float64
+        big = ok & ~(np.isfinite(scale) & (scale >= FLOAT32_TINY))  # |F_i| past float32's range or subnormal there: in float64
         f[big] = (f[big].astype(np.float64) / norm[big, None]).astype(np.float32)
         usual = ok & ~big
         f[usual] /= scale[usual, None]
