@@ -1234,3 +1234,29 @@ def test_the_viewer_checks_the_cameras_at_once_where_numba_cannot_run_two_thread
     state = ViewerState()
     assert state.load_scene(data / "scene.ply") and state.load_source(data, background=True)
     assert not state.cameras_pending and len(state.cameras) == len(cams)
+
+
+def test_numbas_real_workqueue_layer_is_recognised_and_the_check_runs_at_once(tiny_seed0):
+    """Round 56's leftover: the workqueue fallback was tested only with numba's answer replaced. Here a process runs
+    under the real workqueue layer (NUMBA_THREADING_LAYER=workqueue, what numba falls back to without omp or tbb):
+    the viewer recognises it and checks the cameras at once, and a pick then runs without ending the process."""
+    import os
+    import subprocess
+    import sys
+
+    data = Path(tiny_seed0[2][0].image_path).parents[1]
+    script = (
+        "import numba, viewer.cameracheck as c\n"
+        "from pathlib import Path\n"
+        "from viewer.state import ViewerState\n"
+        "print('layer', c.concurrent_kernels_safe(), numba.threading_layer())\n"
+        "s = ViewerState()\n"
+        f"assert s.load_scene(Path({str(data / 'scene.ply')!r})) and s.load_source(Path({str(data)!r}), background=True)\n"
+        "cam = s.cameras[0]\n"
+        "print('check', s.cameras_pending, len(s.cameras), s.kernels_safe(), s.pick(cam, cam.cx, cam.cy).size > 0)\n"
+    )
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "layer False workqueue" in done.stdout, done.stdout
+    assert f"check False {len(tiny_seed0[2])} False True" in done.stdout, done.stdout
