@@ -1308,7 +1308,7 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
     """
     src = Path(source)
     if not src.exists():
-        raise InputError(src, "does not exist")
+        raise InputError(src, "dataset (a folder or its camera file) does not exist")
     for reader in DATASET_READERS:
         found = reader.find(src)
         if found is not None:

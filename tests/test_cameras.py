@@ -1560,3 +1560,10 @@ def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from
     (data / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match=r"field 'distortion_params': has a non-numeric value \(the file's distortion_params, its k1\)"):
         load_cameras(data)
+
+
+def test_a_dataset_that_does_not_exist_is_named_as_a_dataset(tmp_path):
+    """Round 54 left path errors that named the path and not what it was for: `--source /nope` said "/nope: does not
+    exist"; it now says a dataset was expected there."""
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'nope'}: dataset (a folder or its camera file) does not exist")):
+        load_cameras(tmp_path / "nope")
