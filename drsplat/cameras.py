@@ -144,11 +144,13 @@ class Camera:
         return f"{self.unscaled_size[0]}x{self.unscaled_size[1]} ({own} at the resolution chosen)"
 
 
-# COLMAP camera models: id -> (name, number of parameters)
+# COLMAP camera models: id -> (name, number of parameters); 11-17 since COLMAP 3.10 (pycolmap 4.2 writes them all)
 COLMAP_MODELS = {
     0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
     4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
     8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16), 12: ("SIMPLE_DIVISION", 4), 13: ("DIVISION", 5), 14: ("SIMPLE_FISHEYE", 3),
+    15: ("FISHEYE", 4), 16: ("EUCM", 6), 17: ("EQUIRECTANGULAR", 2),
 }
 COLMAP_MODEL_IDS = {name: (mid, count) for mid, (name, count) in COLMAP_MODELS.items()}
 UNDISTORT_HINT = (
@@ -400,6 +402,21 @@ def _read_text(path: Path) -> str:
         raise InputError(path, f"is not UTF-8 text (invalid byte at offset {exc.start}, line {line})") from None
 
 
+def _text_int(word: str) -> int:
+    """A COLMAP text file's integer: ASCII digits as C++'s stream reads them (Python's int also takes '1_0' and
+    Unicode digits, which COLMAP refuses: round 57b)."""
+    if not word.isascii() or "_" in word:
+        raise ValueError(word)
+    return int(word)
+
+
+def _text_float(word: str) -> float:
+    """A COLMAP text file's real number (`_text_int`'s rule: no '_', ASCII only)."""
+    if not word.isascii() or "_" in word:
+        raise ValueError(word)
+    return float(word)
+
+
 def _data_lines(path: Path) -> list[str]:
     return [line.strip() for line in _read_text(path).splitlines() if line.strip() and not line.lstrip().startswith("#")]
 
@@ -416,7 +433,7 @@ def read_colmap_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
             model = w[1]
             if model not in COLMAP_MODEL_IDS:
                 raise InputError(path, f"camera line {i} has unknown model {model!r}", field="MODEL")
-            cam = ColmapCamera(int(w[0]), model, int(w[2]), int(w[3]), np.array([float(x) for x in w[4:]], dtype=np.float64))
+            cam = ColmapCamera(_text_int(w[0]), model, _text_int(w[2]), _text_int(w[3]), np.array([_text_float(x) for x in w[4:]], dtype=np.float64))
         except (IndexError, ValueError):
             raise _parse_fail(path, i, "camera") from None
         if cam.params.size != COLMAP_MODEL_IDS[model][1]:
@@ -432,7 +449,7 @@ def read_colmap_images_txt(path: Path) -> dict[int, ColmapImage]:
     the file, as COLMAP's own readers allow). Comment lines are skipped, and blank lines between
     records too, so a stray blank line shifts nothing; any other line where an image line is due is
     an error naming its line number, never a record dropped."""
-    lines = _read_text(path).split("\n")
+    lines = _read_text(path).splitlines()  # as the other text files are read: a lone CR ends a line too (round 57b)
     images: dict[int, ColmapImage] = {}
     pending: tuple[int, list[str]] | None = None  # the image line waiting for its POINTS2D line
     for lineno, raw in enumerate(lines, start=1):
@@ -461,8 +478,8 @@ def _is_image_line(words: list[str]) -> bool:
     if len(words) < 10:
         return False
     try:
-        int(words[0]), int(words[8])
-        [float(w) for w in words[1:8]]
+        _text_int(words[0]), _text_int(words[8])
+        [_text_float(w) for w in words[1:8]]
     except ValueError:
         return False
     return True
@@ -473,7 +490,7 @@ def _parse_points2d(words: list[str]) -> np.ndarray | None:
     if len(words) % 3:
         return None
     try:
-        return np.array([float(w) for w in words], dtype=np.float64).reshape(-1, 3)
+        return np.array([_text_float(w) for w in words], dtype=np.float64).reshape(-1, 3)
     except ValueError:
         return None
 
@@ -484,9 +501,10 @@ def _add_image(path: Path, images: dict[int, ColmapImage], pending: tuple[int, l
     obs = _parse_points2d(words)
     if obs is None:
         raise InputError(path, f"line {lineno}, the POINTS2D line of the image on line {image_line}, is not X Y POINT3D_ID triples", field="POINTS2D")
-    image_id = int(w[0])
+    image_id = _text_int(w[0])
     _unique_id(path, images, image_id, "IMAGE_ID", f"line {image_line}")
-    images[image_id] = ColmapImage(image_id, np.array(w[1:5], float), np.array(w[5:8], float), int(w[8]), w[9],
+    numbers = [_text_float(x) for x in w[1:8]]
+    images[image_id] = ColmapImage(image_id, np.array(numbers[:4]), np.array(numbers[4:]), _text_int(w[8]), w[9],
                                    obs[:, :2].copy(), obs[:, 2].astype(np.int64))
 
 
@@ -509,7 +527,7 @@ def read_colmap_points_txt(path: Path) -> dict[int, np.ndarray]:
     for i, line in enumerate(_data_lines(path), start=1):
         w = line.split()
         try:
-            pid, xyz = int(w[0]), np.array([float(w[1]), float(w[2]), float(w[3])])
+            pid, xyz = _text_int(w[0]), np.array([_text_float(w[1]), _text_float(w[2]), _text_float(w[3])])
         except (IndexError, ValueError):
             raise _parse_fail(path, i, "point") from None
         _unique_id(path, points, pid, "POINT3D_ID", f"point line {i}")
@@ -567,18 +585,30 @@ def read_colmap_model(sparse_dir: str | Path) -> ColmapModel:
     return ColmapModel(cams, imgs, points, d / f"cameras{ext}", d / f"images{ext}")
 
 
-def colmap_intrinsics(cam: ColmapCamera, source: Path) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of an undistorted COLMAP camera; distorted models are refused."""
+def colmap_intrinsics(cam: ColmapCamera, cameras_file: Path, where: str) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of an undistorted COLMAP camera (a distortion model whose coefficients are all 0 is one);
+    other models are refused, naming the cameras file, the camera, `where` (the image using it) and what distorts."""
     p = cam.params
     if cam.model == "SIMPLE_PINHOLE":
         return p[0], p[0], p[1], p[2]
     if cam.model == "PINHOLE":
         return p[0], p[1], p[2], p[3]
-    if cam.model in ("SIMPLE_RADIAL", "RADIAL") and np.all(p[3:] == 0):
+    if cam.model in ("SIMPLE_RADIAL", "RADIAL", "SIMPLE_DIVISION") and np.all(p[3:] == 0):
         return p[0], p[0], p[1], p[2]
-    if cam.model in ("OPENCV", "FULL_OPENCV") and np.all(p[4:] == 0):
+    if cam.model in ("OPENCV", "FULL_OPENCV", "DIVISION") and np.all(p[4:] == 0):
         return p[0], p[1], p[2], p[3]
-    raise InputError(source, f"camera {cam.camera_id} uses the distorted model {cam.model}; {UNDISTORT_HINT}", field="MODEL")
+    shape = ("a fisheye or omnidirectional model, which no pinhole camera is" if "FISHEYE" in cam.model or cam.model in FISHEYE_ONLY_MODELS
+             else f"its coefficients after the focal length and principal point are {plain_numbers(distortion_part(cam))}")
+    raise InputError(cameras_file, f"camera {cam.camera_id} (used by {where}) uses the distorted model {cam.model}, {shape}; "
+                     f"{UNDISTORT_HINT}", field="MODEL")
+
+
+FISHEYE_ONLY_MODELS = ("FOV", "EUCM", "EQUIRECTANGULAR")  # no pinhole reading even with zero coefficients
+
+
+def distortion_part(cam: ColmapCamera) -> np.ndarray:
+    """The parameters of a COLMAP camera after its focal length(s) and principal point."""
+    return cam.params[3:] if cam.model.startswith("SIMPLE_") or cam.model in ("RADIAL", "RADIAL_FISHEYE") else cam.params[4:]
 
 
 def colmap_rotation(path: Path, where: str, qvec: np.ndarray) -> np.ndarray:
@@ -611,8 +641,8 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
     paths = DatasetPaths(images_dir, source)
     for img in sorted(model.images.values(), key=lambda im: im.name):
         cam = model.cameras[img.camera_id]
-        fx, fy, cx, cy = (float(v) for v in colmap_intrinsics(cam, source))
         where = f"image {img.image_id} ({img.name!r})"
+        fx, fy, cx, cy = (float(v) for v in colmap_intrinsics(cam, model.cameras_path or source, where))
         images_file = model.images_path or source
         check_image_name(images_file, img.name, where, "NAME")
         camera = Camera(R=colmap_rotation(images_file, where, img.qvec), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,

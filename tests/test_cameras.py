@@ -149,6 +149,30 @@ def test_distorted_colmap_model_is_refused_with_instructions(tmp_path):
     (tmp_path / "images" / "a.png").write_bytes(b"")
     with pytest.raises(InputError, match="image_undistorter"):
         load_cameras(tmp_path)
+    # round 57b: the refusal named the sparse folder, not cameras.txt, and neither the image nor the coefficients
+    with pytest.raises(InputError, match=re.escape(f"{sparse / 'cameras.txt'}: field 'MODEL': camera 1 (used by image 1 ('a.png')) uses "
+                                                   "the distorted model OPENCV, its coefficients after the focal length and principal "
+                                                   "point are 0.1 0.01 0 0; 3DGS is trained on undistorted images")):
+        load_cameras(tmp_path)
+    # round 57b: COLMAP 3.10's models (ids 11-17) were 'unknown model id 14', as if the file were damaged
+    for line in ("1 SIMPLE_FISHEYE 100 80 90 50 40", "1 EUCM 100 80 90 90 50 40 0.5 1.0", "1 DIVISION 100 80 90 90 50 40 0.2"):
+        (sparse / "cameras.txt").write_text(line + "\n")
+        with pytest.raises(InputError, match=rf"camera 1 \(used by image 1 \('a.png'\)\) uses the distorted model {line.split()[1]}.*image_undistorter"):
+            load_cameras(tmp_path)
+    (sparse / "cameras.txt").write_text("1 DIVISION 100 80 90 90 50 40 0\n")  # k = 0: a pinhole camera
+    (tmp_path / "images" / "a.png").unlink()
+    from PIL import Image
+
+    Image.new("RGB", (100, 80)).save(tmp_path / "images" / "a.png")
+    assert [(c.fx, c.cx) for c in load_cameras(tmp_path)] == [(90.0, 50.0)]
+    import struct
+
+    (sparse / "cameras.txt").unlink()  # the binary model: an id of COLMAP 3.10 with its parameter count, so the record is read
+    (sparse / "cameras.bin").write_bytes(struct.pack("<QIiQQ", 1, 1, 14, 100, 80) + struct.pack("<3d", 90, 50, 40))
+    (sparse / "images.txt").unlink()
+    (sparse / "images.bin").write_bytes(struct.pack("<QI7dI", 1, 1, 1, 0, 0, 0, 0, 0, 0, 1) + b"a.png\0" + struct.pack("<Q", 0))
+    with pytest.raises(InputError, match=r"cameras.bin: field 'MODEL': camera 1 .* uses the distorted model SIMPLE_FISHEYE, a fisheye"):
+        load_cameras(tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -1567,3 +1591,34 @@ def test_a_dataset_that_does_not_exist_is_named_as_a_dataset(tmp_path):
     exist"; it now says a dataset was expected there."""
     with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'nope'}: dataset (a folder or its camera file) does not exist")):
         load_cameras(tmp_path / "nope")
+
+
+def test_colmap_text_numbers_are_read_as_colmap_reads_them_and_a_lone_cr_ends_a_line(tmp_path):
+    """Round 57b: the text readers took '6_4' as 64, Arabic-Indic and full-width digits as numbers (Python's int and
+    float read them; COLMAP and pycolmap refuse them), and a points3D id '1_0' became 10, blamed as a repeat on
+    another line. Each is now an error naming its line. images.txt with classic-Mac line endings (a lone CR) read 0
+    images while cameras.txt of the same model was read: both split lines alike now."""
+    from PIL import Image
+
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (tmp_path / "images").mkdir()
+    Image.new("RGB", (64, 48)).save(tmp_path / "images" / "a.png")
+    cameras, images = "1 SIMPLE_PINHOLE 64 48 50 32 24\n", "1 1 0 0 0 0.5 0 2 1 a.png\n\n"
+    (sparse / "cameras.txt").write_text(cameras)
+    (sparse / "images.txt").write_text(images)
+    assert [c.fx for c in load_cameras(tmp_path)] == [50.0]
+    for bad in ("6_4", "\u0666\u0664", "\uff16\uff14"):
+        (sparse / "cameras.txt").write_text(cameras.replace("64", bad))
+        with pytest.raises(InputError, match=r"cameras.txt: has a malformed camera line \(data line 1\)"):
+            load_cameras(tmp_path)
+    (sparse / "cameras.txt").write_text(cameras)
+    (sparse / "images.txt").write_text(images.replace("0.5", "0.5_1"))
+    with pytest.raises(InputError, match=r"images.txt: field 'IMAGE_ID': line 1 is not an image line"):
+        load_cameras(tmp_path)
+    (sparse / "images.txt").write_text(images.replace("\n", "\r"))
+    assert [c.name for c in load_cameras(tmp_path)] == ["a"]
+    (sparse / "images.txt").write_text(images)
+    (sparse / "points3D.txt").write_text("1_0 0 0 1 0 0 0 0\n10 0 0 2 0 0 0 0\n")
+    with pytest.raises(InputError, match=r"points3D.txt: has a malformed point line \(data line 1\)"):
+        read_colmap_model(sparse)
