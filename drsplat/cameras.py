@@ -969,6 +969,10 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     meta = {**meta, **distortion_keys(path, meta, "the file's distortion_params", listed_over_keys)}
     shared_wins = dataparser_transforms_path(path) is not None or "applied_transform" in meta
     shared_distortion = any(key in meta for key in NERFSTUDIO_SHARED_DISTORTION)
+    lone_k4 = shared_wins and not shared_distortion and "k4" in meta
+    if lone_k4:
+        log.warning("%s gives k4 at its top level without k1, k2, k3, p1 or p2 there: nerfstudio then reads each frame's own "
+                    "distortion and never that k4, so neither does drsplat", path)
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
@@ -976,7 +980,11 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             raise InputError(path, f"frame {i} is a JSON {type(frame).__name__}, expected an object", field="frames")
         frame = {**frame, **distortion_keys(path, frame, f"frame {i}'s distortion_params", listed_over_keys)}
         rec = {**meta, **frame}
+        if lone_k4 and "k4" not in frame:  # nerfstudio reads distortion per frame then, a top-level k4 never (round 57a: refused as 'k3')
+            rec.pop("k4")
         for key in SHARED_INTRINSICS:
+            if lone_k4 and key == "k4":
+                continue
             if key in meta and key in frame and frame[key] != meta[key]:
                 disagreeing[key] += 1
                 if shared_wins:
@@ -1015,8 +1023,9 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
         dist = np.array([_number(path, rec, k, 0.0, where=where) for k in DISTORTION_FIELDS])
-        if any(_number(path, rec, k, 0.0, where=where) != 0 for k in ("k3", "k4")):
-            raise InputError(path, f"has k3/k4 distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field="k3")
+        unread = [k for k in ("k3", "k4") if _number(path, rec, k, 0.0, where=where) != 0]
+        if unread:
+            raise InputError(path, f"has {unread[0]} distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field=unread[0])
         if np.allclose(c2w[:3, :3], 0):
             raise InputError(path, f"frame {i} has an all-zero rotation in its transform_matrix", field="transform_matrix")
         check_rotation(path, f"frame {i}", c2w[:3, :3], "transform_matrix")  # the OpenGL flip keeps a rotation a rotation
@@ -1713,15 +1722,15 @@ def cameras_in_trained_frame(path: Path, cameras: list[Camera], applied: Applied
 
 
 CONFIG_READ_BYTES = 1 << 20  # of a nerfstudio run's config.yml that `warn_if_pca_oriented` reads
-PCA_ORIENTATION = re.compile(r"^\s*orientation_method:\s*['\"]?pca['\"]?\s*$", re.MULTILINE)  # a line of ns-train's config.yml
+ORIENTATION_METHOD = re.compile(r"^\s*orientation_method:\s*['\"]?([A-Za-z_]+)['\"]?\s*$", re.MULTILINE)  # a line of ns-train's config.yml
 
 
-def pca_orientation(path: Path, override: str | None) -> str | None:
-    """Where it is said that nerfstudio oriented the run of the dataparser file `path` by PCA, or None:
-    its config.yml beside the file says `orientation_method: pca`, or the transforms.json's
-    `orientation_override` (which replaces it) does."""
+def run_orientation(path: Path, override: str | None) -> tuple[str, str] | None:
+    """(how nerfstudio oriented the run of the dataparser file `path`, where that is said), or None when nothing
+    says: the transforms.json's `orientation_override` (which replaces the setting), else the
+    `orientation_method` of the config.yml beside the file."""
     if override is not None:
-        return "the transforms.json's orientation_override" if override == "pca" else None
+        return override, "the transforms.json's orientation_override"
     config = path.parent / "config.yml"
     if not config.is_file():
         return None
@@ -1730,7 +1739,15 @@ def pca_orientation(path: Path, override: str | None) -> str | None:
             text = f.read(CONFIG_READ_BYTES).decode("utf-8", errors="replace")
     except OSError:
         return None
-    return "config.yml" if PCA_ORIENTATION.search(text) else None
+    found = ORIENTATION_METHOD.search(text)
+    return (found.group(1), "config.yml") if found else None
+
+
+def pca_orientation(path: Path, override: str | None) -> str | None:
+    """Where it is said that nerfstudio oriented the run of the dataparser file `path` by PCA, or None
+    (`run_orientation`)."""
+    said = run_orientation(path, override)
+    return said[1] if said is not None and said[0] == "pca" else None
 
 
 def warn_if_pca_oriented(path: Path, override: str | None) -> None:

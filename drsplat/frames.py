@@ -74,7 +74,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
-                             detect_dataset, in_trained_frame, load_image, off_size_factors, pca_orientation, qvec_to_rotmat,
+                             detect_dataset, in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, run_orientation,
                              read_colmap_model, read_dataparser_transform)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
@@ -88,7 +88,7 @@ FRAME_FIT_GAIN = 4.0  # a move is taken when the sparse points lie this many tim
 FRAME_FIT_MAX = 0.05  # ... and on the scene there: their median distance to it at most this share of its size (any move that shrinks a far model nears it)
 FRAME_COVER_MAX = 0.1  # ... and the scene on them: the Gaussians' median distance to the nearest point at most this share (points heaped on a part of it)
 SPLATFACTO_FRAME = ("nerfstudio's splatfacto exports in its dataparser frame: put the run's dataparser_transforms.json beside the "
-                    "dataset's cameras")  # the remedy both frame warnings give
+                    "dataset's cameras, in place of any other run's")  # the remedy both frame warnings give (round 57a: it is there already when a wrong one is)
 LOW_SEEN_FRACTION = 0.5  # below this share of the Gaussians' centres inside some view, a scene is most likely in another frame than its cameras (`frame_hint`)
 CAMERA_UP = np.array([0.0, -1.0, 0.0])  # OpenCV camera axes: y points down
 CAMERA_FORWARD = np.array([0.0, 0.0, 1.0])
@@ -557,7 +557,7 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     PHOTO_MIN_PIXELS pixels, are left out (no picture to compare). scene: a GaussianScene of N
     Gaussians; over `sample`, a subset spread over the file is rendered. prepared: that subset's
     `photo_scene`, when the caller renders it more than once. pictures: the images read so far, by
-    file and size, for a caller that compares readings of the same cameras (each image is decoded
+    file and size (or why one could not be used), for a caller that compares readings of the same cameras (each image is decoded
     once: round 56b, 6400x4800 JPEGs were decoded twice); skipped: counts why views were left out.
     """
     for label, value in (("views", views), ("width", width), ("sample", sample), ("supersample", supersample)):
@@ -582,11 +582,11 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
         if key not in pictures:
             try:
                 pictures[key] = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
-            except InputError:  # the registration does not need the image: an unreadable one only leaves this view out
-                pictures[key] = None
+            except InputError as exc:  # the registration does not need the image: an unusable one only leaves this view out
+                pictures[key] = OTHER_ASPECT_IMAGE if exc.field == "size" else UNREADABLE_IMAGE  # (round 57a: both were "could not be read")
         picture = pictures[key]
-        if picture is None:
-            skipped[UNREADABLE_IMAGE] += 1
+        if isinstance(picture, str):
+            skipped[picture] += 1
             continue
         rgb, alpha = supersampled_render(prepared, small, supersample)
         covered = alpha >= 0.5
@@ -603,6 +603,7 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
 
 NO_IMAGE_FILE = "with no image file"  # why `photo_agreement` left views out (its `skipped` counts), in words
 UNREADABLE_IMAGE = "whose image could not be read"
+OTHER_ASPECT_IMAGE = "whose image has another aspect ratio than its camera (another dataset's images, or rotated photos?)"
 LITTLE_COVERED = f"where the render covers under {PHOTO_MIN_PIXELS} pixels"
 FLAT_PICTURE = "where the image or the render is one flat grey"
 EMPTY_SCENE = "of a scene with no Gaussians to render"
@@ -686,9 +687,10 @@ def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, appl
       where it looks for that folder; given the transforms.json itself it saves T without A (round 56b: the
       cameras landed turned by A's half turn about (1, 1, 0), seg mIoU 0.211 against 0.950, without a word);
       the cameras come undone (`without_implied_move` is the other reading);
-    - a run oriented by PCA (`cameras.pca_orientation`): when PCA's up-flip fires, nerfstudio turns its poses half
-      round about x and the saved transform misses that turn (v1.1.4 and earlier flip the poses only, v1.1.5 the
-      saved transform only; `half_turned` is the other reading).
+    - a run oriented by PCA (`cameras.run_orientation`, or a run whose orientation nothing beside the file says: a
+      user who copies only dataparser_transforms.json, as the docs ask, leaves config.yml behind; round 57a): when
+      PCA's up-flip fires, nerfstudio turns its poses half round about x and the saved transform misses that turn
+      (v1.1.4 and earlier flip the poses only, v1.1.5 the saved transform only; `half_turned` is the other reading).
 
     Which applies is in no file, so every combination is rendered together (`best_reading`; deciding one at a
     time could compare two wrong readings: round 56c) and the best taken, with one warning, when it matches the
@@ -700,7 +702,10 @@ def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, appl
     readings: list[tuple[str, str, list[Camera]]] = [("saved", "as the saved transform gives them", cameras)]
     if applied.implied:
         readings.append(("without A", implied, without_implied_move(cameras, path, applied)))
-    if pca_orientation(path, applied.orientation) is not None:
+    oriented = run_orientation(path, applied.orientation)
+    if oriented is None or oriented[0] == "pca":  # PCA said, or nothing says (no config.yml beside an exported run's file: round 57a)
+        if oriented is None:
+            turn += ", if the run was oriented by PCA: no config.yml beside the file says how"
         readings += [(f"{label}, turned" if i else "turned", f"{words}, and {turn}" if i else turn, half_turned(c))
                      for i, (label, words, c) in enumerate(readings)]
     if len(readings) == 1:
@@ -718,8 +723,9 @@ def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, appl
                     "the scene may not be this dataset's", path, what, said, scores.of_views())
         return cameras
     if chosen:
-        log.warning("%s was trained in the frame of %s with its %d cameras %s: only so do its renders look like its training "
-                    "images (median grey correlation: %s; %s), so they are taken so", what, path, len(cameras), readings[chosen][1],
+        log.warning("%s was trained in the frame of %s with its %s %s: only so do its renders look like its training "
+                    "images (median grey correlation: %s; %s), so they are taken so", what, path,
+                    "camera" if len(cameras) == 1 else f"{len(cameras)} cameras", readings[chosen][1],
                     said, scores.of_views())
     else:
         log.info("%s: the cameras are used as its saved transform gives them (median grey correlation: %s; %s)", path, said,

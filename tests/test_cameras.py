@@ -1576,6 +1576,22 @@ def test_a_nerfstudio_dataset_takes_all_its_distortion_and_its_focal_length_from
     meta.pop("k1")
     meta["frames"][0].pop("distortion_params")
     meta["frames"][0].pop("p2")
+    # round 57a: a top-level k4 alone was merged into every frame and refused as "k3/k4 distortion in frame 0" (field
+    # 'k3'); nerfstudio reads each frame's distortion then and never that k4
+    dropped = {k: meta.pop(k) for k in ("distortion_params",)}
+    for f in meta["frames"]:
+        f.pop("p1")
+    (data / "transforms.json").write_text(json.dumps({**meta, "k4": 0.0001}))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert all(c.distortion is None for c in load_cameras(data))
+    assert "gives k4 at its top level without k1, k2, k3, p1 or p2 there" in caplog.text, caplog.text
+    meta["frames"][1]["k4"] = 0.002
+    (data / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"field 'k4': has k4 distortion in frame 1, which drsplat does not undistort"):
+        load_cameras(data)
+    meta["frames"][1].pop("k4")
+    meta.update(dropped)
     meta["distortion_params"] = [0.01, 0.0]
     (data / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(InputError, match=r"field 'distortion_params': the file's distortion_params is not a list of 6 numbers"):

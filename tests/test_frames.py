@@ -1053,6 +1053,15 @@ def test_a_pca_oriented_nerfstudio_run_gets_the_half_turn_its_renders_show(tmp_p
     with caplog.at_level(logging.INFO, logger="drsplat.frames"):
         got = cameras_as_trained(turned_scene, cams, data)
     assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in cams] and "PCA" not in caplog.text
+    # round 57a: with only the dataparser file beside the dataset (as the docs ask; config.yml left in the run folder)
+    # nothing said PCA, so the turned reading was never rendered: every camera half round from the scene, exit 0
+    (data / "config.yml").unlink()
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        got = cameras_as_trained(turned_scene, cams, data)
+    assert [c.geometry_bits() for c in got] == [c.geometry_bits() for c in turned]
+    assert "if the run was oriented by PCA: no config.yml beside the file says how" in caplog.text, caplog.text
+    assert [c.geometry_bits() for c in cameras_as_trained(scene, cams, data)] == [c.geometry_bits() for c in cams]
 
 
 def test_principal_point_centre_centres_every_camera_and_the_decision_counts_what_it_moves(tiny_seed0, caplog):
@@ -1088,8 +1097,10 @@ def test_the_principal_point_decision_reads_each_image_once_and_says_why_views_w
 
     Image.new("RGB", (cams[0].width, cams[0].height), (128, 128, 128)).save(tmp_path / "flat.png")
     (tmp_path / "broken.png").write_bytes(b"not a png")
+    Image.new("RGB", (cams[0].width, cams[0].width), (128, 128, 128)).save(tmp_path / "square.png")  # round 57a: was "could not be read"
     shifted = _shifted(cams)
-    unusable = [dataclasses.replace(c, image_path=tmp_path / ("flat.png" if i < 5 else "broken.png" if i < 8 else "absent.png"))
+    unusable = [dataclasses.replace(c, image_path=tmp_path / ("flat.png" if i < 5 else "broken.png" if i < 7 else "square.png" if i < 8
+                                                              else "absent.png"))
                 for i, c in enumerate(shifted)]
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
         assert [(c.cx, c.cy) for c in frames.cameras_with_principal_point(scene, unusable)] == [(c.cx, c.cy) for c in shifted]
@@ -1097,6 +1108,7 @@ def test_the_principal_point_decision_reads_each_image_once_and_says_why_views_w
     assert "no training image could be compared" in text
     assert f"{len(cams) - 8} views with no image file" in text and "views whose image could not be read" in text, text
     assert "where the image or the render is one flat grey" in text, text
+    assert "1 view whose image has another aspect ratio than its camera" in text, text
 
 
 def test_a_nerfstudio_run_given_its_transforms_json_keeps_the_frame_without_the_implied_move(tmp_path, caplog):
