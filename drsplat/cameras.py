@@ -1242,9 +1242,16 @@ def _find_colmap(src: Path) -> Path | None:
 
 
 def colmap_root(sparse: Path) -> Path:
-    """The dataset folder of the COLMAP model folder `sparse` (DATASET/sparse/0, DATASET/sparse or DATASET itself):
-    the folder whose images/ the model's image names are read in."""
-    return sparse.parent.parent if sparse.name == "0" and sparse.parent.name == "sparse" else sparse.parent if sparse.name == "sparse" else sparse
+    """The dataset folder of the COLMAP model folder `sparse` (DATASET/sparse/N for any model number N, as COLMAP's
+    mapper numbers them, DATASET/sparse or DATASET itself): the folder whose images/ the model's image names are read
+    in. A path whose own names do not tell ('.', '..', a bare '1' given inside sparse/) is read made absolute (round
+    57b: sparse/1, '.' and '0' from inside the model looked for the images in the model folder)."""
+    named = sparse
+    if sparse.name in ("", ".", "..") or (sparse.name.isdigit() and sparse.parent.name in ("", ".", "..")):
+        named = Path(os.path.abspath(sparse))
+    if named.name.isdigit() and named.parent.name == "sparse":
+        return named.parent.parent
+    return named.parent if named.name == "sparse" else sparse
 
 
 def _read_colmap(sparse: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
@@ -1356,7 +1363,20 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
     if not src.is_dir():  # a device or a pipe: "has no COLMAP model" would read as if it were a folder
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json (it is no regular file or folder)")
-    raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS))
+    raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS) + other_colmap_models(src))
+
+
+def other_colmap_models(src: Path) -> str:
+    """'; it has the COLMAP models sparse/1, sparse/2: give one as --source' when DATASET has numbered models but no
+    sparse/0 (COLMAP's mapper numbers one per reconstruction; 3DGS trains on sparse/0), else ''."""
+    try:
+        numbered = sorted((d for d in (src / "sparse").iterdir() if d.name.isdigit() and _find_colmap(d) == d), key=lambda d: int(d.name))
+    except OSError:
+        return ""
+    if not numbered:
+        return ""
+    names = ", ".join(f"sparse/{d.name}" for d in numbered)
+    return f"; it has the COLMAP model{'s' if len(numbered) > 1 else ''} {names}: give {'one' if len(numbered) > 1 else 'it'} as --source"
 
 
 def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]:

@@ -1638,3 +1638,21 @@ def test_colmap_text_numbers_are_read_as_colmap_reads_them_and_a_lone_cr_ends_a_
     (sparse / "points3D.txt").write_text("1_0 0 0 1 0 0 0 0\n10 0 0 2 0 0 0 0\n")
     with pytest.raises(InputError, match=r"points3D.txt: has a malformed point line \(data line 1\)"):
         read_colmap_model(sparse)
+
+
+def test_a_colmap_model_in_another_numbered_folder_reads_the_datasets_images(tmp_path, monkeypatch):
+    """Round 57b: COLMAP's mapper writes sparse/0, sparse/1, ...; `--source DATASET/sparse/1` (and '.' or '0' given from
+    inside the model) looked for the images inside the model folder ("every image file is missing ... sparse/1/images"),
+    and a dataset with only sparse/1 was "no COLMAP model (sparse/0)" without naming it."""
+    import shutil
+
+    root = _tiny_colmap(tmp_path / "src", ("a.png", "b.png"))
+    want = [c.image_path.resolve() for c in load_cameras(root)]
+    shutil.move(root / "sparse" / "0", root / "sparse" / "1")
+    with pytest.raises(InputError, match=r"has no COLMAP model \(sparse/0\).*; it has the COLMAP model sparse/1: give it as --source"):
+        load_cameras(root)
+    assert [c.image_path.resolve() for c in load_cameras(root / "sparse" / "1")] == want
+    monkeypatch.chdir(root / "sparse" / "1")
+    assert [c.image_path.resolve() for c in load_cameras(".")] == want
+    monkeypatch.chdir(root / "sparse")
+    assert [c.image_path.resolve() for c in load_cameras("1")] == want
