@@ -733,6 +733,15 @@ def test_features_says_which_images_gave_nothing_useful(tmp_path, weights, capsy
     err = capsys.readouterr().err
     assert "1 image(s) are one flat colour (view)" in err, err
     assert "1 image file(s) are over 1.5x narrower than their cameras and were upsampled (the most: view, 16x12 to 64x48, 4x)" in err
+    assert "power-of-two fraction" not in err  # 16x12 is 64x48 over 4, as an images_4 copy
+    # round 57b: a file a few percent off its camera (the photos from before `colmap image_undistorter`, beside its
+    # cameras) was resized to it without a word
+    rng = np.random.default_rng(0)
+    src = _one_camera_dataset(tmp_path / "off", Image.fromarray(rng.integers(0, 255, (49, 66, 3), dtype=np.uint8)))
+    assert main(slic_features_argv(src, tmp_path / "features_off", weights)) == 0
+    err = capsys.readouterr().err
+    assert ("1 image file(s) are neither their camera's size nor a power-of-two fraction of it (as images_2, _4, _8 are) and were "
+            "resized to it (the first: view, 66x49 for camera 64x48)") in err, err
 
 
 def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weights, capsys):

@@ -74,6 +74,7 @@ class FeatureReport:
     without_masks: list[str] = field(default_factory=list)  # written with no mask at all: registration gets nothing from them
     flat: list[str] = field(default_factory=list)  # images of one colour (blank exports, a fully transparent PNG's RGB)
     upsampled: list[tuple[str, str, float]] = field(default_factory=list)  # (stem, "file WxH to camera WxH", factor) past UPSAMPLE_NOTE
+    off_size: list[tuple[str, str]] = field(default_factory=list)  # (stem, "file WxH for camera WxH"): no power-of-two fraction of it
 
     def notes(self) -> list[str]:
         """What a user should hear about the images written: those that gave no mask, those of one colour."""
@@ -89,6 +90,11 @@ class FeatureReport:
             out.append(f"{len(self.upsampled)} image file(s) are over {UPSAMPLE_NOTE:g}x narrower than their cameras and were upsampled "
                        f"(the most: {stem}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
                        "(thumbnails, a lower-resolution export, or a --resolution above the images' own?)")
+        if self.off_size:
+            stem, sizes = self.off_size[0]
+            out.append(f"{len(self.off_size)} image file(s) are neither their camera's size nor a power-of-two fraction of it (as "
+                       f"images_2, _4, _8 are) and were resized to it (the first: {stem}, {sizes}): are they the photos from before "
+                       "`colmap image_undistorter`, beside its cameras? Their lens distortion would then never be removed")
         return out
 
 
@@ -103,13 +109,31 @@ UPSAMPLE_NOTE = 1.5  # an image file this many times narrower than its camera is
 
 def note_image(report: FeatureReport, cam, rgb: np.ndarray, file_size: tuple[int, int]) -> None:
     """Count in `report` an image of one flat colour (every pixel of rgb [H, W, 3], the image at its
-    camera's size, the same) and an image file (file_size: its stored width, height) over
-    UPSAMPLE_NOTE times narrower than its camera."""
+    camera's size, the same), an image file (file_size: its stored width, height) over
+    UPSAMPLE_NOTE times narrower than its camera, and one of neither its camera's size nor a
+    power-of-two fraction of it (`off_power_of_two`: round 57b, the distorted photos beside the
+    cameras of `colmap image_undistorter` were resized to them without a word)."""
     if rgb.size and (rgb == rgb.reshape(-1, rgb.shape[-1])[0]).all():
         report.flat.append(cam.name)
     width, height = file_size
     if width and cam.width > UPSAMPLE_NOTE * width:
         report.upsampled.append((cam.name, f"{width}x{height} to {cam.width}x{cam.height}", cam.width / width))
+    if width and off_power_of_two(file_size, cam):
+        report.off_size.append((cam.name, f"{width}x{height} for camera {cam.size_text()}"))
+
+
+def off_power_of_two(file_size: tuple[int, int], cam) -> bool:
+    """Whether an image file of file_size (width, height) is neither its camera's size (at the chosen resolution or
+    the camera file's own) nor that size over 2^j within a pixel (the downscaled copies images_2, _4, _8 and
+    further that 3DGS tools write), j ≤ OFF_SIZE_POWERS."""
+    own = tuple(cam.unscaled_size) if cam.unscaled_size is not None else (cam.width, cam.height)
+    if tuple(file_size) == (cam.width, cam.height):
+        return False
+    return not any(abs(file_size[0] - own[0] / 2**j) <= 1 and abs(file_size[1] - own[1] / 2**j) <= 1
+                   for j in range(OFF_SIZE_POWERS + 1))
+
+
+OFF_SIZE_POWERS = 5  # images_32 is the smallest downscaled copy counted as one
 
 
 def square_pad_box(y0: int, y1: int, x0: int, x1: int) -> tuple[int, int]:
