@@ -630,9 +630,11 @@ COLMAP_IMAGE_FIELDS: FieldNames = {"rotation": "QW QX QY QZ", "translation": "TX
 def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> list[Camera]:
     """Cameras in image-name order (as 3DGS sorts them), validated (`validate_camera`); two images of one
     name stem are refused by their IMAGE_IDs (`_check_unique_names` would count the sorted list's positions)."""
-    first: dict[str, ColmapImage] = {}
+    first: dict[tuple[str, str], ColmapImage] = {}
     for img in sorted(model.images.values(), key=lambda im: im.image_id):
-        other = first.setdefault(Path(img.name).stem, img)
+        # one stem in two folders is a rig's layout (`named_by_folder` tells them apart); in one folder, two files of a view
+        folder = Path(img.name.replace("\\", "/")).parent.as_posix()
+        other = first.setdefault((folder, Path(img.name).stem), img)
         if other is not img:
             raise InputError(model.images_path or source, f"images {other.image_id} ({other.name!r}) and {img.image_id} ({img.name!r}) "
                              f"(IMAGE_ID) both name the image stem {Path(img.name).stem!r}; each view needs its own image (the stem "
@@ -1588,6 +1590,7 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
                     path, len(missing), shown, len(cameras))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(kind, path, missing[0])})" if missing else ""))
+    cameras = named_by_folder(path, cameras)
     _check_unique_names(path, kind, cameras)
     # else a larger image fits the intrinsics, not the size; with a --resolution of their own choice the note's advice is theirs
     if warn_intrinsics_of_another_size(kind, path, cameras) is None and resolution == -1:
@@ -1811,6 +1814,26 @@ def check_trained_camera(path: Path, camera: Camera, moved: Camera, unscaled: np
 
 
 NAME_FIELDS = {"colmap": "NAME", "transforms": "file_path", "cameras_json": "img_name"}
+
+
+def named_by_folder(path: Path, cameras: list[Camera]) -> list[Camera]:
+    """`cameras`, each named by its image's folders under the folder all the images share and its stem
+    ('camera1_image0001' for images/rig1/camera1/image0001.jpg beside images/rig1/camera2/image0001.jpg), when two
+    images in different folders share a stem and so the names become unique: COLMAP's rig layout, which it asks
+    for (one file name per frame across the cameras' folders) and gsplat and 3DGS train on (round 57b: refused).
+    The name pairs a view with its feature files, so `features` and `register` name them alike. Otherwise
+    `cameras` as they are (`_check_unique_names` then refuses what is still doubled)."""
+    names = [c.name for c in cameras]
+    if len(set(names)) == len(names) or any(c.image_path is None for c in cameras):
+        return cameras
+    common = os.path.commonpath([os.path.abspath(c.image_path.parent) for c in cameras])
+    folders = [Path(os.path.relpath(os.path.abspath(c.image_path.parent), common)).parts for c in cameras]
+    renamed = ["_".join([*(part for part in parts if part != "."), c.name]) for parts, c in zip(folders, cameras)]
+    if len(set(renamed)) != len(renamed):
+        return cameras
+    log.info("%s: images of one name lie in different folders (a camera rig's layout), so each view is named by its folder "
+             "too, as its feature files are (e.g. %s)", path, renamed[0])
+    return [dataclasses.replace(c, name=name) for c, name in zip(cameras, renamed)]
 
 
 def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:

@@ -315,6 +315,7 @@ def _tiny_colmap(root, image_names=("a.png", "b.png")):
     (sparse / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
     lines = []
     for i, name in enumerate(image_names, start=1):
+        (root / "images" / name).parent.mkdir(parents=True, exist_ok=True)
         Image.new("RGB", (64, 48)).save(root / "images" / name)
         lines += [f"{i} 1 0 0 0 {0.1 * i} 0 4 1 {name}", ""]
     (sparse / "images.txt").write_text("\n".join(lines) + "\n")
@@ -1656,3 +1657,27 @@ def test_a_colmap_model_in_another_numbered_folder_reads_the_datasets_images(tmp
     assert [c.image_path.resolve() for c in load_cameras(".")] == want
     monkeypatch.chdir(root / "sparse")
     assert [c.image_path.resolve() for c in load_cameras("1")] == want
+
+
+def test_colmaps_rig_layout_names_each_view_by_its_cameras_folder(tmp_path):
+    """Round 57b: COLMAP asks a rig's images to share one file name per frame across the cameras' folders
+    (images/rig1/camera1/image0001.png beside images/rig1/camera2/image0001.png), and gsplat and 3DGS train on it;
+    drsplat refused the dataset (two images of stem 'image0001'). The views are now named by their folder too, in
+    COLMAP models and transforms.json alike; one stem twice in one folder is still refused."""
+    import json
+
+    from drsplat.cameras import look_at_camera
+
+    names = ("rig1/camera1/image0001.png", "rig1/camera2/image0001.png", "rig1/camera1/image0002.png", "rig1/camera2/image0002.png")
+    root = _tiny_colmap(tmp_path / "rig", names)
+    got = load_cameras(root)
+    assert [c.name for c in got] == ["camera1_image0001", "camera1_image0002", "camera2_image0001", "camera2_image0002"]
+    assert [c.image_path.relative_to(root / "images").as_posix() for c in got] == sorted(names)
+    cam = look_at_camera((0, 0, -4.0), (0, 0, 0), 64, 48)
+    frames = [{"file_path": f"images/{n}", "transform_matrix": np.linalg.inv(cam.viewmat).tolist()} for n in names]
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": frames}))
+    assert sorted(c.name for c in load_cameras(root / "transforms.json")) == [c.name for c in got]
+    (root / "images" / "rig1" / "camera1" / "image0001.jpg").write_bytes((root / "images" / "rig1" / "camera1" / "image0001.png").read_bytes())
+    (root / "sparse" / "0" / "images.txt").write_text((root / "sparse" / "0" / "images.txt").read_text() + "9 1 0 0 0 0 0 4 1 rig1/camera1/image0001.jpg\n\n")
+    with pytest.raises(InputError, match=r"images 1 \('rig1/camera1/image0001.png'\) and 9 \('rig1/camera1/image0001.jpg'\) \(IMAGE_ID\) both name"):
+        load_cameras(root)
