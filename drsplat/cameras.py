@@ -2034,28 +2034,48 @@ def check_distortion(path: Path, camera: Camera, where: str) -> None:
                      "edge of the image file", field=name)
 
 
+def distorted_source(camera: Camera, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W] u, [H, W] v): where each pinhole pixel centre of `camera` lies in an image file of `shape` (h, w)
+    that holds its distorted picture, in the file's pixel indices (pixel i covers [i − ½, i + ½]): unprojected with
+    the pinhole intrinsics, distorted (`distort_normalized`), projected with the intrinsics rescaled to the file."""
+    sx, sy = shape[1] / camera.width, shape[0] / camera.height
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    xy = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], axis=-1)
+    d = distort_normalized(xy, camera.distortion)
+    return (d[..., 0] * camera.fx + camera.cx) * sx - 0.5, (d[..., 1] * camera.fy + camera.cy) * sy - 0.5
+
+
 def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int]) -> np.ndarray:
     """Resample a distorted image file onto the camera's pinhole grid (bilinear).
 
     image: [h, w, C] as stored in the file (size `file_size` = (w, h) at full resolution).
-    Each output pixel centre is unprojected with the pinhole intrinsics, distorted, and looked
-    up in the file image (intrinsics rescaled to the file's size). Returns [H, W, C].
+    Each output pixel centre is looked up in the file image (`distorted_source`). Pixels whose
+    source lies outside the file get its nearest edge pixel (`unobserved_pixels` says which).
+    Returns [H, W, C].
     """
     from scipy.ndimage import map_coordinates
 
-    fw, fh = file_size
-    sx, sy = image.shape[1] / camera.width, image.shape[0] / camera.height
-    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
-    xy = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], axis=-1)
-    d = distort_normalized(xy, camera.distortion)
+    src_u, src_v = distorted_source(camera, image.shape[:2])
     # clipped to a pixel beyond the edges, which samples the edge pixel as farther points do: past about
     # 1e18 map_coordinates' integer index wraps (another pixel, no warning)
-    src_u = np.clip((d[..., 0] * camera.fx + camera.cx) * sx - 0.5, -1.0, image.shape[1])
-    src_v = np.clip((d[..., 1] * camera.fy + camera.cy) * sy - 0.5, -1.0, image.shape[0])
+    src_u = np.clip(src_u, -1.0, image.shape[1])
+    src_v = np.clip(src_v, -1.0, image.shape[0])
     out = np.empty((camera.height, camera.width, image.shape[2]), dtype=np.float32)
     for c in range(image.shape[2]):
         out[..., c] = map_coordinates(image[..., c].astype(np.float32), [src_v, src_u], order=1, mode="nearest")
     return np.clip(np.rint(out), 0, 255).astype(np.uint8) if image.dtype == np.uint8 else out
+
+
+def unobserved_pixels(camera: Camera, file_size: tuple[int, int]) -> np.ndarray | None:
+    """[H, W] bool: the pinhole pixels of a distorted `camera` whose source (`distorted_source`) lies outside its
+    image file of `file_size` (w, h), which the photo never saw (`undistort_image` fills them with edge pixels: a
+    pincushion lens leaves the corners, fox's 1.6 % of every view); None for a camera without distortion. COLMAP's
+    image_undistorter picks a smaller camera instead, gsplat and nerfstudio crop; `drsplat features` gives these
+    pixels no mask (round 57b), so they lift nothing."""
+    if camera.distortion is None:
+        return None
+    src_u, src_v = distorted_source(camera, (file_size[1], file_size[0]))
+    return ~((src_u >= -0.5) & (src_u <= file_size[0] - 0.5) & (src_v >= -0.5) & (src_v <= file_size[1] - 0.5))
 
 
 MISSING_SHOWN = 3  # image names a missing-images warning lists

@@ -817,3 +817,31 @@ def test_features_on_a_3dgs_model_folder_without_images_is_refused_before_any_mo
             f"in {run / 'images'}, which does not exist") in err, err
     assert "give --source the dataset folder 3DGS trained from" in err
     assert not out.exists()
+
+
+def test_pixels_an_undistorted_photo_never_saw_get_no_mask(tmp_path, weights, capsys):
+    """Round 57b: undistorting a pincushion lens's photo fills the pinhole view's corners, which the photo never saw,
+    with its edge pixels (fox: 1.6 % of every view); they were segmented and lifted like the scene. They get no mask
+    now, on every level, and the run says how many views had such pixels."""
+    import dataclasses
+    import json
+
+    from PIL import Image
+
+    from drsplat.cameras import load_cameras, unobserved_pixels
+
+    rng = np.random.default_rng(1)
+    src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)))
+    meta = json.loads((src / "transforms.json").read_text())
+    meta["frames"][0]["k1"] = 0.1
+    (src / "transforms.json").write_text(json.dumps(meta))
+    cam = load_cameras(src)[0]
+    unseen = unobserved_pixels(cam, (64, 48))
+    assert unseen[0, 0] and unseen[-1, -1] and not unseen[24, 32] and 0 < unseen.mean() < 0.5
+    assert not unobserved_pixels(dataclasses.replace(cam, distortion=np.array([-0.1, 0, 0, 0])), (64, 48)).any()  # barrel: all seen
+    assert unobserved_pixels(dataclasses.replace(cam, distortion=None), (64, 48)) is None
+    assert main(slic_features_argv(src, tmp_path / "features", weights)) == 0
+    seg = np.load(tmp_path / "features" / "view_s.npy")
+    assert (seg[:, unseen] == -1).all() and (seg[:, ~unseen] >= 0).any()
+    assert f"1 undistorted view(s) hold pixels their photo never saw (the lens maps them outside the file; the most: view, " \
+           f"{100 * unseen.mean():.3g} %)" in capsys.readouterr().err

@@ -32,7 +32,7 @@ from drsplat.features.modelid import (
 )
 from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
 import drsplat
-from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized
+from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized, unobserved_pixels
 from drsplat.features.clip import ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
@@ -75,6 +75,7 @@ class FeatureReport:
     flat: list[str] = field(default_factory=list)  # images of one colour (blank exports, a fully transparent PNG's RGB)
     upsampled: list[tuple[str, str, float]] = field(default_factory=list)  # (stem, "file WxH to camera WxH", factor) past UPSAMPLE_NOTE
     off_size: list[tuple[str, str]] = field(default_factory=list)  # (stem, "file WxH for camera WxH"): no power-of-two fraction of it
+    unobserved: list[tuple[str, float]] = field(default_factory=list)  # (stem, share of its pixels): undistorted views' pixels no photo saw
 
     def notes(self) -> list[str]:
         """What a user should hear about the images written: those that gave no mask, those of one colour."""
@@ -90,6 +91,10 @@ class FeatureReport:
             out.append(f"{len(self.upsampled)} image file(s) are over {UPSAMPLE_NOTE:g}x narrower than their cameras and were upsampled "
                        f"(the most: {stem}, {sizes}, {factor:.3g}x): their masks and crops hold no more detail than the files "
                        "(thumbnails, a lower-resolution export, or a --resolution above the images' own?)")
+        if self.unobserved:
+            stem, share = max(self.unobserved, key=lambda u: u[1])
+            out.append(f"{len(self.unobserved)} undistorted view(s) hold pixels their photo never saw (the lens maps them outside the "
+                       f"file; the most: {stem}, {100 * share:.3g} %): they got no mask, so they lift nothing")
         if self.off_size:
             stem, sizes = self.off_size[0]
             out.append(f"{len(self.off_size)} image file(s) are neither their camera's size nor a power-of-two fraction of it (as "
@@ -494,8 +499,13 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageS
     return todo
 
 
-def record_result(out: Path, stem: str, seg: np.ndarray, feats: np.ndarray, times: StageTimes, counts: list[int], report: FeatureReport) -> None:
-    """Drop non-finite embeddings (counted), write the pair atomically and account for it in `report`."""
+def record_result(out: Path, stem: str, seg: np.ndarray, feats: np.ndarray, times: StageTimes, counts: list[int], report: FeatureReport,
+                  unseen: np.ndarray | None = None) -> None:
+    """Drop non-finite embeddings (counted), give the pixels the photo never saw (`unseen` [H, W] bool,
+    `cameras.unobserved_pixels`) no mask, write the pair atomically and account for it in `report`."""
+    if unseen is not None and unseen.any():
+        seg[:, unseen] = -1
+        report.unobserved.append((stem, float(unseen.mean())))
     bad_rows = ~np.isfinite(feats).all(axis=1)
     if bad_rows.any():
         report.nonfinite_embeddings += int(bad_rows.sum())
@@ -579,7 +589,7 @@ def extract_features(
             rgb, file_size = load_image_sized(cam)
             note_image(report, cam, rgb, file_size)
             seg, feats, times, counts = extract_image(rgb, generator, encoder, nms)
-            record_result(out, cam.name, seg, feats, times, counts, report)
+            record_result(out, cam.name, seg, feats, times, counts, report, unobserved_pixels(cam, file_size))
             stamps.add(cam.name, stamp)
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(masks=sum(counts), sec=f"{times.total:.2f}")

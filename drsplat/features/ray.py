@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cameras import load_image_sized
+from drsplat.cameras import load_image_sized, unobserved_pixels
 from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, connect, import_ray, kill_if_cancelled, placed_actors, set_worker_threads, stalled,
                              worker_slots)
 from drsplat.errors import DrsplatError
@@ -276,11 +276,13 @@ def extract_features_ray(
         report = FeatureReport()
         todo = todo_cameras(cameras, out, report, stamps)
         read_at: dict[str, str | None] = {}  # each image as it was read, not as it may be when its pair comes back
+        unseen: dict[str, np.ndarray | None] = {}  # its pixels the photo never saw (`unobserved_pixels`), by stem
 
         def send(a, c):
             again = c.name in read_at  # sent again (its worker lost): counted once in the report
             read_at[c.name] = file_stamp(c.image_path)
             rgb, file_size = load_image_sized(c)
+            unseen[c.name] = unobserved_pixels(c, file_size)
             if not again:
                 note_image(report, c, rgb, file_size)
             return a.extract.remote(c.name, rgb)
@@ -291,7 +293,7 @@ def extract_features_ray(
             on_progress(finished, len(cameras))
         for _ in progress(range(len(todo)), desc="features", total=len(todo), enabled=show_progress, unit="img"):
             stem, seg, feats, times, counts = next(results)
-            record_result(out, stem, seg, feats, times, counts, report)
+            record_result(out, stem, seg, feats, times, counts, report, unseen.pop(stem, None))
             stamps.add(stem, read_at.get(stem))
             finished += 1
             if on_progress is not None:
