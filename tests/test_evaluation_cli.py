@@ -120,6 +120,9 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     assert "mAcc@0.25" in capsys.readouterr().out
     assert len(doc["rows"]) >= 8 and not doc["missing_views"]
     assert doc["mIoU"] > 0.5 and doc["mAcc@0.25"] > 0.6
+    # round 57c: without --label-names the rows were paired with the categories in sorted order (mIoU 0.013, exit 0)
+    assert main([a for a in argv if a not in query_args(r)[2:]]) == 2
+    assert "--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order)" in capsys.readouterr().err
 
 
 def test_eval_lerf_takes_the_principal_points_the_scene_was_trained_with(registered, tmp_path, capsys):

@@ -325,6 +325,10 @@ def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkey
     t = np.load(tmp_path / "t.npy")
     assert np.mean(t[4:][lab[4:] < 4] == lab[4:][lab[4:] < 4]) > 0.97
     assert "lbl3" in capsys.readouterr().out
+    # round 57c: "background" typed in --labels beside --background became an ordinary label, its Gaussians k, not -1
+    assert main(["segment", str(registered["pq"]), "--labels", "lbl0,Background", "--background", "--out", str(tmp_path / "b.npy")]) == 2
+    assert "--labels: entry 2 is 'background', which --background adds as the background (label -1)" in capsys.readouterr().err
+    assert not (tmp_path / "b.npy").exists()
 
 
 def test_pq_train_cli(tmp_path, world, capsys):

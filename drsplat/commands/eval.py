@@ -178,7 +178,8 @@ def _add_lerf(sub) -> None:
                    help=f"--protocol langsplat: threshold of the rescaled relevancy map (default: {LANGSPLAT_MASK_THRESHOLD}, LangSplat's)")
     p.add_argument("--topk", type=int_range(1, 1024), default=None,
                    help=f"--protocol langsplat: Gaussians blended per pixel for its feature (default: {DEFAULT_TOPK})")
-    _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (default: the annotated categories, in sorted order)")
+    _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (needed with it); with a text encoder, the phrases to "
+                            "query (default: the annotated categories, in sorted order)")
     p.set_defaults(func=run_lerf)
 
 
@@ -600,6 +601,9 @@ def run_lerf(args: argparse.Namespace) -> int:
     guard_field_codebook(args.registered, field, {"--json": args.json})
     assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})
+    if args.text_embeddings is not None and args.label_names is None:  # round 57c: rows paired with sorted categories, mIoU 0.013 against 0.811
+        raise UsageError(f"--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order): an embedding file "
+                         f"holds no names, so its rows cannot be matched to the {len(categories)} annotated categories")
     names = load_label_names(args.label_names, categories)
     missing = [c for c in categories if c not in names]
     if missing:

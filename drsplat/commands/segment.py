@@ -24,7 +24,7 @@ from drsplat.commands.common import (
     table_stream,
 )
 from drsplat.defaults import ORACLE_LABEL_NAMES
-from drsplat.errors import DrsplatError, InputError, shown_path
+from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
 from drsplat.utils import checked_names, clipped, read_json
@@ -71,6 +71,10 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
 
     if args.labels is not None:
         names = label_phrases(args.labels)
+        typed = [name.lower() for name in names]
+        if args.background and BACKGROUND_PHRASE in typed:  # round 57c: it became label k, not -1, silently
+            raise UsageError(f"--labels: entry {typed.index(BACKGROUND_PHRASE) + 1} is {BACKGROUND_PHRASE!r}, which --background adds as "
+                             "the background (label -1): leave it out of --labels, or drop --background to make it a label of its own")
         encoder = (encoder_factory or partial(common.load_encoder, instead=common.oracle_flag("--embeddings")))(args, field)
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
