@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--embedding", type=Path, metavar="Q.npy", help="with --screenshot: highlight what matches the embedding Q.npy")
     q.add_argument("--oracle", metavar="LABEL", help="with --screenshot: query a synthetic dataset's oracle label (its ground-truth vector)")
     p.add_argument("--negatives", default="", help="comma-separated negative phrases (relevancy, needs CLIP weights)")
-    p.add_argument("--threshold", type=float_range(-1.0, 1.0), help="selection threshold (default: Otsu's threshold of the scores)")
+    p.add_argument("--threshold", type=float_range(-1.0, 1.0), help="selection threshold (default: 0.5 for a text query, which is scored by relevancy; Otsu's threshold of the "
+                   "scores otherwise)")
     p.add_argument("--mode", choices=("highlight", "heatmap", "selection", "hide_selection", "segmentation"), default="highlight", help="display mode of the screenshot")
     p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280)")
     p.add_argument("--height", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot height in pixels (default: the camera's, or 720)")

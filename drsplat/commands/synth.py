@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--mislabel", type=float_range(0.0, 1.0), default=None, metavar="FRACTION",
                    help="fraction of masks given a wrong label's embedding (default: the preset's, 0 except hard-noisy)")
     p.add_argument("--noise", type=float_range(0.0, MAX_NOISE), default=0.15,
-                   help=f"norm of the random part of each mask embedding, at most {MAX_NOISE:g} (default: 0.15; the label part's norm is 1)")
+                   help=f"norm of the random part of each mask embedding, at most {MAX_NOISE:g} (default: 0.15; the label part's norm is 0.8, the part common to all masks 1)")
     p.add_argument("--jitter", type=int_range(0, MAX_JITTER), default=None, metavar="PIXELS",
                    help="mask boundaries wander by up to this many pixels (default: the preset's, 0 except hard-noisy and hard-room)")
     p.add_argument("--merge", type=float_range(0.0, 1.0), default=0.0, metavar="FRACTION",

@@ -1089,9 +1089,12 @@ def view_supports(source: PairSource, clusters: MaskClusters, num_gaussians: int
     return supports
 
 
-def _log_supports(masks: int, num_clusters: int, entries: int, spilled: int) -> None:
+def _log_supports(masks: int, present: int, num_clusters: int, entries: int, spilled: int) -> None:
+    """masks: the views' feature-file rows (every level); present: those with pairs (the registered level's), which the
+    verdict's line counts (round 57c: the two lines gave 400 and 100 masks without saying why)."""
     spill = f", {format_size(spilled)} of parts spilled to disk" if spilled else ""
-    log.info("mask check: %d masks x %d clusters, %d support entries (%s%s; dense tables would take %s)", masks, num_clusters, entries,
+    log.info("mask check: %d masks with pairs (of %d rows in the views' feature files, every level) x %d clusters, %d support "
+             "entries (%s%s; dense tables would take %s)", present, masks, num_clusters, entries,
              format_size(ENTRY.itemsize * entries), spill, format_size(8 * num_clusters * masks))
 
 
@@ -1151,7 +1154,7 @@ def _verdicts(supports: Supports, means: np.ndarray, min_views: float, min_share
         agreements.append(agree[(total >= min_views) & (np.linalg.norm(unit, axis=1) > 0)])
         masses.append(mass)
         units.append(unit)
-    _log_supports(sum(m.shape[0] for m in masses), means.shape[0], entries, spilled)
+    _log_supports(sum(m.shape[0] for m in masses), sum(int((m > 0).sum()) for m in masses), means.shape[0], entries, spilled)
     like = like_threshold(np.concatenate(agreements) if agreements else np.zeros(0), units, rows=[m > 0 for m in masses])
     grouped = masks_group(sum(int((m > 0).sum()) for m in masses), means.shape[0], sum(bool((m > 0).any()) for m in masses))
     judging = like is not None and grouped
