@@ -269,3 +269,17 @@ def test_float32_scores_meet_tau_in_float32_through_evaluate_scene_and_the_voxel
         reports = evaluate_scene(scene, scores, gt, ["a"], tasks=("loc",), weightings=("volume", "count", "voxel"),
                                  taus=np.array([0.3]), assigned=assigned)
         assert [r.miou for r in reports] == pytest.approx([1.0, 1.0, 1.0])
+
+
+def test_a_short_threshold_grid_is_printed_whole_and_a_long_one_every_fifth_point():
+    """Round 57c: `eval iou --taus 0.1:0.3:0.05` printed one row of its five thresholds (every 5th point, the
+    default grid's step), so the search looked as if it had tried one."""
+    from drsplat.eval.metrics import IoUReport, format_curve
+
+    short = [(0.1 + 0.05 * k, 0.5 + 0.01 * k) for k in range(5)]
+    report = IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=short[-1][0], curve=short)
+    rows = format_curve(report).splitlines()[1:]
+    assert [float(r.split()[0]) for r in rows] == pytest.approx([t for t, _ in short]) and rows[-1].endswith("<- best")
+    long = [(0.02 * k, 0.5) for k in range(50)]
+    rows = format_curve(IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=long[7][0], curve=long)).splitlines()[1:]
+    assert [float(r.split()[0]) for r in rows] == pytest.approx(sorted([0.02 * k for k in range(0, 50, 5)] + [0.14]))

@@ -547,9 +547,14 @@ def format_reports(reports: list[IoUReport]) -> str:
     return "\n".join(lines)
 
 
-def format_curve(report: IoUReport, every: int = 5) -> str:
-    """The localisation grid search as a table: τ and mIoU (every `every`-th grid point, best marked)."""
+CURVE_WHOLE_POINTS = 20  # a grid search of this many thresholds or fewer is printed whole (`format_curve`)
+
+
+def format_curve(report: IoUReport, every: int = 5, whole_up_to: int = CURVE_WHOLE_POINTS) -> str:
+    """The localisation grid search as a table: τ and mIoU (every `every`-th grid point, best marked; every point of a
+    grid of at most `whole_up_to`, so a short --taus grid is shown whole: round 57c, 5 points showed as 1)."""
     lines = [f"grid search ({report.weighting}): tau  mIoU"]
+    every = 1 if len(report.curve) <= whole_up_to else every
     for k, (t, m) in enumerate(report.curve):
         mark = "  <- best" if report.threshold is not None and t == report.threshold else ""
         if k % every == 0 or mark:
