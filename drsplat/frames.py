@@ -849,9 +849,16 @@ def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:
         log.info("the scene's frame is not checked against its training images: %s Gaussians, over the %s the check can draw "
                  "a faithful picture from", f"{scene.num_gaussians:,}", f"{PHOTO_CHECK_MAX_THINNING * PHOTO_CHECK_SAMPLE:,}")
         return
-    agreement = photo_agreement(scene, cameras)
+    skipped: Counter = Counter()
+    agreement = photo_agreement(scene, cameras, skipped=skipped)
+    if not agreement and skipped[LITTLE_COVERED] and skipped[LITTLE_COVERED] == sum(skipped.values()):
+        # every view with an image shows (next to) nothing of the scene: the plainest wrong dataset (round 57c: said at DEBUG)
+        log.warning("none of the %d training views checked shows the scene (each render covers under %d pixels): the scene may be "
+                    "in another frame than its cameras (%s), or the dataset is not this scene's", skipped[LITTLE_COVERED],
+                    PHOTO_MIN_PIXELS, SPLATFACTO_FRAME)
+        return
     if not agreement:
-        log.debug("the scene's frame is not checked against its training images: no view had a readable image and a covered picture")
+        log.debug("the scene's frame is not checked against its training images: %s", skipped_views(skipped))
         return
     median = float(np.median(list(agreement.values())))
     log.debug("the scene re-renders its training images with a median grey correlation of %.2f (%s)", median,

@@ -839,6 +839,25 @@ def test_a_scene_too_large_to_draw_faithfully_is_not_checked_and_says_so(tiny_se
     assert "does not look like" not in caplog.text and "not checked against its training images" in caplog.text, caplog.text
 
 
+def test_a_scene_that_no_training_view_shows_is_warned_about_before_the_views(tiny_seed0, caplog):
+    """Round 57c: a scene none of whose checked views shows it (another dataset's scene, far from these cameras) was
+    said at DEBUG ("no view had a readable image and a covered picture"): the user heard of it only after the whole
+    registration, from the count of Gaussians that got a feature."""
+    import drsplat.frames as frames
+
+    scene, _, cams, _ = tiny_seed0
+    matrix = np.eye(4)
+    matrix[:3, 3] = 1000.0
+    far = _moved_scene(scene, FrameMove("far", matrix))
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        frames.warn_if_scene_misses_its_images(far, cams)
+    assert f"none of the {frames.PHOTO_CHECK_VIEWS} training views checked shows the scene" in caplog.text, caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        frames.warn_if_scene_misses_its_images(far, [dataclasses.replace(c, image_path=None) for c in cams])
+    assert caplog.text == ""  # no image to compare: nothing said of the scene
+
+
 def test_the_frame_check_bounds_the_longer_side_of_a_tall_camera(tmp_path, monkeypatch):
     """Read-through: the check scaled a view to 96 px wide, so a 10 x 100000 camera (and image) would
     have been rendered at 10 x 100000 pixels, 4x4 samples each; the longer side is what is bounded."""
