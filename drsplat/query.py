@@ -21,7 +21,7 @@ import numpy as np
 
 from drsplat.defaults import MIN_NORM
 from drsplat.errors import DrsplatError, InputError
-from drsplat.features.modelid import CANONICAL_PHRASES, check_compatible
+from drsplat.features.modelid import CANONICAL_PHRASES, check_clip_weights, check_compatible
 from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows
 from drsplat.utils import load_npy
 
@@ -66,6 +66,8 @@ def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageFie
     """Unit text embeddings [K, D] of phrases, after checking the encoder matches the field's model."""
     if field is not None:
         check_clip_models(field.clip_model, getattr(encoder, "model_id", None))
+        if field.clip_weights is not None:  # the encoder's file is read only when there is something to compare it with
+            check_clip_weights(field.clip_weights, getattr(encoder, "weights_digest", None), getattr(encoder, "checkpoint", None))
     emb = query_rows(encoder.encode_text(list(phrases)), "the text encoder's embedding of phrase")
     if field is not None and emb.shape[1] != field.dim:
         raise DrsplatError(f"the text encoder gives {emb.shape[1]}-D embeddings but the field holds {field.dim}-D features")

@@ -298,3 +298,63 @@ def test_a_tokenizer_that_needs_a_missing_package_or_the_hub_is_one_sentence(tin
     monkeypatch.setattr(open_clip, "get_tokenizer", offline)
     with pytest.raises(WeightsUnavailableError, match="is not in the local Hugging Face cache and cannot be downloaded"):
         ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")
+
+
+def test_text_queries_refuse_a_clip_checkpoint_other_than_the_features_weights(tiny_clip, tmp_path, monkeypatch):
+    """Round 57c: `query --text ... --clip-checkpoint OTHER.pt` scored with any weights file: --pretrained defaults to the
+    PLY's own tag, so the encoder took the field's model id and the id check always passed (scores from another
+    embedding space, exit 0). The registered PLY now carries the features' weights digest (`clip_weights`, from the
+    feature folder's manifest) through registration and exports, and a text encoder of another file is refused;
+    the same file under another name, or a PLY without the digest, is not."""
+    import shutil
+
+    from drsplat.commands.common import load_registered
+    from drsplat.errors import DrsplatError, InputError
+    from drsplat.features.modelid import weights_digest
+    from drsplat.lang import attach_field, build_field
+    from drsplat.query import text_embeddings
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+
+    digest = weights_digest(tiny_clip)
+    field = build_field(np.eye(4, 32, dtype=np.float32), np.ones(4, np.float32), "none", clip_model=f"{TINY_CLIP}/file:tiny_clip.pt",
+                        clip_weights=digest)
+    reg = tmp_path / "reg.ply"
+    save_ply(attach_field(tiny_scene(4), field, reg), reg)
+    _, read = load_registered(reg)
+    assert read.clip_weights == digest and read.subset(np.array([0, 2])).clip_weights == digest
+    other = make_tiny_clip(tmp_path / "other", seed=1)
+    with pytest.raises(DrsplatError, match=rf"CLIP weights mismatch: the registered features were made with a weights file of size:sha1 {digest}"):
+        text_embeddings(ClipEncoder(TINY_CLIP, pretrained="file:tiny_clip.pt", checkpoint=other, device="cpu"), ["a chair"], read)
+    renamed = tmp_path / "renamed.pt"
+    shutil.copyfile(tiny_clip, renamed)
+    assert text_embeddings(ClipEncoder(TINY_CLIP, pretrained="file:tiny_clip.pt", checkpoint=renamed, device="cpu"), ["a chair"], read).shape == (1, 32)
+    unrecorded = build_field(np.eye(4, 32, dtype=np.float32), np.ones(4, np.float32), "none", clip_model=f"{TINY_CLIP}/file:tiny_clip.pt")
+    assert text_embeddings(ClipEncoder(TINY_CLIP, pretrained="file:tiny_clip.pt", checkpoint=other, device="cpu"), ["a"], unrecorded).shape == (1, 32)
+    # an altered entry is refused when read
+    text = reg.read_bytes().replace(f"clip_weights={digest}".encode(), f"clip_weights={'x' * len(digest)}".encode())
+    (tmp_path / "bad.ply").write_bytes(text)
+    with pytest.raises(InputError, match=r"the metadata entry clip_weights=x+.* is not a weights file's size:sha1, as registration"):
+        load_registered(tmp_path / "bad.ply")
+
+
+def test_registration_carries_the_feature_folders_clip_weights_into_the_ply(tmp_path):
+    """The registered PLY records the `clip_weights` its feature folder's manifest gives (what `drsplat features` writes),
+    so that queries can check their encoder's file; a folder without one registers as before."""
+    import json
+
+    from drsplat.cli import main
+    from drsplat.commands.common import load_registered
+
+    assert main(["synth", str(tmp_path / "d"), "--preset", "tiny", "--no-progress", "-q"]) == 0
+    manifest = tmp_path / "d" / "features" / "manifest.json"
+    doc = json.loads(manifest.read_text())
+    digest = "1234:" + "ab" * 20
+    manifest.write_text(json.dumps({**doc, "clip_weights": digest}))
+    argv = ["register", str(tmp_path / "d" / "scene.ply"), "--source", str(tmp_path / "d"), "--features", str(tmp_path / "d" / "features"),
+            "--aggregate", "paper", "--no-progress", "-q"]
+    assert main([*argv, "--out", str(tmp_path / "r.ply")]) == 0
+    assert load_registered(tmp_path / "r.ply")[1].clip_weights == digest
+    manifest.write_text(json.dumps(doc))
+    assert main([*argv, "--out", str(tmp_path / "plain.ply")]) == 0
+    assert load_registered(tmp_path / "plain.ply")[1].clip_weights is None

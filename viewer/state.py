@@ -291,6 +291,8 @@ class ViewerState:
         try:
             use_clip_config(self.clip_config)
             encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.settings.device)
+            if self.field is not None and self.field.clip_weights is not None:
+                encoder.weights_digest  # read here, on the loader's thread: ~1 s of ViT-B-16's file the first query would freeze on
         except WeightsUnavailableError as exc:
             if version == self.scene_version:
                 self.encoder_status = f"Text queries are off: {exc}"

@@ -11,6 +11,7 @@ one sentence which flag to use; network and hub exceptions never reach the user.
 
 from __future__ import annotations
 
+import functools
 import logging
 import warnings
 from collections.abc import Sequence
@@ -20,7 +21,7 @@ import numpy as np
 
 from drsplat.device import resolve_device
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
-from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id
+from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id, weights_digest
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 from drsplat.utils import read_json
 
@@ -132,6 +133,12 @@ class ClipEncoder:
     @property
     def model_id(self) -> str:
         return make_model_id(self.model_name, self.pretrained)
+
+    @functools.cached_property
+    def weights_digest(self) -> str | None:
+        """'size:sha1' of the weights file loaded (a --clip-checkpoint or the hub's cached file; `weights_digest`), None
+        for random weights; read once, when a field that records its features' weights asks (about a second for 600 MB)."""
+        return weights_digest(self.checkpoint)
 
     @property
     def dim(self) -> int:

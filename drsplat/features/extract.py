@@ -9,7 +9,6 @@ written atomically by drsplat.features.format. Valid existing pairs are skipped 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -29,6 +28,7 @@ from drsplat.features.modelid import (
     check_compatible,
     manifest_clip_entry,
     manifest_model_id,
+    weights_digest,
 )
 from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
 import drsplat
@@ -298,19 +298,6 @@ def clip_precision(encoder) -> str | None:
     encoder does not say."""
     dtype = getattr(encoder, "dtype", None)
     return None if dtype is None else str(dtype).removeprefix("torch.")
-
-
-def weights_digest(path: str | Path | None) -> str | None:
-    """'size:sha1' of a CLIP or SAM weights file (None without one): two files of one name (every download
-    is `open_clip_pytorch_model.bin`) are told apart by their contents, so that features of two
-    weights are not mixed in one folder (`RESUME_KEYS`). About a second for ViT-B-16's 600 MB."""
-    if path is None or not Path(path).is_file():
-        return None
-    digest = hashlib.sha1()
-    with open(path, "rb") as f:
-        while piece := f.read(1 << 24):
-            digest.update(piece)
-    return f"{Path(path).stat().st_size}:{digest.hexdigest()}"
 
 
 def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:

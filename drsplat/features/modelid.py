@@ -9,7 +9,10 @@ synthetic scenes' oracle space, which only matches itself.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import re
+from pathlib import Path
 
 from drsplat.errors import DrsplatError
 
@@ -88,3 +91,38 @@ def check_compatible(a: str | None, b: str | None, what_a: str = "the features",
 def is_oracle(model_id: str | None) -> bool:
     """True for the synthetic scenes' oracle space (whatever preset/seed suffix an older file carries)."""
     return bool(model_id) and canonical_model_id(model_id).split("/")[0] == ORACLE_MODEL_ID
+
+
+def weights_digest(path: str | Path | None) -> str | None:
+    """'size:sha1' of a CLIP or SAM weights file (None without one): two files of one name (every download
+    is `open_clip_pytorch_model.bin`) are told apart by their contents, so that features of two
+    weights are not mixed in one folder (`RESUME_KEYS`). About a second for ViT-B-16's 600 MB."""
+    if path is None or not Path(path).is_file():
+        return None
+    digest = hashlib.sha1()
+    with open(path, "rb") as f:
+        while piece := f.read(1 << 24):
+            digest.update(piece)
+    return f"{Path(path).stat().st_size}:{digest.hexdigest()}"
+
+
+WEIGHTS_DIGEST = re.compile(r"[0-9]{1,20}:[0-9a-f]{40}")  # what `weights_digest` writes
+
+
+def check_clip_weights(field_weights: str | None, encoder_weights: str | None, checkpoint: str | Path | None) -> None:
+    """Refuse a text encoder whose weights file is not the one the features were made with: both known ('size:sha1',
+    `weights_digest`) and different. The model id alone cannot tell: a `--clip-checkpoint` is labelled with the
+    field's own tag when --pretrained is not given, so any file passed it (round 57c: scores from another embedding
+    space, no word). Unknown on either side (an older PLY, features of a hub tag without a file): not checked."""
+    if field_weights is None or encoder_weights is None or field_weights == encoder_weights:
+        return
+    raise DrsplatError(f"CLIP weights mismatch: the registered features were made with a weights file of size:sha1 {field_weights}, "
+                       f"but the text encoder's ({checkpoint}) is {encoder_weights}: its text embeddings lie in another space; pass "
+                       "the checkpoint the features were made with")
+
+
+def manifest_weights(manifest: dict) -> str | None:
+    """The 'size:sha1' of the CLIP weights a feature folder's manifest.json records (`clip_weights`, written by
+    `drsplat features`), or None: none recorded (LangSplat's own folders, synthetic features) or not one."""
+    value = manifest.get("clip_weights")
+    return value if isinstance(value, str) and WEIGHTS_DIGEST.fullmatch(value) else None

@@ -40,6 +40,7 @@ class LanguageField:
     clip_model: str
     weights: np.ndarray
     storage: Storage
+    clip_weights: str | None = None  # 'size:sha1' of the CLIP weights file the features were made with (None: not recorded)
     _on_device: object | None = dataclasses.field(default=None, init=False, repr=False, compare=False)  # torch_scoring.DeviceField
 
     @property
@@ -135,7 +136,7 @@ class LanguageField:
 
     def subset(self, index: np.ndarray | slice) -> "LanguageField":
         """The field of the Gaussians selected by a boolean mask [N] or an index array."""
-        return LanguageField(self.dim, self.clip_model, self.weights[index], self.storage.take(index))
+        return LanguageField(self.dim, self.clip_model, self.weights[index], self.storage.take(index), self.clip_weights)
 
     def _check_queries(self, queries: np.ndarray) -> np.ndarray:
         q = np.atleast_2d(np.asarray(queries, np.float32))
@@ -155,6 +156,7 @@ def build_field(
     train_embeddings: np.ndarray | None = None,
     m: int = 128,
     seed: int = 0,
+    clip_weights: str | None = None,
 ) -> LanguageField:
     """Store registered features [N, D] (unit rows, zero rows for unassigned) in a backend.
 
@@ -162,6 +164,7 @@ def build_field(
     `train_embeddings`, the scene's mask embeddings, topped up with a sample of the features when
     they are fewer than 2,560), a path to a faiss codebook file, or a loaded Codebook.
     weights: [N] total registration weight; Gaussians with weight 0 get norm 0 (score 0).
+    clip_weights: the CLIP weights file's 'size:sha1' the features were made with, carried into the PLY.
     """
     features = np.asarray(features)
     weights = np.asarray(weights, np.float32).reshape(-1)
@@ -177,7 +180,7 @@ def build_field(
         assigned &= ~lost
         weights = np.where(lost, np.float32(0), weights)
     if exact:
-        return LanguageField(dim, clip_model, weights, ExactStorage.encode(features, assigned, checked=checked))
+        return LanguageField(dim, clip_model, weights, ExactStorage.encode(features, assigned, checked=checked), clip_weights)
     if isinstance(codebook, Codebook):
         book = codebook
     elif isinstance(codebook, str) and codebook == "scene":
@@ -186,7 +189,7 @@ def build_field(
         book = load_codebook(codebook)
     if book.dim != dim:
         raise InputError(book.path, f"codebook dimension {book.dim} differs from the features' dimension {dim} (a different CLIP model?)")
-    return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book, checked=checked))
+    return LanguageField(dim, clip_model, weights, BACKENDS[book.kind].encode(features, assigned, book, checked=checked), clip_weights)
 
 
 def row_hashes(rows: np.ndarray, seed: int = 0) -> np.ndarray:

@@ -37,6 +37,7 @@ from urllib.parse import quote, unquote
 import numpy as np
 
 from drsplat.errors import InputError, OutputError, hidden_character, shown_path
+from drsplat.features.modelid import WEIGHTS_DIGEST
 from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
@@ -100,12 +101,14 @@ def header_text_problem(clip_model: str, codebook_name: str | None) -> str | Non
 
 
 def field_comment(field: LanguageField, codebook_name: str | None, codebook_crc: int | None = None) -> str:
-    """`drsplat.lang kind=<kind> dim=<D> clip=<model> [codebook=<file> codebook_crc=<CRC-32, 8 hex>]`
+    """`drsplat.lang kind=<kind> dim=<D> clip=<model> [clip_weights=<size:sha1>] [codebook=<file> codebook_crc=<CRC-32, 8 hex>]`
     (values URL-quoted). ValueError for text the reader would refuse (`header_text_problem`)."""
     problem = header_text_problem(field.clip_model, codebook_name)
     if problem is not None:
         raise ValueError(problem)
     parts = [COMMENT_PREFIX, f"kind={field.kind}", f"dim={field.dim}", f"clip={quote(field.clip_model, safe='/:-_.+')}"]
+    if field.clip_weights is not None:
+        parts.append(f"clip_weights={quote(field.clip_weights, safe=':')}")
     if codebook_name:
         parts.append(f"codebook={quote(codebook_name, safe='/:-_.+')}")
         if codebook_crc is not None:
@@ -390,7 +393,16 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     if weightless:  # the stored feature decides, as for the orphans above; registration writes weight 0 with norm 0 only
         log.warning("%s: %d Gaussians have a language feature but a registration weight of 0 or less (lang_weight): the file was "
                     "altered; the feature decides, so they are assigned and scored", ply_path, weightless)
-    return LanguageField(dim, clip_model, weights, storage)
+    return LanguageField(dim, clip_model, weights, storage, _clip_weights(meta.get("clip_weights"), ply_path, where))
+
+
+def _clip_weights(value: str | None, ply_path: Path, where: str) -> str | None:
+    """The `clip_weights` entry ('size:sha1' of the CLIP weights the features were made with), or None; InputError
+    for any other text (the writer writes nothing else)."""
+    if value is None or WEIGHTS_DIGEST.fullmatch(value):
+        return value
+    raise InputError(ply_path, f"the metadata entry clip_weights={clipped(quote(value), SHOWN_CHARS)} is not a weights file's "
+                               "size:sha1, as registration writes it (the file was altered)", field=where)
 
 
 def _shown(value: str | None) -> str:

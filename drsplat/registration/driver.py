@@ -36,7 +36,7 @@ from drsplat.cameras import Camera
 from drsplat.defaults import VOTE_SLOT_BYTES
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.features.format import check_manifest_dim, feat_path, read_manifest, seg_path
-from drsplat.features.modelid import manifest_model_id
+from drsplat.features.modelid import manifest_model_id, manifest_weights
 from drsplat.frames import frame_hint, warn_if_scene_misses_its_images
 from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX
@@ -399,7 +399,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             check = sink if aggregator.check else None
             reduce = BlockReduce(pool, make_job(ckpt.log, n, run.dim, block, options.keep_unassigned,
                                                 None if check is not None else getattr(sink, "clusters", None), target.out,
-                                                target.clip_model, reject=aggregator.reject, check=check))
+                                                target.clip_model, reject=aggregator.reject, check=check, clip_weights=target.clip_weights))
             if check is not None:
                 kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
@@ -766,7 +766,7 @@ def register(
     warn_if_distorted_without_manifest(run.selection.views, manifest, run.features_dir)
     warn_if_turned_without_manifest(run.selection.views, manifest, run.features_dir)
     warn_if_scene_misses_its_images(scene, run.selection.views)
-    target = PlyTarget(scene, out, manifest_model_id(manifest), cancel)
+    target = PlyTarget(scene, out, manifest_model_id(manifest), cancel, clip_weights=manifest_weights(manifest))
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
                               on_progress=on_progress, cancel=cancel)

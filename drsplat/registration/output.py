@@ -80,7 +80,8 @@ class ArrayTarget:
 
 class PlyTarget:
     """The registered PLY `out` of `scene` (see the module docstring). clip_model: the embedding
-    space's id written in the field's metadata.
+    space's id written in the field's metadata; clip_weights: the 'size:sha1' of the CLIP weights the
+    features were made with (their manifest's), written beside it when known.
 
     The header holds the final row count, known only once every block is written. With a
     `rows_hint` (the expected count) and a regular-file output, the body is written into the
@@ -90,8 +91,8 @@ class PlyTarget:
     is widened) header + body are copied into `out` (`atomic_path`).
     """
 
-    def __init__(self, scene: GaussianScene, out: Path, clip_model: str, cancel: CancelToken | None = None):
-        self.scene, self.out, self.clip_model = scene, Path(out), clip_model
+    def __init__(self, scene: GaussianScene, out: Path, clip_model: str, cancel: CancelToken | None = None, clip_weights: str | None = None):
+        self.scene, self.out, self.clip_model, self.clip_weights = scene, Path(out), clip_model, clip_weights
         self.cancel = cancel  # read while a FIFO output waits for its reader (`atomic_path`)
         self.written = 0
         self._codebook: Codebook | str = "none"
@@ -116,7 +117,8 @@ class PlyTarget:
 
     def add(self, block: Block, keep: np.ndarray) -> None:
         """Encode and append the kept rows of `block`, WRITE_CHUNK Gaussians at a time."""
-        for vertices, comments in encode_rows(self.scene, self.out, self.clip_model, self._codebook, block, keep, self.written):
+        for vertices, comments in encode_rows(self.scene, self.out, self.clip_model, self._codebook, block, keep, self.written,
+                                              self.clip_weights):
             if self._header is None:
                 self._header = (vertices.dtype, comments)
                 if self._rows_hint is not None:  # the header's room: its length depends on the count's digits only
@@ -172,7 +174,7 @@ def write_codebook_of(codebook: Codebook | str, out: Path) -> None:
 
 
 def encode_rows(scene: GaussianScene, out: Path, clip_model: str, codebook: Codebook | str, block: Block, keep: np.ndarray,
-                first_row: int) -> Iterator[tuple[np.ndarray, list[str]]]:
+                first_row: int, clip_weights: str | None = None) -> Iterator[tuple[np.ndarray, list[str]]]:
     """The kept rows of `block` as PLY vertex records, WRITE_CHUNK Gaussians at a time: (vertices
     [R] structured, the header comments) per chunk, `lang_meta` numbered from `first_row` (the
     index in the file of the block's first kept row). keep: [hi - lo] bool. The one encoder of
@@ -182,7 +184,8 @@ def encode_rows(scene: GaussianScene, out: Path, clip_model: str, codebook: Code
         hi = min(block.hi, lo + WRITE_CHUNK)
         rows = slice(lo - block.lo, hi - block.lo)
         chunk_keep = keep[rows]
-        field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=codebook, clip_model=clip_model)
+        field = build_field(block.F[rows][chunk_keep], block.W[rows][chunk_keep], codebook=codebook, clip_model=clip_model,
+                            clip_weights=clip_weights)
         part = _with_meta_rows(attach_field(scene.subset(slice(lo, hi)).subset(chunk_keep), field, out, write_codebook=False), written)
         vertices = scene_to_vertices(part)
         yield vertices, part.comments

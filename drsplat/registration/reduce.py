@@ -99,8 +99,8 @@ class ReduceJob:
 
     log_path / params / records: the pair log and what its writer knows of it. block: Gaussians
     per block (the last one shorter). clusters: the vote stage's mask clusters, None without it.
-    out / clip_model: the output (names the codebook in the field comment) and the embedding
-    space's id. parts_dir: where the parts are written (beside the output). reject: the mode rejects
+    out / clip_model / clip_weights: the output (names the codebook in the field comment), the embedding
+    space's id and its weights file's digest (or None). parts_dir: where the parts are written (beside the output). reject: the mode rejects
     floaters and the views' statistics are in the log's shards: each reducer folds its block's.
     keep: a `check-` mode's verdicts, judged by the driver (per view [M] bool: the kept masks), so
     that each reducer sums its block's kept pairs (drsplat.registration.check.KeptPairs); None
@@ -123,6 +123,7 @@ class ReduceJob:
     clip_model: str
     parts_dir: str
     reject: bool = False
+    clip_weights: str | None = None
     keep: list[np.ndarray] | None = None
     check_clusters: list[np.ndarray] | None = None
     check_num_clusters: int = 0
@@ -223,7 +224,7 @@ def reduce_block(job: ReduceJob, scene: GaussianScene, codebook: Codebook | str,
     rows, header = 0, None
     try:
         with open(path, "wb") as f:  # a retried task rewrites its part from the start
-            for vertices, comments in encode_rows(scene, Path(job.out), job.clip_model, codebook, block, keep, 0):
+            for vertices, comments in encode_rows(scene, Path(job.out), job.clip_model, codebook, block, keep, 0, job.clip_weights):
                 header = header or (vertices.dtype, comments)
                 f.write(vertices.tobytes())
                 rows += int(vertices.shape[0])
@@ -477,7 +478,7 @@ def _get(ref, job: ReduceJob, index: int):
 
 
 def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unassigned: bool, clusters: MaskClusters | None, out: Path,
-             clip_model: str, reject: bool = False, check: CheckSink | None = None) -> ReduceJob:
+             clip_model: str, reject: bool = False, check: CheckSink | None = None, clip_weights: str | None = None) -> ReduceJob:
     """The job of a run whose view pass is done: the log synced to storage, a parts folder beside
     `out` (a temp folder named after `out`, swept if a killed run leaves it). reject: the reducers
     fold the floater statistics from the log's shards. check: a `check-` mode's sink, whose mask
@@ -485,7 +486,7 @@ def make_job(plog: PairLog, num_gaussians: int, dim: int, block: int, keep_unass
     plog.sync()
     parts = tempfile.mkdtemp(prefix=temp_prefix(out), suffix=TEMP_SUFFIX, dir=work_folder(out))
     job = ReduceJob(str(Path(plog.path).resolve()), plog.params, list(plog.records), num_gaussians, dim, block, keep_unassigned,
-                    clusters, str(out), clip_model, parts, reject)
+                    clusters, str(out), clip_model, parts, reject, clip_weights)
     if check is not None:
         job = dataclasses.replace(job, check_clusters=list(check.clusters.per_view), check_num_clusters=check.clusters.count,
                                   check_slots=check.slots)
