@@ -3208,3 +3208,25 @@ def test_an_unknown_level_name_is_a_usage_error_listing_the_names(capsys):
         main(["register", "s.ply", "--source", "d", "--features", "f", "--out", "o.ply", "--level", "xl"])
     assert exit_.value.code == 2
     assert "default, s, m, l" in capsys.readouterr().err
+
+
+def test_a_misspelt_codebook_keyword_says_what_codebook_takes(tmp_path, world, capsys):
+    """Round 57c: `register --codebook scence` said only "scence: codebook file not found"."""
+    ds = world["ds"]
+    code, err = run_cli(["register", ds / "scene.ply", "--source", ds, "--features", ds / "features", "--out", tmp_path / "r.ply",
+                         "--codebook", "scence"], capsys)
+    assert code == 1 and "scence: codebook file not found (--codebook takes 'none', 'scene' or a faiss codebook file)" in err, err
+    assert not (tmp_path / "r.ply").exists()
+
+
+def test_query_and_pq_train_refuse_an_unwritable_output_before_their_work(tmp_path, world, capsys):
+    """Round 57c: `query --out` and `pq train --out` in a folder that takes no new files (a read-only mount; /proc
+    here, which creates none on request) failed after their work: query printed its count line to stdout first, pq
+    train after minutes of k-means. Both refuse before any work now, printing nothing."""
+    code = main(["query", str(world["reg"]), "--embedding", str(world["q"]), "--threshold", "0.1", "--out", "/proc/sel.ply"])
+    out = capsys.readouterr()
+    assert code == 1 and "does not accept new files" in out.err and out.out == "", out
+    np.save(tmp_path / "e.npy", np.random.default_rng(0).normal(size=(300, 8)).astype(np.float32))
+    code = main(["pq", "train", "--embeddings", str(tmp_path / "e.npy"), "--out", "/proc/cb.faiss", "--m", "4"])
+    out = capsys.readouterr()
+    assert code == 1 and "does not accept new files" in out.err and "wrote" not in out.out, out

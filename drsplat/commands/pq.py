@@ -104,8 +104,10 @@ def float32_rows(path: Path, arr: np.ndarray) -> np.ndarray:
 
 def run_train(args: argparse.Namespace) -> int:
     from drsplat.lang import train_codebook
+    from drsplat.utils import check_output_writable
 
     guard_args(args, ("out",), protected_folders=protected_feature_folders("--features", args.features))
+    check_output_writable(args.out)  # before minutes of k-means (round 57c: a read-only folder failed after them)
     x = collect_embeddings(args.embeddings, args.features)
     if x.shape[1] % args.m:
         divisors = [m for m in range(1, x.shape[1] + 1) if x.shape[1] % m == 0 and m <= 256]

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import select
     from drsplat.splat_formats import check_writable
-    from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
+    from drsplat.utils import check_outputs_writable, guard_outputs, outputs_together, save_npy_atomic
 
     if not args.relevancy and (args.negatives is not None or args.negative_embeddings is not None):
         raise UsageError(f"{'--negatives' if args.negatives is not None else '--negative-embeddings'} applies to --relevancy only "
@@ -114,6 +114,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
               "the registered PLY's codebook": written_codebook_path(args.registered)}
     outputs = {"--scores": args.scores, "--out": args.out, **export_outputs(args.out, args.format, "--out")}
     guard_outputs(inputs, outputs)
+    check_outputs_writable(*outputs.values())  # before the work and the count line (round 57c: a read-only folder failed after both)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)

@@ -91,7 +91,7 @@ def other_data_suffix(path: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
-    from drsplat.errors import UsageError, shown_path
+    from drsplat.errors import InputError, UsageError, shown_path
     from drsplat.frames import cameras_as_trained, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
@@ -107,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
                               aggregate=args.aggregate)
     options.check()
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
+    if codebook_file is not None and not codebook_file.exists():  # round 57c: a misspelt keyword was only "codebook file not found"
+        raise InputError(codebook_file, "codebook file not found (--codebook takes 'none', 'scene' or a faiss codebook file)")
     written_codebook = written_codebook_path(args.out) if args.codebook != "none" else None
     if codebook_file is not None and written_codebook is not None and written_codebook.resolve() == codebook_file.resolve():
         written_codebook = None  # the codebook already sits where the registered PLY names it
