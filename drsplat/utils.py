@@ -230,7 +230,10 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
         raise OutputError(path, "is a non-empty folder that is not an earlier output of this command; choose a new folder")
     ensure_parent(path)
     sweep_stale_temps(path, PARTIAL_SUFFIX)
-    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
+    except OSError as exc:  # a read-only folder: name the output, not the temp folder it never got (round 57c)
+        raise OutputError(path, refused_new_file(path.parent, exc)) from None
     os.chmod(tmp, 0o777 & ~_current_umask())
     try:
         yield tmp

@@ -845,3 +845,19 @@ def test_pixels_an_undistorted_photo_never_saw_get_no_mask(tmp_path, weights, ca
     assert (seg[:, unseen] == -1).all() and (seg[:, ~unseen] >= 0).any()
     assert f"1 undistorted view(s) hold pixels their photo never saw (the lens maps them outside the file; the most: view, " \
            f"{100 * unseen.mean():.3g} %)" in capsys.readouterr().err
+
+
+def test_a_resumed_folder_takes_its_dataset_named_another_way_and_refuses_another_dataset(tmp_path):
+    """Round 57c: features made with `--source DATA/transforms.json` and resumed with `--source DATA` (one camera file)
+    were refused as "made with source .../transforms.json, this run's is ...: resuming would mix the two". The camera
+    files are compared now; another dataset is still refused."""
+    from PIL import Image
+
+    from drsplat.errors import DrsplatError
+    from drsplat.features.extract import check_same_path
+
+    data = _one_camera_dataset(tmp_path / "a", Image.new("RGB", (64, 48)))
+    other = _one_camera_dataset(tmp_path / "b", Image.new("RGB", (64, 48)))
+    check_same_path(tmp_path / "f", "source", "--source", str((data / "transforms.json").resolve()), str(data.resolve()))
+    with pytest.raises(DrsplatError, match=r"holds features made with source .*a/transforms.json, this run's is .*b: resuming would mix"):
+        check_same_path(tmp_path / "f", "source", "--source", str((data / "transforms.json").resolve()), str(other.resolve()))

@@ -3230,3 +3230,11 @@ def test_query_and_pq_train_refuse_an_unwritable_output_before_their_work(tmp_pa
     code = main(["pq", "train", "--embeddings", str(tmp_path / "e.npy"), "--out", "/proc/cb.faiss", "--m", "4"])
     out = capsys.readouterr()
     assert code == 1 and "does not accept new files" in out.err and "wrote" not in out.out, out
+
+
+def test_a_dash_output_is_refused_as_standard_output_is_not_read_from_it(tmp_path, world, capsys, monkeypatch):
+    """Round 57c: `query --scores -` wrote a file named '-' (many tools read '-' as standard output)."""
+    monkeypatch.chdir(tmp_path)
+    code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", "-"], capsys)
+    assert code == 2 and "'-' is not read as standard output here: give /dev/stdout" in err, err
+    assert not (tmp_path / "-").exists()

@@ -264,3 +264,15 @@ def test_spread_rows_takes_at_most_count_rows_spread_over_all_of_them():
     assert spread_rows(np.zeros((0, 3)), 5).shape == (0, 3)
     for n, count in ((100_001, 100_000), (7, 2), (1_000, 999)):
         assert 1 <= len(spread_rows(np.zeros(n), count)) <= count
+
+
+def test_a_folder_output_where_no_folder_can_be_made_names_the_output():
+    """Round 57c: `drsplat synth RO/syn` on a read-only folder named its temp folder (.syn.<pid>@...partial), which
+    the user never gave; the output and the folder that refuses are named now."""
+    from drsplat.errors import OutputError
+    from drsplat.utils import atomic_folder
+
+    with pytest.raises(OutputError, match=r"cannot write /proc/drsplat_probe: the folder /proc does not accept new files") as err:
+        with atomic_folder("/proc/drsplat_probe", lambda p: False):
+            pass
+    assert "partial" not in str(err.value)

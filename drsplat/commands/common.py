@@ -181,6 +181,8 @@ def output_file(text: str) -> Path:
     (Path("newdir/") is Path("newdir"): the file would take the folder's name)."""
     if names_a_folder(text):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a path separator, so it names a folder; give a file name")
+    if text == "-":  # round 57c: wrote a file named '-' where a user meant standard output
+        raise argparse.ArgumentTypeError("'-' is not read as standard output here: give /dev/stdout (or ./- for a file of that name)")
     return path_value(text)
 
 

@@ -103,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
         report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest, show_progress=not args.no_progress)
     n = len(report.written)
     per = report.times
-    log.info(
-        "wrote %d image(s), skipped %d already complete, redid %d incomplete; masks per level (%s) %s",
-        n, len(report.skipped), len(report.redone), "default/s/m/l", report.masks_per_level,
+    log.info(  # the masks counted are those of the images written now (round 57c: a complete folder's rerun read as "no masks")
+        "wrote %d image(s), skipped %d already complete, redid %d incomplete%s",
+        n, len(report.skipped), len(report.redone), f"; masks per level (default/s/m/l) of the images written: {report.masks_per_level}" if n else "",
     )
     if n:
         log.info("seconds per image: masks %.2f, post-processing %.2f, cropping %.2f, CLIP %.2f (total %.2f)",

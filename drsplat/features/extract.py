@@ -356,11 +356,22 @@ def check_same_path(features_dir: Path, key: str, flag: str, old: str | None, ne
     elsewhere from here."""
     if not old or not new or Path(old).resolve() == Path(new).resolve():
         return
+    if key == "source" and same_camera_file(Path(old), Path(new)):  # DATASET and DATASET/transforms.json (round 57c: refused)
+        return
     if Path(old).is_absolute():
         raise DrsplatError(f"{features_dir} holds features made with {key} {old}, this run's is {new}: resuming would mix the two "
                            f"under the same names; use a new --out folder or the same {flag}")
     log.warning("%s: its features were made with %s %r (a relative path), which is not %s from here: if that is another "
                 "one, use a new --out folder", features_dir, key, old, new)
+
+
+def same_camera_file(a: Path, b: Path) -> bool:
+    """Whether two --source paths name one dataset's camera description (a folder and its transforms.json, sparse/0 and
+    its dataset): the files `detect_dataset` finds are the same. False where either is not a dataset now."""
+    try:
+        return detect_dataset(a)[1].resolve() == detect_dataset(b)[1].resolve()
+    except InputError:
+        return False
 
 
 IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`utils.file_stamp`)
