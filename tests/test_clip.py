@@ -338,7 +338,7 @@ def test_text_queries_refuse_a_clip_checkpoint_other_than_the_features_weights(t
         load_registered(tmp_path / "bad.ply")
 
 
-def test_registration_carries_the_feature_folders_clip_weights_into_the_ply(tmp_path):
+def test_registration_carries_the_feature_folders_clip_weights_into_the_ply(tmp_path, capsys):
     """The registered PLY records the `clip_weights` its feature folder's manifest gives (what `drsplat features` writes),
     so that queries can check their encoder's file; a folder without one registers as before."""
     import json
@@ -355,6 +355,8 @@ def test_registration_carries_the_feature_folders_clip_weights_into_the_ply(tmp_
             "--aggregate", "paper", "--no-progress", "-q"]
     assert main([*argv, "--out", str(tmp_path / "r.ply")]) == 0
     assert load_registered(tmp_path / "r.ply")[1].clip_weights == digest
+    assert main(["info", str(tmp_path / "r.ply")]) == 0
+    assert "(weights 1234 bytes, sha1 abababababab)" in capsys.readouterr().out
     manifest.write_text(json.dumps(doc))
     assert main([*argv, "--out", str(tmp_path / "plain.ply")]) == 0
     assert load_registered(tmp_path / "plain.ply")[1].clip_weights is None

@@ -125,7 +125,7 @@ def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[s
     # the field's own bytes and the `lang_meta` columns that carry its description (round 49: 1028 of 1030 were said), ushort
     # or, for metadata over 255 bytes, uint (round 56e: counted as 2 bytes each)
     meta_bytes = sum(np.asarray(column).dtype.itemsize for name, column in scene.extra.items() if is_meta_column(name))
-    summary = {"kind": field.kind, "dim": field.dim, "clip_model": field.clip_model, "bytes_per_gaussian": field.bytes_per_gaussian() + meta_bytes,
+    summary = {"kind": field.kind, "dim": field.dim, "clip_model": field.clip_model, "clip_weights": field.clip_weights, "bytes_per_gaussian": field.bytes_per_gaussian() + meta_bytes,
                "codebook": None if field.codebook_path is None else str(field.codebook_path), "assigned": assigned,
                "unassigned": field.num_gaussians - assigned, "nonfinite": nonfinite}
     findings = [f"language field: {text}" for text in warned.texts]
@@ -170,6 +170,8 @@ def format_field(f: dict | None) -> list[str]:
         return []
     book = f" (codebook {f['codebook']})" if f["codebook"] else ""
     model = clipped(f["clip_model"], SHOWN_MODEL_CHARS)  # a hand-made header's id could be megabytes
+    if f.get("clip_weights"):  # the weights file's size:sha1, checked against a text encoder's
+        model += f" (weights {f['clip_weights'].split(':')[0]} bytes, sha1 {f['clip_weights'].split(':')[1][:12]})"
     return [f"  language       {f['kind']}{book}, {f['dim']}-D, {model}, {f['bytes_per_gaussian']} bytes a Gaussian",
             f"  features       {f['assigned']:,} assigned, {f['unassigned']:,} without one"]
 
