@@ -491,7 +491,7 @@ def run_iou(args: argparse.Namespace) -> int:
         args.gt_labels = ds / "gt" / "labels.npy"
         args.label_names = args.label_names or ds / ORACLE_LABEL_NAMES
         args.text_embeddings = args.text_embeddings or ds / ORACLE_TEXT_EMBEDDINGS
-        args.original = args.original or ds / "scene.ply"
+        args.original = args.original or (ds / "scene.ply" if (ds / "scene.ply").exists() else None)  # the bundled demo ships none: its PLY keeps every Gaussian
     guard_args(args, ("json",), extra_inputs=cloud_inputs("--gt-points", args.gt_points),
                protected_trees={"--synthetic": args.synthetic})  # an output over any file of the dataset would damage it
     check_outputs_writable(args.json)
