@@ -117,9 +117,12 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     argv = ["eval", "lerf", str(r["ply"]), "--source", str(r["ds"]), "--annotations", str(r["labels"]), *query_args(r), "--json", str(js)]
     assert main(argv) == 0
     doc = json.loads(js.read_text())
-    assert "mAcc@0.25" in capsys.readouterr().out
+    shown = capsys.readouterr()
+    assert "mAcc@0.25" in shown.out and "LERF-OVS views" in shown.err  # the bar, drawn to stderr
     assert len(doc["rows"]) >= 8 and not doc["missing_views"]
     assert doc["mIoU"] > 0.5 and doc["mAcc@0.25"] > 0.6
+    assert main([*argv, "--no-progress"]) == 0  # round 57c: the eval commands drew their bars into pipes and logs
+    assert "LERF-OVS views" not in capsys.readouterr().err
     # round 57c: without --label-names the rows were paired with the categories in sorted order (mIoU 0.013, exit 0)
     assert main([a for a in argv if a not in query_args(r)[2:]]) == 2
     assert "--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order)" in capsys.readouterr().err

@@ -146,6 +146,7 @@ def _add_scannet(sub) -> None:
     _add_pseudo_arguments(p)
     _add_query_arguments(p, "JSON list of the raw label names 1..K (default: the 40 NYU40 classes)")
     _add_task_arguments(p)
+    _add_no_progress(p)
     p.set_defaults(func=run_scannet)
 
 
@@ -157,11 +158,23 @@ def _add_pseudolabels(sub) -> None:
     p.add_argument("--names-out", type=output_file, metavar="NAMES.json", help="write the label names (index = label id)")
     p.add_argument("--label-names", type=Path, metavar="NAMES.json", help="names of the cloud's raw labels 1..K (default NYU40)")
     _add_pseudo_arguments(p)
+    _add_no_progress(p)
     p.set_defaults(func=run_pseudolabels)
+
+
+def _add_no_progress(p) -> None:
+    """--no-progress, as register, features and synth have it (round 57c: the eval commands drew their bars into pipes and logs)."""
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (-q hides it too)")
+
+
+def progress_shown(args: argparse.Namespace) -> bool:
+    """Whether a progress bar is drawn: not with -q or --no-progress."""
+    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
 
 
 def _add_lerf(sub) -> None:
     p = sub.add_parser("lerf", help="LERF-OVS 2D object selection (OpenGaussian's protocol): mIoU and mAcc@0.25")
+    _add_no_progress(p)
     p.add_argument("registered", type=Path, metavar="REGISTERED.ply")
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
@@ -362,7 +375,7 @@ def pseudo_from_cloud(args: argparse.Namespace, scene, cloud: Path, raw_names: l
     token = CancelToken()
     with cancel_on_signals(token, "the current chunk of Gaussians"):
         res = pseudo_labels(scene, pts.points, pts.labels, radius=args.radius, weighting=args.vote, engine=args.engine,
-                            show_progress=not getattr(args, "quiet", False), cancel=token)
+                            show_progress=progress_shown(args), cancel=token)
         token.raise_if_cancelled()
     faint = np.zeros(len(res.labels), bool)
     if args.min_opacity > 0:  # OpenGaussian's scripts/eval_scannet.py drops Gaussians of sigmoid(opacity) < 0.1 from its ground truth
@@ -622,7 +635,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     selected, taus = select_queries(scores, threshold, assigned)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
-    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=not args.quiet)
+    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=progress_shown(args))
     require_scored_pairs(args, report)
     stream = table_stream(args.json)
     doc = report.to_dict()
@@ -671,7 +684,7 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
     mask_threshold = LANGSPLAT_MASK_THRESHOLD if args.mask_threshold is None else args.mask_threshold
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
-        report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=not args.quiet,
+        report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=progress_shown(args),
                                   cancel=token, assigned=assigned)
         token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
