@@ -11,15 +11,16 @@ import glob
 import logging
 import math
 import os
+import posixpath
 import re
 import struct
 import unicodedata
 import warnings
 import zlib
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -641,6 +642,8 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
                              "pairs a view with its feature files)", field="NAME")
     out = []
     paths = DatasetPaths(images_dir, source)
+    prefixes = folder_prefixes([img.name for img in model.images.values()])
+    say_folder_prefixes(model.images_path or source, prefixes)
     for img in sorted(model.images.values(), key=lambda im: im.name):
         cam = model.cameras[img.camera_id]
         where = f"image {img.image_id} ({img.name!r})"
@@ -648,7 +651,8 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
         images_file = model.images_path or source
         check_image_name(images_file, img.name, where, "NAME")
         camera = Camera(R=colmap_rotation(images_file, where, img.qvec), t=img.tvec.astype(np.float64), fx=fx, fy=fy, cx=cx, cy=cy,
-                        width=cam.width, height=cam.height, image_path=paths.image(img.name), name=Path(img.name).stem)
+                        width=cam.width, height=cam.height, image_path=paths.image(img.name),
+                        name=(prefixes or {}).get(img.name, "") + Path(img.name).stem)
         validate_intrinsics(camera, model.cameras_path or source, f"camera {cam.camera_id} (used by {where})")
         validate_camera(camera, images_file, where, COLMAP_IMAGE_FIELDS)
         out.append(camera)
@@ -976,6 +980,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         log.warning("%s gives k4 at its top level without k1, k2, k3, p1 or p2 there: nerfstudio then reads each frame's own "
                     "distortion and never that k4, so neither does drsplat", path)
     disagreeing: Counter = Counter()  # field -> frames whose own value is not the file's shared one
+    prefixes = folder_prefixes([f["file_path"] for f in frames if isinstance(f, dict) and isinstance(f.get("file_path"), str) and f["file_path"]])
+    say_folder_prefixes(path, prefixes)
     for i, frame in enumerate(frames):
         where = f" in frame {i}"
         if not isinstance(frame, dict):
@@ -1015,6 +1021,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             image, name = paths.image(frame["file_path"]), dataset_stem(frame["file_path"], is_file_name=False)
         else:
             image, name = found
+        name = (prefixes or {}).get(frame["file_path"], "") + name
         c2w = _transform_matrix(path, frame, i)
         if sized:
             width, height = _size(path, rec, "w", where), _size(path, rec, "h", where)
@@ -1590,7 +1597,6 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
                     path, len(missing), shown, len(cameras))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(kind, path, missing[0])})" if missing else ""))
-    cameras = named_by_folder(path, cameras)
     _check_unique_names(path, kind, cameras)
     # else a larger image fits the intrinsics, not the size; with a --resolution of their own choice the note's advice is theirs
     if warn_intrinsics_of_another_size(kind, path, cameras) is None and resolution == -1:
@@ -1816,24 +1822,32 @@ def check_trained_camera(path: Path, camera: Camera, moved: Camera, unscaled: np
 NAME_FIELDS = {"colmap": "NAME", "transforms": "file_path", "cameras_json": "img_name"}
 
 
-def named_by_folder(path: Path, cameras: list[Camera]) -> list[Camera]:
-    """`cameras`, each named by its image's folders under the folder all the images share and its stem
-    ('camera1_image0001' for images/rig1/camera1/image0001.jpg beside images/rig1/camera2/image0001.jpg), when two
-    images in different folders share a stem and so the names become unique: COLMAP's rig layout, which it asks
-    for (one file name per frame across the cameras' folders) and gsplat and 3DGS train on (round 57b: refused).
-    The name pairs a view with its feature files, so `features` and `register` name them alike. Otherwise
-    `cameras` as they are (`_check_unique_names` then refuses what is still doubled)."""
-    names = [c.name for c in cameras]
-    if len(set(names)) == len(names) or any(c.image_path is None for c in cameras):
-        return cameras
-    common = os.path.commonpath([os.path.abspath(c.image_path.parent) for c in cameras])
-    folders = [Path(os.path.relpath(os.path.abspath(c.image_path.parent), common)).parts for c in cameras]
-    renamed = ["_".join([*(part for part in parts if part != "."), c.name]) for parts, c in zip(folders, cameras)]
-    if len(set(renamed)) != len(renamed):
-        return cameras
-    log.info("%s: images of one name lie in different folders (a camera rig's layout), so each view is named by its folder "
-             "too, as its feature files are (e.g. %s)", path, renamed[0])
-    return [dataclasses.replace(c, name=name) for c, name in zip(cameras, renamed)]
+def folder_prefixes(given: Sequence[str]) -> dict[str, str] | None:
+    """Where image names of one stem lie in different folders (COLMAP's rig layout, which it asks for: one file name
+    per frame across the cameras' folders, images/rig1/camera1/image0001.jpg beside .../camera2/image0001.jpg; gsplat
+    and 3DGS train on it; round 57b: refused): each name of `given` (paths as the camera file gives them, every image
+    it lists, so that `features` and `register` decide alike whichever files exist) -> its folders under the folder
+    they all share, each followed by '_' ('camera1_'), the prefix of its view name ('camera1_image0001'). None when no
+    stem repeats across folders: views keep their stems, as LangSplat names them. Read from the names as written, never
+    from where a link points (round 58a: a git-annex rig's views were named after its content hashes)."""
+    norm = [posixpath.normpath(name.replace("\\", "/")) for name in given]
+    folders_of: dict[str, set[str]] = {}
+    for name in norm:
+        folders_of.setdefault(dataset_stem(name, is_file_name=False), set()).add(posixpath.dirname(name))
+    if not any(len(folders) > 1 for folders in folders_of.values()):
+        return None
+    parents = [PurePosixPath(posixpath.dirname(name)).parts for name in norm]
+    shared = 0
+    while all(len(parts) > shared for parts in parents) and len({parts[shared] for parts in parents}) == 1:
+        shared += 1
+    return {name: "".join(f"{part}_" for part in parts[shared:]) for name, parts in zip(given, parents)}
+
+
+def say_folder_prefixes(path: Path, prefixes: dict[str, str] | None) -> None:
+    """One INFO line when a dataset's views are named by their folders too (`folder_prefixes`)."""
+    if prefixes:
+        log.info("%s: images of one name lie in different folders (a camera rig's layout), so each view is named by its folders "
+                 "too, as its feature files are (e.g. %s)", path, next(f"{p}{dataset_stem(n, False)}" for n, p in prefixes.items()))
 
 
 def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:

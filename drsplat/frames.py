@@ -74,7 +74,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
-                             detect_dataset, in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, run_orientation,
+                             detect_dataset, folder_prefixes, in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, run_orientation,
                              read_colmap_model, read_dataparser_transform)
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
 from drsplat.errors import InputError
@@ -378,7 +378,8 @@ def with_pose_refinements(cameras: list[Camera], source: str | Path, scene_path:
     if why:
         log.warning("%s holds %s camera refinements (gsplat's pose_opt), not applied: %s", what, f"{len(deltas):,}", why)
         return cameras
-    row_of = {Path(name).stem: r for r, name in enumerate(train)}
+    prefixes = folder_prefixes(names) or {}  # the views' names as the reader gives them (round 58a: a rig's matched no row)
+    row_of = {prefixes.get(name, "") + Path(name).stem: r for r, name in enumerate(train)}
     centres = np.array([np.asarray(c.center, np.float64) for c in cameras]) if cameras else np.zeros((0, 3))
     reach = float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) if len(centres) > 1 else np.inf
     with np.errstate(invalid="ignore", over="ignore"):

@@ -1677,6 +1677,16 @@ def test_colmaps_rig_layout_names_each_view_by_its_cameras_folder(tmp_path):
     frames = [{"file_path": f"images/{n}", "transform_matrix": np.linalg.inv(cam.viewmat).tolist()} for n in names]
     (root / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": frames}))
     assert sorted(c.name for c in load_cameras(root / "transforms.json")) == [c.name for c in got]
+    # round 58a: names were read from where a link points: a git-annex rig's views were named after content hashes
+    store = tmp_path / "annex"
+    store.mkdir()
+    for k, name in enumerate(names):
+        image = root / "images" / name
+        (store / f"SHA256E-s{k}--{k:064x}.png").write_bytes(image.read_bytes())
+        image.unlink()
+        image.symlink_to(store / f"SHA256E-s{k}--{k:064x}.png")
+    assert [c.name for c in load_cameras(root)] == [c.name for c in got]
+    assert sorted(c.name for c in load_cameras(root / "transforms.json")) == [c.name for c in got]
     (root / "images" / "rig1" / "camera1" / "image0001.jpg").write_bytes((root / "images" / "rig1" / "camera1" / "image0001.png").read_bytes())
     (root / "sparse" / "0" / "images.txt").write_text((root / "sparse" / "0" / "images.txt").read_text() + "9 1 0 0 0 0 0 4 1 rig1/camera1/image0001.jpg\n\n")
     with pytest.raises(InputError, match=r"images 1 \('rig1/camera1/image0001.png'\) and 9 \('rig1/camera1/image0001.jpg'\) \(IMAGE_ID\) both name"):

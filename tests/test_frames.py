@@ -474,6 +474,41 @@ def test_a_gsplat_run_with_pose_opt_gets_its_refined_cameras(refined_run, tmp_pa
     assert _in_frame_of(root / "data" / "scene.ply", given, source) is given
 
 
+def test_a_rig_layouts_cameras_take_the_refinements_of_their_own_rows(refined_run, tmp_path, caplog):
+    """Round 58a: with COLMAP's rig layout (one file name per frame in each camera's folder) the views are named by their
+    folders (camera1_img_00), and gsplat's refinements were matched by the bare stem: no camera took one (exit 0, a
+    warning counting 0), and even unrenamed both cameras of a frame would have taken one row. Each camera now takes the
+    row of its own image in gsplat's order (the model's names sorted, less every test_every-th)."""
+    from drsplat.frames import pose_refined, training_names, with_pose_refinements
+
+    _, scene, truth, _, deltas, _ = refined_run
+    names = [f"rig/camera{1 + i % 2}/img_{i // 2:02d}.png" for i in range(len(truth))]
+    cams_txt, imgs_txt = colmap_text_lines(truth)
+    lines = imgs_txt.split("\n")
+    for k, name in enumerate(names):  # the image line of camera k: after the two header lines, every other line
+        lines[2 + 2 * k] = lines[2 + 2 * k].rsplit(" ", 1)[0] + " " + name
+    sparse = tmp_path / "rig" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(cams_txt)
+    (sparse / "images.txt").write_text("\n".join(lines))
+    given = load_cameras(tmp_path / "rig", require_images=False)
+    view_of = {f"camera{1 + i % 2}_img_{i // 2:02d}": name for i, name in enumerate(names)}
+    assert sorted(c.name for c in given) == sorted(view_of)
+    train = training_names(names, 3)
+    rows = deltas[: len(train)]
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        out = with_pose_refinements(given, tmp_path / "rig", _gsplat_run(tmp_path / "run", scene, rows), rows)
+    assert f"{len(train)} of the {len(given)} cameras" in caplog.text, caplog.text
+    for got, camera in zip(out, given):
+        image = view_of[camera.name]
+        if image not in train:
+            assert got is camera
+            continue
+        want = pose_refined(camera, rows[train.index(image)])
+        np.testing.assert_allclose(got.R, want.R, atol=1e-12)
+        np.testing.assert_allclose(got.t, want.t, atol=1e-12)
+
+
 def test_drsplat_register_of_a_pose_opt_checkpoint_registers_with_its_refined_cameras(refined_run, tmp_path, capsys):
     """End to end: the checkpoint registered with the model of unrefined cameras gives the features
     of the scene registered with the cameras it was trained with; the model's cameras as given
