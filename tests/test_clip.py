@@ -360,3 +360,22 @@ def test_registration_carries_the_feature_folders_clip_weights_into_the_ply(tmp_
     manifest.write_text(json.dumps(doc))
     assert main([*argv, "--out", str(tmp_path / "plain.ply")]) == 0
     assert load_registered(tmp_path / "plain.ply")[1].clip_weights is None
+    # round 58b: a file of fewer Gaussians than its metadata's bytes, metadata past 255 bytes (clip_weights made ordinary names
+    # reach it): the widened lang_meta columns were declared ushort and cut the uint cells, so without comments nothing decoded
+    import dataclasses
+
+    from drsplat.lang.plyformat import read_field
+    from drsplat.scene import load_ply, save_ply
+
+    manifest.write_text(json.dumps({**doc, "clip_weights": digest}))
+    scene = load_ply(tmp_path / "d" / "scene.ply")
+    save_ply(scene.subset(np.arange(150)), tmp_path / "d" / "sub.ply")
+    out = tmp_path / ("x" * 150 + ".ply")
+    argv[1] = str(tmp_path / "d" / "sub.ply")
+    rows = np.random.default_rng(0).normal(size=(300, 512)).astype(np.float32)
+    np.save(tmp_path / "e.npy", rows / np.linalg.norm(rows, axis=1, keepdims=True))
+    assert main(["pq", "train", "--embeddings", str(tmp_path / "e.npy"), "--out", str(tmp_path / "cb.faiss"), "--m", "8"]) == 0
+    assert main([*argv, "--codebook", str(tmp_path / "cb.faiss"), "--out", str(out)]) == 0
+    written = load_ply(out)
+    field = read_field(dataclasses.replace(written, comments=[c for c in written.comments if not c.startswith("drsplat.lang")]), out)
+    assert field.clip_weights == digest and field.kind == "pq"

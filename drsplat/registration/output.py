@@ -235,7 +235,7 @@ def _widen_meta_if_short(body_path: Path, header: tuple, written: int, offset: i
         if name != META_PROPERTY:
             fields.append((name, dtype[name]))
         if name == "lang_weight":
-            fields.extend((meta, np.dtype("<u2")) for meta in columns)
+            fields.extend((meta, column.dtype.newbyteorder("<")) for meta, column in columns.items())  # ushort or, past 255 bytes, uint (round 58b)
     widened = np.empty(rows.shape[0], np.dtype(fields))
     for name in dtype.names:
         if name != META_PROPERTY:
