@@ -633,7 +633,7 @@ def cameras_from_colmap(model: ColmapModel, images_dir: Path, source: Path) -> l
     name stem are refused by their IMAGE_IDs (`_check_unique_names` would count the sorted list's positions)."""
     first: dict[tuple[str, str], ColmapImage] = {}
     for img in sorted(model.images.values(), key=lambda im: im.image_id):
-        # one stem in two folders is a rig's layout (`named_by_folder` tells them apart); in one folder, two files of a view
+        # one stem in two folders is a rig's layout (`folder_prefixes` tells them apart); in one folder, two files of a view
         folder = Path(img.name.replace("\\", "/")).parent.as_posix()
         other = first.setdefault((folder, Path(img.name).stem), img)
         if other is not img:
