@@ -1840,7 +1840,9 @@ def folder_prefixes(given: Sequence[str]) -> dict[str, str] | None:
     shared = 0
     while all(len(parts) > shared for parts in parents) and len({parts[shared] for parts in parents}) == 1:
         shared += 1
-    return {name: "".join(f"{part}_" for part in parts[shared:]) for name, parts in zip(given, parents)}
+    # the root and '..' are no folder names: a view name must stay one file name (an absolute name beside a relative one
+    # gave '/_abs_a', and the feature files went to the file system's root; read-through)
+    return {name: "".join(f"{part}_" for part in parts[shared:] if part not in ("/", ".", "..")) for name, parts in zip(given, parents)}
 
 
 def say_folder_prefixes(path: Path, prefixes: dict[str, str] | None) -> None:

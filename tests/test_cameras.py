@@ -1691,3 +1691,14 @@ def test_colmaps_rig_layout_names_each_view_by_its_cameras_folder(tmp_path):
     (root / "sparse" / "0" / "images.txt").write_text((root / "sparse" / "0" / "images.txt").read_text() + "9 1 0 0 0 0 0 4 1 rig1/camera1/image0001.jpg\n\n")
     with pytest.raises(InputError, match=r"images 1 \('rig1/camera1/image0001.png'\) and 9 \('rig1/camera1/image0001.jpg'\) \(IMAGE_ID\) both name"):
         load_cameras(root)
+
+
+def test_rig_prefixes_never_put_a_separator_or_a_parent_in_a_view_name():
+    """Read-through: an absolute image name beside a relative one of the same stem gave the view name '/_abs_a', so the
+    feature files `features` writes under it went to the file system's root; '..' parts went into names too."""
+    from drsplat.cameras import folder_prefixes
+
+    for given in (["/abs/a.png", "b/a.png"], ["../x/a.png", "y/a.png"], ["/abs/a.png", "/abs2/a.png"]):
+        prefixes = folder_prefixes(given)
+        assert prefixes is not None and all("/" not in p and ".." not in p for p in prefixes.values()), prefixes
+    assert folder_prefixes(["/abs/a.png", "b/a.png"]) == {"/abs/a.png": "abs_", "b/a.png": "b_"}
