@@ -861,3 +861,23 @@ def test_a_resumed_folder_takes_its_dataset_named_another_way_and_refuses_anothe
     check_same_path(tmp_path / "f", "source", "--source", str((data / "transforms.json").resolve()), str(data.resolve()))
     with pytest.raises(DrsplatError, match=r"holds features made with source .*a/transforms.json, this run's is .*b: resuming would mix"):
         check_same_path(tmp_path / "f", "source", "--source", str((data / "transforms.json").resolve()), str(other.resolve()))
+
+
+@pytest.mark.parametrize("value", ["600:aa", 600, ["600:" + "ab" * 20], "600:" + "AB" * 20])
+def test_a_manifests_clip_weights_that_is_not_a_digest_is_said_not_dropped(tmp_path, caplog, value):
+    """A `clip_weights` that is not the 'size:sha1' `drsplat features` writes (hand-edited, damaged) used to be dropped without
+    a word: the registered PLY then records no digest and queries check the text encoder by its name alone. It is a warning
+    naming the file and field now; null (hub weights, no file) and a real digest are read without one."""
+    import json
+
+    path = tmp_path / featurefiles.MANIFEST_NAME
+    for quiet in (None, "1234:" + "ab" * 20):
+        path.write_text(json.dumps({"dim": 512, "clip_weights": quiet}))
+        with caplog.at_level(logging.WARNING, logger="drsplat"):
+            featurefiles.read_manifest(tmp_path)
+        assert "clip_weights" not in caplog.text
+    path.write_text(json.dumps({"dim": 512, "clip_weights": value}))
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        featurefiles.read_manifest(tmp_path)
+    assert f"{path}: field 'clip_weights' is {json.dumps(value)}, not the 'size:sha1' digest" in caplog.text
+    assert "queries check the text encoder by its model name alone" in caplog.text

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from drsplat.errors import InputError, OutputError, hidden_character
-from drsplat.features.modelid import model_id_sources
+from drsplat.features.modelid import WEIGHTS_DIGEST, model_id_sources
 from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL, MIN_NORM, UNIT_TOLERANCE
 
@@ -338,10 +338,22 @@ def read_manifest(features_dir: str | Path) -> dict[str, Any]:
     for field, kinds, meaning in MANIFEST_FIELDS:
         if field in data and not isinstance(data[field], kinds):
             log.warning("%s: field '%s' is %s, not %s; it is ignored", path, field, json.dumps(data[field])[:40], meaning)
+    warn_if_weights_unreadable(path, data.get("clip_weights"))
     problem = model_id_text_problem(data)
     if problem is not None:
         raise InputError(path, problem[1], field=problem[0])
     return data
+
+
+def warn_if_weights_unreadable(path: Path, value: Any) -> None:
+    """Warn when a manifest's `clip_weights` is neither null (a hub tag, no file) nor the 'size:sha1' digest
+    `drsplat features` writes: registration then records no digest, and no query can tell the text encoder's
+    weights from another file's (`check_clip_weights`), so a hand-edited or damaged value is said, not dropped."""
+    if value is None or (isinstance(value, str) and WEIGHTS_DIGEST.fullmatch(value)):
+        return
+    log.warning("%s: field 'clip_weights' is %s, not the 'size:sha1' digest of a CLIP weights file that drsplat features writes; it is "
+                "ignored, so the registered PLY records no weights and queries check the text encoder by its model name alone",
+                path, json.dumps(value)[:60])
 
 
 def model_id_text_problem(manifest: dict[str, Any]) -> tuple[str, str] | None:
