@@ -699,3 +699,54 @@ def test_cameras_checked_in_the_background_bring_an_untouched_view_to_the_first_
         else:
             np.testing.assert_allclose(app.view.eye, home.eye, atol=1e-9)
             assert not np.allclose(before, home.eye)
+
+
+def test_ctrl_c_in_the_window_closes_the_viewer_and_says_what_its_registration_kept(dataset, tmp_path, monkeypatch, caplog):
+    """Round 57c: Ctrl-C in the window (how a window started from a terminal is often closed) ended with "ERROR:
+    interrupted; no partial output was written" and exit 1. It closes the viewer now (exit 0, no error); a registration
+    still running is stopped after its view in hand and the kept checkpoint is said (its daemon thread used to die with
+    the process mid-view, without a word, whether the window was closed by Ctrl-C or by its own button)."""
+    import logging
+
+    import viewer.app
+    import viewer.launch
+    from drsplat.registration.checkpoint import checkpoint_path_for
+    from viewer.state import ViewerState
+
+    class Window:
+        closed = 0
+
+        def __init__(self, state):
+            self.state = state
+
+        def run(self):
+            job = self.state.registration
+            deadline = time.time() + 120
+            while job is not None and job.done < 1 and not job.finished:  # a view done: something to keep
+                assert time.time() < deadline, "the registration did not start"
+                time.sleep(0.02)
+            raise KeyboardInterrupt
+
+        def close(self):
+            Window.closed += 1
+
+    monkeypatch.setattr(viewer.app, "ViewerApp", Window)
+    state = ViewerState()
+    assert state.load_scene(dataset / "scene.ply")
+    monkeypatch.setattr(state, "start_text_encoder", lambda: None)
+    with caplog.at_level(logging.INFO, logger="viewer"):
+        assert viewer.launch.interactive(state) == 0
+    assert Window.closed == 1 and "closed by an interrupt" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    caplog.clear()
+    assert state.load_source(dataset)
+    out = tmp_path / "reg.ply"
+    assert state.start_registration(out)
+    with caplog.at_level(logging.INFO, logger="viewer"):
+        assert viewer.launch.interactive(state) == 0
+    job = state.registration
+    assert job.finished and not job.thread.is_alive() and "cancel" in job.error
+    assert not out.exists() and checkpoint_path_for(out).exists()
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert f"the registration into {out} was stopped when the viewer closed; registering into the same output again" in caplog.text
+    assert caplog.text.count(str(checkpoint_path_for(out))) == 1, "the checkpoint is named once, by the registration's own line"

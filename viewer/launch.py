@@ -21,6 +21,7 @@ from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError, UsageError, shown_path
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
+from drsplat.registration.checkpoint import checkpoint_path_for
 from drsplat.scene import load_ply
 from drsplat.synthetic import PRESETS, write_dataset
 from viewer.camera import ViewController, camera_for_size
@@ -237,9 +238,36 @@ def interactive(state) -> int:
     state.start_text_encoder()
     try:
         app.run()
+    except KeyboardInterrupt:  # Ctrl-C (or SIGTERM) in the terminal is how a window started from one is often closed: not an error
+        log.info("the viewer was closed by an interrupt")
     finally:
         app.close()
+    stop_registration(state)
     return 0
+
+
+REGISTRATION_STOP_SECONDS = 60.0  # how long a closing viewer waits for its registration to stop after the view in hand
+
+
+def stop_registration(state, wait: float = REGISTRATION_STOP_SECONDS) -> None:
+    """Cancel a registration still running when the window closes and say what is kept: its thread is a daemon,
+    so it would otherwise end mid-view with the process, without a word. It stops after the view in hand
+    (its checkpoint then holds every view done), and registering again into the same output resumes from it."""
+    job = state.registration
+    if job is None or job.finished:
+        return
+    job.cancel.cancel()
+    if job.thread is not None:
+        job.thread.join(wait)
+    kept = checkpoint_path_for(job.output)
+    if os.path.lexists(kept):
+        # the registration's own warning has named the checkpoint and its views: this line says how the viewer resumes
+        log.warning("the registration into %s was stopped when the viewer closed; registering into the same output again (the "
+                    "viewer's Register, or drsplat register ... --out %s) resumes from the views it kept", shown_path(job.output),
+                    shown_path(job.output))
+    else:
+        log.warning("the registration into %s was stopped when the viewer closed, before a view was kept; nothing of it was "
+                    "written", shown_path(job.output))
 
 
 def main(argv: list[str] | None = None) -> int:
