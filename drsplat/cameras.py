@@ -1858,9 +1858,17 @@ def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:
     first: dict[str, int] = {}
     for i, camera in enumerate(cameras):
         j = first.setdefault(camera.name, i)
-        if j != i:
-            raise InputError(path, f"cameras {j} and {i} both name the image stem {camera.name!r}; each view needs its own image "
-                             "(the stem pairs a view with its feature files)", field=NAME_FIELDS.get(kind, "name"))
+        if j == i:
+            continue
+        field = NAME_FIELDS.get(kind, "name")
+        renamed = [c for c in (cameras[j], camera) if c.image_path is not None and c.image_path.stem != c.name]
+        if renamed:  # a rig's folder prefix made the name (round 58a: it was called an image stem, which it is not)
+            raise InputError(path, f"cameras {j} and {i} both name the view {camera.name!r} ({cameras[j].image_path} and {camera.image_path}): "
+                             "images of one name in different folders are named by their folders too (a camera rig's layout), and "
+                             "that name is another image's stem; rename one of them (the view name pairs a view with its feature "
+                             "files)", field=field)
+        raise InputError(path, f"cameras {j} and {i} both name the image stem {camera.name!r}; each view needs its own image "
+                         "(the stem pairs a view with its feature files)", field=field)
 
 
 def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:

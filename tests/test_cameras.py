@@ -1702,3 +1702,12 @@ def test_rig_prefixes_never_put_a_separator_or_a_parent_in_a_view_name():
         prefixes = folder_prefixes(given)
         assert prefixes is not None and all("/" not in p and ".." not in p for p in prefixes.values()), prefixes
     assert folder_prefixes(["/abs/a.png", "b/a.png"]) == {"/abs/a.png": "abs_", "b/a.png": "b_"}
+
+
+def test_a_view_name_that_collides_only_after_the_rig_prefixes_is_named_as_a_view_name(tmp_path):
+    """Round 58a's leftover: cam1/img_00 beside a root-level cam1_img_00 (with cam2/img_00, a rig's layout) was refused as two
+    cameras naming "the image stem 'cam1_img_00'": that is the view name the folder prefix made, not either file's stem."""
+    root = _tiny_colmap(tmp_path / "rig", ("cam1/img_00.png", "cam2/img_00.png", "cam1_img_00.png"))
+    with pytest.raises(InputError, match=r"both name the view 'cam1_img_00' \(.*cam1/img_00.png and .*images/cam1_img_00.png\): images of "
+                                         r"one name in different folders are named by their folders too"):
+        load_cameras(root)
