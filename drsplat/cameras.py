@@ -1250,6 +1250,19 @@ def _find_colmap(src: Path) -> Path | None:
     return None
 
 
+def logical_abspath(path: Path) -> Path:
+    """`path` made absolute against the working folder as the shell names it ($PWD, `pwd -L`) when that is the
+    working folder, else against os.getcwd(), which names it by where its links point: '.' given inside
+    DATASET/sparse/0, a link to a model kept elsewhere, then looked for the images beside the link's target
+    (round 58a's leftover), while the shell, and the user, were in DATASET/sparse/0."""
+    shell = os.environ.get("PWD")
+    try:
+        here = shell if shell and os.path.isabs(shell) and os.path.samefile(shell, ".") else os.getcwd()
+    except OSError:  # $PWD names a folder gone since
+        here = os.getcwd()
+    return Path(os.path.normpath(os.path.join(here, path)))
+
+
 def colmap_root(sparse: Path) -> Path:
     """The dataset folder of the COLMAP model folder `sparse` (DATASET/sparse/N for any model number N, as COLMAP's
     mapper numbers them, DATASET/sparse or DATASET itself): the folder whose images/ the model's image names are read
@@ -1257,7 +1270,7 @@ def colmap_root(sparse: Path) -> Path:
     57b: sparse/1, '.' and '0' from inside the model looked for the images in the model folder)."""
     named = sparse
     if sparse.name in ("", ".", "..") or (sparse.name.isdigit() and sparse.parent.name in ("", ".", "..")):
-        named = Path(os.path.abspath(sparse))
+        named = logical_abspath(sparse)
     if named.name.isdigit() and named.parent.name == "sparse":
         return named.parent.parent
     return named.parent if named.name == "sparse" else sparse

@@ -1711,3 +1711,23 @@ def test_a_view_name_that_collides_only_after_the_rig_prefixes_is_named_as_a_vie
     with pytest.raises(InputError, match=r"both name the view 'cam1_img_00' \(.*cam1/img_00.png and .*images/cam1_img_00.png\): images of "
                                          r"one name in different folders are named by their folders too"):
         load_cameras(root)
+
+
+def test_dot_inside_a_linked_model_folder_reads_the_images_of_the_dataset_the_shell_is_in(tmp_path, monkeypatch):
+    """Round 58a's leftover: `--source .` given inside DATASET/sparse/0, a link to a model kept elsewhere, looked for the
+    images beside the link's target (the process's working folder is the resolved one): every image was missing. '.' is
+    now read against the shell's working folder ($PWD) when that is the same folder; a stale $PWD is not trusted."""
+    import shutil
+
+    root = _tiny_colmap(tmp_path / "src", ("a.png", "b.png"))
+    want = [c.image_path.resolve() for c in load_cameras(root)]
+    store = tmp_path / "models" / "run7"
+    store.parent.mkdir()
+    shutil.move(root / "sparse" / "0", store)
+    (root / "sparse" / "0").symlink_to(store, target_is_directory=True)
+    monkeypatch.chdir(root / "sparse" / "0")
+    monkeypatch.setenv("PWD", str(root / "sparse" / "0"))
+    assert [c.image_path.resolve() for c in load_cameras(".")] == want
+    monkeypatch.setenv("PWD", str(tmp_path))  # not this folder: the resolved working folder is all there is
+    with pytest.raises(InputError, match="every image file is missing"):
+        load_cameras(".")
