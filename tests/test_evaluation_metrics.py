@@ -283,3 +283,30 @@ def test_a_short_threshold_grid_is_printed_whole_and_a_long_one_every_fifth_poin
     long = [(0.02 * k, 0.5) for k in range(50)]
     rows = format_curve(IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=long[7][0], curve=long)).splitlines()[1:]
     assert [float(r.split()[0]) for r in rows] == pytest.approx(sorted([0.02 * k for k in range(0, 50, 5)] + [0.14]))
+
+
+def test_the_voxel_row_uses_the_volume_tau_whatever_the_order_of_the_weightings():
+    """Round 59b: the voxel localisation took the τ of whichever weighting came first: `--weighting count,volume,voxel`
+    gave another voxel row than `volume,count,voxel` or `voxel` alone (0.770 against 0.754 on tiny). It takes the
+    volume-aware grid search's τ always (made for it when volume is not asked), as its docstring and the docs say."""
+    from drsplat.eval.metrics import evaluate_scene
+
+    # one large labelled Gaussian scored 0.5, three small unlabelled ones 0.6 and a small labelled one 0.8: the count IoU
+    # is best at τ = 0.7 (only the small labelled one), the volume IoU at 0.4 (the large one dominates)
+    n = 5
+    scene = GaussianScene(means=np.array([[0, 0, 0], [3, 0, 0], [0, 3, 0], [0, 0, 3], [3, 3, 3]], np.float32),
+                          quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                          log_scales=np.array([[0.0] * 3] + [[-4.0] * 3] * 4, np.float32),
+                          opacity_logits=np.full(n, 3, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    scores = np.array([[0.5], [0.6], [0.6], [0.6], [0.8]], np.float32)
+    gt = np.array([0, -1, -1, -1, 0])
+    taus = np.array([0.4, 0.55, 0.7])
+
+    def rows(weightings):
+        return {r.weighting: r for r in evaluate_scene(scene, scores, gt, ["a"], tasks=("loc",), weightings=weightings, taus=taus)}
+
+    first = rows(("volume", "count", "voxel"))
+    assert first["count"].threshold == pytest.approx(0.7) and first["volume"].threshold == pytest.approx(0.4)
+    for weightings in (("count", "volume", "voxel"), ("count", "voxel"), ("voxel",)):
+        voxel = rows(weightings)["voxel"]
+        assert voxel.threshold == pytest.approx(0.4) and voxel.miou == pytest.approx(first["voxel"].miou), weightings

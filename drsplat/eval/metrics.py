@@ -503,7 +503,8 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
 
     scene: GaussianScene with N Gaussians; scores: [N, L]; gt_labels: [N] int (−1 none).
     weightings ⊂ {volume, count, voxel}. The voxel localisation uses the τ found by the
-    volume-aware (else count) grid search, so the three weightings judge the same selection.
+    volume-aware grid search (made for it when volume is not asked), so its row is the same whichever
+    other weightings are asked and in whatever order (round 59b: the first one's τ was taken).
     assigned: [N] bool, Gaussians that hold a language feature; the others (unassigned or pruned
     by registration) are never selected and predict no label (not label 0 by a tie of zeros).
     """
@@ -515,12 +516,12 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
         dtype = scores.dtype if scores.dtype in (np.float32, np.float64) else np.dtype(np.float64)
         scores = np.where(np.asarray(assigned, bool)[:, None], scores.astype(dtype, copy=False), dtype.type(-np.inf))
     reports: list[IoUReport] = []
-    loc_tau: float | None = None
+    loc_tau: float | None = None  # the volume-aware grid search's, for the voxel row
     for weighting in [w for w in weightings if w != "voxel"]:
         w, bad = scene_weights(scene, weighting)
         if "loc" in tasks:
             rep = localisation_report(scores, gt, w, label_names, taus, weighting, bad)
-            loc_tau = rep.threshold if loc_tau is None else loc_tau
+            loc_tau = rep.threshold if weighting == "volume" else loc_tau
             reports.append(rep)
         if "seg" in tasks:
             reports.append(segmentation_report(scores, gt, w, label_names, weighting, bad))
