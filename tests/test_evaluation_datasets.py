@@ -408,3 +408,35 @@ def boundary_band(mask: np.ndarray) -> np.ndarray:
         for dx in (-1, 0, 1):
             near |= padded[1 + dy : 1 + dy + mask.shape[0], 1 + dx : 1 + dx + mask.shape[1]] != mask
     return near
+
+
+def test_an_annotation_whose_size_is_not_its_images_is_refused(tmp_path):
+    """Round 59b: info.width/height doubled beside a 128x96 annotated image, the polygons unchanged: the polygons covered a
+    quarter of the frame, mIoU 0.843 -> 0.774, exit 0. The image's header size (with its EXIF turn, as LabelMe shows it)
+    must be info's; a file no reader opens, or none, is not compared."""
+    import json
+
+    from PIL import Image
+
+    from drsplat.errors import InputError
+
+    mask = np.zeros((96, 128), bool)
+    mask[20:60, 30:90] = True
+    path = write_lerf_view(tmp_path, "frame_00001", {"ball": mask}, np.zeros((96, 128, 3), np.uint8))
+    assert load_lerf_view(path).masks["ball"].sum() == mask.sum()
+    doc = json.loads(path.read_text())
+    doc["info"].update(width=256, height=192)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"frame_00001.json: field 'info.width': says the annotated image is 256x192, but "
+                                         r"frame_00001.jpg beside it is 128x96"):
+        load_lerf_view(path)
+    doc["info"].update(width=96, height=128)  # the image turned by its EXIF tag: LabelMe drew on 96x128
+    path.write_text(json.dumps(doc))
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.new("RGB", (128, 96)).save(path.with_suffix(".jpg"), exif=exif)
+    assert load_lerf_view(path).width == 96
+    path.with_suffix(".jpg").write_bytes(b"not an image")
+    assert load_lerf_view(path).width == 96
+    path.with_suffix(".jpg").unlink()
+    assert load_lerf_view(path).image_path is None
