@@ -310,3 +310,20 @@ def test_the_voxel_row_uses_the_volume_tau_whatever_the_order_of_the_weightings(
     for weightings in (("count", "volume", "voxel"), ("count", "voxel"), ("voxel",)):
         voxel = rows(weightings)["voxel"]
         assert voxel.threshold == pytest.approx(0.4) and voxel.miou == pytest.approx(first["voxel"].miou), weightings
+
+
+def test_a_fine_threshold_grid_is_printed_with_its_own_decimals():
+    """Round 59b: `--taus 0.104:0.116:0.002` printed its curve as five rows of 0.11 and the table's τ as 0.11, while the
+    JSON said 0.114. A threshold is printed with as many decimals as it has (2 to 6); the default grid keeps two."""
+    from drsplat.eval.metrics import IoUReport, format_curve, format_reports
+
+    fine = [(round(0.104 + 0.002 * k, 6), 0.5 + 0.01 * k) for k in range(7)]
+    report = IoUReport("loc", "count", ["a"], np.array([0.6]), threshold=fine[5][0], curve=fine)
+    rows = format_curve(report).splitlines()[1:]
+    assert [r.split()[0] for r in rows] == ["0.104", "0.106", "0.108", "0.110", "0.112", "0.114", "0.116"]
+    assert rows[5].endswith("<- best")
+    assert format_reports([report]).splitlines()[-1].split()[-2] == "0.114"
+    coarse = [(k / 100, 0.5) for k in range(0, 101)]  # the default grid, 0.07 held as 0.07000000000000001
+    report = IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=coarse[7][0], curve=coarse)
+    assert format_reports([report]).splitlines()[-1].split()[-2] == "0.07"
+    assert "  0.07   0.500  <- best" in format_curve(report)

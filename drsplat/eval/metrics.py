@@ -536,6 +536,21 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
     return reports
 
 
+TAU_DECIMALS = 6  # `drsplat eval`'s thresholds are compared to this many decimals (commands.eval.parse_taus)
+
+
+def tau_decimals(taus) -> int:
+    """The decimals (2 to TAU_DECIMALS) that print every threshold of `taus` as it is: a grid of step 0.002 printed to
+    2 decimals showed five rows of 0.11 and a best τ the JSON gave as 0.114 (round 59b)."""
+    exact = [round(float(t), TAU_DECIMALS) for t in taus]
+    return next(d for d in range(2, TAU_DECIMALS + 1) if all(round(t, d) == t for t in exact) or d == TAU_DECIMALS)
+
+
+def tau_text(tau: float, decimals: int | None = None) -> str:
+    """A threshold printed with `decimals` (default: its own, `tau_decimals`)."""
+    return f"{round(float(tau), TAU_DECIMALS):.{tau_decimals([tau]) if decimals is None else decimals}f}"
+
+
 def format_reports(reports: list[IoUReport]) -> str:
     """A plain-text table (one row per report) like the paper's: mIoU, IoU>0.15/0.3/0.45, mAcc, τ."""
     head = f"{'task':<5} {'weighting':<8} {'mIoU':>7} " + " ".join(f"{'>' + str(t):>7}" for t in IOU_THRESHOLDS) + f" {'mAcc':>7} {'tau':>6} {'nonfin':>6}"
@@ -543,7 +558,7 @@ def format_reports(reports: list[IoUReport]) -> str:
     for r in reports:
         shares = " ".join(f"{r.share_above(t):7.3f}" for t in IOU_THRESHOLDS)
         macc = f"{r.macc:7.3f}" if r.acc is not None else f"{'-':>7}"
-        tau = f"{r.threshold:6.2f}" if r.threshold is not None else f"{'-':>6}"
+        tau = f"{tau_text(r.threshold, tau_decimals([t for t, _ in r.curve] or [r.threshold])):>6}" if r.threshold is not None else f"{'-':>6}"
         lines.append(f"{r.task:<5} {r.weighting:<8} {r.miou:7.3f} {shares} {macc} {tau} {r.nonfinite:6d}")
     return "\n".join(lines)
 
@@ -556,15 +571,16 @@ def format_curve(report: IoUReport, every: int = 5, whole_up_to: int = CURVE_WHO
     grid of at most `whole_up_to`, so a short --taus grid is shown whole: round 57c, 5 points showed as 1)."""
     lines = [f"grid search ({report.weighting}): tau  mIoU"]
     every = 1 if len(report.curve) <= whole_up_to else every
+    decimals = tau_decimals(t for t, _ in report.curve)
     for k, (t, m) in enumerate(report.curve):
         mark = "  <- best" if report.threshold is not None and t == report.threshold else ""
         if k % every == 0 or mark:
-            lines.append(f"  {t:5.2f}  {m:6.3f}{mark}")
+            lines.append(f"  {tau_text(t, decimals):>5}  {m:6.3f}{mark}")
     return "\n".join(lines)
 
 
 __all__ = [
-    "IOU_THRESHOLDS", "IoUReport", "expand_scores", "match_gaussians", "VoxelGrid", "VoxelSetup", "argmax_labels", "evaluate_scene", "format_curve",
+    "IOU_THRESHOLDS", "IoUReport", "expand_scores", "tau_text", "match_gaussians", "VoxelGrid", "VoxelSetup", "argmax_labels", "evaluate_scene", "format_curve",
     "format_reports", "grid_for", "localisation_report", "scene_weights", "segmentation_iou", "segmentation_report",
     "significance_weights", "splat_mass", "splat_mass_reference", "threshold_iou_curve", "voxel_labels",
     "voxel_localisation_report", "voxel_segmentation_report", "weighted_iou",
