@@ -222,6 +222,13 @@ def test_match_gaussians_and_expand_scores():
     assert np.count_nonzero(full) == 3
     with pytest.raises(ValueError, match="no counterpart"):
         match_gaussians(orig, np.array([[100.0, 0, 0]]))
+    # round 59b: a scene holding two Gaussians at one position (merged scenes copy some) was refused as "not the scene it
+    # was registered from"; they are paired in row order, as registration keeps the original's order
+    dup = np.concatenate([orig, orig[[4]], orig[[4, 4]]])  # rows 4, 10, 11, 12 at one position
+    assert match_gaussians(dup, dup).tolist() == list(range(13))
+    assert match_gaussians(dup, dup[[1, 4, 10, 12]]).tolist() == [1, 4, 10, 11]
+    with pytest.raises(ValueError, match=r"the copy holds more Gaussians at the position of its #2 than the original does"):
+        match_gaussians(orig, orig[[1, 4, 4, 4]])
 
 
 def test_argmax_rows_without_finite_scores_predict_nothing():

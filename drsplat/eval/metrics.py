@@ -463,8 +463,11 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
     """Index into the original scene of every Gaussian of a pruned copy, matched by position.
 
     original_means: [N, 3]; subset_means: [M, 3] (M ≤ N, e.g. a registered PLY written without
-    --keep-unassigned). Returns [M] int64. Raises ValueError when a Gaussian has no original
-    within `tolerance` × the scene extent, or two map to the same original.
+    --keep-unassigned). Returns [M] int64. Gaussians at one position (merged scenes hold exact
+    copies; round 59b: refused) are paired in row order, as registration keeps the original's order:
+    the copy's first such Gaussian takes the first original there not taken yet (`_pair_in_row_order`).
+    Raises ValueError when a Gaussian has no original within `tolerance` × the scene extent, or the
+    copy holds more Gaussians at a position than the original.
     """
     from scipy.spatial import cKDTree
 
@@ -479,9 +482,24 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
     bad = ~(dist <= tolerance * max(extent, 1e-12))
     if bad.any():
         raise ValueError(f"{int(bad.sum())} Gaussians have no counterpart in the original scene (e.g. #{int(np.flatnonzero(bad)[0])})")
+    idx = idx.astype(np.int64)
     if len(np.unique(idx)) != len(idx):
-        raise ValueError("several Gaussians match the same original Gaussian (duplicated positions)")
-    return idx.astype(np.int64)
+        _pair_in_row_order(tree, sub, idx, tolerance * max(extent, 1e-12))
+    return idx
+
+
+def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float) -> None:
+    """Re-pair, in place, the rows of `idx` [M] whose nearest original another row has too: row by row in order, each
+    takes the first original within `radius` of it that no row holds yet. ValueError when none is left."""
+    values, counts = np.unique(idx, return_counts=True)
+    shared = np.flatnonzero(np.isin(idx, values[counts > 1]))
+    taken = set(np.delete(idx, shared).tolist())
+    for row, near in zip(shared, tree.query_ball_point(sub[shared], r=radius)):
+        free = sorted(c for c in near if c not in taken)
+        if not free:
+            raise ValueError(f"the copy holds more Gaussians at the position of its #{int(row)} than the original does")
+        idx[row] = free[0]
+        taken.add(free[0])
 
 
 def expand_scores(scores: np.ndarray, index: np.ndarray, num_original: int, fill: float = 0.0) -> np.ndarray:
