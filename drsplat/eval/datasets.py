@@ -351,16 +351,21 @@ def load_lerf_annotations(label_dir: str | Path, camera_sizes: dict[str, tuple[i
     return [rasterise_lerf_document(doc) for doc in docs]
 
 
-def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.5, min_pixels: int = 4) -> list[np.ndarray]:
-    """Outer boundaries of a boolean mask as polygons [P, 2] (x, y), one per connected component."""
+def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.0, min_pixels: int = 4) -> list[np.ndarray]:
+    """Outer boundaries of a boolean mask as polygons [P, 2] (x, y), one per piece without holes (`hole_free_pieces`) of
+    each connected component: an annotation is the union of its polygons, so a hole cannot be written as one, and the
+    outer boundary alone filled it (round 59b: the tiny room's floor annotation covered the objects standing on it,
+    +26-37 % in 9 of 16 views). tolerance: skimage's `approximate_polygon`; 0, the default, keeps every boundary
+    vertex, so that LangSplat's fill paints each piece back exactly (0.5 cut concave corners: 14 extra pixels on an L
+    of 800)."""
     from skimage import measure
 
     labelled = measure.label(mask, connectivity=1)
     polys = []
-    for region in measure.regionprops(labelled):
-        if region.area < min_pixels:
-            continue
-        comp = np.pad(labelled == region.label, 1)
+    pieces = [piece for region in measure.regionprops(labelled) if region.area >= min_pixels
+              for piece in hole_free_pieces(labelled == region.label)]
+    for piece in pieces:
+        comp = np.pad(piece, 1)
         contours = measure.find_contours(comp.astype(np.float32), 0.5)
         if not contours:
             continue
@@ -368,6 +373,23 @@ def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.5, min_pixels: int =
         outer = measure.approximate_polygon(outer, tolerance)
         polys.append(_inside_pixel_centres(comp, outer) - 1.0)  # - 1: undo the padding
     return polys
+
+
+def hole_free_pieces(component: np.ndarray) -> list[np.ndarray]:
+    """A 4-connected boolean mask [H, W] cut into 4-connected pieces without holes whose union is the mask: at the first
+    column holding a hole, into the columns left of it and the rest (the cut opens that hole to the outside), each part
+    cut again until none holds a hole. Without holes: [component]."""
+    from scipy import ndimage
+
+    holes = ndimage.binary_fill_holes(component) & ~component
+    if not holes.any():
+        return [component]
+    cut = int(np.flatnonzero(holes.any(axis=0))[0])
+    pieces = []
+    for part in (np.where(np.arange(component.shape[1]) < cut, component, False), np.where(np.arange(component.shape[1]) >= cut, component, False)):
+        labelled, count = ndimage.label(part)
+        pieces += [piece for i in range(1, count + 1) for piece in hole_free_pieces(labelled == i)]
+    return pieces
 
 
 def _inside_pixel_centres(mask: np.ndarray, contour: np.ndarray) -> np.ndarray:
