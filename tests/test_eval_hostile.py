@@ -92,6 +92,23 @@ def test_voxel_iou_with_no_defined_label_is_an_error(pq, capsys):
     assert "no label's IoU is defined" in capsys.readouterr().err
 
 
+def test_a_label_that_fills_no_voxel_is_left_out_of_both_voxel_means(pq, tmp_path, capsys):
+    """Round 59b: with --voxel-empty 0.5 the floor's ground truth fills no voxel; the segmentation row said so and left it
+    out, while the localisation row scored it 0 and averaged it in, without a word. Both leave it out and say so now."""
+    import json
+
+    out = tmp_path / "v.json"
+    argv = ["eval", "iou", str(pq["ply"]), *labels_args(pq), "--original", str(pq["ds"] / "scene.ply"), "--weighting", "voxel",
+            "--voxel-empty", "0.5", "--json", str(out)]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "loc IoU (voxel): averaged over 7 of 8 labels; undefined for floor" in err
+    assert "seg IoU (voxel): averaged over 7 of 8 labels; undefined for floor" in err
+    rows = {(r["task"], r["weighting"]): r for r in json.loads(out.read_text())["reports"]}
+    for task in ("loc", "seg"):
+        assert rows[task, "voxel"]["per_label"]["floor"]["iou"] is None, task
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 @pytest.mark.parametrize("name", ["p.labels.ply", "p.xyz"])
 def test_a_fifo_cloud_is_not_a_file(pq, tmp_path, name, capsys):

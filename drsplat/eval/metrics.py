@@ -427,7 +427,9 @@ class VoxelSetup:
 
 def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, threshold: float,
                               label_names: list[str]) -> IoUReport:
-    """Localisation IoU on voxels at a given τ: occupancy of {score_l > τ} vs occupancy of {gt = l}."""
+    """Localisation IoU on voxels at a given τ: occupancy of {score_l > τ} vs occupancy of {gt = l}; undefined (NaN)
+    for a label whose ground truth occupies no voxel, as in `voxel_segmentation_report` (round 59b: it scored 0 here
+    and counted in the mean, while the segmentation row left it out)."""
     s, nonfinite = _clean_scores(scores)
     compared = float(thresholds_as_compared(threshold, scores))  # the selection `localisation_report` judged at this τ
     gt = np.asarray(gt_labels, np.int64)
@@ -437,9 +439,10 @@ def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: 
         if not g.any():
             continue
         gv = setup.occupancy(g)
+        if not gv.any():
+            continue
         pv = setup.occupancy(s[:, l] > compared)
-        union = np.count_nonzero(gv | pv)
-        iou[l] = np.count_nonzero(gv & pv) / union if union else np.nan
+        iou[l] = np.count_nonzero(gv & pv) / np.count_nonzero(gv | pv)
     return IoUReport(task="loc", weighting="voxel", label_names=list(label_names), iou=iou, threshold=float(threshold), nonfinite=nonfinite)
 
 
