@@ -123,6 +123,11 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     assert doc["mIoU"] > 0.5 and doc["mAcc@0.25"] > 0.6
     assert main([*argv, "--no-progress"]) == 0  # round 57c: the eval commands drew their bars into pipes and logs
     assert "LERF-OVS views" not in capsys.readouterr().err
+    # round 59b: a pixel is selected strictly above the threshold, and the occupancy never exceeds 1: 1 scored 0, exit 0
+    for flag in ("--alpha-threshold", "--mask-threshold"):
+        with pytest.raises(SystemExit) as exited:
+            main([*argv, flag, "1"])
+        assert exited.value.code == 2 and "1 is out of range: expected 0.0 <= value < 1.0" in capsys.readouterr().err
     # round 57c: without --label-names the rows were paired with the categories in sorted order (mIoU 0.013, exit 0)
     assert main([a for a in argv if a not in query_args(r)[2:]]) == 2
     assert "--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order)" in capsys.readouterr().err
@@ -347,6 +352,9 @@ def test_eval_iou_from_points_with_class_subset(registered, capsys):
             "--label-names", str(r["ds"] / "gt" / "label_names.json"), "--text-embeddings", str(r["root"] / "two.npy"),
             "--task", "seg", "--weighting", "count", "--json", str(js)]
     assert main(argv) == 0
+    assert "chunk" in capsys.readouterr().err  # the vote's bar ("pseudo-labels: ... chunk/s")
+    assert main([*argv, "--no-progress"]) == 0  # round 59b: eval iou had no --no-progress, its bar went into redirected stderr
+    assert "chunk" not in capsys.readouterr().err
     doc = json.loads(js.read_text())
     assert doc["labels"] == keep
     (rep,) = doc["reports"]

@@ -122,26 +122,28 @@ def refuse_repeats(flag: str, values: Sequence, shown: Callable[[object], str] =
         raise UsageError(f"{flag}: {', '.join(map(shown, repeated))} given twice")
 
 
-def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False) -> Callable[[str], float]:
-    """argparse type: a finite float in [lo, hi] ((lo, hi] with lo_open)."""
+def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite float in [lo, hi] ((lo, hi] with lo_open, [lo, hi) with hi_open)."""
 
     def parse(text: str) -> float:
         value = float(_number(text, float))
         low_bad = lo is not None and (value <= lo if lo_open else value < lo)
-        if low_bad or (hi is not None and value > hi):
-            raise argparse.ArgumentTypeError(f"{value:g} is out of range: expected {_describe(lo, hi, lo_open)}")
+        high_bad = hi is not None and (value >= hi if hi_open else value > hi)
+        if low_bad or high_bad:
+            raise argparse.ArgumentTypeError(f"{value:g} is out of range: expected {_describe(lo, hi, lo_open, hi_open)}")
         return value
 
     parse.__name__ = "number"
     return parse
 
 
-def _describe(lo, hi, lo_open: bool = False) -> str:
+def _describe(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
+    below = "<" if hi_open else "<="
     if lo is not None and hi is not None:
-        return f"{lo} {'<' if lo_open else '<='} value <= {hi}"
+        return f"{lo} {'<' if lo_open else '<='} value {below} {hi}"
     if lo is not None:
         return f"value {'>' if lo_open else '>='} {lo}"
-    return f"value <= {hi}"
+    return f"value {below} {hi}"
 
 
 positive_int = int_range(1, MAX_COUNT)

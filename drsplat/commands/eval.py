@@ -96,6 +96,7 @@ def _add_iou(sub) -> None:
     _add_pseudo_arguments(p)
     _add_query_arguments(p, "JSON list of label names (label id = index); with --gt-points, the names of the cloud's raw labels 1..K (default NYU40)")
     _add_task_arguments(p)
+    _add_no_progress(p)  # --gt-points runs the pseudo-label vote, whose bar went into redirected stderr (round 59b)
     p.set_defaults(func=run_iou)
 
 
@@ -179,16 +180,18 @@ def _add_lerf(sub) -> None:
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
     p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
-    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0), default=None,
-                   help=f"rendered occupancy above which a pixel is selected (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
+    # below 1: a pixel is selected strictly above it, and neither the occupancy nor the rescaled map exceeds 1 (round 59b:
+    # 1 was taken and scored 0 by construction, exit 0)
+    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0, hi_open=True), default=None,
+                   help=f"rendered occupancy above which a pixel is selected, 0 <= value < 1 (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     add_principal_point_argument(p)
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
                    help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
                         "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
                         "so it needs negatives; --threshold and --alpha-threshold do not apply)")
-    p.add_argument("--mask-threshold", type=float_range(0.0, 1.0), default=None,
-                   help=f"--protocol langsplat: threshold of the rescaled relevancy map (default: {LANGSPLAT_MASK_THRESHOLD}, LangSplat's)")
+    p.add_argument("--mask-threshold", type=float_range(0.0, 1.0, hi_open=True), default=None,
+                   help=f"--protocol langsplat: threshold of the rescaled relevancy map, 0 <= value < 1 (default: {LANGSPLAT_MASK_THRESHOLD}, LangSplat's)")
     p.add_argument("--topk", type=int_range(1, 1024), default=None,
                    help=f"--protocol langsplat: Gaussians blended per pixel for its feature (default: {DEFAULT_TOPK})")
     _add_query_arguments(p, "JSON list of names, one per --text-embeddings row (needed with it); with a text encoder, the phrases to "
