@@ -175,11 +175,15 @@ def check_outputs_writable(*paths: str | Path | None) -> None:
             check_output_writable(path)
 
 
+WRITE_BITS = 0o222  # a file none of whose write bits is set was protected on purpose (round 59a: root replaced the official codebook)
+
+
 def check_output_writable(path: str | Path) -> None:
     """OutputError now, before long work, when `path` could not be written later.
 
     Probes with a real temp file in the nearest existing folder of `path` (os.access is wrong for
-    root, ACLs and read-only mounts alike); an existing special file (device, FIFO) is left to its writer.
+    root, ACLs and read-only mounts alike); an existing special file (device, FIFO) is left to its writer. An
+    existing file without a write bit is refused even for root, who could replace it: it was protected on purpose.
     """
     path = output_target(Path(path))
     if path.is_dir():
@@ -199,6 +203,19 @@ def check_output_writable(path: str | Path) -> None:
     os.unlink(probe)
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputError(path, "exists and is not writable (permission denied)")
+    refuse_write_protected(path)
+
+
+def refuse_write_protected(path: Path) -> None:
+    """OutputError when `path` (an output's target) exists without any write bit: root may replace anything, but the
+    mode says the file is to be kept (round 59a: `pq train --out` replaced a 0444 codebook in a 0555 folder)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return
+    if stat.S_ISREG(mode) and not mode & WRITE_BITS:
+        raise OutputError(path, f"exists and is write-protected (mode {mode & 0o777:04o}); make it writable or remove it to have it "
+                                "replaced")
 
 
 def refused_new_file(folder: Path, exc: OSError) -> str:
@@ -492,6 +509,7 @@ def replace_with_temp(tmp: Path, path: str | Path) -> None:
     """Rename the finished temp file `tmp` (from `temp_beside(path)`) over `path`'s target (a
     symlink stays a link); an OSError names `path`."""
     shown = Path(path)
+    refuse_write_protected(output_target(shown))
     try:
         os.replace(tmp, output_target(shown))
     except OSError as exc:

@@ -276,3 +276,27 @@ def test_a_folder_output_where_no_folder_can_be_made_names_the_output():
         with atomic_folder("/proc/drsplat_probe", lambda p: False):
             pass
     assert "partial" not in str(err.value)
+
+
+def test_a_write_protected_output_is_never_replaced_even_by_root(tmp_path, capsys):
+    """Round 59a: `pq train --out` replaced a 0444 file in a 0555 folder (the shared official codebook), since root may
+    rename over anything. A file without any write bit is kept, with one error, by the up-front check and by every
+    atomic write; a writable one is replaced as before."""
+    from drsplat.cli import main
+    from drsplat.utils import check_output_writable, write_bytes_atomic
+
+    kept = tmp_path / "codebook.faiss"
+    kept.write_bytes(b"official")
+    kept.chmod(0o444)
+    try:
+        for attempt in (lambda: check_output_writable(kept), lambda: write_bytes_atomic(kept, b"new")):
+            with pytest.raises(OutputError, match=r"codebook.faiss: exists and is write-protected \(mode 0444\); make it writable"):
+                attempt()
+        np.save(tmp_path / "e.npy", np.random.default_rng(0).standard_normal((300, 16)).astype(np.float32))
+        assert main(["pq", "train", "--embeddings", str(tmp_path / "e.npy"), "--out", str(kept), "--m", "4"]) == 1
+        assert "exists and is write-protected" in capsys.readouterr().err
+        assert kept.read_bytes() == b"official" and not list(tmp_path.glob("*.tmp*"))
+    finally:
+        kept.chmod(0o644)
+    write_bytes_atomic(kept, b"new")
+    assert kept.read_bytes() == b"new"
