@@ -857,3 +857,28 @@ def test_the_writer_refuses_header_text_its_reader_would_refuse(tmp_path, data, 
     with pytest.raises(OutputError, match=rf"cannot write .*: field '{field}' of the 'drsplat\.lang' header comment: .* holds a "):
         attach_field(tiny_scene(len(x)), field_obj, ply)
     assert list(tmp_path.iterdir()) == []  # not even the codebook beside it
+
+
+def test_an_ivfpq_codebook_without_residual_encoding_registers_a_readable_field(tmp_path, data):
+    """Round 59a: an IndexIVFPQ with by_residual=False was accepted, but its Codebook counted 0 coarse lists, so the
+    registered PLY's every list id was refused on reading ("outside 0..-1"). Its lists are the index's; the codes
+    hold no coarse term, and the scores are decode-then-cosine."""
+    import faiss
+
+    x, w, _, dirs = data
+    index = faiss.IndexIVFPQ(faiss.IndexFlatIP(x.shape[1]), x.shape[1], 4, 8, 8, faiss.METRIC_INNER_PRODUCT)
+    index.by_residual = False
+    index.train(np.ascontiguousarray(x[5:]))
+    faiss.write_index(index, str(tmp_path / "nores.faiss"))
+    book = load_codebook(tmp_path / "nores.faiss")
+    assert book.kind == "ivfpq" and book.coarse is None and book.nlist == 4
+    field = build_field(x, w, book, clip_model="oracle")
+    ply = tmp_path / "reg.ply"
+    back = read_field(attach_field(tiny_scene(len(x)), field, ply), ply)
+    scores = back.scores(dirs)
+    np.testing.assert_array_equal(scores, field.scores(dirs))
+    recon = book.decode(back.storage.codes, back.storage.list_ids)
+    np.testing.assert_array_equal(recon, index.pq.decode(np.ascontiguousarray(back.storage.codes)))  # no coarse term
+    keep = w > 0
+    expected = unit_rows(recon[keep].astype(np.float64)) @ unit_rows(dirs.astype(np.float64)).T
+    np.testing.assert_allclose(scores[keep], expected, atol=1e-5)

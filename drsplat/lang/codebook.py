@@ -75,7 +75,11 @@ class Codebook:
 
     @property
     def nlist(self) -> int:
-        return 0 if self.coarse is None else int(self.coarse.shape[0])
+        """The coarse lists an ivfpq code's list id counts (the index's, whether or not it encodes residuals: round 59a,
+        an IndexIVFPQ with by_residual=False had 0, so every registered row's list id was refused); 0 for pq."""
+        if self.coarse is not None:
+            return int(self.coarse.shape[0])
+        return int(self.index.nlist) if self.kind == "ivfpq" else 0
 
     def encode(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Codes of vectors x: [n, D] -> (codes [n, M] uint8, list_ids [n] int32 or None).
