@@ -664,3 +664,29 @@ def test_segment_names_a_background_row_from_the_datasets_own_list(tmp_path, cap
     explicit.write_text(json.dumps(names + ["extra"]))
     with pytest.raises(InputError, match=r"3 names .*or 4, the last the background row"):
         embedding_names(tmp_path / "text_embeddings.npy", explicit, 3, background=True)
+
+
+@pytest.mark.parametrize("dim", [2, 16, 512])
+def test_a_phrase_given_as_query_and_as_negative_has_relevancy_one_half_exactly(dim, tmp_path):
+    """Round 59a: the same embedding as a query and as a negative scored 0.5 ± 1e-7 (the CLI normalised the negatives once
+    more than the queries, and `unit_rows` re-rounded a unit row), so `--threshold 0.5` selected 371 of 2,744 Gaussians by
+    rounding noise. `unit_rows` is idempotent now (its own rows, at every scale), and the relevancy is 0.5 everywhere."""
+    from drsplat.lang import unit_rows
+
+    rng = np.random.default_rng(dim)
+    for scale in (1e-30, 1e-3, 1.0, 7.0, 1e30):
+        x = (scale * rng.standard_normal((500, dim))).astype(np.float32)
+        once = unit_rows(x)
+        np.testing.assert_array_equal(unit_rows(once), once)
+        assert np.abs(np.linalg.norm(once.astype(np.float64), axis=1) - 1).max() <= 2.0**-23
+    feats = unit_rows(rng.normal(size=(300, dim)))
+    field = build_field(feats, np.ones(300, np.float32))
+    q = (3 * rng.normal(size=dim)).astype(np.float32)
+    assert (relevancy(field, q, unit_rows(unit_rows(q[None]))) == np.float32(0.5)).all()
+    ply = tmp_path / "r.ply"
+    save_ply(attach_field(tiny_scene(300), field, ply), ply)
+    np.save(tmp_path / "q.npy", q)
+    np.save(tmp_path / "neg.npy", q[None])
+    assert main(["-q", "query", str(ply), "--embedding", str(tmp_path / "q.npy"), "--relevancy", "--negative-embeddings",
+                 str(tmp_path / "neg.npy"), "--threshold", "0.5", "--scores", str(tmp_path / "s.npy")]) == 0
+    assert (np.load(tmp_path / "s.npy") == np.float32(0.5)).all()
