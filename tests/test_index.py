@@ -665,6 +665,28 @@ def test_codebook_cut_inside_its_last_fields_says_truncated(books, tmp_path, cut
     np.testing.assert_array_equal(book.centroids, books[8].centroids)
 
 
+@pytest.mark.parametrize("entries", [0, 300])
+def test_bytes_after_an_ivfpq_codebook_are_a_warning_too(data, tmp_path, caplog, entries):
+    """Round 59a: 5 MB appended to the official IndexIVFPQ were read without a word, while an IndexPQ's were a warning.
+    The inverted lists' codes and ids (code_size + 8 bytes an entry) are skipped, and what follows is said; an index
+    with filled lists, or none, warns of nothing."""
+    import faiss
+
+    x = np.ascontiguousarray(data[0][5:])
+    index = faiss.IndexIVFPQ(faiss.IndexFlatIP(x.shape[1]), x.shape[1], 4, 8, 8, faiss.METRIC_INNER_PRODUCT)
+    index.train(x)
+    index.add(x[:entries])
+    whole = faiss.serialize_index(index).tobytes()
+    (tmp_path / "cb.faiss").write_bytes(whole)
+    with caplog.at_level(logging.WARNING):
+        load_codebook(tmp_path / "cb.faiss")
+    assert "follow the codebook's last field" not in caplog.text
+    (tmp_path / "joined.faiss").write_bytes(whole + b"\0" * 5)
+    with caplog.at_level(logging.WARNING):
+        load_codebook(tmp_path / "joined.faiss")
+    assert "joined.faiss: 5 bytes follow the codebook's last field and are ignored" in caplog.text
+
+
 def test_codebook_dimension_mismatch_is_an_input_error(data, tmp_path):
     book = train_codebook(data[0][5:], m=8)
     book.save(tmp_path / "cb.faiss")

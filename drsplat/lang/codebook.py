@@ -198,7 +198,8 @@ class _FaissHeaderReader:
         return code
 
     def check_list_sizes(self, nlist: int, code_size: int) -> None:
-        """The ArrayInvertedLists sizes ("full": nlist counts, "sprs": (list, count) pairs) fit the file."""
+        """The ArrayInvertedLists sizes ("full": nlist counts, "sprs": (list, count) pairs) fit the file; the lists'
+        codes and ids (code_size + 8 bytes an entry, faiss's write_InvertedLists) are then skipped."""
         kind = self.fourcc()
         if kind == b"full":
             count = self.skip_array(8, "inverted list sizes", expected=nlist)
@@ -211,6 +212,14 @@ class _FaissHeaderReader:
         total = int(sizes.astype(np.float64).sum())
         if total * (code_size + 8) > len(self.data) - self.pos:
             raise InputError(self.path, f"faiss inverted lists declare {total} entries, more than the file holds", field="invlists")
+        self.pos += total * (code_size + 8)
+
+    def warn_if_bytes_follow(self) -> None:
+        """Warn when bytes follow the index's last field: faiss ignores them, and so does drsplat, but a file joined to
+        another, or a corrupt copy, should be said (round 59a: an IndexIVFPQ's were not, an IndexPQ's were)."""
+        if self.pos < len(self.data):
+            log.warning("%s: %d bytes follow the codebook's last field and are ignored (two files joined, or a corrupt copy?)",
+                        self.path, len(self.data) - self.pos)
 
     def index_header(self, what: str) -> tuple[int, int]:
         """(d, ntotal) of faiss's common index header, with d in 1..MAX_DIM and ntotal >= 0."""
@@ -262,9 +271,7 @@ def check_faiss_header(path: Path) -> None:
         r.take("i", "the search type after the codes")
         r.take("B", "encode_signs after the codes")
         r.take("i", "polysemous_ht after the codes")
-        if r.pos < len(data):
-            log.warning("%s: %d bytes follow the codebook's last field and are ignored (two files joined, or a corrupt copy?)",
-                        path, len(data) - r.pos)
+        r.warn_if_bytes_follow()
         return
     if code not in (b"IvPQ", b"IwPQ"):
         raise InputError(path, "is not a faiss index file drsplat reads (unknown index type code; drsplat reads IndexPQ and IndexIVFPQ codebooks)")
@@ -287,11 +294,14 @@ def check_faiss_header(path: Path) -> None:
     m = r.product_quantizer(d)
     if code_size != m:
         raise InputError(path, f"faiss IndexIVFPQ code_size={code_size} differs from M={m}", field="code_size")
-    if r.fourcc() == b"ilar":
+    lists_kind = r.fourcc()
+    if lists_kind == b"ilar":
         lists, list_code_size = int(r.take("Q", "invlists nlist")), int(r.take("Q", "invlists code_size"))
         if lists != nlist or list_code_size != code_size:
             raise InputError(path, f"faiss inverted lists have nlist={lists}, code_size={list_code_size}; expected {nlist}, {code_size}", field="invlists")
         r.check_list_sizes(nlist, code_size)
+    if lists_kind in (b"ilar", b"il00"):  # arrays, or none: the index ends here (other kinds live in files of their own)
+        r.warn_if_bytes_follow()
 
 
 def _check_finite(values: np.ndarray, what: str, path: Path | None) -> None:
