@@ -809,7 +809,10 @@ def guard_outputs(
             raise OutputError(out, f"{flag} lies under {dangling}, a link to {os.readlink(dangling)}, which does not exist")
         for in_flag, inp in given_in.items():
             if _same_file(out, inp):
-                raise OutputError(out, f"{flag} is the same file as the input {in_flag}; writing it would destroy the input. Choose another output path")
+                # an input named by a flag or an argument reads "the input --embedding"; one named by a phrase ("the registered
+                # PLY's codebook") read "the input the registered PLY's codebook" (round 59a)
+                named = f"{in_flag} (an input)" if in_flag.startswith("the ") else f"the input {in_flag}"
+                raise OutputError(out, f"{flag} is the same file as {named}; writing it would destroy the input. Choose another output path")
         for tree_flag, tree in (protected_trees or {}).items():
             if tree is not None and out.is_file() and _resolved(out).is_relative_to(_resolved(Path(tree))):
                 possessive = "'" if tree_flag.endswith("s") else "'s"

@@ -300,3 +300,15 @@ def test_a_write_protected_output_is_never_replaced_even_by_root(tmp_path, capsy
         kept.chmod(0o644)
     write_bytes_atomic(kept, b"new")
     assert kept.read_bytes() == b"new"
+
+
+def test_an_input_named_by_a_phrase_reads_as_a_sentence_in_the_refusal(tmp_path):
+    """Round 59a: "--scores is the same file as the input the registered PLY's codebook"; an input named by a phrase now
+    reads "... as the registered PLY's codebook (an input)", one named by a flag as before."""
+    book = tmp_path / "r.codebook.faiss"
+    book.write_bytes(b"x")
+    with pytest.raises(OutputError, match=r"--scores is the same file as the registered PLY's codebook \(an input\); writing it"):
+        guard_outputs({"--embedding": tmp_path / "q.npy", "the registered PLY's codebook": book}, {"--scores": book})
+    with pytest.raises(OutputError, match=r"--scores is the same file as the input --embedding; writing it"):
+        guard_outputs({"--embedding": book}, {"--scores": book})
+    assert book.read_bytes() == b"x"
