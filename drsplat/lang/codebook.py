@@ -465,7 +465,7 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     components, and `segment` split Gaussians tied between equal label and background rows by that
     noise; round 37); a float64 sum's order moves its float32 rounding only at a boundary.
 
-    Idempotent: a row whose float64 norm is within UNIT_TOLERANCE of 1 is returned as it is, and every row this
+    Idempotent: a row whose float64 norm is within UNIT_ROW_SLACK of 1 is returned as it is, and every row this
     function makes is (each of its components is rounded once, relative error ≤ 2⁻²⁴, and the norm it divides by
     once more, so its norm lies within 2⁻²³ of 1). A second pass re-rounded them: the same phrase given as a query
     and as a negative, normalised two and three times on their ways, scored 0.5 ± 1e-7 and `--threshold 0.5`
@@ -476,11 +476,13 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
         scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
         ok = has_direction(x)[:, None]
         x64 = x.astype(np.float64)
-        unit = ok & (np.abs(np.sqrt(np.einsum("ij,ij->i", x64, x64)) - 1.0) <= UNIT_TOLERANCE)[:, None]
+        unit = ok & (np.abs(np.sqrt(np.einsum("ij,ij->i", x64, x64)) - 1.0) <= UNIT_ROW_SLACK)[:, None]
         y = np.where(ok, x / np.where(ok, scale, 1), 0)
         y64 = y.astype(np.float64)
         norm = np.sqrt(np.einsum("ij,ij->i", y64, y64))[:, None].astype(np.float32)
         return np.where(unit, x, np.where(ok, y / np.where(ok, norm, 1), 0)).astype(np.float32)
 
 
-UNIT_TOLERANCE = 2.0**-22  # |‖x‖ − 1| of a row `unit_rows` takes as unit already: twice the most its own rows are off
+# |‖x‖ − 1| of a row `unit_rows` takes as unit already: twice the most its own rows are off (not defaults.UNIT_TOLERANCE,
+# the 1e-3 within which a stored row counts as unit)
+UNIT_ROW_SLACK = 2.0**-22
