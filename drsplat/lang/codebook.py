@@ -473,14 +473,19 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     """
     x = np.atleast_2d(np.asarray(x, np.float32))
     with np.errstate(invalid="ignore", over="ignore"):
-        scale = np.abs(x).max(axis=1, keepdims=True) if x.shape[1] else np.zeros((x.shape[0], 1), np.float32)
-        ok = has_direction(x)[:, None]
-        x64 = x.astype(np.float64)
-        unit = ok & (np.abs(np.sqrt(np.einsum("ij,ij->i", x64, x64)) - 1.0) <= UNIT_ROW_SLACK)[:, None]
-        y = np.where(ok, x / np.where(ok, scale, 1), 0)
+        norms = np.sqrt(np.einsum("ij,ij->i", x, x, dtype=np.float64))  # float64 squares: no float32 input overflows them
+        unit = np.abs(norms - 1.0) <= UNIT_ROW_SLACK  # False for NaN; a finite row of norm ~1 has a direction
+        if unit.all():
+            return x.copy()
+        out = x.copy()
+        rest = x[~unit]
+        scale = np.abs(rest).max(axis=1, keepdims=True) if rest.shape[1] else np.zeros((rest.shape[0], 1), np.float32)
+        ok = has_direction(rest)[:, None]
+        y = np.where(ok, rest / np.where(ok, scale, 1), 0)
         y64 = y.astype(np.float64)
         norm = np.sqrt(np.einsum("ij,ij->i", y64, y64))[:, None].astype(np.float32)
-        return np.where(unit, x, np.where(ok, y / np.where(ok, norm, 1), 0)).astype(np.float32)
+        out[~unit] = np.where(ok, y / np.where(ok, norm, 1), 0)
+        return out
 
 
 # |‖x‖ − 1| of a row `unit_rows` takes as unit already: twice the most its own rows are off (not defaults.UNIT_TOLERANCE,
