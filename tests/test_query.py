@@ -664,6 +664,13 @@ def test_segment_names_a_background_row_from_the_datasets_own_list(tmp_path, cap
     explicit.write_text(json.dumps(names + ["extra"]))
     with pytest.raises(InputError, match=r"3 names .*or 4, the last the background row"):
         embedding_names(tmp_path / "text_embeddings.npy", explicit, 3, background=True)
+    # round 59a: any file of as many rows beside the dataset's names took them (its rows reversed, or random vectors: the
+    # table named every label wrongly); only the dataset's own text_embeddings.npy is named by them, --names names any
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        assert embedding_names(tmp_path / "reversed.npy", None, 4) == ["label_0", "label_1", "label_2", "label_3"]
+    assert "not naming the rows of" in caplog.text and "reversed.npy" in caplog.text
+    assert embedding_names(tmp_path / "reversed.npy", tmp_path / "gt" / "label_names.json", 4) == names
 
 
 @pytest.mark.parametrize("dim", [2, 16, 512])

@@ -23,7 +23,7 @@ from drsplat.commands.common import (
     checked_phrases,
     table_stream,
 )
-from drsplat.defaults import ORACLE_LABEL_NAMES
+from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.lang import strip_field
 from drsplat.scene import SH_C0, GaussianScene
@@ -49,8 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--labels", metavar="A,B,...", help="comma-separated label phrases (needs CLIP weights)")
     source.add_argument("--embeddings", type=Path, metavar="L.npy", help="label embeddings (L, D)")
     parser.add_argument("--names", type=Path, metavar="NAMES.json",
-                        help="names of the --embeddings rows (a JSON list); default: gt/label_names.json beside L.npy "
-                        "when it has one name per row (synthetic datasets), else label_0, label_1, ...")
+                        help="names of the --embeddings rows (a JSON list); default: for a synthetic dataset's own "
+                        "text_embeddings.npy, the gt/label_names.json beside it, else label_0, label_1, ...")
     parser.add_argument(
         "--background",
         action="store_true",
@@ -104,13 +104,19 @@ def warn_repeated_rows(embeddings: np.ndarray, names: list[str]) -> None:
 
 
 def embedding_names(embeddings: Path, names_path: Path | None, count: int, background: bool = False) -> list[str]:
-    """Names of `count` label embeddings: NAMES.json (a JSON list) when given, else the dataset's
-    gt/label_names.json beside the embeddings when it names exactly `count` labels, else label_i.
+    """Names of `count` label embeddings: NAMES.json (a JSON list) when given, else, for a synthetic dataset's own
+    text_embeddings.npy, its gt/label_names.json when that names exactly `count` labels, else label_i.
     background: the file's rows hold one more, the background (--background, its last row), which a
     list may name too (round 49: a dataset's 8 names for its 8 rows were ignored as "not naming the
     7 label rows")."""
     explicit = names_path is not None
     path = names_path if explicit else default_names_path(embeddings)
+    if not explicit and path.is_file() and embeddings.name != ORACLE_TEXT_EMBEDDINGS:
+        # the dataset's names are those of its own rows: another file beside them (rows reordered, other vectors) took
+        # them too, and the table named the labels wrongly (round 59a)
+        log.info("not naming the rows of %s by %s, which names the rows of %s; give --names to name them", shown_path(embeddings),
+                 shown_path(path), ORACLE_TEXT_EMBEDDINGS)
+        return [f"label_{i}" for i in range(count)]
     if explicit or path.is_file():
         names = read_json(path, "a JSON list of names")
         if isinstance(names, list) and (len(names) == count or (background and len(names) == count + 1)):
