@@ -638,9 +638,17 @@ def test_read_field_errors_name_the_problem(tmp_path, data, books):
     broken = GaussianScene(**{**scene.__dict__, "extra": {k: v for k, v in scene.extra.items() if k != "lang_code_3"}})
     with pytest.raises(InputError, match="lang_code_3"):
         read_field(broken, ply)
+    # round 59a: an empty codebook= entry read as the PLY's own folder: "is not a regular file (a folder)"
+    empty = GaussianScene(**{**scene.__dict__, "comments": [c.replace("codebook=reg.codebook.faiss", "codebook=") for c in scene.comments]})
+    assert "codebook= " in empty.comments[-1] or empty.comments[-1].endswith("codebook=")
+    with pytest.raises(InputError, match="reg.ply: .*a quantised language field names no codebook file"):
+        read_field(empty, ply)
     codebook_path_for(ply).unlink()
     with pytest.raises(InputError, match="codebook file not found"):
         read_field(scene, ply)
+    from drsplat.commands.info import field_summary  # round 59a: info's finding did not say which codebook is missing
+
+    assert field_summary(scene, ply)[1] == [f"language field: {codebook_path_for(ply)}: codebook file not found (the codebook reg.ply's header names)"]
     bad_kind = GaussianScene(**{**scene.__dict__, "comments": ["drsplat.lang kind=zip dim=64 clip=x"]})
     with pytest.raises(InputError, match="unknown language field kind"):
         read_field(bad_kind, ply)

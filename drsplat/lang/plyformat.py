@@ -354,7 +354,7 @@ def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | No
     weights = _extra(scene, ply_path, "lang_weight")
     book = None
     if needs_codebook(kind):
-        if "codebook" not in meta:
+        if not meta.get("codebook"):  # an empty entry too: it read as the PLY's own folder, "is not a regular file (a folder)" (round 59a)
             raise InputError(ply_path, "a quantised language field names no codebook file", field=where)
         try:
             book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
