@@ -161,6 +161,18 @@ def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
     with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
         train_codebook(x, m=8)
     assert "distinct" not in caplog.text
+    # round 59a: NaN, inf and zero rows trained as zero rows without a word (256 NaN rows: a codebook of zero centroids)
+    bad = x.copy()
+    bad[::2] = np.nan
+    bad[1] = 0
+    bad[3, 0] = np.inf
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
+        book = train_codebook(bad, m=8)
+    assert "302 of the 600 training embeddings are zero or not finite and are left out" in caplog.text
+    assert (np.abs(book.centroids).max(axis=2) > 0).all(), "no centroid spent on a zero row"
+    with pytest.raises(InputError, match="needs at least 256 embeddings, got 0"):
+        train_codebook(np.full((300, 32), np.nan, np.float32), m=8)
 
 
 def test_lut_kernel_for_m_not_multiple_of_4():

@@ -356,11 +356,17 @@ def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codeb
     """Train a faiss IndexPQ (inner product, M sub-vectors x 8 bits) on embeddings [n, D].
 
     Each sub-quantiser is a 256-centroid k-means over its D/M-dimensional slice. Rows are
-    L2-normalised first (CLIP embeddings are compared by cosine).
+    L2-normalised first (CLIP embeddings are compared by cosine); rows without a direction (zero, NaN, inf:
+    `has_direction`) are left out with a warning before the count is checked (round 59a: they trained as
+    zero rows, and 256 NaN rows made a codebook of zero centroids without a word).
     """
     faiss = _faiss()
 
-    x = unit_rows(np.asarray(embeddings, np.float32))
+    raw = np.atleast_2d(np.asarray(embeddings, np.float32))
+    usable = has_direction(raw)
+    if not usable.all():
+        log.warning("%d of the %d training embeddings are zero or not finite and are left out", int((~usable).sum()), raw.shape[0])
+    x = unit_rows(raw[usable])
     n, d = x.shape
     if m <= 0 or d % m:
         raise InputError(None, f"M={m} sub-vectors do not divide the embedding dimension {d}")
