@@ -924,3 +924,17 @@ def test_an_ivfpq_codebook_without_residual_encoding_registers_a_readable_field(
     keep = w > 0
     expected = unit_rows(recon[keep].astype(np.float64)) @ unit_rows(dirs.astype(np.float64)).T
     np.testing.assert_allclose(scores[keep], expected, atol=1e-5)
+
+
+def test_a_dangling_link_where_an_exports_codebook_goes_is_refused(tmp_path, data, books):
+    """Round 59a: `query --out sel.ply --format drsplat` beside a dangling link sel.codebook.faiss -> /elsewhere/dir/x.faiss
+    (a name the user never typed) wrote the codebook at the link's target and made its missing folders, exit 0. It is
+    one error naming the link now, and nothing is written."""
+    from drsplat.lang.plyformat import export_scene
+
+    x, w, _, _ = data
+    field = build_field(x, w, books[8])
+    (tmp_path / "sel.codebook.faiss").symlink_to(tmp_path / "elsewhere" / "dir" / "x.faiss")
+    with pytest.raises(OutputError, match=r"sel.codebook.faiss: is a link to .*x.faiss, which does not exist: the codebook sel.ply needs"):
+        export_scene(tiny_scene(len(x)), field, tmp_path / "sel.ply", "drsplat")
+    assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "sel.ply").exists()

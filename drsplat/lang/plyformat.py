@@ -234,6 +234,10 @@ def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
         log.warning("%s is a device or pipe: the codebook its PLY names (%s) was not written; a reader of that PLY needs it "
                     "beside the PLY (or register with --codebook none)", shown_path(ply_path), shown_path(named.name))
         return named, crc
+    # a name the user never typed: a dangling link there was followed, and its target made with its missing folders anywhere (round 59a)
+    if target.is_symlink() and not target.exists():
+        raise OutputError(target, f"is a link to {os.readlink(target)}, which does not exist: the codebook {Path(ply_path).name} needs "
+                                  "goes under this name beside it; remove the link, or point it at a file")
     stamp = file_stamp(target)
     if stamp is not None and codebook.written.get(target) == stamp:  # this call's earlier chunks wrote it, and it is unchanged
         return target, crc
