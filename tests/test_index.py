@@ -938,3 +938,24 @@ def test_a_dangling_link_where_an_exports_codebook_goes_is_refused(tmp_path, dat
     with pytest.raises(OutputError, match=r"sel.codebook.faiss: is a link to .*x.faiss, which does not exist: the codebook sel.ply needs"):
         export_scene(tiny_scene(len(x)), field, tmp_path / "sel.ply", "drsplat")
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "sel.ply").exists()
+
+
+def test_an_export_over_a_write_protected_ply_leaves_its_codebook_alone(tmp_path, data, books):
+    """Round 60a: an export onto a write-protected drsplat PLY was refused at the PLY's rename, after its codebook beside it
+    had been replaced: the protected PLY then named a codebook it no longer matched (CRC refused). The PLY is checked
+    before its codebook is written, in the library and in the viewer's export alike."""
+    from drsplat.lang.plyformat import export_scene
+    from drsplat.scene import load_ply
+
+    x, w, _, _ = data
+    ply = tmp_path / "sel.ply"
+    export_scene(tiny_scene(len(x)), build_field(x, w, books[8]), ply, "drsplat")
+    kept = {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))}
+    ply.chmod(0o444)
+    try:
+        with pytest.raises(OutputError, match=r"sel.ply: exists and is write-protected \(mode 0444\)"):
+            export_scene(tiny_scene(len(x)), build_field(x, w, books[16]), ply, "drsplat")
+        assert {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))} == kept
+    finally:
+        ply.chmod(0o644)
+    assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)

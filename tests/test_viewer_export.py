@@ -226,6 +226,15 @@ def test_viewer_exports_both_formats(demo, query, tmp_path):
     assert load_ply(tmp_path / "a" / "std.ply").extra == {}
     assert state.export_selection(registered, "standard") is None, "never over the loaded scene"
     assert registered.with_name("registered.codebook.faiss").is_file()
+    # round 60a: onto a write-protected export, the PLY was refused at its rename after its codebook had been replaced
+    book = tmp_path / "a" / "mug.codebook.faiss"
+    book.write_bytes(b"another codebook")
+    (tmp_path / "a" / "mug.ply").chmod(0o444)
+    try:
+        assert state.export_selection(tmp_path / "a" / "mug.ply", "drsplat") is None
+        assert "exists and is write-protected" in state.messages[-1].text and book.read_bytes() == b"another codebook"
+    finally:
+        (tmp_path / "a" / "mug.ply").chmod(0o644)
 
 
 def test_cli_exports_splat_and_spz_by_the_name(demo, query, tmp_path, capsys):

@@ -34,7 +34,7 @@ from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
-from drsplat.utils import check_output_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
+from drsplat.utils import check_output_writable, check_outputs_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
 from viewer.cameracheck import CameraCheck, checked_cameras, concurrent_kernels_safe, start_camera_check
 from viewer.messages import LibraryWarnings, Message, MessageLog  # noqa: F401 - Message re-exported
 from viewer.paths import typed_path
@@ -652,6 +652,7 @@ class ViewerState:
             codebook = written_codebook_path(path) if fmt == "drsplat" else None
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {"the export": path, "the export's codebook": codebook}, folders)
+            check_outputs_writable(path, codebook)  # both, before either is written, as the CLI's export checks them (round 60a)
             with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
                 export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001

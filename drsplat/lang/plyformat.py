@@ -44,7 +44,7 @@ from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
 from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target
+from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, refuse_write_protected
 
 log = logging.getLogger(__name__)
 
@@ -227,6 +227,8 @@ def write_codebook_beside(codebook, ply_path: str | Path) -> tuple[Path, int]:
     Beside a link's target (`written_codebook_path`); beside a device or FIFO nothing is written, and
     a warning names the file the PLY's reader will need."""
     target = written_codebook_path(ply_path)
+    # the PLY is put in place after its codebook: a write-protected PLY, refused then, had its codebook replaced (round 60a)
+    refuse_write_protected(output_target(Path(ply_path)))
     data = codebook.file_bytes()
     crc = zlib.crc32(data)
     if target is None:
