@@ -218,6 +218,21 @@ def refuse_write_protected(path: Path) -> None:
                                 "replaced")
 
 
+def refuse_write_protected_tree(folder: Path) -> None:
+    """`refuse_write_protected` for a folder output about to be replaced whole: the folder itself without a write bit, or
+    any regular file in it (round 60a: `synth` over an earlier dataset deleted a 0444 scene.ply, and replaced a 0555
+    folder, as root, without a word)."""
+    if not folder.is_dir():
+        return
+    if not folder.stat().st_mode & WRITE_BITS:
+        raise OutputError(folder, f"is a write-protected folder (mode {folder.stat().st_mode & 0o777:04o}); make it writable or remove it "
+                                  "to have it replaced")
+    for root, _, files in os.walk(folder):
+        for name in files:
+            if not os.path.islink(os.path.join(root, name)):  # the folder's removal deletes a link, never what it names
+                refuse_write_protected(Path(root) / name)
+
+
 def refused_new_file(folder: Path, exc: OSError) -> str:
     """Why the existing `folder` did not take a new file, from the OSError of creating one. ENOENT
     there is no missing folder: it is a file system that creates no files on request (/proc, /sys),
@@ -245,6 +260,7 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
         raise OutputError(path, "exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not replaceable(path):
         raise OutputError(path, "is a non-empty folder that is not an earlier output of this command; choose a new folder")
+    refuse_write_protected_tree(path)
     ensure_parent(path)
     sweep_stale_temps(path, PARTIAL_SUFFIX)
     try:
@@ -260,6 +276,7 @@ def atomic_folder(path: str | Path, replaceable: Callable[[Path], bool]) -> Iter
         if path.exists() and (not path.is_dir() or (any(path.iterdir()) and not replaceable(path))):
             raise OutputError(path, "changed while this command ran: it is no longer empty or an earlier output of this command "
                                     "(another command wrote into it?); nothing was replaced, choose a new folder or rerun")
+        refuse_write_protected_tree(path)
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=temp_prefix(path), suffix=PARTIAL_SUFFIX, dir=path.parent))
             os.rmdir(old)

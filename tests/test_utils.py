@@ -312,3 +312,37 @@ def test_an_input_named_by_a_phrase_reads_as_a_sentence_in_the_refusal(tmp_path)
     with pytest.raises(OutputError, match=r"--scores is the same file as the input --embedding; writing it"):
         guard_outputs({"--embedding": book}, {"--scores": book})
     assert book.read_bytes() == b"x"
+
+
+def test_a_folder_output_holding_a_write_protected_file_is_never_replaced(tmp_path):
+    """Round 60a: `synth` over an earlier dataset (a folder output, replaced whole) deleted a 0444 scene.ply in it, and
+    replaced a 0555 folder, as root, without a word. Either is refused before anything is built; a link in the folder
+    to a protected file elsewhere is not in the way (only the link is deleted)."""
+    from drsplat.utils import atomic_folder
+
+    out = tmp_path / "syn"
+    out.mkdir()
+    (out / "scene.ply").write_bytes(b"kept")
+    (out / "scene.ply").chmod(0o444)
+    try:
+        with pytest.raises(OutputError, match=r"syn/scene.ply: exists and is write-protected \(mode 0444\)"):
+            with atomic_folder(out, lambda p: True) as tmp:
+                (tmp / "new").write_bytes(b"x")
+        assert (out / "scene.ply").read_bytes() == b"kept"
+    finally:
+        (out / "scene.ply").chmod(0o644)
+    out.chmod(0o555)
+    try:
+        with pytest.raises(OutputError, match=r"syn: is a write-protected folder \(mode 0555\)"):
+            with atomic_folder(out, lambda p: True):
+                pass
+    finally:
+        out.chmod(0o755)
+    protected = tmp_path / "elsewhere.ply"
+    protected.write_bytes(b"not ours")
+    protected.chmod(0o444)
+    (out / "scene.ply").unlink()
+    (out / "link.ply").symlink_to(protected)
+    with atomic_folder(out, lambda p: True) as tmp:
+        (tmp / "new").write_bytes(b"x")
+    assert sorted(p.name for p in out.iterdir()) == ["new"] and protected.read_bytes() == b"not ours"
