@@ -229,6 +229,9 @@ def test_match_gaussians_and_expand_scores():
     assert match_gaussians(dup, dup[[1, 4, 10, 12]]).tolist() == [1, 4, 10, 11]
     with pytest.raises(ValueError, match=r"the copy holds more Gaussians at the position of its #2 than the original does"):
         match_gaussians(orig, orig[[1, 4, 4, 4]])
+    # round 60a: the first in row order within the tolerance took a distinct Gaussian 3e-5 away before the exact copy
+    near = np.array([[0.0, 0, 0], [3e-5, 0, 0], [0, 0, 0], [10, 10, 10]])
+    assert match_gaussians(near, near[[0, 2, 3]]).tolist() == [0, 2, 3]
 
 
 def test_argmax_rows_without_finite_scores_predict_nothing():

@@ -468,7 +468,7 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
     original_means: [N, 3]; subset_means: [M, 3] (M ≤ N, e.g. a registered PLY written without
     --keep-unassigned). Returns [M] int64. Gaussians at one position (merged scenes hold exact
     copies; round 59b: refused) are paired in row order, as registration keeps the original's order:
-    the copy's first such Gaussian takes the first original there not taken yet (`_pair_in_row_order`).
+    the copy's first such Gaussian takes the nearest original there not taken yet (`_pair_in_row_order`).
     Raises ValueError when a Gaussian has no original within `tolerance` × the scene extent, or the
     copy holds more Gaussians at a position than the original.
     """
@@ -493,16 +493,20 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
 
 def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float) -> None:
     """Re-pair, in place, the rows of `idx` [M] whose nearest original another row has too: row by row in order, each
-    takes the first original within `radius` of it that no row holds yet. ValueError when none is left."""
+    takes the nearest original within `radius` of it that no row holds yet, the first in row order among equally near
+    ones (round 60a: the first in row order within the radius took a distinct Gaussian 3e-5 away before the exact copy).
+    ValueError when none is left."""
     values, counts = np.unique(idx, return_counts=True)
     shared = np.flatnonzero(np.isin(idx, values[counts > 1]))
     taken = set(np.delete(idx, shared).tolist())
+    originals = tree.data
     for row, near in zip(shared, tree.query_ball_point(sub[shared], r=radius)):
-        free = sorted(c for c in near if c not in taken)
+        free = [c for c in near if c not in taken]
         if not free:
             raise ValueError(f"the copy holds more Gaussians at the position of its #{int(row)} than the original does")
-        idx[row] = free[0]
-        taken.add(free[0])
+        best = min(free, key=lambda c: (float(np.square(originals[c] - sub[row]).sum()), c))
+        idx[row] = best
+        taken.add(best)
 
 
 def expand_scores(scores: np.ndarray, index: np.ndarray, num_original: int, fill: float = 0.0) -> np.ndarray:
