@@ -1876,10 +1876,10 @@ def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:
         field = NAME_FIELDS.get(kind, "name")
         renamed = [c for c in (cameras[j], camera) if c.image_path is not None and c.image_path.stem != c.name]
         if renamed:  # a rig's folder prefix made the name (round 58a: it was called an image stem, which it is not)
+            made = "both names are made so" if len(renamed) == 2 else "that name is another image's stem"  # round 60a: a_b/c and a/b_c
             raise InputError(path, f"cameras {j} and {i} both name the view {camera.name!r} ({cameras[j].image_path} and {camera.image_path}): "
                              "images of one name in different folders are named by their folders too (a camera rig's layout), and "
-                             "that name is another image's stem; rename one of them (the view name pairs a view with its feature "
-                             "files)", field=field)
+                             f"{made}; rename one of them (the view name pairs a view with its feature files)", field=field)
         raise InputError(path, f"cameras {j} and {i} both name the image stem {camera.name!r}; each view needs its own image "
                          "(the stem pairs a view with its feature files)", field=field)
 

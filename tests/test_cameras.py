@@ -1709,7 +1709,11 @@ def test_a_view_name_that_collides_only_after_the_rig_prefixes_is_named_as_a_vie
     cameras naming "the image stem 'cam1_img_00'": that is the view name the folder prefix made, not either file's stem."""
     root = _tiny_colmap(tmp_path / "rig", ("cam1/img_00.png", "cam2/img_00.png", "cam1_img_00.png"))
     with pytest.raises(InputError, match=r"both name the view 'cam1_img_00' \(.*cam1/img_00.png and .*images/cam1_img_00.png\): images of "
-                                         r"one name in different folders are named by their folders too"):
+                                         r"one name in different folders are named by their folders too .*, and that name is another image's stem"):
+        load_cameras(root)
+    # round 60a: two prefixed names colliding (a_b/c and a/b_c), neither another image's stem
+    root = _tiny_colmap(tmp_path / "rig2", ("a_b/c.png", "x/c.png", "a/b_c.png", "y/b_c.png"))
+    with pytest.raises(InputError, match=r"both name the view 'a_b_c' .*, and both names are made so; rename one"):
         load_cameras(root)
 
 
