@@ -124,10 +124,14 @@ def test_eval_lerf_on_stand_in(registered, capsys):
     assert main([*argv, "--no-progress"]) == 0  # round 57c: the eval commands drew their bars into pipes and logs
     assert "LERF-OVS views" not in capsys.readouterr().err
     # round 59b: a pixel is selected strictly above the threshold, and the occupancy never exceeds 1: 1 scored 0, exit 0
-    for flag in ("--alpha-threshold", "--mask-threshold"):
-        with pytest.raises(SystemExit) as exited:
-            main([*argv, flag, "1"])
-        assert exited.value.code == 2 and "1 is out of range: expected 0.0 <= value < 1.0" in capsys.readouterr().err
+    for flag, value, bound in (("--alpha-threshold", "0.9999", "0.9999"), ("--mask-threshold", "1", "1.0")):
+        with pytest.raises(SystemExit) as exited:  # round 60a: the occupancy never passes 1 - T_MIN, 0.9999 scored 0 too
+            main([*argv, flag, value])
+        assert exited.value.code == 2 and f"{value} is out of range: expected 0.0 <= value < {bound}" in capsys.readouterr().err
+    from drsplat.defaults import LERF_ALPHA_LIMIT
+    from drsplat.raster import T_MIN
+
+    assert LERF_ALPHA_LIMIT == 1 - T_MIN
     # round 57c: without --label-names the rows were paired with the categories in sorted order (mIoU 0.013, exit 0)
     assert main([a for a in argv if a not in query_args(r)[2:]]) == 2
     assert "--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order)" in capsys.readouterr().err

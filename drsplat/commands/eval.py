@@ -19,7 +19,8 @@ import numpy as np
 
 from drsplat.commands.common import (add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range,
                                      output_file, refuse_repeats, table_stream, threshold_value)
-from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_LIMIT, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES,
+                              ORACLE_TEXT_EMBEDDINGS)
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable, json_text, outputs_together
@@ -180,10 +181,11 @@ def _add_lerf(sub) -> None:
     p.add_argument("--source", type=Path, required=True, metavar="DATASET", help="the scene's dataset folder (COLMAP / transforms.json cameras)")
     p.add_argument("--annotations", type=Path, required=True, metavar="DIR", help="lerf_ovs/label/<scene>/ with frame_XXXXX.json")
     p.add_argument("--threshold", type=threshold_value, default=None, metavar="T|auto", help="selection threshold on the score (default: 0.5 for relevancy, per-query Otsu for cosine)")
-    # below 1: a pixel is selected strictly above it, and neither the occupancy nor the rescaled map exceeds 1 (round 59b:
+    # a pixel is selected strictly above it, and the occupancy never exceeds LERF_ALPHA_LIMIT, nor the rescaled map 1 (round 59b:
     # 1 was taken and scored 0 by construction, exit 0)
-    p.add_argument("--alpha-threshold", type=float_range(0.0, 1.0, hi_open=True), default=None,
-                   help=f"rendered occupancy above which a pixel is selected, 0 <= value < 1 (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
+    p.add_argument("--alpha-threshold", type=float_range(0.0, LERF_ALPHA_LIMIT, hi_open=True), default=None,
+                   help=f"rendered occupancy above which a pixel is selected, 0 <= value < {LERF_ALPHA_LIMIT} (a pixel's occupancy "
+                        f"never reaches it) (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     add_principal_point_argument(p)
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
