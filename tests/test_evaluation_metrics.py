@@ -333,6 +333,13 @@ def test_a_fine_threshold_grid_is_printed_with_its_own_decimals():
     assert [r.split()[0] for r in rows] == ["0.104", "0.106", "0.108", "0.110", "0.112", "0.114", "0.116"]
     assert rows[5].endswith("<- best")
     assert format_reports([report]).splitlines()[-1].split()[-2] == "0.114"
+    # round 60a: the voxel row has no grid of its own and printed the same τ as 0.11; and 6 decimals overflowed the column
+    voxel = IoUReport("loc", "voxel", ["a"], np.array([0.6]), threshold=0.11)
+    table = format_reports([report, voxel]).splitlines()
+    assert [row.split()[-2] for row in table[2:]] == ["0.114", "0.110"]
+    finest = IoUReport("loc", "count", ["a"], np.array([0.6]), threshold=0.123456, curve=[(0.123456, 0.5)])
+    table = format_reports([finest, voxel]).splitlines()
+    assert [row.split()[-2] for row in table[2:]] == ["0.123456", "0.110000"] and len({len(row) for row in table[2:]}) == 1
     coarse = [(k / 100, 0.5) for k in range(0, 101)]  # the default grid, 0.07 held as 0.07000000000000001
     report = IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=coarse[7][0], curve=coarse)
     assert format_reports([report]).splitlines()[-1].split()[-2] == "0.07"

@@ -577,14 +577,19 @@ def tau_text(tau: float, decimals: int | None = None) -> str:
 
 
 def format_reports(reports: list[IoUReport]) -> str:
-    """A plain-text table (one row per report) like the paper's: mIoU, IoU>0.15/0.3/0.45, mAcc, τ."""
-    head = f"{'task':<5} {'weighting':<8} {'mIoU':>7} " + " ".join(f"{'>' + str(t):>7}" for t in IOU_THRESHOLDS) + f" {'mAcc':>7} {'tau':>6} {'nonfin':>6}"
+    """A plain-text table (one row per report) like the paper's: mIoU, IoU>0.15/0.3/0.45, mAcc, τ. Every τ is printed with
+    the decimals of all the grids searched (`tau_decimals`; round 60a: the voxel row, which has no grid of its own, printed
+    the volume row's 0.110 as 0.11), in a column as wide as they need."""
+    decimals = tau_decimals([t for r in reports for t, _ in r.curve] + [r.threshold for r in reports if r.threshold is not None])
+    taus = [tau_text(r.threshold, decimals) if r.threshold is not None else "-" for r in reports]
+    width = max([6, *map(len, taus)])
+    head = (f"{'task':<5} {'weighting':<8} {'mIoU':>7} " + " ".join(f"{'>' + str(t):>7}" for t in IOU_THRESHOLDS)
+            + f" {'mAcc':>7} {'tau':>{width}} {'nonfin':>6}")
     lines = [head, "-" * len(head)]
-    for r in reports:
+    for r, tau in zip(reports, taus):
         shares = " ".join(f"{r.share_above(t):7.3f}" for t in IOU_THRESHOLDS)
         macc = f"{r.macc:7.3f}" if r.acc is not None else f"{'-':>7}"
-        tau = f"{tau_text(r.threshold, tau_decimals([t for t, _ in r.curve] or [r.threshold])):>6}" if r.threshold is not None else f"{'-':>6}"
-        lines.append(f"{r.task:<5} {r.weighting:<8} {r.miou:7.3f} {shares} {macc} {tau} {r.nonfinite:6d}")
+        lines.append(f"{r.task:<5} {r.weighting:<8} {r.miou:7.3f} {shares} {macc} {tau:>{width}} {r.nonfinite:6d}")
     return "\n".join(lines)
 
 
