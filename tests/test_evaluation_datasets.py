@@ -436,6 +436,12 @@ def test_an_annotation_whose_size_is_not_its_images_is_refused(tmp_path):
     exif[0x0112] = 6
     Image.new("RGB", (128, 96)).save(path.with_suffix(".jpg"), exif=exif)
     assert load_lerf_view(path).width == 96
+    doc["info"].update(width=128, height=96)  # round 60a: the refusal gave the turned size as the file's, which tools show stored
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"beside it is 96x128 as shown \(128x96 stored, EXIF orientation 6\)"):
+        load_lerf_view(path)
+    doc["info"].update(width=96, height=128)
+    path.write_text(json.dumps(doc))
     path.with_suffix(".jpg").write_bytes(b"not an image")
     assert load_lerf_view(path).width == 96
     path.with_suffix(".jpg").unlink()

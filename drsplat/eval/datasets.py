@@ -259,9 +259,11 @@ def annotated_image(path: Path, width: int, height: int) -> Path | None:
     size = header_size(image)
     if size is None:
         return image
-    w, h = size[::-1] if exif_orientation(image) in EXIF_ROTATED else size
+    turn = exif_orientation(image)
+    w, h = size[::-1] if turn in EXIF_ROTATED else size
     if (w, h) != (width, height):
-        raise InputError(path, f"says the annotated image is {width}x{height}, but {image.name} beside it is {w}x{h}: the polygons "
+        shown = f"{w}x{h} as shown ({size[0]}x{size[1]} stored, EXIF orientation {turn})" if turn in EXIF_ROTATED else f"{w}x{h}"
+        raise InputError(path, f"says the annotated image is {width}x{height}, but {image.name} beside it is {shown}: the polygons "
                                "would be read at another scale; give info.width and info.height of the image they were drawn on",
                          field="info.width")
     return image
