@@ -3232,6 +3232,25 @@ def test_query_and_pq_train_refuse_an_unwritable_output_before_their_work(tmp_pa
     assert code == 1 and "does not accept new files" in out.err and "wrote" not in out.out, out
 
 
+def test_register_refuses_a_write_protected_output_or_codebook_before_its_views(tmp_path, world, capsys):
+    """Round 60a: `register --codebook scene --out wpc.ply` beside a write-protected wpc.codebook.faiss was refused after
+    the whole registration (hours on a real scene); a write-protected --out too. Both before any view now."""
+    ds = world["ds"]
+    argv = ["register", str(ds / "scene.ply"), "--source", str(ds), "--features", str(ds / "features"), "--codebook", "scene",
+            "--no-progress"]
+    for protected in ("wpc.codebook.faiss", "wpc.ply"):
+        (tmp_path / protected).write_bytes(b"keep")
+        (tmp_path / protected).chmod(0o444)
+        try:
+            code = main([*argv, "--out", str(tmp_path / "wpc.ply")])
+        finally:
+            (tmp_path / protected).chmod(0o644)
+        err = capsys.readouterr().err
+        assert code == 1 and f"{protected}: exists and is write-protected" in err and "registered" not in err, err
+        assert (tmp_path / protected).read_bytes() == b"keep" and not list(tmp_path.glob(".wpc.ply.register*"))
+        (tmp_path / protected).unlink()
+
+
 def test_a_dash_output_is_refused_as_standard_output_is_not_read_from_it(tmp_path, world, capsys, monkeypatch):
     """Round 57c: `query --scores -` wrote a file named '-' (many tools read '-' as standard output)."""
     monkeypatch.chdir(tmp_path)
