@@ -750,3 +750,20 @@ def test_ctrl_c_in_the_window_closes_the_viewer_and_says_what_its_registration_k
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert f"the registration into {out} was stopped when the viewer closed; registering into the same output again" in caplog.text
     assert caplog.text.count(str(checkpoint_path_for(out))) == 1, "the checkpoint is named once, by the registration's own line"
+    # round 60a: a view in hand that outlasts the wait is not "stopped": it dies with the process, and that is said
+    import threading
+    from types import SimpleNamespace
+
+    from drsplat.utils import CancelToken
+
+    release = threading.Event()
+    slow = threading.Thread(target=release.wait, daemon=True)
+    slow.start()
+    busy = SimpleNamespace(registration=SimpleNamespace(finished=False, cancel=CancelToken(), thread=slow, output=tmp_path / "slow.ply"))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="viewer"):
+        viewer.launch.stop_registration(busy, wait=0.05)
+    release.set()
+    assert busy.registration.cancel.cancelled
+    assert f"the registration into {tmp_path / 'slow.ply'} did not stop within 0.05 s of the viewer closing; the view in hand is lost, " \
+           "and nothing of it was written" in caplog.text

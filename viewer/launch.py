@@ -260,7 +260,11 @@ def stop_registration(state, wait: float = REGISTRATION_STOP_SECONDS) -> None:
     if job.thread is not None:
         job.thread.join(wait)
     kept = checkpoint_path_for(job.output)
-    if os.path.lexists(kept):
+    if job.thread is not None and job.thread.is_alive():  # the view in hand outlasted the wait: it dies with the process (round 60a)
+        log.warning("the registration into %s did not stop within %g s of the viewer closing; the view in hand is lost, %s",
+                    shown_path(job.output), wait, "the views before it are kept and registering into the same output again resumes "
+                    "from them" if os.path.lexists(kept) else "and nothing of it was written")
+    elif os.path.lexists(kept):
         # the registration's own warning has named the checkpoint and its views: this line says how the viewer resumes
         log.warning("the registration into %s was stopped when the viewer closed; registering into the same output again (the "
                     "viewer's Register, or drsplat register ... --out %s) resumes from the views it kept", shown_path(job.output),
