@@ -591,8 +591,9 @@ class ViewerState:
             inputs.update(dataset_inputs(self.source_dir, self.dataset_cameras or self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
-            inputs["output of the registration running"] = self.registration.output
-            inputs["codebook of the registration running"] = written_codebook_path(self.registration.output)
+            # named as phrases ("the ..."), which guard_outputs says as such: "the input output of ..." read wrong (round 60a)
+            inputs["the output of the registration running"] = self.registration.output
+            inputs["the codebook of the registration running"] = written_codebook_path(self.registration.output)
         return inputs, protected_feature_folders("--features", [self.features_dir])
 
     def guard_output(self, path: str | Path, what: str) -> bool:
