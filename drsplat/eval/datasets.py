@@ -359,7 +359,9 @@ def mask_to_polygons(mask: np.ndarray, tolerance: float = 0.0, min_pixels: int =
     outer boundary alone filled it (round 59b: the tiny room's floor annotation covered the objects standing on it,
     +26-37 % in 9 of 16 views). tolerance: skimage's `approximate_polygon`; 0, the default, keeps every boundary
     vertex, so that LangSplat's fill paints each piece back exactly (0.5 cut concave corners: 14 extra pixels on an L
-    of 800)."""
+    of 800). Components of fewer than `min_pixels` pixels are left out, so a mask fills back exactly but for them (a
+    checkerboard or a one-pixel diagonal, all such components, writes nothing; round 60a): a polygon of one or two
+    vertices paints nothing in LangSplat's fill, and is warned about as degenerate ground truth when read."""
     from skimage import measure
 
     labelled = measure.label(mask, connectivity=1)
