@@ -320,6 +320,17 @@ def test_segment_cli_labels_and_coloured_ply(tmp_path, registered, world, monkey
     same = got == got[10]
     np.testing.assert_allclose(rgb[same], np.broadcast_to(rgb[10], rgb[same].shape), atol=1e-5)
     assert not np.allclose(rgb[got == 0][0], rgb[got == 1][0])
+    # round 60a: a write-protected --ply was refused after LABELS.npy was written, which then went with it: the earlier
+    # labels file was lost, nothing left. Refused before any work now, both files kept
+    before = (tmp_path / "lab.npy").read_bytes()
+    (tmp_path / "col.ply").chmod(0o444)
+    try:
+        assert main(["segment", str(registered["exact"]), "--embeddings", str(tmp_path / "L.npy"), "--out", str(tmp_path / "lab.npy"),
+                     "--ply", str(tmp_path / "col.ply")]) == 1
+    finally:
+        (tmp_path / "col.ply").chmod(0o644)
+    assert "col.ply: exists and is write-protected" in capsys.readouterr().err
+    assert (tmp_path / "lab.npy").read_bytes() == before
     monkeypatch.setattr(common_cmd, "load_encoder", lambda args, field, **_: FakeEncoder(dirs))
     assert main(["segment", str(registered["pq"]), "--labels", "lbl0,lbl1,lbl2,lbl3", "--out", str(tmp_path / "t.npy")]) == 0
     t = np.load(tmp_path / "t.npy")

@@ -160,7 +160,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import label_colors, segment
     from drsplat.splat_formats import check_writable, written_format
-    from drsplat.utils import guard_outputs, outputs_together, save_npy_atomic
+    from drsplat.utils import check_outputs_writable, guard_outputs, outputs_together, save_npy_atomic
 
     inputs = {"REGISTERED.ply": args.registered, "--embeddings": args.embeddings, "--clip-checkpoint": args.clip_checkpoint,
               "the registered PLY's codebook": written_codebook_path(args.registered),
@@ -169,6 +169,9 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         label_phrases(args.labels)  # a usage error before any file is read
     outputs = {"--out": args.out, "--ply": args.ply, **export_outputs(args.ply, args.format, "--ply")}
     guard_outputs(inputs, outputs)
+    # before the work, as query does: a write-protected --ply refused after LABELS.npy was written took the earlier labels
+    # file with it (outputs_together), and nothing was left (round 60a)
+    check_outputs_writable(*outputs.values())
     scene, field = load_registered(args.registered)
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--out", args.out)
