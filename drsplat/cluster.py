@@ -15,6 +15,7 @@ import signal
 import socket
 import threading
 import time
+import types
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -299,3 +300,80 @@ def session(address: str | None) -> Iterator[None]:
     finally:
         if owns:
             import_ray().shutdown()
+
+
+def _code_identity(modules: tuple[str, ...] = ()) -> dict[str, str]:
+    """What a process must share with the driver for the same bits: drsplat's sources (a digest of every
+    .py file of the package it imports), Python, numpy and numba, and the version of each of `modules`
+    (features add torch and open_clip, whose arithmetic makes their embeddings). Self-contained (its imports
+    inside): `check_nodes_run_this_code` ships it by value, so a node runs this code, not its own drsplat's."""
+    import hashlib
+    import importlib
+    import sys
+    from pathlib import Path
+
+    import numba
+    import numpy
+
+    import drsplat  # inside: the function is shipped by value and runs on another node
+
+    package = Path(drsplat.__file__).resolve().parent
+    h = hashlib.sha1()
+    for f in sorted(package.rglob("*.py")):
+        h.update(str(f.relative_to(package)).encode() + b"\0" + f.read_bytes())
+    found = {"drsplat sources": h.hexdigest()[:12], "python": sys.version.split()[0], "numpy": numpy.__version__, "numba": numba.__version__}
+    for name in modules:
+        try:
+            found[name] = str(getattr(importlib.import_module(name), "__version__", "?"))
+        except ImportError:
+            found[name] = "missing"
+    return found
+
+
+PROBE_SECONDS = 60.0  # a node that does not answer the code probe in this time is not checked (said at debug level)
+
+
+def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "its views") -> list[dict]:
+    """One task on every live node (no CPU asked, so a busy node answers too) reports what its workers
+    import (`_code_identity` with `modules`, shipped by value); a node that imports another drsplat, Python, numpy,
+    numba or version of `modules` is one DrsplatError before any work, naming the node, what differs and `what` it
+    would make (registration's views; features' embeddings: round 60b, a node of other code wrote 9 of 16 feature
+    files, exit 0). A node whose workers
+    cannot import drsplat at all is said the same way, not as Ray's traceback.
+
+    Returns the nodes (ray.nodes() entries) to place workers on: a node that ray.nodes() still lists
+    as alive but that is gone (lost a moment ago: Ray says its probe cannot be scheduled, "the node
+    ... doesn't exist any more") is left out with a warning, not refused and not counted as a worker
+    slot (a worker asked for there would never be placed); a node that does not answer in PROBE_SECONDS is kept."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    by_value = types.FunctionType(_code_identity.__code__, {"__builtins__": __builtins__}, "_code_identity")
+    mine = _code_identity(modules)
+    task = ray.remote(num_cpus=0, max_retries=0)(by_value)
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(modules): n for n in nodes}
+    ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=PROBE_SECONDS)
+    gone = []
+    for ref in ready:
+        node = refs[ref].get("NodeManagerHostname") or refs[ref].get("NodeManagerAddress")
+        try:
+            theirs = ray.get(ref)
+        except ray.exceptions.TaskUnschedulableError:  # the node left the cluster since ray.nodes() listed it
+            gone.append(refs[ref])
+            continue
+        except ray.exceptions.RayError as exc:
+            cause = getattr(exc, "cause", None) or exc
+            raise DrsplatError(f"the Ray node {node} cannot run drsplat ({type(cause).__name__}: {str(cause).splitlines()[-1]}): every node "
+                               "needs drsplat importable with its dependencies (a node of another host gets the driver's package "
+                               "through Ray's py_modules unless its address is this host's)") from None
+        differ = [f"{k} {theirs.get(k)} there, {v} here" for k, v in mine.items() if theirs.get(k) != v]
+        if differ:
+            raise DrsplatError(f"the Ray node {node} runs other code than this driver ({'; '.join(differ)}): {what} would not be "
+                               "this run's bits; every node needs the driver's drsplat (a node of another host gets it through Ray's "
+                               f"py_modules unless its address is this host's) and the same Python, numpy, numba{''.join(', ' + m for m in modules)}")
+    if len(ready) < len(refs):
+        log.debug("Ray: %d node(s) did not answer the code probe in %.0f s", len(refs) - len(ready), PROBE_SECONDS)
+    if gone:
+        log.warning("Ray: %d node(s) listed as alive are gone (lost a moment ago: %s); no worker is asked for there", len(gone),
+                    ", ".join(n.get("NodeID", "?")[:12] for n in gone))
+    return [n for n in nodes if all(n is not g for g in gone)]

@@ -238,6 +238,19 @@ def test_features_on_a_cluster_where_no_worker_can_start_are_one_error_not_a_wai
     assert not list((tmp_path / "ray").glob("*.npy"))
 
 
+def test_features_on_a_node_that_imports_other_code_are_refused_before_any_image(cluster, tiny, tiny_clip, tmp_path, monkeypatch, capsys):
+    """Round 60b: registration probed its nodes' code, `features --ray` did not: a node of other drsplat code wrote 9 of 16
+    feature files of another norm into one folder, exit 0. The same probe now runs first, with torch and open_clip's
+    versions too (the driver's torch version is changed here)."""
+    import torch
+
+    monkeypatch.setattr(torch, "__version__", "0.0.0")
+    assert features_cli(tiny, tiny_clip, tmp_path / "ray", "--ray", cluster.address) == 1
+    err = capsys.readouterr().err
+    assert "runs other code than this driver (torch " in err and "0.0.0 here): its feature files would not be" in err, err
+    assert not list((tmp_path / "ray").glob("*.npy"))
+
+
 def test_a_node_listed_alive_but_gone_is_left_out_not_refused(cluster, local, tiny, monkeypatch, caplog):
     """Was (round 42, left as found): a second `register()` in the process, right after a run that lost a
     node, met the lost node still listed alive by ray.nodes(): its code probe could not be scheduled
@@ -280,7 +293,7 @@ def test_a_cluster_with_nodes_on_other_hosts_gets_the_package_shipped(cluster, t
     sources there. (This machine's addresses are hidden here, so every node looks like another host's.)"""
     import drsplat
     import drsplat.cluster as dc
-    from drsplat.registration.ray import check_nodes_run_this_code
+    from drsplat.cluster import check_nodes_run_this_code
 
     def where() -> str:
         import drsplat

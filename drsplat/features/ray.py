@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import load_image_sized, unobserved_pixels
-from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, connect, import_ray, kill_if_cancelled, placed_actors, set_worker_threads, stalled,
-                             worker_slots)
+from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, check_nodes_run_this_code, connect, import_ray, kill_if_cancelled, placed_actors,
+                             set_worker_threads, stalled, worker_slots)
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
 from drsplat.features.extract import (
@@ -149,6 +149,7 @@ def _check_started(actors: list, manifest_args: tuple, cancel: CancelToken | Non
     return started, manifests[0]
 
 
+FEATURE_MODULES = ("torch", "open_clip")  # besides drsplat, Python, numpy and numba: what makes a worker's embeddings (`check_nodes_run_this_code`)
 SHAPING_KEYS = ("mask_generator", "clip_model_id", "dim", "crop_size", *RESUME_KEYS)  # manifest entries two workers must share
 
 
@@ -263,7 +264,10 @@ def extract_features_ray(
     actors: list = []
     try:
         gpus = 1 if spec.device == "cuda" else 0
-        count = actor_count(ray.nodes(), gpus, workers, address)
+        # before any image, as registration checks its nodes: a node of other code wrote 9 of 16 feature files of another
+        # norm into one folder, exit 0 (round 60b); torch and open_clip make the embeddings too
+        nodes = check_nodes_run_this_code(ray, FEATURE_MODULES, "its feature files")
+        count = actor_count(nodes, gpus, workers, address)
         actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
         actors = [actor.remote(spec) for _ in range(count)]
         log.info("features on %d Ray actor(s)%s", count, " (one per GPU)" if gpus else "")
