@@ -182,6 +182,27 @@ def test_a_worker_node_without_the_outputs_folder_fails_at_its_first_view(cluste
     assert not elsewhere.exists()
 
 
+def test_a_shard_the_drivers_mask_check_cannot_read_is_one_error(cluster, local, tiny, tmp_path, monkeypatch):
+    """Round 60b: on Ray in blocks, a node writing its shards to storage of its own at the output's path (a node-local
+    folder, a stale mount) made the default mode's mask check, which reads the views' pairs from the shards on the
+    driver, end in a 40-line traceback of ShardError; the reducers' reads were one sentence. The check's are too now.
+    (The check's read is made to fail here as such a shard does.)"""
+    from drsplat.registration import register
+    from drsplat.registration.check import CheckSink
+    from drsplat.registration.pairlog import ShardError
+
+    scene, cams, _ = local
+
+    def unreadable(self, *args, **kwargs):
+        raise ShardError(tmp_path / "w.log", "the worker's shard holding view orbit_002 cannot be read (No such file or directory)")
+
+    monkeypatch.setattr(CheckSink, "kept_pairs", unreadable)
+    options = RegisterOptions(ray="auto", aggregate="check-vote-reject", block_size=1024)
+    with pytest.raises(DrsplatError, match=r"^the mask check on the driver on .*: .*w.log: the worker's shard holding view orbit_002 "
+                                           r"cannot be read \(No such file or directory\): the partitioned reduce needs the output's folder"):
+        register(scene, cams, tiny / "features", tmp_path / "out" / "reg.ply", options, show_progress=False)
+
+
 @pytest.fixture(scope="module")
 def tiny_clip(tmp_path_factory) -> Path:
     from tests.test_clip import make_tiny_clip

@@ -55,7 +55,7 @@ from drsplat.registration.options import RegisterOptions
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
-from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, wants_reducers
+from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, shard_errors, wants_reducers
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
@@ -401,7 +401,8 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                                                 None if check is not None else getattr(sink, "clusters", None), target.out,
                                                 target.clip_model, reject=aggregator.reject, check=check, clip_weights=target.clip_weights))
             if check is not None:
-                kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
+                with shard_errors(None):
+                    kept = check.kept_pairs(partial_supports=lambda add: pool.supports(reduce.job, add))
                 reduce.job = judged(reduce.job, kept.keep)
                 if aggregator.vote:  # the clusters of the kept masks with pairs, trimmed by the check's like cosine
                     reduce.job = dataclasses.replace(reduce.job, clusters=kept.clusters(run.dim), trim=check.verdicts.trim,

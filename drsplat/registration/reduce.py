@@ -185,14 +185,16 @@ def open_log(job: ReduceJob, index: int) -> PairLog:
 
 
 @contextmanager
-def shard_errors(index: int, lo: int, hi: int):
-    """A worker's shard that this reducer cannot read becomes one DrsplatError naming the block, the
-    file and the shared storage the partitioned reduce needs."""
+def shard_errors(index: int | None, lo: int = 0, hi: int = 0):
+    """A worker's shard that this reducer (index: its block), or the driver (index None: the mask check, which reads the
+    views' pairs from the shards; round 60b: a raw traceback), cannot read becomes one DrsplatError naming who read it,
+    the file and the shared storage the partitioned reduce needs."""
     try:
         yield
     except ShardError as exc:
-        raise DrsplatError(f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,}) on {socket.gethostname()}: {exc}: the partitioned "
-                           "reduce needs the output's folder on storage every Ray node shares at the same path") from None
+        who = f"the reducer of block {index} (Gaussians {lo:,}..{hi - 1:,})" if index is not None else "the mask check on the driver"
+        raise DrsplatError(f"{who} on {socket.gethostname()}: {exc}: the partitioned reduce needs the output's folder on storage every "
+                           "Ray node shares at the same path") from None
 
 
 def block_sink(job: ReduceJob, plog: PairLog) -> LogSink | VoteSink:
