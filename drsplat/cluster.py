@@ -108,12 +108,30 @@ def _on_this_host(address: str | None) -> bool:
     return ip.startswith("127.") or ip in _host_addresses()
 
 
+def address_problem(address: str | None) -> str | None:
+    """Why `address` is no Ray cluster address ("is ...", to follow the address), or None: nothing / "local" / "auto", or
+    HOST:PORT (ray://HOST:PORT), the port 1-65535. A dashboard's http(s):// address is named as such (round 60b: Ray's
+    advice about a RAY_ADDRESS variable the user never set came back, with a token hint)."""
+    if address is None or address in LOCAL_ADDRESSES or address == "auto":
+        return None
+    expected = "HOST:PORT as `ray start --head` prints it (port 6379 by default), 'auto', or nothing for a local cluster"
+    scheme, sep, target = address.partition("://")
+    if sep and scheme.lower() in ("http", "https"):
+        return f"is a web address (a dashboard's?), not a cluster's: expected {expected}"
+    if sep and scheme.lower() != "ray":
+        return f"is not an address (ray:// is the only scheme a cluster's takes): expected {expected}"
+    host, _, port = (target if sep else address).rpartition(":")
+    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        return f"is not an address: expected {expected}"
+    return None
+
+
 def _check_reachable(address: str, timeout: float = 3.0) -> None:
     """A clear error at once when host:port accepts no connection (ray.init would wait much longer)."""
-    target = address.split("://", 1)[-1]
-    host, _, port = target.rpartition(":")
-    if not host or not port.isdigit():
-        raise DrsplatError(f"--ray {address!r} is not an address: expected HOST:PORT (as printed by `ray start --head`), 'auto', or nothing for a local cluster")
+    problem = address_problem(address)
+    if problem is not None:
+        raise DrsplatError(f"--ray {address!r} {problem}")
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
     try:
         with socket.create_connection((host, int(port)), timeout=timeout):
             return

@@ -266,6 +266,17 @@ def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
         connect("127.0.0.1:9")
     with pytest.raises(DrsplatError, match="is not an address"):
         connect("nowhere")
+    # round 60b: a dashboard's address got Ray's advice about a RAY_ADDRESS variable and a token hint, and a malformed one
+    # was refused only after the scene was loaded and the fit stage had run: the CLI refuses both as it parses
+    with pytest.raises(DrsplatError, match=r"--ray 'http://127.0.0.1:8265' is a web address \(a dashboard's\?\), not a cluster's"):
+        connect("http://127.0.0.1:8265")
+    for bad, why in (("http://127.0.0.1:8265", "is a web address"), ("foo", "is not an address"), ("h:99999", "is not an address"),
+                     ("ftp://h:1", "ray:// is the only scheme")):
+        for command in (["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                         str(tmp_path / "o.ply")], ["features", "--source", str(tiny), "--out", str(tmp_path / "f")]):
+            with pytest.raises(SystemExit) as exited:
+                main([*command, f"--ray={bad}"])
+            assert exited.value.code == 2, (bad, command[0])
     t0 = time.time()
     code = main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
                  "--out", str(tmp_path / "o.ply"), "--ray", "127.0.0.1:9", "--no-progress"])

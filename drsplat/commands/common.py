@@ -114,6 +114,20 @@ def text_value(text: str) -> str:
 text_value.__name__ = "value"
 
 
+def ray_address(text: str) -> str:
+    """argparse type of --ray's ADDRESS (`cluster.address_problem`): a malformed one is a usage error at once, not after
+    the scene is loaded and the fit stage has run (round 60b)."""
+    from drsplat.cluster import address_problem
+
+    problem = address_problem(text_value(text))
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"{text!r} {problem}")
+    return text
+
+
+ray_address.__name__ = "address"
+
+
 def refuse_repeats(flag: str, values: Sequence, shown: Callable[[object], str] = repr) -> None:
     """UsageError naming the entries of the list flag `flag` given more than once: a slip (a table row or
     an ablation's mode twice), refused as --classes refuses its names."""

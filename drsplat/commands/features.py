@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import int_range, nonneg_int, resolution_value, text_value
+from drsplat.commands.common import int_range, nonneg_int, ray_address, resolution_value, text_value
 from drsplat.errors import INTERRUPTED_NOTE, RESUMABLE_NOTE, OutputError
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
@@ -48,7 +48,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-height", type=nonneg_int, default=1080, metavar="ROWS", help="LangSplat's cap on image rows (0 = none; default 1080)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as register and synth; batch logs)")
     p.add_argument("--batch-size", type=int_range(1, 4096), default=64, metavar="N", help="CLIP crops per batch")
-    p.add_argument("--ray", nargs="?", type=text_value, const="local", default=None, metavar="ADDRESS",
+    p.add_argument("--ray", nargs="?", type=ray_address, const="local", default=None, metavar="ADDRESS",
                    help="spread images over Ray workers (pip install 'drsplat[ray]'), one model load per worker: ADDRESS of a "
                    "running cluster (host:port or 'auto'), or no value to start a local one. With --device cuda each worker "
                    "requests one GPU. Same files, resumable")

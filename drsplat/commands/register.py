@@ -8,7 +8,7 @@ import json
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, resolution_value, size_value, text_value, topk_int
+from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable
@@ -54,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
                    "streamed in blocks through a pair log on disk, with the same output. Default: in memory if it fits the "
                    "memory available, else stop and say which budget fits")
-    p.add_argument("--ray", nargs="?", type=text_value, const="local", default=None, metavar="ADDRESS",
+    p.add_argument("--ray", nargs="?", type=ray_address, const="local", default=None, metavar="ADDRESS",
                    help="compute views on a Ray cluster (pip install 'drsplat[ray]'): ADDRESS of a running cluster "
                    "(host:port or 'auto'), or no value to start a local one; same output as without")
     p.add_argument("--ray-workers", type=positive_int, default=None, metavar="N", help="Ray tasks at once (default: the cluster's CPUs)")
