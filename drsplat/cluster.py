@@ -356,8 +356,7 @@ def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "i
     import (`_code_identity` with `modules`, shipped by value); a node that imports another drsplat, Python, numpy,
     numba or version of `modules` is one DrsplatError before any work, naming the node, what differs and `what` it
     would make (registration's views; features' embeddings: round 60b, a node of other code wrote 9 of 16 feature
-    files, exit 0). A node whose workers
-    cannot import drsplat at all is said the same way, not as Ray's traceback.
+    files, exit 0). A node whose workers cannot import drsplat at all is said the same way, not as Ray's traceback.
 
     Returns the nodes (ray.nodes() entries) to place workers on: a node that ray.nodes() still lists
     as alive but that is gone (lost a moment ago: Ray says its probe cannot be scheduled, "the node
