@@ -415,3 +415,22 @@ def test_embeddings_of_another_dimension_name_the_odd_file_not_the_first_view(tm
     with pytest.raises(InputError, match=r"v0_f.npy: field 'shape': embeddings are 6-D but v1_f.npy has 16-D ones \(as have 3 of the 4 "
                                          r"views\).*stored transposed"):
         read_feature_headers(tmp_path, cams, 1)
+
+
+def test_a_pair_whose_other_file_is_write_protected_is_left_whole(tmp_path):
+    """Round 60c: with img_s.npy write-protected, writing the pair replaced img_f.npy first and then refused img_s.npy: a
+    new _f beside an old _s, which `is_valid_pair` accepts when their row counts agree. Both are checked before either."""
+    from drsplat.errors import OutputError
+
+    rng = np.random.default_rng(0)
+    seg, feats = langsplat_like(rng)
+    write_features(tmp_path, "img", seg, feats)
+    before = {p.name: p.read_bytes() for p in tmp_path.glob("img_*.npy")}
+    (tmp_path / "img_s.npy").chmod(0o444)
+    try:
+        with pytest.raises(OutputError, match=r"img_s.npy: exists and is write-protected"):
+            write_features(tmp_path, "img", seg, feats * 0 + feats[::-1])
+    finally:
+        (tmp_path / "img_s.npy").chmod(0o644)
+    assert {p.name: p.read_bytes() for p in tmp_path.glob("img_*.npy")} == before
+

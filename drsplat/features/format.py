@@ -25,7 +25,7 @@ import numpy as np
 
 from drsplat.errors import InputError, OutputError, hidden_character
 from drsplat.features.modelid import WEIGHTS_DIGEST, model_id_sources
-from drsplat.utils import atomic_path, load_npy, npy_header, read_json, save_npy_atomic
+from drsplat.utils import atomic_path, load_npy, npy_header, output_target, read_json, refuse_write_protected, save_npy_atomic
 from drsplat.defaults import DEFAULT_LEVEL, MIN_NORM, UNIT_TOLERANCE
 
 log = logging.getLogger(__name__)
@@ -93,6 +93,8 @@ def write_features(features_dir: str | Path, stem: str, seg: np.ndarray, feats: 
     if seg.size and (seg.min() < -1 or seg.max() >= feats.shape[0]):
         raise ValueError(f"seg ids must be in [-1, {feats.shape[0] - 1}], got [{seg.min()}, {seg.max()}]")
     dtype = np.int16 if feats.shape[0] < 2**15 else np.int32
+    for path in (feat_path(features_dir, stem), seg_path(features_dir, stem)):  # both before either: never one file of a pair replaced
+        refuse_write_protected(output_target(path))  # (round 60c: a new _f.npy beside a protected old _s.npy)
     save_npy_atomic(feat_path(features_dir, stem), np.ascontiguousarray(feats, dtype=np.float32 if feats.dtype == np.float64 else feats.dtype))
     save_npy_atomic(seg_path(features_dir, stem), np.ascontiguousarray(seg, dtype=dtype))
 

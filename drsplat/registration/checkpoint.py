@@ -40,7 +40,7 @@ from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
 from drsplat.raster import sh_in_range
 from drsplat.scene import GaussianScene
-from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
+from drsplat.utils import (TEMP_SUFFIX, WRITE_BITS, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
                            temp_stem, work_folder)
 
 log = logging.getLogger(__name__)
@@ -246,6 +246,8 @@ def refuse_odd_entry(path: Path) -> None:
     """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO or device: writing
     there would follow the link (over a user's file), fail, or block."""
     kind = odd_entry_kind(path)
+    if kind is None and path.is_file() and not path.stat().st_mode & WRITE_BITS:  # root would truncate it (round 60c)
+        kind = f"a write-protected file (mode {path.stat().st_mode & 0o777:04o})"
     if kind is not None:
         raise DrsplatError(f"{path} is where drsplat keeps this registration's checkpoint, but it is {kind}; move it away and rerun")
 
