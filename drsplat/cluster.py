@@ -120,10 +120,20 @@ def address_problem(address: str | None) -> str | None:
         return f"is a web address (a dashboard's?), not a cluster's: expected {expected}"
     if sep and scheme.lower() != "ray":
         return f"is not an address (ray:// is the only scheme a cluster's takes): expected {expected}"
+    if address != address.strip():
+        return f"has spaces around it: expected {expected}"
     host, _, port = (target if sep else address).rpartition(":")
     if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
         return f"is not an address: expected {expected}"
+    if ":" in host and not (host.startswith("[") and host.endswith("]")):  # round 60c: '::1' read as host '::', port 1
+        return f"is not an address: an IPv6 host goes in brackets, [HOST]:PORT (e.g. [::1]:6379); expected {expected}"
     return None
+
+
+def address_host_port(address: str) -> tuple[str, int]:
+    """(host, port) of a HOST:PORT or ray://HOST:PORT address (`address_problem` None), an IPv6 host without its brackets."""
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    return host.removeprefix("[").removesuffix("]"), int(port)
 
 
 def _check_reachable(address: str, timeout: float = 3.0) -> None:
@@ -131,9 +141,9 @@ def _check_reachable(address: str, timeout: float = 3.0) -> None:
     problem = address_problem(address)
     if problem is not None:
         raise DrsplatError(f"--ray {address!r} {problem}")
-    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    host, port = address_host_port(address)
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout):
+        with socket.create_connection((host, port), timeout=timeout):
             return
     except OSError as exc:
         raise DrsplatError(

@@ -227,7 +227,12 @@ def refuse_write_protected_tree(folder: Path) -> None:
     if not folder.stat().st_mode & WRITE_BITS:
         raise OutputError(folder, f"is a write-protected folder (mode {folder.stat().st_mode & 0o777:04o}); make it writable or remove it "
                                   "to have it replaced")
-    for root, _, files in os.walk(folder):
+    for root, dirs, files in os.walk(folder):  # os.walk lists links to folders among dirs and does not enter them
+        for name in dirs:
+            inner = Path(root) / name
+            if not inner.is_symlink() and not inner.stat().st_mode & WRITE_BITS:  # round 60c: a 0555 gt/ was replaced
+                raise OutputError(inner, f"is a write-protected folder (mode {inner.stat().st_mode & 0o777:04o}); make it writable or remove "
+                                         "it to have its folder replaced")
         for name in files:
             if not os.path.islink(os.path.join(root, name)):  # the folder's removal deletes a link, never what it names
                 refuse_write_protected(Path(root) / name)

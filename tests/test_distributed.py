@@ -270,8 +270,11 @@ def test_unreachable_address_is_one_clear_error(tiny, tmp_path):
     # was refused only after the scene was loaded and the fit stage had run: the CLI refuses both as it parses
     with pytest.raises(DrsplatError, match=r"--ray 'http://127.0.0.1:8265' is a web address \(a dashboard's\?\), not a cluster's"):
         connect("http://127.0.0.1:8265")
+    # round 60c: an IPv6 host kept its brackets for the socket ("Name or service not known"), '::1' read as host '::' port 1
+    with pytest.raises(DrsplatError, match=r"cannot reach a Ray cluster at \[::1\]:9 \((Connection refused|Cannot assign)"):
+        connect("[::1]:9")
     for bad, why in (("http://127.0.0.1:8265", "is a web address"), ("foo", "is not an address"), ("h:99999", "is not an address"),
-                     ("ftp://h:1", "ray:// is the only scheme")):
+                     ("ftp://h:1", "ray:// is the only scheme"), ("::1", "an IPv6 host goes in brackets"), (" h:6379", "spaces")):
         for command in (["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
                          str(tmp_path / "o.ply")], ["features", "--source", str(tiny), "--out", str(tmp_path / "f")]):
             with pytest.raises(SystemExit) as exited:

@@ -682,6 +682,11 @@ def test_segment_names_a_background_row_from_the_datasets_own_list(tmp_path, cap
         assert embedding_names(tmp_path / "reversed.npy", None, 4) == ["label_0", "label_1", "label_2", "label_3"]
     assert "not naming the rows of" in caplog.text and "reversed.npy" in caplog.text
     assert embedding_names(tmp_path / "reversed.npy", tmp_path / "gt" / "label_names.json", 4) == names
+    link = tmp_path / "linked" / "text_embeddings.npy"  # round 60c: a link of the dataset's name to other rows took them too
+    (tmp_path / "linked" / "gt").mkdir(parents=True)
+    (tmp_path / "linked" / "gt" / "label_names.json").write_text(json.dumps(names))
+    link.symlink_to(tmp_path / "reversed.npy")
+    assert embedding_names(link, None, 4) == ["label_0", "label_1", "label_2", "label_3"]
 
 
 @pytest.mark.parametrize("dim", [2, 16, 512])

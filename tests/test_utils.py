@@ -338,6 +338,15 @@ def test_a_folder_output_holding_a_write_protected_file_is_never_replaced(tmp_pa
                 pass
     finally:
         out.chmod(0o755)
+    (out / "gt").mkdir()  # round 60c: a write-protected folder inside was replaced
+    (out / "gt").chmod(0o555)
+    try:
+        with pytest.raises(OutputError, match=r"syn/gt: is a write-protected folder \(mode 0555\)"):
+            with atomic_folder(out, lambda p: True):
+                pass
+    finally:
+        (out / "gt").chmod(0o755)
+    (out / "gt").rmdir()
     protected = tmp_path / "elsewhere.ply"
     protected.write_bytes(b"not ours")
     protected.chmod(0o444)

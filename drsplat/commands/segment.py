@@ -111,7 +111,9 @@ def embedding_names(embeddings: Path, names_path: Path | None, count: int, backg
     7 label rows")."""
     explicit = names_path is not None
     path = names_path if explicit else default_names_path(embeddings)
-    if not explicit and path.is_file() and embeddings.name != ORACLE_TEXT_EMBEDDINGS:
+    # the name, and no link to a file elsewhere (round 60c: a link of that name to reversed rows took the names)
+    own = embeddings.name == ORACLE_TEXT_EMBEDDINGS and not embeddings.is_symlink()
+    if not explicit and path.is_file() and not own:
         # the dataset's names are those of its own rows: another file beside them (rows reordered, other vectors) took
         # them too, and the table named the labels wrongly (round 59a)
         log.info("not naming the rows of %s by %s, which names the rows of %s; give --names to name them", shown_path(embeddings),
