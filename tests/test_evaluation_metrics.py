@@ -232,6 +232,13 @@ def test_match_gaussians_and_expand_scores():
     # round 60a: the first in row order within the tolerance took a distinct Gaussian 3e-5 away before the exact copy
     near = np.array([[0.0, 0, 0], [3e-5, 0, 0], [0, 0, 0], [10, 10, 10]])
     assert match_gaussians(near, near[[0, 2, 3]]).tolist() == [0, 2, 3]
+    # round 60c: row by row, the first copy took the only original the second could have, and the second was refused
+    # ("holds more Gaussians at the position"); a matching of all the shared rows pairs both
+    originals = np.array([[0.0, 0, 0], [5e-5, 0, 0], [10, 10, 10]])
+    copy = np.array([[0.0, 0, 0], [-6e-5, 0, 0], [10, 10, 10]])
+    assert match_gaussians(originals, copy).tolist() == [1, 0, 2]
+    many = np.concatenate([np.zeros((3000, 3)), [[10.0, 10, 10]]])  # 3,000 copies of one position (was quadratic, 92 s for 10,000)
+    assert match_gaussians(many, many).tolist() == list(range(3001))
 
 
 def test_argmax_rows_without_finite_scores_predict_nothing():
