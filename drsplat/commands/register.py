@@ -11,7 +11,7 @@ from pathlib import Path
 from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
-from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable
+from drsplat.utils import CancelToken, cancel_on_signals, output_target, refuse_write_protected
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +121,11 @@ def run(args: argparse.Namespace) -> int:
     guard_args(args, ("out",), extra_inputs={"--codebook": codebook_file, **dataset_inputs(args.source, cameras)},
                extra_outputs={"the codebook written beside --out": written_codebook},
                protected_folders=protected_feature_folders("--features", [args.features]))
-    # before the views: a write-protected --out or codebook beside it was refused after the whole registration (round 60a)
-    check_outputs_writable(args.out, written_codebook)
+    # before the views: a write-protected --out or codebook beside it was refused after the whole registration (round 60a);
+    # a folder that takes no file is said when the run's lock is taken, naming the folder
+    for written in (args.out, written_codebook):
+        if written is not None:
+            refuse_write_protected(output_target(written))
     if other_data_suffix(args.out):  # after the input guard, whose message names the input it would hit
         raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
                          "images or a codebook), and a registered scene is a PLY: name it .ply")

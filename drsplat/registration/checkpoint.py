@@ -243,8 +243,8 @@ class RunLock:
 
 
 def refuse_odd_entry(path: Path) -> None:
-    """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO or device: writing
-    there would follow the link (over a user's file), fail, or block."""
+    """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO, device or a write-protected file:
+    writing there would follow the link (over a user's file), fail, block, or (as root) truncate a protected file."""
     kind = odd_entry_kind(path)
     if kind is None and path.is_file() and not path.stat().st_mode & WRITE_BITS:  # root would truncate it (round 60c)
         kind = f"a write-protected file (mode {path.stat().st_mode & 0o777:04o})"
