@@ -206,36 +206,40 @@ def check_output_writable(path: str | Path) -> None:
     refuse_write_protected(path)
 
 
-def refuse_write_protected(path: Path) -> None:
-    """OutputError when `path` (an output's target) exists without any write bit: root may replace anything, but the
-    mode says the file is to be kept (round 59a: `pq train --out` replaced a 0444 codebook in a 0555 folder)."""
+def protected_mode(path: Path) -> int | None:
+    """The permission bits of `path` (links followed) when it is a regular file or a folder without any write bit, else None
+    (writable, another kind of node, or nothing there). Root may replace such a file, but its mode says it is to be kept
+    (round 59a: `pq train --out` replaced a 0444 codebook in a 0555 folder)."""
     try:
         mode = path.stat().st_mode
     except OSError:
-        return
-    if stat.S_ISREG(mode) and not mode & WRITE_BITS:
-        raise OutputError(path, f"exists and is write-protected (mode {mode & 0o777:04o}); make it writable or remove it to have it "
-                                "replaced")
+        return None
+    if (stat.S_ISREG(mode) or stat.S_ISDIR(mode)) and not mode & WRITE_BITS:
+        return mode & 0o777
+    return None
+
+
+def refuse_write_protected(path: Path) -> None:
+    """OutputError when `path` (an output's target) is a regular file without any write bit (`protected_mode`)."""
+    mode = protected_mode(path)
+    if mode is not None and path.is_file():
+        raise OutputError(path, f"exists and is write-protected (mode {mode:04o}); make it writable or remove it to have it replaced")
 
 
 def refuse_write_protected_tree(folder: Path) -> None:
-    """`refuse_write_protected` for a folder output about to be replaced whole: the folder itself without a write bit, or
-    any regular file in it (round 60a: `synth` over an earlier dataset deleted a 0444 scene.ply, and replaced a 0555
-    folder, as root, without a word)."""
+    """`refuse_write_protected` for a folder output about to be replaced whole: the folder, a folder in it, or a regular
+    file in it without a write bit (round 60a: `synth` over an earlier dataset deleted a 0444 scene.ply, and replaced a
+    0555 folder, as root, without a word; round 60c: a 0555 gt/ in it). Links in it are not followed: its removal deletes
+    a link, never what it names."""
     if not folder.is_dir():
         return
-    if not folder.stat().st_mode & WRITE_BITS:
-        raise OutputError(folder, f"is a write-protected folder (mode {folder.stat().st_mode & 0o777:04o}); make it writable or remove it "
-                                  "to have it replaced")
     for root, dirs, files in os.walk(folder):  # os.walk lists links to folders among dirs and does not enter them
-        for name in dirs:
-            inner = Path(root) / name
-            if not inner.is_symlink() and not inner.stat().st_mode & WRITE_BITS:  # round 60c: a 0555 gt/ was replaced
-                raise OutputError(inner, f"is a write-protected folder (mode {inner.stat().st_mode & 0o777:04o}); make it writable or remove "
-                                         "it to have its folder replaced")
-        for name in files:
-            if not os.path.islink(os.path.join(root, name)):  # the folder's removal deletes a link, never what it names
-                refuse_write_protected(Path(root) / name)
+        for inner in [Path(root)] * (root == str(folder)) + [Path(root) / name for name in dirs + files]:
+            mode = None if inner.is_symlink() else protected_mode(inner)
+            if mode is not None:
+                what = "exists and is write-protected" if inner.is_file() else "is a write-protected folder"
+                raise OutputError(inner, f"{what} (mode {mode:04o}); make it writable or remove it to have "
+                                         f"{'it' if inner == folder else 'its folder'} replaced")
 
 
 def refused_new_file(folder: Path, exc: OSError) -> str:

@@ -40,8 +40,8 @@ from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
 from drsplat.raster import sh_in_range
 from drsplat.scene import GaussianScene
-from drsplat.utils import (TEMP_SUFFIX, WRITE_BITS, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, read_npy_header, temp_prefix,
-                           temp_stem, work_folder)
+from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, protected_mode, read_npy_header,
+                           temp_prefix, temp_stem, work_folder)
 
 log = logging.getLogger(__name__)
 
@@ -246,8 +246,9 @@ def refuse_odd_entry(path: Path) -> None:
     """DrsplatError when drsplat's own hidden file `path` is a link, folder, FIFO, device or a write-protected file:
     writing there would follow the link (over a user's file), fail, block, or (as root) truncate a protected file."""
     kind = odd_entry_kind(path)
-    if kind is None and path.is_file() and not path.stat().st_mode & WRITE_BITS:  # root would truncate it (round 60c)
-        kind = f"a write-protected file (mode {path.stat().st_mode & 0o777:04o})"
+    mode = protected_mode(path) if kind is None else None
+    if mode is not None:  # root would truncate it (round 60c)
+        kind = f"a write-protected file (mode {mode:04o})"
     if kind is not None:
         raise DrsplatError(f"{path} is where drsplat keeps this registration's checkpoint, but it is {kind}; move it away and rerun")
 
