@@ -9,10 +9,10 @@ from numba import njit, prange
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from drsplat._prefetch import prefetch_row
+from drsplat.defaults import T_MIN
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
-T_MIN = 1e-4
 MEDIAN_T = 0.5  # the median Gaussian is the one that takes the transmittance T down to this
 T_STOP = float(np.nextafter(T_MIN, 0.0))  # test_t <= T_STOP exactly when test_t < T_MIN (composite_topk's one test)
 BLUR = 0.3

@@ -38,9 +38,11 @@ SOLVE_SLOTS = 8  # candidate mask clusters per Gaussian of the solve stage (drsp
 # a synthetic (oracle) dataset's label files, relative to its folder (drsplat.synthetic.write_dataset writes them)
 ORACLE_LABEL_NAMES = "gt/label_names.json"  # JSON list of the label names
 ORACLE_TEXT_EMBEDDINGS = "text_embeddings.npy"  # [labels, D] the oracle "text" vectors, one per name
-# `eval lerf --alpha-threshold` stays below this: the rendered occupancy 1 − T never exceeds 1 − T_MIN (drsplat.raster), so a
-# threshold at or above it selects nothing (round 60a: 0.9999 scored mIoU 0, exit 0)
-LERF_ALPHA_LIMIT = 0.9999
+# The rasterizers' transmittance floor (3DGS's 1e-4; every engine: drsplat.raster): a pixel stops blending before its
+# T would fall below it, so its occupancy 1 − T never exceeds 1 − T_MIN. Here because `eval lerf` bounds a flag by it.
+T_MIN = 1e-4
+# `eval lerf --alpha-threshold` stays below this: a threshold at or above it selects nothing (round 60a: 0.9999 scored mIoU 0)
+LERF_ALPHA_LIMIT = 1.0 - T_MIN
 LERF_ALPHA_THRESHOLD = 0.7  # `eval lerf`: OpenGaussian's render_lerf_by_text.py keeps pixels whose silhouette passes 0.7 (0.5 until 2026-11-30)
 LANGSPLAT_MASK_THRESHOLD = 0.4  # `eval lerf --protocol langsplat`: LangSplat's evaluate_iou_loc.py --mask_thresh
 # |norm - 1| of an embedding past which it is rescaled to unit length: mask embeddings when read for

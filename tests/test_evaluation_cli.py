@@ -128,10 +128,6 @@ def test_eval_lerf_on_stand_in(registered, capsys):
         with pytest.raises(SystemExit) as exited:  # round 60a: the occupancy never passes 1 - T_MIN, 0.9999 scored 0 too
             main([*argv, flag, value])
         assert exited.value.code == 2 and f"{value} is out of range: expected 0.0 <= value < {bound}" in capsys.readouterr().err
-    from drsplat.defaults import LERF_ALPHA_LIMIT
-    from drsplat.raster import T_MIN
-
-    assert LERF_ALPHA_LIMIT == 1 - T_MIN
     # round 57c: without --label-names the rows were paired with the categories in sorted order (mIoU 0.013, exit 0)
     assert main([a for a in argv if a not in query_args(r)[2:]]) == 2
     assert "--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order)" in capsys.readouterr().err
