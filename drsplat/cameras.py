@@ -914,7 +914,10 @@ def header_size(path: Path) -> tuple[int, int] | None:
         prefix = f.read(16)
         for fmt in Image.ID:
             factory, accept = Image.OPEN[fmt]
-            accepted = True if accept is None else accept(prefix)
+            try:
+                accepted = True if accept is None else accept(prefix)
+            except PILLOW_DECODE_ERRORS:  # a prefix shorter than a plugin reads (an empty file: BMP's struct.error)
+                continue
             if isinstance(accepted, str) or not accepted:  # a str is Pillow's reason for refusing it
                 continue
             f.seek(0)

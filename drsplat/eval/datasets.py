@@ -248,7 +248,7 @@ def read_lerf_document(path: str | Path) -> LerfDocument:
 
 
 def annotated_image(path: Path, width: int, height: int) -> Path | None:
-    """The annotated image beside annotation `path` (frame_XXXXX.jpg), or None. Its size from its header (with its EXIF
+    """The annotated image beside annotation `path` (frame_00041.json's frame_00041.jpg), or None. Its size from its header (with its EXIF
     orientation, as LabelMe shows it) must be info's width x height, the pixels the polygons are drawn in: a size
     that says otherwise put the polygons at another scale without a word (round 59b: info doubled, the polygons
     covering a quarter of the frame, mIoU 0.843 -> 0.774, exit 0). A file no image reader opens is not compared
