@@ -182,7 +182,57 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     except (ConnectionError, RuntimeError, ValueError) as exc:
         hint = "" if local or address == "auto" else auth_hint()
         raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}{hint}") from None
+    _relay_errors_to_log()
     return True
+
+
+def disconnect(owns: bool) -> None:
+    """Leave Ray where `connect` returned True (`owns`): shut it down and give Ray's error printer back."""
+    if owns:
+        import_ray().shutdown()
+        _restore_error_printer()
+
+
+RAY_PRINTER = "print_to_stdstream"  # ray._private.worker's printer, which its error listener looks up at each message
+RELAYED_LINE_CHARS = 300
+
+
+def _relay_errors_to_log() -> None:
+    """Ray's errors on this driver (a worker died, a task retried, a node lost) as one WARNING line each.
+
+    Ray's driver runs a thread that prints every error the cluster publishes, whatever `log_to_driver`
+    says, to stdout with the raylet's log tails: ~50 raw lines for a lost node, in the middle of a
+    command's own output (round 60b of docs/hostile.md). The drivers here already act on a lost worker
+    (its work moved, a warning of their own), so each message's first line, to the log (stderr), is
+    what a user needs. Output that is not the listener's (pid "raylet") goes to Ray's printer as before.
+    Ray's private printer is looked for by name; a Ray without it prints as it does.
+    """
+    from ray._private import worker
+
+    printer = getattr(worker, RAY_PRINTER, None)
+    if printer is None or getattr(printer, "drsplat_relay", False):
+        return
+
+    def relay(data: dict, *args, **kwargs) -> None:
+        if data.get("pid") != "raylet":
+            printer(data, *args, **kwargs)
+            return
+        for message in data.get("lines", ()):
+            first = str(message).strip().splitlines()[:1]
+            if first:
+                log.warning("Ray: %s", first[0][:RELAYED_LINE_CHARS])
+
+    relay.drsplat_relay = True  # type: ignore[attr-defined]
+    relay.ray_printer = printer  # type: ignore[attr-defined]
+    setattr(worker, RAY_PRINTER, relay)
+
+
+def _restore_error_printer() -> None:
+    from ray._private import worker
+
+    relay = getattr(worker, RAY_PRINTER, None)
+    if getattr(relay, "drsplat_relay", False):
+        setattr(worker, RAY_PRINTER, relay.ray_printer)
 
 
 def auth_hint() -> str:
@@ -326,8 +376,7 @@ def session(address: str | None) -> Iterator[None]:
     try:
         yield
     finally:
-        if owns:
-            import_ray().shutdown()
+        disconnect(owns)
 
 
 def _code_identity(modules: tuple[str, ...] = ()) -> dict[str, str]:

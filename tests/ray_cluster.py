@@ -20,18 +20,20 @@ def two_node_cluster() -> Iterator:
     import ray
     from ray.cluster_utils import Cluster
 
-    from drsplat.cluster import connect
+    from drsplat.cluster import connect, disconnect
 
     node_args = {"num_cpus": 1, "object_store_memory": OBJECT_STORE, "include_dashboard": False}
     sigterm = signal.getsignal(signal.SIGTERM)
     c = Cluster(initialize_head=True, head_node_args=node_args)
+    owns = False
     try:
         c.add_node(num_cpus=1, object_store_memory=OBJECT_STORE)
         c.wait_for_nodes()
-        connect(c.address)
+        owns = connect(c.address)
         assert len([n for n in ray.nodes() if n["Alive"]]) == 2
         yield c
     finally:
+        disconnect(owns)
         ray.shutdown()
         c.shutdown()
         signal.signal(signal.SIGTERM, sigterm)

@@ -238,15 +238,42 @@ def test_no_address_asks_ray_for_a_new_local_instance(monkeypatch):
     its session file), whose workers run with another working folder; address="local" never does
     (Ray's API). ray.init itself is replaced here: a second instance started inside the test
     process left later clusters unable to start actors."""
+    from ray._private import worker as ray_worker
+
     from drsplat.cluster import connect
 
+    monkeypatch.setattr(ray_worker, "print_to_stdstream", ray_worker.print_to_stdstream)  # connect relays Ray's errors: put back after
     calls = []
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     monkeypatch.setattr(ray, "init", lambda **kwargs: calls.append(kwargs))
+    monkeypatch.setattr(ray, "nodes", lambda: [])  # `auto` asks for the nodes of other hosts (this test alone has no cluster)
     for address in (None, "", "local"):
         assert connect(address, num_cpus=1)
     assert [c["address"] for c in calls] == ["local"] * 3 and all(c["num_cpus"] == 1 for c in calls)
     assert connect("auto") and calls[-1]["address"] == "auto"
+
+
+def test_rays_error_printer_is_relayed_while_connected_and_given_back_after(monkeypatch):
+    """connect() routes Ray's error listener into the log (test_ray_cluster_faults has the relay itself);
+    disconnect() of a session it started gives Ray's printer back, and one it did not start is left
+    alone. ray.init and ray.shutdown are replaced, as above."""
+    from ray._private import worker as ray_worker
+
+    from drsplat.cluster import connect, disconnect
+
+    rays = getattr(ray_worker.print_to_stdstream, "ray_printer", ray_worker.print_to_stdstream)
+    monkeypatch.setattr(ray_worker, "print_to_stdstream", rays)  # and as it was, after the test
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", lambda **kwargs: None)
+    monkeypatch.setattr(ray, "shutdown", lambda: None)
+    assert connect(None, num_cpus=1)
+    relay = ray_worker.print_to_stdstream
+    assert getattr(relay, "drsplat_relay", False)
+    assert connect(None, num_cpus=1) and ray_worker.print_to_stdstream is relay  # never a relay of a relay
+    disconnect(False)
+    assert ray_worker.print_to_stdstream is relay
+    disconnect(True)
+    assert ray_worker.print_to_stdstream is rays
 
 
 def test_an_address_that_refuses_the_driver_names_ray_token_authentication(monkeypatch):

@@ -72,6 +72,31 @@ def busy_cpu(cluster):
         yield
 
 
+def test_rays_error_relay_is_one_log_line_a_message_not_raw_stdout(cluster, capsys, caplog):
+    """Was: Ray's driver thread printed every error the cluster published (a worker died, a task retried,
+    with the raylet's log tails: ~50 lines for a lost node) to stdout in the middle of a command's output,
+    whatever log_to_driver said (round 60b). Now each is one WARNING line of the log, its first line."""
+    from ray._private import worker as ray_worker
+
+    @ray.remote(max_retries=0)
+    def dies() -> None:
+        import os
+
+        os._exit(1)
+
+    with caplog.at_level("WARNING", logger="drsplat.cluster"):
+        with pytest.raises(ray.exceptions.RayError):
+            ray.get(dies.remote())
+        deadline = time.monotonic() + 60  # the listener thread relays it a moment later
+        while "Ray: A worker died" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.2)
+    assert "Ray: A worker died" in caplog.text
+    relayed = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Ray: A worker died")]
+    assert all("\n" not in line for line in relayed)
+    assert "(raylet)" not in capsys.readouterr().out
+    assert getattr(ray_worker.print_to_stdstream, "drsplat_relay", False)  # ours while connected
+
+
 def test_a_worker_that_never_starts_has_its_views_moved_not_waited_for(local, tiny, busy_cpu, monkeypatch, caplog):
     """Was: the second actor waited forever for a CPU and the run with it (397 s until the other job
     ended; a real node lost before its actor ran hung past 240 s). Now its calls go to the worker

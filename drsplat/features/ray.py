@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import load_image_sized, unobserved_pixels
-from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, check_nodes_run_this_code, connect, import_ray, kill_if_cancelled, placed_actors,
+from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, check_nodes_run_this_code, connect, disconnect, import_ray, kill_if_cancelled, placed_actors,
                              set_worker_threads, stalled, worker_slots)
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
@@ -308,5 +308,4 @@ def extract_features_ray(
     finally:
         for a in actors:  # their models and GPUs go back to the cluster now, not when this driver exits
             ray.kill(a, no_restart=True)
-        if owns:
-            ray.shutdown()
+        disconnect(owns)

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from drsplat.cameras import Camera
-from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, ClusterOptions, check_nodes_run_this_code, connect, import_ray, placed_actors,
+from drsplat.cluster import (TASK_RETRIES, WAIT_SECONDS, ClusterOptions, check_nodes_run_this_code, connect, disconnect, import_ray, placed_actors,
                              set_worker_threads, stalled,
                              worker_slots)
 from drsplat.errors import DrsplatError, InputError
@@ -362,9 +362,8 @@ class RayExecutor:
             for actor in self._actors:
                 ray.kill(actor, no_restart=True)
             self._actors, self._refs = [], []
-        if self._owns:
-            import_ray().shutdown()
-            self._owns = False
+        disconnect(self._owns)
+        self._owns = False
 
 
 def _get(ref) -> _CallResult:

@@ -73,7 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, import_ray, set_worker_threads
+from drsplat.cluster import TASK_RETRIES, WAIT_SECONDS, ClusterOptions, connect, disconnect, import_ray, set_worker_threads
 from drsplat.errors import DrsplatError
 from drsplat.lang import META_PROPERTY, Codebook
 from drsplat.memory import peak_rss
@@ -383,9 +383,8 @@ class ReducePool:
         self.worker_peak_rss: dict[int, int] = {}
 
     def close(self) -> None:
-        if self._owns:
-            import_ray().shutdown()
-            self._owns = False
+        disconnect(self._owns)
+        self._owns = False
 
     def reduce(self, job: ReduceJob, scene: GaussianScene, codebook: Codebook | str) -> list[PartResult]:
         """Every block of `job` through a reducer task, at most `workers` at once; the parts in block
