@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 from pathlib import Path
 
-from drsplat.errors import DrsplatError
+from drsplat.errors import Cancelled, DrsplatError
 from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
@@ -170,6 +170,7 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
         kwargs.update(address="local", include_dashboard=False, num_cpus=num_cpus, object_store_memory=object_store_memory)
     else:
         kwargs["address"] = address
+    sigterm = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     try:
         with _process_state_kept():
             ray.init(**kwargs)
@@ -182,8 +183,23 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     except (ConnectionError, RuntimeError, ValueError) as exc:
         hint = "" if local or address == "auto" else auth_hint()
         raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}{hint}") from None
+    except SystemExit as exc:
+        if exc.code != signal.SIGTERM or not callable(sigterm):
+            raise
+        _sigterm_during_init(ray, sigterm)
     _relay_errors_to_log()
     return True
+
+
+def _sigterm_during_init(ray, handler: Callable) -> None:
+    """A SIGTERM that came while ray.init ran met Ray's own handler (sys.exit(15): the process ended
+    with status 15 and no line, round 60b). The program's handler is given it now (the command
+    line's raises KeyboardInterrupt; a cancellable job's cancels its token), after the half-made
+    connection is shut down; a handler that only cancels ends the connect with Cancelled."""
+    if ray.is_initialized():
+        ray.shutdown()
+    handler(signal.SIGTERM, None)
+    raise Cancelled("SIGTERM while connecting to Ray")
 
 
 def disconnect(owns: bool) -> None:

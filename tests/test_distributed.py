@@ -253,6 +253,37 @@ def test_no_address_asks_ray_for_a_new_local_instance(monkeypatch):
     assert connect("auto") and calls[-1]["address"] == "auto"
 
 
+def _init_that_meets_a_sigterm(**kwargs) -> None:
+    """What ray.init does when a SIGTERM comes while it connects: its handler, sys.exit(signum)."""
+    import sys
+
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(signum))
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(1)  # the handler runs at the next bytecode
+
+
+@pytest.mark.parametrize("program", ["command line", "cancellable job"])
+def test_a_sigterm_while_ray_connects_is_the_programs_interrupt(monkeypatch, caplog, program):
+    """Was: a SIGTERM during ray.init met Ray's handler: the process ended with status 15 and no line
+    (round 60b). Now the program's own handler gets it: the command line's interrupt (exit 1, one
+    line), or a cancellable job's cancel (its token set, Cancelled)."""
+    from drsplat.cli import sigterm_as_interrupt
+    from drsplat.cluster import connect
+    from drsplat.utils import CancelToken, cancel_on_signals
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", _init_that_meets_a_sigterm)
+    before = signal.getsignal(signal.SIGTERM)
+    token = CancelToken()
+    handling = sigterm_as_interrupt() if program == "command line" else cancel_on_signals(token, "the views")
+    with handling:
+        expected = KeyboardInterrupt if program == "command line" else Cancelled
+        with pytest.raises(expected):
+            connect(None, num_cpus=1)
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert token.cancelled == (program == "cancellable job")
+
+
 def test_rays_error_printer_is_relayed_while_connected_and_given_back_after(monkeypatch):
     """connect() routes Ray's error listener into the log (test_ray_cluster_faults has the relay itself);
     disconnect() of a session it started gives Ray's printer back, and one it did not start is left
