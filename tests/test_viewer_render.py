@@ -458,6 +458,28 @@ def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_screenshot_oracle_flags_refuse_a_field_of_clip_features(demo, tmp_path, capsys):
+    """Round 61a: `--oracle` and `--mode segmentation` scored a field of CLIP features with the synthetic
+    dataset's ground-truth vectors (another embedding space) and drew the answer. Now one error."""
+    import dataclasses
+
+    from drsplat.lang.plyformat import attach_field, read_field
+    from drsplat.scene import load_ply, save_ply
+    from viewer.launch import main
+
+    registered, dataset = demo
+    scene = load_ply(registered)
+    field = dataclasses.replace(read_field(scene, registered), clip_model="ViT-B-16/laion2b_s34b_b88k")
+    clip_ply = tmp_path / "clip.ply"
+    save_ply(attach_field(scene, field, clip_ply), clip_ply)
+    out = tmp_path / "x.png"
+    for flags in (["--oracle", "mug"], ["--mode", "segmentation"]):
+        assert main([str(clip_ply), "--source", str(dataset), "--screenshot", str(out), *flags]) == 1
+        err = capsys.readouterr().err
+        assert "oracle labels are not offered" in err and "ViT-B-16" in err and err.count("ERROR") == 1, err
+    assert not out.exists()
+
+
 def test_a_window_wider_than_the_largest_image_is_drawn_smaller_and_stretched(gl_context):
     """Round 53: a window (or a screenshot) past the driver's largest image (GL_MAX_TEXTURE_SIZE, 16384 on llvmpipe)
     made moderngl fail inside the frame loop, which ended the viewer; the window now renders within it, and an

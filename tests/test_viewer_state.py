@@ -148,6 +148,22 @@ def test_a_blank_segment_field_segments_by_the_oracles_labels(state):
     assert state.run_segmentation("  ") and state.segment_names == list(state.oracle.names)
 
 
+def test_oracle_labels_are_not_offered_for_a_field_of_clip_features(state):
+    """Was: a synthetic dataset's features made by a real CLIP pipeline, registered and opened with
+    --source, still offered the oracle label buttons (and the first screen's hint recommended them):
+    'mug' scored the CLIP field with a ground-truth vector of another space and reported 810
+    Gaussians; a blank segmentation field labelled 2,491 of 2,744 'astronaut' (round 61a). Now the
+    oracle labels query only an oracle field, and the panel says why they are gone."""
+    assert state.usable_oracle is not None and state.run_oracle_query(0)  # an oracle field: offered
+    state.field = dataclasses.replace(state.field, clip_model="ViT-B-16/laion2b_s34b_b88k")
+    state.query = None
+    assert state.usable_oracle is None and "oracle space" in state.oracle_problem()
+    assert "click a label" not in state.next_step()
+    assert not state.run_oracle_query(0) and "ViT-B-16" in state.messages[-1].text and state.query is None
+    assert not state.run_segmentation("  ") and "oracle labels are not offered" in state.messages[-1].text
+    assert state.segmentation is None
+
+
 def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):
     from viewer.app import usable_layout_path
 

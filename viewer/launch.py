@@ -201,12 +201,16 @@ def screenshot(args: argparse.Namespace, state) -> int:
             if src is not None and (src / ORACLE_LABEL_NAMES).exists() and (src / ORACLE_TEXT_EMBEDDINGS).exists():
                 raise DrsplatError(f"--oracle: the oracle labels of {src} could not be read (the warning above names the file and why)")
             raise DrsplatError("--oracle needs a synthetic dataset (--source with gt/label_names.json and text_embeddings.npy)")
+        if (problem := state.oracle_problem()) is not None:
+            raise DrsplatError(f"--oracle: {problem}")
         if args.oracle not in state.oracle.names:
             raise DrsplatError(f"--oracle {args.oracle!r} is not a label of this dataset; labels: {', '.join(state.oracle.names)}")
         ok = state.run_oracle_query(state.oracle.names.index(args.oracle))
     if not ok:
         raise StartupError(state.messages[-1].text)
     if args.mode == "segmentation":
+        if state.oracle is not None and (problem := state.oracle_problem()) is not None:
+            raise DrsplatError(f"--mode segmentation: {problem}")
         if state.oracle is None and state.field is not None:  # no label phrases on the command line: run_segmentation(None) needs the oracle
             raise DrsplatError("--mode segmentation segments by the oracle labels of a synthetic dataset: pass --source DIR with "
                                "gt/label_names.json and text_embeddings.npy (labels typed as phrases are segmented in the viewer window)")

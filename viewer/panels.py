@@ -88,7 +88,11 @@ class QueryPanel:
         self.text, submitted = submit_field("##text", "text query (/ to focus)", self.text, "search", -70)
         if submitted:
             state.run_text_query(self.text)
-        if state.oracle is not None:
+        if (problem := state.oracle_problem()) is not None:
+            imgui.push_text_wrap_pos(0.0)
+            imgui.text_colored(NOTE_COLOR, problem)
+            imgui.pop_text_wrap_pos()
+        elif state.oracle is not None:
             imgui.text_colored(NOTE_COLOR, "oracle labels (ground-truth vectors, not CLIP):")
             for i, name in enumerate(state.oracle.names):
                 if i % 5:
@@ -227,7 +231,7 @@ class DisplayPanel:
             imgui.color_button("highlight", imgui.ImVec4(*HIGHLIGHT_RGB, 1.0))
             imgui.same_line()
             imgui.text("above threshold (H toggles)")
-        self.segment_text, submitted = submit_field("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.oracle else ""), self.segment_text, "segment", -80)
+        self.segment_text, submitted = submit_field("##seg", "labels, comma-separated" + (" (empty: oracle labels)" if state.usable_oracle else ""), self.segment_text, "segment", -80)
         if submitted:
             state.run_segmentation(self.segment_text)
         if state.segmentation is not None:

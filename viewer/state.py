@@ -250,6 +250,20 @@ class ViewerState:
         self.info(f"{len(self.cameras)} training cameras from {check.source}")
         return True
 
+    @property
+    def usable_oracle(self) -> OracleQueries | None:
+        """The dataset's oracle labels where they can query the open field: its features are in the oracle
+        space too. A field of CLIP features (the same synthetic dataset run through `drsplat features`)
+        scored against the oracle vectors gave plausible counts of nothing (round 61a)."""
+        return self.oracle if self.oracle_problem() is None else None
+
+    def oracle_problem(self) -> str | None:
+        """Why the oracle labels cannot query the open field (None when they can, or there are none)."""
+        if self.oracle is None or self.field is None or is_oracle(self.field.clip_model):
+            return None
+        return (f"the dataset's oracle labels are not offered: they are ground-truth vectors of the synthetic oracle space, "
+                f"and this field holds features of {self.field.clip_model or 'an unknown model'} (type text queries or labels instead)")
+
     def next_step(self) -> str:
         """What a person should do next, for the first screen (shown until a query runs)."""
         if self.scene is None:
@@ -258,8 +272,8 @@ class ViewerState:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
         steps = []
-        if self.oracle is not None:
-            steps.append(f"click a label above (e.g. '{self.oracle.names[min(3, len(self.oracle.names) - 1)]}') to highlight it")
+        if (oracle := self.usable_oracle) is not None:
+            steps.append(f"click a label above (e.g. '{oracle.names[min(3, len(oracle.names) - 1)]}') to highlight it")
         if self.encoder is not None:
             steps.append("type what to find (e.g. 'a mug') and press Enter")
         steps.append("ctrl+click a splat to find similar ones")
@@ -398,6 +412,9 @@ class ViewerState:
     def run_oracle_query(self, index: int) -> bool:
         """Query with synthetic label `index`'s oracle vector (not CLIP: exact ground-truth text)."""
         if not self._require_field():
+            return False
+        if (problem := self.oracle_problem()) is not None:
+            self.error(problem)
             return False
         if self.oracle is None or not 0 <= index < len(self.oracle.names):
             self.error(f"no oracle label {index}")
@@ -550,10 +567,10 @@ class ViewerState:
                     self.error(self.encoder_status)
                     return False
                 emb = dq.text_embeddings(self.encoder, names, self.field)
-            elif self.oracle is not None:
+            elif self.usable_oracle is not None:
                 names, emb = list(self.oracle.names), self.oracle.embeddings
             else:
-                self.error("type comma-separated labels to segment by")
+                self.error("type comma-separated labels to segment by" + (f" ({problem})" if (problem := self.oracle_problem()) else ""))
                 return False
             seg = dq.segment(self.field, emb)
         except Exception as exc:  # noqa: BLE001
