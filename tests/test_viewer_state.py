@@ -130,6 +130,33 @@ def test_an_encoder_that_loads_for_a_scene_no_longer_open_is_dropped(state, monk
     assert state.encoder is None
 
 
+def test_a_closing_viewer_waits_for_the_encoder_being_built(state, monkeypatch, caplog):
+    """Was: closing the window within seconds of opening a scene of CLIP features ended the process with
+    "terminate called without an active exception" and SIGABRT, exit 134 (5 of 6 closes): the
+    interpreter ended under the daemon thread building the encoder (round 61a). The closing path now
+    waits for it."""
+    import viewer.state as vs
+    from viewer.launch import wait_for_encoder
+
+    built = []
+
+    class SlowEncoder:
+        model_id = "ViT-B-16/laion2b_s34b_b88k"
+
+        def __init__(self, *args, **kwargs):
+            time.sleep(1.0)
+            built.append(self)
+
+    monkeypatch.setattr(vs, "ClipEncoder", SlowEncoder)
+    state.field = dataclasses.replace(state.field, clip_model="ViT-B-16/laion2b_s34b_b88k")
+    state.start_text_encoder(background=True)
+    assert state.encoder_being_built()
+    with caplog.at_level(logging.INFO, logger="viewer"):
+        wait_for_encoder(state)
+    assert built and not state.encoder_being_built() and state.encoder is built[0]
+    assert "waiting for the CLIP text encoder" in caplog.text
+
+
 @pytest.mark.parametrize("names, words", [(["ball", "mug", "ball"], 'repeats the name "ball"'), (["ball", " "], "empty name")])
 def test_typed_segmentation_labels_are_checked_like_the_clis(state, names, words):
     assert not state.run_segmentation(names)

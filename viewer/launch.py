@@ -247,7 +247,21 @@ def interactive(state) -> int:
     finally:
         app.close()
     stop_registration(state)
+    wait_for_encoder(state)
     return 0
+
+
+ENCODER_WAIT_SECONDS = 300.0  # how long a closing viewer waits for a CLIP text encoder still being built
+
+
+def wait_for_encoder(state, wait: float = ENCODER_WAIT_SECONDS) -> None:
+    """Let a text encoder still being built (a scene opened just before the window closed) finish before the
+    process ends: building cannot be interrupted, and ending under it aborts the process (round 61a)."""
+    if not state.encoder_being_built():
+        return
+    log.info("waiting for the CLIP text encoder being loaded to finish before exiting...")
+    if not state.wait_for_encoder_loads(wait):
+        log.warning("the CLIP text encoder was still loading %g s after the viewer closed; exiting under it may abort the process", wait)
 
 
 REGISTRATION_STOP_SECONDS = 60.0  # how long a closing viewer waits for its registration to stop after the view in hand

@@ -14,6 +14,7 @@ import dataclasses
 import logging
 import math
 import threading
+import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,6 +98,7 @@ class ViewerState:
         self.scene_version = 0
         self._prepared = None
         self._encoder_lock = threading.Lock()
+        self._encoder_loaders: list[threading.Thread] = []  # `start_text_encoder`'s threads, waited for at exit (`wait_for_encoder_loads`)
         self.camera_check: CameraCheck | None = None
         self._stopped_check: CameraCheck | None = None  # a check stopped with its scene, which the next one waits for
         self._kernels_safe: bool | None = None  # `kernels_safe`, once asked
@@ -292,9 +294,27 @@ class ViewerState:
             return
         self.encoder_status = "loading the CLIP text encoder..."
         if background:
-            threading.Thread(target=self._load_encoder, args=(self.scene_version,), name="clip-loader", daemon=True).start()
+            loader = threading.Thread(target=self._load_encoder, args=(self.scene_version,), name="clip-loader", daemon=True)
+            self._encoder_loaders = [t for t in self._encoder_loaders if t.is_alive()] + [loader]
+            loader.start()
         else:
             self._load_encoder(self.scene_version)
+
+    def encoder_being_built(self) -> bool:
+        """True while a text encoder started in the background (for this scene or an earlier one) is still being built."""
+        return any(t.is_alive() for t in self._encoder_loaders)
+
+    def wait_for_encoder_loads(self, timeout: float) -> bool:
+        """Wait up to `timeout` s for the encoders being built in the background; True when none is left.
+
+        The process must not end while one is: torch's threads, torn down under a model being built,
+        ended the closing viewer with "terminate called without an active exception" and SIGABRT
+        (exit 134; 5 of 6 closes within seconds of opening a scene, round 61a)."""
+        deadline = time.monotonic() + timeout
+        for loader in self._encoder_loaders:
+            loader.join(max(0.0, deadline - time.monotonic()))
+        self._encoder_loaders = [t for t in self._encoder_loaders if t.is_alive()]
+        return not self._encoder_loaders
 
     def _load_encoder(self, version: int) -> None:
         """Load the encoder for the scene of `version`; dropped if another scene opened meanwhile."""
