@@ -191,6 +191,27 @@ def test_oracle_labels_are_not_offered_for_a_field_of_clip_features(state):
     assert state.segmentation is None
 
 
+def test_an_export_replaces_a_file_only_when_pressed_again(state, tmp_path):
+    """Was: the export path stays in the panel, so exporting a second query's selection replaced the
+    first's export without a word; with an export open, typing the registered scene it came from
+    replaced it (2,763 Gaussians) by the 107 selected (round 61a). Now a file is replaced only by a
+    second export to it in a row, asked for by name; a file changed in between is asked for again."""
+    target = tmp_path / "sel.ply"
+    state.run_oracle_query(state.oracle.names.index("mug"))
+    first = state.export_selection(target, "drsplat")
+    assert first and target.is_file()
+    kept = target.read_bytes()
+    state.run_oracle_query(state.oracle.names.index("ball"))
+    assert state.export_selection(target, "drsplat") is None
+    assert "sel.ply exists" in state.messages[-1].text and "export again to replace it" in state.messages[-1].text
+    assert target.read_bytes() == kept
+    target.write_bytes(kept + b"x")  # changed since it was asked about: asked again
+    assert state.export_selection(target, "drsplat") is None and "export again" in state.messages[-1].text
+    second = state.export_selection(target, "drsplat")
+    assert second and second != first and target.read_bytes() != kept + b"x"
+    assert state.export_selection(tmp_path / "new.ply", "drsplat") == second  # a new file needs no second press
+
+
 def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):
     from viewer.app import usable_layout_path
 

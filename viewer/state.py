@@ -98,6 +98,7 @@ class ViewerState:
         self.scene_version = 0
         self._prepared = None
         self._encoder_lock = threading.Lock()
+        self._pending_replace: tuple | None = None  # (path, size, mtime) of a file an export asked to replace (`_replace_confirmed`)
         self._encoder_loaders: list[threading.Thread] = []  # `start_text_encoder`'s threads, waited for at exit (`wait_for_encoder_loads`)
         self.camera_check: CameraCheck | None = None
         self._stopped_check: CameraCheck | None = None  # a check stopped with its scene, which the next one waits for
@@ -691,6 +692,8 @@ class ViewerState:
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {"the export": path, "the export's codebook": codebook}, folders)
             check_outputs_writable(path, codebook)  # both, before either is written, as the CLI's export checks them (round 60a)
+            if not self._replace_confirmed(path):
+                return None
             with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
                 export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
         except Exception as exc:  # noqa: BLE001
@@ -698,6 +701,28 @@ class ViewerState:
             return None
         self.info(f"exported {count:,} Gaussian{'' if count == 1 else 's'} to {path} ({export_kind(path, fmt)})")
         return count
+
+    def _replace_confirmed(self, path: Path) -> bool:
+        """Whether an export may write `path`: a file there is replaced only by a second export to it in a row.
+
+        The export path stays in the panel, so a second query's export replaced the first's without a word
+        (and, with an export open, the registered scene it came from could be typed over: round 61a). The
+        first press names the file and asks for another; the confirmation is for that file as it is now."""
+        try:
+            st = path.stat()
+        except OSError:
+            self._pending_replace = None
+            return True
+        if not path.is_file():
+            self._pending_replace = None
+            return True
+        stamp = (str(path.absolute()), st.st_size, st.st_mtime_ns)
+        if self._pending_replace == stamp:
+            self._pending_replace = None
+            return True
+        self._pending_replace = stamp
+        self.warning(f"{path} exists ({st.st_size:,} bytes): export again to replace it")
+        return False
 
     # ---------------------------------------------------------------- registration
 
