@@ -157,6 +157,34 @@ def test_a_closing_viewer_waits_for_the_encoder_being_built(state, monkeypatch, 
     assert "waiting for the CLIP text encoder" in caplog.text
 
 
+def test_an_encoder_of_other_weights_turns_text_queries_off_and_leaves_the_others(state, tmp_path, monkeypatch):
+    """Was: `--clip-checkpoint` of other weights than the features' loaded "ready", then every query failed
+    with "CLIP weights mismatch", embedding files and clicks too (their relevancy negatives come from the
+    encoder's text): nothing could be queried without a restart (round 61a). Now the mismatch is found as
+    the encoder loads: text queries are off with the reason, the others score by cosine."""
+    import viewer.state as vs
+
+    class OtherWeights:
+        model_id = "ViT-B-16/laion2b_s34b_b88k"
+        weights_digest = "2:" + "b" * 40
+
+        def __init__(self, *args, **kwargs):
+            pass
+
+    monkeypatch.setattr(vs, "ClipEncoder", OtherWeights)
+    state.field = dataclasses.replace(state.field, clip_model="ViT-B-16/laion2b_s34b_b88k", clip_weights="1:" + "a" * 40)
+    state._load_encoder(state.scene_version)
+    assert state.encoder is None
+    assert state.encoder_status.startswith("Text queries are off: CLIP weights mismatch") and "by cosine" in state.encoder_status
+    query = tmp_path / "q.npy"
+    np.save(query, state.oracle.embeddings[:1])
+    assert state.run_embedding_query(query) and state.query.metric == "cosine"
+    same = type("SameWeights", (OtherWeights,), {"weights_digest": "1:" + "a" * 40})
+    monkeypatch.setattr(vs, "ClipEncoder", same)
+    state._load_encoder(state.scene_version)
+    assert isinstance(state.encoder, same) and "ready" in state.encoder_status
+
+
 @pytest.mark.parametrize("names, words", [(["ball", "mug", "ball"], 'repeats the name "ball"'), (["ball", " "], "empty name")])
 def test_typed_segmentation_labels_are_checked_like_the_clis(state, names, words):
     assert not state.run_segmentation(names)

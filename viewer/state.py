@@ -28,7 +28,7 @@ from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORAC
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
-from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, is_oracle
+from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
@@ -326,8 +326,11 @@ class ViewerState:
         try:
             use_clip_config(self.clip_config)
             encoder = ClipEncoder(name, pretrained or None, self.clip_checkpoint, device=self.settings.device)
-            if self.field is not None and self.field.clip_weights is not None:
-                encoder.weights_digest  # read here, on the loader's thread: ~1 s of ViT-B-16's file the first query would freeze on
+            field = self.field
+            # on the loader's thread (~1 s of ViT-B-16's file), and now: an encoder of other weights made every query
+            # fail, embedding and click queries too (their relevancy negatives are its text; round 61a)
+            mismatch = (None if field is None or field.clip_weights is None
+                        else clip_weights_problem(field.clip_weights, encoder.weights_digest, self.clip_checkpoint))
         except WeightsUnavailableError as exc:
             if version == self.scene_version:
                 self.encoder_status = f"Text queries are off: {exc}"
@@ -336,6 +339,10 @@ class ViewerState:
             if version == self.scene_version:
                 self.encoder_status = (f"Text queries are off: the CLIP encoder could not be loaded ({exc}); pass --clip-checkpoint PATH "
                                        "to a local open_clip checkpoint.")
+            return
+        if mismatch is not None:
+            if version == self.scene_version:
+                self.encoder_status = f"Text queries are off: {mismatch}. Embedding files and clicks query by cosine meanwhile."
             return
         with self._encoder_lock:
             if version != self.scene_version:  # another scene opened while this one loaded: not its encoder

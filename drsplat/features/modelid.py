@@ -110,15 +110,23 @@ WEIGHTS_DIGEST = re.compile(r"[0-9]{1,20}:[0-9a-f]{40}")  # what `weights_digest
 
 
 def check_clip_weights(field_weights: str | None, encoder_weights: str | None, checkpoint: str | Path | None) -> None:
-    """Refuse a text encoder whose weights file is not the one the features were made with: both known ('size:sha1',
-    `weights_digest`) and different. The model id alone cannot tell: a `--clip-checkpoint` is labelled with the
-    field's own tag when --pretrained is not given, so any file passed it (round 57c: scores from another embedding
-    space, no word). Unknown on either side (an older PLY, features of a hub tag without a file): not checked."""
+    """Refuse a text encoder whose weights file is not the one the features were made with (`clip_weights_problem`)."""
+    problem = clip_weights_problem(field_weights, encoder_weights, checkpoint)
+    if problem is not None:
+        raise DrsplatError(problem)
+
+
+def clip_weights_problem(field_weights: str | None, encoder_weights: str | None, checkpoint: str | Path | None) -> str | None:
+    """Why a text encoder cannot embed queries for a field: its weights file is not the one the features were made
+    with, both known ('size:sha1', `weights_digest`) and different (None: it can). The model id alone cannot tell: a
+    `--clip-checkpoint` is labelled with the field's own tag when --pretrained is not given, so any file passed it
+    (round 57c: scores from another embedding space, no word). Unknown on either side (an older PLY, features of a
+    hub tag without a file): not checked."""
     if field_weights is None or encoder_weights is None or field_weights == encoder_weights:
-        return
-    raise DrsplatError(f"CLIP weights mismatch: the registered features were made with a weights file of size:sha1 {field_weights}, "
-                       f"but the text encoder's ({checkpoint}) is {encoder_weights}: its text embeddings lie in another space; pass "
-                       "the checkpoint the features were made with")
+        return None
+    return (f"CLIP weights mismatch: the registered features were made with a weights file of size:sha1 {field_weights}, "
+            f"but the text encoder's ({checkpoint}) is {encoder_weights}: its text embeddings lie in another space; pass "
+            "the checkpoint the features were made with")
 
 
 def manifest_weights(manifest: dict) -> str | None:
