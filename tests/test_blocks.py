@@ -446,6 +446,28 @@ def test_bad_codebook_fails_before_registering(tiny, inputs, tmp_path):
     assert calls == [] and not checkpoint_path_for(tmp_path / "o.ply").exists()
 
 
+def test_a_scene_codebook_that_cannot_split_the_features_fails_before_registering(tiny, inputs, tmp_path):
+    """Was: `--codebook scene` on 64-D features (a small CLIP model) registered every view, then failed with
+    "M=128 sub-vectors do not divide the embedding dimension 64", keeping a checkpoint whose resume failed
+    the same way (round 61a). Now before the first view, naming what to use instead."""
+    import json
+    import shutil
+
+    scene, cams = inputs
+    features = Path(shutil.copytree(tiny / "features", tmp_path / "features64"))
+    for f in features.glob("*_f.npy"):
+        rows = np.load(f)[:, :64]
+        np.save(f, (rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-12)).astype(np.float32))
+    manifest = features / "manifest.json"
+    if manifest.exists():
+        manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "dim": 64}))
+    calls = []
+    with pytest.raises(InputError, match="--codebook scene trains a codebook of 128 sub-vectors, which do not divide these features' 64-D"):
+        register(scene, cams, features, tmp_path / "o.ply", RegisterOptions(codebook="scene"),
+                 show_progress=False, on_progress=lambda d, t: calls.append(d))
+    assert calls == [] and not checkpoint_path_for(tmp_path / "o.ply").exists()
+
+
 # ----------------------------------------------------------------------------- memory plan
 
 

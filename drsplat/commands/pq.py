@@ -11,7 +11,7 @@ import numpy as np
 from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders
 from drsplat.defaults import MIN_NORM
 from drsplat.errors import InputError, UsageError, shown_path
-from drsplat.lang.codebook import PQ_KSUB
+from drsplat.lang.codebook import PQ_KSUB, SCENE_PQ_M
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--embeddings", type=Path, nargs="+", default=[], metavar="A.npy", help="embedding arrays (n, D)")
     source.add_argument("--features", type=Path, nargs="+", default=[], metavar="DIR", help="LangSplat feature folders (<stem>_f.npy)")
     train.add_argument("--out", type=output_file, required=True, metavar="CODEBOOK", help="output faiss file (e.g. general.codebook.faiss)")
-    train.add_argument("--m", type=positive_int, default=128, help="number of sub-vectors M (32, 64, 128 or 256 for D=512); default 128")
+    train.add_argument("--m", type=positive_int, default=SCENE_PQ_M, help=f"number of sub-vectors M (32, 64, 128 or 256 for D=512); default {SCENE_PQ_M}")
     train.add_argument("--max-train", type=int_range(PQ_KSUB, MAX_COUNT), default=200_000, help="use at most this many embeddings (random subset); default 200000")
     train.add_argument("--seed", type=int_range(0, FAISS_MAX_SEED), default=0, help=f"k-means seed, 0..{FAISS_MAX_SEED} (faiss takes a C int); default 0")
     train.set_defaults(func=run_train)

@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 
 PQ_BITS = 8
 PQ_KSUB = 1 << PQ_BITS
+SCENE_PQ_M = 128  # sub-vectors of a codebook trained on a scene's own masks (`--codebook scene`, `pq train`'s default): the paper's 128 x 8 bits
 PQ_POINTS_PER_CENTROID = 256  # faiss's k-means samples at most this many training points per centroid
 PQ_TRAIN_MAX = PQ_POINTS_PER_CENTROID * PQ_KSUB  # so a sub-quantiser never trains on more points than this
 
@@ -352,7 +353,7 @@ def load_codebook(path: str | Path) -> Codebook:
     return codebook_from_index(index, path)
 
 
-def train_codebook(embeddings: np.ndarray, m: int = 128, seed: int = 0) -> Codebook:
+def train_codebook(embeddings: np.ndarray, m: int = SCENE_PQ_M, seed: int = 0) -> Codebook:
     """Train a faiss IndexPQ (inner product, M sub-vectors x 8 bits) on embeddings [n, D].
 
     Each sub-quantiser is a 256-centroid k-means over its D/M-dimensional slice. Rows are

@@ -39,7 +39,7 @@ from drsplat.features.format import check_manifest_dim, feat_path, read_manifest
 from drsplat.features.modelid import manifest_model_id, manifest_weights
 from drsplat.frames import frame_hint, warn_if_scene_misses_its_images
 from drsplat.lang import Codebook, load_codebook, train_codebook
-from drsplat.lang.codebook import PQ_TRAIN_MAX
+from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane, widened_scene
@@ -233,7 +233,11 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
 
 
 def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
-    """'none' / 'scene' as given, or the faiss codebook file loaded and checked against the features' D."""
+    """'none' / 'scene' as given, or the faiss codebook file loaded and checked against the features' D; 'scene' is
+    checked to split D into SCENE_PQ_M sub-vectors (a 64-D model was refused only after every view, round 61a)."""
+    if codebook == "scene" and (dim <= 0 or dim % SCENE_PQ_M):
+        raise InputError(None, f"--codebook scene trains a codebook of {SCENE_PQ_M} sub-vectors, which do not divide these features' "
+                               f"{dim}-D embeddings; use --codebook none (exact features) or a codebook file of {dim}-D")
     if codebook in ("none", "scene"):
         return codebook
     book = load_codebook(codebook)
