@@ -99,6 +99,21 @@ def test_text_embeddings_are_cached_per_phrase(tiny_clip):
     np.testing.assert_array_equal(canon, enc.encode_text(list(CANONICAL_PHRASES)))
 
 
+def test_a_phrase_past_the_text_context_is_embedded_cut_and_said(encoder, caplog):
+    """Round 61a: a phrase longer than CLIP's 77 tokens was cut without a word, so twelve phrases and
+    'mug' scored exactly as the twelve alone. The cut is what CLIP does; it is now said, once a phrase."""
+    limit = encoder.tokenizer.context_length
+    long = " ".join(["the big red ball on the wooden table"] * 12)
+    assert len(encoder.tokenizer.encode(long)) + 2 > limit
+    with caplog.at_level("WARNING", logger="drsplat.features.clip"):
+        fits = encoder.encode_text(["a mug"])
+        assert caplog.text == ""
+        cut = encoder.encode_text([long + " mug", long + " astronaut"])
+    np.testing.assert_array_equal(cut[0], cut[1])  # what the words past the context change: nothing
+    assert caplog.text.count(f"more than the {limit} of") == 2 and f"only its first {limit - 2} are embedded" in caplog.text
+    assert not np.array_equal(fits[0], cut[0])
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -430,8 +430,9 @@ class ViewerState:
             self.error(self.encoder_status)
             return False
         try:
-            emb = dq.text_embeddings(self.encoder, [text], self.field)
-            scores, metric = self._score(emb)
+            with LibraryWarnings(self.messages):  # a phrase past CLIP's context is cut: said on screen
+                emb = dq.text_embeddings(self.encoder, [text], self.field)
+                scores, metric = self._score(emb)
         except Exception as exc:  # noqa: BLE001
             return self._fail(exc, f"query '{text}' failed")
         self._set_query(QueryResult(text, "text", scores, metric))
@@ -594,7 +595,8 @@ class ViewerState:
                 if self.encoder is None:
                     self.error(self.encoder_status)
                     return False
-                emb = dq.text_embeddings(self.encoder, names, self.field)
+                with LibraryWarnings(self.messages):
+                    emb = dq.text_embeddings(self.encoder, names, self.field)
             elif self.usable_oracle is not None:
                 names, emb = list(self.oracle.names), self.oracle.embeddings
             else:

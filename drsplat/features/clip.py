@@ -12,6 +12,7 @@ one sentence which flag to use; network and hub exceptions never reach the user.
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import warnings
 from collections.abc import Sequence
@@ -180,6 +181,7 @@ class ClipEncoder:
         phrases = list(phrases)
         missing = list(dict.fromkeys(p for p in phrases if p not in self._text_cache))
         if missing:
+            self._warn_if_cut(missing)
             with torch.inference_mode():
                 tokens = self.tokenizer(missing).to(self.device)
                 emb = self._normalised(self.net.encode_text(tokens))
@@ -187,6 +189,21 @@ class ClipEncoder:
         if not phrases:
             return np.zeros((0, self.dim), np.float32)
         return np.stack([self._text_cache[p] for p in phrases])
+
+    def _warn_if_cut(self, phrases: Sequence[str]) -> None:
+        """A warning for each phrase longer than the text encoder's context (77 tokens for CLIP, start and end
+        included): the tokenizer cuts it there, so the words after change nothing (round 61a: twelve phrases and
+        'mug' scored as the twelve without it). Tokenizers without a plain `encode` (Hugging Face's) are not checked."""
+        encode = getattr(self.tokenizer, "encode", None)
+        limit = getattr(self.tokenizer, "context_length", None)
+        if not callable(encode) or not isinstance(limit, int) or getattr(self.tokenizer, "reduction_fn", None) is not None:
+            return
+        for phrase in phrases:
+            count = len(encode(phrase)) + 2  # its start and end tokens
+            if count > limit:
+                shown = phrase if len(phrase) <= 60 else phrase[:57] + "..."
+                log.warning("the phrase %s is %d tokens, more than the %d of %s's text context: only its first %d are embedded, "
+                            "the words after them change nothing", json.dumps(shown, ensure_ascii=False), count, limit, self.model_name, limit - 2)
 
     def canonical_embeddings(self) -> np.ndarray:
         """[4, D] embeddings of the relevancy score's canonical phrases (CANONICAL_PHRASES)."""
