@@ -88,14 +88,22 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     if ids.size < given.size:
         log.info("%d repeated Gaussian ids counted once", given.size - ids.size)
     ids = ids[field.assigned()[ids]] if ids.size else ids
-    feats = unit_rows(field.reconstruct(ids)) if ids.size else np.zeros((0, field.dim), np.float32)
-    feats = feats[np.linalg.norm(feats, axis=1) > 0]
-    if feats.shape[0] == 0:
+    total, count = np.zeros(field.dim, np.float32), 0
+    for lo in range(0, ids.size, CLICK_CHUNK):  # memory of one chunk, whatever the selection (round 61b: 15 kB an id at once)
+        feats = unit_rows(field.reconstruct(ids[lo : lo + CLICK_CHUNK]))
+        feats = feats[np.linalg.norm(feats, axis=1) > 0]
+        # the running total first, then the chunk's rows one by one: numpy's float32 sum down axis 0, the bits of one mean of all rows
+        total = np.concatenate((total[None], feats)).sum(axis=0)
+        count += feats.shape[0]
+    if count == 0:
         raise DrsplatError("none of the selected Gaussians has a language feature (all unassigned)")
-    mean = feats.mean(axis=0)
+    mean = total / count
     if not has_direction(mean)[0]:  # opposite features cancel: a zero query would be refused by the field
-        raise DrsplatError(f"the features of the {feats.shape[0]} selected Gaussians cancel out: their mean has no direction to query by")
+        raise DrsplatError(f"the features of the {count} selected Gaussians cancel out: their mean has no direction to query by")
     return unit_rows(mean)[0]
+
+
+CLICK_CHUNK = 16_384  # Gaussians a click query reconstructs at a time (~64 MB of float64 unit rows at D = 512)
 
 
 @dataclass
@@ -210,10 +218,20 @@ def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperatur
 
     rel = min_c softmax(t·[p, n_c])[0] = min_c σ(t(p − n_c)) = σ(t(p − max_c n_c)),
     the probability of the query against its hardest canonical phrase (t = 10 as LERF/LangSplat).
+    In float64, RELEVANCY_ROWS rows at a time: whole, its temporaries took 4x the [N, K] float32 result
+    (5M Gaussians, K = 30: 6.5 GB against cosine's 3.0; round 61b).
     """
-    hardest = negative.max(axis=1, keepdims=True) if negative.shape[1] else np.full((positive.shape[0], 1), -np.inf, np.float32)
-    z = temperature * (positive.astype(np.float64) - hardest)
-    return (0.5 * (1.0 + np.tanh(0.5 * z))).astype(np.float32)
+    out = np.empty(positive.shape, np.float32)
+    for lo in range(0, positive.shape[0], RELEVANCY_ROWS):
+        rows = slice(lo, lo + RELEVANCY_ROWS)
+        p = positive[rows]
+        hardest = negative[rows].max(axis=1, keepdims=True) if negative.shape[1] else np.full((p.shape[0], 1), -np.inf, np.float32)
+        z = temperature * (p.astype(np.float64) - hardest)
+        out[rows] = 0.5 * (1.0 + np.tanh(0.5 * z))
+    return out
+
+
+RELEVANCY_ROWS = 1 << 16  # Gaussians whose relevancy is computed at a time
 
 
 def relevancy_reference(positive: np.ndarray, negative: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE) -> np.ndarray:

@@ -23,6 +23,7 @@ import dataclasses
 import logging
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError, hidden_character
-from drsplat.utils import clipped, spread_rows, unreachable_cause, write_bytes_atomic
+from drsplat.utils import atomic_path, clipped, spread_rows, unreachable_cause
 
 log = logging.getLogger(__name__)
 
@@ -1329,14 +1330,21 @@ def ply_header(vertex_dtype: np.dtype, comments: list[str], count: int) -> bytes
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
-def save_ply(scene: GaussianScene, path: str | Path) -> None:
+def save_ply(scene: GaussianScene, path: str | Path, before_replace: Callable[[], object] | None = None) -> None:
     """Write `scene` in exactly the INRIA layout (binary little-endian float32), atomically.
 
     Extra per-Gaussian properties follow rot_3 with their own types; comments go in the header.
+    before_replace: called once the file is written, just before it replaces `path` (a drsplat export
+    writes the codebook its header names there, so an earlier file at `path` keeps its own until then).
     """
     vertices = scene_to_vertices(scene)
     header = ply_header(vertices.dtype, scene.comments, scene.num_gaussians)
-    write_bytes_atomic(path, header, vertices.tobytes())
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(vertices.tobytes())
+        if before_replace is not None:
+            before_replace()
 
 
 # ----------------------------------------------------------------------------- compressed PLY writing

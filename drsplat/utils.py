@@ -390,23 +390,50 @@ def _file_identity(path: Path) -> tuple[int, int] | None:
 @contextlib.contextmanager
 def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     """A command's outputs written as one set: when the block fails after writing some of them, the
-    regular files among `paths` that it wrote (new ones, and replaced ones: another inode or mtime
-    than on entry) are removed, so a failed command leaves none of the set instead of half of it
-    (LABELS.npy beside a missing coloured PLY). Each file is still written atomically on its own;
-    a device or FIFO output is left as it is."""
+    regular files among `paths` that it wrote are undone, so a failed command leaves the set as it was
+    instead of half of it (LABELS.npy beside a missing coloured PLY). A new file is removed; a file
+    that was there is put back: it is kept under a second name (a hard link, `.<stem>.<pid>@<host>.kept.tmp`,
+    which a later write's sweep removes if this process is killed) until the block ends. Until round 61b
+    replaced ones were removed too: an interrupted re-export lost the earlier export's codebook, and
+    an interrupted `segment` the earlier LABELS.npy. Where no link can be made (another file system
+    type), a replaced file is removed as before. Each file is still written atomically on its own; a
+    device or FIFO output is left as it is."""
     given = [Path(p) for p in paths if p is not None]
     targets = [output_target(p) for p in given]  # a link's target holds what is written: the link (the user's) stays
     before = [_file_identity(t) for t in targets]
+    kept = [_kept_copy(t) if then is not None else None for t, then in zip(targets, before)]
     try:
         yield
     except BaseException:
-        for target, then in zip(targets, before):
+        for target, then, copy in zip(targets, before, kept):
             now = _file_identity(target)
-            if now is not None and now != then:
-                with contextlib.suppress(OSError):
+            if now is None or now == then:
+                continue
+            with contextlib.suppress(OSError):
+                if copy is not None:
+                    os.replace(copy, target)
+                    log.info("put back the earlier %s: the other outputs of this command were not written", shown_path(target))
+                else:
                     target.unlink()
                     log.info("removed %s: the other outputs of this command were not written", shown_path(target))
         raise
+    finally:
+        for copy in kept:
+            if copy is not None:
+                with contextlib.suppress(OSError):
+                    copy.unlink()
+
+
+def _kept_copy(target: Path) -> Path | None:
+    """A second name (hard link) for the file at `target`, beside it, or None where none can be made."""
+    copy = target.with_name(f"{temp_prefix(target)}kept{TEMP_SUFFIX}")
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            copy.unlink()
+        os.link(target, copy)
+    except OSError:
+        return None
+    return copy
 
 
 @contextlib.contextmanager

@@ -1120,20 +1120,26 @@ def test_an_ablation_refuses_a_features_folder_as_its_out_dir(world, capsys):
     assert sorted(p.name for p in features.iterdir()) == before
 
 
-def test_outputs_together_removes_only_what_the_failed_block_wrote(tmp_path):
+def test_outputs_together_undoes_only_what_the_failed_block_wrote(tmp_path):
+    """A failed block removes the new files it wrote and puts back the ones it replaced (round 61b: an
+    interrupted `segment` or re-export had removed the user's earlier LABELS.npy or codebook), leaving no
+    second name behind."""
     from drsplat.utils import outputs_together, save_npy_atomic
 
     kept, rewritten, new = tmp_path / "kept.npy", tmp_path / "rewritten.npy", tmp_path / "new.npy"
     np.save(kept, np.zeros(3))
-    np.save(rewritten, np.zeros(3))
+    np.save(rewritten, np.full(3, 7.0))
     with pytest.raises(RuntimeError), outputs_together([kept, rewritten, new, None, Path(os.devnull)]):
         save_npy_atomic(rewritten, np.ones(3))
         save_npy_atomic(new, np.ones(3))
         raise RuntimeError("the third output failed")
-    assert kept.exists() and not rewritten.exists() and not new.exists() and Path(os.devnull).exists()
-    with outputs_together([new]):  # a block that succeeds keeps what it wrote
+    assert kept.exists() and not new.exists() and Path(os.devnull).exists()
+    np.testing.assert_array_equal(np.load(rewritten), np.full(3, 7.0))
+    with outputs_together([new, rewritten]):  # a block that succeeds keeps what it wrote
         save_npy_atomic(new, np.ones(3))
-    assert new.exists()
+        save_npy_atomic(rewritten, np.ones(3))
+    assert new.exists() and np.load(rewritten)[0] == 1.0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.npy", "new.npy", "rewritten.npy"]
 
 
 def test_viewer_size_flags_are_usage_errors(capsys):

@@ -959,3 +959,28 @@ def test_an_export_over_a_write_protected_ply_leaves_its_codebook_alone(tmp_path
     finally:
         ply.chmod(0o644)
     assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)
+
+
+@pytest.mark.parametrize("where", ["body", "rename"])
+def test_an_export_stopped_over_an_earlier_one_of_another_codebook_leaves_it_readable(data, books, tmp_path, monkeypatch, where):
+    """Round 61b: `query --out sel.ply --format drsplat` over an earlier export of another codebook wrote the codebook
+    first: stopped while the PLY was written (a Ctrl-C; a kill, the out-of-memory killer), the earlier sel.ply sat
+    beside a codebook it no longer matched. The codebook is written last now, just before the PLY's rename; stopped
+    before it, the earlier pair is untouched."""
+    import drsplat.scene as sc
+    from drsplat.lang.plyformat import export_scene
+    from drsplat.scene import load_ply
+
+    x, w, _, _ = data
+    ply = tmp_path / "sel.ply"
+    export_scene(tiny_scene(len(x)), build_field(x, w, books[8]), ply, "drsplat")
+    kept = {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))}
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sc, "ply_header" if where == "body" else "atomic_path", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        export_scene(tiny_scene(len(x)), build_field(x, w, books[16]), ply, "drsplat")
+    assert {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))} == kept
+    assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)

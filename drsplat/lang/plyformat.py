@@ -598,6 +598,8 @@ def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | 
         out = standard_scene(scene)
         save_scene(out, path)
         return out
-    out = attach_field(scene, field, path)
-    save_ply(out, path)
+    # the codebook last, just before the PLY is renamed into place (as registration does): written first, an interrupted
+    # or killed export over an earlier one of another codebook left that PLY beside a codebook it no longer matched (round 61b)
+    out = attach_field(scene, field, path, write_codebook=False)
+    save_ply(out, path, before_replace=(lambda: write_codebook_beside(field.codebook, path)) if needs_codebook(field.kind) else None)
     return out
