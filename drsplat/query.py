@@ -379,14 +379,33 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     labels_emb = query_rows(label_embeddings, "label embedding")
     n_labels = labels_emb.shape[0]
     queries = labels_emb if background is None else np.concatenate([labels_emb, query_rows(background, "background embedding")])
-    scores = field.scores(queries, lut_bits=lut_bits, device=device)
-    best = np.argmax(scores, axis=1) if scores.shape[0] else np.zeros(0, np.int64)
-    best_score = scores[np.arange(scores.shape[0]), best]
+    best, best_score = _argmax_scores(field, queries, lut_bits, device)
     labels = np.where(best < n_labels, best, -1).astype(np.int32)
     labels[~field.assigned()] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)
     if min_score is not None:
         labels[best_score < min_score] = -1
     return Segmentation(labels=labels, scores=best_score.astype(np.float32))
+
+
+SEGMENT_SCORE_BYTES = 256 << 20  # the [N, L'] scores `segment` holds at a time: L' labels a pass (at least SEGMENT_MIN_LABELS)
+SEGMENT_MIN_LABELS = 8
+
+
+def _argmax_scores(field: LanguageField, queries: np.ndarray, lut_bits: int, device: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(argmax over queries [Q, D] of each Gaussian's score [N] int64, that score [N] float32), the first of equal scores
+    as np.argmax picks it, scoring a few queries at a time: a query's scores are the same bits alone and in a batch, and
+    the whole [N, Q] took 6.4 GB for 200 labels on 5M Gaussians (round 61b)."""
+    n = len(field)
+    per = max(SEGMENT_MIN_LABELS, SEGMENT_SCORE_BYTES // (4 * max(n, 1)))
+    best, best_score = np.zeros(n, np.int64), np.full(n, np.nan, np.float32)
+    for lo in range(0, queries.shape[0], per):
+        scores = field.scores(queries[lo : lo + per], lut_bits=lut_bits, device=device)
+        here = np.argmax(scores, axis=1)
+        score = scores[np.arange(n), here]
+        # strictly better, or the first score at all; NaN wins as it does in np.argmax (the first NaN)
+        take = (score > best_score) | (np.isnan(best_score) & (lo == 0)) | (np.isnan(score) & ~np.isnan(best_score))
+        best[take], best_score[take] = here[take] + lo, score[take]
+    return best, best_score
 
 
 def label_colors(count: int) -> np.ndarray:
