@@ -77,13 +77,17 @@ def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageFie
 def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
     """The paper's self-referencing query: normalize(mean of the unit features of Gaussians `ids`): [D].
 
-    ids: [n] Gaussian indices, read as a set: an id given twice counts once, and the mean is taken
+    ids: [n] Gaussian indices (or an [N] bool mask), read as a set: an id given twice counts once, and the mean is taken
     in id order, so one set of Gaussians gives one query, the same bits in any order and as a
     boolean mask (round 50: 5 of 50 ids repeated moved the cosines by up to 0.0074). PQ fields use
     the reconstructions of those Gaussians. Gaussians without a feature (`LanguageField.assigned`:
     a PQ row's codes decode to a vector even then) are ignored.
     """
     given = np.asarray(ids).reshape(-1)
+    if given.dtype == bool:  # a boolean [N] mask: its True rows (np.unique of the mask read [False, True] as ids 0 and 1)
+        if given.shape[0] != len(field):
+            raise DrsplatError(f"a boolean mask of Gaussians needs one entry per Gaussian ({len(field):,}), got {given.shape[0]:,}")
+        given = np.flatnonzero(given)
     ids = np.unique(given)
     if ids.size < given.size:
         log.info("%d repeated Gaussian ids counted once", given.size - ids.size)

@@ -195,6 +195,16 @@ def test_ablate_repeats_is_bounded(tmp_path, repeats):
     assert exc.value.code == 2
 
 
+def test_ablate_without_out_dir_writes_to_ablations_in_the_working_folder(tmp_path, monkeypatch, capsys):
+    """Round 61d: the docs quote ablation commands without --out-dir, which was required: as written they exited 2.
+    Its default is ./ablations (the output check runs in it before any work: a file there is refused)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ablations").mkdir()
+    (tmp_path / "ablations" / "ablation_topk.json").mkdir()
+    assert main(["eval", "ablate", "topk"]) == 1
+    assert "ablations/ablation_topk.json" in capsys.readouterr().err
+
+
 def test_ablate_output_that_is_a_folder_is_found_first(tmp_path, capsys):
     (tmp_path / "ablation_topk.json").mkdir()
     assert main(["eval", "ablate", "topk", "--out-dir", str(tmp_path)]) == 1

@@ -163,8 +163,10 @@ def test_click_query_reads_its_ids_as_a_set(world, fields):
     mask[ids] = True
     for name in ("exact", "pq"):
         want = click_query(fields[name], np.flatnonzero(mask))
-        for given in (ids[::-1], np.concatenate([ids, ids[:5]]), np.repeat(ids, 3)[::-1]):
+        for given in (ids[::-1], np.concatenate([ids, ids[:5]]), np.repeat(ids, 3)[::-1], mask):  # round 61d: the mask raised IndexError
             np.testing.assert_array_equal(click_query(fields[name], given), want, err_msg=name)
+    with pytest.raises(DrsplatError, match="one entry per Gaussian"):
+        click_query(fields["exact"], mask[:-1])
 
 def test_a_click_query_of_many_gaussians_is_the_same_bits_in_bounded_memory(fields, monkeypatch):
     """Round 61b: a click query reconstructed every selected Gaussian at once, with float64 copies: ~15 kB an id

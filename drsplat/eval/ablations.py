@@ -612,7 +612,9 @@ def add_ablate_parser(sub) -> None:
     p.add_argument("--values", default=None, metavar="V,V", help="override the swept values (top-k, PQ sub-vectors or resolution divisors)")
     p.add_argument("--width", type=int_range(MIN_WIDTH, MAX_WIDTH), default=None, metavar="PIXELS",
                    help="resolution: render the synthetic views this wide before dividing them (default: the preset's)")
-    p.add_argument("--out-dir", type=Path, required=True, metavar="DIR", help="where the PNG, JSON and cached datasets go")
+    p.add_argument("--out-dir", type=Path, default=Path(DEFAULT_ABLATION_DIR), metavar="DIR",
+                   help=f"where the PNG, JSON and cached datasets go (default: {DEFAULT_ABLATION_DIR} in the working folder; "
+                        "a rerun there reuses its datasets)")
     p.set_defaults(func=run_ablate)
 
 
@@ -733,6 +735,9 @@ def _value_parser(ablation: str, presets: tuple[str, ...]):
 def _holds_feature_files(folder: Path) -> bool:
     """Whether `folder` holds a file named like a LangSplat feature file or drsplat's features manifest."""
     return any(next(folder.glob(pattern), None) is not None for pattern in FEATURE_FILE_PATTERNS)
+
+
+DEFAULT_ABLATION_DIR = "ablations"  # the docs quote ablation commands without --out-dir (round 61d: they exited 2 as written)
 
 
 def ablation_outputs(out_dir: Path, name: str) -> tuple[Path, Path]:
