@@ -31,7 +31,7 @@ import numpy as np
 
 from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
 from drsplat.errors import InputError, hidden_character
-from drsplat.utils import atomic_path, clipped, spread_rows, unreachable_cause
+from drsplat.utils import clipped, spread_rows, unreachable_cause, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -1339,12 +1339,7 @@ def save_ply(scene: GaussianScene, path: str | Path, before_replace: Callable[[]
     """
     vertices = scene_to_vertices(scene)
     header = ply_header(vertices.dtype, scene.comments, scene.num_gaussians)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(header)
-            f.write(vertices.tobytes())
-        if before_replace is not None:
-            before_replace()
+    write_bytes_atomic(path, header, vertices.tobytes(), before_replace=before_replace)
 
 
 # ----------------------------------------------------------------------------- compressed PLY writing

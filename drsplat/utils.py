@@ -582,13 +582,15 @@ def _current_umask() -> int:
     return mask
 
 
-def write_bytes_atomic(path: str | Path, *parts: bytes) -> None:
+def write_bytes_atomic(path: str | Path, *parts: bytes, before_replace: Callable[[], object] | None = None) -> None:
     """Write the byte strings one after the other to `path` through `atomic_path` (temp + rename;
-    a device or FIFO in place)."""
+    a device or FIFO in place). before_replace: called once they are written, just before the rename."""
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             for part in parts:
                 f.write(part)
+        if before_replace is not None:
+            before_replace()
 
 
 def save_npy_atomic(path: str | Path, array: np.ndarray) -> None:
