@@ -114,6 +114,30 @@ def test_a_phrase_past_the_text_context_is_embedded_cut_and_said(encoder, caplog
     assert not np.array_equal(fits[0], cut[0])
 
 
+@pytest.mark.parametrize("known", ["one way", "two ways", "none"])
+def test_a_checkpoint_without_a_tag_is_normalised_as_its_models_weights_are(tiny_clip, monkeypatch, known):
+    """Round 61c: a --clip-checkpoint given without --pretrained was normalised with OpenAI's mean and std whatever
+    its model (a SigLIP one: cosine 0.85 to the right embedding of the same crops). Now as every known tag of the
+    model does; a model whose tags disagree (ViT-L-14) is refused for images until --pretrained names the weights."""
+    import open_clip
+
+    tags = {"one way": {"a": (0.5, 0.5), "b": (0.5, 0.5)}, "two ways": {"openai": (None, None), "laion": (0.5, 0.5)}, "none": {}}[known]
+    monkeypatch.setattr(open_clip, "list_pretrained_tags_by_model", lambda model: list(tags) if model == TINY_CLIP else [])
+    monkeypatch.setattr(open_clip, "get_pretrained_cfg", lambda model, tag: {} if tags[tag][0] is None else
+                        {"mean": (tags[tag][0],) * 3, "std": (tags[tag][1],) * 3})
+    enc = ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")
+    crops = np.random.default_rng(0).uniform(size=(2, 3, enc.image_size, enc.image_size)).astype(np.float32)
+    assert enc.encode_text(["a fern"]).shape[0] == 1  # text needs no image normalisation
+    if known == "two ways":
+        with pytest.raises(InputError, match="normalise images in 2 ways .*pass --pretrained TAG"):
+            enc.encode_images(crops)
+        tagged = ClipEncoder(TINY_CLIP, pretrained="laion", checkpoint=tiny_clip, device="cpu")
+        assert tagged.mean == (0.5,) * 3 and tagged.encode_images(crops).shape[0] == 2
+        return
+    assert enc.mean == ((0.5,) * 3 if known == "one way" else (0.48145466, 0.4578275, 0.40821073))
+    assert enc.encode_images(crops).shape[0] == 2
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -32,7 +32,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and SAM run (fp16 on CUDA, fp32 on CPU)")
     p.add_argument("--clip-model", type=text_value, default=DEFAULT_MODEL, metavar="NAME", help=f"open_clip architecture (default {DEFAULT_MODEL})")
     p.add_argument("--pretrained", type=text_value, default=None, metavar="TAG",
-                   help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it only names the weights")
+                   help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it names the weights the file holds, and so how its crops are normalised")
     p.add_argument("--clip-checkpoint", type=Path, default=None, metavar="PATH", help="local open_clip weights file (no download)")
     p.add_argument("--clip-config", type=Path, default=None, metavar="JSON",
                    help="open_clip model config file, for an architecture open_clip does not ship (named by --clip-model)")

@@ -120,11 +120,20 @@ class ClipEncoder:
             raise WeightsUnavailableError(f"the text tokenizer of OpenCLIP model {model} is not in the local Hugging Face cache and "
                                           "cannot be downloaded; run once with internet access") from None
         tag_cfg = open_clip.get_pretrained_cfg(model, self.pretrained) if not self.pretrained.startswith(("file:", "random")) else {}
-        self.mean = tuple(tag_cfg.get("mean", OPENAI_MEAN))
-        self.std = tuple(tag_cfg.get("std", OPENAI_STD))
+        self.normalisation_problem: str | None = None  # why the images' normalisation is unknown (`require_image_normalisation`)
+        if self.pretrained.startswith("file:"):  # a checkpoint named by no tag: its model's known weights say how to normalise
+            tag_cfg, self.normalisation_problem = checkpoint_normalisation(open_clip, model)
+        self.mean = tuple(tag_cfg.get("mean") or OPENAI_MEAN)
+        self.std = tuple(tag_cfg.get("std") or OPENAI_STD)
         size = getattr(self.net.visual, "image_size", 224)
         self.image_size = int(size[0] if isinstance(size, (tuple, list)) else size)
         self._text_cache: dict[str, np.ndarray] = {}
+
+    def require_image_normalisation(self) -> None:
+        """Refuse to embed images whose normalisation is a guess (a --clip-checkpoint of a model whose known weights
+        are normalised in more than one way, given without --pretrained); text needs none."""
+        if self.normalisation_problem is not None:
+            raise InputError(self.checkpoint, self.normalisation_problem)
 
     @classmethod
     def random(cls, model: str = DEFAULT_MODEL, device: str = "cpu", batch_size: int = 64) -> "ClipEncoder":
@@ -159,6 +168,8 @@ class ClipEncoder:
         CLIP normalisation (x - mean) / std is applied here. Returns [B, D] unit float32.
         """
         import torch
+
+        self.require_image_normalisation()
 
         x = torch.as_tensor(images)
         if x.ndim != 4 or x.shape[1] != 3:
@@ -222,6 +233,28 @@ def check_clip_config(path: Path) -> None:
     missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
     if missing:
         raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])
+
+
+def checkpoint_normalisation(open_clip, model: str) -> tuple[dict, str | None]:
+    """({mean, std} or {}, problem) for a --clip-checkpoint of `model` given without --pretrained: the image
+    normalisation every known weights tag of the model uses (OpenAI's for ViT-B-16; 0.5 for SigLIP; 0 / 1 for
+    MobileCLIP), {} (OpenAI's, open_clip's own default for a file) for a model no tag is known for, and a problem
+    when its tags disagree (ViT-L-14: OpenAI's, or 0.5 for laion2b_s32b_b82k). OpenAI's was used for every checkpoint,
+    a SigLIP one too: cosine 0.85 to the right embedding of the same crops, without a word (round 61c)."""
+    ways: dict[tuple, list[str]] = {}
+    for tag in open_clip.list_pretrained_tags_by_model(model):
+        cfg = open_clip.get_pretrained_cfg(model, tag)
+        ways.setdefault((tuple(cfg.get("mean") or OPENAI_MEAN), tuple(cfg.get("std") or OPENAI_STD)), []).append(tag)
+    if len(ways) == 1:
+        (mean, std), = ways
+        return {"mean": mean, "std": std}, None
+    if not ways:
+        return {}, None
+    listed = "; ".join(f"{', '.join(tags[:3])}{', ...' if len(tags) > 3 else ''}: mean {', '.join(f'{v:.3g}' for v in mean)}"
+                       for (mean, _), tags in ways.items())
+    return {}, (f"the known weights of {model} normalise images in {len(ways)} ways ({listed}), and this checkpoint was "
+                "given without --pretrained: pass --pretrained TAG naming the weights it holds, which also sets how its crops "
+                "are normalised")
 
 
 def use_clip_config(path: Path | None) -> None:

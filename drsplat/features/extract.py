@@ -542,6 +542,7 @@ def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`."""
     use_clip_config(spec.clip_config)
     encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
+    encoder.require_image_normalisation()  # before any image: SAM takes minutes an image on a CPU
     sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
     generator = make_generator(spec.masks, spec.sam_checkpoint, spec.sam_model, encoder.device, sam_params)
     return generator, encoder
