@@ -794,6 +794,31 @@ def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_says_wh
     assert report.written == ["view"] and featurefiles.read_manifest(stopped)["mask_generator"] == "felzenszwalb"
 
 
+def test_resuming_with_the_same_sam_weights_moved_is_accepted(weights, tmp_path):
+    """Round 61c: a resume whose --sam-checkpoint was the same file moved (~/Downloads -> ~/models) was refused on its
+    path though the manifest's sam_weights (size:sha1) matched: SAM takes minutes an image on a CPU, and the remedy
+    offered (a new --out) threw them away. The weights' digest decides, as for CLIP; other weights are still refused."""
+    import shutil
+
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8)))
+    cameras = load_cameras(src)
+    encoder = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    params = SamParams(points_per_side=2, crop_n_layers=0)
+    moved = Path(shutil.copy(weights["sam"], (tmp_path / "models").mkdir() or tmp_path / "models" / weights["sam"].name))
+    out = tmp_path / "features"
+    runs = []
+    for path in (weights["sam"], moved, make_tiny_sam(tmp_path / "other_sam.pth", seed=1)):
+        gen = SamGenerator(load_sam(path), params, path)
+        runs.append((gen, make_manifest(gen, encoder, NmsParams(), 64, 1080, {"sam_checkpoint": str(path.resolve())})))
+    extract_features(cameras, out, runs[0][0], encoder, manifest=runs[0][1], show_progress=False)
+    report = extract_features(cameras, out, runs[1][0], encoder, manifest=runs[1][1], show_progress=False)
+    assert report.skipped == ["view"]
+    with pytest.raises(DrsplatError, match="sam_weights"):
+        extract_features(cameras, out, runs[2][0], encoder, manifest=runs[2][1], show_progress=False)
+
+
 def test_features_on_a_3dgs_model_folder_without_images_is_refused_before_any_model_loads(tmp_path, weights, capsys, monkeypatch):
     """Round 51 (F5): `features --source output/run1` (3DGS's model folder: cameras.json, no images/) built SAM and CLIP
     (minutes and gigabytes with the real models), then stopped with "input: camera 'DSC0001' has no image file". Now one

@@ -322,6 +322,8 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
             raise DrsplatError(f"{features_dir} holds features made with {key} {old[key]!r}, this run's is {manifest.get(key)!r}: resuming "
                                f"would mix the two in one folder; use a new --out folder or the same {flag}{_no_pair_yet(features_dir)}")
     for key, flag in (("source", "--source"), ("sam_checkpoint", "--sam-checkpoint")):
+        if key == "sam_checkpoint" and old.get("sam_weights") and old.get("sam_weights") == manifest.get("sam_weights"):
+            continue  # the same weights, moved: their digest (checked above), not their path, says what made the masks, as for CLIP (round 61c)
         check_same_path(features_dir, key, flag, old.get(key), manifest.get(key))
     if old.get("clip_precision") and manifest.get("clip_precision") and old["clip_precision"] != manifest["clip_precision"]:
         log.warning("%s holds features CLIP made in %s, this run's are in %s (CLIP runs in float16 on a CUDA device, float32 on "
