@@ -138,6 +138,36 @@ def test_a_checkpoint_without_a_tag_is_normalised_as_its_models_weights_are(tiny
     assert enc.encode_images(crops).shape[0] == 2
 
 
+def test_clip_configs_open_clip_would_fail_on_are_one_sentence_or_work(tmp_path):
+    """Round 61c: three --clip-config cases ended in tracebacks: a folder holding one malformed .json (JSONDecodeError
+    from open_clip), a text tower with "proj_bias": true (its projection an nn.Linear: AttributeError in `dim`),
+    a rectangular image_size (a torch shape error at the first crops). Now: one error naming the file, the right D,
+    one error saying crops are square."""
+    import open_clip
+
+    from drsplat.features.clip import use_clip_config
+
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    (folder / "Good.json").write_text(json.dumps(TINY_CFG))
+    (folder / "Broken.json").write_text('{"embed_dim": 32,')
+    with pytest.raises(InputError, match="Broken.json"):
+        use_clip_config(folder)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="holds no .json model config"):
+        use_clip_config(tmp_path / "empty")
+    biased = tmp_path / "TinyBias-drsplat-test.json"
+    biased.write_text(json.dumps({**TINY_CFG, "text_cfg": {**TINY_CFG["text_cfg"], "proj_bias": True}}))
+    use_clip_config(biased)
+    enc = ClipEncoder("TinyBias-drsplat-test", None, None, "cpu", random_weights=True)
+    assert isinstance(enc.net.text_projection, torch.nn.Linear) and enc.dim == 32 == enc.encode_text(["a"]).shape[1]
+    rect = tmp_path / "TinyRect-drsplat-test.json"
+    rect.write_text(json.dumps({**TINY_CFG, "vision_cfg": {**TINY_CFG["vision_cfg"], "image_size": [224, 160]}}))
+    open_clip.add_model_config(rect)
+    with pytest.raises(DrsplatError, match="takes 224x160 images; drsplat embeds square mask crops"):
+        ClipEncoder("TinyRect-drsplat-test", None, None, "cpu", random_weights=True)
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -126,6 +126,9 @@ class ClipEncoder:
         self.mean = tuple(tag_cfg.get("mean") or OPENAI_MEAN)
         self.std = tuple(tag_cfg.get("std") or OPENAI_STD)
         size = getattr(self.net.visual, "image_size", 224)
+        if isinstance(size, (tuple, list)) and len(set(size)) > 1:  # crops are square: a [224, 160] input failed inside torch (round 61c)
+            raise DrsplatError(f"OpenCLIP model {model} takes {'x'.join(str(v) for v in size)} images; drsplat embeds square mask crops "
+                               "(LangSplat's recipe), so only models of a square image_size can be used")
         self.image_size = int(size[0] if isinstance(size, (tuple, list)) else size)
         self._text_cache: dict[str, np.ndarray] = {}
 
@@ -152,7 +155,12 @@ class ClipEncoder:
 
     @property
     def dim(self) -> int:
-        return int(self.net.text_projection.shape[1] if getattr(self.net, "text_projection", None) is not None else self.encode_text(["object"]).shape[1])
+        projection = getattr(self.net, "text_projection", None)
+        if getattr(projection, "shape", None) is not None:  # a [width, D] parameter
+            return int(projection.shape[1])
+        if isinstance(getattr(projection, "out_features", None), int):  # an nn.Linear ("proj_bias": true; round 61c: AttributeError)
+            return int(projection.out_features)
+        return int(self.encode_text(["object"]).shape[1])
 
     def _normalised(self, x) -> np.ndarray:
         import torch
@@ -223,9 +231,15 @@ class ClipEncoder:
 
 def check_clip_config(path: Path) -> None:
     """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
-    silently (not .json, not a model config); a folder of configs is left to open_clip."""
+    silently (not .json, not a model config); in a folder, each .json file open_clip reads there (a bad one
+    was a JSONDecodeError traceback, round 61c), and a folder of none."""
     path = Path(path)
     if path.is_dir():
+        configs = sorted(path.glob("*.json"))
+        if not configs:
+            raise InputError(path, "holds no .json model config (--clip-config: a JSON file, or a folder of them)")
+        for config in configs:
+            check_clip_config(config)
         return
     if path.suffix != ".json":
         raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
