@@ -316,6 +316,19 @@ def registered(tmp_path_factory, world, fields):
 
 
 @pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_a_registered_scene_is_held_once_for_queries(registered, fields, kind):
+    """Round 61b: query, segment and eval held the language columns twice (the scene's PLY columns and the field
+    built from them), 130 B a Gaussian more for PQ, 1 kB for exact float16. The commands' scene has none of them."""
+    from drsplat.commands.common import load_registered
+
+    scene, field = load_registered(registered[kind])
+    assert not [name for name in scene.extra if name.startswith("lang_")]
+    assert not [c for c in scene.comments if c.startswith("drsplat.lang")]
+    np.testing.assert_array_equal(field.scores(np.eye(field.dim, dtype=np.float32)[:2]),
+                                  fields[kind].scores(np.eye(field.dim, dtype=np.float32)[:2]))
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
 def test_query_cli_embedding_scores_and_selection(tmp_path, registered, fields, world, kind):
     _, _, lab, dirs = world
     np.save(tmp_path / "q1.npy", dirs[2])

@@ -25,6 +25,7 @@ from drsplat.features.masks.base import LEVELS
 from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character, one_line, shown_path
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
+from drsplat.lang.plyformat import strip_field
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import scene_format
 from drsplat.utils import name_problem, names_a_folder
@@ -313,7 +314,9 @@ def load_registered(path: Path) -> tuple[GaussianScene, LanguageField]:
     field = read_field(scene, path)
     if field is None:
         raise InputError(path, "has no language field (no 'drsplat.lang' header comment); run drsplat register first")
-    return scene, field
+    # the field holds the language columns now: the scene's copies of them (130 B a Gaussian for PQ, 1 kB exact) go, as
+    # every output strips them before writing the field's own (round 61b: three copies of the codes held per query)
+    return strip_field(scene), field
 
 
 def oracle_flag(flag: str) -> str:
