@@ -315,6 +315,18 @@ def registered(tmp_path_factory, world, fields):
     return out
 
 
+def test_top_ids_are_the_full_stable_sorts_first_rows():
+    """Round 61b: `query --top` sorted all N scores (3 s of a 10M query); now only those at least the top-th, the same ids."""
+    from drsplat.commands.query import top_ids
+
+    rng = np.random.default_rng(5)
+    best = rng.integers(0, 20, 5000).astype(np.float32) / 7  # many exact ties
+    ids = np.flatnonzero(rng.uniform(size=5000) < 0.8)
+    for top in (0, 1, 3, 10, 57, len(ids) - 1, len(ids), len(ids) + 5):
+        want = ids[np.argsort(-best[ids], kind="stable")[:top]]
+        np.testing.assert_array_equal(top_ids(best, ids, top), want)
+
+
 @pytest.mark.parametrize("kind", ["exact", "pq"])
 def test_a_registered_scene_is_held_once_for_queries(registered, fields, kind):
     """Round 61b: query, segment and eval held the language columns twice (the scene's PLY columns and the field
