@@ -804,15 +804,16 @@ def npy_header(path: str | Path) -> tuple[tuple[int, ...], np.dtype, int]:
     return tuple(int(d) for d in shape), dtype, offset
 
 
-def load_npy(path: str | Path, what: str = "array") -> np.ndarray:
+def load_npy(path: str | Path, what: str = "array", mmap: bool = False) -> np.ndarray:
     """np.load of a trusted-size .npy: header checked against the file size first, never pickles.
 
-    The one reader of every user-supplied .npy (queries, ids, labels, features, embeddings).
+    The one reader of every user-supplied .npy (queries, ids, labels, features, embeddings). mmap: the
+    array memory-mapped read-only (read a block at a time, a large file is never held whole).
     """
     path = Path(path)
     npy_header(path)
     try:
-        return np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False, mmap_mode="r" if mmap else None)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(path, f"is not a readable .npy {what} ({str(exc).splitlines()[0][:120] if str(exc) else exc.__class__.__name__})") from None
 

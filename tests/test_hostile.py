@@ -2684,6 +2684,46 @@ def _frame_doc(z: float = 4.0) -> dict:
     return {"file_path": "images/v.png", "transform_matrix": c2w.tolist(), "fl_x": 50.0, "w": 64, "h": 48}
 
 
+def test_pq_train_draws_the_same_rows_in_bounded_memory(tmp_path):
+    """Round 61b: `pq train` loaded every file whole, cast, concatenated and judged it before drawing --max-train rows:
+    8 GB for a 2 GB file with --max-train 256. Now two passes a block of rows at a time (memory-mapped): the same rows
+    drawn, skipped rows counted as before, memory of a block."""
+    import tracemalloc
+
+    import drsplat.commands.pq as pq
+    from drsplat.utils import load_npy
+
+    rng = np.random.default_rng(7)
+    files = []
+    for i, n in enumerate((5000, 40000, 300)):
+        x = rng.normal(size=(n, 64)).astype(np.float32 if i != 1 else np.float64)
+        x[rng.integers(0, n, 40)] = 0.0
+        x[rng.integers(0, n, 9), 3] = np.nan
+        files.append(tmp_path / f"e{i}.npy")
+        np.save(files[-1], x)
+
+    def before(max_train, seed):  # what pq train drew until round 61b: every usable row in file order, then a draw
+        x = np.concatenate([np.asarray(load_npy(f), np.float32) for f in files])
+        x = x[np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)]
+        return x if x.shape[0] <= max_train else x[np.sort(np.random.default_rng(seed).choice(x.shape[0], max_train, replace=False))]
+
+    for max_train, seed in ((256, 0), (10_000, 3), (10**9, 0)):
+        got, usable = pq.collect_embeddings(files, [], max_train, seed)
+        want = before(max_train, seed)
+        np.testing.assert_array_equal(got, want)
+        assert usable >= want.shape[0]
+    pq_rows = pq.PQ_READ_ROWS
+    try:
+        pq.PQ_READ_ROWS = 1024
+        tracemalloc.start()
+        pq.collect_embeddings(files, [], 256, 0)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    finally:
+        pq.PQ_READ_ROWS = pq_rows
+    assert peak < 40000 * 64 * 4 / 4, peak  # a quarter of one file's float32 rows: blocks, not the files
+
+
 def test_pq_train_on_non_finite_embeddings_names_the_file(tmp_path, capsys):
     """pq train on an all-NaN .npy said "input: only 0 embeddings", naming neither the file nor why."""
     emb = tmp_path / "nan.npy"

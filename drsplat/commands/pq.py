@@ -45,10 +45,65 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     info.set_defaults(func=run_info)
 
 
-def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
-    """All embedding rows [n, D] float32 from .npy files and feature folders (finite nonzero rows)."""
-    from drsplat.features.format import FEAT_SUFFIX, embedding_norms
-    from drsplat.utils import load_npy
+def collect_embeddings(arrays: list[Path], folders: list[Path], max_train: int | None = None, seed: int = 0) -> tuple[np.ndarray, int]:
+    """(training rows [n, D] float32, usable rows in all) from .npy files and feature folders: the finite rows of a
+    direction, and of those `max_train` at most, drawn with `seed` (the draw over the usable rows in file order).
+
+    Two passes over the files, each read a block of rows at a time (memory-mapped): the first judges every row, the
+    second gathers the drawn ones. Every file was loaded whole, cast, concatenated and judged before the draw: 8 GB for
+    a 2 GB file with --max-train 256, a 4 GB one killed at 10 GB (round 61b); the rows drawn are the same.
+    """
+    from drsplat.features.format import embedding_norms
+
+    files = _embedding_files(arrays, folders)
+    usable, dim = [], None
+    skipped = {"zero or non-finite": 0, "huge": 0, "tiny": 0}
+    for path in files:
+        arr = _embedding_array(path, dim)
+        dim = arr.shape[1]
+        keep = np.empty(arr.shape[0], bool)
+        for lo in range(0, arr.shape[0], PQ_READ_ROWS):
+            x = float32_rows(path, arr[lo : lo + PQ_READ_ROWS], lo)
+            ok = np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
+            # judged as the feature reader judges a mask's embedding (`features.format.read_features_report`), in float64: a float32
+            # sum of values near 3e38 overflowed and such rows were trained on; a norm below float32's smallest normal holds no direction
+            norms = embedding_norms(x)
+            huge, tiny = ok & (norms > np.finfo(np.float32).max), ok & (norms < MIN_NORM)
+            skipped["zero or non-finite"] += int((~ok).sum())
+            skipped["huge"] += int(huge.sum())
+            skipped["tiny"] += int(tiny.sum())
+            keep[lo : lo + PQ_READ_ROWS] = ok & ~huge & ~tiny
+        usable.append(keep)
+    total = sum(k.shape[0] for k in usable)
+    for key, why in (("zero or non-finite", "that are zero or non-finite"),
+                     ("huge", "that have a norm beyond float32's range (+-3.4e38)"),
+                     ("tiny", f"that have a norm below {MIN_NORM:.3g} (float32's smallest normal number), too small to hold a direction")):
+        if skipped[key]:
+            log.warning("skipping %d of %d embeddings %s", skipped[key], total, why)
+    count = int(sum(int(k.sum()) for k in usable))
+    drawn = np.arange(count) if max_train is None or count <= max_train else np.sort(np.random.default_rng(seed).choice(count, max_train, replace=False))
+    out = np.empty((drawn.shape[0], dim or 0), np.float32)
+    first, filled = 0, 0  # the usable rows before this file; the rows of `out` filled
+    for path, keep in zip(files, usable):
+        rows = np.flatnonzero(keep)
+        take = drawn[(drawn >= first) & (drawn < first + rows.shape[0])] - first
+        if take.size:
+            arr = _embedding_array(path, dim)
+            picked = rows[take]
+            for lo in range(0, picked.shape[0], PQ_READ_ROWS):
+                part = picked[lo : lo + PQ_READ_ROWS]
+                out[filled : filled + part.shape[0]] = np.asarray(arr[part], np.float32)
+                filled += part.shape[0]
+        first += rows.shape[0]
+    return out, count
+
+
+PQ_READ_ROWS = 1 << 16  # embedding rows judged or gathered at a time
+
+
+def _embedding_files(arrays: list[Path], folders: list[Path]) -> list[Path]:
+    """The .npy files of --embeddings, then the *_f.npy files of each --features folder (each given once)."""
+    from drsplat.features.format import FEAT_SUFFIX
 
     files = list(arrays)
     given = [*arrays, *folders]
@@ -65,41 +120,34 @@ def collect_embeddings(arrays: list[Path], folders: list[Path]) -> np.ndarray:
         files.extend(found)
     if not files:
         raise UsageError("no embeddings given: use --embeddings A.npy or --features DIR")
-    parts, dim = [], None
-    for path in files:
-        arr = load_npy(path, "embedding array")
-        if arr.ndim != 2 or arr.shape[1] == 0 or arr.dtype.kind not in "fiu":
-            raise InputError(path, f"expected a float array (n, D), got shape {arr.shape} dtype {arr.dtype}")
-        if dim is not None and arr.shape[1] != dim:
-            raise InputError(path, f"embeddings are {arr.shape[1]}-D but earlier files are {dim}-D")
-        dim = arr.shape[1]
-        parts.append(float32_rows(path, arr))
-    x = np.concatenate(parts)
-    ok = np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
-    if not ok.all():
-        log.warning("skipping %d of %d embeddings that are zero or non-finite", int((~ok).sum()), len(x))
-    # judged as the feature reader judges a mask's embedding (`features.format.read_features_report`), in float64: a float32 sum of
-    # values near 3e38 overflowed (numpy's warning on stderr) and such rows were trained on; a norm below float32's smallest normal
-    # keeps too few bits to hold a direction
-    norms = embedding_norms(x)
-    huge, tiny = ok & (norms > np.finfo(np.float32).max), ok & (norms < MIN_NORM)
-    for bad, why in ((huge, "a norm beyond float32's range (+-3.4e38)"), (tiny, f"a norm below {MIN_NORM:.3g} (float32's smallest normal number), too small to hold a direction")):
-        if bad.any():
-            log.warning("skipping %d of %d embeddings that have %s", int(bad.sum()), len(x), why)
-    return x[ok & ~huge & ~tiny]
+    return files
 
 
-def float32_rows(path: Path, arr: np.ndarray) -> np.ndarray:
+def _embedding_array(path: Path, dim: int | None) -> np.ndarray:
+    """The file's rows [n, D], memory-mapped, checked to be floats or integers of the earlier files' D."""
+    from drsplat.utils import load_npy
+
+    arr = load_npy(path, "embedding array", mmap=True)
+    if arr.ndim != 2 or arr.shape[1] == 0 or arr.dtype.kind not in "fiu":
+        raise InputError(path, f"expected a float array (n, D), got shape {arr.shape} dtype {arr.dtype}")
+    if dim is not None and arr.shape[1] != dim:
+        raise InputError(path, f"embeddings are {arr.shape[1]}-D but earlier files are {dim}-D")
+    return arr
+
+
+def float32_rows(path: Path, arr: np.ndarray, first_row: int = 0) -> np.ndarray:
     """arr [n, D] as float32, or InputError naming the rows whose finite values lie beyond float32's
-    range (a cast would make them inf, and they would be skipped as if the file held non-finite values)."""
+    range (a cast would make them inf, and they would be skipped as if the file held non-finite values).
+    first_row: the file's row of arr's first (arr a block of the file)."""
     if arr.dtype.itemsize > 4 or arr.dtype.kind in "iu":
-        wide = arr.astype(np.float64)
+        wide = np.asarray(arr, np.float64)
         big = (np.isfinite(wide) & (np.abs(wide) > np.finfo(np.float32).max)).any(axis=1)  # inf and NaN are skipped rows, counted later
         if big.any():
             rows = np.flatnonzero(big)
-            raise InputError(path, f"{rows.size} of {arr.shape[0]} rows hold values beyond float32's range (±3.4e38), e.g. row {int(rows[0])}; "
-                             "embeddings are stored as float32")
-    return arr.astype(np.float32)
+            which = f"{arr.shape[0]} rows" if first_row == 0 else f"rows {first_row}-{first_row + arr.shape[0] - 1}"
+            raise InputError(path, f"{rows.size} of {which} hold values beyond float32's range (±3.4e38), e.g. row "
+                             f"{first_row + int(rows[0])}; embeddings are stored as float32")
+    return np.asarray(arr, np.float32)
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -108,19 +156,17 @@ def run_train(args: argparse.Namespace) -> int:
 
     guard_args(args, ("out",), protected_folders=protected_feature_folders("--features", args.features))
     check_output_writable(args.out)  # before minutes of k-means (round 57c: a read-only folder failed after them)
-    x = collect_embeddings(args.embeddings, args.features)
+    x, usable = collect_embeddings(args.embeddings, args.features, args.max_train, args.seed)
     if x.shape[1] % args.m:
         divisors = [m for m in range(1, x.shape[1] + 1) if x.shape[1] % m == 0 and m <= 256]
         shown = divisors[-4:]
         listed = f"{', '.join(map(str, shown[:-1]))} or {shown[-1]}" if len(shown) > 1 else str(shown[0])
         raise UsageError(f"--m {args.m} does not divide the embedding dimension {x.shape[1]}; choose a divisor of it, e.g. {listed}")
-    if x.shape[0] < PQ_KSUB:
+    if usable < PQ_KSUB:
         sources = [*args.embeddings, *args.features]
         where = "" if len(sources) == 1 else " in " + ", ".join(str(p) for p in sources)
-        raise InputError(sources[0] if len(sources) == 1 else None, f"only {x.shape[0]} usable embeddings (finite, nonzero rows){where}: "
+        raise InputError(sources[0] if len(sources) == 1 else None, f"only {usable} usable embeddings (finite, nonzero rows){where}: "
                          f"a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
-    if x.shape[0] > args.max_train:
-        x = x[np.sort(np.random.default_rng(args.seed).choice(x.shape[0], args.max_train, replace=False))]
     log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
     book = train_codebook(x, m=args.m, seed=args.seed)
     book.save(args.out)
