@@ -484,6 +484,15 @@ def test_a_typed_tilde_is_the_home_folder_as_in_a_shell(state, tmp_path, monkeyp
     assert state.load_scene("~/sel.ply") and state.scene_path == home / "sel.ply"
 
 
+def test_a_typed_path_is_read_without_the_spaces_around_it(state, tmp_path):
+    """Round 61a: a pasted `sel.ply ` was refused as "a .ply  name would hold a PLY" and a `Q.npy ` as not found, where
+    the Scene panel's open field strips the spaces; every typed path does now."""
+    assert state.run_oracle_query(0)
+    assert state.export_selection(f"  {tmp_path / 'sel.ply'} ", "standard") and (tmp_path / "sel.ply").is_file()
+    np.save(tmp_path / "q.npy", state.oracle.embeddings[:1])
+    assert state.run_embedding_query(f"{tmp_path / 'q.npy'}  ") and state.query.name == "q.npy"
+
+
 def test_the_scene_panels_assigned_count_is_the_set_queries_use(state, tmp_path):
     """Round 53: the Scene panel counted rows with a registration weight; queries, exports and `drsplat info` count rows
     with a stored feature. A file whose 100 features were zeroed (weights kept) was warned of on loading, then shown

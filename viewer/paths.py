@@ -29,8 +29,10 @@ def image_format(path: str | Path) -> str:
 
 def typed_path(text: str | Path) -> Path:
     """The path a user typed into a panel, with a leading `~` or `~user` read as the shell reads it
-    (the viewer has no shell: `~/sel.ply` made a folder named `~` in the working folder, round 53)."""
-    path = Path(text)
+    (the viewer has no shell: `~/sel.ply` made a folder named `~` in the working folder, round 53), and
+    typed text without the spaces around it, as the Scene panel's open field reads it (a pasted
+    `sel.ply ` was refused as "a .ply  name", a `Q.npy ` as not found: round 61a)."""
+    path = Path(text.strip()) if isinstance(text, str) else Path(text)
     try:
         return path.expanduser()
     except RuntimeError:  # no home folder to be found: the path as typed, which says so where it is used
