@@ -458,6 +458,23 @@ def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_clip_flags_naming_no_usable_file_are_refused_at_start(demo, tmp_path, capsys):
+    """Round 61a: a missing --clip-config or --clip-checkpoint started the viewer; its Query options later said the
+    encoder could not be loaded, advising --clip-checkpoint whichever flag was at fault. Now one error at start."""
+    from viewer.launch import main
+
+    registered, dataset = demo
+    bad_json = tmp_path / "bad.json"
+    bad_json.write_text("{")
+    for flags, words in ((["--clip-checkpoint", str(tmp_path / "nope.pt")], "nope.pt: does not exist (--clip-checkpoint)"),
+                         (["--clip-checkpoint", str(tmp_path)], "is not a file (--clip-checkpoint)"),
+                         (["--clip-config", str(tmp_path / "nope.json")], "nope.json: does not exist (--clip-config)"),
+                         (["--clip-config", str(bad_json)], "bad.json")):
+        assert main([str(registered), "--source", str(dataset), "--screenshot", str(tmp_path / "x.png"), "--query", "a mug", *flags]) == 1
+        err = capsys.readouterr().err
+        assert words in err and err.count("ERROR") == 1 and "Traceback" not in err, err
+
+
 def test_screenshot_oracle_flags_refuse_a_field_of_clip_features(demo, tmp_path, capsys):
     """Round 61a: `--oracle` and `--mode segmentation` scored a field of CLIP features with the synthetic
     dataset's ground-truth vectors (another embedding space) and drew the answer. Now one error."""

@@ -18,7 +18,7 @@ from drsplat.cli import setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import Cancelled, DrsplatError, UsageError, shown_path
+from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, shown_path
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.registration.checkpoint import checkpoint_path_for
@@ -122,12 +122,28 @@ def prepare_demo(preset: str = DEMO_PRESET, root: Path | None = None) -> tuple[P
     return registered, dataset
 
 
+def check_clip_flags(args: argparse.Namespace) -> None:
+    """Refuse a --clip-checkpoint that is no file and a --clip-config open_clip cannot read at start, naming the flag,
+    as the command line does: the viewer opened, and its Query options later said the encoder could not be loaded,
+    advising the other flag (round 61a)."""
+    from drsplat.features.clip import check_clip_config
+
+    checkpoint = args.clip_checkpoint
+    if checkpoint is not None and not Path(checkpoint).is_file():
+        raise InputError(checkpoint, ("is not a file" if Path(checkpoint).exists() else "does not exist") + " (--clip-checkpoint)")
+    if args.clip_config is not None:
+        if not Path(args.clip_config).exists():
+            raise InputError(args.clip_config, "does not exist (--clip-config)")
+        check_clip_config(args.clip_config)
+
+
 def build_state(args: argparse.Namespace, background_checks: bool = False):
     """A ViewerState with the scene, cameras, features and encoder the arguments name. background_checks:
     the cameras' checks against the scene (`ViewerState.load_source`) run on a worker thread, so that the
     window opens at once; a screenshot needs them done."""
 
 
+    check_clip_flags(args)
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
     state.clip_config = args.clip_config
