@@ -567,6 +567,28 @@ def test_no_display_is_reported_before_anything_is_generated(monkeypatch, capsys
     assert "no display" in err and "--screenshot" in err and err.count("ERROR") == 1
 
 
+def test_screenshot_flags_without_a_screenshot_are_said_and_negatives_reach_the_window(monkeypatch, capsys):
+    """Round 61a: `main.py --oracle mug --threshold 0.9 --mode heatmap --camera 3 --negatives table` (no --screenshot)
+    opened the window with none of them and no word, and its text queries were scored without the negatives. Now each
+    screenshot flag is warned of and the negatives are the window's."""
+    import viewer.launch
+
+    seen = {}
+
+    def interactive(state):
+        seen["negatives"] = state.settings.query.negatives
+        return 0
+
+    monkeypatch.setattr(viewer.launch, "display_available", lambda platform: True)
+    monkeypatch.setattr(viewer.launch, "interactive", interactive)
+    assert viewer.launch.main(["--oracle", "mug", "--threshold", "0.9", "--mode", "heatmap", "--camera", "3", "--negatives", "table"]) == 0
+    err = capsys.readouterr().err
+    assert seen["negatives"] == "table"
+    for flag in ("--oracle", "--threshold", "--mode", "--camera"):
+        assert f"{flag} applies to --screenshot; the window opens without it" in err, err
+    assert "--negatives applies" not in err
+
+
 def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
     """README: SIGTERM behaves like Ctrl-C. The viewer had no handler: exit 143 and no word."""
     import os

@@ -175,6 +175,19 @@ def check_screenshot_size(camera, args: argparse.Namespace) -> None:
                      "pixels; give --width and --height both, or a smaller one")
 
 
+SCREENSHOT_FLAGS = ("camera", "query", "embedding", "oracle", "threshold", "width", "height")  # read by --screenshot only
+
+
+def warn_unused_window_flags(args: argparse.Namespace) -> None:
+    """One warning per screenshot flag given without --screenshot: the window opened without a word of them
+    (round 61a: --oracle mug --threshold 0.9 --mode heatmap --camera 3 left it at the home view, no query)."""
+    given = [f"--{name}" for name in SCREENSHOT_FLAGS if getattr(args, name) is not None]
+    if args.mode != "highlight":
+        given.append("--mode")
+    for flag in given:
+        log.warning("%s applies to --screenshot; the window opens without it (set it in the window's panels)", flag)
+
+
 def warn_unused_screenshot_flags(args: argparse.Namespace) -> None:
     """One warning per flag a screenshot does not use (round 54: they were taken without a word): --features (a
     screenshot registers nothing), --clip-checkpoint and --clip-config without a text query or negatives."""
@@ -333,6 +346,8 @@ def _run(args: argparse.Namespace) -> int:
         state = build_state(args, background_checks=args.screenshot is None)
         if args.screenshot is not None:
             return screenshot(args, state)
+        warn_unused_window_flags(args)
+        state.settings.query.negatives = args.negatives  # the window's text queries are scored with them (round 61a: ignored)
         return interactive(state)
     except (Cancelled, KeyboardInterrupt):
         log.error("interrupted; no partial output was written")
