@@ -175,12 +175,39 @@ def test_registration_can_be_cancelled_without_output(dataset, tmp_path):
         assert time.time() < deadline
         time.sleep(0.05)
     assert state.registration.error is not None and "cancel" in state.registration.error
-    assert "registration did not finish" in state.messages[-1].text
+    assert any("registration did not finish" in m.text for m in state.messages[-2:])
     assert not out.exists()
     from drsplat.registration.checkpoint import checkpoint_path_for
 
     left = set(tmp_path.glob(".cancelled.ply*"))
     assert left <= {checkpoint_path_for(out)}, f"only the resumable checkpoint may stay, found {left}"
+
+
+def test_a_cancelled_registration_says_in_the_window_what_it_kept_and_how_to_resume(dataset, tmp_path):
+    """Round 61a: the registration's own warnings (its checkpoint kept, or thrown away for changed settings) reached only
+    the terminal; the window said "registration did not finish: cancelled by the user". Now they are in its messages, with
+    how the panel resumes."""
+    from drsplat.registration.checkpoint import checkpoint_path_for
+    from viewer.state import ViewerState
+
+    state = ViewerState()
+    assert state.load_scene(dataset / "scene.ply")
+    assert state.load_source(dataset)
+    out = tmp_path / "stopped.ply"
+    assert state.start_registration(out)
+    job = state.registration
+    deadline = time.time() + 120
+    while job.done < 2 and not job.finished:  # views kept: something to resume
+        assert time.time() < deadline
+        time.sleep(0.02)
+    state.cancel_registration()
+    while not state.poll_registration():
+        assert time.time() < deadline
+        time.sleep(0.05)
+    assert checkpoint_path_for(out).exists()
+    texts = [m.text for m in state.messages]
+    assert any("kept the registration checkpoint" in t for t in texts), texts
+    assert "press Register with the same output and settings to resume" in texts[-1]
 
 
 def test_registration_refuses_without_cameras(dataset, tmp_path):

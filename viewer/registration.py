@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from drsplat.cameras import Camera
 from drsplat.registration import RegisterOptions, register
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
+from viewer.messages import LibraryWarnings, MessageLog
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,7 @@ class RegistrationJob:
     reported: bool = False
     error: str | None = None
     scene_version: int | None = None  # ViewerState.scene_version when it started: its output opens only over that scene
+    messages: MessageLog = field(default_factory=MessageLog)  # the library's warnings on the job's thread, shown when it ends
 
     @property
     def fraction(self) -> float:
@@ -42,7 +44,10 @@ class RegistrationJob:
 def run_registration(job: RegistrationJob, scene: GaussianScene, cameras: list[Camera], features_dir: Path, options: RegisterOptions) -> None:
     """The job's body: register, write job.output atomically; errors and cancellation end up in job.error."""
     try:
-        register(scene, cameras, features_dir, job.output, options, show_progress=False, on_progress=lambda d, t: _progress(job, d, t), cancel=job.cancel)
+        # what the run warns of (a checkpoint kept or started over, images unlike the scene) reached only the terminal (round 61a)
+        with LibraryWarnings(job.messages):
+            register(scene, cameras, features_dir, job.output, options, show_progress=False, on_progress=lambda d, t: _progress(job, d, t),
+                     cancel=job.cancel)
     except BaseException as exc:  # noqa: BLE001 - reported in the GUI
         job.error = str(exc) or type(exc).__name__
         log.debug("registration failed", exc_info=True)

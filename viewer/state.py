@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import math
 import threading
 import time
@@ -33,6 +34,7 @@ from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_fiel
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
+from drsplat.registration.checkpoint import checkpoint_path_for
 from drsplat.scene import GaussianScene
 from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, check_outputs_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
@@ -797,8 +799,12 @@ class ViewerState:
         if job is None or not job.finished or job.reported:
             return False
         job.reported = True
+        self.messages.extend(job.messages)  # the run's own warnings, before its outcome (the status line shows the last)
         if job.error is not None:
             self.error(f"registration did not finish: {job.error}")
+            if os.path.lexists(checkpoint_path_for(job.output)):
+                self.info(f"its finished views are kept beside {job.output.name}: press Register with the same output and settings to "
+                          "resume from them (other settings start over)")
             return True
         if job.scene_version is not None and job.scene_version != self.scene_version:  # another scene was opened meanwhile: keep it
             self.info(f"registration saved to {job.output}; another scene is open now, so it was not loaded (open it to query it)")
