@@ -295,7 +295,7 @@ def overwrite_cases(world, tmp_path) -> list[tuple[list, list[Path]]]:
         (["query", reg, "--embedding", q, "--threshold", "0.1", "--out", link], [reg]),
         (["query", reg, "--embedding", q, "--threshold", "0.1", "--out", hard], [reg]),
         (["query", reg, "--embedding", q, "--scores", q], [q]),
-        (["query", reg, "--embedding", q, "--scores", tmp_path / "s", "--out", tmp_path / "s", "--threshold", "0.1"], []),
+        (["query", reg, "--embedding", q, "--scores", tmp_path / "s.ply", "--out", tmp_path / "s.ply", "--threshold", "0.1"], []),
         (["segment", reg, "--embeddings", L, "--out", L], [L]),
         (["segment", reg, "--embeddings", L, "--out", tmp_path / "lab.npy", "--ply", reg], [reg]),
         (["pq", "train", "--embeddings", L, "--out", L], [L]),
@@ -316,7 +316,7 @@ def test_no_command_writes_over_its_input(tmp_path, world, capsys):
         lines = error_lines(err)
         assert len(lines) == 1 and "cannot write" in lines[0], (argv, err)
         assert digest(*inputs, world["reg"]) == before, argv
-    assert not (tmp_path / "s").exists()
+    assert not (tmp_path / "s.ply").exists()
 
 
 def test_viewer_screenshot_and_export_refuse_the_scene(tmp_path, world, capsys):

@@ -961,6 +961,17 @@ def test_an_export_over_a_write_protected_ply_leaves_its_codebook_alone(tmp_path
     assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)
 
 
+def test_an_export_named_without_a_suffix_is_refused_unless_it_is_a_device(tmp_path):
+    """Round 61a: an export to `sel` was written as a PLY that no drop or scene dialog opens (only `.txt` and such were
+    refused); a name without a suffix is for a device or pipe (/dev/stdout) only."""
+    from drsplat.lang.plyformat import export_problem
+
+    for fmt in ("standard", "drsplat"):
+        assert "name it sel.ply" in export_problem(tmp_path / "sel", fmt)
+        assert export_problem(tmp_path / "sel.ply", fmt) is None
+        assert export_problem(os.devnull, fmt) is None
+
+
 def test_an_export_stopped_over_an_earlier_one_of_another_codebook_leaves_it_readable(data, books, tmp_path, monkeypatch):
     """Round 61b: `query --out sel.ply --format drsplat` over an earlier export of another codebook wrote the codebook
     first: stopped while the PLY was written (a Ctrl-C; a kill, the out-of-memory killer), the earlier sel.ply sat

@@ -143,7 +143,8 @@ def build_state(args: argparse.Namespace, background_checks: bool = False):
     window opens at once; a screenshot needs them done."""
 
 
-    check_clip_flags(args)
+    if args.screenshot is None or args.query or args.negatives:  # read: checked now (a screenshot that reads no text warns instead)
+        check_clip_flags(args)
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
     state.clip_config = args.clip_config

@@ -565,6 +565,9 @@ def export_problem(path: str | Path, fmt: str) -> str | None:
     if fmt not in EXPORT_FORMATS:
         return f"unknown export format {fmt!r}; expected one of {', '.join(EXPORT_FORMATS)}"
     kind, suffix = written_format(path), Path(path).suffix.lower()
+    if suffix == "" and not is_special_file(output_target(Path(path))):  # `sel` became a PLY no drop or scene dialog opens (round 61a)
+        return (f"{Path(path).name}: an export is the scene file its name asks for (.ply, .compressed.ply, .splat or .spz); a name "
+                f"without a suffix is for a device or pipe (/dev/stdout): name it {Path(path).name}.ply")
     if suffix not in EXPORT_SUFFIXES:
         return (f"{Path(path).name}: an export is the scene file its name asks for (.ply, .compressed.ply, .splat or .spz); "
                 f"a {suffix} name would hold a PLY")
