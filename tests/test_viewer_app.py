@@ -548,9 +548,10 @@ def test_open_and_drop_a_ply(app, registered, dataset, tmp_path, monkeypatch):
     app._dropped = [str(tmp_path / "notes.txt")]
     app.run(max_frames=1)
     assert "none a 3DGS scene (.ply, .splat, .spz, .pt, .ckpt, .pth)" in state.messages[-1].text  # round 53: checkpoints open too
-    app._dropped = [str(dataset / "scene.ply")]
+    app._dropped = [str(dataset / "scene.ply"), str(registered), str(tmp_path / "notes.txt")]  # round 61a: the rest ignored without a word
     app.run(max_frames=1)
     assert state.scene_path == dataset / "scene.ply" and state.field is None
+    assert any(f"opened scene.ply; ignored {registered.name}, notes.txt (one scene at a time)" in m.text for m in state.messages)
     assert not app.open_scene(tmp_path / "missing.ply")
     assert state.scene_path == dataset / "scene.ply", "a failed open keeps the scene"
     assert app.open_scene(registered)

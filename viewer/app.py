@@ -632,6 +632,10 @@ class ViewerApp:
             self.state.error(f"dropped {len(dropped)} file(s), none a 3DGS scene ({', '.join(SCENE_SUFFIXES)}): drop one to open it")
         if plys:
             self.open_scene(plys[0])
+            ignored = [Path(p).name for p in dropped if p != plys[0]]
+            if ignored:  # one scene at a time: the rest were dropped without a word (round 61a)
+                self.state.warning(f"opened {Path(plys[0]).name}; ignored {', '.join(ignored[:5])}{' ...' if len(ignored) > 5 else ''} "
+                                   "(one scene at a time)")
         dialog = self._file_dialog
         if dialog is not None and dialog.ready(0):
             self._file_dialog = None
