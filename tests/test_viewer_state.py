@@ -240,6 +240,17 @@ def test_an_export_replaces_a_file_only_when_pressed_again(state, tmp_path):
     assert state.export_selection(tmp_path / "new.ply", "drsplat") == second  # a new file needs no second press
 
 
+def test_an_export_while_a_segmentation_is_shown_says_what_it_writes(state, tmp_path):
+    """Round 61a: with a segmentation shown, an export said "the selection is empty: run a query" (no query), or wrote the
+    query's selection, uncoloured, without a word (a query in hand). Both now say what an export writes."""
+    assert state.run_segmentation("  ")
+    assert state.export_selection(tmp_path / "a.ply", "standard") is None
+    assert "drsplat segment --ply" in state.messages[-1].text
+    assert state.run_oracle_query(0) and state.run_segmentation("  ") and state.mode == "segmentation"
+    assert state.export_selection(tmp_path / "b.ply", "standard")
+    assert "the query's selection, not the segmentation shown" in state.messages[-1].text
+
+
 def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):
     from viewer.app import usable_layout_path
 

@@ -689,7 +689,9 @@ class ViewerState:
             self.error("nothing is shown to export: every Gaussian is selected and hidden; raise the threshold, or leave hide selection")
             return None
         if count == 0:
-            self.error("the selection is empty: run a query and lower the threshold")
+            self.error("the selection is empty: run a query and lower the threshold"
+                       + (" (an export writes a query's selection; the segmentation's colours are written by drsplat segment --ply)"
+                          if self.mode == "segmentation" else ""))
             return None
         if not str(path).strip():
             self.error("type the path of the file to export to (.ply, .compressed.ply, .splat or .spz)")
@@ -710,7 +712,9 @@ class ViewerState:
         except Exception as exc:  # noqa: BLE001
             self._fail(exc, f"export to {path} failed")
             return None
-        self.info(f"exported {count:,} Gaussian{'' if count == 1 else 's'} to {path} ({export_kind(path, fmt)})")
+        self.info(f"exported {count:,} Gaussian{'' if count == 1 else 's'} to {path} ({export_kind(path, fmt)})"
+                  + (": the query's selection, not the segmentation shown (drsplat segment --ply writes its colours)"
+                     if self.mode == "segmentation" else ""))
         return count
 
     def _replace_confirmed(self, path: Path) -> bool:
