@@ -161,6 +161,32 @@ def test_registration_runs_in_the_background_and_loads_its_result(dataset, tmp_p
     assert state.run_oracle_query(state.oracle.names.index("ball"))
 
 
+def test_a_registration_of_the_scene_in_view_keeps_the_view(app, dataset, tmp_path):
+    """Round 61a: a registration from the panel, loaded over the scene in hand, put the camera back at the home view
+    (the window rebuilt its view for every new scene): it is the same geometry, so the view stays; another scene
+    opened still starts at its own home view."""
+    state = app.state
+    scene_before = state.scene_path
+    assert app.open_scene(dataset / "scene.ply") and state.load_source(dataset)
+    app.run(max_frames=1)
+    app.view.snap_to(state.cameras[5])
+    app.run(max_frames=1)
+    where = app.view.camera()
+    assert state.start_registration(tmp_path / "reg.ply", topk=10)
+    deadline = time.time() + 120
+    while not state.poll_registration():
+        assert time.time() < deadline
+        time.sleep(0.05)
+    assert state.scene_path == tmp_path / "reg.ply"
+    app.run(max_frames=1)
+    now = app.view.camera()
+    np.testing.assert_array_equal(now.R, where.R)
+    np.testing.assert_array_equal(now.t, where.t)
+    assert app.open_scene(scene_before) and state.load_source(dataset)  # another scene (and the module's, back): its home view
+    app.run(max_frames=1)
+    assert not np.array_equal(app.view.camera().t, where.t)
+
+
 def test_registration_can_be_cancelled_without_output(dataset, tmp_path):
     from viewer.state import ViewerState
 

@@ -250,9 +250,11 @@ class ViewerApp:
                 self.renderer = None
             if state.scene is not None:
                 self.renderer = SplatRenderer(self.ctx, state.scene)
-                fb_w, fb_h = glfw.get_framebuffer_size(self.window)
-                self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h, state.scene.log_scales)
-                state.settings.view.up_axis = "auto"
+                if not (state.same_place and self.view is not None):  # a registration of the scene in view keeps the view (round 61a)
+                    fb_w, fb_h = glfw.get_framebuffer_size(self.window)
+                    self.view = ViewController.for_scene(state.scene.means, state.cameras, fb_w, fb_h, state.scene.log_scales)
+                    state.settings.view.up_axis = "auto"
+            state.same_place = False
             self._scene_version = state.scene_version
             self._budget_calibrated = False
             self._style_version = -1

@@ -100,6 +100,7 @@ class ViewerState:
         self.scene_version = 0
         self._prepared = None
         self._encoder_lock = threading.Lock()
+        self.same_place = False  # the scene just loaded is the registered one of the scene in view: the window keeps its view
         self._pending_replace: tuple | None = None  # (path, size, mtime) of a file an export asked to replace (`_replace_confirmed`)
         self._encoder_loaders: list[threading.Thread] = []  # `start_text_encoder`'s threads, waited for at exit (`wait_for_encoder_loads`)
         self.camera_check: CameraCheck | None = None
@@ -817,6 +818,7 @@ class ViewerState:
         cameras, oracle = self.cameras, self.oracle
         if self.load_scene(job.output):
             self.cameras, self.oracle = cameras, oracle
+            self.same_place = True  # the same Gaussians, pruned: the window stays where the user was
             self.start_text_encoder()
         return True
 
