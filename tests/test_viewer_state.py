@@ -104,6 +104,31 @@ def test_a_registration_that_ends_after_another_scene_opened_does_not_replace_it
     assert "another scene is open now" in state.messages[-1].text and (tmp_path / "out.ply").is_file()
 
 
+def test_a_registration_that_replaces_the_file_opened_meanwhile_loads_the_new_one(state, tmp_path):
+    """Round 61a: opening out.ply (an earlier registration) while a registration into out.ply ran, then letting it finish,
+    said "another scene is open now, so it was not loaded" while the open scene WAS out.ply: the window showed the old
+    field as if it were the file on disk. The new file is loaded, and said so."""
+    out = tmp_path / "out.ply"
+    shutil.copy(state.scene_path, out)
+    for book in state.scene_path.parent.glob("registered.codebook.faiss"):
+        shutil.copy(book, tmp_path / "out.codebook.faiss")
+    assert state.start_registration(out, topk=10, background=True)
+    assert state.load_scene(out)
+    before = state.num_gaussians
+    deadline = time.time() + 120
+    while not state.registration.finished and time.time() < deadline:
+        time.sleep(0.05)
+    assert state.registration.error is None, state.registration.error
+    assert state.poll_registration()
+    assert any("registration replaced" in m.text and "the new one is loaded" in m.text for m in state.messages)
+    from drsplat.lang import read_field
+    from drsplat.scene import load_ply
+
+    on_disk = read_field(load_ply(out), out)
+    assert state.scene_path == out and np.array_equal(state.field.weights, on_disk.weights)  # the file as it is now
+    assert state.num_gaussians <= before
+
+
 def test_a_new_scene_starts_without_the_last_ones_mode_segmentation_or_encoder(state):
     assert state.run_oracle_query(0) and state.set_mode("hide_selection")
     state.encoder = object()  # a CLIP encoder of the previous scene's model

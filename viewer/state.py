@@ -812,9 +812,14 @@ class ViewerState:
                           "resume from them (other settings start over)")
             return True
         if job.scene_version is not None and job.scene_version != self.scene_version:  # another scene was opened meanwhile: keep it
-            self.info(f"registration saved to {job.output}; another scene is open now, so it was not loaded (open it to query it)")
-            return True
-        self.info(f"registration saved to {job.output}")
+            if self.scene_path is None or self.scene_path.resolve() != Path(job.output).resolve():
+                self.info(f"registration saved to {job.output}; another scene is open now, so it was not loaded (open it to query it)")
+                return True
+            # the scene opened meanwhile is the output's earlier file, which this replaced: "another scene is open" showed the
+            # old field as if it were the file on disk (round 61a)
+            self.info(f"registration replaced {job.output}, the file open: the new one is loaded")
+        else:
+            self.info(f"registration saved to {job.output}")
         cameras, oracle = self.cameras, self.oracle
         if self.load_scene(job.output):
             self.cameras, self.oracle = cameras, oracle
