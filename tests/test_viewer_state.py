@@ -129,6 +129,18 @@ def test_a_registration_that_replaces_the_file_opened_meanwhile_loads_the_new_on
     assert state.num_gaussians <= before
 
 
+def test_a_registered_scene_whose_codebook_is_missing_opens_without_its_field(state, tmp_path):
+    """Round 61a: a registered PLY whose codebook is missing (or renamed away) could not even be viewed: "cannot open ...:
+    codebook file not found". Its splats are intact: it opens without its field, and the panel says why queries are off."""
+    from viewer.demo import demo_dir
+
+    lone = Path(shutil.copy(demo_dir() / "registered.ply", tmp_path / "lone.ply"))  # a PQ field, its codebook not beside it
+    assert state.load_scene(lone)
+    assert state.scene_path == lone and state.field is None and state.num_gaussians > 0
+    assert "without its language field" in state.messages[-1].text and "codebook" in state.messages[-1].text
+    assert state.encoder_status.startswith("Queries are off: the language field of lone.ply cannot be read")
+
+
 def test_a_new_scene_starts_without_the_last_ones_mode_segmentation_or_encoder(state):
     assert state.run_oracle_query(0) and state.set_mode("hide_selection")
     state.encoder = object()  # a CLIP encoder of the previous scene's model

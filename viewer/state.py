@@ -144,10 +144,18 @@ class ViewerState:
             path = typed_path(path)
             with LibraryWarnings(self.messages):  # what the load warns of is shown, not only logged
                 scene, report = load_scene_report(path, purpose="show; open another PLY")  # refuses a file with no usable row
-                lang = read_field(scene, path)
         except Exception as exc:  # noqa: BLE001 - the viewer reports any loading failure
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
+        try:
+            with LibraryWarnings(self.messages):
+                lang = read_field(scene, path)
+            problem = None
+        except (DrsplatError, ValueError, OSError) as exc:  # a missing or other codebook: the splats are intact (round 61a)
+            lang, problem = None, one_line(str(exc))
         self.set_scene(scene, lang, path, report.camera_refinements)
+        if problem is not None:
+            self.encoder_status = f"Queries are off: the language field of {path.name} cannot be read ({problem})"
+            self.warning(f"opened {path.name} without its language field: {problem}")
         return True
 
     def set_scene(self, scene: GaussianScene, lang=None, path: Path | None = None, refinements: np.ndarray | None = None) -> None:
