@@ -156,7 +156,9 @@ def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
     shape = arr.shape  # as stored, for the message
     if arr.ndim == 1:
         arr = arr[None]
-    if arr.ndim != 2 or arr.shape[1] != dim or arr.shape[0] == 0:
+    if arr.ndim == 2 and arr.shape[1] == dim and arr.shape[0] == 0:  # the shape is one of those named, K = 0 (round 61b)
+        raise InputError(path, f"holds no query rows (shape {shape}); expected ({dim},) or (K, {dim}) with K >= 1")
+    if arr.ndim != 2 or arr.shape[1] != dim:
         raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {shape}")
     if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
         raise InputError(path, f"expected a float array, got dtype {arr.dtype}")

@@ -315,6 +315,16 @@ def registered(tmp_path_factory, world, fields):
     return out
 
 
+def test_an_embedding_file_of_no_rows_says_so(tmp_path):
+    """Round 61b: a (0, 512) query file was refused as "expected shape (512,) or (K, 512), got (0, 512)": a shape it has."""
+    from drsplat.errors import InputError
+    from drsplat.query import load_query_embeddings
+
+    np.save(tmp_path / "q0.npy", np.zeros((0, 16), np.float32))
+    with pytest.raises(InputError, match=r"holds no query rows \(shape \(0, 16\)\)"):
+        load_query_embeddings(tmp_path / "q0.npy", 16)
+
+
 def test_top_ids_are_the_full_stable_sorts_first_rows():
     """Round 61b: `query --top` sorted all N scores (3 s of a 10M query); now only those at least the top-th, the same ids."""
     from drsplat.commands.query import top_ids
