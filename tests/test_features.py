@@ -794,6 +794,22 @@ def test_resuming_with_other_sam_weights_is_refused_and_a_manifest_alone_says_wh
     assert report.written == ["view"] and featurefiles.read_manifest(stopped)["mask_generator"] == "felzenszwalb"
 
 
+def test_resuming_with_the_same_clip_weights_renamed_is_accepted(tmp_path, weights, capsys):
+    """Round 61c: the same CLIP weights under another file name changed the features' model label (`file:NAME`) and a
+    resume was refused, though `query` accepted the file (the digest, not the name, says what the weights are). Other
+    weights of the same name are still refused (`clip_weights`)."""
+    import shutil
+
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "ds", Image.fromarray(np.full((48, 64, 3), 90, np.uint8)))
+    out = tmp_path / "out"
+    assert main(slic_features_argv(src, out, weights)) == 0
+    renamed = Path(shutil.copy(weights["clip"], tmp_path / "renamed_clip.pt"))
+    assert main(slic_features_argv(src, out, {**weights, "clip": renamed})) == 0, capsys.readouterr().err
+    assert featurefiles.list_stems(out) == ["view"]
+
+
 def test_resuming_with_the_same_sam_weights_moved_is_accepted(weights, tmp_path):
     """Round 61c: a resume whose --sam-checkpoint was the same file moved (~/Downloads -> ~/models) was refused on its
     path though the manifest's sam_weights (size:sha1) matched: SAM takes minutes an image on a CPU, and the remedy

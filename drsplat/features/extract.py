@@ -311,7 +311,10 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         raise DrsplatError(f"{features_dir / featurefiles.MANIFEST_NAME} is not a drsplat features manifest (it names no mask "
                            "generator or CLIP model): another tool's file; use a new --out folder")
     old_clip = manifest_model_id(old)
-    check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
+    same_weights = bool(old.get("clip_weights")) and old.get("clip_weights") == manifest.get("clip_weights")
+    same_architecture = old_clip.split("/")[0] == str(manifest["clip_model_id"]).split("/")[0]
+    if not (same_weights and same_architecture):  # the same file renamed changes its `file:NAME` label only (round 61c: refused)
+        check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
     if old.get("mask_generator") != manifest["mask_generator"]:
         raise DrsplatError(
             f"{features_dir} holds features made with mask generator {old.get('mask_generator')!r}, this run uses "
