@@ -312,8 +312,10 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
                            "generator or CLIP model): another tool's file; use a new --out folder")
     old_clip = manifest_model_id(old)
     same_weights = bool(old.get("clip_weights")) and old.get("clip_weights") == manifest.get("clip_weights")
-    same_architecture = old_clip.split("/")[0] == str(manifest["clip_model_id"]).split("/")[0]
-    if not (same_weights and same_architecture):  # the same file renamed changes its `file:NAME` label only (round 61c: refused)
+    old_model, _, old_tag = old_clip.partition("/")
+    new_model, _, new_tag = str(manifest["clip_model_id"]).partition("/")
+    renamed = same_weights and old_model == new_model and old_tag.startswith("file:") and new_tag.startswith("file:")
+    if not renamed:  # the same file renamed, no tag named, changes its `file:NAME` label only (round 61c: refused)
         check_compatible(old_clip, manifest["clip_model_id"], f"the features already in {features_dir}", "this run's CLIP model")
     if old.get("mask_generator") != manifest["mask_generator"]:
         raise DrsplatError(
