@@ -168,6 +168,19 @@ def test_clip_configs_open_clip_would_fail_on_are_one_sentence_or_work(tmp_path)
         ClipEncoder("TinyRect-drsplat-test", None, None, "cpu", random_weights=True)
 
 
+def test_a_config_open_clip_cannot_build_is_named_not_the_checkpoint(tmp_path, tiny_clip):
+    """Round 61c: a --clip-config with a key open_clip's model does not take failed while the checkpoint loaded, and the
+    error said the checkpoint was "not a readable torch.save checkpoint". Now it names the config."""
+    import open_clip
+
+    bad = tmp_path / "TinyPP-drsplat-test.json"
+    bad.write_text(json.dumps({**TINY_CFG, "vision_cfg": {**TINY_CFG["vision_cfg"], "no_such_option": 3}}))
+    open_clip.add_model_config(bad)
+    with pytest.raises(DrsplatError, match=r"open_clip cannot build model TinyPP-drsplat-test from its config \(--clip-config\)") as err:
+        ClipEncoder("TinyPP-drsplat-test", checkpoint=tiny_clip, device="cpu")
+    assert "torch.save" not in str(err.value)
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.device import resolve_device
-from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, one_line
 from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id, weights_digest
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 from drsplat.utils import read_json
@@ -108,6 +108,9 @@ class ClipEncoder:
         except Exception as exc:  # unpickling / zip / shape errors of many kinds: one clear line
             if weights is None:
                 raise
+            unbuildable = _architecture_problem(open_clip, model)
+            if unbuildable is not None:  # the model's config, not the weights file, is at fault (round 61c: blamed the checkpoint)
+                raise DrsplatError(f"open_clip cannot build model {model} from its config (--clip-config): {unbuildable}") from None
             raise InputError(weights, f"not an open_clip checkpoint for {model}: {checkpoint_problem(Path(weights), exc)}") from None
         self.net = net.to(self.device, dtype=self.dtype).eval()
         try:
@@ -247,6 +250,17 @@ def check_clip_config(path: Path) -> None:
     missing = [key for key in ("embed_dim", "vision_cfg", "text_cfg") if not isinstance(config, dict) or key not in config]
     if missing:
         raise InputError(path, "is not an open_clip model config (--clip-config): it has no " + ", ".join(missing), field=missing[0])
+
+
+def _architecture_problem(open_clip, model: str) -> str | None:
+    """Why open_clip cannot build `model` with random weights (its config at fault), or None when it can."""
+    try:
+        with _quiet_open_clip(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            open_clip.create_model(model, pretrained=None, device="cpu")
+    except Exception as exc:  # noqa: BLE001 - any failure of the config itself, named in one line
+        return one_line(f"{type(exc).__name__}: {exc}")[:300]
+    return None
 
 
 def checkpoint_normalisation(open_clip, model: str) -> tuple[dict, str | None]:
