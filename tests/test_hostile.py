@@ -2684,6 +2684,16 @@ def _frame_doc(z: float = 4.0) -> dict:
     return {"file_path": "images/v.png", "transform_matrix": c2w.tolist(), "fl_x": 50.0, "w": 64, "h": 48}
 
 
+def test_a_fractional_resolution_is_a_usage_error_not_a_width(world, tmp_path, capsys):
+    """Round 61c: `--resolution 2.5` (a divisor meant) was read as a target width of 2.5 pixels."""
+    ds = world["ds"]
+    for argv in (["features", "--source", ds, "--out", tmp_path / "f", "--masks", "slic", "--resolution", "2.5"],
+                 ["register", ds / "scene.ply", "--source", ds, "--features", ds / "features", "--out", tmp_path / "r.ply", "--resolution", "2.5"]):
+        code, err = run_cli(argv, capsys)
+        assert code == 2 and "2.5: a width is a whole number of pixels, and the divisors are 1, 2, 4 and 8" in err, err
+    assert not (tmp_path / "f").exists() and not (tmp_path / "r.ply").exists()
+
+
 def test_pq_train_draws_the_same_rows_in_bounded_memory(tmp_path):
     """Round 61b: `pq train` loaded every file whole, cast, concatenated and judged it before drawing --max-train rows:
     8 GB for a 2 GB file with --max-train 256. Now two passes a block of rows at a time (memory-mapped): the same rows
