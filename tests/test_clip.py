@@ -181,6 +181,18 @@ def test_a_config_open_clip_cannot_build_is_named_not_the_checkpoint(tmp_path, t
     assert "torch.save" not in str(err.value)
 
 
+def test_an_unknown_model_says_a_config_names_the_model_after_its_file(tmp_path):
+    """Round 61c: `--clip-model Foo --clip-config TinyCLIP.json` said Foo "needs its model config: --clip-config" though
+    one was given: open_clip names a config's model after its file, which the message now says."""
+    from drsplat.features.clip import use_clip_config
+
+    cfg = tmp_path / "SomeName-drsplat-test.json"
+    cfg.write_text(json.dumps(TINY_CFG))
+    use_clip_config(cfg)
+    with pytest.raises(DrsplatError, match=r"open_clip names that model after the file: Foo-drsplat-test.json registers --clip-model Foo-drsplat-test"):
+        ClipEncoder("Foo-drsplat-test", device="cpu", random_weights=True)
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")
