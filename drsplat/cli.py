@@ -71,9 +71,14 @@ class _StderrHandler(logging.StreamHandler):
         return escape_hidden(super().format(record))  # names from files (image stems, paths) reach many messages
 
 
+LIBRARY_LOGGERS = ("torch",)  # others' INFO lines (torch's "FakeTensor cache stats" at exit) are not this program's: -v shows them
+
+
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
+    for name in LIBRARY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.NOTSET if verbose else max(level, logging.WARNING))
 
 
 def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:

@@ -643,6 +643,24 @@ def test_screenshot_flags_without_a_screenshot_are_said_and_negatives_reach_the_
     assert "--negatives applies" not in err
 
 
+def test_torchs_info_lines_are_not_the_programs():
+    """Round 61a: an interrupted viewer start-up ended with torch's "INFO: FakeTensor cache stats" lines (the INFO root
+    logger let torch's exit-time logging through). Torch logs at WARNING unless -v."""
+    import logging
+
+    from drsplat.cli import setup_logging
+
+    torch_log = logging.getLogger("torch")
+    saved = torch_log.level
+    try:
+        setup_logging()
+        assert torch_log.getEffectiveLevel() == logging.WARNING and not torch_log.isEnabledFor(logging.INFO)
+        setup_logging(verbose=True)
+        assert torch_log.isEnabledFor(logging.DEBUG)
+    finally:
+        torch_log.setLevel(saved)
+
+
 def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
     """README: SIGTERM behaves like Ctrl-C. The viewer had no handler: exit 143 and no word."""
     import os
@@ -667,7 +685,7 @@ def test_sigterm_stops_the_viewer_as_ctrl_c_does(monkeypatch, capsys):
         assert signal.getsignal(signal.SIGTERM) is unhandled
     finally:
         signal.signal(signal.SIGTERM, before)
-    assert "interrupted; no partial output was written" in capsys.readouterr().err
+    assert "interrupted before the viewer's window opened" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("typed", [-5, 999])

@@ -351,7 +351,8 @@ def _run(args: argparse.Namespace) -> int:
         state.settings.query.negatives = args.negatives  # the window's text queries are scored with them (round 61a: ignored)
         return interactive(state)
     except (Cancelled, KeyboardInterrupt):
-        log.error("interrupted; no partial output was written")
+        log.error("interrupted; no partial output was written" if args.screenshot is not None else
+                  "interrupted before the viewer's window opened")  # a window writes nothing: the CLI's words did not fit (round 61a)
         return 1
     except StartupError:
         return 1  # already logged by the state
