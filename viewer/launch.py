@@ -19,6 +19,7 @@ from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, shown_path
+from drsplat.features.clip import check_clip_config
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.registration.checkpoint import checkpoint_path_for
@@ -126,8 +127,6 @@ def check_clip_flags(args: argparse.Namespace) -> None:
     """Refuse a --clip-checkpoint that is no file and a --clip-config open_clip cannot read at start, naming the flag,
     as the command line does: the viewer opened, and its Query options later said the encoder could not be loaded,
     advising the other flag (round 61a)."""
-    from drsplat.features.clip import check_clip_config
-
     checkpoint = args.clip_checkpoint
     if checkpoint is not None and not Path(checkpoint).is_file():
         raise InputError(checkpoint, ("is not a file" if Path(checkpoint).exists() else "does not exist") + " (--clip-checkpoint)")

@@ -11,7 +11,9 @@ import numpy as np
 from drsplat.commands.common import MAX_COUNT, guard_args, int_range, output_file, positive_int, protected_feature_folders
 from drsplat.defaults import MIN_NORM
 from drsplat.errors import InputError, UsageError, shown_path
+from drsplat.features.format import FEAT_SUFFIX, embedding_norms
 from drsplat.lang.codebook import PQ_KSUB, SCENE_PQ_M
+from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +55,6 @@ def collect_embeddings(arrays: list[Path], folders: list[Path], max_train: int |
     second gathers the drawn ones. Every file was loaded whole, cast, concatenated and judged before the draw: 8 GB for
     a 2 GB file with --max-train 256, a 4 GB one killed at 10 GB (round 61b); the rows drawn are the same.
     """
-    from drsplat.features.format import embedding_norms
-
     files = _embedding_files(arrays, folders)
     usable, dim = [], None
     skipped = {"zero or non-finite": 0, "huge": 0, "tiny": 0}
@@ -103,8 +103,6 @@ PQ_READ_ROWS = 1 << 16  # embedding rows judged or gathered at a time
 
 def _embedding_files(arrays: list[Path], folders: list[Path]) -> list[Path]:
     """The .npy files of --embeddings, then the *_f.npy files of each --features folder (each given once)."""
-    from drsplat.features.format import FEAT_SUFFIX
-
     files = list(arrays)
     given = [*arrays, *folders]
     for i, path in enumerate(given):
@@ -125,8 +123,6 @@ def _embedding_files(arrays: list[Path], folders: list[Path]) -> list[Path]:
 
 def _embedding_array(path: Path, dim: int | None) -> np.ndarray:
     """The file's rows [n, D], memory-mapped, checked to be floats or integers of the earlier files' D."""
-    from drsplat.utils import load_npy
-
     arr = load_npy(path, "embedding array", mmap=True)
     if arr.ndim != 2 or arr.shape[1] == 0 or arr.dtype.kind not in "fiu":
         raise InputError(path, f"expected a float array (n, D), got shape {arr.shape} dtype {arr.dtype}")
