@@ -164,6 +164,7 @@ class ViewerState:
         loads this one's). refinements: its trainer's camera refinements (`LoadReport.camera_refinements`),
         which the training cameras read next take (`load_source`)."""
         self.drop_camera_check()  # it checked the cameras against the scene closed now
+        self.same_place = False  # another scene: its own home view (a registration of the one in view sets it after this)
         self.scene, self.field, self.scene_path, self.scene_refinements = scene, lang, path, refinements
         self.assigned_count = 0 if lang is None else int(lang.assigned().sum())
         self.query = None
