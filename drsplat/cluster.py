@@ -9,6 +9,7 @@ says so. Nothing here imports ray at module level.
 from __future__ import annotations
 
 import builtins
+import contextlib
 import logging
 import os
 import signal
@@ -196,7 +197,7 @@ def _sigterm_during_init(ray, handler: Callable) -> None:
     with status 15 and no line, round 60b). The program's handler is given it now (the command
     line's raises KeyboardInterrupt; a cancellable job's cancels its token), after the half-made
     connection is shut down; a handler that only cancels ends the connect with Cancelled."""
-    if ray.is_initialized():
+    with contextlib.suppress(Exception):  # a half-made local instance too (its agents outlived the process, round 62b)
         ray.shutdown()
     handler(signal.SIGTERM, None)
     raise Cancelled("SIGTERM while connecting to Ray")

@@ -810,6 +810,27 @@ def test_resuming_with_the_same_clip_weights_renamed_is_accepted(tmp_path, weigh
     assert featurefiles.list_stems(out) == ["view"]
 
 
+def test_a_result_in_read_only_arrays_is_recorded_as_any_other(tmp_path):
+    """Round 62b: `features --ray` on a dataset with lens distortion ended at its first image in "assignment destination is
+    read-only" (a Ray worker's arrays come from the object store) and wrote no pair, every run. Read-only arrays are
+    changed in copies."""
+    from drsplat.features.extract import FeatureReport, StageTimes, record_result
+
+    seg = np.zeros((4, 6, 8), np.int16)
+    feats = np.ones((2, 16), np.float32)
+    feats[1, 0] = np.nan
+    seg[:, :, :4], seg[:, :, 4:] = 0, 1
+    seg.flags.writeable = False
+    feats.flags.writeable = False
+    unseen = np.zeros((6, 8), bool)
+    unseen[0] = True
+    report = FeatureReport()
+    record_result(tmp_path, "view", seg, feats, StageTimes(), [2, 0, 0, 0], report, unseen)
+    got_seg, got_feats = featurefiles.read_features(tmp_path, "view", level=0)
+    assert report.written == ["view"] and np.all(got_seg[0] == -1) and np.all(got_seg[1:, 4:] == -1)  # unseen; the NaN row's mask
+    assert np.all(got_seg[1:, :4] == 0) and np.isfinite(got_feats).all()
+
+
 def test_resuming_with_the_same_sam_weights_moved_is_accepted(weights, tmp_path):
     """Round 61c: a resume whose --sam-checkpoint was the same file moved (~/Downloads -> ~/models) was refused on its
     path though the manifest's sam_weights (size:sha1) matched: SAM takes minutes an image on a CPU, and the remedy

@@ -507,7 +507,10 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageS
 def record_result(out: Path, stem: str, seg: np.ndarray, feats: np.ndarray, times: StageTimes, counts: list[int], report: FeatureReport,
                   unseen: np.ndarray | None = None) -> None:
     """Drop non-finite embeddings (counted), give the pixels the photo never saw (`unseen` [H, W] bool,
-    `cameras.unobserved_pixels`) no mask, write the pair atomically and account for it in `report`."""
+    `cameras.unobserved_pixels`) no mask, write the pair atomically and account for it in `report`.
+    seg and feats may be read-only (a Ray worker's arrays come from the object store): changed in copies then."""
+    seg = seg if seg.flags.writeable else seg.copy()  # round 62b: `features --ray` on a distorted dataset, "destination is read-only"
+    feats = feats if feats.flags.writeable else feats.copy()
     if unseen is not None and unseen.any():
         seg[:, unseen] = -1
         report.unobserved.append((stem, float(unseen.mean())))
