@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import functools
 import hashlib
@@ -402,12 +403,19 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     targets = [output_target(p) for p in given]  # a link's target holds what is written: the link (the user's) stays
     before = [_file_identity(t) for t in targets]
     kept = [_kept_copy(t) if then is not None else None for t, then in zip(targets, before)]
+    settled = [copy is None for copy in kept]  # a kept copy is let go only once its file needs it no more
+    written: dict[str, tuple[int, int] | None] = {}
+    token = _WRITTEN.set(written)
     try:
         yield
+        settled = [True] * len(kept)
     except BaseException:
-        for target, then, copy in zip(targets, before, kept):
+        for i, (target, then, copy) in enumerate(zip(targets, before, kept)):
             now = _file_identity(target)
-            if now is None or now == then:
+            # only what this block wrote, as it wrote it: another writer's file there since is left alone (round 62a: put
+            # back over a finished command's outputs)
+            if now is None or now == then or written.get(_written_key(target)) != now:
+                settled[i] = True
                 continue
             with contextlib.suppress(OSError):
                 if copy is not None:
@@ -416,12 +424,31 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
                 else:
                     target.unlink()
                     log.info("removed %s: the other outputs of this command were not written", shown_path(target))
+            settled[i] = True
         raise
     finally:
-        for copy in kept:
-            if copy is not None:
+        _WRITTEN.reset(token)
+        outer = _WRITTEN.get()
+        if outer is not None:
+            outer.update(written)
+        for copy, done in zip(kept, settled):
+            if copy is not None and done:  # one not put back yet (a second Ctrl-C in the loop) stays for the user (round 62a)
                 with contextlib.suppress(OSError):
                     copy.unlink()
+
+
+_WRITTEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_written_outputs", default=None)
+
+
+def _written_key(target: Path) -> str:
+    return os.path.abspath(target)
+
+
+def _note_written(target: Path) -> None:
+    """Record, for an enclosing `outputs_together`, the file `atomic_path` just put at `target`."""
+    written = _WRITTEN.get()
+    if written is not None:
+        written[_written_key(target)] = _file_identity(target)
 
 
 def _kept_copy(target: Path) -> Path | None:
@@ -460,6 +487,7 @@ def atomic_path(path: str | Path, cancel: CancelToken | None = None) -> Iterator
     try:
         yield tmp_path
         replace_with_temp(tmp_path, shown)
+        _note_written(target)
     except OSError as exc:
         raise naming_path(exc, shown, tmp_path) from None
     finally:

@@ -1142,6 +1142,44 @@ def test_outputs_together_undoes_only_what_the_failed_block_wrote(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.npy", "new.npy", "rewritten.npy"]
 
 
+def test_outputs_together_leaves_another_writers_file_and_keeps_what_a_second_stop_did_not_put_back(tmp_path, monkeypatch):
+    """Round 62a: a failed command put its earlier outputs back over those another command had finished meanwhile (any
+    file changed since it started was taken for its own); and a second Ctrl-C during the put-back deleted the kept
+    copies not yet put back. Only what the block wrote, as it wrote it, is undone; a copy not put back stays."""
+    import drsplat.utils as ut
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    np.save(a, np.zeros(2))
+    np.save(b, np.zeros(2))
+    with pytest.raises(RuntimeError), outputs_together([a, b]):
+        save_npy_atomic(a, np.ones(2))
+        other = tmp_path / "other.npy"
+        np.save(other, np.full(2, 5.0))
+        os.replace(other, a)  # another writer's finished output, after ours
+        raise RuntimeError("this command failed")
+    np.testing.assert_array_equal(np.load(a), np.full(2, 5.0))  # theirs, not put back over
+    np.testing.assert_array_equal(np.load(b), np.zeros(2))
+
+    calls = []
+    real_replace = os.replace
+
+    def interrupted(src, dst):
+        calls.append(dst)
+        if str(src).endswith("kept.tmp") and len([c for c in calls if str(c).endswith(".npy")]) >= 1:
+            raise KeyboardInterrupt  # a second Ctrl-C, during the put-back
+        return real_replace(src, dst)
+
+    with pytest.raises(KeyboardInterrupt), outputs_together([a, b]):
+        save_npy_atomic(a, np.ones(2))
+        save_npy_atomic(b, np.ones(2))
+        monkeypatch.setattr(ut.os, "replace", interrupted)
+        raise KeyboardInterrupt
+    monkeypatch.undo()
+    kept = sorted(p.name for p in tmp_path.glob(".*kept.tmp"))
+    assert kept, "the earlier files not put back are kept, not deleted"
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 
