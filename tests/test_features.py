@@ -831,6 +831,34 @@ def test_a_result_in_read_only_arrays_is_recorded_as_any_other(tmp_path):
     assert np.all(got_seg[1:, :4] == 0) and np.isfinite(got_feats).all()
 
 
+def test_a_resume_in_another_crop_normalisation_is_refused_also_where_the_folder_predates_recording_it(weights, tmp_path):
+    """Round 62b: a folder begun before the crop normalisation followed the checkpoint's model (OpenAI's mean and std for
+    every file then) was resumed by a run normalising with 0/1 (a MobileCLIP checkpoint), without a word: the folder held
+    views of two embeddings (cosine 0.81 between them). The manifest records the normalisation; a resume in another is
+    refused, and so is one other than OpenAI's into a folder whose manifest does not say."""
+    import json
+
+    from PIL import Image
+
+    src = _one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8)))
+    cameras = load_cameras(src)
+    openai = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    other = ClipEncoder(TINY_CLIP, checkpoint=weights["clip"], device="cpu")
+    other.mean, other.std = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    slic = make_generator("slic")
+    out = tmp_path / "features"
+    extract_features(cameras, out, slic, openai, manifest=make_manifest(slic, openai, NmsParams(), 64, 1080), show_progress=False)
+    assert featurefiles.read_manifest(out)["crop_normalisation"]["std"] == [0.26862954, 0.26130258, 0.27577711]
+    with pytest.raises(DrsplatError, match="crop_normalisation"):
+        extract_features(cameras, out, slic, other, manifest=make_manifest(slic, other, NmsParams(), 64, 1080), show_progress=False)
+    manifest = out / featurefiles.MANIFEST_NAME  # as written before it was recorded
+    manifest.write_text(json.dumps({k: v for k, v in json.loads(manifest.read_text()).items() if k != "crop_normalisation"}))
+    with pytest.raises(DrsplatError, match="made before drsplat recorded how crops are normalised"):
+        extract_features(cameras, out, slic, other, manifest=make_manifest(slic, other, NmsParams(), 64, 1080), show_progress=False)
+    report = extract_features(cameras, out, slic, openai, manifest=make_manifest(slic, openai, NmsParams(), 64, 1080), show_progress=False)
+    assert report.skipped == ["view"]
+
+
 def test_resuming_with_the_same_sam_weights_moved_is_accepted(weights, tmp_path):
     """Round 61c: a resume whose --sam-checkpoint was the same file moved (~/Downloads -> ~/models) was refused on its
     path though the manifest's sam_weights (size:sha1) matched: SAM takes minutes an image on a CPU, and the remedy

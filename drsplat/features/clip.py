@@ -83,7 +83,7 @@ class ClipEncoder:
         if model not in open_clip.list_models():  # a config of another name read as none given (round 61c): say how names are made
             raise DrsplatError(f"unknown OpenCLIP model {model!r} (see open_clip.list_models()); an architecture open_clip does not ship "
                                f"needs its model config, --clip-config CONFIG.json, and open_clip names that model after the file: "
-                               f"{model}.json registers --clip-model {model}")
+                               f"{json.dumps(model)[1:-1]}.json registers --clip-model {json.dumps(model)[1:-1]}")
         self.device = resolve_device(device)
         self.dtype = torch.float16 if self.device == "cuda" else torch.float32
         self.batch_size = int(batch_size)

@@ -287,10 +287,19 @@ def make_manifest(generator, encoder, nms: NmsParams, resolution: float, max_hei
         "clip_weights": weights_digest(encoder.checkpoint),
         "sam_weights": weights_digest(getattr(generator, "checkpoint", None)),
         "clip_precision": clip_precision(encoder),
+        "crop_normalisation": crop_normalisation(encoder),
         "versions": versions(),
     }
     manifest.update(extra or {})
     return manifest
+
+
+def crop_normalisation(encoder) -> dict | None:
+    """{mean, std} the encoder normalises crops with (None for an encoder that does not say): a resume must repeat it."""
+    mean, std = getattr(encoder, "mean", None), getattr(encoder, "std", None)
+    if mean is None or std is None:
+        return None
+    return {"mean": [float(v) for v in mean], "std": [float(v) for v in std]}
 
 
 def clip_precision(encoder) -> str | None:
@@ -322,6 +331,7 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
             f"{features_dir} holds features made with mask generator {old.get('mask_generator')!r}, this run uses "
             f"{manifest['mask_generator']!r}; use a new --out folder or the same --masks{_no_pair_yet(features_dir)}"
         )
+    refuse_unrecorded_normalisation(features_dir, old, manifest)
     for key, flag in RESUME_KEYS.items():
         if key in old and old[key] != json.loads(json.dumps(manifest.get(key))):  # as stored: tuples are lists
             raise DrsplatError(f"{features_dir} holds features made with {key} {old[key]!r}, this run's is {manifest.get(key)!r}: resuming "
@@ -334,6 +344,22 @@ def check_manifest_compatible(features_dir: Path, manifest: dict) -> None:
         log.warning("%s holds features CLIP made in %s, this run's are in %s (CLIP runs in float16 on a CUDA device, float32 on "
                     "the CPU: --device): the two differ in their last bits", shown_path(features_dir), shown_path(old["clip_precision"]),
                     manifest["clip_precision"])  # the stored value as shown: the manifest is a file a user may have edited
+
+
+def refuse_unrecorded_normalisation(features_dir: Path, old: dict, manifest: dict) -> None:
+    """A folder begun before manifests recorded the crop normalisation had its crops normalised with OpenAI's mean and
+    std (every checkpoint then): a run normalising otherwise (a SigLIP or MobileCLIP checkpoint now) cannot resume it.
+    It did, without a word, and the folder held views of two embeddings (round 62b)."""
+    from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD
+
+    new = manifest.get("crop_normalisation")
+    if "crop_normalisation" in old or not new or not featurefiles.list_stems(features_dir):
+        return
+    openai = {"mean": [float(v) for v in OPENAI_MEAN], "std": [float(v) for v in OPENAI_STD]}
+    if new != openai:
+        raise DrsplatError(f"{features_dir} holds features made before drsplat recorded how crops are normalised (OpenAI's mean "
+                           f"and std then), and this run normalises them with mean {new['mean']}, std {new['std']}: resuming would "
+                           "mix the two in one folder; use a new --out folder")
 
 
 def _no_pair_yet(features_dir: Path) -> str:
@@ -354,6 +380,7 @@ RESUME_KEYS = {  # manifest entries that change every feature file: a run resumi
     "max_height": "--max-height",
     "clip_weights": "CLIP weights (a --clip-checkpoint file of the same name but other contents)",
     "sam_weights": "SAM weights (--sam-checkpoint, or the --sam-model downloaded)",
+    "crop_normalisation": "crop normalisation (the weights' tag sets it: --pretrained)",
 }
 
 
