@@ -133,6 +133,9 @@ def test_a_checkpoint_without_a_tag_is_normalised_as_its_models_weights_are(tiny
             enc.encode_images(crops)
         tagged = ClipEncoder(TINY_CLIP, pretrained="laion", checkpoint=tiny_clip, device="cpu")
         assert tagged.mean == (0.5,) * 3 and tagged.encode_images(crops).shape[0] == 2
+        typo = ClipEncoder(TINY_CLIP, pretrained="laio", checkpoint=tiny_clip, device="cpu")  # round 62b: OpenAI's, silently
+        with pytest.raises(InputError, match="normalise images in 2 ways"):
+            typo.encode_images(crops)
         return
     assert enc.mean == ((0.5,) * 3 if known == "one way" else (0.48145466, 0.4578275, 0.40821073))
     assert enc.encode_images(crops).shape[0] == 2

@@ -125,8 +125,13 @@ class ClipEncoder:
                                           "cannot be downloaded; run once with internet access") from None
         tag_cfg = open_clip.get_pretrained_cfg(model, self.pretrained) if not self.pretrained.startswith(("file:", "random")) else {}
         self.normalisation_problem: str | None = None  # why the images' normalisation is unknown (`require_image_normalisation`)
-        if self.pretrained.startswith("file:"):  # a checkpoint named by no tag: its model's known weights say how to normalise
-            tag_cfg, self.normalisation_problem = checkpoint_normalisation(open_clip, model)
+        known_tags = open_clip.list_pretrained_tags_by_model(model)
+        if checkpoint is not None and not self.pretrained.startswith("file:") and known_tags and self.pretrained not in known_tags:
+            # a tag open_clip does not know for this model (a typo: laion2b_s32b_b82) set OpenAI's normalisation (round 62b)
+            log.warning("--pretrained %s is not a tag open_clip knows for %s (%s); the crops are normalised as the model's known "
+                        "weights say", json.dumps(self.pretrained), model, ", ".join(known_tags[:6]) + (", ..." if len(known_tags) > 6 else ""))
+        if self.pretrained.startswith("file:") or (checkpoint is not None and known_tags and self.pretrained not in known_tags):
+            tag_cfg, self.normalisation_problem = checkpoint_normalisation(open_clip, model)  # the model's known weights decide
         self.mean = tuple(tag_cfg.get("mean") or OPENAI_MEAN)
         self.std = tuple(tag_cfg.get("std") or OPENAI_STD)
         size = getattr(self.net.visual, "image_size", 224)
