@@ -123,8 +123,8 @@ def test_a_checkpoint_without_a_tag_is_normalised_as_its_models_weights_are(tiny
 
     tags = {"one way": {"a": (0.5, 0.5), "b": (0.5, 0.5)}, "two ways": {"openai": (None, None), "laion": (0.5, 0.5)}, "none": {}}[known]
     monkeypatch.setattr(open_clip, "list_pretrained_tags_by_model", lambda model: list(tags) if model == TINY_CLIP else [])
-    monkeypatch.setattr(open_clip, "get_pretrained_cfg", lambda model, tag: {} if tags[tag][0] is None else
-                        {"mean": (tags[tag][0],) * 3, "std": (tags[tag][1],) * 3})
+    monkeypatch.setattr(open_clip, "get_pretrained_cfg", lambda model, tag: {} if tags.get(tag, (None,))[0] is None else
+                        {"mean": (tags[tag][0],) * 3, "std": (tags[tag][1],) * 3})  # {} for a tag it does not know, as open_clip
     enc = ClipEncoder(TINY_CLIP, checkpoint=tiny_clip, device="cpu")
     crops = np.random.default_rng(0).uniform(size=(2, 3, enc.image_size, enc.image_size)).astype(np.float32)
     assert enc.encode_text(["a fern"]).shape[0] == 1  # text needs no image normalisation
