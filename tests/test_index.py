@@ -989,8 +989,23 @@ def test_an_export_stopped_over_an_earlier_one_of_another_codebook_leaves_it_rea
     def stopped(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(sc, "ply_header", stopped)  # stopped while the PLY is made (the CLI puts back what a later stop replaced)
+    monkeypatch.setattr(sc, "ply_header", stopped)  # stopped while the PLY is made
     with pytest.raises(KeyboardInterrupt):
         export_scene(tiny_scene(len(x)), build_field(x, w, books[16]), ply, "drsplat")
+    assert {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))} == kept
+    monkeypatch.undo()
+    import drsplat.utils as ut
+
+    real = ut.replace_with_temp
+
+    def ply_rename_fails(tmp, path):  # round 62a: the codebook put in place, then the PLY's rename refused (EPERM, EIO)
+        if str(path).endswith(".ply"):
+            raise PermissionError(1, "Operation not permitted", str(path))
+        return real(tmp, path)
+
+    monkeypatch.setattr(ut, "replace_with_temp", ply_rename_fails)
+    with pytest.raises(PermissionError):
+        export_scene(tiny_scene(len(x)), build_field(x, w, books[16]), ply, "drsplat")
+    monkeypatch.undo()
     assert {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))} == kept
     assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)

@@ -44,7 +44,7 @@ from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
 from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
-from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, refuse_write_protected
+from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, outputs_together, refuse_write_protected
 
 log = logging.getLogger(__name__)
 
@@ -604,5 +604,11 @@ def export_scene(scene: GaussianScene, field: LanguageField | None, path: str | 
     # the codebook last, just before the PLY is renamed into place (as registration does): written first, an interrupted
     # or killed export over an earlier one of another codebook left that PLY beside a codebook it no longer matched (round 61b)
     out = attach_field(scene, field, path, write_codebook=False)
-    save_ply(out, path, before_replace=(lambda: write_codebook_beside(field.codebook, path)) if needs_codebook(field.kind) else None)
+    if not needs_codebook(field.kind):
+        save_ply(out, path)
+        return out
+    # one set: a PLY that fails at its rename (after the codebook's) puts the earlier codebook back, in every caller (round 62a:
+    # the viewer's export lost an earlier export's codebook; only the command line's outputs were a set)
+    with outputs_together([path, written_codebook_path(path)]):
+        save_ply(out, path, before_replace=lambda: write_codebook_beside(field.codebook, path))
     return out
