@@ -268,7 +268,7 @@ def test_an_export_replaces_a_file_only_when_pressed_again(state, tmp_path):
     kept = target.read_bytes()
     state.run_oracle_query(state.oracle.names.index("ball"))
     assert state.export_selection(target, "drsplat") is None
-    assert "sel.ply exists" in state.messages[-1].text and "export again to replace it" in state.messages[-1].text
+    assert "sel.ply (" in state.messages[-1].text and "exists: export again to replace it" in state.messages[-1].text
     assert target.read_bytes() == kept
     target.write_bytes(kept + b"x")  # changed since it was asked about: asked again
     assert state.export_selection(target, "drsplat") is None and "export again" in state.messages[-1].text
@@ -286,6 +286,28 @@ def test_an_export_while_a_segmentation_is_shown_says_what_it_writes(state, tmp_
     assert state.run_oracle_query(0) and state.run_segmentation("  ") and state.mode == "segmentation"
     assert state.export_selection(tmp_path / "b.ply", "standard")
     assert "the query's selection, not the segmentation shown" in state.messages[-1].text
+
+
+def test_an_exports_confirmation_covers_its_codebook_format_and_query(tmp_path):
+    """Round 62b: a drsplat export to a new PLY name replaced the codebook file of that name unasked (only the PLY was
+    asked about), and a confirmation outlived the format, scene or query it was asked for."""
+    from viewer.demo import demo_dir
+    from viewer.state import ViewerState
+
+    state = ViewerState()
+    assert state.load_scene(demo_dir() / "registered.ply") and state.load_source(demo_dir())  # a PQ field: a codebook beside
+    assert state.run_oracle_query(0)
+    book = tmp_path / "A.codebook.faiss"
+    book.write_bytes(b"someone's codebook")
+    assert state.export_selection(tmp_path / "A.ply", "drsplat") is None
+    assert "A.codebook.faiss (18 bytes) exists: export again" in state.messages[-1].text and book.read_bytes() == b"someone's codebook"
+    assert state.export_selection(tmp_path / "A.ply", "drsplat") and book.read_bytes() != b"someone's codebook"
+    target = tmp_path / "B.ply"
+    assert state.export_selection(target, "standard")
+    assert state.export_selection(target, "standard") is None  # asked
+    assert state.export_selection(target, "drsplat") is None  # another format: asked again, not taken as the answer
+    assert state.run_oracle_query(1) and state.export_selection(target, "drsplat") is None  # another query: asked again
+    assert state.export_selection(target, "drsplat")
 
 
 def test_a_config_folder_that_cannot_be_made_only_loses_the_layout(tmp_path, caplog):

@@ -274,9 +274,11 @@ def interactive(state) -> int:
     except KeyboardInterrupt:  # Ctrl-C (or SIGTERM) in the terminal is how a window started from one is often closed: not an error
         log.info("the viewer was closed by an interrupt")
     finally:
-        app.close()
-    stop_registration(state)
-    wait_for_encoder(state)
+        try:
+            app.close()
+        finally:  # whatever ended the window (a GL error too): no registration dies mid-view, no process ends under an encoder
+            stop_registration(state)
+            wait_for_encoder(state)
     return 0
 
 

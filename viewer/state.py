@@ -715,7 +715,7 @@ class ViewerState:
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {"the export": path, "the export's codebook": codebook}, folders)
             check_outputs_writable(path, codebook)  # both, before either is written, as the CLI's export checks them (round 60a)
-            if not self._replace_confirmed(path):
+            if not self._replace_confirmed(path, codebook, fmt):
                 return None
             with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
                 export_scene(self.scene.subset(selected), None if self.field is None else self.field.subset(selected), path, fmt)
@@ -727,27 +727,37 @@ class ViewerState:
                      if self.mode == "segmentation" else ""))
         return count
 
-    def _replace_confirmed(self, path: Path) -> bool:
-        """Whether an export may write `path`: a file there is replaced only by a second export to it in a row.
+    def _replace_confirmed(self, path: Path, codebook: Path | None = None, fmt: str = "standard") -> bool:
+        """Whether an export may write `path` (and its `codebook`): files there are replaced only by a second export to
+        them in a row.
 
         The export path stays in the panel, so a second query's export replaced the first's without a word
         (and, with an export open, the registered scene it came from could be typed over: round 61a). The
-        first press names the file and asks for another; the confirmation is for that file as it is now."""
-        try:
-            st = path.stat()
-        except OSError:
+        first press names the files and asks for another; the confirmation holds for those files as they
+        are now, this scene, query and format (round 62b: the codebook beside a new PLY name was replaced
+        unasked, and a confirmation outlived the scene it was asked for)."""
+        existing = []
+        for target in (path, codebook):
+            if target is None:
+                continue
+            try:
+                st = target.stat()
+            except OSError:
+                continue
+            if target.is_file():
+                existing.append((str(target.absolute()), st.st_size, st.st_mtime_ns))
+        if not existing:
             self._pending_replace = None
             return True
-        if not path.is_file():
-            self._pending_replace = None
-            return True
-        stamp = (str(path.absolute()), st.st_size, st.st_mtime_ns)
+        stamp = (tuple(existing), fmt, self.scene_version, id(self.query))
         if self._pending_replace == stamp:
             self._pending_replace = None
             return True
         self._pending_replace = stamp
-        self.warning(f"{path} exists ({st.st_size:,} bytes): export again to replace it")
+        names = " and ".join(f"{Path(name).name} ({size:,} bytes)" for name, size, _ in existing)
+        self.warning(f"{names} exist{'s' if len(existing) == 1 else ''}: export again to replace {'it' if len(existing) == 1 else 'them'}")
         return False
+
 
     # ---------------------------------------------------------------- registration
 
