@@ -395,6 +395,7 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
 
 SEGMENT_SCORE_BYTES = 256 << 20  # the [N, L'] scores `segment` holds at a time: L' labels a pass (at least SEGMENT_MIN_LABELS)
 SEGMENT_MIN_LABELS = 8
+SEGMENT_TABLE_BYTES = 128 * 256 * 4  # a query's look-up tables at M = 128 (an exact field's query row is less)
 
 
 def _argmax_scores(field: LanguageField, queries: np.ndarray, lut_bits: int, device: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -402,7 +403,9 @@ def _argmax_scores(field: LanguageField, queries: np.ndarray, lut_bits: int, dev
     as np.argmax picks it, scoring a few queries at a time: a query's scores are the same bits alone and in a batch, and
     the whole [N, Q] took 6.4 GB for 200 labels on 5M Gaussians (round 61b)."""
     n = len(field)
-    per = max(SEGMENT_MIN_LABELS, SEGMENT_SCORE_BYTES // (4 * max(n, 1)))
+    # each query's look-up tables too (a PQ field's M x 256 floats): on a small scene they, not the scores, were the memory
+    # (1,001 Gaussians, 20k labels in one pass: 3.1 GB; round 62a)
+    per = max(SEGMENT_MIN_LABELS, SEGMENT_SCORE_BYTES // (4 * max(n, 1) + SEGMENT_TABLE_BYTES))
     best, best_score = np.zeros(n, np.int64), np.full(n, np.nan, np.float32)
     for lo in range(0, queries.shape[0], per):
         scores = field.scores(queries[lo : lo + per], lut_bits=lut_bits, device=device)

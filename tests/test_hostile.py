@@ -2771,6 +2771,18 @@ def test_pq_train_draws_the_same_rows_in_bounded_memory(tmp_path):
         pq.PQ_READ_ROWS = pq_rows
     assert peak < 40000 * 64 * 4 / 4, peak  # a quarter of one file's float32 rows: blocks, not the files
 
+    from drsplat.errors import InputError
+
+    big = np.ones((3000, 8))
+    big[2500, 1] = 1e300  # in the second block of 1024 rows: the file's count is named, not the block's (round 62a)
+    np.save(tmp_path / "big.npy", big)
+    try:
+        pq.PQ_READ_ROWS = 1024
+        with pytest.raises(InputError, match=r"big.npy: rows of its 3000 hold values beyond float32's range .*e.g. row 2500"):
+            pq.collect_embeddings([tmp_path / "big.npy"], [], 256, 0)
+    finally:
+        pq.PQ_READ_ROWS = pq_rows
+
 
 def test_pq_train_on_non_finite_embeddings_names_the_file(tmp_path, capsys):
     """pq train on an all-NaN .npy said "input: only 0 embeddings", naming neither the file nor why."""

@@ -141,6 +141,26 @@ def test_segment_scores_a_few_labels_at_a_time_to_the_same_labels(world, fields,
     assert peak < 4 * len(field) * len(labels), (peak, 4 * len(field) * len(labels))  # not the [N, L] float32 scores
 
 
+def test_segment_passes_count_each_labels_tables_on_a_small_scene(fields, monkeypatch):
+    """Round 62a: the labels a pass were counted by their scores alone, so a small scene took every label in one pass,
+    whose look-up tables (~128 kB a label) were the memory: 1,001 Gaussians and 20k labels, 3.1 GB."""
+    import drsplat.query as dq
+
+    field = fields["pq"]
+    sizes = []
+    real = type(field).scores
+
+    def counted(self, queries, **kwargs):
+        sizes.append(len(queries))
+        return real(self, queries, **kwargs)
+
+    monkeypatch.setattr(type(field), "scores", counted)
+    labels = np.random.default_rng(0).normal(size=(5000, field.dim)).astype(np.float32)
+    dq.segment(field, labels)
+    assert sum(sizes) == 5000
+    assert max(sizes) * (4 * len(field) + dq.SEGMENT_TABLE_BYTES) <= dq.SEGMENT_SCORE_BYTES + 4 * len(field) + dq.SEGMENT_TABLE_BYTES
+
+
 def test_click_query_is_the_mean_feature(world, fields):
     x, _, lab, _ = world
     ids = np.flatnonzero(lab == 3)[:5]

@@ -63,7 +63,7 @@ def collect_embeddings(arrays: list[Path], folders: list[Path], max_train: int |
         dim = arr.shape[1]
         keep = np.empty(arr.shape[0], bool)
         for lo in range(0, arr.shape[0], PQ_READ_ROWS):
-            x = float32_rows(path, arr[lo : lo + PQ_READ_ROWS], lo)
+            x = float32_rows(path, arr[lo : lo + PQ_READ_ROWS], lo, arr.shape[0])
             ok = np.isfinite(x).all(axis=1) & (x != 0).any(axis=1)
             # judged as the feature reader judges a mask's embedding (`features.format.read_features_report`), in float64: a float32
             # sum of values near 3e38 overflowed and such rows were trained on; a norm below float32's smallest normal holds no direction
@@ -131,18 +131,20 @@ def _embedding_array(path: Path, dim: int | None) -> np.ndarray:
     return arr
 
 
-def float32_rows(path: Path, arr: np.ndarray, first_row: int = 0) -> np.ndarray:
+def float32_rows(path: Path, arr: np.ndarray, first_row: int = 0, file_rows: int | None = None) -> np.ndarray:
     """arr [n, D] as float32, or InputError naming the rows whose finite values lie beyond float32's
     range (a cast would make them inf, and they would be skipped as if the file held non-finite values).
-    first_row: the file's row of arr's first (arr a block of the file)."""
+    first_row: the file's row of arr's first; file_rows: the file's rows (arr a block of the file)."""
     if arr.dtype.itemsize > 4 or arr.dtype.kind in "iu":
         wide = np.asarray(arr, np.float64)
         big = (np.isfinite(wide) & (np.abs(wide) > np.finfo(np.float32).max)).any(axis=1)  # inf and NaN are skipped rows, counted later
         if big.any():
             rows = np.flatnonzero(big)
-            which = f"{arr.shape[0]} rows" if first_row == 0 else f"rows {first_row}-{first_row + arr.shape[0] - 1}"
-            raise InputError(path, f"{rows.size} of {which} hold values beyond float32's range (±3.4e38), e.g. row "
-                             f"{first_row + int(rows[0])}; embeddings are stored as float32")
+            total = arr.shape[0] if file_rows is None else file_rows
+            which = (f"{rows.size} of {total} rows hold" if total == arr.shape[0] else  # a block: its count is not the file's (round 62a)
+                     f"rows of its {total} hold")
+            raise InputError(path, f"{which} values beyond float32's range (±3.4e38), e.g. row {first_row + int(rows[0])}; "
+                             "embeddings are stored as float32")
     return np.asarray(arr, np.float32)
 
 
