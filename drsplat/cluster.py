@@ -237,11 +237,18 @@ def _relay_errors_to_log() -> None:
         for message in data.get("lines", ()):
             first = str(message).strip().splitlines()[:1]
             if first:
-                log.warning("Ray: %s", first[0][:RELAYED_LINE_CHARS])
+                log.warning("Ray: %s", relayed_line(first[0]))
 
     relay.drsplat_relay = True  # type: ignore[attr-defined]
     relay.ray_printer = printer  # type: ignore[attr-defined]
     setattr(worker, RAY_PRINTER, relay)
+
+
+def relayed_line(line: str) -> str:
+    """A Ray message's first line as relayed: at most RELAYED_LINE_CHARS, a cut marked with '...', and no colon left
+    announcing the lines it is relayed without (round 62b: "Last 20 lines of the Raylet logs:")."""
+    line = line.rstrip().rstrip(":")
+    return line if len(line) <= RELAYED_LINE_CHARS else line[: RELAYED_LINE_CHARS - 3].rstrip() + "..."
 
 
 def _restore_error_printer() -> None:

@@ -305,6 +305,11 @@ def test_rays_error_printer_is_relayed_while_connected_and_given_back_after(monk
     assert ray_worker.print_to_stdstream is relay
     disconnect(True)
     assert ray_worker.print_to_stdstream is rays
+    from drsplat.cluster import RELAYED_LINE_CHARS, relayed_line
+
+    assert relayed_line("Raylet is terminated. Last 20 lines of the Raylet logs:") == "Raylet is terminated. Last 20 lines of the Raylet logs"
+    cut = relayed_line("x" * 1000)
+    assert len(cut) == RELAYED_LINE_CHARS and cut.endswith("...")  # round 62b: cut mid-word without a mark
 
 
 def test_an_address_that_refuses_the_driver_names_ray_token_authentication(monkeypatch):
