@@ -490,10 +490,13 @@ def test_screenshot_oracle_flags_refuse_a_field_of_clip_features(demo, tmp_path,
     clip_ply = tmp_path / "clip.ply"
     save_ply(attach_field(scene, field, clip_ply), clip_ply)
     out = tmp_path / "x.png"
-    for flags in (["--oracle", "mug"], ["--mode", "segmentation"]):
+    for flags in (["--oracle", "mug"], ["--mode", "segmentation"], ["--mode", "segmentation", "--embedding", str(tmp_path / "q.npy")]):
+        np.save(tmp_path / "q.npy", np.eye(field.dim, dtype=np.float32)[0])
         assert main([str(clip_ply), "--source", str(dataset), "--screenshot", str(out), *flags]) == 1
         err = capsys.readouterr().err
         assert "oracle labels are not offered" in err and "ViT-B-16" in err and err.count("ERROR") == 1, err
+        assert "query" not in err.split("ERROR")[0]  # round 62b: refused before any query ran
+    assert "drsplat segment --labels" in err
     assert not out.exists()
 
 

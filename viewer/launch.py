@@ -216,6 +216,10 @@ def screenshot(args: argparse.Namespace, state) -> int:
         camera = view.camera()
     warn_unused_screenshot_flags(args)
     state.settings.query.negatives = args.negatives
+    if args.mode == "segmentation" and state.oracle is not None and (problem := state.oracle_problem()) is not None:
+        # before any query is run (round 62b: the text query ran first), with the command line's remedy
+        raise DrsplatError(f"--mode segmentation: {problem.replace(' (type text queries or labels instead)', '')}; labels typed as "
+                           "phrases are segmented in the viewer window, or by drsplat segment --labels")
     wants_query = bool(args.query or args.embedding or args.oracle)
     if args.query or args.negatives:
         state.start_text_encoder(background=False)
@@ -238,8 +242,6 @@ def screenshot(args: argparse.Namespace, state) -> int:
     if not ok:
         raise StartupError(state.messages[-1].text)
     if args.mode == "segmentation":
-        if state.oracle is not None and (problem := state.oracle_problem()) is not None:
-            raise DrsplatError(f"--mode segmentation: {problem}")
         if state.oracle is None and state.field is not None:  # no label phrases on the command line: run_segmentation(None) needs the oracle
             raise DrsplatError("--mode segmentation segments by the oracle labels of a synthetic dataset: pass --source DIR with "
                                "gt/label_names.json and text_embeddings.npy (labels typed as phrases are segmented in the viewer window)")
