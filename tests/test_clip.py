@@ -156,8 +156,11 @@ def test_clip_configs_open_clip_would_fail_on_are_one_sentence_or_work(tmp_path)
     (folder / "Broken.json").write_text('{"embed_dim": 32,')
     with pytest.raises(InputError, match="Broken.json"):
         use_clip_config(folder)
+    (folder / "Broken.json").unlink()
+    (folder / "open_clip_config.json").write_text('{"model_cfg": {}}')  # other JSON beside the config: open_clip skips it (round 62b)
+    use_clip_config(folder)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(InputError, match="holds no .json model config"):
+    with pytest.raises(InputError, match="holds no open_clip model config"):
         use_clip_config(tmp_path / "empty")
     biased = tmp_path / "TinyBias-drsplat-test.json"
     biased.write_text(json.dumps({**TINY_CFG, "text_cfg": {**TINY_CFG["text_cfg"], "proj_bias": True}}))

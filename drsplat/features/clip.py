@@ -240,15 +240,19 @@ class ClipEncoder:
 
 def check_clip_config(path: Path) -> None:
     """Refuse a --clip-config file that open_clip would fail on with a traceback (bad JSON) or skip
-    silently (not .json, not a model config); in a folder, each .json file open_clip reads there (a bad one
-    was a JSONDecodeError traceback, round 61c), and a folder of none."""
+    silently (not .json, not a model config). In a folder open_clip reads every .json file and takes the model
+    configs among them: one it cannot parse is refused (a JSONDecodeError traceback, round 61c), other JSON
+    is left to it as it leaves it (round 62b: an open_clip_config.json beside the config was refused), and a
+    folder without a model config is refused."""
     path = Path(path)
     if path.is_dir():
-        configs = sorted(path.glob("*.json"))
-        if not configs:
-            raise InputError(path, "holds no .json model config (--clip-config: a JSON file, or a folder of them)")
-        for config in configs:
-            check_clip_config(config)
+        found = 0
+        for config in sorted(path.glob("*.json")):
+            data = read_json(config, "a JSON file of a --clip-config folder (open_clip reads each)")
+            found += isinstance(data, dict) and all(key in data for key in ("embed_dim", "vision_cfg", "text_cfg"))
+        if not found:
+            raise InputError(path, "holds no open_clip model config (a .json file with embed_dim, vision_cfg and text_cfg; "
+                                   "--clip-config takes such a file, or a folder of them)")
         return
     if path.suffix != ".json":
         raise InputError(path, "must be a .json file: open_clip ignores a --clip-config of another suffix")
