@@ -33,7 +33,7 @@ from drsplat.features.modelid import (
 from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
 import drsplat
 from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized, unobserved_pixels
-from drsplat.features.clip import ClipEncoder, use_clip_config
+from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD, ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
 
 log = logging.getLogger(__name__)
@@ -350,8 +350,6 @@ def refuse_unrecorded_normalisation(features_dir: Path, old: dict, manifest: dic
     """A folder begun before manifests recorded the crop normalisation had its crops normalised with OpenAI's mean and
     std (every checkpoint then): a run normalising otherwise (a SigLIP or MobileCLIP checkpoint now) cannot resume it.
     It did, without a word, and the folder held views of two embeddings (round 62b)."""
-    from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD
-
     new = manifest.get("crop_normalisation")
     if "crop_normalisation" in old or not new or not featurefiles.list_stems(features_dir):
         return
