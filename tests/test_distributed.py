@@ -273,6 +273,8 @@ def test_a_sigterm_while_ray_connects_is_the_programs_interrupt(monkeypatch, cap
 
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     monkeypatch.setattr(ray, "init", _init_that_meets_a_sigterm)
+    shut = []
+    monkeypatch.setattr(ray, "shutdown", lambda: shut.append(True))  # the half-made instance's; not this module's cluster session
     before = signal.getsignal(signal.SIGTERM)
     token = CancelToken()
     handling = sigterm_as_interrupt() if program == "command line" else cancel_on_signals(token, "the views")
@@ -282,6 +284,7 @@ def test_a_sigterm_while_ray_connects_is_the_programs_interrupt(monkeypatch, cap
             connect(None, num_cpus=1)
     assert signal.getsignal(signal.SIGTERM) is before
     assert token.cancelled == (program == "cancellable job")
+    assert shut, "the half-made instance is shut down"
 
 
 def test_rays_error_printer_is_relayed_while_connected_and_given_back_after(monkeypatch):
