@@ -406,13 +406,13 @@ def _argmax_scores(field: LanguageField, queries: np.ndarray, lut_bits: int, dev
     # each query's look-up tables too (a PQ field's M x 256 floats): on a small scene they, not the scores, were the memory
     # (1,001 Gaussians, 20k labels in one pass: 3.1 GB; round 62a)
     per = max(SEGMENT_MIN_LABELS, SEGMENT_SCORE_BYTES // (4 * max(n, 1) + SEGMENT_TABLE_BYTES))
-    best, best_score = np.zeros(n, np.int64), np.full(n, np.nan, np.float32)
+    best, best_score = np.zeros(n, np.int64), np.full(n, -np.inf, np.float32)
     for lo in range(0, queries.shape[0], per):
         scores = field.scores(queries[lo : lo + per], lut_bits=lut_bits, device=device)
         here = np.argmax(scores, axis=1)
         score = scores[np.arange(n), here]
-        # strictly better, or the first score at all; NaN wins as it does in np.argmax (the first NaN)
-        take = (score > best_score) | (np.isnan(best_score) & (lo == 0)) | (np.isnan(score) & ~np.isnan(best_score))
+        # strictly better; NaN wins as it does in np.argmax (the first NaN), and keeps its place
+        take = (score > best_score) | (np.isnan(score) & ~np.isnan(best_score))
         best[take], best_score[take] = here[take] + lo, score[take]
     return best, best_score
 

@@ -466,7 +466,7 @@ def test_clip_flags_naming_no_usable_file_are_refused_at_start(demo, tmp_path, c
     registered, dataset = demo
     bad_json = tmp_path / "bad.json"
     bad_json.write_text("{")
-    for flags, words in ((["--clip-checkpoint", str(tmp_path / "nope.pt")], "nope.pt: does not exist (--clip-checkpoint)"),
+    for flags, words in ((["--clip-checkpoint", str(tmp_path / "nope.pt")], "nope.pt: CLIP checkpoint file does not exist (--clip-checkpoint)"),
                          (["--clip-checkpoint", str(tmp_path)], "is not a file (--clip-checkpoint)"),
                          (["--clip-config", str(tmp_path / "nope.json")], "nope.json: does not exist (--clip-config)"),
                          (["--clip-config", str(bad_json)], "bad.json")):

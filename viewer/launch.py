@@ -19,7 +19,7 @@ from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, shown_path
-from drsplat.features.clip import check_clip_config
+from drsplat.features.clip import check_clip_config, checkpoint_file_problem
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.registration.checkpoint import checkpoint_path_for
@@ -128,8 +128,9 @@ def check_clip_flags(args: argparse.Namespace) -> None:
     as the command line does: the viewer opened, and its Query options later said the encoder could not be loaded,
     advising the other flag (round 61a)."""
     checkpoint = args.clip_checkpoint
-    if checkpoint is not None and not Path(checkpoint).is_file():
-        raise InputError(checkpoint, ("is not a file" if Path(checkpoint).exists() else "does not exist") + " (--clip-checkpoint)")
+    problem = None if checkpoint is None else checkpoint_file_problem(Path(checkpoint))  # ClipEncoder's own check, now
+    if problem is not None:
+        raise InputError(checkpoint, problem)
     if args.clip_config is not None:
         if not Path(args.clip_config).exists():
             raise InputError(args.clip_config, "does not exist (--clip-config)")

@@ -90,9 +90,9 @@ class ClipEncoder:
         self.model_name = model
         if checkpoint is not None:
             checkpoint = Path(checkpoint)
-            if not checkpoint.is_file():  # a folder, FIFO or device exists but is no checkpoint (a FIFO would block the read)
-                raise InputError(checkpoint, "is not a file (--clip-checkpoint): expected an open_clip checkpoint file" if checkpoint.exists()
-                                 else "CLIP checkpoint file does not exist (--clip-checkpoint)")
+            problem = checkpoint_file_problem(checkpoint)
+            if problem is not None:
+                raise InputError(checkpoint, problem)
             self.pretrained = pretrained or f"file:{checkpoint.name}"
             weights = str(checkpoint)
         elif random_weights:
@@ -236,6 +236,15 @@ class ClipEncoder:
     def canonical_embeddings(self) -> np.ndarray:
         """[4, D] embeddings of the relevancy score's canonical phrases (CANONICAL_PHRASES)."""
         return self.encode_text(CANONICAL_PHRASES)
+
+
+def checkpoint_file_problem(checkpoint: Path) -> str | None:
+    """Why `checkpoint` (--clip-checkpoint) is no checkpoint file, or None: a folder, FIFO or device exists but is
+    none (a FIFO would block the read)."""
+    if checkpoint.is_file():
+        return None
+    return ("is not a file (--clip-checkpoint): expected an open_clip checkpoint file" if checkpoint.exists()
+            else "CLIP checkpoint file does not exist (--clip-checkpoint)")
 
 
 def check_clip_config(path: Path) -> None:

@@ -299,6 +299,11 @@ def crop_normalisation(encoder) -> dict | None:
     mean, std = getattr(encoder, "mean", None), getattr(encoder, "std", None)
     if mean is None or std is None:
         return None
+    return normalisation_entry(mean, std)
+
+
+def normalisation_entry(mean, std) -> dict:
+    """The manifest's form of a crop normalisation (`crop_normalisation`): lists of floats, as JSON stores them."""
     return {"mean": [float(v) for v in mean], "std": [float(v) for v in std]}
 
 
@@ -353,8 +358,7 @@ def refuse_unrecorded_normalisation(features_dir: Path, old: dict, manifest: dic
     new = manifest.get("crop_normalisation")
     if "crop_normalisation" in old or not new or not featurefiles.list_stems(features_dir):
         return
-    openai = {"mean": [float(v) for v in OPENAI_MEAN], "std": [float(v) for v in OPENAI_STD]}
-    if new != openai:
+    if new != normalisation_entry(OPENAI_MEAN, OPENAI_STD):
         raise DrsplatError(f"{features_dir} holds features made before drsplat recorded how crops are normalised (OpenAI's mean "
                            f"and std then), and this run normalises them with mean {new['mean']}, std {new['std']}: resuming would "
                            "mix the two in one folder; use a new --out folder")
