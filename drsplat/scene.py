@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, transpose_copy, unit_quats64_kernel
+from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, unit_quats64_kernel
 from drsplat.errors import InputError, hidden_character
 from drsplat.utils import clipped, spread_rows, unreachable_cause, write_bytes_atomic
 
@@ -523,8 +523,89 @@ def check_element_sizes(path: Path, header: PlyHeader, size: int) -> None:
                               "or its header is wrong", field=element.name)
 
 
-def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
-    """Read the 3DGS elements of a PLY into structured numpy arrays (binary fast path, plyfile for ASCII).
+READ_BLOCK_BYTES = 64 << 20  # a binary element is read this many bytes at a time (`StoredRows.blocks`)
+
+
+@dataclass(frozen=True)
+class StoredRows:
+    """The rows of one PLY element, read a block at a time so that a file's rows are never held
+    whole beside the columns made from them (round 61b: a 20M-row registered PLY's 4.2 GB of rows
+    were held with every column copied out of them).
+
+    A binary element is read from `path` at `offset` (`file_dtype`: the file's byte order) in blocks
+    of READ_BLOCK_BYTES; an ASCII one (parsed whole by plyfile) is `held`. dtype: the rows' dtype in
+    native byte order."""
+
+    path: Path
+    dtype: np.dtype
+    count: int
+    offset: int = 0
+    file_dtype: np.dtype | None = None
+    held: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, array: np.ndarray, path: Path = Path("")) -> StoredRows:
+        """Rows already in memory (an ASCII element, a test's array)."""
+        return cls(path=path, dtype=array.dtype, count=len(array), held=array)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def blocks(self, block_bytes: int | None = None):
+        """(first row, rows [B] of `dtype`) for consecutive blocks of `block_bytes` (default
+        READ_BLOCK_BYTES) covering every row; a binary block's array is reused by the next, so a
+        caller copies what it keeps. InputError when the file holds fewer rows than it did when its
+        size was checked (changed while read)."""
+        if self.held is not None:
+            yield 0, self.held
+            return
+        rows = max(1, (READ_BLOCK_BYTES if block_bytes is None else block_bytes) // max(self.dtype.itemsize, 1))
+        buffer = np.empty(min(rows, self.count), self.file_dtype)
+        with open(self.path, "rb") as f:
+            f.seek(self.offset)
+            for start in range(0, self.count, rows):
+                block = buffer[: min(rows, self.count - start)]
+                got = f.readinto(memoryview(block.view(np.uint8)))
+                if got != block.nbytes:
+                    raise _fail(self.path, f"changed while it was read: rows {start:,} to {start + len(block):,} of {self.count:,} "
+                                           "are no longer all there (another program is writing it?)")
+                yield start, (block if self.file_dtype.isnative else block.astype(self.dtype))
+
+    def array(self) -> np.ndarray:
+        """Every row at once (small elements: a compressed PLY's chunks and packed rows)."""
+        if self.held is not None:
+            return self.held
+        out = np.empty(self.count, self.dtype)
+        for start, block in self.blocks():
+            out[start:start + len(block)] = block
+        return out
+
+
+class RowPass:
+    """Columns of a StoredRows filled in one pass over its blocks: each `add`ed fill(first row,
+    block) runs on every block in order (`run`). One read of the file, however many columns."""
+
+    def __init__(self, rows: StoredRows):
+        self.rows = rows
+        self._fills: list[Callable[[int, np.ndarray], None]] = []
+
+    def add(self, fill: Callable[[int, np.ndarray], None]) -> None:
+        self._fills.append(fill)
+
+    def floats(self, names: list[str]) -> np.ndarray:
+        """[N, C] float32 of the properties `names` (`gather_floats`), filled by `run`."""
+        out = np.empty((len(self.rows), len(names)), np.float32)
+        self.add(lambda start, block: out.__setitem__(slice(start, start + len(block)), gather_floats(block, names)))
+        return out
+
+    def run(self) -> None:
+        for start, block in self.rows.blocks():
+            for fill in self._fills:
+                fill(start, block)
+
+
+def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, StoredRows]]:
+    """The 3DGS elements of a PLY, as StoredRows read on use (binary) or parsed by plyfile (ASCII).
 
     Header counts are checked against the file size first (`check_element_sizes`). Binary list
     elements (e.g. mesh faces) are skipped when they follow the elements drsplat reads and refused
@@ -542,9 +623,9 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
             raise _fail(path, f"{header.non_ascii_comment}; an ASCII PLY's header must be ASCII text to be parsed (remove the "
                               "character, or re-export the file)")
         refuse_python_only_numbers(path, header.data_offset)
-        return header, _read_with_plyfile(path)
+        return header, {name: StoredRows.of(array, path) for name, array in _read_with_plyfile(path).items()}
     endian = "<" if header.format == "binary_little_endian" else ">"
-    data: dict[str, np.ndarray] = {}
+    data: dict[str, StoredRows] = {}
     offset = header.data_offset
     needed_left = {e.name for e in header.elements if e.name in NEEDED_ELEMENTS}
     for element in header.elements:
@@ -559,8 +640,7 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, np.ndarray]]:
         if offset + need > size:
             raise _fail(path, f"is truncated: element '{element.name}' needs {need} bytes of data but only {max(0, size - offset)} remain", field=element.name)
         if element.name in NEEDED_ELEMENTS:
-            array = np.fromfile(path, dtype=dtype, count=element.count, offset=offset)
-            data[element.name] = array.astype(array.dtype.newbyteorder("=")) if endian == ">" else array
+            data[element.name] = StoredRows(path, dtype.newbyteorder("=") if endian == ">" else dtype, element.count, offset, dtype)
             needed_left.discard(element.name)
         offset += need
     return header, data
@@ -636,7 +716,7 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
         raise _fail(path, "has no 'vertex' element", field="vertex")
     refuse_undeclared_row_bytes(path, header, path.stat().st_size)
     if "chunk" in data and "packed_position" in (data["vertex"].dtype.names or ()):
-        raw, order = _decode_compressed(path, data), list(data["vertex"].dtype.names)
+        raw, order = _decode_compressed(path, {name: rows.array() for name, rows in data.items()}), list(data["vertex"].dtype.names)
         layout = "compressed"
     else:
         raw, order, layout = _columns_from_inria(path, data["vertex"]), list(data["vertex"].dtype.names), "inria"
@@ -757,14 +837,14 @@ def colours_from_bytes(values: np.ndarray) -> np.ndarray:
     return np.minimum((values.astype(np.float32) + np.float32(0.5)) / np.float32(255), np.float32(1))
 
 
-def rgb_colour_problem(vertex: np.ndarray) -> str | None:
-    """Why the red/green/blue of a vertex element with `colours_as_rgb` cannot stand in for f_dc_0..2
+def rgb_colour_problem(dtype: np.dtype) -> str | None:
+    """Why the red/green/blue of a vertex element (its rows' `dtype`) with `colours_as_rgb` cannot stand in for f_dc_0..2
     (None when they can: `dc_from_rgb` of `colours_from_bytes`). nerfstudio's `ns-export gaussian-splat
     --ply-color-mode rgb` writes uchar red/green/blue = 255·clamp(0.5 + SH_C0·f_dc, 0, 1) and no
     f_rest_* (it drops the higher SH), the rest as 3DGS writes it. A float colour may be 0-1 or
     0-255, and f_rest_* beside 8-bit colours are SH terms of a DC that is gone: neither is guessed."""
-    names = vertex.dtype.names or ()
-    types = sorted({NUMPY_TO_PLY.get(f"{vertex.dtype[c].kind}{vertex.dtype[c].itemsize}", str(vertex.dtype[c])) for c in RGB_PROPERTIES})
+    names = dtype.names or ()
+    types = sorted({NUMPY_TO_PLY.get(f"{dtype[c].kind}{dtype[c].itemsize}", str(dtype[c])) for c in RGB_PROPERTIES})
     if types != ["uchar"]:
         return f"declared {'/'.join(types)}, not uchar 0-255"
     if any(n.startswith("f_rest_") for n in names):
@@ -772,15 +852,15 @@ def rgb_colour_problem(vertex: np.ndarray) -> str | None:
     return None
 
 
-def _require(path: Path, vertex: np.ndarray, name: str) -> None:
-    """InputError when the vertex element lacks `name`, saying why where the file shows it: the same
+def _require(path: Path, dtype: np.dtype, name: str) -> None:
+    """InputError when the vertex element (its rows' `dtype`) lacks `name`, saying why where the file shows it: the same
     name in another case (PLY names are case-sensitive) or colours as red/green/blue (`rgb_colour_problem`)."""
-    names = vertex.dtype.names or ()
+    names = dtype.names or ()
     if name in names:
         return
     problem = "is missing a required vertex property of the 3DGS layout"
     other_case = next((n for n in names if n.lower() == name.lower()), None)
-    rgb = rgb_colour_problem(vertex) if name.startswith("f_dc_") and colours_as_rgb(names) else None
+    rgb = rgb_colour_problem(dtype) if name.startswith("f_dc_") and colours_as_rgb(names) else None
     if other_case is not None:
         problem += f" ('{other_case}' is there, but PLY property names are case-sensitive and 3DGS writes them in lower case)"
     elif rgb is not None:
@@ -789,28 +869,28 @@ def _require(path: Path, vertex: np.ndarray, name: str) -> None:
     raise _fail(path, problem, field=name)
 
 
-def refuse_integer_parameters(path: Path, vertex: np.ndarray, names: list[str]) -> None:
+def refuse_integer_parameters(path: Path, dtype: np.dtype, names: list[str]) -> None:
     """InputError naming the first of the Gaussian parameters `names` (x/y/z, opacity, scale_*,
     rot_*, f_dc_*, f_rest_*, filter_3D) that the file declares with an integer type. Every 3DGS
     writer stores them as float (a logit, log scales, SH coefficients); an integer column is another
     encoding (0-255 alpha or colour), which read as the parameter is wrong for every Gaussian
     (alpha 255 as logit 255, colour 200 as an SH coefficient: white)."""
     for name in names:
-        dtype = vertex.dtype[name]
-        if dtype.kind in "iu":
-            declared = NUMPY_TO_PLY.get(f"{dtype.kind}{dtype.itemsize}", str(dtype))
+        kind, size = dtype[name].kind, dtype[name].itemsize
+        if kind in "iu":
+            declared = NUMPY_TO_PLY.get(f"{kind}{size}", str(dtype[name]))
             raise _fail(path, f"property {name} is declared {declared}, an integer type, where every 3DGS writer stores a float "
                               "(an opacity logit, log scale, rotation or SH coefficient), so its values would be misread; "
                               "re-export the scene with float properties", field=name)
 
 
-def rows_beyond_float32(vertex: np.ndarray, names: list[str]) -> int:
-    """Rows of `vertex` whose wider-than-float32 columns `names` hold a finite value beyond float32's
+def rows_beyond_float32(block: np.ndarray, names: list[str]) -> int:
+    """Rows of `block` whose wider-than-float32 columns `names` hold a finite value beyond float32's
     range (the cast to float32 reads it as infinite)."""
-    beyond = np.zeros(len(vertex), bool)
+    beyond = np.zeros(len(block), bool)
     limit = float(np.finfo(np.float32).max)
     for name in names:
-        column = vertex[name]
+        column = block[name]
         if column.dtype.kind == "f" and column.dtype.itemsize > 4:
             values = np.asarray(column, np.float64)
             with np.errstate(invalid="ignore"):
@@ -818,7 +898,8 @@ def rows_beyond_float32(vertex: np.ndarray, names: list[str]) -> int:
     return int(np.count_nonzero(beyond))
 
 
-def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]:
+def _columns_from_inria(path: Path, vertex: StoredRows) -> dict[str, np.ndarray]:
+    """The columns of an INRIA-layout vertex element (`assemble_scene`'s cols), read in one pass over its rows."""
     names = vertex.dtype.names or ()
     n_rest = sum(1 for n in names if n.startswith("f_rest_"))
     degree = next((d for d, c in SH_REST_COUNTS.items() if c == n_rest), None)
@@ -830,47 +911,59 @@ def _columns_from_inria(path: Path, vertex: np.ndarray) -> dict[str, np.ndarray]
     n = len(vertex)
     surfels = "scale_2" not in names and {"scale_0", "scale_1"} <= set(names)  # 2DGS: two scales, a flat disk
     refuse_point_cloud(path, names)
-    rgb = colours_as_rgb(names) and rgb_colour_problem(vertex) is None  # nerfstudio's rgb export: uchar red/green/blue for f_dc_*
+    rgb = colours_as_rgb(names) and rgb_colour_problem(vertex.dtype) is None  # nerfstudio's rgb export: uchar red/green/blue for f_dc_*
     colour_names = list(RGB_PROPERTIES) if rgb else [f"f_dc_{i}" for i in range(3)]
     scale_names = [f"scale_{i}" for i in range(2 if surfels else 3)]
     for name in ("x", "y", "z", "opacity", *(f"rot_{i}" for i in range(4)), *scale_names, *colour_names):
-        _require(path, vertex, name)
-    refuse_integer_parameters(path, vertex, [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES)
-                                             or name.startswith("f_rest_") or name == MIP_FILTER])
-    columns = _column_reader(vertex)
-    k = (degree + 1) ** 2
-    stored_scales = columns(scale_names)
+        _require(path, vertex.dtype, name)
+    refuse_integer_parameters(path, vertex.dtype, [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES)
+                                                   or name.startswith("f_rest_") or name == MIP_FILTER])
+    rows = RowPass(vertex)
+    stored_scales = rows.floats(scale_names)
     cols = {
-        "means": columns(["x", "y", "z"]),
-        "quats": columns([f"rot_{i}" for i in range(4)]),
-        "log_scales": surfel_scales(stored_scales) if surfels else stored_scales,
-        "opacity_logits": columns(["opacity"])[:, 0].copy(),
+        "means": rows.floats(["x", "y", "z"]),
+        "quats": rows.floats([f"rot_{i}" for i in range(4)]),
         "stored_log_scales": stored_scales,  # as the file holds them (before a 2DGS third scale or Mip's filter): `linear_scale_floor`
     }
+    opacity = rows.floats(["opacity"])
+    mip_filter = rows.floats([MIP_FILTER]) if MIP_FILTER in names else None
+    sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
+    sh = np.empty((n, (degree + 1) ** 2, 3), np.float32)
+    rows.add(lambda start, block: fill_sh(sh[start:start + len(block)], block, colour_names if rgb else sh_names, rgb))
+    cols["extra"] = extra_columns_of(rows, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
+                                            and not name.startswith("f_rest_") and not (rgb and name in RGB_PROPERTIES)])
+    read = [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES) or name.startswith("f_rest_")]
+    beyond = [0]
+    rows.add(lambda start, block: beyond.__setitem__(0, beyond[0] + rows_beyond_float32(block, read)))  # normals: never read
+    rows.run()
+    cols["beyond_float32"] = beyond[0]
+    cols["opacity_logits"] = opacity[:, 0].copy()
     cols["stored_opacity"] = cols["opacity_logits"]  # the same: `activated_opacity_strays`
+    cols["log_scales"] = surfel_scales(stored_scales) if surfels else stored_scales
+    cols["sh"] = sh
     if surfels:
         log.info("%s: %s 2D Gaussian surfels (2DGS: scale_0 and scale_1, no scale_2) read as flat 3D Gaussians %g times as thick as "
                  "their smaller scale; drsplat rasterizes them by 3DGS's projection, not 2DGS's ray-splat intersection", path, f"{n:,}",
                  SURFEL_THICKNESS)
-    sh_names = [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(n_rest)]
-    coeffs = dc_from_rgb(colours_from_bytes(columns(colour_names))) if rgb else columns(sh_names)  # rgb: no f_rest_* (`rgb_colour_problem`)
     if rgb:
         log.info("%s: base colours of %s Gaussians read from uchar red/green/blue (nerfstudio's --ply-color-mode rgb export) "
                  "as SH degree 0, to 1/255 of a colour; view-dependent colour is not in the file", path, f"{n:,}")
-    sh = np.empty((n, k, 3), np.float32)
-    sh[:, 0, :] = coeffs[:, :3]
-    if degree > 0:
-        sh[:, 1:, :] = coeffs[:, 3:].reshape(n, 3, k - 1).transpose(0, 2, 1)  # f_rest is channel-major
-    cols["sh"] = sh
-    if MIP_FILTER in names:
-        cols["log_scales"], cols["opacity_logits"] = fuse_3d_filter(cols["log_scales"], cols["opacity_logits"], columns([MIP_FILTER])[:, 0])
+    if mip_filter is not None:
+        cols["log_scales"], cols["opacity_logits"] = fuse_3d_filter(cols["log_scales"], cols["opacity_logits"], mip_filter[:, 0])
         log.info("%s: Mip-Splatting's 3D filter (%s) fused into the scales and opacities of %s Gaussians, as its renderer applies it",
                  path, MIP_FILTER, f"{n:,}")
-    cols["extra"] = extra_columns(vertex, [name for name in names if name not in CORE_PROPERTIES and name != MIP_FILTER
-                                           and not name.startswith("f_rest_") and not (rgb and name in RGB_PROPERTIES)])
-    read = [name for name in names if (name in CORE_PROPERTIES and name not in UNREAD_PROPERTIES) or name.startswith("f_rest_")]
-    cols["beyond_float32"] = rows_beyond_float32(vertex, read)  # normals are never read: a huge nx changes nothing
     return cols
+
+
+def fill_sh(sh: np.ndarray, block: np.ndarray, names: list[str], rgb: bool) -> None:
+    """sh [B, K, 3] from a block's colour properties: f_dc_0..2 then f_rest_* (channel-major: the K - 1
+    red coefficients, then green, then blue), or nerfstudio's uchar red/green/blue (`rgb`, K = 1)."""
+    coeffs = gather_floats(block, names)
+    if rgb:  # no f_rest_* beside them (`rgb_colour_problem`)
+        coeffs = dc_from_rgb(colours_from_bytes(coeffs))
+    sh[:, 0, :] = coeffs[:, :3]
+    if sh.shape[1] > 1:
+        sh[:, 1:, :] = coeffs[:, 3:].reshape(len(block), 3, sh.shape[1] - 1).transpose(0, 2, 1)
 
 
 def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
@@ -992,47 +1085,69 @@ EXTRA_RUN = 8  # at least this many fields of one type side by side in a record 
 
 
 def extra_columns(vertex: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
-    """{name: [N] contiguous copy} of the structured array's fields `names`, in that order.
+    """{name: [N] column} of the structured array's fields `names`, in that order (`extra_columns_of`)."""
+    rows = RowPass(StoredRows.of(vertex))
+    out = extra_columns_of(rows, names)
+    rows.run()
+    return out
 
-    A run of EXTRA_RUN or more native-order fields of one type that lie side by side in the
-    record (a language field's lang_0 .. lang_511, or its codes) is viewed as one strided [N, L]
-    array and copied transposed in one pass (`transpose_copy`): each field copied alone reads every
-    record once per field (0.89 s for flowers' 512 float16 columns, 0.32 s as one block). The
-    run's columns are then the rows of one [L, N] array, which `lang.backends.stack_columns`
-    transposes back without stacking them again.
+
+def extra_columns_of(rows: RowPass, names: list[str]) -> dict[str, np.ndarray]:
+    """{name: [N] column} of the fields `names`, in that order, filled when `rows` runs.
+
+    A run of EXTRA_RUN or more fields of one type and one `name_stem` that lie side by side in the
+    record (a language field's lang_0 .. lang_511, or its codes) is copied as one [N, L] block, row by row (each
+    record's run is contiguous), and its columns are the block's column views; a field alone is its
+    own contiguous column. `lang.backends.stack_columns` takes such a block as it is, without a copy
+    (until 2026-12-06 the run was transposed to [L, N] and transposed back: two copies of the field).
     """
-    fields = vertex.dtype.fields or {}
+    fields = rows.rows.dtype.fields or {}
+    n = len(rows.rows)
     out: dict[str, np.ndarray] = {}
     i = 0
     while i < len(names):
         dtype, offset = fields[names[i]][:2]
         j = i + 1
-        while j < len(names) and fields[names[j]][0] == dtype and fields[names[j]][1] == offset + (j - i) * dtype.itemsize:
+        while (j < len(names) and fields[names[j]][0] == dtype and fields[names[j]][1] == offset + (j - i) * dtype.itemsize
+               and name_stem(names[j]) == name_stem(names[i])):
             j += 1
-        if j - i >= EXTRA_RUN and dtype.isnative and len(vertex):
-            run = np.lib.stride_tricks.as_strided(vertex[names[i]], shape=(len(vertex), j - i), strides=(vertex.strides[0], dtype.itemsize))
-            block = transpose_copy(run)
-            out.update({names[k]: block[k - i] for k in range(i, j)})
+        if j - i >= EXTRA_RUN:
+            block = np.empty((n, j - i), dtype.newbyteorder("="))
+            rows.add(lambda start, records, block=block, first=names[i], width=j - i: block.__setitem__(
+                slice(start, start + len(records)), field_run(records, first, width)))
+            out.update({names[k]: block[:, k - i] for k in range(i, j)})
         else:
-            out.update({names[k]: np.ascontiguousarray(vertex[names[k]]) for k in range(i, j)})
+            for k in range(i, j):
+                column = np.empty(n, dtype.newbyteorder("="))
+                rows.add(lambda start, records, column=column, name=names[k]: column.__setitem__(
+                    slice(start, start + len(records)), records[name]))
+                out[names[k]] = column
         i = j
     return out
 
 
-def _column_reader(vertex: np.ndarray):
-    """Gather named columns as one [N, C] float32 array; a float32-only record is viewed as a matrix."""
-    names = vertex.dtype.names
-    if all(vertex.dtype[n] == np.dtype("<f4") for n in names) and vertex.dtype.itemsize == 4 * len(names):
-        matrix = np.ascontiguousarray(vertex).view("<f4").reshape(len(vertex), len(names))
-        index = {n: i for i, n in enumerate(names)}
-        return lambda wanted: matrix[:, [index[w] for w in wanted]].astype(np.float32)
+def name_stem(name: str) -> str:
+    """A property's name without its trailing digits: lang_0 .. lang_511 share the stem 'lang_', which
+    lang_meta (a ushort just before them) does not, so a run of one field's columns is that field's alone."""
+    return name.rstrip("0123456789")
 
-    def gather(wanted: list[str]) -> np.ndarray:
-        # a double beyond float32 becomes inf, counted by `rows_beyond_float32`; a signalling NaN a NaN, dropped and counted
-        with np.errstate(over="ignore", invalid="ignore"):
-            return np.stack([vertex[w].astype(np.float32) for w in wanted], axis=1)
 
-    return gather
+def field_run(records: np.ndarray, first: str, width: int) -> np.ndarray:
+    """The `width` fields of one type from `first` on, side by side in each record, as a strided [B, width] view."""
+    column = records[first]
+    return np.lib.stride_tricks.as_strided(column, shape=(len(records), width), strides=(records.strides[0], column.dtype.itemsize))
+
+
+def gather_floats(block: np.ndarray, names: list[str]) -> np.ndarray:
+    """[B, C] float32 of the rows' properties `names`; a float32-only record is viewed as a matrix. A double
+    beyond float32 becomes inf (counted by `rows_beyond_float32`), a signalling NaN a NaN (dropped and counted)."""
+    dtype = block.dtype
+    if all(dtype[n] == np.dtype("<f4") for n in dtype.names) and dtype.itemsize == 4 * len(dtype.names):
+        matrix = np.ascontiguousarray(block).view("<f4").reshape(len(block), len(dtype.names))
+        index = {n: i for i, n in enumerate(dtype.names)}
+        return matrix[:, [index[w] for w in names]].astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.stack([block[w].astype(np.float32) for w in names], axis=1) if names else np.empty((len(block), 0), np.float32)
 
 
 def _unorm(values: np.ndarray, shift: int, bits: int) -> np.ndarray:

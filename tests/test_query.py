@@ -841,3 +841,35 @@ def test_a_phrase_given_as_query_and_as_negative_has_relevancy_one_half_exactly(
     assert main(["-q", "query", str(ply), "--embedding", str(tmp_path / "q.npy"), "--relevancy", "--negative-embeddings",
                  str(tmp_path / "neg.npy"), "--threshold", "0.5", "--scores", str(tmp_path / "s.npy")]) == 0
     assert (np.load(tmp_path / "s.npy") == np.float32(0.5)).all()
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_a_registered_scene_loads_without_holding_its_rows_or_a_second_field(tmp_path, world, fields, kind, monkeypatch):
+    """Round 61b: loading a registered PLY held the file's rows whole, the language columns copied out of them
+    ([L, N]) and the field's [N, L] transpose at once: 2.1x the file for an exact field (a 5M-Gaussian one was
+    killed at 10 GB). Now the rows are read a block at a time and the field is the block the columns were copied
+    into: the load's peak is the field and the geometry, not the file on top."""
+    import tracemalloc
+
+    import drsplat.scene as ds
+    from drsplat.commands.common import load_registered
+
+    x, w, _, _ = world
+    rows = 12_000  # 24 MB of exact float16 rows at D = 1024: far above the geometry and the blocks
+    big = np.tile(x, (rows // len(x), 2))
+    big /= np.linalg.norm(big, axis=1, keepdims=True).clip(1e-12)
+    field = build_field(big, np.tile(w, rows // len(x)), "none" if kind == "exact" else train_codebook(big[4:2000], m=16),
+                        clip_model="oracle-test")
+    ply = tmp_path / f"{kind}.ply"
+    save_ply(attach_field(tiny_scene(len(field)), field, ply), ply)
+    monkeypatch.setattr(ds, "READ_BLOCK_BYTES", 1 << 16)
+    tracemalloc.start()
+    try:
+        _, loaded = load_registered(ply)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    held = field.storage.bytes_per_gaussian() * len(field) if kind == "pq" else big.shape[0] * big.shape[1] * 2
+    geometry = len(field) * (14 + 4) * 4  # means, quats, scales, opacity, DC colour, weight (float32)
+    assert peak < held + geometry + 4 * (1 << 16) + (2 << 20)
+    np.testing.assert_array_equal(loaded.scores(big[100:103]), field.scores(big[100:103]))

@@ -66,7 +66,7 @@ def test_compressed_decodes_to_uncompressed_within_quantisation():
     path = shared_path("ply", "guitar.compressed.ply")
     ref, comp = load_ply(shared_path("ply", "guitar.ply")), load_ply(path)
     _, data = read_ply_elements(path)
-    chunk = data["chunk"]
+    chunk = data["chunk"].array()
     ci = np.arange(ref.num_gaussians) // 256
     for prefix, attr in (("", "means"), ("scale_", "log_scales")):
         rng = np.stack([chunk[f"max_{prefix}{a}"] - chunk[f"min_{prefix}{a}"] for a in "xyz"], axis=1)[ci]
@@ -449,9 +449,11 @@ def test_vertices_from_column_views_equal_those_from_separate_columns(case):
 
 @pytest.mark.parametrize("order", ["<", ">"])
 def test_extra_columns_copy_runs_of_fields_as_blocks(order):
-    """A PLY record's extra fields become [N] columns equal to numpy's field copies, whether they
-    lie in runs side by side (copied as one block: 10 uint16, 9 float32), alone, in a run broken by
-    another type, or in big-endian order (copied one by one)."""
+    """A PLY record's extra fields become [N] columns (native byte order) equal to numpy's field copies,
+    whether they lie in runs side by side (copied as one [N, L] block, whose column views they are: 10
+    uint16, 9 float32), alone, or in a run broken by another type or name; `stack_columns` takes a run's
+    block as it is, without a copy."""
+    from drsplat.lang.backends import stack_columns
     from drsplat.scene import extra_columns
 
     names = [f"lang_{j}" for j in range(10)] + ["w"] + [f"c_{j}" for j in range(9)] + ["a", "b", "u8"]
@@ -465,8 +467,15 @@ def test_extra_columns_copy_runs_of_fields_as_blocks(order):
         got = extra_columns(vertex[:n], names)
         assert list(got) == names
         for name in names:
-            assert got[name].flags.c_contiguous and got[name].dtype == dtype[name]
+            assert got[name].dtype == dtype[name].newbyteorder("=")
             np.testing.assert_array_equal(got[name], vertex[:n][name])
+        for name in ("w", "a", "b", "u8"):  # w, a float32 just before c_0 .. c_8, is not theirs (`name_stem`)
+            assert got[name].flags.c_contiguous
+        if n:
+            for run, kind in (([f"lang_{j}" for j in range(10)], np.uint16), ([f"c_{j}" for j in range(9)], np.float32)):
+                block = stack_columns([got[name] for name in run], kind, n, len(run))
+                assert block is got[run[0]].base
+                np.testing.assert_array_equal(block, np.stack([vertex[:n][name] for name in run], axis=1))
 
 
 def test_a_mip_splatting_ply_has_its_3d_filter_fused_as_its_renderer_applies_it(tmp_path, caplog):
@@ -720,3 +729,55 @@ def test_rgb_colours_are_read_as_base_colours_and_other_names_say_why_they_are_m
     _write_vertices(tmp_path / "upper.ply", {k.upper(): v for k, v in base.items()})
     with pytest.raises(InputError, match=r"upper.ply: field 'x': is missing .*'X' is there, but PLY property names are case-sensitive"):
         load_ply(tmp_path / "upper.ply")
+
+
+def _scene_with_extras(n: int, seed: int = 3) -> GaussianScene:
+    """A scene of n Gaussians, SH degree 3, with a run of 12 ushort extras, a lone float and a byte column."""
+    rng = np.random.default_rng(seed)
+    extra = {f"lang_{j}": rng.integers(0, 65535, n).astype(np.uint16) for j in range(12)}
+    extra.update({"lang_weight": rng.random(n).astype(np.float32), "tag": rng.integers(0, 255, n).astype(np.uint8)})
+    return GaussianScene(means=rng.standard_normal((n, 3)).astype(np.float32), quats=rng.standard_normal((n, 4)).astype(np.float32),
+                         log_scales=rng.normal(-3, 1, (n, 3)).astype(np.float32), opacity_logits=rng.standard_normal(n).astype(np.float32),
+                         sh=rng.standard_normal((n, 16, 3)).astype(np.float32), extra=extra)
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+def test_a_ply_read_a_few_rows_at_a_time_is_the_same_scene(tmp_path, monkeypatch, endian):
+    """The binary rows are read in blocks (`StoredRows`, READ_BLOCK_BYTES) instead of whole; blocks of 1, 7 and
+    1,000 rows (the last one short) give the same arrays as one block, little- and big-endian."""
+    import drsplat.scene as ds
+
+    scene = _scene_with_extras(1001)
+    vertices = scene_to_vertices(scene)
+    header = ds.ply_header(vertices.dtype, [], len(vertices))
+    if endian == ">":
+        header = header.replace(b"binary_little_endian", b"binary_big_endian")
+        vertices = vertices.astype(vertices.dtype.newbyteorder(">"))
+    path = tmp_path / "s.ply"
+    path.write_bytes(header + vertices.tobytes())
+    whole = load_ply(path)
+    for rows in (1, 7, 1000):
+        monkeypatch.setattr(ds, "READ_BLOCK_BYTES", rows * vertices.dtype.itemsize)
+        got = load_ply(path)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(whole, name))
+            np.testing.assert_array_equal(getattr(got, name), getattr(scene, name))
+        assert list(got.extra) == list(scene.extra)
+        for name, column in scene.extra.items():
+            np.testing.assert_array_equal(got.extra[name], column)
+
+
+def test_a_ply_cut_short_while_it_is_read_is_one_error_naming_the_rows(tmp_path, monkeypatch):
+    """A file another program truncates after its size was checked: the block that is no longer all there is
+    named, not read as garbage or zeros."""
+    import drsplat.scene as ds
+
+    path = tmp_path / "s.ply"
+    save_ply(_scene_with_extras(300), path)
+    _, data = ds.read_ply_elements(path)
+    rows = data["vertex"]
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size - 5 * rows.dtype.itemsize)
+    monkeypatch.setattr(ds, "READ_BLOCK_BYTES", 100 * rows.dtype.itemsize)
+    with pytest.raises(InputError, match=r"s\.ply.*changed while it was read: rows 200 to 300 of 300"):
+        rows.array()

@@ -498,34 +498,36 @@ def needs_codebook(kind: str) -> bool:
 
 
 def stack_columns(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
-    """Per-property columns [N] -> one [N, width] array of `dtype`, transposed in one pass
-    (`transpose_copy`) from the rows of one [width, N] array: the block the PLY loader made when
-    the columns lie side by side in the file (`scene.extra_columns`), else the columns stacked.
-    Writing each column into the [N, width] array straight took 1.35 s for the 512 float16 columns
-    of flowers' exact field. `stack_columns_reference` is that column-by-column form."""
+    """Per-property columns [N] -> one [N, width] array of `dtype`. Columns that are consecutive
+    column views of one [N, L] array (what the PLY loader makes of properties side by side in the
+    file, `scene.extra_columns_of`, and what a storage's `columns` gives) are that array's slice,
+    not copied when it is all of it and of `dtype`; other columns are stacked and transposed in one
+    pass (`transpose_copy`: writing each column into the [N, width] array straight took 1.35 s for
+    the 512 float16 columns of flowers' exact field). `stack_columns_reference` is the
+    column-by-column form."""
     if n == 0 or width == 0:
         return np.empty((n, width), dtype)
-    rows = _rows_of_one_block(cols, n)
-    if rows is None:
-        rows = np.stack([np.asarray(col) for col in cols])
-    return transpose_copy(rows.astype(dtype, copy=False))
+    block = _columns_of_one_block(cols, n)
+    if block is not None:
+        return np.ascontiguousarray(block.astype(dtype, copy=False))
+    return transpose_copy(np.stack([np.asarray(col) for col in cols]).astype(dtype, copy=False))
 
 
-def _rows_of_one_block(cols: list[np.ndarray], n: int) -> np.ndarray | None:
-    """The [len(cols), N] slice of one C-contiguous 2-D array whose consecutive rows the columns
-    [N] are (in order), or None."""
+def _columns_of_one_block(cols: list[np.ndarray], n: int) -> np.ndarray | None:
+    """The [N, len(cols)] slice of one C-contiguous [N, L] array whose consecutive columns the
+    columns [N] are (in order), or None."""
     base = cols[0].base
-    if not (isinstance(base, np.ndarray) and base.ndim == 2 and base.flags.c_contiguous and base.shape[1] == n):
+    if not (isinstance(base, np.ndarray) and base.ndim == 2 and base.flags.c_contiguous and base.shape[0] == n):
         return None
-    origin, step = base.__array_interface__["data"][0], base.strides[0]
+    origin, step = base.__array_interface__["data"][0], base.strides[1]
     first, rest = divmod(cols[0].__array_interface__["data"][0] - origin, step)
-    if rest or first < 0 or first + len(cols) > base.shape[0]:
+    if rest or first < 0 or first + len(cols) > base.shape[1]:
         return None
-    for j, col in enumerate(cols):  # each a whole row of base, of its dtype, in order (not a column that starts where a row does)
-        if (col.base is not base or col.shape != (n,) or col.dtype != base.dtype or col.strides != base.strides[1:]
+    for j, col in enumerate(cols):  # each a whole column of base, of its dtype, in order
+        if (col.base is not base or col.shape != (n,) or col.dtype != base.dtype or col.strides != base.strides[:1]
                 or col.__array_interface__["data"][0] != origin + (first + j) * step):
             return None
-    return base[first:first + len(cols)]
+    return base if first == 0 and len(cols) == base.shape[1] else base[:, first:first + len(cols)]
 
 
 def stack_columns_reference(cols: list[np.ndarray], dtype: type, n: int, width: int) -> np.ndarray:
