@@ -434,3 +434,22 @@ def test_a_pair_whose_other_file_is_write_protected_is_left_whole(tmp_path):
         (tmp_path / "img_s.npy").chmod(0o644)
     assert {p.name: p.read_bytes() for p in tmp_path.glob("img_*.npy")} == before
 
+
+
+def test_levels_restarting_at_0_whose_counts_miss_an_embedding_are_refused_not_shifted(tmp_path):
+    """Round 63a: in a file whose level ids restart at 0, level 0's last mask (id 9 of 10) covered no pixel, so
+    level 0 was read as 9 masks and level 1's ids 0..4 as rows 9..13 instead of 10..14: every level-1 pixel got
+    the embedding of the mask before its own, silently. Now one error naming the counts; when they add up to the
+    embeddings, the levels are read as before."""
+    seg = np.full((2, 6, 10), -1, np.int32)
+    seg[0] = np.arange(60).reshape(6, 10) % 9  # masks 0..8 of level 0's 10
+    seg[1] = np.arange(60).reshape(6, 10) % 5
+    np.save(seg_path(tmp_path, "x"), seg)
+    np.save(feat_path(tmp_path, "x"), np.eye(16, dtype=np.float32)[:15])
+    with pytest.raises(InputError, match=r"x_s\.npy: its 2 levels' mask ids each start at 0.*\(9 \+ 5 = 14\); but x_f\.npy holds 15 "
+                                         r"embeddings.*which rows are level 1's cannot be told"):
+        read_features(tmp_path, "x", level=1)
+    np.testing.assert_array_equal(read_features(tmp_path, "x", level=0)[0], seg[0])  # level 0 needs no offset
+    np.save(feat_path(tmp_path, "x"), np.eye(16, dtype=np.float32)[:14])
+    ids, feats = read_features(tmp_path, "x", level=1)
+    np.testing.assert_array_equal(ids, seg[1] + 9)

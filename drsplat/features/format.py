@@ -186,21 +186,36 @@ def check_float_id_range(ids: np.ndarray, path: Path) -> None:
         raise InputError(path, f"{beyond} mask ids are beyond any embedding row (largest {float(top):g})")
 
 
-def level_offsets(seg: np.ndarray) -> list[int]:
-    """[L] offsets to add to each level's non-negative ids to make them global.
+def restarted_level_counts(seg: np.ndarray) -> list[int] | None:
+    """Each level's embedding count read from its ids when the levels' ids restart at 0, or None
+    when they are already cumulative (LangSplat's form: the id ranges of the levels do not overlap).
 
-    seg: [L, H, W] int64. Zeros when the levels are already cumulative (LangSplat's form: the id
-    ranges of the levels do not overlap); otherwise Σ (max id + 1) of the previous levels. Python
+    seg: [L, H, W] int64. A level's count is read as its largest id + 1 (0 for a level with no
+    mask), which is short by the masks after its last visible one (a mask painted over by later
+    ones covers no pixel): `read_features_report` checks the counts against the embeddings
+    (`restarted_counts_problem`) before offsetting a level by the counts before it. Python
     ints: a hostile id near 2^63 made the int64 sums wrap, and the wrapped ids then named valid rows.
     """
     lo = [int(lvl[lvl >= 0].min()) if (lvl >= 0).any() else -1 for lvl in seg]
     hi = [int(lvl.max()) for lvl in seg]
     present = [low >= 0 for low in lo]
     overlapping = any(present[j] and any(present[i] and lo[j] <= hi[i] for i in range(j)) for j in range(1, len(seg)))
-    if not overlapping:
-        return [0] * len(seg)
-    counts = [top + 1 if here else 0 for top, here in zip(hi, present)]
-    return [sum(counts[:j]) for j in range(len(seg))]
+    return [top + 1 if here else 0 for top, here in zip(hi, present)] if overlapping else None
+
+
+def restarted_counts_problem(counts: list[int], level: int, num_embeddings: int, feat_name: str) -> str | None:
+    """Why level `level`'s rows cannot be told in a file whose levels' ids restart at 0 (`counts`, its
+    levels' counts read from the ids), or None: the counts must add up to the file's embeddings,
+    else a level before it may have lost its last masks from the ids, and its rows would be shifted
+    (round 63a: a painted-over last mask of level 0 gave every level-1 pixel the embedding of the mask
+    before its own, silently)."""
+    if not level or sum(counts) == num_embeddings:
+        return None
+    return (f"its {len(counts)} levels' mask ids each start at 0, so level {level}'s embeddings are taken to follow those of the "
+            f"levels before it, each level's count read as its largest id + 1 ({' + '.join(map(str, counts))} = {sum(counts)}); but "
+            f"{feat_name} holds {num_embeddings} embeddings, so a level's last masks cover no pixel (painted over) or rows are missing, "
+            f"and which rows are level {level}'s cannot be told. Store the ids cumulative across levels (LangSplat's form: each "
+            "level's ids continue after the previous level's)")
 
 
 def out_of_range_ids(top: int, offset: int, level: int, num_embeddings: int, feat_name: str, dtype: np.dtype) -> str:
@@ -244,11 +259,15 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     if seg.size and seg.min() < -1:
         raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")
     ids = seg[level]
-    offset = level_offsets(seg)[level]
+    counts = restarted_level_counts(seg)
+    offset = 0 if counts is None else sum(counts[:level])
     m = feats.shape[0]
     stored_top = int(ids.max())
     if stored_top >= 0 and stored_top + offset >= m:  # compared in Python ints, before any int64 sum could wrap
         raise InputError(spath, out_of_range_ids(stored_top + offset, offset, level, m, fpath.name, raw_dtype))
+    problem = None if counts is None else restarted_counts_problem(counts, level, m, fpath.name)
+    if problem is not None:
+        raise InputError(spath, problem)
     if offset:
         ids = np.where(ids >= 0, ids + offset, -1)
     with np.errstate(over="ignore", invalid="ignore"):  # float64 values past float32 become inf: counted below, without numpy's warning
