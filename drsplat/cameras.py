@@ -121,8 +121,10 @@ class Camera:
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by `factor` (intrinsics and size together)."""
-        width = max(1, int(round(self.width * factor)))
-        height = max(1, int(round(self.height * factor)))
+        return self.resized(max(1, int(round(self.width * factor))), max(1, int(round(self.height * factor))))
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera for its image resized to width x height: fx, cx by width / W, fy, cy by height / H."""
         sx, sy = width / self.width, height / self.height
         return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height,
                                    unscaled_size=self.unscaled_size or (self.width, self.height))
@@ -1422,19 +1424,20 @@ def dataset_inputs(source: str | Path, cameras: list[Camera]) -> dict[str, Path]
 RESOLUTION_DIVISORS = (1, 2, 4, 8)  # 3DGS's -r values that divide the image size (any other positive value is a width)
 
 
-def resolution_scale(width: int, resolution: float) -> float:
-    """Image scale factor from a 3DGS-style `-r` value.
-
-    -1: full size, capped at 1600 px wide (3DGS's rule); RESOLUTION_DIVISORS: divide by it;
-    any other positive value: the target width in pixels.
-    """
-    if resolution == -1:
-        return min(1.0, 1600.0 / width)
+def resolution_size(width: int, height: int, resolution: float) -> tuple[int, int]:
+    """The image size (W', H') a 3DGS-style `-r` gives a width x height image, as 3DGS's `loadCam`
+    computes it, float for float: for RESOLUTION_DIVISORS r, (round(W / r), round(H / r)); for -1
+    and a target width, d = W / 1600 (-1 and W > 1600; else 1) or W / r, and (int(W / d), int(H / d)),
+    truncated (round 63a: rounding gave 6000x4000 at -1 1600x1067 against 3DGS's 1600x1066, so the
+    camera was not the one the scene was trained with). At least 1 x 1."""
+    if not (resolution == -1 or resolution > 0):
+        raise ValueError(f"resolution must be -1, 1, 2, 4, 8 or a target width, got {resolution}")
     if resolution in RESOLUTION_DIVISORS:
-        return 1.0 / resolution
-    if resolution > 0:
-        return float(resolution) / width
-    raise ValueError(f"resolution must be -1, 1, 2, 4, 8 or a target width, got {resolution}")
+        size = (round(width / resolution), round(height / resolution))
+    else:
+        down = (width / 1600 if width > 1600 else 1.0) if resolution == -1 else width / float(resolution)
+        size = (int(width / down), int(height / down))
+    return max(1, size[0]), max(1, size[1])
 
 
 def image_folder(kind: str, found: Path) -> Path:
@@ -1603,7 +1606,7 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     """Training cameras of a dataset (any of `DATASET_READERS`), OpenCV convention.
 
     Frames whose image is missing are skipped with one warning that counts them. With
-    `resolution` images and intrinsics are scaled together (see `resolution_scale`).
+    `resolution` images and intrinsics are scaled together (see `resolution_size`).
     """
     kind, path = detect_dataset(source)
     cameras, missing = dataset_reader(kind).read(path, require_images)
@@ -1888,15 +1891,15 @@ def _check_unique_names(path: Path, kind: str, cameras: list[Camera]) -> None:
 
 
 def scale_cameras(cameras: list[Camera], resolution: float) -> list[Camera]:
-    """The cameras at a 3DGS-style `-r` (`resolution_scale`; unscaled ones returned as they are).
+    """The cameras at a 3DGS-style `-r` (`resolution_size`; unscaled ones returned as they are).
     A target width above a view's own is followed, as 3DGS does, with one warning: the image and its
     masks hold no more detail than their own size, so the larger views only cost time and memory."""
     out, upscaled = [], []
     for c in cameras:
-        scale = resolution_scale(c.width, resolution)
-        out.append(c.scaled(scale) if scale != 1.0 else c)
-        if scale > 1.0:
-            upscaled.append((c, out[-1], scale))
+        size = resolution_size(c.width, c.height, resolution)
+        out.append(c.resized(*size) if size != (c.width, c.height) else c)
+        if size[0] > c.width:
+            upscaled.append((c, out[-1], size[0] / c.width))
     # cameras of downscaled images read at the files' size gain detail; the others' is invented. Each view's own image
     # is asked (round 54: only the most-scaled one was, so 15 of 16 upscaled views passed unsaid)
     invented = [u for u in upscaled if not image_holds(u[0], u[1].width, u[1].height)]

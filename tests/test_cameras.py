@@ -1735,3 +1735,19 @@ def test_dot_inside_a_linked_model_folder_reads_the_images_of_the_dataset_the_sh
     monkeypatch.setenv("PWD", str(tmp_path))  # not this folder: the resolved working folder is all there is
     with pytest.raises(InputError, match="every image file is missing"):
         load_cameras(".")
+
+
+@pytest.mark.parametrize("size, resolution, want", [((6000, 4000), -1, (1600, 1066)), ((5025, 3312), -1, (1600, 1054)),
+                                                    ((5187, 3361), -1, (1600, 1036)), ((5025, 3312), 1000, (999, 659)),
+                                                    ((1080, 1920), 4, (270, 480)), ((1001, 667), 2, (500, 334)),
+                                                    ((1080, 1920), -1, (1080, 1920))])
+def test_resolution_gives_the_size_3dgs_trains_at(size, resolution, want):
+    """Round 63a: `--resolution` rounded where 3DGS's loadCam truncates (int(W / d) for -1 and target widths), so
+    a 6000x4000 capture at -1 was registered at 1600x1067 against the 1600x1066 its scene was trained at. The
+    sizes here are loadCam's (Python floats: 5025 / (5025 / 1000) truncates to 999)."""
+    from drsplat.cameras import scale_cameras
+
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=3000.0, fy=3000.0, cx=size[0] / 2, cy=size[1] / 2, width=size[0], height=size[1], name="c")
+    got = scale_cameras([cam], resolution)[0]
+    assert (got.width, got.height) == want
+    assert got.fx == pytest.approx(3000.0 * want[0] / size[0]) and got.cy == pytest.approx(size[1] / 2 * want[1] / size[1])
