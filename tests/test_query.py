@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -873,3 +875,57 @@ def test_a_registered_scene_loads_without_holding_its_rows_or_a_second_field(tmp
     geometry = len(field) * (14 + 4) * 4  # means, quats, scales, opacity, DC colour, weight (float32)
     assert peak < held + geometry + 4 * (1 << 16) + (2 << 20)
     np.testing.assert_array_equal(loaded.scores(big[100:103]), field.scores(big[100:103]))
+
+
+def _sh3_registered(tmp_path, world, fields, kind: str, rows: int = 40_000):
+    """A registered PLY of `rows` Gaussians of SH degree 3 (192 B of colour each) carrying the `kind` field's rows, tiled."""
+    field = fields[kind].subset(np.arange(rows) % len(fields[kind]))
+    scene = tiny_scene(rows)
+    scene = dataclasses.replace(scene, sh=np.random.default_rng(2).normal(size=(rows, 16, 3)).astype(np.float32))
+    ply = tmp_path / f"{kind}_sh3.ply"
+    save_ply(attach_field(scene, field, ply), ply)
+    return ply, field
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_a_query_that_writes_no_scene_never_holds_the_gaussians(tmp_path, world, fields, kind, monkeypatch):
+    """A query or segmentation writing no scene read every Gaussian's geometry with the field (a 3M-Gaussian SH degree 3
+    PQ scene: 3.0 GB peak against 1.1 GB; 236 B a Gaussian beside PQ's 138). Now the rows are checked block by
+    block and their geometry let go: the load's peak is the field's, the scores the same."""
+    import tracemalloc
+
+    import drsplat.scene as ds
+    from drsplat.commands.common import load_registered
+
+    ply, field = _sh3_registered(tmp_path, world, fields, kind)
+    monkeypatch.setattr(ds, "READ_BLOCK_BYTES", 1 << 16)
+    tracemalloc.start()
+    try:
+        scene, loaded = load_registered(ply, geometry=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert scene is None
+    geometry = len(field) * (3 + 4 + 3 + 1 + 48) * 4  # 9.4 MB, against the field's 1.1 MB (PQ) or 5.4 MB (exact)
+    assert peak < field.num_gaussians * (field.storage.bytes_per_gaussian() + 8) + 6 * (1 << 16) + (2 << 20) < geometry
+    q = world[0][100:102]
+    np.testing.assert_array_equal(loaded.scores(q), field.scores(q))
+    np.testing.assert_array_equal(loaded.scores(q), load_registered(ply)[1].scores(q))
+
+
+def test_a_query_that_writes_no_scene_refuses_rows_the_load_would_drop(tmp_path, world, fields):
+    """Without the geometry held, a row with a NaN position or an infinite scale is still found, and the query is
+    refused as with the whole load: its scores could not follow the file order."""
+    from drsplat.commands.common import load_registered
+    from drsplat.errors import InputError
+
+    field = fields["pq"]
+    scene = tiny_scene(len(field))
+    scene.means[7, 1] = np.nan
+    scene.log_scales[9, 2] = np.inf
+    scene.opacity_logits[11] = np.inf  # clamped, not dropped
+    ply = tmp_path / "bad.ply"
+    save_ply(attach_field(scene, field, ply), ply)
+    for geometry in (True, False):
+        with pytest.raises(InputError, match=r"bad\.ply: 2 rows have non-finite values and would be dropped"):
+            load_registered(ply, geometry=geometry)

@@ -116,7 +116,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     check_outputs_writable(*outputs.values())  # before the work and the count line (round 57c: a read-only folder failed after both)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
-    scene, field = load_registered(args.registered)
+    scene, field = load_registered(args.registered, geometry=args.out is not None)  # the Gaussians only for a selection written
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--scores", args.scores)
     assigned = field.assigned()

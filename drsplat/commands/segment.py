@@ -174,7 +174,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     # before the work, as query does: a write-protected --ply refused after LABELS.npy was written took the earlier labels
     # file with it (outputs_together), and nothing was left (round 60a)
     check_outputs_writable(*outputs.values())
-    scene, field = load_registered(args.registered)
+    scene, field = load_registered(args.registered, geometry=args.ply is not None)  # the Gaussians only for --ply
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--out", args.out)
     assigned = field.assigned()

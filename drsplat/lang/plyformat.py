@@ -42,7 +42,7 @@ from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
-from drsplat.scene import NUMPY_TO_PLY, GaussianScene, check_integer_column, save_ply
+from drsplat.scene import NUMPY_TO_PLY, GaussianScene, PlyExtras, check_integer_column, save_ply
 from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, outputs_together, refuse_write_protected
 
@@ -304,7 +304,7 @@ def repeated_key(tokens: list[str]) -> tuple[str, str, str] | None:
     return None
 
 
-def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str] | None:
+def field_metadata(scene: GaussianScene | PlyExtras, ply_path: str | Path) -> dict[str, str] | None:
     """The field's key=value metadata: the header comment, else the `lang_meta` column (a file
     whose comments a tool dropped); None for a scene without a language field."""
     found = {tuple(sorted(_parse_pairs(c.split()[1:]).items())) for c in scene.comments if c.split()[:1] == [COMMENT_PREFIX]}
@@ -331,7 +331,7 @@ def field_metadata(scene: GaussianScene, ply_path: str | Path) -> dict[str, str]
     return _parse_pairs(text.split())
 
 
-def read_field(scene: GaussianScene, ply_path: str | Path) -> LanguageField | None:
+def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path) -> LanguageField | None:
     """The language field of a scene loaded from `ply_path` (None if it has neither a drsplat.lang
     comment nor a `lang_meta` column).
 
@@ -448,7 +448,7 @@ def _check_codebook_crc(path: Path, recorded: str | None, ply_path: Path, where:
                                f"same name stem, or a new `pq train`); register {ply_path.name} again, or restore its codebook")
 
 
-def _numbered_columns(scene: GaussianScene, prefix: str) -> list[int]:
+def _numbered_columns(scene: GaussianScene | PlyExtras, prefix: str) -> list[int]:
     """The numbers j of a scene's properties named `<prefix><j>` (lang_<j> features, lang_code_<j> codes)."""
     return [int(name[len(prefix):]) for name in scene.extra if name.startswith(prefix) and _is_ascii_number(name[len(prefix):])]
 
@@ -484,7 +484,7 @@ def codebook_named_by(ply_path: Path, name: str) -> Path:
     return target
 
 
-def _extra(scene: GaussianScene, ply_path: Path, name: str) -> np.ndarray:
+def _extra(scene: GaussianScene | PlyExtras, ply_path: Path, name: str) -> np.ndarray:
     """A language-field property, its declared type checked (`check_stored_type`); the float ones
     (lang_weight, lang_norm) as float32 (`float32_column`)."""
     if name not in scene.extra:
