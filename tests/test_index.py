@@ -1009,3 +1009,77 @@ def test_an_export_stopped_over_an_earlier_one_of_another_codebook_leaves_it_rea
     monkeypatch.undo()
     assert {p.name: p.read_bytes() for p in (ply, codebook_path_for(ply))} == kept
     assert len(read_field(load_ply(ply), ply).scores(data[3])) == len(x)
+
+
+@pytest.mark.parametrize("n", [1, 63, 64, 1000])
+def test_unblocked_codes_undo_the_blocked_layout(n):
+    """`unblocked_codes` (all rows, or some) is the inverse of `blocked_codes`, padding rows past N included."""
+    from drsplat.lang.lut import unblocked_codes
+
+    codes = np.random.default_rng(n).integers(0, 256, (n, 24)).astype(np.uint8)
+    blocked = blocked_codes(codes)
+    np.testing.assert_array_equal(unblocked_codes(blocked, n), codes)
+    np.testing.assert_array_equal(blocked_codes(unblocked_codes(blocked, n)), blocked)
+    rows = np.random.default_rng(1).integers(0, n, 50)
+    np.testing.assert_array_equal(unblocked_codes(blocked, n, rows), codes[rows])
+
+
+@pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 1000])
+@pytest.mark.parametrize("m", [1, 8, 128])
+def test_codes_blocked_in_their_own_memory_are_blocked_codes(n, m):
+    """`blocked_codes_in_place` (a realloc, each block transposed where it lies) against `blocked_codes` (a new array)."""
+    from drsplat.lang.lut import blocked_codes_in_place
+
+    codes = np.random.default_rng(n + m).integers(0, 256, (n, m), np.uint8)
+    want = blocked_codes(codes)
+    got = blocked_codes_in_place(codes)
+    assert got.shape == want.shape and got.dtype == np.uint8
+    np.testing.assert_array_equal(got, want)
+
+
+def test_codes_scored_blocked_are_held_in_one_layout(monkeypatch):
+    """Where the blocked kernels make every score (AVX-512, M ≥ 128), a field held its [N, M] codes and their blocked
+    copy: M more bytes a Gaussian while queried (2.5 GB of a 20M query). Now the blocked layout replaces the codes in
+    their own memory, and every way of reading them (all, some rows by ids, a slice or a mask, a subset, reconstructions, the PLY
+    columns) gives what the codes gave."""
+    import tracemalloc
+
+    from drsplat.lang.backends import PQStorage
+
+    x, _, _ = clip_like(600, 32, seed=3)
+    field = build_field(x, np.ones(len(x), np.float32), train_codebook(x, m=8), clip_model="oracle-test")
+    storage = field.storage
+    want = storage.codes.copy()
+    ids = np.array([5, 0, 599, 64, 5])
+    mask = np.arange(len(x)) % 3 == 0
+    before = {"rows": storage.code_rows(ids), "slice": storage.code_rows(slice(10, 200, 7)), "mask": storage.code_rows(mask),
+              "take": storage.take(ids).codes, "recon": storage.reconstruct(ids), "columns": storage.columns()}
+    monkeypatch.setattr(PQStorage, "blocked_scoring", lambda self, lut_bits=32: True)
+    tracemalloc.start()  # before the codes are made: a block freed that was allocated untraced would not count
+    try:
+        big = PQStorage(np.random.default_rng(0).integers(0, 256, (200_000, 8), np.uint8), None, np.ones(200_000, np.float32),
+                        storage.codebook)
+        held = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        big.blocked_codes()
+        grown = tracemalloc.get_traced_memory()[1] - held
+    finally:
+        tracemalloc.stop()
+    assert grown < 200_000 * 8 // 10  # never both layouts, even for a moment (both: +1.6 MB)
+    storage.blocked_codes()
+    np.testing.assert_array_equal(storage.codes, want)
+    np.testing.assert_array_equal(storage.code_rows(ids), before["rows"])
+    np.testing.assert_array_equal(storage.code_rows(slice(10, 200, 7)), before["slice"])
+    np.testing.assert_array_equal(storage.code_rows(mask), before["mask"])
+    np.testing.assert_array_equal(storage.take(ids).codes, before["take"])
+    np.testing.assert_array_equal(storage.reconstruct(ids), before["recon"])
+    after = storage.columns()
+    assert list(after) == list(before["columns"])
+    for name, column in after.items():
+        np.testing.assert_array_equal(column, before["columns"][name])
+    assert not storage.norm_mismatches().any()
+    shared = PQStorage(want.copy(), None, storage.norms, storage.codebook)
+    view = shared.codes[:7]  # a view held elsewhere (a scene's columns): the codes are copied, never moved under it
+    shared.blocked_codes()
+    np.testing.assert_array_equal(view, want[:7])
+    np.testing.assert_array_equal(shared.codes, want)

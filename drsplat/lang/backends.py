@@ -24,8 +24,11 @@ drsplat.lang.field dispatch through it).
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
+import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -38,6 +41,7 @@ from drsplat.lang.codebook import Codebook, unit_check, unit_rows
 from drsplat.lang.lut import (
     BLOCKED_MIN_M,
     blocked_codes,
+    blocked_codes_in_place,
     code_table_sums,
     half_scores,
     has_feature,
@@ -45,6 +49,7 @@ from drsplat.lang.lut import (
     lut_scores_blocked,
     lut_scores_reference,
     simd_available,
+    unblocked_codes,
 )
 
 EXACT_CHUNK = 32768
@@ -353,16 +358,52 @@ def _tells_directions_apart(codebook: Codebook, probes: int = 16) -> bool:
     return _other_code(codes, list_ids, codes[0], None if list_ids is None else list_ids[0])
 
 
-@dataclass
 class PQStorage:
     """codes: [N, M] uint8; list_ids: [N] int32 coarse lists (ivfpq) or None; norms: [N] float32 of the
-    reconstructions (0 = unassigned); codebook: the faiss quantiser the codes belong to."""
+    reconstructions (0 = unassigned); codebook: the faiss quantiser the codes belong to.
 
-    codes: np.ndarray
-    list_ids: np.ndarray | None
-    norms: np.ndarray
-    codebook: Codebook
-    _blocked: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    Where every score is made by the blocked kernels (`blocked_scoring`: an AVX-512 CPU, M ≥ 128), the
+    first score lays the codes out blocked and keeps them in that layout only: `codes` is then
+    rebuilt on each read (a copy; `code_rows` for a few rows). Until 2026-12-06 both layouts were
+    held, M more bytes a Gaussian while a field was queried (2.5 GB of a 20M-Gaussian query)."""
+
+    def __init__(self, codes: np.ndarray, list_ids: np.ndarray | None, norms: np.ndarray, codebook: Codebook):
+        self._codes: np.ndarray | None = codes
+        self._blocked: np.ndarray | None = None
+        self._lock = threading.Lock()  # the layout changes once, under it (`blocked_codes`)
+        self._n = int(codes.shape[0])
+        self.list_ids = list_ids
+        self.norms = norms
+        self.codebook = codebook
+
+    def __repr__(self) -> str:
+        return f"PQStorage({self.codebook.kind}, {self._n:,} x {self.codebook.m} codes{', blocked' if self._codes is None else ''})"
+
+    @property
+    def codes(self) -> np.ndarray:
+        """[N, M] uint8: the codes as given, or rebuilt from the blocked layout (a new array) once they are held blocked only."""
+        with self._lock:
+            return self._codes if self._codes is not None else unblocked_codes(self._blocked, self._n)
+
+    def with_norms(self, norms: np.ndarray) -> "PQStorage":
+        """The same codes (in the layout they are held in) with other norms [N]."""
+        out = copy.copy(self)
+        out.norms = norms
+        return out
+
+    def code_rows(self, index: np.ndarray | slice) -> np.ndarray:
+        """codes[index] without rebuilding all N rows from the blocked layout."""
+        with self._lock:
+            if self._codes is not None:
+                return self._codes[index]
+        rows = np.arange(self._n)[index] if isinstance(index, slice) else np.asarray(index)
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
+        return unblocked_codes(self._blocked, self._n, rows.reshape(-1)).reshape(*rows.shape, self.codebook.m)
+
+    def blocked_scoring(self, lut_bits: int = 32) -> bool:
+        """Whether scores with `lut_bits` tables are made by the blocked kernels."""
+        return lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available())
 
     @property
     def kind(self) -> str:
@@ -422,46 +463,64 @@ class PQStorage:
         centroids of that sub-quantiser have norms within `rtol` (rare: measured in the tests).
         Unassigned rows (norm 0) are not checked; a negative norm, which no encoder writes, counts as altered.
         """
-        n = self.codes.shape[0]
-        recomputed = np.zeros(n, np.float64)
+        codes = self.codes
         if self.list_ids is None:
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
-            recomputed = np.sqrt(code_table_sums(self.codes, table))
+            recomputed = np.sqrt(code_table_sums(codes, table))
         else:
-            recomputed = reconstruction_norms(self.codebook, self.codes, self.list_ids, np.float64)
+            recomputed = reconstruction_norms(self.codebook, codes, self.list_ids, np.float64)
         stored = self.norms.astype(np.float64)
         with np.errstate(invalid="ignore"):
             return (stored != 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))
 
     def scores(self, q: np.ndarray, lut_bits: int = 32) -> np.ndarray:
-        """On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) the codes are scored in a blocked copy,
-        built by the first call and kept (M more bytes per Gaussian)."""
-        if lut_bits == 8 or (self.codebook.m >= BLOCKED_MIN_M and simd_available()):
-            return lut_scores_blocked(self.codebook, self.blocked_codes(), self.codes.shape[0], self.list_ids, self.norms, q, lut_bits)
+        """On AVX-512 CPUs with M ≥ 128 (and always for lut_bits=8) the codes are scored in their blocked
+        layout (`blocked_codes`)."""
+        if self.blocked_scoring(lut_bits):
+            return lut_scores_blocked(self.codebook, self.blocked_codes(), self._n, self.list_ids, self.norms, q, lut_bits)
         return lut_scores(self.codebook, self.codes, self.list_ids, self.norms, q)
 
     def blocked_codes(self) -> np.ndarray:
-        """The codes in the layout of the blocked kernels, built on first use: [ceil(N/64), M, 64] uint8."""
-        if self._blocked is None:
-            self._blocked = blocked_codes(self.codes)
-        return self._blocked
+        """The codes in the layout of the blocked kernels, [ceil(N/64), M, 64] uint8, built on first use.
+        Where the blocked kernels make every score (`blocked_scoring`), the [N, M] codes are let go then."""
+        with self._lock:
+            if self._blocked is not None:
+                return self._blocked
+            if not self.blocked_scoring():
+                self._blocked = blocked_codes(self._codes)
+            elif self._sole_owner():  # laid out where they lie: never both layouts at once
+                codes, self._codes = self._codes, None
+                self._blocked = blocked_codes_in_place(codes)
+            else:  # a view of the codes is held elsewhere (a scene's columns): copied, then let go
+                self._blocked = blocked_codes(self._codes)
+                self._codes = None
+            return self._blocked
+
+    def _sole_owner(self) -> bool:
+        """Whether this storage alone refers to its codes' memory (the array owns it and no view or other
+        name refers to the array: CPython's reference count, numpy's own `resize` check), so it can be reused."""
+        codes = self._codes
+        owner = codes.flags.owndata and codes.flags.c_contiguous and codes.dtype == np.uint8
+        del codes
+        return bool(owner) and sys.getrefcount(self._codes) == 2  # the attribute and getrefcount's argument
 
     def scores_reference(self, q: np.ndarray) -> np.ndarray:
         scores = lut_scores_reference(self.codebook, self.codes, self.list_ids, self.norms, q)
         return np.where(has_feature(self.norms)[:, None], scores, 0.0).astype(np.float32)
 
     def reconstruct(self, index: np.ndarray | slice) -> np.ndarray:
-        return self.codebook.decode(self.codes[index], None if self.list_ids is None else self.list_ids[index])
+        return self.codebook.decode(self.code_rows(index), None if self.list_ids is None else self.list_ids[index])
 
     def take(self, index: np.ndarray | slice) -> "PQStorage":
-        return PQStorage(self.codes[index], None if self.list_ids is None else self.list_ids[index], self.norms[index], self.codebook)
+        return PQStorage(self.code_rows(index), None if self.list_ids is None else self.list_ids[index], self.norms[index], self.codebook)
 
     def bytes_per_gaussian(self) -> int:
         return self.codebook.m + 4 + (4 if self.list_ids is not None else 0)
 
     def columns(self) -> dict[str, np.ndarray]:
         """`lang_code_0 .. lang_code_{M-1}` uchar, `lang_norm` float, and `lang_list` int for ivfpq."""
-        cols = {f"lang_code_{j}": np.ascontiguousarray(self.codes[:, j], np.uint8) for j in range(self.codes.shape[1])}
+        codes = self.codes
+        cols = {f"lang_code_{j}": np.ascontiguousarray(codes[:, j], np.uint8) for j in range(codes.shape[1])}
         cols["lang_norm"] = np.ascontiguousarray(self.norms, np.float32)
         if self.list_ids is not None:
             cols["lang_list"] = np.ascontiguousarray(self.list_ids, np.int32)

@@ -266,6 +266,40 @@ def blocked_codes(codes: np.ndarray) -> np.ndarray:
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _transpose_blocks_in_place(flat, m, nb):  # pragma: no cover - jitted
+    """Each block b of 64 rows x m codes, flat[b·64·m : (b+1)·64·m], rewritten as its m x 64 transpose."""
+    size = Q8_BLOCK * m
+    for b in numba.prange(nb):
+        rows = flat[b * size:(b + 1) * size].copy()
+        for r in range(Q8_BLOCK):
+            for j in range(m):
+                flat[b * size + j * Q8_BLOCK + r] = rows[r * m + j]
+
+
+def blocked_codes_in_place(codes: np.ndarray) -> np.ndarray:
+    """`blocked_codes(codes)` made in the codes' own memory: the array grown to whole blocks (a realloc,
+    at most 63 zero rows more) and each block of 64 rows transposed where it lies, so the codes and
+    their blocked copy are never held together (2.5 GB of a 20M-Gaussian field). codes: [N, M] uint8,
+    C-contiguous, owning its memory, referred to by nothing else (the caller makes sure: a view of it
+    would read freed memory after the realloc); it is the blocked array's memory afterwards."""
+    n, m = codes.shape
+    nb = -(-n // Q8_BLOCK)
+    codes.resize((nb * Q8_BLOCK, m), refcheck=False)
+    if nb:
+        _transpose_blocks_in_place(codes.reshape(-1), m, nb)
+    return codes.reshape(nb, m, Q8_BLOCK)
+
+
+def unblocked_codes(blocked: np.ndarray, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    """The [N, M] codes of `blocked_codes`' layout [ceil(N/64), M, 64] (a copy); rows: [R] ids to take
+    only those, [R, M]. `blocked_codes` of the result is `blocked` again (its reference)."""
+    if rows is None:
+        return np.ascontiguousarray(blocked.transpose(0, 2, 1).reshape(-1, blocked.shape[1])[:n])
+    rows = np.asarray(rows, np.int64)
+    return np.ascontiguousarray(blocked[rows // Q8_BLOCK, :, rows % Q8_BLOCK])
+
+
 def quantize_luts(luts: np.ndarray, exact_span: float = Q8_EXACT_SPAN) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """8-bit tables as faiss fast-scan makes them, but for outlying sub-tables:
     luts [K, M, 256] -> (q [K, M, 256] uint8, scale [K], offset [K], exact [K, M] bool).

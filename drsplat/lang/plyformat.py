@@ -465,7 +465,7 @@ def _without_altered_codes(storage, ply_path: Path):
                 ply_path, int(bad.sum()), bad.shape[0])
     norms = storage.norms.copy()
     norms[bad] = 0.0
-    return dataclasses.replace(storage, norms=norms)
+    return storage.with_norms(norms)
 
 
 def codebook_named_by(ply_path: Path, name: str) -> Path:
