@@ -275,6 +275,55 @@ def reconstruction_norms(codebook: Codebook, codes: np.ndarray, list_ids: np.nda
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _list_table_norms_kernel(codes, order, starts, centroids, coarse, out):  # pragma: no cover - jitted
+    """out[i] = sqrt(|c_l|² + Σ_m T_l[m, codes[i, m]]) for the rows i = order[starts[l]:starts[l+1]] of
+    each coarse list l, T_l[m, k] = 2 c_lm·r_mk + |r_mk|² (c_lm: sub-vector m of coarse centroid l,
+    r_mk: centroid k of sub-quantiser m), float64; lists in parallel, each one's table made once."""
+    m, ksub, dsub = centroids.shape
+    for part in numba.prange(starts.shape[0] - 1):
+        if starts[part] == starts[part + 1]:
+            continue
+        table = np.empty((m, ksub), np.float64)
+        base = 0.0
+        for j in range(m):
+            for d in range(dsub):
+                c = np.float64(coarse[part, j * dsub + d])
+                base += c * c
+            for k in range(ksub):
+                t = 0.0
+                for d in range(dsub):
+                    r = np.float64(centroids[j, k, d])
+                    t += r * (r + 2.0 * np.float64(coarse[part, j * dsub + d]))
+                table[j, k] = t
+        for o in range(starts[part], starts[part + 1]):
+            i = order[o]
+            s = base
+            for j in range(m):
+                s += table[j, codes[i, j]]
+            out[i] = math.sqrt(max(s, 0.0))
+
+
+def ivf_norms_for_check(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray) -> np.ndarray:
+    """[n] float64 |c_l + r_i| of ivfpq codes [n, M] in lists [n] by per-list tables (`_list_table_norms_kernel`):
+    M look-ups a row instead of decoding its D entries, 4x faster than `reconstruction_norms` (a 3M-row
+    field: 1.3 s of every load's norm check). Within ~1e-12 of the decoded norms in exact arithmetic, not the
+    float32 entries' bits `reconstruction_norms` keeps, so it checks stored norms (`norm_mismatches`,
+    NORM_RTOL 2e-6 apart); it never makes them. List ids must lie in 0..nlist-1 (`PQStorage.from_columns` refuses others);
+    the codebook has coarse centroids (encodes residuals)."""
+    out = np.zeros(codes.shape[0], np.float64)
+    if out.size:
+        ids = np.asarray(list_ids)
+        counts = np.bincount(ids, minlength=codebook.nlist)
+        starts = np.zeros(codebook.nlist + 1, np.int64)
+        np.cumsum(counts, out=starts[1:])
+        # numpy sorts 16-bit keys by radix (0.03 s for 3M ids against 0.3 s as int64)
+        order = np.argsort(ids.astype(np.uint16) if codebook.nlist <= 1 << 16 else ids, kind="stable")
+        _list_table_norms_kernel(np.ascontiguousarray(codes, np.uint8), order, starts, np.ascontiguousarray(codebook.centroids, np.float32),
+                                 np.ascontiguousarray(codebook.coarse, np.float32), out)
+    return out
+
+
 def reconstruction_norms_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
     """`reconstruction_norms` by decoding (float64 norms)."""
     return np.linalg.norm(codebook.decode(codes, list_ids).astype(np.float64), axis=1).astype(np.float32)
@@ -464,11 +513,11 @@ class PQStorage:
         Unassigned rows (norm 0) are not checked; a negative norm, which no encoder writes, counts as altered.
         """
         codes = self.codes
-        if self.list_ids is None:
+        if self.list_ids is None or self.codebook.coarse is None:  # no coarse term (an ivfpq without residuals has none either)
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
             recomputed = np.sqrt(code_table_sums(codes, table))
         else:
-            recomputed = reconstruction_norms(self.codebook, codes, self.list_ids, np.float64)
+            recomputed = ivf_norms_for_check(self.codebook, codes, self.list_ids)
         stored = self.norms.astype(np.float64)
         with np.errstate(invalid="ignore"):
             return (stored != 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))
