@@ -11,7 +11,7 @@ import argparse
 import importlib
 from importlib.metadata import entry_points
 
-BENCHES = ("io", "register", "render", "kernel", "features", "query", "evaluation", "scale", "startup", "budget")
+BENCHES = ("io", "register", "render", "kernel", "features", "query", "registered", "evaluation", "scale", "startup", "budget")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
