@@ -255,3 +255,44 @@ def test_solved_features_are_the_same_bits_in_chunks_of_bounded_scratch(rows_per
     chunked = F0.copy()
     solved_features(chunked, result, means, scratch_bytes=rows_per_chunk * 12 * slots * dim)
     np.testing.assert_array_equal(chunked, whole)
+
+
+@pytest.mark.parametrize("k", [1, 2, 40])
+def test_slots_sorted_by_id_in_place_are_a_stable_argsorts(k):
+    """`slots_by_id` (an insertion sort where the slots lie) against numpy's stable argsort and gathers: random ids
+    with -1 padding, equal ids (their weights keep their order), rows already sorted or reversed, no rows."""
+    from drsplat.registration.solve import slots_by_id, slots_by_id_reference
+
+    rng = np.random.default_rng(k)
+    ids = rng.integers(-1, 6, (500, k)).astype(np.int32)
+    ids[:50] = np.sort(ids[:50], axis=1)
+    ids[50:100] = -np.sort(-ids[50:100], axis=1)
+    weights = rng.random((500, k)).astype(np.float32)
+    want_ids, want_weights = slots_by_id_reference(ids, weights)
+    slots_by_id(ids, weights)
+    np.testing.assert_array_equal(ids, want_ids)
+    np.testing.assert_array_equal(weights, want_weights)
+    slots_by_id(np.zeros((0, k), np.int32), np.zeros((0, k), np.float32))
+
+
+def test_the_solve_holds_no_copy_of_a_views_slots(hard_tiny):
+    """Round 63b: each re-rendered view's slots were sorted into new arrays through an int64 argsort (24 more bytes
+    a slot), so a `solve` on 1600x1200 views peaked at 2.8 GB under the 1.9 GB its own refusal named. Now they are
+    sorted where the renderer left them: the solve's peak is the renderer's buffers (~10 bytes a slot) and the
+    N-sized arrays, the same bits."""
+    import tracemalloc
+
+    scene, cams, features = hard_tiny
+    cams = [c.scaled(5.0) for c in cams[:2]]  # 480x360: the slots outweigh everything N-sized
+    paper = register_features(scene, cams, features, RegisterOptions(topk=40, aggregate="paper"), show_progress=False)
+    sums = paper.features * paper.weights[:, None]
+    geometry = prepare_geometry(scene)
+    solve_registration(geometry, cams, features, 0, 40, "numba", "cpu", sums.copy())  # kernels compiled and loaded
+    tracemalloc.start()
+    try:
+        solve_registration(geometry, cams, features, 0, 40, "numba", "cpu", sums)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    slots = cams[0].width * cams[0].height * 40
+    assert peak < 24 * slots  # 19 bytes a slot; with the sorted copies 36
