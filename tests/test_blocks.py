@@ -727,3 +727,23 @@ def test_a_scene_codebook_keeps_a_bounded_share_of_the_masks_the_same_in_every_p
     assert seen[0] == seen[1] and 0 < seen[0] <= cap < total
     assert a.read_bytes() == b.read_bytes()
     assert (a.parent / "reg.codebook.faiss").read_bytes() == (b.parent / "reg.codebook.faiss").read_bytes()
+
+
+def test_a_budget_beyond_the_free_memory_is_followed_with_one_warning(inputs, caplog):
+    """Round 63b: `--memory-budget 1e300` was taken without a word (the run may be killed midway), where no budget is
+    refused with the figure that fits. The budget is still followed; one warning names what is free."""
+    from drsplat.memory import current_rss
+
+    scene, cams = inputs
+
+    class Big:
+        num_gaussians = 5_000_000
+        sh = np.zeros((1, 1, 3))
+
+    plan = estimate_memory(Big(), cams, 512, 40, base=400 << 20)
+    free = 6 * 10**9 - current_rss()
+    with caplog.at_level("WARNING", logger="drsplat.registration.plan"):
+        assert choose_block(plan, 64 * 10**9, available=free) == 5_000_000
+        assert choose_block(plan, 5 * 10**9, available=free) > 0  # within what is free: blocks, no warning
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1 and "lets this run use about" in warned[0] and "more than the 6.0 GB this machine has free now" in warned[0]

@@ -26,6 +26,7 @@ instead, and a plan of several blocks always sums on the host from the pair log.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -41,6 +42,8 @@ from drsplat.registration.sums import FLUSH_BYTES, PAIR_CAPACITY, PAIR_SLOT_BYTE
 from drsplat.registration.supports import table_bytes
 from drsplat.registration.vote import cluster_bytes, trim_buffer_bytes
 from drsplat.scene import GaussianScene
+
+log = logging.getLogger(__name__)
 
 GEOMETRY_BYTES = 101  # prepare_geometry: means, covariances (float64), opacity, finite flag
 INDEX_BYTES = 40  # the culling index (drsplat.registration.culling.SpatialIndex): Morton order (int64), spread (float64), mean (3 float64)
@@ -160,6 +163,18 @@ def budget_hint(plan: MemoryPlan, fits: int) -> str:
     return f"{value / 1e9:.1f}GB" if value >= 10**9 else f"{value // 10**6}MB"
 
 
+def warn_beyond_free(plan: MemoryPlan, budget: int, available: int | None = None) -> None:
+    """One warning when a --memory-budget lets the run use more than the machine has free now (its available memory and
+    this process's own): the budget is followed as given, so such a run may be killed midway (round 63b: 1e300 was
+    taken without a word, where no budget is refused with the figure that fits)."""
+    free = (available_memory() if available is None else available) + current_rss()
+    use = min(plan.in_memory, budget)
+    if free and use > 0.9 * free:
+        log.warning("--memory-budget %s lets this run use about %s, more than the %s this machine has free now: it may be killed "
+                    "before it ends; a smaller budget registers in blocks (the same result)", format_size(budget), format_size(use),
+                    format_size(free))
+
+
 def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = None, whole: bool = False) -> int:
     """The block size to register with: N (one block, in memory) or fewer Gaussians per block.
 
@@ -200,6 +215,7 @@ def choose_block(plan: MemoryPlan, budget: int | None, available: int | None = N
             f"registering {n:,} Gaussians with {plan.dim}-D features in memory needs about "
             f"{format_size(plan.in_memory)}, but only {format_size(free)} is available: {hint}"
         )
+    warn_beyond_free(plan, budget, available)
     if plan.in_memory <= budget:
         return n
     block = plan.block_for(budget)
