@@ -38,9 +38,9 @@ def to_device(field, device: str | torch.device) -> DeviceField:
     inv = torch.from_numpy(inverse_norms(field.norms)).to(device)
     if field.kind == "exact":
         return DeviceField(device, inv, features=torch.from_numpy(np.ascontiguousarray(field.features, np.float16)).to(device))
-    m = field.codes.shape[1]
-    offsets = torch.arange(m, dtype=torch.int64, device=device) * 256
-    lut_index = torch.from_numpy(np.ascontiguousarray(field.codes, np.uint8)).to(device).to(torch.int64) + offsets
+    codes = field.codes  # read once: held blocked only, each read rebuilds [N, M] (`PQStorage.codes`)
+    offsets = torch.arange(codes.shape[1], dtype=torch.int64, device=device) * 256
+    lut_index = torch.from_numpy(np.ascontiguousarray(codes, np.uint8)).to(device).to(torch.int64) + offsets
     ids = None
     if field.list_ids is not None and field.codebook.coarse is not None:
         ids = torch.from_numpy(np.asarray(field.list_ids, np.int64)).to(device)
