@@ -747,3 +747,12 @@ def test_a_budget_beyond_the_free_memory_is_followed_with_one_warning(inputs, ca
         assert choose_block(plan, 5 * 10**9, available=free) > 0  # within what is free: blocks, no warning
     warned = [r.getMessage() for r in caplog.records]
     assert len(warned) == 1 and "lets this run use about" in warned[0] and "more than the 6.0 GB this machine has free now" in warned[0]
+
+
+def test_a_run_in_one_block_logs_its_estimate_too(tiny, inputs, caplog):
+    """Round 63b: the estimate was logged only for runs in blocks; a run in one block said nothing of its memory."""
+    scene, cams = inputs
+    with caplog.at_level("INFO", logger="drsplat.registration.driver"):
+        register_features(scene, cams, tiny / "features", RegisterOptions(topk=5, aggregate="paper"), show_progress=False)
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("estimated peak memory")]
+    assert len(said) == 1 and said[0].endswith("in one block") and " MB" in said[0]
