@@ -1085,18 +1085,46 @@ def test_codes_scored_blocked_are_held_in_one_layout(monkeypatch):
     np.testing.assert_array_equal(shared.codes, want)
 
 
-@pytest.mark.parametrize("rows", ["random", "one list", "one row", "none"])
-def test_norms_checked_by_list_tables_are_the_decoded_norms(official, rows):
-    """The load-time norm check of an ivfpq field (`ivf_norms_for_check`: |c_l|² + Σ_m T_l[m, code_m], one table per
-    coarse list, 1.9x the decoding kernel's speed) against decoding the codes: within 1e-6, for rows spread over the
-    lists, all in one, one row, none."""
-    from drsplat.lang.backends import ivf_norms_for_check, reconstruction_norms_reference
 
-    rng = np.random.default_rng(5)
-    n = {"random": 3000, "one list": 500, "one row": 1, "none": 0}[rows]
-    codes = rng.integers(0, 256, (n, official.m), np.uint8)
-    lists = (np.full(n, 1023) if rows == "one list" else rng.integers(0, official.nlist, n)).astype(np.int32)
-    got = ivf_norms_for_check(official, codes, lists)
-    assert got.shape == (n,) and got.dtype == np.float64
-    if n:
-        np.testing.assert_allclose(got, reconstruction_norms_reference(official, codes, lists), rtol=1e-6)
+def test_rows_of_codes_held_blocked_are_indexed_as_numpy_indexes(monkeypatch):
+    """Round 63c: with the codes held blocked only, a negative index read the last block's zero padding (`take([-1])`
+    all zeros, its score 0.0047 against -0.0100) and an index past N up to the padding's end returned padding instead of
+    an IndexError. Now every index reads the rows numpy would, or raises as numpy does."""
+    from drsplat.lang.backends import PQStorage
+
+    x, _, _ = clip_like(300, 32, seed=4)
+    x = x[:130]  # 130 rows: the last block holds 2 rows and 62 of padding
+    field = build_field(x, np.ones(len(x), np.float32), train_codebook(clip_like(300, 32, seed=4)[0], m=8), clip_model="oracle-test")
+    storage = field.storage
+    want = storage.codes.copy()
+    monkeypatch.setattr(PQStorage, "blocked_scoring", lambda self, lut_bits=32: True)
+    storage.blocked_codes()
+    for index in ([-1], [-130, 129, 0], np.array([-2, 5]), slice(-3, None), slice(None, None, -7)):
+        np.testing.assert_array_equal(storage.code_rows(index), want[index])
+        np.testing.assert_array_equal(storage.take(index).codes, want[index])
+    for index in ([130], [200], [-131], np.ones(129, bool)):
+        with pytest.raises(IndexError):
+            storage.code_rows(index)
+        with pytest.raises(IndexError):
+            want[index]
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_a_field_read_from_a_scene_is_its_own_unless_shared(tmp_path, kind):
+    """Round 63c: a field read by `read_field` kept the scene's language columns' memory, so editing the scene's
+    `lang_0` (or `lang_code_0`) changed the field's scores. Now it holds a copy unless the caller says it shares them
+    (`shared=True`: the commands, which drop the scene's columns, and the viewer, which never edits them)."""
+    from drsplat.scene import load_ply, save_ply
+
+    x, _, _ = clip_like(300, 32, seed=6)
+    field = build_field(x, np.ones(len(x), np.float32), "none" if kind == "exact" else train_codebook(x, m=8), clip_model="oracle-test")
+    ply = tmp_path / "r.ply"
+    save_ply(attach_field(tiny_scene(len(x)), field, ply), ply)
+    scene = load_ply(ply)
+    own, shared = read_field(scene, ply), read_field(scene, ply, shared=True)
+    before = own.scores(x[:2])
+    np.testing.assert_array_equal(shared.scores(x[:2]), before)
+    column = scene.extra["lang_0" if kind == "exact" else "lang_code_0"]
+    column[:] = column[::-1].copy()
+    np.testing.assert_array_equal(own.scores(x[:2]), before)
+    assert not np.array_equal(shared.scores(x[:2]), before)  # the shared one is the scene's memory, as documented

@@ -929,3 +929,27 @@ def test_a_query_that_writes_no_scene_refuses_rows_the_load_would_drop(tmp_path,
     for geometry in (True, False):
         with pytest.raises(InputError, match=r"bad\.ply: 2 rows have non-finite values and would be dropped"):
             load_registered(ply, geometry=geometry)
+
+
+def test_a_query_that_writes_no_scene_still_says_what_the_load_found(tmp_path, fields, caplog):
+    """Round 63c: reading the extras only dropped the load's findings that need no geometry held: a NaN lang_weight
+    ("non-finite values in extra properties"), an infinite opacity clamped, a zero quaternion. They are said as the
+    whole load says them."""
+    from drsplat.commands.common import load_registered
+
+    field = fields["pq"]
+    scene = tiny_scene(len(field))
+    scene.opacity_logits[3] = np.inf
+    scene.quats[5] = 0
+    reg = attach_field(scene, field, tmp_path / "f.ply")
+    reg.extra["lang_weight"][8] = np.nan
+    save_ply(reg, tmp_path / "f.ply")
+    said = {}
+    for geometry in (True, False):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="drsplat.scene"):
+            load_registered(tmp_path / "f.ply", geometry=geometry)
+        said[geometry] = [r.getMessage() for r in caplog.records]
+    for note in ("1 non-finite values in extra properties", "1 infinite opacity logits clamped", "1 zero quaternions replaced"):
+        assert any(note in line for line in said[False]), (note, said[False])
+        assert any(note in line for line in said[True]), (note, said[True])

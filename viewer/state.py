@@ -148,7 +148,7 @@ class ViewerState:
             return self._fail(exc, "cannot open" if str(path) in str(exc) else f"cannot open {path}")
         try:
             with LibraryWarnings(self.messages):
-                lang = read_field(scene, path)
+                lang = read_field(scene, path, shared=True)  # the viewer never edits the scene's columns
             problem = None
         except (DrsplatError, ValueError, OSError) as exc:  # a missing or other codebook: the splats are intact (round 61a)
             lang, problem = None, one_line(str(exc))

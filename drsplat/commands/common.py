@@ -317,7 +317,7 @@ def load_registered(path: Path, geometry: bool = True) -> tuple[GaussianScene | 
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:
         raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so scores could not follow the file order")
-    field = read_field(scene, path)
+    field = read_field(scene, path, shared=True)  # the scene's language columns are dropped below
     if field is None:
         raise InputError(path, "has no language field (no 'drsplat.lang' header comment); run drsplat register first")
     # the field holds the language columns now: the scene's copies of them (130 B a Gaussian for PQ, 1 kB exact) go, as

@@ -115,7 +115,7 @@ def field_summary(scene: GaussianScene, path: Path) -> tuple[dict | None, list[s
 
     try:
         with LoggedFindings("drsplat.lang") as warned:
-            field = read_field(scene, path)
+            field = read_field(scene, path, shared=True)  # neither is edited
     except InputError as exc:  # another file (its codebook) is named, as query names it (round 59a: "codebook file not found", whose?)
         where = f"{shown_path(exc.path)}: " if exc.path is not None and Path(exc.path) != Path(path) else ""
         return None, [f"language field: {where}{'' if exc.field is None else f'field {exc.field!r}: '}{exc.problem}"]

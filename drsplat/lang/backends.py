@@ -275,55 +275,6 @@ def reconstruction_norms(codebook: Codebook, codes: np.ndarray, list_ids: np.nda
     return out
 
 
-@numba.njit(parallel=True, cache=True)
-def _list_table_norms_kernel(codes, order, starts, centroids, coarse, out):  # pragma: no cover - jitted
-    """out[i] = sqrt(|c_l|² + Σ_m T_l[m, codes[i, m]]) for the rows i = order[starts[l]:starts[l+1]] of
-    each coarse list l, T_l[m, k] = 2 c_lm·r_mk + |r_mk|² (c_lm: sub-vector m of coarse centroid l,
-    r_mk: centroid k of sub-quantiser m), float64; lists in parallel, each one's table made once."""
-    m, ksub, dsub = centroids.shape
-    for part in numba.prange(starts.shape[0] - 1):
-        if starts[part] == starts[part + 1]:
-            continue
-        table = np.empty((m, ksub), np.float64)
-        base = 0.0
-        for j in range(m):
-            for d in range(dsub):
-                c = np.float64(coarse[part, j * dsub + d])
-                base += c * c
-            for k in range(ksub):
-                t = 0.0
-                for d in range(dsub):
-                    r = np.float64(centroids[j, k, d])
-                    t += r * (r + 2.0 * np.float64(coarse[part, j * dsub + d]))
-                table[j, k] = t
-        for o in range(starts[part], starts[part + 1]):
-            i = order[o]
-            s = base
-            for j in range(m):
-                s += table[j, codes[i, j]]
-            out[i] = math.sqrt(max(s, 0.0))
-
-
-def ivf_norms_for_check(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray) -> np.ndarray:
-    """[n] float64 |c_l + r_i| of ivfpq codes [n, M] in lists [n] by per-list tables (`_list_table_norms_kernel`):
-    M look-ups a row instead of decoding its D entries, 4x faster than `reconstruction_norms` (a 3M-row
-    field: 1.3 s of every load's norm check). Within ~1e-12 of the decoded norms in exact arithmetic, not the
-    float32 entries' bits `reconstruction_norms` keeps, so it checks stored norms (`norm_mismatches`,
-    NORM_RTOL 2e-6 apart); it never makes them. List ids must lie in 0..nlist-1 (`PQStorage.from_columns` refuses others);
-    the codebook has coarse centroids (encodes residuals)."""
-    out = np.zeros(codes.shape[0], np.float64)
-    if out.size:
-        ids = np.asarray(list_ids)
-        counts = np.bincount(ids, minlength=codebook.nlist)
-        starts = np.zeros(codebook.nlist + 1, np.int64)
-        np.cumsum(counts, out=starts[1:])
-        # numpy sorts 16-bit keys by radix (0.03 s for 3M ids against 0.3 s as int64)
-        order = np.argsort(ids.astype(np.uint16) if codebook.nlist <= 1 << 16 else ids, kind="stable")
-        _list_table_norms_kernel(np.ascontiguousarray(codes, np.uint8), order, starts, np.ascontiguousarray(codebook.centroids, np.float32),
-                                 np.ascontiguousarray(codebook.coarse, np.float32), out)
-    return out
-
-
 def reconstruction_norms_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None) -> np.ndarray:
     """`reconstruction_norms` by decoding (float64 norms)."""
     return np.linalg.norm(codebook.decode(codes, list_ids).astype(np.float64), axis=1).astype(np.float32)
@@ -338,6 +289,10 @@ class ExactStorage:
     features: np.ndarray
     known_norms: np.ndarray | None = field(default=None, repr=False)
     kind = "exact"
+
+    def detached(self) -> "ExactStorage":
+        """This storage with features of its own (a copy): none of its arrays is another's view."""
+        return ExactStorage(self.features.copy(), self.known_norms)
 
     @property
     def norms(self) -> np.ndarray:
@@ -407,6 +362,21 @@ def _tells_directions_apart(codebook: Codebook, probes: int = 16) -> bool:
     return _other_code(codes, list_ids, codes[0], None if list_ids is None else list_ids[0])
 
 
+def row_ids(index: np.ndarray | slice | int, n: int) -> np.ndarray:
+    """The rows 0..n-1 an index of [n] rows names, as numpy would take them: a slice, an [n] bool mask, or integers
+    (negative from the end). IndexError for an integer outside -n..n-1 or a mask of another length."""
+    if isinstance(index, slice):
+        return np.arange(n)[index]
+    index = np.asarray(index)
+    if index.dtype == bool:
+        if index.shape != (n,):
+            raise IndexError(f"a boolean index of shape {index.shape} for {n} rows")
+        return np.flatnonzero(index)
+    if index.size and (index.min() < -n or index.max() >= n):
+        raise IndexError(f"index {int(index.min() if index.min() < -n else index.max())} is out of bounds for {n} rows")
+    return np.where(index < 0, index + n, index).astype(np.int64)
+
+
 class PQStorage:
     """codes: [N, M] uint8; list_ids: [N] int32 coarse lists (ivfpq) or None; norms: [N] float32 of the
     reconstructions (0 = unassigned); codebook: the faiss quantiser the codes belong to.
@@ -445,10 +415,12 @@ class PQStorage:
         with self._lock:
             if self._codes is not None:
                 return self._codes[index]
-        rows = np.arange(self._n)[index] if isinstance(index, slice) else np.asarray(index)
-        if rows.dtype == bool:
-            rows = np.flatnonzero(rows)
+        rows = row_ids(index, self._n)
         return unblocked_codes(self._blocked, self._n, rows.reshape(-1)).reshape(*rows.shape, self.codebook.m)
+
+    def detached(self) -> "PQStorage":
+        """This storage with codes of its own (a copy): none of its arrays is another's view."""
+        return PQStorage(self.codes.copy(), self.list_ids, self.norms, self.codebook)
 
     def blocked_scoring(self, lut_bits: int = 32) -> bool:
         """Whether scores with `lut_bits` tables are made by the blocked kernels."""
@@ -517,7 +489,7 @@ class PQStorage:
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
             recomputed = np.sqrt(code_table_sums(codes, table))
         else:
-            recomputed = ivf_norms_for_check(self.codebook, codes, self.list_ids)
+            recomputed = reconstruction_norms(self.codebook, codes, self.list_ids, np.float64)
         stored = self.norms.astype(np.float64)
         with np.errstate(invalid="ignore"):
             return (stored != 0) & ~(np.abs(recomputed - stored) <= rtol * np.maximum(stored, 1e-12))

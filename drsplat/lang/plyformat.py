@@ -331,9 +331,12 @@ def field_metadata(scene: GaussianScene | PlyExtras, ply_path: str | Path) -> di
     return _parse_pairs(text.split())
 
 
-def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path) -> LanguageField | None:
+def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: bool = False) -> LanguageField | None:
     """The language field of a scene loaded from `ply_path` (None if it has neither a drsplat.lang
-    comment nor a `lang_meta` column).
+    comment nor a `lang_meta` column). shared: the field's features or codes may be the scene's own
+    columns' memory (the loader's [N, L] block, not copied: a caller that drops those columns,
+    `strip_field`, or never edits them); else they are a copy (round 63c: editing the scene's
+    `lang_0` changed the field's scores).
 
     Raises InputError naming the PLY (or codebook) file and the field for missing properties,
     an unknown kind, a missing codebook, or codes that do not fit the codebook.
@@ -379,6 +382,8 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path) -> Langua
         if exc.path is not None:
             raise
         raise InputError(ply_path, exc.problem, field=exc.field) from None
+    if not shared:
+        storage = storage.detached()
     orphans = int(np.count_nonzero((weights > 0) & (storage.norms == 0)))
     storage = _without_altered_codes(storage, ply_path)
     weightless = int(np.count_nonzero(~(weights > 0) & has_feature(storage.norms)))
