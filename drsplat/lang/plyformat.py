@@ -382,7 +382,7 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: b
         if exc.path is not None:
             raise
         raise InputError(ply_path, exc.problem, field=exc.field) from None
-    if not shared:
+    if not shared and hasattr(storage, "detached"):  # a backend without `detached` made its own arrays (`from_columns`)
         storage = storage.detached()
     orphans = int(np.count_nonzero((weights > 0) & (storage.norms == 0)))
     storage = _without_altered_codes(storage, ply_path)
