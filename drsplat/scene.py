@@ -1185,14 +1185,6 @@ def fuse_3d_filter(log_scales: np.ndarray, opacity_logits: np.ndarray, filter_3d
 EXTRA_RUN = 8  # at least this many fields of one type side by side in a record are copied as one block
 
 
-def extra_columns(vertex: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
-    """{name: [N] column} of the structured array's fields `names`, in that order (`extra_columns_of`)."""
-    rows = RowPass(StoredRows.of(vertex))
-    out = extra_columns_of(rows, names)
-    rows.run()
-    return out
-
-
 def extra_columns_of(rows: RowPass, names: list[str]) -> dict[str, np.ndarray]:
     """{name: [N] column} of the fields `names`, in that order, filled when `rows` runs.
 

@@ -454,7 +454,13 @@ def test_extra_columns_copy_runs_of_fields_as_blocks(order):
     uint16, 9 float32), alone, or in a run broken by another type or name; `stack_columns` takes a run's
     block as it is, without a copy."""
     from drsplat.lang.backends import stack_columns
-    from drsplat.scene import extra_columns
+    from drsplat.scene import RowPass, StoredRows, extra_columns_of
+
+    def extra_columns(records, wanted):
+        rows = RowPass(StoredRows.of(records))
+        out = extra_columns_of(rows, wanted)
+        rows.run()
+        return out
 
     names = [f"lang_{j}" for j in range(10)] + ["w"] + [f"c_{j}" for j in range(9)] + ["a", "b", "u8"]
     types = ["u2"] * 10 + ["f4"] + ["f4"] * 9 + ["i4", "f4", "u1"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import platform
 import statistics
 import time
@@ -147,6 +148,22 @@ def choice_list(choices: Iterable[str], what: str) -> Callable[[str], list[str]]
 
     parse.__name__ = f"{what} list"
     return parse
+
+
+def child_env(**extra: str) -> dict[str, str]:
+    """The environment of a bench's child process: this one's, with this drsplat first on PYTHONPATH (the copy being
+    benched, not an installed one), and `extra` variables."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update(extra)
+    return env
+
+
+def last_error_line(stderr: str) -> str:
+    """The last line of a child's stderr (its exception), without the exception's class name."""
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    return lines[-1].split("Error: ", 1)[-1].strip()[:300] if lines else "no message (killed?)"
 
 
 def whole_pair(text: str) -> tuple[int, int] | None:

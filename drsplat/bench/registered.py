@@ -12,7 +12,6 @@ registered scene") can be measured again.
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.bench.common import format_table, machine_line
+from drsplat.bench.common import child_env, choice_list, count_list, format_table, last_error_line, machine_line
 from drsplat.commands.common import int_range
 from drsplat.errors import DrsplatError
 
@@ -32,12 +31,12 @@ DIM = 512
 
 
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
-    from drsplat.bench.query import DEFAULT_OFFICIAL, count_list
+    from drsplat.bench.query import DEFAULT_OFFICIAL
 
     p = subparsers.add_parser("registered", help="peak memory and time of query, segment and info on registered PLYs of N Gaussians")
     p.add_argument("--sizes", type=count_list, default="500k,2M", help="comma-separated Gaussian counts, two or more for the "
                    "per-Gaussian column (default: 500k,2M)")
-    p.add_argument("--kinds", default=",".join(KINDS), help=f"field kinds, a subset of {','.join(KINDS)} (ivfpq needs the official codebook)")
+    p.add_argument("--kinds", type=choice_list(KINDS, "field kind"), default=",".join(KINDS), help=f"field kinds, a subset of {','.join(KINDS)} (ivfpq needs the official codebook)")
     p.add_argument("--sh-degree", type=int_range(0, 3), default=0, help="SH degree of the scenes written, 0..3 (default: 0)")
     p.add_argument("--official", type=Path, default=DEFAULT_OFFICIAL,
                    help="the official Dr. Splat IVFPQ codebook for the ivfpq rows (default: ../shared/data/drsplat/pq_index.faiss)")
@@ -93,15 +92,12 @@ def _child(argv: list[str]) -> tuple[float, int]:
     run_it = "rc = main(sys.argv[1:])" if argv else "rc = 0"
     code = (f"import sys; from drsplat.cli import main; from drsplat.memory import peak_rss; {run_it}; "
             "print('PEAK', peak_rss(), file=sys.stderr); sys.exit(rc)")
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[2])
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", code, *argv], env=child_env(), capture_output=True, text=True)
     seconds = time.perf_counter() - t0
     peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK ")]
     if proc.returncode != 0 or not peak:
-        raise DrsplatError(f"bench run 'drsplat {' '.join(argv[:1])}' failed: {(proc.stderr.strip().splitlines() or ['no message'])[-1][:300]}")
+        raise DrsplatError(f"bench run 'drsplat {' '.join(argv[:1])}' failed: {last_error_line(proc.stderr)}")
     return seconds, int(peak[-1].split()[1])
 
 
@@ -116,10 +112,7 @@ def _commands(path: Path, folder: Path) -> dict[str, list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-    unknown = [k for k in kinds if k not in KINDS]
-    if unknown or not kinds:
-        raise DrsplatError(f"--kinds: {unknown or 'none given'}; choose from {', '.join(KINDS)}")
+    kinds = list(args.kinds)
     if "ivfpq" in kinds and not args.official.is_file():
         print(f"ivfpq left out: the official codebook {args.official} is not there")
         kinds.remove("ivfpq")

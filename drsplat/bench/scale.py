@@ -19,7 +19,6 @@ import argparse
 import hashlib
 import json
 import logging
-import os
 import statistics
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from drsplat.bench.common import format_table, guard_bench_outputs, machine_line, positive_int_list
+from drsplat.bench.common import child_env, format_table, guard_bench_outputs, last_error_line, machine_line, positive_int_list
 from drsplat.commands.common import MAX_IMAGE_WIDTH, int_range, nonneg_float, output_file, positive_float, positive_int, size_value
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size, peak_rss
@@ -211,22 +210,12 @@ def _projected_per_view(scene, cameras, topk: int) -> float:
 def _child(config: dict) -> dict:
     """Run `config` in a fresh process; config["numba_cache"] names an (empty) NUMBA_CACHE_DIR for it
     and the workers it starts: every kernel is compiled in that run."""
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[2])
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    if config.get("numba_cache"):
-        env["NUMBA_CACHE_DIR"] = config["numba_cache"]
+    env = child_env(**({"NUMBA_CACHE_DIR": config["numba_cache"]} if config.get("numba_cache") else {}))
     proc = subprocess.run([sys.executable, "-m", "drsplat.bench.scale", json.dumps(config)], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         log.debug("bench run %s failed:\n%s", config.get("label"), proc.stderr[-3000:])
-        raise ChildRunFailed(f"bench run '{config.get('label')}' failed: {_last_error(proc.stderr)}")
+        raise ChildRunFailed(f"bench run '{config.get('label')}' failed: {last_error_line(proc.stderr)}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def _last_error(stderr: str) -> str:
-    """The last line of a child's stderr (its exception), without the exception's class name."""
-    lines = [line for line in stderr.splitlines() if line.strip()]
-    return lines[-1].split("Error: ", 1)[-1].strip()[:300] if lines else "no message (killed?)"
 
 
 def _mb(n: float) -> str:

@@ -485,7 +485,7 @@ class PQStorage:
         Unassigned rows (norm 0) are not checked; a negative norm, which no encoder writes, counts as altered.
         """
         codes = self.codes
-        if self.list_ids is None or self.codebook.coarse is None:  # no coarse term (an ivfpq without residuals has none either)
+        if self.list_ids is None:
             table = np.square(self.codebook.centroids.astype(np.float64)).sum(axis=2)  # [M, 256]
             recomputed = np.sqrt(code_table_sums(codes, table))
         else:
