@@ -30,6 +30,7 @@ VOTE_SLOT_BYTES = 20 * VOTE_SLOTS  # per Gaussian: each slot's cluster (int32), 
 SPECIFICITY_SLOT_BYTES = 8 * VOTE_SLOTS  # per Gaussian of a block the vote trims by specificity: each slot's P (float64)
 EXACT_TRIM_SLOT_BYTES = 28  # per Gaussian of a block the vote trims exactly (after the check): its trimmed-slot bits (uint64), the removed weight (float32) and a buffered pair (16 with its place in the flush's sort: the buffer holds at least one per Gaussian)
 CHECK_SLOTS = 16  # clusters per Gaussian whose votes the cross-view check keeps (drsplat.registration.check; 12 bytes each)
+GAUSSIAN_TERM_BYTES = 8 * CHECK_SLOTS + 12  # per Gaussian of a view while the check sums its support: each slot's other views' votes (float64), its share φ and top cluster (drsplat.registration.check.gaussian_terms)
 SUPPORT_SCRATCH_BYTES = 64 << 20  # one layer of the check's dense support scratch: a view's masks are summed in runs that keep it within this
 SUPPORT_TABLE_BYTES = 256 << 20  # the check's support tables held in memory; their parts past it spill to disk (registration.supports)
 SUPPORT_READ_BYTES = 32 << 20  # a view's support table larger than this is judged in runs of its masks of at most this (registration.supports)

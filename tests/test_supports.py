@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drsplat.registration.supports import ENTRY, SupportTables, merge_entries, no_entries, table_bytes
+from drsplat.registration.supports import ENTRY, SupportTables, merge_entries, no_entries, order_by_mask_cluster, table_bytes
 from drsplat.utils import TEMP_SUFFIX, sweep_stale_temps, temp_prefix
 
 
@@ -61,6 +61,24 @@ def test_merged_parts_are_the_reference_sums_sorted_once(seed, hard):
     assert taken == [] and len(parts) == 12
     assert all(a.size == 0 for a in merge_entries([]))
     assert all(a.size == 0 for a in merge_entries([no_entries(), no_entries()]))
+
+
+@pytest.mark.parametrize("low,high", [(0, 7), (0, 1 << 20), (-(1 << 31), 1 << 31)])
+def test_entries_ordered_by_one_key_are_lexsorts_order(low, high):
+    """The one-key order of (mask, cluster) entries equals np.lexsort((cluster, mask)) on every
+    entry, up to the order of equal pairs: ties of masks, of both, and int32's extremes (where the
+    key's parts must neither overflow nor carry into each other)."""
+    rng = np.random.default_rng(high)
+    mask = rng.integers(low, high, 5_000, dtype=np.int64).astype(np.int32)
+    cluster = rng.integers(low, high, 5_000, dtype=np.int64).astype(np.int32)
+    mask[:2_000] = mask[2_000:4_000]
+    cluster[:1_000] = cluster[2_000:3_000]  # 1,000 pairs twice
+    extremes = np.array([low, high - 1, low, high - 1, 0, -1], np.int64).clip(low, high - 1).astype(np.int32)
+    mask, cluster = np.r_[mask, extremes], np.r_[cluster, extremes[::-1]]
+    order, want = order_by_mask_cluster(mask, cluster), np.lexsort((cluster, mask))
+    assert order.dtype == np.int64 and np.array_equal(np.sort(order), np.arange(mask.size))
+    np.testing.assert_array_equal(mask[order], mask[want])
+    np.testing.assert_array_equal(cluster[order], cluster[want])
 
 
 @pytest.mark.parametrize("cap", [0, 1, 24 * 40, 24 * 200, 1 << 30])

@@ -123,7 +123,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_SLOT_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, VOTE_SLOT_BYTES
+from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_SLOT_BYTES, GAUSSIAN_TERM_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, VOTE_SLOT_BYTES
 from drsplat.memory import small_page_zeros
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import PreparedScene, project_gaussians
@@ -1254,6 +1254,7 @@ class Aggregator:
             # (drsplat.registration.check; its mask clusters, unit embeddings and support tables, held up to SUPPORT_TABLE_BYTES and
             # spilled to disk beyond, are counted by the plan, `plan.estimate_memory`; registration always gives it a pair log)
             per_block += 12 * CHECK_SLOTS + 8  # and its count of voting views
+            per_block += GAUSSIAN_TERM_BYTES  # a view's Gaussians' support terms (check.gaussian_terms), at most the block's
             kept += support_scratch
             if stages.vote:  # after the check the vote trims exactly (drsplat.registration.vote.exact_trimmed_features)
                 per_block += EXACT_TRIM_SLOT_BYTES

