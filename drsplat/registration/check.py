@@ -1059,10 +1059,11 @@ def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_
     Exact, in a few passes: the values are counted into `bins` bins of equal width between their
     extremes (`_bin_stats`), the range narrowed to the smallest and largest value of the bin
     holding the wanted rank, and so on until that bin's values fit `chunk`; those are gathered and
-    the rank picked (np.partition). Of an even count the upper middle value is the lower one or
-    the next larger value (one more pass, `_count_at_most`); the two are averaged as np.median
-    does; NaN anywhere gives NaN, as there. A view of 19,200 masks (184 M cosines) takes four
-    passes over them (the median used to take ~20, each value's bin found by a binary search)."""
+    the rank and the next one picked (np.partition; the next one, when the bin ends at the rank,
+    is the smallest value of the next bin holding any). The two middle values of an even count are
+    averaged as np.median does; NaN anywhere gives NaN, as there. A view of 19,200 masks (184 M
+    cosines) takes three passes over them (the median used to take ~20, each value's bin found by a
+    binary search)."""
     n, low, high = 0, np.inf, -np.inf
     for piece in pieces():
         if np.isnan(piece).any():
@@ -1070,14 +1071,8 @@ def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_
         n += piece.size
         if piece.size:
             low, high = min(low, float(piece.min())), max(high, float(piece.max()))
-    a = _value_at_rank(pieces, (n - 1) // 2, low, high, chunk, bins)
-    if n % 2:
-        return a
-    at_most, above = 0, np.inf
-    for piece in pieces():
-        count, least_above = _count_at_most(np.ascontiguousarray(piece, np.float64), a)
-        at_most, above = at_most + count, min(above, least_above)
-    return float(np.mean([a, a if at_most > n // 2 else above]))
+    lower, upper = _values_at_rank(pieces, (n - 1) // 2, n, low, high, chunk, bins)
+    return lower if n % 2 else float(np.mean([lower, upper]))
 
 
 @numba.njit(cache=True)
@@ -1100,24 +1095,16 @@ def _bin_stats(values, low, high, scale, counts, mins, maxs):  # pragma: no cove
                 maxs[b] = v
 
 
-@numba.njit(cache=True)
-def _count_at_most(values, a):  # pragma: no cover - jitted
-    """(how many values are ≤ a, the smallest value > a; inf when none)."""
-    count = 0
-    above = np.inf
-    for v in values:  # selects, not branches: v ≤ a is a coin toss near the median
-        at_most = v <= a
-        count += at_most
-        above = min(above, np.inf if at_most else v)
-    return count, above
-
-
-def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: float, high: float, chunk: int, bins: int) -> float:
-    """The value of 0-based `rank` among the values of `pieces()` (none NaN, all within [low, high])."""
+def _values_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, count: int, low: float, high: float, chunk: int,
+                    bins: int) -> tuple[float, float]:
+    """The values of 0-based `rank` and of rank + 1 (inf when there is none) among the `count`
+    values of `pieces()` (none NaN, all within [low, high]). The next rank's value is the next one
+    in the gathered bin, or the smallest value of the next bin that holds any (`after`)."""
 
     def within(v: np.ndarray) -> np.ndarray:
         return v[(v >= low) & (v <= high)]
 
+    after = np.inf  # the smallest value above the range: where rank + 1 lies when rank is the range's last
     while low < high:
         scale = bins / (0.5 * high - 0.5 * low)
         if not np.isfinite(scale):
@@ -1128,20 +1115,28 @@ def _value_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, low: f
         ends = np.cumsum(counts)
         b = int(np.searchsorted(ends, rank, side="right"))
         rank -= int(ends[b] - counts[b])
-        narrowed = (float(mins[b]), float(maxs[b]))
-        if counts[b] <= chunk:
+        later = np.flatnonzero(counts[b + 1 :])
+        after = float(mins[b + 1 + later[0]]) if later.size else after
+        narrowed, count = (float(mins[b]), float(maxs[b])), int(counts[b])
+        if count <= chunk:
             low, high = narrowed
-            return float(np.partition(np.concatenate([within(p) for p in pieces()]), rank)[rank])
+            values = np.concatenate([within(p) for p in pieces()])
+            if rank + 1 < count:
+                values = np.partition(values, (rank, rank + 1))
+                return float(values[rank]), float(values[rank + 1])
+            return float(np.partition(values, rank)[rank]), after
         if narrowed == (low, high):
             break  # every value in one bin: counted by value below
         low, high = narrowed
     if low == high:
-        return low
+        return low, (low if rank + 1 < count else after)
     values = np.unique(np.concatenate([np.unique(within(p)) for p in pieces()]))
     counts = np.zeros(values.size, np.int64)
     for p in pieces():
         counts += np.bincount(np.searchsorted(values, within(p)), minlength=values.size)
-    return float(values[int(np.searchsorted(np.cumsum(counts), rank, side="right"))])
+    ends = np.cumsum(counts)
+    at, next_at = (int(np.searchsorted(ends, r, side="right")) for r in (rank, rank + 1))
+    return float(values[at]), (float(values[next_at]) if next_at < values.size else after)
 
 
 def judge_masks(source: PairSource, clusters: MaskClusters, num_gaussians: int, block: int, slots: int = CHECK_SLOTS,
