@@ -773,6 +773,63 @@ def test_a_ply_read_a_few_rows_at_a_time_is_the_same_scene(tmp_path, monkeypatch
             np.testing.assert_array_equal(got.extra[name], column)
 
 
+def _selection_layouts(tmp_path) -> dict:
+    """PLYs of every layout the load reads: INRIA with extras little- and big-endian, ASCII, double, rgb colours,
+    2DGS surfels, Mip's filter, zero quaternions and infinite opacities (fixed, not dropped), SuperSplat compressed."""
+    import drsplat.scene as ds
+
+    scene = _scene_with_extras(1001)
+    scene.quats[5] = 0.0
+    scene.opacity_logits[6] = np.inf
+    paths = {}
+    vertices = scene_to_vertices(scene)
+    for endian in "<>":
+        path = paths[f"inria{endian}"] = tmp_path / f"inria{'le' if endian == '<' else 'be'}.ply"
+        header = ds.ply_header(vertices.dtype, ["drsplat.lang test"], len(vertices))
+        rows = vertices if endian == "<" else vertices.astype(vertices.dtype.newbyteorder(">"))
+        path.write_bytes((header if endian == "<" else header.replace(b"binary_little_endian", b"binary_big_endian")) + rows.tobytes())
+    base = _inria_columns(300, seed=4)
+    for name, columns, options in (("ascii", base, {"text": True}), ("double", {k: v.astype(np.float64) for k, v in base.items()}, {}),
+                                   ("rgb", {k: v for k, v in base.items() if not k.startswith("f_dc")} | {k: np.arange(300, dtype=np.uint8) for k in ("red", "green", "blue")}, {}),
+                                   ("surfels", {k: v for k, v in base.items() if k != "scale_2"}, {}),
+                                   ("mip", base | {"filter_3D": np.linspace(0.0, 0.1, 300, dtype=np.float32)}, {})):
+        _write_vertices(tmp_path / f"{name}.ply", columns, **options)
+        paths[name] = tmp_path / f"{name}.ply"
+    paths["compressed"] = tmp_path / "s.compressed.ply"
+    paths["compressed"].write_bytes(ds.compressed_ply_bytes(dataclasses.replace(scene, extra={}, opacity_logits=np.zeros(1001, np.float32)))[0])
+    return paths
+
+
+def test_a_selection_loaded_alone_is_the_whole_loads_subset(tmp_path, monkeypatch, caplog):
+    """`load_ply_rows` (what `query --out` writes its selection from) gives `load_ply(path).subset(keep)` array for array,
+    extras and comments included, in every layout and in blocks of 1, 7 or all rows, without saying the load's findings
+    again; a file whose rows are no longer the selection's count is one error naming it."""
+    import logging
+
+    import drsplat.scene as ds
+    from drsplat.scene import load_ply_rows
+
+    rng = np.random.default_rng(0)
+    for name, path in _selection_layouts(tmp_path).items():
+        whole = load_ply(path)
+        n = len(whole)
+        for keep in (rng.random(n) < 0.3, np.ones(n, bool), np.arange(n) == 0, np.arange(n) == n - 1, np.arange(n) % 7 == 5):
+            for block in (1, 7, 1 << 30):
+                monkeypatch.setattr(ds, "READ_BLOCK_BYTES", block * 64)
+                caplog.clear()
+                with caplog.at_level(logging.INFO):
+                    got = load_ply_rows(path, keep)
+                assert caplog.text == "", (name, caplog.text)
+                want = whole.subset(keep)
+                for attr in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+                    np.testing.assert_array_equal(getattr(got, attr), getattr(want, attr), err_msg=f"{name} {attr}")
+                assert list(got.extra) == list(want.extra) and got.comments == want.comments, name
+                for column, values in want.extra.items():
+                    np.testing.assert_array_equal(got.extra[column], values, err_msg=f"{name} {column}")
+    with pytest.raises(InputError, match=r"inriale\.ply.*changed while it was read: it holds 1,001 rows, 1,000 when"):
+        load_ply_rows(tmp_path / "inriale.ply", np.ones(1000, bool))
+
+
 def test_a_ply_cut_short_while_it_is_read_is_one_error_naming_the_rows(tmp_path, monkeypatch):
     """A file another program truncates after its size was checked: the block that is no longer all there is
     named, not read as garbage or zeros."""

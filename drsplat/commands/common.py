@@ -325,6 +325,15 @@ def load_registered(path: Path, geometry: bool = True) -> tuple[GaussianScene | 
     return (strip_field(scene) if geometry else None), field
 
 
+def load_registered_rows(path: Path, keep: np.ndarray) -> GaussianScene:
+    """The Gaussians where keep [N] is True of a registered PLY that `load_registered(geometry=False)`
+    read, without its language columns and without holding the other Gaussians (`scene.load_ply_rows`):
+    a selection written by `query --out`."""
+    from drsplat.scene import load_ply_rows
+
+    return strip_field(load_ply_rows(path, keep))
+
+
 def oracle_flag(flag: str) -> str:
     """What an oracle scene's error tells to pass instead of text: the command's embedding flag."""
     return f"{flag} (rows of the synthetic dataset's text_embeddings.npy)"

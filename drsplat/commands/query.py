@@ -16,6 +16,7 @@ from drsplat.commands.common import (
     guard_field_codebook,
     add_lut_bits_argument,
     load_registered,
+    load_registered_rows,
     nonneg_int,
     output_file,
     resolve_threshold,
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     check_outputs_writable(*outputs.values())  # before the work and the count line (round 57c: a read-only folder failed after both)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
-    scene, field = load_registered(args.registered, geometry=args.out is not None)  # the Gaussians only for a selection written
+    _, field = load_registered(args.registered, geometry=False)  # a selection written reads its own Gaussians once it is made
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--scores", args.scores)
     assigned = field.assigned()
@@ -139,7 +140,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
             raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
                                f"nothing written to {args.out}; lower --threshold")
         if args.out is not None:
-            chosen = scene.subset(mask)
+            chosen = load_registered_rows(args.registered, mask)
             check_writable(chosen, args.out)
     with outputs_together(outputs.values()):  # a failed export (a full disk) takes SCORES.npy with it
         if args.scores is not None:
