@@ -50,3 +50,5 @@ LANGSPLAT_MASK_THRESHOLD = 0.4  # `eval lerf --protocol langsplat`: LangSplat's 
 # registration (drsplat.features.format), stored rows before encoding (drsplat.lang.codebook.unit_check).
 # CLIP's and LangSplat's are 1 to float precision, a float16 file's within ~1e-4: kept bit for bit.
 UNIT_TOLERANCE = 1e-3
+NEAR = 0.01  # the default near plane (gsplat's, nerfstudio's): Gaussians with camera depth z < NEAR are not drawn (drsplat.raster)
+INRIA_NEAR = 0.2  # the INRIA rasterizer's (`in_frustum`: z <= 0.2 dropped), which trained LangSplat's and Dr. Splat's scenes

@@ -35,13 +35,12 @@ from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, GaussianScene
-from drsplat.defaults import DEFAULT_TOPK
+from drsplat.defaults import DEFAULT_TOPK, INRIA_NEAR, NEAR  # noqa: F401 (INRIA_NEAR: the plane the CLI names)
 from drsplat.utils import spread_rows
 
 log = logging.getLogger(__name__)
 
 TILE_SIZE = 16
-NEAR = 0.01
 BIN_CHUNKS_PER_THREAD = 8  # chunks of the depth order binned in parallel (load balance)
 TILE_CHUNKS_PER_WORKER = 16  # runs of neighbouring tiles per compositing thread (`balance_tiles`; 8 left 4-6 % imbalance on flowers)
 # A view's tile lists hold at most this many entries per Gaussian (with a floor for small scenes):
@@ -163,10 +162,10 @@ class Projected:
         return tile_grid(self.width, self.height, self.tile_size)
 
 
-def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
-    """The share of Gaussians that no view renders because their mean is nearer than NEAR to every
-    camera it lies in front of: 0 < z < NEAR in some view and z < NEAR in all (z the camera-space
-    depth, `Camera.world_to_camera`; the projection culls z < NEAR), estimated on every ⌈N / sample⌉-th
+def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000, near: float = NEAR) -> float:
+    """The share of Gaussians that no view renders because their mean is nearer than `near` to every
+    camera it lies in front of: 0 < z < near in some view and z < near in all (z the camera-space
+    depth, `Camera.world_to_camera`; the projection culls z < near), estimated on every ⌈N / sample⌉-th
     Gaussian. A scene in other units than its cameras, or scaled down, has most of them there.
 
     means: [N, 3] world means; cameras: the views. Returns a share in [0, 1] (0 without Gaussians).
@@ -174,12 +173,12 @@ def share_within_near_plane(means: np.ndarray, cameras: Sequence[Camera], sample
     means = spread_rows(np.asarray(means, np.float64), sample)
     if len(means) == 0 or not cameras:
         return 0.0
-    rendered, near = np.zeros(len(means), bool), np.zeros(len(means), bool)
+    rendered, within = np.zeros(len(means), bool), np.zeros(len(means), bool)
     for cam in cameras:
         z = cam.world_to_camera(means)[:, 2]
-        rendered |= z >= NEAR
-        near |= (z > 0) & (z < NEAR)
-    return float(np.mean(near & ~rendered))
+        rendered |= z >= near
+        within |= (z > 0) & (z < near)
+    return float(np.mean(within & ~rendered))
 
 
 def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:

@@ -122,3 +122,100 @@ def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_p
         result = register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
     assert result.resumed_views == bad_view and f"{bad_view} of 6 views already registered" in caplog.text
     assert sorted(p.name for p in out.parent.iterdir()) == ["reg.ply"]
+
+
+NEAR_MODES = ["paper", "fit-check-vote-reject", "anchor-reject", "sharp-vote-reject", "solve"]
+
+
+@pytest.fixture(scope="module")
+def inria_plane(room, tmp_path_factory) -> dict[str, bytes]:
+    """The numba engine's one-block file of NEAR_MODES at INRIA's near plane (0.2)."""
+    from drsplat.defaults import INRIA_NEAR
+
+    scene, cams, features = room
+    folder = tmp_path_factory.mktemp("inria")
+    files = {}
+    for mode in NEAR_MODES:
+        out = folder / mode / "reg.ply"
+        register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, near_plane=INRIA_NEAR), show_progress=False)
+        files[mode] = out.read_bytes()
+    return files
+
+
+def test_the_near_plane_leaves_out_every_gaussian_nearer_than_it_in_each_view(room):
+    """--near-plane 0.2 (INRIA's): a view drops every Gaussian with camera depth under 0.2, as the reference
+    rasterizer does at that plane, culled or not; at the default 0.01 the same views hold such Gaussians (hard-tiny's
+    floor-level views: 63a measured 72.7 % of one view's weight on them), so the plane decides what is registered."""
+    from drsplat.defaults import INRIA_NEAR
+    from drsplat.raster import prepare_scene, rasterize_reference
+    from drsplat.registration.compute import ViewComputer, ViewJob
+
+    scene, cams, features = room
+    geometry = prepare_scene(scene)
+    near_ids = 0
+    for cull in (True, False):
+        computer = ViewComputer(geometry, ViewJob(features, 0, 10, near=INRIA_NEAR, cull=cull))
+        default = ViewComputer(geometry, ViewJob(features, 0, 10, cull=cull))
+        for cam in cams:
+            z = cam.world_to_camera(scene.means.astype(np.float64))[:, 2]
+            ids = computer.rasterize(cam).ids.copy()
+            want = rasterize_reference(scene, cam, 10, near=INRIA_NEAR)
+            np.testing.assert_array_equal(np.sort(ids, axis=2), np.sort(want.ids, axis=2))
+            assert not (z[ids[ids >= 0]] < INRIA_NEAR).any()
+            seen = default.rasterize(cam).ids
+            near_ids += int((z[seen[seen >= 0]] < INRIA_NEAR).sum())
+    assert near_ids > 1_000
+
+
+@pytest.mark.parametrize("engine,block", [("torch", None), ("numba", BLOCK), ("torch", BLOCK)])
+@pytest.mark.parametrize("mode", NEAR_MODES)
+def test_every_engine_and_plan_writes_the_same_file_at_another_near_plane(room, reference, inria_plane, tmp_path, engine, block, mode):
+    """The plane reaches every stage that renders (the view pass, the fit stage's probes, the solve's re-renders, the
+    per-view weightings' projections, the culling): the torch engine and blocks write the numba engine's one-block
+    file at 0.2, which is not the file at 0.01."""
+    from drsplat.defaults import INRIA_NEAR
+
+    scene, cams, features = room
+    assert inria_plane[mode] != reference[mode]
+    if block is not None and mode_stages(mode).solve:
+        return  # refused up front (test_every_engine_and_plan_writes_the_reference_file)
+    out = tmp_path / "reg.ply"
+    register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, engine=engine, device="cpu", block_size=block,
+                                                         near_plane=INRIA_NEAR), show_progress=False)
+    assert out.read_bytes() == inria_plane[mode]
+
+
+def test_a_checkpoint_records_a_near_plane_other_than_the_default(room, caplog):
+    """A log made at another plane is not resumed (it names --near-plane); the default is not recorded, so a log made
+    before the option resumes as it was."""
+    from drsplat.defaults import INRIA_NEAR, NEAR
+    from drsplat.registration.checkpoint import checkpoint_params
+    from drsplat.registration.pairlog import changed_params
+
+    scene, cams, features = room
+    default = checkpoint_params(scene, cams, features, 10, 0, "paper")
+    assert "near_plane" not in default and checkpoint_params(scene, cams, features, 10, 0, "paper", near_plane=NEAR) == default
+    inria = checkpoint_params(scene, cams, features, 10, 0, "paper", near_plane=INRIA_NEAR)
+    assert inria["near_plane"] == 0.2 and changed_params(default, inria) == "--near-plane changed"
+
+
+@pytest.mark.parametrize("plane", [0.0, -0.2, float("inf"), float("nan")])
+def test_a_near_plane_that_is_no_positive_depth_is_refused_up_front(room, tmp_path, plane):
+    scene, cams, features = room
+    with pytest.raises(UsageError, match=r"near-plane must be a positive, finite camera depth in scene units, got"):
+        register(scene, cams, features, tmp_path / "reg.ply", RegisterOptions(near_plane=plane), show_progress=False)
+    assert not (tmp_path / "reg.ply").exists()
+
+
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "solve"])
+def test_every_view_a_registration_renders_is_at_its_near_plane(room, tmp_path, monkeypatch, mode):
+    """The view pass, the fit stage's probe views and the solve's re-renders each make their own ViewComputer: every
+    one of them renders at the registration's plane."""
+    from drsplat.registration.compute import ViewComputer
+
+    scene, cams, features = room
+    planes = []
+    made = ViewComputer.__init__
+    monkeypatch.setattr(ViewComputer, "__init__", lambda self, geometry, job, *a, **k: (planes.append(job.near), made(self, geometry, job, *a, **k))[1])
+    register(scene, cams, features, tmp_path / "reg.ply", RegisterOptions(topk=10, aggregate=mode, near_plane=0.15), show_progress=False)
+    assert len(planes) >= 2 and set(planes) == {0.15}

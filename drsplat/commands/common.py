@@ -241,6 +241,19 @@ def resolution_value(text: str) -> float:
     return value
 
 
+def near_plane_value(text: str) -> float:
+    """argparse type for --near-plane: a positive, finite camera depth in scene units, or 'inria'
+    (raster.INRIA_NEAR, 0.2: the plane of the rasterizer that trained most 3DGS scenes)."""
+    from drsplat.defaults import INRIA_NEAR
+
+    if text.strip().lower() == "inria":
+        return INRIA_NEAR
+    value = float(_number(text, float))
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{value:g}: expected a positive camera depth in scene units (such as 0.01 or 0.2), or 'inria'")
+    return value
+
+
 # ---------------------------------------------------------------------------------------------
 # Shared arguments and loaders of the query-like commands (query, segment, eval)
 

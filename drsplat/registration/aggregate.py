@@ -126,7 +126,7 @@ import numpy as np
 from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_SLOT_BYTES, GAUSSIAN_TERM_BYTES, SOLVE_SLOTS, SPECIFICITY_SLOT_BYTES, VOTE_SLOT_BYTES
 from drsplat.memory import small_page_zeros
 from drsplat._raster_kernels import BLUR
-from drsplat.raster import PreparedScene, project_gaussians
+from drsplat.raster import NEAR, PreparedScene, project_gaussians
 
 log = logging.getLogger(__name__)
 
@@ -1077,10 +1077,11 @@ class ViewHook:
         """Whether the views must be rasterized with_median (floater rejection's surface)."""
         return self.reject
 
-    def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> tuple[np.ndarray, ViewStats | None]:
-        """(`weights`, `stats`) of one view: what a view pass accumulates and folds."""
+    def __call__(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None,
+                 near: float = NEAR) -> tuple[np.ndarray, ViewStats | None]:
+        """(`weights`, `stats`) of one view: what a view pass accumulates and folds (near: the plane it was rendered with)."""
         stats = self.stats(camera, out)
-        return self.weights(geometry, camera, out, mask_ids), stats
+        return self.weights(geometry, camera, out, mask_ids, near), stats
 
     def stats(self, camera, out) -> ViewStats | None:
         """The view's floater statistics (`surface_stats`, from the paper's weights whatever the
@@ -1093,7 +1094,7 @@ class ViewHook:
                                              candidates=getattr(out, "projected_ids", None))
         return stats
 
-    def weights(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None) -> np.ndarray:
+    def weights(self, geometry: PreparedScene | None, camera, out, mask_ids: np.ndarray | None = None, near: float = NEAR) -> np.ndarray:
         """[H, W, k] the weighting's per-slot weights (out.weights itself for "paper"; else this
         hook's buffer, overwritten by its next call). geometry: the scene's CPU geometry (means
         [N, 3] float64, covariances), needed when `needs_projection` (the render's own projection,
@@ -1110,16 +1111,16 @@ class ViewHook:
             self._buffer = explain_weights(out.ids, out.weights, mask_ids, self._seen.shape[0], out=self._buffer, seen=self._seen)
             return self._buffer
         if self.weighting == "sharp":
-            means2d, conics, rows = self._projection(geometry, camera, out)
+            means2d, conics, rows = self._projection(geometry, camera, out, near)
             if self._screen is None or self._screen.shape[0] != geometry.num_gaussians:
                 self._screen = small_page_zeros((geometry.num_gaussians, 5), np.float64)  # made once, a view's rows written at a time
             self._buffer, self._screen = sharp_weights(out.ids, out.weights, means2d, conics, rows, geometry.num_gaussians, self._screen, self._buffer)
             return self._buffer
-        means2d, conics = self._scene_projection(geometry, camera, out) if self.needs_projection else (np.zeros((0, 2)), np.zeros((0, 3)))
+        means2d, conics = self._scene_projection(geometry, camera, out, near) if self.needs_projection else (np.zeros((0, 2)), np.zeros((0, 3)))
         self._buffer = view_weights(self.weighting, out.ids, out.weights, means2d, conics, self._buffer)
         return self._buffer
 
-    def _projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _projection(self, geometry: PreparedScene, camera, out, near: float = NEAR) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(means2d [V, 2], conics [V, 3] float64, rows [V] their scene ids or None for V = N in id
         order), right for every Gaussian out.ids names: the render's own projection (of a culled
         subset: out.projected_ids), or projected here when the render kept none."""
@@ -1128,15 +1129,15 @@ class ViewHook:
         if projected is not None and rows is None and projected.means2d.shape[0] == geometry.num_gaussians:
             return projected.means2d, projected.conics, None
         if projected is None or rows is None or rows.shape[0] != projected.means2d.shape[0]:
-            projected = project_gaussians(geometry, camera)
+            projected = project_gaussians(geometry, camera, near)
             return projected.means2d, projected.conics, None
         return projected.means2d, projected.conics, rows
 
-    def _scene_projection(self, geometry: PreparedScene, camera, out) -> tuple[np.ndarray, np.ndarray]:
+    def _scene_projection(self, geometry: PreparedScene, camera, out, near: float = NEAR) -> tuple[np.ndarray, np.ndarray]:
         """(means2d [N, 2], conics [N, 3]) float64 by scene id (`_projection`'s rows scattered into this
         hook's buffers when it covers a culled subset; a Gaussian's projection does not depend on the
         others, so these are the same bits)."""
-        means2d, conics, rows = self._projection(geometry, camera, out)
+        means2d, conics, rows = self._projection(geometry, camera, out, near)
         if rows is None:
             return means2d, conics
         n = geometry.num_gaussians

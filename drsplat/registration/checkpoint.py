@@ -38,7 +38,7 @@ from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
-from drsplat.raster import sh_in_range
+from drsplat.raster import NEAR, sh_in_range
 from drsplat.scene import GaussianScene
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, protected_mode, read_npy_header,
                            temp_prefix, temp_stem, work_folder)
@@ -140,13 +140,16 @@ def _views_digest(cameras: Sequence[Camera]) -> str:
 
 
 def checkpoint_params(scene: GaussianScene, cameras: Sequence[Camera], features_dir: Path, topk: int, level: int, aggregate: str,
-                      shards: bool = False, engine: str = "numba", device: str = "cpu") -> dict:
+                      shards: bool = False, engine: str = "numba", device: str = "cpu", near_plane: float = NEAR) -> dict:
     """What a checkpoint (pair log) must match to be resumed. shards: the views are logged by the
     workers into shards (a log of pointers resumes only as one). engine, device: the rasterizer;
     only a GPU's is recorded, since the CPU engines log the same bits (numba = torch on a CPU) and
     the torch engine on CUDA agrees with them to float32 rounding only: a log it began resumed on
-    the CPU (or the reverse) would give a field equal to neither run's."""
+    the CPU (or the reverse) would give a field equal to neither run's. near_plane: recorded where
+    it is not the default (so a log made before the option resumes as it was)."""
     extra = {"shards": True} if shards else {}
+    if near_plane != NEAR:
+        extra["near_plane"] = float(near_plane)
     kind = device.split(":")[0]  # which GPU of a kind does not matter
     if kind != "cpu":
         extra["engine"] = f"{engine} on {kind}"

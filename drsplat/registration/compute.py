@@ -25,7 +25,7 @@ from drsplat.errors import UsageError
 from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
-from drsplat.raster import PreparedScene, RasterOutput, get_engine, prepare_scene
+from drsplat.raster import NEAR, PreparedScene, RasterOutput, get_engine, prepare_scene
 from drsplat.registration.aggregate import ViewHook, mode_stages
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
@@ -78,6 +78,7 @@ class ViewJob:
     parameters), and the driver gets pointers; None: the driver logs them.
     by_gaussian: coalesce each view's pairs grouped by Gaussian (`Coalescer.coalesce`): what a mode
     with a vote or check stage reads them as (`pairs_by_gaussian`); the sums do not change.
+    near: the near plane, the camera depth below which Gaussians are not drawn (RegisterOptions.near_plane).
     """
 
     features_dir: Path
@@ -92,6 +93,7 @@ class ViewJob:
     shard_dir: str | None = None
     log_params: dict | None = None
     by_gaussian: bool = False
+    near: float = NEAR
 
 
 def pairs_by_gaussian(mode: str) -> bool:
@@ -175,7 +177,7 @@ class ViewComputer:
         self._out = self._rasterize(cam)
         raster_seconds = time.perf_counter() - t0
         hook = self.job.hook
-        weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids)
+        weights, stats = (self._out.weights, None) if hook is None else hook(self._geometry, cam, self._out, mask_ids, near=self.job.near)
         view = self.pairs(cam, self._out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
         return view.grouped() if self.job.group_pairs else view
 
@@ -198,7 +200,7 @@ class ViewComputer:
         weighting = self.job.hook.weighting if self.job.hook is not None else "paper"
         capacity = None if exact else self._tiles.capacity()
         pairs, read, raster_seconds, stats = self._render_pairs(self._prepared, cam, self.job.topk, mask_ids, feats.shape[0], weighting,
-                                                                self._rays, capacity)
+                                                                self._rays, capacity, near=self.job.near)
         pairs.pending = self._tiles.pending(read, capacity, lambda: self._compute_on_device(cam, mask_ids, feats, nonfinite, exact=True))
         used = used_masks(mask_ids)
         none = np.zeros(0, np.int32)
@@ -221,13 +223,13 @@ class ViewComputer:
         """The view's RasterOutput with scene ids, rendering only the visible Gaussians when culling
         and that costs less than rendering every one (`renders_whole`)."""
         def render(prepared):
-            return self._render(prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device)
+            return self._render(prepared, cam, self.job.topk, with_median=self._with_median, out=self._out, device=self.job.device, near=self.job.near)
 
         slots = cam.width * cam.height * self.job.topk
         if self._index is None or not culling_pays(self._prepared.num_gaussians, slots):
             self.projected += self._prepared.num_gaussians if isinstance(self._prepared, PreparedScene) else 0
             return _whole(render(self._prepared))
-        ids = self._index.visible(cam)
+        ids = self._index.visible(cam, self.job.near)
         if renders_whole(ids.size, self._prepared.num_gaussians, slots):
             self.projected += self._prepared.num_gaussians
             return _whole(render(self._prepared))

@@ -822,7 +822,7 @@ class DeviceSupport:
 
 
 def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndarray, num_masks: int, weighting: str = "paper",
-                 rays: DeviceRays | None = None, tile_capacity: int | None = None) -> tuple[DevicePairs, DeviceRead, float, DeviceViewStats | None]:
+                 rays: DeviceRays | None = None, tile_capacity: int | None = None, near: float = NEAR) -> tuple[DevicePairs, DeviceRead, float, DeviceViewStats | None]:
     """Render `camera` on the scene's device, weight its slots (`view_weights_torch`) and coalesce its
     pairs there (`coalesce_pairs`).
 
@@ -831,15 +831,16 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
     runs its EM on the view's slots and masks, `explain_weights_torch`). rays:
     the scene's ray geometry on the device for a `-reject` mode (the view is rendered with its
     median Gaussians and its floater statistics computed there), else None. tile_capacity: the
-    tile lists' size (`TileCapacity`; None: exact, the one read of the device inside a view).
-    Returns (the view's DevicePairs padded to H·W·k, the DeviceRead of (distinct pairs P,
+    tile lists' size (`TileCapacity`; None: exact, the one read of the device inside a view). near:
+    the near plane (`ViewJob.near`). Returns (the view's DevicePairs padded to H·W·k, the DeviceRead of (distinct pairs P,
     contributing slots, tile-list entries needed, the M present-mask flags), seconds until the render's ops were issued, its
     DeviceViewStats or None): nothing is read here. The pairs are right when the entries needed fit
     tile_capacity. On CUDA the render runs on after it was issued, so the seconds then split the
     view where the host waited, not where the device worked.
     """
     t0 = time.perf_counter()
-    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device, tile_capacity=tile_capacity, ranked=False)
+    out = rasterize_torch(scene, camera, topk, with_median=rays is not None, device=scene.device, tile_capacity=tile_capacity, ranked=False,
+                          near=near)
     raster_seconds = time.perf_counter() - t0
     stats = None
     if rays is not None:
@@ -850,7 +851,7 @@ def render_pairs(scene: TorchScene, camera: Camera, topk: int, mask_ids: np.ndar
         weights = explain_weights_op(out.ids, out.weights, masks, scene.num_gaussians, EXPLAIN_ITERATIONS)
     elif weighting != "paper":
         weights = view_weights_op(weighting, out.ids, out.weights, scene.means, scene.covariances, scene.opacities, scene.finite,
-                                  raster_ops.camera_values(camera), NEAR, ANCHOR_GAIN)
+                                  raster_ops.camera_values(camera), near, ANCHOR_GAIN)
     pairs = coalesce_pairs(out.ids, weights, masks, num_masks, scene.num_gaussians)
     read = DeviceRead(torch.cat([pairs.counts, out.tile_entries.reshape(1).to(pairs.counts.device), pairs.mask_flags]))
     return pairs, read, raster_seconds, stats

@@ -287,7 +287,7 @@ def empty_level_hint(features_dir: Path, views: Sequence[Camera], level: int) ->
 def failure_hint(run: Run, level: int) -> str:
     """'; <the likely cause>' of a registration that assigned nothing: an empty mask level
     (`empty_level_hint`), else what `unassigned_hint` finds in the scene and cameras."""
-    return empty_level_hint(run.features_dir, run.views, level) or unassigned_hint(run.scene, run.views)
+    return empty_level_hint(run.features_dir, run.views, level) or unassigned_hint(run.scene, run.views, run.options.near_plane)
 
 
 def weak_sums(count: int) -> str:
@@ -367,7 +367,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         raise UsageError(f"--aggregate {options.aggregate} solves over all Gaussians in one block in memory and cannot run under a "
                          f"--memory-budget (or a block_size) that splits the scene into blocks of {block:,}")
     params = checkpoint_params(scene, run.views, run.features_dir, options.topk, options.level, options.aggregate, shards=reducers,
-                               engine=options.engine, device=options.device)
+                               engine=options.engine, device=options.device, near_plane=options.near_plane)
     if checkpoint is not None:
         ckpt = Checkpoint(checkpoint, params, run.views, aggregator, every=checkpoint_every, features_dir=run.features_dir, lock=lock,
                           stamps=stamps)
@@ -481,7 +481,8 @@ def _fit_stage(run: Run, cancel: CancelToken | None) -> FitStage | None:
     same_views = options.place == "local" and options.engine == "numba"
     engine, device = probe_engine(options.engine, options.device, options.place)
     return fit_stage(options.aggregate, run.scene, run.views, run.features_dir, options.level, options.topk,
-                     geometry=prepare_geometry(run.scene), cull=options.cull, keep_pairs=same_views, cancel=cancel, engine=engine, device=device)
+                     geometry=prepare_geometry(run.scene), cull=options.cull, keep_pairs=same_views, cancel=cancel, engine=engine, device=device,
+                     near=options.near_plane)
 
 
 def device_pairs_apply(options: RegisterOptions) -> bool:
@@ -632,7 +633,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
     shards = ckpt is not None and ckpt.shards_dir is not None
     job = ViewJob(run.features_dir, options.level, options.topk, options.engine, options.device, aggregator.hook, options.cull,
                   device_pairs=device_pairs, group_pairs=ckpt is not None, shard_dir=str(ckpt.shards_dir.resolve()) if shards else None,
-                  log_params=ckpt.log.params if shards else None, by_gaussian=pairs_by_gaussian(options.aggregate))
+                  log_params=ckpt.log.params if shards else None, by_gaussian=pairs_by_gaussian(options.aggregate), near=options.near_plane)
     ready = {i: view for i, view in (probe.pairs if probe is not None else {}).items() if i >= totals.done}
     geometry = probe.geometry if probe is not None else prepare_geometry(run.scene)
     executor = open_executor(options.place, geometry, job, options.cluster, index=probe.index if probe is not None else None)
@@ -731,7 +732,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views),
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views, run.options.near_plane),
                                             sum((p.fates for p in parts), RowFates()), sum(p.rejected for p in parts), asked))
     written = assemble_parts(Path(reduce.job.out), parts, codebook)  # the codebook written after the body, before the rename
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
@@ -743,7 +744,7 @@ def _solve_block(run: Run, block, cancel) -> None:
     the views with the registration's engine in this process; cancel: checked before each view it renders."""
     options = run.options
     solve_registration(prepare_geometry(run.scene), run.views, run.features_dir, options.level, options.topk, options.engine, options.device,
-                       block.F, cancel=cancel)
+                       block.F, cancel=cancel, near=options.near_plane)
 
 
 def register(
@@ -780,14 +781,14 @@ def register(
     log.info("%s: %d Gaussians (%d unassigned, %s), %s field, %d views in %d block(s), %.1f s", out, result.num_written,
              n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind, result.num_views,
              result.num_blocks, result.seconds)
-    warn_if_mostly_unassigned(result, scene, cameras)
+    warn_if_mostly_unassigned(result, scene, cameras, options.near_plane)
     return result
 
 
 LOW_ASSIGNED_FRACTION = 0.5  # below this share of Gaussians with a feature, a run is most likely misconfigured
 
 
-def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras) -> None:
+def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras, near: float = NEAR) -> None:
     """One warning when fewer than LOW_ASSIGNED_FRACTION of the Gaussians got a feature, with the likely cause.
 
     A trained scene seen by its own training views assigns most Gaussians; a small share means tiny
@@ -800,10 +801,10 @@ def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, 
         return
     log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
                 result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned,
-                unassigned_hint(scene, cameras))
+                unassigned_hint(scene, cameras, near))
 
 
-def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
+def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float = NEAR) -> str:
     """'; <the likely cause>' of a registration that assigned few or no Gaussians, "" when none shows:
     views under 64 px wide, Gaussians too faint for any pixel (opacity < 1/255), Gaussians nearer to every camera than the near plane (a scene in other
     units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame."""
@@ -814,26 +815,29 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera]) -> str:
     if faint >= 0.1:  # every pixel skips them (α < 1/255, as 3DGS's rasterizer does): seen or not, they get no weight
         why += (f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel "
                 "(is the file's opacity a logit, as the INRIA layout stores it?)")
-    near = share_within_near_plane(scene.means, cameras)
+    near = share_within_near_plane(scene.means, cameras, near=near_plane)
     if near >= 0.1:
-        return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({NEAR:g} scene units), "
-                      "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras)))
+        return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({near_plane:g} scene units), "
+                      "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras), near_plane))
     if small:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
         return why
     return why + frame_hint(scene.means, cameras)
 
 
-def near_plane_remedy(depth: float) -> str:
+def near_plane_remedy(depth: float, near_plane: float = NEAR) -> str:
     """What to do about a scene the near plane culls, given how far its Gaussians lie from the cameras
     (`median_nearest_depth`, scene units): a capture whose Gaussians lie a median under 1 unit from
     its cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
     together, they stay in one unit system), so scaling both up by the power of ten that brings that
-    median to 1 or more renders it; otherwise the scene and cameras disagree on units."""
+    median to 1 or more renders it, as does a near plane a tenth of that median or less (`--near-plane`,
+    a power of ten, named when it is below `near_plane`); otherwise the scene and cameras disagree on units."""
     if not 1e-300 < depth < 1.0:  # NaN too; under 1e-300 the factor would pass float64's range
         return "are the scene and its cameras in the same units?"
     factor = 10.0 ** math.ceil(-math.log10(depth))
+    plane = 10.0 ** math.floor(math.log10(depth / 10.0))
+    or_plane = f", or register with --near-plane {plane:g}" if plane < near_plane else ""
     return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, so the whole capture is at a scale the near plane "
-            f"does not fit: scale the scene and its cameras up together (by {factor:g}, say) and register again")
+            f"does not fit: scale the scene and its cameras up together (by {factor:g}, say) and register again{or_plane}")
 
 
 def n_unassigned(result: RegistrationResult) -> int:

@@ -77,7 +77,7 @@ import numba
 import numpy as np
 
 from drsplat.cameras import Camera
-from drsplat.raster import PreparedScene
+from drsplat.raster import NEAR, PreparedScene
 from drsplat.registration.aggregate import RayGeometry, SurfaceSupport, mode_hook, mode_stages
 from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
@@ -666,7 +666,8 @@ class FitStage:
 
 def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features_dir: Path, level: int, topk: int, *,
               geometry: PreparedScene | None = None, cull: bool = True, keep_pairs: bool = False, count: int = FIT_PROBES,
-              cancel: CancelToken | None = None, keep_bytes: int | None = None, engine: str = "numba", device: str = "cpu") -> FitStage:
+              cancel: CancelToken | None = None, keep_bytes: int | None = None, engine: str = "numba", device: str = "cpu",
+              near: float = NEAR) -> FitStage:
     """The fit stage of `mode` (a fit mode; module docstring) on `count` probe views of `views`.
 
     Each probe view is rendered once, by a ViewComputer of `engine` on `device` (`probe_engine`;
@@ -677,7 +678,8 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     docstring). keep_pairs: keep the chosen footprint's ViewPairs (statistics included) for a view pass that computes
     views the same way (numba, in this process), as many probe views as keep both footprints' pairs
     within `keep_bytes` (default `probe_keep_bytes(N)`; the pass renders the others again: the same pairs). geometry:
-    `prepare_geometry(scene)` when made already. cancel: checked before each probe view.
+    `prepare_geometry(scene)` when made already. cancel: checked before each probe view. near: the
+    view pass's near plane (`ViewJob.near`).
     """
     geometry = geometry if geometry is not None else prepare_geometry(scene)
     candidates = {footprint: resolve_mode(mode, footprint) for footprint in FOOTPRINTS}
@@ -689,7 +691,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     hook = mode_hook(candidates["sharp"], rays)
     support = SurfaceSupport.zeros(geometry.num_gaussians) if rejects else None  # the probe views' statistics, folded in probe order
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device, hook=hook, cull=cull,
-                                              by_gaussian=keep_pairs and pairs_by_gaussian(mode)))
+                                              by_gaussian=keep_pairs and pairs_by_gaussian(mode), near=near))
     order = ProbeOrder.of(views, probe_scale(scene))
     picks: list[int] = []  # the views probed, in probe order
     scores: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from drsplat.cluster import ClusterOptions
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, MAX_TOPK
 from drsplat.errors import UsageError
+from drsplat.defaults import NEAR
 from drsplat.registration.compute import check_engine
 
 
@@ -26,6 +28,8 @@ class RegisterOptions:
     default "fit-check-vote-reject" weights by the footprint the masks follow (drsplat.registration.fit),
     drops the masks the other views contradict, trims its mean by votes across views and rejects floaters).
     cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
+    near_plane: the camera depth (scene units) below which a Gaussian is not drawn in a view: NEAR (0.01,
+    gsplat's) or INRIA_NEAR (0.2, the rasterizer most scenes were trained with; docs/raster.md).
     reducers: on Ray and in blocks, each block is summed, finished, encoded and written by a Ray
     task (drsplat.registration.reduce; the same bytes); False: by the driver, block after block.
     """
@@ -43,6 +47,7 @@ class RegisterOptions:
     aggregate: str = DEFAULT_AGGREGATE
     cull: bool = True
     reducers: bool = True
+    near_plane: float = NEAR
 
     @property
     def place(self) -> str:
@@ -65,4 +70,6 @@ class RegisterOptions:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise UsageError(f"{name.replace('_', '-')} must be at least 1, got {value}")
+        if not (math.isfinite(self.near_plane) and self.near_plane > 0):
+            raise UsageError(f"near-plane must be a positive, finite camera depth in scene units, got {self.near_plane!r}")
         check_engine(self.engine, self.device)

@@ -600,7 +600,7 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
 PARAM_MEANINGS = {  # checkpoint_params' keys, as a restart names them
     "scene": "the scene's Gaussians", "num_gaussians": "the scene's size", "views": "the views (names, intrinsics, poses, order)",
     "features_dir": "the feature folder", "topk": "--topk", "level": "--level",
-    "aggregate": "--aggregate", "shards": "Ray in blocks (--ray with --memory-budget)", "version": "the checkpoint format",
+    "aggregate": "--aggregate", "near_plane": "--near-plane", "shards": "Ray in blocks (--ray with --memory-budget)", "version": "the checkpoint format",
     "engine": "the engine (--engine / --device: the GPU's agrees with the CPU's to float32 rounding only)",
 }
 

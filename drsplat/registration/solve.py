@@ -51,6 +51,7 @@ import numba
 import numpy as np
 
 from drsplat.defaults import SOLVE_SLOTS
+from drsplat.raster import NEAR
 from drsplat.registration.compute import ViewComputer, ViewJob
 from drsplat.registration.views import load_view_features
 from drsplat.registration.vote import MaskClusters
@@ -413,12 +414,13 @@ def solved_features(F: np.ndarray, result: SolveResult, means: np.ndarray, scrat
 
 def solve_registration(geometry, cameras, features_dir, level: int, topk: int, engine: str, device: str,
                        F: np.ndarray, lam: float = SOLVE_LAMBDA, iterations: int = SOLVE_ITERATIONS,
-                       cancel: CancelToken | None = None) -> SolveResult:
+                       cancel: CancelToken | None = None, near: float = NEAR) -> SolveResult:
     """The solve stage on a whole scene's sums F [N, D] (in place): clusters the views' masks,
     re-renders the views with the registration's engine on every pass (drsplat.registration.compute.
     ViewComputer) and moves F toward the solved mixtures. geometry: the scene's PreparedScene.
-    cancel: checked before each view of each pass (the passes are most of a `solve` run's time)."""
-    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device))
+    cancel: checked before each view of each pass (the passes are most of a `solve` run's time). near:
+    the registration's near plane (`ViewJob.near`)."""
+    computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device, near=near))
     clusters = MaskClusters(F.shape[1])
     for cam in cameras:
         mask_ids, feats, _ = load_view_features(features_dir, cam, level)
