@@ -718,8 +718,13 @@ def test_a_scene_nearer_to_its_cameras_than_the_near_plane_is_said(tiny, tmp_pat
         # scene and cameras in one unit system, at a tiny scale: "the same units?" misled (round 48); the remedy is a factor
         assert re.search(r"only \d+ of 2763 Gaussians .*; 99% of the Gaussians are nearer to every camera than the near plane "
                          r"\(0\.01 scene units\), which culls them: the Gaussians lie a median 0\.00037 scene units from the cameras, .*"
-                         r"scale the scene and its cameras up together \(by 10000, say\)", caplog.text), caplog.text
+                         r"scale the scene and its cameras up together \(by 10000, say\) and register again, or register with "
+                         r"--near-plane 1e-05", caplog.text), caplog.text
         assert "same units" not in caplog.text
+        # the plane it names registers the capture as it stands, as the full-size one is (--near-plane, 2026-12-06)
+        again = register(scene, cams, tiny / "features", tmp_path / "near.ply", RegisterOptions(aggregate="paper", near_plane=1e-5),
+                         show_progress=False)
+        assert again.num_assigned > 0.9 * scene.num_gaussians
 
 
 def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_path):
@@ -806,6 +811,8 @@ def test_the_near_plane_remedy_scales_a_tiny_capture_by_the_power_of_ten_that_br
     assert median_nearest_depth(means, [cam, far]) == 2.5  # each Gaussian's nearest camera: cam's 1, 2, 3; far's 5 for the last
     assert np.isnan(median_nearest_depth(means - [0.0, 0.0, 10.0], [cam]))  # every Gaussian behind the camera
     assert "(by 1000, say)" in near_plane_remedy(0.0037) and "(by 10, say)" in near_plane_remedy(0.1)
+    assert near_plane_remedy(0.0037).endswith("or register with --near-plane 0.0001")  # a power of ten at most a tenth of the depth
+    assert "--near-plane" not in near_plane_remedy(0.1) and "--near-plane 0.01" in near_plane_remedy(0.1, near_plane=0.2)
     for depth in (1.0, 25.0, float("nan"), 0.0, 1e-320, -1.0):
         assert near_plane_remedy(depth) == "are the scene and its cameras in the same units?"
 
