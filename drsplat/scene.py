@@ -743,17 +743,24 @@ def load_ply_rows(path: str | Path, keep: np.ndarray) -> GaussianScene:
     geometry for each of the scene's. For a file whose load drops no row (a registered scene's, which
     `commands.common.load_registered` refuses otherwise; the same rows are kept either way); the load's
     findings, which the caller's load of the whole file said, are not said again. InputError when the
-    file's rows are no longer N (changed since)."""
+    file's rows are no longer N, or some selected row is no longer finite (changed since)."""
     path, header, data = _read_vertex_rows(path)
     vertex = data["vertex"]
     if len(vertex) != len(keep):
         raise _fail(path, f"changed while it was read: it holds {len(vertex):,} rows, {len(keep):,} when it was read before "
                           "(another program is writing it?)")
     if "chunk" in data and "packed_position" in (vertex.dtype.names or ()):  # compressed PLYs are small: the whole load
-        return assemble_scene(path, _decode_compressed(path, {name: rows.array() for name, rows in data.items()}), list(vertex.dtype.names),
-                              "compressed", _kept_comments(header), say_findings=False)[0].subset(keep)
-    cols = _columns_from_inria(path, vertex.only(keep), say_reading=False)
-    return assemble_scene(path, cols, list(vertex.dtype.names), "inria", _kept_comments(header), say_findings=False)[0]
+        scene, report = assemble_scene(path, _decode_compressed(path, {name: rows.array() for name, rows in data.items()}),
+                                       list(vertex.dtype.names), "compressed", _kept_comments(header), say_findings=False)
+        if report.dropped_nan_rows + report.dropped_inf_rows == 0:
+            scene = scene.subset(keep)
+    else:
+        cols = _columns_from_inria(path, vertex.only(keep), say_reading=False)
+        scene = assemble_scene(path, cols, list(vertex.dtype.names), "inria", _kept_comments(header), say_findings=False)[0]
+    if len(scene) != int(np.count_nonzero(keep)):  # rows the first read kept are dropped now: not the file it was
+        raise _fail(path, f"changed while it was read: {int(np.count_nonzero(keep)):,} of its rows were selected, and "
+                          f"{len(scene):,} of them now hold finite values (another program is writing it?)")
+    return scene
 
 
 def _kept_comments(header: PlyHeader) -> list[str]:
@@ -776,7 +783,8 @@ def load_ply_extras(path: str | Path, purpose: str | None = None) -> tuple[PlyEx
     checked for the rows the load would drop (counted in the report, `nonfinite_rows`) and its
     geometry let go, so a query of a registered scene holds its language field, not 56-248 bytes of
     geometry a Gaussian too. The rows stay in the file's order: with dropped rows counted, the
-    extras still hold every row. The report has no geometry findings (extent, scales, opacities)."""
+    extras still hold every row. The report's geometry findings are gathered block by block
+    (`GeometryFindings`), so it says what the whole load says, its reading notes too."""
     path, header, data = _read_vertex_rows(path)
     vertex = data["vertex"]
     if "chunk" in data and "packed_position" in (vertex.dtype.names or ()):  # small files: the whole load
@@ -788,6 +796,7 @@ def load_ply_extras(path: str | Path, purpose: str | None = None) -> tuple[PlyEx
         raise InputError(path, f"holds no Gaussians (0 rows): there is nothing to {purpose}")
     rows = RowPass(vertex)
     counts = np.zeros(5, np.int64)  # rows with NaN, rows with an infinity, infinite opacities, zero quaternions, beyond float32
+    geometry = GeometryFindings(n)
 
     def count(start: int, block: np.ndarray) -> None:
         g = block_geometry(block, reading)
@@ -795,20 +804,73 @@ def load_ply_extras(path: str | Path, purpose: str | None = None) -> tuple[PlyEx
         kept = ~(has_nan | drop_inf)
         counts[:] += (int(has_nan.sum()), int(drop_inf.sum()), int(np.count_nonzero(np.isinf(g["opacity_logits"]) & kept)),
                       int(np.count_nonzero(~(np.abs(g["quats"]) > 0).any(axis=1) & kept)), rows_beyond_float32(block, reading.read_names))
+        geometry.add(start, g, kept)
 
     rows.add(count)
     extra = extra_columns_of(rows, reading.extra_names)
     rows.run()
+    log_reading(path, reading, n)
     if purpose and n and counts[:2].sum() == n:
         raise InputError(path, f"has no usable Gaussians: all {n:,} rows hold NaN or infinite values and were dropped: there is nothing to {purpose}")
     names = list(vertex.dtype.names)
     report = LoadReport(path=path, layout="inria", rows_in_file=n, sh_degree=reading.degree, has_normals="nx" in names, property_order=names,
                         dropped_nan_rows=int(counts[0]), dropped_inf_rows=int(counts[1]), clamped_opacity=int(counts[2]),
                         zero_quaternions=int(counts[3]), beyond_float32=int(counts[4]), nonfinite_extra=nonfinite_extra_values(extra))
-    for note in report.findings():  # the whole load's findings that need no geometry held (round 63c: NaN weights went unsaid)
+    geometry.fill(report)
+    for note in report.findings():  # the whole load's findings, said without its geometry held (round 63c, 64b)
         log.warning("%s: %s", path, note)
     _note_file_tail(path, header, data, report)
     return PlyExtras(extra, _kept_comments(header), n), report
+
+
+class GeometryFindings:
+    """The whole load's geometry findings (`assemble_scene`: far means, large SH, overflowing, huge and
+    linear scales, activated opacities, the scene's extent) gathered a block of rows at a time, so a
+    load that holds no geometry (`load_ply_extras`) says what the whole load says. Counts are of the
+    rows the load keeps; the encoding checks read every row's stored columns, as there. The extent
+    is taken from every ⌈N / EXTENT_SAMPLE⌉-th row of the file: the whole load's sample when it drops
+    no row. Holds 4 bytes a row (its largest log scale, for the huge ones once the extent is known)
+    and the sampled means (12 bytes each, at most EXTENT_SAMPLE of them)."""
+
+    def __init__(self, num_rows: int):
+        self.step = max(1, -(-num_rows // EXTENT_SAMPLE))
+        self.far_means = self.large_sh = self.overflowing_scales = self.opacity_strays = 0
+        self.opacities, self.scales = ValueSpread(), ValueSpread()
+        self.scale_columns = 0
+        self._sampled = np.empty((-(-num_rows // self.step), 3), np.float32)
+        self._largest = np.empty(num_rows, np.float32)
+        self._num_sampled = self._num_kept = 0
+
+    def add(self, start: int, geometry: dict[str, np.ndarray], kept: np.ndarray) -> None:
+        """One block's rows start .. start + B - 1: `block_geometry`'s columns and kept [B] bool."""
+        means, log_scales, sh = geometry["means"][kept], geometry["log_scales"][kept], geometry["sh"][kept]
+        self.far_means += int(np.count_nonzero((np.abs(means) > MAX_COORDINATE).any(axis=1)))
+        self.large_sh += count_rows_beyond(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT)
+        self.overflowing_scales += int(np.count_nonzero((log_scales > MAX_LOG_SCALE).any(axis=1)))
+        if log_scales.shape[0]:
+            self._largest[self._num_kept:self._num_kept + log_scales.shape[0]] = log_scales.max(axis=1)
+            self._num_kept += log_scales.shape[0]
+        sampled = means[(start + np.flatnonzero(kept)) % self.step == 0]
+        self._sampled[self._num_sampled:self._num_sampled + len(sampled)] = sampled
+        self._num_sampled += len(sampled)
+        opacity = geometry["stored_opacity"]
+        self.opacities.add(opacity)
+        with np.errstate(invalid="ignore"):
+            self.opacity_strays += int(np.count_nonzero((opacity < 0.0) | (opacity > 1.0)))
+        self.scales.add(geometry["stored_log_scales"])
+        self.scale_columns = geometry["stored_log_scales"].shape[1]
+
+    def fill(self, report: LoadReport) -> LoadReport:
+        """The findings into `report` (in place); returns it."""
+        sampled = self._sampled[:self._num_sampled]
+        report.scene_extent = scene_extent(sampled, sample=max(len(sampled), 1))
+        largest = self._largest[:self._num_kept]
+        report.huge_scales = (count_rows_beyond(largest[:, None], float(np.log(HUGE_SCALE_RATIO * report.scene_extent)), signed=True)
+                              if report.scene_extent > 0.0 else 0)
+        report.far_means, report.large_sh, report.overflowing_scales = self.far_means, self.large_sh, self.overflowing_scales
+        report.activated_opacities = activated_from(self.opacities, self.opacity_strays)
+        report.linear_scale_floor = linear_floor_from(self.scales, self.scale_columns, report.scene_extent)
+        return report
 
 
 def _read_vertex_rows(path: str | Path) -> tuple[Path, PlyHeader, dict[str, StoredRows]]:
@@ -1149,10 +1211,36 @@ def activated_opacity_strays(stored: np.ndarray) -> int | None:
     Fewer rows may all land in [0, 1] by chance; one value for every Gaussian is a hand-made scene,
     whose encoding it does not show."""
     values = _finite_values(stored)
-    if values.size < ENCODING_CHECK_ROWS or not values.max() > values.min():
+    return activated_from(ValueSpread.of(values), int(np.count_nonzero((values < 0.0) | (values > 1.0))))
+
+
+def activated_from(spread: ValueSpread, strays: int) -> int | None:
+    """`activated_opacity_strays` from the finite opacities' count and extremes (`ValueSpread`) and
+    how many of them lie outside [0, 1]: what a pass over the rows in blocks gathers."""
+    if spread.count < ENCODING_CHECK_ROWS or not spread.high > spread.low:
         return None
-    strays = int(np.count_nonzero((values < 0.0) | (values > 1.0)))
-    return strays if strays <= max(1, int(ACTIVATED_STRAY_SHARE * values.size)) else None
+    return strays if strays <= max(1, int(ACTIVATED_STRAY_SHARE * spread.count)) else None
+
+
+@dataclass
+class ValueSpread:
+    """The count, smallest and largest of some finite values, gathered a block at a time (`add`)."""
+
+    count: int = 0
+    low: float = math.inf
+    high: float = -math.inf
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> ValueSpread:
+        return cls().add(values)
+
+    def add(self, values: np.ndarray) -> ValueSpread:
+        """In place, with the finite values of `values` (flattened, NaN and infinities left out)."""
+        values = _finite_values(values)
+        if values.size:
+            self.count += int(values.size)
+            self.low, self.high = min(self.low, float(values.min())), max(self.high, float(values.max()))
+        return self
 
 
 def linear_scale_floor(stored: np.ndarray, extent: float) -> float:
@@ -1169,11 +1257,16 @@ def linear_scale_floor(stored: np.ndarray, extent: float) -> float:
     1e-4 of any scene under 10,000 units across (a linear scene wider than that is not caught; round 52:
     1e-3 missed one of 1000 units, a city in metres). For a log-scale scene to pass, all its Gaussians
     must be >= 1 unit and its thinnest 5x the largest share measured."""
-    values = _finite_values(stored)
-    if values.size < ENCODING_CHECK_ROWS * stored.shape[-1] or extent <= 0.0 or not values.min() >= 0.0 or values.max() == values.min():
+    return linear_floor_from(ValueSpread.of(stored), stored.shape[-1], extent)
+
+
+def linear_floor_from(spread: ValueSpread, columns: int, extent: float) -> float:
+    """`linear_scale_floor` from the finite stored scales' count and extremes (`ValueSpread`) over
+    `columns` scale columns: what a pass over the rows in blocks gathers."""
+    if spread.count < ENCODING_CHECK_ROWS * columns or extent <= 0.0 or not spread.low >= 0.0 or spread.high == spread.low:
         return 0.0
     with np.errstate(over="ignore"):
-        thinnest = float(np.exp(np.float64(values.min())))
+        thinnest = float(np.exp(np.float64(spread.low)))
     return thinnest if thinnest >= THINNEST_SCALE_SHARE * extent else 0.0
 
 

@@ -828,6 +828,59 @@ def test_a_selection_loaded_alone_is_the_whole_loads_subset(tmp_path, monkeypatc
                     np.testing.assert_array_equal(got.extra[column], values, err_msg=f"{name} {column}")
     with pytest.raises(InputError, match=r"inriale\.ply.*changed while it was read: it holds 1,001 rows, 1,000 when"):
         load_ply_rows(tmp_path / "inriale.ply", np.ones(1000, bool))
+    # rewritten between the reads with as many rows, some selected ones now NaN (round 64b: an empty selection written)
+    scene = load_ply(tmp_path / "inriale.ply")
+    scene.means[3:6] = np.nan
+    save_ply(scene, tmp_path / "inriale.ply")
+    for keep in (np.ones(1001, bool), np.arange(1001) == 4):
+        with pytest.raises(InputError, match=r"inriale\.ply.*changed while it was read: [0-9,]+ of its rows were selected, and [0-9,]+ of "
+                                             r"them now hold finite values"):
+            load_ply_rows(tmp_path / "inriale.ply", keep)
+    assert len(load_ply_rows(tmp_path / "inriale.ply", np.arange(1001) == 7)) == 1  # the rows left as they were still load
+
+
+def test_the_extras_load_says_what_the_whole_load_says(tmp_path, monkeypatch, caplog):
+    """`load_ply_extras` (a query's load, which holds no geometry) reports and logs the whole load's findings, the
+    geometry ones gathered block by block (round 64b: huge scales, activated opacities and the 2DGS / Mip / rgb
+    notes went unsaid): files with one huge Gaussian, a far mean, a large SH coefficient, an overflowing scale, zero
+    quaternions and infinite opacities, activated opacities, linear scales, and the layouts read with a note."""
+    import logging
+
+    import drsplat.scene as ds
+    from drsplat.scene import load_ply_extras
+
+    base = _inria_columns(3000, seed=5)
+    cases = {
+        "odd": base | {"scale_0": np.where(np.arange(3000) == 7, 6.0, base["scale_0"]).astype(np.float32),
+                       "x": np.where(np.arange(3000) == 9, 1e16, base["x"]).astype(np.float32),
+                       "f_dc_1": np.where(np.arange(3000) == 11, 1e32, base["f_dc_1"]).astype(np.float32),
+                       "scale_1": np.where(np.arange(3000) == 13, 95.0, base["scale_1"]).astype(np.float32),
+                       **{f"rot_{i}": np.where(np.arange(3000) < 4, 0.0, base[f"rot_{i}"]).astype(np.float32) for i in range(4)},
+                       "opacity": np.where(np.arange(3000) == 2, np.inf, base["opacity"]).astype(np.float32)},
+        "activated": base | {"opacity": np.random.default_rng(1).random(3000).astype(np.float32)},
+        "linear": base | {f"scale_{i}": np.exp(base[f"scale_{i}"]).astype(np.float32) * 50 for i in range(3)},
+    }
+    for name, columns in cases.items():
+        _write_vertices(tmp_path / f"{name}.ply", columns)
+    paths = {name: tmp_path / f"{name}.ply" for name in cases} | {k: v for k, v in _selection_layouts(tmp_path).items() if k != "compressed"}
+    for name, path in paths.items():
+        for block in (7, 1 << 30):
+            monkeypatch.setattr(ds, "READ_BLOCK_BYTES", block * 64)
+            caplog.clear()
+            with caplog.at_level(logging.INFO, logger="drsplat.scene"):
+                whole = load_ply_report(path)[1]
+            said = [record.getMessage() for record in caplog.records]
+            caplog.clear()
+            with caplog.at_level(logging.INFO, logger="drsplat.scene"):
+                extras = load_ply_extras(path)[1]
+            assert extras.findings() == whole.findings(), name
+            assert [record.getMessage() for record in caplog.records] == said, name
+            assert extras.scene_extent == whole.scene_extent and extras.huge_scales == whole.huge_scales, name
+    findings = " ".join(load_ply_extras(paths["odd"])[1].findings() + load_ply_extras(paths["activated"])[1].findings()
+                        + load_ply_extras(paths["linear"])[1].findings())
+    for said in ("as large as the scene", "beyond 1e+15 from the origin", "SH coefficient beyond", "log scale above",
+                 "zero quaternions", "opacity logits clamped", "activated opacities", "are exp(scales) stored"):
+        assert said in findings, said
 
 
 def test_a_ply_cut_short_while_it_is_read_is_one_error_naming_the_rows(tmp_path, monkeypatch):
