@@ -843,14 +843,16 @@ class GeometryFindings:
 
     def add(self, start: int, geometry: dict[str, np.ndarray], kept: np.ndarray) -> None:
         """One block's rows start .. start + B - 1: `block_geometry`'s columns and kept [B] bool."""
-        means, log_scales, sh = geometry["means"][kept], geometry["log_scales"][kept], geometry["sh"][kept]
-        self.far_means += int(np.count_nonzero((np.abs(means) > MAX_COORDINATE).any(axis=1)))
-        self.large_sh += count_rows_beyond(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT)
-        self.overflowing_scales += int(np.count_nonzero((log_scales > MAX_LOG_SCALE).any(axis=1)))
-        if log_scales.shape[0]:
-            self._largest[self._num_kept:self._num_kept + log_scales.shape[0]] = log_scales.max(axis=1)
-            self._num_kept += log_scales.shape[0]
-        sampled = means[(start + np.flatnonzero(kept)) % self.step == 0]
+        means, log_scales, sh = geometry["means"], geometry["log_scales"], geometry["sh"]  # every row: counted where kept, not copied
+        with np.errstate(invalid="ignore"):
+            self.far_means += int(np.count_nonzero((np.abs(means) > MAX_COORDINATE).any(axis=1) & kept))
+            self.overflowing_scales += int(np.count_nonzero((log_scales > MAX_LOG_SCALE).any(axis=1) & kept))
+        self.large_sh += int(np.count_nonzero(~rows_within(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT) & kept))
+        largest = log_scales.max(axis=1)[kept] if log_scales.shape[0] else np.zeros(0, np.float32)
+        self._largest[self._num_kept:self._num_kept + largest.shape[0]] = largest
+        self._num_kept += largest.shape[0]
+        rows = start + np.flatnonzero(kept)
+        sampled = means[rows[rows % self.step == 0] - start]
         self._sampled[self._num_sampled:self._num_sampled + len(sampled)] = sampled
         self._num_sampled += len(sampled)
         opacity = geometry["stored_opacity"]
@@ -1283,9 +1285,15 @@ def count_rows_beyond(rows: np.ndarray, limit: float, signed: bool = False) -> i
     one parallel pass, no [N, C] temporaries (an SH array of 50 M Gaussians is 9.6 GB)."""
     if rows.shape[0] == 0 or rows.shape[1] == 0:
         return 0
+    return int(rows.shape[0] - np.count_nonzero(rows_within(rows, limit, signed)))
+
+
+def rows_within(rows: np.ndarray, limit: float, signed: bool = False) -> np.ndarray:
+    """[N] bool: the rows of [N, C] (finite) with no entry beyond `limit` (`count_rows_beyond`'s test)."""
     within = np.ones(rows.shape[0], bool)
-    bounded_rows_kernel(np.ascontiguousarray(rows), limit, signed, within)
-    return int(rows.shape[0] - np.count_nonzero(within))
+    if rows.shape[0] and rows.shape[1]:
+        bounded_rows_kernel(np.ascontiguousarray(rows), limit, signed, within)
+    return within
 
 
 def surfel_scales(log_scales_2d: np.ndarray) -> np.ndarray:
