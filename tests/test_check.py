@@ -501,7 +501,8 @@ def test_like_threshold_holds_a_bounded_number_of_cosines_and_gives_the_dense_me
 
 
 @pytest.mark.parametrize("chunk", [1, 3, 40, 10**6])
-@pytest.mark.parametrize("kind", ["normal", "constant", "three-values", "adjacent-floats", "huge", "float-extremes", "subnormal", "skewed"])
+@pytest.mark.parametrize("kind", ["normal", "constant", "three-values", "adjacent-floats", "huge", "float-extremes", "subnormal", "skewed",
+                                  "infinities", "signed-zeros", "two-subnormals"])
 def test_stream_median_is_numpys_median(kind, chunk):
     """Exact for any values: ties, ranges a few floats wide, the largest finite floats (their
     difference overflows), subnormals, signed zeros, most values in one bin; odd and even counts."""
@@ -516,10 +517,21 @@ def test_stream_median_is_numpys_median(kind, chunk):
                            "huge": np.concatenate([rng.normal(size=m), [1e300, -1e300]]),
                            "float-extremes": np.concatenate([rng.normal(size=m) * 1e307, [np.finfo(float).max, -np.finfo(float).max, 0.0]]),
                            "subnormal": rng.integers(-4, 5, m) * tiny,
-                           "skewed": np.concatenate([1.0 + rng.normal(size=m) * 1e-12, [-1e6]])}[kind])
+                           "skewed": np.concatenate([1.0 + rng.normal(size=m) * 1e-12, [-1e6]]),
+                           "infinities": rng.choice([-np.inf, np.inf, -1.0, 0.5, 2.0], m),
+                           "signed-zeros": rng.choice([-0.0, 0.0], m),
+                           "two-subnormals": rng.choice([0.0, tiny], m)}[kind])  # halves that do not differ: no bin width (round 64a)
         pieces.append(np.array(extra))
+        with np.errstate(invalid="ignore", over="ignore"):  # np.median's own mean of -inf and inf, or of two huge values
+            want = np.median(np.concatenate(pieces))
         for bins in (2, 3, 4096):
-            assert stream_median(lambda: iter(pieces), chunk, bins) == np.median(np.concatenate(pieces)), (extra, bins)
+            got = stream_median(lambda: iter(pieces), chunk, bins)
+            assert got == want and np.signbit(got) == np.signbit(want), (extra, bins)  # -0.0 where np.median gives 0.0 too
+    for infinite in ([np.inf, -np.inf], [np.inf, np.inf, -np.inf], [-np.inf, 1.0]):  # infinities only, or at the middle
+        with np.errstate(invalid="ignore"):
+            want = np.median(np.array(infinite))
+        got = stream_median(lambda: iter([np.array(infinite)]), chunk)
+        assert got == want or (np.isnan(got) and np.isnan(want))
     assert np.isnan(stream_median(lambda: iter(pieces + [np.array([np.nan])]), chunk))
 
 

@@ -1061,18 +1061,36 @@ def stream_median(pieces: Callable[[], Iterator[np.ndarray]], chunk: int = LIKE_
     holding the wanted rank, and so on until that bin's values fit `chunk`; those are gathered and
     the rank and the next one picked (np.partition; the next one, when the bin ends at the rank,
     is the smallest value of the next bin holding any). The two middle values of an even count are
-    averaged as np.median does; NaN anywhere gives NaN, as there. A view of 19,200 masks (184 M
+    averaged as np.median does; NaN anywhere gives NaN, as there, and infinities rank below and above
+    every finite value (counted, never binned). A view of 19,200 masks (184 M
     cosines) takes three passes over them (the median used to take ~20, each value's bin found by a
     binary search)."""
-    n, low, high = 0, np.inf, -np.inf
+    n, below, above, low, high = 0, 0, 0, np.inf, -np.inf  # the count, the infinities below and above, the finite extremes
     for piece in pieces():
         if np.isnan(piece).any():
             return float("nan")
         n += piece.size
+        infinite = np.isinf(piece)
+        if infinite.any():
+            below += int(np.count_nonzero(piece == -np.inf))
+            above += int(np.count_nonzero(piece == np.inf))
+            piece = piece[~infinite]
         if piece.size:
             low, high = min(low, float(piece.min())), max(high, float(piece.max()))
-    lower, upper = _values_at_rank(pieces, (n - 1) // 2, n, low, high, chunk, bins)
-    return lower if n % 2 else float(np.mean([lower, upper]))
+    finite = n - below - above
+
+    def value_at(rank: int) -> float:
+        return -np.inf if rank < below else np.inf if rank >= below + finite else _values_at_rank(pieces, rank - below, finite, low, high, chunk, bins)[0]
+
+    middle = (n - 1) // 2
+    if n % 2:
+        middles = [value_at(middle)]  # as np.median: the one middle value through a mean (-0.0 gives 0.0)
+    elif below <= middle and middle + 1 < below + finite:
+        middles = list(_values_at_rank(pieces, middle - below, finite, low, high, chunk, bins))
+    else:
+        middles = [value_at(middle), value_at(middle + 1)]
+    with np.errstate(over="ignore", invalid="ignore"):  # two huge middles overflow to inf, -inf and inf give NaN: np.median's values
+        return float(np.mean(middles))
 
 
 @numba.njit(cache=True)
@@ -1087,7 +1105,7 @@ def _bin_stats(values, low, high, scale, counts, mins, maxs):  # pragma: no cove
     for v in values:
         if v >= low and v <= high:
             x = (0.5 * v - half_low) * scale
-            b = bins - 1 if x >= bins else int(x)
+            b = 0 if not x > 0.0 else bins - 1 if x >= bins else int(x)  # x is finite and >= 0 for finite v, low, scale
             counts[b] += 1
             if v < mins[b]:
                 mins[b] = v
@@ -1098,7 +1116,7 @@ def _bin_stats(values, low, high, scale, counts, mins, maxs):  # pragma: no cove
 def _values_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, count: int, low: float, high: float, chunk: int,
                     bins: int) -> tuple[float, float]:
     """The values of 0-based `rank` and of rank + 1 (inf when there is none) among the `count`
-    values of `pieces()` (none NaN, all within [low, high]). The next rank's value is the next one
+    finite values of `pieces()` (none NaN; the finite ones within [low, high], infinities left out). The next rank's value is the next one
     in the gathered bin, or the smallest value of the next bin that holds any (`after`)."""
 
     def within(v: np.ndarray) -> np.ndarray:
@@ -1106,9 +1124,11 @@ def _values_at_rank(pieces: Callable[[], Iterator[np.ndarray]], rank: int, count
 
     after = np.inf  # the smallest value above the range: where rank + 1 lies when rank is the range's last
     while low < high:
-        scale = bins / (0.5 * high - 0.5 * low)
-        if not np.isfinite(scale):
-            break  # a range a few floats wide: counted by value below
+        width = 0.5 * high - 0.5 * low
+        with np.errstate(over="ignore", divide="ignore"):
+            scale = float(np.float64(bins) / np.float64(width))
+        if not (width > 0.0 and np.isfinite(scale)):
+            break  # a range a few floats wide (subnormal halves may not differ at all): counted by value below
         counts, mins, maxs = np.zeros(bins, np.int64), np.full(bins, np.inf), np.full(bins, -np.inf)
         for p in pieces():
             _bin_stats(np.ascontiguousarray(p, np.float64), low, high, scale, counts, mins, maxs)
