@@ -34,17 +34,21 @@ def room(tmp_path_factory):
     return load_ply(data / "scene.ply"), load_cameras(data)[:VIEWS], data / "features"
 
 
+def one_block_files(room, folder, modes, **options) -> dict[str, bytes]:
+    """The numba engine's one-block file of each of `modes` (RegisterOptions `options` besides)."""
+    scene, cams, features = room
+    files = {}
+    for mode in modes:
+        out = folder / mode / "reg.ply"
+        register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, **options), show_progress=False)
+        files[mode] = out.read_bytes()
+    return files
+
+
 @pytest.fixture(scope="module")
 def reference(room, tmp_path_factory) -> dict[str, bytes]:
     """The numba engine's one-block file of every mode."""
-    scene, cams, features = room
-    folder = tmp_path_factory.mktemp("reference")
-    files = {}
-    for mode in AGGREGATE_MODES:
-        out = folder / mode / "reg.ply"
-        register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode), show_progress=False)
-        files[mode] = out.read_bytes()
-    return files
+    return one_block_files(room, tmp_path_factory.mktemp("reference"), AGGREGATE_MODES)
 
 
 def test_modes_give_different_fields(reference):
@@ -132,14 +136,7 @@ def inria_plane(room, tmp_path_factory) -> dict[str, bytes]:
     """The numba engine's one-block file of NEAR_MODES at INRIA's near plane (0.2)."""
     from drsplat.defaults import INRIA_NEAR
 
-    scene, cams, features = room
-    folder = tmp_path_factory.mktemp("inria")
-    files = {}
-    for mode in NEAR_MODES:
-        out = folder / mode / "reg.ply"
-        register(scene, cams, features, out, RegisterOptions(topk=10, aggregate=mode, near_plane=INRIA_NEAR), show_progress=False)
-        files[mode] = out.read_bytes()
-    return files
+    return one_block_files(room, tmp_path_factory.mktemp("inria"), NEAR_MODES, near_plane=INRIA_NEAR)
 
 
 def test_the_near_plane_leaves_out_every_gaussian_nearer_than_it_in_each_view(room):
