@@ -243,6 +243,34 @@ def test_lerf_protocol_with_ground_truth_and_wrong_selections(registered):
     assert bad.miou < 0.15
 
 
+def test_lerf_renders_at_the_near_plane_it_is_given():
+    """`eval lerf --near-plane`: a selected Gaussian 0.15 in front of the camera covers its disc at the default plane
+    (0.01) and is not drawn at INRIA's (0.2), in both protocols' renders, as the scene's trainer never drew it there."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.defaults import INRIA_NEAR, NEAR
+    from drsplat.eval.datasets import AnnotatedView
+    from drsplat.eval.langsplat import view_feature_blend
+    from drsplat.eval.lerf import lerf_2d_report
+    from drsplat.lang import build_field
+    from drsplat.raster import prepare_scene, rasterize
+    from drsplat.scene import GaussianScene
+
+    cam = look_at_camera((0, 0, -0.15), (0, 0, 0), 64, 64, fov_x_deg=60.0)
+    cam.name = "frame_00001"
+    scene = GaussianScene(np.zeros((1, 3), np.float32), np.array([[1.0, 0, 0, 0]], np.float32), np.full((1, 3), np.log(0.01), np.float32),
+                          np.array([20.0], np.float32), np.zeros((1, 1, 3), np.float32))
+    disc = rasterize(scene, cam, topk=1, mask=np.array([True])).alpha > np.float32(0.7)
+    assert disc.sum() > 20
+    view = AnnotatedView("frame_00001", 64, 64, {"blob": disc})
+    ious = {near: lerf_2d_report(scene, [cam], [view], {"blob": np.array([True])}, show_progress=False, near=near).rows[0].iou
+            for near in (NEAR, INRIA_NEAR)}
+    assert ious[NEAR] == 1.0 and ious[INRIA_NEAR] == 0.0
+    field = build_field(np.eye(4, dtype=np.float32)[:1], np.ones(1, np.float32))
+    for near, drawn in ((NEAR, True), (INRIA_NEAR, False)):
+        cosines, _ = view_feature_blend(prepare_scene(scene), cam, field, np.array([True]), np.eye(4, dtype=np.float32)[:1], 1, near)
+        assert (np.abs(cosines).max() > 0.5) == drawn
+
+
 def test_lerf_protocol_single_gaussian_known_disc():
     from drsplat.eval.datasets import AnnotatedView
     from drsplat.eval.lerf import lerf_2d_report

@@ -254,6 +254,15 @@ def near_plane_value(text: str) -> float:
     return value
 
 
+def add_near_plane_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """--near-plane DEPTH|inria (`near_plane_value`; default NEAR) for a command that renders; what: of what it is the plane."""
+    from drsplat.defaults import NEAR
+
+    parser.add_argument("--near-plane", type=near_plane_value, default=NEAR, metavar="DEPTH",
+                        help=f"camera depth in scene units below which a Gaussian is not drawn, the plane {what} (default: {NEAR:g}, "
+                             "gsplat's; docs/raster.md)")
+
+
 # ---------------------------------------------------------------------------------------------
 # Shared arguments and loaders of the query-like commands (query, segment, eval)
 

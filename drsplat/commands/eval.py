@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import (add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range,
+from drsplat.commands.common import (add_near_plane_argument, add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range,
                                      output_file, refuse_repeats, table_stream, threshold_value)
 from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_LIMIT, LERF_ALPHA_THRESHOLD, ORACLE_LABEL_NAMES,
                               ORACLE_TEXT_EMBEDDINGS)
@@ -188,6 +188,7 @@ def _add_lerf(sub) -> None:
                         f"never reaches it) (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     add_principal_point_argument(p)
+    add_near_plane_argument(p, "the views are rendered with (OpenGaussian's and LangSplat's renderer: INRIA's, 'inria')")
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
                    help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
                         "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
@@ -640,7 +641,7 @@ def run_lerf(args: argparse.Namespace) -> int:
     selected, taus = select_queries(scores, threshold, assigned)
     selections = {n: selected[:, k] for k, n in enumerate(names) if n in categories}
     alpha_threshold = LERF_ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
-    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=progress_shown(args))
+    report = lerf_2d_report(scene, cameras, views, selections, alpha_threshold, show_progress=progress_shown(args), near=args.near_plane)
     require_scored_pairs(args, report)
     stream = table_stream(args.json)
     doc = report.to_dict()
@@ -690,7 +691,7 @@ def _run_lerf_langsplat(args: argparse.Namespace, scene, field, cameras, views, 
     token = CancelToken()
     with cancel_on_signals(token, "the current view"):
         report = langsplat_report(scene, field, cameras, views, by_name, negatives, topk, mask_threshold, show_progress=progress_shown(args),
-                                  cancel=token, assigned=assigned)
+                                  cancel=token, assigned=assigned, near=args.near_plane)
         token.raise_if_cancelled()  # a Ctrl-C during the last view: it said "stopping", so no report and no exit 0
     require_scored_pairs(args, report)
     stream = table_stream(args.json)

@@ -8,8 +8,8 @@ import json
 import logging
 from pathlib import Path
 
-from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, near_plane_value, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR
+from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, add_near_plane_argument, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals, output_target, refuse_write_protected
 
@@ -49,10 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "1.7x (flowers) to 2.6x (a 640x480 room) faster per view and -0.013 seg mIoU on that room (docs/evaluation.md, "
                    "\"Resolution\"; `drsplat eval ablate resolution`)")
     add_principal_point_argument(p)
-    p.add_argument("--near-plane", type=near_plane_value, default=NEAR, metavar="DEPTH",
-                   help=f"camera depth in scene units below which a Gaussian is not drawn in a view (default: {NEAR:g}, gsplat's); "
-                   "'inria' (0.2) is the plane of the INRIA rasterizer that trained LangSplat's and Dr. Splat's scenes, which never "
-                   "drew nearer Gaussians in that view (docs/raster.md)")
+    add_near_plane_argument(p, "a view is rendered with; 'inria' (0.2) is the plane of the INRIA rasterizer that trained LangSplat's and "
+                               "Dr. Splat's scenes, which never drew nearer Gaussians in that view")
     p.add_argument("--out", type=output_file, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "

@@ -38,7 +38,7 @@ from drsplat.errors import DrsplatError
 from drsplat.eval.lerf import camera_for_view, mask_iou
 from drsplat.memory import available_memory, format_size
 from drsplat.query import query_rows, relevancy_from_scores
-from drsplat.raster import prepare_scene, rasterize_topk
+from drsplat.raster import NEAR, prepare_scene, rasterize_topk
 from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
@@ -269,10 +269,11 @@ class LangSplatReport:
         return "\n".join(lines)
 
 
-def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, embeddings: np.ndarray, topk: int) -> tuple[np.ndarray, float]:
+def view_feature_blend(prepared, camera: Camera, field, assigned: np.ndarray, embeddings: np.ndarray, topk: int,
+                       near: float = NEAR) -> tuple[np.ndarray, float]:
     """([E, H, W] cosines of the view's blended features with `embeddings`, the share of the pixels'
     α the top-k slots hold). assigned: [N] bool `field.assigned()`: the others blend as zeros."""
-    out = rasterize_topk(prepared, camera, topk)
+    out = rasterize_topk(prepared, camera, topk, near=near)
     h, w, k = out.ids.shape
     present, local = local_ids(out.ids.reshape(-1, k))  # numbered once: the features are fetched, then blended, by it
     feats = field.reconstruct(present).astype(np.float32) if present.size else np.zeros((0, field.dim), np.float32)
@@ -301,14 +302,14 @@ def check_view_memory(view: AnnotatedView, topk: int, embeddings: int) -> None:
 
 def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedView], queries: dict[str, np.ndarray], negatives: np.ndarray,
                      topk: int = DEFAULT_TOPK, mask_threshold: float = LANGSPLAT_MASK_THRESHOLD, show_progress: bool = True,
-                     cancel: CancelToken | None = None, assigned: np.ndarray | None = None) -> LangSplatReport:
+                     cancel: CancelToken | None = None, assigned: np.ndarray | None = None, near: float = NEAR) -> LangSplatReport:
     """Evaluate a registered field with LangSplat's 2D protocol (module docstring).
 
     scene: the registered GaussianScene; field: its LanguageField; cameras: matched to views by name
     (`lerf.camera_for_view`); queries: category -> [D] text embedding; negatives: [C, D] canonical
     (+ user) negative embeddings (both normalised here); assigned: [N] bool `field.assigned()` when the
     caller has it. Pairs of categories without a query are skipped with a warning; degenerate ground
-    truth is left out as in `lerf.lerf_2d_report`.
+    truth is left out as in `lerf.lerf_2d_report`. near: the near plane the views are rendered with.
     """
     by_name = {c.name: c for c in cameras}
     prepared = prepare_scene(scene)
@@ -331,7 +332,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
             cancel.raise_if_cancelled()
         check_view_memory(view, topk, len(names) + len(negatives))
         embeddings = query_rows(np.stack([queries[c] for c in names] + list(negatives)))  # unit rows: the cosines' other side
-        cosines, coverage = view_feature_blend(prepared, cam, field, assigned, embeddings, topk)
+        cosines, coverage = view_feature_blend(prepared, cam, field, assigned, embeddings, topk, near)
         pos = cosines[: len(names)].reshape(len(names), -1).T
         neg = cosines[len(names):].reshape(len(negatives), -1).T
         relevancy = relevancy_from_scores(pos, neg).T.reshape(len(names), view.height, view.width)

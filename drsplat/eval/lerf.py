@@ -21,7 +21,7 @@ from drsplat.defaults import LERF_ALPHA_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
 from drsplat.query import otsu_threshold, thresholds_as_compared
-from drsplat.raster import prepare_scene, rasterize
+from drsplat.raster import NEAR, prepare_scene, rasterize
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ def select_queries(scores: np.ndarray, threshold: float | None = None, assigned:
 
 def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], selections: dict[str, np.ndarray],
                    alpha_threshold: float = LERF_ALPHA_THRESHOLD, show_progress: bool = True, on_progress=None,
-                   cancel: CancelToken | None = None) -> Lerf2DReport:
+                   cancel: CancelToken | None = None, near: float = NEAR) -> Lerf2DReport:
     """Evaluate selections against LERF-OVS masks.
 
     scene: GaussianScene (N Gaussians); cameras: the scene's cameras, matched to views by name;
@@ -121,7 +121,8 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
     Categories without a selection are reported and skipped; views without a camera are listed
     in `missing_views`. Degenerate ground truth is in no mean: the categories of `view.skipped` and
     any empty ground-truth mask become `skipped` pairs (an empty mask would score 1.0 against an
-    empty selection and 0 against any other), with a warning for the latter.
+    empty selection and 0 against any other), with a warning for the latter. near: the near plane the
+    selections are rendered with (`register --near-plane`; OpenGaussian renders with INRIA's, 0.2).
     """
     by_name = {c.name: c for c in cameras}
     prepared = prepare_scene(scene)
@@ -153,7 +154,7 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
                 continue
             sel = np.asarray(sel, bool)
             if sel.any():
-                alpha = rasterize(prepared, cam, topk=1, mask=sel).alpha
+                alpha = rasterize(prepared, cam, topk=1, mask=sel, near=near).alpha
                 pred = alpha > np.float32(alpha_threshold)  # compared in float32, as the official code's tensors
             else:
                 pred = np.zeros((view.height, view.width), bool)
