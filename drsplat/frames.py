@@ -76,7 +76,7 @@ from scipy.spatial import cKDTree
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
                              detect_dataset, folder_prefixes, in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, run_orientation,
                              read_colmap_model, read_dataparser_transform)
-from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, PRINCIPAL_POINTS
+from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, NEAR, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import prepare_scene, rasterize, share_in_some_view
 from drsplat.utils import CancelToken, spread_rows
@@ -456,11 +456,11 @@ def _colmap_image_names(source: str | Path) -> list[str] | None:
     return [image.name for image in read_colmap_model(found).images.values()]
 
 
-def frame_hint(means: np.ndarray, cameras: Sequence[Camera]) -> str:
+def frame_hint(means: np.ndarray, cameras: Sequence[Camera], near: float = NEAR) -> str:
     """'; only k% of the Gaussians' centres lie inside any view: ...' when fewer than LOW_SEEN_FRACTION
     of them do (`raster.share_in_some_view`), with where a scene in another frame than its cameras
     comes from; "" otherwise (the registration's warnings and errors end with it)."""
-    seen = share_in_some_view(means, cameras)
+    seen = share_in_some_view(means, cameras, near=near)
     if seen >= LOW_SEEN_FRACTION:
         return ""
     return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
@@ -526,13 +526,14 @@ def over_fitted_background(rgb: np.ndarray, alpha: np.ndarray, image: np.ndarray
     return out
 
 
-def supersampled_render(prepared, camera: Camera, factor: int) -> tuple[np.ndarray, np.ndarray]:
+def supersampled_render(prepared, camera: Camera, factor: int, near: float = NEAR) -> tuple[np.ndarray, np.ndarray]:
     """(rgb [H, W, 3], alpha [H, W]) of the camera's view over black, each pixel the mean of a
     factor x factor block of a render `factor` times the size: a photo's pixel averages its
     footprint, and a dense scene's sub-pixel Gaussians rendered at one sample a pixel alias (a real
-    scene, flowers at 96 px: correlation 0.62 with its own 640 px renders, 0.94 at 320 px)."""
+    scene, flowers at 96 px: correlation 0.62 with its own 640 px renders, 0.94 at 320 px). near: the
+    near plane (a capture registered at another plane is checked at it: round 64c)."""
     big = camera.scaled(factor)
-    raster = rasterize(prepared, big, 1, with_rgb=True)
+    raster = rasterize(prepared, big, 1, with_rgb=True, near=near)
     h, w = camera.height, camera.width
     rgb = raster.rgb[: h * factor, : w * factor].reshape(h, factor, w, factor, 3).mean(axis=(1, 3))
     alpha = raster.alpha[: h * factor, : w * factor].reshape(h, factor, w, factor).mean(axis=(1, 3))
@@ -547,7 +548,7 @@ def photo_scene(scene, sample: int = PHOTO_CHECK_SAMPLE):
 
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
                     sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE, prepared=None,
-                    pictures: dict | None = None, skipped: Counter | None = None) -> dict[str, float]:
+                    pictures: dict | None = None, skipped: Counter | None = None, near: float = NEAR) -> dict[str, float]:
     """How well the scene re-renders its training images: camera name -> `grey_correlation` of the
     scene's render (black background) and the camera's image, both `width` px on their longer side, over the pixels
     the render covers (α ≥ ½), for up to `views` cameras with an image file, spread over the list.
@@ -589,7 +590,7 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
         if isinstance(picture, str):
             skipped[picture] += 1
             continue
-        rgb, alpha = supersampled_render(prepared, small, supersample)
+        rgb, alpha = supersampled_render(prepared, small, supersample, near)
         covered = alpha >= 0.5
         if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
             skipped[LITTLE_COVERED] += 1
@@ -626,20 +627,21 @@ PRINCIPAL_POINT_MARGIN = 2e-3
 
 def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, principal_point: str = DEFAULT_PRINCIPAL_POINT,
                        what: str = "the scene", scene_path: str | Path | None = None,
-                       refinements: np.ndarray | None = None, cancel: CancelToken | None = None) -> list[Camera]:
+                       refinements: np.ndarray | None = None, cancel: CancelToken | None = None, near: float = NEAR) -> list[Camera]:
     """`cameras` of dataset `source` as their scene (a GaussianScene) was trained with them: moved into
     its frame (`cameras_in_scene_frame`), the readings a nerfstudio run leaves open decided
     (`cameras_of_nerfstudio_run`), then with its principal points (`cameras_with_principal_point`,
     `principal_point` its choice). Each step renders views of the scene when it must decide; `cancel`
-    (the viewer's, when another check replaces this one) is honoured between them (Cancelled)."""
+    (the viewer's, when another check replaces this one) is honoured between them (Cancelled). near: the
+    plane the renders are drawn at (the registration's `--near-plane`)."""
     stop = cancel.raise_if_cancelled if cancel is not None else (lambda: None)
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
     stop()
     run = nerfstudio_run_file(source, scene_path)
     if run is not None:
-        cameras = cameras_of_nerfstudio_run(scene, cameras, *run, what=what)
+        cameras = cameras_of_nerfstudio_run(scene, cameras, *run, what=what, near=near)
         stop()
-    return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source)
+    return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source, near=near)
 
 
 def nerfstudio_run_file(source: str | Path, scene_path: str | Path | None = None) -> tuple[Path, AppliedMove] | None:
@@ -679,7 +681,8 @@ def half_turned(cameras: Sequence[Camera]) -> list[Camera]:
     return [in_trained_frame(c, HALF_TURN_X, np.zeros(3), 1.0) for c in cameras]
 
 
-def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, applied: AppliedMove, what: str = "the scene") -> list[Camera]:
+def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, applied: AppliedMove, what: str = "the scene",
+                              near: float = NEAR) -> list[Camera]:
     """`cameras`, moved by nerfstudio's dataparser file `path` (`applied`: what the dataset's transforms.json
     carries), in the frame the run trained in, where its files leave two things open:
 
@@ -711,7 +714,7 @@ def cameras_of_nerfstudio_run(scene, cameras: Sequence[Camera], path: Path, appl
                      for i, (label, words, c) in enumerate(readings)]
     if len(readings) == 1:
         return cameras
-    chosen, scores = best_reading(scene, [c for _, _, c in readings], READING_MARGIN, READING_VIEWS)
+    chosen, scores = best_reading(scene, [c for _, _, c in readings], READING_MARGIN, READING_VIEWS, near)
     said = ", ".join(f"{label} {score:.3f}" for (label, _, _), score in zip(readings, scores.medians))
     if not scores.views:
         log.warning("%s leaves open how %s was trained (%s), and no training image could be compared with its renders to tell "
@@ -747,7 +750,8 @@ class ReadingScores:
         return f"{self.views} view" if self.views == 1 else f"{self.views} views"
 
 
-def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, views: int = PHOTO_CHECK_VIEWS) -> tuple[int, ReadingScores]:
+def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, views: int = PHOTO_CHECK_VIEWS,
+                 near: float = NEAR) -> tuple[int, ReadingScores]:
     """(the index of the reading of the same cameras (readings[r][i] is camera i read the r-th way) whose renders look
     most like the training images, its scores): `photo_agreement` of each over up to `views` cameras, a view one
     reading shows nothing of counting ρ = 0 for it; reading r > 0 is taken over reading 0 when
@@ -756,7 +760,7 @@ def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, vie
 
     the one of largest gain among those; else 0."""
     prepared, pictures, skipped = photo_scene(scene), {}, Counter()
-    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None)
+    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None, near=near)
              for r, cams in enumerate(readings)]
     common = sorted(set().union(*found))
     if not common:
@@ -772,7 +776,7 @@ def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, vie
 
 
 def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str = DEFAULT_PRINCIPAL_POINT, what: str = "the scene",
-                                 source: str | Path | None = None) -> list[Camera]:
+                                 source: str | Path | None = None, near: float = NEAR) -> list[Camera]:
     """`cameras` with the principal points their scene (a GaussianScene) was trained with.
 
     choice: "file" keeps each camera's cx, cy (gsplat and nerfstudio train so); "centre" moves them
@@ -822,7 +826,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     # only the views whose principal point is off-centre tell the readings apart (round 55a: a rig with every third camera
     # off-centre gave gain 0 in most compared views, and the median kept the file's)
     chosen, compared = best_reading(scene, [[cameras[i] for i in off], [centred[i] for i in off]], PRINCIPAL_POINT_MARGIN,
-                                    PRINCIPAL_POINT_VIEWS)
+                                    PRINCIPAL_POINT_VIEWS, near)
     given_rho, centre_rho = compared.medians
     if not compared.views:
         log.warning("the principal points of %d of %s lie off their image centres (up to %s of the side) and no training image "
@@ -841,7 +845,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     return cameras
 
 
-def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:
+def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera], near: float = NEAR) -> None:
     """One warning when the scene does not re-render its training images (`photo_agreement`'s
     median ρ under PHOTO_MATCH_MIN): a scene in another frame than its cameras, which may still
     sit inside every view (a splatfacto export shrunk into [−1, 1] without its
@@ -851,7 +855,7 @@ def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera]) -> None:
                  "a faithful picture from", f"{scene.num_gaussians:,}", f"{PHOTO_CHECK_MAX_THINNING * PHOTO_CHECK_SAMPLE:,}")
         return
     skipped: Counter = Counter()
-    agreement = photo_agreement(scene, cameras, skipped=skipped)
+    agreement = photo_agreement(scene, cameras, skipped=skipped, near=near)
     if not agreement and skipped[LITTLE_COVERED] and skipped[LITTLE_COVERED] == sum(skipped.values()):
         # every view with an image shows (next to) nothing of the scene: the plainest wrong dataset (round 57c: said at DEBUG)
         log.warning("none of the %d training views checked shows the scene (each render covers under %d pixels): the scene may be "

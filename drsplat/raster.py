@@ -196,8 +196,8 @@ def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: i
     return float(np.median(nearest)) if nearest.size else float("nan")
 
 
-def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
-    """The share of Gaussians whose mean some view sees: z ≥ NEAR and its projection inside the image
+def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000, near: float = NEAR) -> float:
+    """The share of Gaussians whose mean some view sees: z ≥ near and its projection inside the image
     (0 ≤ u < W, 0 ≤ v < H), estimated on every ⌈N / sample⌉-th Gaussian. A trained scene's training
     views see most of it; a scene in another frame than its cameras (a trainer's normalised world)
     has few seen, or none.
@@ -209,7 +209,7 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
     seen = np.zeros(len(means), bool)
     for cam in cameras:
         uv, z = cam.project(means)
-        seen |= (z >= NEAR) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        seen |= (z >= near) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     return float(np.mean(seen))
 
 

@@ -721,10 +721,14 @@ def test_a_scene_nearer_to_its_cameras_than_the_near_plane_is_said(tiny, tmp_pat
                          r"scale the scene and its cameras up together \(by 10000, say\) and register again, or register with "
                          r"--near-plane 1e-05", caplog.text), caplog.text
         assert "same units" not in caplog.text
-        # the plane it names registers the capture as it stands, as the full-size one is (--near-plane, 2026-12-06)
-        again = register(scene, cams, tiny / "features", tmp_path / "near.ply", RegisterOptions(aggregate="paper", near_plane=1e-5),
-                         show_progress=False)
+        # the plane it names registers the capture as it stands, as the full-size one is (--near-plane, 2026-12-06), and the
+        # check of the scene against its images renders at that plane too (round 64c: "another frame" was said, rendered at 0.01)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            again = register(scene, cams, tiny / "features", tmp_path / "near.ply", RegisterOptions(aggregate="paper", near_plane=1e-5),
+                             show_progress=False)
         assert again.num_assigned > 0.9 * scene.num_gaussians
+        assert caplog.text == "", caplog.text
 
 
 def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_path):
@@ -812,7 +816,12 @@ def test_the_near_plane_remedy_scales_a_tiny_capture_by_the_power_of_ten_that_br
     assert np.isnan(median_nearest_depth(means - [0.0, 0.0, 10.0], [cam]))  # every Gaussian behind the camera
     assert "(by 1000, say)" in near_plane_remedy(0.0037) and "(by 10, say)" in near_plane_remedy(0.1)
     assert near_plane_remedy(0.0037).endswith("or register with --near-plane 0.0001")  # a power of ten at most a tenth of the depth
-    assert "--near-plane" not in near_plane_remedy(0.1) and "--near-plane 0.01" in near_plane_remedy(0.1, near_plane=0.2)
+    assert "--near-plane" not in near_plane_remedy(0.1)  # its plane would be the default
+    # a plane the user chose, deeper than the Gaussians lie: the plane is the cause, not the scene's scale (round 64c)
+    assert near_plane_remedy(0.24, near_plane=5.0) == ("the Gaussians lie a median 0.24 scene units from the cameras, nearer than the "
+                                                       "--near-plane of 5: register with a smaller plane (the default: leave --near-plane out)")
+    assert near_plane_remedy(2.4, near_plane=50.0).endswith("(the default: leave --near-plane out)")
+    assert near_plane_remedy(0.00037, near_plane=0.001).endswith("(--near-plane 1e-05)")
     for depth in (1.0, 25.0, float("nan"), 0.0, 1e-320, -1.0):
         assert near_plane_remedy(depth) == "are the scene and its cameras in the same units?"
 

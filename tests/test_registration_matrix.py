@@ -207,12 +207,17 @@ def test_a_near_plane_that_is_no_positive_depth_is_refused_up_front(room, tmp_pa
 @pytest.mark.parametrize("mode", ["fit-check-vote-reject", "solve"])
 def test_every_view_a_registration_renders_is_at_its_near_plane(room, tmp_path, monkeypatch, mode):
     """The view pass, the fit stage's probe views and the solve's re-renders each make their own ViewComputer: every
-    one of them renders at the registration's plane."""
+    one of them renders at the registration's plane, and the per-view weightings project at it (round 64c: the fit
+    stage's sharp weights were asked at the default)."""
+    from drsplat.registration.aggregate import ViewHook
     from drsplat.registration.compute import ViewComputer
 
     scene, cams, features = room
-    planes = []
-    made = ViewComputer.__init__
+    planes, weighed = [], []
+    made, weights = ViewComputer.__init__, ViewHook.weights
     monkeypatch.setattr(ViewComputer, "__init__", lambda self, geometry, job, *a, **k: (planes.append(job.near), made(self, geometry, job, *a, **k))[1])
+    monkeypatch.setattr(ViewHook, "weights", lambda self, geometry, camera, out, mask_ids=None, near=-1.0: (
+        weighed.append(near), weights(self, geometry, camera, out, mask_ids, near))[1])
     register(scene, cams, features, tmp_path / "reg.ply", RegisterOptions(topk=10, aggregate=mode, near_plane=0.15), show_progress=False)
     assert len(planes) >= 2 and set(planes) == {0.15}
+    assert set(weighed) <= {0.15} and (mode == "solve" or weighed)

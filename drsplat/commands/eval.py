@@ -616,7 +616,7 @@ def run_lerf(args: argparse.Namespace) -> int:
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
     cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.registered),
-                                 **trained_cameras(scene, args.registered))
+                                 **trained_cameras(scene, args.registered), near=args.near_plane)
     guard_field_codebook(args.registered, field, {"--json": args.json})
     assigned = assigned_rows(args.registered, field)
     categories = sorted({c for v in views for c in (*v.masks, *v.skipped)})

@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
                     "PLY has %d rows and its row i is not always the file's row i; drop those rows from the scene file first "
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.scene), scene_path=args.scene,
-                                 refinements=report.camera_refinements)  # trainers' own worlds, cameras and principal points
+                                 refinements=report.camera_refinements, near=args.near_plane)  # trainers' own worlds, cameras and principal points
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])

@@ -773,7 +773,7 @@ def register(
     check_manifest_dim(run.features_dir, manifest, run.dim)
     warn_if_distorted_without_manifest(run.selection.views, manifest, run.features_dir)
     warn_if_turned_without_manifest(run.selection.views, manifest, run.features_dir)
-    warn_if_scene_misses_its_images(scene, run.selection.views)
+    warn_if_scene_misses_its_images(scene, run.selection.views, options.near_plane)
     target = PlyTarget(scene, out, manifest_model_id(manifest), cancel, clip_weights=manifest_weights(manifest))
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
@@ -821,21 +821,30 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane:
                       "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras), near_plane))
     if small:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
         return why
-    return why + frame_hint(scene.means, cameras)
+    return why + frame_hint(scene.means, cameras, near_plane)
 
 
 def near_plane_remedy(depth: float, near_plane: float = NEAR) -> str:
     """What to do about a scene the near plane culls, given how far its Gaussians lie from the cameras
-    (`median_nearest_depth`, scene units): a capture whose Gaussians lie a median under 1 unit from
-    its cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
+    (`median_nearest_depth`, scene units). A plane the user chose (`near_plane` not NEAR) deeper than
+    that is the cause itself: a smaller one is named (the default where it fits, else a power of ten
+    at most a tenth of the depth; round 64c: a plane of 5 on a room 0.24 units away was told to scale
+    the scene). At the default plane, a capture whose Gaussians lie a median under 1 unit from its
+    cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
     together, they stay in one unit system), so scaling both up by the power of ten that brings that
-    median to 1 or more renders it, as does a near plane a tenth of that median or less (`--near-plane`,
-    a power of ten, named when it is below `near_plane`); otherwise the scene and cameras disagree on units."""
-    if not 1e-300 < depth < 1.0:  # NaN too; under 1e-300 the factor would pass float64's range
+    median to 1 or more renders it, as does such a smaller plane; otherwise the scene and cameras
+    disagree on units."""
+    if not 1e-300 < depth < math.inf:  # NaN too; under 1e-300 the factor would pass float64's range
+        return "are the scene and its cameras in the same units?"
+    plane = 10.0 ** math.floor(math.log10(depth / 10.0))
+    if near_plane != NEAR:
+        smaller = "the default: leave --near-plane out" if NEAR <= plane else f"--near-plane {plane:g}"
+        return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, nearer than the --near-plane of "
+                f"{near_plane:g}: register with a smaller plane ({smaller})")
+    if depth >= 1.0:
         return "are the scene and its cameras in the same units?"
     factor = 10.0 ** math.ceil(-math.log10(depth))
-    plane = 10.0 ** math.floor(math.log10(depth / 10.0))
-    or_plane = f", or register with --near-plane {plane:g}" if plane < near_plane else ""
+    or_plane = f", or register with --near-plane {plane:g}" if plane < NEAR else ""
     return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, so the whole capture is at a scale the near plane "
             f"does not fit: scale the scene and its cameras up together (by {factor:g}, say) and register again{or_plane}")
 

@@ -720,7 +720,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         scored = None
         both: dict[str, ViewPairs] = {}
         for footprint in FOOTPRINTS:  # the paper's first: its pairs decide whether the view scores
-            weights = hook.weights(geometry, cam, out, mask_ids) if footprint == "sharp" else out.weights
+            weights = hook.weights(geometry, cam, out, mask_ids, near) if footprint == "sharp" else out.weights
             view = both[footprint] = computer.pairs(cam, out.ids, weights, stats, mask_ids, feats, nonfinite, raster_seconds)
             if scored is None:
                 scored = scores_footprints(view.weights)
