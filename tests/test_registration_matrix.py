@@ -221,3 +221,15 @@ def test_every_view_a_registration_renders_is_at_its_near_plane(room, tmp_path, 
     register(scene, cams, features, tmp_path / "reg.ply", RegisterOptions(topk=10, aggregate=mode, near_plane=0.15), show_progress=False)
     assert len(planes) >= 2 and set(planes) == {0.15}
     assert set(weighed) <= {0.15} and (mode == "solve" or weighed)
+
+
+def test_the_near_plane_flag_reads_a_depth_or_inria_and_names_both_when_refusing():
+    import argparse
+
+    from drsplat.commands.common import near_plane_value
+
+    assert [near_plane_value(t) for t in ("inria", " INRIA ", "0.01", "1e-12", "5")] == [0.2, 0.2, 0.01, 1e-12, 5.0]
+    for text in ("abc", "inria2", "", "0", "-0", "-1", "1e-400", "nan", "inf", "1e400"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"or 'inria'$") as err:
+            near_plane_value(text)
+        assert repr(text) in str(err.value) or f"{text}:" in str(err.value)  # as typed: 1e-400 is not "0"

@@ -248,9 +248,12 @@ def near_plane_value(text: str) -> float:
 
     if text.strip().lower() == "inria":
         return INRIA_NEAR
-    value = float(_number(text, float))
+    try:
+        value = float(_number(text, float))
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc}, or 'inria'") from None
     if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{value:g}: expected a positive camera depth in scene units (such as 0.01 or 0.2), or 'inria'")
+        raise argparse.ArgumentTypeError(f"{text.strip()}: expected a positive camera depth in scene units (such as 0.01 or 0.2), or 'inria'")
     return value
 
 
