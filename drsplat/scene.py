@@ -858,7 +858,7 @@ class GeometryFindings:
         opacity = geometry["stored_opacity"]
         self.opacities.add(opacity)
         with np.errstate(invalid="ignore"):
-            self.opacity_strays += int(np.count_nonzero((opacity < 0.0) | (opacity > 1.0)))
+            self.opacity_strays += int(np.count_nonzero(np.isfinite(opacity) & ((opacity < 0.0) | (opacity > 1.0))))  # of the finite ones
         self.scales.add(geometry["stored_log_scales"])
         self.scale_columns = geometry["stored_log_scales"].shape[1]
 

@@ -857,7 +857,7 @@ def test_the_extras_load_says_what_the_whole_load_says(tmp_path, monkeypatch, ca
                        "scale_1": np.where(np.arange(3000) == 13, 95.0, base["scale_1"]).astype(np.float32),
                        **{f"rot_{i}": np.where(np.arange(3000) < 4, 0.0, base[f"rot_{i}"]).astype(np.float32) for i in range(4)},
                        "opacity": np.where(np.arange(3000) == 2, np.inf, base["opacity"]).astype(np.float32)},
-        "activated": base | {"opacity": np.random.default_rng(1).random(3000).astype(np.float32)},
+        "activated": base | {"opacity": np.where(np.arange(3000) == 5, np.inf, np.random.default_rng(1).random(3000)).astype(np.float32)},
         "linear": base | {f"scale_{i}": np.exp(base[f"scale_{i}"]).astype(np.float32) * 50 for i in range(3)},
     }
     for name, columns in cases.items():
