@@ -522,7 +522,7 @@ def test_on_a_cpu_the_fused_op_sizes_every_view_exactly(room, monkeypatch):
     scene, cams, features = room
     asked = []
     render_pairs = device_sums.render_pairs
-    monkeypatch.setattr(device_sums, "render_pairs", lambda *args: asked.append(args[7]) or render_pairs(*args))
+    monkeypatch.setattr(device_sums, "render_pairs", lambda *args, **kwargs: asked.append(args[7]) or render_pairs(*args, **kwargs))
     want = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper"), show_progress=False)
     got = register_features(scene, cams, features, RegisterOptions(topk=8, aggregate="paper", engine="torch", device="cpu"), show_progress=False)
     assert asked == [None] * len(cams)
@@ -541,9 +541,9 @@ def test_tile_lists_sized_a_view_late_give_numbas_field(room, monkeypatch, torch
     asked = []
     render_pairs = device_sums.render_pairs
 
-    def spy(*args):
+    def spy(*args, **kwargs):
         asked.append(args[7])  # tile_capacity
-        return render_pairs(*args)
+        return render_pairs(*args, **kwargs)
 
     monkeypatch.setattr(device_sums, "render_pairs", spy)
     if policy == "always short":
@@ -571,7 +571,7 @@ def test_views_that_see_nothing_then_more_than_learned_give_numbas_field(room, m
     seen, asked = [], []
     saw, render_pairs = device_sums.TileCapacity.saw, device_sums.render_pairs
     monkeypatch.setattr(device_sums.TileCapacity, "saw", lambda self, needed: seen.append(needed) or saw(self, needed))
-    monkeypatch.setattr(device_sums, "render_pairs", lambda *args: asked.append(args[7]) or render_pairs(*args))
+    monkeypatch.setattr(device_sums, "render_pairs", lambda *args, **kwargs: asked.append(args[7]) or render_pairs(*args, **kwargs))
     flip = np.diag([-1.0, 1.0, -1.0])  # half a turn about the camera's y axis: it looks away from the scene
     centre = scene.means.mean(axis=0)
     eye = -cams[0].R.T @ cams[0].t

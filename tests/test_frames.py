@@ -908,7 +908,7 @@ def test_the_frame_check_bounds_the_longer_side_of_a_tall_camera(tmp_path, monke
                           opacity_logits=np.zeros(1, np.float32), sh=np.zeros((1, 1, 3), np.float32))
     sizes = []
     real = frames.supersampled_render
-    monkeypatch.setattr(frames, "supersampled_render", lambda p, c, f: (sizes.append((c.width, c.height)), real(p, c, f))[1])
+    monkeypatch.setattr(frames, "supersampled_render", lambda p, c, f, *rest: (sizes.append((c.width, c.height)), real(p, c, f, *rest))[1])
     frames.photo_agreement(scene, [cam])
     assert sizes and max(sizes[0]) <= frames.PHOTO_CHECK_WIDTH, sizes
 
