@@ -233,3 +233,23 @@ def test_the_near_plane_flag_reads_a_depth_or_inria_and_names_both_when_refusing
         with pytest.raises(argparse.ArgumentTypeError, match=r"or 'inria'$") as err:
             near_plane_value(text)
         assert repr(text) in str(err.value) or f"{text}:" in str(err.value)  # as typed: 1e-400 is not "0"
+
+
+def test_a_file_registered_at_another_plane_says_so_and_eval_lerf_renders_there(room, tmp_path):
+    """A registration at a plane other than the default writes it into the PLY's header (the default's file is as it was),
+    a registration of such a file at another plane does not carry its line over, and `eval lerf` renders at the recorded
+    plane unless --near-plane is given (64c F4)."""
+    from drsplat.commands.eval import registered_near_plane
+    from drsplat.defaults import NEAR
+    from drsplat.registration.options import recorded_near_plane
+
+    scene, cams, features = room
+    register(scene, cams, features, tmp_path / "inria.ply", RegisterOptions(topk=10, aggregate="paper", near_plane=0.2), show_progress=False)
+    registered = load_ply(tmp_path / "inria.ply")
+    assert "drsplat.near_plane 0.2" in registered.comments and recorded_near_plane(registered.comments) == 0.2
+    assert registered_near_plane(None, registered) == 0.2 and registered_near_plane(0.05, registered) == 0.05
+    register(registered, cams, features, tmp_path / "again.ply", RegisterOptions(topk=10, aggregate="paper"), show_progress=False)
+    again = load_ply(tmp_path / "again.ply")
+    assert not any(c.startswith("drsplat.near_plane") for c in again.comments) and registered_near_plane(None, again) == NEAR
+    for line in ("drsplat.near_plane abc", "drsplat.near_plane -1", "drsplat.near_plane nan"):
+        assert recorded_near_plane([line]) is None

@@ -257,13 +257,14 @@ def near_plane_value(text: str) -> float:
     return value
 
 
-def add_near_plane_argument(parser: argparse.ArgumentParser, what: str) -> None:
-    """--near-plane DEPTH|inria (`near_plane_value`; default NEAR) for a command that renders; what: of what it is the plane."""
+def add_near_plane_argument(parser: argparse.ArgumentParser, what: str, default: str | None = None) -> None:
+    """--near-plane DEPTH|inria (`near_plane_value`) for a command that renders; what: of what it is the plane;
+    default: the default's words (None: NEAR, which the argument then holds; else the argument is None when not given)."""
     from drsplat.defaults import NEAR
 
-    parser.add_argument("--near-plane", type=near_plane_value, default=NEAR, metavar="DEPTH",
-                        help=f"camera depth in scene units below which a Gaussian is not drawn, the plane {what} (default: {NEAR:g}, "
-                             "gsplat's; docs/raster.md)")
+    parser.add_argument("--near-plane", type=near_plane_value, default=NEAR if default is None else None, metavar="DEPTH",
+                        help=f"camera depth in scene units below which a Gaussian is not drawn, the plane {what} (default: "
+                             f"{default or f'{NEAR:g}, gsplat' + chr(39) + 's'}; docs/raster.md)")
 
 
 # ---------------------------------------------------------------------------------------------

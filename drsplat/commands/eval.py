@@ -188,7 +188,8 @@ def _add_lerf(sub) -> None:
                         f"never reaches it) (default: {LERF_ALPHA_THRESHOLD}, OpenGaussian's)")
     p.add_argument("--json", type=output_file, metavar="OUT.json", help="also write per-view results as JSON")
     add_principal_point_argument(p)
-    add_near_plane_argument(p, "the views are rendered with (OpenGaussian's and LangSplat's renderer: INRIA's, 'inria')")
+    add_near_plane_argument(p, "the views are rendered with (OpenGaussian's and LangSplat's renderer: INRIA's, 'inria')",
+                            default="the plane the registered PLY records, else 0.01, gsplat's")
     p.add_argument("--protocol", choices=("opengaussian", "langsplat"), default="opengaussian",
                    help="opengaussian: render the Gaussians each query selects (mIoU, mAcc@0.25; the default); langsplat: "
                         "LangSplat's relevancy maps of the rendered features (mIoU, localization accuracy; always relevancy, "
@@ -571,6 +572,21 @@ def run_pseudolabels(args: argparse.Namespace) -> int:
     return 0
 
 
+def registered_near_plane(given: float | None, scene) -> float:
+    """The plane `eval lerf` renders at: --near-plane when given, else the one the registered scene's header records
+    (`registration.options.recorded_near_plane`, said in one line), else NEAR."""
+    from drsplat.defaults import NEAR
+    from drsplat.registration.options import recorded_near_plane
+
+    if given is not None:
+        return given
+    recorded = recorded_near_plane(scene.comments)
+    if recorded is None:
+        return NEAR
+    log.info("rendering at the near plane the registered scene was registered at, %g (its header; --near-plane chooses another)", recorded)
+    return recorded
+
+
 def trained_cameras(scene, registered: Path) -> dict:
     """`cameras_in_scene_frame`'s scene_path and refinements for a registered scene whose
     registration took a gsplat checkpoint's camera refinements (`frames.refined_by` its header):
@@ -615,6 +631,7 @@ def run_lerf(args: argparse.Namespace) -> int:
         raise InputError(args.annotations, f"the annotations hold no objects (the 'objects' list of each of its {len(views)} "
                                            "file(s) is empty): nothing to evaluate")
     scene, field = load_registered(args.registered)
+    args.near_plane = registered_near_plane(args.near_plane, scene)
     cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.registered),
                                  **trained_cameras(scene, args.registered), near=args.near_plane)
     guard_field_codebook(args.registered, field, {"--json": args.json})

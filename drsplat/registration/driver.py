@@ -51,7 +51,7 @@ from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLo
                                              feature_stamps, lock_run)
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
-from drsplat.registration.options import RegisterOptions
+from drsplat.registration.options import NEAR_PLANE_COMMENT, RegisterOptions, near_plane_comment
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import choose_block, estimate_memory
@@ -768,6 +768,10 @@ def register(
     """
     out = Path(out)
     scene = widened_scene(scene)  # float16 arrays as float32: numba loads no float16
+    # the file says at which plane it was registered (`eval lerf` renders it there); an input's own such line does not carry over
+    plane = near_plane_comment(options.near_plane)
+    if plane is not None or any(c.startswith(NEAR_PLANE_COMMENT) for c in scene.comments):
+        scene = dataclasses.replace(scene, comments=[*(c for c in scene.comments if not c.startswith(NEAR_PLANE_COMMENT)), *([plane] if plane else [])])
     run = prepare_run(scene, cameras, features_dir, options)
     manifest = read_manifest(run.features_dir)
     check_manifest_dim(run.features_dir, manifest, run.dim)

@@ -12,6 +12,28 @@ from drsplat.defaults import NEAR
 from drsplat.registration.compute import check_engine
 
 
+NEAR_PLANE_COMMENT = "drsplat.near_plane "  # the registered PLY's header line naming a plane other than NEAR
+
+
+def near_plane_comment(plane: float) -> str | None:
+    """The header comment a registration at `plane` writes into its PLY (None at the default NEAR, so
+    default files are as they were), which `eval lerf` reads back (`recorded_near_plane`)."""
+    return None if plane == NEAR else f"{NEAR_PLANE_COMMENT}{float(plane)!r}"
+
+
+def recorded_near_plane(comments) -> float | None:
+    """The plane a registered PLY's header comments record (`near_plane_comment`), or None: none
+    recorded, or one that is no positive finite depth (a header is the file's word, not checked)."""
+    for comment in comments:
+        if comment.startswith(NEAR_PLANE_COMMENT):
+            try:
+                plane = float(comment[len(NEAR_PLANE_COMMENT):])
+            except ValueError:
+                return None
+            return plane if math.isfinite(plane) and plane > 0 else None
+    return None
+
+
 @dataclass(frozen=True)
 class RegisterOptions:
     """The CLI flags of `drsplat register` and the viewer's registration panel.
