@@ -35,7 +35,7 @@ from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, GaussianScene
-from drsplat.defaults import DEFAULT_TOPK, INRIA_NEAR, NEAR  # noqa: F401 (INRIA_NEAR: the plane the CLI names)
+from drsplat.defaults import DEFAULT_TOPK, NEAR
 from drsplat.utils import spread_rows
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,7 @@ Gaussian: flat surfels) is read as flat 3D Gaussians (`surfel_scales`). nerfstud
 `--ply-color-mode rgb` export (uchar red/green/blue for f_dc_*) is read as SH degree 0 colours
 (`rgb_colour_problem`). Integer-typed parameters are refused (`refuse_integer_parameters`);
 activated opacities and linear scales stored in the logits' and log scales' places are findings
-(`activated_opacity_strays`, `linear_scale_floor`).
+(`activated_from`, `linear_floor_from`).
 
 Non-finite policy (reported through `LoadReport`, never silent):
 - rows with NaN in any attribute are dropped;
@@ -47,7 +47,7 @@ EXTENT_SAMPLE = 1 << 20  # at most this many means make `scene_extent` (every k-
 EXTENT_TRIM_FROM = 100  # `scene_extent` of fewer means is their whole box
 HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
-ENCODING_CHECK_ROWS = 16  # fewer Gaussians may all look activated by chance (`activated_opacity_strays`, `linear_scale_floor`)
+ENCODING_CHECK_ROWS = 16  # fewer Gaussians may all look activated by chance (`activated_from`, `linear_floor_from`)
 ACTIVATED_STRAY_SHARE = 1e-3  # of an activated opacity column, the values that may stray out of [0, 1] (at least one)
 THINNEST_SCALE_SHARE = 1e-4  # real scenes' thinnest Gaussian: 8e-10 to 2e-5 of their extent (guitar, flowers, biker, train-1000)
 COMPRESSED_VERTEX_PROPERTIES = ("packed_position", "packed_rotation", "packed_scale", "packed_color")  # PlayCanvas's compressed PLY
@@ -319,8 +319,8 @@ class LoadReport:
     scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
     beyond_float32: int = 0  # rows holding a finite double-precision value that float32 reads as infinite
     negative_scales: int = 0  # .splat rows with a negative scale, read as its magnitude (a covariance holds its square)
-    activated_opacities: int | None = None  # an INRIA PLY's opacity column holds sigmoid values, not logits: how many stray out of [0, 1] (`activated_opacity_strays`)
-    linear_scale_floor: float = 0.0  # an INRIA PLY whose scale_* hold exp(s), not s: its thinnest scale read as a log (`linear_scale_floor`), else 0
+    activated_opacities: int | None = None  # an INRIA PLY's opacity column holds sigmoid values, not logits: how many stray out of [0, 1] (`activated_from`)
+    linear_scale_floor: float = 0.0  # an INRIA PLY whose scale_* hold exp(s), not s: its thinnest scale read as a log (`linear_floor_from`), else 0
     camera_refinements: np.ndarray | None = None  # [T, 9] a gsplat checkpoint's pose_opt refinements (drsplat.frames), else None
 
     @property
@@ -727,8 +727,8 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
     purpose: what the caller would do with the Gaussians ("register"); a file of 0 rows is then one
     InputError saying there is nothing to do that, instead of a warning (`assemble_scene`)."""
     path, header, data = _read_vertex_rows(path)
-    if "chunk" in data and "packed_position" in (data["vertex"].dtype.names or ()):
-        raw, order = _decode_compressed(path, {name: rows.array() for name, rows in data.items()}), list(data["vertex"].dtype.names)
+    if is_compressed(data):
+        raw, order = compressed_columns(path, data), list(data["vertex"].dtype.names)
         layout = "compressed"
     else:
         raw, order, layout = _columns_from_inria(path, data["vertex"]), list(data["vertex"].dtype.names), "inria"
@@ -749,9 +749,9 @@ def load_ply_rows(path: str | Path, keep: np.ndarray) -> GaussianScene:
     if len(vertex) != len(keep):
         raise _fail(path, f"changed while it was read: it holds {len(vertex):,} rows, {len(keep):,} when it was read before "
                           "(another program is writing it?)")
-    if "chunk" in data and "packed_position" in (vertex.dtype.names or ()):  # compressed PLYs are small: the whole load
-        scene, report = assemble_scene(path, _decode_compressed(path, {name: rows.array() for name, rows in data.items()}),
-                                       list(vertex.dtype.names), "compressed", _kept_comments(header), say_findings=False)
+    if is_compressed(data):  # compressed PLYs are small: the whole load
+        scene, report = assemble_scene(path, compressed_columns(path, data), list(vertex.dtype.names), "compressed",
+                                       _kept_comments(header), say_findings=False)
         if report.dropped_nan_rows + report.dropped_inf_rows == 0:
             scene = scene.subset(keep)
     else:
@@ -787,7 +787,7 @@ def load_ply_extras(path: str | Path, purpose: str | None = None) -> tuple[PlyEx
     (`GeometryFindings`), so it says what the whole load says, its reading notes too."""
     path, header, data = _read_vertex_rows(path)
     vertex = data["vertex"]
-    if "chunk" in data and "packed_position" in (vertex.dtype.names or ()):  # small files: the whole load
+    if is_compressed(data):  # small files: the whole load
         scene, report = load_ply_report(path, purpose)
         return PlyExtras(scene.extra, scene.comments, scene.num_gaussians), report
     reading = inria_reading(path, vertex.dtype)
@@ -824,12 +824,12 @@ def load_ply_extras(path: str | Path, purpose: str | None = None) -> tuple[PlyEx
 
 
 class GeometryFindings:
-    """The whole load's geometry findings (`assemble_scene`: far means, large SH, overflowing, huge and
-    linear scales, activated opacities, the scene's extent) gathered a block of rows at a time, so a
-    load that holds no geometry (`load_ply_extras`) says what the whole load says. Counts are of the
-    rows the load keeps; the encoding checks read every row's stored columns, as there. The extent
-    is taken from every ⌈N / EXTENT_SAMPLE⌉-th row of the file: the whole load's sample when it drops
-    no row. Holds 4 bytes a row (its largest log scale, for the huge ones once the extent is known)
+    """A load's geometry findings (far means, large SH, overflowing, huge and linear scales, activated
+    opacities, the scene's extent) gathered a block of rows at a time: `assemble_scene` adds its kept
+    rows as one block, and a load that holds no geometry (`load_ply_extras`) adds each block of the
+    file as it reads it, so both say the same. Counts are of the kept rows; the encoding checks read
+    every row's stored columns (when the block has them: the INRIA layout's). The extent is taken from
+    every ⌈N / EXTENT_SAMPLE⌉-th of the N rows added: the file's rows for a load that drops none. Holds 4 bytes a row (its largest log scale, for the huge ones once the extent is known)
     and the sampled means (12 bytes each, at most EXTENT_SAMPLE of them)."""
 
     def __init__(self, num_rows: int):
@@ -842,7 +842,8 @@ class GeometryFindings:
         self._num_sampled = self._num_kept = 0
 
     def add(self, start: int, geometry: dict[str, np.ndarray], kept: np.ndarray) -> None:
-        """One block's rows start .. start + B - 1: `block_geometry`'s columns and kept [B] bool."""
+        """One block's rows start .. start + B - 1: `block_geometry`'s columns (means [B, 3], log_scales [B, 3], sh
+        [B, K, 3], and the stored_opacity, stored_log_scales of those rows where there are such) and kept [B] bool."""
         means, log_scales, sh = geometry["means"], geometry["log_scales"], geometry["sh"]  # every row: counted where kept, not copied
         with np.errstate(invalid="ignore"):
             self.far_means += int(np.count_nonzero((np.abs(means) > MAX_COORDINATE).any(axis=1) & kept))
@@ -855,12 +856,14 @@ class GeometryFindings:
         sampled = means[rows[rows % self.step == 0] - start]
         self._sampled[self._num_sampled:self._num_sampled + len(sampled)] = sampled
         self._num_sampled += len(sampled)
-        opacity = geometry["stored_opacity"]
-        self.opacities.add(opacity)
-        with np.errstate(invalid="ignore"):
-            self.opacity_strays += int(np.count_nonzero(np.isfinite(opacity) & ((opacity < 0.0) | (opacity > 1.0))))  # of the finite ones
-        self.scales.add(geometry["stored_log_scales"])
-        self.scale_columns = geometry["stored_log_scales"].shape[1]
+        opacity, scales = geometry.get("stored_opacity"), geometry.get("stored_log_scales")
+        if opacity is not None:
+            self.opacities.add(opacity)
+            with np.errstate(invalid="ignore"):
+                self.opacity_strays += int(np.count_nonzero(np.isfinite(opacity) & ((opacity < 0.0) | (opacity > 1.0))))  # of the finite ones
+        if scales is not None:
+            self.scales.add(scales)
+            self.scale_columns = scales.shape[1]
 
     def fill(self, report: LoadReport) -> LoadReport:
         """The findings into `report` (in place); returns it."""
@@ -1200,9 +1203,11 @@ def _finite_values(stored: np.ndarray) -> np.ndarray:
     return values[np.isfinite(values)]
 
 
-def activated_opacity_strays(stored: np.ndarray) -> int | None:
-    """When an INRIA PLY's `opacity` column [N] holds activated opacities α = sigmoid(logit), where
-    3DGS stores the logit, how many of its finite values stray out of [0, 1]; else None. Activated:
+def activated_from(spread: ValueSpread, strays: int) -> int | None:
+    """When an INRIA PLY's `opacity` column holds activated opacities α = sigmoid(logit), where 3DGS
+    stores the logit, how many of its finite values stray out of [0, 1]; else None. spread: those
+    finite values' count and extremes (`ValueSpread`); strays: how many of them lie outside [0, 1]
+    (what a pass over the rows in blocks gathers, `GeometryFindings`). Activated:
     at least ENCODING_CHECK_ROWS finite values, not all equal, every one in [0, 1] (read as logits:
     every opacity in [0.5, 0.731]) but at most max(1, ACTIVATED_STRAY_SHARE · N) strays (round 52:
     one value at 1 + 1 ulp hid the finding).
@@ -1212,13 +1217,6 @@ def activated_opacity_strays(stored: np.ndarray) -> int | None:
     logits in [0, 1]: flowers, guitar, biker, train-1000), and sigmoid values never leave [0, 1].
     Fewer rows may all land in [0, 1] by chance; one value for every Gaussian is a hand-made scene,
     whose encoding it does not show."""
-    values = _finite_values(stored)
-    return activated_from(ValueSpread.of(values), int(np.count_nonzero((values < 0.0) | (values > 1.0))))
-
-
-def activated_from(spread: ValueSpread, strays: int) -> int | None:
-    """`activated_opacity_strays` from the finite opacities' count and extremes (`ValueSpread`) and
-    how many of them lie outside [0, 1]: what a pass over the rows in blocks gathers."""
     if spread.count < ENCODING_CHECK_ROWS or not spread.high > spread.low:
         return None
     return strays if strays <= max(1, int(ACTIVATED_STRAY_SHARE * spread.count)) else None
@@ -1232,10 +1230,6 @@ class ValueSpread:
     low: float = math.inf
     high: float = -math.inf
 
-    @classmethod
-    def of(cls, values: np.ndarray) -> ValueSpread:
-        return cls().add(values)
-
     def add(self, values: np.ndarray) -> ValueSpread:
         """In place, with the finite values of `values` (flattened, NaN and infinities left out)."""
         values = _finite_values(values)
@@ -1245,10 +1239,11 @@ class ValueSpread:
         return self
 
 
-def linear_scale_floor(stored: np.ndarray, extent: float) -> float:
-    """exp(min s) when an INRIA PLY's scale_* columns [N, C] look like linear scales exp(s), where
-    3DGS stores log scales s, else 0.0. Linear when, over at least ENCODING_CHECK_ROWS rows of
-    finite values, not all equal:
+def linear_floor_from(spread: ValueSpread, columns: int, extent: float) -> float:
+    """exp(min s) when an INRIA PLY's scale_* columns look like linear scales exp(s), where 3DGS
+    stores log scales s, else 0.0. spread: the finite stored scales' count and extremes over `columns`
+    columns (`ValueSpread`, gathered block by block, `GeometryFindings`). Linear when, over at least
+    ENCODING_CHECK_ROWS rows of finite values, not all equal:
 
         min s >= 0                                      (read as logs: every axis of every Gaussian >= 1 unit)
         exp(min s) >= THINNEST_SCALE_SHARE · extent     (the thinnest Gaussian is a visible part of the scene)
@@ -1259,25 +1254,11 @@ def linear_scale_floor(stored: np.ndarray, extent: float) -> float:
     1e-4 of any scene under 10,000 units across (a linear scene wider than that is not caught; round 52:
     1e-3 missed one of 1000 units, a city in metres). For a log-scale scene to pass, all its Gaussians
     must be >= 1 unit and its thinnest 5x the largest share measured."""
-    return linear_floor_from(ValueSpread.of(stored), stored.shape[-1], extent)
-
-
-def linear_floor_from(spread: ValueSpread, columns: int, extent: float) -> float:
-    """`linear_scale_floor` from the finite stored scales' count and extremes (`ValueSpread`) over
-    `columns` scale columns: what a pass over the rows in blocks gathers."""
     if spread.count < ENCODING_CHECK_ROWS * columns or extent <= 0.0 or not spread.low >= 0.0 or spread.high == spread.low:
         return 0.0
     with np.errstate(over="ignore"):
         thinnest = float(np.exp(np.float64(spread.low)))
     return thinnest if thinnest >= THINNEST_SCALE_SHARE * extent else 0.0
-
-
-def count_huge_scales(log_scales: np.ndarray, extent: float) -> int:
-    """Gaussians [N, 3] log scales whose largest scale is over HUGE_SCALE_RATIO x `extent` (none when
-    the extent is 0: a single point or an empty scene has no size to compare with)."""
-    if extent <= 0.0 or log_scales.shape[0] == 0:
-        return 0
-    return count_rows_beyond(log_scales, float(np.log(HUGE_SCALE_RATIO * extent)), signed=True)
 
 
 def count_rows_beyond(rows: np.ndarray, limit: float, signed: bool = False) -> int:
@@ -1390,6 +1371,16 @@ def gather_floats(block: np.ndarray, names: list[str]) -> np.ndarray:
 def _unorm(values: np.ndarray, shift: int, bits: int) -> np.ndarray:
     mask = (1 << bits) - 1
     return ((values >> shift) & mask).astype(np.float32) / mask
+
+
+def is_compressed(data: dict[str, StoredRows]) -> bool:
+    """Whether a PLY's elements are SuperSplat's compressed layout (a chunk element, packed vertex rows)."""
+    return "chunk" in data and "packed_position" in (data["vertex"].dtype.names or ())
+
+
+def compressed_columns(path: Path, data: dict[str, StoredRows]) -> dict[str, np.ndarray]:
+    """`assemble_scene`'s columns of a compressed PLY's elements (read whole: such files are small)."""
+    return _decode_compressed(path, {name: rows.array() for name, rows in data.items()})
 
 
 def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -1588,14 +1579,11 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
     if report.zero_quaternions:
         quats = quats.copy()
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
-    report.overflowing_scales = int((log_scales > MAX_LOG_SCALE).any(axis=1).sum())
-    report.far_means = int((np.abs(means) > MAX_COORDINATE).any(axis=1).sum())
-    report.large_sh = count_rows_beyond(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT)
-    report.scene_extent = scene_extent(means)
-    report.huge_scales = count_huge_scales(log_scales, report.scene_extent)
-    if "stored_opacity" in cols:  # the INRIA layout: the stored columns are 3DGS's raw parameters, which other encodings mimic
-        report.activated_opacities = activated_opacity_strays(cols["stored_opacity"])
-        report.linear_scale_floor = linear_scale_floor(cols["stored_log_scales"], report.scene_extent)
+    # the INRIA layout's stored columns are 3DGS's raw parameters, which other encodings mimic: only they are checked for encoding
+    stored = {k: cols[k] for k in ("stored_opacity", "stored_log_scales") if k in cols}
+    findings = GeometryFindings(means.shape[0])
+    findings.add(0, {"means": means, "log_scales": log_scales, "sh": sh, **stored}, np.ones(means.shape[0], bool))
+    findings.fill(report)
     report.beyond_float32 = int(cols.get("beyond_float32", 0))
     report.negative_scales = int(cols.get("negative_scales", 0))
     report.nonfinite_extra = nonfinite_extra_values(extra)

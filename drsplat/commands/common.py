@@ -243,7 +243,7 @@ def resolution_value(text: str) -> float:
 
 def near_plane_value(text: str) -> float:
     """argparse type for --near-plane: a positive, finite camera depth in scene units, or 'inria'
-    (raster.INRIA_NEAR, 0.2: the plane of the rasterizer that trained most 3DGS scenes)."""
+    (defaults.INRIA_NEAR, 0.2: the plane of the rasterizer that trained most 3DGS scenes)."""
     from drsplat.defaults import INRIA_NEAR
 
     if text.strip().lower() == "inria":
