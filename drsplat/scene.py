@@ -849,11 +849,17 @@ class GeometryFindings:
             self.far_means += int(np.count_nonzero((np.abs(means) > MAX_COORDINATE).any(axis=1) & kept))
             self.overflowing_scales += int(np.count_nonzero((log_scales > MAX_LOG_SCALE).any(axis=1) & kept))
         self.large_sh += int(np.count_nonzero(~rows_within(sh.reshape(sh.shape[0], sh.shape[1] * 3), MAX_SH_COEFFICIENT) & kept))
-        largest = log_scales.max(axis=1)[kept] if log_scales.shape[0] else np.zeros(0, np.float32)
-        self._largest[self._num_kept:self._num_kept + largest.shape[0]] = largest
-        self._num_kept += largest.shape[0]
-        rows = start + np.flatnonzero(kept)
-        sampled = means[rows[rows % self.step == 0] - start]
+        if kept.all():  # the whole load's one block: no row-sized index or copy (4 of 50M rows' 12 GB would be 600 MB more)
+            if log_scales.shape[0]:
+                np.max(log_scales, axis=1, out=self._largest[self._num_kept:self._num_kept + log_scales.shape[0]])
+            self._num_kept += log_scales.shape[0]
+            sampled = means[(-start) % self.step::self.step]
+        else:
+            largest = log_scales.max(axis=1)[kept]
+            self._largest[self._num_kept:self._num_kept + largest.shape[0]] = largest
+            self._num_kept += largest.shape[0]
+            rows = start + np.flatnonzero(kept)
+            sampled = means[rows[rows % self.step == 0] - start]
         self._sampled[self._num_sampled:self._num_sampled + len(sampled)] = sampled
         self._num_sampled += len(sampled)
         opacity, scales = geometry.get("stored_opacity"), geometry.get("stored_log_scales")
