@@ -1260,7 +1260,7 @@ def linear_floor_from(spread: ValueSpread, columns: int, extent: float) -> float
     1e-4 of any scene under 10,000 units across (a linear scene wider than that is not caught; round 52:
     1e-3 missed one of 1000 units, a city in metres). For a log-scale scene to pass, all its Gaussians
     must be >= 1 unit and its thinnest 5x the largest share measured."""
-    if spread.count < ENCODING_CHECK_ROWS * columns or extent <= 0.0 or not spread.low >= 0.0 or spread.high == spread.low:
+    if columns <= 0 or spread.count < ENCODING_CHECK_ROWS * columns or extent <= 0.0 or not spread.low >= 0.0 or spread.high == spread.low:
         return 0.0
     with np.errstate(over="ignore"):
         thinnest = float(np.exp(np.float64(spread.low)))
@@ -1586,7 +1586,7 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
         quats = quats.copy()
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
     # the INRIA layout's stored columns are 3DGS's raw parameters, which other encodings mimic: only they are checked for encoding
-    stored = {k: cols[k] for k in ("stored_opacity", "stored_log_scales") if k in cols}
+    stored = {k: cols[k] for k in ("stored_opacity", "stored_log_scales")} if "stored_opacity" in cols else {}
     findings = GeometryFindings(means.shape[0])
     findings.add(0, {"means": means, "log_scales": log_scales, "sh": sh, **stored}, np.ones(means.shape[0], bool))
     findings.fill(report)
