@@ -913,3 +913,38 @@ def sh_colors(sh, means, centre, valid, c1, c2, c3, out):  # pragma: no cover - 
             for k in range(num_coeffs):
                 value += basis[k] * np.float64(sh[i, k, ch])
             out[i, ch] = max(value, 0.0)
+
+
+# ----------------------------------------------------------------------------- the near plane's band
+# Which Gaussians one near plane draws and a deeper one does not (drsplat.raster.near_band): their camera depth z is
+# summed exactly as project_points sums its pz, so the band's edges are the projection's own.
+
+
+@njit(parallel=True, cache=True)
+def depth_band_counts(means: np.ndarray, rot_z: np.ndarray, trans_z: np.ndarray, lo: float, hi: float, counts: np.ndarray) -> None:
+    """counts[c] = #{g : lo ≤ z_cg < hi}, z_cg = rot_z[c, 0]·x_g + rot_z[c, 1]·y_g + rot_z[c, 2]·z_g + trans_z[c].
+
+    means: [N, 3] float64; rot_z: [C, 3] the cameras' third rotation rows; trans_z: [C]; counts: [C] int64.
+    A NaN depth is in no band."""
+    for c in prange(rot_z.shape[0]):
+        r0, r1, r2, t = rot_z[c, 0], rot_z[c, 1], rot_z[c, 2], trans_z[c]
+        n = 0
+        for g in range(means.shape[0]):
+            z = r0 * means[g, 0] + r1 * means[g, 1] + r2 * means[g, 2] + t
+            if lo <= z < hi:
+                n += 1
+        counts[c] = n
+
+
+@njit(parallel=True, cache=True)
+def depth_band_fill(means: np.ndarray, rot_z: np.ndarray, trans_z: np.ndarray, lo: float, hi: float, starts: np.ndarray,
+                    out_ids: np.ndarray) -> None:
+    """out_ids[starts[c]:starts[c + 1]] = the g of `depth_band_counts`' band of camera c, in increasing order."""
+    for c in prange(rot_z.shape[0]):
+        r0, r1, r2, t = rot_z[c, 0], rot_z[c, 1], rot_z[c, 2], trans_z[c]
+        k = starts[c]
+        for g in range(means.shape[0]):
+            z = r0 * means[g, 0] + r1 * means[g, 1] + r2 * means[g, 2] + t
+            if lo <= z < hi:
+                out_ids[k] = g
+                k += 1

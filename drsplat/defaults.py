@@ -52,3 +52,4 @@ LANGSPLAT_MASK_THRESHOLD = 0.4  # `eval lerf --protocol langsplat`: LangSplat's 
 UNIT_TOLERANCE = 1e-3
 NEAR = 0.01  # the default near plane (gsplat's, nerfstudio's): Gaussians with camera depth z < NEAR are not drawn (drsplat.raster)
 INRIA_NEAR = 0.2  # the INRIA rasterizer's (`in_frustum`: z <= 0.2 dropped), which trained LangSplat's and Dr. Splat's scenes
+DEFAULT_NEAR_PLANE = "auto"  # `register` (and the viewer's registration): NEAR or INRIA_NEAR, whichever renders the training images (drsplat.frames.near_plane_as_trained)

@@ -76,9 +76,9 @@ from scipy.spatial import cKDTree
 from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied_move, dataparser_transforms_path, dataset_in_trained_frame,
                              detect_dataset, folder_prefixes, in_trained_frame, load_image, off_size_factors, qvec_to_rotmat, run_orientation,
                              read_colmap_model, read_dataparser_transform)
-from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, NEAR, PRINCIPAL_POINTS
+from drsplat.defaults import DEFAULT_NEAR_PLANE, DEFAULT_PRINCIPAL_POINT, INRIA_NEAR, NEAR, PRINCIPAL_POINTS
 from drsplat.errors import InputError
-from drsplat.raster import prepare_scene, rasterize, share_in_some_view
+from drsplat.raster import near_band, prepare_scene, rasterize, share_in_some_view
 from drsplat.utils import CancelToken, spread_rows
 
 log = logging.getLogger(__name__)
@@ -546,6 +546,26 @@ def photo_scene(scene, sample: int = PHOTO_CHECK_SAMPLE):
     return prepare_scene(subset)
 
 
+def view_picture(camera: Camera, width: int, pictures: dict, skipped: Counter) -> tuple[Camera, np.ndarray | None]:
+    """(the camera at `width` px on its longer side, its training image at that size [H, W, 3] float32 in [0, 1], or
+    None when it cannot be used: why is counted in `skipped`). pictures: the images read so far, by file and size (or
+    why one could not be used), so that each is decoded once."""
+    # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
+    full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
+    small = full.scaled(min(1.0, width / max(full.width, full.height)))  # the longer side: a 10 x 100000 camera is no 96 x 960000 render
+    key = (camera.image_path, small.width, small.height)
+    if key not in pictures:
+        try:
+            pictures[key] = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
+        except InputError as exc:  # the registration does not need the image: an unusable one only leaves this view out
+            pictures[key] = OTHER_ASPECT_IMAGE if exc.field == "size" else UNREADABLE_IMAGE  # (round 57a: both were "could not be read")
+    picture = pictures[key]
+    if isinstance(picture, str):
+        skipped[picture] += 1
+        return small, None
+    return small, picture
+
+
 def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_VIEWS, width: int = PHOTO_CHECK_WIDTH,
                     sample: int = PHOTO_CHECK_SAMPLE, supersample: int = PHOTO_SUPERSAMPLE, prepared=None,
                     pictures: dict | None = None, skipped: Counter | None = None, near: float = NEAR) -> dict[str, float]:
@@ -577,18 +597,8 @@ def photo_agreement(scene, cameras: Sequence[Camera], views: int = PHOTO_CHECK_V
     prepared = photo_scene(scene, sample) if prepared is None else prepared
     out: dict[str, float] = {}
     for camera in picked:
-        # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
-        full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
-        small = full.scaled(min(1.0, width / max(full.width, full.height)))  # the longer side: a 10 x 100000 camera is no 96 x 960000 render
-        key = (camera.image_path, small.width, small.height)
-        if key not in pictures:
-            try:
-                pictures[key] = load_image(small).astype(np.float32) / 255.0  # resized from the file with a filter that averages
-            except InputError as exc:  # the registration does not need the image: an unusable one only leaves this view out
-                pictures[key] = OTHER_ASPECT_IMAGE if exc.field == "size" else UNREADABLE_IMAGE  # (round 57a: both were "could not be read")
-        picture = pictures[key]
-        if isinstance(picture, str):
-            skipped[picture] += 1
+        small, picture = view_picture(camera, width, pictures, skipped)
+        if picture is None:
             continue
         rgb, alpha = supersampled_render(prepared, small, supersample, near)
         covered = alpha >= 0.5
@@ -609,6 +619,7 @@ OTHER_ASPECT_IMAGE = "whose image has another aspect ratio than its camera (anot
 LITTLE_COVERED = f"where the render covers under {PHOTO_MIN_PIXELS} pixels"
 FLAT_PICTURE = "where the image or the render is one flat grey"
 EMPTY_SCENE = "of a scene with no Gaussians to render"
+NOT_ITS_IMAGE = f"whose render correlates under {PHOTO_MATCH_MIN} with its image"
 
 
 def skipped_views(skipped: Counter) -> str:
@@ -751,17 +762,21 @@ class ReadingScores:
 
 
 def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, views: int = PHOTO_CHECK_VIEWS,
-                 near: float = NEAR) -> tuple[int, ReadingScores]:
+                 near: float | Sequence[float] = NEAR, prepared=None) -> tuple[int, ReadingScores]:
     """(the index of the reading of the same cameras (readings[r][i] is camera i read the r-th way) whose renders look
     most like the training images, its scores): `photo_agreement` of each over up to `views` cameras, a view one
     reading shows nothing of counting ρ = 0 for it; reading r > 0 is taken over reading 0 when
 
         median_v (ρ_v(r) − ρ_v(0)) > margin  and  median_v ρ_v(r) ≥ PHOTO_MATCH_MIN,
 
-    the one of largest gain among those; else 0."""
-    prepared, pictures, skipped = photo_scene(scene), {}, Counter()
-    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None, near=near)
-             for r, cams in enumerate(readings)]
+    the one of largest gain among those; else 0. near: the near plane the renders are drawn at, or one per reading
+    (a reading may be a plane: `near_plane_as_trained`). prepared: the scene's `photo_scene`, when the caller has it."""
+    nears = [float(near)] * len(readings) if np.ndim(near) == 0 else [float(n) for n in near]
+    if len(nears) != len(readings):
+        raise ValueError(f"best_reading: {len(nears)} near planes for {len(readings)} readings")
+    prepared, pictures, skipped = photo_scene(scene) if prepared is None else prepared, {}, Counter()
+    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None,
+                             near=nears[r]) for r, cams in enumerate(readings)]
     common = sorted(set().union(*found))
     if not common:
         return 0, ReadingScores([0.0] * len(readings), 0, skipped_views(skipped))
@@ -843,6 +858,133 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
              "image centres, %s)", of, given_rho, centre_rho, compared.of_views())
     return cameras
+
+
+NEAR_PLANE_VIEWS = 8  # views `near_plane_as_trained` renders at each plane: those where the band's Gaussians cover most tiles
+NEAR_PLANE_GREY_STEP = 4 / 255  # grey-level difference from which the two planes' renders of a pixel differ (`PlaneEvidence`)
+NEAR_PLANE_MIN_PIXELS = 100  # differing pixels, over the views compared, from which they decide (48 decided wrongly: docs/raster.md)
+# mean grey-error gain (0-1 grey levels) over the differing pixels that decides for INRIA's plane (docs/raster.md, "The near
+# plane decided": images drawn at one plane gave |gain| ≥ 0.013 on tiny, hard-tiny and hard-room, always of their plane's sign)
+NEAR_PLANE_MARGIN = 0.01
+NEAR_BAND_NOTABLE = 0.01  # the band's tiles / a view's tiles from which, with no image to compare, the choice is warned about
+
+
+@dataclass
+class PlaneEvidence:
+    """Two near planes' renders of the same views held against the training images (`plane_evidence`).
+
+    pixels: the compared pixels where the two renders differ by NEAR_PLANE_GREY_STEP or more, over the views;
+    gain: their mean of e(lo) − e(hi), e = |r − g| the grey error of a render r against the image g; views: the views compared; left_out: the views left out and why."""
+
+    pixels: int = 0
+    gain_sum: float = 0.0
+    views: int = 0
+    left_out: str = ""
+
+    @property
+    def gain(self) -> float:
+        return self.gain_sum / self.pixels if self.pixels else 0.0
+
+    def of_views(self) -> str:
+        return f"{self.pixels:,} pixels of {self.views} view{'s' if self.views != 1 else ''}"
+
+
+def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, width: int = PHOTO_CHECK_WIDTH,
+                   supersample: int = PHOTO_SUPERSAMPLE) -> PlaneEvidence:
+    """How much better the renders at near plane hi match the training images than those at lo, on the pixels
+    where the two differ (a floater drawn at lo only): per view, the grey levels r_lo, r_hi of the renders (over
+    the background the image fits best, `over_fitted_background`, clipped to [0, 1]) and g of the image, `width` px on
+    the longer side; over the pixels D where |r_lo − r_hi| ≥ NEAR_PLANE_GREY_STEP,
+
+        gain = Σ_D (|r_lo − g| − |r_hi − g|) / |D|,   pooled over the views (> 0: hi matches better).
+
+    The errors are absolute: 3DGS trainers fit the images' own colours (INRIA's and gsplat's defaults model no exposure),
+    and a floater that covers a whole view (a Gaussian under the camera, hard-tiny's low view) changes every pixel
+    alike, which a fitted gain and offset explain away (measured, docs/raster.md "The near plane decided": a gain and
+    offset fitted to both renders gave +0.007, INRIA's sign, for images drawn at 0.01). Photos 0.8x as bright + 0.1
+    (an exposure no trainer modelled) made the decision miss INRIA's plane where the band changes little, and never
+    take it wrongly.
+    A view whose renders cover under PHOTO_MIN_PIXELS pixels, or neither of which correlates PHOTO_MATCH_MIN with the
+    image there (it does not show its image), is left out. prepared: the scene's `photo_scene`."""
+    evidence, pictures, skipped = PlaneEvidence(), {}, Counter()
+    for camera in cameras:
+        if camera.image_path is None or not camera.image_path.is_file():
+            skipped[NO_IMAGE_FILE] += 1
+            continue
+        small, picture = view_picture(camera, width, pictures, skipped)
+        if picture is None:
+            continue
+        grey = picture.astype(np.float64).mean(axis=2)
+        renders = [supersampled_render(prepared, small, supersample, near) for near in (lo, hi)]
+        r_lo, r_hi = (np.clip(over_fitted_background(rgb, alpha, picture).mean(axis=2), 0.0, 1.0) for rgb, alpha in renders)
+        covered = (renders[0][1] >= 0.5) & (renders[1][1] >= 0.5)
+        if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
+            skipped[LITTLE_COVERED] += 1
+            continue
+        rho = max(grey_correlation(np.repeat(r[..., None], 3, axis=2), picture, covered) for r in (r_lo, r_hi))
+        if not rho >= PHOTO_MATCH_MIN:
+            skipped[NOT_ITS_IMAGE] += 1
+            continue
+        differ = np.abs(r_lo - r_hi) >= NEAR_PLANE_GREY_STEP
+        error_lo, error_hi = (np.abs(r[differ] - grey[differ]) for r in (r_lo, r_hi))
+        evidence.pixels += int(np.count_nonzero(differ))
+        evidence.gain_sum += float(np.sum(error_lo - error_hi))
+        evidence.views += 1
+    evidence.left_out = skipped_views(skipped)
+    return evidence
+
+
+def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str = DEFAULT_NEAR_PLANE, what: str = "the scene") -> float:
+    """The near plane (a camera depth, scene units) to render `scene` (a GaussianScene) at, as it was trained.
+
+    choice: a depth, returned as given, or "auto": trainers differ. gsplat and nerfstudio draw every
+    Gaussian of camera depth z ≥ NEAR (0.01); INRIA's rasterizer, which trained LangSplat's and Dr. Splat's
+    scenes, drops z ≤ INRIA_NEAR (0.2), so a Gaussian 0.01-0.2 in front of a camera (a floater) was never
+    drawn in that view while training, and drawing it covers what the image shows. "auto" finds, per
+    camera, the Gaussians of that band (`raster.near_band`, on the ≤ PHOTO_CHECK_SAMPLE Gaussians the photo
+    check renders), renders the NEAR_PLANE_VIEWS views with an image whose tiles the band covers most at both
+    planes and takes INRIA_NEAR when, where the renders differ, the one without the band matches the images
+    better (`plane_evidence`: gain > NEAR_PLANE_MARGIN over at least NEAR_PLANE_MIN_PIXELS pixels); else NEAR.
+    With no Gaussian in any view's band both planes render the same and nothing is rendered; with no image
+    to compare it is NEAR, warned about when the band covers NEAR_BAND_NOTABLE of a view's tiles. Taking
+    INRIA's plane is said in one warning naming `what`.
+    """
+    if choice != "auto":
+        return float(choice)
+    cameras = list(cameras)
+    prepared = photo_scene(scene)
+    bands = near_band(prepared, cameras, NEAR, INRIA_NEAR)
+    seen = [i for i, band in enumerate(bands) if band.ids.size]
+    if not seen:
+        log.debug("no Gaussian of %s lies %g-%g scene units in front of a camera: the near plane is %g", what, NEAR, INRIA_NEAR, NEAR)
+        return NEAR
+    widest = max(seen, key=lambda i: bands[i].cover)
+    where = (f"{len(seen)} of its {len(cameras)} cameras (in view {cameras[widest].name} their footprints reach "
+             f"{100 * min(bands[widest].cover, 1.0):.0f} % of the tiles)")
+    with_images = [i for i in seen if cameras[i].image_path is not None and cameras[i].image_path.is_file()]
+    picks = sorted(with_images, key=lambda i: (-bands[i].cover, i))[:NEAR_PLANE_VIEWS]
+    evidence = plane_evidence(prepared, [cameras[i] for i in picks], NEAR, INRIA_NEAR)
+    if evidence.views and evidence.pixels >= NEAR_PLANE_MIN_PIXELS:
+        if evidence.gain > NEAR_PLANE_MARGIN:
+            log.warning("%s was trained with INRIA's near plane: Gaussians lie %g-%g scene units in front of %s, and where they show "
+                        "its renders look more like its training images without them (grey error %.3f lower, %s): it is "
+                        "rendered at --near-plane %g, where INRIA's rasterizer never drew them; --near-plane %g draws them",
+                        what, NEAR, INRIA_NEAR, where, evidence.gain, evidence.of_views(), INRIA_NEAR, NEAR)
+            return INRIA_NEAR
+        log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look as much like its "
+                 "training images with them (grey error %.3f lower without, %s): they are drawn (near plane %g)",
+                 what, NEAR, INRIA_NEAR, where, evidence.gain, evidence.of_views(), NEAR)
+        return NEAR
+    if evidence.views:  # the band shows in too few pixels of the compared views to matter there: nothing to tell a user
+        log.debug("Gaussians of %s lie %g-%g scene units in front of %s, but change only %s of the renders compared: they are drawn "
+                  "(near plane %g)", what, NEAR, INRIA_NEAR, where, evidence.of_views(), NEAR)
+        return NEAR
+    say = log.warning if bands[widest].cover >= NEAR_BAND_NOTABLE else log.info
+    say("Gaussians of %s lie %g-%g scene units in front of %s, where INRIA's rasterizer (which trained LangSplat's and Dr. Splat's "
+        "scenes) never drew them, and no training image could be compared with its renders to tell how it was trained (%s): "
+        "they are drawn (near plane %g, gsplat's); for a scene trained by INRIA's gaussian-splatting pass --near-plane inria",
+        what, NEAR, INRIA_NEAR, where, evidence.left_out if picks else f"{len(seen)} views {NO_IMAGE_FILE}", NEAR)
+    return NEAR
 
 
 def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera], near: float = NEAR) -> None:

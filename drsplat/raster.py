@@ -213,6 +213,76 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
     return float(np.mean(seen))
 
 
+@dataclass(frozen=True)
+class NearBand:
+    """The Gaussians of one view that a render with near plane `lo` draws and one with a deeper plane
+    `hi` does not (`near_band`): ids [K] int64 of the scene it was taken of, increasing; tiles: the
+    tiles their getRect rectangles cover at lo, summed over them (overlaps count twice); grid: the
+    view's tile count."""
+
+    ids: np.ndarray
+    tiles: int
+    grid: int
+
+    @property
+    def cover(self) -> float:
+        """tiles / grid: how much of the view the band's Gaussians may draw on (may pass 1)."""
+        return self.tiles / self.grid if self.grid else 0.0
+
+
+def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, project) -> NearBand:
+    """NearBand of `camera` from the candidates ids (lo ≤ z < hi), keeping those `project` (a projection function
+    with project_gaussians' signature) draws at lo."""
+    grid = int(np.prod(tile_grid(camera.width, camera.height)))
+    if ids.size == 0:
+        return NearBand(ids.astype(np.int64), 0, grid)
+    sub = PreparedScene(means=prep.means[ids], covariances=prep.covariances[ids], opacities=prep.opacities[ids],
+                        sh=prep.sh[ids], finite=prep.finite[ids])
+    projected = project(sub, camera, lo)
+    drawn = projected.valid
+    rects = projected.tile_rects[drawn].astype(np.int64)
+    tiles = int(np.sum((rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])))
+    return NearBand(ids[drawn].astype(np.int64), tiles, grid)
+
+
+def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float) -> list[NearBand]:
+    """Per camera, the Gaussians a render at near plane lo draws and one at hi > lo does not: those of camera
+    depth lo ≤ z < hi that the projection at lo keeps (`project_gaussians`' valid: usable, opacity ≥ 1/255,
+    a finite footprint whose tile rectangle meets the image). z is the projection's own float64 sum
+    (`kernels.depth_band_counts`), so the band's edges are exactly the planes': at hi every Gaussian of
+    the band is behind. A numba pass over every (camera, Gaussian) pair finds the depths, then only the few
+    in the band are projected. `near_band_reference` is the numpy form (the same bands).
+
+    cameras: C views. Returns C NearBands, in camera order."""
+    prep = prepare_scene(scene)
+    if not 0 < lo < hi:
+        raise ValueError(f"near_band: expected 0 < lo < hi, got {lo!r}, {hi!r}")
+    if not cameras:
+        return []
+    rot_z = np.ascontiguousarray([np.asarray(c.R, np.float64)[2] for c in cameras])
+    trans_z = np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
+    counts = np.zeros(len(cameras), np.int64)
+    kernels.depth_band_counts(prep.means, rot_z, trans_z, float(lo), float(hi), counts)
+    starts = np.zeros(len(cameras) + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    ids = np.empty(int(starts[-1]), np.int64)
+    kernels.depth_band_fill(prep.means, rot_z, trans_z, float(lo), float(hi), starts, ids)
+    return [_band_of(prep, cam, ids[starts[c]:starts[c + 1]], lo, project_gaussians) for c, cam in enumerate(cameras)]
+
+
+def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float) -> list[NearBand]:
+    """`near_band` in numpy: per camera, z = R₂₀·x + R₂₁·y + R₂₂·z + t₂ summed elementwise in that order,
+    the candidates lo ≤ z < hi projected by `project_gaussians_reference` at lo."""
+    prep = prepare_scene(scene)
+    out = []
+    for cam in cameras:
+        rot, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+        m = prep.means
+        z = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
+        out.append(_band_of(prep, cam, np.flatnonzero((z >= lo) & (z < hi)), lo, project_gaussians_reference))
+    return out
+
+
 def sh_in_range(scene: GaussianScene) -> np.ndarray:
     """[N] bool: the Gaussians whose SH coefficients are all finite and within MAX_SH_COEFFICIENT;
     `prepare_scene` renders no other (a colour past float32's range would be infinite)."""

@@ -1326,3 +1326,141 @@ def test_numbas_real_workqueue_layer_is_recognised_and_the_check_runs_at_once(ti
     assert done.returncode == 0, done.stderr[-2000:]
     assert "layer False workqueue" in done.stdout, done.stdout
     assert f"check False {len(tiny_seed0[2])} False True" in done.stdout, done.stdout
+
+
+def _with_floaters(scene, cameras, per_camera: int = 20, seed: int = 0):
+    """`scene` plus `per_camera` opaque, coloured Gaussians 0.03-0.15 units in front of each of `cameras`, inside
+    its view: the floaters a trainer leaves in front of a camera that INRIA's rasterizer never drew there."""
+    from drsplat.scene import GaussianScene
+
+    rng = np.random.default_rng(seed)
+    placed = []
+    for c in cameras:
+        z = rng.uniform(0.03, 0.15, per_camera)
+        u, v = rng.uniform(0.1, 0.9, per_camera) * c.width, rng.uniform(0.1, 0.9, per_camera) * c.height
+        in_camera = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], axis=1)
+        placed.append((in_camera - np.asarray(c.t)) @ np.asarray(c.R))
+    means = np.concatenate(placed).astype(np.float32)
+    k = len(means)
+    quats = rng.normal(size=(k, 4)).astype(np.float32)
+    sh = np.zeros((k, *scene.sh.shape[1:]), np.float32)
+    sh[:, 0] = rng.normal(size=(k, 3)) * 1.5
+    return GaussianScene(means=np.concatenate([scene.means, means]), quats=np.concatenate([scene.quats, quats / np.linalg.norm(quats, axis=1, keepdims=True)]),
+                         log_scales=np.concatenate([scene.log_scales, np.log(rng.uniform(0.002, 0.01, (k, 3))).astype(np.float32)]),
+                         opacity_logits=np.concatenate([scene.opacity_logits, np.full(k, 3.0, np.float32)]), sh=np.concatenate([scene.sh, sh]))
+
+
+def _images_at(scene, cameras, folder: Path, near: float) -> list:
+    """`cameras` with images of `scene` rendered at near plane `near` in `folder`: what a trainer drawing at that plane fitted."""
+    from PIL import Image
+
+    from drsplat.raster import prepare_scene, rasterize
+
+    folder.mkdir(parents=True, exist_ok=True)
+    prepared, out = prepare_scene(scene), []
+    for camera in cameras:
+        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=near).rgb
+        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(folder / f"{camera.name}.png")
+        out.append(dataclasses.replace(camera, image_path=folder / f"{camera.name}.png"))
+    return out
+
+
+def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_seed0, tmp_path, caplog):
+    """A scene trained by INRIA's rasterizer (near plane 0.2) may hold floaters 0.01-0.2 in front of a camera that were
+    never drawn in that view, so its image does not show them; drawn at gsplat's 0.01 they cover what the image shows.
+    "auto" takes 0.2 for images drawn without them (one warning naming the scene and --near-plane 0.01), 0.01 for
+    images drawn with them (said at INFO), and a plane given as a number as given."""
+    from drsplat.defaults import INRIA_NEAR, NEAR
+    from drsplat.frames import near_plane_as_trained
+
+    scene, _, cams, _ = tiny_seed0
+    floaty = _with_floaters(scene, cams[:2])
+    for plane, expected in ((INRIA_NEAR, INRIA_NEAR), (NEAR, NEAR)):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+            assert near_plane_as_trained(floaty, _images_at(floaty, cams, tmp_path / str(plane), plane), what="SCENE") == expected
+        warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        if expected == INRIA_NEAR:
+            assert len(warned) == 1 and "SCENE was trained with INRIA's near plane" in warned[0] and "--near-plane 0.01 draws them" in warned[0]
+            assert "front of 3 of its 16 cameras" in warned[0], warned  # the two the floaters stand before, and a neighbour
+        else:
+            assert not warned and "they are drawn (near plane 0.01)" in caplog.text, caplog.text
+    assert near_plane_as_trained(floaty, cams, 0.05) == 0.05
+
+
+def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_without_images(tiny_seed0, tmp_path, monkeypatch, caplog):
+    """No Gaussian 0.01-0.2 in front of any camera: both planes draw the same, so nothing is rendered and the plane
+    is 0.01. Floaters but no image to compare: 0.01, with a warning that names --near-plane inria."""
+    import drsplat.frames as frames
+
+    scene, _, cams, _ = tiny_seed0
+    far = [dataclasses.replace(c, t=np.asarray(c.t) + [0.0, 0.0, 0.5]) for c in cams]  # every camera backed off 0.5
+    assert all(b.ids.size == 0 for b in frames.near_band(scene, far, frames.NEAR, frames.INRIA_NEAR))
+    renders = []
+    monkeypatch.setattr(frames, "supersampled_render", lambda *a, **k: renders.append(a) or pytest.fail("rendered"))
+    assert frames.near_plane_as_trained(scene, far) == frames.NEAR and not renders
+    monkeypatch.undo()
+    blind = [dataclasses.replace(c, image_path=None) for c in cams]
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert frames.near_plane_as_trained(_with_floaters(scene, cams[:1]), blind, what="SCENE") == frames.NEAR
+    assert "no training image could be compared" in caplog.text and "--near-plane inria" in caplog.text, caplog.text
+    assert "with no image file" in caplog.text, caplog.text
+
+
+def test_register_near_plane_auto_registers_an_inria_scene_as_inria_would_draw_it(tiny_seed0, tmp_path, capsys):
+    """The command end to end: the tiny room with floaters before two cameras, its images drawn at INRIA's plane.
+    The default (`--near-plane auto`) registers the very bytes of `--near-plane inria` (its header saying the plane, so
+    `eval lerf` renders at it too), with the warning; `--near-plane 0.01` draws the floaters and registers other bytes."""
+    from drsplat.defaults import INRIA_NEAR
+
+    scene, _, cams, _ = tiny_seed0
+    data = Path(cams[0].image_path).parents[1]
+    floaty = _with_floaters(scene, cams[:2])
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    save_ply(floaty, copy / "scene.ply")
+    _images_at(floaty, cams, copy / "images", INRIA_NEAR)  # the same names: the dataset's images replaced
+    outputs = {}
+    for name, flags in (("auto", []), ("inria", ["--near-plane", "inria"]), ("gsplat", ["--near-plane", "0.01"])):
+        outputs[name] = tmp_path / f"{name}.ply"
+        assert main(["register", str(copy / "scene.ply"), "--source", str(copy), "--features", str(copy / "features"),
+                     "--out", str(outputs[name]), "--no-progress", "--aggregate", "paper", *flags]) == 0
+        err = capsys.readouterr().err
+        assert ("trained with INRIA's near plane" in err) == (name == "auto"), err
+    assert outputs["auto"].read_bytes() == outputs["inria"].read_bytes()
+    assert b"drsplat.near_plane 0.2" in outputs["auto"].read_bytes()[:4096]
+    assert outputs["gsplat"].read_bytes() != outputs["auto"].read_bytes()
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_the_viewer_registers_at_the_near_plane_register_decides(tiny_seed0, tmp_path, background):
+    """The viewer's camera check decides the near plane as `register` does by default: on the tiny room with floaters
+    before two cameras and images drawn at INRIA's plane, its registration writes the bytes of `register` with
+    `--near-plane inria`; closing the dataset goes back to 0.01."""
+    import time
+
+    from drsplat.defaults import INRIA_NEAR, NEAR
+    from viewer.state import ViewerState
+
+    scene, _, cams, _ = tiny_seed0
+    copy = tmp_path / "data"
+    shutil.copytree(Path(cams[0].image_path).parents[1], copy)
+    floaty = _with_floaters(scene, cams[:2])
+    save_ply(floaty, copy / "scene.ply")
+    _images_at(floaty, cams, copy / "images", INRIA_NEAR)
+    assert main(["register", str(copy / "scene.ply"), "--source", str(copy), "--features", str(copy / "features"),
+                 "--out", str(tmp_path / "cli.ply"), "--no-progress", "--near-plane", "inria", "--topk", "20"]) == 0
+    state = ViewerState()
+    assert state.load_scene(copy / "scene.ply") and state.load_source(copy, background=background)
+    deadline = time.time() + 120
+    while state.cameras_pending:
+        state.poll_camera_check()
+        assert time.time() < deadline
+        time.sleep(0.02)
+    assert state.near_plane == INRIA_NEAR and any("trained with INRIA's near plane" in m.text for m in state.messages)
+    assert state.start_registration(tmp_path / "viewer.ply", topk=20, background=False)
+    assert state.registration.error is None
+    assert (tmp_path / "viewer.ply").read_bytes() == (tmp_path / "cli.ply").read_bytes()
+    assert state.near_plane == INRIA_NEAR  # kept with the cameras when the registered scene replaces the open one
+    state.forget_source()
+    assert state.near_plane == NEAR

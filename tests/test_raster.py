@@ -640,3 +640,53 @@ def test_getrect_differs_from_the_pixel_centre_rule_only_at_tile_borders():
     assert ((lo_get[both] == lo_px[both]) | (lo_get[both] == lo_px[both] - 1)).all()
     assert ((hi_get[both] == hi_px[both]) | (hi_get[both] == hi_px[both] - 1)).all()
     assert (lo_get[both] != lo_px[both]).mean() > 0.01 and (hi_get[both] != hi_px[both]).mean() > 0.01
+
+
+def _band_cameras(rng: np.random.Generator, count: int) -> list:
+    """Cameras around the origin looking at it from 0.3-3 units, plus one whose t puts a mean exactly on each plane."""
+    cams = []
+    for _ in range(count):
+        eye = rng.normal(size=3)
+        eye *= rng.uniform(0.3, 3.0) / np.linalg.norm(eye)
+        cams.append(look_at_camera(eye, np.zeros(3), int(rng.integers(8, 80)), int(rng.integers(8, 60)), fov_x_deg=float(rng.uniform(30, 120))))
+    return cams
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
+    """`near_band` (a numba pass over every (camera, Gaussian) depth, then a projection of the few in the band) against
+    two plain facts: its ids are those `project_gaussians` keeps at lo and not at hi, and `near_band_reference` (numpy)
+    finds the same ids and tiles. Hard cases: means on either plane to the last bit (the planes' own rounding), NaN
+    means, Gaussians too faint to draw, ones off to the side of a view, a camera that sees none, an empty scene."""
+    rng = np.random.default_rng(seed)
+    lo, hi = raster.NEAR, 0.2
+    means = rng.normal(size=(3000, 3)) * 0.6
+    opacity = np.where(rng.random(3000) < 0.1, -8.0, 2.0)  # a tenth under 1/255: never drawn
+    cams = _band_cameras(rng, 12)
+    means[2] = np.nan
+    means = means.astype(np.float32)
+    for row, plane in ((0, lo), (1, hi), (3, lo), (4, hi)):  # cameras that put a mean on a plane, to the last bits of its own sum
+        opacity[row] = 2.0
+        cam = look_at_camera(means[row] - [0.1, 0.05, 0.5], means[row], 40, 30, fov_x_deg=60)
+        t = -(np.asarray(cam.R, np.float64) @ means[row].astype(np.float64))
+        t[2] += plane
+        cams.append(dataclasses.replace(cam, t=t))
+    scene = gaussians(means, log_scale=np.log(rng.uniform(0.002, 0.05, (3000, 3))), opacity_logit=opacity)
+    bands = raster.near_band(scene, cams, lo, hi)
+    reference = raster.near_band_reference(scene, cams, lo, hi)
+    assert len(bands) == len(cams) == len(reference)
+    nonempty = 0
+    for cam, band, ref in zip(cams, bands, reference):
+        drawn = project_gaussians(scene, cam, lo).valid & ~project_gaussians(scene, cam, hi).valid
+        np.testing.assert_array_equal(band.ids, np.flatnonzero(drawn))
+        np.testing.assert_array_equal(band.ids, ref.ids)
+        assert band.tiles == ref.tiles and band.grid == ref.grid == np.prod(raster.tile_grid(cam.width, cam.height))
+        nonempty += band.ids.size > 0
+        assert 2 not in band.ids  # a NaN mean is in no band
+    assert nonempty >= 3
+    on_plane = [bool(raster.project_gaussians(scene, cam, plane).valid[row]) for cam, (row, plane) in zip(cams[-4:], ((0, lo), (1, hi), (3, lo), (4, hi)))]
+    assert any(on_plane)  # some sit on their plane, not a hair in front: the edges are tested, not skirted
+    empty = raster.near_band(gaussians(np.zeros((0, 3))), cams[:2], lo, hi)
+    assert [b.ids.size for b in empty] == [0, 0] and raster.near_band(scene, [], lo, hi) == []
+    with pytest.raises(ValueError, match="0 < lo < hi"):
+        raster.near_band(scene, cams, hi, lo)

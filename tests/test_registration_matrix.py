@@ -235,6 +235,24 @@ def test_the_near_plane_flag_reads_a_depth_or_inria_and_names_both_when_refusing
         assert repr(text) in str(err.value) or f"{text}:" in str(err.value)  # as typed: 1e-400 is not "0"
 
 
+def test_register_near_plane_also_reads_auto_and_eval_lerf_does_not(capsys):
+    """`register --near-plane auto` decides the plane from the training images (drsplat.frames.near_plane_as_trained);
+    `eval lerf` renders at the plane the registered file records, so it takes no 'auto'."""
+    import argparse
+
+    from drsplat.cli import main
+    from drsplat.commands.common import near_plane_choice
+
+    assert [near_plane_choice(t) for t in ("auto", " AUTO ", "inria", "0.05")] == ["auto", "auto", 0.2, 0.05]
+    with pytest.raises(argparse.ArgumentTypeError, match=r"or 'inria', or 'auto'$"):
+        near_plane_choice("automatic")
+    for args, said in ((["register", "scene.ply", "--source", "s", "--features", "f", "--out", "o.ply", "--near-plane", "0"], "or 'auto'"),
+                       (["eval", "lerf", "--near-plane", "auto", "r.ply", "--source", "s", "--annotations", "a"], "got 'auto', or 'inria'")):
+        with pytest.raises(SystemExit) as stop:
+            main(args)
+        assert stop.value.code == 2 and said in capsys.readouterr().err
+
+
 def test_a_file_registered_at_another_plane_says_so_and_eval_lerf_renders_there(room, tmp_path):
     """A registration at a plane other than the default writes it into the PLY's header (the default's file is as it was),
     a registration of such a file at another plane does not carry its line over, and `eval lerf` renders at the recorded

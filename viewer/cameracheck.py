@@ -1,8 +1,8 @@
 """The training cameras' checks against the open scene on a worker thread.
 
-`drsplat.frames.cameras_as_trained` decides the cameras' frame and principal points by rendering
-views of the scene: 2-3 s on a 542k-Gaussian scene, longer on bigger ones, during which the
-window did not redraw. `ViewerState.load_source(..., background=True)` runs it here and takes the
+`drsplat.frames.cameras_as_trained` decides the cameras' frame and principal points, and
+`drsplat.frames.near_plane_as_trained` the near plane registration renders at, by rendering views of the
+scene: 2-3 s on a 542k-Gaussian scene, longer on bigger ones, during which the window did not redraw. `ViewerState.load_source(..., background=True)` runs it here and takes the
 cameras when it ends (`ViewerState.poll_camera_check`).
 
 One check renders at a time: a check that replaces another cancels it (it stops at its next
@@ -25,7 +25,8 @@ import numpy as np
 from drsplat._scene_kernels import bounded_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.errors import Cancelled
-from drsplat.frames import cameras_as_trained
+from drsplat.defaults import NEAR
+from drsplat.frames import cameras_as_trained, near_plane_as_trained
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
 from viewer.messages import LibraryWarnings, MessageLog
@@ -45,6 +46,7 @@ class CameraCheck:
     cancel: CancelToken = field(default_factory=CancelToken)
     messages: MessageLog = field(default_factory=MessageLog)
     cameras: list[Camera] = field(default_factory=list)
+    near_plane: float = NEAR  # the plane the scene was drawn at while training, for the cameras (`near_plane_as_trained`)
     error: BaseException | None = None
     finished: bool = False
     reported: bool = False
@@ -62,12 +64,24 @@ def concurrent_kernels_safe() -> bool:
     return numba.threading_layer() in ("omp", "tbb")
 
 
+@dataclass(frozen=True)
+class TrainedCameras:
+    """The training cameras as their scene was trained with them, and the near plane it was drawn at (`checked_cameras`)."""
+
+    cameras: list[Camera]
+    near_plane: float
+
+
 def checked_cameras(scene: GaussianScene, cameras: list[Camera], source: Path, scene_path: Path | None,
-                    refinements: np.ndarray | None, cancel: CancelToken | None = None) -> list[Camera]:
+                    refinements: np.ndarray | None, cancel: CancelToken | None = None) -> TrainedCameras:
     """The viewer's reading of the training cameras: `cameras_as_trained` with the principal point
-    decided by the scene ("auto"), the warnings naming the scene file."""
+    decided by the scene ("auto"), then the near plane decided as `register` decides it by default
+    (`near_plane_as_trained`), the warnings naming the scene file."""
     what = scene_path.name if scene_path is not None else "the scene"
-    return cameras_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel)
+    cameras = cameras_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel)
+    if cancel is not None:
+        cancel.raise_if_cancelled()
+    return TrainedCameras(cameras, near_plane_as_trained(scene, cameras, what=what))
 
 
 def run_camera_check(check: CameraCheck, scene: GaussianScene, scene_path: Path | None, refinements: np.ndarray | None,
@@ -79,7 +93,8 @@ def run_camera_check(check: CameraCheck, scene: GaussianScene, scene_path: Path 
             previous.thread.join()
         check.cancel.raise_if_cancelled()
         with LibraryWarnings(check.messages):
-            check.cameras = checked_cameras(scene, check.given, check.source, scene_path, refinements, check.cancel)
+            trained = checked_cameras(scene, check.given, check.source, scene_path, refinements, check.cancel)
+            check.cameras, check.near_plane = trained.cameras, trained.near_plane
     except Cancelled:
         pass
     except BaseException as exc:  # noqa: BLE001 - reported in the GUI by ViewerState.poll_camera_check

@@ -25,7 +25,7 @@ import numpy as np
 from drsplat import query as dq
 from drsplat.cameras import Camera, dataset_inputs, load_cameras
 from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases, protected_feature_folders
-from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
+from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
@@ -80,6 +80,7 @@ class ViewerState:
         self.field = None  # drsplat.lang.LanguageField | None
         self.assigned_count = 0  # the field's Gaussians with a feature (`LanguageField.assigned`), counted once per scene
         self.cameras: list[Camera] = []
+        self.near_plane = NEAR  # registration's, decided with the cameras (`checked_cameras`)
         self.source_dir: Path | None = None
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
@@ -201,16 +202,17 @@ class ViewerState:
         self._stopped_check = None
         if previous is not None:
             previous.stop()
-        read = cameras
+        read, near_plane = cameras, NEAR
         if self.scene is not None and background and self.kernels_safe():
             self.camera_check = start_camera_check(self.scene, cameras, source, self.scene_path, self.scene_refinements,
                                                    self.scene_version, previous)
             self.cameras = []
-            self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame and principal points)...")
+            self.info(f"checking the {len(cameras)} training cameras of {source} against the scene (its frame, principal points and near plane)...")
         elif self.scene is not None:
             try:
                 with LibraryWarnings(self.messages):  # a move into gsplat's world is said on screen
-                    cameras = checked_cameras(self.scene, cameras, source, self.scene_path, self.scene_refinements)
+                    trained = checked_cameras(self.scene, cameras, source, self.scene_path, self.scene_refinements)
+                cameras, near_plane = trained.cameras, trained.near_plane
             except Exception as exc:  # noqa: BLE001 - the cameras and dataset in use stay as they were
                 return self._fail(exc, f"cannot read cameras from {source}")
         self.dataset_cameras, self.camera_problem = read, None
@@ -220,7 +222,7 @@ class ViewerState:
         problems: list[str] = []
         self.oracle = read_oracle_queries(source, problems)
         if self.camera_check is None:
-            self.cameras = cameras
+            self.cameras, self.near_plane = cameras, near_plane
             self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
         elif self.oracle is not None:
             self.info(f"{len(self.oracle.names)} oracle label queries from {source}")
@@ -237,6 +239,7 @@ class ViewerState:
         """No dataset: no training cameras (nor a check of them), oracle labels or guarded dataset files."""
         self.drop_camera_check()
         self.cameras, self.dataset_cameras, self.camera_problem, self.oracle, self.source_dir = [], [], None, None, None
+        self.near_plane = NEAR
 
     def drop_camera_check(self) -> None:
         """Stop a check still running (another scene opened, or no dataset now): its cameras and warnings are not taken.
@@ -261,7 +264,7 @@ class ViewerState:
             self.camera_problem = self.messages[-1].text
             return True
         self.messages.extend(check.messages)
-        self.cameras = check.cameras
+        self.cameras, self.near_plane = check.cameras, check.near_plane
         self.info(f"{len(self.cameras)} training cameras from {check.source}")
         return True
 
@@ -805,7 +808,7 @@ class ViewerState:
         except DrsplatError as exc:
             self.error(str(exc))
             return False
-        options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=engine, device=device)
+        options = RegisterOptions(topk=topk, level=level, codebook=codebook, engine=engine, device=device, near_plane=self.near_plane)
         self.kernels_safe()  # asked before the job's thread runs kernels
         self.registration = start_job(Path(output), self.scene, self.cameras, Path(self.features_dir), options, background)
         self.registration.scene_version = self.scene_version
@@ -839,9 +842,9 @@ class ViewerState:
             self.info(f"registration replaced {job.output}, the file open: the new one is loaded")
         else:
             self.info(f"registration saved to {job.output}")
-        cameras, oracle = self.cameras, self.oracle
+        cameras, oracle, near_plane = self.cameras, self.oracle, self.near_plane
         if self.load_scene(job.output):
-            self.cameras, self.oracle = cameras, oracle
+            self.cameras, self.oracle, self.near_plane = cameras, oracle, near_plane
             self.same_place = True  # the same Gaussians, pruned: the window stays where the user was
             self.start_text_encoder()
         return True

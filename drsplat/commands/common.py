@@ -257,11 +257,28 @@ def near_plane_value(text: str) -> float:
     return value
 
 
-def add_near_plane_argument(parser: argparse.ArgumentParser, what: str, default: str | None = None) -> None:
-    """--near-plane DEPTH|inria (`near_plane_value`) for a command that renders; what: of what it is the plane;
-    default: the default's words (None: NEAR, which the argument then holds; else the argument is None when not given)."""
-    from drsplat.defaults import NEAR
+def near_plane_choice(text: str) -> float | str:
+    """argparse type for a --near-plane that may be decided: 'auto' (drsplat.frames.near_plane_as_trained), else `near_plane_value`."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return near_plane_value(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc}, or 'auto'") from None
 
+
+def add_near_plane_argument(parser: argparse.ArgumentParser, what: str, default: str | None = None, auto: bool = False) -> None:
+    """--near-plane DEPTH|inria (`near_plane_value`) for a command that renders; what: of what it is the plane;
+    default: the default's words (None: NEAR, which the argument then holds; else the argument is None when not given).
+    auto: 'auto' is a choice too, and the default (`near_plane_choice`; drsplat.frames.near_plane_as_trained decides)."""
+    from drsplat.defaults import DEFAULT_NEAR_PLANE, INRIA_NEAR, NEAR
+
+    if auto:
+        parser.add_argument("--near-plane", type=near_plane_choice, default=DEFAULT_NEAR_PLANE, metavar="DEPTH",
+                            help=f"camera depth in scene units below which a Gaussian is not drawn, the plane {what}; 'auto' "
+                                 f"(the default): {NEAR:g} (gsplat's) unless Gaussians lie between {NEAR:g} and {INRIA_NEAR:g} in "
+                                 f"front of a camera and the training images show them undrawn, then {INRIA_NEAR:g} (docs/raster.md)")
+        return
     parser.add_argument("--near-plane", type=near_plane_value, default=NEAR if default is None else None, metavar="DEPTH",
                         help=f"camera depth in scene units below which a Gaussian is not drawn, the plane {what} (default: "
                              f"{default or f'{NEAR:g}, gsplat' + chr(39) + 's'}; docs/raster.md)")

@@ -9,7 +9,7 @@ import logging
 from pathlib import Path
 
 from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, add_near_plane_argument, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
-from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK
+from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals, output_target, refuse_write_protected
 
@@ -50,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "\"Resolution\"; `drsplat eval ablate resolution`)")
     add_principal_point_argument(p)
     add_near_plane_argument(p, "a view is rendered with; 'inria' (0.2) is the plane of the INRIA rasterizer that trained LangSplat's and "
-                               "Dr. Splat's scenes, which never drew nearer Gaussians in that view")
+                               "Dr. Splat's scenes, which never drew nearer Gaussians in that view", auto=True)
     p.add_argument("--out", type=output_file, required=True, metavar="REGISTERED.ply", help="registered PLY to write")
     p.add_argument("--memory-budget", type=size_value, default=None, metavar="SIZE",
                    help="memory the registration may use (e.g. 8GB); when the in-memory estimate exceeds it, Gaussians are "
@@ -94,7 +94,7 @@ def other_data_suffix(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import InputError, UsageError, shown_path
-    from drsplat.frames import cameras_as_trained, refinement_comment
+    from drsplat.frames import cameras_as_trained, near_plane_as_trained, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.splat_formats import load_scene_report, written_format
@@ -104,9 +104,10 @@ def run(args: argparse.Namespace) -> int:
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     if args.ray_workers is not None and args.ray is None:
         log.warning("--ray-workers %d applies to a run on Ray (--ray); without it the views are computed here", args.ray_workers)
+    decided = args.near_plane == "auto"  # decided from the scene and its images once they are read
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
                               memory_budget=args.memory_budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
-                              aggregate=args.aggregate, near_plane=args.near_plane)
+                              aggregate=args.aggregate, near_plane=NEAR if decided else args.near_plane)
     options.check()
     codebook_file = Path(args.codebook) if args.codebook not in ("none", "scene") else None
     if codebook_file is not None and not codebook_file.exists():  # round 57c: a misspelt keyword was only "codebook file not found"
@@ -138,7 +139,9 @@ def run(args: argparse.Namespace) -> int:
                     "PLY has %d rows and its row i is not always the file's row i; drop those rows from the scene file first "
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.scene), scene_path=args.scene,
-                                 refinements=report.camera_refinements, near=args.near_plane)  # trainers' own worlds, cameras and principal points
+                                 refinements=report.camera_refinements, near=options.near_plane)  # trainers' own worlds, cameras and principal points
+    if decided:
+        options = dataclasses.replace(options, near_plane=near_plane_as_trained(scene, cameras, what=str(args.scene)))
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
