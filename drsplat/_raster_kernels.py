@@ -948,3 +948,16 @@ def depth_band_fill(means: np.ndarray, rot_z: np.ndarray, trans_z: np.ndarray, l
             if lo <= z < hi:
                 out_ids[k] = g
                 k += 1
+
+
+@njit(cache=True)
+def any_at_depth(means: np.ndarray, rot_z: np.ndarray, trans_z: np.ndarray, near: float) -> bool:
+    """Whether some camera c has some Gaussian g at z_cg ≥ near, z_cg summed as `depth_band_counts` sums it (means
+    float32 or float64: a float32 is widened exactly, so the sums are the same bits). Stops at the first such pair,
+    which a scene its cameras see finds at once; only a scene no camera can draw costs every pair."""
+    for g in range(means.shape[0]):
+        x, y, z = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
+        for c in range(rot_z.shape[0]):
+            if rot_z[c, 0] * x + rot_z[c, 1] * y + rot_z[c, 2] * z + trans_z[c] >= near:
+                return True
+    return False

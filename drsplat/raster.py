@@ -259,8 +259,7 @@ def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], l
         raise ValueError(f"near_band: expected 0 < lo < hi, got {lo!r}, {hi!r}")
     if not cameras:
         return []
-    rot_z = np.ascontiguousarray([np.asarray(c.R, np.float64)[2] for c in cameras])
-    trans_z = np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
+    rot_z, trans_z = _depth_rows(cameras)
     counts = np.zeros(len(cameras), np.int64)
     kernels.depth_band_counts(prep.means, rot_z, trans_z, float(lo), float(hi), counts)
     starts = np.zeros(len(cameras) + 1, np.int64)
@@ -281,6 +280,35 @@ def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[
         z = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
         out.append(_band_of(prep, cam, np.flatnonzero((z >= lo) & (z < hi)), lo, project_gaussians_reference))
     return out
+
+
+def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """([C, 3] the cameras' third rotation rows, [C] their third translations): a camera depth is z = R₂·x + t₂."""
+    rot_z = np.ascontiguousarray([np.asarray(c.R, np.float64)[2] for c in cameras]).reshape(len(cameras), 3)
+    return rot_z, np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
+
+
+def some_view_draws(means: np.ndarray, cameras: Sequence[Camera], near: float = NEAR) -> bool:
+    """Whether some camera has some mean at camera depth z ≥ near, the projection's own sum (`kernels.any_at_depth`):
+    when not, no view can draw a Gaussian (every one is behind every camera or nearer than the plane), whatever the
+    masks. means: [N, 3] (float32 or float64); `some_view_draws_reference` is the numpy form."""
+    if len(means) == 0 or not cameras:
+        return False
+    rot_z, trans_z = _depth_rows(cameras)
+    means = np.ascontiguousarray(means)
+    if means.dtype not in (np.float32, np.float64):
+        means = means.astype(np.float64)
+    return bool(kernels.any_at_depth(means, rot_z, trans_z, float(near)))
+
+
+def some_view_draws_reference(means: np.ndarray, cameras: Sequence[Camera], near: float = NEAR) -> bool:
+    """`some_view_draws` in numpy: z = R₂₀·x + R₂₁·y + R₂₂·z + t₂ elementwise, in that order, for every camera."""
+    m = np.asarray(means, np.float64)
+    for cam in cameras:
+        rot, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+        if np.any(rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2] >= near):
+            return True
+    return False
 
 
 def sh_in_range(scene: GaussianScene) -> np.ndarray:

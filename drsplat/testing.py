@@ -45,6 +45,29 @@ def gaussians(means, log_scale=-2.0, opacity_logit=30.0, color=None) -> Gaussian
     )
 
 
+def with_floaters(scene: GaussianScene, cameras, per_camera: int = 20, seed: int = 0) -> GaussianScene:
+    """`scene` plus `per_camera` opaque, coloured Gaussians 0.03-0.15 units in front of each of `cameras`, inside
+    its view: the floaters a trainer leaves before a camera, which INRIA's rasterizer (near plane 0.2) never drew
+    there (`drsplat.frames.near_plane_as_trained`'s tests and bench)."""
+    rng = np.random.default_rng(seed)
+    placed = []
+    for c in cameras:
+        z = rng.uniform(0.03, 0.15, per_camera)
+        u, v = rng.uniform(0.1, 0.9, per_camera) * c.width, rng.uniform(0.1, 0.9, per_camera) * c.height
+        in_camera = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], axis=1)
+        placed.append((in_camera - np.asarray(c.t)) @ np.asarray(c.R))  # x_w = Rᵀ (x_c − t)
+    means = np.concatenate(placed).astype(np.float32) if placed else np.zeros((0, 3), np.float32)
+    k = len(means)
+    quats = rng.normal(size=(k, 4)).astype(np.float32)
+    sh = np.zeros((k, *scene.sh.shape[1:]), np.float32)
+    sh[:, 0] = rng.normal(size=(k, 3)) * 1.5
+    return GaussianScene(means=np.concatenate([scene.means, means]),
+                         quats=np.concatenate([scene.quats, quats / np.linalg.norm(quats, axis=1, keepdims=True)]),
+                         log_scales=np.concatenate([scene.log_scales, np.log(rng.uniform(0.002, 0.01, (k, 3))).astype(np.float32)]),
+                         opacity_logits=np.concatenate([scene.opacity_logits, np.full(k, 3.0, np.float32)]),
+                         sh=np.concatenate([scene.sh, sh]))
+
+
 def front_camera(width: int = 40, height: int = 30, cx: float | None = None, cy: float | None = None, z: float = -4.0) -> Camera:
     """Camera at (0, 0, z) looking along +z, OpenCV axes aligned with the world's."""
     return look_at_camera([0.0, 0.0, z], [0.0, 0.0, 0.0], width, height, fov_x_deg=50.0, cx=cx, cy=cy)

@@ -604,9 +604,10 @@ def test_region_masks_follow_the_scene_from_view_to_view(tmp_path):
 
 
 def test_render_bench_times_the_sh_kernel_against_its_reference_and_the_principal_point_decision(tmp_path, capsys):
-    """`drsplat bench render` on a small scene: its SH colour row agrees with the reference to float32 rounding, and the
-    decision over views whose images are the scene's own renders, read 5 % off-centre, takes the centres. A scene file
-    that is not there is one error naming it, before any work."""
+    """`drsplat bench render` on a small scene: its SH colour row agrees with the reference to float32 rounding, the
+    decision over views whose images are the scene's own renders, read 5 % off-centre, takes the centres, and the near
+    plane's takes 0.2 for floaters the images (drawn at 0.2) do not show, its band the reference's. A scene file that is
+    not there is one error naming it, before any work."""
     from drsplat.scene import save_ply
     from drsplat.synthetic import make_synthetic
 
@@ -617,5 +618,8 @@ def test_render_bench_times_the_sh_kernel_against_its_reference_and_the_principa
     sh_row = next(line for line in out.splitlines() if line.startswith("| SH colours"))
     assert float(sh_row.split("|")[-2]) < 1e-5, sh_row
     assert "took the centres (truth: the centres)" in out, out
+    assert "took 0.2 (truth: 0.2)" in out, out  # the near plane decided on floaters INRIA's rasterizer never drew
+    band_row = next(line for line in out.splitlines() if line.startswith("| near band"))
+    assert band_row.rstrip(" |").endswith("yes"), band_row  # the numba pass found the reference's bands
     code, err, _ = run_cli(["bench", "render", "--scene", tmp_path / "missing.ply"], capsys)
     assert code == 1 and "missing.ply" in err, err

@@ -16,8 +16,10 @@ from drsplat.commands.common import load_registered
 from drsplat.errors import InputError
 from drsplat.frames import (LOW_SEEN_FRACTION, PHOTO_MATCH_MIN, FrameMove, cameras_in_scene_frame, grey_correlation, gsplat_normalizations,
                             move_points, over_fitted_background, photo_agreement, principal_axes, up_and_scale)
-from drsplat.raster import share_in_some_view
+from drsplat.raster import prepare_scene, share_in_some_view
 from drsplat.scene import load_ply, quat_to_rotmat, save_ply
+from drsplat.bench.render import cameras_with_own_images
+from drsplat.testing import with_floaters
 from drsplat.synthetic import rotmat_to_quat
 from tests.test_cameras import colmap_text_lines
 
@@ -1328,43 +1330,6 @@ def test_numbas_real_workqueue_layer_is_recognised_and_the_check_runs_at_once(ti
     assert f"check False {len(tiny_seed0[2])} False True" in done.stdout, done.stdout
 
 
-def _with_floaters(scene, cameras, per_camera: int = 20, seed: int = 0):
-    """`scene` plus `per_camera` opaque, coloured Gaussians 0.03-0.15 units in front of each of `cameras`, inside
-    its view: the floaters a trainer leaves in front of a camera that INRIA's rasterizer never drew there."""
-    from drsplat.scene import GaussianScene
-
-    rng = np.random.default_rng(seed)
-    placed = []
-    for c in cameras:
-        z = rng.uniform(0.03, 0.15, per_camera)
-        u, v = rng.uniform(0.1, 0.9, per_camera) * c.width, rng.uniform(0.1, 0.9, per_camera) * c.height
-        in_camera = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], axis=1)
-        placed.append((in_camera - np.asarray(c.t)) @ np.asarray(c.R))
-    means = np.concatenate(placed).astype(np.float32)
-    k = len(means)
-    quats = rng.normal(size=(k, 4)).astype(np.float32)
-    sh = np.zeros((k, *scene.sh.shape[1:]), np.float32)
-    sh[:, 0] = rng.normal(size=(k, 3)) * 1.5
-    return GaussianScene(means=np.concatenate([scene.means, means]), quats=np.concatenate([scene.quats, quats / np.linalg.norm(quats, axis=1, keepdims=True)]),
-                         log_scales=np.concatenate([scene.log_scales, np.log(rng.uniform(0.002, 0.01, (k, 3))).astype(np.float32)]),
-                         opacity_logits=np.concatenate([scene.opacity_logits, np.full(k, 3.0, np.float32)]), sh=np.concatenate([scene.sh, sh]))
-
-
-def _images_at(scene, cameras, folder: Path, near: float) -> list:
-    """`cameras` with images of `scene` rendered at near plane `near` in `folder`: what a trainer drawing at that plane fitted."""
-    from PIL import Image
-
-    from drsplat.raster import prepare_scene, rasterize
-
-    folder.mkdir(parents=True, exist_ok=True)
-    prepared, out = prepare_scene(scene), []
-    for camera in cameras:
-        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=near).rgb
-        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(folder / f"{camera.name}.png")
-        out.append(dataclasses.replace(camera, image_path=folder / f"{camera.name}.png"))
-    return out
-
-
 def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_seed0, tmp_path, caplog):
     """A scene trained by INRIA's rasterizer (near plane 0.2) may hold floaters 0.01-0.2 in front of a camera that were
     never drawn in that view, so its image does not show them; drawn at gsplat's 0.01 they cover what the image shows.
@@ -1374,11 +1339,13 @@ def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_s
     from drsplat.frames import near_plane_as_trained
 
     scene, _, cams, _ = tiny_seed0
-    floaty = _with_floaters(scene, cams[:2])
+    floaty = with_floaters(scene, cams[:2])
     for plane, expected in ((INRIA_NEAR, INRIA_NEAR), (NEAR, NEAR)):
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="drsplat.frames"):
-            assert near_plane_as_trained(floaty, _images_at(floaty, cams, tmp_path / str(plane), plane), what="SCENE") == expected
+            (tmp_path / str(plane)).mkdir()
+            images = cameras_with_own_images(prepare_scene(floaty), cams, tmp_path / str(plane), plane)
+            assert near_plane_as_trained(floaty, images, what="SCENE") == expected
         warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
         if expected == INRIA_NEAR:
             assert len(warned) == 1 and "SCENE was trained with INRIA's near plane" in warned[0] and "--near-plane 0.01 draws them" in warned[0]
@@ -1402,7 +1369,7 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     monkeypatch.undo()
     blind = [dataclasses.replace(c, image_path=None) for c in cams]
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
-        assert frames.near_plane_as_trained(_with_floaters(scene, cams[:1]), blind, what="SCENE") == frames.NEAR
+        assert frames.near_plane_as_trained(with_floaters(scene, cams[:1]), blind, what="SCENE") == frames.NEAR
     assert "no training image could be compared" in caplog.text and "--near-plane inria" in caplog.text, caplog.text
     assert "with no image file" in caplog.text, caplog.text
 
@@ -1415,11 +1382,11 @@ def test_register_near_plane_auto_registers_an_inria_scene_as_inria_would_draw_i
 
     scene, _, cams, _ = tiny_seed0
     data = Path(cams[0].image_path).parents[1]
-    floaty = _with_floaters(scene, cams[:2])
+    floaty = with_floaters(scene, cams[:2])
     copy = tmp_path / "data"
     shutil.copytree(data, copy)
     save_ply(floaty, copy / "scene.ply")
-    _images_at(floaty, cams, copy / "images", INRIA_NEAR)  # the same names: the dataset's images replaced
+    cameras_with_own_images(prepare_scene(floaty), cams, copy / "images", INRIA_NEAR)  # the same names: the dataset's images replaced
     outputs = {}
     for name, flags in (("auto", []), ("inria", ["--near-plane", "inria"]), ("gsplat", ["--near-plane", "0.01"])):
         outputs[name] = tmp_path / f"{name}.ply"
@@ -1445,9 +1412,9 @@ def test_the_viewer_registers_at_the_near_plane_register_decides(tiny_seed0, tmp
     scene, _, cams, _ = tiny_seed0
     copy = tmp_path / "data"
     shutil.copytree(Path(cams[0].image_path).parents[1], copy)
-    floaty = _with_floaters(scene, cams[:2])
+    floaty = with_floaters(scene, cams[:2])
     save_ply(floaty, copy / "scene.ply")
-    _images_at(floaty, cams, copy / "images", INRIA_NEAR)
+    cameras_with_own_images(prepare_scene(floaty), cams, copy / "images", INRIA_NEAR)
     assert main(["register", str(copy / "scene.ply"), "--source", str(copy), "--features", str(copy / "features"),
                  "--out", str(tmp_path / "cli.ply"), "--no-progress", "--near-plane", "inria", "--topk", "20"]) == 0
     state = ViewerState()

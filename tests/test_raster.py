@@ -690,3 +690,27 @@ def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
     assert [b.ids.size for b in empty] == [0, 0] and raster.near_band(scene, [], lo, hi) == []
     with pytest.raises(ValueError, match="0 < lo < hi"):
         raster.near_band(scene, cams, hi, lo)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_some_view_draws_is_its_reference_on_planes_through_the_scene(seed):
+    """`some_view_draws` (a numba scan that stops at the first Gaussian at depth ≥ the plane) against the numpy
+    reference, on float32 and float64 means with NaN among them, for planes from in front of every Gaussian to past
+    all of them; and at the deepest mean's own depth (the projection's sum) against the projection: drawn there, and
+    behind one float further."""
+    rng = np.random.default_rng(seed)
+    cams = _band_cameras(rng, 5)
+    means = (rng.normal(size=(500, 3)) * 0.4).astype(np.float32)
+    means[::50] = np.nan
+    rot, t = np.asarray(cams[0].R, np.float64), np.asarray(cams[0].t, np.float64)
+    m = means.astype(np.float64)
+    deepest = float(np.nanmax(rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]))  # camera 0's, as projected
+    beyond = float(np.nextafter(deepest, np.inf))
+    for near in (1e-6, 0.01, 0.2, 1.0, 10.0, 1e30, deepest, beyond):
+        for values in (means, m):
+            assert raster.some_view_draws(values, cams, near) == raster.some_view_draws_reference(values, cams, near), near
+    scene = gaussians(means, log_scale=-3.0)
+    assert raster.some_view_draws(means, cams[:1], deepest) and project_gaussians(scene, cams[0], deepest).num_behind < 490
+    assert not raster.some_view_draws(means, cams[:1], beyond) and project_gaussians(scene, cams[0], beyond).num_behind == 490
+    assert not raster.some_view_draws(means, cams, 1e30)
+    assert not raster.some_view_draws(means, [], 0.01) and not raster.some_view_draws(np.zeros((0, 3)), cams, 0.01)

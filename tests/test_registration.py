@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from drsplat.cameras import load_cameras
-from drsplat.errors import Cancelled, DrsplatError, InputError
+from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError
 from drsplat.eval.metrics import localisation_report, segmentation_report, significance_weights
 from drsplat.features.format import read_features, write_features
 from drsplat.registration import RegisterOptions, register_features
@@ -731,19 +731,37 @@ def test_a_scene_nearer_to_its_cameras_than_the_near_plane_is_said(tiny, tmp_pat
         assert caplog.text == "", caplog.text
 
 
-def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_path):
+def test_a_scene_wholly_within_the_near_plane_is_said_in_the_error(tiny, tmp_path, monkeypatch):
     """Round 29: scaled by 1e-4 no Gaussian is rendered, and the error named cameras that miss the
     scene or a scene in another frame (86 % of the centres project inside the views); the near
-    plane was said only by the warning of runs that assign a few."""
+    plane was said only by the warning of runs that assign a few. Since round 64c F3 it is said before
+    any view is rendered, so no checkpoint is left that could only fail again."""
+    import drsplat.registration.driver as driver
     from drsplat.registration import register
 
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)
     scene = dataclasses.replace(scene, means=scene.means * 1e-4, log_scales=scene.log_scales + np.log(1e-4))
     cams = [dataclasses.replace(cam, t=cam.t * 1e-4) for cam in cams]
-    with pytest.raises(DrsplatError, match=r"no Gaussian received a language feature .*; 100% of the Gaussians are nearer to every "
-                                           r"camera than the near plane \(0\.01 scene units\)") as err:
+    monkeypatch.setattr(driver, "run_registration", lambda *a, **k: pytest.fail("views were registered"))
+    with pytest.raises(DrsplatError, match=r"no Gaussian of the scene lies 0\.01 scene units or more in front of any of the 16 cameras "
+                                           r"\(the near plane\), so no view can draw one: .*scale the scene and its cameras up") as err:
         register(scene, cams, tiny / "features", tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
-    assert "another frame" not in str(err.value)
+    assert "another frame" not in str(err.value) and not isinstance(err.value, UsageError)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no checkpoint, no lock
+
+
+def test_a_near_plane_past_every_gaussian_is_refused_before_any_view(tiny, tmp_path, capsys):
+    """Round 64c F3: `--near-plane 1e30` rendered every view, failed, and kept a checkpoint whose "the same command
+    resumes" could only fail again. Now one usage error (exit 2) naming the flag and the scene's depth, nothing written."""
+    from drsplat.cli import main
+
+    out = tmp_path / "reg.ply"
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(out),
+                 "--no-progress", "--near-plane", "1e30"]) == 2
+    err = capsys.readouterr().err
+    assert "--near-plane 1e+30: no Gaussian of the scene lies 1e+30 scene units or more in front" in err, err
+    assert "register with a smaller plane" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_a_scene_too_faint_for_any_pixel_is_said_in_the_error(tiny, tmp_path):

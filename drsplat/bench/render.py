@@ -1,5 +1,6 @@
 """`drsplat bench render`: RGB rendering's SH colours (numba kernel against the numpy reference) and what
-`--principal-point auto` costs on a scene (drsplat.frames.cameras_with_principal_point).
+`--principal-point auto` and `--near-plane auto` cost on a scene (drsplat.frames.cameras_with_principal_point,
+near_plane_as_trained).
 
 Rows, each measured in this run (medians over --repeats):
 - SH colours of every Gaussian for one view: the numpy reference (`raster._add_colors`, eval_sh) and the
@@ -7,7 +8,12 @@ Rows, each measured in this run (medians over --repeats):
 - one RGB render of a --width x --height view (projection, colours, compositing);
 - the principal-point decision over --views orbit views whose images are the scene's own renders and whose
   principal points are moved --offset of the width off the centre (a scene trained about the centres): its
-  time and whether it took the centres.
+  time and whether it took the centres;
+- the near band (`raster.near_band`: the Gaussians 0.01-0.2 in front of each of the --views cameras) of the scene
+  with 20 floaters before each of 2 views (`testing.with_floaters`), its numba pass against the numpy reference
+  (`near_band_reference`), and whether they found the same bands;
+- the near-plane decision on that scene, whose images are its renders at INRIA's plane (0.2): its time and
+  whether it took 0.2.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from drsplat.commands.common import float_range, int_range, positive_int
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     from drsplat.bench.register import DEFAULT_REAL
 
-    p = subparsers.add_parser("render", help="RGB render: SH colours (numba vs numpy) and the --principal-point auto decision's cost")
+    p = subparsers.add_parser("render", help="RGB render: SH colours (numba vs numpy), the --principal-point auto and --near-plane auto decisions' cost")
     p.add_argument("--scene", type=Path, default=None,
                    help=f"a 3DGS scene (default: {DEFAULT_REAL.name} from ../shared/data when present, else the synthetic 'small' room)")
     p.add_argument("--width", type=int_range(16, 4096), default=640, help="view width in pixels (default 640)")
@@ -51,28 +57,39 @@ def bench_scene(path: Path | None):
     return path.name, load_scene(path)
 
 
+def cameras_with_own_images(prepared, cameras, folder: Path, near: float | None = None) -> list:
+    """`cameras` with images of the scene's renders (`prepared`, near plane `near`, default NEAR) saved as
+    `folder`/<name>.png: the images a scene trained by a rasterizer of that plane was fitted to."""
+    from PIL import Image
+
+    from drsplat.raster import NEAR, rasterize
+
+    out = []
+    for camera in cameras:
+        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=NEAR if near is None else near).rgb
+        path = Path(folder) / f"{camera.name}.png"
+        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(path)
+        out.append(dataclasses.replace(camera, image_path=path))
+    return out
+
+
 def decision_cameras(prepared, cameras, offset: float, folder: Path):
     """`cameras` with images of their own renders saved in `folder`, their principal points then moved
     `offset` of the width right and 0.6 of that up: a scene trained about the centres, read from an
     off-centre calibration."""
-    from PIL import Image
-
-    from drsplat.raster import rasterize
-
     out = []
-    for camera in cameras:
-        rgb = rasterize(prepared, camera, 1, with_rgb=True).rgb
-        path = folder / f"{camera.name}.png"
-        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(path)
+    for camera in cameras_with_own_images(prepared, cameras, folder):
         shift = offset * camera.width
-        out.append(dataclasses.replace(camera, image_path=path, cx=camera.cx + shift, cy=camera.cy - 0.6 * shift))
+        out.append(dataclasses.replace(camera, cx=camera.cx + shift, cy=camera.cy - 0.6 * shift))
     return out
 
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.bench.register import orbit_cameras
-    from drsplat.frames import cameras_with_principal_point
-    from drsplat.raster import _add_colors, _add_colors_numba, prepare_scene, project_gaussians, rasterize
+    from drsplat.defaults import INRIA_NEAR, NEAR
+    from drsplat.frames import cameras_with_principal_point, near_plane_as_trained
+    from drsplat.raster import _add_colors, _add_colors_numba, near_band, near_band_reference, prepare_scene, project_gaussians, rasterize
+    from drsplat.testing import with_floaters
 
     name, scene = bench_scene(args.scene)
     prepared = prepare_scene(scene)
@@ -94,6 +111,19 @@ def run(args: argparse.Namespace) -> int:
             t_decision = median_seconds(lambda: chosen.append(cameras_with_principal_point(scene, shifted)), args.repeats)
         finally:
             frames_log.setLevel(level)
+        floaty = with_floaters(scene, cameras[:2])
+        t_band_reference = median_seconds(lambda: near_band_reference(floaty, cameras, NEAR, INRIA_NEAR), args.repeats)
+        t_band = median_seconds(lambda: near_band(floaty, cameras, NEAR, INRIA_NEAR), args.repeats)
+        same = all(np.array_equal(a.ids, b.ids) and a.tiles == b.tiles for a, b in zip(near_band(floaty, cameras, NEAR, INRIA_NEAR),
+                                                                                      near_band_reference(floaty, cameras, NEAR, INRIA_NEAR)))
+        (Path(folder) / "inria").mkdir()
+        inria = cameras_with_own_images(prepare_scene(floaty), cameras, Path(folder) / "inria", INRIA_NEAR)
+        planes = []
+        frames_log.setLevel(logging.ERROR)
+        try:
+            t_plane = median_seconds(lambda: planes.append(near_plane_as_trained(floaty, inria)), args.repeats)
+        finally:
+            frames_log.setLevel(level)
     took = "the centres" if chosen and chosen[-1][0].cx == camera.width / 2 else "the file's"
     print(f"{name}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}, views {args.width}x{args.height}")
     print(format_table(["step", "reference s", "kernel s", "speed-up", "max |Δ colour|"],
@@ -101,6 +131,11 @@ def run(args: argparse.Namespace) -> int:
                          f"{difference:.2e}"]]))
     print(format_table(["step", "seconds", "result"],
                        [["RGB render, one view", t_render, ""],
-                        [f"--principal-point auto, {args.views} views {100 * args.offset:g} % off", t_decision, f"took {took} (truth: the centres)"]]))
+                        [f"--principal-point auto, {args.views} views {100 * args.offset:g} % off", t_decision, f"took {took} (truth: the centres)"],
+                        [f"--near-plane auto, 20 floaters before 2 of {args.views} views, images at {INRIA_NEAR:g}", t_plane,
+                         f"took {planes[-1]:g} (truth: {INRIA_NEAR:g})"]]))
+    print(format_table(["step", "reference s", "kernel s", "speed-up", "same bands"],
+                       [[f"near band {NEAR:g}-{INRIA_NEAR:g}, {args.views} views ({floaty.num_gaussians:,} Gaussians)", t_band_reference,
+                         t_band, t_band_reference / t_band, "yes" if same else "NO"]]))
     print(machine_line())
     return 0

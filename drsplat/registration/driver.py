@@ -42,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane, widened_scene
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane, some_view_draws, widened_scene
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
                                       probe_memory_bound, resolve_mode)
@@ -225,11 +225,27 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
         raise DrsplatError("the scene holds no Gaussians: there is nothing to register")
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir)
+    refuse_if_no_view_draws(scene, selection.views, options.near_plane)
     headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
     for note in (single_level_note(headers.levels, options.level), far_coarser_note(headers.coarse, len(selection.views))):
         if note is not None:  # here, once: the fit stage reads its probe views' headers again
             log.warning("%s", note)
     return Run(scene, selection, features_dir, headers, options)
+
+
+def refuse_if_no_view_draws(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float) -> None:
+    """One error before any view when no camera has a Gaussian at depth ≥ the near plane (`raster.some_view_draws`):
+    every view would render nothing, and the run would fail after them with a checkpoint that could only fail again
+    (round 64c F3: --near-plane 1e30). A plane the user chose is a usage error naming the flag; at the default the
+    scene and cameras disagree (`near_plane_remedy` says how)."""
+    if some_view_draws(scene.means, cameras, near_plane):
+        return
+    depth = median_nearest_depth(scene.means, cameras)
+    why = (f"no Gaussian of the scene lies {near_plane:g} scene units or more in front of any of the {len(cameras)} cameras "
+           f"(the near plane), so no view can draw one: " + near_plane_remedy(depth, near_plane))
+    if near_plane != NEAR and math.isfinite(depth):  # Gaussians in front, all nearer than a plane the user chose: the flag is the cause
+        raise UsageError(f"--near-plane {near_plane:g}: {why}")
+    raise DrsplatError(why)
 
 
 def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
