@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -737,13 +738,39 @@ def load_ply_report(path: str | Path, purpose: str | None = None) -> tuple[Gauss
     return scene, report
 
 
-def load_ply_rows(path: str | Path, keep: np.ndarray) -> GaussianScene:
+@dataclass(frozen=True)
+class FileStamp:
+    """What identifies one version of a file (`os.stat`): device, inode, size and modification time in ns. A
+    file rewritten in place or replaced by a rename gets another."""
+
+    device: int
+    inode: int
+    size: int
+    mtime_ns: int
+
+    @classmethod
+    def of(cls, path: str | Path) -> FileStamp:
+        st = os.stat(path)
+        return cls(st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _unchanged_since(path: Path, stamp: FileStamp | None) -> None:
+    """InputError naming `path` when it is no longer the version `stamp` was taken of (None: not checked)."""
+    if stamp is not None and FileStamp.of(path) != stamp:
+        raise _fail(path, "changed while it was read: its size, modification time or inode differ from when it was read before "
+                          "(another program wrote it?)")
+
+
+def load_ply_rows(path: str | Path, keep: np.ndarray, stamp: FileStamp | None = None) -> GaussianScene:
     """`load_ply(path).subset(keep)` without holding the other rows (keep: [N] bool, N the file's
     rows): a query's selection of a 20M-Gaussian scene holds its own Gaussians, not 236 bytes of
     geometry for each of the scene's. For a file whose load drops no row (a registered scene's, which
     `commands.common.load_registered` refuses otherwise; the same rows are kept either way); the load's
     findings, which the caller's load of the whole file said, are not said again. InputError when the
-    file's rows are no longer N, or some selected row is no longer finite (changed since)."""
+    file is no longer the version `stamp` was taken of (`FileStamp.of` before the caller's first read; checked before
+    and after this read), its rows are no longer N, or some selected row is no longer finite (changed since; round 64b:
+    a rewrite with as many finite rows was read as it then was, the selection made on the old field)."""
+    _unchanged_since(Path(path), stamp)
     path, header, data = _read_vertex_rows(path)
     vertex = data["vertex"]
     if len(vertex) != len(keep):
@@ -760,6 +787,7 @@ def load_ply_rows(path: str | Path, keep: np.ndarray) -> GaussianScene:
     if len(scene) != int(np.count_nonzero(keep)):  # rows the first read kept are dropped now: not the file it was
         raise _fail(path, f"changed while it was read: {int(np.count_nonzero(keep)):,} of its rows were selected, and "
                           f"{len(scene):,} of them now hold finite values (another program is writing it?)")
+    _unchanged_since(path, stamp)
     return scene
 
 

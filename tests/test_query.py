@@ -949,6 +949,30 @@ def test_a_query_writing_its_selection_holds_the_selections_gaussians_only(tmp_p
         np.testing.assert_array_equal(getattr(got, attr), getattr(want, attr))
 
 
+def test_a_query_whose_file_is_rewritten_before_its_selection_is_read_writes_nothing(tmp_path, world, fields, monkeypatch, capsys):
+    """Round 64b F3: the registered PLY rewritten, as many finite rows, between the field's read and the selection's: the
+    selection made on the old field was written from the new geometry, exit 0. Now one error naming the file, exit 1,
+    no --out written."""
+    import drsplat.commands.query as query_command
+    from drsplat.commands.common import load_registered
+
+    ply, field = _sh3_registered(tmp_path, world, fields, "pq")
+    np.save(tmp_path / "q.npy", world[3][2])
+
+    def load_then_rewritten(path, geometry=True):
+        loaded = load_registered(path, geometry)
+        scene = load_ply(path)
+        save_ply(dataclasses.replace(scene, means=scene.means + 1.0), path)  # another program's new version, the same rows
+        return loaded
+
+    monkeypatch.setattr(query_command, "load_registered", load_then_rewritten)
+    out = tmp_path / "sel.ply"
+    assert main(["query", str(ply), "--embedding", str(tmp_path / "q.npy"), "--threshold", "0.0", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "changed while it was read: its size, modification time or inode differ" in err and ply.name in err, err
+    assert not out.exists()
+
+
 def test_a_query_that_writes_no_scene_refuses_rows_the_load_would_drop(tmp_path, world, fields):
     """Without the geometry held, a row with a NaN position or an infinite scale is still found, and the query is
     refused as with the whole load: its scores could not follow the file order."""

@@ -839,6 +839,36 @@ def test_a_selection_loaded_alone_is_the_whole_loads_subset(tmp_path, monkeypatc
     assert len(load_ply_rows(tmp_path / "inriale.ply", np.arange(1001) == 7)) == 1  # the rows left as they were still load
 
 
+def test_a_selection_from_a_file_rewritten_since_its_stamp_is_refused(tmp_path):
+    """Round 64b F3: a registered PLY rewritten between the two reads of `query --out` with as many finite rows was read
+    as it then was: the selection made on the old field, the rows written from the new file. With the `FileStamp` taken
+    before the first read, a rewrite in place (same size) or a replacement by rename is one error naming the file; the
+    same version loads."""
+    import os
+
+    from drsplat.scene import FileStamp, load_ply_rows
+    from drsplat.testing import gaussians
+
+    path = tmp_path / "field.ply"
+    scene = gaussians(np.random.default_rng(0).normal(size=(50, 3)), log_scale=-2.0, opacity_logit=1.0)
+    save_ply(scene, path)
+    stamp = FileStamp.of(path)
+    keep = np.arange(50) % 3 == 0
+    assert len(load_ply_rows(path, keep, stamp)) == 17
+    before = path.read_bytes()
+    moved = dataclasses.replace(scene, means=scene.means + 1.0)
+    save_ply(moved, tmp_path / "other.ply")
+    os.replace(tmp_path / "other.ply", path)  # a new version by rename (another inode)
+    with pytest.raises(InputError, match=r"field\.ply.*changed while it was read: its size, modification time or inode differ"):
+        load_ply_rows(path, keep, stamp)
+    path.write_bytes(before)  # the first bytes again, in place: the same size, a later modification time
+    st = os.stat(path)
+    os.utime(path, ns=(st.st_atime_ns, stamp.mtime_ns + 1_000_000))
+    with pytest.raises(InputError, match="changed while it was read"):
+        load_ply_rows(path, keep, FileStamp(stamp.device, st.st_ino, stamp.size, stamp.mtime_ns))
+    assert len(load_ply_rows(path, keep, FileStamp.of(path))) == 17
+
+
 def test_the_extras_load_says_what_the_whole_load_says(tmp_path, monkeypatch, caplog):
     """`load_ply_extras` (a query's load, which holds no geometry) reports and logs the whole load's findings, the
     geometry ones gathered block by block (round 64b: huge scales, activated opacities and the 2DGS / Mip / rgb

@@ -368,13 +368,14 @@ def load_registered(path: Path, geometry: bool = True) -> tuple[GaussianScene | 
     return (strip_field(scene) if geometry else None), field
 
 
-def load_registered_rows(path: Path, keep: np.ndarray) -> GaussianScene:
+def load_registered_rows(path: Path, keep: np.ndarray, stamp=None) -> GaussianScene:
     """The Gaussians where keep [N] is True of a registered PLY that `load_registered(geometry=False)`
     read, without its language columns and without holding the other Gaussians (`scene.load_ply_rows`):
-    a selection written by `query --out`."""
+    a selection written by `query --out`. stamp: the file's `scene.FileStamp` taken before that read (an
+    error when it changed since)."""
     from drsplat.scene import load_ply_rows
 
-    return strip_field(load_ply_rows(path, keep))
+    return strip_field(load_ply_rows(path, keep, stamp))
 
 
 def oracle_flag(flag: str) -> str:

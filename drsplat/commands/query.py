@@ -97,6 +97,16 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
     return relevancy(field, queries, negative_embeddings(encoder, field, user, extra), lut_bits=lut_bits, device=device)
 
 
+def registered_stamp(path: Path):
+    """The registered PLY's `scene.FileStamp`, or None where it cannot be read (`load_registered` then says why)."""
+    from drsplat.scene import FileStamp
+
+    try:
+        return FileStamp.of(path)
+    except OSError:
+        return None
+
+
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import export_kind, export_scene, written_codebook_path
     from drsplat.query import select
@@ -117,6 +127,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     check_outputs_writable(*outputs.values())  # before the work and the count line (round 57c: a read-only folder failed after both)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
+    stamp = registered_stamp(args.registered) if args.out is not None else None  # the version its selection's rows must come from
     _, field = load_registered(args.registered, geometry=False)  # a selection written reads its own Gaussians once it is made
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--scores", args.scores)
@@ -140,7 +151,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
             raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
                                f"nothing written to {args.out}; lower --threshold")
         if args.out is not None:
-            chosen = load_registered_rows(args.registered, mask)
+            chosen = load_registered_rows(args.registered, mask, stamp)
             check_writable(chosen, args.out)
     with outputs_together(outputs.values()):  # a failed export (a full disk) takes SCORES.npy with it
         if args.scores is not None:
