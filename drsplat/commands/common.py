@@ -368,6 +368,17 @@ def load_registered(path: Path, geometry: bool = True) -> tuple[GaussianScene | 
     return (strip_field(scene) if geometry else None), field
 
 
+def is_text_ply(path: Path) -> bool:
+    """Whether `path` is a regular file and an ASCII PLY (its header says `format ascii`); False for anything else, a file
+    that cannot be read included (its load then says why)."""
+    from drsplat.scene import read_ply_header
+
+    try:
+        return Path(path).is_file() and read_ply_header(Path(path)).format == "ascii"  # a FIFO is not opened twice
+    except (OSError, InputError):
+        return False
+
+
 def load_registered_rows(path: Path, keep: np.ndarray, stamp=None) -> GaussianScene:
     """The Gaussians where keep [N] is True of a registered PLY that `load_registered(geometry=False)`
     read, without its language columns and without holding the other Gaussians (`scene.load_ply_rows`):
