@@ -762,21 +762,17 @@ class ReadingScores:
 
 
 def best_reading(scene, readings: Sequence[Sequence[Camera]], margin: float, views: int = PHOTO_CHECK_VIEWS,
-                 near: float | Sequence[float] = NEAR, prepared=None) -> tuple[int, ReadingScores]:
+                 near: float = NEAR) -> tuple[int, ReadingScores]:
     """(the index of the reading of the same cameras (readings[r][i] is camera i read the r-th way) whose renders look
     most like the training images, its scores): `photo_agreement` of each over up to `views` cameras, a view one
     reading shows nothing of counting ρ = 0 for it; reading r > 0 is taken over reading 0 when
 
         median_v (ρ_v(r) − ρ_v(0)) > margin  and  median_v ρ_v(r) ≥ PHOTO_MATCH_MIN,
 
-    the one of largest gain among those; else 0. near: the near plane the renders are drawn at, or one per reading
-    (a reading may be a plane: `near_plane_as_trained`). prepared: the scene's `photo_scene`, when the caller has it."""
-    nears = [float(near)] * len(readings) if np.ndim(near) == 0 else [float(n) for n in near]
-    if len(nears) != len(readings):
-        raise ValueError(f"best_reading: {len(nears)} near planes for {len(readings)} readings")
-    prepared, pictures, skipped = photo_scene(scene) if prepared is None else prepared, {}, Counter()
-    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None,
-                             near=nears[r]) for r, cams in enumerate(readings)]
+    the one of largest gain among those; else 0."""
+    prepared, pictures, skipped = photo_scene(scene), {}, Counter()
+    found = [photo_agreement(scene, cams, views=views, prepared=prepared, pictures=pictures, skipped=skipped if r == 0 else None, near=near)
+             for r, cams in enumerate(readings)]
     common = sorted(set().union(*found))
     if not common:
         return 0, ReadingScores([0.0] * len(readings), 0, skipped_views(skipped))
@@ -874,16 +870,24 @@ class PlaneEvidence:
     """Two near planes' renders of the same views held against the training images (`plane_evidence`).
 
     pixels: the compared pixels where the two renders differ by NEAR_PLANE_GREY_STEP or more, over the views;
-    gain: their mean of e(lo) − e(hi), e = |r − g| the grey error of a render r against the image g; views: the views compared; left_out: the views left out and why."""
+    error_lo, error_hi: the sums over them of e = |r − g|, the grey error of the render r at each plane against the
+    image g; views: the views compared; left_out: the views left out and why."""
 
     pixels: int = 0
-    gain_sum: float = 0.0
+    error_lo: float = 0.0
+    error_hi: float = 0.0
     views: int = 0
     left_out: str = ""
 
+    def mean_errors(self) -> tuple[float, float]:
+        """(mean e at lo, mean e at hi) over the differing pixels (0, 0 without any)."""
+        return (self.error_lo / self.pixels, self.error_hi / self.pixels) if self.pixels else (0.0, 0.0)
+
     @property
     def gain(self) -> float:
-        return self.gain_sum / self.pixels if self.pixels else 0.0
+        """How much closer to the images the renders at hi are where the two differ: mean e(lo) − mean e(hi)."""
+        lo, hi = self.mean_errors()
+        return lo - hi
 
     def of_views(self) -> str:
         return f"{self.pixels:,} pixels of {self.views} view{'s' if self.views != 1 else ''}"
@@ -926,9 +930,9 @@ def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, wi
             skipped[NOT_ITS_IMAGE] += 1
             continue
         differ = np.abs(r_lo - r_hi) >= NEAR_PLANE_GREY_STEP
-        error_lo, error_hi = (np.abs(r[differ] - grey[differ]) for r in (r_lo, r_hi))
         evidence.pixels += int(np.count_nonzero(differ))
-        evidence.gain_sum += float(np.sum(error_lo - error_hi))
+        evidence.error_lo += float(np.sum(np.abs(r_lo[differ] - grey[differ])))
+        evidence.error_hi += float(np.sum(np.abs(r_hi[differ] - grey[differ])))
         evidence.views += 1
     evidence.left_out = skipped_views(skipped)
     return evidence
@@ -965,15 +969,16 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
     picks = sorted(with_images, key=lambda i: (-bands[i].cover, i))[:NEAR_PLANE_VIEWS]
     evidence = plane_evidence(prepared, [cameras[i] for i in picks], NEAR, INRIA_NEAR)
     if evidence.views and evidence.pixels >= NEAR_PLANE_MIN_PIXELS:
+        with_them, without = evidence.mean_errors()
         if evidence.gain > NEAR_PLANE_MARGIN:
             log.warning("%s was trained with INRIA's near plane: Gaussians lie %g-%g scene units in front of %s, and where they show "
-                        "its renders look more like its training images without them (grey error %.3f lower, %s): it is "
-                        "rendered at --near-plane %g, where INRIA's rasterizer never drew them; --near-plane %g draws them",
-                        what, NEAR, INRIA_NEAR, where, evidence.gain, evidence.of_views(), INRIA_NEAR, NEAR)
+                        "its renders look more like its training images without them (mean grey error %.3f, against %.3f with them; "
+                        "%s): it is rendered at --near-plane %g, where INRIA's rasterizer never drew them; --near-plane %g draws them",
+                        what, NEAR, INRIA_NEAR, where, without, with_them, evidence.of_views(), INRIA_NEAR, NEAR)
             return INRIA_NEAR
-        log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look as much like its "
-                 "training images with them (grey error %.3f lower without, %s): they are drawn (near plane %g)",
-                 what, NEAR, INRIA_NEAR, where, evidence.gain, evidence.of_views(), NEAR)
+        log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look as much like its training "
+                 "images with them (mean grey error %.3f, against %.3f without; %s): they are drawn (near plane %g)",
+                 what, NEAR, INRIA_NEAR, where, with_them, without, evidence.of_views(), NEAR)
         return NEAR
     if evidence.views:  # the band shows in too few pixels of the compared views to matter there: nothing to tell a user
         log.debug("Gaussians of %s lie %g-%g scene units in front of %s, but change only %s of the renders compared: they are drawn "

@@ -245,6 +245,12 @@ def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, pr
     return NearBand(ids[drawn].astype(np.int64), tiles, grid)
 
 
+def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """([C, 3] the cameras' third rotation rows, [C] their third translations): a camera depth is z = R₂·x + t₂."""
+    rot_z = np.ascontiguousarray([np.asarray(c.R, np.float64)[2] for c in cameras]).reshape(len(cameras), 3)
+    return rot_z, np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
+
+
 def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float) -> list[NearBand]:
     """Per camera, the Gaussians a render at near plane lo draws and one at hi > lo does not: those of camera
     depth lo ≤ z < hi that the projection at lo keeps (`project_gaussians`' valid: usable, opacity ≥ 1/255,
@@ -254,9 +260,9 @@ def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], l
     in the band are projected. `near_band_reference` is the numpy form (the same bands).
 
     cameras: C views. Returns C NearBands, in camera order."""
-    prep = prepare_scene(scene)
     if not 0 < lo < hi:
         raise ValueError(f"near_band: expected 0 < lo < hi, got {lo!r}, {hi!r}")
+    prep = prepare_scene(scene)
     if not cameras:
         return []
     rot_z, trans_z = _depth_rows(cameras)
@@ -280,12 +286,6 @@ def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[
         z = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
         out.append(_band_of(prep, cam, np.flatnonzero((z >= lo) & (z < hi)), lo, project_gaussians_reference))
     return out
-
-
-def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
-    """([C, 3] the cameras' third rotation rows, [C] their third translations): a camera depth is z = R₂·x + t₂."""
-    rot_z = np.ascontiguousarray([np.asarray(c.R, np.float64)[2] for c in cameras]).reshape(len(cameras), 3)
-    return rot_z, np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
 
 
 def some_view_draws(means: np.ndarray, cameras: Sequence[Camera], near: float = NEAR) -> bool:
