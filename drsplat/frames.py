@@ -958,7 +958,7 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
     cameras = list(cameras)
     prepared = photo_scene(scene)
     bands = near_band(prepared, cameras, NEAR, INRIA_NEAR)
-    seen = [i for i, band in enumerate(bands) if band.ids.size]
+    seen = [i for i, band in enumerate(bands) if band.count]
     if not seen:
         log.debug("no Gaussian of %s lies %g-%g scene units in front of a camera: the near plane is %g", what, NEAR, INRIA_NEAR, NEAR)
         return NEAR

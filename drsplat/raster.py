@@ -216,13 +216,14 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
 @dataclass(frozen=True)
 class NearBand:
     """The Gaussians of one view that a render with near plane `lo` draws and one with a deeper plane
-    `hi` does not (`near_band`): ids [K] int64 of the scene it was taken of, increasing; tiles: the
-    tiles their getRect rectangles cover at lo, summed over them (overlaps count twice); grid: the
-    view's tile count."""
+    `hi` does not (`near_band`): count of them; tiles: the tiles their getRect rectangles cover at lo,
+    summed over them (overlaps count twice); grid: the view's tile count; ids: [count] int64, increasing,
+    of the scene it was taken of, when asked for (`with_ids`), else None."""
 
-    ids: np.ndarray
+    count: int
     tiles: int
     grid: int
+    ids: np.ndarray | None = None
 
     @property
     def cover(self) -> float:
@@ -230,19 +231,19 @@ class NearBand:
         return self.tiles / self.grid if self.grid else 0.0
 
 
-def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, project) -> NearBand:
+def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, project, with_ids: bool) -> NearBand:
     """NearBand of `camera` from the candidates ids (lo ≤ z < hi), keeping those `project` (a projection function
     with project_gaussians' signature) draws at lo."""
     grid = int(np.prod(tile_grid(camera.width, camera.height)))
     if ids.size == 0:
-        return NearBand(ids.astype(np.int64), 0, grid)
+        return NearBand(0, 0, grid, ids.astype(np.int64) if with_ids else None)
     sub = PreparedScene(means=prep.means[ids], covariances=prep.covariances[ids], opacities=prep.opacities[ids],
                         sh=prep.sh[ids], finite=prep.finite[ids])
     projected = project(sub, camera, lo)
     drawn = projected.valid
     rects = projected.tile_rects[drawn].astype(np.int64)
     tiles = int(np.sum((rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])))
-    return NearBand(ids[drawn].astype(np.int64), tiles, grid)
+    return NearBand(int(np.count_nonzero(drawn)), tiles, grid, ids[drawn].astype(np.int64) if with_ids else None)
 
 
 def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
@@ -251,31 +252,36 @@ def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
     return rot_z, np.array([float(np.asarray(c.t, np.float64)[2]) for c in cameras])
 
 
-def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float) -> list[NearBand]:
+def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float, with_ids: bool = False) -> list[NearBand]:
     """Per camera, the Gaussians a render at near plane lo draws and one at hi > lo does not: those of camera
     depth lo ≤ z < hi that the projection at lo keeps (`project_gaussians`' valid: usable, opacity ≥ 1/255,
     a finite footprint whose tile rectangle meets the image). z is the projection's own float64 sum
     (`kernels.depth_band_counts`), so the band's edges are exactly the planes': at hi every Gaussian of
-    the band is behind. A numba pass over every (camera, Gaussian) pair finds the depths, then only the few
-    in the band are projected. `near_band_reference` is the numpy form (the same bands).
+    the band is behind. A numba pass over every (camera, Gaussian) pair counts the depths; then, one camera at a
+    time, its candidates are listed and projected, so memory holds one camera's band (a scene in the band of every
+    camera, one shrunk toward its cameras, would hold N x C ids at once). `near_band_reference` is the numpy form (the
+    same bands).
 
-    cameras: C views. Returns C NearBands, in camera order."""
+    cameras: C views; with_ids: keep each band's ids (NearBand.ids). Returns C NearBands, in camera order."""
     if not 0 < lo < hi:
         raise ValueError(f"near_band: expected 0 < lo < hi, got {lo!r}, {hi!r}")
-    prep = prepare_scene(scene)
     if not cameras:
         return []
+    prep = prepare_scene(scene)
     rot_z, trans_z = _depth_rows(cameras)
     counts = np.zeros(len(cameras), np.int64)
     kernels.depth_band_counts(prep.means, rot_z, trans_z, float(lo), float(hi), counts)
-    starts = np.zeros(len(cameras) + 1, np.int64)
-    np.cumsum(counts, out=starts[1:])
-    ids = np.empty(int(starts[-1]), np.int64)
-    kernels.depth_band_fill(prep.means, rot_z, trans_z, float(lo), float(hi), starts, ids)
-    return [_band_of(prep, cam, ids[starts[c]:starts[c + 1]], lo, project_gaussians) for c, cam in enumerate(cameras)]
+    bands = []
+    for c, cam in enumerate(cameras):
+        ids = np.empty(int(counts[c]), np.int64)
+        if ids.size:
+            kernels.depth_band_fill(prep.means, rot_z[c:c + 1], trans_z[c:c + 1], float(lo), float(hi), np.array([0, ids.size]), ids)
+        bands.append(_band_of(prep, cam, ids, lo, project_gaussians, with_ids))
+    return bands
 
 
-def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float) -> list[NearBand]:
+def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], lo: float, hi: float,
+                        with_ids: bool = False) -> list[NearBand]:
     """`near_band` in numpy: per camera, z = R₂₀·x + R₂₁·y + R₂₂·z + t₂ summed elementwise in that order,
     the candidates lo ≤ z < hi projected by `project_gaussians_reference` at lo."""
     prep = prepare_scene(scene)
@@ -284,7 +290,7 @@ def near_band_reference(scene: GaussianScene | PreparedScene, cameras: Sequence[
         rot, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
         m = prep.means
         z = rot[2, 0] * m[:, 0] + rot[2, 1] * m[:, 1] + rot[2, 2] * m[:, 2] + t[2]
-        out.append(_band_of(prep, cam, np.flatnonzero((z >= lo) & (z < hi)), lo, project_gaussians_reference))
+        out.append(_band_of(prep, cam, np.flatnonzero((z >= lo) & (z < hi)), lo, project_gaussians_reference, with_ids))
     return out
 
 

@@ -1362,7 +1362,7 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
 
     scene, _, cams, _ = tiny_seed0
     far = [dataclasses.replace(c, t=np.asarray(c.t) + [0.0, 0.0, 0.5]) for c in cams]  # every camera backed off 0.5
-    assert all(b.ids.size == 0 for b in frames.near_band(scene, far, frames.NEAR, frames.INRIA_NEAR))
+    assert all(b.count == 0 for b in frames.near_band(scene, far, frames.NEAR, frames.INRIA_NEAR))
     renders = []
     monkeypatch.setattr(frames, "supersampled_render", lambda *a, **k: renders.append(a) or pytest.fail("rendered"))
     assert frames.near_plane_as_trained(scene, far) == frames.NEAR and not renders

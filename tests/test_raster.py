@@ -672,8 +672,8 @@ def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
         t[2] += plane
         cams.append(dataclasses.replace(cam, t=t))
     scene = gaussians(means, log_scale=np.log(rng.uniform(0.002, 0.05, (3000, 3))), opacity_logit=opacity)
-    bands = raster.near_band(scene, cams, lo, hi)
-    reference = raster.near_band_reference(scene, cams, lo, hi)
+    bands = raster.near_band(scene, cams, lo, hi, with_ids=True)
+    reference = raster.near_band_reference(scene, cams, lo, hi, with_ids=True)
     assert len(bands) == len(cams) == len(reference)
     nonempty = 0
     for cam, band, ref in zip(cams, bands, reference):
@@ -681,13 +681,14 @@ def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
         np.testing.assert_array_equal(band.ids, np.flatnonzero(drawn))
         np.testing.assert_array_equal(band.ids, ref.ids)
         assert band.tiles == ref.tiles and band.grid == ref.grid == np.prod(raster.tile_grid(cam.width, cam.height))
+        assert band.count == band.ids.size and raster.near_band(scene, [cam], lo, hi)[0] == dataclasses.replace(band, ids=None)
         nonempty += band.ids.size > 0
         assert 2 not in band.ids  # a NaN mean is in no band
     assert nonempty >= 3
     on_plane = [bool(raster.project_gaussians(scene, cam, plane).valid[row]) for cam, (row, plane) in zip(cams[-4:], ((0, lo), (1, hi), (3, lo), (4, hi)))]
     assert any(on_plane)  # some sit on their plane, not a hair in front: the edges are tested, not skirted
     empty = raster.near_band(gaussians(np.zeros((0, 3))), cams[:2], lo, hi)
-    assert [b.ids.size for b in empty] == [0, 0] and raster.near_band(scene, [], lo, hi) == []
+    assert [b.count for b in empty] == [0, 0] and raster.near_band(scene, [], lo, hi) == []
     with pytest.raises(ValueError, match="0 < lo < hi"):
         raster.near_band(scene, cams, hi, lo)
 

@@ -114,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
         floaty = with_floaters(scene, cameras[:2])
         t_band_reference = median_seconds(lambda: near_band_reference(floaty, cameras, NEAR, INRIA_NEAR), args.repeats)
         t_band = median_seconds(lambda: near_band(floaty, cameras, NEAR, INRIA_NEAR), args.repeats)
-        same = all(np.array_equal(a.ids, b.ids) and a.tiles == b.tiles for a, b in zip(near_band(floaty, cameras, NEAR, INRIA_NEAR),
-                                                                                      near_band_reference(floaty, cameras, NEAR, INRIA_NEAR)))
+        same = all(np.array_equal(a.ids, b.ids) and a.tiles == b.tiles
+                   for a, b in zip(near_band(floaty, cameras, NEAR, INRIA_NEAR, with_ids=True),
+                                   near_band_reference(floaty, cameras, NEAR, INRIA_NEAR, with_ids=True)))
         (Path(folder) / "inria").mkdir()
         inria = cameras_with_own_images(prepare_scene(floaty), cameras, Path(folder) / "inria", INRIA_NEAR)
         planes = []
