@@ -859,8 +859,8 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
 NEAR_PLANE_VIEWS = 8  # views `near_plane_as_trained` renders at each plane: those where the band's Gaussians cover most tiles
 NEAR_PLANE_GREY_STEP = 4 / 255  # grey-level difference from which the two planes' renders of a pixel differ (`PlaneEvidence`)
 NEAR_PLANE_MIN_PIXELS = 100  # differing pixels, over the views compared, from which they decide (48 decided wrongly: docs/raster.md)
-# mean grey-error gain (0-1 grey levels) over the differing pixels that decides for INRIA's plane (docs/raster.md, "The near
-# plane decided": images drawn at one plane gave |gain| ≥ 0.013 on tiny, hard-tiny and hard-room, always of their plane's sign)
+# mean rank-error gain (ranks in [0, 1]) over the differing pixels that decides for INRIA's plane (docs/raster.md, "The near
+# plane decided")
 NEAR_PLANE_MARGIN = 0.01
 NEAR_BAND_NOTABLE = 0.01  # the band's tiles / a view's tiles from which, with no image to compare, the choice is warned about
 
@@ -870,8 +870,8 @@ class PlaneEvidence:
     """Two near planes' renders of the same views held against the training images (`plane_evidence`).
 
     pixels: the compared pixels where the two renders differ by NEAR_PLANE_GREY_STEP or more, over the views;
-    error_lo, error_hi: the sums over them of e = |r − g|, the grey error of the render r at each plane against the
-    image g; views: the views compared; left_out: the views left out and why."""
+    error_lo, error_hi: the sums over them of e = |rank(r) − rank(g)|, the rank error of the render r at each plane
+    against the image g (`grey_ranks`); views: the views compared; left_out: the views left out and why."""
 
     pixels: int = 0
     error_lo: float = 0.0
@@ -893,23 +893,35 @@ class PlaneEvidence:
         return f"{self.pixels:,} pixels of {self.views} view{'s' if self.views != 1 else ''}"
 
 
+def grey_ranks(grey: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """[H, W] each pixel's grey level as its rank among `pixels` ([H, W] bool), scaled to [0, 1] (ties share their mean
+    rank; 0 outside `pixels`): what any brightening, darkening or tone curve of the image (increasing) leaves as it is."""
+    from scipy.stats import rankdata
+
+    out = np.zeros(grey.shape)
+    n = int(np.count_nonzero(pixels))
+    if n > 1:
+        out[pixels] = (rankdata(grey[pixels]) - 1.0) / (n - 1.0)
+    return out
+
+
 def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, width: int = PHOTO_CHECK_WIDTH,
                    supersample: int = PHOTO_SUPERSAMPLE) -> PlaneEvidence:
     """How much better the renders at near plane hi match the training images than those at lo, on the pixels
     where the two differ (a floater drawn at lo only): per view, the grey levels r_lo, r_hi of the renders (over
     the background the image fits best, `over_fitted_background`, clipped to [0, 1]) and g of the image, `width` px on
-    the longer side; over the pixels D where |r_lo − r_hi| ≥ NEAR_PLANE_GREY_STEP,
+    the longer side, each turned into its rank among the pixels both renders cover (α ≥ ½, `grey_ranks`); over the
+    covered pixels D where |r_lo − r_hi| ≥ NEAR_PLANE_GREY_STEP,
 
-        gain = Σ_D (|r_lo − g| − |r_hi − g|) / |D|,   pooled over the views (> 0: hi matches better).
+        gain = Σ_D (|rank r_lo − rank g| − |rank r_hi − rank g|) / |D|,   pooled over the views (> 0: hi matches better).
 
-    The errors are absolute: 3DGS trainers fit the images' own colours (INRIA's and gsplat's defaults model no exposure),
-    and a floater that covers a whole view (a Gaussian under the camera, hard-tiny's low view) changes every pixel
-    alike, which a fitted gain and offset explain away (measured, docs/raster.md "The near plane decided": a gain and
-    offset fitted to both renders gave +0.007, INRIA's sign, for images drawn at 0.01). Photos 0.8x as bright + 0.1
-    (an exposure no trainer modelled) made the decision miss INRIA's plane where the band changes little, and never
-    take it wrongly.
-    A view whose renders cover under PHOTO_MIN_PIXELS pixels, or neither of which correlates PHOTO_MATCH_MIN with the
-    image there (it does not show its image), is left out. prepared: the scene's `photo_scene`."""
+    Ranks, not grey levels: a photo's exposure and tone curve differ from the render's, and any increasing one keeps
+    the ranks (round 65a F1: absolute grey errors took INRIA's plane for images drawn at 0.01 but 0.6x as bright, or
+    with a gamma of 1.5: bright floaters then look wrong against dark images whichever plane drew them). A fitted gain
+    and offset did no better: a Gaussian under a low camera changes every pixel alike, which the fit explains away
+    (docs/raster.md "The near plane decided"). A view whose renders cover under PHOTO_MIN_PIXELS pixels, or neither of
+    which correlates PHOTO_MATCH_MIN with the image there (it does not show its image), is left out. prepared: the
+    scene's `photo_scene`."""
     evidence, pictures, skipped = PlaneEvidence(), {}, Counter()
     for camera in cameras:
         if camera.image_path is None or not camera.image_path.is_file():
@@ -929,10 +941,11 @@ def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, wi
         if not rho >= PHOTO_MATCH_MIN:
             skipped[NOT_ITS_IMAGE] += 1
             continue
-        differ = np.abs(r_lo - r_hi) >= NEAR_PLANE_GREY_STEP
+        differ = covered & (np.abs(r_lo - r_hi) >= NEAR_PLANE_GREY_STEP)
+        image, at_lo, at_hi = (grey_ranks(v, covered) for v in (grey, r_lo, r_hi))
         evidence.pixels += int(np.count_nonzero(differ))
-        evidence.error_lo += float(np.sum(np.abs(r_lo[differ] - grey[differ])))
-        evidence.error_hi += float(np.sum(np.abs(r_hi[differ] - grey[differ])))
+        evidence.error_lo += float(np.sum(np.abs(at_lo[differ] - image[differ])))
+        evidence.error_hi += float(np.sum(np.abs(at_hi[differ] - image[differ])))
         evidence.views += 1
     evidence.left_out = skipped_views(skipped)
     return evidence
@@ -963,8 +976,8 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
         log.debug("no Gaussian of %s lies %g-%g scene units in front of a camera: the near plane is %g", what, NEAR, INRIA_NEAR, NEAR)
         return NEAR
     widest = max(seen, key=lambda i: bands[i].cover)
-    where = (f"{len(seen)} of its {len(cameras)} cameras (in view {cameras[widest].name} their footprints reach "
-             f"{100 * min(bands[widest].cover, 1.0):.0f} % of the tiles)")
+    where = (f"{len(seen)} of its {len(cameras)} cameras (in view {cameras[widest].name} they may draw on "
+             f"{100 * bands[widest].cover:.0f} % of its 16x16 tiles)")
     with_images = [i for i in seen if cameras[i].image_path is not None and cameras[i].image_path.is_file()]
     picks = sorted(with_images, key=lambda i: (-bands[i].cover, i))[:NEAR_PLANE_VIEWS]
     evidence = plane_evidence(prepared, [cameras[i] for i in picks], NEAR, INRIA_NEAR)
@@ -972,13 +985,14 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
         with_them, without = evidence.mean_errors()
         if evidence.gain > NEAR_PLANE_MARGIN:
             log.warning("%s was trained with INRIA's near plane: Gaussians lie %g-%g scene units in front of %s, and where they show "
-                        "its renders look more like its training images without them (mean grey error %.3f, against %.3f with them; "
+                        "its renders look more like its training images without them (mean rank error %.3f, against %.3f with them; "
                         "%s): it is rendered at --near-plane %g, where INRIA's rasterizer never drew them; --near-plane %g draws them",
                         what, NEAR, INRIA_NEAR, where, without, with_them, evidence.of_views(), INRIA_NEAR, NEAR)
             return INRIA_NEAR
-        log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look as much like its training "
-                 "images with them (mean grey error %.3f, against %.3f without; %s): they are drawn (near plane %g)",
-                 what, NEAR, INRIA_NEAR, where, with_them, without, evidence.of_views(), NEAR)
+        log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look %s its training "
+                 "images with them (mean rank error %.3f, against %.3f without; %s): they are drawn (near plane %g)",
+                 what, NEAR, INRIA_NEAR, where, "more like" if evidence.gain < -NEAR_PLANE_MARGIN else "about as much like",
+                 with_them, without, evidence.of_views(), NEAR)
         return NEAR
     if evidence.views:  # the band shows in too few pixels of the compared views to matter there: nothing to tell a user
         log.debug("Gaussians of %s lie %g-%g scene units in front of %s, but change only %s of the renders compared: they are drawn "

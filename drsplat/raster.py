@@ -216,9 +216,9 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
 @dataclass(frozen=True)
 class NearBand:
     """The Gaussians of one view that a render with near plane `lo` draws and one with a deeper plane
-    `hi` does not (`near_band`): count of them; tiles: the tiles their getRect rectangles cover at lo,
-    summed over them (overlaps count twice); grid: the view's tile count; ids: [count] int64, increasing,
-    of the scene it was taken of, when asked for (`with_ids`), else None."""
+    `hi` does not (`near_band`): count of them; tiles: the view's tiles that some of their getRect rectangles
+    hold at lo (each counted once); grid: the view's tile count; ids: [count] int64, increasing, of the scene it
+    was taken of, when asked for (`with_ids`), else None."""
 
     count: int
     tiles: int
@@ -227,7 +227,7 @@ class NearBand:
 
     @property
     def cover(self) -> float:
-        """tiles / grid: how much of the view the band's Gaussians may draw on (may pass 1)."""
+        """tiles / grid: the share of the view the band's Gaussians may draw on."""
         return self.tiles / self.grid if self.grid else 0.0
 
 
@@ -241,8 +241,8 @@ def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, pr
                         sh=prep.sh[ids], finite=prep.finite[ids])
     projected = project(sub, camera, lo)
     drawn = projected.valid
-    rects = projected.tile_rects[drawn].astype(np.int64)
-    tiles = int(np.sum((rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])))
+    per_tile = kernels.tile_entry_counts(np.ascontiguousarray(projected.tile_rects[drawn], np.int32), *tile_grid(camera.width, camera.height))
+    tiles = int(np.count_nonzero(per_tile))
     return NearBand(int(np.count_nonzero(drawn)), tiles, grid, ids[drawn].astype(np.int64) if with_ids else None)
 
 

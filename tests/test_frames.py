@@ -1330,11 +1330,15 @@ def test_numbas_real_workqueue_layer_is_recognised_and_the_check_runs_at_once(ti
     assert f"check False {len(tiny_seed0[2])} False True" in done.stdout, done.stdout
 
 
-def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_seed0, tmp_path, caplog):
+@pytest.mark.parametrize("tone", ["as drawn", "half as bright", "gamma 2.2"])
+def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_seed0, tmp_path, caplog, tone):
     """A scene trained by INRIA's rasterizer (near plane 0.2) may hold floaters 0.01-0.2 in front of a camera that were
     never drawn in that view, so its image does not show them; drawn at gsplat's 0.01 they cover what the image shows.
     "auto" takes 0.2 for images drawn without them (one warning naming the scene and --near-plane 0.01), 0.01 for
-    images drawn with them (said at INFO), and a plane given as a number as given."""
+    images drawn with them (said at INFO), and a plane given as a number as given. The same through another exposure or
+    tone curve (round 65a F1: images drawn at 0.01 but half as bright, or with a gamma, took 0.2)."""
+    from PIL import Image
+
     from drsplat.defaults import INRIA_NEAR, NEAR
     from drsplat.frames import near_plane_as_trained
 
@@ -1345,6 +1349,10 @@ def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_s
         with caplog.at_level(logging.INFO, logger="drsplat.frames"):
             (tmp_path / str(plane)).mkdir()
             images = cameras_with_own_images(prepare_scene(floaty), cams, tmp_path / str(plane), plane)
+            for camera in images:  # the photos another exposure or tone curve made
+                rgb = np.asarray(Image.open(camera.image_path), np.float64) / 255.0
+                rgb = {"as drawn": rgb, "half as bright": 0.5 * rgb, "gamma 2.2": rgb ** 2.2}[tone]
+                Image.fromarray(np.rint(rgb * 255).astype(np.uint8)).save(camera.image_path)
             assert near_plane_as_trained(floaty, images, what="SCENE") == expected
         warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
         if expected == INRIA_NEAR:

@@ -677,8 +677,11 @@ def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
     assert len(bands) == len(cams) == len(reference)
     nonempty = 0
     for cam, band, ref in zip(cams, bands, reference):
-        drawn = project_gaussians(scene, cam, lo).valid & ~project_gaussians(scene, cam, hi).valid
+        at_lo = project_gaussians(scene, cam, lo)
+        drawn = at_lo.valid & ~project_gaussians(scene, cam, hi).valid
         np.testing.assert_array_equal(band.ids, np.flatnonzero(drawn))
+        held = {(tx, ty) for x0, y0, x1, y1 in at_lo.tile_rects[drawn] for tx in range(x0, x1) for ty in range(y0, y1)}
+        assert band.tiles == len(held) and band.cover <= 1.0  # distinct tiles (round 65a F2: overlaps summed said "100 %")
         np.testing.assert_array_equal(band.ids, ref.ids)
         assert band.tiles == ref.tiles and band.grid == ref.grid == np.prod(raster.tile_grid(cam.width, cam.height))
         assert band.count == band.ids.size and raster.near_band(scene, [cam], lo, hi)[0] == dataclasses.replace(band, ids=None)

@@ -244,16 +244,22 @@ def resolution_value(text: str) -> float:
 def near_plane_value(text: str) -> float:
     """argparse type for --near-plane: a positive, finite camera depth in scene units, or 'inria'
     (defaults.INRIA_NEAR, 0.2: the plane of the rasterizer that trained most 3DGS scenes)."""
+    return _near_plane(text, ("'inria'",))
+
+
+def _near_plane(text: str, words: tuple[str, ...]) -> float:
+    """`near_plane_value`'s depth; the refusal names what else the flag takes (`words`) before what it got."""
     from drsplat.defaults import INRIA_NEAR
 
     if text.strip().lower() == "inria":
         return INRIA_NEAR
     try:
-        value = float(_number(text, float))
-    except argparse.ArgumentTypeError as exc:
-        raise argparse.ArgumentTypeError(f"{exc}, or 'inria'") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text.strip()}: expected a positive camera depth in scene units (such as 0.01 or 0.2), or 'inria'")
+        value = float(text)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):  # round 65a F4: "expected a number, got 'foo', or 'inria'" read as if all were given
+        raise argparse.ArgumentTypeError(f"expected a positive camera depth in scene units (such as 0.01 or 0.2) or "
+                                         f"{' or '.join(words)}, got {text!r}")
     return value
 
 
@@ -261,10 +267,7 @@ def near_plane_choice(text: str) -> float | str:
     """argparse type for a --near-plane that may be decided: 'auto' (drsplat.frames.near_plane_as_trained), else `near_plane_value`."""
     if text.strip().lower() == "auto":
         return "auto"
-    try:
-        return near_plane_value(text)
-    except argparse.ArgumentTypeError as exc:
-        raise argparse.ArgumentTypeError(f"{exc}, or 'auto'") from None
+    return _near_plane(text, ("'inria'", "'auto'"))
 
 
 def add_near_plane_argument(parser: argparse.ArgumentParser, what: str, default: str | None = None, auto: bool = False) -> None:
