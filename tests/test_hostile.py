@@ -1259,8 +1259,10 @@ def test_cameras_that_see_nothing_are_an_error_not_an_empty_result(tmp_path, wor
     write_transforms_json(cams, src / "transforms.json")
     code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", src, "--features", world["ds"] / "features",
                          "--out", tmp_path / "r.ply", "--no-progress"], capsys)
-    assert code == 1 and "no Gaussian received a language feature" in err, err
-    assert not (tmp_path / "r.ply").exists()
+    # said before any view is rendered (round 64c F3), as what it is: not the near plane, the cameras face away
+    assert code == 1 and "no Gaussian of the scene lies in front of any of the 16 cameras, so no view can draw one: the cameras " \
+                         "face away from it" in err, err
+    assert not (tmp_path / "r.ply").exists() and not list(tmp_path.glob(".r.ply*"))  # no checkpoint left to "resume"
 
 
 # ---------------------------------------------------------------------------------------------- 5. interrupts
