@@ -236,8 +236,9 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
 def refuse_if_no_view_draws(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float) -> None:
     """One error before any view when no camera has a Gaussian at depth ≥ the near plane (`raster.some_view_draws`):
     every view would render nothing, and the run would fail after them with a checkpoint that could only fail again
-    (round 64c F3: --near-plane 1e30). A plane the user chose is a usage error naming the flag; at the default the
-    scene and cameras disagree (`near_plane_remedy` says how)."""
+    (round 64c F3: --near-plane 1e30). No Gaussian in front of any camera at all: the cameras face away (or another
+    frame). Some in front, all nearer than a plane the user chose: a usage error naming the flag; at the default the
+    scene and cameras disagree in units (`near_plane_remedy` says how)."""
     if some_view_draws(scene.means, cameras, near_plane):
         return
     depth = median_nearest_depth(scene.means, cameras)
