@@ -937,8 +937,8 @@ def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, wi
         if np.count_nonzero(covered) < PHOTO_MIN_PIXELS:
             skipped[LITTLE_COVERED] += 1
             continue
-        rho = max(grey_correlation(np.repeat(r[..., None], 3, axis=2), picture, covered) for r in (r_lo, r_hi))
-        if not rho >= PHOTO_MATCH_MIN:
+        rho = np.array([grey_correlation(np.repeat(r[..., None], 3, axis=2), picture, covered) for r in (r_lo, r_hi)])
+        if not np.any(rho >= PHOTO_MATCH_MIN):  # NaN (a flat render) is no match, and does not hide the other's
             skipped[NOT_ITS_IMAGE] += 1
             continue
         differ = covered & (np.abs(r_lo - r_hi) >= NEAR_PLANE_GREY_STEP)

@@ -1439,3 +1439,30 @@ def test_the_viewer_registers_at_the_near_plane_register_decides(tiny_seed0, tmp
     assert state.near_plane == INRIA_NEAR  # kept with the cameras when the registered scene replaces the open one
     state.forget_source()
     assert state.near_plane == NEAR
+
+
+def test_floaters_over_what_no_gaussian_covers_are_evidence_too(tmp_path):
+    """A capture whose background no Gaussian fits (an unfitted sky): floaters before one camera, drawn only over it.
+    The decision compares the pixels both renders cover, so the floaters' own pixels are not among them; what the
+    floaters change there (the background each render fits, their footprints' edges) still decides 0.2 for images
+    drawn at 0.2 and 0.01 for images drawn at 0.01."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.frames import near_plane_as_trained
+    from drsplat.testing import gaussians
+
+    rng = np.random.default_rng(1)
+    wall = np.stack(np.meshgrid(np.linspace(-1.6, -0.05, 24), np.linspace(-0.9, 0.9, 28), [0.0]), axis=-1).reshape(-1, 3)
+    scene = gaussians(wall, log_scale=-3.0, opacity_logit=4.0, color=None)
+    scene.sh[:, 0] = rng.normal(size=(len(wall), 3)) * 1.2  # a textured wall on the left half, nothing on the right
+    cams = [look_at_camera(np.array([x, 0.0, z]), np.array([x, 0.0, 0.0]), 96, 72, fov_x_deg=60, name=f"v{i}")
+            for i, (x, z) in enumerate(((-0.1, -2.5), (0.0, -3.5), (0.1, -3.5)))]  # the floaters in camera 0's band only
+    floaty = with_floaters(scene, cams[:1], per_camera=150, seed=3)
+    u = cams[0].project(floaty.means[len(wall):].astype(np.float64))[0][:, 0]
+    right = u > cams[0].cx + 25  # only the floaters over the empty right half, their footprints clear of the wall
+    assert right.sum() >= 10
+    floaty = floaty.subset(np.concatenate([np.ones(len(wall), bool), right]))
+    for plane in (0.2, 0.01):
+        folder = tmp_path / str(plane)
+        folder.mkdir()
+        images = cameras_with_own_images(prepare_scene(floaty), cams, folder, plane)
+        assert near_plane_as_trained(floaty, images) == plane, plane
