@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -66,6 +67,22 @@ def with_floaters(scene: GaussianScene, cameras, per_camera: int = 20, seed: int
                          log_scales=np.concatenate([scene.log_scales, np.log(rng.uniform(0.002, 0.01, (k, 3))).astype(np.float32)]),
                          opacity_logits=np.concatenate([scene.opacity_logits, np.full(k, 3.0, np.float32)]),
                          sh=np.concatenate([scene.sh, sh]))
+
+
+def cameras_with_own_images(prepared, cameras, folder: Path, near: float | None = None) -> list:
+    """`cameras` with images of the scene's renders (`prepared`, near plane `near`, default NEAR) saved as
+    `folder`/<name>.png: the images a scene trained by a rasterizer of that plane was fitted to."""
+    from PIL import Image
+
+    from drsplat.raster import NEAR, rasterize
+
+    out = []
+    for camera in cameras:
+        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=NEAR if near is None else near).rgb
+        path = Path(folder) / f"{camera.name}.png"
+        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(path)
+        out.append(replace(camera, image_path=path))
+    return out
 
 
 def front_camera(width: int = 40, height: int = 30, cx: float | None = None, cy: float | None = None, z: float = -4.0) -> Camera:

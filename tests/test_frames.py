@@ -18,8 +18,7 @@ from drsplat.frames import (LOW_SEEN_FRACTION, PHOTO_MATCH_MIN, FrameMove, camer
                             move_points, over_fitted_background, photo_agreement, principal_axes, up_and_scale)
 from drsplat.raster import prepare_scene, share_in_some_view
 from drsplat.scene import load_ply, quat_to_rotmat, save_ply
-from drsplat.bench.render import cameras_with_own_images
-from drsplat.testing import with_floaters
+from drsplat.testing import cameras_with_own_images, with_floaters
 from drsplat.synthetic import rotmat_to_quat
 from tests.test_cameras import colmap_text_lines
 

@@ -57,26 +57,12 @@ def bench_scene(path: Path | None):
     return path.name, load_scene(path)
 
 
-def cameras_with_own_images(prepared, cameras, folder: Path, near: float | None = None) -> list:
-    """`cameras` with images of the scene's renders (`prepared`, near plane `near`, default NEAR) saved as
-    `folder`/<name>.png: the images a scene trained by a rasterizer of that plane was fitted to."""
-    from PIL import Image
-
-    from drsplat.raster import NEAR, rasterize
-
-    out = []
-    for camera in cameras:
-        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=NEAR if near is None else near).rgb
-        path = Path(folder) / f"{camera.name}.png"
-        Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(path)
-        out.append(dataclasses.replace(camera, image_path=path))
-    return out
-
-
 def decision_cameras(prepared, cameras, offset: float, folder: Path):
     """`cameras` with images of their own renders saved in `folder`, their principal points then moved
     `offset` of the width right and 0.6 of that up: a scene trained about the centres, read from an
     off-centre calibration."""
+    from drsplat.testing import cameras_with_own_images
+
     out = []
     for camera in cameras_with_own_images(prepared, cameras, folder):
         shift = offset * camera.width
@@ -89,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.defaults import INRIA_NEAR, NEAR
     from drsplat.frames import cameras_with_principal_point, near_plane_as_trained
     from drsplat.raster import _add_colors, _add_colors_numba, near_band, near_band_reference, prepare_scene, project_gaussians, rasterize
-    from drsplat.testing import with_floaters
+    from drsplat.testing import cameras_with_own_images, with_floaters
 
     name, scene = bench_scene(args.scene)
     prepared = prepare_scene(scene)

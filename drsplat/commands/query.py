@@ -127,10 +127,11 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
     guard_outputs(inputs, outputs)
     check_outputs_writable(*outputs.values())  # before the work and the count line (round 57c: a read-only folder failed after both)
     common.scoring_device(args)  # "--device cuda" without a GPU refused before the scene is read
-    stamp = registered_stamp(args.registered) if args.out is not None else None  # the version its selection's rows must come from
-    # a selection written reads its own Gaussians once it is made; a text PLY is parsed whole either way, so it is read once
-    # with them (round 64b F4: parsed twice, 14.4 -> 27.2 s for 73k rows)
-    scene, field = load_registered(args.registered, geometry=args.out is not None and common.is_text_ply(args.registered))
+    # a selection written reads its own Gaussians once it is made, from the version its field was read from (`stamp`); a
+    # text PLY is parsed whole either way, so it is read once with them (round 64b F4: parsed twice, 14.4 -> 27.2 s for 73k rows)
+    whole = args.out is not None and common.is_text_ply(args.registered)
+    stamp = registered_stamp(args.registered) if args.out is not None and not whole else None
+    scene, field = load_registered(args.registered, geometry=whole)
     guard_field_codebook(args.registered, field, outputs)
     common.check_npy_name("--scores", args.scores)
     assigned = field.assigned()
