@@ -15,7 +15,7 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.cameras import look_at_camera
-from drsplat.raster import T_MIN, RasterOutput
+from drsplat.raster import NEAR, T_MIN, RasterOutput, rasterize
 from drsplat.scene import SH_C0, GaussianScene
 
 
@@ -72,9 +72,7 @@ def with_floaters(scene: GaussianScene, cameras, per_camera: int = 20, seed: int
 def cameras_with_own_images(prepared, cameras, folder: Path, near: float | None = None) -> list:
     """`cameras` with images of the scene's renders (`prepared`, near plane `near`, default NEAR) saved as
     `folder`/<name>.png: the images a scene trained by a rasterizer of that plane was fitted to."""
-    from PIL import Image
-
-    from drsplat.raster import NEAR, rasterize
+    from PIL import Image  # Pillow only where images are written
 
     out = []
     for camera in cameras:

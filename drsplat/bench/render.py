@@ -57,14 +57,11 @@ def bench_scene(path: Path | None):
     return path.name, load_scene(path)
 
 
-def decision_cameras(prepared, cameras, offset: float, folder: Path):
-    """`cameras` with images of their own renders saved in `folder`, their principal points then moved
-    `offset` of the width right and 0.6 of that up: a scene trained about the centres, read from an
-    off-centre calibration."""
-    from drsplat.testing import cameras_with_own_images
-
+def decision_cameras(cameras, offset: float):
+    """`cameras` (with images of their own renders) with their principal points moved `offset` of the width right and
+    0.6 of that up: a scene trained about the centres, read from an off-centre calibration."""
     out = []
-    for camera in cameras_with_own_images(prepared, cameras, folder):
+    for camera in cameras:
         shift = offset * camera.width
         out.append(dataclasses.replace(camera, cx=camera.cx + shift, cy=camera.cy - 0.6 * shift))
     return out
@@ -90,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     frames_log = logging.getLogger("drsplat.frames")
     level = frames_log.level
     with tempfile.TemporaryDirectory(prefix="drsplat-bench-render-") as folder:
-        shifted = decision_cameras(prepared, cameras, args.offset, Path(folder))
+        shifted = decision_cameras(cameras_with_own_images(prepared, cameras, Path(folder)), args.offset)
         chosen = []
         frames_log.setLevel(logging.ERROR)  # its warning once per repeat is no table row
         try:
