@@ -618,6 +618,28 @@ def test_a_budget_too_small_is_refused_before_the_fit_stage_renders(tiny, tmp_pa
     assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
 
 
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "paper", "solve"])
+def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tmp_path, monkeypatch, capsys, mode):
+    """Round 65a F5: `--near-plane auto` (the default) rendered its evidence, and warned, before the plan refused the
+    budget. The plan is checked first, for a fit mode, a plain one and one that solves in one block; with a budget that
+    fits, the decision is made and the run registers."""
+    from drsplat import frames
+    from drsplat.cli import main
+
+    decided = []
+
+    def no_decision(*args, **kwargs):
+        raise AssertionError("the near plane was decided before the budget was refused")
+
+    monkeypatch.setattr(frames, "near_plane_as_trained", no_decision)
+    base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
+            "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", mode]
+    assert main(base + ["--memory-budget", "1KB"]) == 1
+    assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
+    monkeypatch.setattr(frames, "near_plane_as_trained", lambda *args, **kwargs: decided.append(1) or frames.NEAR)
+    assert main(base + ["--memory-budget", "8GB"]) == 0 and decided == [1] and (tmp_path / "o.ply").exists()
+
+
 @pytest.mark.parametrize("n", [30, 300])
 def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
     """lang_meta row i holds byte i mod L of the comment: blocks are numbered as in the whole

@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.frames import cameras_as_trained, near_plane_as_trained, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
+    from drsplat.registration.driver import prepare_run, refuse_if_over_budget
     from drsplat.splat_formats import load_scene_report, written_format
 
     if written_format(args.out) != "ply":
@@ -140,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.scene), scene_path=args.scene,
                                  refinements=report.camera_refinements, near=options.near_plane)  # trainers' own worlds, cameras and principal points
-    if decided:
+    if decided:  # a run the plan refuses is refused before the decision renders anything
+        refuse_if_over_budget(prepare_run(scene, cameras, args.features, options))
         options = dataclasses.replace(options, near_plane=near_plane_as_trained(scene, cameras, what=str(args.scene)))
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did

@@ -577,6 +577,22 @@ def _check_memory_before_probe(run: Run) -> int | None:
     return base
 
 
+def refuse_if_over_budget(run: Run) -> None:
+    """The memory plan's refusal (`choose_block`'s DrsplatError) said before work that precedes the registration
+    (`register --near-plane auto` renders its plane's evidence first; round 65a F5: a --memory-budget too small
+    was refused only after that decision and its warning). Nothing is logged when the run fits; the registration
+    plans again from the memory held then (this process may hold more by then, so it can still refuse)."""
+    options = run.options
+    if options.block_size:
+        return
+    if is_fit_mode(options.aggregate):
+        _check_memory_before_probe(run)
+        return
+    plan = estimate_memory(run.scene, run.views, run.dim, options.topk, aggregate=options.aggregate,
+                           total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
+    choose_block(plan, options.memory_budget, whole=mode_stages(options.aggregate).solve)
+
+
 def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
     """`choose_block`'s refusal of the mode either footprint makes from a fit mode, starting from `base`
     (the one naming the larger budget), or None when both fit."""
