@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drsplat.defaults import NEAR
 from drsplat.registration.aggregate import ViewStats
 from drsplat.errors import OutputError
 from drsplat.utils import TEMP_SUFFIX, os_error_cause
@@ -600,15 +601,26 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
 PARAM_MEANINGS = {  # checkpoint_params' keys, as a restart names them
     "scene": "the scene's Gaussians", "num_gaussians": "the scene's size", "views": "the views (names, intrinsics, poses, order)",
     "features_dir": "the feature folder", "topk": "--topk", "level": "--level",
-    "aggregate": "--aggregate", "near_plane": "--near-plane", "shards": "Ray in blocks (--ray with --memory-budget)", "version": "the checkpoint format",
+    "aggregate": "--aggregate", "shards": "Ray in blocks (--ray with --memory-budget)", "version": "the checkpoint format",
     "engine": "the engine (--engine / --device: the GPU's agrees with the CPU's to float32 rounding only)",
 }
 
 
 def changed_params(saved: dict, wanted: dict) -> str:
-    """What differs between a log's parameters and this run's, in words ("--topk, the feature files")."""
+    """What differs between a log's parameters and this run's, in words ("--topk, the feature files"). The near plane
+    names both values: the same command decides it from the training images (`--near-plane auto`), so it changes
+    with them and not only with the flag (round 66a F1)."""
     keys = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
-    return ", ".join(PARAM_MEANINGS.get(k, k) for k in keys) + " changed"
+    return ", ".join(_near_plane_change(saved, wanted) if k == "near_plane" else PARAM_MEANINGS.get(k, k) for k in keys) + " changed"
+
+
+def _near_plane_change(saved: dict, wanted: dict) -> str:
+    """'the near plane (0.2 in the checkpoint, 0.01 now: ...)'; checkpoint_params records it only where it is not NEAR."""
+    def shown(params: dict) -> str:
+        return f"{params.get('near_plane', NEAR):g}"
+
+    return (f"the near plane ({shown(saved)} in the checkpoint, {shown(wanted)} now: --near-plane, or the plane that "
+            "--near-plane auto, the default, decides from the training images when they changed)")
 
 
 def _is_torn_tail(f, end: int, size: int) -> bool:
