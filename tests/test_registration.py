@@ -107,6 +107,24 @@ def test_kernel_agrees_with_reference(case, parts):
         assert total_pairs == 0 and not W.any()
 
 
+@pytest.mark.parametrize("parts", [1, 3])
+def test_coalesce_leaves_out_mask_ids_past_num_masks_and_takes_no_slots_as_the_reference(parts):
+    """Round 66c: a mask id ≥ num_masks was counted one past the kernel's bucket table (a segfault without bounds
+    checks) where `coalesce_reference` leaves the pixel out; k = 0 slots failed to reshape. Both as the reference."""
+    rng = np.random.default_rng(66)
+    ids, weights, masks, _ = _random_view(rng, 9, 11, 4, 30, 8)
+    masks[0, :5] = [6, 7, 9, 100, 2**31 - 1]  # num_masks 6 below: the last four are past it
+    got = Coalescer(30, capacity=2, parts=parts).coalesce(ids, weights, masks, 6)
+    rg, rm, rw, rpairs = coalesce_reference(ids, weights, masks, 6)
+    order = np.lexsort((got[0], got[1]))
+    np.testing.assert_array_equal(got[0][order], rg)
+    np.testing.assert_array_equal(got[1][order], rm)
+    np.testing.assert_allclose(got[2][order], rw, rtol=1e-6)
+    assert got[3] == rpairs and (got[1] < 6).all()
+    none = Coalescer(30, parts=parts).coalesce(ids[..., :0], weights[..., :0], masks, 6)
+    assert [a.size for a in none[:3]] == [0, 0, 0] and none[3] == 0 == coalesce_reference(ids[..., :0], weights[..., :0], masks, 6)[3]
+
+
 @pytest.mark.parametrize("case", ["random", "one_big_mask", "more_parts_than_masks", "empty_masks_between"])
 def test_parallel_parts_give_the_serial_pairs_in_the_same_order(case):
     """The masks coalesced in 2..7 parts give exactly the pairs, bits and order of one part (the

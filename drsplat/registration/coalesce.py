@@ -25,11 +25,12 @@ from drsplat.memory import small_page_full, small_page_zeros
 @numba.njit(cache=True)
 def _bucket_pixels(mask_ids, num_masks):  # pragma: no cover - jitted
     """Counting sort of the pixels by mask: (starts [M + 1], order [pixels in a mask]); mask m's
-    pixels are order[starts[m] : starts[m + 1]], in pixel order. Pixels with mask -1 are left out."""
+    pixels are order[starts[m] : starts[m + 1]], in pixel order. Pixels with mask -1 are left out, and so are ids
+    ≥ num_masks, as `coalesce_reference` leaves them (they were counted past `starts`: round 66c F1)."""
     starts = np.zeros(num_masks + 1, np.int64)
     for p in range(mask_ids.shape[0]):
         m = mask_ids[p]
-        if m >= 0:
+        if 0 <= m < num_masks:
             starts[m + 1] += 1
     for m in range(num_masks):
         starts[m + 1] += starts[m]
@@ -37,7 +38,7 @@ def _bucket_pixels(mask_ids, num_masks):  # pragma: no cover - jitted
     fill = starts[:num_masks].copy()
     for p in range(mask_ids.shape[0]):
         m = mask_ids[p]
-        if m >= 0:
+        if 0 <= m < num_masks:
             order[fill[m]] = p
             fill[m] += 1
     return starts, order
@@ -175,9 +176,9 @@ class Coalescer:
         kernels, which read a view's pairs Gaussian by Gaussian, skip their own sorts (three per view).
         """
         k = ids.shape[-1]
-        ids2 = np.ascontiguousarray(ids.reshape(-1, k), np.int32)
-        w2 = np.ascontiguousarray(weights.reshape(-1, k), np.float32)
         masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
+        ids2 = np.ascontiguousarray(ids.reshape(masks.shape[0], k), np.int32)  # by the pixel count: k = 0 has no -1 to infer
+        w2 = np.ascontiguousarray(weights.reshape(masks.shape[0], k), np.float32)
         starts, order = _bucket_pixels(masks, num_masks)
         bounds = split_masks(starts, self.parts)
         nxt, end = bounds[:-1].copy(), bounds[1:].copy()
