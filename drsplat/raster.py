@@ -34,7 +34,7 @@ from drsplat import _raster_kernels as kernels
 from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
-from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, GaussianScene
+from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
 from drsplat.utils import spread_rows
 
@@ -298,6 +298,10 @@ def some_view_draws(means: np.ndarray, cameras: Sequence[Camera], near: float = 
     """Whether some camera has some mean at camera depth z ≥ near, the projection's own sum (`kernels.any_at_depth`):
     when not, no view can draw a Gaussian (every one is behind every camera or nearer than the plane), whatever the
     masks. means: [N, 3] (float32 or float64); `some_view_draws_reference` is the numpy form."""
+    means = np.asarray(means)
+    if means.ndim != 2 or means.shape[1] != 3:  # the kernel reads column 2 of every row unchecked (round 66c F2)
+        raise ValueError(f"some_view_draws: means has shape {means.shape}; expected [N, 3]")
+    cameras = list(cameras)  # read twice by _depth_rows: a generator would give no translations
     if len(means) == 0 or not cameras:
         return False
     rot_z, trans_z = _depth_rows(cameras)
@@ -530,6 +534,8 @@ def _add_colors(out: Projected, prep: PreparedScene, camera: Camera) -> None:
 def _add_colors_numba(out: Projected, prep: PreparedScene, camera: Camera) -> None:
     """`_add_colors` by the numba kernel `sh_colors` (the same sums in the same order; 542k Gaussians of
     SH degree 2: 0.53 s a view in numpy)."""
+    if prep.sh.shape[1] not in SH_COEFFICIENTS:  # the kernel's basis holds 16 terms, unchecked (round 66c F3: 25 read past it)
+        raise ValueError(f"SH colours: {prep.sh.shape[1]} coefficients a colour channel; expected one of {SH_COEFFICIENTS} (degree 0-3)")
     out.colors = np.empty((prep.num_gaussians, 3), np.float32)
     kernels.sh_colors(prep.sh, prep.means, np.asarray(camera.center, np.float64), out.valid, SH_C1, np.asarray(SH_C2), np.asarray(SH_C3),
                       out.colors)

@@ -42,6 +42,7 @@ MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # exp() of a larger log
 MIP_FILTER = "filter_3D"  # Mip-Splatting's per-Gaussian 3D smoothing filter, a vertex property of its PLYs
 SURFEL_THICKNESS = 1e-3  # a 2DGS surfel's thickness along its normal, relative to its smaller scale (`surfel_scales`)
 MAX_COORDINATE = 1e15  # |x| beyond this cannot sit near a float32 scene or camera: projections overflow or lose all precision
+SH_COEFFICIENTS = (1, 4, 9, 16)  # SH coefficients a colour channel at degree 0, 1, 2, 3: what the renderers evaluate
 MAX_SH_COEFFICIENT = 1e30  # |SH coefficient| beyond this: a colour (16 terms, |basis| < 1.1) could pass float32's range
 EXTENT_OUTLIERS = 1e-3  # the share of the means on each side of each axis that `scene_extent` leaves out
 EXTENT_SAMPLE = 1 << 20  # at most this many means make `scene_extent` (every k-th one)
@@ -86,7 +87,7 @@ class GaussianScene:
         for name, (arr, shape) in shapes.items():
             if arr.shape != shape:
                 raise ValueError(f"GaussianScene.{name} has shape {arr.shape}, expected {shape}")
-        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or self.sh.shape[1] not in (1, 4, 9, 16):
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or self.sh.shape[1] not in SH_COEFFICIENTS:
             raise ValueError(f"GaussianScene.sh has shape {self.sh.shape}, expected [{n}, K, 3] with K in 1, 4, 9, 16")
         for name, arr in self.extra.items():
             if arr.shape[0] != n:

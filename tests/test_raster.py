@@ -402,6 +402,26 @@ def test_the_sh_colour_kernel_matches_eval_sh(degree):
     assert (reference.colors == 0).any() and (reference.colors > 1).any()  # the clamp and large colours both met
 
 
+@pytest.mark.parametrize("k", [2, 5, 25])
+def test_sh_colours_of_no_sh_degree_are_refused_not_read_past_the_basis(k):
+    """Round 66c F3: an `sh` of 25 coefficients (set after the scene's own check) read past the kernel's 16-term basis
+    and gave inf colours; 2 or 5 gave colours from part of a basis where the reference failed. Now one error, naming the
+    count, before the kernel; the GaussianScene refuses such an array when built."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.raster import _add_colors_numba, prepare_scene, project_gaussians
+
+    cam = look_at_camera(np.array([0.3, -0.2, -4.0]), np.zeros(3), 16, 12)
+    scene = gaussians(np.array([[0.1, 0.2, 0.3]], np.float32), log_scale=-2.0)
+    scene.sh = np.full((1, k, 3), 0.1, np.float32)
+    prep = prepare_scene(scene)
+    with pytest.raises(ValueError, match=f"{k} coefficients a colour channel"):
+        _add_colors_numba(project_gaussians(prep, cam), prep, cam)
+    with pytest.raises(ValueError, match=f"{k} coefficients a colour channel"):
+        project_gaussians(prep, cam, with_colors=True)
+    with pytest.raises(ValueError, match="K in 1, 4, 9, 16"):
+        dataclasses.replace(scene)
+
+
 def test_view_dependent_colour_uses_camera_to_mean_direction():
     scene = gaussians([[0.0, 0.0, 0.0]], log_scale=-1.0)
     scene.sh = np.zeros((1, 4, 3), np.float32)
@@ -718,3 +738,6 @@ def test_some_view_draws_is_its_reference_on_planes_through_the_scene(seed):
     assert not raster.some_view_draws(means, cams[:1], beyond) and project_gaussians(scene, cams[0], beyond).num_behind == 490
     assert not raster.some_view_draws(means, cams, 1e30)
     assert not raster.some_view_draws(means, [], 0.01) and not raster.some_view_draws(np.zeros((0, 3)), cams, 0.01)
+    assert raster.some_view_draws(means, iter(cams), 1e-6) == raster.some_view_draws(means, cams, 1e-6)  # cameras read once
+    with pytest.raises(ValueError, match=r"shape \(500, 2\); expected \[N, 3\]"):  # 66c F2: read past each row, answered True
+        raster.some_view_draws(means[:, :2], cams, 1e30)
