@@ -394,7 +394,8 @@ def test_stack_columns_equals_the_column_by_column_copy(n, width):
 def test_float16_row_norms_are_numpys_bits(dim):
     """An exact field's norms (`chunked_row_norms`: float16 rows, numpy's pairwise order) are
     np.linalg.norm's float32 bits, for lengths around its 8-wide accumulators and 128-long blocks,
-    rows of 1e-3 to 100, zero rows, the largest and smallest halves, infinities and NaN."""
+    rows of 1e-3 to 100, zero rows, the largest and smallest halves, infinities and NaN; the same bits for the rows
+    held column-ordered or strided, and as float32."""
     from drsplat.lang.backends import chunked_row_norms, chunked_row_norms_reference
 
     rng = np.random.default_rng(dim)
@@ -405,6 +406,9 @@ def test_float16_row_norms_are_numpys_bits(dim):
     x[3, -1], x[4, 0] = np.inf, np.nan
     got, want = chunked_row_norms(x), chunked_row_norms_reference(x)
     np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+    for layout in (np.asfortranarray(x), x[:, ::-1][:, ::-1], np.asfortranarray(x.astype(np.float32))):  # 66c F4: not by layout
+        np.testing.assert_array_equal(chunked_row_norms(layout).view(np.uint32), want.view(np.uint32))
+        np.testing.assert_array_equal(chunked_row_norms_reference(layout).view(np.uint32), want.view(np.uint32))
 
 
 def test_half_to_float_bits_for_every_half():

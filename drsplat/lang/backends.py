@@ -73,10 +73,12 @@ def chunked_row_norms(x: np.ndarray, chunk: int = EXACT_CHUNK) -> np.ndarray:
 
 
 def chunked_row_norms_reference(x: np.ndarray, chunk: int = EXACT_CHUNK) -> np.ndarray:
-    """`chunked_row_norms` by numpy, chunk by chunk (no [N, D] float32 copy of a float16 array)."""
+    """`chunked_row_norms` by numpy, chunk by chunk (no [N, D] float32 copy of a float16 array). Each chunk is made
+    row-contiguous first: numpy sums a contiguous row pairwise but a column-ordered array column by column, so the
+    norms of one field would depend on its memory layout by an ulp (round 66c F4)."""
     norms = np.empty(x.shape[0], np.float32)
     for start in range(0, x.shape[0], chunk):
-        norms[start : start + chunk] = np.linalg.norm(np.asarray(x[start : start + chunk], np.float32), axis=1)
+        norms[start : start + chunk] = np.linalg.norm(np.ascontiguousarray(x[start : start + chunk], np.float32), axis=1)
     return norms
 
 
