@@ -576,6 +576,32 @@ def test_a_point_cloud_ply_is_refused_as_points_not_as_a_missing_opacity(tmp_pat
         load_ply(tmp_path / "gaussians.ply")
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32, np.uint8, np.int64])
+def test_transpose_and_gather_kernels_are_numpys_arrays(dtype):
+    """`transpose_copy` is np.ascontiguousarray(src.T) and `gather_rows` is a[ids], to the bit (NaN payloads, -0.0),
+    for C-ordered, column-ordered, strided and reversed sources, one row or column, and none (round 66c: the
+    kernels' only checks were through the files they serve)."""
+    from drsplat._scene_kernels import gather_rows, transpose_copy
+
+    rng = np.random.default_rng(np.dtype(dtype).itemsize)
+    base = (rng.normal(size=(37, 23)) * 1000).astype(dtype)
+    if np.issubdtype(dtype, np.floating):
+        base[0, :3] = [np.nan, -0.0, np.inf]
+        base[1, 0] = np.frombuffer(np.array([0x7FC00123 if dtype == np.float32 else 0x7FF8000000000123],
+                                            np.uint32 if dtype == np.float32 else np.uint64).tobytes(), dtype)[0]
+    sources = [base, np.asfortranarray(base), base[::2, ::3], base[::-1, ::-1], base[:1], base[:, :1], base[:0], base[:, :0]]
+    for src in sources:
+        got = transpose_copy(src)
+        assert got.flags.c_contiguous and got.dtype == src.dtype
+        assert got.shape == src.shape[::-1] and got.tobytes() == np.ascontiguousarray(src.T).tobytes()
+    ids = rng.integers(0, 37, 50)
+    for ids_ in (ids, ids[:0], np.array([36, 0, 36])):
+        got = gather_rows(base, ids_)
+        assert got.shape == (len(ids_), 23) and got.tobytes() == base[ids_].tobytes()
+    cube = np.ascontiguousarray(base[:36].reshape(12, 3, 23))  # [N, ...] rows of more than one axis
+    assert gather_rows(cube, ids[ids < 12]).tobytes() == cube[ids[ids < 12]].tobytes()
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("signed", [False, True])
 def test_bounded_rows_kernel_matches_numpy(dtype, signed):
