@@ -42,6 +42,29 @@ def test_tile_entry_counts_are_the_lengths_of_the_lists():
     assert kernels.tile_entry_total(projected.tile_rects) == ids.size > 0
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_tile_entry_counts_and_total_are_a_numpy_count_of_random_rectangles(seed):
+    """Against the obvious reference (each rectangle's tiles incremented in a numpy grid): random rectangles on grids of
+    1x1 to 40x30 tiles, empty and inverted ones (invalid Gaussians), single tiles, the whole grid, none (round 66c:
+    the kernels were checked on one scene's lists only)."""
+    rng = np.random.default_rng(seed)
+    for nx, ny in ((1, 1), (40, 30), (7, 1), (1, 9), (13, 11)):
+        x = np.sort(rng.integers(0, nx + 1, size=(300, 2)), axis=1)
+        y = np.sort(rng.integers(0, ny + 1, size=(300, 2)), axis=1)
+        rects = np.stack([x[:, 0], y[:, 0], x[:, 1], y[:, 1]], axis=1).astype(np.int32)
+        rects[:20] = rects[:20][:, [2, 3, 0, 1]]  # inverted: counted as empty
+        rects[20] = [0, 0, nx, ny]
+        rects[21] = [nx - 1, ny - 1, nx, ny]
+        rects[22] = [0, 0, 0, ny]
+        grid = np.zeros((ny, nx), np.int64)
+        for x0, y0, x1, y1 in rects:
+            if x1 > x0 and y1 > y0:
+                grid[y0:y1, x0:x1] += 1
+        np.testing.assert_array_equal(kernels.tile_entry_counts(rects, nx, ny), grid.ravel())
+        assert kernels.tile_entry_total(rects) == grid.sum()
+    assert not kernels.tile_entry_counts(np.zeros((0, 4), np.int32), 3, 2).any() and kernels.tile_entry_total(np.zeros((0, 4), np.int32)) == 0
+
+
 @pytest.mark.parametrize("exact", [False, True])
 def test_a_band_lists_its_own_tiles_in_the_full_order_and_no_others(exact):
     scene, camera = _close_up(1)
