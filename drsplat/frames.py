@@ -1002,7 +1002,7 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
     say("Gaussians of %s lie %g-%g scene units in front of %s, where INRIA's rasterizer (which trained LangSplat's and Dr. Splat's "
         "scenes) never drew them, and no training image could be compared with its renders to tell how it was trained (%s): "
         "they are drawn (near plane %g, gsplat's); for a scene trained by INRIA's gaussian-splatting pass --near-plane inria",
-        what, NEAR, INRIA_NEAR, where, evidence.left_out if picks else f"{len(seen)} views {NO_IMAGE_FILE}", NEAR)
+        what, NEAR, INRIA_NEAR, where, evidence.left_out if picks else skipped_views(Counter({NO_IMAGE_FILE: len(seen)})), NEAR)
     return NEAR
 
 

@@ -1378,7 +1378,11 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
         assert frames.near_plane_as_trained(with_floaters(scene, cams[:1]), blind, what="SCENE") == frames.NEAR
     assert "no training image could be compared" in caplog.text and "--near-plane inria" in caplog.text, caplog.text
-    assert "with no image file" in caplog.text, caplog.text
+    assert "2 views with no image file" in caplog.text, caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):  # one camera: 66b F2, "1 views"
+        assert frames.near_plane_as_trained(with_floaters(scene, cams[:1]), blind[:1], what="SCENE") == frames.NEAR
+    assert "(1 view with no image file)" in caplog.text, caplog.text
 
 
 def test_register_near_plane_auto_registers_an_inria_scene_as_inria_would_draw_it(tiny_seed0, tmp_path, capsys):
