@@ -199,6 +199,41 @@ def test_an_unknown_model_says_a_config_names_the_model_after_its_file(tmp_path)
         ClipEncoder("Foo-drsplat-test", device="cpu", random_weights=True)
 
 
+def test_a_config_given_without_its_model_name_builds_the_model_it_registers(tmp_path, tiny_clip, caplog):
+    """Round 66b F1: `features --clip-checkpoint tiny.pt --clip-config TinyCLIP.json` (no --clip-model) built ViT-B-16,
+    leaving the config unused, and called the checkpoint "not a readable torch.save checkpoint". The one model a config
+    registers is built when --clip-model is not given; a --clip-model the config does not register is said, once."""
+    from drsplat.cameras import load_cameras, write_transforms_json
+    from drsplat.cli import main
+    from drsplat.features.clip import model_for_config
+    from drsplat.synthetic import write_dataset
+
+    cfg = tiny_clip.parent / f"{TINY_CLIP}.json"
+    assert model_for_config(None, None) == "ViT-B-16" and model_for_config(None, cfg) == TINY_CLIP
+    assert model_for_config(None, cfg, default=TINY_CLIP) == TINY_CLIP and model_for_config(TINY_CLIP, cfg) == TINY_CLIP
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    for name in ("A-drsplat-test", "B-drsplat-test"):
+        (folder / f"{name}.json").write_text(json.dumps(TINY_CFG))
+    (folder / "open_clip_config.json").write_text('{"model_cfg": {}}')  # not a model config: not a model it registers
+    with caplog.at_level("WARNING", logger="drsplat.features.clip"):
+        assert model_for_config(None, folder) == "ViT-B-16"  # two models: which one is --clip-model's to say
+        assert "registers A-drsplat-test, B-drsplat-test, not model ViT-B-16 (--clip-model, by default)" in caplog.text
+        caplog.clear()
+        assert model_for_config("ViT-B-32", cfg) == "ViT-B-32" and f"registers {TINY_CLIP}, not model ViT-B-32 (--clip-model)" in caplog.text
+        caplog.clear()
+        model_for_config("B-drsplat-test", folder)
+        assert caplog.text == ""
+    data = write_dataset(tmp_path / "tiny", "tiny", seed=0, show_progress=False)
+    two = tmp_path / "two"
+    two.mkdir()
+    write_transforms_json(load_cameras(data)[:2], two / "transforms.json")
+    assert main(["-q", "features", "--source", str(two), "--out", str(tmp_path / "f"), "--masks", "slic", "--device", "cpu",
+                 "--clip-checkpoint", str(tiny_clip), "--clip-config", str(cfg)]) == 0
+    manifest = json.loads(next((tmp_path / "f").glob("*.json")).read_text())
+    assert manifest["clip_model_id"] == f"{TINY_CLIP}/file:tiny_clip.pt"
+
+
 def test_check_compatible():
     check_compatible("ViT-B-16/laion2b_s34b_b88k", "vit-b-16/LAION2B_S34B_B88K")
     check_compatible("unknown", "ViT-B-16/laion2b_s34b_b88k")

@@ -400,7 +400,7 @@ def oracle_flag(flag: str) -> str:
 def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = oracle_flag("--embedding")):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id.
     instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
-    from drsplat.features.clip import ClipEncoder, use_clip_config
+    from drsplat.features.clip import ClipEncoder, model_for_config, use_clip_config
     from drsplat.features.modelid import DEFAULT_MODEL
     from drsplat.features.modelid import is_oracle
 
@@ -409,9 +409,11 @@ def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = 
     model, pretrained = DEFAULT_MODEL, None
     if "/" in field.clip_model:
         model, pretrained = field.clip_model.split("/", 1)
-    use_clip_config(getattr(args, "clip_config", None))
+    config = getattr(args, "clip_config", None)
+    model = model_for_config(args.clip_model, config, default=model)
+    use_clip_config(config)
     return ClipEncoder(
-        model=args.clip_model or model,
+        model=model,
         pretrained=args.pretrained or pretrained,
         checkpoint=args.clip_checkpoint,
         device=args.device,

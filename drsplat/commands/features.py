@@ -30,7 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--masks", choices=tuple(GENERATORS), default="sam",
                    help="mask generator: SAM (default, needs weights) or weight-free superpixels (fast on CPU, lower quality)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="where CLIP and SAM run (fp16 on CUDA, fp32 on CPU)")
-    p.add_argument("--clip-model", type=text_value, default=DEFAULT_MODEL, metavar="NAME", help=f"open_clip architecture (default {DEFAULT_MODEL})")
+    p.add_argument("--clip-model", type=text_value, default=None, metavar="NAME",
+                   help=f"open_clip architecture (default {DEFAULT_MODEL}, or the one model --clip-config registers)")
     p.add_argument("--pretrained", type=text_value, default=None, metavar="TAG",
                    help=f"open_clip pretrained tag (default {DEFAULT_PRETRAINED}); with --clip-checkpoint it names the weights the file holds, and so how its crops are normalised")
     p.add_argument("--clip-checkpoint", type=Path, default=None, metavar="PATH", help="local open_clip weights file (no download)")
@@ -76,6 +77,7 @@ def refuse_image_folder(out: Path, cameras) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drsplat.features.clip import model_for_config
     from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
 
     if args.out.exists() and not args.out.is_dir():
@@ -84,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     cameras = feature_cameras(args.source, args.resolution, args.max_height or None)
     refuse_image_folder(args.out, cameras)
     spec = ModelSpec(
-        masks=args.masks, clip_model=args.clip_model, pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
+        masks=args.masks, clip_model=model_for_config(args.clip_model, args.clip_config), pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
         sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,
         sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size, clip_config=args.clip_config,
     )
@@ -93,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     if args.ray is not None:
         from drsplat.features.ray import extract_features_ray
 
-        log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, args.clip_model)
+        log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, spec.clip_model)
         report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,
                                       max_height=args.max_height or None, manifest_extra=extra, show_progress=not args.no_progress)
     else:

@@ -304,6 +304,37 @@ def checkpoint_normalisation(open_clip, model: str) -> tuple[dict, str | None]:
                 "are normalised")
 
 
+def config_model_names(path: Path) -> list[str]:
+    """The models a --clip-config registers, as open_clip names them: each model config's file name without .json (a
+    file, or the model configs of a folder; `check_clip_config` has refused any other)."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path.stem]
+    names = []
+    for config in sorted(path.glob("*.json")):
+        data = read_json(config, "a JSON file of a --clip-config folder (open_clip reads each)")
+        if isinstance(data, dict) and all(key in data for key in ("embed_dim", "vision_cfg", "text_cfg")):
+            names.append(config.stem)
+    return names
+
+
+def model_for_config(given: str | None, config: Path | None, default: str = DEFAULT_MODEL) -> str:
+    """The open_clip model to build: --clip-model when given; else, when --clip-config registers one model and not
+    `default`, that model (round 66b F1: `--clip-checkpoint tiny.pt --clip-config TinyCLIP.json` built ViT-B-16 and
+    called the checkpoint unreadable); else `default`. A config that does not register the model chosen is said, once:
+    it is not used."""
+    if config is not None:
+        check_clip_config(config)
+    names = config_model_names(config) if config is not None else []
+    model = given if given is not None else (names[0] if len(names) == 1 and default not in names else default)
+    if given is None and model != default:
+        log.info("--clip-config %s registers model %s: built as --clip-model %s", config, model, model)
+    if names and model not in names:
+        log.warning("--clip-config %s registers %s, not model %s (--clip-model%s), so it is not used: open_clip names a config's "
+                    "model after its file", config, ", ".join(names), model, "" if given is not None else ", by default")
+    return model
+
+
 def use_clip_config(path: Path | None) -> None:
     """Make the architecture of an open_clip model config (--clip-config: JSON, or a folder of
     them) known to open_clip, after `check_clip_config`; nothing for None."""
