@@ -66,7 +66,7 @@ import dataclasses
 import logging
 import re
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -645,6 +645,16 @@ def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, pri
     `principal_point` its choice). Each step renders views of the scene when it must decide; `cancel`
     (the viewer's, when another check replaces this one) is honoured between them (Cancelled). near: the
     plane the renders are drawn at (the registration's `--near-plane`)."""
+    cameras = cameras_in_trained_frame(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel,
+                                       near=near)
+    return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source, near=near)
+
+
+def cameras_in_trained_frame(scene, cameras: Sequence[Camera], source: str | Path, what: str = "the scene",
+                             scene_path: str | Path | None = None, refinements: np.ndarray | None = None,
+                             cancel: CancelToken | None = None, near: float = NEAR) -> list[Camera]:
+    """`cameras_as_trained` up to the principal points: moved into the scene's frame and a nerfstudio run's open
+    readings decided (Cancelled between the steps when `cancel` is)."""
     stop = cancel.raise_if_cancelled if cancel is not None else (lambda: None)
     cameras = cameras_in_scene_frame(scene.means, list(cameras), source, what=what, scene_path=scene_path, refinements=refinements)
     stop()
@@ -652,7 +662,33 @@ def cameras_as_trained(scene, cameras: Sequence[Camera], source: str | Path, pri
     if run is not None:
         cameras = cameras_of_nerfstudio_run(scene, cameras, *run, what=what, near=near)
         stop()
-    return cameras_with_principal_point(scene, cameras, principal_point, what=what, source=source, near=near)
+    return cameras
+
+
+def cameras_and_plane_as_trained(scene, cameras: Sequence[Camera], source: str | Path, principal_point: str = DEFAULT_PRINCIPAL_POINT,
+                                 near_plane: float | str = DEFAULT_NEAR_PLANE, what: str = "the scene",
+                                 scene_path: str | Path | None = None, refinements: np.ndarray | None = None,
+                                 cancel: CancelToken | None = None,
+                                 before_deciding: Callable[[list[Camera]], None] | None = None) -> tuple[list[Camera], float]:
+    """(`cameras_as_trained`'s cameras, the near plane): near_plane a depth, or "auto", decided by `near_plane_as_trained`
+    once the cameras are in the scene's frame and before their principal points, which are then decided at that plane.
+    INRIA's rasterizer both draws from 0.2 and centres the principal points: decided at 0.01 first, the Gaussians it never
+    drew covered the principal-point renders of a scene with floaters before every camera, which kept the file's points
+    and registered other bytes than `--near-plane inria` (round 66a F3). A camera file whose off-centre principal points
+    the scene was not trained with is itself a sign of INRIA's training, so the plane is decided with them as given.
+    before_deciding: called with the cameras in the scene's frame before the plane is decided (a registration's refusals
+    that need no render)."""
+    decided = near_plane == "auto"
+    plane = NEAR if decided else float(near_plane)
+    framed = cameras_in_trained_frame(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel,
+                                      near=plane)
+    if before_deciding is not None:
+        before_deciding(framed)
+    if decided:
+        plane = near_plane_as_trained(scene, framed, what=what)
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+    return cameras_with_principal_point(scene, framed, principal_point, what=what, source=source, near=plane), plane
 
 
 def nerfstudio_run_file(source: str | Path, scene_path: str | Path | None = None) -> tuple[Path, AppliedMove] | None:

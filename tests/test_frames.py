@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import shutil
 from pathlib import Path
@@ -1047,8 +1048,8 @@ def test_the_viewer_checks_the_cameras_on_a_worker_thread_and_takes_what_registe
     scene, _, cams, _ = tiny_seed0
     data = Path(cams[0].image_path).parents[1]
     shifted = _dataset_with_shifted_principal_points(data, tmp_path / "shifted")
-    release, real = threading.Event(), viewer.cameracheck.cameras_as_trained
-    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", lambda *a, **k: (release.wait(60), real(*a, **k))[1])
+    release, real = threading.Event(), viewer.cameracheck.cameras_and_plane_as_trained
+    monkeypatch.setattr(viewer.cameracheck, "cameras_and_plane_as_trained", lambda *a, **k: (release.wait(60), real(*a, **k))[1])
 
     state = ViewerState()
     assert state.load_scene(data / "scene.ply")
@@ -1241,7 +1242,7 @@ def test_a_replaced_camera_check_is_stopped_and_silent_and_checks_run_one_at_a_t
     scene, _, cams, _ = tiny_seed0
     data = Path(cams[0].image_path).parents[1]
     shifted = _dataset_with_shifted_principal_points(data, tmp_path / "shifted")
-    release, real, running, most = threading.Event(), viewer.cameracheck.cameras_as_trained, [0], [0]
+    release, real, running, most = threading.Event(), viewer.cameracheck.cameras_and_plane_as_trained, [0], [0]
 
     def counted(*a, **k):
         running[0] += 1
@@ -1252,7 +1253,7 @@ def test_a_replaced_camera_check_is_stopped_and_silent_and_checks_run_one_at_a_t
         finally:
             running[0] -= 1
 
-    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", counted)
+    monkeypatch.setattr(viewer.cameracheck, "cameras_and_plane_as_trained", counted)
     state = ViewerState()
     assert state.load_scene(data / "scene.ply")
     checks = []
@@ -1271,7 +1272,7 @@ def test_a_replaced_camera_check_is_stopped_and_silent_and_checks_run_one_at_a_t
     def failing(*a, **k):
         raise InputError(shifted / "transforms.json", "a bad value", field="cx")
 
-    monkeypatch.setattr(viewer.cameracheck, "cameras_as_trained", failing)
+    monkeypatch.setattr(viewer.cameracheck, "cameras_and_plane_as_trained", failing)
     assert state.load_source(shifted, background=True)
     state.camera_check.thread.join(60)
     assert state.poll_camera_check() and state.cameras == []
@@ -1408,6 +1409,33 @@ def test_register_near_plane_auto_registers_an_inria_scene_as_inria_would_draw_i
     assert outputs["auto"].read_bytes() == outputs["inria"].read_bytes()
     assert b"drsplat.near_plane 0.2" in outputs["auto"].read_bytes()[:4096]
     assert outputs["gsplat"].read_bytes() != outputs["auto"].read_bytes()
+
+
+def test_the_principal_points_of_an_inria_scene_are_decided_at_the_plane_decided(tiny_seed0, tmp_path, capsys):
+    """Round 66a F3: floaters 0.03-0.15 before every camera, images drawn at INRIA's plane about the image centres, the
+    camera file's principal points 5 % / 3 % off them. The principal points were decided at 0.01 first, where the
+    floaters INRIA never drew covered the renders: the file's were kept, and the registration was not `--near-plane
+    inria`'s. Now the plane is decided first: the default registers the bytes of `--near-plane inria`, centres taken."""
+    from drsplat.defaults import INRIA_NEAR
+
+    scene, _, cams, _ = tiny_seed0
+    copy = tmp_path / "data"
+    shutil.copytree(Path(cams[0].image_path).parents[1], copy)
+    floaty = with_floaters(scene, cams, per_camera=10)
+    save_ply(floaty, copy / "scene.ply")
+    cameras_with_own_images(prepare_scene(floaty), cams, copy / "images", INRIA_NEAR)
+    meta = json.loads((copy / "transforms.json").read_text())
+    for frame in meta["frames"]:  # a calibration's principal points, which INRIA's rasterizer does not use
+        frame["cx"], frame["cy"] = frame["cx"] + 0.05 * frame["w"], frame["cy"] - 0.03 * frame["w"]
+    (copy / "transforms.json").write_text(json.dumps(meta))
+    outputs = {}
+    for name, flags in (("auto", []), ("inria", ["--near-plane", "inria"])):
+        outputs[name] = tmp_path / f"{name}.ply"
+        assert main(["register", str(copy / "scene.ply"), "--source", str(copy), "--features", str(copy / "features"),
+                     "--out", str(outputs[name]), "--no-progress", "--aggregate", "paper", *flags]) == 0
+        err = capsys.readouterr().err
+        assert "are moved to their image centres" in err and "does not look like its training images" not in err, err
+    assert outputs["auto"].read_bytes() == outputs["inria"].read_bytes()
 
 
 @pytest.mark.parametrize("background", [False, True])

@@ -1,8 +1,7 @@
 """The training cameras' checks against the open scene on a worker thread.
 
-`drsplat.frames.cameras_as_trained` decides the cameras' frame and principal points, and
-`drsplat.frames.near_plane_as_trained` the near plane registration renders at, by rendering views of the
-scene: 2-3 s on a 542k-Gaussian scene, longer on bigger ones, during which the window did not redraw. `ViewerState.load_source(..., background=True)` runs it here and takes the
+`drsplat.frames.cameras_and_plane_as_trained` decides the cameras' frame, the near plane registration renders at and
+the principal points, by rendering views of the scene: 2-3 s on a 542k-Gaussian scene, longer on bigger ones, during which the window did not redraw. `ViewerState.load_source(..., background=True)` runs it here and takes the
 cameras when it ends (`ViewerState.poll_camera_check`).
 
 One check renders at a time: a check that replaces another cancels it (it stops at its next
@@ -26,7 +25,7 @@ from drsplat._scene_kernels import bounded_rows_kernel
 from drsplat.cameras import Camera
 from drsplat.errors import Cancelled
 from drsplat.defaults import NEAR
-from drsplat.frames import cameras_as_trained, near_plane_as_trained
+from drsplat.frames import cameras_and_plane_as_trained
 from drsplat.scene import GaussianScene
 from drsplat.utils import CancelToken
 from viewer.messages import LibraryWarnings, MessageLog
@@ -74,14 +73,13 @@ class TrainedCameras:
 
 def checked_cameras(scene: GaussianScene, cameras: list[Camera], source: Path, scene_path: Path | None,
                     refinements: np.ndarray | None, cancel: CancelToken | None = None) -> TrainedCameras:
-    """The viewer's reading of the training cameras: `cameras_as_trained` with the principal point
-    decided by the scene ("auto"), then the near plane decided as `register` decides it by default
-    (`near_plane_as_trained`), the warnings naming the scene file."""
+    """The viewer's reading of the training cameras, as `register` reads them by default: the principal points and
+    the near plane decided by the scene and its images (`cameras_and_plane_as_trained`, "auto" for both), the warnings
+    naming the scene file."""
     what = scene_path.name if scene_path is not None else "the scene"
-    cameras = cameras_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel)
-    if cancel is not None:
-        cancel.raise_if_cancelled()
-    return TrainedCameras(cameras, near_plane_as_trained(scene, cameras, what=what))
+    cameras, plane = cameras_and_plane_as_trained(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements,
+                                                  cancel=cancel)
+    return TrainedCameras(cameras, plane)
 
 
 def run_camera_check(check: CameraCheck, scene: GaussianScene, scene_path: Path | None, refinements: np.ndarray | None,

@@ -94,7 +94,7 @@ def other_data_suffix(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import InputError, UsageError, shown_path
-    from drsplat.frames import cameras_as_trained, near_plane_as_trained, refinement_comment
+    from drsplat.frames import cameras_and_plane_as_trained, refinement_comment
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.registration.driver import prepare_run, refuse_if_over_budget
@@ -139,11 +139,15 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--keep-unassigned: %d of the %d rows of %s were dropped on loading (non-finite values), so the registered "
                     "PLY has %d rows and its row i is not always the file's row i; drop those rows from the scene file first "
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
-    cameras = cameras_as_trained(scene, cameras, args.source, args.principal_point, what=str(args.scene), scene_path=args.scene,
-                                 refinements=report.camera_refinements, near=options.near_plane)  # trainers' own worlds, cameras and principal points
-    if decided:  # a run the plan refuses is refused before the decision renders anything
-        refuse_if_over_budget(prepare_run(scene, cameras, args.features, options))
-        options = dataclasses.replace(options, near_plane=near_plane_as_trained(scene, cameras, what=str(args.scene)))
+    def refuse_before_deciding(framed: list) -> None:  # a run the plan refuses is refused before the plane's evidence is rendered
+        if decided:
+            refuse_if_over_budget(prepare_run(scene, framed, args.features, options))
+
+    # trainers' own worlds, cameras, near planes and principal points
+    cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),
+                                                  scene_path=args.scene, refinements=report.camera_refinements,
+                                                  before_deciding=refuse_before_deciding)
+    options = dataclasses.replace(options, near_plane=plane)
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
