@@ -178,13 +178,15 @@ def lut_scores(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | Non
 
 
 def lut_scores_reference(codebook: Codebook, codes: np.ndarray, list_ids: np.ndarray | None, norms: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """Decode-then-cosine reference of `lut_scores` (float64): [N, K]."""
+    """Decode-then-cosine reference of `lut_scores` (float64): [N, K] (r_i · q) / |r_i| with the stored |r_i| (`norms`),
+    0 for the rows `has_feature` refuses (unassigned: 0; subnormal or non-finite), as the kernel scores them (round 66c F8:
+    the decoded rows' own norms gave those rows a full cosine)."""
     recon = codebook.decode(codes, list_ids).astype(np.float64)
     q = np.atleast_2d(np.asarray(queries, np.float64))
-    norm = np.linalg.norm(recon, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scores = (recon @ q.T) / norm[:, None]
-    return np.where(norm[:, None] > 0, scores, 0.0).astype(np.float32)
+    norms = np.asarray(norms, np.float32)
+    ok = has_feature(norms)
+    inverse = np.where(ok, 1.0 / np.where(ok, norms.astype(np.float64), 1.0), 0.0)
+    return ((recon @ q.T) * inverse[:, None]).astype(np.float32)
 
 
 @numba.njit(parallel=True, cache=True, boundscheck=False)
