@@ -295,6 +295,11 @@ class PlyHeader:
     non_ascii_comment: str | None = None  # the problem of the first comment outside ASCII (dropped); plyfile refuses it
 
 
+def counted(n: int, one: str, many: str) -> str:
+    """'1 row', '3 rows': a count with its noun (and verb) in agreement, as the findings say it."""
+    return f"{n} {one if n == 1 else many}"
+
+
 @dataclass
 class LoadReport:
     """What `load_ply` found and did, for `drsplat info` and the logs."""
@@ -333,20 +338,20 @@ class LoadReport:
         """Human-readable validation findings (empty when the file was clean)."""
         notes = []
         if self.dropped_nan_rows:
-            notes.append(f"{self.dropped_nan_rows} rows with NaN values dropped")
+            notes.append(f"{counted(self.dropped_nan_rows, 'row', 'rows')} with NaN values dropped")
         if self.dropped_inf_rows:
-            notes.append(f"{self.dropped_inf_rows} rows with infinite position, scale, rotation or colour dropped")
+            notes.append(f"{counted(self.dropped_inf_rows, 'row', 'rows')} with infinite position, scale, rotation or colour dropped")
         if self.beyond_float32:
-            notes.append(f"{self.beyond_float32} rows hold double-precision values beyond float32's range (+-3.4e38), read as infinite")
+            notes.append(f"{counted(self.beyond_float32, 'row holds', 'rows hold')} double-precision values beyond float32's range (+-3.4e38), read as infinite")
         if self.negative_scales:
-            notes.append(f"{self.negative_scales} rows have a negative scale, read as its magnitude (a Gaussian's covariance R S² Rᵀ "
+            notes.append(f"{counted(self.negative_scales, 'row has', 'rows have')} a negative scale, read as its magnitude (a Gaussian's covariance R S² Rᵀ "
                          "holds the square of each scale, so a viewer draws it so)")
         if self.clamped_opacity:
-            notes.append(f"{self.clamped_opacity} infinite opacity logits clamped to +-{MAX_OPACITY_LOGIT:g}")
+            notes.append(f"{counted(self.clamped_opacity, 'infinite opacity logit', 'infinite opacity logits')} clamped to +-{MAX_OPACITY_LOGIT:g}")
         if self.zero_quaternions:
-            notes.append(f"{self.zero_quaternions} zero quaternions replaced by the identity rotation")
+            notes.append(f"{counted(self.zero_quaternions, 'zero quaternion', 'zero quaternions')} replaced by the identity rotation")
         if self.nonfinite_extra:
-            notes.append(f"{self.nonfinite_extra} non-finite values in extra properties (kept as they are)")
+            notes.append(f"{counted(self.nonfinite_extra, 'non-finite value', 'non-finite values')} in extra properties (kept as they are)")
         if self.rows_in_file == 0:
             notes.append("the file holds no Gaussians" + (" (its vertex element has 0 rows)" if self.layout in ("inria", "compressed") else ""))
         if self.trailing_bytes or self.trailing_lines:
@@ -354,10 +359,10 @@ class LoadReport:
         if self.spare_chunks:
             notes.append(self.spare_chunks_note())
         if self.far_means:
-            notes.append(f"{self.far_means} Gaussians lie beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
+            notes.append(f"{counted(self.far_means, 'Gaussian lies', 'Gaussians lie')} beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
                          "see them (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
         if self.large_sh:
-            notes.append(f"{self.large_sh} Gaussians have an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
+            notes.append(f"{counted(self.large_sh, 'Gaussian has', 'Gaussians have')} an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
         if self.activated_opacities is not None:
             but = f" but {self.activated_opacities}" if self.activated_opacities else ""
@@ -370,11 +375,11 @@ class LoadReport:
                          f"{self.scene_extent:.3g}): are exp(scales) stored where 3DGS stores log scales? A trained scene's thinnest "
                          f"Gaussians are under {THINNEST_SCALE_SHARE:g} of its extent; re-export the log scales")
         if self.huge_scales and not self.linear_scale_floor:  # linear scales: the note above names the cause of the huge ones
-            notes.append(f"{self.huge_scales} Gaussians are over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of "
+            notes.append(f"{counted(self.huge_scales, 'Gaussian is', 'Gaussians are')} over {HUGE_SCALE_RATIO:g}x as large as the scene (the box of "
                          f"{100 * (1 - 2 * EXTENT_OUTLIERS):g} % of its means on each axis, diagonal {self.scene_extent:.3g}): each covers every view it is in front of and takes the weight "
                          "of what lies behind it (a training blow-up or a units mix-up?)")
         if self.overflowing_scales:
-            notes.append(f"{self.overflowing_scales} Gaussians have a log scale above {MAX_LOG_SCALE:.1f}: "
+            notes.append(f"{counted(self.overflowing_scales, 'Gaussian has', 'Gaussians have')} a log scale above {MAX_LOG_SCALE:.1f}: "
                          "their scale overflows float32 (infinite)")
         return notes
 

@@ -267,18 +267,18 @@ INFO_FINDING_CASES: dict[str, tuple[Callable[[], bytes], str]] = {
     # name: (PLY bytes, words `drsplat info` must list among its findings) -- was "findings none" for the first three
     "count_smaller_than_data": (lambda: ply_bytes(vertex_header(3), vertex_body(10)), "vertex count (3) may be smaller than the data"),
     "zero_rows": (lambda: ply_bytes(vertex_header(0)), "no Gaussians"),
-    "overflowing_scale": (lambda: _with(4, "scale_1", 1, 100.0), "1 Gaussians have a log scale above 88.7"),
-    "infinite_opacity": (lambda: _with(4, "opacity", 2, np.inf), "infinite opacity logits clamped"),
-    "zero_quaternion": (lambda: _with(4, "rot_0", 0, 0.0), "zero quaternions replaced"),
-    "mean_beyond_any_camera": (lambda: _with(4, "y", 3, 3e38), "1 Gaussians lie beyond 1e+15 from the origin"),  # round 5: "findings none"
+    "overflowing_scale": (lambda: _with(4, "scale_1", 1, 100.0), "1 Gaussian has a log scale above 88.7"),
+    "infinite_opacity": (lambda: _with(4, "opacity", 2, np.inf), "1 infinite opacity logit clamped"),
+    "zero_quaternion": (lambda: _with(4, "rot_0", 0, 0.0), "1 zero quaternion replaced"),
+    "mean_beyond_any_camera": (lambda: _with(4, "y", 3, 3e38), "1 Gaussian lies beyond 1e+15 from the origin"),  # round 5: "findings none"
     # 2026-12-01 probes: "findings none" and a render of inf colours; "findings none" and a registration wrecked by 10 Gaussians;
     # numpy's "overflow encountered in cast" twice and a finite double called infinite
-    "sh_beyond_float32_colour": (lambda: _with(4, "f_dc_1", 2, 3e38), "1 Gaussians have an SH coefficient beyond 1e+30"),
-    "huge_gaussian": (_spread_with_one_huge, "1 Gaussians are over 10x as large as the scene"),
+    "sh_beyond_float32_colour": (lambda: _with(4, "f_dc_1", 2, 3e38), "1 Gaussian has an SH coefficient beyond 1e+30"),
+    "huge_gaussian": (_spread_with_one_huge, "1 Gaussian is over 10x as large as the scene"),
     # was (a probe, 2026-12-01): one stray mean 1e14 away made the box so large that nothing was huge beside it
     "huge_gaussian_beside_a_stray_mean": (lambda: _spread_with_one_huge(log_scale=30.0, far=1e14),
-                                          "1 Gaussians are over 10x as large as the scene"),
-    "double_beyond_float32": (lambda: _doubles_with(4, "x", 1, 1e300), "1 rows hold double-precision values beyond float32's range"),
+                                          "1 Gaussian is over 10x as large as the scene"),
+    "double_beyond_float32": (lambda: _doubles_with(4, "x", 1, 1e300), "1 row holds double-precision values beyond float32's range"),
 }
 
 

@@ -65,7 +65,7 @@ def test_a_signalling_nan_is_dropped_and_counted_without_numpys_cast_warning(tmp
         with caplog.at_level(logging.WARNING):
             loaded, _ = load_without_numpy_warnings(path)
         assert loaded.num_gaussians == scene.num_gaussians - 1, path
-        assert f"{path}: 1 rows with NaN values dropped" in caplog.text
+        assert f"{path}: 1 row with NaN values dropped" in caplog.text
         caplog.clear()
 
 
@@ -163,7 +163,7 @@ def test_an_ascii_value_beyond_float32_is_counted_without_numpys_overflow_warnin
     (tmp_path / "big.ply").write_text(header + "end_header\n" + "1e39 " + row + "1 " + row)
     with caplog.at_level(logging.WARNING):
         scene, _ = load_without_numpy_warnings(tmp_path / "big.ply")
-    assert scene.num_gaussians == 1 and "1 rows with infinite" in caplog.text
+    assert scene.num_gaussians == 1 and "1 row with infinite" in caplog.text
 
 
 def test_a_header_comment_outside_ascii_is_dropped_with_a_warning_and_another_line_is_named(tmp_path, caplog):

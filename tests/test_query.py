@@ -1040,6 +1040,6 @@ def test_a_query_that_writes_no_scene_still_says_what_the_load_found(tmp_path, f
         with caplog.at_level("WARNING", logger="drsplat.scene"):
             load_registered(tmp_path / "f.ply", geometry=geometry)
         said[geometry] = [r.getMessage() for r in caplog.records]
-    for note in ("1 non-finite values in extra properties", "1 infinite opacity logits clamped", "1 zero quaternions replaced"):
+    for note in ("1 non-finite value in extra properties", "1 infinite opacity logit clamped", "1 zero quaternion replaced"):
         assert any(note in line for line in said[False]), (note, said[False])
         assert any(note in line for line in said[True]), (note, said[True])

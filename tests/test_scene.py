@@ -935,7 +935,7 @@ def test_the_extras_load_says_what_the_whole_load_says(tmp_path, monkeypatch, ca
     findings = " ".join(load_ply_extras(paths["odd"])[1].findings() + load_ply_extras(paths["activated"])[1].findings()
                         + load_ply_extras(paths["linear"])[1].findings())
     for said in ("as large as the scene", "beyond 1e+15 from the origin", "SH coefficient beyond", "log scale above",
-                 "zero quaternions", "opacity logits clamped", "activated opacities", "are exp(scales) stored"):
+                 "zero quaternions", "opacity logit clamped", "activated opacities", "are exp(scales) stored"):
         assert said in findings, said
 
 

@@ -402,8 +402,9 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: b
         log.warning("%s: %d Gaussians have a registration weight (lang_weight > 0) but no language feature: the file was altered; "
                     "they are unassigned", ply_path, orphans)
     if weightless:  # the stored feature decides, as for the orphans above; registration writes weight 0 with norm 0 only
-        log.warning("%s: %d Gaussians have a language feature but a registration weight of 0 or less (lang_weight): the file was "
-                    "altered; the feature decides, so they are assigned and scored", ply_path, weightless)
+        log.warning("%s: %s a language feature but a registration weight (lang_weight) that is not positive (0, negative or NaN): "
+                    "the file was altered; the feature decides, so %s assigned and scored", ply_path,
+                    "1 Gaussian has" if weightless == 1 else f"{weightless:,} Gaussians have", "it is" if weightless == 1 else "they are")
     return LanguageField(dim, clip_model, weights, storage, _clip_weights(meta.get("clip_weights"), ply_path, where))
 
 
