@@ -2,6 +2,9 @@
 
 import sys
 
+from drsplat.console import prefer_passive_openmp_waits
+
+prefer_passive_openmp_waits()  # before the viewer's imports load numba's and torch's OpenMP runtimes
 try:
     from viewer.launch import main
 except KeyboardInterrupt:  # Ctrl-C while Python imports the viewer: before anything was opened or written

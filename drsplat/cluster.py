@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 from pathlib import Path
 
+from drsplat.defaults import OPENMP_WAIT_POLICY
 from drsplat.errors import Cancelled, DrsplatError
 from drsplat.utils import CancelToken
 
@@ -66,14 +67,20 @@ def _runtime_env(address: str | None) -> dict:
     """
     package = Path(__file__).resolve().parent  # the drsplat package folder
     if _on_this_host(address):
-        return {"env_vars": {"PYTHONPATH": str(package.parent)}}
+        return {"env_vars": {"PYTHONPATH": str(package.parent), **_worker_env()}}
     return _shipped_env()
 
 
 def _shipped_env() -> dict:
     """The runtime environment that ships the driver's drsplat package to every node (`py_modules`:
     Ray zips the folder once, each node unpacks it once per cluster session, keyed by its contents)."""
-    return {"py_modules": [str(Path(__file__).resolve().parent)], "excludes": ["__pycache__", "*.pyc"]}
+    return {"py_modules": [str(Path(__file__).resolve().parent)], "excludes": ["__pycache__", "*.pyc"], "env_vars": _worker_env()}
+
+
+def _worker_env() -> dict[str, str]:
+    """The workers' OpenMP wait policy: the driver's, else OPENMP_WAIT_POLICY. Several workers share a node's cores,
+    where a spinning OpenMP thread takes a core from the others (`drsplat.console.prefer_passive_openmp_waits`)."""
+    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", OPENMP_WAIT_POLICY)}
 
 
 def _host_addresses() -> set[str]:

@@ -6,10 +6,19 @@ a Ctrl-C or SIGTERM then printed a KeyboardInterrupt traceback of 16-41 lines (e
 console script imported `drsplat.cli` itself (round 54).
 """
 
+import os
 import signal
 import sys
+from collections.abc import MutableMapping
 
+from drsplat.defaults import OPENMP_WAIT_POLICY
 from drsplat.errors import STARTING_NOTE
+
+
+def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) -> None:
+    """OMP_WAIT_POLICY = OPENMP_WAIT_POLICY unless the user set it: the drsplat and viewer processes' own setting, made
+    before numba or torch loads an OpenMP runtime (each reads it once, at load). Library callers keep theirs."""
+    environ.setdefault("OMP_WAIT_POLICY", OPENMP_WAIT_POLICY)
 
 
 def entry() -> None:
@@ -17,6 +26,7 @@ def entry() -> None:
     handler, not drsplat.cli's context manager: that is the import it guards; `drsplat.cli.main`
     takes over with it before it builds the parser."""
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    prefer_passive_openmp_waits()
     try:
         from drsplat.cli import entry as cli_entry  # the slow import this handler guards
     except KeyboardInterrupt:  # Ctrl-C while Python imports the command line: before any command ran

@@ -6,6 +6,10 @@ This module imports nothing, so argument parsers can read it without loading num
 # float32's smallest normal number (np.finfo(np.float32).tiny): a feature or mask embedding of a smaller
 # norm holds no direction in float32 (its entries are subnormal; 1/norm overflows), wherever it is read
 MIN_NORM = 1.1754943508222875e-38
+# OpenMP threads (numba's parallel kernels, torch) sleep rather than spin while they wait for work. A spinning thread takes
+# its core from every other process: on 2 cores shared with other jobs (load 10) a tiny registration took 4.5 s instead of
+# 0.12 s, its small parallel regions each waiting for a time slice (docs/raster.md, "OpenMP threads that wait")
+OPENMP_WAIT_POLICY = "passive"
 MAX_TOPK = 1024  # Gaussians kept per pixel at most (top-k buffers are [H, W, k])
 DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)

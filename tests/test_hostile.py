@@ -1356,11 +1356,11 @@ def _console_script_entry() -> str:
     return re.search(r'(?m)^drsplat = "([\w.]+:\w+)"', (ROOT / "pyproject.toml").read_text()).group(1)  # tomllib is 3.11+
 
 
-def _interrupted_at_import(where: str, interrupt: str, via_console_script: bool = False) -> subprocess.CompletedProcess:
+def _interrupted_at_import(where: str, interrupt: str, via_console_script: bool = False, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run `drsplat info --help` (or main.py --help for "viewer.launch") in a child process whose
     import of module `where` first runs the statement `interrupt` (an import hook: as deterministic as
     a real signal is not); as `python -m drsplat`, or as the console script pip writes (it imports the
-    declared module and calls the function)."""
+    declared module and calls the function); env: the child's environment (None: this process's)."""
     module, function = _console_script_entry().split(":")
     start = (f"import {module}; {module}.{function}()" if via_console_script else 'runpy.run_module("drsplat", run_name="__main__")')
     hook = textwrap.dedent(f"""
@@ -1383,7 +1383,27 @@ def _interrupted_at_import(where: str, interrupt: str, via_console_script: bool 
             sys.argv = ["drsplat", "info", "--help"]
             {start}
     """)
-    return subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    return subprocess.run([sys.executable, "-c", hook], capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+
+
+@pytest.mark.parametrize("user", [None, "active"])
+@pytest.mark.parametrize("where", ["drsplat.cli", "viewer.launch"])
+def test_the_command_line_and_viewer_set_passive_openmp_waits_before_their_imports_unless_the_user_did(where, user, monkeypatch):
+    """OpenMP threads that spin while waiting took a loaded machine's cores from other processes (a tiny registration
+    4.5 s instead of 0.12 s at load 10): the `drsplat` and viewer processes set OMP_WAIT_POLICY=passive before they
+    import numba or torch (which read it once), a value the user set is kept; Ray's workers get the driver's."""
+    from drsplat import cluster
+
+    shown = 'sys.stderr.write("OMP_WAIT_POLICY at import: %s\\n" % os.environ.get("OMP_WAIT_POLICY")); raise KeyboardInterrupt'
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | ({"OMP_WAIT_POLICY": user} if user else {})
+    proc = _interrupted_at_import(where, shown, via_console_script=where == "drsplat.cli", env=env)
+    assert f"OMP_WAIT_POLICY at import: {user or 'passive'}" in proc.stderr, proc.stderr
+    if user:
+        monkeypatch.setenv("OMP_WAIT_POLICY", user)
+    else:
+        monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert cluster._runtime_env(None)["env_vars"]["OMP_WAIT_POLICY"] == (user or "passive")
+    assert cluster._shipped_env()["env_vars"] == {"OMP_WAIT_POLICY": user or "passive"}
 
 
 def _assert_one_line_start_up_interrupt(proc: subprocess.CompletedProcess) -> None:
