@@ -1330,6 +1330,40 @@ def test_numbas_real_workqueue_layer_is_recognised_and_the_check_runs_at_once(ti
     assert f"check False {len(tiny_seed0[2])} False True" in done.stdout, done.stdout
 
 
+def test_average_ranks_are_scipys_and_the_plane_decision_imports_no_scipy_stats(tiny_seed0, tmp_path):
+    """`frames.average_ranks` (the grey levels' ranks the near plane is decided by) against scipy.stats.rankdata, its
+    reference: random values with many ties, one value, none, a NaN (all NaN), ±0 and infinities. scipy.stats alone holds
+    36 MB, which the memory plan counted against a --memory-budget after `--near-plane auto` (round 66a F4: a budget that
+    `--near-plane 0.2` accepted was refused): a decision in a fresh process imports it no more."""
+    import subprocess
+    import sys
+
+    from scipy.stats import rankdata
+
+    from drsplat.frames import average_ranks
+
+    rng = np.random.default_rng(66)
+    for size in (0, 1, 2, 7, 300, 5000):
+        for spread in (1, 3, 50, 10**9):
+            values = rng.integers(0, spread, size).astype(np.float64) / 7.0
+            np.testing.assert_array_equal(average_ranks(values), rankdata(values))
+    odd = np.array([0.0, -0.0, np.inf, -np.inf, 1.0, np.inf])
+    np.testing.assert_array_equal(average_ranks(odd), rankdata(odd))
+    assert np.isnan(average_ranks(np.array([1.0, np.nan, 2.0]))).all() and np.isnan(rankdata([1.0, np.nan, 2.0])).all()
+    scene, _, cams, _ = tiny_seed0
+    data = tmp_path / "data"
+    data.mkdir()
+    floaty = with_floaters(scene, cams[:2])
+    save_ply(floaty, data / "scene.ply")
+    cameras_with_own_images(prepare_scene(floaty), cams, data, 0.01)
+    code = (f"import sys, dataclasses\nfrom pathlib import Path\nfrom drsplat.cameras import load_cameras\n"
+            f"from drsplat.frames import near_plane_as_trained\nfrom drsplat.scene import load_ply\n"
+            f"cams = [dataclasses.replace(c, image_path=Path({str(data)!r}) / f'{{c.name}}.png') for c in load_cameras({str(Path(cams[0].image_path).parents[1])!r})]\n"
+            f"print(near_plane_as_trained(load_ply({str(data / 'scene.ply')!r}), cams), 'scipy.stats' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0 and done.stdout.split() == ["0.01", "False"], (done.stdout, done.stderr)
+
+
 @pytest.mark.parametrize("tone", ["as drawn", "half as bright", "gamma 2.2"])
 def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_seed0, tmp_path, caplog, tone):
     """A scene trained by INRIA's rasterizer (near plane 0.2) may hold floaters 0.01-0.2 in front of a camera that were

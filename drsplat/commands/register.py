@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import InputError, UsageError, shown_path
     from drsplat.frames import cameras_and_plane_as_trained, refinement_comment
+    from drsplat.memory import trim_heap
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
     from drsplat.registration.driver import prepare_run, refuse_if_over_budget
@@ -148,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
                                                   scene_path=args.scene, refinements=report.camera_refinements,
                                                   before_deciding=refuse_before_deciding)
     options = dataclasses.replace(options, near_plane=plane)
+    if decided:  # the decision's images and renders are freed, and the memory plan starts from this process's resident memory
+        trim_heap()  # (round 66a F4: a --memory-budget a fixed plane accepts was refused after `auto`, or ran in more blocks)
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
