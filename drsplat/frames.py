@@ -79,6 +79,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied
 from drsplat.defaults import DEFAULT_NEAR_PLANE, DEFAULT_PRINCIPAL_POINT, INRIA_NEAR, NEAR, PRINCIPAL_POINTS
 from drsplat.errors import InputError
 from drsplat.raster import near_band, prepare_scene, rasterize, share_in_some_view
+from drsplat.scene import counted
 from drsplat.utils import CancelToken, spread_rows
 
 log = logging.getLogger(__name__)
@@ -624,7 +625,7 @@ NOT_ITS_IMAGE = f"whose render correlates under {PHOTO_MATCH_MIN} with its image
 
 def skipped_views(skipped: Counter) -> str:
     """`photo_agreement`'s skipped counts in words: "3 views whose image could not be read, 1 view with no image file"."""
-    return ", ".join(f"{n} view{'s' if n != 1 else ''} {why}" for why, n in skipped.items() if n) or "no view was left out"
+    return ", ".join(f"{counted(n, 'view', 'views')} {why}" for why, n in skipped.items() if n) or "no view was left out"
 
 
 PRINCIPAL_POINT_VIEWS = 8  # views `cameras_with_principal_point` renders under each reading
@@ -926,7 +927,7 @@ class PlaneEvidence:
         return lo - hi
 
     def of_views(self) -> str:
-        return f"{self.pixels:,} pixels of {self.views} view{'s' if self.views != 1 else ''}"
+        return f"{self.pixels:,} pixels of {counted(self.views, 'view', 'views')}"
 
 
 def grey_ranks(grey: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -1001,10 +1002,11 @@ def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, wi
     return evidence
 
 
-def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str = DEFAULT_NEAR_PLANE, what: str = "the scene") -> float:
-    """The near plane (a camera depth, scene units) to render `scene` (a GaussianScene) at, as it was trained.
+def near_plane_as_trained(scene, cameras: Sequence[Camera], what: str = "the scene") -> float:
+    """The near plane (a camera depth, scene units) to render `scene` (a GaussianScene) at, as it was trained
+    (`--near-plane auto`; `cameras_and_plane_as_trained` returns a plane given as a number as given).
 
-    choice: a depth, returned as given, or "auto": trainers differ. gsplat and nerfstudio draw every
+    Trainers differ: gsplat and nerfstudio draw every
     Gaussian of camera depth z ≥ NEAR (0.01); INRIA's rasterizer, which trained LangSplat's and Dr. Splat's
     scenes, drops z ≤ INRIA_NEAR (0.2), so a Gaussian 0.01-0.2 in front of a camera (a floater) was never
     drawn in that view while training, and drawing it covers what the image shows. "auto" finds, per
@@ -1016,8 +1018,6 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], choice: float | str 
     to compare it is NEAR, warned about when the band covers NEAR_BAND_NOTABLE of a view's tiles. Taking
     INRIA's plane is said in one warning naming `what`.
     """
-    if choice != "auto":
-        return float(choice)
     cameras = list(cameras)
     prepared = photo_scene(scene)
     bands = near_band(prepared, cameras, NEAR, INRIA_NEAR)

@@ -121,6 +121,22 @@ class PreparedScene:
         return int(self.finite.size - np.count_nonzero(self.finite))
 
 
+def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
+    """The Gaussians `ids` [V] of `geometry` (Gaussian i of the result is ids[i] of the scene), gathered
+    in parallel (`gather_rows`; `subset_geometry_reference` is the numpy form, the same arrays)."""
+    rows = (geometry.means, geometry.covariances, geometry.opacities, geometry.sh, geometry.finite)
+    if not all(a.flags.c_contiguous for a in rows):
+        return subset_geometry_reference(geometry, ids)
+    means, covariances, opacities, sh, finite = (gather_rows(a, ids) for a in rows)
+    return PreparedScene(means=means, covariances=covariances, opacities=opacities, sh=sh, finite=finite)
+
+
+def subset_geometry_reference(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
+    """`subset_geometry` by numpy's fancy indexing."""
+    return PreparedScene(means=geometry.means[ids], covariances=geometry.covariances[ids], opacities=geometry.opacities[ids],
+                         sh=geometry.sh[ids], finite=geometry.finite[ids])
+
+
 def tile_grid(width: int, height: int, tile_size: int = TILE_SIZE) -> tuple[int, int]:
     """(tiles in x, tiles in y) covering a width x height image: ceil(width / tile), ceil(height / tile)."""
     return -(-width // tile_size), -(-height // tile_size)
@@ -234,16 +250,14 @@ class NearBand:
 def _band_of(prep: PreparedScene, camera: Camera, ids: np.ndarray, lo: float, project, with_ids: bool) -> NearBand:
     """NearBand of `camera` from the candidates ids (lo ≤ z < hi), keeping those `project` (a projection function
     with project_gaussians' signature) draws at lo."""
-    grid = int(np.prod(tile_grid(camera.width, camera.height)))
+    grid_x, grid_y = tile_grid(camera.width, camera.height)
     if ids.size == 0:
-        return NearBand(0, 0, grid, ids.astype(np.int64) if with_ids else None)
-    sub = PreparedScene(means=prep.means[ids], covariances=prep.covariances[ids], opacities=prep.opacities[ids],
-                        sh=prep.sh[ids], finite=prep.finite[ids])
-    projected = project(sub, camera, lo)
+        return NearBand(0, 0, grid_x * grid_y, ids.astype(np.int64) if with_ids else None)
+    projected = project(subset_geometry_reference(prep, ids), camera, lo)
     drawn = projected.valid
-    per_tile = kernels.tile_entry_counts(np.ascontiguousarray(projected.tile_rects[drawn], np.int32), *tile_grid(camera.width, camera.height))
+    per_tile = kernels.tile_entry_counts(np.ascontiguousarray(projected.tile_rects[drawn], np.int32), grid_x, grid_y)
     tiles = int(np.count_nonzero(per_tile))
-    return NearBand(int(np.count_nonzero(drawn)), tiles, grid, ids[drawn].astype(np.int64) if with_ids else None)
+    return NearBand(int(np.count_nonzero(drawn)), tiles, grid_x * grid_y, ids[drawn].astype(np.int64) if with_ids else None)
 
 
 def _depth_rows(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:

@@ -69,14 +69,14 @@ def with_floaters(scene: GaussianScene, cameras, per_camera: int = 20, seed: int
                          sh=np.concatenate([scene.sh, sh]))
 
 
-def cameras_with_own_images(prepared, cameras, folder: Path, near: float | None = None) -> list:
-    """`cameras` with images of the scene's renders (`prepared`, near plane `near`, default NEAR) saved as
+def cameras_with_own_images(prepared, cameras, folder: Path, near: float = NEAR) -> list:
+    """`cameras` with images of the scene's renders (`prepared`, near plane `near`) saved as
     `folder`/<name>.png: the images a scene trained by a rasterizer of that plane was fitted to."""
     from PIL import Image  # Pillow only where images are written
 
     out = []
     for camera in cameras:
-        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=NEAR if near is None else near).rgb
+        rgb = rasterize(prepared, camera, 1, with_rgb=True, near=near).rgb
         path = Path(folder) / f"{camera.name}.png"
         Image.fromarray(np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)).save(path)
         out.append(replace(camera, image_path=path))

@@ -16,8 +16,9 @@ from drsplat.registration import RegisterOptions, register
 from drsplat.registration import aggregate
 from drsplat.registration.aggregate import RayGeometry, mode_hook
 from drsplat.registration.compute import renders_whole, ViewComputer, ViewJob, prepare_geometry
+from drsplat.raster import subset_geometry, subset_geometry_reference
 from drsplat.registration.culling import (SpatialIndex, largest_eigenvalues, largest_eigenvalues_reference, morton_codes, remap_ids,
-                                         remap_ids_reference, subset_geometry, subset_geometry_reference)
+                                         remap_ids_reference)
 from drsplat.scene import load_ply
 from drsplat.synthetic import tile_city, write_dataset
 

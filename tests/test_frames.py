@@ -1373,6 +1373,7 @@ def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_s
     tone curve (round 65a F1: images drawn at 0.01 but half as bright, or with a gamma, took 0.2)."""
     from PIL import Image
 
+    from drsplat import frames
     from drsplat.defaults import INRIA_NEAR, NEAR
     from drsplat.frames import near_plane_as_trained
 
@@ -1394,7 +1395,11 @@ def test_the_near_plane_is_the_one_whose_renders_show_the_training_images(tiny_s
             assert "front of 3 of its 16 cameras" in warned[0], warned  # the two the floaters stand before, and a neighbour
         else:
             assert not warned and "they are drawn (near plane 0.01)" in caplog.text, caplog.text
-    assert near_plane_as_trained(floaty, cams, 0.05) == 0.05
+    renders = []
+    with pytest.MonkeyPatch.context() as patched:  # a plane given as a number is the plane, nothing rendered for it
+        patched.setattr(frames, "supersampled_render", lambda *a, **k: renders.append(a) or pytest.fail("rendered"))
+        got = frames.cameras_and_plane_as_trained(floaty, cams, Path(cams[0].image_path).parents[1], "file", 0.05)
+    assert got[1] == 0.05 and not renders
 
 
 def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_without_images(tiny_seed0, tmp_path, monkeypatch, caplog):

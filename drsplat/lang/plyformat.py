@@ -42,7 +42,7 @@ from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
-from drsplat.scene import NUMPY_TO_PLY, GaussianScene, PlyExtras, check_integer_column, save_ply
+from drsplat.scene import NUMPY_TO_PLY, GaussianScene, PlyExtras, check_integer_column, counted, save_ply
 from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, outputs_together, refuse_write_protected
 
@@ -404,7 +404,7 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: b
     if weightless:  # the stored feature decides, as for the orphans above; registration writes weight 0 with norm 0 only
         log.warning("%s: %s a language feature but a registration weight (lang_weight) that is not positive (0, negative or NaN): "
                     "the file was altered; the feature decides, so %s assigned and scored", ply_path,
-                    "1 Gaussian has" if weightless == 1 else f"{weightless:,} Gaussians have", "it is" if weightless == 1 else "they are")
+                    counted(weightless, "Gaussian has", "Gaussians have"), "it is" if weightless == 1 else "they are")
     return LanguageField(dim, clip_model, weights, storage, _clip_weights(meta.get("clip_weights"), ply_path, where))
 
 

@@ -25,10 +25,10 @@ from drsplat.errors import UsageError
 from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
-from drsplat.raster import NEAR, PreparedScene, RasterOutput, get_engine, prepare_scene
+from drsplat.raster import NEAR, PreparedScene, RasterOutput, get_engine, prepare_scene, subset_geometry
 from drsplat.registration.aggregate import ViewHook, mode_stages
 from drsplat.registration.coalesce import Coalescer
-from drsplat.registration.culling import SpatialIndex, remap_ids, subset_geometry
+from drsplat.registration.culling import SpatialIndex, remap_ids
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.views import load_view_features, used_masks
 from drsplat.scene import GaussianScene

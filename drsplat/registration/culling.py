@@ -40,7 +40,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from drsplat._scene_kernels import gather_rows
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, TILE_SIZE, PreparedScene
 from drsplat.scene import morton_interleave
@@ -235,20 +234,6 @@ def largest_eigenvalues_reference(covariances: np.ndarray, ids: np.ndarray) -> n
     return np.linalg.eigvalsh(covariances[ids])[:, -1]
 
 
-def subset_geometry(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
-    """The Gaussians `ids` [V] of `geometry` (Gaussian i of the result is ids[i] of the scene), gathered
-    in parallel (`gather_rows`; `subset_geometry_reference` is the numpy form, the same arrays)."""
-    rows = (geometry.means, geometry.covariances, geometry.opacities, geometry.sh, geometry.finite)
-    if not all(a.flags.c_contiguous for a in rows):
-        return subset_geometry_reference(geometry, ids)
-    means, covariances, opacities, sh, finite = (gather_rows(a, ids) for a in rows)
-    return PreparedScene(means=means, covariances=covariances, opacities=opacities, sh=sh, finite=finite)
-
-
-def subset_geometry_reference(geometry: PreparedScene, ids: np.ndarray) -> PreparedScene:
-    """`subset_geometry` by numpy's fancy indexing."""
-    return PreparedScene(means=geometry.means[ids], covariances=geometry.covariances[ids], opacities=geometry.opacities[ids],
-                         sh=geometry.sh[ids], finite=geometry.finite[ids])
 
 
 @numba.njit(parallel=True, cache=True)

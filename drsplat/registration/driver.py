@@ -54,7 +54,7 @@ from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import NEAR_PLANE_COMMENT, RegisterOptions, near_plane_comment
 from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
-from drsplat.registration.plan import choose_block, estimate_memory
+from drsplat.registration.plan import MemoryPlan, choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, shard_errors, wants_reducers
 from drsplat.registration.solve import solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
@@ -588,9 +588,13 @@ def refuse_if_over_budget(run: Run) -> None:
     if is_fit_mode(options.aggregate):
         _check_memory_before_probe(run)
         return
-    plan = estimate_memory(run.scene, run.views, run.dim, options.topk, aggregate=options.aggregate,
+    choose_block(_memory_plan(run), options.memory_budget, whole=mode_stages(options.aggregate).solve)
+
+
+def _memory_plan(run: Run, base: int | None = None, aggregate: str | None = None) -> MemoryPlan:
+    """`estimate_memory` of `run` in its mode (or `aggregate`), from `base` resident bytes (None: this process's now)."""
+    return estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=aggregate or run.options.aggregate,
                            total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
-    choose_block(plan, options.memory_budget, whole=mode_stages(options.aggregate).solve)
 
 
 def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
@@ -598,9 +602,7 @@ def _refusal_for_footprints(run: Run, base: int) -> DrsplatError | None:
     (the one naming the larger budget), or None when both fit."""
     refusals = []
     for footprint in FOOTPRINTS:
-        plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base,
-                               aggregate=resolve_mode(run.options.aggregate, footprint), total_masks=run.headers.total_masks,
-                               max_masks=run.headers.max_masks)
+        plan = _memory_plan(run, base, resolve_mode(run.options.aggregate, footprint))
         try:
             choose_block(plan, run.options.memory_budget)
         except DrsplatError as exc:
@@ -617,8 +619,7 @@ def _plan_block(run: Run, base: int | None = None, taken_over: int = 0) -> int:
     if base is not None:
         trim_heap()  # the probe's freed arrays are not memory in use
         base = max(base, current_rss() - taken_over)
-    plan = estimate_memory(run.scene, run.views, run.dim, run.options.topk, base=base, aggregate=run.options.aggregate,
-                           total_masks=run.headers.total_masks, max_masks=run.headers.max_masks)
+    plan = _memory_plan(run, base)
     block = choose_block(plan, run.options.memory_budget, whole=mode_stages(run.options.aggregate).solve)
     if block < run.scene.num_gaussians:
         log.info("estimated peak memory: %s in one block, %s in blocks of %s Gaussians", format_size(plan.in_memory),
