@@ -15,7 +15,8 @@ from drsplat.registration import RegisterOptions, register_features
 from drsplat.registration.aggregate import mode_stages
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.sink import MemorySink
-from drsplat.registration.vote import MaskClusters, VoteSink, dot_rows, trimmed_features, trimmed_features_reference, vote_reference
+from drsplat.registration.vote import (MaskClusters, VoteSink, dot_rows, ordered_dots_reference, trimmed_features, trimmed_features_reference,
+                                       vote_reference)
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 from drsplat.utils import CancelToken
@@ -49,16 +50,21 @@ def test_mode_stages():
         mode_stages("vote-vote")
 
 
-@pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000), (1, 40, 512), (2, 3, 768)])
-def test_dot_rows_agrees_with_a_matrix_product(m, c, d):
-    """The clusters' cosines (numba, on numba's threads) against numpy's feats @ rows.T: float32
-    rounding apart, the same numbers; zero rows give 0; empty inputs give empty shapes."""
+@pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000), (1, 40, 512), (2, 3, 768),
+                                   (300, 70, 512), (257, 131, 33)])
+def test_dot_rows_sums_in_index_order_as_its_reference(m, c, d):
+    """The clusters' cosines (numba, on numba's threads or the calling thread) are bit for bit the
+    float32 sums in index order of d (`ordered_dots_reference`), so any CPU gives the same bits
+    (round 66c F6: with fastmath an AVX-512 target changed 73 % of them); and, float32 rounding
+    apart, numpy's float64 product. Zero rows give 0; empty inputs give empty shapes; masks past
+    one tile (MASK_TILE) and leaders past one run (LEADER_RUN), not a multiple of four, included."""
     rng = np.random.default_rng(m * 1000 + c)
     feats, rows = rng.normal(size=(m, d)).astype(np.float32), rng.normal(size=(c, d)).astype(np.float32)
     if c > 2:
         rows[1] = 0.0
     got = dot_rows(feats, rows)
     assert got.shape == (m, c) and got.dtype == np.float32
+    assert got.tobytes() == ordered_dots_reference(feats, rows).tobytes()
     want = feats.astype(np.float64) @ rows.astype(np.float64).T
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4 * np.sqrt(d))
     if c > 2 and m:
@@ -66,6 +72,28 @@ def test_dot_rows_agrees_with_a_matrix_product(m, c, d):
     # the small products run on the calling thread, the large on numba's threads: the same bits either way
     for parallel in (True, False):
         assert dot_rows(feats, rows, parallel=parallel).tobytes() == got.tobytes()
+
+
+def test_trim_decides_cosines_at_the_threshold_by_the_sums_in_index_order():
+    """Cluster pairs whose cosine is the threshold itself, as float32 summed in index order: the trim
+    kernel decides each pair as its reference does (round 66c F6: the kernel summed in the lanes
+    the compiler chose, so such pairs, a few ulps either side, went the other way)."""
+    from drsplat.registration.vote import trimmed_slots, trimmed_slots_reference
+
+    rng = np.random.default_rng(5)
+    pairs = 300
+    a = np.stack([_unit(rng.normal(size=D)) for _ in range(pairs)])
+    b = np.stack([_unit(0.9 * a[i] + np.sqrt(1 - 0.81) * _unit(rng.normal(size=D))) for i in range(pairs)])
+    means = np.concatenate([a, b]).astype(np.float32)  # clusters i and pairs + i
+    cos = ordered_dots_reference(a, b).diagonal()
+    slot_c = np.stack([np.arange(pairs), np.arange(pairs) + pairs], axis=1).astype(np.int32)
+    slot_v = np.tile([5.0, 1.0], (pairs, 1))  # cluster i wins; pairs + i is a minority, trimmed when unlike
+    for threshold in np.unique(cos)[:: max(1, pairs // 40)]:
+        want = trimmed_slots_reference(slot_c, slot_v, means, threshold=float(threshold))
+        bits = trimmed_slots(slot_c, slot_v, np.ones((pairs, 2)), means, threshold=float(threshold))
+        got = np.array([[bool(int(x) >> s & 1) for s in range(2)] for x in bits])
+        np.testing.assert_array_equal(got, want)
+        assert got[:, 1].sum() == (cos < threshold).sum()  # exactly the pairs under the threshold are trimmed
 
 
 def test_mask_clusters_group_noisy_masks_of_a_label():

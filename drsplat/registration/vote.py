@@ -117,6 +117,8 @@ MINORITY = 0.34  # a cluster outside the winner's group is trimmed when its vote
 FULL_VIEW = 0.5  # a view in which the Gaussian's total weight T_iv reaches this (half an opaque pixel) votes fully
 PRESENCE = 0.1  # a view gives a cluster a full vote when it holds this share of the Gaussian's weight there (docs/registration.md)
 PARALLEL_MACS = 1 << 21  # `dot_rows` below this many multiply-adds (~0.5 ms on one core) runs on the calling thread
+LEADER_RUN = 64  # `dot_rows`: leaders per parallel run
+MASK_TILE = 256  # `dot_rows`: masks per tile (their [D, 256] float32 columns, 512 KB at D = 512, stay in L2)
 CLUSTER_BLOCK = 4096  # mask clusters per block of MaskClusters' storage at most, and per block of a view's cosines with them
 FIRST_CLUSTER_BLOCK = 64  # clusters in the first block; each next block holds twice as many, up to CLUSTER_BLOCK
 VOTE_PARTS = 32  # row-aligned parts of a view's pairs, folded in parallel (several per thread even out their sizes)
@@ -126,44 +128,96 @@ TRIM_BUFFER_FEAT_BYTES = 16 << 20  # the mask embeddings it buffers with them (t
 SPECIFIC = 4.0  # step 4: a group this many times less specific than the most specific one is trimmed (docs/evaluation.md)
 
 
-@numba.njit(fastmath=True, cache=True)
+@numba.njit(cache=True)
 def _row_dot(a, i, b, j):  # pragma: no cover - jitted
-    """a[i] · b[j] in float32 (fastmath: the sum over D vectorises; not inlined at numba's level, so
-    the flags stay on these instructions only): the one dot product of the vote's kernels."""
+    """a[i] · b[j] in float32, the products added in index order d = 0, 1, ..., D-1
+    (`ordered_dots_reference`): the one order of the vote's dot products.
+
+    No fastmath: with reassociation the sum was split into as many lanes as the target's vectors
+    hold, so an AVX-512 target (skylake-avx512, sapphirerapids) gave other bits than an AVX2 or
+    Zen one in 73 % of 60,000 cosines, and a Ray reducer on such a node could trim otherwise than
+    the driver's machine where a cosine sits within an ulp of CLUSTER_COSINE (round 66c F6)."""
     s = np.float32(0.0)
     for d in range(a.shape[1]):
         s += a[i, d] * b[j, d]
     return s
 
 
-@numba.njit(fastmath=True, cache=True, inline="always")
-def _dot_row(feats, rows, c, out):  # pragma: no cover - jitted
-    """out[:, c] = feats · rows[c] (float32): the loop both kernels run."""
-    for j in range(feats.shape[0]):
-        out[j, c] = _row_dot(feats, j, rows, c)
+@numba.njit(cache=True, inline="always")
+def _dot_leaders(feats_t, rows, j0, j1, c0, c1, acc, out):  # pragma: no cover - jitted
+    """out[j, c] = Σ_d feats_t[d, j] · rows[c, d] for masks j0 ≤ j < j1 and leaders c0 ≤ c < c1, each
+    sum in index order of d as `_row_dot`: the loop over masks is the one that vectorises (each
+    lane its own sum), four leaders share each pass over feats_t. acc: [4, ≥ j1 - j0] float32 scratch.
+    (The masks are read through a slice of each row of feats_t: indexed from j0, numba's check for
+    negative indices kept the loop scalar, 2x slower.)"""
+    dim, width = feats_t.shape[0], j1 - j0
+    for g in range(c0, c1, 4):
+        n = min(4, c1 - g)
+        acc[:, :] = 0.0
+        if n == 4:
+            a0, a1, a2, a3 = acc[0], acc[1], acc[2], acc[3]
+            for d in range(dim):
+                f = feats_t[d, j0:j1]
+                r0, r1, r2, r3 = rows[g, d], rows[g + 1, d], rows[g + 2, d], rows[g + 3, d]
+                for j in range(width):
+                    x = f[j]
+                    a0[j] += x * r0
+                    a1[j] += x * r1
+                    a2[j] += x * r2
+                    a3[j] += x * r3
+        else:
+            for q in range(n):
+                a = acc[q]
+                for d in range(dim):
+                    f = feats_t[d, j0:j1]
+                    r = rows[g + q, d]
+                    for j in range(width):
+                        a[j] += f[j] * r
+        for q in range(n):
+            for j in range(width):
+                out[j0 + j, g + q] = acc[q, j]
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
-def _dot_rows_kernel(feats, rows, out):  # pragma: no cover - jitted
-    """out[j, c] = feats[j] · rows[c], parallel over rows on numba's own threads.
+@numba.njit(parallel=True, cache=True)
+def _dot_rows_kernel(feats_t, rows, out):  # pragma: no cover - jitted
+    """out[j, c] = feats[j] · rows[c] (feats_t = featsᵀ [D, M]), parallel over runs of LEADER_RUN
+    leaders on numba's own threads, the masks in tiles of MASK_TILE (a tile's [D, MASK_TILE] of
+    feats_t stays in L2 while the run's leaders pass over it).
 
     A BLAS sgemm is a little faster (1.5 vs 2.1 ms for 55 masks x 2,750 leaders x 512), but
     OpenBLAS's threads then busy-wait for a while and take a core from the rasterizer's next
     parallel kernels: on 2 cores binning and projection ran 2-3x slower in every `-vote` mode
-    (docs/registration.md)."""
-    for c in numba.prange(rows.shape[0]):
-        _dot_row(feats, rows, c, out)
+    (docs/registration.md); and its order of the sum depends on the CPU."""
+    m, c = feats_t.shape[1], rows.shape[0]
+    runs = (c + LEADER_RUN - 1) // LEADER_RUN
+    for r in numba.prange(runs):
+        acc = np.empty((4, min(m, MASK_TILE)), np.float32)
+        for j0 in range(0, m, MASK_TILE):
+            _dot_leaders(feats_t, rows, j0, min(m, j0 + MASK_TILE), r * LEADER_RUN, min(c, (r + 1) * LEADER_RUN), acc, out)
 
 
-@numba.njit(fastmath=True, cache=True)
-def _dot_rows_serial_kernel(feats, rows, out):  # pragma: no cover - jitted
-    """`_dot_rows_kernel` on the calling thread: the same loop, so the same bits (tested)."""
-    for c in range(rows.shape[0]):
-        _dot_row(feats, rows, c, out)
+@numba.njit(cache=True)
+def _dot_rows_serial_kernel(feats_t, rows, out):  # pragma: no cover - jitted
+    """`_dot_rows_kernel` on the calling thread: the same sums, so the same bits (tested)."""
+    m = feats_t.shape[1]
+    acc = np.empty((4, min(m, MASK_TILE)), np.float32)
+    for j0 in range(0, m, MASK_TILE):
+        _dot_leaders(feats_t, rows, j0, min(m, j0 + MASK_TILE), 0, rows.shape[0], acc, out)
+
+
+def ordered_dots_reference(feats: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """[M, C] float32: Σ_d feats[j, d] · rows[c, d], each product rounded to float32 and added to a
+    float32 sum in index order of d: the order of `_row_dot` and `dot_rows`, bit for bit."""
+    feats, rows = np.asarray(feats, np.float32), np.asarray(rows, np.float32)
+    out = np.zeros((feats.shape[0], rows.shape[0]), np.float32)
+    for d in range(feats.shape[1]):
+        out += feats[:, d : d + 1] * rows[None, :, d]
+    return out
 
 
 def dot_rows(feats: np.ndarray, rows: np.ndarray, parallel: bool | None = None) -> np.ndarray:
-    """[M, C] float32 feats [M, D] · rows [C, D]ᵀ (`_dot_rows_kernel`; `feats @ rows.T` is its reference).
+    """[M, C] float32 feats [M, D] · rows [C, D]ᵀ, each sum in index order of d
+    (`_dot_rows_kernel`; `ordered_dots_reference` is its reference, bit for bit).
 
     parallel: None picks by size. Products under PARALLEL_MACS multiply-adds run on the calling
     thread: a mask that founds a cluster is compared with the view's earlier new leaders (1 x a few
@@ -175,7 +229,7 @@ def dot_rows(feats: np.ndarray, rows: np.ndarray, parallel: bool | None = None) 
         if parallel is None:
             parallel = out.size * feats.shape[1] >= PARALLEL_MACS
         kernel = _dot_rows_kernel if parallel else _dot_rows_serial_kernel
-        kernel(np.ascontiguousarray(feats, np.float32), np.ascontiguousarray(rows, np.float32), out)
+        kernel(np.ascontiguousarray(np.asarray(feats, np.float32).T), np.ascontiguousarray(rows, np.float32), out)
     return out
 
 
@@ -451,7 +505,10 @@ def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.nd
     c, v = slot_c[mixed], slot_v[mixed]
     ok = c >= 0
     cw = np.maximum(c, 0)
-    sim = np.einsum("bsd,btd->bst", means[cw], means[cw])  # float32, as the kernel's dot products
+    mc = means[cw].astype(np.float32)
+    sim = np.zeros(c.shape + (num_slots,), np.float32)
+    for d in range(means.shape[1]):  # float32, in index order of d: the kernel's dot products (`_row_dot`)
+        sim += mc[:, :, None, d] * mc[:, None, :, d]
     like = (sim >= threshold) & ok[:, :, None] & ok[:, None, :]
     group = np.where(ok, v, 0.0)
     for t in range(num_slots):  # G_s = V_s, then + V_t of each other like slot t in slot order: the kernel's order
