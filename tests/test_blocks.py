@@ -640,6 +640,46 @@ def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tm
     assert main(base + ["--memory-budget", "8GB"]) == 0 and decided == [1] and (tmp_path / "o.ply").exists()
 
 
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "paper"])
+def test_the_early_budget_check_plans_with_the_rendering_engine_loaded(tiny, inputs, monkeypatch, mode):
+    """Round 67a F2: the check before `--near-plane auto`'s decision planned from this process's memory before the
+    engine that renders the views was loaded, so with `--engine torch` it named 515 MB as enough and the run was then
+    refused under 1.1 GB after the decision. The engine is loaded first, as the registration's own plan does."""
+    from drsplat.registration import driver
+    from drsplat.registration.options import RegisterOptions
+
+    events = []
+
+    class Engine:
+        def topk_fn(self):
+            events.append("engine")
+
+    monkeypatch.setattr(driver, "get_engine", lambda name: Engine())
+    planned = driver._memory_plan
+    monkeypatch.setattr(driver, "_memory_plan", lambda *args, **kwargs: events.append("plan") or planned(*args, **kwargs))
+    scene, cameras = inputs
+    run = driver.prepare_run(scene, cameras, tiny / "features", RegisterOptions(aggregate=mode, memory_budget=8 << 30, engine="torch"))
+    driver.refuse_if_over_budget(run)
+    assert events[0] == "engine" and "plan" in events
+
+
+def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_decided(tiny, tmp_path, capsys):
+    """Round 67a F1: under `--near-plane auto` (the default) the budget check before the decision paired the cameras
+    with the feature files as the run does after it, and every warning of that pairing came twice."""
+    import shutil
+
+    from drsplat.cli import main
+
+    features = tmp_path / "features"
+    shutil.copytree(tiny / "features", features)
+    stem = sorted(features.glob("*_s.npy"))[0].name[: -len("_s.npy")]
+    for suffix in ("_s.npy", "_f.npy"):  # a pair that matches no camera
+        shutil.copy(features / f"{stem}{suffix}", features / f"stray{suffix}")
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(features),
+                 "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper"]) == 0
+    assert capsys.readouterr().err.count("match no camera and are ignored") == 1
+
+
 @pytest.mark.parametrize("n", [30, 300])
 def test_block_rows_carry_the_whole_files_meta_column(tmp_path, n):
     """lang_meta row i holds byte i mod L of the comment: blocks are numbered as in the whole

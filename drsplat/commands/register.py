@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     def refuse_before_deciding(framed: list) -> None:  # a run the plan refuses is refused before the plane's evidence is rendered
         if decided:
-            refuse_if_over_budget(prepare_run(scene, framed, args.features, options))
+            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True))  # the run says its warnings
 
     # trainers' own worlds, cameras, near planes and principal points
     cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),

@@ -218,17 +218,20 @@ class Run:
         return self.selection.views
 
 
-def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: str | Path, options: RegisterOptions) -> Run:
-    """Check the options, pair the cameras with the feature files and check those files' headers (nothing heavy is loaded)."""
+def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: str | Path, options: RegisterOptions,
+                quiet: bool = False) -> Run:
+    """Check the options, pair the cameras with the feature files and check those files' headers (nothing heavy is loaded).
+    quiet: the warnings and notes left unsaid, for a check made again by the run itself (`refuse_if_over_budget`'s caller:
+    round 67a F1, every warning about the feature files came twice under `register --near-plane auto`)."""
     options.check()
     if scene.num_gaussians == 0:
         raise DrsplatError("the scene holds no Gaussians: there is nothing to register")
     features_dir = Path(features_dir)
-    selection = select_views(cameras, features_dir)
+    selection = select_views(cameras, features_dir, quiet=quiet)
     refuse_if_no_view_draws(scene, selection.views, options.near_plane)
     headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
     for note in (single_level_note(headers.levels, options.level), far_coarser_note(headers.coarse, len(selection.views))):
-        if note is not None:  # here, once: the fit stage reads its probe views' headers again
+        if note is not None and not quiet:  # here, once: the fit stage reads its probe views' headers again
             log.warning("%s", note)
     return Run(scene, selection, features_dir, headers, options)
 
@@ -367,8 +370,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                      checkpoint_every: int, out: Path | None, collect_embeddings: bool, show_progress: bool,
                      on_progress: Callable[[int, int], None] | None, cancel: CancelToken | None) -> RegistrationResult:
     """`run_registration` once the run's lock is held (`lock`, None without a checkpoint)."""
-    if run.options.place != "ray":  # this process renders: its engine loaded before the plan reads its RSS (torch: ~0.4 GB, probe round 11)
-        get_engine(run.options.engine).topk_fn()
+    load_rendering_engine(run)
     stamps = feature_stamps(run.features_dir, run.views)  # before any view is read: a file changed during the run is caught
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
@@ -585,10 +587,18 @@ def refuse_if_over_budget(run: Run) -> None:
     options = run.options
     if options.block_size:
         return
+    load_rendering_engine(run)  # round 67a F2: planned without it, --engine torch was told 515 MB and then refused under 1.1 GB
     if is_fit_mode(options.aggregate):
         _check_memory_before_probe(run)
         return
     choose_block(_memory_plan(run), options.memory_budget, whole=mode_stages(options.aggregate).solve)
+
+
+def load_rendering_engine(run: Run) -> None:
+    """The engine that renders the views, loaded when this process renders them (not on Ray), so that a memory plan
+    made after it counts it in this process's resident memory (torch: ~0.4 GB, probe round 11)."""
+    if run.options.place != "ray":
+        get_engine(run.options.engine).topk_fn()
 
 
 def _memory_plan(run: Run, base: int | None = None, aggregate: str | None = None) -> MemoryPlan:

@@ -127,47 +127,53 @@ def spelling_hint(missing: Sequence[str], unmatched: Sequence[str]) -> str:
     return ""
 
 
-def select_views(cameras: Sequence[Camera], features_dir: Path) -> ViewSelection:
-    """`pair_views` on the feature folder, with the warnings and the error when nothing matches."""
+def _unsaid(*args, **kwargs) -> None:
+    """A log call left unsaid (`select_views(quiet=True)`)."""
+
+
+def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = False) -> ViewSelection:
+    """`pair_views` on the feature folder, with the warnings and the error when nothing matches. quiet: the
+    warnings and notes left unsaid, for a check whose run selects the views again and says them then."""
+    warning, info = (_unsaid, _unsaid) if quiet else (log.warning, log.info)
     stems = list_stems(features_dir)
     irregular = irregular_feature_entries(features_dir)
     if irregular:
-        log.warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
-                    "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
+        warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
+                "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
     halves = sorted(set(stems) ^ set(list_stems(features_dir, FEAT_SUFFIX)))
     if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
-        log.warning("%d feature pairs in %s are incomplete (a %s without its %s, or the reverse) and their cameras are skipped "
-                    "(e.g. %s); rerun `drsplat features` to complete them", len(halves), features_dir, SEG_SUFFIX, FEAT_SUFFIX,
-                    ", ".join(halves[:3]))
+        warning("%d feature pairs in %s are incomplete (a %s without its %s, or the reverse) and their cameras are skipped "
+                "(e.g. %s); rerun `drsplat features` to complete them", len(halves), features_dir, SEG_SUFFIX, FEAT_SUFFIX,
+                ", ".join(halves[:3]))
         stems = [stem for stem in stems if stem not in set(halves)]
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
     sel = pair_views(cameras, stems)
     hint = spelling_hint(sel.missing, sel.unmatched)
     if sel.missing:
-        log.warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)%s", len(sel.missing), len(cameras), features_dir,
-                    ", ".join(sel.missing[:3]), hint)
+        warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)%s", len(sel.missing), len(cameras), features_dir,
+                ", ".join(sel.missing[:3]), hint)
     if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
-        log.warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
-                    "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
+        warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
+                "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
     renamed = [stem for name, stem in sel.renamed if name_key(stem) != name_key(name)]
     if renamed:
-        log.info("%d cameras matched their feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
-                 len(renamed), ", ".join(renamed[:3]))
+        info("%d cameras matched their feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
+             len(renamed), ", ".join(renamed[:3]))
     respelled = [(name, stem) for name, stem in sel.renamed if stem not in (name, name.split(".")[0])]
     if respelled:
-        log.info("%d cameras matched their feature files only in Unicode NFC, the names' accents being encoded differently (e.g. camera "
-                 "%s, file %s), as in a folder copied from macOS", len(respelled), ascii(respelled[0][0]), ascii(respelled[0][1] + SEG_SUFFIX))
+        info("%d cameras matched their feature files only in Unicode NFC, the names' accents being encoded differently (e.g. camera "
+             "%s, file %s), as in a folder copied from macOS", len(respelled), ascii(respelled[0][0]), ascii(respelled[0][1] + SEG_SUFFIX))
     if sel.unmatched:
-        log.warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
+        warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
     duplicates = len(sel.views) - len({c.name for c in sel.views})
     if duplicates:
-        log.warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
+        warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
     copies = same_camera_copies(sel.views)
     if copies:
-        log.warning("%d views have the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
-                    "own, so what a copied view's masks say counts twice in the cross-view check; drop the copies from the "
-                    "dataset if they are one photo", len(copies), copies[0][0], copies[0][1])
+        warning("%d views have the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
+                "own, so what a copied view's masks say counts twice in the cross-view check; drop the copies from the "
+                "dataset if they are one photo", len(copies), copies[0][0], copies[0][1])
     if not sel.views:
         raise InputError(
             features_dir,
