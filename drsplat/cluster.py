@@ -79,8 +79,9 @@ def _shipped_env() -> dict:
 
 def _worker_env() -> dict[str, str]:
     """The workers' OpenMP wait policy: the driver's, else OPENMP_WAIT_POLICY. Several workers share a node's cores,
-    where a spinning OpenMP thread takes a core from the others (`drsplat.console.prefer_passive_openmp_waits`)."""
-    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", OPENMP_WAIT_POLICY)}
+    where a spinning OpenMP thread takes a core from the others (`drsplat.console.prefer_passive_openmp_waits`; an
+    empty value counts as unset there too)."""
+    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "").strip() or OPENMP_WAIT_POLICY}
 
 
 def _host_addresses() -> set[str]:

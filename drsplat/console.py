@@ -17,8 +17,11 @@ from drsplat.errors import STARTING_NOTE
 
 def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) -> None:
     """OMP_WAIT_POLICY = OPENMP_WAIT_POLICY unless the user set it: the drsplat and viewer processes' own setting, made
-    before numba or torch loads an OpenMP runtime (each reads it once, at load). Library callers keep theirs."""
-    environ.setdefault("OMP_WAIT_POLICY", OPENMP_WAIT_POLICY)
+    before numba or torch loads an OpenMP runtime (each reads it once, at load). Library callers keep theirs. An empty
+    value counts as unset (`OMP_WAIT_POLICY= drsplat ...` and `docker -e OMP_WAIT_POLICY=` clear it so; libgomp calls it
+    invalid and spins: round 67a F5)."""
+    if not environ.get("OMP_WAIT_POLICY", "").strip():
+        environ["OMP_WAIT_POLICY"] = OPENMP_WAIT_POLICY
 
 
 def entry() -> None:

@@ -279,6 +279,7 @@ def near_band(scene: GaussianScene | PreparedScene, cameras: Sequence[Camera], l
     cameras: C views; with_ids: keep each band's ids (NearBand.ids). Returns C NearBands, in camera order."""
     if not 0 < lo < hi:
         raise ValueError(f"near_band: expected 0 < lo < hi, got {lo!r}, {hi!r}")
+    cameras = list(cameras)  # read once (round 67a F6: a generator was used up by `_depth_rows`, as in `some_view_draws`)
     if not cameras:
         return []
     prep = prepare_scene(scene)
@@ -550,6 +551,8 @@ def _add_colors_numba(out: Projected, prep: PreparedScene, camera: Camera) -> No
     SH degree 2: 0.53 s a view in numpy)."""
     if prep.sh.shape[1] not in SH_COEFFICIENTS:  # the kernel's basis holds 16 terms, unchecked (round 66c F3: 25 read past it)
         raise ValueError(f"SH colours: {prep.sh.shape[1]} coefficients a colour channel; expected one of {SH_COEFFICIENTS} (degree 0-3)")
+    if prep.sh.ndim != 3 or prep.sh.shape[0] != prep.num_gaussians or prep.sh.shape[2] != 3:  # read unchecked too (round 67a F7)
+        raise ValueError(f"SH colours: sh has shape {prep.sh.shape}; expected [{prep.num_gaussians}, K, 3]")
     out.colors = np.empty((prep.num_gaussians, 3), np.float32)
     kernels.sh_colors(prep.sh, prep.means, np.asarray(camera.center, np.float64), out.valid, SH_C1, np.asarray(SH_C2), np.asarray(SH_C3),
                       out.colors)

@@ -422,6 +422,22 @@ def test_sh_colours_of_no_sh_degree_are_refused_not_read_past_the_basis(k):
         dataclasses.replace(scene)
 
 
+@pytest.mark.parametrize("shape", [(3, 4, 3), (5, 4, 1), (5, 4), (5, 4, 3, 1)])
+def test_sh_colours_of_another_shape_than_n_k_3_are_refused_not_read_past(shape):
+    """Round 67a F7: an `sh` of fewer rows than Gaussians, or of one colour channel, set after the scene's check, was
+    read past its end by the colour kernel (colours from other memory, another one each call). One error naming the
+    shape, before the kernel."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.raster import prepare_scene, project_gaussians
+
+    cam = look_at_camera(np.array([0.3, -0.2, -4.0]), np.zeros(3), 16, 12)
+    scene = gaussians(np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32) * 0.2, log_scale=-2.0)
+    prep = prepare_scene(scene)
+    prep.sh = np.full(shape, 0.1, np.float32)
+    with pytest.raises(ValueError, match=r"sh has shape .*; expected \[5, K, 3\]"):
+        project_gaussians(prep, cam, with_colors=True)
+
+
 def test_view_dependent_colour_uses_camera_to_mean_direction():
     scene = gaussians([[0.0, 0.0, 0.0]], log_scale=-1.0)
     scene.sh = np.zeros((1, 4, 3), np.float32)
@@ -712,6 +728,8 @@ def test_the_near_band_is_what_one_plane_draws_and_the_other_does_not(seed):
     assert any(on_plane)  # some sit on their plane, not a hair in front: the edges are tested, not skirted
     empty = raster.near_band(gaussians(np.zeros((0, 3))), cams[:2], lo, hi)
     assert [b.count for b in empty] == [0, 0] and raster.near_band(scene, [], lo, hi) == []
+    from_generator = raster.near_band(scene, (cam for cam in cams), lo, hi, with_ids=True)  # round 67a F6: "generator has no len()"
+    assert [b.count for b in from_generator] == [b.count for b in bands]
     with pytest.raises(ValueError, match="0 < lo < hi"):
         raster.near_band(scene, cams, hi, lo)
 
