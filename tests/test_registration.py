@@ -782,6 +782,24 @@ def test_a_near_plane_past_every_gaussian_is_refused_before_any_view(tiny, tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
+def test_a_decided_near_plane_past_every_gaussian_is_an_error_naming_the_decision_not_the_flag(tiny, tmp_path, capsys, monkeypatch):
+    """Round 67a F10: `--near-plane auto` (the default) decided 0.2 from views whose Gaussians lie farther, and every
+    registered view's Gaussians lay nearer: a usage error (exit 2, the usage text) "--near-plane 0.2: ... (the default:
+    leave --near-plane out)", about a flag the user had left out. Now an error (exit 1) naming the decision and the
+    plane to pass."""
+    from drsplat import frames
+    from drsplat.cli import main
+
+    monkeypatch.setattr(frames, "near_plane_as_trained", lambda *args, **kwargs: 50.0)  # the decision, past every Gaussian
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
+                 "--out", str(tmp_path / "reg.ply"), "--no-progress", "--aggregate", "paper"]) == 1
+    err = capsys.readouterr().err
+    assert "no Gaussian of the scene lies 50 scene units or more in front of any of the 16 cameras" in err, err
+    assert "nearer than the near plane of 50 that --near-plane auto decided from the training images: register with --near-plane 0.01" in err
+    assert "leave --near-plane out" not in err and "usage:" not in err
+    assert not (tmp_path / "reg.ply").exists()
+
+
 def test_a_scene_too_faint_for_any_pixel_is_said_in_the_error(tiny, tmp_path):
     """Round 30: every opacity 0 (logits of -30, or -inf clamped there): the rasterizer skips α < 1/255
     at every pixel, so no Gaussian gets weight, and the error said the cameras do not see the scene or

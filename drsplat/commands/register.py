@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),
                                                   scene_path=args.scene, refinements=report.camera_refinements,
                                                   before_deciding=refuse_before_deciding)
-    options = dataclasses.replace(options, near_plane=plane)
+    options = dataclasses.replace(options, near_plane=plane, near_plane_decided=decided)
     if decided:  # the decision's images and renders are freed, and the memory plan starts from this process's resident memory
         trim_heap()  # (round 66a F4: a --memory-budget a fixed plane accepts was refused after `auto`, or ran in more blocks)
     comment = refinement_comment(args.scene) if report.camera_refinements is not None else None

@@ -62,7 +62,7 @@ from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, no
 from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
                                         warn_if_turned_without_manifest)
 from drsplat.registration.vote import VoteSink
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, counted
 from drsplat.utils import CancelToken, describe_os_error, progress
 
 log = logging.getLogger(__name__)
@@ -228,7 +228,7 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
         raise DrsplatError("the scene holds no Gaussians: there is nothing to register")
     features_dir = Path(features_dir)
     selection = select_views(cameras, features_dir, quiet=quiet)
-    refuse_if_no_view_draws(scene, selection.views, options.near_plane)
+    refuse_if_no_view_draws(scene, selection.views, options.near_plane, options.near_plane_decided)
     headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
     for note in (single_level_note(headers.levels, options.level), far_coarser_note(headers.coarse, len(selection.views))):
         if note is not None and not quiet:  # here, once: the fit stage reads its probe views' headers again
@@ -236,21 +236,23 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
     return Run(scene, selection, features_dir, headers, options)
 
 
-def refuse_if_no_view_draws(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float) -> None:
+def refuse_if_no_view_draws(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float, decided: bool = False) -> None:
     """One error before any view when no camera has a Gaussian at depth ≥ the near plane (`raster.some_view_draws`):
     every view would render nothing, and the run would fail after them with a checkpoint that could only fail again
     (round 64c F3: --near-plane 1e30). No Gaussian in front of any camera at all: the cameras face away (or another
-    frame). Some in front, all nearer than a plane the user chose: a usage error naming the flag; at the default the
-    scene and cameras disagree in units (`near_plane_remedy` says how)."""
+    frame). Some in front, all nearer than a plane the user chose: a usage error naming the flag; nearer than one
+    `--near-plane auto` decided (`decided`), an error naming the decision (round 67a F10: a usage error told the user to
+    leave out the flag they had left out); at the default the scene and cameras disagree in units (`near_plane_remedy`
+    says how)."""
     if some_view_draws(scene.means, cameras, near_plane):
         return
     depth = median_nearest_depth(scene.means, cameras)
     if not math.isfinite(depth):  # none in front of any camera at all: the plane is not what hides them
         raise DrsplatError(f"no Gaussian of the scene lies in front of any of the {len(cameras)} cameras, so no view can draw one: "
                            "the cameras face away from it, or the scene and its cameras are in different frames or units")
-    why = (f"no Gaussian of the scene lies {near_plane:g} scene units or more in front of any of the {len(cameras)} cameras "
-           f"(the near plane), so no view can draw one: " + near_plane_remedy(depth, near_plane))
-    if near_plane != NEAR:  # Gaussians in front, all nearer than a plane the user chose: the flag is the cause
+    why = (f"no Gaussian of the scene lies {near_plane:g} scene units or more in front of any of the {counted(len(cameras), 'camera', 'cameras')} "
+           f"(the near plane), so no view can draw one: " + near_plane_remedy(depth, near_plane, decided))
+    if near_plane != NEAR and not decided:  # Gaussians in front, all nearer than a plane the user chose: the flag is the cause
         raise UsageError(f"--near-plane {near_plane:g}: {why}")
     raise DrsplatError(why)
 
@@ -310,7 +312,7 @@ def empty_level_hint(features_dir: Path, views: Sequence[Camera], level: int) ->
 def failure_hint(run: Run, level: int) -> str:
     """'; <the likely cause>' of a registration that assigned nothing: an empty mask level
     (`empty_level_hint`), else what `unassigned_hint` finds in the scene and cameras."""
-    return empty_level_hint(run.features_dir, run.views, level) or unassigned_hint(run.scene, run.views, run.options.near_plane)
+    return empty_level_hint(run.features_dir, run.views, level) or unassigned_hint(run.scene, run.views, run.options.near_plane, run.options.near_plane_decided)
 
 
 def weak_sums(count: int) -> str:
@@ -779,7 +781,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views, run.options.near_plane),
+        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views, run.options.near_plane, run.options.near_plane_decided),
                                             sum((p.fates for p in parts), RowFates()), sum(p.rejected for p in parts), asked))
     written = assemble_parts(Path(reduce.job.out), parts, codebook)  # the codebook written after the body, before the rename
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
@@ -832,14 +834,14 @@ def register(
     log.info("%s: %d Gaussians (%d unassigned, %s), %s field, %d views in %d block(s), %.1f s", out, result.num_written,
              n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind, result.num_views,
              result.num_blocks, result.seconds)
-    warn_if_mostly_unassigned(result, scene, cameras, options.near_plane)
+    warn_if_mostly_unassigned(result, scene, cameras, options.near_plane, options.near_plane_decided)
     return result
 
 
 LOW_ASSIGNED_FRACTION = 0.5  # below this share of Gaussians with a feature, a run is most likely misconfigured
 
 
-def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras, near: float = NEAR) -> None:
+def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, cameras, near: float = NEAR, decided: bool = False) -> None:
     """One warning when fewer than LOW_ASSIGNED_FRACTION of the Gaussians got a feature, with the likely cause.
 
     A trained scene seen by its own training views assigns most Gaussians; a small share means tiny
@@ -852,13 +854,14 @@ def warn_if_mostly_unassigned(result: RegistrationResult, scene: GaussianScene, 
         return
     log.warning("only %d of %d Gaussians (%.0f%%) were seen inside a mask and got a language feature; %d got nothing%s",
                 result.num_assigned, total, 100.0 * result.num_assigned / total, total - result.num_assigned,
-                unassigned_hint(scene, cameras, near))
+                unassigned_hint(scene, cameras, near, decided))
 
 
-def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float = NEAR) -> str:
+def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane: float = NEAR, decided: bool = False) -> str:
     """'; <the likely cause>' of a registration that assigned few or no Gaussians, "" when none shows:
     views under 64 px wide, Gaussians too faint for any pixel (opacity < 1/255), Gaussians nearer to every camera than the near plane (a scene in other
-    units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame."""
+    units than its cameras: the projection culls them), else `frame_hint`'s scene in another frame. decided: the plane was
+    decided by `--near-plane auto` (`near_plane_remedy`)."""
     sizes = sorted({(c.width, c.height) for c in cameras})
     small = bool(sizes) and sizes[0][0] < 64
     why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if small else ""
@@ -869,13 +872,13 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane:
     near = share_within_near_plane(scene.means, cameras, near=near_plane)
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({near_plane:g} scene units), "
-                      "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras), near_plane))
+                      "which culls them: " + near_plane_remedy(median_nearest_depth(scene.means, cameras), near_plane, decided))
     if small:  # a few pixels hold few centres whatever the frame: "another frame" would mislead
         return why
     return why + frame_hint(scene.means, cameras, near_plane)
 
 
-def near_plane_remedy(depth: float, near_plane: float = NEAR) -> str:
+def near_plane_remedy(depth: float, near_plane: float = NEAR, decided: bool = False) -> str:
     """What to do about a scene the near plane culls, given how far its Gaussians lie from the cameras
     (`median_nearest_depth`, scene units). A plane the user chose (`near_plane` not NEAR) deeper than
     that is the cause itself: a smaller one is named (the default where it fits, else a power of ten
@@ -884,10 +887,13 @@ def near_plane_remedy(depth: float, near_plane: float = NEAR) -> str:
     cameras is a whole capture at a tiny scale (scene and cameras in kilometres, say; both scaled
     together, they stay in one unit system), so scaling both up by the power of ten that brings that
     median to 1 or more renders it, as does such a smaller plane; otherwise the scene and cameras
-    disagree on units."""
+    disagree on units. decided: the plane was decided by `--near-plane auto`, and the remedy names a plane to pass."""
     if not 1e-300 < depth < math.inf:  # NaN too; under 1e-300 the factor would pass float64's range
         return "are the scene and its cameras in the same units?"
     plane = 10.0 ** math.floor(math.log10(depth / 10.0))
+    if near_plane != NEAR and decided:
+        return (f"the Gaussians lie a median {depth:.2g} scene units from these cameras, nearer than the near plane of {near_plane:g} "
+                f"that --near-plane auto decided from the training images: register with --near-plane {min(plane, NEAR):g}")
     if near_plane != NEAR:
         smaller = "the default: leave --near-plane out" if NEAR <= plane else f"--near-plane {plane:g}"
         return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, nearer than the --near-plane of "

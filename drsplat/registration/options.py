@@ -52,6 +52,8 @@ class RegisterOptions:
     cull: each view projects only the Gaussians it can see (exact; drsplat.registration.culling).
     near_plane: the camera depth (scene units) below which a Gaussian is not drawn in a view: NEAR (0.01,
     gsplat's) or INRIA_NEAR (0.2, the rasterizer most scenes were trained with; docs/raster.md).
+    near_plane_decided: near_plane was decided from the training images (`register --near-plane auto`), not given:
+    an error about it names the decision, not a flag the user never typed (round 67a F10).
     reducers: on Ray and in blocks, each block is summed, finished, encoded and written by a Ray
     task (drsplat.registration.reduce; the same bytes); False: by the driver, block after block.
     """
@@ -70,6 +72,7 @@ class RegisterOptions:
     cull: bool = True
     reducers: bool = True
     near_plane: float = NEAR
+    near_plane_decided: bool = False
 
     @property
     def place(self) -> str:
