@@ -1026,7 +1026,7 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], what: str = "the sce
         log.debug("no Gaussian of %s lies %g-%g scene units in front of a camera: the near plane is %g", what, NEAR, INRIA_NEAR, NEAR)
         return NEAR
     widest = max(seen, key=lambda i: bands[i].cover)
-    where = (f"{len(seen)} of its {len(cameras)} cameras (in view {cameras[widest].name} they may draw on "
+    where = (f"{len(seen)} of its {counted(len(cameras), 'camera', 'cameras')} (in view {cameras[widest].name} they may draw on "
              f"{100 * bands[widest].cover:.0f} % of its 16x16 tiles)")
     with_images = [i for i in seen if cameras[i].image_path is not None and cameras[i].image_path.is_file()]
     picks = sorted(with_images, key=lambda i: (-bands[i].cover, i))[:NEAR_PLANE_VIEWS]

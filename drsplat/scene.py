@@ -1130,7 +1130,7 @@ def inria_reading(path: Path, dtype: np.dtype) -> InriaReading:
     n_rest = sum(1 for n in names if n.startswith("f_rest_"))
     degree = next((d for d, c in SH_REST_COUNTS.items() if c == n_rest), None)
     if degree is None:
-        raise _fail(path, f"has {n_rest} f_rest_* properties; 3DGS files have 0, 9, 24 or 45 (SH degree 0-3)", field="f_rest_*")
+        raise _fail(path, f"has {counted(n_rest, 'f_rest_* property', 'f_rest_* properties')}; 3DGS files have 0, 9, 24 or 45 (SH degree 0-3)", field="f_rest_*")
     missing = [f"f_rest_{i}" for i in range(n_rest) if f"f_rest_{i}" not in names]
     if missing:
         raise _fail(path, f"numbers its {n_rest} f_rest_* properties wrongly: {missing[0]} is missing (expected f_rest_0..f_rest_{n_rest - 1})", field=missing[0])

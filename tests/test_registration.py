@@ -391,6 +391,20 @@ def test_features_still_being_written_are_said_to_be_unfinished(tiny, tmp_path, 
     assert f"holds the journal of a `drsplat features` run that has not finished ({STAMP_JOURNAL})" in caplog.text
 
 
+def test_counts_of_one_agree_in_the_pairing_warning_and_the_summary(tiny, tmp_path, caplog):
+    """Round 67a F3: "1 of 2 cameras have no feature file ... and are skipped", "1 views in 1 block(s)"."""
+    from drsplat.registration import register
+
+    feats = tmp_path / "features"
+    feats.mkdir()
+    cams = load_cameras(tiny)[:2]
+    write_features(feats, cams[0].name, *read_features(tiny / "features", cams[0].name, level=1))
+    with caplog.at_level(logging.INFO):
+        register(load_ply(tiny / "scene.ply"), cams, feats, tmp_path / "reg.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+    assert "1 of 2 cameras has no feature file" in caplog.text and "and is skipped" in caplog.text, caplog.text
+    assert "field, 1 view in 1 block," in caplog.text, caplog.text
+
+
 def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
     feats = tmp_path / "features"
     feats.mkdir()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 
@@ -761,6 +762,16 @@ def test_rgb_colours_are_read_as_base_colours_and_other_names_say_why_they_are_m
     _write_vertices(tmp_path / "upper.ply", {k.upper(): v for k, v in base.items()})
     with pytest.raises(InputError, match=r"upper.ply: field 'x': is missing .*'X' is there, but PLY property names are case-sensitive"):
         load_ply(tmp_path / "upper.ply")
+
+
+@pytest.mark.parametrize("rest, said", [(1, "has 1 f_rest_* property;"), (3, "has 3 f_rest_* properties;")])
+def test_an_f_rest_count_of_no_sh_degree_is_said_with_its_count(tmp_path, rest, said):
+    """The count of f_rest_* properties that matches no SH degree, in agreement with its noun (round 67a F3: "has 1
+    f_rest_* properties")."""
+    columns = _inria_columns(20) | {f"f_rest_{i}": np.zeros(20, np.float32) for i in range(rest)}
+    _write_vertices(tmp_path / "rest.ply", columns)
+    with pytest.raises(InputError, match=re.escape(said) + " 3DGS files have 0, 9, 24 or 45"):
+        load_ply(tmp_path / "rest.ply")
 
 
 def _scene_with_extras(n: int, seed: int = 3) -> GaussianScene:

@@ -35,7 +35,7 @@ from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_thresh
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.registration.checkpoint import checkpoint_path_for
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, counted
 from drsplat.splat_formats import load_scene_report, written_format
 from drsplat.utils import check_output_writable, check_outputs_writable, checked_names, describe_os_error, fifo_reader, guard_outputs, load_npy, names_a_folder, read_json
 from viewer.cameracheck import CameraCheck, checked_cameras, concurrent_kernels_safe, start_camera_check
@@ -223,7 +223,7 @@ class ViewerState:
         self.oracle = read_oracle_queries(source, problems)
         if self.camera_check is None:
             self.cameras, self.near_plane = cameras, near_plane
-            self.info(f"{len(self.cameras)} training cameras from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
+            self.info(f"{counted(len(self.cameras), 'training camera', 'training cameras')} from {source}" + (f"; {len(self.oracle.names)} oracle label queries" if self.oracle else ""))
         elif self.oracle is not None:
             self.info(f"{len(self.oracle.names)} oracle label queries from {source}")
         for problem in problems:  # the labels are gone from the panel: say why there (last, in the status line), not only in the terminal
@@ -265,7 +265,7 @@ class ViewerState:
             return True
         self.messages.extend(check.messages)
         self.cameras, self.near_plane = check.cameras, check.near_plane
-        self.info(f"{len(self.cameras)} training cameras from {check.source}")
+        self.info(f"{counted(len(self.cameras), 'training camera', 'training cameras')} from {check.source}")
         return True
 
     @property

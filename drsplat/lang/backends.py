@@ -38,6 +38,7 @@ import numpy as np
 from drsplat._scene_kernels import transpose_copy
 from drsplat.errors import InputError, shown_path
 from drsplat.lang.codebook import Codebook, unit_check, unit_rows
+from drsplat.scene import counted
 from drsplat.lang.lut import (
     BLOCKED_MIN_M,
     blocked_codes,
@@ -560,7 +561,7 @@ class PQStorage:
             list_ids = get("lang_list").astype(np.int32)
             bad = (list_ids < 0) | (list_ids >= codebook.nlist)
             if np.any(bad):
-                raise InputError(None, f"{int(bad.sum())} coarse list ids fall outside 0..{codebook.nlist - 1}", field="lang_list")
+                raise InputError(None, f"{counted(int(bad.sum()), 'coarse list id falls', 'coarse list ids fall')} outside 0..{codebook.nlist - 1}", field="lang_list")
         return cls(codes, list_ids, norms, codebook)
 
 

@@ -389,7 +389,8 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: b
     weightless = int(np.count_nonzero(~(weights > 0) & has_feature(storage.norms)))
     nonfinite = int(np.count_nonzero(~np.isfinite(storage.norms)))
     if nonfinite:
-        log.warning("%s: %s Gaussians have non-finite language features; they score 0", ply_path, f"{nonfinite:,}")
+        log.warning("%s: %s non-finite language features; they score 0", ply_path,
+                    f"{nonfinite:,} Gaussian has" if nonfinite == 1 else f"{nonfinite:,} Gaussians have")
     tiny = int(np.count_nonzero(subnormal_norms(storage.norms)))
     if tiny:  # 1/norm overflows float32: every such row scored inf, was selected and written to --scores
         log.warning("%s: %s Gaussians have a language feature of norm below %.3g (lang_norm: float32's smallest normal number), "

@@ -831,9 +831,9 @@ def register(
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
                               show_progress=show_progress,
                               on_progress=on_progress, cancel=cancel)
-    log.info("%s: %d Gaussians (%d unassigned, %s), %s field, %d views in %d block(s), %.1f s", out, result.num_written,
-             n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind, result.num_views,
-             result.num_blocks, result.seconds)
+    log.info("%s: %s (%d unassigned, %s), %s field, %s in %s, %.1f s", out, counted(result.num_written, "Gaussian", "Gaussians"),
+             n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind,
+             counted(result.num_views, "view", "views"), counted(result.num_blocks, "block", "blocks"), result.seconds)
     warn_if_mostly_unassigned(result, scene, cameras, options.near_plane, options.near_plane_decided)
     return result
 

@@ -151,8 +151,8 @@ def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = Fa
     sel = pair_views(cameras, stems)
     hint = spelling_hint(sel.missing, sel.unmatched)
     if sel.missing:
-        warning("%d of %d cameras have no feature file in %s and are skipped (e.g. %s)%s", len(sel.missing), len(cameras), features_dir,
-                ", ".join(sel.missing[:3]), hint)
+        warning("%d of %d cameras %s no feature file in %s and %s skipped (e.g. %s)%s", len(sel.missing), len(cameras),
+                "has" if len(sel.missing) == 1 else "have", features_dir, "is" if len(sel.missing) == 1 else "are", ", ".join(sel.missing[:3]), hint)
     if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
         warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
                 "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
