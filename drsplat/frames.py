@@ -989,6 +989,9 @@ def plane_evidence(prepared, cameras: Sequence[Camera], lo: float, hi: float, wi
             skipped[LITTLE_COVERED] += 1
             continue
         rho = np.array([grey_correlation(np.repeat(r[..., None], 3, axis=2), picture, covered) for r in (r_lo, r_hi)])
+        if np.all(np.isnan(rho)):  # a flat image (or both renders flat): nothing to rank, not another place (round 67a F9)
+            skipped[FLAT_PICTURE] += 1
+            continue
         if not np.any(rho >= PHOTO_MATCH_MIN):  # NaN (a flat render) is no match, and does not hide the other's
             skipped[NOT_ITS_IMAGE] += 1
             continue

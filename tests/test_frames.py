@@ -1425,6 +1425,24 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     assert "(1 view with no image file)" in caplog.text, caplog.text
 
 
+@pytest.mark.parametrize("grey", [0, 128, 255])
+def test_flat_training_images_are_said_to_be_flat_not_of_another_place(tiny_seed0, tmp_path, caplog, grey):
+    """Round 67a F9: uniform black, grey or white training images kept 0.01 (right: nothing to compare) but were
+    counted as views "whose render correlates under 0.6 with its image", the reason for images of another place."""
+    from PIL import Image
+
+    from drsplat.frames import near_plane_as_trained
+
+    scene, _, cams, _ = tiny_seed0
+    floaty = with_floaters(scene, cams[:2])
+    images = cameras_with_own_images(prepare_scene(floaty), cams, tmp_path, 0.2)
+    for camera in images:
+        Image.new("RGB", Image.open(camera.image_path).size, (grey, grey, grey)).save(camera.image_path)
+    with caplog.at_level(logging.WARNING, logger="drsplat.frames"):
+        assert near_plane_as_trained(floaty, images, what="SCENE") == 0.01
+    assert "where the image or the render is one flat grey" in caplog.text and "correlates under" not in caplog.text, caplog.text
+
+
 def test_register_near_plane_auto_registers_an_inria_scene_as_inria_would_draw_it(tiny_seed0, tmp_path, capsys):
     """The command end to end: the tiny room with floaters before two cameras, its images drawn at INRIA's plane.
     The default (`--near-plane auto`) registers the very bytes of `--near-plane inria` (its header saying the plane, so
