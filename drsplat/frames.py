@@ -1039,7 +1039,8 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], what: str = "the sce
         if evidence.gain > NEAR_PLANE_MARGIN:
             log.warning("%s was trained with INRIA's near plane: Gaussians lie %g-%g scene units in front of %s, and where they show "
                         "its renders look more like its training images without them (mean rank error %.3f, against %.3f with them; "
-                        "%s): it is rendered at --near-plane %g, where INRIA's rasterizer never drew them; --near-plane %g draws them",
+                        "%s): it is rendered at near plane %g, where INRIA's rasterizer never drew them; `drsplat register --near-plane %g` "
+                        "draws them",
                         what, NEAR, INRIA_NEAR, where, without, with_them, evidence.of_views(), INRIA_NEAR, NEAR)
             return INRIA_NEAR
         log.info("Gaussians of %s lie %g-%g scene units in front of %s; where they show, its renders look %s its training "
@@ -1054,7 +1055,8 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], what: str = "the sce
     say = log.warning if bands[widest].cover >= NEAR_BAND_NOTABLE else log.info
     say("Gaussians of %s lie %g-%g scene units in front of %s, where INRIA's rasterizer (which trained LangSplat's and Dr. Splat's "
         "scenes) never drew them, and no training image could be compared with its renders to tell how it was trained (%s): "
-        "they are drawn (near plane %g, gsplat's); for a scene trained by INRIA's gaussian-splatting pass --near-plane inria",
+        "they are drawn (near plane %g, gsplat's); a scene trained by INRIA's gaussian-splatting registers as trained with "
+        "`drsplat register --near-plane inria`",
         what, NEAR, INRIA_NEAR, where, evidence.left_out if picks else skipped_views(Counter({NO_IMAGE_FILE: len(seen)})), NEAR)
     return NEAR
 
