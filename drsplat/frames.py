@@ -64,6 +64,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import re
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -666,6 +667,20 @@ def cameras_in_trained_frame(scene, cameras: Sequence[Camera], source: str | Pat
     return cameras
 
 
+def given_near_plane(near_plane: float | str) -> float:
+    """A near plane given as a number: a positive, finite depth in scene units, else one ValueError (round 67a F8: the
+    Python API rendered principal-point views at -1, 0, NaN or inf, and "inria" was "could not convert string to float";
+    the command line's own parser names its words)."""
+    try:
+        plane = float(near_plane)
+    except (TypeError, ValueError):
+        plane = math.nan
+    if not (math.isfinite(plane) and plane > 0):
+        raise ValueError(f"near_plane: expected \"auto\" or a positive, finite camera depth in scene units (0.01: gsplat's, 0.2: "
+                         f"INRIA's), got {near_plane!r}")
+    return plane
+
+
 def cameras_and_plane_as_trained(scene, cameras: Sequence[Camera], source: str | Path, principal_point: str = DEFAULT_PRINCIPAL_POINT,
                                  near_plane: float | str = DEFAULT_NEAR_PLANE, what: str = "the scene",
                                  scene_path: str | Path | None = None, refinements: np.ndarray | None = None,
@@ -680,7 +695,7 @@ def cameras_and_plane_as_trained(scene, cameras: Sequence[Camera], source: str |
     before_deciding: called with the cameras in the scene's frame before the plane is decided (a registration's refusals
     that need no render)."""
     decided = near_plane == "auto"
-    plane = NEAR if decided else float(near_plane)
+    plane = NEAR if decided else given_near_plane(near_plane)
     framed = cameras_in_trained_frame(scene, cameras, source, what=what, scene_path=scene_path, refinements=refinements, cancel=cancel,
                                       near=plane)
     if before_deciding is not None:
@@ -943,7 +958,8 @@ def grey_ranks(grey: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 def average_ranks(values: np.ndarray) -> np.ndarray:
     """[n] float64 the 1-based rank of each of `values` [n], ties sharing the mean of their ranks (scipy.stats.rankdata's
     'average'; all NaN where one is NaN, as it propagates). numpy's own, not scipy.stats: that import alone holds 36 MB,
-    which the memory plan then counted against a --memory-budget (round 66a F4)."""
+    which the memory plan then counted against a --memory-budget (round 66a F4). The values are ranked as float64 (grey
+    levels here): integers past 2**53 that float64 cannot tell apart tie, where rankdata ranks them apart (round 67a F8)."""
     values = np.asarray(values, np.float64).ravel()
     if np.isnan(values).any():
         return np.full(values.shape, np.nan)

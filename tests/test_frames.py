@@ -1426,6 +1426,19 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     assert "(1 view with no image file)" in caplog.text, caplog.text
 
 
+@pytest.mark.parametrize("plane", [-1, 0, float("nan"), float("inf"), "inria", "AUTO", None])
+def test_a_near_plane_given_to_the_python_api_is_auto_or_a_positive_finite_depth(tiny_seed0, plane, monkeypatch):
+    """Round 67a F8: `cameras_and_plane_as_trained` took -1, 0, NaN and inf as the plane (and rendered the principal-point
+    views at it), and "inria" was "could not convert string to float". One ValueError naming what it takes, before any
+    work (the command line's parser names its words, "inria" and "gsplat", itself)."""
+    from drsplat import frames
+
+    scene, _, cams, _ = tiny_seed0
+    monkeypatch.setattr(frames, "cameras_in_trained_frame", lambda *a, **k: pytest.fail("the cameras were read"))
+    with pytest.raises(ValueError, match=r'near_plane: expected "auto" or a positive, finite camera depth in scene units'):
+        frames.cameras_and_plane_as_trained(scene, cams, Path(cams[0].image_path).parents[1], "file", plane)
+
+
 @pytest.mark.parametrize("grey", [0, 128, 255])
 def test_flat_training_images_are_said_to_be_flat_not_of_another_place(tiny_seed0, tmp_path, caplog, grey):
     """Round 67a F9: uniform black, grey or white training images kept 0.01 (right: nothing to compare) but were

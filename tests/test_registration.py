@@ -125,6 +125,29 @@ def test_coalesce_leaves_out_mask_ids_past_num_masks_and_takes_no_slots_as_the_r
     assert [a.size for a in none[:3]] == [0, 0, 0] and none[3] == 0 == coalesce_reference(ids[..., :0], weights[..., :0], masks, 6)[3]
 
 
+@pytest.mark.parametrize("parts", [1, 3])
+def test_coalesce_refuses_what_only_an_api_caller_can_give(parts):
+    """Round 67a F8: int64 mask ids past int32 (2**32 + 1) were cast to ids in range (1) and counted, where the reference
+    leaves them out; Gaussian ids ≥ N were written past the kernel's scratch; num_masks = -1 was an IndexError. Now: the
+    reference's pairs, and one error naming each problem."""
+    rng = np.random.default_rng(67)
+    ids, weights, masks, _ = _random_view(rng, 9, 11, 4, 30, 8)
+    wide = masks.astype(np.int64)
+    wide[0, :4] = [2**32 + 1, -(2**32) + 2, 2**40, 2**31]
+    got = Coalescer(30, parts=parts).coalesce(ids, weights, wide, 8)
+    rg, rm, rw, rpairs = coalesce_reference(ids, weights, wide, 8)
+    order = np.lexsort((got[0], got[1]))
+    np.testing.assert_array_equal(got[0][order], rg)
+    np.testing.assert_array_equal(got[1][order], rm)
+    assert got[3] == rpairs
+    past = ids.copy()
+    past[1, 2, 0] = 30  # one past the last Gaussian
+    with pytest.raises(ValueError, match="1 Gaussian id of the view is 30 or more"):
+        Coalescer(30, parts=parts).coalesce(past, weights, masks, 8)
+    with pytest.raises(ValueError, match="num_masks is -1"):
+        Coalescer(30, parts=parts).coalesce(ids, weights, masks, -1)
+
+
 @pytest.mark.parametrize("case", ["random", "one_big_mask", "more_parts_than_masks", "empty_masks_between"])
 def test_parallel_parts_give_the_serial_pairs_in_the_same_order(case):
     """The masks coalesced in 2..7 parts give exactly the pairs, bits and order of one part (the

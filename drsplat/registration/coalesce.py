@@ -20,6 +20,7 @@ import numpy as np
 
 from drsplat._sort_kernels import stable_order
 from drsplat.memory import small_page_full, small_page_zeros
+from drsplat.scene import counted
 
 
 @numba.njit(cache=True)
@@ -45,7 +46,7 @@ def _bucket_pixels(mask_ids, num_masks):  # pragma: no cover - jitted
 
 
 @numba.njit(cache=True, parallel=True)
-def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, part_filled, part_pairs, seen, acc, touched,
+def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, part_filled, part_pairs, part_bad, seen, acc, touched,
                            out_g, out_row, out_w):  # pragma: no cover - jitted
     """Coalesce the view's masks in parts, one part per thread.
 
@@ -55,7 +56,8 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
     the distinct Gaussians are appended in first-seen order: the same bits and order as a serial
     pass over the masks, whatever the number of parts. A part stops before a mask whose pairs
     might not fit its output row (part_next[t] then says where it resumes once the rows grow).
-    part_filled[t] / part_pairs[t]: its pairs written / contributing pairs, updated in place.
+    part_filled[t] / part_pairs[t]: its pairs written / contributing pairs, updated in place; part_bad[t]: the ids
+    ≥ N it met and left out (the caller refuses them: they would index past the scratch).
     """
     k = ids.shape[1]
     num_gaussians = seen.shape[1]
@@ -74,6 +76,9 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
                 for s in range(k):
                     g = ids[p, s]
                     if g < 0:
+                        continue
+                    if g >= num_gaussians:
+                        part_bad[t] += 1
                         continue
                     if seen[t, g] != m:
                         seen[t, g] = m
@@ -175,8 +180,13 @@ class Coalescer:
         increasing order, the only order a per-Gaussian sum depends on, and the vote and check
         kernels, which read a view's pairs Gaussian by Gaussian, skip their own sorts (three per view).
         """
+        if num_masks < 0:
+            raise ValueError(f"coalesce: num_masks is {num_masks}; expected 0 or more")
         k = ids.shape[-1]
-        masks = np.ascontiguousarray(mask_ids.reshape(-1), np.int32)
+        masks = mask_ids.reshape(-1)
+        if masks.dtype != np.int32:  # ids outside int32 would wrap into range (round 67a F8): out of range, none
+            masks = np.where((masks >= 0) & (masks < num_masks), masks, -1)
+        masks = np.ascontiguousarray(masks, np.int32)
         ids2 = np.ascontiguousarray(ids.reshape(masks.shape[0], k), np.int32)  # by the pixel count: k = 0 has no -1 to infer
         w2 = np.ascontiguousarray(weights.reshape(masks.shape[0], k), np.float32)
         starts, order = _bucket_pixels(masks, num_masks)
@@ -184,9 +194,14 @@ class Coalescer:
         nxt, end = bounds[:-1].copy(), bounds[1:].copy()
         filled = np.zeros(self.parts, np.int64)
         pairs = np.zeros(self.parts, np.int64)
+        bad = np.zeros(self.parts, np.int64)
         while True:
-            _coalesce_parts_kernel(ids2, w2, order, starts, end, nxt, filled, pairs, self._seen, self._acc, self._touched,
+            _coalesce_parts_kernel(ids2, w2, order, starts, end, nxt, filled, pairs, bad, self._seen, self._acc, self._touched,
                                    self._g, self._m, self._w)
+            if bad.any():  # an API caller's ids (a render's are < N): refused, not written past the scratch (round 67a F8)
+                raise ValueError(f"coalesce: {counted(int(bad.sum()), 'Gaussian id of the view is', 'Gaussian ids of the view are')} "
+                                 f"{self.num_gaussians} or more; "
+                                 f"expected ids below the scene's {self.num_gaussians} Gaussians (or -1)")
             if np.all(nxt >= end):
                 break
             self._alloc(2 * self._g.shape[1])
