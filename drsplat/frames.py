@@ -909,6 +909,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
 
 
 NEAR_PLANE_VIEWS = 8  # views `near_plane_as_trained` renders at each plane: those where the band's Gaussians cover most tiles
+DECISION_HELD_BYTES = 24 << 20  # resident after a near-plane decision and `trim_heap`: its render kernels and image readers (13 MB measured, tiny room, 2026-12-06)
 NEAR_PLANE_GREY_STEP = 4 / 255  # grey-level difference from which the two planes' renders of a pixel differ (`PlaneEvidence`)
 NEAR_PLANE_MIN_PIXELS = 100  # differing pixels, over the views compared, from which they decide (48 decided wrongly: docs/raster.md)
 # mean rank-error gain (ranks in [0, 1]) over the differing pixels that decides for INRIA's plane (docs/raster.md, "The near

@@ -663,6 +663,33 @@ def test_the_early_budget_check_plans_with_the_rendering_engine_loaded(tiny, inp
     assert events[0] == "engine" and "plan" in events
 
 
+@pytest.mark.parametrize("mode", ["fit-check-vote-reject", "paper"])
+def test_the_early_budget_check_counts_what_the_decision_leaves_resident(tiny, inputs, tmp_path, monkeypatch, mode):
+    """Round 67a F2: after the early check the decision left its render kernels and image readers resident (13 MB), so a
+    budget within that of the minimum was accepted, the plane decided and warned about, and then refused. The check
+    counts what is held later (the command gives it `frames.DECISION_HELD_BYTES`): a budget it accepts without is refused
+    with more held."""
+    from drsplat import frames
+    from drsplat.cli import main
+    from drsplat.memory import current_rss
+    from drsplat.registration import driver
+    from drsplat.registration.options import RegisterOptions
+
+    scene, cameras = inputs
+    run = driver.prepare_run(scene, cameras, tiny / "features", RegisterOptions(aggregate=mode))
+    budget = driver._memory_plan(run, current_rss()).minimum_budget() + (600 << 20)  # room for the fit stage's probe and noise
+    run = driver.prepare_run(scene, cameras, tiny / "features", RegisterOptions(aggregate=mode, memory_budget=budget))
+    driver.refuse_if_over_budget(run)
+    with pytest.raises(DrsplatError, match="too small for this scene"):
+        driver.refuse_if_over_budget(run, held_later=4 << 30)
+    held = []
+    monkeypatch.setattr(driver, "refuse_if_over_budget", lambda run, held_later=0: held.append(held_later))
+    monkeypatch.setattr(frames, "near_plane_as_trained", lambda *args, **kwargs: frames.NEAR)
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "o.ply"), "--no-progress", "--aggregate", mode, "--memory-budget", "8GB"]) == 0
+    assert held == [frames.DECISION_HELD_BYTES]
+
+
 def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_decided(tiny, tmp_path, capsys):
     """Round 67a F1: under `--near-plane auto` (the default) the budget check before the decision paired the cameras
     with the feature files as the run does after it, and every warning of that pairing came twice."""

@@ -94,7 +94,7 @@ def other_data_suffix(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.errors import InputError, UsageError, shown_path
-    from drsplat.frames import cameras_and_plane_as_trained, refinement_comment
+    from drsplat.frames import DECISION_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
     from drsplat.memory import trim_heap
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions, register
@@ -142,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     def refuse_before_deciding(framed: list) -> None:  # a run the plan refuses is refused before the plane's evidence is rendered
         if decided:
-            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True))  # the run says its warnings
+            # the run says its warnings; the decision's kernels and image readers stay resident
+            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True), held_later=DECISION_HELD_BYTES)
 
     # trainers' own worlds, cameras, near planes and principal points
     cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),

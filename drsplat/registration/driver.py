@@ -561,17 +561,18 @@ def one_block_sink(num_gaussians: int, dim: int, vote: bool, device: str | None 
     return VoteSink(num_gaussians, dim) if vote else MemorySink(num_gaussians, dim)
 
 
-def _check_memory_before_probe(run: Run) -> int | None:
+def _check_memory_before_probe(run: Run, held_later: int = 0) -> int | None:
     """A fit mode's memory (the budget, or what is free) checked before its probe views are rendered:
     the DrsplatError of `choose_block` when a mode the probe may pick does not fit, so that a budget
     too small is refused at once rather than after the probe, and the minimum it names works for
     whichever footprint the probe picks. Returns the resident memory the plan starts from (this
     process's now plus what the probe adds, `probe_memory`), which `_plan_block` keeps after the
-    probe; None for other modes (the plan measures it then)."""
+    probe; None for other modes (the plan measures it then). held_later: bytes this process will hold besides by then
+    (`refuse_if_over_budget`)."""
     options = run.options
     if options.block_size or not is_fit_mode(options.aggregate):
         return None
-    rss = current_rss()
+    rss = current_rss() + held_later
     rejects = probe_folds_floaters(options.aggregate)
     base = rss + probe_memory(run.scene.num_gaussians, run.headers.max_masks * run.dim * 4, rejects, max_masks=run.headers.max_masks)
     if _refusal_for_footprints(run, base) is not None:  # refused: the budget it names allows for the most the probe can hold
@@ -581,19 +582,21 @@ def _check_memory_before_probe(run: Run) -> int | None:
     return base
 
 
-def refuse_if_over_budget(run: Run) -> None:
+def refuse_if_over_budget(run: Run, held_later: int = 0) -> None:
     """The memory plan's refusal (`choose_block`'s DrsplatError) said before work that precedes the registration
     (`register --near-plane auto` renders its plane's evidence first; round 65a F5: a --memory-budget too small
     was refused only after that decision and its warning). Nothing is logged when the run fits; the registration
-    plans again from the memory held then (this process may hold more by then, so it can still refuse)."""
+    plans again from the memory held then (this process may hold more by then, so it can still refuse). held_later: what the
+    work before the registration leaves resident, counted now (`frames.DECISION_HELD_BYTES`: round 67a F2, a budget this
+    check accepted was refused after the decision by the 13 MB its render kernels and image readers stay)."""
     options = run.options
     if options.block_size:
         return
     load_rendering_engine(run)  # round 67a F2: planned without it, --engine torch was told 515 MB and then refused under 1.1 GB
     if is_fit_mode(options.aggregate):
-        _check_memory_before_probe(run)
+        _check_memory_before_probe(run, held_later)
         return
-    choose_block(_memory_plan(run), options.memory_budget, whole=mode_stages(options.aggregate).solve)
+    choose_block(_memory_plan(run, current_rss() + held_later), options.memory_budget, whole=mode_stages(options.aggregate).solve)
 
 
 def load_rendering_engine(run: Run) -> None:
