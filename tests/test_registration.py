@@ -454,6 +454,13 @@ def test_stem_pairing_warns_and_counts(tiny, tmp_path, caplog):
         result = register_features(load_ply(tiny / "scene.ply"), cams, feats, RegisterOptions(), show_progress=False)
     assert result.num_views == 3 and len(result.missing_features) == 13
     assert "2 feature pairs in" in caplog.text and "are incomplete" in caplog.text and cams[0].name in caplog.text
+    # the halves are said once, not also among the cameras with no feature file (round 67c F4)
+    assert "11 of 16 cameras have no feature file" in caplog.text and caplog.text.count(cams[0].name) == 1, caplog.text
+    (feats / f"{cams[5].name}_f.npy").unlink()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        register_features(load_ply(tiny / "scene.ply"), cams, feats, RegisterOptions(), show_progress=False)
+    assert "1 feature pair in" in caplog.text and "is incomplete" in caplog.text and "its camera is skipped" in caplog.text, caplog.text
 
 
 def test_views_that_copy_another_views_camera_are_warned_of(tiny, tmp_path, caplog):

@@ -127,6 +127,7 @@ from drsplat.defaults import AGGREGATE_MODES, CHECK_SLOTS, EXACT_TRIM_SLOT_BYTES
 from drsplat.memory import small_page_zeros
 from drsplat._raster_kernels import BLUR
 from drsplat.raster import NEAR, PreparedScene, project_gaussians
+from drsplat.scene import counted
 
 log = logging.getLogger(__name__)
 
@@ -1229,9 +1230,9 @@ class Aggregator:
         """One line: how many Gaussians the rejection dropped, and the mode without it (of `asked`, the
         mode as the user named it, when a fit mode resolved to this one)."""
         if self.reject:
-            log.info("%s: %d Gaussians rejected as unsupported (floaters / haze in front of the surface; a semi-transparent object "
-                     "such as glass, under %g of every pixel's weight, goes with them: --aggregate %s keeps it)", self.mode,
-                     self.num_rejected, PEAK_MIN, without_rejection(asked or self.mode))
+            log.info("%s: %s rejected as unsupported (floaters / haze in front of the surface; a semi-transparent object such "
+                     "as glass would go with them if it stayed under %g of every pixel's weight: --aggregate %s keeps all)", self.mode,
+                     counted(self.num_rejected, "Gaussian", "Gaussians"), PEAK_MIN, without_rejection(asked or self.mode))
 
     @staticmethod
     def memory_bytes(mode: str, num_gaussians: int, pixels: int, topk: int, support_scratch: int, trim_buffer: int) -> tuple[int, int, int]:

@@ -22,6 +22,7 @@ from drsplat.errors import InputError
 from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
 from drsplat.utils import npy_header
+from drsplat.scene import counted
 
 log = logging.getLogger(__name__)
 
@@ -142,17 +143,19 @@ def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = Fa
                 "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
     halves = sorted(set(stems) ^ set(list_stems(features_dir, FEAT_SUFFIX)))
     if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
-        warning("%d feature pairs in %s are incomplete (a %s without its %s, or the reverse) and their cameras are skipped "
-                "(e.g. %s); rerun `drsplat features` to complete them", len(halves), features_dir, SEG_SUFFIX, FEAT_SUFFIX,
+        warning("%s in %s %s incomplete (a %s without its %s, or the reverse) and %s skipped (e.g. %s); rerun "
+                "`drsplat features` to complete them", counted(len(halves), "feature pair", "feature pairs"), features_dir,
+                "is" if len(halves) == 1 else "are", SEG_SUFFIX, FEAT_SUFFIX, "its camera is" if len(halves) == 1 else "their cameras are",
                 ", ".join(halves[:3]))
         stems = [stem for stem in stems if stem not in set(halves)]
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
     sel = pair_views(cameras, stems)
     hint = spelling_hint(sel.missing, sel.unmatched)
-    if sel.missing:
-        warning("%d of %d cameras %s no feature file in %s and %s skipped (e.g. %s)%s", len(sel.missing), len(cameras),
-                "has" if len(sel.missing) == 1 else "have", features_dir, "is" if len(sel.missing) == 1 else "are", ", ".join(sel.missing[:3]), hint)
+    unpaired = [name for name in sel.missing if name not in halves and name.split(".")[0] not in halves]  # the halves are said above
+    if unpaired:
+        warning("%d of %d cameras %s no feature file in %s and %s skipped (e.g. %s)%s", len(unpaired), len(cameras),
+                "has" if len(unpaired) == 1 else "have", features_dir, "is" if len(unpaired) == 1 else "are", ", ".join(unpaired[:3]), hint)
     if (features_dir / STAMP_JOURNAL).exists():  # `features` folds its journal into the manifest when it finishes
         warning("%s holds the journal of a `drsplat features` run that has not finished (%s): it is still writing or was stopped, "
                 "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
