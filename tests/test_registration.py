@@ -414,6 +414,24 @@ def test_features_still_being_written_are_said_to_be_unfinished(tiny, tmp_path, 
     assert f"holds the journal of a `drsplat features` run that has not finished ({STAMP_JOURNAL})" in caplog.text
 
 
+def test_a_first_run_that_compiles_the_kernels_says_so(tiny, tmp_path, caplog, monkeypatch):
+    """Round 67c F6: the first registration on a machine spent 81 s of 92 compiling numba's kernels, without a word. It
+    says so when the compositor is not in numba's cache; the compositor is there once a view was rendered."""
+    import drsplat.registration.driver as driver
+    from drsplat import raster
+    from drsplat.registration import register
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)[:2]
+    raster.rasterize_topk(scene, cams[0], 4)
+    assert raster.kernels_cached()
+    for cached in (True, False):
+        monkeypatch.setattr(driver, "kernels_cached", lambda: cached)
+        caplog.clear()
+        with caplog.at_level(logging.INFO):
+            register(scene, cams, tiny / "features", tmp_path / f"reg{cached}.ply", RegisterOptions(aggregate="paper"), show_progress=False)
+        assert ("numba compiles the kernels" in caplog.text) == (not cached)
+
+
 def test_counts_of_one_agree_in_the_pairing_warning_and_the_summary(tiny, tmp_path, caplog):
     """Round 67a F3: "1 of 2 cameras have no feature file ... and are skipped", "1 views in 1 block(s)"."""
     from drsplat.registration import register

@@ -42,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, median_nearest_depth, share_within_near_plane, some_view_draws, widened_scene
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, kernels_cached, median_nearest_depth, share_within_near_plane, some_view_draws, widened_scene
 from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
                                       probe_memory_bound, resolve_mode)
@@ -373,6 +373,9 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
                      on_progress: Callable[[int, int], None] | None, cancel: CancelToken | None) -> RegistrationResult:
     """`run_registration` once the run's lock is held (`lock`, None without a checkpoint)."""
     load_rendering_engine(run)
+    if run.options.place != "ray" and run.options.engine == "numba" and not kernels_cached():  # a slow first run is said (round 67c F6)
+        log.info("first run on this machine: numba compiles the kernels as they are first used (a minute or two; later runs load "
+                 "them from its cache)")
     stamps = feature_stamps(run.features_dir, run.views)  # before any view is read: a file changed during the run is caught
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
