@@ -331,6 +331,24 @@ def test_an_output_folder_that_takes_no_file_is_one_error_naming_the_folder(tiny
     assert ".lock" not in err and list(folder.iterdir()) == []
 
 
+def test_a_second_run_into_the_same_output_is_refused_before_the_scene_is_read(tiny, tmp_path, capsys, monkeypatch):
+    """Round 67b F1: the lock was taken inside the registration, after the scene was loaded and the near plane decided
+    (21 s and 1.5 GB on a 3M-Gaussian scene) before "another registration is writing"."""
+    import drsplat.splat_formats as formats
+    from drsplat.registration.checkpoint import RunLock, lock_path_for
+
+    out = tmp_path / "reg.ply"
+    holder = RunLock.acquire(lock_path_for(checkpoint_path_for(out)), "reg.ply")
+    try:
+        with monkeypatch.context() as patched:
+            patched.setattr(formats, "load_scene_report", lambda *a, **k: pytest.fail("the scene was read"))
+            assert main(_args(tiny, out)) == 1
+        assert "another registration is writing reg.ply" in capsys.readouterr().err
+    finally:
+        holder.release()
+    assert main(_args(tiny, out)) == 0 and out.is_file()
+
+
 def test_a_run_into_a_symlink_and_one_into_its_target_share_one_lock(tiny, tmp_path, capsys):
     """Probe round 13: the lock was named after the link, so a run into `link.ply -> out/reg.ply` and
     one into `out/reg.ply` took two locks and both wrote the same file."""
