@@ -153,6 +153,41 @@ def test_a_query_scores_the_same_bits_alone_and_in_a_batch(data, books, m):
         np.testing.assert_array_equal(field.scores(q[k : k + 1])[:, 0], batch[:, k], err_msg=f"query {k}")
     np.testing.assert_array_equal(field.scores(q[::-1])[:, ::-1], batch)
 
+@pytest.mark.parametrize("m, dim, rows", [(8, 32, 600), (16, 64, 300), (128, 512, 400)])
+def test_a_codebook_trained_sub_quantiser_by_sub_quantiser_is_faiss_index_pq_train_bit_for_bit(m, dim, rows):
+    """`train_codebook` trains its sub-quantisers one at a time (progress, Ctrl-C between them: round 67b F2) with
+    faiss's own k-means: the centroids, the serialised index and the codes are those of one `IndexPQ.train`
+    (`train_codebook_reference`), rows without a direction left out of both."""
+    import faiss
+
+    from drsplat.lang.codebook import train_codebook_reference
+
+    x, _, _ = clip_like(rows, dim, labels=6, seed=m)
+    x[5] = 0.0
+    x[7, 1] = np.nan
+    got, want = train_codebook(x, m=m, seed=3), train_codebook_reference(x, m=m, seed=3)
+    assert got.centroids.tobytes() == want.centroids.tobytes()
+    assert np.array_equal(faiss.serialize_index(got.index), faiss.serialize_index(want.index))
+    assert np.array_equal(got.index.sa_encode(x[:50] / np.linalg.norm(x[:50], axis=1, keepdims=True)),
+                          want.index.sa_encode(x[:50] / np.linalg.norm(x[:50], axis=1, keepdims=True)))
+
+
+def test_training_a_codebook_stops_between_sub_quantisers_when_cancelled(monkeypatch):
+    """Round 67b F2: `register --codebook scene` trained for a minute after a Ctrl-C. The token is read before each
+    sub-quantiser."""
+    import drsplat.lang.codebook as codebook
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    x, _, _ = clip_like(600, 32, labels=4, seed=2)
+    token, trained = CancelToken(), []
+    real = codebook._sub_quantizer_centroids
+    monkeypatch.setattr(codebook, "_sub_quantizer_centroids", lambda *a: (trained.append(1), len(trained) == 3 and token.cancel(), real(*a))[2])
+    with pytest.raises(Cancelled):
+        train_codebook(x, m=8, cancel=token)
+    assert len(trained) == 3
+
+
 def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
     """256 copies of 3 embeddings trained without a word into 256 centroids a sub-vector (round 29a):
     a codebook of those 3 directions only. Counted and said; a varied set says nothing."""

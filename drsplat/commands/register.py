@@ -160,7 +160,8 @@ def run(args: argparse.Namespace) -> int:
     if comment is not None:  # `eval lerf` of the registered scene then takes its cameras as registration did
         scene = dataclasses.replace(scene, comments=[*scene.comments, comment])
     token = CancelToken()
-    with cancel_on_signals(token, "the current step (a view, the fit stage's probe view or a run of the check's masks)"):
+    with cancel_on_signals(token, "the current step (a view, the fit stage's probe view, a run of the check's masks or a sub-quantiser "
+                                  "of the scene codebook)"):
         register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
     if token.cancelled:  # the interrupt came while the output was being finished: it was completed, not left half done
         log.warning("the interrupt came after the last view; the output was finished and written to %s", shown_path(args.out))

@@ -444,7 +444,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
             raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
         if codebook == "scene":
-            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates, run.scene)
+            codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates, run.scene, cancel, show_progress)
         if reduce is None:
             # the kept rows as far as known now (the header's room; drsplat.registration.output.PlyTarget)
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
@@ -731,7 +731,8 @@ def in_view_order(indices: range, ready: dict[int, ViewPairs], computed: Iterato
             yield view.grouped() if grouped else view
 
 
-def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray, scene: GaussianScene) -> Codebook:
+def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray, scene: GaussianScene, cancel: CancelToken | None = None,
+                          show_progress: bool = False) -> Codebook:
     """The scene codebook: PQ trained on the masks' embeddings, topped up with the unit features of a
     sample of the Gaussians that will be assigned (summed by the sink, so the same in every plan),
     drawn and ordered by their parameters' hashes (`scene_sample_ids`, `GaussianScene.identity_rows`),
@@ -747,7 +748,7 @@ def _train_scene_codebook(totals: ViewTotals, sink: Sink, candidates: np.ndarray
 
     train = scene_training_set(totals.mask_embeddings(), sample_features, totals.dim)
     totals.embeddings = []
-    return train_codebook(train, m=SCENE_CODEBOOK_M, seed=0)
+    return train_codebook(train, m=SCENE_CODEBOOK_M, seed=0, cancel=cancel, show_progress=show_progress)
 
 
 def _finish_blocks(run: Run, aggregator: Aggregator, sink: Sink, target: Target, show_progress: bool, cancel):
