@@ -415,7 +415,8 @@ def _sub_quantizer_centroids(faiss, x_sub: np.ndarray, params) -> np.ndarray:
 def train_codebook_reference(embeddings: np.ndarray, m: int = SCENE_PQ_M, seed: int = 0) -> Codebook:
     """`train_codebook` as one faiss `IndexPQ.train` call (the same rows, parameters and one thread): its reference."""
     faiss = _faiss()
-    x = unit_rows(np.atleast_2d(np.asarray(embeddings, np.float32))[has_direction(np.atleast_2d(np.asarray(embeddings, np.float32)))])
+    raw = np.atleast_2d(np.asarray(embeddings, np.float32))
+    x = unit_rows(raw[has_direction(raw)])
     index = faiss.IndexPQ(x.shape[1], m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
     index.pq.cp.seed = seed
     index.pq.cp.max_points_per_centroid = PQ_POINTS_PER_CENTROID
