@@ -146,6 +146,16 @@ def test_coalesce_refuses_what_only_an_api_caller_can_give(parts):
         Coalescer(30, parts=parts).coalesce(past, weights, masks, 8)
     with pytest.raises(ValueError, match="num_masks is -1"):
         Coalescer(30, parts=parts).coalesce(ids, weights, masks, -1)
+    for wide_id in (2**32 + 5, 2**31 + 7):  # int64 Gaussian ids past int32 wrapped to 5, or were dropped (round 68b F4)
+        past = ids.astype(np.int64)
+        past[1, 2, 0] = wide_id
+        with pytest.raises(ValueError, match="1 Gaussian id of the view is 30 or more"):
+            Coalescer(30, parts=parts).coalesce(past, weights, masks, 8)
+    wide = ids.astype(np.int64)
+    wide[wide < 0] = -(2**40)
+    got64 = Coalescer(30, parts=parts).coalesce(wide, weights, masks, 8)
+    got32 = Coalescer(30, parts=parts).coalesce(ids, weights, masks, 8)
+    assert all(np.array_equal(a, b) for a, b in zip(got64[:3], got32[:3])) and got64[3] == got32[3]  # negative int64 ids: none
 
 
 @pytest.mark.parametrize("case", ["random", "one_big_mask", "more_parts_than_masks", "empty_masks_between"])

@@ -349,6 +349,16 @@ def test_a_second_run_into_the_same_output_is_refused_before_the_scene_is_read(t
     assert main(_args(tiny, out)) == 0 and out.is_file()
 
 
+def test_a_run_whose_inputs_fail_leaves_no_output_folder(tiny, tmp_path, capsys):
+    """Round 68b F1: the early lock check made --out's folders before the inputs were read, so a run with a missing
+    scene said "created the folder" and left it empty."""
+    out = tmp_path / "new" / "deeper" / "reg.ply"
+    args = _args(tiny, out)
+    args[1] = str(tmp_path / "missing.ply")
+    assert main(args) == 1
+    assert "created the folder" not in capsys.readouterr().err and not (tmp_path / "new").exists()
+
+
 def test_a_run_into_a_symlink_and_one_into_its_target_share_one_lock(tiny, tmp_path, capsys):
     """Probe round 13: the lock was named after the link, so a run into `link.ply -> out/reg.ply` and
     one into `out/reg.ply` took two locks and both wrote the same file."""

@@ -23,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Rasterize every training view, keep the top-k Gaussians of each pixel, accumulate their "
         "weights into (Gaussian, mask) pairs and give each Gaussian the weight-averaged mask embedding. "
         "Writes an INRIA-layout PLY with the language field as extra properties (docs/registration.md). "
-        "Ctrl-C stops at the end of the current view and keeps a checkpoint; the same command resumes.",
+        "Ctrl-C stops at the end of the current step (a view, or a sub-quantiser of --codebook scene) and keeps a checkpoint; the same command resumes.",
     )
     p.add_argument("scene", type=Path, metavar="SCENE", help="trained 3DGS scene (PLY, INRIA or compressed; .splat; .spz)")
     p.add_argument("--source", type=Path, required=True, help="dataset folder: COLMAP (sparse/0), transforms.json or 3DGS cameras.json")
@@ -137,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
                          "images or a codebook), and a registered scene is a PLY: name it .ply")
     # a second run into --out is refused before the scene is read (round 67b F1: after 21 s and 1.5 GB of a 3M scene and the
     # near plane's decision); the registration takes the lock again for its work
-    lock_run(checkpoint_path_for(args.out)).release()
+    checkpoint = checkpoint_path_for(args.out)
+    if checkpoint.parent.is_dir():  # no folder, no run in it: the registration makes the folder once the inputs are read (round 68b F1)
+        lock_run(checkpoint).release()
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file

@@ -40,9 +40,11 @@ def _inverse_norm(norm):  # pragma: no cover - jitted
     return np.float32(0.0)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, boundscheck=False)
+@numba.njit(parallel=True, fastmath=FAST, cache=True, boundscheck=False)
 def _lut_scores_kernel(codes, list_ids, luts, coarse, inv_norms, out):  # pragma: no cover - jitted
-    """out[i, k] = (coarse[k, list_ids[i]] + Σ_m luts[k, m, codes[i, m]]) · inv_norms[i], any M.
+    """out[i, k] = (coarse[k, list_ids[i]] + Σ_m luts[k, m, codes[i, m]]) · inv_norms[i], any M, the sum in the
+    order written (FAST: no reassociation; with it, M = 127 scored 5,754 of 20,000 rows otherwise in a process that
+    compiled the kernel than in one that loaded it from the cache, and otherwise on an AVX-512 target: round 68b F2).
 
     codes: [N, M] uint8; list_ids: [N] int32 (or [0] when coarse is [K, 0]); luts: [K, M, 256].
     """

@@ -187,6 +187,11 @@ class Coalescer:
         if masks.dtype != np.int32:  # ids outside int32 would wrap into range (round 67a F8): out of range, none
             masks = np.where((masks >= 0) & (masks < num_masks), masks, -1)
         masks = np.ascontiguousarray(masks, np.int32)
+        if ids.dtype != np.int32 and ids.size:  # int64 ids past int32 would wrap into range (round 68b F4): refused as past N
+            past = int(np.count_nonzero(ids >= self.num_gaussians))
+            if past:
+                raise self._ids_past_n(past)
+            ids = np.where(ids < 0, -1, ids)
         ids2 = np.ascontiguousarray(ids.reshape(masks.shape[0], k), np.int32)  # by the pixel count: k = 0 has no -1 to infer
         w2 = np.ascontiguousarray(weights.reshape(masks.shape[0], k), np.float32)
         starts, order = _bucket_pixels(masks, num_masks)
@@ -199,9 +204,7 @@ class Coalescer:
             _coalesce_parts_kernel(ids2, w2, order, starts, end, nxt, filled, pairs, bad, self._seen, self._acc, self._touched,
                                    self._g, self._m, self._w)
             if bad.any():  # an API caller's ids (a render's are < N): refused, not written past the scratch (round 67a F8)
-                raise ValueError(f"coalesce: {counted(int(bad.sum()), 'Gaussian id of the view is', 'Gaussian ids of the view are')} "
-                                 f"{self.num_gaussians} or more; "
-                                 f"expected ids below the scene's {self.num_gaussians} Gaussians (or -1)")
+                raise self._ids_past_n(int(bad.sum()))
             if np.all(nxt >= end):
                 break
             self._alloc(2 * self._g.shape[1])
@@ -213,6 +216,11 @@ class Coalescer:
             order = stable_order(g)
             g, m, w = g[order], m[order], w[order]
         return g, m, w, int(pairs.sum())
+
+    def _ids_past_n(self, count: int) -> ValueError:
+        """The error of a view holding `count` Gaussian ids ≥ N."""
+        return ValueError(f"coalesce: {counted(count, 'Gaussian id of the view is', 'Gaussian ids of the view are')} {self.num_gaussians} "
+                          f"or more; expected ids below the scene's {self.num_gaussians} Gaussians (or -1)")
 
     def _alloc(self, size: int) -> None:
         """Pair rows of `size` per part, keeping what the old rows hold."""

@@ -248,7 +248,7 @@ def refuse_if_no_view_draws(scene: GaussianScene, cameras: Sequence[Camera], nea
         return
     depth = median_nearest_depth(scene.means, cameras)
     if not math.isfinite(depth):  # none in front of any camera at all: the plane is not what hides them
-        raise DrsplatError(f"no Gaussian of the scene lies in front of any of the {len(cameras)} cameras, so no view can draw one: "
+        raise DrsplatError(f"no Gaussian of the scene lies in front of any of the {counted(len(cameras), 'camera', 'cameras')}, so no view can draw one: "
                            "the cameras face away from it, or the scene and its cameras are in different frames or units")
     why = (f"no Gaussian of the scene lies {near_plane:g} scene units or more in front of any of the {counted(len(cameras), 'camera', 'cameras')} "
            f"(the near plane), so no view can draw one: " + near_plane_remedy(depth, near_plane, decided))

@@ -139,8 +139,9 @@ def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = Fa
     stems = list_stems(features_dir)
     irregular = irregular_feature_entries(features_dir)
     if irregular:
-        warning("%d entries of %s named like feature files are not regular files (a folder, a device, a broken link) and are "
-                "skipped: %s", len(irregular), features_dir, ", ".join(irregular[:3]))
+        warning("%s of %s named like feature files %s (a folder, a device, a broken link) and %s skipped: %s",
+                counted(len(irregular), "entry", "entries"), features_dir, "is not a regular file" if len(irregular) == 1 else "are not regular files",
+                "is" if len(irregular) == 1 else "are", ", ".join(irregular[:3]))
     halves = sorted(set(stems) ^ set(list_stems(features_dir, FEAT_SUFFIX)))
     if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
         warning("%s in %s %s incomplete (a %s without its %s, or the reverse) and %s skipped (e.g. %s); rerun "
@@ -161,22 +162,23 @@ def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = Fa
                 "so views may be missing; rerun `drsplat features` into the folder to finish it, then register", features_dir, STAMP_JOURNAL)
     renamed = [stem for name, stem in sel.renamed if name_key(stem) != name_key(name)]
     if renamed:
-        info("%d cameras matched their feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
-             len(renamed), ", ".join(renamed[:3]))
+        info("%s feature files by the image name up to its first dot, as LangSplat names them (e.g. %s)",
+             counted(len(renamed), "camera matched its", "cameras matched their"), ", ".join(renamed[:3]))
     respelled = [(name, stem) for name, stem in sel.renamed if stem not in (name, name.split(".")[0])]
     if respelled:
-        info("%d cameras matched their feature files only in Unicode NFC, the names' accents being encoded differently (e.g. camera "
-             "%s, file %s), as in a folder copied from macOS", len(respelled), ascii(respelled[0][0]), ascii(respelled[0][1] + SEG_SUFFIX))
+        info("%s feature files only in Unicode NFC, the names' accents being encoded differently (e.g. camera "
+             "%s, file %s), as in a folder copied from macOS", counted(len(respelled), "camera matched its", "cameras matched their"), ascii(respelled[0][0]), ascii(respelled[0][1] + SEG_SUFFIX))
     if sel.unmatched:
-        warning("%d feature files in %s match no camera and are ignored (e.g. %s)", len(sel.unmatched), features_dir, ", ".join(sel.unmatched[:3]))
+        warning("%s in %s %s (e.g. %s)", counted(len(sel.unmatched), "feature file", "feature files"), features_dir,
+                "matches no camera and is ignored" if len(sel.unmatched) == 1 else "match no camera and are ignored", ", ".join(sel.unmatched[:3]))
     duplicates = len(sel.views) - len({c.name for c in sel.views})
     if duplicates:
-        warning("%d cameras share an image name with another camera; each uses that image's features", duplicates)
+        warning("%s an image name with another camera; each uses that image's features", counted(duplicates, "camera shares", "cameras share"))
     copies = same_camera_copies(sel.views)
     if copies:
-        warning("%d views have the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
+        warning("%s the very pose, intrinsics and size of another view (e.g. %s and %s): each counts as a view of its "
                 "own, so what a copied view's masks say counts twice in the cross-view check; drop the copies from the "
-                "dataset if they are one photo", len(copies), copies[0][0], copies[0][1])
+                "dataset if they are one photo", counted(len(copies), "view has", "views have"), copies[0][0], copies[0][1])
     if not sel.views:
         raise InputError(
             features_dir,
