@@ -349,6 +349,29 @@ def test_a_second_run_into_the_same_output_is_refused_before_the_scene_is_read(t
     assert main(_args(tiny, out)) == 0 and out.is_file()
 
 
+def test_the_run_lock_is_held_from_before_the_scene_is_read_to_the_end(tiny, tmp_path, monkeypatch):
+    """Round 68a F1: the early check took the lock and released it, so a second run started while the first read its
+    scene passed it, read its own scene and decided its own plane before the registration's lock refused it. The lock
+    is held from before the scene is read; the run ends with it released and its file gone."""
+    import drsplat.splat_formats as formats
+    from drsplat.errors import DrsplatError
+    from drsplat.registration.checkpoint import lock_path_for, lock_run
+
+    out = tmp_path / "reg.ply"
+    real, seen = formats.load_scene_report, []
+
+    def reading(*args, **kwargs):
+        with pytest.raises(DrsplatError, match="another registration is writing reg.ply"):
+            lock_run(checkpoint_path_for(out))
+        seen.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(formats, "load_scene_report", reading)
+    assert main(_args(tiny, out)) == 0 and seen == [1] and out.is_file()
+    assert not lock_path_for(checkpoint_path_for(out)).exists()
+    lock_run(checkpoint_path_for(out)).release()  # free again
+
+
 def test_a_run_whose_inputs_fail_leaves_no_output_folder(tiny, tmp_path, capsys):
     """Round 68b F1: the early lock check made --out's folders before the inputs were read, so a run with a missing
     scene said "created the folder" and left it empty."""

@@ -93,14 +93,11 @@ def other_data_suffix(path: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
-    from drsplat.errors import InputError, UsageError, shown_path
-    from drsplat.frames import DECISION_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
-    from drsplat.memory import trim_heap
+    from drsplat.errors import InputError, UsageError
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
-    from drsplat.registration import RegisterOptions, register
+    from drsplat.registration import RegisterOptions
     from drsplat.registration.checkpoint import checkpoint_path_for, lock_run
-    from drsplat.registration.driver import prepare_run, refuse_if_over_budget
-    from drsplat.splat_formats import load_scene_report, written_format
+    from drsplat.splat_formats import written_format
 
     if written_format(args.out) != "ply":
         raise UsageError(f"--out {args.out.name}: {REGISTERED_IS_PLY}; name it .ply")
@@ -136,10 +133,28 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
                          "images or a codebook), and a registered scene is a PLY: name it .ply")
     # a second run into --out is refused before the scene is read (round 67b F1: after 21 s and 1.5 GB of a 3M scene and the
-    # near plane's decision); the registration takes the lock again for its work
+    # near plane's decision), and the lock is held from here to the registration's end (round 68a F1: taken and released, it
+    # let a second run through while the first read its scene); no folder, no run in it: the registration makes the folder
+    # once the inputs are read (round 68b F1: a run whose scene was missing left it empty)
     checkpoint = checkpoint_path_for(args.out)
-    if checkpoint.parent.is_dir():  # no folder, no run in it: the registration makes the folder once the inputs are read (round 68b F1)
-        lock_run(checkpoint).release()
+    lock = lock_run(checkpoint) if checkpoint.parent.is_dir() else None
+    try:
+        return _register_holding(args, lock, cameras, options, decided)
+    finally:
+        if lock is not None:  # the registration's own once it began (released there); here when the run stopped before it
+            lock.release()
+
+
+def _register_holding(args: argparse.Namespace, lock, cameras: list, options, decided: bool) -> int:
+    """`run` from the scene on, `lock` (the run's lock, or None) held: reads the scene, decides the cameras' frame, near plane
+    and principal points, and registers."""
+    from drsplat.errors import shown_path
+    from drsplat.frames import DECISION_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
+    from drsplat.memory import trim_heap
+    from drsplat.registration import register
+    from drsplat.registration.driver import prepare_run, refuse_if_over_budget
+    from drsplat.splat_formats import load_scene_report
+
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file
@@ -164,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     token = CancelToken()
     with cancel_on_signals(token, "the current step (a view, the fit stage's probe view, a run of the check's masks or a sub-quantiser "
                                   "of the scene codebook)"):
-        register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token)
+        register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token, lock=lock)
     if token.cancelled:  # the interrupt came while the output was being finished: it was completed, not left half done
         log.warning("the interrupt came after the last view; the output was finished and written to %s", shown_path(args.out))
     return 0

@@ -348,6 +348,7 @@ def run_registration(
     show_progress: bool = True,
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
+    lock: RunLock | None = None,
 ) -> RegistrationResult:
     """Register `run` into `target` (module docstring).
 
@@ -355,11 +356,14 @@ def run_registration(
     blocks then logs into a temporary file beside `out`). It is removed once the target is closed;
     a run that stops early keeps it when it holds views and says so; checkpoint_every: views between
     its fsyncs and the mode's statistics snapshots. collect_embeddings: keep the
-    masks' embeddings in the result (always collected for a scene codebook).
+    masks' embeddings in the result (always collected for a scene codebook). lock: `checkpoint`'s lock when the caller
+    took it before reading the run's inputs (`drsplat register`: round 68a F1, a second run started while the first read
+    its scene passed a lock taken and released), used instead of taking it here; released here as the run's own.
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
-    lock = lock_run(checkpoint) if checkpoint is not None else None  # a second run, or a folder that takes no file: refused before any work
+    if lock is None and checkpoint is not None:  # a second run, or a folder that takes no file: refused before any work
+        lock = lock_run(checkpoint)
     try:
         return _register_locked(run, target, codebook, lock, t_start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, out=out,
                                 collect_embeddings=collect_embeddings, show_progress=show_progress, on_progress=on_progress, cancel=cancel)
@@ -815,12 +819,14 @@ def register(
     show_progress: bool = True,
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
+    lock: RunLock | None = None,
 ) -> RegistrationResult:
     """Register `features_dir` onto `scene` and write the registered PLY `out` atomically.
 
     resumable: keep a checkpoint beside `out` while working (`checkpoint_path_for(out)`): a cancelled
     or killed run resumes from it; it is deleted once `out` is written. checkpoint_every: views
-    between the checkpoint's fsyncs and the mode's statistics snapshots.
+    between the checkpoint's fsyncs and the mode's statistics snapshots. lock: the checkpoint's lock, already
+    taken by the caller (`run_registration`).
     """
     out = Path(out)
     scene = widened_scene(scene)  # float16 arrays as float32: numba loads no float16
@@ -836,8 +842,7 @@ def register(
     warn_if_scene_misses_its_images(scene, run.selection.views, options.near_plane)
     target = PlyTarget(scene, out, manifest_model_id(manifest), cancel, clip_weights=manifest_weights(manifest))
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
-                              show_progress=show_progress,
-                              on_progress=on_progress, cancel=cancel)
+                              show_progress=show_progress, on_progress=on_progress, cancel=cancel, lock=lock if resumable else None)
     log.info("%s: %s (%d unassigned, %s), %s field, %s in %s, %.1f s", out, counted(result.num_written, "Gaussian", "Gaussians"),
              n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind,
              counted(result.num_views, "view", "views"), counted(result.num_blocks, "block", "blocks"), result.seconds)
