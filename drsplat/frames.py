@@ -672,8 +672,8 @@ def given_near_plane(near_plane: float | str) -> float:
     Python API rendered principal-point views at -1, 0, NaN or inf, and "inria" was "could not convert string to float";
     the command line's own parser names its words)."""
     try:
-        plane = float(near_plane)
-    except (TypeError, ValueError):
+        plane = math.nan if isinstance(near_plane, bool) else float(near_plane)
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range (round 68a F10)
         plane = math.nan
     if not (math.isfinite(plane) and plane > 0):
         raise ValueError(f"near_plane: expected \"auto\" or a positive, finite camera depth in scene units (0.01: gsplat's, 0.2: "
@@ -910,6 +910,7 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
 
 NEAR_PLANE_VIEWS = 8  # views `near_plane_as_trained` renders at each plane: those where the band's Gaussians cover most tiles
 DECISION_HELD_BYTES = 24 << 20  # resident after a near-plane decision and `trim_heap`: its render kernels and image readers (13 MB measured, tiny room, 2026-12-06)
+FIRST_COMPILE_HELD_BYTES = 192 << 20  # and more when it compiled the kernels, on a first run (156 MB measured, round 68a F3)
 NEAR_PLANE_GREY_STEP = 4 / 255  # grey-level difference from which the two planes' renders of a pixel differ (`PlaneEvidence`)
 NEAR_PLANE_MIN_PIXELS = 100  # differing pixels, over the views compared, from which they decide (48 decided wrongly: docs/raster.md)
 # mean rank-error gain (ranks in [0, 1]) over the differing pixels that decides for INRIA's plane (docs/raster.md, "The near

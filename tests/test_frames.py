@@ -1426,7 +1426,7 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     assert "(1 view with no image file)" in caplog.text, caplog.text
 
 
-@pytest.mark.parametrize("plane", [-1, 0, float("nan"), float("inf"), "inria", "AUTO", None])
+@pytest.mark.parametrize("plane", [-1, 0, float("nan"), float("inf"), "inria", "AUTO", None, 10**400, True])
 def test_a_near_plane_given_to_the_python_api_is_auto_or_a_positive_finite_depth(tiny_seed0, plane, monkeypatch):
     """Round 67a F8: `cameras_and_plane_as_trained` took -1, 0, NaN and inf as the plane (and rendered the principal-point
     views at it), and "inria" was "could not convert string to float". One ValueError naming what it takes, before any

@@ -945,8 +945,9 @@ def test_the_near_plane_remedy_scales_a_tiny_capture_by_the_power_of_ten_that_br
     assert "--near-plane" not in near_plane_remedy(0.1)  # its plane would be the default
     # a plane the user chose, deeper than the Gaussians lie: the plane is the cause, not the scene's scale (round 64c)
     assert near_plane_remedy(0.24, near_plane=5.0) == ("the Gaussians lie a median 0.24 scene units from the cameras, nearer than the "
-                                                       "--near-plane of 5: register with a smaller plane (the default: leave --near-plane out)")
-    assert near_plane_remedy(2.4, near_plane=50.0).endswith("(the default: leave --near-plane out)")
+                                                       "--near-plane of 5: register with a smaller plane (--near-plane 0.01)")
+    # not "leave --near-plane out": the default, auto, may decide the same plane again (round 68a F5: --near-plane inria)
+    assert near_plane_remedy(2.4, near_plane=50.0).endswith("(--near-plane 0.01)")
     assert near_plane_remedy(0.00037, near_plane=0.001).endswith("(--near-plane 1e-05)")
     for depth in (1.0, 25.0, float("nan"), 0.0, 1e-320, -1.0):
         assert near_plane_remedy(depth) == "are the scene and its cameras in the same units?"

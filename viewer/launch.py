@@ -23,7 +23,7 @@ from drsplat.features.clip import check_clip_config, checkpoint_file_problem
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
 from drsplat.registration.checkpoint import checkpoint_path_for
-from drsplat.scene import load_ply
+from drsplat.scene import counted, load_ply
 from drsplat.synthetic import PRESETS, write_dataset
 from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
@@ -209,7 +209,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if not state.cameras:
             raise DrsplatError("--camera needs the training cameras: pass --source DATASET_DIR")
         if not 0 <= args.camera < len(state.cameras):
-            raise DrsplatError(f"--camera {args.camera} is out of range: the dataset has {len(state.cameras)} cameras (0..{len(state.cameras) - 1})")
+            raise DrsplatError(f"--camera {args.camera} is out of range: the dataset has {counted(len(state.cameras), 'camera', 'cameras')} (0..{len(state.cameras) - 1})")
         camera = camera_for_size(state.cameras[args.camera], args.width, args.height)
         check_screenshot_size(camera, args)
     else:

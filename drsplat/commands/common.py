@@ -26,7 +26,7 @@ from drsplat.errors import DrsplatError, InputError, UsageError, hidden_characte
 from drsplat.memory import parse_size
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.lang.plyformat import strip_field
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, counted
 from drsplat.splat_formats import scene_format
 from drsplat.utils import name_problem, names_a_folder
 
@@ -362,7 +362,7 @@ def load_registered(path: Path, geometry: bool = True) -> tuple[GaussianScene | 
     scene, report = load_ply_report(path, purpose="query or segment") if geometry else load_ply_extras(path, purpose="query or segment")
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:
-        raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so scores could not follow the file order")
+        raise InputError(path, f"{counted(dropped, 'row has', 'rows have')} non-finite values and would be dropped, so scores could not follow the file order")
     field = read_field(scene, path, shared=True)  # the scene's language columns are dropped below
     if field is None:
         raise InputError(path, "has no language field (no 'drsplat.lang' header comment); run drsplat register first")

@@ -23,6 +23,7 @@ from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA
                               ORACLE_TEXT_EMBEDDINGS)
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
+from drsplat.scene import counted
 from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable, json_text, outputs_together
 
 log = logging.getLogger(__name__)
@@ -433,7 +434,7 @@ def load_row_aligned_scene(path: Path, rows_of: str):
     scene, report = load_scene_report(path)
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if dropped:
-        raise InputError(path, f"{dropped} rows have non-finite values and would be dropped, so {rows_of} could not follow "
+        raise InputError(path, f"{counted(dropped, 'row has', 'rows have')} non-finite values and would be dropped, so {rows_of} could not follow "
                                "the file's rows; repair or remove those rows first")
     return scene
 

@@ -149,7 +149,8 @@ def _register_holding(args: argparse.Namespace, lock, cameras: list, options, de
     """`run` from the scene on, `lock` (the run's lock, or None) held: reads the scene, decides the cameras' frame, near plane
     and principal points, and registers."""
     from drsplat.errors import shown_path
-    from drsplat.frames import DECISION_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
+    from drsplat.frames import DECISION_HELD_BYTES, FIRST_COMPILE_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
+    from drsplat.raster import kernels_cached
     from drsplat.memory import trim_heap
     from drsplat.registration import register
     from drsplat.registration.driver import prepare_run, refuse_if_over_budget
@@ -163,8 +164,9 @@ def _register_holding(args: argparse.Namespace, lock, cameras: list, options, de
                     "to keep the two files row for row", dropped, report.rows_in_file, args.scene, report.rows_in_file - dropped)
     def refuse_before_deciding(framed: list) -> None:  # a run the plan refuses is refused before the plane's evidence is rendered
         if decided:
-            # the run says its warnings; the decision's kernels and image readers stay resident
-            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True), held_later=DECISION_HELD_BYTES)
+            # the run says its warnings; the decision's kernels and image readers stay resident, and a first run's compiler
+            held = DECISION_HELD_BYTES + (FIRST_COMPILE_HELD_BYTES if options.engine == "numba" and not kernels_cached() else 0)
+            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True), held_later=held)
 
     # trainers' own worlds, cameras, near planes and principal points
     cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),

@@ -278,13 +278,13 @@ def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint:
     that `mode`'s floater rejection dropped (either is then the likely cause)."""
     written = f"; nothing was written to {out}" if out is not None else ""
     if unusable is not None and unusable.dropped:
-        return f"no Gaussian kept a language feature from {num_views} views: {unusable_sums(unusable)}{written}"
+        return f"no Gaussian kept a language feature from {counted(num_views, 'view', 'views')}: {unusable_sums(unusable)}{written}"
     if rejected:
-        return (f"no Gaussian kept a language feature from {num_views} views: floater rejection (--aggregate {mode}) left all "
+        return (f"no Gaussian kept a language feature from {counted(num_views, 'view', 'views')}: floater rejection (--aggregate {mode}) left all "
                 f"{rejected} Gaussians that the masks gave weight unassigned, since each stays under {PEAK_MIN:g} of every pixel's "
                 "weight and lies mostly in front of the surface the views see: a scene without an opaque surface (or with "
                 f"opacities far below a trained scene's); --aggregate {without_rejection(mode)} registers without the rejection{written}")
-    return (f"no Gaussian received a language feature from {num_views} views: the cameras do not see the scene "
+    return (f"no Gaussian received a language feature from {counted(num_views, 'view', 'views')}: the cameras do not see the scene "
             f"or every mask of {features_dir} is empty or invalid{hint}{written}")
 
 
@@ -907,7 +907,7 @@ def near_plane_remedy(depth: float, near_plane: float = NEAR, decided: bool = Fa
         return (f"the Gaussians lie a median {depth:.2g} scene units from these cameras, nearer than the near plane of {near_plane:g} "
                 f"that --near-plane auto decided from the training images: register with --near-plane {min(plane, NEAR):g}")
     if near_plane != NEAR:
-        smaller = "the default: leave --near-plane out" if NEAR <= plane else f"--near-plane {plane:g}"
+        smaller = f"--near-plane {min(plane, NEAR):g}"  # not "leave it out": `auto` may decide the same plane again (round 68a F5)
         return (f"the Gaussians lie a median {depth:.2g} scene units from the cameras, nearer than the --near-plane of "
                 f"{near_plane:g}: register with a smaller plane ({smaller})")
     if depth >= 1.0:
