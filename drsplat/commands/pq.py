@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -166,7 +167,7 @@ def run_train(args: argparse.Namespace) -> int:
         raise InputError(sources[0] if len(sources) == 1 else None, f"only {usable} usable embeddings (finite, nonzero rows){where}: "
                          f"a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
     log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
-    book = train_codebook(x, m=args.m, seed=args.seed)
+    book = train_codebook(x, m=args.m, seed=args.seed, show_progress=sys.stderr.isatty())  # a minute or more: shown (round 68a F13)
     book.save(args.out)
     print(f"wrote {shown_path(args.out)}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
     return 0

@@ -144,10 +144,10 @@ def select_views(cameras: Sequence[Camera], features_dir: Path, quiet: bool = Fa
                 "is" if len(irregular) == 1 else "are", ", ".join(irregular[:3]))
     halves = sorted(set(stems) ^ set(list_stems(features_dir, FEAT_SUFFIX)))
     if halves:  # a pair cut short by an interrupted copy, or a file deleted: skipped like a missing pair, and said
-        warning("%s in %s %s incomplete (a %s without its %s, or the reverse) and %s skipped (e.g. %s); rerun "
-                "`drsplat features` to complete them", counted(len(halves), "feature pair", "feature pairs"), features_dir,
-                "is" if len(halves) == 1 else "are", SEG_SUFFIX, FEAT_SUFFIX, "its camera is" if len(halves) == 1 else "their cameras are",
-                ", ".join(halves[:3]))
+        one = len(halves) == 1
+        warning("%s in %s %s incomplete (a %s without its %s, or the reverse) and skipped (e.g. %s); rerun `drsplat features` to "
+                "complete %s", counted(len(halves), "feature pair", "feature pairs"), features_dir, "is" if one else "are", SEG_SUFFIX,
+                FEAT_SUFFIX, ", ".join(halves[:3]), "it" if one else "them")
         stems = [stem for stem in stems if stem not in set(halves)]
     if not stems:
         raise InputError(features_dir, "no LangSplat feature files (<stem>_s.npy + <stem>_f.npy) in this folder")
