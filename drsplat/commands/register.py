@@ -7,11 +7,17 @@ import dataclasses
 import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drsplat.commands.common import add_principal_point_argument, guard_args, mask_level, add_near_plane_argument, output_file, positive_int, protected_feature_folders, ray_address, resolution_value, size_value, text_value, topk_int
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.utils import CancelToken, cancel_on_signals, output_target, refuse_write_protected
+
+if TYPE_CHECKING:  # the command's modules load when it runs, not when the parser is built
+    from drsplat.cameras import Camera
+    from drsplat.registration import RegisterOptions
+    from drsplat.registration.checkpoint import RunLock
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             lock.release()
 
 
-def _register_holding(args: argparse.Namespace, lock, cameras: list, options, decided: bool) -> int:
+def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: list[Camera], options: RegisterOptions, decided: bool) -> int:
     """`run` from the scene on, `lock` (the run's lock, or None) held: reads the scene, decides the cameras' frame, near plane
     and principal points, and registers."""
     from drsplat.errors import shown_path
