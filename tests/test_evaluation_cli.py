@@ -644,12 +644,12 @@ def test_eval_refuses_scenes_whose_rows_would_shift(registered, tmp_path, capsys
     argv = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(nan_scene), *query_args(r)]
     assert main(argv) == 1
     err = capsys.readouterr().err
-    assert "scene_nan.ply: 1 rows have non-finite values and would be dropped" in err and "--original SCENE.ply" not in err
+    assert "scene_nan.ply: 1 row has non-finite values and would be dropped" in err and "--original SCENE.ply" not in err
     out = tmp_path / "pl.npy"
     cloud = scannet_stand_in(r) / "scene0000_00_vh_clean_2.labels.ply"
     assert main(["eval", "pseudolabels", str(nan_scene), "--points", str(cloud), "--out", str(out),
                  "--label-names", str(r["ds"] / "gt" / "label_names.json")]) == 1
-    assert "scene_nan.ply: 1 rows have non-finite values" in capsys.readouterr().err and not out.exists()
+    assert "scene_nan.ply: 1 row has non-finite values" in capsys.readouterr().err and not out.exists()
 
 
 @pytest.mark.parametrize("change, words", [(lambda p, l: (p + 1e6, l), "does not overlap the Gaussians'"),

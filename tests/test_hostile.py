@@ -726,7 +726,8 @@ def test_feature_entries_that_are_not_files_are_named(tmp_path, world, capsys):
     victim.mkdir()
     code, err = run_cli(["register", world["ds"] / "scene.ply", "--source", world["ds"], "--features", feats, "--out", tmp_path / "r.ply",
                          "--no-progress"], capsys)
-    assert code == 0 and f"are not regular files (a folder, a device, a broken link) and are skipped: {victim.name}" in err, err
+    assert code == 0 and f"1 entry of {feats} named like feature files is not a regular file (a folder, a device, a broken link) and is " \
+                         f"skipped: {victim.name}" in err, err
 
 
 def test_manifest_fields_of_the_wrong_kind_or_dimension_are_named(tmp_path, world, capsys):
