@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -382,23 +383,14 @@ def train_codebook(embeddings: np.ndarray, m: int = SCENE_PQ_M, seed: int = 0, c
     if distinct < PQ_KSUB:  # k-means then spreads its centroids over copies: a codebook of this set only
         log.warning("only %d of the %d training embeddings are distinct (a PQ sub-quantiser has %d centroids): the codebook "
                     "reconstructs these %d directions and little else; train it on many images' masks", distinct, n, PQ_KSUB, distinct)
-    index = faiss.IndexPQ(d, m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
-    index.pq.cp.seed = seed
-    index.pq.cp.max_points_per_centroid = PQ_POINTS_PER_CENTROID
-    index.pq.cp.min_points_per_centroid = 1  # small scene sets are fine; faiss would warn per sub-quantiser
+    index = _untrained_pq(faiss, d, m, seed)
     dsub = d // m
     centroids = np.empty((m, PQ_KSUB, dsub), np.float32)
-    # Each sub-quantiser's k-means is too small to share between threads: OpenMP barriers made
-    # training 8x slower on a busy 2-core machine, one thread is as fast on an idle one.
-    previous = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    try:
+    with _one_faiss_thread(faiss):
         for j in progress(range(m), desc="train the scene codebook", enabled=show_progress, unit="sub-quantiser"):
             if cancel is not None:
                 cancel.raise_if_cancelled()
             centroids[j] = _sub_quantizer_centroids(faiss, x[:, j * dsub : (j + 1) * dsub], index.pq.cp)
-    finally:
-        faiss.omp_set_num_threads(previous)
     faiss.copy_array_to_vector(centroids.ravel(), index.pq.centroids)
     index.is_trained = True
     return codebook_from_index(index)
@@ -417,17 +409,31 @@ def train_codebook_reference(embeddings: np.ndarray, m: int = SCENE_PQ_M, seed: 
     faiss = _faiss()
     raw = np.atleast_2d(np.asarray(embeddings, np.float32))
     x = unit_rows(raw[has_direction(raw)])
-    index = faiss.IndexPQ(x.shape[1], m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
+    index = _untrained_pq(faiss, x.shape[1], m, seed)
+    with _one_faiss_thread(faiss):
+        index.train(np.ascontiguousarray(x))
+    return codebook_from_index(index)
+
+
+def _untrained_pq(faiss, d: int, m: int, seed: int):
+    """The faiss IndexPQ (inner product, M sub-vectors x 8 bits) a codebook is trained into, with its k-means parameters."""
+    index = faiss.IndexPQ(d, m, PQ_BITS, faiss.METRIC_INNER_PRODUCT)
     index.pq.cp.seed = seed
     index.pq.cp.max_points_per_centroid = PQ_POINTS_PER_CENTROID
-    index.pq.cp.min_points_per_centroid = 1
+    index.pq.cp.min_points_per_centroid = 1  # small scene sets are fine; faiss would warn per sub-quantiser
+    return index
+
+
+@contextlib.contextmanager
+def _one_faiss_thread(faiss):
+    """faiss on one OpenMP thread while the block runs. Each sub-quantiser's k-means is too small to share between
+    threads: OpenMP barriers made training 8x slower on a busy 2-core machine, one thread is as fast on an idle one."""
     previous = faiss.omp_get_max_threads()
     faiss.omp_set_num_threads(1)
     try:
-        index.train(np.ascontiguousarray(x))
+        yield
     finally:
         faiss.omp_set_num_threads(previous)
-    return codebook_from_index(index)
 
 
 def distinct_rows(x: np.ndarray) -> int:
