@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 from pathlib import Path
 
-from drsplat.defaults import OPENMP_WAIT_POLICY
+from drsplat.defaults import OPENMP_WAIT_POLICY, openmp_wait_policy
 from drsplat.errors import Cancelled, DrsplatError
 from drsplat.utils import CancelToken
 
@@ -79,9 +79,10 @@ def _shipped_env() -> dict:
 
 def _worker_env() -> dict[str, str]:
     """The workers' OpenMP wait policy: the driver's, else OPENMP_WAIT_POLICY. Several workers share a node's cores,
-    where a spinning OpenMP thread takes a core from the others (`drsplat.console.prefer_passive_openmp_waits`; an
-    empty value counts as unset there too)."""
-    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "").strip() or OPENMP_WAIT_POLICY}
+    where a spinning OpenMP thread takes a core from the others (`drsplat.console.prefer_passive_openmp_waits`; a
+    value the runtimes would call invalid, empty included, counts as unset there too)."""
+    given = os.environ.get("OMP_WAIT_POLICY", "")
+    return {"OMP_WAIT_POLICY": given if openmp_wait_policy(given) else OPENMP_WAIT_POLICY}
 
 
 def _host_addresses() -> set[str]:

@@ -11,16 +11,20 @@ import signal
 import sys
 from collections.abc import MutableMapping
 
-from drsplat.defaults import OPENMP_WAIT_POLICY
+from drsplat.defaults import OPENMP_WAIT_POLICY, openmp_wait_policy
 from drsplat.errors import STARTING_NOTE
 
 
 def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) -> None:
     """OMP_WAIT_POLICY = OPENMP_WAIT_POLICY unless the user set it: the drsplat and viewer processes' own setting, made
     before numba or torch loads an OpenMP runtime (each reads it once, at load). Library callers keep theirs. An empty
-    value counts as unset (`OMP_WAIT_POLICY= drsplat ...` and `docker -e OMP_WAIT_POLICY=` clear it so; libgomp calls it
-    invalid and spins: round 67a F5)."""
-    if not environ.get("OMP_WAIT_POLICY", "").strip():
+    value counts as unset (`OMP_WAIT_POLICY= drsplat ...` and `docker -e OMP_WAIT_POLICY=` clear it so); a value the
+    runtimes would call invalid ("pasive") is replaced too, with one line that says so: they would spin (round 68a F15)."""
+    given = environ.get("OMP_WAIT_POLICY", "")
+    if openmp_wait_policy(given) is None:
+        if given.strip():
+            sys.stderr.write(f"drsplat: OMP_WAIT_POLICY={given!r} is neither 'active' nor 'passive'; "
+                             f"using {OPENMP_WAIT_POLICY!r}\n")
         environ["OMP_WAIT_POLICY"] = OPENMP_WAIT_POLICY
 
 

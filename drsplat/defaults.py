@@ -10,6 +10,16 @@ MIN_NORM = 1.1754943508222875e-38
 # its core from every other process: on 2 cores shared with other jobs (load 10) a tiny registration took 4.5 s instead of
 # 0.12 s, its small parallel regions each waiting for a time slice (docs/raster.md, "OpenMP threads that wait")
 OPENMP_WAIT_POLICY = "passive"
+
+
+def openmp_wait_policy(value: str | None) -> str | None:
+    """The wait policy an OpenMP runtime reads from OMP_WAIT_POLICY = `value`, or None where it reads none: libgomp and
+    Intel's runtime take "active" or "passive" in any case, blanks around; anything else (unset, empty, misspelt) they
+    call invalid and leave their threads spinning (round 67a F5, round 68a F15)."""
+    policy = (value or "").strip().lower()
+    return policy if policy in ("active", "passive") else None
+
+
 MAX_TOPK = 1024  # Gaussians kept per pixel at most (top-k buffers are [H, W, k])
 DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)
