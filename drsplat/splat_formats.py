@@ -61,8 +61,8 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, compressed_ply_bytes, dc_from_rgb,
-                           load_ply_report, opacity_logits, save_ply)
+from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
+                           dc_from_rgb, load_ply_report, opacity_logits, read_ply_header, save_ply)
 from drsplat.utils import unreachable_cause, write_bytes_atomic
 
 log = logging.getLogger(__name__)
@@ -163,6 +163,24 @@ def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[Gau
         return load_ply_report(path, purpose)
     cols, order, layout = {"splat": splat_columns, "spz": spz_columns, "checkpoint": checkpoint_columns}[kind](path)
     return assemble_scene(path, cols, order, layout, [], purpose)
+
+
+def declared_rows(path: str | Path) -> int | None:
+    """The Gaussians a scene file holds, read without loading it (a PLY's vertex count, checked against the file's size;
+    a `.splat`'s records), or None where that is not known so cheaply (spz, checkpoints) or the file has a problem its
+    loading names."""
+    path = Path(path)
+    try:
+        kind = scene_format(path)
+        if kind == "splat":
+            return path.stat().st_size // SPLAT_RECORD.itemsize
+        if kind != "ply":
+            return None
+        header = read_ply_header(path)
+        check_element_sizes(path, header, path.stat().st_size)
+    except (InputError, OSError):
+        return None
+    return next((element.count for element in header.elements if element.name == "vertex"), None)
 
 
 def load_scene(path: str | Path, purpose: str | None = None) -> GaussianScene:

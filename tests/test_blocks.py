@@ -606,6 +606,7 @@ def test_cli_memory_budget_errors(tiny, tmp_path):
 def test_a_budget_too_small_is_refused_before_the_fit_stage_renders(tiny, tmp_path, monkeypatch, capsys):
     """The default (fit) mode used to render its probe views first and refuse the budget after; now
     the budget is checked against both modes the probe may pick before any view is rendered."""
+    from drsplat import splat_formats
     from drsplat.cli import main
     from drsplat.registration import driver
 
@@ -613,6 +614,7 @@ def test_a_budget_too_small_is_refused_before_the_fit_stage_renders(tiny, tmp_pa
         raise AssertionError("the fit stage ran before the budget was refused")
 
     monkeypatch.setattr(driver, "fit_stage", no_probe)
+    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)  # past the check before the scene is read
     base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
     assert main(base + ["--memory-budget", "1KB"]) == 1
     assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
@@ -623,7 +625,7 @@ def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tm
     """Round 65a F5: `--near-plane auto` (the default) rendered its evidence, and warned, before the plan refused the
     budget. The plan is checked first, for a fit mode, a plain one and one that solves in one block; with a budget that
     fits, the decision is made and the run registers."""
-    from drsplat import frames
+    from drsplat import frames, splat_formats
     from drsplat.cli import main
 
     decided = []
@@ -632,12 +634,61 @@ def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tm
         raise AssertionError("the near plane was decided before the budget was refused")
 
     monkeypatch.setattr(frames, "near_plane_as_trained", no_decision)
+    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)  # past the check before the scene is read
     base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
             "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", mode]
     assert main(base + ["--memory-budget", "1KB"]) == 1
     assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
     monkeypatch.setattr(frames, "near_plane_as_trained", lambda *args, **kwargs: decided.append(1) or frames.NEAR)
     assert main(base + ["--memory-budget", "8GB"]) == 0 and decided == [1] and (tmp_path / "o.ply").exists()
+
+
+def test_a_budget_below_the_scene_s_own_size_is_refused_before_the_scene_is_read(tiny, inputs, tmp_path, monkeypatch, capsys):
+    """Round 67b F3: --memory-budget 300MB for a 3M-Gaussian scene was refused only after loading it (1.02 GB resident,
+    5-9 s). The file's row count bounds the plan from below before it is read (`plan.refuse_below_scene_floor`), never
+    above any plan's figure: a budget the plan would accept is not refused there."""
+    from drsplat import splat_formats
+    from drsplat.cli import main
+    from drsplat.memory import current_rss
+    from drsplat.registration import driver
+    from drsplat.registration.options import RegisterOptions
+    from drsplat.registration.plan import refuse_below_scene_floor
+
+    scene, cameras = inputs
+    assert splat_formats.declared_rows(tiny / "scene.ply") == scene.num_gaussians
+    for mode in ("paper", "fit-check-vote-reject", "solve"):
+        run = driver.prepare_run(scene, cameras, tiny / "features", RegisterOptions(aggregate=mode))
+        rss = current_rss()
+        refuse_below_scene_floor(driver._memory_plan(run, rss).views, scene.num_gaussians, "s", base=rss)  # the floor is below every plan
+    with pytest.raises(DrsplatError, match=r"too small for this scene \(s\): its 3,000,000 Gaussians alone .* need more than 1\.2 GB"):
+        refuse_below_scene_floor(1 << 30, 3_000_000, "s", base=0)
+
+    def not_read(*args, **kwargs):
+        raise AssertionError("the scene was read before the budget was refused")
+
+    monkeypatch.setattr(splat_formats, "load_scene_report", not_read)
+    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: 3_000_000)
+    base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
+    assert main(base + ["--memory-budget", "300MB"]) == 1
+    err = capsys.readouterr().err
+    assert "--memory-budget 300 MB is too small for this scene" in err and "3,000,000 Gaussians" in err and not (tmp_path / "o.ply").exists()
+
+
+def test_declared_rows_reads_a_scene_file_s_size_without_loading_it(tiny, inputs, tmp_path):
+    """A PLY's vertex count, a .splat's records; None where the file has a problem its loading names (a header declaring
+    more rows than the file holds is not taken at its word) or the count is not in a header (spz)."""
+    from drsplat.splat_formats import declared_rows, save_scene
+
+    scene, _ = inputs
+    n = scene.num_gaussians
+    save_scene(scene, tmp_path / "s.splat")
+    save_scene(scene, tmp_path / "s.spz")
+    assert declared_rows(tmp_path / "s.splat") == n and declared_rows(tmp_path / "s.spz") is None
+    data = (tiny / "scene.ply").read_bytes()
+    (tmp_path / "lying.ply").write_bytes(data.replace(f"element vertex {n}\n".encode(), f"element vertex {n * 1000}\n".encode(), 1))
+    (tmp_path / "cut.ply").write_bytes(data[: len(data) // 2])
+    assert declared_rows(tmp_path / "lying.ply") is None and declared_rows(tmp_path / "cut.ply") is None
+    assert declared_rows(tmp_path / "missing.ply") is None
 
 
 @pytest.mark.parametrize("mode", ["fit-check-vote-reject", "paper"])

@@ -160,8 +160,12 @@ def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: l
     from drsplat.memory import trim_heap
     from drsplat.registration import register
     from drsplat.registration.driver import prepare_run, refuse_if_over_budget
-    from drsplat.splat_formats import load_scene_report
+    from drsplat.registration.plan import refuse_below_scene_floor
+    from drsplat.splat_formats import declared_rows, load_scene_report
 
+    rows = declared_rows(args.scene) if options.memory_budget is not None else None
+    if rows is not None:  # a budget below the scene's own size is refused before the scene is loaded over it
+        refuse_below_scene_floor(options.memory_budget, rows, shown_path(args.scene))
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file

@@ -152,6 +152,25 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
                       pair_buffer=buffer_bytes(dim, total_masks, max_masks, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)))
 
 
+SCENE_FLOOR_BYTES = 56  # a loaded scene's fewest bytes per Gaussian: means, rotation, log scales, opacity and DC colour (float32)
+
+
+def refuse_below_scene_floor(budget: int, num_gaussians: int, what: str, base: int | None = None) -> None:
+    """Refuse a --memory-budget below what any plan of a scene of `num_gaussians` Gaussians names, before the scene is
+    read (round 67b F3: 300 MB was refused for a 3M scene only after loading it to 1.02 GB RSS).
+
+    floor = base + OVERHEAD + N·(SCENE_FLOOR_BYTES + GEOMETRY_BYTES + INDEX_BYTES + PROJECTION_BYTES) ≤ MemoryPlan.views,
+    whose base (resident memory once the scene is read) holds at least the scene. N counts the file's rows: a file whose
+    rows are mostly dropped on loading (non-finite) can be refused a budget its kept rows would fit. base: this process's
+    resident memory (None: now)."""
+    floor = (current_rss() if base is None else base) + OVERHEAD + num_gaussians * (SCENE_FLOOR_BYTES + GEOMETRY_BYTES + INDEX_BYTES + PROJECTION_BYTES)
+    if budget < floor:
+        raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene ({what}): its {num_gaussians:,} Gaussians alone (the "
+                           f"scene, its geometry and one view's projection) need more than {format_size(floor)}, before its views and "
+                           "masks are counted; a budget above that is planned once the scene is read, and a refusal then names the "
+                           "budget that fits")
+
+
 def budget_hint(plan: MemoryPlan, fits: int) -> str:
     """A --memory-budget to suggest, as typed ("1.2GB", "800MB"): `fits` rounded down to 0.1 GB (1 MB
     below 1 GB), or the plan's smallest budget rounded up when that rounding would fall below it."""
