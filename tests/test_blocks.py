@@ -748,12 +748,20 @@ def test_the_early_budget_check_counts_what_the_decision_leaves_resident(tiny, i
     assert held[-1] == frames.DECISION_HELD_BYTES + frames.FIRST_COMPILE_HELD_BYTES
 
 
-def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_decided(tiny, tmp_path, capsys):
+@pytest.mark.parametrize("refused", [False, True])
+def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_decided(tiny, tmp_path, capsys, monkeypatch, refused):
     """Round 67a F1: under `--near-plane auto` (the default) the budget check before the decision paired the cameras
-    with the feature files as the run does after it, and every warning of that pairing came twice."""
+    with the feature files as the run does after it, and every warning of that pairing came twice. Round 68a F7: when
+    that quiet check refused the run, its warnings (which can explain the refusal) were not said at all; now once."""
     import shutil
 
+    from drsplat import splat_formats
     from drsplat.cli import main
+
+    budget = []
+    if refused:  # a budget the plan refuses, past the check before the scene is read
+        monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)
+        budget = ["--memory-budget", "1KB"]
 
     features = tmp_path / "features"
     shutil.copytree(tiny / "features", features)
@@ -761,8 +769,10 @@ def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_dec
     for suffix in ("_s.npy", "_f.npy"):  # a pair that matches no camera
         shutil.copy(features / f"{stem}{suffix}", features / f"stray{suffix}")
     assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(features),
-                 "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper"]) == 0
-    assert capsys.readouterr().err.count("1 feature file in") == 1  # "... matches no camera and is ignored", once
+                 "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper", *budget]) == (1 if refused else 0)
+    err = capsys.readouterr().err
+    assert err.count("1 feature file in") == 1, err  # "... matches no camera and is ignored", once
+    assert ("too small for this scene" in err) == refused, err
 
 
 @pytest.mark.parametrize("n", [30, 300])

@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
 def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: list[Camera], options: RegisterOptions, decided: bool) -> int:
     """`run` from the scene on, `lock` (the run's lock, or None) held: reads the scene, decides the cameras' frame, near plane
     and principal points, and registers."""
-    from drsplat.errors import shown_path
+    from drsplat.errors import DrsplatError, shown_path
     from drsplat.frames import DECISION_HELD_BYTES, FIRST_COMPILE_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
     from drsplat.raster import kernels_cached
     from drsplat.memory import trim_heap
@@ -176,7 +176,11 @@ def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: l
         if decided:
             # the run says its warnings; the decision's kernels and image readers stay resident, and a first run's compiler
             held = DECISION_HELD_BYTES + (FIRST_COMPILE_HELD_BYTES if options.engine == "numba" and not kernels_cached() else 0)
-            refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True), held_later=held)
+            try:
+                refuse_if_over_budget(prepare_run(scene, framed, args.features, options, quiet=True), held_later=held)
+            except DrsplatError:  # its warnings explain the refusal (feature files that match no camera): said once, then it
+                prepare_run(scene, framed, args.features, options)  # (round 68a F7: a fixed plane's run said them, auto's did not)
+                raise
 
     # trainers' own worlds, cameras, near planes and principal points
     cameras, plane = cameras_and_plane_as_trained(scene, cameras, args.source, args.principal_point, args.near_plane, what=str(args.scene),
