@@ -24,7 +24,6 @@ import dataclasses
 
 import importlib
 import logging
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -37,7 +36,7 @@ from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
-from drsplat.utils import spread_rows
+from drsplat.utils import compiled_here, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -1152,13 +1151,10 @@ ENGINES: dict[str, Engine] = {
 
 
 def kernels_cached() -> bool:
-    """Whether numba's cache already holds the compositor (`composite_topk`, compiled with `cache=True`): False on a
-    first run, which compiles the rasterizer's and registration's kernels (81 s of a 20-view registration on 2 loaded
-    cores, then 3.9 s: round 67c F6). True when the cache cannot be asked (numba's internals moved)."""
-    try:
-        return os.path.exists(kernels.composite_topk._cache._cache_file._index_path)
-    except AttributeError:
-        return True
+    """Whether numba's cache already holds the compositor (`composite_topk`) for this machine (`utils.compiled_here`):
+    False on a first run, which compiles the rasterizer's and registration's kernels (81 s of a 20-view registration on
+    2 loaded cores, then 3.9 s: round 67c F6)."""
+    return compiled_here(kernels.composite_topk)
 
 
 def get_engine(name: str) -> Engine:

@@ -651,6 +651,19 @@ class CancelToken:
             raise Cancelled("cancelled by the user")
 
 
+def compiled_here(kernel: object) -> bool:
+    """Whether numba's cache holds `kernel` (an `njit(cache=True)` dispatcher) as this process would load it: compiled
+    from this source and numba version for this machine's CPU (numba keys its index by both; a cache another CPU type
+    filled, or one left by an older drsplat or numba, is compiled again: round 68a F4). True when the cache cannot be
+    asked (no cache, or numba's internals moved)."""
+    try:
+        cache = kernel._cache
+        wanted = cache._index_key(None, kernel.targetctx.codegen())[1:]  # (CPU, code's hashes): the key without its signature
+        return any(tuple(key[1:]) == wanted for key in cache._cache_file._load_index())
+    except Exception:  # noqa: BLE001 - a cache numba cannot read is its own to report; this only decides a note
+        return True
+
+
 def progress(iterable: Iterable[T], desc: str, total: int | None = None, enabled: bool = True, unit: str = "it") -> Iterable[T]:
     """Wrap an iterable with a tqdm bar on stderr (disabled when not wanted)."""
     from tqdm.auto import tqdm

@@ -450,12 +450,67 @@ def test_a_first_run_that_compiles_the_kernels_says_so(tiny, tmp_path, caplog, m
     scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)[:2]
     raster.rasterize_topk(scene, cams[0], 4)
     assert raster.kernels_cached()
-    for cached in (True, False):
-        monkeypatch.setattr(driver, "kernels_cached", lambda: cached)
+    # round 68a F4: --engine torch compiles the host's sums (the coalescing kernel) too, and said nothing
+    for engine, composite, coalesce in [("numba", True, True), ("numba", False, True), ("numba", True, False), ("torch", False, True),
+                                        ("torch", True, False)]:
+        monkeypatch.setattr(driver, "kernels_cached", lambda: composite)
+        monkeypatch.setattr(driver, "coalesce_kernels_cached", lambda: coalesce)
         caplog.clear()
         with caplog.at_level(logging.INFO):
-            register(scene, cams, tiny / "features", tmp_path / f"reg{cached}.ply", RegisterOptions(aggregate="paper"), show_progress=False)
-        assert ("numba compiles the kernels" in caplog.text) == (not cached)
+            register(scene, cams, tiny / "features", tmp_path / f"reg_{engine}{composite}{coalesce}.ply",
+                     RegisterOptions(aggregate="paper", engine=engine), show_progress=False)
+        assert ("numba compiles the kernels" in caplog.text) == (not coalesce or (engine == "numba" and not composite)), (engine, composite, coalesce)
+
+
+def test_a_first_run_is_said_by_the_command_before_it_reads_the_scene(tiny, tmp_path, caplog, monkeypatch):
+    """Round 68a F4: the note came at 21 s of a 36 s first run (the scene's loading and the near plane's decision had
+    compiled by then), after the decision's warning under auto. `drsplat register` says it first, once."""
+    import drsplat.registration.driver as driver
+    from drsplat import splat_formats
+    from drsplat.cli import main
+
+    events = []
+    loaded = splat_formats.load_scene_report
+    monkeypatch.setattr(splat_formats, "load_scene_report", lambda *a, **k: events.append("scene") or loaded(*a, **k))
+    monkeypatch.setattr(driver, "kernels_cached", lambda: False)
+    monkeypatch.setattr(driver, "log", _Recorder(driver.log, events))
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper"]) == 0
+    notes = [i for i, e in enumerate(events) if e == "note"]
+    assert len(notes) == 1 and notes[0] < events.index("scene"), events
+
+
+class _Recorder:
+    """A logger that records its "numba compiles" note in `events` and passes every call on."""
+
+    def __init__(self, log, events: list) -> None:
+        self._log, self._events = log, events
+
+    def info(self, msg, *args, **kwargs):
+        if "numba compiles the kernels" in msg:
+            self._events.append("note")
+        self._log.info(msg, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._log, name)
+
+
+def test_compiled_here_asks_for_this_cpu_s_kernels(tiny):
+    """Round 68a F4: a cache that holds the kernels compiled for another CPU type (a cache folder shared by unlike nodes,
+    or copied) is compiled again, 35 s, and `kernels_cached` said it was cached (it asked only whether the index file
+    existed). Compiled for this CPU: cached; the same cache read as for a generic x86-64: not."""
+    import os
+    import subprocess
+    import sys
+
+    from drsplat import raster
+
+    raster.rasterize_topk(load_ply(tiny / "scene.ply"), load_cameras(tiny)[0], 4)
+    ask = "from drsplat import raster; print(raster.kernels_cached())"
+    here = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=300)
+    other = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=300,
+                           env={**os.environ, "NUMBA_CPU_NAME": "generic"})
+    assert (here.stdout.strip(), other.stdout.strip()) == ("True", "False"), (here.stderr, other.stderr)
 
 
 def test_counts_of_one_agree_in_the_pairing_warning_and_the_summary(tiny, tmp_path, caplog):

@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions
     from drsplat.registration.checkpoint import checkpoint_path_for, lock_run
+    from drsplat.registration.driver import say_if_kernels_compile
     from drsplat.splat_formats import written_format
 
     if written_format(args.out) != "ply":
@@ -142,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     # near plane's decision), and the lock is held from here to the registration's end (round 68a F1: taken and released, it
     # let a second run through while the first read its scene); no folder, no run in it: the registration makes the folder
     # once the inputs are read (round 68b F1: a run whose scene was missing left it empty)
+    say_if_kernels_compile(options)  # before the scene is read: its loading and the near plane's decision compile first (round 68a F4)
     checkpoint = checkpoint_path_for(args.out)
     lock = lock_run(checkpoint) if checkpoint.parent.is_dir() else None
     try:
@@ -195,7 +197,8 @@ def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: l
     token = CancelToken()
     with cancel_on_signals(token, "the current step (a view, the fit stage's probe view, a run of the check's masks or a sub-quantiser "
                                   "of the scene codebook)"):
-        register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token, lock=lock)
+        register(scene, cameras, args.features, args.out, options, show_progress=not args.no_progress, cancel=token, lock=lock,
+                 say_first_run=False)
     if token.cancelled:  # the interrupt came while the output was being finished: it was completed, not left half done
         log.warning("the interrupt came after the last view; the output was finished and written to %s", shown_path(args.out))
     return 0

@@ -21,6 +21,7 @@ import numpy as np
 from drsplat._sort_kernels import stable_order
 from drsplat.memory import small_page_full, small_page_zeros
 from drsplat.scene import counted
+from drsplat.utils import compiled_here
 
 
 @numba.njit(cache=True)
@@ -249,3 +250,9 @@ def coalesce_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarra
     sums = np.zeros(keys.size)
     np.add.at(sums, inverse, w[keep])
     return keys % base, keys // base, sums, int(np.count_nonzero(keep))
+
+
+def coalesce_kernels_cached() -> bool:
+    """Whether numba's cache holds the pairs' coalescing kernel for this machine (`utils.compiled_here`): every engine's
+    sums on the host run it, so a run that must compile it is a first run (`driver.say_if_kernels_compile`)."""
+    return compiled_here(_coalesce_parts_kernel)

@@ -49,6 +49,7 @@ from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage
 from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
+from drsplat.registration.coalesce import coalesce_kernels_cached
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import NEAR_PLANE_COMMENT, RegisterOptions, near_plane_comment
@@ -349,6 +350,7 @@ def run_registration(
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
     lock: RunLock | None = None,
+    say_first_run: bool = True,
 ) -> RegistrationResult:
     """Register `run` into `target` (module docstring).
 
@@ -359,6 +361,8 @@ def run_registration(
     masks' embeddings in the result (always collected for a scene codebook). lock: `checkpoint`'s lock when the caller
     took it before reading the run's inputs (`drsplat register`: round 68a F1, a second run started while the first read
     its scene passed a lock taken and released), used instead of taking it here; released here as the run's own.
+    say_first_run: note a first run's compiling (`say_if_kernels_compile`); False where the caller said it before its own
+    work (`drsplat register`, whose scene loading and near-plane decision compile kernels first).
     """
     t_start = time.perf_counter()
     codebook = resolve_codebook(run.options.codebook, run.dim)  # a bad codebook fails now, not after registering
@@ -366,20 +370,35 @@ def run_registration(
         lock = lock_run(checkpoint)
     try:
         return _register_locked(run, target, codebook, lock, t_start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, out=out,
-                                collect_embeddings=collect_embeddings, show_progress=show_progress, on_progress=on_progress, cancel=cancel)
+                                collect_embeddings=collect_embeddings, show_progress=show_progress, on_progress=on_progress, cancel=cancel,
+                                say_first_run=say_first_run)
     finally:
         if lock is not None:  # released by the checkpoint that took it over; here only when the run stopped before making it
             lock.release()
 
 
+def say_if_kernels_compile(options: RegisterOptions) -> None:
+    """One note when this process's registration will compile numba's kernels rather than load them from its cache: a first
+    run on a machine spent 81 s of 92 compiling without a word (round 67c F6). Asked of the compositor (the numba engine) and
+    the pairs' coalescing (every engine's sums on the host: round 68a F4, `--engine torch` compiled for 70 s unsaid), for
+    this CPU and code (`utils.compiled_here`: a cache filled by another CPU type is compiled again). Not on Ray, whose
+    workers compile."""
+    if options.place == "ray":
+        return
+    if (options.engine != "numba" or kernels_cached()) and coalesce_kernels_cached():
+        return
+    log.info("first run of this drsplat on this machine: numba compiles the kernels as they are first used (a minute or two; "
+             "later runs load them from its cache)")
+
+
 def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t_start: float, *, checkpoint: Path | None,
                      checkpoint_every: int, out: Path | None, collect_embeddings: bool, show_progress: bool,
-                     on_progress: Callable[[int, int], None] | None, cancel: CancelToken | None) -> RegistrationResult:
+                     on_progress: Callable[[int, int], None] | None, cancel: CancelToken | None,
+                     say_first_run: bool) -> RegistrationResult:
     """`run_registration` once the run's lock is held (`lock`, None without a checkpoint)."""
     load_rendering_engine(run)
-    if run.options.place != "ray" and run.options.engine == "numba" and not kernels_cached():  # a slow first run is said (round 67c F6)
-        log.info("first run on this machine: numba compiles the kernels as they are first used (a minute or two; later runs load "
-                 "them from its cache)")
+    if say_first_run:
+        say_if_kernels_compile(run.options)
     stamps = feature_stamps(run.features_dir, run.views)  # before any view is read: a file changed during the run is caught
     memory_base = _check_memory_before_probe(run)
     probe = _fit_stage(run, cancel)
@@ -820,13 +839,14 @@ def register(
     on_progress: Callable[[int, int], None] | None = None,
     cancel: CancelToken | None = None,
     lock: RunLock | None = None,
+    say_first_run: bool = True,
 ) -> RegistrationResult:
     """Register `features_dir` onto `scene` and write the registered PLY `out` atomically.
 
     resumable: keep a checkpoint beside `out` while working (`checkpoint_path_for(out)`): a cancelled
     or killed run resumes from it; it is deleted once `out` is written. checkpoint_every: views
     between the checkpoint's fsyncs and the mode's statistics snapshots. lock: the checkpoint's lock, already
-    taken by the caller (`run_registration`).
+    taken by the caller (`run_registration`). say_first_run: as `run_registration`'s.
     """
     out = Path(out)
     scene = widened_scene(scene)  # float16 arrays as float32: numba loads no float16
@@ -842,7 +862,8 @@ def register(
     warn_if_scene_misses_its_images(scene, run.selection.views, options.near_plane)
     target = PlyTarget(scene, out, manifest_model_id(manifest), cancel, clip_weights=manifest_weights(manifest))
     result = run_registration(run, target, checkpoint=checkpoint_path_for(out) if resumable else None, checkpoint_every=checkpoint_every, out=out,
-                              show_progress=show_progress, on_progress=on_progress, cancel=cancel, lock=lock if resumable else None)
+                              show_progress=show_progress, on_progress=on_progress, cancel=cancel, lock=lock if resumable else None,
+                              say_first_run=say_first_run)
     log.info("%s: %s (%d unassigned, %s), %s field, %s in %s, %.1f s", out, counted(result.num_written, "Gaussian", "Gaussians"),
              n_unassigned(result), "kept with lang_weight 0" if options.keep_unassigned else "pruned", result.field_kind,
              counted(result.num_views, "view", "views"), counted(result.num_blocks, "block", "blocks"), result.seconds)
