@@ -962,7 +962,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     dataparser_transforms.json beside the file, or an `applied_transform`) the shared ones win, as
     nerfstudio reads them (it never reads a frame's own when the file has one); frames that disagree
     with the shared values are said in one warning either way. OpenCV distortion (k1, k2, p1, p2) is kept on the
-    camera and removed by `load_image` (within `check_distortion`'s bound); fisheye models are refused. Every value is type- and
+    camera and removed by `load_image` (within `check_distortion`'s bound); fisheye models (and instant-ngp's other lenses:
+    `refuse_other_lens`) are refused. Every value is type- and
     range-checked (`validate_camera`); errors name the frame and the field.
     """
     meta = _json(path)
@@ -1014,6 +1015,10 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         if "camera_angle_x" in frame and "fl_x" not in frame and not (shared_wins and "fl_x" in meta):
             # the frame's own lens: the file's shared fl_x / fl_y are another's (nerfstudio never reads camera_angle_x)
             rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
+        if not shared_wins and any(key in frame for key in FOCAL_FIELDS):
+            # instant-ngp reads a frame's focal lengths as a whole, one axis's setting both (read_focal_length): a frame's own
+            # fl_x beside the file's fl_y made a 2:1 camera no trainer used (round 69b F3)
+            rec = {k: v for k, v in rec.items() if k not in FOCAL_FIELDS or k in frame}
         if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
             raise InputError(path, f"frame {i} has no image path string", field="file_path")
         check_image_name(path, frame["file_path"], f"frame {i}", "file_path")
@@ -1033,6 +1038,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         else:
             width, height = _image_size(image)
             _check_half_size(path, rec, (width, height), image, where)
+        refuse_other_lens(path, rec, where)
         fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where)
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
@@ -1088,11 +1094,32 @@ NERFSTUDIO_SHARED_DISTORTION = ("k1", "k2", "k3", "p1", "p2")  # one of these at
 SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", *NERFSTUDIO_DISTORTION)
 
 
+FOCAL_FIELDS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y")  # a transforms.json object's focal lengths
+FISHEYE_FIELDS = ("k1", "k2", "k3", "k4")  # instant-ngp's OpenCV fisheye coefficients (`is_fisheye`)
+OTHER_LENS_FIELDS = ("latlong", "equirectangular", "orthographic")  # instant-ngp's lens switches that are no pinhole when true
+
+
+def refuse_other_lens(path: Path, rec: dict, where: str) -> None:
+    """Refuse the lenses instant-ngp reads from a transforms.json object besides the pinhole and OpenCV's
+    radial-tangential one (its `read_lens`): `is_fisheye` with a non-zero k1..k4 (OpenCV's equidistant fisheye model,
+    which colmap2nerf.py writes for COLMAP's fisheye cameras; k1, k2 were read as radial-tangential coefficients: round
+    69b F1), an f-theta lens (`ftheta_p0`..), and `latlong`, `equirectangular` or `orthographic` set true. `is_fisheye`
+    with every coefficient 0 is a pinhole there, and here."""
+    fisheye = rec.get("is_fisheye") in (True, 1) and any(_number(path, rec, key, 0.0, where=where) != 0 for key in FISHEYE_FIELDS)
+    lens = "is_fisheye" if fisheye else next((key for key in OTHER_LENS_FIELDS if rec.get(key) in (True, 1)), None)
+    lens = lens or next((key for key in rec if isinstance(key, str) and key.startswith("ftheta_p")), None)
+    if lens is not None:
+        kind = {"is_fisheye": "an OpenCV fisheye lens (is_fisheye with k1..k4)", "latlong": "a lat-long panorama",
+                "equirectangular": "an equirectangular panorama", "orthographic": "an orthographic camera"}.get(lens, "an f-theta lens")
+        raise InputError(path, f"describes {kind}{where}, which no pinhole camera is; {UNDISTORT_HINT}", field=lens)
+
+
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:
     """(fx, fy, the fields they came from) of a transforms.json frame `rec` (its own keys over the
     file's): fl_x and fl_y (fy = fl_x without fl_y), else the fields of view camera_angle_x and
     camera_angle_y, or camera_angle_x and fl_y (fy = fx without either, so that angle must give a
-    focal length the height allows too: `_focal_from_angle`). Errors about them name these fields, never fx or fy."""
+    focal length the height allows too: `_focal_from_angle`); a y focal length alone (fl_y or camera_angle_y) gives both,
+    as instant-ngp reads it. Errors about them name these fields, never fx or fy."""
     if "fl_x" in rec:
         fx = _number(path, rec, "fl_x", where=where)
         fy = _number(path, rec, "fl_y", fx, where=where)
@@ -1107,6 +1134,12 @@ def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -
             return fx, _number(path, rec, "fl_y", where=where), {"fx": "camera_angle_x", "fy": "fl_y"}
         fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where, also=("height", height))
         return fx, fx, {"fx": "camera_angle_x", "fy": "camera_angle_x"}
+    if "fl_y" in rec:
+        fy = _number(path, rec, "fl_y", where=where)
+        return fy, fy, {"fx": "fl_y", "fy": "fl_y"}
+    if "camera_angle_y" in rec:
+        fy = _focal_from_angle(path, rec, "camera_angle_y", ("height", height), where, also=("width", width))
+        return fy, fy, {"fx": "camera_angle_y", "fy": "camera_angle_y"}
     raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")
 
 
@@ -1165,7 +1198,8 @@ def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], wh
     for name, size in (side, also) if also is not None else (side,):
         low, high = intrinsic_bounds(size, MIN_FOCAL_RATIO)  # `_check_intrinsic`'s, so it never names fx for this angle
         if not low <= focal <= high:
-            shared = f" (used for the {name} too: the file has no camera_angle_y)" if name != side[0] else ""
+            other = "camera_angle_y" if key == "camera_angle_x" else "camera_angle_x"
+            shared = f" (used for the {name} too: the file has no {other})" if name != side[0] else ""
             widest, narrowest = (2.0 * math.atan(0.5 * side[1] / f) for f in (low, high))
             raise InputError(path, f"has a field of view of {angle:.9g} rad{where}, a focal length of {focal:g} pixels{shared} for an image "
                              f"{size} pixels in {name}; it must lie in [{low:g}, {high:g}] ({MIN_FOCAL_RATIO:g} to {MAX_INTRINSIC_RATIO:g} "

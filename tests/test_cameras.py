@@ -1140,6 +1140,43 @@ def test_a_frames_own_camera_angle_x_wins_over_the_files_shared_fl_x(tmp_path):
     assert own.fx == pytest.approx(32.0 / np.tan(0.6), rel=1e-12) and own.fy == 40.0
 
 
+@pytest.mark.parametrize("frame, want", [({"fl_x": 100.0}, (100.0, 100.0)), ({"fl_y": 80.0}, (80.0, 80.0)),
+                                         ({"fl_x": 100.0, "fl_y": 90.0}, (100.0, 90.0)),
+                                         ({"camera_angle_y": 2 * np.arctan(0.5)}, (48.0, 48.0))])
+def test_a_frames_own_focal_length_on_one_axis_sets_both_as_instant_ngp_reads_it(tmp_path, frame, want):
+    """Round 69b F3: a frame's own fl_x beside the file's shared fl_x = fl_y = 50 gave (100, 50), a 2:1 camera no
+    trainer used (instant-ngp: (100, 100), its read_focal_length sets both axes from one; nerfstudio: the shared (50, 50)).
+    A y focal length alone, at the file's level or a frame's, sets both too."""
+    (camera,) = load_cameras(_transforms_dataset(tmp_path / "frame", fl_x=50.0, fl_y=50.0, frame=frame))
+    assert (camera.fx, camera.fy) == pytest.approx(want, rel=1e-12)
+    (alone,) = load_cameras(_transforms_dataset(tmp_path / "file", **frame))
+    assert (alone.fx, alone.fy) == pytest.approx(want, rel=1e-12)
+    (nerfstudio,) = load_cameras(_transforms_dataset(tmp_path / "ns", fl_x=50.0, fl_y=50.0, applied_transform=np.eye(4)[:3].tolist(),
+                                                     frame=frame))
+    assert (nerfstudio.fx, nerfstudio.fy) == (50.0, 50.0)  # nerfstudio's shared values win
+
+
+@pytest.mark.parametrize("lens, shown", [({"is_fisheye": True, "k1": 0.05}, "an OpenCV fisheye lens"),
+                                         ({"is_fisheye": True, "k1": 0, "k2": 0, "k3": 0, "k4": 0.01}, "an OpenCV fisheye lens"),
+                                         ({"latlong": True}, "a lat-long panorama"), ({"equirectangular": True}, "an equirectangular panorama"),
+                                         ({"ftheta_p0": 0.0, "ftheta_p1": 0.01}, "an f-theta lens")])
+@pytest.mark.parametrize("level", ["file", "frame"])
+def test_instant_ngp_s_other_lenses_are_refused_naming_the_lens(tmp_path, lens, shown, level):
+    """Round 69b F1: instant-ngp's `is_fisheye` (colmap2nerf.py writes it for COLMAP's fisheye cameras, with k1, k2) was
+    ignored, and its k1 read as OpenCV's radial-tangential coefficient: images resampled with the wrong lens, silently.
+    Its f-theta, lat-long and equirectangular lenses were read as pinholes. Each is refused, naming its field."""
+    root = _transforms_dataset(tmp_path, fl_x=50.0, **(lens if level == "file" else {"frame": lens}))
+    field = next(iter(lens)) if "is_fisheye" not in lens else "is_fisheye"
+    with pytest.raises(InputError, match=rf"field '{field}': describes {shown}( \(is_fisheye with k1\.\.k4\))? in frame 0, which no pinhole"):
+        load_cameras(root)
+
+
+def test_is_fisheye_without_coefficients_is_a_pinhole(tmp_path):
+    """instant-ngp reads `is_fisheye` with k1..k4 all 0 as a pinhole (its lens mode stays Perspective): so does drsplat."""
+    (camera,) = load_cameras(_transforms_dataset(tmp_path, fl_x=50.0, is_fisheye=True, k1=0, k2=0, k3=0, k4=0))
+    assert camera.fx == 50.0 and camera.distortion is None
+
+
 def test_a_colmap_camera_id_past_2_31_in_cameras_bin_is_read_as_images_bin_refers_to_it(tmp_path):
     """Round 39: COLMAP's camera_t is uint32; cameras.bin's id was read as int32, so a model whose camera id is
     3,000,000,000 (pycolmap writes such models) was refused with an error blaming images.bin."""
