@@ -25,7 +25,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from drsplat.errors import InputError
-from drsplat.scene import MAX_COORDINATE, quat_to_rotmat
+from drsplat.scene import MAX_COORDINATE, counted, quat_to_rotmat
 from drsplat.utils import atomic_path, read_json, regular_file
 
 log = logging.getLogger(__name__)
@@ -1385,7 +1385,12 @@ def _find_scannet(src: Path) -> Path | None:
 
 
 def _read_scannet(scene_dir: Path, require_images: bool) -> tuple[list[Camera], list[str]]:
-    return load_scannet_cameras(scene_dir), []
+    """ScanNet's cameras, and with `require_images` those whose colour image is missing left out and named (color/ is often
+    exported at a frame skip while pose/ holds every frame: round 69b F2, they were kept without an image)."""
+    cameras = load_scannet_cameras(scene_dir)
+    if not require_images:
+        return cameras, []
+    return [c for c in cameras if c.image_path is not None], [f"{c.name}.jpg" for c in cameras if c.image_path is None]
 
 
 def _scannet_files(scene_dir: Path) -> list[Path]:
@@ -1646,8 +1651,9 @@ def load_cameras(source: str | Path, resolution: float = -1, require_images: boo
     cameras, missing = dataset_reader(kind).read(path, require_images)
     if missing:
         shown = ", ".join(missing[:MISSING_SHOWN]) + (f" and {len(missing) - MISSING_SHOWN} more" if len(missing) > MISSING_SHOWN else "")
-        log.warning("%s: %d frame(s) skipped because their image is missing or not a regular file (%s; %d cameras kept)",
-                    path, len(missing), shown, len(cameras))
+        log.warning("%s: %s skipped because %s missing or not a regular file (%s; %s kept)", path,
+                    counted(len(missing), "frame", "frames"), "its image is" if len(missing) == 1 else "their images are", shown,
+                    counted(len(cameras), "camera", "cameras"))
     if not cameras:
         raise InputError(path, "yields no usable camera" + (f" (every image file is missing: {_missing_hint(kind, path, missing[0])})" if missing else ""))
     _check_unique_names(path, kind, cameras)
@@ -1963,7 +1969,8 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
     """Cameras of an exported ScanNet scene: pose/<i>.txt (camera-to-world), intrinsic/intrinsic_color.txt, color/<i>.jpg.
 
     Frames whose pose is non-finite (ScanNet marks tracking failures with −inf) are skipped and
-    counted in a warning. Cameras are named by the frame stem, like the images.
+    counted in a warning. Cameras are named by the frame stem, like the images; a frame without its colour image has
+    image_path None (`load_cameras` leaves it out where images are needed).
     """
     scene_dir = Path(scene_dir)
     pose_dir = scene_dir / "pose"
@@ -1974,16 +1981,21 @@ def load_scannet_cameras(scene_dir: str | Path, stride: int = 1) -> list[Camera]
     poses = sorted(pose_dir.glob("*.txt"), key=lambda p: (len(p.stem), p.stem))[:: max(1, stride)]
     cameras, skipped = [], 0
     size: tuple[int, int] | None = None
+
+    def colour_image(stem: str) -> Path | None:
+        return next((scene_dir / "color" / f"{stem}{ext}" for ext in (".jpg", ".png") if (scene_dir / "color" / f"{stem}{ext}").is_file()), None)
+
     for pose_path in poses:
         c2w = _read_matrix(pose_path)
         if not np.isfinite(c2w).all():
             skipped += 1
             continue
-        image = next((scene_dir / "color" / f"{pose_path.stem}{ext}" for ext in (".jpg", ".png") if (scene_dir / "color" / f"{pose_path.stem}{ext}").exists()), None)
-        if size is None:
-            if image is None:
-                raise InputError(scene_dir / "color", f"no colour image for frame {pose_path.stem} (needed for the image size)")
-            size = _image_size(image)
+        image = colour_image(pose_path.stem)
+        if size is None:  # every frame's, from the first colour image there is (frames without one are kept for `register`)
+            sized = image or next((found for p in poses if (found := colour_image(p.stem)) is not None), None)
+            if sized is None:
+                raise InputError(scene_dir / "color", f"no colour image for any frame (needed for the image size; e.g. {pose_path.stem}.jpg)")
+            size = _image_size(sized)
         check_rotation(pose_path, f"frame {pose_path.stem}", c2w[:3, :3], "rotation")  # checked before -Rᵀ c: near 1e308 it overflows
         check_centre(pose_path, f"frame {pose_path.stem}", c2w[:3, 3], "translation")
         R = c2w[:3, :3].T

@@ -108,7 +108,7 @@ def test_fox_missing_frames_counted_once(caplog):
         cameras = load_cameras(shared_path("fox"))
     assert len(cameras) == 50
     warnings = [r.getMessage() for r in caplog.records if "missing" in r.getMessage()]
-    assert len(warnings) == 1 and "17 frame(s)" in warnings[0]
+    assert len(warnings) == 1 and "17 frames skipped" in warnings[0]
     assert cameras[0].distortion is not None and cameras[0].distortion[0] == pytest.approx(0.0578421)
 
 
@@ -1082,7 +1082,7 @@ def test_a_cameras_json_whose_images_folder_lacks_an_image_skips_that_camera_and
     root = _cameras_json(tmp_path)
     with caplog.at_level(logging.WARNING):
         cameras = load_cameras(root)
-    assert [c.name for c in cameras] == ["a"] and "1 frame(s) skipped" in caplog.text and "b" in caplog.text
+    assert [c.name for c in cameras] == ["a"] and "1 frame skipped because its image is missing" in caplog.text and "b" in caplog.text
 
 
 def test_cameras_without_their_images_are_kept_for_registration_when_the_file_gives_their_size(tmp_path):
@@ -1175,6 +1175,31 @@ def test_is_fisheye_without_coefficients_is_a_pinhole(tmp_path):
     """instant-ngp reads `is_fisheye` with k1..k4 all 0 as a pinhole (its lens mode stays Perspective): so does drsplat."""
     (camera,) = load_cameras(_transforms_dataset(tmp_path, fl_x=50.0, is_fisheye=True, k1=0, k2=0, k3=0, k4=0))
     assert camera.fx == 50.0 and camera.distortion is None
+
+
+def test_scannet_frames_without_their_colour_image_are_left_out_where_images_are_needed(tmp_path, caplog):
+    """Round 69b F2: color/ exported at a frame skip while pose/ holds every frame: the frames without a colour image were
+    kept (image_path None) where images are needed, and `drsplat features` then refused with "2 of its 3 cameras have an
+    image ... color, which does not exist" (they have none; it exists). Now they are skipped and counted, as every other
+    reader's, the image size read from the first colour image there is; `register` (no images needed) keeps them."""
+    from PIL import Image
+
+    from drsplat.features.extract import refuse_cameras_without_images
+
+    root = _scannet_scene(tmp_path / "s", np.eye(4))
+    (root / "color" / "0.jpg").unlink()
+    Image.new("RGB", (64, 48)).save(root / "color" / "1.jpg")
+    for i in (1, 2):
+        np.savetxt(root / "pose" / f"{i}.txt", np.eye(4))
+    with caplog.at_level(logging.WARNING):
+        cameras = load_cameras(root)
+    assert [c.name for c in cameras] == ["1"] and (cameras[0].width, cameras[0].height) == (64, 48)
+    assert "2 frames skipped because their images are missing or not a regular file (0.jpg, 2.jpg; 1 camera kept)" in caplog.text
+    every = load_cameras(root, require_images=False)
+    assert [(c.name, c.image_path is None) for c in every] == [("0", True), ("1", False), ("2", True)]
+    with pytest.raises(InputError, match=r"2 of its 3 cameras have no image \(e\.g\. '0'\): the images are looked for in .*color, which holds "
+                                         r"none of their names$"):
+        refuse_cameras_without_images(root, every)
 
 
 def test_a_colmap_camera_id_past_2_31_in_cameras_bin_is_read_as_images_bin_refers_to_it(tmp_path):

@@ -464,7 +464,7 @@ def test_missing_and_irregular_images_are_named(tmp_path, caplog):
     os.mkfifo(folder / "images" / "fifo.png")
     with caplog.at_level(logging.WARNING):
         assert len(load_cameras(folder)) == 1
-    assert "3 frame(s) skipped because their image is missing or not a regular file (images/gone.png, images/dir.png, images/fifo.png" in caplog.text
+    assert "3 frames skipped because their images are missing or not a regular file (images/gone.png, images/dir.png, images/fifo.png" in caplog.text
 
 
 def test_offline_cli_prints_one_sentence(fern3, tmp_path):

@@ -250,10 +250,13 @@ def refuse_cameras_without_images(source: str | Path, cameras: list) -> None:
     if not lacking:
         return
     kind, found = detect_dataset(source)
-    count = f"none of its {len(cameras)} cameras has" if len(lacking) == len(cameras) else f"{len(lacking)} of its {len(cameras)} cameras have"
-    raise InputError(found, f"{count} an image (e.g. {lacking[0].name!r}): the images are looked for in "
-                     f"{image_folder(kind, found)}, which does not exist (3DGS writes cameras.json into its model folder, and the images "
-                     "stay in the dataset folder): give --source the dataset folder 3DGS trained from (its -s, holding images/)",
+    count = f"none of its {len(cameras)} cameras has an image" if len(lacking) == len(cameras) else \
+        f"{len(lacking)} of its {len(cameras)} cameras {'has' if len(lacking) == 1 else 'have'} no image"
+    folder = image_folder(kind, found)
+    where = f"{folder}, which does not exist" if not folder.is_dir() else f"{folder}, which holds none of their names"
+    advice = (" (3DGS writes cameras.json into its model folder, and the images stay in the dataset folder): give --source the dataset "
+              "folder 3DGS trained from (its -s, holding images/)") if kind == "cameras_json" else ""
+    raise InputError(found, f"{count} (e.g. {lacking[0].name!r}): the images are looked for in {where}{advice}",
                      field="img_name" if kind == "cameras_json" else None)
 
 
