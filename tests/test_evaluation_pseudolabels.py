@@ -90,6 +90,18 @@ def test_both_engines_match_brute_force_with_small_chunks():
         assert grid.nonfinite == tree.nonfinite == 1
 
 
+@pytest.mark.parametrize("engine", ["grid", "kdtree"])
+def test_votes_that_all_underflow_give_a_label_of_the_points_there(engine):
+    """Round 69c F1: a Gaussian whose only points within --radius 40 lie at D > ~1490 gets votes exp(−D/2) of exactly 0,
+    and the argmax over every class gave it the cloud's first label (3), which no point near it has. Both engines now
+    choose among the classes of its voters, as the reference does (label 7), and still give -1 to a Gaussian with none."""
+    g = (np.array([[0.0, 0, 0], [100.0, 0, 0]]), np.repeat(np.eye(3)[None], 2, axis=0), np.ones((2, 3)))
+    points, labels = np.array([[39.0, 0, 0], [100.0, 0, 0]]), np.array([7, 3])
+    for radius, want in ((40.0, [7, 3]), (3.0, [-1, 3])):
+        assert pseudo_labels_reference(g, points, labels, radius=radius).tolist() == want
+        assert pseudo_labels(g, points, labels, radius=radius, engine=engine, show_progress=False).labels.tolist() == want
+
+
 def test_bad_weighting_or_engine_is_rejected():
     with pytest.raises(ValueError, match="weighting"):
         pseudo_labels(one_gaussian([1, 1, 1]), np.zeros((1, 3)), np.zeros(1, int), weighting="sum")

@@ -31,8 +31,9 @@ log = logging.getLogger(__name__)
 WEIGHTINGS = ("volume", "count", "voxel")
 VOXEL_RESOLUTION = 96  # voxels along the longest side of the labelled region (`eval.metrics.evaluate_scene`'s default)
 VOXEL_EMPTY = 0.01  # α-mass below which a voxel is empty
-# the Mahalanobis radius of a vote: a point at r = 40 weighs exp(-800) = 0 in float64, so a larger radius
-# adds no Gaussian vote, only neighbour-search work (every point near every Gaussian at 1e308)
+# the Mahalanobis radius of a vote: a point at r = 40 weighs exp(-800) = 0 in float64, so a larger radius adds no
+# Gaussian vote's weight, only neighbour-search work (every point near every Gaussian at 1e308); such a point still
+# counts as a voter, whose label a Gaussian with no nearer one takes (round 69c F1)
 MAX_RADIUS = 40.0
 MIN_TAU_STEP = 1e-6  # the grid is printed and compared rounded to 6 decimals: a finer step would repeat thresholds
 

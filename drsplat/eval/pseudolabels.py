@@ -74,11 +74,14 @@ def _votes(d2: np.ndarray, weighting: str) -> np.ndarray:
 
 
 def _decide(gauss_idx: np.ndarray, point_class: np.ndarray, votes: np.ndarray, n: int, num_classes: int):
-    """Per Gaussian: the class with the largest vote sum, that sum, and the number of voters."""
+    """Per Gaussian: the class with the largest vote sum among the classes of its voters (the first on a tie), that sum,
+    and the number of voters. Among its voters' classes only: votes exp(−D/2) are all 0.0 past D ≈ 1490 (a --radius near
+    40), and argmax over every class then gave the cloud's first label, which no point near it had (round 69c F1)."""
     key = gauss_idx * num_classes + point_class
     sums = np.bincount(key, weights=votes, minlength=n * num_classes).reshape(n, num_classes)
+    voted = np.bincount(key, minlength=n * num_classes).reshape(n, num_classes) > 0
     counts = np.bincount(gauss_idx, minlength=n)
-    best = np.argmax(sums, axis=1)
+    best = np.argmax(np.where(voted, sums, -1.0), axis=1)
     return best, sums[np.arange(n), best], counts
 
 
@@ -163,6 +166,7 @@ def _grid_vote_kernel(todo, means, white, half, pts, cls, cell_start, origin, h,
     for t in numba.prange(todo.shape[0]):
         i = todo[t]
         votes = np.zeros(num_classes)
+        voted = np.zeros(num_classes, np.bool_)  # the classes of its voters: the only ones that can win (`_decide`)
         count = 0
         lo = np.empty(3, np.int64)
         hi = np.empty(3, np.int64)
@@ -186,12 +190,13 @@ def _grid_vote_kernel(todo, means, white, half, pts, cls, cell_start, origin, h,
                         m2 += u * u
                     if m2 <= r2:
                         votes[cls[p]] += math.exp(-0.5 * m2) if gaussian_votes else 1.0
+                        voted[cls[p]] = True
                         count += 1
         out_count[i] = count
         if count > 0:
-            best = 0
-            for c in range(1, num_classes):
-                if votes[c] > votes[best]:
+            best = -1
+            for c in range(num_classes):
+                if voted[c] and (best < 0 or votes[c] > votes[best]):
                     best = c
             out_best[i] = best
             out_support[i] = votes[best]
