@@ -913,6 +913,13 @@ def test_segment_warns_of_labels_that_can_never_win(tmp_path, world, capsys):
     code, err = run_cli(["segment", world["reg"], "--embeddings", tmp_path / "dup.npy", "--out", tmp_path / "l.npy"], capsys)
     assert code == 0 and "label 'label_1' has the same embedding as 'label_0'" in err, err
     assert (np.load(tmp_path / "l.npy") == 1).sum() == 0
+    # round 69c F2: the background's row equal to a label's never wins either, and was not said
+    np.save(tmp_path / "bg.npy", emb[[3, 2, 3]])  # the last row is the background's
+    code, err = run_cli(["segment", world["reg"], "--embeddings", tmp_path / "bg.npy", "--background", "--out", tmp_path / "b.npy"], capsys)
+    assert code == 0 and "the background has the same embedding as 'label_0': argmax gives every such Gaussian to 'label_0', so the " \
+                         "background gets none" in err, err
+    labels = np.load(tmp_path / "b.npy")
+    assert (labels == 0).sum() > 0 and not ((labels == -1) & (np.load(tmp_path / "l.npy") == 0)).any()
     code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "m.npy", "--min-score", "1"], capsys)
     assert code == 0 and "no Gaussian's best score reaches --min-score 1" in err and "every label is -1" in err, err
     assert (np.load(tmp_path / "m.npy") == -1).all()

@@ -93,14 +93,19 @@ def label_phrases(text: str) -> list[str]:
     return checked_phrases("--labels", text)
 
 
-def warn_repeated_rows(embeddings: np.ndarray, names: list[str]) -> None:
+def warn_repeated_rows(embeddings: np.ndarray, names: list[str], background: np.ndarray | None = None) -> None:
     """A warning naming each label whose embedding row [D] equals an earlier label's: argmax gives the
-    first of equal scores, so the later label would never win a Gaussian."""
-    _, first, inverse = np.unique(embeddings, axis=0, return_index=True, return_inverse=True)
+    first of equal scores, so the later label would never win a Gaussian. The background's rows [B, D] come after the
+    labels' there: one equal to a label's never wins (round 69c F2: said for two labels, not for the background)."""
+    rows = embeddings if background is None else np.concatenate([embeddings, background.reshape(-1, embeddings.shape[1])])
+    shown = [*names, *(["the background"] * (rows.shape[0] - len(names)))]
+    _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
     for i, group in enumerate(inverse.reshape(-1)):
         if first[group] != i:
-            log.warning("label %r has the same embedding as %r: argmax gives every such Gaussian to %r, so %r gets none",
-                        names[i], names[first[group]], names[first[group]], names[i])
+            later = shown[i] if i >= len(names) else repr(shown[i])
+            earlier = shown[first[group]]
+            log.warning("%s has the same embedding as %r: argmax gives every such Gaussian to %r, so %s gets none",
+                        later if i >= len(names) else f"label {later}", earlier, earlier, later)
 
 
 def embedding_names(embeddings: Path, names_path: Path | None, count: int, background: bool = False) -> list[str]:
@@ -182,7 +187,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         raise DrsplatError(f"{args.registered}: none of its {len(field):,} Gaussians has a language feature (all unassigned or "
                            "non-finite): there is nothing to segment")
     labels_emb, background, names = label_embeddings(args, field, encoder_factory)
-    warn_repeated_rows(labels_emb, names)
+    warn_repeated_rows(labels_emb, names, background)
     device = scoring_device(args)
     seg = segment(field, labels_emb, background=background, min_score=args.min_score, lut_bits=lut_bits_for(args, field, device),
                   device=device)
