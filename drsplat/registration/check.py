@@ -1351,16 +1351,19 @@ class KeptPairs:
                             view.num_nonfinite, present=present)
 
     def present(self) -> list[np.ndarray]:
-        """Per view [M] bool: the masks with a kept pair, the kept masks among those with a pair
-        (every pair of a kept mask is kept)."""
+        """Per view [M] bool: the kept masks among those with a pair. Not quite "the masks with a kept pair": a kept
+        mask whose every Gaussian abstains in the view (`abstaining_pairs`: a small right mask inside a large dropped
+        one) keeps no pair and is still present, so it can found or lead a cluster (round 69a F1; not seen on the
+        generator's rooms). Telling it apart needs the view's kept pairs of every block, one more replay of the pair
+        log in a plan of blocks; one plan and another still give the same clusters."""
         if self._present is None or len(self._present) != len(self.keep):
             raise RuntimeError(f"KeptPairs needs every view's present masks to tell which kept masks have pairs "
                                f"({0 if self._present is None else len(self._present)} for {len(self.keep)} views)")
         return [k & p for k, p in zip(self.keep, self._present)]
 
     def clusters(self, dim: int) -> MaskClusters:
-        """The views' mask clusters made from the masks with kept pairs: what the vote stage makes
-        of the kept views when they are added to it one by one."""
+        """The views' mask clusters made from the `present` masks: what the vote stage makes of the kept views when they
+        are added to it one by one."""
         clusters = MaskClusters(dim)
         for view, flags in zip(self.source.block_views(0, 0), self.present()):
             clusters.add(view.feats, flags)
