@@ -22,7 +22,7 @@ def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) 
     runtimes would call invalid ("pasive") is replaced too, with one line that says so: they would spin (round 68a F15)."""
     given = environ.get("OMP_WAIT_POLICY", "")
     if openmp_wait_policy(given) is None:
-        if given.strip():
+        if given.strip(" \t\n\v\f\r"):
             sys.stderr.write(f"drsplat: OMP_WAIT_POLICY={given!r} is neither 'active' nor 'passive'; "
                              f"using {OPENMP_WAIT_POLICY!r}\n")
         environ["OMP_WAIT_POLICY"] = OPENMP_WAIT_POLICY

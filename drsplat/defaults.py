@@ -14,9 +14,10 @@ OPENMP_WAIT_POLICY = "passive"
 
 def openmp_wait_policy(value: str | None) -> str | None:
     """The wait policy an OpenMP runtime reads from OMP_WAIT_POLICY = `value`, or None where it reads none: libgomp and
-    Intel's runtime take "active" or "passive" in any case, blanks around; anything else (unset, empty, misspelt) they
-    call invalid and leave their threads spinning (round 67a F5, round 68a F15)."""
-    policy = (value or "").strip().lower()
+    Intel's runtime take "active" or "passive" in any case, C's blanks around (isspace: not a non-breaking space, which
+    a value copied from a web page carries: round 70a F4); anything else (unset, empty, misspelt) they call invalid and
+    leave their threads spinning (round 67a F5, round 68a F15)."""
+    policy = (value or "").strip(" \t\n\v\f\r").lower()
     return policy if policy in ("active", "passive") else None
 
 

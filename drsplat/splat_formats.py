@@ -165,22 +165,53 @@ def load_scene_report(path: str | Path, purpose: str | None = None) -> tuple[Gau
     return assemble_scene(path, cols, order, layout, [], purpose)
 
 
-def declared_rows(path: str | Path) -> int | None:
-    """The Gaussians a scene file holds, read without loading it (a PLY's vertex count, checked against the file's size;
-    a `.splat`'s records), or None where that is not known so cheaply (spz, checkpoints) or the file has a problem its
+BASE_VALUES = 14  # a Gaussian's values besides its higher SH: mean, rotation, log scales, opacity, DC colour
+
+
+def declared_scene_size(path: str | Path) -> tuple[int, int] | None:
+    """(rows, values per row) of a scene file, read from its header without loading it: the rows (a PLY's vertex count,
+    checked against the file's size; a `.splat`'s records; an spz header's point count, checked as its reader does) and
+    the float32 values its loading makes of each (BASE_VALUES and the higher SH coefficients), which it holds for every
+    row at once before dropping any. None where that is not known so cheaply (checkpoints) or the file has a problem its
     loading names."""
     path = Path(path)
     try:
         kind = scene_format(path)
         if kind == "splat":
-            return path.stat().st_size // SPLAT_RECORD.itemsize
+            return path.stat().st_size // SPLAT_RECORD.itemsize, BASE_VALUES
+        if kind == "spz":
+            return _spz_size(path)
         if kind != "ply":
             return None
         header = read_ply_header(path)
         check_element_sizes(path, header, path.stat().st_size)
     except (InputError, OSError):
         return None
-    return next((element.count for element in header.elements if element.name == "vertex"), None)
+    elements = {element.name: element for element in header.elements}
+    if "vertex" not in elements:
+        return None
+    rest = sum(name.startswith("f_rest_") for name, _ in elements["vertex"].properties)
+    rest += len(elements["sh"].properties) if "sh" in elements else 0  # a compressed PLY's SH bytes
+    return elements["vertex"].count, BASE_VALUES + rest
+
+
+def _spz_size(path: Path) -> tuple[int, int] | None:
+    """`declared_scene_size` of an `.spz`: its header's points and SH degree (gzip's first bytes inflated for versions
+    1-3), None for a header its reader refuses (a version or degree it does not read, more data than the file can hold)."""
+    with open(path, "rb") as f:
+        head = f.read(SNIFF_BYTES)
+    if head[:2] == GZIP_MAGIC:
+        head = _inflated_start(head, SPZ_LEGACY_HEADER.itemsize)
+    if len(head) < SPZ_LEGACY_HEADER.itemsize or int.from_bytes(head[:4], "little") != NGSP_MAGIC:
+        return None
+    header = np.frombuffer(head[: SPZ_LEGACY_HEADER.itemsize], SPZ_LEGACY_HEADER)[0]
+    version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
+    try:
+        _check_spz_header(path, version, degree, int(header["fractional_bits"]))
+        _check_ratio(path, spz_block_sizes(points, version, degree), path.stat().st_size)
+    except InputError:
+        return None
+    return points, BASE_VALUES + 3 * sh_coefficients(min(degree, max(SH_REST_COUNTS)))
 
 
 def load_scene(path: str | Path, purpose: str | None = None) -> GaussianScene:

@@ -614,7 +614,7 @@ def test_a_budget_too_small_is_refused_before_the_fit_stage_renders(tiny, tmp_pa
         raise AssertionError("the fit stage ran before the budget was refused")
 
     monkeypatch.setattr(driver, "fit_stage", no_probe)
-    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)  # past the check before the scene is read
+    monkeypatch.setattr(splat_formats, "declared_scene_size", lambda path: None)  # past the check before the scene is read
     base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
     assert main(base + ["--memory-budget", "1KB"]) == 1
     assert "too small for this scene" in capsys.readouterr().err and not (tmp_path / "o.ply").exists()
@@ -634,7 +634,7 @@ def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tm
         raise AssertionError("the near plane was decided before the budget was refused")
 
     monkeypatch.setattr(frames, "near_plane_as_trained", no_decision)
-    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)  # past the check before the scene is read
+    monkeypatch.setattr(splat_formats, "declared_scene_size", lambda path: None)  # past the check before the scene is read
     base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"),
             "--out", str(tmp_path / "o.ply"), "--no-progress", "--aggregate", mode]
     assert main(base + ["--memory-budget", "1KB"]) == 1
@@ -643,52 +643,65 @@ def test_a_budget_too_small_is_refused_before_the_near_plane_is_decided(tiny, tm
     assert main(base + ["--memory-budget", "8GB"]) == 0 and decided == [1] and (tmp_path / "o.ply").exists()
 
 
-def test_a_budget_below_the_scene_s_own_size_is_refused_before_the_scene_is_read(tiny, inputs, tmp_path, monkeypatch, capsys):
+def test_a_budget_its_reading_would_exceed_is_refused_before_the_scene_is_read(tiny, inputs, tmp_path, monkeypatch, capsys):
     """Round 67b F3: --memory-budget 300MB for a 3M-Gaussian scene was refused only after loading it (1.02 GB resident,
-    5-9 s). The file's row count bounds the plan from below before it is read (`plan.refuse_below_scene_floor`), never
-    above any plan's figure: a budget the plan would accept is not refused there."""
+    5-9 s). What reading the file holds (4 bytes for each value of every row, `splat_formats.declared_scene_size`) bounds
+    any run from below before it is read, rows the loading drops included (round 70a F1: a floor counted in the plan's
+    bytes per kept Gaussian refused a file of mostly non-finite rows a budget its kept rows fit)."""
     from drsplat import splat_formats
     from drsplat.cli import main
-    from drsplat.memory import current_rss
-    from drsplat.registration import driver
-    from drsplat.registration.options import RegisterOptions
     from drsplat.registration.plan import refuse_below_scene_floor
+    from drsplat.scene import load_ply_report
 
-    scene, cameras = inputs
-    assert splat_formats.declared_rows(tiny / "scene.ply") == scene.num_gaussians
-    for mode in ("paper", "fit-check-vote-reject", "solve"):
-        run = driver.prepare_run(scene, cameras, tiny / "features", RegisterOptions(aggregate=mode))
-        rss = current_rss()
-        refuse_below_scene_floor(driver._memory_plan(run, rss).views, scene.num_gaussians, "s", base=rss)  # the floor is below every plan
-    with pytest.raises(DrsplatError, match=r"too small for this scene \(s\): its 3,000,000 Gaussians alone .* need more than 1\.2 GB"):
-        refuse_below_scene_floor(1 << 30, 3_000_000, "s", base=0)
+    with pytest.raises(DrsplatError, match=r"too small for this scene \(s\): reading its 3,000,000 rows of 59 values holds more than 708 MB"):
+        refuse_below_scene_floor(700 * 10**6, 3_000_000, 59, "s", base=0)
+    refuse_below_scene_floor(709 * 10**6, 3_000_000, 59, "s", base=0)
 
     def not_read(*args, **kwargs):
         raise AssertionError("the scene was read before the budget was refused")
 
-    monkeypatch.setattr(splat_formats, "load_scene_report", not_read)
-    monkeypatch.setattr(splat_formats, "declared_rows", lambda path: 3_000_000)
-    base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"), "--no-progress"]
-    assert main(base + ["--memory-budget", "300MB"]) == 1
+    with monkeypatch.context() as patched:
+        patched.setattr(splat_formats, "load_scene_report", not_read)
+        patched.setattr(splat_formats, "declared_scene_size", lambda path: (3_000_000, 59))
+        base = ["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"),
+                "--no-progress"]
+        assert main(base + ["--memory-budget", "300MB"]) == 1
     err = capsys.readouterr().err
-    assert "--memory-budget 300 MB is too small for this scene" in err and "3,000,000 Gaussians" in err and not (tmp_path / "o.ply").exists()
+    assert "--memory-budget 300 MB is too small for this scene" in err and "3,000,000 rows" in err and not (tmp_path / "o.ply").exists()
+    # a file of mostly non-finite rows: the floor counts them (its loading holds them), the plan only the kept ones
+    scene, _ = inputs
+    nan_rows = 20 * scene.num_gaussians
+    bad = scene.subset(np.r_[np.arange(scene.num_gaussians), np.zeros(nan_rows, np.int64)])
+    bad.means[scene.num_gaussians:] = np.nan
+    from drsplat.scene import save_ply
+
+    save_ply(bad, tmp_path / "nan.ply")
+    rows, values = splat_formats.declared_scene_size(tmp_path / "nan.ply")
+    assert rows == bad.num_gaussians and load_ply_report(tmp_path / "nan.ply")[1].dropped_nan_rows == nan_rows
 
 
-def test_declared_rows_reads_a_scene_file_s_size_without_loading_it(tiny, inputs, tmp_path):
-    """A PLY's vertex count, a .splat's records; None where the file has a problem its loading names (a header declaring
-    more rows than the file holds is not taken at its word) or the count is not in a header (spz)."""
-    from drsplat.splat_formats import declared_rows, save_scene
+def test_declared_scene_size_reads_a_scene_file_s_rows_and_values_without_loading_it(tiny, inputs, tmp_path):
+    """A PLY's vertex count and its values (14, and its higher SH), a .splat's records, an spz header's points; None where
+    the file has a problem its loading names (a header declaring more rows than the file holds is not taken at its
+    word) or the count is in no header."""
+    from drsplat.splat_formats import declared_scene_size, save_compressed_ply, save_scene
 
     scene, _ = inputs
-    n = scene.num_gaussians
+    n, rest = scene.num_gaussians, 3 * (scene.sh.shape[1] - 1)
     save_scene(scene, tmp_path / "s.splat")
     save_scene(scene, tmp_path / "s.spz")
-    assert declared_rows(tmp_path / "s.splat") == n and declared_rows(tmp_path / "s.spz") is None
+    save_compressed_ply(scene, tmp_path / "s.compressed.ply")
+    assert declared_scene_size(tiny / "scene.ply") == (n, 14 + rest)
+    assert declared_scene_size(tmp_path / "s.splat") == (n, 14) and declared_scene_size(tmp_path / "s.spz") == (n, 14 + rest)
+    assert declared_scene_size(tmp_path / "s.compressed.ply") == (n, 14 + rest)
     data = (tiny / "scene.ply").read_bytes()
     (tmp_path / "lying.ply").write_bytes(data.replace(f"element vertex {n}\n".encode(), f"element vertex {n * 1000}\n".encode(), 1))
     (tmp_path / "cut.ply").write_bytes(data[: len(data) // 2])
-    assert declared_rows(tmp_path / "lying.ply") is None and declared_rows(tmp_path / "cut.ply") is None
-    assert declared_rows(tmp_path / "missing.ply") is None
+    assert declared_scene_size(tmp_path / "lying.ply") is None and declared_scene_size(tmp_path / "cut.ply") is None
+    assert declared_scene_size(tmp_path / "missing.ply") is None
+    spz = (tmp_path / "s.spz").read_bytes()
+    (tmp_path / "big.spz").write_bytes(spz[:8] + (10**9).to_bytes(4, "little") + spz[12:])  # an NGSP v4 header declaring 1e9 points
+    assert declared_scene_size(tmp_path / "big.spz") is None
 
 
 @pytest.mark.parametrize("mode", ["fit-check-vote-reject", "paper"])
@@ -760,7 +773,7 @@ def test_each_warning_about_the_feature_files_is_said_once_when_the_plane_is_dec
 
     budget = []
     if refused:  # a budget the plan refuses, past the check before the scene is read
-        monkeypatch.setattr(splat_formats, "declared_rows", lambda path: None)
+        monkeypatch.setattr(splat_formats, "declared_scene_size", lambda path: None)
         budget = ["--memory-budget", "1KB"]
 
     features = tmp_path / "features"

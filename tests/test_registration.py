@@ -454,12 +454,42 @@ def test_a_first_run_that_compiles_the_kernels_says_so(tiny, tmp_path, caplog, m
     for engine, composite, coalesce in [("numba", True, True), ("numba", False, True), ("numba", True, False), ("torch", False, True),
                                         ("torch", True, False)]:
         monkeypatch.setattr(driver, "kernels_cached", lambda: composite)
-        monkeypatch.setattr(driver, "coalesce_kernels_cached", lambda: coalesce)
+        monkeypatch.setattr(driver, "compiled_here", lambda kernel: coalesce)
         caplog.clear()
         with caplog.at_level(logging.INFO):
             register(scene, cams, tiny / "features", tmp_path / f"reg_{engine}{composite}{coalesce}.ply",
                      RegisterOptions(aggregate="paper", engine=engine), show_progress=False)
         assert ("numba compiles the kernels" in caplog.text) == (not coalesce or (engine == "numba" and not composite)), (engine, composite, coalesce)
+    # round 70a F5: a cache a `paper` run filled holds none of the default's stages (25 s of compiling, unsaid); on Ray the
+    # driver's own compositor is asked (round 70a F6: 20 s in the driver, unsaid)
+    monkeypatch.setattr(driver, "kernels_cached", lambda: True)
+    monkeypatch.setattr(driver, "compiled_here", lambda kernel: kernel is driver.COALESCE_PROBE)
+    for mode, place, said in [("paper", "local", False), ("fit-check-vote-reject", "local", True), ("vote", "local", True),
+                              ("solve", "local", True), ("fit-check-vote-reject", "ray", False)]:
+        caplog.clear()
+        with caplog.at_level(logging.INFO):
+            driver.say_if_kernels_compile(RegisterOptions(aggregate=mode, ray="local" if place == "ray" else None))
+        assert ("numba compiles the kernels" in caplog.text) == said, (mode, place)
+    monkeypatch.setattr(driver, "kernels_cached", lambda: False)
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        driver.say_if_kernels_compile(RegisterOptions(aggregate="paper", ray="local"))
+    assert "numba compiles the kernels" in caplog.text
+
+
+def test_each_stage_s_first_run_probe_is_compiled_by_a_run_of_its_mode(tiny, tmp_path):
+    """The kernels `say_if_kernels_compile` asks of each stage are ones a run of a mode with that stage compiles (a probe
+    no run compiles would say "first run" on every run): after a registration, none of its mode's probes is missing."""
+    import drsplat.registration.driver as driver
+    from drsplat.registration import register
+    from drsplat.utils import compiled_here
+
+    scene, cams = load_ply(tiny / "scene.ply"), load_cameras(tiny)[:4]
+    probes = {"fit-check-vote-reject": [driver.COALESCE_PROBE, driver.VOTE_PROBE, driver.CHECK_PROBE, driver.FIT_PROBE,
+                                        driver.REJECT_FIRST_RUN_PROBE, driver.SHARP_FIRST_RUN_PROBE], "solve": [driver.SOLVE_PROBE]}
+    for mode, kernels in probes.items():
+        register(scene, cams, tiny / "features", tmp_path / f"{mode}.ply", RegisterOptions(aggregate=mode), show_progress=False)
+        assert all(compiled_here(kernel) for kernel in kernels), mode
 
 
 def test_a_first_run_is_said_by_the_command_before_it_reads_the_scene(tiny, tmp_path, caplog, monkeypatch):
@@ -478,6 +508,14 @@ def test_a_first_run_is_said_by_the_command_before_it_reads_the_scene(tiny, tmp_
                  str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper"]) == 0
     notes = [i for i, e in enumerate(events) if e == "note"]
     assert len(notes) == 1 and notes[0] < events.index("scene"), events
+    # not before the refusals that end a run at once (round 70a F7): a missing scene, a budget its reading exceeds
+    events.clear()
+    assert main(["register", str(tmp_path / "missing.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "m.ply"), "--no-progress"]) == 1
+    monkeypatch.setattr(splat_formats, "declared_scene_size", lambda path: (10**9, 59))
+    assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "b.ply"), "--no-progress", "--memory-budget", "1GB"]) == 1
+    assert "note" not in events, events
 
 
 class _Recorder:

@@ -103,7 +103,6 @@ def run(args: argparse.Namespace) -> int:
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions
     from drsplat.registration.checkpoint import checkpoint_path_for, lock_run
-    from drsplat.registration.driver import say_if_kernels_compile
     from drsplat.splat_formats import written_format
 
     if written_format(args.out) != "ply":
@@ -143,7 +142,6 @@ def run(args: argparse.Namespace) -> int:
     # near plane's decision), and the lock is held from here to the registration's end (round 68a F1: taken and released, it
     # let a second run through while the first read its scene); no folder, no run in it: the registration makes the folder
     # once the inputs are read (round 68b F1: a run whose scene was missing left it empty)
-    say_if_kernels_compile(options)  # before the scene is read: its loading and the near plane's decision compile first (round 68a F4)
     checkpoint = checkpoint_path_for(args.out)
     lock = lock_run(checkpoint) if checkpoint.parent.is_dir() else None
     try:
@@ -162,12 +160,15 @@ def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: l
     from drsplat.memory import trim_heap
     from drsplat.registration import register
     from drsplat.registration.driver import prepare_run, refuse_if_over_budget
+    from drsplat.registration.driver import say_if_kernels_compile
     from drsplat.registration.plan import refuse_below_scene_floor
-    from drsplat.splat_formats import declared_rows, load_scene_report
+    from drsplat.splat_formats import declared_scene_size, load_scene_report
 
-    rows = declared_rows(args.scene) if options.memory_budget is not None else None
-    if rows is not None:  # a budget below the scene's own size is refused before the scene is loaded over it
-        refuse_below_scene_floor(options.memory_budget, rows, shown_path(args.scene))
+    size = declared_scene_size(args.scene) if options.memory_budget is not None else None
+    if size is not None:  # a budget its reading would exceed is refused before the scene is loaded over it
+        refuse_below_scene_floor(options.memory_budget, *size, shown_path(args.scene))
+    if args.scene.is_file():  # before the loading and the near plane's decision, which compile first (round 68a F4), after the
+        say_if_kernels_compile(options)  # refusals that end the run at once (round 70a F7)
     scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file

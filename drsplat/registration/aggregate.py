@@ -433,6 +433,9 @@ def _sharp_weights_kernel(ids, weights, screen, log_floor, floor, parts, out):  
                     out[y, x, s] = np.float64(weights[y, x, s]) * max(sharp_exp(min(max(qs, log_floor), 0.0)), floor)
 
 
+SHARP_FIRST_RUN_PROBE = _sharp_weights_kernel  # the sharp footprint's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
+
+
 # ----------------------------------------------------------------------------- per-view explanation (EM)
 
 
@@ -702,6 +705,9 @@ def _fold_stats_kernel(ids, peak_v, total_v, front_v, front_max, peak, total, fr
         views_seen[i] += 1
         if front_v[j] > front_max * total_v[j]:
             views_front[i] += 1
+
+
+REJECT_FIRST_RUN_PROBE = _fold_stats_kernel  # the floater rejection's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
 
 
 @dataclass

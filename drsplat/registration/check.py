@@ -522,6 +522,9 @@ def _support_kernel(pairs, rows, masks, weights, pair_gaussian, slot_c, other, p
     return out_j[:out_n] + np.int32(j_lo), out_c[:out_n].copy(), out_value, out_core
 
 
+FIRST_RUN_PROBE = _support_kernel  # the stage's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
+
+
 @numba.njit(cache=True, parallel=True)
 def _agreement_kernel(starts, clusters, values, mass, units, means, agree, total):  # pragma: no cover - jitted
     """Per mask j: total[j] = Σ_c q[j, c] / mass[j] (the other views' votes, in views) and

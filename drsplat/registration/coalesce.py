@@ -21,7 +21,6 @@ import numpy as np
 from drsplat._sort_kernels import stable_order
 from drsplat.memory import small_page_full, small_page_zeros
 from drsplat.scene import counted
-from drsplat.utils import compiled_here
 
 
 @numba.njit(cache=True)
@@ -99,6 +98,9 @@ def _coalesce_parts_kernel(ids, weights, order, starts, part_end, part_next, par
         part_next[t] = m
         part_filled[t] = filled
         part_pairs[t] += pairs
+
+
+FIRST_RUN_PROBE = _coalesce_parts_kernel  # every engine's sums on the host run it: its place in numba's cache shows a run here before (driver.say_if_kernels_compile)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -251,8 +253,3 @@ def coalesce_reference(ids: np.ndarray, weights: np.ndarray, mask_ids: np.ndarra
     np.add.at(sums, inverse, w[keep])
     return keys % base, keys // base, sums, int(np.count_nonzero(keep))
 
-
-def coalesce_kernels_cached() -> bool:
-    """Whether numba's cache holds the pairs' coalescing kernel for this machine (`utils.compiled_here`): every engine's
-    sums on the host run it, so a run that must compile it is a first run (`driver.say_if_kernels_compile`)."""
-    return compiled_here(_coalesce_parts_kernel)

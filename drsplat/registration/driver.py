@@ -49,7 +49,6 @@ from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage
 from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
-from drsplat.registration.coalesce import coalesce_kernels_cached
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import NEAR_PLANE_COMMENT, RegisterOptions, near_plane_comment
@@ -63,8 +62,14 @@ from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, no
 from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
                                         warn_if_turned_without_manifest)
 from drsplat.registration.vote import VoteSink
+from drsplat.registration.aggregate import REJECT_FIRST_RUN_PROBE, SHARP_FIRST_RUN_PROBE
+from drsplat.registration.check import FIRST_RUN_PROBE as CHECK_PROBE
+from drsplat.registration.coalesce import FIRST_RUN_PROBE as COALESCE_PROBE
+from drsplat.registration.fit import FIRST_RUN_PROBE as FIT_PROBE
+from drsplat.registration.solve import FIRST_RUN_PROBE as SOLVE_PROBE
+from drsplat.registration.vote import FIRST_RUN_PROBE as VOTE_PROBE
 from drsplat.scene import GaussianScene, counted
-from drsplat.utils import CancelToken, describe_os_error, progress
+from drsplat.utils import CancelToken, compiled_here, describe_os_error, progress
 
 log = logging.getLogger(__name__)
 
@@ -379,16 +384,23 @@ def run_registration(
 
 def say_if_kernels_compile(options: RegisterOptions) -> None:
     """One note when this process's registration will compile numba's kernels rather than load them from its cache: a first
-    run on a machine spent 81 s of 92 compiling without a word (round 67c F6). Asked of the compositor (the numba engine) and
-    the pairs' coalescing (every engine's sums on the host: round 68a F4, `--engine torch` compiled for 70 s unsaid), for
-    this CPU and code (`utils.compiled_here`: a cache filled by another CPU type is compiled again). Not on Ray, whose
-    workers compile."""
+    run on a machine spent 81 s of 92 compiling without a word (round 67c F6). Asked, for this CPU and code
+    (`utils.compiled_here`: a cache another CPU type filled, or an older drsplat's, is compiled again), of a kernel of each
+    part the run uses: the compositor (the numba engine), the pairs' coalescing (every engine's sums on the host: round 68a
+    F4, `--engine torch` compiled for 70 s unsaid) and each stage of the mode (round 70a F5: a cache an `--aggregate paper`
+    run filled left the default's stages 25 s of compiling unsaid). On Ray, the compositor only: this process loads the
+    scene and decides the near plane with it, the workers compile theirs (round 70a F6)."""
     if options.place == "ray":
-        return
-    if (options.engine != "numba" or kernels_cached()) and coalesce_kernels_cached():
-        return
-    log.info("first run of this drsplat on this machine: numba compiles the kernels as they are first used (a minute or two; "
-             "later runs load them from its cache)")
+        cached = kernels_cached()
+    else:
+        stages = mode_stages(options.aggregate)
+        parts = ((True, COALESCE_PROBE), (stages.vote, VOTE_PROBE), (stages.check, CHECK_PROBE), (stages.solve, SOLVE_PROBE),
+                 (stages.reject, REJECT_FIRST_RUN_PROBE), (stages.weighting == "fit", FIT_PROBE),
+                 (stages.weighting in ("sharp", "fit"), SHARP_FIRST_RUN_PROBE))
+        cached = (options.engine != "numba" or kernels_cached()) and all(compiled_here(kernel) for used, kernel in parts if used)
+    if not cached:
+        log.info("first run of this drsplat on this machine: numba compiles the kernels as they are first used (a minute or two; "
+                 "later runs load them from its cache)")
 
 
 def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t_start: float, *, checkpoint: Path | None,

@@ -395,6 +395,9 @@ def _labels_kernel(g, m, w, best, labels):  # pragma: no cover - jitted
             labels[i] = j
 
 
+FIRST_RUN_PROBE = _labels_kernel  # the stage's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
+
+
 def pairs_labels(gaussians: np.ndarray, masks: np.ndarray, weights: np.ndarray, num_gaussians: int) -> np.ndarray:
     """[N] int32 ℓ(g) from a view's coalesced pairs gaussians, masks [P] int32, weights [P] float32
     (`Coalescer.coalesce`'s order): the mask of each Gaussian's heaviest pair (ties: the lower mask)."""

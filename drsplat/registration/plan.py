@@ -152,21 +152,19 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
                       pair_buffer=buffer_bytes(dim, total_masks, max_masks, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)))
 
 
-SCENE_FLOOR_BYTES = 56  # a loaded scene's fewest bytes per Gaussian: means, rotation, log scales, opacity and DC colour (float32)
+def refuse_below_scene_floor(budget: int, rows: int, values: int, what: str, base: int | None = None) -> None:
+    """Refuse a --memory-budget that reading the scene file alone would exceed, before it is read (round 67b F3: 300 MB
+    was refused for a 3M-Gaussian scene only after loading it to 1.02 GB resident).
 
-
-def refuse_below_scene_floor(budget: int, num_gaussians: int, what: str, base: int | None = None) -> None:
-    """Refuse a --memory-budget below what any plan of a scene of `num_gaussians` Gaussians names, before the scene is
-    read (round 67b F3: 300 MB was refused for a 3M scene only after loading it to 1.02 GB RSS).
-
-    floor = base + OVERHEAD + N·(SCENE_FLOOR_BYTES + GEOMETRY_BYTES + INDEX_BYTES + PROJECTION_BYTES) ≤ MemoryPlan.views,
-    whose base (resident memory once the scene is read) holds at least the scene. N counts the file's rows: a file whose
-    rows are mostly dropped on loading (non-finite) can be refused a budget its kept rows would fit. base: this process's
-    resident memory (None: now)."""
-    floor = (current_rss() if base is None else base) + OVERHEAD + num_gaussians * (SCENE_FLOOR_BYTES + GEOMETRY_BYTES + INDEX_BYTES + PROJECTION_BYTES)
+    floor = base + 4 · rows · values: the float32 values its loading makes of every row of the file at once
+    (`splat_formats.declared_scene_size`), before it drops any (non-finite rows) and before the plan counts the
+    geometry, views and masks. Rows the loading then drops are held too, so a budget below it is exceeded whatever the
+    plan says (round 70a F1: a floor of the plan's per-Gaussian bytes refused a file of mostly non-finite rows a budget
+    its kept rows fit). base: this process's resident memory (None: now)."""
+    floor = (current_rss() if base is None else base) + 4 * rows * values
     if budget < floor:
-        raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene ({what}): its {num_gaussians:,} Gaussians alone (the "
-                           f"scene, its geometry and one view's projection) need more than {format_size(floor)}, before its views and "
+        raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene ({what}): reading its "
+                           f"{rows:,} rows of {values} values holds more than {format_size(floor)}, before its geometry, views and "
                            "masks are counted; a budget above that is planned once the scene is read, and a refusal then names the "
                            "budget that fits")
 

@@ -175,6 +175,9 @@ def _slot_kernel(ids, weights, labels, slot_c, slot_s, square):  # pragma: no co
             slot_s[g, found] += w
 
 
+FIRST_RUN_PROBE = _slot_kernel  # the stage's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
+
+
 def slot_sums(views: Iterable[SolveView], n: int, slots: int = SOLVE_SLOTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`slot_sums_reference` with the numba kernel."""
     slot_c = np.full((n, slots), -1, np.int32)

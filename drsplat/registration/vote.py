@@ -459,6 +459,9 @@ def _vote_view_kernel(rows, clusters, weights, order, presence, full_view, total
             total[rows[order[i]]] = 0.0
 
 
+FIRST_RUN_PROBE = _vote_view_kernel  # the stage's kernel whose place in numba's cache shows it ran here before (driver.say_if_kernels_compile)
+
+
 def fold_view_votes(rows: np.ndarray, clusters: np.ndarray, weights: np.ndarray, presence: float, full_view: float, slot_c: np.ndarray,
                     slot_v: np.ndarray, slot_s: np.ndarray, total: np.ndarray | None = None) -> None:
     """Fold one view's pairs into the vote slots in place (`_vote_view_kernel`: module docstring,
