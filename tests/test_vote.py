@@ -51,7 +51,8 @@ def test_mode_stages():
 
 
 @pytest.mark.parametrize("m,c,d", [(55, 300, 512), (1, 7, 19), (3, 1, 1), (0, 5, 8), (4, 0, 8), (9, 65, 1000), (1, 40, 512), (2, 3, 768),
-                                   (300, 70, 512), (257, 131, 33)])
+                                   (300, 70, 512), (257, 131, 33), (1, 4096, 512), (7, 4099, 64), (5, 13, 512), (8, 17, 512),
+                                   (263, 9, 16)])
 def test_dot_rows_sums_in_index_order_as_its_reference(m, c, d):
     """The clusters' cosines (numba, on numba's threads or the calling thread) are bit for bit the
     float32 sums in index order of d (`ordered_dots_reference`), so any CPU gives the same bits
@@ -72,6 +73,28 @@ def test_dot_rows_sums_in_index_order_as_its_reference(m, c, d):
     # the small products run on the calling thread, the large on numba's threads: the same bits either way
     for parallel in (True, False):
         assert dot_rows(feats, rows, parallel=parallel).tobytes() == got.tobytes()
+
+
+@pytest.mark.parametrize("m", [1, 3, 7, 8, 12])
+def test_dot_rows_of_few_masks_keep_the_index_order_on_hard_values(m):
+    """Fewer than FEW_MASKS masks sum eight leaders side by side (`_dot_few_masks`, round 68a F11: each leader had been one
+    serial chain through memory, 12x slower than before the index order): the same bits as the reference on values that
+    overflow, cancel, are subnormal, infinite or NaN (NaN compared as NaN: its sign bit is the hardware's)."""
+    rng = np.random.default_rng(m)
+    feats, rows = rng.normal(size=(m, 96)).astype(np.float32), rng.normal(size=(37, 96)).astype(np.float32)
+    rows[0] *= np.float32(1e30)  # products past float32's range
+    rows[1] = np.float32(1e-30)  # subnormal products
+    rows[2] = -feats[0] if m else rows[2]  # a mask's cancelling twin
+    rows[3, 5] = np.inf
+    rows[4, 7] = np.nan
+    rows[5, :3] = [np.inf, -np.inf, 1.0]
+    feats[-1, 11] = np.float32(3e38)
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        want = ordered_dots_reference(feats, rows)
+    for parallel in (True, False):
+        got = dot_rows(feats, rows, parallel=parallel)
+        same = (got.view(np.uint32) == want.view(np.uint32)) | (np.isnan(got) & np.isnan(want))
+        assert same.all(), (parallel, np.argwhere(~same)[:5])
 
 
 def test_trim_decides_cosines_at_the_threshold_by_the_sums_in_index_order():
