@@ -1039,7 +1039,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
             width, height = _image_size(image)
             _check_half_size(path, rec, (width, height), image, where)
         refuse_other_lens(path, rec, where)
-        fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where)
+        fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where, nerfstudio=shared_wins)
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
         dist = np.array([_number(path, rec, k, 0.0, where=where) for k in DISTORTION_FIELDS])
@@ -1094,53 +1094,51 @@ NERFSTUDIO_SHARED_DISTORTION = ("k1", "k2", "k3", "p1", "p2")  # one of these at
 SHARED_INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", *NERFSTUDIO_DISTORTION)
 
 
-FOCAL_FIELDS = ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y")  # a transforms.json object's focal lengths
-FISHEYE_FIELDS = ("k1", "k2", "k3", "k4")  # instant-ngp's OpenCV fisheye coefficients (`is_fisheye`)
-OTHER_LENS_FIELDS = ("latlong", "equirectangular", "orthographic")  # instant-ngp's lens switches that are no pinhole when true
+FOCAL_KEYS = {"x": ("x_fov", "fl_x", "camera_angle_x"), "y": ("y_fov", "fl_y", "camera_angle_y")}  # per axis, in instant-ngp's order
+FOCAL_FIELDS = (*FOCAL_KEYS["x"], *FOCAL_KEYS["y"])  # a transforms.json object's focal lengths
+FISHEYE_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")  # what makes instant-ngp's lens its OpenCV fisheye under `is_fisheye` (read_lens)
+OTHER_LENS_FIELDS = ("latlong", "equirectangular", "orthographic")  # instant-ngp's lens switches: no pinhole wherever the key is
 
 
 def refuse_other_lens(path: Path, rec: dict, where: str) -> None:
     """Refuse the lenses instant-ngp reads from a transforms.json object besides the pinhole and OpenCV's
-    radial-tangential one (its `read_lens`): `is_fisheye` with a non-zero k1..k4 (OpenCV's equidistant fisheye model,
-    which colmap2nerf.py writes for COLMAP's fisheye cameras; k1, k2 were read as radial-tangential coefficients: round
-    69b F1), an f-theta lens (`ftheta_p0`..), and `latlong`, `equirectangular` or `orthographic` set true. `is_fisheye`
-    with every coefficient 0 is a pinhole there, and here."""
+    radial-tangential one (its `read_lens`): `is_fisheye` with a non-zero k1..k4, p1 or p2 (OpenCV's equidistant fisheye
+    model, which colmap2nerf.py writes for COLMAP's fisheye cameras; k1, k2 were read as radial-tangential coefficients:
+    round 69b F1), an f-theta lens (`ftheta_p0`..), and `latlong`, `equirectangular` or `orthographic`, whatever their
+    value (instant-ngp asks only whether the key is there: round 71a F3). `is_fisheye` with every coefficient 0 is a
+    pinhole there, and here. `rec` is the file's keys and the frame's together, so a file's `is_fisheye` with a frame's
+    own k1 is refused where instant-ngp, reading each object's lens on its own, would read the frame's as OpenCV's."""
     fisheye = rec.get("is_fisheye") in (True, 1) and any(_number(path, rec, key, 0.0, where=where) != 0 for key in FISHEYE_FIELDS)
-    lens = "is_fisheye" if fisheye else next((key for key in OTHER_LENS_FIELDS if rec.get(key) in (True, 1)), None)
+    lens = "is_fisheye" if fisheye else next((key for key in OTHER_LENS_FIELDS if key in rec), None)
     lens = lens or next((key for key in rec if isinstance(key, str) and key.startswith("ftheta_p")), None)
     if lens is not None:
-        kind = {"is_fisheye": "an OpenCV fisheye lens (is_fisheye with k1..k4)", "latlong": "a lat-long panorama",
+        kind = {"is_fisheye": "an OpenCV fisheye lens (is_fisheye with k1..k4, p1 or p2)", "latlong": "a lat-long panorama",
                 "equirectangular": "an equirectangular panorama", "orthographic": "an orthographic camera"}.get(lens, "an f-theta lens")
         raise InputError(path, f"describes {kind}{where}, which no pinhole camera is; {UNDISTORT_HINT}", field=lens)
 
 
-def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str) -> tuple[float, float, FieldNames]:
-    """(fx, fy, the fields they came from) of a transforms.json frame `rec` (its own keys over the
-    file's): fl_x and fl_y (fy = fl_x without fl_y), else the fields of view camera_angle_x and
-    camera_angle_y, or camera_angle_x and fl_y (fy = fx without either, so that angle must give a
-    focal length the height allows too: `_focal_from_angle`); a y focal length alone (fl_y or camera_angle_y) gives both,
-    as instant-ngp reads it. Errors about them name these fields, never fx or fy."""
-    if "fl_x" in rec:
-        fx = _number(path, rec, "fl_x", where=where)
-        fy = _number(path, rec, "fl_y", fx, where=where)
-        return fx, fy, {"fx": "fl_x", "fy": "fl_y" if "fl_y" in rec else "fl_x"}
-    if "camera_angle_x" in rec:
-        if "camera_angle_y" in rec:
-            fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where)
-            fy = _focal_from_angle(path, rec, "camera_angle_y", ("height", height), where)
-            return fx, fy, {"fx": "camera_angle_x", "fy": "camera_angle_y"}
-        if "fl_y" in rec:  # the angle across, the focal length down (a frame's own fl_y beside its camera_angle_x)
-            fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where)
-            return fx, _number(path, rec, "fl_y", where=where), {"fx": "camera_angle_x", "fy": "fl_y"}
-        fx = _focal_from_angle(path, rec, "camera_angle_x", ("width", width), where, also=("height", height))
-        return fx, fx, {"fx": "camera_angle_x", "fy": "camera_angle_x"}
-    if "fl_y" in rec:
-        fy = _number(path, rec, "fl_y", where=where)
-        return fy, fy, {"fx": "fl_y", "fy": "fl_y"}
-    if "camera_angle_y" in rec:
-        fy = _focal_from_angle(path, rec, "camera_angle_y", ("height", height), where, also=("width", width))
-        return fy, fy, {"fx": "camera_angle_y", "fy": "camera_angle_y"}
-    raise InputError(path, f"gives no focal length{where} (fl_x or camera_angle_x)", field="fl_x")
+def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str, nerfstudio: bool = False) -> tuple[float, float, FieldNames]:
+    """(fx, fy, the fields they came from) of a transforms.json frame `rec` (its own keys over the file's), as
+    instant-ngp's read_focal_length reads an object: each axis from the first of x_fov (degrees), fl_x, camera_angle_x
+    (radians) that it has (y_fov, fl_y, camera_angle_y for y), an axis with none taking the other's (round 71a F1, F2: fl_x
+    beside camera_angle_y gave fy = fx, x_fov was never read). Errors about them name these fields, never fx or fy; an
+    angle used for both axes must give a focal length both sides allow (`_focal_from_angle`). nerfstudio: a nerfstudio
+    dataset's, whose reader takes fl_x and fl_y (never an angle): those first."""
+    order = {axis: (keys[1], keys[2], keys[0]) if nerfstudio else keys for axis, keys in FOCAL_KEYS.items()}
+    given = {axis: next((key for key in order[axis] if key in rec), None) for axis in ("x", "y")}
+    sides = {"x": ("width", width), "y": ("height", height)}
+    focal = {}
+    for axis, other in (("x", "y"), ("y", "x")):
+        key = given[axis]
+        if key is None:
+            continue
+        also = sides[other] if given[other] is None else None
+        value = _number(path, rec, key, where=where) if key.startswith("fl_") else _focal_from_angle(path, rec, key, sides[axis], where, also)
+        focal[axis] = (value, key)
+    if not focal:
+        raise InputError(path, f"gives no focal length{where} (fl_x, camera_angle_x or x_fov)", field="fl_x")
+    fx, fy = focal.get("x", focal.get("y")), focal.get("y", focal.get("x"))
+    return fx[0], fy[0], {"fx": fx[1], "fy": fy[1]}
 
 
 def _transform_matrix(path: Path, frame: dict, i: int) -> np.ndarray:
@@ -1182,28 +1180,33 @@ MIN_FIELD_OF_VIEW = 2.0 * math.atan(0.5 / MAX_INTRINSIC_RATIO)
 def _focal_from_angle(path: Path, rec: dict, key: str, side: tuple[str, int], where: str, also: tuple[str, int] | None = None) -> float:
     """f = s / (2 tan(angle / 2)) of a field-of-view angle across the image side `side` (name, s
     pixels), for an angle in [MIN_FIELD_OF_VIEW, pi) radians whose f `validate_intrinsics` accepts
-    for that side and for the side `also`, whose focal length it is too (fy = fx without camera_angle_y).
+    for that side and for the side `also`, whose focal length it is too (the other axis gives none). The angle is in
+    radians (camera_angle_x, camera_angle_y) or, for instant-ngp's x_fov and y_fov, degrees; messages say it in its
+    key's unit.
 
     InputError naming `key` otherwise. An angle below MIN_FIELD_OF_VIEW is refused before f is formed:
     for angles near 1e-308 the division overflows (numpy's warning, then "fx=inf"). Near pi, f nears 0
     (3.14159265 rad gives 1.1e-7 pixels): no pinhole lens; both ends were refused as fx or fy, fields
     the file does not have."""
-    angle = _number(path, rec, key, where=where)
+    given = _number(path, rec, key, where=where)
+    per_radian, unit, half_turn = (180.0 / np.pi, "degrees", "180") if key.endswith("_fov") else (1.0, "rad", "pi")
+    angle = given / per_radian
     if not 0 < angle < np.pi:
-        raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must lie in (0, pi)", field=key)
+        raise InputError(path, f"has a field of view of {given:g} {unit}{where}; it must lie in (0, {half_turn})", field=key)
     if angle < MIN_FIELD_OF_VIEW:
-        raise InputError(path, f"has a field of view of {angle:g} rad{where}; it must be at least {MIN_FIELD_OF_VIEW:.3g} rad (a narrower "
-                         f"one means a focal length of more than {MAX_INTRINSIC_RATIO:g} image sides, which no lens has)", field=key)
+        raise InputError(path, f"has a field of view of {given:g} {unit}{where}; it must be at least {MIN_FIELD_OF_VIEW * per_radian:.3g} "
+                         f"{unit} (a narrower one means a focal length of more than {MAX_INTRINSIC_RATIO:g} image sides, which no lens has)",
+                         field=key)
     focal = float(0.5 * side[1] / math.tan(0.5 * angle))
     for name, size in (side, also) if also is not None else (side,):
         low, high = intrinsic_bounds(size, MIN_FOCAL_RATIO)  # `_check_intrinsic`'s, so it never names fx for this angle
         if not low <= focal <= high:
-            other = "camera_angle_y" if key == "camera_angle_x" else "camera_angle_x"
-            shared = f" (used for the {name} too: the file has no {other})" if name != side[0] else ""
-            widest, narrowest = (2.0 * math.atan(0.5 * side[1] / f) for f in (low, high))
-            raise InputError(path, f"has a field of view of {angle:.9g} rad{where}, a focal length of {focal:g} pixels{shared} for an image "
-                             f"{size} pixels in {name}; it must lie in [{low:g}, {high:g}] ({MIN_FOCAL_RATIO:g} to {MAX_INTRINSIC_RATIO:g} "
-                             f"times the {name}), so the angle in [{narrowest:.9g}, {widest:.9g}] rad", field=key)
+            other = "y" if key in FOCAL_KEYS["x"] else "x"
+            shared = f" (used for the {name} too: the file gives no {other} focal length)" if name != side[0] else ""
+            widest, narrowest = (2.0 * math.atan(0.5 * side[1] / f) * per_radian for f in (low, high))
+            raise InputError(path, f"has a field of view of {given:.9g} {unit}{where}, a focal length of {focal:g} pixels{shared} for an "
+                             f"image {size} pixels in {name}; it must lie in [{low:g}, {high:g}] ({MIN_FOCAL_RATIO:g} to "
+                             f"{MAX_INTRINSIC_RATIO:g} times the {name}), so the angle in [{narrowest:.9g}, {widest:.9g}] {unit}", field=key)
     return focal
 
 

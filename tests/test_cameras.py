@@ -984,8 +984,8 @@ def test_undistortion_keeps_its_pixels_where_the_lens_samples_beyond_the_file(tm
 
 @pytest.mark.parametrize("meta, field, words", [
     ({"camera_angle_x": 1e-6, "frame": {"h": 96, "w": 128}}, "camera_angle_x",
-     "has a field of view of 1e-06 rad in frame 0, a focal length of 1.28e+08 pixels (used for the height too: the file has no "
-     "camera_angle_y) for an image 96 pixels in height"),
+     "has a field of view of 1e-06 rad in frame 0, a focal length of 1.28e+08 pixels (used for the height too: the file gives no "
+     "y focal length) for an image 96 pixels in height"),
     ({"camera_angle_x": 3.14159265}, "camera_angle_x", "has a field of view of 3.14159265 rad in frame 0, a focal length of 1.14873e-07 pixels for an image 128 pixels in width"),
     ({"camera_angle_x": 0.8, "camera_angle_y": 3.1415926}, "camera_angle_y", "has a field of view of 3.1415926 rad in frame 0"),
     ({"fl_x": 1e-300}, "fl_x", "frame 0 has fl_x=1e-300 for an image 128 pixels in width"),
@@ -1156,7 +1156,36 @@ def test_a_frames_own_focal_length_on_one_axis_sets_both_as_instant_ngp_reads_it
     assert (nerfstudio.fx, nerfstudio.fy) == (50.0, 50.0)  # nerfstudio's shared values win
 
 
+def _focal_of_degrees(size: int, degrees: float) -> float:
+    return 0.5 * size / np.tan(0.5 * np.radians(degrees))
+
+
+@pytest.mark.parametrize("file, frame, want", [
+    ({"fl_x": 50.0, "camera_angle_y": 2 * np.arctan(0.5)}, {}, (50.0, 48.0)),  # each axis its own (fy was fl_x)
+    ({}, {"fl_x": 51.0, "camera_angle_y": 2 * np.arctan(0.5)}, (51.0, 48.0)),
+    ({"fl_y": 40.0, "camera_angle_x": 2 * np.arctan(0.5), "camera_angle_y": 1.0}, {}, (64.0, 40.0)),  # fl_y before camera_angle_y
+    ({"fl_x": 50.0, "fl_y": 50.0}, {"x_fov": 60.0}, (_focal_of_degrees(64, 60.0),) * 2),  # a frame's x_fov is its focal length
+    ({"camera_angle_x": 1.0, "x_fov": 60.0}, {}, (_focal_of_degrees(64, 60.0),) * 2),  # x_fov before camera_angle_x
+    ({"x_fov": 60.0, "y_fov": 50.0}, {}, (_focal_of_degrees(64, 60.0), _focal_of_degrees(48, 50.0))),
+    ({"y_fov": 50.0}, {}, (_focal_of_degrees(48, 50.0),) * 2),
+])
+def test_focal_lengths_are_read_per_axis_as_instant_ngp_reads_them(tmp_path, file, frame, want):
+    """Round 71a F1, F2: instant-ngp's read_focal_length takes each axis from the first of x_fov (degrees), fl_x and
+    camera_angle_x (y_fov, fl_y, camera_angle_y), an axis with none the other's; drsplat took fy = fl_x beside a
+    camera_angle_y, camera_angle_y before fl_y, and never read x_fov or y_fov (a frame's x_fov kept the file's fl_x)."""
+    (camera,) = load_cameras(_transforms_dataset(tmp_path, **file, frame=frame))
+    assert (camera.fx, camera.fy) == pytest.approx(want, rel=1e-9)
+
+
+def test_a_field_of_view_in_degrees_is_checked_in_degrees(tmp_path):
+    """x_fov outside (0, 180) degrees is refused in its own unit, naming it."""
+    with pytest.raises(InputError, match=r"field 'x_fov': has a field of view of 200 degrees in frame 0; it must lie in \(0, 180\)"):
+        load_cameras(_transforms_dataset(tmp_path, x_fov=200.0))
+
+
 @pytest.mark.parametrize("lens, shown", [({"is_fisheye": True, "k1": 0.05}, "an OpenCV fisheye lens"),
+                                         ({"is_fisheye": True, "p1": 0.01}, "an OpenCV fisheye lens"),
+                                         ({"latlong": False}, "a lat-long panorama"), ({"orthographic": 0}, "an orthographic camera"),
                                          ({"is_fisheye": True, "k1": 0, "k2": 0, "k3": 0, "k4": 0.01}, "an OpenCV fisheye lens"),
                                          ({"latlong": True}, "a lat-long panorama"), ({"equirectangular": True}, "an equirectangular panorama"),
                                          ({"ftheta_p0": 0.0, "ftheta_p1": 0.01}, "an f-theta lens")])
@@ -1167,7 +1196,7 @@ def test_instant_ngp_s_other_lenses_are_refused_naming_the_lens(tmp_path, lens, 
     Its f-theta, lat-long and equirectangular lenses were read as pinholes. Each is refused, naming its field."""
     root = _transforms_dataset(tmp_path, fl_x=50.0, **(lens if level == "file" else {"frame": lens}))
     field = next(iter(lens)) if "is_fisheye" not in lens else "is_fisheye"
-    with pytest.raises(InputError, match=rf"field '{field}': describes {shown}( \(is_fisheye with k1\.\.k4\))? in frame 0, which no pinhole"):
+    with pytest.raises(InputError, match=rf"field '{field}': describes {shown}( \(is_fisheye with k1\.\.k4, p1 or p2\))? in frame 0, which no pinhole"):
         load_cameras(root)
 
 
