@@ -3,7 +3,8 @@
 The order is by view-space depth z = f · x + t_z, so it depends only on the view direction f
 (the translation adds the same t_z to every splat). As in antimatter15's splat viewer, the
 background thread re-sorts only when f has turned by more than a small angle since the last
-sort, and the sort itself is a 16-bit counting sort: O(N), two passes, no comparison.
+sort, and the sort itself is a radix sort of the float32 depths: two 16-bit counting passes, O(N), no comparison
+(antimatter15's is one pass over 16-bit depths quantised over their range, which one far Gaussian collapses).
 """
 
 from __future__ import annotations
@@ -15,73 +16,56 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-DEPTH_BITS = 16
+RADIX_BITS = 16  # bits of the depth keys sorted per counting pass (two passes: the whole float32 key)
 
 
 @numba.njit(cache=True, nogil=True)
-def _depth_keys(means: np.ndarray, forward: np.ndarray, bits: int) -> np.ndarray:
+def _depth_keys(means: np.ndarray, forward: np.ndarray) -> np.ndarray:
     n = means.shape[0]
-    depth = np.empty(n, np.float32)
-    lo, hi = np.inf, -np.inf
-    for i in range(n):
-        d = means[i, 0] * forward[0] + means[i, 1] * forward[1] + means[i, 2] * forward[2]
-        if not np.isfinite(d):
-            d = -np.inf
-        depth[i] = d
-        if np.isfinite(d):
-            lo = min(lo, d)
-            hi = max(hi, d)
     keys = np.zeros(n, np.uint32)
-    top = (1 << bits) - 1
-    if not hi > lo:
-        return keys
-    scale = top / (hi - lo)
     for i in range(n):
-        d = depth[i]
+        d = np.float32(means[i, 0] * forward[0] + means[i, 1] * forward[1] + means[i, 2] * forward[2])
         if np.isfinite(d):
-            keys[i] = min(top, max(0, int((d - lo) * scale)))
+            b = np.float32(d + np.float32(0.0)).view(np.uint32)  # -0 + 0 is +0: one key for both zeros
+            keys[i] = ~b if b >> np.uint32(31) else b | np.uint32(0x80000000)
     return keys
 
 
 @numba.njit(cache=True, nogil=True)
-def _counting_sort_descending(keys: np.ndarray, bits: int) -> np.ndarray:
-    bins = 1 << bits
-    counts = np.zeros(bins + 1, np.int64)
-    for k in keys:
-        counts[k] += 1
+def _counting_pass_descending(keys: np.ndarray, order: np.ndarray, shift: int) -> np.ndarray:
+    """`order` stably re-ordered by the RADIX_BITS-bit digit (keys >> shift), largest first."""
+    bins = 1 << RADIX_BITS
+    mask = np.uint32(bins - 1)
+    counts = np.zeros(bins, np.int64)
+    for i in order:
+        counts[(keys[i] >> np.uint32(shift)) & mask] += 1
     start = np.empty(bins, np.int64)
     running = 0
     for k in range(bins - 1, -1, -1):
         start[k] = running
         running += counts[k]
-    order = np.empty(keys.shape[0], np.uint32)
-    for i in range(keys.shape[0]):
-        k = keys[i]
-        order[start[k]] = i
+    out = np.empty(order.shape[0], np.uint32)
+    for i in order:
+        k = (keys[i] >> np.uint32(shift)) & mask
+        out[start[k]] = i
         start[k] += 1
-    return order
+    return out
 
 
-def depth_keys_reference(means: np.ndarray, forward: np.ndarray, bits: int = DEPTH_BITS) -> np.ndarray:
-    """Quantised depths: key = floor((d - min d) / (max d - min d) · (2^bits - 1)), d = means · forward.
+def depth_keys_reference(means: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Keys whose unsigned order is the order of the float32 depths d = means · forward: d's bits with the sign bit set
+    (d ≥ 0) or all bits flipped (d < 0), -0 as +0. Non-finite depths get key 0, below every finite one: drawn last (the
+    loader drops such Gaussians; here they only must not break the sort).
 
-    means: [N, 3], forward: [3]. Non-finite depths get key 0, the nearest bucket (the loader drops
-    such Gaussians; here they only must not break the sort).
-    Returns keys: [N] uint32.
-    """
+    means: [N, 3], forward: [3]. Returns keys: [N] uint32. The whole float32 order, not depths quantised over their
+    range: one Gaussian far from the scene (a floater, a units slip) stretched 16-bit buckets until the whole scene
+    shared a few, drawn in storage order (round 71b F1)."""
     m, f = means.astype(np.float32), forward.astype(np.float32)
-    depth = m[:, 0] * f[0] + m[:, 1] * f[1] + m[:, 2] * f[2]
+    depth = (m[:, 0] * f[0] + m[:, 1] * f[1] + m[:, 2] * f[2]).astype(np.float32) + np.float32(0.0)
     finite = np.isfinite(depth)
-    keys = np.zeros(means.shape[0], np.uint32)
-    if not finite.any():
-        return keys
-    lo, hi = float(depth[finite].min()), float(depth[finite].max())
-    if not hi > lo:
-        return keys
-    top = (1 << bits) - 1
-    scaled = (depth[finite].astype(np.float64) - lo) * (top / (hi - lo))
-    keys[finite] = np.clip(scaled.astype(np.int64), 0, top)
-    return keys
+    bits = depth.view(np.uint32)
+    keys = np.where(bits >> 31 == 1, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
+    return np.where(finite, keys, np.uint32(0))
 
 
 def back_to_front_reference(keys: np.ndarray) -> np.ndarray:
@@ -89,11 +73,13 @@ def back_to_front_reference(keys: np.ndarray) -> np.ndarray:
     return np.argsort(-keys.astype(np.int64), kind="stable").astype(np.uint32)
 
 
-def back_to_front_order(means: np.ndarray, forward: np.ndarray, bits: int = DEPTH_BITS) -> np.ndarray:
-    """Indices of `means` [N, 3] from farthest to nearest along `forward` [3] (16-bit depth keys)."""
+def back_to_front_order(means: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Indices of `means` [N, 3] from farthest to nearest along `forward` [3]: the float32 depths' keys
+    (`depth_keys_reference`) in two stable counting passes of RADIX_BITS bits, low digit first."""
     means = np.ascontiguousarray(means, np.float32)
-    keys = _depth_keys(means, np.ascontiguousarray(forward, np.float32), bits)
-    return _counting_sort_descending(keys, bits)
+    keys = _depth_keys(means, np.ascontiguousarray(forward, np.float32))
+    order = _counting_pass_descending(keys, np.arange(keys.shape[0], dtype=np.uint32), 0)
+    return _counting_pass_descending(keys, order, RADIX_BITS)
 
 
 @dataclass
