@@ -417,6 +417,34 @@ def test_a_screenshot_threshold_that_selects_nothing_is_said(demo, tmp_path, cap
     assert "no Gaussian scores >= 1.0000: the screenshot shows nothing" in err
 
 
+def test_a_scene_looks_the_same_at_any_scale_at_home_and_zoomed_in(gl_context, demo):
+    """Round 71b F2: the renderer's near plane was 0.01 world units and the home radius at least 0.01, so the demo scene
+    scaled by 1e-3 (an object 2 cm across, in metres) was cut away after 10 zoom steps and one scaled by 1e-6 was a dot at
+    any zoom. The near plane is a share of the scene's radius below radius 1 (`camera.scene_near_plane`), and the
+    orbit zoom stops at twice it: the same image at every scale, at home and zoomed in."""
+    import dataclasses
+
+    from drsplat.scene import load_ply
+    from viewer.app import render_screenshot
+    from viewer.camera import ViewController
+    from viewer.state import ViewerState
+
+    base = load_ply(demo[0])
+    shares = {}
+    for scale in (1.0, 1e-3, 1e-6):
+        st = ViewerState()
+        st.set_scene(dataclasses.replace(base, means=base.means * np.float32(scale), log_scales=base.log_scales + np.float32(np.log(scale))))
+        for steps in (0, 10):
+            view = ViewController.for_scene(st.scene.means, [], 96, 72, st.scene.log_scales)
+            view.zoom(steps)
+            image = render_screenshot(st, view.camera(), ctx=gl_context).astype(np.int64)
+            shares[scale, steps] = float((np.abs(image - image[0, 0]).sum(-1) > 30).mean())
+    for steps in (0, 10):
+        assert shares[1.0, steps] > 0.3, shares
+        for scale in (1e-3, 1e-6):
+            assert abs(shares[scale, steps] - shares[1.0, steps]) < 0.02, shares
+
+
 @pytest.mark.parametrize("count", [1, 50])
 def test_home_view_of_one_gaussian_or_gaussians_at_one_point_shows_them(gl_context, tmp_path, count):
     """Was: a black screenshot: the home radius (spread of the means) was 1e-3, so the eye sat

@@ -43,6 +43,10 @@ def intrinsics_for(width: int, height: int, fov_y_deg: float) -> tuple[float, fl
     return fy, fy, width / 2, height / 2
 
 
+NEAR_PLANE = 0.01  # the renderer's near plane for a scene of robust radius 1 or more (gsplat's, drsplat.raster's NEAR)
+MIN_RADIUS = 1e-12  # a scene's radius at least this (every Gaussian at one point, with no size)
+
+
 @dataclass
 class ViewController:
     """The interactive camera: pose (eye, target, up), mode 'orbit' or 'fly', and a viewport.
@@ -62,6 +66,7 @@ class ViewController:
     auto_up: np.ndarray | None = field(default=None, repr=False)
     home: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     home_fov: float | None = field(default=None, repr=False)
+    near: float = NEAR_PLANE  # the renderer's near plane (`scene_near_plane`): orbit zoom stops twice as far from the target
 
     def __post_init__(self) -> None:
         self.eye = np.asarray(self.eye, np.float64)
@@ -82,8 +87,10 @@ class ViewController:
         the radius is at least 3 typical Gaussian sizes (one Gaussian, or all at one point, is seen
         whole rather than from inside, in front of the near plane).
         """
+        near = scene_near_plane(means, log_scales)
         if cameras:
-            view = cls(eye=np.zeros(3), target=np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]), width=width, height=height)
+            view = cls(eye=np.zeros(3), target=np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]), width=width, height=height,
+                       near=near)
             view.snap_to(cameras[0], scene_center=_robust_center(means))
             view.up = _mean_up(cameras)
             view.auto_up = view.up.copy()
@@ -100,7 +107,7 @@ class ViewController:
         side = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         offset = (np.cross(up, side) * 0.8 + side * 0.6 + up * 0.7)
         eye = center + 2.2 * radius * offset / np.linalg.norm(offset)
-        return cls(eye=eye, target=center, up=up, width=width, height=height, auto_up=up.copy())
+        return cls(eye=eye, target=center, up=up, width=width, height=height, auto_up=up.copy(), near=near)
 
     @property
     def distance(self) -> float:
@@ -200,9 +207,10 @@ class ViewController:
         self.target = self.target + shift
 
     def zoom(self, steps: float) -> None:
-        """Scroll: orbit mode scales the distance to the target by 0.9 per step; fly mode moves forward."""
+        """Scroll: orbit mode scales the distance to the target by 0.9 per step, down to twice the near plane (the target
+        stays drawn; a view already nearer is not pushed out); fly mode moves forward."""
         if self.mode == "orbit":
-            new_distance = max(self.distance * 0.9**steps, 1e-4)
+            new_distance = max(self.distance * 0.9**steps, min(self.distance, 2.0 * self.near))
             self.eye = self.target - self.forward * new_distance
         else:
             self.move(np.array([0.0, 0.0, steps * 0.1 * self.distance]))
@@ -295,7 +303,11 @@ def _robust_center(means: np.ndarray) -> np.ndarray:
     return np.median(means.astype(np.float64), axis=0)
 
 
-MIN_RADIUS = 0.01  # the renderer's near plane: a home eye at 2.2 radii stays in front of it
+def scene_near_plane(means: np.ndarray, log_scales: np.ndarray | None = None) -> float:
+    """The renderer's near plane for a scene: NEAR_PLANE, or that share of its robust radius below radius 1. A fixed
+    0.01 cut a scene 2 cm across (in metres) as soon as it was looked at closely, and hid one of 1e-6 whatever the zoom
+    (round 71b F2). means: [N, 3]; log_scales: [N, 3] or None (`_robust_radius`)."""
+    return NEAR_PLANE * min(1.0, _robust_radius(means, _robust_center(means), log_scales))
 
 
 def _robust_radius(means: np.ndarray, center: np.ndarray, log_scales: np.ndarray | None = None) -> float:

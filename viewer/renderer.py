@@ -23,6 +23,7 @@ from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError
 from drsplat.scene import GaussianScene
 from viewer.assets import load_shader
+from viewer.camera import scene_near_plane
 from viewer.sorting import BackgroundSorter, SortResult
 
 log = logging.getLogger(__name__)
@@ -138,6 +139,7 @@ class SplatRenderer:
         self.rank = np.random.default_rng(seed).permutation(self.num).astype(np.uint32)
         self.moving_budget = min(self.num, moving_budget)
         self.origin = render_origin(scene.means)  # float32 positions on the GPU and in the sort are taken relative to it
+        self.near_plane = scene_near_plane(scene.means, scene.log_scales)
         self.sorter = BackgroundSorter(np.asarray(scene.means, np.float64) - self.origin, self.rank)
         self._result: SortResult | None = None
         self._sub_key: tuple[int, int] | None = None
@@ -292,7 +294,7 @@ class SplatRenderer:
         margin_x, margin_y = 0.15 * camera.width / camera.fx, 0.15 * camera.height / camera.fy
         cs["tan_limit_neg"].value = (camera.cx / camera.fx + margin_x, camera.cy / camera.fy + margin_y)
         cs["tan_limit_pos"].value = ((camera.width - camera.cx) / camera.fx + margin_x, (camera.height - camera.cy) / camera.fy + margin_y)
-        cs["near_plane"].value = 0.01
+        cs["near_plane"].value = self.near_plane
         cs["coeffs"].value = self.coeffs
         cs["count"].value = count
 
