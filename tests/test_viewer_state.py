@@ -141,6 +141,38 @@ def test_a_registered_scene_whose_codebook_is_missing_opens_without_its_field(st
     assert state.encoder_status.startswith("Queries are off: the language field of lone.ply cannot be read")
 
 
+def test_the_count_above_the_export_says_what_a_hide_selection_export_writes(state, tmp_path):
+    """Round 71b F3: in hide-selection mode the panel said "selected: 78 of 2,744" above an export of the 2,666 others."""
+    from drsplat.scene import load_ply
+
+    assert state.run_oracle_query(0)
+    selected, total = int(state.selection.sum()), state.num_gaussians
+    assert state.selection_text() == f"selected: {selected:,} of {total:,}"
+    assert state.set_mode("hide_selection")
+    shown = int(state.export_mask().sum())
+    assert state.selection_text() == f"selected: {selected:,} of {total:,}; an export writes the {shown:,} shown"
+    out = tmp_path / "hidden.ply"
+    assert state.export_selection(out, "standard") is not None and load_ply(out).num_gaussians == shown
+
+
+def test_a_one_gaussian_scene_is_said_in_the_singular(tmp_path):
+    """Round 71b F5: "loaded one.ply: 1 Gaussians"."""
+    from drsplat.scene import GaussianScene, save_ply
+    from viewer.state import ViewerState
+
+    one = GaussianScene(means=np.zeros((1, 3), np.float32), quats=np.array([[1, 0, 0, 0]], np.float32), log_scales=np.zeros((1, 3), np.float32),
+                        opacity_logits=np.zeros(1, np.float32), sh=np.zeros((1, 1, 3), np.float32))
+    save_ply(one, tmp_path / "one.ply")
+    st = ViewerState()
+    assert st.load_scene(tmp_path / "one.ply") and st.messages[-1].text.startswith("loaded one.ply: 1 Gaussian, SH degree 0")
+
+
+def test_a_blank_embedding_path_asks_for_one(state):
+    """Round 71b F4: a blank Q.npy field became Path("."): "embedding query . failed: .: is not a file"."""
+    assert not state.run_embedding_query("  ")
+    assert state.messages[-1].text == "type the path of a Q.npy embedding file to query by"
+
+
 def test_a_new_scene_starts_without_the_last_ones_mode_segmentation_or_encoder(state):
     assert state.run_oracle_query(0) and state.set_mode("hide_selection")
     state.encoder = object()  # a CLIP encoder of the previous scene's model

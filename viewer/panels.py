@@ -111,7 +111,7 @@ class QueryPanel:
         changed, value = imgui.slider_float("threshold", state.threshold, lo, hi, "%.3f")
         if changed:
             state.set_threshold(value)
-        imgui.text(f"selected: {int(state.selection.sum()):,} of {state.num_gaussians:,}")
+        imgui.text(state.selection_text())
         imgui.same_line()
         if imgui.small_button("clear query"):
             state.clear_query()

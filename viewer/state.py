@@ -180,7 +180,7 @@ class ViewerState:
         self.style_version += 1
         if lang is None:
             self.encoder_status = "this scene has no language field: register it (Registration panel) to query it"
-        self.info(f"loaded {path.name if path else 'scene'}: {scene.num_gaussians:,} Gaussians, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
+        self.info(f"loaded {path.name if path else 'scene'}: {counted(scene.num_gaussians, 'Gaussian', 'Gaussians')}, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
 
     def load_source(self, source: str | Path, background: bool = False) -> bool:
         """Training cameras of a dataset directory, and its oracle label queries if it has them.
@@ -475,6 +475,9 @@ class ViewerState:
 
         if not self._require_field():
             return False
+        if not str(path).strip():  # Path("") is ".", which was then "not a file" (round 71b F4)
+            self.error("type the path of a Q.npy embedding file to query by")
+            return False
         path = typed_path(path)
         try:
             emb = load_query_embeddings(path, self.field.dim)
@@ -677,6 +680,15 @@ class ViewerState:
 
     # ---------------------------------------------------------------- export
 
+    def selection_text(self) -> str:
+        """The Query panel's count above the export controls: the selection, and in hide-selection mode what an export
+        writes, which is the rest (round 71b F3: "selected: 78 of 2,744" above an export of 2,666)."""
+        selected = int(self.selection.sum())
+        text = f"selected: {selected:,} of {self.num_gaussians:,}"
+        if self.mode == "hide_selection":
+            text += f"; an export writes the {int(self.export_mask().sum()):,} shown"
+        return text
+
     def export_mask(self) -> np.ndarray:
         """[N] bool the Gaussians an export writes: the selection, or what is shown in hide-selection mode."""
         return ~self.selection if self.mode == "hide_selection" else self.selection
@@ -828,7 +840,10 @@ class ViewerState:
         job.reported = True
         self.messages.extend(job.messages)  # the run's own warnings, before its outcome (the status line shows the last)
         if job.error is not None:
-            self.error(f"registration did not finish: {job.error}")
+            if job.cancel is not None and job.cancel.cancelled:  # the user's own stop, not a failure (round 71b F5: shown in red)
+                self.info(f"registration stopped: {job.error}")
+            else:
+                self.error(f"registration did not finish: {job.error}")
             if os.path.lexists(checkpoint_path_for(job.output)):
                 self.info(f"its finished views are kept beside {job.output.name}: press Register with the same output and settings to "
                           "resume from them (other settings start over)")

@@ -399,8 +399,9 @@ class Checkpoint:
                     self._snapshot(self.done)
                 except OSError as exc:  # a full disk: the last periodic snapshot still stands
                     log.debug("no statistics snapshot at the stop (%s)", exc)
-            log.warning("%s: kept the registration checkpoint %s; the same command resumes from it, delete it to start over",
-                        why, self.describe())
+            # the same words for `drsplat register` and the viewer's Register button (round 71b F5: "the same command" there)
+            log.warning("%s: kept the registration checkpoint %s; a registration into the same output with the same settings "
+                        "resumes from it, delete it to start over", why, self.describe())
             return True
         finally:
             self._release()
