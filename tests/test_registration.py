@@ -492,24 +492,34 @@ def test_each_stage_s_first_run_probe_is_compiled_by_a_run_of_its_mode(tiny, tmp
         assert all(compiled_here(kernel) for kernel in kernels), mode
 
 
-def test_a_first_run_is_said_by_the_command_before_it_reads_the_scene(tiny, tmp_path, caplog, monkeypatch):
-    """Round 68a F4: the note came at 21 s of a 36 s first run (the scene's loading and the near plane's decision had
-    compiled by then), after the decision's warning under auto. `drsplat register` says it first, once."""
+def test_a_first_run_is_said_by_the_command_before_the_near_plane_is_decided(tiny, tmp_path, caplog, monkeypatch):
+    """Round 68a F4: the note came at 21 s of a 36 s first run (the near plane's decision and the views had compiled by
+    then), after the decision's warning under auto. `drsplat register` says it once, after reading the scene (~1 s of
+    compiling) and before the decision."""
     import drsplat.registration.driver as driver
-    from drsplat import splat_formats
+    from drsplat import frames, splat_formats
     from drsplat.cli import main
 
     events = []
-    loaded = splat_formats.load_scene_report
+    loaded, decided = splat_formats.load_scene_report, frames.cameras_and_plane_as_trained
     monkeypatch.setattr(splat_formats, "load_scene_report", lambda *a, **k: events.append("scene") or loaded(*a, **k))
+    monkeypatch.setattr(frames, "cameras_and_plane_as_trained", lambda *a, **k: events.append("decision") or decided(*a, **k))
     monkeypatch.setattr(driver, "kernels_cached", lambda: False)
     monkeypatch.setattr(driver, "log", _Recorder(driver.log, events))
     assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
                  str(tmp_path / "o.ply"), "--no-progress", "--aggregate", "paper"]) == 0
     notes = [i for i, e in enumerate(events) if e == "note"]
-    assert len(notes) == 1 and notes[0] < events.index("scene"), events
-    # not before the refusals that end a run at once (round 70a F7): a missing scene, a budget its reading exceeds
+    assert len(notes) == 1 and events.index("scene") < notes[0] < events.index("decision"), events
+    # not before the refusals that end a run at once (round 70a F7, 71a F4): a missing scene, a budget its reading exceeds,
+    # a missing or empty features folder, a scene file the loader refuses
     events.clear()
+    for features in (tmp_path / "none", tmp_path / "empty"):
+        (tmp_path / "empty").mkdir(exist_ok=True)
+        assert main(["register", str(tiny / "scene.ply"), "--source", str(tiny), "--features", str(features), "--out",
+                     str(tmp_path / "f.ply"), "--no-progress"]) == 1
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n" + bytes(4))
+    assert main(["register", str(tmp_path / "bad.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "g.ply"), "--no-progress"]) == 1
     assert main(["register", str(tmp_path / "missing.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
                  str(tmp_path / "m.ply"), "--no-progress"]) == 1
     monkeypatch.setattr(splat_formats, "declared_scene_size", lambda path: (10**9, 59))
