@@ -445,6 +445,36 @@ def test_a_scene_looks_the_same_at_any_scale_at_home_and_zoomed_in(gl_context, d
             assert abs(shares[scale, steps] - shares[1.0, steps]) < 0.02, shares
 
 
+def test_a_small_scene_seen_from_its_training_camera_stays_in_view_when_zoomed_and_turned(gl_context, demo):
+    """Round 72a F3: the home view from a training camera put the orbit target at least 1e-3 in front of it, 300 radii
+    behind a scene scaled by 1e-6: one zoom step or drag lost the scene. The target is the scene centre's depth, at
+    least twice the near plane."""
+    import dataclasses
+
+    from drsplat.cameras import load_cameras
+    from drsplat.scene import load_ply
+    from viewer.app import render_screenshot
+    from viewer.camera import ViewController
+    from viewer.state import ViewerState
+
+    base, cameras = load_ply(demo[0]), load_cameras(demo[1])
+    shares = {}
+    for scale in (1.0, 1e-6):
+        st = ViewerState()
+        st.set_scene(dataclasses.replace(base, means=base.means * np.float32(scale), log_scales=base.log_scales + np.float32(np.log(scale))))
+        scaled = [dataclasses.replace(c, t=np.asarray(c.t) * scale) for c in cameras]
+        for action in ("home", "zoom", "turn"):
+            view = ViewController.for_scene(st.scene.means, scaled, 96, 72, st.scene.log_scales)
+            if action == "zoom":
+                view.zoom(1)
+            elif action == "turn":
+                view.rotate(40, 0)
+            image = render_screenshot(st, view.camera(), ctx=gl_context).astype(np.int64)
+            shares[scale, action] = float((np.abs(image - image[0, 0]).sum(-1) > 30).mean())
+    for action in ("home", "zoom", "turn"):
+        assert shares[1.0, action] > 0.3 and abs(shares[1e-6, action] - shares[1.0, action]) < 0.02, shares
+
+
 @pytest.mark.parametrize("count", [1, 50])
 def test_home_view_of_one_gaussian_or_gaussians_at_one_point_shows_them(gl_context, tmp_path, count):
     """Was: a black screenshot: the home radius (spread of the means) was 1e-3, so the eye sat

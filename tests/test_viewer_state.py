@@ -165,6 +165,8 @@ def test_a_one_gaussian_scene_is_said_in_the_singular(tmp_path):
     save_ply(one, tmp_path / "one.ply")
     st = ViewerState()
     assert st.load_scene(tmp_path / "one.ply") and st.messages[-1].text.startswith("loaded one.ply: 1 Gaussian, SH degree 0")
+    save_ply(one.subset(np.zeros(1001, np.int64)), tmp_path / "many.ply")  # and thousands grouped (round 72a F4)
+    assert st.load_scene(tmp_path / "many.ply") and st.messages[-1].text.startswith("loaded many.ply: 1,001 Gaussians, SH degree 0")
 
 
 def test_a_blank_embedding_path_asks_for_one(state):

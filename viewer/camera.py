@@ -223,12 +223,14 @@ class ViewController:
         self.target = self.target + shift
 
     def snap_to(self, camera: Camera, scene_center: np.ndarray | None = None) -> None:
-        """Take a training camera's pose (its roll included) and vertical field of view."""
+        """Take a training camera's pose (its roll included) and vertical field of view; the orbit target at the scene
+        centre's depth, at least twice the near plane (a fixed 1e-3 put it 300 radii behind a scene of 1e-6, which one
+        zoom step then left: round 72a F3)."""
         R = np.asarray(camera.R, np.float64)
         center = camera.center
         distance = 1.0
         if scene_center is not None:
-            distance = max(float((np.asarray(scene_center) - center) @ R[2]), 1e-3)
+            distance = max(float((np.asarray(scene_center) - center) @ R[2]), 2.0 * self.near)
         self.eye = center
         self.target = center + R[2] * distance
         self.up = -R[1]
