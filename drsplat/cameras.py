@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import json
 import logging
 import math
 import os
@@ -1038,7 +1039,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         else:
             width, height = _image_size(image)
             _check_half_size(path, rec, (width, height), image, where)
-        refuse_other_lens(path, rec, where)
+        refuse_other_lens(path, meta, frame, where)
         fx, fy, focal_fields = _focal_lengths(path, rec, width, height, where, nerfstudio=shared_wins)
         cx = _number(path, rec, "cx", width / 2, where=where)
         cy = _number(path, rec, "cy", height / 2, where=where)
@@ -1100,21 +1101,33 @@ FISHEYE_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")  # what makes instant-ngp'
 OTHER_LENS_FIELDS = ("latlong", "equirectangular", "orthographic")  # instant-ngp's lens switches: no pinhole wherever the key is
 
 
-def refuse_other_lens(path: Path, rec: dict, where: str) -> None:
-    """Refuse the lenses instant-ngp reads from a transforms.json object besides the pinhole and OpenCV's
-    radial-tangential one (its `read_lens`): `is_fisheye` with a non-zero k1..k4, p1 or p2 (OpenCV's equidistant fisheye
-    model, which colmap2nerf.py writes for COLMAP's fisheye cameras; k1, k2 were read as radial-tangential coefficients:
-    round 69b F1), an f-theta lens (`ftheta_p0`..), and `latlong`, `equirectangular` or `orthographic`, whatever their
-    value (instant-ngp asks only whether the key is there: round 71a F3). `is_fisheye` with every coefficient 0 is a
-    pinhole there, and here. `rec` is the file's keys and the frame's together, so a file's `is_fisheye` with a frame's
-    own k1 is refused where instant-ngp, reading each object's lens on its own, would read the frame's as OpenCV's."""
-    fisheye = rec.get("is_fisheye") in (True, 1) and any(_number(path, rec, key, 0.0, where=where) != 0 for key in FISHEYE_FIELDS)
-    lens = "is_fisheye" if fisheye else next((key for key in OTHER_LENS_FIELDS if key in rec), None)
-    lens = lens or next((key for key in rec if isinstance(key, str) and key.startswith("ftheta_p")), None)
+def refuse_other_lens(path: Path, meta: dict, frame: dict, where: str) -> None:
+    """Refuse the lenses instant-ngp reads from a transforms.json frame besides the pinhole and OpenCV's radial-tangential
+    one, deciding as its `read_lens` does, on the file's object (`meta`) and then the frame's, each changing the lens only
+    by what it holds itself (round 72a F1: a frame's `is_fisheye: false` turned the file's fisheye into OpenCV's): a
+    non-zero k1..k4, p1 or p2 makes the object's lens OpenCV's, or OpenCV's equidistant fisheye under its `is_fisheye:
+    true` (colmap2nerf.py writes it for COLMAP's fisheye cameras; k1, k2 had been read as radial-tangential coefficients:
+    round 69b F1); `ftheta_p0` an f-theta lens; `latlong`, `equirectangular` or `orthographic` those, whatever their value
+    (round 71a F3). A fisheye with every coefficient 0 stays one. `is_fisheye` is a JSON boolean (instant-ngp refuses
+    another type: round 72a F5)."""
+    lens = _object_lens(path, frame, _object_lens(path, meta, None, where), where)
     if lens is not None:
         kind = {"is_fisheye": "an OpenCV fisheye lens (is_fisheye with k1..k4, p1 or p2)", "latlong": "a lat-long panorama",
                 "equirectangular": "an equirectangular panorama", "orthographic": "an orthographic camera"}.get(lens, "an f-theta lens")
         raise InputError(path, f"describes {kind}{where}, which no pinhole camera is; {UNDISTORT_HINT}", field=lens)
+
+
+def _object_lens(path: Path, obj: dict, lens: str | None, where: str) -> str | None:
+    """The lens after instant-ngp's `read_lens` of one transforms.json object, from the one before it (`lens`): the field
+    naming a lens drsplat does not read, or None for a pinhole or OpenCV's radial-tangential lens."""
+    fisheye = obj.get("is_fisheye", False)
+    if not isinstance(fisheye, bool):
+        raise InputError(path, f"has is_fisheye {json.dumps(fisheye)[:40]}{where}; it must be true or false", field="is_fisheye")
+    if any(_number(path, obj, key, 0.0, where=where) != 0 for key in FISHEYE_FIELDS if key in obj):
+        lens = "is_fisheye" if fisheye else None
+    if "ftheta_p0" in obj:
+        lens = "ftheta_p0"
+    return next((key for key in OTHER_LENS_FIELDS if key in obj), lens)
 
 
 def _focal_lengths(path: Path, rec: dict, width: int, height: int, where: str, nerfstudio: bool = False) -> tuple[float, float, FieldNames]:

@@ -1200,6 +1200,27 @@ def test_instant_ngp_s_other_lenses_are_refused_naming_the_lens(tmp_path, lens, 
         load_cameras(root)
 
 
+@pytest.mark.parametrize("file, frame, refused", [
+    ({"is_fisheye": True, "k1": 0.1}, {"is_fisheye": False}, "is_fisheye"),  # the frame sets no coefficient: the file's fisheye stays
+    ({"is_fisheye": True, "k1": 0.1}, {"k1": 0.0}, "is_fisheye"),  # a fisheye of zero coefficients is still one
+    ({"k1": 0.1}, {"is_fisheye": True}, None),  # the frame's flag without coefficients of its own: the file's OpenCV lens
+    ({"is_fisheye": True, "k1": 0.1}, {"k1": 0.05, "is_fisheye": False}, None),  # the frame's own OpenCV lens
+    ({"k1": 0.1, "is_fisheye": "true"}, {}, "is_fisheye"),  # not a JSON boolean
+])
+def test_the_lens_is_decided_object_by_object_as_instant_ngp_reads_it(tmp_path, file, frame, refused):
+    """Round 72a F1, F5: the lens was decided on the file's keys and the frame's merged, so a frame's `is_fisheye: false`
+    read the file's fisheye k1 as OpenCV's, a frame's `is_fisheye: true` refused the file's OpenCV lens, and a string
+    "true" passed. instant-ngp's read_lens reads the file's object, then the frame's, each changing the lens only by
+    what it holds."""
+    root = _transforms_dataset(tmp_path, fl_x=50.0, **file, frame=frame)
+    if refused is None:
+        (camera,) = load_cameras(root)
+        assert camera.distortion is not None
+    else:
+        with pytest.raises(InputError, match=f"field '{refused}'"):
+            load_cameras(root)
+
+
 def test_is_fisheye_without_coefficients_is_a_pinhole(tmp_path):
     """instant-ngp reads `is_fisheye` with k1..k4 all 0 as a pinhole (its lens mode stays Perspective): so does drsplat."""
     (camera,) = load_cameras(_transforms_dataset(tmp_path, fl_x=50.0, is_fisheye=True, k1=0, k2=0, k3=0, k4=0))
