@@ -152,9 +152,10 @@ def _dot_leaders(feats_t, rows, j0, j1, c0, c1, acc, out):  # pragma: no cover -
     (The masks are read through a slice of each row of feats_t: indexed from j0, numba's check for
     negative indices kept the loop scalar, 2x slower.)"""
     dim, width = feats_t.shape[0], j1 - j0
-    if width < FEW_MASKS:
-        _dot_few_masks(feats_t, rows, j0, j1, c0, c1, out)
-        return
+    if width < FEW_MASKS:  # whole runs of eight leaders side by side; the rest (fewer than eight) as below
+        whole = c0 + (c1 - c0) // 8 * 8
+        _dot_few_masks(feats_t, rows, j0, j1, c0, whole, out)
+        c0 = whole
     for g in range(c0, c1, 4):
         n = min(4, c1 - g)
         acc[:, :] = 0.0
@@ -187,7 +188,8 @@ def _dot_few_masks(feats_t, rows, j0, j1, c0, c1, out):  # pragma: no cover - ji
     """`_dot_leaders` for fewer than FEW_MASKS masks, where a loop over them has too few lanes to vectorise and each
     leader's sum was one serial chain through memory (1.87 against 0.15 ms for one mask x 4,096 leaders with the old
     reassociated sums: round 68a F11): eight leaders' sums kept in registers, each in index order of d as `_row_dot`,
-    side by side so that their adds overlap."""
+    side by side so that their adds overlap. c1 - c0 is a multiple of eight (the caller sums the rest: one serial chain
+    a leader was 1.9x slower than the masks' lanes there, round 72a F2)."""
     dim = feats_t.shape[0]
     for j in range(j0, j1):
         g = c0
@@ -206,11 +208,6 @@ def _dot_few_masks(feats_t, rows, j0, j1, c0, c1, out):  # pragma: no cover - ji
             out[j, g], out[j, g + 1], out[j, g + 2], out[j, g + 3] = s0, s1, s2, s3
             out[j, g + 4], out[j, g + 5], out[j, g + 6], out[j, g + 7] = s4, s5, s6, s7
             g += 8
-        for c in range(g, c1):
-            s = np.float32(0.0)
-            for d in range(dim):
-                s += feats_t[d, j] * rows[c, d]
-            out[j, c] = s
 
 
 @numba.njit(parallel=True, cache=True)
