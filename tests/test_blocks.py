@@ -656,6 +656,8 @@ def test_a_budget_its_reading_would_exceed_is_refused_before_the_scene_is_read(t
     with pytest.raises(DrsplatError, match=r"too small for this scene \(s\): reading its 3,000,000 rows of 59 values holds more than 708 MB"):
         refuse_below_scene_floor(700 * 10**6, 3_000_000, 59, "s", base=0)
     refuse_below_scene_floor(709 * 10**6, 3_000_000, 59, "s", base=0)
+    # a scene cheap to read is read: the plan's refusal then names a budget that fits (`test_the_budget_a_refusal_names_*`)
+    refuse_below_scene_floor(1, 1_000_000, 59, "s", base=0)
 
     def not_read(*args, **kwargs):
         raise AssertionError("the scene was read before the budget was refused")

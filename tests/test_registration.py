@@ -468,12 +468,12 @@ def test_a_first_run_that_compiles_the_kernels_says_so(tiny, tmp_path, caplog, m
                               ("solve", "local", True), ("fit-check-vote-reject", "ray", False)]:
         caplog.clear()
         with caplog.at_level(logging.INFO):
-            driver.say_if_kernels_compile(RegisterOptions(aggregate=mode, ray="local" if place == "ray" else None))
+            driver.say_if_kernels_compile(RegisterOptions(aggregate=mode, ray="auto" if place == "ray" else None))
         assert ("numba compiles the kernels" in caplog.text) == said, (mode, place)
     monkeypatch.setattr(driver, "kernels_cached", lambda: False)
     caplog.clear()
     with caplog.at_level(logging.INFO):
-        driver.say_if_kernels_compile(RegisterOptions(aggregate="paper", ray="local"))
+        driver.say_if_kernels_compile(RegisterOptions(aggregate="paper", ray="auto"))  # the place only: no cluster starts
     assert "numba compiles the kernels" in caplog.text
 
 

@@ -152,6 +152,9 @@ def estimate_memory(scene: GaussianScene, views: Sequence[Camera], dim: int, top
                       pair_buffer=buffer_bytes(dim, total_masks, max_masks, pairs=min(pair_capacity_for(n), PAIR_CAPACITY)))
 
 
+EARLY_REFUSAL_BYTES = 256 << 20  # a scene file whose reading holds less is read before a budget is judged: cheaply, and then the plan's refusal names a budget that fits
+
+
 def refuse_below_scene_floor(budget: int, rows: int, values: int, what: str, base: int | None = None) -> None:
     """Refuse a --memory-budget that reading the scene file alone would exceed, before it is read (round 67b F3: 300 MB
     was refused for a 3M-Gaussian scene only after loading it to 1.02 GB resident).
@@ -160,9 +163,12 @@ def refuse_below_scene_floor(budget: int, rows: int, values: int, what: str, bas
     (`splat_formats.declared_scene_size`), before it drops any (non-finite rows) and before the plan counts the
     geometry, views and masks. Rows the loading then drops are held too, so a budget below it is exceeded whatever the
     plan says (round 70a F1: a floor of the plan's per-Gaussian bytes refused a file of mostly non-finite rows a budget
-    its kept rows fit). base: this process's resident memory (None: now)."""
-    floor = (current_rss() if base is None else base) + 4 * rows * values
-    if budget < floor:
+    its kept rows fit). Only a scene whose reading holds EARLY_REFUSAL_BYTES or more is refused so: a smaller one costs
+    little to read, and the plan's refusal then names a budget that fits, which this one cannot (it knows neither the
+    views nor the masks). base: this process's resident memory (None: now)."""
+    held = 4 * rows * values
+    floor = (current_rss() if base is None else base) + held
+    if held >= EARLY_REFUSAL_BYTES and budget < floor:
         raise DrsplatError(f"--memory-budget {format_size(budget)} is too small for this scene ({what}): reading its "
                            f"{rows:,} rows of {values} values holds more than {format_size(floor)}, before its geometry, views and "
                            "masks are counted; a budget above that is planned once the scene is read, and a refusal then names the "
