@@ -127,6 +127,28 @@ def test_disk_full_while_logging_views_names_the_log(tiny, uninterrupted, tmp_pa
     assert out.read_bytes() == uninterrupted
 
 
+def test_a_stop_whose_statistics_cannot_be_saved_keeps_no_checkpoint_it_could_not_resume(tiny, uninterrupted, tmp_path, monkeypatch,
+                                                                                         capsys):
+    """Round 72b F2: a run stopped on a full disk before the mode's first statistics snapshot said "kept the registration
+    checkpoint (5 of 16 views) ... resumes from it", and the rerun redid every view. With no statistics saved the log
+    could resume nothing: it is removed, and the message says why."""
+    from drsplat.registration.checkpoint import Checkpoint
+
+    def no_room(self, views):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.stats_path))
+
+    out = tmp_path / "reg.ply"
+    monkeypatch.setattr(Checkpoint, "_snapshot", no_room)
+    _fill_disk_in(PairLog, "_file", "__init__", 5 * 8 + 1, monkeypatch)
+    assert main(_args(tiny, out)) == 1
+    err = capsys.readouterr().err
+    assert "the registration checkpoint was removed: the aggregation statistics of its 5 views could not be saved" in err, err
+    assert "kept the registration checkpoint" not in err and not checkpoint_path_for(out).exists()
+    monkeypatch.undo()
+    assert main(_args(tiny, out)) == 0
+    assert "already registered" not in capsys.readouterr().err and out.read_bytes() == uninterrupted
+
+
 def test_disk_full_while_the_check_spills_its_tables_names_the_spill_and_the_rerun_resumes(tiny, uninterrupted, tmp_path, monkeypatch, capsys):
     """The default mode's check with its support tables capped at nothing, on a full disk: one error
     naming the spill file and what to do, no spill folder left, the checkpoint kept; the rerun
@@ -226,7 +248,12 @@ def test_features_rewritten_with_their_old_size_and_mtime_restart_the_checkpoint
     assert (feats.stat().st_size, feats.stat().st_mtime_ns) == (before.st_size, before.st_mtime_ns)
     capsys.readouterr()
     assert main(_args(ds, out)) == 0
-    assert "the feature files of view orbit_001 changed since it was logged; resuming from the 1 view before it" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "the feature files of view orbit_001 changed since it was logged; resuming from the 1 view before it" in err
+    # the default mode's statistics cover the 5 views logged: they restart, and it is said (round 72b F1: "resuming from ...",
+    # then nothing resumed and no word)
+    assert "its statistics snapshot covers 5 views, more than the 1 it keeps now; the aggregation statistics restart" in err, err
+    assert not aggregate_stats_path(checkpoint_path_for(out)).exists()
     fresh = tmp_path / "fresh" / "reg.ply"
     assert main(_args(ds, fresh)) == 0
     assert out.read_bytes() == fresh.read_bytes()

@@ -39,7 +39,7 @@ from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
 from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
 from drsplat.raster import NEAR, sh_in_range
-from drsplat.scene import GaussianScene
+from drsplat.scene import GaussianScene, counted
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, protected_mode, read_npy_header,
                            temp_prefix, temp_stem, work_folder)
 
@@ -294,6 +294,7 @@ class Checkpoint:
                 shutil.rmtree(shards_folder(self.path), ignore_errors=True)
             self.aggregator = aggregator
             self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
+            self.covered = None if self.stats_path is None else 0  # the views the statistics snapshot on disk covers (None: no statistics)
             if self.stats_path is not None:
                 self._resume_stats()
             if self.shards_dir is not None:
@@ -352,6 +353,7 @@ class Checkpoint:
         """Write the mode's statistics as covering the first `views` logged views."""
         with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
             np.savez(f, views=np.int64(views), **self.aggregator.state())
+        self.covered = views
 
     def close(self) -> None:
         """Close the log and release the run's lock (a later Checkpoint at this path may open it)."""
@@ -399,9 +401,16 @@ class Checkpoint:
                     self._snapshot(self.done)
                 except OSError as exc:  # a full disk: the last periodic snapshot still stands
                     log.debug("no statistics snapshot at the stop (%s)", exc)
+            resumable = self.done if self.covered is None else min(self.covered, self.done)
+            if resumable == 0:  # the mode's statistics were never saved: a rerun would redo every view (round 72b F2)
+                self.remove()
+                log.warning("%s: the registration checkpoint was removed: the aggregation statistics of its %s could not be "
+                            "saved, so a rerun would compute them again anyway", why, counted(self.done, "view", "views"))
+                return False
             # the same words for `drsplat register` and the viewer's Register button (round 71b F5: "the same command" there)
+            part = "" if resumable == self.done else f" (its first {resumable}: the aggregation statistics were last saved there)"
             log.warning("%s: kept the registration checkpoint %s; a registration into the same output with the same settings "
-                        "resumes from it, delete it to start over", why, self.describe())
+                        "resumes from it%s, delete it to start over", why, self.describe(), part)
             return True
         finally:
             self._release()
@@ -453,9 +462,13 @@ class Checkpoint:
         except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
             log.warning("%s is unreadable (%s); the aggregation statistics restart with the views", self.stats_path, exc)
             views, arrays = 0, {}
-        if views > len(self.log.records):  # the log was cut shorter than the snapshot: start over
+        if views > len(self.log.records):  # the log was cut shorter than the snapshot: start over, and say so (round 72b F1:
+            log.warning("%s: its statistics snapshot covers %d views, more than the %d it keeps now; the aggregation statistics "  # "resuming
+                        "restart, so those views are redone too", self.path, views, len(self.log.records))  # from N views", then none)
+            self.stats_path.unlink(missing_ok=True)
             views, arrays = 0, {}
         self.log.truncate(views)
+        self.covered = views
         self.aggregator.load_state(arrays)
         self.aggregator.views_folded = views
 

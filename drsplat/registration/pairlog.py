@@ -586,7 +586,7 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
             records, end = _scan(f, size)
             if end < size:
                 log.warning("%s: %s; resuming from the %s before it", path,
-                            "the last view's record is incomplete (the run was killed while writing it)" if _is_torn_tail(f, end, size)
+                            "the last view's record is incomplete (the run stopped while writing it: killed, or its disk full)" if _is_torn_tail(f, end, size)
                             else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", views_before(len(records)))
                 f.truncate(end)
             return records
