@@ -355,3 +355,23 @@ def test_a_folder_output_holding_a_write_protected_file_is_never_replaced(tmp_pa
     with atomic_folder(out, lambda p: True) as tmp:
         (tmp / "new").write_bytes(b"x")
     assert sorted(p.name for p in out.iterdir()) == ["new"] and protected.read_bytes() == b"not ours"
+
+
+def test_an_atomic_write_syncs_its_data_before_the_rename_and_the_folder_after(tmp_path, monkeypatch):
+    """Round 72b F3: the registered PLY was renamed into place without an fsync, and the checkpoint deleted right after:
+    a power loss then could keep the new name over lost data, with nothing left to resume. The temp file is synced before
+    the rename, the folder after it."""
+    import os
+
+    from drsplat import utils
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: events.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}"))) or real_fsync(fd))
+    monkeypatch.setattr(os, "replace", lambda a, b: events.append(("replace", str(b))) or real_replace(a, b))
+    out = tmp_path / "out.bin"
+    utils.write_bytes_atomic(out, b"abc")
+    assert out.read_bytes() == b"abc"
+    kinds = [kind for kind, _ in events]
+    assert kinds == ["fsync", "replace", "fsync"], events
+    assert events[0][1].startswith(str(tmp_path / ".out.bin")) and events[2][1] == str(tmp_path), events
