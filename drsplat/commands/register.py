@@ -155,22 +155,21 @@ def _register_holding(args: argparse.Namespace, lock: RunLock | None, cameras: l
     """`run` from the scene on, `lock` (the run's lock, or None) held: reads the scene, decides the cameras' frame, near plane
     and principal points, and registers."""
     from drsplat.errors import DrsplatError, shown_path
+    from drsplat.features.format import list_stems
     from drsplat.frames import DECISION_HELD_BYTES, FIRST_COMPILE_HELD_BYTES, cameras_and_plane_as_trained, refinement_comment
     from drsplat.raster import kernels_cached
     from drsplat.memory import trim_heap
     from drsplat.registration import register
-    from drsplat.registration.driver import prepare_run, refuse_if_over_budget
-    from drsplat.features.format import list_stems
-    from drsplat.registration.driver import say_if_kernels_compile
+    from drsplat.registration.driver import prepare_run, refuse_if_over_budget, say_if_kernels_compile
     from drsplat.registration.plan import refuse_below_scene_floor
     from drsplat.splat_formats import declared_scene_size, load_scene_report
 
     size = declared_scene_size(args.scene) if options.memory_budget is not None else None
     if size is not None:  # a budget its reading would exceed is refused before the scene is loaded over it
         refuse_below_scene_floor(options.memory_budget, *size, shown_path(args.scene))
-    scene, report = load_scene_report(args.scene, purpose="register")  # its first compile is ~1 s
+    scene, report = load_scene_report(args.scene, purpose="register")  # refuses a file with no usable row; ~1 s of compiling at first
     if args.features.is_dir() and list_stems(args.features):  # before the near plane's decision and the views, which compile (round
-        say_if_kernels_compile(options)  # 68a F4), after what refuses a run at once: a scene or feature folder unread (70a F7, 71a F4)  # refuses a file with no usable row
+        say_if_kernels_compile(options)  # 68a F4), after what refuses a run at once: a scene or feature folder unread (70a F7, 71a F4)
     dropped = report.dropped_nan_rows + report.dropped_inf_rows
     if args.keep_unassigned and dropped:  # the option's promise is row-for-row with the scene file
         log.warning("--keep-unassigned: %d of the %d rows of %s were dropped on loading (non-finite values), so the registered "

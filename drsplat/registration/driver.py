@@ -43,12 +43,13 @@ from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
 from drsplat.raster import ALPHA_MIN, NEAR, get_engine, kernels_cached, median_nearest_depth, share_within_near_plane, some_view_draws, widened_scene
-from drsplat.registration.aggregate import PEAK_MIN, Aggregator, mode_stages, without_check, without_rejection
-from drsplat.registration.fit import (FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine, probe_folds_floaters, probe_memory,
-                                      probe_memory_bound, resolve_mode)
-from drsplat.registration.check import CheckSink, fixed_point_fits, heavy_drop_warning
+from drsplat.registration.aggregate import PEAK_MIN, REJECT_FIRST_RUN_PROBE, SHARP_FIRST_RUN_PROBE, Aggregator, mode_stages, without_check, without_rejection
+from drsplat.registration.fit import (FIRST_RUN_PROBE as FIT_PROBE, FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine,
+                                      probe_folds_floaters, probe_memory, probe_memory_bound, resolve_mode)
+from drsplat.registration.check import FIRST_RUN_PROBE as CHECK_PROBE, CheckSink, fixed_point_fits, heavy_drop_warning
 from drsplat.registration.checkpoint import (CHECKPOINT_EVERY, Checkpoint, RunLock, changed_features, checkpoint_params, checkpoint_path_for,
                                              feature_stamps, lock_run)
+from drsplat.registration.coalesce import FIRST_RUN_PROBE as COALESCE_PROBE
 from drsplat.registration.compute import ViewJob, WorkerStats, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.executor import one_view_behind, open_executor
 from drsplat.registration.options import NEAR_PLANE_COMMENT, RegisterOptions, near_plane_comment
@@ -56,18 +57,12 @@ from drsplat.registration.output import ArrayTarget, PlyTarget, Target
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import MemoryPlan, choose_block, estimate_memory
 from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts, judged, make_job, shard_errors, wants_reducers
-from drsplat.registration.solve import solve_registration
+from drsplat.registration.solve import FIRST_RUN_PROBE as SOLVE_PROBE, solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
 from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
                                         warn_if_turned_without_manifest)
-from drsplat.registration.vote import VoteSink
-from drsplat.registration.aggregate import REJECT_FIRST_RUN_PROBE, SHARP_FIRST_RUN_PROBE
-from drsplat.registration.check import FIRST_RUN_PROBE as CHECK_PROBE
-from drsplat.registration.coalesce import FIRST_RUN_PROBE as COALESCE_PROBE
-from drsplat.registration.fit import FIRST_RUN_PROBE as FIT_PROBE
-from drsplat.registration.solve import FIRST_RUN_PROBE as SOLVE_PROBE
-from drsplat.registration.vote import FIRST_RUN_PROBE as VOTE_PROBE
+from drsplat.registration.vote import FIRST_RUN_PROBE as VOTE_PROBE, VoteSink
 from drsplat.scene import GaussianScene, counted
 from drsplat.utils import CancelToken, compiled_here, describe_os_error, progress
 
