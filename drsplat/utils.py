@@ -606,7 +606,13 @@ def replace_with_temp(tmp: Path, path: str | Path) -> None:
 
 
 def _fsync_path(path: Path, folder: bool = False) -> None:
-    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if folder else 0))
+    """fsync a written file (opened for writing: a temp file takes the mode of the output it replaces, which may be
+    write-only, 0200: round 73a F1) or a folder. A file this process may not open again is left as written (its data
+    were written; only their timing is not forced); an error of the sync itself (EIO) is the write's own and raised."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY) if folder else os.open(path, os.O_WRONLY)
+    except PermissionError:
+        return
     try:
         os.fsync(fd)
     finally:

@@ -375,3 +375,24 @@ def test_an_atomic_write_syncs_its_data_before_the_rename_and_the_folder_after(t
     kinds = [kind for kind, _ in events]
     assert kinds == ["fsync", "replace", "fsync"], events
     assert events[0][1].startswith(str(tmp_path / ".out.bin")) and events[2][1] == str(tmp_path), events
+
+
+def test_an_output_only_writable_is_still_replaced(tmp_path):
+    """Round 73a F1 (a regression of the fsync above): the temp file takes the mode of the output it replaces, and an
+    output of mode 0200 (write-only) made the fsync's read-only open fail with EACCES after the whole registration. The
+    fsync opens for writing; run without the capabilities that let root read any file."""
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("setpriv") is None and os.geteuid() == 0:
+        pytest.skip("root reads any file, and setpriv (util-linux) is not there to drop that")
+    out = tmp_path / "out.txt"
+    out.write_text("old\n")
+    out.chmod(0o200)
+    code = f"from drsplat.utils import write_bytes_atomic; write_bytes_atomic({str(out)!r}, b'new')"
+    prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search"] if os.geteuid() == 0 else []
+    proc = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr
+    out.chmod(0o600)
+    assert out.read_bytes() == b"new" and sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
