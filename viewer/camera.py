@@ -45,6 +45,7 @@ def intrinsics_for(width: int, height: int, fov_y_deg: float) -> tuple[float, fl
 
 NEAR_PLANE = 0.01  # the renderer's near plane for a scene of robust radius 1 or more (gsplat's, drsplat.raster's NEAR)
 MIN_RADIUS = 1e-12  # a scene's radius at least this (every Gaussian at one point, with no size)
+NEAR_SAMPLE = 1 << 20  # rows `scene_near_plane` reads at most
 
 
 @dataclass
@@ -308,8 +309,11 @@ def _robust_center(means: np.ndarray) -> np.ndarray:
 def scene_near_plane(means: np.ndarray, log_scales: np.ndarray | None = None) -> float:
     """The renderer's near plane for a scene: NEAR_PLANE, or that share of its robust radius below radius 1. A fixed
     0.01 cut a scene 2 cm across (in metres) as soon as it was looked at closely, and hid one of 1e-6 whatever the zoom
-    (round 71b F2). means: [N, 3]; log_scales: [N, 3] or None (`_robust_radius`)."""
-    return NEAR_PLANE * min(1.0, _robust_radius(means, _robust_center(means), log_scales))
+    (round 71b F2). means: [N, 3]; log_scales: [N, 3] or None (`_robust_radius`), read at every k-th row past NEAR_SAMPLE
+    rows (a scale, not a boundary: the sort of 50M distances took seconds)."""
+    step = max(1, means.shape[0] // NEAR_SAMPLE)
+    sample = means[::step]
+    return NEAR_PLANE * min(1.0, _robust_radius(sample, _robust_center(sample), None if log_scales is None else log_scales[::step]))
 
 
 def _robust_radius(means: np.ndarray, center: np.ndarray, log_scales: np.ndarray | None = None) -> float:
