@@ -1013,8 +1013,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
                 rec.pop(key, None)
         if shared_wins and "fl_x" in meta and "camera_angle_x" in frame and "fl_x" not in frame:
             disagreeing["camera_angle_x"] += 1  # nerfstudio never reads it: the shared fl_x is the frame's focal length
-        if "camera_angle_x" in frame and "fl_x" not in frame and not (shared_wins and "fl_x" in meta):
-            # the frame's own lens: the file's shared fl_x / fl_y are another's (nerfstudio never reads camera_angle_x)
+        if shared_wins and "camera_angle_x" in frame and "fl_x" not in frame and "fl_x" not in meta:
+            # the frame's own lens: the file's shared fl_y is another's (nerfstudio never reads camera_angle_x)
             rec = {k: v for k, v in rec.items() if k not in ("fl_x", "fl_y") or k in frame}
         if not shared_wins and any(key in frame for key in FOCAL_FIELDS):
             # instant-ngp reads a frame's focal lengths as a whole, one axis's setting both (read_focal_length): a frame's own

@@ -11,7 +11,7 @@ import signal
 import sys
 from collections.abc import MutableMapping
 
-from drsplat.defaults import OPENMP_WAIT_POLICY, openmp_wait_policy
+from drsplat.defaults import C_BLANKS, OPENMP_WAIT_POLICY, openmp_wait_policy
 from drsplat.errors import STARTING_NOTE
 
 
@@ -22,7 +22,7 @@ def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) 
     runtimes would call invalid ("pasive") is replaced too, with one line that says so: they would spin (round 68a F15)."""
     given = environ.get("OMP_WAIT_POLICY", "")
     if openmp_wait_policy(given) is None:
-        if given.strip(" \t\n\v\f\r"):
+        if given.strip(C_BLANKS):
             sys.stderr.write(f"drsplat: OMP_WAIT_POLICY={given!r} is neither 'active' nor 'passive'; "
                              f"using {OPENMP_WAIT_POLICY!r}\n")
         environ["OMP_WAIT_POLICY"] = OPENMP_WAIT_POLICY

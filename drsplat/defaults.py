@@ -12,12 +12,15 @@ MIN_NORM = 1.1754943508222875e-38
 OPENMP_WAIT_POLICY = "passive"
 
 
+C_BLANKS = " \t\n\v\f\r"  # what C's isspace skips (not a non-breaking space): the blanks an OpenMP runtime reads around a value
+
+
 def openmp_wait_policy(value: str | None) -> str | None:
     """The wait policy an OpenMP runtime reads from OMP_WAIT_POLICY = `value`, or None where it reads none: libgomp and
     Intel's runtime take "active" or "passive" in any case, C's blanks around (isspace: not a non-breaking space, which
     a value copied from a web page carries: round 70a F4); anything else (unset, empty, misspelt) they call invalid and
     leave their threads spinning (round 67a F5, round 68a F15)."""
-    policy = (value or "").strip(" \t\n\v\f\r").lower()
+    policy = (value or "").strip(C_BLANKS).lower()
     return policy if policy in ("active", "passive") else None
 
 

@@ -296,8 +296,9 @@ class PlyHeader:
 
 
 def counted(n: int, one: str, many: str) -> str:
-    """'1 row', '3 rows': a count with its noun (and verb) in agreement, as the findings say it."""
-    return f"{n} {one if n == 1 else many}"
+    """'1 row', '3 rows', '3,000,000 Gaussians': a count with its noun (and verb) in agreement, as the findings say it,
+    grouped by thousands as the other counts of the messages are."""
+    return f"{n:,} {one if n == 1 else many}"
 
 
 @dataclass

@@ -177,8 +177,9 @@ def declared_scene_size(path: str | Path) -> tuple[int, int] | None:
     path = Path(path)
     try:
         kind = scene_format(path)
-        if kind == "splat":
-            return path.stat().st_size // SPLAT_RECORD.itemsize, BASE_VALUES
+        if kind == "splat":  # no header: the records the file's size holds, when it holds whole ones (`splat_columns`)
+            size = path.stat().st_size
+            return (size // SPLAT_RECORD.itemsize, BASE_VALUES) if size % SPLAT_RECORD.itemsize == 0 else None
         if kind == "spz":
             return _spz_size(path)
         if kind != "ply":

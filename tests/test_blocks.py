@@ -695,6 +695,8 @@ def test_declared_scene_size_reads_a_scene_file_s_rows_and_values_without_loadin
     save_compressed_ply(scene, tmp_path / "s.compressed.ply")
     assert declared_scene_size(tiny / "scene.ply") == (n, 14 + rest)
     assert declared_scene_size(tmp_path / "s.splat") == (n, 14) and declared_scene_size(tmp_path / "s.spz") == (n, 14 + rest)
+    (tmp_path / "cut.splat").write_bytes((tmp_path / "s.splat").read_bytes() + b"12345")  # no whole number of records: not a size to trust
+    assert declared_scene_size(tmp_path / "cut.splat") is None
     assert declared_scene_size(tmp_path / "s.compressed.ply") == (n, 14 + rest)
     data = (tiny / "scene.ply").read_bytes()
     (tmp_path / "lying.ply").write_bytes(data.replace(f"element vertex {n}\n".encode(), f"element vertex {n * 1000}\n".encode(), 1))

@@ -180,7 +180,7 @@ class ViewerState:
         self.style_version += 1
         if lang is None:
             self.encoder_status = "this scene has no language field: register it (Registration panel) to query it"
-        self.info(f"loaded {path.name if path else 'scene'}: {scene.num_gaussians:,} Gaussian{'' if scene.num_gaussians == 1 else 's'}, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
+        self.info(f"loaded {path.name if path else 'scene'}: {counted(scene.num_gaussians, 'Gaussian', 'Gaussians')}, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
 
     def load_source(self, source: str | Path, background: bool = False) -> bool:
         """Training cameras of a dataset directory, and its oracle label queries if it has them.

@@ -102,10 +102,10 @@ def warn_repeated_rows(embeddings: np.ndarray, names: list[str], background: np.
     _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
     for i, group in enumerate(inverse.reshape(-1)):
         if first[group] != i:
-            later = shown[i] if i >= len(names) else repr(shown[i])
+            later = shown[i] if i >= len(names) else repr(shown[i])  # "the background", or the label's name quoted
             earlier = shown[first[group]]
-            log.warning("%s has the same embedding as %r: argmax gives every such Gaussian to %r, so %s gets none",
-                        later if i >= len(names) else f"label {later}", earlier, earlier, later)
+            log.warning("%s%s has the same embedding as %r: argmax gives every such Gaussian to %r, so %s gets none",
+                        "" if i >= len(names) else "label ", later, earlier, earlier, later)
 
 
 def embedding_names(embeddings: Path, names_path: Path | None, count: int, background: bool = False) -> list[str]:
