@@ -328,6 +328,43 @@ def test_a_nan_vote_neither_wins_nor_is_trimmed_in_the_kernel_and_its_reference(
     assert [[bool(int(b) >> s & 1) for s in range(3)] for b in bits] == want.tolist() == [[True, False, False], [False, False, True]]
 
 
+def test_equal_groups_choose_the_lowest_cluster_whatever_the_order_of_the_views():
+    """Round 74a F1: of two groups with equal votes the winner was the first slot, i.e. the cluster the Gaussian met
+    first, so the same pairs in another view order trimmed a different cluster, and `vote_reference` (argmax in
+    cluster order) disagreed with the kernel. X and Y tie (G = 1.25); E is like X (and Z), unlike Y, and a minority:
+    trimmed when Y wins, kept when X wins."""
+    from drsplat.registration.vote import VOTE_SLOTS, fold_view_votes, trimmed_slots, trimmed_slots_reference
+
+    def unit_at(degrees: float) -> np.ndarray:
+        return np.array([np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees)), 0.0])
+
+    means = np.stack([unit_at(0), unit_at(20), unit_at(-20), [0.0, 0.0, 1.0]]).astype(np.float32)  # X, Z, E, Y
+    views = {"a": (3, 1.0), "b": (3, 0.125), "c": (0, 0.0625), "d": (2, 0.0625), "e": (1, 1.0)}
+
+    def trimmed_clusters(order: str) -> tuple[list[int], np.ndarray, list[int]]:
+        slot_c = np.full((1, VOTE_SLOTS), -1, np.int32)
+        slot_v, slot_s = np.zeros((1, VOTE_SLOTS)), np.zeros((1, VOTE_SLOTS))
+        F = np.zeros((1, 3), np.float32)
+        for name in order:
+            c, w = views[name]
+            fold_view_votes(np.array([0]), np.array([c]), np.array([w], np.float32), 0.1, 0.5, slot_c, slot_v, slot_s)
+            F[0] += np.float32(w) * means[c]
+        bits = int(trimmed_slots(slot_c, slot_v, slot_s, means)[0])
+        reference = trimmed_slots_reference(slot_c, slot_v, means)[0]
+        kernel = sorted(int(slot_c[0, s]) for s in range(VOTE_SLOTS) if bits >> s & 1)
+        assert kernel == sorted(int(c) for c in slot_c[0][reference])
+        return kernel, trimmed_features(F, slot_c, slot_v, slot_s, means)[0], sorted(int(c) for c in slot_c[0] if c >= 0)
+
+    first, f_first, met = trimmed_clusters("abcde")
+    second, f_second, _ = trimmed_clusters("cdeab")
+    assert met == [0, 1, 2, 3]
+    assert first == second == []  # X (cluster 0) wins the tie, and E is like X
+    np.testing.assert_allclose(f_first, f_second, atol=1e-6)
+    pairs = [(np.array([0]), np.array([c]), np.array([w], np.float32), means[[c]].astype(np.float64)) for c, w in views.values()]
+    want = vote_reference(pairs, 1, means.astype(np.float64))[0]
+    np.testing.assert_allclose(f_first, want, atol=1e-6)
+
+
 def test_trim_with_its_table_of_cluster_cosines_is_bit_for_bit_the_trim_without(monkeypatch):
     """The trim keeps each pair of clusters' cosine in a [K, K] table (TRIM_COSINE_TABLE_BYTES); many
     Gaussians sharing few clusters, and clusters at the vote's threshold, trim the same bits with it

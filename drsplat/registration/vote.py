@@ -27,7 +27,7 @@ keeps the paper's sums and trims them:
    a cluster voted by more than 1/VOTE_SLOTS of the views is never lost, and a trimmed slot can
    carry an evicted cluster's weight);
 3. the votes of each cluster's group, G_ic = Σ_{c' like c} V_ic' (c' like c: μ_c·μ_c' ≥ θ, c
-   itself included); the winner c* = argmax_c G_ic; a cluster c is trimmed when it is not like
+   itself included); the winner c* = argmax_c G_ic (of equal maxima the lowest cluster id); a cluster c is trimmed when it is not like
    the winner (μ_c·μ_c* < θ) and its group is a minority of the views, G_ic < MINORITY·G_ic*:
 
        F_i = Σ_j w_ij f_j − Σ_{j : cluster(j) trimmed} w_ij f_j   (exact: after the cross-view check)
@@ -549,7 +549,9 @@ def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.nd
     for t in range(num_slots):  # G_s = V_s, then + V_t of each other like slot t in slot order: the kernel's order
         group = group + np.where(like[:, :, t] & (np.arange(num_slots) != t)[None, :], v[:, t : t + 1], 0.0)
     group = np.where(ok, group, -np.inf)
-    best = np.argmax(np.where(np.isnan(group), -np.inf, group), axis=1)  # first of equal maxima; a NaN vote never wins, as in the kernel
+    group_or_floor = np.where(np.isnan(group), -np.inf, group)  # a NaN vote never wins, as in the kernel
+    top = group_or_floor == group_or_floor.max(axis=1, keepdims=True)
+    best = np.argmin(np.where(top & ok, c.astype(np.int64), np.iinfo(np.int64).max), axis=1)  # of equal maxima, the lowest cluster id
     rows = np.arange(mixed.size)
     drop = ok & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
     if slot_p is not None:
@@ -681,7 +683,11 @@ def _trim_kernel(F, slot_c, slot_v, slot_s, means, threshold, minority, parts, s
                         group[s] += slot_v[i, t]
             best = -1
             for s in range(num_slots):  # a NaN vote never wins (the fold makes none; the reference holds the same rule)
-                if slot_c[i, s] >= 0 and not np.isnan(group[s]) and (best < 0 or group[s] > group[best]):
+                if slot_c[i, s] < 0 or np.isnan(group[s]):
+                    continue
+                # equal groups: the lowest cluster id, not the first slot (the slots' order is the order the Gaussian
+                # met its clusters, which follows the views' order: round 74a F1)
+                if best < 0 or group[s] > group[best] or (group[s] == group[best] and slot_c[i, s] < slot_c[i, best]):
                     best = s
             if best < 0:
                 continue
