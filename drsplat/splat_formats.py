@@ -173,9 +173,11 @@ def declared_scene_size(path: str | Path) -> tuple[int, int] | None:
     checked against the file's size; a `.splat`'s records; an spz header's point count, checked as its reader does) and
     the float32 values its loading makes of each (BASE_VALUES and the higher SH coefficients), which it holds for every
     row at once before dropping any. None where that is not known so cheaply (checkpoints) or the file has a problem its
-    loading names."""
+    loading names (a path that is not a regular file among them: opening a FIFO no one writes to blocks, round 74c F1)."""
     path = Path(path)
     try:
+        if not path.is_file():
+            return None
         kind = scene_format(path)
         if kind == "splat":  # no header: the records the file's size holds, when it holds whole ones (`splat_columns`)
             size = path.stat().st_size

@@ -682,6 +682,28 @@ def test_a_budget_its_reading_would_exceed_is_refused_before_the_scene_is_read(t
     assert rows == bad.num_gaussians and load_ply_report(tmp_path / "nan.ply")[1].dropped_nan_rows == nan_rows
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_given_as_the_scene_with_a_budget_is_refused_not_waited_on(tiny, tmp_path, capsys):
+    """Round 74c F1: with --memory-budget the early size check opened the scene before anything had checked it is a
+    regular file, and the open of a FIFO no one writes to blocked for good (without a budget: "is not a file" at once)."""
+    from drsplat.cli import main
+
+    fifo = tmp_path / "scene.ply"
+    os.mkfifo(fifo)
+    codes: list[int] = []
+    args = ["register", str(fifo), "--source", str(tiny), "--features", str(tiny / "features"), "--out", str(tmp_path / "o.ply"),
+            "--no-progress", "--memory-budget", "1GB"]
+    worker = threading.Thread(target=lambda: codes.append(main(args)), daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    blocked = worker.is_alive()
+    if blocked:  # in the FIFO's open: a writer that opens and goes releases it
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        worker.join(timeout=30)
+    assert not blocked and codes == [1]
+    assert f"{fifo}: is not a file" in capsys.readouterr().err
+
+
 def test_declared_scene_size_reads_a_scene_file_s_rows_and_values_without_loading_it(tiny, inputs, tmp_path):
     """A PLY's vertex count and its values (14, and its higher SH), a .splat's records, an spz header's points; None where
     the file has a problem its loading names (a header declaring more rows than the file holds is not taken at its

@@ -769,3 +769,19 @@ def test_a_query_waits_for_a_registration_where_numba_cannot_run_two_threads(sta
     assert state.run_oracle_query(0)
     state._kernels_safe, state.registration = True, RegistrationJob(output=tmp_path / "r.ply")
     assert state.run_oracle_query(0)
+
+
+@pytest.mark.parametrize("rows", [1, 4, 5, 7, 8, 9, 31, 33])
+def test_the_near_plane_reads_at_most_its_sample_of_rows(rows, monkeypatch):
+    """Round 74c F2: the stride was rows // NEAR_SAMPLE, rounded down, so a scene of up to twice NEAR_SAMPLE rows was read
+    whole and larger ones up to twice the sample: the stride is rounded up."""
+    from viewer import camera
+
+    read: list[int] = []
+    robust_radius = camera._robust_radius
+    monkeypatch.setattr(camera, "NEAR_SAMPLE", 4)
+    monkeypatch.setattr(camera, "_robust_radius", lambda means, *rest: read.append(means.shape[0]) or robust_radius(means, *rest))
+    means = np.random.default_rng(rows).normal(size=(rows, 3)).astype(np.float32)
+    camera.scene_near_plane(means, np.zeros((rows, 3), np.float32))
+    assert len(read) == 1 and read[0] <= 4 and read[0] == (rows if rows <= 4 else -(-rows // -(-rows // 4)))
+

@@ -309,9 +309,9 @@ def _robust_center(means: np.ndarray) -> np.ndarray:
 def scene_near_plane(means: np.ndarray, log_scales: np.ndarray | None = None) -> float:
     """The renderer's near plane for a scene: NEAR_PLANE, or that share of its robust radius below radius 1. A fixed
     0.01 cut a scene 2 cm across (in metres) as soon as it was looked at closely, and hid one of 1e-6 whatever the zoom
-    (round 71b F2). means: [N, 3]; log_scales: [N, 3] or None (`_robust_radius`), read at every k-th row past NEAR_SAMPLE
+    (round 71b F2). means: [N, 3]; log_scales: [N, 3] or None (`_robust_radius`), read at every k-th row, at most NEAR_SAMPLE
     rows (a scale, not a boundary: the sort of 50M distances took seconds)."""
-    step = max(1, means.shape[0] // NEAR_SAMPLE)
+    step = max(1, -(-means.shape[0] // NEAR_SAMPLE))  # rounded up: at most NEAR_SAMPLE rows (round 74c F2)
     sample = means[::step]
     return NEAR_PLANE * min(1.0, _robust_radius(sample, _robust_center(sample), None if log_scales is None else log_scales[::step]))
 
