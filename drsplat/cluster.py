@@ -368,14 +368,22 @@ def placed_actors(actors: list, what: str, work: str, cancel: CancelToken | None
         if queue_after_ready is not None:
             queue_after_ready(actor)
     placed: set[int] = set()
+    unavailable = 0
     slowest = 0.0
     try:
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=WAIT_SECONDS)
             kill_if_cancelled(ray, actors, cancel)
             for ref in ready:
-                placed.add(id(pending.pop(ref)))
-                ray.get(ref)
+                actor = pending.pop(ref)
+                try:
+                    ray.get(ref)
+                except ray.exceptions.ActorUnavailableError:  # its node lost once its process started: the others go on
+                    unavailable += 1  # (round 74d F3: this ended the whole run while other workers were placed)
+                    with contextlib.suppress(Exception):  # an actor already gone
+                        ray.kill(actor, no_restart=True)
+                    continue
+                placed.add(id(actor))
                 slowest = max(slowest, time.monotonic() - t0)
             waited = time.monotonic() - t0
             if pending and stalled(waited, slowest if placed else 0.0):
@@ -390,6 +398,12 @@ def placed_actors(actors: list, what: str, work: str, cancel: CancelToken | None
                 break
     except ray.exceptions.RayError as exc:
         raise DrsplatError(f"a Ray {what} worker could not start: {exc}") from None
+    if unavailable:
+        if not placed:
+            raise DrsplatError(f"no Ray {what} worker started: the node of each became unavailable (lost) as it started; rerun "
+                               "when the cluster is whole")
+        log.warning("Ray: %d of %d %s workers became unavailable as they started (their node lost); their %s go to the %d that "
+                    "started", unavailable, len(actors), what, work, len(placed))
     return [a for a in actors if id(a) in placed]
 
 
@@ -443,7 +457,21 @@ def _code_identity(modules: tuple[str, ...] = ()) -> dict[str, str]:
 PROBE_SECONDS = 60.0  # a node that does not answer the code probe in this time is not checked (said at debug level)
 
 
-def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "its views") -> list[dict]:
+def probe_answers(ray, refs: list, cancel: CancelToken | None) -> list:
+    """The refs of `refs` done within PROBE_SECONDS, waited for in steps of WAIT_SECONDS so that a cancel is seen."""
+    deadline = time.monotonic() + PROBE_SECONDS
+    ready: list = []
+    while refs:
+        done, refs = ray.wait(refs, num_returns=len(refs), timeout=max(0.0, min(WAIT_SECONDS, deadline - time.monotonic())))
+        ready += done
+        if cancel is not None:
+            cancel.raise_if_cancelled()
+        if time.monotonic() >= deadline:
+            break
+    return ready
+
+
+def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "its views", cancel: CancelToken | None = None) -> list[dict]:
     """One task on every live node (no CPU asked, so a busy node answers too) reports what its workers
     import (`_code_identity` with `modules`, shipped by value); a node that imports another drsplat, Python, numpy,
     numba or version of `modules` is one DrsplatError before any work, naming the node, what differs and `what` it
@@ -453,7 +481,8 @@ def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "i
     Returns the nodes (ray.nodes() entries) to place workers on: a node that ray.nodes() still lists
     as alive but that is gone (lost a moment ago: Ray says its probe cannot be scheduled, "the node
     ... doesn't exist any more") is left out with a warning, not refused and not counted as a worker
-    slot (a worker asked for there would never be placed); a node that does not answer in PROBE_SECONDS is kept."""
+    slot (a worker asked for there would never be placed); a node that does not answer in PROBE_SECONDS is kept. cancel:
+    read every WAIT_SECONDS of that wait (round 74d F4: a Ctrl-C waited up to PROBE_SECONDS for a node that did not answer)."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     by_value = types.FunctionType(_code_identity.__code__, {"__builtins__": __builtins__}, "_code_identity")
@@ -461,7 +490,7 @@ def check_nodes_run_this_code(ray, modules: tuple[str, ...] = (), what: str = "i
     task = ray.remote(num_cpus=0, max_retries=0)(by_value)
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(modules): n for n in nodes}
-    ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=PROBE_SECONDS)
+    ready = probe_answers(ray, list(refs), cancel)
     gone = []
     for ref in ready:
         node = refs[ref].get("NodeManagerHostname") or refs[ref].get("NodeManagerAddress")

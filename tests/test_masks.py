@@ -150,6 +150,18 @@ def test_remove_small_regions():
     assert kept.sum() == 2 and kept[4, 4] and kept[4, 3]
 
 
+def test_sam_scores_are_multiplied_as_langsplat_multiplies_them():
+    """Round 74b F8: the product of SAM's predicted IoU and stability score was taken in float32; LangSplat multiplies
+    the two as Python floats, so a mask it keeps at its 0.7 score threshold was dropped here."""
+    from drsplat.features.masks.postprocess import NmsParams
+    from drsplat.features.masks.sam import mask_scores
+
+    iou, stability = torch.tensor([0.75578094], dtype=torch.float32), torch.tensor([0.9261943], dtype=torch.float32)
+    langsplat = float(iou[0].item()) * float(stability[0].item())
+    assert mask_scores(iou, stability).tolist() == [langsplat]
+    assert langsplat > NmsParams().score_thr
+
+
 def test_architecture_is_read_off_official_layouts():
     from segment_anything import sam_model_registry
 

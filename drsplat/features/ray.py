@@ -266,7 +266,7 @@ def extract_features_ray(
         gpus = 1 if spec.device == "cuda" else 0
         # before any image, as registration checks its nodes: a node of other code wrote 9 of 16 feature files of another
         # norm into one folder, exit 0 (round 60b); torch and open_clip make the embeddings too
-        nodes = check_nodes_run_this_code(ray, FEATURE_MODULES, "its feature files")
+        nodes = check_nodes_run_this_code(ray, FEATURE_MODULES, "its feature files", cancel)
         count = actor_count(nodes, gpus, workers, address)
         actor = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1, max_task_retries=TASK_RETRIES)(_FeatureWorker)
         actors = [actor.remote(spec) for _ in range(count)]

@@ -721,9 +721,7 @@ def _view_pass(run: Run, aggregator: Aggregator, ckpt: Checkpoint | None, sink: 
                   log_params=ckpt.log.params if shards else None, by_gaussian=pairs_by_gaussian(options.aggregate), near=options.near_plane)
     ready = {i: view for i, view in (probe.pairs if probe is not None else {}).items() if i >= totals.done}
     geometry = probe.geometry if probe is not None else prepare_geometry(run.scene)
-    executor = open_executor(options.place, geometry, job, options.cluster, index=probe.index if probe is not None else None)
-    if hasattr(executor, "cancel"):  # Ray: a Ctrl-C is seen while the driver waits for its workers
-        executor.cancel = cancel
+    executor = open_executor(options.place, geometry, job, options.cluster, index=probe.index if probe is not None else None, cancel=cancel)
     stream = executor.view_pairs([cam for i, cam in enumerate(run.views) if i >= totals.done and i not in ready])
     views = one_view_behind(stream) if device_pairs else stream  # a device view's sizes are read while the next one renders
     if ready:

@@ -24,6 +24,7 @@ from drsplat.registration.compute import ViewComputer, ViewJob, WorkerStats
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.ray import RayExecutor
+from drsplat.utils import CancelToken
 
 
 class Executor(Protocol):
@@ -43,9 +44,10 @@ class LocalExecutor:
     worker_stats: {this pid: WorkerStats} (first view, later views, kernels), as a Ray worker reports.
     """
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None, index: SpatialIndex | None = None):
-        """cluster: unused here (every place takes it); index: the scene's culling index when built
-        already (the fit stage's)."""
+    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None, index: SpatialIndex | None = None,
+                 cancel: CancelToken | None = None):
+        """cluster, cancel: unused here (every place takes them; the driver reads the cancel token between views); index:
+        the scene's culling index when built already (the fit stage's)."""
         self._computer = ViewComputer(geometry, job, index)
         self._stats = WorkerStats()
         self.worker_stats = {self._stats.pid: self._stats}
@@ -85,16 +87,17 @@ def one_view_behind(views: Iterable[ViewPairs]) -> Iterator[ViewPairs]:
         yield pending.resolved()
 
 
-# The places: a new one is a class taking (geometry, job, cluster, index) with view_pairs / close, and one line here.
+# The places: a new one is a class taking (geometry, job, cluster, index, cancel) with view_pairs / close, and one line here.
 EXECUTORS = {"local": LocalExecutor, "ray": RayExecutor}
 
 
 def open_executor(place: str, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None,
-                  index: SpatialIndex | None = None) -> Executor:
+                  index: SpatialIndex | None = None, cancel: CancelToken | None = None) -> Executor:
     """The executor of `place` ("local" or "ray") computing `job`'s views of `geometry`; index: the
-    scene's culling index when built already (None: the executor builds it if the job culls)."""
+    scene's culling index when built already (None: the executor builds it if the job culls); cancel: read while a
+    Ray executor waits for its cluster (a Ctrl-C never waits for a worker or node)."""
     try:
         factory = EXECUTORS[place]
     except KeyError:
         raise UsageError(f"unknown place {place!r}; choose {' or '.join(EXECUTORS)}") from None
-    return factory(geometry, job, cluster, index)
+    return factory(geometry, job, cluster, index, cancel)

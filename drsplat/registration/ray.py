@@ -86,7 +86,7 @@ class _CallResult:
     stopped the call at the next view, if any (raised by the driver in view order)."""
 
     views: list[ViewPairs]
-    stats: WorkerStats
+    stats: WorkerStats | None  # None: the call itself failed (`error`)
     error: Exception | None = None
 
 
@@ -201,20 +201,22 @@ class RayExecutor:
     worker_peak_rss: pid -> peak resident bytes.
     """
 
-    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None, index: SpatialIndex | None = None):
-        """index: the scene's culling index when built already (the fit stage's); else built here."""
+    def __init__(self, geometry: PreparedScene, job: ViewJob, cluster: ClusterOptions | None = None, index: SpatialIndex | None = None,
+                 cancel: CancelToken | None = None):
+        """index: the scene's culling index when built already (the fit stage's); else built here. cancel: checked while
+        the driver waits for the nodes' code probe and for its workers (a Ctrl-C never waits for a worker)."""
         cluster = cluster or ClusterOptions()
         ray = import_ray()
         self._owns = connect(cluster.address)
         self._actors: list = []
         self._placed = False  # the actors' placement waited for (`view_pairs`, where the cancel token is set)
         self._refs: list = []  # [geometry, job, culling index] in the object store
-        self.cancel: CancelToken | None = None  # checked while the driver waits for calls (a Ctrl-C never waits for a stalled worker)
+        self.cancel = cancel
         self.worker_stats: dict[int, WorkerStats] = {}
         where = "a local instance" if self._owns and not cluster.address else cluster.address
         try:
             gpus = 1 if job.device.startswith("cuda") else 0
-            nodes = check_nodes_run_this_code(ray)  # before any view; and the nodes still there, a node just lost left out
+            nodes = check_nodes_run_this_code(ray, cancel=cancel)  # before any view; and the nodes still there, a node just lost left out
             slots = worker_slots(nodes, gpus)
             if slots == 0:
                 need = "a GPU and a CPU on one node" if gpus else "a CPU"
@@ -265,7 +267,7 @@ class RayExecutor:
         attempts: dict[int, int] = {}
         submitted = 0
         slowest = 0.0
-        last_done = time.monotonic()
+        done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
@@ -329,12 +331,19 @@ class RayExecutor:
                             lose(actor, "it became unavailable, its node lost")
                             todo.sort()
                             continue
-                        slowest = max(slowest, time.monotonic() - at)
-                        last_done = time.monotonic()
+                        except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
+                            finished[chunk] = _CallResult([], None, error=exc)  # (round 74d F1: it had left them unlogged)
+                        done_at[id(actor)] = time.monotonic()
+                        slowest = max(slowest, done_at[id(actor)] - at)
                     now = time.monotonic()
                     for ref, (chunk, actor, at) in list(queued.items()):
-                        if ref in queued and now - last_done < now - at and stalled(now - at, slowest):
-                            lose(actor, f"no call finished for {now - at:.0f} s while the others progressed: its node lost or the "
+                        # a call can start once submitted and its actor's previous call is done; a stall is no call of its
+                        # own since then while another worker finished one (its own last call is not the others' progress:
+                        # round 74d F2 saw a slow call kill the only worker)
+                        began = max(at, done_at.get(id(actor), at))
+                        others = max((done_at.get(id(a), began) for a in actors if a is not actor), default=began)
+                        if ref in queued and others > began and stalled(now - began, slowest):
+                            lose(actor, f"no call finished for {now - began:.0f} s while the others progressed: its node lost or the "
                                         "cluster's CPUs taken by other work")
                     top_up(index)
                 result = finished.pop(index)

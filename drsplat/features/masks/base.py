@@ -13,7 +13,7 @@ LEVELS = ("default", "s", "m", "l")  # LangSplat's levels, in file order (see th
 
 @dataclass
 class MaskSet:
-    """Masks of one level. masks: [K, H, W] bool; scores: [K] float32 (higher is better)."""
+    """Masks of one level. masks: [K, H, W] bool; scores: [K] float (higher is better; SAM's are float64, `sam.mask_scores`)."""
 
     masks: np.ndarray
     scores: np.ndarray

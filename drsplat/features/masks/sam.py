@@ -327,7 +327,7 @@ class SamGenerator:
         if several_crops:
             data = _nms(data, 1 / box_area(data["crop_boxes"]), self.params.crop_nms_thresh)
         masks = [rle_to_mask(rle) for rle in data["rles"]]
-        scores = (data["iou_preds"] * data["stability_score"]).float().cpu().numpy()
+        scores = mask_scores(data["iou_preds"], data["stability_score"])
         if self.params.min_mask_region_area > 0:
             unchanged = []
             for i, mask in enumerate(masks):
@@ -340,6 +340,13 @@ class SamGenerator:
             masks = [masks[i] for i in keep]
             scores = scores[keep]
         return MaskSet(np.stack(masks).astype(bool), scores.astype(np.float32))
+
+
+def mask_scores(iou_preds, stability):
+    """A mask's score, predicted IoU x stability score: [K] float64 from two [K] float32 tensors, multiplied in float64
+    as LangSplat's preprocess.py multiplies the Python floats SAM's generator hands it (round 74b F8: a float32 product
+    put 0.75578094 x 0.9261943 = 0.70000000 just under LangSplat's 0.7 score threshold, a mask LangSplat keeps)."""
+    return (iou_preds.double() * stability.double()).cpu().numpy()
 
 
 def _cat(parts):

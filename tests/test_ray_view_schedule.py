@@ -1,0 +1,207 @@
+"""The Ray driver's schedule of view calls (`RayExecutor.view_pairs`) against a simulated cluster: calls that take
+given times on each worker and a clock that moves with the driver's waits, so a stall of minutes is decided in
+milliseconds and no Ray instance is started. What is checked is the order of results and errors and which worker
+is taken for lost; the views themselves are names. The same simulation answers the workers' placement and the nodes'
+code probe (`drsplat.cluster`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from drsplat.registration import ray as ray_executor
+from drsplat.registration.compute import WorkerStats
+
+try:  # imported with the module, as tests/test_reduce.py does: importing ray sets RAY_CLIENT_MODE once (the code probe
+    import ray  # imports Ray's scheduling strategy; nothing else here needs Ray)
+except ImportError:
+    ray = None
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+class Call:
+    """A submitted call: its views' names, when it ends on its worker, and the error it raises, if any."""
+
+    def __init__(self, names: list[str], ends: float, error: Exception | None) -> None:
+        self.names, self.ends, self.error = names, ends, error
+
+
+class Worker:
+    """Runs its calls one after another: each view takes `seconds[name]` (1 s if not named), or never ends (stuck: its
+    node lost without a word)."""
+
+    def __init__(self, pid: int, clock: Clock, seconds: dict[str, float], errors: dict[str, Exception], stuck: bool) -> None:
+        self.pid, self.clock, self.seconds, self.errors = pid, clock, seconds, errors
+        self.stuck = stuck
+        self.free_at = 0.0
+        self.compute = SimpleNamespace(remote=self._submit)
+
+    def _submit(self, refs, chunk, marks) -> Call:
+        names = [c.name for c in chunk]
+        start = max(self.clock.now, self.free_at)
+        self.free_at = math.inf if self.stuck else start + sum(self.seconds.get(name, 1.0) for name in names)
+        return Call(names, self.free_at, next((self.errors[n] for n in names if n in self.errors), None))
+
+
+class SimulatedRay:
+    class RayError(Exception):
+        pass
+
+    class RayTaskError(RayError):
+        pass
+
+    class ActorUnavailableError(RayError):
+        pass
+
+    def __init__(self, clock: Clock) -> None:
+        self.exceptions = SimpleNamespace(RayError=self.RayError, RayTaskError=self.RayTaskError, ActorUnavailableError=self.ActorUnavailableError)
+        self.clock = clock
+
+    def wait(self, refs: list[Call], num_returns: int = 1, timeout: float = 1.0):
+        first = min(refs, key=lambda ref: ref.ends)
+        if first.ends <= self.clock.now + timeout:
+            self.clock.now = max(self.clock.now, first.ends)
+            return [first], [r for r in refs if r is not first]
+        self.clock.now += timeout
+        return [], refs
+
+    def get(self, ref: Call):
+        if ref.error is not None:
+            raise ref.error
+        return ray_executor._CallResult(list(ref.names), WorkerStats(pid=1))
+
+    def cancel(self, ref) -> None:
+        pass
+
+    def kill(self, actor, no_restart: bool = True) -> None:
+        pass
+
+
+def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict[str, float], errors: dict[str, Exception] | None = None,
+              stuck: int | None = None):
+    """(the names view_pairs yielded, the error it raised or None, the simulated seconds it took)."""
+    clock = Clock()
+    fake = SimulatedRay(clock)
+    monkeypatch.setattr(ray_executor, "import_ray", lambda: fake)
+    monkeypatch.setattr(ray_executor, "time", SimpleNamespace(monotonic=clock.monotonic))
+    monkeypatch.setattr("drsplat.cluster.STALL_SECONDS", 3.0)
+    executor = object.__new__(ray_executor.RayExecutor)
+    executor._placed, executor._refs, executor._features_dir = True, [], tmp_path
+    executor._actors = [Worker(i, clock, seconds, errors or {}, i == stuck) for i in range(workers)]
+    executor.views_per_task, executor.cancel, executor.worker_stats = 1, None, {}
+    got: list[str] = []
+    try:
+        for name in executor.view_pairs([SimpleNamespace(name=f"v{i}") for i in range(views)]):
+            got.append(name)
+    except Exception as exc:  # noqa: BLE001 - returned to the test
+        return got, exc, clock.now
+    return got, None, clock.now
+
+
+def test_a_slow_call_of_the_only_worker_is_waited_for_not_taken_for_a_stall(monkeypatch, tmp_path):
+    """Round 74d F2: the stall rule read the worker's own finished call (each worker has IN_FLIGHT queued) as the
+    others' progress, so one call slower than STALL_SECONDS plus 10x the slowest killed the only worker and the run
+    ended with "every Ray registration worker was lost" where the local run finishes."""
+    got, error, _ = run_views(monkeypatch, tmp_path, workers=1, views=4, seconds={"v1": 30.0})
+    assert error is None and got == ["v0", "v1", "v2", "v3"]
+
+
+def test_a_worker_that_hangs_while_the_other_progresses_is_taken_for_lost(monkeypatch, tmp_path, caplog):
+    """The rule still does what it is for: a call that never ends while the other worker finishes calls is moved."""
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=6, seconds={}, stuck=1)
+    assert error is None and got == [f"v{i}" for i in range(6)] and took < 60
+    assert [r for r in caplog.records if "was lost" in r.getMessage()]
+
+
+def test_a_failed_call_is_raised_in_view_order_after_the_views_before_it(monkeypatch, tmp_path):
+    """Round 74d F1: an error in a worker's call left the loop as soon as it arrived, so views before it still running
+    elsewhere were never yielded (never logged, so the rerun could not resume from them); the local run fails after
+    logging them."""
+    got, error, _ = run_views(monkeypatch, tmp_path, workers=2, views=4, seconds={"v0": 5.0}, errors={"v1": ValueError("view v1 is bad")})
+    assert got == ["v0"]
+    assert isinstance(error, ValueError) and "v1 is bad" in str(error)
+
+
+class Placement(SimulatedRay):
+    """Ray as `placed_actors` and the nodes' code probe see it: every `ready` answers at once (or raises the actor's
+    error); the probe's tasks never answer."""
+
+    def __init__(self, clock: Clock, errors: dict[int, Exception] | None = None) -> None:
+        super().__init__(clock)
+        self.errors = errors or {}
+        self.killed: list[int] = []
+        self.timeouts: list[float] = []
+
+    def wait(self, refs, num_returns: int = 1, timeout: float = 1.0):
+        self.timeouts.append(timeout)
+        if all(isinstance(ref, tuple) for ref in refs):  # `ready` calls
+            return list(refs), []
+        self.clock.now += timeout
+        return [], refs
+
+    def get(self, ref):
+        if ref[1] in self.errors:
+            raise self.errors[ref[1]]
+        return True
+
+    def kill(self, actor, no_restart: bool = True) -> None:
+        self.killed.append(actor.pid)
+
+    def nodes(self) -> list[dict]:
+        return [{"Alive": True, "NodeID": "ab" * 28, "NodeManagerHostname": "silent"}]
+
+    def remote(self, **options):
+        task = SimpleNamespace(remote=lambda *args: object())
+        return lambda function: SimpleNamespace(options=lambda **kw: task)
+
+
+def placement_workers(count: int) -> list:
+    return [SimpleNamespace(pid=i, ready=SimpleNamespace(remote=lambda i=i: ("ready", i))) for i in range(count)]
+
+
+def test_a_worker_whose_node_is_lost_as_it_starts_is_left_out_not_the_end_of_the_run(monkeypatch, caplog):
+    """Round 74d F3: an ActorUnavailableError answering one worker's `ready` (its node lost once its process started)
+    ended the registration or feature run with "a Ray worker could not start", other workers placed; now that worker
+    is given up, and only none placed is one error."""
+    from drsplat import cluster
+    from drsplat.errors import DrsplatError
+
+    fake = Placement(Clock(), {0: SimulatedRay.ActorUnavailableError("the actor is temporarily unavailable")})
+    monkeypatch.setattr(cluster, "import_ray", lambda: fake)
+    workers = placement_workers(2)
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        placed = cluster.placed_actors(workers, "registration", "views")
+    assert [w.pid for w in placed] == [1] and fake.killed == [0]
+    assert any("1 of 2 registration workers became unavailable" in r.getMessage() for r in caplog.records)
+    fake.errors[1] = fake.errors[0]
+    with pytest.raises(DrsplatError, match="no Ray feature worker started"):
+        cluster.placed_actors(placement_workers(2), "feature", "images")
+
+
+@pytest.mark.skipif(ray is None, reason="the probe names its node through Ray's scheduling strategy")
+def test_a_cancel_is_seen_while_the_nodes_code_probe_waits_for_a_silent_node(monkeypatch):
+    """Round 74d F4: the probe of the nodes' code was one wait of PROBE_SECONDS (60 s), so a Ctrl-C on a cluster with
+    one silent node waited up to a minute; the wait is now in steps of WAIT_SECONDS, reading the cancel token."""
+    from drsplat import cluster
+    from drsplat.errors import Cancelled
+    from drsplat.utils import CancelToken
+
+    clock = Clock()
+    fake = Placement(clock)
+    monkeypatch.setattr(cluster, "time", SimpleNamespace(monotonic=clock.monotonic))
+    cancel = CancelToken()
+    cancel.cancel()
+    with pytest.raises(Cancelled):
+        cluster.check_nodes_run_this_code(fake, cancel=cancel)
+    assert fake.timeouts and max(fake.timeouts) <= cluster.WAIT_SECONDS
