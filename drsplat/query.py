@@ -254,16 +254,23 @@ def relevancy_reference(positive: np.ndarray, negative: np.ndarray, temperature:
 
 def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, temperature: float = RELEVANCY_TEMPERATURE, lut_bits: int = 32,
               device: str | None = None) -> np.ndarray:
-    """LERF relevancy of every Gaussian: queries [K, D], negatives [C, D] -> [N, K] in [0, 1].
+    """LERF relevancy of every Gaussian: queries [K, D], negatives [C, D] -> [N, K] in [0, 1]; 0 for a Gaussian without a
+    feature (`LanguageField.assigned`), as Dr. Splat's render_activation.py gives it (its cosines against the query and
+    every negative are 0, a relevancy of ½ that a file of scores thresholded at 0.5 selected: round 75c F2).
 
     negatives are the canonical phrases' embeddings ("object", "things", "stuff", "texture"),
     optionally followed by user negatives. One LUT pass scores queries and negatives together.
+    The relevancy is LERF's and LangSplat's: of cosines, the reconstruction r_i normalised on a PQ field. Dr. Splat's
+    render_activation.py takes the raw dot products of `sa_decode`'s r_i (|r_i| 0.57-1.0 with its codebook), which
+    scales t = 10 by |r_i| per Gaussian: the same selection at τ = 0.5, other scores elsewhere.
     """
     if len(negatives) == 0:
         raise DrsplatError("relevancy needs at least one negative embedding")
     q, neg = query_rows(queries), query_rows(negatives, "negative")
     scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits, device=device)
-    return relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
+    out = relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
+    out[~field.assigned()] = 0.0
+    return out
 
 
 def negative_embeddings(encoder: TextEncoder | None, field: LanguageField, user_phrases: list[str] = (), extra: np.ndarray | None = None) -> np.ndarray:
@@ -298,16 +305,15 @@ def thresholds_as_compared(thresholds, scores: np.ndarray) -> np.ndarray:
 def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = None) -> np.ndarray:
     """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected), among the Gaussians
     `assigned` [N] bool (`LanguageField.assigned`) when given: one without a feature scores 0 as a
-    cosine and ½ as a relevancy, which a threshold at or below it would otherwise select. Float32
+    cosine and as a relevancy, which a threshold at or below it would otherwise select. Float32
     scores meet the threshold in float32 (`thresholds_as_compared`)."""
     picked = np.asarray(scores) >= thresholds_as_compared(threshold, scores)
     return picked if assigned is None else picked & assigned
 
 
 def otsu_scores(scores: np.ndarray) -> np.ndarray:
-    """The scores Otsu splits: the finite, nonzero ones, float64. An unassigned Gaussian's cosine is 0
-    and drops out; its relevancy is 0.5 and does not, so pass relevancies of the assigned rows only
-    (as `drsplat query` and the viewer do)."""
+    """The scores Otsu splits: the finite, nonzero ones, float64. An unassigned Gaussian's cosine and relevancy are 0
+    and drop out (`drsplat query` and the viewer pass the assigned rows only all the same)."""
     s = np.asarray(scores, np.float64)
     return s[np.isfinite(s) & (s != 0)]
 

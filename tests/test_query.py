@@ -104,6 +104,7 @@ def test_relevancy_and_cosine_rank_the_queried_label_first(world, fields, kind):
         assert np.mean(rel[4:][hit, k] > 0.5) > 0.95 and np.mean(rel[4:][negative, k] < 0.5) > 0.95
         assert cos[4:][hit, k].mean() > cos[4:][~hit, k].mean() + 0.2
     assert np.all(cos[:4] == 0)
+    assert np.all(rel[:4] == 0)  # round 75c F2: ½ (cosine 0 against the query and every negative), as if half a match
 
 
 def test_segmentation_argmax_background_and_unassigned(world, fields):

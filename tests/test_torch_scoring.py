@@ -70,3 +70,14 @@ def test_device_copy_is_made_once(data):
     first = field._on_device
     field.scores(queries[2:4], device="cpu")
     assert field._on_device is first and isinstance(field.scores_torch(queries[:2], "cpu"), torch.Tensor)
+
+
+@pytest.mark.parametrize("kind", ["none", "pq"])
+def test_scores_torch_makes_its_queries_unit_as_scores_does(data, kind):
+    """Round 75c F4: `scores_torch` took its queries as given, so a raw CLIP embedding of norm 3 scored 3x what `scores`
+    gave for it."""
+    x, w = data
+    field = build_field(x, w, "none" if kind == "none" else train_codebook(x[4:], m=8, seed=1), clip_model="oracle")
+    queries = x[np.linalg.norm(x, axis=1) > 0][:2]
+    on_torch = field.scores_torch(3.0 * queries, "cpu").numpy()
+    np.testing.assert_allclose(on_torch, field.scores(queries), atol=1e-5, rtol=0)

@@ -113,8 +113,9 @@ class LanguageField:
         return self.storage.scores(q, lut_bits)
 
     def scores_torch(self, queries: np.ndarray, device: str, lut_bits: int = 32):
-        """`scores` as a torch tensor [N, K] float32 on `device` (unit queries, checked as `scores` checks them)."""
-        return self._scores_on_device(self._check_queries(queries), device, lut_bits)
+        """`scores` as a torch tensor [N, K] float32 on `device`: the queries checked and made unit as `scores` does (round
+        75c F4: taken as given, a query of norm 3 scored 3x)."""
+        return self._scores_on_device(unit_rows(self._check_queries(queries)), device, lut_bits)
 
     def _scores_on_device(self, queries: np.ndarray, device: str, lut_bits: int):
         """`scores_torch` of queries checked already."""
