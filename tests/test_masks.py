@@ -153,13 +153,22 @@ def test_remove_small_regions():
 def test_sam_scores_are_multiplied_as_langsplat_multiplies_them():
     """Round 74b F8: the product of SAM's predicted IoU and stability score was taken in float32; LangSplat multiplies
     the two as Python floats, so a mask it keeps at its 0.7 score threshold was dropped here."""
-    from drsplat.features.masks.postprocess import NmsParams
     from drsplat.features.masks.sam import mask_scores
 
-    iou, stability = torch.tensor([0.75578094], dtype=torch.float32), torch.tensor([0.9261943], dtype=torch.float32)
+    from types import SimpleNamespace
+
+    from segment_anything.utils.amg import mask_to_rle_pytorch
+
+    iou, stability = torch.tensor([0.75578094, 0.9], dtype=torch.float32), torch.tensor([0.9261943, 0.9], dtype=torch.float32)
     langsplat = float(iou[0].item()) * float(stability[0].item())
-    assert mask_scores(iou, stability).tolist() == [langsplat]
-    assert langsplat > NmsParams().score_thr
+    assert mask_scores(iou, stability)[0] == langsplat > NmsParams().score_thr
+    # to the threshold as LangSplat's (round 75a F2: the level cast them back to float32, 0.7 exactly, and dropped it)
+    masks = torch.zeros(2, 8, 8, dtype=torch.bool)
+    masks[0, :4, :4] = masks[1, 4:, 4:] = True
+    generator = SimpleNamespace(params=SimpleNamespace(min_mask_region_area=0, crop_nms_thresh=0.7, box_nms_thresh=0.7))
+    level = SamGenerator._finish_level(generator, {"rles": mask_to_rle_pytorch(masks), "iou_preds": iou, "stability_score": stability},
+                                       False, (8, 8))
+    assert len(masks_update([level])[0]) == 2
 
 
 def test_architecture_is_read_off_official_layouts():

@@ -21,6 +21,9 @@ except ImportError:
     ray = None
 
 
+HUNG_SECONDS = 3600.0  # a run of a few views still waiting after this long (simulated) is hung
+
+
 class Clock:
     def __init__(self) -> None:
         self.now = 0.0
@@ -37,19 +40,22 @@ class Call:
 
 
 class Worker:
-    """Runs its calls one after another: each view takes `seconds[name]` (1 s if not named), or never ends (stuck: its
-    node lost without a word)."""
+    """Runs its calls one after another: each view takes `seconds[name]` (1 s if not named); once `lost_after` calls
+    were submitted to it (None: never), its node is lost without a word and its later calls never end."""
 
-    def __init__(self, pid: int, clock: Clock, seconds: dict[str, float], errors: dict[str, Exception], stuck: bool) -> None:
+    def __init__(self, pid: int, clock: Clock, seconds: dict[str, float], errors: dict[str, Exception], lost_after: int | None) -> None:
         self.pid, self.clock, self.seconds, self.errors = pid, clock, seconds, errors
-        self.stuck = stuck
+        self.lost_after = lost_after
         self.free_at = 0.0
         self.compute = SimpleNamespace(remote=self._submit)
 
     def _submit(self, refs, chunk, marks) -> Call:
         names = [c.name for c in chunk]
         start = max(self.clock.now, self.free_at)
-        self.free_at = math.inf if self.stuck else start + sum(self.seconds.get(name, 1.0) for name in names)
+        lost = self.lost_after is not None and self.lost_after <= 0
+        self.free_at = math.inf if lost else start + sum(self.seconds.get(name, 1.0) for name in names)
+        if self.lost_after is not None:
+            self.lost_after -= 1
         return Call(names, self.free_at, next((self.errors[n] for n in names if n in self.errors), None))
 
 
@@ -68,6 +74,8 @@ class SimulatedRay:
         self.clock = clock
 
     def wait(self, refs: list[Call], num_returns: int = 1, timeout: float = 1.0):
+        if self.clock.now > HUNG_SECONDS:
+            raise AssertionError(f"the driver still waits after {HUNG_SECONDS:.0f} simulated seconds: hung")
         first = min(refs, key=lambda ref: ref.ends)
         if first.ends <= self.clock.now + timeout:
             self.clock.now = max(self.clock.now, first.ends)
@@ -88,7 +96,7 @@ class SimulatedRay:
 
 
 def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict[str, float], errors: dict[str, Exception] | None = None,
-              stuck: int | None = None):
+              lost: dict[int, int] | None = None):
     """(the names view_pairs yielded, the error it raised or None, the simulated seconds it took)."""
     clock = Clock()
     fake = SimulatedRay(clock)
@@ -97,7 +105,7 @@ def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict[str
     monkeypatch.setattr("drsplat.cluster.STALL_SECONDS", 3.0)
     executor = object.__new__(ray_executor.RayExecutor)
     executor._placed, executor._refs, executor._features_dir = True, [], tmp_path
-    executor._actors = [Worker(i, clock, seconds, errors or {}, i == stuck) for i in range(workers)]
+    executor._actors = [Worker(i, clock, seconds, errors or {}, (lost or {}).get(i)) for i in range(workers)]
     executor.views_per_task, executor.cancel, executor.worker_stats = 1, None, {}
     got: list[str] = []
     try:
@@ -119,9 +127,24 @@ def test_a_slow_call_of_the_only_worker_is_waited_for_not_taken_for_a_stall(monk
 def test_a_worker_that_hangs_while_the_other_progresses_is_taken_for_lost(monkeypatch, tmp_path, caplog):
     """The rule still does what it is for: a call that never ends while the other worker finishes calls is moved."""
     with caplog.at_level(logging.WARNING, logger="drsplat"):
-        got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=6, seconds={}, stuck=1)
+        got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=6, seconds={}, lost={1: 0})
     assert error is None and got == [f"v{i}" for i in range(6)] and took < 60
     assert [r for r in caplog.records if "was lost" in r.getMessage()]
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_a_worker_lost_after_the_others_last_call_is_still_taken_for_lost(monkeypatch, tmp_path, fails):
+    """Round 75a F1 (a regression of the mend above): worker 0 finishes its share at t = 4 and is idle; worker 1 ends
+    its slow first view at t = 5 and its node is lost with its next call queued. That call could begin only at 5, after
+    worker 0's last call, so "another worker progressed since" never held: the run waited for ever (and a failure of
+    v4, stored for view order behind it, was never raised). An idle worker counts as one that could take the call."""
+    errors = {"v4": ValueError("view v4 is bad")} if fails else None
+    got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=6, seconds={"v1": 5.0}, errors=errors, lost={1: 1})
+    assert took < HUNG_SECONDS
+    if fails:
+        assert got == ["v0", "v1", "v2", "v3"] and isinstance(error, ValueError)
+    else:
+        assert error is None and got == [f"v{i}" for i in range(6)]
 
 
 def test_a_failed_call_is_raised_in_view_order_after_the_views_before_it(monkeypatch, tmp_path):

@@ -326,6 +326,11 @@ def test_a_nan_vote_neither_wins_nor_is_trimmed_in_the_kernel_and_its_reference(
     bits = trimmed_slots(slot_c, slot_v, np.ones((2, 3)), means)
     want = trimmed_slots_reference(slot_c, slot_v, means)
     assert [[bool(int(b) >> s & 1) for s in range(3)] for b in bits] == want.tolist() == [[True, False, False], [False, False, True]]
+    # every group NaN, with the specificity step: no winner, nothing trimmed (round 75a F3: the reference took the lowest
+    # cluster for the winner and trimmed by specificity where the kernel skips the row)
+    slot_c, slot_v, slot_p = np.array([[1, 0, -1]], np.int32), np.array([[np.nan, np.nan, 0.0]]), np.array([[0.1, 5.0, 0.0]])
+    bits = trimmed_slots(slot_c, slot_v, np.array([[1.0, 1.0, 0.0]]), means, slot_p=slot_p)
+    assert int(bits[0]) == 0 and not trimmed_slots_reference(slot_c, slot_v, means, slot_p=slot_p).any()
 
 
 def test_equal_groups_choose_the_lowest_cluster_whatever_the_order_of_the_views():

@@ -340,9 +340,12 @@ class RayExecutor:
                         # a call can start once submitted and its actor's previous call is done; a stall is no call of its
                         # own since then while another worker finished one (its own last call is not the others' progress:
                         # round 74d F2 saw a slow call kill the only worker)
+                        # ...or another worker is idle: the others' last calls may have ended before this one's could begin, and a
+                        # node lost after its worker's last call ended then hung the run (round 75a F1)
                         began = max(at, done_at.get(id(actor), at))
-                        others = max((done_at.get(id(a), began) for a in actors if a is not actor), default=began)
-                        if ref in queued and others > began and stalled(now - began, slowest):
+                        others = [a for a in actors if a is not actor]
+                        progressed = any(done_at.get(id(a), at) > at or load[id(a)] == 0 for a in others)
+                        if ref in queued and progressed and stalled(now - began, slowest):
                             lose(actor, f"no call finished for {now - began:.0f} s while the others progressed: its node lost or the "
                                         "cluster's CPUs taken by other work")
                     top_up(index)

@@ -27,7 +27,7 @@ keeps the paper's sums and trims them:
    a cluster voted by more than 1/VOTE_SLOTS of the views is never lost, and a trimmed slot can
    carry an evicted cluster's weight);
 3. the votes of each cluster's group, G_ic = Σ_{c' like c} V_ic' (c' like c: μ_c·μ_c' ≥ θ, c
-   itself included); the winner c* = argmax_c G_ic (of equal maxima the lowest cluster id); a cluster c is trimmed when it is not like
+   itself included); the winner c* = argmax_c G_ic (of bit-equal maxima the lowest cluster id); a cluster c is trimmed when it is not like
    the winner (μ_c·μ_c* < θ) and its group is a minority of the views, G_ic < MINORITY·G_ic*:
 
        F_i = Σ_j w_ij f_j − Σ_{j : cluster(j) trimmed} w_ij f_j   (exact: after the cross-view check)
@@ -550,12 +550,13 @@ def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.nd
         group = group + np.where(like[:, :, t] & (np.arange(num_slots) != t)[None, :], v[:, t : t + 1], 0.0)
     group = np.where(ok, group, -np.inf)
     group_or_floor = np.where(np.isnan(group), -np.inf, group)  # a NaN vote never wins, as in the kernel
-    top = group_or_floor == group_or_floor.max(axis=1, keepdims=True)
+    top = (group_or_floor == group_or_floor.max(axis=1, keepdims=True)) & ~np.isnan(group)
     best = np.argmin(np.where(top & ok, c.astype(np.int64), np.iinfo(np.int64).max), axis=1)  # of equal maxima, the lowest cluster id
     rows = np.arange(mixed.size)
-    drop = ok & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
+    won = (top & ok).any(axis=1)  # a row whose every group is NaN has no winner and trims nothing, as in the kernel (round 75a F3)
+    drop = ok & won[:, None] & (sim[rows, :, best] < threshold) & (np.arange(num_slots)[None, :] != best[:, None]) & (group < minority * group[rows, best][:, None])
     if slot_p is not None:
-        for b_row in range(mixed.size):
+        for b_row in np.flatnonzero(won):
             drop[b_row] |= _less_specific_reference(ok[b_row], drop[b_row], sim[b_row], int(best[b_row]), slot_p[mixed[b_row]], threshold, specific)
     out[mixed] = drop
     return out

@@ -339,7 +339,7 @@ class SamGenerator:
             keep = _box_nms_indices(batched_mask_to_box(stacked), torch.tensor(unchanged), max(self.params.box_nms_thresh, self.params.crop_nms_thresh))
             masks = [masks[i] for i in keep]
             scores = scores[keep]
-        return MaskSet(np.stack(masks).astype(bool), scores.astype(np.float32))
+        return MaskSet(np.stack(masks).astype(bool), scores)  # float64 to the score threshold (round 75a F2)
 
 
 def mask_scores(iou_preds, stability):
