@@ -31,8 +31,8 @@ log = logging.getLogger(__name__)
 
 TASK_RETRIES = 3
 WAIT_SECONDS = 0.5  # a driver's wait on Ray results at a time, between checks of its cancel token (and stalled workers)
-STALL_SECONDS = 120.0  # a worker whose oldest call waits this long (plus 10x the slowest call seen) while the others
-#                        progress is taken for lost (its node gone, or never placed: the cluster's CPUs busy); see `stalled`
+STALL_SECONDS = 120.0  # a call that waits this long (plus 10x the slowest call seen) is stalled (its node gone, or never
+#                        placed: the cluster's CPUs busy); see `stalled`
 LOCAL_ADDRESSES = ("", "local")
 
 
@@ -328,10 +328,10 @@ def worker_slots(nodes: list[dict], gpus_per_worker: int) -> int:
 
 
 def stalled(waited: float, slowest: float) -> bool:
-    """Whether a Ray worker whose oldest call (or its start) has waited `waited` seconds is taken for
-    lost, the others having progressed meanwhile (the caller's condition): STALL_SECONDS plus 10x
-    the slowest call seen (`slowest`) have passed. Ray drivers then move its work to the other
-    workers (drsplat.registration.ray, drsplat.features.ray); a worker never placed (the cluster's
+    """Whether a Ray call (or a worker's start) that has waited `waited` seconds is stalled: STALL_SECONDS plus 10x
+    the slowest call seen (`slowest`) have passed. Ray drivers then have its work done elsewhere (registration sends
+    the call as well to an idle worker and takes the first answer; features, whose workers hold one call each, move
+    it while the others progress: drsplat.registration.ray, drsplat.features.ray); a worker never placed (the cluster's
     CPUs or GPUs taken by other work, or its node lost with no room to restart it) would otherwise
     be waited for forever. With no other worker progressing, `stalled(waited, 0.0)` bounds the
     wait for a worker that never starts at all. Read at call time, so a test may lower it."""

@@ -348,6 +348,23 @@ def test_camera_for_view_names_the_annotation_file():
         camera_for_view({"v": cam}, view)
 
 
+def test_an_annotation_of_another_size_gets_the_camera_its_image_was_stretched_to():
+    """Round 76b F2, F3: the camera was scaled by the width's factor and its height then overwritten, so fy and cy were
+    for another height (a 400x300 camera, an annotation of 986x728: cy 370 for 364, 11 px off at the bottom); and an
+    annotation of 986x728 for its -r 8 camera of 123x91 (8.016x, rounding) was refused as more than 8x."""
+    from drsplat.cameras import look_at_camera
+    from drsplat.eval.datasets import AnnotatedView, check_annotation_size
+    from drsplat.eval.lerf import camera_for_view
+
+    cam = look_at_camera((0, 0, -5.0), (0, 0, 0), 400, 300, fov_x_deg=60.0)
+    got = camera_for_view({"v": cam}, AnnotatedView("v", 986, 728, {}, path=Path("label/v.json")))
+    assert (got.width, got.height) == (986, 728)
+    np.testing.assert_allclose([got.fx, got.cx, got.fy, got.cy], [cam.fx * 986 / 400, cam.cx * 986 / 400, cam.fy * 728 / 300, 364.0])
+    check_annotation_size(Path("label/v.json"), "v", 986, 728, 123, 91)
+    with pytest.raises(InputError, match="more than 8 times"):
+        check_annotation_size(Path("label/v.json"), "v", 990, 736, 123, 91)
+
+
 def test_find_scannet_labels_says_missing_and_refuses_two(tmp_path):
     """A missing folder said 'no *_vh_clean_2.labels.ply in this folder'; two labels files were
     resolved to the first in sorted order without a word."""

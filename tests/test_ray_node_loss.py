@@ -66,7 +66,8 @@ def test_a_node_lost_once_the_workers_started_moves_its_views(cluster, tmp_path,
         thread.join(180)  # a forever-wait is what fails here (39 s of a 60 s bound were seen on a loaded machine)
     assert not thread.is_alive(), "the run waited for the lost node's worker"
     assert "error" not in box, box.get("error")
-    assert "a registration worker was lost" in caplog.text or "1 of 2 registration workers did not start in" in caplog.text
+    assert any(said in caplog.text for said in ("a registration worker was lost", "1 of 2 registration workers did not start in",
+                                                "1 of 2 registration workers became unavailable", "sent to another as well"))
     np.testing.assert_array_equal(box["result"].features, local.features)
     np.testing.assert_array_equal(box["result"].weights, local.weights)
 

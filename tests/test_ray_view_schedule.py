@@ -96,13 +96,13 @@ class SimulatedRay:
 
 
 def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict[str, float], errors: dict[str, Exception] | None = None,
-              lost: dict[int, int] | None = None):
+              lost: dict[int, int] | None = None, stall: float = 3.0):
     """(the names view_pairs yielded, the error it raised or None, the simulated seconds it took)."""
     clock = Clock()
     fake = SimulatedRay(clock)
     monkeypatch.setattr(ray_executor, "import_ray", lambda: fake)
     monkeypatch.setattr(ray_executor, "time", SimpleNamespace(monotonic=clock.monotonic))
-    monkeypatch.setattr("drsplat.cluster.STALL_SECONDS", 3.0)
+    monkeypatch.setattr("drsplat.cluster.STALL_SECONDS", stall)
     executor = object.__new__(ray_executor.RayExecutor)
     executor._placed, executor._refs, executor._features_dir = True, [], tmp_path
     executor._actors = [Worker(i, clock, seconds, errors or {}, (lost or {}).get(i)) for i in range(workers)]
@@ -124,12 +124,29 @@ def test_a_slow_call_of_the_only_worker_is_waited_for_not_taken_for_a_stall(monk
     assert error is None and got == ["v0", "v1", "v2", "v3"]
 
 
-def test_a_worker_that_hangs_while_the_other_progresses_is_taken_for_lost(monkeypatch, tmp_path, caplog):
-    """The rule still does what it is for: a call that never ends while the other worker finishes calls is moved."""
+def test_a_worker_that_hangs_while_the_other_progresses_has_its_calls_done_elsewhere(monkeypatch, tmp_path, caplog):
+    """The rule still does what it is for: a call that never ends (its node lost, Ray saying nothing) is sent to the
+    other worker once that one is idle."""
     with caplog.at_level(logging.WARNING, logger="drsplat"):
         got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=6, seconds={}, lost={1: 0})
     assert error is None and got == [f"v{i}" for i in range(6)] and took < 60
-    assert [r for r in caplog.records if "was lost" in r.getMessage()]
+    assert [r for r in caplog.records if "sent to another as well" in r.getMessage()]
+
+
+@pytest.mark.parametrize("case", ["slow first calls, one worker idle", "the idle worker's node lost", "a slow worker beside a lost one"])
+def test_a_slow_live_worker_is_never_stopped_and_a_lost_one_never_waited_for(monkeypatch, tmp_path, case):
+    """Round 76a F1-F3: taking the stalled worker for lost (and moving its calls) stopped live workers whose first calls
+    outlasted the bound while another had no call (a cold compile, slow views), moved a live worker's call onto an idle
+    worker whose node was lost, then waited for ever on it, and stopped a slow live worker while keeping a lost one.
+    A stalled call is now sent as well to an idle worker and the first answer taken: every run ends with every view."""
+    if case == "slow first calls, one worker idle":
+        run = dict(workers=2, views=1, seconds={"v0": 130.0})
+    elif case == "the idle worker's node lost":
+        run = dict(workers=2, views=1, seconds={"v0": 130.0}, lost={1: 0})
+    else:
+        run = dict(workers=2, views=8, seconds={"v3": 300.0}, lost={0: 4})
+    got, error, took = run_views(monkeypatch, tmp_path, stall=120.0, **run)
+    assert error is None and got == [f"v{i}" for i in range(run["views"])] and took < HUNG_SECONDS
 
 
 @pytest.mark.parametrize("fails", [False, True])

@@ -298,8 +298,8 @@ def demo_copy(demo, tmp_path):
 
 def test_query_never_selects_ranks_or_averages_gaussians_without_a_feature(demo_copy, query, tmp_path, capsys):
     """A PQ row's codes decode to some vector even when the Gaussian is unassigned (norm 0), and such a
-    Gaussian scores 0 as a cosine and exactly ½ as a relevancy: `--gaussians` of unassigned ids made a
-    query of them, and the default relevancy threshold (0.5) exported them, exit 0."""
+    Gaussian scores 0 as a cosine and scored exactly ½ as a relevancy (0 since round 75c): `--gaussians` of unassigned
+    ids made a query of them, and the default relevancy threshold (0.5) exported them, exit 0."""
     from drsplat.cli import main
 
     reg, unassigned = demo_copy
@@ -313,8 +313,8 @@ def test_query_never_selects_ranks_or_averages_gaussians_without_a_feature(demo_
                  str(tmp_path / "rel.npy"), "--out", str(tmp_path / "sel.ply")]) == 0
     printed = capsys.readouterr().out
     rel = np.load(tmp_path / "rel.npy")
-    assert np.all(rel[unassigned] == 0.5)
-    picked = np.count_nonzero(rel >= 0.5) - unassigned.size
+    assert np.all(rel[unassigned] == 0)
+    picked = np.count_nonzero(rel >= 0.5)
     assert load_ply(tmp_path / "sel.ply").num_gaussians == picked and f"{unassigned.size} Gaussians without a language feature left out" in printed
     assert main(["query", str(reg), "--embedding", str(q), "--threshold", "-1", "--top", "5"]) == 0
     assert f"{load_ply(reg).num_gaussians - unassigned.size} of" in capsys.readouterr().out

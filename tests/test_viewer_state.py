@@ -508,6 +508,12 @@ def test_a_relevancy_query_starts_at_the_clis_threshold_of_one_half(state):
     assert state.threshold == 0.5
     expected = select(state.query.scores, 0.5) & state.query.assigned
     np.testing.assert_array_equal(state.selection, expected)
+    # the colour scale spans the Gaussians with a feature (the others' relevancy is 0: round 76a F4)
+    assigned = state.query.assigned.copy()
+    assigned[:10] = False
+    scores = np.where(assigned, state.query.scores, np.float32(0))
+    state.query = dataclasses.replace(state.query, scores=scores, assigned=assigned)
+    assert state.score_range() == (float(scores[assigned].min()), float(scores[assigned].max())) and scores[assigned].min() > 0
 
 
 def test_the_viewers_scores_are_the_clis_bit_for_bit(state, tmp_path):

@@ -587,9 +587,12 @@ class ViewerState:
         return select(self.query.scores, self.threshold, self.query.assigned)
 
     def score_range(self) -> tuple[float, float]:
+        """The colour scale's ends: the finite scores of the Gaussians with a feature (the others score 0, which stretched
+        a relevancy scale down to 0: round 76a F4)."""
         if self.query is None:
             return 0.0, 1.0
-        s = self.query.scores[np.isfinite(self.query.scores)]
+        s = self.query.scores if self.query.assigned is None else self.query.scores[self.query.assigned]
+        s = s[np.isfinite(s)]
         if s.size == 0:
             return 0.0, 1.0
         lo, hi = float(s.min()), float(s.max())

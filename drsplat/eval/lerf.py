@@ -10,7 +10,6 @@ covers no pixel) is left out of both: its IoU would be 0 against any selection a
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -87,11 +86,10 @@ def camera_for_view(cameras: dict[str, Camera], view: AnnotatedView) -> Camera |
         return None
     if (cam.width, cam.height) == (view.width, view.height):
         return cam
-    sx, _ = check_annotation_size(view.path, view.name, view.width, view.height, cam.width, cam.height)
-    scaled = cam.scaled(sx)
-    if (scaled.width, scaled.height) != (view.width, view.height):
-        scaled = dataclasses.replace(scaled, width=view.width, height=view.height)
-    return scaled
+    check_annotation_size(view.path, view.name, view.width, view.height, cam.width, cam.height)
+    # each axis by its own factor, as a training image of another size is stretched to its camera's (round 76b F2: one
+    # factor for both, then the height overwritten, left fy and cy for another height: up to 11 px off at the bottom)
+    return cam.resized(view.width, view.height)
 
 
 def select_queries(scores: np.ndarray, threshold: float | None = None, assigned: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

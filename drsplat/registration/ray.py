@@ -248,10 +248,9 @@ class RayExecutor:
         not placed while others are is stopped, none placed in STALL_SECONDS is one DrsplatError.
         Calls go to the live actor with the fewest queued, at most IN_FLIGHT each, and never more than
         2 x IN_FLIGHT x workers chunks ahead of the next one to yield (bounds what waits here). A call
-        whose actor became unavailable (its node lost) goes to another actor, and an actor that makes
-        no progress for STALL_SECONDS (drsplat.cluster.stalled) while the others do (never placed: the cluster's CPUs busy; or
-        its node lost with no room to restart it) is stopped and its calls given to the others (the
-        views are the same bits wherever they are computed).
+        whose actor became unavailable (its node lost) goes to another actor, and a call that waits past
+        drsplat.cluster.stalled's bound is sent as well to an actor with nothing queued, the first answer taken
+        (`copy_stalled_calls`; the views are the same bits wherever they are computed).
         """
         ray = import_ray()
         if not self._placed:  # a cluster with no room for any worker is one error, not a wait for the first call
@@ -268,17 +267,20 @@ class RayExecutor:
         submitted = 0
         slowest = 0.0
         done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
+        settled: set[int] = set()  # chunks whose result (or error) is taken
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
+
+        def send(chunk: int, actor) -> None:
+            queued[actor.compute.remote(self._refs, chunks[chunk], marks_of(chunks[chunk]))] = (chunk, actor, time.monotonic())
+            load[id(actor)] += 1
 
         def submit(chunk: int) -> bool:
             live = [a for a in actors if load[id(a)] < IN_FLIGHT]
             if not live:
                 return False
-            actor = min(live, key=lambda a: load[id(a)])
-            queued[actor.compute.remote(self._refs, chunks[chunk], marks_of(chunks[chunk]))] = (chunk, actor, time.monotonic())
-            load[id(actor)] += 1
+            send(chunk, min(live, key=lambda a: load[id(a)]))
             return True
 
         def top_up(first_unyielded: int) -> None:
@@ -288,8 +290,12 @@ class RayExecutor:
             while submitted < min(len(chunks), first_unyielded + window) and submit(submitted):
                 submitted += 1
 
+        def copies(chunk: int) -> list:
+            """The actors a call of `chunk` is queued on."""
+            return [owner for c, owner, _ in queued.values() if c == chunk]
+
         def lose(actor, why: str) -> None:
-            """Stop `actor` and queue its calls again on the others."""
+            """Stop `actor` and queue its calls again on the others (those no other actor holds a copy of)."""
             if actor not in actors:
                 return
             actors.remove(actor)
@@ -299,7 +305,8 @@ class RayExecutor:
             for ref, (chunk, owner, _) in list(queued.items()):
                 if owner is actor:
                     del queued[ref]
-                    todo.append(chunk)
+                    if chunk not in settled and not copies(chunk):
+                        todo.append(chunk)
                     try:
                         ray.cancel(ref)
                     except Exception:  # noqa: BLE001 - the call of a dead actor
@@ -310,6 +317,60 @@ class RayExecutor:
                 log.debug("a lost worker was not killed (%s)", exc)
             todo.sort()
 
+        def take(ref) -> None:
+            """A finished call: its chunk's result, unless a copy's came first (then dropped: the same bits)."""
+            nonlocal slowest
+            chunk, actor, at = queued.pop(ref)
+            load[id(actor)] -= 1
+            done_at[id(actor)] = time.monotonic()
+            if chunk in settled:
+                return
+            try:
+                finished[chunk] = self._collect(ref)
+            except ray.exceptions.ActorUnavailableError:  # its node lost: the call may not have run; run it elsewhere
+                if not copies(chunk):
+                    attempts[chunk] = attempts.get(chunk, 0) + 1
+                    if attempts[chunk] > TASK_RETRIES:
+                        raise DrsplatError(f"views {chunks[chunk][0].name}.. found no available Ray worker in {TASK_RETRIES + 1} "
+                                           "tries; the views logged so far are kept: rerun to resume") from None
+                    todo.append(chunk)  # this call, then the others queued on the lost actor
+                lose(actor, "it became unavailable, its node lost")
+                todo.sort()
+                return
+            except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
+                finished[chunk] = _CallResult([], None, error=exc)  # (round 74d F1: it had left them unlogged)
+            settled.add(chunk)
+            slowest = max(slowest, done_at[id(actor)] - at)
+            for other, (c, _, _) in list(queued.items()):  # copies not begun yet are dropped; a running one ends unread
+                if c == chunk:
+                    try:
+                        ray.cancel(other)
+                    except Exception:  # noqa: BLE001 - a call that just finished, or a Ray without actor-task cancel
+                        pass
+
+        def copy_stalled_calls(now: float) -> None:
+            """A call waiting STALL_SECONDS + 10x the slowest call since it could begin (its submission, or its worker's
+            previous call's end) is sent as well to a worker with nothing queued (none: it waits). The first answer is
+            taken, so a worker is never stopped for being slow: a live one's answer counts whichever comes first, and a
+            lost node's calls (never placed, or lost with no room to restart it, where Ray reports nothing) are done
+            elsewhere. (Rounds 74d F2, 75a F1, 76a F1-F3: stopping the stalled worker stopped the only worker, hung the
+            run on a node lost after the others' last call, or stopped a live worker and left a lost one.)"""
+            idle = [a for a in actors if load[id(a)] == 0]
+            for chunk, actor, at in list(queued.values()):
+                if not idle:
+                    return
+                began = max(at, done_at.get(id(actor), at))
+                if chunk in settled or not stalled(now - began, slowest):
+                    continue
+                holders = [id(a) for a in copies(chunk)]
+                spare = next((a for a in idle if id(a) not in holders), None)
+                if spare is None:
+                    continue
+                idle.remove(spare)
+                log.warning("Ray: views %s.. waited %.0f s on one worker (its node lost, or the worker slow): sent to another "
+                            "as well; the first answer is taken (the same bits)", chunks[chunk][0].name, now - began)
+                send(chunk, spare)
+
         try:
             for index in range(len(chunks)):
                 top_up(index)
@@ -318,36 +379,8 @@ class RayExecutor:
                     if self.cancel is not None:
                         self.cancel.raise_if_cancelled()
                     for ref in ready:
-                        chunk, actor, at = queued.pop(ref)
-                        load[id(actor)] -= 1
-                        try:
-                            finished[chunk] = self._collect(ref)
-                        except ray.exceptions.ActorUnavailableError:  # its node lost: the call may not have run; run it elsewhere
-                            attempts[chunk] = attempts.get(chunk, 0) + 1
-                            if attempts[chunk] > TASK_RETRIES:
-                                raise DrsplatError(f"views {chunks[chunk][0].name}.. found no available Ray worker in {TASK_RETRIES + 1} "
-                                                   "tries; the views logged so far are kept: rerun to resume") from None
-                            todo.append(chunk)  # this call, then the others queued on the lost actor
-                            lose(actor, "it became unavailable, its node lost")
-                            todo.sort()
-                            continue
-                        except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
-                            finished[chunk] = _CallResult([], None, error=exc)  # (round 74d F1: it had left them unlogged)
-                        done_at[id(actor)] = time.monotonic()
-                        slowest = max(slowest, done_at[id(actor)] - at)
-                    now = time.monotonic()
-                    for ref, (chunk, actor, at) in list(queued.items()):
-                        # a call can start once submitted and its actor's previous call is done; a stall is no call of its
-                        # own since then while another worker finished one (its own last call is not the others' progress:
-                        # round 74d F2 saw a slow call kill the only worker)
-                        # ...or another worker is idle: the others' last calls may have ended before this one's could begin, and a
-                        # node lost after its worker's last call ended then hung the run (round 75a F1)
-                        began = max(at, done_at.get(id(actor), at))
-                        others = [a for a in actors if a is not actor]
-                        progressed = any(done_at.get(id(a), at) > at or load[id(a)] == 0 for a in others)
-                        if ref in queued and progressed and stalled(now - began, slowest):
-                            lose(actor, f"no call finished for {now - began:.0f} s while the others progressed: its node lost or the "
-                                        "cluster's CPUs taken by other work")
+                        take(ref)
+                    copy_stalled_calls(time.monotonic())
                     top_up(index)
                 result = finished.pop(index)
                 yield from result.views

@@ -530,7 +530,8 @@ def trimmed_features_reference(F: np.ndarray, slot_c: np.ndarray, slot_v: np.nda
 def trimmed_slots_reference(slot_c: np.ndarray, slot_v: np.ndarray, means: np.ndarray, threshold: float = CLUSTER_COSINE,
                             minority: float = MINORITY, slot_p: np.ndarray | None = None, specific: float = SPECIFIC) -> np.ndarray:
     """Numpy reference of the vote's decisions (module docstring, steps 3 and, with slot_p, 4): [B, S]
-    bool, the slots each Gaussian trims. slot_c: [B, S] int32 clusters (-1 empty), slot_v / slot_p:
+    bool, the slots each Gaussian trims. slot_c: [B, S] int32 clusters (-1 empty; slots fill in order, as the fold
+    fills them: the kernel reads a row whose second slot is empty as one cluster), slot_v / slot_p:
     [B, S] float64 votes / specificities, means: [K, D] unit μ_c."""
     b, num_slots = slot_c.shape
     out = np.zeros((b, num_slots), np.bool_)
