@@ -245,3 +245,21 @@ def test_a_cancel_is_seen_while_the_nodes_code_probe_waits_for_a_silent_node(mon
     with pytest.raises(Cancelled):
         cluster.check_nodes_run_this_code(fake, cancel=cancel)
     assert fake.timeouts and max(fake.timeouts) <= cluster.WAIT_SECONDS
+
+
+def test_a_call_stalled_on_a_lost_node_gets_one_new_copy_per_stall(monkeypatch, tmp_path):
+    """Round 77a F1: the stall was timed from the original call (on a lost node it never ends), so every worker that
+    went idle got one more copy of the same views, each computed in full (with --memory-budget, each written to a
+    shard). A chunk now gets one new copy per stall period, timed from its last copy."""
+    sent: list[tuple[int, str]] = []
+    submit = Worker._submit
+
+    def recorded(self, refs, chunk, marks):
+        sent.extend((self.pid, c.name) for c in chunk)
+        return submit(self, refs, chunk, marks)
+
+    monkeypatch.setattr(Worker, "_submit", recorded)
+    got, error, _ = run_views(monkeypatch, tmp_path, workers=4, views=8, seconds={f"v{i}": 20.0 for i in range(8)}, lost={0: 0})
+    assert error is None and got == [f"v{i}" for i in range(8)]
+    for name in ("v0", "v4"):  # the lost worker's two calls: each sent there and copied once
+        assert len([pid for pid, n in sent if n == name]) == 2, sent

@@ -268,6 +268,7 @@ class RayExecutor:
         slowest = 0.0
         done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
         settled: set[int] = set()  # chunks whose result (or error) is taken
+        copied_at: dict[int, float] = {}  # chunk -> when its last copy was sent (`copy_stalled_calls`)
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
@@ -322,9 +323,10 @@ class RayExecutor:
             nonlocal slowest
             chunk, actor, at = queued.pop(ref)
             load[id(actor)] -= 1
+            began = max(at, done_at.get(id(actor), at))  # the call's own time, not its wait behind the one before
             done_at[id(actor)] = time.monotonic()
-            if chunk in settled:
-                return
+            if chunk in settled:  # a copy's answer after the first (a begun call is not stopped: Ray answers its cancel at
+                return            # once while it runs on, so copies are left to answer and keep their worker's load true)
             try:
                 finished[chunk] = self._collect(ref)
             except ray.exceptions.ActorUnavailableError:  # its node lost: the call may not have run; run it elsewhere
@@ -340,13 +342,7 @@ class RayExecutor:
             except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
                 finished[chunk] = _CallResult([], None, error=exc)  # (round 74d F1: it had left them unlogged)
             settled.add(chunk)
-            slowest = max(slowest, done_at[id(actor)] - at)
-            for other, (c, _, _) in list(queued.items()):  # copies not begun yet are dropped; a running one ends unread
-                if c == chunk:
-                    try:
-                        ray.cancel(other)
-                    except Exception:  # noqa: BLE001 - a call that just finished, or a Ray without actor-task cancel
-                        pass
+            slowest = max(slowest, done_at[id(actor)] - began)
 
         def copy_stalled_calls(now: float) -> None:
             """A call waiting STALL_SECONDS + 10x the slowest call since it could begin (its submission, or its worker's
@@ -359,7 +355,7 @@ class RayExecutor:
             for chunk, actor, at in list(queued.values()):
                 if not idle:
                     return
-                began = max(at, done_at.get(id(actor), at))
+                began = max(at, done_at.get(id(actor), at), copied_at.get(chunk, at))  # one new copy per stall (round 77a F1)
                 if chunk in settled or not stalled(now - began, slowest):
                     continue
                 holders = [id(a) for a in copies(chunk)]
@@ -367,6 +363,7 @@ class RayExecutor:
                 if spare is None:
                     continue
                 idle.remove(spare)
+                copied_at[chunk] = now
                 log.warning("Ray: views %s.. waited %.0f s on one worker (its node lost, or the worker slow): sent to another "
                             "as well; the first answer is taken (the same bits)", chunks[chunk][0].name, now - began)
                 send(chunk, spare)
