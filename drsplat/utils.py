@@ -599,10 +599,8 @@ def replace_with_temp(tmp: Path, path: str | Path) -> None:
         os.replace(tmp, target)
     except OSError as exc:
         raise naming_path(exc, shown, tmp) from None
-    try:
+    with contextlib.suppress(OSError):  # a file system that cannot sync a folder (some network ones): the rename stands as it is
         _fsync_path(target.parent, folder=True)
-    except OSError:  # a file system that cannot sync a folder (some network ones): the rename stands as it is
-        pass
 
 
 def _fsync_path(path: Path, folder: bool = False) -> None:
