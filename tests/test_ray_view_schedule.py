@@ -40,8 +40,9 @@ class Call:
 
 
 class Worker:
-    """Runs its calls one after another: each view takes `seconds[name]` (1 s if not named); once `lost_after` calls
-    were submitted to it (None: never), its node is lost without a word and its later calls never end."""
+    """Runs its calls one after another: each view takes `seconds[(pid, name)]` or `seconds[name]` (1 s if not named)
+    and raises `errors[(pid, name)]` or `errors[name]`; once `lost_after` calls were submitted to it (None: never), its
+    node is lost without a word and its later calls never end."""
 
     def __init__(self, pid: int, clock: Clock, seconds: dict[str, float], errors: dict[str, Exception], lost_after: int | None) -> None:
         self.pid, self.clock, self.seconds, self.errors = pid, clock, seconds, errors
@@ -53,10 +54,11 @@ class Worker:
         names = [c.name for c in chunk]
         start = max(self.clock.now, self.free_at)
         lost = self.lost_after is not None and self.lost_after <= 0
-        self.free_at = math.inf if lost else start + sum(self.seconds.get(name, 1.0) for name in names)
+        self.free_at = math.inf if lost else start + sum(self.seconds.get((self.pid, n), self.seconds.get(n, 1.0)) for n in names)
         if self.lost_after is not None:
             self.lost_after -= 1
-        return Call(names, self.free_at, next((self.errors[n] for n in names if n in self.errors), None))
+        raised = (self.errors.get((self.pid, n), self.errors.get(n)) for n in names)
+        return Call(names, self.free_at, next((e for e in raised if e is not None), None))
 
 
 class SimulatedRay:
@@ -95,7 +97,7 @@ class SimulatedRay:
         pass
 
 
-def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict[str, float], errors: dict[str, Exception] | None = None,
+def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict, errors: dict | None = None,
               lost: dict[int, int] | None = None, stall: float = 3.0):
     """(the names view_pairs yielded, the error it raised or None, the simulated seconds it took)."""
     clock = Clock()
@@ -265,3 +267,23 @@ def test_a_call_stalled_on_a_lost_node_gets_one_new_copy_per_stall(monkeypatch, 
     assert error is None and got == [f"v{i}" for i in range(8)]
     for name in ("v0", "v4"):  # the lost worker's two calls: each sent there and copied once
         assert len([pid for pid, n in sent if n == name]) == 2, sent
+
+
+@pytest.mark.parametrize("failing", ["the copy", "the original"])
+def test_a_copy_that_fails_on_its_worker_does_not_undo_the_views_another_worker_computes(monkeypatch, tmp_path, failing):
+    """Round 78a F1: of a stalled call and its copy, the first error was taken as the views' answer while the other
+    call still ran and would answer: a copy on a node whose worker died (or whose features folder is not mounted) failed
+    a registration whose views worker 0 computed 10 s later. An error is now raised only once no copy of the call is
+    left to answer. (v0 takes 130 s on worker 0, past the 120 s bound: it is copied to the idle worker 1 at ~120 s.)"""
+    seconds = {(0, "v0"): 130.0, (1, "v0"): 5.0 if failing == "the copy" else 20.0}  # the failure comes first
+    errors = {(1 if failing == "the copy" else 0, "v0"): ValueError("features folder not visible on this node")}
+    got, error, _ = run_views(monkeypatch, tmp_path, workers=2, views=1, seconds=seconds, errors=errors, stall=120.0)
+    assert error is None and got == ["v0"]
+
+
+def test_a_call_that_fails_on_every_copy_raises_the_first_error(monkeypatch, tmp_path):
+    """The other side of the mend above: when each copy fails, the view's error is raised (the first to arrive)."""
+    seconds = {(0, "v0"): 130.0, (1, "v0"): 20.0}
+    errors = {(0, "v0"): ValueError("worker 0's error"), (1, "v0"): ValueError("worker 1's error")}
+    got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=2, seconds=seconds, errors=errors, stall=120.0)
+    assert got == [] and isinstance(error, ValueError) and "worker 0's error" in str(error) and took < HUNG_SECONDS

@@ -269,6 +269,7 @@ class RayExecutor:
         done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
         settled: set[int] = set()  # chunks whose result (or error) is taken
         copied_at: dict[int, float] = {}  # chunk -> when its last copy was sent (`copy_stalled_calls`)
+        failed: dict[int, Exception] = {}  # chunk -> the first error of its calls, raised once no copy of it is left
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
@@ -340,7 +341,10 @@ class RayExecutor:
                 todo.sort()
                 return
             except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
-                finished[chunk] = _CallResult([], None, error=exc)  # (round 74d F1: it had left them unlogged)
+                failed.setdefault(chunk, exc)  # (round 74d F1: it had left them unlogged)
+                if copies(chunk):  # another copy still runs: its answer may come (round 78a F1: an error on one worker's
+                    return         # node had been taken over the views another worker was computing)
+                finished[chunk] = _CallResult([], None, error=failed[chunk])
             settled.add(chunk)
             slowest = max(slowest, done_at[id(actor)] - began)
 
