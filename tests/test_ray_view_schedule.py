@@ -287,3 +287,12 @@ def test_a_call_that_fails_on_every_copy_raises_the_first_error(monkeypatch, tmp
     errors = {(0, "v0"): ValueError("worker 0's error"), (1, "v0"): ValueError("worker 1's error")}
     got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=2, seconds=seconds, errors=errors, stall=120.0)
     assert got == [] and isinstance(error, ValueError) and "worker 0's error" in str(error) and took < HUNG_SECONDS
+
+
+def test_a_call_that_failed_beside_a_copy_on_a_lost_node_raises_its_error_not_waits(monkeypatch, tmp_path):
+    """The mend above must not wait for ever on a copy that never answers: worker 0's node is lost holding v0 (Ray says
+    nothing), its copy fails on worker 1. The error is raised once the lost call has not answered in one more stall
+    bound (it had been copied again and again, each copy failing, for ever)."""
+    got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=2, seconds={}, errors={(1, "v0"): ValueError("v0 is bad")},
+                                 lost={0: 0}, stall=120.0)
+    assert got == [] and isinstance(error, ValueError) and took < HUNG_SECONDS

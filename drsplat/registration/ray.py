@@ -269,7 +269,7 @@ class RayExecutor:
         done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
         settled: set[int] = set()  # chunks whose result (or error) is taken
         copied_at: dict[int, float] = {}  # chunk -> when its last copy was sent (`copy_stalled_calls`)
-        failed: dict[int, Exception] = {}  # chunk -> the first error of its calls, raised once no copy of it is left
+        failed: dict[int, tuple[Exception, float]] = {}  # chunk -> the first error of its calls and when it came
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
@@ -341,12 +341,20 @@ class RayExecutor:
                 todo.sort()
                 return
             except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
-                failed.setdefault(chunk, exc)  # (round 74d F1: it had left them unlogged)
+                failed.setdefault(chunk, (exc, time.monotonic()))  # (round 74d F1: it had left them unlogged)
                 if copies(chunk):  # another copy still runs: its answer may come (round 78a F1: an error on one worker's
-                    return         # node had been taken over the views another worker was computing)
-                finished[chunk] = _CallResult([], None, error=failed[chunk])
+                    return         # node had been taken over the views another worker was computing); `give_up_on_failed`
+                finished[chunk] = _CallResult([], None, error=failed[chunk][0])
             settled.add(chunk)
             slowest = max(slowest, done_at[id(actor)] - began)
+
+        def give_up_on_failed(now: float) -> None:
+            """A chunk one of whose calls failed while a copy still ran takes that error once the copies left have not
+            answered in the stall bound since (their node may be lost: waiting on, or copying again, could be for ever)."""
+            for chunk, (exc, at) in failed.items():
+                if chunk not in settled and stalled(now - at, slowest):
+                    finished[chunk] = _CallResult([], None, error=exc)
+                    settled.add(chunk)
 
         def copy_stalled_calls(now: float) -> None:
             """A call waiting STALL_SECONDS + 10x the slowest call since it could begin (its submission, or its worker's
@@ -360,7 +368,7 @@ class RayExecutor:
                 if not idle:
                     return
                 began = max(at, done_at.get(id(actor), at), copied_at.get(chunk, at))  # one new copy per stall (round 77a F1)
-                if chunk in settled or not stalled(now - began, slowest):
+                if chunk in settled or chunk in failed or not stalled(now - began, slowest):
                     continue
                 holders = [id(a) for a in copies(chunk)]
                 spare = next((a for a in idle if id(a) not in holders), None)
@@ -381,6 +389,7 @@ class RayExecutor:
                         self.cancel.raise_if_cancelled()
                     for ref in ready:
                         take(ref)
+                    give_up_on_failed(time.monotonic())
                     copy_stalled_calls(time.monotonic())
                     top_up(index)
                 result = finished.pop(index)
