@@ -449,6 +449,21 @@ def test_query_with_float32_alone_draws_its_plot(tmp_path, capsys):
     assert "float32 matmul" in out
 
 
+def test_the_faiss_search_rows_show_their_error_as_not_measured_not_as_exact(tmp_path, capsys):
+    """Round 78d F2: faiss's top-k search rows printed mean |Δcos| 0, Spearman 1 and IoU 1, the record's defaults (no
+    all-N scores are compared for them), as if the search over PQ codes were exact; the LUT rows of the same codes
+    measure 0.006 at M=128. Now "–"; float32 is the reference (0 / 1 / 1) and the LUT rows keep their errors."""
+    argv = ["bench", "query", "--sizes", "1k", "--backends", "float32,pq128,faiss", "--dim", "128", "--labels", "5", "--queries", "2",
+            "--train", "300", "--cache-dir", tmp_path, "--repeats", "1", "--plot", tmp_path / "q.png"]
+    code, err, out = run_cli(argv, capsys)
+    assert code == 0, err
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[-4:-1]] for line in out.splitlines() if line.startswith("| ")}
+    faiss_rows = [r for name, r in rows.items() if "faiss search" in name]
+    assert faiss_rows and all(r == ["–", "–", "–"] for r in faiss_rows), rows
+    assert [float(v) for v in rows["float32 matmul"]] == [0.0, 1.0, 1.0]
+    assert float(rows["PQ M=128 (LUT)"][0]) > 0
+
+
 def test_a_corrupt_cached_codebook_is_trained_again(tmp_path, capsys):
     from drsplat.lang import load_codebook
 
