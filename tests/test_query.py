@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -1044,3 +1045,78 @@ def test_a_query_that_writes_no_scene_still_says_what_the_load_found(tmp_path, f
     for note in ("1 non-finite value in extra properties", "1 infinite opacity logit clamped", "1 zero quaternion replaced"):
         assert any(note in line for line in said[False]), (note, said[False])
         assert any(note in line for line in said[True]), (note, said[True])
+
+
+def test_a_second_embedding_file_is_a_usage_error_not_a_silent_replacement(tmp_path, registered, capsys):
+    """Round 78b F3: `query --embedding a.npy --embedding b.npy` (and segment's --embeddings) kept b alone, exit 0, while
+    --text repeats to add queries. Now exit 2 naming both files."""
+    np.save(tmp_path / "a.npy", np.ones(DIM, np.float32))
+    np.save(tmp_path / "b.npy", -np.ones(DIM, np.float32))
+    argv = ["query", str(registered["exact"]), "--embedding", str(tmp_path / "a.npy"), "--embedding", str(tmp_path / "b.npy"),
+            "--scores", str(tmp_path / "s.npy")]
+    with pytest.raises(SystemExit) as exit_:  # argparse's usage error
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "--embedding is given twice" in err and "a.npy" in err and "b.npy" in err
+    assert not (tmp_path / "s.npy").exists()
+    with pytest.raises(SystemExit) as exit_:
+        main(["segment", str(registered["exact"]), "--embeddings", str(tmp_path / "a.npy"), "--embeddings", str(tmp_path / "b.npy"),
+              "--out", str(tmp_path / "t.npy")])
+    assert exit_.value.code == 2 and "--embeddings is given twice" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model_id, expected", [
+    ("ViT-B-16/laion2b_s34b_b88k", ("ViT-B-16", "laion2b_s34b_b88k")),
+    ("ViT-L-14:openai", ("ViT-L-14", "openai")),
+    ("ViT-B-16/file:ckpt.pt", ("ViT-B-16", "file:ckpt.pt")),
+    ("ViT-L-14", ("ViT-L-14", None)),
+    ("hf-hub:laion/CLIP-ViT-g-14", ("hf-hub:laion/CLIP-ViT-g-14", None)),
+])
+def test_a_model_id_splits_after_its_architecture_at_either_separator(model_id, expected):
+    from drsplat.features.modelid import canonical_model_id, split_model_id
+
+    assert split_model_id(model_id) == expected
+    model, tag = expected
+    if tag is not None and not model.startswith("hf-hub:"):  # the split agrees with the ids' comparison
+        assert canonical_model_id(model_id) == canonical_model_id(f"{model}/{tag}")
+
+
+def test_a_scene_of_another_clip_model_asks_for_that_models_weights(tmp_path, capsys, monkeypatch):
+    """Round 78b F2: a field whose model id had no "/" ("ViT-L-14:openai", or no tag at all) asked for the default
+    ViT-B-16's weights, a model the scene was never made with. Now the field's architecture and tag, and an id with no
+    tag is one error asking for --pretrained or --clip-checkpoint."""
+    from drsplat.features import clip as clip_module
+
+    made = []
+
+    class Recorder:
+        def __init__(self, model, pretrained, checkpoint, device):
+            made.append((model, pretrained))
+            raise DrsplatError(f"no weights for {model} ({pretrained}) here")
+
+    monkeypatch.setattr(clip_module, "ClipEncoder", Recorder)
+    np.save(tmp_path / "q.npy", np.ones(DIM, np.float32))
+    for model_id, asked in (("ViT-L-14:openai", ("ViT-L-14", "openai")), ("ViT-L-14", None)):
+        field = build_field(np.eye(4, DIM, dtype=np.float32), np.ones(4, np.float32), "none", clip_model=model_id)
+        path = tmp_path / f"{model_id.replace(':', '_')}.ply"
+        save_ply(attach_field(tiny_scene(4), field, path), path)
+        made.clear()
+        assert main(["query", str(path), "--text", "chair"]) == 1
+        err = capsys.readouterr().err
+        if asked is None:
+            assert made == [] and "CLIP model id 'ViT-L-14' names no weights tag: pass --pretrained TAG" in err, err
+        else:
+            assert made == [asked] and "ViT-L-14 (openai)" in err, err
+
+
+def test_an_empty_selection_names_a_threshold_and_best_score_that_differ(tmp_path, registered, capsys):
+    """Round 78b F1: both were rounded to 4 decimals, so a threshold just above the best score read as
+    "no Gaussian scores >= 0.7773 (the best score is 0.7773)"."""
+    np.save(tmp_path / "q.npy", np.ones(DIM, np.float32))
+    assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--scores", str(tmp_path / "s.npy")]) == 0
+    best = float(np.load(tmp_path / "s.npy").max())
+    assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--threshold", repr(best + 2e-6),
+                 "--out", str(tmp_path / "sel.ply")]) == 1
+    err = capsys.readouterr().err
+    said = re.search(r"no Gaussian scores >= (\S+) \(the best score is (\S+)\)", err)
+    assert said and said.group(1) != said.group(2) and float(said.group(2).rstrip("):")) <= best + 1e-9, err

@@ -129,6 +129,17 @@ def ray_address(text: str) -> str:
 ray_address.__name__ = "address"
 
 
+class Once(argparse.Action):
+    """A one-value option given a second time is a usage error (argparse keeps the last without a word: `query
+    --embedding a.npy --embedding b.npy` queried b alone beside `--text`, which repeats to add: round 78b F3)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        earlier = getattr(namespace, self.dest, self.default)
+        if earlier is not self.default:
+            parser.error(f"{option_string} is given twice ({earlier}, then {values}); it takes one {self.metavar or 'value'}")
+        setattr(namespace, self.dest, values)
+
+
 def refuse_repeats(flag: str, values: Sequence, shown: Callable[[object], str] = repr) -> None:
     """UsageError naming the entries of the list flag `flag` given more than once: a slip (a table row or
     an ablation's mode twice), refused as --classes refuses its names."""
@@ -401,14 +412,16 @@ def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = 
     """The CLIP text encoder for a field: architecture and tag default to the field's model id.
     instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
     from drsplat.features.clip import ClipEncoder, model_for_config, use_clip_config
-    from drsplat.features.modelid import DEFAULT_MODEL
-    from drsplat.features.modelid import is_oracle
+    from drsplat.features.modelid import DEFAULT_MODEL, UNKNOWN_MODEL, is_oracle, split_model_id
 
     if is_oracle(field.clip_model):
         raise DrsplatError(f"this scene's features are synthetic oracle embeddings, not CLIP: pass {instead} instead of text")
     model, pretrained = DEFAULT_MODEL, None
-    if "/" in field.clip_model:
-        model, pretrained = field.clip_model.split("/", 1)
+    if field.clip_model and field.clip_model != UNKNOWN_MODEL:  # the field's own model (round 78b F2: an id without "/" asked
+        model, pretrained = split_model_id(field.clip_model)  # for the default ViT-B-16's weights)
+        if pretrained is None and not args.pretrained and args.clip_checkpoint is None:
+            raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} names no weights tag: pass --pretrained TAG "
+                               "or --clip-checkpoint FILE for the weights its features were made with")
     config = getattr(args, "clip_config", None)
     model = model_for_config(args.clip_model, config, default=model)
     use_clip_config(config)

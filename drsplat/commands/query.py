@@ -43,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("registered", type=Path, metavar="REGISTERED.ply", help="PLY written by drsplat register")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--text", action="append", metavar="PHRASE", help="text query (repeat for several); needs CLIP weights")
-    source.add_argument("--embedding", type=Path, metavar="Q.npy", help="query embedding(s), (D,) or (K, D)")
+    source.add_argument("--embedding", type=Path, action=common.Once, metavar="Q.npy", help="query embedding(s), (D,) or (K, D)")
     source.add_argument("--gaussians", type=Path, metavar="IDS.npy", help="Gaussian indices (or a boolean mask): query = mean of their features (a set: a repeated id counts once)")
     parser.add_argument("--relevancy", action="store_true", help="LERF relevancy against canonical negatives instead of cosine")
     add_lut_bits_argument(parser)
@@ -151,7 +151,9 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         # to stderr when --out or --scores is standard output itself (round 56d: `--out /dev/stdout | ...` began with this line)
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold:.4f}{left_out}", file=common.table_stream(args.out, args.scores))
         if args.out is not None and not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
-            raise DrsplatError(f"no Gaussian scores >= {threshold:.4f} (the best score is {float(best[assigned].max()):.4f}): "
+            top = float(best[assigned].max())
+            digits = next(d for d in range(4, 18) if f"{threshold:.{d}f}" != f"{top:.{d}f}" or d == 17)  # round 78b F1: "0.7773 (the best is 0.7773)"
+            raise DrsplatError(f"no Gaussian scores >= {threshold:.{digits}f} (the best score is {top:.{digits}f}): "
                                f"nothing written to {args.out}; lower --threshold")
         if args.out is not None:
             chosen = scene.subset(mask) if scene is not None else load_registered_rows(args.registered, mask, stamp)

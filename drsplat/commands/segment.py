@@ -47,7 +47,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("registered", type=Path, metavar="REGISTERED.ply", help="PLY written by drsplat register")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--labels", metavar="A,B,...", help="comma-separated label phrases (needs CLIP weights)")
-    source.add_argument("--embeddings", type=Path, metavar="L.npy", help="label embeddings (L, D)")
+    source.add_argument("--embeddings", type=Path, action=common.Once, metavar="L.npy", help="label embeddings (L, D)")
     parser.add_argument("--names", type=Path, metavar="NAMES.json",
                         help="names of the --embeddings rows (a JSON list); default: for a synthetic dataset's own "
                         "text_embeddings.npy, the gt/label_names.json beside it, else label_0, label_1, ...")

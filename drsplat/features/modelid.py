@@ -35,6 +35,19 @@ def canonical_model_id(model_id: str) -> str:
     return model_id.strip().replace(":", "/").lower()
 
 
+def split_model_id(model_id: str) -> tuple[str, str | None]:
+    """(architecture, weights tag or None) of a model id: split at its first '/' or ':' (the separators
+    `canonical_model_id` reads as one), so "ViT-L-14:openai" and "ViT-B-16/file:ckpt.pt" both split after
+    the architecture; an open_clip "hf-hub:ORG/REPO" architecture keeps its own ':' and '/'."""
+    model_id = model_id.strip()
+    if model_id.startswith("hf-hub:"):
+        return model_id, None
+    cut = min((i for i in (model_id.find("/"), model_id.find(":")) if i >= 0), default=-1)
+    if cut < 0:
+        return model_id, None
+    return model_id[:cut], model_id[cut + 1:] or None
+
+
 def manifest_clip_entry(model: str, pretrained: str | None, checkpoint: str | None = None) -> dict:
     """The manifest.json keys that record the CLIP model (`clip` and `clip_model_id`, always consistent)."""
     return {
