@@ -1117,6 +1117,7 @@ def test_an_empty_selection_names_a_threshold_and_best_score_that_differ(tmp_pat
     best = float(np.load(tmp_path / "s.npy").max())
     assert main(["query", str(registered["exact"]), "--embedding", str(tmp_path / "q.npy"), "--threshold", repr(best + 2e-6),
                  "--out", str(tmp_path / "sel.ply")]) == 1
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     said = re.search(r"no Gaussian scores >= (\S+) \(the best score is (\S+)\)", err)
     assert said and said.group(1) != said.group(2) and float(said.group(2).rstrip("):")) <= best + 1e-9, err
+    assert f"Gaussians score >= {said.group(1)}" in out + err  # the count's line too (round 79a F4: 4 decimals there)

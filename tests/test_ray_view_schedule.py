@@ -296,3 +296,14 @@ def test_a_call_that_failed_beside_a_copy_on_a_lost_node_raises_its_error_not_wa
     got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=2, seconds={}, errors={(1, "v0"): ValueError("v0 is bad")},
                                  lost={0: 0}, stall=120.0)
     assert got == [] and isinstance(error, ValueError) and took < HUNG_SECONDS
+
+
+def test_a_kept_error_waits_for_a_copy_from_when_that_copy_could_begin(monkeypatch, tmp_path):
+    """Round 79a F1: a kept error was raised one stall bound after the failure, although the copy left was queued behind
+    its worker's slow call and had not begun: worker 0 holds v0 (200 s) and v2 (100 s) behind it; v2's copy fails on
+    worker 1 at ~133 s; worker 0 answers v2 at 300 s, within the bound counted from when v2 could begin (v0's end, 200 s)
+    though not from the failure (~263 s)."""
+    seconds = {(0, "v0"): 200.0, (0, "v2"): 100.0}
+    got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=3, seconds=seconds, errors={(1, "v2"): ValueError("worker 1's error")},
+                                 stall=120.0)
+    assert error is None and got == ["v0", "v1", "v2"], (got, error, took)

@@ -256,6 +256,49 @@ def test_an_encoder_of_other_weights_turns_text_queries_off_and_leaves_the_other
     assert isinstance(state.encoder, same) and "ready" in state.encoder_status
 
 
+@pytest.mark.parametrize("model_id, built", [("ViT-L-14:openai", ("ViT-L-14", "openai")), ("ViT-L-14", None)])
+def test_the_text_encoder_is_the_fields_model_whatever_its_ids_separator(state, monkeypatch, model_id, built):
+    """Round 79a F3: the viewer split the field's CLIP id at '/' only, so "ViT-L-14:openai" (which the command line reads)
+    turned text queries off, and a tagless "ViT-L-14" loaded the default weights tag, after which every query failed
+    with a model mismatch. Now the id's architecture and tag; a tagless id without --clip-checkpoint says what to pass."""
+    import viewer.state as vs
+
+    made = []
+
+    class Recorder:
+        weights_digest = None
+
+        def __init__(self, model, pretrained, checkpoint, device=None):
+            made.append((model, pretrained))
+            self.model_id = f"{model}/{pretrained}"
+
+    monkeypatch.setattr(vs, "ClipEncoder", Recorder)
+    state.field = dataclasses.replace(state.field, clip_model=model_id, clip_weights=None)
+    state.clip_checkpoint = None
+    state._load_encoder(state.scene_version)
+    if built is None:
+        assert made == [] and state.encoder is None
+        assert "names no weights tag; pass --clip-checkpoint PATH" in state.encoder_status, state.encoder_status
+    else:
+        assert made == [built] and "ready" in state.encoder_status, state.encoder_status
+
+
+def test_a_tagless_model_id_matches_its_architecture_with_any_tag(caplog):
+    """Round 79a F2: the command line's advice for a field whose id names no weights tag ("pass --pretrained TAG")
+    could not work: the model check compared whole ids. A tagless id now matches its architecture with a warning;
+    other architectures (and the oracle's space) still do not."""
+    from drsplat.errors import DrsplatError
+    from drsplat.features.modelid import check_compatible
+
+    with caplog.at_level(logging.WARNING):
+        check_compatible("ViT-L-14", "ViT-L-14/openai")
+        check_compatible("vit-l-14:OPENAI", "ViT-L-14")
+    assert "names no weights tag" in caplog.text
+    for a, b in (("ViT-L-14", "ViT-B-16/openai"), ("ViT-L-14/laion2b_s32b_b82k", "ViT-L-14/openai"), ("oracle", "oracle/small-0")):
+        with pytest.raises(DrsplatError, match="CLIP model mismatch"):
+            check_compatible(a, b)
+
+
 @pytest.mark.parametrize("names, words", [(["ball", "mug", "ball"], 'repeats the name "ball"'), (["ball", " "], "empty name")])
 def test_typed_segmentation_labels_are_checked_like_the_clis(state, names, words):
     assert not state.run_segmentation(names)

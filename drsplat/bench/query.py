@@ -242,7 +242,8 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
         elif scores_all is not None:
             row.mean_abs_err, row.spearman, row.iou = errors_against(exact, scores_all(), thresholds, np.random.default_rng(args.seed))
         rows.append(row)
-        log.info("N=%d %s: %.2f ms/query (%.2f batched), err %s", n, name, row.ms_query, row.ms_query_batch, unmeasured_as_dash(row.mean_abs_err)[0])
+        err = "–" if row.mean_abs_err is None else f"{row.mean_abs_err:.4f}"
+        log.info("N=%d %s: %.2f ms/query (%.2f batched), err %s", n, name, row.ms_query, row.ms_query_batch, err)
 
     if f32 is not None:
         measure("float32 matmul", 4 * args.dim, lambda: f32 @ q1.T, lambda: f32 @ qb.T, exact)

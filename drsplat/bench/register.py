@@ -201,8 +201,8 @@ def ratio_line(mode: str, against: str, values: list[float]) -> str:
 def synthetic_table(preset: str, topks: list[int], mislabel: float, repeats: int, aggregate: str = DEFAULT_AGGREGATE,
                     against: str | None = None, mask_source: str | None = None) -> str:
     """The preset's room (seed 0) registered at each top-k: speed next to mIoU. With `against`, that
-    mode is timed in the same run, alternating (`timed_pair`), in two more columns: its ms per view and
-    the median of the ABBA blocks' time ratios (`ratios`)."""
+    mode is timed in the same run, alternating (`timed_pair`), in five more columns: its ms per view, the
+    median of the ABBA blocks' time ratios (`ratios`), and its assigned Gaussians, seg and loc mIoU."""
     from drsplat.cameras import load_cameras
     from drsplat.eval.metrics import significance_weights
     from drsplat.scene import load_ply

@@ -87,12 +87,19 @@ def model_id_sources(manifest: dict) -> list[tuple[str, str]]:
 def check_compatible(a: str | None, b: str | None, what_a: str = "the features", what_b: str = "the text encoder") -> None:
     """Raise DrsplatError unless two CLIP model ids can name the same embedding space.
 
-    A missing id (None, "" or "unknown") on either side is accepted with a warning: nothing says the spaces differ.
+    A missing id (None, "" or "unknown") on either side is accepted with a warning: nothing says the spaces differ;
+    so is an id naming an architecture without a weights tag ("ViT-L-14", as another tool's manifest may write it)
+    beside one of that architecture with a tag.
     """
     known = [m for m in (a, b) if m and m != UNKNOWN_MODEL]
     if len(known) < 2:
         if (a or UNKNOWN_MODEL) != (b or UNKNOWN_MODEL):
             log.warning("the CLIP model of %s is %s and of %s is %s: cannot check they match", what_a, a or UNKNOWN_MODEL, what_b, b or UNKNOWN_MODEL)
+        return
+    (arch_a, tag_a), (arch_b, tag_b) = (split_model_id(canonical_model_id(m)) for m in known)
+    if arch_a == arch_b != ORACLE_MODEL_ID and (tag_a is None or tag_b is None) and tag_a != tag_b:  # one names no weights (round 79a F2)
+        log.warning("the CLIP model of %s is %s and of %s is %s: one names no weights tag, so only the architecture is "
+                    "checked", what_a, a, what_b, b)
         return
     if canonical_model_id(known[0]) != canonical_model_id(known[1]):
         raise DrsplatError(

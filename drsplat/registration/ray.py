@@ -349,10 +349,15 @@ class RayExecutor:
             slowest = max(slowest, done_at[id(actor)] - began)
 
         def give_up_on_failed(now: float) -> None:
-            """A chunk one of whose calls failed while a copy still ran takes that error once the copies left have not
-            answered in the stall bound since (their node may be lost: waiting on, or copying again, could be for ever)."""
-            for chunk, (exc, at) in failed.items():
-                if chunk not in settled and stalled(now - at, slowest):
+            """A chunk one of whose calls failed while a copy still ran takes that error once every copy left has waited
+            the stall bound since the failure and since it could begin (its submission, or its worker's previous call's
+            end: a copy queued behind a slow call, or sent again after its node was lost, gets its own time; round 79a
+            F1). Their node may be lost: waiting on, or copying again, could be for ever."""
+            for chunk, (exc, failed_at) in failed.items():
+                if chunk in settled or chunk in todo:
+                    continue
+                left = [max(failed_at, at, done_at.get(id(owner), at)) for c, owner, at in queued.values() if c == chunk]
+                if all(stalled(now - began, slowest) for began in left):
                     finished[chunk] = _CallResult([], None, error=exc)
                     settled.add(chunk)
 
