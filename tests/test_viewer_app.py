@@ -68,6 +68,18 @@ def test_window_draws_the_scene_and_the_panels(app, tmp_path):
     assert "screenshot 320x240" in state.messages[-1].text
 
 
+def test_a_screenshot_of_a_window_past_the_drivers_largest_image_is_fitted_as_the_window_draws_it(app, tmp_path):
+    """Round 79b F3: the window fits its view within the driver's largest image, the View panel's screenshot did not: a
+    17000 px wide window drew the scene, its screenshot was refused ("the OpenGL driver renders 1 to 16384 pixels a side")."""
+    app.run(max_frames=1)
+    width, height = app.view.width, app.view.height
+    app.max_side = width // 2  # a driver whose largest image is half the window
+    app.screenshot(tmp_path / "shot.png")
+    fitted_w, fitted_h = width // 2, round(height * (width // 2) / width)
+    assert f"screenshot {fitted_w}x" in app.state.messages[-1].text, app.state.messages[-1].text
+    assert abs(int(app.state.messages[-1].text.split("x")[1].split()[0]) - fitted_h) <= 1
+
+
 def test_a_screenshot_to_a_fifo_nobody_reads_is_refused_not_waited_on(app, tmp_path, monkeypatch):
     """Round 53: the View panel's screenshot to a FIFO with no reader blocked the window's thread (no frame, no way to
     close it). It is refused at once, naming the FIFO; a typed `~/shot.png` is in the home folder, not a folder named `~`."""

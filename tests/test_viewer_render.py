@@ -417,6 +417,38 @@ def test_a_screenshot_threshold_that_selects_nothing_is_said(demo, tmp_path, cap
     assert "no Gaussian scores >= 1.0000: the screenshot shows nothing" in err
 
 
+def test_a_screenshot_that_shows_nothing_says_why(demo, tmp_path, capsys):
+    """Round 79b F2: `--mode hide_selection` with every Gaussian selected, and a camera with the whole scene behind it,
+    wrote an all-black image, exit 0, without a word (an empty selection was already said)."""
+    from viewer.launch import main
+
+    from drsplat.scene import load_ply, save_ply
+
+    from viewer.state import ViewerState
+
+    registered, dataset = demo
+    state = ViewerState()  # the Gaussians with a feature, every one of which a threshold of -1 selects
+    assert state.load_scene(registered) and state.load_source(dataset) and state.run_oracle_query(0)
+    state.set_threshold(-1.0)
+    assigned = tmp_path / "assigned.ply"
+    assert state.export_selection(assigned, "drsplat") == state.assigned_count
+    assert main([str(assigned), "--source", str(dataset), "--screenshot", str(tmp_path / "a.png"), "--width", "64",
+                 "--oracle", "mug", "--mode", "hide_selection", "--threshold", "-1"]) == 0
+    err = capsys.readouterr().err
+    assert "--mode hide_selection hides them all: the screenshot shows nothing" in err, err
+    scene = load_ply(registered)
+    from drsplat.cameras import load_cameras
+
+    cam = load_cameras(dataset, require_images=False)[1]
+    behind = dataclasses.replace(scene, means=(scene.means - 50.0 * np.asarray(cam.R, np.float32)[2]).astype(np.float32))  # moved behind camera 1
+    save_ply(behind, tmp_path / "behind.ply")
+    assert main([str(tmp_path / "behind.ply"), "--source", str(dataset), "--screenshot", str(tmp_path / "b.png"), "--width", "64",
+                 "--camera", "1"]) == 0
+    assert "the screenshot is all background (black): no Gaussian is drawn from this camera" in capsys.readouterr().err
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(tmp_path / "c.png"), "--width", "64", "--camera", "1"]) == 0
+    assert "all background" not in capsys.readouterr().err
+
+
 def test_a_scene_looks_the_same_at_any_scale_at_home_and_zoomed_in(gl_context, demo):
     """Round 71b F2: the renderer's near plane was 0.01 world units and the home radius at least 0.01, so the demo scene
     scaled by 1e-3 (an object 2 cm across, in metres) was cut away after 10 zoom steps and one scaled by 1e-6 was a dot at

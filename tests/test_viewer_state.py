@@ -256,6 +256,23 @@ def test_an_encoder_of_other_weights_turns_text_queries_off_and_leaves_the_other
     assert isinstance(state.encoder, same) and "ready" in state.encoder_status
 
 
+def test_a_registered_scene_without_its_codebook_says_so_not_register_again(state, tmp_path):
+    """Round 79b F1: a PQ PLY copied without its codebook: the load warning named the file, but the first screen, every
+    query and a drsplat-format export then said "no language field: register it", minutes of work where putting the
+    codebook back is the fix."""
+    from viewer.demo import demo_dir
+
+    lone = Path(shutil.copy(demo_dir() / "registered.ply", tmp_path / "lone.ply"))  # a PQ field, its codebook not beside it
+    assert state.load_scene(lone) and state.field is None
+    assert "codebook" in state.next_step() and "Registration panel" not in state.next_step(), state.next_step()
+    q = tmp_path / "q.npy"
+    np.save(q, np.ones(4, np.float32))
+    assert not state.run_embedding_query(q)
+    assert "cannot be read" in state.messages[-1].text and "register it first" not in state.messages[-1].text
+    assert state.export_selection(tmp_path / "x.ply", "drsplat") is None
+    assert "put the codebook back" in state.messages[-1].text
+
+
 @pytest.mark.parametrize("model_id, built", [("ViT-L-14:openai", ("ViT-L-14", "openai")), ("ViT-L-14", None)])
 def test_the_text_encoder_is_the_fields_model_whatever_its_ids_separator(state, monkeypatch, model_id, built):
     """Round 79a F3: the viewer split the field's CLIP id at '/' only, so "ViT-L-14:openai" (which the command line reads)

@@ -655,7 +655,9 @@ class ViewerApp:
             return
         path = typed_path(path)
         try:
-            image = render_offscreen(self.ctx, self.renderer, self.view.camera())
+            camera = self.view.camera()  # fitted within the driver's largest image, as the window draws it (round 79b F3)
+            camera = camera_for_size(camera, *fit_within(camera.width, camera.height, self.max_side))
+            image = render_offscreen(self.ctx, self.renderer, camera)
             with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
                 save_image(image, path)
             self._drawn_key = None

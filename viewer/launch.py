@@ -259,10 +259,18 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if args.mode in ("selection", "highlight") and not state.selection.any():  # the picture would show no match: say why
             log.warning("no Gaussian scores >= %.4f: the screenshot shows %s; lower --threshold", state.threshold,
                         "nothing (an empty image)" if args.mode == "selection" else "no highlight")
+        elif args.mode == "hide_selection" and state.selection.all():  # round 79b F2: a black image, said nowhere
+            log.warning("every Gaussian scores >= %.4f, so --mode hide_selection hides them all: the screenshot shows nothing (an "
+                        "empty image); raise --threshold", state.threshold)
     elif args.threshold is not None or args.mode != "highlight":  # nothing to select or colour by: say so rather than ignore them
         log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
                     "own colours", args.mode)
-    render_screenshot(state, camera, args.screenshot)
+    said_empty = wants_query and args.mode in ("selection", "hide_selection") and (not state.selection.any() if args.mode == "selection"
+                                                                                   else state.selection.all())
+    image = render_screenshot(state, camera, args.screenshot)
+    if image.size and not image.any() and not said_empty:  # the renderer's background is black
+        log.warning("the screenshot is all background (black): no Gaussian is drawn from this camera (the scene lies behind it or "
+                    "outside its view, or the scene and its cameras are in different frames); choose another --camera")  # round 79b F2
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
 

@@ -162,7 +162,7 @@ class ScenePanel:
             f = state.field
             imgui.text_wrapped(f"language field: {f.kind}, {f.dim}-D, {f.clip_model}, {state.assigned_count:,} assigned")  # as queries and `drsplat info` count them
         else:
-            imgui.text_colored(NOTE_COLOR, "no language field (see Registration)")
+            imgui.text_colored(NOTE_COLOR, "language field unreadable (see the messages)" if state.field_problem else "no language field (see Registration)")
         imgui.text("training cameras: being checked against the scene..." if state.cameras_pending else f"training cameras: {len(state.cameras)}")
         imgui.text(host.frame_stats())
 

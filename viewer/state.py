@@ -78,6 +78,7 @@ class ViewerState:
         self.scene_path: Path | None = None
         self.scene_refinements: np.ndarray | None = None  # the open scene's trainer's camera refinements (drsplat.frames)
         self.field = None  # drsplat.lang.LanguageField | None
+        self.field_problem: str | None = None
         self.assigned_count = 0  # the field's Gaussians with a feature (`LanguageField.assigned`), counted once per scene
         self.cameras: list[Camera] = []
         self.near_plane = NEAR  # registration's, decided with the cameras (`checked_cameras`)
@@ -155,7 +156,8 @@ class ViewerState:
             lang, problem = None, one_line(str(exc))
         self.set_scene(scene, lang, path, report.camera_refinements)
         if problem is not None:
-            self.encoder_status = f"Queries are off: the language field of {path.name} cannot be read ({problem})"
+            self.field_problem = f"the language field of {path.name} cannot be read ({problem})"
+            self.encoder_status = f"Queries are off: {self.field_problem}"
             self.warning(f"opened {path.name} without its language field: {problem}")
         return True
 
@@ -167,6 +169,7 @@ class ViewerState:
         self.drop_camera_check()  # it checked the cameras against the scene closed now
         self.same_place = False  # another scene: its own home view (a registration of the one in view sets it after this)
         self.scene, self.field, self.scene_path, self.scene_refinements = scene, lang, path, refinements
+        self.field_problem = None  # why a registered file's field could not be read (its codebook missing: `load_scene`)
         self.assigned_count = 0 if lang is None else int(lang.assigned().sum())
         self.query = None
         self.segmentation = None
@@ -286,6 +289,8 @@ class ViewerState:
         """What a person should do next, for the first screen (shown until a query runs)."""
         if self.scene is None:
             return "Open a scene: type a scene path (.ply, .splat, .spz) in the Scene panel, or drop the file on the window."
+        if self.field is None and self.field_problem is not None:
+            return f"Queries are off: {self.field_problem}. Put the file it names back beside the scene and open the scene again."
         if self.field is None:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
@@ -392,6 +397,13 @@ class ViewerState:
                    "at once (install tbb, or an OpenMP runtime, to query while registering)")
         return True
 
+    def no_field_message(self) -> str:
+        """Why nothing can be queried: the registered file's field unreadable (round 79b F1: a PQ PLY copied without its
+        codebook was told to register again), or no field at all."""
+        if self.field_problem is not None:
+            return f"{self.field_problem}; put the file it names back beside the scene and open the scene again"
+        return "this scene has no language field; register it first (the Registration panel, or `drsplat register`)"
+
     def _require_field(self) -> bool:
         if self.kernels_busy("a query"):
             return False
@@ -399,7 +411,7 @@ class ViewerState:
             self.error("no scene is loaded")
             return False
         if self.field is None:
-            self.error("this scene has no language field; register it first (Registration panel)")
+            self.error(self.no_field_message())
             return False
         if not self.field.assigned().any():  # as `drsplat query` refuses it: no threshold can select anything
             self.error(f"none of this scene's {len(self.field):,} Gaussians has a language feature (all unassigned, or their codes "
@@ -432,7 +444,7 @@ class ViewerState:
         if self.mode in ("color", "segmentation"):
             self.mode = "highlight"
         self.style_version += 1
-        self.info(f"{result.source} query '{result.name}' ({result.metric}): {int(self.selection.sum()):,} Gaussians at threshold {self.threshold:.3f}")
+        self.info(f"{result.source} query '{result.name}' ({result.metric}): {counted(int(self.selection.sum()), 'Gaussian', 'Gaussians')} at threshold {self.threshold:.3f}")
 
     def run_text_query(self, text: str) -> bool:
 
@@ -714,7 +726,8 @@ class ViewerState:
             self.error("no scene is loaded")
             return None
         if fmt == "drsplat" and self.field is None:
-            self.error("this scene has no language field: export it as a standard 3DGS PLY")
+            self.error(f"{self.field_problem}: export it as a standard 3DGS PLY, or put the codebook back" if self.field_problem
+                       else "this scene has no language field: export it as a standard 3DGS PLY")
             return None
         selected = self.export_mask()
         count = int(selected.sum())
