@@ -447,6 +447,17 @@ def test_a_screenshot_that_shows_nothing_says_why(demo, tmp_path, capsys):
     assert "the screenshot is all background (black): no Gaussian is drawn from this camera" in capsys.readouterr().err
     assert main([str(registered), "--source", str(dataset), "--screenshot", str(tmp_path / "c.png"), "--width", "64", "--camera", "1"]) == 0
     assert "all background" not in capsys.readouterr().err
+    from drsplat.scene import SH_C0
+
+    sh = np.zeros_like(scene.sh)
+    sh[:, 0] = -0.5 / SH_C0  # every colour 0: a black picture of Gaussians in view is the scene's, not an empty camera
+    save_ply(dataclasses.replace(scene, sh=sh), tmp_path / "black.ply")
+    assert main([str(tmp_path / "black.ply"), "--source", str(dataset), "--screenshot", str(tmp_path / "d.png"), "--width", "64",
+                 "--camera", "1"]) == 0
+    assert "all background" not in capsys.readouterr().err
+    from PIL import Image
+
+    assert not np.asarray(Image.open(tmp_path / "d.png")).any()  # black indeed
 
 
 def test_a_scene_looks_the_same_at_any_scale_at_home_and_zoomed_in(gl_context, demo):

@@ -13,6 +13,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from drsplat.cameras import load_cameras
 from drsplat.cli import setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
@@ -268,11 +270,26 @@ def screenshot(args: argparse.Namespace, state) -> int:
     said_empty = wants_query and args.mode in ("selection", "hide_selection") and (not state.selection.any() if args.mode == "selection"
                                                                                    else state.selection.all())
     image = render_screenshot(state, camera, args.screenshot)
-    if image.size and not image.any() and not said_empty:  # the renderer's background is black
+    if image.size and not image.any() and not said_empty and not centres_in_view(state.scene.means, camera):  # background: black
         log.warning("the screenshot is all background (black): no Gaussian is drawn from this camera (the scene lies behind it or "
                     "outside its view, or the scene and its cameras are in different frames); choose another --camera")  # round 79b F2
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
+
+
+def centres_in_view(means: np.ndarray, camera, chunk: int = 1 << 20) -> bool:
+    """Whether a Gaussian centre of means [N, 3] lies in front of `camera` and inside its image: a black screenshot is then
+    the scene's own colours, not a camera that sees nothing."""
+    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
+    for lo in range(0, len(means), chunk):
+        p = np.asarray(means[lo:lo + chunk], np.float64) @ R.T + t
+        z = p[:, 2]
+        front = z > 1e-6
+        u = camera.fx * p[front, 0] / z[front] + camera.cx
+        v = camera.fy * p[front, 1] / z[front] + camera.cy
+        if np.any((u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)):
+            return True
+    return False
 
 
 def interactive(state) -> int:
