@@ -12,6 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from drsplat.errors import DrsplatError
 from drsplat.registration import ray as ray_executor
 from drsplat.registration.compute import WorkerStats
 
@@ -86,6 +87,8 @@ class SimulatedRay:
         return [], refs
 
     def get(self, ref: Call):
+        if isinstance(ref.error, DrsplatError):  # as `_ViewWorker.compute`: a view's DrsplatError comes back in the result
+            return ray_executor._CallResult([], WorkerStats(pid=1), ref.error)
         if ref.error is not None:
             raise ref.error
         return ray_executor._CallResult(list(ref.names), WorkerStats(pid=1))
@@ -269,14 +272,17 @@ def test_a_call_stalled_on_a_lost_node_gets_one_new_copy_per_stall(monkeypatch, 
         assert len([pid for pid, n in sent if n == name]) == 2, sent
 
 
+@pytest.mark.parametrize("kind", [ValueError, DrsplatError], ids=["raised", "returned"])
 @pytest.mark.parametrize("failing", ["the copy", "the original"])
-def test_a_copy_that_fails_on_its_worker_does_not_undo_the_views_another_worker_computes(monkeypatch, tmp_path, failing):
+def test_a_copy_that_fails_on_its_worker_does_not_undo_the_views_another_worker_computes(monkeypatch, tmp_path, failing, kind):
     """Round 78a F1: of a stalled call and its copy, the first error was taken as the views' answer while the other
     call still ran and would answer: a copy on a node whose worker died (or whose features folder is not mounted) failed
     a registration whose views worker 0 computed 10 s later. An error is now raised only once no copy of the call is
-    left to answer. (v0 takes 130 s on worker 0, past the 120 s bound: it is copied to the idle worker 1 at ~120 s.)"""
+    left to answer. (v0 takes 130 s on worker 0, past the 120 s bound: it is copied to the idle worker 1 at ~120 s.)
+    Round 79c F1: a worker returns a view's DrsplatError in its result rather than raising it; that kind was still taken
+    at once on a real cluster (the simulation had only raised errors)."""
     seconds = {(0, "v0"): 130.0, (1, "v0"): 5.0 if failing == "the copy" else 20.0}  # the failure comes first
-    errors = {(1 if failing == "the copy" else 0, "v0"): ValueError("features folder not visible on this node")}
+    errors = {(1 if failing == "the copy" else 0, "v0"): kind("features folder not visible on this node")}
     got, error, _ = run_views(monkeypatch, tmp_path, workers=2, views=1, seconds=seconds, errors=errors, stall=120.0)
     assert error is None and got == ["v0"]
 
@@ -307,3 +313,13 @@ def test_a_kept_error_waits_for_a_copy_from_when_that_copy_could_begin(monkeypat
     got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=3, seconds=seconds, errors={(1, "v2"): ValueError("worker 1's error")},
                                  stall=120.0)
     assert error is None and got == ["v0", "v1", "v2"], (got, error, took)
+
+
+def test_a_stalled_call_with_no_worker_free_to_take_it_is_said_not_waited_on_in_silence(monkeypatch, tmp_path, caplog):
+    """Round 79c F2: with every worker's call stalled (a hung node, a shared folder that stopped answering) no copy can
+    be sent, and the run waited with nothing said. Now a warning once a stall period; the run still ends when the calls do."""
+    with caplog.at_level(logging.WARNING, logger="drsplat"):
+        got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=2, seconds={"v0": 700.0, "v1": 700.0}, stall=120.0)
+    assert error is None and got == ["v0", "v1"]
+    said = [r for r in caplog.records if "no other worker is free to take them" in r.getMessage()]
+    assert 2 <= len(said) <= 6, [r.getMessage() for r in said]  # ~700 s of waiting, one line a ~130 s period

@@ -269,7 +269,8 @@ class RayExecutor:
         done_at: dict[int, float] = {}  # id(actor) -> when its last call finished
         settled: set[int] = set()  # chunks whose result (or error) is taken
         copied_at: dict[int, float] = {}  # chunk -> when its last copy was sent (`copy_stalled_calls`)
-        failed: dict[int, tuple[Exception, float]] = {}  # chunk -> the first error of its calls and when it came
+        waiting_said: list[float | None] = [None]  # when a stalled call's wait with no worker free was last logged
+        failed: dict[int, tuple[_CallResult, float]] = {}  # chunk -> its first failed call's result and when it came
 
         def marks_of(chunk: list[Camera]) -> list:
             return [(feature_mark(seg_path(self._features_dir, c.name)), feature_mark(feat_path(self._features_dir, c.name))) for c in chunk]
@@ -329,7 +330,11 @@ class RayExecutor:
             if chunk in settled:  # a copy's answer after the first (a begun call is not stopped: Ray answers its cancel at
                 return            # once while it runs on, so copies are left to answer and keep their worker's load true)
             try:
-                finished[chunk] = self._collect(ref)
+                result = self._collect(ref)
+                if result.error is not None:  # a view's error, returned with the views before it (round 79c F1: only a
+                    keep_failure(chunk, result)  # raised error had waited for another copy; a worker returns its views' errors)
+                    return
+                finished[chunk] = result
             except ray.exceptions.ActorUnavailableError:  # its node lost: the call may not have run; run it elsewhere
                 if not copies(chunk):
                     attempts[chunk] = attempts.get(chunk, 0) + 1
@@ -341,24 +346,32 @@ class RayExecutor:
                 todo.sort()
                 return
             except Exception as exc:  # noqa: BLE001 - raised in view order, once the chunks before it are logged
-                failed.setdefault(chunk, (exc, time.monotonic()))  # (round 74d F1: it had left them unlogged)
-                if copies(chunk):  # another copy still runs: its answer may come (round 78a F1: an error on one worker's
-                    return         # node had been taken over the views another worker was computing); `give_up_on_failed`
-                finished[chunk] = _CallResult([], None, error=failed[chunk][0])
+                keep_failure(chunk, _CallResult([], None, error=exc))  # (round 74d F1: it had left them unlogged)
+                return
             settled.add(chunk)
             slowest = max(slowest, done_at[id(actor)] - began)
+
+        def keep_failure(chunk: int, result: _CallResult) -> None:
+            """A call of `chunk` that failed: its result (the views before the failing one, and the error) is the chunk's
+            once no copy is left to answer; while one runs its answer may come (round 78a F1: an error of one worker's
+            node, as a features folder not mounted there, had been taken over the views another worker was computing),
+            until `give_up_on_failed` says it waited long enough."""
+            failed.setdefault(chunk, (result, time.monotonic()))
+            if not copies(chunk):
+                finished[chunk] = failed[chunk][0]
+                settled.add(chunk)
 
         def give_up_on_failed(now: float) -> None:
             """A chunk one of whose calls failed while a copy still ran takes that error once every copy left has waited
             the stall bound since the failure and since it could begin (its submission, or its worker's previous call's
             end: a copy queued behind a slow call, or sent again after its node was lost, gets its own time; round 79a
             F1). Their node may be lost: waiting on, or copying again, could be for ever."""
-            for chunk, (exc, failed_at) in failed.items():
+            for chunk, (result, failed_at) in failed.items():
                 if chunk in settled or chunk in todo:
                     continue
                 left = [max(failed_at, at, done_at.get(id(owner), at)) for c, owner, at in queued.values() if c == chunk]
                 if all(stalled(now - began, slowest) for began in left):
-                    finished[chunk] = _CallResult([], None, error=exc)
+                    finished[chunk] = result
                     settled.add(chunk)
 
         def copy_stalled_calls(now: float) -> None:
@@ -370,10 +383,15 @@ class RayExecutor:
             run on a node lost after the others' last call, or stopped a live worker and left a lost one.)"""
             idle = [a for a in actors if load[id(a)] == 0]
             for chunk, actor, at in list(queued.values()):
-                if not idle:
-                    return
                 began = max(at, done_at.get(id(actor), at), copied_at.get(chunk, at))  # one new copy per stall (round 77a F1)
                 if chunk in settled or chunk in failed or not stalled(now - began, slowest):
+                    continue
+                if not idle:  # every worker busy or stuck: said once a stall period, not waited on in silence (round 79c F2)
+                    if waiting_said[0] is None or stalled(now - waiting_said[0], slowest):
+                        waiting_said[0] = now
+                        log.warning("Ray: views %s.. waited %.0f s on one worker and no other worker is free to take them (each "
+                                    "is busy or stalled too: a hung node or a shared folder that stopped answering); waiting on "
+                                    "(Ctrl-C stops; the views logged so far are kept)", chunks[chunk][0].name, now - began)
                     continue
                 holders = [id(a) for a in copies(chunk)]
                 spare = next((a for a in idle if id(a) not in holders), None)
