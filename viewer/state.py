@@ -290,7 +290,7 @@ class ViewerState:
         if self.scene is None:
             return "Open a scene: type a scene path (.ply, .splat, .spz) in the Scene panel, or drop the file on the window."
         if self.field is None and self.field_problem is not None:
-            return f"Queries are off: {self.field_problem}. Put the file it names back beside the scene and open the scene again."
+            return f"Queries are off: {self.field_problem}. Mend what it names (a codebook moved away: put it back) and open the scene again."
         if self.field is None:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
@@ -341,7 +341,7 @@ class ViewerState:
         """Load the encoder for the scene of `version`; dropped if another scene opened meanwhile."""
         model_id = self.field.clip_model if self.field is not None else ""
         name, pretrained = split_model_id(model_id)  # at '/' or ':', as the command line (round 79a F3)
-        if name in ("", UNKNOWN_MODEL):
+        if name.lower() in ("", UNKNOWN_MODEL):  # ids compare case-insensitively (round 80a F4)
             name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
         elif pretrained is None and self.clip_checkpoint is None:
             if version == self.scene_version:
@@ -401,7 +401,7 @@ class ViewerState:
         """Why nothing can be queried: the registered file's field unreadable (round 79b F1: a PQ PLY copied without its
         codebook was told to register again), or no field at all."""
         if self.field_problem is not None:
-            return f"{self.field_problem}; put the file it names back beside the scene and open the scene again"
+            return f"{self.field_problem}; mend what it names (a codebook moved away: put it back) and open the scene again"
         return "this scene has no language field; register it first (the Registration panel, or `drsplat register`)"
 
     def _require_field(self) -> bool:
@@ -726,7 +726,7 @@ class ViewerState:
             self.error("no scene is loaded")
             return None
         if fmt == "drsplat" and self.field is None:
-            self.error(f"{self.field_problem}: export it as a standard 3DGS PLY, or put the codebook back" if self.field_problem
+            self.error(f"{self.field_problem}: export it as a standard 3DGS PLY, or mend what it names first" if self.field_problem
                        else "this scene has no language field: export it as a standard 3DGS PLY")
             return None
         selected = self.export_mask()

@@ -91,7 +91,7 @@ def check_compatible(a: str | None, b: str | None, what_a: str = "the features",
     so is an id naming an architecture without a weights tag ("ViT-L-14", as another tool's manifest may write it)
     beside one of that architecture with a tag.
     """
-    known = [m for m in (a, b) if m and m != UNKNOWN_MODEL]
+    known = [m for m in (a, b) if m and canonical_model_id(m) != UNKNOWN_MODEL]
     if len(known) < 2:
         if (a or UNKNOWN_MODEL) != (b or UNKNOWN_MODEL):
             log.warning("the CLIP model of %s is %s and of %s is %s: cannot check they match", what_a, a or UNKNOWN_MODEL, what_b, b or UNKNOWN_MODEL)

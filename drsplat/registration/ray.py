@@ -363,9 +363,11 @@ class RayExecutor:
 
         def give_up_on_failed(now: float) -> None:
             """A chunk one of whose calls failed while a copy still ran takes that error once every copy left has waited
-            the stall bound since the failure and since it could begin (its submission, or its worker's previous call's
-            end: a copy queued behind a slow call, or sent again after its node was lost, gets its own time; round 79a
-            F1). Their node may be lost: waiting on, or copying again, could be for ever."""
+            the stall bound since the failure and since it could begin as far as the driver knows (its submission, or its
+            worker's last finished call's end: a copy sent again after its node was lost gets its own time, round 79a F1;
+            one queued behind a call still running is timed from its submission, so a worker that answers nothing for
+            the bound is taken for lost, as the copies' rule takes it, round 80a F1). Waiting for the call ahead instead
+            would wait for ever on a node lost where Ray says nothing."""
             for chunk, (result, failed_at) in failed.items():
                 if chunk in settled or chunk in todo:
                     continue
